@@ -1,0 +1,46 @@
+# The two commands of the README: `make test` and `make demo`. Both set up
+# everything they need on a fresh machine (a .venv beside this file).
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export MUJOCO_GL ?= egl
+export PYOPENGL_PLATFORM ?= egl
+
+.PHONY: test demo setup bench-rasterizer bench-sim bench-quick bench-paper bench-touches clean
+
+setup: $(STAMP)
+
+# torch first and pinned: 2.13.0 is the CPU wheel on these machines; letting
+# pip choose pulls a multi-GB CUDA build.
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -m "not slow" -q
+
+demo: $(STAMP)
+	$(VENV)/bin/tacsplat demo --out demo-output
+
+bench-rasterizer: $(STAMP)
+	$(VENV)/bin/tacsplat bench rasterizer --json bench-output/rasterizer.json
+
+bench-sim: $(STAMP)
+	$(VENV)/bin/tacsplat bench sim --out bench-output/sim
+
+bench-quick: $(STAMP)
+	$(PY) -m pytest -m slow -q -k quick
+
+bench-paper: $(STAMP)
+	$(VENV)/bin/tacsplat bench paper --objects all --out bench-output/paper
+
+bench-touches: $(STAMP)
+	$(VENV)/bin/tacsplat bench touches --out bench-output/touches
+
+clean:
+	rm -rf $(VENV) demo-output bench-output .pytest_cache

@@ -1,0 +1,1 @@
+"""tacsplat.acquisition (see DESIGN.md)."""

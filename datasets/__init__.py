@@ -1,0 +1,1 @@
+"""tacsplat.datasets (see DESIGN.md)."""

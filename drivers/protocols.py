@@ -1,0 +1,71 @@
+"""The device interface (DESIGN.md): real drivers and the MuJoCo twin both implement these.
+
+``tacsplat.acquisition`` only ever sees these Protocols.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from tacsplat.types import TactileReading
+
+
+@runtime_checkable
+class Hand(Protocol):
+    """A multi-finger hand; a context manager that always leaves the hardware safe (torque off)."""
+
+    @property
+    def joint_names(self) -> Sequence[str]: ...
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        """[n_joints, 2] lower and upper limits in radians."""
+        ...
+
+    def read_joint_positions(self) -> np.ndarray:
+        """[n_joints] radians."""
+        ...
+
+    def command_joint_positions(self, q: np.ndarray) -> None:
+        """Command [n_joints] radians (clamped to the joint limits, clamping logged)."""
+        ...
+
+    def fingertip_poses(self) -> dict[str, np.ndarray]:
+        """Tactile sensor frames in the hand frame, ``{finger: T_hand_sensor}``, from forward kinematics."""
+        ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> "Hand": ...
+
+    def __exit__(self, *exc) -> None: ...
+
+
+@runtime_checkable
+class TactileSensor(Protocol):
+    @property
+    def name(self) -> str: ...
+
+    def read(self) -> TactileReading:
+        """A reading whose pose is in the hand frame (``frame == "hand"``)."""
+        ...
+
+
+@runtime_checkable
+class Camera(Protocol):
+    @property
+    def K(self) -> np.ndarray:
+        """[3, 3] OpenCV intrinsics of the undistorted images."""
+        ...
+
+    @property
+    def width(self) -> int: ...
+
+    @property
+    def height(self) -> int: ...
+
+    def read(self) -> tuple[np.ndarray, float]:
+        """``(image [H, W, 3] uint8 RGB undistorted, timestamp seconds)``."""
+        ...

@@ -1,0 +1,1 @@
+"""tacsplat.reconstruction (see DESIGN.md)."""

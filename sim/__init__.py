@@ -1,0 +1,1 @@
+"""tacsplat.sim (see DESIGN.md)."""

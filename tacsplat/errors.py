@@ -1,0 +1,64 @@
+"""Exception types shared by every part of tacsplat.
+
+Each error says *what* is at fault (a file and field, a device, a config key, a
+tensor) so that one message is enough to fix the input.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class TacsplatError(Exception):
+    """Base class of every error tacsplat raises on purpose."""
+
+
+class SceneFormatError(TacsplatError):
+    """A scene directory (or an imported dataset) is invalid.
+
+    ``path`` is the file at fault and ``field`` the key or record inside it.
+    """
+
+    def __init__(self, path: str | Path, field: str | None, message: str):
+        self.path = Path(path)
+        self.field = field
+        where = f"{self.path}" + (f" [{field}]" if field else "")
+        super().__init__(f"{where}: {message}")
+
+
+class ConfigError(TacsplatError):
+    """A configuration (rig YAML, CLI options, simulation settings) is invalid; names the key."""
+
+    def __init__(self, key: str, message: str, source: str | Path | None = None):
+        self.key = key
+        self.source = source
+        prefix = f"{source}: " if source else ""
+        super().__init__(f"{prefix}{key}: {message}")
+
+
+class InvalidInputError(TacsplatError, ValueError):
+    """A tensor or array argument is invalid (NaN, wrong shape, ...); names the argument."""
+
+
+class DeviceError(TacsplatError):
+    """A device (real or simulated) failed; names the device."""
+
+    def __init__(self, device: str, message: str):
+        self.device = device
+        super().__init__(f"{device}: {message}")
+
+
+class HandError(DeviceError):
+    """The hand failed: a servo is missing, returned an error, or did not answer."""
+
+
+class CameraError(DeviceError):
+    """A camera failed: could not open, wrong resolution or fps, no frame in time."""
+
+
+class TactileError(DeviceError):
+    """A tactile sensor failed or its calibration is unusable."""
+
+
+class SimulationError(TacsplatError):
+    """The simulation became unstable or was configured with unsafe settings."""

@@ -1,0 +1,235 @@
+"""Shared geometry: poses, camera conventions, projection, depth and touch lifting.
+
+Conventions (DESIGN.md):
+
+* Poses are 4x4 float64 homogeneous matrices named ``T_a_b``: they map points
+  from frame b into frame a (``p_a = T_a_b @ p_b``).
+* Cameras are OpenCV pinhole inside the code (x right, y down, z forward).
+  OpenGL (x right, y up, z backward: nerfstudio, Blender) is converted only at
+  a format boundary, with :func:`opencv_to_opengl` / :func:`opengl_to_opencv`.
+* Continuous image coordinates: pixel (row r, column c) covers
+  ``[c, c + 1) x [r, r + 1)`` and its centre is ``(c + 0.5, r + 0.5)``, as in
+  gsplat and nerfstudio (so a centred camera has ``cx = width / 2``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tacsplat.errors import InvalidInputError
+
+# Flips y and z: OpenCV camera axes <-> OpenGL camera axes (an involution).
+_CV_GL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def as_pose(T, name: str = "pose") -> np.ndarray:
+    """Return ``T`` as a float64 [4, 4] array, or raise naming ``name``."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InvalidInputError(f"{name}: expected a 4x4 matrix, got shape {T.shape}")
+    return T
+
+
+def rigidity_problem(T, atol: float = 1e-5) -> str | None:
+    """Why ``T`` is not a rigid transform (finite, orthonormal, det +1, last row 0 0 0 1), or None."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return "contains NaN or infinite values"
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=atol):
+        return f"last row is {T[3].tolist()}, expected [0, 0, 0, 1]"
+    R = T[:3, :3]
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > atol:
+        return f"rotation is not orthonormal (max |R^T R - I| = {err:.3g})"
+    det = np.linalg.det(R)
+    if abs(det - 1.0) > atol:
+        return f"rotation determinant is {det:.6g}, expected 1"
+    return None
+
+
+def check_rigid(T, name: str = "pose", atol: float = 1e-5) -> np.ndarray:
+    """Return ``T`` as float64 [4, 4] if it is rigid, else raise naming ``name``."""
+    T = as_pose(T, name)
+    problem = rigidity_problem(T, atol)
+    if problem:
+        raise InvalidInputError(f"{name}: not a rigid transform: {problem}")
+    return T
+
+
+def make_pose(R, t) -> np.ndarray:
+    """Homogeneous pose from a rotation [3, 3] and a translation [3]."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert_pose(T) -> np.ndarray:
+    """Inverse of a rigid transform (``T_b_a`` from ``T_a_b``), exact for rotations."""
+    T = as_pose(T)
+    R, t = T[:3, :3], T[:3, 3]
+    return make_pose(R.T, -R.T @ t)
+
+
+def compose(*poses) -> np.ndarray:
+    """``compose(T_a_b, T_b_c, ...) = T_a_b @ T_b_c @ ...``."""
+    out = np.eye(4)
+    for i, T in enumerate(poses):
+        out = out @ as_pose(T, f"pose {i}")
+    return out
+
+
+def transform_points(T, points) -> np.ndarray:
+    """Apply ``T`` [4, 4] to points [N, 3]; returns [N, 3] float64."""
+    T = as_pose(T)
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    return p @ T[:3, :3].T + T[:3, 3]
+
+
+def opencv_to_opengl(T_world_cam) -> np.ndarray:
+    """Camera-to-world pose with OpenCV camera axes -> the same camera with OpenGL axes."""
+    return as_pose(T_world_cam) @ _CV_GL_FLIP
+
+
+def opengl_to_opencv(T_world_cam_gl) -> np.ndarray:
+    """Camera-to-world pose with OpenGL camera axes -> the same camera with OpenCV axes."""
+    return as_pose(T_world_cam_gl) @ _CV_GL_FLIP
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """OpenCV camera-to-world pose at ``eye`` looking at ``target``, image-up towards ``up``."""
+    eye = np.asarray(eye, dtype=np.float64)
+    z = np.asarray(target, dtype=np.float64) - eye
+    norm = np.linalg.norm(z)
+    if norm == 0:
+        raise InvalidInputError("look_at: eye and target coincide")
+    z /= norm
+    up = np.asarray(up, dtype=np.float64)
+    x = np.cross(z, up)
+    if np.linalg.norm(x) < 1e-9:  # looking along `up`: pick any perpendicular
+        x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return make_pose(np.stack([x, y, z], axis=1), eye)
+
+
+def focal_from_fov(fov_rad: float, size_px: int) -> float:
+    """Focal length in pixels of a pinhole with full field of view ``fov_rad`` over ``size_px``."""
+    return 0.5 * size_px / np.tan(0.5 * fov_rad)
+
+
+def intrinsics_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def project_points(points_world, K, T_world_cam) -> tuple[np.ndarray, np.ndarray]:
+    """Project world points [N, 3] into an OpenCV camera.
+
+    Returns ``(uv [N, 2], z [N])``: continuous pixel coordinates (pixel centres
+    at +0.5) and camera-frame depth. Points with ``z <= 0`` get ``uv = nan``.
+    """
+    p_cam = transform_points(invert_pose(T_world_cam), points_world)
+    z = p_cam[:, 2]
+    K = np.asarray(K, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (p_cam[:, :2] / z[:, None]) @ K[:2, :2].T + K[:2, 2]
+    uv[z <= 0] = np.nan
+    return uv, z
+
+
+def pixel_centres(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Continuous coordinates (u [H, W], v [H, W]) of every pixel centre."""
+    v, u = np.meshgrid(np.arange(height) + 0.5, np.arange(width) + 0.5, indexing="ij")
+    return u, v
+
+
+def unproject_depth(depth, K, T_world_cam, mask=None) -> np.ndarray:
+    """Lift a z-depth map [H, W] (metres along the optical axis) to world points [M, 3].
+
+    Pixels with depth <= 0, non-finite depth, or ``mask == False`` are skipped.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise InvalidInputError(f"depth: expected [H, W], got shape {depth.shape}")
+    keep = np.isfinite(depth) & (depth > 0)
+    if mask is not None:
+        keep &= np.asarray(mask, dtype=bool)
+    u, v = pixel_centres(*depth.shape)
+    K = np.asarray(K, dtype=np.float64)
+    z = depth[keep]
+    x = (u[keep] - K[0, 2]) / K[0, 0] * z
+    y = (v[keep] - K[1, 2]) / K[1, 1] * z
+    return transform_points(T_world_cam, np.stack([x, y, z], axis=1))
+
+
+def tactile_pixel_grid(height: int, width: int, pixel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sensor-frame (x [h, w], y [h, w]) of every tactile pixel centre (DESIGN.md)."""
+    y, x = np.meshgrid(
+        (np.arange(height) + 0.5 - height / 2) * pixel_size_m,
+        (np.arange(width) + 0.5 - width / 2) * pixel_size_m,
+        indexing="ij",
+    )
+    return x, y
+
+
+def tactile_depth_to_points(depth, pixel_size_m: float, T_world_sensor, threshold_m: float = 1e-5) -> np.ndarray:
+    """The one lifting of a tactile depth map to contact points [M, 3] in the world.
+
+    A pixel with indentation ``d > threshold_m`` is the contact point
+    ``T_world_sensor @ (x, y, -d, 1)`` (the sensor's z is the gel's outward
+    normal, so the touched surface lies *behind* the undeformed gel plane).
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2:
+        raise InvalidInputError(f"tactile depth: expected [h, w], got shape {depth.shape}")
+    if not np.all(np.isfinite(depth)):
+        raise InvalidInputError("tactile depth: contains NaN or infinite values")
+    x, y = tactile_pixel_grid(*depth.shape, pixel_size_m)
+    hit = depth > threshold_m
+    pts = np.stack([x[hit], y[hit], -depth[hit]], axis=1)
+    return transform_points(T_world_sensor, pts)
+
+
+def quat_wxyz_to_matrix(q) -> np.ndarray:
+    """Rotation matrix [3, 3] of a quaternion (w, x, y, z); normalised first."""
+    q = np.asarray(q, dtype=np.float64)
+    n = np.linalg.norm(q)
+    if n == 0 or not np.isfinite(n):
+        raise InvalidInputError(f"quaternion {q.tolist()} cannot be normalised")
+    w, x, y, z = q / n
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat_wxyz(R) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) with w >= 0 of a rotation matrix [3, 3]."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * np.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def rotation_angle_between(R_a, R_b) -> float:
+    """Angle in radians of the rotation taking ``R_a`` to ``R_b``."""
+    c = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
