@@ -22,6 +22,7 @@ from tacsplat.errors import TacsplatError
 COMMAND_MODULES = (
     "tacsplat.datasets.cli",
     "tacsplat.reconstruction.cli",
+    "tacsplat.reconstruction.bench_rasterizer",
     "tacsplat.sim.cli",
     "tacsplat.drivers.cli",
     "tacsplat.acquisition.cli",
