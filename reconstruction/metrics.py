@@ -1,0 +1,111 @@
+"""Image and geometry metrics of the evaluation protocol (DESIGN.md): PSNR, SSIM, Chamfer distance."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from scipy.spatial import cKDTree
+
+from tacsplat.errors import InvalidInputError
+from tacsplat.geometry import unproject_depth
+
+
+def _check_images(a: torch.Tensor, b: torch.Tensor) -> None:
+    if a.shape != b.shape:
+        raise InvalidInputError(f"images: shapes differ, {tuple(a.shape)} vs {tuple(b.shape)}")
+    if a.ndim not in (3, 4) or a.shape[-1] not in (1, 3):
+        raise InvalidInputError(f"images: expected [H, W, C] or [B, H, W, C] with C in (1, 3), got {tuple(a.shape)}")
+
+
+def psnr(rendered: torch.Tensor, target: torch.Tensor) -> float:
+    """Peak signal-to-noise ratio in dB of images in [0, 1] ([H, W, 3] or [B, H, W, 3], over all pixels)."""
+    _check_images(rendered, target)
+    mse = torch.mean((rendered.double() - target.double()) ** 2).item()
+    return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
+
+
+def _gaussian_window(size: int, sigma: float, channels: int, like: torch.Tensor) -> torch.Tensor:
+    x = torch.arange(size, dtype=like.dtype, device=like.device) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+
+
+def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Per-pixel SSIM (Wang et al. 2004; Gaussian window ``window`` x ``window``, ``sigma``) of [B, H, W, C] images.
+
+    Zero padding keeps the map the size of the image, as the 3DGS training loss
+    does; differentiable.
+    """
+    _check_images(rendered, target)
+    if rendered.ndim == 3:
+        rendered, target = rendered[None], target[None]
+    x = rendered.permute(0, 3, 1, 2)
+    y = target.permute(0, 3, 1, 2)
+    channels = x.shape[1]
+    w = _gaussian_window(window, sigma, channels, x)
+    pad = window // 2
+
+    def blur(t: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(t, w, padding=pad, groups=channels)
+
+    mu_x, mu_y = blur(x), blur(y)
+    var_x = blur(x * x) - mu_x**2
+    var_y = blur(y * y) - mu_y**2
+    cov = blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    num = (2 * mu_x * mu_y + c1) * (2 * cov + c2)
+    den = (mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2)
+    return (num / den).permute(0, 2, 3, 1)
+
+
+def ssim(rendered: torch.Tensor, target: torch.Tensor) -> float:
+    """Mean SSIM (11x11 Gaussian window, sigma 1.5) of images in [0, 1]."""
+    return float(ssim_map(rendered.double(), target.double()).mean())
+
+
+def depth_to_points(
+    depth: np.ndarray,  # [H, W] z-depth in metres
+    K: np.ndarray,  # [3, 3]
+    T_world_cam: np.ndarray,  # [4, 4] OpenCV camera-to-world
+    mask: np.ndarray | None = None,  # [H, W] bool
+) -> np.ndarray:
+    """World points [M, 3] of the valid (positive, finite, masked-in) pixels of a depth map."""
+    return unproject_depth(depth, K, T_world_cam, mask)
+
+
+def bounding_sphere_radius(points: np.ndarray) -> float:
+    """Radius of the minimum bounding sphere of points [N, 3] (the CD normaliser)."""
+    import trimesh
+
+    points = np.asarray(points, dtype=np.float64)
+    if len(points) == 0:
+        raise InvalidInputError("bounding_sphere_radius: no points")
+    if len(points) > 20000:  # the minimum sphere is fixed by the convex hull's vertices
+        points = points[trimesh.convex.convex_hull(points).vertices]
+    _, radius = trimesh.nsphere.minimum_nsphere(points)
+    return float(radius)
+
+
+def chamfer_distance(predicted: np.ndarray, ground_truth: np.ndarray, radius: float = 1.0) -> float:
+    """Symmetric Chamfer distance of the design: the mean nearest-neighbour distance each way, halved.
+
+    Both clouds ([N, 3], [M, 3]) are divided by ``radius`` (the ground-truth
+    object's bounding-sphere radius) first, so the result is in units of it.
+    An empty predicted cloud gives ``inf``.
+    """
+    predicted = np.asarray(predicted, dtype=np.float64).reshape(-1, 3)
+    ground_truth = np.asarray(ground_truth, dtype=np.float64).reshape(-1, 3)
+    if len(ground_truth) == 0:
+        raise InvalidInputError("chamfer_distance: the ground-truth cloud is empty")
+    if not (np.isfinite(predicted).all() and np.isfinite(ground_truth).all()):
+        raise InvalidInputError("chamfer_distance: point clouds contain NaN or infinite values")
+    if not radius > 0:
+        raise InvalidInputError(f"chamfer_distance: radius must be positive, got {radius}")
+    if len(predicted) == 0:
+        return float("inf")
+    pred, gt = predicted / radius, ground_truth / radius
+    d_pred_to_gt, _ = cKDTree(gt).query(pred, workers=-1)
+    d_gt_to_pred, _ = cKDTree(pred).query(gt, workers=-1)
+    return 0.5 * (float(d_pred_to_gt.mean()) + float(d_gt_to_pred.mean()))
