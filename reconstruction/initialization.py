@@ -1,0 +1,161 @@
+"""Initial Gaussians (paper Sec. 4.1): G_c from SfM points triangulated with the known poses, G_t on touch points.
+
+SfM is pycolmap's: SIFT features, exhaustive matching, and point triangulation
+into a reconstruction built from the scene's known cameras (no pose
+estimation). Glossy objects seen in few views often give almost no points, so
+when fewer than ``min_sfm_points`` come back, random points are drawn in the
+scene bounds instead; nothing here crashes on a featureless scene.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from tacsplat.geometry import invert_pose
+from tacsplat.reconstruction.gaussians import Gaussians
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class InitConfig:
+    """Initialisation settings."""
+
+    use_sfm: bool = True  # run pycolmap; False -> random points only
+    min_sfm_points: int = 100  # fewer SfM points than this -> random points in the bounds
+    num_random_points: int = 4000  # how many random points replace a failed SfM
+    initial_opacity: float = 0.1  # the same for G_c and G_t (paper Sec. 4.1)
+    touch_voxel_size: float = 0.001  # metres: touch points are thinned to one per voxel
+    max_touch_points: int = 2000  # then capped at this many (random subset)
+    sift_max_features: int = 4096
+    min_triangulation_angle_deg: float = 1.5
+
+
+@dataclass
+class SfmResult:
+    points: np.ndarray  # [M, 3] world
+    colors: np.ndarray  # [M, 3] in [0, 1]
+
+
+def sfm_points(
+    images: list[np.ndarray],  # each [H, W, 3] float in [0, 1] or uint8
+    Ks: list[np.ndarray],  # each [3, 3]
+    T_world_cams: list[np.ndarray],  # each [4, 4] OpenCV camera-to-world
+    config: InitConfig = InitConfig(),
+    seed: int = 0,
+) -> SfmResult:
+    """Triangulate coloured SfM points from images with known intrinsics and poses (may return none)."""
+    import pycolmap
+
+    empty = SfmResult(np.zeros((0, 3)), np.zeros((0, 3)))
+    if len(images) < 2:
+        return empty
+    pycolmap.logging.minloglevel = max(pycolmap.logging.minloglevel, 1)  # COLMAP's per-image INFO lines are noise here
+    with tempfile.TemporaryDirectory(prefix="tacsplat-sfm-") as tmp:
+        tmp = Path(tmp)
+        image_dir = tmp / "images"
+        image_dir.mkdir()
+        names = [f"{i:05d}.png" for i in range(len(images))]
+        for name, image in zip(names, images):
+            image = np.asarray(image)
+            if image.dtype != np.uint8:
+                image = np.clip(np.round(image * 255.0), 0, 255).astype(np.uint8)
+            cv2.imwrite(str(image_dir / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        database = tmp / "database.db"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.sift.max_num_features = config.sift_max_features
+        extraction.num_threads = 1  # single-threaded extraction and matching: deterministic
+        pycolmap.extract_features(
+            database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            extraction_options=extraction, device=pycolmap.Device.cpu,
+        )
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = 1
+        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+
+        reconstruction = pycolmap.Reconstruction()
+        db = pycolmap.Database.open(database)
+        try:
+            by_name = {image.name: image for image in db.read_all_images()}
+            for name, K, T_world_cam, image in zip(names, Ks, T_world_cams, images):
+                record = by_name[name]
+                height, width = np.asarray(image).shape[:2]
+                camera = pycolmap.Camera(
+                    model="PINHOLE", width=width, height=height,
+                    params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera_id=record.camera_id,
+                )
+                db.update_camera(camera)  # the known intrinsics replace the extractor's guess
+                reconstruction.add_camera_with_trivial_rig(camera)
+                keypoints = np.asarray(db.read_keypoints(record.image_id))[:, :2].astype(np.float64)
+                colmap_image = pycolmap.Image(
+                    name=name, keypoints=keypoints, camera_id=record.camera_id, image_id=record.image_id
+                )
+                T_cam_world = invert_pose(T_world_cam)
+                cam_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(T_cam_world[:3, :3]), T_cam_world[:3, 3])
+                reconstruction.add_image_with_trivial_frame(colmap_image, cam_from_world)
+        finally:
+            db.close()
+
+        options = pycolmap.IncrementalPipelineOptions()
+        options.triangulation.ignore_two_view_tracks = False  # few views: two-view tracks are most of what there is
+        options.triangulation.min_angle = config.min_triangulation_angle_deg
+        options.triangulation.random_seed = seed
+        output = tmp / "sparse"
+        output.mkdir()
+        result = pycolmap.triangulate_points(reconstruction, database, image_dir, output, options=options)
+        if result.num_points3D() == 0:
+            return empty
+        points = np.array([p.xyz for p in result.points3D.values()], dtype=np.float64)
+        colors = np.array([p.color for p in result.points3D.values()], dtype=np.float64) / 255.0
+        return SfmResult(points, colors)
+
+
+def thin_touch_points(points: np.ndarray, config: InitConfig, rng: np.random.Generator) -> np.ndarray:
+    """One touch point per ``touch_voxel_size`` voxel, at most ``max_touch_points`` (random subset)."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        return points
+    _, first = np.unique(np.floor(points / config.touch_voxel_size).astype(np.int64), axis=0, return_index=True)
+    points = points[np.sort(first)]
+    if len(points) > config.max_touch_points:
+        points = points[np.sort(rng.choice(len(points), config.max_touch_points, replace=False))]
+    return points
+
+
+def neighbour_scales(points: np.ndarray, k: int = 3, floor: float = 1e-5) -> np.ndarray:
+    """Isotropic initial scales [N]: root mean squared distance to the ``k`` nearest other points."""
+    if len(points) < 2:
+        return np.full(len(points), 0.01)
+    k = min(k, len(points) - 1)
+    distances, _ = cKDTree(points).query(points, k=k + 1)
+    return np.maximum(np.sqrt(np.mean(distances[:, 1:] ** 2, axis=1)), floor)
+
+
+def initial_gaussians(
+    colour_points: np.ndarray,  # [M, 3]
+    colour_rgb: np.ndarray,  # [M, 3]
+    touch_points: np.ndarray,  # [P, 3]
+    sh_degree: int,
+    config: InitConfig,
+    rng: np.random.Generator,
+) -> Gaussians:
+    """G_c at the coloured points and G_t at the touch points (random colours), scales from neighbour distances."""
+    points = np.concatenate([colour_points, touch_points])
+    colors = np.concatenate([colour_rgb, rng.uniform(0.0, 1.0, size=(len(touch_points), 3))])
+    from_touch = np.concatenate([np.zeros(len(colour_points), bool), np.ones(len(touch_points), bool)])
+    return Gaussians.from_points(
+        points, colors, neighbour_scales(points), from_touch, sh_degree, config.initial_opacity
+    )
+
+
+def random_points(lo: np.ndarray, hi: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` uniform points in the box [lo, hi] with random colours."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    return rng.uniform(lo, hi, size=(count, 3)), rng.uniform(0.0, 1.0, size=(count, 3))
