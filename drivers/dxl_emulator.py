@@ -1,0 +1,440 @@
+"""An emulated bus of Dynamixel X-series servos speaking protocol 2.0 on a pseudo-terminal.
+
+The emulator owns the master end of ``os.openpty()``; anything that opens
+:attr:`DxlEmulator.path` with pyserial (the real ``dynamixel_sdk``, hence the
+real :class:`~tacsplat.drivers.DynamixelHand`) talks to it exactly as it would
+to a U2D2 adapter. It is written from the protocol specification, not from the
+SDK: packets are parsed byte by byte (header ``FF FF FD 00``, id, length,
+instruction, byte-stuffed parameters, CRC-16 of the protocol), and PING, READ,
+WRITE, SYNC_READ and SYNC_WRITE are answered from an X-series control table per
+servo, each servo moving toward its goal position while its torque is on.
+
+Faults for tests: :meth:`disconnect` (a servo that never answers),
+:meth:`inject` ``"bad_crc"`` (a status packet with a corrupted CRC) or
+``"late"`` (a reply after the host's timeout), and :meth:`set_hardware_error`
+(the alert bit and Hardware Error Status, with the shutdown that the servo's
+firmware applies). Tests and the mocked operator session use it; it is no
+substitute for the hardware, but the bytes on the wire are real.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+
+from tacsplat.drivers.dynamixel_table import (
+    ALERT_BIT,
+    CENTRE_TICK,
+    CONTROL_TABLE_SIZE,
+    EEPROM_END,
+    MODEL_XC330_M288,
+    REGISTERS,
+    HardwareError,
+    Instruction,
+    le_bytes,
+    to_signed,
+)
+
+log = logging.getLogger(__name__)
+
+HEADER = bytes([0xFF, 0xFF, 0xFD, 0x00])
+BROADCAST_ID = 0xFE
+
+# Status error numbers (protocol 2.0)
+ERR_INSTRUCTION = 2
+ERR_CRC = 3
+ERR_DATA_RANGE = 4
+ERR_DATA_LENGTH = 5
+ERR_DATA_LIMIT = 6
+ERR_ACCESS = 7
+
+
+def _crc_table() -> list[int]:
+    table = []
+    for byte in range(256):
+        crc = byte << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else (crc << 1)
+        table.append(crc & 0xFFFF)
+    return table
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc16(data: bytes | bytearray | list[int]) -> int:
+    """CRC-16 of Dynamixel protocol 2.0 (polynomial 0x8005, initial value 0, not reflected)."""
+    crc = 0
+    for b in data:
+        crc = ((crc << 8) ^ _CRC_TABLE[((crc >> 8) ^ b) & 0xFF]) & 0xFFFF
+    return crc
+
+
+def stuff(body: bytes) -> bytes:
+    """Insert 0xFD after every ``FF FF FD`` in a packet body (instruction onwards, CRC excluded)."""
+    out = bytearray()
+    for b in body:
+        out.append(b)
+        if len(out) >= 3 and out[-3:] == b"\xff\xff\xfd":
+            out.append(0xFD)
+    return bytes(out)
+
+
+def unstuff(body: bytes) -> bytes:
+    """Remove the 0xFD that :func:`stuff` inserted."""
+    out = bytearray()
+    i = 0
+    while i < len(body):
+        out.append(body[i])
+        if len(out) >= 3 and out[-3:] == b"\xff\xff\xfd" and i + 1 < len(body) and body[i + 1] == 0xFD:
+            i += 1  # skip the stuffing byte
+        i += 1
+    return bytes(out)
+
+
+def build_packet(servo_id: int, instruction: int, params: bytes | list[int]) -> bytes:
+    """A complete protocol 2.0 packet: header, id, length, stuffed body, CRC."""
+    body = stuff(bytes([instruction]) + bytes(params))
+    length = len(body) + 2
+    head = HEADER + bytes([servo_id, length & 0xFF, length >> 8])
+    crc = crc16(head + body)
+    return head + body + bytes([crc & 0xFF, crc >> 8])
+
+
+@dataclass
+class EmulatedServo:
+    """One X-series servo: its control table and a first-order motion model."""
+
+    servo_id: int
+    model_number: int = MODEL_XC330_M288
+    speed_ticks_per_s: float = 4000.0  # about 6 rad/s
+    initial_ticks: float = CENTRE_TICK
+    table: bytearray = field(default_factory=lambda: bytearray(CONTROL_TABLE_SIZE))
+    position: float = 0.0  # ticks, continuous
+
+    def __post_init__(self):
+        self.set("model_number", self.model_number)
+        self.set("firmware_version", 52)
+        self.set("id", self.servo_id)
+        self.set("baud_rate", 6)  # 4 Mbps
+        self.set("operating_mode", 3)
+        self.set("protocol_type", 2)
+        self.set("temperature_limit", 70)
+        self.set("max_voltage_limit", 70)
+        self.set("min_voltage_limit", 35)
+        self.set("pwm_limit", 885)
+        self.set("current_limit", 1750)
+        self.set("velocity_limit", 445)
+        self.set("max_position_limit", 4095)
+        self.set("min_position_limit", 0)
+        self.set("shutdown", int(HardwareError.OVERHEATING | HardwareError.ELECTRICAL_SHOCK | HardwareError.OVERLOAD))
+        self.set("status_return_level", 2)
+        self.set("position_p_gain", 400)
+        self.set("present_input_voltage", 50)
+        self.set("present_temperature", 30)
+        self.position = float(self.initial_ticks)
+        self.set("goal_position", int(round(self.position)))
+        self._sync_present()
+
+    def get(self, name: str) -> int:
+        reg = REGISTERS[name]
+        value = int.from_bytes(self.table[reg.address : reg.address + reg.size], "little")
+        return to_signed(value, reg.size) if reg.signed else value
+
+    def set(self, name: str, value: int) -> None:
+        reg = REGISTERS[name]
+        self.table[reg.address : reg.address + reg.size] = bytes(le_bytes(value, reg.size))
+
+    @property
+    def torque_enabled(self) -> bool:
+        return bool(self.get("torque_enable"))
+
+    def write(self, address: int, data: bytes) -> int:
+        """Apply a WRITE the way the firmware does; returns the status error number (0 = ok)."""
+        end = address + len(data)
+        if address < 0 or end > CONTROL_TABLE_SIZE or not data:
+            return ERR_ACCESS
+        touched = [r for r in REGISTERS.values() if r.address < end and address < r.address + r.size]
+        if not touched or any(not r.writable for r in touched):
+            return ERR_ACCESS
+        if any(r.address < address or r.address + r.size > end for r in touched):
+            return ERR_DATA_LENGTH  # partial register
+        if address < EEPROM_END and self.torque_enabled:
+            return ERR_ACCESS  # EEPROM is locked while torque is on
+        new = bytearray(self.table)
+        new[address:end] = data
+        goal = REGISTERS["goal_position"]
+        if address <= goal.address < end and self.get("operating_mode") == 3:  # limits apply in position mode only
+            value = to_signed(int.from_bytes(new[goal.address : goal.address + 4], "little"), 4)
+            if not self.get("min_position_limit") <= value <= self.get("max_position_limit"):
+                return ERR_DATA_LIMIT
+        torque = REGISTERS["torque_enable"].address
+        if address <= torque < end and new[torque] and self.get("hardware_error_status"):
+            return ERR_ACCESS  # a latched hardware error keeps torque off until reboot
+        self.table[:] = new
+        return 0
+
+    def step(self, dt: float) -> None:
+        """Move toward the goal at the servo's speed while torque is on."""
+        if self.torque_enabled:
+            error = self.get("goal_position") - self.position
+            move = max(-self.speed_ticks_per_s * dt, min(self.speed_ticks_per_s * dt, error))
+            self.position += move
+            current = max(-self.get("current_limit"), min(self.get("current_limit"), 2.0 * (error - move)))
+            self.set("present_current", int(round(current)))
+            self.set("present_velocity", int(round(move / max(dt, 1e-6) / 4096 * 60 / 0.229)))
+            self.set("moving", int(abs(error - move) > self.get("moving_threshold")))
+        else:
+            self.set("present_current", 0)
+            self.set("present_velocity", 0)
+            self.set("moving", 0)
+        self._sync_present()
+
+    def _sync_present(self) -> None:
+        self.set("present_position", int(round(self.position)))
+
+    def status_error(self, number: int = 0) -> int:
+        return number | (ALERT_BIT if self.get("hardware_error_status") else 0)
+
+
+@dataclass
+class _Fault:
+    kind: str  # "bad_crc" | "late"
+    remaining: int | None  # None = forever
+    delay_s: float = 0.0
+
+
+class DxlEmulator:
+    """Servos on a pseudo-terminal; use as a context manager, connect to :attr:`path`."""
+
+    def __init__(self, ids=range(16), *, model_number: int = MODEL_XC330_M288, speed_ticks_per_s: float = 4000.0,
+                 initial_ticks: dict[int, float] | None = None, return_delay_s: float = 0.0):
+        initial_ticks = initial_ticks or {}
+        self.servos = {
+            i: EmulatedServo(i, model_number, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK)) for i in ids
+        }
+        self.return_delay_s = return_delay_s
+        self.crc_errors = 0  # instruction packets that arrived with a bad CRC
+        self.instructions: list[tuple[int, int]] = []  # (instruction, id) received, in order
+        self._disconnected: set[int] = set()
+        self._faults: dict[int, _Fault] = {}
+        self._lock = threading.RLock()
+        self._outbox: list[tuple[float, bytes]] = []
+        self._buffer = bytearray()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # no echo, no newline translation: bytes pass unchanged
+        self.path = os.ttyname(self._slave)
+        self._last_step = time.monotonic()
+
+    # -- fault injection -------------------------------------------------
+    def disconnect(self, servo_id: int) -> None:
+        """The servo neither processes nor answers anything (a cut cable, a dead servo)."""
+        with self._lock:
+            self._disconnected.add(servo_id)
+
+    def reconnect(self, servo_id: int) -> None:
+        with self._lock:
+            self._disconnected.discard(servo_id)
+
+    def inject(self, servo_id: int, kind: str, times: int | None = None, delay_s: float = 0.2) -> None:
+        """Corrupt the next ``times`` status packets of a servo (None: all of them).
+
+        ``kind`` is ``"bad_crc"`` (the CRC bytes are flipped) or ``"late"`` (the
+        packet is sent ``delay_s`` after it was due, past the host's timeout).
+        """
+        if kind not in ("bad_crc", "late"):
+            raise ValueError(f"unknown fault kind {kind!r}")
+        with self._lock:
+            self._faults[servo_id] = _Fault(kind, times, delay_s)
+
+    def clear_faults(self) -> None:
+        with self._lock:
+            self._faults.clear()
+            self._disconnected.clear()
+
+    def set_hardware_error(self, servo_id: int, bits: int) -> None:
+        """Latch Hardware Error Status bits; the shutdown bits turn torque off, as the firmware does."""
+        with self._lock:
+            servo = self.servos[servo_id]
+            servo.set("hardware_error_status", int(bits))
+            if int(bits) & servo.get("shutdown"):
+                servo.set("torque_enable", 0)
+
+    # -- lifecycle -------------------------------------------------------
+    def start(self) -> "DxlEmulator":
+        self._thread = threading.Thread(target=self._run, name="dxl-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        for fd in (self._master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def __enter__(self) -> "DxlEmulator":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def torque_enabled(self) -> dict[int, bool]:
+        with self._lock:
+            return {i: s.torque_enabled for i, s in self.servos.items()}
+
+    # -- the bus ---------------------------------------------------------
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            with self._lock:
+                due = min((t for t, _ in self._outbox), default=None)
+            timeout = 0.005 if due is None else max(0.0, min(0.005, due - time.monotonic()))
+            try:
+                readable, _, _ = select.select([self._master], [], [], timeout)
+                if readable:
+                    self._buffer += os.read(self._master, 4096)
+            except OSError:
+                if self._stop.is_set():
+                    return
+                time.sleep(0.005)  # no client has the port open yet
+                continue
+            with self._lock:
+                self._advance()
+                while self._parse_one():
+                    pass
+                self._flush()
+
+    def _advance(self) -> None:
+        now = time.monotonic()
+        dt, self._last_step = now - self._last_step, now
+        for servo in self.servos.values():
+            servo.step(dt)
+
+    def _flush(self) -> None:
+        now = time.monotonic()
+        keep = []
+        for t, data in self._outbox:
+            if t <= now:
+                os.write(self._master, data)
+            else:
+                keep.append((t, data))
+        self._outbox = keep
+
+    def _parse_one(self) -> bool:
+        """Consume one packet (or garbage) from the buffer; False when more bytes are needed."""
+        buf = self._buffer
+        start = buf.find(HEADER)
+        if start < 0:
+            del buf[: max(0, len(buf) - 3)]  # keep a possible partial header
+            return False
+        del buf[:start]
+        if len(buf) < 7:
+            return False
+        servo_id, length = buf[4], buf[5] | (buf[6] << 8)
+        if length < 3 or length > 1024:
+            del buf[:1]
+            return True
+        if len(buf) < 7 + length:
+            return False
+        packet = bytes(buf[: 7 + length])
+        del buf[: 7 + length]
+        if crc16(packet[:-2]) != (packet[-2] | (packet[-1] << 8)):
+            self.crc_errors += 1
+            servo = self.servos.get(servo_id)
+            if servo is not None and servo_id not in self._disconnected:
+                self._reply(servo, servo.status_error(ERR_CRC), b"")
+            return True
+        body = unstuff(packet[7:-2])
+        self._handle(servo_id, body[0], body[1:])
+        return True
+
+    def _reply(self, servo: EmulatedServo, error: int, params: bytes, after: float = 0.0) -> None:
+        packet = bytearray(build_packet(servo.servo_id, Instruction.STATUS, bytes([error]) + bytes(params)))
+        when = max(time.monotonic() + self.return_delay_s, after)
+        fault = self._faults.get(servo.servo_id)
+        if fault is not None:
+            if fault.kind == "bad_crc":
+                packet[-1] ^= 0xFF
+                packet[-2] ^= 0x5A
+            else:
+                when += fault.delay_s
+            if fault.remaining is not None:
+                fault.remaining -= 1
+                if fault.remaining <= 0:
+                    del self._faults[servo.servo_id]
+        # status packets leave the bus in order
+        when = max([when] + [t for t, _ in self._outbox])
+        self._outbox.append((when, bytes(packet)))
+
+    def _handle(self, servo_id: int, instruction: int, params: bytes) -> None:
+        self.instructions.append((instruction, servo_id))
+        if instruction == Instruction.SYNC_WRITE:
+            self._sync_write(params)
+            return
+        if instruction == Instruction.SYNC_READ:
+            self._sync_read(params)
+            return
+        targets = list(self.servos) if servo_id == BROADCAST_ID else [servo_id]
+        for sid in targets:
+            servo = self.servos.get(sid)
+            if servo is None or sid in self._disconnected:
+                continue
+            error, reply = self._unicast(servo, instruction, params)
+            if servo_id != BROADCAST_ID or instruction == Instruction.PING:
+                self._reply(servo, error, reply)
+
+    def _unicast(self, servo: EmulatedServo, instruction: int, params: bytes) -> tuple[int, bytes]:
+        if instruction == Instruction.PING:
+            return servo.status_error(), bytes(le_bytes(servo.model_number, 2) + [servo.get("firmware_version")])
+        if instruction == Instruction.READ:
+            if len(params) != 4:
+                return servo.status_error(ERR_DATA_LENGTH), b""
+            address, size = params[0] | params[1] << 8, params[2] | params[3] << 8
+            if address + size > CONTROL_TABLE_SIZE or size == 0:
+                return servo.status_error(ERR_ACCESS), b""
+            return servo.status_error(), bytes(servo.table[address : address + size])
+        if instruction == Instruction.WRITE:
+            if len(params) < 3:
+                return servo.status_error(ERR_DATA_LENGTH), b""
+            number = servo.write(params[0] | params[1] << 8, params[2:])
+            return servo.status_error(number), b""
+        if instruction == Instruction.REBOOT:
+            servo.set("hardware_error_status", 0)
+            servo.set("torque_enable", 0)
+            return servo.status_error(), b""
+        return servo.status_error(ERR_INSTRUCTION), b""
+
+    def _sync_write(self, params: bytes) -> None:
+        if len(params) < 4:
+            return
+        address, size = params[0] | params[1] << 8, params[2] | params[3] << 8
+        data = params[4:]
+        for k in range(0, len(data) - size + 1, size + 1):
+            servo = self.servos.get(data[k])
+            if servo is not None and data[k] not in self._disconnected:
+                number = servo.write(address, data[k + 1 : k + 1 + size])
+                if number:
+                    log.debug("servo %d rejected SYNC_WRITE at %d: error %d", data[k], address, number)
+
+    def _sync_read(self, params: bytes) -> None:
+        if len(params) < 5:
+            return
+        address, size = params[0] | params[1] << 8, params[2] | params[3] << 8
+        for sid in params[4:]:
+            servo = self.servos.get(sid)
+            if servo is None or sid in self._disconnected:
+                continue
+            if address + size > CONTROL_TABLE_SIZE:
+                self._reply(servo, servo.status_error(ERR_ACCESS), b"")
+            else:
+                self._reply(servo, servo.status_error(), bytes(servo.table[address : address + size]))

@@ -1,0 +1,169 @@
+"""Dynamixel X-series control table (protocol 2.0), error bits and their decoding.
+
+Addresses and sizes follow the ROBOTIS e-Manual for the X-series (XC330, XL330,
+XM430, ...), which share one layout. Shared by the hand driver and the servo
+emulator the tests drive it with, so that both speak the same table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum, IntFlag
+
+
+@dataclass(frozen=True)
+class Register:
+    name: str
+    address: int
+    size: int  # bytes: 1, 2 or 4, little endian
+    eeprom: bool = False  # writable only while torque is off
+    writable: bool = True
+    signed: bool = False
+
+
+def _registers(*regs: Register) -> dict[str, Register]:
+    return {r.name: r for r in regs}
+
+
+REGISTERS = _registers(
+    Register("model_number", 0, 2, eeprom=True, writable=False),
+    Register("model_information", 2, 4, eeprom=True, writable=False),
+    Register("firmware_version", 6, 1, eeprom=True, writable=False),
+    Register("id", 7, 1, eeprom=True),
+    Register("baud_rate", 8, 1, eeprom=True),
+    Register("return_delay_time", 9, 1, eeprom=True),
+    Register("drive_mode", 10, 1, eeprom=True),
+    Register("operating_mode", 11, 1, eeprom=True),
+    Register("secondary_id", 12, 1, eeprom=True),
+    Register("protocol_type", 13, 1, eeprom=True),
+    Register("homing_offset", 20, 4, eeprom=True, signed=True),
+    Register("moving_threshold", 24, 4, eeprom=True),
+    Register("temperature_limit", 31, 1, eeprom=True),
+    Register("max_voltage_limit", 32, 2, eeprom=True),
+    Register("min_voltage_limit", 34, 2, eeprom=True),
+    Register("pwm_limit", 36, 2, eeprom=True),
+    Register("current_limit", 38, 2, eeprom=True),
+    Register("velocity_limit", 44, 4, eeprom=True),
+    Register("max_position_limit", 48, 4, eeprom=True),
+    Register("min_position_limit", 52, 4, eeprom=True),
+    Register("shutdown", 63, 1, eeprom=True),
+    Register("torque_enable", 64, 1),
+    Register("led", 65, 1),
+    Register("status_return_level", 68, 1),
+    Register("registered_instruction", 69, 1, writable=False),
+    Register("hardware_error_status", 70, 1, writable=False),
+    Register("velocity_i_gain", 76, 2),
+    Register("velocity_p_gain", 78, 2),
+    Register("position_d_gain", 80, 2),
+    Register("position_i_gain", 82, 2),
+    Register("position_p_gain", 84, 2),
+    Register("bus_watchdog", 98, 1),
+    Register("goal_pwm", 100, 2, signed=True),
+    Register("goal_current", 102, 2, signed=True),
+    Register("goal_velocity", 104, 4, signed=True),
+    Register("profile_acceleration", 108, 4),
+    Register("profile_velocity", 112, 4),
+    Register("goal_position", 116, 4, signed=True),
+    Register("realtime_tick", 120, 2, writable=False),
+    Register("moving", 122, 1, writable=False),
+    Register("moving_status", 123, 1, writable=False),
+    Register("present_pwm", 124, 2, writable=False, signed=True),
+    Register("present_current", 126, 2, writable=False, signed=True),
+    Register("present_velocity", 128, 4, writable=False, signed=True),
+    Register("present_position", 132, 4, writable=False, signed=True),
+    Register("present_input_voltage", 144, 2, writable=False),
+    Register("present_temperature", 146, 1, writable=False),
+)
+
+CONTROL_TABLE_SIZE = 147  # bytes: addresses 0 .. 146
+EEPROM_END = 64  # addresses below this are EEPROM
+
+TICKS_PER_REV = 4096  # X-series position resolution
+CENTRE_TICK = 2048  # the middle of one turn; motor angle 0 rad
+MODEL_XC330_M288 = 1240  # LEAP Hand servo
+
+
+class OperatingMode(IntEnum):
+    CURRENT = 0
+    VELOCITY = 1
+    POSITION = 3
+    EXTENDED_POSITION = 4
+    CURRENT_BASED_POSITION = 5
+    PWM = 16
+
+
+class HardwareError(IntFlag):
+    """Bits of the Hardware Error Status register (address 70)."""
+
+    INPUT_VOLTAGE = 1 << 0
+    OVERHEATING = 1 << 2
+    MOTOR_ENCODER = 1 << 3
+    ELECTRICAL_SHOCK = 1 << 4
+    OVERLOAD = 1 << 5
+
+
+HARDWARE_ERROR_NAMES = {
+    HardwareError.INPUT_VOLTAGE: "input voltage",
+    HardwareError.OVERHEATING: "overheating",
+    HardwareError.MOTOR_ENCODER: "motor encoder",
+    HardwareError.ELECTRICAL_SHOCK: "electrical shock",
+    HardwareError.OVERLOAD: "overload",
+}
+
+# The status packet's error byte: bit 7 = alert (a hardware error is latched),
+# bits 0-6 = the processing error number.
+ALERT_BIT = 0x80
+STATUS_ERROR_NAMES = {
+    1: "result fail",
+    2: "instruction error",
+    3: "CRC error",
+    4: "data range error",
+    5: "data length error",
+    6: "data limit error",
+    7: "access error",
+}
+
+
+class Instruction(IntEnum):
+    PING = 0x01
+    READ = 0x02
+    WRITE = 0x03
+    REBOOT = 0x08
+    STATUS = 0x55
+    SYNC_READ = 0x82
+    SYNC_WRITE = 0x83
+
+
+def decode_hardware_error(bits: int) -> list[str]:
+    """Names of the bits set in a Hardware Error Status value (unknown bits as 'bit N')."""
+    names = [name for flag, name in HARDWARE_ERROR_NAMES.items() if bits & flag]
+    known = sum(int(f) for f in HARDWARE_ERROR_NAMES)
+    names += [f"bit {i}" for i in range(8) if bits & ~known & (1 << i)]
+    return names
+
+
+def decode_status_error(error: int) -> list[str]:
+    """Names of the problems in a status packet's error byte."""
+    names = []
+    if error & ALERT_BIT:
+        names.append("hardware alert")
+    number = error & ~ALERT_BIT
+    if number:
+        names.append(STATUS_ERROR_NAMES.get(number, f"unknown error {number}"))
+    return names
+
+
+def to_unsigned(value: int, size: int) -> int:
+    return int(value) & ((1 << (8 * size)) - 1)
+
+
+def to_signed(value: int, size: int) -> int:
+    bits = 8 * size
+    value = int(value) & ((1 << bits) - 1)
+    return value - (1 << bits) if value >= 1 << (bits - 1) else value
+
+
+def le_bytes(value: int, size: int) -> list[int]:
+    """Little-endian bytes of ``value`` (two's complement for negatives)."""
+    v = to_unsigned(value, size)
+    return [(v >> (8 * i)) & 0xFF for i in range(size)]
