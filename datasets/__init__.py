@@ -1,1 +1,48 @@
-"""tacsplat.datasets (see DESIGN.md)."""
+"""tacsplat.datasets: the scene directory format (DESIGN.md).
+
+A scene directory is what acquisition, the simulator and the importers write
+(all through :class:`SceneWriter`) and the only thing reconstruction reads
+(through :class:`Scene`)::
+
+    scene/
+      transforms.json  nerfstudio input: camera_model "OPENCV", fl_x fl_y cx cy w h
+                       (per frame instead when frames differ), k1 k2 p1 p2 = 0,
+                       frames [{id, file_path, transform_matrix (OpenGL
+                       camera-to-world), split: train | test}], and the
+                       train_filenames / val_filenames / test_filenames lists
+                       (val = test) that make nerfstudio keep our split
+      images/          000000.png ...  RGB uint8, undistorted
+      touches.json     {"sensor": {name, width_px, height_px, pixel_size_m,
+                       gel_thickness_m} | null, "touches": [{id, grasp, finger,
+                       depth_file, T_world_sensor, in_contact}]}
+      touches/         000000.npz ...  key "depth": float32 [h, w] metres of
+                       indentation (0 = no contact)
+      scene.json       provenance: format, source (sim | real | import), object,
+                       units "m", capture_plan, extra, tacsplat_version, created,
+                       gt {mesh, depth {frame id: file}}
+      gt/              evaluation only, never read by training: mesh.ply and
+                       depth/<frame id>.npz (key "depth", z-depth in metres)
+      journal.jsonl    the writer's append-only log the index files are
+                       materialised from (see :mod:`tacsplat.datasets.writer`)
+
+Inside the code poses are OpenCV camera-to-world (``Frame.T_world_cam``) in
+metres; the OpenGL matrices of nerfstudio and Blender are converted only in
+this package. Importers: :func:`import_blender` (NeRF-synthetic / Shiny
+Blender), :func:`import_colmap` (COLMAP sparse models through pycolmap).
+Command line: ``tacsplat import blender|colmap`` and ``tacsplat inspect``.
+"""
+
+from .records import SPLITS, Frame, SceneMeta, SensorModel, Touch
+from .reader import Scene, check_scene
+from .writer import SceneWriter
+
+__all__ = [
+    "SPLITS",
+    "Frame",
+    "Touch",
+    "SensorModel",
+    "SceneMeta",
+    "Scene",
+    "check_scene",
+    "SceneWriter",
+]

@@ -1,0 +1,508 @@
+"""Reading and validating scene directories.
+
+:meth:`Scene.load` checks everything (index files, every image header, every
+depth map, every pose) and raises one :class:`SceneFormatError` naming the
+file and field of the first problem. :func:`check_scene` runs the same checks
+but collects every problem and returns what could be read, for
+``tacsplat inspect``.
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from tacsplat.errors import InvalidInputError, SceneFormatError
+from tacsplat.geometry import opengl_to_opencv, rigidity_problem, tactile_depth_to_points
+from tacsplat.types import CameraIntrinsics
+
+from .records import (
+    FORMAT_NAME,
+    SOURCES,
+    SPLITS,
+    Frame,
+    SceneMeta,
+    SensorModel,
+    Touch,
+    sensor_problem,
+)
+
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+class _Problems:
+    """Raises the first problem (``collect=False``) or collects them all."""
+
+    def __init__(self, collect: bool):
+        self.collect = collect
+        self.errors: list[SceneFormatError] = []
+
+    def report(self, path: Path, field: str | None, message: str) -> None:
+        error = SceneFormatError(path, field, message)
+        if not self.collect:
+            raise error
+        self.errors.append(error)
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_number(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
+
+
+def _read_json(path: Path, problems: _Problems, required: bool = True):
+    if not path.is_file():
+        if required:
+            problems.report(path, None, "missing (not a scene directory, or its creation never finished)")
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        problems.report(path, None, f"not valid JSON: {exc}")
+        return None
+    if not isinstance(data, dict):
+        problems.report(path, None, f"expected a JSON object at the top level, got {type(data).__name__}")
+        return None
+    return data
+
+
+def _relative_file(scene: Path, rel, index: Path, field: str, problems: _Problems) -> Path | None:
+    """Resolve a path stored in an index file; it must stay inside the scene directory."""
+    if not isinstance(rel, str) or not rel:
+        problems.report(index, field, f"expected a relative file path, got {rel!r}")
+        return None
+    p = Path(rel)
+    if p.is_absolute() or ".." in p.parts:
+        problems.report(index, field, f"{rel!r} must be a path inside the scene directory")
+        return None
+    return scene / p
+
+
+def _pose(value, index: Path, field: str, problems: _Problems) -> np.ndarray | None:
+    try:
+        T = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        problems.report(index, field, "expected a 4x4 matrix of numbers")
+        return None
+    problem = rigidity_problem(T)
+    if problem:
+        problems.report(index, field, f"not a rigid transform: {problem}")
+        return None
+    return T
+
+
+def load_depth_npz(path: Path, shape: tuple[int, int] | None, problems: _Problems, field: str = "depth") -> np.ndarray | None:
+    """Load and check a float32 depth map saved by the writer (key ``depth``)."""
+    if not path.is_file():
+        problems.report(path, None, "depth file missing")
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            if "depth" not in npz.files:
+                problems.report(path, field, f"no 'depth' array (has {npz.files})")
+                return None
+            depth = npz["depth"]
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, zipfile.LargeZipFile) as exc:
+        problems.report(path, field, f"truncated or corrupt npz: {exc}")
+        return None
+    if shape is not None and depth.shape != shape:
+        problems.report(path, field, f"shape {depth.shape} does not match the expected {shape}")
+        return None
+    if not np.issubdtype(depth.dtype, np.floating):
+        problems.report(path, field, f"expected float metres, got dtype {depth.dtype}")
+        return None
+    if not np.all(np.isfinite(depth)):
+        problems.report(path, field, f"{int((~np.isfinite(depth)).sum())} non-finite values (NaN or inf)")
+        return None
+    if (depth < 0).any():
+        problems.report(path, field, f"negative depth values (min {float(depth.min()):.3g} m)")
+        return None
+    return depth.astype(np.float32, copy=False)
+
+
+def _check_image(path: Path, intr: CameraIntrinsics, index: Path, field: str, problems: _Problems) -> bool:
+    """Header and chunk checksums of an image file (no full decode): exists, intact, RGB, size w x h."""
+    if not path.is_file():
+        problems.report(index, field, f"image file {path.name} is missing")
+        return False
+    try:
+        with Image.open(path) as img:
+            size, mode = img.size, img.mode
+            img.verify()
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
+        problems.report(path, field, f"corrupt or truncated image: {exc}")
+        return False
+    if mode != "RGB":
+        problems.report(path, field, f"expected an 8-bit RGB image, got PIL mode {mode!r}")
+        return False
+    if size != (intr.width, intr.height):
+        problems.report(path, field, f"image is {size[0]}x{size[1]} but the camera says w x h = {intr.width}x{intr.height}")
+        return False
+    return True
+
+
+def _intrinsics(frame: dict, top: dict, index: Path, field: str, problems: _Problems) -> CameraIntrinsics | None:
+    values = {}
+    for key in _INTRINSIC_KEYS:
+        value = frame.get(key, top.get(key))
+        if value is None:
+            problems.report(index, f"{field}.{key}", "missing (neither in the frame nor at the top level)")
+            return None
+        if key in ("w", "h"):
+            if not _is_int(value) or value < 1:
+                problems.report(index, f"{field}.{key}", f"expected a positive integer, got {value!r}")
+                return None
+        elif not _is_number(value) or (key.startswith("fl_") and value <= 0):
+            problems.report(index, f"{field}.{key}", f"expected a finite{' positive' if key.startswith('fl_') else ''} number, got {value!r}")
+            return None
+        values[key] = value
+    K = np.array([[values["fl_x"], 0, values["cx"]], [0, values["fl_y"], values["cy"]], [0, 0, 1]], dtype=np.float64)
+    return CameraIntrinsics(K=K, width=values["w"], height=values["h"])
+
+
+@dataclass
+class Scene:
+    """A validated scene directory (DESIGN.md). Poses are OpenCV camera-to-world, metres."""
+
+    path: Path
+    frames: list[Frame]
+    touches: list[Touch]
+    sensor: SensorModel | None
+    meta: SceneMeta
+    tacsplat_version: str = ""
+    gt_depth_files: dict[int, str] = field(default_factory=dict)
+    gt_mesh_file: str | None = None
+
+    @classmethod
+    def load(cls, path, check_files: bool = True) -> "Scene":
+        """Read and validate a scene; raises one :class:`SceneFormatError` naming the file and field at fault.
+
+        ``check_files=False`` skips opening images and depth maps (index files only).
+        """
+        scene, _ = _read_scene(Path(path), _Problems(collect=False), check_files)
+        return scene
+
+    # --- views --------------------------------------------------------------------------------
+
+    def split(self, name: str) -> list[Frame]:
+        """The frames of one split (``"train"`` or ``"test"``)."""
+        if name not in SPLITS:
+            raise InvalidInputError(f"split: expected one of {SPLITS}, got {name!r}")
+        return [f for f in self.frames if f.split == name]
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics | None:
+        """The camera shared by every frame, or None when frames differ (or there are none)."""
+        if not self.frames:
+            return None
+        first = self.frames[0].intrinsics
+        same = all(f.intrinsics.width == first.width and f.intrinsics.height == first.height
+                   and np.array_equal(f.intrinsics.K, first.K) for f in self.frames)
+        return first if same else None
+
+    @property
+    def num_grasps(self) -> int:
+        return len({t.grasp for t in self.touches})
+
+    @property
+    def gt_mesh_path(self) -> Path | None:
+        """Ground-truth mesh (evaluation only), or None."""
+        return None if self.gt_mesh_file is None else self.path / self.gt_mesh_file
+
+    # --- data ---------------------------------------------------------------------------------
+
+    def load_image(self, frame: Frame) -> np.ndarray:
+        """The frame's image as float32 RGB in [0, 1], [H, W, 3]."""
+        path = self.path / frame.file_path
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise SceneFormatError(path, f"frame {frame.id}", "missing or unreadable image")
+        if bgr.shape[:2] != (frame.intrinsics.height, frame.intrinsics.width):
+            raise SceneFormatError(path, f"frame {frame.id}", f"image is {bgr.shape[1]}x{bgr.shape[0]}, expected "
+                                   f"{frame.intrinsics.width}x{frame.intrinsics.height}")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+
+    def load_touch_depth(self, touch: Touch) -> np.ndarray:
+        """The touch's indentation map, float32 metres [h, w] (0 = no contact)."""
+        if self.sensor is None:
+            raise SceneFormatError(self.path / "touches.json", "sensor", "touches need a sensor model")
+        return load_depth_npz(self.path / touch.depth_file, (self.sensor.height_px, self.sensor.width_px),
+                              _Problems(collect=False), f"touch {touch.id}")
+
+    def touch_points(self, threshold_m: float = 1e-5) -> np.ndarray:
+        """Every touch's contact points in the world, [M, 3] float64 (see ``tactile_depth_to_points``)."""
+        points = [
+            tactile_depth_to_points(self.load_touch_depth(t), self.sensor.pixel_size_m, t.T_world_sensor, threshold_m)
+            for t in self.touches
+            if t.in_contact
+        ]
+        return np.concatenate(points, axis=0) if points else np.zeros((0, 3))
+
+    def gt_depth(self, frame: Frame) -> np.ndarray | None:
+        """Ground-truth z-depth [H, W] float32 metres of a frame (evaluation only), or None."""
+        rel = self.gt_depth_files.get(frame.id)
+        if rel is None:
+            return None
+        return load_depth_npz(self.path / rel, (frame.intrinsics.height, frame.intrinsics.width),
+                              _Problems(collect=False), f"gt depth of frame {frame.id}")
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned box (lo [3], hi [3]) where the object must be, from cameras and touches only.
+
+        The cameras of an object capture look at it: the box is centred on the
+        point nearest to every optical axis (least squares) and its half-size is
+        the smallest half-width of the field of view at that point over all
+        cameras, i.e. the region every camera sees. When the axes do not meet in
+        front of the cameras (fewer than two views, a forward-facing capture),
+        the box of the camera centres is used. The box is grown to hold every
+        contact point. Never reads gt/.
+        """
+        boxes = []
+        if self.frames:
+            boxes.append(_camera_region(self.frames))
+        if self.touches:
+            pts = self.touch_points()
+            if len(pts):
+                boxes.append((pts.min(axis=0), pts.max(axis=0)))
+        if not boxes:
+            raise SceneFormatError(self.path, None, "no frames and no contact points: the scene has no bounds")
+        lo = np.min([b[0] for b in boxes], axis=0)
+        hi = np.max([b[1] for b in boxes], axis=0)
+        return lo, hi
+
+
+def _camera_region(frames: list[Frame]) -> tuple[np.ndarray, np.ndarray]:
+    centres = np.array([f.T_world_cam[:3, 3] for f in frames])
+    axes = np.array([f.T_world_cam[:3, 2] for f in frames])
+    if len(frames) >= 2:
+        projectors = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]  # [N, 3, 3]
+        A = projectors.sum(axis=0)
+        b = np.einsum("nij,nj->i", projectors, centres)
+        if np.linalg.cond(A) < 1e6:
+            p = np.linalg.solve(A, b)
+            along = np.einsum("ni,ni->n", p - centres, axes)
+            if (along > 0).all():
+                half = min(
+                    d * min(0.5 * f.intrinsics.width / f.intrinsics.fx, 0.5 * f.intrinsics.height / f.intrinsics.fy)
+                    for d, f in zip(along, frames)
+                )
+                return p - half, p + half
+    return centres.min(axis=0), centres.max(axis=0)
+
+
+def check_scene(path, check_files: bool = True) -> tuple[Scene | None, list[SceneFormatError]]:
+    """Validate a scene collecting every problem; returns the readable part (None if nothing is) and the problems."""
+    problems = _Problems(collect=True)
+    scene, _ = _read_scene(Path(path), problems, check_files)
+    return scene, problems.errors
+
+
+def _read_scene(path: Path, problems: _Problems, check_files: bool) -> tuple[Scene | None, _Problems]:
+    if not path.is_dir():
+        problems.report(path, None, "scene directory does not exist")
+        return None, problems
+    meta, version, gt = _read_scene_json(path, problems)
+    frames = _read_frames(path, problems, check_files)
+    sensor, touches = _read_touches(path, problems, check_files)
+    if meta is None:
+        return None, problems
+    scene = Scene(path=path, frames=frames, touches=touches, sensor=sensor, meta=meta, tacsplat_version=version)
+    _read_gt(scene, gt, problems, check_files)
+    return scene, problems
+
+
+def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None, str, dict]:
+    index = path / "scene.json"
+    data = _read_json(index, problems)
+    if data is None:
+        return None, "", {}
+    ok = True
+    if data.get("format", FORMAT_NAME) != FORMAT_NAME:
+        problems.report(index, "format", f"expected {FORMAT_NAME!r}, got {data.get('format')!r}")
+    if data.get("units") != "m":
+        problems.report(index, "units", f"expected 'm' (all tacsplat scenes are in metres), got {data.get('units')!r}")
+    if data.get("source") not in SOURCES:
+        problems.report(index, "source", f"expected one of {SOURCES}, got {data.get('source')!r}")
+        ok = False
+    if not isinstance(data.get("object"), str) or not data.get("object"):
+        problems.report(index, "object", f"expected the object's name, got {data.get('object')!r}")
+        ok = False
+    for key in ("capture_plan", "extra"):
+        if not isinstance(data.get(key, {}), dict):
+            problems.report(index, key, f"expected an object, got {type(data[key]).__name__}")
+            ok = False
+    gt = data.get("gt") or {}
+    if not isinstance(gt, dict):
+        problems.report(index, "gt", f"expected an object, got {type(gt).__name__}")
+        gt = {}
+    if not ok:
+        return None, "", {}
+    meta = SceneMeta(source=data["source"], object=data["object"], capture_plan=data.get("capture_plan", {}),
+                     extra=data.get("extra", {}))
+    return meta, str(data.get("tacsplat_version", "")), gt
+
+
+def _read_frames(path: Path, problems: _Problems, check_files: bool) -> list[Frame]:
+    index = path / "transforms.json"
+    data = _read_json(index, problems)
+    if data is None:
+        return []
+    if data.get("camera_model", "OPENCV") not in ("OPENCV", "PINHOLE"):
+        problems.report(index, "camera_model", f"expected OPENCV or PINHOLE (undistorted images), got {data['camera_model']!r}")
+        return []
+    for key in _DISTORTION_KEYS:
+        if data.get(key, 0.0) != 0.0:
+            problems.report(index, key, f"images must be undistorted, but {key} = {data[key]!r}")
+    raw_frames = data.get("frames")
+    if not isinstance(raw_frames, list):
+        problems.report(index, "frames", f"expected a list, got {type(raw_frames).__name__}")
+        return []
+    frames: list[Frame] = []
+    seen_ids: dict[int, int] = {}
+    seen_files: dict[str, int] = {}
+    for i, raw in enumerate(raw_frames):
+        field = f"frames[{i}]"
+        if not isinstance(raw, dict):
+            problems.report(index, field, f"expected an object, got {type(raw).__name__}")
+            continue
+        fid = raw.get("id")
+        if not _is_int(fid) or fid < 0:
+            problems.report(index, f"{field}.id", f"expected a non-negative integer, got {fid!r}")
+            continue
+        if fid in seen_ids:
+            problems.report(index, f"{field}.id", f"duplicate frame id {fid} (also frames[{seen_ids[fid]}])")
+            continue
+        seen_ids[fid] = i
+        split = raw.get("split")
+        if split not in SPLITS:
+            problems.report(index, f"{field}.split", f"unknown split {split!r} (expected one of {SPLITS})")
+            continue
+        image_path = _relative_file(path, raw.get("file_path"), index, f"{field}.file_path", problems)
+        if image_path is None:
+            continue
+        if raw["file_path"] in seen_files:
+            problems.report(index, f"{field}.file_path", f"duplicate file_path {raw['file_path']!r} "
+                            f"(also frames[{seen_files[raw['file_path']]}])")
+            continue
+        seen_files[raw["file_path"]] = i
+        T_gl = _pose(raw.get("transform_matrix"), index, f"{field}.transform_matrix", problems)
+        intr = _intrinsics(raw, data, index, field, problems)
+        if T_gl is None or intr is None:
+            continue
+        if check_files and not _check_image(image_path, intr, index, f"{field}.file_path", problems):
+            continue
+        frames.append(Frame(id=fid, file_path=raw["file_path"], T_world_cam=opengl_to_opencv(T_gl), split=split,
+                            intrinsics=intr))
+    return frames
+
+
+def _read_sensor(raw, index: Path, problems: _Problems) -> SensorModel | None:
+    if not isinstance(raw, dict):
+        problems.report(index, "sensor", f"expected an object or null, got {type(raw).__name__}")
+        return None
+    keys = ("name", "width_px", "height_px", "pixel_size_m", "gel_thickness_m")
+    missing = [k for k in keys if k not in raw]
+    if missing:
+        problems.report(index, "sensor", f"missing keys {missing}")
+        return None
+    try:
+        return SensorModel(**{k: raw[k] for k in keys})
+    except InvalidInputError as exc:
+        problems.report(index, "sensor", str(exc))
+        return None
+
+
+def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[SensorModel | None, list[Touch]]:
+    index = path / "touches.json"
+    data = _read_json(index, problems, required=False)
+    if data is None:
+        return None, []
+    sensor = None if data.get("sensor") is None else _read_sensor(data["sensor"], index, problems)
+    raw_touches = data.get("touches", [])
+    if not isinstance(raw_touches, list):
+        problems.report(index, "touches", f"expected a list, got {type(raw_touches).__name__}")
+        return sensor, []
+    if raw_touches and sensor is None:
+        if data.get("sensor") is None:
+            problems.report(index, "sensor", f"{len(raw_touches)} touches but no sensor model")
+        return None, []
+    touches: list[Touch] = []
+    seen: dict[int, int] = {}
+    for i, raw in enumerate(raw_touches):
+        field = f"touches[{i}]"
+        if not isinstance(raw, dict):
+            problems.report(index, field, f"expected an object, got {type(raw).__name__}")
+            continue
+        tid = raw.get("id")
+        if not _is_int(tid) or tid < 0:
+            problems.report(index, f"{field}.id", f"expected a non-negative integer, got {tid!r}")
+            continue
+        if tid in seen:
+            problems.report(index, f"{field}.id", f"duplicate touch id {tid} (also touches[{seen[tid]}])")
+            continue
+        seen[tid] = i
+        grasp, finger, in_contact = raw.get("grasp"), raw.get("finger"), raw.get("in_contact")
+        if not _is_int(grasp) or grasp < 0:
+            problems.report(index, f"{field}.grasp", f"expected a non-negative integer, got {grasp!r}")
+            continue
+        if not isinstance(finger, str) or not finger:
+            problems.report(index, f"{field}.finger", f"expected a finger name, got {finger!r}")
+            continue
+        if not isinstance(in_contact, bool):
+            problems.report(index, f"{field}.in_contact", f"expected true or false, got {in_contact!r}")
+            continue
+        depth_path = _relative_file(path, raw.get("depth_file"), index, f"{field}.depth_file", problems)
+        T = _pose(raw.get("T_world_sensor"), index, f"{field}.T_world_sensor", problems)
+        if depth_path is None or T is None:
+            continue
+        if check_files:
+            depth = load_depth_npz(depth_path, (sensor.height_px, sensor.width_px), problems, f"touch {tid} depth")
+            if depth is None:
+                continue
+            if bool((depth > 0).any()) != in_contact:
+                problems.report(index, f"{field}.in_contact", f"says {in_contact} but the depth map "
+                                f"{'has' if (depth > 0).any() else 'has no'} contact")
+                continue
+        touches.append(Touch(id=tid, grasp=grasp, finger=finger, depth_file=raw["depth_file"], T_world_sensor=T,
+                             in_contact=in_contact))
+    return sensor, touches
+
+
+def _read_gt(scene: Scene, gt: dict, problems: _Problems, check_files: bool) -> None:
+    index = scene.path / "scene.json"
+    mesh = gt.get("mesh")
+    if mesh is not None:
+        mesh_path = _relative_file(scene.path, mesh, index, "gt.mesh", problems)
+        if mesh_path is not None:
+            if check_files and not mesh_path.is_file():
+                problems.report(index, "gt.mesh", f"ground-truth mesh {mesh!r} is missing")
+            else:
+                scene.gt_mesh_file = mesh
+    depth_files = gt.get("depth", {})
+    if not isinstance(depth_files, dict):
+        problems.report(index, "gt.depth", f"expected an object {{frame id: file}}, got {type(depth_files).__name__}")
+        return
+    frames = {f.id: f for f in scene.frames}
+    for key, rel in depth_files.items():
+        field = f"gt.depth[{key}]"
+        fid = int(key) if isinstance(key, str) and key.isdigit() else None
+        if fid not in frames:
+            problems.report(index, field, f"no frame with id {key!r}")
+            continue
+        depth_path = _relative_file(scene.path, rel, index, field, problems)
+        if depth_path is None:
+            continue
+        frame = frames[fid]
+        if check_files and load_depth_npz(depth_path, (frame.intrinsics.height, frame.intrinsics.width), problems,
+                                          f"gt depth of frame {fid}") is None:
+            continue
+        scene.gt_depth_files[fid] = rel

@@ -1,0 +1,226 @@
+"""Typed records of a scene directory and their JSON (de)serialisation.
+
+Records hold poses in the code's conventions (OpenCV camera-to-world, metres).
+The OpenGL ``transform_matrix`` of nerfstudio's ``transforms.json`` is produced
+and parsed only by :func:`frame_to_nerfstudio` / the reader, through
+:func:`tacsplat.geometry.opencv_to_opengl` and its inverse.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tacsplat.errors import InvalidInputError
+from tacsplat.geometry import as_pose, opencv_to_opengl
+from tacsplat.types import CameraIntrinsics
+
+SPLITS = ("train", "test")
+SOURCES = ("sim", "real", "import")
+FORMAT_NAME = "tacsplat-scene"
+FORMAT_VERSION = 1
+
+
+def _frozen_pose(T, name: str) -> np.ndarray:
+    pose = as_pose(T, name).copy()
+    pose.setflags(write=False)
+    return pose
+
+
+def intrinsics_equal(a: CameraIntrinsics, b: CameraIntrinsics) -> bool:
+    return a.width == b.width and a.height == b.height and np.array_equal(a.K, b.K)
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One camera view: ``file_path`` relative to the scene directory, OpenCV camera-to-world pose."""
+
+    id: int
+    file_path: str
+    T_world_cam: np.ndarray  # [4, 4] float64, OpenCV camera-to-world
+    split: str
+    intrinsics: CameraIntrinsics
+
+    def __post_init__(self):
+        object.__setattr__(self, "T_world_cam", _frozen_pose(self.T_world_cam, f"frame {self.id} T_world_cam"))
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Frame):
+            return NotImplemented
+        return (
+            (self.id, self.file_path, self.split) == (other.id, other.file_path, other.split)
+            and np.array_equal(self.T_world_cam, other.T_world_cam)
+            and intrinsics_equal(self.intrinsics, other.intrinsics)
+        )
+
+    __hash__ = None
+
+
+@dataclass(frozen=True, eq=False)
+class Touch:
+    """One tactile reading: depth map file (relative path) and the sensor pose in the world."""
+
+    id: int
+    grasp: int
+    finger: str
+    depth_file: str
+    T_world_sensor: np.ndarray  # [4, 4] float64
+    in_contact: bool
+
+    def __post_init__(self):
+        object.__setattr__(self, "T_world_sensor", _frozen_pose(self.T_world_sensor, f"touch {self.id} T_world_sensor"))
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Touch):
+            return NotImplemented
+        return (
+            (self.id, self.grasp, self.finger, self.depth_file, self.in_contact)
+            == (other.id, other.grasp, other.finger, other.depth_file, other.in_contact)
+            and np.array_equal(self.T_world_sensor, other.T_world_sensor)
+        )
+
+    __hash__ = None
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    """The tactile sensor, modelled as an orthographic depth camera behind its gel (DESIGN.md)."""
+
+    name: str
+    width_px: int
+    height_px: int
+    pixel_size_m: float
+    gel_thickness_m: float
+
+    def __post_init__(self):
+        problem = sensor_problem(self)
+        if problem:
+            raise InvalidInputError(f"SensorModel: {problem}")
+
+
+@dataclass(frozen=True)
+class SceneMeta:
+    """Provenance of a scene. Units are always metres; the writer adds the tacsplat version."""
+
+    source: str  # "sim" | "real" | "import"
+    object: str
+    capture_plan: dict = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.source not in SOURCES:
+            raise InvalidInputError(f"SceneMeta.source: expected one of {SOURCES}, got {self.source!r}")
+        if not isinstance(self.object, str) or not self.object:
+            raise InvalidInputError("SceneMeta.object: expected a non-empty string")
+        for name in ("capture_plan", "extra"):
+            if not isinstance(getattr(self, name), dict):
+                raise InvalidInputError(f"SceneMeta.{name}: expected a dict")
+
+
+def sensor_problem(sensor: SensorModel) -> str | None:
+    """Why a sensor model is invalid, or None."""
+    for name in ("width_px", "height_px"):
+        value = getattr(sensor, name)
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            return f"{name} must be a positive integer, got {value!r}"
+    for name in ("pixel_size_m", "gel_thickness_m"):
+        value = getattr(sensor, name)
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) or not np.isfinite(value):
+            return f"{name} must be a finite number, got {value!r}"
+    if not sensor.pixel_size_m > 0:
+        return f"pixel_size_m must be positive, got {sensor.pixel_size_m}"
+    if sensor.gel_thickness_m < 0:
+        return f"gel_thickness_m must be non-negative, got {sensor.gel_thickness_m}"
+    return None
+
+
+# --- JSON forms ---------------------------------------------------------------------------------
+
+
+def intrinsics_to_json(intr: CameraIntrinsics) -> dict:
+    """nerfstudio intrinsics keys (``fl_x, fl_y, cx, cy, w, h``); skew is not representable."""
+    if intr.K[0, 1] != 0 or intr.K[1, 0] != 0 or not np.array_equal(intr.K[2], [0.0, 0.0, 1.0]):
+        raise InvalidInputError(f"intrinsics: only zero-skew pinhole K is supported, got {intr.K.tolist()}")
+    return {"fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy, "w": int(intr.width), "h": int(intr.height)}
+
+
+def intrinsics_from_json(d: dict) -> CameraIntrinsics:
+    K = np.array([[d["fl_x"], 0.0, d["cx"]], [0.0, d["fl_y"], d["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64)
+    return CameraIntrinsics(K=K, width=int(d["w"]), height=int(d["h"]))
+
+
+def sensor_to_json(sensor: SensorModel | None) -> dict | None:
+    if sensor is None:
+        return None
+    return {
+        "name": sensor.name,
+        "width_px": int(sensor.width_px),
+        "height_px": int(sensor.height_px),
+        "pixel_size_m": float(sensor.pixel_size_m),
+        "gel_thickness_m": float(sensor.gel_thickness_m),
+    }
+
+
+def meta_to_json(meta: SceneMeta) -> dict:
+    return {"source": meta.source, "object": meta.object, "capture_plan": meta.capture_plan, "extra": meta.extra}
+
+
+def meta_from_json(d: dict) -> SceneMeta:
+    return SceneMeta(source=d["source"], object=d["object"], capture_plan=d.get("capture_plan", {}), extra=d.get("extra", {}))
+
+
+def frame_to_json(frame: Frame) -> dict:
+    """The writer's journal form of a frame (OpenCV pose, full intrinsics)."""
+    return {
+        "id": frame.id,
+        "file_path": frame.file_path,
+        "split": frame.split,
+        "T_world_cam": frame.T_world_cam.tolist(),
+        "intrinsics": intrinsics_to_json(frame.intrinsics),
+    }
+
+
+def frame_from_json(d: dict) -> Frame:
+    return Frame(
+        id=int(d["id"]),
+        file_path=d["file_path"],
+        T_world_cam=np.asarray(d["T_world_cam"], dtype=np.float64),
+        split=d["split"],
+        intrinsics=intrinsics_from_json(d["intrinsics"]),
+    )
+
+
+def frame_to_nerfstudio(frame: Frame, with_intrinsics: bool) -> dict:
+    """A ``transforms.json`` frame entry: OpenGL camera-to-world ``transform_matrix``."""
+    entry = {
+        "id": frame.id,
+        "file_path": frame.file_path,
+        "transform_matrix": opencv_to_opengl(frame.T_world_cam).tolist(),
+        "split": frame.split,
+    }
+    if with_intrinsics:
+        entry.update(intrinsics_to_json(frame.intrinsics))
+    return entry
+
+
+def touch_to_json(touch: Touch) -> dict:
+    return {
+        "id": touch.id,
+        "grasp": touch.grasp,
+        "finger": touch.finger,
+        "depth_file": touch.depth_file,
+        "T_world_sensor": touch.T_world_sensor.tolist(),
+        "in_contact": bool(touch.in_contact),
+    }
+
+
+def touch_from_json(d: dict) -> Touch:
+    return Touch(
+        id=int(d["id"]),
+        grasp=int(d["grasp"]),
+        finger=d["finger"],
+        depth_file=d["depth_file"],
+        T_world_sensor=np.asarray(d["T_world_sensor"], dtype=np.float64),
+        in_contact=bool(d["in_contact"]),
+    )

@@ -1,0 +1,475 @@
+"""The one crash-safe writer of scene directories.
+
+Every file is written to a hidden temporary name in its final folder, flushed
+to disk (fsync) and renamed over its final name (``os.replace``), so a reader
+never sees a partial file. Records are appended one line each to
+``journal.jsonl`` (fsync'ed); the index files ``transforms.json``,
+``touches.json`` and ``scene.json`` are re-materialised atomically from the
+in-memory state after each record. After ``kill -9`` at any point:
+
+* the index files are a consistent, loadable snapshot (at most one record
+  behind the journal);
+* :meth:`SceneWriter.resume` replays the journal, drops a torn last line,
+  deletes leftover temporary files, rewrites the index and continues numbering
+  where the journal stopped: only the record in flight can be lost.
+
+Ids are dense per kind (frames 0..N-1, touches 0..M-1): ``remove_last`` (the
+operator's undo) is itself a journal record and the next record reuses the
+freed id, so a scene never has gaps.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import fcntl
+import io
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+import tacsplat
+from tacsplat.errors import InvalidInputError, SceneFormatError
+from tacsplat.geometry import check_rigid
+from tacsplat.types import CameraIntrinsics, TactileReading
+
+from .records import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    SPLITS,
+    Frame,
+    SceneMeta,
+    SensorModel,
+    Touch,
+    frame_from_json,
+    frame_to_json,
+    frame_to_nerfstudio,
+    intrinsics_equal,
+    intrinsics_from_json,
+    intrinsics_to_json,
+    meta_from_json,
+    meta_to_json,
+    sensor_to_json,
+    touch_from_json,
+    touch_to_json,
+)
+
+log = logging.getLogger(__name__)
+
+JOURNAL = "journal.jsonl"
+TEMP_SUFFIX = ".tmp"
+
+
+def temp_name(path: Path) -> Path:
+    """The hidden temporary sibling a file is written to before its rename."""
+    return path.with_name(f".{path.name}.{os.getpid()}{TEMP_SUFFIX}")
+
+
+def is_temp_file(path: Path) -> bool:
+    return path.name.startswith(".") and path.name.endswith(TEMP_SUFFIX)
+
+
+def _fsync_dir(directory: Path) -> None:
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that ``path`` is always either the old or the new file."""
+    path = Path(path)
+    tmp = temp_name(path)
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+    _fsync_dir(path.parent)
+
+
+def atomic_write_json(path: Path, obj) -> None:
+    atomic_write_bytes(path, (json.dumps(obj, indent=1) + "\n").encode())
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """PNG bytes of an RGB uint8 image [H, W, 3]."""
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise InvalidInputError("image: OpenCV could not encode it as PNG")
+    return buf.tobytes()
+
+
+def encode_npz(**arrays) -> bytes:
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def _check_depth(depth, shape: tuple[int, int], name: str) -> np.ndarray:
+    depth = np.asarray(depth)
+    if depth.shape != shape:
+        raise InvalidInputError(f"{name}: expected shape {shape}, got {depth.shape}")
+    if not np.issubdtype(depth.dtype, np.floating):
+        raise InvalidInputError(f"{name}: expected float metres, got dtype {depth.dtype}")
+    depth = depth.astype(np.float32)
+    if not np.all(np.isfinite(depth)):
+        raise InvalidInputError(f"{name}: contains NaN or infinite values")
+    if (depth < 0).any():
+        raise InvalidInputError(f"{name}: contains negative values (min {float(depth.min()):.3g})")
+    return depth
+
+
+class SceneWriter:
+    """Appends frames and touches to a scene directory, crash-safely (see the module docstring).
+
+    Use :meth:`create` for a new scene and :meth:`resume` to continue one; both
+    return a writer that holds an exclusive lock on the scene until :meth:`close`
+    (also a context manager).
+    """
+
+    def __init__(self, path: Path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None,
+                 created: str, version: str):
+        self.path = Path(path)
+        self.intrinsics = intrinsics
+        self.meta = meta
+        self.sensor = sensor
+        self._created = created
+        self._version = version
+        self.frames: list[Frame] = []
+        self.touches: list[Touch] = []
+        self._gt_depth: dict[int, str] = {}
+        self._gt_mesh: str | None = None
+        self._order: list[tuple[str, int]] = []  # live records, oldest first, for remove_last
+        self._journal = None
+
+    # --- opening ------------------------------------------------------------------------------
+
+    @classmethod
+    def create(cls, path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None = None) -> "SceneWriter":
+        """Start a new scene in ``path`` (which must not exist or be an empty folder)."""
+        path = Path(path)
+        if not isinstance(intrinsics, CameraIntrinsics):
+            raise InvalidInputError(f"intrinsics: expected CameraIntrinsics, got {type(intrinsics).__name__}")
+        intrinsics_to_json(intrinsics)  # rejects skew
+        if not isinstance(meta, SceneMeta):
+            raise InvalidInputError(f"meta: expected SceneMeta, got {type(meta).__name__}")
+        if sensor is not None and not isinstance(sensor, SensorModel):
+            raise InvalidInputError(f"sensor: expected SensorModel or None, got {type(sensor).__name__}")
+        if (path / JOURNAL).exists():
+            raise InvalidInputError(f"{path} already holds a scene; use SceneWriter.resume to continue it")
+        if path.exists() and (not path.is_dir() or any(path.iterdir())):
+            raise InvalidInputError(f"{path} exists and is not an empty folder; choose a new output folder")
+        for sub in ("", "images", "touches", "gt", "gt/depth"):
+            (path / sub).mkdir(parents=True, exist_ok=True)
+        created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+        writer = cls(path, intrinsics, meta, sensor, created, tacsplat.__version__)
+        writer._materialise("transforms", "touches", "scene")
+        # The journal appears last: its header is what makes the folder resumable.
+        header = {
+            "op": "create",
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "created": created,
+            "tacsplat_version": writer._version,
+            "intrinsics": intrinsics_to_json(intrinsics),
+            "sensor": sensor_to_json(sensor),
+            "meta": meta_to_json(meta),
+        }
+        atomic_write_bytes(path / JOURNAL, (json.dumps(header) + "\n").encode())
+        writer._journal = _lock_journal(path / JOURNAL)
+        return writer
+
+    @classmethod
+    def resume(cls, path) -> "SceneWriter":
+        """Continue a scene after a clean close or a crash: replay the journal, rewrite the index."""
+        path = Path(path)
+        journal_path = path / JOURNAL
+        if not journal_path.is_file():
+            raise SceneFormatError(journal_path, None, "missing: this folder was not written by SceneWriter (or its creation never finished)")
+        journal = _lock_journal(journal_path)
+        try:
+            writer = cls._replay(path, _read_journal(journal_path))
+        except BaseException:
+            journal.close()
+            raise
+        writer._journal = journal
+        for sub in ("images", "touches", "gt", "gt/depth"):
+            (path / sub).mkdir(parents=True, exist_ok=True)
+        removed = writer._remove_temp_files()
+        writer._materialise("transforms", "touches", "scene")
+        log.info("resumed %s: %d frames, %d touches (%d leftover temporary files removed)",
+                 path, writer.num_frames, writer.num_touches, removed)
+        return writer
+
+    @classmethod
+    def _replay(cls, path: Path, entries: list[dict]) -> "SceneWriter":
+        journal_path = path / JOURNAL
+        header = entries[0]
+        if header.get("op") != "create":
+            raise SceneFormatError(journal_path, "line 1", f"expected the 'create' header, got op {header.get('op')!r}")
+        try:
+            sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
+            writer = cls(path, intrinsics_from_json(header["intrinsics"]), meta_from_json(header["meta"]), sensor,
+                         header["created"], tacsplat.__version__)
+        except (KeyError, TypeError, InvalidInputError) as exc:
+            raise SceneFormatError(journal_path, "line 1", f"invalid header: {exc}") from exc
+        for lineno, entry in enumerate(entries[1:], start=2):
+            try:
+                writer._apply(entry)
+            except (KeyError, TypeError, ValueError, InvalidInputError) as exc:
+                raise SceneFormatError(journal_path, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}") from exc
+        return writer
+
+    def _remove_temp_files(self) -> int:
+        count = 0
+        for sub in ("", "images", "touches", "gt", "gt/depth"):
+            for p in (self.path / sub).iterdir():
+                if p.is_file() and is_temp_file(p):
+                    p.unlink()
+                    count += 1
+        return count
+
+    # --- state --------------------------------------------------------------------------------
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.frames)
+
+    @property
+    def num_touches(self) -> int:
+        return len(self.touches)
+
+    @property
+    def num_grasps(self) -> int:
+        """Number of distinct grasp indices among the touches."""
+        return len({t.grasp for t in self.touches})
+
+    def _apply(self, entry: dict) -> None:
+        """Apply one journal record to the in-memory state (used live and on replay)."""
+        op = entry["op"]
+        if op == "frame":
+            frame = frame_from_json(entry["frame"])
+            if frame.id != len(self.frames):
+                raise ValueError(f"frame id {frame.id} breaks the numbering (expected {len(self.frames)})")
+            self.frames.append(frame)
+            if entry.get("gt_depth"):
+                self._gt_depth[frame.id] = entry["gt_depth"]
+            self._order.append(("frame", frame.id))
+        elif op == "touch":
+            touch = touch_from_json(entry["touch"])
+            if touch.id != len(self.touches):
+                raise ValueError(f"touch id {touch.id} breaks the numbering (expected {len(self.touches)})")
+            self.touches.append(touch)
+            self._order.append(("touch", touch.id))
+        elif op == "remove":
+            kind, rid = entry["kind"], int(entry["id"])
+            if not self._order or self._order[-1] != (kind, rid):
+                raise ValueError(f"removal of {kind} {rid}, which is not the last record")
+            self._order.pop()
+            if kind == "frame":
+                self.frames.pop()
+                self._gt_depth.pop(rid, None)
+            else:
+                self.touches.pop()
+        elif op == "gt_mesh":
+            self._gt_mesh = entry["path"]
+        else:
+            raise ValueError(f"unknown op {op!r}")
+
+    def _record(self, entry: dict, *index: str) -> None:
+        """Journal ``entry`` durably, apply it, then rewrite the affected index files."""
+        if self._journal is None:
+            raise InvalidInputError(f"SceneWriter for {self.path} is closed")
+        entry = {**entry, "t": time.time()}
+        self._journal.write((json.dumps(entry) + "\n").encode())
+        self._journal.flush()
+        os.fsync(self._journal.fileno())
+        self._apply(entry)
+        self._materialise(*index)
+
+    def _materialise(self, *which: str) -> None:
+        if "transforms" in which:
+            atomic_write_json(self.path / "transforms.json", self._transforms_json())
+        if "touches" in which:
+            atomic_write_json(self.path / "touches.json", {"sensor": sensor_to_json(self.sensor),
+                                                            "touches": [touch_to_json(t) for t in self.touches]})
+        if "scene" in which:
+            atomic_write_json(self.path / "scene.json", self._scene_json())
+
+    def _transforms_json(self) -> dict:
+        shared = all(intrinsics_equal(f.intrinsics, self.intrinsics) for f in self.frames)
+        out = {"camera_model": "OPENCV"}
+        if shared:  # nerfstudio reads per-frame intrinsics only when the top-level keys are absent
+            out.update(intrinsics_to_json(self.intrinsics))
+        out.update({"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0})
+        out["frames"] = [frame_to_nerfstudio(f, with_intrinsics=not shared) for f in self.frames]
+        by_split = {s: [f.file_path for f in self.frames if f.split == s] for s in SPLITS}
+        # nerfstudio asks for "val" when evaluating during training: the test views serve both.
+        out.update({"train_filenames": by_split["train"], "val_filenames": by_split["test"],
+                    "test_filenames": by_split["test"]})
+        return out
+
+    def _scene_json(self) -> dict:
+        return {
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            **meta_to_json(self.meta),
+            "units": "m",
+            "tacsplat_version": self._version,
+            "created": self._created,
+            "gt": {"mesh": self._gt_mesh, "depth": {str(k): v for k, v in sorted(self._gt_depth.items())}},
+        }
+
+    # --- records ------------------------------------------------------------------------------
+
+    def add_frame(self, image: np.ndarray, T_world_cam: np.ndarray, split: str = "train",
+                  gt_depth: np.ndarray | None = None, intrinsics: CameraIntrinsics | None = None) -> Frame:
+        """Append a view: ``image`` [H, W, 3] uint8 RGB, ``T_world_cam`` [4, 4] OpenCV camera-to-world.
+
+        ``gt_depth`` [H, W] float32 metres (0 = no surface) goes to ``gt/`` for
+        evaluation only. ``intrinsics`` defaults to the scene's.
+        """
+        intr = self.intrinsics if intrinsics is None else intrinsics
+        if not isinstance(intr, CameraIntrinsics):
+            raise InvalidInputError(f"intrinsics: expected CameraIntrinsics, got {type(intr).__name__}")
+        intrinsics_to_json(intr)
+        image = np.asarray(image)
+        if image.dtype != np.uint8:
+            raise InvalidInputError(f"image: expected uint8 RGB, got dtype {image.dtype}")
+        if image.shape != (intr.height, intr.width, 3):
+            raise InvalidInputError(f"image: expected shape {(intr.height, intr.width, 3)} from the intrinsics, got {image.shape}")
+        pose = check_rigid(T_world_cam, "T_world_cam")
+        if split not in SPLITS:
+            raise InvalidInputError(f"split: expected one of {SPLITS}, got {split!r}")
+        if gt_depth is not None:
+            gt_depth = _check_depth(gt_depth, (intr.height, intr.width), "gt_depth")
+        fid = self.num_frames
+        frame = Frame(id=fid, file_path=f"images/{fid:06d}.png", T_world_cam=pose, split=split, intrinsics=intr)
+        atomic_write_bytes(self.path / frame.file_path, encode_png(image))
+        gt_file = None
+        if gt_depth is not None:
+            gt_file = f"gt/depth/{fid:06d}.npz"
+            atomic_write_bytes(self.path / gt_file, encode_npz(depth=gt_depth))
+        self._record({"op": "frame", "frame": frame_to_json(frame), "gt_depth": gt_file},
+                     "transforms", *(["scene"] if gt_file else []))
+        return frame
+
+    def add_touch(self, depth: np.ndarray, T_world_sensor: np.ndarray, grasp: int, finger: str) -> Touch:
+        """Append a tactile reading: ``depth`` [h, w] float32 metres of indentation (0 = no contact)."""
+        if self.sensor is None:
+            raise InvalidInputError(f"{self.path}: the scene was created without a sensor model; it cannot hold touches")
+        depth = _check_depth(depth, (self.sensor.height_px, self.sensor.width_px), "depth")
+        pose = check_rigid(T_world_sensor, "T_world_sensor")
+        if isinstance(grasp, bool) or not isinstance(grasp, (int, np.integer)) or grasp < 0:
+            raise InvalidInputError(f"grasp: expected a non-negative integer, got {grasp!r}")
+        if not isinstance(finger, str) or not finger:
+            raise InvalidInputError(f"finger: expected a non-empty name, got {finger!r}")
+        tid = self.num_touches
+        touch = Touch(id=tid, grasp=int(grasp), finger=finger, depth_file=f"touches/{tid:06d}.npz",
+                      T_world_sensor=pose, in_contact=bool((depth > 0).any()))
+        atomic_write_bytes(self.path / touch.depth_file, encode_npz(depth=depth))
+        self._record({"op": "touch", "touch": touch_to_json(touch)}, "touches")
+        return touch
+
+    def add_reading(self, reading: TactileReading, grasp: int, finger: str) -> Touch:
+        """Append a world-frame :class:`TactileReading` (its pixel size must match the sensor model)."""
+        if reading.frame != "world":
+            raise InvalidInputError(f"reading: its pose is in the '{reading.frame}' frame; call to_world() first")
+        if self.sensor is not None and not np.isclose(reading.pixel_size_m, self.sensor.pixel_size_m, rtol=1e-6):
+            raise InvalidInputError(f"reading.pixel_size_m {reading.pixel_size_m} differs from the sensor model's "
+                                    f"{self.sensor.pixel_size_m}")
+        return self.add_touch(reading.depth, reading.T_world_sensor, grasp, finger)
+
+    def set_gt_mesh(self, mesh) -> Path:
+        """Store the ground-truth mesh (a path to any mesh trimesh reads, or a ``trimesh.Trimesh``) as ``gt/mesh.ply``."""
+        import trimesh
+
+        if isinstance(mesh, (str, os.PathLike)):
+            src = Path(mesh)
+            if not src.is_file():
+                raise InvalidInputError(f"mesh: {src} does not exist")
+            data = src.read_bytes() if src.suffix.lower() == ".ply" else trimesh.load(src, force="mesh").export(file_type="ply")
+        elif isinstance(mesh, trimesh.Trimesh):
+            data = mesh.export(file_type="ply")
+        else:
+            raise InvalidInputError(f"mesh: expected a path or trimesh.Trimesh, got {type(mesh).__name__}")
+        rel = "gt/mesh.ply"
+        atomic_write_bytes(self.path / rel, data)
+        self._record({"op": "gt_mesh", "path": rel}, "scene")
+        return self.path / rel
+
+    def remove_last(self) -> Frame | Touch:
+        """Undo the most recent frame or touch (the operator's undo); its id is reused next."""
+        if not self._order:
+            raise InvalidInputError(f"{self.path}: nothing to remove")
+        kind, rid = self._order[-1]
+        record = self.frames[-1] if kind == "frame" else self.touches[-1]
+        gt_file = self._gt_depth.get(rid) if kind == "frame" else None
+        self._record({"op": "remove", "kind": kind, "id": rid},
+                     "transforms" if kind == "frame" else "touches", *(["scene"] if gt_file else []))
+        files = [record.file_path, gt_file] if kind == "frame" else [record.depth_file]
+        for rel in filter(None, files):
+            (self.path / rel).unlink(missing_ok=True)
+        return record
+
+    # --- closing ------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Release the scene (the index is already up to date after every record)."""
+        if self._journal is not None:
+            self._journal.close()
+            self._journal = None
+
+    def __enter__(self) -> "SceneWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _lock_journal(path: Path):
+    """Open the journal for appending, holding an exclusive lock (released by close or by the process dying)."""
+    journal = open(path, "ab")
+    try:
+        fcntl.flock(journal.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError as exc:
+        journal.close()
+        raise InvalidInputError(f"{path.parent} is open in another SceneWriter; close that one first") from exc
+    return journal
+
+
+def _read_journal(path: Path) -> list[dict]:
+    """Parse the journal; a torn or unparseable *last* line (a write cut by a crash) is dropped and truncated away."""
+    data = path.read_bytes()
+    lines = data.split(b"\n")
+    complete, tail = lines[:-1], lines[-1]  # tail is b"" when the file ends with a newline
+    entries: list[dict] = []
+    good_bytes = 0
+    for i, raw in enumerate(complete):
+        try:
+            entry = json.loads(raw)
+            if not isinstance(entry, dict):
+                raise ValueError("not a JSON object")
+        except ValueError as exc:
+            if i == len(complete) - 1 and not tail:
+                log.warning("%s: dropping the unparseable last line %d (a write cut by a crash)", path, i + 1)
+                break
+            raise SceneFormatError(path, f"line {i + 1}", f"not a valid JSON record: {exc}") from exc
+        entries.append(entry)
+        good_bytes += len(raw) + 1
+    if tail:
+        log.warning("%s: dropping a torn last line of %d bytes (a write cut by a crash)", path, len(tail))
+    if good_bytes != len(data):
+        with open(path, "r+b") as f:
+            f.truncate(good_bytes)
+            f.flush()
+            os.fsync(f.fileno())
+    if not entries:
+        raise SceneFormatError(path, "line 1", "the journal is empty")
+    return entries
