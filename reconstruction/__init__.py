@@ -1,1 +1,5 @@
 """tacsplat.reconstruction (see DESIGN.md)."""
+
+from tacsplat.reconstruction.rasterization import rasterization
+
+__all__ = ["rasterization"]

@@ -1,0 +1,246 @@
+"""Pure-PyTorch reference of the rasterizer (autograd backward): the test oracle.
+
+Two stages, as in gsplat:
+
+* :func:`project_gaussians` -- gsplat's classic EWA projection (also used by the
+  ``cpu`` backend, whose compositing is compiled but whose projection stays in
+  torch so that ``means2d`` is a real autograd node for densification).
+* :func:`rasterize_to_pixels_torch` -- front-to-back alpha compositing of
+  depth-sorted Gaussians, pixel centres at +0.5, evaluated tile by tile (16x16)
+  with dense [pixels, Gaussians] tensors per tile. Readable, not fast.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+ALPHA_THRESHOLD = 1.0 / 255.0  # a Gaussian with alpha under this is skipped at a pixel
+MAX_ALPHA = 0.99  # alpha clamp
+TRANSMITTANCE_THRESHOLD = 1e-4  # a pixel stops once its transmittance would fall to this
+GAUSSIAN_EXTEND = 3.33  # bounding box half-size, in standard deviations per axis
+FOV_CLAMP = 1.3  # the EWA Jacobian is evaluated at x/z, y/z clamped to 1.3x the half field of view
+
+
+@dataclass
+class Projection:
+    """Per-camera 2D Gaussians (C cameras, N Gaussians)."""
+
+    means2d: Tensor  # [C, N, 2] pixel coordinates
+    conics: Tensor  # [C, N, 3] upper triangle (a, b, c) of the inverse 2D covariance
+    depths: Tensor  # [C, N] camera z (0 where culled)
+    radii: Tensor  # [C, N, 2] int32 box half-sizes in pixels, 0 = culled
+    opacities: Tensor  # [C, N] opacities (times the antialiasing compensation if used)
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """Rotation matrices [N, 3, 3] of quaternions [N, 4] (wxyz, normalised here; zero -> identity)."""
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
+
+
+def project_gaussians(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4]
+    scales: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    viewmats: Tensor,  # [C, 4, 4]
+    Ks: Tensor,  # [C, 3, 3]
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    eps2d: float = 0.3,
+    radius_clip: float = 0.0,
+    antialiased: bool = False,
+) -> Projection:
+    """gsplat's classic EWA projection of 3D Gaussians into C pinhole cameras.
+
+    A Gaussian is culled (radii 0) when its depth is outside [near, far], its
+    dilated 2D covariance is not positive definite, its opacity is under 1/255,
+    both radii are <= radius_clip, or its box misses the image.
+    """
+    rotmats = quat_to_rotmat(quats)  # [N, 3, 3]
+    m = rotmats * scales[:, None, :]  # R @ diag(s)
+    covars = m @ m.transpose(-1, -2)  # [N, 3, 3]
+
+    R = viewmats[:, :3, :3]  # [C, 3, 3]
+    t = viewmats[:, :3, 3]  # [C, 3]
+    means_c = torch.einsum("cij,nj->cni", R, means) + t[:, None, :]  # [C, N, 3]
+    covars_c = torch.einsum("cij,njk,clk->cnil", R, covars, R)  # [C, N, 3, 3]
+
+    x, y, z = means_c.unbind(-1)
+    in_depth = (z >= near_plane) & (z <= far_plane)
+    z_safe = torch.where(in_depth, z, torch.ones_like(z))
+    fx, fy = Ks[:, 0, 0, None], Ks[:, 1, 1, None]  # [C, 1]
+    cx, cy = Ks[:, 0, 2, None], Ks[:, 1, 2, None]
+    tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+    margin = FOV_CLAMP - 1.0
+    lim_x_pos, lim_x_neg = (width - cx) / fx + margin * tan_fovx, cx / fx + margin * tan_fovx
+    lim_y_pos, lim_y_neg = (height - cy) / fy + margin * tan_fovy, cy / fy + margin * tan_fovy
+    rz = 1.0 / z_safe
+    tx = z_safe * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x * rz))
+    ty = z_safe * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y * rz))
+    zeros = torch.zeros_like(z)
+    J = torch.stack(
+        [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
+    ).reshape(z.shape + (2, 3))  # [C, N, 2, 3]
+    cov2d = J @ covars_c @ J.transpose(-1, -2)  # [C, N, 2, 2]
+    means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)  # [C, N, 2]
+
+    a = cov2d[..., 0, 0] + eps2d
+    b = cov2d[..., 0, 1]
+    c = cov2d[..., 1, 1] + eps2d
+    det = a * c - b * b
+    opac = opacities.expand_as(z)
+    if antialiased:
+        det_orig = cov2d[..., 0, 0] * cov2d[..., 1, 1] - b * b
+        opac = opac * torch.sqrt((det_orig / det.clamp_min(1e-30)).clamp_min(0.0))
+    positive = det > 0
+    det_safe = torch.where(positive, det, torch.ones_like(det))
+    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+
+    with torch.no_grad():
+        visible = in_depth & positive & (opac >= ALPHA_THRESHOLD)
+        extend = torch.sqrt(2.0 * torch.log(opac.clamp_min(ALPHA_THRESHOLD) / ALPHA_THRESHOLD)).clamp_max(
+            GAUSSIAN_EXTEND
+        )
+        radius_x = torch.ceil(extend * torch.sqrt(a.clamp_min(0.0)))
+        radius_y = torch.ceil(extend * torch.sqrt(c.clamp_min(0.0)))
+        visible &= ~((radius_x <= radius_clip) & (radius_y <= radius_clip))
+        mx, my = means2d[..., 0], means2d[..., 1]
+        visible &= (mx + radius_x > 0) & (mx - radius_x < width) & (my + radius_y > 0) & (my - radius_y < height)
+        visible &= torch.isfinite(radius_x) & torch.isfinite(radius_y)
+        radii = torch.stack([radius_x, radius_y], dim=-1).clamp_max(2**30) * visible[..., None]
+        radii = radii.to(torch.int32)
+
+    keep = visible[..., None]
+    return Projection(
+        means2d=torch.where(keep, means2d, torch.zeros_like(means2d)),
+        conics=torch.where(keep, conics, torch.zeros_like(conics)),
+        depths=torch.where(visible, z, zeros),
+        radii=radii,
+        opacities=opac,
+    )
+
+
+def tile_intersections(
+    means2d: Tensor,  # [N, 2]
+    radii: Tensor,  # [N, 2] int
+    depths: Tensor,  # [N]
+    width: int,
+    height: int,
+    tile_size: int,
+) -> tuple[Tensor, Tensor]:
+    """Depth-sorted (tile, Gaussian) pairs: returns ``(tile_ids [M], gauss_ids [M])`` sorted by tile then depth."""
+    tiles_x = math.ceil(width / tile_size)
+    tiles_y = math.ceil(height / tile_size)
+    visible = (radii > 0).any(dim=-1).nonzero().squeeze(-1)
+    if visible.numel() == 0:
+        empty = torch.zeros(0, dtype=torch.long)
+        return empty, empty
+    m = means2d[visible].detach()
+    r = radii[visible].to(m.dtype)
+    x0 = torch.floor((m[:, 0] - r[:, 0]) / tile_size).clamp(0, tiles_x).long()
+    x1 = torch.ceil((m[:, 0] + r[:, 0]) / tile_size).clamp(0, tiles_x).long()
+    y0 = torch.floor((m[:, 1] - r[:, 1]) / tile_size).clamp(0, tiles_y).long()
+    y1 = torch.ceil((m[:, 1] + r[:, 1]) / tile_size).clamp(0, tiles_y).long()
+    nx, ny = (x1 - x0).clamp_min(0), (y1 - y0).clamp_min(0)
+    counts = nx * ny
+    owner = torch.repeat_interleave(torch.arange(visible.numel()), counts)
+    first = torch.cumsum(counts, 0) - counts
+    local = torch.arange(int(counts.sum())) - first[owner]
+    tile_x = x0[owner] + local % nx[owner]
+    tile_y = y0[owner] + local // nx[owner]
+    tile_ids = tile_y * tiles_x + tile_x
+    # rank Gaussians by (depth, index), then sort intersections by (tile, rank)
+    depth_rank = torch.empty_like(visible)
+    depth_rank[torch.sort(depths[visible].detach(), stable=True).indices] = torch.arange(visible.numel())
+    order = torch.sort(tile_ids * visible.numel() + depth_rank[owner]).indices
+    return tile_ids[order], visible[owner[order]]
+
+
+def _composite_tile(
+    px: Tensor,  # [P] pixel centre x
+    py: Tensor,  # [P]
+    means2d: Tensor,  # [M, 2] depth-sorted
+    conics: Tensor,  # [M, 3]
+    colors: Tensor,  # [M, D]
+    opacities: Tensor,  # [M]
+) -> tuple[Tensor, Tensor]:
+    """Front-to-back compositing of M sorted Gaussians at P pixels -> (colour [P, D], transmittance [P])."""
+    dx = means2d[None, :, 0] - px[:, None]  # [P, M]
+    dy = means2d[None, :, 1] - py[:, None]
+    sigma = 0.5 * (conics[None, :, 0] * dx * dx + conics[None, :, 2] * dy * dy) + conics[None, :, 1] * dx * dy
+    alpha = torch.clamp(opacities[None, :] * torch.exp(-sigma), max=MAX_ALPHA)
+    alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_THRESHOLD), alpha, torch.zeros_like(alpha))
+    # A pixel stops before the Gaussian that would bring its transmittance to <= 1e-4.
+    with torch.no_grad():
+        keep = torch.cumprod(1.0 - alpha, dim=1) > TRANSMITTANCE_THRESHOLD
+    alpha = alpha * keep
+    t_after = torch.cumprod(1.0 - alpha, dim=1)  # [P, M]
+    t_before = torch.cat([torch.ones_like(t_after[:, :1]), t_after[:, :-1]], dim=1)
+    weights = alpha * t_before
+    return weights @ colors, t_after[:, -1]
+
+
+def rasterize_to_pixels_torch(
+    means2d: Tensor,  # [C, N, 2]
+    conics: Tensor,  # [C, N, 3]
+    colors: Tensor,  # [C, N, D]
+    opacities: Tensor,  # [C, N]
+    radii: Tensor,  # [C, N, 2]
+    depths: Tensor,  # [C, N] sort keys
+    width: int,
+    height: int,
+    tile_size: int = 16,
+    backgrounds: Tensor | None = None,  # [C, D]
+) -> tuple[Tensor, Tensor]:
+    """Composite projected Gaussians into images -> (colors [C, H, W, D], alphas [C, H, W, 1])."""
+    n_cams, _, n_ch = colors.shape
+    tiles_x = math.ceil(width / tile_size)
+    out_colors, out_alphas = [], []
+    for cam in range(n_cams):
+        tile_ids, gauss_ids = tile_intersections(means2d[cam], radii[cam], depths[cam], width, height, tile_size)
+        bounds = torch.searchsorted(tile_ids, torch.arange(tiles_x * math.ceil(height / tile_size) + 1))
+        pix_index, pix_color, pix_trans = [], [], []
+        for tile in torch.unique_consecutive(tile_ids).tolist():
+            ids = gauss_ids[bounds[tile] : bounds[tile + 1]]
+            ty, tx = divmod(tile, tiles_x)
+            ys = torch.arange(ty * tile_size, min((ty + 1) * tile_size, height))
+            xs = torch.arange(tx * tile_size, min((tx + 1) * tile_size, width))
+            gy, gx = torch.meshgrid(ys, xs, indexing="ij")
+            gy, gx = gy.reshape(-1), gx.reshape(-1)
+            color, trans = _composite_tile(
+                gx.to(means2d.dtype) + 0.5,
+                gy.to(means2d.dtype) + 0.5,
+                means2d[cam, ids],
+                conics[cam, ids],
+                colors[cam, ids],
+                opacities[cam, ids],
+            )
+            pix_index.append(gy * width + gx)
+            pix_color.append(color)
+            pix_trans.append(trans)
+        trans_img = torch.ones(height * width, dtype=colors.dtype)
+        color_img = torch.zeros(height * width, n_ch, dtype=colors.dtype)
+        if pix_index:
+            index = torch.cat(pix_index)
+            trans_img = trans_img.index_copy(0, index, torch.cat(pix_trans))
+            color_img = color_img.index_copy(0, index, torch.cat(pix_color))
+        if backgrounds is not None:
+            color_img = color_img + trans_img[:, None] * backgrounds[cam][None, :]
+        out_colors.append(color_img.reshape(height, width, n_ch))
+        out_alphas.append((1.0 - trans_img).reshape(height, width, 1))
+    return torch.stack(out_colors), torch.stack(out_alphas)

@@ -1,0 +1,204 @@
+"""``rasterization()``: gsplat's public rendering call, with torch / cpu / gsplat backends.
+
+Same signature and return values as ``gsplat.rasterization`` for the arguments
+tacsplat uses, so that gsplat itself is a drop-in backend on CUDA:
+
+* ``torch``: pure-PyTorch reference (:mod:`.raster_torch`), autograd backward; the oracle.
+* ``cpu``: torch projection + SH, then numba tile compositing with a hand-written
+  backward (:mod:`.raster_cpu`); float32 only.
+* ``gsplat``: the gsplat package, when CUDA and gsplat are present.
+* ``auto``: gsplat for CUDA tensors when it is installed, else ``cpu`` for
+  float32 and ``torch`` for float64 inputs.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from tacsplat.errors import InvalidInputError
+from tacsplat.reconstruction.raster_torch import project_gaussians, rasterize_to_pixels_torch
+from tacsplat.reconstruction.spherical_harmonics import num_sh_bases, spherical_harmonics
+
+RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+BACKENDS = ("auto", "torch", "cpu", "gsplat")
+
+
+def _check_tensor(name: str, value, shape: tuple, dtype=None, device=None) -> Tensor:
+    """Validate one tensor argument: type, shape (None = any size), dtype, device, finiteness."""
+    if not isinstance(value, Tensor):
+        raise InvalidInputError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if value.dim() != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
+        want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
+        raise InvalidInputError(f"{name} must have shape {want}, got {list(value.shape)}")
+    if not value.is_floating_point():
+        raise InvalidInputError(f"{name} must be a floating-point tensor, got {value.dtype}")
+    if dtype is not None and value.dtype != dtype:
+        raise InvalidInputError(f"{name} has dtype {value.dtype} but means has {dtype}; use one dtype")
+    if device is not None and value.device != device:
+        raise InvalidInputError(f"{name} is on {value.device} but means is on {device}")
+    if value.numel() and not bool(torch.isfinite(value).all()):
+        bad = "NaN" if bool(torch.isnan(value).any()) else "infinite"
+        raise InvalidInputError(f"{name} contains {bad} values")
+    return value
+
+
+def _gsplat_available() -> bool:
+    return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
+
+
+def _choose_backend(backend: str, means: Tensor) -> str:
+    if backend not in BACKENDS:
+        raise InvalidInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "gsplat" and not _gsplat_available():
+        raise InvalidInputError("backend='gsplat' needs CUDA and the gsplat package")
+    if backend == "cpu" and means.dtype != torch.float32:
+        raise InvalidInputError(f"backend='cpu' computes in float32; means has dtype {means.dtype}")
+    if backend != "auto":
+        return backend
+    if means.is_cuda and _gsplat_available():
+        return "gsplat"
+    cpu_ready = importlib.util.find_spec("tacsplat.reconstruction.raster_cpu") is not None
+    return "cpu" if cpu_ready and means.dtype == torch.float32 and means.device.type == "cpu" else "torch"
+
+
+def rasterization(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4] wxyz, unnormalised
+    scales: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    colors: Tensor,  # [N, D], [C, N, D] or SH coefficients [N, K, 3]
+    viewmats: Tensor,  # [C, 4, 4] world-to-camera
+    Ks: Tensor,  # [C, 3, 3]
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: int | None = None,
+    packed: bool = False,
+    tile_size: int = 16,
+    backgrounds: Tensor | None = None,  # [C, D]
+    render_mode: Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"] = "RGB",
+    rasterize_mode: Literal["classic", "antialiased"] = "classic",
+    absgrad: bool = False,
+    camera_model: str = "pinhole",
+    backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto",
+) -> tuple[Tensor, Tensor, dict]:
+    """Render C images of N Gaussians -> (render_colors [C, H, W, X], render_alphas [C, H, W, 1], meta).
+
+    X is D for "RGB", 1 for "D"/"ED" and D+1 for "RGB+D"/"RGB+ED". "D" is the
+    accumulated depth sum_i w_i z_i (the paper's depth render), "ED" that sum
+    divided by the alpha. ``meta`` holds ``means2d`` [C, N, 2] (call
+    ``retain_grad()`` on it before backward for densification), ``radii``
+    [C, N, 2] int32 (0 = culled), ``depths`` [C, N], ``conics`` [C, N, 3],
+    ``opacities`` [C, N], ``width``, ``height``, ``tile_size``, ``n_cameras``,
+    ``backend``.
+    """
+    _check_tensor("means", means, (None, 3))
+    n, dtype, device = means.shape[0], means.dtype, means.device
+    _check_tensor("quats", quats, (n, 4), dtype, device)
+    _check_tensor("scales", scales, (n, 3), dtype, device)
+    _check_tensor("opacities", opacities, (n,), dtype, device)
+    _check_tensor("viewmats", viewmats, (None, 4, 4), dtype, device)
+    n_cams = viewmats.shape[0]
+    _check_tensor("Ks", Ks, (n_cams, 3, 3), dtype, device)
+    if sh_degree is None:
+        if not isinstance(colors, Tensor) or colors.dim() not in (2, 3):
+            raise InvalidInputError("colors must be [N, D] or [C, N, D] when sh_degree is None")
+        _check_tensor("colors", colors, (n, None) if colors.dim() == 2 else (n_cams, n, None), dtype, device)
+    else:
+        if not isinstance(sh_degree, int) or not 0 <= sh_degree <= 3:
+            raise InvalidInputError(f"sh_degree must be None or an int in 0..3, got {sh_degree!r}")
+        _check_tensor("colors", colors, (n, None, 3), dtype, device)
+        if colors.shape[1] < num_sh_bases(sh_degree):
+            raise InvalidInputError(
+                f"colors has {colors.shape[1]} SH coefficients but sh_degree={sh_degree} needs "
+                f"{num_sh_bases(sh_degree)}"
+            )
+    n_channels = colors.shape[-1]
+    if backgrounds is not None:
+        _check_tensor("backgrounds", backgrounds, (n_cams, n_channels), dtype, device)
+    if not (isinstance(width, int) and isinstance(height, int) and width >= 1 and height >= 1):
+        raise InvalidInputError(f"width and height must be positive ints, got {width!r} x {height!r}")
+    if render_mode not in RENDER_MODES:
+        raise InvalidInputError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    if rasterize_mode not in ("classic", "antialiased"):
+        raise InvalidInputError(f"rasterize_mode must be 'classic' or 'antialiased', got {rasterize_mode!r}")
+    if not (0.0 < near_plane < far_plane):
+        raise InvalidInputError(f"need 0 < near_plane < far_plane, got {near_plane} and {far_plane}")
+    if not (isinstance(tile_size, int) and tile_size >= 1):
+        raise InvalidInputError(f"tile_size must be a positive int, got {tile_size!r}")
+    chosen = _choose_backend(backend, means)
+
+    if chosen == "gsplat":
+        from tacsplat.reconstruction.raster_gsplat import rasterization_gsplat
+
+        return rasterization_gsplat(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
+            near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
+            sh_degree=sh_degree, packed=packed, tile_size=tile_size, backgrounds=backgrounds,
+            render_mode=render_mode, rasterize_mode=rasterize_mode, absgrad=absgrad, camera_model=camera_model,
+        )  # fmt: skip
+    if packed or absgrad or camera_model != "pinhole":
+        raise InvalidInputError(
+            f"backend {chosen!r} supports packed=False, absgrad=False and camera_model='pinhole' only"
+        )
+
+    proj = project_gaussians(
+        means, quats, scales, opacities, viewmats, Ks, width, height,
+        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip,
+        antialiased=rasterize_mode == "antialiased",
+    )  # fmt: skip
+    visible = (proj.radii > 0).all(dim=-1)  # [C, N]
+
+    if sh_degree is None:
+        point_colors = colors.expand(n_cams, n, n_channels) if colors.dim() == 2 else colors
+    else:
+        campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C, 3]
+        dirs = means[None, :, :] - campos[:, None, :]  # [C, N, 3]
+        sh = spherical_harmonics(sh_degree, dirs, colors[None].expand(n_cams, -1, -1, -1))
+        point_colors = torch.clamp_min(torch.where(visible[..., None], sh, torch.zeros_like(sh)) + 0.5, 0.0)
+
+    bg = backgrounds
+    if render_mode in ("D", "ED"):
+        point_colors = proj.depths[..., None]
+        bg = None
+    elif render_mode in ("RGB+D", "RGB+ED"):
+        point_colors = torch.cat([point_colors, proj.depths[..., None]], dim=-1)
+        if bg is not None:
+            bg = torch.cat([bg, torch.zeros_like(bg[:, :1])], dim=-1)
+
+    if chosen == "cpu":
+        from tacsplat.reconstruction.raster_cpu import rasterize_to_pixels_cpu
+
+        render_colors, render_alphas = rasterize_to_pixels_cpu(
+            proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
+            width, height, tile_size, bg,
+        )  # fmt: skip
+    else:
+        render_colors, render_alphas = rasterize_to_pixels_torch(
+            proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
+            width, height, tile_size, bg,
+        )  # fmt: skip
+    if render_mode in ("ED", "RGB+ED"):
+        expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
+        render_colors = torch.cat([render_colors[..., :-1], expected], dim=-1)
+
+    meta = {
+        "means2d": proj.means2d,
+        "radii": proj.radii,
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "opacities": proj.opacities,
+        "width": width,
+        "height": height,
+        "tile_size": tile_size,
+        "n_cameras": n_cams,
+        "backend": chosen,
+    }
+    return render_colors, render_alphas, meta
