@@ -1,7 +1,82 @@
-"""`tacsplat` subcommands of tacsplat.datasets (see tacsplat.cli)."""
+"""`tacsplat` subcommands of tacsplat.datasets: ``import blender``, ``import colmap``, ``inspect``."""
 
 from __future__ import annotations
 
+import argparse
+
+
+def _background(text: str) -> tuple[int, int, int]:
+    from .blender import parse_background
+
+    try:
+        return parse_background(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
 
 def register(cli) -> None:
-    """Add this package's commands to the tree (none yet)."""
+    """Add this package's commands to the tree."""
+    p = cli.command(
+        "import blender",
+        help="import a Blender/NeRF-synthetic dataset (NeRF synthetic, Shiny Blender) into a scene directory",
+        description="Convert SRC (transforms_train.json, transforms_val.json, transforms_test.json and their RGBA "
+        "images) into a scene directory: images composited onto the background colour, OpenGL poses converted to "
+        "the scene format, the train split from transforms_train.json and the test split from the file chosen by "
+        "--test-split.",
+    )
+    p.add_argument("src", metavar="SRC", help="dataset folder holding transforms_train.json")
+    p.add_argument("--out", required=True, metavar="DIR", help="new scene directory (must not exist or be empty)")
+    p.add_argument("--background", type=_background, default="white", metavar="white|black|R,G,B",
+                   help="colour the transparent background is composited onto (R,G,B as 0-255 integers)")
+    p.add_argument("--test-split", choices=("test", "val"), default="test",
+                   help="which file becomes the scene's test split: transforms_test.json or transforms_val.json")
+    p.set_defaults(func=_import_blender)
+
+    p = cli.command(
+        "import colmap",
+        help="import a COLMAP sparse model (text or binary) and its undistorted images into a scene directory",
+        description="Convert the COLMAP sparse model SRC (a folder with cameras/images/points3D .txt or .bin, such "
+        "as sparse/0) into a scene directory. Cameras must be PINHOLE or SIMPLE_PINHOLE (or SIMPLE_RADIAL, RADIAL, "
+        "OPENCV with zero distortion): run `colmap image_undistorter` first otherwise.",
+    )
+    p.add_argument("src", metavar="SRC", help="COLMAP sparse model folder")
+    p.add_argument("--images", required=True, metavar="DIR", help="folder the model's image names are relative to")
+    p.add_argument("--out", required=True, metavar="DIR", help="new scene directory (must not exist or be empty)")
+    p.add_argument("--test-every", type=int, default=8, metavar="N",
+                   help="every N-th image (in name order) goes to the test split; 0 puts all in train")
+    p.add_argument("--scale", type=float, default=1.0, help="metres per COLMAP unit (COLMAP's scale is arbitrary)")
+    p.add_argument("--object", default=None, help="object name recorded in scene.json (default: the model folder's name)")
+    p.set_defaults(func=_import_colmap)
+
+    p = cli.command(
+        "inspect",
+        help="summarise a scene directory and list every problem in it",
+        description="Validate a scene directory and print frames per split, touches per grasp and finger, the "
+        "sensor, the bounds and every problem found. Exits with 1 when there are problems.",
+    )
+    p.add_argument("dir", metavar="DIR", help="scene directory")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (frames {split: count}, touches, grasps, problems [...], ...)")
+    p.set_defaults(func=_inspect)
+
+
+def _import_blender(args) -> int:
+    from .blender import import_blender
+    from .inspect import run_inspect
+
+    import_blender(args.src, args.out, background_rgb=args.background, test_split=args.test_split)
+    return run_inspect(args.out)
+
+
+def _import_colmap(args) -> int:
+    from .colmap import import_colmap
+    from .inspect import run_inspect
+
+    import_colmap(args.src, args.images, args.out, test_every=args.test_every, scale=args.scale, object_name=args.object)
+    return run_inspect(args.out)
+
+
+def _inspect(args) -> int:
+    from .inspect import run_inspect
+
+    return run_inspect(args.dir, as_json=args.json)

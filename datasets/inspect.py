@@ -1,0 +1,95 @@
+"""``tacsplat inspect``: a summary of a scene directory and every problem found in it."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from .reader import check_scene
+from .records import SPLITS
+from .writer import JOURNAL
+
+
+def summarise(path) -> dict:
+    """Frames per split, touches per grasp and finger, bounds, ground truth and every problem, as one JSON-able dict."""
+    path = Path(path)
+    scene, errors = check_scene(path)
+    problems = [str(e) for e in errors]
+    summary = {
+        "path": str(path),
+        "source": None,
+        "object": None,
+        "frames": {s: 0 for s in SPLITS},
+        "image_sizes": [],
+        "touches": 0,
+        "touches_in_contact": 0,
+        "grasps": 0,
+        "touches_per_grasp": {},
+        "touches_per_finger": {},
+        "sensor": None,
+        "bounds": None,
+        "gt": {"mesh": None, "depth_maps": 0},
+        "journal": (path / JOURNAL).is_file(),
+        "problems": problems,
+    }
+    if scene is None:
+        return summary
+    summary.update(source=scene.meta.source, object=scene.meta.object)
+    summary["frames"] = {s: len(scene.split(s)) for s in SPLITS}
+    summary["image_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in scene.frames})
+    summary["touches"] = len(scene.touches)
+    summary["touches_in_contact"] = sum(t.in_contact for t in scene.touches)
+    summary["grasps"] = scene.num_grasps
+    summary["touches_per_grasp"] = {str(g): n for g, n in sorted(Counter(t.grasp for t in scene.touches).items())}
+    summary["touches_per_finger"] = dict(sorted(Counter(t.finger for t in scene.touches).items()))
+    if scene.sensor is not None:
+        s = scene.sensor
+        summary["sensor"] = {"name": s.name, "width_px": s.width_px, "height_px": s.height_px,
+                             "pixel_size_m": s.pixel_size_m, "gel_thickness_m": s.gel_thickness_m}
+    if scene.frames or any(t.in_contact for t in scene.touches):
+        lo, hi = scene.bounds()
+        summary["bounds"] = {"lo": lo.tolist(), "hi": hi.tolist()}
+    summary["gt"] = {"mesh": scene.gt_mesh_file, "depth_maps": len(scene.gt_depth_files)}
+    if not scene.frames:
+        problems.append(f"{path}: the scene has no frames")
+    elif not scene.split("train"):
+        problems.append(f"{path}: the scene has no train frames")
+    return summary
+
+
+def format_summary(summary: dict) -> str:
+    """The readable text form of :func:`summarise`."""
+    lines = [f"scene     {summary['path']}"]
+    if summary["source"] is not None:
+        lines.append(f"object    {summary['object']} (source: {summary['source']})")
+    frames = summary["frames"]
+    sizes = ", ".join(summary["image_sizes"]) or "-"
+    lines.append(f"frames    {sum(frames.values())}: " + ", ".join(f"{n} {s}" for s, n in frames.items()) + f"  [{sizes}]")
+    lines.append(f"touches   {summary['touches']} ({summary['touches_in_contact']} in contact) in {summary['grasps']} grasps")
+    if summary["touches_per_grasp"]:
+        lines.append("  per grasp   " + ", ".join(f"{g}: {n}" for g, n in summary["touches_per_grasp"].items()))
+        lines.append("  per finger  " + ", ".join(f"{f}: {n}" for f, n in summary["touches_per_finger"].items()))
+    sensor = summary["sensor"]
+    lines.append("sensor    " + ("none" if sensor is None else
+                                 f"{sensor['name']} {sensor['width_px']}x{sensor['height_px']} px, "
+                                 f"{sensor['pixel_size_m'] * 1e3:.3g} mm/px, gel {sensor['gel_thickness_m'] * 1e3:.3g} mm"))
+    if summary["bounds"] is not None:
+        lo, hi = np.asarray(summary["bounds"]["lo"]), np.asarray(summary["bounds"]["hi"])
+        fmt = lambda v: "(" + ", ".join(f"{x:+.3f}" for x in v) + ")"  # noqa: E731
+        lines.append(f"bounds    {fmt(lo)} .. {fmt(hi)} m  (size {fmt(hi - lo)})")
+    gt = summary["gt"]
+    lines.append(f"gt        mesh: {gt['mesh'] or 'none'}, depth maps: {gt['depth_maps']}")
+    problems = summary["problems"]
+    lines.append(f"problems  {len(problems) or 'none'}")
+    lines.extend(f"  - {p}" for p in problems)
+    return "\n".join(lines)
+
+
+def run_inspect(path, as_json: bool = False) -> int:
+    """Print the summary (text or one JSON object); exit code 1 when there are problems."""
+    summary = summarise(path)
+    print(json.dumps(summary, indent=1) if as_json else format_summary(summary))
+    return 1 if summary["problems"] else 0
