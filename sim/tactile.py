@@ -15,9 +15,15 @@ degrees; each channel is lit by the slope of the indented gel surface.
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import dataclass
 
-from tacsplat.errors import InvalidInputError
+import numpy as np
+import trimesh
+import trimesh.ray.ray_pyembree
+
+from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.geometry import check_rigid, invert_pose, tactile_pixel_grid, transform_points
+from tacsplat.sim.objects import bounding_sphere
 
 # Unit directions (sensor frame, pointing from the gel towards each light) of the
 # red, green and blue lights; rows are channels.
@@ -73,3 +79,70 @@ def render_tactile_rgb(depth: np.ndarray, pixel_size_m: float, background: np.nd
     flat = TACTILE_LIGHT_DIRECTIONS[:, 2]  # n_flat = (0, 0, 1)
     image = background.astype(np.float64) + TACTILE_RGB_GAIN * (shading - flat)
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class TactileConfig:
+    """A DIGIT/GelSight-like pad: 128 x 160 pixels of 0.15 mm (19.2 x 24 mm), 2 mm of gel."""
+
+    height_px: int = 128
+    width_px: int = 160
+    pixel_size_m: float = 1.5e-4
+    gel_thickness_m: float = 0.002
+    ray_margin_m: float = 0.01  # rays start this far behind the back of the gel
+
+    def __post_init__(self):
+        for key in ("height_px", "width_px"):
+            if int(getattr(self, key)) < 1:
+                raise ConfigError(f"tactile.{key}", f"must be a positive integer, got {getattr(self, key)}")
+        for key in ("pixel_size_m", "gel_thickness_m", "ray_margin_m"):
+            value = getattr(self, key)
+            if not (np.isfinite(value) and value > 0):
+                raise ConfigError(f"tactile.{key}", f"must be a positive number of metres, got {value}")
+
+    @property
+    def pad_size_m(self) -> tuple[float, float]:
+        """(width along x, height along y) of the pad in metres."""
+        return self.width_px * self.pixel_size_m, self.height_px * self.pixel_size_m
+
+
+class TactileDepthRenderer:
+    """Indentation maps of one object mesh (world frame) seen by a pad at any pose.
+
+    Parallel rays along the sensor's +z from behind the gel against the exact
+    mesh (Embree via trimesh; hit heights recomputed in float64 from the hit
+    triangle's plane). A ray whose first hit is a back face started inside the
+    object (it sank deeper than the gel and the margin): full indentation.
+    """
+
+    def __init__(self, mesh_world: trimesh.Trimesh, config: TactileConfig = TactileConfig()):
+        self.config = config
+        self.mesh = mesh_world
+        self._intersector = trimesh.ray.ray_pyembree.RayMeshIntersector(mesh_world)
+        self._centre, self._radius = bounding_sphere(mesh_world)
+        x, y = tactile_pixel_grid(config.height_px, config.width_px, config.pixel_size_m)
+        z0 = -(config.gel_thickness_m + config.ray_margin_m)
+        self._origins_sensor = np.stack([x.ravel(), y.ravel(), np.full(x.size, z0)], axis=1)  # [h*w, 3]
+        self._z0 = z0
+
+    def render(self, T_world_sensor: np.ndarray) -> np.ndarray:
+        """Indentation [h, w] float32 metres (0 = no contact, at most the gel thickness)."""
+        cfg = self.config
+        T = check_rigid(T_world_sensor, "T_world_sensor")
+        depth = np.zeros(cfg.height_px * cfg.width_px, dtype=np.float64)
+        c = invert_pose(T)[:3, :3] @ self._centre + invert_pose(T)[:3, 3]  # object centre, sensor frame
+        half_w, half_h = cfg.pad_size_m[0] / 2, cfg.pad_size_m[1] / 2
+        if c[2] - self._radius > 0 or abs(c[0]) > half_w + self._radius or abs(c[1]) > half_h + self._radius:
+            return depth.reshape(cfg.height_px, cfg.width_px).astype(np.float32)  # object out of reach
+        origins = transform_points(T, self._origins_sensor)
+        direction = T[:3, 2]
+        directions = np.broadcast_to(direction, origins.shape)
+        tri, ray = self._intersector.intersects_id(origins, directions, multiple_hits=False, return_locations=False)
+        normals = self.mesh.face_normals[tri]
+        denom = normals @ direction
+        t = np.einsum("ij,ij->i", self.mesh.triangles[tri, 0] - origins[ray], normals) / np.where(denom == 0, 1, denom)
+        z_hit = self._z0 + t
+        indentation = np.clip(-z_hit, 0.0, cfg.gel_thickness_m)
+        indentation[denom >= 0] = cfg.gel_thickness_m  # exit through a back face: the ray started inside
+        depth[ray] = indentation
+        return depth.reshape(cfg.height_px, cfg.width_px).astype(np.float32)
