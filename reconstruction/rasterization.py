@@ -61,8 +61,7 @@ def _choose_backend(backend: str, means: Tensor) -> str:
         return backend
     if means.is_cuda and _gsplat_available():
         return "gsplat"
-    cpu_ready = importlib.util.find_spec("tacsplat.reconstruction.raster_cpu") is not None
-    return "cpu" if cpu_ready and means.dtype == torch.float32 and means.device.type == "cpu" else "torch"
+    return "cpu" if means.dtype == torch.float32 and means.device.type == "cpu" else "torch"
 
 
 def rasterization(

@@ -1,0 +1,378 @@
+"""The fast CPU backend: tile-based compositing in numba with a hand-written backward.
+
+Same maths as :func:`raster_torch.rasterize_to_pixels_torch` (float32):
+
+1. binning -- each visible Gaussian covers the 16x16 tiles its box (``radii``)
+   touches; Gaussians are ordered by one 64-bit key (depth bits, index) and a
+   two-pass counting sort lays the (tile, Gaussian) intersections out tile by
+   tile, front to back;
+2. forward -- parallel over tiles; inside a tile the loop is Gaussian-outer:
+   each Gaussian visits only the pixels of each row where its exponent can
+   stay under ``ln(255 * opacity)`` (solved per row, padded by one pixel, then
+   tested exactly before any ``exp``), compositing front to back with alpha
+   clamped at 0.99, skipped under 1/255, and a pixel stopping before its
+   transmittance would reach 1e-4;
+3. backward -- parallel over tiles, back to front, transmittance recovered by
+   dividing by (1 - alpha); no atomics: the thread owning a tile writes one
+   gradient row per intersection, and a second parallel pass sums the rows of
+   each Gaussian. Results are deterministic.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+import torch
+from torch import Tensor
+
+from tacsplat.reconstruction.raster_torch import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD
+
+F32 = np.float32
+_HALF = F32(0.5)
+_ONE = F32(1.0)
+_ZERO = F32(0.0)
+_MAX_ALPHA = F32(MAX_ALPHA)
+_ALPHA_MIN = F32(ALPHA_THRESHOLD)
+_T_MIN = F32(TRANSMITTANCE_THRESHOLD)
+_LOG_SLACK = F32(1e-3)  # the pre-test skips exp only when the exponent is clearly past ln(255 o)
+N_GRAD = 6  # per-intersection gradient row: d means2d (2), d conic (3), d opacity (1), then d colour (D)
+
+
+@nb.njit(cache=True, inline="always")
+def _row_span(a, b, c, log_limit, dy, mx, x_lo, x_hi):
+    """Columns [x0, x1) of one pixel row (offset dy = mean_y - centre_y) where the exponent may be <= log_limit.
+
+    Solves 0.5 a dx^2 + b dy dx + 0.5 c dy^2 <= log_limit for dx = mean_x - centre_x,
+    pads by one pixel and clips to [x_lo, x_hi).
+    """
+    a64, b64, c64, dy64 = float(a), float(b), float(c), float(dy)
+    disc = (b64 * dy64) ** 2 - a64 * (c64 * dy64 * dy64 - 2.0 * float(log_limit))
+    half = math.sqrt(max(disc, 0.0)) / a64
+    centre = -b64 * dy64 / a64
+    lo = float(mx) - 0.5 - (centre + half) - 1.0
+    hi = float(mx) - 0.5 - (centre - half) + 1.0
+    lo = min(max(lo, x_lo - 1.0), x_hi + 1.0)
+    hi = min(max(hi, x_lo - 1.0), x_hi + 1.0)
+    return max(x_lo, int(math.floor(lo))), min(x_hi, int(math.floor(hi)) + 1)
+
+
+@nb.njit(cache=True, inline="always")
+def _row_range(my, ry, y_lo, y_hi):
+    """Pixel rows [r0, r1) of a tile that the box of half-height ry (padded by one pixel) reaches."""
+    lo = min(max(float(my) - ry - 1.5, y_lo - 1.0), y_hi + 1.0)
+    hi = min(max(float(my) + ry + 0.5, y_lo - 1.0), y_hi + 1.0)
+    return max(y_lo, int(math.floor(lo))), min(y_hi, int(math.floor(hi)) + 1)
+
+
+@nb.njit(parallel=True, cache=True)
+def _tile_boxes(means2d, radii, tile_size, tiles_x, tiles_y, boxes, counts):
+    """Tile box [x0, x1, y0, y1) and tile count of each (camera, Gaussian); 0 tiles when culled."""
+    for g in nb.prange(means2d.shape[0]):
+        rx, ry = radii[g, 0], radii[g, 1]
+        if rx <= 0 or ry <= 0:
+            counts[g] = 0
+            boxes[g, 0] = boxes[g, 1] = boxes[g, 2] = boxes[g, 3] = 0
+            continue
+        mx, my = float(means2d[g, 0]), float(means2d[g, 1])
+        x0 = min(max(math.floor((mx - rx) / tile_size), 0.0), float(tiles_x))
+        x1 = min(max(math.ceil((mx + rx) / tile_size), 0.0), float(tiles_x))
+        y0 = min(max(math.floor((my - ry) / tile_size), 0.0), float(tiles_y))
+        y1 = min(max(math.ceil((my + ry) / tile_size), 0.0), float(tiles_y))
+        boxes[g, 0], boxes[g, 1], boxes[g, 2], boxes[g, 3] = int(x0), int(x1), int(y0), int(y1)
+        counts[g] = max(int(x1) - int(x0), 0) * max(int(y1) - int(y0), 0)
+
+
+@nb.njit(cache=True)
+def _depth_order(depth_bits, counts):
+    """Indices of the Gaussians with tiles, sorted by the 64-bit key (depth bits, index).
+
+    ``depth_bits`` [M] int32 is the bit pattern of the float32 depths: for the
+    positive depths of visible Gaussians it sorts like the floats.
+    """
+    n_visible = 0
+    for g in range(depth_bits.shape[0]):
+        if counts[g] > 0:
+            n_visible += 1
+    keys = np.empty(n_visible, np.int64)
+    j = 0
+    for g in range(depth_bits.shape[0]):
+        if counts[g] > 0:
+            keys[j] = (np.int64(depth_bits[g]) << 32) | g
+            j += 1
+    keys.sort()
+    return keys & 0xFFFFFFFF
+
+
+@nb.njit(cache=True)
+def _fill_tiles(order, boxes, gauss_offsets, n_per_cam, tiles_x, tiles_per_cam, tile_start, tile_gauss, gauss_isect):
+    """Counting sort of the intersections into tiles, front to back within each tile.
+
+    ``tile_start`` [n_tiles + 1] receives the tile offsets, ``tile_gauss`` [M] the
+    Gaussian of each intersection, ``gauss_isect`` [M] (grouped per Gaussian by
+    ``gauss_offsets``) the position of each of a Gaussian's intersections.
+    """
+    tile_start[:] = 0
+    for g in order:
+        base = (g // n_per_cam) * tiles_per_cam
+        for ty in range(boxes[g, 2], boxes[g, 3]):
+            for tx in range(boxes[g, 0], boxes[g, 1]):
+                tile_start[base + ty * tiles_x + tx + 1] += 1
+    for t in range(1, tile_start.shape[0]):
+        tile_start[t] += tile_start[t - 1]
+    cursor = tile_start[:-1].copy()
+    for g in order:
+        base = (g // n_per_cam) * tiles_per_cam
+        j = gauss_offsets[g]
+        for ty in range(boxes[g, 2], boxes[g, 3]):
+            for tx in range(boxes[g, 0], boxes[g, 1]):
+                t = base + ty * tiles_x + tx
+                pos = cursor[t]
+                cursor[t] = pos + 1
+                tile_gauss[pos] = g
+                gauss_isect[j] = pos
+                j += 1
+
+
+@nb.njit(parallel=True, cache=True)
+def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, radii_y, colors, backgrounds,
+             width, height, tile_size, tiles_x, tiles_per_cam, out_color, out_trans, out_last):  # fmt: skip
+    """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T and n_contrib."""
+    n_ch = colors.shape[1]
+    for t in nb.prange(tile_start.shape[0] - 1):
+        cam = t // tiles_per_cam
+        ty, tx = divmod(t - cam * tiles_per_cam, tiles_x)
+        x_lo, y_lo = tx * tile_size, ty * tile_size
+        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
+        tw = x_hi - x_lo
+        n_pix = tw * (y_hi - y_lo)
+        trans = np.ones(n_pix, np.float32)
+        acc = np.zeros((n_pix, n_ch), np.float32)
+        last = np.zeros(n_pix, np.int64)
+        done = np.zeros(n_pix, np.bool_)
+        alive = n_pix
+        for k in range(tile_start[t], tile_start[t + 1]):
+            if alive == 0:
+                break
+            g = tile_gauss[k]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            opac, log_limit = opacities[g], log_limits[g]
+            r0, r1 = _row_range(my, radii_y[g], y_lo, y_hi)
+            for y in range(r0, r1):
+                dy = my - (F32(y) + _HALF)
+                x0, x1 = _row_span(a, b, c, log_limit, dy, mx, x_lo, x_hi)
+                for x in range(x0, x1):
+                    p = (y - y_lo) * tw + (x - x_lo)
+                    if done[p]:
+                        continue
+                    dx = mx - (F32(x) + _HALF)
+                    sigma = _HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < _ZERO or sigma > log_limit + _LOG_SLACK:
+                        continue
+                    alpha = min(_MAX_ALPHA, opac * math.exp(-sigma))
+                    if alpha < _ALPHA_MIN:
+                        continue
+                    next_t = trans[p] * (_ONE - alpha)
+                    if next_t <= _T_MIN:
+                        done[p] = True
+                        alive -= 1
+                        continue
+                    weight = alpha * trans[p]
+                    for d in range(n_ch):
+                        acc[p, d] += weight * colors[g, d]
+                    trans[p] = next_t
+                    last[p] = k + 1
+        for p in range(n_pix):
+            py, px = divmod(p, tw)
+            y, x = y_lo + py, x_lo + px
+            for d in range(n_ch):
+                out_color[cam, y, x, d] = acc[p, d] + trans[p] * backgrounds[cam, d]
+            out_trans[cam, y, x] = trans[p]
+            out_last[cam, y, x] = last[p]
+
+
+@nb.njit(parallel=True, cache=True)
+def _backward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, radii_y, colors, backgrounds,
+              width, height, tile_size, tiles_x, tiles_per_cam, final_trans, last_contrib, v_color, v_alpha,
+              rows):  # fmt: skip
+    """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``."""
+    n_ch = colors.shape[1]
+    for t in nb.prange(tile_start.shape[0] - 1):
+        start, end = tile_start[t], tile_start[t + 1]
+        if start == end:
+            continue
+        cam = t // tiles_per_cam
+        ty, tx = divmod(t - cam * tiles_per_cam, tiles_x)
+        x_lo, y_lo = tx * tile_size, ty * tile_size
+        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
+        tw = x_hi - x_lo
+        n_pix = tw * (y_hi - y_lo)
+        trans = np.empty(n_pix, np.float32)
+        t_final = np.empty(n_pix, np.float32)
+        last = np.empty(n_pix, np.int64)
+        v_c = np.empty((n_pix, n_ch), np.float32)
+        v_a = np.empty(n_pix, np.float32)  # d loss / d alpha-image minus the background's share
+        buf = np.zeros((n_pix, n_ch), np.float32)
+        max_last = start
+        for p in range(n_pix):
+            py, px = divmod(p, tw)
+            y, x = y_lo + py, x_lo + px
+            trans[p] = final_trans[cam, y, x]
+            t_final[p] = final_trans[cam, y, x]
+            last[p] = last_contrib[cam, y, x]
+            max_last = max(max_last, last[p])
+            bg_dot = _ZERO
+            for d in range(n_ch):
+                v_c[p, d] = v_color[cam, y, x, d]
+                bg_dot += backgrounds[cam, d] * v_c[p, d]
+            v_a[p] = v_alpha[cam, y, x] - bg_dot
+        for k in range(max_last - 1, start - 1, -1):
+            g = tile_gauss[k]
+            mx, my = means2d[g, 0], means2d[g, 1]
+            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            opac, log_limit = opacities[g], log_limits[g]
+            g_mx = g_my = g_a = g_b = g_c = g_o = _ZERO
+            for d in range(n_ch):
+                rows[k, N_GRAD + d] = _ZERO
+            r0, r1 = _row_range(my, radii_y[g], y_lo, y_hi)
+            for y in range(r0, r1):
+                dy = my - (F32(y) + _HALF)
+                x0, x1 = _row_span(a, b, c, log_limit, dy, mx, x_lo, x_hi)
+                for x in range(x0, x1):
+                    p = (y - y_lo) * tw + (x - x_lo)
+                    if k >= last[p]:
+                        continue
+                    dx = mx - (F32(x) + _HALF)
+                    sigma = _HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < _ZERO or sigma > log_limit + _LOG_SLACK:
+                        continue
+                    vis = math.exp(-sigma)
+                    alpha = min(_MAX_ALPHA, opac * vis)
+                    if alpha < _ALPHA_MIN:
+                        continue
+                    ra = _ONE / (_ONE - alpha)
+                    trans[p] *= ra
+                    fac = alpha * trans[p]
+                    v_alpha_p = t_final[p] * ra * v_a[p]
+                    for d in range(n_ch):
+                        rows[k, N_GRAD + d] += fac * v_c[p, d]
+                        v_alpha_p += (colors[g, d] * trans[p] - buf[p, d] * ra) * v_c[p, d]
+                        buf[p, d] += colors[g, d] * fac
+                    if opac * vis <= _MAX_ALPHA:
+                        v_sigma = -opac * vis * v_alpha_p
+                        g_a += _HALF * v_sigma * dx * dx
+                        g_b += v_sigma * dx * dy
+                        g_c += _HALF * v_sigma * dy * dy
+                        g_mx += v_sigma * (a * dx + b * dy)
+                        g_my += v_sigma * (b * dx + c * dy)
+                        g_o += vis * v_alpha_p
+            rows[k, 0], rows[k, 1] = g_mx, g_my
+            rows[k, 2], rows[k, 3], rows[k, 4] = g_a, g_b, g_c
+            rows[k, 5] = g_o
+        for k in range(max_last, end):  # behind every pixel's last contributor: no gradient
+            for j in range(rows.shape[1]):
+                rows[k, j] = _ZERO
+
+
+@nb.njit(parallel=True, cache=True)
+def _sum_rows(gauss_offsets, gauss_isect, rows, out):
+    """out[g] = sum of the gradient rows of Gaussian g's intersections (parallel over Gaussians)."""
+    for g in nb.prange(out.shape[0]):
+        for j in range(out.shape[1]):
+            out[g, j] = _ZERO
+        for i in range(gauss_offsets[g], gauss_offsets[g + 1]):
+            k = gauss_isect[i]
+            for j in range(out.shape[1]):
+                out[g, j] += rows[k, j]
+
+
+def _numpy32(x: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().to(torch.float32).cpu().numpy())
+
+
+class _RasterizeCPU(torch.autograd.Function):
+    """Autograd wrapper: forward and backward run the numba kernels above."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size):
+        n_cams, n, n_ch = colors.shape
+        tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+        tiles_per_cam = tiles_x * tiles_y
+        m2d = _numpy32(means2d).reshape(-1, 2)
+        con = _numpy32(conics).reshape(-1, 3)
+        col = _numpy32(colors).reshape(-1, n_ch)
+        opa = _numpy32(opacities).reshape(-1)
+        rad = np.ascontiguousarray(radii.detach().cpu().numpy().astype(np.float64)).reshape(-1, 2)
+        dep = _numpy32(depths).reshape(-1)
+        bgs = np.zeros((n_cams, n_ch), np.float32) if backgrounds is None else _numpy32(backgrounds)
+        with np.errstate(divide="ignore"):
+            log_limits = np.log(np.float32(255.0) * opa).astype(np.float32)  # alpha >= 1/255 <=> sigma <= this
+
+        boxes = np.empty((n_cams * n, 4), np.int64)
+        counts = np.empty(n_cams * n, np.int64)
+        _tile_boxes(m2d, rad, tile_size, tiles_x, tiles_y, boxes, counts)
+        gauss_offsets = np.zeros(n_cams * n + 1, np.int64)
+        np.cumsum(counts, out=gauss_offsets[1:])
+        n_isect = int(gauss_offsets[-1])
+        order = _depth_order(dep.view(np.int32), counts)
+        tile_start = np.empty(n_cams * tiles_per_cam + 1, np.int64)
+        tile_gauss = np.empty(n_isect, np.int64)
+        gauss_isect = np.empty(n_isect, np.int64)
+        _fill_tiles(order, boxes, gauss_offsets, n, tiles_x, tiles_per_cam, tile_start, tile_gauss, gauss_isect)
+
+        out_color = torch.empty((n_cams, height, width, n_ch), dtype=torch.float32)
+        out_trans = torch.empty((n_cams, height, width), dtype=torch.float32)
+        last = np.empty((n_cams, height, width), np.int64)
+        radii_y = np.ascontiguousarray(rad[:, 1])
+        _forward(tile_start, tile_gauss, m2d, con, opa, log_limits, radii_y, col, bgs,
+                 width, height, tile_size, tiles_x, tiles_per_cam, out_color.numpy(), out_trans.numpy(), last)  # fmt: skip
+
+        ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, log_limits, radii_y, col, bgs,
+                           width, height, tile_size, tiles_x, tiles_per_cam)  # fmt: skip
+        ctx.binning = (gauss_offsets, gauss_isect, last)
+        ctx.shapes = (n_cams, n, n_ch)
+        ctx.has_background = backgrounds is not None
+        ctx.save_for_backward(out_trans)
+        alphas = (1.0 - out_trans).unsqueeze(-1)
+        return out_color.to(colors.dtype), alphas.to(colors.dtype)
+
+    @staticmethod
+    def backward(ctx, v_color, v_alphas):
+        (out_trans,) = ctx.saved_tensors
+        gauss_offsets, gauss_isect, last = ctx.binning
+        n_cams, n, n_ch = ctx.shapes
+        v_col = _numpy32(v_color)
+        v_alp = _numpy32(v_alphas[..., 0])
+        rows = np.empty((gauss_isect.shape[0], N_GRAD + n_ch), np.float32)
+        _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, rows)
+        per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
+        _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
+        grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)
+        v_means2d = grads[..., 0:2]
+        v_conics = grads[..., 2:5]
+        v_opacities = grads[..., 5]
+        v_colors = grads[..., N_GRAD:]
+        v_backgrounds = None
+        if ctx.has_background and ctx.needs_input_grad[4]:
+            v_backgrounds = (v_color * out_trans.unsqueeze(-1)).sum(dim=(1, 2))
+        return v_means2d, v_conics, v_colors, v_opacities, v_backgrounds, None, None, None, None, None
+
+
+def rasterize_to_pixels_cpu(
+    means2d: Tensor,  # [C, N, 2]
+    conics: Tensor,  # [C, N, 3]
+    colors: Tensor,  # [C, N, D]
+    opacities: Tensor,  # [C, N]
+    radii: Tensor,  # [C, N, 2] int, 0 = culled
+    depths: Tensor,  # [C, N]
+    width: int,
+    height: int,
+    tile_size: int = 16,
+    backgrounds: Tensor | None = None,  # [C, D]
+) -> tuple[Tensor, Tensor]:
+    """Composite projected Gaussians into images -> (colors [C, H, W, D], alphas [C, H, W, 1]) on the CPU."""
+    return _RasterizeCPU.apply(
+        means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size
+    )
