@@ -1,0 +1,175 @@
+"""A threaded ``cv2.VideoCapture`` reader that never hangs and never hands out a stale frame unknowingly.
+
+A background thread reads the device as fast as it delivers; :meth:`VideoReader.read`
+returns the newest frame that the caller has not seen yet, with its timestamp
+and sequence number, so a slow consumer never stalls the device, and a stalled
+device (unplugged, driver hang, end of a file) raises :class:`CameraError`
+within ``timeout_s`` even when ``VideoCapture.read`` itself blocks forever.
+Files are read in order instead (``sequential=True``), every frame once.
+Resolution and fps are verified after they are set.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import cv2
+import numpy as np
+
+from tacsplat.errors import CameraError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Frame:
+    image: np.ndarray  # [H, W, 3] uint8, BGR as OpenCV delivers it
+    timestamp: float  # time.time() when the frame was received
+    index: int  # 0, 1, 2, ... in arrival order
+
+
+class VideoReader:
+    """Background reader of a device index, file path or stream URL; a context manager.
+
+    ``width``, ``height``, ``fps`` are requested and then verified (a mismatch
+    raises :class:`CameraError`); ``fourcc`` (e.g. ``"MJPG"``) is requested
+    before them, as USB cameras need it for full resolution at full rate.
+    ``capture_factory`` builds the capture (``cv2.VideoCapture`` by default).
+    """
+
+    def __init__(self, source: int | str, *, width: int | None = None, height: int | None = None,
+                 fps: float | None = None, fourcc: str | None = None, timeout_s: float = 2.0,
+                 sequential: bool | None = None, fps_tolerance: float = 0.05, name: str | None = None,
+                 capture_factory: Callable[[int | str], object] = cv2.VideoCapture):
+        self.source = source
+        self.name = name or f"camera {source}"
+        self.timeout_s = float(timeout_s)
+        self.sequential = isinstance(source, (str, Path)) and Path(source).is_file() if sequential is None else sequential
+        self._requested = (width, height, fps, fourcc, fps_tolerance)
+        self._factory = capture_factory
+        self._cap = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._cond = threading.Condition()
+        self._frames: deque[Frame] = deque(maxlen=None if self.sequential else 1)
+        self._count = 0
+        self._last_index = -1
+        self._ended: str | None = None  # why the reader thread stopped
+        self.width = self.height = 0
+        self.fps = 0.0
+
+    # -- lifecycle ---------------------------------------------------------
+    def open(self) -> "VideoReader":
+        source = str(self.source) if isinstance(self.source, Path) else self.source
+        cap = self._factory(source)
+        if not cap.isOpened():
+            raise CameraError(self.name, f"cannot open {self.source!r} (unplugged, busy, or no permission on /dev/video*?)")
+        self._cap = cap
+        width, height, fps, fourcc, tol = self._requested
+        if fourcc:
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc))
+        if width:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
+        if height:
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        if fps:
+            cap.set(cv2.CAP_PROP_FPS, fps)
+        self.width = int(round(cap.get(cv2.CAP_PROP_FRAME_WIDTH)))
+        self.height = int(round(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        self.fps = float(cap.get(cv2.CAP_PROP_FPS))
+        try:
+            if (width and self.width != width) or (height and self.height != height):
+                raise CameraError(self.name, f"asked for {width}x{height}, the device delivers {self.width}x{self.height}")
+            if fps and abs(self.fps - fps) > tol * fps:
+                raise CameraError(self.name, f"asked for {fps} fps, the device reports {self.fps:g} fps")
+        except CameraError:
+            cap.release()
+            self._cap = None
+            raise
+        self._thread = threading.Thread(target=self._run, name=f"video-{self.name}", daemon=True)
+        self._thread.start()
+        # the first frame proves the device delivers, at the size it reported
+        first = self.read()
+        with self._cond:  # hand the first frame out again on the first read()
+            self._last_index = first.index - 1
+        if (self.width and first.image.shape[1] != self.width) or (self.height and first.image.shape[0] != self.height):
+            self.close()
+            raise CameraError(self.name, f"reports {self.width}x{self.height} but delivers "
+                                         f"{first.image.shape[1]}x{first.image.shape[0]} frames")
+        self.height, self.width = first.image.shape[:2]
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=0.5)  # a thread blocked inside the driver is a daemon; do not wait on it
+            if not self._thread.is_alive() and self._cap is not None:
+                self._cap.release()
+        self._thread = None
+        self._cap = None
+
+    def __enter__(self) -> "VideoReader":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- reading -----------------------------------------------------------
+    def _run(self) -> None:
+        cap = self._cap
+        while not self._stop.is_set():
+            try:
+                ok, image = cap.read()
+            except cv2.error as exc:
+                ok, image = False, exc
+            now = time.time()
+            with self._cond:
+                if not ok or image is None or getattr(image, "size", 0) == 0:
+                    self._ended = "end of stream" if self.sequential else "the device returned no frame"
+                    self._cond.notify_all()
+                    return
+                if self.sequential:  # keep every frame: wait for the consumer instead of dropping
+                    while self._unread() >= 8 and not self._stop.is_set():
+                        self._cond.wait(0.1)
+                self._frames.append(Frame(image, now, self._count))
+                self._count += 1
+                self._cond.notify_all()
+
+    def read(self, timeout_s: float | None = None) -> Frame:
+        """The next frame not yet returned (the newest one for live devices); CameraError after the timeout."""
+        if self._thread is None and not self._frames:
+            raise CameraError(self.name, "not open")
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                fresh = [f for f in self._frames if f.index > self._last_index]
+                if fresh:
+                    frame = fresh[0] if self.sequential else fresh[-1]
+                    self._last_index = frame.index
+                    while self._frames[0].index < frame.index:
+                        self._frames.popleft()
+                    self._cond.notify_all()
+                    return frame
+                if self._ended:
+                    raise CameraError(self.name, f"{self._ended} after {self._count} frames")
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise CameraError(self.name, f"no new frame within {timeout:g} s (unplugged or stalled?) "
+                                                 f"after {self._count} frames")
+                self._cond.wait(remaining)
+
+    def _unread(self) -> int:
+        return sum(1 for f in self._frames if f.index > self._last_index)
+
+    @property
+    def frames_received(self) -> int:
+        return self._count

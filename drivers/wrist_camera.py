@@ -1,0 +1,265 @@
+"""WristCamera: the RGB camera on the hand, its ChArUco calibration, board pose by PnP, hand-eye calibration.
+
+Pixel centres: OpenCV's calibration and detectors put pixel centres at integer
+coordinates; tacsplat's ``K`` (``tacsplat.geometry``) puts them at +0.5. OpenCV
+matrices (``K_opencv``) stay inside this module for OpenCV calls; the one
+conversion to tacsplat's convention is :func:`tacsplat_K_from_opencv`, used by
+:attr:`WristCamera.K`.
+
+World frame of a real capture (DESIGN.md): the board frame turned so that z is
+up when the board lies face up: origin at the board's first chessboard corner,
+x along the board's squares_x direction, y opposite to OpenCV's board y, z out
+of the printed face (``T_WORLD_BOARD``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from tacsplat.drivers.video import VideoReader
+from tacsplat.errors import CameraError, ConfigError, InvalidInputError
+from tacsplat.geometry import invert_pose, make_pose
+
+log = logging.getLogger(__name__)
+
+FORMAT = "tacsplat-camera-calibration"
+T_WORLD_BOARD = np.diag([1.0, -1.0, -1.0, 1.0])  # rotation of pi about the board's x axis
+
+
+def tacsplat_K_from_opencv(K_opencv: np.ndarray) -> np.ndarray:
+    """The one conversion: OpenCV intrinsics (pixel centres at integers) -> tacsplat's (centres at +0.5)."""
+    K = np.array(K_opencv, dtype=np.float64)
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+    return K
+
+
+@dataclass(frozen=True)
+class CharucoBoardSpec:
+    """A printed ChArUco board (OpenCV >= 4.6 pattern unless ``legacy_pattern``)."""
+
+    squares_x: int = 7
+    squares_y: int = 5
+    square_length_m: float = 0.03
+    marker_length_m: float = 0.022
+    dictionary: str = "DICT_5X5_100"
+    legacy_pattern: bool = False
+
+    def board(self) -> "cv2.aruco.CharucoBoard":
+        if not hasattr(cv2.aruco, self.dictionary):
+            raise ConfigError("dictionary", f"unknown ArUco dictionary {self.dictionary!r}")
+        if not 0 < self.marker_length_m < self.square_length_m:
+            raise ConfigError("marker_length_m", "must be positive and smaller than square_length_m")
+        board = cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_length_m, self.marker_length_m,
+            cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)),
+        )
+        board.setLegacyPattern(self.legacy_pattern)
+        return board
+
+
+def detect_charuco(image: np.ndarray, board: "cv2.aruco.CharucoBoard") -> tuple[np.ndarray, np.ndarray]:
+    """Board corners in an image: (object points [N, 3] board metres, image points [N, 2] OpenCV pixels)."""
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(board).detectBoard(gray)
+    if ids is None or len(ids) == 0:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    obj, img = board.matchImagePoints(corners, ids)
+    return obj.reshape(-1, 3).astype(np.float64), img.reshape(-1, 2).astype(np.float64)
+
+
+@dataclass
+class CameraCalibration:
+    """Intrinsics of the raw (distorted) images, in OpenCV's pixel convention, and the undistortion."""
+
+    K_opencv: np.ndarray  # [3, 3]
+    dist: np.ndarray  # [5] k1 k2 p1 p2 k3
+    width: int
+    height: int
+    rms_px: float = float("nan")
+    board: CharucoBoardSpec = field(default_factory=CharucoBoardSpec)
+    per_image_rms_px: dict[str, float] = field(default_factory=dict)
+    T_hand_cam: np.ndarray | None = None  # [4, 4] from hand-eye calibration, if done
+
+    def undistorted_K_opencv(self) -> np.ndarray:
+        """Intrinsics of the undistorted images (all pixels valid: alpha = 0), OpenCV convention."""
+        K, _ = cv2.getOptimalNewCameraMatrix(self.K_opencv, self.dist, (self.width, self.height), 0.0)
+        return K
+
+    def save(self, path: str | Path) -> None:
+        data = {
+            "format": FORMAT, "version": 1, "pixel_centres": "opencv (integer)",
+            "K_opencv": self.K_opencv.tolist(), "dist": self.dist.ravel().tolist(),
+            "width": self.width, "height": self.height, "rms_px": self.rms_px,
+            "board": asdict(self.board), "per_image_rms_px": self.per_image_rms_px,
+            "T_hand_cam": None if self.T_hand_cam is None else np.asarray(self.T_hand_cam).tolist(),
+        }
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "CameraCalibration":
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ConfigError("calibration", "file not found", source=path) from None
+        except json.JSONDecodeError as exc:
+            raise ConfigError("calibration", f"not valid JSON: {exc}", source=path) from None
+        if data.get("format") != FORMAT:
+            raise ConfigError("format", f"expected {FORMAT!r}", source=path)
+        K = np.asarray(data.get("K_opencv"), dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ConfigError("K_opencv", f"expected a [3, 3] matrix with positive focal lengths, got {K.tolist()}", source=path)
+        dist = np.asarray(data.get("dist"), dtype=np.float64).ravel()
+        if dist.size not in (4, 5, 8) or not np.all(np.isfinite(dist)):
+            raise ConfigError("dist", f"expected 4, 5 or 8 finite coefficients, got {dist.tolist()}", source=path)
+        T = data.get("T_hand_cam")
+        return cls(K, dist, int(data["width"]), int(data["height"]), float(data.get("rms_px", float("nan"))),
+                   CharucoBoardSpec(**data.get("board", {})), dict(data.get("per_image_rms_px", {})),
+                   None if T is None else np.asarray(T, dtype=np.float64))
+
+
+def calibrate_intrinsics(images: Sequence[np.ndarray], board_spec: CharucoBoardSpec = CharucoBoardSpec(),
+                         names: Sequence[str] | None = None, min_corners: int = 8,
+                         fix_k3: bool = True) -> CameraCalibration:
+    """Intrinsics and distortion from ChArUco board images (RGB or gray) by ``cv2.calibrateCamera``."""
+    board = board_spec.board()
+    names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
+    obj_points, img_points, used = [], [], []
+    size = None
+    for name, image in zip(names, images):
+        h, w = image.shape[:2]
+        if size is None:
+            size = (w, h)
+        elif size != (w, h):
+            raise InvalidInputError(f"{name}: {w}x{h}, but the first image is {size[0]}x{size[1]}")
+        obj, img = detect_charuco(image, board)
+        if len(obj) < min_corners:
+            log.warning("%s: %d board corners found (< %d), skipped", name, len(obj), min_corners)
+            continue
+        obj_points.append(obj.astype(np.float32))
+        img_points.append(img.astype(np.float32))
+        used.append(name)
+    if len(used) < 3:
+        raise CameraError("calibration", f"the board was found in {len(used)} images; at least 3 are needed")
+    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj_points, img_points, size, None, None, flags=flags)
+    per_image = {}
+    for name, obj, img, r, t in zip(used, obj_points, img_points, rvecs, tvecs):
+        proj, _ = cv2.projectPoints(obj, r, t, K, dist)
+        per_image[name] = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    return CameraCalibration(K, dist.ravel(), size[0], size[1], float(rms), board_spec, per_image)
+
+
+def board_pose(image: np.ndarray, board_spec: CharucoBoardSpec, K_opencv: np.ndarray, dist=None,
+               min_corners: int = 6) -> tuple[np.ndarray, float, int]:
+    """Camera pose in the world (board) frame by PnP: ``(T_world_cam [4, 4], rms reprojection px, corners)``."""
+    obj, img = detect_charuco(image, board_spec.board())
+    if len(obj) < min_corners:
+        raise CameraError("wrist camera", f"board not found: {len(obj)} ChArUco corners (< {min_corners})")
+    dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K_opencv, dist, flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise CameraError("wrist camera", "solvePnP failed")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K_opencv, dist, rvec, tvec)
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K_opencv, dist)
+    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    T_cam_board = make_pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
+    return T_WORLD_BOARD @ invert_pose(T_cam_board), rms, len(obj)
+
+
+def hand_eye_calibration(T_base_hand: Sequence[np.ndarray], T_world_cam: Sequence[np.ndarray]) -> np.ndarray:
+    """``T_hand_cam`` of a camera rigid on the hand, from hand poses in the robot base and camera poses in the world.
+
+    Eye-in-hand ``A X = X B`` by Park & Martin (1994): for each pair of
+    stations, ``A = T_hand_j^-1 T_hand_i`` (hand motion) and ``B = T_cam_j^-1 T_cam_i``
+    (camera motion, from the board poses); the rotation aligns the rotation
+    vectors of A and B (``scipy`` Kabsch), the translation solves
+    ``(R_A - I) t = R_X t_B - t_A`` by least squares. (OpenCV 5's Python
+    bindings no longer ship ``cv2.calibrateHandEye``.) Needs >= 3 stations with
+    rotations about non-parallel axes.
+    """
+    from scipy.spatial.transform import Rotation
+
+    if len(T_base_hand) != len(T_world_cam) or len(T_base_hand) < 3:
+        raise InvalidInputError(f"hand_eye_calibration: need >= 3 matching pose pairs, got "
+                                f"{len(T_base_hand)} and {len(T_world_cam)}")
+    hands = [np.asarray(T, dtype=np.float64) for T in T_base_hand]
+    cams = [np.asarray(T, dtype=np.float64) for T in T_world_cam]
+    alphas, betas, motions = [], [], []
+    for i in range(len(hands)):
+        for j in range(i + 1, len(hands)):
+            A = invert_pose(hands[j]) @ hands[i]
+            B = invert_pose(cams[j]) @ cams[i]
+            alpha = Rotation.from_matrix(A[:3, :3]).as_rotvec()
+            beta = Rotation.from_matrix(B[:3, :3]).as_rotvec()
+            if np.linalg.norm(alpha) > 1e-3 and np.linalg.norm(beta) > 1e-3:
+                alphas.append(alpha)
+                betas.append(beta)
+                motions.append((A, B))
+    if len(alphas) < 2 or np.linalg.matrix_rank(np.array(alphas), tol=1e-3) < 2:
+        raise InvalidInputError("hand_eye_calibration: the hand rotations must span at least two axes")
+    R_X = Rotation.align_vectors(np.array(alphas), np.array(betas))[0].as_matrix()
+    lhs = np.concatenate([A[:3, :3] - np.eye(3) for A, _ in motions])
+    rhs = np.concatenate([R_X @ B[:3, 3] - A[:3, 3] for A, B in motions])
+    t_X = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    return make_pose(R_X, t_X)
+
+
+class WristCamera:
+    """The wrist camera implementing the ``Camera`` Protocol: undistorted RGB frames and ``K`` of those frames."""
+
+    def __init__(self, source: int | str, calibration: CameraCalibration | str | Path, *, fps: float | None = None,
+                 fourcc: str | None = None, timeout_s: float = 2.0, capture_factory=cv2.VideoCapture):
+        self.calibration = calibration if isinstance(calibration, CameraCalibration) else CameraCalibration.load(calibration)
+        c = self.calibration
+        self._K_new_opencv = c.undistorted_K_opencv()
+        self._maps = cv2.initUndistortRectifyMap(c.K_opencv, c.dist, None, self._K_new_opencv,
+                                                 (c.width, c.height), cv2.CV_16SC2)
+        self._video = VideoReader(source, width=c.width, height=c.height, fps=fps, fourcc=fourcc,
+                                  timeout_s=timeout_s, name="wrist camera", capture_factory=capture_factory)
+
+    @property
+    def K(self) -> np.ndarray:
+        """[3, 3] intrinsics of the undistorted images, tacsplat convention (pixel centres at +0.5)."""
+        return tacsplat_K_from_opencv(self._K_new_opencv)
+
+    @property
+    def width(self) -> int:
+        return self.calibration.width
+
+    @property
+    def height(self) -> int:
+        return self.calibration.height
+
+    def __enter__(self) -> "WristCamera":
+        self._video.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._video.close()
+
+    def undistort(self, image: np.ndarray) -> np.ndarray:
+        return cv2.remap(image, self._maps[0], self._maps[1], cv2.INTER_LINEAR)
+
+    def read(self) -> tuple[np.ndarray, float]:
+        """``(image [H, W, 3] uint8 RGB undistorted, timestamp seconds)``; CameraError if frames stop."""
+        frame = self._video.read()
+        return self.undistort(cv2.cvtColor(frame.image, cv2.COLOR_BGR2RGB)), frame.timestamp
+
+    def pose_in_world(self, image: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """``(T_world_cam, rms reprojection px)`` from the board in an undistorted image (a new frame if None)."""
+        if image is None:
+            image, _ = self.read()
+        T, rms, _ = board_pose(image, self.calibration.board, self._K_new_opencv, None)
+        return T, rms
