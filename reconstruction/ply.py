@@ -78,7 +78,11 @@ def load_ply(path: str | Path) -> Gaussians:
         "scales": cols("scale_0", "scale_1", "scale_2"),
         "opacities": cols("opacity")[:, 0],
         "sh0": cols("f_dc_0", "f_dc_1", "f_dc_2").reshape(n, 1, 3),
-        "shN": cols(*[f"f_rest_{i}" for i in range(num_rest)]).reshape(n, 3, k_rest).transpose(1, 2).contiguous(),
+        "shN": (
+            cols(*[f"f_rest_{i}" for i in range(num_rest)]).reshape(n, 3, k_rest).transpose(1, 2).contiguous()
+            if num_rest
+            else torch.zeros(n, 0, 3)
+        ),
     }
     from_touch = (
         torch.from_numpy(np.asarray(vertex["from_touch"]) > 0) if "from_touch" in names else torch.zeros(n, dtype=torch.bool)

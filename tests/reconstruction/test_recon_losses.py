@@ -1,0 +1,141 @@
+"""Losses of tactile-informed 3DGS on hand-made inputs with known values."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tacsplat.geometry import look_at
+from tacsplat.reconstruction.losses import (
+    TouchNeighbours,
+    edge_aware_smoothness,
+    photometric_loss,
+    proximity_mask,
+    transmittance_loss,
+    visible_touch_pixels,
+)
+
+IDENTITY = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
+
+
+def _one_gaussian(mean, scale, opacity):
+    return (
+        torch.tensor([mean], dtype=torch.float64),
+        IDENTITY.double(),
+        torch.full((1, 3), scale, dtype=torch.float64),
+        torch.tensor([opacity], dtype=torch.float64),
+    )
+
+
+def test_gaussian_at_touch_point_lowers_transmittance_to_one_minus_opacity():
+    means, quats, scales, opac = _one_gaussian([0.1, 0.2, 0.3], 0.002, 0.7)
+    points = torch.tensor([[0.1, 0.2, 0.3]], dtype=torch.float64)
+    loss = transmittance_loss(points, means, quats, scales, opac, torch.tensor([[0]]), top_k=4, max_distance=0.01)
+    assert loss.item() == pytest.approx(1.0 - 0.7, abs=1e-12)
+
+
+def test_transmittance_averages_points_and_counts_unreached_points_as_transparent():
+    means, quats, scales, opac = _one_gaussian([0.0, 0.0, 0.0], 0.002, 0.6)
+    offset = 0.002  # one standard deviation along x: f = exp(-1/2)
+    points = torch.tensor([[offset, 0.0, 0.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
+    candidates = torch.tensor([[0], [-1]])
+    loss = transmittance_loss(points, means, quats, scales, opac, candidates, top_k=4, max_distance=0.01)
+    expected = 0.5 * ((1.0 - math.exp(-0.5) * 0.6) + 1.0)
+    assert loss.item() == pytest.approx(expected, abs=1e-12)
+
+
+def test_transmittance_uses_top_k_by_influence_within_the_distance_threshold():
+    means = torch.tensor([[0.0, 0, 0], [0.001, 0, 0], [0.003, 0, 0], [0.02, 0, 0]], dtype=torch.float64)
+    quats = IDENTITY.double().repeat(4, 1)
+    scales = torch.tensor([[0.001] * 3, [0.001] * 3, [0.001] * 3, [0.5] * 3], dtype=torch.float64)
+    opac = torch.tensor([0.2, 0.9, 0.9, 0.99], dtype=torch.float64)
+    point = torch.zeros(1, 3, dtype=torch.float64)
+    # influences f*alpha: 0.2, exp(-0.5)*0.9 = 0.546, exp(-4.5)*0.9 = 0.010; the 4th is out of reach
+    loss = transmittance_loss(point, means, quats, scales, opac, torch.tensor([[0, 1, 2, 3]]), top_k=2,
+                              max_distance=0.01)
+    expected = 0.5 * ((1 - 0.2) + (1 - math.exp(-0.5) * 0.9))
+    assert loss.item() == pytest.approx(expected, abs=1e-12)
+
+
+def test_minimising_transmittance_raises_opacity_and_pulls_the_mean_onto_the_point():
+    means, quats, scales, opac = _one_gaussian([0.001, 0.0, 0.0], 0.002, 0.5)
+    means.requires_grad_(True)
+    opac.requires_grad_(True)
+    loss = transmittance_loss(torch.zeros(1, 3, dtype=torch.float64), means, quats, scales, opac,
+                              torch.tensor([[0]]), top_k=1, max_distance=0.01)
+    loss.backward()
+    assert opac.grad.item() < 0  # descending raises opacity
+    assert means.grad[0, 0].item() > 0  # descending moves the mean towards x = 0
+
+
+def test_touch_neighbours_see_only_touch_gaussians_and_rebuild_on_schedule():
+    means = torch.tensor([[0.0, 0, 0], [0.001, 0, 0], [0.002, 0, 0], [0.5, 0, 0]])
+    from_touch = torch.tensor([False, True, True, True])
+    index = TouchNeighbours(np.zeros((1, 3)), num_candidates=3, max_distance=0.01, rebuild_every=2)
+    cand = index.candidates(means, from_touch)
+    assert cand.tolist() == [[1, 2, -1]]  # G_c (0) excluded, far G_t (3) out of reach
+    index.candidates(means, from_touch)
+    assert index.num_builds == 1
+    index.candidates(means, from_touch)
+    assert index.num_builds == 2
+    index.invalidate()
+    index.candidates(means, from_touch)
+    assert index.num_builds == 3
+
+
+def test_smoothness_of_constant_depth_is_zero_and_of_a_ramp_is_its_slope():
+    h, w = 12, 16
+    image = torch.full((h, w, 3), 0.5)  # no edges: e^{-beta * 0} = 1
+    assert edge_aware_smoothness(torch.full((h, w), 0.3), image).item() == pytest.approx(0.0, abs=1e-7)
+    slope = 0.01
+    ramp = slope * torch.arange(w, dtype=torch.float32)[None, :].expand(h, w)
+    # 5x5 Sobel normalised to unit response: |dD/dx| = slope, |dD/dy| = 0 everywhere
+    assert edge_aware_smoothness(ramp, image).item() == pytest.approx(slope, rel=1e-5)
+    assert edge_aware_smoothness(ramp.T.contiguous(), image.transpose(0, 1)).item() == pytest.approx(slope, rel=1e-5)
+
+
+def test_smoothness_is_damped_where_the_image_has_an_edge_and_masked_near_touches():
+    h, w = 12, 16
+    slope_d, slope_i, beta = 0.01, 0.05, 10.0
+    ramp = slope_d * torch.arange(w, dtype=torch.float32)[None, :].expand(h, w)
+    image = (slope_i * torch.arange(w, dtype=torch.float32))[None, :, None].expand(h, w, 3).contiguous()
+    expected = slope_d * math.exp(-beta * slope_i)
+    assert edge_aware_smoothness(ramp, image, beta=beta).item() == pytest.approx(expected, rel=1e-5)
+    flat = torch.full((h, w, 3), 0.5)
+    assert edge_aware_smoothness(ramp, flat, proximity=torch.ones(h, w)).item() == 0.0
+    half = torch.zeros(h, w)
+    half[:, : w // 2] = 1.0  # masked on the left half
+    valid_cols = torch.arange(2, w - 2)
+    expected_half = slope_d * (valid_cols >= w // 2).float().mean().item()
+    assert edge_aware_smoothness(ramp, flat, proximity=half).item() == pytest.approx(expected_half, rel=1e-5)
+
+
+def test_proximity_mask_is_one_at_a_touch_and_decays_as_a_gaussian_of_distance():
+    sigma = 3.0
+    mask = proximity_mask(np.array([10]), np.array([20]), width=40, height=30, sigma_px=sigma)
+    assert mask.shape == (30, 40)
+    assert mask[10, 20] == pytest.approx(1.0)
+    for k in (1, 2, 5):
+        assert mask[10, 20 + k] == pytest.approx(math.exp(-(k**2) / (2 * sigma**2)), rel=1e-4)
+        assert mask[10 - k, 20] == pytest.approx(math.exp(-(k**2) / (2 * sigma**2)), rel=1e-4)
+    assert mask[13, 24] == pytest.approx(math.exp(-25 / (2 * sigma**2)), rel=1e-4)
+    assert not proximity_mask(np.array([], int), np.array([], int), 40, 30, sigma).any()
+
+
+def test_visible_touch_pixels_project_and_drop_hidden_behind_and_outside_points():
+    K = np.array([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
+    T_world_cam = look_at([0, 0, -1.0], [0, 0, 0], up=(0, -1, 0))  # camera at z=-1 looking along +z
+    points = np.array([[0.0, 0, 0], [0.1, 0, 0], [0, 0, -2.0], [5.0, 0, 0]])  # centre, right, behind, outside
+    rows, cols = visible_touch_pixels(points, K, T_world_cam, 40, 30)
+    assert sorted(zip(rows.tolist(), cols.tolist())) == [(15, 20), (15, 25)]
+    depth = np.full((30, 40), 0.9)  # a rendered surface 0.1 m in front of the touched plane
+    depth[:, 23:] = 1.0
+    rows, cols = visible_touch_pixels(points, K, T_world_cam, 40, 30, depth, occlusion_tolerance=0.01)
+    assert list(zip(rows.tolist(), cols.tolist())) == [(15, 25)]
+
+
+def test_photometric_loss_is_zero_for_identical_images_and_weights_l1():
+    target = torch.rand(8, 9, 3, generator=torch.Generator().manual_seed(0))
+    assert photometric_loss(target, target).item() == pytest.approx(0.0, abs=1e-6)
+    assert photometric_loss(target + 0.1, target, ssim_weight=0.0).item() == pytest.approx(0.1, rel=1e-5)

@@ -1,0 +1,97 @@
+"""Metrics on known inputs and the 3DGS PLY round trip."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from plyfile import PlyData, PlyElement
+
+from tacsplat.errors import InvalidInputError, SceneFormatError
+from tacsplat.reconstruction.gaussians import Gaussians, num_sh_bases
+from tacsplat.reconstruction.metrics import bounding_sphere_radius, chamfer_distance, psnr, ssim, ssim_map
+from tacsplat.reconstruction.ply import load_ply, save_ply
+
+
+def test_psnr_of_known_noise():
+    target = torch.full((10, 12, 3), 0.5)
+    signs = torch.where(torch.rand(10, 12, 3, generator=torch.Generator().manual_seed(1)) > 0.5, 1.0, -1.0)
+    assert psnr(target + 0.1 * signs, target) == pytest.approx(20.0, abs=1e-4)  # MSE 0.01
+    assert psnr(target, target) == math.inf
+
+
+def test_ssim_of_identical_images_is_one_and_of_constants_matches_the_formula():
+    image = torch.rand(20, 24, 3, generator=torch.Generator().manual_seed(2))
+    assert ssim(image, image) == pytest.approx(1.0, abs=1e-12)
+    a, b = torch.full((30, 30, 1), 0.2, dtype=torch.float64), torch.full((30, 30, 1), 0.6, dtype=torch.float64)
+    c1 = 0.01**2
+    centre = ssim_map(a, b)[0, 15, 15, 0].item()  # away from the zero padding
+    assert centre == pytest.approx((2 * 0.2 * 0.6 + c1) / (0.2**2 + 0.6**2 + c1), rel=1e-9)
+    assert ssim(image, 1 - image) < 0.5
+
+
+def test_chamfer_distance_of_identical_clouds_is_zero_and_of_a_shift_is_shift_over_radius():
+    grid = np.stack(np.meshgrid(*[np.arange(5) * 0.01] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    assert chamfer_distance(grid, grid, radius=0.05) == 0.0
+    shifted = grid + np.array([0.001, 0.0, 0.0])  # smaller than half the 1 cm spacing
+    assert chamfer_distance(shifted, grid, radius=0.05) == pytest.approx(0.001 / 0.05, rel=1e-9)
+    assert chamfer_distance(np.zeros((0, 3)), grid) == math.inf
+    with pytest.raises(InvalidInputError, match="NaN"):
+        chamfer_distance(grid + np.nan, grid)
+
+
+def test_bounding_sphere_radius_of_sphere_points():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(500, 3))
+    points = 0.07 * d / np.linalg.norm(d, axis=1, keepdims=True) + np.array([1.0, 2.0, 3.0])
+    assert bounding_sphere_radius(points) == pytest.approx(0.07, rel=1e-3)
+
+
+def _random_gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
+    g = torch.Generator().manual_seed(seed)
+    params = {
+        "means": torch.randn(n, 3, generator=g),
+        "quats": torch.randn(n, 4, generator=g),
+        "scales": torch.randn(n, 3, generator=g) - 4,
+        "opacities": torch.randn(n, generator=g),
+        "sh0": torch.randn(n, 1, 3, generator=g),
+        "shN": torch.randn(n, num_sh_bases(degree) - 1, 3, generator=g),
+    }
+    return Gaussians(params, torch.rand(n, generator=g) > 0.5, degree)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 3])
+def test_ply_round_trip(tmp_path, degree):
+    original = _random_gaussians(37, degree)
+    path = save_ply(original, tmp_path / "splat.ply")
+    loaded = load_ply(path)
+    assert loaded.sh_degree == degree
+    for name, value in original.params.items():
+        torch.testing.assert_close(loaded.params[name].detach(), value.detach(), rtol=0, atol=0)
+    assert torch.equal(loaded.from_touch, original.from_touch)
+
+
+def test_ply_has_the_standard_3dgs_layout(tmp_path):
+    g = _random_gaussians(3, 3)
+    vertex = PlyData.read(str(save_ply(g, tmp_path / "s.ply")))["vertex"]
+    names = [p.name for p in vertex.properties]
+    expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
+                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3", "from_touch"])
+    assert names == expected
+    # higher bands channel-major: f_rest_0..14 are red, 15..29 green, 30..44 blue
+    assert vertex["f_rest_15"][1] == pytest.approx(g.params["shN"][1, 0, 1].item())
+    assert vertex["f_rest_1"][2] == pytest.approx(g.params["shN"][2, 1, 0].item())
+
+
+def test_ply_without_from_touch_loads_as_vision_gaussians_and_bad_files_name_the_field(tmp_path):
+    g = _random_gaussians(4, 0)
+    vertex = PlyData.read(str(save_ply(g, tmp_path / "s.ply")))["vertex"].data
+    names = [n for n in vertex.dtype.names if n != "from_touch"]
+    plain = np.array([tuple(row[n] for n in names) for row in vertex], dtype=[(n, "f4") for n in names])
+    PlyData([PlyElement.describe(plain, "vertex")]).write(str(tmp_path / "plain.ply"))
+    assert not load_ply(tmp_path / "plain.ply").from_touch.any()
+    broken_names = [n for n in names if n != "opacity"]
+    broken = np.array([tuple(row[n] for n in broken_names) for row in vertex], dtype=[(n, "f4") for n in broken_names])
+    PlyData([PlyElement.describe(broken, "vertex")]).write(str(tmp_path / "broken.ply"))
+    with pytest.raises(SceneFormatError, match="opacity"):
+        load_ply(tmp_path / "broken.ply")
