@@ -27,7 +27,6 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 from scipy import fft, ndimage
-from scipy.spatial import cKDTree
 
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import InvalidInputError, TactileError
@@ -151,12 +150,12 @@ class TactileCalibration:
             calib.presses.append({"index": k, "centre_px": [cx, cy], "contact_radius_px": r})
         if not calib.presses:
             raise TactileError("calibration", "no ball press with a detectable contact circle")
-        filled = np.flatnonzero(counts)
-        means = sums[filled] / counts[filled, None]
-        coords = np.stack(np.unravel_index(filled, (bins,) * 3), axis=1)
-        all_coords = np.stack(np.unravel_index(np.arange(bins**3), (bins,) * 3), axis=1)
-        _, nearest = cKDTree(coords).query(all_coords)
-        calib.lut = means[nearest].reshape(bins, bins, bins, 2).astype(np.float32)
+        means = sums / np.maximum(counts, 1.0)[:, None]
+        # empty bins take the mean of the nearest filled bin (Euclidean in colour space)
+        empty = (counts == 0).reshape(bins, bins, bins)
+        nearest = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
+        flat = np.ravel_multi_index(tuple(nearest), (bins,) * 3)
+        calib.lut = means[flat].astype(np.float32)
         return calib
 
     def gradients(self, image: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,118 @@
+"""Optical tactile sensor: calibrate on ball presses rendered by the twin, read a press back from a video file."""
+
+import cv2
+import numpy as np
+import pytest
+
+from tacsplat.cli import main as tacsplat_main
+from tacsplat.drivers import TactileSensor
+from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration, poisson_integrate
+from tacsplat.errors import InvalidInputError, TactileError
+from tacsplat.geometry import make_pose
+from tacsplat.sim.tactile import render_tactile_rgb
+
+pytestmark = pytest.mark.timeout(120)
+
+H, W = 240, 320
+PIXEL_M = 8e-5  # 0.08 mm per pixel (DIGIT-like)
+BALL_M = 4e-3
+
+
+def ball_press(cx, cy, indentation_m):
+    """True indentation [H, W] of a ball of radius BALL_M pressed ``indentation_m`` deep at pixel (cx, cy)."""
+    ys, xs = np.indices((H, W)) + 0.5
+    rho2 = ((xs - cx) ** 2 + (ys - cy) ** 2) * PIXEL_M**2
+    depth = np.sqrt(np.maximum(BALL_M**2 - rho2, 0.0)) - (BALL_M - indentation_m)
+    return np.maximum(depth, 0.0).astype(np.float32)
+
+
+def tactile_image(depth, rng):
+    """The twin's synthetic tactile image plus camera noise (sigma 1 grey level)."""
+    image = render_tactile_rgb(depth, PIXEL_M).astype(np.float64) + rng.normal(0.0, 1.0, (H, W, 3))
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+CALIBRATION_PRESSES = [(100, 80, 6e-4), (220, 160, 8e-4), (160, 120, 1e-3), (90, 170, 5e-4), (230, 70, 9e-4),
+                       (160, 60, 7e-4)]
+
+
+@pytest.fixture(scope="module")
+def calibration_folder(tmp_path_factory):
+    rng = np.random.default_rng(0)
+    folder = tmp_path_factory.mktemp("ball_presses")
+    rgb = tactile_image(np.zeros((H, W), np.float32), rng)
+    cv2.imwrite(str(folder / "reference.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    for k, (cx, cy, d) in enumerate(CALIBRATION_PRESSES):
+        rgb = tactile_image(ball_press(cx, cy, d), rng)
+        cv2.imwrite(str(folder / f"press_{k:02d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def calibration_file(calibration_folder, tmp_path_factory):
+    out = tmp_path_factory.mktemp("cal") / "index_tactile.npz"
+    code = tacsplat_main(["calibrate", "tactile", str(calibration_folder), "--out", str(out),
+                          "--ball-radius-mm", str(BALL_M * 1e3), "--pixel-size-mm", str(PIXEL_M * 1e3)])
+    assert code == 0
+    return out
+
+
+def test_poisson_integration_recovers_a_surface_from_its_gradients():
+    ys, xs = np.indices((120, 160)) * PIXEL_M
+    depth = 3e-4 * np.exp(-((xs - 0.0064) ** 2 + (ys - 0.0048) ** 2) / (2 * 0.0012**2))
+    gy, gx = np.gradient(depth, PIXEL_M)
+    recovered = poisson_integrate(gx, gy, PIXEL_M)
+    assert np.sqrt(np.mean((recovered - depth) ** 2)) < 0.01 * depth.max()
+    with pytest.raises(InvalidInputError, match="NaN"):
+        poisson_integrate(np.full((5, 5), np.nan), np.zeros((5, 5)), PIXEL_M)
+
+
+def test_calibration_command_finds_every_contact_circle(calibration_file):
+    calib = TactileCalibration.load(calibration_file)
+    assert len(calib.presses) == len(CALIBRATION_PRESSES)
+    for press, (cx, cy, d) in zip(calib.presses, CALIBRATION_PRESSES):
+        true_radius = np.sqrt(2 * BALL_M * d - d**2) / PIXEL_M
+        # find_contact_circle uses array-index pixel centres: the true centre (cx, cy) is at (cx - 0.5, cy - 0.5)
+        np.testing.assert_allclose(press["centre_px"], [cx - 0.5, cy - 0.5], atol=0.5)
+        assert abs(press["contact_radius_px"] - true_radius) < 2.0
+    assert calibration_file.with_suffix(".png").exists()
+
+
+def test_sensor_reads_ball_press_depth_from_a_video_file(calibration_file, tmp_path):
+    rng = np.random.default_rng(1)
+    truth = ball_press(150, 130, 7.5e-4)  # a press the calibration never saw
+    path = tmp_path / "digit.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (W, H))
+    assert writer.isOpened()
+    frames = [np.zeros((H, W), np.float32)] * 5 + [truth]  # untouched gel first: the reference
+    for depth in frames:
+        writer.write(cv2.cvtColor(tactile_image(depth, rng), cv2.COLOR_RGB2BGR))
+    writer.release()
+    T_hand_sensor = make_pose(np.eye(3), [0.01, 0.02, 0.1])
+    with OpticalTactileSensor("index", str(path), calibration_file, T_hand_sensor, reference_frames=5) as sensor:
+        assert isinstance(sensor, TactileSensor)
+        reading = sensor.read()
+    assert reading.frame == "hand" and reading.meta["frame_index"] == 5
+    np.testing.assert_array_equal(reading.T_ref_sensor, T_hand_sensor)
+    assert reading.pixel_size_m == pytest.approx(PIXEL_M)
+    depth = reading.depth
+    region = (truth > 0) | (depth > 0)
+    rms = np.sqrt(np.mean((depth - truth)[region] ** 2))
+    assert rms < 0.10 * truth.max(), f"depth RMS {rms * 1e6:.1f} um vs indentation {truth.max() * 1e6:.0f} um"
+    assert depth[truth == 0].max() < 0.2 * truth.max()  # no phantom contact away from the ball
+    r, c = np.unravel_index(np.argmax(depth), depth.shape)
+    assert abs(r - 129.5) <= 3 and abs(c - 149.5) <= 3
+
+
+def test_bad_calibration_file_is_a_clear_error(tmp_path):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, something=np.zeros(3))
+    with pytest.raises(TactileError, match="bad.npz"):
+        TactileCalibration.load(bad)
+
+
+def test_calibration_without_any_contact_fails_clearly():
+    rng = np.random.default_rng(2)
+    flat = tactile_image(np.zeros((H, W), np.float32), rng)
+    with pytest.raises(TactileError, match="no ball press"):
+        TactileCalibration.fit(flat, [tactile_image(np.zeros((H, W), np.float32), rng)], BALL_M, PIXEL_M)
