@@ -13,8 +13,6 @@ composited here onto a chosen colour (straight alpha). Other per-frame keys
 from __future__ import annotations
 
 import json
-import shutil
-from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -26,21 +24,9 @@ from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_openc
 from tacsplat.types import CameraIntrinsics
 
 from .records import SceneMeta
-from .writer import SceneWriter
+from .writer import SceneWriter, removed_on_failure
 
 BACKGROUNDS = {"white": (255, 255, 255), "black": (0, 0, 0)}
-
-
-@contextmanager
-def removed_on_failure(out: Path):
-    """Delete a new output folder again when an import fails, so that a rerun can use it."""
-    had_content = out.is_dir() and any(out.iterdir())
-    try:
-        yield
-    except BaseException:
-        if not had_content:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
 
 
 def parse_background(text: str) -> tuple[int, int, int]:
@@ -125,16 +111,20 @@ def _pose(raw, index: Path, field: str) -> np.ndarray:
     return opengl_to_opencv(T)
 
 
-def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "test") -> Path:
+def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "test", scale: float = 1.0) -> Path:
     """Convert a Blender/NeRF-synthetic dataset in ``src`` into a scene directory ``out``.
 
     ``transforms_train.json`` becomes the train split and
     ``transforms_{test_split}.json`` (``"test"`` or ``"val"``) the test split.
+    ``scale`` (metres per Blender unit) multiplies the camera positions, e.g. to
+    give a NeRF-synthetic object (about 2 units across) a graspable size.
     Returns ``out``.
     """
     src, out = Path(src), Path(out)
     if test_split not in ("test", "val"):
         raise ValueError(f"test_split must be 'test' or 'val', got {test_split!r}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be positive, got {scale}")
     splits = [("train", *_read_split(src, "train")), ("test", *_read_split(src, test_split))]
 
     # The image size comes from the first image; every split shares it.
@@ -150,7 +140,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
         source="import",
         object=src.resolve().name,
         extra={"importer": "blender", "source_path": str(src.resolve()), "background_rgb": list(background_rgb),
-               "test_split_file": f"transforms_{test_split}.json"},
+               "test_split_file": f"transforms_{test_split}.json", "scale": scale},
     )
     total = sum(len(frames) for *_, frames in splits)
     with removed_on_failure(out), SceneWriter.create(out, intrinsics_for(splits[0][2]), meta) as writer, \
@@ -167,6 +157,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                     raise SceneFormatError(image_path, f"{index.name} {field}",
                                            f"image is {rgba.shape[1]}x{rgba.shape[0]}, but {first_image.name} is {width}x{height}")
                 pose = _pose(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
+                pose[:3, 3] *= scale
                 writer.add_frame(composite(rgba, background_rgb), pose, split=split, intrinsics=intr)
                 progress.update()
     return out

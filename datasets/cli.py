@@ -30,6 +30,8 @@ def register(cli) -> None:
                    help="colour the transparent background is composited onto (R,G,B as 0-255 integers)")
     p.add_argument("--test-split", choices=("test", "val"), default="test",
                    help="which file becomes the scene's test split: transforms_test.json or transforms_val.json")
+    p.add_argument("--scale", type=float, default=1.0,
+                   help="metres per Blender unit (multiplies camera positions; NeRF-synthetic objects are ~2 units across)")
     p.set_defaults(func=_import_blender)
 
     p = cli.command(
@@ -64,7 +66,7 @@ def _import_blender(args) -> int:
     from .blender import import_blender
     from .inspect import run_inspect
 
-    import_blender(args.src, args.out, background_rgb=args.background, test_split=args.test_split)
+    import_blender(args.src, args.out, background_rgb=args.background, test_split=args.test_split, scale=args.scale)
     return run_inspect(args.out)
 
 

@@ -21,9 +21,9 @@ from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import intrinsics_matrix, invert_pose
 from tacsplat.types import CameraIntrinsics
 
-from .blender import composite, read_rgba, removed_on_failure
+from .blender import composite, read_rgba
 from .records import SceneMeta
-from .writer import SceneWriter
+from .writer import SceneWriter, removed_on_failure
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 ZERO_DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")

@@ -311,12 +311,12 @@ def _read_scene(path: Path, problems: _Problems, check_files: bool) -> tuple[Sce
         problems.report(path, None, "scene directory does not exist")
         return None, problems
     meta, version, gt = _read_scene_json(path, problems)
-    frames = _read_frames(path, problems, check_files)
+    frames, declared_ids = _read_frames(path, problems, check_files)
     sensor, touches = _read_touches(path, problems, check_files)
     if meta is None:
         return None, problems
     scene = Scene(path=path, frames=frames, touches=touches, sensor=sensor, meta=meta, tacsplat_version=version)
-    _read_gt(scene, gt, problems, check_files)
+    _read_gt(scene, gt, declared_ids, problems, check_files)
     return scene, problems
 
 
@@ -351,21 +351,22 @@ def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None,
     return meta, str(data.get("tacsplat_version", "")), gt
 
 
-def _read_frames(path: Path, problems: _Problems, check_files: bool) -> list[Frame]:
+def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[list[Frame], set[int]]:
+    """The valid frames, and every frame id declared (also by frames dropped for a problem)."""
     index = path / "transforms.json"
     data = _read_json(index, problems)
     if data is None:
-        return []
+        return [], set()
     if data.get("camera_model", "OPENCV") not in ("OPENCV", "PINHOLE"):
         problems.report(index, "camera_model", f"expected OPENCV or PINHOLE (undistorted images), got {data['camera_model']!r}")
-        return []
+        return [], set()
     for key in _DISTORTION_KEYS:
         if data.get(key, 0.0) != 0.0:
             problems.report(index, key, f"images must be undistorted, but {key} = {data[key]!r}")
     raw_frames = data.get("frames")
     if not isinstance(raw_frames, list):
         problems.report(index, "frames", f"expected a list, got {type(raw_frames).__name__}")
-        return []
+        return [], set()
     frames: list[Frame] = []
     seen_ids: dict[int, int] = {}
     seen_files: dict[str, int] = {}
@@ -402,7 +403,7 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> list[Fra
             continue
         frames.append(Frame(id=fid, file_path=raw["file_path"], T_world_cam=opengl_to_opencv(T_gl), split=split,
                             intrinsics=intr))
-    return frames
+    return frames, set(seen_ids)
 
 
 def _read_sensor(raw, index: Path, problems: _Problems) -> SensorModel | None:
@@ -477,7 +478,7 @@ def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[S
     return sensor, touches
 
 
-def _read_gt(scene: Scene, gt: dict, problems: _Problems, check_files: bool) -> None:
+def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems, check_files: bool) -> None:
     index = scene.path / "scene.json"
     mesh = gt.get("mesh")
     if mesh is not None:
@@ -496,7 +497,8 @@ def _read_gt(scene: Scene, gt: dict, problems: _Problems, check_files: bool) -> 
         field = f"gt.depth[{key}]"
         fid = int(key) if isinstance(key, str) and key.isdigit() else None
         if fid not in frames:
-            problems.report(index, field, f"no frame with id {key!r}")
+            if fid not in declared_ids:  # (a declared frame with a problem has been reported already)
+                problems.report(index, field, f"no frame with id {key!r}")
             continue
         depth_path = _relative_file(scene.path, rel, index, field, problems)
         if depth_path is None:

@@ -26,7 +26,9 @@ import io
 import json
 import logging
 import os
+import shutil
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -109,6 +111,19 @@ def encode_npz(**arrays) -> bytes:
     buf = io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
+
+
+@contextmanager
+def removed_on_failure(out: Path):
+    """Delete a new output folder again when an import into it fails, so that a rerun can use it."""
+    out = Path(out)
+    had_content = out.is_dir() and any(out.iterdir())
+    try:
+        yield
+    except BaseException:
+        if not had_content:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
 
 
 def _check_depth(depth, shape: tuple[int, int], name: str) -> np.ndarray:

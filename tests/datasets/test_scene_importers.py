@@ -76,10 +76,12 @@ def test_blender_import_poses_intrinsics_and_compositing(blender_src, tmp_path):
 def test_blender_import_cli_black_background_and_val_split(blender_src, tmp_path, capsys):
     out = tmp_path / "scene"
     assert main(["import", "blender", str(blender_src), "--out", str(out), "--background", "black",
-                 "--test-split", "val"]) == 0
+                 "--test-split", "val", "--scale", "0.05"]) == 0
     assert "2 test" in capsys.readouterr().out
     scene = Scene.load(out)
-    np.testing.assert_allclose(opencv_to_opengl(scene.split("test")[0].T_world_cam), _blender_pose(10), atol=1e-6)
+    expected = _blender_pose(10)
+    expected[:3, 3] *= 0.05
+    np.testing.assert_allclose(opencv_to_opengl(scene.split("test")[0].T_world_cam), expected, atol=1e-6)
     img = np.rint(scene.load_image(scene.frames[0]) * 255).astype(int)
     assert (img[:, :3] == 0).all()
     assert (img[:, 6:] == np.rint(np.array([200, 10, 60]) * 128 / 255)).all()
