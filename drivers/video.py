@@ -87,7 +87,7 @@ class VideoReader:
             if (width and self.width != width) or (height and self.height != height):
                 raise CameraError(self.name, f"asked for {width}x{height}, the device delivers {self.width}x{self.height}")
             if fps and abs(self.fps - fps) > tol * fps:
-                raise CameraError(self.name, f"asked for {fps} fps, the device reports {self.fps:g} fps")
+                raise CameraError(self.name, f"asked for {fps:g} fps, the device reports {self.fps:g} fps")
         except CameraError:
             cap.release()
             self._cap = None

@@ -241,3 +241,9 @@ def test_sigint_leaves_torque_off(emu, kinematics):
     assert_all_torque_off(emu)
     assert signal.getsignal(signal.SIGINT) is previous
     assert hand._port is None  # port closed
+
+
+def test_missing_port_is_a_clear_error(kinematics):
+    with pytest.raises(HandError, match="cannot open serial port.*dialout"):
+        with DynamixelHand("/dev/ttyUSB_tacsplat_missing", kinematics=kinematics):
+            pass

@@ -1,0 +1,112 @@
+"""VideoReader: verified settings, newest-frame semantics, and a stalled device raises instead of hanging."""
+
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from tacsplat.drivers.video import VideoReader
+from tacsplat.errors import CameraError
+
+pytestmark = pytest.mark.timeout(30)
+
+
+class LiveDevice:
+    """A stand-in for a USB camera: frames at ``fps`` carrying their number; can be unplugged.
+
+    After ``unplug()``, ``read()`` either blocks forever (a driver hang, the
+    worst case) or returns ``(False, None)``, as a real unplugged V4L2 device does.
+    """
+
+    def __init__(self, width=64, height=48, fps=100.0, hang_on_unplug=True):
+        self.width, self.height, self.fps = width, height, fps
+        self.hang_on_unplug = hang_on_unplug
+        self.unplugged = threading.Event()
+        self.frames_made = 0
+        self._forever = threading.Event()
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        return False  # this device cannot change its mode
+
+    def get(self, prop):
+        return {cv2.CAP_PROP_FRAME_WIDTH: self.width, cv2.CAP_PROP_FRAME_HEIGHT: self.height,
+                cv2.CAP_PROP_FPS: self.fps}.get(prop, 0.0)
+
+    def read(self):
+        if self.unplugged.is_set():
+            if self.hang_on_unplug:
+                self._forever.wait()
+            return False, None
+        time.sleep(1.0 / self.fps)
+        self.frames_made += 1
+        return True, np.full((self.height, self.width, 3), self.frames_made % 256, np.uint8)
+
+    def release(self):
+        self._forever.set()
+
+
+def test_unplugged_device_that_hangs_raises_within_the_timeout():
+    device = LiveDevice(hang_on_unplug=True)
+    with VideoReader(0, timeout_s=0.5, capture_factory=lambda s: device) as reader:
+        reader.read()
+        device.unplugged.set()
+        time.sleep(0.05)
+        start = time.monotonic()
+        with pytest.raises(CameraError, match=r"no new frame within 0.5 s"):
+            while True:  # frames already received are handed out once, then the timeout
+                reader.read()
+        assert time.monotonic() - start < 5.0  # raised, did not hang
+
+
+def test_unplugged_device_that_fails_reads_raises():
+    device = LiveDevice(hang_on_unplug=False)
+    with VideoReader(0, timeout_s=5.0, capture_factory=lambda s: device) as reader:
+        device.unplugged.set()
+        with pytest.raises(CameraError, match="returned no frame"):
+            for _ in range(100):
+                reader.read()
+
+
+def test_slow_consumer_gets_the_newest_frame_never_a_repeat():
+    device = LiveDevice(fps=200.0)
+    with VideoReader(0, timeout_s=1.0, capture_factory=lambda s: device) as reader:
+        indices = []
+        for _ in range(5):
+            time.sleep(0.05)  # a slow consumer: the device keeps streaming meanwhile
+            frame = reader.read()
+            indices.append(frame.index)
+            assert frame.index >= reader.frames_received - 2  # the newest (or the one arriving meanwhile)
+        assert all(b > a + 1 for a, b in zip(indices, indices[1:]))  # newest, stale ones skipped
+        assert device.frames_made >= indices[-1] + 1  # the device kept streaming, never stalled by the consumer
+        stamps = [reader.read().timestamp for _ in range(3)]
+        assert stamps == sorted(stamps) and len(set(stamps)) == 3  # each read is a new frame
+
+
+def test_resolution_and_fps_are_verified(tmp_path):
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (80, 60))
+    for i in range(4):
+        writer.write(np.full((60, 80, 3), 40 * i, np.uint8))
+    writer.release()
+    with pytest.raises(CameraError, match="asked for 640x480"):
+        VideoReader(str(path), width=640, height=480).open()
+    with pytest.raises(CameraError, match="asked for 60 fps"):
+        VideoReader(str(path), fps=60.0).open()
+    with pytest.raises(CameraError, match="asked for 640x480, the device delivers 64x48"):
+        VideoReader(0, width=640, height=480, capture_factory=lambda s: LiveDevice()).open()
+    # a file is read in order, every frame once, then it ends with a clear error
+    with VideoReader(str(path), width=80, height=60, fps=30.0) as reader:
+        values = [int(reader.read().image[0, 0, 0]) for _ in range(4)]
+        assert values == [0, 40, 80, 120]
+        with pytest.raises(CameraError, match="end of stream after 4 frames"):
+            reader.read()
+
+
+def test_missing_device_is_a_clear_error():
+    with pytest.raises(CameraError, match="cannot open"):
+        VideoReader("/nonexistent/video.avi").open()
