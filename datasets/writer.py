@@ -26,6 +26,7 @@ import io
 import json
 import logging
 import os
+import re
 import shutil
 import time
 from contextlib import contextmanager
@@ -64,6 +65,7 @@ log = logging.getLogger(__name__)
 
 JOURNAL = "journal.jsonl"
 TEMP_SUFFIX = ".tmp"
+_RECORD_FILE = re.compile(r"\d{6}\.(png|npz)")
 
 
 def temp_name(path: Path) -> Path:
@@ -216,9 +218,9 @@ class SceneWriter:
         writer._journal = journal
         for sub in ("images", "touches", "gt", "gt/depth"):
             (path / sub).mkdir(parents=True, exist_ok=True)
-        removed = writer._remove_temp_files()
+        removed = writer._remove_leftovers()
         writer._materialise("transforms", "touches", "scene")
-        log.info("resumed %s: %d frames, %d touches (%d leftover temporary files removed)",
+        log.info("resumed %s: %d frames, %d touches (%d leftover files removed)",
                  path, writer.num_frames, writer.num_touches, removed)
         return writer
 
@@ -241,11 +243,16 @@ class SceneWriter:
                 raise SceneFormatError(journal_path, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}") from exc
         return writer
 
-    def _remove_temp_files(self) -> int:
+    def _remove_leftovers(self) -> int:
+        """Delete temporary files and record files no journal record refers to (a crash's in-flight record,
+        an undo cut short); returns how many."""
+        live = {f.file_path for f in self.frames} | {t.depth_file for t in self.touches} | set(self._gt_depth.values())
         count = 0
         for sub in ("", "images", "touches", "gt", "gt/depth"):
             for p in (self.path / sub).iterdir():
-                if p.is_file() and is_temp_file(p):
+                rel = p.relative_to(self.path).as_posix()
+                orphan = sub in ("images", "touches", "gt/depth") and _RECORD_FILE.fullmatch(p.name) and rel not in live
+                if p.is_file() and (is_temp_file(p) or orphan):
                     p.unlink()
                     count += 1
         return count

@@ -112,6 +112,9 @@ def _check_after_crash(path, acked: Acked):
     assert leftovers == [], leftovers
     resumed = Scene.load(path)
     assert len(resumed.frames) == w.num_frames and len(resumed.touches) == w.num_touches
+    # no orphan of the record in flight either: every record file belongs to a record
+    assert sorted(p.name for p in (path / "images").iterdir()) == [f"{i:06d}.png" for i in range(w.num_frames)]
+    assert sorted(p.name for p in (path / "touches").iterdir()) == [f"{i:06d}.npz" for i in range(w.num_touches)]
     with open(path / "journal.jsonl", "rb") as f:
         assert f.read().endswith(b"\n")
 
