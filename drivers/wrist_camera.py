@@ -7,7 +7,7 @@ conversion to tacsplat's convention is :func:`tacsplat_K_from_opencv`, used by
 :attr:`WristCamera.K`.
 
 World frame of a real capture (DESIGN.md): the board frame turned so that z is
-up when the board lies face up: origin at the board's first chessboard corner,
+up when the board lies face up: origin at the outer corner of the first square,
 x along the board's squares_x direction, y opposite to OpenCV's board y, z out
 of the printed face (``T_WORLD_BOARD``).
 """
