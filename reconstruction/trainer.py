@@ -458,14 +458,20 @@ def plot_error_vs_time(progress_path: Path, png_path: Path) -> None:
 
 
 def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig, resume: bool = False,
-                show_progress: bool = True) -> dict:
-    """Train on a scene directory and evaluate the result; returns the metrics written to ``metrics.json``."""
+                show_progress: bool = True, iterations_override: int | None = None) -> dict:
+    """Train on a scene directory and evaluate the result; returns the metrics written to ``metrics.json``.
+
+    With ``resume`` and an existing run, the run's own ``config.json`` is used
+    (only the iteration count may be raised with ``iterations_override``).
+    """
     from tacsplat.datasets import Scene
     from tacsplat.reconstruction.evaluation import evaluate_run
 
     out_dir = Path(out_dir)
     if resume and (out_dir / "config.json").is_file():
         config = TrainConfig.from_json(json.loads((out_dir / "config.json").read_text()))
+        if iterations_override is not None:
+            config.iterations = iterations_override
     scene = Scene.load(scene_path)
     Trainer(scene, out_dir, config).run(resume=resume, show_progress=show_progress)
     return evaluate_run(out_dir)
