@@ -1,0 +1,403 @@
+"""The MuJoCo twin: the hand on a mocap base, a static glossy object, cameras and tactile pads.
+
+It implements the device Protocols (``Hand``, ``TactileSensor``, ``Camera``)
+so acquisition code cannot tell it from the real rig. The object is fixed in
+the world with its bounding-sphere centre at the origin (z up); the hand base
+is a mocap body placed with :meth:`SimTwin.set_hand_base_pose`. Physics:
+``implicitfast`` integration, soft contacts whose ``solref`` time constant is
+at least twice the timestep, position servos whose natural frequency times the
+timestep stays under ``MAX_SERVO_OMEGA_DT``; :func:`check_physics` rejects
+anything stiffer with a :class:`SimulationError`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
+
+from tacsplat.errors import ConfigError, InvalidInputError, SimulationError  # noqa: E402
+from tacsplat.geometry import (  # noqa: E402
+    check_rigid,
+    invert_pose,
+    make_pose,
+    matrix_to_quat_wxyz,
+    opencv_to_opengl,
+    quat_wxyz_to_matrix,
+)
+from tacsplat.sim.camera import MujocoCamera  # noqa: E402
+from tacsplat.sim.hand import (  # noqa: E402
+    FINGER_NAMES,
+    HAND_MATERIALS,
+    JOINT_LIMITS,
+    JOINT_NAMES,
+    ActuatorGains,
+    HandGeometry,
+    hand_body_xml,
+    site_pose,
+)
+from tacsplat.sim.objects import (  # noqa: E402
+    DEFAULT_OBJECT_RADIUS,
+    DecompositionConfig,
+    SimObject,
+    convex_decomposition,
+    load_mesh_object,
+    make_object,
+)
+from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer  # noqa: E402
+from tacsplat.types import TactileReading  # noqa: E402
+
+log = logging.getLogger(__name__)
+
+MAX_SERVO_OMEGA_DT = 0.5  # servo natural frequency x timestep: the stiffest gains allowed
+MIN_TIMECONST_STEPS = 2.0  # contact solref time constant >= this many timesteps
+
+# Warnings MuJoCo counts in data.warning that mean the simulation went wrong.
+_FATAL_WARNINGS = (
+    mujoco.mjtWarning.mjWARN_BADQACC,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+    mujoco.mjtWarning.mjWARN_CONTACTFULL,
+    mujoco.mjtWarning.mjWARN_CNSTRFULL,
+)
+
+
+@dataclass
+class TwinConfig:
+    """Settings of a twin (defaults: the library teapot, 2 ms steps, 200x200 views)."""
+
+    object: str = "teapot"  # a library name (tacsplat.sim.objects.OBJECT_NAMES); ignored with mesh_path
+    mesh_path: str | None = None  # any .obj/.ply/.stl instead of a library object
+    object_radius: float = DEFAULT_OBJECT_RADIUS  # bounding-sphere radius in metres
+    seed: int = 0
+    camera_width: int = 200
+    camera_height: int = 200
+    view_fovy_deg: float = 40.0  # the free view camera
+    wrist_fovy_deg: float = 60.0
+    timestep: float = 0.002  # s
+    contact_timeconst: float = 0.01  # s, solref[0]: contacts settle in about this time
+    contact_dampratio: float = 1.0  # solref[1], critical damping
+    contact_solimp: tuple[float, float, float] = (0.95, 0.99, 0.001)
+    gains: ActuatorGains = field(default_factory=ActuatorGains)
+    hand_geometry: HandGeometry = field(default_factory=HandGeometry)
+    tactile: TactileConfig = field(default_factory=TactileConfig)
+    decomposition: DecompositionConfig = field(default_factory=DecompositionConfig)
+    background: str = "gradient"  # "gradient" skybox or plain "white"
+
+
+def check_physics(config: TwinConfig, model: mujoco.MjModel | None = None) -> None:
+    """Reject settings that make the simulation stiff or unstable, naming the setting at fault."""
+    dt = config.timestep
+    if not (np.isfinite(dt) and 0 < dt <= 0.01):
+        raise SimulationError(f"timestep: {dt} s is outside (0, 0.01] s")
+    if not (np.isfinite(config.contact_timeconst) and config.contact_timeconst >= MIN_TIMECONST_STEPS * dt):
+        raise SimulationError(
+            f"contact_timeconst: {config.contact_timeconst} s is stiffer than {MIN_TIMECONST_STEPS:g} timesteps "
+            f"({MIN_TIMECONST_STEPS * dt:g} s); raise it or lower the timestep"
+        )
+    if not (config.contact_dampratio > 0):
+        raise SimulationError(f"contact_dampratio: must be positive, got {config.contact_dampratio}")
+    g = config.gains
+    for key in ("kp", "kv", "damping", "armature", "force_limit"):
+        value = getattr(g, key)
+        if not (np.isfinite(value) and value >= 0) or (key in ("kp", "force_limit") and value == 0):
+            raise SimulationError(f"gains.{key}: must be a finite positive number, got {value}")
+    if model is not None:
+        omega_dt = servo_omega_dt(model, g.kp)
+        if omega_dt > MAX_SERVO_OMEGA_DT:
+            kp_max = g.kp * (MAX_SERVO_OMEGA_DT / omega_dt) ** 2
+            raise SimulationError(
+                f"gains.kp: {g.kp} N m/rad gives a servo natural frequency x timestep of {omega_dt:.3f} "
+                f"> {MAX_SERVO_OMEGA_DT}; use kp <= {kp_max:.3g} or a smaller timestep"
+            )
+
+
+def servo_omega_dt(model: mujoco.MjModel, kp: float) -> float:
+    """Largest natural frequency of the position servos (sqrt(kp / inertia)) times the timestep."""
+    dofs = [model.jnt_dofadr[model.joint(n).id] for n in JOINT_NAMES]
+    inv_inertia = model.dof_invweight0[dofs].max()
+    return float(np.sqrt(kp * inv_inertia) * model.opt.timestep)
+
+
+def _mesh_asset(name: str, mesh: trimesh.Trimesh) -> str:
+    verts = " ".join(f"{v:.7g}" for v in np.asarray(mesh.vertices).ravel())
+    faces = " ".join(str(int(i)) for i in np.asarray(mesh.faces).ravel())
+    return f'<mesh name="{name}" vertex="{verts}" face="{faces}"/>'
+
+
+def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trimesh]) -> str:
+    """The full scene: lights, background, the static object (visual mesh + convex hulls), cameras, hand."""
+    check_physics(config)
+    body, actuators = hand_body_xml(config.hand_geometry, config.gains, pos=(0, 0, 1.0))
+    m = obj.material
+    solref = f"{config.contact_timeconst:.6g} {config.contact_dampratio:.6g}"
+    solimp = " ".join(f"{v:.6g}" for v in config.contact_solimp)
+    if config.background == "gradient":
+        sky = '<texture name="sky" type="skybox" builtin="gradient" rgb1="0.93 0.94 0.97" rgb2="0.45 0.5 0.6" width="256" height="256"/>'
+    elif config.background == "white":
+        sky = '<texture name="sky" type="skybox" builtin="flat" rgb1="1 1 1" rgb2="1 1 1" width="16" height="16"/>'
+    else:
+        raise ConfigError("background", f"must be 'gradient' or 'white', got {config.background!r}")
+    hull_assets = "\n".join(_mesh_asset(f"hull{i}", h) for i, h in enumerate(hulls))
+    hull_geoms = "\n".join(
+        f'<geom name="object_hull{i}" type="mesh" mesh="hull{i}" group="3" contype="0" conaffinity="1"/>'
+        for i in range(len(hulls))
+    )
+    size = max(config.camera_width, config.camera_height, 256)
+    return f"""<mujoco model="tacsplat_twin">
+  <compiler angle="radian" autolimits="true"/>
+  <option timestep="{config.timestep:.6g}" integrator="implicitfast" gravity="0 0 -9.81"/>
+  <statistic extent="1" center="0 0 0"/>
+  <visual>
+    <global offwidth="{size}" offheight="{size}"/>
+    <map znear="0.01" zfar="20"/>
+    <headlight ambient="0.12 0.12 0.12" diffuse="0.25 0.25 0.25" specular="0.3 0.3 0.3"/>
+    <quality shadowsize="0"/>
+  </visual>
+  <default>
+    <geom solref="{solref}" solimp="{solimp}" friction="0.8 0.01 0.001"/>
+  </default>
+  <asset>
+    {sky}
+    {HAND_MATERIALS}
+    <material name="object" rgba="{" ".join(f"{c:.4g}" for c in m.rgba)}" specular="{m.specular:.4g}"
+              shininess="{m.shininess:.4g}" reflectance="{m.reflectance:.4g}"/>
+    {_mesh_asset("object_visual", obj.mesh)}
+{hull_assets}
+  </asset>
+  <worldbody>
+    <light name="key" directional="true" dir="-0.5 -0.4 -0.8" diffuse="0.6 0.6 0.6" specular="0.9 0.9 0.9" castshadow="false"/>
+    <light name="fill" directional="true" dir="0.7 -0.3 -0.4" diffuse="0.35 0.35 0.4" specular="0.6 0.6 0.6" castshadow="false"/>
+    <light name="rim" directional="true" dir="0.1 0.8 -0.3" diffuse="0.3 0.3 0.3" specular="0.7 0.7 0.7" castshadow="false"/>
+    <light name="under" directional="true" dir="0 0 1" diffuse="0.15 0.15 0.15" specular="0.2 0.2 0.2" castshadow="false"/>
+    <camera name="view" pos="0 -0.5 0.2" xyaxes="1 0 0 0 0.37 0.93" fovy="{config.view_fovy_deg:.6g}"/>
+    <body name="object">
+      <geom name="object_visual" type="mesh" mesh="object_visual" material="object" group="0" contype="0" conaffinity="0"/>
+{hull_geoms}
+    </body>
+{body}
+  </worldbody>
+  <actuator>
+{actuators}
+  </actuator>
+</mujoco>
+"""
+
+
+class SimHand:
+    """The twin's hand (implements ``Hand``): position servos on the sixteen joints."""
+
+    def __init__(self, twin: "SimTwin"):
+        self._twin = twin
+        model = twin.model
+        self._qadr = np.array([model.jnt_qposadr[model.joint(n).id] for n in JOINT_NAMES])
+        self._dofadr = np.array([model.jnt_dofadr[model.joint(n).id] for n in JOINT_NAMES])
+        self._act = np.array([model.actuator(n).id for n in JOINT_NAMES])
+        self._sites = {f: model.site(f"{f}_tactile").id for f in FINGER_NAMES}
+
+    @property
+    def joint_names(self) -> list[str]:
+        return list(JOINT_NAMES)
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        return JOINT_LIMITS.copy()
+
+    def read_joint_positions(self) -> np.ndarray:
+        return self._twin.data.qpos[self._qadr].copy()
+
+    def read_joint_targets(self) -> np.ndarray:
+        return self._twin.data.ctrl[self._act].copy()
+
+    def command_joint_positions(self, q: np.ndarray) -> None:
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (16,):
+            raise InvalidInputError(f"command_joint_positions: q must have shape (16,), got {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise InvalidInputError("command_joint_positions: q contains NaN or infinite values")
+        clamped = np.clip(q, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
+        if np.any(np.abs(clamped - q) > 1e-9):
+            names = [JOINT_NAMES[i] for i in np.flatnonzero(np.abs(clamped - q) > 1e-9)]
+            log.info("joint command clamped to the limits on %s", ", ".join(names))
+        self._twin.data.ctrl[self._act] = clamped
+
+    def set_joint_positions(self, q: np.ndarray) -> None:
+        """Teleport the joints (and their servo targets) to ``q``, at rest: a simulator-only reset."""
+        self.command_joint_positions(q)
+        self._twin.data.qpos[self._qadr] = self._twin.data.ctrl[self._act]
+        self._twin.data.qvel[self._dofadr] = 0.0
+        self._twin.forward()
+
+    def fingertip_poses(self) -> dict[str, np.ndarray]:
+        T_hand_world = invert_pose(self._twin.T_world_hand())
+        return {f: T_hand_world @ site_pose(self._twin.data, s) for f, s in self._sites.items()}
+
+    def close(self) -> None:
+        """Hold the current joint positions (the twin's equivalent of a safe stop)."""
+        self._twin.data.ctrl[self._act] = self.read_joint_positions().clip(JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
+
+    def __enter__(self) -> "SimHand":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class SimTactileSensor:
+    """One fingertip pad of the twin (implements ``TactileSensor``)."""
+
+    def __init__(self, twin: "SimTwin", finger: str):
+        self._twin = twin
+        self._name = finger
+        self._site = twin.model.site(f"{finger}_tactile").id
+        self.config = twin.config.tactile
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+    def T_world_sensor(self) -> np.ndarray:
+        return site_pose(self._twin.data, self._site)
+
+    def read(self) -> TactileReading:
+        """The indentation map, its pose in the hand frame, the simulated time."""
+        T_world_sensor = self.T_world_sensor()
+        depth = self._twin.tactile_renderer.render(T_world_sensor)
+        T_hand_sensor = invert_pose(self._twin.T_world_hand()) @ T_world_sensor
+        return TactileReading(depth, self.config.pixel_size_m, T_hand_sensor, "hand", float(self._twin.data.time))
+
+
+class SimTwin:
+    """The MuJoCo twin of the rig; a context manager owning the MjModel, MjData and renderers."""
+
+    def __init__(self, config: TwinConfig = TwinConfig()):
+        self.config = config
+        if config.mesh_path:
+            self.object = load_mesh_object(config.mesh_path, config.object_radius)
+        else:
+            self.object = make_object(config.object, config.object_radius)
+        check_physics(config)
+        self.hulls = convex_decomposition(self.object.mesh, config.decomposition)
+        self.model = mujoco.MjModel.from_xml_string(build_twin_mjcf(config, self.object, self.hulls))
+        check_physics(config, self.model)
+        self.data = mujoco.MjData(self.model)
+        self._mocap = self.model.body("hand").mocapid[0]
+        self._view_cam = self.model.camera("view").id
+        self.forward()
+        self.object_mesh = self.object.mesh.copy()  # world frame: the object sits at the origin
+        self.tactile_renderer = TactileDepthRenderer(self.object_mesh, config.tactile)
+        self.hand = SimHand(self)
+        self.hand.set_joint_positions(np.zeros(16))
+        self.tactile_sensors = [SimTactileSensor(self, f) for f in FINGER_NAMES]
+        w, h = config.camera_width, config.camera_height
+        self.model.cam_fovy[self._view_cam] = config.view_fovy_deg
+        self.model.cam_fovy[self.model.camera("wrist").id] = config.wrist_fovy_deg
+        self.wrist_camera = MujocoCamera(self, "wrist", w, h, visible_groups=(0, 1, 2))
+        self.view_camera = MujocoCamera(self, "view", w, h, visible_groups=(0, 2))  # hand hidden
+        self._hand_geoms = self._body_tree_geoms("hand")
+        self._object_geoms = set(np.flatnonzero(self.model.geom_bodyid == self.model.body("object").id).tolist())
+
+    # --- state -------------------------------------------------------------------------------
+    def forward(self) -> None:
+        """Recompute positions, cameras and contacts from the current state."""
+        mujoco.mj_forward(self.model, self.data)
+
+    def sleep(self, seconds: float) -> None:
+        """Advance the physics by ``seconds`` of simulated time (the twin's clock)."""
+        if not (np.isfinite(seconds) and seconds >= 0):
+            raise InvalidInputError(f"sleep: seconds must be finite and non-negative, got {seconds}")
+        for _ in range(int(round(seconds / self.model.opt.timestep))):
+            mujoco.mj_step(self.model, self.data)
+        self.forward()
+        self.check_stable()
+
+    def check_stable(self) -> None:
+        """Raise :class:`SimulationError` if MuJoCo flagged a problem or the state is not finite."""
+        raised = {mujoco.mjtWarning(w).name: int(self.data.warning[w].number) for w in _FATAL_WARNINGS}
+        raised = {k: v for k, v in raised.items() if v}
+        if raised or not (np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel))):
+            raise SimulationError(f"simulation unstable at t={self.data.time:.4f} s: warnings {raised or 'none'}, "
+                                  f"finite state {bool(np.all(np.isfinite(self.data.qpos)))}")
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    # --- hand base -----------------------------------------------------------------------------
+    def T_world_hand(self) -> np.ndarray:
+        """Ground-truth pose [4, 4] of the hand base."""
+        return make_pose(quat_wxyz_to_matrix(self.data.mocap_quat[self._mocap]), self.data.mocap_pos[self._mocap])
+
+    def set_hand_base_pose(self, T_world_hand: np.ndarray) -> None:
+        """Place the hand base (mocap) at ``T_world_hand`` [4, 4]."""
+        T = check_rigid(T_world_hand, "T_world_hand")
+        self.data.mocap_pos[self._mocap] = T[:3, 3]
+        self.data.mocap_quat[self._mocap] = matrix_to_quat_wxyz(T[:3, :3])
+        self.forward()
+
+    # --- free view camera ----------------------------------------------------------------------
+    def move_camera(self, T_world_cam: np.ndarray) -> None:
+        """Place the view camera at the OpenCV camera-to-world pose ``T_world_cam`` [4, 4]."""
+        T_gl = opencv_to_opengl(check_rigid(T_world_cam, "T_world_cam"))
+        self.model.cam_pos[self._view_cam] = T_gl[:3, 3]
+        self.model.cam_quat[self._view_cam] = matrix_to_quat_wxyz(T_gl[:3, :3])
+        self.forward()
+
+    def camera_pose(self) -> np.ndarray:
+        """OpenCV camera-to-world pose [4, 4] of the view camera."""
+        return self.view_camera.pose()
+
+    def render_view(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(image [H, W, 3] uint8, depth [H, W] float32)`` of the object alone from the view camera."""
+        image, _ = self.view_camera.read()
+        return image, self.view_camera.read_depth()
+
+    # --- contacts ------------------------------------------------------------------------------
+    def _body_tree_geoms(self, root: str) -> set[int]:
+        root_id = self.model.body(root).id
+        bodies = {root_id}
+        for b in range(self.model.nbody):
+            parent = b
+            while parent not in (0, root_id):
+                parent = self.model.body_parentid[parent]
+            if parent == root_id:
+                bodies.add(b)
+        return set(np.flatnonzero(np.isin(self.model.geom_bodyid, list(bodies))).tolist())
+
+    def hand_object_contacts(self) -> list[tuple[str, float]]:
+        """``(hand geom name, signed distance)`` of each hand-object contact (negative = penetration)."""
+        out = []
+        for c in self.data.contact[: self.data.ncon]:
+            g1, g2 = int(c.geom1), int(c.geom2)
+            if g1 in self._object_geoms and g2 in self._hand_geoms:
+                g1, g2 = g2, g1
+            if g1 in self._hand_geoms and g2 in self._object_geoms:
+                out.append((self.model.geom(g1).name, float(c.dist)))
+        return out
+
+    def max_penetration(self) -> float:
+        """Deepest hand-object contact penetration in metres (0 when nothing penetrates)."""
+        return max([0.0] + [-d for _, d in self.hand_object_contacts()])
+
+    # --- lifetime ------------------------------------------------------------------------------
+    def close(self) -> None:
+        self.wrist_camera.close()
+        self.view_camera.close()
+
+    def __enter__(self) -> "SimTwin":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def world_readings(twin: SimTwin) -> dict[str, TactileReading]:
+    """All four tactile readings placed in the world with the twin's ground-truth hand pose."""
+    T_world_hand = twin.T_world_hand()
+    return {s.name: s.read().to_world(T_world_hand) for s in twin.tactile_sensors}
