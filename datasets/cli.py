@@ -25,7 +25,8 @@ def register(cli) -> None:
         "--test-split.",
     )
     p.add_argument("src", metavar="SRC", help="dataset folder holding transforms_train.json")
-    p.add_argument("--out", required=True, metavar="DIR", help="new scene directory (must not exist or be empty)")
+    p.add_argument("--out", required=True, metavar="DIR", default=argparse.SUPPRESS,
+                   help="new scene directory (must not exist or be empty)")
     p.add_argument("--background", type=_background, default="white", metavar="white|black|R,G,B",
                    help="colour the transparent background is composited onto (R,G,B as 0-255 integers)")
     p.add_argument("--test-split", choices=("test", "val"), default="test",
@@ -42,12 +43,15 @@ def register(cli) -> None:
         "OPENCV with zero distortion): run `colmap image_undistorter` first otherwise.",
     )
     p.add_argument("src", metavar="SRC", help="COLMAP sparse model folder")
-    p.add_argument("--images", required=True, metavar="DIR", help="folder the model's image names are relative to")
-    p.add_argument("--out", required=True, metavar="DIR", help="new scene directory (must not exist or be empty)")
+    p.add_argument("--images", required=True, metavar="DIR", default=argparse.SUPPRESS,
+                   help="folder the model's image names are relative to")
+    p.add_argument("--out", required=True, metavar="DIR", default=argparse.SUPPRESS,
+                   help="new scene directory (must not exist or be empty)")
     p.add_argument("--test-every", type=int, default=8, metavar="N",
                    help="every N-th image (in name order) goes to the test split; 0 puts all in train")
     p.add_argument("--scale", type=float, default=1.0, help="metres per COLMAP unit (COLMAP's scale is arbitrary)")
-    p.add_argument("--object", default=None, help="object name recorded in scene.json (default: the model folder's name)")
+    p.add_argument("--object", default=argparse.SUPPRESS,
+                   help="object name recorded in scene.json (when omitted: the dataset folder's name)")
     p.set_defaults(func=_import_colmap)
 
     p = cli.command(
@@ -57,7 +61,7 @@ def register(cli) -> None:
         "sensor, the bounds and every problem found. Exits with 1 when there are problems.",
     )
     p.add_argument("dir", metavar="DIR", help="scene directory")
-    p.add_argument("--json", action="store_true",
+    p.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
                    help="print one JSON object (frames {split: count}, touches, grasps, problems [...], ...)")
     p.set_defaults(func=_inspect)
 
@@ -74,11 +78,12 @@ def _import_colmap(args) -> int:
     from .colmap import import_colmap
     from .inspect import run_inspect
 
-    import_colmap(args.src, args.images, args.out, test_every=args.test_every, scale=args.scale, object_name=args.object)
+    import_colmap(args.src, args.images, args.out, test_every=args.test_every, scale=args.scale,
+                  object_name=getattr(args, "object", None))
     return run_inspect(args.out)
 
 
 def _inspect(args) -> int:
     from .inspect import run_inspect
 
-    return run_inspect(args.dir, as_json=args.json)
+    return run_inspect(args.dir, as_json=getattr(args, "json", False))

@@ -44,6 +44,14 @@ def camera_intrinsics(camera, model_path: Path) -> CameraIntrinsics:
     return CameraIntrinsics(K, int(camera.width), int(camera.height))
 
 
+def _dataset_name(model_dir: Path) -> str:
+    """``garden`` for ``.../garden/sparse/0``: the first folder up that is not ``sparse`` or a model number."""
+    for part in (model_dir.resolve(), *model_dir.resolve().parents):
+        if part.name and part.name != "sparse" and not part.name.isdigit():
+            return part.name
+    return "colmap"
+
+
 def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float = 1.0, object_name: str | None = None) -> Path:
     """Convert the COLMAP model in ``model_dir`` (e.g. ``sparse/0``) with images in ``images_dir`` into ``out``.
 
@@ -69,7 +77,7 @@ def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float 
 
     meta = SceneMeta(
         source="import",
-        object=object_name or model_dir.resolve().name,
+        object=object_name or _dataset_name(model_dir),
         extra={"importer": "colmap", "source_path": str(model_dir.resolve()), "images_path": str(images_dir.resolve()),
                "scale": scale, "test_every": test_every, "num_points3D": rec.num_points3D(),
                "colmap_names": [img.name for img in images]},

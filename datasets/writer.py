@@ -233,7 +233,7 @@ class SceneWriter:
         try:
             sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
             writer = cls(path, intrinsics_from_json(header["intrinsics"]), meta_from_json(header["meta"]), sensor,
-                         header["created"], tacsplat.__version__)
+                         header["created"], header.get("tacsplat_version", tacsplat.__version__))
         except (KeyError, TypeError, InvalidInputError) as exc:
             raise SceneFormatError(journal_path, "line 1", f"invalid header: {exc}") from exc
         for lineno, entry in enumerate(entries[1:], start=2):
