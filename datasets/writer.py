@@ -466,8 +466,17 @@ def _lock_journal(path: Path):
     return journal
 
 
-def _read_journal(path: Path) -> list[dict]:
-    """Parse the journal; a torn or unparseable *last* line (a write cut by a crash) is dropped and truncated away."""
+def journaled_counts(path) -> tuple[int, int]:
+    """``(frames, touches)`` recorded in a scene's journal, read-only (for ``inspect``: the index files are
+    behind the journal only when a writer died between the two; resuming rewrites them)."""
+    path = Path(path)
+    writer = SceneWriter._replay(path, _read_journal(path / JOURNAL, truncate=False))
+    return writer.num_frames, writer.num_touches
+
+
+def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
+    """Parse the journal; a torn or unparseable *last* line (a write cut by a crash) is dropped (and, with
+    ``truncate``, cut from the file)."""
     data = path.read_bytes()
     lines = data.split(b"\n")
     complete, tail = lines[:-1], lines[-1]  # tail is b"" when the file ends with a newline
@@ -487,7 +496,7 @@ def _read_journal(path: Path) -> list[dict]:
         good_bytes += len(raw) + 1
     if tail:
         log.warning("%s: dropping a torn last line of %d bytes (a write cut by a crash)", path, len(tail))
-    if good_bytes != len(data):
+    if truncate and good_bytes != len(data):
         with open(path, "r+b") as f:
             f.truncate(good_bytes)
             f.flush()

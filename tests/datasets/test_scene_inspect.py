@@ -55,3 +55,17 @@ def test_inspect_of_a_scene_without_touches_and_of_a_non_scene(tmp_path, h, caps
     assert run_inspect(tmp_path / "nothing", as_json=True) == 1
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames"] == {"train": 0, "test": 0} and "does not exist" in summary["problems"][0]
+
+
+def test_inspect_notices_an_index_behind_its_journal(scene_dir, capsys):
+    transforms = scene_dir / "transforms.json"
+    data = json.loads(transforms.read_text())
+    data["frames"].pop()  # as if the writer died after journaling frame 3, before rewriting the index
+    transforms.write_text(json.dumps(data))
+    assert run_inspect(scene_dir, as_json=True) == 1
+    problems = json.loads(capsys.readouterr().out)["problems"]
+    assert len(problems) == 1 and "records 4 frames and 4 touches but the index files hold 3 and 4" in problems[0]
+    from tacsplat.datasets import SceneWriter
+
+    SceneWriter.resume(scene_dir).close()
+    assert run_inspect(scene_dir) == 0
