@@ -47,6 +47,13 @@ from tacsplat.errors import HandError, InvalidInputError
 
 log = logging.getLogger(__name__)
 
+try:  # what pyserial lets escape when the adapter disappears (termios.error is not an OSError)
+    import termios
+
+    PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, termios.error)
+except ImportError:  # Windows
+    PORT_ERRORS = (OSError,)
+
 COMM_RESULT_NAMES = {
     dxl.COMM_SUCCESS: "COMM_SUCCESS",
     dxl.COMM_PORT_BUSY: "COMM_PORT_BUSY",
@@ -281,7 +288,10 @@ class DynamixelHand:
             if unconfirmed:
                 log.error("%s: torque off not confirmed by servos %s", self.device, self._names(unconfirmed))
             self._torque_on = False
-            self._port.closePort()
+            try:
+                self._port.closePort()
+            except PORT_ERRORS as exc:
+                log.error("%s: closing the port: %s", self.device, exc)
             self._port = None
         self._restore_sigint()
         atexit.unregister(self.close)
@@ -328,7 +338,10 @@ class DynamixelHand:
         """After a failed exchange: let late replies arrive, then discard them."""
         time.sleep(self.config.drain_s)
         self._port.is_using = False
-        self._port.clearPort()
+        try:
+            self._port.clearPort()
+        except PORT_ERRORS:
+            pass  # the next exchange reports the port error
 
     def _comm_text(self, result: int) -> str:
         text = self._ph.getTxRxResult(result).replace("[TxRxResult] ", "").rstrip("!")
@@ -338,8 +351,11 @@ class DynamixelHand:
         """Run ``exchange()`` (returns ``(failed_servo, comm_result)`` or None) with bounded retries."""
         attempts = self.config.retries + 1
         for k in range(attempts):
-            with _Exchange(self):
-                failure = exchange()
+            try:
+                with _Exchange(self):
+                    failure = exchange()
+            except PORT_ERRORS as exc:
+                self._fail(None, instruction, f"serial port error: {exc} (adapter unplugged?)")
             if failure is None:
                 return
             servo_id, result = failure
@@ -349,18 +365,22 @@ class DynamixelHand:
         self._fail(servo_id, instruction, f"{self._comm_text(result)} after {attempts} attempts",
                    comm_result=result)
 
-    def _fail(self, servo_id: int, instruction: str, detail: str, *, comm_result: int | None = None,
+    def _fail(self, servo_id: int | None, instruction: str, detail: str, *, comm_result: int | None = None,
               status_error: int = 0, hardware_error: int = 0):
         """Make the hand safe, record the fault and raise a ServoError."""
         unconfirmed = self._torque_off_all()
         self._torque_on = False
         answered = [s for s in self.ids if s not in unconfirmed]
-        message = (f"servo {self._names([servo_id])}: {instruction} failed: {detail}; "
-                   f"torque disabled on servos {answered}")
-        if unconfirmed:
-            message += f", not confirmed by {self._names(unconfirmed)}"
+        who = f"servo {self._names([servo_id])}" if servo_id is not None else f"port {self.port_name}"
+        if not unconfirmed:
+            safety = "torque disabled on all servos"
+        elif answered:
+            safety = f"torque disabled on servos {answered}, not confirmed by {self._names(unconfirmed)}"
+        else:
+            safety = "no servo confirmed torque off: cut the servo power"
+        message = f"{who}: {instruction} failed: {detail}; {safety}"
         self._fault = message
-        raise ServoError(self.device, message, servo_id=servo_id, joint=self._joint_of.get(servo_id),
+        raise ServoError(self.device, message, servo_id=servo_id, joint=self._joint_of.get(servo_id, None),
                          instruction=instruction, comm_result=comm_result, status_error=status_error,
                          hardware_error=hardware_error)
 
@@ -369,8 +389,12 @@ class DynamixelHand:
         detail = ", ".join(decode_status_error(error))
         hw = 0
         if error & ALERT_BIT:
-            with _Exchange(self):
-                data, result, _ = self._ph.readTxRx(self._port, servo_id, REGISTERS["hardware_error_status"].address, 1)
+            try:
+                with _Exchange(self):
+                    data, result, _ = self._ph.readTxRx(self._port, servo_id,
+                                                        REGISTERS["hardware_error_status"].address, 1)
+            except PORT_ERRORS:
+                data, result = [], dxl.COMM_TX_FAIL
             if result == dxl.COMM_SUCCESS and data:
                 hw = data[0]
                 detail += f": Hardware Error Status 0x{hw:02x} = {', '.join(decode_hardware_error(hw)) or 'none'}"
@@ -384,13 +408,19 @@ class DynamixelHand:
         port, address = self._port, REGISTERS["torque_enable"].address
         unconfirmed = []
         with self._lock:
-            port.is_using = False
-            port.clearPort()
-            self._ph.write1ByteTxOnly(port, dxl.BROADCAST_ID, address, 0)
+            try:
+                port.is_using = False
+                port.clearPort()
+                self._ph.write1ByteTxOnly(port, dxl.BROADCAST_ID, address, 0)
+            except PORT_ERRORS as exc:
+                log.error("%s: broadcast torque off failed: %s", self.device, exc)
             for sid in self.ids:
                 for _ in range(2):
                     port.is_using = False
-                    result, _ = self._ph.write1ByteTxRx(port, sid, address, 0)
+                    try:
+                        result, _ = self._ph.write1ByteTxRx(port, sid, address, 0)
+                    except PORT_ERRORS:
+                        result = dxl.COMM_TX_FAIL
                     if result == dxl.COMM_SUCCESS:
                         break
                 else:
@@ -401,8 +431,11 @@ class DynamixelHand:
         missing, comm = [], {}
         for sid in self.ids:
             for _ in range(self.config.retries + 1):
-                with _Exchange(self):
-                    model, result, error = self._ph.ping(self._port, sid)
+                try:
+                    with _Exchange(self):
+                        model, result, error = self._ph.ping(self._port, sid)
+                except PORT_ERRORS as exc:
+                    self._fail(None, "PING", f"serial port error: {exc} (adapter unplugged?)")
                 if result == dxl.COMM_SUCCESS:
                     break
                 self._drain()

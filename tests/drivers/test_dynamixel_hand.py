@@ -170,7 +170,8 @@ def test_servo_that_stops_answering_raises_and_disables_torque(emu, kinematics):
         with pytest.raises(ServoError, match=r"servo 9 \(ring_1\): SYNC_READ .*COMM_RX_TIMEOUT.* after 3 attempts") as exc:
             hand.read_joint_positions()  # never the previous values
         assert exc.value.instruction.startswith("SYNC_READ")
-        assert "not confirmed by 9 (ring_1)" in str(exc.value)
+        assert "torque disabled on servos [0, 1, 2, 3, 4, 5, 6, 7, 8, 10, 11, 12, 13, 14, 15], " \
+               "not confirmed by 9 (ring_1)" in str(exc.value)
         assert_all_torque_off(emu, except_ids=[9])
         with pytest.raises(HandError, match="faulted"):
             hand.command_joint_positions(np.zeros(16))
@@ -247,3 +248,12 @@ def test_missing_port_is_a_clear_error(kinematics):
     with pytest.raises(HandError, match="cannot open serial port.*dialout"):
         with DynamixelHand("/dev/ttyUSB_tacsplat_missing", kinematics=kinematics):
             pass
+
+
+def test_unplugged_adapter_is_a_clear_error(emu, kinematics):
+    hand = make_hand(emu, kinematics)
+    hand.connect()
+    emu.stop()  # the U2D2 disappears: the pty's other end is gone
+    with pytest.raises(HandError, match=r"port /dev/.*SYNC_READ.*serial port error.*no servo confirmed torque off"):
+        hand.read_joint_positions()
+    hand.close()  # never raises: it is what runs on the way out
