@@ -33,7 +33,7 @@ from typing import Iterable, Sequence
 import dynamixel_sdk as dxl
 import numpy as np
 
-from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration
+from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.dynamixel_table import (
     ALERT_BIT,
     REGISTERS,
@@ -507,4 +507,4 @@ class DynamixelHand:
         self._attempt("SYNC_WRITE goal_position", exchange)
 
 
-__all__ = ["DynamixelHand", "DynamixelHandConfig", "HandState", "ServoError", "RAD_PER_TICK"]
+__all__ = ["DynamixelHand", "DynamixelHandConfig", "HandState", "ServoError"]

@@ -15,7 +15,7 @@ import pytest
 from tacsplat.drivers import DynamixelHand, Hand, HandCalibration
 from tacsplat.drivers.calibration import RAD_PER_TICK
 from tacsplat.drivers.dxl_emulator import DxlEmulator, crc16, stuff, unstuff
-from tacsplat.drivers.dynamixel_hand import DynamixelHandConfig, ServoError
+from tacsplat.drivers.dynamixel_hand import ServoError
 from tacsplat.drivers.dynamixel_table import REGISTERS, HardwareError, Instruction
 from tacsplat.errors import ConfigError, HandError, InvalidInputError
 from tacsplat.sim.hand import HandKinematics
@@ -144,7 +144,15 @@ def test_clamping_is_logged_not_silent(emu, kinematics, caplog):
             hand.command_joint_positions(np.zeros(15))
 
 
-def test_bad_calibration_file_names_the_key(tmp_path, kinematics, emu):
+def test_calibration_file_round_trip_and_bad_file_names_the_key(tmp_path, kinematics, emu):
+    names = kinematics.joint_names
+    cal = HandCalibration(tuple(names), np.where(np.arange(16) < 8, 1.0, -1.0), np.linspace(-1, 1, 16))
+    cal.save(tmp_path / "good.json")
+    loaded = HandCalibration.load(tmp_path / "good.json", names)
+    np.testing.assert_array_equal(loaded.signs, cal.signs)
+    np.testing.assert_array_equal(loaded.offsets_rad, cal.offsets_rad)
+    ticks = np.arange(1000, 3000, 125)
+    np.testing.assert_array_equal(loaded.ticks_from_radians(loaded.radians_from_ticks(ticks)), ticks)
     path = tmp_path / "cal.json"
     path.write_text(json.dumps({"format": "tacsplat-hand-calibration", "version": 1,
                                 "joints": {n: {"sign": 1, "offset_rad": 0.0} for n in kinematics.joint_names}
