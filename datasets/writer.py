@@ -178,6 +178,10 @@ class SceneWriter:
             raise InvalidInputError(f"meta: expected SceneMeta, got {type(meta).__name__}")
         if sensor is not None and not isinstance(sensor, SensorModel):
             raise InvalidInputError(f"sensor: expected SensorModel or None, got {type(sensor).__name__}")
+        try:
+            json.dumps(meta_to_json(meta), allow_nan=False)
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"meta: capture_plan and extra must be plain JSON data: {exc}") from exc
         if (path / JOURNAL).exists():
             raise InvalidInputError(f"{path} already holds a scene; use SceneWriter.resume to continue it")
         if path.exists() and (not path.is_dir() or any(path.iterdir())):

@@ -164,6 +164,12 @@ def test_writer_rejects_bad_arguments_naming_them(tmp_path, h):
     assert Scene.load(tmp_path / "s").frames == []
 
 
+def test_create_rejects_metadata_that_is_not_json(tmp_path, h):
+    with pytest.raises(InvalidInputError, match="capture_plan and extra must be plain JSON"):
+        SceneWriter.create(tmp_path / "s", h.intrinsics(), SceneMeta("sim", "x", capture_plan={"pose": np.eye(4)}))
+    assert not (tmp_path / "s").exists()
+
+
 def test_one_writer_at_a_time_and_no_overwrite(scene_dir, h):
     with SceneWriter.resume(scene_dir):
         with pytest.raises(InvalidInputError, match="another SceneWriter"):
