@@ -32,8 +32,10 @@ Blender), :func:`import_colmap` (COLMAP sparse models through pycolmap).
 Command line: ``tacsplat import blender|colmap`` and ``tacsplat inspect``.
 """
 
-from .records import SPLITS, Frame, SceneMeta, SensorModel, Touch
+from .blender import import_blender
+from .colmap import import_colmap
 from .reader import Scene, check_scene
+from .records import SPLITS, Frame, SceneMeta, SensorModel, Touch
 from .writer import SceneWriter
 
 __all__ = [
@@ -45,4 +47,6 @@ __all__ = [
     "Scene",
     "check_scene",
     "SceneWriter",
+    "import_blender",
+    "import_colmap",
 ]

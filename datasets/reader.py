@@ -30,7 +30,6 @@ from .records import (
     SceneMeta,
     SensorModel,
     Touch,
-    sensor_problem,
 )
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
