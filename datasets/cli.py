@@ -63,6 +63,8 @@ def register(cli) -> None:
     p.add_argument("dir", metavar="DIR", help="scene directory")
     p.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
                    help="print one JSON object (frames {split: count}, touches, grasps, problems [...], ...)")
+    p.add_argument("--plot", metavar="PNG", default=argparse.SUPPRESS,
+                   help="also save a 3D picture of the cameras, contact points and bounds")
     p.set_defaults(func=_inspect)
 
 
@@ -86,4 +88,4 @@ def _import_colmap(args) -> int:
 def _inspect(args) -> int:
     from .inspect import run_inspect
 
-    return run_inspect(args.dir, as_json=getattr(args, "json", False))
+    return run_inspect(args.dir, as_json=getattr(args, "json", False), plot=getattr(args, "plot", None))

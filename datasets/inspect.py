@@ -100,8 +100,64 @@ def format_summary(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def run_inspect(path, as_json: bool = False) -> int:
-    """Print the summary (text or one JSON object); exit code 1 when there are problems."""
+def plot_scene(path, png_path) -> Path:
+    """A picture of the capture: camera centres and viewing directions per split, contact points, bounds."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    scene, _ = check_scene(path)
+    if scene is None or not (scene.frames or scene.touches):
+        raise SceneFormatError(path, None, "nothing to plot: no readable frames or touches")
+    fig = Figure(figsize=(7, 6))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="3d")
+    lo = hi = None
+    if scene.frames or any(t.in_contact for t in scene.touches):
+        lo, hi = scene.bounds()
+    arrow = 0.25 * float(np.max(hi - lo)) if lo is not None else 0.05
+    for split, colour in zip(SPLITS, ("tab:blue", "tab:orange")):
+        frames = scene.split(split)
+        if not frames:
+            continue
+        c = np.array([f.T_world_cam[:3, 3] for f in frames])
+        z = np.array([f.T_world_cam[:3, 2] for f in frames])
+        ax.scatter(*c.T, color=colour, s=12, label=f"{split} cameras ({len(frames)})")
+        ax.quiver(*c.T, *(arrow * z).T, color=colour, linewidth=0.6)
+    if scene.touches:
+        points = scene.touch_points()
+        if len(points):
+            ax.scatter(*points.T, color="tab:red", s=1, label=f"contact points ({len(scene.touches)} touches)")
+    if lo is not None:
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        for i in range(8):
+            for j in range(i + 1, 8):
+                if np.count_nonzero(corners[i] != corners[j]) == 1:
+                    ax.plot(*corners[[i, j]].T, color="grey", linewidth=0.5)
+    shown = [np.array([f.T_world_cam[:3, 3] for f in scene.frames]).reshape(-1, 3)]
+    if lo is not None:
+        shown.append(np.stack([lo, hi]))
+    shown = np.concatenate(shown)
+    centre = (shown.min(axis=0) + shown.max(axis=0)) / 2
+    half = max(float(np.max(shown.max(axis=0) - shown.min(axis=0))) / 2, 1e-3) * 1.1
+    ax.set_xlim(centre[0] - half, centre[0] + half)  # equal axes: the capture's real shape
+    ax.set_ylim(centre[1] - half, centre[1] + half)
+    ax.set_zlim(centre[2] - half, centre[2] + half)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_zlabel("z [m]")
+    ax.set_title(f"{scene.meta.object} ({scene.meta.source}): cameras, touches and bounds")
+    ax.legend(loc="upper left", fontsize="small")
+    png_path = Path(png_path)
+    png_path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(png_path, dpi=100)
+    return png_path
+
+
+def run_inspect(path, as_json: bool = False, plot: str | Path | None = None) -> int:
+    """Print the summary (text or one JSON object), optionally save :func:`plot_scene`; exit code 1 on problems."""
     summary = summarise(path)
     print(json.dumps(summary, indent=1) if as_json else format_summary(summary))
+    if plot is not None:
+        plot_scene(path, plot)
     return 1 if summary["problems"] else 0

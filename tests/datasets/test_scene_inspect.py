@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import json
 
+import cv2
+
 from tacsplat.datasets.inspect import run_inspect
 
 
-def test_inspect_text_summary_of_a_valid_scene(scene_dir, capsys):
-    assert run_inspect(scene_dir) == 0
+def test_inspect_text_summary_of_a_valid_scene(scene_dir, tmp_path, capsys):
+    assert run_inspect(scene_dir, plot=tmp_path / "scene.png") == 0
+    picture = cv2.imread(str(tmp_path / "scene.png"))
+    assert picture.shape == (600, 700, 3) and picture.std() > 0
     out = capsys.readouterr().out
     assert "frames    4: 3 train, 1 test  [16x12]" in out
     assert "touches   4 (2 in contact) in 2 grasps" in out
