@@ -20,6 +20,10 @@ from tacsplat.types import TactileReading
 
 log = logging.getLogger(__name__)
 
+# Stated bound on the penetration of hand and object collision geometry in a grasp
+# (soft contacts at the default solref; tested with the stiffest allowed gains).
+PENETRATION_BOUND_M = 0.001
+
 @dataclass(frozen=True)
 class GraspConfig:
     """How a simulated grasp is made (times are simulated seconds, angles radians)."""

@@ -222,37 +222,45 @@ def _cache_dir() -> Path:
 
 
 def convex_decomposition(mesh: trimesh.Trimesh, config: DecompositionConfig = DecompositionConfig()) -> list[trimesh.Trimesh]:
-    """Convex pieces of ``mesh`` by CoACD, cached on disk by a hash of the mesh and settings."""
+    """Convex pieces of ``mesh`` by CoACD, cached on disk.
+
+    The decomposition is scale-free: it runs on the mesh scaled to a unit
+    bounding sphere (the cache key hashes that mesh and the settings), and the
+    pieces are scaled back, so one object at several radii is decomposed once.
+    """
+    centre, radius = bounding_sphere(mesh)
+    unit = trimesh.Trimesh((np.asarray(mesh.vertices) - centre) / radius, mesh.faces, process=False)
     key = hashlib.sha1()
-    key.update(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
-    key.update(np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes())
+    key.update(np.round(unit.vertices, 6).tobytes())
+    key.update(np.ascontiguousarray(unit.faces, dtype=np.int64).tobytes())
     key.update(repr(config).encode())
     cache = _cache_dir() / f"{key.hexdigest()}.npz"
     if cache.is_file():
         data = np.load(cache)
-        return [trimesh.Trimesh(data[f"v{i}"], data[f"f{i}"], process=False) for i in range(int(data["n"]))]
-    if mesh.convex_hull.volume - mesh.volume < 1e-3 * mesh.volume:  # already convex
-        parts = [mesh.convex_hull]
+        pieces = [(data[f"v{i}"], data[f"f{i}"]) for i in range(int(data["n"]))]
     else:
-        import coacd
+        if unit.convex_hull.volume - unit.volume < 1e-3 * unit.volume:  # already convex
+            hull = unit.convex_hull
+            pieces = [(np.asarray(hull.vertices), np.asarray(hull.faces))]
+        else:
+            import coacd
 
-        coacd.set_log_level("error")
-        result = coacd.run_coacd(
-            coacd.Mesh(mesh.vertices, mesh.faces),
-            threshold=config.threshold,
-            max_convex_hull=config.max_convex_hull,
-            preprocess_resolution=config.preprocess_resolution,
-            resolution=config.resolution,
-            mcts_iterations=config.mcts_iterations,
-            mcts_max_depth=config.mcts_max_depth,
-            seed=config.seed,
-        )
-        parts = [trimesh.Trimesh(v, f, process=False) for v, f in result]
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    tmp = cache.with_suffix(".tmp.npz")
-    arrays = {"n": np.array(len(parts))}
-    for i, p in enumerate(parts):
-        arrays[f"v{i}"], arrays[f"f{i}"] = np.asarray(p.vertices), np.asarray(p.faces)
-    np.savez(tmp, **arrays)
-    os.replace(tmp, cache)
-    return parts
+            coacd.set_log_level("error")
+            pieces = coacd.run_coacd(
+                coacd.Mesh(unit.vertices, unit.faces),
+                threshold=config.threshold,
+                max_convex_hull=config.max_convex_hull,
+                preprocess_resolution=config.preprocess_resolution,
+                resolution=config.resolution,
+                mcts_iterations=config.mcts_iterations,
+                mcts_max_depth=config.mcts_max_depth,
+                seed=config.seed,
+            )
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_name(cache.stem + f".{os.getpid()}.tmp.npz")
+        arrays = {"n": np.array(len(pieces))}
+        for i, (v, f) in enumerate(pieces):
+            arrays[f"v{i}"], arrays[f"f{i}"] = np.asarray(v), np.asarray(f)
+        np.savez(tmp, **arrays)
+        os.replace(tmp, cache)
+    return [trimesh.Trimesh(np.asarray(v) * radius + centre, f, process=False) for v, f in pieces]

@@ -1,0 +1,137 @@
+"""The MuJoCo twin: Protocols, cameras against the ground-truth mesh, touches on the surface, stable physics."""
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import cv2  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import trimesh  # noqa: E402
+
+from tacsplat.drivers.protocols import Camera, Hand, TactileSensor  # noqa: E402
+from tacsplat.errors import InvalidInputError, SimulationError  # noqa: E402
+from tacsplat.geometry import look_at, project_points, unproject_depth  # noqa: E402
+from tacsplat.sim.grasps import PENETRATION_BOUND_M, GraspConfig, generate_grasps  # noqa: E402
+from tacsplat.sim.hand import ActuatorGains, HandKinematics  # noqa: E402
+from tacsplat.sim.objects import OBJECT_NAMES  # noqa: E402
+from tacsplat.sim.twin import MAX_SERVO_OMEGA_DT, SimTwin, TwinConfig, check_physics, servo_omega_dt  # noqa: E402
+
+_TWINS: dict = {}
+
+
+def twin_of(name: str, **kw) -> SimTwin:
+    key = (name, tuple(sorted(kw.items())))
+    if key not in _TWINS:
+        _TWINS[key] = SimTwin(TwinConfig(object=name, **kw))
+    return _TWINS[key]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _close_twins():
+    yield
+    for twin in _TWINS.values():
+        twin.close()
+    _TWINS.clear()
+
+
+def test_twin_implements_the_device_protocols():
+    twin = twin_of("car")
+    assert isinstance(twin.hand, Hand)
+    assert [s.name for s in twin.tactile_sensors] == ["index", "middle", "ring", "thumb"]
+    assert all(isinstance(s, TactileSensor) for s in twin.tactile_sensors)
+    assert isinstance(twin.wrist_camera, Camera) and isinstance(twin.view_camera, Camera)
+    image, stamp = twin.wrist_camera.read()
+    assert image.shape == (200, 200, 3) and image.dtype == np.uint8 and stamp == twin.time
+
+
+def test_hand_kinematics_match_the_twin_and_readings_are_in_the_hand_frame():
+    twin = twin_of("car")
+    twin.set_hand_base_pose(look_at([0.3, 0.1, 0.4], [0, 0, 0]))
+    q = np.random.default_rng(1).uniform(twin.hand.joint_limits[:, 0], twin.hand.joint_limits[:, 1])
+    twin.hand.set_joint_positions(q)
+    reference = HandKinematics().fingertip_poses(q)
+    poses = twin.hand.fingertip_poses()
+    for sensor in twin.tactile_sensors:
+        assert np.allclose(poses[sensor.name], reference[sensor.name], atol=1e-9)
+        reading = sensor.read()
+        assert reading.frame == "hand" and np.allclose(reading.T_ref_sensor, reference[sensor.name], atol=1e-9)
+    assert np.allclose(twin.hand.read_joint_positions(), q)
+
+
+def test_sleep_advances_the_clock_and_commands_are_checked():
+    twin = twin_of("car")
+    t0 = twin.time
+    twin.sleep(0.1)
+    assert twin.time == pytest.approx(t0 + 0.1)
+    with pytest.raises(InvalidInputError, match="shape"):
+        twin.hand.command_joint_positions(np.zeros(3))
+    with pytest.raises(InvalidInputError, match="NaN"):
+        twin.hand.command_joint_positions(np.full(16, np.nan))
+    twin.hand.command_joint_positions(np.full(16, 10.0))  # clamped to the upper limits
+    assert np.allclose(twin.hand.read_joint_targets(), twin.hand.joint_limits[:, 1])
+
+
+def test_projected_mesh_lands_on_the_rendered_silhouette_and_depth_lies_on_the_mesh():
+    twin = twin_of("teapot", camera_width=160, camera_height=120)  # non-square: catches fx/fy and cx/cy mix-ups
+    K = twin.view_camera.K
+    assert K[0, 2] == 80 and K[1, 2] == 60 and K[0, 0] == K[1, 1]
+    mesh = twin.object_mesh
+    for eye in ([0.25, -0.12, 0.1], [-0.1, 0.2, 0.2]):
+        twin.move_camera(look_at(eye, [0.01, 0, 0]))
+        T = twin.camera_pose()
+        assert np.allclose(T, look_at(eye, [0.01, 0, 0]), atol=1e-6)
+        image, depth = twin.render_view()
+        rendered = depth > 0
+        uv, _ = project_points(mesh.vertices, K, T)
+        raster = np.zeros_like(rendered, dtype=np.uint8)
+        shift = 4  # sub-pixel vertices; OpenCV puts pixel centres at integers, we at +0.5
+        for tri in np.round((uv[mesh.faces] - 0.5) * 2**shift).astype(np.int32):
+            cv2.fillConvexPoly(raster, tri, 1, lineType=cv2.LINE_8, shift=shift)
+        kernel = np.ones((3, 3), np.uint8)
+        assert rendered.sum() > 500
+        assert not (rendered & ~cv2.dilate(raster, kernel).astype(bool)).any()
+        assert not (cv2.erode(raster, kernel).astype(bool) & ~rendered).any()
+        # the background shows where nothing was hit
+        assert (image[~rendered].reshape(-1, 3).std(axis=0) < 40).all()
+        points = unproject_depth(depth, K, T)
+        _, distance, _ = trimesh.proximity.closest_point(mesh, points[:: max(1, len(points) // 1500)])
+        assert distance.max() < 3e-4
+
+
+@pytest.mark.parametrize("name", OBJECT_NAMES)
+def test_touch_points_lie_on_the_object_surface(name):
+    twin = twin_of(name)
+    grasps = generate_grasps(twin, 1, seed=0)
+    assert grasps, f"no grasp touched the {name}"
+    points = np.concatenate([r.contact_points() for g in grasps for r in g.readings.values() if r.in_contact])
+    assert len(points) > 100
+    _, distance, _ = trimesh.proximity.closest_point(twin.object_mesh, points)
+    assert distance.mean() < 3e-4 and distance.max() < 1e-3
+    assert all(g.max_penetration_m < PENETRATION_BOUND_M for g in grasps)
+
+
+@pytest.mark.parametrize("name,radius", [("torus", 0.05), ("teapot", 0.15)])
+def test_fast_closing_with_the_stiffest_allowed_gains_stays_stable(name, radius):
+    probe = twin_of(name, object_radius=radius)
+    kp_max = 0.999 * (MAX_SERVO_OMEGA_DT / servo_omega_dt(probe.model, 1.0)) ** 2
+    twin = twin_of(name, object_radius=radius, gains=ActuatorGains(kp=kp_max, kv=0.05))
+    fast = GraspConfig(tap_speed=4.0, max_tap_rad=1.2, control_period_s=0.005)
+    grasps = generate_grasps(twin, 2, seed=1, config=fast)
+    assert grasps
+    for g in grasps:
+        assert g.max_penetration_m < PENETRATION_BOUND_M
+    assert all(int(w.number) == 0 for w in twin.data.warning)
+    assert np.all(np.isfinite(twin.data.qpos)) and np.all(np.isfinite(twin.data.qacc))
+
+
+def test_stiff_settings_are_rejected_with_a_clear_error():
+    with pytest.raises(SimulationError, match="contact_timeconst"):
+        check_physics(TwinConfig(timestep=0.002, contact_timeconst=0.003))
+    with pytest.raises(SimulationError, match="timestep"):
+        check_physics(TwinConfig(timestep=0.05))
+    model = twin_of("car").model
+    too_stiff = 1.1 * (MAX_SERVO_OMEGA_DT / servo_omega_dt(model, 1.0)) ** 2
+    with pytest.raises(SimulationError, match="gains.kp"):
+        check_physics(TwinConfig(gains=ActuatorGains(kp=too_stiff)), model)
