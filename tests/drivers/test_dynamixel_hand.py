@@ -15,7 +15,7 @@ import pytest
 from tacsplat.drivers import DynamixelHand, Hand, HandCalibration
 from tacsplat.drivers.calibration import RAD_PER_TICK
 from tacsplat.drivers.dxl_emulator import DxlEmulator, crc16, stuff, unstuff
-from tacsplat.drivers.dynamixel_hand import ServoError
+from tacsplat.drivers.dynamixel_hand import DynamixelHandConfig, ServoError
 from tacsplat.drivers.dynamixel_table import REGISTERS, HardwareError, Instruction
 from tacsplat.errors import ConfigError, HandError, InvalidInputError
 from tacsplat.sim.hand import HandKinematics
@@ -34,8 +34,13 @@ def emu():
         yield e
 
 
+# replies within 100 ms: generous for an emulator thread on a loaded CI machine (a U2D2 answers in ~1 ms)
+TEST_CONFIG = DynamixelHandConfig(min_packet_timeout_s=0.1, drain_s=0.1)
+LATE_S = 0.15  # a reply this late is past the timeout, and inside the drain that follows it
+
+
 def make_hand(emu, kinematics, **kw):
-    return DynamixelHand(emu.path, kinematics=kinematics, **kw)
+    return DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG, **kw)
 
 
 def wait_for(condition, timeout_s=3.0):
@@ -216,16 +221,15 @@ def test_hardware_error_bits_are_decoded(emu, kinematics):
 def test_reply_after_the_timeout(emu, kinematics):
     with make_hand(emu, kinematics) as hand:
         # once: retried after a drain, and the read recovers
-        emu.inject(2, "late", times=1, delay_s=0.08)
+        emu.inject(2, "late", times=1, delay_s=LATE_S)
         q = np.full(16, 0.2)
         hand.command_joint_positions(q)
         time.sleep(0.3)
         np.testing.assert_allclose(hand.read_joint_positions(), 0.2, atol=RAD_PER_TICK)
         # always late: a clear error
-        emu.inject(2, "late", delay_s=0.08)
+        emu.inject(2, "late", delay_s=LATE_S)
         with pytest.raises(ServoError, match=r"servo 2 \(index_2\).*COMM_RX_TIMEOUT"):
             hand.read_joint_positions()
-        time.sleep(0.1)
         assert_all_torque_off(emu)
 
 
@@ -254,7 +258,7 @@ def test_sigint_leaves_torque_off(emu, kinematics):
 
 def test_missing_port_is_a_clear_error(kinematics):
     with pytest.raises(HandError, match="cannot open serial port.*dialout"):
-        with DynamixelHand("/dev/ttyUSB_tacsplat_missing", kinematics=kinematics):
+        with DynamixelHand("/dev/ttyUSB_tacsplat_missing", kinematics=kinematics, config=TEST_CONFIG):
             pass
 
 
