@@ -269,3 +269,22 @@ def test_unplugged_adapter_is_a_clear_error(emu, kinematics):
     with pytest.raises(HandError, match=r"port /dev/.*SYNC_READ.*serial port error.*no servo confirmed torque off"):
         hand.read_joint_positions()
     hand.close()  # never raises: it is what runs on the way out
+
+
+def test_latched_hardware_error_at_connect_refuses(emu, kinematics):
+    emu.set_hardware_error(14, HardwareError.INPUT_VOLTAGE)
+    with pytest.raises(ServoError, match=r"servo 14 \(thumb_2\): PING .*input voltage"):
+        with make_hand(emu, kinematics):
+            pass
+    assert_all_torque_off(emu)
+
+
+def test_pose_outside_the_limits_at_connect_is_clamped_and_logged(kinematics, caplog):
+    lower = kinematics.joint_limits[1, 0]  # index_1
+    outside = 2048 + (lower - 0.2) / RAD_PER_TICK
+    with DxlEmulator(initial_ticks={1: outside}) as emu:
+        with caplog.at_level(logging.WARNING):
+            with make_hand(emu, kinematics):
+                goal = round(2048 + lower / RAD_PER_TICK)
+                assert wait_for(lambda: emu.servos[1].get("goal_position") == goal)
+    assert "present pose clamped to joint limits: index_1" in caplog.text
