@@ -29,7 +29,7 @@ Inside the code poses are OpenCV camera-to-world (``Frame.T_world_cam``) in
 metres; the OpenGL matrices of nerfstudio and Blender are converted only in
 this package. Importers: :func:`import_blender` (NeRF-synthetic / Shiny
 Blender), :func:`import_colmap` (COLMAP sparse models through pycolmap).
-Command line: ``tacsplat import blender|colmap`` and ``tacsplat inspect``.
+Command line: ``tacsplat import blender|colmap`` and ``tacsplat inspect DIR [--json] [--plot PNG]``.
 """
 
 from .blender import import_blender

@@ -90,8 +90,11 @@ class Acked:
                 proc.send_signal(signal.SIGKILL)
                 break
         proc.stdout.close()
+        errors = proc.stderr.read()
         proc.stderr.close()
-        return proc.wait()
+        code = proc.wait()
+        assert code in (0, -signal.SIGKILL), f"the writer process failed ({code}):\n{errors}"
+        return code
 
 
 def _check_after_crash(path, acked: Acked):
