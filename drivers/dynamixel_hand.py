@@ -209,12 +209,12 @@ class DynamixelHand:
             return
         port = _PortHandler(self.port_name, 1000.0 * self.config.min_packet_timeout_s)
         try:
-            opened = port.openPort() and port.setBaudRate(self.baudrate)
+            opened = port.setBaudRate(self.baudrate)  # opens the port at this rate (openPort would open at 1 Mbps first)
         except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
             raise HandError(self.device, f"cannot open serial port: {exc} (is the U2D2 plugged in, "
                                          "and is this user in the dialout group?)") from None
         if not opened:
-            raise HandError(self.device, f"cannot set baud rate {self.baudrate}")
+            raise HandError(self.device, f"baud rate {self.baudrate} is not one the Dynamixel SDK supports")
         self._port = port
         self._fault = None
         self._install_sigint()
