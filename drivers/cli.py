@@ -13,7 +13,8 @@ def register(cli) -> None:
         "calibrate camera",
         help="intrinsic calibration of the wrist camera from ChArUco board images",
         description="Detects the ChArUco board in every image of FOLDER, runs cv2.calibrateCamera, prints the "
-        "RMS reprojection error and writes the calibration (OpenCV K, distortion) as JSON.",
+        "RMS reprojection error and writes the calibration (OpenCV K, distortion) as JSON, and a picture of the "
+        "detected and reprojected corners next to it (.png).",
     )
     camera.add_argument("folder", type=Path, help="folder of board images (png, jpg, ...)")
     camera.add_argument("--out", type=Path, required=True, help="calibration file to write (.json)")
@@ -70,8 +71,10 @@ def _calibrate_camera(args) -> int:
     spec = CharucoBoardSpec(args.squares_x, args.squares_y, args.square_mm / 1000.0, args.marker_mm / 1000.0,
                             args.dictionary, args.legacy_pattern)
     paths = _images(args.folder)
-    calib = calibrate_intrinsics([_read_rgb(p) for p in paths], spec, names=[p.name for p in paths])
+    images = [_read_rgb(p) for p in paths]
+    calib = calibrate_intrinsics(images, spec, names=[p.name for p in paths])
     calib.save(args.out)
+    picture = _corner_sheet(images, [p.name for p in paths], calib, spec, args.out.with_suffix(".png"))
     K = tacsplat_K_from_opencv(calib.K_opencv)
     print(f"{len(calib.per_image_rms_px)} of {len(paths)} images used, {calib.width}x{calib.height}")
     print(f"RMS reprojection error: {calib.rms_px:.3f} px")
@@ -79,13 +82,47 @@ def _calibrate_camera(args) -> int:
     print(f"distortion k1 k2 p1 p2 k3: {np.array2string(calib.dist, precision=5)}")
     for name, err in calib.per_image_rms_px.items():
         print(f"  {name}: {err:.3f} px")
-    print(f"wrote {args.out}")
+    print(f"wrote {args.out}; detected corners (green) and their reprojections (red) in {picture}")
     return 0
+
+
+def _contact_sheet(tiles, columns: int = 4):
+    import numpy as np
+
+    columns = min(columns, len(tiles))
+    tiles = tiles + [np.zeros_like(tiles[0])] * (-len(tiles) % columns)
+    return np.vstack([np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)])
+
+
+def _corner_sheet(images, names, calib, spec, path: Path) -> Path:
+    """A picture of every board image with its detected corners and their reprojection by the calibration."""
+    import cv2
+    import numpy as np
+
+    from tacsplat.drivers.wrist_camera import detect_charuco
+
+    board = spec.board()
+    tiles = []
+    for image, name in zip(images, names):
+        half = (image.shape[1] // 2, image.shape[0] // 2)
+        tile = cv2.resize(cv2.cvtColor(image, cv2.COLOR_RGB2BGR), half, interpolation=cv2.INTER_AREA)
+        obj, img = detect_charuco(image, board)
+        if len(obj) >= 6:
+            ok, rvec, tvec = cv2.solvePnP(obj, img, calib.K_opencv, calib.dist)
+            proj = cv2.projectPoints(obj, rvec, tvec, calib.K_opencv, calib.dist)[0].reshape(-1, 2) if ok else img
+            for (u, v), (pu, pv) in zip(img, proj):  # OpenCV pixel coordinates, drawn at half size
+                cv2.circle(tile, (int(round(u / 2)), int(round(v / 2))), 4, (0, 200, 0), 1, cv2.LINE_AA)
+                cv2.drawMarker(tile, (int(round(pu / 2)), int(round(pv / 2))), (0, 0, 255), cv2.MARKER_CROSS, 5, 1)
+        rms = calib.per_image_rms_px.get(name)
+        label = f"{name}: " + (f"{rms:.2f} px" if rms is not None else "not used")
+        cv2.putText(tile, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 255), 1, cv2.LINE_AA)
+        tiles.append(tile)
+    cv2.imwrite(str(path), _contact_sheet(tiles))
+    return path
 
 
 def _calibrate_tactile(args) -> int:
     import cv2
-    import numpy as np
 
     from tacsplat.drivers.optical_tactile import TactileCalibration
     from tacsplat.errors import InvalidInputError
@@ -108,11 +145,8 @@ def _calibrate_tactile(args) -> int:
                 cv2.circle(tile, (int(round(cx)), int(round(cy))), int(round(r)), (0, 0, 255), 1, cv2.LINE_AA)
         cv2.putText(tile, presses[k].name, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
         tiles.append(tile)
-    columns = min(4, len(tiles))
-    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % columns)
-    rows = [np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)]
     picture = args.out.with_suffix(".png")
-    cv2.imwrite(str(picture), np.vstack(rows))
+    cv2.imwrite(str(picture), _contact_sheet(tiles))
     print(f"{len(calib.presses)} of {len(presses)} presses used; contact circles drawn in {picture}")
     for press in calib.presses:
         cx, cy = press["centre_px"]

@@ -173,3 +173,4 @@ def test_calibrate_camera_command(distorted, tmp_path, capsys):
     calib = CameraCalibration.load(out)
     assert abs(calib.K_opencv[0, 0] - K_TRUE[0, 0]) / K_TRUE[0, 0] < 0.01
     assert len(calib.per_image_rms_px) == 8
+    assert cv2.imread(str(out.with_suffix(".png"))) is not None
