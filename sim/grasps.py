@@ -31,8 +31,9 @@ class GraspConfig:
     palm_gap_m: float = 0.012  # palm surface to the nearest object point under the hand
     min_approach_elevation_deg: float = -30.0  # approach directions from above this elevation
     preshape_grid: int = 13  # samples per flexion joint when searching each finger's pre-touch pose
-    max_pretouch_gap_m: float = 0.02  # the pad stops at most this far in front of the surface
-    min_alignment_cos: float = 0.85  # pad normal against the surface normal, at least this cosine
+    preshape_abduction: tuple[float, ...] = (-0.3, 0.0, 0.3)  # abduction angles searched, radians
+    max_pretouch_gap_m: float = 0.03  # the pad stops at most this far in front of the surface
+    min_alignment_cos: float = 0.7  # pad normal against the surface normal, at least this cosine
     tap_speed: float = 0.6  # rad/s along the tap direction of the flexion joints
     max_tap_rad: float = 0.8  # give up a tap after this much motion
     press_rad: float = 0.04  # keep pushing this much past the first pad contact
@@ -40,7 +41,7 @@ class GraspConfig:
     stall_error_rad: float = 0.2  # a finger whose joints lag their targets by this much has stalled
     settle_s: float = 0.15  # wait after tapping before reading the pads
     open_s: float = 0.2  # wait after opening before retreating
-    max_preshape_tries: int = 40  # preshape candidates tried against the collision model per finger
+    max_preshape_tries: int = 100  # preshape candidates tried against the collision model per finger
     retreat_m: float = 0.1
 
     def __post_init__(self):
@@ -73,9 +74,9 @@ class GraspResult:
 
 
 class PreshapeTable:
-    """Pad poses in the hand frame over a grid of each finger's flexion joints (abduction 0)."""
+    """Pad poses in the hand frame over a grid of each finger's joints (a few abduction angles)."""
 
-    def __init__(self, twin: SimTwin, per_joint: int):
+    def __init__(self, twin: SimTwin, per_joint: int, abduction=(0.0,)):
         import mujoco
 
         model, data = twin.model, mujoco.MjData(twin.model)
@@ -85,9 +86,9 @@ class PreshapeTable:
         self.T_hand_sensor: dict[str, np.ndarray] = {}  # finger -> [N, 4, 4]
         for i, finger in enumerate(FINGER_NAMES):
             lim = JOINT_LIMITS[4 * i : 4 * i + 4]
-            axes = [np.linspace(max(lim[j, 0], 0.0), lim[j, 1], per_joint) for j in (1, 2, 3)]
-            grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-            q = np.concatenate([np.zeros((len(grid), 1)), grid], axis=1)
+            axes = [np.clip(abduction, lim[0, 0], lim[0, 1])]
+            axes += [np.linspace(max(lim[j, 0], 0.0), lim[j, 1], per_joint) for j in (1, 2, 3)]
+            q = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
             qadr = [model.jnt_qposadr[model.joint(f"{finger}_{j}").id] for j in range(4)]
             site = model.site(f"{finger}_tactile").id
             poses = np.empty((len(q), 4, 4))
@@ -150,7 +151,7 @@ def execute_grasp(
     touches (then presses ``press_rad`` further), it stalls, or it has moved
     ``max_tap_rad``.
     """
-    table = table or PreshapeTable(twin, config.preshape_grid)
+    table = table or PreshapeTable(twin, config.preshape_grid, config.preshape_abduction)
     hand = twin.hand
     hand.set_joint_positions(np.zeros(16))
     twin.set_hand_base_pose(T_world_hand)
@@ -219,7 +220,7 @@ def generate_grasps(
 ) -> list[GraspResult]:
     """``count`` grasps in which at least one pad touched, from seeded random approaches."""
     rng = np.random.default_rng(seed)
-    table = PreshapeTable(twin, config.preshape_grid)
+    table = PreshapeTable(twin, config.preshape_grid, config.preshape_abduction)
     results: list[GraspResult] = []
     attempts = 0
     while len(results) < count and attempts < max_attempts_factor * max(count, 1):
