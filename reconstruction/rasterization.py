@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction.raster_torch import project_gaussians, rasterize_to_pixels_torch
+from tacsplat.reconstruction.raster_torch import Projection, project_gaussians, rasterize_to_pixels_torch
 from tacsplat.reconstruction.spherical_harmonics import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
@@ -148,20 +148,33 @@ def rasterization(
             f"backend {chosen!r} supports packed=False, absgrad=False and camera_model='pinhole' only"
         )
 
-    proj = project_gaussians(
-        means, quats, scales, opacities, viewmats, Ks, width, height,
-        near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip,
-        antialiased=rasterize_mode == "antialiased",
-    )  # fmt: skip
-    visible = (proj.radii > 0).all(dim=-1)  # [C, N]
+    n_bases = None if sh_degree is None else num_sh_bases(sh_degree)
+    cameras_need_grad = viewmats.requires_grad or Ks.requires_grad
+    if chosen == "cpu" and rasterize_mode == "classic" and not cameras_need_grad:
+        # fused numba projection and SH with hand-written backward
+        from tacsplat.reconstruction.raster_cpu_project import project_gaussians_cpu, sh_colors_cpu
 
+        means2d, conics, depths, radii = project_gaussians_cpu(
+            means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, radius_clip
+        )
+        proj = Projection(means2d, conics, depths, radii, opacities.expand(n_cams, n))
+        if sh_degree is not None:
+            campos = torch.linalg.inv(viewmats.detach())[:, :3, 3]  # [C, 3]
+            point_colors = sh_colors_cpu(sh_degree, means, campos, colors[:, :n_bases].contiguous(), radii)
+    else:
+        proj = project_gaussians(
+            means, quats, scales, opacities, viewmats, Ks, width, height,
+            near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip,
+            antialiased=rasterize_mode == "antialiased",
+        )  # fmt: skip
+        if sh_degree is not None:
+            campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C, 3]
+            dirs = means[None, :, :] - campos[:, None, :]  # [C, N, 3]
+            sh = spherical_harmonics(sh_degree, dirs, colors[None].expand(n_cams, -1, -1, -1))
+            visible = (proj.radii > 0).all(dim=-1)[..., None]  # [C, N, 1]
+            point_colors = torch.clamp_min(torch.where(visible, sh, torch.zeros_like(sh)) + 0.5, 0.0)
     if sh_degree is None:
         point_colors = colors.expand(n_cams, n, n_channels) if colors.dim() == 2 else colors
-    else:
-        campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C, 3]
-        dirs = means[None, :, :] - campos[:, None, :]  # [C, N, 3]
-        sh = spherical_harmonics(sh_degree, dirs, colors[None].expand(n_cams, -1, -1, -1))
-        point_colors = torch.clamp_min(torch.where(visible[..., None], sh, torch.zeros_like(sh)) + 0.5, 0.0)
 
     bg = backgrounds
     if render_mode in ("D", "ED"):

@@ -136,16 +136,14 @@ def test_degenerate_gaussians_stay_finite_and_backends_agree(backend):
     assert (radii[4] > 0).all()  # the huge Gaussian is kept
     assert alpha.min() > 0.5  # ... and covers every pixel
     if backend == "cpu":
-        ref = _render_and_grads(scene, "torch", "RGB+ED", torch.full((1, 3), 0.25))
+        # Agreement without the needle: its 2D covariance (~1e10 with a ~1e-8 minor axis) is so ill-conditioned
+        # that the reference's float32 determinant is rounding noise (the fused cpu projection works in float64).
+        tame = {k: (v[:-1] if k in PARAMS else v) for k, v in scene.items()}
+        img, _, _, grads = _render_and_grads(tame, "cpu", "RGB+ED", torch.full((1, 3), 0.25))
+        ref = _render_and_grads(tame, "torch", "RGB+ED", torch.full((1, 3), 0.25))
         _assert_rel(img, ref[0], 1e-5, "render_colors")
         for name, grad in ref[3].items():
-            if name in ("means", "quats", "scales"):
-                # The needle's 2D covariance is ~1e10 with a tiny minor axis: float32 rounding of its
-                # 2D gradients (1e-6 relative) is amplified by the projection's cancellation.
-                grad, mine = grad[:-1], grads[name][:-1]
-            else:
-                mine = grads[name]
-            _assert_rel(mine, grad, 1e-4, f"d/d {name}")
+            _assert_rel(grads[name], grad, 1e-4, f"d/d {name}")
 
 
 @pytest.mark.parametrize("backend", ["torch", "cpu"])
@@ -186,3 +184,17 @@ def test_empty_scenes_render_the_background(backend):
     assert all(g is None or bool((g == 0).all()) for name, g in grads.items() if name != "backgrounds")
     weights = torch.randn(1, 10, 12, 3, generator=torch.Generator().manual_seed(0))  # as in _render_and_grads
     torch.testing.assert_close(grads["backgrounds"], weights.sum(dim=(1, 2)))
+
+
+def test_cpu_falls_back_to_torch_projection_for_antialiasing_and_camera_gradients():
+    scene = random_scene(120, 32, 24, n_cams=2, sh_degree=1, seed=9)
+    ref, _, _ = rasterization(**scene, rasterize_mode="antialiased", backend="torch")
+    img, _, _ = rasterization(**scene, rasterize_mode="antialiased", backend="cpu")
+    _assert_rel(img, ref, 1e-5, "antialiased render")
+    grads = {}
+    for backend in ("torch", "cpu"):
+        viewmats = scene["viewmats"].clone().requires_grad_(True)
+        img, _, _ = rasterization(**dict(scene, viewmats=viewmats), backend=backend)
+        (img * torch.linspace(-1, 1, img.numel()).reshape(img.shape)).sum().backward()
+        grads[backend] = viewmats.grad
+    _assert_rel(grads["cpu"], grads["torch"], 1e-4, "d/d viewmats")

@@ -1,0 +1,432 @@
+"""Projection and SH colour of the ``cpu`` backend: numba kernels with hand-written backward.
+
+The maths is :func:`raster_torch.project_gaussians` (classic mode) and
+:func:`spherical_harmonics.spherical_harmonics` + gsplat's ``max(value + 0.5, 0)``,
+fused per (camera, Gaussian) and computed in float64 registers. Gradients flow
+to means, quats, scales and SH coefficients (not to the cameras: the caller
+uses the torch projection when viewmats or Ks require gradients).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+import torch
+from torch import Tensor
+
+from tacsplat.reconstruction.raster_torch import ALPHA_THRESHOLD, FOV_CLAMP, GAUSSIAN_EXTEND
+from tacsplat.reconstruction.spherical_harmonics import SH_C0, SH_C1, SH_C2, SH_C3
+
+_C2_0, _C2_1, _C2_2, _C2_3, _C2_4 = SH_C2
+_C3_0, _C3_1, _C3_2, _C3_3, _C3_4, _C3_5, _C3_6 = SH_C3
+
+
+_CHUNK = 256  # Gaussians per parallel work item (scratch matrices are allocated once per chunk)
+
+
+@nb.njit(cache=True, inline="always")
+def _matmul(a, b, out):
+    """out = a @ b for tiny matrices (no BLAS call)."""
+    for i in range(a.shape[0]):
+        for j in range(b.shape[1]):
+            acc = 0.0
+            for k in range(a.shape[1]):
+                acc += a[i, k] * b[k, j]
+            out[i, j] = acc
+
+
+@nb.njit(cache=True, inline="always")
+def _rotation(qw, qx, qy, qz):
+    """Rotation matrix entries of a quaternion (normalised here, zero -> identity) and the norm used."""
+    norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
+    w, x, y, z = qw / norm, qx / norm, qy / norm, qz / norm
+    return (
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        w, x, y, z, norm,
+    )  # fmt: skip
+
+
+@nb.njit(parallel=True, cache=True)
+def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
+                     means2d, conics, depths, radii):  # fmt: skip
+    """EWA projection of every (camera, Gaussian); culled ones get zeros. viewmats, Ks: float64."""
+    n_cams, n = means2d.shape[0], means2d.shape[1]
+    margin = FOV_CLAMP - 1.0
+    for chunk in nb.prange((n + _CHUNK - 1) // _CHUNK):
+        m = np.empty((3, 3))
+        cov = np.empty((3, 3))
+        tmp = np.empty((3, 3))
+        cov_c = np.empty((3, 3))
+        j = np.zeros((2, 3))
+        jc = np.empty((2, 3))
+        cov2d = np.empty((2, 2))
+        for g in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            r00, r01, r02, r10, r11, r12, r20, r21, r22, _, _, _, _, _ = _rotation(
+                float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
+            )
+            sx, sy, sz = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
+            m[0, 0], m[0, 1], m[0, 2] = r00 * sx, r01 * sy, r02 * sz
+            m[1, 0], m[1, 1], m[1, 2] = r10 * sx, r11 * sy, r12 * sz
+            m[2, 0], m[2, 1], m[2, 2] = r20 * sx, r21 * sy, r22 * sz
+            _matmul(m, m.T, cov)
+            opac = float(opacities[g])
+            px, py, pz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+            for c in range(n_cams):
+                rv = viewmats[c]
+                x = rv[0, 0] * px + rv[0, 1] * py + rv[0, 2] * pz + rv[0, 3]
+                y = rv[1, 0] * px + rv[1, 1] * py + rv[1, 2] * pz + rv[1, 3]
+                z = rv[2, 0] * px + rv[2, 1] * py + rv[2, 2] * pz + rv[2, 3]
+                means2d[c, g, 0] = means2d[c, g, 1] = 0.0
+                conics[c, g, 0] = conics[c, g, 1] = conics[c, g, 2] = 0.0
+                depths[c, g] = 0.0
+                radii[c, g, 0] = radii[c, g, 1] = 0
+                if not (z >= near and z <= far):
+                    continue
+                fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+                tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+                lim_xp, lim_xn = (width - cx) / fx + margin * tan_fovx, cx / fx + margin * tan_fovx
+                lim_yp, lim_yn = (height - cy) / fy + margin * tan_fovy, cy / fy + margin * tan_fovy
+                rz = 1.0 / z
+                ux = min(lim_xp, max(-lim_xn, x * rz))
+                uy = min(lim_yp, max(-lim_yn, y * rz))
+                _matmul(rv[:3, :3], cov, tmp)
+                _matmul(tmp, rv[:3, :3].T, cov_c)
+                j[0, 0], j[0, 2] = fx * rz, -fx * ux * rz
+                j[1, 1], j[1, 2] = fy * rz, -fy * uy * rz
+                _matmul(j, cov_c, jc)
+                _matmul(jc, j.T, cov2d)
+                a, b, cc = cov2d[0, 0] + eps2d, cov2d[0, 1], cov2d[1, 1] + eps2d
+                det = a * cc - b * b
+                if not det > 0 or opac < ALPHA_THRESHOLD:
+                    continue
+                extend = min(GAUSSIAN_EXTEND, math.sqrt(2.0 * math.log(opac / ALPHA_THRESHOLD)))
+                rad_x, rad_y = math.ceil(extend * math.sqrt(a)), math.ceil(extend * math.sqrt(cc))
+                if rad_x <= radius_clip and rad_y <= radius_clip:
+                    continue
+                mx, my = fx * x * rz + cx, fy * y * rz + cy
+                if mx + rad_x <= 0 or mx - rad_x >= width or my + rad_y <= 0 or my - rad_y >= height:
+                    continue
+                if not (math.isfinite(rad_x) and math.isfinite(rad_y)):
+                    continue
+                means2d[c, g, 0], means2d[c, g, 1] = mx, my
+                conics[c, g, 0], conics[c, g, 1], conics[c, g, 2] = cc / det, -b / det, a / det
+                depths[c, g] = z
+                radii[c, g, 0], radii[c, g, 1] = min(rad_x, 2.0**30), min(rad_y, 2.0**30)
+
+
+@nb.njit(parallel=True, cache=True)
+def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
+                      v_means2d, v_conics, v_depths, v_means, v_quats, v_scales):  # fmt: skip
+    """Gradients of means2d, conics and depths w.r.t. means, quats and scales (summed over cameras)."""
+    n_cams, n = v_means2d.shape[0], v_means2d.shape[1]
+    margin = FOV_CLAMP - 1.0
+    for chunk in nb.prange((n + _CHUNK - 1) // _CHUNK):
+        rot = np.empty((3, 3))
+        m = np.empty((3, 3))
+        cov = np.empty((3, 3))
+        tmp = np.empty((3, 3))
+        cov_c = np.empty((3, 3))
+        v_cov = np.empty((3, 3))
+        v_cov_c = np.empty((3, 3))
+        v_m = np.empty((3, 3))
+        j = np.zeros((2, 3))
+        jc = np.empty((2, 3))
+        t23 = np.empty((2, 3))
+        v2 = np.zeros((2, 2))
+        v2s = np.zeros((2, 2))
+        v_j = np.empty((2, 3))
+        for g in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            r00, r01, r02, r10, r11, r12, r20, r21, r22, w, qx, qy, qz, qnorm = _rotation(
+                float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
+            )
+            rot[0, 0], rot[0, 1], rot[0, 2] = r00, r01, r02
+            rot[1, 0], rot[1, 1], rot[1, 2] = r10, r11, r12
+            rot[2, 0], rot[2, 1], rot[2, 2] = r20, r21, r22
+            for r in range(3):
+                for k in range(3):
+                    m[r, k] = rot[r, k] * float(scales[g, k])
+                    v_cov[r, k] = 0.0
+            _matmul(m, m.T, cov)
+            px, py, pz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+            vm0 = vm1 = vm2 = 0.0
+            for c in range(n_cams):
+                if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
+                    continue
+                rv = viewmats[c]
+                x = rv[0, 0] * px + rv[0, 1] * py + rv[0, 2] * pz + rv[0, 3]
+                y = rv[1, 0] * px + rv[1, 1] * py + rv[1, 2] * pz + rv[1, 3]
+                z = rv[2, 0] * px + rv[2, 1] * py + rv[2, 2] * pz + rv[2, 3]
+                fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+                tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+                lim_xp, lim_xn = (width - cx) / fx + margin * tan_fovx, cx / fx + margin * tan_fovx
+                lim_yp, lim_yn = (height - cy) / fy + margin * tan_fovy, cy / fy + margin * tan_fovy
+                rz = 1.0 / z
+                ux, uy = x * rz, y * rz
+                clamp_x = ux < -lim_xn or ux > lim_xp
+                clamp_y = uy < -lim_yn or uy > lim_yp
+                ux, uy = min(lim_xp, max(-lim_xn, ux)), min(lim_yp, max(-lim_yn, uy))
+                _matmul(rv[:3, :3], cov, tmp)
+                _matmul(tmp, rv[:3, :3].T, cov_c)
+                j[0, 0], j[0, 2] = fx * rz, -fx * ux * rz
+                j[1, 1], j[1, 2] = fy * rz, -fy * uy * rz
+                _matmul(j, cov_c, jc)
+                a = jc[0, 0] * j[0, 0] + jc[0, 1] * j[0, 1] + jc[0, 2] * j[0, 2] + eps2d
+                b = jc[0, 0] * j[1, 0] + jc[0, 1] * j[1, 1] + jc[0, 2] * j[1, 2]
+                cc = jc[1, 0] * j[1, 0] + jc[1, 1] * j[1, 1] + jc[1, 2] * j[1, 2] + eps2d
+                det = a * cc - b * b
+                # conic = (cc, -b, a) / det
+                pa, pb, pc = float(v_conics[c, g, 0]), float(v_conics[c, g, 1]), float(v_conics[c, g, 2])
+                inv, inv2 = 1.0 / det, 1.0 / (det * det)
+                v2[0, 0] = pa * (-cc * cc * inv2) + pb * (b * cc * inv2) + pc * (inv - a * cc * inv2)
+                v2[0, 1] = pa * (2.0 * b * cc * inv2) + pb * (-inv - 2.0 * b * b * inv2) + pc * (2.0 * a * b * inv2)
+                v2[1, 1] = pa * (inv - a * cc * inv2) + pb * (a * b * inv2) + pc * (-a * a * inv2)
+                # cov2d = J cov_c J^T, only its [0,0], [0,1], [1,1] entries are used
+                _matmul(v2, j, t23)
+                _matmul(j.T, t23, v_cov_c)
+                v2s[0, 0], v2s[1, 1] = 2.0 * v2[0, 0], 2.0 * v2[1, 1]
+                v2s[0, 1] = v2s[1, 0] = v2[0, 1]
+                _matmul(v2s, jc, v_j)  # (V + V^T) J cov_c, cov_c symmetric
+                _matmul(rv[:3, :3].T, v_cov_c, tmp)
+                for r in range(3):
+                    for k in range(3):
+                        v_cov[r, k] += tmp[r, 0] * rv[0, k] + tmp[r, 1] * rv[1, k] + tmp[r, 2] * rv[2, k]
+                vmx, vmy = float(v_means2d[c, g, 0]), float(v_means2d[c, g, 1])
+                v_x = vmx * fx * rz
+                v_y = vmy * fy * rz
+                v_z = -(vmx * fx * x + vmy * fy * y) * rz * rz + float(v_depths[c, g])
+                v_z += -(v_j[0, 0] * fx + v_j[1, 1] * fy) * rz * rz
+                # J02 = -fx * ux / z with ux = clamp(x / z), likewise J12
+                if clamp_x:
+                    v_z += v_j[0, 2] * fx * ux * rz * rz
+                else:
+                    v_x += v_j[0, 2] * (-fx * rz * rz)
+                    v_z += v_j[0, 2] * 2.0 * fx * x * rz * rz * rz
+                if clamp_y:
+                    v_z += v_j[1, 2] * fy * uy * rz * rz
+                else:
+                    v_y += v_j[1, 2] * (-fy * rz * rz)
+                    v_z += v_j[1, 2] * 2.0 * fy * y * rz * rz * rz
+                vm0 += rv[0, 0] * v_x + rv[1, 0] * v_y + rv[2, 0] * v_z
+                vm1 += rv[0, 1] * v_x + rv[1, 1] * v_y + rv[2, 1] * v_z
+                vm2 += rv[0, 2] * v_x + rv[1, 2] * v_y + rv[2, 2] * v_z
+            v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
+            # covariance = M M^T with M = R diag(s)
+            for r in range(3):
+                for k in range(3):
+                    tmp[r, k] = v_cov[r, k] + v_cov[k, r]
+            _matmul(tmp, m, v_m)
+            for k in range(3):
+                v_scales[g, k] = v_m[0, k] * rot[0, k] + v_m[1, k] * rot[1, k] + v_m[2, k] * rot[2, k]
+                for r in range(3):
+                    v_m[r, k] *= float(scales[g, k])  # now d loss / d R
+            vr = v_m
+            v_w = 2.0 * (-qz * vr[0, 1] + qy * vr[0, 2] + qz * vr[1, 0] - qx * vr[1, 2] - qy * vr[2, 0] + qx * vr[2, 1])
+            v_x_ = 2.0 * (qy * vr[0, 1] + qz * vr[0, 2] + qy * vr[1, 0] - 2.0 * qx * vr[1, 1] - w * vr[1, 2]
+                          + qz * vr[2, 0] + w * vr[2, 1] - 2.0 * qx * vr[2, 2])  # fmt: skip
+            v_y_ = 2.0 * (-2.0 * qy * vr[0, 0] + qx * vr[0, 1] + w * vr[0, 2] + qx * vr[1, 0] + qz * vr[1, 2]
+                          - w * vr[2, 0] + qz * vr[2, 1] - 2.0 * qy * vr[2, 2])  # fmt: skip
+            v_z_ = 2.0 * (-2.0 * qz * vr[0, 0] - w * vr[0, 1] + qx * vr[0, 2] + w * vr[1, 0] - 2.0 * qz * vr[1, 1]
+                          + qy * vr[1, 2] + qx * vr[2, 0] + qy * vr[2, 1])  # fmt: skip
+            # through q / max(|q|, 1e-12)
+            dot = (w * v_w + qx * v_x_ + qy * v_y_ + qz * v_z_) if qnorm > 1e-12 else 0.0
+            v_quats[g, 0] = (v_w - w * dot) / qnorm
+            v_quats[g, 1] = (v_x_ - qx * dot) / qnorm
+            v_quats[g, 2] = (v_y_ - qy * dot) / qnorm
+            v_quats[g, 3] = (v_z_ - qz * dot) / qnorm
+
+
+@nb.njit(cache=True, inline="always")
+def _sh_basis(degree, x, y, z, out):
+    xx, yy, zz = x * x, y * y, z * z
+    out[0] = SH_C0
+    if degree >= 1:
+        out[1], out[2], out[3] = -SH_C1 * y, SH_C1 * z, -SH_C1 * x
+    if degree >= 2:
+        out[4], out[5] = _C2_0 * x * y, _C2_1 * y * z
+        out[6] = _C2_2 * (2.0 * zz - xx - yy)
+        out[7], out[8] = _C2_3 * x * z, _C2_4 * (xx - yy)
+    if degree >= 3:
+        out[9] = _C3_0 * y * (3.0 * xx - yy)
+        out[10] = _C3_1 * x * y * z
+        out[11] = _C3_2 * y * (4.0 * zz - xx - yy)
+        out[12] = _C3_3 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy)
+        out[13] = _C3_4 * x * (4.0 * zz - xx - yy)
+        out[14] = _C3_5 * z * (xx - yy)
+        out[15] = _C3_6 * x * (xx - 3.0 * yy)
+
+
+@nb.njit(cache=True, inline="always")
+def _sh_basis_grad(degree, x, y, z, weights):
+    """Sum_k weights[k] * grad basis_k at (x, y, z)."""
+    gx = gy = gz = 0.0
+    xx, yy, zz = x * x, y * y, z * z
+    if degree >= 1:
+        gx -= SH_C1 * weights[3]
+        gy -= SH_C1 * weights[1]
+        gz += SH_C1 * weights[2]
+    if degree >= 2:
+        w4, w5, w6, w7, w8 = weights[4] * _C2_0, weights[5] * _C2_1, weights[6] * _C2_2, weights[7] * _C2_3, weights[8] * _C2_4
+        gx += w4 * y - 2.0 * w6 * x + w7 * z + 2.0 * w8 * x
+        gy += w4 * x + w5 * z - 2.0 * w6 * y - 2.0 * w8 * y
+        gz += w5 * y + 4.0 * w6 * z + w7 * x
+    if degree >= 3:
+        w9, w10, w11 = weights[9] * _C3_0, weights[10] * _C3_1, weights[11] * _C3_2
+        w12, w13, w14, w15 = weights[12] * _C3_3, weights[13] * _C3_4, weights[14] * _C3_5, weights[15] * _C3_6
+        gx += (w9 * 6.0 * x * y + w10 * y * z - w11 * 2.0 * x * y - w12 * 6.0 * x * z
+               + w13 * (4.0 * zz - 3.0 * xx - yy) + w14 * 2.0 * x * z + w15 * (3.0 * xx - 3.0 * yy))  # fmt: skip
+        gy += (w9 * (3.0 * xx - 3.0 * yy) + w10 * x * z + w11 * (4.0 * zz - xx - 3.0 * yy) - w12 * 6.0 * y * z
+               - w13 * 2.0 * x * y - w14 * 2.0 * y * z - w15 * 6.0 * x * y)  # fmt: skip
+        gz += (w10 * x * y + w11 * 8.0 * y * z + w12 * (6.0 * zz - 3.0 * xx - 3.0 * yy) + w13 * 8.0 * x * z
+               + w14 * (xx - yy))  # fmt: skip
+    return gx, gy, gz
+
+
+@nb.njit(parallel=True, cache=True)
+def _sh_forward(degree, means, campos, coeffs, radii, colors):
+    """colors[c, g] = max(SH(coeffs[g], direction camera->mean) + 0.5, 0); culled Gaussians get 0.5."""
+    n_cams, n, n_ch = colors.shape
+    n_bases = (degree + 1) ** 2
+    for g in nb.prange(n):
+        basis = np.empty(16)
+        for c in range(n_cams):
+            dx = float(means[g, 0]) - campos[c, 0]
+            dy = float(means[g, 1]) - campos[c, 1]
+            dz = float(means[g, 2]) - campos[c, 2]
+            norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+            visible = radii[c, g, 0] > 0 and radii[c, g, 1] > 0
+            _sh_basis(degree, dx / norm, dy / norm, dz / norm, basis)
+            for ch in range(n_ch):
+                value = 0.0
+                if visible:
+                    for k in range(n_bases):
+                        value += basis[k] * coeffs[g, k, ch]
+                colors[c, g, ch] = max(value + 0.5, 0.0)
+
+
+@nb.njit(parallel=True, cache=True)
+def _sh_backward(degree, means, campos, coeffs, radii, colors, v_colors, v_coeffs, v_means):
+    """Gradients of the SH colours w.r.t. coefficients and means (summed over cameras)."""
+    n_cams, n, n_ch = colors.shape
+    n_bases = (degree + 1) ** 2
+    for g in nb.prange(n):
+        basis = np.empty(16)
+        weights = np.zeros(16)
+        for k in range(v_coeffs.shape[1]):
+            for ch in range(n_ch):
+                v_coeffs[g, k, ch] = 0.0
+        v_means[g, 0] = v_means[g, 1] = v_means[g, 2] = 0.0
+        for c in range(n_cams):
+            if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
+                continue
+            dx = float(means[g, 0]) - campos[c, 0]
+            dy = float(means[g, 1]) - campos[c, 1]
+            dz = float(means[g, 2]) - campos[c, 2]
+            norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
+            ux, uy, uz = dx / norm, dy / norm, dz / norm
+            _sh_basis(degree, ux, uy, uz, basis)
+            for k in range(n_bases):
+                weights[k] = 0.0
+            for ch in range(n_ch):
+                if colors[c, g, ch] <= 0.0:  # clamped at 0: no gradient
+                    continue
+                v = float(v_colors[c, g, ch])
+                for k in range(n_bases):
+                    v_coeffs[g, k, ch] += basis[k] * v
+                    weights[k] += coeffs[g, k, ch] * v
+            gx, gy, gz = _sh_basis_grad(degree, ux, uy, uz, weights)
+            if norm > 1e-12:
+                dot = ux * gx + uy * gy + uz * gz
+                v_means[g, 0] += (gx - ux * dot) / norm
+                v_means[g, 1] += (gy - uy * dot) / norm
+                v_means[g, 2] += (gz - uz * dot) / norm
+
+
+def _np(x: Tensor) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().cpu().numpy())
+
+
+class _ProjectCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip):
+        n_cams, n = viewmats.shape[0], means.shape[0]
+        means2d = torch.empty(n_cams, n, 2)
+        conics = torch.empty(n_cams, n, 3)
+        depths = torch.empty(n_cams, n)
+        radii = torch.empty(n_cams, n, 2, dtype=torch.int32)
+        args = (_np(means), _np(quats), _np(scales))
+        cams = (_np(viewmats).astype(np.float64), _np(Ks).astype(np.float64))
+        _project_forward(*args, _np(opacities), *cams, width, height, float(np.float32(near)), float(np.float32(far)),
+                         float(eps2d), float(radius_clip), means2d.numpy(), conics.numpy(), depths.numpy(),
+                         radii.numpy())  # fmt: skip
+        ctx.arrays = args + cams + (width, height, float(eps2d), radii.numpy())
+        ctx.mark_non_differentiable(radii)
+        return means2d, conics, depths, radii
+
+    @staticmethod
+    def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
+        means, quats, scales, viewmats, Ks, width, height, eps2d, radii = ctx.arrays
+        v_means = torch.empty(means.shape)
+        v_quats = torch.empty(quats.shape)
+        v_scales = torch.empty(scales.shape)
+        zeros = torch.zeros(radii.shape[:2])
+        _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
+                          _np(v_means2d), _np(v_conics), _np(v_depths if v_depths is not None else zeros),
+                          v_means.numpy(), v_quats.numpy(), v_scales.numpy())  # fmt: skip
+        return v_means, v_quats, v_scales, None, None, None, None, None, None, None, None, None
+
+
+class _SphericalHarmonicsCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, degree, means, campos, coeffs, radii):
+        n_cams, n = radii.shape[:2]
+        colors = torch.empty(n_cams, n, coeffs.shape[-1])
+        arrays = (_np(means), _np(campos).astype(np.float64), _np(coeffs), _np(radii))
+        _sh_forward(degree, *arrays, colors.numpy())
+        ctx.degree, ctx.arrays = degree, arrays
+        ctx.save_for_backward(colors)
+        return colors
+
+    @staticmethod
+    def backward(ctx, v_colors):
+        (colors,) = ctx.saved_tensors
+        means, campos, coeffs, radii = ctx.arrays
+        v_coeffs = torch.empty(coeffs.shape)
+        v_means = torch.empty(means.shape)
+        _sh_backward(ctx.degree, means, campos, coeffs, radii, colors.numpy(), _np(v_colors),
+                     v_coeffs.numpy(), v_means.numpy())  # fmt: skip
+        return None, v_means, None, v_coeffs, None
+
+
+def project_gaussians_cpu(
+    means: Tensor,  # [N, 3] float32
+    quats: Tensor,  # [N, 4]
+    scales: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    viewmats: Tensor,  # [C, 4, 4]
+    Ks: Tensor,  # [C, 3, 3]
+    width: int,
+    height: int,
+    near_plane: float,
+    far_plane: float,
+    eps2d: float,
+    radius_clip: float,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Classic-mode projection -> (means2d [C, N, 2], conics [C, N, 3], depths [C, N], radii [C, N, 2] int32)."""
+    return _ProjectCPU.apply(
+        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, radius_clip
+    )
+
+
+def sh_colors_cpu(
+    degree: int,
+    means: Tensor,  # [N, 3]
+    campos: Tensor,  # [C, 3]
+    coeffs: Tensor,  # [N, K, D]
+    radii: Tensor,  # [C, N, 2]
+) -> Tensor:
+    """gsplat's SH colours max(SH + 0.5, 0) of every (camera, Gaussian) -> [C, N, D]."""
+    return _SphericalHarmonicsCPU.apply(degree, means, campos, coeffs, radii)
