@@ -81,7 +81,7 @@ class TwinConfig:
     view_fovy_deg: float = 40.0  # the free view camera
     wrist_fovy_deg: float = 60.0
     timestep: float = 0.002  # s
-    contact_timeconst: float = 0.01  # s, solref[0]: contacts settle in about this time
+    contact_timeconst: float = 0.005  # s, solref[0]: contacts settle in about this time (2.5 steps)
     contact_dampratio: float = 1.0  # solref[1], critical damping
     contact_solimp: tuple[float, float, float] = (0.95, 0.99, 0.001)
     gains: ActuatorGains = field(default_factory=ActuatorGains)

@@ -13,7 +13,7 @@ import trimesh  # noqa: E402
 from tacsplat.drivers.protocols import Camera, Hand, TactileSensor  # noqa: E402
 from tacsplat.errors import InvalidInputError, SimulationError  # noqa: E402
 from tacsplat.geometry import look_at, project_points, unproject_depth  # noqa: E402
-from tacsplat.sim.grasps import PENETRATION_BOUND_M, GraspConfig, generate_grasps  # noqa: E402
+from tacsplat.sim.grasps import DEFAULT_PENETRATION_BOUND_M, PENETRATION_BOUND_M, GraspConfig, generate_grasps  # noqa: E402
 from tacsplat.sim.hand import ActuatorGains, HandKinematics  # noqa: E402
 from tacsplat.sim.objects import OBJECT_NAMES  # noqa: E402
 from tacsplat.sim.twin import MAX_SERVO_OMEGA_DT, SimTwin, TwinConfig, check_physics, servo_omega_dt  # noqa: E402
@@ -109,7 +109,7 @@ def test_touch_points_lie_on_the_object_surface(name):
     assert len(points) > 0
     _, distance, _ = trimesh.proximity.closest_point(twin.object_mesh, points)
     assert distance.mean() < 3e-4 and distance.max() < 1e-3
-    assert all(g.max_penetration_m < PENETRATION_BOUND_M for g in grasps)
+    assert all(g.max_penetration_m < DEFAULT_PENETRATION_BOUND_M for g in grasps)
 
 
 @pytest.mark.parametrize("name,radius", [("torus", 0.05), ("teapot", 0.15)])
