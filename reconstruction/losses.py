@@ -63,6 +63,14 @@ class TouchNeighbours:
     def invalidate(self) -> None:
         self._candidates = None
 
+    def state_dict(self) -> dict:
+        """The cached candidates and schedule position (a resumed run continues exactly)."""
+        return {"candidates": self._candidates, "calls_since_build": self._calls_since_build}
+
+    def load_state_dict(self, state: dict) -> None:
+        self._candidates = state["candidates"]
+        self._calls_since_build = int(state["calls_since_build"])
+
     def candidates(self, means: torch.Tensor, from_touch: torch.Tensor) -> torch.Tensor:
         """[P, num_candidates] global indices of G_t Gaussians (``-1`` where fewer lie within reach)."""
         if self._candidates is None or self._calls_since_build >= self.rebuild_every:

@@ -25,11 +25,11 @@ def psnr(rendered: torch.Tensor, target: torch.Tensor) -> float:
     return float("inf") if mse == 0 else -10.0 * float(np.log10(mse))
 
 
-def _gaussian_window(size: int, sigma: float, channels: int, like: torch.Tensor) -> torch.Tensor:
+def _gaussian_window(size: int, sigma: float, like: torch.Tensor) -> torch.Tensor:
+    """Normalised 1D Gaussian [size] (the 2D window is its outer product, applied separably)."""
     x = torch.arange(size, dtype=like.dtype, device=like.device) - (size - 1) / 2
     g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+    return g / g.sum()
 
 
 def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -44,11 +44,14 @@ def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sig
     x = rendered.permute(0, 3, 1, 2)
     y = target.permute(0, 3, 1, 2)
     channels = x.shape[1]
-    w = _gaussian_window(window, sigma, channels, x)
+    g = _gaussian_window(window, sigma, x)
+    w_row = g.reshape(1, 1, 1, window).expand(channels, 1, 1, window)
+    w_col = g.reshape(1, 1, window, 1).expand(channels, 1, window, 1)
     pad = window // 2
 
-    def blur(t: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(t, w, padding=pad, groups=channels)
+    def blur(t: torch.Tensor) -> torch.Tensor:  # separable: rows then columns, zero padding
+        t = F.conv2d(t, w_row, padding=(0, pad), groups=channels)
+        return F.conv2d(t, w_col, padding=(pad, 0), groups=channels)
 
     mu_x, mu_y = blur(x), blur(y)
     var_x = blur(x * x) - mu_x**2

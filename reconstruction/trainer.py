@@ -354,6 +354,7 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "order": list(self.order),
             "touch_points": self.touch_points,
+            "neighbours": None if self.neighbours is None else self.neighbours.state_dict(),
         }
         tmp = self.out / "checkpoint.pt.tmp"
         torch.save(state, tmp)
@@ -375,6 +376,9 @@ class Trainer:
         self.order = list(ckpt["order"])
         self.touch_points = np.asarray(ckpt["touch_points"])
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32)
+        if self.neighbours is not None:
+            self.neighbours.touch_points = self.touch_points
+            self.neighbours.load_state_dict(ckpt["neighbours"])
 
     # ------------------------------------------------------------------ the job
 

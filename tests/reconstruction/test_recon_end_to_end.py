@@ -1,0 +1,174 @@
+"""End to end: a synthetic sphere scene is reconstructed; unneeded paths are skipped; resume is exact; CLI."""
+
+import csv
+import importlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from tacsplat.cli import main as tacsplat_main
+from tacsplat.datasets import Scene
+from tacsplat.reconstruction import losses
+from tacsplat.reconstruction.densification import DensifyStrategy
+from tacsplat.reconstruction.gaussians import quats_to_rotmats
+from tacsplat.reconstruction.initialization import InitConfig
+from tacsplat.reconstruction.ply import load_ply
+from tacsplat.reconstruction.trainer import TrainConfig, Trainer, reconstruct
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from recon_synthetic import RADIUS, build_sphere_scene  # noqa: E402
+
+raster = importlib.import_module("tacsplat.reconstruction.rasterization")
+
+
+@pytest.fixture(scope="module")
+def sphere_scene(tmp_path_factory):
+    return build_sphere_scene(tmp_path_factory.mktemp("scenes") / "sphere", size=48)
+
+
+@pytest.fixture(scope="module")
+def bare_scene(tmp_path_factory):
+    return build_sphere_scene(tmp_path_factory.mktemp("scenes") / "bare", size=24, train_views=3, test_views=1,
+                              touches=False)
+
+
+def _config(iterations: int, **overrides) -> TrainConfig:
+    base = dict(
+        iterations=iterations, backend="cpu", sh_degree=0, eval_every_iters=100, eval_every_seconds=1e9,
+        init=InitConfig(use_sfm=False, num_random_points=500),
+        densify=DensifyStrategy(start_iter=100, refine_every=100, reset_every=10**6, stop_iter=iterations),
+    )
+    base.update(overrides)
+    return TrainConfig(**base)
+
+
+def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path):
+    run = tmp_path / "run"
+    metrics = reconstruct(sphere_scene, run, _config(300), show_progress=False)
+    with (run / "progress.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["iteration"]) for r in rows] == [0, 100, 200, 300]
+    initial_cd = float(rows[0]["cd"])
+    # Bound: the CD (in units of the 5 cm radius) of 48x48 views after 300 steps is ~0.15; it starts near 0.9.
+    assert metrics["cd"] < 0.25
+    assert metrics["cd"] < 0.5 * initial_cd
+    assert metrics["psnr"] > 18.0
+    assert metrics["variant"] == "full" and metrics["iterations"] == 300
+    assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
+    seconds = [float(r["seconds"]) for r in rows]
+    assert seconds == sorted(seconds)
+    assert all(float(r["transmittance"]) > 0 for r in rows[1:])
+    saved = json.loads((run / "metrics.json").read_text())
+    for key in ("cd", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians", "num_touch_gaussians",
+                "variant", "settings"):
+        assert key in saved
+    assert (run / "error_vs_time.png").stat().st_size > 0
+    assert len(list((run / "renders").glob("*.png"))) == len(Scene.load(sphere_scene).split("test"))
+
+
+class _Spy:
+    """Records calls of a function and still calls it."""
+
+    def __init__(self, fn):
+        self.fn, self.calls = fn, []
+
+    def __call__(self, *args, **kwargs):
+        self.calls.append((kwargs, torch.is_grad_enabled()))
+        return self.fn(*args, **kwargs)
+
+
+def _spy_paths(monkeypatch):
+    spies = {
+        "render": _Spy(raster.rasterization),
+        "transmittance": _Spy(losses.transmittance_loss),
+        "smoothness": _Spy(losses.edge_aware_smoothness),
+        "neighbours": _Spy(losses.TouchNeighbours._build),
+    }
+    monkeypatch.setattr(raster, "rasterization", spies["render"])
+    monkeypatch.setattr(losses, "transmittance_loss", spies["transmittance"])
+    monkeypatch.setattr(losses, "edge_aware_smoothness", spies["smoothness"])
+    monkeypatch.setattr(losses.TouchNeighbours, "_build", lambda self, *a: spies["neighbours"](self, *a))
+    return spies
+
+
+def _training_render_modes(spy: _Spy) -> set:
+    return {kwargs["render_mode"] for kwargs, grad in spy.calls if grad}
+
+
+def test_scene_without_touches_and_zero_smoothness_skips_those_paths(bare_scene, tmp_path, monkeypatch):
+    spies = _spy_paths(monkeypatch)
+    trainer = Trainer(Scene.load(bare_scene), tmp_path / "run", _config(3, lambda_s=0.0))
+    gaussians = trainer.run(show_progress=False)
+    assert gaussians.num_touch == 0 and trainer.neighbours is None
+    assert spies["transmittance"].calls == [] and spies["neighbours"].calls == []
+    assert spies["smoothness"].calls == []
+    assert _training_render_modes(spies["render"]) == {"RGB"}  # no depth rendered for training
+
+
+def test_touch_scene_runs_the_touch_and_smoothness_paths(sphere_scene, tmp_path, monkeypatch):
+    spies = _spy_paths(monkeypatch)
+    trainer = Trainer(Scene.load(sphere_scene), tmp_path / "run", _config(3))
+    trainer.run(show_progress=False)
+    assert len(spies["transmittance"].calls) == 3 and len(spies["neighbours"].calls) == 1
+    assert len(spies["smoothness"].calls) == 3
+    assert _training_render_modes(spies["render"]) == {"RGB+D"}
+
+
+def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_scene, tmp_path, monkeypatch):
+    config = _config(10, checkpoint_every=4, touch_rebuild_every=3,
+                     densify=DensifyStrategy(start_iter=2, refine_every=3, reset_every=5, stop_iter=100))
+    scene = Scene.load(sphere_scene)
+    straight = Trainer(scene, tmp_path / "straight", config).run(show_progress=False)
+
+    real_step = Trainer.train_step
+
+    def killed_after_step_5(self):  # the process dies during step 6, after the checkpoint of step 4
+        if self.step == 5:
+            raise KeyboardInterrupt
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", killed_after_step_5)
+    with pytest.raises(KeyboardInterrupt):
+        Trainer(scene, tmp_path / "resumed", config).run(show_progress=False)
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    resumed_trainer = Trainer(scene, tmp_path / "resumed", config)
+    resumed = resumed_trainer.run(resume=True, show_progress=False)
+    assert len(resumed) == len(straight)
+    # Equal up to float summation order, compared through what a Gaussian is (mean, covariance, opacity,
+    # colour): the rotation of a near-isotropic Gaussian has a ~1e-12 gradient whose sign follows the
+    # summation order of torch's CPU reductions, and Adam (eps 1e-15) turns it into a full-size step.
+    for name in ("means", "scales", "opacities", "sh0"):
+        torch.testing.assert_close(resumed.params[name], straight.params[name], rtol=0, atol=1e-6)
+    torch.testing.assert_close(_covariances(resumed), _covariances(straight), rtol=1e-4, atol=1e-12)
+    assert torch.equal(resumed.from_touch, straight.from_touch)
+    with (tmp_path / "resumed" / "progress.csv").open() as fh:
+        assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
+
+
+def _covariances(g) -> torch.Tensor:
+    R = quats_to_rotmats(g.quats.detach().double())
+    return R @ torch.diag_embed(g.scales.detach().double() ** 2) @ R.transpose(-1, -2)
+
+
+def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, tmp_path, capsys):
+    run = tmp_path / "run"
+    code = tacsplat_main(["reconstruct", str(sphere_scene), "--out", str(run), "--iterations", "5",
+                          "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet", "--train-views", "4"])
+    assert code == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["variant"] == "+T" and metrics["settings"]["train_views"] == 4
+    assert metrics["iterations"] == 5 and np.isfinite(metrics["cd"])
+    mesh_path = tmp_path / "sphere.ply"
+    trimesh.creation.icosphere(subdivisions=4, radius=RADIUS).export(mesh_path)
+    capsys.readouterr()
+    assert tacsplat_main(["evaluate", str(run), "--gt-mesh", str(mesh_path)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    again = json.loads((run / "metrics.json").read_text())
+    assert again["gt_source"].startswith("mesh") and again["gt_radius"] == pytest.approx(RADIUS, rel=1e-3)
+    assert printed["cd"] == pytest.approx(again["cd"])
+    assert again["cd"] == pytest.approx(metrics["cd"], rel=0.2)  # mesh and analytic depth give the same surface
