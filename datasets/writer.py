@@ -272,6 +272,11 @@ class SceneWriter:
         return len(self.touches)
 
     @property
+    def last_record(self) -> tuple[str, int] | None:
+        """``(kind, id)`` of the newest live record ("frame" | "touch"): what :meth:`remove_last` would undo."""
+        return self._order[-1] if self._order else None
+
+    @property
     def num_grasps(self) -> int:
         """Number of distinct grasp indices among the touches."""
         return len({t.grasp for t in self.touches})

@@ -1,0 +1,165 @@
+"""The device factory: a rig config becomes a Hand, TactileSensors, a Camera, a clock and a pose source.
+
+This is the only place where the real rig, its ``--mock`` emulation and the
+twin differ; :class:`~tacsplat.acquisition.logger.CaptureLogger` and the
+operator session see the same :class:`Rig` for all three.
+"""
+
+from __future__ import annotations
+
+import logging
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+
+from tacsplat.acquisition.config import GraspControl, RigConfig
+from tacsplat.acquisition.logger import BoardPoseSource, TwinClock, TwinPoseSource, WallClock
+from tacsplat.datasets import SensorModel
+from tacsplat.errors import ConfigError
+from tacsplat.types import CameraIntrinsics
+
+log = logging.getLogger(__name__)
+
+SIM_SENSOR_NAME = "sim-digit"
+
+
+@dataclass
+class Rig:
+    """Open devices of one capture (the Protocol objects plus what the scene needs to know about them)."""
+
+    kind: str  # "real" | "sim"
+    hand: object  # Hand
+    sensors: list  # [TactileSensor]
+    camera: object  # Camera
+    clock: object  # Clock
+    poses: object  # PoseSource
+    intrinsics: CameraIntrinsics
+    sensor_model: SensorModel
+    control: GraspControl
+    object_name: str
+    extra: dict = field(default_factory=dict)  # provenance for scene.json
+    twin: object | None = None  # SimTwin on rig: sim
+    mock: object | None = None  # MockDevices on --mock
+
+
+@contextmanager
+def open_rig(config: RigConfig) -> Iterator[Rig]:
+    """Open every device of ``config`` (emulated ones with ``config.mock``); closing leaves the hand safe."""
+    if config.rig == "sim":
+        with _open_twin(config) as rig:
+            yield rig
+    else:
+        with _open_real(config) as rig:
+            yield rig
+
+
+@contextmanager
+def _open_real(config: RigConfig) -> Iterator[Rig]:
+    from tacsplat.drivers.dynamixel_hand import DynamixelHand, DynamixelHandConfig
+    from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
+    from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
+
+    with ExitStack() as stack:
+        mock = None
+        if config.mock:
+            from tacsplat.acquisition.mock import MockDevices
+
+            mock = stack.enter_context(MockDevices(config))
+            port, hand_cal = mock.emulator.path, None
+            hand_settings = DynamixelHandConfig(min_packet_timeout_s=config.mock_devices.servo_timeout_s, drain_s=0.1)
+            cam_source, cam_cal, cam_factory = str(mock.camera_video), str(mock.camera_calibration), mock.capture_factory("camera")
+        else:
+            port, hand_settings = config.hand.port, None
+            hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None
+            cam_source, cam_cal, cam_factory = config.camera.source, str(config.path(config.camera.calibration)), None
+        calibration = CameraCalibration.load(cam_cal)
+        if config.camera.T_hand_cam is not None:
+            T_hand_cam = np.asarray(config.camera.T_hand_cam, dtype=np.float64)
+        elif calibration.T_hand_cam is not None:
+            T_hand_cam = calibration.T_hand_cam
+        else:
+            raise ConfigError("camera.T_hand_cam", f"not given, and {cam_cal} has no hand-eye calibration "
+                                                   "(run the hand-eye calibration or set it here)", config.source)
+        if calibration.board != config.board.spec():
+            log.warning("the camera calibration's board %s differs from the rig's board %s; using the rig's",
+                        calibration.board, config.board.spec())
+        kw = {"capture_factory": cam_factory} if cam_factory else {}
+        camera = stack.enter_context(WristCamera(cam_source, calibration, fps=config.camera.fps,
+                                                 timeout_s=config.camera.timeout_s, **kw))
+        hand = DynamixelHand(port, config.hand.baudrate, config.hand.ids, hand_cal, config=hand_settings)
+        stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
+        sensors, model = [], None
+        for i, s in enumerate(config.tactile.sensors):
+            T_mount = np.eye(4) if s.T_fingertip_sensor is None else np.asarray(s.T_fingertip_sensor, dtype=np.float64)
+            if mock is not None:
+                source, cal, factory = str(mock.tactile_video(s.finger)), str(mock.tactile_calibration), mock.capture_factory(s.finger)
+            else:
+                source, cal, factory = s.source, str(config.path(s.calibration)), None
+            tcal = TactileCalibration.load(cal)
+            this = SensorModel(config.tactile.sensor_name, int(tcal.image_size[1]), int(tcal.image_size[0]),
+                               float(tcal.pixel_size_m), config.tactile.gel_thickness_m)
+            if model is not None and this != model:
+                raise ConfigError(f"tactile.sensors[{i}].calibration", f"{this} differs from the first sensor's "
+                                  f"{model}: a scene holds one sensor model", config.source)
+            model = this
+            pose = (lambda finger=s.finger, T=T_mount: hand.fingertip_poses()[finger] @ T)
+            kw = {"capture_factory": factory} if factory else {}
+            sensors.append(stack.enter_context(OpticalTactileSensor(s.finger, source, tcal, pose,
+                                                                    timeout_s=config.tactile.timeout_s, **kw)))
+        rig = Rig(
+            kind="real", hand=hand, sensors=sensors, camera=camera, clock=WallClock(),
+            poses=BoardPoseSource(camera, config.board, T_hand_cam),
+            intrinsics=CameraIntrinsics(camera.K, camera.width, camera.height), sensor_model=model,
+            control=config.grasp, object_name=config.object,
+            extra={"rig": str(config.source), "mock": config.mock, "hand_port": port,
+                   "board_max_reprojection_px": config.board.max_reprojection_px,
+                   "T_hand_cam": np.asarray(T_hand_cam).tolist()},
+            mock=mock,
+        )
+        yield rig
+
+
+# The twin's grasp control: its soft position servos lag a 0.6 rad/s ramp by about 0.03 rad in free motion.
+TWIN_CONTROL = GraspControl(close_speed_rad_s=0.6, poll_s=0.01, stall_error_rad=0.08, settle_tol_rad=0.002,
+                            settle_polls=3, max_close_s=2.0, open_s=0.2)
+
+
+@contextmanager
+def _open_twin(config: RigConfig) -> Iterator[Rig]:
+    import os
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from tacsplat.sim.twin import SimTwin, TwinConfig
+
+    s = config.sim
+    twin_cfg = TwinConfig(object=s.object, mesh_path=str(config.path(s.mesh)) if s.mesh else None,
+                          object_radius=s.object_radius, seed=s.seed, camera_width=s.resolution,
+                          camera_height=s.resolution)
+    with SimTwin(twin_cfg) as twin:
+        yield twin_rig(twin, config.object if config.object != "object" else twin.object.name)
+
+
+def twin_rig(twin, object_name: str, control: GraspControl = TWIN_CONTROL) -> Rig:
+    """A :class:`Rig` of an open twin: its hand, pads and free view camera, its clock and ground-truth poses."""
+    import mujoco
+
+    t = twin.config.tactile
+    cfg = twin.config
+    return Rig(
+        kind="sim", hand=twin.hand, sensors=list(twin.tactile_sensors), camera=twin.view_camera,
+        clock=TwinClock(twin), poses=TwinPoseSource(twin), intrinsics=twin.view_camera.intrinsics,
+        sensor_model=SensorModel(SIM_SENSOR_NAME, t.width_px, t.height_px, t.pixel_size_m, t.gel_thickness_m),
+        control=control, object_name=object_name,
+        extra={
+            "simulator": f"mujoco {mujoco.__version__}",
+            "timestep_s": cfg.timestep,
+            "contact_timeconst_s": cfg.contact_timeconst,
+            "collision": f"CoACD convex decomposition ({len(twin.hulls)} hulls)",
+            "tactile_depth": "parallel rays against the exact mesh (trimesh + Embree)",
+            "gel_compliance_m": cfg.hand_geometry.gel_compliance,
+            "object_bounding_radius_m": twin.object.bounding_radius,
+        },
+        twin=twin,
+    )

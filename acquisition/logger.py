@@ -1,0 +1,354 @@
+"""CaptureLogger: views and grasps from a Hand, TactileSensors and a Camera into a scene directory.
+
+The real rig and the MuJoCo twin run this same code; they differ only in the
+devices, the clock (``time.sleep`` or the twin's simulated time) and the pose
+source (board PnP with its reprojection error, or the twin's ground truth).
+Everything is written through :class:`~tacsplat.datasets.SceneWriter`, so a
+capture killed at any moment resumes losing at most the record in flight; a
+grasp is a group of touches (one per sensor) that resume and undo treat as one
+record: a grasp cut short is removed whole and redone.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Protocol, Sequence
+
+import numpy as np
+
+from tacsplat.acquisition.config import BoardConfig, GraspControl
+from tacsplat.datasets import SceneWriter
+from tacsplat.drivers.protocols import Camera, Hand, TactileSensor
+from tacsplat.errors import CameraError, InvalidInputError, TacsplatError
+from tacsplat.geometry import check_rigid, invert_pose
+from tacsplat.types import TactileReading
+
+log = logging.getLogger(__name__)
+
+
+class CaptureRejected(TacsplatError):
+    """A view or grasp was not recorded (board not seen, reprojection error over the threshold); nothing failed."""
+
+
+class Clock(Protocol):
+    def sleep(self, seconds: float) -> None: ...
+
+    def time(self) -> float: ...
+
+
+class WallClock:
+    """A real rig's clock."""
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(seconds)
+
+    def time(self) -> float:
+        return time.monotonic()
+
+
+class TwinClock:
+    """The twin's clock: sleeping advances the physics."""
+
+    def __init__(self, twin):
+        self.twin = twin
+
+    def sleep(self, seconds: float) -> None:
+        self.twin.sleep(seconds)
+
+    def time(self) -> float:
+        return self.twin.time
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """A pose with its quality: ``reprojection_px`` is the board PnP RMS (None for ground truth)."""
+
+    T: np.ndarray  # [4, 4]
+    reprojection_px: float | None = None
+    corners: int | None = None
+
+
+class PoseSource(Protocol):
+    def camera_pose(self, image: np.ndarray) -> PoseEstimate:
+        """``T_world_cam`` of the camera that took ``image``; raises CaptureRejected when it cannot be known."""
+        ...
+
+    def hand_pose(self, image: np.ndarray) -> PoseEstimate:
+        """``T_world_hand`` at the time ``image`` was taken."""
+        ...
+
+    def ground_truth_depth(self) -> np.ndarray | None:
+        """[H, W] float32 depth of the last view (the twin only; evaluation only)."""
+        ...
+
+
+class BoardPoseSource:
+    """A real rig's poses: ChArUco board PnP on undistorted frames; the hand from the hand-eye transform."""
+
+    def __init__(self, camera: Camera, board: BoardConfig, T_hand_cam: np.ndarray):
+        self.board = board
+        self.spec = board.spec()
+        self.K_opencv = np.array(camera.K, dtype=np.float64)
+        self.K_opencv[:2, 2] -= 0.5  # tacsplat's pixel centres at +0.5 -> OpenCV's at integers
+        self.T_cam_hand = invert_pose(check_rigid(T_hand_cam, "T_hand_cam"))
+
+    def measure(self, image: np.ndarray) -> PoseEstimate:
+        """The board pose without the threshold (for the live status line); CameraError when not seen."""
+        from tacsplat.drivers.wrist_camera import board_pose
+
+        T, rms, corners = board_pose(image, self.spec, self.K_opencv, None, self.board.min_corners)
+        return PoseEstimate(T, rms, corners)
+
+    def camera_pose(self, image: np.ndarray) -> PoseEstimate:
+        try:
+            est = self.measure(image)
+        except CameraError as exc:
+            raise CaptureRejected(f"board not seen ({exc}); move the camera so the board is in view") from None
+        if est.reprojection_px > self.board.max_reprojection_px:
+            raise CaptureRejected(f"board reprojection error {est.reprojection_px:.2f} px is over the threshold "
+                                  f"{self.board.max_reprojection_px:g} px (blur or a bent board?); hold still and retry")
+        return est
+
+    def hand_pose(self, image: np.ndarray) -> PoseEstimate:
+        est = self.camera_pose(image)
+        return PoseEstimate(est.T @ self.T_cam_hand, est.reprojection_px, est.corners)
+
+    def ground_truth_depth(self) -> None:
+        return None
+
+
+class TwinPoseSource:
+    """The twin's poses: ground truth for the view camera and the hand base."""
+
+    def __init__(self, twin):
+        self.twin = twin
+
+    def camera_pose(self, image: np.ndarray) -> PoseEstimate:
+        return PoseEstimate(self.twin.camera_pose())
+
+    def hand_pose(self, image: np.ndarray) -> PoseEstimate:
+        return PoseEstimate(self.twin.T_world_hand())
+
+    def ground_truth_depth(self) -> np.ndarray:
+        return self.twin.view_camera.read_depth()
+
+
+@dataclass
+class GraspOutcome:
+    """One recorded grasp."""
+
+    index: int  # the grasp number in the scene
+    touches: list  # the Touch records, one per sensor
+    stopped_by: dict[str, str]  # finger -> "reached" | "stalled" | "timeout"
+    settled: bool
+    close_seconds: float  # on the rig's clock
+    T_world_hand: np.ndarray
+    hand_reprojection_px: float | None = None
+
+    @property
+    def fingers_in_contact(self) -> list[str]:
+        return [t.finger for t in self.touches if t.in_contact]
+
+
+@dataclass
+class ViewOutcome:
+    frame: object  # the Frame record
+    reprojection_px: float | None = None
+
+
+@dataclass
+class Counts:
+    train: int = 0
+    test: int = 0
+    grasps: int = 0
+    touches: int = 0
+    contacts: int = 0  # touches in contact
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class _Finger:
+    name: str
+    joints: np.ndarray  # joint indices
+    state: str = "closing"
+    extra: dict = field(default_factory=dict)
+
+
+class CaptureLogger:
+    """Writes views and grasps through ``writer``; the devices are seen only through their Protocols.
+
+    ``fingers`` maps each finger name to its joint indices in the hand's joint
+    order (default: four joints per finger in the order of ``hand.joint_names``'
+    prefixes). Opening a logger on a resumed writer first removes a grasp cut short.
+    """
+
+    def __init__(self, writer: SceneWriter, hand: Hand, sensors: Sequence[TactileSensor], camera: Camera,
+                 clock: Clock, poses: PoseSource, control: GraspControl = GraspControl(),
+                 fingers: dict[str, Sequence[int]] | None = None):
+        self.writer = writer
+        self.hand = hand
+        self.sensors = list(sensors)
+        self.camera = camera
+        self.clock = clock
+        self.poses = poses
+        self.control = control
+        if not self.sensors:
+            raise InvalidInputError("sensors: a capture needs at least one tactile sensor")
+        names = [s.name for s in self.sensors]
+        if len(set(names)) != len(names):
+            raise InvalidInputError(f"sensors: duplicate names {names}")
+        if fingers is None:
+            fingers = {}
+            for i, joint in enumerate(hand.joint_names):
+                fingers.setdefault(joint.rsplit("_", 1)[0], []).append(i)
+        self.fingers = {f: np.asarray(j, dtype=int) for f, j in fingers.items()}
+        self.hand_state = "open"
+        self.dropped_partial_grasp = self.drop_partial_grasp()
+
+    # --- state ------------------------------------------------------------------------------------
+    def counts(self) -> Counts:
+        w = self.writer
+        return Counts(
+            train=sum(f.split == "train" for f in w.frames),
+            test=sum(f.split == "test" for f in w.frames),
+            grasps=len({t.grasp for t in w.touches}),
+            touches=w.num_touches,
+            contacts=sum(t.in_contact for t in w.touches),
+        )
+
+    def next_grasp_index(self) -> int:
+        return max((t.grasp for t in self.writer.touches), default=-1) + 1
+
+    def drop_partial_grasp(self) -> int:
+        """Remove the touches of a last grasp that has fewer touches than sensors (a capture cut short while
+        writing it); returns how many were removed."""
+        w = self.writer
+        last = w.last_record
+        if last is None or last[0] != "touch":
+            return 0
+        g = w.touches[-1].grasp
+        have = sum(t.grasp == g for t in w.touches)
+        if have >= len(self.sensors):
+            return 0
+        for _ in range(have):
+            w.remove_last()
+        log.warning("grasp %d was cut short (%d of %d touches): removed, to be redone whole", g, have, len(self.sensors))
+        return have
+
+    # --- views ------------------------------------------------------------------------------------
+    def take_view(self, split: str = "train", image: np.ndarray | None = None) -> ViewOutcome:
+        """Read the camera (or use ``image``), compute its pose, append the frame.
+
+        Raises :class:`CaptureRejected` (nothing written) when the pose cannot be
+        trusted: board not seen, or its reprojection error over the threshold.
+        """
+        if image is None:
+            image, _ = self.camera.read()
+        est = self.poses.camera_pose(image)
+        gt = self.poses.ground_truth_depth() if split == "test" else None
+        frame = self.writer.add_frame(image, est.T, split, gt_depth=gt)
+        log.info("view %d (%s) recorded%s", frame.id, split,
+                 "" if est.reprojection_px is None else f", board reprojection {est.reprojection_px:.2f} px")
+        return ViewOutcome(frame, est.reprojection_px)
+
+    # --- grasps -----------------------------------------------------------------------------------
+    def take_grasp(self, close_pose: np.ndarray | None = None, open_pose: np.ndarray | None = None,
+                   T_world_hand: np.ndarray | None = None) -> GraspOutcome:
+        """Close, wait until the fingers settle or stall, read every sensor, append the touches, open.
+
+        ``T_world_hand`` [4, 4] defaults to the pose source's (board PnP through
+        the hand-eye transform on a real rig, measured before closing; ground
+        truth on the twin). Touches with no contact are recorded as such.
+        """
+        c = self.control
+        q_close = np.asarray(c.close_pose if close_pose is None else close_pose, dtype=np.float64)
+        q_open = np.asarray(c.open_pose if open_pose is None else open_pose, dtype=np.float64)
+        hand_rms = None
+        if T_world_hand is None:
+            image, _ = self.camera.read()
+            est = self.poses.hand_pose(image)  # before the fingers move: CaptureRejected leaves the hand open
+            T_world_hand, hand_rms = est.T, est.reprojection_px
+        T_world_hand = check_rigid(T_world_hand, "T_world_hand")
+        index = self.next_grasp_index()
+        self.hand_state = "closing"
+        t0 = self.clock.time()
+        stopped_by, settled = self._close(q_close)
+        close_s = self.clock.time() - t0
+        self.hand_state = "closed"
+        readings: list[tuple[str, TactileReading]] = [(s.name, s.read()) for s in self.sensors]
+        touches = []
+        for name, reading in readings:
+            if reading.frame != "hand":
+                raise InvalidInputError(f"sensor {name!r}: expected a reading in the hand frame, got {reading.frame!r}")
+            touches.append(self.writer.add_reading(reading.to_world(T_world_hand), grasp=index, finger=name))
+        self.open(q_open)
+        outcome = GraspOutcome(index, touches, stopped_by, settled, close_s, T_world_hand, hand_rms)
+        no_contact = [t.finger for t in touches if not t.in_contact]
+        log.info("grasp %d recorded: %d touches (%s), stopped by %s%s", index, len(touches),
+                 f"no contact on {', '.join(no_contact)}" if no_contact else "all in contact", stopped_by,
+                 "" if settled else "; the fingers had not settled")
+        return outcome
+
+    def open(self, q_open: np.ndarray | None = None) -> None:
+        self.hand_state = "opening"
+        self.hand.command_joint_positions(np.asarray(self.control.open_pose if q_open is None else q_open, float))
+        self.clock.sleep(self.control.open_s)
+        self.hand_state = "open"
+
+    def _close(self, q_close: np.ndarray) -> tuple[dict[str, str], bool]:
+        """Ramp the targets toward ``q_close`` at ``close_speed_rad_s``; a finger whose joints lag their target by
+        ``stall_error_rad`` stops there (stalled on the object); then wait until the joints settle."""
+        c = self.control
+        lo, hi = np.asarray(self.hand.joint_limits, dtype=np.float64).T
+        q_close = np.clip(q_close, lo, hi)
+        q_start = self.hand.read_joint_positions()
+        target = q_start.copy()
+        fingers = {f: _Finger(f, j) for f, j in self.fingers.items()}
+        step = c.close_speed_rad_s * c.poll_s
+        t_end = self.clock.time() + c.max_close_s
+        still, q_prev = 0, q_start
+        while True:
+            q = self.hand.read_joint_positions()
+            for f in fingers.values():
+                if f.state != "closing":
+                    continue
+                if np.abs(target[f.joints] - q[f.joints]).max() > c.stall_error_rad:
+                    f.state = "stalled"
+                    target[f.joints] = q[f.joints] + np.clip(target[f.joints] - q[f.joints], -c.stall_error_rad, c.stall_error_rad)
+                    continue
+                delta = q_close[f.joints] - target[f.joints]
+                target[f.joints] += np.clip(delta, -step, step)
+                if np.abs(q_close[f.joints] - target[f.joints]).max() < 1e-12:
+                    f.state = "reached"
+            moving = np.abs(q - q_prev).max()
+            still = still + 1 if moving < c.settle_tol_rad else 0
+            ramp_done = all(f.state != "closing" for f in fingers.values())
+            if ramp_done and still >= c.settle_polls:
+                return {f.name: f.state for f in fingers.values()}, True
+            if self.clock.time() >= t_end:
+                log.warning("the fingers did not settle within %.2f s; reading anyway", c.max_close_s)
+                return {f.name: (f.state if f.state != "closing" else "timeout") for f in fingers.values()}, False
+            self.hand.command_joint_positions(target)
+            q_prev = q
+            self.clock.sleep(c.poll_s)
+
+    # --- undo -------------------------------------------------------------------------------------
+    def undo(self) -> str:
+        """Remove the last record: a view, or a whole grasp (all its touches). Returns what was removed."""
+        w = self.writer
+        last = w.last_record
+        if last is None:
+            raise CaptureRejected("nothing to undo")
+        if last[0] == "frame":
+            frame = w.remove_last()
+            return f"view {frame.id} ({frame.split})"
+        g = w.touches[-1].grasp
+        removed = 0
+        while w.last_record is not None and w.last_record[0] == "touch" and w.touches[-1].grasp == g:
+            w.remove_last()
+            removed += 1
+        return f"grasp {g} ({removed} touches)"

@@ -1,0 +1,227 @@
+"""Emulated devices for ``tacsplat capture --mock``: a real rig's code path with no hardware attached.
+
+* the hand: the real :class:`~tacsplat.drivers.DynamixelHand` and ``dynamixel_sdk``
+  talking to :class:`~tacsplat.drivers.dxl_emulator.DxlEmulator` on a pseudo-terminal;
+* the wrist camera: the real :class:`~tacsplat.drivers.WristCamera` reading a
+  looping video of a ChArUco board rendered with ``cv2.aruco`` and warped by
+  known camera poses (``camera_poses`` holds them, OpenCV board frame);
+* the tactile sensors: the real :class:`~tacsplat.drivers.OpticalTactileSensor`
+  reading looping videos of synthetic tactile images (untouched gel, then ball
+  presses and a frame with no contact), with a calibration fitted on rendered
+  ball presses.
+
+The generated files (videos, calibrations) are cached in a folder keyed by the
+settings, so a resumed or repeated mock capture reuses them. Faults for tests:
+:meth:`MockDevices.stall_camera` (the camera stops delivering frames) and
+``mock.emulator.disconnect(servo_id)`` (a servo stops answering).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+import threading
+from dataclasses import asdict
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tacsplat.acquisition.config import RigConfig
+from tacsplat.geometry import invert_pose, look_at, make_pose
+
+log = logging.getLogger(__name__)
+
+REFERENCE_FRAMES = 5  # untouched frames at the start of each tactile video (the sensor's reference)
+BALL_RADIUS_M = 4e-3
+SUPERSAMPLE = 2
+# The mock wrist camera sits 6 cm above the hand base, looking along the hand's z.
+MOCK_T_HAND_CAM = make_pose(np.eye(3), [0.0, -0.06, 0.0])
+
+
+class LoopingCapture:
+    """A ``cv2.VideoCapture`` of a file that starts again at its end (a live device that never runs out);
+    :meth:`stall` makes ``read`` block as a hung USB camera does."""
+
+    def __init__(self, path: str):
+        self._cap = cv2.VideoCapture(path)
+        self._stalled = threading.Event()
+        self._released = threading.Event()
+
+    def isOpened(self) -> bool:
+        return self._cap.isOpened()
+
+    def set(self, prop, value) -> bool:
+        return self._cap.set(prop, value)
+
+    def get(self, prop) -> float:
+        return self._cap.get(prop)
+
+    def read(self):
+        if self._stalled.is_set():
+            self._released.wait()
+            return False, None
+        ok, image = self._cap.read()
+        if not ok:
+            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            ok, image = self._cap.read()
+        return ok, image
+
+    def stall(self) -> None:
+        self._stalled.set()
+
+    def release(self) -> None:
+        self._released.set()
+        self._cap.release()
+
+
+def _write_video(path: Path, frames_rgb: list[np.ndarray]) -> None:
+    h, w = frames_rgb[0].shape[:2]
+    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
+    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (w, h))
+    if not writer.isOpened():
+        raise RuntimeError(f"OpenCV cannot write an FFV1 video to {tmp}")
+    for frame in frames_rgb:
+        writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
+    writer.release()
+    os.replace(tmp, path)
+
+
+def render_board(spec, K: np.ndarray, width: int, height: int, T_cam_board: np.ndarray) -> np.ndarray:
+    """An RGB image [H, W, 3] uint8 of the ChArUco board seen by a pinhole camera (``K`` tacsplat convention,
+    pixel centres at +0.5) at ``T_cam_board`` (OpenCV board frame), by a supersampled homography warp."""
+    px = 60  # board image pixels per square
+    board_img = spec.board().generateImage((spec.squares_x * px, spec.squares_y * px), marginSize=0)
+    m_per_px = spec.square_length_m / px
+    K_hi = np.diag([SUPERSAMPLE, SUPERSAMPLE, 1.0]) @ K
+    H = K_hi @ np.column_stack([T_cam_board[:3, 0], T_cam_board[:3, 1], T_cam_board[:3, 3]])
+    H = H @ np.diag([m_per_px, m_per_px, 1.0])
+    shift = lambda d: np.array([[1.0, 0, d], [0, 1.0, d], [0, 0, 1.0]])  # noqa: E731
+    H_cv = shift(-0.5) @ H @ shift(0.5)  # warpPerspective puts pixel centres at integers
+    big = cv2.warpPerspective(board_img, H_cv, (width * SUPERSAMPLE, height * SUPERSAMPLE),
+                              flags=cv2.INTER_LINEAR, borderValue=150)
+    gray = cv2.resize(big, (width, height), interpolation=cv2.INTER_AREA)
+    return np.repeat(gray[:, :, None], 3, axis=2)
+
+
+def camera_poses(spec, count: int) -> list[np.ndarray]:
+    """``T_cam_board`` of the mock camera's video: looking at the board centre from 0.3-0.4 m, around it."""
+    centre = np.array([spec.squares_x * spec.square_length_m / 2, spec.squares_y * spec.square_length_m / 2, 0.0])
+    rng = np.random.default_rng(7)
+    poses = []
+    for k in range(count):
+        a = 2 * np.pi * k / max(count, 1)
+        eye = centre + np.array([0.08 * np.cos(a), 0.06 * np.sin(a), -rng.uniform(0.3, 0.4)])
+        poses.append(invert_pose(look_at(eye, centre, up=(0.0, -1.0, 0.0))))
+    return poses
+
+
+def _ball_press(h: int, w: int, pixel_m: float, cx: float, cy: float, indentation_m: float) -> np.ndarray:
+    ys, xs = np.indices((h, w)) + 0.5
+    rho2 = ((xs - cx) ** 2 + (ys - cy) ** 2) * pixel_m**2
+    depth = np.sqrt(np.maximum(BALL_RADIUS_M**2 - rho2, 0.0)) - (BALL_RADIUS_M - indentation_m)
+    return np.maximum(depth, 0.0).astype(np.float32)
+
+
+class MockDevices:
+    """Files and emulators behind a mocked real rig; a context manager (starts and stops the servo emulator)."""
+
+    def __init__(self, config: RigConfig, cache_dir: str | Path | None = None):
+        from tacsplat.drivers.dxl_emulator import DxlEmulator
+
+        self.config = config
+        m = config.mock_devices
+        key = hashlib.sha1(json.dumps([asdict(m), asdict(config.board), [s.finger for s in config.tactile.sensors]],
+                                      sort_keys=True).encode()).hexdigest()[:12]
+        root = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / f"tacsplat-mock-rig-{os.getuid()}"
+        self.folder = root / key
+        self.K = np.array([[m.camera_focal_px, 0, m.camera_width / 2], [0, m.camera_focal_px, m.camera_height / 2],
+                           [0, 0, 1.0]])
+        self.camera_poses = camera_poses(config.board.spec(), m.camera_frames)
+        if not (self.folder / "done").is_file():
+            self._generate()
+        self.emulator = DxlEmulator(ids=config.hand.ids)
+        self.captures: dict[str, LoopingCapture] = {}
+
+    # --- files ------------------------------------------------------------------------------------
+    @property
+    def camera_video(self) -> Path:
+        return self.folder / "wrist_camera.avi"
+
+    @property
+    def camera_calibration(self) -> Path:
+        return self.folder / "wrist_camera.json"
+
+    def tactile_video(self, finger: str) -> Path:
+        return self.folder / f"tactile_{finger}.avi"
+
+    @property
+    def tactile_calibration(self) -> Path:
+        return self.folder / "tactile_calibration.npz"
+
+    def _generate(self) -> None:
+        from tacsplat.drivers.optical_tactile import TactileCalibration
+        from tacsplat.drivers.wrist_camera import CameraCalibration
+        from tacsplat.sim.tactile import render_tactile_rgb
+
+        m, spec = self.config.mock_devices, self.config.board.spec()
+        self.folder.parent.mkdir(parents=True, exist_ok=True)
+        work = Path(tempfile.mkdtemp(prefix=".mock-", dir=self.folder.parent))
+        frames = [render_board(spec, self.K, m.camera_width, m.camera_height, T) for T in self.camera_poses]
+        real = self.folder
+        self.folder = work
+        try:
+            _write_video(self.camera_video, frames)
+            K_cv = self.K.copy()
+            K_cv[:2, 2] -= 0.5
+            CameraCalibration(K_cv, np.zeros(5), m.camera_width, m.camera_height, 0.0, spec,
+                              T_hand_cam=MOCK_T_HAND_CAM).save(self.camera_calibration)
+            h, w, pix = m.tactile_height, m.tactile_width, m.tactile_pixel_size_m
+            reference = render_tactile_rgb(np.zeros((h, w), np.float32), pix)
+            presses = [(0.3 * w, 0.35 * h, 6e-4), (0.7 * w, 0.6 * h, 8e-4), (0.5 * w, 0.5 * h, 1e-3),
+                       (0.3 * w, 0.7 * h, 5e-4), (0.7 * w, 0.3 * h, 9e-4)]
+            press_images = [render_tactile_rgb(_ball_press(h, w, pix, *p), pix) for p in presses]
+            TactileCalibration.fit(reference, press_images, BALL_RADIUS_M, pix).save(self.tactile_calibration)
+            for i, s in enumerate(self.config.tactile.sensors):
+                # untouched gel, then per grasp: a press, a press, no contact, a press (shifted per finger)
+                order = [press_images[(i + k) % len(press_images)] for k in range(3)]
+                _write_video(self.tactile_video(s.finger), [reference] * REFERENCE_FRAMES + order[:2] + [reference]
+                             + order[2:])
+            (work / "done").write_text("ok\n")
+            try:
+                os.replace(work, real)
+            except OSError:  # another process generated the same folder meanwhile
+                shutil.rmtree(work, ignore_errors=True)
+        except BaseException:
+            shutil.rmtree(work, ignore_errors=True)
+            raise
+        finally:
+            self.folder = real
+
+    # --- devices ----------------------------------------------------------------------------------
+    def capture_factory(self, name: str):
+        """A ``capture_factory`` for the drivers' video readers that loops the file and remembers the capture."""
+
+        def factory(source):
+            cap = LoopingCapture(str(source))
+            self.captures[name] = cap
+            return cap
+
+        return factory
+
+    def stall_camera(self) -> None:
+        """Fault: the wrist camera stops delivering frames (as when it is unplugged or its driver hangs)."""
+        self.captures["camera"].stall()
+
+    def __enter__(self) -> "MockDevices":
+        self.emulator.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for cap in self.captures.values():
+            cap._released.set()
+        self.emulator.stop()
