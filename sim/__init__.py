@@ -1,1 +1,9 @@
-"""tacsplat.sim (see DESIGN.md)."""
+"""tacsplat.sim: the MuJoCo twin of the rig (see DESIGN.md).
+
+Modules: ``hand`` (the Allegro-style hand MJCF and ``HandKinematics``; no MuJoCo
+import at module level), ``objects`` (glossy procedural library, user meshes,
+CoACD collision pieces), ``tactile`` (ray-cast indentation maps, synthetic
+tactile RGB), ``camera`` (OpenCV-convention MuJoCo cameras), ``twin``
+(``SimTwin`` implementing Hand, TactileSensor and Camera), ``views``,
+``grasps``, ``capture`` (sim-capture, simulate-touches) and ``bench``.
+"""
