@@ -257,12 +257,13 @@ class CaptureLogger:
 
     # --- grasps -----------------------------------------------------------------------------------
     def take_grasp(self, close_pose: np.ndarray | None = None, open_pose: np.ndarray | None = None,
-                   T_world_hand: np.ndarray | None = None) -> GraspOutcome:
+                   T_world_hand: np.ndarray | None = None, index: int | None = None) -> GraspOutcome:
         """Close, wait until the fingers settle or stall, read every sensor, append the touches, open.
 
         ``T_world_hand`` [4, 4] defaults to the pose source's (board PnP through
         the hand-eye transform on a real rig, measured before closing; ground
         truth on the twin). Touches with no contact are recorded as such.
+        ``index`` (the grasp number) defaults to one after the last recorded grasp.
         """
         c = self.control
         q_close = np.asarray(c.close_pose if close_pose is None else close_pose, dtype=np.float64)
@@ -273,7 +274,9 @@ class CaptureLogger:
             est = self.poses.hand_pose(image)  # before the fingers move: CaptureRejected leaves the hand open
             T_world_hand, hand_rms = est.T, est.reprojection_px
         T_world_hand = check_rigid(T_world_hand, "T_world_hand")
-        index = self.next_grasp_index()
+        index = self.next_grasp_index() if index is None else int(index)
+        if any(t.grasp == index for t in self.writer.touches):
+            raise InvalidInputError(f"grasp {index} is already recorded")
         self.hand_state = "closing"
         t0 = self.clock.time()
         stopped_by, settled = self._close(q_close)

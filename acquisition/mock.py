@@ -8,7 +8,9 @@
 * the tactile sensors: the real :class:`~tacsplat.drivers.OpticalTactileSensor`
   reading looping videos of synthetic tactile images (untouched gel, then ball
   presses and a frame with no contact), with a calibration fitted on rendered
-  ball presses.
+  ball presses. Each grasp reads one frame per sensor, so the touches are
+  not geometrically consistent with the hand: the mock proves the code path,
+  not the tactile geometry (the twin does that).
 
 The generated files (videos, calibrations) are cached in a folder keyed by the
 settings, so a resumed or repeated mock capture reuses them. Faults for tests:
@@ -187,10 +189,11 @@ class MockDevices:
             press_images = [render_tactile_rgb(_ball_press(h, w, pix, *p), pix) for p in presses]
             TactileCalibration.fit(reference, press_images, BALL_RADIUS_M, pix).save(self.tactile_calibration)
             for i, s in enumerate(self.config.tactile.sensors):
-                # untouched gel, then per grasp: a press, a press, no contact, a press (shifted per finger)
-                order = [press_images[(i + k) % len(press_images)] for k in range(3)]
-                _write_video(self.tactile_video(s.finger), [reference] * REFERENCE_FRAMES + order[:2] + [reference]
-                             + order[2:])
+                # untouched gel (the reference), then one frame per grasp: three presses and, at a place that
+                # differs per finger, no contact (sensor 0: the 2nd grasp, 1: the 3rd, 2: the 4th, 3: the 1st)
+                readings = [press_images[(i + k) % len(press_images)] for k in range(3)]
+                readings.insert((i + 1) % 4, reference)
+                _write_video(self.tactile_video(s.finger), [reference] * REFERENCE_FRAMES + readings)
             (work / "done").write_text("ok\n")
             try:
                 os.replace(work, real)

@@ -1,0 +1,265 @@
+"""The operator session of ``tacsplat capture``: terminal only, one key per action.
+
+A live status line shows whether the board is seen and its reprojection error,
+the hand's state and the counts so far against the plan. Keys: Enter takes a
+view (train views first, then test views), ``g`` grasps, ``u`` undoes the last
+record (a view, or a whole grasp), ``q`` stops. End of input is ``q``. On a
+device fault the rig is closed first (the hand's context manager turns torque
+off), then the session says what failed and the exact command that resumes.
+
+Input is any text stream: a terminal (put in cbreak mode, so keys need no
+Enter), a pipe or pseudo-terminal (read byte by byte, with the status
+refreshed while waiting), or an in-memory stream of scripted keys.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import os
+import select
+import shlex
+import sys
+import termios
+import tty
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, TextIO
+
+from tacsplat.acquisition.config import CapturePlan, RigConfig
+from tacsplat.acquisition.devices import Rig, open_rig
+from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
+from tacsplat.datasets import SceneMeta, SceneWriter
+from tacsplat.datasets.writer import JOURNAL
+from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError
+
+log = logging.getLogger(__name__)
+
+KEYS_HELP = "[Enter] view  [g] grasp  [u] undo  [q] quit"
+EXIT_FAULT = 3  # a device failed; the scene is resumable
+EXIT_INTERRUPTED = 130
+
+
+def _fileno(stream) -> int | None:
+    try:
+        return stream.fileno()
+    except (AttributeError, io.UnsupportedOperation, ValueError):
+        return None
+
+
+@contextmanager
+def _cbreak(stream) -> Iterator[None]:
+    """Keys without Enter on a terminal (restored on exit)."""
+    fd = _fileno(stream)
+    if fd is None or not os.isatty(fd):
+        yield
+        return
+    saved = termios.tcgetattr(fd)
+    try:
+        tty.setcbreak(fd)
+        yield
+    finally:
+        termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+
+
+class CaptureSession:
+    """Maps keys to logger actions for one open rig and writer; ``run()`` returns when the operator stops."""
+
+    def __init__(self, rig: Rig, logger: CaptureLogger, plan: CapturePlan, keys: TextIO, out: TextIO,
+                 planner=None, refresh_s: float = 0.5):
+        self.rig = rig
+        self.logger = logger
+        self.plan = plan
+        self.keys = keys
+        self.out = out
+        self.planner = planner  # positions the twin before a view or grasp (None on a real rig: the operator does)
+        self.refresh_s = refresh_s
+        self._live = bool(getattr(out, "isatty", lambda: False)())
+
+    # --- display ----------------------------------------------------------------------------------
+    def board_status(self) -> str:
+        if self.rig.kind == "sim":
+            return "camera pose: ground truth"
+        image, _ = self.rig.camera.read()
+        try:
+            est = self.rig.poses.measure(image)
+        except CameraError:  # the board was not found in the frame (a read failure raised above)
+            return "board: NOT SEEN"
+        limit = self.rig.poses.board.max_reprojection_px
+        flag = "" if est.reprojection_px <= limit else f" OVER {limit:g}"
+        return f"board: seen, {est.corners} corners, {est.reprojection_px:.2f} px{flag}"
+
+    def status(self) -> str:
+        c, v, g = self.logger.counts(), self.plan.views, self.plan.grasps
+        return (f"{self.board_status()} | hand: {self.logger.hand_state} | views: train {c.train}/{v.train} "
+                f"test {c.test}/{v.test} | grasps {c.grasps}/{g.count} ({c.contacts}/{c.touches} touches in contact)"
+                f" | {KEYS_HELP}")
+
+    def show_status(self) -> None:
+        line = self.status()
+        if self._live:
+            self.out.write("\r\x1b[K" + line)
+        else:
+            self.out.write(line + "\n")
+        self.out.flush()
+
+    def say(self, message: str) -> None:
+        self.out.write(("\r\x1b[K" if self._live else "") + message + "\n")
+        self.out.flush()
+
+    # --- input ------------------------------------------------------------------------------------
+    def _keys(self) -> Iterator[str]:
+        fd = _fileno(self.keys)
+        while True:
+            if fd is None:
+                ch = self.keys.read(1)
+            else:
+                while not select.select([fd], [], [], self.refresh_s)[0]:
+                    if self._live:
+                        self.show_status()
+                ch = os.read(fd, 1).decode(errors="replace")
+            if ch == "":
+                return
+            yield ch
+
+    # --- actions ----------------------------------------------------------------------------------
+    def plan_complete(self) -> bool:
+        c, v = self.logger.counts(), self.plan.views
+        return c.train >= v.train and c.test >= v.test and c.grasps >= self.plan.grasps.count
+
+    def view(self) -> None:
+        c, v = self.logger.counts(), self.plan.views
+        if c.train < v.train:
+            split, index = "train", c.train
+        elif c.test < v.test:
+            split, index = "test", c.test
+        else:
+            self.say(f"all {v.train} train and {v.test} test views of the plan are taken (u undoes one)")
+            return
+        if self.planner is not None:
+            self.planner.before_view(split, index)
+        try:
+            outcome = self.logger.take_view(split)
+        except CaptureRejected as exc:
+            self.say(f"view NOT recorded: {exc}")
+            return
+        rms = "" if outcome.reprojection_px is None else f", board reprojection {outcome.reprojection_px:.2f} px"
+        self.say(f"view {outcome.frame.id} recorded ({split} {index + 1}/{getattr(v, split)}){rms}")
+
+    def grasp(self) -> None:
+        c = self.logger.counts()
+        if c.grasps >= self.plan.grasps.count:
+            self.say(f"all {self.plan.grasps.count} grasps of the plan are taken (u undoes one)")
+            return
+        try:
+            if self.planner is not None:
+                outcome = self.planner.grasp(self.logger, self.logger.next_grasp_index())
+                if outcome is None:
+                    self.say("grasp NOT recorded: no approach touched the object")
+                    return
+            else:
+                outcome = self.logger.take_grasp()
+        except CaptureRejected as exc:
+            self.say(f"grasp NOT recorded: {exc}")
+            return
+        contact = outcome.fingers_in_contact
+        missed = [t.finger for t in outcome.touches if not t.in_contact]
+        self.say(f"grasp {outcome.index} recorded: {len(outcome.touches)} touches, contact on "
+                 f"{', '.join(contact) or 'none'}" + (f"; no contact on {', '.join(missed)} (recorded)" if missed else "")
+                 + ("" if outcome.settled else "; fingers had not settled"))
+
+    def undo(self) -> None:
+        try:
+            self.say(f"undone: {self.logger.undo()}")
+        except CaptureRejected as exc:
+            self.say(str(exc))
+
+    def run(self) -> bool:
+        """Serve keys until ``q`` or the end of input; returns whether the plan is complete."""
+        self.show_status()
+        with _cbreak(self.keys):
+            for key in self._keys():
+                if key in ("\n", "\r"):
+                    self.view()
+                elif key in ("g", "G"):
+                    self.grasp()
+                elif key in ("u", "U"):
+                    self.undo()
+                elif key in ("q", "Q"):
+                    break
+                else:
+                    continue
+                self.show_status()
+        return self.plan_complete()
+
+
+def resume_command(rig_path: str | Path, out: str | Path, mock: bool) -> str:
+    return " ".join(["tacsplat", "capture", "--rig", shlex.quote(str(rig_path)), "--out", shlex.quote(str(out)),
+                     "--resume"] + (["--mock"] if mock else []))
+
+
+def open_writer(rig: Rig, config: RigConfig, out: Path, resume: bool) -> SceneWriter:
+    """A new scene for this rig and plan, or the same scene resumed (its plan must match)."""
+    plan = config.plan.to_json()
+    if resume:
+        writer = SceneWriter.resume(out)
+        if writer.meta.capture_plan != plan:
+            writer.close()
+            raise ConfigError("plan", f"{out} was captured with plan {writer.meta.capture_plan}, the rig file says {plan}",
+                              config.source)
+        return writer
+    if (out / JOURNAL).exists():
+        raise ConfigError("--out", f"{out} already holds a scene: add --resume to continue it, or choose a new folder")
+    writer = SceneWriter.create(out, rig.intrinsics, SceneMeta(rig.kind, rig.object_name, plan, rig.extra),
+                                rig.sensor_model)
+    if rig.twin is not None:
+        writer.set_gt_mesh(rig.twin.object_mesh)
+    return writer
+
+
+def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: TextIO | None = None,
+                output: TextIO | None = None, on_open=None) -> int:
+    """``tacsplat capture``: open the rig and the scene, serve the operator, close everything safely.
+
+    Returns 0 (plan complete), 1 (stopped before the plan was complete),
+    ``EXIT_FAULT`` (a device failed: the hand was left with torque off and the
+    scene is resumable) or 130 (interrupted). ``on_open(rig, logger)`` is
+    called once the devices are open (tests inject faults through it).
+    """
+    keys = sys.stdin if keys is None else keys
+    output = sys.stdout if output is None else output
+    out = Path(out)
+    again = resume_command(config.source or "RIG.yaml", out, config.mock)
+    fault: BaseException | None = None
+    complete = False
+    try:
+        with open_rig(config) as rig, open_writer(rig, config, out, resume) as writer:
+            logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
+            if logger.dropped_partial_grasp:
+                output.write(f"resumed: removed {logger.dropped_partial_grasp} touches of a grasp cut short; "
+                             "it will be redone whole\n")
+            planner = None
+            if rig.kind == "sim":
+                from tacsplat.acquisition.sim_capture import TwinPlanner
+
+                planner = TwinPlanner(rig.twin, config.plan, view_radius_m=config.plan.views.radius_m)
+            if on_open is not None:
+                on_open(rig, logger)
+            complete = CaptureSession(rig, logger, config.plan, keys, output, planner).run()
+    except (DeviceError, SimulationError) as exc:
+        fault = exc
+    except KeyboardInterrupt:
+        output.write(f"\ninterrupted; the hand's torque is off. Resume with:\n  {again}\n")
+        output.flush()
+        return EXIT_INTERRUPTED
+    if fault is not None:
+        output.write(f"\nDEVICE FAULT: {fault}\nThe hand's torque is off and the scene in {out} holds every record "
+                     f"completed before the fault. Fix the device, then resume with:\n  {again}\n")
+        output.flush()
+        return EXIT_FAULT
+    if complete:
+        output.write(f"\nplan complete: scene written to {out}\n")
+        return 0
+    output.write(f"\nstopped before the plan was complete; resume with:\n  {again}\n")
+    output.flush()
+    return 1
