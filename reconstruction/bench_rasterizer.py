@@ -62,5 +62,224 @@ def random_scene(
     return scene
 
 
+DEFAULT_SIZES = ("128x128:5000", "256x256:20000", "256x256:100000", "512x512:100000")
+PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def parse_size(text: str) -> tuple[int, int, int]:
+    """'WxH:N' -> (width, height, n_gaussians)."""
+    try:
+        res, n = text.split(":")
+        width, height = res.lower().split("x")
+        return int(width), int(height), int(n)
+    except ValueError as exc:
+        from tacsplat.errors import ConfigError
+
+        raise ConfigError("--sizes", f"expected WxH:N such as 256x256:20000, got {text!r}") from exc
+
+
+def _time_backend(scene: dict, backend: str, repeats: int) -> dict:
+    """Median wall times (ms) of forward and forward+backward after one warm-up run (none when repeats=0)."""
+    import time
+
+    from tacsplat.reconstruction import rasterization
+
+    params = {k: scene[k].detach().clone().requires_grad_(True) for k in PARAMS}
+    others = {k: v for k, v in scene.items() if k not in PARAMS}
+
+    def forward():
+        return rasterization(**params, **others, backend=backend)
+
+    def forward_backward():
+        img, alpha, meta = forward()
+        (img.sum() + alpha.sum()).backward()
+        return meta
+
+    meta = forward_backward()  # warm-up (and compile)
+    fwd, fwd_bwd = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        forward()
+        fwd.append(time.perf_counter() - start)
+        for p in params.values():
+            p.grad = None
+        start = time.perf_counter()
+        forward_backward()
+        fwd_bwd.append(time.perf_counter() - start)
+    out = {"visible_gaussians": int((meta["radii"] > 0).all(-1).sum())}
+    if repeats:
+        out["forward_ms"] = 1e3 * sorted(fwd)[len(fwd) // 2]
+        out["forward_backward_ms"] = 1e3 * sorted(fwd_bwd)[len(fwd_bwd) // 2]
+    for key in ("n_intersections", "n_pairs"):
+        if key in meta:
+            out[key] = meta[key]
+    return out
+
+
+def _vm_kib(field: str) -> int:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    raise RuntimeError(f"{field} not in /proc/self/status")
+
+
+def memory_worker(width: int, height: int, n: int) -> dict:
+    """Run in a fresh process: peak resident memory (VmHWM) around a first and a second cpu forward+backward.
+
+    ``peak_over_baseline_mb`` is the peak minus the resident memory after the imports and the
+    scene were made (it includes loading the cached kernels).
+    """
+    import tacsplat.reconstruction.raster_cpu  # noqa: F401  (imports numba and torch before the baseline)
+
+    scene = random_scene(n, width, height, sh_degree=3, seed=0)
+    baseline = _vm_kib("VmRSS")
+    _time_backend(scene, "cpu", repeats=1)
+    peak = _vm_kib("VmHWM")
+    return {"peak_rss_mb": peak / 1024, "peak_over_baseline_mb": (peak - baseline) / 1024}
+
+
+def compile_worker() -> dict:
+    """Run in a fresh process: time of the first cpu forward+backward minus a second one, on a tiny scene."""
+    import time
+
+    start = time.perf_counter()
+    scene = random_scene(200, 32, 32, sh_degree=3, seed=0)
+    setup = time.perf_counter() - start
+    times = []
+    for _ in range(2):
+        start = time.perf_counter()
+        _time_backend(scene, "cpu", repeats=0)
+        times.append(time.perf_counter() - start)
+    return {"first_call_s": times[0] - times[1], "setup_s": setup}
+
+
+def _in_subprocess(call: str, env_extra: dict | None = None) -> dict:
+    import json
+    import os
+    import subprocess
+    import sys
+
+    code = f"import json; from tacsplat.reconstruction import bench_rasterizer as b; print(json.dumps(b.{call}))"
+    env = dict(os.environ, **(env_extra or {}))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    if out.returncode != 0:
+        raise RuntimeError(f"benchmark worker {call} failed:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run_benchmark(sizes: list[str], repeats: int, torch_repeats: int, skip_torch: bool = False) -> dict:
+    """Time the cpu backend against the torch reference at each size; compile times; peak memory."""
+    import os
+    import platform
+    import tempfile
+
+    import torch
+    from tqdm import tqdm
+
+    import numba
+
+    results = {
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "numba_threads": numba.get_num_threads(),
+            "torch_threads": torch.get_num_threads(),
+            "load_average_at_start": list(os.getloadavg()),
+            "platform": platform.platform(),
+            "numba": numba.__version__,
+            "torch": torch.__version__,
+        },
+        "settings": {"repeats": repeats, "torch_repeats": torch_repeats, "sh_degree": 3, "radius_px": [1, 8]},
+        "sizes": [],
+    }
+    with tempfile.TemporaryDirectory() as cache_dir:
+        env = {"NUMBA_CACHE_DIR": cache_dir}
+        cold = _in_subprocess("compile_worker()", env)
+        warm = _in_subprocess("compile_worker()", env)
+    results["compile"] = {"cold_first_call_s": cold["first_call_s"], "cached_first_call_s": warm["first_call_s"]}
+    for text in tqdm(sizes, desc="bench rasterizer", unit="size"):
+        width, height, n = parse_size(text)
+        scene = random_scene(n, width, height, sh_degree=3, seed=0)
+        row = {"width": width, "height": height, "n_gaussians": n}
+        row["cpu"] = _time_backend(scene, "cpu", repeats)
+        if not skip_torch:
+            row["torch"] = _time_backend(scene, "torch", torch_repeats)
+            for key in ("forward_ms", "forward_backward_ms"):
+                row[f"speedup_{key[:-3]}"] = row["torch"][key] / row["cpu"][key]
+        pairs = row["cpu"]["n_pairs"]
+        row["cpu"]["ns_per_pair_forward"] = 1e6 * row["cpu"]["forward_ms"] / max(pairs, 1)
+        row["cpu"]["ns_per_pair_forward_backward"] = 1e6 * row["cpu"]["forward_backward_ms"] / max(pairs, 1)
+        row["cpu"].update(_in_subprocess(f"memory_worker({width}, {height}, {n})"))
+        results["sizes"].append(row)
+    results["machine"]["load_average_at_end"] = list(os.getloadavg())
+    return results
+
+
+def format_table(results: dict) -> str:
+    """The benchmark as a plain-text table."""
+    head = (
+        f"{'size':>9} {'N':>7} | {'torch fwd':>9} {'torch f+b':>9} | {'cpu fwd':>8} {'cpu f+b':>8} | "
+        f"{'x fwd':>6} {'x f+b':>6} | {'isects':>8} {'pairs':>10} {'ns/pair f+b':>11} | {'peak MB':>7} {'+MB':>6}"
+    )
+    lines = [head, "-" * len(head)]
+    for row in results["sizes"]:
+        cpu, ref = row["cpu"], row.get("torch")
+
+        def ms(v):
+            return f"{v:9.1f}" if v is not None else f"{'-':>9}"
+
+        lines.append(
+            f"{row['width']:>4}x{row['height']:<4} {row['n_gaussians']:>7} | "
+            f"{ms(ref and ref['forward_ms'])} {ms(ref and ref['forward_backward_ms'])} | "
+            f"{cpu['forward_ms']:8.1f} {cpu['forward_backward_ms']:8.1f} | "
+            f"{row.get('speedup_forward', float('nan')):6.1f} {row.get('speedup_forward_backward', float('nan')):6.1f} | "
+            f"{cpu['n_intersections']:>8} {cpu['n_pairs']:>10} {cpu['ns_per_pair_forward_backward']:11.1f} | "
+            f"{cpu['peak_rss_mb']:7.0f} {cpu['peak_over_baseline_mb']:6.0f}"
+        )
+    comp, mach = results["compile"], results["machine"]
+    lines.append(
+        f"numba first call: cold {comp['cold_first_call_s']:.1f} s, cached (second process) "
+        f"{comp['cached_first_call_s']:.1f} s"
+    )
+    lines.append(
+        f"times: median ms of the whole rasterization() call (projection, SH degree 3, compositing); "
+        f"{mach['cpu_count']} cores, numba threads {mach['numba_threads']}, torch threads {mach['torch_threads']}, "
+        f"load average {mach['load_average_at_start'][0]:.1f} at start, {mach['load_average_at_end'][0]:.1f} at end"
+    )
+    lines.append(
+        "pairs: pixel-Gaussian pairs the cpu forward evaluated; peak MB: VmHWM of a fresh process running the cpu "
+        "backend at that size, +MB: that peak over its resident memory after imports and scene set-up"
+    )
+    return "\n".join(lines)
+
+
+def _handler(args) -> int:
+    import json
+    from pathlib import Path
+
+    sizes = args.sizes or list(DEFAULT_SIZES)
+    for text in sizes:
+        parse_size(text)
+    results = run_benchmark(sizes, args.repeats, args.torch_repeats, skip_torch=args.skip_torch)
+    print(format_table(results))
+    if args.json:
+        path = Path(args.json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(results, indent=2))
+        print(f"wrote {path}")
+    return 0
+
+
 def register(cli) -> None:
-    """Add `bench rasterizer` (filled in below)."""
+    """Add `tacsplat bench rasterizer`."""
+    parser = cli.command(
+        "bench rasterizer",
+        help="time the cpu rasterizer against the torch reference (forward, forward+backward, memory, compile)",
+    )
+    parser.add_argument("--json", default=None, help="also write the results to this JSON file")
+    parser.add_argument("--sizes", nargs="+", default=None, metavar="WxH:N",
+                        help=f"image sizes and Gaussian counts (default: {' '.join(DEFAULT_SIZES)})")  # fmt: skip
+    parser.add_argument("--repeats", type=int, default=7, help="timed runs of the cpu backend per size (median)")
+    parser.add_argument("--torch-repeats", type=int, default=3, help="timed runs of the torch reference per size")
+    parser.add_argument("--skip-torch", action="store_true", help="do not time the (slow) torch reference")
+    parser.set_defaults(func=_handler)

@@ -137,8 +137,11 @@ def _fill_tiles(order, boxes, gauss_offsets, n_per_cam, tiles_x, tiles_per_cam, 
 
 @nb.njit(parallel=True, cache=True)
 def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, radii_y, colors, backgrounds,
-             width, height, tile_size, tiles_x, tiles_per_cam, out_color, out_trans, out_last):  # fmt: skip
-    """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T and n_contrib."""
+             width, height, tile_size, tiles_x, tiles_per_cam, out_color, out_trans, out_last, tile_pairs):  # fmt: skip
+    """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T and n_contrib.
+
+    ``tile_pairs[t]`` receives the number of pixel-Gaussian pairs evaluated in tile t.
+    """
     n_ch = colors.shape[1]
     for t in nb.prange(tile_start.shape[0] - 1):
         cam = t // tiles_per_cam
@@ -152,6 +155,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, rad
         last = np.zeros(n_pix, np.int64)
         done = np.zeros(n_pix, np.bool_)
         alive = n_pix
+        pairs = 0
         for k in range(tile_start[t], tile_start[t + 1]):
             if alive == 0:
                 break
@@ -163,6 +167,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, rad
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
                 x0, x1 = _row_span(a, b, c, log_limit, dy, mx, x_lo, x_hi)
+                pairs += max(x1 - x0, 0)
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
                     if done[p]:
@@ -184,6 +189,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, rad
                         acc[p, d] += weight * colors[g, d]
                     trans[p] = next_t
                     last[p] = k + 1
+        tile_pairs[t] = pairs
         for p in range(n_pix):
             py, px = divmod(p, tw)
             y, x = y_lo + py, x_lo + px
@@ -326,8 +332,10 @@ class _RasterizeCPU(torch.autograd.Function):
         out_trans = torch.empty((n_cams, height, width), dtype=torch.float32)
         last = np.empty((n_cams, height, width), np.int64)
         radii_y = np.ascontiguousarray(rad[:, 1])
-        _forward(tile_start, tile_gauss, m2d, con, opa, log_limits, radii_y, col, bgs,
-                 width, height, tile_size, tiles_x, tiles_per_cam, out_color.numpy(), out_trans.numpy(), last)  # fmt: skip
+        tile_pairs = np.empty(n_cams * tiles_per_cam, np.int64)
+        _forward(tile_start, tile_gauss, m2d, con, opa, log_limits, radii_y, col, bgs, width, height, tile_size,
+                 tiles_x, tiles_per_cam, out_color.numpy(), out_trans.numpy(), last, tile_pairs)  # fmt: skip
+        stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
 
         ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, log_limits, radii_y, col, bgs,
                            width, height, tile_size, tiles_x, tiles_per_cam)  # fmt: skip
@@ -335,11 +343,12 @@ class _RasterizeCPU(torch.autograd.Function):
         ctx.shapes = (n_cams, n, n_ch)
         ctx.has_background = backgrounds is not None
         ctx.save_for_backward(out_trans)
+        ctx.mark_non_differentiable(stats)
         alphas = (1.0 - out_trans).unsqueeze(-1)
-        return out_color.to(colors.dtype), alphas.to(colors.dtype)
+        return out_color, alphas, stats
 
     @staticmethod
-    def backward(ctx, v_color, v_alphas):
+    def backward(ctx, v_color, v_alphas, _v_stats):
         (out_trans,) = ctx.saved_tensors
         gauss_offsets, gauss_isect, last = ctx.binning
         n_cams, n, n_ch = ctx.shapes
@@ -371,8 +380,12 @@ def rasterize_to_pixels_cpu(
     height: int,
     tile_size: int = 16,
     backgrounds: Tensor | None = None,  # [C, D]
-) -> tuple[Tensor, Tensor]:
-    """Composite projected Gaussians into images -> (colors [C, H, W, D], alphas [C, H, W, 1]) on the CPU."""
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Composite projected Gaussians into images on the CPU.
+
+    Returns (colors [C, H, W, D], alphas [C, H, W, 1], stats [2] int64 = (tile-Gaussian
+    intersections, pixel-Gaussian pairs evaluated by the forward pass)).
+    """
     return _RasterizeCPU.apply(
         means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size
     )

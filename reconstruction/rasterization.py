@@ -96,7 +96,8 @@ def rasterization(
     ``retain_grad()`` on it before backward for densification), ``radii``
     [C, N, 2] int32 (0 = culled), ``depths`` [C, N], ``conics`` [C, N, 3],
     ``opacities`` [C, N], ``width``, ``height``, ``tile_size``, ``n_cameras``,
-    ``backend``.
+    ``backend``; the ``cpu`` backend adds ``n_intersections`` (tile-Gaussian
+    pairs) and ``n_pairs`` (pixel-Gaussian pairs its forward pass evaluated).
     """
     _check_tensor("means", means, (None, 3))
     n, dtype, device = means.shape[0], means.dtype, means.device
@@ -188,11 +189,13 @@ def rasterization(
     if chosen == "cpu":
         from tacsplat.reconstruction.raster_cpu import rasterize_to_pixels_cpu
 
-        render_colors, render_alphas = rasterize_to_pixels_cpu(
+        render_colors, render_alphas, stats = rasterize_to_pixels_cpu(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
             width, height, tile_size, bg,
         )  # fmt: skip
+        extra_meta = {"n_intersections": int(stats[0]), "n_pairs": int(stats[1])}
     else:
+        extra_meta = {}
         render_colors, render_alphas = rasterize_to_pixels_torch(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
             width, height, tile_size, bg,
@@ -212,5 +215,6 @@ def rasterization(
         "tile_size": tile_size,
         "n_cameras": n_cams,
         "backend": chosen,
+        **extra_meta,
     }
     return render_colors, render_alphas, meta
