@@ -39,6 +39,7 @@ from tacsplat.geometry import invert_pose, look_at, make_pose
 log = logging.getLogger(__name__)
 
 REFERENCE_FRAMES = 5  # untouched frames at the start of each tactile video (the sensor's reference)
+ASSET_VERSION = 2  # bump when the generated files change
 BALL_RADIUS_M = 4e-3
 SUPERSAMPLE = 2
 # The mock wrist camera sits 6 cm above the hand base, looking along the hand's z.
@@ -137,7 +138,7 @@ class MockDevices:
 
         self.config = config
         m = config.mock_devices
-        key = hashlib.sha1(json.dumps([asdict(m), asdict(config.board), [s.finger for s in config.tactile.sensors]],
+        key = hashlib.sha1(json.dumps([ASSET_VERSION, asdict(m), asdict(config.board), [s.finger for s in config.tactile.sensors]],
                                       sort_keys=True).encode()).hexdigest()[:12]
         root = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / f"tacsplat-mock-rig-{os.getuid()}"
         self.folder = root / key

@@ -1,0 +1,119 @@
+"""A whole mocked capture through the operator session: the real drivers against the servo emulator, looping
+tactile videos and a camera that sees a rendered ChArUco board; the scene validates and opens in reconstruction."""
+
+import io
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tacsplat.acquisition.config import load_rig
+from tacsplat.acquisition.devices import open_rig
+from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
+from tacsplat.acquisition.mock import MOCK_T_HAND_CAM
+from tacsplat.acquisition.session import run_capture
+from tacsplat.datasets import Scene, SceneMeta, SceneWriter, check_scene
+from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
+from tacsplat.geometry import invert_pose, rotation_angle_between
+from tacsplat.sim.hand import HandKinematics
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from acq_helpers import ScriptedKeys, write_mock_rig  # noqa: E402
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture
+def mock_rig(tmp_path):
+    return write_mock_rig(tmp_path)
+
+
+def test_scripted_session_writes_a_valid_scene_that_reconstruction_opens(tmp_path, mock_rig):
+    out = tmp_path / "scene"
+    # 2 views, undo one, 2 more (3 train); grasps 0 and 1, undo grasp 1 (all its touches), grasps 1 and 2;
+    # an unknown key is ignored; the test view; q
+    keys = "\n\nu\n\ngguggx\nq"
+    output = io.StringIO()
+    code = run_capture(load_rig(mock_rig, mock=True), out, keys=ScriptedKeys(keys), output=output)
+    text = output.getvalue()
+    assert code == 0, text
+    assert "undone: view 1 (train)" in text and "undone: grasp 1 (4 touches)" in text
+    assert "board: seen" in text and "views: train 3/3 test 1/1 | grasps 3/3" in text
+    assert "plan complete" in text
+
+    scene, problems = check_scene(out)
+    assert problems == []
+    scene = Scene.load(out)
+    assert [f.split for f in scene.frames] == ["train"] * 3 + ["test"]
+    assert [f.id for f in scene.frames] == [0, 1, 2, 3]
+    assert scene.meta.source == "real" and scene.meta.extra["mock"] is True
+    assert scene.sensor.width_px == 160 and scene.sensor.height_px == 120
+    # each grasp has one touch per finger; the mock tactile videos have no contact on the thumb in the first
+    # reading, the index in the second (the undone grasp), the middle in the third and the ring in the fourth
+    assert [(t.grasp, t.finger) for t in scene.touches] == [(g, f) for g in range(3)
+                                                          for f in ("index", "middle", "ring", "thumb")]
+    missed = {(t.grasp, t.finger) for t in scene.touches if not t.in_contact}
+    assert missed == {(0, "thumb"), (1, "middle"), (2, "ring")}
+    for t in scene.touches:  # a no-contact touch is recorded with its (all-zero) depth map, not dropped
+        assert (scene.load_touch_depth(t).max() > 0) == t.in_contact
+    assert len(scene.touch_points()) > 100
+
+    # opens in the reconstruction job: initialisation puts a touch Gaussian at each (thinned) touch point
+    from tacsplat.reconstruction.initialization import InitConfig
+    from tacsplat.reconstruction.trainer import TrainConfig, Trainer
+
+    trainer = Trainer(scene, tmp_path / "run", TrainConfig(iterations=1, backend="torch",
+                                                           init=InitConfig(use_sfm=False, num_random_points=200)))
+    trainer.initialize()
+    assert int(trainer.gaussians.from_touch.sum()) == len(trainer.touch_points) > 0
+
+
+def _kinematics_at(q):
+    return HandKinematics().fingertip_poses(np.clip(q, *HandKinematics().joint_limits.T))
+
+
+def test_grasp_touches_are_placed_with_board_pose_and_hand_eye(tmp_path, mock_rig):
+    """T_world_sensor = T_world_cam (board PnP) @ T_cam_hand @ T_hand_sensor (forward kinematics)."""
+    config = load_rig(mock_rig, mock=True)
+    with open_rig(config) as rig:
+        known = [T_WORLD_BOARD @ invert_pose(T) for T in rig.mock.camera_poses]  # the rendered camera poses
+        writer = SceneWriter.create(tmp_path / "s", rig.intrinsics, SceneMeta("real", "x", {}, {}), rig.sensor_model)
+        with writer:
+            logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
+            outcome = logger.take_grasp()
+            view = logger.take_view("train")
+            q_close = np.asarray(config.grasp.close_pose)
+            fk = _kinematics_at(q_close)
+    assert outcome.settled and set(outcome.stopped_by.values()) == {"reached"}  # nothing in the way
+    T_world_cam = outcome.T_world_hand @ MOCK_T_HAND_CAM
+    errors = [(np.linalg.norm(T_world_cam[:3, 3] - T[:3, 3]), rotation_angle_between(T_world_cam[:3, :3], T[:3, :3]))
+              for T in known]
+    best = min(errors)
+    assert best[0] < 0.002 and np.degrees(best[1]) < 0.3, best
+    for touch in outcome.touches:
+        expected = outcome.T_world_hand @ fk[touch.finger]
+        assert np.allclose(touch.T_world_sensor, expected, atol=2e-3), touch.finger  # servo ticks, not exact
+    assert view.reprojection_px < 0.5
+
+
+def test_views_with_a_bad_board_fit_or_no_board_are_rejected_with_a_message(tmp_path):
+    rig_file = write_mock_rig(tmp_path, board={"max_reprojection_px": 0.01})
+    output = io.StringIO()
+    code = run_capture(load_rig(rig_file, mock=True), tmp_path / "scene", keys=ScriptedKeys("\ng"), output=output)
+    text = output.getvalue()
+    assert code == 1, text  # stopped (end of input) with the plan incomplete
+    assert "view NOT recorded: board reprojection error" in text and "over the threshold 0.01 px" in text
+    assert "grasp NOT recorded" in text  # the hand pose comes from the same board fit
+    assert "tacsplat capture --rig" in text and "--resume --mock" in text
+    scene = Scene.load(tmp_path / "scene")
+    assert scene.frames == [] and scene.touches == []
+
+    with open_rig(load_rig(write_mock_rig(tmp_path), mock=True)) as rig:
+        writer = SceneWriter.create(tmp_path / "s2", rig.intrinsics, SceneMeta("real", "x", {}, {}), rig.sensor_model)
+        with writer:
+            logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
+            blank = np.full((rig.camera.height, rig.camera.width, 3), 128, np.uint8)
+            with pytest.raises(CaptureRejected, match="board not seen"):
+                logger.take_view("train", image=blank)
+            assert writer.num_frames == 0
