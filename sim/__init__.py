@@ -7,3 +7,10 @@ tactile RGB), ``camera`` (OpenCV-convention MuJoCo cameras), ``twin``
 (``SimTwin`` implementing Hand, TactileSensor and Camera), ``views``,
 ``grasps``, ``capture`` (sim-capture, simulate-touches) and ``bench``.
 """
+
+import ctypes.util as _ctypes_util
+import os as _os
+
+# Offscreen rendering: EGL where its library exists, else OSMesa (set before MuJoCo is imported).
+if "MUJOCO_GL" not in _os.environ:
+    _os.environ["MUJOCO_GL"] = "egl" if _ctypes_util.find_library("EGL") else "osmesa"

@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+import mujoco
+import numpy as np
 
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-
-from tacsplat.errors import CameraError  # noqa: E402
-from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv  # noqa: E402
-from tacsplat.types import CameraIntrinsics  # noqa: E402
+from tacsplat.errors import CameraError
+from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv
+from tacsplat.types import CameraIntrinsics
 
 
 def intrinsics_from_fovy(fovy_deg: float, width: int, height: int) -> CameraIntrinsics:

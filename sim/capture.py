@@ -1,17 +1,15 @@
-"""Simulated capture jobs: ``tacsplat sim-capture`` and ``tacsplat simulate-touches``.
+"""Simulated touches for existing scenes: ``tacsplat simulate-touches``.
 
-Both write through the one scene writer of ``tacsplat.datasets``. The plan is
-deterministic in the seed (views from :func:`hemisphere_views`, grasp ``g``
-from a generator seeded with ``(seed, g)`` on a freshly reset simulation), so
-``--resume`` continues a killed capture exactly where the journal stopped: it
-drops the touches of a grasp cut short and redoes that grasp.
+(``tacsplat sim-capture`` runs through the acquisition logger, as real
+captures do: :mod:`tacsplat.acquisition.sim_capture`, built on this package's
+views, preshape and tap.) Grasp ``g`` is deterministic in ``(seed, g)``: its
+approaches come from a generator seeded with both, each on a freshly reset
+simulation.
 """
 
 from __future__ import annotations
 
 import logging
-import time
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import mujoco
@@ -25,34 +23,12 @@ from tacsplat.sim.grasps import GraspConfig, GraspResult, PreshapeTable, execute
 from tacsplat.sim.hand import FINGER_NAMES
 from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere
 from tacsplat.sim.twin import SimTwin, TwinConfig
-from tacsplat.sim.views import ViewConfig, hemisphere_views
 from tacsplat.types import TactileReading
 
 log = logging.getLogger(__name__)
 
 SENSOR_NAME = "sim-digit"
 MAX_ATTEMPTS_PER_GRASP = 6
-
-
-@dataclass(frozen=True)
-class CapturePlan:
-    """What ``sim-capture`` records (stored in scene.json as the capture plan)."""
-
-    object: str = "teapot"
-    mesh: str | None = None
-    object_radius: float = DEFAULT_OBJECT_RADIUS
-    views: int = 5
-    test_views: int = 24
-    grasps: int = 5
-    resolution: int = 200
-    seed: int = 0
-
-    def __post_init__(self):
-        for key in ("views", "test_views", "grasps"):
-            if getattr(self, key) < 0:
-                raise ConfigError(key, f"must be non-negative, got {getattr(self, key)}")
-        if self.resolution < 8:
-            raise ConfigError("resolution", f"must be at least 8 pixels, got {self.resolution}")
 
 
 def sensor_model(twin: SimTwin, scale: float = 1.0) -> SensorModel:
@@ -72,72 +48,6 @@ def grasp_once(twin: SimTwin, table: PreshapeTable, seed: int, index: int, confi
             return result
     log.warning("grasp %d touched nothing in %d attempts; skipped", index, MAX_ATTEMPTS_PER_GRASP)
     return None
-
-
-def _complete_grasps(writer: SceneWriter) -> int:
-    """Drop the touches of a grasp cut short by a crash; return the number of complete grasps."""
-    complete = writer.num_touches // len(FINGER_NAMES)
-    while writer.num_touches > complete * len(FINGER_NAMES):
-        writer.remove_last()
-    return complete
-
-
-def sim_capture(plan: CapturePlan, out: str | Path, resume: bool = False, grasp_config: GraspConfig = GraspConfig()) -> dict:
-    """Capture a scene of a simulated object: train views, test views with GT depth, grasps; returns timings."""
-    t_start = time.perf_counter()
-    out = Path(out)
-    twin_cfg = TwinConfig(
-        object=plan.object, mesh_path=plan.mesh, object_radius=plan.object_radius, seed=plan.seed,
-        camera_width=plan.resolution, camera_height=plan.resolution,
-    )
-    plan_json = asdict(plan)
-    with SimTwin(twin_cfg) as twin:
-        t_twin = time.perf_counter()
-        if resume:
-            writer = SceneWriter.resume(out)
-            if writer.meta.capture_plan != plan_json:
-                writer.close()
-                raise ConfigError("resume", f"{out} was captured with plan {writer.meta.capture_plan}, not {plan_json}")
-        else:
-            meta = SceneMeta(
-                source="sim",
-                object=twin.object.name,
-                capture_plan=plan_json,
-                extra={
-                    "simulator": f"mujoco {mujoco.__version__}",
-                    "timestep_s": twin_cfg.timestep,
-                    "contact_timeconst_s": twin_cfg.contact_timeconst,
-                    "collision": f"CoACD convex decomposition ({len(twin.hulls)} hulls)",
-                    "tactile_depth": "parallel rays against the exact mesh (trimesh + Embree)",
-                    "gel_compliance_m": twin_cfg.hand_geometry.gel_compliance,
-                    "object_bounding_radius_m": twin.object.bounding_radius,
-                },
-            )
-            writer = SceneWriter.create(out, twin.view_camera.intrinsics, meta, sensor_model(twin))
-            writer.set_gt_mesh(twin.object_mesh)
-        with writer:
-            train, test = hemisphere_views(plan.views, plan.test_views, plan.object_radius, plan.seed, ViewConfig())
-            views = [(T, "train") for T in train] + [(T, "test") for T in test]
-            for T, split in tqdm(views[writer.num_frames :], desc="views", unit="view"):
-                twin.move_camera(T)
-                image, depth = twin.render_view()
-                writer.add_frame(image, T, split, gt_depth=depth if split == "test" else None)
-            t_views = time.perf_counter()
-            done = _complete_grasps(writer)
-            table = PreshapeTable(twin, grasp_config.preshape_grid, grasp_config.preshape_abduction)
-            for g in tqdm(range(done, plan.grasps), desc="grasps", unit="grasp"):
-                result = grasp_once(twin, table, plan.seed, g, grasp_config)
-                if result is None:
-                    continue
-                for finger in FINGER_NAMES:
-                    writer.add_reading(result.readings[finger], grasp=g, finger=finger)
-            t_end = time.perf_counter()
-    return {
-        "setup_s": t_twin - t_start,
-        "views_s": t_views - t_twin,
-        "grasps_s": t_end - t_views,
-        "total_s": t_end - t_start,
-    }
 
 
 def _scaled_reading(reading: TactileReading, T_scene_twin: np.ndarray, scale: float) -> TactileReading:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 
 
 def register(cli) -> None:
@@ -46,11 +45,11 @@ def register(cli) -> None:
 
 
 def _sim_capture(args) -> int:
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    from tacsplat.sim.capture import CapturePlan, sim_capture
+    """Through the acquisition logger, exactly as a real capture (tacsplat.acquisition.sim_capture)."""
+    from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
 
-    plan = CapturePlan(
-        object=args.object if not args.mesh else os.path.splitext(os.path.basename(args.mesh))[0],
+    config = sim_rig_config(
+        object=args.object,
         mesh=args.mesh,
         object_radius=args.object_radius,
         views=args.views,
@@ -59,13 +58,12 @@ def _sim_capture(args) -> int:
         resolution=args.resolution,
         seed=args.seed,
     )
-    timings = sim_capture(plan, args.out, resume=args.resume)
+    timings = sim_capture(config, args.out, resume=args.resume)
     print(json.dumps({"scene": args.out, **{k: round(v, 2) for k, v in timings.items()}}))
     return 0
 
 
 def _simulate_touches(args) -> int:
-    os.environ.setdefault("MUJOCO_GL", "egl")
     from tacsplat.sim.capture import simulate_touches
 
     target = simulate_touches(args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed)
@@ -74,7 +72,6 @@ def _simulate_touches(args) -> int:
 
 
 def _bench_sim(args) -> int:
-    os.environ.setdefault("MUJOCO_GL", "egl")
     from tacsplat.sim.bench import run_bench
 
     report = run_bench(args.out, quick=args.quick)

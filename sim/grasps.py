@@ -219,10 +219,11 @@ def execute_grasp(
 
 
 def generate_grasps(
-    twin: SimTwin, count: int, seed: int = 0, config: GraspConfig = GraspConfig(), max_attempts_factor: int = 4
+    twin: SimTwin, count: int, seed: int | None = None, config: GraspConfig = GraspConfig(), max_attempts_factor: int = 4
 ) -> list[GraspResult]:
-    """``count`` grasps in which at least one pad touched, from seeded random approaches."""
-    rng = np.random.default_rng(seed)
+    """``count`` grasps in which at least one pad touched, from random approaches seeded by ``seed``
+    (default: the twin's seed)."""
+    rng = np.random.default_rng(twin.config.seed if seed is None else seed)
     table = PreshapeTable(twin, config.preshape_grid, config.preshape_abduction)
     results: list[GraspResult] = []
     attempts = 0

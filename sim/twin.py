@@ -13,17 +13,14 @@ anything stiffer with a :class:`SimulationError`.
 from __future__ import annotations
 
 import logging
-import os
 from dataclasses import dataclass, field
 
-os.environ.setdefault("MUJOCO_GL", "egl")
+import mujoco
+import numpy as np
+import trimesh
 
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-import trimesh  # noqa: E402
-
-from tacsplat.errors import ConfigError, InvalidInputError, SimulationError  # noqa: E402
-from tacsplat.geometry import (  # noqa: E402
+from tacsplat.errors import ConfigError, InvalidInputError, SimulationError
+from tacsplat.geometry import (
     check_rigid,
     invert_pose,
     make_pose,
@@ -31,8 +28,8 @@ from tacsplat.geometry import (  # noqa: E402
     opencv_to_opengl,
     quat_wxyz_to_matrix,
 )
-from tacsplat.sim.camera import MujocoCamera  # noqa: E402
-from tacsplat.sim.hand import (  # noqa: E402
+from tacsplat.sim.camera import MujocoCamera
+from tacsplat.sim.hand import (
     FINGER_NAMES,
     HAND_MATERIALS,
     JOINT_LIMITS,
@@ -42,7 +39,7 @@ from tacsplat.sim.hand import (  # noqa: E402
     hand_body_xml,
     site_pose,
 )
-from tacsplat.sim.objects import (  # noqa: E402
+from tacsplat.sim.objects import (
     DEFAULT_OBJECT_RADIUS,
     DecompositionConfig,
     SimObject,
@@ -50,8 +47,8 @@ from tacsplat.sim.objects import (  # noqa: E402
     load_mesh_object,
     make_object,
 )
-from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer  # noqa: E402
-from tacsplat.types import TactileReading  # noqa: E402
+from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer
+from tacsplat.types import TactileReading
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +72,7 @@ class TwinConfig:
     object: str = "teapot"  # a library name (tacsplat.sim.objects.OBJECT_NAMES); ignored with mesh_path
     mesh_path: str | None = None  # any .obj/.ply/.stl instead of a library object
     object_radius: float = DEFAULT_OBJECT_RADIUS  # bounding-sphere radius in metres
-    seed: int = 0
+    seed: int = 0  # default seed of the twin's random grasps
     camera_width: int = 200
     camera_height: int = 200
     view_fovy_deg: float = 40.0  # the free view camera

@@ -1,4 +1,4 @@
-"""sim-capture and simulate-touches (tacsplat.sim.capture) through the scene writer."""
+"""The sim-capture command (through the acquisition logger) and simulate-touches (tacsplat.sim.capture)."""
 
 import os
 
@@ -8,13 +8,13 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import trimesh  # noqa: E402
 
-import tacsplat.sim.capture as capture  # noqa: E402
 from tacsplat.cli import main  # noqa: E402
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter  # noqa: E402
 from tacsplat.errors import ConfigError  # noqa: E402
-from tacsplat.sim.capture import CapturePlan, sim_capture, simulate_touches  # noqa: E402
+from tacsplat.sim.capture import simulate_touches  # noqa: E402
 
-PLAN = dict(object="car", views=2, test_views=3, grasps=2, resolution=64, seed=5)
+CAPTURE_ARGS = ["sim-capture", "--object", "car", "--views", "2", "--test-views", "3", "--grasps", "2",
+                "--resolution", "64", "--seed", "5"]
 
 
 def _touch_signature(scene: Scene):
@@ -24,9 +24,7 @@ def _touch_signature(scene: Scene):
 @pytest.fixture(scope="module")
 def captured(tmp_path_factory):
     out = tmp_path_factory.mktemp("cap") / "scene"
-    args = ["sim-capture", "--object", "car", "--views", "2", "--test-views", "3", "--grasps", "2",
-            "--resolution", "64", "--seed", "5", "--out", str(out)]
-    assert main(args) == 0
+    assert main(CAPTURE_ARGS + ["--out", str(out)]) == 0
     return out
 
 
@@ -44,28 +42,11 @@ def test_sim_capture_writes_a_valid_scene_with_ground_truth(captured):
     assert depth.shape == (64, 64) and (depth > 0).any()
 
 
-def test_resume_finishes_an_interrupted_capture_identically(captured, tmp_path, monkeypatch):
-    out = tmp_path / "scene"
-    real = capture.grasp_once
-
-    def dies_at_second_grasp(twin, table, seed, index, config):
-        if index == 1:
-            raise KeyboardInterrupt
-        return real(twin, table, seed, index, config)
-
-    monkeypatch.setattr(capture, "grasp_once", dies_at_second_grasp)
-    with pytest.raises(KeyboardInterrupt):
-        sim_capture(CapturePlan(**PLAN), out)
-    monkeypatch.setattr(capture, "grasp_once", real)
-    with SceneWriter.resume(out) as writer:  # a grasp cut short: two of its four touches written
-        writer.add_touch(np.zeros((128, 160), np.float32), np.eye(4), grasp=1, finger="index")
-        writer.add_touch(np.zeros((128, 160), np.float32), np.eye(4), grasp=1, finger="middle")
-    sim_capture(CapturePlan(**PLAN), out, resume=True)
-    resumed, reference = Scene.load(out), Scene.load(captured)
-    assert len(resumed.frames) == len(reference.frames)
-    assert _touch_signature(resumed) == _touch_signature(reference)
-    with pytest.raises(ConfigError, match="resume"):
-        sim_capture(CapturePlan(**{**PLAN, "grasps": 3}), out, resume=True)
+def test_resume_of_a_finished_capture_changes_nothing(captured, tmp_path):
+    before = _touch_signature(Scene.load(captured))
+    assert main(CAPTURE_ARGS + ["--out", str(captured), "--resume"]) == 0
+    after = Scene.load(captured)
+    assert len(after.frames) == 5 and _touch_signature(after) == before
 
 
 def test_simulate_touches_on_an_imported_unit_scale_scene(captured, tmp_path):
