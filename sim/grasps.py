@@ -107,7 +107,7 @@ def _pretouch_candidates(twin: SimTwin, table: PreshapeTable, finger: str, T_wor
     T = T_world_hand @ table.T_hand_sensor[finger]  # [N, 4, 4]
     origins, normals = T[:, :3, 3], T[:, :3, 2]
     mesh = twin.object_mesh
-    tri, ray = twin.tactile_renderer._intersector.intersects_id(origins, normals, multiple_hits=False)
+    tri, ray = twin.tactile_renderer.intersector.intersects_id(origins, normals, multiple_hits=False)
     face_n = mesh.face_normals[tri]
     cos = -np.einsum("ij,ij->i", face_n, normals[ray])
     gap = np.einsum("ij,ij->i", mesh.triangles[tri, 0] - origins[ray], face_n) / np.where(cos == 0, 1, -cos)

@@ -118,7 +118,7 @@ class TactileDepthRenderer:
     def __init__(self, mesh_world: trimesh.Trimesh, config: TactileConfig = TactileConfig()):
         self.config = config
         self.mesh = mesh_world
-        self._intersector = trimesh.ray.ray_pyembree.RayMeshIntersector(mesh_world)
+        self.intersector = trimesh.ray.ray_pyembree.RayMeshIntersector(mesh_world)
         self._centre, self._radius = bounding_sphere(mesh_world)
         x, y = tactile_pixel_grid(config.height_px, config.width_px, config.pixel_size_m)
         z0 = -(config.gel_thickness_m + config.ray_margin_m)
@@ -137,7 +137,7 @@ class TactileDepthRenderer:
         origins = transform_points(T, self._origins_sensor)
         direction = T[:3, 2]
         directions = np.broadcast_to(direction, origins.shape)
-        tri, ray = self._intersector.intersects_id(origins, directions, multiple_hits=False, return_locations=False)
+        tri, ray = self.intersector.intersects_id(origins, directions, multiple_hits=False, return_locations=False)
         normals = self.mesh.face_normals[tri]
         denom = normals @ direction
         t = np.einsum("ij,ij->i", self.mesh.triangles[tri, 0] - origins[ray], normals) / np.where(denom == 0, 1, denom)
