@@ -69,7 +69,7 @@ def _open_real(config: RigConfig) -> Iterator[Rig]:
             mock = stack.enter_context(MockDevices(config))
             port, hand_cal = mock.emulator.path, None
             hand_settings = DynamixelHandConfig(min_packet_timeout_s=config.mock_devices.servo_timeout_s, drain_s=0.1)
-            cam_source, cam_cal, cam_factory = str(mock.camera_video), str(mock.camera_calibration), mock.capture_factory("camera")
+            cam_source, cam_cal, cam_factory = mock.camera_source, str(mock.camera_calibration), mock.capture_factory("camera")
         else:
             port, hand_settings = config.hand.port, None
             hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None

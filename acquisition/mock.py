@@ -27,6 +27,7 @@ import os
 import shutil
 import tempfile
 import threading
+import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -40,6 +41,7 @@ log = logging.getLogger(__name__)
 
 REFERENCE_FRAMES = 5  # untouched frames at the start of each tactile video (the sensor's reference)
 ASSET_VERSION = 2  # bump when the generated files change
+LIVE_CAMERA_FPS = 30.0
 BALL_RADIUS_M = 4e-3
 SUPERSAMPLE = 2
 # The mock wrist camera sits 6 cm above the hand base, looking along the hand's z.
@@ -47,11 +49,13 @@ MOCK_T_HAND_CAM = make_pose(np.eye(3), [0.0, -0.06, 0.0])
 
 
 class LoopingCapture:
-    """A ``cv2.VideoCapture`` of a file that starts again at its end (a live device that never runs out);
-    :meth:`stall` makes ``read`` block as a hung USB camera does."""
+    """A ``cv2.VideoCapture`` of a file that starts again at its end (a device that never runs out), paced at
+    ``fps`` like a live camera when given; :meth:`stall` makes ``read`` block as a hung USB camera does."""
 
-    def __init__(self, path: str):
+    def __init__(self, path: str, fps: float | None = None):
         self._cap = cv2.VideoCapture(path)
+        self._period = 1.0 / fps if fps else 0.0
+        self._next = time.monotonic()
         self._stalled = threading.Event()
         self._released = threading.Event()
 
@@ -65,6 +69,9 @@ class LoopingCapture:
         return self._cap.get(prop)
 
     def read(self):
+        if self._period:
+            self._next += self._period
+            self._released.wait(max(0.0, self._next - time.monotonic()))
         if self._stalled.is_set():
             self._released.wait()
             return False, None
@@ -207,11 +214,20 @@ class MockDevices:
             self.folder = real
 
     # --- devices ----------------------------------------------------------------------------------
+    @property
+    def camera_source(self) -> str:
+        """The wrist camera's source name: not a file path, so the driver reads it as a live device (the newest
+        frame, paced at 30 fps) rather than a file (every frame in order)."""
+        return f"mock-camera:{self.camera_video}"
+
     def capture_factory(self, name: str):
         """A ``capture_factory`` for the drivers' video readers that loops the file and remembers the capture."""
 
         def factory(source):
-            cap = LoopingCapture(str(source))
+            if name == "camera":
+                cap = LoopingCapture(str(self.camera_video), fps=LIVE_CAMERA_FPS)
+            else:
+                cap = LoopingCapture(str(source))
             self.captures[name] = cap
             return cap
 

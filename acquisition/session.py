@@ -151,6 +151,7 @@ class CaptureSession:
         if c.grasps >= self.plan.grasps.count:
             self.say(f"all {self.plan.grasps.count} grasps of the plan are taken (u undoes one)")
             return
+        self.say(f"grasp {self.logger.next_grasp_index()}: closing the hand")
         try:
             if self.planner is not None:
                 outcome = self.planner.grasp(self.logger, self.logger.next_grasp_index())

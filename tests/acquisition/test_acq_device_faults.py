@@ -1,0 +1,66 @@
+"""Device faults mid-capture (a servo stops answering; the camera stops giving frames): a clear message naming
+the device and the exact resume command, torque off on the emulated servos, and a scene that resumes."""
+
+import io
+import sys
+from pathlib import Path
+
+import pytest
+
+from tacsplat.acquisition.config import load_rig
+from tacsplat.acquisition.session import EXIT_FAULT, run_capture
+from tacsplat.datasets import Scene, check_scene
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from acq_helpers import ScriptedKeys, write_mock_rig  # noqa: E402
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _capture_with_fault(tmp_path, keys: str, fault_before_key: int, inject):
+    rig = write_mock_rig(tmp_path)
+    out = tmp_path / "scene"
+    opened = {}
+    output = io.StringIO()
+    code = run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys(keys, {fault_before_key: lambda: inject(opened)}),
+                       output=output, on_open=lambda rig, logger: opened.update(rig=rig))
+    return code, output.getvalue(), opened["rig"].mock, rig, out
+
+
+def _resume_to_the_end(rig, out, keys):
+    output = io.StringIO()
+    code = run_capture(load_rig(rig, mock=True), out, resume=True, keys=ScriptedKeys(keys), output=output)
+    assert code == 0, output.getvalue()
+    return Scene.load(out)
+
+
+def test_servo_that_stops_answering_mid_grasp(tmp_path):
+    # one view, one grasp, then servo 6 (middle_2) is cut off just before the second grasp
+    code, text, mock, rig, out = _capture_with_fault(
+        tmp_path, "\ngg\n", 2, lambda opened: opened["rig"].mock.emulator.disconnect(6))
+    assert code == EXIT_FAULT, text
+    assert "DEVICE FAULT" in text and "Dynamixel hand" in text and "servo 6" in text and "middle_2" in text, text
+    assert "torque is off" in text
+    assert f"tacsplat capture --rig {rig} --out {out} --resume --mock" in text
+    torque = mock.emulator.torque_enabled()
+    assert not any(on for sid, on in torque.items() if sid != 6), torque  # every servo that answers is off
+    scene, problems = check_scene(out)
+    assert problems == [] and len(scene.frames) == 1 and [t.grasp for t in scene.touches] == [0] * 4
+
+    scene = _resume_to_the_end(rig, out, "\n\ngg\n")
+    assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4
+    assert [f.split for f in scene.frames] == ["train"] * 3 + ["test"]
+
+
+def test_camera_that_stops_giving_frames(tmp_path):
+    code, text, mock, rig, out = _capture_with_fault(
+        tmp_path, "\n\ng\n", 2, lambda opened: opened["rig"].mock.stall_camera())
+    assert code == EXIT_FAULT, text
+    assert "DEVICE FAULT: wrist camera: no new frame within 1 s" in text, text
+    assert f"--out {out} --resume --mock" in text
+    assert not any(mock.emulator.torque_enabled().values())
+    scene = Scene.load(out)
+    assert len(scene.frames) == 2 and scene.touches == []
+
+    scene = _resume_to_the_end(rig, out, "\nggg\n")
+    assert [f.split for f in scene.frames] == ["train"] * 3 + ["test"] and len(scene.touches) == 12
