@@ -1,0 +1,86 @@
+"""Simulated capture through the same logger as the real rig: touches on the object's surface, the operator
+session and the unattended job write the same scene, and a grasp cut short is redone identically."""
+
+import io
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+import yaml
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from tacsplat.acquisition.config import load_rig  # noqa: E402
+from tacsplat.acquisition.session import run_capture  # noqa: E402
+from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config  # noqa: E402
+from tacsplat.datasets import Scene, SceneWriter, check_scene  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from acq_helpers import ScriptedKeys  # noqa: E402
+
+pytestmark = pytest.mark.timeout(180)
+
+PLAN = dict(object="bell", views=2, test_views=1, grasps=2, resolution=64, seed=3)
+
+
+def _records(path: Path) -> list:
+    scene = Scene.load(path)
+    frames = [((path / f.file_path).read_bytes(), f.split, f.T_world_cam.tobytes()) for f in scene.frames]
+    touches = [(scene.load_touch_depth(t).tobytes(), t.grasp, t.finger, t.T_world_sensor.tobytes()) for t in scene.touches]
+    return frames + touches
+
+
+@pytest.fixture(scope="module")
+def sim_scene(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "scene"
+    timings = sim_capture(sim_rig_config(**PLAN), out, progress=False)
+    assert set(timings) == {"setup_s", "views_s", "grasps_s", "total_s"}
+    return out
+
+
+def test_sim_capture_scene_is_valid_and_every_touch_lies_on_the_object(sim_scene):
+    scene, problems = check_scene(sim_scene)
+    assert problems == []
+    assert [f.split for f in scene.frames] == ["train", "train", "test"]
+    assert scene.gt_depth(scene.frames[0]) is None and scene.gt_depth(scene.frames[2]) is not None
+    assert scene.meta.source == "sim" and scene.meta.object == "bell"
+    assert sorted({t.grasp for t in scene.touches}) == [0, 1]
+    for g in (0, 1):  # four touches a grasp, at least one in contact (no-contact pads recorded as such)
+        touches = [t for t in scene.touches if t.grasp == g]
+        assert [t.finger for t in touches] == ["index", "middle", "ring", "thumb"]
+        assert any(t.in_contact for t in touches)
+    mesh = trimesh.load(scene.gt_mesh_path, force="mesh")
+    points = scene.touch_points()
+    distance = np.abs(trimesh.proximity.signed_distance(mesh, points))
+    assert len(points) > 50
+    assert distance.mean() < 3e-4 and distance.max() < 1e-3, (distance.mean(), distance.max())
+
+
+def test_operator_session_on_the_twin_writes_the_same_scene_as_the_unattended_job(sim_scene, tmp_path):
+    rig = tmp_path / "sim.yaml"
+    rig.write_text(yaml.safe_dump({
+        "rig": "sim", "object": "bell",
+        "sim": {"object": "bell", "resolution": 64, "seed": 3},
+        "plan": {"views": {"train": 2, "test": 1, "mode": "hemisphere"}, "grasps": {"count": 2, "mode": "random", "seed": 3}},
+    }))
+    output = io.StringIO()
+    code = run_capture(load_rig(rig), tmp_path / "scene", keys=ScriptedKeys("\n\n\ngg"), output=output)
+    assert code == 0, output.getvalue()
+    assert "camera pose: ground truth" in output.getvalue()
+    assert _records(tmp_path / "scene") == _records(sim_scene)
+
+
+def test_sim_grasp_cut_short_is_redone_identically_on_resume(sim_scene, tmp_path):
+    import shutil
+
+    out = tmp_path / "scene"
+    shutil.copytree(sim_scene, out)
+    complete = _records(out)
+    with SceneWriter.resume(out) as writer:  # what a kill after two of grasp 1's four touches leaves
+        writer.remove_last()
+        writer.remove_last()
+    sim_capture(sim_rig_config(**PLAN), out, resume=True, progress=False)
+    assert _records(out) == complete
