@@ -36,7 +36,7 @@ class GraspConfig:
     preshape_grid: int = 13  # samples per flexion joint when searching each finger's pre-touch pose
     preshape_abduction: tuple[float, ...] = (-0.3, 0.0, 0.3)  # abduction angles searched, radians
     max_pretouch_gap_m: float = 0.03  # the pad stops at most this far in front of the surface
-    min_alignment_cos: float = 0.7  # pad normal against the surface normal, at least this cosine
+    min_alignment_cos: float = 0.85  # pad normal against the surface normal, at least this cosine
     tap_speed: float = 0.6  # rad/s along the tap direction of the flexion joints
     max_tap_rad: float = 0.8  # give up a tap after this much motion
     press_rad: float = 0.04  # keep pushing this much past the first pad contact
