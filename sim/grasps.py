@@ -1,8 +1,11 @@
-"""Simulated grasps: approach, close until the pads touch or the joints stall, read, open, retreat.
+"""Simulated grasps: approach, preshape, tap until the pads touch or the fingers stall, read, open, retreat.
 
-Built only from the twin's Protocol-level operations (hand commands, the
-twin's clock, tactile reads) plus the simulator-only placement of the hand
-base, so the acquisition logger can run the same steps on the real rig.
+Finger motion goes through the twin's Protocol-level operations (hand
+commands, the twin's clock, tactile reads). Simulator-only help: placing the
+hand base (mocap), choosing each finger's preshape against the known mesh and
+the collision model, and seeing pad contacts in MuJoCo's contact list. The
+acquisition logger runs the same preshape and tap through the Protocols
+(:mod:`tacsplat.acquisition.sim_capture`), detecting contact by stall.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ log = logging.getLogger(__name__)
 # gains check_physics allows.
 PENETRATION_BOUND_M = 0.0015  # any allowed gains and tap speeds up to 4 rad/s (tested)
 DEFAULT_PENETRATION_BOUND_M = 0.0005  # default gains and tap speed (tested)
+
 
 @dataclass(frozen=True)
 class GraspConfig:
