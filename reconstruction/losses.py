@@ -141,17 +141,27 @@ def sobel_kernels_5x5(dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _gradients(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """|d/dx|, |d/dy| of [C, H, W] ('valid' convolution, [C, H-4, W-4])."""
+    """|d/dx|, |d/dy| of [C, H, W] ('valid' convolution, [C, H-4, W-4]), both kernels in one call."""
     kx, ky = sobel_kernels_5x5(image.dtype)
-    x = image[:, None]
-    return F.conv2d(x, kx.to(image.device))[:, 0].abs(), F.conv2d(x, ky.to(image.device))[:, 0].abs()
+    both = F.conv2d(image[:, None], torch.cat([kx, ky]).to(image.device)).abs()  # [C, 2, H-4, W-4]
+    return both[:, 0], both[:, 1]
+
+
+def image_edge_weights(image: torch.Tensor, beta: float = 10.0) -> torch.Tensor:  # image [H, W, 3]
+    """The image factors of Eq. 8, e^{-beta |dI/dx|} and e^{-beta |dI/dy|}, [2, H-4, W-4].
+
+    They depend on the ground-truth image only, so a trainer computes them once per view.
+    """
+    dx_i, dy_i = _gradients(image.permute(2, 0, 1))
+    return torch.stack([torch.exp(-beta * dx_i.mean(0)), torch.exp(-beta * dy_i.mean(0))])
 
 
 def edge_aware_smoothness(
     depth: torch.Tensor,  # [H, W] rendered depth
-    image: torch.Tensor,  # [H, W, 3] ground-truth image
+    image: torch.Tensor | None = None,  # [H, W, 3] ground-truth image
     proximity: torch.Tensor | None = None,  # [H, W] in [0, 1]
     beta: float = 10.0,
+    weights: torch.Tensor | None = None,  # [2, H-4, W-4] from image_edge_weights, instead of image
 ) -> torch.Tensor:
     """Eq. 8: mean of |dD/dx| e^{-beta |dI/dx|} + |dD/dy| e^{-beta |dI/dy|}, weighted by 1 - proximity.
 
@@ -159,11 +169,17 @@ def edge_aware_smoothness(
     ramp of slope a per pixel gives a; the image gradient is the mean over
     colour channels. Only pixels whose 5x5 window lies inside the image count.
     """
-    if depth.ndim != 2 or image.shape[:2] != depth.shape:
-        raise InvalidInputError(f"edge_aware_smoothness: depth {tuple(depth.shape)} and image {tuple(image.shape)} do not match")
+    if weights is None:
+        if image is None or depth.ndim != 2 or image.shape[:2] != depth.shape:
+            raise InvalidInputError(
+                f"edge_aware_smoothness: depth {tuple(depth.shape)} needs an image of the same size, got "
+                f"{None if image is None else tuple(image.shape)}"
+            )
+        weights = image_edge_weights(image, beta)
+    elif depth.ndim != 2 or tuple(weights.shape) != (2, depth.shape[0] - 4, depth.shape[1] - 4):
+        raise InvalidInputError(f"edge_aware_smoothness: weights {tuple(weights.shape)} do not fit depth {tuple(depth.shape)}")
     dx_d, dy_d = _gradients(depth[None])
-    dx_i, dy_i = _gradients(image.permute(2, 0, 1))
-    term = dx_d[0] * torch.exp(-beta * dx_i.mean(0)) + dy_d[0] * torch.exp(-beta * dy_i.mean(0))
+    term = dx_d[0] * weights[0] + dy_d[0] * weights[1]
     if proximity is not None:
         term = term * (1.0 - proximity[2:-2, 2:-2])
     return term.mean()

@@ -45,18 +45,15 @@ def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sig
     y = target.permute(0, 3, 1, 2)
     channels = x.shape[1]
     g = _gaussian_window(window, sigma, x)
-    w_row = g.reshape(1, 1, 1, window).expand(channels, 1, 1, window)
-    w_col = g.reshape(1, 1, window, 1).expand(channels, 1, window, 1)
+    stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # one separable blur of all five moments
+    k = stacked.shape[1]
     pad = window // 2
-
-    def blur(t: torch.Tensor) -> torch.Tensor:  # separable: rows then columns, zero padding
-        t = F.conv2d(t, w_row, padding=(0, pad), groups=channels)
-        return F.conv2d(t, w_col, padding=(pad, 0), groups=channels)
-
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = blur(x * x) - mu_x**2
-    var_y = blur(y * y) - mu_y**2
-    cov = blur(x * y) - mu_x * mu_y
+    blurred = F.conv2d(stacked, g.reshape(1, 1, 1, window).expand(k, 1, 1, window), padding=(0, pad), groups=k)
+    blurred = F.conv2d(blurred, g.reshape(1, 1, window, 1).expand(k, 1, window, 1), padding=(pad, 0), groups=k)
+    mu_x, mu_y, xx, yy, xy = blurred.split(channels, dim=1)
+    var_x = xx - mu_x**2
+    var_y = yy - mu_y**2
+    cov = xy - mu_x * mu_y
     c1, c2 = 0.01**2, 0.03**2
     num = (2 * mu_x * mu_y + c1) * (2 * cov + c2)
     den = (mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2)

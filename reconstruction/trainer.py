@@ -71,6 +71,7 @@ class TrainConfig:
     touch_candidates: int = 32  # nearest G_t fetched from the k-d tree per touch point
     touch_max_distance: float = 0.005  # metres: Gaussians farther from the point are ignored
     touch_rebuild_every: int = 50  # steps between k-d tree rebuilds (and after every densification)
+    touch_points_per_step: int = 512  # random subset of touch points in L_T per step (0 = all)
     # smoothness (Sec. 4.2.2)
     smoothness_beta: float = 10.0  # edge sensitivity e^{-beta |dI|}
     proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
@@ -207,6 +208,7 @@ class Trainer:
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.densify_state: DensifyState | None = None
         self._ground_truth = None
+        self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
         self._sums = {"loss": 0.0, "photometric": 0.0, "transmittance": 0.0, "smoothness": 0.0}
         self._sum_count = 0
 
@@ -244,7 +246,8 @@ class Trainer:
             "opacities": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN,
         }  # fmt: skip
         self.optimizers = {
-            name: torch.optim.Adam([self.gaussians.params[name]], lr=lr, eps=1e-15) for name, lr in rates.items()
+            name: torch.optim.Adam([self.gaussians.params[name]], lr=lr, eps=1e-15)
+            for name, lr in rates.items()
         }
 
     # ------------------------------------------------------------------ one step
@@ -274,8 +277,12 @@ class Trainer:
         terms = {"photometric": float(photometric.detach()), "transmittance": 0.0, "smoothness": 0.0}
         if self.use_touch_loss:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
+            points = self.touch_tensor
+            if 0 < cfg.touch_points_per_step < len(points):  # an unbiased estimate of the mean over P_t
+                subset = torch.randperm(len(points), generator=self.generator)[: cfg.touch_points_per_step]
+                points, candidates = points[subset], candidates[subset]
             transmittance = losses.transmittance_loss(
-                self.touch_tensor, g.means, g.quats, g.scales, g.opacities, candidates,
+                points, g.means, g.quats, g.scales, g.opacities, candidates,
                 cfg.touch_top_k, cfg.touch_max_distance,
             )  # fmt: skip
             loss = loss + cfg.lambda_t * transmittance
@@ -294,7 +301,11 @@ class Trainer:
                     losses.proximity_mask(rows, cols, frame.intrinsics.width, frame.intrinsics.height,
                                           cfg.proximity_sigma_px)
                 )  # fmt: skip
-            smoothness = losses.edge_aware_smoothness(depth / self.scene_scale, target, proximity, cfg.smoothness_beta)
+            if view not in self._edge_weights:
+                self._edge_weights[view] = losses.image_edge_weights(target, cfg.smoothness_beta)
+            smoothness = losses.edge_aware_smoothness(
+                depth / self.scene_scale, proximity=proximity, weights=self._edge_weights[view]
+            )
             loss = loss + cfg.lambda_s * smoothness
             terms["smoothness"] = float(smoothness.detach())
         terms["loss"] = float(loss.detach())
