@@ -5,7 +5,6 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import cv2  # noqa: E402
-import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import trimesh  # noqa: E402
