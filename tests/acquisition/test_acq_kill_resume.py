@@ -3,6 +3,7 @@ touches were cut short is redone whole."""
 
 import io
 import os
+import pty
 import signal
 import subprocess
 import sys
@@ -33,26 +34,40 @@ def _snapshot(scene_dir: Path) -> dict:
     return {**frames, **touches}
 
 
-class _Lines:
-    """Collects a process's output lines in a thread; ``wait_for`` blocks until a line contains a text."""
+class _Terminal:
+    """The operator's side of a pseudo-terminal: collects the output in a thread (the live status line has no
+    newline); ``wait_for`` blocks until a text appears after the last ``type``; ``type`` sends keys."""
 
-    def __init__(self, stream):
-        self.lines: list[str] = []
+    def __init__(self, master_fd: int):
+        self.fd = master_fd
+        self.text = ""
+        self._since = 0
         self._cond = threading.Condition()
-        threading.Thread(target=self._run, args=(stream,), daemon=True).start()
+        threading.Thread(target=self._run, daemon=True).start()
 
-    def _run(self, stream):
-        for line in stream:
+    def _run(self):
+        while True:
+            try:
+                chunk = os.read(self.fd, 4096)
+            except OSError:  # EIO: the other side is gone
+                chunk = b""
+            if not chunk:
+                return
             with self._cond:
-                self.lines.append(line)
+                self.text += chunk.decode(errors="replace")
                 self._cond.notify_all()
+
+    def type(self, keys: str) -> None:
+        with self._cond:
+            self._since = len(self.text)
+        os.write(self.fd, keys.encode())
 
     def wait_for(self, text: str, timeout_s: float = 30.0) -> None:
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while not any(text in line for line in self.lines):
+            while text not in self.text[self._since :]:
                 remaining = deadline - time.monotonic()
-                assert remaining > 0, f"no {text!r} in the output:\n{''.join(self.lines)}"
+                assert remaining > 0, f"no {text!r} in the output:\n{self.text}"
                 self._cond.wait(remaining)
 
 
@@ -61,23 +76,26 @@ def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path
     rig = write_mock_rig(tmp_path, grasp={"close_speed_rad_s": 0.6})
     (tmp_path / "fast").mkdir()
     out = tmp_path / "scene"
+    master, slave = pty.openpty()  # the session runs in a terminal: single keys (cbreak), a live status line
     proc = subprocess.Popen([sys.executable, "-m", "tacsplat.cli", "capture", "--rig", rig, "--out", str(out), "--mock"],
-                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdin=slave, stdout=slave, stderr=slave, close_fds=True)
+    os.close(slave)
     try:
-        lines = _Lines(proc.stdout)
-        proc.stdin.write("\n\n\ng")
-        proc.stdin.flush()
-        lines.wait_for("grasp 0 recorded")
-        proc.stdin.write("g")
-        proc.stdin.flush()
-        lines.wait_for("grasp 1: closing")
+        term = _Terminal(master)
+        term.wait_for("board: seen")
+        term.type("\r\r\rg")
+        term.wait_for("grasp 0 recorded")
+        term.type("g")
+        term.wait_for("grasp 1: closing")
         time.sleep(0.4)
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
     finally:
         if proc.poll() is None:
             proc.kill()
+        os.close(master)
     assert proc.returncode == -signal.SIGKILL
+    assert "\r\x1b[Kboard: seen" in term.text  # the live status line, redrawn in place
     before = _snapshot(out)  # the index is consistent after the kill
     assert sorted(k for k in before if k[0] == "frame") == [("frame", i) for i in range(3)]
     assert sorted(k for k in before if k[0] == "touch") == [("touch", i) for i in range(4)]  # grasp 0 only
