@@ -122,4 +122,6 @@ def _raw_mesh(path: str | Path):
     """The mesh file as the twin loads it, before centring and scaling."""
     import trimesh
 
+    if not Path(path).is_file():
+        raise ConfigError("mesh", f"file not found: {path}")
     return trimesh.load(Path(path), force="mesh", process=True)
