@@ -7,9 +7,10 @@ Same maths as :func:`raster_torch.rasterize_to_pixels_torch` (float32):
    two-pass counting sort lays the (tile, Gaussian) intersections out tile by
    tile, front to back;
 2. forward -- parallel over tiles; inside a tile the loop is Gaussian-outer:
-   each Gaussian visits only the pixels of each row where its exponent can
-   stay under ``ln(255 * opacity)`` (solved per row, padded by one pixel, then
-   tested exactly before any ``exp``), compositing front to back with alpha
+   each Gaussian visits only the rows and, per row, the columns where its
+   exponent can stay under ``ln(255 * opacity)`` (the ellipse solved in float64,
+   widened by 1e-3 pixel, then each pixel tested exactly before any ``exp``),
+   compositing front to back with alpha
    clamped at 0.99, skipped under 1/255, and a pixel stopping before its
    transmittance would reach 1e-4;
 3. backward -- parallel over tiles, back to front, transmittance recovered by
@@ -37,33 +38,48 @@ _MAX_ALPHA = F32(MAX_ALPHA)
 _ALPHA_MIN = F32(ALPHA_THRESHOLD)
 _T_MIN = F32(TRANSMITTANCE_THRESHOLD)
 _LOG_SLACK = F32(1e-3)  # the pre-test skips exp only when the exponent is clearly past ln(255 o)
+_TILE_CHUNK = 4  # tiles per scheduling chunk: tile costs vary a lot, so threads take chunks dynamically
 N_GRAD = 6  # per-intersection gradient row: d means2d (2), d conic (3), d opacity (1), then d colour (D)
 
 
-@nb.njit(cache=True, inline="always")
-def _row_span(a, b, c, log_limit, dy, mx, x_lo, x_hi):
-    """Columns [x0, x1) of one pixel row (offset dy = mean_y - centre_y) where the exponent may be <= log_limit.
+_SPAN_EPS = 1e-3  # pixels of margin around the exact row and column ranges (float rounding)
 
-    Solves 0.5 a dx^2 + b dy dx + 0.5 c dy^2 <= log_limit for dx = mean_x - centre_x,
-    pads by one pixel and clips to [x_lo, x_hi).
+
+@nb.njit(cache=True, inline="always")
+def _row_range(a, b, c, limit, my, y_lo, y_hi):
+    """Rows [r0, r1) of a tile whose pixel centres can have an exponent <= limit.
+
+    The ellipse 0.5 [dx dy] Q [dx dy]^T <= limit (Q = conic) reaches |dy| <= sqrt(2 limit a / det Q);
+    a degenerate float32 conic falls back to the whole tile.
+    """
+    a64, b64, c64 = float(a), float(b), float(c)
+    det = a64 * c64 - b64 * b64
+    if not (det > 0.0 and a64 > 0.0):
+        return y_lo, y_hi
+    ext = math.sqrt(2.0 * float(limit) * a64 / det)
+    lo = min(max(float(my) - ext - 0.5 - _SPAN_EPS, y_lo - 1.0), y_hi + 1.0)
+    hi = min(max(float(my) + ext - 0.5 + _SPAN_EPS, y_lo - 1.0), y_hi + 1.0)
+    return max(y_lo, int(math.ceil(lo))), min(y_hi, int(math.floor(hi)) + 1)
+
+
+@nb.njit(cache=True, inline="always")
+def _row_span(a, b, c, limit, dy, mx, x_lo, x_hi):
+    """Columns [x0, x1) of one pixel row (dy = mean_y - centre_y) whose centres can have an exponent <= limit.
+
+    Solves 0.5 a dx^2 + b dy dx + 0.5 c dy^2 <= limit for dx = mean_x - centre_x in float64,
+    widens by a thousandth of a pixel and clips to [x_lo, x_hi).
     """
     a64, b64, c64, dy64 = float(a), float(b), float(c), float(dy)
-    disc = (b64 * dy64) ** 2 - a64 * (c64 * dy64 * dy64 - 2.0 * float(log_limit))
-    half = math.sqrt(max(disc, 0.0)) / a64
+    if not a64 > 0.0:
+        return x_lo, x_hi
+    disc = (b64 * dy64) ** 2 - a64 * (c64 * dy64 * dy64 - 2.0 * float(limit))
+    if not disc >= 0.0:
+        return x_lo, x_lo
+    half = math.sqrt(disc) / a64
     centre = -b64 * dy64 / a64
-    lo = float(mx) - 0.5 - (centre + half) - 1.0
-    hi = float(mx) - 0.5 - (centre - half) + 1.0
-    lo = min(max(lo, x_lo - 1.0), x_hi + 1.0)
-    hi = min(max(hi, x_lo - 1.0), x_hi + 1.0)
-    return max(x_lo, int(math.floor(lo))), min(x_hi, int(math.floor(hi)) + 1)
-
-
-@nb.njit(cache=True, inline="always")
-def _row_range(my, ry, y_lo, y_hi):
-    """Pixel rows [r0, r1) of a tile that the box of half-height ry (padded by one pixel) reaches."""
-    lo = min(max(float(my) - ry - 1.5, y_lo - 1.0), y_hi + 1.0)
-    hi = min(max(float(my) + ry + 0.5, y_lo - 1.0), y_hi + 1.0)
-    return max(y_lo, int(math.floor(lo))), min(y_hi, int(math.floor(hi)) + 1)
+    lo = min(max(float(mx) - (centre + half) - 0.5 - _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
+    hi = min(max(float(mx) - (centre - half) - 0.5 + _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
+    return max(x_lo, int(math.ceil(lo))), min(x_hi, int(math.floor(hi)) + 1)
 
 
 @nb.njit(parallel=True, cache=True)
@@ -136,7 +152,7 @@ def _fill_tiles(order, boxes, gauss_offsets, n_per_cam, tiles_x, tiles_per_cam, 
 
 
 @nb.njit(parallel=True, cache=True)
-def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, radii_y, colors, backgrounds,
+def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
              width, height, tile_size, tiles_x, tiles_per_cam, out_color, out_trans, out_last, tile_pairs):  # fmt: skip
     """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T and n_contrib.
 
@@ -162,11 +178,11 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, rad
             g = tile_gauss[k]
             mx, my = means2d[g, 0], means2d[g, 1]
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-            opac, log_limit = opacities[g], log_limits[g]
-            r0, r1 = _row_range(my, radii_y[g], y_lo, y_hi)
+            opac, limit = opacities[g], limits[g]
+            r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
-                x0, x1 = _row_span(a, b, c, log_limit, dy, mx, x_lo, x_hi)
+                x0, x1 = _row_span(a, b, c, limit, dy, mx, x_lo, x_hi)
                 pairs += max(x1 - x0, 0)
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
@@ -174,7 +190,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, rad
                         continue
                     dx = mx - (F32(x) + _HALF)
                     sigma = _HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < _ZERO or sigma > log_limit + _LOG_SLACK:
+                    if sigma < _ZERO or sigma > limit:
                         continue
                     alpha = min(_MAX_ALPHA, opac * math.exp(-sigma))
                     if alpha < _ALPHA_MIN:
@@ -200,7 +216,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, rad
 
 
 @nb.njit(parallel=True, cache=True)
-def _backward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, radii_y, colors, backgrounds,
+def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
               width, height, tile_size, tiles_x, tiles_per_cam, final_trans, last_contrib, v_color, v_alpha,
               rows):  # fmt: skip
     """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``."""
@@ -238,21 +254,21 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, log_limits, ra
             g = tile_gauss[k]
             mx, my = means2d[g, 0], means2d[g, 1]
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-            opac, log_limit = opacities[g], log_limits[g]
+            opac, limit = opacities[g], limits[g]
             g_mx = g_my = g_a = g_b = g_c = g_o = _ZERO
             for d in range(n_ch):
                 rows[k, N_GRAD + d] = _ZERO
-            r0, r1 = _row_range(my, radii_y[g], y_lo, y_hi)
+            r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
-                x0, x1 = _row_span(a, b, c, log_limit, dy, mx, x_lo, x_hi)
+                x0, x1 = _row_span(a, b, c, limit, dy, mx, x_lo, x_hi)
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
                     if k >= last[p]:
                         continue
                     dx = mx - (F32(x) + _HALF)
                     sigma = _HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < _ZERO or sigma > log_limit + _LOG_SLACK:
+                    if sigma < _ZERO or sigma > limit:
                         continue
                     vis = math.exp(-sigma)
                     alpha = min(_MAX_ALPHA, opac * vis)
@@ -313,8 +329,8 @@ class _RasterizeCPU(torch.autograd.Function):
         rad = np.ascontiguousarray(radii.detach().cpu().numpy().astype(np.float64)).reshape(-1, 2)
         dep = _numpy32(depths).reshape(-1)
         bgs = np.zeros((n_cams, n_ch), np.float32) if backgrounds is None else _numpy32(backgrounds)
-        with np.errstate(divide="ignore"):
-            log_limits = np.log(np.float32(255.0) * opa).astype(np.float32)  # alpha >= 1/255 <=> sigma <= this
+        with np.errstate(divide="ignore"):  # alpha >= 1/255 <=> exponent <= ln(255 o); culled o = 0 gives -inf
+            limits = (np.log(np.float32(255.0) * opa) + _LOG_SLACK).astype(np.float32)
 
         boxes = np.empty((n_cams * n, 4), np.int64)
         counts = np.empty(n_cams * n, np.int64)
@@ -331,13 +347,13 @@ class _RasterizeCPU(torch.autograd.Function):
         out_color = torch.empty((n_cams, height, width, n_ch), dtype=torch.float32)
         out_trans = torch.empty((n_cams, height, width), dtype=torch.float32)
         last = np.empty((n_cams, height, width), np.int64)
-        radii_y = np.ascontiguousarray(rad[:, 1])
         tile_pairs = np.empty(n_cams * tiles_per_cam, np.int64)
-        _forward(tile_start, tile_gauss, m2d, con, opa, log_limits, radii_y, col, bgs, width, height, tile_size,
-                 tiles_x, tiles_per_cam, out_color.numpy(), out_trans.numpy(), last, tile_pairs)  # fmt: skip
+        with nb.parallel_chunksize(_TILE_CHUNK):
+            _forward(tile_start, tile_gauss, m2d, con, opa, limits, col, bgs, width, height, tile_size,
+                     tiles_x, tiles_per_cam, out_color.numpy(), out_trans.numpy(), last, tile_pairs)  # fmt: skip
         stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
 
-        ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, log_limits, radii_y, col, bgs,
+        ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, limits, col, bgs,
                            width, height, tile_size, tiles_x, tiles_per_cam)  # fmt: skip
         ctx.binning = (gauss_offsets, gauss_isect, last)
         ctx.shapes = (n_cams, n, n_ch)
@@ -355,7 +371,8 @@ class _RasterizeCPU(torch.autograd.Function):
         v_col = _numpy32(v_color)
         v_alp = _numpy32(v_alphas[..., 0])
         rows = np.empty((gauss_isect.shape[0], N_GRAD + n_ch), np.float32)
-        _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, rows)
+        with nb.parallel_chunksize(_TILE_CHUNK):
+            _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, rows)
         per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
         _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
         grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)
