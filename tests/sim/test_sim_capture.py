@@ -73,3 +73,9 @@ def test_simulate_touches_on_an_imported_unit_scale_scene(captured, tmp_path):
     points = scene.touch_points()
     _, distance, _ = trimesh.proximity.closest_point(mesh, points)
     assert len(points) > 0 and distance.mean() < 3e-4 * scale and distance.max() < 1e-3 * scale
+    # a scene with this sensor model is extended in place, numbering grasps on
+    simulate_touches(mesh_path, out, grasps=1, seed=3)
+    extended = Scene.load(out)
+    assert len(extended.touches) == 8 and sorted({t.grasp for t in extended.touches}) == [0, 1]
+    with pytest.raises(ConfigError, match="in place"):
+        simulate_touches(mesh_path, out, grasps=1, out=tmp_path / "other")
