@@ -199,6 +199,14 @@ def resume_command(rig_path: str | Path, out: str | Path, mock: bool) -> str:
                      "--resume"] + (["--mock"] if mock else []))
 
 
+def check_out(out: Path, resume: bool) -> None:
+    """Before any device is opened: ``--out`` must hold a scene to resume, or none to create."""
+    if resume and not (out / JOURNAL).is_file():
+        raise ConfigError("--resume", f"{out} holds no scene to resume (no {JOURNAL}); drop --resume to start one")
+    if not resume and (out / JOURNAL).exists():
+        raise ConfigError("--out", f"{out} already holds a scene: add --resume to continue it, or choose a new folder")
+
+
 def open_writer(rig: Rig, config: RigConfig, out: Path, resume: bool) -> SceneWriter:
     """A new scene for this rig and plan, or the same scene resumed (its plan must match)."""
     plan = config.plan.to_json()
@@ -209,8 +217,6 @@ def open_writer(rig: Rig, config: RigConfig, out: Path, resume: bool) -> SceneWr
             raise ConfigError("plan", f"{out} was captured with plan {writer.meta.capture_plan}, the rig file says {plan}",
                               config.source)
         return writer
-    if (out / JOURNAL).exists():
-        raise ConfigError("--out", f"{out} already holds a scene: add --resume to continue it, or choose a new folder")
     writer = SceneWriter.create(out, rig.intrinsics, SceneMeta(rig.kind, rig.object_name, plan, rig.extra),
                                 rig.sensor_model)
     if rig.twin is not None:
@@ -230,6 +236,7 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
     keys = sys.stdin if keys is None else keys
     output = sys.stdout if output is None else output
     out = Path(out)
+    check_out(out, resume)
     again = resume_command(config.source or "RIG.yaml", out, config.mock)
     fault: BaseException | None = None
     complete = False

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, ViewPlan, validate
 from tacsplat.acquisition.logger import CaptureLogger, GraspOutcome
+from tacsplat.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -142,12 +143,13 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
     """Capture a scene on the twin, unattended: train views, test views with GT depth, grasps; returns timings
     in seconds (``setup_s``, ``views_s``, ``grasps_s``, ``total_s``)."""
     from tacsplat.acquisition.devices import open_rig
-    from tacsplat.acquisition.session import open_writer
+    from tacsplat.acquisition.session import check_out, open_writer
 
     if config.rig != "sim":
-        raise ValueError("sim_capture needs a rig: sim config")
+        raise ConfigError("rig", f"sim_capture runs the twin; got rig: {config.rig}", config.source)
     t0 = time.perf_counter()
     out = Path(out)
+    check_out(out, resume)
     with open_rig(config) as rig, open_writer(rig, config, out, resume) as writer:
         logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
         planner = TwinPlanner(rig.twin, config.plan, view_radius_m=config.plan.views.radius_m)

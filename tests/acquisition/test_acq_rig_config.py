@@ -84,3 +84,19 @@ def test_sim_rig_checks_its_object(tmp_path):
     with pytest.raises(ConfigError) as err:
         load_rig(path)
     assert err.value.key == "sim.object" and "teapot" in str(err.value)
+
+
+def test_capture_command_checks_the_output_folder_before_opening_devices(tmp_path, capsys):
+    from tacsplat.cli import main
+
+    rig = str(example_rig("mock"))
+    assert main(["capture", "--rig", rig, "--out", str(tmp_path / "none"), "--resume", "--mock"]) == 1
+    assert "--resume: " in capsys.readouterr().err
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "journal.jsonl").write_text("{}\n")
+    assert main(["capture", "--rig", rig, "--out", str(tmp_path / "old"), "--mock"]) == 1
+    assert "already holds a scene: add --resume" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("rig: real\nhand: {port: 3}\n")
+    assert main(["capture", "--rig", str(bad), "--out", str(tmp_path / "new"), "--mock"]) == 1
+    assert f"{bad}: hand.port: expected a non-empty string" in capsys.readouterr().err
