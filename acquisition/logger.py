@@ -251,7 +251,7 @@ class CaptureLogger:
         est = self.poses.camera_pose(image)
         gt = self.poses.ground_truth_depth() if split == "test" else None
         frame = self.writer.add_frame(image, est.T, split, gt_depth=gt)
-        log.info("view %d (%s) recorded%s", frame.id, split,
+        log.debug("view %d (%s) recorded%s", frame.id, split,
                  "" if est.reprojection_px is None else f", board reprojection {est.reprojection_px:.2f} px")
         return ViewOutcome(frame, est.reprojection_px)
 
@@ -291,7 +291,7 @@ class CaptureLogger:
         self.open(q_open)
         outcome = GraspOutcome(index, touches, stopped_by, settled, close_s, T_world_hand, hand_rms)
         no_contact = [t.finger for t in touches if not t.in_contact]
-        log.info("grasp %d recorded: %d touches (%s), stopped by %s%s", index, len(touches),
+        log.debug("grasp %d recorded: %d touches (%s), stopped by %s%s", index, len(touches),
                  f"no contact on {', '.join(no_contact)}" if no_contact else "all in contact", stopped_by,
                  "" if settled else "; the fingers had not settled")
         return outcome
