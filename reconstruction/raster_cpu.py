@@ -275,13 +275,15 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                     if alpha < _ALPHA_MIN:
                         continue
                     ra = _ONE / (_ONE - alpha)
-                    trans[p] *= ra
-                    fac = alpha * trans[p]
+                    t_p = trans[p] * ra  # transmittance in front of this Gaussian
+                    trans[p] = t_p
+                    fac = alpha * t_p
                     v_alpha_p = t_final[p] * ra * v_a[p]
                     for d in range(n_ch):
-                        rows[k, N_GRAD + d] += fac * v_c[p, d]
-                        v_alpha_p += (colors[g, d] * trans[p] - buf[p, d] * ra) * v_c[p, d]
-                        buf[p, d] += colors[g, d] * fac
+                        col, vcol = colors[g, d], v_c[p, d]
+                        rows[k, N_GRAD + d] += fac * vcol
+                        v_alpha_p += (col * t_p - buf[p, d] * ra) * vcol
+                        buf[p, d] += col * fac
                     if opac * vis <= _MAX_ALPHA:
                         v_sigma = -opac * vis * v_alpha_p
                         g_a += _HALF * v_sigma * dx * dx
