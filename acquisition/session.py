@@ -186,7 +186,7 @@ class CaptureSession:
                     self.grasp()
                 elif key in ("u", "U"):
                     self.undo()
-                elif key in ("q", "Q"):
+                elif key in ("q", "Q", "\x04"):  # q, or Ctrl-D (a literal character in cbreak mode)
                     break
                 else:
                     continue

@@ -44,7 +44,7 @@ class TwinPlanner:
         self.grasp_config = grasp_config or GraspConfig()
         radius = twin.object.bounding_radius
         view_config = ViewConfig() if view_radius_m is None else ViewConfig(radius_factor=view_radius_m / radius)
-        train, test = hemisphere_views(plan.views.train, plan.views.test, radius, plan.grasps.seed, view_config)
+        train, test = hemisphere_views(plan.views.train, plan.views.test, radius, twin.config.seed, view_config)
         self.view_poses = {"train": train, "test": test}
         self._table = None
 
