@@ -67,8 +67,11 @@ class GroundTruth:
     points: dict[int, np.ndarray]  # frame id -> [M, 3] visible GT surface
     radius: float
     source: str
+    shared: np.ndarray | None = None  # [M, 3] one cloud for every view (a GT point cloud given by path)
 
     def cloud(self, frame_ids: list[int]) -> np.ndarray:
+        if self.shared is not None:
+            return self.shared
         return np.concatenate([self.points[i] for i in frame_ids if i in self.points] or [np.zeros((0, 3))])
 
 
@@ -103,7 +106,7 @@ def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) ->
         cloud = np.asarray(getattr(loaded, "vertices", []), dtype=np.float64)
         if len(cloud) == 0:
             raise SceneFormatError(gt_path, None, "no faces and no points")
-        return GroundTruth({f.id: cloud for f in frames[:1]}, bounding_sphere_radius(cloud), f"points {gt_path}")
+        return GroundTruth({}, bounding_sphere_radius(cloud), f"points {gt_path}", shared=cloud)
     points = {}
     for f in frames:
         depth = scene.gt_depth(f)
@@ -137,7 +140,7 @@ def evaluate_views(
         ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         predicted.append(depth_to_points(depth, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
-            gt_depth = scene.gt_depth(f) if ground_truth is not None and f.id in ground_truth.points else None
+            gt_depth = scene.gt_depth(f)
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth)
     cd = float("nan")
     if ground_truth is not None:
@@ -195,6 +198,7 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
         "scene": str(run.scene_path),
         "settings": run.config.to_json(),
     }
+    result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
     (Path(run_dir) / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
     return result
 

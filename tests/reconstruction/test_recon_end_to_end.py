@@ -172,3 +172,8 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
     assert again["gt_source"].startswith("mesh") and again["gt_radius"] == pytest.approx(RADIUS, rel=1e-3)
     assert printed["cd"] == pytest.approx(again["cd"])
     assert again["cd"] == pytest.approx(metrics["cd"], rel=0.2)  # mesh and analytic depth give the same surface
+    cloud_path = tmp_path / "sphere_points.ply"
+    trimesh.PointCloud(trimesh.creation.icosphere(subdivisions=5, radius=RADIUS).vertices).export(cloud_path)
+    assert tacsplat_main(["evaluate", str(run), "--gt-mesh", str(cloud_path)]) == 0
+    from_cloud = json.loads((run / "metrics.json").read_text())
+    assert from_cloud["gt_source"].startswith("points") and np.isfinite(from_cloud["cd"])
