@@ -1,4 +1,4 @@
-"""`tacsplat` subcommands of tacsplat.acquisition: capture (see tacsplat.cli)."""
+"""`tacsplat` subcommands of tacsplat.acquisition: capture, sim-capture (see tacsplat.cli)."""
 
 from __future__ import annotations
 
@@ -21,9 +21,40 @@ def register(cli) -> None:
                    "sensors, a camera that sees a rendered board)")
     p.set_defaults(func=_capture)
 
+    p = cli.command(
+        "sim-capture",
+        help="simulated capture: train views, test views with ground truth, and grasps, into a scene directory",
+        description="Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin "
+        "places the camera on the hemisphere and the hand on sampled approaches; the logger closes the hand until "
+        "the fingers stall, reads the pads and writes). Deterministic in --seed; --resume continues a killed capture.",
+    )
+    p.add_argument("--object", default="teapot", help="library object (teapot, toaster, bell, helmet, torus, car)")
+    p.add_argument("--mesh", default=None, help="any .obj/.ply/.stl mesh instead of a library object")
+    p.add_argument("--object-radius", type=float, default=0.08, help="bounding-sphere radius in metres")
+    p.add_argument("--views", type=int, default=5, help="train views")
+    p.add_argument("--test-views", type=int, default=24, help="held-out test views (with GT depth in gt/)")
+    p.add_argument("--grasps", type=int, default=5, help="grasps of four touches each")
+    p.add_argument("--resolution", type=int, default=200, help="image width and height in pixels")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
+    p.add_argument("--resume", action="store_true", help="continue a capture that was interrupted")
+    p.set_defaults(func=_sim_capture)
+
 
 def _capture(args) -> int:
     from tacsplat.acquisition.config import load_rig
     from tacsplat.acquisition.session import run_capture
 
     return run_capture(load_rig(args.rig, mock=args.mock), args.out, resume=args.resume)
+
+
+def _sim_capture(args) -> int:
+    import json
+
+    from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
+
+    config = sim_rig_config(object=args.object, mesh=args.mesh, object_radius=args.object_radius, views=args.views,
+                            test_views=args.test_views, grasps=args.grasps, resolution=args.resolution, seed=args.seed)
+    timings = sim_capture(config, args.out, resume=args.resume)
+    print(json.dumps({"scene": args.out, **{k: round(v, 2) for k, v in timings.items()}}))
+    return 0

@@ -64,7 +64,7 @@ class TwinPlanner:
         """Reset the simulation, place the hand on a sampled approach, preshape it; returns the close pose [16]."""
         import mujoco
 
-        from tacsplat.sim.grasps import sample_hand_pose
+        from tacsplat.sim.grasps import preshape_fingers, sample_hand_pose, tap_close_pose
 
         twin = self.twin
         mujoco.mj_resetData(twin.model, twin.data)
@@ -100,43 +100,6 @@ def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radiu
     )
     validate(config)
     return config
-
-
-def preshape_fingers(twin, table, T_world_hand: np.ndarray, config) -> tuple[np.ndarray, list[str]]:
-    """Place the hand base at ``T_world_hand`` and each finger at the nearest grid pose whose pad faces the
-    surface without the finger touching the object; returns ``(q_preshape [16], reachable fingers)``."""
-    from tacsplat.sim.grasps import _pretouch_candidates
-    from tacsplat.sim.hand import FINGER_NAMES
-
-    hand = twin.hand
-    hand.set_joint_positions(np.zeros(16))
-    twin.set_hand_base_pose(T_world_hand)
-    q_pre, reachable = np.zeros(16), []
-    for i, finger in enumerate(FINGER_NAMES):
-        sl = slice(4 * i, 4 * i + 4)
-        for k in _pretouch_candidates(twin, table, finger, T_world_hand, config)[: config.max_preshape_tries]:
-            q_try = q_pre.copy()
-            q_try[sl] = table.q[finger][k]
-            hand.set_joint_positions(q_try)
-            if not any(name.startswith(finger + "_") for name, _ in twin.hand_object_contacts()):
-                q_pre = q_try
-                reachable.append(finger)
-                break
-    hand.set_joint_positions(q_pre)
-    return q_pre, reachable
-
-
-def tap_close_pose(q_pre: np.ndarray, reachable: list[str], config) -> np.ndarray:
-    """The close target [16]: each reachable finger ``max_tap_rad`` along the tap direction from its preshape
-    (the logger's ramp stops it where it stalls on the surface); unreachable fingers stay where they are."""
-    from tacsplat.sim.grasps import _TAP_DIRECTION
-    from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS
-
-    q = q_pre.copy()
-    for i, finger in enumerate(FINGER_NAMES):
-        if finger in reachable:
-            q[4 * i : 4 * i + 4] += config.max_tap_rad * _TAP_DIRECTION
-    return np.clip(q, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
 
 
 def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progress: bool = True) -> dict:

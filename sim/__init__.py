@@ -5,7 +5,7 @@ import at module level), ``objects`` (glossy procedural library, user meshes,
 CoACD collision pieces), ``tactile`` (ray-cast indentation maps, synthetic
 tactile RGB), ``camera`` (OpenCV-convention MuJoCo cameras), ``twin``
 (``SimTwin`` implementing Hand, TactileSensor and Camera), ``views``,
-``grasps``, ``capture`` (sim-capture, simulate-touches) and ``bench``.
+``grasps``, ``capture`` (simulate-touches; sim-capture runs through tacsplat.acquisition) and ``bench``.
 """
 
 import ctypes.util as _ctypes_util

@@ -146,6 +146,39 @@ def sample_hand_pose(twin: SimTwin, rng: np.random.Generator, config: GraspConfi
     return make_pose(R, u * (height + config.palm_gap_m))
 
 
+def preshape_fingers(twin: SimTwin, table: PreshapeTable, T_world_hand: np.ndarray,
+                     config: GraspConfig = GraspConfig()) -> tuple[np.ndarray, list[str]]:
+    """Place the hand base at ``T_world_hand`` and each finger at the grid pose whose pad is nearest the surface
+    along its normal (within ``max_pretouch_gap_m``, aligned within ``min_alignment_cos``) and whose finger does
+    not touch the object's collision hulls; returns ``(q_preshape [16], fingers that found one)``."""
+    hand = twin.hand
+    hand.set_joint_positions(np.zeros(16))
+    twin.set_hand_base_pose(T_world_hand)
+    q_pre, reachable = np.zeros(16), []
+    for i, finger in enumerate(FINGER_NAMES):
+        sl = slice(4 * i, 4 * i + 4)
+        for k in _pretouch_candidates(twin, table, finger, T_world_hand, config)[: config.max_preshape_tries]:
+            q_try = q_pre.copy()
+            q_try[sl] = table.q[finger][k]
+            hand.set_joint_positions(q_try)
+            if not any(name.startswith(finger + "_") for name, _ in twin.hand_object_contacts()):
+                q_pre = q_try
+                reachable.append(finger)
+                break
+    hand.set_joint_positions(q_pre)
+    return q_pre, reachable
+
+
+def tap_close_pose(q_pre: np.ndarray, reachable: list[str], config: GraspConfig = GraspConfig()) -> np.ndarray:
+    """The farthest tap target [16]: each reachable finger ``max_tap_rad`` along the tap direction from its
+    preshape (a controller stops it where its pad meets the surface); the others stay at ``q_pre``."""
+    q = np.array(q_pre, dtype=np.float64)
+    for i, finger in enumerate(FINGER_NAMES):
+        if finger in reachable:
+            q[4 * i : 4 * i + 4] += config.max_tap_rad * _TAP_DIRECTION
+    return np.clip(q, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
+
+
 def execute_grasp(
     twin: SimTwin, T_world_hand: np.ndarray, config: GraspConfig = GraspConfig(), table: PreshapeTable | None = None
 ) -> GraspResult:
@@ -160,22 +193,8 @@ def execute_grasp(
     """
     table = table or PreshapeTable(twin, config.preshape_grid, config.preshape_abduction)
     hand = twin.hand
-    hand.set_joint_positions(np.zeros(16))
-    twin.set_hand_base_pose(T_world_hand)
-    q_pre = np.zeros(16)
-    stopped: dict[str, str] = {}
-    for i, finger in enumerate(FINGER_NAMES):
-        sl = slice(4 * i, 4 * i + 4)
-        for k in _pretouch_candidates(twin, table, finger, T_world_hand, config)[: config.max_preshape_tries]:
-            q_try = q_pre.copy()
-            q_try[sl] = table.q[finger][k]
-            hand.set_joint_positions(q_try)
-            if not any(name.startswith(finger + "_") for name, _ in twin.hand_object_contacts()):
-                q_pre = q_try
-                break
-        else:
-            stopped[finger] = "unreachable"
-    hand.set_joint_positions(q_pre)
+    q_pre, reachable = preshape_fingers(twin, table, T_world_hand, config)
+    stopped: dict[str, str] = {f: "unreachable" for f in FINGER_NAMES if f not in reachable}
 
     travel = np.zeros(4)
     max_pen = twin.max_penetration()
