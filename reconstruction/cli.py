@@ -16,11 +16,14 @@ def register(cli) -> None:
     )
     p.add_argument("scene", help="scene directory")
     p.add_argument("--out", required=True, help="run directory to write")
-    p.add_argument("--iterations", type=int, default=None, help="optimisation steps (unset: 3000, or the run's own with --resume)")
+    p.add_argument("--iterations", type=int, default=None,
+                   help="optimisation steps (unset: 2000, or the run's own with --resume)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--sh-degree", type=int, default=3, choices=range(4), help="maximum SH degree")
-    p.add_argument("--lambda-t", type=float, default=None, help="weight of the transmittance loss L_T (unset: 0.5)")
-    p.add_argument("--lambda-s", type=float, default=None, help="weight of the edge-aware smoothness loss L_S (unset: 0.05)")
+    p.add_argument("--lambda-t", type=float, default=None,
+                   help="weight of the transmittance loss L_T (unset: 0.5)")
+    p.add_argument("--lambda-s", type=float, default=None,
+                   help="weight of the edge-aware smoothness loss L_S (unset: 1.0)")
     p.add_argument("--no-touch", action="store_true", help="no touch Gaussians and no L_T")
     p.add_argument("--no-smoothness", action="store_true", help="no L_S (and no depth render)")
     p.add_argument("--train-views", type=int, default=None, metavar="K", help="use only the first K training views")

@@ -44,11 +44,11 @@ class DensifyStrategy:
     prune_opacity: float = 0.005  # opacity below which a Gaussian is removed
     prune_max_scale: float = 0.1  # x scene scale: larger Gaussians are removed after the first reset
     start_iter: int = 100  # first refinement step
-    stop_iter: int = 1500  # no refinement from this step on
+    stop_iter: int = 1200  # no refinement from this step on
     refine_every: int = 100  # steps between refinements
     reset_every: int = 1000  # steps between opacity resets
     pause_after_reset: int = 0  # no refinement for this many steps after a reset
-    max_gaussians: int = 100_000  # growth stops at this count (keeps CPU iterations fast)
+    max_gaussians: int = 30_000  # growth stops at this count (keeps CPU iterations fast)
 
     def initialize_state(self, num_gaussians: int, scene_scale: float) -> DensifyState:
         return DensifyState(scene_scale, torch.zeros(num_gaussians), torch.zeros(num_gaussians))
@@ -71,7 +71,8 @@ class DensifyStrategy:
             return False
         self._accumulate(state, meta)
         changed = False
-        if step > self.start_iter and step % self.refine_every == 0 and step % self.reset_every >= self.pause_after_reset:
+        refine_now = step > self.start_iter and step % self.refine_every == 0
+        if refine_now and step % self.reset_every >= self.pause_after_reset:
             cloned, split = self.grow(gaussians, optimizers, state, generator)
             pruned = self.prune(gaussians, optimizers, state, step)
             state.history.append((step, cloned, split, pruned))

@@ -144,7 +144,8 @@ def evaluate_views(
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth)
     cd = float("nan")
     if ground_truth is not None:
-        cd = chamfer_distance(np.concatenate(predicted), ground_truth.cloud([f.id for f in frames]), ground_truth.radius)
+        gt_cloud = ground_truth.cloud([f.id for f in frames])
+        cd = chamfer_distance(np.concatenate(predicted), gt_cloud, ground_truth.radius)
     return {
         "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
         "ssim": float(np.mean(ssims)) if ssims else float("nan"),
@@ -182,7 +183,9 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     test = scene.split("test")
     backend = backend or run.config.backend
     ground_truth = load_ground_truth(scene, test, gt_path)
-    metrics = evaluate_views(run.gaussians, scene, test, run.background, backend, ground_truth, Path(run_dir) / "renders")
+    metrics = evaluate_views(
+        run.gaussians, scene, test, run.background, backend, ground_truth, Path(run_dir) / "renders"
+    )
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
     result = {

@@ -30,10 +30,10 @@ class InitConfig:
 
     use_sfm: bool = True  # run pycolmap; False -> random points only
     min_sfm_points: int = 100  # fewer SfM points than this -> random points in the bounds
-    num_random_points: int = 4000  # how many random points replace a failed SfM
+    num_random_points: int = 2000  # how many random points replace a failed SfM
     initial_opacity: float = 0.1  # the same for G_c and G_t (paper Sec. 4.1)
     touch_voxel_size: float = 0.001  # metres: touch points are thinned to one per voxel
-    max_touch_points: int = 2000  # then capped at this many (random subset)
+    max_touch_points: int = 1000  # then capped at this many (random subset)
     sift_max_features: int = 4096
     min_triangulation_angle_deg: float = 1.5
 
@@ -155,7 +155,9 @@ def initial_gaussians(
     )
 
 
-def random_points(lo: np.ndarray, hi: np.ndarray, count: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def random_points(
+    lo: np.ndarray, hi: np.ndarray, count: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """``count`` uniform points in the box [lo, hi] with random colours."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
     return rng.uniform(lo, hi, size=(count, 3)), rng.uniform(0.0, 1.0, size=(count, 3))

@@ -177,7 +177,9 @@ def edge_aware_smoothness(
             )
         weights = image_edge_weights(image, beta)
     elif depth.ndim != 2 or tuple(weights.shape) != (2, depth.shape[0] - 4, depth.shape[1] - 4):
-        raise InvalidInputError(f"edge_aware_smoothness: weights {tuple(weights.shape)} do not fit depth {tuple(depth.shape)}")
+        raise InvalidInputError(
+            f"edge_aware_smoothness: weights {tuple(weights.shape)} do not fit depth {tuple(depth.shape)}"
+        )
     dx_d, dy_d = _gradients(depth[None])
     term = dx_d[0] * weights[0] + dy_d[0] * weights[1]
     if proximity is not None:

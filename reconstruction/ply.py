@@ -84,7 +84,7 @@ def load_ply(path: str | Path) -> Gaussians:
             else torch.zeros(n, 0, 3)
         ),
     }
-    from_touch = (
-        torch.from_numpy(np.asarray(vertex["from_touch"]) > 0) if "from_touch" in names else torch.zeros(n, dtype=torch.bool)
-    )
+    from_touch = torch.zeros(n, dtype=torch.bool)
+    if "from_touch" in names:
+        from_touch = torch.from_numpy(np.asarray(vertex["from_touch"]) > 0)
     return Gaussians(params, from_touch, degree)

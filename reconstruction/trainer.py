@@ -54,17 +54,17 @@ PROGRESS_COLUMNS = (
 class TrainConfig:
     """Training settings; defaults aim at a 5-view 200x200 object in minutes on 2 CPU cores."""
 
-    iterations: int = 3000
+    iterations: int = 2000
     seed: int = 0
     sh_degree: int = 3  # maximum SH degree (0 for a Lambertian scene)
-    sh_degree_interval: int = 500  # one more SH band every this many steps
+    sh_degree_interval: int = 400  # one more SH band every this many steps
     train_views: int | None = None  # use only the first K training views (None = all)
     backend: str = "auto"  # rasterization backend: auto | torch | cpu | gsplat
     background: tuple[float, float, float] | None = None  # None: estimated from the training images' borders
     # loss weights (paper Sec. 4.2)
     ssim_weight: float = 0.2
     lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
-    lambda_s: float = 0.05  # edge-aware smoothness L_S; 0 -> no depth render
+    lambda_s: float = 1.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
     use_touch: bool = True  # False: no touch Gaussians and no L_T (the "3DGS" / "+S" variants)
     # transmittance (Sec. 4.2.1)
     touch_top_k: int = 8  # most influential G_t per touch point
@@ -87,7 +87,7 @@ class TrainConfig:
     # progress evaluation and checkpoints
     eval_every_iters: int = 250  # held-out PSNR and CD at least this often...
     eval_every_seconds: float = 30.0  # ...and at least this often in run time
-    eval_max_views: int = 8  # test views used for progress rows (the final evaluation uses all)
+    eval_max_views: int = 6  # test views used for progress rows (the final evaluation uses all)
     checkpoint_every: int = 500
     init: InitConfig = field(default_factory=InitConfig)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)
@@ -332,7 +332,8 @@ class Trainer:
         cfg = self.config
         psnr_value, cd_value = float("nan"), float("nan")
         if self.test_frames:
-            idx = np.unique(np.linspace(0, len(self.test_frames) - 1, min(cfg.eval_max_views, len(self.test_frames))).round().astype(int))
+            count = min(cfg.eval_max_views, len(self.test_frames))
+            idx = np.unique(np.linspace(0, len(self.test_frames) - 1, count).round().astype(int))
             frames = [self.test_frames[i] for i in idx]
             if self._ground_truth is None:
                 self._ground_truth = load_ground_truth(self.scene, self.test_frames) or False
