@@ -63,11 +63,11 @@ def _row_range(a, b, c, limit, my, y_lo, y_hi):
 
 
 @nb.njit(cache=True, inline="always")
-def _row_span(a, b, c, limit, dy, mx, x_lo, x_hi):
+def _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi):
     """Columns [x0, x1) of one pixel row (dy = mean_y - centre_y) whose centres can have an exponent <= limit.
 
-    Solves 0.5 a dx^2 + b dy dx + 0.5 c dy^2 <= limit for dx = mean_x - centre_x in float64,
-    widens by a thousandth of a pixel and clips to [x_lo, x_hi).
+    Solves 0.5 a dx^2 + b dy dx + 0.5 c dy^2 <= limit for dx = mean_x - centre_x in float64
+    (``inv_a`` = 1 / a in float64), widens by a thousandth of a pixel and clips to [x_lo, x_hi).
     """
     a64, b64, c64, dy64 = float(a), float(b), float(c), float(dy)
     if not a64 > 0.0:
@@ -75,8 +75,8 @@ def _row_span(a, b, c, limit, dy, mx, x_lo, x_hi):
     disc = (b64 * dy64) ** 2 - a64 * (c64 * dy64 * dy64 - 2.0 * float(limit))
     if not disc >= 0.0:
         return x_lo, x_lo
-    half = math.sqrt(disc) / a64
-    centre = -b64 * dy64 / a64
+    half = math.sqrt(disc) * inv_a
+    centre = -b64 * dy64 * inv_a
     lo = min(max(float(mx) - (centre + half) - 0.5 - _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
     hi = min(max(float(mx) - (centre - half) - 0.5 + _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
     return max(x_lo, int(math.ceil(lo))), min(x_hi, int(math.floor(hi)) + 1)
@@ -180,9 +180,10 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
             opac, limit = opacities[g], limits[g]
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
+            inv_a = 1.0 / float(a) if a > _ZERO else 0.0
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
-                x0, x1 = _row_span(a, b, c, limit, dy, mx, x_lo, x_hi)
+                x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
                 pairs += max(x1 - x0, 0)
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
@@ -259,9 +260,10 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
             for d in range(n_ch):
                 rows[k, N_GRAD + d] = _ZERO
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
+            inv_a = 1.0 / float(a) if a > _ZERO else 0.0
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
-                x0, x1 = _row_span(a, b, c, limit, dy, mx, x_lo, x_hi)
+                x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
                     if k >= last[p]:

@@ -4,8 +4,10 @@ Same signature and return values as ``gsplat.rasterization`` for the arguments
 tacsplat uses, so that gsplat itself is a drop-in backend on CUDA:
 
 * ``torch``: pure-PyTorch reference (:mod:`.raster_torch`), autograd backward; the oracle.
-* ``cpu``: torch projection + SH, then numba tile compositing with a hand-written
-  backward (:mod:`.raster_cpu`); float32 only.
+* ``cpu``: numba kernels with hand-written backward for projection + SH
+  (:mod:`.raster_cpu_project`) and tile compositing (:mod:`.raster_cpu`);
+  float32 only. The torch projection is used instead for antialiased mode or
+  when viewmats / Ks require gradients.
 * ``gsplat``: the gsplat package, when CUDA and gsplat are present.
 * ``auto``: gsplat for CUDA tensors when it is installed, else ``cpu`` for
   float32 and ``torch`` for float64 inputs.
@@ -107,6 +109,8 @@ def rasterization(
     _check_tensor("viewmats", viewmats, (None, 4, 4), dtype, device)
     n_cams = viewmats.shape[0]
     _check_tensor("Ks", Ks, (n_cams, 3, 3), dtype, device)
+    if n_cams and not bool((Ks[:, 0, 0] > 0).all() and (Ks[:, 1, 1] > 0).all()):
+        raise InvalidInputError("Ks must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
     if sh_degree is None:
         if not isinstance(colors, Tensor) or colors.dim() not in (2, 3):
             raise InvalidInputError("colors must be [N, D] or [C, N, D] when sh_degree is None")

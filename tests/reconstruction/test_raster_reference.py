@@ -168,3 +168,12 @@ def test_bad_options_raise():
         rasterization(**dict(scene, colors=scene["colors"][:, :9]), backend="torch")
     with pytest.raises(InvalidInputError, match="width and height"):
         rasterization(**dict(scene, width=0), backend="torch")
+    if not torch.cuda.is_available():
+        with pytest.raises(InvalidInputError, match="needs CUDA and the gsplat package"):
+            rasterization(**scene, backend="gsplat")
+    with pytest.raises(InvalidInputError, match="float32"):
+        rasterization(**{k: (v.double() if torch.is_tensor(v) else v) for k, v in scene.items()}, backend="cpu")
+    with pytest.raises(InvalidInputError, match="positive focal lengths"):
+        rasterization(**dict(scene, Ks=scene["Ks"] * torch.tensor([0.0, 1.0, 1.0])[:, None]), backend="torch")
+    with pytest.raises(InvalidInputError, match="packed=False"):
+        rasterization(**scene, packed=True, backend="torch")
