@@ -62,7 +62,7 @@ class _Terminal:
             self._since = len(self.text)
         os.write(self.fd, keys.encode())
 
-    def wait_for(self, text: str, timeout_s: float = 30.0) -> None:
+    def wait_for(self, text: str, timeout_s: float = 90.0) -> None:  # generous: a loaded 2-core machine
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while text not in self.text[self._since :]:
@@ -71,6 +71,7 @@ class _Terminal:
                 self._cond.wait(remaining)
 
 
+@pytest.mark.timeout(300)
 def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path):
     # a slow close (2 s from open to closed) so that the kill lands while the fingers are moving
     rig = write_mock_rig(tmp_path, grasp={"close_speed_rad_s": 0.6})
@@ -98,7 +99,8 @@ def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path
     assert "\r\x1b[Kboard: seen" in term.text  # the live status line, redrawn in place
     before = _snapshot(out)  # the index is consistent after the kill
     assert sorted(k for k in before if k[0] == "frame") == [("frame", i) for i in range(3)]
-    assert sorted(k for k in before if k[0] == "touch") == [("touch", i) for i in range(4)]  # grasp 0 only
+    touches = sorted(k for k in before if k[0] == "touch")
+    assert touches == [("touch", i) for i in range(4)], f"killed outside grasp 1's closing:\n{term.text[-2000:]}"
 
     output = io.StringIO()
     fast = write_mock_rig(tmp_path / "fast")  # same plan, the example's quick close
