@@ -49,7 +49,8 @@ def _fileno(stream) -> int | None:
 
 @contextmanager
 def _cbreak(stream) -> Iterator[None]:
-    """Keys without Enter on a terminal (restored on exit)."""
+    """Keys without Enter on a terminal (restored on exit). Keys typed before it (while the devices were
+    opening) are discarded: they were not meant for the session."""
     fd = _fileno(stream)
     if fd is None or not os.isatty(fd):
         yield
@@ -177,8 +178,8 @@ class CaptureSession:
 
     def run(self) -> bool:
         """Serve keys until ``q`` or the end of input; returns whether the plan is complete."""
-        self.show_status()
-        with _cbreak(self.keys):
+        with _cbreak(self.keys):  # first, so that keys typed once the status line shows are never flushed
+            self.show_status()
             for key in self._keys():
                 if key in ("\n", "\r"):
                     self.view()
