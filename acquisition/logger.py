@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -166,16 +166,12 @@ class Counts:
     touches: int = 0
     contacts: int = 0  # touches in contact
 
-    def as_dict(self) -> dict:
-        return dict(self.__dict__)
-
 
 @dataclass
 class _Finger:
     name: str
     joints: np.ndarray  # joint indices
-    state: str = "closing"
-    extra: dict = field(default_factory=dict)
+    state: str = "closing"  # -> "reached" | "stalled"
 
 
 class CaptureLogger:
@@ -252,7 +248,7 @@ class CaptureLogger:
         gt = self.poses.ground_truth_depth() if split == "test" else None
         frame = self.writer.add_frame(image, est.T, split, gt_depth=gt)
         log.debug("view %d (%s) recorded%s", frame.id, split,
-                 "" if est.reprojection_px is None else f", board reprojection {est.reprojection_px:.2f} px")
+                  "" if est.reprojection_px is None else f", board reprojection {est.reprojection_px:.2f} px")
         return ViewOutcome(frame, est.reprojection_px)
 
     # --- grasps -----------------------------------------------------------------------------------
@@ -292,8 +288,8 @@ class CaptureLogger:
         outcome = GraspOutcome(index, touches, stopped_by, settled, close_s, T_world_hand, hand_rms)
         no_contact = [t.finger for t in touches if not t.in_contact]
         log.debug("grasp %d recorded: %d touches (%s), stopped by %s%s", index, len(touches),
-                 f"no contact on {', '.join(no_contact)}" if no_contact else "all in contact", stopped_by,
-                 "" if settled else "; the fingers had not settled")
+                  f"no contact on {', '.join(no_contact)}" if no_contact else "all in contact", stopped_by,
+                  "" if settled else "; the fingers had not settled")
         return outcome
 
     def open(self, q_open: np.ndarray | None = None) -> None:
