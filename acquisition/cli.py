@@ -53,8 +53,22 @@ def _sim_capture(args) -> int:
 
     from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
 
-    config = sim_rig_config(object=args.object, mesh=args.mesh, object_radius=args.object_radius, views=args.views,
-                            test_views=args.test_views, grasps=args.grasps, resolution=args.resolution, seed=args.seed)
+    from tacsplat.errors import ConfigError
+
+    try:
+        config = sim_rig_config(object=args.object, mesh=args.mesh, object_radius=args.object_radius,
+                                views=args.views, test_views=args.test_views, grasps=args.grasps,
+                                resolution=args.resolution, seed=args.seed)
+    except ConfigError as exc:  # name the command-line option, not the rig key behind it
+        option = _SIM_OPTIONS.get(exc.key, exc.key)
+        raise ConfigError(option, str(exc).split(": ", 1)[1]) from None
     timings = sim_capture(config, args.out, resume=args.resume)
     print(json.dumps({"scene": args.out, **{k: round(v, 2) for k, v in timings.items()}}))
     return 0
+
+
+_SIM_OPTIONS = {
+    "sim.object": "--object", "sim.mesh": "--mesh", "sim.object_radius": "--object-radius",
+    "sim.resolution": "--resolution", "plan.views.train": "--views", "plan.views.test": "--test-views",
+    "plan.grasps.count": "--grasps",
+}

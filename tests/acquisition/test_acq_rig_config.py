@@ -100,3 +100,15 @@ def test_capture_command_checks_the_output_folder_before_opening_devices(tmp_pat
     bad.write_text("rig: real\nhand: {port: 3}\n")
     assert main(["capture", "--rig", str(bad), "--out", str(tmp_path / "new"), "--mock"]) == 1
     assert f"{bad}: hand.port: expected a non-empty string" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("args, option", [(["--views", "-1"], "--views"), (["--grasps", "-3"], "--grasps"),
+                                          (["--object", "spaceship"], "--object"),
+                                          (["--mesh", "/no/such/mesh.ply"], "--mesh"),
+                                          (["--resolution", "4"], "--resolution")])
+def test_sim_capture_options_are_checked_before_the_twin_starts(tmp_path, capsys, args, option):
+    from tacsplat.cli import main
+
+    assert main(["sim-capture", *args, "--out", str(tmp_path / "scene")]) == 1
+    assert f"error: {option}: " in capsys.readouterr().err
+    assert not (tmp_path / "scene").exists()
