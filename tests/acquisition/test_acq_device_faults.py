@@ -64,3 +64,16 @@ def test_camera_that_stops_giving_frames(tmp_path):
 
     scene = _resume_to_the_end(rig, out, "\nggg\n")
     assert [f.split for f in scene.frames] == ["train"] * 3 + ["test"] and len(scene.touches) == 12
+
+
+def test_ctrl_c_leaves_the_hand_safe_and_says_how_to_resume(tmp_path):
+    from tacsplat.acquisition.session import EXIT_INTERRUPTED
+
+    def interrupt(opened):
+        raise KeyboardInterrupt
+
+    code, text, mock, rig, out = _capture_with_fault(tmp_path, "\ng\n", 2, interrupt)
+    assert code == EXIT_INTERRUPTED, text
+    assert "interrupted; the hand's torque is off" in text and f"--out {out} --resume --mock" in text
+    assert not any(mock.emulator.torque_enabled().values())
+    assert len(Scene.load(out).frames) == 1
