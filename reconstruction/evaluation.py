@@ -39,21 +39,55 @@ def camera_tensors(frames: list) -> tuple[torch.Tensor, torch.Tensor]:
     return viewmats, Ks
 
 
+def background_image(
+    image: np.ndarray,  # [H, W, 3] float in [0, 1]
+    colour: tuple[float, float, float] | None = None,
+    degree: int = 2,
+    max_residual: float = 0.02,
+) -> np.ndarray:
+    """The backdrop behind the object in one view, [H, W, 3] float32.
+
+    ``colour`` when given; otherwise a smooth polynomial (``degree`` in the
+    pixel coordinates) fitted to the image's two-pixel border, which models a
+    studio backdrop or a sky gradient; black when the border is not that smooth
+    (RMS residual above ``max_residual``), e.g. a cluttered real scene.
+    """
+    h, w = image.shape[:2]
+    if colour is not None:
+        return np.broadcast_to(np.asarray(colour, dtype=np.float32), (h, w, 3)).copy()
+    v, u = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
+    basis = np.stack([u**i * v**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=-1)  # [H, W, B]
+    border = np.zeros((h, w), bool)
+    border[:2], border[-2:], border[:, :2], border[:, -2:] = True, True, True, True
+    coeffs, *_ = np.linalg.lstsq(basis[border], image[border], rcond=None)
+    residual = np.sqrt(np.mean((basis[border] @ coeffs - image[border]) ** 2))
+    if residual > max_residual:
+        return np.zeros((h, w, 3), np.float32)
+    return np.clip(basis @ coeffs, 0.0, 1.0).astype(np.float32)
+
+
+def composite(colors: torch.Tensor, alphas: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """Over-composite renders [..., H, W, 3] made without background onto a background [H, W, 3]."""
+    return colors + (1.0 - alphas) * background
+
+
 @torch.no_grad()
 def render_view(
     gaussians: Gaussians, frame, background: torch.Tensor, backend: str, with_depth: bool = True
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-    """(rgb [H, W, 3] in [0, 1], expected depth [H, W] (0 where alpha <= 0.5) or None, alpha [H, W])."""
+    """(rgb [H, W, 3] in [0, 1], expected depth [H, W] (0 where alpha <= 0.5) or None, alpha [H, W]).
+
+    ``background`` is the view's backdrop [H, W, 3] (see :func:`background_image`).
+    """
     viewmat, K = camera_tensors([frame])
     intr = frame.intrinsics
     colors, alphas, _ = raster.rasterization(
         gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
         gaussians.sh_coefficients(), viewmat, K, intr.width, intr.height,
-        sh_degree=gaussians.sh_degree, backgrounds=background[None],
-        render_mode="RGB+ED" if with_depth else "RGB", backend=backend,
+        sh_degree=gaussians.sh_degree, render_mode="RGB+ED" if with_depth else "RGB", backend=backend,
     )  # fmt: skip
     alpha = alphas[0, ..., 0].numpy()
-    rgb = colors[0, ..., :3].clamp(0, 1).numpy()
+    rgb = composite(colors[0, ..., :3], alphas[0], background).clamp(0, 1).numpy()
     depth = None
     if with_depth:
         depth = np.where(alpha > ALPHA_MASK_THRESHOLD, colors[0, ..., 3].numpy(), 0.0).astype(np.float32)
@@ -126,16 +160,20 @@ def evaluate_views(
     gaussians: Gaussians,
     scene,
     frames: list,
-    background: torch.Tensor,
+    background_colour: tuple[float, float, float] | None,
     backend: str,
     ground_truth: GroundTruth | None,
     render_dir: Path | None = None,
 ) -> dict:
-    """PSNR, SSIM over ``frames`` and CD against ``ground_truth`` (NaN where not available)."""
+    """PSNR, SSIM over ``frames`` and CD against ``ground_truth`` (NaN where not available).
+
+    Each view's backdrop is ``background_colour``, or (None) fitted to that view's image border.
+    """
     psnrs, ssims, predicted = [], [], []
     for f in frames:
-        rgb, depth, _ = render_view(gaussians, f, background, backend, with_depth=True)
         gt_rgb = scene.load_image(f)
+        background = torch.from_numpy(background_image(gt_rgb, background_colour))
+        rgb, depth, _ = render_view(gaussians, f, background, backend, with_depth=True)
         psnrs.append(psnr(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         predicted.append(depth_to_points(depth, f.intrinsics.K, f.T_world_cam))
@@ -184,7 +222,7 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     backend = backend or run.config.backend
     ground_truth = load_ground_truth(scene, test, gt_path)
     metrics = evaluate_views(
-        run.gaussians, scene, test, run.background, backend, ground_truth, Path(run_dir) / "renders"
+        run.gaussians, scene, test, run.config.background, backend, ground_truth, Path(run_dir) / "renders"
     )
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")

@@ -30,7 +30,13 @@ from tqdm import tqdm
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.densification import DensifyState, DensifyStrategy
-from tacsplat.reconstruction.evaluation import camera_tensors, evaluate_views, load_ground_truth
+from tacsplat.reconstruction.evaluation import (
+    background_image,
+    camera_tensors,
+    composite,
+    evaluate_views,
+    load_ground_truth,
+)
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.initialization import (
     InitConfig,
@@ -60,7 +66,7 @@ class TrainConfig:
     sh_degree_interval: int = 400  # one more SH band every this many steps
     train_views: int | None = None  # use only the first K training views (None = all)
     backend: str = "auto"  # rasterization backend: auto | torch | cpu | gsplat
-    background: tuple[float, float, float] | None = None  # None: estimated from the training images' borders
+    background: tuple[float, float, float] | None = None  # None: a smooth backdrop fitted to each image's border
     # loss weights (paper Sec. 4.2)
     ssim_weight: float = 0.2
     lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
@@ -124,17 +130,6 @@ class TrainConfig:
         return cls(**data, init=init, densify=densify)
 
 
-def estimate_background(images: list[np.ndarray], max_spread: float = 0.05) -> tuple[float, float, float]:
-    """The colour of the training images' borders when it is uniform (a studio backdrop), else black."""
-    border = np.concatenate(
-        [np.concatenate([im[0], im[-1], im[:, 0], im[:, -1]]) for im in images]
-    )  # [M, 3]
-    median = np.median(border, axis=0)
-    if np.median(np.abs(border - median).max(axis=1)) <= max_spread:
-        return tuple(float(c) for c in median)
-    return (0.0, 0.0, 0.0)
-
-
 def scene_scale(frames: list) -> float:
     """Kerbl et al.'s camera extent: 1.1 x the largest distance of a camera centre from their mean."""
     centres = np.array([f.T_world_cam[:3, 3] for f in frames])
@@ -146,7 +141,6 @@ class LoadedRun:
     scene_path: Path
     config: TrainConfig
     gaussians: Gaussians
-    background: torch.Tensor
     step: int
     train_seconds: float
 
@@ -161,7 +155,6 @@ def load_run(run_dir: Path) -> LoadedRun:
         Path(ckpt["scene_path"]),
         TrainConfig.from_json(ckpt["config"]),
         Gaussians.from_state_dict(ckpt["gaussians"]),
-        ckpt["background"],
         int(ckpt["step"]),
         float(ckpt["train_seconds"]),
     )
@@ -199,8 +192,7 @@ class Trainer:
             else None
         )
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32)
-        bg = config.background or estimate_background([im.numpy() for im in self.images])
-        self.background = torch.tensor(bg, dtype=torch.float32)
+        self.backgrounds = [torch.from_numpy(background_image(im.numpy(), config.background)) for im in self.images]
         self.step = 0
         self.train_seconds = 0.0
         self.order: list[int] = []
@@ -268,11 +260,11 @@ class Trainer:
             g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(active_degree),
             self.viewmats[view : view + 1], self.Ks[view : view + 1],
             frame.intrinsics.width, frame.intrinsics.height,
-            sh_degree=active_degree, backgrounds=self.background[None],
-            render_mode="RGB+D" if with_depth else "RGB", backend=cfg.backend,
+            sh_degree=active_degree, render_mode="RGB+D" if with_depth else "RGB", backend=cfg.backend,
         )  # fmt: skip
         target = self.images[view]
-        photometric = losses.photometric_loss(renders[0, ..., :3], target, cfg.ssim_weight)
+        rgb = composite(renders[0, ..., :3], alphas[0], self.backgrounds[view])
+        photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight)
         loss = photometric
         terms = {"photometric": float(photometric.detach()), "transmittance": 0.0, "smoothness": 0.0}
         if self.use_touch_loss:
@@ -338,7 +330,7 @@ class Trainer:
             if self._ground_truth is None:
                 self._ground_truth = load_ground_truth(self.scene, self.test_frames) or False
             metrics = evaluate_views(
-                self.gaussians, self.scene, frames, self.background, cfg.backend, self._ground_truth or None
+                self.gaussians, self.scene, frames, cfg.background, cfg.backend, self._ground_truth or None
             )
             psnr_value, cd_value = metrics["psnr"], metrics["cd"]
         n = max(self._sum_count, 1)
@@ -360,7 +352,6 @@ class Trainer:
             "gaussians": self.gaussians.state_dict(),
             "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
             "densify_state": dataclasses.asdict(self.densify_state),
-            "background": self.background,
             "rng": self.rng.bit_generator.state,
             "generator": self.generator.get_state(),
             "torch_rng": torch.get_rng_state(),
@@ -381,7 +372,6 @@ class Trainer:
         for name, optimizer in self.optimizers.items():
             optimizer.load_state_dict(ckpt["optimizers"][name])
         self.densify_state = DensifyState(**ckpt["densify_state"])
-        self.background = ckpt["background"]
         self.rng.bit_generator.state = ckpt["rng"]
         self.generator.set_state(ckpt["generator"])
         torch.set_rng_state(ckpt["torch_rng"])

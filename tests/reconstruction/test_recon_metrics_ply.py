@@ -95,3 +95,17 @@ def test_ply_without_from_touch_loads_as_vision_gaussians_and_bad_files_name_the
     PlyData([PlyElement.describe(broken, "vertex")]).write(str(tmp_path / "broken.ply"))
     with pytest.raises(SceneFormatError, match="opacity"):
         load_ply(tmp_path / "broken.ply")
+
+
+def test_background_is_fitted_to_a_smooth_border_and_black_for_a_cluttered_one():
+    from tacsplat.reconstruction.evaluation import background_image
+
+    h, w = 40, 50
+    v = np.linspace(0, 1, h)[:, None, None]
+    backdrop = (0.3 + 0.4 * v + 0.1 * v**2) * np.ones((h, w, 3))
+    image = backdrop.copy()
+    image[10:30, 15:35] = [1.0, 0.0, 0.0]  # the object, away from the border
+    np.testing.assert_allclose(background_image(image), backdrop, atol=1e-5)
+    cluttered = np.random.default_rng(0).uniform(0, 1, (h, w, 3))
+    assert not background_image(cluttered).any()
+    np.testing.assert_allclose(background_image(image, colour=(0.1, 0.2, 0.3))[5, 7], [0.1, 0.2, 0.3], rtol=1e-6)
