@@ -98,8 +98,12 @@ class CaptureSession:
 
     def show_status(self) -> None:
         line = self.status()
-        if self._live:
-            self.out.write("\r\x1b[K" + line)
+        if self._live:  # one terminal row, redrawn in place (a wrapped line could not be cleared)
+            try:
+                width = os.get_terminal_size(self.out.fileno()).columns or 160  # 0: size never set
+            except (OSError, ValueError, io.UnsupportedOperation):
+                width = 160
+            self.out.write("\r\x1b[K" + line[: max(width - 1, 20)])
         else:
             self.out.write(line + "\n")
         self.out.flush()
