@@ -233,30 +233,29 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
         tw = x_hi - x_lo
         n_pix = tw * (y_hi - y_lo)
         trans = np.empty(n_pix, np.float32)
-        t_final = np.empty(n_pix, np.float32)
         last = np.empty(n_pix, np.int64)
         v_c = np.empty((n_pix, n_ch), np.float32)
-        v_a = np.empty(n_pix, np.float32)  # d loss / d alpha-image minus the background's share
+        tv_a = np.empty(n_pix, np.float32)  # T_final * (d loss / d alpha-image minus the background's share)
         buf = np.zeros((n_pix, n_ch), np.float32)
         max_last = start
         for p in range(n_pix):
             py, px = divmod(p, tw)
             y, x = y_lo + py, x_lo + px
             trans[p] = final_trans[cam, y, x]
-            t_final[p] = final_trans[cam, y, x]
             last[p] = last_contrib[cam, y, x]
             max_last = max(max_last, last[p])
             bg_dot = _ZERO
             for d in range(n_ch):
                 v_c[p, d] = v_color[cam, y, x, d]
                 bg_dot += backgrounds[cam, d] * v_c[p, d]
-            v_a[p] = v_alpha[cam, y, x] - bg_dot
+            tv_a[p] = trans[p] * (v_alpha[cam, y, x] - bg_dot)
         for k in range(max_last - 1, start - 1, -1):
             g = tile_gauss[k]
             mx, my = means2d[g, 0], means2d[g, 1]
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
             opac, limit = opacities[g], limits[g]
-            g_mx = g_my = g_a = g_b = g_c = g_o = _ZERO
+            g_o = s_xr = s_y = s_xy = s_yy = s_xx_tot = _ZERO  # sums over the tile of v_sigma times dx, dy, ...
+            s_x = s_xx = row_s = _ZERO  # sums along the current row
             for d in range(n_ch):
                 rows[k, N_GRAD + d] = _ZERO
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
@@ -280,7 +279,7 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                     t_p = trans[p] * ra  # transmittance in front of this Gaussian
                     trans[p] = t_p
                     fac = alpha * t_p
-                    v_alpha_p = t_final[p] * ra * v_a[p]
+                    v_alpha_p = ra * tv_a[p]
                     for d in range(n_ch):
                         col, vcol = colors[g, d], v_c[p, d]
                         rows[k, N_GRAD + d] += fac * vcol
@@ -288,14 +287,23 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                         buf[p, d] += col * fac
                     if opac * vis <= _MAX_ALPHA:
                         v_sigma = -opac * vis * v_alpha_p
-                        g_a += _HALF * v_sigma * dx * dx
-                        g_b += v_sigma * dx * dy
-                        g_c += _HALF * v_sigma * dy * dy
-                        g_mx += v_sigma * (a * dx + b * dy)
-                        g_my += v_sigma * (b * dx + c * dy)
+                        s_x += v_sigma * dx
+                        s_xx += v_sigma * dx * dx
+                        row_s += v_sigma
                         g_o += vis * v_alpha_p
-            rows[k, 0], rows[k, 1] = g_mx, g_my
-            rows[k, 2], rows[k, 3], rows[k, 4] = g_a, g_b, g_c
+                # fold the row's sums in, dy being constant along the row
+                s_xr += s_x
+                s_y += row_s * dy
+                s_xy += s_x * dy
+                s_yy += row_s * dy * dy
+                s_xx_tot += s_xx
+                s_x = s_xx = row_s = _ZERO
+            # d sigma / d (mean, conic) = (a dx + b dy, b dx + c dy, dx^2 / 2, dx dy, dy^2 / 2), summed
+            rows[k, 0] = a * s_xr + b * s_y
+            rows[k, 1] = b * s_xr + c * s_y
+            rows[k, 2] = _HALF * s_xx_tot
+            rows[k, 3] = s_xy
+            rows[k, 4] = _HALF * s_yy
             rows[k, 5] = g_o
         for k in range(max_last, end):  # behind every pixel's last contributor: no gradient
             for j in range(rows.shape[1]):
