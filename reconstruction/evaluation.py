@@ -39,22 +39,14 @@ def camera_tensors(frames: list) -> tuple[torch.Tensor, torch.Tensor]:
     return viewmats, Ks
 
 
-def background_image(
-    image: np.ndarray,  # [H, W, 3] float in [0, 1]
-    colour: tuple[float, float, float] | None = None,
-    degree: int = 2,
-    max_residual: float = 0.02,
-) -> np.ndarray:
-    """The backdrop behind the object in one view, [H, W, 3] float32.
+def fit_backdrop(image: np.ndarray, degree: int = 2, max_residual: float = 0.02) -> np.ndarray | None:
+    """A smooth backdrop [H, W, 3] fitted to an image's [H, W, 3] two-pixel border, or None.
 
-    ``colour`` when given; otherwise a smooth polynomial (``degree`` in the
-    pixel coordinates) fitted to the image's two-pixel border, which models a
-    studio backdrop or a sky gradient; black when the border is not that smooth
-    (RMS residual above ``max_residual``), e.g. a cluttered real scene.
+    A polynomial of ``degree`` in the pixel coordinates models a studio
+    backdrop or a sky gradient; None when the border is not that smooth (RMS
+    residual above ``max_residual``), e.g. a cluttered real scene.
     """
     h, w = image.shape[:2]
-    if colour is not None:
-        return np.broadcast_to(np.asarray(colour, dtype=np.float32), (h, w, 3)).copy()
     v, u = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
     basis = np.stack([u**i * v**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=-1)  # [H, W, B]
     border = np.zeros((h, w), bool)
@@ -62,8 +54,17 @@ def background_image(
     coeffs, *_ = np.linalg.lstsq(basis[border], image[border], rcond=None)
     residual = np.sqrt(np.mean((basis[border] @ coeffs - image[border]) ** 2))
     if residual > max_residual:
-        return np.zeros((h, w, 3), np.float32)
+        return None
     return np.clip(basis @ coeffs, 0.0, 1.0).astype(np.float32)
+
+
+def background_image(image: np.ndarray, colour: tuple[float, float, float] | None = None) -> np.ndarray:
+    """The backdrop behind the object in one view [H, W, 3] float32: ``colour``, else fitted, else black."""
+    h, w = image.shape[:2]
+    if colour is not None:
+        return np.broadcast_to(np.asarray(colour, dtype=np.float32), (h, w, 3)).copy()
+    fitted = fit_backdrop(image)
+    return np.zeros((h, w, 3), np.float32) if fitted is None else fitted
 
 
 def composite(colors: torch.Tensor, alphas: torch.Tensor, background: torch.Tensor) -> torch.Tensor:

@@ -26,6 +26,16 @@ def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, ssim_weight: 
     return (1.0 - ssim_weight) * l1 + ssim_weight * d_ssim
 
 
+def backdrop_alpha_loss(alpha: torch.Tensor, backdrop_mask: torch.Tensor) -> torch.Tensor:
+    """Mean rendered alpha [H, W] over the pixels [H, W] bool that show the bare backdrop.
+
+    Not in the paper: with few views, opaque Gaussians coloured like a smooth
+    backdrop explain the images as well as empty space does, and they become
+    floaters in every other view; this keeps the backdrop transparent.
+    """
+    return (alpha * backdrop_mask).sum() / backdrop_mask.sum().clamp_min(1)
+
+
 # --------------------------------------------------------------------------- transmittance
 
 

@@ -33,6 +33,7 @@ from tacsplat.reconstruction.densification import DensifyState, DensifyStrategy
 from tacsplat.reconstruction.evaluation import (
     background_image,
     camera_tensors,
+    fit_backdrop,
     composite,
     evaluate_views,
     load_ground_truth,
@@ -71,6 +72,8 @@ class TrainConfig:
     ssim_weight: float = 0.2
     lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
     lambda_s: float = 1.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
+    lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
+    backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
     use_touch: bool = True  # False: no touch Gaussians and no L_T (the "3DGS" / "+S" variants)
     # transmittance (Sec. 4.2.1)
     touch_top_k: int = 8  # most influential G_t per touch point
@@ -193,6 +196,12 @@ class Trainer:
         )
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32)
         self.backgrounds = [torch.from_numpy(background_image(im.numpy(), config.background)) for im in self.images]
+        self.backdrop_masks: list[torch.Tensor | None] = [None] * len(self.images)
+        if config.lambda_backdrop > 0:
+            for i, image in enumerate(self.images):
+                if config.background is not None or fit_backdrop(image.numpy()) is not None:
+                    difference = (image - self.backgrounds[i]).abs().amax(dim=-1)
+                    self.backdrop_masks[i] = difference < config.backdrop_tolerance
         self.step = 0
         self.train_seconds = 0.0
         self.order: list[int] = []
@@ -267,6 +276,8 @@ class Trainer:
         photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight)
         loss = photometric
         terms = {"photometric": float(photometric.detach()), "transmittance": 0.0, "smoothness": 0.0}
+        if self.backdrop_masks[view] is not None:
+            loss = loss + cfg.lambda_backdrop * losses.backdrop_alpha_loss(alphas[0, ..., 0], self.backdrop_masks[view])
         if self.use_touch_loss:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
             points = self.touch_tensor
