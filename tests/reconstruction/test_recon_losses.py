@@ -139,3 +139,12 @@ def test_photometric_loss_is_zero_for_identical_images_and_weights_l1():
     target = torch.rand(8, 9, 3, generator=torch.Generator().manual_seed(0))
     assert photometric_loss(target, target).item() == pytest.approx(0.0, abs=1e-6)
     assert photometric_loss(target + 0.1, target, ssim_weight=0.0).item() == pytest.approx(0.1, rel=1e-5)
+
+
+def test_backdrop_alpha_loss_is_the_mean_alpha_over_backdrop_pixels():
+    from tacsplat.reconstruction.losses import backdrop_alpha_loss
+
+    alpha = torch.tensor([[0.2, 0.9], [0.4, 1.0]])
+    mask = torch.tensor([[True, False], [True, False]])
+    assert backdrop_alpha_loss(alpha, mask).item() == pytest.approx(0.3)
+    assert backdrop_alpha_loss(alpha, torch.zeros(2, 2, dtype=torch.bool)).item() == 0.0
