@@ -5,9 +5,12 @@ checkpoint: resumable), ``splat.ply``, ``progress.csv`` (iteration, seconds of
 run time excluding evaluation, each loss term averaged since the previous row,
 Gaussian count, held-out PSNR and CD), ``error_vs_time.png``, ``metrics.json``
 and ``renders/``. Loss: photometric + lambda_t L_T (Eq. 7, on G_t at the touch
-points) + lambda_s L_S (Eq. 8, masked near visible touches). What a scene does
-not need is not computed: no touches -> no G_t, no neighbour search, no L_T;
-lambda_s = 0 -> RGB-only renders.
+points) + lambda_s L_S (Eq. 8, masked near visible touches) + lambda_backdrop
+times the alpha on pixels that show the fitted smooth backdrop (not in the
+paper; see :func:`losses.backdrop_alpha_loss`). Renders are composited over
+each view's backdrop (a constant, or a smooth fit to the image border). What a
+scene does not need is not computed: no touches -> no G_t, no neighbour search,
+no L_T; lambda_s = 0 -> RGB-only renders.
 """
 
 from __future__ import annotations
