@@ -56,7 +56,8 @@ log = logging.getLogger(__name__)
 raster = importlib.import_module("tacsplat.reconstruction.rasterization")
 
 PROGRESS_COLUMNS = (
-    "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "num_gaussians", "psnr", "cd",
+    "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "num_gaussians",
+    "psnr", "cd",
 )  # fmt: skip
 
 
@@ -213,7 +214,7 @@ class Trainer:
         self.densify_state: DensifyState | None = None
         self._ground_truth = None
         self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
-        self._sums = {"loss": 0.0, "photometric": 0.0, "transmittance": 0.0, "smoothness": 0.0}
+        self._sums = {"loss": 0.0, "photometric": 0.0, "transmittance": 0.0, "smoothness": 0.0, "backdrop": 0.0}
         self._sum_count = 0
 
     # ------------------------------------------------------------------ setup
@@ -278,9 +279,11 @@ class Trainer:
         rgb = composite(renders[0, ..., :3], alphas[0], self.backgrounds[view])
         photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight)
         loss = photometric
-        terms = {"photometric": float(photometric.detach()), "transmittance": 0.0, "smoothness": 0.0}
+        terms = {"photometric": float(photometric.detach()), "transmittance": 0.0, "smoothness": 0.0, "backdrop": 0.0}
         if self.backdrop_masks[view] is not None:
-            loss = loss + cfg.lambda_backdrop * losses.backdrop_alpha_loss(alphas[0, ..., 0], self.backdrop_masks[view])
+            backdrop = losses.backdrop_alpha_loss(alphas[0, ..., 0], self.backdrop_masks[view])
+            loss = loss + cfg.lambda_backdrop * backdrop
+            terms["backdrop"] = float(backdrop.detach())
         if self.use_touch_loss:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
             points = self.touch_tensor
@@ -350,7 +353,7 @@ class Trainer:
         n = max(self._sum_count, 1)
         writer.writerow(
             [self.step, f"{self.train_seconds:.3f}"]
-            + [f"{self._sums[k] / n:.6g}" for k in ("loss", "photometric", "transmittance", "smoothness")]
+            + [f"{self._sums[k] / n:.6g}" for k in ("loss", "photometric", "transmittance", "smoothness", "backdrop")]
             + [len(self.gaussians), f"{psnr_value:.4f}", f"{cd_value:.6g}"]
         )
         self._sums = dict.fromkeys(self._sums, 0.0)
