@@ -10,9 +10,8 @@ Same maths as :func:`raster_torch.rasterize_to_pixels_torch` (float32):
    each Gaussian visits only the rows and, per row, the columns where its
    exponent can stay under ``ln(255 * opacity)`` (the ellipse solved in float64,
    widened by 1e-3 pixel, then each pixel tested exactly before any ``exp``),
-   compositing front to back with alpha
-   clamped at 0.99, skipped under 1/255, and a pixel stopping before its
-   transmittance would reach 1e-4;
+   compositing front to back with alpha clamped at 0.99, skipped under 1/255,
+   and a pixel stopping before its transmittance would reach 1e-4;
 3. backward -- parallel over tiles, back to front, transmittance recovered by
    dividing by (1 - alpha); no atomics: the thread owning a tile writes one
    gradient row per intersection, and a second parallel pass sums the rows of
@@ -80,6 +79,16 @@ def _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi):
     lo = min(max(float(mx) - (centre + half) - 0.5 - _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
     hi = min(max(float(mx) - (centre - half) - 0.5 + _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
     return max(x_lo, int(math.ceil(lo))), min(x_hi, int(math.floor(hi)) + 1)
+
+
+@nb.njit(cache=True)
+def _exponent(a, b, c, dx, dy):
+    """Gaussian exponent at offset (dx, dy) = mean - pixel centre, with the conic (a, b, c).
+
+    Deliberately not inlined: compiled without fused multiply-adds, it rounds the same way in
+    the forward and in the (FMA-contracted) backward, so both passes agree on which pairs count.
+    """
+    return _HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
 
 
 @nb.njit(parallel=True, cache=True)
@@ -190,7 +199,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
                     if done[p]:
                         continue
                     dx = mx - (F32(x) + _HALF)
-                    sigma = _HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    sigma = _exponent(a, b, c, dx, dy)
                     if sigma < _ZERO or sigma > limit:
                         continue
                     alpha = min(_MAX_ALPHA, opac * math.exp(-sigma))
@@ -216,7 +225,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             out_last[cam, y, x] = last[p]
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, fastmath={"contract"})
 def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
               width, height, tile_size, tiles_x, tiles_per_cam, final_trans, last_contrib, v_color, v_alpha,
               rows):  # fmt: skip
@@ -268,7 +277,7 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                     if k >= last[p]:
                         continue
                     dx = mx - (F32(x) + _HALF)
-                    sigma = _HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    sigma = _exponent(a, b, c, dx, dy)
                     if sigma < _ZERO or sigma > limit:
                         continue
                     vis = math.exp(-sigma)
