@@ -118,7 +118,7 @@ def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, heigh
                 radii[c, g, 0], radii[c, g, 1] = min(rad_x, 2.0**30), min(rad_y, 2.0**30)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, fastmath={"contract"})
 def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
                       v_means2d, v_conics, v_depths, v_means, v_quats, v_scales):  # fmt: skip
     """Gradients of means2d, conics and depths w.r.t. means, quats and scales (summed over cameras)."""
@@ -307,7 +307,7 @@ def _sh_forward(degree, means, campos, coeffs, radii, colors):
                 colors[c, g, ch] = max(value + 0.5, 0.0)
 
 
-@nb.njit(parallel=True, cache=True)
+@nb.njit(parallel=True, cache=True, fastmath={"contract"})
 def _sh_backward(degree, means, campos, coeffs, radii, colors, v_colors, v_coeffs, v_means):
     """Gradients of the SH colours w.r.t. coefficients and means (summed over cameras)."""
     n_cams, n, n_ch = colors.shape
