@@ -37,6 +37,7 @@ _MAX_ALPHA = F32(MAX_ALPHA)
 _ALPHA_MIN = F32(ALPHA_THRESHOLD)
 _T_MIN = F32(TRANSMITTANCE_THRESHOLD)
 _LOG_SLACK = F32(1e-3)  # the pre-test skips exp only when the exponent is clearly past ln(255 o)
+_FILL_CHUNK = 8192  # Gaussians per chunk of the parallel counting sort
 _TILE_CHUNK = 4  # tiles per scheduling chunk: tile costs vary a lot, so threads take chunks dynamically
 N_GRAD = 6  # per-intersection gradient row: d means2d (2), d conic (3), d opacity (1), then d colour (D)
 
@@ -130,34 +131,48 @@ def _depth_order(depth_bits, counts):
     return keys & 0xFFFFFFFF
 
 
-@nb.njit(cache=True)
+@nb.njit(parallel=True, cache=True)
 def _fill_tiles(order, boxes, gauss_offsets, n_per_cam, tiles_x, tiles_per_cam, tile_start, tile_gauss, gauss_isect):
     """Counting sort of the intersections into tiles, front to back within each tile.
 
     ``tile_start`` [n_tiles + 1] receives the tile offsets, ``tile_gauss`` [M] the
     Gaussian of each intersection, ``gauss_isect`` [M] (grouped per Gaussian by
-    ``gauss_offsets``) the position of each of a Gaussian's intersections.
+    ``gauss_offsets``) the position of each of a Gaussian's intersections. The
+    depth order is cut into chunks counted and scattered in parallel; a tile
+    takes chunk 0's Gaussians first, then chunk 1's, ... so depth order holds.
     """
-    tile_start[:] = 0
-    for g in order:
-        base = (g // n_per_cam) * tiles_per_cam
-        for ty in range(boxes[g, 2], boxes[g, 3]):
-            for tx in range(boxes[g, 0], boxes[g, 1]):
-                tile_start[base + ty * tiles_x + tx + 1] += 1
-    for t in range(1, tile_start.shape[0]):
-        tile_start[t] += tile_start[t - 1]
-    cursor = tile_start[:-1].copy()
-    for g in order:
-        base = (g // n_per_cam) * tiles_per_cam
-        j = gauss_offsets[g]
-        for ty in range(boxes[g, 2], boxes[g, 3]):
-            for tx in range(boxes[g, 0], boxes[g, 1]):
-                t = base + ty * tiles_x + tx
-                pos = cursor[t]
-                cursor[t] = pos + 1
-                tile_gauss[pos] = g
-                gauss_isect[j] = pos
-                j += 1
+    n_tiles = tile_start.shape[0] - 1
+    n_order = order.shape[0]
+    n_chunks = min(max(n_order // _FILL_CHUNK, 1), 64)
+    cursor = np.zeros((n_chunks, n_tiles), np.int64)
+    for chunk in nb.prange(n_chunks):
+        for i in range(chunk * n_order // n_chunks, (chunk + 1) * n_order // n_chunks):
+            g = order[i]
+            base = (g // n_per_cam) * tiles_per_cam
+            for ty in range(boxes[g, 2], boxes[g, 3]):
+                for tx in range(boxes[g, 0], boxes[g, 1]):
+                    cursor[chunk, base + ty * tiles_x + tx] += 1
+    running = 0
+    for t in range(n_tiles):  # exclusive prefix sum, tile-major then chunk
+        tile_start[t] = running
+        for chunk in range(n_chunks):
+            count = cursor[chunk, t]
+            cursor[chunk, t] = running
+            running += count
+    tile_start[n_tiles] = running
+    for chunk in nb.prange(n_chunks):
+        for i in range(chunk * n_order // n_chunks, (chunk + 1) * n_order // n_chunks):
+            g = order[i]
+            base = (g // n_per_cam) * tiles_per_cam
+            j = gauss_offsets[g]
+            for ty in range(boxes[g, 2], boxes[g, 3]):
+                for tx in range(boxes[g, 0], boxes[g, 1]):
+                    t = base + ty * tiles_x + tx
+                    pos = cursor[chunk, t]
+                    cursor[chunk, t] = pos + 1
+                    tile_gauss[pos] = g
+                    gauss_isect[j] = pos
+                    j += 1
 
 
 @nb.njit(parallel=True, cache=True)
@@ -331,6 +346,39 @@ def _sum_rows(gauss_offsets, gauss_isect, rows, out):
                 out[g, j] += rows[k, j]
 
 
+def bin_gaussians(
+    means2d: np.ndarray,  # [C * N, 2] float32, camera-major
+    radii: np.ndarray,  # [C * N, 2] float64, 0 = culled
+    depths: np.ndarray,  # [C * N] float32
+    n_cams: int,
+    n_per_cam: int,
+    width: int,
+    height: int,
+    tile_size: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Depth-sorted tile lists of every camera's visible Gaussians.
+
+    Returns ``tile_start`` [C * tiles + 1] (tile t holds ``tile_gauss[tile_start[t]:tile_start[t + 1]]``,
+    front to back; tiles camera-major then row-major), ``tile_gauss`` [M], and per Gaussian
+    ``gauss_offsets`` [C * N + 1] into ``gauss_isect`` [M], the positions of its intersections.
+    """
+    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    n_total = means2d.shape[0]
+    boxes = np.empty((n_total, 4), np.int64)
+    counts = np.empty(n_total, np.int64)
+    _tile_boxes(means2d, radii, tile_size, tiles_x, tiles_y, boxes, counts)
+    gauss_offsets = np.zeros(n_total + 1, np.int64)
+    np.cumsum(counts, out=gauss_offsets[1:])
+    n_isect = int(gauss_offsets[-1])
+    order = _depth_order(depths.view(np.int32), counts)
+    tile_start = np.empty(n_cams * tiles_x * tiles_y + 1, np.int64)
+    tile_start[0] = 0
+    tile_gauss = np.empty(n_isect, np.int64)
+    gauss_isect = np.empty(n_isect, np.int64)
+    _fill_tiles(order, boxes, gauss_offsets, n_per_cam, tiles_x, tiles_x * tiles_y, tile_start, tile_gauss, gauss_isect)
+    return tile_start, tile_gauss, gauss_offsets, gauss_isect
+
+
 def _numpy32(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(torch.float32).cpu().numpy())
 
@@ -353,17 +401,8 @@ class _RasterizeCPU(torch.autograd.Function):
         with np.errstate(divide="ignore"):  # alpha >= 1/255 <=> exponent <= ln(255 o); culled o = 0 gives -inf
             limits = (np.log(np.float32(255.0) * opa) + _LOG_SLACK).astype(np.float32)
 
-        boxes = np.empty((n_cams * n, 4), np.int64)
-        counts = np.empty(n_cams * n, np.int64)
-        _tile_boxes(m2d, rad, tile_size, tiles_x, tiles_y, boxes, counts)
-        gauss_offsets = np.zeros(n_cams * n + 1, np.int64)
-        np.cumsum(counts, out=gauss_offsets[1:])
-        n_isect = int(gauss_offsets[-1])
-        order = _depth_order(dep.view(np.int32), counts)
-        tile_start = np.empty(n_cams * tiles_per_cam + 1, np.int64)
-        tile_gauss = np.empty(n_isect, np.int64)
-        gauss_isect = np.empty(n_isect, np.int64)
-        _fill_tiles(order, boxes, gauss_offsets, n, tiles_x, tiles_per_cam, tile_start, tile_gauss, gauss_isect)
+        tile_start, tile_gauss, gauss_offsets, gauss_isect = bin_gaussians(m2d, rad, dep, n_cams, n, width, height, tile_size)
+        n_isect = tile_gauss.shape[0]
 
         out_color = torch.empty((n_cams, height, width, n_ch), dtype=torch.float32)
         out_trans = torch.empty((n_cams, height, width), dtype=torch.float32)

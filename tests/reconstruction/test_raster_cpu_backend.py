@@ -198,3 +198,28 @@ def test_cpu_falls_back_to_torch_projection_for_antialiasing_and_camera_gradient
         (img * torch.linspace(-1, 1, img.numel()).reshape(img.shape)).sum().backward()
         grads[backend] = viewmats.grad
     _assert_rel(grads["cpu"], grads["torch"], 1e-4, "d/d viewmats")
+
+
+def test_parallel_binning_matches_the_reference_tile_lists():
+    # enough Gaussians for several chunks of the parallel counting sort, two cameras
+    from tacsplat.reconstruction.raster_cpu import bin_gaussians
+    from tacsplat.reconstruction.raster_torch import project_gaussians, tile_intersections
+
+    scene = random_scene(20000, 64, 48, n_cams=2, sh_degree=0, seed=12)
+    proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
+                             scene["viewmats"], scene["Ks"], 64, 48)  # fmt: skip
+    tile_start, tile_gauss, offsets, isect = bin_gaussians(
+        proj.means2d.reshape(-1, 2).numpy(), proj.radii.reshape(-1, 2).double().numpy(),
+        proj.depths.reshape(-1).numpy(), 2, 20000, 64, 48, 16,
+    )  # fmt: skip
+    tiles_per_cam = 4 * 3
+    assert tile_start.shape == (2 * tiles_per_cam + 1,)
+    for cam in range(2):
+        tile_ids, gauss_ids = tile_intersections(proj.means2d[cam], proj.radii[cam], proj.depths[cam], 64, 48, 16)
+        lo, hi = tile_start[cam * tiles_per_cam], tile_start[(cam + 1) * tiles_per_cam]
+        assert (tile_gauss[lo:hi] - cam * 20000).tolist() == gauss_ids.tolist()
+        counts = torch.bincount(tile_ids, minlength=tiles_per_cam)
+        assert (torch.from_numpy(tile_start[cam * tiles_per_cam : (cam + 1) * tiles_per_cam + 1]).diff() == counts).all()
+    # every Gaussian finds its own intersections
+    owners = torch.repeat_interleave(torch.arange(40000), torch.from_numpy(offsets).diff())
+    assert (torch.from_numpy(tile_gauss[isect]) == owners).all()
