@@ -176,11 +176,37 @@ def _fill_tiles(order, boxes, gauss_offsets, n_per_cam, tiles_x, tiles_per_cam, 
 
 
 @nb.njit(parallel=True, cache=True)
+def _pair_capacity(tile_start, tile_gauss, means2d, conics, limits, width, height, tile_size, tiles_x, tiles_per_cam,
+                   capacity):  # fmt: skip
+    """Upper bound of the pixel-Gaussian pairs each intersection can visit (its ellipse's box within the tile)."""
+    for t in nb.prange(tile_start.shape[0] - 1):
+        cam = t // tiles_per_cam
+        ty, tx = divmod(t - cam * tiles_per_cam, tiles_x)
+        x_lo, y_lo = tx * tile_size, ty * tile_size
+        x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
+        for k in range(tile_start[t], tile_start[t + 1]):
+            g = tile_gauss[k]
+            a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+            r0, r1 = _row_range(a, b, c, limits[g], means2d[g, 1], y_lo, y_hi)
+            a64, b64, c64 = float(a), float(b), float(c)
+            det = a64 * c64 - b64 * b64
+            cols = x_hi - x_lo
+            if det > 0.0 and a64 > 0.0:
+                width_px = 2.0 * math.sqrt(2.0 * float(limits[g]) * c64 / det) + 2.0 * _SPAN_EPS
+                cols = min(cols, int(min(width_px, 1e9)) + 2)
+            capacity[k] = max(r1 - r0, 0) * cols
+
+
+@nb.njit(parallel=True, cache=True)
 def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
-             width, height, tile_size, tiles_x, tiles_per_cam, out_color, out_trans, out_last, tile_pairs):  # fmt: skip
+             width, height, tile_size, tiles_x, tiles_per_cam, out_color, out_trans, out_last, tile_pairs,
+             cache_start, vis_cache, pair_start, tile_cached):  # fmt: skip
     """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T and n_contrib.
 
-    ``tile_pairs[t]`` receives the number of pixel-Gaussian pairs evaluated in tile t.
+    ``tile_pairs[t]`` receives the number of pixel-Gaussian pairs evaluated in tile t. For the
+    backward, each visited pair's ``exp(-exponent)`` (0 where the pair does not count) goes to
+    ``vis_cache`` from ``cache_start[tile_start[t]]`` on, intersection k's first one at
+    ``pair_start[k]``; ``tile_cached[t]`` says whether the tile's pairs fitted.
     """
     n_ch = colors.shape[1]
     for t in nb.prange(tile_start.shape[0] - 1):
@@ -196,6 +222,9 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
         done = np.zeros(n_pix, np.bool_)
         alive = n_pix
         pairs = 0
+        pos = cache_start[tile_start[t]]
+        cache_end = cache_start[tile_start[t + 1]]
+        cached = True
         for k in range(tile_start[t], tile_start[t + 1]):
             if alive == 0:
                 break
@@ -205,32 +234,39 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             opac, limit = opacities[g], limits[g]
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
             inv_a = 1.0 / float(a) if a > _ZERO else 0.0
+            pair_start[k] = pos
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
                 x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
                 pairs += max(x1 - x0, 0)
+                if pos + max(x1 - x0, 0) > cache_end:
+                    cached = False  # cannot happen with the capacity bound; the backward then recomputes
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
-                    if done[p]:
-                        continue
-                    dx = mx - (F32(x) + _HALF)
-                    sigma = _exponent(a, b, c, dx, dy)
-                    if sigma < _ZERO or sigma > limit:
-                        continue
-                    alpha = min(_MAX_ALPHA, opac * math.exp(-sigma))
-                    if alpha < _ALPHA_MIN:
-                        continue
-                    next_t = trans[p] * (_ONE - alpha)
-                    if next_t <= _T_MIN:
-                        done[p] = True
-                        alive -= 1
-                        continue
-                    weight = alpha * trans[p]
-                    for d in range(n_ch):
-                        acc[p, d] += weight * colors[g, d]
-                    trans[p] = next_t
-                    last[p] = k + 1
+                    stored = _ZERO
+                    if not done[p]:
+                        dx = mx - (F32(x) + _HALF)
+                        sigma = _exponent(a, b, c, dx, dy)
+                        if sigma >= _ZERO and sigma <= limit:
+                            vis = math.exp(-sigma)
+                            alpha = min(_MAX_ALPHA, opac * vis)
+                            if alpha >= _ALPHA_MIN:
+                                next_t = trans[p] * (_ONE - alpha)
+                                if next_t <= _T_MIN:
+                                    done[p] = True
+                                    alive -= 1
+                                else:
+                                    weight = alpha * trans[p]
+                                    for d in range(n_ch):
+                                        acc[p, d] += weight * colors[g, d]
+                                    trans[p] = next_t
+                                    last[p] = k + 1
+                                    stored = vis
+                    if cached:
+                        vis_cache[pos] = stored
+                        pos += 1
         tile_pairs[t] = pairs
+        tile_cached[t] = cached
         for p in range(n_pix):
             py, px = divmod(p, tw)
             y, x = y_lo + py, x_lo + px
@@ -243,8 +279,12 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
 def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
               width, height, tile_size, tiles_x, tiles_per_cam, final_trans, last_contrib, v_color, v_alpha,
-              rows):  # fmt: skip
-    """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``."""
+              vis_cache, pair_start, tile_cached, rows):  # fmt: skip
+    """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``.
+
+    Pairs read ``exp(-exponent)`` back from the forward's ``vis_cache`` (recomputed where
+    ``tile_cached`` is false).
+    """
     n_ch = colors.shape[1]
     for t in nb.prange(tile_start.shape[0] - 1):
         start, end = tile_start[t], tile_start[t + 1]
@@ -261,6 +301,7 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
         v_c = np.empty((n_pix, n_ch), np.float32)
         tv_a = np.empty(n_pix, np.float32)  # T_final * (d loss / d alpha-image minus the background's share)
         buf = np.zeros((n_pix, n_ch), np.float32)
+        use_cache = tile_cached[t]
         max_last = start
         for p in range(n_pix):
             py, px = divmod(p, tw)
@@ -284,18 +325,27 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                 rows[k, N_GRAD + d] = _ZERO
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
             inv_a = 1.0 / float(a) if a > _ZERO else 0.0
+            pos = pair_start[k]
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
                 x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
+                    vis = _ZERO
+                    if use_cache:
+                        vis = vis_cache[pos]
+                        pos += 1
                     if k >= last[p]:
                         continue
                     dx = mx - (F32(x) + _HALF)
-                    sigma = _exponent(a, b, c, dx, dy)
-                    if sigma < _ZERO or sigma > limit:
-                        continue
-                    vis = math.exp(-sigma)
+                    if use_cache:
+                        if vis == _ZERO:
+                            continue
+                    else:
+                        sigma = _exponent(a, b, c, dx, dy)
+                        if sigma < _ZERO or sigma > limit:
+                            continue
+                        vis = math.exp(-sigma)
                     alpha = min(_MAX_ALPHA, opac * vis)
                     if alpha < _ALPHA_MIN:
                         continue
@@ -408,14 +458,23 @@ class _RasterizeCPU(torch.autograd.Function):
         out_trans = torch.empty((n_cams, height, width), dtype=torch.float32)
         last = np.empty((n_cams, height, width), np.int64)
         tile_pairs = np.empty(n_cams * tiles_per_cam, np.int64)
+        capacity = np.empty(n_isect, np.int64)
+        _pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, tile_size, tiles_x, tiles_per_cam,
+                       capacity)  # fmt: skip
+        cache_start = np.zeros(n_isect + 1, np.int64)
+        np.cumsum(capacity, out=cache_start[1:])
+        vis_cache = np.empty(int(cache_start[-1]), np.float32)
+        pair_start = np.zeros(n_isect, np.int64)
+        tile_cached = np.empty(n_cams * tiles_per_cam, np.bool_)
         with nb.parallel_chunksize(_TILE_CHUNK):
             _forward(tile_start, tile_gauss, m2d, con, opa, limits, col, bgs, width, height, tile_size,
-                     tiles_x, tiles_per_cam, out_color.numpy(), out_trans.numpy(), last, tile_pairs)  # fmt: skip
+                     tiles_x, tiles_per_cam, out_color.numpy(), out_trans.numpy(), last, tile_pairs,
+                     cache_start, vis_cache, pair_start, tile_cached)  # fmt: skip
         stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
 
         ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, limits, col, bgs,
                            width, height, tile_size, tiles_x, tiles_per_cam)  # fmt: skip
-        ctx.binning = (gauss_offsets, gauss_isect, last)
+        ctx.binning = (gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached)
         ctx.shapes = (n_cams, n, n_ch)
         ctx.has_background = backgrounds is not None
         ctx.save_for_backward(out_trans)
@@ -426,13 +485,14 @@ class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_color, v_alphas, _v_stats):
         (out_trans,) = ctx.saved_tensors
-        gauss_offsets, gauss_isect, last = ctx.binning
+        gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached = ctx.binning
         n_cams, n, n_ch = ctx.shapes
         v_col = _numpy32(v_color)
         v_alp = _numpy32(v_alphas[..., 0])
         rows = np.empty((gauss_isect.shape[0], N_GRAD + n_ch), np.float32)
         with nb.parallel_chunksize(_TILE_CHUNK):
-            _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, rows)
+            _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, vis_cache, pair_start, tile_cached,
+                      rows)  # fmt: skip
         per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
         _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
         grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)

@@ -223,3 +223,43 @@ def test_parallel_binning_matches_the_reference_tile_lists():
     # every Gaussian finds its own intersections
     owners = torch.repeat_interleave(torch.arange(40000), torch.from_numpy(offsets).diff())
     assert (torch.from_numpy(tile_gauss[isect]) == owners).all()
+
+
+def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
+    # the backward reads exp(-exponent) back from the forward; a tile whose pairs did not fit recomputes them
+    import numpy as np
+
+    from tacsplat.reconstruction import raster_cpu as rc
+    from tacsplat.reconstruction.raster_torch import project_gaussians
+
+    width, height, n = 40, 30, 300
+    scene = random_scene(n, width, height, sh_degree=0, seed=13)
+    proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
+                             scene["viewmats"], scene["Ks"], width, height)  # fmt: skip
+    m2d, con = proj.means2d[0].numpy().copy(), proj.conics[0].numpy().copy()
+    opa = proj.opacities[0].detach().numpy().copy()
+    tile_start, tile_gauss, _, _ = rc.bin_gaussians(m2d, proj.radii[0].double().numpy(), proj.depths[0].numpy(),
+                                                    1, n, width, height, 16)  # fmt: skip
+    n_tiles, n_isect = tile_start.shape[0] - 1, tile_gauss.shape[0]
+    limits = (np.log(np.float32(255.0) * opa) + rc._LOG_SLACK).astype(np.float32)
+    colors = np.random.default_rng(0).random((n, 3), dtype=np.float32)
+    args = (tile_start, tile_gauss, m2d, con, opa, limits, colors, np.zeros((1, 3), np.float32),
+            width, height, 16, 3, n_tiles)  # fmt: skip
+    capacity = np.empty(n_isect, np.int64)
+    rc._pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, 16, 3, n_tiles, capacity)
+    cache_start = np.concatenate([[0], np.cumsum(capacity)])
+    vis_cache, pair_start = np.empty(int(cache_start[-1]), np.float32), np.zeros(n_isect, np.int64)
+    cached = np.empty(n_tiles, np.bool_)
+    trans, last = np.empty((1, height, width), np.float32), np.empty((1, height, width), np.int64)
+    rc._forward(*args, np.empty((1, height, width, 3), np.float32), trans, last, np.empty(n_tiles, np.int64),
+                cache_start, vis_cache, pair_start, cached)  # fmt: skip
+    assert cached.all()
+    v_color = np.random.default_rng(1).standard_normal((1, height, width, 3)).astype(np.float32)
+    v_alpha = np.random.default_rng(2).standard_normal((1, height, width)).astype(np.float32)
+    rows = {}
+    for use_cache in (True, False):
+        rows[use_cache] = np.empty((n_isect, rc.N_GRAD + 3), np.float32)
+        rc._backward(*args, trans, last, v_color, v_alpha, vis_cache, pair_start, np.full(n_tiles, use_cache),
+                     rows[use_cache])  # fmt: skip
+    np.testing.assert_allclose(rows[True], rows[False], rtol=1e-5, atol=1e-6 * np.abs(rows[False]).max())
+    assert np.abs(rows[False]).max() > 0
