@@ -85,6 +85,8 @@ class TrainConfig:
     touch_max_distance: float = 0.005  # metres: Gaussians farther from the point are ignored
     touch_rebuild_every: int = 50  # steps between k-d tree rebuilds (and after every densification)
     touch_points_per_step: int = 512  # random subset of touch points in L_T per step (0 = all)
+    touch_loss_moves_shape: bool = False  # False: L_T moves means and opacities only (the effect Sec. 4.2.1
+    # describes); True: also scales and rotations, which L_T rewards for growing around the touch point
     # smoothness (Sec. 4.2.2)
     smoothness_beta: float = 10.0  # edge sensitivity e^{-beta |dI|}
     proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
@@ -290,8 +292,9 @@ class Trainer:
             if 0 < cfg.touch_points_per_step < len(points):  # an unbiased estimate of the mean over P_t
                 subset = torch.randperm(len(points), generator=self.generator)[: cfg.touch_points_per_step]
                 points, candidates = points[subset], candidates[subset]
+            quats, scales = (g.quats, g.scales) if cfg.touch_loss_moves_shape else (g.quats.detach(), g.scales.detach())
             transmittance = losses.transmittance_loss(
-                points, g.means, g.quats, g.scales, g.opacities, candidates,
+                points, g.means, quats, scales, g.opacities, candidates,
                 cfg.touch_top_k, cfg.touch_max_distance,
             )  # fmt: skip
             loss = loss + cfg.lambda_t * transmittance
