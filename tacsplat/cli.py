@@ -27,6 +27,8 @@ COMMAND_MODULES = (
     "tacsplat.drivers.cli",
     "tacsplat.acquisition.cli",
     "tacsplat.demo",
+    "tacsplat.paper_bench",
+    "tacsplat.touch_bench",
 )
 
 GROUP_HELP = {

@@ -1,0 +1,322 @@
+"""`tacsplat bench paper`: the paper's glossy-object tables (Tables 1-3) on the twin's objects.
+
+Per object and seed, one seeded simulated capture per setting:
+
+- ``minimal``: 5 train views and 5 grasps (20 touches), as the paper's Table 2;
+- ``full-views``: ``--full-views`` train views (at least 32, the Glossy Synthetic
+  train split) and the same 5 grasps, as Table 1.
+
+Both captures of an object use the same seed and test-view count, so their
+held-out test views (an even Fibonacci spiral, independent of the train views)
+are the same for every run of that object. Each setting is reconstructed with
+the four variants of Table 3: ``3dgs`` (no touch, no smoothness), ``3dgs+s``,
+``3dgs+t`` and ``full``. Everything else is the trainer's defaults.
+
+The job is resumable: a finished capture is marked by ``capture.json``, a run
+with a ``metrics.json`` is skipped, a run with only a checkpoint is continued.
+Output::
+
+    REPORT/scenes/<object>/<setting>-s<seed>/      scene directories (+ capture.json)
+    REPORT/runs/<object>/<setting>/<variant>-s<seed>/   run directories of `tacsplat reconstruct`
+    REPORT/results.csv  REPORT/report.md  REPORT/*.png
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tacsplat.errors import ConfigError
+from tacsplat.report import VARIANTS
+
+log = logging.getLogger(__name__)
+
+SETTINGS = ("minimal", "full-views")
+MINIMAL_VIEWS = 5
+GRASPS = 5  # 5 grasps x 4 fingertips = 20 touches (paper: 5 grasps)
+QUICK_OBJECTS = ("teapot", "bell")
+
+
+def variant_overrides(variant: str) -> dict:
+    """TrainConfig fields that select a variant of the paper's Table 3 (the rest stay at the defaults)."""
+    overrides = {"3dgs": {"use_touch": False, "lambda_s": 0.0}, "3dgs+s": {"use_touch": False},
+                 "3dgs+t": {"lambda_s": 0.0}, "full": {}}
+    if variant not in overrides:
+        raise ConfigError("variant", f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
+    return overrides[variant]
+
+
+@dataclass
+class PaperBenchConfig:
+    """Size of the suite; the defaults finish the 6 objects x 2 settings x 4 variants in about 1.5 h on 2 cores."""
+
+    objects: tuple[str, ...] = ()  # empty: every library object
+    settings: tuple[str, ...] = SETTINGS
+    variants: tuple[str, ...] = VARIANTS
+    seeds: tuple[int, ...] = (0,)
+    resolution: int = 160  # image width and height, pixels
+    iterations: int = 1500  # optimisation steps per run
+    full_views: int = 32  # train views of the full-views setting (Glossy Synthetic's train split)
+    test_views: int = 12  # held-out views with GT depth, shared by every run of an object
+    grasps: int = GRASPS
+
+    @classmethod
+    def quick(cls) -> "PaperBenchConfig":
+        """Two objects, minimal setting, fewer steps and pixels: about 10 minutes on 2 cores."""
+        return cls(objects=QUICK_OBJECTS, settings=("minimal",), resolution=128, iterations=800, test_views=8)
+
+    def validate(self) -> None:
+        from tacsplat.sim.objects import OBJECT_NAMES
+
+        unknown = [o for o in self.objects if o not in OBJECT_NAMES]
+        if unknown:
+            raise ConfigError("objects", f"unknown object(s) {', '.join(unknown)}; choose from {', '.join(OBJECT_NAMES)}")
+        for s in self.settings:
+            if s not in SETTINGS:
+                raise ConfigError("settings", f"unknown setting {s!r}; choose from {', '.join(SETTINGS)}")
+        for v in self.variants:
+            variant_overrides(v)
+        if self.full_views < 32:
+            raise ConfigError("full_views", f"the full-views setting needs at least 32 train views, got {self.full_views}")
+        for key in ("resolution", "iterations", "test_views"):
+            if getattr(self, key) < 1:
+                raise ConfigError(key, f"must be >= 1, got {getattr(self, key)}")
+        if not self.seeds:
+            raise ConfigError("seeds", "need at least one seed")
+
+    def object_list(self) -> list[str]:
+        from tacsplat.sim.objects import OBJECT_NAMES
+
+        return list(self.objects) or list(OBJECT_NAMES)
+
+
+@dataclass(frozen=True)
+class Run:
+    """One reconstruction of the suite."""
+
+    object: str
+    setting: str
+    variant: str
+    seed: int
+    scene: Path
+    out: Path
+
+    @property
+    def done(self) -> bool:
+        return (self.out / "metrics.json").is_file()
+
+
+@dataclass
+class PaperBench:
+    """The suite in a report folder; :meth:`run` does whatever is not done yet."""
+
+    out: Path
+    config: PaperBenchConfig = field(default_factory=PaperBenchConfig)
+
+    def __post_init__(self):
+        self.out = Path(self.out)
+        self.config.validate()
+
+    def scene_dir(self, obj: str, setting: str, seed: int) -> Path:
+        return self.out / "scenes" / obj / f"{setting}-s{seed}"
+
+    def runs(self) -> list[Run]:
+        c = self.config
+        return [
+            Run(obj, setting, variant, seed, self.scene_dir(obj, setting, seed),
+                self.out / "runs" / obj / setting / f"{variant}-s{seed}")
+            for obj in c.object_list() for setting in c.settings for seed in c.seeds for variant in c.variants
+        ]  # fmt: skip
+
+    # ------------------------------------------------------------------ capture and training
+
+    def capture(self, obj: str, setting: str, seed: int) -> Path:
+        """The seeded sim capture of one object and setting (resumed if it was interrupted)."""
+        from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
+
+        scene = self.scene_dir(obj, setting, seed)
+        marker = scene / "capture.json"
+        if marker.is_file():
+            return scene
+        c = self.config
+        views = MINIMAL_VIEWS if setting == "minimal" else c.full_views
+        rig = sim_rig_config(object=obj, views=views, test_views=c.test_views, grasps=c.grasps,
+                             resolution=c.resolution, seed=seed)
+        scene.parent.mkdir(parents=True, exist_ok=True)
+        timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
+        marker.write_text(json.dumps({"views": views, "grasps": c.grasps, "seed": seed, **timings}, indent=2))
+        return scene
+
+    def train(self, run: Run) -> dict:
+        """One reconstruction (continued from its checkpoint if one exists); returns its metrics."""
+        from tacsplat.reconstruction.trainer import TrainConfig, reconstruct
+
+        if run.done:
+            return json.loads((run.out / "metrics.json").read_text())
+        config = TrainConfig(iterations=self.config.iterations, seed=run.seed, **variant_overrides(run.variant))
+        resume = (run.out / "checkpoint.pt").is_file()
+        return reconstruct(run.scene, run.out, config, resume=resume, show_progress=False)
+
+    def run(self, progress: bool = True) -> list[dict]:
+        """Capture and train everything not done yet, then write the report; returns the results rows."""
+        from tqdm import tqdm
+
+        runs = self.runs()
+        todo = [r for r in runs if not r.done]
+        if len(todo) < len(runs):
+            log.info("%d of %d runs already finished in %s: skipped", len(runs) - len(todo), len(runs), self.out)
+        started = time.perf_counter()
+        bar = tqdm(todo, desc="bench paper", unit="run", disable=not progress, dynamic_ncols=True)
+        for run in bar:
+            bar.set_postfix_str(f"{run.object} {run.setting} {run.variant} s{run.seed}")
+            self.capture(run.object, run.setting, run.seed)
+            metrics = self.train(run)
+            bar.write(f"{run.object:8s} {run.setting:10s} {run.variant:7s} seed {run.seed}: "
+                      f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
+                      f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s")
+        bar.close()
+        rows = self.results()
+        self.write_report(rows, wall_seconds=time.perf_counter() - started)
+        return rows
+
+    # ------------------------------------------------------------------ report
+
+    def results(self) -> list[dict]:
+        """One row per finished run (runs without metrics.json are left out)."""
+        rows = []
+        for run in self.runs():
+            if not run.done:
+                continue
+            m = json.loads((run.out / "metrics.json").read_text())
+            rows.append({"object": run.object, "setting": run.setting, "variant": run.variant, "seed": run.seed,
+                         **{k: _number(m.get(k)) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}})
+        return rows
+
+    def write_report(self, rows: list[dict], wall_seconds: float | None = None) -> Path:
+        """results.csv, report.md and the plots from the runs on disk."""
+        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds)
+        return self.out / "report.md"
+
+
+def _number(value) -> float:
+    return float("nan") if value is None else float(value)
+
+
+def _fmt(value, decimals: int) -> str:
+    return "nan" if value is None else f"{value:.{decimals}f}"
+
+
+def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
+                       wall_seconds: float | None = None) -> None:
+    """Write ``results.csv``, ``report.md``, CD bar charts, error-vs-time curves and render grids into ``out``."""
+    from tacsplat.report import (
+        markdown_table,
+        plot_cd_bars,
+        plot_error_vs_time,
+        read_progress_curve,
+        render_grid,
+        write_results_csv,
+    )
+
+    out = Path(out)
+    write_results_csv(rows, out / "results.csv")
+    settings = [s for s in SETTINGS if any(r["setting"] == s for r in rows)]
+    lines = [
+        "# Tactile-informed 3DGS on the twin's glossy objects",
+        "",
+        f"{len(rows)} runs: {config.resolution}x{config.resolution} px, {config.iterations} steps, "
+        f"{config.test_views} held-out test views per object, {config.grasps} grasps of 4 touches, "
+        f"minimal = {MINIMAL_VIEWS} train views, full-views = {config.full_views} train views, "
+        f"seeds {', '.join(map(str, config.seeds))} (tables: mean over seeds). "
+        "CD is in units of the ground-truth bounding-sphere radius; best per column in bold.",
+        "",
+    ]
+    if wall_seconds is not None:
+        lines += [f"Wall time of this invocation: {wall_seconds / 60:.1f} min.", ""]
+    for setting in settings:
+        lines += [f"## {setting}", ""]
+        for metric in ("cd", "psnr", "ssim"):
+            lines += [markdown_table(rows, metric, setting), ""]
+        bars = plot_cd_bars(rows, setting, out / f"cd_{setting}.png")
+        lines += [f"![CD per object, {setting}]({bars.name})", ""]
+        curves: dict[str, dict] = {}
+        for run in runs:
+            progress = run.out / "progress.csv"
+            if run.setting == setting and run.seed == config.seeds[0] and run.done and progress.is_file():
+                curves.setdefault(run.object, {})[run.variant] = read_progress_curve(progress)
+        if curves:
+            png = plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", f"held-out error vs run time ({setting})")
+            lines += [f"![error vs run time, {setting}]({png.name})", ""]
+        for obj in dict.fromkeys(r.object for r in runs if r.setting == setting):
+            comparisons = {}
+            for run in runs:
+                if run.object == obj and run.setting == setting and run.seed == config.seeds[0] and run.done:
+                    views = sorted((run.out / "renders").glob("view_*.png"))
+                    if views:
+                        comparisons[run.variant] = views[0]
+            if comparisons:
+                png = render_grid(comparisons, out / f"renders_{obj}_{setting}.png", f"{obj}, {setting}: first test view")
+                lines += [f"![renders {obj} {setting}]({png.name})", ""]
+    (out / "report.md").write_text("\n".join(lines))
+
+
+# ---------------------------------------------------------------------- command line
+
+
+def _int_list(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ConfigError("--seeds", f"expected comma-separated integers, got {text!r}") from None
+
+
+def config_from_args(args) -> PaperBenchConfig:
+    """The :class:`PaperBenchConfig` of `tacsplat bench paper`'s options."""
+    config = PaperBenchConfig.quick() if args.quick else PaperBenchConfig()
+    if args.objects != "all":
+        config.objects = tuple(o.strip() for o in args.objects.split(",") if o.strip())
+    elif not args.quick:
+        config.objects = ()
+    for key in ("resolution", "iterations", "full_views", "test_views"):
+        if getattr(args, key) is not None:
+            setattr(config, key, getattr(args, key))
+    if args.settings is not None:
+        config.settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
+    if args.seeds is not None:
+        config.seeds = _int_list(args.seeds)
+    config.validate()
+    return config
+
+
+def register(cli) -> None:
+    p = cli.command(
+        "bench paper",
+        help="the paper's tables on the twin's glossy objects: 3DGS, +S, +T, full; minimal and full views",
+        description="Per object: a seeded sim capture per setting (minimal: 5 views + 5 grasps; full-views: "
+        ">= 32 views + 5 grasps), the four variants, then REPORT/results.csv, REPORT/report.md and plots. "
+        "Resumable: rerun the same command after an interruption.",
+    )
+    p.add_argument("--objects", default="all", help="'all' or comma-separated library objects (--quick: teapot,bell)")
+    p.add_argument("--out", required=True, help="report folder (captures, runs, results.csv, report.md, PNGs)")
+    p.add_argument("--quick", action="store_true",
+                   help="two objects, minimal setting, 128 px, 800 steps (about 10 minutes)")
+    p.add_argument("--resolution", type=int, default=None, help="image size in pixels (default 160; quick 128)")
+    p.add_argument("--iterations", type=int, default=None, help="steps per run (default 1500; quick 800)")
+    p.add_argument("--full-views", type=int, default=None, help="train views of the full-views setting (default 32)")
+    p.add_argument("--test-views", type=int, default=None, help="held-out test views (default 12; quick 8)")
+    p.add_argument("--settings", default=None, help="comma-separated: minimal,full-views (quick: minimal)")
+    p.add_argument("--seeds", default=None, help="comma-separated capture and training seeds (default 0)")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    bench = PaperBench(Path(args.out), config_from_args(args))
+    started = time.perf_counter()
+    rows = bench.run()
+    print((bench.out / "report.md").read_text())
+    print(f"{len(rows)} runs in {bench.out}; this invocation took {(time.perf_counter() - started) / 60:.1f} min")
+    print(f"report: {bench.out / 'report.md'}")
+    return 0

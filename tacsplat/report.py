@@ -1,0 +1,216 @@
+"""Tables and plots shared by the benchmarks (`tacsplat bench paper`, `bench touches`, `demo`).
+
+A result is a dict with the keys of :data:`RESULT_COLUMNS` (one reconstruction run).
+Tables follow the paper's layout (Tables 1-3): objects as columns plus ``Avg.``,
+variants as rows, the best value of each column in bold.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+RESULT_COLUMNS = ("object", "setting", "variant", "cd", "psnr", "ssim", "train_seconds", "num_gaussians", "seed")
+VARIANTS = ("3dgs", "3dgs+s", "3dgs+t", "full")
+VARIANT_LABELS = {"3dgs": "3DGS", "3dgs+s": "3DGS + S", "3dgs+t": "3DGS + T", "full": "Ours (full)"}
+# metric -> (heading, True when lower is better, decimals)
+METRICS = {"cd": ("CD (↓)", True, 4), "psnr": ("PSNR (↑)", False, 2), "ssim": ("SSIM (↑)", False, 3)}
+
+
+def write_results_csv(rows: list[dict], path: str | Path) -> Path:
+    """One line per run with the columns of :data:`RESULT_COLUMNS` (missing values empty)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for row in rows:
+            writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in RESULT_COLUMNS})
+    return path
+
+
+def read_results_csv(path: str | Path) -> list[dict]:
+    """The rows of :func:`write_results_csv`, numbers parsed (empty -> NaN)."""
+    rows = []
+    with Path(path).open() as fh:
+        for raw in csv.DictReader(fh):
+            row = dict(raw)
+            for key in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians"):
+                row[key] = float(raw[key]) if raw.get(key) not in (None, "") else float("nan")
+            rows.append(row)
+    return rows
+
+
+def _mean(values: list[float]) -> float:
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    return float(np.mean(finite)) if finite else float("nan")
+
+
+def metric_table(rows: list[dict], metric: str, setting: str) -> tuple[list[str], list[str], np.ndarray]:
+    """``(objects, variants, values [V, O + 1])``: the mean over seeds of ``metric`` per variant and object,
+    last column the average over objects (NaN where a run is missing)."""
+    selected = [r for r in rows if r["setting"] == setting]
+    objects = list(dict.fromkeys(r["object"] for r in selected))
+    present = {r["variant"] for r in selected}
+    variants = [v for v in VARIANTS if v in present] + sorted(present - set(VARIANTS))
+    values = np.full((len(variants), len(objects) + 1), np.nan)
+    for i, variant in enumerate(variants):
+        for j, obj in enumerate(objects):
+            values[i, j] = _mean([r[metric] for r in selected if r["variant"] == variant and r["object"] == obj])
+        values[i, -1] = _mean(list(values[i, :-1]))
+    return objects, variants, values
+
+
+def best_rows(values: np.ndarray, lower_is_better: bool) -> list[set[int]]:
+    """Per column, the row indices holding the best finite value (ties all count)."""
+    best = []
+    for column in values.T:
+        finite = np.isfinite(column)
+        if not finite.any():
+            best.append(set())
+            continue
+        target = np.nanmin(column) if lower_is_better else np.nanmax(column)
+        best.append({i for i in np.flatnonzero(finite) if column[i] == target})
+    return best
+
+
+def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
+    """A paper-style Markdown table of one metric in one setting; the best value per column in bold."""
+    heading, lower, decimals = METRICS[metric]
+    objects, variants, values = metric_table(rows, metric, setting)
+    best = best_rows(values, lower)
+    lines = [
+        "| Method | " + " | ".join(objects + ["Avg."]) + " |",
+        "| --- |" + " ---: |" * (len(objects) + 1),
+    ]
+    for i, variant in enumerate(variants):
+        cells = []
+        for j, value in enumerate(values[i]):
+            text = "–" if not math.isfinite(value) else f"{value:.{decimals}f}"
+            cells.append(f"**{text}**" if i in best[j] else text)
+        lines.append(f"| {VARIANT_LABELS.get(variant, variant)} | " + " | ".join(cells) + " |")
+    return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n"
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
+    """Grouped bar chart: CD per variant (bars) per object (groups), log scale, mean over seeds."""
+    plt = _pyplot()
+    objects, variants, values = metric_table(rows, "cd", setting)
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * (len(objects) + 1)), 4))
+    width = 0.8 / max(len(variants), 1)
+    x = np.arange(len(objects) + 1)
+    for i, variant in enumerate(variants):
+        ax.bar(x + (i - (len(variants) - 1) / 2) * width, np.nan_to_num(values[i], nan=0.0), width,
+               label=VARIANT_LABELS.get(variant, variant))
+    ax.set_xticks(x, objects + ["Avg."])
+    ax.set_ylabel("Chamfer distance [x GT radius]")
+    if np.nanmin(np.where(values > 0, values, np.nan), initial=np.inf) < np.inf:
+        ax.set_yscale("log")
+    ax.set_title(f"Chamfer distance per object ({setting})")
+    ax.legend(fontsize=8)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def read_progress_curve(progress_csv: str | Path) -> dict[str, np.ndarray]:
+    """``seconds``, ``cd``, ``psnr`` arrays of a run's progress.csv (rows without evaluation dropped)."""
+    with Path(progress_csv).open() as fh:
+        raw = list(csv.DictReader(fh))
+    out = {k: np.array([float(r[k]) if r.get(k) not in (None, "") else np.nan for r in raw]) for k in ("seconds", "cd", "psnr")}
+    keep = np.isfinite(out["cd"]) | np.isfinite(out["psnr"])
+    return {k: v[keep] for k, v in out.items()}
+
+
+def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path: str | Path, title: str = "") -> Path:
+    """CD (top) and PSNR (bottom) against run time, one column per object, one line per variant.
+
+    ``curves[object][variant]`` is a :func:`read_progress_curve` result.
+    """
+    plt = _pyplot()
+    objects = list(curves)
+    fig, axes = plt.subplots(2, max(len(objects), 1), figsize=(4 * max(len(objects), 1), 6.5), squeeze=False)
+    for j, obj in enumerate(objects):
+        for variant, curve in curves[obj].items():
+            label = VARIANT_LABELS.get(variant, variant)
+            axes[0, j].plot(curve["seconds"], curve["cd"], "o-", ms=3, label=label)
+            axes[1, j].plot(curve["seconds"], curve["psnr"], "o-", ms=3, label=label)
+        axes[0, j].set_title(obj)
+        axes[0, j].set_yscale("log")
+        axes[0, j].set_ylabel("CD [x GT radius]")
+        axes[1, j].set_ylabel("held-out PSNR [dB]")
+        axes[1, j].set_xlabel("run time [s] (evaluation excluded)")
+        for ax in axes[:, j]:
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def split_comparison(image: np.ndarray) -> dict[str, np.ndarray]:
+    """The four quadrants of a ``renders/view_*.png`` written by the evaluation:
+    rendered RGB | GT RGB over rendered depth | GT depth."""
+    h, w = image.shape[0] // 2, image.shape[1] // 2
+    return {"rgb": image[:h, :w], "gt_rgb": image[:h, w:], "depth": image[h:, :w], "gt_depth": image[h:, w:]}
+
+
+def render_grid(comparisons: dict[str, str | Path], path: str | Path, title: str = "") -> Path:
+    """Ground truth then one column per variant; RGB on top, depth below.
+
+    ``comparisons[variant]`` is the path of one test view's comparison PNG (the
+    same view for every variant); the ground truth is taken from the first.
+    Each depth panel shares its colour scale with its own ground truth (see the evaluation).
+    """
+    import cv2
+
+    plt = _pyplot()
+    panels = {}
+    for variant, png in comparisons.items():
+        bgr = cv2.imread(str(png), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise FileNotFoundError(f"render comparison not readable: {png}")
+        panels[variant] = split_comparison(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    first = next(iter(panels.values()))
+    columns = [("ground truth", first["gt_rgb"], first["gt_depth"])] + [
+        (VARIANT_LABELS.get(v, v), p["rgb"], p["depth"]) for v, p in panels.items()
+    ]
+    fig, axes = plt.subplots(2, len(columns), figsize=(2.6 * len(columns), 5.4), squeeze=False)
+    for j, (label, rgb, depth) in enumerate(columns):
+        axes[0, j].imshow(rgb)
+        axes[1, j].imshow(depth)
+        axes[0, j].set_title(label, fontsize=10)
+        for ax in axes[:, j]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    axes[0, 0].set_ylabel("RGB")
+    axes[1, 0].set_ylabel("depth")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,255 @@
+"""`tacsplat bench touches`: Chamfer distance against the number of touches (the paper's Fig. 6).
+
+How the number of touches is controlled: per seed, one simulated capture of
+the object with 5 train views and ``ceil(max_touches / 4)`` grasps (4
+fingertips each). For every count ``n`` a copy of that scene is written through
+:class:`~tacsplat.datasets.SceneWriter` with every frame (and its ground truth)
+and only the first ``n`` touches *in contact* in capture order, i.e. whole
+grasps first: 4 touches = the first grasp, 8 = the first two, ... so the
+touches grow the way a robot would add grasps, and every count of one seed
+sees the same views. Fingers that touched nothing are dropped (they add no
+points). When the capture has fewer than ``n`` touches in contact (a grasp was
+skipped or a finger missed), the copy holds all of them and the CSV records
+the count actually used. ``n = 0`` is the same method without touch (no G_t, no
+L_T; the smoothness term is unmasked). Every run is the full method with the
+trainer's defaults.
+
+Output: ``OUT/touches.csv`` (one row per run), ``OUT/summary.csv`` (mean and
+standard deviation per requested count), ``OUT/cd_vs_touches.png``.
+Resumable like `bench paper`: runs with a metrics.json are skipped.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from tacsplat.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+FINGERS_PER_GRASP = 4
+
+
+@dataclass
+class TouchBenchConfig:
+    """Defaults: 6 counts x 3 seeds of a 128 px teapot, about 20 minutes on 2 cores."""
+
+    object: str = "teapot"
+    touch_counts: tuple[int, ...] = (0, 4, 8, 16, 32, 64)
+    seeds: tuple[int, ...] = (0, 1, 2)
+    views: int = 5  # train views (the paper's minimal-views setting)
+    test_views: int = 8
+    resolution: int = 128
+    iterations: int = 800
+
+    @property
+    def grasps(self) -> int:
+        return math.ceil(max(self.touch_counts) / FINGERS_PER_GRASP)
+
+    def validate(self) -> None:
+        from tacsplat.sim.objects import OBJECT_NAMES
+
+        if self.object not in OBJECT_NAMES:
+            raise ConfigError("object", f"unknown object {self.object!r}; choose from {', '.join(OBJECT_NAMES)}")
+        if not self.touch_counts or any(n < 0 for n in self.touch_counts):
+            raise ConfigError("touch_counts", f"need non-negative counts, got {self.touch_counts}")
+        if not self.seeds:
+            raise ConfigError("seeds", "need at least one seed")
+        for key in ("views", "test_views", "resolution", "iterations"):
+            if getattr(self, key) < 1:
+                raise ConfigError(key, f"must be >= 1, got {getattr(self, key)}")
+
+
+def subsample_touches(scene_path: str | Path, out: str | Path, num_touches: int) -> int:
+    """Copy a scene to ``out`` (through SceneWriter) keeping every frame and its ground truth but only the
+    first ``num_touches`` touches in contact; returns the number kept. ``out`` must not exist."""
+    import cv2
+
+    from tacsplat.datasets import Scene, SceneMeta, SceneWriter
+
+    scene = Scene.load(scene_path)
+    kept = [t for t in scene.touches if t.in_contact][:num_touches]
+    meta = SceneMeta(source=scene.meta.source, object=scene.meta.object, capture_plan=dict(scene.meta.capture_plan),
+                     extra={**scene.meta.extra, "touch_subsample": {"from": str(scene.path), "touches": len(kept)}})
+    with SceneWriter.create(out, scene.intrinsics, meta, scene.sensor) as writer:
+        for frame in scene.frames:
+            bgr = cv2.imread(str(scene.path / frame.file_path), cv2.IMREAD_COLOR)
+            writer.add_frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), frame.T_world_cam, frame.split,
+                             gt_depth=scene.gt_depth(frame), intrinsics=frame.intrinsics)
+        for touch in kept:
+            writer.add_touch(scene.load_touch_depth(touch), touch.T_world_sensor, touch.grasp, touch.finger)
+        if scene.gt_mesh_path is not None:
+            writer.set_gt_mesh(scene.gt_mesh_path)
+    return len(kept)
+
+
+class TouchBench:
+    """The sweep in a folder; :meth:`run` does whatever is not done yet."""
+
+    def __init__(self, out: str | Path, config: TouchBenchConfig | None = None):
+        self.out = Path(out)
+        self.config = config or TouchBenchConfig()
+        self.config.validate()
+
+    def base_scene(self, seed: int) -> Path:
+        from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
+
+        c = self.config
+        scene = self.out / "scenes" / f"{c.object}-s{seed}"
+        marker = scene / "capture.json"
+        if not marker.is_file():
+            rig = sim_rig_config(object=c.object, views=c.views, test_views=c.test_views, grasps=c.grasps,
+                                 resolution=c.resolution, seed=seed)
+            timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
+            marker.write_text(json.dumps({"grasps": c.grasps, "seed": seed, **timings}, indent=2))
+        return scene
+
+    def subsampled_scene(self, seed: int, count: int) -> tuple[Path, int]:
+        """The copy of the seed's capture with ``count`` touches; returns (path, touches actually kept)."""
+        path = self.out / "scenes" / f"{self.config.object}-s{seed}-t{count}"
+        marker = path.with_name(path.name + ".json")
+        if marker.is_file():
+            return path, json.loads(marker.read_text())["touches"]
+        if path.exists():  # a copy interrupted before its marker: ours to redo
+            shutil.rmtree(path)
+        kept = subsample_touches(self.base_scene(seed), path, count)
+        marker.write_text(json.dumps({"requested": count, "touches": kept}))
+        return path, kept
+
+    def run_dir(self, seed: int, count: int) -> Path:
+        return self.out / "runs" / f"t{count:03d}-s{seed}"
+
+    def run(self, progress: bool = True) -> list[dict]:
+        from tqdm import tqdm
+
+        from tacsplat.reconstruction.trainer import TrainConfig, reconstruct
+
+        c = self.config
+        jobs = [(seed, n) for seed in c.seeds for n in c.touch_counts]
+        rows = []
+        bar = tqdm(jobs, desc="bench touches", unit="run", disable=not progress, dynamic_ncols=True)
+        for seed, count in bar:
+            bar.set_postfix_str(f"seed {seed}, {count} touches")
+            out = self.run_dir(seed, count)
+            scene, kept = self.subsampled_scene(seed, count)
+            if (out / "metrics.json").is_file():
+                metrics = json.loads((out / "metrics.json").read_text())
+            else:
+                config = TrainConfig(iterations=c.iterations, seed=seed)
+                metrics = reconstruct(scene, out, config, resume=(out / "checkpoint.pt").is_file(), show_progress=False)
+            row = {"seed": seed, "requested_touches": count, "touches": kept,
+                   **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}}
+            bar.write(f"seed {seed}: {kept:3d} touches -> CD {row['cd']:.4f}  PSNR {row['psnr']:.2f}")
+            rows.append(row)
+        bar.close()
+        write_touch_report(self.out, rows)
+        return rows
+
+
+TOUCH_COLUMNS = ("seed", "requested_touches", "touches", "cd", "psnr", "ssim", "train_seconds", "num_gaussians")
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """Mean and standard deviation (over seeds) of CD and PSNR per requested touch count."""
+    summary = []
+    for count in sorted({r["requested_touches"] for r in rows}):
+        group = [r for r in rows if r["requested_touches"] == count]
+        cds = np.array([r["cd"] for r in group if r["cd"] is not None], dtype=float)
+        psnrs = np.array([r["psnr"] for r in group if r["psnr"] is not None], dtype=float)
+        summary.append({
+            "requested_touches": count,
+            "mean_touches": float(np.mean([r["touches"] for r in group])),
+            "runs": len(group),
+            "cd_mean": float(cds.mean()) if len(cds) else float("nan"),
+            "cd_std": float(cds.std()) if len(cds) else float("nan"),
+            "psnr_mean": float(psnrs.mean()) if len(psnrs) else float("nan"),
+            "psnr_std": float(psnrs.std()) if len(psnrs) else float("nan"),
+        })  # fmt: skip
+    return summary
+
+
+def write_touch_report(out: str | Path, rows: list[dict]) -> dict[str, Path]:
+    """``touches.csv``, ``summary.csv`` and ``cd_vs_touches.png`` (mean +- std over seeds, each run a dot)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {"runs": out / "touches.csv", "summary": out / "summary.csv", "plot": out / "cd_vs_touches.png"}
+    with paths["runs"].open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=TOUCH_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    summary = summarise(rows)
+    with paths["summary"].open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(summary[0]) if summary else ["requested_touches"])
+        writer.writeheader()
+        writer.writerows(summary)
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    x = np.array([s["requested_touches"] for s in summary], dtype=float)
+    mean = np.array([s["cd_mean"] for s in summary])
+    std = np.array([s["cd_std"] for s in summary])
+    ax.plot(x, mean, "o-", color="tab:red", label="mean over seeds")
+    ax.fill_between(x, mean - std, mean + std, color="tab:red", alpha=0.2, label="± 1 std")
+    ax.scatter([r["requested_touches"] for r in rows], [r["cd"] for r in rows], s=10, color="k", alpha=0.5,
+               label="runs")
+    ax.set_xscale("symlog", linthresh=4)
+    ax.set_xticks(x, [str(int(v)) for v in x])
+    ax.set_xlabel("number of touches")
+    ax.set_ylabel("Chamfer distance [x GT radius]")
+    ax.set_title("CD against number of touches")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(paths["plot"], dpi=100)
+    plt.close(fig)
+    return paths
+
+
+def _int_tuple(text: str, option: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ConfigError(option, f"expected comma-separated integers, got {text!r}") from None
+
+
+def register(cli) -> None:
+    p = cli.command(
+        "bench touches",
+        help="Chamfer distance against the number of touches (paper Fig. 6), several seeds",
+        description="Per seed one sim capture with enough grasps for the largest count; per count a copy of it "
+        "with the first N touches in contact (whole grasps first), reconstructed with the full method. Writes "
+        "OUT/touches.csv, OUT/summary.csv, OUT/cd_vs_touches.png. Resumable.",
+    )
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--object", default="teapot", help="library object")
+    p.add_argument("--touches", default="0,4,8,16,32,64", help="comma-separated touch counts")
+    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (capture and training)")
+    p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
+    p.add_argument("--iterations", type=int, default=800, help="steps per run")
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    config = TouchBenchConfig(object=args.object, touch_counts=_int_tuple(args.touches, "--touches"),
+                              seeds=_int_tuple(args.seeds, "--seeds"), resolution=args.resolution,
+                              iterations=args.iterations)
+    started = time.perf_counter()
+    bench = TouchBench(args.out, config)
+    rows = bench.run()
+    print("touches  runs  CD mean     CD std      PSNR mean")
+    for s in summarise(rows):
+        print(f"{s['requested_touches']:7d}  {s['runs']:4d}  {s['cd_mean']:.5f}  {s['cd_std']:.5f}  {s['psnr_mean']:.2f}")
+    print(f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; plot: {bench.out / 'cd_vs_touches.png'}")
+    return 0

@@ -1,0 +1,23 @@
+"""The quick preset of `tacsplat bench paper` end to end (slow: run by `make bench-quick`)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(3600)
+def test_bench_paper_quick_full_beats_vanilla_3dgs(tmp_path):
+    from tacsplat.paper_bench import PaperBench, PaperBenchConfig
+
+    config = PaperBenchConfig.quick()
+    rows = PaperBench(tmp_path, config).run(progress=False)
+    assert len(rows) == len(config.objects) * 4
+    cd = {(r["object"], r["variant"]): r["cd"] for r in rows if r["setting"] == "minimal"}
+    for obj in config.objects:
+        assert cd[obj, "full"] < cd[obj, "3dgs"], f"{obj}: full CD {cd[obj, 'full']:.4f} >= 3DGS {cd[obj, '3dgs']:.4f}"
+    assert "| Ours (full) |" in (tmp_path / "report.md").read_text()

@@ -1,0 +1,199 @@
+"""Fast tests of the benchmark writers (results.csv, report.md tables, plots), the resumability of
+`bench paper` and the touch subsampling of `bench touches`, on small synthetic results."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from tacsplat.errors import ConfigError
+from tacsplat.paper_bench import PaperBench, PaperBenchConfig, variant_overrides
+from tacsplat.report import (
+    RESULT_COLUMNS,
+    best_rows,
+    markdown_table,
+    metric_table,
+    plot_cd_bars,
+    read_results_csv,
+    render_grid,
+    write_results_csv,
+)
+from tacsplat.touch_bench import subsample_touches, summarise, write_touch_report
+
+
+def synthetic_rows() -> list[dict]:
+    """Two objects; 'full' has the lowest CD on the teapot, '3dgs+t' on the bell; '3dgs' the best PSNR on the bell."""
+    cd = {("teapot", "3dgs"): 0.02, ("teapot", "3dgs+s"): 0.015, ("teapot", "3dgs+t"): 0.01, ("teapot", "full"): 0.005,
+          ("bell", "3dgs"): 0.03, ("bell", "3dgs+s"): 0.02, ("bell", "3dgs+t"): 0.004, ("bell", "full"): 0.006}
+    psnr = {("teapot", "3dgs"): 20.0, ("teapot", "3dgs+s"): 21.0, ("teapot", "3dgs+t"): 22.0, ("teapot", "full"): 23.0,
+            ("bell", "3dgs"): 25.0, ("bell", "3dgs+s"): 24.0, ("bell", "3dgs+t"): 23.0, ("bell", "full"): 22.0}
+    return [{"object": o, "setting": "minimal", "variant": v, "seed": 0, "cd": cd[o, v], "psnr": psnr[o, v],
+             "ssim": 0.9, "train_seconds": 10.0, "num_gaussians": 1000} for (o, v) in cd]
+
+
+def test_metric_table_layout_and_average():
+    objects, variants, values = metric_table(synthetic_rows(), "cd", "minimal")
+    assert objects == ["teapot", "bell"]
+    assert variants == ["3dgs", "3dgs+s", "3dgs+t", "full"]
+    assert values.shape == (4, 3)
+    np.testing.assert_allclose(values[3], [0.005, 0.006, 0.0055])
+    np.testing.assert_allclose(values[:, -1], values[:, :2].mean(axis=1))
+
+
+def test_best_per_column_bold_lower_and_higher():
+    rows = synthetic_rows()
+    cd_lines = markdown_table(rows, "cd", "minimal").splitlines()
+    header = next(line for line in cd_lines if line.startswith("| Method"))
+    assert header == "| Method | teapot | bell | Avg. |"
+    full = next(line for line in cd_lines if line.startswith("| Ours"))
+    plus_t = next(line for line in cd_lines if line.startswith("| 3DGS + T"))
+    assert full == "| Ours (full) | **0.0050** | 0.0060 | **0.0055** |"
+    assert plus_t == "| 3DGS + T | 0.0100 | **0.0040** | 0.0070 |"
+    psnr_lines = markdown_table(rows, "psnr", "minimal").splitlines()
+    vanilla = next(line for line in psnr_lines if line.startswith("| 3DGS |"))
+    # every variant averages 22.5 dB: a tie marks them all
+    assert vanilla == "| 3DGS | 20.00 | **25.00** | **22.50** |"
+    full_psnr = next(line for line in psnr_lines if line.startswith("| Ours"))
+    assert full_psnr == "| Ours (full) | **23.00** | 22.00 | **22.50** |"
+
+
+def test_best_rows_ties_and_missing():
+    values = np.array([[1.0, np.nan, 2.0], [1.0, np.nan, 3.0]])
+    assert best_rows(values, lower_is_better=True) == [{0, 1}, set(), {0}]
+    assert best_rows(values, lower_is_better=False) == [{0, 1}, set(), {1}]
+
+
+def test_missing_run_shows_dash_and_is_not_best():
+    rows = [r for r in synthetic_rows() if not (r["object"] == "teapot" and r["variant"] == "full")]
+    lines = markdown_table(rows, "cd", "minimal").splitlines()
+    full = next(line for line in lines if line.startswith("| Ours"))
+    assert full.startswith("| Ours (full) | – |")
+    assert "**0.0100**" in next(line for line in lines if line.startswith("| 3DGS + T"))
+
+
+def test_results_csv_roundtrip(tmp_path):
+    rows = synthetic_rows()
+    rows[0]["cd"] = None  # a run without ground truth
+    path = write_results_csv(rows, tmp_path / "results.csv")
+    with path.open() as fh:
+        assert next(csv.reader(fh)) == list(RESULT_COLUMNS)
+    back = read_results_csv(path)
+    assert len(back) == len(rows) and np.isnan(back[0]["cd"])
+    assert [(r["object"], r["variant"], r["psnr"]) for r in back[1:]] == [
+        (r["object"], r["variant"], r["psnr"]) for r in rows[1:]
+    ]
+
+
+def test_plots_are_written(tmp_path):
+    png = plot_cd_bars(synthetic_rows(), "minimal", tmp_path / "cd.png")
+    assert cv2.imread(str(png)) is not None
+    h, w = 8, 10
+    comparison = np.zeros((2 * h, 2 * w, 3), np.uint8)
+    comparison[:h, w:] = (0, 255, 0)  # GT RGB quadrant (BGR green)
+    cv2.imwrite(str(tmp_path / "a.png"), comparison)
+    grid = render_grid({"3dgs": tmp_path / "a.png", "full": tmp_path / "a.png"}, tmp_path / "grid.png")
+    assert cv2.imread(str(grid)) is not None
+    with pytest.raises(FileNotFoundError, match="missing.png"):
+        render_grid({"3dgs": tmp_path / "missing.png"}, tmp_path / "grid2.png")
+
+
+def test_variant_overrides_and_config_errors():
+    assert variant_overrides("3dgs") == {"use_touch": False, "lambda_s": 0.0}
+    assert variant_overrides("full") == {}
+    with pytest.raises(ConfigError, match="variant"):
+        variant_overrides("ours")
+    with pytest.raises(ConfigError, match="full_views"):
+        PaperBench("x", PaperBenchConfig(full_views=10))
+    with pytest.raises(ConfigError, match="objects"):
+        PaperBench("x", PaperBenchConfig(objects=("sphere",)))
+
+
+def _finish(run, cd: float) -> None:
+    """What a finished run leaves behind: metrics.json, progress.csv, one comparison render."""
+    run.out.mkdir(parents=True, exist_ok=True)
+    (run.out / "metrics.json").write_text(json.dumps(
+        {"cd": cd, "psnr": 20.0, "ssim": 0.8, "train_seconds": 5.0, "num_gaussians": 100}))
+    (run.out / "progress.csv").write_text("iteration,seconds,psnr,cd\n0,0.0,10,0.1\n100,5.0,20,%s\n" % cd)
+    (run.out / "renders").mkdir(exist_ok=True)
+    cv2.imwrite(str(run.out / "renders" / "view_0000.png"), np.full((16, 16, 3), 128, np.uint8))
+
+
+def test_resume_skips_finished_runs(tmp_path, monkeypatch):
+    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), variants=("3dgs", "full"))
+    bench = PaperBench(tmp_path, config)
+    first, second = bench.runs()
+    _finish(first, 0.02)
+    trained = []
+
+    def capture(obj, setting, seed):
+        return bench.scene_dir(obj, setting, seed)
+
+    def train(run):
+        trained.append(run.variant)
+        _finish(run, 0.01)
+        return json.loads((run.out / "metrics.json").read_text())
+
+    monkeypatch.setattr(bench, "capture", capture)
+    monkeypatch.setattr(bench, "train", train)
+    rows = bench.run(progress=False)
+    assert trained == ["full"]  # the 3dgs run had its metrics.json
+    assert {r["variant"]: r["cd"] for r in rows} == {"3dgs": 0.02, "full": 0.01}
+    report = (tmp_path / "report.md").read_text()
+    assert "| Ours (full) | **0.0100** | **0.0100** |" in report
+    for name in ("results.csv", "cd_minimal.png", "error_vs_time_minimal.png", "renders_teapot_minimal.png"):
+        assert (tmp_path / name).is_file(), name
+    trained.clear()
+    bench.run(progress=False)
+    assert trained == []  # everything finished: nothing retrained
+
+
+def _small_scene(path):
+    from tacsplat.datasets import SceneMeta, SceneWriter, SensorModel
+    from tacsplat.geometry import look_at
+    from tacsplat.types import CameraIntrinsics
+
+    sensor = SensorModel(name="gel", width_px=6, height_px=5, pixel_size_m=5e-4, gel_thickness_m=2e-3)
+    intr = CameraIntrinsics(np.array([[10.0, 0, 6], [0, 10.0, 4], [0, 0, 1]]), 12, 8)
+    with SceneWriter.create(path, intr, SceneMeta(source="sim", object="cube"), sensor) as writer:
+        for i, split in enumerate(("train", "train", "test")):
+            image = np.full((8, 12, 3), 40 * i, np.uint8)
+            writer.add_frame(image, look_at([0.3, 0.1 * i, 0.2], [0, 0, 0]), split,
+                             gt_depth=np.full((8, 12), 0.3, np.float32) if split == "test" else None)
+        for t in range(6):  # touches 1 and 4 miss
+            depth = np.zeros((5, 6), np.float32)
+            if t not in (1, 4):
+                depth[2, 3] = 1e-3 * (t + 1)
+            writer.add_touch(depth, np.eye(4), grasp=t // 3, finger=f"f{t % 3}")
+
+
+def test_subsample_keeps_first_touches_in_contact(tmp_path):
+    from tacsplat.datasets import Scene
+
+    _small_scene(tmp_path / "base")
+    assert subsample_touches(tmp_path / "base", tmp_path / "t3", 3) == 3
+    copy = Scene.load(tmp_path / "t3")
+    base = Scene.load(tmp_path / "base")
+    assert [t.in_contact for t in copy.touches] == [True] * 3
+    assert [copy.load_touch_depth(t).max() for t in copy.touches] == pytest.approx([1e-3, 3e-3, 4e-3])
+    assert [(f.split, f.id) for f in copy.frames] == [(f.split, f.id) for f in base.frames]
+    np.testing.assert_array_equal(copy.load_image(copy.frames[1]), base.load_image(base.frames[1]))
+    assert copy.gt_depth(copy.frames[2]) is not None
+    assert subsample_touches(tmp_path / "base", tmp_path / "t10", 10) == 4  # only 4 in contact
+    assert subsample_touches(tmp_path / "base", tmp_path / "t0", 0) == 0
+    assert Scene.load(tmp_path / "t0").touches == []
+
+
+def test_touch_summary_and_plot(tmp_path):
+    rows = [{"seed": s, "requested_touches": n, "touches": n, "cd": 0.01 / (1 + n) + 0.001 * s, "psnr": 20.0 + s,
+             "ssim": 0.9, "train_seconds": 1.0, "num_gaussians": 10} for s in (0, 1) for n in (0, 4, 8)]
+    summary = summarise(rows)
+    assert [s["requested_touches"] for s in summary] == [0, 4, 8]
+    assert summary[0]["cd_mean"] == pytest.approx(0.0105) and summary[0]["cd_std"] == pytest.approx(0.0005)
+    paths = write_touch_report(tmp_path, rows)
+    assert cv2.imread(str(paths["plot"])) is not None
+    with paths["summary"].open() as fh:
+        assert len(list(csv.DictReader(fh))) == 3
