@@ -197,3 +197,11 @@ def test_touch_summary_and_plot(tmp_path):
     assert cv2.imread(str(paths["plot"])) is not None
     with paths["summary"].open() as fh:
         assert len(list(csv.DictReader(fh))) == 3
+
+
+def test_full_vs_vanilla_sentence():
+    from tacsplat.paper_bench import full_vs_vanilla
+
+    text = full_vs_vanilla(synthetic_rows(), "minimal")
+    assert "lower CD on 2 of 2 objects" in text and "0.0055 vs 0.0250" in text
+    assert full_vs_vanilla([r for r in synthetic_rows() if r["variant"] != "full"], "minimal") == ""
