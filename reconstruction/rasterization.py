@@ -16,6 +16,7 @@ tacsplat uses, so that gsplat itself is a drop-in backend on CUDA:
 from __future__ import annotations
 
 import importlib.util
+import numbers
 from typing import Literal
 
 import torch
@@ -128,8 +129,9 @@ def rasterization(
     n_channels = colors.shape[-1]
     if backgrounds is not None:
         _check_tensor("backgrounds", backgrounds, (n_cams, n_channels), dtype, device)
-    if not (isinstance(width, int) and isinstance(height, int) and width >= 1 and height >= 1):
+    if not (isinstance(width, numbers.Integral) and isinstance(height, numbers.Integral) and width >= 1 and height >= 1):
         raise InvalidInputError(f"width and height must be positive ints, got {width!r} x {height!r}")
+    width, height = int(width), int(height)
     if render_mode not in RENDER_MODES:
         raise InvalidInputError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
     if rasterize_mode not in ("classic", "antialiased"):
