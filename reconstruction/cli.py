@@ -23,7 +23,7 @@ def register(cli) -> None:
     p.add_argument("--lambda-t", type=float, default=None,
                    help="weight of the transmittance loss L_T (unset: 0.5)")
     p.add_argument("--lambda-s", type=float, default=None,
-                   help="weight of the edge-aware smoothness loss L_S (unset: 1.0)")
+                   help="weight of the edge-aware smoothness loss L_S (unset: 0.02)")
     p.add_argument("--no-touch", action="store_true", help="no touch Gaussians and no L_T")
     p.add_argument("--no-smoothness", action="store_true", help="no L_S (and no depth render)")
     p.add_argument("--train-views", type=int, default=None, metavar="K", help="use only the first K training views")

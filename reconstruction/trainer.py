@@ -75,7 +75,7 @@ class TrainConfig:
     # loss weights (paper Sec. 4.2)
     ssim_weight: float = 0.2
     lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
-    lambda_s: float = 1.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
+    lambda_s: float = 0.02  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
     lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
     backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
     use_touch: bool = True  # False: no touch Gaussians and no L_T (the "3DGS" / "+S" variants)

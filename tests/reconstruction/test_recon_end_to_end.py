@@ -49,16 +49,16 @@ def _config(iterations: int, **overrides) -> TrainConfig:
 
 def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path):
     run = tmp_path / "run"
-    metrics = reconstruct(sphere_scene, run, _config(300), show_progress=False)
+    metrics = reconstruct(sphere_scene, run, _config(400), show_progress=False)
     with (run / "progress.csv").open() as fh:
         rows = list(csv.DictReader(fh))
-    assert [int(r["iteration"]) for r in rows] == [0, 100, 200, 300]
+    assert [int(r["iteration"]) for r in rows] == [0, 100, 200, 300, 400]
     initial_cd = float(rows[0]["cd"])
-    # Bound: the CD (in units of the 5 cm radius) of 48x48 views after 300 steps is ~0.15; it starts near 0.9.
+    # Bound: the CD (in units of the 5 cm radius) of 48x48 views starts near 0.73 and is ~0.19 after 400 steps.
     assert metrics["cd"] < 0.25
     assert metrics["cd"] < 0.5 * initial_cd
     assert metrics["psnr"] > 18.0
-    assert metrics["variant"] == "full" and metrics["iterations"] == 300
+    assert metrics["variant"] == "full" and metrics["iterations"] == 400
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds)
