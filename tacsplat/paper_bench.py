@@ -248,8 +248,8 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         "",
         f"{len(rows)} runs: {config.resolution}x{config.resolution} px, {config.iterations} steps, "
         f"{config.test_views} held-out test views per object, {config.grasps} grasps of 4 touches, "
-        f"minimal = {MINIMAL_VIEWS} train views, full-views = {config.full_views} train views, "
-        f"seeds {', '.join(map(str, config.seeds))} (tables: mean over seeds). "
+        + "".join(f"{s} = {MINIMAL_VIEWS if s == 'minimal' else config.full_views} train views, " for s in config.settings)
+        + f"seeds {', '.join(map(str, config.seeds))} (tables: mean over seeds). "
         "CD is in units of the ground-truth bounding-sphere radius; best per column in bold.",
         "",
     ]
