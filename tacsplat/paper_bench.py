@@ -228,6 +228,28 @@ def full_vs_vanilla(rows: list[dict], setting: str) -> str:
             "0.0026 vs 0.0111, 4.3x).")
 
 
+def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarray]:
+    """``({variant: (rgb, depth)}, gt_rgb, gt_depth)`` of the first test view of one scene, rendered from each
+    run's last checkpoint (the evaluation's renders, whose depth colours are scaled per run, are not reused)."""
+    import torch
+
+    from tacsplat.datasets import Scene
+    from tacsplat.reconstruction.evaluation import background_image, render_view
+    from tacsplat.reconstruction.trainer import load_run
+
+    scene = Scene.load(runs[0].scene)
+    frame = scene.split("test")[0]
+    gt_rgb = scene.load_image(frame)
+    gt_depth = scene.gt_depth(frame)
+    panels = {}
+    for run in runs:
+        loaded = load_run(run.out)
+        background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
+        rgb, depth, _ = render_view(loaded.gaussians, frame, background, loaded.config.backend)
+        panels[run.variant] = (rgb, depth)
+    return panels, gt_rgb, np.zeros(gt_rgb.shape[:2], np.float32) if gt_depth is None else gt_depth
+
+
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
                        wall_seconds: float | None = None) -> None:
     """Write ``results.csv``, ``report.md``, CD bar charts, error-vs-time curves and render grids into ``out``."""
@@ -272,14 +294,11 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
             png = plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", f"held-out error vs run time ({setting})")
             lines += [f"![error vs run time, {setting}]({png.name})", ""]
         for obj in dict.fromkeys(r.object for r in runs if r.setting == setting):
-            comparisons = {}
-            for run in runs:
-                if run.object == obj and run.setting == setting and run.seed == config.seeds[0] and run.done:
-                    views = sorted((run.out / "renders").glob("view_*.png"))
-                    if views:
-                        comparisons[run.variant] = views[0]
-            if comparisons:
-                png = render_grid(comparisons, out / f"renders_{obj}_{setting}.png", f"{obj}, {setting}: first test view")
+            finished = [r for r in runs if r.object == obj and r.setting == setting and r.seed == config.seeds[0] and r.done]
+            if finished:
+                panels, gt_rgb, gt_depth = render_first_test_view(finished)
+                png = render_grid(panels, gt_rgb, gt_depth, out / f"renders_{obj}_{setting}.png",
+                                  f"{obj}, {setting}: first test view")
                 lines += [f"![renders {obj} {setting}]({png.name})", ""]
     (out / "report.md").write_text("\n".join(lines))
 

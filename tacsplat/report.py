@@ -169,48 +169,35 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     return path
 
 
-def split_comparison(image: np.ndarray) -> dict[str, np.ndarray]:
-    """The four quadrants of a ``renders/view_*.png`` written by the evaluation:
-    rendered RGB | GT RGB over rendered depth | GT depth."""
-    h, w = image.shape[0] // 2, image.shape[1] // 2
-    return {"rgb": image[:h, :w], "gt_rgb": image[:h, w:], "depth": image[h:, :w], "gt_depth": image[h:, w:]}
+def render_grid(panels: dict[str, tuple[np.ndarray, np.ndarray]], gt_rgb: np.ndarray, gt_depth: np.ndarray,
+                path: str | Path, title: str = "") -> Path:
+    """Ground truth then one column per variant; RGB on top, depth below on ONE colour scale (the ground
+    truth's depth range), so that a surface behind or in front of the true one shows as a colour shift.
 
-
-def render_grid(comparisons: dict[str, str | Path], path: str | Path, title: str = "") -> Path:
-    """Ground truth then one column per variant; RGB on top, depth below.
-
-    ``comparisons[variant]`` is the path of one test view's comparison PNG (the
-    same view for every variant); the ground truth is taken from the first.
-    Each depth panel shares its colour scale with its own ground truth (see the evaluation).
+    ``panels[variant] = (rgb [H, W, 3] in [0, 1], depth [H, W] metres, 0 = empty)`` of the same test view.
     """
-    import cv2
-
     plt = _pyplot()
-    panels = {}
-    for variant, png in comparisons.items():
-        bgr = cv2.imread(str(png), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise FileNotFoundError(f"render comparison not readable: {png}")
-        panels[variant] = split_comparison(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
-    first = next(iter(panels.values()))
-    columns = [("ground truth", first["gt_rgb"], first["gt_depth"])] + [
-        (VARIANT_LABELS.get(v, v), p["rgb"], p["depth"]) for v, p in panels.items()
-    ]
-    fig, axes = plt.subplots(2, len(columns), figsize=(2.6 * len(columns), 5.4), squeeze=False)
+    valid = gt_depth[gt_depth > 0]
+    lo, hi = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 1.0)
+    pad = 0.1 * max(hi - lo, 1e-6)
+    columns = [("ground truth", gt_rgb, gt_depth)] + [(VARIANT_LABELS.get(v, v), rgb, d) for v, (rgb, d) in panels.items()]
+    fig, axes = plt.subplots(2, len(columns), figsize=(2.6 * len(columns) + 0.8, 5.4), squeeze=False)
+    cmap = plt.get_cmap("turbo").with_extremes(bad="black")
+    image = None
     for j, (label, rgb, depth) in enumerate(columns):
-        axes[0, j].imshow(rgb)
-        axes[1, j].imshow(depth)
+        axes[0, j].imshow(np.clip(rgb, 0, 1))
+        image = axes[1, j].imshow(np.ma.masked_less_equal(depth, 0), cmap=cmap, vmin=lo - pad, vmax=hi + pad)
         axes[0, j].set_title(label, fontsize=10)
         for ax in axes[:, j]:
             ax.set_xticks([])
             ax.set_yticks([])
     axes[0, 0].set_ylabel("RGB")
     axes[1, 0].set_ylabel("depth")
+    fig.colorbar(image, ax=list(axes[1]), fraction=0.02, label="depth [m]")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=100, bbox_inches="tight")
     plt.close(fig)
     return path

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
+from tacsplat import paper_bench
 from tacsplat.errors import ConfigError
 from tacsplat.paper_bench import PaperBench, PaperBenchConfig, variant_overrides
 from tacsplat.report import (
@@ -91,14 +92,13 @@ def test_results_csv_roundtrip(tmp_path):
 def test_plots_are_written(tmp_path):
     png = plot_cd_bars(synthetic_rows(), "minimal", tmp_path / "cd.png")
     assert cv2.imread(str(png)) is not None
-    h, w = 8, 10
-    comparison = np.zeros((2 * h, 2 * w, 3), np.uint8)
-    comparison[:h, w:] = (0, 255, 0)  # GT RGB quadrant (BGR green)
-    cv2.imwrite(str(tmp_path / "a.png"), comparison)
-    grid = render_grid({"3dgs": tmp_path / "a.png", "full": tmp_path / "a.png"}, tmp_path / "grid.png")
+    gt_depth = np.zeros((8, 10), np.float32)
+    gt_depth[2:6, 3:7] = 0.3
+    panels = {"3dgs": (np.full((8, 10, 3), 0.5), gt_depth + 0.01), "full": (np.zeros((8, 10, 3)), gt_depth)}
+    grid = render_grid(panels, np.ones((8, 10, 3)), gt_depth, tmp_path / "grid.png")
     assert cv2.imread(str(grid)) is not None
-    with pytest.raises(FileNotFoundError, match="missing.png"):
-        render_grid({"3dgs": tmp_path / "missing.png"}, tmp_path / "grid2.png")
+    grid = render_grid(panels, np.ones((8, 10, 3)), np.zeros((8, 10), np.float32), tmp_path / "no_gt.png")
+    assert cv2.imread(str(grid)) is not None
 
 
 def test_variant_overrides_and_config_errors():
@@ -113,13 +113,11 @@ def test_variant_overrides_and_config_errors():
 
 
 def _finish(run, cd: float) -> None:
-    """What a finished run leaves behind: metrics.json, progress.csv, one comparison render."""
+    """What a finished run leaves behind (for the report): metrics.json and progress.csv."""
     run.out.mkdir(parents=True, exist_ok=True)
     (run.out / "metrics.json").write_text(json.dumps(
         {"cd": cd, "psnr": 20.0, "ssim": 0.8, "train_seconds": 5.0, "num_gaussians": 100}))
     (run.out / "progress.csv").write_text("iteration,seconds,psnr,cd\n0,0.0,10,0.1\n100,5.0,20,%s\n" % cd)
-    (run.out / "renders").mkdir(exist_ok=True)
-    cv2.imwrite(str(run.out / "renders" / "view_0000.png"), np.full((16, 16, 3), 128, np.uint8))
 
 
 def test_resume_skips_finished_runs(tmp_path, monkeypatch):
@@ -137,8 +135,16 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
         _finish(run, 0.01)
         return json.loads((run.out / "metrics.json").read_text())
 
+    rendered = []
+
+    def render_first_test_view(runs):
+        rendered.append([r.variant for r in runs])
+        depth = np.full((8, 8), 0.3, np.float32)
+        return {r.variant: (np.zeros((8, 8, 3)), depth) for r in runs}, np.ones((8, 8, 3)), depth
+
     monkeypatch.setattr(bench, "capture", capture)
     monkeypatch.setattr(bench, "train", train)
+    monkeypatch.setattr(paper_bench, "render_first_test_view", render_first_test_view)
     rows = bench.run(progress=False)
     assert trained == ["full"]  # the 3dgs run had its metrics.json
     assert {r["variant"]: r["cd"] for r in rows} == {"3dgs": 0.02, "full": 0.01}
@@ -146,6 +152,7 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
     assert "| Ours (full) | **0.0100** | **0.0100** |" in report
     for name in ("results.csv", "cd_minimal.png", "error_vs_time_minimal.png", "renders_teapot_minimal.png"):
         assert (tmp_path / name).is_file(), name
+    assert rendered[-1] == ["3dgs", "full"]  # the grid shows every finished run
     trained.clear()
     bench.run(progress=False)
     assert trained == []  # everything finished: nothing retrained
