@@ -4,7 +4,12 @@ Subpackages (see DESIGN.md): ``tacsplat.drivers``, ``tacsplat.sim``,
 ``tacsplat.acquisition``, ``tacsplat.datasets``, ``tacsplat.reconstruction``.
 """
 
+import os
 from importlib.metadata import PackageNotFoundError, version
+
+# Before torch or numba load an OpenMP runtime: their two thread pools spin-wait against each other
+# on a small machine (a 10x slowdown of the cpu rasterizer with torch losses on 2 cores).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 try:
     __version__ = version("tacsplat")
