@@ -71,6 +71,8 @@ class TrainConfig:
     sh_degree_interval: int = 400  # one more SH band every this many steps
     train_views: int | None = None  # use only the first K training views (None = all)
     backend: str = "auto"  # rasterization backend: auto | torch | cpu | gsplat
+    torch_threads: int | None = 1  # torch intra-op threads while training (the cpu backend's kernels run
+    # their own threads; one torch thread avoids oversubscribing a small machine); None = torch's default
     background: tuple[float, float, float] | None = None  # None: a smooth backdrop fitted to each image's border
     # loss weights (paper Sec. 4.2)
     ssim_weight: float = 0.2
@@ -406,6 +408,15 @@ class Trainer:
 
     def run(self, resume: bool = False, show_progress: bool = True) -> Gaussians:
         """Train to ``config.iterations`` (continuing a checkpoint with ``resume``); writes the run directory."""
+        threads = torch.get_num_threads()
+        if self.config.torch_threads is not None:
+            torch.set_num_threads(self.config.torch_threads)
+        try:
+            return self._run(resume, show_progress)
+        finally:
+            torch.set_num_threads(threads)
+
+    def _run(self, resume: bool, show_progress: bool) -> Gaussians:
         cfg = self.config
         self.out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(cfg.seed)
