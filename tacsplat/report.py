@@ -81,7 +81,7 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     """A paper-style Markdown table of one metric in one setting; the best value per column in bold."""
     heading, lower, decimals = METRICS[metric]
     objects, variants, values = metric_table(rows, metric, setting)
-    best = best_rows(values, lower)
+    best = best_rows(np.round(values, decimals), lower)  # values equal as printed are equally best
     lines = [
         "| Method | " + " | ".join(objects + ["Avg."]) + " |",
         "| --- |" + " ---: |" * (len(objects) + 1),

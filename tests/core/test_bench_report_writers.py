@@ -68,6 +68,14 @@ def test_best_rows_ties_and_missing():
     assert best_rows(values, lower_is_better=False) == [{0, 1}, set(), {1}]
 
 
+def test_values_equal_as_printed_are_both_bold():
+    rows = synthetic_rows()
+    rows[0]["cd"], rows[3]["cd"] = 0.00501, 0.00499  # teapot 3dgs and full both print as 0.0050
+    lines = markdown_table(rows, "cd", "minimal").splitlines()
+    assert next(line for line in lines if line.startswith("| 3DGS |")).startswith("| 3DGS | **0.0050** |")
+    assert next(line for line in lines if line.startswith("| Ours")).startswith("| Ours (full) | **0.0050** |")
+
+
 def test_missing_run_shows_dash_and_is_not_best():
     rows = [r for r in synthetic_rows() if not (r["object"] == "teapot" and r["variant"] == "full")]
     lines = markdown_table(rows, "cd", "minimal").splitlines()
