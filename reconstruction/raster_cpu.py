@@ -111,8 +111,8 @@ def _tile_boxes(means2d, radii, tile_size, tiles_x, tiles_y, boxes, counts):
 
 
 @nb.njit(cache=True)
-def _depth_order(depth_bits, counts):
-    """Indices of the Gaussians with tiles, sorted by the 64-bit key (depth bits, index).
+def _depth_keys(depth_bits, counts):
+    """The 64-bit keys (depth bits, index) of the Gaussians with tiles, unsorted.
 
     ``depth_bits`` [M] int32 is the bit pattern of the float32 depths: for the
     positive depths of visible Gaussians it sorts like the floats.
@@ -127,8 +127,7 @@ def _depth_order(depth_bits, counts):
         if counts[g] > 0:
             keys[j] = (np.int64(depth_bits[g]) << 32) | g
             j += 1
-    keys.sort()
-    return keys & 0xFFFFFFFF
+    return keys
 
 
 @nb.njit(parallel=True, cache=True)
@@ -420,7 +419,8 @@ def bin_gaussians(
     gauss_offsets = np.zeros(n_total + 1, np.int64)
     np.cumsum(counts, out=gauss_offsets[1:])
     n_isect = int(gauss_offsets[-1])
-    order = _depth_order(depths.view(np.int32), counts)
+    # numpy's (SIMD) sort is ~15x faster than numba's quicksort here; keys are unique, so the order is the same
+    order = np.sort(_depth_keys(depths.view(np.int32), counts)) & 0xFFFFFFFF
     tile_start = np.empty(n_cams * tiles_x * tiles_y + 1, np.int64)
     tile_start[0] = 0
     tile_gauss = np.empty(n_isect, np.int64)
