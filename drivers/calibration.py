@@ -23,6 +23,19 @@ from tacsplat.drivers.dynamixel_table import CENTRE_TICK, TICKS_PER_REV
 from tacsplat.errors import ConfigError, InvalidInputError
 
 FORMAT = "tacsplat-hand-calibration"
+
+
+def read_calibration_json(path: Path, expected_format: str) -> dict:
+    """A calibration file's JSON object, checked for its ``format`` tag; errors name the file."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError("calibration", "file not found", source=path) from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError("calibration", f"not valid JSON: {exc}", source=path) from None
+    if not isinstance(data, dict) or data.get("format") != expected_format:
+        raise ConfigError("format", f"expected {expected_format!r}", source=path)
+    return data
 RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 
 
@@ -67,14 +80,7 @@ class HandCalibration:
     def load(cls, path: str | Path, joint_names: Sequence[str]) -> "HandCalibration":
         """Read and validate a calibration file for these joints; errors name the file and key."""
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise ConfigError("calibration", "file not found", source=path) from None
-        except json.JSONDecodeError as exc:
-            raise ConfigError("calibration", f"not valid JSON: {exc}", source=path) from None
-        if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise ConfigError("format", f"expected {FORMAT!r}", source=path)
+        data = read_calibration_json(path, FORMAT)
         if data.get("version") != 1:
             raise ConfigError("version", f"unsupported version {data.get('version')!r}", source=path)
         joints = data.get("joints")

@@ -23,6 +23,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from tacsplat.drivers.calibration import read_calibration_json
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import CameraError, ConfigError, InvalidInputError
 from tacsplat.geometry import invert_pose, make_pose
@@ -109,14 +110,7 @@ class CameraCalibration:
     @classmethod
     def load(cls, path: str | Path) -> "CameraCalibration":
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise ConfigError("calibration", "file not found", source=path) from None
-        except json.JSONDecodeError as exc:
-            raise ConfigError("calibration", f"not valid JSON: {exc}", source=path) from None
-        if data.get("format") != FORMAT:
-            raise ConfigError("format", f"expected {FORMAT!r}", source=path)
+        data = read_calibration_json(path, FORMAT)
         K = np.asarray(data.get("K_opencv"), dtype=np.float64)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ConfigError("K_opencv", f"expected a [3, 3] matrix with positive focal lengths, got {K.tolist()}", source=path)
