@@ -31,6 +31,9 @@ class InitConfig:
     use_sfm: bool = True  # run pycolmap; False -> random points only
     min_sfm_points: int = 100  # fewer SfM points than this -> random points in the bounds
     num_random_points: int = 2000  # how many random points replace a failed SfM
+    use_silhouette_hull: bool = True  # failed SfM: draw them on the visual hull of the object's silhouettes
+    # (views whose border fits a smooth backdrop) rather than in the whole bounding box
+    hull_resolution: int = 64  # voxels along the longest side of the bounds when carving the hull
     initial_opacity: float = 0.1  # the same for G_c and G_t (paper Sec. 4.1)
     touch_voxel_size: float = 0.001  # metres: touch points are thinned to one per voxel
     max_touch_points: int = 1000  # then capped at this many (random subset)
@@ -153,6 +156,67 @@ def initial_gaussians(
     return Gaussians.from_points(
         points, colors, neighbour_scales(points), from_touch, sh_degree, config.initial_opacity
     )
+
+
+def foreground_mask(backdrop: np.ndarray) -> np.ndarray:
+    """The object's silhouette [H, W] bool from a backdrop mask [H, W] (True = shows the backdrop).
+
+    Only backdrop regions connected to the image border count as background:
+    a glossy object that mirrors the backdrop colour keeps those pixels.
+    """
+    _, labels = cv2.connectedComponents(np.asarray(backdrop, dtype=np.uint8), connectivity=4)
+    border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+    return ~np.isin(labels, border[border != 0])  # label 0: the pixels that are not backdrop
+
+
+def silhouette_hull_points(
+    silhouettes: list[np.ndarray],  # each [H, W] bool, True on the object
+    Ks: list[np.ndarray],  # each [3, 3]
+    T_world_cams: list[np.ndarray],  # each [4, 4] OpenCV camera-to-world
+    lo: np.ndarray,  # [3] bounds of the search
+    hi: np.ndarray,  # [3]
+    count: int,
+    resolution: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """``count`` points [count, 3] on the surface of the silhouettes' visual hull (empty if it is empty).
+
+    Voxel carving: a voxel centre survives when it projects onto the object
+    (a silhouette dilated by one pixel, so that thin parts are not carved
+    away) in every view; outside a view's frame it survives only if that
+    silhouette touches the frame's border (the object may go on there).
+    Points are drawn in the voxels on the hull's boundary, jittered within them.
+    """
+    from scipy import ndimage
+
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    voxel = float(np.max(hi - lo)) / resolution
+    shape = np.maximum(np.ceil((hi - lo) / voxel).astype(int), 1)
+    axes = [lo[i] + (np.arange(shape[i]) + 0.5) * voxel for i in range(3)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    inside = np.ones(len(centres), bool)
+    kernel = np.ones((3, 3), np.uint8)
+    for silhouette, K, T_world_cam in zip(silhouettes, Ks, T_world_cams):
+        grown = cv2.dilate(np.asarray(silhouette, np.uint8), kernel) > 0
+        T = invert_pose(T_world_cam)
+        cam = centres @ T[:3, :3].T + T[:3, 3]
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.floor(K[0, 0] * cam[:, 0] / z + K[0, 2]).astype(np.int64, copy=False)
+            v = np.floor(K[1, 1] * cam[:, 1] / z + K[1, 2]).astype(np.int64, copy=False)
+        h, w = grown.shape
+        seen = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        on_object = np.zeros(len(centres), bool)
+        on_object[seen] = grown[v[seen], u[seen]]
+        cut_by_frame = grown[0].any() or grown[-1].any() or grown[:, 0].any() or grown[:, -1].any()
+        inside &= (on_object | ~seen) if cut_by_frame else on_object
+    hull = inside.reshape(shape)
+    boundary = hull & ~ndimage.binary_erosion(hull)
+    cells = np.argwhere(boundary)
+    if len(cells) == 0:
+        return np.zeros((0, 3))
+    picked = cells[rng.integers(0, len(cells), size=count)]
+    return lo + (picked + rng.uniform(0.0, 1.0, size=(count, 3))) * voxel
 
 
 def random_points(

@@ -166,6 +166,17 @@ def image_edge_weights(image: torch.Tensor, beta: float = 10.0) -> torch.Tensor:
     return torch.stack([torch.exp(-beta * dx_i.mean(0)), torch.exp(-beta * dy_i.mean(0))])
 
 
+def expected_depth(depth: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 1e-3) -> torch.Tensor:
+    """Expected depth [H, W]: the accumulated depth of Eq. 5 [H, W] over the alpha [H, W] of the same pixels."""
+    return depth / alpha.clamp_min(min_alpha)
+
+
+def window_inside(mask: torch.Tensor) -> torch.Tensor:
+    """[H-4, W-4] float: 1 where a pixel's whole 5x5 Sobel window lies in ``mask`` [H, W] bool, else 0."""
+    window = F.max_pool2d((~mask).float()[None, None], kernel_size=5, stride=1)[0, 0]
+    return 1.0 - window
+
+
 def edge_aware_smoothness(
     depth: torch.Tensor,  # [H, W] rendered depth
     image: torch.Tensor | None = None,  # [H, W, 3] ground-truth image

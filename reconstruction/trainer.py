@@ -7,7 +7,10 @@ Gaussian count, held-out PSNR and CD), ``error_vs_time.png``, ``metrics.json``
 and ``renders/``. Loss: photometric + lambda_t L_T (Eq. 7, on G_t at the touch
 points) + lambda_s L_S (Eq. 8, masked near visible touches) + lambda_backdrop
 times the alpha on pixels that show the fitted smooth backdrop (not in the
-paper; see :func:`losses.backdrop_alpha_loss`). Renders are composited over
+paper; see :func:`losses.backdrop_alpha_loss`). L_S acts by default on the
+expected depth inside the object's silhouette rather than on Eq. 5's
+accumulated depth (``smoothness_depth``). When SfM finds too few points, the
+initial G_c lie on the visual hull of the silhouettes. Renders are composited over
 each view's backdrop (a constant, or a smooth fit to the image border). What a
 scene does not need is not computed: no touches -> no G_t, no neighbour search,
 no L_T; lambda_s = 0 -> RGB-only renders.
@@ -23,6 +26,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import importlib
 
@@ -44,6 +48,8 @@ from tacsplat.reconstruction.evaluation import (
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.initialization import (
     InitConfig,
+    foreground_mask,
+    silhouette_hull_points,
     initial_gaussians,
     random_points,
     sfm_points,
@@ -77,7 +83,7 @@ class TrainConfig:
     # loss weights (paper Sec. 4.2)
     ssim_weight: float = 0.2
     lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
-    lambda_s: float = 0.02  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
+    lambda_s: float = 2.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
     lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
     backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
     use_touch: bool = True  # False: no touch Gaussians and no L_T (the "3DGS" / "+S" variants)
@@ -90,6 +96,9 @@ class TrainConfig:
     touch_loss_moves_shape: bool = False  # False: L_T moves means and opacities only (the effect Sec. 4.2.1
     # describes); True: also scales and rotations, which L_T rewards for growing around the touch point
     # smoothness (Sec. 4.2.2)
+    smoothness_depth: Literal["expected", "accumulated"] = "expected"  # the depth map D of Eq. 8: "expected"
+    # (Eq. 5 divided by alpha, inside the silhouette) or the paper's "accumulated" Eq. 5, whose gradients at the
+    # silhouette and in semi-transparent regions are alpha's rather than the surface's
     smoothness_beta: float = 10.0  # edge sensitivity e^{-beta |dI|}
     proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
     occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
@@ -125,6 +134,8 @@ class TrainConfig:
         for key in ("lambda_t", "lambda_s"):
             if getattr(self, key) < 0:
                 raise ConfigError(key, f"must be >= 0, got {getattr(self, key)}")
+        if self.smoothness_depth not in ("expected", "accumulated"):
+            raise ConfigError("smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}")
         if self.backend not in raster.BACKENDS:
             raise ConfigError("backend", f"must be one of {raster.BACKENDS}, got {self.backend!r}")
 
@@ -204,12 +215,11 @@ class Trainer:
         )
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32)
         self.backgrounds = [torch.from_numpy(background_image(im.numpy(), config.background)) for im in self.images]
-        self.backdrop_masks: list[torch.Tensor | None] = [None] * len(self.images)
-        if config.lambda_backdrop > 0:
-            for i, image in enumerate(self.images):
-                if config.background is not None or fit_backdrop(image.numpy()) is not None:
-                    difference = (image - self.backgrounds[i]).abs().amax(dim=-1)
-                    self.backdrop_masks[i] = difference < config.backdrop_tolerance
+        self.backdrop_masks: list[torch.Tensor | None] = [None] * len(self.images)  # None: no known backdrop
+        for i, image in enumerate(self.images):
+            if config.background is not None or fit_backdrop(image.numpy()) is not None:
+                difference = (image - self.backgrounds[i]).abs().amax(dim=-1)
+                self.backdrop_masks[i] = difference < config.backdrop_tolerance
         self.step = 0
         self.train_seconds = 0.0
         self.order: list[int] = []
@@ -239,14 +249,30 @@ class Trainer:
             points, colors = sfm.points, sfm.colors
             log.info("initialisation: %d SfM points", len(points))
         else:
-            lo, hi = self.scene.bounds()
-            points, colors = random_points(lo, hi, cfg.init.num_random_points, self.rng)
             found = 0 if sfm is None else len(sfm.points)
-            log.info("initialisation: %d SfM points (< %d): %d random points in the scene bounds",
-                     found, cfg.init.min_sfm_points, len(points))  # fmt: skip
+            points, colors, where = self._fallback_points()
+            log.info("initialisation: %d SfM points (< %d): %d random points %s",
+                     found, cfg.init.min_sfm_points, len(points), where)  # fmt: skip
         self.gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale)
+
+    def _fallback_points(self) -> tuple[np.ndarray, np.ndarray, str]:
+        """Random coloured points on the silhouettes' visual hull, or in the scene bounds without silhouettes."""
+        cfg = self.config
+        lo, hi = self.scene.bounds()
+        points, colors = random_points(lo, hi, cfg.init.num_random_points, self.rng)
+        views = [i for i, mask in enumerate(self.backdrop_masks) if mask is not None]
+        if cfg.init.use_silhouette_hull and views:
+            hull = silhouette_hull_points(
+                [foreground_mask(self.backdrop_masks[i].numpy()) for i in views],
+                [self.train_frames[i].intrinsics.K for i in views],
+                [self.train_frames[i].T_world_cam for i in views],
+                lo, hi, cfg.init.num_random_points, cfg.init.hull_resolution, self.rng,
+            )  # fmt: skip
+            if len(hull):
+                return hull, colors, f"on the visual hull of {len(views)} silhouettes"
+        return points, colors, "in the scene bounds"
 
     def _make_optimizers(self) -> None:
         cfg = self.config
@@ -284,7 +310,7 @@ class Trainer:
         photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight)
         loss = photometric
         terms = {"photometric": float(photometric.detach()), "transmittance": 0.0, "smoothness": 0.0, "backdrop": 0.0}
-        if self.backdrop_masks[view] is not None:
+        if cfg.lambda_backdrop > 0 and self.backdrop_masks[view] is not None:
             backdrop = losses.backdrop_alpha_loss(alphas[0, ..., 0], self.backdrop_masks[view])
             loss = loss + cfg.lambda_backdrop * backdrop
             terms["backdrop"] = float(backdrop.detach())
@@ -315,11 +341,10 @@ class Trainer:
                     losses.proximity_mask(rows, cols, frame.intrinsics.width, frame.intrinsics.height,
                                           cfg.proximity_sigma_px)
                 )  # fmt: skip
-            if view not in self._edge_weights:
-                self._edge_weights[view] = losses.image_edge_weights(target, cfg.smoothness_beta)
-            smoothness = losses.edge_aware_smoothness(
-                depth / self.scene_scale, proximity=proximity, weights=self._edge_weights[view]
-            )
+            weights = self._smoothness_weights(view, alphas[0, ..., 0].detach())
+            if cfg.smoothness_depth == "expected":
+                depth = losses.expected_depth(depth, alphas[0, ..., 0])
+            smoothness = losses.edge_aware_smoothness(depth / self.scene_scale, proximity=proximity, weights=weights)
             loss = loss + cfg.lambda_s * smoothness
             terms["smoothness"] = float(smoothness.detach())
         terms["loss"] = float(loss.detach())
@@ -339,6 +364,25 @@ class Trainer:
             self.neighbours.invalidate()
         self.step += 1
         return terms
+
+    def _smoothness_weights(self, view: int, alpha: torch.Tensor) -> torch.Tensor:
+        """Eq. 8's image factors of a view [2, H-4, W-4]; for expected depth, zero outside the object.
+
+        Expected depth is only defined on the object, so its smoothness counts
+        only Sobel windows inside the silhouette (the view's image against its
+        backdrop, or else the rendered alpha > 0.5).
+        """
+        cfg = self.config
+        if view not in self._edge_weights:
+            weights = losses.image_edge_weights(self.images[view], cfg.smoothness_beta)
+            if cfg.smoothness_depth == "expected" and self.backdrop_masks[view] is not None:
+                silhouette = torch.from_numpy(foreground_mask(self.backdrop_masks[view].numpy()))
+                weights = weights * losses.window_inside(silhouette)
+            self._edge_weights[view] = weights
+        weights = self._edge_weights[view]
+        if cfg.smoothness_depth == "expected" and self.backdrop_masks[view] is None:
+            weights = weights * losses.window_inside(alpha > 0.5)
+        return weights
 
     # ------------------------------------------------------------------ progress, checkpoints
 

@@ -7,6 +7,8 @@ import pytest
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction.initialization import (
     InitConfig,
+    foreground_mask,
+    silhouette_hull_points,
     initial_gaussians,
     neighbour_scales,
     random_points,
@@ -68,3 +70,60 @@ def test_initial_gaussians_mark_touch_points_and_take_scales_from_neighbours():
     assert g.from_touch[10:].all() and not g.from_touch[:10].any()
     assert g.opacities.detach().numpy() == pytest.approx(0.1)
     assert tuple(g.params["shN"].shape) == (26, 8, 3)
+
+
+def _sphere_silhouettes(radius: float, directions, size: int = 96):
+    """Exact silhouettes of a sphere at the origin seen from ``directions`` at 0.3 m."""
+    Kc = np.array([[150.0, 0, size / 2], [0, 150.0, size / 2], [0, 0, 1]])
+    silhouettes, poses = [], []
+    v, u = np.mgrid[0:size, 0:size] + 0.5
+    for d in directions:
+        T_world_cam = look_at(0.3 * np.asarray(d, float) / np.linalg.norm(d), [0, 0, 0])
+        rays = np.stack([(u - Kc[0, 2]) / Kc[0, 0], (v - Kc[1, 2]) / Kc[1, 1], np.ones_like(u)], -1)
+        rays = rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+        centre = invert_pose(T_world_cam)[:3, 3]  # the sphere centre in the camera frame
+        along = rays @ centre
+        miss = np.linalg.norm(rays * along[..., None] - centre, axis=-1)
+        silhouettes.append(miss < radius)
+        poses.append(T_world_cam)
+    return silhouettes, [Kc] * len(directions), poses
+
+
+def test_visual_hull_points_lie_near_the_sphere_and_not_in_the_box():
+    directions = [[1, 0, 0.3], [-1, 0.2, 0.3], [0, 1, 0.3], [0.2, -1, 0.3], [0, 0, 1], [0.5, 0.5, -1]]
+    silhouettes, Ks, poses = _sphere_silhouettes(0.05, directions)
+    points = silhouette_hull_points(silhouettes, Ks, poses, np.full(3, -0.1), np.full(3, 0.1), 3000, 48,
+                                    np.random.default_rng(0))
+    radii = np.linalg.norm(points, axis=1)
+    assert points.shape == (3000, 3)
+    assert radii.min() > 0.05 - 0.006  # never carved inside the sphere (one voxel is 4 mm)
+    assert np.median(radii) < 0.05 + 0.012  # six views: the hull hugs the sphere; the box corner is at 0.17
+
+
+def test_visual_hull_of_silhouettes_that_see_nothing_is_empty():
+    silhouettes, Ks, poses = _sphere_silhouettes(0.05, [[1, 0, 0], [0, 1, 0]])
+    empty = [np.zeros_like(s) for s in silhouettes]
+    points = silhouette_hull_points(empty, Ks, poses, np.full(3, -0.1), np.full(3, 0.1), 100, 16,
+                                    np.random.default_rng(0))
+    assert points.shape == (0, 3)
+
+
+def test_an_object_cut_by_the_frame_is_not_carved_outside_that_frame():
+    silhouettes, Ks, poses = _sphere_silhouettes(0.05, [[1, 0, 0], [0, 1, 0]])
+    cut = silhouettes[0].copy()
+    cut[:, :5] = True  # the object goes on past the left edge of view 0
+    kept = silhouette_hull_points([cut, silhouettes[1]], Ks, poses, np.full(3, -0.2), np.full(3, 0.2), 2000, 32,
+                                  np.random.default_rng(0))
+    whole = silhouette_hull_points(silhouettes, Ks, poses, np.full(3, -0.2), np.full(3, 0.2), 2000, 32,
+                                   np.random.default_rng(0))
+    assert np.abs(kept).max() > 0.12  # view 0 no longer bounds the hull outside its frame
+    assert np.abs(whole).max() < 0.1
+
+
+def test_foreground_keeps_backdrop_coloured_reflections_inside_the_object():
+    backdrop = np.ones((20, 20), bool)
+    backdrop[5:15, 5:15] = False  # the object
+    backdrop[8:11, 8:11] = True  # a highlight that mirrors the backdrop colour
+    fg = foreground_mask(backdrop)
+    assert fg[5:15, 5:15].all() and fg.sum() == 100
+    assert not foreground_mask(np.ones((6, 6), bool)).any()

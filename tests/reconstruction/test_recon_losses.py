@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from tacsplat.geometry import look_at
+from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.losses import (
     TouchNeighbours,
     edge_aware_smoothness,
@@ -148,3 +149,23 @@ def test_backdrop_alpha_loss_is_the_mean_alpha_over_backdrop_pixels():
     mask = torch.tensor([[True, False], [True, False]])
     assert backdrop_alpha_loss(alpha, mask).item() == pytest.approx(0.3)
     assert backdrop_alpha_loss(alpha, torch.zeros(2, 2, dtype=torch.bool)).item() == 0.0
+
+
+def test_window_inside_keeps_only_windows_wholly_in_the_mask():
+    mask = torch.zeros(12, 12, dtype=torch.bool)
+    mask[2:10, 3:11] = True
+    inside = losses.window_inside(mask)
+    assert inside.shape == (8, 8)
+    # a window centred at (r, c) of the full image is inside when r-2..r+2 and c-2..c+2 are in the mask
+    expected = torch.zeros(8, 8)
+    expected[2:6, 3:7] = 1.0  # centres r 4..7, c 5..8
+    assert torch.equal(inside, expected)
+
+
+def test_expected_depth_of_a_half_transparent_plane_is_its_depth_and_smooth():
+    alpha = torch.full((16, 16), 0.5)
+    alpha[:, 8:] = 0.25  # an opacity edge over a flat surface at 2 m
+    depth = 2.0 * alpha  # Eq. 5's accumulated depth
+    accumulated = losses.edge_aware_smoothness(depth, weights=torch.ones(2, 12, 12))
+    expected = losses.edge_aware_smoothness(losses.expected_depth(depth, alpha), weights=torch.ones(2, 12, 12))
+    assert accumulated > 0.01 and float(expected) == pytest.approx(0.0, abs=1e-6)
