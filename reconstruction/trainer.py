@@ -49,10 +49,10 @@ from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.initialization import (
     InitConfig,
     foreground_mask,
-    silhouette_hull_points,
     initial_gaussians,
     random_points,
     sfm_points,
+    silhouette_hull_points,
     thin_touch_points,
 )
 from tacsplat.reconstruction.ply import save_ply
