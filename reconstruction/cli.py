@@ -23,7 +23,10 @@ def register(cli) -> None:
     p.add_argument("--lambda-t", type=float, default=None,
                    help="weight of the transmittance loss L_T (unset: 0.5)")
     p.add_argument("--lambda-s", type=float, default=None,
-                   help="weight of the edge-aware smoothness loss L_S (unset: 0.02)")
+                   help="weight of the edge-aware smoothness loss L_S (unset: 2.0)")
+    p.add_argument("--smoothness-depth", default=None, choices=("expected", "accumulated"),
+                   help="depth map of L_S: expected depth inside the silhouette (unset) or the paper's accumulated "
+                   "depth (Eq. 5)")
     p.add_argument("--no-touch", action="store_true", help="no touch Gaussians and no L_T")
     p.add_argument("--no-smoothness", action="store_true", help="no L_S (and no depth render)")
     p.add_argument("--train-views", type=int, default=None, metavar="K", help="use only the first K training views")
@@ -53,6 +56,8 @@ def config_from_args(args):
         config.lambda_t = args.lambda_t
     if args.lambda_s is not None:
         config.lambda_s = args.lambda_s
+    if args.smoothness_depth is not None:
+        config.smoothness_depth = args.smoothness_depth
     if args.no_smoothness:
         config.lambda_s = 0.0
     config.validate()

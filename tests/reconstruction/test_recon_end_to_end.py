@@ -179,3 +179,18 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
     assert tacsplat_main(["evaluate", str(run), "--gt-mesh", str(cloud_path)]) == 0
     from_cloud = json.loads((run / "metrics.json").read_text())
     assert from_cloud["gt_source"].startswith("points") and np.isfinite(from_cloud["cd"])
+
+
+def test_cli_options_reach_the_train_config():
+    from argparse import Namespace
+
+    from tacsplat.errors import ConfigError
+    from tacsplat.reconstruction.cli import config_from_args
+
+    args = Namespace(seed=3, sh_degree=1, backend="cpu", train_views=None, no_touch=False, iterations=7,
+                     lambda_t=None, lambda_s=0.5, smoothness_depth="accumulated", no_smoothness=False)
+    config = config_from_args(args)
+    assert (config.seed, config.iterations, config.lambda_s, config.smoothness_depth) == (3, 7, 0.5, "accumulated")
+    assert config_from_args(Namespace(**{**vars(args), "smoothness_depth": None})).smoothness_depth == "expected"
+    with pytest.raises(ConfigError, match="smoothness_depth"):
+        TrainConfig(smoothness_depth="median").validate()
