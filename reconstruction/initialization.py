@@ -60,7 +60,8 @@ def sfm_points(
     empty = SfmResult(np.zeros((0, 3)), np.zeros((0, 3)))
     if len(images) < 2:
         return empty
-    pycolmap.logging.minloglevel = max(pycolmap.logging.minloglevel, 1)  # COLMAP's per-image INFO lines are noise here
+    # COLMAP's INFO lines, and its warnings about fixing the gauge of a bundle whose poses are all known, are noise here
+    pycolmap.logging.minloglevel = max(pycolmap.logging.minloglevel, 2)
     with tempfile.TemporaryDirectory(prefix="tacsplat-sfm-") as tmp:
         tmp = Path(tmp)
         image_dir = tmp / "images"

@@ -53,7 +53,7 @@ def variant_overrides(variant: str) -> dict:
 
 @dataclass
 class PaperBenchConfig:
-    """Size of the suite; the defaults run 6 objects x 2 settings x 4 variants in about 1 h on 2 free cores."""
+    """Size of the suite; the defaults run 6 objects x 2 settings x 4 variants in about 30 min on 2 free cores."""
 
     objects: tuple[str, ...] = ()  # empty: every library object
     settings: tuple[str, ...] = SETTINGS
@@ -67,7 +67,7 @@ class PaperBenchConfig:
 
     @classmethod
     def quick(cls) -> "PaperBenchConfig":
-        """Two objects, minimal setting, fewer steps and pixels: about 10 minutes on 2 cores."""
+        """Two objects, minimal setting, fewer steps and pixels: about 3 minutes on 2 cores."""
         return cls(objects=QUICK_OBJECTS, settings=("minimal",), resolution=128, iterations=800, test_views=8)
 
     def validate(self) -> None:
@@ -342,7 +342,7 @@ def register(cli) -> None:
     p.add_argument("--objects", default="all", help="'all' or comma-separated library objects (--quick: teapot,bell)")
     p.add_argument("--out", required=True, help="report folder (captures, runs, results.csv, report.md, PNGs)")
     p.add_argument("--quick", action="store_true",
-                   help="two objects, minimal setting, 128 px, 800 steps (about 10 minutes)")
+                   help="two objects, minimal setting, 128 px, 800 steps (about 3 minutes)")
     p.add_argument("--resolution", type=int, default=None, help="image size in pixels (default 128)")
     p.add_argument("--iterations", type=int, default=None, help="steps per run (default 1500; quick 800)")
     p.add_argument("--full-views", type=int, default=None, help="train views of the full-views setting (default 32)")

@@ -42,7 +42,7 @@ GRASP_MARGIN = 1.5  # a grasp often has a finger that touches nothing (16 grasps
 
 @dataclass
 class TouchBenchConfig:
-    """Defaults: 6 counts x 3 seeds of a 128 px teapot, about 20 minutes on 2 cores."""
+    """Defaults: 6 counts x 3 seeds of a 128 px teapot, about 6 minutes on 2 cores."""
 
     object: str = "teapot"
     touch_counts: tuple[int, ...] = (0, 4, 8, 16, 32, 64)
