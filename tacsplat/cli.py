@@ -17,7 +17,7 @@ import logging
 import sys
 
 from tacsplat import __version__
-from tacsplat.errors import TacsplatError
+from tacsplat.errors import ConfigError, TacsplatError
 
 COMMAND_MODULES = (
     "tacsplat.datasets.cli",
@@ -36,6 +36,14 @@ GROUP_HELP = {
     "bench": "benchmarks: error and run time, medians and ratios against a reference",
     "calibrate": "calibrate real devices (wrist camera, tactile sensors)",
 }
+
+
+def comma_separated_ints(text: str, option: str) -> tuple[int, ...]:
+    """The integers of an option like ``--seeds 0,1,2``; a ConfigError naming ``option`` otherwise."""
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise ConfigError(option, f"expected comma-separated integers, got {text!r}") from None
 
 
 class CommandTree:

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tacsplat.cli import comma_separated_ints
 from tacsplat.errors import ConfigError
 from tacsplat.report import VARIANTS
 
@@ -180,7 +181,8 @@ class PaperBench:
             bar.write(f"{run.object:8s} {run.setting:10s} {run.variant:7s} seed {run.seed}: "
                       f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
                       f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s")
-            self.write_report(self.results(), wall_seconds=time.perf_counter() - started)  # partial results readable
+            # partial tables after every run; the pictures (re-rendered from every checkpoint, seconds) at the end
+            self.write_report(self.results(), wall_seconds=time.perf_counter() - started, figures=False)
         bar.close()
         rows = self.results()
         self.write_report(rows, wall_seconds=time.perf_counter() - started)
@@ -199,9 +201,9 @@ class PaperBench:
                          **{k: _number(m.get(k)) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}})
         return rows
 
-    def write_report(self, rows: list[dict], wall_seconds: float | None = None) -> Path:
-        """results.csv, report.md and the plots from the runs on disk."""
-        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds)
+    def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
+        """results.csv, report.md and (``figures``) the plots from the runs on disk."""
+        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures)
         return self.out / "report.md"
 
 
@@ -251,16 +253,17 @@ def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarra
 
 
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
-                       wall_seconds: float | None = None) -> None:
-    """Write ``results.csv``, ``report.md``, CD bar charts, error-vs-time curves and render grids into ``out``."""
+                       wall_seconds: float | None = None, figures: bool = True) -> None:
+    """Write ``results.csv``, ``report.md`` and (``figures``) CD bar charts, error-vs-time curves and render
+    grids into ``out``; without figures, report.md holds the tables only."""
     from tacsplat.report import (
         markdown_table,
         plot_cd_bars,
         plot_error_vs_time,
-        read_progress_curve,
         render_grid,
         write_results_csv,
     )
+    from tacsplat.reconstruction.trainer import read_progress
 
     out = Path(out)
     write_results_csv(rows, out / "results.csv")
@@ -283,13 +286,15 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         for metric in ("cd", "psnr", "ssim"):
             lines += [markdown_table(rows, metric, setting), ""]
         lines += [full_vs_vanilla(rows, setting), ""]
+        if not figures:
+            continue
         bars = plot_cd_bars(rows, setting, out / f"cd_{setting}.png")
         lines += [f"![CD per object, {setting}]({bars.name})", ""]
         curves: dict[str, dict] = {}
         for run in runs:
             progress = run.out / "progress.csv"
             if run.setting == setting and run.seed == config.seeds[0] and run.done and progress.is_file():
-                curves.setdefault(run.object, {})[run.variant] = read_progress_curve(progress)
+                curves.setdefault(run.object, {})[run.variant] = read_progress(progress)
         if curves:
             png = plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", f"held-out error vs run time ({setting})")
             lines += [f"![error vs run time, {setting}]({png.name})", ""]
@@ -306,13 +311,6 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
 # ---------------------------------------------------------------------- command line
 
 
-def _int_list(text: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise ConfigError("--seeds", f"expected comma-separated integers, got {text!r}") from None
-
-
 def config_from_args(args) -> PaperBenchConfig:
     """The :class:`PaperBenchConfig` of `tacsplat bench paper`'s options."""
     config = PaperBenchConfig.quick() if args.quick else PaperBenchConfig()
@@ -326,7 +324,7 @@ def config_from_args(args) -> PaperBenchConfig:
     if args.settings is not None:
         config.settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
     if args.seeds is not None:
-        config.seeds = _int_list(args.seeds)
+        config.seeds = comma_separated_ints(args.seeds, "--seeds")
     config.validate()
     return config
 

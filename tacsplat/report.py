@@ -95,7 +95,8 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n"
 
 
-def _pyplot():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (no display needed)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -104,9 +105,18 @@ def _pyplot():
     return plt
 
 
+def save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
+    """Save ``fig`` as ``path`` (parent folders created, 100 dpi) and close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100, **savefig_kwargs)
+    pyplot().close(fig)
+    return path
+
+
 def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
     """Grouped bar chart: CD per variant (bars) per object (groups), log scale, mean over seeds."""
-    plt = _pyplot()
+    plt = pyplot()
     objects, variants, values = metric_table(rows, "cd", setting)
     fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * (len(objects) + 1)), 4))
     width = 0.8 / max(len(variants), 1)
@@ -122,28 +132,16 @@ def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
     ax.legend(fontsize=8)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
-
-
-def read_progress_curve(progress_csv: str | Path) -> dict[str, np.ndarray]:
-    """``seconds``, ``cd``, ``psnr`` arrays of a run's progress.csv (rows without evaluation dropped)."""
-    with Path(progress_csv).open() as fh:
-        raw = list(csv.DictReader(fh))
-    out = {k: np.array([float(r[k]) if r.get(k) not in (None, "") else np.nan for r in raw]) for k in ("seconds", "cd", "psnr")}
-    keep = np.isfinite(out["cd"]) | np.isfinite(out["psnr"])
-    return {k: v[keep] for k, v in out.items()}
+    return save_figure(fig, path)
 
 
 def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path: str | Path, title: str = "") -> Path:
     """CD (top) and PSNR (bottom) against run time, one column per object, one line per variant.
 
-    ``curves[object][variant]`` is a :func:`read_progress_curve` result.
+    ``curves[object][variant]`` holds a run's ``seconds``, ``cd`` and ``psnr`` arrays
+    (:func:`tacsplat.reconstruction.trainer.read_progress`).
     """
-    plt = _pyplot()
+    plt = pyplot()
     objects = list(curves)
     fig, axes = plt.subplots(2, max(len(objects), 1), figsize=(4 * max(len(objects), 1), 6.5), squeeze=False)
     for j, obj in enumerate(objects):
@@ -162,11 +160,7 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def render_grid(panels: dict[str, tuple[np.ndarray, np.ndarray]], gt_rgb: np.ndarray, gt_depth: np.ndarray,
@@ -176,7 +170,7 @@ def render_grid(panels: dict[str, tuple[np.ndarray, np.ndarray]], gt_rgb: np.nda
 
     ``panels[variant] = (rgb [H, W, 3] in [0, 1], depth [H, W] metres, 0 = empty)`` of the same test view.
     """
-    plt = _pyplot()
+    plt = pyplot()
     valid = gt_depth[gt_depth > 0]
     lo, hi = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 1.0)
     pad = 0.1 * max(hi - lo, 1e-6)
@@ -196,8 +190,4 @@ def render_grid(panels: dict[str, tuple[np.ndarray, np.ndarray]], gt_rgb: np.nda
     fig.colorbar(image, ax=list(axes[1]), fraction=0.02, label="depth [m]")
     if title:
         fig.suptitle(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, bbox_inches="tight")

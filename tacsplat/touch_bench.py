@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tacsplat.cli import comma_separated_ints
 from tacsplat.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -181,10 +182,7 @@ def summarise(rows: list[dict]) -> list[dict]:
 
 def write_touch_report(out: str | Path, rows: list[dict]) -> dict[str, Path]:
     """``touches.csv``, ``summary.csv`` and ``cd_vs_touches.png`` (mean +- std over seeds, each run a dot)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from tacsplat.report import pyplot, save_figure
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -198,7 +196,7 @@ def write_touch_report(out: str | Path, rows: list[dict]) -> dict[str, Path]:
         writer = csv.DictWriter(fh, fieldnames=list(summary[0]) if summary else ["requested_touches"])
         writer.writeheader()
         writer.writerows(summary)
-    fig, ax = plt.subplots(figsize=(5.5, 4))
+    fig, ax = pyplot().subplots(figsize=(5.5, 4))
     x = np.array([s["requested_touches"] for s in summary], dtype=float)
     mean = np.array([s["cd_mean"] for s in summary])
     std = np.array([s["cd_std"] for s in summary])
@@ -214,16 +212,8 @@ def write_touch_report(out: str | Path, rows: list[dict]) -> dict[str, Path]:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(paths["plot"], dpi=100)
-    plt.close(fig)
+    save_figure(fig, paths["plot"])
     return paths
-
-
-def _int_tuple(text: str, option: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise ConfigError(option, f"expected comma-separated integers, got {text!r}") from None
 
 
 def register(cli) -> None:
@@ -244,8 +234,8 @@ def register(cli) -> None:
 
 
 def _run(args) -> int:
-    config = TouchBenchConfig(object=args.object, touch_counts=_int_tuple(args.touches, "--touches"),
-                              seeds=_int_tuple(args.seeds, "--seeds"), resolution=args.resolution,
+    config = TouchBenchConfig(object=args.object, touch_counts=comma_separated_ints(args.touches, "--touches"),
+                              seeds=comma_separated_ints(args.seeds, "--seeds"), resolution=args.resolution,
                               iterations=args.iterations)
     started = time.perf_counter()
     bench = TouchBench(args.out, config)

@@ -125,7 +125,11 @@ def _finish(run, cd: float) -> None:
     run.out.mkdir(parents=True, exist_ok=True)
     (run.out / "metrics.json").write_text(json.dumps(
         {"cd": cd, "psnr": 20.0, "ssim": 0.8, "train_seconds": 5.0, "num_gaussians": 100}))
-    (run.out / "progress.csv").write_text("iteration,seconds,psnr,cd\n0,0.0,10,0.1\n100,5.0,20,%s\n" % cd)
+    from tacsplat.reconstruction.trainer import PROGRESS_COLUMNS
+
+    rows = [{"iteration": 0, "seconds": 0.0, "psnr": 10, "cd": 0.1}, {"iteration": 100, "seconds": 5.0, "psnr": 20, "cd": cd}]
+    lines = [",".join(PROGRESS_COLUMNS)] + [",".join(str(r.get(k, 0)) for k in PROGRESS_COLUMNS) for r in rows]
+    (run.out / "progress.csv").write_text("\n".join(lines) + "\n")
 
 
 def test_resume_skips_finished_runs(tmp_path, monkeypatch):
