@@ -15,12 +15,16 @@ export OMP_WAIT_POLICY ?= PASSIVE
 setup: $(STAMP)
 
 # torch first and pinned: 2.13.0 is the CPU wheel on these machines; letting
-# pip choose pulls a multi-GB CUDA build.
+# pip choose pulls a multi-GB CUDA build. Elsewhere choose the build, e.g.
+#   make test TORCH_INDEX=https://download.pytorch.org/whl/cpu   (CPU only)
+TORCH ?= torch==2.13.0
+TORCH_INDEX ?=
+EXTRAS ?= dev
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -e '.[dev]'
+	$(PY) -m pip install --quiet $(if $(TORCH_INDEX),--index-url $(TORCH_INDEX)) '$(TORCH)'
+	$(PY) -m pip install --quiet -e '.[$(EXTRAS)]'
 	touch $(STAMP)
 
 test: $(STAMP)

@@ -6,17 +6,13 @@ profiles, rounded boxes (convex hulls of corner spheres) and exact mesh
 booleans (manifold3d), then centred on its minimum bounding sphere and scaled
 to the requested bounding-sphere radius.
 
-Collision: MuJoCo collides a mesh as its convex hull, so non-convex objects are
-split by CoACD (approximate convex decomposition, concavity threshold 0.05)
-into convex hulls, cached on disk by mesh hash. Tactile depth and ground truth
-always use the exact mesh; only contact forces see the hulls.
+Collision pieces (convex hulls) come from :mod:`tacsplat.sim.collision`.
+Tactile depth and ground truth always use the exact mesh.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -199,69 +195,3 @@ def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) ->
     if not mesh.is_watertight:
         log.warning("%s is not watertight: ray casting works, collision uses its convex pieces", path)
     return SimObject(path.stem, normalise_mesh(mesh, radius, str(path)), GlossyMaterial((0.8, 0.8, 0.82, 1.0)))
-
-
-@dataclass(frozen=True)
-class DecompositionConfig:
-    """CoACD settings, traded for speed. Measured on the library at radius 0.08 m: 3-7 s an
-    object on one core (once: cached), 5-24 hulls, hull volume 0.7-7.8 % above the mesh's,
-    99 % of the hull surface within 0.6-3.0 mm of the mesh (at most 3.8 mm, in concave
-    creases). Tactile depth never sees the hulls, only contact forces do."""
-
-    threshold: float = 0.05  # concavity tolerance relative to the bounding box (CoACD default)
-    max_convex_hull: int = 24
-    preprocess_resolution: int = 30
-    resolution: int = 500  # surface samples for the concavity metric
-    mcts_iterations: int = 30
-    mcts_max_depth: int = 2
-    seed: int = 0
-
-
-def _cache_dir() -> Path:
-    root = os.environ.get("TACSPLAT_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "tacsplat")
-    return Path(root) / "coacd"
-
-
-def convex_decomposition(mesh: trimesh.Trimesh, config: DecompositionConfig = DecompositionConfig()) -> list[trimesh.Trimesh]:
-    """Convex pieces of ``mesh`` by CoACD, cached on disk.
-
-    The decomposition is scale-free: it runs on the mesh scaled to a unit
-    bounding sphere (the cache key hashes that mesh and the settings), and the
-    pieces are scaled back, so one object at several radii is decomposed once.
-    """
-    centre, radius = bounding_sphere(mesh)
-    unit = trimesh.Trimesh((np.asarray(mesh.vertices) - centre) / radius, mesh.faces, process=False)
-    key = hashlib.sha1()
-    key.update(np.round(unit.vertices, 6).tobytes())
-    key.update(np.ascontiguousarray(unit.faces, dtype=np.int64).tobytes())
-    key.update(repr(config).encode())
-    cache = _cache_dir() / f"{key.hexdigest()}.npz"
-    if cache.is_file():
-        data = np.load(cache)
-        pieces = [(data[f"v{i}"], data[f"f{i}"]) for i in range(int(data["n"]))]
-    else:
-        if unit.convex_hull.volume - unit.volume < 1e-3 * unit.volume:  # already convex
-            hull = unit.convex_hull
-            pieces = [(np.asarray(hull.vertices), np.asarray(hull.faces))]
-        else:
-            import coacd
-
-            coacd.set_log_level("error")
-            pieces = coacd.run_coacd(
-                coacd.Mesh(unit.vertices, unit.faces),
-                threshold=config.threshold,
-                max_convex_hull=config.max_convex_hull,
-                preprocess_resolution=config.preprocess_resolution,
-                resolution=config.resolution,
-                mcts_iterations=config.mcts_iterations,
-                mcts_max_depth=config.mcts_max_depth,
-                seed=config.seed,
-            )
-        cache.parent.mkdir(parents=True, exist_ok=True)
-        tmp = cache.with_name(cache.stem + f".{os.getpid()}.tmp.npz")
-        arrays = {"n": np.array(len(pieces))}
-        for i, (v, f) in enumerate(pieces):
-            arrays[f"v{i}"], arrays[f"f{i}"] = np.asarray(v), np.asarray(f)
-        np.savez(tmp, **arrays)
-        os.replace(tmp, cache)
-    return [trimesh.Trimesh(np.asarray(v) * radius + centre, f, process=False) for v, f in pieces]

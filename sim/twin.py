@@ -39,14 +39,8 @@ from tacsplat.sim.hand import (
     hand_body_xml,
     site_pose,
 )
-from tacsplat.sim.objects import (
-    DEFAULT_OBJECT_RADIUS,
-    DecompositionConfig,
-    SimObject,
-    convex_decomposition,
-    load_mesh_object,
-    make_object,
-)
+from tacsplat.sim.collision import DecompositionConfig, convex_decomposition
+from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, SimObject, load_mesh_object, make_object
 from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer
 from tacsplat.types import TactileReading
 

@@ -45,6 +45,9 @@ def run(args) -> int:
     for key, label, decimals in (("cd", "Chamfer distance (↓)", 4), ("psnr", "PSNR dB (↑)", 2),
                                  ("ssim", "SSIM (↑)", 3), ("train_seconds", "train seconds", 0)):
         print(f"{label:22s}" + "".join(f"{rows[v][key]:>{w}.{decimals}f}" for v, w in (("3dgs", 18), ("full", 20))))
-    print(f"report with pictures: {(bench.out / 'report.md').resolve()}")
+    report = bench.out.resolve()
+    print(f"report: {report / 'report.md'} (tables, plots and renders)")
+    print(f"open first: {report / f'renders_{args.object}_minimal.png'} "
+          "(test views: ground truth, 3DGS and with touch; RGB above depth)")
     print(f"total {(time.perf_counter() - started) / 60:.1f} min")
     return 0
