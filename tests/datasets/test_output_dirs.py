@@ -1,0 +1,47 @@
+"""Output folders: one clear error for a file, a file parent, an unwritable folder, or a folder in use."""
+
+import os
+
+import pytest
+
+from tacsplat.datasets.outputs import claim_output_dir, ensure_output_dir
+from tacsplat.errors import ConfigError
+
+
+def test_a_new_nested_folder_is_created(tmp_path):
+    assert ensure_output_dir(tmp_path / "a" / "b").is_dir()
+
+
+def test_a_file_or_a_file_parent_is_refused_naming_the_option(tmp_path):
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(ConfigError, match="--out: .*f is a file"):
+        ensure_output_dir(tmp_path / "f")
+    with pytest.raises(ConfigError, match="--run: .* is inside .*f, which is a file"):
+        ensure_output_dir(tmp_path / "f" / "run", "--run")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root can write into read-only folders")
+def test_an_unwritable_folder_is_refused(tmp_path):
+    locked = tmp_path / "ro"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        with pytest.raises(ConfigError, match="--out"):
+            ensure_output_dir(locked / "run")
+    finally:
+        locked.chmod(0o700)
+
+
+def test_an_unwritable_folder_is_refused_even_for_root(tmp_path, monkeypatch):
+    monkeypatch.setattr(os, "access", lambda *a: False)
+    with pytest.raises(ConfigError, match="is not writable"):
+        ensure_output_dir(tmp_path / "run")
+
+
+def test_a_second_claim_on_a_locked_folder_is_refused_until_released(tmp_path):
+    first = claim_output_dir(tmp_path / "run")
+    with pytest.raises(ConfigError, match="another tacsplat process"):
+        claim_output_dir(tmp_path / "run")
+    first.release()
+    with claim_output_dir(tmp_path / "run"):
+        pass
