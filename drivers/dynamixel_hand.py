@@ -15,14 +15,22 @@ LEAP Hand API leaves to luck is done here on purpose:
 * the context manager disables torque on exit, on exception and on SIGINT (a
   Ctrl-C arriving mid-packet is deferred until the exchange completes, so the
   port is never left half-used);
-* commands are clamped to the joint limits of the twin's model, and clamping is
-  logged; a missing servo at connect time is a refusal to move.
+* connect holds the present pose: before torque comes on, each servo's goal is
+  where it stands, or, for a joint standing just outside its limits, the nearest
+  limit if that is at most ``connect_tolerance_rad`` away; a calibration (or a
+  finger) that puts a joint farther out is refused with torque off, naming the
+  joint, its sign and offset. Only :meth:`DynamixelHand.command_joint_positions`
+  moves the hand further;
+* commands are checked (InvalidInputError before anything reaches the bus),
+  clamped to the joint limits of the twin's model, and clamping is logged; a
+  missing servo at connect time is a refusal to move.
 """
 
 from __future__ import annotations
 
 import atexit
 import logging
+import math
 import signal
 import threading
 import time
@@ -33,7 +41,7 @@ from typing import Iterable, Sequence
 import dynamixel_sdk as dxl
 import numpy as np
 
-from tacsplat.drivers.calibration import HandCalibration
+from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration
 from tacsplat.drivers.dynamixel_table import (
     ALERT_BIT,
     REGISTERS,
@@ -43,7 +51,7 @@ from tacsplat.drivers.dynamixel_table import (
     le_bytes,
     to_signed,
 )
-from tacsplat.errors import HandError, InvalidInputError
+from tacsplat.errors import ConfigError, HandError, InvalidInputError
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +78,7 @@ COMM_RESULT_NAMES = {
 _STATE_ADDRESS = REGISTERS["present_current"].address
 _STATE_SIZE = REGISTERS["present_position"].address + 4 - _STATE_ADDRESS
 VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * np.pi / 60.0  # Present Velocity unit: 0.229 rpm
+MAX_CONNECT_TOLERANCE_RAD = 0.2
 
 
 @dataclass(frozen=True)
@@ -86,6 +95,14 @@ class DynamixelHandConfig:
     retries: int = 2  # extra attempts after a failed exchange, then raise
     drain_s: float = 0.1  # after a failed exchange: wait, then flush input, so late replies cannot be mistaken
     handle_sigint: bool = True  # defer Ctrl-C to the end of the packet exchange, then raise KeyboardInterrupt
+    # how far connect may move a joint that stands just outside its limits onto the nearest limit; farther is refused
+    connect_tolerance_rad: float = math.radians(5.0)
+
+    def __post_init__(self):
+        tol = self.connect_tolerance_rad
+        if not 0.0 <= tol <= MAX_CONNECT_TOLERANCE_RAD:  # also NaN
+            raise ConfigError("connect_tolerance_rad", f"must be in [0, {MAX_CONNECT_TOLERANCE_RAD}] rad (how far "
+                                                       f"connect may move a servo), got {tol!r}")
 
 
 @dataclass(frozen=True)
@@ -204,9 +221,14 @@ class DynamixelHand:
         self.close()
 
     def connect(self) -> None:
-        """Open the port, ping every servo, configure them with torque off, hold the present pose, enable torque."""
+        """Open the port, ping every servo, configure them with torque off, hold the present pose, enable torque.
+
+        On a faulted hand this reconnects from scratch: the goal is again where each servo stands now.
+        """
         if self._port is not None:
-            return
+            if not self._fault:
+                return
+            self.close()
         port = _PortHandler(self.port_name, 1000.0 * self.config.min_packet_timeout_s)
         try:
             opened = port.setBaudRate(self.baudrate)  # opens the port at this rate (openPort would open at 1 Mbps first)
@@ -228,9 +250,9 @@ class DynamixelHand:
                 self._write(sid, "position_p_gain", self.config.position_p_gain)
                 self._write(sid, "position_i_gain", self.config.position_i_gain)
                 self._write(sid, "position_d_gain", self.config.position_d_gain)
-            # hold where the hand is (inside the limits) before torque comes on: no jump
-            present = self.read_joint_positions()
-            self._sync_write_goal(self._clamp(present, "present pose"))
+            # hold where the hand is before torque comes on: no jump (acknowledged writes, not an unanswered sync write)
+            for sid, tick in zip(self.ids, self._holding_goal(self._read_raw_state()[0])):
+                self._write(sid, "goal_position", int(tick))
             for sid in self.ids:
                 self._write(sid, "torque_enable", 1)
             self._torque_on = True
@@ -241,11 +263,7 @@ class DynamixelHand:
 
     def read_state(self) -> HandState:
         """Positions, velocities and currents of every joint by one sync read (retried, then raises)."""
-        self._check_usable()
-        raw = self._sync_read(_STATE_ADDRESS, _STATE_SIZE, "SYNC_READ present current/velocity/position")
-        ticks = np.array([to_signed(int.from_bytes(raw[s][6:10], "little"), 4) for s in self.ids])
-        vel = np.array([to_signed(int.from_bytes(raw[s][2:6], "little"), 4) for s in self.ids])
-        cur = np.array([to_signed(int.from_bytes(raw[s][0:2], "little"), 2) for s in self.ids])
+        ticks, vel, cur = self._read_raw_state()
         signs = self.calibration.signs
         return HandState(
             positions=self.calibration.radians_from_ticks(ticks),
@@ -263,17 +281,14 @@ class DynamixelHand:
         return self.read_state().currents
 
     def command_joint_positions(self, q) -> None:
-        """Goal positions [16] radians by one sync write, clamped to the joint limits (clamping logged)."""
+        """Goal positions [16] radians by one sync write, clamped to the joint limits (clamping logged).
+
+        The one motion command: bad ``q`` (not 16 real finite numbers) raises InvalidInputError, writing nothing.
+        """
         self._check_usable()
         if not self._torque_on:
             raise HandError(self.device, "torque is off: connect first (use the hand as a context manager)")
-        q = np.asarray(q, dtype=np.float64)
-        if q.shape != (len(self.ids),):
-            raise InvalidInputError(f"command_joint_positions: q must have shape ({len(self.ids)},), got {q.shape}")
-        if not np.all(np.isfinite(q)):
-            bad = [self._joint_names[i] for i in np.flatnonzero(~np.isfinite(q))]
-            raise InvalidInputError(f"command_joint_positions: q is NaN or infinite for joints {bad}")
-        self._sync_write_goal(self._clamp(q, "command"))
+        self._sync_write_goal(self._clamp(self._joint_vector(q), "command"))
 
     def fingertip_poses(self) -> dict[str, np.ndarray]:
         """``{finger: T_hand_sensor [4, 4]}`` by forward kinematics of the twin's model at the present joints."""
@@ -305,6 +320,54 @@ class DynamixelHand:
             raise HandError(self.device, "not connected (use `with DynamixelHand(...) as hand:`)")
         if self._fault:
             raise HandError(self.device, f"hand is faulted, reconnect to continue: {self._fault}")
+
+    def _joint_vector(self, q) -> np.ndarray:
+        """``q`` as [16] float64 radians, or InvalidInputError naming the argument."""
+        n = len(self.ids)
+        expected = f"command_joint_positions: q must be {n} finite joint angles in radians"
+        try:
+            array = np.asarray(q)
+        except (ValueError, TypeError) as exc:  # ragged nested sequences
+            raise InvalidInputError(f"{expected}: {exc}") from None
+        if array.dtype.kind not in "iuf":
+            raise InvalidInputError(f"{expected}, got {type(q).__name__} of dtype {array.dtype}")
+        if array.shape != (n,):
+            raise InvalidInputError(f"{expected} (shape ({n},)), got shape {array.shape}")
+        array = array.astype(np.float64)
+        if not np.all(np.isfinite(array)):
+            bad = [self._joint_names[i] for i in np.flatnonzero(~np.isfinite(array))]
+            raise InvalidInputError(f"command_joint_positions: q is NaN or infinite for joints {bad}")
+        return array
+
+    def _holding_goal(self, ticks: np.ndarray) -> np.ndarray:
+        """Goal ticks that hold the present pose: ``ticks``, or the nearest joint limit if within the tolerance.
+
+        Refuses (torque off, one ServoError) when a joint reads farther outside its limits than
+        ``connect_tolerance_rad``: the calibration is wrong, or the finger was bent out of its range.
+        """
+        cal, tol = self.calibration, self.config.connect_tolerance_rad
+        q = cal.radians_from_ticks(ticks)
+        lo, hi = self._joint_limits[:, 0], self._joint_limits[:, 1]
+        inside = np.clip(q, lo, hi)
+        goal = np.where(inside == q, ticks, cal.ticks_from_radians(inside))
+        too_far = np.flatnonzero(np.abs(goal - ticks) * RAD_PER_TICK > tol)
+        if too_far.size:
+            joints = "; ".join(
+                f"{self._joint_names[i]} (servo {self.ids[i]}) stands at tick {ticks[i]}, which sign "
+                f"{int(cal.signs[i]):+d} and offset_rad {cal.offsets_rad[i]:+.4f} read as {q[i]:+.4f} rad, "
+                f"{abs(q[i] - inside[i]):.4f} rad outside its limits [{lo[i]:+.4f}, {hi[i]:+.4f}]"
+                for i in too_far
+            )
+            names = ", ".join(self._joint_names[i] for i in too_far)
+            self._fail(self.ids[too_far[0]], "hold present pose",
+                       f"{joints}; that is more than connect_tolerance_rad = {tol:.4f} rad, so the hand will not "
+                       f"move there: check the sign and offset_rad of {names} in "
+                       f"{cal.source or 'the hand calibration'}, or move the finger by hand into its range")
+        nudged = np.flatnonzero(goal != ticks)
+        if nudged.size:
+            log.warning("%s: present pose clamped to joint limits: %s", self.device, ", ".join(
+                f"{self._joint_names[i]} {q[i]:+.4f} -> {inside[i]:+.4f} rad" for i in nudged))
+        return goal
 
     def _clamp(self, q: np.ndarray, what: str) -> np.ndarray:
         lo, hi = self._joint_limits[:, 0], self._joint_limits[:, 1]
@@ -491,6 +554,15 @@ class DynamixelHand:
             if len(data) != size:
                 self._fail(sid, instruction, f"status packet has {len(data)} data bytes, expected {size}")
         return {sid: replies[sid][0] for sid in self.ids}
+
+    def _read_raw_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Present (position ticks, velocity units, current units) of every servo by one sync read."""
+        self._check_usable()
+        raw = self._sync_read(_STATE_ADDRESS, _STATE_SIZE, "SYNC_READ present current/velocity/position")
+        ticks = np.array([to_signed(int.from_bytes(raw[s][6:10], "little"), 4) for s in self.ids])
+        vel = np.array([to_signed(int.from_bytes(raw[s][2:6], "little"), 4) for s in self.ids])
+        cur = np.array([to_signed(int.from_bytes(raw[s][0:2], "little"), 2) for s in self.ids])
+        return ticks, vel, cur
 
     def _sync_write_goal(self, q: np.ndarray) -> None:
         ticks = self.calibration.ticks_from_radians(q)

@@ -16,21 +16,23 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import asdict, dataclass, field
+import math
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Sequence
 
 import cv2
 import numpy as np
 
-from tacsplat.drivers.calibration import read_calibration_json
+from tacsplat.drivers.calibration import json_array, json_float, json_int, read_calibration_json
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import CameraError, ConfigError, InvalidInputError
-from tacsplat.geometry import invert_pose, make_pose
+from tacsplat.geometry import invert_pose, make_pose, rigidity_problem
 
 log = logging.getLogger(__name__)
 
 FORMAT = "tacsplat-camera-calibration"
+_PIXEL_CENTRES = "opencv (integer)"
 T_WORLD_BOARD = np.diag([1.0, -1.0, -1.0, 1.0])  # rotation of pi about the board's x axis
 
 
@@ -96,7 +98,7 @@ class CameraCalibration:
 
     def save(self, path: str | Path) -> None:
         data = {
-            "format": FORMAT, "version": 1, "pixel_centres": "opencv (integer)",
+            "format": FORMAT, "version": 1, "pixel_centres": _PIXEL_CENTRES,
             "K_opencv": self.K_opencv.tolist(), "dist": self.dist.ravel().tolist(),
             "width": self.width, "height": self.height, "rms_px": self.rms_px,
             "board": asdict(self.board), "per_image_rms_px": self.per_image_rms_px,
@@ -109,18 +111,73 @@ class CameraCalibration:
 
     @classmethod
     def load(cls, path: str | Path) -> "CameraCalibration":
+        """Read a calibration file; every value is checked here, and one ConfigError names the file and field."""
         path = Path(path)
         data = read_calibration_json(path, FORMAT)
-        K = np.asarray(data.get("K_opencv"), dtype=np.float64)
-        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ConfigError("K_opencv", f"expected a [3, 3] matrix with positive focal lengths, got {K.tolist()}", source=path)
-        dist = np.asarray(data.get("dist"), dtype=np.float64).ravel()
-        if dist.size not in (4, 5, 8) or not np.all(np.isfinite(dist)):
-            raise ConfigError("dist", f"expected 4, 5 or 8 finite coefficients, got {dist.tolist()}", source=path)
+        unknown = [key for key in data if key not in _FILE_FIELDS]
+        if unknown:
+            raise ConfigError(unknown[0], f"unknown field (expected {list(_FILE_FIELDS)})", source=path)
+        if data.get("pixel_centres", _PIXEL_CENTRES) != _PIXEL_CENTRES:
+            raise ConfigError("pixel_centres", f"must be {_PIXEL_CENTRES!r} (K_opencv is in OpenCV's convention), "
+                                               f"got {data['pixel_centres']!r}", source=path)
+        width = json_int(data.get("width"), "width", path, minimum=1)
+        height = json_int(data.get("height"), "height", path, minimum=1)
+        K = json_array(data.get("K_opencv"), "K_opencv", path, (3, 3))
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ConfigError("K_opencv", f"focal lengths must be positive, got fx {K[0, 0]}, fy {K[1, 1]}",
+                              source=path)
+        if not (-0.5 <= K[0, 2] <= width - 0.5 and -0.5 <= K[1, 2] <= height - 0.5):
+            raise ConfigError("K_opencv", f"principal point ({K[0, 2]}, {K[1, 2]}) is outside the {width}x{height} "
+                                          "image (OpenCV pixel centres)", source=path)
+        if K[1, 0] != 0 or K[2].tolist() != [0.0, 0.0, 1.0]:
+            raise ConfigError("K_opencv", f"must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}",
+                              source=path)
+        dist = json_array(data.get("dist"), "dist", path, (None,))
+        if dist.size not in (4, 5, 8, 12, 14):
+            raise ConfigError("dist", f"expected 4, 5, 8, 12 or 14 coefficients (OpenCV), got {dist.size}", source=path)
+        rms = data.get("rms_px")
+        rms = float("nan") if rms is None or (isinstance(rms, float) and math.isnan(rms)) else \
+            json_float(rms, "rms_px", path, low=0.0)
+        per_image = data.get("per_image_rms_px", {})
+        if not isinstance(per_image, dict):
+            raise ConfigError("per_image_rms_px", f"must be an object {{image name: px}}, got {per_image!r}",
+                              source=path)
+        per_image = {name: json_float(v, f"per_image_rms_px.{name}", path, low=0.0) for name, v in per_image.items()}
         T = data.get("T_hand_cam")
-        return cls(K, dist, int(data["width"]), int(data["height"]), float(data.get("rms_px", float("nan"))),
-                   CharucoBoardSpec(**data.get("board", {})), dict(data.get("per_image_rms_px", {})),
-                   None if T is None else np.asarray(T, dtype=np.float64))
+        if T is not None:
+            T = json_array(T, "T_hand_cam", path, (4, 4))
+            problem = rigidity_problem(T)
+            if problem:
+                raise ConfigError("T_hand_cam", f"not a rigid transform: {problem}", source=path)
+        return cls(K, dist, width, height, rms, _board_spec(data.get("board", {}), path), per_image, T)
+
+
+_FILE_FIELDS = ("format", "version", "pixel_centres", "K_opencv", "dist", "width", "height", "rms_px", "board",
+                "per_image_rms_px", "T_hand_cam")
+
+
+def _board_spec(board, path: Path) -> CharucoBoardSpec:
+    """The ``board`` object of a camera calibration file, checked field by field."""
+    if not isinstance(board, dict):
+        raise ConfigError("board", f"must be an object of CharucoBoardSpec fields, got {board!r}", source=path)
+    names = [f.name for f in fields(CharucoBoardSpec)]
+    unknown = [key for key in board if key not in names]
+    if unknown:
+        raise ConfigError(f"board.{unknown[0]}", f"unknown field (expected {names})", source=path)
+    spec = CharucoBoardSpec(**board)
+    for name in ("squares_x", "squares_y"):
+        json_int(getattr(spec, name), f"board.{name}", path, minimum=2)
+    square = json_float(spec.square_length_m, "board.square_length_m", path, low=1e-6)
+    marker = json_float(spec.marker_length_m, "board.marker_length_m", path, low=1e-6)
+    if marker >= square:
+        raise ConfigError("board.marker_length_m", f"{marker} m is not smaller than square_length_m {square} m",
+                          source=path)
+    if not isinstance(spec.dictionary, str) or not spec.dictionary.startswith("DICT_") or \
+            not hasattr(cv2.aruco, spec.dictionary):
+        raise ConfigError("board.dictionary", f"unknown ArUco dictionary {spec.dictionary!r}", source=path)
+    if not isinstance(spec.legacy_pattern, bool):
+        raise ConfigError("board.legacy_pattern", f"must be true or false, got {spec.legacy_pattern!r}", source=path)
+    return spec
 
 
 def calibrate_intrinsics(images: Sequence[np.ndarray], board_spec: CharucoBoardSpec = CharucoBoardSpec(),

@@ -11,6 +11,8 @@ import time
 import dynamixel_sdk as dxl
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
 
 from tacsplat.drivers import DynamixelHand, Hand, HandCalibration
 from tacsplat.drivers.calibration import RAD_PER_TICK
@@ -101,7 +103,7 @@ def test_connect_configures_servos_and_exit_disables_torque(emu, kinematics):
     assert sorted(set(pings)) == list(range(16))
 
 
-def test_sync_write_and_sync_read_with_calibration(emu, kinematics, tmp_path):
+def test_sync_write_and_sync_read_with_calibration(kinematics, tmp_path):
     names = kinematics.joint_names
     signs = np.where(np.arange(16) % 3 == 0, -1, 1)
     offsets = np.linspace(-0.4, 0.4, 16)
@@ -112,7 +114,9 @@ def test_sync_write_and_sync_read_with_calibration(emu, kinematics, tmp_path):
     }))
     limits = kinematics.joint_limits
     target = limits[:, 0] + 0.3 * (limits[:, 1] - limits[:, 0])
-    with make_hand(emu, kinematics, calibration=path) as hand:
+    at_zero = dict(enumerate(2048 + offsets / RAD_PER_TICK))  # every joint starts at its zero
+    with DxlEmulator(initial_ticks=at_zero) as emu, make_hand(emu, kinematics, calibration=path) as hand:
+        np.testing.assert_allclose(hand.read_joint_positions(), 0.0, atol=RAD_PER_TICK)
         n_before = len(emu.instructions)
         hand.command_joint_positions(target)
         expected_ticks = np.rint(2048 + (signs * target + offsets) / (2 * np.pi / 4096))
@@ -131,7 +135,8 @@ def test_sync_write_and_sync_read_with_calibration(emu, kinematics, tmp_path):
         ref = kinematics.fingertip_poses(hand.read_joint_positions())
         for finger in kinematics.finger_names:
             np.testing.assert_allclose(poses[finger], ref[finger])
-    assert_all_torque_off(emu)
+        hand.close()
+        assert_all_torque_off(emu)
 
 
 def test_clamping_is_logged_not_silent(emu, kinematics, caplog):
@@ -279,12 +284,188 @@ def test_latched_hardware_error_at_connect_refuses(emu, kinematics):
     assert_all_torque_off(emu)
 
 
-def test_pose_outside_the_limits_at_connect_is_clamped_and_logged(kinematics, caplog):
+# -- connect holds the present pose: it never moves a servo more than the tolerance
+TOLERANCE_RAD = TEST_CONFIG.connect_tolerance_rad
+
+
+def write_hand_json(path, names, signs, offsets):
+    path.write_text(json.dumps({
+        "format": "tacsplat-hand-calibration", "version": 1,
+        "joints": {n: {"sign": s, "offset_rad": o} for n, s, o in zip(names, signs, offsets)},
+    }))
+    return path
+
+
+def goal_ticks(emu):
+    return {sid: servo.get("goal_position") for sid, servo in emu.servos.items()}
+
+
+def test_connect_tolerance_is_a_few_degrees_and_checked():
+    assert 0 < DynamixelHandConfig().connect_tolerance_rad <= np.radians(10)
+    for bad in (-0.01, np.nan, 1.0):
+        with pytest.raises(ConfigError, match=r"connect_tolerance_rad: .*\[0, 0\.2\]"):
+            DynamixelHandConfig(connect_tolerance_rad=bad)
+
+
+@pytest.mark.parametrize("offset", [45.0, 1e9])
+def test_reported_calibration_is_refused_before_the_bus(emu, kinematics, tmp_path, offset):
+    """The issue: offset_rad 45 (or 1e9) for index_0 wrote goal tick 31077 (or a wrapped int32) at connect."""
+    offsets = np.where(np.arange(16) == 0, offset, 0.0)
+    path = write_hand_json(tmp_path / "hand.json", kinematics.joint_names, [1] * 16, offsets.tolist())
+    with pytest.raises(ConfigError, match=r"hand\.json: joints\.index_0\.offset_rad: .*\[-pi, pi\]"):
+        make_hand(emu, kinematics, calibration=path).connect()
+    assert emu.instructions == []  # nothing reached the bus
+    assert set(goal_ticks(emu).values()) == {2048}
+
+
+def test_calibration_that_maps_the_pose_outside_the_limits_is_refused_with_torque_off(emu, kinematics, tmp_path):
+    """A wrong offset (index_0) or sign (index_1) inside +-pi: the hand stands still, torque off, one clear error."""
+    signs, offsets = np.ones(16, dtype=int), np.zeros(16)
+    offsets[0] = 1.0  # index_0 at the centre tick reads -1.0 rad, 0.53 rad below its limit
+    emu.servos[1].position = 2048 + 1.0 / RAD_PER_TICK  # index_1 really at +1.0 rad ...
+    signs[1] = -1  # ... read as -1.0 rad
+    path = write_hand_json(tmp_path / "hand.json", kinematics.joint_names, signs.tolist(), offsets.tolist())
+    hand = make_hand(emu, kinematics, calibration=path)
+    with pytest.raises(ServoError) as exc:
+        with hand:
+            pass
+    message = str(exc.value)
+    assert exc.value.joint == "index_0" and exc.value.servo_id == 0
+    for expected in ("index_0", "offset_rad +1.0000", "sign +1", "index_1", "sign -1", str(path),
+                     "check the sign and offset_rad", "move the finger by hand", "torque disabled on all servos"):
+        assert expected in message, (expected, message)
+    assert_all_torque_off(emu)
+    assert set(goal_ticks(emu).values()) == {2048}  # nothing written
+    assert emu.servos[0].position == 2048 and emu.servos[1].position == 2048 + 1.0 / RAD_PER_TICK  # nothing moved
+    assert not any(inst == Instruction.SYNC_WRITE for inst, _ in emu.instructions)
+    assert hand._port is None
+
+
+def test_finger_far_outside_its_range_at_connect_is_refused(kinematics):
+    lower = kinematics.joint_limits[1, 0]  # index_1, 0.2 rad below its range with the identity calibration
+    with DxlEmulator(initial_ticks={1: 2048 + (lower - 0.2) / RAD_PER_TICK}) as emu:
+        with pytest.raises(ServoError, match=r"index_1 .*outside its limits.*move the finger by hand"):
+            with make_hand(emu, kinematics):
+                pass
+        assert_all_torque_off(emu)
+        assert goal_ticks(emu)[1] == round(2048 + (lower - 0.2) / RAD_PER_TICK)
+
+
+def test_pose_just_outside_the_limits_is_nudged_within_the_tolerance_and_logged(kinematics, caplog):
     lower = kinematics.joint_limits[1, 0]  # index_1
-    outside = 2048 + (lower - 0.2) / RAD_PER_TICK
-    with DxlEmulator(initial_ticks={1: outside}) as emu:
+    present = round(2048 + (lower - 0.5 * TOLERANCE_RAD) / RAD_PER_TICK)
+    with DxlEmulator(initial_ticks={1: present}) as emu:
         with caplog.at_level(logging.WARNING):
             with make_hand(emu, kinematics):
-                goal = round(2048 + lower / RAD_PER_TICK)
-                assert wait_for(lambda: emu.servos[1].get("goal_position") == goal)
+                goals = goal_ticks(emu)
+                assert all(emu.torque_enabled().values())
+        assert goals == {sid: (round(2048 + lower / RAD_PER_TICK) if sid == 1 else 2048) for sid in range(16)}
+        assert abs(goals[1] - present) * RAD_PER_TICK <= TOLERANCE_RAD
     assert "present pose clamped to joint limits: index_1" in caplog.text
+
+
+def test_reconnect_after_a_fault_holds_where_the_fingers_now_are(emu, kinematics):
+    """After a fault the goal registers still hold the last command; reconnecting must not go back there."""
+    with make_hand(emu, kinematics) as hand:
+        hand.command_joint_positions(np.full(16, 0.3))
+        assert wait_for(lambda: all(abs(s.position - (2048 + 0.3 / RAD_PER_TICK)) < 1 for s in emu.servos.values()))
+        emu.disconnect(9)
+        with pytest.raises(ServoError):
+            hand.read_joint_positions()
+        emu.reconnect(9)
+        emu.servos[5].position = 2048 + 1.2 / RAD_PER_TICK  # torque off: the operator bends middle_1 to 1.2 rad
+        hand.connect()  # reconnect
+        assert all(emu.torque_enabled().values())
+        present = {sid: round(servo.position) for sid, servo in emu.servos.items()}
+        assert goal_ticks(emu) == present
+        time.sleep(0.1)
+        np.testing.assert_allclose(hand.read_joint_positions()[5], 1.2, atol=RAD_PER_TICK)
+    assert_all_torque_off(emu)
+
+
+def test_command_refuses_bad_input_without_touching_the_bus(emu, kinematics):
+    bad_inputs = {
+        "a string": "0.1",
+        "strings": ["0.1"] * 16,
+        "an object array": np.full(16, 0.1, dtype=object),
+        "a ragged list": [[0.1] * 8, [0.1] * 7],
+        "15 values": np.zeros(15),
+        "a matrix": np.zeros((4, 4)),
+        "NaN": np.where(np.arange(16) == 3, np.nan, 0.0),
+        "inf": np.where(np.arange(16) == 3, -np.inf, 0.0),
+        "booleans": [True] * 16,
+        "complex numbers": np.full(16, 0.1 + 0.1j),
+        "None": None,
+    }
+    with make_hand(emu, kinematics) as hand:
+        goals, n_before = goal_ticks(emu), len(emu.instructions)
+        for what, q in bad_inputs.items():
+            with pytest.raises(InvalidInputError, match=r"^command_joint_positions: q "):
+                hand.command_joint_positions(q)
+        assert len(emu.instructions) == n_before
+        assert goal_ticks(emu) == goals and all(emu.torque_enabled().values())
+        hand.command_joint_positions([0.1] * 16)  # a list of floats is fine, and the hand still works
+
+
+@st.composite
+def hand_calibration_cases(draw):
+    """A true calibration with every joint inside its range, and up to three faults in the file or the pose."""
+    n = 16
+    true_signs = draw(st.lists(st.sampled_from([1, -1]), min_size=n, max_size=n))
+    true_offsets = draw(st.lists(st.floats(-np.pi, np.pi), min_size=n, max_size=n))
+    fractions = draw(st.lists(st.floats(0.0, 1.0), min_size=n, max_size=n))  # where each joint stands in its range
+    file_signs, file_offsets, edge_excess, moved_ticks = list(true_signs), list(true_offsets), {}, {}
+    for joint in draw(st.lists(st.integers(0, n - 1), max_size=3, unique=True)):
+        fault = draw(st.sampled_from(["offset", "sign", "edge", "moved"]))
+        if fault == "offset":
+            file_offsets[joint] = draw(st.floats(-np.pi, np.pi) | st.floats(allow_nan=True, allow_infinity=True)
+                                       | st.sampled_from([45.0, 1e9, -4.0]))
+        elif fault == "sign":
+            file_signs[joint] = draw(st.sampled_from([-true_signs[joint], 0, 2, True, "1", 1.0]))
+        elif fault == "edge":  # just outside the range, either side: inside or beyond the tolerance
+            edge_excess[joint] = draw(st.floats(-0.2, 0.2))
+        else:  # moved by hand while torque was off: anywhere in the servo's turn
+            moved_ticks[joint] = draw(st.integers(0, 4095))
+    return true_signs, true_offsets, fractions, file_signs, file_offsets, edge_excess, moved_ticks
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(case=hand_calibration_cases())
+def test_connect_refuses_with_torque_off_or_moves_no_servo_beyond_the_tolerance(kinematics, tmp_path_factory, case):
+    true_signs, true_offsets, fractions, file_signs, file_offsets, edge_excess, moved_ticks = case
+    lo, hi = kinematics.joint_limits.T
+    q = lo + np.asarray(fractions) * (hi - lo)
+    for joint, excess in edge_excess.items():
+        q[joint] = hi[joint] + excess if excess > 0 else lo[joint] + excess
+    ticks = np.rint((np.asarray(true_signs) * q + np.asarray(true_offsets)) / RAD_PER_TICK + 2048).astype(int)
+    ticks = ticks % 4096  # after power-up a servo reports its position within one turn
+    for joint, t in moved_ticks.items():
+        ticks[joint] = t
+    path = write_hand_json(tmp_path_factory.mktemp("cal") / "hand.json", kinematics.joint_names,
+                           file_signs, file_offsets)
+
+    file_is_valid = all(not isinstance(s, (bool, str)) and s in (1, -1) for s in file_signs) and all(
+        np.isfinite(o) and abs(o) <= np.pi for o in file_offsets)
+    if file_is_valid:  # the calibration's reading of where each joint stands, and how far outside its range
+        read = np.asarray(file_signs) * ((ticks - 2048) * RAD_PER_TICK - np.asarray(file_offsets))
+        excess = np.maximum(np.maximum(lo - read, read - hi), 0.0).max()
+
+    with DxlEmulator(initial_ticks=dict(enumerate(ticks.tolist()))) as emu:
+        try:
+            with make_hand(emu, kinematics, calibration=path):
+                goals = np.array([emu.servos[sid].get("goal_position") for sid in range(16)])
+                assert all(emu.torque_enabled().values())
+        except ConfigError:
+            event("refused: bad calibration file")
+            assert not file_is_valid, file_signs
+            assert emu.instructions == []  # refused before the bus
+        except HandError:
+            event("refused at connect")
+            assert file_is_valid and excess > TOLERANCE_RAD - RAD_PER_TICK, excess
+            assert_all_torque_off(emu)
+            assert [emu.servos[sid].get("goal_position") for sid in range(16)] == ticks.tolist()
+        else:
+            event("connected" + (", a joint clamped" if excess > 0 else ""))
+            assert file_is_valid and excess < TOLERANCE_RAD + RAD_PER_TICK, excess
+            assert np.abs(goals - ticks).max() * RAD_PER_TICK <= TOLERANCE_RAD
+            assert_all_torque_off(emu)
