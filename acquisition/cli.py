@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from tacsplat.errors import ConfigError
+
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
@@ -11,7 +13,8 @@ def register(cli) -> None:
         description="Guides a person at the rig from the terminal. A status line shows the board (seen or not, "
         "reprojection error), the hand and the counts against the plan. Keys: Enter = take a view, g = grasp, "
         "u = undo the last record, q = stop. A device fault leaves the hand with torque off and prints the "
-        "command that resumes. Example rigs: acquisition/rigs/{real,mock,sim}.yaml.",
+        "command that carries on (--resume once a scene was written). --resume refuses a rig file whose object, "
+        "plan, board, mounting or calibrations differ from the scene's. Example rigs: acquisition/rigs/{real,mock,sim}.yaml.",
     )
     p.add_argument("--rig", required=True, help="rig YAML file (devices, calibrations, board, capture plan)")
     p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
@@ -26,16 +29,17 @@ def register(cli) -> None:
         help="simulated capture: train views, test views with ground truth, and grasps, into a scene directory",
         description="Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin "
         "places the camera on the hemisphere and the hand on sampled approaches; the logger closes the hand until "
-        "the fingers stall, reads the pads and writes). Deterministic in --seed; --resume continues a killed capture.",
+        "the fingers stall, reads the pads and writes). Deterministic in --seed; --resume continues a killed capture "
+        "with the same options (any other value is refused, naming the option).",
     )
     p.add_argument("--object", default="teapot", help="library object (teapot, toaster, bell, helmet, torus, car)")
     p.add_argument("--mesh", default=None, help="any .obj/.ply/.stl mesh instead of a library object")
-    p.add_argument("--object-radius", type=float, default=0.08, help="bounding-sphere radius in metres")
-    p.add_argument("--views", type=int, default=5, help="train views")
-    p.add_argument("--test-views", type=int, default=24, help="held-out test views (with GT depth in gt/)")
-    p.add_argument("--grasps", type=int, default=5, help="grasps of four touches each")
-    p.add_argument("--resolution", type=int, default=200, help="image width and height in pixels")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--object-radius", type=float, default=0.08, help="bounding-sphere radius in metres (at most 0.3)")
+    p.add_argument("--views", type=int, default=5, help="train views (at least 1)")
+    p.add_argument("--test-views", type=int, default=24, help="held-out test views (with GT depth in gt/; 0 or more)")
+    p.add_argument("--grasps", type=int, default=5, help="grasps of four touches each (0 or more)")
+    p.add_argument("--resolution", type=int, default=200, help="image width and height in pixels (8 to 4096)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the views and grasps (0 or more)")
     p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
     p.add_argument("--resume", action="store_true", help="continue a capture that was interrupted")
     p.set_defaults(func=_sim_capture)
@@ -53,22 +57,32 @@ def _sim_capture(args) -> int:
 
     from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
 
-    from tacsplat.errors import ConfigError
-
     try:
         config = sim_rig_config(object=args.object, mesh=args.mesh, object_radius=args.object_radius,
                                 views=args.views, test_views=args.test_views, grasps=args.grasps,
                                 resolution=args.resolution, seed=args.seed)
-    except ConfigError as exc:  # name the command-line option, not the rig key behind it
-        option = _SIM_OPTIONS.get(exc.key, exc.key)
-        raise ConfigError(option, str(exc).split(": ", 1)[1]) from None
-    timings = sim_capture(config, args.out, resume=args.resume)
+        timings = sim_capture(config, args.out, resume=args.resume)
+    except ConfigError as exc:
+        raise _naming_options(exc) from None
     print(json.dumps({"scene": args.out, **{k: round(v, 2) for k, v in timings.items()}}))
     return 0
 
 
+def _naming_options(exc: ConfigError) -> ConfigError:
+    """The same error naming the command-line option behind a rig key (``sim.object_radius`` -> ``--object-radius``)."""
+    from tacsplat.acquisition.capture_scene import ResumeMismatch
+
+    if isinstance(exc, ResumeMismatch):
+        return exc.renamed(_SIM_OPTIONS)
+    if exc.key not in _SIM_OPTIONS:
+        return exc
+    message = str(exc).removeprefix(f"{exc.source}: " if exc.source else "").removeprefix(f"{exc.key}: ")
+    return ConfigError(_SIM_OPTIONS[exc.key], message)
+
+
 _SIM_OPTIONS = {
-    "sim.object": "--object", "sim.mesh": "--mesh", "sim.object_radius": "--object-radius",
-    "sim.resolution": "--resolution", "plan.views.train": "--views", "plan.views.test": "--test-views",
-    "plan.grasps.count": "--grasps",
+    "object": "--object", "sim.object": "--object", "sim.mesh": "--mesh", "sim.mesh_sha256": "--mesh",
+    "sim.object_radius": "--object-radius", "sim.resolution": "--resolution", "sim.seed": "--seed",
+    "plan.views.train": "--views", "plan.views.test": "--test-views", "plan.grasps.count": "--grasps",
+    "plan.grasps.seed": "--seed",
 }

@@ -38,7 +38,6 @@ class Rig:
     intrinsics: CameraIntrinsics
     sensor_model: SensorModel
     control: GraspControl
-    object_name: str
     extra: dict = field(default_factory=dict)  # provenance for scene.json
     twin: object | None = None  # SimTwin on rig: sim
     mock: object | None = None  # MockDevices on --mock
@@ -112,7 +111,7 @@ def _open_real(config: RigConfig) -> Iterator[Rig]:
             kind="real", hand=hand, sensors=sensors, camera=camera, clock=WallClock(),
             poses=BoardPoseSource(camera, config.board, T_hand_cam),
             intrinsics=CameraIntrinsics(camera.K, camera.width, camera.height), sensor_model=model,
-            control=config.grasp, object_name=config.object,
+            control=config.grasp,
             extra={"rig": str(config.source), "mock": config.mock, "hand_port": port,
                    "board_max_reprojection_px": config.board.max_reprojection_px,
                    "T_hand_cam": np.asarray(T_hand_cam).tolist()},
@@ -126,22 +125,28 @@ TWIN_CONTROL = GraspControl(close_speed_rad_s=0.6, poll_s=0.01, stall_error_rad=
                             settle_polls=3, max_close_s=2.0, open_s=0.2)
 
 
-@contextmanager
-def _open_twin(config: RigConfig) -> Iterator[Rig]:
+def twin_config(config: RigConfig):
+    """The :class:`~tacsplat.sim.twin.TwinConfig` of a ``rig: sim`` config."""
     import os
 
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    from tacsplat.sim.twin import SimTwin, TwinConfig
+    os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo is first imported
+    from tacsplat.sim.twin import TwinConfig
 
     s = config.sim
-    twin_cfg = TwinConfig(object=s.object, mesh_path=str(config.path(s.mesh)) if s.mesh else None,
-                          object_radius=s.object_radius, seed=s.seed, camera_width=s.resolution,
-                          camera_height=s.resolution)
-    with SimTwin(twin_cfg) as twin:
-        yield twin_rig(twin, config.object if config.object != "object" else twin.object.name)
+    return TwinConfig(object=s.object, mesh_path=str(config.path(s.mesh)) if s.mesh else None,
+                      object_radius=s.object_radius, seed=s.seed, camera_width=s.resolution, camera_height=s.resolution)
 
 
-def twin_rig(twin, object_name: str, control: GraspControl = TWIN_CONTROL) -> Rig:
+@contextmanager
+def _open_twin(config: RigConfig) -> Iterator[Rig]:
+    settings = twin_config(config)
+    from tacsplat.sim.twin import SimTwin
+
+    with SimTwin(settings) as twin:
+        yield twin_rig(twin)
+
+
+def twin_rig(twin, control: GraspControl = TWIN_CONTROL) -> Rig:
     """A :class:`Rig` of an open twin: its hand, pads and free view camera, its clock and ground-truth poses."""
     import mujoco
 
@@ -151,7 +156,7 @@ def twin_rig(twin, object_name: str, control: GraspControl = TWIN_CONTROL) -> Ri
         kind="sim", hand=twin.hand, sensors=list(twin.tactile_sensors), camera=twin.view_camera,
         clock=TwinClock(twin), poses=TwinPoseSource(twin), intrinsics=twin.view_camera.intrinsics,
         sensor_model=SensorModel(SIM_SENSOR_NAME, t.width_px, t.height_px, t.pixel_size_m, t.gel_thickness_m),
-        control=control, object_name=object_name,
+        control=control,
         extra={
             "simulator": f"mujoco {mujoco.__version__}",
             "timestep_s": cfg.timestep,

@@ -5,7 +5,10 @@ the hand's state and the counts so far against the plan. Keys: Enter takes a
 view (train views first, then test views), ``g`` grasps, ``u`` undoes the last
 record (a view, or a whole grasp), ``q`` stops. End of input is ``q``. On a
 device fault the rig is closed first (the hand's context manager turns torque
-off), then the session says what failed and the exact command that resumes.
+off), then the session says what failed and the exact command that resumes (or,
+when the fault came before a scene was written, that starts again). A resume
+continues only the capture that was started: see
+:mod:`~tacsplat.acquisition.capture_scene`.
 
 Input is any text stream: a terminal (put in cbreak mode, so keys need no
 Enter), a pipe or pseudo-terminal (read byte by byte, with the status
@@ -26,12 +29,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, TextIO
 
+from tacsplat.acquisition.capture_scene import open_scene
 from tacsplat.acquisition.config import CapturePlan, RigConfig
-from tacsplat.acquisition.devices import Rig, open_rig
+from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
-from tacsplat.datasets import SceneMeta, SceneWriter
+from tacsplat.acquisition.sim_capture import TwinPlanner
 from tacsplat.datasets.writer import JOURNAL
-from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError
+from tacsplat.errors import CameraError, DeviceError, SimulationError
 
 log = logging.getLogger(__name__)
 
@@ -199,34 +203,12 @@ class CaptureSession:
         return self.plan_complete()
 
 
-def resume_command(rig_path: str | Path, out: str | Path, mock: bool) -> str:
-    return " ".join(["tacsplat", "capture", "--rig", shlex.quote(str(rig_path)), "--out", shlex.quote(str(out)),
-                     "--resume"] + (["--mock"] if mock else []))
-
-
-def check_out(out: Path, resume: bool) -> None:
-    """Before any device is opened: ``--out`` must hold a scene to resume, or none to create."""
-    if resume and not (out / JOURNAL).is_file():
-        raise ConfigError("--resume", f"{out} holds no scene to resume (no {JOURNAL}); drop --resume to start one")
-    if not resume and (out / JOURNAL).exists():
-        raise ConfigError("--out", f"{out} already holds a scene: add --resume to continue it, or choose a new folder")
-
-
-def open_writer(rig: Rig, config: RigConfig, out: Path, resume: bool) -> SceneWriter:
-    """A new scene for this rig and plan, or the same scene resumed (its plan must match)."""
-    plan = config.plan.to_json()
-    if resume:
-        writer = SceneWriter.resume(out)
-        if writer.meta.capture_plan != plan:
-            writer.close()
-            raise ConfigError("plan", f"{out} was captured with plan {writer.meta.capture_plan}, the rig file says {plan}",
-                              config.source)
-        return writer
-    writer = SceneWriter.create(out, rig.intrinsics, SceneMeta(rig.kind, rig.object_name, plan, rig.extra),
-                                rig.sensor_model)
-    if rig.twin is not None:
-        writer.set_gt_mesh(rig.twin.object_mesh)
-    return writer
+def rerun_command(config: RigConfig, out: Path) -> str:
+    """The command that carries on after a stop: it resumes the scene in ``out``, or starts the capture again when
+    it never wrote one."""
+    return " ".join(["tacsplat", "capture", "--rig", shlex.quote(str(config.source or "RIG.yaml")), "--out",
+                     shlex.quote(str(out))] + (["--resume"] if (out / JOURNAL).is_file() else [])
+                    + (["--mock"] if config.mock else []))
 
 
 def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: TextIO | None = None,
@@ -241,20 +223,16 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
     keys = sys.stdin if keys is None else keys
     output = sys.stdout if output is None else output
     out = Path(out)
-    check_out(out, resume)
-    again = resume_command(config.source or "RIG.yaml", out, config.mock)
     fault: BaseException | None = None
     complete = False
     try:
-        with open_rig(config) as rig, open_writer(rig, config, out, resume) as writer:
+        with open_scene(config, out, resume) as (rig, writer):
             logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
             if logger.dropped_partial_grasp:
                 output.write(f"resumed: removed {logger.dropped_partial_grasp} touches of a grasp cut short; "
                              "it will be redone whole\n")
             planner = None
             if rig.kind == "sim":
-                from tacsplat.acquisition.sim_capture import TwinPlanner
-
                 planner = TwinPlanner(rig.twin, config.plan, view_radius_m=config.plan.views.radius_m)
             if on_open is not None:
                 on_open(rig, logger)
@@ -262,17 +240,25 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
     except (DeviceError, SimulationError) as exc:
         fault = exc
     except KeyboardInterrupt:
-        output.write(f"\ninterrupted; the hand's torque is off. Resume with:\n  {again}\n")
+        output.write(f"\ninterrupted; the hand's torque is off.\n{_carry_on(config, out)}")
         output.flush()
         return EXIT_INTERRUPTED
     if fault is not None:
-        output.write(f"\nDEVICE FAULT: {fault}\nThe hand's torque is off and the scene in {out} holds every record "
-                     f"completed before the fault. Fix the device, then resume with:\n  {again}\n")
+        held = f" and the scene in {out} holds every record completed before the fault"
+        output.write(f"\nDEVICE FAULT: {fault}\nThe hand's torque is off{held if (out / JOURNAL).is_file() else ''}. "
+                     f"Fix the device.\n{_carry_on(config, out)}")
         output.flush()
         return EXIT_FAULT
     if complete:
         output.write(f"\nplan complete: scene written to {out}\n")
         return 0
-    output.write(f"\nstopped before the plan was complete; resume with:\n  {again}\n")
+    output.write(f"\nstopped before the plan was complete.\n{_carry_on(config, out)}")
     output.flush()
     return 1
+
+
+def _carry_on(config: RigConfig, out: Path) -> str:
+    """How to carry on after a stop: resume the scene, or start again when the capture never wrote one."""
+    if (out / JOURNAL).is_file():
+        return f"Resume with:\n  {rerun_command(config, out)}\n"
+    return f"The capture did not start (no scene was written). Start it again with:\n  {rerun_command(config, out)}\n"

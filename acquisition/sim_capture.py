@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from tacsplat.acquisition.capture_scene import open_scene
 from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, ViewPlan, validate
 from tacsplat.acquisition.logger import CaptureLogger, GraspOutcome
 from tacsplat.errors import ConfigError
@@ -93,7 +94,6 @@ def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radiu
     """The ``rig: sim`` config of ``tacsplat sim-capture``'s options."""
     config = RigConfig(
         rig="sim",
-        object=Path(mesh).stem if mesh else object,
         sim=SimConfig(object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed),
         plan=CapturePlan(ViewPlan(train=views, test=test_views, mode="hemisphere"),
                          GraspPlan(count=grasps, mode="random", seed=seed)),
@@ -104,16 +104,12 @@ def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radiu
 
 def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progress: bool = True) -> dict:
     """Capture a scene on the twin, unattended: train views, test views with GT depth, grasps; returns timings
-    in seconds (``setup_s``, ``views_s``, ``grasps_s``, ``total_s``)."""
-    from tacsplat.acquisition.devices import open_rig
-    from tacsplat.acquisition.session import check_out, open_writer
-
+    in seconds (``setup_s``, ``views_s``, ``grasps_s``, ``total_s``). ``resume`` continues the scene in ``out``
+    only if it was captured with the same settings (a ConfigError names each that differs)."""
     if config.rig != "sim":
         raise ConfigError("rig", f"sim_capture runs the twin; got rig: {config.rig}", config.source)
     t0 = time.perf_counter()
-    out = Path(out)
-    check_out(out, resume)
-    with open_rig(config) as rig, open_writer(rig, config, out, resume) as writer:
+    with open_scene(config, Path(out), resume) as (rig, writer):
         logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
         planner = TwinPlanner(rig.twin, config.plan, view_radius_m=config.plan.views.radius_m)
         t_setup = time.perf_counter()

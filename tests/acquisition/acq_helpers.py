@@ -9,11 +9,14 @@ from tacsplat.acquisition.config import example_rig
 
 def write_mock_rig(folder, **changes) -> str:
     """The shipped mock rig with a plan of 3 train views, 1 test view and 3 grasps (plus ``changes``, by
-    top-level section), written to ``folder/rig.yaml``."""
+    top-level section: a mapping updates the section, anything else replaces it), written to ``folder/rig.yaml``."""
     data = yaml.safe_load(example_rig("mock").read_text())
     data["plan"] = {"views": {"train": 3, "test": 1}, "grasps": {"count": 3}}
     for section, values in changes.items():
-        data.setdefault(section, {}).update(values)
+        if isinstance(values, dict):
+            data.setdefault(section, {}).update(values)
+        else:
+            data[section] = values
     path = folder / "rig.yaml"
     path.write_text(yaml.safe_dump(data))
     return str(path)

@@ -77,3 +77,31 @@ def test_ctrl_c_leaves_the_hand_safe_and_says_how_to_resume(tmp_path):
     assert "interrupted; the hand's torque is off" in text and f"--out {out} --resume --mock" in text
     assert not any(mock.emulator.torque_enabled().values())
     assert len(Scene.load(out).frames) == 1
+
+
+def test_a_fault_before_the_scene_exists_says_to_start_again_not_to_resume(tmp_path, monkeypatch):
+    from tacsplat.acquisition.mock import MockDevices
+
+    rig = write_mock_rig(tmp_path)
+    out = tmp_path / "scene"
+    opened = MockDevices.__enter__
+
+    def servo_6_dead_from_the_start(self):  # the hand's first ping finds no servo 6
+        opened(self)
+        self.emulator.disconnect(6)
+        return self
+
+    with monkeypatch.context() as patch:
+        patch.setattr(MockDevices, "__enter__", servo_6_dead_from_the_start)
+        output = io.StringIO()
+        code = run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\n"), output=output)
+    text = output.getvalue()
+    assert code == EXIT_FAULT, text
+    assert "DEVICE FAULT" in text and "servo 6" in text, text
+    assert "--resume" not in text, text
+    assert "The capture did not start" in text and f"tacsplat capture --rig {rig} --out {out} --mock\n" in text, text
+    assert not out.exists() or not any(out.iterdir())  # nothing half-made that the advised command would trip on
+
+    output = io.StringIO()  # the advised command works once the servo answers
+    assert run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\nq"), output=output) == 1, output.getvalue()
+    assert len(Scene.load(out).frames) == 1

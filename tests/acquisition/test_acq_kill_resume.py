@@ -140,16 +140,3 @@ def test_a_grasp_cut_short_while_writing_its_touches_is_redone_whole(tmp_path):
         assert after[("touch", i)] == partial[("touch", i)]
     assert all(np.isfinite(t.T_world_sensor).all() for t in scene.touches)
 
-
-def test_resume_with_a_different_plan_is_refused(tmp_path):
-    out = tmp_path / "scene"
-    assert run_capture(load_rig(write_mock_rig(tmp_path), mock=True), out, keys=ScriptedKeys("\n"),
-                       output=io.StringIO()) == 1
-    (tmp_path / "other").mkdir()
-    other = write_mock_rig(tmp_path / "other", plan={"grasps": {"count": 7}})
-    from tacsplat.errors import ConfigError
-
-    with pytest.raises(ConfigError) as err:
-        run_capture(load_rig(other, mock=True), out, resume=True, keys=ScriptedKeys(""), output=io.StringIO())
-    assert err.value.key == "plan" and "'count': 7" in str(err.value)
-    assert len(Scene.load(out).frames) == 1

@@ -1,0 +1,239 @@
+"""The scene a capture writes: ``--out`` checked, the run's settings recorded, a resume allowed only for the
+same capture.
+
+:func:`open_scene` opens the rig and the scene writer of ``tacsplat capture``
+and ``sim-capture``. Every setting that changes the data is written into
+``scene.json`` when the capture starts (``source``, ``object`` and
+``capture_plan`` as always, the rest under ``extra.capture_settings``), and
+:func:`check_resume` refuses, before any device opens, a resume that asks for
+another value of any of them, naming each and both values. It compares:
+
+* every rig: the rig kind, the scene's object name and the plan (view and grasp
+  counts, modes, view radius, grasp seed);
+* the twin (``rig: sim``): the library object or the mesh file (resolved path
+  and the sha256 of its content), the object radius, the resolution, the seed,
+  and the twin's own settings (physics, hand, tactile pad, collision
+  decomposition, grasp sampling and control, view placement), which come with
+  the tacsplat version rather than from an option;
+* a real rig: ``--mock`` (and the emulated devices' settings), the board that
+  defines the world frame, the hand-eye transform, the servo ids, the tactile
+  sensor model and mounting transforms, and the sha256 of each calibration file
+  (a recalibration starts a new scene). Ports, baud rates, device indices,
+  timeouts and the grasp controller's speeds and thresholds may change between
+  runs: they change how records are taken, not what they mean.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from contextlib import ExitStack, contextmanager
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any, Iterator
+
+from tacsplat.acquisition.config import RigConfig
+from tacsplat.acquisition.devices import TWIN_CONTROL, Rig, open_rig, twin_config
+from tacsplat.datasets import SceneMeta, SceneWriter
+from tacsplat.datasets.outputs import ensure_output_dir
+from tacsplat.datasets.writer import JOURNAL
+from tacsplat.errors import ConfigError
+
+SETTINGS_KEY = "capture_settings"  # in scene.json's "extra"
+_IN_META = ("rig", "object", "plan")  # recorded as SceneMeta's source, object and capture_plan
+_SIM_OBJECT = ("sim.object", "sim.mesh", "sim.mesh_sha256")  # the twin's object; its name follows from them
+# What scenes of older versions recorded beyond _IN_META, as (extra key, setting); see recorded_settings.
+_OLDER_EXTRAS = (("mock", "mock"), ("object_bounding_radius_m", "sim.object_radius"), ("timestep_s", "twin.timestep"),
+                 ("contact_timeconst_s", "twin.contact_timeconst"),
+                 ("gel_compliance_m", "twin.hand_geometry.gel_compliance"))
+_MISSING = object()
+
+
+def check_out(out: Path, resume: bool) -> None:
+    """Before any device is opened: ``--out`` must be a writable folder that holds a scene to resume, or (created
+    if need be) nothing, for a new one."""
+    file_in_the_way = any(p.exists() and not p.is_dir() for p in (out, *out.parents))
+    if resume and not file_in_the_way and not (out / JOURNAL).is_file():
+        raise ConfigError("--resume", f"{out} holds no scene to resume (no {JOURNAL}); drop --resume to start one")
+    ensure_output_dir(out, "--out")
+    if not resume and (out / JOURNAL).exists():
+        raise ConfigError("--out", f"{out} already holds a scene: add --resume to continue it, or choose a new folder")
+    if not resume and any(out.iterdir()):
+        raise ConfigError("--out", f"{out} holds other files and no scene; choose an empty or new folder")
+
+
+@contextmanager
+def open_scene(config: RigConfig, out: Path, resume: bool) -> Iterator[tuple[Rig, SceneWriter]]:
+    """The open rig and scene writer of a capture: a new scene recording this run's settings, or the scene in
+    ``out`` resumed. ``--out`` is checked, and on ``--resume`` the scene's recorded settings are compared with this
+    run's (:func:`check_resume`), before any device opens. A folder made here for a capture that never started (it
+    holds nothing) is removed again."""
+    made = not out.exists()
+    try:
+        check_out(out, resume)
+        settings = capture_settings(config)
+        with ExitStack() as stack:
+            if resume:
+                writer = stack.enter_context(SceneWriter.resume(out))
+                check_resume(writer, settings, config.source)
+                rig = stack.enter_context(open_rig(config))
+            else:
+                rig = stack.enter_context(open_rig(config))
+                writer = stack.enter_context(SceneWriter.create(out, rig.intrinsics, scene_meta(settings, rig.extra),
+                                                                rig.sensor_model))
+                if rig.twin is not None:
+                    writer.set_gt_mesh(rig.twin.object_mesh)
+            yield rig, writer
+    finally:
+        if made and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+
+
+def capture_settings(config: RigConfig) -> dict:
+    """The settings of a run that change its data, as plain JSON (see the module docstring)."""
+    settings = {"rig": config.rig, "object": config.scene_object, "plan": config.plan.to_json()}
+    settings.update(_sim_settings(config) if config.rig == "sim" else _real_settings(config))
+    return json.loads(json.dumps(settings))  # tuples as lists, as scene.json gives them back
+
+
+def scene_meta(settings: dict, extra: dict) -> SceneMeta:
+    """The SceneMeta of a new capture: its settings, plus the rig's provenance ``extra``."""
+    rest = {k: v for k, v in settings.items() if k not in _IN_META}
+    return SceneMeta(settings["rig"], settings["object"], settings["plan"], {**extra, SETTINGS_KEY: rest})
+
+
+def recorded_settings(writer: SceneWriter) -> dict:
+    """The settings a scene was captured with, flat (``"plan.views.train": 20``)."""
+    meta = writer.meta
+    recorded = _flatten({"rig": meta.source, "object": meta.object, "plan": meta.capture_plan})
+    if SETTINGS_KEY in meta.extra:
+        return {**recorded, **_flatten(meta.extra[SETTINGS_KEY])}
+    # A scene of an older version records no capture_settings; it resumes when what it does record agrees: the rig
+    # kind, object and plan; a twin's resolution (its image width); and the extras of _OLDER_EXTRAS it holds.
+    if meta.source == "sim":
+        recorded["sim.resolution"] = writer.intrinsics.width
+    recorded.update({setting: meta.extra[key] for key, setting in _OLDER_EXTRAS if key in meta.extra})
+    return recorded
+
+
+class ResumeMismatch(ConfigError):
+    """``--resume`` asked for settings other than those the scene was captured with."""
+
+    def __init__(self, differences: list[tuple[str, str]], source=None):
+        """``differences``: (setting, what differs), in order; the first one names the error."""
+        self.differences = differences
+        (key, first), *rest = differences
+        told = "; ".join([first, *(f"{k}: {text}" for k, text in rest)])
+        super().__init__(key, f"{told}; drop --resume to start a new scene", source)
+
+    def renamed(self, names: dict[str, str]) -> "ResumeMismatch":
+        """The same refusal naming a command's options (``names``: setting -> option); each option told once."""
+        told, differences = set(), []
+        for key, text in self.differences:
+            name = names.get(key, key)
+            if name not in told:
+                told.add(name)
+                differences.append((name, text))
+        return ResumeMismatch(differences, self.source)
+
+
+def check_resume(writer: SceneWriter, settings: dict, source=None) -> None:
+    """Refuse (:class:`ResumeMismatch`) to continue ``writer``'s scene with ``settings`` that differ from its own."""
+    requested = _flatten(settings)
+    differences = [(key, old, requested.get(key, _MISSING)) for key, old in recorded_settings(writer).items()
+                   if not _same(old, requested.get(key, _MISSING))]
+    if any(key in _SIM_OBJECT for key, _, _ in differences):
+        differences = [d for d in differences if d[0] != "object"]
+    differences.sort(key=lambda d: d[0] not in ("object", *_SIM_OBJECT))  # the object first, then in file order
+    if differences:
+        raise ResumeMismatch([(key, _describe(key, writer.path, old, new)) for key, old, new in differences], source)
+
+
+# --- the settings of each rig ----------------------------------------------------------------------
+
+def _sim_settings(config: RigConfig) -> dict:
+    from tacsplat.sim.grasps import GraspConfig
+    from tacsplat.sim.views import ViewConfig
+
+    s = config.sim
+    mesh = config.path(s.mesh).resolve() if s.mesh else None
+    in_sim = ("object", "mesh_path", "object_radius", "seed", "camera_width", "camera_height")
+    twin = {k: v for k, v in asdict(twin_config(config)).items() if k not in in_sim}
+    return {
+        "sim": {"object": None if mesh else s.object, "mesh": str(mesh) if mesh else None,
+                "mesh_sha256": _sha256(mesh, "sim.mesh", config.source) if mesh else None,
+                "object_radius": s.object_radius, "resolution": s.resolution, "seed": s.seed},
+        "twin": {**twin, "grasp_control": asdict(TWIN_CONTROL), "grasping": asdict(GraspConfig()),
+                 "views": asdict(ViewConfig())},
+    }
+
+
+def _real_settings(c: RigConfig) -> dict:
+    def sha(key: str, name: str | None) -> str | None:  # the mock generates its own calibrations
+        return None if c.mock or name is None else _sha256(c.path(name), key, c.source)
+
+    b, t = c.board, c.tactile
+    settings = {
+        "mock": c.mock,
+        "board": {k: getattr(b, k) for k in ("squares_x", "squares_y", "square_length_m", "marker_length_m",
+                                             "dictionary", "legacy_pattern")},
+        "hand": {"ids": c.hand.ids, "calibration_sha256": sha("hand.calibration", c.hand.calibration)},
+        "camera": {"T_hand_cam": c.camera.T_hand_cam,
+                   "calibration_sha256": sha("camera.calibration", c.camera.calibration)},
+        "tactile": {"sensor_name": t.sensor_name, "gel_thickness_m": t.gel_thickness_m, "sensors": [
+            {"finger": s.finger, "T_fingertip_sensor": s.T_fingertip_sensor,
+             "calibration_sha256": sha(f"tactile.sensors[{i}].calibration", s.calibration)}
+            for i, s in enumerate(t.sensors)]},
+    }
+    if c.mock:
+        settings["mock_devices"] = {k: v for k, v in asdict(c.mock_devices).items() if k != "servo_timeout_s"}
+    return settings
+
+
+# --- helpers ------------------------------------------------------------------------------------
+
+def _sha256(path: Path, key: str, source) -> str:
+    try:
+        with open(path, "rb") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except OSError as exc:
+        raise ConfigError(key, f"cannot read {path}: {exc.strerror}", source) from None
+
+
+def _flatten(data: dict, prefix: str = "") -> dict:
+    """``{"a": {"b": 1}, "s": [{"c": 2}]}`` -> ``{"a.b": 1, "s[0].c": 2}`` (other lists are values)."""
+    flat = {}
+    for name, value in data.items():
+        key = f"{prefix}{name}"
+        if isinstance(value, dict) and value:
+            flat.update(_flatten(value, key + "."))
+        elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
+            for i, item in enumerate(value):
+                flat.update(_flatten(item, f"{key}[{i}]."))
+        else:
+            flat[key] = value
+    return flat
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal JSON values; numbers to 1e-9 relative (older scenes recorded some as computed, e.g. 0.08000000000000002)."""
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a is b
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(map(_same, a, b))
+    return a == b
+
+
+def _show(value: Any) -> str:
+    if value is _MISSING:
+        return "(not set)"
+    return format(value, ".10g") if isinstance(value, float) else repr(value)
+
+
+def _describe(key: str, scene: Path, old: Any, new: Any) -> str:
+    if key.endswith("_sha256") and isinstance(old, str) and isinstance(new, str):
+        return f"{scene} was captured with a file of sha256 {old[:12]}, this run's file has sha256 {new[:12]}"
+    return f"{scene} was captured with {_show(old)}, this run asks for {_show(new)}"

@@ -1,0 +1,71 @@
+"""--out of sim-capture and capture: a file, a folder inside a file or an unwritable folder is one clear error
+naming --out, before any device or the twin starts."""
+
+import os
+import sys
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+from tacsplat.cli import main  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from acq_helpers import write_mock_rig  # noqa: E402
+
+pytestmark = pytest.mark.timeout(120)
+
+SMALL = ["--resolution", "32", "--views", "1", "--test-views", "0", "--grasps", "0"]
+
+
+def _command(name: str, tmp_path: Path) -> list[str]:
+    if name == "sim-capture":
+        return ["sim-capture", *SMALL]
+    return ["capture", "--rig", write_mock_rig(tmp_path), "--mock"]
+
+
+@pytest.fixture(params=["sim-capture", "capture"])
+def command(request, tmp_path):
+    return _command(request.param, tmp_path)
+
+
+def test_out_that_is_a_file(command, tmp_path, capsys):
+    out = tmp_path / "scene.txt"
+    out.write_text("notes")
+    assert main([*command, "--out", str(out)]) == 1
+    assert f"error: --out: {out} is a file; choose a folder" in capsys.readouterr().err
+    assert out.read_text() == "notes"
+
+
+def test_out_inside_a_file(command, tmp_path, capsys):
+    (tmp_path / "notes").write_text("notes")
+    out = tmp_path / "notes" / "scene"
+    assert main([*command, "--out", str(out)]) == 1
+    assert f"error: --out: {out} is inside {tmp_path / 'notes'}, which is a file" in capsys.readouterr().err
+
+
+def test_out_that_is_not_writable(command, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "locked"
+    out.mkdir()
+    access = os.access  # root may write anywhere: the folder reports itself unwritable, as a read-only mount does
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if Path(path) == out else access(path, mode, **kw))
+    assert main([*command, "--out", str(out)]) == 1
+    assert f"error: --out: {out} is not writable" in capsys.readouterr().err
+    assert list(out.iterdir()) == []
+
+
+def test_resume_of_out_that_is_a_file(command, tmp_path, capsys):
+    out = tmp_path / "scene.txt"
+    out.write_text("notes")
+    assert main([*command, "--out", str(out), "--resume"]) == 1
+    assert f"error: --out: {out} is a file; choose a folder" in capsys.readouterr().err
+
+
+def test_out_that_holds_other_files(command, tmp_path, capsys):
+    out = tmp_path / "photos"
+    out.mkdir()
+    (out / "IMG_0001.png").write_bytes(b"not ours")
+    assert main([*command, "--out", str(out)]) == 1
+    assert f"error: --out: {out} holds other files and no scene; choose an empty or new folder" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == ["IMG_0001.png"]
