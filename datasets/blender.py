@@ -19,12 +19,13 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from tacsplat.errors import SceneFormatError
+from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv, rigidity_problem
 from tacsplat.types import CameraIntrinsics
 
+from .outputs import claim_output_dir
 from .records import SceneMeta
-from .writer import SceneWriter, removed_on_failure
+from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
 
 BACKGROUNDS = {"white": (255, 255, 255), "black": (0, 0, 0)}
 
@@ -41,6 +42,12 @@ def parse_background(text: str) -> tuple[int, int, int]:
     if len(rgb) != 3 or not all(0 <= c <= 255 for c in rgb):
         raise ValueError(f"background must be white, black or R,G,B with integers 0-255, got {text!r}")
     return rgb
+
+
+def check_scale(scale: float) -> None:
+    """An importer's metres per dataset unit: a ConfigError naming ``scale`` unless finite and positive."""
+    if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
+        raise ConfigError("scale", f"must be a finite positive number of metres per unit, got {scale!r}")
 
 
 def read_rgba(path: Path) -> np.ndarray:
@@ -118,13 +125,12 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     ``transforms_{test_split}.json`` (``"test"`` or ``"val"``) the test split.
     ``scale`` (metres per Blender unit) multiplies the camera positions, e.g. to
     give a NeRF-synthetic object (about 2 units across) a graspable size.
-    Returns ``out``.
+    ``out`` is claimed as the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
     src, out = Path(src), Path(out)
     if test_split not in ("test", "val"):
-        raise ValueError(f"test_split must be 'test' or 'val', got {test_split!r}")
-    if not (np.isfinite(scale) and scale > 0):
-        raise ValueError(f"scale must be positive, got {scale}")
+        raise ConfigError("test_split", f"must be 'test' or 'val', got {test_split!r}")
+    check_scale(scale)
     splits = [("train", *_read_split(src, "train")), ("test", *_read_split(src, test_split))]
 
     # The image size comes from the first image; every split shares it.
@@ -143,7 +149,9 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                "test_split_file": f"transforms_{test_split}.json", "scale": scale},
     )
     total = sum(len(frames) for *_, frames in splits)
-    with removed_on_failure(out), SceneWriter.create(out, intrinsics_for(splits[0][2]), meta) as writer, \
+    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
+    with claim_output_dir(out), removed_on_failure(out), \
+            SceneWriter.create(out, intrinsics_for(splits[0][2]), meta) as writer, \
             tqdm(total=total, desc=f"import {src.name}", unit="frame") as progress:
         for split, index, angle, frames in splits:
             intr = intrinsics_for(angle)

@@ -17,13 +17,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from tacsplat.errors import SceneFormatError
+from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import intrinsics_matrix, invert_pose
 from tacsplat.types import CameraIntrinsics
 
-from .blender import composite, read_rgba
+from .blender import check_scale, composite, read_rgba
+from .outputs import claim_output_dir
 from .records import SceneMeta
-from .writer import SceneWriter, removed_on_failure
+from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 ZERO_DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
@@ -57,15 +58,14 @@ def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float 
 
     ``scale`` multiplies translations (COLMAP's scale is arbitrary; the scene
     claims metres). ``test_every = 0`` puts every image in the train split.
-    Returns ``out``.
+    ``out`` is claimed as the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
     import pycolmap
 
     model_dir, images_dir, out = Path(model_dir), Path(images_dir), Path(out)
-    if not (np.isfinite(scale) and scale > 0):
-        raise ValueError(f"scale must be positive, got {scale}")
-    if test_every < 0:
-        raise ValueError(f"test_every must be >= 0, got {test_every}")
+    check_scale(scale)
+    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
+        raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
     except (ValueError, RuntimeError) as exc:
@@ -82,7 +82,9 @@ def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float 
                "scale": scale, "test_every": test_every, "num_points3D": rec.num_points3D(),
                "colmap_names": [img.name for img in images]},
     )
-    with removed_on_failure(out), SceneWriter.create(out, intrinsics[images[0].camera_id], meta) as writer:
+    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
+    with claim_output_dir(out), removed_on_failure(out), \
+            SceneWriter.create(out, intrinsics[images[0].camera_id], meta) as writer:
         for i, img in enumerate(tqdm(images, desc=f"import {model_dir}", unit="frame")):
             intr = intrinsics[img.camera_id]
             image_path = images_dir / img.name

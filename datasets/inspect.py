@@ -12,11 +12,12 @@ from tacsplat.errors import SceneFormatError
 
 from .reader import check_scene
 from .records import SPLITS
-from .writer import JOURNAL, journaled_counts
+from .writer import JOURNAL
 
 
 def summarise(path) -> dict:
-    """Frames per split, touches per grasp and finger, bounds, ground truth and every problem, as one JSON-able dict."""
+    """Frames per split, touches per grasp and finger, bounds, ground truth and every problem (those of
+    :func:`check_scene`: what it lists, ``Scene.load`` raises), as one JSON-able dict."""
     path = Path(path)
     scene, errors = check_scene(path)
     problems = [str(e) for e in errors]
@@ -55,20 +56,6 @@ def summarise(path) -> dict:
         lo, hi = scene.bounds()
         summary["bounds"] = {"lo": lo.tolist(), "hi": hi.tolist()}
     summary["gt"] = {"mesh": scene.gt_mesh_file, "depth_maps": len(scene.gt_depth_files)}
-    if summary["journal"]:
-        try:
-            frames, touches = journaled_counts(path)
-        except SceneFormatError as exc:
-            problems.append(str(exc))
-        else:
-            if (frames, touches) != (len(scene.frames), len(scene.touches)) and not errors:
-                problems.append(f"{path / JOURNAL}: records {frames} frames and {touches} touches but the index files "
-                                f"hold {len(scene.frames)} and {len(scene.touches)}: a writer stopped between the two; "
-                                "SceneWriter.resume (or resuming the capture) rewrites the index")
-    if not scene.frames:
-        problems.append(f"{path}: the scene has no frames")
-    elif not scene.split("train"):
-        problems.append(f"{path}: the scene has no train frames")
     return summary
 
 

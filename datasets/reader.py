@@ -1,36 +1,45 @@
-"""Reading and validating scene directories.
+"""Reading and validating scene directories: the one definition of a valid scene.
 
 :meth:`Scene.load` checks everything (index files, every image header, every
-depth map, every pose) and raises one :class:`SceneFormatError` naming the
-file and field of the first problem. :func:`check_scene` runs the same checks
-but collects every problem and returns what could be read, for
-``tacsplat inspect``.
+depth map, every pose, every number against what a capture can physically
+hold, the index against the writer's journal, at least one train frame) and
+raises one :class:`SceneFormatError` naming the file and field of the first
+problem. :func:`check_scene` runs the same checks but collects every problem
+and returns what could be read, for ``tacsplat inspect``. Every command that
+reads a scene (reconstruct, evaluate, inspect, simulate-touches) goes through
+them, so a scene one command refuses, every command refuses.
 """
 
 from __future__ import annotations
 
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 
 from tacsplat.errors import InvalidInputError, SceneFormatError
-from tacsplat.geometry import opengl_to_opencv, rigidity_problem, tactile_depth_to_points
+from tacsplat.geometry import opengl_to_opencv, tactile_depth_to_points
 from tacsplat.types import CameraIntrinsics
 
 from .records import (
     FORMAT_NAME,
+    FORMAT_VERSION,
+    GT_DEPTH_LIMIT,
     SOURCES,
     SPLITS,
     Frame,
     SceneMeta,
     SensorModel,
     Touch,
+    camera_problem,
+    depth_problem,
+    pose_problem,
+    touch_depth_limit,
 )
+from .writer import JOURNAL, journaled_counts
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -44,18 +53,20 @@ class _Problems:
         self.errors: list[SceneFormatError] = []
 
     def report(self, path: Path, field: str | None, message: str) -> None:
-        error = SceneFormatError(path, field, message)
+        self.add(SceneFormatError(path, field, message))
+
+    def add(self, error: SceneFormatError) -> None:
         if not self.collect:
             raise error
         self.errors.append(error)
 
 
+def _first_line(exc: Exception) -> str:
+    return (str(exc).splitlines() or [type(exc).__name__])[0]
+
+
 def _is_int(x) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
-
-
-def _is_number(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x)
 
 
 def _read_json(path: Path, problems: _Problems, required: bool = True):
@@ -87,43 +98,36 @@ def _relative_file(scene: Path, rel, index: Path, field: str, problems: _Problem
 
 
 def _pose(value, index: Path, field: str, problems: _Problems) -> np.ndarray | None:
-    try:
-        T = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        problems.report(index, field, "expected a 4x4 matrix of numbers")
-        return None
-    problem = rigidity_problem(T)
+    problem = pose_problem(value)
     if problem:
-        problems.report(index, field, f"not a rigid transform: {problem}")
+        problems.report(index, field, problem)
         return None
-    return T
+    return np.asarray(value, dtype=np.float64)
 
 
-def load_depth_npz(path: Path, shape: tuple[int, int] | None, problems: _Problems, field: str = "depth") -> np.ndarray | None:
-    """Load and check a float32 depth map saved by the writer (key ``depth``)."""
+def load_depth_npz(path: Path, shape: tuple[int, int] | None, problems: _Problems, field: str,
+                   limit: tuple[float, str]) -> np.ndarray | None:
+    """Load and check a float32 depth map saved by the writer (key ``depth``); ``limit`` is (deepest value in
+    metres, why) as :func:`depth_problem` takes it."""
     if not path.is_file():
         problems.report(path, None, "depth file missing")
         return None
     try:
         with np.load(path, allow_pickle=False) as npz:
-            if "depth" not in npz.files:
-                problems.report(path, field, f"no 'depth' array (has {npz.files})")
-                return None
-            depth = npz["depth"]
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, zipfile.LargeZipFile) as exc:
-        problems.report(path, field, f"truncated or corrupt npz: {exc}")
+            names = list(npz.files)
+            depth = npz["depth"] if "depth" in names else None
+    except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
+        problems.report(path, field, f"truncated or corrupt npz: {_first_line(exc)}")
+        return None
+    if depth is None:
+        problems.report(path, field, f"no 'depth' array (has {names})")
         return None
     if shape is not None and depth.shape != shape:
         problems.report(path, field, f"shape {depth.shape} does not match the expected {shape}")
         return None
-    if not np.issubdtype(depth.dtype, np.floating):
-        problems.report(path, field, f"expected float metres, got dtype {depth.dtype}")
-        return None
-    if not np.all(np.isfinite(depth)):
-        problems.report(path, field, f"{int((~np.isfinite(depth)).sum())} non-finite values (NaN or inf)")
-        return None
-    if (depth < 0).any():
-        problems.report(path, field, f"negative depth values (min {float(depth.min()):.3g} m)")
+    problem = depth_problem(depth, *limit)
+    if problem:
+        problems.report(path, field, problem)
         return None
     return depth.astype(np.float32, copy=False)
 
@@ -137,8 +141,8 @@ def _check_image(path: Path, intr: CameraIntrinsics, index: Path, field: str, pr
         with Image.open(path) as img:
             size, mode = img.size, img.mode
             img.verify()
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        problems.report(path, field, f"corrupt or truncated image: {exc}")
+    except Exception as exc:  # PIL raises many types for damaged bytes (OSError, SyntaxError, struct.error, ...)
+        problems.report(path, field, f"corrupt or truncated image: {_first_line(exc)}")
         return False
     if mode != "RGB":
         problems.report(path, field, f"expected an 8-bit RGB image, got PIL mode {mode!r}")
@@ -156,14 +160,11 @@ def _intrinsics(frame: dict, top: dict, index: Path, field: str, problems: _Prob
         if value is None:
             problems.report(index, f"{field}.{key}", "missing (neither in the frame nor at the top level)")
             return None
-        if key in ("w", "h"):
-            if not _is_int(value) or value < 1:
-                problems.report(index, f"{field}.{key}", f"expected a positive integer, got {value!r}")
-                return None
-        elif not _is_number(value) or (key.startswith("fl_") and value <= 0):
-            problems.report(index, f"{field}.{key}", f"expected a finite{' positive' if key.startswith('fl_') else ''} number, got {value!r}")
-            return None
         values[key] = value
+    problem = camera_problem(*(values[key] for key in _INTRINSIC_KEYS))
+    if problem:
+        problems.report(index, f"{field}.{problem[0]}", problem[1])
+        return None
     K = np.array([[values["fl_x"], 0, values["cx"]], [0, values["fl_y"], values["cy"]], [0, 0, 1]], dtype=np.float64)
     return CameraIntrinsics(K=K, width=values["w"], height=values["h"])
 
@@ -235,7 +236,7 @@ class Scene:
         if self.sensor is None:
             raise SceneFormatError(self.path / "touches.json", "sensor", "touches need a sensor model")
         return load_depth_npz(self.path / touch.depth_file, (self.sensor.height_px, self.sensor.width_px),
-                              _Problems(collect=False), f"touch {touch.id}")
+                              _Problems(collect=False), f"touch {touch.id}", touch_depth_limit(self.sensor))
 
     def touch_points(self, threshold_m: float = 1e-5) -> np.ndarray:
         """Every touch's contact points in the world, [M, 3] float64 (see ``tactile_depth_to_points``)."""
@@ -252,7 +253,7 @@ class Scene:
         if rel is None:
             return None
         return load_depth_npz(self.path / rel, (frame.intrinsics.height, frame.intrinsics.width),
-                              _Problems(collect=False), f"gt depth of frame {frame.id}")
+                              _Problems(collect=False), f"gt depth of frame {frame.id}", GT_DEPTH_LIMIT)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned box (lo [3], hi [3]) where the object must be, from cameras and touches only.
@@ -316,7 +317,28 @@ def _read_scene(path: Path, problems: _Problems, check_files: bool) -> tuple[Sce
         return None, problems
     scene = Scene(path=path, frames=frames, touches=touches, sensor=sensor, meta=meta, tacsplat_version=version)
     _read_gt(scene, gt, declared_ids, problems, check_files)
+    _check_complete(scene, problems)
     return scene, problems
+
+
+def _check_complete(scene: Scene, problems: _Problems) -> None:
+    """The index holds every record the writer's journal holds, and the scene has a train frame."""
+    journal = scene.path / JOURNAL
+    if journal.is_file():
+        try:
+            frames, touches = journaled_counts(scene.path)
+        except SceneFormatError as exc:
+            problems.add(exc)
+        else:  # (with other problems the index holds fewer valid records anyway)
+            if (frames, touches) != (len(scene.frames), len(scene.touches)) and not problems.errors:
+                problems.report(journal, None, f"records {frames} frames and {touches} touches but the index files "
+                                f"hold {len(scene.frames)} and {len(scene.touches)}: a writer stopped between the two; "
+                                "SceneWriter.resume (or resuming the capture) rewrites the index")
+    index = scene.path / "transforms.json"
+    if not scene.frames:
+        problems.report(index, "frames", "the scene has no frames")
+    elif not scene.split("train"):
+        problems.report(index, "frames", "the scene has no train frames")
 
 
 def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None, str, dict]:
@@ -327,6 +349,10 @@ def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None,
     ok = True
     if data.get("format", FORMAT_NAME) != FORMAT_NAME:
         problems.report(index, "format", f"expected {FORMAT_NAME!r}, got {data.get('format')!r}")
+    version = data.get("format_version", FORMAT_VERSION)
+    if not _is_int(version) or version != FORMAT_VERSION:
+        problems.report(index, "format_version", f"expected {FORMAT_VERSION} (the version this tacsplat reads), "
+                        f"got {version!r}")
     if data.get("units") != "m":
         problems.report(index, "units", f"expected 'm' (all tacsplat scenes are in metres), got {data.get('units')!r}")
     if data.get("source") not in SOURCES:
@@ -465,7 +491,8 @@ def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[S
         if depth_path is None or T is None:
             continue
         if check_files:
-            depth = load_depth_npz(depth_path, (sensor.height_px, sensor.width_px), problems, f"touch {tid} depth")
+            depth = load_depth_npz(depth_path, (sensor.height_px, sensor.width_px), problems, f"touch {tid} depth",
+                                   touch_depth_limit(sensor))
             if depth is None:
                 continue
             if bool((depth > 0).any()) != in_contact:
@@ -504,6 +531,6 @@ def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems
             continue
         frame = frames[fid]
         if check_files and load_depth_npz(depth_path, (frame.intrinsics.height, frame.intrinsics.width), problems,
-                                          f"gt depth of frame {fid}") is None:
+                                          f"gt depth of frame {fid}", GT_DEPTH_LIMIT) is None:
             continue
         scene.gt_depth_files[fid] = rel

@@ -8,18 +8,103 @@ and parsed only by :func:`frame_to_nerfstudio` / the reader, through
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.geometry import as_pose, opencv_to_opengl
+from tacsplat.geometry import as_pose, opencv_to_opengl, rigidity_problem
 from tacsplat.types import CameraIntrinsics
 
 SPLITS = ("train", "test")
 SOURCES = ("sim", "real", "import")
 FORMAT_NAME = "tacsplat-scene"
 FORMAT_VERSION = 1
+
+# What a capture can physically hold; a number outside is a units or file error, refused where it enters.
+MAX_DISTANCE_M = 1e5  # no position, depth or length in a scene is farther than 100 km
+MAX_IMAGE_SIDE = 65536  # pixels per image or tactile map side
+FIELD_OF_VIEW_DEG = (0.01, 170.0)  # of a pinhole camera, per axis
+MAX_INDENTATION_GELS = 10.0  # an indentation deeper than 10 gel thicknesses is no touch
+GT_DEPTH_LIMIT = (MAX_DISTANCE_M, "any scene")  # depth_problem's (deepest value, why) for ground-truth depth
+
+
+def is_finite_number(x) -> bool:
+    """A JSON number (not a bool) that is finite as a float."""
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:  # an int too large for a float
+        return False
+
+
+def is_size(x) -> bool:
+    """A positive integer pixel count up to MAX_IMAGE_SIDE."""
+    return not isinstance(x, bool) and isinstance(x, (int, np.integer)) and 1 <= x <= MAX_IMAGE_SIDE
+
+
+def camera_problem(fx, fy, cx, cy, width, height) -> tuple[str, str] | None:
+    """``(key, why)`` for intrinsics (nerfstudio keys) no pinhole camera has, or None."""
+    for key, value in (("w", width), ("h", height)):
+        if not is_size(value):
+            return key, f"expected a positive integer up to {MAX_IMAGE_SIDE}, got {value!r}"
+    lo, hi = FIELD_OF_VIEW_DEG
+    for key, f, side in (("fl_x", fx, width), ("fl_y", fy, height)):
+        if not is_finite_number(f) or f <= 0:
+            return key, f"expected a finite positive number, got {f!r}"
+        fov = math.degrees(2 * math.atan(side / (2 * f)))
+        if not lo <= fov <= hi:
+            return key, (f"{f:.6g} px gives a field of view of {fov:.3g} degrees over {side} px; a camera has "
+                         f"{lo:g} to {hi:g} (focal length {side / (2 * math.tan(math.radians(hi) / 2)):.3g} to "
+                         f"{side / (2 * math.tan(math.radians(lo) / 2)):.3g} px)")
+    for key, c, side in (("cx", cx, width), ("cy", cy, height)):
+        if not is_finite_number(c) or not 0 <= c <= side:
+            return key, f"the principal point must be inside the image, 0..{side} px, got {c!r}"
+    return None
+
+
+def pose_problem(T) -> str | None:
+    """Why ``T`` is not a rigid transform within MAX_DISTANCE_M of the origin, or None."""
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError):
+        return "expected a 4x4 matrix of numbers"
+    problem = rigidity_problem(T)
+    if problem:
+        return f"not a rigid transform: {problem}"
+    distance = float(np.linalg.norm(T[:3, 3]))
+    if distance > MAX_DISTANCE_M:
+        return f"its origin is {distance:.3g} metres from the origin; no scene is larger than {MAX_DISTANCE_M:g} m (wrong units?)"
+    return None
+
+
+def check_pose(T, name: str) -> np.ndarray:
+    """``T`` as float64 [4, 4] if :func:`pose_problem` finds nothing, else InvalidInputError naming ``name``."""
+    problem = pose_problem(T)
+    if problem:
+        raise InvalidInputError(f"{name}: {problem}")
+    return np.asarray(T, dtype=np.float64)
+
+
+def depth_problem(depth: np.ndarray, max_m: float, limit: str) -> str | None:
+    """Why a depth map [h, w] (metres) is not one: not float, not finite, negative, or deeper than ``max_m``
+    (``limit`` says why that is the limit)."""
+    if not np.issubdtype(depth.dtype, np.floating):
+        return f"expected float metres, got dtype {depth.dtype}"
+    if not np.all(np.isfinite(depth)):
+        return f"{int((~np.isfinite(depth)).sum())} non-finite values (NaN or inf)"
+    if depth.size and depth.min() < 0:
+        return f"negative depth values (min {float(depth.min()):.3g} m)"
+    if depth.size and float(depth.max()) > max_m:
+        return f"depth of {float(depth.max()):.3g} m is deeper than {limit} ({max_m:.3g} m)"
+    return None
+
+
+def touch_depth_limit(sensor: "SensorModel") -> tuple[float, str]:
+    """The deepest indentation a sensor can record, and why."""
+    return MAX_INDENTATION_GELS * sensor.gel_thickness_m, f"{MAX_INDENTATION_GELS:g} x the gel thickness"
 
 
 def _frozen_pose(T, name: str) -> np.ndarray:
@@ -120,18 +205,24 @@ class SceneMeta:
 
 def sensor_problem(sensor: SensorModel) -> str | None:
     """Why a sensor model is invalid, or None."""
+    if not isinstance(sensor.name, str) or not sensor.name:
+        return f"name must be a non-empty string, got {sensor.name!r}"
     for name in ("width_px", "height_px"):
         value = getattr(sensor, name)
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-            return f"{name} must be a positive integer, got {value!r}"
+        if not is_size(value):
+            return f"{name} must be a positive integer up to {MAX_IMAGE_SIDE}, got {value!r}"
     for name in ("pixel_size_m", "gel_thickness_m"):
         value = getattr(sensor, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.floating)) or not np.isfinite(value):
+        if not is_finite_number(value):
             return f"{name} must be a finite number, got {value!r}"
-    if not sensor.pixel_size_m > 0:
-        return f"pixel_size_m must be positive, got {sensor.pixel_size_m}"
-    if sensor.gel_thickness_m < 0:
-        return f"gel_thickness_m must be non-negative, got {sensor.gel_thickness_m}"
+        if not value > 0:
+            return f"{name} must be positive, got {value}"
+    extent = sensor.pixel_size_m * max(sensor.width_px, sensor.height_px)
+    if extent > MAX_DISTANCE_M:
+        return (f"pixel_size_m {sensor.pixel_size_m:.3g} makes the sensor {extent:.3g} m wide; no scene is larger than "
+                f"{MAX_DISTANCE_M:g} m (wrong units?)")
+    if sensor.gel_thickness_m > MAX_DISTANCE_M:
+        return f"gel_thickness_m {sensor.gel_thickness_m:.3g} is larger than any scene ({MAX_DISTANCE_M:g} m)"
     return None
 
 
@@ -139,9 +230,13 @@ def sensor_problem(sensor: SensorModel) -> str | None:
 
 
 def intrinsics_to_json(intr: CameraIntrinsics) -> dict:
-    """nerfstudio intrinsics keys (``fl_x, fl_y, cx, cy, w, h``); skew is not representable."""
+    """nerfstudio intrinsics keys (``fl_x, fl_y, cx, cy, w, h``); skew is not representable, and neither is a
+    camera :func:`camera_problem` refuses."""
     if intr.K[0, 1] != 0 or intr.K[1, 0] != 0 or not np.array_equal(intr.K[2], [0.0, 0.0, 1.0]):
         raise InvalidInputError(f"intrinsics: only zero-skew pinhole K is supported, got {intr.K.tolist()}")
+    problem = camera_problem(intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
+    if problem:
+        raise InvalidInputError(f"intrinsics.{problem[0]}: {problem[1]}")
     return {"fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy, "w": int(intr.width), "h": int(intr.height)}
 
 

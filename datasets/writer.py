@@ -7,8 +7,8 @@ never sees a partial file. Records are appended one line each to
 ``touches.json`` and ``scene.json`` are re-materialised atomically from the
 in-memory state after each record. After ``kill -9`` at any point:
 
-* the index files are a consistent, loadable snapshot (at most one record
-  behind the journal);
+* the index files are a consistent snapshot, at most one record behind the
+  journal (readers refuse such a scene, naming the journal, until it is resumed);
 * :meth:`SceneWriter.resume` replays the journal, drops a torn last line,
   deletes leftover temporary files, rewrites the index and continues numbering
   where the journal stopped: only the record in flight can be lost.
@@ -37,17 +37,20 @@ import numpy as np
 
 import tacsplat
 from tacsplat.errors import InvalidInputError, SceneFormatError
-from tacsplat.geometry import check_rigid
 from tacsplat.types import CameraIntrinsics, TactileReading
 
+from .outputs import LOCK_NAME
 from .records import (
     FORMAT_NAME,
     FORMAT_VERSION,
+    GT_DEPTH_LIMIT,
     SPLITS,
     Frame,
     SceneMeta,
     SensorModel,
     Touch,
+    check_pose,
+    depth_problem,
     frame_from_json,
     frame_to_json,
     frame_to_nerfstudio,
@@ -57,6 +60,7 @@ from .records import (
     meta_from_json,
     meta_to_json,
     sensor_to_json,
+    touch_depth_limit,
     touch_from_json,
     touch_to_json,
 )
@@ -115,11 +119,25 @@ def encode_npz(**arrays) -> bytes:
     return buf.getvalue()
 
 
+def has_content(path: Path) -> bool:
+    """Whether a folder holds anything besides the lock file of the command writing it (``datasets.outputs``)."""
+    return any(p.name != LOCK_NAME for p in Path(path).iterdir())
+
+
+def check_new_scene_dir(path: Path) -> None:
+    """Refuse (InvalidInputError) a folder that holds anything: a scene starts in a new or empty one."""
+    path = Path(path)
+    if (path / JOURNAL).exists():
+        raise InvalidInputError(f"{path} already holds a scene; use SceneWriter.resume to continue it")
+    if path.is_dir() and has_content(path):
+        raise InvalidInputError(f"{path} exists and is not an empty folder; choose a new output folder")
+
+
 @contextmanager
 def removed_on_failure(out: Path):
     """Delete a new output folder again when an import into it fails, so that a rerun can use it."""
     out = Path(out)
-    had_content = out.is_dir() and any(out.iterdir())
+    had_content = out.is_dir() and has_content(out)
     try:
         yield
     except BaseException:
@@ -128,17 +146,16 @@ def removed_on_failure(out: Path):
         raise
 
 
-def _check_depth(depth, shape: tuple[int, int], name: str) -> np.ndarray:
+def _check_depth(depth, shape: tuple[int, int], name: str, limit: tuple[float, str]) -> np.ndarray:
+    """``depth`` as float32 if it is a depth map the reader accepts (see ``records.depth_problem``)."""
     depth = np.asarray(depth)
     if depth.shape != shape:
         raise InvalidInputError(f"{name}: expected shape {shape}, got {depth.shape}")
-    if not np.issubdtype(depth.dtype, np.floating):
-        raise InvalidInputError(f"{name}: expected float metres, got dtype {depth.dtype}")
-    depth = depth.astype(np.float32)
-    if not np.all(np.isfinite(depth)):
-        raise InvalidInputError(f"{name}: contains NaN or infinite values")
-    if (depth < 0).any():
-        raise InvalidInputError(f"{name}: contains negative values (min {float(depth.min()):.3g})")
+    if np.issubdtype(depth.dtype, np.floating):
+        depth = depth.astype(np.float32)
+    problem = depth_problem(depth, *limit)
+    if problem:
+        raise InvalidInputError(f"{name}: {problem}")
     return depth
 
 
@@ -182,10 +199,9 @@ class SceneWriter:
             json.dumps(meta_to_json(meta), allow_nan=False)
         except (TypeError, ValueError) as exc:
             raise InvalidInputError(f"meta: capture_plan and extra must be plain JSON data: {exc}") from exc
-        if (path / JOURNAL).exists():
-            raise InvalidInputError(f"{path} already holds a scene; use SceneWriter.resume to continue it")
-        if path.exists() and (not path.is_dir() or any(path.iterdir())):
-            raise InvalidInputError(f"{path} exists and is not an empty folder; choose a new output folder")
+        if path.exists() and not path.is_dir():
+            raise InvalidInputError(f"{path} exists and is not a folder; choose a new output folder")
+        check_new_scene_dir(path)
         for sub in ("", "images", "touches", "gt", "gt/depth"):
             (path / sub).mkdir(parents=True, exist_ok=True)
         created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
@@ -238,12 +254,12 @@ class SceneWriter:
             sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
             writer = cls(path, intrinsics_from_json(header["intrinsics"]), meta_from_json(header["meta"]), sensor,
                          header["created"], header.get("tacsplat_version", tacsplat.__version__))
-        except (KeyError, TypeError, InvalidInputError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
             raise SceneFormatError(journal_path, "line 1", f"invalid header: {exc}") from exc
         for lineno, entry in enumerate(entries[1:], start=2):
             try:
                 writer._apply(entry)
-            except (KeyError, TypeError, ValueError, InvalidInputError) as exc:
+            except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
                 raise SceneFormatError(journal_path, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}") from exc
         return writer
 
@@ -375,11 +391,11 @@ class SceneWriter:
             raise InvalidInputError(f"image: expected uint8 RGB, got dtype {image.dtype}")
         if image.shape != (intr.height, intr.width, 3):
             raise InvalidInputError(f"image: expected shape {(intr.height, intr.width, 3)} from the intrinsics, got {image.shape}")
-        pose = check_rigid(T_world_cam, "T_world_cam")
+        pose = check_pose(T_world_cam, "T_world_cam")
         if split not in SPLITS:
             raise InvalidInputError(f"split: expected one of {SPLITS}, got {split!r}")
         if gt_depth is not None:
-            gt_depth = _check_depth(gt_depth, (intr.height, intr.width), "gt_depth")
+            gt_depth = _check_depth(gt_depth, (intr.height, intr.width), "gt_depth", GT_DEPTH_LIMIT)
         fid = self.num_frames
         frame = Frame(id=fid, file_path=f"images/{fid:06d}.png", T_world_cam=pose, split=split, intrinsics=intr)
         atomic_write_bytes(self.path / frame.file_path, encode_png(image))
@@ -395,8 +411,9 @@ class SceneWriter:
         """Append a tactile reading: ``depth`` [h, w] float32 metres of indentation (0 = no contact)."""
         if self.sensor is None:
             raise InvalidInputError(f"{self.path}: the scene was created without a sensor model; it cannot hold touches")
-        depth = _check_depth(depth, (self.sensor.height_px, self.sensor.width_px), "depth")
-        pose = check_rigid(T_world_sensor, "T_world_sensor")
+        depth = _check_depth(depth, (self.sensor.height_px, self.sensor.width_px), "depth",
+                             touch_depth_limit(self.sensor))
+        pose = check_pose(T_world_sensor, "T_world_sensor")
         if isinstance(grasp, bool) or not isinstance(grasp, (int, np.integer)) or grasp < 0:
             raise InvalidInputError(f"grasp: expected a non-negative integer, got {grasp!r}")
         if not isinstance(finger, str) or not finger:

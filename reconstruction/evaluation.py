@@ -9,7 +9,6 @@ when there is one, else of the ground-truth cloud).
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -145,7 +144,7 @@ def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) ->
     points = {}
     for f in frames:
         depth = scene.gt_depth(f)
-        if depth is not None:
+        if depth is not None and (depth > 0).any():  # (a view that misses the object has no surface to compare)
             points[f.id] = depth_to_points(depth, f.intrinsics.K, f.T_world_cam)
     if not points:
         return None
@@ -154,6 +153,9 @@ def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) ->
         radius = bounding_sphere_radius(trimesh.load(str(mesh_path), force="mesh").vertices)
     else:
         radius = bounding_sphere_radius(np.concatenate(list(points.values())))
+    if not radius > 0:
+        log.warning("the ground-truth surface of the test views is a single point: no Chamfer distance")
+        return None
     return GroundTruth(points, radius, "scene gt/")
 
 
@@ -182,8 +184,8 @@ def evaluate_views(
             gt_depth = scene.gt_depth(f)
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth)
     cd = float("nan")
-    if ground_truth is not None:
-        gt_cloud = ground_truth.cloud([f.id for f in frames])
+    gt_cloud = None if ground_truth is None else ground_truth.cloud([f.id for f in frames])
+    if gt_cloud is not None and len(gt_cloud):
         cd = chamfer_distance(np.concatenate(predicted), gt_cloud, ground_truth.radius)
     return {
         "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
@@ -210,44 +212,3 @@ def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth) -> None:
         [_depth_colour(depth, lo, hi), blank if gt_depth is None else _depth_colour(gt_depth, lo, hi)], axis=1
     )
     cv2.imwrite(str(path), cv2.cvtColor(np.concatenate([top, bottom], axis=0), cv2.COLOR_RGB2BGR))
-
-
-def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
-    """Evaluate a finished (or checkpointed) run: writes ``metrics.json`` and ``renders/``; returns the metrics."""
-    from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.trainer import load_run
-
-    run = load_run(Path(run_dir))
-    scene = Scene.load(run.scene_path)
-    test = scene.split("test")
-    backend = backend or run.config.backend
-    ground_truth = load_ground_truth(scene, test, gt_path)
-    metrics = evaluate_views(
-        run.gaussians, scene, test, run.config.background, backend, ground_truth, Path(run_dir) / "renders"
-    )
-    if ground_truth is None:
-        log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
-    result = {
-        **metrics,
-        "train_seconds": run.train_seconds,
-        "iterations": run.step,
-        "num_gaussians": len(run.gaussians),
-        "num_touch_gaussians": run.gaussians.num_touch,
-        "num_test_views": len(test),
-        "variant": run.config.variant,
-        "gt_source": ground_truth.source if ground_truth else None,
-        "gt_radius": ground_truth.radius if ground_truth else None,
-        "scene": str(run.scene_path),
-        "settings": run.config.to_json(),
-    }
-    result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
-    (Path(run_dir) / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
-    return result
-
-
-def _json_default(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

@@ -76,15 +76,28 @@ def depth_to_points(
 
 
 def bounding_sphere_radius(points: np.ndarray) -> float:
-    """Radius of the minimum bounding sphere of points [N, 3] (the CD normaliser)."""
+    """Radius of the minimum bounding sphere of points [N, 3] (the CD normaliser).
+
+    Flat, collinear or coincident clouds (a wall, a constant depth map) are
+    solved in the subspace they span: the minimum ball of points on a plane
+    is the minimum disc, centred on that plane.
+    """
     import trimesh
 
-    points = np.asarray(points, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
         raise InvalidInputError("bounding_sphere_radius: no points")
-    if len(points) > 20000:  # the minimum sphere is fixed by the convex hull's vertices
-        points = points[trimesh.convex.convex_hull(points).vertices]
-    _, radius = trimesh.nsphere.minimum_nsphere(points)
+    centred = points - points.mean(axis=0)
+    _, singular, axes = np.linalg.svd(centred, full_matrices=False)
+    rank = int((singular > 1e-9 * max(singular[0], 1e-300)).sum())
+    if rank == 0:
+        return 0.0
+    coords = centred @ axes[:rank].T  # [N, rank]: the same distances, in the cloud's own subspace
+    if rank == 1:
+        return float(np.ptp(coords) / 2)
+    if len(coords) > 20000 and rank == 3:  # the minimum sphere is fixed by the convex hull's vertices
+        coords = coords[trimesh.convex.convex_hull(coords).vertices]
+    _, radius = trimesh.nsphere.minimum_nsphere(coords)
     return float(radius)
 
 

@@ -448,8 +448,8 @@ class _RasterizeCPU(torch.autograd.Function):
         rad = np.ascontiguousarray(radii.detach().cpu().numpy().astype(np.float64)).reshape(-1, 2)
         dep = _numpy32(depths).reshape(-1)
         bgs = np.zeros((n_cams, n_ch), np.float32) if backgrounds is None else _numpy32(backgrounds)
-        with np.errstate(divide="ignore"):  # alpha >= 1/255 <=> exponent <= ln(255 o); culled o = 0 gives -inf
-            limits = (np.log(np.float32(255.0) * opa) + _LOG_SLACK).astype(np.float32)
+        with np.errstate(divide="ignore"):  # alpha >= 1/255 <=> exponent <= ln(255 o); culled o <= 0 gives -inf
+            limits = (np.log(np.float32(255.0) * np.maximum(opa, 0)) + _LOG_SLACK).astype(np.float32)
 
         tile_start, tile_gauss, gauss_offsets, gauss_isect = bin_gaussians(m2d, rad, dep, n_cams, n, width, height, tile_size)
         n_isect = tile_gauss.shape[0]

@@ -233,12 +233,13 @@ def rasterize_to_pixels_torch(
             pix_index.append(gy * width + gx)
             pix_color.append(color)
             pix_trans.append(trans)
-        trans_img = torch.ones(height * width, dtype=colors.dtype)
-        color_img = torch.zeros(height * width, n_ch, dtype=colors.dtype)
-        if pix_index:
-            index = torch.cat(pix_index)
-            trans_img = trans_img.index_copy(0, index, torch.cat(pix_trans))
-            color_img = color_img.index_copy(0, index, torch.cat(pix_color))
+        if not pix_index:  # nothing drawn: copy zero pixels, so that every input still gets a (zero) gradient
+            pix_index.append(torch.zeros(0, dtype=torch.long))
+            pix_color.append(colors[cam, :0])
+            pix_trans.append(means2d[cam, :0, 0] + conics[cam, :0, 0] + opacities[cam, :0])
+        index = torch.cat(pix_index)
+        trans_img = torch.ones(height * width, dtype=colors.dtype).index_copy(0, index, torch.cat(pix_trans))
+        color_img = torch.zeros(height * width, n_ch, dtype=colors.dtype).index_copy(0, index, torch.cat(pix_color))
         if backgrounds is not None:
             color_img = color_img + trans_img[:, None] * backgrounds[cam][None, :]
         out_colors.append(color_img.reshape(height, width, n_ch))

@@ -102,6 +102,16 @@ def rasterization(
     ``opacities`` [C, N], ``width``, ``height``, ``tile_size``, ``n_cameras``,
     ``backend``; the ``cpu`` backend adds ``n_intersections`` (tile-Gaussian
     pairs) and ``n_pairs`` (pixel-Gaussian pairs its forward pass evaluated).
+
+    Degenerate Gaussians have one finite meaning on every backend: scales
+    enter only through the covariance ``R diag(s^2) R^T`` (their sign does not
+    matter; a zero scale is a point, widened by the ``eps2d`` pixel
+    dilation), a zero quaternion is the identity rotation, opacities under
+    1/255 (zero, negative) are culled and alphas are clamped at 0.99. A view
+    where nothing is drawn (all culled, behind or at the camera, N = 0) is
+    empty, with zero gradients for every input. Non-finite inputs, zero
+    cameras, non-positive focal lengths or image sizes raise
+    :class:`InvalidInputError` naming the argument.
     """
     _check_tensor("means", means, (None, 3))
     n, dtype, device = means.shape[0], means.dtype, means.device
@@ -110,8 +120,10 @@ def rasterization(
     _check_tensor("opacities", opacities, (n,), dtype, device)
     _check_tensor("viewmats", viewmats, (None, 4, 4), dtype, device)
     n_cams = viewmats.shape[0]
+    if n_cams == 0:
+        raise InvalidInputError("viewmats must hold at least one camera, got shape [0, 4, 4]")
     _check_tensor("Ks", Ks, (n_cams, 3, 3), dtype, device)
-    if n_cams and not bool((Ks[:, 0, 0] > 0).all() and (Ks[:, 1, 1] > 0).all()):
+    if not bool((Ks[:, 0, 0] > 0).all() and (Ks[:, 1, 1] > 0).all()):
         raise InvalidInputError("Ks must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
     if sh_degree is None:
         if not isinstance(colors, Tensor) or colors.dim() not in (2, 3):

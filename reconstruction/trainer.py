@@ -14,6 +14,13 @@ initial G_c lie on the visual hull of the silhouettes. Renders are composited ov
 each view's backdrop (a constant, or a smooth fit to the image border). What a
 scene does not need is not computed: no touches -> no G_t, no neighbour search,
 no L_T; lambda_s = 0 -> RGB-only renders.
+
+:func:`reconstruct` is the job: it claims the run directory (a new or empty
+folder; an earlier run only with ``resume`` or ``overwrite``, and never a
+folder of other files), holds its lock to the end, and trains. SIGINT and
+SIGTERM stop training after the step in progress, with a checkpoint
+(:class:`TrainingInterrupted`); a resume continues from the checkpoint, with
+``progress.csv`` cut back to it.
 """
 
 from __future__ import annotations
@@ -23,6 +30,9 @@ import dataclasses
 import json
 import logging
 import math
+import re
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,6 +70,12 @@ from tacsplat.reconstruction.ply import save_ply
 log = logging.getLogger(__name__)
 # the module, not the function the package re-exports under the same name (tests spy on its calls)
 raster = importlib.import_module("tacsplat.reconstruction.rasterization")
+
+# A run directory's own files (anything else in it is someone else's and is never deleted).
+RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "progress.csv",
+             "progress.csv.tmp", "error_vs_time.png", "metrics.json")
+RENDERS = "renders"
+RENDER_FILE = re.compile(r"view_\d{4,}\.png")
 
 PROGRESS_COLUMNS = (
     "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "num_gaussians",
@@ -124,32 +140,82 @@ class TrainConfig:
         smooth = self.lambda_s > 0
         return {(False, False): "3dgs", (False, True): "+S", (True, False): "+T", (True, True): "full"}[(touch, smooth)]
 
-    def validate(self) -> None:
-        if self.iterations < 1:
-            raise ConfigError("iterations", f"must be >= 1, got {self.iterations}")
-        if not 0 <= self.sh_degree <= 3:
-            raise ConfigError("sh_degree", f"must be in 0..3, got {self.sh_degree}")
-        if self.train_views is not None and self.train_views < 1:
-            raise ConfigError("train_views", f"must be >= 1, got {self.train_views}")
-        for key in ("lambda_t", "lambda_s"):
-            if getattr(self, key) < 0:
-                raise ConfigError(key, f"must be >= 0, got {getattr(self, key)}")
+    def validate(self, names: dict[str, str] | None = None) -> None:
+        """A ConfigError for the first setting out of its range, naming it (as ``names[field]`` when given,
+        e.g. the command-line option) and the range."""
+        problem = self.problem()
+        if problem:
+            raise ConfigError((names or {}).get(problem[0], problem[0]), problem[1])
+
+    def problem(self) -> tuple[str, str] | None:
+        """``(field, why)`` of the first setting out of its range, or None."""
+        for key, (lo, hi) in _INT_RANGES.items():
+            value = getattr(self, key)
+            if value is None and key in _OPTIONAL:
+                continue
+            if isinstance(value, bool) or not isinstance(value, int) or value < lo or (hi is not None and value > hi):
+                return key, f"must be an integer {_range_text(lo, hi)}, got {value!r}"
+        for key, (lo, hi) in _FLOAT_RANGES.items():
+            value = getattr(self, key)
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not ok or value < lo or (key in _POSITIVE and value == lo) or (hi is not None and value > hi):
+                return key, f"must be a finite number {_range_text(lo, hi, key in _POSITIVE)}, got {value!r}"
+        for key in ("use_touch", "touch_loss_moves_shape"):
+            if not isinstance(getattr(self, key), bool):
+                return key, f"must be true or false, got {getattr(self, key)!r}"
+        if self.background is not None and not (
+            len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
+        ):
+            return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
-            raise ConfigError("smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}")
+            return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in raster.BACKENDS:
-            raise ConfigError("backend", f"must be one of {raster.BACKENDS}, got {self.backend!r}")
+            return "backend", f"must be one of {raster.BACKENDS}, got {self.backend!r}"
+        return None
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_json(cls, data: dict) -> "TrainConfig":
-        data = dict(data)
-        init = InitConfig(**data.pop("init", {}))
-        densify = DensifyStrategy(**data.pop("densify", {}))
-        if data.get("background") is not None:
-            data["background"] = tuple(data["background"])
-        return cls(**data, init=init, densify=densify)
+    def from_json(cls, data: dict, source: str | Path | None = None) -> "TrainConfig":
+        """The config of ``to_json`` (a run's ``config.json``); a ConfigError naming ``source`` if it is not one."""
+        try:
+            data = dict(data)
+            init = InitConfig(**data.pop("init", {}))
+            densify = DensifyStrategy(**data.pop("densify", {}))
+            if data.get("background") is not None:
+                data["background"] = tuple(data["background"])
+            config = cls(**data, init=init, densify=densify)
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise ConfigError("config", f"not a training config: {exc}", source) from None
+        problem = config.problem()
+        if problem:
+            raise ConfigError(*problem, source)
+        return config
+
+
+# Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
+_INT_RANGES = {
+    "iterations": (1, None), "seed": (0, 2**32 - 1), "sh_degree": (0, 3), "sh_degree_interval": (1, None),
+    "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
+    "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
+    "eval_max_views": (1, None), "checkpoint_every": (1, None),
+}  # fmt: skip
+_OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
+_FLOAT_RANGES = {
+    "ssim_weight": (0.0, 1.0), "lambda_t": (0.0, None), "lambda_s": (0.0, None), "lambda_backdrop": (0.0, None),
+    "backdrop_tolerance": (0.0, None), "touch_max_distance": (0.0, None), "smoothness_beta": (0.0, None),
+    "proximity_sigma_px": (0.0, None), "occlusion_tolerance": (0.0, None), "lr_means": (0.0, None),
+    "lr_means_final_factor": (0.0, 1.0), "lr_quats": (0.0, None), "lr_scales": (0.0, None),
+    "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "eval_every_seconds": (0.0, None),
+}  # fmt: skip
+_POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
+
+
+def _range_text(lo, hi, exclusive: bool = False) -> str:
+    if hi is None:
+        return f"{'>' if exclusive else '>='} {lo}"
+    return f"{lo} to {hi}" + (f" (not {lo})" if exclusive else "")
 
 
 def scene_scale(frames: list) -> float:
@@ -167,19 +233,118 @@ class LoadedRun:
     train_seconds: float
 
 
+def is_run_folder(path: Path) -> bool:
+    """Whether a folder holds a reconstruction run (its config or checkpoint)."""
+    return (path / "config.json").is_file() or (path / "checkpoint.pt").is_file()
+
+
+def run_checkpoint(run_dir: str | Path) -> Path:
+    """The checkpoint file of a run directory; a SceneFormatError if there is none."""
+    path = Path(run_dir) / "checkpoint.pt"
+    if not path.is_file():
+        raise SceneFormatError(path, None, "no checkpoint: not a reconstruction run directory")
+    return path
+
+
+def read_checkpoint(path: Path) -> dict:
+    """A checkpoint's contents; a SceneFormatError naming the file if it is cut short or not one."""
+    try:
+        ckpt = torch.load(path, weights_only=False)
+    except Exception as exc:  # torch.load raises whatever its zip reader or unpickler meets
+        first_line = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise SceneFormatError(path, None, f"corrupt or truncated checkpoint ({first_line})") from None
+    keys = ("scene_path", "config", "step", "train_seconds", "gaussians")
+    missing = [k for k in keys if k not in ckpt] if isinstance(ckpt, dict) else list(keys)
+    if missing:
+        raise SceneFormatError(path, None, f"corrupt checkpoint: it has no {', '.join(missing)}")
+    return ckpt
+
+
 def load_run(run_dir: Path) -> LoadedRun:
     """The last checkpoint of a run directory (for evaluation)."""
-    ckpt_path = run_dir / "checkpoint.pt"
-    if not ckpt_path.is_file():
-        raise SceneFormatError(ckpt_path, None, "no checkpoint: not a reconstruction run directory")
-    ckpt = torch.load(ckpt_path, weights_only=False)
+    ckpt_path = run_checkpoint(run_dir)
+    ckpt = read_checkpoint(ckpt_path)
     return LoadedRun(
         Path(ckpt["scene_path"]),
-        TrainConfig.from_json(ckpt["config"]),
+        TrainConfig.from_json(ckpt["config"], ckpt_path),
         Gaussians.from_state_dict(ckpt["gaussians"]),
         int(ckpt["step"]),
         float(ckpt["train_seconds"]),
     )
+
+
+def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
+    """Evaluate a finished (or checkpointed) run: writes ``metrics.json`` and ``renders/``; returns the metrics."""
+    from tacsplat.datasets import Scene
+
+    run = load_run(Path(run_dir))
+    scene = Scene.load(run.scene_path)
+    test = scene.split("test")
+    backend = backend or run.config.backend
+    ground_truth = load_ground_truth(scene, test, gt_path)
+    metrics = evaluate_views(
+        run.gaussians, scene, test, run.config.background, backend, ground_truth, Path(run_dir) / "renders"
+    )
+    if ground_truth is None:
+        log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
+    result = {
+        **metrics,
+        "train_seconds": run.train_seconds,
+        "iterations": run.step,
+        "num_gaussians": len(run.gaussians),
+        "num_touch_gaussians": run.gaussians.num_touch,
+        "num_test_views": len(test),
+        "variant": run.config.variant,
+        "gt_source": ground_truth.source if ground_truth else None,
+        "gt_radius": ground_truth.radius if ground_truth else None,
+        "scene": str(run.scene_path),
+        "settings": run.config.to_json(),
+    }
+    result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
+    (Path(run_dir) / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
+    return result
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM stopped training after a step, and that step is checkpointed.
+
+    A KeyboardInterrupt, so that whatever stops on Ctrl-C stops on it too.
+    """
+
+    def __init__(self, signum: int, step: int):
+        self.signum, self.step = signum, step
+        super().__init__(f"{signal.Signals(signum).name} at step {step}: checkpoint saved")
+
+
+class _StopRequests:
+    """While active (in the main thread), SIGINT and SIGTERM ask training to stop after the step in progress
+    (``signum``); a second one stops at once (KeyboardInterrupt, nothing saved)."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __enter__(self) -> "_StopRequests":
+        self.signum: int | None = None
+        self._previous = {}
+        if threading.current_thread() is threading.main_thread():
+            self._previous = {s: signal.signal(s, self._request) for s in self.SIGNALS}
+        return self
+
+    def _request(self, signum, frame) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt
+        self.signum = signum
+
+    def __exit__(self, *exc) -> None:
+        for s, handler in self._previous.items():  # (None: a handler installed outside Python, e.g. glog's)
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 class Trainer:
@@ -230,6 +395,7 @@ class Trainer:
         self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
         self._sums = {"loss": 0.0, "photometric": 0.0, "transmittance": 0.0, "smoothness": 0.0, "backdrop": 0.0}
         self._sum_count = 0
+        self._last_eval = (0, 0.0)  # (step, train seconds) of the last progress row
 
     # ------------------------------------------------------------------ setup
 
@@ -424,13 +590,14 @@ class Trainer:
             "order": list(self.order),
             "touch_points": self.touch_points,
             "neighbours": None if self.neighbours is None else self.neighbours.state_dict(),
+            "progress": {"sums": dict(self._sums), "count": self._sum_count, "last_eval": self._last_eval},
         }
         tmp = self.out / "checkpoint.pt.tmp"
         torch.save(state, tmp)
         tmp.replace(self.out / "checkpoint.pt")
 
     def load_checkpoint(self) -> None:
-        ckpt = torch.load(self.out / "checkpoint.pt", weights_only=False)
+        ckpt = read_checkpoint(run_checkpoint(self.out))
         self.step = int(ckpt["step"])
         self.train_seconds = float(ckpt["train_seconds"])
         self.gaussians = Gaussians.from_state_dict(ckpt["gaussians"])
@@ -447,26 +614,40 @@ class Trainer:
         if self.neighbours is not None:
             self.neighbours.touch_points = self.touch_points
             self.neighbours.load_state_dict(ckpt["neighbours"])
+        progress = ckpt.get("progress")  # (checkpoints of older runs have none)
+        if progress is not None:
+            self._sums, self._sum_count = dict(progress["sums"]), int(progress["count"])
+            self._last_eval = tuple(progress["last_eval"])
+        else:
+            self._last_eval = (self.step, self.train_seconds)
 
     # ------------------------------------------------------------------ the job
 
     def run(self, resume: bool = False, show_progress: bool = True) -> Gaussians:
-        """Train to ``config.iterations`` (continuing a checkpoint with ``resume``); writes the run directory."""
+        """Train to ``config.iterations`` (continuing the checkpoint with ``resume``); writes the run directory.
+
+        SIGINT or SIGTERM (in the main thread) stop after the step in progress: its checkpoint is saved, then
+        :class:`TrainingInterrupted` is raised.
+        """
         threads = torch.get_num_threads()
         if self.config.torch_threads is not None:
             torch.set_num_threads(self.config.torch_threads)
+        if self.config.init.use_sfm and not resume:
+            import pycolmap  # noqa: F401  (its import installs glog's SIGTERM handler: ours must come after)
         try:
-            return self._run(resume, show_progress)
+            with _StopRequests() as stop:
+                return self._run(resume, show_progress, stop)
         finally:
             torch.set_num_threads(threads)
 
-    def _run(self, resume: bool, show_progress: bool) -> Gaussians:
+    def _run(self, resume: bool, show_progress: bool, stop: _StopRequests) -> Gaussians:
         cfg = self.config
         self.out.mkdir(parents=True, exist_ok=True)
         torch.manual_seed(cfg.seed)
         progress_path = self.out / "progress.csv"
-        if resume and (self.out / "checkpoint.pt").is_file():
+        if resume:
             self.load_checkpoint()
+            cut_progress(progress_path, self.step)
             log.info("resuming %s at step %d", self.out, self.step)
         else:
             (self.out / "config.json").write_text(json.dumps(cfg.to_json(), indent=2))
@@ -476,11 +657,11 @@ class Trainer:
             with progress_path.open("w", newline="") as fh:
                 csv.writer(fh).writerow(PROGRESS_COLUMNS)
                 self._progress_row(csv.writer(fh))
-        last_eval_step, last_eval_seconds = self.step, self.train_seconds
+            self._last_eval = (self.step, self.train_seconds)
         bar = tqdm(total=cfg.iterations, initial=self.step, disable=not show_progress, unit="it", dynamic_ncols=True)
         with progress_path.open("a", newline="") as fh:
             writer = csv.writer(fh)
-            while self.step < cfg.iterations:
+            while self.step < cfg.iterations and stop.signum is None:
                 started = time.perf_counter()
                 terms = self.train_step()
                 self.train_seconds += time.perf_counter() - started
@@ -492,20 +673,36 @@ class Trainer:
                 done = self.step >= cfg.iterations
                 if (
                     done
-                    or self.step - last_eval_step >= cfg.eval_every_iters
-                    or self.train_seconds - last_eval_seconds >= cfg.eval_every_seconds
+                    or self.step - self._last_eval[0] >= cfg.eval_every_iters
+                    or self.train_seconds - self._last_eval[1] >= cfg.eval_every_seconds
                 ):
                     psnr_value, cd_value = self._progress_row(writer)
                     fh.flush()
-                    last_eval_step, last_eval_seconds = self.step, self.train_seconds
+                    self._last_eval = (self.step, self.train_seconds)
                     bar.set_postfix(loss=f"{terms['loss']:.4f}", gaussians=len(self.gaussians),
                                     psnr=f"{psnr_value:.2f}", cd=f"{cd_value:.4g}")  # fmt: skip
                 if done or self.step % cfg.checkpoint_every == 0:
                     self.save_checkpoint()
         bar.close()
+        if stop.signum is not None:
+            self.save_checkpoint()
+            raise TrainingInterrupted(stop.signum, self.step)
         save_ply(self.gaussians, self.out / "splat.ply")
         plot_error_vs_time(progress_path, self.out / "error_vs_time.png")
         return self.gaussians
+
+
+def cut_progress(path: Path, step: int) -> None:
+    """Keep the rows of ``progress.csv`` up to ``step`` (a resumed checkpoint's): later ones are redone."""
+    rows = []
+    if path.is_file():
+        with path.open(newline="") as fh:
+            rows = [r for r in csv.reader(fh)][1:]
+    kept = [r for r in rows if r and r[0].isdigit() and int(r[0]) <= step]
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as fh:
+        csv.writer(fh).writerows([PROGRESS_COLUMNS, *kept])
+    tmp.replace(path)
 
 
 def read_progress(path: Path) -> dict[str, np.ndarray]:
@@ -539,20 +736,79 @@ def plot_error_vs_time(progress_path: Path, png_path: Path) -> None:
 
 
 def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig, resume: bool = False,
-                show_progress: bool = True, iterations_override: int | None = None) -> dict:
+                show_progress: bool = True, iterations_override: int | None = None, overwrite: bool = False) -> dict:
     """Train on a scene directory and evaluate the result; returns the metrics written to ``metrics.json``.
 
-    With ``resume`` and an existing run, the run's own ``config.json`` is used
-    (only the iteration count may be raised with ``iterations_override``).
+    ``out_dir`` must be new or empty, or hold an earlier run: continued with
+    ``resume`` (from its checkpoint, with its own ``config.json``; only the
+    iteration count may change, with ``iterations_override``) or replaced with
+    ``overwrite`` (its files only). It is locked for the whole job. A folder of
+    other files, a run without ``resume`` or ``overwrite``, or ``resume``
+    without a checkpoint is a ConfigError, before anything is written.
     """
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.evaluation import evaluate_run
+    from tacsplat.datasets.outputs import claim_output_dir
 
     out_dir = Path(out_dir)
-    if resume and (out_dir / "config.json").is_file():
-        config = TrainConfig.from_json(json.loads((out_dir / "config.json").read_text()))
-        if iterations_override is not None:
-            config.iterations = iterations_override
+    if resume and overwrite:
+        raise ConfigError("--overwrite", "replaces a run, --resume continues it: choose one")
+    config.validate()
+    _check_run_folder(out_dir, resume, overwrite, locked=False)
     scene = Scene.load(scene_path)
-    Trainer(scene, out_dir, config).run(resume=resume, show_progress=show_progress)
-    return evaluate_run(out_dir)
+    with claim_output_dir(out_dir, "--out"):
+        _check_run_folder(out_dir, resume, overwrite, locked=True)
+        if resume:
+            config = TrainConfig.from_json(_read_json(out_dir / "config.json"), out_dir / "config.json")
+            if iterations_override is not None:
+                config.iterations = iterations_override
+                config.validate({"iterations": "--iterations"})
+        elif overwrite:
+            _remove_run_files(out_dir)
+        Trainer(scene, out_dir, config).run(resume=resume, show_progress=show_progress)
+        return evaluate_run(out_dir)
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ConfigError("config", f"unreadable: {exc}", path) from None
+    if not isinstance(data, dict):
+        raise ConfigError("config", "expected a JSON object", path)
+    return data
+
+
+def _check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> None:
+    """Refuse an ``--out`` that is neither new, empty, nor (with ``resume``/``overwrite``) an earlier run.
+
+    Before the lock (``locked=False``) only what no other job can change is
+    refused (a folder of someone else's files, a resume of no run), so that no
+    folder or lock file is made for nothing; the rest is decided under the lock.
+    """
+    from tacsplat.datasets.outputs import LOCK_NAME
+
+    entries = sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME) if out.is_dir() else []
+    is_run = is_run_folder(out)
+    if entries and not is_run:
+        shown = ", ".join(entries[:5]) + (f" and {len(entries) - 5} more" if len(entries) > 5 else "")
+        raise ConfigError("--out", f"{out} holds files that are not a reconstruction run ({shown}); choose a new "
+                          "or empty folder")
+    if (locked or not is_run) and resume and not (out / "checkpoint.pt").is_file():
+        again = "; pass --overwrite to start it again" if is_run else ""
+        raise ConfigError("--resume", f"{out} has no checkpoint.pt: no checkpoint to resume{again}")
+    if locked and is_run and not (resume or overwrite):
+        raise ConfigError("--out", f"{out} already holds a reconstruction run; pass --resume to continue it or "
+                          "--overwrite to replace it")
+
+
+def _remove_run_files(out: Path) -> None:
+    """Delete an earlier run's files (RUN_FILES and renders/view_*.png); anything else stays."""
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+    renders = out / RENDERS
+    if renders.is_dir():
+        for p in renders.iterdir():
+            if RENDER_FILE.fullmatch(p.name) and p.is_file():
+                p.unlink()
+        if not any(renders.iterdir()):
+            renders.rmdir()

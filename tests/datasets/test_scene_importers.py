@@ -179,3 +179,64 @@ def test_colmap_import_cli_and_missing_images(tmp_path, capsys):
         import_colmap(tmp_path / "colmap" / "text", images_dir, tmp_path / "scene2")
     with pytest.raises(SceneFormatError, match="not a readable COLMAP sparse model"):
         import_colmap(tmp_path / "nowhere", images_dir, tmp_path / "scene3")
+
+
+def _import_commands(blender_src, colmap_root, images_dir):
+    return {
+        "blender": lambda out, *extra: ["import", "blender", str(blender_src), "--out", str(out), *extra],
+        "colmap": lambda out, *extra: ["import", "colmap", str(colmap_root / "text"), "--images", str(images_dir),
+                                       "--out", str(out), *extra],
+    }
+
+
+def _one_error_line(capsys, *words) -> str:
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]
+
+
+def test_import_into_an_unusable_out_or_with_a_bad_scale_is_one_error(blender_src, tmp_path, capsys, monkeypatch):
+    import os
+
+    _, images_dir, _ = _colmap_fixture(tmp_path / "colmap")
+    commands = _import_commands(blender_src, tmp_path / "colmap", images_dir)
+    a_file = tmp_path / "a_file"
+    a_file.write_text("not a folder")
+    for name, command in commands.items():
+        assert main(command(a_file)) == 1, name
+        _one_error_line(capsys, "--out", "is a file")
+        assert main(command(a_file / "scene")) == 1, name
+        _one_error_line(capsys, "--out", "which is a file")
+        assert a_file.read_text() == "not a folder"
+        for scale in ("0", "-2", "nan", "inf"):
+            assert main(command(tmp_path / f"{name}-scale", "--scale", scale)) == 1, (name, scale)
+            _one_error_line(capsys, "scale", "positive")
+            assert not (tmp_path / f"{name}-scale").exists()
+    assert main(commands["colmap"](tmp_path / "every", "--test-every", "-1")) == 1
+    _one_error_line(capsys, "test_every", ">= 0")
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if "locked" in str(path) else real_access(path, mode))
+    for name, command in commands.items():
+        assert main(command(tmp_path / "locked")) == 1, name
+        _one_error_line(capsys, "--out", "is not writable")
+
+
+def test_an_import_into_a_folder_another_process_writes_is_refused(blender_src, tmp_path, capsys):
+    from tacsplat.datasets.outputs import claim_output_dir
+
+    out = tmp_path / "scene"
+    with claim_output_dir(out):
+        assert main(["import", "blender", str(blender_src), "--out", str(out)]) == 1
+        _one_error_line(capsys, "another tacsplat process")
+    assert main(["import", "blender", str(blender_src), "--out", str(out)]) == 0  # the lock file is no content
+    assert len(Scene.load(out).frames) == 5
+    capsys.readouterr()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("x")
+    assert main(["import", "blender", str(blender_src), "--out", str(mine)]) == 1
+    _one_error_line(capsys, "is not an empty folder")
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]  # not even a lock file left among them

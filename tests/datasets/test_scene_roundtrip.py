@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from tacsplat.datasets import Scene, SceneMeta, SceneWriter
+from tacsplat.datasets import Scene, SceneMeta, SceneWriter, check_scene
 from tacsplat.errors import InvalidInputError
 from tacsplat.geometry import tactile_depth_to_points
 from tacsplat.types import TactileReading
@@ -147,13 +147,18 @@ def test_writer_rejects_bad_arguments_naming_them(tmp_path, h):
     with SceneWriter.create(tmp_path / "s", h.intrinsics(), SceneMeta("sim", "x"), h.SENSOR) as w:
         bad_pose = h.ring_pose(0).copy()
         bad_pose[:3, :3] *= 1.01
+        far_pose = h.ring_pose(0).copy()
+        far_pose[:3, 3] = [2e5, 0.0, 0.0]
         cases = [
             (lambda: w.add_frame(h.frame_image(0), bad_pose), "T_world_cam: not a rigid"),
             (lambda: w.add_frame(h.frame_image(0)[:5], h.ring_pose(0)), "image: expected shape"),
             (lambda: w.add_frame(h.frame_image(0).astype(np.float32), h.ring_pose(0)), "image: expected uint8"),
             (lambda: w.add_frame(h.frame_image(0), h.ring_pose(0), split="val"), "split"),
-            (lambda: w.add_frame(h.frame_image(0), h.ring_pose(0), gt_depth=np.full((12, 16), np.nan, np.float32)), "gt_depth: contains NaN"),
-            (lambda: w.add_touch(-h.touch_depth(0), h.touch_pose(0), 0, "index"), "depth: contains negative"),
+            (lambda: w.add_frame(h.frame_image(0), h.ring_pose(0), gt_depth=np.full((12, 16), np.nan, np.float32)), "gt_depth: 192 non-finite"),
+            (lambda: w.add_touch(-h.touch_depth(0), h.touch_pose(0), 0, "index"), "depth: negative depth values"),
+            (lambda: w.add_touch(h.touch_depth(0) * 1e3, h.touch_pose(0), 0, "index"), "deeper than 10 x the gel"),
+            (lambda: w.add_frame(h.frame_image(0), far_pose), "T_world_cam: its origin is 2e\\+05 metres"),
+            (lambda: w.add_frame(h.frame_image(0), h.ring_pose(0), intrinsics=h.intrinsics(f=1e8)), "intrinsics.fl_x"),
             (lambda: w.add_touch(np.zeros((3, 3), np.float32), h.touch_pose(0), 0, "index"), "depth: expected shape"),
             (lambda: w.add_touch(h.touch_depth(0), h.touch_pose(0), -1, "index"), "grasp"),
         ]
@@ -161,7 +166,8 @@ def test_writer_rejects_bad_arguments_naming_them(tmp_path, h):
             with pytest.raises(InvalidInputError, match=message):
                 call()
         assert (w.num_frames, w.num_touches) == (0, 0)  # nothing half-written
-    assert Scene.load(tmp_path / "s").frames == []
+    scene, problems = check_scene(tmp_path / "s")
+    assert scene.frames == [] and [p.field for p in problems] == ["frames"]  # only: the scene has no frames
 
 
 def test_create_rejects_metadata_that_is_not_json(tmp_path, h):

@@ -99,6 +99,52 @@ CASES = {
     "missing transforms.json": (lambda s: (s / "transforms.json").unlink(), "transforms.json", None, "missing"),
     "corrupt scene.json": (lambda s: (s / "scene.json").write_text("{\"source\": "), "scene.json", None, "not valid JSON"),
     "wrong units": (lambda s: _edit_json(s / "scene.json", lambda d: d.update(units="mm")), "scene.json", "units", "'m'"),
+    # the index behind its journal: what inspect rejects, every reader rejects
+    "touches.json deleted": (lambda s: (s / "touches.json").unlink(),
+                             "journal.jsonl", None, "records 4 frames and 4 touches but the index files hold 4 and 0"),
+    "a touch dropped from the index": (_touches(lambda d: d["touches"].pop(1)),
+                                       "journal.jsonl", None, "the index files hold 4 and 3"),
+    "a frame dropped from the index": (_transforms(lambda d: d["frames"].pop()),
+                                       "journal.jsonl", None, "the index files hold 3 and 4"),
+    "only test frames": (_transforms(lambda d: [f.update(split="test") for f in d["frames"]]),
+                         "transforms.json", "frames", "no train frames"),
+    # numbers that no camera, sensor or capture can have
+    "JSON NaN focal length": (_transforms(lambda d: d.update(fl_x=float("nan"))),
+                              "transforms.json", "frames[0].fl_x", "expected a finite positive number, got nan"),
+    "focal length of a telescope": (_transforms(lambda d: d.update(fl_y=1e9)),
+                                    "transforms.json", "frames[0].fl_y", "field of view"),
+    "focal length of a fisheye": (_transforms(lambda d: d.update(fl_x=0.5)),
+                                  "transforms.json", "frames[0].fl_x", "field of view"),
+    "principal point outside the image": (_transforms(lambda d: d.update(cx=-3.0)),
+                                          "transforms.json", "frames[0].cx", "inside the image, 0..16"),
+    "zero image width": (_transforms(lambda d: d.update(w=0)),
+                         "transforms.json", "frames[0].w", "positive integer"),
+    "absurd image height": (_transforms(lambda d: d.update(h=10**400)),
+                            "transforms.json", "frames[0].h", "positive integer up to 65536"),
+    "width that is a boolean": (_transforms(lambda d: d.update(w=True)),
+                                "transforms.json", "frames[0].w", "positive integer"),
+    "camera at the far end of the universe": (_transforms(lambda d: d["frames"][1]["transform_matrix"][0].__setitem__(3, 1e12)),
+                                              "transforms.json", "frames[1].transform_matrix", "metres from the origin"),
+    "pose entry too big for a float": (_transforms(lambda d: d["frames"][1]["transform_matrix"][2].__setitem__(3, 10**400)),
+                                       "transforms.json", "frames[1].transform_matrix", "4x4 matrix of numbers"),
+    "JSON infinity in a touch pose": (_touches(lambda d: d["touches"][2]["T_world_sensor"][1].__setitem__(3, float("inf"))),
+                                      "touches.json", "touches[2].T_world_sensor", "NaN or infinite"),
+    "zero gel thickness": (_touches(lambda d: d["sensor"].update(gel_thickness_m=0.0)),
+                           "touches.json", "sensor", "gel_thickness_m must be positive"),
+    "negative pixel size": (_touches(lambda d: d["sensor"].update(pixel_size_m=-5e-4)),
+                            "touches.json", "sensor", "pixel_size_m must be positive"),
+    "pixel size in light years": (_touches(lambda d: d["sensor"].update(pixel_size_m=1e16)),
+                                  "touches.json", "sensor", "pixel_size_m"),
+    "sensor name that is not a name": (_touches(lambda d: d["sensor"].update(name=7)),
+                                       "touches.json", "sensor", "name must be a non-empty string"),
+    "indentation far deeper than the gel": (lambda s: _save_npz(s / "touches/000000.npz", np.full((8, 10), 0.5, np.float32)),
+                                            "000000.npz", "touch 0 depth", "10 x the gel thickness"),
+    "integer touch depth": (lambda s: _save_npz(s / "touches/000002.npz", np.ones((8, 10), np.int32)),
+                            "000002.npz", "touch 2 depth", "expected float metres"),
+    "gt depth beyond any scene": (lambda s: _save_npz(s / "gt/depth/000001.npz", np.full((12, 16), 1e30, np.float32)),
+                                  "000001.npz", "gt depth of frame 1", "deeper than any scene"),
+    "unknown scene format version": (lambda s: _edit_json(s / "scene.json", lambda d: d.update(format_version="1")),
+                                     "scene.json", "format_version", "expected 1"),
 }
 
 
@@ -127,3 +173,11 @@ def test_check_scene_collects_every_problem_and_keeps_the_rest(scene_dir):
 
 def test_valid_scene_has_no_problems(scene_dir):
     assert check_scene(scene_dir)[1] == []
+
+
+def test_a_scene_without_frames_is_invalid(tmp_path, h):
+    path = h.build_scene(tmp_path / "s", n_frames=0, n_touches=2)
+    with pytest.raises(SceneFormatError, match="no frames") as info:
+        Scene.load(path)
+    assert info.value.path == path / "transforms.json" and info.value.field == "frames"
+    assert [str(p) for p in check_scene(path)[1]] == [str(info.value)]

@@ -47,6 +47,22 @@ def test_bounding_sphere_radius_of_sphere_points():
     assert bounding_sphere_radius(points) == pytest.approx(0.07, rel=1e-3)
 
 
+def test_bounding_sphere_radius_of_flat_and_degenerate_clouds():
+    """A flat ground truth (a wall, a constant depth map) is as valid as a round one."""
+    rng = np.random.default_rng(1)
+    R = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    angle = rng.uniform(0, 2 * np.pi, 300)
+    disc = np.stack([0.2 * np.cos(angle), 0.2 * np.sin(angle), np.zeros(300)], axis=1)
+    assert bounding_sphere_radius(disc @ R.T + 5.0) == pytest.approx(0.2, rel=1e-6)
+    square = np.stack(np.meshgrid(np.linspace(-1, 1, 9), np.linspace(-1, 1, 9), [0.4]), -1).reshape(-1, 3)
+    assert bounding_sphere_radius(square) == pytest.approx(math.sqrt(2), rel=1e-6)  # axis-aligned plane
+    line = np.outer(np.linspace(-0.3, 0.5, 50), [1.0, 2.0, 2.0])
+    assert bounding_sphere_radius(line) == pytest.approx(0.4 * 3, rel=1e-9)
+    assert bounding_sphere_radius(np.full((4, 3), 2.5)) == 0.0
+    with pytest.raises(InvalidInputError, match="no points"):
+        bounding_sphere_radius(np.zeros((0, 3)))
+
+
 def _random_gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
     g = torch.Generator().manual_seed(seed)
     params = {

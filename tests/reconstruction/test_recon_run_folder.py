@@ -1,0 +1,246 @@
+"""`tacsplat reconstruct` / `evaluate` are safe by construction: a run folder is never overwritten by accident
+nor written by two processes, an interrupted run checkpoints and resumes exactly, a scene `inspect` refuses is
+refused by every command, and a user mistake is one line on stderr."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import signal
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import torch
+
+from tacsplat.cli import main
+from tacsplat.reconstruction.trainer import Trainer, load_run
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from recon_synthetic import build_sphere_scene  # noqa: E402
+
+FAST = ["--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    return build_sphere_scene(tmp_path_factory.mktemp("scenes") / "sphere", size=24, train_views=3, test_views=1)
+
+
+def _reconstruct(scene, out, *extra, iterations: int = 3) -> int:
+    return main(["reconstruct", str(scene), "--out", str(out), "--iterations", str(iterations), *FAST, *extra])
+
+
+def _one_error_line(capsys, *words) -> str:
+    """The single stderr line of a refused command (no traceback), checked for ``words``."""
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]
+
+
+def _listing(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+# --- 1. an earlier run, a run in progress and unrelated files are never overwritten -----------------------------
+
+
+def test_an_earlier_run_is_kept_unless_overwrite_and_unrelated_files_survive(scene, tmp_path, capsys):
+    run = tmp_path / "run"
+    assert _reconstruct(scene, run) == 0
+    (run / "notes.txt").write_text("my notes")
+    before = _listing(run)
+    capsys.readouterr()
+    assert _reconstruct(scene, run, "--seed", "1") == 1
+    _one_error_line(capsys, "--out", "already holds a reconstruction run", "--resume", "--overwrite")
+    assert _listing(run) == before
+    assert _reconstruct(scene, run, "--seed", "1", "--overwrite") == 0
+    assert json.loads((run / "config.json").read_text())["seed"] == 1
+    assert (run / "notes.txt").read_text() == "my notes"
+    assert (run / "checkpoint.pt").read_bytes() != before["checkpoint.pt"]
+
+
+def test_a_folder_of_unrelated_files_is_refused_and_left_as_it_was(scene, tmp_path, capsys):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    (photos / "img.png").write_bytes(b"\x89PNG not really")
+    (photos / "renders").mkdir()
+    for extra in ([], ["--overwrite"], ["--resume"]):
+        assert _reconstruct(scene, photos, *extra) == 1, extra
+        _one_error_line(capsys, "--out", str(photos), "img.png")
+        assert sorted(p.name for p in photos.iterdir()) == ["img.png", "renders"]  # not even a lock file
+
+
+def test_two_jobs_never_write_one_run_folder_at_once(scene, tmp_path, capsys, monkeypatch):
+    run = tmp_path / "run"
+    in_training, finish = threading.Event(), threading.Event()
+    real_step = Trainer.train_step
+
+    def paused_step(self):
+        in_training.set()
+        assert finish.wait(120)
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", paused_step)
+    first = {}
+    job = threading.Thread(target=lambda: first.update(code=_reconstruct(scene, run)))
+    job.start()
+    try:
+        assert in_training.wait(120)
+        capsys.readouterr()
+        for extra in ([], ["--overwrite"], ["--resume"]):
+            assert _reconstruct(scene, run, "--seed", "7", *extra) == 1, extra
+            _one_error_line(capsys, "--out", "another tacsplat process")
+        assert main(["evaluate", str(run)]) == 1
+        _one_error_line(capsys, "another tacsplat process")
+    finally:
+        finish.set()
+        job.join(120)
+    assert first["code"] == 0
+    assert json.loads((run / "config.json").read_text())["seed"] == 0
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 3
+
+
+# --- 3. interruption, checkpoint, exact resume ------------------------------------------------------------------
+
+
+def _raise_on_sigterm(signum, frame):
+    raise RuntimeError("SIGTERM reached the test: the trainer did not handle it")
+
+
+@pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_a_signal_checkpoints_the_step_reached_and_resume_matches_a_straight_run(scene, tmp_path, capsys,
+                                                                                 monkeypatch, signum, code):
+    straight, run = tmp_path / "straight", tmp_path / "run"
+    assert _reconstruct(scene, straight, iterations=10) == 0
+    real_step = Trainer.train_step
+
+    def signalled_in_step_6(self):
+        if self.step == 5:
+            os.kill(os.getpid(), signum)  # as from Ctrl-C or `kill`, in the middle of a step
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", signalled_in_step_6)
+    monkeypatch.setattr(signal, "SIGTERM", signal.SIGTERM)
+    previous = signal.signal(signal.SIGTERM, _raise_on_sigterm)  # what a test process must survive
+    try:
+        capsys.readouterr()
+        assert _reconstruct(scene, run, iterations=10) == code
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    err = capsys.readouterr().err
+    assert f"tacsplat reconstruct {scene} --out {run} --resume" in err, err
+    assert "Traceback" not in err
+    assert load_run(run).step == 6  # the step in progress finished, then the checkpoint
+    assert not (run / "metrics.json").exists()
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    assert main(["reconstruct", str(scene), "--out", str(run), "--resume", "--quiet"]) == 0
+    resumed, expected = load_run(run), load_run(straight)
+    assert resumed.step == 10
+    for name in ("means", "scales", "opacities", "sh0"):
+        torch.testing.assert_close(resumed.gaussians.params[name], expected.gaussians.params[name], rtol=0, atol=1e-6)
+    with (run / "progress.csv").open() as fh:
+        assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
+
+
+def test_resume_after_a_crash_drops_the_progress_rows_after_the_checkpoint(scene, tmp_path, monkeypatch):
+    from tacsplat.datasets import Scene
+    from tacsplat.reconstruction.trainer import TrainConfig
+
+    config = TrainConfig(iterations=10, sh_degree=0, backend="cpu", lambda_s=0.0, eval_every_iters=2,
+                         eval_every_seconds=1e9, checkpoint_every=4)
+    real_step = Trainer.train_step
+
+    def power_cut_in_step_8(self):
+        if self.step == 7:
+            raise SystemError("power cut")  # no signal, no checkpoint: the last one is step 4's
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", power_cut_in_step_8)
+    with pytest.raises(SystemError):
+        Trainer(Scene.load(scene), tmp_path / "run", config).run(show_progress=False)
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    Trainer(Scene.load(scene), tmp_path / "run", config).run(resume=True, show_progress=False)
+    with (tmp_path / "run" / "progress.csv").open() as fh:
+        assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 2, 4, 6, 8, 10]
+
+
+def test_resume_without_a_checkpoint_is_refused(scene, tmp_path, capsys):
+    assert _reconstruct(scene, tmp_path / "new", "--resume") == 1
+    _one_error_line(capsys, "--resume", "no checkpoint")
+    assert not (tmp_path / "new").exists()
+    run = tmp_path / "run"
+    assert _reconstruct(scene, run) == 0
+    (run / "checkpoint.pt").unlink()  # a run killed before its first checkpoint
+    capsys.readouterr()
+    assert _reconstruct(scene, run, "--resume") == 1
+    _one_error_line(capsys, "--resume", "no checkpoint", "--overwrite")
+
+
+# --- 2. one definition of a valid scene --------------------------------------------------------------------------
+
+
+def test_every_command_refuses_the_scene_inspect_refuses(scene, tmp_path, capsys):
+    copy = Path(shutil.copytree(scene, tmp_path / "scene"))
+    assert _reconstruct(copy, tmp_path / "run") == 0
+    (copy / "touches.json").unlink()
+    capsys.readouterr()
+    assert main(["inspect", str(copy), "--json"]) == 1
+    problems = json.loads(capsys.readouterr().out)["problems"]
+    assert problems == [f"{copy / 'journal.jsonl'}: records 4 frames and 4 touches but the index files hold 4 and 0: "
+                        "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites "
+                        "the index"]
+    assert _reconstruct(copy, tmp_path / "run2") == 1
+    assert _one_error_line(capsys) == f"error: {problems[0]}"
+    assert not (tmp_path / "run2").exists()
+    assert main(["evaluate", str(tmp_path / "run")]) == 1
+    assert _one_error_line(capsys) == f"error: {problems[0]}"
+
+
+# --- 4. and 6. user mistakes: one line naming the option and what it allows --------------------------------------
+
+
+def test_an_out_that_is_a_file_inside_a_file_or_unwritable_is_one_error(scene, tmp_path, capsys, monkeypatch):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    assert _reconstruct(scene, a_file) == 1
+    _one_error_line(capsys, "--out", "is a file")
+    assert _reconstruct(scene, a_file / "run") == 1
+    _one_error_line(capsys, "--out", "which is a file")
+    assert a_file.read_text() == "mine"
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if "locked" in str(path) else real_access(path, mode))
+    assert _reconstruct(scene, tmp_path / "locked") == 1
+    _one_error_line(capsys, "--out", "is not writable")
+
+
+@pytest.mark.parametrize("options, words", [
+    (["--iterations", "-5"], ["--iterations", ">= 1", "-5"]),
+    (["--iterations", "0"], ["--iterations", ">= 1"]),
+    (["--lambda-t", "-1"], ["--lambda-t", ">= 0"]),
+    (["--lambda-s", "nan"], ["--lambda-s", "finite"]),
+    (["--lambda-t", "inf"], ["--lambda-t", "finite"]),
+    (["--train-views", "0"], ["--train-views", ">= 1"]),
+    (["--seed", "-1"], ["--seed", "0 to"]),
+])
+def test_an_option_out_of_range_is_one_error_naming_it(scene, tmp_path, capsys, options, words):
+    assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), "--quiet", *options]) == 1
+    _one_error_line(capsys, *words)
+    assert not (tmp_path / "run").exists()  # refused before anything is written
+
+
+def test_evaluate_of_what_is_not_a_run_is_one_error(tmp_path, capsys):
+    assert main(["evaluate", str(tmp_path / "nothing")]) == 1
+    _one_error_line(capsys, "nothing")
+    assert not (tmp_path / "nothing").exists()
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "checkpoint.pt").write_bytes(b"PK\x03\x04 cut short")
+    assert main(["evaluate", str(run)]) == 1
+    _one_error_line(capsys, "checkpoint.pt", "corrupt")
