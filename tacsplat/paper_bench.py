@@ -162,7 +162,7 @@ class PaperBench:
             return json.loads((run.out / "metrics.json").read_text())
         config = TrainConfig(iterations=self.config.iterations, seed=run.seed, **variant_overrides(run.variant))
         resume = (run.out / "checkpoint.pt").is_file()
-        return reconstruct(run.scene, run.out, config, resume=resume, show_progress=False)
+        return reconstruct(run.scene, run.out, config, resume=resume, overwrite=not resume, show_progress=False)
 
     def run(self, progress: bool = True) -> list[dict]:
         """Capture and train everything not done yet, then write the report; returns the results rows."""

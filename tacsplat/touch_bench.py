@@ -148,7 +148,8 @@ class TouchBench:
                 metrics = json.loads((out / "metrics.json").read_text())
             else:
                 config = TrainConfig(iterations=c.iterations, seed=seed)
-                metrics = reconstruct(scene, out, config, resume=(out / "checkpoint.pt").is_file(), show_progress=False)
+                resume = (out / "checkpoint.pt").is_file()
+                metrics = reconstruct(scene, out, config, resume=resume, overwrite=not resume, show_progress=False)
             row = {"seed": seed, "requested_touches": count, "touches": kept,
                    **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}}
             bar.write(f"seed {seed}: {kept:3d} touches -> CD {row['cd']:.4f}  PSNR {row['psnr']:.2f}")
