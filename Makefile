@@ -5,10 +5,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-export MUJOCO_GL ?= egl
-export PYOPENGL_PLATFORM ?= egl
-# numba's and torch's OpenMP thread pools spin-wait against each other on a 2-core machine (10x slower)
-export OMP_WAIT_POLICY ?= PASSIVE
+# Process-wide defaults (MUJOCO_GL, OMP_WAIT_POLICY, ...) are set by `import tacsplat` (tacsplat/__init__.py).
 
 .PHONY: test demo setup bench-rasterizer bench-sim bench-quick bench-paper bench-touches clean
 

@@ -59,6 +59,7 @@ def _open_real(config: RigConfig) -> Iterator[Rig]:
     from tacsplat.drivers.dynamixel_hand import DynamixelHand, DynamixelHandConfig
     from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
+    from tacsplat.sim.hand import HandKinematics
 
     with ExitStack() as stack:
         mock = None
@@ -87,7 +88,8 @@ def _open_real(config: RigConfig) -> Iterator[Rig]:
         kw = {"capture_factory": cam_factory} if cam_factory else {}
         camera = stack.enter_context(WristCamera(cam_source, calibration, fps=config.camera.fps,
                                                  timeout_s=config.camera.timeout_s, **kw))
-        hand = DynamixelHand(port, config.hand.baudrate, config.hand.ids, hand_cal, config=hand_settings)
+        hand = DynamixelHand(port, config.hand.baudrate, config.hand.ids, hand_cal, config=hand_settings,
+                             kinematics=HandKinematics())
         stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
         sensors, model = [], None
         for i, s in enumerate(config.tactile.sensors):
@@ -127,9 +129,6 @@ TWIN_CONTROL = GraspControl(close_speed_rad_s=0.6, poll_s=0.01, stall_error_rad=
 
 def twin_config(config: RigConfig):
     """The :class:`~tacsplat.sim.twin.TwinConfig` of a ``rig: sim`` config."""
-    import os
-
-    os.environ.setdefault("MUJOCO_GL", "egl")  # before MuJoCo is first imported
     from tacsplat.sim.twin import TwinConfig
 
     s = config.sim

@@ -42,6 +42,7 @@ import dynamixel_sdk as dxl
 import numpy as np
 
 from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration
+from tacsplat.drivers.protocols import HandKinematics
 from tacsplat.drivers.dynamixel_table import (
     ALERT_BIT,
     REGISTERS,
@@ -165,16 +166,14 @@ class DynamixelHand:
     ``ids[i]`` is the servo of joint ``joint_names[i]`` (the twin's joint order:
     index, middle, ring, thumb, four joints each). ``calibration`` is a
     :class:`HandCalibration`, the path of a calibration file, or None (sign +1,
-    offset 0: joint zero at the centre tick).
+    offset 0: joint zero at the centre tick). ``kinematics`` gives the joint
+    names, limits and fingertip poses (the twin's model, passed in by the rig
+    assembly: :class:`tacsplat.sim.hand.HandKinematics`).
     """
 
     def __init__(self, port: str, baudrate: int = 4_000_000, ids: Iterable[int] = range(16),
                  calibration: HandCalibration | str | Path | None = None, *,
-                 config: DynamixelHandConfig | None = None, kinematics=None):
-        if kinematics is None:
-            from tacsplat.sim.hand import HandKinematics
-
-            kinematics = HandKinematics()
+                 config: DynamixelHandConfig | None = None, kinematics: HandKinematics):
         self._kinematics = kinematics
         self._joint_names = list(kinematics.joint_names)
         self._joint_limits = np.asarray(kinematics.joint_limits, dtype=np.float64)

@@ -44,6 +44,24 @@ class Hand(Protocol):
 
 
 @runtime_checkable
+class HandKinematics(Protocol):
+    """Forward kinematics of a hand model (the twin's MJCF, :class:`tacsplat.sim.hand.HandKinematics`),
+    given to the real hand driver when the rig is assembled: drivers never import the simulator."""
+
+    @property
+    def joint_names(self) -> Sequence[str]: ...
+
+    @property
+    def joint_limits(self) -> np.ndarray:
+        """[n_joints, 2] lower and upper limits in radians."""
+        ...
+
+    def fingertip_poses(self, q: np.ndarray) -> dict[str, np.ndarray]:
+        """``{finger: T_hand_sensor [4, 4]}`` at joint positions ``q`` [n_joints]."""
+        ...
+
+
+@runtime_checkable
 class TactileSensor(Protocol):
     @property
     def name(self) -> str: ...

@@ -61,7 +61,7 @@ def register(cli) -> None:
 
 def config_from_args(args):
     """The TrainConfig of `tacsplat reconstruct`'s options; a ConfigError naming the option out of range."""
-    from tacsplat.reconstruction.trainer import TrainConfig
+    from tacsplat.reconstruction.config import TrainConfig
 
     config = TrainConfig(seed=args.seed, sh_degree=args.sh_degree, backend=args.backend,
                          train_views=args.train_views, use_touch=not args.no_touch)
@@ -97,7 +97,8 @@ def _reconstruct(args) -> int:
 
 def _evaluate(args) -> int:
     from tacsplat.datasets.outputs import claim_output_dir
-    from tacsplat.reconstruction.trainer import evaluate_run, is_run_folder, run_checkpoint
+    from tacsplat.reconstruction.evaluation import evaluate_run
+    from tacsplat.reconstruction.run_dir import is_run_folder, run_checkpoint
 
     if not is_run_folder(Path(args.run)):
         run_checkpoint(args.run)  # refused before anything is written into what is not a run

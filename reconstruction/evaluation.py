@@ -9,66 +9,26 @@ when there is one, else of the ground-truth cloud).
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
-import importlib
-
 import numpy as np
 import torch
 
 from tacsplat.errors import SceneFormatError
-from tacsplat.geometry import invert_pose, pixel_centres
+from tacsplat.geometry import pixel_centres
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.metrics import bounding_sphere_radius, chamfer_distance, depth_to_points, psnr, ssim
+from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
+from tacsplat.reconstruction.run_dir import load_run
+from tacsplat.reconstruction.views import background_image, camera_tensors, composite
 
 log = logging.getLogger(__name__)
-# the module, not the function the package re-exports under the same name (tests spy on its calls)
-raster = importlib.import_module("tacsplat.reconstruction.rasterization")
 
 ALPHA_MASK_THRESHOLD = 0.5  # rendered pixels with alpha above this give predicted surface points
-
-
-def camera_tensors(frames: list) -> tuple[torch.Tensor, torch.Tensor]:
-    """World-to-camera matrices [C, 4, 4] and intrinsics [C, 3, 3] (float32) of scene frames."""
-    viewmats = torch.tensor(np.stack([invert_pose(f.T_world_cam) for f in frames]), dtype=torch.float32)
-    Ks = torch.tensor(np.stack([f.intrinsics.K for f in frames]), dtype=torch.float32)
-    return viewmats, Ks
-
-
-def fit_backdrop(image: np.ndarray, degree: int = 2, max_residual: float = 0.02) -> np.ndarray | None:
-    """A smooth backdrop [H, W, 3] fitted to an image's [H, W, 3] two-pixel border, or None.
-
-    A polynomial of ``degree`` in the pixel coordinates models a studio
-    backdrop or a sky gradient; None when the border is not that smooth (RMS
-    residual above ``max_residual``), e.g. a cluttered real scene.
-    """
-    h, w = image.shape[:2]
-    v, u = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
-    basis = np.stack([u**i * v**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=-1)  # [H, W, B]
-    border = np.zeros((h, w), bool)
-    border[:2], border[-2:], border[:, :2], border[:, -2:] = True, True, True, True
-    coeffs, *_ = np.linalg.lstsq(basis[border], image[border], rcond=None)
-    residual = np.sqrt(np.mean((basis[border] @ coeffs - image[border]) ** 2))
-    if residual > max_residual:
-        return None
-    return np.clip(basis @ coeffs, 0.0, 1.0).astype(np.float32)
-
-
-def background_image(image: np.ndarray, colour: tuple[float, float, float] | None = None) -> np.ndarray:
-    """The backdrop behind the object in one view [H, W, 3] float32: ``colour``, else fitted, else black."""
-    h, w = image.shape[:2]
-    if colour is not None:
-        return np.broadcast_to(np.asarray(colour, dtype=np.float32), (h, w, 3)).copy()
-    fitted = fit_backdrop(image)
-    return np.zeros((h, w, 3), np.float32) if fitted is None else fitted
-
-
-def composite(colors: torch.Tensor, alphas: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
-    """Over-composite renders [..., H, W, 3] made without background onto a background [H, W, 3]."""
-    return colors + (1.0 - alphas) * background
 
 
 @torch.no_grad()
@@ -212,3 +172,43 @@ def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth) -> None:
         [_depth_colour(depth, lo, hi), blank if gt_depth is None else _depth_colour(gt_depth, lo, hi)], axis=1
     )
     cv2.imwrite(str(path), cv2.cvtColor(np.concatenate([top, bottom], axis=0), cv2.COLOR_RGB2BGR))
+
+
+def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
+    """Evaluate a finished (or checkpointed) run: writes ``metrics.json`` and ``renders/``; returns the metrics."""
+    from tacsplat.datasets import Scene
+
+    run = load_run(Path(run_dir))
+    scene = Scene.load(run.scene_path)
+    test = scene.split("test")
+    backend = backend or run.config.backend
+    ground_truth = load_ground_truth(scene, test, gt_path)
+    metrics = evaluate_views(
+        run.gaussians, scene, test, run.config.background, backend, ground_truth, Path(run_dir) / "renders"
+    )
+    if ground_truth is None:
+        log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
+    result = {
+        **metrics,
+        "train_seconds": run.train_seconds,
+        "iterations": run.step,
+        "num_gaussians": len(run.gaussians),
+        "num_touch_gaussians": run.gaussians.num_touch,
+        "num_test_views": len(test),
+        "variant": run.config.variant,
+        "gt_source": ground_truth.source if ground_truth else None,
+        "gt_radius": ground_truth.radius if ground_truth else None,
+        "scene": str(run.scene_path),
+        "settings": run.config.to_json(),
+    }
+    result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
+    (Path(run_dir) / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
+    return result
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

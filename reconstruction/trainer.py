@@ -1,19 +1,15 @@
-"""The tactile-informed 3DGS training job: scene directory in, run directory out.
+"""The tactile-informed 3DGS training job: scene directory in, run directory (:mod:`.run_dir`) out.
 
-A run directory holds ``config.json``, ``checkpoint.pt`` (the last
-checkpoint: resumable), ``splat.ply``, ``progress.csv`` (iteration, seconds of
-run time excluding evaluation, each loss term averaged since the previous row,
-Gaussian count, held-out PSNR and CD), ``error_vs_time.png``, ``metrics.json``
-and ``renders/``. Loss: photometric + lambda_t L_T (Eq. 7, on G_t at the touch
-points) + lambda_s L_S (Eq. 8, masked near visible touches) + lambda_backdrop
-times the alpha on pixels that show the fitted smooth backdrop (not in the
-paper; see :func:`losses.backdrop_alpha_loss`). L_S acts by default on the
-expected depth inside the object's silhouette rather than on Eq. 5's
-accumulated depth (``smoothness_depth``). When SfM finds too few points, the
-initial G_c lie on the visual hull of the silhouettes. Renders are composited over
-each view's backdrop (a constant, or a smooth fit to the image border). What a
-scene does not need is not computed: no touches -> no G_t, no neighbour search,
-no L_T; lambda_s = 0 -> RGB-only renders.
+Loss: photometric + lambda_t L_T (Eq. 7, on G_t at the touch points) +
+lambda_s L_S (Eq. 8, masked near visible touches) + lambda_backdrop times the
+alpha on pixels that show the fitted smooth backdrop (not in the paper; see
+:func:`losses.backdrop_alpha_loss`). L_S acts by default on the expected depth
+inside the object's silhouette rather than on Eq. 5's accumulated depth
+(``smoothness_depth``). When SfM finds too few points, the initial G_c lie on
+the visual hull of the silhouettes. Renders are composited over each view's
+backdrop (a constant, or a smooth fit to the image border). What a scene does
+not need is not computed: no touches -> no G_t, no neighbour search, no L_T;
+lambda_s = 0 -> RGB-only renders.
 
 :func:`reconstruct` is the job: it claims the run directory (a new or empty
 folder; an earlier run only with ``resume`` or ``overwrite``, and never a
@@ -29,16 +25,10 @@ import csv
 import dataclasses
 import json
 import logging
-import math
-import re
 import signal
 import threading
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
-
-import importlib
 
 import numpy as np
 import torch
@@ -46,18 +36,11 @@ from tqdm import tqdm
 
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.reconstruction import losses
-from tacsplat.reconstruction.densification import DensifyState, DensifyStrategy
-from tacsplat.reconstruction.evaluation import (
-    background_image,
-    camera_tensors,
-    fit_backdrop,
-    composite,
-    evaluate_views,
-    load_ground_truth,
-)
+from tacsplat.reconstruction.config import TrainConfig
+from tacsplat.reconstruction.densification import DensifyState
+from tacsplat.reconstruction.evaluation import evaluate_run, evaluate_views, load_ground_truth
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.initialization import (
-    InitConfig,
     foreground_mask,
     initial_gaussians,
     random_points,
@@ -66,251 +49,26 @@ from tacsplat.reconstruction.initialization import (
     thin_touch_points,
 )
 from tacsplat.reconstruction.ply import save_ply
+from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
+from tacsplat.reconstruction.run_dir import (
+    PROGRESS_COLUMNS,
+    check_run_folder,
+    cut_progress,
+    plot_error_vs_time,
+    read_checkpoint,
+    read_json,
+    remove_run_files,
+    run_checkpoint,
+)
+from tacsplat.reconstruction.views import background_image, camera_tensors, composite, fit_backdrop
 
 log = logging.getLogger(__name__)
-# the module, not the function the package re-exports under the same name (tests spy on its calls)
-raster = importlib.import_module("tacsplat.reconstruction.rasterization")
-
-# A run directory's own files (anything else in it is someone else's and is never deleted).
-RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "progress.csv",
-             "progress.csv.tmp", "error_vs_time.png", "metrics.json")
-RENDERS = "renders"
-RENDER_FILE = re.compile(r"view_\d{4,}\.png")
-
-PROGRESS_COLUMNS = (
-    "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "num_gaussians",
-    "psnr", "cd",
-)  # fmt: skip
-
-
-@dataclass
-class TrainConfig:
-    """Training settings; defaults aim at a 5-view 200x200 object in minutes on 2 CPU cores."""
-
-    iterations: int = 2000
-    seed: int = 0
-    sh_degree: int = 3  # maximum SH degree (0 for a Lambertian scene)
-    sh_degree_interval: int = 400  # one more SH band every this many steps
-    train_views: int | None = None  # use only the first K training views (None = all)
-    backend: str = "auto"  # rasterization backend: auto | torch | cpu | gsplat
-    torch_threads: int | None = 1  # torch intra-op threads while training (the cpu backend's kernels run
-    # their own threads; one torch thread avoids oversubscribing a small machine); None = torch's default
-    background: tuple[float, float, float] | None = None  # None: a smooth backdrop fitted to each image's border
-    # loss weights (paper Sec. 4.2)
-    ssim_weight: float = 0.2
-    lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
-    lambda_s: float = 2.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
-    lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
-    backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
-    use_touch: bool = True  # False: no touch Gaussians and no L_T (the "3DGS" / "+S" variants)
-    # transmittance (Sec. 4.2.1)
-    touch_top_k: int = 8  # most influential G_t per touch point
-    touch_candidates: int = 32  # nearest G_t fetched from the k-d tree per touch point
-    touch_max_distance: float = 0.005  # metres: Gaussians farther from the point are ignored
-    touch_rebuild_every: int = 50  # steps between k-d tree rebuilds (and after every densification)
-    touch_points_per_step: int = 512  # random subset of touch points in L_T per step (0 = all)
-    touch_loss_moves_shape: bool = False  # False: L_T moves means and opacities only (the effect Sec. 4.2.1
-    # describes); True: also scales and rotations, which L_T rewards for growing around the touch point
-    # smoothness (Sec. 4.2.2)
-    smoothness_depth: Literal["expected", "accumulated"] = "expected"  # the depth map D of Eq. 8: "expected"
-    # (Eq. 5 divided by alpha, inside the silhouette) or the paper's "accumulated" Eq. 5, whose gradients at the
-    # silhouette and in semi-transparent regions are alpha's rather than the surface's
-    smoothness_beta: float = 10.0  # edge sensitivity e^{-beta |dI|}
-    proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
-    occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
-    # Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
-    lr_means: float = 1.6e-4
-    lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
-    lr_quats: float = 1e-3
-    lr_scales: float = 5e-3
-    lr_opacities: float = 5e-2
-    lr_sh0: float = 2.5e-3
-    lr_shN: float = 2.5e-3 / 20
-    # progress evaluation and checkpoints
-    eval_every_iters: int = 250  # held-out PSNR and CD at least this often...
-    eval_every_seconds: float = 30.0  # ...and at least this often in run time
-    eval_max_views: int = 6  # test views used for progress rows (the final evaluation uses all)
-    checkpoint_every: int = 500
-    init: InitConfig = field(default_factory=InitConfig)
-    densify: DensifyStrategy = field(default_factory=DensifyStrategy)
-
-    @property
-    def variant(self) -> str:
-        touch = self.use_touch and self.lambda_t > 0
-        smooth = self.lambda_s > 0
-        return {(False, False): "3dgs", (False, True): "+S", (True, False): "+T", (True, True): "full"}[(touch, smooth)]
-
-    def validate(self, names: dict[str, str] | None = None) -> None:
-        """A ConfigError for the first setting out of its range, naming it (as ``names[field]`` when given,
-        e.g. the command-line option) and the range."""
-        problem = self.problem()
-        if problem:
-            raise ConfigError((names or {}).get(problem[0], problem[0]), problem[1])
-
-    def problem(self) -> tuple[str, str] | None:
-        """``(field, why)`` of the first setting out of its range, or None."""
-        for key, (lo, hi) in _INT_RANGES.items():
-            value = getattr(self, key)
-            if value is None and key in _OPTIONAL:
-                continue
-            if isinstance(value, bool) or not isinstance(value, int) or value < lo or (hi is not None and value > hi):
-                return key, f"must be an integer {_range_text(lo, hi)}, got {value!r}"
-        for key, (lo, hi) in _FLOAT_RANGES.items():
-            value = getattr(self, key)
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-            if not ok or value < lo or (key in _POSITIVE and value == lo) or (hi is not None and value > hi):
-                return key, f"must be a finite number {_range_text(lo, hi, key in _POSITIVE)}, got {value!r}"
-        for key in ("use_touch", "touch_loss_moves_shape"):
-            if not isinstance(getattr(self, key), bool):
-                return key, f"must be true or false, got {getattr(self, key)!r}"
-        if self.background is not None and not (
-            len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
-        ):
-            return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
-        if self.smoothness_depth not in ("expected", "accumulated"):
-            return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
-        if self.backend not in raster.BACKENDS:
-            return "backend", f"must be one of {raster.BACKENDS}, got {self.backend!r}"
-        return None
-
-    def to_json(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_json(cls, data: dict, source: str | Path | None = None) -> "TrainConfig":
-        """The config of ``to_json`` (a run's ``config.json``); a ConfigError naming ``source`` if it is not one."""
-        try:
-            data = dict(data)
-            init = InitConfig(**data.pop("init", {}))
-            densify = DensifyStrategy(**data.pop("densify", {}))
-            if data.get("background") is not None:
-                data["background"] = tuple(data["background"])
-            config = cls(**data, init=init, densify=densify)
-        except (TypeError, ValueError, AttributeError) as exc:
-            raise ConfigError("config", f"not a training config: {exc}", source) from None
-        problem = config.problem()
-        if problem:
-            raise ConfigError(*problem, source)
-        return config
-
-
-# Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
-_INT_RANGES = {
-    "iterations": (1, None), "seed": (0, 2**32 - 1), "sh_degree": (0, 3), "sh_degree_interval": (1, None),
-    "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
-    "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
-    "eval_max_views": (1, None), "checkpoint_every": (1, None),
-}  # fmt: skip
-_OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
-_FLOAT_RANGES = {
-    "ssim_weight": (0.0, 1.0), "lambda_t": (0.0, None), "lambda_s": (0.0, None), "lambda_backdrop": (0.0, None),
-    "backdrop_tolerance": (0.0, None), "touch_max_distance": (0.0, None), "smoothness_beta": (0.0, None),
-    "proximity_sigma_px": (0.0, None), "occlusion_tolerance": (0.0, None), "lr_means": (0.0, None),
-    "lr_means_final_factor": (0.0, 1.0), "lr_quats": (0.0, None), "lr_scales": (0.0, None),
-    "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "eval_every_seconds": (0.0, None),
-}  # fmt: skip
-_POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
-
-
-def _range_text(lo, hi, exclusive: bool = False) -> str:
-    if hi is None:
-        return f"{'>' if exclusive else '>='} {lo}"
-    return f"{lo} to {hi}" + (f" (not {lo})" if exclusive else "")
 
 
 def scene_scale(frames: list) -> float:
     """Kerbl et al.'s camera extent: 1.1 x the largest distance of a camera centre from their mean."""
     centres = np.array([f.T_world_cam[:3, 3] for f in frames])
     return 1.1 * max(float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()), 1e-3)
-
-
-@dataclass
-class LoadedRun:
-    scene_path: Path
-    config: TrainConfig
-    gaussians: Gaussians
-    step: int
-    train_seconds: float
-
-
-def is_run_folder(path: Path) -> bool:
-    """Whether a folder holds a reconstruction run (its config or checkpoint)."""
-    return (path / "config.json").is_file() or (path / "checkpoint.pt").is_file()
-
-
-def run_checkpoint(run_dir: str | Path) -> Path:
-    """The checkpoint file of a run directory; a SceneFormatError if there is none."""
-    path = Path(run_dir) / "checkpoint.pt"
-    if not path.is_file():
-        raise SceneFormatError(path, None, "no checkpoint: not a reconstruction run directory")
-    return path
-
-
-def read_checkpoint(path: Path) -> dict:
-    """A checkpoint's contents; a SceneFormatError naming the file if it is cut short or not one."""
-    try:
-        ckpt = torch.load(path, weights_only=False)
-    except Exception as exc:  # torch.load raises whatever its zip reader or unpickler meets
-        first_line = (str(exc).splitlines() or [type(exc).__name__])[0]
-        raise SceneFormatError(path, None, f"corrupt or truncated checkpoint ({first_line})") from None
-    keys = ("scene_path", "config", "step", "train_seconds", "gaussians")
-    missing = [k for k in keys if k not in ckpt] if isinstance(ckpt, dict) else list(keys)
-    if missing:
-        raise SceneFormatError(path, None, f"corrupt checkpoint: it has no {', '.join(missing)}")
-    return ckpt
-
-
-def load_run(run_dir: Path) -> LoadedRun:
-    """The last checkpoint of a run directory (for evaluation)."""
-    ckpt_path = run_checkpoint(run_dir)
-    ckpt = read_checkpoint(ckpt_path)
-    return LoadedRun(
-        Path(ckpt["scene_path"]),
-        TrainConfig.from_json(ckpt["config"], ckpt_path),
-        Gaussians.from_state_dict(ckpt["gaussians"]),
-        int(ckpt["step"]),
-        float(ckpt["train_seconds"]),
-    )
-
-
-def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
-    """Evaluate a finished (or checkpointed) run: writes ``metrics.json`` and ``renders/``; returns the metrics."""
-    from tacsplat.datasets import Scene
-
-    run = load_run(Path(run_dir))
-    scene = Scene.load(run.scene_path)
-    test = scene.split("test")
-    backend = backend or run.config.backend
-    ground_truth = load_ground_truth(scene, test, gt_path)
-    metrics = evaluate_views(
-        run.gaussians, scene, test, run.config.background, backend, ground_truth, Path(run_dir) / "renders"
-    )
-    if ground_truth is None:
-        log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
-    result = {
-        **metrics,
-        "train_seconds": run.train_seconds,
-        "iterations": run.step,
-        "num_gaussians": len(run.gaussians),
-        "num_touch_gaussians": run.gaussians.num_touch,
-        "num_test_views": len(test),
-        "variant": run.config.variant,
-        "gt_source": ground_truth.source if ground_truth else None,
-        "gt_radius": ground_truth.radius if ground_truth else None,
-        "scene": str(run.scene_path),
-        "settings": run.config.to_json(),
-    }
-    result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
-    (Path(run_dir) / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
-    return result
-
-
-def _json_default(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -692,49 +450,6 @@ class Trainer:
         return self.gaussians
 
 
-def cut_progress(path: Path, step: int) -> None:
-    """Keep the rows of ``progress.csv`` up to ``step`` (a resumed checkpoint's): later ones are redone."""
-    rows = []
-    if path.is_file():
-        with path.open(newline="") as fh:
-            rows = [r for r in csv.reader(fh)][1:]
-    kept = [r for r in rows if r and r[0].isdigit() and int(r[0]) <= step]
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as fh:
-        csv.writer(fh).writerows([PROGRESS_COLUMNS, *kept])
-    tmp.replace(path)
-
-
-def read_progress(path: Path) -> dict[str, np.ndarray]:
-    with Path(path).open() as fh:
-        rows = list(csv.DictReader(fh))
-    return {k: np.array([float(r[k]) for r in rows]) for k in PROGRESS_COLUMNS}
-
-
-def plot_error_vs_time(progress_path: Path, png_path: Path) -> None:
-    """CD and PSNR of the held-out views against run time (seconds excluding evaluation)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    data = read_progress(progress_path)
-    fig, (ax_cd, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
-    ax_cd.plot(data["seconds"], data["cd"], "o-", color="tab:red")
-    ax_cd.set_xlabel("run time [s] (evaluation excluded)")
-    ax_cd.set_ylabel("Chamfer distance [x GT radius]")
-    ax_cd.set_title("geometry error")
-    ax_psnr.plot(data["seconds"], data["psnr"], "o-", color="tab:blue")
-    ax_psnr.set_xlabel("run time [s] (evaluation excluded)")
-    ax_psnr.set_ylabel("held-out PSNR [dB]")
-    ax_psnr.set_title("image error")
-    for ax in (ax_cd, ax_psnr):
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(png_path, dpi=100)
-    plt.close(fig)
-
-
 def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig, resume: bool = False,
                 show_progress: bool = True, iterations_override: int | None = None, overwrite: bool = False) -> dict:
     """Train on a scene directory and evaluate the result; returns the metrics written to ``metrics.json``.
@@ -753,62 +468,18 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
     if resume and overwrite:
         raise ConfigError("--overwrite", "replaces a run, --resume continues it: choose one")
     config.validate()
-    _check_run_folder(out_dir, resume, overwrite, locked=False)
+    check_run_folder(out_dir, resume, overwrite, locked=False)
     scene = Scene.load(scene_path)
     with claim_output_dir(out_dir, "--out"):
-        _check_run_folder(out_dir, resume, overwrite, locked=True)
+        check_run_folder(out_dir, resume, overwrite, locked=True)
         if resume:
-            config = TrainConfig.from_json(_read_json(out_dir / "config.json"), out_dir / "config.json")
+            config = TrainConfig.from_json(read_json(out_dir / "config.json"), out_dir / "config.json")
             if iterations_override is not None:
                 config.iterations = iterations_override
                 config.validate({"iterations": "--iterations"})
         elif overwrite:
-            _remove_run_files(out_dir)
+            remove_run_files(out_dir)
         Trainer(scene, out_dir, config).run(resume=resume, show_progress=show_progress)
         return evaluate_run(out_dir)
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ConfigError("config", f"unreadable: {exc}", path) from None
-    if not isinstance(data, dict):
-        raise ConfigError("config", "expected a JSON object", path)
-    return data
-
-
-def _check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> None:
-    """Refuse an ``--out`` that is neither new, empty, nor (with ``resume``/``overwrite``) an earlier run.
-
-    Before the lock (``locked=False``) only what no other job can change is
-    refused (a folder of someone else's files, a resume of no run), so that no
-    folder or lock file is made for nothing; the rest is decided under the lock.
-    """
-    from tacsplat.datasets.outputs import LOCK_NAME
-
-    entries = sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME) if out.is_dir() else []
-    is_run = is_run_folder(out)
-    if entries and not is_run:
-        shown = ", ".join(entries[:5]) + (f" and {len(entries) - 5} more" if len(entries) > 5 else "")
-        raise ConfigError("--out", f"{out} holds files that are not a reconstruction run ({shown}); choose a new "
-                          "or empty folder")
-    if (locked or not is_run) and resume and not (out / "checkpoint.pt").is_file():
-        again = "; pass --overwrite to start it again" if is_run else ""
-        raise ConfigError("--resume", f"{out} has no checkpoint.pt: no checkpoint to resume{again}")
-    if locked and is_run and not (resume or overwrite):
-        raise ConfigError("--out", f"{out} already holds a reconstruction run; pass --resume to continue it or "
-                          "--overwrite to replace it")
-
-
-def _remove_run_files(out: Path) -> None:
-    """Delete an earlier run's files (RUN_FILES and renders/view_*.png); anything else stays."""
-    for name in RUN_FILES:
-        (out / name).unlink(missing_ok=True)
-    renders = out / RENDERS
-    if renders.is_dir():
-        for p in renders.iterdir():
-            if RENDER_FILE.fullmatch(p.name) and p.is_file():
-                p.unlink()
-        if not any(renders.iterdir()):
-            renders.rmdir()

@@ -1,5 +1,5 @@
-"""`tacsplat` subcommands of tacsplat.sim: simulate-touches, bench sim (see tacsplat.cli; sim-capture is in
-tacsplat.acquisition, which runs it through the same logger as real captures)."""
+"""`tacsplat simulate-touches` (see tacsplat.cli; sim-capture is in tacsplat.acquisition, which runs it through
+the same logger as real captures)."""
 
 from __future__ import annotations
 
@@ -18,26 +18,10 @@ def register(cli) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_simulate_touches)
 
-    p = cli.command(
-        "bench sim",
-        help="simulator error against run time: tactile depth vs ray-grid resolution, penetration vs timestep",
-    )
-    p.add_argument("--out", default="bench-output/sim", help="folder for sim.json, sim.md and sim.png")
-    p.add_argument("--quick", action="store_true", help="fewer resolutions and timesteps")
-    p.set_defaults(func=_bench_sim)
-
 
 def _simulate_touches(args) -> int:
     from tacsplat.sim.capture import simulate_touches
 
     target = simulate_touches(args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed)
     print(f"touches written to {target}")
-    return 0
-
-
-def _bench_sim(args) -> int:
-    from tacsplat.sim.bench import run_bench
-
-    report = run_bench(args.out, quick=args.quick)
-    print(report)
     return 0

@@ -17,18 +17,19 @@ import logging
 import sys
 
 from tacsplat import __version__
-from tacsplat.errors import ConfigError, TacsplatError
+from tacsplat.errors import TacsplatError
 
 COMMAND_MODULES = (
     "tacsplat.datasets.cli",
     "tacsplat.reconstruction.cli",
-    "tacsplat.reconstruction.bench_rasterizer",
     "tacsplat.sim.cli",
     "tacsplat.drivers.cli",
     "tacsplat.acquisition.cli",
-    "tacsplat.demo",
-    "tacsplat.paper_bench",
-    "tacsplat.touch_bench",
+    "tacsplat.apps.demo",
+    "tacsplat.apps.paper_bench",
+    "tacsplat.apps.touch_bench",
+    "tacsplat.apps.bench_rasterizer",
+    "tacsplat.apps.bench_sim",
 )
 
 GROUP_HELP = {
@@ -36,14 +37,6 @@ GROUP_HELP = {
     "bench": "benchmarks: error and run time, medians and ratios against a reference",
     "calibrate": "calibrate real devices (wrist camera, tactile sensors)",
 }
-
-
-def comma_separated_ints(text: str, option: str) -> tuple[int, ...]:
-    """The integers of an option like ``--seeds 0,1,2``; a ConfigError naming ``option`` otherwise."""
-    try:
-        return tuple(int(x) for x in text.split(",") if x.strip())
-    except ValueError:
-        raise ConfigError(option, f"expected comma-separated integers, got {text!r}") from None
 
 
 class CommandTree:

@@ -61,7 +61,8 @@ def test_scripted_session_writes_a_valid_scene_that_reconstruction_opens(tmp_pat
 
     # opens in the reconstruction job: initialisation puts a touch Gaussian at each (thinned) touch point
     from tacsplat.reconstruction.initialization import InitConfig
-    from tacsplat.reconstruction.trainer import TrainConfig, Trainer
+    from tacsplat.reconstruction.config import TrainConfig
+    from tacsplat.reconstruction.trainer import Trainer
 
     trainer = Trainer(scene, tmp_path / "run", TrainConfig(iterations=1, backend="torch",
                                                            init=InitConfig(use_sfm=False, num_random_points=200)))

@@ -4,7 +4,6 @@ opens, naming the option and both values; the scene is left byte for byte as it 
 
 import io
 import json
-import os
 import shutil
 import sys
 from pathlib import Path
@@ -14,7 +13,6 @@ import pytest
 import trimesh
 import yaml
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 from tacsplat.acquisition.config import example_rig, load_rig  # noqa: E402
 from tacsplat.acquisition.session import run_capture  # noqa: E402

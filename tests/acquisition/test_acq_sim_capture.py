@@ -2,7 +2,6 @@
 session and the unattended job write the same scene, and a grasp cut short is redone identically."""
 
 import io
-import os
 import sys
 from pathlib import Path
 
@@ -11,7 +10,6 @@ import pytest
 import trimesh
 import yaml
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 from tacsplat.acquisition.config import load_rig  # noqa: E402
 from tacsplat.acquisition.session import run_capture  # noqa: E402

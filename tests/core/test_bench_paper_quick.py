@@ -2,17 +2,15 @@
 
 from __future__ import annotations
 
-import os
 
 import pytest
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(3600)
 def test_bench_paper_quick_full_beats_vanilla_3dgs(tmp_path):
-    from tacsplat.paper_bench import PaperBench, PaperBenchConfig
+    from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
 
     config = PaperBenchConfig.quick()
     rows = PaperBench(tmp_path, config).run(progress=False)

@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from tacsplat import paper_bench
+from tacsplat.apps import paper_bench
 from tacsplat.errors import ConfigError
-from tacsplat.paper_bench import PaperBench, PaperBenchConfig, variant_overrides
-from tacsplat.report import (
+from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig, variant_overrides
+from tacsplat.apps.report import (
     RESULT_COLUMNS,
     best_rows,
     markdown_table,
@@ -23,7 +23,7 @@ from tacsplat.report import (
     render_grid,
     write_results_csv,
 )
-from tacsplat.touch_bench import subsample_touches, summarise, write_touch_report
+from tacsplat.apps.touch_bench import subsample_touches, summarise, write_touch_report
 
 
 def synthetic_rows() -> list[dict]:
@@ -125,7 +125,7 @@ def _finish(run, cd: float) -> None:
     run.out.mkdir(parents=True, exist_ok=True)
     (run.out / "metrics.json").write_text(json.dumps(
         {"cd": cd, "psnr": 20.0, "ssim": 0.8, "train_seconds": 5.0, "num_gaussians": 100}))
-    from tacsplat.reconstruction.trainer import PROGRESS_COLUMNS
+    from tacsplat.reconstruction.run_dir import PROGRESS_COLUMNS
 
     rows = [{"iteration": 0, "seconds": 0.0, "psnr": 10, "cd": 0.1}, {"iteration": 100, "seconds": 5.0, "psnr": 20, "cd": cd}]
     lines = [",".join(PROGRESS_COLUMNS)] + [",".join(str(r.get(k, 0)) for k in PROGRESS_COLUMNS) for r in rows]
@@ -219,7 +219,7 @@ def test_touch_summary_and_plot(tmp_path):
 
 
 def test_full_vs_vanilla_sentence():
-    from tacsplat.paper_bench import full_vs_vanilla
+    from tacsplat.apps.paper_bench import full_vs_vanilla
 
     text = full_vs_vanilla(synthetic_rows(), "minimal")
     assert "lower CD on 2 of 2 objects" in text and "0.0055 vs 0.0250" in text

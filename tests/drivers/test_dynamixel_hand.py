@@ -14,7 +14,9 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from tacsplat.drivers import DynamixelHand, Hand, HandCalibration
+from tacsplat.drivers import Hand
+from tacsplat.drivers.calibration import HandCalibration
+from tacsplat.drivers.dynamixel_hand import DynamixelHand
 from tacsplat.drivers.calibration import RAD_PER_TICK
 from tacsplat.drivers.dxl_emulator import DxlEmulator, crc16, stuff, unstuff
 from tacsplat.drivers.dynamixel_hand import DynamixelHandConfig, ServoError

@@ -15,7 +15,7 @@ import torch
 
 from tacsplat.datasets import SceneMeta, SceneWriter, SensorModel
 from tacsplat.geometry import invert_pose, look_at, make_pose, matrix_to_quat_wxyz
-from tacsplat.reconstruction.rasterization import rasterization
+from tacsplat.reconstruction.raster.rendering import rasterization
 from tacsplat.types import CameraIntrinsics
 
 RADIUS = 0.05  # metres, sphere centred at the origin

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.bench_rasterizer import _time_backend, parse_size, random_scene
+from tacsplat.apps.bench_rasterizer import _time_backend, parse_size, random_scene
 
 
 def test_parse_size():

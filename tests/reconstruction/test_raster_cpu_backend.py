@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from tacsplat.reconstruction import rasterization
-from tacsplat.reconstruction.bench_rasterizer import random_scene
+from tacsplat.reconstruction.raster import rasterization
+from tacsplat.apps.bench_rasterizer import random_scene
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -202,8 +202,8 @@ def test_cpu_falls_back_to_torch_projection_for_antialiasing_and_camera_gradient
 
 def test_parallel_binning_matches_the_reference_tile_lists():
     # enough Gaussians for several chunks of the parallel counting sort, two cameras
-    from tacsplat.reconstruction.raster_cpu import bin_gaussians
-    from tacsplat.reconstruction.raster_torch import project_gaussians, tile_intersections
+    from tacsplat.reconstruction.raster.cpu_composite import bin_gaussians
+    from tacsplat.reconstruction.raster.reference import project_gaussians, tile_intersections
 
     scene = random_scene(20000, 64, 48, n_cams=2, sh_degree=0, seed=12)
     proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
@@ -229,8 +229,8 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     # the backward reads exp(-exponent) back from the forward; a tile whose pairs did not fit recomputes them
     import numpy as np
 
-    from tacsplat.reconstruction import raster_cpu as rc
-    from tacsplat.reconstruction.raster_torch import project_gaussians
+    from tacsplat.reconstruction.raster import cpu_composite as rc
+    from tacsplat.reconstruction.raster.reference import project_gaussians
 
     width, height, n = 40, 30, 300
     scene = random_scene(n, width, height, sh_degree=0, seed=13)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction import rasterization
+from tacsplat.reconstruction.raster import rasterization
 
 BACKENDS = ("torch", "cpu")
 WIDTH, HEIGHT = 20, 14

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction import rasterization
-from tacsplat.reconstruction.bench_rasterizer import random_scene
-from tacsplat.reconstruction.raster_torch import _composite_tile, project_gaussians
-from tacsplat.reconstruction.spherical_harmonics import sh_basis
+from tacsplat.reconstruction.raster import rasterization
+from tacsplat.apps.bench_rasterizer import random_scene
+from tacsplat.reconstruction.raster.reference import _composite_tile, project_gaussians
+from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
 
 
 def _single_gaussian(opacity: float, scale: float, z: float, dtype=torch.float64):

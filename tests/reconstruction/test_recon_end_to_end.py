@@ -1,7 +1,6 @@
 """End to end: a synthetic sphere scene is reconstructed; unneeded paths are skipped; resume is exact; CLI."""
 
 import csv
-import importlib
 import json
 import sys
 from pathlib import Path
@@ -18,12 +17,13 @@ from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.gaussians import quats_to_rotmats
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.ply import load_ply
-from tacsplat.reconstruction.trainer import TrainConfig, Trainer, reconstruct
+from tacsplat.reconstruction.config import TrainConfig
+from tacsplat.reconstruction.trainer import Trainer, reconstruct
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import RADIUS, build_sphere_scene  # noqa: E402
 
-raster = importlib.import_module("tacsplat.reconstruction.rasterization")
+from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 
 
 @pytest.fixture(scope="module")

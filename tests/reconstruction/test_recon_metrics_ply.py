@@ -114,7 +114,7 @@ def test_ply_without_from_touch_loads_as_vision_gaussians_and_bad_files_name_the
 
 
 def test_background_is_fitted_to_a_smooth_border_and_black_for_a_cluttered_one():
-    from tacsplat.reconstruction.evaluation import background_image
+    from tacsplat.reconstruction.views import background_image
 
     h, w = 40, 50
     v = np.linspace(0, 1, h)[:, None, None]

@@ -17,7 +17,8 @@ import pytest
 import torch
 
 from tacsplat.cli import main
-from tacsplat.reconstruction.trainer import Trainer, load_run
+from tacsplat.reconstruction.run_dir import load_run
+from tacsplat.reconstruction.trainer import Trainer
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import build_sphere_scene  # noqa: E402
@@ -151,7 +152,7 @@ def test_a_signal_checkpoints_the_step_reached_and_resume_matches_a_straight_run
 
 def test_resume_after_a_crash_drops_the_progress_rows_after_the_checkpoint(scene, tmp_path, monkeypatch):
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.trainer import TrainConfig
+    from tacsplat.reconstruction.config import TrainConfig
 
     config = TrainConfig(iterations=10, sh_degree=0, backend="cpu", lambda_s=0.0, eval_every_iters=2,
                          eval_every_seconds=1e9, checkpoint_every=4)

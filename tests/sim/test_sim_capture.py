@@ -1,8 +1,6 @@
 """The sim-capture command (through the acquisition logger) and simulate-touches (tacsplat.sim.capture)."""
 
-import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

@@ -1,8 +1,6 @@
 """Longer simulator runs (marked slow: `make bench-quick` runs the quick one)."""
 
-import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import json  # noqa: E402
 
@@ -10,7 +8,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import trimesh  # noqa: E402
 
-from tacsplat.sim.bench import run_bench  # noqa: E402
+from tacsplat.apps.bench_sim import run_bench  # noqa: E402
 from tacsplat.sim.grasps import DEFAULT_PENETRATION_BOUND_M, generate_grasps  # noqa: E402
 from tacsplat.sim.objects import OBJECT_NAMES  # noqa: E402
 from tacsplat.sim.twin import SimTwin, TwinConfig  # noqa: E402

@@ -1,8 +1,6 @@
 """The MuJoCo twin: Protocols, cameras against the ground-truth mesh, touches on the surface, stable physics."""
 
-import os
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402

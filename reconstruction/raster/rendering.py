@@ -3,9 +3,9 @@
 Same signature and return values as ``gsplat.rasterization`` for the arguments
 tacsplat uses, so that gsplat itself is a drop-in backend on CUDA:
 
-* ``torch``: pure-PyTorch reference (:mod:`.raster_torch`), autograd backward; the oracle.
+* ``torch``: pure-PyTorch reference (:mod:`.reference`), autograd backward; the oracle.
 * ``cpu``: numba kernels with hand-written backward for projection + SH
-  (:mod:`.raster_cpu_project`) and tile compositing (:mod:`.raster_cpu`);
+  (:mod:`.cpu_project`) and tile compositing (:mod:`.cpu_composite`);
   float32 only. The torch projection is used instead for antialiased mode or
   when viewmats / Ks require gradients.
 * ``gsplat``: the gsplat package, when CUDA and gsplat are present.
@@ -23,8 +23,8 @@ import torch
 from torch import Tensor
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction.raster_torch import Projection, project_gaussians, rasterize_to_pixels_torch
-from tacsplat.reconstruction.spherical_harmonics import num_sh_bases, spherical_harmonics
+from tacsplat.reconstruction.raster.reference import Projection, project_gaussians, rasterize_to_pixels_torch
+from tacsplat.reconstruction.raster.spherical_harmonics import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 BACKENDS = ("auto", "torch", "cpu", "gsplat")
@@ -155,7 +155,7 @@ def rasterization(
     chosen = _choose_backend(backend, means)
 
     if chosen == "gsplat":
-        from tacsplat.reconstruction.raster_gsplat import rasterization_gsplat
+        from tacsplat.reconstruction.raster.gsplat_backend import rasterization_gsplat
 
         return rasterization_gsplat(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
@@ -172,7 +172,7 @@ def rasterization(
     cameras_need_grad = viewmats.requires_grad or Ks.requires_grad
     if chosen == "cpu" and rasterize_mode == "classic" and not cameras_need_grad:
         # fused numba projection and SH with hand-written backward
-        from tacsplat.reconstruction.raster_cpu_project import project_gaussians_cpu, sh_colors_cpu
+        from tacsplat.reconstruction.raster.cpu_project import project_gaussians_cpu, sh_colors_cpu
 
         means2d, conics, depths, radii = project_gaussians_cpu(
             means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, radius_clip
@@ -206,7 +206,7 @@ def rasterization(
             bg = torch.cat([bg, torch.zeros_like(bg[:, :1])], dim=-1)
 
     if chosen == "cpu":
-        from tacsplat.reconstruction.raster_cpu import rasterize_to_pixels_cpu
+        from tacsplat.reconstruction.raster.cpu_composite import rasterize_to_pixels_cpu
 
         render_colors, render_alphas, stats = rasterize_to_pixels_cpu(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,

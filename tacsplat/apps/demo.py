@@ -18,7 +18,7 @@ DEMO_OBJECT = "teapot"
 
 def demo_config(object_name: str = DEMO_OBJECT, resolution: int = 128, iterations: int = 1200):
     """The :class:`PaperBenchConfig` of the demo: one object, minimal views, 3dgs and full."""
-    from tacsplat.paper_bench import PaperBenchConfig
+    from tacsplat.apps.paper_bench import PaperBenchConfig
 
     return PaperBenchConfig(objects=(object_name,), settings=("minimal",), variants=("3dgs", "full"),
                             resolution=resolution, iterations=iterations, test_views=8)
@@ -34,7 +34,7 @@ def register(cli) -> None:
 
 
 def run(args) -> int:
-    from tacsplat.paper_bench import PaperBench
+    from tacsplat.apps.paper_bench import PaperBench
 
     started = time.perf_counter()
     bench = PaperBench(Path(args.out), demo_config(args.object, args.resolution, args.iterations))

@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from tacsplat.cli import comma_separated_ints
+from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
-from tacsplat.report import VARIANTS
+from tacsplat.apps.report import VARIANTS
 
 log = logging.getLogger(__name__)
 
@@ -156,7 +156,8 @@ class PaperBench:
 
     def train(self, run: Run) -> dict:
         """One reconstruction (continued from its checkpoint if one exists); returns its metrics."""
-        from tacsplat.reconstruction.trainer import TrainConfig, reconstruct
+        from tacsplat.reconstruction.config import TrainConfig
+        from tacsplat.reconstruction.trainer import reconstruct
 
         if run.done:
             return json.loads((run.out / "metrics.json").read_text())
@@ -217,7 +218,7 @@ def _fmt(value, decimals: int) -> str:
 
 def full_vs_vanilla(rows: list[dict], setting: str) -> str:
     """One sentence: on how many objects the full method's CD is below vanilla 3DGS's, and the average ratio."""
-    from tacsplat.report import metric_table
+    from tacsplat.apps.report import metric_table
 
     objects, variants, values = metric_table(rows, "cd", setting)
     if "full" not in variants or "3dgs" not in variants:
@@ -236,8 +237,9 @@ def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarra
     import torch
 
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.evaluation import background_image, render_view
-    from tacsplat.reconstruction.trainer import load_run
+    from tacsplat.reconstruction.evaluation import render_view
+    from tacsplat.reconstruction.run_dir import load_run
+    from tacsplat.reconstruction.views import background_image
 
     scene = Scene.load(runs[0].scene)
     frame = scene.split("test")[0]
@@ -256,14 +258,14 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
                        wall_seconds: float | None = None, figures: bool = True) -> None:
     """Write ``results.csv``, ``report.md`` and (``figures``) CD bar charts, error-vs-time curves and render
     grids into ``out``; without figures, report.md holds the tables only."""
-    from tacsplat.report import (
+    from tacsplat.apps.report import (
         markdown_table,
         plot_cd_bars,
         plot_error_vs_time,
         render_grid,
         write_results_csv,
     )
-    from tacsplat.reconstruction.trainer import read_progress
+    from tacsplat.reconstruction.run_dir import read_progress
 
     out = Path(out)
     write_results_csv(rows, out / "results.csv")

@@ -1,6 +1,6 @@
 """The fast CPU backend: tile-based compositing in numba with a hand-written backward.
 
-Same maths as :func:`raster_torch.rasterize_to_pixels_torch` (float32):
+Same maths as :func:`.reference.rasterize_to_pixels_torch` (float32):
 
 1. binning -- each visible Gaussian covers the 16x16 tiles its box (``radii``)
    touches; Gaussians are ordered by one 64-bit key (depth bits, index) and a
@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from tacsplat.reconstruction.raster_torch import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD
+from tacsplat.reconstruction.raster.reference import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD
 
 F32 = np.float32
 _HALF = F32(0.5)

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tacsplat.cli import comma_separated_ints
+from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -134,7 +134,8 @@ class TouchBench:
     def run(self, progress: bool = True) -> list[dict]:
         from tqdm import tqdm
 
-        from tacsplat.reconstruction.trainer import TrainConfig, reconstruct
+        from tacsplat.reconstruction.config import TrainConfig
+        from tacsplat.reconstruction.trainer import reconstruct
 
         c = self.config
         jobs = [(seed, n) for seed in c.seeds for n in c.touch_counts]
@@ -183,7 +184,7 @@ def summarise(rows: list[dict]) -> list[dict]:
 
 def write_touch_report(out: str | Path, rows: list[dict]) -> dict[str, Path]:
     """``touches.csv``, ``summary.csv`` and ``cd_vs_touches.png`` (mean +- std over seeds, each run a dot)."""
-    from tacsplat.report import pyplot, save_figure
+    from tacsplat.apps.report import pyplot, save_figure
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

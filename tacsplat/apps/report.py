@@ -139,7 +139,7 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     """CD (top) and PSNR (bottom) against run time, one column per object, one line per variant.
 
     ``curves[object][variant]`` holds a run's ``seconds``, ``cd`` and ``psnr`` arrays
-    (:func:`tacsplat.reconstruction.trainer.read_progress`).
+    (:func:`tacsplat.reconstruction.run_dir.read_progress`).
     """
     plt = pyplot()
     objects = list(curves)

@@ -1,6 +1,6 @@
 """Projection and SH colour of the ``cpu`` backend: numba kernels with hand-written backward.
 
-The maths is :func:`raster_torch.project_gaussians` (classic mode) and
+The maths is :func:`.reference.project_gaussians` (classic mode) and
 :func:`spherical_harmonics.spherical_harmonics` + gsplat's ``max(value + 0.5, 0)``,
 fused per (camera, Gaussian) and computed in float64 registers. Gradients flow
 to means, quats, scales and SH coefficients (not to the cameras: the caller
@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from tacsplat.reconstruction.raster_torch import ALPHA_THRESHOLD, FOV_CLAMP, GAUSSIAN_EXTEND
-from tacsplat.reconstruction.spherical_harmonics import SH_C0, SH_C1, SH_C2, SH_C3
+from tacsplat.reconstruction.raster.reference import ALPHA_THRESHOLD, FOV_CLAMP, GAUSSIAN_EXTEND
+from tacsplat.reconstruction.raster.spherical_harmonics import SH_C0, SH_C1, SH_C2, SH_C3
 
 _C2_0, _C2_1, _C2_2, _C2_3, _C2_4 = SH_C2
 _C3_0, _C3_1, _C3_2, _C3_3, _C3_4, _C3_5, _C3_6 = SH_C3

@@ -82,7 +82,7 @@ def _time_backend(scene: dict, backend: str, repeats: int) -> dict:
     """Median wall times (ms) of forward and forward+backward after one warm-up run (none when repeats=0)."""
     import time
 
-    from tacsplat.reconstruction import rasterization
+    from tacsplat.reconstruction.raster import rasterization
 
     params = {k: scene[k].detach().clone().requires_grad_(True) for k in PARAMS}
     others = {k: v for k, v in scene.items() if k not in PARAMS}
@@ -130,7 +130,7 @@ def memory_worker(width: int, height: int, n: int) -> dict:
     ``peak_over_baseline_mb`` is the peak minus the resident memory after the imports and the
     scene were made (it includes loading the cached kernels).
     """
-    import tacsplat.reconstruction.raster_cpu  # noqa: F401  (imports numba and torch before the baseline)
+    import tacsplat.reconstruction.raster.cpu_composite  # noqa: F401  (imports numba and torch before the baseline)
 
     scene = random_scene(n, width, height, sh_degree=3, seed=0)
     baseline = _vm_kib("VmRSS")
@@ -160,7 +160,7 @@ def _in_subprocess(call: str, env_extra: dict | None = None) -> dict:
     import subprocess
     import sys
 
-    code = f"import json; from tacsplat.reconstruction import bench_rasterizer as b; print(json.dumps(b.{call}))"
+    code = f"import json; from tacsplat.apps import bench_rasterizer as b; print(json.dumps(b.{call}))"
     env = dict(os.environ, **(env_extra or {}))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     if out.returncode != 0:

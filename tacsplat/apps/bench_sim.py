@@ -159,3 +159,19 @@ def run_bench(out: str | Path, quick: bool = False) -> str:
     (out / "sim.md").write_text(report)
     _plot(tactile, physics, out / "sim.png")
     return report
+
+
+def register(cli) -> None:
+    """Add ``tacsplat bench sim`` to the command tree."""
+    p = cli.command(
+        "bench sim",
+        help="simulator error against run time: tactile depth vs ray-grid resolution, penetration vs timestep",
+    )
+    p.add_argument("--out", default="bench-output/sim", help="folder for sim.json, sim.md and sim.png")
+    p.add_argument("--quick", action="store_true", help="fewer resolutions and timesteps")
+    p.set_defaults(func=_bench_sim)
+
+
+def _bench_sim(args) -> int:
+    print(run_bench(args.out, quick=args.quick))
+    return 0

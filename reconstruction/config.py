@@ -1,0 +1,149 @@
+"""Training settings: :class:`TrainConfig` (its ranges checked by :meth:`TrainConfig.validate`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from tacsplat.errors import ConfigError
+from tacsplat.reconstruction.densification import DensifyStrategy
+from tacsplat.reconstruction.initialization import InitConfig
+from tacsplat.reconstruction.raster.rendering import BACKENDS
+
+
+@dataclass
+class TrainConfig:
+    """Training settings; defaults aim at a 5-view 200x200 object in minutes on 2 CPU cores."""
+
+    iterations: int = 2000
+    seed: int = 0
+    sh_degree: int = 3  # maximum SH degree (0 for a Lambertian scene)
+    sh_degree_interval: int = 400  # one more SH band every this many steps
+    train_views: int | None = None  # use only the first K training views (None = all)
+    backend: str = "auto"  # rasterization backend: auto | torch | cpu | gsplat
+    torch_threads: int | None = 1  # torch intra-op threads while training (the cpu backend's kernels run
+    # their own threads; one torch thread avoids oversubscribing a small machine); None = torch's default
+    background: tuple[float, float, float] | None = None  # None: a smooth backdrop fitted to each image's border
+    # loss weights (paper Sec. 4.2)
+    ssim_weight: float = 0.2
+    lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
+    lambda_s: float = 2.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
+    lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
+    backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
+    use_touch: bool = True  # False: no touch Gaussians and no L_T (the "3DGS" / "+S" variants)
+    # transmittance (Sec. 4.2.1)
+    touch_top_k: int = 8  # most influential G_t per touch point
+    touch_candidates: int = 32  # nearest G_t fetched from the k-d tree per touch point
+    touch_max_distance: float = 0.005  # metres: Gaussians farther from the point are ignored
+    touch_rebuild_every: int = 50  # steps between k-d tree rebuilds (and after every densification)
+    touch_points_per_step: int = 512  # random subset of touch points in L_T per step (0 = all)
+    touch_loss_moves_shape: bool = False  # False: L_T moves means and opacities only (the effect Sec. 4.2.1
+    # describes); True: also scales and rotations, which L_T rewards for growing around the touch point
+    # smoothness (Sec. 4.2.2)
+    smoothness_depth: Literal["expected", "accumulated"] = "expected"  # the depth map D of Eq. 8: "expected"
+    # (Eq. 5 divided by alpha, inside the silhouette) or the paper's "accumulated" Eq. 5, whose gradients at the
+    # silhouette and in semi-transparent regions are alpha's rather than the surface's
+    smoothness_beta: float = 10.0  # edge sensitivity e^{-beta |dI|}
+    proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
+    occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
+    # Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
+    lr_means: float = 1.6e-4
+    lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
+    lr_quats: float = 1e-3
+    lr_scales: float = 5e-3
+    lr_opacities: float = 5e-2
+    lr_sh0: float = 2.5e-3
+    lr_shN: float = 2.5e-3 / 20
+    # progress evaluation and checkpoints
+    eval_every_iters: int = 250  # held-out PSNR and CD at least this often...
+    eval_every_seconds: float = 30.0  # ...and at least this often in run time
+    eval_max_views: int = 6  # test views used for progress rows (the final evaluation uses all)
+    checkpoint_every: int = 500
+    init: InitConfig = field(default_factory=InitConfig)
+    densify: DensifyStrategy = field(default_factory=DensifyStrategy)
+
+    @property
+    def variant(self) -> str:
+        touch = self.use_touch and self.lambda_t > 0
+        smooth = self.lambda_s > 0
+        return {(False, False): "3dgs", (False, True): "+S", (True, False): "+T", (True, True): "full"}[(touch, smooth)]
+
+    def validate(self, names: dict[str, str] | None = None) -> None:
+        """A ConfigError for the first setting out of its range, naming it (as ``names[field]`` when given,
+        e.g. the command-line option) and the range."""
+        problem = self.problem()
+        if problem:
+            raise ConfigError((names or {}).get(problem[0], problem[0]), problem[1])
+
+    def problem(self) -> tuple[str, str] | None:
+        """``(field, why)`` of the first setting out of its range, or None."""
+        for key, (lo, hi) in _INT_RANGES.items():
+            value = getattr(self, key)
+            if value is None and key in _OPTIONAL:
+                continue
+            if isinstance(value, bool) or not isinstance(value, int) or value < lo or (hi is not None and value > hi):
+                return key, f"must be an integer {_range_text(lo, hi)}, got {value!r}"
+        for key, (lo, hi) in _FLOAT_RANGES.items():
+            value = getattr(self, key)
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            if not ok or value < lo or (key in _POSITIVE and value == lo) or (hi is not None and value > hi):
+                return key, f"must be a finite number {_range_text(lo, hi, key in _POSITIVE)}, got {value!r}"
+        for key in ("use_touch", "touch_loss_moves_shape"):
+            if not isinstance(getattr(self, key), bool):
+                return key, f"must be true or false, got {getattr(self, key)!r}"
+        if self.background is not None and not (
+            len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
+        ):
+            return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
+        if self.smoothness_depth not in ("expected", "accumulated"):
+            return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
+        if self.backend not in BACKENDS:
+            return "backend", f"must be one of {BACKENDS}, got {self.backend!r}"
+        return None
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_json(cls, data: dict, source: str | Path | None = None) -> "TrainConfig":
+        """The config of ``to_json`` (a run's ``config.json``); a ConfigError naming ``source`` if it is not one."""
+        try:
+            data = dict(data)
+            init = InitConfig(**data.pop("init", {}))
+            densify = DensifyStrategy(**data.pop("densify", {}))
+            if data.get("background") is not None:
+                data["background"] = tuple(data["background"])
+            config = cls(**data, init=init, densify=densify)
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise ConfigError("config", f"not a training config: {exc}", source) from None
+        problem = config.problem()
+        if problem:
+            raise ConfigError(*problem, source)
+        return config
+
+
+# Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
+_INT_RANGES = {
+    "iterations": (1, None), "seed": (0, 2**32 - 1), "sh_degree": (0, 3), "sh_degree_interval": (1, None),
+    "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
+    "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
+    "eval_max_views": (1, None), "checkpoint_every": (1, None),
+}  # fmt: skip
+_OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
+_FLOAT_RANGES = {
+    "ssim_weight": (0.0, 1.0), "lambda_t": (0.0, None), "lambda_s": (0.0, None), "lambda_backdrop": (0.0, None),
+    "backdrop_tolerance": (0.0, None), "touch_max_distance": (0.0, None), "smoothness_beta": (0.0, None),
+    "proximity_sigma_px": (0.0, None), "occlusion_tolerance": (0.0, None), "lr_means": (0.0, None),
+    "lr_means_final_factor": (0.0, 1.0), "lr_quats": (0.0, None), "lr_scales": (0.0, None),
+    "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "eval_every_seconds": (0.0, None),
+}  # fmt: skip
+_POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
+
+
+def _range_text(lo, hi, exclusive: bool = False) -> str:
+    if hi is None:
+        return f"{'>' if exclusive else '>='} {lo}"
+    return f"{lo} to {hi}" + (f" (not {lo})" if exclusive else "")

@@ -1,0 +1,174 @@
+"""The run directory of a reconstruction: its files, checkpoint, progress log and plot.
+
+``tacsplat reconstruct`` writes, in one folder: ``config.json`` (the
+:class:`~tacsplat.reconstruction.config.TrainConfig`), ``checkpoint.pt`` (the
+last checkpoint: resumable), ``splat.ply``, ``progress.csv`` (iteration,
+seconds of run time excluding evaluation, each loss term averaged since the
+previous row, Gaussian count, held-out PSNR and CD), ``error_vs_time.png``,
+``metrics.json`` and ``renders/``. Anything else in the folder is someone
+else's and is never deleted.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.reconstruction.config import TrainConfig
+from tacsplat.reconstruction.gaussians import Gaussians
+
+# A run directory's own files (anything else in it is someone else's and is never deleted).
+RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "progress.csv",
+             "progress.csv.tmp", "error_vs_time.png", "metrics.json")
+RENDERS = "renders"
+RENDER_FILE = re.compile(r"view_\d{4,}\.png")
+
+PROGRESS_COLUMNS = (
+    "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "num_gaussians",
+    "psnr", "cd",
+)  # fmt: skip
+
+
+@dataclass
+class LoadedRun:
+    scene_path: Path
+    config: TrainConfig
+    gaussians: Gaussians
+    step: int
+    train_seconds: float
+
+
+def is_run_folder(path: Path) -> bool:
+    """Whether a folder holds a reconstruction run (its config or checkpoint)."""
+    return (path / "config.json").is_file() or (path / "checkpoint.pt").is_file()
+
+
+def run_checkpoint(run_dir: str | Path) -> Path:
+    """The checkpoint file of a run directory; a SceneFormatError if there is none."""
+    path = Path(run_dir) / "checkpoint.pt"
+    if not path.is_file():
+        raise SceneFormatError(path, None, "no checkpoint: not a reconstruction run directory")
+    return path
+
+
+def read_checkpoint(path: Path) -> dict:
+    """A checkpoint's contents; a SceneFormatError naming the file if it is cut short or not one."""
+    try:
+        ckpt = torch.load(path, weights_only=False)
+    except Exception as exc:  # torch.load raises whatever its zip reader or unpickler meets
+        first_line = (str(exc).splitlines() or [type(exc).__name__])[0]
+        raise SceneFormatError(path, None, f"corrupt or truncated checkpoint ({first_line})") from None
+    keys = ("scene_path", "config", "step", "train_seconds", "gaussians")
+    missing = [k for k in keys if k not in ckpt] if isinstance(ckpt, dict) else list(keys)
+    if missing:
+        raise SceneFormatError(path, None, f"corrupt checkpoint: it has no {', '.join(missing)}")
+    return ckpt
+
+
+def load_run(run_dir: Path) -> LoadedRun:
+    """The last checkpoint of a run directory (for evaluation)."""
+    ckpt_path = run_checkpoint(run_dir)
+    ckpt = read_checkpoint(ckpt_path)
+    return LoadedRun(
+        Path(ckpt["scene_path"]),
+        TrainConfig.from_json(ckpt["config"], ckpt_path),
+        Gaussians.from_state_dict(ckpt["gaussians"]),
+        int(ckpt["step"]),
+        float(ckpt["train_seconds"]),
+    )
+
+
+def cut_progress(path: Path, step: int) -> None:
+    """Keep the rows of ``progress.csv`` up to ``step`` (a resumed checkpoint's): later ones are redone."""
+    rows = []
+    if path.is_file():
+        with path.open(newline="") as fh:
+            rows = [r for r in csv.reader(fh)][1:]
+    kept = [r for r in rows if r and r[0].isdigit() and int(r[0]) <= step]
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as fh:
+        csv.writer(fh).writerows([PROGRESS_COLUMNS, *kept])
+    tmp.replace(path)
+
+
+def read_progress(path: Path) -> dict[str, np.ndarray]:
+    with Path(path).open() as fh:
+        rows = list(csv.DictReader(fh))
+    return {k: np.array([float(r[k]) for r in rows]) for k in PROGRESS_COLUMNS}
+
+
+def plot_error_vs_time(progress_path: Path, png_path: Path) -> None:
+    """CD and PSNR of the held-out views against run time (seconds excluding evaluation)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data = read_progress(progress_path)
+    fig, (ax_cd, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
+    ax_cd.plot(data["seconds"], data["cd"], "o-", color="tab:red")
+    ax_cd.set_xlabel("run time [s] (evaluation excluded)")
+    ax_cd.set_ylabel("Chamfer distance [x GT radius]")
+    ax_cd.set_title("geometry error")
+    ax_psnr.plot(data["seconds"], data["psnr"], "o-", color="tab:blue")
+    ax_psnr.set_xlabel("run time [s] (evaluation excluded)")
+    ax_psnr.set_ylabel("held-out PSNR [dB]")
+    ax_psnr.set_title("image error")
+    for ax in (ax_cd, ax_psnr):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(png_path, dpi=100)
+    plt.close(fig)
+
+
+def read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ConfigError("config", f"unreadable: {exc}", path) from None
+    if not isinstance(data, dict):
+        raise ConfigError("config", "expected a JSON object", path)
+    return data
+
+
+def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> None:
+    """Refuse an ``--out`` that is neither new, empty, nor (with ``resume``/``overwrite``) an earlier run.
+
+    Before the lock (``locked=False``) only what no other job can change is
+    refused (a folder of someone else's files, a resume of no run), so that no
+    folder or lock file is made for nothing; the rest is decided under the lock.
+    """
+    from tacsplat.datasets.outputs import LOCK_NAME
+
+    entries = sorted(p.name for p in out.iterdir() if p.name != LOCK_NAME) if out.is_dir() else []
+    is_run = is_run_folder(out)
+    if entries and not is_run:
+        shown = ", ".join(entries[:5]) + (f" and {len(entries) - 5} more" if len(entries) > 5 else "")
+        raise ConfigError("--out", f"{out} holds files that are not a reconstruction run ({shown}); choose a new "
+                          "or empty folder")
+    if (locked or not is_run) and resume and not (out / "checkpoint.pt").is_file():
+        again = "; pass --overwrite to start it again" if is_run else ""
+        raise ConfigError("--resume", f"{out} has no checkpoint.pt: no checkpoint to resume{again}")
+    if locked and is_run and not (resume or overwrite):
+        raise ConfigError("--out", f"{out} already holds a reconstruction run; pass --resume to continue it or "
+                          "--overwrite to replace it")
+
+
+def remove_run_files(out: Path) -> None:
+    """Delete an earlier run's files (RUN_FILES and renders/view_*.png); anything else stays."""
+    for name in RUN_FILES:
+        (out / name).unlink(missing_ok=True)
+    renders = out / RENDERS
+    if renders.is_dir():
+        for p in renders.iterdir():
+            if RENDER_FILE.fullmatch(p.name) and p.is_file():
+                p.unlink()
+        if not any(renders.iterdir()):
+            renders.rmdir()
