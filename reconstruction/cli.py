@@ -7,48 +7,32 @@ import shlex
 import sys
 from pathlib import Path
 
-# TrainConfig fields set by `reconstruct` options: errors name the option.
-OPTION_OF_FIELD = {
-    "iterations": "--iterations", "seed": "--seed", "sh_degree": "--sh-degree", "lambda_t": "--lambda-t",
-    "lambda_s": "--lambda-s", "smoothness_depth": "--smoothness-depth", "train_views": "--train-views",
-    "backend": "--backend",
-}  # fmt: skip
-
+from tacsplat.reconstruction.variants import DEFAULT_VARIANT, VARIANTS
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
     p = cli.command(
         "reconstruct",
         help="tactile-informed 3DGS: train on a scene directory and evaluate",
-        description="Optimise Gaussians on SCENE (paper variants: default = full; --no-touch = +S; "
-        "--no-smoothness = +T; both = vanilla 3DGS) and write a run directory: splat.ply, checkpoint.pt, "
-        "progress.csv, error_vs_time.png, metrics.json, renders/. Ctrl-C or SIGTERM stop after the current step "
-        "with a checkpoint (exit 130 or 143) and print the command that resumes.",
+        description="Optimise Gaussians on SCENE and write a run directory: splat.ply, checkpoint.pt, progress.csv, "
+        "error_vs_time.png, metrics.json, renders/. --variant picks a row of the paper's Table 3; every training "
+        "setting has its own option below (defaults as in TrainConfig). Ctrl-C or SIGTERM stop after the current "
+        "step with a checkpoint (exit 130 or 143) and print the command that resumes.",
     )
     p.add_argument("scene", help="scene directory")
     p.add_argument("--out", required=True,
                    help="run directory to write: new or empty, or an earlier run with --resume or --overwrite")
-    p.add_argument("--iterations", type=int, default=None,
-                   help="optimisation steps, >= 1 (unset: 2000, or the run's own with --resume)")
-    p.add_argument("--seed", type=int, default=0, help="random seed, 0 to 2^32 - 1")
-    p.add_argument("--sh-degree", type=int, default=3, choices=range(4), help="maximum SH degree")
-    p.add_argument("--lambda-t", type=float, default=None,
-                   help="weight of the transmittance loss L_T, >= 0 (unset: 0.5)")
-    p.add_argument("--lambda-s", type=float, default=None,
-                   help="weight of the edge-aware smoothness loss L_S, >= 0 (unset: 2.0)")
-    p.add_argument("--smoothness-depth", default=None, choices=("expected", "accumulated"),
-                   help="depth map of L_S: expected depth inside the silhouette (unset) or the paper's accumulated "
-                   "depth (Eq. 5)")
-    p.add_argument("--no-touch", action="store_true", help="no touch Gaussians and no L_T")
-    p.add_argument("--no-smoothness", action="store_true", help="no L_S (and no depth render)")
-    p.add_argument("--train-views", type=int, default=None, metavar="K",
-                   help="use only the first K >= 1 training views")
-    p.add_argument("--backend", default="auto", choices=("auto", "torch", "cpu", "gsplat"))
-    p.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    p.add_argument("--variant", default=DEFAULT_VARIANT, choices=list(VARIANTS),
+                   help="method variant: " + "; ".join(f"{v.name}: {v.description}" for v in VARIANTS.values())
+                   + ". Options given explicitly win over the variant's settings")
+    p.add_argument("--no-smoothness", action="store_true", help="no L_S and no depth render (same as --lambda-s 0)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its last checkpoint (with its own settings; only "
+                   "--iterations may change)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the earlier run in --out (its files only; other files stay)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_reconstruct)
+    p.set_defaults(func=_reconstruct, config_options=_add_config_options(p))
 
     e = cli.command("evaluate", help="evaluate a reconstruction run: PSNR, SSIM, Chamfer distance, renders")
     e.add_argument("run", help="run directory written by `tacsplat reconstruct`")
@@ -59,23 +43,26 @@ def register(cli) -> None:
     e.set_defaults(func=_evaluate)
 
 
-def config_from_args(args):
-    """The TrainConfig of `tacsplat reconstruct`'s options; a ConfigError naming the option out of range."""
+def _add_config_options(parser):
     from tacsplat.reconstruction.config import TrainConfig
+    from tacsplat.reconstruction.options import add_config_options
 
-    config = TrainConfig(seed=args.seed, sh_degree=args.sh_degree, backend=args.backend,
-                         train_views=args.train_views, use_touch=not args.no_touch)
-    if args.iterations is not None:
-        config.iterations = args.iterations
-    if args.lambda_t is not None:
-        config.lambda_t = args.lambda_t
-    if args.lambda_s is not None:
-        config.lambda_s = args.lambda_s
-    if args.smoothness_depth is not None:
-        config.smoothness_depth = args.smoothness_depth
+    return add_config_options(parser, TrainConfig)
+
+
+def config_from_args(args):
+    """The TrainConfig of `tacsplat reconstruct`'s options: the variant's fields, then every option given;
+    a ConfigError naming the option out of range."""
+    from tacsplat.reconstruction.config import TrainConfig
+    from tacsplat.reconstruction.options import apply_options, option_names
+    from tacsplat.reconstruction.variants import get_variant
+
+    variant = get_variant(args.variant, "--variant")
+    config = TrainConfig(**variant.overrides)
+    apply_options(config, args, args.config_options)
     if args.no_smoothness:
         config.lambda_s = 0.0
-    config.validate(OPTION_OF_FIELD)
+    config.validate(option_names(args.config_options))
     return config
 
 
@@ -83,8 +70,9 @@ def _reconstruct(args) -> int:
     from tacsplat.reconstruction.trainer import TrainingInterrupted, reconstruct
 
     try:
-        metrics = reconstruct(args.scene, args.out, config_from_args(args), resume=args.resume,
-                              show_progress=not args.quiet, iterations_override=args.iterations,
+        config = config_from_args(args)
+        metrics = reconstruct(args.scene, args.out, config, resume=args.resume, show_progress=not args.quiet,
+                              iterations_override=config.iterations if hasattr(args, "cfg__iterations") else None,
                               overwrite=args.overwrite)
     except TrainingInterrupted as stop:
         again = shlex.join(["tacsplat", "reconstruct", args.scene, "--out", args.out, "--resume"])

@@ -12,29 +12,31 @@ from tacsplat.errors import ConfigError
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.raster.rendering import BACKENDS
+from tacsplat.reconstruction.variants import variant_of
 
 
 @dataclass
 class TrainConfig:
     """Training settings; defaults aim at a 5-view 200x200 object in minutes on 2 CPU cores."""
 
-    iterations: int = 2000
-    seed: int = 0
+    iterations: int = 2000  # optimisation steps
+    seed: int = 0  # seeds every random draw (initialisation, view order, touch subsets)
     sh_degree: int = 3  # maximum SH degree (0 for a Lambertian scene)
     sh_degree_interval: int = 400  # one more SH band every this many steps
     train_views: int | None = None  # use only the first K training views (None = all)
-    backend: str = "auto"  # rasterization backend: auto | torch | cpu | gsplat
+    backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto"  # rasterization backend (auto: gsplat on CUDA,
+    # else the numba CPU backend for float32)
     torch_threads: int | None = 1  # torch intra-op threads while training (the cpu backend's kernels run
     # their own threads; one torch thread avoids oversubscribing a small machine); None = torch's default
     background: tuple[float, float, float] | None = None  # None: a smooth backdrop fitted to each image's border
-    # loss weights (paper Sec. 4.2)
-    ssim_weight: float = 0.2
+    # -- loss weights (paper Sec. 4.2)
+    ssim_weight: float = 0.2  # D-SSIM share of the photometric loss (Kerbl et al.: 0.8 L1 + 0.2 D-SSIM)
     lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
     lambda_s: float = 2.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
     lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
     backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
-    use_touch: bool = True  # False: no touch Gaussians and no L_T (the "3DGS" / "+S" variants)
-    # transmittance (Sec. 4.2.1)
+    use_touch: bool = True  # False: no touch Gaussians and no L_T (variants 3dgs and 3dgs+s)
+    # -- transmittance (Sec. 4.2.1)
     touch_top_k: int = 8  # most influential G_t per touch point
     touch_candidates: int = 32  # nearest G_t fetched from the k-d tree per touch point
     touch_max_distance: float = 0.005  # metres: Gaussians farther from the point are ignored
@@ -42,34 +44,33 @@ class TrainConfig:
     touch_points_per_step: int = 512  # random subset of touch points in L_T per step (0 = all)
     touch_loss_moves_shape: bool = False  # False: L_T moves means and opacities only (the effect Sec. 4.2.1
     # describes); True: also scales and rotations, which L_T rewards for growing around the touch point
-    # smoothness (Sec. 4.2.2)
+    # -- smoothness (Sec. 4.2.2)
     smoothness_depth: Literal["expected", "accumulated"] = "expected"  # the depth map D of Eq. 8: "expected"
     # (Eq. 5 divided by alpha, inside the silhouette) or the paper's "accumulated" Eq. 5, whose gradients at the
     # silhouette and in semi-transparent regions are alpha's rather than the surface's
     smoothness_beta: float = 10.0  # edge sensitivity e^{-beta |dI|}
     proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
     occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
-    # Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
-    lr_means: float = 1.6e-4
+    # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
+    lr_means: float = 1.6e-4  # means (times the scene scale)
     lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
-    lr_quats: float = 1e-3
-    lr_scales: float = 5e-3
-    lr_opacities: float = 5e-2
-    lr_sh0: float = 2.5e-3
-    lr_shN: float = 2.5e-3 / 20
-    # progress evaluation and checkpoints
+    lr_quats: float = 1e-3  # rotations (quaternions)
+    lr_scales: float = 5e-3  # log scales
+    lr_opacities: float = 5e-2  # logit opacities
+    lr_sh0: float = 2.5e-3  # SH band 0 (base colour)
+    lr_shN: float = 2.5e-3 / 20  # higher SH bands
+    # -- progress evaluation and checkpoints
     eval_every_iters: int = 250  # held-out PSNR and CD at least this often...
     eval_every_seconds: float = 30.0  # ...and at least this often in run time
     eval_max_views: int = 6  # test views used for progress rows (the final evaluation uses all)
-    checkpoint_every: int = 500
+    checkpoint_every: int = 500  # steps between checkpoints (and one at the end, on Ctrl-C and SIGTERM)
     init: InitConfig = field(default_factory=InitConfig)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)
 
     @property
     def variant(self) -> str:
-        touch = self.use_touch and self.lambda_t > 0
-        smooth = self.lambda_s > 0
-        return {(False, False): "3dgs", (False, True): "+S", (True, False): "+T", (True, True): "full"}[(touch, smooth)]
+        """The name of the method variant this config runs (:mod:`.variants`)."""
+        return variant_of(self)
 
     def validate(self, names: dict[str, str] | None = None) -> None:
         """A ConfigError for the first setting out of its range, naming it (as ``names[field]`` when given,
@@ -102,6 +103,16 @@ class TrainConfig:
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:
             return "backend", f"must be one of {BACKENDS}, got {self.backend!r}"
+        for name in ("init", "densify"):  # their settings are counts, sizes, rates and thresholds: >= 0
+            for f in dataclasses.fields(getattr(self, name)):
+                value = getattr(getattr(self, name), f.name)
+                if isinstance(value, bool) or f.type in ("bool", bool):
+                    if not isinstance(value, bool):
+                        return f"{name}.{f.name}", f"must be true or false, got {value!r}"
+                elif not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                    return f"{name}.{f.name}", f"must be a finite number >= 0, got {value!r}"
+                elif f.type in ("int", int) and not isinstance(value, int):
+                    return f"{name}.{f.name}", f"must be an integer >= 0, got {value!r}"
         return None
 
     def to_json(self) -> dict:

@@ -175,31 +175,35 @@ def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth) -> None:
 
 
 def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
-    """Evaluate a finished (or checkpointed) run: writes ``metrics.json`` and ``renders/``; returns the metrics."""
+    """Evaluate a run on disk (its last checkpoint): writes ``metrics.json`` and ``renders/``; returns the metrics."""
     from tacsplat.datasets import Scene
 
     run = load_run(Path(run_dir))
-    scene = Scene.load(run.scene_path)
+    return evaluate_reconstruction(run.gaussians, Scene.load(run.scene_path), run.config, run.step,
+                                   run.train_seconds, run_dir, gt_path, backend)
+
+
+def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, train_seconds: float,
+                            run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
+    """Evaluate Gaussians on a scene's test views: writes ``metrics.json`` and ``renders/`` into ``run_dir``."""
     test = scene.split("test")
-    backend = backend or run.config.backend
+    backend = backend or config.backend
     ground_truth = load_ground_truth(scene, test, gt_path)
-    metrics = evaluate_views(
-        run.gaussians, scene, test, run.config.background, backend, ground_truth, Path(run_dir) / "renders"
-    )
+    metrics = evaluate_views(gaussians, scene, test, config.background, backend, ground_truth, Path(run_dir) / "renders")
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
     result = {
         **metrics,
-        "train_seconds": run.train_seconds,
-        "iterations": run.step,
-        "num_gaussians": len(run.gaussians),
-        "num_touch_gaussians": run.gaussians.num_touch,
+        "train_seconds": train_seconds,
+        "iterations": step,
+        "num_gaussians": len(gaussians),
+        "num_touch_gaussians": gaussians.num_touch,
         "num_test_views": len(test),
-        "variant": run.config.variant,
+        "variant": config.variant,
         "gt_source": ground_truth.source if ground_truth else None,
         "gt_radius": ground_truth.radius if ground_truth else None,
-        "scene": str(run.scene_path),
-        "settings": run.config.to_json(),
+        "scene": str(scene.path),
+        "settings": config.to_json(),
     }
     result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
     (Path(run_dir) / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))

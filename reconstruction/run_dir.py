@@ -104,25 +104,30 @@ def read_progress(path: Path) -> dict[str, np.ndarray]:
     return {k: np.array([float(r[k]) for r in rows]) for k in PROGRESS_COLUMNS}
 
 
+def draw_error_vs_time(ax_cd, ax_psnr, curves: dict[str, dict[str, np.ndarray]]) -> None:
+    """Held-out CD and PSNR against run time (seconds excluding evaluation) on two matplotlib axes, one line per
+    ``curves[label]`` (a :func:`read_progress` result)."""
+    for label, data in curves.items():
+        ax_cd.plot(data["seconds"], data["cd"], "o-", ms=3, label=label)
+        ax_psnr.plot(data["seconds"], data["psnr"], "o-", ms=3, label=label)
+    ax_cd.set_ylabel("Chamfer distance [x GT radius]")
+    ax_psnr.set_ylabel("held-out PSNR [dB]")
+    for ax in (ax_cd, ax_psnr):
+        ax.set_xlabel("run time [s] (evaluation excluded)")
+        ax.grid(alpha=0.3)
+
+
 def plot_error_vs_time(progress_path: Path, png_path: Path) -> None:
-    """CD and PSNR of the held-out views against run time (seconds excluding evaluation)."""
+    """A run's ``error_vs_time.png``: geometry error (CD) and image error (PSNR) against run time."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    data = read_progress(progress_path)
     fig, (ax_cd, ax_psnr) = plt.subplots(1, 2, figsize=(10, 4))
-    ax_cd.plot(data["seconds"], data["cd"], "o-", color="tab:red")
-    ax_cd.set_xlabel("run time [s] (evaluation excluded)")
-    ax_cd.set_ylabel("Chamfer distance [x GT radius]")
+    draw_error_vs_time(ax_cd, ax_psnr, {"this run": read_progress(progress_path)})
     ax_cd.set_title("geometry error")
-    ax_psnr.plot(data["seconds"], data["psnr"], "o-", color="tab:blue")
-    ax_psnr.set_xlabel("run time [s] (evaluation excluded)")
-    ax_psnr.set_ylabel("held-out PSNR [dB]")
     ax_psnr.set_title("image error")
-    for ax in (ax_cd, ax_psnr):
-        ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(png_path, dpi=100)
     plt.close(fig)

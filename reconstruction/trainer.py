@@ -38,7 +38,7 @@ from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyState
-from tacsplat.reconstruction.evaluation import evaluate_run, evaluate_views, load_ground_truth
+from tacsplat.reconstruction.evaluation import evaluate_reconstruction, evaluate_views, load_ground_truth
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.initialization import (
     foreground_mask,
@@ -479,7 +479,8 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
                 config.validate({"iterations": "--iterations"})
         elif overwrite:
             remove_run_files(out_dir)
-        Trainer(scene, out_dir, config).run(resume=resume, show_progress=show_progress)
-        return evaluate_run(out_dir)
+        trainer = Trainer(scene, out_dir, config)
+        gaussians = trainer.run(resume=resume, show_progress=show_progress)
+        return evaluate_reconstruction(gaussians, scene, trainer.config, trainer.step, trainer.train_seconds, out_dir)
 
 

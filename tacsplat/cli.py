@@ -39,6 +39,15 @@ GROUP_HELP = {
 }
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default only when it says something (not for required options, flags, or None)."""
+
+    def _get_help_string(self, action):
+        if action.required or action.default in (None, False, argparse.SUPPRESS) or "(default:" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
 class CommandTree:
     """Builds nested argparse subcommands from space-separated paths."""
 
@@ -64,7 +73,7 @@ class CommandTree:
             name,
             help=help,
             description=description or help,
-            formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+            formatter_class=_HelpFormatter,
         )
         self._parsers[path] = parser
         return parser

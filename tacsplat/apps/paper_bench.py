@@ -33,7 +33,7 @@ import numpy as np
 
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
-from tacsplat.apps.report import VARIANTS
+from tacsplat.reconstruction.variants import VARIANTS, get_variant
 
 log = logging.getLogger(__name__)
 
@@ -43,22 +43,13 @@ GRASPS = 5  # 5 grasps x 4 fingertips = 20 touches (paper: 5 grasps)
 QUICK_OBJECTS = ("teapot", "bell")
 
 
-def variant_overrides(variant: str) -> dict:
-    """TrainConfig fields that select a variant of the paper's Table 3 (the rest stay at the defaults)."""
-    overrides = {"3dgs": {"use_touch": False, "lambda_s": 0.0}, "3dgs+s": {"use_touch": False},
-                 "3dgs+t": {"lambda_s": 0.0}, "full": {}}
-    if variant not in overrides:
-        raise ConfigError("variant", f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
-    return overrides[variant]
-
-
 @dataclass
 class PaperBenchConfig:
     """Size of the suite; the defaults run 6 objects x 2 settings x 4 variants in about 30 min on 2 free cores."""
 
     objects: tuple[str, ...] = ()  # empty: every library object
     settings: tuple[str, ...] = SETTINGS
-    variants: tuple[str, ...] = VARIANTS
+    variants: tuple[str, ...] = tuple(VARIANTS)
     seeds: tuple[int, ...] = (0,)
     resolution: int = 128  # image width and height, pixels
     iterations: int = 1500  # optimisation steps per run
@@ -81,7 +72,7 @@ class PaperBenchConfig:
             if s not in SETTINGS:
                 raise ConfigError("settings", f"unknown setting {s!r}; choose from {', '.join(SETTINGS)}")
         for v in self.variants:
-            variant_overrides(v)
+            get_variant(v, "variants")
         if self.full_views < 32:
             raise ConfigError("full_views", f"the full-views setting needs at least 32 train views, got {self.full_views}")
         for key in ("resolution", "iterations", "test_views"):
@@ -161,7 +152,7 @@ class PaperBench:
 
         if run.done:
             return json.loads((run.out / "metrics.json").read_text())
-        config = TrainConfig(iterations=self.config.iterations, seed=run.seed, **variant_overrides(run.variant))
+        config = TrainConfig(iterations=self.config.iterations, seed=run.seed, **get_variant(run.variant).overrides)
         resume = (run.out / "checkpoint.pt").is_file()
         return reconstruct(run.scene, run.out, config, resume=resume, overwrite=not resume, show_progress=False)
 

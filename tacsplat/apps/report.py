@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from tacsplat.reconstruction.run_dir import draw_error_vs_time
+from tacsplat.reconstruction.variants import VARIANTS, variant_label
+
 RESULT_COLUMNS = ("object", "setting", "variant", "cd", "psnr", "ssim", "train_seconds", "num_gaussians", "seed")
-VARIANTS = ("3dgs", "3dgs+s", "3dgs+t", "full")
-VARIANT_LABELS = {"3dgs": "3DGS", "3dgs+s": "3DGS + S", "3dgs+t": "3DGS + T", "full": "Ours (full)"}
 # metric -> (heading, True when lower is better, decimals)
 METRICS = {"cd": ("CD (↓)", True, 4), "psnr": ("PSNR (↑)", False, 2), "ssim": ("SSIM (↑)", False, 3)}
 
@@ -91,7 +92,7 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
         for j, value in enumerate(values[i]):
             text = "–" if not math.isfinite(value) else f"{value:.{decimals}f}"
             cells.append(f"**{text}**" if i in best[j] else text)
-        lines.append(f"| {VARIANT_LABELS.get(variant, variant)} | " + " | ".join(cells) + " |")
+        lines.append(f"| {variant_label(variant)} | " + " | ".join(cells) + " |")
     return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n"
 
 
@@ -123,7 +124,7 @@ def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
     x = np.arange(len(objects) + 1)
     for i, variant in enumerate(variants):
         ax.bar(x + (i - (len(variants) - 1) / 2) * width, np.nan_to_num(values[i], nan=0.0), width,
-               label=VARIANT_LABELS.get(variant, variant))
+               label=variant_label(variant))
     ax.set_xticks(x, objects + ["Avg."])
     ax.set_ylabel("Chamfer distance [x GT radius]")
     if np.nanmin(np.where(values > 0, values, np.nan), initial=np.inf) < np.inf:
@@ -145,17 +146,9 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     objects = list(curves)
     fig, axes = plt.subplots(2, max(len(objects), 1), figsize=(4 * max(len(objects), 1), 6.5), squeeze=False)
     for j, obj in enumerate(objects):
-        for variant, curve in curves[obj].items():
-            label = VARIANT_LABELS.get(variant, variant)
-            axes[0, j].plot(curve["seconds"], curve["cd"], "o-", ms=3, label=label)
-            axes[1, j].plot(curve["seconds"], curve["psnr"], "o-", ms=3, label=label)
+        draw_error_vs_time(axes[0, j], axes[1, j], {variant_label(v): c for v, c in curves[obj].items()})
         axes[0, j].set_title(obj)
         axes[0, j].set_yscale("log")
-        axes[0, j].set_ylabel("CD [x GT radius]")
-        axes[1, j].set_ylabel("held-out PSNR [dB]")
-        axes[1, j].set_xlabel("run time [s] (evaluation excluded)")
-        for ax in axes[:, j]:
-            ax.grid(alpha=0.3)
     axes[0, 0].legend(fontsize=8)
     if title:
         fig.suptitle(title)
@@ -174,7 +167,7 @@ def render_grid(panels: dict[str, tuple[np.ndarray, np.ndarray]], gt_rgb: np.nda
     valid = gt_depth[gt_depth > 0]
     lo, hi = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 1.0)
     pad = 0.1 * max(hi - lo, 1e-6)
-    columns = [("ground truth", gt_rgb, gt_depth)] + [(VARIANT_LABELS.get(v, v), rgb, d) for v, (rgb, d) in panels.items()]
+    columns = [("ground truth", gt_rgb, gt_depth)] + [(variant_label(v), rgb, d) for v, (rgb, d) in panels.items()]
     fig, axes = plt.subplots(2, len(columns), figsize=(2.6 * len(columns) + 0.8, 5.4), squeeze=False)
     cmap = plt.get_cmap("turbo").with_extremes(bad="black")
     image = None

@@ -12,7 +12,7 @@ import pytest
 
 from tacsplat.apps import paper_bench
 from tacsplat.errors import ConfigError
-from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig, variant_overrides
+from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
 from tacsplat.apps.report import (
     RESULT_COLUMNS,
     best_rows,
@@ -109,11 +109,17 @@ def test_plots_are_written(tmp_path):
     assert cv2.imread(str(grid)) is not None
 
 
-def test_variant_overrides_and_config_errors():
-    assert variant_overrides("3dgs") == {"use_touch": False, "lambda_s": 0.0}
-    assert variant_overrides("full") == {}
+def test_variant_table_and_config_errors():
+    from tacsplat.reconstruction.config import TrainConfig
+    from tacsplat.reconstruction.variants import VARIANTS, get_variant
+
+    for name, variant in VARIANTS.items():  # each row's overrides give a config of that variant
+        assert TrainConfig(**variant.overrides).variant == name
+    assert get_variant("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0}
     with pytest.raises(ConfigError, match="variant"):
-        variant_overrides("ours")
+        get_variant("ours")
+    with pytest.raises(ConfigError, match="variants"):
+        PaperBench("x", PaperBenchConfig(variants=("3dgs", "ours")))
     with pytest.raises(ConfigError, match="full_views"):
         PaperBench("x", PaperBenchConfig(full_views=10))
     with pytest.raises(ConfigError, match="objects"):

@@ -163,7 +163,7 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
                           "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet", "--train-views", "4"])
     assert code == 0
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["variant"] == "+T" and metrics["settings"]["train_views"] == 4
+    assert metrics["variant"] == "3dgs+t" and metrics["settings"]["train_views"] == 4
     assert metrics["iterations"] == 5 and np.isfinite(metrics["cd"])
     mesh_path = tmp_path / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=4, radius=RADIUS).export(mesh_path)
@@ -181,16 +181,50 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
     assert from_cloud["gt_source"].startswith("points") and np.isfinite(from_cloud["cd"])
 
 
-def test_cli_options_reach_the_train_config():
-    from argparse import Namespace
+def _reconstruct_args(*options):
+    from tacsplat.cli import build_parser
 
+    return build_parser().parse_args(["reconstruct", "SCENE", "--out", "RUN", *options])
+
+
+def test_cli_options_reach_the_train_config():
     from tacsplat.errors import ConfigError
     from tacsplat.reconstruction.cli import config_from_args
 
-    args = Namespace(seed=3, sh_degree=1, backend="cpu", train_views=None, no_touch=False, iterations=7,
-                     lambda_t=None, lambda_s=0.5, smoothness_depth="accumulated", no_smoothness=False)
+    args = _reconstruct_args("--seed", "3", "--sh-degree", "1", "--backend", "cpu", "--iterations", "7",
+                             "--lambda-s", "0.5", "--smoothness-depth", "accumulated", "--no-touch",
+                             "--densify-max-gaussians", "500", "--no-init-sfm", "--train-views", "none")
     config = config_from_args(args)
-    assert (config.seed, config.iterations, config.lambda_s, config.smoothness_depth) == (3, 7, 0.5, "accumulated")
-    assert config_from_args(Namespace(**{**vars(args), "smoothness_depth": None})).smoothness_depth == "expected"
+    assert (config.seed, config.sh_degree, config.backend, config.iterations, config.lambda_s) == (3, 1, "cpu", 7, 0.5)
+    assert (config.smoothness_depth, config.use_touch, config.densify.max_gaussians) == ("accumulated", False, 500)
+    assert config.init.use_sfm is False and config.train_views is None and config.variant == "3dgs+s"
+    defaults = config_from_args(_reconstruct_args())
+    assert defaults.to_json() == TrainConfig().to_json()  # no option given: exactly TrainConfig's defaults
+    assert config_from_args(_reconstruct_args("--variant", "3dgs")).variant == "3dgs"
+    assert config_from_args(_reconstruct_args("--variant", "3dgs", "--lambda-s", "1")).variant == "3dgs+s"
+    with pytest.raises(ConfigError, match="--iterations"):
+        config_from_args(_reconstruct_args("--iterations", "-5"))
+    with pytest.raises(ConfigError, match="--densify-max-gaussians"):
+        config_from_args(_reconstruct_args("--densify-max-gaussians", "-1"))
     with pytest.raises(ConfigError, match="smoothness_depth"):
         TrainConfig(smoothness_depth="median").validate()
+
+
+def test_every_training_setting_has_a_documented_option_with_its_default():
+    import dataclasses
+
+    from tacsplat.reconstruction.options import add_config_options, field_docs
+
+    parser = __import__("argparse").ArgumentParser()
+    options = {".".join(o.path): o for o in add_config_options(parser, TrainConfig)}
+    config = TrainConfig()
+    for f in dataclasses.fields(TrainConfig):
+        nested = getattr(config, f.name)
+        names = [f"{f.name}.{g.name}" for g in dataclasses.fields(nested)] if dataclasses.is_dataclass(nested) else [f.name]
+        for name in names:
+            assert name in options, f"TrainConfig.{name} has no command-line option"
+    docs, _ = field_docs(TrainConfig)
+    undocumented = [f.name for f in dataclasses.fields(TrainConfig) if f.name not in ("init", "densify") and not docs[f.name]]
+    assert not undocumented, f"TrainConfig fields without a comment: {undocumented}"
+    help_text = " ".join(parser.format_help().split())
+    assert "optimisation steps (default: 2000)" in help_text
