@@ -21,7 +21,14 @@ import torch
 from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import pixel_centres
 from tacsplat.reconstruction.gaussians import Gaussians
-from tacsplat.reconstruction.metrics import bounding_sphere_radius, chamfer_distance, depth_to_points, psnr, ssim
+from tacsplat.reconstruction.metrics import (
+    bounding_sphere_radius,
+    chamfer_distance,
+    chamfer_distance_paper,
+    depth_to_points,
+    psnr,
+    ssim,
+)
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import load_run
 from tacsplat.reconstruction.views import background_image, camera_tensors, composite
@@ -29,6 +36,8 @@ from tacsplat.reconstruction.views import background_image, camera_tensors, comp
 log = logging.getLogger(__name__)
 
 ALPHA_MASK_THRESHOLD = 0.5  # rendered pixels with alpha above this give predicted surface points
+PAPER_MAX_POINTS = 200_000  # cd_paper: the predicted cloud is subsampled to at most this many points (official code)
+PAPER_GT_POINTS = 200_000  # cd_paper: points sampled on the ground-truth mesh surface
 
 
 @torch.no_grad()
@@ -54,6 +63,18 @@ def render_view(
     return rgb, depth, alpha
 
 
+@torch.no_grad()
+def render_median_depth(gaussians: Gaussians, frame, backend: str) -> np.ndarray:
+    """Median depth [H, W] of a view (the paper's evaluation depth; 0 where the transmittance stays >= 0.5)."""
+    viewmat, K = camera_tensors([frame])
+    depth, _, _ = raster.rasterization(
+        gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+        gaussians.sh_coefficients(), viewmat, K, frame.intrinsics.width, frame.intrinsics.height,
+        sh_degree=gaussians.sh_degree, render_mode="MD", backend=backend,
+    )  # fmt: skip
+    return depth[0, ..., 0].cpu().numpy().astype(np.float32)
+
+
 @dataclass
 class GroundTruth:
     """Ground-truth surface points per test frame and the CD normaliser."""
@@ -62,6 +83,7 @@ class GroundTruth:
     radius: float
     source: str
     shared: np.ndarray | None = None  # [M, 3] one cloud for every view (a GT point cloud given by path)
+    surface: np.ndarray | None = None  # [S, 3] cd_paper's ground truth: points on the whole object surface
 
     def cloud(self, frame_ids: list[int]) -> np.ndarray:
         if self.shared is not None:
@@ -96,11 +118,12 @@ def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) ->
             loaded = loaded.to_geometry()
         if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces):
             points = {f.id: depth_to_points(mesh_depth(loaded, f), f.intrinsics.K, f.T_world_cam) for f in frames}
-            return GroundTruth(points, bounding_sphere_radius(loaded.vertices), f"mesh {gt_path}")
+            return GroundTruth(points, bounding_sphere_radius(loaded.vertices), f"mesh {gt_path}",
+                               surface=surface_points(loaded))
         cloud = np.asarray(getattr(loaded, "vertices", []), dtype=np.float64)
         if len(cloud) == 0:
             raise SceneFormatError(gt_path, None, "no faces and no points")
-        return GroundTruth({}, bounding_sphere_radius(cloud), f"points {gt_path}", shared=cloud)
+        return GroundTruth({}, bounding_sphere_radius(cloud), f"points {gt_path}", shared=cloud, surface=cloud)
     points = {}
     for f in frames:
         depth = scene.gt_depth(f)
@@ -110,13 +133,23 @@ def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) ->
         return None
     mesh_path = scene.gt_mesh_path
     if mesh_path is not None and mesh_path.is_file():
-        radius = bounding_sphere_radius(trimesh.load(str(mesh_path), force="mesh").vertices)
-    else:
-        radius = bounding_sphere_radius(np.concatenate(list(points.values())))
+        mesh = trimesh.load(str(mesh_path), force="mesh")
+        radius, surface = bounding_sphere_radius(mesh.vertices), surface_points(mesh)
+    else:  # no mesh: cd_paper compares with the visible surface of the test views, like cd
+        surface = np.concatenate(list(points.values()))
+        radius = bounding_sphere_radius(surface)
     if not radius > 0:
         log.warning("the ground-truth surface of the test views is a single point: no Chamfer distance")
         return None
-    return GroundTruth(points, radius, "scene gt/")
+    return GroundTruth(points, radius, "scene gt/", surface=surface)
+
+
+def surface_points(mesh, count: int = PAPER_GT_POINTS, seed: int = 0) -> np.ndarray:
+    """``count`` points [count, 3] spread uniformly by area over a mesh's surface (fixed seed)."""
+    import trimesh
+
+    points, _ = trimesh.sample.sample_surface(mesh, count, seed=seed)
+    return np.asarray(points, dtype=np.float64)
 
 
 def evaluate_views(
@@ -128,11 +161,15 @@ def evaluate_views(
     ground_truth: GroundTruth | None,
     render_dir: Path | None = None,
 ) -> dict:
-    """PSNR, SSIM over ``frames`` and CD against ``ground_truth`` (NaN where not available).
+    """PSNR, SSIM over ``frames``, and CD and cd_paper against ``ground_truth`` (NaN where not available).
 
+    ``cd`` (the design's): expected depth (alpha > 0.5) of the views against their visible ground-truth
+    surface, mean distance each way, halved. ``cd_paper`` (the paper's official code): median depth of the
+    views, subsampled to at most ``PAPER_MAX_POINTS`` (fixed seed), against points on the whole ground-truth
+    surface, mean squared distance each way, summed. Both in units of the ground-truth bounding-sphere radius.
     Each view's backdrop is ``background_colour``, or (None) fitted to that view's image border.
     """
-    psnrs, ssims, predicted = [], [], []
+    psnrs, ssims, predicted, predicted_median = [], [], [], []
     for f in frames:
         gt_rgb = scene.load_image(f)
         background = torch.from_numpy(background_image(gt_rgb, background_colour))
@@ -140,17 +177,26 @@ def evaluate_views(
         psnrs.append(psnr(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         predicted.append(depth_to_points(depth, f.intrinsics.K, f.T_world_cam))
+        if ground_truth is not None and ground_truth.surface is not None:
+            median = render_median_depth(gaussians, f, backend)
+            predicted_median.append(depth_to_points(median, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
             gt_depth = scene.gt_depth(f)
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth)
-    cd = float("nan")
+    cd = cd_paper = float("nan")
     gt_cloud = None if ground_truth is None else ground_truth.cloud([f.id for f in frames])
     if gt_cloud is not None and len(gt_cloud):
         cd = chamfer_distance(np.concatenate(predicted), gt_cloud, ground_truth.radius)
+    if predicted_median:
+        cloud = np.concatenate(predicted_median)
+        if len(cloud) > PAPER_MAX_POINTS:
+            cloud = cloud[np.random.default_rng(0).choice(len(cloud), PAPER_MAX_POINTS, replace=False)]
+        cd_paper = chamfer_distance_paper(cloud, ground_truth.surface, ground_truth.radius)
     return {
         "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
         "ssim": float(np.mean(ssims)) if ssims else float("nan"),
         "cd": cd,
+        "cd_paper": cd_paper,
     }
 
 

@@ -4,7 +4,7 @@
 :class:`~tacsplat.reconstruction.config.TrainConfig`), ``checkpoint.pt`` (the
 last checkpoint: resumable), ``splat.ply``, ``progress.csv`` (iteration,
 seconds of run time excluding evaluation, each loss term averaged since the
-previous row, Gaussian count, held-out PSNR and CD), ``error_vs_time.png``,
+previous row, Gaussian count, held-out PSNR, CD and the paper's CD), ``error_vs_time.png``,
 ``metrics.json`` and ``renders/``. Anything else in the folder is someone
 else's and is never deleted.
 """
@@ -32,7 +32,7 @@ RENDER_FILE = re.compile(r"view_\d{4,}\.png")
 
 PROGRESS_COLUMNS = (
     "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "num_gaussians",
-    "psnr", "cd",
+    "psnr", "cd", "cd_paper",
 )  # fmt: skip
 
 
@@ -99,9 +99,10 @@ def cut_progress(path: Path, step: int) -> None:
 
 
 def read_progress(path: Path) -> dict[str, np.ndarray]:
+    """The columns of a ``progress.csv`` as float arrays (a column an older run lacks is NaN)."""
     with Path(path).open() as fh:
         rows = list(csv.DictReader(fh))
-    return {k: np.array([float(r[k]) for r in rows]) for k in PROGRESS_COLUMNS}
+    return {k: np.array([float(r.get(k) or "nan") for r in rows]) for k in PROGRESS_COLUMNS}
 
 
 def draw_error_vs_time(ax_cd, ax_psnr, curves: dict[str, dict[str, np.ndarray]]) -> None:

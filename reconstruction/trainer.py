@@ -312,7 +312,7 @@ class Trainer:
 
     def _progress_row(self, writer) -> tuple[float, float]:
         cfg = self.config
-        psnr_value, cd_value = float("nan"), float("nan")
+        psnr_value, cd_value, cd_paper = float("nan"), float("nan"), float("nan")
         if self.test_frames:
             count = min(cfg.eval_max_views, len(self.test_frames))
             idx = np.unique(np.linspace(0, len(self.test_frames) - 1, count).round().astype(int))
@@ -322,12 +322,12 @@ class Trainer:
             metrics = evaluate_views(
                 self.gaussians, self.scene, frames, cfg.background, cfg.backend, self._ground_truth or None
             )
-            psnr_value, cd_value = metrics["psnr"], metrics["cd"]
+            psnr_value, cd_value, cd_paper = metrics["psnr"], metrics["cd"], metrics["cd_paper"]
         n = max(self._sum_count, 1)
         writer.writerow(
             [self.step, f"{self.train_seconds:.3f}"]
             + [f"{self._sums[k] / n:.6g}" for k in ("loss", "photometric", "transmittance", "smoothness", "backdrop")]
-            + [len(self.gaussians), f"{psnr_value:.4f}", f"{cd_value:.6g}"]
+            + [len(self.gaussians), f"{psnr_value:.4f}", f"{cd_value:.6g}", f"{cd_paper:.6g}"]
         )
         self._sums = dict.fromkeys(self._sums, 0.0)
         self._sum_count = 0

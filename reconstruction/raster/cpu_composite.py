@@ -198,9 +198,10 @@ def _pair_capacity(tile_start, tile_gauss, means2d, conics, limits, width, heigh
 
 @nb.njit(parallel=True, cache=True)
 def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
-             width, height, tile_size, tiles_x, tiles_per_cam, out_color, out_trans, out_last, tile_pairs,
-             cache_start, vis_cache, pair_start, tile_cached):  # fmt: skip
-    """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T and n_contrib.
+             width, height, tile_size, tiles_x, tiles_per_cam, depths, out_color, out_trans, out_last, out_median,
+             tile_pairs, cache_start, vis_cache, pair_start, tile_cached):  # fmt: skip
+    """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T, n_contrib and the
+    median depth (the depth of the Gaussian at which T first falls below 0.5, else 0).
 
     ``tile_pairs[t]`` receives the number of pixel-Gaussian pairs evaluated in tile t. For the
     backward, each visited pair's ``exp(-exponent)`` (0 where the pair does not count) goes to
@@ -218,6 +219,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
         trans = np.ones(n_pix, np.float32)
         acc = np.zeros((n_pix, n_ch), np.float32)
         last = np.zeros(n_pix, np.int64)
+        median = np.zeros(n_pix, np.float32)
         done = np.zeros(n_pix, np.bool_)
         alive = n_pix
         pairs = 0
@@ -258,6 +260,8 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
                                     weight = alpha * trans[p]
                                     for d in range(n_ch):
                                         acc[p, d] += weight * colors[g, d]
+                                    if trans[p] >= _HALF and next_t < _HALF:
+                                        median[p] = depths[g]
                                     trans[p] = next_t
                                     last[p] = k + 1
                                     stored = vis
@@ -273,6 +277,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
                 out_color[cam, y, x, d] = acc[p, d] + trans[p] * backgrounds[cam, d]
             out_trans[cam, y, x] = trans[p]
             out_last[cam, y, x] = last[p]
+            out_median[cam, y, x] = median[p]
 
 
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
@@ -456,6 +461,7 @@ class _RasterizeCPU(torch.autograd.Function):
 
         out_color = torch.empty((n_cams, height, width, n_ch), dtype=torch.float32)
         out_trans = torch.empty((n_cams, height, width), dtype=torch.float32)
+        out_median = torch.empty((n_cams, height, width, 1), dtype=torch.float32)
         last = np.empty((n_cams, height, width), np.int64)
         tile_pairs = np.empty(n_cams * tiles_per_cam, np.int64)
         capacity = np.empty(n_isect, np.int64)
@@ -468,8 +474,8 @@ class _RasterizeCPU(torch.autograd.Function):
         tile_cached = np.empty(n_cams * tiles_per_cam, np.bool_)
         with nb.parallel_chunksize(_TILE_CHUNK):
             _forward(tile_start, tile_gauss, m2d, con, opa, limits, col, bgs, width, height, tile_size,
-                     tiles_x, tiles_per_cam, out_color.numpy(), out_trans.numpy(), last, tile_pairs,
-                     cache_start, vis_cache, pair_start, tile_cached)  # fmt: skip
+                     tiles_x, tiles_per_cam, dep, out_color.numpy(), out_trans.numpy(), last, out_median.numpy()[..., 0],
+                     tile_pairs, cache_start, vis_cache, pair_start, tile_cached)  # fmt: skip
         stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
 
         ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, limits, col, bgs,
@@ -478,12 +484,12 @@ class _RasterizeCPU(torch.autograd.Function):
         ctx.shapes = (n_cams, n, n_ch)
         ctx.has_background = backgrounds is not None
         ctx.save_for_backward(out_trans)
-        ctx.mark_non_differentiable(stats)
+        ctx.mark_non_differentiable(stats, out_median)
         alphas = (1.0 - out_trans).unsqueeze(-1)
-        return out_color, alphas, stats
+        return out_color, alphas, stats, out_median
 
     @staticmethod
-    def backward(ctx, v_color, v_alphas, _v_stats):
+    def backward(ctx, v_color, v_alphas, _v_stats, _v_median):
         (out_trans,) = ctx.saved_tensors
         gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached = ctx.binning
         n_cams, n, n_ch = ctx.shapes
@@ -517,11 +523,12 @@ def rasterize_to_pixels_cpu(
     height: int,
     tile_size: int = 16,
     backgrounds: Tensor | None = None,  # [C, D]
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Composite projected Gaussians into images on the CPU.
 
     Returns (colors [C, H, W, D], alphas [C, H, W, 1], stats [2] int64 = (tile-Gaussian
-    intersections, pixel-Gaussian pairs evaluated by the forward pass)).
+    intersections, pixel-Gaussian pairs evaluated by the forward pass), median depth [C, H, W, 1]
+    (forward only: the ``depths`` value at which the transmittance first falls below 0.5, 0 where it never does)).
     """
     return _RasterizeCPU.apply(
         means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size

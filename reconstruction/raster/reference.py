@@ -178,8 +178,10 @@ def _composite_tile(
     conics: Tensor,  # [M, 3]
     colors: Tensor,  # [M, D]
     opacities: Tensor,  # [M]
-) -> tuple[Tensor, Tensor]:
-    """Front-to-back compositing of M sorted Gaussians at P pixels -> (colour [P, D], transmittance [P])."""
+    depths: Tensor,  # [M] (no gradient)
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Front-to-back compositing of M sorted Gaussians at P pixels -> (colour [P, D], transmittance [P],
+    median depth [P]: the depth at which the transmittance first falls below 0.5, 0 if it never does)."""
     dx = means2d[None, :, 0] - px[:, None]  # [P, M]
     dy = means2d[None, :, 1] - py[:, None]
     sigma = 0.5 * (conics[None, :, 0] * dx * dx + conics[None, :, 2] * dy * dy) + conics[None, :, 1] * dx * dy
@@ -192,7 +194,10 @@ def _composite_tile(
     t_after = torch.cumprod(1.0 - alpha, dim=1)  # [P, M]
     t_before = torch.cat([torch.ones_like(t_after[:, :1]), t_after[:, :-1]], dim=1)
     weights = alpha * t_before
-    return weights @ colors, t_after[:, -1]
+    with torch.no_grad():
+        crossing = (t_before >= 0.5) & (t_after < 0.5)  # [P, M], at most one per row
+        median = (crossing * depths[None, :]).sum(dim=1)
+    return weights @ colors, t_after[:, -1], median
 
 
 def rasterize_to_pixels_torch(
@@ -206,42 +211,54 @@ def rasterize_to_pixels_torch(
     height: int,
     tile_size: int = 16,
     backgrounds: Tensor | None = None,  # [C, D]
-) -> tuple[Tensor, Tensor]:
-    """Composite projected Gaussians into images -> (colors [C, H, W, D], alphas [C, H, W, 1])."""
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Composite projected Gaussians into images -> (colors [C, H, W, D], alphas [C, H, W, 1], median [C, H, W, 1]).
+
+    ``median`` is the median depth, forward only (no gradient): the ``depths`` value of the Gaussian
+    at which the transmittance first falls below 0.5, 0 where it never does.
+    """
     n_cams, _, n_ch = colors.shape
     tiles_x = math.ceil(width / tile_size)
-    out_colors, out_alphas = [], []
+    device = means2d.device
+    out_colors, out_alphas, out_median = [], [], []
     for cam in range(n_cams):
         tile_ids, gauss_ids = tile_intersections(means2d[cam], radii[cam], depths[cam], width, height, tile_size)
-        bounds = torch.searchsorted(tile_ids, torch.arange(tiles_x * math.ceil(height / tile_size) + 1))
-        pix_index, pix_color, pix_trans = [], [], []
+        bounds = torch.searchsorted(tile_ids, torch.arange(tiles_x * math.ceil(height / tile_size) + 1, device=device))
+        pix_index, pix_color, pix_trans, pix_median = [], [], [], []
         for tile in torch.unique_consecutive(tile_ids).tolist():
             ids = gauss_ids[bounds[tile] : bounds[tile + 1]]
             ty, tx = divmod(tile, tiles_x)
-            ys = torch.arange(ty * tile_size, min((ty + 1) * tile_size, height))
-            xs = torch.arange(tx * tile_size, min((tx + 1) * tile_size, width))
+            ys = torch.arange(ty * tile_size, min((ty + 1) * tile_size, height), device=device)
+            xs = torch.arange(tx * tile_size, min((tx + 1) * tile_size, width), device=device)
             gy, gx = torch.meshgrid(ys, xs, indexing="ij")
             gy, gx = gy.reshape(-1), gx.reshape(-1)
-            color, trans = _composite_tile(
+            color, trans, median = _composite_tile(
                 gx.to(means2d.dtype) + 0.5,
                 gy.to(means2d.dtype) + 0.5,
                 means2d[cam, ids],
                 conics[cam, ids],
                 colors[cam, ids],
                 opacities[cam, ids],
+                depths[cam, ids].detach(),
             )
             pix_index.append(gy * width + gx)
             pix_color.append(color)
             pix_trans.append(trans)
+            pix_median.append(median)
         if not pix_index:  # nothing drawn: copy zero pixels, so that every input still gets a (zero) gradient
-            pix_index.append(torch.zeros(0, dtype=torch.long))
+            pix_index.append(torch.zeros(0, dtype=torch.long, device=device))
             pix_color.append(colors[cam, :0])
             pix_trans.append(means2d[cam, :0, 0] + conics[cam, :0, 0] + opacities[cam, :0])
+            pix_median.append(depths[cam, :0].detach())
         index = torch.cat(pix_index)
-        trans_img = torch.ones(height * width, dtype=colors.dtype).index_copy(0, index, torch.cat(pix_trans))
-        color_img = torch.zeros(height * width, n_ch, dtype=colors.dtype).index_copy(0, index, torch.cat(pix_color))
+        blank = torch.zeros(height * width, dtype=colors.dtype, device=device)
+        trans_img = torch.ones_like(blank).index_copy(0, index, torch.cat(pix_trans))
+        color_img = torch.zeros(height * width, n_ch, dtype=colors.dtype, device=device).index_copy(
+            0, index, torch.cat(pix_color)
+        )
         if backgrounds is not None:
             color_img = color_img + trans_img[:, None] * backgrounds[cam][None, :]
         out_colors.append(color_img.reshape(height, width, n_ch))
         out_alphas.append((1.0 - trans_img).reshape(height, width, 1))
-    return torch.stack(out_colors), torch.stack(out_alphas)
+        out_median.append(blank.index_copy(0, index, torch.cat(pix_median).to(blank.dtype)).reshape(height, width, 1))
+    return torch.stack(out_colors), torch.stack(out_alphas), torch.stack(out_median)

@@ -26,7 +26,7 @@ from tacsplat.errors import InvalidInputError
 from tacsplat.reconstruction.raster.reference import Projection, project_gaussians, rasterize_to_pixels_torch
 from tacsplat.reconstruction.raster.spherical_harmonics import num_sh_bases, spherical_harmonics
 
-RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
+RENDER_MODES = ("RGB", "D", "ED", "MD", "RGB+D", "RGB+ED", "RGB+MD")
 BACKENDS = ("auto", "torch", "cpu", "gsplat")
 
 
@@ -86,7 +86,7 @@ def rasterization(
     packed: bool = False,
     tile_size: int = 16,
     backgrounds: Tensor | None = None,  # [C, D]
-    render_mode: Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"] = "RGB",
+    render_mode: Literal["RGB", "D", "ED", "MD", "RGB+D", "RGB+ED", "RGB+MD"] = "RGB",
     rasterize_mode: Literal["classic", "antialiased"] = "classic",
     absgrad: bool = False,
     camera_model: str = "pinhole",
@@ -94,9 +94,12 @@ def rasterization(
 ) -> tuple[Tensor, Tensor, dict]:
     """Render C images of N Gaussians -> (render_colors [C, H, W, X], render_alphas [C, H, W, 1], meta).
 
-    X is D for "RGB", 1 for "D"/"ED" and D+1 for "RGB+D"/"RGB+ED". "D" is the
-    accumulated depth sum_i w_i z_i (the paper's depth render), "ED" that sum
-    divided by the alpha. ``meta`` holds ``means2d`` [C, N, 2] (call
+    X is D for "RGB", 1 for "D"/"ED"/"MD" and D+1 for "RGB+D"/"RGB+ED"/"RGB+MD". "D" is the
+    accumulated depth sum_i w_i z_i (the paper's depth render, Eq. 5), "ED" that sum
+    divided by the alpha, "MD" the median depth: the depth of the Gaussian at which the
+    accumulated transmittance first falls below 0.5, 0 where it never does (the paper's
+    evaluation depth). "MD" is forward only (no loss needs its gradient); on the gsplat
+    backend, which has no such mode, the "MD" modes are computed by the CPU backend. ``meta`` holds ``means2d`` [C, N, 2] (call
     ``retain_grad()`` on it before backward for densification), ``radii``
     [C, N, 2] int32 (0 = culled), ``depths`` [C, N], ``conics`` [C, N, 3],
     ``opacities`` [C, N], ``width``, ``height``, ``tile_size``, ``n_cameras``,
@@ -154,6 +157,15 @@ def rasterization(
         raise InvalidInputError(f"tile_size must be a positive int, got {tile_size!r}")
     chosen = _choose_backend(backend, means)
 
+    if chosen == "gsplat" and render_mode in ("MD", "RGB+MD"):  # gsplat has no median depth: the CPU backend's
+        cpu = [t.detach().float().cpu() for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
+        bgs = None if backgrounds is None else backgrounds.detach().float().cpu()
+        out_colors, out_alphas, meta = rasterization(
+            *cpu, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
+            sh_degree=sh_degree, tile_size=tile_size, backgrounds=bgs, render_mode=render_mode,
+            rasterize_mode=rasterize_mode, backend="cpu",
+        )  # fmt: skip
+        return out_colors.to(means.device, dtype), out_alphas.to(means.device, dtype), meta
     if chosen == "gsplat":
         from tacsplat.reconstruction.raster.gsplat_backend import rasterization_gsplat
 
@@ -197,10 +209,10 @@ def rasterization(
         point_colors = colors.expand(n_cams, n, n_channels) if colors.dim() == 2 else colors
 
     bg = backgrounds
-    if render_mode in ("D", "ED"):
+    if render_mode in ("D", "ED", "MD"):
         point_colors = proj.depths[..., None]
         bg = None
-    elif render_mode in ("RGB+D", "RGB+ED"):
+    elif render_mode in ("RGB+D", "RGB+ED", "RGB+MD"):
         point_colors = torch.cat([point_colors, proj.depths[..., None]], dim=-1)
         if bg is not None:
             bg = torch.cat([bg, torch.zeros_like(bg[:, :1])], dim=-1)
@@ -208,20 +220,22 @@ def rasterization(
     if chosen == "cpu":
         from tacsplat.reconstruction.raster.cpu_composite import rasterize_to_pixels_cpu
 
-        render_colors, render_alphas, stats = rasterize_to_pixels_cpu(
+        render_colors, render_alphas, stats, median = rasterize_to_pixels_cpu(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
             width, height, tile_size, bg,
         )  # fmt: skip
         extra_meta = {"n_intersections": int(stats[0]), "n_pairs": int(stats[1])}
     else:
         extra_meta = {}
-        render_colors, render_alphas = rasterize_to_pixels_torch(
+        render_colors, render_alphas, median = rasterize_to_pixels_torch(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
             width, height, tile_size, bg,
         )  # fmt: skip
     if render_mode in ("ED", "RGB+ED"):
         expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
         render_colors = torch.cat([render_colors[..., :-1], expected], dim=-1)
+    elif render_mode in ("MD", "RGB+MD"):
+        render_colors = torch.cat([render_colors[..., :-1], median], dim=-1)
 
     meta = {
         "means2d": proj.means2d,

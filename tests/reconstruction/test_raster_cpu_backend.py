@@ -251,8 +251,9 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     vis_cache, pair_start = np.empty(int(cache_start[-1]), np.float32), np.zeros(n_isect, np.int64)
     cached = np.empty(n_tiles, np.bool_)
     trans, last = np.empty((1, height, width), np.float32), np.empty((1, height, width), np.int64)
-    rc._forward(*args, np.empty((1, height, width, 3), np.float32), trans, last, np.empty(n_tiles, np.int64),
-                cache_start, vis_cache, pair_start, cached)  # fmt: skip
+    rc._forward(*args, proj.depths[0].numpy(), np.empty((1, height, width, 3), np.float32), trans, last,
+                np.empty((1, height, width), np.float32), np.empty(n_tiles, np.int64), cache_start, vis_cache,
+                pair_start, cached)  # fmt: skip
     assert cached.all()
     v_color = np.random.default_rng(1).standard_normal((1, height, width, 3)).astype(np.float32)
     v_alpha = np.random.default_rng(2).standard_normal((1, height, width)).astype(np.float32)

@@ -64,13 +64,14 @@ def test_tiled_reference_equals_dense_compositing():
     visible = (meta["radii"][0] > 0).all(-1)
     order = torch.argsort(torch.where(visible, meta["depths"][0], torch.inf), stable=True)[: int(visible.sum())]
     ys, xs = torch.meshgrid(torch.arange(29.0), torch.arange(37.0), indexing="ij")
-    color, trans = _composite_tile(
+    color, trans, _ = _composite_tile(
         xs.reshape(-1).double() + 0.5,
         ys.reshape(-1).double() + 0.5,
         meta["means2d"][0, order],
         meta["conics"][0, order],
         scene["colors"][order],
         meta["opacities"][0, order],
+        meta["depths"][0, order],
     )
     torch.testing.assert_close(img[0].reshape(-1, 3), color, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(alpha[0].reshape(-1), 1 - trans, rtol=1e-12, atol=1e-12)

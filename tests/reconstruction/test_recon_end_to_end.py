@@ -59,6 +59,8 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     # Bound: the CD (in units of the 5 cm radius) of 48x48 views starts near 0.73 and is ~0.19 after 400 steps.
     assert metrics["cd"] < 0.25
     assert metrics["cd"] < 0.5 * initial_cd
+    # the paper's CD (squared, summed, median depth against the whole mesh surface) falls too
+    assert 0 < metrics["cd_paper"] < 0.5 * float(rows[0]["cd_paper"])
     assert metrics["psnr"] > 18.0
     assert metrics["variant"] == "full" and metrics["iterations"] == 400
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
@@ -66,8 +68,8 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     assert seconds == sorted(seconds)
     assert all(float(r["transmittance"]) > 0 for r in rows[1:])
     saved = json.loads((run / "metrics.json").read_text())
-    for key in ("cd", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians", "num_touch_gaussians",
-                "variant", "settings"):
+    for key in ("cd", "cd_paper", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians",
+                "num_touch_gaussians", "variant", "settings"):
         assert key in saved
     assert (run / "error_vs_time.png").stat().st_size > 0
     assert len(list((run / "renders").glob("*.png"))) == len(Scene.load(sphere_scene).split("test"))

@@ -125,3 +125,28 @@ def test_background_is_fitted_to_a_smooth_border_and_black_for_a_cluttered_one()
     cluttered = np.random.default_rng(0).uniform(0, 1, (h, w, 3))
     assert not background_image(cluttered).any()
     np.testing.assert_allclose(background_image(image, colour=(0.1, 0.2, 0.3))[5, 7], [0.1, 0.2, 0.3], rtol=1e-6)
+
+
+def test_both_chamfer_distances_on_clouds_with_known_distances():
+    """Two parallel planes of points 0.1 apart (every nearest neighbour at 0.1): the design's CD is the
+    mean unsquared distance each way, halved = 0.1; the paper's is the mean squared distance each way,
+    summed = 2 * 0.01. A radius of 2 divides every distance by 2 first."""
+    from tacsplat.reconstruction.metrics import chamfer_distance, chamfer_distance_paper
+
+    g = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0), indexing="ij"), -1).reshape(-1, 2)
+    gt = np.column_stack([g, np.zeros(len(g))])
+    pred = gt + [0.0, 0.0, 0.1]
+    assert chamfer_distance(pred, gt) == pytest.approx(0.1)
+    assert chamfer_distance_paper(pred, gt) == pytest.approx(0.02)
+    assert chamfer_distance(pred, gt, radius=2.0) == pytest.approx(0.05)
+    assert chamfer_distance_paper(pred, gt, radius=2.0) == pytest.approx(2 * 0.05**2)
+    # an outlier 3 away weighs far more in the paper's squared form: one of 26 predicted points
+    with_outlier = np.vstack([pred, [[0.0, 0.0, 3.0]]])
+    assert chamfer_distance(with_outlier, gt) == pytest.approx(0.5 * ((25 * 0.1 + 3.0) / 26 + 0.1))
+    assert chamfer_distance_paper(with_outlier, gt) == pytest.approx((25 * 0.01 + 9.0) / 26 + 0.01)
+    # asymmetric: a predicted cloud covering half the ground truth
+    half = pred[g[:, 0] < 2]
+    far = np.sqrt(1.0 + 0.01)  # gt points in row 2 are 1 column from row 1's predicted points (and 0.1 below)
+    expected = (10 * 0.01 + 5 * far**2 + 5 * (4 + 0.01) + 5 * (9 + 0.01)) / 25 + 0.01
+    assert chamfer_distance_paper(half, gt) == pytest.approx(expected)
+    assert chamfer_distance_paper(np.zeros((0, 3)), gt) == float("inf")
