@@ -25,6 +25,10 @@ def register(cli) -> None:
     p.add_argument("--variant", default=DEFAULT_VARIANT, choices=list(VARIANTS),
                    help="method variant: " + "; ".join(f"{v.name}: {v.description}" for v in VARIANTS.values())
                    + ". Options given explicitly win over the variant's settings")
+    p.add_argument("--preset", default="default", choices=("default", "paper"),
+                   help="starting settings: default (tuned for few views on a CPU) or paper (the official code's "
+                   "30k-step schedule, every step-based number scaled to --iterations); the variant and any option "
+                   "given apply on top")
     p.add_argument("--no-smoothness", action="store_true", help="no L_S and no depth render (same as --lambda-s 0)")
     p.add_argument("--resume", action="store_true",
                    help="continue the run in --out from its last checkpoint (with its own settings; only "
@@ -51,14 +55,15 @@ def _add_config_options(parser):
 
 
 def config_from_args(args):
-    """The TrainConfig of `tacsplat reconstruct`'s options: the variant's fields, then every option given;
-    a ConfigError naming the option out of range."""
-    from tacsplat.reconstruction.config import TrainConfig
+    """The TrainConfig of `tacsplat reconstruct`'s options: the preset (scaled to --iterations), the variant's
+    fields, then every option given; a ConfigError naming the option out of range."""
+    from tacsplat.reconstruction.config import preset_config
     from tacsplat.reconstruction.options import apply_options, option_names
     from tacsplat.reconstruction.variants import get_variant
 
-    variant = get_variant(args.variant, "--variant")
-    config = TrainConfig(**variant.overrides)
+    config = preset_config(args.preset, getattr(args, "cfg__iterations", None))
+    for key, value in get_variant(args.variant, "--variant").overrides.items():
+        setattr(config, key, value)
     apply_options(config, args, args.config_options)
     if args.no_smoothness:
         config.lambda_s = 0.0

@@ -10,7 +10,6 @@ points, and their clones and splits); the rest form G_c.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import torch
@@ -90,11 +89,12 @@ class Gaussians:
         scales: np.ndarray,  # [N] isotropic scale in metres
         from_touch: np.ndarray,  # [N] bool
         sh_degree: int = 3,
-        initial_opacity: float = 0.1,
+        initial_opacity: float | np.ndarray = 0.1,  # one for all, or [N]
     ) -> "Gaussians":
-        """Isotropic Gaussians at ``points`` with the given colours and scales, identity rotations."""
+        """Isotropic Gaussians at ``points`` with the given colours, scales and opacities, identity rotations."""
         n = len(points)
-        if not 0.0 < initial_opacity < 1.0:
+        opacity = np.broadcast_to(np.asarray(initial_opacity, dtype=np.float64), (n,))
+        if not ((opacity > 0.0) & (opacity < 1.0)).all():
             raise InvalidInputError(f"initial_opacity must be in (0, 1), got {initial_opacity}")
         scales = np.asarray(scales, dtype=np.float64)
         if (scales <= 0).any() or not np.isfinite(scales).all():
@@ -105,7 +105,7 @@ class Gaussians:
             "means": torch.as_tensor(np.asarray(points), dtype=torch.float32).reshape(n, 3),
             "quats": quats,
             "scales": torch.as_tensor(np.log(scales), dtype=torch.float32)[:, None].repeat(1, 3),
-            "opacities": torch.full((n,), math.log(initial_opacity / (1.0 - initial_opacity))),
+            "opacities": torch.as_tensor(np.log(opacity / (1.0 - opacity)), dtype=torch.float32),
             "sh0": rgb_to_sh0(torch.as_tensor(np.asarray(colors), dtype=torch.float32).reshape(n, 1, 3)),
             "shN": torch.zeros(n, num_sh_bases(sh_degree) - 1, 3),
         }

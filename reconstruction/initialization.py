@@ -34,7 +34,8 @@ class InitConfig:
     use_silhouette_hull: bool = True  # failed SfM: draw them on the visual hull of the object's silhouettes
     # (views whose border fits a smooth backdrop) rather than in the whole bounding box
     hull_resolution: int = 64  # voxels along the longest side of the bounds when carving the hull
-    initial_opacity: float = 0.1  # the same for G_c and G_t (paper Sec. 4.1)
+    initial_opacity: float = 0.1  # of G_c, and of G_t unless touch_initial_opacity is set (paper Sec. 4.1)
+    touch_initial_opacity: float | None = None  # of G_t; None: initial_opacity
     touch_voxel_size: float = 0.001  # metres: touch points are thinned to one per voxel
     max_touch_points: int = 1000  # then capped at this many (random subset)
     sift_max_features: int = 4096
@@ -154,9 +155,9 @@ def initial_gaussians(
     points = np.concatenate([colour_points, touch_points])
     colors = np.concatenate([colour_rgb, rng.uniform(0.0, 1.0, size=(len(touch_points), 3))])
     from_touch = np.concatenate([np.zeros(len(colour_points), bool), np.ones(len(touch_points), bool)])
-    return Gaussians.from_points(
-        points, colors, neighbour_scales(points), from_touch, sh_degree, config.initial_opacity
-    )
+    touch_opacity = config.initial_opacity if config.touch_initial_opacity is None else config.touch_initial_opacity
+    opacities = np.where(from_touch, touch_opacity, config.initial_opacity)
+    return Gaussians.from_points(points, colors, neighbour_scales(points), from_touch, sh_degree, opacities)
 
 
 def foreground_mask(backdrop: np.ndarray) -> np.ndarray:

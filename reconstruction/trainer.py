@@ -221,8 +221,9 @@ class Trainer:
         cfg, g = self.config, self.gaussians
         view = self._next_view()
         frame = self.train_frames[view]
-        active_degree = min(cfg.sh_degree, self.step // cfg.sh_degree_interval)
-        with_depth = cfg.lambda_s > 0
+        active_degree = cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree,
+                                                                               self.step // cfg.sh_degree_interval)
+        with_depth = cfg.lambda_s > 0 and self.step >= cfg.smoothness_start_iter
         renders, alphas, meta = raster.rasterization(
             g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(active_degree),
             self.viewmats[view : view + 1], self.Ks[view : view + 1],
@@ -254,7 +255,7 @@ class Trainer:
         if with_depth:
             depth = renders[0, ..., 3]  # accumulated depth, paper Eq. 5
             proximity = None
-            if len(self.touch_points):
+            if len(self.touch_points) and cfg.use_proximity_mask:
                 alpha = alphas[0, ..., 0].detach()
                 surface = torch.where(alpha > 0.5, depth.detach() / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
                 rows, cols = losses.visible_touch_pixels(

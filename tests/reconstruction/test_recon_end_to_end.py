@@ -123,6 +123,17 @@ def test_touch_scene_runs_the_touch_and_smoothness_paths(sphere_scene, tmp_path,
     assert _training_render_modes(spies["render"]) == {"RGB+D"}
 
 
+def test_smoothness_waits_for_its_start_step_and_the_proximity_mask_can_be_off(sphere_scene, tmp_path, monkeypatch):
+    spies = _spy_paths(monkeypatch)
+    trainer = Trainer(Scene.load(sphere_scene), tmp_path / "run", _config(5, smoothness_start_iter=3,
+                                                                          use_proximity_mask=False))
+    trainer.run(show_progress=False)
+    assert len(spies["smoothness"].calls) == 2  # steps 3 and 4
+    assert all(kwargs.get("proximity") is None for kwargs, _ in spies["smoothness"].calls)
+    modes = [kwargs["render_mode"] for kwargs, grad in spies["render"].calls if grad]
+    assert modes == ["RGB", "RGB", "RGB", "RGB+D", "RGB+D"]
+
+
 def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_scene, tmp_path, monkeypatch):
     config = _config(10, checkpoint_every=4, touch_rebuild_every=3,
                      densify=DensifyStrategy(start_iter=2, refine_every=3, reset_every=5, stop_iter=100))
@@ -204,6 +215,12 @@ def test_cli_options_reach_the_train_config():
     assert defaults.to_json() == TrainConfig().to_json()  # no option given: exactly TrainConfig's defaults
     assert config_from_args(_reconstruct_args("--variant", "3dgs")).variant == "3dgs"
     assert config_from_args(_reconstruct_args("--variant", "3dgs", "--lambda-s", "1")).variant == "3dgs+s"
+    paper = config_from_args(_reconstruct_args("--preset", "paper", "--iterations", "3000"))
+    assert (paper.iterations, paper.smoothness_start_iter, paper.densify.stop_iter) == (3000, 2000, 1500)
+    assert paper.lambda_t == 0.5 and paper.touch_top_k == 20 and paper.use_proximity_mask is False
+    full_paper = config_from_args(_reconstruct_args("--preset", "paper"))
+    assert (full_paper.iterations, full_paper.smoothness_start_iter, full_paper.densify.stop_iter) == (30000, 20000, 15000)
+    assert config_from_args(_reconstruct_args("--preset", "paper", "--variant", "3dgs")).variant == "3dgs"
     with pytest.raises(ConfigError, match="--iterations"):
         config_from_args(_reconstruct_args("--iterations", "-5"))
     with pytest.raises(ConfigError, match="--densify-max-gaussians"):
