@@ -1,4 +1,4 @@
-"""tacsplat.acquisition: capture plans, the logger, the operator session and the simulated capture.
+"""tacsplat.acquisition: capture plans, the logger, and the three jobs that write scenes through it.
 
 * :mod:`~tacsplat.acquisition.config`: the rig YAML (devices, calibration
   files, mounting transforms, board, grasp control, capture plan) as
@@ -7,11 +7,18 @@
   a :class:`Rig` (Hand, TactileSensors, Camera, clock, pose source) for the real
   rig, its ``--mock`` emulation (:mod:`~tacsplat.acquisition.mock`) or the twin;
 * :mod:`~tacsplat.acquisition.logger`: :class:`CaptureLogger`, the one code
-  path that writes views and grasps through ``SceneWriter``;
-* :mod:`~tacsplat.acquisition.session`: ``tacsplat capture``, the operator's
-  terminal session (:func:`run_capture`);
-* :mod:`~tacsplat.acquisition.sim_capture`: the unattended capture on the twin
-  (``tacsplat sim-capture``), through the same logger.
+  path that writes views and grasps through ``SceneWriter``, and the one grasp
+  controller (close until the fingers stall, read, open);
+* :mod:`~tacsplat.acquisition.capture_scene`: the scene a capture opens, and
+  the checks of ``--resume``;
+* :mod:`~tacsplat.acquisition.twin_planner`: places the twin's camera and hand
+  for the logger, retrying an approach that touched nothing;
+* :mod:`~tacsplat.acquisition.operator_session`: ``tacsplat capture``, the
+  operator's terminal session (:func:`run_capture`);
+* :mod:`~tacsplat.acquisition.sim_capture`: ``tacsplat sim-capture``, a whole
+  scene captured on the twin, unattended;
+* :mod:`~tacsplat.acquisition.touch_simulation`: ``tacsplat simulate-touches``,
+  simulated grasps added to an existing scene.
 """
 
 from tacsplat.acquisition.config import RigConfig, load_rig

@@ -176,8 +176,7 @@ def _real_settings(c: RigConfig) -> dict:
     b, t = c.board, c.tactile
     settings = {
         "mock": c.mock,
-        "board": {k: getattr(b, k) for k in ("squares_x", "squares_y", "square_length_m", "marker_length_m",
-                                             "dictionary", "legacy_pattern")},
+        "board": asdict(b.spec()),
         "hand": {"ids": c.hand.ids, "calibration_sha256": sha("hand.calibration", c.hand.calibration)},
         "camera": {"T_hand_cam": c.camera.T_hand_cam,
                    "calibration_sha256": sha("camera.calibration", c.camera.calibration)},

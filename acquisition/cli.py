@@ -1,4 +1,4 @@
-"""`tacsplat` subcommands of tacsplat.acquisition: capture, sim-capture (see tacsplat.cli)."""
+"""`tacsplat` subcommands of tacsplat.acquisition: capture, sim-capture, simulate-touches (see tacsplat.cli)."""
 
 from __future__ import annotations
 
@@ -44,10 +44,25 @@ def register(cli) -> None:
     p.add_argument("--resume", action="store_true", help="continue a capture that was interrupted")
     p.set_defaults(func=_sim_capture)
 
+    p = cli.command(
+        "simulate-touches",
+        help="add simulated grasps of a mesh to a scene (e.g. an imported Shiny Blender scene)",
+        description="Grasps the mesh on the MuJoCo twin (at a graspable size, --object-radius) through the same "
+        "logger and grasp controller as sim-capture, and writes the touches in the scene's frame and units. A scene "
+        "with this sensor model is extended in place; one without (an import) is copied into --out first.",
+    )
+    p.add_argument("--mesh", required=True, help="the object's mesh, in the scene's world frame and units")
+    p.add_argument("--scene", required=True, help="scene directory")
+    p.add_argument("--grasps", type=int, default=5)
+    p.add_argument("--out", default=None, help="new scene directory (needed when SCENE has no tactile sensor model)")
+    p.add_argument("--object-radius", type=float, default=0.08, help="graspable size the mesh is simulated at (m)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_simulate_touches)
+
 
 def _capture(args) -> int:
     from tacsplat.acquisition.config import load_rig
-    from tacsplat.acquisition.session import run_capture
+    from tacsplat.acquisition.operator_session import run_capture
 
     return run_capture(load_rig(args.rig, mock=args.mock), args.out, resume=args.resume)
 
@@ -65,6 +80,14 @@ def _sim_capture(args) -> int:
     except ConfigError as exc:
         raise _naming_options(exc) from None
     print(json.dumps({"scene": args.out, **{k: round(v, 2) for k, v in timings.items()}}))
+    return 0
+
+
+def _simulate_touches(args) -> int:
+    from tacsplat.acquisition.touch_simulation import simulate_touches
+
+    target = simulate_touches(args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed)
+    print(f"touches written to {target}")
     return 0
 
 

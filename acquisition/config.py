@@ -4,30 +4,35 @@ the grasp controller, and the capture plan, as dataclasses.
 ``rig: real`` describes the Dynamixel hand, the optical tactile sensors and the
 wrist camera; ``rig: sim`` the MuJoCo twin. ``--mock`` (``load_rig(...,
 mock=True)``) keeps a real rig's file and swaps in emulated devices (see
-:mod:`tacsplat.acquisition.mock`). Every value is checked where it enters
-(:func:`validate`, also for configs built in code): types, the physical and
-logical range each field declares (:func:`bounded`), rigid 4x4 transforms and
-the cross-field rules; each invalid value raises one
+:mod:`tacsplat.acquisition.mock`). A file is read into the dataclasses by
+pydantic (strict types: no string for a number, no number for a string, no
+unknown key); then :func:`validate` (also for configs built in code) checks the
+physical and logical range each field declares (:func:`bounded`), the board and
+the cross-field rules. Each invalid value raises one
 :class:`~tacsplat.errors.ConfigError` naming the file, the field path
-(``tactile.sensors[2].T_fingertip_sensor``) and the allowed range. The
-example files are in ``acquisition/rigs/`` (:func:`example_rig`).
+(``tactile.sensors[2].T_fingertip_sensor``) and the allowed range. The example
+files are in ``acquisition/rigs/`` (:func:`example_rig`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, get_args, get_type_hints
 
 import numpy as np
 import yaml
+from pydantic import ConfigDict, PlainValidator, StringConstraints, TypeAdapter, ValidationError, with_config
 
+from tacsplat.drivers.wrist_camera import CharucoBoardSpec
 from tacsplat.errors import ConfigError
 from tacsplat.geometry import rigidity_problem
+from tacsplat.sim.hand import FINGER_NAMES
 
-FINGERS = ("index", "middle", "ring", "thumb")
 RIGS_DIR = Path(__file__).parent / "rigs"
 DYNAMIXEL_BAUDRATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)  # X-series rates the SDK opens
 DYNAMIXEL_MAX_ID = 252  # protocol 2.0: 253 is reserved, 254 is the broadcast id
@@ -67,65 +72,91 @@ def positive(default, hi: float = math.inf, unit: str = ""):
     return bounded(default, 0, hi, unit, lo_open=True)
 
 
+# --- the types of the YAML's values beyond numbers, booleans and lists --------------------------------
+
+def _pose(value) -> tuple:
+    try:
+        T = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"expected a 4x4 matrix of numbers, got {value!r}") from None
+    problem = rigidity_problem(T)
+    if problem:
+        raise ValueError(f"not a rigid transform: {problem} (expected [[R, t], [0, 0, 0, 1]], R a rotation: "
+                         "orthonormal, determinant +1; all finite)")
+    return tuple(map(tuple, T.tolist()))
+
+
+def _device_source(value) -> int | str:
+    index = isinstance(value, int) and not isinstance(value, bool) and value >= 0
+    if not (index or isinstance(value, str) and value.strip()):
+        raise ValueError(f"expected a device index (>= 0) or a path, got {value!r}")
+    return value
+
+
+Text = Annotated[str, StringConstraints(pattern=r"\S")]  # a non-empty string
+Pose = Annotated[tuple, PlainValidator(_pose)]  # a rigid 4x4 transform, as a tuple of rows
+DeviceSource = Annotated[int | str, PlainValidator(_device_source)]  # a device index, file path or URL
+YAML_SECTION = ConfigDict(extra="forbid", allow_inf_nan=False)  # every section: no unknown key, finite numbers
+
+
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class HandConfig:
     """The Dynamixel hand (``rig: real``)."""
 
-    port: str = "/dev/ttyUSB0"  # the U2D2 adapter
+    port: Text = "/dev/ttyUSB0"  # the U2D2 adapter
     baudrate: int = 4_000_000  # one of DYNAMIXEL_BAUDRATES
     ids: tuple[int, ...] = bounded(tuple(range(16)), 0, DYNAMIXEL_MAX_ID)  # servo of each joint, twin's joint order
-    calibration: str | None = None  # HandCalibration JSON (offsets, signs); None = identity
+    calibration: Text | None = None  # HandCalibration JSON (offsets, signs); None = identity
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class CameraConfig:
     """The wrist camera (``rig: real``)."""
 
-    source: int | str = 0  # device index, file path or stream URL
-    calibration: str = "wrist_camera.json"  # CameraCalibration JSON (intrinsics, distortion, board)
-    T_hand_cam: tuple | None = None  # [4, 4] camera in the hand frame; None = the calibration file's hand-eye result
+    source: DeviceSource = 0
+    calibration: Text = "wrist_camera.json"  # CameraCalibration JSON (intrinsics, distortion, board)
+    T_hand_cam: Pose | None = None  # [4, 4] camera in the hand frame; None = the calibration file's hand-eye result
     fps: float | None = positive(None, 1000.0, "Hz")
     timeout_s: float = positive(2.0, 60.0, "s")  # no frame for this long is a CameraError
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
-class BoardConfig:
-    """The ChArUco board that defines the world frame (defaults: CharucoBoardSpec's)."""
+class BoardConfig(CharucoBoardSpec):
+    """The ChArUco board that defines the world frame (the printed board's fields and defaults are
+    :class:`~tacsplat.drivers.wrist_camera.CharucoBoardSpec`'s), and how well a view must see it."""
 
-    squares_x: int = bounded(7, 2, 100)
-    squares_y: int = bounded(5, 2, 100)
-    square_length_m: float = positive(0.03, 1.0, "m")
-    marker_length_m: float = positive(0.022, 1.0, "m")  # smaller than the square
-    dictionary: str = "DICT_5X5_100"  # with at least one marker per white square
-    legacy_pattern: bool = False
     max_reprojection_px: float = positive(1.0, 50.0, "px")  # a view or grasp whose board PnP is worse is rejected
     min_corners: int = bounded(6, 4, 10_000)  # PnP needs 4; at most the board's inner corners
 
-    def spec(self):
-        from tacsplat.drivers.wrist_camera import CharucoBoardSpec
-
-        return CharucoBoardSpec(self.squares_x, self.squares_y, self.square_length_m, self.marker_length_m,
-                                self.dictionary, self.legacy_pattern)
+    def spec(self) -> CharucoBoardSpec:
+        """The printed board alone."""
+        return CharucoBoardSpec(**{f.name: getattr(self, f.name) for f in dataclasses.fields(CharucoBoardSpec)})
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class TactileSensorConfig:
     """One optical tactile fingertip (``rig: real``)."""
 
-    finger: str  # index | middle | ring | thumb: whose fingertip frame it is mounted on
-    source: int | str  # device index, file path or URL
-    calibration: str  # TactileCalibration file (tacsplat calibrate tactile)
-    T_fingertip_sensor: tuple | None = None  # [4, 4] mounting: sensor frame in the fingertip pad frame; None = identity
+    finger: Text  # index | middle | ring | thumb: whose fingertip frame it is mounted on
+    source: DeviceSource
+    calibration: Text  # TactileCalibration file (tacsplat calibrate tactile)
+    T_fingertip_sensor: Pose | None = None  # [4, 4] mounting: sensor frame in the fingertip pad frame; None = identity
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class TactileConfig:
-    sensor_name: str = "digit"  # the scene's sensor model name
+    sensor_name: Text = "digit"  # the scene's sensor model name
     gel_thickness_m: float = positive(0.002, 0.02, "m")
     timeout_s: float = positive(2.0, 60.0, "s")
     sensors: tuple[TactileSensorConfig, ...] = ()
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class GraspControl:
     """How the logger closes the hand: a speed-limited ramp toward ``close_pose``, each finger stopping when it
@@ -143,21 +174,24 @@ class GraspControl:
     open_s: float = bounded(0.3, 0, 60.0, "s")  # wait after opening
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class ViewPlan:
     train: int = bounded(20, 1)  # a scene needs a view to train on
     test: int = bounded(5, 0)
-    mode: str = "operator"  # operator (a person places the camera) | hemisphere (the twin places it)
+    mode: Text = "operator"  # operator (a person places the camera) | hemisphere (the twin places it)
     radius_m: float | None = positive(None, 10.0, "m")  # hemisphere radius; None = the twin's default for the object
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class GraspPlan:
     count: int = bounded(5, 0)
-    mode: str = "operator"  # operator (a person places the hand) | random (the twin samples approaches)
+    mode: Text = "operator"  # operator (a person places the hand) | random (the twin samples approaches)
     seed: int = bounded(0, 0)
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class CapturePlan:
     views: ViewPlan = field(default_factory=ViewPlan)
@@ -167,17 +201,19 @@ class CapturePlan:
         return dataclasses.asdict(self)
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class SimConfig:
     """The twin (``rig: sim``)."""
 
-    object: str = "teapot"
-    mesh: str | None = None
+    object: Text = "teapot"
+    mesh: Text | None = None
     object_radius: float = positive(0.08, MAX_OBJECT_RADIUS_M, "m")  # bounding-sphere radius
     resolution: int = bounded(200, 8, 4096, "px")
     seed: int = bounded(0, 0)
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class MockConfig:
     """The emulated devices of ``--mock`` (a real rig's file, no hardware)."""
@@ -192,10 +228,11 @@ class MockConfig:
     servo_timeout_s: float = positive(0.1, 10.0, "s")
 
 
+@with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class RigConfig:
-    rig: str  # real | sim
-    object: str = "object"  # the scene's object name
+    rig: Text  # real | sim
+    object: Text = "object"  # the scene's object name
     hand: HandConfig = field(default_factory=HandConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     board: BoardConfig = field(default_factory=BoardConfig)
@@ -228,108 +265,70 @@ def example_rig(name: str) -> Path:
 
 # --- parsing ------------------------------------------------------------------------------------
 
-def _pose(value, key: str, source) -> tuple:
-    try:
-        T = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ConfigError(key, f"expected a 4x4 matrix of numbers, got {value!r}", source) from None
-    problem = rigidity_problem(T)
-    if problem:
-        raise ConfigError(key, f"not a rigid transform: {problem} (expected [[R, t], [0, 0, 0, 1]], R a rotation: "
-                          "orthonormal, determinant +1; all finite)", source)
-    return tuple(map(tuple, T.tolist()))
+_SET_BY_LOAD_RIG = ("source", "mock")  # RigConfig fields that come from load_rig, not from the file
+_SECTIONS = tuple(f.name for f in dataclasses.fields(RigConfig) if f.default_factory is not dataclasses.MISSING)
+_EXPECTED = {  # what each kind of pydantic error means in the YAML's terms
+    "int_type": "expected an integer", "int_parsing": "expected an integer", "int_from_float": "expected an integer",
+    "float_type": "expected a finite number", "float_parsing": "expected a finite number",
+    "finite_number": "expected a finite number",
+    "bool_type": "expected true or false", "bool_parsing": "expected true or false",
+    "string_type": "expected a non-empty string", "string_pattern_mismatch": "expected a non-empty string",
+    "tuple_type": "expected a list", "list_type": "expected a list",
+    "dataclass_type": "expected a mapping", "dict_type": "expected a mapping",
+}
 
 
-def _build(cls, data: Any, prefix: str, source, nested: dict | None = None):
-    """A dataclass from a YAML mapping; unknown keys and wrong types name their key."""
-    nested = nested or {}
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ConfigError(prefix, f"expected a mapping, got {type(data).__name__}", source)
-    reserved = ("source", "mock") if cls is RigConfig else ()  # set by load_rig, not by the file
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.name not in reserved}
-    kwargs = {}
-    for key, value in data.items():
-        full = f"{prefix}.{key}" if prefix else str(key)
-        if key not in fields:
-            raise ConfigError(full, f"unknown key (expected one of {sorted(fields)})", source)
-        if key in nested:
-            kwargs[key] = nested[key](value, full)
-            continue
-        kwargs[key] = _coerce(value, fields[key].type, full, source)
-    try:
-        return cls(**kwargs)
-    except TypeError as exc:
-        raise ConfigError(prefix or "(top level)", str(exc), source) from None
+@functools.cache
+def _rig_adapter() -> TypeAdapter:
+    return TypeAdapter(RigConfig)
 
 
-def _coerce(value, annotation: str, key: str, source):
-    """Check a scalar or sequence against a field's annotation (written as a string)."""
-    ann = str(annotation)
-    if value is None:
-        if "None" in ann:
-            return None
-        raise ConfigError(key, "must not be empty", source)
-    if ann.startswith("tuple[float"):
-        if not isinstance(value, (list, tuple)) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
-            raise ConfigError(key, f"expected a list of numbers, got {value!r}", source)
-        return tuple(float(v) for v in value)
-    if ann.startswith("tuple[int"):
-        if not isinstance(value, (list, tuple)) or not all(isinstance(v, int) and not isinstance(v, bool) for v in value):
-            raise ConfigError(key, f"expected a list of integers, got {value!r}", source)
-        return tuple(value)
-    if ann.startswith("tuple"):  # 4x4 poses
-        return _pose(value, key, source)
-    if ann.startswith("int | str"):
-        index = isinstance(value, int) and not isinstance(value, bool) and value >= 0
-        if not (index or isinstance(value, str) and value.strip()):
-            raise ConfigError(key, f"expected a device index (>= 0) or a path, got {value!r}", source)
-        return value
-    if ann.startswith("bool"):
-        if not isinstance(value, bool):
-            raise ConfigError(key, f"expected true or false, got {value!r}", source)
-        return value
-    if ann.startswith("int"):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(key, f"expected an integer, got {value!r}", source)
-        return value
-    if ann.startswith("float"):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-            raise ConfigError(key, f"expected a finite number, got {value!r}", source)
-        return float(value)
-    if ann.startswith("str"):
-        if not isinstance(value, str) or not value.strip():
-            raise ConfigError(key, f"expected a non-empty string, got {value!r}", source)
-        return value
-    raise ConfigError(key, f"unsupported value {value!r}", source)  # pragma: no cover
+def _key(loc: tuple) -> str:
+    """A pydantic error location as the YAML's field path: ``tactile.sensors[2].T_fingertip_sensor``."""
+    key = ""
+    for part in loc:
+        key += f"[{part}]" if isinstance(part, int) else (f".{part}" if key else str(part))
+    return key
+
+
+def _section_fields(loc: tuple) -> list[str]:
+    """The keys the section at ``loc`` (a path of field names and list indices) may hold."""
+    cls = RigConfig
+    for part in loc:
+        if not isinstance(part, int):
+            hint = get_type_hints(cls)[part]
+            cls = get_args(hint)[0] if get_args(hint) else hint  # tuple[Item, ...] -> Item
+    return [f.name for f in dataclasses.fields(cls) if cls is not RigConfig or f.name not in _SET_BY_LOAD_RIG]
+
+
+def _config_error(exc: ValidationError, source) -> ConfigError:
+    """The first of pydantic's errors as one ConfigError naming the field path and what it expects."""
+    error = exc.errors(include_url=False)[0]
+    loc, kind = error["loc"], error["type"]
+    if kind == "unexpected_keyword_argument":
+        return ConfigError(_key(loc), f"unknown key (expected one of {sorted(_section_fields(loc[:-1]))})", source)
+    if kind == "missing":
+        return ConfigError(_key(loc), "missing (a required key)", source)
+    if kind in _EXPECTED:
+        return ConfigError(_key(loc), f"{_EXPECTED[kind]}, got {error['input']!r}", source)
+    if kind == "value_error":  # one of the validators above
+        return ConfigError(_key(loc), str(error["ctx"]["error"]), source)
+    return ConfigError(_key(loc) or "(top level)", error["msg"], source)
 
 
 def parse_rig(data: Any, source: str | Path | None = None, mock: bool = False) -> RigConfig:
     """A :class:`RigConfig` from the YAML's data (``source`` names the file in errors)."""
     src = None if source is None else str(source)
-
-    def sensors(value, key):
-        if not isinstance(value, list):
-            raise ConfigError(key, f"expected a list of sensors, got {type(value).__name__}", src)
-        return tuple(_build(TactileSensorConfig, v, f"{key}[{i}]", src) for i, v in enumerate(value))
-
-    nested = {
-        "hand": lambda v, k: _build(HandConfig, v, k, src),
-        "camera": lambda v, k: _build(CameraConfig, v, k, src),
-        "board": lambda v, k: _build(BoardConfig, v, k, src),
-        "tactile": lambda v, k: _build(TactileConfig, v, k, src, {"sensors": sensors}),
-        "grasp": lambda v, k: _build(GraspControl, v, k, src),
-        "plan": lambda v, k: _build(CapturePlan, v, k, src, {
-            "views": lambda v2, k2: _build(ViewPlan, v2, k2, src),
-            "grasps": lambda v2, k2: _build(GraspPlan, v2, k2, src),
-        }),
-        "sim": lambda v, k: _build(SimConfig, v, k, src),
-        "mock_devices": lambda v, k: _build(MockConfig, v, k, src),
-    }
     if not isinstance(data, dict) or "rig" not in data:
         raise ConfigError("rig", "missing: the file must say `rig: real` or `rig: sim`", src)
-    config = _build(RigConfig, data, "", src, nested)
+    for key in _SET_BY_LOAD_RIG:
+        if key in data:
+            raise ConfigError(key, f"unknown key (expected one of {sorted(_section_fields(()))})", src)
+    data = {k: v for k, v in data.items() if not (v is None and k in _SECTIONS)}  # an empty section: the defaults
+    try:  # as JSON, whose strict mode still reads a list as a tuple and a mapping as a dataclass
+        config = _rig_adapter().validate_json(json.dumps(data, default=str), strict=True)
+    except ValidationError as exc:
+        raise _config_error(exc, src) from None
     config = dataclasses.replace(config, source=src, mock=bool(mock))
     validate(config)
     return config
@@ -402,22 +401,13 @@ def validate(c: RigConfig) -> None:
 
 
 def _validate_board(b: BoardConfig, src) -> None:
-    if not b.marker_length_m < b.square_length_m:
-        raise ConfigError("board.marker_length_m", f"must be smaller than board.square_length_m ({b.square_length_m:g})"
-                          f", got {b.marker_length_m:g}", src)
+    problem = b.spec().problem()
+    if problem:
+        raise ConfigError(f"board.{problem[0]}", problem[1], src)
     inner = (b.squares_x - 1) * (b.squares_y - 1)
     if b.min_corners > inner:
         raise ConfigError("board.min_corners", f"a {b.squares_x} x {b.squares_y} board has {inner} inner corners; "
                           f"must be in [4, {inner}], got {b.min_corners}", src)
-    import cv2
-
-    if not hasattr(cv2.aruco, b.dictionary):
-        raise ConfigError("board.dictionary", f"unknown ArUco dictionary {b.dictionary!r}", src)
-    markers = len(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, b.dictionary)).bytesList)
-    needed = b.squares_x * b.squares_y // 2
-    if needed > markers:
-        raise ConfigError("board.dictionary", f"{b.dictionary} has {markers} markers; a {b.squares_x} x {b.squares_y} "
-                          f"board needs {needed} (choose a larger dictionary or fewer squares)", src)
 
 
 def _validate_real(c: RigConfig, src) -> None:
@@ -430,8 +420,9 @@ def _validate_real(c: RigConfig, src) -> None:
         raise ConfigError("tactile.sensors", "a real rig needs at least one tactile sensor", src)
     seen = set()
     for i, s in enumerate(c.tactile.sensors):
-        if s.finger not in FINGERS:
-            raise ConfigError(f"tactile.sensors[{i}].finger", f"must be one of {FINGERS}, got {s.finger!r}", src)
+        if s.finger not in FINGER_NAMES:
+            raise ConfigError(f"tactile.sensors[{i}].finger", f"must be one of {FINGER_NAMES}, got {s.finger!r}",
+                              src)
         if s.finger in seen:
             raise ConfigError(f"tactile.sensors[{i}].finger", f"{s.finger!r} has two sensors", src)
         seen.add(s.finger)

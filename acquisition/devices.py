@@ -22,8 +22,6 @@ from tacsplat.types import CameraIntrinsics
 
 log = logging.getLogger(__name__)
 
-SIM_SENSOR_NAME = "sim-digit"
-
 
 @dataclass
 class Rig:
@@ -147,17 +145,13 @@ def _open_twin(config: RigConfig) -> Iterator[Rig]:
 
 def twin_rig(twin, control: GraspControl = TWIN_CONTROL) -> Rig:
     """A :class:`Rig` of an open twin: its hand, pads and free view camera, its clock and ground-truth poses."""
-    import mujoco
-
-    t = twin.config.tactile
     cfg = twin.config
     return Rig(
         kind="sim", hand=twin.hand, sensors=list(twin.tactile_sensors), camera=twin.view_camera,
         clock=TwinClock(twin), poses=TwinPoseSource(twin), intrinsics=twin.view_camera.intrinsics,
-        sensor_model=SensorModel(SIM_SENSOR_NAME, t.width_px, t.height_px, t.pixel_size_m, t.gel_thickness_m),
-        control=control,
+        sensor_model=twin.sensor_model(), control=control,
         extra={
-            "simulator": f"mujoco {mujoco.__version__}",
+            "simulator": twin.simulator,
             "timestep_s": cfg.timestep,
             "contact_timeconst_s": cfg.contact_timeconst,
             "collision": f"CoACD convex decomposition ({len(twin.hulls)} hulls)",

@@ -179,12 +179,14 @@ class CaptureLogger:
 
     ``fingers`` maps each finger name to its joint indices in the hand's joint
     order (default: four joints per finger in the order of ``hand.joint_names``'
-    prefixes). Opening a logger on a resumed writer first removes a grasp cut short.
+    prefixes). Opening a logger on a resumed writer first removes a grasp cut short
+    (a last grasp with fewer touches than sensors), unless ``redo_partial_grasp`` is
+    False (a scene another tool wrote, whose grasps may hold fewer touches).
     """
 
     def __init__(self, writer: SceneWriter, hand: Hand, sensors: Sequence[TactileSensor], camera: Camera,
                  clock: Clock, poses: PoseSource, control: GraspControl = GraspControl(),
-                 fingers: dict[str, Sequence[int]] | None = None):
+                 fingers: dict[str, Sequence[int]] | None = None, redo_partial_grasp: bool = True):
         self.writer = writer
         self.hand = hand
         self.sensors = list(sensors)
@@ -203,7 +205,7 @@ class CaptureLogger:
                 fingers.setdefault(joint.rsplit("_", 1)[0], []).append(i)
         self.fingers = {f: np.asarray(j, dtype=int) for f, j in fingers.items()}
         self.hand_state = "open"
-        self.dropped_partial_grasp = self.drop_partial_grasp()
+        self.dropped_partial_grasp = self.drop_partial_grasp() if redo_partial_grasp else 0
 
     # --- state ------------------------------------------------------------------------------------
     def counts(self) -> Counts:

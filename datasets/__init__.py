@@ -28,12 +28,15 @@ A scene directory is what acquisition, the simulator and the importers write
 Inside the code poses are OpenCV camera-to-world (``Frame.T_world_cam``) in
 metres; the OpenGL matrices of nerfstudio and Blender are converted only in
 this package. Importers: :func:`import_blender` (NeRF-synthetic / Shiny
-Blender), :func:`import_colmap` (COLMAP sparse models through pycolmap).
+Blender), :func:`import_colmap` (COLMAP sparse models through pycolmap);
+:func:`copy_scene` writes a copy of a scene (a subset of its touches, new
+provenance or sensor model).
 Command line: ``tacsplat import blender|colmap`` and ``tacsplat inspect DIR [--json] [--plot PNG]``.
 """
 
 from .blender import import_blender
 from .colmap import import_colmap
+from .copying import copy_scene
 from .reader import Scene, check_scene
 from .records import SPLITS, Frame, SceneMeta, SensorModel, Touch
 from .writer import SceneWriter
@@ -47,6 +50,7 @@ __all__ = [
     "Scene",
     "check_scene",
     "SceneWriter",
+    "copy_scene",
     "import_blender",
     "import_colmap",
 ]

@@ -24,7 +24,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from tacsplat.drivers.calibration import json_array, json_float, json_int, read_calibration_json
+from tacsplat.drivers.calibration import is_json_number, json_array, json_float, json_int, read_calibration_json
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import CameraError, ConfigError, InvalidInputError
 from tacsplat.geometry import invert_pose, make_pose, rigidity_problem
@@ -44,22 +44,51 @@ def tacsplat_K_from_opencv(K_opencv: np.ndarray) -> np.ndarray:
     return K
 
 
+MAX_BOARD_SQUARES = 100  # per side
+MAX_SQUARE_LENGTH_M = 1.0
+
+
 @dataclass(frozen=True)
 class CharucoBoardSpec:
-    """A printed ChArUco board (OpenCV >= 4.6 pattern unless ``legacy_pattern``)."""
+    """A printed ChArUco board (OpenCV >= 4.6 pattern unless ``legacy_pattern``); :meth:`problem` tells
+    whether it can be made."""
 
     squares_x: int = 7
     squares_y: int = 5
     square_length_m: float = 0.03
-    marker_length_m: float = 0.022
-    dictionary: str = "DICT_5X5_100"
+    marker_length_m: float = 0.022  # smaller than the square
+    dictionary: str = "DICT_5X5_100"  # with at least one marker per white square
     legacy_pattern: bool = False
 
+    def problem(self) -> tuple[str, str] | None:
+        """``(field, what is wrong and the allowed range)`` of the first impossible value, or None."""
+        for name in ("squares_x", "squares_y"):
+            n = getattr(self, name)
+            if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= MAX_BOARD_SQUARES:
+                return name, f"must be an integer in [2, {MAX_BOARD_SQUARES}], got {n!r}"
+        for name in ("square_length_m", "marker_length_m"):
+            x = getattr(self, name)
+            if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:  # (NaN and inf fail too)
+                return name, f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
+        if not self.marker_length_m < self.square_length_m:
+            return "marker_length_m", (f"must be smaller than square_length_m ({self.square_length_m:g} m), "
+                                       f"got {self.marker_length_m:g}")
+        if not isinstance(self.dictionary, str) or not self.dictionary.startswith("DICT_") or \
+                not hasattr(cv2.aruco, self.dictionary):
+            return "dictionary", f"unknown ArUco dictionary {self.dictionary!r}"
+        markers = len(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)).bytesList)
+        needed = self.squares_x * self.squares_y // 2
+        if needed > markers:
+            return "dictionary", (f"{self.dictionary} has {markers} markers; a {self.squares_x} x {self.squares_y} "
+                                  f"board needs {needed} (choose a larger dictionary or fewer squares)")
+        if not isinstance(self.legacy_pattern, bool):
+            return "legacy_pattern", f"expected true or false, got {self.legacy_pattern!r}"
+        return None
+
     def board(self) -> "cv2.aruco.CharucoBoard":
-        if not hasattr(cv2.aruco, self.dictionary):
-            raise ConfigError("dictionary", f"unknown ArUco dictionary {self.dictionary!r}")
-        if not 0 < self.marker_length_m < self.square_length_m:
-            raise ConfigError("marker_length_m", "must be positive and smaller than square_length_m")
+        problem = self.problem()
+        if problem:
+            raise ConfigError(*problem)
         board = cv2.aruco.CharucoBoard(
             (self.squares_x, self.squares_y), self.square_length_m, self.marker_length_m,
             cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)),
@@ -165,18 +194,9 @@ def _board_spec(board, path: Path) -> CharucoBoardSpec:
     if unknown:
         raise ConfigError(f"board.{unknown[0]}", f"unknown field (expected {names})", source=path)
     spec = CharucoBoardSpec(**board)
-    for name in ("squares_x", "squares_y"):
-        json_int(getattr(spec, name), f"board.{name}", path, minimum=2)
-    square = json_float(spec.square_length_m, "board.square_length_m", path, low=1e-6)
-    marker = json_float(spec.marker_length_m, "board.marker_length_m", path, low=1e-6)
-    if marker >= square:
-        raise ConfigError("board.marker_length_m", f"{marker} m is not smaller than square_length_m {square} m",
-                          source=path)
-    if not isinstance(spec.dictionary, str) or not spec.dictionary.startswith("DICT_") or \
-            not hasattr(cv2.aruco, spec.dictionary):
-        raise ConfigError("board.dictionary", f"unknown ArUco dictionary {spec.dictionary!r}", source=path)
-    if not isinstance(spec.legacy_pattern, bool):
-        raise ConfigError("board.legacy_pattern", f"must be true or false, got {spec.legacy_pattern!r}", source=path)
+    problem = spec.problem()
+    if problem:
+        raise ConfigError(f"board.{problem[0]}", problem[1], source=path)
     return spec
 
 

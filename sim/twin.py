@@ -18,16 +18,11 @@ from dataclasses import dataclass, field
 import mujoco
 import numpy as np
 import trimesh
+from scipy.spatial.transform import Rotation
 
+from tacsplat.datasets import SensorModel
 from tacsplat.errors import ConfigError, InvalidInputError, SimulationError
-from tacsplat.geometry import (
-    check_rigid,
-    invert_pose,
-    make_pose,
-    matrix_to_quat_wxyz,
-    opencv_to_opengl,
-    quat_wxyz_to_matrix,
-)
+from tacsplat.geometry import check_rigid, invert_pose, make_pose, opencv_to_opengl
 from tacsplat.sim.camera import MujocoCamera
 from tacsplat.sim.hand import (
     FINGER_NAMES,
@@ -45,6 +40,8 @@ from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer
 from tacsplat.types import TactileReading
 
 log = logging.getLogger(__name__)
+
+SENSOR_MODEL_NAME = "sim-digit"  # the scene's name of the twin's tactile pads
 
 MAX_SERVO_OMEGA_DT = 0.5  # servo natural frequency x timestep: the stiffest gains allowed
 MIN_TIMECONST_STEPS = 2.0  # contact solref time constant >= this many timesteps
@@ -265,7 +262,14 @@ class SimTactileSensor:
 
 
 class SimTwin:
-    """The MuJoCo twin of the rig; a context manager owning the MjModel, MjData and renderers."""
+    """The MuJoCo twin of the rig; a context manager owning the MjModel, MjData and renderers.
+
+    ``peak_penetration_m`` is the deepest hand-object penetration of the collision
+    geometry seen after any :meth:`sleep` since the last :meth:`reset` (the error
+    of MuJoCo's soft contacts, ideally 0).
+    """
+
+    simulator = f"mujoco {mujoco.__version__}"  # for the provenance of scenes
 
     def __init__(self, config: TwinConfig = TwinConfig()):
         self.config = config
@@ -293,11 +297,27 @@ class SimTwin:
         self.view_camera = MujocoCamera(self, "view", w, h, visible_groups=(0, 2))  # hand hidden
         self._hand_geoms = self._body_tree_geoms("hand")
         self._object_geoms = set(np.flatnonzero(self.model.geom_bodyid == self.model.body("object").id).tolist())
+        self._geom_is_hand = np.isin(np.arange(self.model.ngeom), list(self._hand_geoms))
+        self._geom_is_object = np.isin(np.arange(self.model.ngeom), list(self._object_geoms))
+        self.peak_penetration_m = 0.0
+
+    def sensor_model(self, scale: float = 1.0) -> SensorModel:
+        """The scene's sensor model of the pads, in a scene whose lengths are the twin's divided by ``scale``."""
+        t = self.config.tactile
+        return SensorModel(SENSOR_MODEL_NAME, t.width_px, t.height_px, t.pixel_size_m / scale,
+                           t.gel_thickness_m / scale)
 
     # --- state -------------------------------------------------------------------------------
     def forward(self) -> None:
         """Recompute positions, cameras and contacts from the current state."""
         mujoco.mj_forward(self.model, self.data)
+
+    def reset(self) -> None:
+        """Back to the model's initial state (time 0, joints, servo targets and hand base as the model puts them),
+        positions recomputed; ``peak_penetration_m`` starts again from 0."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.forward()
+        self.peak_penetration_m = 0.0
 
     def sleep(self, seconds: float) -> None:
         """Advance the physics by ``seconds`` of simulated time (the twin's clock)."""
@@ -307,6 +327,7 @@ class SimTwin:
             mujoco.mj_step(self.model, self.data)
         self.forward()
         self.check_stable()
+        self.peak_penetration_m = max(self.peak_penetration_m, self.max_penetration())
 
     def check_stable(self) -> None:
         """Raise :class:`SimulationError` if MuJoCo flagged a problem or the state is not finite."""
@@ -323,13 +344,13 @@ class SimTwin:
     # --- hand base -----------------------------------------------------------------------------
     def T_world_hand(self) -> np.ndarray:
         """Ground-truth pose [4, 4] of the hand base."""
-        return make_pose(quat_wxyz_to_matrix(self.data.mocap_quat[self._mocap]), self.data.mocap_pos[self._mocap])
+        return make_pose(_quat_to_matrix(self.data.mocap_quat[self._mocap]), self.data.mocap_pos[self._mocap])
 
     def set_hand_base_pose(self, T_world_hand: np.ndarray) -> None:
         """Place the hand base (mocap) at ``T_world_hand`` [4, 4]."""
         T = check_rigid(T_world_hand, "T_world_hand")
         self.data.mocap_pos[self._mocap] = T[:3, 3]
-        self.data.mocap_quat[self._mocap] = matrix_to_quat_wxyz(T[:3, :3])
+        self.data.mocap_quat[self._mocap] = _matrix_to_quat(T[:3, :3])
         self.forward()
 
     # --- free view camera ----------------------------------------------------------------------
@@ -337,7 +358,7 @@ class SimTwin:
         """Place the view camera at the OpenCV camera-to-world pose ``T_world_cam`` [4, 4]."""
         T_gl = opencv_to_opengl(check_rigid(T_world_cam, "T_world_cam"))
         self.model.cam_pos[self._view_cam] = T_gl[:3, 3]
-        self.model.cam_quat[self._view_cam] = matrix_to_quat_wxyz(T_gl[:3, :3])
+        self.model.cam_quat[self._view_cam] = _matrix_to_quat(T_gl[:3, :3])
         self.forward()
 
     def camera_pose(self) -> np.ndarray:
@@ -374,7 +395,10 @@ class SimTwin:
 
     def max_penetration(self) -> float:
         """Deepest hand-object contact penetration in metres (0 when nothing penetrates)."""
-        return max([0.0] + [-d for _, d in self.hand_object_contacts()])
+        g = self.data.contact.geom  # [ncon, 2]
+        is_hand, is_object = self._geom_is_hand, self._geom_is_object
+        pair = (is_hand[g[:, 0]] & is_object[g[:, 1]]) | (is_object[g[:, 0]] & is_hand[g[:, 1]])
+        return float(max(0.0, -self.data.contact.dist[pair].min(initial=0.0)))
 
     # --- lifetime ------------------------------------------------------------------------------
     def close(self) -> None:
@@ -388,7 +412,11 @@ class SimTwin:
         self.close()
 
 
-def world_readings(twin: SimTwin) -> dict[str, TactileReading]:
-    """All four tactile readings placed in the world with the twin's ground-truth hand pose."""
-    T_world_hand = twin.T_world_hand()
-    return {s.name: s.read().to_world(T_world_hand) for s in twin.tactile_sensors}
+def _quat_to_matrix(q_wxyz) -> np.ndarray:
+    """Rotation matrix [3, 3] of MuJoCo's quaternion (w, x, y, z)."""
+    return Rotation.from_quat(q_wxyz, scalar_first=True).as_matrix()
+
+
+def _matrix_to_quat(R) -> np.ndarray:
+    """MuJoCo's quaternion (w, x, y, z), w >= 0, of a rotation matrix [3, 3]."""
+    return Rotation.from_matrix(R).as_quat(canonical=True, scalar_first=True)

@@ -22,7 +22,6 @@ from tacsplat.errors import TacsplatError
 COMMAND_MODULES = (
     "tacsplat.datasets.cli",
     "tacsplat.reconstruction.cli",
-    "tacsplat.sim.cli",
     "tacsplat.drivers.cli",
     "tacsplat.acquisition.cli",
     "tacsplat.apps.demo",

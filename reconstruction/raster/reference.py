@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from tacsplat.reconstruction.gaussians import quats_to_rotmats
+
 ALPHA_THRESHOLD = 1.0 / 255.0  # a Gaussian with alpha under this is skipped at a pixel
 MAX_ALPHA = 0.99  # alpha clamp
 TRANSMITTANCE_THRESHOLD = 1e-4  # a pixel stops once its transmittance would fall to this
@@ -34,20 +36,6 @@ class Projection:
     depths: Tensor  # [C, N] camera z (0 where culled)
     radii: Tensor  # [C, N, 2] int32 box half-sizes in pixels, 0 = culled
     opacities: Tensor  # [C, N] opacities (times the antialiasing compensation if used)
-
-
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices [N, 3, 3] of quaternions [N, 4] (wxyz, normalised here; zero -> identity)."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(q.shape[:-1] + (3, 3))
 
 
 def project_gaussians(
@@ -71,7 +59,7 @@ def project_gaussians(
     dilated 2D covariance is not positive definite, its opacity is under 1/255,
     both radii are <= radius_clip, or its box misses the image.
     """
-    rotmats = quat_to_rotmat(quats)  # [N, 3, 3]
+    rotmats = quats_to_rotmats(quats)  # [N, 3, 3]
     m = rotmats * scales[:, None, :]  # R @ diag(s)
     covars = m @ m.transpose(-1, -2)  # [N, 3, 3]
 

@@ -76,25 +76,33 @@ def bench_tactile_resolution(widths=(40, 80, 160, 320, 640), repeats: int = 3) -
 
 
 def bench_timestep(timesteps=(0.0005, 0.001, 0.002, 0.004), grasps: int = 3, obj: str = "teapot") -> list[dict]:
-    """Collision penetration in the same grasps against the physics timestep, with run time."""
-    from tacsplat.sim.capture import grasp_once
-    from tacsplat.sim.grasps import GraspConfig, PreshapeTable
+    """Collision penetration in the same grasps (sim-capture's: the logger's controller, placed by the twin
+    planner) against the physics timestep, with run time. The touches go to a scratch scene."""
+    import tempfile
+
+    from tacsplat.acquisition.devices import twin_rig
+    from tacsplat.acquisition.logger import CaptureLogger
+    from tacsplat.acquisition.twin_planner import TwinPlanner
+    from tacsplat.datasets import SceneMeta, SceneWriter
     from tacsplat.sim.twin import SimTwin, TwinConfig
 
     rows = []
-    config = GraspConfig()
     for dt in timesteps:
         twin_cfg = TwinConfig(object=obj, timestep=dt, contact_timeconst=max(0.005, 2.5 * dt))
-        with SimTwin(twin_cfg) as twin:
-            table = PreshapeTable(twin, config.preshape_grid, config.preshape_abduction)
-            penetrations, touching, wall = [], 0, 0.0
-            for g in range(grasps):
-                t0 = time.perf_counter()
-                result = grasp_once(twin, table, 0, g, config)
-                wall += time.perf_counter() - t0
-                if result is not None:
-                    penetrations.append(result.max_penetration_m)
-                    touching += len(result.fingers_in_contact)
+        with SimTwin(twin_cfg) as twin, tempfile.TemporaryDirectory() as scratch:
+            rig = twin_rig(twin)
+            with SceneWriter.create(Path(scratch) / "scene", rig.intrinsics, SceneMeta("sim", obj),
+                                    rig.sensor_model) as writer:
+                logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
+                planner = TwinPlanner(twin, grasp_seed=0)
+                penetrations, touching, wall = [], 0, 0.0
+                for g in range(grasps):
+                    t0 = time.perf_counter()
+                    outcome = planner.grasp(logger, g)
+                    wall += time.perf_counter() - t0
+                    if outcome is not None:
+                        penetrations.append(twin.peak_penetration_m)  # of the approach kept (each one resets it)
+                        touching += len(outcome.fingers_in_contact)
         rows.append({
             "timestep_ms": dt * 1e3,
             "contact_timeconst_ms": twin_cfg.contact_timeconst * 1e3,

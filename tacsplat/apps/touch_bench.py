@@ -73,25 +73,15 @@ class TouchBenchConfig:
 
 
 def subsample_touches(scene_path: str | Path, out: str | Path, num_touches: int) -> int:
-    """Copy a scene to ``out`` (through SceneWriter) keeping every frame and its ground truth but only the
-    first ``num_touches`` touches in contact; returns the number kept. ``out`` must not exist."""
-    import cv2
-
-    from tacsplat.datasets import Scene, SceneMeta, SceneWriter
+    """Copy a scene to ``out`` keeping every frame and its ground truth but only the first ``num_touches``
+    touches in contact; returns the number kept. ``out`` must not exist."""
+    from tacsplat.datasets import Scene, SceneMeta, copy_scene
 
     scene = Scene.load(scene_path)
     kept = [t for t in scene.touches if t.in_contact][:num_touches]
     meta = SceneMeta(source=scene.meta.source, object=scene.meta.object, capture_plan=dict(scene.meta.capture_plan),
                      extra={**scene.meta.extra, "touch_subsample": {"from": str(scene.path), "touches": len(kept)}})
-    with SceneWriter.create(out, scene.intrinsics, meta, scene.sensor) as writer:
-        for frame in scene.frames:
-            bgr = cv2.imread(str(scene.path / frame.file_path), cv2.IMREAD_COLOR)
-            writer.add_frame(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), frame.T_world_cam, frame.split,
-                             gt_depth=scene.gt_depth(frame), intrinsics=frame.intrinsics)
-        for touch in kept:
-            writer.add_touch(scene.load_touch_depth(touch), touch.T_world_sensor, touch.grasp, touch.finger)
-        if scene.gt_mesh_path is not None:
-            writer.set_gt_mesh(scene.gt_mesh_path)
+    copy_scene(scene, out, touches=kept, meta=meta)
     return len(kept)
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from tacsplat.acquisition.config import load_rig
-from tacsplat.acquisition.session import EXIT_FAULT, run_capture
+from tacsplat.acquisition.operator_session import EXIT_FAULT, run_capture
 from tacsplat.datasets import Scene, check_scene
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
@@ -67,7 +67,7 @@ def test_camera_that_stops_giving_frames(tmp_path):
 
 
 def test_ctrl_c_leaves_the_hand_safe_and_says_how_to_resume(tmp_path):
-    from tacsplat.acquisition.session import EXIT_INTERRUPTED
+    from tacsplat.acquisition.operator_session import EXIT_INTERRUPTED
 
     def interrupt(opened):
         raise KeyboardInterrupt

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from tacsplat.acquisition.config import load_rig
-from tacsplat.acquisition.session import run_capture
+from tacsplat.acquisition.operator_session import run_capture
 from tacsplat.datasets import Scene, SceneWriter
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders

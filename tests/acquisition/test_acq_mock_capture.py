@@ -12,7 +12,7 @@ from tacsplat.acquisition.config import load_rig
 from tacsplat.acquisition.devices import open_rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.acquisition.mock import MOCK_T_HAND_CAM
-from tacsplat.acquisition.session import run_capture
+from tacsplat.acquisition.operator_session import run_capture
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, check_scene
 from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
 from tacsplat.geometry import invert_pose, rotation_angle_between

@@ -15,7 +15,7 @@ import yaml
 
 
 from tacsplat.acquisition.config import example_rig, load_rig  # noqa: E402
-from tacsplat.acquisition.session import run_capture  # noqa: E402
+from tacsplat.acquisition.operator_session import run_capture  # noqa: E402
 from tacsplat.cli import main  # noqa: E402
 from tacsplat.datasets import Scene, SceneWriter  # noqa: E402
 from tacsplat.errors import ConfigError  # noqa: E402

@@ -3,7 +3,7 @@
 import pytest
 import yaml
 
-from tacsplat.acquisition.config import example_rig, load_rig
+from tacsplat.acquisition.config import CapturePlan, HandConfig, example_rig, load_rig
 from tacsplat.errors import ConfigError
 
 
@@ -111,6 +111,13 @@ def test_physically_impossible_values_are_one_error_naming_the_field_and_the_ran
         load_rig(path, mock=True)
     assert err.value.key == key, str(err.value)
     assert words in str(err.value) and str(path) in str(err.value), str(err.value)
+
+
+def test_an_empty_section_keeps_its_defaults(tmp_path):
+    path = tmp_path / "sim.yaml"
+    path.write_text("rig: sim\nhand:\n  # port: /dev/ttyUSB1\nplan:\n")
+    config = load_rig(path)
+    assert config.hand == HandConfig() and config.plan == CapturePlan()
 
 
 def test_zero_test_views_and_zero_grasps_are_a_valid_plan(tmp_path):

@@ -1,5 +1,6 @@
 """Simulated capture through the same logger as the real rig: touches on the object's surface, the operator
-session and the unattended job write the same scene, and a grasp cut short is redone identically."""
+session and the unattended job write the same scene, a grasp cut short is redone identically, and the
+`tacsplat sim-capture` command writes a valid scene that a resume leaves as it is."""
 
 import io
 import sys
@@ -12,8 +13,9 @@ import yaml
 
 
 from tacsplat.acquisition.config import load_rig  # noqa: E402
-from tacsplat.acquisition.session import run_capture  # noqa: E402
+from tacsplat.acquisition.operator_session import run_capture  # noqa: E402
 from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config  # noqa: E402
+from tacsplat.cli import main  # noqa: E402
 from tacsplat.datasets import Scene, SceneWriter, check_scene  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
@@ -82,3 +84,39 @@ def test_sim_grasp_cut_short_is_redone_identically_on_resume(sim_scene, tmp_path
         writer.remove_last()
     sim_capture(sim_rig_config(**PLAN), out, resume=True, progress=False)
     assert _records(out) == complete
+
+
+CAPTURE_ARGS = ["sim-capture", "--object", "car", "--views", "2", "--test-views", "3", "--grasps", "2",
+                "--resolution", "64", "--seed", "5"]
+
+
+def _touch_signature(scene: Scene):
+    return [(t.grasp, t.finger, t.T_world_sensor.round(9).tolist(), scene.load_touch_depth(t).tobytes()) for t in scene.touches]
+
+
+@pytest.fixture(scope="module")
+def captured(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cap") / "scene"
+    assert main(CAPTURE_ARGS + ["--out", str(out)]) == 0
+    return out
+
+
+def test_sim_capture_command_writes_a_valid_scene_with_ground_truth(captured):
+    scene = Scene.load(captured)
+    assert scene.meta.source == "sim" and scene.meta.object == "car"
+    assert len(scene.split("train")) == 2 and len(scene.split("test")) == 3
+    assert all(scene.gt_depth(f) is not None for f in scene.split("test"))
+    assert len(scene.touches) == 8 and {t.finger for t in scene.touches} == {"index", "middle", "ring", "thumb"}
+    mesh = trimesh.load(scene.gt_mesh_path, force="mesh")
+    points = scene.touch_points()
+    _, distance, _ = trimesh.proximity.closest_point(mesh, points)
+    assert len(points) > 0 and distance.mean() < 3e-4 and distance.max() < 1e-3
+    depth = scene.gt_depth(scene.split("test")[0])
+    assert depth.shape == (64, 64) and (depth > 0).any()
+
+
+def test_resume_of_a_finished_capture_changes_nothing(captured):
+    before = _touch_signature(Scene.load(captured))
+    assert main(CAPTURE_ARGS + ["--out", str(captured), "--resume"]) == 0
+    after = Scene.load(captured)
+    assert len(after.frames) == 5 and _touch_signature(after) == before

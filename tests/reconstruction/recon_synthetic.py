@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from tacsplat.datasets import SceneMeta, SceneWriter, SensorModel
-from tacsplat.geometry import invert_pose, look_at, make_pose, matrix_to_quat_wxyz
+from tacsplat.geometry import invert_pose, look_at, make_pose
 from tacsplat.reconstruction.raster.rendering import rasterization
 from tacsplat.types import CameraIntrinsics
 
@@ -34,7 +35,7 @@ def sphere_gaussians(n: int = 400):
         helper = np.array([1.0, 0, 0]) if abs(nrm[0]) < 0.9 else np.array([0, 1.0, 0])
         x = np.cross(helper, nrm)
         x /= np.linalg.norm(x)
-        quats.append(matrix_to_quat_wxyz(np.stack([x, np.cross(nrm, x), nrm], axis=1)))
+        quats.append(Rotation.from_matrix(np.stack([x, np.cross(nrm, x), nrm], axis=1)).as_quat(canonical=True, scalar_first=True))
     spacing = math.sqrt(4 * math.pi * RADIUS**2 / n)
     scales = np.tile([0.7 * spacing, 0.7 * spacing, 0.05 * spacing], (n, 1))
     colors = 0.5 + 0.4 * np.stack(

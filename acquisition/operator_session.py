@@ -33,7 +33,6 @@ from tacsplat.acquisition.capture_scene import open_scene
 from tacsplat.acquisition.config import CapturePlan, RigConfig
 from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
-from tacsplat.acquisition.sim_capture import TwinPlanner
 from tacsplat.datasets.writer import JOURNAL
 from tacsplat.errors import CameraError, DeviceError, SimulationError
 
@@ -233,7 +232,9 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
                              "it will be redone whole\n")
             planner = None
             if rig.kind == "sim":
-                planner = TwinPlanner(rig.twin, config.plan, view_radius_m=config.plan.views.radius_m)
+                from tacsplat.acquisition.twin_planner import TwinPlanner
+
+                planner = TwinPlanner(rig.twin, config.plan.grasps.seed, config.plan.views)
             if on_open is not None:
                 on_open(rig, logger)
             complete = CaptureSession(rig, logger, config.plan, keys, output, planner).run()

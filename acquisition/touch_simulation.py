@@ -1,0 +1,134 @@
+"""``tacsplat simulate-touches``: simulated grasps of a mesh added to an existing scene (e.g. an import).
+
+The grasps run on the twin through the same logger and grasp controller as
+every capture (:class:`~tacsplat.acquisition.logger.CaptureLogger`, placed by
+the :class:`~tacsplat.acquisition.twin_planner.TwinPlanner`): grasp ``g`` is
+deterministic in ``(seed, g)``. The mesh is simulated at a graspable size; the
+scene sees the twin through an adapter that expresses the hand pose and the
+pads' readings in the scene's frame and units, as the paper did for Shiny
+Blender and Glossy Synthetic.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from tacsplat.acquisition.devices import twin_rig
+from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate, TwinPoseSource
+from tacsplat.acquisition.twin_planner import TwinPlanner
+from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
+from tacsplat.errors import ConfigError
+from tacsplat.sim.grasps import GraspConfig
+from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere
+from tacsplat.sim.twin import SimTwin, TwinConfig
+from tacsplat.types import TactileReading
+
+
+class SceneUnits:
+    """A scene whose world is the twin's scaled by ``1 / scale`` and moved to ``centre``:
+    ``p_scene = centre + p_twin / scale`` (``scale``: twin metres per scene unit; rotations unchanged)."""
+
+    def __init__(self, centre, scale: float):
+        self.centre = np.asarray(centre, dtype=np.float64)
+        self.scale = float(scale)
+
+    def pose(self, T_twin: np.ndarray, anchored: bool = True) -> np.ndarray:
+        """A pose of the twin in the scene; ``anchored=False`` for a pose relative to another (no ``centre``)."""
+        T = np.array(T_twin, dtype=np.float64)
+        T[:3, 3] = T[:3, 3] / self.scale + (self.centre if anchored else 0.0)
+        return T
+
+
+class ScaledPad:
+    """A twin pad (``TactileSensor``) whose readings are in the scene's units."""
+
+    def __init__(self, pad, units: SceneUnits):
+        self.pad = pad
+        self.units = units
+
+    @property
+    def name(self) -> str:
+        return self.pad.name
+
+    def read(self) -> TactileReading:
+        r, s = self.pad.read(), self.units.scale
+        return TactileReading(r.depth / s, r.pixel_size_m / s, self.units.pose(r.T_ref_sensor, anchored=False),
+                              r.frame, r.timestamp)
+
+
+class ScenePoseSource:
+    """The twin's ground-truth poses (``PoseSource``) in the scene's frame and units."""
+
+    def __init__(self, twin: SimTwin, units: SceneUnits):
+        self.twin_poses = TwinPoseSource(twin)
+        self.units = units
+
+    def camera_pose(self, image: np.ndarray) -> PoseEstimate:
+        return PoseEstimate(self.units.pose(self.twin_poses.camera_pose(image).T))
+
+    def hand_pose(self, image: np.ndarray) -> PoseEstimate:
+        return PoseEstimate(self.units.pose(self.twin_poses.hand_pose(image).T))
+
+    def ground_truth_depth(self) -> np.ndarray:
+        return self.twin_poses.ground_truth_depth() / self.units.scale
+
+
+def simulate_touches(
+    mesh_path: str | Path,
+    scene_path: str | Path,
+    grasps: int,
+    out: str | Path | None = None,
+    object_radius: float = DEFAULT_OBJECT_RADIUS,
+    seed: int = 0,
+    grasp_config: GraspConfig = GraspConfig(),
+) -> Path:
+    """Add ``grasps`` simulated grasps of ``mesh_path`` (in the scene's world frame and units) to a scene.
+
+    The grasps run on the mesh scaled to a graspable bounding radius
+    (``object_radius`` metres); touches are mapped back into the scene's frame
+    and units (poses, indentations and pixel size divided by the scale). A scene
+    written with this sensor model is extended in place, numbering grasps on; one
+    without (an import) is copied with its frames into ``out`` first. Returns the
+    scene written.
+    """
+    scene = Scene.load(scene_path)
+    centre, radius = bounding_sphere(_raw_mesh(mesh_path))
+    with SimTwin(TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)) as twin:
+        units = SceneUnits(centre, twin.object.bounding_radius / radius)
+        sensor = twin.sensor_model(units.scale)
+        if scene.sensor is not None:
+            if out is not None:
+                raise ConfigError("out", f"{scene_path} already holds touches; it is extended in place, drop --out")
+            if not np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
+                raise ConfigError("object_radius", f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
+                                  f"this mesh at radius {object_radius} gives {sensor.pixel_size_m}")
+            target = Path(scene_path)
+        else:
+            if out is None:
+                raise ConfigError("out", f"{scene_path} has no tactile sensor model (an import): pass --out NEW_SCENE")
+            plan = {**scene.meta.capture_plan,
+                    "simulated_touches": {"mesh": str(mesh_path), "grasps": grasps, "seed": seed}}
+            extra = {**scene.meta.extra, "touch_scale": units.scale, "object_bounding_radius_m": object_radius}
+            target = copy_scene(scene, out, meta=SceneMeta(scene.meta.source, scene.meta.object, plan, extra),
+                                sensor=sensor, gt_mesh=scene.gt_mesh_path or mesh_path, progress=True)
+        rig = twin_rig(twin)
+        with SceneWriter.resume(target) as writer:
+            logger = CaptureLogger(writer, rig.hand, [ScaledPad(p, units) for p in rig.sensors], rig.camera,
+                                   rig.clock, ScenePoseSource(twin, units), rig.control, redo_partial_grasp=False)
+            planner = TwinPlanner(twin, seed, grasp_config=grasp_config)
+            first = logger.next_grasp_index()
+            for g in tqdm(range(first, first + grasps), desc="grasps", unit="grasp"):
+                planner.grasp(logger, g)
+    return target
+
+
+def _raw_mesh(path: str | Path):
+    """The mesh file as the twin loads it, before centring and scaling."""
+    import trimesh
+
+    if not Path(path).is_file():
+        raise ConfigError("mesh", f"file not found: {path}")
+    return trimesh.load(Path(path), force="mesh", process=True)

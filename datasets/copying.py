@@ -1,0 +1,52 @@
+"""Copying a scene into a new one through :class:`~tacsplat.datasets.SceneWriter`, optionally keeping only some
+touches, with new provenance or a new sensor model (e.g. before simulated touches are added to an import)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from tqdm import tqdm
+
+from tacsplat.errors import InvalidInputError
+
+from .reader import Scene
+from .records import SceneMeta, SensorModel, Touch
+from .writer import SceneWriter, removed_on_failure
+
+
+def copy_scene(src: Scene | str | os.PathLike, dst: str | os.PathLike, *, touches: Sequence[Touch] | None = None,
+               meta: SceneMeta | None = None, sensor: SensorModel | None = None, gt_mesh=None,
+               progress: bool = False) -> Path:
+    """Write a new scene in ``dst`` (a new or empty folder) holding every frame of ``src`` (a scene folder or a
+    loaded :class:`Scene`) with its intrinsics and ground-truth depth, and ``touches`` (records of ``src``, in the
+    order given; default all), grasp and finger kept, ids renumbered.
+
+    ``meta``, ``sensor`` and ``gt_mesh`` (a mesh path or ``trimesh.Trimesh``) default to the source's; a new
+    sensor model is refused while touches of the old one are copied. Every record is written crash-safely; when
+    the copy fails, the new folder is removed again. Returns ``dst``.
+    """
+    scene = src if isinstance(src, Scene) else Scene.load(src)
+    dst = Path(dst)
+    touches = list(scene.touches if touches is None else touches)
+    for touch in touches:
+        if touch not in scene.touches:
+            raise InvalidInputError(f"touches: touch {touch.id} (grasp {touch.grasp}, {touch.finger}) is not a "
+                                    f"touch of {scene.path}")
+    sensor = scene.sensor if sensor is None else sensor
+    if touches and sensor != scene.sensor:
+        raise InvalidInputError(f"sensor: {sensor} differs from {scene.path}'s {scene.sensor}, whose touches are "
+                                "copied; copy no touches to give the scene another sensor model")
+    gt_mesh = scene.gt_mesh_path if gt_mesh is None else gt_mesh
+    intrinsics = scene.intrinsics or scene.frames[0].intrinsics
+    with removed_on_failure(dst), SceneWriter.create(dst, intrinsics, meta or scene.meta, sensor) as writer:
+        for frame in tqdm(scene.frames, desc="copy frames", unit="frame", disable=not progress):
+            image = np.rint(scene.load_image(frame) * 255).astype(np.uint8)
+            writer.add_frame(image, frame.T_world_cam, frame.split, scene.gt_depth(frame), frame.intrinsics)
+        for touch in touches:
+            writer.add_touch(scene.load_touch_depth(touch), touch.T_world_sensor, touch.grasp, touch.finger)
+        if gt_mesh is not None:
+            writer.set_gt_mesh(gt_mesh)
+    return dst
