@@ -43,6 +43,19 @@ GRASPS = 5  # 5 grasps x 4 fingertips = 20 touches (paper: 5 grasps)
 QUICK_OBJECTS = ("teapot", "bell")
 
 
+def capture_once(rig, scene: Path) -> Path:
+    """The sim capture of ``rig`` in ``scene``, done once: a finished capture is marked by ``capture.json``
+    (its plan and timings); an interrupted one is resumed."""
+    from tacsplat.acquisition.sim_capture import sim_capture
+
+    marker = scene / "capture.json"
+    if not marker.is_file():
+        scene.parent.mkdir(parents=True, exist_ok=True)
+        timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
+        marker.write_text(json.dumps({"plan": rig.plan.to_json(), **timings}, indent=2))
+    return scene
+
+
 @dataclass
 class PaperBenchConfig:
     """Size of the suite; the defaults run 6 objects x 2 settings x 4 variants in about 30 min on 2 free cores."""
@@ -130,20 +143,13 @@ class PaperBench:
 
     def capture(self, obj: str, setting: str, seed: int) -> Path:
         """The seeded sim capture of one object and setting (resumed if it was interrupted)."""
-        from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
+        from tacsplat.acquisition.sim_capture import sim_rig_config
 
-        scene = self.scene_dir(obj, setting, seed)
-        marker = scene / "capture.json"
-        if marker.is_file():
-            return scene
         c = self.config
         views = MINIMAL_VIEWS if setting == "minimal" else c.full_views
         rig = sim_rig_config(object=obj, views=views, test_views=c.test_views, grasps=c.grasps,
                              resolution=c.resolution, seed=seed)
-        scene.parent.mkdir(parents=True, exist_ok=True)
-        timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
-        marker.write_text(json.dumps({"views": views, "grasps": c.grasps, "seed": seed, **timings}, indent=2))
-        return scene
+        return capture_once(rig, self.scene_dir(obj, setting, seed))
 
     def train(self, run: Run) -> dict:
         """One reconstruction (continued from its checkpoint if one exists); returns its metrics."""

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from tacsplat.apps.options import comma_separated_ints
+from tacsplat.apps.paper_bench import capture_once
 from tacsplat.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -94,17 +95,12 @@ class TouchBench:
         self.config.validate()
 
     def base_scene(self, seed: int) -> Path:
-        from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
+        from tacsplat.acquisition.sim_capture import sim_rig_config
 
         c = self.config
-        scene = self.out / "scenes" / f"{c.object}-s{seed}"
-        marker = scene / "capture.json"
-        if not marker.is_file():
-            rig = sim_rig_config(object=c.object, views=c.views, test_views=c.test_views, grasps=c.grasps,
-                                 resolution=c.resolution, seed=seed)
-            timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
-            marker.write_text(json.dumps({"grasps": c.grasps, "seed": seed, **timings}, indent=2))
-        return scene
+        rig = sim_rig_config(object=c.object, views=c.views, test_views=c.test_views, grasps=c.grasps,
+                             resolution=c.resolution, seed=seed)
+        return capture_once(rig, self.out / "scenes" / f"{c.object}-s{seed}")
 
     def subsampled_scene(self, seed: int, count: int) -> tuple[Path, int]:
         """The copy of the seed's capture with ``count`` touches; returns (path, touches actually kept)."""
