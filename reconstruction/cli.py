@@ -68,6 +68,7 @@ def config_from_args(args):
     if args.no_smoothness:
         config.lambda_s = 0.0
     config.validate(option_names(args.config_options))
+    config.torch_device()
     return config
 
 

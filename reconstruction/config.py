@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import torch
+
 from tacsplat.errors import ConfigError
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
@@ -26,6 +28,7 @@ class TrainConfig:
     train_views: int | None = None  # use only the first K training views (None = all)
     backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto"  # rasterization backend (auto: gsplat on CUDA,
     # else the numba CPU backend for float32)
+    device: Literal["auto", "cpu", "cuda"] = "auto"  # where training runs (auto: CUDA when torch sees a GPU)
     torch_threads: int | None = 1  # torch intra-op threads while training (the cpu backend's kernels run
     # their own threads; one torch thread avoids oversubscribing a small machine); None = torch's default
     background: tuple[float, float, float] | None = None  # None: a smooth backdrop fitted to each image's border
@@ -105,6 +108,10 @@ class TrainConfig:
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:
             return "backend", f"must be one of {BACKENDS}, got {self.backend!r}"
+        if self.device not in ("auto", "cpu", "cuda"):
+            return "device", f"must be 'auto', 'cpu' or 'cuda', got {self.device!r}"
+        if self.backend == "cpu" and self.device == "cuda":
+            return "backend", "the cpu backend runs on the CPU: use --backend gsplat (or auto) with --device cuda"
         for name in ("init", "densify"):  # their settings are counts, sizes, rates and thresholds: >= 0
             for f in dataclasses.fields(getattr(self, name)):
                 value = getattr(getattr(self, name), f.name)
@@ -118,6 +125,16 @@ class TrainConfig:
                 elif f.type in ("int", int) and not isinstance(value, int):
                     return f"{name}.{f.name}", f"must be an integer >= 0, got {value!r}"
         return None
+
+    def torch_device(self) -> torch.device:
+        """The device training runs on; a ConfigError at once when CUDA is asked for and torch sees none."""
+        if self.device == "cpu" or (self.device == "auto" and not torch.cuda.is_available()):
+            return torch.device("cpu")
+        if not torch.cuda.is_available():
+            build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
+            raise ConfigError("device", f"cuda was asked for but torch {torch.__version__} ({build}) sees no CUDA "
+                              "device; use --device cpu, or install a CUDA build of torch and gsplat (README)")
+        return torch.device("cuda")
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)

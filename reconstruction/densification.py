@@ -50,8 +50,9 @@ class DensifyStrategy:
     pause_after_reset: int = 0  # no refinement for this many steps after a reset
     max_gaussians: int = 30_000  # growth stops at this count (keeps CPU iterations fast)
 
-    def initialize_state(self, num_gaussians: int, scene_scale: float) -> DensifyState:
-        return DensifyState(scene_scale, torch.zeros(num_gaussians), torch.zeros(num_gaussians))
+    def initialize_state(self, num_gaussians: int, scene_scale: float, device=None) -> DensifyState:
+        return DensifyState(scene_scale, torch.zeros(num_gaussians, device=device),
+                            torch.zeros(num_gaussians, device=device))
 
     def step_pre_backward(self, meta: dict) -> None:
         """Ask autograd to keep ``meta["means2d"].grad``."""
@@ -76,8 +77,8 @@ class DensifyStrategy:
             cloned, split = self.grow(gaussians, optimizers, state, generator)
             pruned = self.prune(gaussians, optimizers, state, step)
             state.history.append((step, cloned, split, pruned))
-            state.grad2d = torch.zeros(len(gaussians))
-            state.count = torch.zeros(len(gaussians))
+            state.grad2d = torch.zeros(len(gaussians), device=gaussians.means.device)
+            state.count = torch.zeros(len(gaussians), device=gaussians.means.device)
             changed = True
         if step > 0 and step % self.reset_every == 0:
             reset_opacities(gaussians, optimizers, 2.0 * self.prune_opacity)
@@ -91,8 +92,8 @@ class DensifyStrategy:
         grads[..., 0] *= meta["width"] / 2.0 * meta["n_cameras"]
         grads[..., 1] *= meta["height"] / 2.0 * meta["n_cameras"]
         visible = (meta["radii"] > 0).all(dim=-1)  # [C, N]
-        state.grad2d += (grads.norm(dim=-1) * visible).sum(dim=0).cpu()
-        state.count += visible.sum(dim=0).float().cpu()
+        state.grad2d += (grads.norm(dim=-1) * visible).sum(dim=0)
+        state.count += visible.sum(dim=0).float()
 
     def grow(
         self, gaussians: Gaussians, optimizers: dict, state: DensifyState, generator: torch.Generator | None = None
@@ -111,7 +112,7 @@ class DensifyStrategy:
         n_clone, n_split = int(clone_mask.sum()), int(split_mask.sum())
         if n_clone:
             duplicate(gaussians, optimizers, clone_mask)
-            split_mask = torch.cat([split_mask, torch.zeros(n_clone, dtype=torch.bool)])
+            split_mask = torch.cat([split_mask, torch.zeros(n_clone, dtype=torch.bool, device=split_mask.device)])
         if n_split:
             split(gaussians, optimizers, split_mask, self.split_scale_divisor, generator)
         return n_clone, n_split
@@ -174,7 +175,7 @@ def split(
     keep = ~mask
     scales = gaussians.scales.detach()[mask]  # [S, 3]
     rotations = quats_to_rotmats(gaussians.quats.detach()[mask])  # [S, 3, 3]
-    noise = torch.randn((2, n_split, 3), generator=generator) * scales
+    noise = torch.randn((2, n_split, 3), generator=generator, device=scales.device) * scales
     offsets = torch.einsum("sij,ksj->ksi", rotations, noise).reshape(2 * n_split, 3)
 
     def child(name: str, p: torch.Tensor) -> torch.Tensor:

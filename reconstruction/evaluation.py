@@ -48,25 +48,26 @@ def render_view(
 
     ``background`` is the view's backdrop [H, W, 3] (see :func:`background_image`).
     """
-    viewmat, K = camera_tensors([frame])
+    viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
     intr = frame.intrinsics
     colors, alphas, _ = raster.rasterization(
         gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
         gaussians.sh_coefficients(), viewmat, K, intr.width, intr.height,
         sh_degree=gaussians.sh_degree, render_mode="RGB+ED" if with_depth else "RGB", backend=backend,
     )  # fmt: skip
-    alpha = alphas[0, ..., 0].numpy()
-    rgb = composite(colors[0, ..., :3], alphas[0], background).clamp(0, 1).numpy()
+    colors, alphas = colors[0].cpu(), alphas[0].cpu()
+    alpha = alphas[..., 0].numpy()
+    rgb = composite(colors[..., :3], alphas, background.cpu()).clamp(0, 1).numpy()
     depth = None
     if with_depth:
-        depth = np.where(alpha > ALPHA_MASK_THRESHOLD, colors[0, ..., 3].numpy(), 0.0).astype(np.float32)
+        depth = np.where(alpha > ALPHA_MASK_THRESHOLD, colors[..., 3].numpy(), 0.0).astype(np.float32)
     return rgb, depth, alpha
 
 
 @torch.no_grad()
 def render_median_depth(gaussians: Gaussians, frame, backend: str) -> np.ndarray:
     """Median depth [H, W] of a view (the paper's evaluation depth; 0 where the transmittance stays >= 0.5)."""
-    viewmat, K = camera_tensors([frame])
+    viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
     depth, _, _ = raster.rasterization(
         gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
         gaussians.sh_coefficients(), viewmat, K, frame.intrinsics.width, frame.intrinsics.height,

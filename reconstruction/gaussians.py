@@ -141,6 +141,11 @@ class Gaussians:
         degree = self.sh_degree if degree is None else min(degree, self.sh_degree)
         return torch.cat([self.params["sh0"], self.params["shN"][:, : num_sh_bases(degree) - 1]], dim=1)
 
+    def to(self, device) -> "Gaussians":
+        """The same Gaussians with every tensor on ``device`` (new leaf parameters)."""
+        params = {k: torch.nn.Parameter(v.detach().to(device)) for k, v in self.params.items()}
+        return Gaussians(params, self.from_touch.to(device), self.sh_degree)
+
     def state_dict(self) -> dict:
         return {
             "params": {k: v.detach().clone() for k, v in self.params.items()},

@@ -7,6 +7,9 @@ Eq. 7 the transmittance loss L_T and Eq. 8 the edge-aware smoothness L_S.
 
 from __future__ import annotations
 
+import functools
+import math
+
 import cv2
 import numpy as np
 import torch
@@ -14,7 +17,6 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.geometry import project_points
 from tacsplat.reconstruction.gaussians import precisions
 from tacsplat.reconstruction.metrics import ssim_map
 
@@ -84,8 +86,10 @@ class TouchNeighbours:
     def candidates(self, means: torch.Tensor, from_touch: torch.Tensor) -> torch.Tensor:
         """[P, num_candidates] global indices of G_t Gaussians (``-1`` where fewer lie within reach)."""
         if self._candidates is None or self._calls_since_build >= self.rebuild_every:
-            self._candidates = self._build(means, from_touch)
+            self._candidates = self._build(means, from_touch).to(means.device)  # one transfer per rebuild
             self._calls_since_build = 0
+        elif self._candidates.device != means.device:  # (restored from a checkpoint)
+            self._candidates = self._candidates.to(means.device)
         self._calls_since_build += 1
         return self._candidates
 
@@ -124,7 +128,10 @@ def transmittance_loss(
     """
     valid = candidates >= 0
     ids = candidates.clamp_min(0)
-    used, inverse = torch.unique(ids, return_inverse=True)  # evaluate each Gaussian's precision once
+    if ids.is_cuda:  # torch.unique would wait for the device; [P, C] precisions cost it little
+        used, inverse = ids.reshape(-1), torch.arange(ids.numel(), device=ids.device).reshape(ids.shape)
+    else:  # evaluate each Gaussian's precision once
+        used, inverse = torch.unique(ids, return_inverse=True)
     prec = precisions(quats[used], scales[used])[inverse]  # [P, C, 3, 3]
     mu = means[used][inverse]  # [P, C, 3]
     influence = gaussian_influence(touch_points, mu, prec) * opacities[used][inverse]  # [P, C]
@@ -142,18 +149,20 @@ def transmittance_loss(
 # --------------------------------------------------------------------------- smoothness
 
 
-def sobel_kernels_5x5(dtype=torch.float32) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normalised 5x5 Sobel kernels (d/dx, d/dy) [1, 1, 5, 5]: a ramp of slope a per pixel gives a."""
+@functools.lru_cache(maxsize=None)
+def sobel_kernels_5x5(dtype=torch.float32, device=None) -> torch.Tensor:
+    """Normalised 5x5 Sobel kernels [2, 1, 5, 5] (d/dx, d/dy): a ramp of slope a per pixel gives a.
+
+    Made once per dtype and device (a training step reuses them)."""
     deriv, smooth = cv2.getDerivKernels(1, 0, 5, normalize=True)  # deriv [5, 1] sums |.| to 1, smooth sums to 1
     deriv = deriv[:, 0] / np.sum(deriv[:, 0] * (np.arange(5) - 2))  # unit response to a unit ramp
-    kx = torch.as_tensor(np.outer(smooth[:, 0], deriv), dtype=dtype)
-    return kx[None, None], kx.T.contiguous()[None, None]
+    kx = torch.as_tensor(np.outer(smooth[:, 0], deriv), dtype=dtype, device=device)
+    return torch.stack([kx, kx.T])[:, None].contiguous()
 
 
 def _gradients(image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """|d/dx|, |d/dy| of [C, H, W] ('valid' convolution, [C, H-4, W-4]), both kernels in one call."""
-    kx, ky = sobel_kernels_5x5(image.dtype)
-    both = F.conv2d(image[:, None], torch.cat([kx, ky]).to(image.device)).abs()  # [C, 2, H-4, W-4]
+    both = F.conv2d(image[:, None], sobel_kernels_5x5(image.dtype, image.device)).abs()  # [C, 2, H-4, W-4]
     return both[:, 0], both[:, 1]
 
 
@@ -209,43 +218,49 @@ def edge_aware_smoothness(
 
 
 def visible_touch_pixels(
-    touch_points: np.ndarray,  # [P, 3] world
-    K: np.ndarray,  # [3, 3]
-    T_world_cam: np.ndarray,  # [4, 4]
+    touch_points: torch.Tensor,  # [P, 3] world
+    K: torch.Tensor,  # [3, 3]
+    viewmat: torch.Tensor,  # [4, 4] world-to-camera
     width: int,
     height: int,
-    rendered_depth: np.ndarray | None = None,  # [H, W] expected depth, <= 0 where nothing was rendered
+    rendered_depth: torch.Tensor | None = None,  # [H, W] expected depth, <= 0 where nothing was rendered
     occlusion_tolerance: float = 0.005,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(rows, cols) of the touch points seen in a view: projected inside it, in front, not occluded.
+) -> torch.Tensor:
+    """[H, W] bool: the pixels of the touch points seen in a view (projected inside it, in front, not occluded).
 
     A point is occluded when the rendered surface at its pixel lies more than
-    ``occlusion_tolerance`` metres in front of it.
+    ``occlusion_tolerance`` metres in front of it. Computed on the tensors' device
+    without host synchronisation (no data-dependent shapes).
     """
-    uv, z = project_points(touch_points, K, T_world_cam)
-    inside = (z > 0) & np.isfinite(uv).all(axis=1)
-    cols = np.floor(np.where(inside, uv[:, 0], -1)).astype(np.int64)
-    rows = np.floor(np.where(inside, uv[:, 1], -1)).astype(np.int64)
-    inside &= (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
-    rows, cols, z = rows[inside], cols[inside], z[inside]
+    p_cam = touch_points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [P, 3]
+    z = p_cam[:, 2]
+    uv = p_cam[:, :2] / z.clamp_min(1e-12)[:, None] @ K[:2, :2].T + K[:2, 2]
+    cols, rows = torch.floor(uv[:, 0]), torch.floor(uv[:, 1])
+    seen = (z > 0) & torch.isfinite(uv).all(dim=1) & (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
+    flat = torch.where(seen, rows * width + cols, torch.zeros_like(cols)).long()
     if rendered_depth is not None:
-        surface = rendered_depth[rows, cols]
-        visible = (surface <= 0) | (z <= surface + occlusion_tolerance)
-        rows, cols = rows[visible], cols[visible]
-    return rows, cols
+        surface = rendered_depth.reshape(-1)[flat]
+        seen = seen & ((surface <= 0) | (z <= surface + occlusion_tolerance))
+    pixels = torch.zeros(height * width, dtype=torch.float32, device=touch_points.device)
+    pixels.scatter_reduce_(0, flat, seen.float(), reduce="amax")
+    return pixels.reshape(height, width) > 0
 
 
-def proximity_mask(rows: np.ndarray, cols: np.ndarray, width: int, height: int, sigma_px: float) -> np.ndarray:
-    """Sec. 4.2.2 proximity mask [H, W] float32: exp(-d^2 / (2 sigma^2)), d the distance to the nearest touch pixel.
+def proximity_mask(seeds: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """Sec. 4.2.2 proximity mask [H, W]: exp(-d^2 / (2 sigma^2)), d the distance to the nearest seed pixel.
 
-    ``d`` is the exact Euclidean distance transform (cv2.distanceTransform) in
-    pixels; the mask is 1 on a touch pixel and all zeros when no touch is seen.
+    ``seeds`` [H, W] bool are the visible touch pixels. ``d`` is the exact Euclidean
+    distance up to 4 sigma (two separable min-plus passes; beyond it the mask is
+    below 3.4e-4 and set to 0); the mask is 1 on a seed and all zeros without seeds.
     """
-    if len(rows) == 0:
-        return np.zeros((height, width), dtype=np.float32)
     if not sigma_px > 0:
         raise InvalidInputError(f"proximity_mask: sigma_px must be positive, got {sigma_px}")
-    free = np.full((height, width), 255, dtype=np.uint8)
-    free[rows, cols] = 0
-    distance = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return np.exp(-(distance.astype(np.float64) ** 2) / (2.0 * sigma_px**2)).astype(np.float32)
+    reach = int(math.ceil(4.0 * sigma_px))
+    far = float(2 * (reach + 1) ** 2)  # farther than any distance within reach
+    offsets = torch.arange(-reach, reach + 1, device=seeds.device, dtype=torch.float32) ** 2  # [2R+1]
+    cost = torch.where(seeds, 0.0, far).to(torch.float32)  # [H, W]
+    padded = F.pad(cost[None, None], (0, 0, reach, reach), value=far)[0, 0]  # [H + 2R, W]
+    column = (padded.unfold(0, 2 * reach + 1, 1) + offsets).amin(dim=-1)  # [H, W]: min over rows
+    padded = F.pad(column[None, None], (reach, reach, 0, 0), value=far)[0, 0]  # [H, W + 2R]
+    d2 = (padded.unfold(1, 2 * reach + 1, 1) + offsets).amin(dim=-1)  # [H, W]
+    return torch.where(d2 < far, torch.exp(-d2 / (2.0 * sigma_px**2)), torch.zeros_like(d2))

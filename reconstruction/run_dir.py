@@ -61,7 +61,7 @@ def run_checkpoint(run_dir: str | Path) -> Path:
 def read_checkpoint(path: Path) -> dict:
     """A checkpoint's contents; a SceneFormatError naming the file if it is cut short or not one."""
     try:
-        ckpt = torch.load(path, weights_only=False)
+        ckpt = torch.load(path, weights_only=False, map_location="cpu")  # moved to the run's device by the caller
     except Exception as exc:  # torch.load raises whatever its zip reader or unpickler meets
         first_line = (str(exc).splitlines() or [type(exc).__name__])[0]
         raise SceneFormatError(path, None, f"corrupt or truncated checkpoint ({first_line})") from None

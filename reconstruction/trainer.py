@@ -64,6 +64,9 @@ from tacsplat.reconstruction.views import background_image, camera_tensors, comp
 
 log = logging.getLogger(__name__)
 
+LOSS_TERMS = ("loss", "photometric", "transmittance", "smoothness", "backdrop")  # progress.csv's loss columns
+POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
+
 
 def scene_scale(frames: list) -> float:
     """Kerbl et al.'s camera extent: 1.1 x the largest distance of a camera centre from their mean."""
@@ -120,11 +123,12 @@ class Trainer:
             raise SceneFormatError(scene.path / "transforms.json", "frames", "no training views")
         self.train_frames = train
         self.test_frames = scene.split("test")
-        self.images = [torch.from_numpy(scene.load_image(f)) for f in train]
-        self.viewmats, self.Ks = camera_tensors(train)
+        self.device = dev = config.torch_device()
+        images = [scene.load_image(f) for f in train]  # [H, W, 3] float32 numpy
+        self.viewmats, self.Ks = (t.to(dev) for t in camera_tensors(train))
         self.scene_scale = scene_scale(train)
         self.rng = np.random.default_rng(config.seed)
-        self.generator = torch.Generator().manual_seed(config.seed)
+        self.generator = torch.Generator(device=dev).manual_seed(config.seed)
         self.touch_points = np.zeros((0, 3))
         if config.use_touch and scene.touches:
             self.touch_points = thin_touch_points(scene.touch_points(), config.init, self.rng)
@@ -136,13 +140,18 @@ class Trainer:
             if self.use_touch_loss
             else None
         )
-        self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32)
-        self.backgrounds = [torch.from_numpy(background_image(im.numpy(), config.background)) for im in self.images]
-        self.backdrop_masks: list[torch.Tensor | None] = [None] * len(self.images)  # None: no known backdrop
-        for i, image in enumerate(self.images):
-            if config.background is not None or fit_backdrop(image.numpy()) is not None:
-                difference = (image - self.backgrounds[i]).abs().amax(dim=-1)
-                self.backdrop_masks[i] = difference < config.backdrop_tolerance
+        self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
+        backgrounds = [background_image(im, config.background) for im in images]
+        # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
+        self.backdrop_pixels: list[np.ndarray | None] = [
+            np.abs(im - bg).max(axis=-1) < config.backdrop_tolerance
+            if config.background is not None or fit_backdrop(im) is not None else None
+            for im, bg in zip(images, backgrounds)
+        ]  # fmt: skip
+        # everything a step reads lives on the device, created once
+        self.images = [torch.from_numpy(im).to(dev) for im in images]
+        self.backgrounds = [torch.from_numpy(bg).to(dev) for bg in backgrounds]
+        self.backdrop_masks = [None if m is None else torch.from_numpy(m).to(dev) for m in self.backdrop_pixels]
         self.step = 0
         self.train_seconds = 0.0
         self.order: list[int] = []
@@ -151,7 +160,8 @@ class Trainer:
         self.densify_state: DensifyState | None = None
         self._ground_truth = None
         self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
-        self._sums = {"loss": 0.0, "photometric": 0.0, "transmittance": 0.0, "smoothness": 0.0, "backdrop": 0.0}
+        self._zero = torch.zeros((), device=dev)
+        self._sums = dict.fromkeys(LOSS_TERMS, self._zero)  # device scalars: read at progress rows only
         self._sum_count = 0
         self._last_eval = (0, 0.0)  # (step, train seconds) of the last progress row
 
@@ -163,7 +173,7 @@ class Trainer:
         sfm = None
         if cfg.init.use_sfm:
             sfm = sfm_points(
-                [im.numpy() for im in self.images],
+                [im.cpu().numpy() for im in self.images],
                 [f.intrinsics.K for f in self.train_frames],
                 [f.T_world_cam for f in self.train_frames],
                 cfg.init,
@@ -177,19 +187,20 @@ class Trainer:
             points, colors, where = self._fallback_points()
             log.info("initialisation: %d SfM points (< %d): %d random points %s",
                      found, cfg.init.min_sfm_points, len(points), where)  # fmt: skip
-        self.gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
+        gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
+        self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
-        self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale)
+        self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
 
     def _fallback_points(self) -> tuple[np.ndarray, np.ndarray, str]:
         """Random coloured points on the silhouettes' visual hull, or in the scene bounds without silhouettes."""
         cfg = self.config
         lo, hi = self.scene.bounds()
         points, colors = random_points(lo, hi, cfg.init.num_random_points, self.rng)
-        views = [i for i, mask in enumerate(self.backdrop_masks) if mask is not None]
+        views = [i for i, mask in enumerate(self.backdrop_pixels) if mask is not None]
         if cfg.init.use_silhouette_hull and views:
             hull = silhouette_hull_points(
-                [foreground_mask(self.backdrop_masks[i].numpy()) for i in views],
+                [foreground_mask(self.backdrop_pixels[i]) for i in views],
                 [self.train_frames[i].intrinsics.K for i in views],
                 [self.train_frames[i].T_world_cam for i in views],
                 lo, hi, cfg.init.num_random_points, cfg.init.hull_resolution, self.rng,
@@ -234,16 +245,18 @@ class Trainer:
         rgb = composite(renders[0, ..., :3], alphas[0], self.backgrounds[view])
         photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight)
         loss = photometric
-        terms = {"photometric": float(photometric.detach()), "transmittance": 0.0, "smoothness": 0.0, "backdrop": 0.0}
+        terms = dict.fromkeys(LOSS_TERMS, self._zero)  # detached device scalars: no host synchronisation
+        terms["photometric"] = photometric.detach()
         if cfg.lambda_backdrop > 0 and self.backdrop_masks[view] is not None:
             backdrop = losses.backdrop_alpha_loss(alphas[0, ..., 0], self.backdrop_masks[view])
             loss = loss + cfg.lambda_backdrop * backdrop
-            terms["backdrop"] = float(backdrop.detach())
+            terms["backdrop"] = backdrop.detach()
         if self.use_touch_loss:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
             points = self.touch_tensor
             if 0 < cfg.touch_points_per_step < len(points):  # an unbiased estimate of the mean over P_t
-                subset = torch.randperm(len(points), generator=self.generator)[: cfg.touch_points_per_step]
+                subset = torch.randperm(len(points), generator=self.generator, device=self.device)
+                subset = subset[: cfg.touch_points_per_step]
                 points, candidates = points[subset], candidates[subset]
             quats, scales = (g.quats, g.scales) if cfg.touch_loss_moves_shape else (g.quats.detach(), g.scales.detach())
             transmittance = losses.transmittance_loss(
@@ -251,28 +264,25 @@ class Trainer:
                 cfg.touch_top_k, cfg.touch_max_distance,
             )  # fmt: skip
             loss = loss + cfg.lambda_t * transmittance
-            terms["transmittance"] = float(transmittance.detach())
+            terms["transmittance"] = transmittance.detach()
         if with_depth:
             depth = renders[0, ..., 3]  # accumulated depth, paper Eq. 5
             proximity = None
             if len(self.touch_points) and cfg.use_proximity_mask:
                 alpha = alphas[0, ..., 0].detach()
                 surface = torch.where(alpha > 0.5, depth.detach() / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
-                rows, cols = losses.visible_touch_pixels(
-                    self.touch_points, frame.intrinsics.K, frame.T_world_cam, frame.intrinsics.width,
-                    frame.intrinsics.height, surface.numpy(), cfg.occlusion_tolerance,
+                seen = losses.visible_touch_pixels(
+                    self.touch_tensor, self.Ks[view], self.viewmats[view], frame.intrinsics.width,
+                    frame.intrinsics.height, surface, cfg.occlusion_tolerance,
                 )  # fmt: skip
-                proximity = torch.from_numpy(
-                    losses.proximity_mask(rows, cols, frame.intrinsics.width, frame.intrinsics.height,
-                                          cfg.proximity_sigma_px)
-                )  # fmt: skip
+                proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px)
             weights = self._smoothness_weights(view, alphas[0, ..., 0].detach())
             if cfg.smoothness_depth == "expected":
                 depth = losses.expected_depth(depth, alphas[0, ..., 0])
             smoothness = losses.edge_aware_smoothness(depth / self.scene_scale, proximity=proximity, weights=weights)
             loss = loss + cfg.lambda_s * smoothness
-            terms["smoothness"] = float(smoothness.detach())
-        terms["loss"] = float(loss.detach())
+            terms["smoothness"] = smoothness.detach()
+        terms["loss"] = loss.detach()
 
         cfg.densify.step_pre_backward(meta)
         loss.backward()
@@ -300,8 +310,8 @@ class Trainer:
         cfg = self.config
         if view not in self._edge_weights:
             weights = losses.image_edge_weights(self.images[view], cfg.smoothness_beta)
-            if cfg.smoothness_depth == "expected" and self.backdrop_masks[view] is not None:
-                silhouette = torch.from_numpy(foreground_mask(self.backdrop_masks[view].numpy()))
+            if cfg.smoothness_depth == "expected" and self.backdrop_pixels[view] is not None:
+                silhouette = torch.from_numpy(foreground_mask(self.backdrop_pixels[view])).to(self.device)
                 weights = weights * losses.window_inside(silhouette)
             self._edge_weights[view] = weights
         weights = self._edge_weights[view]
@@ -327,10 +337,10 @@ class Trainer:
         n = max(self._sum_count, 1)
         writer.writerow(
             [self.step, f"{self.train_seconds:.3f}"]
-            + [f"{self._sums[k] / n:.6g}" for k in ("loss", "photometric", "transmittance", "smoothness", "backdrop")]
+            + [f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS]
             + [len(self.gaussians), f"{psnr_value:.4f}", f"{cd_value:.6g}", f"{cd_paper:.6g}"]
         )
-        self._sums = dict.fromkeys(self._sums, 0.0)
+        self._sums = dict.fromkeys(LOSS_TERMS, self._zero)
         self._sum_count = 0
         return psnr_value, cd_value
 
@@ -349,7 +359,9 @@ class Trainer:
             "order": list(self.order),
             "touch_points": self.touch_points,
             "neighbours": None if self.neighbours is None else self.neighbours.state_dict(),
-            "progress": {"sums": dict(self._sums), "count": self._sum_count, "last_eval": self._last_eval},
+            "progress": {"sums": {k: float(v) for k, v in self._sums.items()}, "count": self._sum_count,
+                         "last_eval": self._last_eval},
+            "device": self.device.type,
         }
         tmp = self.out / "checkpoint.pt.tmp"
         torch.save(state, tmp)
@@ -357,28 +369,43 @@ class Trainer:
 
     def load_checkpoint(self) -> None:
         ckpt = read_checkpoint(run_checkpoint(self.out))
+        saved_on = ckpt.get("device", "cpu")
+        if saved_on != self.device.type:
+            raise ConfigError("--resume", f"{self.out} was trained on {saved_on} and this run would continue on "
+                              f"{self.device.type}: resume on the same kind of device (--device {saved_on})")
         self.step = int(ckpt["step"])
         self.train_seconds = float(ckpt["train_seconds"])
-        self.gaussians = Gaussians.from_state_dict(ckpt["gaussians"])
+        self.gaussians = Gaussians.from_state_dict(ckpt["gaussians"]).to(self.device)
         self._make_optimizers()
         for name, optimizer in self.optimizers.items():
             optimizer.load_state_dict(ckpt["optimizers"][name])
-        self.densify_state = DensifyState(**ckpt["densify_state"])
+        densify = ckpt["densify_state"]
+        self.densify_state = DensifyState(**{k: v.to(self.device) if torch.is_tensor(v) else v
+                                             for k, v in densify.items()})
         self.rng.bit_generator.state = ckpt["rng"]
         self.generator.set_state(ckpt["generator"])
         torch.set_rng_state(ckpt["torch_rng"])
         self.order = list(ckpt["order"])
         self.touch_points = np.asarray(ckpt["touch_points"])
-        self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32)
+        self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=self.device)
         if self.neighbours is not None:
             self.neighbours.touch_points = self.touch_points
             self.neighbours.load_state_dict(ckpt["neighbours"])
         progress = ckpt.get("progress")  # (checkpoints of older runs have none)
         if progress is not None:
-            self._sums, self._sum_count = dict(progress["sums"]), int(progress["count"])
+            self._sums = {k: torch.tensor(float(progress["sums"][k]), device=self.device) for k in LOSS_TERMS}
+            self._sum_count = int(progress["count"])
             self._last_eval = tuple(progress["last_eval"])
         else:
             self._last_eval = (self.step, self.train_seconds)
+
+    def _wait_for_device(self) -> float:
+        """Seconds spent waiting for the device to finish the queued work (0 on the CPU)."""
+        if self.device.type != "cuda":
+            return 0.0
+        started = time.perf_counter()
+        torch.cuda.synchronize(self.device)
+        return time.perf_counter() - started
 
     # ------------------------------------------------------------------ the job
 
@@ -424,21 +451,23 @@ class Trainer:
                 started = time.perf_counter()
                 terms = self.train_step()
                 self.train_seconds += time.perf_counter() - started
-                for k in self._sums:
-                    self._sums[k] += terms[k]
+                for k in LOSS_TERMS:
+                    self._sums[k] = self._sums[k] + terms[k]
                 self._sum_count += 1
                 bar.update(1)
-                bar.set_postfix(loss=f"{terms['loss']:.4f}", gaussians=len(self.gaussians), refresh=False)
+                if self.step % POSTFIX_EVERY == 0:
+                    bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians), refresh=False)
                 done = self.step >= cfg.iterations
                 if (
                     done
                     or self.step - self._last_eval[0] >= cfg.eval_every_iters
                     or self.train_seconds - self._last_eval[1] >= cfg.eval_every_seconds
                 ):
+                    self.train_seconds += self._wait_for_device()  # queued steps are training time
                     psnr_value, cd_value = self._progress_row(writer)
                     fh.flush()
                     self._last_eval = (self.step, self.train_seconds)
-                    bar.set_postfix(loss=f"{terms['loss']:.4f}", gaussians=len(self.gaussians),
+                    bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians),
                                     psnr=f"{psnr_value:.2f}", cd=f"{cd_value:.4g}")  # fmt: skip
                 if done or self.step % cfg.checkpoint_every == 0:
                     self.save_checkpoint()
@@ -469,6 +498,7 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
     if resume and overwrite:
         raise ConfigError("--overwrite", "replaces a run, --resume continues it: choose one")
     config.validate()
+    config.torch_device()  # --device cuda without CUDA fails here, before anything is read or written
     check_run_folder(out_dir, resume, overwrite, locked=False)
     scene = Scene.load(scene_path)
     with claim_output_dir(out_dir, "--out"):

@@ -29,6 +29,7 @@ COMMAND_MODULES = (
     "tacsplat.apps.touch_bench",
     "tacsplat.apps.bench_rasterizer",
     "tacsplat.apps.bench_sim",
+    "tacsplat.apps.bench_gpu",
 )
 
 GROUP_HELP = {

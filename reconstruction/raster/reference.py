@@ -136,7 +136,7 @@ def tile_intersections(
     tiles_y = math.ceil(height / tile_size)
     visible = (radii > 0).any(dim=-1).nonzero().squeeze(-1)
     if visible.numel() == 0:
-        empty = torch.zeros(0, dtype=torch.long)
+        empty = torch.zeros(0, dtype=torch.long, device=means2d.device)
         return empty, empty
     m = means2d[visible].detach()
     r = radii[visible].to(m.dtype)
@@ -146,15 +146,16 @@ def tile_intersections(
     y1 = torch.ceil((m[:, 1] + r[:, 1]) / tile_size).clamp(0, tiles_y).long()
     nx, ny = (x1 - x0).clamp_min(0), (y1 - y0).clamp_min(0)
     counts = nx * ny
-    owner = torch.repeat_interleave(torch.arange(visible.numel()), counts)
+    owner = torch.repeat_interleave(torch.arange(visible.numel(), device=counts.device), counts)
     first = torch.cumsum(counts, 0) - counts
-    local = torch.arange(int(counts.sum())) - first[owner]
+    local = torch.arange(int(counts.sum()), device=counts.device) - first[owner]
     tile_x = x0[owner] + local % nx[owner]
     tile_y = y0[owner] + local // nx[owner]
     tile_ids = tile_y * tiles_x + tile_x
     # rank Gaussians by (depth, index), then sort intersections by (tile, rank)
     depth_rank = torch.empty_like(visible)
-    depth_rank[torch.sort(depths[visible].detach(), stable=True).indices] = torch.arange(visible.numel())
+    depth_rank[torch.sort(depths[visible].detach(), stable=True).indices] = torch.arange(visible.numel(),
+                                                                                         device=visible.device)
     order = torch.sort(tile_ids * visible.numel() + depth_rank[owner]).indices
     return tile_ids[order], visible[owner[order]]
 

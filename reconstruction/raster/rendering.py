@@ -43,11 +43,22 @@ def _check_tensor(name: str, value, shape: tuple, dtype=None, device=None) -> Te
         raise InvalidInputError(f"{name} has dtype {value.dtype} but means has {dtype}; use one dtype")
     if device is not None and value.device != device:
         raise InvalidInputError(f"{name} is on {value.device} but means is on {device}")
-    # a finite sum proves every entry finite (one cheap reduction); otherwise look closer
-    if value.numel() and not bool(torch.isfinite(value.detach().sum())) and not bool(torch.isfinite(value).all()):
-        bad = "NaN" if bool(torch.isnan(value).any()) else "infinite"
-        raise InvalidInputError(f"{name} contains {bad} values")
     return value
+
+
+def _check_values(tensors: dict[str, Tensor], Ks: Tensor) -> None:
+    """Every entry finite and every focal length positive, decided by one reduction and one wait for the
+    device (a finite sum proves its entries finite); only a failing call looks closer, to name the culprit."""
+    sums = [t.detach().sum() for t in tensors.values() if t.numel()]
+    ok = torch.isfinite(torch.stack(sums)).all() if sums else torch.tensor(True)
+    ok = ok & (Ks[:, 0, 0] > 0).all() & (Ks[:, 1, 1] > 0).all()
+    if bool(ok):
+        return
+    for name, value in tensors.items():
+        if value.numel() and not bool(torch.isfinite(value).all()):
+            bad = "NaN" if bool(torch.isnan(value).any()) else "infinite"
+            raise InvalidInputError(f"{name} contains {bad} values")
+    raise InvalidInputError("Ks must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
 
 
 def _gsplat_available() -> bool:
@@ -126,8 +137,6 @@ def rasterization(
     if n_cams == 0:
         raise InvalidInputError("viewmats must hold at least one camera, got shape [0, 4, 4]")
     _check_tensor("Ks", Ks, (n_cams, 3, 3), dtype, device)
-    if not bool((Ks[:, 0, 0] > 0).all() and (Ks[:, 1, 1] > 0).all()):
-        raise InvalidInputError("Ks must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
     if sh_degree is None:
         if not isinstance(colors, Tensor) or colors.dim() not in (2, 3):
             raise InvalidInputError("colors must be [N, D] or [C, N, D] when sh_degree is None")
@@ -144,6 +153,9 @@ def rasterization(
     n_channels = colors.shape[-1]
     if backgrounds is not None:
         _check_tensor("backgrounds", backgrounds, (n_cams, n_channels), dtype, device)
+    named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+             "viewmats": viewmats, "Ks": Ks}
+    _check_values(named if backgrounds is None else {**named, "backgrounds": backgrounds}, Ks)
     if not (isinstance(width, numbers.Integral) and isinstance(height, numbers.Integral) and width >= 1 and height >= 1):
         raise InvalidInputError(f"width and height must be positive ints, got {width!r} x {height!r}")
     width, height = int(width), int(height)

@@ -2,11 +2,12 @@
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
-from tacsplat.geometry import look_at
+from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.losses import (
     TouchNeighbours,
@@ -114,26 +115,40 @@ def test_smoothness_is_damped_where_the_image_has_an_edge_and_masked_near_touche
 
 def test_proximity_mask_is_one_at_a_touch_and_decays_as_a_gaussian_of_distance():
     sigma = 3.0
-    mask = proximity_mask(np.array([10]), np.array([20]), width=40, height=30, sigma_px=sigma)
+    seeds = torch.zeros(30, 40, dtype=torch.bool)
+    seeds[10, 20] = True
+    mask = proximity_mask(seeds, sigma_px=sigma)
     assert mask.shape == (30, 40)
     assert mask[10, 20] == pytest.approx(1.0)
     for k in (1, 2, 5):
         assert mask[10, 20 + k] == pytest.approx(math.exp(-(k**2) / (2 * sigma**2)), rel=1e-4)
         assert mask[10 - k, 20] == pytest.approx(math.exp(-(k**2) / (2 * sigma**2)), rel=1e-4)
     assert mask[13, 24] == pytest.approx(math.exp(-25 / (2 * sigma**2)), rel=1e-4)
-    assert not proximity_mask(np.array([], int), np.array([], int), 40, 30, sigma).any()
+    assert not proximity_mask(torch.zeros(30, 40, dtype=torch.bool), sigma).any()
+
+
+def test_proximity_mask_matches_the_exact_distance_transform_within_reach():
+    rng = np.random.default_rng(4)
+    seeds = torch.from_numpy(rng.random((50, 70)) < 0.004)
+    sigma = 2.5
+    free = np.where(seeds.numpy(), 0, 255).astype(np.uint8)
+    exact = np.exp(-cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64) ** 2
+                   / (2 * sigma**2))
+    np.testing.assert_allclose(proximity_mask(seeds, sigma).numpy(), exact, atol=3.4e-4, rtol=1e-5)
 
 
 def test_visible_touch_pixels_project_and_drop_hidden_behind_and_outside_points():
-    K = np.array([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
-    T_world_cam = look_at([0, 0, -1.0], [0, 0, 0], up=(0, -1, 0))  # camera at z=-1 looking along +z
-    points = np.array([[0.0, 0, 0], [0.1, 0, 0], [0, 0, -2.0], [5.0, 0, 0]])  # centre, right, behind, outside
-    rows, cols = visible_touch_pixels(points, K, T_world_cam, 40, 30)
-    assert sorted(zip(rows.tolist(), cols.tolist())) == [(15, 20), (15, 25)]
-    depth = np.full((30, 40), 0.9)  # a rendered surface 0.1 m in front of the touched plane
+    K = torch.tensor([[50.0, 0, 20], [0, 50.0, 15], [0, 0, 1]])
+    viewmat = torch.from_numpy(invert_pose(look_at([0, 0, -1.0], [0, 0, 0], up=(0, -1, 0)))).float()  # at z=-1
+    points = torch.tensor([[0.0, 0, 0], [0.1, 0, 0], [0, 0, -2.0], [5.0, 0, 0]])  # centre, right, behind, outside
+
+    def seen(mask):
+        return sorted(map(tuple, torch.nonzero(mask).tolist()))
+
+    assert seen(visible_touch_pixels(points, K, viewmat, 40, 30)) == [(15, 20), (15, 25)]
+    depth = torch.full((30, 40), 0.9)  # a rendered surface 0.1 m in front of the touched plane
     depth[:, 23:] = 1.0
-    rows, cols = visible_touch_pixels(points, K, T_world_cam, 40, 30, depth, occlusion_tolerance=0.01)
-    assert list(zip(rows.tolist(), cols.tolist())) == [(15, 25)]
+    assert seen(visible_touch_pixels(points, K, viewmat, 40, 30, depth, occlusion_tolerance=0.01)) == [(15, 25)]
 
 
 def test_photometric_loss_is_zero_for_identical_images_and_weights_l1():
