@@ -18,7 +18,9 @@
 * :mod:`~tacsplat.acquisition.sim_capture`: ``tacsplat sim-capture``, a whole
   scene captured on the twin, unattended;
 * :mod:`~tacsplat.acquisition.touch_simulation`: ``tacsplat simulate-touches``,
-  simulated grasps added to an existing scene.
+  simulated grasps added to an existing scene;
+* :mod:`~tacsplat.acquisition.paper_touches`: ``--touch-model paper`` of both,
+  the touches of the paper's official code, recorded as pad touches.
 """
 
 from tacsplat.acquisition.config import RigConfig, load_rig

@@ -9,7 +9,9 @@ and ``sim-capture``. Every setting that changes the data is written into
 another value of any of them, naming each and both values. It compares:
 
 * every rig: the rig kind, the scene's object name and the plan (view and grasp
-  counts, modes, view radius, grasp seed);
+  counts, modes, view radius, grasp seed, and the touch model with its
+  parameters: a scene of an older version, which recorded none, was grasped
+  with the gel model);
 * the twin (``rig: sim``): the library object or the mesh file (resolved path
   and the sha256 of its content), the object radius, the resolution, the seed,
   and the twin's own settings (physics, hand, tactile pad, collision
@@ -106,7 +108,8 @@ def scene_meta(settings: dict, extra: dict) -> SceneMeta:
 def recorded_settings(writer: SceneWriter) -> dict:
     """The settings a scene was captured with, flat (``"plan.views.train": 20``)."""
     meta = writer.meta
-    recorded = _flatten({"rig": meta.source, "object": meta.object, "plan": meta.capture_plan})
+    recorded = {"plan.touches.model": "gel", **_flatten({"rig": meta.source, "object": meta.object,
+                                                         "plan": meta.capture_plan})}
     if SETTINGS_KEY in meta.extra:
         return {**recorded, **_flatten(meta.extra[SETTINGS_KEY])}
     # A scene of an older version records no capture_settings; it resumes when what it does record agrees: the rig

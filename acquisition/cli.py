@@ -29,8 +29,9 @@ def register(cli) -> None:
         help="simulated capture: train views, test views with ground truth, and grasps, into a scene directory",
         description="Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin "
         "places the camera on the hemisphere and the hand on sampled approaches; the logger closes the hand until "
-        "the fingers stall, reads the pads and writes). Deterministic in --seed; --resume continues a killed capture "
-        "with the same options (any other value is refused, naming the option).",
+        "the fingers stall, reads the pads and writes). --touch-model paper makes the paper's touches instead of "
+        "grasping, four per grasp. Deterministic in --seed; --resume continues a killed capture with the same "
+        "options (any other value is refused, naming the option).",
     )
     p.add_argument("--object", default="teapot", help="library object (teapot, toaster, bell, helmet, torus, car)")
     p.add_argument("--mesh", default=None, help="any .obj/.ply/.stl mesh instead of a library object")
@@ -40,6 +41,7 @@ def register(cli) -> None:
     p.add_argument("--grasps", type=int, default=5, help="grasps of four touches each (0 or more)")
     p.add_argument("--resolution", type=int, default=200, help="image width and height in pixels (8 to 4096)")
     p.add_argument("--seed", type=int, default=0, help="seed of the views and grasps (0 or more)")
+    _touch_model_options(p)
     p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
     p.add_argument("--resume", action="store_true", help="continue a capture that was interrupted")
     p.set_defaults(func=_sim_capture)
@@ -48,8 +50,9 @@ def register(cli) -> None:
         "simulate-touches",
         help="add simulated grasps of a mesh to a scene (e.g. an imported Shiny Blender scene)",
         description="Grasps the mesh on the MuJoCo twin (at a graspable size, --object-radius) through the same "
-        "logger and grasp controller as sim-capture, and writes the touches in the scene's frame and units. A scene "
-        "with this sensor model is extended in place; one without (an import) is copied into --out first.",
+        "logger and grasp controller as sim-capture (or, with --touch-model paper, makes four of the paper's touches "
+        "per grasp on it), and writes the touches in the scene's frame and units. A scene with this sensor model is "
+        "extended in place; one without (an import) is copied into --out first.",
     )
     p.add_argument("--mesh", required=True, help="the object's mesh, in the scene's world frame and units")
     p.add_argument("--scene", required=True, help="scene directory")
@@ -57,7 +60,24 @@ def register(cli) -> None:
     p.add_argument("--out", default=None, help="new scene directory (needed when SCENE has no tactile sensor model)")
     p.add_argument("--object-radius", type=float, default=0.08, help="graspable size the mesh is simulated at (m)")
     p.add_argument("--seed", type=int, default=0)
+    _touch_model_options(p)
     p.set_defaults(func=_simulate_touches)
+
+
+def _touch_model_options(p) -> None:
+    p.add_argument("--touch-model", default="gel",
+                   help="gel: the hand grasps, each pad's gel contact patch is a touch; paper: the paper's "
+                   "touches, 4 per grasp and no hand (the official code's: the 50 surface samples nearest to where a "
+                   "random ray from the centroid leaves the mesh)")
+    p.add_argument("--surface-points", type=int, default=None,
+                   help="paper touches: points sampled evenly on the surface (default 20000, the official code's for "
+                   "Glossy Synthetic; it used 10000 for Shiny Blender)")
+
+
+def _touch_args(args) -> dict:
+    """The touch model's keyword arguments of sim_rig_config and simulate_touches (defaults left to them)."""
+    given = {"surface_points": args.surface_points} if args.surface_points is not None else {}
+    return {"touch_model": args.touch_model, **given}
 
 
 def _capture(args) -> int:
@@ -75,10 +95,10 @@ def _sim_capture(args) -> int:
     try:
         config = sim_rig_config(object=args.object, mesh=args.mesh, object_radius=args.object_radius,
                                 views=args.views, test_views=args.test_views, grasps=args.grasps,
-                                resolution=args.resolution, seed=args.seed)
+                                resolution=args.resolution, seed=args.seed, **_touch_args(args))
         timings = sim_capture(config, args.out, resume=args.resume)
     except ConfigError as exc:
-        raise _naming_options(exc) from None
+        raise _naming_options(exc, _SIM_OPTIONS) from None
     print(json.dumps({"scene": args.out, **{k: round(v, 2) for k, v in timings.items()}}))
     return 0
 
@@ -86,26 +106,32 @@ def _sim_capture(args) -> int:
 def _simulate_touches(args) -> int:
     from tacsplat.acquisition.touch_simulation import simulate_touches
 
-    target = simulate_touches(args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed)
+    try:
+        target = simulate_touches(args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed,
+                                  **_touch_args(args))
+    except ConfigError as exc:
+        raise _naming_options(exc, _TOUCH_OPTIONS) from None
     print(f"touches written to {target}")
     return 0
 
 
-def _naming_options(exc: ConfigError) -> ConfigError:
-    """The same error naming the command-line option behind a rig key (``sim.object_radius`` -> ``--object-radius``)."""
+def _naming_options(exc: ConfigError, options: dict[str, str]) -> ConfigError:
+    """The same error naming the command-line option behind a key (``sim.object_radius`` -> ``--object-radius``)."""
     from tacsplat.acquisition.capture_scene import ResumeMismatch
 
     if isinstance(exc, ResumeMismatch):
-        return exc.renamed(_SIM_OPTIONS)
-    if exc.key not in _SIM_OPTIONS:
+        return exc.renamed(options)
+    if exc.key not in options:
         return exc
     message = str(exc).removeprefix(f"{exc.source}: " if exc.source else "").removeprefix(f"{exc.key}: ")
-    return ConfigError(_SIM_OPTIONS[exc.key], message)
+    return ConfigError(options[exc.key], message)
 
 
 _SIM_OPTIONS = {
     "object": "--object", "sim.object": "--object", "sim.mesh": "--mesh", "sim.mesh_sha256": "--mesh",
     "sim.object_radius": "--object-radius", "sim.resolution": "--resolution", "sim.seed": "--seed",
     "plan.views.train": "--views", "plan.views.test": "--test-views", "plan.grasps.count": "--grasps",
-    "plan.grasps.seed": "--seed",
+    "plan.grasps.seed": "--seed", "plan.touches.model": "--touch-model",
+    "plan.touches.surface_points": "--surface-points",
 }
+_TOUCH_OPTIONS = {"model": "--touch-model", "surface_points": "--surface-points"}  # simulate_touches' TouchPlan

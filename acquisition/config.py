@@ -191,14 +191,34 @@ class GraspPlan:
     seed: int = bounded(0, 0)
 
 
+TOUCH_MODELS = ("gel", "paper")
+
+
+@with_config(YAML_SECTION)
+@dataclass(frozen=True)
+class TouchPlan:
+    """How touches are made: ``gel``, the hand's grasps (each pad's gel contact patch, one touch per finger), or
+    ``paper``, the touches of the paper's official code, four per planned grasp, with no hand (``rig: sim`` only;
+    :mod:`tacsplat.acquisition.paper_touches`)."""
+
+    model: Text = "gel"  # one of TOUCH_MODELS
+    surface_points: int = bounded(20_000, 1, 10_000_000)  # paper: samples spread evenly on the surface (pc_num)
+    points_per_touch: int = bounded(50, 1, 10_000)  # paper: the samples nearest to the hit that make one touch
+
+    def to_json(self) -> dict:
+        """As scene.json records it: the paper model's parameters only with the paper model."""
+        return dataclasses.asdict(self) if self.model == "paper" else {"model": self.model}
+
+
 @with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class CapturePlan:
     views: ViewPlan = field(default_factory=ViewPlan)
     grasps: GraspPlan = field(default_factory=GraspPlan)
+    touches: TouchPlan = field(default_factory=TouchPlan)
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        return {**dataclasses.asdict(self), "touches": self.touches.to_json()}
 
 
 @with_config(YAML_SECTION)
@@ -393,11 +413,26 @@ def validate(c: RigConfig) -> None:
     if not gc.max_close_s > gc.poll_s:
         raise ConfigError("grasp.max_close_s", f"must be longer than grasp.poll_s ({gc.poll_s:g}), got {gc.max_close_s:g}",
                           src)
+    validate_touches(c.plan.touches, "plan.touches.", src)
+    if c.plan.touches.model == "paper" and c.rig != "sim":
+        raise ConfigError("plan.touches.model", "the paper's touches are sampled on the twin's mesh: use 'gel' on a "
+                          "real rig", src)
     _validate_board(c.board, src)
     if c.rig == "real":
         _validate_real(c, src)
     else:
         _validate_sim(c, src)
+
+
+def validate_touches(t: TouchPlan, prefix: str = "", src=None) -> None:
+    """A touch plan's model and numbers (``prefix`` names its place: ``plan.touches.``)."""
+    if t.model not in TOUCH_MODELS:
+        raise ConfigError(f"{prefix}model", f"must be one of {', '.join(map(repr, TOUCH_MODELS))}, got {t.model!r}",
+                          src)
+    _check_bounds(t, prefix, src)
+    if t.surface_points < t.points_per_touch:
+        raise ConfigError(f"{prefix}surface_points", f"must be at least the {t.points_per_touch} points of a touch "
+                          f"({prefix}points_per_touch), got {t.surface_points}", src)
 
 
 def _validate_board(b: BoardConfig, src) -> None:

@@ -34,7 +34,7 @@ from tacsplat.acquisition.config import CapturePlan, RigConfig
 from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.datasets.writer import JOURNAL
-from tacsplat.errors import CameraError, DeviceError, SimulationError
+from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError
 
 log = logging.getLogger(__name__)
 
@@ -219,6 +219,9 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
     scene is resumable) or 130 (interrupted). ``on_open(rig, logger)`` is
     called once the devices are open (tests inject faults through it).
     """
+    if config.plan.touches.model != "gel":
+        raise ConfigError("plan.touches.model", "an operator capture grasps with the hand: use 'gel' (the paper's "
+                          "touches need no operator: tacsplat sim-capture --touch-model paper)", config.source)
     keys = sys.stdin if keys is None else keys
     output = sys.stdout if output is None else output
     out = Path(out)

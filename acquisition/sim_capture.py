@@ -8,9 +8,15 @@ speed-limited ramp through ``command_joint_positions``, waits on the twin's
 clock until the fingers settle or stall, reads the four pads, places them with
 the hand pose, writes the touches and opens the hand.
 
+With ``touch_model="paper"`` no grasp is executed: the touches are the
+paper's (:mod:`~tacsplat.acquisition.paper_touches`), four for each planned
+grasp (touch ``t`` recorded as grasp ``t // 4``, finger ``t % 4``), so the two
+models compare at the same count of touches.
+
 The plan is deterministic in the seed: view ``i`` of a split is the same pose
-on every run, and grasp ``g`` the same approaches, so ``--resume`` continues a
-killed capture where its journal stopped (a grasp cut short is redone whole).
+on every run, grasp ``g`` the same approaches and paper touch ``t`` the same
+points, so ``--resume`` continues a killed capture where its journal stopped (a
+grasp cut short is redone whole).
 """
 
 from __future__ import annotations
@@ -21,29 +27,33 @@ from pathlib import Path
 from tqdm import tqdm
 
 from tacsplat.acquisition.capture_scene import open_scene
-from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, ViewPlan, validate
+from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, TouchPlan, ViewPlan, validate
 from tacsplat.acquisition.logger import CaptureLogger
+from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.errors import ConfigError
 
 
 def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radius: float = 0.08, views: int = 5,
-                   test_views: int = 24, grasps: int = 5, resolution: int = 200, seed: int = 0) -> RigConfig:
-    """The ``rig: sim`` config of ``tacsplat sim-capture``'s options."""
+                   test_views: int = 24, grasps: int = 5, resolution: int = 200, seed: int = 0,
+                   touch_model: str = "gel", surface_points: int = TouchPlan.surface_points) -> RigConfig:
+    """The ``rig: sim`` config of ``tacsplat sim-capture``'s options (``surface_points``: the paper model's)."""
     config = RigConfig(
         rig="sim",
         sim=SimConfig(object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed),
         plan=CapturePlan(ViewPlan(train=views, test=test_views, mode="hemisphere"),
-                         GraspPlan(count=grasps, mode="random", seed=seed)),
+                         GraspPlan(count=grasps, mode="random", seed=seed),
+                         TouchPlan(model=touch_model, surface_points=surface_points)),
     )
     validate(config)
     return config
 
 
 def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progress: bool = True) -> dict:
-    """Capture a scene on the twin, unattended: train views, test views with GT depth, grasps; returns timings
-    in seconds (``setup_s``, ``views_s``, ``grasps_s``, ``total_s``). ``resume`` continues the scene in ``out``
-    only if it was captured with the same settings (a ConfigError names each that differs)."""
+    """Capture a scene on the twin, unattended: train views, test views with GT depth, grasps (or the paper's
+    touches); returns timings in seconds (``setup_s``, ``views_s``, ``grasps_s``: the touches', ``total_s``).
+    ``resume`` continues the scene in ``out`` only if it was captured with the same settings (a ConfigError names
+    each that differs)."""
     if config.rig != "sim":
         raise ConfigError("rig", f"sim_capture runs the twin; got rig: {config.rig}", config.source)
     t0 = time.perf_counter()
@@ -57,8 +67,13 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
             planner.before_view(split, i)
             logger.take_view(split)
         t_views = time.perf_counter()
-        start = logger.next_grasp_index()
-        for g in tqdm(range(start, config.plan.grasps.count), desc="grasps", unit="grasp", disable=not progress):
-            planner.grasp(logger, g)
+        if config.plan.touches.model == "paper":
+            touches = PaperTouches(rig.twin.object_mesh, config.plan.grasps.seed, config.plan.touches)
+            todo = range(writer.num_touches, TOUCHES_PER_GRASP * config.plan.grasps.count)
+            write_paper_touches(writer, touches, tqdm(todo, desc="touches", unit="touch", disable=not progress))
+        else:
+            start = logger.next_grasp_index()
+            for g in tqdm(range(start, config.plan.grasps.count), desc="grasps", unit="grasp", disable=not progress):
+                planner.grasp(logger, g)
         t_end = time.perf_counter()
     return {"setup_s": t_setup - t0, "views_s": t_views - t_setup, "grasps_s": t_end - t_views, "total_s": t_end - t0}

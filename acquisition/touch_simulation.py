@@ -6,7 +6,10 @@ the :class:`~tacsplat.acquisition.twin_planner.TwinPlanner`): grasp ``g`` is
 deterministic in ``(seed, g)``. The mesh is simulated at a graspable size; the
 scene sees the twin through an adapter that expresses the hand pose and the
 pads' readings in the scene's frame and units, as the paper did for Shiny
-Blender and Glossy Synthetic.
+Blender and Glossy Synthetic. With ``touch_model="paper"`` the touches are
+instead the paper's (:mod:`~tacsplat.acquisition.paper_touches`), four for each
+grasp asked for, sampled on the same mesh at the same size and mapped into the
+scene the same way.
 """
 
 from __future__ import annotations
@@ -16,8 +19,10 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from tacsplat.acquisition.config import TouchPlan, validate_touches
 from tacsplat.acquisition.devices import twin_rig
 from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate, TwinPoseSource
+from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
 from tacsplat.errors import ConfigError
@@ -34,6 +39,10 @@ class SceneUnits:
     def __init__(self, centre, scale: float):
         self.centre = np.asarray(centre, dtype=np.float64)
         self.scale = float(scale)
+
+    def points(self, p_twin: np.ndarray) -> np.ndarray:
+        """Points [N, 3] of the twin in the scene."""
+        return self.centre + np.asarray(p_twin, dtype=np.float64) / self.scale
 
     def pose(self, T_twin: np.ndarray, anchored: bool = True) -> np.ndarray:
         """A pose of the twin in the scene; ``anchored=False`` for a pose relative to another (no ``centre``)."""
@@ -84,16 +93,22 @@ def simulate_touches(
     object_radius: float = DEFAULT_OBJECT_RADIUS,
     seed: int = 0,
     grasp_config: GraspConfig = GraspConfig(),
+    touch_model: str = "gel",
+    surface_points: int = TouchPlan.surface_points,
 ) -> Path:
     """Add ``grasps`` simulated grasps of ``mesh_path`` (in the scene's world frame and units) to a scene.
 
     The grasps run on the mesh scaled to a graspable bounding radius
     (``object_radius`` metres); touches are mapped back into the scene's frame
-    and units (poses, indentations and pixel size divided by the scale). A scene
-    written with this sensor model is extended in place, numbering grasps on; one
-    without (an import) is copied with its frames into ``out`` first. Returns the
-    scene written.
+    and units (poses, indentations and pixel size divided by the scale). With
+    ``touch_model="paper"``, ``4 * grasps`` of the paper's touches (from
+    ``surface_points`` samples) take the grasps' place. A scene written with this
+    sensor model is extended in place, numbering grasps on; one without (an
+    import) is copied with its frames into ``out`` first. Returns the scene
+    written.
     """
+    touches = TouchPlan(model=touch_model, surface_points=surface_points)
+    validate_touches(touches)
     scene = Scene.load(scene_path)
     centre, radius = bounding_sphere(_raw_mesh(mesh_path))
     with SimTwin(TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)) as twin:
@@ -109,19 +124,24 @@ def simulate_touches(
         else:
             if out is None:
                 raise ConfigError("out", f"{scene_path} has no tactile sensor model (an import): pass --out NEW_SCENE")
-            plan = {**scene.meta.capture_plan,
-                    "simulated_touches": {"mesh": str(mesh_path), "grasps": grasps, "seed": seed}}
+            plan = {**scene.meta.capture_plan, "simulated_touches": {
+                "mesh": str(mesh_path), "grasps": grasps, "seed": seed, "touches": touches.to_json()}}
             extra = {**scene.meta.extra, "touch_scale": units.scale, "object_bounding_radius_m": object_radius}
             target = copy_scene(scene, out, meta=SceneMeta(scene.meta.source, scene.meta.object, plan, extra),
                                 sensor=sensor, gt_mesh=scene.gt_mesh_path or mesh_path, progress=True)
-        rig = twin_rig(twin)
         with SceneWriter.resume(target) as writer:
-            logger = CaptureLogger(writer, rig.hand, [ScaledPad(p, units) for p in rig.sensors], rig.camera,
-                                   rig.clock, ScenePoseSource(twin, units), rig.control, redo_partial_grasp=False)
-            planner = TwinPlanner(twin, seed, grasp_config=grasp_config)
-            first = logger.next_grasp_index()
-            for g in tqdm(range(first, first + grasps), desc="grasps", unit="grasp"):
-                planner.grasp(logger, g)
+            first = max((t.grasp for t in writer.touches), default=-1) + 1
+            if touch_model == "paper":
+                todo = range(TOUCHES_PER_GRASP * first, TOUCHES_PER_GRASP * (first + grasps))
+                write_paper_touches(writer, PaperTouches(twin.object_mesh, seed, touches),
+                                    tqdm(todo, desc="touches", unit="touch"), units.points)
+            else:
+                rig = twin_rig(twin)
+                logger = CaptureLogger(writer, rig.hand, [ScaledPad(p, units) for p in rig.sensors], rig.camera,
+                                       rig.clock, ScenePoseSource(twin, units), rig.control, redo_partial_grasp=False)
+                planner = TwinPlanner(twin, seed, grasp_config=grasp_config)
+                for g in tqdm(range(first, first + grasps), desc="grasps", unit="grasp"):
+                    planner.grasp(logger, g)
     return target
 
 

@@ -70,7 +70,8 @@ def test_touches_of_an_imported_unit_scale_scene_come_back_in_its_frame_and_unit
     assert f"touches written to {out}" in capsys.readouterr().out
     scene = Scene.load(out)
     assert len(scene.frames) == 2 and len(scene.touches) == 4
-    assert scene.meta.capture_plan["simulated_touches"] == {"mesh": str(mesh_path), "grasps": 1, "seed": 2}
+    assert scene.meta.capture_plan["simulated_touches"] == {"mesh": str(mesh_path), "grasps": 1, "seed": 2,
+                                                            "touches": {"model": "gel"}}
     assert scene.sensor.pixel_size_m == pytest.approx(1.5e-4 * scale)
     points = scene.touch_points()
     _, distance, _ = trimesh.proximity.closest_point(mesh, points)
