@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # Process-wide defaults (MUJOCO_GL, OMP_WAIT_POLICY, ...) are set by `import tacsplat` (tacsplat/__init__.py).
 
-.PHONY: test demo setup bench-rasterizer bench-sim bench-quick bench-paper bench-touches clean
+.PHONY: test demo setup bench-rasterizer bench-sim bench-quick bench-paper bench-touches bench-scaling bench-gpu clean
 
 setup: $(STAMP)
 
@@ -44,6 +44,12 @@ bench-paper: $(STAMP)
 
 bench-touches: $(STAMP)
 	$(VENV)/bin/tacsplat bench touches --out bench-output/touches
+
+bench-scaling: $(STAMP)
+	$(VENV)/bin/tacsplat bench scaling --out bench-output/scaling
+
+bench-gpu: $(STAMP)
+	$(VENV)/bin/tacsplat bench gpu --out bench-output/gpu
 
 clean:
 	rm -rf $(VENV) demo-output bench-output .pytest_cache

@@ -30,6 +30,7 @@ COMMAND_MODULES = (
     "tacsplat.apps.bench_rasterizer",
     "tacsplat.apps.bench_sim",
     "tacsplat.apps.bench_gpu",
+    "tacsplat.apps.bench_scaling",
 )
 
 GROUP_HELP = {

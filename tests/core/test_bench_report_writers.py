@@ -32,8 +32,8 @@ def synthetic_rows() -> list[dict]:
           ("bell", "3dgs"): 0.03, ("bell", "3dgs+s"): 0.02, ("bell", "3dgs+t"): 0.004, ("bell", "full"): 0.006}
     psnr = {("teapot", "3dgs"): 20.0, ("teapot", "3dgs+s"): 21.0, ("teapot", "3dgs+t"): 22.0, ("teapot", "full"): 23.0,
             ("bell", "3dgs"): 25.0, ("bell", "3dgs+s"): 24.0, ("bell", "3dgs+t"): 23.0, ("bell", "full"): 22.0}
-    return [{"object": o, "setting": "minimal", "variant": v, "seed": 0, "cd": cd[o, v], "psnr": psnr[o, v],
-             "ssim": 0.9, "train_seconds": 10.0, "num_gaussians": 1000} for (o, v) in cd]
+    return [{"object": o, "setting": "minimal", "variant": v, "seed": 0, "cd": cd[o, v], "cd_paper": cd[o, v] ** 2,
+             "psnr": psnr[o, v], "ssim": 0.9, "train_seconds": 10.0, "num_gaussians": 1000} for (o, v) in cd]
 
 
 def test_metric_table_layout_and_average():
@@ -230,3 +230,38 @@ def test_full_vs_vanilla_sentence():
     text = full_vs_vanilla(synthetic_rows(), "minimal")
     assert "lower CD on 2 of 2 objects" in text and "0.0055 vs 0.0250" in text
     assert full_vs_vanilla([r for r in synthetic_rows() if r["variant"] != "full"], "minimal") == ""
+
+
+def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures():
+    from tacsplat.apps.paper_bench import where_we_stand
+
+    text = where_we_stand(synthetic_rows(), PaperBenchConfig(iterations=1500, resolution=128))
+    table = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+             for line in text.splitlines() if line.startswith("| ") and "---" not in line}
+    assert table["3DGS (ours)"] == ["0.00040", "0.00090", "0.00065"]  # cd_paper = cd^2 in the synthetic rows
+    assert table["full (paper)"] == ["0.0022", "0.0082", "0.0026"] and table["3DGS (paper)"][2] == "0.0111"
+    # 3DGS/full: our CD 0.025/0.0055 = 4.55x, cd_paper 0.00065/0.0000305 = 21.31x, the paper's 4.3x
+    assert "4.55x in our CD, 21.31x in the paper's CD (the paper: 4.3x)" in text
+    assert "touches: gel contact patches" in text and "resolution 128 px" in text
+    paper = where_we_stand(synthetic_rows(), PaperBenchConfig(preset="paper", touch_model="paper", iterations=30000,
+                                                              resolution=800))
+    assert "touches:" not in paper and "resolution" not in paper and "steps" not in paper.split("in force")[1]
+
+
+def test_scaling_report_writes_csv_table_and_plot(tmp_path):
+    from tacsplat.apps.bench_scaling import write_scaling_report
+
+    rows = [{"resolution": r, "iterations": n, "variant": v, "cd": 0.04 / k, "cd_paper": 0.004 / k, "psnr": 20.0 + k,
+             "ssim": 0.8, "train_seconds": 10.0 * k * r / 128, "num_gaussians": 1000}
+            for r in (128, 256) for k, n in ((1, 750), (2, 1500)) for v in ("3dgs", "full")]
+    report = write_scaling_report(tmp_path, rows, "teapot").read_text()
+    assert report.count("| teapot") == 0 and report.count("\n| 128 |") == 4 and "scaling.png" in report
+    assert len(read_results_rows(tmp_path / "scaling.csv")) == 8
+    assert cv2.imread(str(tmp_path / "scaling.png")) is not None
+
+
+def read_results_rows(path):
+    import csv
+
+    with open(path) as fh:
+        return list(csv.DictReader(fh))

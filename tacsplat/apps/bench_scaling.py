@@ -1,0 +1,97 @@
+"""`tacsplat bench scaling`: error against cost for the whole job, at several resolutions and step counts.
+
+One object in the minimal-views setting, reconstructed by the full method and by vanilla 3DGS at
+each resolution (default 128, 256 and 400 px) and step count (default 750 and 1500), each a
+`tacsplat bench paper` slice in its own folder (so it resumes the same way). Writes
+``scaling.csv``, ``report.md`` and ``scaling.png``: the paper's CD and PSNR against train
+seconds, one curve per resolution and variant, a point per step count.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+from tacsplat.apps.options import comma_separated_ints
+
+COLUMNS = ("resolution", "iterations", "variant", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")
+
+
+def run_scaling(out: Path, obj: str, resolutions, step_counts, seed: int = 0) -> list[dict]:
+    from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
+
+    rows = []
+    for resolution in resolutions:
+        for iterations in step_counts:
+            config = PaperBenchConfig(objects=(obj,), settings=("minimal",), variants=("3dgs", "full"),
+                                      resolution=resolution, iterations=iterations, seeds=(seed,))
+            bench = PaperBench(out / f"{resolution}px-{iterations}steps", config)
+            for row in bench.run(progress=False):
+                rows.append({"resolution": resolution, "iterations": iterations,
+                             **{k: row[k] for k in COLUMNS if k in row}})
+                print(f"{resolution:4d} px {iterations:5d} steps {row['variant']:5s}: cd_paper {row['cd_paper']:.5f} "
+                      f"PSNR {row['psnr']:.2f} train {row['train_seconds']:.0f} s", flush=True)
+    return rows
+
+
+def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
+    from tacsplat.apps.report import pyplot, save_figure
+    from tacsplat.reconstruction.variants import variant_label
+
+    with (out / "scaling.csv").open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+    plt = pyplot()
+    fig, (ax_cd, ax_psnr) = plt.subplots(1, 2, figsize=(11, 4.2))
+    for resolution in sorted({r["resolution"] for r in rows}):
+        for variant, style in (("full", "o-"), ("3dgs", "s--")):
+            points = sorted((r["train_seconds"], r["cd_paper"], r["psnr"]) for r in rows
+                            if r["resolution"] == resolution and r["variant"] == variant)
+            if not points:
+                continue
+            seconds, cd_paper, psnr = zip(*points)
+            label = f"{resolution} px, {variant_label(variant)}"
+            ax_cd.plot(seconds, cd_paper, style, label=label)
+            ax_psnr.plot(seconds, psnr, style, label=label)
+    ax_cd.set_yscale("log")
+    ax_cd.set_ylabel("cd_paper [x GT radius^2] (lower is better)")
+    ax_psnr.set_ylabel("held-out PSNR [dB]")
+    for ax in (ax_cd, ax_psnr):
+        ax.set_xlabel("train seconds (2 CPU cores)")
+        ax.grid(alpha=0.3)
+    ax_cd.legend(fontsize=7)
+    fig.suptitle(f"{obj}, 5 views + 5 grasps: error against cost (a point per step count)")
+    fig.tight_layout()
+    save_figure(fig, out / "scaling.png")
+    lines = [f"# Error against cost: {obj}, minimal views", "",
+             "| px | steps | variant | train s | cd_paper | CD | PSNR |", "| ---: | ---: | --- | ---: | ---: | ---: | ---: |"]
+    for r in sorted(rows, key=lambda r: (r["resolution"], r["iterations"], r["variant"])):
+        lines.append(f"| {r['resolution']} | {r['iterations']} | {r['variant']} | {r['train_seconds']:.0f} | "
+                     f"{r['cd_paper']:.5f} | {r['cd']:.4f} | {r['psnr']:.2f} |")
+    lines += ["", "![error against cost](scaling.png)", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    return out / "report.md"
+
+
+def register(cli) -> None:
+    p = cli.command("bench scaling", help="error against cost: resolutions x step counts, full and 3DGS, one object",
+                    description=__doc__.split("\n\n", 1)[1].replace("``", "'"))
+    p.add_argument("--out", default="bench-output/scaling", help="output folder")
+    p.add_argument("--object", default="teapot", help="library object")
+    p.add_argument("--resolutions", default="128,256,400", help="comma-separated image sizes in pixels")
+    p.add_argument("--steps", default="750,1500", help="comma-separated step counts")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    started = time.perf_counter()
+    out = Path(args.out)
+    rows = run_scaling(out, args.object, comma_separated_ints(args.resolutions, "--resolutions"),
+                       comma_separated_ints(args.steps, "--steps"), args.seed)
+    report = write_scaling_report(out, rows, args.object)
+    print(report.read_text())
+    print(f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; report: {report}")
+    return 0
