@@ -8,10 +8,12 @@ A scene directory is what acquisition, the simulator and the importers write
       transforms.json  nerfstudio input: camera_model "OPENCV", fl_x fl_y cx cy w h
                        (per frame instead when frames differ), k1 k2 p1 p2 = 0,
                        frames [{id, file_path, transform_matrix (OpenGL
-                       camera-to-world), split: train | test}], and the
+                       camera-to-world), split: train | test, mask_path
+                       (optional: on every frame or none)}], and the
                        train_filenames / val_filenames / test_filenames lists
                        (val = test) that make nerfstudio keep our split
       images/          000000.png ...  RGB uint8, undistorted
+      masks/           000000.png ...  optional greyscale uint8, 255 = use the pixel
       touches.json     {"sensor": {name, width_px, height_px, pixel_size_m,
                        gel_thickness_m} | null, "touches": [{id, grasp, finger,
                        depth_file, T_world_sensor, in_contact}]}
@@ -28,15 +30,17 @@ A scene directory is what acquisition, the simulator and the importers write
 Inside the code poses are OpenCV camera-to-world (``Frame.T_world_cam``) in
 metres; the OpenGL matrices of nerfstudio and Blender are converted only in
 this package. Importers: :func:`import_blender` (NeRF-synthetic / Shiny
-Blender), :func:`import_colmap` (COLMAP sparse models through pycolmap);
+Blender), :func:`import_colmap` (COLMAP sparse models through pycolmap),
+:func:`import_nerfstudio` (nerfstudio / instant-ngp ``transforms.json``);
 :func:`copy_scene` writes a copy of a scene (a subset of its touches, new
 provenance or sensor model).
-Command line: ``tacsplat import blender|colmap`` and ``tacsplat inspect DIR [--json] [--plot PNG]``.
+Command line: ``tacsplat import blender|colmap|nerfstudio`` and ``tacsplat inspect DIR [--json] [--plot PNG]``.
 """
 
 from .blender import import_blender
 from .colmap import import_colmap
 from .copying import copy_scene
+from .nerfstudio import import_nerfstudio
 from .reader import Scene, check_scene
 from .records import SPLITS, Frame, SceneMeta, SensorModel, Touch
 from .writer import SceneWriter
@@ -53,4 +57,5 @@ __all__ = [
     "copy_scene",
     "import_blender",
     "import_colmap",
+    "import_nerfstudio",
 ]

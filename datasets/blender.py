@@ -100,8 +100,10 @@ def _read_split(src: Path, name: str) -> tuple[Path, float, list[dict]]:
     return index, float(angle), frames
 
 
-def _pose(raw, index: Path, field: str) -> np.ndarray:
-    """OpenGL camera-to-world -> OpenCV, re-orthonormalised when off by float rounding only."""
+def pose_from_opengl(raw, index: Path, field: str) -> np.ndarray:
+    """The OpenGL camera-to-world ``transform_matrix`` of a NeRF-style ``transforms.json`` as the OpenCV
+    camera-to-world pose of the scene format, re-orthonormalised when off by float rounding only; a
+    SceneFormatError naming ``index`` and ``field`` otherwise."""
     try:
         T = np.asarray(raw, dtype=np.float64)
     except (TypeError, ValueError):
@@ -164,7 +166,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                 if rgba.shape[:2] != (height, width):
                     raise SceneFormatError(image_path, f"{index.name} {field}",
                                            f"image is {rgba.shape[1]}x{rgba.shape[0]}, but {first_image.name} is {width}x{height}")
-                pose = _pose(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
+                pose = pose_from_opengl(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
                 pose[:3, 3] *= scale
                 writer.add_frame(composite(rgba, background_rgb), pose, split=split, intrinsics=intr)
                 progress.update()

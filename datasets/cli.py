@@ -1,4 +1,5 @@
-"""`tacsplat` subcommands of tacsplat.datasets: ``import blender``, ``import colmap``, ``inspect``."""
+"""`tacsplat` subcommands of tacsplat.datasets: ``import blender``, ``import colmap``, ``import nerfstudio``,
+``inspect``."""
 
 from __future__ import annotations
 
@@ -55,6 +56,28 @@ def register(cli) -> None:
     p.set_defaults(func=_import_colmap)
 
     p = cli.command(
+        "import nerfstudio",
+        help="import a nerfstudio or instant-ngp dataset (transforms.json and its images) into a scene directory",
+        description="Convert SRC (a folder holding transforms.json as ns-process-data or instant-ngp write it, or the "
+        "file itself) into a scene directory: distorted images (OPENCV k1 k2 k3 p1 p2) undistorted onto a pinhole "
+        "camera, poses mapped back through applied_transform to the original world, masks (mask_path) kept, the "
+        "splits from train_filenames/test_filenames (val_filenames when there is no test list) or every N-th frame. "
+        "Depth maps and point clouds are not imported.",
+    )
+    p.add_argument("src", metavar="SRC", help="dataset folder holding transforms.json, or the transforms.json file")
+    p.add_argument("--out", required=True, metavar="DIR", default=argparse.SUPPRESS,
+                   help="new scene directory (must not exist or be empty)")
+    p.add_argument("--test-every", type=int, default=8, metavar="N",
+                   help="without split lists in transforms.json: every N-th frame (in file-name order) goes to the "
+                   "test split; 0 puts all in train")
+    p.add_argument("--scale", type=float, default=1.0, help="metres per dataset unit (multiplies camera positions)")
+    p.add_argument("--skip-missing", action="store_true",
+                   help="leave out frames whose image file is missing (with a warning) instead of refusing")
+    p.add_argument("--object", default=argparse.SUPPRESS,
+                   help="object name recorded in scene.json (when omitted: the dataset folder's name)")
+    p.set_defaults(func=_import_nerfstudio)
+
+    p = cli.command(
         "inspect",
         help="summarise a scene directory and list every problem in it",
         description="Validate a scene directory and print frames per split, touches per grasp and finger, the "
@@ -82,6 +105,15 @@ def _import_colmap(args) -> int:
 
     import_colmap(args.src, args.images, args.out, test_every=args.test_every, scale=args.scale,
                   object_name=getattr(args, "object", None))
+    return run_inspect(args.out)
+
+
+def _import_nerfstudio(args) -> int:
+    from .inspect import run_inspect
+    from .nerfstudio import import_nerfstudio
+
+    import_nerfstudio(args.src, args.out, test_every=args.test_every, scale=args.scale, skip_missing=args.skip_missing,
+                      object_name=getattr(args, "object", None))
     return run_inspect(args.out)
 
 

@@ -44,7 +44,8 @@ def copy_scene(src: Scene | str | os.PathLike, dst: str | os.PathLike, *, touche
     with removed_on_failure(dst), SceneWriter.create(dst, intrinsics, meta or scene.meta, sensor) as writer:
         for frame in tqdm(scene.frames, desc="copy frames", unit="frame", disable=not progress):
             image = np.rint(scene.load_image(frame) * 255).astype(np.uint8)
-            writer.add_frame(image, frame.T_world_cam, frame.split, scene.gt_depth(frame), frame.intrinsics)
+            writer.add_frame(image, frame.T_world_cam, frame.split, scene.gt_depth(frame), frame.intrinsics,
+                             mask=scene.load_mask(frame))
         for touch in touches:
             writer.add_touch(scene.load_touch_depth(touch), touch.T_world_sensor, touch.grasp, touch.finger)
         if gt_mesh is not None:

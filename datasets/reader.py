@@ -26,6 +26,7 @@ from tacsplat.types import CameraIntrinsics
 
 from .records import (
     FORMAT_NAME,
+    as_size,
     FORMAT_VERSION,
     GT_DEPTH_LIMIT,
     SOURCES,
@@ -43,6 +44,10 @@ from .writer import JOURNAL, journaled_counts
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+# nerfstudio keys a scene never holds: its poses are in the world frame, in metres, and what it does not import
+# (depth maps, point clouds) it leaves out rather than keep unread
+_FOREIGN_KEYS = ("applied_transform", "applied_scale", "ply_file_path")
+_FOREIGN_FRAME_KEYS = ("depth_file_path",)
 
 
 class _Problems:
@@ -132,20 +137,23 @@ def load_depth_npz(path: Path, shape: tuple[int, int] | None, problems: _Problem
     return depth.astype(np.float32, copy=False)
 
 
-def _check_image(path: Path, intr: CameraIntrinsics, index: Path, field: str, problems: _Problems) -> bool:
-    """Header and chunk checksums of an image file (no full decode): exists, intact, RGB, size w x h."""
+def _check_image(path: Path, intr: CameraIntrinsics, index: Path, field: str, problems: _Problems,
+                 mode: str = "RGB") -> bool:
+    """Header and chunk checksums of an image file (no full decode): exists, intact, ``mode`` (RGB, or L for a
+    mask), size w x h."""
     if not path.is_file():
-        problems.report(index, field, f"image file {path.name} is missing")
+        problems.report(index, field, f"{'image' if mode == 'RGB' else 'mask'} file {path.name} is missing")
         return False
     try:
         with Image.open(path) as img:
-            size, mode = img.size, img.mode
+            size, actual_mode = img.size, img.mode
             img.verify()
     except Exception as exc:  # PIL raises many types for damaged bytes (OSError, SyntaxError, struct.error, ...)
         problems.report(path, field, f"corrupt or truncated image: {_first_line(exc)}")
         return False
-    if mode != "RGB":
-        problems.report(path, field, f"expected an 8-bit RGB image, got PIL mode {mode!r}")
+    if actual_mode != mode:
+        what = "RGB image" if mode == "RGB" else "greyscale mask"
+        problems.report(path, field, f"expected an 8-bit {what}, got PIL mode {actual_mode!r}")
         return False
     if size != (intr.width, intr.height):
         problems.report(path, field, f"image is {size[0]}x{size[1]} but the camera says w x h = {intr.width}x{intr.height}")
@@ -166,7 +174,7 @@ def _intrinsics(frame: dict, top: dict, index: Path, field: str, problems: _Prob
         problems.report(index, f"{field}.{problem[0]}", problem[1])
         return None
     K = np.array([[values["fl_x"], 0, values["cx"]], [0, values["fl_y"], values["cy"]], [0, 0, 1]], dtype=np.float64)
-    return CameraIntrinsics(K=K, width=values["w"], height=values["h"])
+    return CameraIntrinsics(K=K, width=as_size(values["w"]), height=as_size(values["h"]))
 
 
 @dataclass
@@ -230,6 +238,17 @@ class Scene:
             raise SceneFormatError(path, f"frame {frame.id}", f"image is {bgr.shape[1]}x{bgr.shape[0]}, expected "
                                    f"{frame.intrinsics.width}x{frame.intrinsics.height}")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+
+    def load_mask(self, frame: Frame) -> np.ndarray | None:
+        """The frame's mask as bool [H, W] (True = use the pixel), or None when the scene has no masks."""
+        if frame.mask_path is None:
+            return None
+        path = self.path / frame.mask_path
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        if mask is None or mask.shape != (frame.intrinsics.height, frame.intrinsics.width):
+            raise SceneFormatError(path, f"frame {frame.id}", "missing or unreadable mask, or not "
+                                   f"{frame.intrinsics.width}x{frame.intrinsics.height}")
+        return mask > 0
 
     def load_touch_depth(self, touch: Touch) -> np.ndarray:
         """The touch's indentation map, float32 metres [h, w] (0 = no contact)."""
@@ -306,9 +325,25 @@ def check_scene(path, check_files: bool = True) -> tuple[Scene | None, list[Scen
     return scene, problems.errors
 
 
+def _is_foreign_dataset(path: Path) -> bool:
+    """A transforms.json with frames but neither scene.json nor a journal: a dataset another tool wrote (a scene
+    whose creation was cut short has no frames yet)."""
+    if (path / "scene.json").exists() or (path / JOURNAL).exists() or not (path / "transforms.json").is_file():
+        return False
+    try:
+        data = json.loads((path / "transforms.json").read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return False
+    return isinstance(data, dict) and isinstance(data.get("frames"), list) and len(data["frames"]) > 0
+
+
 def _read_scene(path: Path, problems: _Problems, check_files: bool) -> tuple[Scene | None, _Problems]:
     if not path.is_dir():
         problems.report(path, None, "scene directory does not exist")
+        return None, problems
+    if _is_foreign_dataset(path):
+        problems.report(path, None, "a nerfstudio or instant-ngp dataset (transforms.json with frames, no scene.json), "
+                        f"not a tacsplat scene: import it first with `tacsplat import nerfstudio {path} --out SCENE`")
         return None, problems
     meta, version, gt = _read_scene_json(path, problems)
     frames, declared_ids = _read_frames(path, problems, check_files)
@@ -388,6 +423,10 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
     for key in _DISTORTION_KEYS:
         if data.get(key, 0.0) != 0.0:
             problems.report(index, key, f"images must be undistorted, but {key} = {data[key]!r}")
+    for key in _FOREIGN_KEYS:
+        if key in data:
+            problems.report(index, key, "not part of a tacsplat scene (poses are in the world frame, in metres); "
+                            "import nerfstudio data with `tacsplat import nerfstudio`")
     raw_frames = data.get("frames")
     if not isinstance(raw_frames, list):
         problems.report(index, "frames", f"expected a list, got {type(raw_frames).__name__}")
@@ -420,14 +459,30 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
                             f"(also frames[{seen_files[raw['file_path']]}])")
             continue
         seen_files[raw["file_path"]] = i
+        foreign = [key for key in _FOREIGN_FRAME_KEYS if key in raw]
+        if foreign:
+            problems.report(index, f"{field}.{foreign[0]}", "not part of a tacsplat scene; import nerfstudio data "
+                            "with `tacsplat import nerfstudio`")
+            continue
+        mask_path = None
+        if raw.get("mask_path") is not None:
+            mask_path = _relative_file(path, raw["mask_path"], index, f"{field}.mask_path", problems)
+            if mask_path is None:
+                continue
         T_gl = _pose(raw.get("transform_matrix"), index, f"{field}.transform_matrix", problems)
         intr = _intrinsics(raw, data, index, field, problems)
         if T_gl is None or intr is None:
             continue
         if check_files and not _check_image(image_path, intr, index, f"{field}.file_path", problems):
             continue
+        if check_files and mask_path and not _check_image(mask_path, intr, index, f"{field}.mask_path", problems, "L"):
+            continue
         frames.append(Frame(id=fid, file_path=raw["file_path"], T_world_cam=opengl_to_opencv(T_gl), split=split,
-                            intrinsics=intr))
+                            intrinsics=intr, mask_path=raw.get("mask_path")))
+    masked = sum(f.mask_path is not None for f in frames)
+    if 0 < masked < len(frames):
+        problems.report(index, "frames", f"{masked} of {len(frames)} frames have a mask_path: a scene has masks on "
+                        "every frame or on none (nerfstudio refuses anything else)")
     return frames, set(seen_ids)
 
 

@@ -45,11 +45,19 @@ def is_size(x) -> bool:
     return not isinstance(x, bool) and isinstance(x, (int, np.integer)) and 1 <= x <= MAX_IMAGE_SIDE
 
 
+def as_size(x) -> int | None:
+    """An image side as nerfstudio (``1080``) or instant-ngp (``1080.0``) writes it, as an int; None when it is
+    no whole positive number up to MAX_IMAGE_SIDE."""
+    if is_finite_number(x) and float(x).is_integer() and is_size(int(x)):
+        return int(x)
+    return None
+
+
 def camera_problem(fx, fy, cx, cy, width, height) -> tuple[str, str] | None:
     """``(key, why)`` for intrinsics (nerfstudio keys) no pinhole camera has, or None."""
     for key, value in (("w", width), ("h", height)):
-        if not is_size(value):
-            return key, f"expected a positive integer up to {MAX_IMAGE_SIDE}, got {value!r}"
+        if as_size(value) is None:
+            return key, f"expected a positive integer up to {MAX_IMAGE_SIDE} (1080 or 1080.0), got {value!r}"
     lo, hi = FIELD_OF_VIEW_DEG
     for key, f, side in (("fl_x", fx, width), ("fl_y", fy, height)):
         if not is_finite_number(f) or f <= 0:
@@ -119,13 +127,15 @@ def intrinsics_equal(a: CameraIntrinsics, b: CameraIntrinsics) -> bool:
 
 @dataclass(frozen=True, eq=False)
 class Frame:
-    """One camera view: ``file_path`` relative to the scene directory, OpenCV camera-to-world pose."""
+    """One camera view: ``file_path`` relative to the scene directory, OpenCV camera-to-world pose, and
+    optionally ``mask_path``, a mask of the pixels to use (nerfstudio's per-frame ``mask_path``)."""
 
     id: int
     file_path: str
     T_world_cam: np.ndarray  # [4, 4] float64, OpenCV camera-to-world
     split: str
     intrinsics: CameraIntrinsics
+    mask_path: str | None = None  # greyscale PNG, 255 = use the pixel, 0 = ignore it
 
     def __post_init__(self):
         object.__setattr__(self, "T_world_cam", _frozen_pose(self.T_world_cam, f"frame {self.id} T_world_cam"))
@@ -134,7 +144,8 @@ class Frame:
         if not isinstance(other, Frame):
             return NotImplemented
         return (
-            (self.id, self.file_path, self.split) == (other.id, other.file_path, other.split)
+            (self.id, self.file_path, self.split, self.mask_path)
+            == (other.id, other.file_path, other.split, other.mask_path)
             and np.array_equal(self.T_world_cam, other.T_world_cam)
             and intrinsics_equal(self.intrinsics, other.intrinsics)
         )
@@ -266,14 +277,17 @@ def meta_from_json(d: dict) -> SceneMeta:
 
 
 def frame_to_json(frame: Frame) -> dict:
-    """The writer's journal form of a frame (OpenCV pose, full intrinsics)."""
-    return {
+    """The writer's journal form of a frame (OpenCV pose, full intrinsics, the mask if any)."""
+    entry = {
         "id": frame.id,
         "file_path": frame.file_path,
         "split": frame.split,
         "T_world_cam": frame.T_world_cam.tolist(),
         "intrinsics": intrinsics_to_json(frame.intrinsics),
     }
+    if frame.mask_path is not None:
+        entry["mask_path"] = frame.mask_path
+    return entry
 
 
 def frame_from_json(d: dict) -> Frame:
@@ -283,17 +297,20 @@ def frame_from_json(d: dict) -> Frame:
         T_world_cam=np.asarray(d["T_world_cam"], dtype=np.float64),
         split=d["split"],
         intrinsics=intrinsics_from_json(d["intrinsics"]),
+        mask_path=d.get("mask_path"),
     )
 
 
 def frame_to_nerfstudio(frame: Frame, with_intrinsics: bool) -> dict:
-    """A ``transforms.json`` frame entry: OpenGL camera-to-world ``transform_matrix``."""
+    """A ``transforms.json`` frame entry: OpenGL camera-to-world ``transform_matrix`` (and ``mask_path``)."""
     entry = {
         "id": frame.id,
         "file_path": frame.file_path,
         "transform_matrix": opencv_to_opengl(frame.T_world_cam).tolist(),
         "split": frame.split,
     }
+    if frame.mask_path is not None:
+        entry["mask_path"] = frame.mask_path
     if with_intrinsics:
         entry.update(intrinsics_to_json(frame.intrinsics))
     return entry

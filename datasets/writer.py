@@ -106,8 +106,8 @@ def atomic_write_json(path: Path, obj) -> None:
 
 
 def encode_png(image: np.ndarray) -> bytes:
-    """PNG bytes of an RGB uint8 image [H, W, 3]."""
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    """PNG bytes of an RGB uint8 image [H, W, 3] or a greyscale one [H, W]."""
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image)
     if not ok:
         raise InvalidInputError("image: OpenCV could not encode it as PNG")
     return buf.tobytes()
@@ -266,12 +266,16 @@ class SceneWriter:
     def _remove_leftovers(self) -> int:
         """Delete temporary files and record files no journal record refers to (a crash's in-flight record,
         an undo cut short); returns how many."""
-        live = {f.file_path for f in self.frames} | {t.depth_file for t in self.touches} | set(self._gt_depth.values())
+        live = ({f.file_path for f in self.frames} | {f.mask_path for f in self.frames}
+                | {t.depth_file for t in self.touches} | set(self._gt_depth.values()))
         count = 0
-        for sub in ("", "images", "touches", "gt", "gt/depth"):
+        for sub in ("", "images", "masks", "touches", "gt", "gt/depth"):
+            if not (self.path / sub).is_dir():
+                continue
             for p in (self.path / sub).iterdir():
                 rel = p.relative_to(self.path).as_posix()
-                orphan = sub in ("images", "touches", "gt/depth") and _RECORD_FILE.fullmatch(p.name) and rel not in live
+                orphan = (sub in ("images", "masks", "touches", "gt/depth") and _RECORD_FILE.fullmatch(p.name)
+                          and rel not in live)
                 if p.is_file() and (is_temp_file(p) or orphan):
                     p.unlink()
                     count += 1
@@ -376,11 +380,14 @@ class SceneWriter:
     # --- records ------------------------------------------------------------------------------
 
     def add_frame(self, image: np.ndarray, T_world_cam: np.ndarray, split: str = "train",
-                  gt_depth: np.ndarray | None = None, intrinsics: CameraIntrinsics | None = None) -> Frame:
+                  gt_depth: np.ndarray | None = None, intrinsics: CameraIntrinsics | None = None,
+                  mask: np.ndarray | None = None) -> Frame:
         """Append a view: ``image`` [H, W, 3] uint8 RGB, ``T_world_cam`` [4, 4] OpenCV camera-to-world.
 
         ``gt_depth`` [H, W] float32 metres (0 = no surface) goes to ``gt/`` for
-        evaluation only. ``intrinsics`` defaults to the scene's.
+        evaluation only. ``intrinsics`` defaults to the scene's. ``mask`` [H, W]
+        bool (True = use the pixel) goes to ``masks/``; a scene has a mask on
+        every frame or on none (as nerfstudio reads them).
         """
         intr = self.intrinsics if intrinsics is None else intrinsics
         if not isinstance(intr, CameraIntrinsics):
@@ -396,9 +403,22 @@ class SceneWriter:
             raise InvalidInputError(f"split: expected one of {SPLITS}, got {split!r}")
         if gt_depth is not None:
             gt_depth = _check_depth(gt_depth, (intr.height, intr.width), "gt_depth", GT_DEPTH_LIMIT)
+        if mask is not None:
+            mask = np.asarray(mask)
+            if mask.dtype != np.bool_ or mask.shape != (intr.height, intr.width):
+                raise InvalidInputError(f"mask: expected bool {(intr.height, intr.width)} from the intrinsics, got "
+                                        f"{mask.dtype} {mask.shape}")
+        if self.frames and (self.frames[0].mask_path is None) != (mask is None):
+            raise InvalidInputError(f"mask: the scene has masks on every frame or on none; frame 0 has "
+                                    f"{'none' if self.frames[0].mask_path is None else 'one'}")
         fid = self.num_frames
-        frame = Frame(id=fid, file_path=f"images/{fid:06d}.png", T_world_cam=pose, split=split, intrinsics=intr)
+        mask_path = None if mask is None else f"masks/{fid:06d}.png"
+        frame = Frame(id=fid, file_path=f"images/{fid:06d}.png", T_world_cam=pose, split=split, intrinsics=intr,
+                      mask_path=mask_path)
         atomic_write_bytes(self.path / frame.file_path, encode_png(image))
+        if mask_path is not None:
+            (self.path / "masks").mkdir(exist_ok=True)
+            atomic_write_bytes(self.path / mask_path, encode_png(np.where(mask, 255, 0).astype(np.uint8)))
         gt_file = None
         if gt_depth is not None:
             gt_file = f"gt/depth/{fid:06d}.npz"
@@ -461,7 +481,7 @@ class SceneWriter:
         gt_file = self._gt_depth.get(rid) if kind == "frame" else None
         self._record({"op": "remove", "kind": kind, "id": rid},
                      "transforms" if kind == "frame" else "touches", *(["scene"] if gt_file else []))
-        files = [record.file_path, gt_file] if kind == "frame" else [record.depth_file]
+        files = [record.file_path, record.mask_path, gt_file] if kind == "frame" else [record.depth_file]
         for rel in filter(None, files):
             (self.path / rel).unlink(missing_ok=True)
         return record

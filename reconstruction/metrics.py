@@ -32,11 +32,14 @@ def _gaussian_window(size: int, sigma: float, like: torch.Tensor) -> torch.Tenso
     return g / g.sum()
 
 
-def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5,
+             valid: bool = False) -> torch.Tensor:
     """Per-pixel SSIM (Wang et al. 2004; Gaussian window ``window`` x ``window``, ``sigma``) of [B, H, W, C] images.
 
-    Zero padding keeps the map the size of the image, as the 3DGS training loss
-    does; differentiable.
+    ``valid=False`` zero-pads each moment so the map keeps the image size, as the
+    3DGS training loss does; ``valid=True`` keeps only the pixels whose whole
+    window lies inside the image, [B, H - window + 1, W - window + 1, C] (the
+    evaluation protocol). Differentiable.
     """
     _check_images(rendered, target)
     if rendered.ndim == 3:
@@ -47,7 +50,7 @@ def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sig
     g = _gaussian_window(window, sigma, x)
     stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # one separable blur of all five moments
     k = stacked.shape[1]
-    pad = window // 2
+    pad = 0 if valid else window // 2
     blurred = F.conv2d(stacked, g.reshape(1, 1, 1, window).expand(k, 1, 1, window), padding=(0, pad), groups=k)
     blurred = F.conv2d(blurred, g.reshape(1, 1, window, 1).expand(k, 1, window, 1), padding=(pad, 0), groups=k)
     mu_x, mu_y, xx, yy, xy = blurred.split(channels, dim=1)
@@ -60,9 +63,14 @@ def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sig
     return (num / den).permute(0, 2, 3, 1)
 
 
-def ssim(rendered: torch.Tensor, target: torch.Tensor) -> float:
-    """Mean SSIM (11x11 Gaussian window, sigma 1.5) of images in [0, 1]."""
-    return float(ssim_map(rendered.double(), target.double()).mean())
+def ssim(rendered: torch.Tensor, target: torch.Tensor, window: int = 11) -> float:
+    """Mean SSIM of images in [0, 1] over the valid region (``window`` x ``window`` Gaussian window, sigma 1.5,
+    no padding), as pytorch-msssim and the NeRF/3DGS evaluations compute it."""
+    _check_images(rendered, target)
+    height, width = rendered.shape[-3:-1]
+    if min(height, width) < window:
+        raise InvalidInputError(f"ssim: images of {height}x{width} px are smaller than the {window}x{window} window")
+    return float(ssim_map(rendered.double(), target.double(), window=window, valid=True).mean())
 
 
 def depth_to_points(

@@ -25,7 +25,8 @@ from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.gaussians import Gaussians
 
 # A run directory's own files (anything else in it is someone else's and is never deleted).
-RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "progress.csv",
+RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "splat.touch.npy",
+             "splat.touch.npy.tmp", "progress.csv",
              "progress.csv.tmp", "error_vs_time.png", "metrics.json")
 RENDERS = "renders"
 RENDER_FILE = re.compile(r"view_\d{4,}\.png")

@@ -34,9 +34,10 @@ COMMAND_MODULES = (
 )
 
 GROUP_HELP = {
-    "import": "import a dataset (Blender/NeRF-synthetic, COLMAP) into a scene directory",
+    "import": "import a dataset (Blender/NeRF-synthetic, COLMAP, nerfstudio/instant-ngp) into a scene directory",
     "bench": "benchmarks: error and run time, medians and ratios against a reference",
     "calibrate": "calibrate real devices (wrist camera, tactile sensors)",
+    "tactile": "optical tactile sensors: depth maps from images with a calibration",
 }
 
 

@@ -33,7 +33,6 @@ F32 = np.float32
 _HALF = F32(0.5)
 _ONE = F32(1.0)
 _ZERO = F32(0.0)
-_MAX_ALPHA = F32(MAX_ALPHA)
 _ALPHA_MIN = F32(ALPHA_THRESHOLD)
 _T_MIN = F32(TRANSMITTANCE_THRESHOLD)
 _LOG_SLACK = F32(1e-3)  # the pre-test skips exp only when the exponent is clearly past ln(255 o)
@@ -198,7 +197,8 @@ def _pair_capacity(tile_start, tile_gauss, means2d, conics, limits, width, heigh
 
 @nb.njit(parallel=True, cache=True)
 def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
-             width, height, tile_size, tiles_x, tiles_per_cam, depths, out_color, out_trans, out_last, out_median,
+             width, height, tile_size, tiles_x, tiles_per_cam, max_alpha, depths, out_color, out_trans, out_last,
+             out_median,
              tile_pairs, cache_start, vis_cache, pair_start, tile_cached):  # fmt: skip
     """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T, n_contrib and the
     median depth (the depth of the Gaussian at which T first falls below 0.5, else 0).
@@ -250,7 +250,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
                         sigma = _exponent(a, b, c, dx, dy)
                         if sigma >= _ZERO and sigma <= limit:
                             vis = math.exp(-sigma)
-                            alpha = min(_MAX_ALPHA, opac * vis)
+                            alpha = min(max_alpha, opac * vis)
                             if alpha >= _ALPHA_MIN:
                                 next_t = trans[p] * (_ONE - alpha)
                                 if next_t <= _T_MIN:
@@ -282,7 +282,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
 
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
 def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
-              width, height, tile_size, tiles_x, tiles_per_cam, final_trans, last_contrib, v_color, v_alpha,
+              width, height, tile_size, tiles_x, tiles_per_cam, max_alpha, final_trans, last_contrib, v_color, v_alpha,
               vis_cache, pair_start, tile_cached, rows):  # fmt: skip
     """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``.
 
@@ -350,7 +350,7 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                         if sigma < _ZERO or sigma > limit:
                             continue
                         vis = math.exp(-sigma)
-                    alpha = min(_MAX_ALPHA, opac * vis)
+                    alpha = min(max_alpha, opac * vis)
                     if alpha < _ALPHA_MIN:
                         continue
                     ra = _ONE / (_ONE - alpha)
@@ -363,7 +363,7 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                         rows[k, N_GRAD + d] += fac * vcol
                         v_alpha_p += (col * t_p - buf[p, d] * ra) * vcol
                         buf[p, d] += col * fac
-                    if opac * vis <= _MAX_ALPHA:
+                    if opac * vis <= max_alpha:
                         v_sigma = -opac * vis * v_alpha_p
                         s_x += v_sigma * dx
                         s_xx += v_sigma * dx * dx
@@ -442,7 +442,8 @@ class _RasterizeCPU(torch.autograd.Function):
     """Autograd wrapper: forward and backward run the numba kernels above."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size):
+    def forward(ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size,
+                max_alpha):
         n_cams, n, n_ch = colors.shape
         tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
         tiles_per_cam = tiles_x * tiles_y
@@ -474,12 +475,13 @@ class _RasterizeCPU(torch.autograd.Function):
         tile_cached = np.empty(n_cams * tiles_per_cam, np.bool_)
         with nb.parallel_chunksize(_TILE_CHUNK):
             _forward(tile_start, tile_gauss, m2d, con, opa, limits, col, bgs, width, height, tile_size,
-                     tiles_x, tiles_per_cam, dep, out_color.numpy(), out_trans.numpy(), last, out_median.numpy()[..., 0],
+                     tiles_x, tiles_per_cam, F32(max_alpha), dep, out_color.numpy(), out_trans.numpy(), last,
+                     out_median.numpy()[..., 0],
                      tile_pairs, cache_start, vis_cache, pair_start, tile_cached)  # fmt: skip
         stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
 
         ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, limits, col, bgs,
-                           width, height, tile_size, tiles_x, tiles_per_cam)  # fmt: skip
+                           width, height, tile_size, tiles_x, tiles_per_cam, F32(max_alpha))  # fmt: skip
         ctx.binning = (gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached)
         ctx.shapes = (n_cams, n, n_ch)
         ctx.has_background = backgrounds is not None
@@ -509,7 +511,7 @@ class _RasterizeCPU(torch.autograd.Function):
         v_backgrounds = None
         if ctx.has_background and ctx.needs_input_grad[4]:
             v_backgrounds = (v_color * out_trans.unsqueeze(-1)).sum(dim=(1, 2))
-        return v_means2d, v_conics, v_colors, v_opacities, v_backgrounds, None, None, None, None, None
+        return v_means2d, v_conics, v_colors, v_opacities, v_backgrounds, None, None, None, None, None, None
 
 
 def rasterize_to_pixels_cpu(
@@ -523,6 +525,7 @@ def rasterize_to_pixels_cpu(
     height: int,
     tile_size: int = 16,
     backgrounds: Tensor | None = None,  # [C, D]
+    max_alpha: float = MAX_ALPHA,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Composite projected Gaussians into images on the CPU.
 
@@ -531,5 +534,5 @@ def rasterize_to_pixels_cpu(
     (forward only: the ``depths`` value at which the transmittance first falls below 0.5, 0 where it never does)).
     """
     return _RasterizeCPU.apply(
-        means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size
+        means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size, max_alpha
     )

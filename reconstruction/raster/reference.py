@@ -21,7 +21,7 @@ from torch import Tensor
 from tacsplat.reconstruction.gaussians import quats_to_rotmats
 
 ALPHA_THRESHOLD = 1.0 / 255.0  # a Gaussian with alpha under this is skipped at a pixel
-MAX_ALPHA = 0.99  # alpha clamp
+MAX_ALPHA = 0.999  # default alpha clamp: gsplat's (its CUDA kernels fix it), so every backend renders alike
 TRANSMITTANCE_THRESHOLD = 1e-4  # a pixel stops once its transmittance would fall to this
 GAUSSIAN_EXTEND = 3.33  # bounding box half-size, in standard deviations per axis
 FOV_CLAMP = 1.3  # the EWA Jacobian is evaluated at x/z, y/z clamped to 1.3x the half field of view
@@ -168,13 +168,14 @@ def _composite_tile(
     colors: Tensor,  # [M, D]
     opacities: Tensor,  # [M]
     depths: Tensor,  # [M] (no gradient)
+    max_alpha: float = MAX_ALPHA,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Front-to-back compositing of M sorted Gaussians at P pixels -> (colour [P, D], transmittance [P],
     median depth [P]: the depth at which the transmittance first falls below 0.5, 0 if it never does)."""
     dx = means2d[None, :, 0] - px[:, None]  # [P, M]
     dy = means2d[None, :, 1] - py[:, None]
     sigma = 0.5 * (conics[None, :, 0] * dx * dx + conics[None, :, 2] * dy * dy) + conics[None, :, 1] * dx * dy
-    alpha = torch.clamp(opacities[None, :] * torch.exp(-sigma), max=MAX_ALPHA)
+    alpha = torch.clamp(opacities[None, :] * torch.exp(-sigma), max=max_alpha)
     alpha = torch.where((sigma >= 0) & (alpha >= ALPHA_THRESHOLD), alpha, torch.zeros_like(alpha))
     # A pixel stops before the Gaussian that would bring its transmittance to <= 1e-4.
     with torch.no_grad():
@@ -200,6 +201,7 @@ def rasterize_to_pixels_torch(
     height: int,
     tile_size: int = 16,
     backgrounds: Tensor | None = None,  # [C, D]
+    max_alpha: float = MAX_ALPHA,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Composite projected Gaussians into images -> (colors [C, H, W, D], alphas [C, H, W, 1], median [C, H, W, 1]).
 
@@ -229,6 +231,7 @@ def rasterize_to_pixels_torch(
                 colors[cam, ids],
                 opacities[cam, ids],
                 depths[cam, ids].detach(),
+                max_alpha,
             )
             pix_index.append(gy * width + gx)
             pix_color.append(color)

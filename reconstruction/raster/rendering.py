@@ -16,6 +16,7 @@ tacsplat uses, so that gsplat itself is a drop-in backend on CUDA:
 from __future__ import annotations
 
 import importlib.util
+import math
 import numbers
 from typing import Literal
 
@@ -23,7 +24,12 @@ import torch
 from torch import Tensor
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction.raster.reference import Projection, project_gaussians, rasterize_to_pixels_torch
+from tacsplat.reconstruction.raster.reference import (
+    MAX_ALPHA,
+    Projection,
+    project_gaussians,
+    rasterize_to_pixels_torch,
+)
 from tacsplat.reconstruction.raster.spherical_harmonics import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "MD", "RGB+D", "RGB+ED", "RGB+MD")
@@ -102,6 +108,7 @@ def rasterization(
     absgrad: bool = False,
     camera_model: str = "pinhole",
     backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto",
+    max_alpha: float = MAX_ALPHA,  # alpha clamp; gsplat's kernels fix it at 0.999, the default everywhere
 ) -> tuple[Tensor, Tensor, dict]:
     """Render C images of N Gaussians -> (render_colors [C, H, W, X], render_alphas [C, H, W, 1], meta).
 
@@ -167,6 +174,8 @@ def rasterization(
         raise InvalidInputError(f"need 0 < near_plane < far_plane, got {near_plane} and {far_plane}")
     if not (isinstance(tile_size, int) and tile_size >= 1):
         raise InvalidInputError(f"tile_size must be a positive int, got {tile_size!r}")
+    if not 0.0 < max_alpha < 1.0:
+        raise InvalidInputError(f"max_alpha must be in (0, 1), got {max_alpha!r}")
     chosen = _choose_backend(backend, means)
 
     if chosen == "gsplat" and render_mode in ("MD", "RGB+MD"):  # gsplat has no median depth: the CPU backend's
@@ -175,12 +184,15 @@ def rasterization(
         out_colors, out_alphas, meta = rasterization(
             *cpu, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
             sh_degree=sh_degree, tile_size=tile_size, backgrounds=bgs, render_mode=render_mode,
-            rasterize_mode=rasterize_mode, backend="cpu",
+            rasterize_mode=rasterize_mode, backend="cpu", max_alpha=max_alpha,
         )  # fmt: skip
         return out_colors.to(means.device, dtype), out_alphas.to(means.device, dtype), meta
     if chosen == "gsplat":
         from tacsplat.reconstruction.raster.gsplat_backend import rasterization_gsplat
 
+        if max_alpha != MAX_ALPHA:
+            raise InvalidInputError(f"backend='gsplat' clamps alpha at {MAX_ALPHA} (fixed in its kernels), got "
+                                    f"max_alpha={max_alpha}")
         return rasterization_gsplat(
             means, quats, scales, opacities, colors, viewmats, Ks, width, height,
             near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
@@ -234,14 +246,14 @@ def rasterization(
 
         render_colors, render_alphas, stats, median = rasterize_to_pixels_cpu(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
-            width, height, tile_size, bg,
+            width, height, tile_size, bg, max_alpha,
         )  # fmt: skip
         extra_meta = {"n_intersections": int(stats[0]), "n_pairs": int(stats[1])}
     else:
         extra_meta = {}
         render_colors, render_alphas, median = rasterize_to_pixels_torch(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
-            width, height, tile_size, bg,
+            width, height, tile_size, bg, max_alpha,
         )  # fmt: skip
     if render_mode in ("ED", "RGB+ED"):
         expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
@@ -259,6 +271,10 @@ def rasterization(
         "height": height,
         "tile_size": tile_size,
         "n_cameras": n_cams,
+        "tile_width": math.ceil(width / tile_size),  # gsplat's keys that its strategies read
+        "tile_height": math.ceil(height / tile_size),
+        "camera_ids": None,  # (packed mode only, as in gsplat)
+        "gaussian_ids": None,
         "backend": chosen,
         **extra_meta,
     }

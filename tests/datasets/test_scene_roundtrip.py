@@ -183,3 +183,44 @@ def test_one_writer_at_a_time_and_no_overwrite(scene_dir, h):
     with pytest.raises(InvalidInputError, match="SceneWriter.resume"):
         SceneWriter.create(scene_dir, h.intrinsics(), SceneMeta("sim", "x"))
     SceneWriter.resume(scene_dir).close()  # the lock is released on close
+
+
+def _masks(i: int, h) -> np.ndarray:
+    mask = np.zeros((h.HEIGHT, h.WIDTH), bool)
+    mask[2 : 6 + i, 3:12] = True
+    return mask
+
+
+def test_masks_are_written_read_back_and_exported_for_nerfstudio(tmp_path, h):
+    path = tmp_path / "s"
+    with SceneWriter.create(path, h.intrinsics(), SceneMeta("real", "cup")) as w:
+        for i in range(3):
+            w.add_frame(h.frame_image(i), h.ring_pose(i), split="test" if i == 1 else "train", mask=_masks(i, h))
+        with pytest.raises(InvalidInputError, match="mask: expected bool"):
+            w.add_frame(h.frame_image(3), h.ring_pose(3), mask=_masks(0, h).astype(np.uint8))
+        with pytest.raises(InvalidInputError, match="masks on every frame or on none"):
+            w.add_frame(h.frame_image(3), h.ring_pose(3))
+        last = w.remove_last()
+        assert not (path / last.mask_path).exists()  # the undo takes the mask with it
+        w.add_frame(h.frame_image(2), h.ring_pose(2), mask=_masks(2, h))
+    scene = Scene.load(path)
+    assert [f.mask_path for f in scene.frames] == ["masks/000000.png", "masks/000001.png", "masks/000002.png"]
+    for f in scene.frames:
+        np.testing.assert_array_equal(scene.load_mask(f), _masks(f.id, h))
+    data = json.loads((path / "transforms.json").read_text())
+    assert [f["mask_path"] for f in data["frames"]] == ["masks/000000.png", "masks/000001.png", "masks/000002.png"]
+    with SceneWriter.resume(path) as w:  # the journal keeps them
+        assert [f.mask_path for f in w.frames] == [f.mask_path for f in scene.frames]
+    unmasked = h.build_scene(tmp_path / "plain", n_frames=2, n_touches=0, sensor=None)
+    assert Scene.load(unmasked).load_mask(Scene.load(unmasked).frames[0]) is None
+    with SceneWriter.resume(unmasked) as w, pytest.raises(InvalidInputError, match="frame 0 has none"):
+        w.add_frame(h.frame_image(2), h.ring_pose(2), mask=_masks(0, h))
+
+
+def test_an_orphan_mask_of_a_crashed_record_is_removed_on_resume(tmp_path, h):
+    path = tmp_path / "s"
+    with SceneWriter.create(path, h.intrinsics(), SceneMeta("real", "cup")) as w:
+        w.add_frame(h.frame_image(0), h.ring_pose(0), mask=_masks(0, h))
+    (path / "masks/000001.png").write_bytes((path / "masks/000000.png").read_bytes())  # written, never journaled
+    SceneWriter.resume(path).close()
+    assert sorted(p.name for p in (path / "masks").iterdir()) == ["000000.png"]

@@ -7,6 +7,7 @@ import json
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from tacsplat.datasets import Scene, check_scene
 from tacsplat.errors import SceneFormatError
@@ -47,6 +48,18 @@ def _save_npz(path, depth):
 def _truncate(path, keep=0.5):
     data = path.read_bytes()
     path.write_bytes(data[: int(len(data) * keep)])
+
+
+def _masks_on_frames(*ids, size=(12, 16), channels=1):
+    """Give frames ``ids`` a mask file and a mask_path."""
+    def corrupt(s):
+        (s / "masks").mkdir()
+        for i in ids:
+            shape = size if channels == 1 else (*size, channels)
+            Image.fromarray(np.full(shape, 255, np.uint8)).save(s / f"masks/{i:06d}.png")
+        _edit_json(s / "transforms.json", lambda d: [f.update(mask_path=f"masks/{f['id']:06d}.png")
+                                                     for f in d["frames"] if f["id"] in ids])
+    return corrupt
 
 
 def _nan_patch(shape):
@@ -145,6 +158,22 @@ CASES = {
                                   "000001.npz", "gt depth of frame 1", "deeper than any scene"),
     "unknown scene format version": (lambda s: _edit_json(s / "scene.json", lambda d: d.update(format_version="1")),
                                      "scene.json", "format_version", "expected 1"),
+    "image width that is not whole": (_transforms(lambda d: d.update(w=16.5)),
+                                      "transforms.json", "frames[0].w", "positive integer up to 65536 (1080 or 1080.0), got 16.5"),
+    # what nerfstudio writes and a scene never holds: refused rather than silently ignored
+    "nerfstudio's applied_transform": (_transforms(lambda d: d.update(applied_transform=[[1, 0, 0, 0], [0, 0, 1, 0],
+                                                                                         [0, -1, 0, 0]])),
+                                       "transforms.json", "applied_transform", "tacsplat import nerfstudio"),
+    "a frame's depth_file_path": (_transforms(lambda d: d["frames"][2].update(depth_file_path="depths/x.png")),
+                                  "transforms.json", "frames[2].depth_file_path", "not part of a tacsplat scene"),
+    "missing mask": (_transforms(lambda d: [f.update(mask_path=f"masks/{f['id']:06d}.png") for f in d["frames"]]),
+                     "transforms.json", "frames[0].mask_path", "mask file 000000.png is missing"),
+    "mask on some frames only": (_masks_on_frames(0, 3),
+                                 "transforms.json", "frames", "2 of 4 frames have a mask_path"),
+    "mask of another size": (_masks_on_frames(0, 1, 2, 3, size=(12, 15)),
+                             "000000.png", "frames[0].mask_path", "image is 15x12 but the camera says w x h = 16x12"),
+    "mask in colour": (_masks_on_frames(0, 1, 2, 3, channels=3),
+                       "000000.png", "frames[0].mask_path", "expected an 8-bit greyscale mask, got PIL mode 'RGB'"),
 }
 
 
@@ -181,3 +210,16 @@ def test_a_scene_without_frames_is_invalid(tmp_path, h):
         Scene.load(path)
     assert info.value.path == path / "transforms.json" and info.value.field == "frames"
     assert [str(p) for p in check_scene(path)[1]] == [str(info.value)]
+
+
+def test_whole_float_image_sizes_are_read_as_instant_ngp_writes_them(scene_dir):
+    _edit_json(scene_dir / "transforms.json", lambda d: d.update(w=16.0, h=12.0))
+    scene = Scene.load(scene_dir)
+    assert {(f.intrinsics.width, f.intrinsics.height) for f in scene.frames} == {(16, 12)}
+    assert all(isinstance(f.intrinsics.width, int) for f in scene.frames)
+
+
+def test_a_scene_with_masks_on_every_frame_is_valid(scene_dir):
+    _masks_on_frames(0, 1, 2, 3)(scene_dir)
+    scene = Scene.load(scene_dir)
+    assert all(scene.load_mask(f).all() for f in scene.frames)

@@ -244,7 +244,7 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     limits = (np.log(np.float32(255.0) * opa) + rc._LOG_SLACK).astype(np.float32)
     colors = np.random.default_rng(0).random((n, 3), dtype=np.float32)
     args = (tile_start, tile_gauss, m2d, con, opa, limits, colors, np.zeros((1, 3), np.float32),
-            width, height, 16, 3, n_tiles)  # fmt: skip
+            width, height, 16, 3, n_tiles, np.float32(rc.MAX_ALPHA))  # fmt: skip
     capacity = np.empty(n_isect, np.int64)
     rc._pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, 16, 3, n_tiles, capacity)
     cache_start = np.concatenate([[0], np.cumsum(capacity)])

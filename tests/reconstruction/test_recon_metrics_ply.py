@@ -92,7 +92,7 @@ def test_ply_has_the_standard_3dgs_layout(tmp_path):
     vertex = PlyData.read(str(save_ply(g, tmp_path / "s.ply")))["vertex"]
     names = [p.name for p in vertex.properties]
     expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3", "from_touch"])
+                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
     assert names == expected
     # higher bands channel-major: f_rest_0..14 are red, 15..29 green, 30..44 blue
     assert vertex["f_rest_15"][1] == pytest.approx(g.params["shN"][1, 0, 1].item())

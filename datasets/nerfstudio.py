@@ -1,0 +1,351 @@
+"""Import a nerfstudio or instant-ngp dataset (``transforms.json`` beside its images) into a scene directory.
+
+It reads what ``ns-process-data`` and instant-ngp's ``colmap2nerf.py`` write, the way nerfstudio's own data
+parser reads it:
+
+* Intrinsics ``fl_x fl_y cx cy w h`` at the top level (shared; a top-level key wins, as in nerfstudio) or per
+  frame. ``w`` and ``h`` may be whole floats (instant-ngp writes ``1080.0``). Without ``fl_x``, instant-ngp's
+  ``camera_angle_x`` (and ``camera_angle_y``) give the focal lengths; ``cx`` and ``cy`` default to the centre,
+  ``w`` and ``h`` to the image's size.
+* ``camera_model``: a perspective model (``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL``,
+  ``OPENCV``; none given means perspective) with ``k1 k2 k3 p1 p2``. Distorted images (and their masks) are
+  undistorted with OpenCV onto a pinhole camera of the same size whose every pixel sees the scene
+  (``cv2.getOptimalNewCameraMatrix`` with alpha 0): that camera is the frame's K, since the scene format holds
+  undistorted images. Fisheye and spherical models, and ``k4`` (an r^8 term OpenCV's model lacks), are refused.
+* ``transform_matrix``, OpenGL camera-to-world, goes through :func:`~tacsplat.datasets.blender.pose_from_opengl`.
+  ns-process-data re-orients the COLMAP world (z up) and records that as ``applied_transform`` (and a scale as
+  ``applied_scale``): the poses are mapped back to the original world, as nerfstudio's
+  ``transform_poses_to_original_space`` does (translation / applied_scale, then the inverse of
+  applied_transform), so a scene imported from ns-process-data shares the COLMAP model's frame. ``scale``
+  (metres per dataset unit) then multiplies positions.
+* Splits: ``train_filenames`` and ``test_filenames`` (``val_filenames`` when there is no test list) decide them;
+  frames in no list are left out. Without lists, every ``test_every``-th frame in file-name order (nerfstudio's
+  ``interval`` evaluation mode, the 3DGS hold-out) is a test view; 0 puts every frame in train.
+* ``mask_path`` (non-zero = use the pixel; on every frame or on none, as nerfstudio requires) becomes the
+  scene's per-frame mask (``masks/``, ``mask_path`` in the scene's ``transforms.json``).
+* Frames whose image is missing are one error listing them, or with ``skip_missing`` are left out with a
+  warning (and listed in scene.json).
+* ``depth_file_path`` and ``ply_file_path`` are not imported (training reads neither): a warning, and
+  ``extra.not_imported`` in scene.json.
+
+Images are stored as RGB PNG (an alpha channel is dropped, as the COLMAP importer does).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from PIL import Image
+from tqdm import tqdm
+
+from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_problem
+from tacsplat.types import CameraIntrinsics
+
+from .blender import check_scale, composite, pose_from_opengl, read_rgba
+from .outputs import claim_output_dir
+from .records import SceneMeta, as_size, camera_problem, is_finite_number
+from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+
+log = logging.getLogger(__name__)
+
+PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "PERSPECTIVE")
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order of its radial-tangential coefficients
+SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
+_PIXEL_CENTRE_SHIFT = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # ours (+0.5) -> OpenCV's (0)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A frame's camera as the dataset gives it: pinhole K and OpenCV distortion (k1 k2 p1 p2 k3)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    distortion: tuple[float, float, float, float, float]
+
+
+@dataclass
+class _SourceFrame:
+    position: int  # index in the file's ``frames`` list, for error messages
+    raw: dict
+    name: Path  # file_path, normalised
+    image: Path
+    split: str | None = None
+
+    @property
+    def field(self) -> str:
+        return f"frames[{self.position}]"
+
+
+def _read_index(src: Path) -> tuple[Path, dict]:
+    index = src if src.suffix.lower() == ".json" else src / "transforms.json"
+    if not index.is_file():
+        raise SceneFormatError(index, None, "missing (expected a nerfstudio or instant-ngp dataset: a folder holding "
+                               "transforms.json, or the file itself)")
+    try:
+        data = json.loads(index.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise SceneFormatError(index, None, f"not valid JSON: {exc}") from exc
+    if not isinstance(data, dict):
+        raise SceneFormatError(index, None, f"expected a JSON object, got {type(data).__name__}")
+    if not isinstance(data.get("frames"), list) or not data["frames"]:
+        raise SceneFormatError(index, "frames", "expected a non-empty list")
+    return index, data
+
+
+def _source_frames(index: Path, data: dict) -> list[_SourceFrame]:
+    """The frames in file-name order (nerfstudio's), with their image paths."""
+    frames, seen = [], {}
+    for i, raw in enumerate(data["frames"]):
+        if not isinstance(raw, dict) or not isinstance(raw.get("file_path"), str) or not raw["file_path"]:
+            raise SceneFormatError(index, f"frames[{i}].file_path", "expected an object with a file_path string")
+        name = Path(raw["file_path"])
+        if name in seen:
+            raise SceneFormatError(index, f"frames[{i}].file_path", f"{raw['file_path']!r} again (also frames[{seen[name]}])")
+        seen[name] = i
+        frames.append(_SourceFrame(i, raw, name, index.parent / name))
+    return sorted(frames, key=lambda f: f.name)
+
+
+def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
+    """Splits from the file's lists; False when it has none. A frame in no list keeps split None."""
+    lists = {}
+    for key in SPLIT_LISTS:
+        if key in data:
+            names = data[key]
+            if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+                raise SceneFormatError(index, key, "expected a list of file paths")
+            lists[key] = {Path(n) for n in names}
+    if not lists:
+        return False
+    known = {f.name for f in frames}
+    for key, names in lists.items():
+        unknown = sorted(str(n) for n in names - known)
+        if unknown:
+            raise SceneFormatError(index, key, f"{len(unknown)} file paths are no frame's file_path: "
+                                   + ", ".join(unknown[:5]) + (" ..." if len(unknown) > 5 else ""))
+    train = lists.get("train_filenames", set())
+    test_key = "test_filenames" if "test_filenames" in lists else "val_filenames"
+    test = lists.get(test_key, set())
+    shared = sorted(str(n) for n in train & test)
+    if shared:
+        raise SceneFormatError(index, test_key, f"{', '.join(shared[:5])} also in train_filenames: a frame is a train "
+                               "or a test view, not both")
+    for f in frames:
+        f.split = "train" if f.name in train else "test" if f.name in test else None
+    return True
+
+
+def _number(key: str, frame: _SourceFrame, data: dict, default=None):
+    """A top-level value (it wins, as in nerfstudio), else the frame's, else ``default``; (value, field)."""
+    if key in data:
+        return data[key], key
+    return frame.raw.get(key, default), f"{frame.field}.{key}"
+
+
+def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
+    model, field = _number("camera_model", frame, data, "PERSPECTIVE")
+    if model not in PERSPECTIVE_MODELS:
+        raise SceneFormatError(index, field, f"camera model {model!r} is not supported: only perspective models "
+                               f"({', '.join(PERSPECTIVE_MODELS)}); undistort the images to a pinhole camera first")
+    fisheye, field = _number("is_fisheye", frame, data, False)
+    if fisheye:
+        raise SceneFormatError(index, field, "fisheye cameras are not supported; undistort the images first")
+    sizes = {}
+    for key, axis in (("w", 0), ("h", 1)):
+        value, field = _number(key, frame, data)
+        if value is None:
+            try:
+                with Image.open(frame.image) as img:
+                    value = img.size[axis]
+            except OSError as exc:
+                raise SceneFormatError(frame.image, frame.field, f"unreadable image: {exc}") from exc
+        sizes[key] = as_size(value)
+        if sizes[key] is None:
+            raise SceneFormatError(index, field, f"expected a whole number of pixels (1080 or 1080.0), got {value!r}")
+    w, h = sizes["w"], sizes["h"]
+    focal = {}
+    for key, angle_key, side in (("fl_x", "camera_angle_x", w), ("fl_y", "camera_angle_y", h)):
+        value, _ = _number(key, frame, data)
+        angle, angle_field = _number(angle_key, frame, data)
+        if value is None and angle is not None:
+            if not is_finite_number(angle) or not 0 < angle < np.pi:
+                raise SceneFormatError(index, angle_field, f"expected a field of view in (0, pi) radians, got {angle!r}")
+            value = focal_from_fov(float(angle), side)
+        focal[key] = value
+    if focal["fl_y"] is None:
+        focal["fl_y"] = focal["fl_x"]
+    cx, _ = _number("cx", frame, data, w / 2)
+    cy, _ = _number("cy", frame, data, h / 2)
+    problem = camera_problem(focal["fl_x"], focal["fl_y"], cx, cy, w, h)
+    if problem:
+        raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
+    k4, field = _number("k4", frame, data, 0.0)
+    if k4 != 0:
+        raise SceneFormatError(index, field, f"k4 = {k4!r}: a radial r^8 term, which OpenCV's perspective model lacks; "
+                               "only k1 k2 k3 p1 p2 are supported")
+    distortion = []
+    for key in DISTORTION_KEYS:
+        value, field = _number(key, frame, data, 0.0)
+        if not is_finite_number(value):
+            raise SceneFormatError(index, field, f"expected a finite number, got {value!r}")
+        distortion.append(float(value))
+    return Camera(float(focal["fl_x"]), float(focal["fl_y"]), float(cx), float(cy), w, h, tuple(distortion))
+
+
+def undistortion(camera: Camera) -> tuple[CameraIntrinsics, tuple[np.ndarray, np.ndarray] | None]:
+    """The pinhole camera of the undistorted images and OpenCV's remap tables to them (None: no distortion).
+
+    The new camera keeps the image size and sees nothing outside the distorted image (alpha 0). OpenCV puts
+    pixel centres at integers and the scene format at +0.5: K is shifted by half a pixel both ways.
+    """
+    K = intrinsics_matrix(camera.fx, camera.fy, camera.cx, camera.cy)
+    size = (camera.width, camera.height)
+    if not any(camera.distortion):
+        return CameraIntrinsics(K, *size), None
+    K_cv = _PIXEL_CENTRE_SHIFT @ K
+    dist = np.array(camera.distortion)
+    new_cv, _ = cv2.getOptimalNewCameraMatrix(K_cv, dist, size, alpha=0)
+    maps = cv2.initUndistortRectifyMap(K_cv, dist, None, new_cv, size, cv2.CV_32FC1)
+    new_K = np.linalg.solve(_PIXEL_CENTRE_SHIFT, new_cv)
+    new_K[0, 1] = new_K[1, 0] = 0.0
+    return CameraIntrinsics(new_K, *size), maps
+
+
+def _applied_transform(data: dict, index: Path) -> tuple[np.ndarray | None, float]:
+    """ns-process-data's ``applied_transform`` [4, 4] (None if absent) and ``applied_scale`` (1 if absent)."""
+    applied = None
+    if "applied_transform" in data:
+        try:
+            A = np.asarray(data["applied_transform"], dtype=np.float64)
+        except (TypeError, ValueError):
+            A = np.zeros(0)
+        if A.shape not in ((3, 4), (4, 4)):
+            raise SceneFormatError(index, "applied_transform", f"expected a 3x4 matrix, got {np.shape(A)}")
+        applied = np.vstack([A[:3], [0.0, 0.0, 0.0, 1.0]])
+        problem = rigidity_problem(applied, atol=1e-6)
+        if problem:
+            raise SceneFormatError(index, "applied_transform", f"not a rigid transform: {problem}")
+    scale = data.get("applied_scale", 1.0)
+    if not is_finite_number(scale) or scale <= 0:
+        raise SceneFormatError(index, "applied_scale", f"expected a finite positive number, got {scale!r}")
+    return applied, float(scale)
+
+
+def _read_mask(path: Path, camera: Camera, frame: _SourceFrame) -> np.ndarray:
+    """A mask file as uint8 0/255 [H, W] (any non-zero channel means: use the pixel)."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise SceneFormatError(path, f"{frame.field}.mask_path", "missing or unreadable mask")
+    keep = raw != 0 if raw.ndim == 2 else (raw != 0).any(axis=2)
+    if keep.shape != (camera.height, camera.width):
+        raise SceneFormatError(path, f"{frame.field}.mask_path", f"mask is {keep.shape[1]}x{keep.shape[0]} but the "
+                               f"image is {camera.width}x{camera.height}")
+    return np.where(keep, 255, 0).astype(np.uint8)
+
+
+def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool) -> tuple[list[_SourceFrame], dict]:
+    """The frames to import, each with its split, and what was left out ({"left_out": [...], "skipped_missing":
+    [...]}, file paths as written)."""
+    frames = _source_frames(index, data)
+    has_lists = _assign_splits(index, data, frames)
+    left_out = [f.raw["file_path"] for f in frames if has_lists and f.split is None]
+    if left_out:
+        log.warning("%s: %d frames are in none of %s and are left out: %s", index, len(left_out),
+                    "/".join(SPLIT_LISTS), ", ".join(left_out[:5]) + (" ..." if len(left_out) > 5 else ""))
+        frames = [f for f in frames if f.split is not None]
+    missing = [f.raw["file_path"] for f in frames if not f.image.is_file()]
+    if missing and not skip_missing:
+        raise SceneFormatError(index, "frames", f"the images of {len(missing)} of {len(frames)} frames are missing: "
+                               + ", ".join(missing[:10]) + (" ..." if len(missing) > 10 else "")
+                               + " (--skip-missing imports the others)")
+    if missing:
+        log.warning("%s: skipping %d frames whose image is missing: %s", index, len(missing), ", ".join(missing))
+        frames = [f for f in frames if f.image.is_file()]
+    if not has_lists:
+        for k, f in enumerate(frames):
+            f.split = "test" if test_every and k % test_every == 0 else "train"
+    if not any(f.split == "train" for f in frames):
+        raise SceneFormatError(index, "train_filenames" if has_lists else "frames", "no train frame to import")
+    in_file_order = sorted(frames, key=lambda f: f.position)
+    first = in_file_order[0]
+    odd = next((f for f in in_file_order if ("mask_path" in f.raw) != ("mask_path" in first.raw)), None)
+    if odd is not None:
+        raise SceneFormatError(index, f"{odd.field}.mask_path", f"{'present' if 'mask_path' in odd.raw else 'missing'}"
+                               f", but {first.field} {'has' if 'mask_path' in first.raw else 'has no'} mask_path: "
+                               "masks go on every frame or none (nerfstudio refuses anything else)")
+    return frames, {"left_out": left_out, "skipped_missing": missing, "split": "lists" if has_lists else
+                    f"every {test_every}-th frame in file-name order is a test view"}
+
+
+def _original_world_pose(frame: _SourceFrame, index: Path, applied: np.ndarray | None, applied_scale: float,
+                         scale: float) -> np.ndarray:
+    """The frame's OpenCV camera-to-world pose in the original world, in metres (nerfstudio's
+    ``transform_poses_to_original_space``, then ``scale``)."""
+    pose = pose_from_opengl(frame.raw.get("transform_matrix"), index, f"{frame.field}.transform_matrix")
+    pose[:3, 3] /= applied_scale
+    if applied is not None:
+        pose = np.linalg.solve(applied, pose)
+    pose[:3, 3] *= scale
+    return pose
+
+
+def import_nerfstudio(src, out, test_every: int = 8, scale: float = 1.0, skip_missing: bool = False,
+                      object_name: str | None = None) -> Path:
+    """Convert the nerfstudio / instant-ngp dataset ``src`` (its folder or its ``transforms.json``) into ``out``.
+
+    See the module docstring for what is read and how. ``out`` is claimed as the ``--out`` of a writing command
+    (``datasets.outputs``). Returns ``out``.
+    """
+    src, out = Path(src), Path(out)
+    check_scale(scale)
+    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
+        raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
+    index, data = _read_index(src)
+    frames, selection = _select_frames(index, data, test_every, skip_missing)
+    cameras = [_camera(f, data, index) for f in frames]
+    applied, applied_scale = _applied_transform(data, index)
+    poses = [_original_world_pose(f, index, applied, applied_scale, scale) for f in frames]
+
+    not_imported = {}
+    if any("depth_file_path" in f.raw for f in frames):
+        not_imported["depth_file_path"] = sum("depth_file_path" in f.raw for f in frames)
+    if "ply_file_path" in data:
+        not_imported["ply_file_path"] = data["ply_file_path"]
+    if not_imported:
+        log.warning("%s: not imported (training reads neither depth maps nor point clouds): %s", index,
+                    ", ".join(not_imported))
+    extra = {"importer": "nerfstudio", "source_path": str(index.resolve()), "scale": scale,
+             "nerfstudio_names": [f.raw["file_path"] for f in frames], "split": selection.pop("split")}
+    optional = {**selection, "not_imported": not_imported, "applied_scale": data.get("applied_scale"),
+                "applied_transform": None if applied is None else applied[:3].tolist()}
+    extra.update({key: value for key, value in optional.items() if value})
+    meta = SceneMeta(source="import", object=object_name or index.parent.resolve().name, extra=extra)
+
+    tables = {camera: undistortion(camera) for camera in set(cameras)}
+    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
+    with claim_output_dir(out), removed_on_failure(out), \
+            SceneWriter.create(out, tables[cameras[0]][0], meta) as writer:
+        for f, camera, pose in tqdm(list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}", unit="frame"):
+            intr, maps = tables[camera]
+            rgb = read_rgba(f.image)[:, :, :3].astype(np.float32)
+            if rgb.shape[:2] != (camera.height, camera.width):
+                raise SceneFormatError(f.image, f.field, f"image is {rgb.shape[1]}x{rgb.shape[0]} but the camera says "
+                                       f"w x h = {camera.width}x{camera.height}")
+            mask = None if "mask_path" not in f.raw else _read_mask(index.parent / str(f.raw["mask_path"]), camera, f)
+            if maps is not None:
+                rgb = cv2.remap(rgb, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                if mask is not None:
+                    mask = cv2.remap(mask, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+            writer.add_frame(composite(rgb, (0, 0, 0)), pose, split=f.split, intrinsics=intr,
+                             mask=None if mask is None else mask > 0)
+    return out
