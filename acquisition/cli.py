@@ -55,7 +55,7 @@ def register(cli) -> None:
         "extended in place; one without (an import) is copied into --out first.",
     )
     p.add_argument("--mesh", required=True, help="the object's mesh, in the scene's world frame and units")
-    p.add_argument("--scene", required=True, help="scene directory")
+    p.add_argument("scene", help="scene directory")
     p.add_argument("--grasps", type=int, default=5)
     p.add_argument("--out", default=None, help="new scene directory (needed when SCENE has no tactile sensor model)")
     p.add_argument("--object-radius", type=float, default=0.08, help="graspable size the mesh is simulated at (m)")

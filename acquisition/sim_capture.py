@@ -24,8 +24,8 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from tqdm import tqdm
 
+from tacsplat.progress import progress_bar
 from tacsplat.acquisition.capture_scene import open_scene
 from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, TouchPlan, ViewPlan, validate
 from tacsplat.acquisition.logger import CaptureLogger
@@ -63,17 +63,18 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
         t_setup = time.perf_counter()
         counts, v = logger.counts(), config.plan.views
         todo = [("train", i) for i in range(counts.train, v.train)] + [("test", i) for i in range(counts.test, v.test)]
-        for split, i in tqdm(todo, desc="views", unit="view", disable=not progress):
+        for split, i in progress_bar(todo, desc="views", unit="view", enabled=progress):
             planner.before_view(split, i)
             logger.take_view(split)
         t_views = time.perf_counter()
         if config.plan.touches.model == "paper":
             touches = PaperTouches(rig.twin.object_mesh, config.plan.grasps.seed, config.plan.touches)
             todo = range(writer.num_touches, TOUCHES_PER_GRASP * config.plan.grasps.count)
-            write_paper_touches(writer, touches, tqdm(todo, desc="touches", unit="touch", disable=not progress))
+            write_paper_touches(writer, touches, progress_bar(todo, desc="touches", unit="touch", enabled=progress))
         else:
             start = logger.next_grasp_index()
-            for g in tqdm(range(start, config.plan.grasps.count), desc="grasps", unit="grasp", disable=not progress):
+            for g in progress_bar(range(start, config.plan.grasps.count), desc="grasps", unit="grasp",
+                                      enabled=progress):
                 planner.grasp(logger, g)
         t_end = time.perf_counter()
     return {"setup_s": t_setup - t0, "views_s": t_views - t_setup, "grasps_s": t_end - t_views, "total_s": t_end - t0}

@@ -17,8 +17,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from tacsplat.progress import progress_bar
 from tacsplat.acquisition.config import TouchPlan, validate_touches
 from tacsplat.acquisition.devices import twin_rig
 from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate, TwinPoseSource
@@ -134,13 +134,13 @@ def simulate_touches(
             if touch_model == "paper":
                 todo = range(TOUCHES_PER_GRASP * first, TOUCHES_PER_GRASP * (first + grasps))
                 write_paper_touches(writer, PaperTouches(twin.object_mesh, seed, touches),
-                                    tqdm(todo, desc="touches", unit="touch"), units.points)
+                                    progress_bar(todo, desc="touches", unit="touch"), units.points)
             else:
                 rig = twin_rig(twin)
                 logger = CaptureLogger(writer, rig.hand, [ScaledPad(p, units) for p in rig.sensors], rig.camera,
                                        rig.clock, ScenePoseSource(twin, units), rig.control, redo_partial_grasp=False)
                 planner = TwinPlanner(twin, seed, grasp_config=grasp_config)
-                for g in tqdm(range(first, first + grasps), desc="grasps", unit="grasp"):
+                for g in progress_bar(range(first, first + grasps), desc="grasps", unit="grasp"):
                     planner.grasp(logger, g)
     return target
 

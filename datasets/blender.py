@@ -17,8 +17,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
+from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv, rigidity_problem
 from tacsplat.types import CameraIntrinsics
@@ -154,7 +154,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
     with claim_output_dir(out), removed_on_failure(out), \
             SceneWriter.create(out, intrinsics_for(splits[0][2]), meta) as writer, \
-            tqdm(total=total, desc=f"import {src.name}", unit="frame") as progress:
+            progress_bar(total=total, desc=f"import {src.name}", unit="frame") as progress:
         for split, index, angle, frames in splits:
             intr = intrinsics_for(angle)
             for i, raw in enumerate(frames):

@@ -15,8 +15,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import intrinsics_matrix, invert_pose
 from tacsplat.types import CameraIntrinsics
@@ -85,7 +85,7 @@ def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float 
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
     with claim_output_dir(out), removed_on_failure(out), \
             SceneWriter.create(out, intrinsics[images[0].camera_id], meta) as writer:
-        for i, img in enumerate(tqdm(images, desc=f"import {model_dir}", unit="frame")):
+        for i, img in enumerate(progress_bar(images, desc=f"import {model_dir}", unit="frame")):
             intr = intrinsics[img.camera_id]
             image_path = images_dir / img.name
             rgb = composite(read_rgba(image_path)[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped

@@ -8,8 +8,8 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from tqdm import tqdm
 
+from tacsplat.progress import progress_bar
 from tacsplat.errors import InvalidInputError
 
 from .reader import Scene
@@ -42,7 +42,7 @@ def copy_scene(src: Scene | str | os.PathLike, dst: str | os.PathLike, *, touche
     gt_mesh = scene.gt_mesh_path if gt_mesh is None else gt_mesh
     intrinsics = scene.intrinsics or scene.frames[0].intrinsics
     with removed_on_failure(dst), SceneWriter.create(dst, intrinsics, meta or scene.meta, sensor) as writer:
-        for frame in tqdm(scene.frames, desc="copy frames", unit="frame", disable=not progress):
+        for frame in progress_bar(scene.frames, desc="copy frames", unit="frame", enabled=progress):
             image = np.rint(scene.load_image(frame) * 255).astype(np.uint8)
             writer.add_frame(image, frame.T_world_cam, frame.split, scene.gt_depth(frame), frame.intrinsics,
                              mask=scene.load_mask(frame))

@@ -41,8 +41,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 from PIL import Image
-from tqdm import tqdm
 
+from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_problem
 from tacsplat.types import CameraIntrinsics
@@ -335,7 +335,8 @@ def import_nerfstudio(src, out, test_every: int = 8, scale: float = 1.0, skip_mi
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
     with claim_output_dir(out), removed_on_failure(out), \
             SceneWriter.create(out, tables[cameras[0]][0], meta) as writer:
-        for f, camera, pose in tqdm(list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}", unit="frame"):
+        for f, camera, pose in progress_bar(list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}",
+                                           unit="frame"):
             intr, maps = tables[camera]
             rgb = read_rgba(f.image)[:, :, :3].astype(np.float32)
             if rgb.shape[:2] != (camera.height, camera.width):

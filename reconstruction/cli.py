@@ -7,12 +7,13 @@ import shlex
 import sys
 from pathlib import Path
 
+from tacsplat.errors import ConfigError, UsageError
 from tacsplat.reconstruction.variants import DEFAULT_VARIANT, VARIANTS
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
     p = cli.command(
-        "reconstruct",
+        "reconstruct", build=_add_config_options,
         help="tactile-informed 3DGS: train on a scene directory and evaluate",
         description="Optimise Gaussians on SCENE and write a run directory: splat.ply, checkpoint.pt, progress.csv, "
         "error_vs_time.png, metrics.json, renders/. --variant picks a row of the paper's Table 3; every training "
@@ -35,8 +36,7 @@ def register(cli) -> None:
                    "--iterations may change)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the earlier run in --out (its files only; other files stay)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=_reconstruct, config_options=_add_config_options(p))
+    p.set_defaults(func=_reconstruct)
 
     e = cli.command("evaluate", help="evaluate a reconstruction run: PSNR, SSIM, Chamfer distance, renders")
     e.add_argument("run", help="run directory written by `tacsplat reconstruct`")
@@ -47,11 +47,12 @@ def register(cli) -> None:
     e.set_defaults(func=_evaluate)
 
 
-def _add_config_options(parser):
+def _add_config_options(parser) -> None:
+    """One option per TrainConfig field (made only when `reconstruct` is on the command line: it imports torch)."""
     from tacsplat.reconstruction.config import TrainConfig
     from tacsplat.reconstruction.options import add_config_options
 
-    return add_config_options(parser, TrainConfig)
+    parser.set_defaults(config_options=add_config_options(parser, TrainConfig))
 
 
 def config_from_args(args):
@@ -67,7 +68,10 @@ def config_from_args(args):
     apply_options(config, args, args.config_options)
     if args.no_smoothness:
         config.lambda_s = 0.0
-    config.validate(option_names(args.config_options))
+    try:
+        config.validate(option_names(args.config_options))
+    except ConfigError as exc:
+        raise UsageError(exc.key, str(exc).split(": ", 1)[1]) from None
     config.torch_device()
     return config
 
@@ -77,7 +81,7 @@ def _reconstruct(args) -> int:
 
     try:
         config = config_from_args(args)
-        metrics = reconstruct(args.scene, args.out, config, resume=args.resume, show_progress=not args.quiet,
+        metrics = reconstruct(args.scene, args.out, config, resume=args.resume, show_progress=True,
                               iterations_override=config.iterations if hasattr(args, "cfg__iterations") else None,
                               overwrite=args.overwrite)
     except TrainingInterrupted as stop:

@@ -32,8 +32,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
+from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.config import TrainConfig
@@ -444,7 +444,7 @@ class Trainer:
                 csv.writer(fh).writerow(PROGRESS_COLUMNS)
                 self._progress_row(csv.writer(fh))
             self._last_eval = (self.step, self.train_seconds)
-        bar = tqdm(total=cfg.iterations, initial=self.step, disable=not show_progress, unit="it", dynamic_ncols=True)
+        bar = progress_bar(total=cfg.iterations, initial=self.step, enabled=show_progress, desc="train", unit="it")
         with progress_path.open("a", newline="") as fh:
             writer = csv.writer(fh)
             while self.step < cfg.iterations and stop.signum is None:

@@ -2,11 +2,18 @@
 
 Subcommands are registered per package: each module in ``COMMAND_MODULES``
 defines ``register(cli: CommandTree)`` and adds its commands with
-``cli.command("bench rasterizer", help=..., description=...)``, which returns
-an ``argparse.ArgumentParser`` to add arguments to and to
-``set_defaults(func=handler)`` on. A handler takes the parsed namespace and
-returns an exit code (or None for 0). Command modules import heavy packages
-(torch, mujoco, SDKs) inside their handlers, so ``tacsplat --help`` stays fast.
+``cli.command("bench rasterizer", help=..., description=..., build=...)``,
+which returns an ``argparse.ArgumentParser`` to add arguments to and to
+``set_defaults(func=handler)`` on. A command whose options are expensive to
+make (generated from a config that imports torch) passes ``build(parser)``,
+which runs only when that command is on the command line, so ``tacsplat
+--help`` imports no torch, numba or MuJoCo. A handler takes the parsed
+namespace and returns an exit code (or None for 0).
+
+Exit codes: 0 success, 1 a runtime error (one ``error:`` line), 2 a usage
+error (argparse's, or an option value out of its range: :class:`UsageError`),
+130 Ctrl-C (143 SIGTERM where a command checkpoints on it). ``-v``, ``-q`` and
+``--log-level`` are accepted before or after the subcommand.
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ import logging
 import sys
 
 from tacsplat import __version__
-from tacsplat.errors import TacsplatError
+from tacsplat.errors import TacsplatError, UsageError
 
 COMMAND_MODULES = (
     "tacsplat.datasets.cli",
@@ -42,71 +49,125 @@ GROUP_HELP = {
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows an option's default only when it says something (not for required options, flags, or None)."""
+    """Marks required options, and shows a default only when it says something (not for flags or None)."""
 
     def _get_help_string(self, action):
-        if action.required or action.default in (None, False, argparse.SUPPRESS) or "(default:" in (action.help or ""):
-            return action.help
+        text = action.help or ""
+        if action.required and action.option_strings:
+            return f"{text} (required)"
+        if action.default in (None, False, argparse.SUPPRESS) or "(default:" in text:
+            return text
         return super()._get_help_string(action)
+
+
+def _common_options() -> argparse.ArgumentParser:
+    """-v, -q and --log-level, accepted by the root and by every subcommand (defaults SUPPRESS, so a
+    subcommand's absent option never overwrites one given before it)."""
+    common = argparse.ArgumentParser(add_help=False)
+    group = common.add_argument_group("logging")
+    group.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="debug logging")
+    group.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                       help="warnings and errors only; no progress display")
+    group.add_argument("--log-level", default=argparse.SUPPRESS, type=str.upper,
+                       choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="logging level (default INFO)")
+    return common
 
 
 class CommandTree:
     """Builds nested argparse subcommands from space-separated paths."""
 
-    def __init__(self, parser: argparse.ArgumentParser):
-        self._root = parser
+    def __init__(self, parser: argparse.ArgumentParser, common: argparse.ArgumentParser):
+        self._common = common
         self._subparsers = {"": parser.add_subparsers(dest="command", metavar="COMMAND")}
         self._parsers: dict[str, argparse.ArgumentParser] = {"": parser}
+        self._builders: dict[str, object] = {}
 
     def _group(self, path: str) -> argparse._SubParsersAction:
         if path not in self._subparsers:
             parent, _, name = path.rpartition(" ")
             parser = self._group(parent).add_parser(
-                name, help=GROUP_HELP.get(path, ""), description=GROUP_HELP.get(path)
+                name, help=GROUP_HELP.get(path, ""), description=GROUP_HELP.get(path), parents=[self._common]
             )
             parser.set_defaults(func=lambda args, p=parser: (p.print_help(), 2)[1])
             self._parsers[path] = parser
             self._subparsers[path] = parser.add_subparsers(dest=f"{path}_command", metavar="COMMAND")
         return self._subparsers[path]
 
-    def command(self, path: str, help: str, description: str | None = None) -> argparse.ArgumentParser:
+    def command(self, path: str, help: str, description: str | None = None, build=None) -> argparse.ArgumentParser:
+        """A subcommand at ``path``; ``build(parser)``, if given, adds its options once the command is chosen."""
         parent, _, name = path.strip().rpartition(" ")
         parser = self._group(parent).add_parser(
-            name,
-            help=help,
-            description=description or help,
-            formatter_class=_HelpFormatter,
+            name, help=help, description=description or help, formatter_class=_HelpFormatter, parents=[self._common]
         )
         self._parsers[path] = parser
+        if build is not None:
+            self._builders[path] = (build, parser)
         return parser
 
+    def build(self, path: str | None = None) -> None:
+        """Run the deferred builders: of the command at ``path`` (and no other), or of every command."""
+        for key in [k for k in self._builders if path is None or k == path]:
+            build, parser = self._builders.pop(key)
+            build(parser)
 
-def build_parser() -> argparse.ArgumentParser:
+    def chosen(self, argv: list[str]) -> str:
+        """The command path named on a command line (``""`` if none): its leading words that name commands."""
+        path = ""
+        for token in argv:
+            if token.startswith("-"):
+                continue
+            candidate = f"{path} {token}".strip()
+            if candidate not in self._parsers:
+                break
+            path = candidate
+        return path
+
+
+def build_parser(argv: list[str] | None = None, complete: bool = False) -> argparse.ArgumentParser:
+    """The whole parser (every deferred option built when ``argv`` is None), or only what ``argv`` needs."""
+    common = _common_options()
     parser = argparse.ArgumentParser(
         prog="tacsplat",
         description="Tactile-informed 3D Gaussian Splatting: capture (real rig or MuJoCo twin), "
         "scene datasets, reconstruction and evaluation.",
+        parents=[common],
     )
     parser.add_argument("--version", action="version", version=f"tacsplat {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    tree = CommandTree(parser)
+    tree = CommandTree(parser, common)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(tree)
+    tree.build(None if argv is None else tree.chosen(argv))
+    if complete:
+        import shtab
+
+        shtab.add_argument_to(parser, ["--print-completion"], help="print a shell completion script (bash, zsh, tcsh)")
     return parser
 
 
+def _configure_logging(args: argparse.Namespace) -> None:
+    from tacsplat.progress import set_quiet
+
+    quiet = getattr(args, "quiet", False)
+    level = getattr(args, "log_level", None) or ("DEBUG" if getattr(args, "verbose", False) else
+                                                  "WARNING" if quiet else "INFO")
+    logging.basicConfig(level=getattr(logging, level), format="%(levelname)s %(name)s: %(message)s", force=True)
+    set_quiet(quiet)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(argv, complete="--print-completion" in argv)
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.INFO,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    _configure_logging(args)
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
     try:
         code = args.func(args)
+    except UsageError as exc:
+        prog = _subparser(parser, argv).prog
+        print(f"{prog}: error: {exc} (see {prog} --help)", file=sys.stderr)
+        return 2
     except TacsplatError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -114,6 +175,17 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     return int(code or 0)
+
+
+def _subparser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:
+    """The parser of the command named in ``argv`` (for usage lines)."""
+    current = parser
+    for token in argv:
+        actions = [a for a in current._actions if isinstance(a, argparse._SubParsersAction)]
+        if token.startswith("-") or not actions or token not in actions[0].choices:
+            continue
+        current = actions[0].choices[token]
+    return current
 
 
 if __name__ == "__main__":

@@ -36,6 +36,10 @@ class ConfigError(TacsplatError):
         super().__init__(f"{prefix}{key}: {message}")
 
 
+class UsageError(ConfigError):
+    """A command-line option holds a value out of its range (exit code 2, like argparse's usage errors)."""
+
+
 class InvalidInputError(TacsplatError, ValueError):
     """A tensor or array argument is invalid (NaN, wrong shape, ...); names the argument."""
 

@@ -175,7 +175,7 @@ def run_benchmark(sizes: list[str], repeats: int, torch_repeats: int, skip_torch
     import tempfile
 
     import torch
-    from tqdm import tqdm
+    from tacsplat.progress import progress_bar
 
     import numba
 
@@ -197,7 +197,7 @@ def run_benchmark(sizes: list[str], repeats: int, torch_repeats: int, skip_torch
         cold = _in_subprocess("compile_worker()", env)
         warm = _in_subprocess("compile_worker()", env)
     results["compile"] = {"cold_first_call_s": cold["first_call_s"], "cached_first_call_s": warm["first_call_s"]}
-    for text in tqdm(sizes, desc="bench rasterizer", unit="size"):
+    for text in progress_bar(sizes, desc="bench rasterizer", unit="size"):
         width, height, n = parse_size(text)
         scene = random_scene(n, width, height, sh_degree=3, seed=0)
         row = {"width": width, "height": height, "n_gaussians": n}

@@ -17,10 +17,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from tacsplat.geometry import look_at, tactile_pixel_grid
-from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer
 
 SPHERE_RADIUS_M = 0.01
 PRESS_M = 0.001
@@ -35,6 +33,10 @@ def _analytic_sphere(x, y, r=SPHERE_RADIUS_M, d=PRESS_M):
 
 def bench_tactile_resolution(widths=(40, 80, 160, 320, 640), repeats: int = 3) -> list[dict]:
     """Depth-map error and time per map against the number of ray columns (rows keep the pad's aspect)."""
+    import trimesh
+
+    from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer
+
     T = look_at([0.0, 0.0, SPHERE_RADIUS_M - PRESS_M], [0.0, 0.0, 1.0])  # gel normal +z, sphere centre in front
     T_plane = look_at([0.0, 0.0, -PRESS_M], [0.0, 0.0, 1.0])
     sphere_in_sensor = trimesh.creation.icosphere(subdivisions=7, radius=SPHERE_RADIUS_M)

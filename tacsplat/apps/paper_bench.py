@@ -182,14 +182,14 @@ class PaperBench:
 
     def run(self, progress: bool = True) -> list[dict]:
         """Capture and train everything not done yet, then write the report; returns the results rows."""
-        from tqdm import tqdm
+        from tacsplat.progress import progress_bar
 
         runs = self.runs()
         todo = [r for r in runs if not r.done]
         if len(todo) < len(runs):
             log.info("%d of %d runs already finished in %s: skipped", len(runs) - len(todo), len(runs), self.out)
         started = time.perf_counter()
-        bar = tqdm(todo, desc="bench paper", unit="run", disable=not progress, dynamic_ncols=True)
+        bar = progress_bar(todo, desc="bench paper", unit="run", enabled=progress)
         for run in bar:
             bar.set_postfix_str(f"{run.object} {run.setting} {run.variant} s{run.seed}")
             self.capture(run.object, run.setting, run.seed)

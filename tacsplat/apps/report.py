@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from tacsplat.reconstruction.run_dir import draw_error_vs_time
 from tacsplat.reconstruction.variants import VARIANTS, variant_label
 
 RESULT_COLUMNS = ("object", "setting", "variant", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians",
@@ -147,6 +146,8 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     plt = pyplot()
     objects = list(curves)
     fig, axes = plt.subplots(2, max(len(objects), 1), figsize=(4 * max(len(objects), 1), 6.5), squeeze=False)
+    from tacsplat.reconstruction.run_dir import draw_error_vs_time
+
     for j, obj in enumerate(objects):
         draw_error_vs_time(axes[0, j], axes[1, j], {variant_label(v): c for v, c in curves[obj].items()})
         axes[0, j].set_title(obj)

@@ -118,7 +118,7 @@ class TouchBench:
         return self.out / "runs" / f"t{count:03d}-s{seed}"
 
     def run(self, progress: bool = True) -> list[dict]:
-        from tqdm import tqdm
+        from tacsplat.progress import progress_bar
 
         from tacsplat.reconstruction.config import TrainConfig
         from tacsplat.reconstruction.trainer import reconstruct
@@ -126,7 +126,7 @@ class TouchBench:
         c = self.config
         jobs = [(seed, n) for seed in c.seeds for n in c.touch_counts]
         rows = []
-        bar = tqdm(jobs, desc="bench touches", unit="run", disable=not progress, dynamic_ncols=True)
+        bar = progress_bar(jobs, desc="bench touches", unit="run", enabled=progress)
         for seed, count in bar:
             bar.set_postfix_str(f"seed {seed}, {count} touches")
             out = self.run_dir(seed, count)

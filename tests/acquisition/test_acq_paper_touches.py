@@ -204,7 +204,7 @@ def test_paper_touches_of_an_imported_unit_scale_scene_come_out_in_its_frame_and
     with SceneWriter.create(imported, CameraIntrinsics(K, 32, 32), SceneMeta(source="import", object="capsule")) as w:
         w.add_frame(np.full((32, 32, 3), 128, np.uint8), look_at(offset + [0, -3.0, 1.0], offset), "train")
     out = tmp_path / "touched"
-    assert main(["simulate-touches", "--mesh", str(mesh_path), "--scene", str(imported), "--grasps", "2",
+    assert main(["simulate-touches", "--mesh", str(mesh_path), str(imported), "--grasps", "2",
                  "--out", str(out), "--seed", "1", "--touch-model", "paper"]) == 0
     assert f"touches written to {out}" in capsys.readouterr().out
     scene = Scene.load(out)
@@ -222,7 +222,7 @@ def test_paper_touches_of_an_imported_unit_scale_scene_come_out_in_its_frame_and
         assert to_surface.max() <= tolerance
         assert np.linalg.norm(lifted - lifted.mean(axis=0), axis=1).max() < 0.15  # one cluster, radius 1
     # a scene with this sensor model is extended in place, numbering grasps on
-    assert main(["simulate-touches", "--mesh", str(mesh_path), "--scene", str(out), "--grasps", "1",
+    assert main(["simulate-touches", "--mesh", str(mesh_path), str(out), "--grasps", "1",
                  "--seed", "1", "--touch-model", "paper"]) == 0
     extended = Scene.load(out)
     assert [t.grasp for t in extended.touches[8:]] == [2] * 4

@@ -65,7 +65,7 @@ def test_touches_of_an_imported_unit_scale_scene_come_back_in_its_frame_and_unit
     with pytest.raises(ConfigError, match="--out"):
         simulate_touches(mesh_path, imported, grasps=1)
     out = tmp_path / "touched"
-    assert main(["simulate-touches", "--mesh", str(mesh_path), "--scene", str(imported), "--grasps", "1",
+    assert main(["simulate-touches", "--mesh", str(mesh_path), str(imported), "--grasps", "1",
                  "--out", str(out), "--seed", "2"]) == 0
     assert f"touches written to {out}" in capsys.readouterr().out
     scene = Scene.load(out)

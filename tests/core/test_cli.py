@@ -26,3 +26,63 @@ def test_console_script_runs():
 
 def test_no_command_prints_help_and_fails(capsys):
     assert main([]) == 2
+
+
+def test_help_imports_no_heavy_package_and_python_m_works():
+    code = ("import sys, runpy\nsys.argv = ['tacsplat', '--help']\n"
+            "try:\n    runpy.run_module('tacsplat', run_name='__main__')\nexcept SystemExit:\n    pass\n"
+            "print('HEAVY', sorted(m for m in ('torch', 'numba', 'mujoco', 'trimesh', 'scipy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert "usage: tacsplat" in out.stdout and "HEAVY []" in out.stdout, out.stdout + out.stderr
+
+
+def test_logging_options_are_accepted_before_and_after_the_subcommand(tmp_path, capsys):
+    import logging
+
+    for argv in (["-v", "inspect", str(tmp_path)], ["inspect", str(tmp_path), "-v"]):
+        main(argv)
+        assert logging.getLogger().level == logging.DEBUG
+    main(["inspect", str(tmp_path), "--log-level", "warning"])
+    assert logging.getLogger().level == logging.WARNING
+    main(["inspect", str(tmp_path), "-q"])
+    assert logging.getLogger().level == logging.WARNING
+    main(["inspect", str(tmp_path)])
+    assert logging.getLogger().level == logging.INFO
+
+
+def test_exit_codes_usage_errors_are_2_runtime_errors_1(tmp_path, capsys):
+    import pytest
+
+    with pytest.raises(SystemExit) as stop:  # argparse's own usage error
+        main(["reconstruct", str(tmp_path), "--out", str(tmp_path / "run"), "--iterations", "many"])
+    assert stop.value.code == 2
+    assert main(["reconstruct", str(tmp_path), "--out", str(tmp_path / "run"), "--iterations", "-5"]) == 2
+    err = capsys.readouterr().err
+    assert "--iterations: must be an integer >= 1, got -5" in err and "Traceback" not in err
+    assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--seeds", "0,x"]) == 2
+    assert main(["reconstruct", str(tmp_path / "none"), "--out", str(tmp_path / "run")]) == 1  # no scene there
+
+
+def test_required_options_are_marked_and_completion_is_printed(capsys):
+    help_text = " ".join(build_parser(["reconstruct"])._subparsers._group_actions[0].choices["reconstruct"]
+                         .format_help().split())
+    assert "(required)" in help_text and "(default: None)" not in help_text
+    with __import__("pytest").raises(SystemExit):
+        main(["--print-completion", "bash"])
+    assert "complete" in capsys.readouterr().out
+
+
+def test_progress_is_plain_lines_without_a_terminal(capsys):
+    from tacsplat.progress import progress_bar, set_quiet
+
+    for _ in progress_bar(range(3), desc="copy", unit="frame"):
+        pass
+    err = capsys.readouterr().err
+    assert err == "copy: 3/3 frame in 0 s\n" and "\r" not in err
+    set_quiet(True)
+    try:
+        for _ in progress_bar(range(3), desc="copy"):
+            pass
+        assert capsys.readouterr().err == ""
+    finally:
+        set_quiet(False)

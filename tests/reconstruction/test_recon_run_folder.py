@@ -35,11 +35,11 @@ def _reconstruct(scene, out, *extra, iterations: int = 3) -> int:
     return main(["reconstruct", str(scene), "--out", str(out), "--iterations", str(iterations), *FAST, *extra])
 
 
-def _one_error_line(capsys, *words) -> str:
+def _one_error_line(capsys, *words, prefix: str = "error: ") -> str:
     """The single stderr line of a refused command (no traceback), checked for ``words``."""
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
+    assert len(lines) == 1 and lines[0].startswith(prefix) and "Traceback" not in err, err
     for word in words:
         assert word in lines[0], lines[0]
     return lines[0]
@@ -231,8 +231,8 @@ def test_an_out_that_is_a_file_inside_a_file_or_unwritable_is_one_error(scene, t
     (["--seed", "-1"], ["--seed", "0 to"]),
 ])
 def test_an_option_out_of_range_is_one_error_naming_it(scene, tmp_path, capsys, options, words):
-    assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), "--quiet", *options]) == 1
-    _one_error_line(capsys, *words)
+    assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), "--quiet", *options]) == 2  # usage error
+    _one_error_line(capsys, *words, prefix="tacsplat reconstruct: error: ")
     assert not (tmp_path / "run").exists()  # refused before anything is written
 
 

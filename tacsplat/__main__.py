@@ -1,0 +1,7 @@
+"""``python -m tacsplat``: the same as the ``tacsplat`` command."""
+
+import sys
+
+from tacsplat.cli import main
+
+sys.exit(main())
