@@ -40,7 +40,7 @@ from tacsplat.geometry import invert_pose, look_at, make_pose
 log = logging.getLogger(__name__)
 
 REFERENCE_FRAMES = 5  # untouched frames at the start of each tactile video (the sensor's reference)
-ASSET_VERSION = 2  # bump when the generated files change
+ASSET_VERSION = 3  # bump when the generated files change
 LIVE_CAMERA_FPS = 30.0
 BALL_RADIUS_M = 4e-3
 SUPERSAMPLE = 2

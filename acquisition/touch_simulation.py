@@ -27,7 +27,7 @@ from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
 from tacsplat.errors import ConfigError
 from tacsplat.sim.grasps import GraspConfig
-from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere
+from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere, read_mesh
 from tacsplat.sim.twin import SimTwin, TwinConfig
 from tacsplat.types import TactileReading
 
@@ -110,7 +110,7 @@ def simulate_touches(
     touches = TouchPlan(model=touch_model, surface_points=surface_points)
     validate_touches(touches)
     scene = Scene.load(scene_path)
-    centre, radius = bounding_sphere(_raw_mesh(mesh_path))
+    centre, radius = bounding_sphere(read_mesh(mesh_path))
     with SimTwin(TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)) as twin:
         units = SceneUnits(centre, twin.object.bounding_radius / radius)
         sensor = twin.sensor_model(units.scale)
@@ -144,11 +144,3 @@ def simulate_touches(
                     planner.grasp(logger, g)
     return target
 
-
-def _raw_mesh(path: str | Path):
-    """The mesh file as the twin loads it, before centring and scaling."""
-    import trimesh
-
-    if not Path(path).is_file():
-        raise ConfigError("mesh", f"file not found: {path}")
-    return trimesh.load(Path(path), force="mesh", process=True)

@@ -1,55 +1,106 @@
-"""`tacsplat calibrate camera` and `tacsplat calibrate tactile` (see tacsplat.cli)."""
+"""`tacsplat calibrate camera`, `tacsplat calibrate tactile` and `tacsplat tactile depth` (see tacsplat.cli)."""
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+CHARUCO_DEFAULTS = {"squares_x": 7, "squares_y": 5, "square_mm": 30.0, "marker_mm": 22.0, "dictionary": "DICT_5X5_100"}
 
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
+    from tacsplat.drivers.wrist_camera import DISTORTION_MODELS
+
     camera = cli.command(
         "calibrate camera",
-        help="intrinsic calibration of the wrist camera from ChArUco board images",
-        description="Detects the ChArUco board in every image of FOLDER, runs cv2.calibrateCamera, prints the "
-        "RMS reprojection error and writes the calibration (OpenCV K, distortion) as JSON, and a picture of the "
-        "detected and reprojected corners next to it (.png).",
+        help="intrinsic calibration of the wrist camera from photos of a ChArUco board or a chessboard",
+        description="Finds the board's corners (sub-pixel) in every photo, runs cv2.calibrateCameraExtended, prints "
+        "the RMS reprojection error, the intrinsics and their standard deviations, and warns (naming what to add) "
+        "when the focal length is poorly constrained (standard deviation above 1%%) or parts of the image saw no "
+        "corner. Writes the calibration (OpenCV K with pixel centres at integers, distortion, K_std_px, warnings) "
+        "as JSON, a picture of the detected and reprojected corners (.png) and one of the corner coverage "
+        "(_coverage.png) next to it.",
     )
-    camera.add_argument("folder", type=Path, help="folder of board images (png, jpg, ...)")
+    camera.add_argument("photos", type=Path, nargs="+", help="board photos (png, jpg, ...) or folders of them")
     camera.add_argument("--out", type=Path, required=True, help="calibration file to write (.json)")
-    camera.add_argument("--squares-x", type=int, default=7, help="board squares along x")
-    camera.add_argument("--squares-y", type=int, default=5, help="board squares along y")
-    camera.add_argument("--square-mm", type=float, default=30.0, help="chessboard square side, millimetres")
-    camera.add_argument("--marker-mm", type=float, default=22.0, help="ArUco marker side, millimetres")
-    camera.add_argument("--dictionary", default="DICT_5X5_100", help="cv2.aruco predefined dictionary")
-    camera.add_argument("--legacy-pattern", action="store_true", help="board printed by OpenCV < 4.6")
+    camera.add_argument("--board", choices=("charuco", "chessboard"), default="charuco", help="the printed board")
+    camera.add_argument("--inner-corners", type=_corner_counts, metavar="XxY",
+                        help="chessboard: inner corners (where four squares meet) along x and y, e.g. 9x6")
+    camera.add_argument("--square-mm", type=float,
+                        help="square side in millimetres (default 30 for a ChArUco board; needed for a chessboard)")
+    camera.add_argument("--squares-x", type=int, help="ChArUco: squares along x (default 7)")
+    camera.add_argument("--squares-y", type=int, help="ChArUco: squares along y (default 5)")
+    camera.add_argument("--marker-mm", type=float, help="ChArUco: ArUco marker side, millimetres (default 22)")
+    camera.add_argument("--dictionary", help="ChArUco: cv2.aruco predefined dictionary (default DICT_5X5_100)")
+    camera.add_argument("--legacy-pattern", action="store_true", help="ChArUco: board printed by OpenCV < 4.6")
+    camera.add_argument("--distortion", choices=tuple(DISTORTION_MODELS), default="opencv5",
+                        help="distortion model: opencv5 = k1 k2 p1 p2 k3 (all free), opencv4 = k3 held at zero, "
+                        "rational8 = k1..k6 p1 p2 (wide-angle lenses)")
     camera.set_defaults(func=_calibrate_camera)
 
     tactile = cli.command(
         "calibrate tactile",
         help="GelSight-style calibration of an optical tactile sensor from ball presses",
         description="FOLDER holds one image of the untouched gel named reference.* and images of presses of a "
-        "ball of known radius (any other names). Fits the lookup table colour change -> surface gradient, writes "
-        "it (.npz) and a picture of the detected contact circles next to it (.png).",
+        "ball of known radius (any other names), taken in name order. Fits colour change -> surface gradient "
+        "(a small MLP on colour change and pixel position) on two thirds of the presses, checks it on every third "
+        "press (a sphere fitted to the depth of each held-out press, against the ball), prints the median and "
+        "spread of the fitted radii, and refuses to write a calibration whose fitted radii are far off. Writes the "
+        "calibration (.npz) and a picture of the detected contact circles over each press (.png) next to it.",
     )
     tactile.add_argument("folder", type=Path, help="folder with reference.* and ball-press images")
     tactile.add_argument("--out", type=Path, required=True, help="calibration file to write (.npz)")
     tactile.add_argument("--ball-radius-mm", type=float, required=True, help="radius of the pressed ball, mm")
     tactile.add_argument("--pixel-size-mm", type=float, required=True, help="gel size of one image pixel, mm")
-    tactile.add_argument("--bin-size", type=float, default=4.0, help="grey levels per lookup-table bin")
+    tactile.add_argument("--labels", type=Path, help="JSON of hand labels: {\"presses\": [{\"file\": ..., "
+                         "\"contact_radius_px\": ..., \"center_xy_px\": [x, y]}, ...]}, reported beside the fits")
+    tactile.add_argument("--check-every", type=int, default=3, help="hold out every n-th press to check the fit")
+    tactile.add_argument("--max-radius-error", type=float, default=0.2,
+                         help="refuse when the held-out presses' median fitted radius is off the ball's by more "
+                         "than this fraction")
     tactile.set_defaults(func=_calibrate_tactile)
 
+    depth = cli.command(
+        "tactile depth",
+        help="depth maps of tactile images with a calibration (checks a calibration on new presses)",
+        description="For each IMAGE, writes OUT/<image stem>.npz with a float32 `depth` array (indentation in "
+        "metres, 0 = no contact, the image's size) and a picture of it, OUT/<image stem>.png. The sensor "
+        "driver computes depth the same way.",
+    )
+    depth.add_argument("images", type=Path, nargs="+", metavar="IMAGE", help="tactile images")
+    depth.add_argument("--calibration", type=Path, required=True, help="tactile calibration (.npz)")
+    depth.add_argument("--reference", type=Path, required=True, help="image of the untouched gel")
+    depth.add_argument("--out", type=Path, required=True, help="folder to write into")
+    depth.add_argument("--overwrite", action="store_true", help="replace results already in OUT")
+    depth.set_defaults(func=_tactile_depth)
 
-def _images(folder: Path):
+
+def _corner_counts(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(n) for n in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected XxY (e.g. 9x6), got {text!r}") from None
+    return x, y
+
+
+def _images(paths) -> list[Path]:
+    """Image files: each path an image, or a folder whose images are taken in name order."""
     from tacsplat.errors import InvalidInputError
 
-    if not folder.is_dir():
-        raise InvalidInputError(f"{folder}: not a folder")
-    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    if not paths:
-        raise InvalidInputError(f"{folder}: no images ({', '.join(IMAGE_SUFFIXES)})")
-    return paths
+    found = []
+    for path in paths:
+        if path.is_dir():
+            inside = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+            if not inside:
+                raise InvalidInputError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)})")
+            found += inside
+        elif path.is_file():
+            found.append(path)
+        else:
+            raise InvalidInputError(f"{path}: no such image or folder")
+    return found
 
 
 def _read_rgb(path: Path):
@@ -63,26 +114,109 @@ def _read_rgb(path: Path):
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
+def _check_output_file(path: Path, suffix: str) -> None:
+    """``--out`` must name a file, not a folder (checked before any work)."""
+    from tacsplat.errors import ConfigError
+
+    if path.is_dir():
+        raise ConfigError("--out", f"{path} is a folder; give a {suffix} file")
+
+
+def _output_file(path: Path) -> Path:
+    """``--out`` ready to be written: its folder made (when missing) and writable."""
+    from tacsplat.datasets.outputs import ensure_output_dir
+
+    ensure_output_dir(path.parent, "--out")
+    return path
+
+
+def _write_image(path: Path, bgr) -> Path:
+    """Write a picture atomically (a temporary name, then a rename)."""
+    import cv2
+
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    cv2.imwrite(str(tmp), bgr)
+    tmp.replace(path)
+    return path
+
+
+def _board_spec(args):
+    from tacsplat.drivers.wrist_camera import MAX_SQUARE_LENGTH_M, CharucoBoardSpec, ChessboardSpec
+    from tacsplat.errors import ConfigError
+
+    charuco_only = {"--squares-x": args.squares_x, "--squares-y": args.squares_y, "--marker-mm": args.marker_mm,
+                    "--dictionary": args.dictionary, "--legacy-pattern": args.legacy_pattern or None}
+    if args.board == "chessboard":
+        given = [option for option, value in charuco_only.items() if value is not None]
+        if given:
+            raise ConfigError(given[0], "is a ChArUco option; a chessboard takes --inner-corners and --square-mm")
+        if args.inner_corners is None:
+            raise ConfigError("--inner-corners", "needed with --board chessboard: the inner corners (where four "
+                                                 "squares meet) along x and y, e.g. 9x6")
+        if args.square_mm is None:
+            raise ConfigError("--square-mm", "needed with --board chessboard: the printed square side, mm")
+        spec = ChessboardSpec(*args.inner_corners, args.square_mm / 1000.0)
+        fields = {"inner_corners_x": "--inner-corners", "inner_corners_y": "--inner-corners",
+                  "square_length_m": "--square-mm"}
+    else:
+        if args.inner_corners is not None:
+            raise ConfigError("--inner-corners", "is a chessboard option; a ChArUco board takes --squares-x/-y")
+        value = {k: getattr(args, k) if getattr(args, k) is not None else v for k, v in CHARUCO_DEFAULTS.items()}
+        spec = CharucoBoardSpec(value["squares_x"], value["squares_y"], value["square_mm"] / 1000.0,
+                                value["marker_mm"] / 1000.0, value["dictionary"], args.legacy_pattern)
+        fields = {"squares_x": "--squares-x", "squares_y": "--squares-y", "square_length_m": "--square-mm",
+                  "marker_length_m": "--marker-mm", "dictionary": "--dictionary"}
+    lengths = {"square_length_m": "--square-mm", "marker_length_m": "--marker-mm"}
+    for name, option in lengths.items():
+        if name in fields and not 0 < getattr(spec, name) <= MAX_SQUARE_LENGTH_M:
+            raise ConfigError(option, f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got "
+                                      f"{getattr(spec, name) * 1000:g}")
+    if isinstance(spec, CharucoBoardSpec) and not spec.marker_length_m < spec.square_length_m:
+        raise ConfigError("--marker-mm", f"must be smaller than the square ({spec.square_length_m * 1000:g} mm), "
+                                         f"got {spec.marker_length_m * 1000:g}")
+    problem = spec.problem()
+    if problem:
+        raise ConfigError(fields.get(problem[0], problem[0]), problem[1])
+    return spec
+
+
 def _calibrate_camera(args) -> int:
     import numpy as np
 
-    from tacsplat.drivers.wrist_camera import CharucoBoardSpec, calibrate_intrinsics, tacsplat_K_from_opencv
+    from tacsplat.drivers.wrist_camera import ChessboardSpec, calibrate_views, detect_board_views, tacsplat_K_from_opencv
+    from tacsplat.errors import CameraError
 
-    spec = CharucoBoardSpec(args.squares_x, args.squares_y, args.square_mm / 1000.0, args.marker_mm / 1000.0,
-                            args.dictionary, args.legacy_pattern)
-    paths = _images(args.folder)
+    spec = _board_spec(args)
+    _check_output_file(args.out, ".json")
+    paths = _images(args.photos)
     images = [_read_rgb(p) for p in paths]
-    calib = calibrate_intrinsics(images, spec, names=[p.name for p in paths])
-    calib.save(args.out)
-    picture = _corner_sheet(images, [p.name for p in paths], calib, spec, args.out.with_suffix(".png"))
+    names = [p.name for p in paths]
+    views, size = detect_board_views(images, spec, names)
+    if len(views) < 3:
+        option = "--inner-corners" if isinstance(spec, ChessboardSpec) else "--squares-x, --squares-y, --dictionary"
+        seen = f" ({', '.join(v.name for v in views)})" if views else ""
+        raise CameraError("calibration", f"the {spec.describe()} was found in {len(views)} of {len(paths)} "
+                                         f"images{seen}; at least 3 are needed: check {option} against the printed "
+                                         "board and that the whole board is in view and sharp")
+    calib = calibrate_views(views, size, spec, args.distortion)
+    out = _output_file(args.out)
+    calib.save(out)
+    picture = _corner_sheet(images, names, views, calib, out.with_suffix(".png"))
+    coverage = _coverage_picture(images[0], views, calib, out.with_name(out.stem + "_coverage.png"))
     K = tacsplat_K_from_opencv(calib.K_opencv)
-    print(f"{len(calib.per_image_rms_px)} of {len(paths)} images used, {calib.width}x{calib.height}")
+    std = calib.K_std_px
+    print(f"{len(views)} of {len(paths)} images used, {calib.width}x{calib.height}, distortion {args.distortion}")
     print(f"RMS reprojection error: {calib.rms_px:.3f} px")
-    print(f"fx {K[0, 0]:.2f}  fy {K[1, 1]:.2f}  cx {K[0, 2]:.2f}  cy {K[1, 2]:.2f} (pixel centres at +0.5)")
-    print(f"distortion k1 k2 p1 p2 k3: {np.array2string(calib.dist, precision=5)}")
+    print(f"fx {K[0, 0]:.2f} +- {std['fx']:.2f}  fy {K[1, 1]:.2f} +- {std['fy']:.2f}  cx {K[0, 2]:.2f} +- "
+          f"{std['cx']:.2f}  cy {K[1, 2]:.2f} +- {std['cy']:.2f} px (pixel centres at +0.5; {out.name} stores "
+          "OpenCV's K, centres at integers)")
+    print(f"distortion: {np.array2string(calib.dist, precision=5)}")
     for name, err in calib.per_image_rms_px.items():
         print(f"  {name}: {err:.3f} px")
-    print(f"wrote {args.out}; detected corners (green) and their reprojections (red) in {picture}")
+    for warning in calib.warnings:
+        print(f"warning: {warning}")
+    print(f"wrote {out}; detected corners (green) and their reprojections (red) in {picture}, "
+          f"corner coverage in {coverage}")
     return 0
 
 
@@ -94,62 +228,233 @@ def _contact_sheet(tiles, columns: int = 4):
     return np.vstack([np.hstack(tiles[i : i + columns]) for i in range(0, len(tiles), columns)])
 
 
-def _corner_sheet(images, names, calib, spec, path: Path) -> Path:
+def _corner_sheet(images, names, views, calib, path: Path) -> Path:
     """A picture of every board image with its detected corners and their reprojection by the calibration."""
     import cv2
-    import numpy as np
 
-    from tacsplat.drivers.wrist_camera import detect_charuco
-
-    board = spec.board()
+    found = {view.name: view for view in views}
     tiles = []
     for image, name in zip(images, names):
         half = (image.shape[1] // 2, image.shape[0] // 2)
         tile = cv2.resize(cv2.cvtColor(image, cv2.COLOR_RGB2BGR), half, interpolation=cv2.INTER_AREA)
-        obj, img = detect_charuco(image, board)
-        if len(obj) >= 6:
-            ok, rvec, tvec = cv2.solvePnP(obj, img, calib.K_opencv, calib.dist)
-            proj = cv2.projectPoints(obj, rvec, tvec, calib.K_opencv, calib.dist)[0].reshape(-1, 2) if ok else img
-            for (u, v), (pu, pv) in zip(img, proj):  # OpenCV pixel coordinates, drawn at half size
+        view = found.get(name)
+        if view is not None:
+            ok, rvec, tvec = cv2.solvePnP(view.object_points, view.image_points, calib.K_opencv, calib.dist)
+            proj = cv2.projectPoints(view.object_points, rvec, tvec, calib.K_opencv, calib.dist)[0].reshape(-1, 2) \
+                if ok else view.image_points
+            for (u, v), (pu, pv) in zip(view.image_points, proj):  # OpenCV pixel coordinates, drawn at half size
                 cv2.circle(tile, (int(round(u / 2)), int(round(v / 2))), 4, (0, 200, 0), 1, cv2.LINE_AA)
                 cv2.drawMarker(tile, (int(round(pu / 2)), int(round(pv / 2))), (0, 0, 255), cv2.MARKER_CROSS, 5, 1)
         rms = calib.per_image_rms_px.get(name)
         label = f"{name}: " + (f"{rms:.2f} px" if rms is not None else "not used")
         cv2.putText(tile, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 255), 1, cv2.LINE_AA)
         tiles.append(tile)
-    cv2.imwrite(str(path), _contact_sheet(tiles))
-    return path
+    return _write_image(path, _contact_sheet(tiles))
+
+
+def _coverage_picture(first_image, views, calib, path: Path) -> Path:
+    """Where corners were seen: every view's corners (and the board outline) over the first photo, dimmed; the
+    parts of a 3x3 grid with no corner tinted red."""
+    import colorsys
+
+    import cv2
+    import numpy as np
+
+    from tacsplat.drivers.wrist_camera import empty_image_cells
+
+    h, w = first_image.shape[:2]
+    canvas = (cv2.cvtColor(first_image, cv2.COLOR_RGB2BGR) * 0.35).astype(np.uint8)
+    empty = set(empty_image_cells(views, (w, h)))
+    names = ("top-left", "top", "top-right", "left", "centre", "right", "bottom-left", "bottom", "bottom-right")
+    for k, name in enumerate(names):
+        r, c = divmod(k, 3)
+        x0, y0, x1, y1 = c * w // 3, r * h // 3, (c + 1) * w // 3, (r + 1) * h // 3
+        if name in empty:
+            canvas[y0:y1, x0:x1, 2] = np.maximum(canvas[y0:y1, x0:x1, 2], 120)
+            cv2.putText(canvas, "no corners", (x0 + 8, y0 + 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
+                        cv2.LINE_AA)
+        cv2.rectangle(canvas, (x0, y0), (x1 - 1, y1 - 1), (128, 128, 128), 1)
+    for i, view in enumerate(views):
+        colour = tuple(int(255 * x) for x in colorsys.hsv_to_rgb(i / max(len(views), 1), 0.9, 1.0))[::-1]
+        hull = cv2.convexHull(np.round(view.image_points).astype(np.int32))
+        cv2.polylines(canvas, [hull], True, colour, 1, cv2.LINE_AA)
+        for u, v in view.image_points:
+            cv2.circle(canvas, (int(round(u)), int(round(v))), 2, colour, -1, cv2.LINE_AA)
+    text = f"{len(views)} views, {sum(len(v.image_points) for v in views)} corners; " + \
+        ("well spread" if not empty else f"no corners: {', '.join(sorted(empty))}")
+    cv2.putText(canvas, text, (8, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return _write_image(path, canvas)
+
+
+def _read_labels(path: Path) -> dict[str, dict]:
+    """Hand labels of ball presses: file name -> {"radius": px, "centre": (x, y) or None}; errors name the field."""
+    import json
+    import math
+
+    from tacsplat.errors import ConfigError
+
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError("--labels", f"{path}: file not found") from None
+    except (OSError, ValueError) as exc:
+        raise ConfigError("--labels", f"{path}: not readable JSON ({exc})") from None
+    presses = data.get("presses") if isinstance(data, dict) else None
+    if not isinstance(presses, list):
+        raise ConfigError("presses", "expected a list of {file, contact_radius_px, center_xy_px}", source=path)
+    labels = {}
+    for i, press in enumerate(presses):
+        where = f"presses[{i}]"
+        if not isinstance(press, dict) or not isinstance(press.get("file"), str):
+            raise ConfigError(f"{where}.file", f"expected an image file name, got {press!r}", source=path)
+        radius = press.get("contact_radius_px")
+        if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not (math.isfinite(radius) and radius > 0):
+            raise ConfigError(f"{where}.contact_radius_px", f"expected a number of pixels > 0, got {radius!r}",
+                              source=path)
+        centre = press.get("center_xy_px")
+        if centre is not None and not (isinstance(centre, list) and len(centre) == 2 and all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in centre)):
+            raise ConfigError(f"{where}.center_xy_px", f"expected [x, y] pixels, got {centre!r}", source=path)
+        labels[press["file"]] = {"radius": float(radius), "centre": None if centre is None else tuple(centre)}
+    return labels
+
+
+def _press_sheet(images, names, calib, labels, path: Path) -> Path:
+    """Each press with its detected contact circle (red), the hand label (white) and its role and ball fit."""
+    import cv2
+
+    scale = max(1, round(320 / images[0].shape[1]))
+    records = {p["file"]: p for p in calib.presses}
+    tiles = []
+    for image, name in zip(images, names):
+        tile = cv2.resize(cv2.cvtColor(image, cv2.COLOR_RGB2BGR), None, fx=scale, fy=scale,
+                          interpolation=cv2.INTER_NEAREST)
+        record = records.get(name, {})
+
+        def circle(centre, radius, colour):
+            at = (int(round((centre[0] + 0.5) * scale - 0.5)), int(round((centre[1] + 0.5) * scale - 0.5)))
+            cv2.circle(tile, at, int(round(radius * scale)), colour, 1, cv2.LINE_AA)
+
+        label = labels.get(name)
+        if label and label["centre"] is not None:
+            circle(label["centre"], label["radius"], (255, 255, 255))
+        if record.get("centre_px") is not None:
+            circle(record["centre_px"], record["contact_radius_px"], (0, 0, 255))
+        if record.get("role") == "check":
+            status = f"check: R {record['fitted_radius_m'] * 1e3:.2f} mm" if record["detected"] else "check: NOT FOUND"
+        else:
+            status = "fit" if "skipped" not in record else "fit: skipped"
+        for row, text in enumerate((name, status)):
+            cv2.putText(tile, text, (4, 14 + 16 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
+                        cv2.LINE_AA)
+        tiles.append(tile)
+    return _write_image(path, _contact_sheet(tiles))
 
 
 def _calibrate_tactile(args) -> int:
-    import cv2
+    from tacsplat.drivers.optical_tactile import calibrate_tactile, check_problem
+    from tacsplat.errors import ConfigError, InvalidInputError, TactileError
 
-    from tacsplat.drivers.optical_tactile import TactileCalibration
-    from tacsplat.errors import InvalidInputError
-
-    paths = _images(args.folder)
+    for option, value in (("--ball-radius-mm", args.ball_radius_mm), ("--pixel-size-mm", args.pixel_size_mm)):
+        if not 0 < value < 1000:
+            raise ConfigError(option, f"must be in (0, 1000) mm, got {value}")
+    if not 0 < args.max_radius_error < 1:
+        raise ConfigError("--max-radius-error", f"must be in (0, 1), got {args.max_radius_error}")
+    if args.check_every < 2:
+        raise ConfigError("--check-every", f"must be >= 2, got {args.check_every}")
+    _check_output_file(args.out, ".npz")
+    if not args.folder.is_dir():
+        raise InvalidInputError(f"{args.folder}: not a folder")
+    paths = _images([args.folder])
     references = [p for p in paths if p.stem.lower() == "reference"]
     if len(references) != 1:
         raise InvalidInputError(f"{args.folder}: expected exactly one image named reference.*, found {len(references)}")
+    labels = _read_labels(args.labels) if args.labels else {}
     presses = [p for p in paths if p not in references]
+    reference = _read_rgb(references[0])
     images = [_read_rgb(p) for p in presses]
-    calib = TactileCalibration.fit(_read_rgb(references[0]), images, args.ball_radius_mm / 1000.0,
-                                   args.pixel_size_mm / 1000.0, bin_size=args.bin_size)
-    calib.save(args.out)
-    tiles = []
-    for k, image in enumerate(images):
-        tile = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-        for press in calib.presses:
-            if press["index"] == k:
-                (cx, cy), r = press["centre_px"], press["contact_radius_px"]
-                cv2.circle(tile, (int(round(cx)), int(round(cy))), int(round(r)), (0, 0, 255), 1, cv2.LINE_AA)
-        cv2.putText(tile, presses[k].name, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
-        tiles.append(tile)
-    picture = args.out.with_suffix(".png")
-    cv2.imwrite(str(picture), _contact_sheet(tiles))
-    print(f"{len(calib.presses)} of {len(presses)} presses used; contact circles drawn in {picture}")
-    for press in calib.presses:
-        cx, cy = press["centre_px"]
-        print(f"  {presses[press['index']].name}: centre ({cx:.1f}, {cy:.1f}) px, radius {press['contact_radius_px']:.1f} px")
-    print(f"wrote {args.out}")
+    for path, image in zip(presses, images):
+        if image.shape != reference.shape:
+            raise InvalidInputError(f"{path}: {image.shape[1]}x{image.shape[0]}, the reference "
+                                    f"{reference.shape[1]}x{reference.shape[0]}")
+    names = [p.name for p in presses]
+    calib = calibrate_tactile(reference, images, names, args.ball_radius_mm / 1000.0, args.pixel_size_mm / 1000.0,
+                              labels={name: label["radius"] for name, label in labels.items()},
+                              check_every=args.check_every)
+    problem = check_problem(calib, args.max_radius_error)
+    out = _output_file(args.out)
+    picture = out.with_suffix(".png") if problem is None else out.with_name(out.stem + ".rejected.png")
+    _press_sheet(images, names, calib, labels, picture)
+    fitted = [p for p in calib.presses if p["role"] == "fit"]
+    print(f"{sum('skipped' not in p for p in fitted)} of {len(fitted)} presses fitted, "
+          f"{len(calib.presses) - len(fitted)} held out (1 in {args.check_every}) to check the fit; contact circles "
+          f"drawn in {picture}")
+    for p in calib.presses:
+        label = f", hand label {p['label_radius_px']:g} px" if p.get("label_radius_px") else ""
+        if p["role"] == "fit":
+            detail = p.get("skipped") or (f"contact circle ({p['centre_px'][0]:.1f}, {p['centre_px'][1]:.1f}) px, "
+                                          f"radius {p['contact_radius_px']:.1f} px{label}")
+            print(f"  fit    {p['file']}: {detail}")
+        elif p["detected"]:
+            phantom = f"; {p['other_contact_px']} px of contact away from the ball" if p["other_contact_px"] else ""
+            print(f"  check  {p['file']}: fitted ball radius {p['fitted_radius_m'] * 1e3:.3f} mm, peak indentation "
+                  f"{p['peak_indentation_m'] * 1e3:.3f} mm, contact radius {p['contact_radius_px']:.1f} px{label}"
+                  f"{phantom}")
+        else:
+            print(f"  check  {p['file']}: no contact detected")
+    summary = calib.check_summary
+    if summary.get("detected"):
+        print(f"held-out presses: {summary['detected']} of {summary['presses']} detected; fitted ball radius median "
+              f"{summary['median_fitted_radius_m'] * 1e3:.3f} mm (ball {args.ball_radius_mm:g} mm), quartiles "
+              f"{summary['q25_fitted_radius_m'] * 1e3:.3f}-{summary['q75_fitted_radius_m'] * 1e3:.3f} mm, range "
+              f"{summary['min_fitted_radius_m'] * 1e3:.3f}-{summary['max_fitted_radius_m'] * 1e3:.3f} mm; median "
+              f"peak indentation {summary['median_peak_indentation_m'] * 1e3:.3f} mm")
+        if "median_contact_radius_over_label" in summary:
+            print(f"contact radius / hand label: median {summary['median_contact_radius_over_label']:.2f} (the circle "
+                  "is the steepest slope, the rim of the ball's print)")
+    if problem:
+        raise TactileError("calibration", f"not written: {problem} (the contact circles are drawn in {picture})")
+    calib.save(out)
+    print(f"wrote {out}")
+    return 0
+
+
+def _tactile_depth(args) -> int:
+    import cv2
+    import numpy as np
+
+    from tacsplat.datasets.outputs import claim_output_dir
+    from tacsplat.drivers.optical_tactile import TactileCalibration
+    from tacsplat.errors import ConfigError, InvalidInputError
+
+    calib = TactileCalibration.load(args.calibration)
+    height, width = calib.image_size
+    reference = _read_rgb(args.reference)
+    inputs = [(args.reference, reference)] + [(path, _read_rgb(path)) for path in args.images]
+    for path, image in inputs:
+        if image.shape[:2] != (height, width):
+            raise InvalidInputError(f"{path}: {image.shape[1]}x{image.shape[0]}, but {args.calibration.name} is "
+                                    f"for {width}x{height} images")
+    stems = {}
+    for path in args.images:
+        if path.stem in stems and stems[path.stem] != path:
+            raise InvalidInputError(f"{path} and {stems[path.stem]} would both be written as {path.stem}.npz")
+        stems[path.stem] = path
+    with claim_output_dir(args.out):
+        targets = [(args.out / f"{stem}.npz", args.out / f"{stem}.png") for stem in stems]
+        existing = [t for pair in targets for t in pair if t.exists()]
+        if existing and not args.overwrite:
+            raise ConfigError("--out", f"{existing[0]} already exists; pass --overwrite to replace it")
+        images = dict(inputs)
+        for (stem, path), (npz, png) in zip(stems.items(), targets):
+            depth = calib.depth(images[path], reference)
+            tmp = npz.with_name(f".{stem}.tmp.npz")
+            np.savez_compressed(tmp, depth=depth)
+            tmp.replace(npz)
+            peak = float(depth.max())
+            scaled = np.zeros(depth.shape, np.uint8) if peak <= 0 else np.clip(depth / peak * 255, 0, 255).astype(np.uint8)
+            picture = cv2.applyColorMap(scaled, cv2.COLORMAP_VIRIDIS)
+            picture[depth <= 0] = 0
+            _write_image(png, picture)
+            print(f"{path.name}: peak indentation {peak * 1e3:.3f} mm, {int((depth > 0).sum())} contact pixels -> {npz}")
     return 0

@@ -1,19 +1,30 @@
 """OpticalTactileSensor: a DIGIT/GelSight-like fingertip camera, and its depth reconstruction.
 
-Depth the GelSight way (Johnson & Adelson 2009; Yuan et al. 2017):
+Depth the GelSight way (Johnson & Adelson 2009; Yuan et al. 2017; GelSight's SDK), made to survive a
+real gel (illumination drift since the reference, marker dots, noise, a soft rim around each contact):
 
-1. calibration: presses of a ball of known radius; in each, the contact circle
-   is found in the colour change against the no-contact reference frame, the
-   sphere gives the true surface gradient at every pixel inside it (zero
-   outside), and a lookup table from colour change (dR, dG, dB) to gradient
-   (dd/dx, dd/dy) is filled with the mean gradient per colour bin, empty bins
-   taking their nearest filled neighbour;
-2. reading: colour change -> gradients by the table -> depth by Poisson
-   integration (``laplacian(d) = div(g)``, zero depth on the image border)
-   solved exactly with a type-I discrete sine transform (``scipy.fft``).
+1. colour change (:func:`colour_change`): marker dots (small dark blobs in the reference and near them in
+   the image, found by a black-hat filter, :func:`marker_mask`) are inpainted in both; their difference
+   is median-filtered (3x3) and a smooth background of it is subtracted (a normalised Gaussian
+   convolution over the pixels that did not change, iterated), which removes slow illumination
+   differences. A pixel changed when the magnitude exceeds ``median + 6 x 1.4826 MAD`` of the image, and
+   at least the calibration's threshold (the 99.5th percentile of the change far from its presses).
+2. calibration on presses of a ball of known radius (:meth:`TactileCalibration.fit`): the contact circle
+   (:func:`find_contact_circle`) is where the colour change peaks along rays from the changed blob (the
+   steepest slope of the gel, the rim of the ball's cap), fitted robustly. Inside it the sphere gives the
+   surface gradient at every pixel; beyond twice its radius the gradient is zero; the soft rim in between,
+   where the free gel sags towards the ball, is left out. A small MLP maps (colour change, pixel position)
+   to the gradient (dd/dx, dd/dy), as GelSight's SDK does.
+3. reading (:meth:`TactileCalibration.depth`): gradients from the MLP within the changed region (0
+   outside); the contact is where the object holds the gel (:func:`contact_region`: the slope has not
+   started to fall going outwards, as inside a ball's print, not in the sagging rim around it); the depth
+   by least-squares (Poisson) integration over the contact with zero height outside it
+   (:func:`poisson_integrate`); a contact shallower than a quarter pixel is noise. The sag of the free gel
+   around a contact is not counted: depth is the object's print relative to the rim of its contact.
 
-Depth is the indentation in metres (>= 0) of the sensor model of DESIGN.md;
-x along image columns, y along image rows.
+:func:`fit_ball` checks a calibration on a press: a sphere fitted to the lifted contact points against the
+known ball. Depth is the indentation in metres (>= 0) of the sensor model of DESIGN.md; x along image
+columns, y along image rows. Circle centres here are in array-index pixels (pixel centres at integers).
 """
 
 from __future__ import annotations
@@ -26,179 +37,39 @@ from typing import Callable, Sequence
 
 import cv2
 import numpy as np
-from scipy import fft, ndimage
+from scipy import ndimage, sparse
+from scipy.optimize import least_squares
+from scipy.sparse.linalg import spsolve
 
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import InvalidInputError, TactileError
-from tacsplat.geometry import as_pose
+from tacsplat.geometry import as_pose, tactile_pixel_grid
 from tacsplat.types import TactileReading
 
 log = logging.getLogger(__name__)
 
 FORMAT = "tacsplat-tactile-calibration"
+VERSION = 2
+CHANGE_MADS = 6.0  # a pixel changed when its colour change exceeds the image's median by this many (robust) sigmas
+MIN_CHANGE = 6.0  # ... and at least this many grey levels
+BACKGROUND_SIGMA = 1 / 8  # of the image's larger side: the scale of illumination drift
+MARKER_MIN_CONTRAST = 25.0  # grey levels a marker dot is darker than its surroundings
+CHANGE_SCALE = 64.0  # grey levels -> MLP input
+FLAT_BEYOND = 2.0  # contact radii: beyond this the gel of a ball press is taken as flat
+RIM_MARGIN_PX = 0.5  # inside the contact circle, this close to its rim is left out of the fit
+CONTACT_SIGMA_PX = 2.0  # smoothing of the gradients before finding the contact's rim (the steepest slope)
+MIN_CONTACT_DEPTH_PX = 0.25  # pixel sizes: a shallower contact cannot be told from noise (a ball's contact of
+# radius a px is a^2 / 2R px deep: about this for the smallest blob that counts)
 
 
-def poisson_integrate(gx: np.ndarray, gy: np.ndarray, pixel_size_m: float) -> np.ndarray:
-    """Depth [h, w] metres whose gradient best matches ``(gx, gy)`` [h, w] (dimensionless slopes).
-
-    Solves the 5-point ``laplacian(d) = div(g)`` with ``d = 0`` on the border by
-    a type-I DST (exact for Dirichlet boundaries, O(N log N)).
-    """
-    gx = np.asarray(gx, dtype=np.float64)
-    gy = np.asarray(gy, dtype=np.float64)
-    if gx.shape != gy.shape or gx.ndim != 2 or min(gx.shape) < 3:
-        raise InvalidInputError(f"poisson_integrate: gx {gx.shape} and gy {gy.shape} must be the same [h>=3, w>=3]")
-    if not (np.all(np.isfinite(gx)) and np.all(np.isfinite(gy))):
-        raise InvalidInputError("poisson_integrate: gradients contain NaN or infinite values")
-    h, w = gx.shape
-    # divergence in metres per pixel^2 -> right-hand side of the pixel-grid Laplacian of d (metres)
-    div = (np.gradient(gx, axis=1) + np.gradient(gy, axis=0)) * pixel_size_m
-    rhs = div[1:-1, 1:-1]
-    ky = np.arange(1, h - 1)
-    kx = np.arange(1, w - 1)
-    eig = (2 * np.cos(np.pi * ky / (h - 1)) - 2)[:, None] + (2 * np.cos(np.pi * kx / (w - 1)) - 2)[None, :]
-    interior = fft.idstn(fft.dstn(rhs, type=1) / eig, type=1)
-    depth = np.zeros((h, w))
-    depth[1:-1, 1:-1] = interior
-    return depth
+def _odd(n: float) -> int:
+    n = int(round(n))
+    return n + 1 - n % 2
 
 
-def find_contact_circle(diff: np.ndarray, min_change: float = 12.0) -> tuple[float, float, float] | None:
-    """Centre (cx, cy) and radius in pixels of the largest contact blob in a colour change [h, w, 3], or None.
-
-    Pixel centres at integer coordinates (array indices), like ``np.indices``.
-    """
-    magnitude = ndimage.gaussian_filter(np.linalg.norm(diff, axis=-1), 1.0)
-    mask = (magnitude > min_change).astype(np.uint8)
-    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5)))
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    if not contours:
-        return None
-    contour = max(contours, key=cv2.contourArea)
-    if len(contour) < 8:
-        return None
-    filled = np.zeros_like(mask)
-    cv2.drawContours(filled, [contour], -1, 1, thickness=-1)
-    ys, xs = np.nonzero(filled)
-    # circle of the same area and centroid: robust to the ring-shaped colour change of a sphere
-    return float(xs.mean()), float(ys.mean()), float(np.sqrt(len(xs) / np.pi))
-
-
-def sphere_press_gradients(shape, centre, contact_radius_px: float, ball_radius_px: float):
-    """Ideal depth gradients (gx, gy) [h, w] of a sphere pressed into the gel, and the contact mask."""
-    ys, xs = np.indices(shape, dtype=np.float64)
-    dx, dy = xs - centre[0], ys - centre[1]
-    rho2 = dx**2 + dy**2
-    inside = rho2 < contact_radius_px**2
-    root = np.sqrt(np.maximum(ball_radius_px**2 - rho2, 1e-12))
-    # depth = sqrt(R^2 - rho^2) - const inside the contact: slope = -(x - cx) / sqrt(R^2 - rho^2)
-    gx = np.where(inside, -dx / root, 0.0)
-    gy = np.where(inside, -dy / root, 0.0)
-    return gx, gy, inside, np.sqrt(rho2)
-
-
-@dataclass
-class TactileCalibration:
-    """Lookup table colour change -> surface gradient, for one sensor at one image size."""
-
-    lut: np.ndarray  # [B, B, B, 2] float32 (gx, gy) per (dR, dG, dB) bin
-    bin_size: float  # grey levels per bin
-    pixel_size_m: float
-    image_size: tuple[int, int]  # (height, width)
-    ball_radius_m: float = 0.0
-    noise_floor_m: float = 5e-6  # reconstructed depth below this is no contact
-    presses: list[dict] = field(default_factory=list)  # per-press diagnostics (centre, radius)
-
-    @property
-    def bins(self) -> int:
-        return self.lut.shape[0]
-
-    def _bin_index(self, diff: np.ndarray) -> np.ndarray:
-        half = self.bins // 2
-        return np.clip(np.floor(diff / self.bin_size).astype(np.int64) + half, 0, self.bins - 1)
-
-    @classmethod
-    def fit(cls, reference: np.ndarray, presses: Sequence[np.ndarray], ball_radius_m: float, pixel_size_m: float,
-            bin_size: float = 4.0, rim_margin_px: float = 1.5, min_change: float = 12.0) -> "TactileCalibration":
-        """Fit the table from a no-contact ``reference`` [h, w, 3] RGB and ball-press images [h, w, 3] RGB."""
-        if not (ball_radius_m > 0 and pixel_size_m > 0):
-            raise InvalidInputError(f"ball_radius_m ({ball_radius_m}) and pixel_size_m ({pixel_size_m}) must be > 0")
-        reference = _as_rgb(reference, "reference")
-        bins = int(np.ceil(256 / bin_size))  # colour changes within +-128 grey levels
-        bins += bins % 2
-        sums = np.zeros((bins**3, 2))
-        counts = np.zeros(bins**3)
-        ball_px = ball_radius_m / pixel_size_m
-        calib = cls(np.zeros((bins, bins, bins, 2), np.float32), bin_size, pixel_size_m, reference.shape[:2],
-                    ball_radius_m)
-        for k, image in enumerate(presses):
-            image = _as_rgb(image, f"press {k}")
-            if image.shape != reference.shape:
-                raise TactileError("calibration", f"press {k} is {image.shape}, the reference {reference.shape}")
-            diff = image.astype(np.float64) - reference
-            circle = find_contact_circle(diff, min_change)
-            if circle is None or circle[2] < 3 or circle[2] >= ball_px:
-                log.warning("press %d: no usable contact circle (%s), skipped", k, circle)
-                continue
-            cx, cy, r = circle
-            gx, gy, inside, rho = sphere_press_gradients(diff.shape[:2], (cx, cy), r, ball_px)
-            use = (rho < r - rim_margin_px) | (rho > r + 2 * rim_margin_px)  # the rim is ambiguous
-            idx = calib._bin_index(diff[use])
-            flat = (idx[:, 0] * bins + idx[:, 1]) * bins + idx[:, 2]
-            np.add.at(sums, flat, np.stack([gx[use], gy[use]], axis=1))
-            np.add.at(counts, flat, 1.0)
-            calib.presses.append({"index": k, "centre_px": [cx, cy], "contact_radius_px": r})
-        if not calib.presses:
-            raise TactileError("calibration", "no ball press with a detectable contact circle")
-        means = sums / np.maximum(counts, 1.0)[:, None]
-        # empty bins take the mean of the nearest filled bin (Euclidean in colour space)
-        empty = (counts == 0).reshape(bins, bins, bins)
-        nearest = ndimage.distance_transform_edt(empty, return_distances=False, return_indices=True)
-        flat = np.ravel_multi_index(tuple(nearest), (bins,) * 3)
-        calib.lut = means[flat].astype(np.float32)
-        return calib
-
-    def gradients(self, image: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Surface gradients (gx, gy) [h, w] of the gel in ``image`` against ``reference`` (RGB uint8)."""
-        diff = _as_rgb(image, "image").astype(np.float64) - _as_rgb(reference, "reference")
-        idx = self._bin_index(diff)
-        g = self.lut[idx[..., 0], idx[..., 1], idx[..., 2]]
-        return g[..., 0].astype(np.float64), g[..., 1].astype(np.float64)
-
-    def depth(self, image: np.ndarray, reference: np.ndarray) -> np.ndarray:
-        """Indentation [h, w] float32 metres (>= 0) of ``image`` against the no-contact ``reference``."""
-        if image.shape[:2] != tuple(self.image_size):
-            raise TactileError("calibration", f"image is {image.shape[:2]}, the calibration is for {self.image_size}")
-        gx, gy = self.gradients(image, reference)
-        depth = poisson_integrate(gx, gy, self.pixel_size_m)
-        depth[depth < self.noise_floor_m] = 0.0
-        return depth.astype(np.float32)
-
-    def save(self, path: str | Path) -> None:
-        path = Path(path)
-        meta = {"format": FORMAT, "version": 1, "bin_size": self.bin_size, "pixel_size_m": self.pixel_size_m,
-                "image_size": list(self.image_size), "ball_radius_m": self.ball_radius_m,
-                "noise_floor_m": self.noise_floor_m, "presses": self.presses}
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez_compressed(tmp, lut=self.lut, meta=json.dumps(meta))
-        tmp.replace(path)
-
-    @classmethod
-    def load(cls, path: str | Path) -> "TactileCalibration":
-        path = Path(path)
-        try:
-            with np.load(path) as data:
-                lut, meta = data["lut"], json.loads(str(data["meta"]))
-        except FileNotFoundError:
-            raise TactileError("calibration", f"{path}: file not found") from None
-        except (KeyError, ValueError, OSError) as exc:
-            raise TactileError("calibration", f"{path}: not a tactile calibration file ({exc})") from None
-        if meta.get("format") != FORMAT:
-            raise TactileError("calibration", f"{path} [format]: expected {FORMAT!r}")
-        if lut.ndim != 4 or lut.shape[-1] != 2 or len(set(lut.shape[:3])) != 1:
-            raise TactileError("calibration", f"{path} [lut]: expected [B, B, B, 2], got {lut.shape}")
-        return cls(lut, float(meta["bin_size"]), float(meta["pixel_size_m"]), tuple(meta["image_size"]),
-                   float(meta["ball_radius_m"]), float(meta["noise_floor_m"]), list(meta["presses"]))
+def _min_area_px(shape) -> int:
+    """Smallest blob of changed pixels that counts (0.2 % of the image, at least 20 px)."""
+    return max(20, int(0.002 * shape[0] * shape[1]))
 
 
 def _as_rgb(image, name: str) -> np.ndarray:
@@ -206,6 +77,540 @@ def _as_rgb(image, name: str) -> np.ndarray:
     if image.ndim != 3 or image.shape[2] != 3:
         raise InvalidInputError(f"{name}: expected an [h, w, 3] RGB image, got shape {image.shape}")
     return image
+
+
+def _dark_dots(rgb: np.ndarray) -> np.ndarray:
+    """Small round blobs (less than ``min(h, w) / 16`` px across) at least 25 grey levels darker than around them."""
+    gray = cv2.cvtColor(np.clip(np.rint(rgb), 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    size = _odd(max(5, min(gray.shape) / 16))
+    blackhat = cv2.morphologyEx(gray, cv2.MORPH_BLACKHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    count, labels, stats, _ = cv2.connectedComponentsWithStats((blackhat > MARKER_MIN_CONTRAST).astype(np.uint8))
+    width, height, area = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT], stats[:, cv2.CC_STAT_AREA]
+    dot = (np.maximum(width, height) < size) & (area >= 0.4 * width * height)  # small and round-ish, not a line
+    dot[0] = False
+    return dot[labels]
+
+
+def marker_mask(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """Marker dots to inpaint in both images [h, w] bool: the dark dots of the untouched gel's ``reference``, and
+    the image's dark dots near them (a marker moves a little in a press), grown by a pixel."""
+    dots = _dark_dots(reference)
+    if not dots.any():
+        return dots
+    size = _odd(max(5, min(dots.shape) / 16))
+    near = cv2.dilate(dots.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))) > 0
+    count, labels = cv2.connectedComponents(_dark_dots(image).astype(np.uint8))
+    moved = np.zeros(count, bool)
+    moved[np.unique(labels[near & (labels > 0)])] = True
+    moved[0] = False
+    return cv2.dilate((dots | moved[labels]).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+
+
+def _inpaint(rgb: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    image = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+    return cv2.inpaint(image, mask.astype(np.uint8), 3, cv2.INPAINT_TELEA).astype(np.float64)
+
+
+def _blur(image: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur (each channel), edges replicated."""
+    return cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma, borderType=cv2.BORDER_REPLICATE).astype(np.float64)
+
+
+def _robust_threshold(magnitude: np.ndarray, floor: float) -> float:
+    median = float(np.median(magnitude))
+    mad = 1.4826 * float(np.median(np.abs(magnitude - median)))
+    return max(floor, median + CHANGE_MADS * mad)
+
+
+@dataclass
+class ColourChange:
+    """The normalised colour change of a tactile image against its reference."""
+
+    change: np.ndarray  # [h, w, 3] float32 grey levels, slow illumination differences removed
+    magnitude: np.ndarray  # [h, w] float32, the norm of the (lightly smoothed) change
+    threshold: float  # grey levels: a pixel whose magnitude exceeds it changed
+
+    @property
+    def changed(self) -> np.ndarray:
+        return self.magnitude > self.threshold
+
+
+def colour_change(image: np.ndarray, reference: np.ndarray, min_change: float = MIN_CHANGE,
+                  iterations: int = 3) -> ColourChange:
+    """The colour change of ``image`` against the no-contact ``reference`` (both [h, w, 3] RGB), see the module doc."""
+    image = _as_rgb(image, "image").astype(np.float64)
+    reference = _as_rgb(reference, "reference").astype(np.float64)
+    if image.shape != reference.shape:
+        raise InvalidInputError(f"image is {image.shape[1]}x{image.shape[0]}, the reference "
+                                f"{reference.shape[1]}x{reference.shape[0]}")
+    markers = marker_mask(image, reference)
+    if markers.any():
+        image, reference = _inpaint(image, markers), _inpaint(reference, markers)
+    diff = cv2.medianBlur((image - reference).astype(np.float32), 3).astype(np.float64)
+    h, w = diff.shape[:2]
+    sigma = BACKGROUND_SIGMA * max(h, w)
+    still = np.ones((h, w))
+    for _ in range(iterations):
+        weight = _blur(still, sigma)
+        background = _blur(diff * still[..., None], sigma)
+        change = diff - background / np.maximum(weight, 1e-6)[..., None]
+        magnitude = np.linalg.norm(_blur(change, 1.0), axis=-1)
+        threshold = _robust_threshold(magnitude, min_change)
+        still = ndimage.binary_erosion(magnitude < threshold, iterations=3).astype(np.float64)
+        if not still.any():  # everything changed: no background left to model
+            break
+    return ColourChange(change.astype(np.float32), magnitude.astype(np.float32), threshold)
+
+
+def _changed_blobs(change: ColourChange) -> np.ndarray:
+    """Changed pixels in blobs of at least the minimum area (see :func:`_solid_blobs`)."""
+    return _solid_blobs(change.changed)
+
+
+def _solid_blobs(mask: np.ndarray) -> np.ndarray:
+    """``mask`` opened (3x3: specks go), closed (``min(h, w) / 16``: a thin crack, such as the line where a gel's
+    colour change vanishes, is bridged), its holes filled, blobs smaller than the minimum area dropped."""
+    ellipse = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
+    mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, ellipse)
+    size = _odd(max(5, min(mask.shape) / 16))
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    keep = np.zeros(count, bool)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= _min_area_px(mask.shape)
+    return ndimage.binary_fill_holes(keep[labels])
+
+
+@dataclass(frozen=True)
+class ContactCircle:
+    """A contact circle, in array-index pixels (pixel centres at integers)."""
+
+    cx: float
+    cy: float
+    radius: float
+    rms_px: float  # of the rim points about the circle
+
+
+def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """Algebraic (Kasa) least-squares circle through points."""
+    A = np.column_stack([x, y, np.ones_like(x)])
+    (a, b, c), *_ = np.linalg.lstsq(A, x**2 + y**2, rcond=None)
+    cx, cy = a / 2, b / 2
+    return cx, cy, float(np.sqrt(max(c + cx**2 + cy**2, 0.0)))
+
+
+def find_contact_circle(change: ColourChange, rays: int = 90) -> ContactCircle | None:
+    """The contact circle of a ball press: the largest changed blob, refined to where the change peaks along rays.
+
+    None when no blob is large enough, or the rim is not a circle (fewer than half the rays find their peak
+    inside the image, fewer than a third agree on one circle, or the rim points scatter about it by more
+    than 15 % of its radius).
+    """
+    blobs = _changed_blobs(change)
+    count, labels, stats, centroids = cv2.connectedComponentsWithStats(blobs.astype(np.uint8), connectivity=8)
+    if count < 2:
+        return None
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    (cx, cy), r = centroids[best], float(np.sqrt(stats[best, cv2.CC_STAT_AREA] / np.pi))
+    magnitude = change.magnitude.astype(np.float64)
+    h, w = magnitude.shape
+    angles = np.linspace(0.0, 2 * np.pi, rays, endpoint=False)
+    ray = np.arange(rays)
+    for _ in range(3):  # centre and radius from the blob, then from the previous circle
+        radii = np.arange(0.0, 2.0 * r + 4.0, 0.25)
+        xs = cx + radii[None, :] * np.cos(angles)[:, None]
+        ys = cy + radii[None, :] * np.sin(angles)[:, None]
+        profile = ndimage.gaussian_filter1d(ndimage.map_coordinates(magnitude, [ys, xs], order=1, mode="nearest"),
+                                            2.0, axis=1)
+        outside = np.cumsum((xs < 0) | (xs > w - 1) | (ys < 0) | (ys > h - 1), axis=1) > 0  # from leaving on
+        profile[outside | (radii < 0.4 * r)] = -np.inf
+        peak = np.argmax(profile, axis=1)
+        beyond = np.minimum(peak + 4, len(radii) - 1)  # a peak is one only if the ray goes on past it
+        usable = np.isfinite(profile[ray, peak]) & ~outside[ray, beyond]
+        if usable.sum() < rays // 2:
+            return None
+        px, py = xs[ray, peak][usable], ys[ray, peak][usable]
+        keep = np.ones(len(px), bool)
+        for _ in range(3):  # trim rim points off the circle (a shadow, a marker)
+            if keep.sum() < rays // 3:
+                return None
+            cx, cy, r = _fit_circle(px[keep], py[keep])
+            residual = np.abs(np.hypot(px - cx, py - cy) - r)
+            keep = residual <= max(1.0, 2.5 * 1.4826 * np.median(residual[keep]))
+        if not (np.isfinite(r) and r >= 3.0):
+            return None
+    rms = float(np.sqrt(np.mean(residual[keep] ** 2)))
+    if keep.sum() < rays // 3 or rms > 0.15 * r:
+        return None
+    return ContactCircle(float(cx), float(cy), float(r), rms)
+
+
+def sphere_press_gradients(shape, centre, contact_radius_px: float, ball_radius_px: float):
+    """Depth gradients (gx, gy) [h, w] of a ball pressed into the gel (0 outside the contact), and rho [h, w] px."""
+    ys, xs = np.indices(shape, dtype=np.float64)
+    dx, dy = xs - centre[0], ys - centre[1]
+    rho = np.hypot(dx, dy)
+    inside = rho < contact_radius_px
+    root = np.sqrt(np.maximum(ball_radius_px**2 - rho**2, 1e-12))
+    # indentation d = sqrt(R^2 - rho^2) - const inside the contact: dd/dx = -(x - cx) / sqrt(R^2 - rho^2)
+    return np.where(inside, -dx / root, 0.0), np.where(inside, -dy / root, 0.0), rho
+
+
+def poisson_integrate(gx: np.ndarray, gy: np.ndarray, pixel_size_m: float, mask: np.ndarray | None = None) -> np.ndarray:
+    """Depth [h, w] metres whose gradient best matches ``(gx, gy)`` [h, w] (slopes) in ``mask``, 0 outside it.
+
+    Least squares over every pixel edge touching ``mask`` (default: the whole image, with depth 0 beyond
+    its border): ``d_q - d_p = pixel_size * (g_p + g_q) / 2``, with ``g`` taken as 0 outside ``mask``;
+    solved exactly (sparse Cholesky-like factorisation of the normal equations, a Dirichlet Poisson problem).
+    """
+    gx = np.asarray(gx, dtype=np.float64)
+    gy = np.asarray(gy, dtype=np.float64)
+    if gx.shape != gy.shape or gx.ndim != 2 or min(gx.shape) < 3:
+        raise InvalidInputError(f"poisson_integrate: gx {gx.shape} and gy {gy.shape} must be the same [h>=3, w>=3]")
+    if not (np.all(np.isfinite(gx)) and np.all(np.isfinite(gy))):
+        raise InvalidInputError("poisson_integrate: gradients contain NaN or infinite values")
+    mask = np.ones(gx.shape, bool) if mask is None else np.asarray(mask, bool)
+    depth = np.zeros(gx.shape)
+    if not mask.any():
+        return depth
+    inside = np.pad(mask, 1)
+    index = np.full(inside.shape, -1)
+    index[inside] = np.arange(int(inside.sum()))
+    slopes = [np.pad(np.where(mask, g, 0.0), 1) for g in (gx, gy)]
+    rows, cols, vals, rhs = [], [], [], []
+    edge = 0
+    for axis, g in ((1, slopes[0]), (0, slopes[1])):
+        first = [slice(None), slice(None)]
+        second = [slice(None), slice(None)]
+        first[axis], second[axis] = slice(0, -1), slice(1, None)
+        p, q = index[tuple(first)].ravel(), index[tuple(second)].ravel()
+        target = (pixel_size_m * (g[tuple(first)] + g[tuple(second)]) / 2).ravel()
+        used = (p >= 0) | (q >= 0)
+        p, q, target = p[used], q[used], target[used]
+        k = edge + np.arange(len(target))
+        for nodes, sign in ((q, 1.0), (p, -1.0)):
+            known = nodes >= 0
+            rows.append(k[known])
+            cols.append(nodes[known])
+            vals.append(np.full(int(known.sum()), sign))
+        rhs.append(target)
+        edge += len(target)
+    A = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                          shape=(edge, int(inside.sum())))
+    solution = spsolve((A.T @ A).tocsc(), A.T @ np.concatenate(rhs))
+    depth[mask] = solution[index[1:-1, 1:-1][mask]]
+    return depth
+
+
+def contact_region(gx: np.ndarray, gy: np.ndarray, deformed: np.ndarray) -> np.ndarray:
+    """Where the object holds the gel: the slope has not yet started to fall going outwards.
+
+    The rim of a contact is where the gel is steepest: inside a convex object's print the slope grows
+    outwards, in the free gel sagging around it the slope falls. A pixel is in contact when its slope
+    (smoothed over CONTACT_SIGMA_PX) is at least that of the point one pixel further in (against the outward
+    direction ``-g / |g|``); the region is taken within ``deformed`` and made solid (:func:`_solid_blobs`).
+    """
+    sx, sy = ndimage.gaussian_filter(gx, CONTACT_SIGMA_PX), ndimage.gaussian_filter(gy, CONTACT_SIGMA_PX)
+    slope = np.hypot(sx, sy)
+    ys, xs = np.indices(slope.shape, dtype=np.float64)
+    length = np.maximum(slope, 1e-12)
+    inner = ndimage.map_coordinates(slope, [ys + sy / length, xs + sx / length], order=1, mode="nearest")
+    return _solid_blobs((slope >= inner) & deformed) & deformed
+
+
+# --- the gradient model: a small MLP (colour change, pixel position) -> (dd/dx, dd/dy) ---------------------------
+
+
+def _features(change: np.ndarray) -> np.ndarray:
+    """[h * w, 5]: the colour change / CHANGE_SCALE and the pixel position in [-0.5, 0.5]."""
+    h, w = change.shape[:2]
+    ys, xs = np.indices((h, w), dtype=np.float32)
+    position = np.stack([(xs + 0.5) / w - 0.5, (ys + 0.5) / h - 0.5], axis=-1)
+    return np.concatenate([change / CHANGE_SCALE, position], axis=-1).reshape(-1, 5).astype(np.float32)
+
+
+def _mlp(weights: Sequence[np.ndarray], x: np.ndarray) -> np.ndarray:
+    """tanh MLP: weights are (W [in, out], b [out]) pairs."""
+    for i in range(0, len(weights), 2):
+        x = x @ weights[i] + weights[i + 1]
+        if i + 2 < len(weights):
+            x = np.tanh(x)
+    return x
+
+
+def _train_mlp(x: np.ndarray, y: np.ndarray, hidden: int = 32, steps: int = 1500, batch: int = 1024,
+               seed: int = 0) -> list[np.ndarray]:
+    """Fit the MLP (two tanh layers) by Adam on mean squared error; deterministic for a seed."""
+    import torch
+
+    generator = torch.Generator().manual_seed(seed)
+    sizes = [x.shape[1], hidden, hidden, y.shape[1]]
+    layers = []
+    for n_in, n_out in zip(sizes[:-1], sizes[1:]):
+        bound = 1.0 / np.sqrt(n_in)
+        layers.append((torch.rand(n_in, n_out, generator=generator) * 2 - 1) * bound)
+        layers.append(torch.zeros(n_out))
+    params = [p.requires_grad_() for p in layers]
+    inputs, targets = torch.from_numpy(x), torch.from_numpy(y.astype(np.float32))
+    optimiser = torch.optim.Adam(params, lr=3e-3)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps)
+    for _ in range(steps):
+        pick = torch.randint(len(inputs), (min(batch, len(inputs)),), generator=generator)
+        out = inputs[pick]
+        for i in range(0, len(params), 2):
+            out = out @ params[i] + params[i + 1]
+            if i + 2 < len(params):
+                out = torch.tanh(out)
+        loss = ((out - targets[pick]) ** 2).mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        schedule.step()
+    return [p.detach().numpy().astype(np.float32) for p in params]
+
+
+@dataclass
+class TactileCalibration:
+    """Colour change -> surface gradient for one sensor at one image size, fitted on ball presses."""
+
+    weights: list[np.ndarray]  # the MLP: (W [in, out], b [out]) pairs, float32
+    pixel_size_m: float
+    image_size: tuple[int, int]  # (height, width)
+    ball_radius_m: float = 0.0
+    change_threshold: float = MIN_CHANGE  # grey levels: at least this much colour change is a deformed gel
+    noise_floor_m: float = 0.0  # a contact whose deepest point is shallower is none (fit: a quarter pixel)
+    presses: list[dict] = field(default_factory=list)  # per press: file, role (fit | check), circle, ball fit
+    check_summary: dict | None = None  # the ball fits of the held-out presses (see calibrate_tactile)
+
+    @classmethod
+    def fit(cls, reference: np.ndarray, presses: Sequence[np.ndarray], ball_radius_m: float, pixel_size_m: float,
+            names: Sequence[str] | None = None, steps: int = 1500, seed: int = 0) -> "TactileCalibration":
+        """Fit on a no-contact ``reference`` [h, w, 3] RGB and ball-press images [h, w, 3] RGB (see the module doc)."""
+        if not (ball_radius_m > 0 and pixel_size_m > 0):
+            raise InvalidInputError(f"ball_radius_m ({ball_radius_m}) and pixel_size_m ({pixel_size_m}) must be > 0")
+        reference = _as_rgb(reference, "reference")
+        names = list(names) if names is not None else [f"press {k}" for k in range(len(presses))]
+        ball_px = ball_radius_m / pixel_size_m
+        rng = np.random.default_rng(seed)
+        inputs, targets, thresholds, used = [], [], [], []
+        for k, (name, image) in enumerate(zip(names, presses)):
+            image = _as_rgb(image, name)
+            if image.shape != reference.shape:
+                raise TactileError("calibration", f"{name} is {image.shape[1]}x{image.shape[0]}, the reference "
+                                                  f"{reference.shape[1]}x{reference.shape[0]}")
+            change = colour_change(image, reference)
+            circle = find_contact_circle(change)
+            record = {"index": k, "file": name, "role": "fit"}
+            if circle is None or circle.radius >= 0.95 * ball_px:
+                why = "no contact circle" if circle is None else (
+                    f"contact radius {circle.radius:.1f} px is not smaller than the ball's {ball_px:.1f} px")
+                log.warning("%s: %s, skipped", name, why)
+                used.append({**record, "skipped": why})
+                continue
+            gx, gy, rho = sphere_press_gradients(change.magnitude.shape, (circle.cx, circle.cy), circle.radius, ball_px)
+            features = _features(change.change)
+            contact = np.flatnonzero(rho.ravel() < circle.radius - RIM_MARGIN_PX)
+            flat = np.flatnonzero(rho.ravel() > FLAT_BEYOND * circle.radius)
+            flat = rng.choice(flat, min(len(flat), len(contact)), replace=False)
+            pick = np.concatenate([contact, flat])
+            inputs.append(features[pick])
+            targets.append(np.stack([gx.ravel()[pick], gy.ravel()[pick]], axis=1))
+            thresholds.append(float(np.percentile(change.magnitude.ravel()[flat], 99.5)) if len(flat) else MIN_CHANGE)
+            used.append({**record, "centre_px": [circle.cx, circle.cy], "contact_radius_px": circle.radius})
+        if not inputs:
+            raise TactileError("calibration", "no ball press with a detectable contact circle (press the ball "
+                                              "fully inside the image, 0.5-1.5 mm deep; the reference must show "
+                                              "the untouched gel)")
+        weights = _train_mlp(np.concatenate(inputs), np.concatenate(targets), steps=steps, seed=seed)
+        return cls(weights, pixel_size_m, tuple(int(s) for s in reference.shape[:2]), ball_radius_m,
+                   max(MIN_CHANGE, float(np.median(thresholds))), MIN_CONTACT_DEPTH_PX * pixel_size_m, presses=used)
+
+    def change(self, image: np.ndarray, reference: np.ndarray) -> ColourChange:
+        """The colour change of ``image`` against ``reference``, at least this sensor's noise to count."""
+        image = _as_rgb(image, "image")
+        if image.shape[:2] != tuple(self.image_size):
+            raise TactileError("calibration", f"image is {image.shape[1]}x{image.shape[0]}, the calibration is for "
+                                              f"{self.image_size[1]}x{self.image_size[0]}")
+        return colour_change(image, reference, min_change=self.change_threshold)
+
+    def gradients(self, change: ColourChange) -> tuple[np.ndarray, np.ndarray]:
+        """Surface gradients (gx, gy) [h, w] of the gel from its colour change."""
+        g = _mlp(self.weights, _features(change.change)).reshape(*change.magnitude.shape, 2).astype(np.float64)
+        return g[..., 0], g[..., 1]
+
+    def depth(self, image: np.ndarray, reference: np.ndarray) -> np.ndarray:
+        """Indentation [h, w] float32 metres (>= 0, 0 = no contact) of ``image`` against the no-contact ``reference``."""
+        change = self.change(image, reference)
+        deformed = _changed_blobs(change)
+        if not deformed.any():
+            return np.zeros(change.magnitude.shape, np.float32)
+        deformed = ndimage.binary_dilation(deformed, iterations=2)
+        gx, gy = self.gradients(change)
+        gx[~deformed] = 0.0
+        gy[~deformed] = 0.0
+        depth = np.maximum(poisson_integrate(gx, gy, self.pixel_size_m, contact_region(gx, gy, deformed)), 0.0)
+        count, labels = cv2.connectedComponents((depth > 0).astype(np.uint8))
+        deepest = ndimage.maximum(depth, labels, np.arange(count))
+        return np.where(deepest[labels] >= self.noise_floor_m, depth, 0.0).astype(np.float32)
+
+    def save(self, path: str | Path) -> None:
+        """Write the calibration (.npz) atomically (a temporary name, then a rename)."""
+        path = Path(path)
+        meta = {"format": FORMAT, "version": VERSION, "pixel_size_m": self.pixel_size_m,
+                "image_size": list(self.image_size), "ball_radius_m": self.ball_radius_m,
+                "change_threshold": self.change_threshold, "noise_floor_m": self.noise_floor_m,
+                "layers": len(self.weights) // 2, "presses": self.presses, "check_summary": self.check_summary}
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez_compressed(tmp, meta=json.dumps(meta), **{f"w{i}": w for i, w in enumerate(self.weights)})
+        tmp.replace(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "TactileCalibration":
+        path = Path(path)
+        try:
+            with np.load(path) as data:
+                meta = json.loads(str(data["meta"]))
+                weights = [data[f"w{i}"] for i in range(2 * int(meta.get("layers", 0)))]
+        except FileNotFoundError:
+            raise TactileError("calibration", f"{path}: file not found") from None
+        except (KeyError, ValueError, OSError, TypeError):
+            raise TactileError("calibration", f"{path}: not a tactile calibration file (an .npz written by "
+                                              "`tacsplat calibrate tactile`)") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise TactileError("calibration", f"{path} [format]: expected {FORMAT!r}")
+        if meta.get("version") != VERSION:
+            raise TactileError("calibration", f"{path} [version]: {meta.get('version')!r} was written by another "
+                                              f"tacsplat (expected {VERSION}): run `tacsplat calibrate tactile` again")
+        for key in ("pixel_size_m", "ball_radius_m", "change_threshold", "noise_floor_m"):
+            value = meta.get(key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0 \
+                    or (key == "pixel_size_m" and value == 0):
+                raise TactileError("calibration", f"{path} [{key}]: expected a finite number >= 0, got {value!r}")
+        size = meta.get("image_size")
+        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and s >= 3 for s in size)):
+            raise TactileError("calibration", f"{path} [image_size]: expected [height, width] >= 3, got {size!r}")
+        shapes = [w.shape for w in weights]
+        chained = len(weights) >= 4 and all(
+            len(shapes[i]) == 2 and shapes[i + 1] == (shapes[i][1],) and (i == 0 or shapes[i][0] == shapes[i - 2][1])
+            for i in range(0, len(shapes), 2))
+        if not chained or shapes[0][0] != 5 or shapes[-1] != (2,) or not all(np.all(np.isfinite(w)) for w in weights):
+            raise TactileError("calibration", f"{path} [w0..]: not a finite MLP from 5 inputs to 2 outputs: {shapes}")
+        return cls(weights, float(meta["pixel_size_m"]), tuple(size), float(meta["ball_radius_m"]),
+                   float(meta["change_threshold"]), float(meta["noise_floor_m"]), list(meta.get("presses", [])),
+                   meta.get("check_summary"))
+
+
+# --- checking a calibration on ball presses ------------------------------------------------------------------------
+
+
+def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """Sphere (centre [3], radius) through points [N, 3]: algebraic fit, refined on the geometric distance."""
+    A = np.column_stack([2 * points, np.ones(len(points))])
+    solution, *_ = np.linalg.lstsq(A, np.sum(points**2, axis=1), rcond=None)
+    centre = solution[:3]
+    radius = np.sqrt(max(solution[3] + centre @ centre, 1e-18))
+    refined = least_squares(lambda p: np.linalg.norm(points - p[:3], axis=1) - p[3], np.append(centre, radius))
+    return refined.x[:3], float(abs(refined.x[3]))
+
+
+def fit_ball(calibration: TactileCalibration, reference: np.ndarray, image: np.ndarray,
+             label_radius_px: float | None = None) -> dict:
+    """Check a calibration on one ball press: contact circle, depth, and a sphere fitted to the lifted contact points.
+
+    Returns ``detected`` (a contact circle and a contact in the depth), ``centre_px``, ``contact_radius_px``
+    (the circle's), ``fitted_radius_m`` (the sphere through the points of the contact at the circle),
+    ``peak_indentation_m``, ``contact_points``, ``other_contact_px`` (contact away from the ball: phantom
+    contacts) and ``label_radius_px``.
+    """
+    circle = find_contact_circle(calibration.change(image, reference))
+    depth = calibration.depth(image, reference).astype(np.float64)
+    count, labels = cv2.connectedComponents((depth > 0).astype(np.uint8))
+    ball = np.zeros(depth.shape, bool)
+    if circle is not None and count > 1:
+        ys, xs = np.indices(depth.shape)
+        inside = np.hypot(xs - circle.cx, ys - circle.cy) < circle.radius
+        overlap = np.bincount(labels[inside], minlength=count)[1:]
+        ball = labels == 1 + int(np.argmax(overlap)) if overlap.max() > 0 else ball
+    result = {"detected": bool(ball.sum() >= 10), "label_radius_px": label_radius_px,
+              "centre_px": None if circle is None else [circle.cx, circle.cy],
+              "contact_radius_px": None if circle is None else circle.radius,
+              "contact_points": int(ball.sum()), "other_contact_px": int((depth > 0).sum() - ball.sum()),
+              "peak_indentation_m": float(depth[ball].max()) if ball.any() else 0.0, "fitted_radius_m": None}
+    if result["detected"]:
+        x, y = tactile_pixel_grid(*depth.shape, calibration.pixel_size_m)
+        _, radius = fit_sphere(np.column_stack([x[ball], y[ball], -depth[ball]]))
+        result["fitted_radius_m"] = radius
+    return result
+
+
+def _summary(values) -> dict:
+    values = np.asarray(values, dtype=np.float64)
+    q25, median, q75 = np.percentile(values, [25, 50, 75])
+    return {"median": float(median), "q25": float(q25), "q75": float(q75), "min": float(values.min()),
+            "max": float(values.max())}
+
+
+def calibrate_tactile(reference: np.ndarray, presses: Sequence[np.ndarray], names: Sequence[str], ball_radius_m: float,
+                      pixel_size_m: float, labels: dict[str, float] | None = None, check_every: int = 3,
+                      steps: int = 1500) -> TactileCalibration:
+    """Fit on the presses but every ``check_every``-th (the 3rd, 6th, ...), and check the fit on those held out.
+
+    ``labels`` maps a press's name to a hand-labelled contact radius in pixels. The returned calibration's
+    ``presses`` hold every press's role and circle (and ball fit for the held-out ones), ``check_summary``
+    the median and spread of the fitted radii; :func:`check_problem` says whether to refuse it.
+    """
+    names = list(names)
+    if check_every < 2:
+        raise InvalidInputError(f"check_every must be >= 2, got {check_every}")
+    held_out = [k for k in range(len(names)) if k % check_every == check_every - 1]
+    fitted = [k for k in range(len(names)) if k not in held_out]
+    if len(fitted) < 2 or not held_out:
+        raise TactileError("calibration", f"{len(names)} ball presses: at least 3 are needed (2 to fit, 1 to check); "
+                                          "10-30 at different places make a good calibration")
+    calib = TactileCalibration.fit(reference, [presses[k] for k in fitted], ball_radius_m, pixel_size_m,
+                                   names=[names[k] for k in fitted], steps=steps)
+    records = {record["file"]: record for record in calib.presses}
+    labels = labels or {}
+    for k in held_out:
+        result = fit_ball(calib, reference, presses[k], labels.get(names[k]))
+        records[names[k]] = {"index": k, "file": names[k], "role": "check", **result}
+    for k in fitted:
+        records[names[k]].update(index=k, label_radius_px=labels.get(names[k]))
+    calib.presses = [records[name] for name in names]
+    checks = [records[names[k]] for k in held_out]
+    radii = [r["fitted_radius_m"] for r in checks if r["detected"]]
+    calib.check_summary = {"presses": len(checks), "detected": len(radii), "ball_radius_m": ball_radius_m}
+    if radii:
+        spread = _summary(radii)
+        calib.check_summary.update({f"{key}_fitted_radius_m": value for key, value in spread.items()})
+        calib.check_summary["median_peak_indentation_m"] = float(np.median(
+            [r["peak_indentation_m"] for r in checks if r["detected"]]))
+    ratios = [r["contact_radius_px"] / r["label_radius_px"] for r in checks
+              if r["detected"] and r["label_radius_px"] and r["contact_radius_px"]]
+    if ratios:
+        calib.check_summary["median_contact_radius_over_label"] = float(np.median(ratios))
+    return calib
+
+
+def check_problem(calibration: TactileCalibration, max_radius_error: float = 0.2) -> str | None:
+    """Why a calibration from :func:`calibrate_tactile` must not be used (naming what to capture again), or None."""
+    summary = calibration.check_summary or {}
+    ball_mm = calibration.ball_radius_m * 1e3
+    checks = [p for p in calibration.presses if p.get("role") == "check"]
+    capture = (f"capture them again (the same ball of radius {ball_mm:g} mm, pressed about 0.5-1.5 mm deep, wholly "
+               "inside the image, with the reference image of the untouched gel taken just before), "
+               "or check --ball-radius-mm and --pixel-size-mm")
+    missed = [p["file"] for p in checks if not p["detected"]]
+    if missed:
+        return f"no ball press detected in the held-out {', '.join(missed)}: {capture}"
+    median = summary.get("median_fitted_radius_m")
+    error = abs(median / calibration.ball_radius_m - 1.0)
+    if error > max_radius_error:
+        off = [f"{p['file']} {p['fitted_radius_m'] * 1e3:.2f} mm" for p in checks
+               if abs(p["fitted_radius_m"] / calibration.ball_radius_m - 1.0) > max_radius_error]
+        return (f"on the held-out presses the fitted ball radius is {median * 1e3:.2f} mm (median), {error:.0%} off "
+                f"the ball's {ball_mm:g} mm (at most {max_radius_error:.0%} allowed): {'; '.join(off)}; the calibration "
+                f"does not generalise to these presses: {capture}")
+    return None
 
 
 class OpticalTactileSensor:
@@ -267,7 +672,7 @@ class OpticalTactileSensor:
         return rgb, frame.timestamp
 
     def read(self) -> TactileReading:
-        """A reading with depth from the newest frame, its pose in the hand frame."""
+        """A reading with depth from the newest frame (:meth:`TactileCalibration.depth`), its pose in the hand frame."""
         if self.reference is None:
             raise TactileError(self._name, "not open (no reference frame)")
         rgb, frame = self._read_rgb()

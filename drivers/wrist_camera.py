@@ -1,4 +1,11 @@
-"""WristCamera: the RGB camera on the hand, its ChArUco calibration, board pose by PnP, hand-eye calibration.
+"""WristCamera: the RGB camera on the hand, its calibration on ChArUco or chessboard photos, board pose by PnP,
+hand-eye calibration.
+
+Calibration (:func:`calibrate_intrinsics`): board corners at sub-pixel accuracy in every photo, then
+``cv2.calibrateCameraExtended`` with the distortion model of ``DISTORTION_MODELS`` (default OpenCV's five
+coefficients, k3 free). The result knows its own uncertainty: the standard deviations of fx, fy, cx, cy
+(``K_std_px``), and ``warnings`` (:func:`calibration_warnings`) when the focal length is poorly constrained
+(standard deviation above 1 %) or corners are missing from parts of the image, each naming what to add.
 
 Pixel centres: OpenCV's calibration and detectors put pixel centres at integer
 coordinates; tacsplat's ``K`` (``tacsplat.geometry``) puts them at +0.5. OpenCV
@@ -96,6 +103,65 @@ class CharucoBoardSpec:
         board.setLegacyPattern(self.legacy_pattern)
         return board
 
+    def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Corners seen in an image: (object points [N, 3] board metres, image points [N, 2] OpenCV pixels)."""
+        return detect_charuco(image, self.board())
+
+    def describe(self) -> str:
+        return f"ChArUco board ({self.squares_x}x{self.squares_y} squares, {self.dictionary})"
+
+
+@dataclass(frozen=True)
+class ChessboardSpec:
+    """A printed chessboard, by its inner corners (where four squares meet) along x and y; :meth:`problem` tells
+    whether it can be used. Give one odd and one even count, so that the board's orientation is unambiguous."""
+
+    inner_corners_x: int = 9
+    inner_corners_y: int = 6
+    square_length_m: float = 0.025
+
+    def problem(self) -> tuple[str, str] | None:
+        """``(field, what is wrong and the allowed range)`` of the first impossible value, or None."""
+        for name in ("inner_corners_x", "inner_corners_y"):
+            n = getattr(self, name)
+            if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= MAX_BOARD_SQUARES:
+                return name, f"must be an integer in [2, {MAX_BOARD_SQUARES}], got {n!r}"
+        x = self.square_length_m
+        if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:
+            return "square_length_m", f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
+        return None
+
+    def object_points(self) -> np.ndarray:
+        """[N, 3] board metres of the inner corners, row by row (OpenCV's detection order)."""
+        grid = np.mgrid[0 : self.inner_corners_x, 0 : self.inner_corners_y].T.reshape(-1, 2)
+        return np.column_stack([grid * self.square_length_m, np.zeros(len(grid))])
+
+    def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """All inner corners, refined to sub-pixel (``cv2.cornerSubPix``, an 11x11 px window, smaller when the
+        corners are closer), or none: (object points [N, 3] board metres, image points [N, 2] OpenCV pixels)."""
+        problem = self.problem()
+        if problem:
+            raise ConfigError(*problem)
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+        size = (self.inner_corners_x, self.inner_corners_y)
+        found, corners = cv2.findChessboardCorners(gray, size, cv2.CALIB_CB_ADAPTIVE_THRESH |
+                                                   cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not found:
+            return np.zeros((0, 3)), np.zeros((0, 2))
+        grid = corners.reshape(self.inner_corners_y, self.inner_corners_x, 2)
+        spacing = min(np.linalg.norm(np.diff(grid, axis=axis), axis=2).min() for axis in (0, 1))
+        half = int(max(1, min(5, spacing / 2 - 1)))  # the window must not reach the next corner
+        criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 30, 0.1)
+        corners = cv2.cornerSubPix(gray, corners, (half, half), (-1, -1), criteria)
+        return self.object_points(), corners.reshape(-1, 2).astype(np.float64)
+
+    def describe(self) -> str:
+        return f"chessboard ({self.inner_corners_x}x{self.inner_corners_y} inner corners)"
+
+
+BoardSpec = CharucoBoardSpec | ChessboardSpec
+BOARD_TYPES = {"charuco": CharucoBoardSpec, "chessboard": ChessboardSpec}
+
 
 def detect_charuco(image: np.ndarray, board: "cv2.aruco.CharucoBoard") -> tuple[np.ndarray, np.ndarray]:
     """Board corners in an image: (object points [N, 3] board metres, image points [N, 2] OpenCV pixels)."""
@@ -107,18 +173,32 @@ def detect_charuco(image: np.ndarray, board: "cv2.aruco.CharucoBoard") -> tuple[
     return obj.reshape(-1, 3).astype(np.float64), img.reshape(-1, 2).astype(np.float64)
 
 
+DISTORTION_MODELS = {  # name -> (cv2.calibrateCamera flags, coefficients)
+    "opencv5": (0, 5),  # k1 k2 p1 p2 k3, all free (OpenCV's default)
+    "opencv4": (cv2.CALIB_FIX_K3, 5),  # k1 k2 p1 p2, k3 held at zero (narrow lenses, few views)
+    "rational8": (cv2.CALIB_RATIONAL_MODEL, 8),  # k1 k2 p1 p2 k3 k4 k5 k6 (wide-angle lenses)
+}
+MAX_FOCAL_STD = 0.01  # of the focal length: above it the calibration is poorly constrained
+MIN_GOOD_TILT_DEG = 30.0  # a set of views should hold at least one board tilted this much
+_CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"),
+               ("bottom-left", "bottom", "bottom-right"))
+
+
 @dataclass
 class CameraCalibration:
     """Intrinsics of the raw (distorted) images, in OpenCV's pixel convention, and the undistortion."""
 
     K_opencv: np.ndarray  # [3, 3]
-    dist: np.ndarray  # [5] k1 k2 p1 p2 k3
+    dist: np.ndarray  # [5] k1 k2 p1 p2 k3 (or [8] for rational8)
     width: int
     height: int
     rms_px: float = float("nan")
-    board: CharucoBoardSpec = field(default_factory=CharucoBoardSpec)
+    board: BoardSpec = field(default_factory=CharucoBoardSpec)
     per_image_rms_px: dict[str, float] = field(default_factory=dict)
     T_hand_cam: np.ndarray | None = None  # [4, 4] from hand-eye calibration, if done
+    K_std_px: dict[str, float] | None = None  # standard deviations of fx, fy, cx, cy (cv2.calibrateCameraExtended)
+    distortion_model: str | None = None  # a key of DISTORTION_MODELS (None: not recorded)
+    warnings: list[str] = field(default_factory=list)  # what makes the calibration poorly constrained
 
     def undistorted_K_opencv(self) -> np.ndarray:
         """Intrinsics of the undistorted images (all pixels valid: alpha = 0), OpenCV convention."""
@@ -126,12 +206,14 @@ class CameraCalibration:
         return K
 
     def save(self, path: str | Path) -> None:
+        board = {"type": next(k for k, v in BOARD_TYPES.items() if isinstance(self.board, v)), **asdict(self.board)}
         data = {
             "format": FORMAT, "version": 1, "pixel_centres": _PIXEL_CENTRES,
             "K_opencv": self.K_opencv.tolist(), "dist": self.dist.ravel().tolist(),
             "width": self.width, "height": self.height, "rms_px": self.rms_px,
-            "board": asdict(self.board), "per_image_rms_px": self.per_image_rms_px,
+            "board": board, "per_image_rms_px": self.per_image_rms_px,
             "T_hand_cam": None if self.T_hand_cam is None else np.asarray(self.T_hand_cam).tolist(),
+            "K_std_px": self.K_std_px, "distortion_model": self.distortion_model, "warnings": self.warnings,
         }
         path = Path(path)
         tmp = path.with_name(path.name + ".tmp")
@@ -164,6 +246,10 @@ class CameraCalibration:
         dist = json_array(data.get("dist"), "dist", path, (None,))
         if dist.size not in (4, 5, 8, 12, 14):
             raise ConfigError("dist", f"expected 4, 5, 8, 12 or 14 coefficients (OpenCV), got {dist.size}", source=path)
+        model = data.get("distortion_model")
+        if model is not None and (model not in DISTORTION_MODELS or DISTORTION_MODELS[model][1] != dist.size):
+            raise ConfigError("distortion_model", f"expected one of {list(DISTORTION_MODELS)} matching the "
+                                                  f"{dist.size} coefficients of dist, got {model!r}", source=path)
         rms = data.get("rms_px")
         rms = float("nan") if rms is None or (isinstance(rms, float) and math.isnan(rms)) else \
             json_float(rms, "rms_px", path, low=0.0)
@@ -178,66 +264,141 @@ class CameraCalibration:
             problem = rigidity_problem(T)
             if problem:
                 raise ConfigError("T_hand_cam", f"not a rigid transform: {problem}", source=path)
-        return cls(K, dist, width, height, rms, _board_spec(data.get("board", {}), path), per_image, T)
+        std = data.get("K_std_px")
+        if std is not None:
+            if not isinstance(std, dict) or sorted(std) != sorted(_K_NAMES):
+                raise ConfigError("K_std_px", f"must be an object with {list(_K_NAMES)}, got {std!r}", source=path)
+            std = {key: json_float(std[key], f"K_std_px.{key}", path, low=0.0) for key in _K_NAMES}
+        warnings = data.get("warnings", [])
+        if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
+            raise ConfigError("warnings", f"must be a list of strings, got {warnings!r}", source=path)
+        return cls(K, dist, width, height, rms, _board_spec(data.get("board", {}), path), per_image, T, std, model,
+                   warnings)
 
 
+_K_NAMES = ("fx", "fy", "cx", "cy")
 _FILE_FIELDS = ("format", "version", "pixel_centres", "K_opencv", "dist", "width", "height", "rms_px", "board",
-                "per_image_rms_px", "T_hand_cam")
+                "per_image_rms_px", "T_hand_cam", "K_std_px", "distortion_model", "warnings")
 
 
-def _board_spec(board, path: Path) -> CharucoBoardSpec:
-    """The ``board`` object of a camera calibration file, checked field by field."""
+def _board_spec(board, path: Path) -> BoardSpec:
+    """The ``board`` object of a camera calibration file (``type`` charuco, the default, or chessboard), checked
+    field by field."""
     if not isinstance(board, dict):
-        raise ConfigError("board", f"must be an object of CharucoBoardSpec fields, got {board!r}", source=path)
-    names = [f.name for f in fields(CharucoBoardSpec)]
+        raise ConfigError("board", f"must be an object of board fields, got {board!r}", source=path)
+    board = dict(board)
+    kind = board.pop("type", "charuco")
+    if kind not in BOARD_TYPES:
+        raise ConfigError("board.type", f"expected one of {list(BOARD_TYPES)}, got {kind!r}", source=path)
+    names = [f.name for f in fields(BOARD_TYPES[kind])]
     unknown = [key for key in board if key not in names]
     if unknown:
-        raise ConfigError(f"board.{unknown[0]}", f"unknown field (expected {names})", source=path)
-    spec = CharucoBoardSpec(**board)
+        raise ConfigError(f"board.{unknown[0]}", f"unknown field of a {kind} board (expected {names})", source=path)
+    spec = BOARD_TYPES[kind](**board)
     problem = spec.problem()
     if problem:
         raise ConfigError(f"board.{problem[0]}", problem[1], source=path)
     return spec
 
 
-def calibrate_intrinsics(images: Sequence[np.ndarray], board_spec: CharucoBoardSpec = CharucoBoardSpec(),
-                         names: Sequence[str] | None = None, min_corners: int = 8,
-                         fix_k3: bool = True) -> CameraCalibration:
-    """Intrinsics and distortion from ChArUco board images (RGB or gray) by ``cv2.calibrateCamera``."""
-    board = board_spec.board()
-    names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
-    obj_points, img_points, used = [], [], []
-    size = None
+@dataclass
+class BoardView:
+    """The board corners found in one photo."""
+
+    name: str
+    object_points: np.ndarray  # [N, 3] board metres
+    image_points: np.ndarray  # [N, 2] OpenCV pixels
+
+
+def detect_board_views(images: Sequence[np.ndarray], board_spec: BoardSpec, names: Sequence[str],
+                       min_corners: int = 8) -> tuple[list[BoardView], tuple[int, int]]:
+    """The views of ``images`` (RGB or gray, one size) that show at least ``min_corners`` corners, and (w, h)."""
+    views, size = [], None
     for name, image in zip(names, images):
         h, w = image.shape[:2]
         if size is None:
             size = (w, h)
         elif size != (w, h):
             raise InvalidInputError(f"{name}: {w}x{h}, but the first image is {size[0]}x{size[1]}")
-        obj, img = detect_charuco(image, board)
+        obj, img = board_spec.detect(image)
         if len(obj) < min_corners:
             log.warning("%s: %d board corners found (< %d), skipped", name, len(obj), min_corners)
             continue
-        obj_points.append(obj.astype(np.float32))
-        img_points.append(img.astype(np.float32))
-        used.append(name)
-    if len(used) < 3:
-        raise CameraError("calibration", f"the board was found in {len(used)} images; at least 3 are needed")
-    flags = cv2.CALIB_FIX_K3 if fix_k3 else 0
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj_points, img_points, size, None, None, flags=flags)
+        views.append(BoardView(name, obj, img))
+    return views, size
+
+
+def calibrate_views(views: Sequence[BoardView], size: tuple[int, int], board_spec: BoardSpec,
+                    distortion: str = "opencv5") -> CameraCalibration:
+    """Intrinsics, distortion and their uncertainty from board views by ``cv2.calibrateCameraExtended``."""
+    if distortion not in DISTORTION_MODELS:
+        raise ConfigError("distortion", f"expected one of {list(DISTORTION_MODELS)}, got {distortion!r}")
+    if len(views) < 3:
+        raise CameraError("calibration", f"the board was found in {len(views)} images; at least 3 are needed")
+    obj_points = [v.object_points.astype(np.float32) for v in views]
+    img_points = [v.image_points.astype(np.float32) for v in views]
+    flags, count = DISTORTION_MODELS[distortion]
+    rms, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
+        obj_points, img_points, size, None, None, flags=flags)
+    dist = dist.ravel()[:count]  # OpenCV may return 14, the rest zeros
     per_image = {}
-    for name, obj, img, r, t in zip(used, obj_points, img_points, rvecs, tvecs):
+    for view, obj, img, r, t in zip(views, obj_points, img_points, rvecs, tvecs):
         proj, _ = cv2.projectPoints(obj, r, t, K, dist)
-        per_image[name] = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
-    return CameraCalibration(K, dist.ravel(), size[0], size[1], float(rms), board_spec, per_image)
+        per_image[view.name] = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    std = {key: float(value) for key, value in zip(_K_NAMES, std_intrinsics.ravel()[:4])}
+    calib = CameraCalibration(K, dist, size[0], size[1], float(rms), board_spec, per_image,
+                              K_std_px=std, distortion_model=distortion)
+    tilts = [float(np.degrees(np.arccos(min(1.0, abs(cv2.Rodrigues(r)[0][2, 2]))))) for r in rvecs]
+    calib.warnings = calibration_warnings(calib, views, tilts)
+    return calib
 
 
-def board_pose(image: np.ndarray, board_spec: CharucoBoardSpec, K_opencv: np.ndarray, dist=None,
+def empty_image_cells(views: Sequence[BoardView], size: tuple[int, int]) -> list[str]:
+    """Names of the parts of the image (a 3x3 grid: top-left ... bottom-right) where no corner was seen."""
+    seen = np.zeros((3, 3), bool)
+    for view in views:
+        u, v = view.image_points[:, 0], view.image_points[:, 1]
+        seen[np.clip((v * 3 / size[1]).astype(int), 0, 2), np.clip((u * 3 / size[0]).astype(int), 0, 2)] = True
+    return [_CELL_NAMES[r][c] for r in range(3) for c in range(3) if not seen[r, c]]
+
+
+def calibration_warnings(calib: CameraCalibration, views: Sequence[BoardView], tilts_deg: Sequence[float]) -> list[str]:
+    """Why a calibration is poorly constrained, each naming what to add; empty when it is well constrained."""
+    warnings = []
+    K, std = calib.K_opencv, calib.K_std_px or {}
+    loose = [f"{key} {K[i, i]:.1f} +- {std[key]:.1f} px ({std[key] / K[i, i]:.1%})"
+             for i, key in enumerate(("fx", "fy")) if key in std and std[key] > MAX_FOCAL_STD * K[i, i]]
+    if loose:
+        advice = f"add more views ({len(views)} now; 15-30 make a good calibration)"
+        if max(tilts_deg) < MIN_GOOD_TILT_DEG:
+            advice += (f" and more tilt: the most tilted board is {max(tilts_deg):.0f} deg from facing the camera; "
+                       f"tilt it {MIN_GOOD_TILT_DEG:.0f}-45 deg towards each side")
+        warnings.append(f"the focal length is poorly constrained: {', '.join(loose)}, more than "
+                        f"{MAX_FOCAL_STD:.0%}: {advice}")
+    empty = empty_image_cells(views, (calib.width, calib.height))
+    if empty:
+        warnings.append(f"corner coverage of the image is poor, so the lens distortion there is poorly constrained: "
+                        f"no corner was seen in the {', '.join(empty)} of the image; add views with the board "
+                        "near those image borders and corners")
+    return warnings
+
+
+def calibrate_intrinsics(images: Sequence[np.ndarray], board_spec: BoardSpec = CharucoBoardSpec(),
+                         names: Sequence[str] | None = None, min_corners: int = 8,
+                         distortion: str = "opencv5") -> CameraCalibration:
+    """Intrinsics and distortion from board images (RGB or gray): :func:`detect_board_views`, :func:`calibrate_views`."""
+    names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
+    views, size = detect_board_views(images, board_spec, names, min_corners)
+    return calibrate_views(views, size, board_spec, distortion)
+
+
+def board_pose(image: np.ndarray, board_spec: BoardSpec, K_opencv: np.ndarray, dist=None,
                min_corners: int = 6) -> tuple[np.ndarray, float, int]:
     """Camera pose in the world (board) frame by PnP: ``(T_world_cam [4, 4], rms reprojection px, corners)``."""
-    obj, img = detect_charuco(image, board_spec.board())
+    obj, img = board_spec.detect(image)
     if len(obj) < min_corners:
-        raise CameraError("wrist camera", f"board not found: {len(obj)} ChArUco corners (< {min_corners})")
+        raise CameraError("wrist camera", f"board not found: {len(obj)} corners of the {board_spec.describe()} "
+                                          f"(< {min_corners})")
     dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
     ok, rvec, tvec = cv2.solvePnP(obj, img, K_opencv, dist, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:

@@ -26,6 +26,7 @@ class TrainConfig:
     sh_degree: int = 3  # maximum SH degree (0 for a Lambertian scene)
     sh_degree_interval: int = 400  # one more SH band every this many steps (0: every band from the start)
     train_views: int | None = None  # use only the first K training views (None = all)
+    downscale: int = 1  # train and evaluate at 1/N of the images' size (area-averaged; intrinsics scaled)
     backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto"  # rasterization backend (auto: gsplat on CUDA,
     # else the numba CPU backend for float32)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where training runs (auto: CUDA when torch sees a GPU)
@@ -159,7 +160,7 @@ class TrainConfig:
 
 # Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
 _INT_RANGES = {
-    "iterations": (1, None), "seed": (0, 2**32 - 1), "sh_degree": (0, 3), "sh_degree_interval": (0, None),
+    "iterations": (1, None), "seed": (0, 2**32 - 1), "downscale": (1, 64), "sh_degree": (0, 3), "sh_degree_interval": (0, None),
     "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
     "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
     "eval_max_views": (1, None), "checkpoint_every": (1, None), "smoothness_start_iter": (0, None),

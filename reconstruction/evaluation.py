@@ -19,7 +19,6 @@ import numpy as np
 import torch
 
 from tacsplat.errors import SceneFormatError
-from tacsplat.geometry import pixel_centres
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
@@ -31,7 +30,7 @@ from tacsplat.reconstruction.metrics import (
 )
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import load_run
-from tacsplat.reconstruction.views import background_image, camera_tensors, composite
+from tacsplat.reconstruction.views import background_image, camera_tensors, composite, mesh_depth, scene_at
 
 log = logging.getLogger(__name__)
 
@@ -90,19 +89,6 @@ class GroundTruth:
         if self.shared is not None:
             return self.shared
         return np.concatenate([self.points[i] for i in frame_ids if i in self.points] or [np.zeros((0, 3))])
-
-
-def mesh_depth(mesh, frame) -> np.ndarray:
-    """z-depth [H, W] of a trimesh mesh seen from a frame (0 where no surface), by ray casting."""
-    intr = frame.intrinsics
-    u, v = pixel_centres(intr.height, intr.width)
-    dirs_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
-    R, t = frame.T_world_cam[:3, :3], frame.T_world_cam[:3, 3]
-    origins = np.broadcast_to(t, dirs_cam.shape)
-    hits, rays, _ = mesh.ray.intersects_location(origins, dirs_cam @ R.T, multiple_hits=False)
-    depth = np.zeros(len(dirs_cam), dtype=np.float64)
-    depth[rays] = (hits - t) @ R[:, 2]
-    return depth.reshape(intr.height, intr.width).astype(np.float32)
 
 
 def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) -> GroundTruth | None:
@@ -226,7 +212,8 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     from tacsplat.datasets import Scene
 
     run = load_run(Path(run_dir))
-    return evaluate_reconstruction(run.gaussians, Scene.load(run.scene_path), run.config, run.step,
+    scene = scene_at(Scene.load(run.scene_path), run.config.downscale)
+    return evaluate_reconstruction(run.gaussians, scene, run.config, run.step,
                                    run.train_seconds, run_dir, gt_path, backend)
 
 

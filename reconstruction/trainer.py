@@ -60,7 +60,7 @@ from tacsplat.reconstruction.run_dir import (
     remove_run_files,
     run_checkpoint,
 )
-from tacsplat.reconstruction.views import background_image, camera_tensors, composite, fit_backdrop
+from tacsplat.reconstruction.views import background_image, camera_tensors, composite, fit_backdrop, scene_at
 
 log = logging.getLogger(__name__)
 
@@ -500,7 +500,7 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
     config.validate()
     config.torch_device()  # --device cuda without CUDA fails here, before anything is read or written
     check_run_folder(out_dir, resume, overwrite, locked=False)
-    scene = Scene.load(scene_path)
+    base = Scene.load(scene_path)
     with claim_output_dir(out_dir, "--out"):
         check_run_folder(out_dir, resume, overwrite, locked=True)
         if resume:
@@ -510,6 +510,7 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
                 config.validate({"iterations": "--iterations"})
         elif overwrite:
             remove_run_files(out_dir)
+        scene = scene_at(base, config.downscale)
         trainer = Trainer(scene, out_dir, config)
         gaussians = trainer.run(resume=resume, show_progress=show_progress)
         return evaluate_reconstruction(gaussians, scene, trainer.config, trainer.step, trainer.train_seconds, out_dir)

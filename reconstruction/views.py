@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import cv2
 import numpy as np
 import torch
 
-from tacsplat.geometry import invert_pose
+from tacsplat.errors import InvalidInputError
+from tacsplat.geometry import invert_pose, pixel_centres
+from tacsplat.types import CameraIntrinsics
 
 
 def camera_tensors(frames: list) -> tuple[torch.Tensor, torch.Tensor]:
@@ -46,3 +51,71 @@ def background_image(image: np.ndarray, colour: tuple[float, float, float] | Non
 def composite(colors: torch.Tensor, alphas: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
     """Over-composite renders [..., H, W, 3] made without background onto a background [H, W, 3]."""
     return colors + (1.0 - alphas) * background
+
+
+def mesh_depth(mesh, frame) -> np.ndarray:
+    """z-depth [H, W] of a trimesh mesh seen from a frame (0 where no surface), by ray casting."""
+    intr = frame.intrinsics
+    u, v = pixel_centres(intr.height, intr.width)
+    dirs_cam = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
+    R, t = frame.T_world_cam[:3, :3], frame.T_world_cam[:3, 3]
+    origins = np.broadcast_to(t, dirs_cam.shape)
+    hits, rays, _ = mesh.ray.intersects_location(origins, dirs_cam @ R.T, multiple_hits=False)
+    depth = np.zeros(len(dirs_cam), dtype=np.float64)
+    depth[rays] = (hits - t) @ R[:, 2]
+    return depth.reshape(intr.height, intr.width).astype(np.float32)
+
+
+class ScaledScene:
+    """A scene seen at 1/``factor`` of its image size: what training and evaluation read with ``downscale``.
+
+    Images are area-averaged (``cv2.INTER_AREA``) to ``(W // factor, H // factor)``; each frame's
+    intrinsics are scaled by the exact size ratio per axis (``new / old``), which with pixel centres
+    at +0.5 maps every image point ``(u, v)`` to ``(u * sx, v * sy)``. Ground-truth depth is ray cast
+    from the ground-truth mesh at the new size when the scene has one (exact), else resampled at the
+    nearest pixel. Everything else (touches, bounds, paths) is the scene's own.
+    """
+
+    def __init__(self, scene, factor: int):
+        if not (isinstance(factor, int) and factor >= 1):
+            raise InvalidInputError(f"downscale: must be an integer >= 1, got {factor!r}")
+        self.base, self.factor = scene, factor
+        self.frames = [self._scaled_frame(f) for f in scene.frames]
+        self._by_id = {f.id: f for f in scene.frames}
+        self._mesh = None
+
+    def _scaled_frame(self, frame):
+        intr = frame.intrinsics
+        width, height = max(intr.width // self.factor, 1), max(intr.height // self.factor, 1)
+        K = np.diag([width / intr.width, height / intr.height, 1.0]) @ intr.K
+        return dataclasses.replace(frame, intrinsics=CameraIntrinsics(K, width, height))
+
+    def __getattr__(self, name):  # touches, touch_points, bounds, path, meta, ...: the scene's own
+        return getattr(self.base, name)
+
+    def split(self, name: str) -> list:
+        return [f for f in self.frames if f.split == name]
+
+    def load_image(self, frame) -> np.ndarray:
+        image = self.base.load_image(self._by_id[frame.id])
+        size = (frame.intrinsics.width, frame.intrinsics.height)
+        return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+    def gt_depth(self, frame) -> np.ndarray | None:
+        mesh_path = self.base.gt_mesh_path
+        if mesh_path is not None and mesh_path.is_file():
+            if self._mesh is None:
+                import trimesh
+
+                self._mesh = trimesh.load(str(mesh_path), force="mesh")
+            return mesh_depth(self._mesh, frame)
+        depth = self.base.gt_depth(self._by_id[frame.id])
+        if depth is None:
+            return None
+        size = (frame.intrinsics.width, frame.intrinsics.height)
+        return cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+
+
+def scene_at(scene, downscale: int):
+    """``scene`` itself, or a :class:`ScaledScene` of it when ``downscale`` > 1."""
+    return scene if downscale == 1 else ScaledScene(scene, downscale)

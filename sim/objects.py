@@ -181,17 +181,97 @@ def make_object(name: str, radius: float = DEFAULT_OBJECT_RADIUS) -> SimObject:
     return SimObject(name, normalise_mesh(mesh, radius, name), material)
 
 
-def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) -> SimObject:
-    """Any .obj/.ply/.stl/.glb mesh file as an object at bounding-sphere ``radius`` metres."""
+def read_mesh(path: str | Path) -> trimesh.Trimesh:
+    """A user's mesh file as one closed triangle mesh, in the file's own units and frame.
+
+    Every part (OBJ objects and groups, a scene's meshes) is concatenated; materials, UVs and normals are
+    dropped and the vertices merged by position (within 1e-9 of the mesh's size), so UV and normal seams no
+    longer split the surface; degenerate and repeated faces are dropped; holes (a scan's openings, like the
+    Stanford bunny's) are closed by fans around each opening's centroid; faces are wound outwards. A file
+    that cannot be an object is one ConfigError naming it: unreadable, no triangles, NaN or infinite
+    coordinates, zero size, flat (all in one plane).
+    """
     path = Path(path)
     if not path.is_file():
         raise ConfigError("mesh", f"file not found: {path}")
     try:
-        mesh = trimesh.load(path, force="mesh", process=True)
+        loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise ConfigError("mesh", f"cannot read {path}: {exc}") from exc
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise ConfigError("mesh", f"{path} holds no triangles")
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise ConfigError("mesh", f"{path} holds no triangles (a point cloud or an empty file?)")
+    vertices = np.asarray(loaded.vertices, dtype=np.float64)
+    if not np.all(np.isfinite(vertices)):
+        raise ConfigError("mesh", f"{path}: {int((~np.isfinite(vertices)).any(axis=1).sum())} vertices have NaN or "
+                                  "infinite coordinates (not finite)")
+    size = float(np.ptp(vertices, axis=0).max())
+    if not size > 0:
+        raise ConfigError("mesh", f"{path}: every vertex is at the same point (zero size)")
+    centred = vertices - vertices.mean(axis=0)
+    if np.linalg.svd(centred, compute_uv=False)[-1] <= 1e-9 * size * np.sqrt(len(vertices)):
+        raise ConfigError("mesh", f"{path} is flat (all its vertices lie in one plane): a surface with no volume, "
+                                  "not an object that can be grasped")
+    mesh = trimesh.Trimesh(vertices, loaded.faces, process=False)  # geometry only
+    mesh.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=max(0, int(9 - np.floor(np.log10(size)))))
+    mesh.update_faces(mesh.nondegenerate_faces())
+    mesh.update_faces(mesh.unique_faces())
+    mesh.remove_unreferenced_vertices()
+    holes = _close_holes(mesh)
+    if holes:
+        log.info("%s: closed %d hole(s) (%d boundary edges)", path, len(holes), sum(holes))
+    trimesh.repair.fix_winding(mesh)
+    if mesh.is_watertight and mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def _close_holes(mesh: trimesh.Trimesh) -> list[int]:
+    """Close every simple boundary loop with a fan of triangles around its centroid (wound like its faces);
+    the edge count of each loop closed. Loops through a vertex where the boundary branches are left open."""
+    edges = mesh.edges  # directed, as they run in their faces
+    boundary = edges[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
+    if len(boundary) == 0:
+        return []
+    following: dict[int, int] = {}
+    branching = set()
+    for a, b in boundary:
+        if a in following:
+            branching.add(int(a))
+        following[int(a)] = int(b)
+    new_vertices, new_faces, closed = [], [], []
+    seen = set()
+    for start in list(following):
+        if start in seen:
+            continue
+        loop, v = [], start
+        while v in following and v not in seen:
+            seen.add(v)
+            loop.append(v)
+            v = following[v]
+        if v != start or len(loop) < 3 or branching.intersection(loop):
+            continue
+        centre = len(mesh.vertices) + len(new_vertices)
+        new_vertices.append(mesh.vertices[loop].mean(axis=0))
+        # a boundary edge a -> b runs along its face; the fan's triangle runs b -> a, towards the centre
+        new_faces += [[loop[(i + 1) % len(loop)], loop[i], centre] for i in range(len(loop))]
+        closed.append(len(loop))
+    if closed:
+        vertices = np.vstack([mesh.vertices, new_vertices])
+        faces = np.vstack([mesh.faces, new_faces])
+        mesh.vertices, mesh.faces = vertices, faces
+    return closed
+
+
+def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) -> SimObject:
+    """Any .obj/.ply/.stl/.glb mesh file (:func:`read_mesh`) as an object at bounding-sphere ``radius`` metres,
+    whatever its units (millimetres, inches, ...)."""
+    path = Path(path)
+    mesh = read_mesh(path)
     if not mesh.is_watertight:
-        log.warning("%s is not watertight: ray casting works, collision uses its convex pieces", path)
-    return SimObject(path.stem, normalise_mesh(mesh, radius, str(path)), GlossyMaterial((0.8, 0.8, 0.82, 1.0)))
+        log.warning("%s is not watertight even with its holes closed (edges shared by more than two faces?): "
+                    "ray casting works, collision uses its convex pieces", path)
+    _, raw_radius = bounding_sphere(mesh)
+    obj = SimObject(path.stem, normalise_mesh(mesh, radius, str(path)), GlossyMaterial((0.8, 0.8, 0.82, 1.0)))
+    log.info("%s: bounding radius %.6g in the file's units, scaled by %.6g to %.6g m", path, raw_radius,
+             obj.bounding_radius / raw_radius, obj.bounding_radius)
+    return obj

@@ -6,9 +6,9 @@ import pytest
 
 from tacsplat.cli import main as tacsplat_main
 from tacsplat.drivers import TactileSensor
-from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration, poisson_integrate
+from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration, fit_sphere, poisson_integrate
 from tacsplat.errors import InvalidInputError, TactileError
-from tacsplat.geometry import make_pose
+from tacsplat.geometry import make_pose, tactile_pixel_grid
 from tacsplat.sim.tactile import render_tactile_rgb
 
 pytestmark = pytest.mark.timeout(120)
@@ -74,7 +74,8 @@ def test_calibration_command_finds_every_contact_circle(calibration_file):
         true_radius = np.sqrt(2 * BALL_M * d - d**2) / PIXEL_M
         # find_contact_circle uses array-index pixel centres: the true centre (cx, cy) is at (cx - 0.5, cy - 0.5)
         np.testing.assert_allclose(press["centre_px"], [cx - 0.5, cy - 0.5], atol=0.5)
-        assert abs(press["contact_radius_px"] - true_radius) < 2.0
+        # the circle is the steepest colour change; the renderer's central differences put it 1-2 px inside the edge
+        assert -3.0 < press["contact_radius_px"] - true_radius < 0.5
     assert calibration_file.with_suffix(".png").exists()
 
 
@@ -96,10 +97,17 @@ def test_sensor_reads_ball_press_depth_from_a_video_file(calibration_file, tmp_p
     np.testing.assert_array_equal(reading.T_ref_sensor, T_hand_sensor)
     assert reading.pixel_size_m == pytest.approx(PIXEL_M)
     depth = reading.depth
-    region = (truth > 0) | (depth > 0)
-    rms = np.sqrt(np.mean((depth - truth)[region] ** 2))
-    assert rms < 0.10 * truth.max(), f"depth RMS {rms * 1e6:.1f} um vs indentation {truth.max() * 1e6:.0f} um"
-    assert depth[truth == 0].max() < 0.2 * truth.max()  # no phantom contact away from the ball
+    contact = depth > 0
+    assert not contact[truth == 0].any()  # no phantom contact away from the ball
+    assert contact.sum() > 0.6 * (truth > 0).sum()
+    # depth is the ball's print relative to the contact's rim (zero height outside the contact): its shape is the
+    # ball's, and it is at most the indentation (the rim, 1-2 px inside the rendered edge, is at zero)
+    assert 0.6 * truth.max() < depth.max() <= 1.05 * truth.max()
+    offset = truth[contact] - depth[contact]
+    assert np.std(offset) < 0.05 * truth.max(), "the print is the ball's cap shifted by the rim's depth"
+    x, y = tactile_pixel_grid(H, W, PIXEL_M)
+    _, radius = fit_sphere(np.column_stack([x[contact], y[contact], -depth[contact]]))
+    assert abs(radius - BALL_M) < 0.1 * BALL_M
     r, c = np.unravel_index(np.argmax(depth), depth.shape)
     assert abs(r - 129.5) <= 3 and abs(c - 149.5) <= 3
 

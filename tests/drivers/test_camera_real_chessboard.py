@@ -1,0 +1,92 @@
+"""Camera calibration on real photos: OpenCV's own chessboard samples (tests/data, Apache-2.0) and its result."""
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from tacsplat.cli import main as tacsplat_main
+from tacsplat.drivers.wrist_camera import CameraCalibration, ChessboardSpec
+
+pytestmark = pytest.mark.timeout(120)
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "chessboard_opencv_left"
+PHOTOS = sorted(DATA.glob("left*.jpg"))
+# OpenCV's modules/python/test/test_calibration.py on the same 13 photos (flags 0: k3 free); K with pixel
+# centres at integers (OpenCV's convention, the one camera.json stores)
+OPENCV = {"rms": 0.1963, "fx": 532.810, "fy": 532.933, "cx": 342.495, "cy": 233.888}
+
+
+def calibrate(out, *photos, extra=()):
+    return tacsplat_main(["calibrate", "camera", *map(str, photos), "--board", "chessboard", "--inner-corners", "9x6",
+                          "--square-mm", "25", "--out", str(out), *extra])
+
+
+def test_chessboard_calibration_matches_opencvs_own_result(tmp_path, capsys):
+    out = tmp_path / "camera.json"
+    assert calibrate(out, DATA) == 0
+    printed = capsys.readouterr().out
+    data = json.loads(out.read_text())
+    K = np.array(data["K_opencv"])
+    for key, value in zip(("fx", "fy", "cx", "cy"), (K[0, 0], K[1, 1], K[0, 2], K[1, 2])):
+        assert abs(value - OPENCV[key]) < 2.0, (key, value)
+    assert abs(data["rms_px"] - OPENCV["rms"]) < 0.01
+    assert data["pixel_centres"] == "opencv (integer)" and data["distortion_model"] == "opencv5"
+    assert len(data["dist"]) == 5 and abs(data["dist"][4]) > 0.05  # k3 is free by default
+    std = data["K_std_px"]
+    assert set(std) == {"fx", "fy", "cx", "cy"} and all(0 < std[k] < 2.0 for k in std)
+    assert data["warnings"] == []  # 13 varied views, corners in every part of the image
+    calib = CameraCalibration.load(out)
+    assert calib.board == ChessboardSpec(9, 6, 0.025) and calib.K_std_px == pytest.approx(std)
+    assert f"fx {K[0, 0]:.2f}" in printed and f"cx {K[0, 2] + 0.5:.2f}" in printed  # printed at tacsplat's +0.5
+    assert cv2.imread(str(tmp_path / "camera_coverage.png")) is not None
+
+
+def test_three_photos_warn_that_the_calibration_is_poorly_constrained(tmp_path, capsys):
+    out = tmp_path / "camera.json"
+    assert calibrate(out, *PHOTOS[:3]) == 0
+    captured = capsys.readouterr()
+    data = json.loads(out.read_text())
+    assert data["warnings"], "three photos leave whole parts of the image without corners"
+    text = " ".join(data["warnings"])
+    assert "poorly constrained" in text and "border" in text and "left" in text
+    assert "warning" in (captured.out + captured.err).lower() and "poorly constrained" in captured.out + captured.err
+    picture = cv2.imread(str(tmp_path / "camera_coverage.png"))
+    assert picture is not None and picture.shape[:2] == (480, 640)
+
+
+def test_distortion_model_is_chosen_by_a_flag(tmp_path):
+    for model, count in (("opencv4", 5), ("rational8", 8)):
+        out = tmp_path / f"{model}.json"
+        assert calibrate(out, DATA, extra=("--distortion", model)) == 0
+        calib = CameraCalibration.load(out)
+        assert calib.distortion_model == model and calib.dist.size == count
+        if model == "opencv4":
+            assert calib.dist[4] == 0.0  # k3 held at zero
+
+
+def test_board_and_photo_problems_are_one_clear_error(tmp_path, capsys):
+    out = tmp_path / "camera.json"
+    out.write_text("an earlier calibration")
+    assert tacsplat_main(["calibrate", "camera", str(DATA), "--board", "chessboard", "--inner-corners", "10x7",
+                          "--square-mm", "25", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "--inner-corners" in err and "0 of 13" in err
+    assert tacsplat_main(["calibrate", "camera", str(DATA), "--board", "chessboard", "--square-mm", "25",
+                          "--out", str(out)]) == 1
+    assert "--inner-corners" in capsys.readouterr().err
+    assert tacsplat_main(["calibrate", "camera", str(DATA), "--board", "chessboard", "--inner-corners", "9x6",
+                          "--square-mm", "25", "--marker-mm", "20", "--out", str(out)]) == 1
+    assert "--marker-mm" in capsys.readouterr().err
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for path in PHOTOS[:4]:
+        shutil.copy(path, photos)
+    (photos / "left99.jpg").write_bytes(b"not a jpeg")
+    assert calibrate(out, photos) == 1
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "left99.jpg" in err
+    assert out.read_text() == "an earlier calibration"  # nothing already written is lost
