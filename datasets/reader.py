@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image
 
 from tacsplat.errors import InvalidInputError, SceneFormatError
-from tacsplat.geometry import opengl_to_opencv, tactile_depth_to_points
+from tacsplat.geometry import opengl_to_opencv, tactile_depth_to_normals, tactile_depth_to_points
 from tacsplat.types import CameraIntrinsics
 
 from .records import (
@@ -265,6 +265,16 @@ class Scene:
             if t.in_contact
         ]
         return np.concatenate(points, axis=0) if points else np.zeros((0, 3))
+
+    def touch_normals(self, threshold_m: float = 1e-5) -> np.ndarray:
+        """The touched surface's outward normals [M, 3] at :meth:`touch_points` (same order; NaN where a contact
+        pixel's slope is not known, see ``tactile_depth_to_normals``)."""
+        normals = [
+            tactile_depth_to_normals(self.load_touch_depth(t), self.sensor.pixel_size_m, t.T_world_sensor, threshold_m)
+            for t in self.touches
+            if t.in_contact
+        ]
+        return np.concatenate(normals, axis=0) if normals else np.zeros((0, 3))
 
     def gt_depth(self, frame: Frame) -> np.ndarray | None:
         """Ground-truth z-depth [H, W] float32 metres of a frame (evaluation only), or None."""

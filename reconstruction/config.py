@@ -57,6 +57,14 @@ class TrainConfig:
     use_proximity_mask: bool = True  # L_S weighted by 1 - the proximity mask of the visible touches
     proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
     occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
+    # -- surfaces and reflections (beyond the paper; each 0 / "sh" = off)
+    lambda_flatten: float = 0.0  # minimum-scale loss (PGSR): surfel-like Gaussians whose shortest axis is a normal
+    lambda_depth_normal: float = 0.0  # depth-normal consistency (2DGS): rendered normals agree with the depth's
+    depth_normal_start_iter: int = 0  # ... from this step on (after the geometry has formed)
+    lambda_touch_normal: float = 0.0  # touch Gaussians' normals agree with the tactile maps' surface normals
+    appearance: Literal["sh", "reflective"] = "sh"  # colour: view-dependent SH (3DGS), or diffuse + specular tint x
+    # a learned environment map along the reflected view direction, prefiltered by roughness (deferred shading)
+    env_map_height: int = 16  # environment map height in pixels (its width is twice that)
     # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
     lr_means: float = 1.6e-4  # means (times the scene scale)
     lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
@@ -65,6 +73,8 @@ class TrainConfig:
     lr_opacities: float = 5e-2  # logit opacities
     lr_sh0: float = 2.5e-3  # SH band 0 (base colour)
     lr_shN: float = 2.5e-3 / 20  # higher SH bands
+    lr_reflective: float = 5e-3  # specular tint and roughness of the reflective appearance
+    lr_env_map: float = 1e-2  # the environment map (log radiance)
     # -- progress evaluation and checkpoints
     eval_every_iters: int = 250  # held-out PSNR and CD at least this often...
     eval_every_seconds: float = 30.0  # ...and at least this often in run time
@@ -105,6 +115,8 @@ class TrainConfig:
             len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
         ):
             return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
+        if self.appearance not in ("sh", "reflective"):
+            return "appearance", f"must be 'sh' or 'reflective', got {self.appearance!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:
@@ -164,6 +176,7 @@ _INT_RANGES = {
     "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
     "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
     "eval_max_views": (1, None), "checkpoint_every": (1, None), "smoothness_start_iter": (0, None),
+    "depth_normal_start_iter": (0, None), "env_map_height": (2, 256),
 }  # fmt: skip
 _OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
 _FLOAT_RANGES = {
@@ -172,6 +185,8 @@ _FLOAT_RANGES = {
     "proximity_sigma_px": (0.0, None), "occlusion_tolerance": (0.0, None), "lr_means": (0.0, None),
     "lr_means_final_factor": (0.0, 1.0), "lr_quats": (0.0, None), "lr_scales": (0.0, None),
     "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "eval_every_seconds": (0.0, None),
+    "lambda_flatten": (0.0, None), "lambda_depth_normal": (0.0, None), "lambda_touch_normal": (0.0, None),
+    "lr_reflective": (0.0, None), "lr_env_map": (0.0, None),
 }  # fmt: skip
 _POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
 

@@ -21,7 +21,7 @@ from typing import Callable
 
 import torch
 
-from tacsplat.reconstruction.gaussians import PARAM_NAMES, Gaussians, quats_to_rotmats
+from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats
 
 
 @dataclass
@@ -133,10 +133,10 @@ def _rebuild(
     optimizers: dict[str, torch.optim.Optimizer],
     new_param: Callable[[str, torch.Tensor], torch.Tensor],
     new_moment: Callable[[torch.Tensor], torch.Tensor],
-    names: tuple[str, ...] = PARAM_NAMES,
+    names: tuple[str, ...] | None = None,  # None: every parameter
 ) -> None:
     """Replace each named parameter by ``new_param(name, old)`` and its Adam moments by ``new_moment(old)``."""
-    for name in names:
+    for name in tuple(gaussians.params) if names is None else names:
         old = gaussians.params[name]
         param = torch.nn.Parameter(new_param(name, old.detach()).contiguous())
         optimizer = optimizers.get(name)

@@ -19,7 +19,9 @@ import numpy as np
 import torch
 
 from tacsplat.errors import SceneFormatError
+from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.gaussians import Gaussians
+from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
     chamfer_distance,
@@ -30,7 +32,7 @@ from tacsplat.reconstruction.metrics import (
 )
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import load_run
-from tacsplat.reconstruction.views import background_image, camera_tensors, composite, mesh_depth, scene_at
+from tacsplat.reconstruction.views import background_image, camera_tensors, mesh_depth, scene_at
 
 log = logging.getLogger(__name__)
 
@@ -39,28 +41,47 @@ PAPER_MAX_POINTS = 200_000  # cd_paper: the predicted cloud is subsampled to at 
 PAPER_GT_POINTS = 200_000  # cd_paper: points sampled on the ground-truth mesh surface
 
 
-@torch.no_grad()
-def render_view(
-    gaussians: Gaussians, frame, background: torch.Tensor, backend: str, with_depth: bool = True
-) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-    """(rgb [H, W, 3] in [0, 1], expected depth [H, W] (0 where alpha <= 0.5) or None, alpha [H, W]).
+@dataclass
+class FrameRender:
+    """A rendered view, as numpy on the CPU."""
 
-    ``background`` is the view's backdrop [H, W, 3] (see :func:`background_image`).
-    """
+    rgb: np.ndarray  # [H, W, 3] in [0, 1], composited over the backdrop
+    depth: np.ndarray | None  # [H, W] expected depth, 0 where alpha <= 0.5
+    alpha: np.ndarray  # [H, W]
+    normal: np.ndarray | None  # [H, W, 3] unit camera-frame normals towards the camera, 0 where alpha <= 0.5
+
+
+@torch.no_grad()
+def render_frame(gaussians: Gaussians, frame, background: torch.Tensor, backend: str, with_depth: bool = True,
+                 with_normals: bool = False, look: Look | None = None) -> FrameRender:
+    """One view of ``gaussians`` (``look``: their appearance, default SH); ``background`` [H, W, 3] is the view's
+    backdrop (see :func:`background_image`)."""
+    look = look or Look()
     viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
     intr = frame.intrinsics
-    colors, alphas, _ = raster.rasterization(
-        gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
-        gaussians.sh_coefficients(), viewmat, K, intr.width, intr.height,
-        sh_degree=gaussians.sh_degree, render_mode="RGB+ED" if with_depth else "RGB", backend=backend,
-    )  # fmt: skip
-    colors, alphas = colors[0].cpu(), alphas[0].cpu()
-    alpha = alphas[..., 0].numpy()
-    rgb = composite(colors[..., :3], alphas, background.cpu()).clamp(0, 1).numpy()
-    depth = None
-    if with_depth:
-        depth = np.where(alpha > ALPHA_MASK_THRESHOLD, colors[..., 3].numpy(), 0.0).astype(np.float32)
-    return rgb, depth, alpha
+    out = shading.render(gaussians, viewmat, K, intr.width, intr.height, sh_degree=gaussians.sh_degree,
+                         backend=backend, depth_mode="ED" if with_depth else None, normals=with_normals,
+                         appearance=look.appearance, environment=look.environment)
+    alpha = out.alpha.cpu()
+    rgb = (out.rgb.cpu() + (1.0 - alpha[..., None]) * background.cpu()).clamp(0, 1).numpy()
+    drawn = alpha.numpy() > ALPHA_MASK_THRESHOLD
+    depth = None if out.depth is None else np.where(drawn, out.depth.cpu().numpy(), 0.0).astype(np.float32)
+    normal = None if out.normal is None else (out.normal.cpu().numpy() * drawn[..., None]).astype(np.float32)
+    return FrameRender(rgb, depth, alpha.numpy(), normal)
+
+
+def render_view(gaussians: Gaussians, frame, background: torch.Tensor, backend: str, with_depth: bool = True,
+                look: Look | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """(rgb [H, W, 3] in [0, 1], expected depth [H, W] (0 where alpha <= 0.5) or None, alpha [H, W])."""
+    view = render_frame(gaussians, frame, background, backend, with_depth, look=look)
+    return view.rgb, view.depth, view.alpha
+
+
+def normal_error_degrees(rendered: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
+    """Angles [M] in degrees between rendered and ground-truth unit normals [H, W, 3] where both are known."""
+    known = (np.linalg.norm(rendered, axis=-1) > 0.5) & (np.linalg.norm(ground_truth, axis=-1) > 0.5)
+    cos = np.clip(np.einsum("ij,ij->i", rendered[known], ground_truth[known]), -1.0, 1.0)
+    return np.degrees(np.arccos(cos))
 
 
 @torch.no_grad()
@@ -147,8 +168,10 @@ def evaluate_views(
     backend: str,
     ground_truth: GroundTruth | None,
     render_dir: Path | None = None,
+    look: Look | None = None,
 ) -> dict:
-    """PSNR, SSIM over ``frames``, and CD and cd_paper against ``ground_truth`` (NaN where not available).
+    """PSNR, SSIM over ``frames``, CD and cd_paper against ``ground_truth``, and the mean angle between rendered
+    and ground-truth normals (``normal_error_deg``; the ground truth's from its depth maps) (NaN where not available).
 
     ``cd`` (the design's): expected depth (alpha > 0.5) of the views against their visible ground-truth
     surface, mean distance each way, halved. ``cd_paper`` (the paper's official code): median depth of the
@@ -156,11 +179,16 @@ def evaluate_views(
     surface, mean squared distance each way, summed. Both in units of the ground-truth bounding-sphere radius.
     Each view's backdrop is ``background_colour``, or (None) fitted to that view's image border.
     """
-    psnrs, ssims, predicted, predicted_median = [], [], [], []
+    psnrs, ssims, predicted, predicted_median, angles = [], [], [], [], []
     for f in frames:
         gt_rgb = scene.load_image(f)
         background = torch.from_numpy(background_image(gt_rgb, background_colour))
-        rgb, depth, _ = render_view(gaussians, f, background, backend, with_depth=True)
+        view = render_frame(gaussians, f, background, backend, with_depth=True, with_normals=True, look=look)
+        rgb, depth = view.rgb, view.depth
+        gt_depth = scene.gt_depth(f)
+        if gt_depth is not None:
+            gt_normal = losses.depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(f.intrinsics.K))
+            angles.append(normal_error_degrees(view.normal, gt_normal.numpy()))
         psnrs.append(psnr(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         predicted.append(depth_to_points(depth, f.intrinsics.K, f.T_world_cam))
@@ -168,7 +196,6 @@ def evaluate_views(
             median = render_median_depth(gaussians, f, backend)
             predicted_median.append(depth_to_points(median, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
-            gt_depth = scene.gt_depth(f)
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth)
     cd = cd_paper = float("nan")
     gt_cloud = None if ground_truth is None else ground_truth.cloud([f.id for f in frames])
@@ -184,6 +211,7 @@ def evaluate_views(
         "ssim": float(np.mean(ssims)) if ssims else float("nan"),
         "cd": cd,
         "cd_paper": cd_paper,
+        "normal_error_deg": float(np.mean(np.concatenate(angles))) if angles and sum(map(len, angles)) else float("nan"),
     }
 
 
@@ -214,16 +242,21 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     run = load_run(Path(run_dir))
     scene = scene_at(Scene.load(run.scene_path), run.config.downscale)
     return evaluate_reconstruction(run.gaussians, scene, run.config, run.step,
-                                   run.train_seconds, run_dir, gt_path, backend)
+                                   run.train_seconds, run_dir, gt_path, backend, run.look)
 
 
 def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, train_seconds: float,
-                            run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
-    """Evaluate Gaussians on a scene's test views: writes ``metrics.json`` and ``renders/`` into ``run_dir``."""
+                            run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None,
+                            look: Look | None = None) -> dict:
+    """Evaluate Gaussians on a scene's test views: writes ``metrics.json``, ``renders/`` and, for a reflective
+    appearance, ``environment.png`` (its learned environment map) into ``run_dir``."""
     test = scene.split("test")
     backend = backend or config.backend
     ground_truth = load_ground_truth(scene, test, gt_path)
-    metrics = evaluate_views(gaussians, scene, test, config.background, backend, ground_truth, Path(run_dir) / "renders")
+    metrics = evaluate_views(gaussians, scene, test, config.background, backend, ground_truth,
+                             Path(run_dir) / "renders", look)
+    if look is not None and look.environment is not None:
+        save_environment(look.environment, Path(run_dir) / "environment.png")
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
     result = {
@@ -242,6 +275,15 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
     result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
     (Path(run_dir) / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
     return result
+
+
+def save_environment(environment, path: Path) -> None:
+    """The environment map as an equirectangular PNG (tone-mapped x / (1 + x), 8x upscaled)."""
+    with torch.no_grad():
+        radiance = torch.exp(environment.log_radiance).permute(1, 2, 0).cpu().numpy()
+    image = (255 * radiance / (1.0 + radiance)).round().astype(np.uint8)
+    image = cv2.resize(image, (image.shape[1] * 8, image.shape[0] * 8), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
 
 
 def _json_default(value):

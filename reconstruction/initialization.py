@@ -123,15 +123,16 @@ def sfm_points(
 
 
 def thin_touch_points(points: np.ndarray, config: InitConfig, rng: np.random.Generator) -> np.ndarray:
-    """One touch point per ``touch_voxel_size`` voxel, at most ``max_touch_points`` (random subset)."""
+    """Indices [M] of the touch points [P, 3] kept: one per ``touch_voxel_size`` voxel, at most
+    ``max_touch_points`` (random subset), in their original order."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(points) == 0:
-        return points
+        return np.zeros(0, dtype=np.int64)
     _, first = np.unique(np.floor(points / config.touch_voxel_size).astype(np.int64), axis=0, return_index=True)
-    points = points[np.sort(first)]
-    if len(points) > config.max_touch_points:
-        points = points[np.sort(rng.choice(len(points), config.max_touch_points, replace=False))]
-    return points
+    kept = np.sort(first)
+    if len(kept) > config.max_touch_points:
+        kept = kept[np.sort(rng.choice(len(kept), config.max_touch_points, replace=False))]
+    return kept
 
 
 def neighbour_scales(points: np.ndarray, k: int = 3, floor: float = 1e-5) -> np.ndarray:

@@ -264,3 +264,58 @@ def proximity_mask(seeds: torch.Tensor, sigma_px: float) -> torch.Tensor:
     padded = F.pad(column[None, None], (reach, reach, 0, 0), value=far)[0, 0]  # [H, W + 2R]
     d2 = (padded.unfold(1, 2 * reach + 1, 1) + offsets).amin(dim=-1)  # [H, W]
     return torch.where(d2 < far, torch.exp(-d2 / (2.0 * sigma_px**2)), torch.zeros_like(d2))
+
+
+# --------------------------------------------------------------------------- geometry (beyond the paper)
+
+
+def depth_normals(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Camera-frame unit normals [H, W, 3] of a z-depth map [H, W] (central differences of the unprojected
+    points, turned towards the camera; 0 on the one-pixel border and where depth is not positive around)."""
+    h, w = depth.shape
+    v, u = torch.meshgrid(torch.arange(h, device=depth.device, dtype=depth.dtype) + 0.5,
+                          torch.arange(w, device=depth.device, dtype=depth.dtype) + 0.5, indexing="ij")
+    points = torch.stack([(u - K[0, 2]) / K[0, 0] * depth, (v - K[1, 2]) / K[1, 1] * depth, depth], dim=-1)
+    du = points[1:-1, 2:] - points[1:-1, :-2]  # [H-2, W-2, 3]
+    dv = points[2:, 1:-1] - points[:-2, 1:-1]
+    n = torch.cross(du, dv, dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    n = torch.where((n * points[1:-1, 1:-1]).sum(-1, keepdim=True) > 0, -n, n)
+    valid = (depth > 0).float()
+    around = F.max_pool2d(1.0 - valid[None, None], 3, stride=1)[0, 0] == 0  # [H-2, W-2]: all 9 positive
+    return F.pad((n * around[..., None]).permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+
+
+def normal_consistency_loss(rendered: torch.Tensor, from_depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+    """Depth-normal consistency (2DGS): the alpha-weighted mean of 1 - <rendered normal, depth normal> over the
+    pixels where the depth normal is known ([H, W, 3] unit normals, alpha [H, W])."""
+    known = (from_depth.norm(dim=-1) > 0.5).float() * alpha
+    return ((1.0 - (rendered * from_depth).sum(-1)) * known).sum() / known.sum().clamp_min(1e-6)
+
+
+def flatten_loss(scales: torch.Tensor, scene_scale: float) -> torch.Tensor:
+    """Minimum-scale loss (PGSR): the mean shortest axis [N, 3] of the Gaussians, in units of the scene scale;
+    it makes Gaussians surfel-like so that their shortest axis is a normal."""
+    return scales.min(dim=-1).values.mean() / scene_scale
+
+
+def touch_normal_loss(
+    touch_points: torch.Tensor,  # [P, 3]
+    touch_normals: torch.Tensor,  # [P, 3] unit (rows of NaN are skipped)
+    means: torch.Tensor,  # [N, 3]
+    normals: torch.Tensor,  # [N, 3] unit Gaussian normals (sign arbitrary)
+    opacities: torch.Tensor,  # [N]
+    candidates: torch.Tensor,  # [P, C] long, -1 = none
+    max_distance: float,
+) -> torch.Tensor:
+    """Tactile normals: 1 - |<Gaussian normal, touched surface normal>| averaged over each touch point's candidate
+    G_t within ``max_distance`` (weighted by opacity), then over the touch points with a known normal."""
+    ids = candidates.clamp_min(0)
+    known = torch.isfinite(touch_normals).all(dim=1)  # [P]
+    target = torch.nan_to_num(touch_normals)
+    near = (candidates >= 0) & ((means[ids] - touch_points[:, None, :]).norm(dim=-1) <= max_distance)  # [P, C]
+    weights = opacities[ids] * near * known[:, None]
+    misalignment = 1.0 - (normals[ids] * target[:, None, :]).sum(-1).abs()  # [P, C]
+    per_point = (weights * misalignment).sum(1) / weights.sum(1).clamp_min(1e-12)
+    counted = (weights.sum(1) > 0).float()
+    return (per_point * counted).sum() / counted.sum().clamp_min(1.0)

@@ -23,16 +23,17 @@ import torch
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.gaussians import Gaussians
+from tacsplat.reconstruction.shading import EnvironmentMap, Look
 
 # A run directory's own files (anything else in it is someone else's and is never deleted).
 RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "splat.touch.npy",
              "splat.touch.npy.tmp", "progress.csv",
-             "progress.csv.tmp", "error_vs_time.png", "metrics.json")
+             "progress.csv.tmp", "error_vs_time.png", "metrics.json", "environment.png")
 RENDERS = "renders"
 RENDER_FILE = re.compile(r"view_\d{4,}\.png")
 
 PROGRESS_COLUMNS = (
-    "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "num_gaussians",
+    "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "normals", "num_gaussians",
     "psnr", "cd", "cd_paper",
 )  # fmt: skip
 
@@ -44,6 +45,7 @@ class LoadedRun:
     gaussians: Gaussians
     step: int
     train_seconds: float
+    look: Look  # the appearance (with its environment map when reflective)
 
 
 def is_run_folder(path: Path) -> bool:
@@ -77,13 +79,13 @@ def load_run(run_dir: Path) -> LoadedRun:
     """The last checkpoint of a run directory (for evaluation)."""
     ckpt_path = run_checkpoint(run_dir)
     ckpt = read_checkpoint(ckpt_path)
-    return LoadedRun(
-        Path(ckpt["scene_path"]),
-        TrainConfig.from_json(ckpt["config"], ckpt_path),
-        Gaussians.from_state_dict(ckpt["gaussians"]),
-        int(ckpt["step"]),
-        float(ckpt["train_seconds"]),
-    )
+    config = TrainConfig.from_json(ckpt["config"], ckpt_path)
+    look = Look(config.appearance)
+    if config.appearance == "reflective":
+        look.environment = EnvironmentMap(config.env_map_height)
+        look.environment.load_state_dict(ckpt["environment"])
+    return LoadedRun(Path(ckpt["scene_path"]), config, Gaussians.from_state_dict(ckpt["gaussians"]),
+                     int(ckpt["step"]), float(ckpt["train_seconds"]), look)
 
 
 def cut_progress(path: Path, step: int) -> None:

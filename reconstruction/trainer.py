@@ -49,7 +49,7 @@ from tacsplat.reconstruction.initialization import (
     thin_touch_points,
 )
 from tacsplat.reconstruction.ply import save_ply
-from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
+from tacsplat.reconstruction import shading
 from tacsplat.reconstruction.run_dir import (
     PROGRESS_COLUMNS,
     check_run_folder,
@@ -60,11 +60,11 @@ from tacsplat.reconstruction.run_dir import (
     remove_run_files,
     run_checkpoint,
 )
-from tacsplat.reconstruction.views import background_image, camera_tensors, composite, fit_backdrop, scene_at
+from tacsplat.reconstruction.views import background_image, camera_tensors, fit_backdrop, scene_at
 
 log = logging.getLogger(__name__)
 
-LOSS_TERMS = ("loss", "photometric", "transmittance", "smoothness", "backdrop")  # progress.csv's loss columns
+LOSS_TERMS = ("loss", "photometric", "transmittance", "smoothness", "backdrop", "normals")  # progress.csv's loss columns
 POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
 
 
@@ -129,18 +129,25 @@ class Trainer:
         self.scene_scale = scene_scale(train)
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device=dev).manual_seed(config.seed)
-        self.touch_points = np.zeros((0, 3))
+        self.touch_points, touch_normals = np.zeros((0, 3)), np.zeros((0, 3))
         if config.use_touch and scene.touches:
-            self.touch_points = thin_touch_points(scene.touch_points(), config.init, self.rng)
+            kept = thin_touch_points(scene.touch_points(), config.init, self.rng)
+            self.touch_points = scene.touch_points()[kept]
+            touch_normals = scene.touch_normals()[kept] if config.lambda_touch_normal > 0 else touch_normals
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
+        self.use_touch_normals = len(self.touch_points) > 0 and config.lambda_touch_normal > 0
         self.neighbours = (
             losses.TouchNeighbours(
                 self.touch_points, config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every
             )
-            if self.use_touch_loss
+            if self.use_touch_loss or self.use_touch_normals
             else None
         )
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
+        self.touch_normals = torch.as_tensor(touch_normals, dtype=torch.float32, device=dev)
+        self.environment = (shading.EnvironmentMap(config.env_map_height, device=dev)
+                            if config.appearance == "reflective" else None)
+        self.look = shading.Look(config.appearance, self.environment)
         backgrounds = [background_image(im, config.background) for im in images]
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
         self.backdrop_pixels: list[np.ndarray | None] = [
@@ -188,6 +195,8 @@ class Trainer:
             log.info("initialisation: %d SfM points (< %d): %d random points %s",
                      found, cfg.init.min_sfm_points, len(points), where)  # fmt: skip
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
+        if cfg.appearance == "reflective":
+            shading.add_reflective_params(gaussians)
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
@@ -214,11 +223,14 @@ class Trainer:
         rates = {
             "means": cfg.lr_means * self.scene_scale, "quats": cfg.lr_quats, "scales": cfg.lr_scales,
             "opacities": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN,
+            **{name: cfg.lr_reflective for name in shading.REFLECTIVE_PARAMS if name in self.gaussians.params},
         }  # fmt: skip
         self.optimizers = {
             name: torch.optim.Adam([self.gaussians.params[name]], lr=lr, eps=1e-15)
             for name, lr in rates.items()
         }
+        if self.environment is not None:
+            self.optimizers["environment"] = torch.optim.Adam(self.environment.parameters(), lr=cfg.lr_env_map)
 
     # ------------------------------------------------------------------ one step
 
@@ -235,50 +247,74 @@ class Trainer:
         active_degree = cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree,
                                                                                self.step // cfg.sh_degree_interval)
         with_depth = cfg.lambda_s > 0 and self.step >= cfg.smoothness_start_iter
-        renders, alphas, meta = raster.rasterization(
-            g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(active_degree),
-            self.viewmats[view : view + 1], self.Ks[view : view + 1],
-            frame.intrinsics.width, frame.intrinsics.height,
-            sh_degree=active_degree, render_mode="RGB+D" if with_depth else "RGB", backend=cfg.backend,
+        with_normals = cfg.lambda_depth_normal > 0 and self.step >= cfg.depth_normal_start_iter
+        out = shading.render(
+            g, self.viewmats[view : view + 1], self.Ks[view : view + 1], frame.intrinsics.width,
+            frame.intrinsics.height, sh_degree=active_degree, backend=cfg.backend,
+            depth_mode="D" if with_depth or with_normals else None, normals=with_normals,
+            appearance=cfg.appearance, environment=self.environment,
         )  # fmt: skip
+        meta, alpha = out.meta, out.alpha
         target = self.images[view]
-        rgb = composite(renders[0, ..., :3], alphas[0], self.backgrounds[view])
+        rgb = out.rgb + (1.0 - alpha[..., None]) * self.backgrounds[view]
         photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight)
         loss = photometric
         terms = dict.fromkeys(LOSS_TERMS, self._zero)  # detached device scalars: no host synchronisation
         terms["photometric"] = photometric.detach()
         if cfg.lambda_backdrop > 0 and self.backdrop_masks[view] is not None:
-            backdrop = losses.backdrop_alpha_loss(alphas[0, ..., 0], self.backdrop_masks[view])
+            backdrop = losses.backdrop_alpha_loss(alpha, self.backdrop_masks[view])
             loss = loss + cfg.lambda_backdrop * backdrop
             terms["backdrop"] = backdrop.detach()
-        if self.use_touch_loss:
+        if self.neighbours is not None:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
-            points = self.touch_tensor
+            points, normals = self.touch_tensor, self.touch_normals
             if 0 < cfg.touch_points_per_step < len(points):  # an unbiased estimate of the mean over P_t
                 subset = torch.randperm(len(points), generator=self.generator, device=self.device)
                 subset = subset[: cfg.touch_points_per_step]
                 points, candidates = points[subset], candidates[subset]
-            quats, scales = (g.quats, g.scales) if cfg.touch_loss_moves_shape else (g.quats.detach(), g.scales.detach())
-            transmittance = losses.transmittance_loss(
-                points, g.means, quats, scales, g.opacities, candidates,
-                cfg.touch_top_k, cfg.touch_max_distance,
+                normals = normals[subset] if self.use_touch_normals else normals
+            if self.use_touch_loss:
+                quats, scales = ((g.quats, g.scales) if cfg.touch_loss_moves_shape
+                                 else (g.quats.detach(), g.scales.detach()))
+                transmittance = losses.transmittance_loss(
+                    points, g.means, quats, scales, g.opacities, candidates,
+                    cfg.touch_top_k, cfg.touch_max_distance,
+                )  # fmt: skip
+                loss = loss + cfg.lambda_t * transmittance
+                terms["transmittance"] = transmittance.detach()
+            if self.use_touch_normals:
+                aligned = losses.touch_normal_loss(
+                    points, normals, g.means, shading.gaussian_normals(g.quats, g.scales), g.opacities.detach(),
+                    candidates, cfg.touch_max_distance,
+                )  # fmt: skip
+                loss = loss + cfg.lambda_touch_normal * aligned
+                terms["normals"] = terms["normals"] + aligned.detach()
+        if cfg.lambda_flatten > 0:
+            flat = losses.flatten_loss(g.scales, self.scene_scale)
+            loss = loss + cfg.lambda_flatten * flat
+            terms["normals"] = terms["normals"] + flat.detach()
+        if with_normals:
+            seen = alpha.detach() > 0.5
+            surface = torch.where(seen, losses.expected_depth(out.depth, alpha), torch.zeros_like(alpha))
+            consistency = losses.normal_consistency_loss(
+                out.normal, losses.depth_normals(surface, self.Ks[view]), alpha.detach() * seen
             )  # fmt: skip
-            loss = loss + cfg.lambda_t * transmittance
-            terms["transmittance"] = transmittance.detach()
+            loss = loss + cfg.lambda_depth_normal * consistency
+            terms["normals"] = terms["normals"] + consistency.detach()
         if with_depth:
-            depth = renders[0, ..., 3]  # accumulated depth, paper Eq. 5
+            depth = out.depth  # accumulated depth, paper Eq. 5
             proximity = None
             if len(self.touch_points) and cfg.use_proximity_mask:
-                alpha = alphas[0, ..., 0].detach()
-                surface = torch.where(alpha > 0.5, depth.detach() / alpha.clamp_min(1e-6), torch.zeros_like(alpha))
+                drawn = alpha.detach()
+                surface = torch.where(drawn > 0.5, depth.detach() / drawn.clamp_min(1e-6), torch.zeros_like(drawn))
                 seen = losses.visible_touch_pixels(
                     self.touch_tensor, self.Ks[view], self.viewmats[view], frame.intrinsics.width,
                     frame.intrinsics.height, surface, cfg.occlusion_tolerance,
                 )  # fmt: skip
                 proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px)
-            weights = self._smoothness_weights(view, alphas[0, ..., 0].detach())
+            weights = self._smoothness_weights(view, alpha.detach())
             if cfg.smoothness_depth == "expected":
-                depth = losses.expected_depth(depth, alphas[0, ..., 0])
+                depth = losses.expected_depth(depth, alpha)
             smoothness = losses.edge_aware_smoothness(depth / self.scene_scale, proximity=proximity, weights=weights)
             loss = loss + cfg.lambda_s * smoothness
             terms["smoothness"] = smoothness.detach()
@@ -331,7 +367,8 @@ class Trainer:
             if self._ground_truth is None:
                 self._ground_truth = load_ground_truth(self.scene, self.test_frames) or False
             metrics = evaluate_views(
-                self.gaussians, self.scene, frames, cfg.background, cfg.backend, self._ground_truth or None
+                self.gaussians, self.scene, frames, cfg.background, cfg.backend, self._ground_truth or None,
+                look=self.look,
             )
             psnr_value, cd_value, cd_paper = metrics["psnr"], metrics["cd"], metrics["cd_paper"]
         n = max(self._sum_count, 1)
@@ -362,6 +399,7 @@ class Trainer:
             "progress": {"sums": {k: float(v) for k, v in self._sums.items()}, "count": self._sum_count,
                          "last_eval": self._last_eval},
             "device": self.device.type,
+            "environment": None if self.environment is None else self.environment.state_dict(),
         }
         tmp = self.out / "checkpoint.pt.tmp"
         torch.save(state, tmp)
@@ -376,6 +414,8 @@ class Trainer:
         self.step = int(ckpt["step"])
         self.train_seconds = float(ckpt["train_seconds"])
         self.gaussians = Gaussians.from_state_dict(ckpt["gaussians"]).to(self.device)
+        if self.environment is not None:
+            self.environment.load_state_dict(ckpt["environment"])
         self._make_optimizers()
         for name, optimizer in self.optimizers.items():
             optimizer.load_state_dict(ckpt["optimizers"][name])
@@ -513,6 +553,7 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
         scene = scene_at(base, config.downscale)
         trainer = Trainer(scene, out_dir, config)
         gaussians = trainer.run(resume=resume, show_progress=show_progress)
-        return evaluate_reconstruction(gaussians, scene, trainer.config, trainer.step, trainer.train_seconds, out_dir)
+        return evaluate_reconstruction(gaussians, scene, trainer.config, trainer.step, trainer.train_seconds, out_dir,
+                                       look=trainer.look)
 
 

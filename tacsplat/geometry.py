@@ -192,6 +192,32 @@ def tactile_depth_to_points(depth, pixel_size_m: float, T_world_sensor, threshol
     return transform_points(T_world_sensor, pts)
 
 
+def tactile_depth_to_normals(depth, pixel_size_m: float, T_world_sensor, threshold_m: float = 1e-5) -> np.ndarray:
+    """The touched surface's outward normals [M, 3] (world, unit) at the points of :func:`tactile_depth_to_points`,
+    in the same order; NaN where a contact pixel has a neighbour out of contact (the slope there is not known).
+
+    The surface under the gel is ``(x, y, -d(x, y))``; its outward normal (out of the object, towards the
+    sensor) is ``-(dd/dx, dd/dy, 1)`` normalised, from central differences of the indentation map.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2 or not np.all(np.isfinite(depth)):
+        raise InvalidInputError(f"tactile depth: expected a finite [h, w] map, got shape {depth.shape}")
+    hit = depth > threshold_m
+    dd_dy, dd_dx = np.gradient(depth, pixel_size_m)
+    normals = -np.stack([dd_dx, dd_dy, np.ones_like(depth)], axis=-1)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    inner = hit.copy()  # the 4 neighbours used by the central differences are in contact too
+    inner[1:] &= hit[:-1]
+    inner[:-1] &= hit[1:]
+    inner[:, 1:] &= hit[:, :-1]
+    inner[:, :-1] &= hit[:, 1:]
+    inner[[0, -1], :] = False
+    inner[:, [0, -1]] = False
+    normals[~inner] = np.nan
+    R = np.asarray(T_world_sensor, dtype=np.float64)[:3, :3]
+    return normals[hit] @ R.T
+
+
 def rotation_angle_between(R_a, R_b) -> float:
     """Angle in radians of the rotation taking ``R_a`` to ``R_b``."""
     c = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1.0) / 2.0

@@ -113,3 +113,23 @@ def test_tactile_reading_rejects_bad_depth():
         TactileReading(np.full((2, 2), -1.0), 0.001, np.eye(4))
     with pytest.raises(InvalidInputError, match="depth"):
         TactileReading(np.full((2, 2), np.nan), 0.001, np.eye(4))
+
+
+def test_tactile_normals_of_a_sphere_press_point_along_its_radius():
+    """A ball of radius 4 mm pressed 1 mm into the gel: the normal at each inner contact pixel, lifted to the
+    world, is the sphere's outward normal there (within 2 degrees), i.e. along the radius."""
+    pixel, radius, press = 1e-4, 4e-3, 1e-3
+    x, y = g.tactile_pixel_grid(81, 81, pixel)
+    centre_z = radius - press  # the ball's centre in front of the gel
+    depth = np.clip(press - (radius - np.sqrt(np.clip(radius**2 - x**2 - y**2, 0, None))), 0, None)
+    T = g.make_pose(Rotation.from_euler("xyz", [0.3, -0.5, 1.1]).as_matrix(), [0.1, 0.2, 0.3])
+    points = g.tactile_depth_to_points(depth, pixel, T)
+    normals = g.tactile_depth_to_normals(depth, pixel, T)
+    assert normals.shape == points.shape
+    known = np.isfinite(normals).all(axis=1)
+    assert 0.6 < known.mean() < 1.0  # the rim's pixels have no known slope
+    centre_world = g.transform_points(T, [[0.0, 0.0, centre_z]])[0]
+    radial = points[known] - centre_world
+    radial /= np.linalg.norm(radial, axis=1, keepdims=True)
+    cos = np.einsum("ij,ij->i", normals[known], radial)
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 2.0

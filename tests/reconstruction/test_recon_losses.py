@@ -184,3 +184,40 @@ def test_expected_depth_of_a_half_transparent_plane_is_its_depth_and_smooth():
     accumulated = losses.edge_aware_smoothness(depth, weights=torch.ones(2, 12, 12))
     expected = losses.edge_aware_smoothness(losses.expected_depth(depth, alpha), weights=torch.ones(2, 12, 12))
     assert accumulated > 0.01 and float(expected) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_a_planar_depth_map_gives_a_constant_depth_normal():
+    from tacsplat.reconstruction.losses import depth_normals
+
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]], dtype=torch.float64)
+    normal = torch.tensor([0.2, -0.3, -1.0], dtype=torch.float64)
+    normal = normal / normal.norm()  # the plane n.p = c, facing the camera
+    v, u = torch.meshgrid(torch.arange(24.0, dtype=torch.float64) + 0.5, torch.arange(32.0, dtype=torch.float64) + 0.5,
+                          indexing="ij")
+    rays = torch.stack([(u - 16) / 40, (v - 12) / 40, torch.ones_like(u)], -1)
+    depth = -2.0 / (rays @ normal)  # ray hits the plane n.p = -2 at z = depth
+    n = depth_normals(depth, K)
+    inner = n[1:-1, 1:-1].reshape(-1, 3)
+    torch.testing.assert_close(inner, normal.expand_as(inner), rtol=0, atol=1e-9)
+    assert (n[0] == 0).all() and (n[:, -1] == 0).all()
+
+
+def test_the_flattening_loss_is_the_mean_shortest_axis_over_the_scene_scale():
+    from tacsplat.reconstruction.losses import flatten_loss
+
+    scales = torch.tensor([[1.0, 0.2, 3.0], [0.5, 0.5, 0.1]])
+    assert flatten_loss(scales, 2.0).item() == pytest.approx((0.2 + 0.1) / 2 / 2.0)
+
+
+def test_touch_normal_loss_is_zero_for_aligned_normals_of_either_sign_and_skips_unknown_ones():
+    from tacsplat.reconstruction.losses import touch_normal_loss
+
+    points = torch.tensor([[0.0, 0, 0], [1.0, 0, 0]])
+    target = torch.tensor([[0.0, 0, 1], [float("nan")] * 3])
+    means = torch.tensor([[0.0, 0, 0.001], [0.0, 0.001, 0], [1.0, 0, 0]])
+    opacities = torch.ones(3)
+    candidates = torch.tensor([[0, 1], [2, -1]])
+    aligned = torch.tensor([[0.0, 0, 1], [0.0, 0, -1], [1.0, 0, 0]])
+    assert touch_normal_loss(points, target, means, aligned, opacities, candidates, 0.01).item() == 0.0
+    tilted = torch.tensor([[1.0, 0, 0], [0.0, 0, 1], [1.0, 0, 0]])  # one perpendicular, one aligned
+    assert touch_normal_loss(points, target, means, tilted, opacities, candidates, 0.01).item() == pytest.approx(0.5)

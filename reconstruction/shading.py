@@ -1,0 +1,181 @@
+"""What a view of the Gaussians looks like: colour, alpha, depth and normals from one rasterization pass.
+
+:func:`render` is the one place the trainer and the evaluation turn Gaussians into images.
+Its extra outputs ride in the same pass as extra colour channels:
+
+* **normals** -- each Gaussian's normal is its shortest axis (:func:`gaussian_normals`),
+  turned towards the camera and expressed in the camera frame; the pass blends them like
+  colours, and the pixel normal is that sum normalised (2DGS / PGSR style);
+* **appearance** -- ``"sh"``: the view-dependent colour of the SH coefficients (3DGS);
+  ``"reflective"``: a deferred, reflection-aware shading (3DGS-DR / GaussianShader style):
+  each Gaussian carries a diffuse colour (its SH DC band), a specular tint and a roughness;
+  the pass blends them with the normals, and each pixel is shaded as
+  ``diffuse + tint * L(reflect(view, normal), roughness)``, ``L`` a learned environment map
+  (:class:`EnvironmentMap`) prefiltered by roughness. A reflection then no longer has to be
+  painted as geometry behind the surface.
+
+Plain RGB(+depth) with SH goes straight through :func:`rasterization` (its fused SH path).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
+from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
+from tacsplat.reconstruction.raster.spherical_harmonics import spherical_harmonics
+
+Appearance = Literal["sh", "reflective"]
+REFLECTIVE_PARAMS = {"tint": 3, "roughness": 1}  # extra per-Gaussian parameters (logits) of "reflective"
+
+
+def add_reflective_params(gaussians: Gaussians) -> None:
+    """Give every Gaussian a specular tint (logit -2: little specular) and a roughness (logit 0: 0.5)."""
+    n, device = len(gaussians), gaussians.means.device
+    gaussians.params["tint"] = torch.nn.Parameter(torch.full((n, 3), -2.0, device=device))
+    gaussians.params["roughness"] = torch.nn.Parameter(torch.zeros((n, 1), device=device))
+
+
+def gaussian_normals(quats: Tensor, scales: Tensor) -> Tensor:
+    """Unit normals [N, 3]: the rotation's column of each Gaussian's shortest axis (sign arbitrary)."""
+    rotations = quats_to_rotmats(quats)  # [N, 3, 3]
+    shortest = scales.detach().argmin(dim=-1)  # [N]
+    return torch.gather(rotations, 2, shortest[:, None, None].expand(-1, 3, 1))[..., 0]
+
+
+class EnvironmentMap(torch.nn.Module):
+    """A learned equirectangular radiance map [3, H, 2H], prefiltered by roughness through a mip pyramid.
+
+    ``lookup(directions, roughness)`` blends the pyramid levels nearest to ``roughness * (levels - 1)``
+    (roughness 0: the full-resolution map, a mirror; 1: the coarsest, a diffuse average).
+    """
+
+    def __init__(self, height: int = 16, device=None):
+        super().__init__()
+        self.log_radiance = torch.nn.Parameter(torch.full((3, height, 2 * height), math.log(0.5), device=device))
+
+    @property
+    def levels(self) -> int:
+        return int(math.log2(self.log_radiance.shape[1])) + 1
+
+    def pyramid(self) -> list[Tensor]:
+        level = torch.exp(self.log_radiance)[None]  # [1, 3, H, 2H]
+        levels = [level]
+        while level.shape[2] > 1:
+            level = F.avg_pool2d(level, 2)
+            levels.append(level)
+        return levels
+
+    def lookup(self, directions: Tensor, roughness: Tensor) -> Tensor:
+        """Radiance [P, 3] along unit world ``directions`` [P, 3] at ``roughness`` [P] in [0, 1]."""
+        x, y, z = directions.unbind(-1)
+        u = torch.atan2(y, x) / math.pi  # azimuth about the vertical (world z up), [-1, 1]
+        v = -torch.asin(z.clamp(-1.0, 1.0)) / (math.pi / 2)  # -1 at the zenith, +1 at the nadir
+        grid = torch.stack([u, v], dim=-1)[None, :, None, :]  # [1, P, 1, 2]
+        samples = torch.stack([F.grid_sample(level, grid, align_corners=False, padding_mode="border")[0, :, :, 0]
+                               for level in self.pyramid()])  # [L, 3, P]
+        position = roughness.clamp(0.0, 1.0) * (len(samples) - 1)  # [P]
+        index = torch.arange(len(samples), device=directions.device, dtype=position.dtype)
+        weights = (1.0 - (position[None, :] - index[:, None]).abs()).clamp_min(0.0)  # [L, P] tent
+        return torch.einsum("lp,lcp->pc", weights, samples)
+
+
+@dataclass
+class Look:
+    """How Gaussians are coloured: their ``appearance`` and, for "reflective", the learned environment."""
+
+    appearance: Appearance = "sh"
+    environment: EnvironmentMap | None = None
+
+
+@dataclass
+class RenderOutput:
+    rgb: Tensor  # [H, W, 3] colour before the background (alpha-premultiplied)
+    alpha: Tensor  # [H, W]
+    depth: Tensor | None  # [H, W] accumulated ("D") or expected ("ED") depth
+    normal: Tensor | None  # [H, W, 3] unit camera-frame normal towards the camera (0 where nothing is drawn)
+    meta: dict
+
+
+def render(
+    gaussians: Gaussians,
+    viewmat: Tensor,  # [1, 4, 4] world-to-camera
+    K: Tensor,  # [1, 3, 3]
+    width: int,
+    height: int,
+    *,
+    sh_degree: int,
+    backend: str,
+    depth_mode: Literal["D", "ED"] | None = None,
+    normals: bool = False,
+    appearance: Appearance = "sh",
+    environment: EnvironmentMap | None = None,
+) -> RenderOutput:
+    """Render one view; see the module docstring for what each option adds to the pass."""
+    g = gaussians
+    if not normals and appearance == "sh":
+        mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
+        colors, alphas, meta = raster.rasterization(
+            g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(sh_degree), viewmat, K, width, height,
+            sh_degree=sh_degree, render_mode=mode, backend=backend,
+        )  # fmt: skip
+        depth = None if depth_mode is None else colors[0, ..., 3]
+        return RenderOutput(colors[0, ..., :3], alphas[0, ..., 0], depth, None, meta)
+
+    campos = -viewmat[0, :3, :3].T @ viewmat[0, :3, 3]  # [3]
+    to_gaussian = g.means - campos  # [N, 3]
+    if appearance == "sh":
+        features = (spherical_harmonics(sh_degree, to_gaussian, g.sh_coefficients(sh_degree)) + 0.5).clamp_min(0.0)
+    else:
+        features = torch.cat([sh0_to_rgb(g.params["sh0"][:, 0]).clamp_min(0.0), torch.sigmoid(g.params["tint"]),
+                              torch.sigmoid(g.params["roughness"])], dim=-1)  # [N, 7]
+    channels = [features]
+    with_normals = normals or appearance == "reflective"
+    if with_normals:
+        n = gaussian_normals(g.quats, g.scales)  # [N, 3] world
+        n = torch.where(((n * to_gaussian).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
+        channels.append(n @ viewmat[0, :3, :3].T)  # camera frame
+    mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
+    colors, alphas, meta = raster.rasterization(
+        g.means, g.quats, g.scales, g.opacities, torch.cat(channels, dim=-1)[None], viewmat, K, width, height,
+        render_mode=mode, backend=backend,
+    )  # fmt: skip
+    out, alpha = colors[0], alphas[0, ..., 0]
+    depth = None if depth_mode is None else out[..., -1]
+    normal = None
+    if with_normals:
+        summed = out[..., features.shape[1] : features.shape[1] + 3]
+        normal = summed / summed.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+    if appearance == "sh":
+        rgb = out[..., :3]
+    else:
+        rgb = _shade(out[..., :7], alpha, normal, viewmat[0], K[0], environment)
+    return RenderOutput(rgb, alpha, depth, normal, meta)
+
+
+def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:
+    """Unit camera-frame ray directions [H, W, 3] through the pixel centres (+0.5)."""
+    v, u = torch.meshgrid(torch.arange(height, device=K.device, dtype=K.dtype) + 0.5,
+                          torch.arange(width, device=K.device, dtype=K.dtype) + 0.5, indexing="ij")
+    rays = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], dim=-1)
+    return rays / rays.norm(dim=-1, keepdim=True)
+
+
+def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: Tensor,
+           environment: EnvironmentMap) -> Tensor:
+    """Deferred reflective shading of alpha-blended [H, W, 7] (diffuse, tint, roughness) -> premultiplied RGB."""
+    h, w = alpha.shape
+    a = alpha.clamp_min(1e-6)[..., None]
+    diffuse, tint, roughness = blended[..., :3] / a, blended[..., 3:6] / a, blended[..., 6] / a[..., 0]
+    rotation = viewmat[:3, :3].T  # camera -> world
+    view = pixel_rays(K, w, h) @ rotation.T  # [H, W, 3] world
+    n = normal @ rotation.T
+    reflected = view - 2.0 * (view * n).sum(-1, keepdim=True) * n
+    specular = environment.lookup(reflected.reshape(-1, 3), roughness.reshape(-1)).reshape(h, w, 3)
+    return (diffuse + tint * specular) * alpha[..., None]
