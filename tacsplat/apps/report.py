@@ -159,30 +159,42 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     return save_figure(fig, path)
 
 
-def render_grid(panels: dict[str, tuple[np.ndarray, np.ndarray]], gt_rgb: np.ndarray, gt_depth: np.ndarray,
-                path: str | Path, title: str = "") -> Path:
+def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarray, path: str | Path,
+                title: str = "", gt_normal: np.ndarray | None = None) -> Path:
     """Ground truth then one column per variant; RGB on top, depth below on ONE colour scale (the ground
-    truth's depth range), so that a surface behind or in front of the true one shows as a colour shift.
+    truth's depth range), so that a surface behind or in front of the true one shows as a colour shift; a third
+    row of camera-frame normals (as RGB, (n + 1) / 2; black where empty) when the panels carry them.
 
-    ``panels[variant] = (rgb [H, W, 3] in [0, 1], depth [H, W] metres, 0 = empty)`` of the same test view.
+    ``panels[variant] = (rgb [H, W, 3] in [0, 1], depth [H, W] metres, 0 = empty)`` of the same test view, or
+    ``(rgb, depth, normal [H, W, 3])``; ``gt_normal`` the ground truth's (e.g. from its depth map).
     """
     plt = pyplot()
     valid = gt_depth[gt_depth > 0]
     lo, hi = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 1.0)
     pad = 0.1 * max(hi - lo, 1e-6)
-    columns = [("ground truth", gt_rgb, gt_depth)] + [(variant_label(v), rgb, d) for v, (rgb, d) in panels.items()]
-    fig, axes = plt.subplots(2, len(columns), figsize=(2.6 * len(columns) + 0.8, 5.4), squeeze=False)
+    columns = [("ground truth", gt_rgb, gt_depth, gt_normal)] + [
+        (variant_label(v), p[0], p[1], p[2] if len(p) > 2 else None) for v, p in panels.items()
+    ]
+    with_normals = any(c[3] is not None for c in columns)
+    rows = 3 if with_normals else 2
+    fig, axes = plt.subplots(rows, len(columns), figsize=(2.6 * len(columns) + 0.8, 2.7 * rows), squeeze=False)
     cmap = plt.get_cmap("turbo").with_extremes(bad="black")
     image = None
-    for j, (label, rgb, depth) in enumerate(columns):
+    for j, (label, rgb, depth, normal) in enumerate(columns):
         axes[0, j].imshow(np.clip(rgb, 0, 1))
         image = axes[1, j].imshow(np.ma.masked_less_equal(depth, 0), cmap=cmap, vmin=lo - pad, vmax=hi + pad)
+        if with_normals:
+            shown = np.zeros(rgb.shape[:2] + (3,)) if normal is None else normal
+            empty = ~np.any(shown != 0, axis=-1, keepdims=True)
+            axes[2, j].imshow(np.where(empty, 0.0, np.clip((shown + 1.0) / 2.0, 0, 1)))
         axes[0, j].set_title(label, fontsize=10)
         for ax in axes[:, j]:
             ax.set_xticks([])
             ax.set_yticks([])
     axes[0, 0].set_ylabel("RGB")
     axes[1, 0].set_ylabel("depth")
+    if with_normals:
+        axes[2, 0].set_ylabel("normals (camera frame)")
     fig.colorbar(image, ax=list(axes[1]), fraction=0.02, label="depth [m]")
     if title:
         fig.suptitle(title)
