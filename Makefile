@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # Process-wide defaults (MUJOCO_GL, OMP_WAIT_POLICY, ...) are set by `import tacsplat` (tacsplat/__init__.py).
 
-.PHONY: test demo setup bench-rasterizer bench-sim bench-quick bench-paper bench-touches bench-scaling bench-gpu clean
+.PHONY: test test-browser demo setup bench-rasterizer bench-sim bench-quick bench-paper bench-touches bench-scaling bench-gpu clean
 
 setup: $(STAMP)
 
@@ -25,7 +25,13 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 test: $(STAMP)
-	$(PY) -m pytest -m "not slow" -q
+	$(PY) -m pytest -m "not slow and not browser" -q
+
+# the viewer in headless Chromium (Debian's package, installed when missing)
+SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
+test-browser: $(STAMP)
+	command -v chromium >/dev/null || { $(SUDO) apt-get update && $(SUDO) apt-get install -y --no-install-recommends chromium; }
+	$(PY) -m pytest -m browser -q tests/apps/test_viewer_browser.py
 
 demo: $(STAMP)
 	$(VENV)/bin/tacsplat demo --out demo-output

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from plyfile import PlyData, PlyElement
+from plyfile import PlyData, PlyElement, PlyParseError
 
 from tacsplat.errors import SceneFormatError
 from tacsplat.reconstruction.gaussians import MAX_SH_DEGREE, Gaussians, num_sh_bases
@@ -105,7 +105,7 @@ def load_ply(path: str | Path) -> Gaussians:
     path = Path(path)
     try:
         vertex = PlyData.read(str(path))["vertex"]
-    except (OSError, KeyError, ValueError) as exc:
+    except (OSError, KeyError, ValueError, PlyParseError) as exc:
         raise SceneFormatError(path, "vertex", f"cannot read a 3DGS PLY: {exc}") from exc
     names = set(vertex.data.dtype.names)
     num_rest = sum(1 for name in names if name.startswith("f_rest_"))

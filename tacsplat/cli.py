@@ -38,6 +38,7 @@ COMMAND_MODULES = (
     "tacsplat.apps.bench_sim",
     "tacsplat.apps.bench_gpu",
     "tacsplat.apps.bench_scaling",
+    "tacsplat.apps.viewer",
 )
 
 GROUP_HELP = {

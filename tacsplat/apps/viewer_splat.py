@@ -1,0 +1,110 @@
+"""Gaussians in the browser (viser's splat buffers) and a browser viewpoint rendered with tacsplat's rasterizer.
+
+viser draws each Gaussian from its centre, its 3D covariance (sent as float16),
+its RGB and opacity: the view-independent colour of the DC band, so a splat with
+higher SH bands looks flatter in the browser than in our renders. float16
+covariances underflow at the sizes of a real object's Gaussians (a 0.1 mm
+Gaussian has a covariance of 1e-8 m^2), so a splat is sent in its own length
+unit, the median size of its Gaussians, and scaled back to metres by its
+scene node.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
+
+SPLAT_SETS = {"camera": False, "touch": True}  # node name -> the from_touch flag of its Gaussians (G_c, G_t)
+GAUSSIAN_SETS = {"all": None, "touch only (G_t)": ("touch",), "camera only (G_c)": ("camera",)}  # None: every set
+
+
+@dataclass
+class SplatBuffers:
+    """What viser's ``add_gaussian_splats`` takes, in the splat's own length unit ``unit`` (metres)."""
+
+    centers: np.ndarray  # [N, 3] float32, in units of ``unit``
+    covariances: np.ndarray  # [N, 3, 3] float32, in units of ``unit`` squared
+    rgbs: np.ndarray  # [N, 3] float32 in [0, 1]
+    opacities: np.ndarray  # [N, 1] float32 in (0, 1)
+    unit: float
+
+
+@torch.no_grad()
+def splat_buffers(gaussians: Gaussians, mask: torch.Tensor | None = None) -> SplatBuffers:
+    """The browser's view of ``gaussians`` (those where ``mask`` is True, default all)."""
+    keep = slice(None) if mask is None else mask.cpu()
+    scales = gaussians.scales.detach().cpu()[keep].double()
+    rotations = quats_to_rotmats(gaussians.quats.detach().cpu()[keep].double())
+    covariances = rotations @ torch.diag_embed(scales.square()) @ rotations.transpose(-1, -2)
+    largest = scales.max(dim=1).values
+    unit = float(largest.median()) if len(largest) and float(largest.median()) > 0 else 1.0
+    rgbs = sh0_to_rgb(gaussians.params["sh0"].detach().cpu()[keep][:, 0]).clamp(0, 1)
+    return SplatBuffers(
+        centers=(gaussians.means.detach().cpu()[keep].double() / unit).float().numpy(),
+        covariances=(covariances / unit**2).float().numpy(),
+        rgbs=rgbs.float().numpy(),
+        opacities=gaussians.opacities.detach().cpu()[keep][:, None].float().numpy(),
+        unit=unit,
+    )
+
+
+def add_splat(scene_api, name: str, gaussians: Gaussians) -> dict[str, object]:
+    """Add ``gaussians`` under ``name`` as two splat nodes, ``name/camera`` (G_c) and ``name/touch`` (G_t), so that
+    either can be hidden; a set with no Gaussians gets no node. Returns the nodes by set name."""
+    nodes = {}
+    for set_name, from_touch in SPLAT_SETS.items():
+        mask = gaussians.from_touch.cpu() == from_touch
+        if not bool(mask.any()):
+            continue
+        b = splat_buffers(gaussians, mask)
+        nodes[set_name] = scene_api.add_gaussian_splats(f"{name}/{set_name}", b.centers, b.covariances, b.rgbs,
+                                                        b.opacities, scale=b.unit)
+    return nodes
+
+
+def camera_matrices(wxyz, position, fov_y: float, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """(T_world_cam [4, 4], K [3, 3]) of a browser camera: viser's pose (OpenCV axes, camera-to-world rotation
+    ``wxyz`` and ``position``) and vertical field of view, seen at ``width`` x ``height`` pixels."""
+    import viser.transforms as vtf
+
+    from tacsplat.geometry import focal_from_fov, intrinsics_matrix, make_pose
+
+    focal = focal_from_fov(fov_y, height)
+    return (make_pose(vtf.SO3(np.asarray(wxyz, dtype=np.float64)).as_matrix(), position),
+            intrinsics_matrix(focal, focal, 0.5 * width, 0.5 * height))
+
+
+@torch.no_grad()
+def render_viewpoint(gaussians: Gaussians, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int,
+                     background=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rgb [H, W, 3] in [0, 1] over ``background``, expected depth [H, W] in metres, alpha [H, W]) of
+    ``gaussians`` seen from a pinhole camera, by :func:`tacsplat.reconstruction.raster.rasterization`."""
+    from tacsplat.geometry import invert_pose
+    from tacsplat.reconstruction.raster import rasterization
+
+    g = gaussians.to("cpu")
+    viewmat = torch.tensor(invert_pose(T_world_cam), dtype=torch.float32)[None]
+    Ks = torch.tensor(K, dtype=torch.float32)[None]
+    out, alpha, _ = rasterization(
+        g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(), viewmat, Ks, width, height,
+        sh_degree=g.sh_degree, render_mode="RGB+ED", backgrounds=torch.tensor([background], dtype=torch.float32),
+    )  # fmt: skip
+    return out[0, ..., :3].clamp(0, 1).numpy(), out[0, ..., 3].numpy(), alpha[0, ..., 0].numpy()
+
+
+def depth_picture(depth: np.ndarray, alpha: np.ndarray, threshold: float = 0.5) -> np.ndarray:
+    """A uint8 RGB picture [H, W, 3] of an expected-depth map: matplotlib's turbo colour map over the drawn
+    pixels' depth range (red near, blue far), white where alpha <= ``threshold``."""
+    import matplotlib
+
+    drawn = alpha > threshold
+    picture = np.full(depth.shape + (3,), 255, np.uint8)
+    if drawn.any():
+        near, far = float(depth[drawn].min()), float(depth[drawn].max())
+        scaled = 1.0 - (depth[drawn] - near) / max(far - near, 1e-9)
+        picture[drawn] = (matplotlib.colormaps["turbo"](scaled)[:, :3] * 255).round().astype(np.uint8)
+    return picture
