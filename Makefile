@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 # Process-wide defaults (MUJOCO_GL, OMP_WAIT_POLICY, ...) are set by `import tacsplat` (tacsplat/__init__.py).
 
-.PHONY: test test-browser demo setup bench-rasterizer bench-sim bench-quick bench-paper bench-touches bench-scaling bench-gpu clean
+.PHONY: test test-browser demo setup bench-step bench-compare bench-rasterizer bench-sim bench-quick bench-paper bench-touches bench-scaling bench-gpu clean
 
 setup: $(STAMP)
 
@@ -38,6 +38,14 @@ demo: $(STAMP)
 
 bench-rasterizer: $(STAMP)
 	$(VENV)/bin/tacsplat bench rasterizer --json bench-output/rasterizer.json
+
+# where a training step's time goes (table, step.png, step.json); compare two JSON results:
+#   make bench-compare A=old/step.json B=bench-output/step/step.json
+bench-step: $(STAMP)
+	$(VENV)/bin/tacsplat bench step --out bench-output/step
+
+bench-compare: $(STAMP)
+	$(VENV)/bin/tacsplat bench compare $(A) $(B)
 
 bench-sim: $(STAMP)
 	$(VENV)/bin/tacsplat bench sim --out bench-output/sim

@@ -38,6 +38,8 @@ COMMAND_MODULES = (
     "tacsplat.apps.bench_sim",
     "tacsplat.apps.bench_gpu",
     "tacsplat.apps.bench_scaling",
+    "tacsplat.apps.bench_step",
+    "tacsplat.apps.bench_compare",
     "tacsplat.apps.viewer",
 )
 

@@ -1,0 +1,97 @@
+"""`tacsplat bench compare A.json B.json`: two benchmark results side by side (before / after).
+
+Reads any JSON that the benchmarks write (``bench rasterizer --json``, ``bench
+step``'s ``step.json``, ...) and prints every number found in either file
+under the same path, A, B and the ratio B / A. Rows of a list are matched by
+their label (``WxH:N`` for the rasterizer's sizes, ``128px`` for the step
+profile's resolutions), not by their position; per-step records are skipped.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from tacsplat.errors import InvalidInputError
+
+SKIPPED_KEYS = ("per_step",)  # long per-step series: summarised elsewhere in the same file
+
+
+def _row_label(row, index: int) -> str:
+    if isinstance(row, dict):
+        if "label" in row:
+            return str(row["label"])
+        if {"width", "height", "n_gaussians"} <= row.keys():
+            return f"{row['width']}x{row['height']}:{row['n_gaussians']}"
+    return str(index)
+
+
+def flatten(data, prefix: str = "") -> dict[str, float]:
+    """``{"sizes.256x256:20000.cpu.forward_ms": 12.3, ...}``: every number (not bool) in nested dicts and lists."""
+    out: dict[str, float] = {}
+    if isinstance(data, dict):
+        items = ((str(k), v) for k, v in data.items() if k not in SKIPPED_KEYS)
+    elif isinstance(data, list):
+        items = ((_row_label(v, i), v) for i, v in enumerate(data))
+    else:
+        if isinstance(data, (int, float)) and not isinstance(data, bool):
+            out[prefix] = float(data)
+        return out
+    for key, value in items:
+        out.update(flatten(value, f"{prefix}.{key}" if prefix else key))
+    return out
+
+
+def read_results(path: str | Path) -> dict:
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise InvalidInputError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InvalidInputError(f"{path}: not a benchmark JSON file ({exc})") from None
+
+
+def compare(a: dict, b: dict, match: str | None = None) -> list[tuple[str, float | None, float | None, float | None]]:
+    """``(path, A, B, B / A)`` for every number of either result (None where one lacks it), in A's order."""
+    flat_a, flat_b = flatten(a), flatten(b)
+    keys = list(flat_a) + [k for k in flat_b if k not in flat_a]
+    rows = []
+    for key in keys:
+        if match and match not in key:
+            continue
+        va, vb = flat_a.get(key), flat_b.get(key)
+        ratio = vb / va if va is not None and vb is not None and va != 0 else None
+        rows.append((key, va, vb, ratio))
+    return rows
+
+
+def format_comparison(rows, name_a: str, name_b: str) -> str:
+    def cell(v):
+        if v is None:
+            return f"{'-':>12}"
+        return f"{v:12.4g}" if math.isfinite(v) else f"{v!s:>12}"
+
+    width = max([len("value")] + [len(key) for key, *_ in rows])
+    lines = [f"{'value':{width}s} {name_a[-12:]:>12} {name_b[-12:]:>12} {'B / A':>8}",
+             f"{'':{width}s} {'(A)':>12} {'(B)':>12}"]  # fmt: skip
+    for key, va, vb, ratio in rows:
+        lines.append(f"{key:{width}s} {cell(va)} {cell(vb)} " + (f"{ratio:8.3f}" if ratio is not None else f"{'':8s}"))
+    return "\n".join(lines)
+
+
+def register(cli) -> None:
+    """Add `tacsplat bench compare`."""
+    p = cli.command("bench compare", help="two benchmark JSON files side by side (A before, B after) with ratios",
+                    description=__doc__.split("\n\n", 1)[1].replace("``", "'"))  # fmt: skip
+    p.add_argument("a", help="benchmark JSON (before)")
+    p.add_argument("b", help="benchmark JSON (after)")
+    p.add_argument("--match", default=None, help="only the values whose path contains this text, e.g. _ms")
+    p.set_defaults(func=_handler)
+
+
+def _handler(args) -> int:
+    rows = compare(read_results(args.a), read_results(args.b), args.match)
+    print(format_comparison(rows, Path(args.a).name, Path(args.b).name))
+    return 0

@@ -1,0 +1,312 @@
+"""`tacsplat bench step`: where the time of a training step goes, on the demo's scene.
+
+The demo's capture (one glossy object, 5 views, 5 grasps; made once per
+resolution and reused) is reconstructed by the trainer itself (``Trainer.run``,
+the demo's settings), while the functions a step calls are timed in place:
+projection and SH, binning and depth sort, compositing forward and backward,
+SSIM (forward and backward), the other losses, the transmittance neighbour
+search, the optimiser and densification. Each phase is timed exclusively
+(a phase nested in another is not counted twice); ``autograd (other)`` is
+what ``loss.backward()`` spends outside the timed backward passes, ``rest``
+what a step spends outside every timed phase. Writes ``step.json`` (the
+compare command reads it), ``step.png`` (stacked bars) and prints a table.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections import defaultdict
+from pathlib import Path
+
+PHASES = (
+    "projection + SH", "binning + sort", "composite forward", "composite backward", "SSIM", "other losses",
+    "autograd (other)", "neighbour search", "optimiser", "densification", "rest",
+)  # fmt: skip
+WARMUP_STEPS = 10  # first steps left out of the statistics (kernel loading, first allocations)
+
+
+class PhaseTimer:
+    """Exclusive wall time per phase: entering a phase pauses the one it is nested in."""
+
+    def __init__(self):
+        self.totals: dict[str, float] = defaultdict(float)
+        self._stack: list[list] = []  # [phase, resumed at]
+
+    def enter(self, phase: str) -> None:
+        now = time.perf_counter()
+        if self._stack:
+            self.totals[self._stack[-1][0]] += now - self._stack[-1][1]
+        self._stack.append([phase, now])
+
+    def leave(self) -> None:
+        now = time.perf_counter()
+        phase, resumed = self._stack.pop()
+        self.totals[phase] += now - resumed
+        if self._stack:
+            self._stack[-1][1] = now
+
+    @contextlib.contextmanager
+    def phase(self, name: str):
+        self.enter(name)
+        try:
+            yield
+        finally:
+            self.leave()
+
+    def take(self) -> dict[str, float]:
+        """The totals so far (seconds), then zero."""
+        totals, self.totals = dict(self.totals), defaultdict(float)
+        return totals
+
+
+def _timed(timer: PhaseTimer, phase: str, function):
+    def wrapper(*args, **kwargs):
+        with timer.phase(phase):
+            return function(*args, **kwargs)
+
+    return wrapper
+
+
+def _backward_marker():
+    """An identity autograd Function whose backward calls ``ctx.callback`` (times a loss's backward)."""
+    import torch
+
+    class Marker(torch.autograd.Function):
+        @staticmethod
+        def forward(ctx, callback, x):
+            ctx.callback = callback
+            return x.view_as(x)
+
+        @staticmethod
+        def backward(ctx, grad):
+            ctx.callback()
+            return None, grad
+
+    return Marker
+
+
+@contextlib.contextmanager
+def instrumented(timer: PhaseTimer):
+    """Wrap, for the duration, the functions a training step calls with ``timer``'s phases; yields the list that
+    receives one ``{phase: seconds}`` per ``Trainer.train_step`` call."""
+    import torch
+
+    from tacsplat.reconstruction import losses
+    from tacsplat.reconstruction.densification import DensifyStrategy
+    from tacsplat.reconstruction.raster import cpu_composite, cpu_project
+    from tacsplat.reconstruction.trainer import Trainer
+
+    marker = _backward_marker()
+    ssim_map = losses.ssim_map
+
+    def timed_ssim_map(rendered, target, *args, **kwargs):  # forward, and backward between the two markers
+        with timer.phase("SSIM"):
+            if rendered.requires_grad:
+                rendered = marker.apply(timer.leave, rendered)
+            out = ssim_map(rendered, target, *args, **kwargs)
+            return marker.apply(lambda: timer.enter("SSIM"), out) if out.requires_grad else out
+
+    steps: list[dict[str, float]] = []
+    step_function = Trainer.train_step
+
+    def timed_step(self):
+        timer.take()
+        started = time.perf_counter()
+        terms = step_function(self)
+        totals = timer.take()
+        totals["rest"] = time.perf_counter() - started - sum(totals.values())
+        totals["n_gaussians"] = len(self.gaussians)
+        steps.append(totals)
+        return terms
+
+    loss_functions = ("photometric_loss", "backdrop_alpha_loss", "transmittance_loss", "edge_aware_smoothness",
+                      "visible_touch_pixels", "proximity_mask", "expected_depth", "image_edge_weights", "window_inside")
+    patches = [
+        (cpu_project._ProjectCPU, "forward", "projection + SH", True),
+        (cpu_project._ProjectCPU, "backward", "projection + SH", True),
+        (cpu_project._SphericalHarmonicsCPU, "forward", "projection + SH", True),
+        (cpu_project._SphericalHarmonicsCPU, "backward", "projection + SH", True),
+        (cpu_composite, "bin_gaussians", "binning + sort", False),
+        (cpu_composite._RasterizeCPU, "forward", "composite forward", True),
+        (cpu_composite._RasterizeCPU, "backward", "composite backward", True),
+        *[(losses, name, "other losses", False) for name in loss_functions if hasattr(losses, name)],
+        (Trainer, "_smoothness_weights", "other losses", False),
+        (losses.TouchNeighbours, "candidates", "neighbour search", False),
+        (torch.optim.Adam, "step", "optimiser", False),
+        (torch.optim.Optimizer, "zero_grad", "optimiser", False),
+        (DensifyStrategy, "step_pre_backward", "densification", False),
+        (DensifyStrategy, "step_post_backward", "densification", False),
+        (torch.Tensor, "backward", "autograd (other)", False),
+    ]
+    saved = []
+    try:
+        for owner, name, phase, static in patches:
+            original = owner.__dict__[name]
+            saved.append((owner, name, original))
+            function = original.__func__ if isinstance(original, staticmethod) else original
+            wrapped = _timed(timer, phase, function)
+            setattr(owner, name, staticmethod(wrapped) if static else wrapped)
+        saved.append((losses, "ssim_map", ssim_map))
+        losses.ssim_map = timed_ssim_map
+        saved.append((Trainer, "train_step", step_function))
+        Trainer.train_step = timed_step
+        yield steps
+    finally:
+        for owner, name, original in reversed(saved):
+            setattr(owner, name, original)
+
+
+def summarize(steps: list[dict[str, float]], warmup: int = WARMUP_STEPS) -> dict:
+    """Median and mean milliseconds per phase and per step over the steps after ``warmup``."""
+    import numpy as np
+
+    kept = steps[warmup:] if len(steps) > warmup else steps
+    phases = {}
+    for phase in PHASES:
+        values = np.array([s.get(phase, 0.0) for s in kept]) * 1e3
+        phases[phase] = {"median_ms": float(np.median(values)), "mean_ms": float(values.mean())}
+    totals = np.array([sum(s.get(p, 0.0) for p in PHASES) for s in kept]) * 1e3
+    return {
+        "steps_timed": len(kept),
+        "step_median_ms": float(np.median(totals)),
+        "step_mean_ms": float(totals.mean()),
+        "steps_per_second": float(1e3 / totals.mean()),
+        "n_gaussians_mean": float(np.mean([s["n_gaussians"] for s in kept])),
+        "n_gaussians_final": int(kept[-1]["n_gaussians"]),
+        "phases": phases,
+    }
+
+
+def profile_resolution(out: Path, resolution: int, iterations: int, variant: str, obj: str, seed: int) -> dict:
+    """Capture (once) the demo scene at ``resolution`` px and time a full reconstruction of it."""
+    import tempfile
+
+    import torch
+
+    from tacsplat.apps.demo import demo_config
+    from tacsplat.apps.paper_bench import PaperBench
+    from tacsplat.datasets import Scene
+    from tacsplat.reconstruction.config import preset_config
+    from tacsplat.reconstruction.trainer import Trainer
+    from tacsplat.reconstruction.variants import get_variant
+    from tacsplat.reconstruction.views import scene_at
+
+    bench = PaperBench(out / f"{resolution}px", demo_config(obj, resolution, iterations))
+    scene_path = bench.capture(obj, "minimal", seed)
+    config = preset_config(bench.config.preset, iterations)
+    for key, value in get_variant(variant).overrides.items():
+        setattr(config, key, value)
+    config.seed = seed
+    config.device = "cpu"
+    timer = PhaseTimer()
+    with tempfile.TemporaryDirectory() as run_dir, instrumented(timer) as steps:
+        trainer = Trainer(scene_at(Scene.load(scene_path), config.downscale), run_dir, config)
+        trainer.run(show_progress=False)
+    return {"resolution": resolution, "label": f"{resolution}px", "iterations": iterations,
+            "train_seconds": trainer.train_seconds, "torch_threads": config.torch_threads,
+            **summarize(steps), "per_step": [{k: round(v * 1e3, 4) if k != "n_gaussians" else v for k, v in s.items()}
+                                             for s in steps]}  # fmt: skip
+
+
+def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str, seed: int) -> dict:
+    import os
+    import platform
+
+    import numba
+    import torch
+
+    results = {
+        "benchmark": "step",
+        "machine": {"cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),
+                    "load_average_at_start": list(os.getloadavg()), "platform": platform.platform(),
+                    "numba": numba.__version__, "torch": torch.__version__},
+        "settings": {"object": obj, "variant": variant, "iterations": iterations, "seed": seed,
+                     "warmup_steps": WARMUP_STEPS},
+        "resolutions": [profile_resolution(out, r, iterations, variant, obj, seed) for r in resolutions],
+    }  # fmt: skip
+    results["machine"]["load_average_at_end"] = list(os.getloadavg())
+    return results
+
+
+def format_table(results: dict) -> str:
+    rows = results["resolutions"]
+    head = f"{'phase':20s}" + "".join(f" | {r['label'] + ' median':>12s} {'mean':>7s} {'share':>6s}" for r in rows)
+    lines = [head, "-" * len(head)]
+    for phase in PHASES:
+        cells = []
+        for r in rows:
+            p = r["phases"][phase]
+            cells.append(f" | {p['median_ms']:12.2f} {p['mean_ms']:7.2f} {100 * p['mean_ms'] / r['step_mean_ms']:5.1f}%")
+        lines.append(f"{phase:20s}" + "".join(cells))
+    lines.append("-" * len(head))
+    lines.append(f"{'step':20s}" + "".join(f" | {r['step_median_ms']:12.2f} {r['step_mean_ms']:7.2f} {'':6s}"
+                                           for r in rows))  # fmt: skip
+    s, m = results["settings"], results["machine"]
+    lines.append(
+        "ms per step (median and mean over steps " f"{s['warmup_steps'] + 1}..{s['iterations']}); "
+        + "; ".join(f"{r['label']}: {r['steps_per_second']:.1f} steps/s, {r['n_gaussians_mean']:.0f} Gaussians on "
+                    f"average, train {r['train_seconds']:.1f} s" for r in rows)
+    )  # fmt: skip
+    lines.append(f"{s['object']}, variant {s['variant']}, seed {s['seed']}; {m['cpu_count']} cores, numba threads "
+                 f"{m['numba_threads']}, load average {m['load_average_at_start'][0]:.1f} at start, "
+                 f"{m['load_average_at_end'][0]:.1f} at end")  # fmt: skip
+    return "\n".join(lines)
+
+
+def plot_phases(results_list: list[tuple[str, dict]], path: Path) -> Path:
+    """Stacked bars of the mean ms per step by phase, one bar per (results, resolution)."""
+    from tacsplat.apps.report import pyplot, save_figure
+
+    plt = pyplot()
+    bars = [(f"{name} {r['label']}" if name else r["label"], r) for name, results in results_list
+            for r in results["resolutions"]]  # fmt: skip
+    fig, ax = plt.subplots(figsize=(max(4.0, 1.4 * len(bars) + 3.0), 4.5))
+    colors = plt.get_cmap("tab20").colors
+    bottoms = [0.0] * len(bars)
+    for i, phase in enumerate(PHASES):
+        heights = [r["phases"][phase]["mean_ms"] for _, r in bars]
+        ax.bar(range(len(bars)), heights, bottom=bottoms, color=colors[i % len(colors)], label=phase)
+        bottoms = [b + h for b, h in zip(bottoms, heights)]
+    ax.set_xticks(range(len(bars)), [label for label, _ in bars])
+    ax.set_ylabel("ms per training step (mean)")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def register(cli) -> None:
+    """Add `tacsplat bench step`."""
+    p = cli.command("bench step", help="profile of a training step on the demo scene: time per phase, table + PNG",
+                    description=__doc__.split("\n\n", 1)[1].replace("``", "'"))  # fmt: skip
+    p.add_argument("--out", default="bench-output/step", help="output folder (scenes are captured here once)")
+    p.add_argument("--resolutions", default="128,256", help="comma-separated image sizes in pixels")
+    p.add_argument("--iterations", type=int, default=1200, help="training steps per resolution (the demo's 1200)")
+    p.add_argument("--variant", default="full", help="method variant (3dgs, 3dgs+s, 3dgs+t, full)")
+    p.add_argument("--object", default="teapot", help="library object")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=_handler)
+
+
+def _handler(args) -> int:
+    import json
+
+    from tacsplat.apps.options import comma_separated_ints
+    from tacsplat.errors import UsageError
+    from tacsplat.reconstruction.variants import get_variant
+
+    resolutions = comma_separated_ints(args.resolutions, "--resolutions")
+    if not resolutions or min(resolutions) < 16:
+        raise UsageError("--resolutions", f"need image sizes of at least 16 px, got {args.resolutions!r}")
+    if args.iterations <= WARMUP_STEPS:
+        raise UsageError("--iterations", f"must be more than the {WARMUP_STEPS} warm-up steps, got {args.iterations}")
+    get_variant(args.variant, "--variant")
+    out = Path(args.out)
+    results = run_profile(out, resolutions, args.iterations, args.variant, args.object, args.seed)
+    print(format_table(results))
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "step.json").write_text(json.dumps(results, indent=1))
+    plot_phases([("", results)], out / "step.png")
+    print(f"wrote {out / 'step.json'} and {out / 'step.png'}")
+    return 0
