@@ -58,7 +58,7 @@ def _run(args) -> int:
 
 def _capture(args, scene: Path) -> Path:
     from tacsplat.acquisition.sim_capture import sim_rig_config
-    from tacsplat.apps.paper_bench import capture_once
+    from tacsplat.apps.batch import capture_once
 
     rig = sim_rig_config(object=args.object, views=args.views, test_views=args.test_views, grasps=args.grasps,
                          resolution=args.resolution, seed=args.seed)

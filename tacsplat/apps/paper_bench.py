@@ -14,6 +14,8 @@ the four variants of Table 3: ``3dgs`` (no touch, no smoothness), ``3dgs+s``,
 
 The job is resumable: a finished capture is marked by ``capture.json``, a run
 with a ``metrics.json`` is skipped, a run with only a checkpoint is continued.
+The captures and runs are batch jobs (:mod:`tacsplat.apps.batch`): run one
+after another here, or as Ray tasks (:mod:`tacsplat.apps.executors`).
 Output::
 
     REPORT/scenes/<object>/<setting>-s<seed>/      scene directories (+ capture.json)
@@ -31,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tacsplat.apps.batch import CaptureJob, ReconstructJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
 from tacsplat.reconstruction.variants import VARIANTS, get_variant
@@ -41,19 +44,6 @@ SETTINGS = ("minimal", "full-views")
 MINIMAL_VIEWS = 5
 GRASPS = 5  # 5 grasps x 4 fingertips = 20 touches (paper: 5 grasps)
 QUICK_OBJECTS = ("teapot", "bell")
-
-
-def capture_once(rig, scene: Path) -> Path:
-    """The sim capture of ``rig`` in ``scene``, done once: a finished capture is marked by ``capture.json``
-    (its plan and timings); an interrupted one is resumed."""
-    from tacsplat.acquisition.sim_capture import sim_capture
-
-    marker = scene / "capture.json"
-    if not marker.is_file():
-        scene.parent.mkdir(parents=True, exist_ok=True)
-        timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
-        marker.write_text(json.dumps({"plan": rig.plan.to_json(), **timings}, indent=2))
-    return scene
 
 
 @dataclass
@@ -156,52 +146,69 @@ class PaperBench:
 
     # ------------------------------------------------------------------ capture and training
 
-    def capture(self, obj: str, setting: str, seed: int) -> Path:
-        """The seeded sim capture of one object and setting (resumed if it was interrupted)."""
-        from tacsplat.acquisition.sim_capture import sim_rig_config
-
+    def capture_job(self, obj: str, setting: str, seed: int) -> CaptureJob:
+        """The seeded sim capture of one object and setting."""
         c = self.config
+        scene = self.scene_dir(obj, setting, seed)
         views = MINIMAL_VIEWS if setting == "minimal" else c.full_views
-        rig = sim_rig_config(object=obj, views=views, test_views=c.test_views, grasps=c.grasps,
-                             resolution=c.resolution, seed=seed, touch_model=c.touch_model)
-        return capture_once(rig, self.scene_dir(obj, setting, seed))
+        return CaptureJob(out=scene, object=obj, seed=seed, views=views, test_views=c.test_views, grasps=c.grasps,
+                          resolution=c.resolution, touch_model=c.touch_model,
+                          name=f"capture {scene.relative_to(self.out)}")
 
-    def train(self, run: Run) -> dict:
-        """One reconstruction (continued from its checkpoint if one exists); returns its metrics."""
-        from tacsplat.reconstruction.config import preset_config
-        from tacsplat.reconstruction.trainer import reconstruct
+    def capture(self, obj: str, setting: str, seed: int) -> Path:
+        """The capture of one object and setting, done here and now if it is not done yet; returns its folder."""
+        job = self.capture_job(obj, setting, seed)
+        job()
+        return job.out
 
-        if run.done:
-            return json.loads((run.out / "metrics.json").read_text())
-        config = preset_config(self.config.preset, self.config.iterations)
-        for key, value in get_variant(run.variant).overrides.items():
-            setattr(config, key, value)
-        config.seed = run.seed
-        resume = (run.out / "checkpoint.pt").is_file()
-        return reconstruct(run.scene, run.out, config, resume=resume, overwrite=not resume, show_progress=False)
+    def reconstruct_job(self, run: Run, needs: tuple[str, ...] = ()) -> ReconstructJob:
+        """One reconstruction (continued from its checkpoint if one exists)."""
+        return ReconstructJob(out=run.out, scene=run.scene, preset=self.config.preset, variant=run.variant,
+                              seed=run.seed, iterations=self.config.iterations,
+                              name=f"reconstruct {run.out.relative_to(self.out)}", needs=needs)
 
-    def run(self, progress: bool = True) -> list[dict]:
-        """Capture and train everything not done yet, then write the report; returns the results rows."""
-        from tacsplat.progress import progress_bar
+    def jobs(self) -> list[tuple[Run | None, CaptureJob | ReconstructJob]]:
+        """``(run, job)`` of every unfinished run, its capture first (``run`` None), in the order of :meth:`runs`."""
+        jobs, captures = [], {}
+        for run in self.runs():
+            if run.done:
+                continue
+            key = (run.object, run.setting, run.seed)
+            if key not in captures:
+                captures[key] = self.capture_job(*key)
+                jobs.append((None, captures[key]))
+            jobs.append((run, self.reconstruct_job(run, needs=(captures[key].name,))))
+        return jobs
+
+    def run(self, progress: bool = True, **executor) -> list[dict]:
+        """Capture and train everything not done yet (``executor``: :func:`~tacsplat.apps.executors.run_jobs`'s
+        executor, ray_address and retries), writing the report as runs finish; returns the results rows. A
+        BatchError at the end when jobs failed (listed in failures.csv)."""
+        from tacsplat.apps.executors import run_jobs
 
         runs = self.runs()
-        todo = [r for r in runs if not r.done]
-        if len(todo) < len(runs):
-            log.info("%d of %d runs already finished in %s: skipped", len(runs) - len(todo), len(runs), self.out)
+        unfinished = sum(not r.done for r in runs)
+        if unfinished < len(runs):
+            log.info("%d of %d runs already finished in %s: skipped", len(runs) - unfinished, len(runs), self.out)
         started = time.perf_counter()
-        bar = progress_bar(todo, desc="bench paper", unit="run", enabled=progress)
-        for run in bar:
-            bar.set_postfix_str(f"{run.object} {run.setting} {run.variant} s{run.seed}")
-            self.capture(run.object, run.setting, run.seed)
-            metrics = self.train(run)
-            bar.write(f"{run.object:8s} {run.setting:10s} {run.variant:7s} seed {run.seed}: "
-                      f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
-                      f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s")
+        jobs = self.jobs()
+        run_of = {job.name: run for run, job in jobs}
+
+        def on_done(job, metrics: dict) -> str | None:
+            run = run_of[job.name]
+            if run is None:
+                return None
             # partial tables after every run; the pictures (re-rendered from every checkpoint, seconds) at the end
             self.write_report(self.results(), wall_seconds=time.perf_counter() - started, figures=False)
-        bar.close()
+            return (f"{run.object:8s} {run.setting:10s} {run.variant:7s} seed {run.seed}: "
+                    f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
+                    f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s")
+
+        outcome = run_jobs([job for _, job in jobs], self.out, on_done=on_done, desc="bench paper",
+                           progress=progress, **executor)
         rows = self.results()
         self.write_report(rows, wall_seconds=time.perf_counter() - started)
+        outcome.raise_if_failed(self.out)
         return rows
 
     # ------------------------------------------------------------------ report
@@ -392,12 +399,15 @@ def config_from_args(args) -> PaperBenchConfig:
 
 
 def register(cli) -> None:
+    from tacsplat.apps.executors import add_executor_options
+
     p = cli.command(
         "bench paper",
         help="the paper's tables on the twin's glossy objects: 3DGS, +S, +T, full; minimal and full views",
         description="Per object: a seeded sim capture per setting (minimal: 5 views + 5 grasps; full-views: "
         ">= 32 views + 5 grasps), the four variants, then REPORT/results.csv, REPORT/report.md and plots. "
-        "Resumable: rerun the same command after an interruption.",
+        "Resumable: rerun the same command after an interruption. --executor ray runs the captures and runs as "
+        "Ray tasks (an embedded local Ray, or the cluster at --ray-address; --out on storage every node sees).",
     )
     p.add_argument("--objects", default="all", help="'all' or comma-separated library objects (--quick: teapot,bell)")
     p.add_argument("--out", required=True, help="report folder (captures, runs, results.csv, report.md, PNGs)")
@@ -413,13 +423,17 @@ def register(cli) -> None:
     p.add_argument("--test-views", type=int, default=None, help="held-out test views (default 12; quick 8)")
     p.add_argument("--settings", default=None, help="comma-separated: minimal,full-views (quick: minimal)")
     p.add_argument("--seeds", default=None, help="comma-separated capture and training seeds (default 0)")
+    add_executor_options(p)
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
+    from tacsplat.apps.executors import executor_options
+
+    executor = executor_options(args)
     bench = PaperBench(Path(args.out), config_from_args(args))
     started = time.perf_counter()
-    rows = bench.run()
+    rows = bench.run(**executor)
     print((bench.out / "report.md").read_text())
     print(f"{len(rows)} runs in {bench.out}; this invocation took {(time.perf_counter() - started) / 60:.1f} min")
     print(f"report: {bench.out / 'report.md'}")

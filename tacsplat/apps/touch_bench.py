@@ -16,7 +16,9 @@ trainer's defaults.
 
 Output: ``OUT/touches.csv`` (one row per run), ``OUT/summary.csv`` (mean and
 standard deviation per requested count), ``OUT/cd_vs_touches.png``.
-Resumable like `bench paper`: runs with a metrics.json are skipped.
+Resumable like `bench paper`: runs with a metrics.json are skipped. The
+captures, copies and runs are batch jobs, run here or as Ray tasks
+(``--executor ray``, :mod:`tacsplat.apps.executors`).
 """
 
 from __future__ import annotations
@@ -27,13 +29,14 @@ import logging
 import math
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
+from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob
 from tacsplat.apps.options import comma_separated_ints
-from tacsplat.apps.paper_bench import capture_once
 from tacsplat.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -86,6 +89,34 @@ def subsample_touches(scene_path: str | Path, out: str | Path, num_touches: int)
     return len(kept)
 
 
+@dataclass(frozen=True, kw_only=True)
+class SubsampleJob(BatchJob):
+    """A copy of the capture ``base`` with its first ``count`` touches in contact, marked by ``OUT.json``
+    (requested and kept counts) beside it."""
+
+    kind: Literal["subsample"] = "subsample"
+    out: Path
+    base: Path
+    count: int
+
+    @property
+    def marker(self) -> Path:
+        return self.out.with_name(self.out.name + ".json")
+
+    def complete(self) -> bool:
+        return self.marker.is_file()
+
+    def __call__(self) -> dict:
+        if self.complete():
+            return json.loads(self.marker.read_text())
+        if self.out.exists():  # a copy interrupted before its marker: ours to redo
+            shutil.rmtree(self.out)
+        kept = subsample_touches(self.base, self.out, self.count)
+        summary = {"requested": self.count, "touches": kept}
+        self.marker.write_text(json.dumps(summary))
+        return summary
+
+
 class TouchBench:
     """The sweep in a folder; :meth:`run` does whatever is not done yet."""
 
@@ -94,55 +125,60 @@ class TouchBench:
         self.config = config or TouchBenchConfig()
         self.config.validate()
 
-    def base_scene(self, seed: int) -> Path:
-        from tacsplat.acquisition.sim_capture import sim_rig_config
-
-        c = self.config
-        rig = sim_rig_config(object=c.object, views=c.views, test_views=c.test_views, grasps=c.grasps,
-                             resolution=c.resolution, seed=seed)
-        return capture_once(rig, self.out / "scenes" / f"{c.object}-s{seed}")
-
-    def subsampled_scene(self, seed: int, count: int) -> tuple[Path, int]:
-        """The copy of the seed's capture with ``count`` touches; returns (path, touches actually kept)."""
-        path = self.out / "scenes" / f"{self.config.object}-s{seed}-t{count}"
-        marker = path.with_name(path.name + ".json")
-        if marker.is_file():
-            return path, json.loads(marker.read_text())["touches"]
-        if path.exists():  # a copy interrupted before its marker: ours to redo
-            shutil.rmtree(path)
-        kept = subsample_touches(self.base_scene(seed), path, count)
-        marker.write_text(json.dumps({"requested": count, "touches": kept}))
-        return path, kept
-
     def run_dir(self, seed: int, count: int) -> Path:
         return self.out / "runs" / f"t{count:03d}-s{seed}"
 
-    def run(self, progress: bool = True) -> list[dict]:
-        from tacsplat.progress import progress_bar
-
-        from tacsplat.reconstruction.config import TrainConfig
-        from tacsplat.reconstruction.trainer import reconstruct
-
+    def jobs(self) -> list[BatchJob]:
+        """Per seed its capture (if a copy of it is still to make), then per count the copy with that many
+        touches and its reconstruction (the full method with the trainer's defaults), in the order of the sweep."""
         c = self.config
-        jobs = [(seed, n) for seed in c.seeds for n in c.touch_counts]
-        rows = []
-        bar = progress_bar(jobs, desc="bench touches", unit="run", enabled=progress)
-        for seed, count in bar:
-            bar.set_postfix_str(f"seed {seed}, {count} touches")
-            out = self.run_dir(seed, count)
-            scene, kept = self.subsampled_scene(seed, count)
-            if (out / "metrics.json").is_file():
-                metrics = json.loads((out / "metrics.json").read_text())
+        jobs: list[BatchJob] = []
+        for seed in c.seeds:
+            base = self.out / "scenes" / f"{c.object}-s{seed}"
+            capture = CaptureJob(out=base, object=c.object, seed=seed, views=c.views, test_views=c.test_views,
+                                 grasps=c.grasps, resolution=c.resolution, name=f"capture {base.name}")
+            copies = [SubsampleJob(out=base.with_name(f"{base.name}-t{count}"), base=base, count=count,
+                                   name=f"subsample {base.name}-t{count}", needs=(capture.name,))
+                      for count in c.touch_counts]
+            if not all(copy.complete() for copy in copies):
+                jobs.append(capture)
             else:
-                config = TrainConfig(iterations=c.iterations, seed=seed)
-                resume = (out / "checkpoint.pt").is_file()
-                metrics = reconstruct(scene, out, config, resume=resume, overwrite=not resume, show_progress=False)
-            row = {"seed": seed, "requested_touches": count, "touches": kept,
-                   **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}}
-            bar.write(f"seed {seed}: {kept:3d} touches -> CD {row['cd']:.4f}  PSNR {row['psnr']:.2f}")
-            rows.append(row)
-        bar.close()
+                copies = [replace(copy, needs=()) for copy in copies]
+            for copy in copies:
+                out = self.run_dir(seed, copy.count)
+                jobs += [copy, ReconstructJob(out=out, scene=copy.out, seed=seed, iterations=c.iterations,
+                                              name=f"reconstruct {out.name}", needs=(copy.name,))]
+        return jobs
+
+    def results(self) -> list[dict]:
+        """One row per finished run, in the order of the sweep."""
+        rows = []
+        for job in self.jobs():
+            if not isinstance(job, ReconstructJob) or not job.complete():
+                continue
+            metrics = json.loads((job.out / "metrics.json").read_text())
+            marker = json.loads(job.scene.with_name(job.scene.name + ".json").read_text())
+            rows.append({"seed": job.seed, "requested_touches": marker["requested"], "touches": marker["touches"],
+                         **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}})
+        return rows
+
+    def run(self, progress: bool = True, **executor) -> list[dict]:
+        """Capture, copy and train whatever is not done yet (``executor``: the executor, ray_address and retries of
+        :func:`~tacsplat.apps.executors.run_jobs`), then write the report; returns the rows. A BatchError at the
+        end when jobs failed (listed in failures.csv)."""
+        from tacsplat.apps.executors import run_jobs
+
+        def on_done(job, metrics: dict) -> str | None:
+            if not isinstance(job, ReconstructJob):
+                return None
+            kept = json.loads(job.scene.with_name(job.scene.name + ".json").read_text())["touches"]
+            return f"seed {job.seed}: {kept:3d} touches -> CD {metrics['cd']:.4f}  PSNR {metrics['psnr']:.2f}"
+
+        jobs = self.jobs()
+        outcome = run_jobs(jobs, self.out, on_done=on_done, desc="bench touches", progress=progress, **executor)
+        rows = self.results()
         write_touch_report(self.out, rows)
+        outcome.raise_if_failed(self.out)
         return rows
 
 
@@ -205,6 +241,8 @@ def write_touch_report(out: str | Path, rows: list[dict]) -> dict[str, Path]:
 
 
 def register(cli) -> None:
+    from tacsplat.apps.executors import add_executor_options
+
     p = cli.command(
         "bench touches",
         help="Chamfer distance against the number of touches (paper Fig. 6), several seeds",
@@ -218,16 +256,20 @@ def register(cli) -> None:
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (capture and training)")
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--iterations", type=int, default=800, help="steps per run")
+    add_executor_options(p)
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
+    from tacsplat.apps.executors import executor_options
+
+    executor = executor_options(args)
     config = TouchBenchConfig(object=args.object, touch_counts=comma_separated_ints(args.touches, "--touches"),
                               seeds=comma_separated_ints(args.seeds, "--seeds"), resolution=args.resolution,
                               iterations=args.iterations)
     started = time.perf_counter()
     bench = TouchBench(args.out, config)
-    rows = bench.run()
+    rows = bench.run(**executor)
     print("touches  runs  CD mean     CD std      PSNR mean")
     for s in summarise(rows):
         print(f"{s['requested_touches']:7d}  {s['runs']:4d}  {s['cd_mean']:.5f}  {s['cd_std']:.5f}  {s['psnr_mean']:.2f}")

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from tacsplat.apps import paper_bench
+from tacsplat.apps import batch, paper_bench
 from tacsplat.errors import ConfigError
 from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
 from tacsplat.apps.report import (
@@ -145,10 +145,11 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
     _finish(first, 0.02)
     trained = []
 
-    def capture(obj, setting, seed):
-        return bench.scene_dir(obj, setting, seed)
+    def capture(job):
+        return {"scene": str(job.out)}
 
-    def train(run):
+    def train(job):
+        run = next(r for r in bench.runs() if r.out == job.out)
         trained.append(run.variant)
         _finish(run, 0.01)
         return json.loads((run.out / "metrics.json").read_text())
@@ -160,8 +161,8 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
         depth = np.full((8, 8), 0.3, np.float32)
         return {r.variant: (np.zeros((8, 8, 3)), depth) for r in runs}, np.ones((8, 8, 3)), depth
 
-    monkeypatch.setattr(bench, "capture", capture)
-    monkeypatch.setattr(bench, "train", train)
+    monkeypatch.setattr(batch.CaptureJob, "__call__", capture)
+    monkeypatch.setattr(batch.ReconstructJob, "__call__", train)
     monkeypatch.setattr(paper_bench, "render_first_test_view", render_first_test_view)
     rows = bench.run(progress=False)
     assert trained == ["full"]  # the 3dgs run had its metrics.json
@@ -210,6 +211,38 @@ def test_subsample_keeps_first_touches_in_contact(tmp_path):
     assert subsample_touches(tmp_path / "base", tmp_path / "t10", 10) == 4  # only 4 in contact
     assert subsample_touches(tmp_path / "base", tmp_path / "t0", 0) == 0
     assert Scene.load(tmp_path / "t0").touches == []
+
+
+def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
+    from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
+
+    captured, trained = [], []
+
+    def capture(job):
+        captured.append(job.out.name)
+        _small_scene(job.out)
+        (job.out / batch.CAPTURE_MARKER).write_text("{}")
+        return {"scene": str(job.out)}
+
+    def train(job):
+        trained.append(job.out.name)
+        _finish(job, 0.01 * (1 + job.seed))
+        return json.loads((job.out / "metrics.json").read_text())
+
+    monkeypatch.setattr(batch.CaptureJob, "__call__", capture)
+    monkeypatch.setattr(batch.ReconstructJob, "__call__", train)
+    bench = TouchBench(tmp_path, TouchBenchConfig(object="teapot", touch_counts=(0, 3, 10), seeds=(0, 1)))
+    rows = bench.run(progress=False)
+    assert captured == ["teapot-s0", "teapot-s1"]
+    assert trained == [f"t{n:03d}-s{s}" for s in (0, 1) for n in (0, 3, 10)]
+    assert [(r["seed"], r["requested_touches"], r["touches"], r["cd"]) for r in rows] == [
+        (s, n, k, 0.01 * (1 + s)) for s in (0, 1) for n, k in ((0, 0), (3, 3), (10, 4))]  # 4 touches in contact
+    assert (tmp_path / "touches.csv").is_file() and (tmp_path / "summary.csv").is_file()
+
+    (tmp_path / "runs" / "t003-s1" / "metrics.json").unlink()  # a run to do again; its copy is there
+    captured.clear(), trained.clear()
+    assert len(bench.run(progress=False)) == 6
+    assert captured == [] and trained == ["t003-s1"]
 
 
 def test_touch_summary_and_plot(tmp_path):

@@ -1,0 +1,383 @@
+"""Batch jobs (capture, reconstruct, evaluate) and `tacsplat batch JOBS.yaml --out DIR`.
+
+Each job is a frozen dataclass: a pure function of its fields that writes one
+folder and is skipped when that folder is complete (a capture's
+``capture.json``, a run's ``metrics.json``); :mod:`tacsplat.apps.executors`
+runs a list of them in this process or on Ray. The benchmarks build their
+suites from the same jobs.
+
+The YAML file lists jobs; ``out``, ``scene`` and ``run`` are relative to
+``--out`` (or absolute), ``mesh`` and ``gt_mesh`` to the YAML file's folder::
+
+    jobs:
+      - {kind: capture, out: scenes/teapot-s0, object: teapot, seed: 0, resolution: 128}
+      - {kind: reconstruct, out: runs/teapot/full-s0, scene: scenes/teapot-s0, variant: full, seed: 0}
+      - {kind: evaluate, run: /shared/older/run, gt_mesh: teapot.obj}
+
+A reconstruction of a scene that a capture of the batch writes needs that
+capture (listed before it), and an evaluation of a run needs its reconstruction.
+Writes ``DIR/results.csv`` (one row per run with a metrics.json, rewritten as
+runs finish) and, when jobs fail, ``DIR/failures.csv``.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import json
+import logging
+import time
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Literal
+
+from tacsplat.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+CAPTURE_MARKER = "capture.json"
+METRICS = "metrics.json"
+RESULT_COLUMNS = ("job", "run", "scene", "variant", "seed", "iterations", "cd", "cd_paper", "psnr", "ssim",
+                  "train_seconds", "num_gaussians")
+KINDS = ("capture", "reconstruct", "evaluate")
+
+
+def capture_once(rig, scene: Path) -> Path:
+    """The sim capture of ``rig`` in ``scene``, done once: a finished capture is marked by ``capture.json``
+    (its plan and timings); an interrupted one is resumed."""
+    from tacsplat.acquisition.sim_capture import sim_capture
+
+    marker = scene / CAPTURE_MARKER
+    if not marker.is_file():
+        scene.parent.mkdir(parents=True, exist_ok=True)
+        timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
+        marker.write_text(json.dumps({"plan": rig.plan.to_json(), **timings}, indent=2))
+    return scene
+
+
+@dataclass(frozen=True, kw_only=True)
+class BatchJob:
+    """What every job has (the :class:`~tacsplat.apps.executors.Job` protocol); a batch file sets ``cpus`` and
+    may set ``name``, the needs are inferred."""
+
+    __pydantic_config__ = {"extra": "forbid"}  # in a batch file, an unknown key is an error
+
+    cpus: float = 1.0  # CPUs it uses (Ray reserves them)
+    name: str = ""  # default: "<kind> <out or run as written>"
+    needs: tuple[str, ...] = ()
+
+    def check(self) -> None:
+        """A ConfigError naming the field at fault, before anything runs."""
+        if not self.cpus > 0:
+            raise ConfigError("cpus", f"must be > 0, got {self.cpus}")
+
+    def gpus(self, cluster_has_gpus: bool) -> float:
+        return 0
+
+
+_RIG_FIELDS = {"sim.object": "object", "sim.mesh": "mesh", "sim.object_radius": "object_radius",
+               "sim.resolution": "resolution", "sim.seed": "seed", "plan.grasps.seed": "seed",
+               "plan.views.train": "views", "plan.views.test": "test_views", "plan.grasps.count": "grasps",
+               "plan.touches.model": "touch_model"}  # the rig config's fields a capture job sets
+
+
+@dataclass(frozen=True, kw_only=True)
+class CaptureJob(BatchJob):
+    """A seeded simulated capture of a library object (or of ``mesh``) into ``out``."""
+
+    kind: Literal["capture"] = "capture"
+    out: Path
+    object: str = "teapot"
+    mesh: str | None = None  # a mesh file instead of a library object (scaled to object_radius)
+    object_radius: float = 0.08  # metres
+    seed: int = 0
+    views: int = 5  # train views
+    test_views: int = 8  # held-out views with ground-truth depth
+    grasps: int = 5  # grasps of 4 touches
+    resolution: int = 128  # image width and height, pixels
+    touch_model: Literal["gel", "paper"] = "gel"
+
+    def rig(self):
+        from tacsplat.acquisition.sim_capture import sim_rig_config
+
+        return sim_rig_config(object=self.object, mesh=self.mesh, object_radius=self.object_radius, views=self.views,
+                              test_views=self.test_views, grasps=self.grasps, resolution=self.resolution,
+                              seed=self.seed, touch_model=self.touch_model)
+
+    def check(self) -> None:
+        super().check()
+        try:
+            self.rig()  # validated as a rig config
+        except ConfigError as exc:  # its field named as in a batch file
+            message = str(exc).removeprefix(f"{exc.key}: ")
+            raise ConfigError(_RIG_FIELDS.get(exc.key, exc.key), message) from None
+
+    def complete(self) -> bool:
+        return (self.out / CAPTURE_MARKER).is_file()
+
+    def __call__(self) -> dict:
+        capture_once(self.rig(), self.out)
+        return {"scene": str(self.out)}
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReconstructJob(BatchJob):
+    """A reconstruction of ``scene`` into the run folder ``out``: a preset, a variant and a seed (continued
+    from its checkpoint when one was interrupted)."""
+
+    kind: Literal["reconstruct"] = "reconstruct"
+    out: Path
+    scene: Path
+    preset: str = "default"  # reconstruction.config.PRESETS
+    variant: str = "full"  # reconstruction.variants.VARIANTS
+    seed: int = 0
+    iterations: int | None = None  # None: the preset's
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+
+    def config(self):
+        from tacsplat.reconstruction.config import preset_config
+        from tacsplat.reconstruction.variants import get_variant
+
+        config = preset_config(self.preset, self.iterations)
+        for key, value in get_variant(self.variant).overrides.items():
+            setattr(config, key, value)
+        config.seed, config.device = self.seed, self.device
+        return config
+
+    def check(self) -> None:
+        super().check()
+        self.config().validate()
+
+    def gpus(self, cluster_has_gpus: bool) -> float:
+        """One GPU for a CUDA training (``auto`` trains on CUDA where the cluster has GPUs)."""
+        return 1 if self.device == "cuda" or (self.device == "auto" and cluster_has_gpus) else 0
+
+    def complete(self) -> bool:
+        return (self.out / METRICS).is_file()
+
+    def __call__(self) -> dict:
+        from tacsplat.reconstruction.trainer import reconstruct
+
+        if self.complete():
+            return json.loads((self.out / METRICS).read_text())
+        resume = (self.out / "checkpoint.pt").is_file()
+        return reconstruct(self.scene, self.out, self.config(), resume=resume, overwrite=not resume,
+                           show_progress=False)
+
+
+@dataclass(frozen=True, kw_only=True)
+class EvaluateJob(BatchJob):
+    """The evaluation of a run folder (its last checkpoint), for a run without a metrics.json (trained
+    elsewhere, or whose metrics.json was deleted to evaluate it again)."""
+
+    kind: Literal["evaluate"] = "evaluate"
+    run: Path
+    gt_mesh: str | None = None  # a ground-truth mesh instead of the scene's gt/
+
+    def check(self) -> None:
+        super().check()
+        if self.gt_mesh is not None and not Path(self.gt_mesh).is_file():
+            raise ConfigError("gt_mesh", f"{self.gt_mesh} is not a file")
+
+    def complete(self) -> bool:
+        return (self.run / METRICS).is_file()
+
+    def __call__(self) -> dict:
+        from tacsplat.reconstruction.evaluation import evaluate_run
+
+        if self.complete():
+            return json.loads((self.run / METRICS).read_text())
+        return evaluate_run(self.run, self.gt_mesh)
+
+
+@functools.cache
+def _job_adapter():
+    """pydantic's validator of one job of a batch file, picked by its ``kind`` (unknown keys refused)."""
+    from typing import Annotated, Union
+
+    from pydantic import Field, TypeAdapter
+
+    return TypeAdapter(Annotated[Union[CaptureJob, ReconstructJob, EvaluateJob], Field(discriminator="kind")])
+
+
+def run_folder(job) -> Path | None:
+    """The run folder whose metrics.json a job writes (None for a capture)."""
+    return job.out if isinstance(job, ReconstructJob) else job.run if isinstance(job, EvaluateJob) else None
+
+
+# ---------------------------------------------------------------------- the YAML file
+
+
+def load_batch(path: str | Path, out: str | Path) -> list:
+    """The jobs of a batch file, validated, with paths resolved and needs inferred; one ConfigError naming the
+    file, the job (``jobs[3]``) and its field otherwise."""
+    import yaml
+
+    path, out = Path(path), Path(out)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise ConfigError("jobs", f"cannot read the batch file: {exc.strerror or exc}", path) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError("jobs", f"not valid YAML: {exc}", path) from None
+    if not isinstance(data, dict) or set(data) != {"jobs"}:
+        raise ConfigError("jobs", "the file must hold one key, `jobs:`, a list of jobs", path)
+    if not isinstance(data["jobs"], list) or not data["jobs"]:
+        raise ConfigError("jobs", "expected a non-empty list of jobs", path)
+    jobs: list = []
+    made: dict[Path, object] = {}  # folder -> the job of the batch writing it
+    names: dict[str, int] = {}
+    for i, item in enumerate(data["jobs"]):
+        job = _parse_job(i, item, path, out)
+        needs = ()
+        if isinstance(job, (ReconstructJob, EvaluateJob)):
+            key, maker_kind = ("scene", CaptureJob) if isinstance(job, ReconstructJob) else ("run", ReconstructJob)
+            source = getattr(job, key)
+            if isinstance(made.get(source), maker_kind):
+                needs = (made[source].name,)
+            elif not source.is_dir():
+                raise ConfigError(f"jobs[{i}].{key}", f"{source} is not a folder, nor the out of a "
+                                  f"{maker_kind.__name__.removesuffix('Job').lower()} job listed before this one", path)
+        if not isinstance(job, EvaluateJob):
+            if job.out in made:
+                raise ConfigError(f"jobs[{i}].out", f"{job.out} is also the out of {made[job.out].name}", path)
+            made[job.out] = job
+        if job.name in names:
+            raise ConfigError(f"jobs[{i}].name", f"two jobs are named {job.name!r}: jobs[{names[job.name]}] and this "
+                              "one", path)
+        names[job.name] = i
+        try:
+            job.check()
+        except ConfigError as exc:
+            raise ConfigError(f"jobs[{i}] ({job.name})", str(exc), path) from None
+        jobs.append(replace(job, needs=needs))
+    return jobs
+
+
+def _resolve(value, base: Path) -> Path:
+    return Path(base, value) if not Path(value).is_absolute() else Path(value)
+
+
+def _parse_job(i: int, item, path: Path, out: Path):
+    """One job of the file: validated by pydantic (strictly, as JSON), paths resolved, named."""
+    if not isinstance(item, dict):
+        raise ConfigError(f"jobs[{i}]", f"expected a mapping with a kind ({', '.join(KINDS)}), got {item!r}", path)
+    from pydantic import ValidationError
+
+    try:
+        job = _job_adapter().validate_json(json.dumps(item, default=str), strict=True)
+    except ValidationError as exc:
+        raise _job_error(i, item, exc, path) from None
+    resolved = {}
+    for f in fields(job):
+        value = getattr(job, f.name)
+        if f.name in ("out", "scene", "run"):
+            resolved[f.name] = _resolve(value, out)
+        elif f.name in ("mesh", "gt_mesh") and value is not None:
+            resolved[f.name] = str(_resolve(value, path.parent))
+    label = item.get("run" if job.kind == "evaluate" else "out")
+    return replace(job, **resolved, name=job.name or f"{job.kind} {label}")
+
+
+def _job_error(i: int, item: dict, exc, path: Path) -> ConfigError:
+    """pydantic's first error as one ConfigError naming ``jobs[i].field``."""
+    error = exc.errors(include_url=False)[0]
+    kind, loc = error["type"], [str(p) for p in error["loc"][1:]]  # loc[0] is the kind's tag
+    if kind in ("union_tag_not_found", "union_tag_invalid"):
+        return ConfigError(f"jobs[{i}].kind", f"expected one of {', '.join(KINDS)}, got {item.get('kind')!r}", path)
+    key = ".".join([f"jobs[{i}]", *loc])
+    if kind == "unexpected_keyword_argument":
+        cls = {"capture": CaptureJob, "reconstruct": ReconstructJob, "evaluate": EvaluateJob}[item["kind"]]
+        allowed = sorted(f.name for f in fields(cls) if f.name not in ("needs", "kind"))
+        return ConfigError(key, f"unknown key (a {item['kind']} job takes {', '.join(allowed)})", path)
+    if kind == "missing":
+        return ConfigError(key, "missing (a required key)", path)
+    return ConfigError(key, f"{error['msg']}, got {error.get('input')!r}", path)
+
+
+# ---------------------------------------------------------------------- results
+
+
+def result_rows(jobs: list, out: Path) -> list[dict]:
+    """One row per run (reconstruction or evaluation) with a metrics.json, in the batch's order."""
+    rows = []
+    for job in jobs:
+        run = run_folder(job)
+        if run is None or not (run / METRICS).is_file():
+            continue
+        m = json.loads((run / METRICS).read_text())
+        rows.append({"job": job.name, "run": _relative(run, out), "scene": _relative(Path(m.get("scene", "")), out),
+                     "variant": m.get("variant"), "seed": m.get("settings", {}).get("seed"),
+                     "iterations": m.get("iterations"), **{k: m.get(k) for k in RESULT_COLUMNS[6:]}})
+    return rows
+
+
+def _relative(path: Path, base: Path) -> str:
+    return str(path.relative_to(base)) if path.is_relative_to(base) else str(path)
+
+
+def write_results(rows: list[dict], path: Path) -> Path:
+    with path.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS)
+        writer.writeheader()
+        writer.writerows({k: "" if row.get(k) is None else row[k] for k in RESULT_COLUMNS} for row in rows)
+    return path
+
+
+def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) -> list[dict]:
+    """Run a batch (:func:`~tacsplat.apps.executors.run_jobs`), writing ``out/results.csv`` as runs finish;
+    returns its rows. A :class:`~tacsplat.apps.executors.BatchError` at the end when jobs failed."""
+    from tacsplat.apps.executors import run_jobs
+
+    out = Path(out)
+
+    def on_done(job, summary: dict) -> str | None:
+        if run_folder(job) is None:
+            return None
+        write_results(result_rows(jobs, out), out / "results.csv")
+        return (f"{job.name}: CD {_fmt(summary.get('cd'), 4)}  PSNR {_fmt(summary.get('psnr'), 2)}  "
+                f"{summary.get('train_seconds') or 0:.0f} s")
+
+    outcome = run_jobs(jobs, out, on_done=on_done, desc="batch", progress=progress, **executor)
+    rows = result_rows(jobs, out)
+    write_results(rows, out / "results.csv")
+    outcome.raise_if_failed(out)
+    return rows
+
+
+def _fmt(value, decimals: int) -> str:
+    return "nan" if value is None else f"{value:.{decimals}f}"
+
+
+# ---------------------------------------------------------------------- command line
+
+
+def register(cli) -> None:
+    from tacsplat.apps.executors import add_executor_options
+
+    p = cli.command(
+        "batch",
+        help="run a list of captures, reconstructions and evaluations, here or on a Ray cluster",
+        description="Runs the jobs of JOBS.yaml (kind: capture | reconstruct | evaluate; see `tacsplat.apps.batch`), "
+        "skipping those whose output is complete; writes DIR/results.csv and, if jobs fail, DIR/failures.csv. "
+        "Rerun the same command to retry what failed or never ran.",
+    )
+    p.add_argument("jobs", help="the batch file (YAML: jobs: [...])")
+    p.add_argument("--out", required=True, help="folder the jobs' relative paths are in (on a cluster: shared storage)")
+    add_executor_options(p)
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    from tacsplat.apps.executors import executor_options
+    from tacsplat.datasets.outputs import claim_output_dir
+
+    executor = executor_options(args)
+    out = Path(args.out)
+    jobs = load_batch(args.jobs, out)
+    started = time.perf_counter()
+    with claim_output_dir(out, "--out"):
+        rows = run_batch(jobs, out, **executor)
+    print(f"{len(jobs)} jobs, {len(rows)} runs with metrics in {out / 'results.csv'}; "
+          f"this invocation took {(time.perf_counter() - started) / 60:.1f} min")
+    return 0

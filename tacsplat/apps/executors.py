@@ -1,0 +1,372 @@
+"""Run a batch of jobs in this process (``local``) or as Ray tasks (``ray``), with the same results.
+
+A job (:class:`Job`) is a pure function of its fields that writes one output
+folder: ``complete()`` says whether that folder already holds its finished
+output (the job is then skipped), calling it does the work (resuming what an
+interruption left) and returns a small summary. ``needs`` names the jobs whose
+outputs it reads: they run first, and a job whose need failed is not run.
+Jobs hand each other paths on a filesystem every worker sees, never arrays.
+
+- ``local``: one job after another in this process, in the order given.
+- ``ray``: every job a Ray task declaring its CPUs (and a GPU where it trains on
+  CUDA); a task waits for its needs' tasks (their object refs are its
+  arguments). A task that raises, or whose worker dies, is retried ``retries``
+  times, except on a :class:`TacsplatError` (a mistake in its input, which a
+  retry would repeat). Without an address (``--ray-address`` or ``RAY_ADDRESS``)
+  an embedded local Ray is started for the batch and stopped after it.
+
+Either way a job that fails for good is listed in ``OUT/failures.csv`` with
+its error while the jobs that do not need it go on; rerunning the same command
+runs only what failed or never ran. Ctrl-C cancels the outstanding tasks
+(a training in progress checkpoints) and leaves every finished job intact.
+One progress bar counts the jobs done, running and failed.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import logging
+import os
+import socket
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol, Sequence
+
+from tacsplat.errors import ConfigError, TacsplatError, UsageError
+from tacsplat.progress import progress_bar
+
+log = logging.getLogger(__name__)
+
+EXECUTORS = ("local", "ray")
+FAILURES_CSV = "failures.csv"
+FAILURE_COLUMNS = ("job", "attempts", "error")
+RETRIES = 2  # extra attempts of a Ray task that raised or whose worker died
+EMBEDDED_OBJECT_STORE_BYTES = 256 * 1024**2  # jobs pass paths and small summaries, never arrays
+POLL_S = 1.0  # progress refresh while waiting for Ray tasks
+PROBE_S = 5.0  # for an answer at --ray-address
+CANCEL_GRACE_S = 10.0  # after Ctrl-C: time for cancelled tasks to stop (a training saves its checkpoint)
+
+
+class BatchError(TacsplatError):
+    """Jobs of a batch failed (each listed with its error in the batch's failures.csv); the others finished."""
+
+
+class Job(Protocol):
+    """What the executors run; see the module docstring."""
+
+    name: str  # unique in its batch; shown in the progress, the log and failures.csv
+    needs: tuple[str, ...]  # names of the jobs whose outputs this one reads
+    cpus: float  # CPUs it uses (Ray reserves them; its numba threads are limited to them)
+
+    def gpus(self, cluster_has_gpus: bool) -> float: ...
+
+    def complete(self) -> bool: ...
+
+    def __call__(self) -> dict: ...
+
+
+@dataclass
+class BatchOutcome:
+    """What one invocation did: names of the jobs run, skipped (already complete) and failed (-> error)."""
+
+    done: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    failed: dict[str, str] = field(default_factory=dict)
+
+    def raise_if_failed(self, out: Path) -> None:
+        """A :class:`BatchError` naming the first failure and ``failures.csv`` when any job failed."""
+        if self.failed:
+            name, error = next(iter(self.failed.items()))
+            raise BatchError(f"{len(self.failed)} of {len(self.done) + len(self.failed)} jobs failed (first: {name}: "
+                             f"{error}); each is listed in {Path(out) / FAILURES_CSV}; rerun the same command to "
+                             "retry only those")
+
+
+def add_executor_options(parser) -> None:
+    """``--executor``, ``--ray-address`` and ``--retries`` (the same on every command that runs a batch)."""
+    parser.add_argument("--executor", choices=EXECUTORS, default="local",
+                        help="local: one job after another in this process; ray: each job a Ray task")
+    parser.add_argument("--ray-address", default=None,
+                        help="Ray cluster to run on (host:port of `ray start --head`, or auto); default RAY_ADDRESS, "
+                        "else an embedded local Ray for this batch (--executor ray)")
+    parser.add_argument("--retries", type=int, default=RETRIES,
+                        help="extra attempts of a Ray task that raised or whose worker died")
+
+
+def executor_options(args) -> dict:
+    """The keyword arguments of :func:`run_jobs` from the parsed options of :func:`add_executor_options`."""
+    if args.retries < 0:
+        raise UsageError("--retries", f"must be >= 0, got {args.retries}")
+    if args.ray_address and args.executor != "ray":
+        raise UsageError("--ray-address", "runs jobs on a Ray cluster: add --executor ray")
+    return {"executor": args.executor, "ray_address": args.ray_address, "retries": args.retries}
+
+
+def run_jobs(jobs: Sequence[Job], out: str | Path, executor: str = "local", ray_address: str | None = None,
+             retries: int = RETRIES, on_done: Callable[[Job, dict], str | None] | None = None, desc: str = "batch",
+             progress: bool = True) -> BatchOutcome:
+    """Run every job of ``jobs`` (needs listed before the jobs that read them) that is not complete yet.
+
+    ``on_done(job, summary)`` runs in this process as each job finishes (to write a report so far); the line it
+    returns, if any, is printed. Failures are written to ``out/failures.csv``.
+    """
+    if executor not in EXECUTORS:
+        raise ConfigError("executor", f"unknown executor {executor!r}; choose from {', '.join(EXECUTORS)}")
+    check_order(jobs)
+    batch = _Batch(Path(out), on_done)
+    complete = [job.complete() for job in jobs]
+    batch.outcome.skipped = [job.name for job, done in zip(jobs, complete) if done]
+    todo = [job for job, done in zip(jobs, complete) if not done]
+    if batch.outcome.skipped:
+        log.info("%d of %d jobs already complete in %s: skipped", len(batch.outcome.skipped), len(jobs), out)
+    owned = executor == "ray" and bool(todo) and connect(ray_address)
+    batch.bar = progress_bar(total=len(todo), desc=desc, unit="job", enabled=progress)
+    try:
+        if executor == "local":
+            _run_local(todo, batch)
+        else:
+            _run_ray(todo, batch, retries)
+    finally:
+        batch.bar.close()
+        if owned:
+            import ray
+
+            ray.shutdown()
+    batch.finish()
+    return batch.outcome
+
+
+def check_order(jobs: Sequence[Job]) -> None:
+    """Names are unique and every need names an earlier job (a programming error otherwise)."""
+    seen: set[str] = set()
+    for job in jobs:
+        if job.name in seen:
+            raise ValueError(f"two jobs are named {job.name!r}")
+        missing = [n for n in job.needs if n not in seen]
+        if missing:
+            raise ValueError(f"job {job.name!r} needs {missing}, which is not listed before it")
+        seen.add(job.name)
+
+
+class _Batch:
+    """The bookkeeping both executors share: outcome, progress bar, failures.csv, the on_done callback."""
+
+    def __init__(self, out: Path, on_done):
+        self.out, self.on_done = out, on_done
+        self.outcome = BatchOutcome()
+        self.attempts: dict[str, int] = {}
+        self.bar = None
+        self.running: set[str] = set()
+
+    def show(self) -> None:
+        """The bar counts the jobs finished either way; its text says how many are done, running and failed."""
+        running = sorted(self.running)
+        what = f" ({running[0]})" if len(running) == 1 else ""
+        self.bar.set_postfix_str(f"done {len(self.outcome.done)}, running {len(running)}{what}, "
+                                 f"failed {len(self.outcome.failed)}")
+
+    def started(self, names) -> None:
+        self.running = set(names)
+        self.show()
+
+    def finished(self, job: Job, summary: dict) -> None:
+        self.running.discard(job.name)
+        self.outcome.done.append(job.name)
+        line = self.on_done(job, summary) if self.on_done else None
+        if line:
+            self.bar.write(line)
+        self.bar.update(1)
+        self.show()
+
+    def failed(self, job: Job, error: str, attempts: int) -> None:
+        self.running.discard(job.name)
+        self.outcome.failed[job.name] = error
+        self.attempts[job.name] = attempts
+        log.error("%s failed: %s", job.name, error)
+        self._write_failures()
+        self.bar.update(1)
+        self.show()
+
+    def blocked_by(self, job: Job) -> str | None:
+        return next((n for n in job.needs if n in self.outcome.failed), None)
+
+    def _write_failures(self) -> None:
+        self.out.mkdir(parents=True, exist_ok=True)
+        with (self.out / FAILURES_CSV).open("w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(FAILURE_COLUMNS)
+            writer.writerows((name, self.attempts[name], error) for name, error in self.outcome.failed.items())
+
+    def finish(self) -> None:
+        """A failures.csv of an earlier invocation is removed once nothing failed."""
+        if not self.outcome.failed:
+            (self.out / FAILURES_CSV).unlink(missing_ok=True)
+
+
+def _describe(exc: BaseException) -> str:
+    return str(exc) if isinstance(exc, TacsplatError) else f"{type(exc).__name__}: {exc}"
+
+
+def _not_run(need: str) -> str:
+    return f"not run: needs {need}, which failed"
+
+
+# ---------------------------------------------------------------------- local
+
+
+def _run_local(todo: list[Job], batch: _Batch) -> None:
+    """One job after another in this process; KeyboardInterrupt stops at once (finished jobs stay)."""
+    for job in todo:
+        need = batch.blocked_by(job)
+        if need:
+            batch.failed(job, _not_run(need), attempts=0)
+            continue
+        batch.started([job.name])
+        try:
+            summary = job()
+        except Exception as exc:  # noqa: BLE001 - recorded in failures.csv; the jobs that do not need it go on
+            if not isinstance(exc, TacsplatError):
+                log.debug("%s raised", job.name, exc_info=True)
+            batch.failed(job, _describe(exc), attempts=1)
+        else:
+            batch.finished(job, summary)
+
+
+# ---------------------------------------------------------------------- ray
+
+
+def _execute(job: Job, starts, *needs: tuple) -> tuple[str, str, object]:
+    """The body of a job's Ray task: ``(status, job name, summary or error)``; ``needs`` are its needs' results."""
+    starts.started.remote(job.name)
+    failed = next((name for status, name, _ in needs if status != "done"), None)
+    if failed:
+        return "blocked", job.name, failed
+    _limit_threads(job.cpus)
+    try:
+        return "done", job.name, job()
+    except TacsplatError as exc:  # a mistake in its input: a retry would repeat it
+        return "failed", job.name, str(exc)
+
+
+def _limit_threads(cpus: float) -> None:
+    """numba's kernels use the task's CPUs, not every core of the node (Ray sets OMP_NUM_THREADS the same way)."""
+    import numba
+
+    numba.set_num_threads(max(1, min(int(cpus), numba.config.NUMBA_NUM_THREADS)))
+
+
+class _Starts:
+    """A Ray actor counting the attempts each task started (what is running, and how often it was tried)."""
+
+    def __init__(self):
+        self.counts: Counter = Counter()
+
+    def started(self, name: str) -> None:
+        self.counts[name] += 1
+
+    def get(self) -> dict[str, int]:
+        return dict(self.counts)
+
+
+@functools.cache
+def _remote():
+    """The Ray task and actor classes, made once (ray is imported only when the ray executor runs)."""
+    import ray
+
+    return ray.remote(_execute), ray.remote(num_cpus=0)(_Starts)
+
+
+def connect(address: str | None) -> bool:
+    """Connect to the Ray cluster at ``address`` (else ``RAY_ADDRESS``), or start an embedded local Ray; True
+    when this call started or joined Ray (and so should shut it down), False when Ray was already initialised."""
+    import ray
+
+    if ray.is_initialized():
+        return False
+    option = "--ray-address" if address else "RAY_ADDRESS"
+    address = address or os.environ.get("RAY_ADDRESS")
+    if address:
+        why = _unreachable(address)
+        if why:  # (Ray itself would retry for minutes)
+            raise ConfigError(option, f"nothing answers at {address} ({why}): give the host:port of the cluster's "
+                              "head (`ray start --head --port=PORT` prints it)")
+        log.info("connecting to the Ray cluster at %s", address)
+        try:
+            ray.init(address=address, log_to_driver=True)
+        except (ConnectionError, RuntimeError) as exc:
+            raise ConfigError(option, f"cannot connect to a Ray cluster at {address}: {exc} (check the address, "
+                              "and that this machine has the cluster's token: RAY_AUTH_MODE=token and "
+                              "RAY_AUTH_TOKEN or ~/.ray/auth_token)") from None
+    else:
+        ray.init(address="local", include_dashboard=False, object_store_memory=EMBEDDED_OBJECT_STORE_BYTES,
+                 log_to_driver=True)
+    return True
+
+
+def _unreachable(address: str) -> str | None:
+    """Why nothing answers at a ``host:port`` address; None when something does, or for another form (auto)."""
+    host, colon, port = address.rpartition(":")
+    if not colon or not port.isdigit() or "://" in address:
+        return None
+    try:
+        socket.create_connection((host, int(port)), timeout=PROBE_S).close()
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    return None
+
+
+def _run_ray(todo: list[Job], batch: _Batch, retries: int) -> None:
+    """Every job a Ray task on the Ray this process is connected to; see the module docstring."""
+    import ray
+
+    execute, starts_actor = _remote()
+    outstanding: list = []
+    try:
+        starts = starts_actor.remote()
+        has_gpus = ray.cluster_resources().get("GPU", 0) > 0
+        refs: dict[str, object] = {}
+        for job in todo:
+            needs = [refs[n] for n in job.needs if n in refs]
+            refs[job.name] = execute.options(
+                num_cpus=job.cpus, num_gpus=job.gpus(has_gpus), max_retries=retries, retry_exceptions=True,
+                name=job.name,
+            ).remote(job, starts, *needs)
+        order = {ref: i for i, ref in enumerate(refs.values())}
+        jobs = dict(zip(refs.values(), todo))
+        outstanding = list(refs.values())
+        while outstanding:
+            ready, _ = ray.wait(outstanding, num_returns=1, timeout=POLL_S)
+            if ready:
+                ready, outstanding = ray.wait(outstanding, num_returns=len(outstanding), timeout=0)
+            attempts = ray.get(starts.get.remote())
+            for ref in sorted(ready, key=order.get):  # needs before the jobs that read them
+                _collect(jobs[ref], ref, batch, attempts.get(jobs[ref].name, 0))
+            batch.started(n for n in attempts if n not in batch.outcome.done and n not in batch.outcome.failed)
+    except KeyboardInterrupt:
+        if outstanding:
+            log.warning("interrupted: cancelling %d outstanding jobs", len(outstanding))
+            for ref in outstanding:  # a running task gets KeyboardInterrupt (a training checkpoints), a queued one
+                ray.cancel(ref)  # never starts
+            ray.wait(outstanding, num_returns=len(outstanding), timeout=CANCEL_GRACE_S)
+        raise
+
+
+def _collect(job: Job, ref, batch: _Batch, attempts: int) -> None:
+    """Record the result of a finished task."""
+    import ray
+
+    try:
+        status, _, value = ray.get(ref)
+    except ray.exceptions.RayError as exc:  # raised after its retries, or its worker died each time
+        need = batch.blocked_by(job)
+        cause = exc.cause if isinstance(exc, ray.exceptions.RayTaskError) else exc
+        batch.failed(job, _not_run(need) if need else _describe(cause).strip().splitlines()[0], attempts)
+        return
+    if status == "done":
+        batch.finished(job, value)
+    elif status == "blocked":
+        batch.failed(job, _not_run(value), attempts=0)
+    else:
+        batch.failed(job, value, attempts)

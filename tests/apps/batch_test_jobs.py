@@ -1,0 +1,64 @@
+"""Jobs for the executor tests: each writes ``folder/done`` and logs every attempt in ``folder/attempts``; a
+``behaviour`` makes it fail the ways a real job can (raise, hit a bad input, kill its worker, hang)."""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from tacsplat.errors import ConfigError
+
+WAIT_S = 60.0  # bound of every wait of these jobs
+
+
+@dataclass(frozen=True)
+class FileJob:
+    name: str
+    folder: Path
+    behaviour: str = "ok"  # ok | raise-while-broken | config-error | die-once | block
+    wait_for: Path | None = None  # finish only once this file exists
+    needs: tuple[str, ...] = ()
+    cpus: float = 1.0
+
+    def gpus(self, cluster_has_gpus: bool) -> float:
+        return 0
+
+    def complete(self) -> bool:
+        return (self.folder / "done").is_file()
+
+    def attempts(self) -> list[int]:
+        """The process id of each attempt so far."""
+        log = self.folder / "attempts"
+        return [int(line) for line in log.read_text().split()] if log.is_file() else []
+
+    def __call__(self) -> dict:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        with (self.folder / "attempts").open("a") as fh:
+            fh.write(f"{os.getpid()}\n")
+        if self.behaviour == "die-once" and len(self.attempts()) == 1:
+            os._exit(1)  # the worker dies mid-task
+        if self.behaviour == "raise-while-broken" and (self.folder / "broken").exists():
+            raise RuntimeError(f"{self.folder / 'broken'} is there")
+        if self.behaviour == "config-error":
+            raise ConfigError("threshold", "must be > 0, got -1")
+        if self.behaviour == "block":
+            (self.folder / "started").touch()
+            try:
+                wait_until((self.folder / "release").exists)
+            except KeyboardInterrupt:
+                (self.folder / "interrupted").touch()
+                raise
+        if self.wait_for is not None:
+            wait_until(self.wait_for.exists)
+        (self.folder / "done").write_text("ok")
+        return {"attempts": len(self.attempts())}
+
+
+def wait_until(condition, timeout_s: float = WAIT_S) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"waited {timeout_s} s")
+        time.sleep(0.05)

@@ -1,0 +1,181 @@
+"""Batch files and the local executor, without Ray: one clear error per mistake in a batch file (naming the
+file, the job and the field), needs inferred from paths, and failures listed while the other jobs go on, the
+rerun running only what failed."""
+
+from __future__ import annotations
+
+import csv
+import os
+import re
+import socket
+import sys
+from pathlib import Path
+
+import pytest
+
+from tacsplat.apps.batch import CaptureJob, EvaluateJob, ReconstructJob, load_batch
+from tacsplat.apps.executors import FAILURES_CSV, BatchError, run_jobs
+from tacsplat.cli import main
+from tacsplat.errors import ConfigError
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+
+from batch_test_jobs import FileJob  # noqa: E402
+
+
+def read_failures(folder: Path) -> dict[str, dict]:
+    with (folder / FAILURES_CSV).open() as fh:
+        return {row["job"]: row for row in csv.DictReader(fh)}
+
+
+def test_local_runs_in_order_here_lists_failures_and_reruns_only_them(tmp_path, capsys):
+    jobs = [FileJob("first", tmp_path / "first"),
+            FileJob("flaky", tmp_path / "flaky", "raise-while-broken"),
+            FileJob("after-flaky", tmp_path / "after-flaky", needs=("flaky",)),
+            FileJob("bad-input", tmp_path / "bad-input", "config-error"),
+            FileJob("last", tmp_path / "last")]
+    (tmp_path / "flaky").mkdir()
+    (tmp_path / "flaky" / "broken").touch()
+    finished = []
+    outcome = run_jobs(jobs, tmp_path, on_done=lambda job, summary: finished.append(job.name), desc="tiny")
+    last = capsys.readouterr().err.splitlines()[-1]  # of the bar (plain lines: stderr is no terminal)
+    assert re.fullmatch(r"tiny: 5/5 job in \d+ s \(done 2, running 0, failed 3\)", last), last
+
+    assert finished == outcome.done == ["first", "last"]  # in order, the jobs after a failure included
+    assert [j.attempts() for j in jobs] == [[os.getpid()], [os.getpid()], [], [os.getpid()], [os.getpid()]]
+    failures = read_failures(tmp_path)
+    assert list(failures) == ["flaky", "after-flaky", "bad-input"]
+    assert failures["flaky"]["error"].startswith("RuntimeError: ") and failures["flaky"]["attempts"] == "1"
+    assert failures["after-flaky"] == {"job": "after-flaky", "attempts": "0",
+                                       "error": "not run: needs flaky, which failed"}
+    assert failures["bad-input"]["error"] == "threshold: must be > 0, got -1"
+    with pytest.raises(BatchError, match=r"3 of 5 jobs failed \(first: flaky: RuntimeError: .*failures.csv"):
+        outcome.raise_if_failed(tmp_path)
+
+    (tmp_path / "flaky" / "broken").unlink()
+    rerun = run_jobs(jobs[:3], tmp_path, progress=False)
+    assert rerun.skipped == ["first"] and rerun.done == ["flaky", "after-flaky"] and not rerun.failed
+    assert [len(j.attempts()) for j in jobs[:3]] == [1, 2, 1]
+    assert not (tmp_path / FAILURES_CSV).exists()  # nothing failed this time: the old list is gone
+
+
+def test_local_ctrl_c_stops_at_once_and_keeps_finished_jobs(tmp_path):
+    jobs = [FileJob(name, tmp_path / name) for name in ("a", "b", "c")]
+
+    def interrupt(job, summary):
+        if job.name == "b":
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_jobs(jobs, tmp_path, on_done=interrupt, progress=False)
+    assert [j.complete() for j in jobs] == [True, True, False]
+    assert run_jobs(jobs, tmp_path, progress=False).done == ["c"]
+
+
+def write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+GOOD = """\
+jobs:
+  - {kind: capture, out: scenes/teapot, object: teapot, resolution: 48, seed: 3}
+  - {kind: reconstruct, out: runs/teapot-full, scene: scenes/teapot, iterations: 20, seed: 3}
+  - {kind: reconstruct, out: runs/old, scene: %(existing)s, variant: 3dgs, preset: paper, name: old scene}
+  - {kind: evaluate, run: runs/teapot-full}
+  - {kind: evaluate, run: %(existing)s, gt_mesh: mesh.obj, cpus: 2}
+"""
+
+
+def test_batch_file_resolves_paths_and_infers_needs(tmp_path):
+    existing = tmp_path / "elsewhere"
+    existing.mkdir()
+    (tmp_path / "mesh.obj").write_text("v 0 0 0\n")
+    out = tmp_path / "out"
+    capture, train, old, evaluate, evaluate_old = load_batch(write(tmp_path / "b.yaml", GOOD % {"existing": existing}),
+                                                               out)
+    assert capture == CaptureJob(out=out / "scenes/teapot", object="teapot", resolution=48, seed=3,
+                                 name="capture scenes/teapot")
+    assert train == ReconstructJob(out=out / "runs/teapot-full", scene=out / "scenes/teapot", iterations=20, seed=3,
+                                   name="reconstruct runs/teapot-full", needs=("capture scenes/teapot",))
+    assert (old.scene, old.needs, old.name, old.config().variant) == (existing, (), "old scene", "3dgs")
+    assert evaluate == EvaluateJob(run=out / "runs/teapot-full", name="evaluate runs/teapot-full",
+                                   needs=("reconstruct runs/teapot-full",))
+    assert evaluate_old.gt_mesh == str(tmp_path / "mesh.obj") and evaluate_old.cpus == 2 and not evaluate_old.needs
+    assert train.gpus(cluster_has_gpus=False) == 0 and train.gpus(cluster_has_gpus=True) == 1
+    assert capture.gpus(cluster_has_gpus=True) == 0
+
+
+@pytest.mark.parametrize("jobs, key, message", [
+    ("- {kind: train, out: a}", "jobs[0].kind", "expected one of capture, reconstruct, evaluate, got 'train'"),
+    ("- {out: a}", "jobs[0].kind", "expected one of capture, reconstruct, evaluate, got None"),
+    ("- {kind: capture}", "jobs[0].out", "missing (a required key)"),
+    ("- {kind: capture, out: a, steps: 3}", "jobs[0].steps", "unknown key (a capture job takes cpus, grasps, "),
+    ("- {kind: capture, out: a, views: '5'}", "jobs[0].views", "Input should be a valid integer, got '5'"),
+    ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, iterations: 2.5}", "jobs[1].iterations",
+     "Input should be a valid integer"),
+    ("- {kind: capture, out: a, object: sphere}", "jobs[0] (capture a)",
+     "object: unknown library object 'sphere' (one of ['teapot', "),
+    ("- {kind: capture, out: a, views: 0}", "jobs[0] (capture a)", "views: must be >= 1, got 0"),
+    ("- {kind: capture, out: a, seed: -1}", "jobs[0] (capture a)", "seed: must be >= 0, got -1"),
+    ("- {kind: capture, out: a, cpus: 0}", "jobs[0] (capture a)", "cpus: must be > 0, got 0.0"),
+    ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, variant: ours}", "jobs[1] (reconstruct r)",
+     "unknown variant 'ours'"),
+    ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, iterations: 0}", "jobs[1] (reconstruct r)",
+     "iterations"),
+    ("- {kind: reconstruct, out: r, scene: a}\n- {kind: capture, out: a}", "jobs[0].scene",
+     "is not a folder, nor the out of a capture job listed before this one"),
+    ("- {kind: evaluate, run: nowhere}", "jobs[0].run", "is not a folder, nor the out of a reconstruct job"),
+    ("- {kind: capture, out: a}\n- {kind: capture, out: a, seed: 1}", "jobs[1].out", "is also the out of capture a"),
+    ("- {kind: capture, out: a, name: x}\n- {kind: capture, out: b, name: x}", "jobs[1].name", "two jobs are named 'x'"),
+    ("- 3", "jobs[0]", "expected a mapping with a kind"),
+])  # fmt: skip
+def test_batch_file_mistakes_name_the_job_and_field(tmp_path, jobs, key, message):
+    path = write(tmp_path / "b.yaml", "jobs:\n" + "\n".join("  " + line for line in jobs.splitlines()) + "\n")
+    with pytest.raises(ConfigError) as info:
+        load_batch(path, tmp_path / "out")
+    assert str(info.value).startswith(f"{path}: {key}: ") and message in str(info.value), str(info.value)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("jobs: []", "jobs: expected a non-empty list of jobs"),
+    ("runs: []", "jobs: the file must hold one key, `jobs:`"),
+    ("jobs: [", "jobs: not valid YAML"),
+])
+def test_batch_file_shape_errors(tmp_path, text, message):
+    path = write(tmp_path / "b.yaml", text)
+    with pytest.raises(ConfigError, match=message):
+        load_batch(path, tmp_path / "out")
+    with pytest.raises(ConfigError, match="cannot read the batch file"):
+        load_batch(tmp_path / "missing.yaml", tmp_path / "out")
+
+
+def test_batch_command_refuses_a_bad_file_before_writing_anything(tmp_path, capsys):
+    path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a, grasps: many}\n")
+    assert main(["batch", str(path), "--out", str(tmp_path / "out")]) == 1
+    assert capsys.readouterr().err.startswith(f"error: {path}: jobs[0].grasps: Input should be a valid integer")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--ray-address", "127.0.0.1:6379"], "--ray-address: runs jobs on a Ray cluster: add --executor ray"),
+    (["--executor", "ray", "--retries", "-1"], "--retries: must be >= 0, got -1"),
+])
+def test_executor_option_mistakes_are_usage_errors(tmp_path, capsys, options, message):
+    path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")
+    assert main(["batch", str(path), "--out", str(tmp_path / "out"), *options]) == 2
+    assert message in capsys.readouterr().err
+    assert main(["bench", "touches", "--out", str(tmp_path / "t"), *options]) == 2
+    assert not (tmp_path / "out").exists() and not (tmp_path / "t").exists()
+
+
+def test_an_address_where_no_cluster_answers_is_one_error(tmp_path, capsys, monkeypatch):
+    with socket.socket() as s:  # a port nothing listens on once closed
+        s.bind(("127.0.0.1", 0))
+        address = f"127.0.0.1:{s.getsockname()[1]}"
+    path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")
+    assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address", address]) == 1
+    assert capsys.readouterr().err.splitlines()[-1].startswith(f"error: --ray-address: nothing answers at {address} (")
+    monkeypatch.setenv("RAY_ADDRESS", address)
+    with pytest.raises(ConfigError, match=f"^RAY_ADDRESS: nothing answers at {address} "):
+        run_jobs([FileJob("a", tmp_path / "a")], tmp_path, executor="ray", progress=False)
