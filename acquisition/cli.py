@@ -22,6 +22,10 @@ def register(cli) -> None:
     p.add_argument("--mock", action="store_true",
                    help="emulated devices instead of the real rig's (servo emulator on a pty, video-file tactile "
                    "sensors, a camera that sees a rendered board)")
+    p.add_argument("--suggest", metavar="RUN", default=None,
+                   help="a reconstruction in progress of this capture (a tacsplat reconstruct folder; its latest "
+                   "checkpoint): the key s then suggests the next grasp, where a fingertip should touch and from "
+                   "which direction, drawn on the wrist camera's image (OUT-suggestion.png)")
     p.set_defaults(func=_capture)
 
     p = cli.command(
@@ -29,9 +33,11 @@ def register(cli) -> None:
         help="simulated capture: train views, test views with ground truth, and grasps, into a scene directory",
         description="Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin "
         "places the camera on the hemisphere and the hand on sampled approaches; the logger closes the hand until "
-        "the fingers stall, reads the pads and writes). --touch-model paper makes the paper's touches instead of "
-        "grasping, four per grasp. Deterministic in --seed; --resume continues a killed capture with the same "
-        "options (any other value is refused, naming the option).",
+        "the fingers stall, reads the pads and writes). --grasp-strategy next-best reconstructs the scene so far "
+        "before each grasp and grasps where it is least sure (its decisions in OUT/next_touch.json). "
+        "--touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in "
+        "--seed; --resume continues a killed capture with the same options (any other value is refused, naming "
+        "the option).",
     )
     p.add_argument("--object", default="teapot", help="library object (teapot, toaster, bell, helmet, torus, car)")
     p.add_argument("--mesh", default=None, help="any .obj/.ply/.stl mesh instead of a library object")
@@ -42,6 +48,16 @@ def register(cli) -> None:
     p.add_argument("--resolution", type=int, default=200, help="image width and height in pixels (8 to 4096)")
     p.add_argument("--seed", type=int, default=0, help="seed of the views and grasps (0 or more)")
     _touch_model_options(p)
+    p.add_argument("--grasp-strategy", default="random",
+                   help="random: each grasp on an approach the twin samples; next-best: before each grasp, "
+                   "reconstruct the scene so far briefly and execute, of --candidates sampled approaches, the one "
+                   "whose fingertips land where the reconstruction is least sure")
+    p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp (1 to 1000)")
+    p.add_argument("--selection-steps", type=int, default=300,
+                   help="next-best: training steps of the reconstruction before each grasp")
+    p.add_argument("--uncertainty", default="depth-variance",
+                   help="next-best: the score, fisher (Fisher information of the Gaussians' positions under the "
+                   "photometric loss) or depth-variance (spread of depth along the training rays)")
     p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
     p.add_argument("--resume", action="store_true", help="continue a capture that was interrupted")
     p.set_defaults(func=_sim_capture)
@@ -84,7 +100,7 @@ def _capture(args) -> int:
     from tacsplat.acquisition.config import load_rig
     from tacsplat.acquisition.operator_session import run_capture
 
-    return run_capture(load_rig(args.rig, mock=args.mock), args.out, resume=args.resume)
+    return run_capture(load_rig(args.rig, mock=args.mock), args.out, resume=args.resume, suggest=args.suggest)
 
 
 def _sim_capture(args) -> int:
@@ -95,7 +111,9 @@ def _sim_capture(args) -> int:
     try:
         config = sim_rig_config(object=args.object, mesh=args.mesh, object_radius=args.object_radius,
                                 views=args.views, test_views=args.test_views, grasps=args.grasps,
-                                resolution=args.resolution, seed=args.seed, **_touch_args(args))
+                                resolution=args.resolution, seed=args.seed, grasp_strategy=args.grasp_strategy,
+                                candidates=args.candidates, selection_steps=args.selection_steps,
+                                uncertainty=args.uncertainty, **_touch_args(args))
         timings = sim_capture(config, args.out, resume=args.resume)
     except ConfigError as exc:
         raise _naming_options(exc, _SIM_OPTIONS) from None
@@ -131,7 +149,9 @@ _SIM_OPTIONS = {
     "object": "--object", "sim.object": "--object", "sim.mesh": "--mesh", "sim.mesh_sha256": "--mesh",
     "sim.object_radius": "--object-radius", "sim.resolution": "--resolution", "sim.seed": "--seed",
     "plan.views.train": "--views", "plan.views.test": "--test-views", "plan.grasps.count": "--grasps",
-    "plan.grasps.seed": "--seed", "plan.touches.model": "--touch-model",
+    "plan.grasps.seed": "--seed", "plan.grasps.mode": "--grasp-strategy", "plan.grasps.candidates": "--candidates",
+    "plan.grasps.selection_steps": "--selection-steps", "plan.grasps.uncertainty": "--uncertainty",
+    "plan.touches.model": "--touch-model",
     "plan.touches.surface_points": "--surface-points",
 }
 _TOUCH_OPTIONS = {"model": "--touch-model", "surface_points": "--surface-points"}  # simulate_touches' TouchPlan

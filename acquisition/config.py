@@ -183,12 +183,28 @@ class ViewPlan:
     radius_m: float | None = positive(None, 10.0, "m")  # hemisphere radius; None = the twin's default for the object
 
 
+GRASP_MODES = ("operator", "random", "next-best")
+
+
 @with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class GraspPlan:
+    """Where the grasps go: ``operator`` (a person places the hand), ``random`` (the twin samples an approach per
+    grasp) or ``next-best`` (the twin samples ``candidates`` approaches per grasp and executes the one whose
+    fingertips land where a reconstruction of the scene so far, ``selection_steps`` training steps, is least sure
+    by the ``uncertainty`` score; :mod:`tacsplat.acquisition.next_touch`)."""
+
     count: int = bounded(5, 0)
-    mode: Text = "operator"  # operator (a person places the hand) | random (the twin samples approaches)
+    mode: Text = "operator"  # one of GRASP_MODES
     seed: int = bounded(0, 0)
+    candidates: int = bounded(16, 1, 1000)  # next-best: approaches scored per grasp
+    selection_steps: int = bounded(300, 1, 1_000_000)  # next-best: training steps of each reconstruction so far
+    uncertainty: Text = "depth-variance"  # next-best: the score (reconstruction.uncertainty.SCORES)
+
+    def to_json(self) -> dict:
+        """As scene.json records it: the next-best parameters only with the next-best mode."""
+        data = dataclasses.asdict(self)
+        return data if self.mode == "next-best" else {k: data[k] for k in ("count", "mode", "seed")}
 
 
 TOUCH_MODELS = ("gel", "paper")
@@ -218,7 +234,7 @@ class CapturePlan:
     touches: TouchPlan = field(default_factory=TouchPlan)
 
     def to_json(self) -> dict:
-        return {**dataclasses.asdict(self), "touches": self.touches.to_json()}
+        return {**dataclasses.asdict(self), "grasps": self.grasps.to_json(), "touches": self.touches.to_json()}
 
 
 @with_config(YAML_SECTION)
@@ -398,11 +414,21 @@ def validate(c: RigConfig) -> None:
     v, g = c.plan.views, c.plan.grasps
     if v.mode not in ("operator", "hemisphere"):
         raise ConfigError("plan.views.mode", f"must be 'operator' or 'hemisphere', got {v.mode!r}", src)
-    if g.mode not in ("operator", "random"):
-        raise ConfigError("plan.grasps.mode", f"must be 'operator' or 'random', got {g.mode!r}", src)
+    if g.mode not in GRASP_MODES:
+        raise ConfigError("plan.grasps.mode", f"must be {' or '.join(map(repr, GRASP_MODES))}, got {g.mode!r}", src)
+    if g.mode == "next-best":
+        from tacsplat.reconstruction.uncertainty import SCORES
+
+        if g.uncertainty not in SCORES:
+            raise ConfigError("plan.grasps.uncertainty", f"must be one of {', '.join(map(repr, SCORES))}, got "
+                              f"{g.uncertainty!r}", src)
+        if c.plan.touches.model != "gel":
+            raise ConfigError("plan.grasps.mode", "next-best chooses where the hand grasps: it needs the gel touch "
+                              "model (plan.touches.model: gel)", src)
     if c.rig == "real" and (v.mode != "operator" or g.mode != "operator"):
         key = "plan.views.mode" if v.mode != "operator" else "plan.grasps.mode"
-        raise ConfigError(key, "a real rig is positioned by the operator: use 'operator'", src)
+        hint = " (tacsplat capture --suggest RUN shows where the next grasp should go)" if g.mode == "next-best" else ""
+        raise ConfigError(key, f"a real rig is positioned by the operator: use 'operator'{hint}", src)
     gc = c.grasp
     for key in ("close_pose", "open_pose"):
         if len(getattr(gc, key)) != 16:
