@@ -215,14 +215,15 @@ class PaperBench:
 
     def results(self) -> list[dict]:
         """One row per finished run (runs without metrics.json are left out)."""
+        from tacsplat.apps.report import NUMBER_COLUMNS
+
         rows = []
         for run in self.runs():
             if not run.done:
                 continue
             m = json.loads((run.out / "metrics.json").read_text())
             rows.append({"object": run.object, "setting": run.setting, "variant": run.variant, "seed": run.seed,
-                         **{k: _number(m.get(k)) for k in ("cd", "cd_paper", "psnr", "ssim", "train_seconds",
-                                                           "num_gaussians")}})
+                         **{k: _number(m.get(k)) for k in NUMBER_COLUMNS}})
         return rows
 
     def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
@@ -294,13 +295,15 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     return "\n".join(lines) + "\n"
 
 
-def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarray]:
-    """``({variant: (rgb, depth)}, gt_rgb, gt_depth)`` of the first test view of one scene, rendered from each
-    run's last checkpoint (the evaluation's renders, whose depth colours are scaled per run, are not reused)."""
+def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | None]:
+    """``({variant: (rgb, depth, normal)}, gt_rgb, gt_depth, gt_normal)`` of the first test view of one scene,
+    rendered from each run's last checkpoint (the evaluation's renders, whose depth colours are scaled per run, are
+    not reused); normals in the camera frame, the ground truth's from its depth map as the evaluation takes them."""
     import torch
 
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.evaluation import render_view
+    from tacsplat.reconstruction.evaluation import render_frame
+    from tacsplat.reconstruction.losses import depth_normals
     from tacsplat.reconstruction.run_dir import load_run
     from tacsplat.reconstruction.views import background_image
 
@@ -312,9 +315,13 @@ def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarra
     for run in runs:
         loaded = load_run(run.out)
         background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
-        rgb, depth, _ = render_view(loaded.gaussians, frame, background, loaded.config.backend)
-        panels[run.variant] = (rgb, depth)
-    return panels, gt_rgb, np.zeros(gt_rgb.shape[:2], np.float32) if gt_depth is None else gt_depth
+        view = render_frame(loaded.gaussians, frame, background, loaded.config.backend, with_depth=True,
+                            with_normals=True)
+        panels[run.variant] = (view.rgb, view.depth, view.normal)
+    if gt_depth is None:
+        return panels, gt_rgb, np.zeros(gt_rgb.shape[:2], np.float32), None
+    gt_normal = depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(frame.intrinsics.K)).numpy()
+    return panels, gt_rgb, gt_depth, gt_normal
 
 
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
@@ -323,6 +330,7 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
     grids into ``out``; without figures, report.md holds the tables only."""
     from tacsplat.apps.report import (
         markdown_table,
+        METRICS,
         plot_cd_bars,
         plot_error_vs_time,
         render_grid,
@@ -349,7 +357,7 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
                   f"{len(rows)} of {len(runs)} runs finished.", ""]
     for setting in settings:
         lines += [f"## {setting}", ""]
-        for metric in ("cd", "cd_paper", "psnr", "ssim"):
+        for metric in METRICS:
             lines += [markdown_table(rows, metric, setting), ""]
         lines += [full_vs_vanilla(rows, setting), ""]
         if setting == "minimal":
@@ -369,9 +377,9 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         for obj in dict.fromkeys(r.object for r in runs if r.setting == setting):
             finished = [r for r in runs if r.object == obj and r.setting == setting and r.seed == config.seeds[0] and r.done]
             if finished:
-                panels, gt_rgb, gt_depth = render_first_test_view(finished)
+                panels, gt_rgb, gt_depth, gt_normal = render_first_test_view(finished)
                 png = render_grid(panels, gt_rgb, gt_depth, out / f"renders_{obj}_{setting}.png",
-                                  f"{obj}, {setting}: first test view")
+                                  f"{obj}, {setting}: first test view", gt_normal=gt_normal)
                 lines += [f"![renders {obj} {setting}]({png.name})", ""]
     (out / "report.md").write_text("\n".join(lines))
 

@@ -15,11 +15,12 @@ import numpy as np
 
 from tacsplat.reconstruction.variants import VARIANTS, variant_label
 
-RESULT_COLUMNS = ("object", "setting", "variant", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians",
-                  "seed")
 # metric -> (heading, True when lower is better, decimals)
 METRICS = {"cd": ("CD (↓)", True, 4), "cd_paper": ("CD as the paper measures it (↓)", True, 5),
-           "psnr": ("PSNR (↑)", False, 2), "ssim": ("SSIM (↑)", False, 3)}
+           "psnr": ("PSNR (↑)", False, 2), "ssim": ("SSIM (↑)", False, 3),
+           "normal_error_deg": ("Normal error, degrees (↓)", True, 1)}
+NUMBER_COLUMNS = (*METRICS, "train_seconds", "num_gaussians")  # a run's numbers in results.csv
+RESULT_COLUMNS = ("object", "setting", "variant", *NUMBER_COLUMNS, "seed")
 
 
 def write_results_csv(rows: list[dict], path: str | Path) -> Path:
@@ -40,7 +41,7 @@ def read_results_csv(path: str | Path) -> list[dict]:
     with Path(path).open() as fh:
         for raw in csv.DictReader(fh):
             row = dict(raw)
-            for key in ("cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians"):
+            for key in NUMBER_COLUMNS:
                 row[key] = float(raw[key]) if raw.get(key) not in (None, "") else float("nan")
             rows.append(row)
     return rows

@@ -130,7 +130,8 @@ def _finish(run, cd: float) -> None:
     """What a finished run leaves behind (for the report): metrics.json and progress.csv."""
     run.out.mkdir(parents=True, exist_ok=True)
     (run.out / "metrics.json").write_text(json.dumps(
-        {"cd": cd, "psnr": 20.0, "ssim": 0.8, "train_seconds": 5.0, "num_gaussians": 100}))
+        {"cd": cd, "psnr": 20.0, "ssim": 0.8, "normal_error_deg": 1000 * cd, "train_seconds": 5.0,
+         "num_gaussians": 100}))
     from tacsplat.reconstruction.run_dir import PROGRESS_COLUMNS
 
     rows = [{"iteration": 0, "seconds": 0.0, "psnr": 10, "cd": 0.1}, {"iteration": 100, "seconds": 5.0, "psnr": 20, "cd": cd}]
@@ -159,7 +160,8 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
     def render_first_test_view(runs):
         rendered.append([r.variant for r in runs])
         depth = np.full((8, 8), 0.3, np.float32)
-        return {r.variant: (np.zeros((8, 8, 3)), depth) for r in runs}, np.ones((8, 8, 3)), depth
+        normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
+        return {r.variant: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal
 
     monkeypatch.setattr(batch.CaptureJob, "__call__", capture)
     monkeypatch.setattr(batch.ReconstructJob, "__call__", train)
@@ -169,6 +171,7 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
     assert {r["variant"]: r["cd"] for r in rows} == {"3dgs": 0.02, "full": 0.01}
     report = (tmp_path / "report.md").read_text()
     assert "| Ours (full) | **0.0100** | **0.0100** |" in report
+    assert "Normal error, degrees (↓)" in report and "| Ours (full) | **10.0** | **10.0** |" in report
     for name in ("results.csv", "cd_minimal.png", "error_vs_time_minimal.png", "renders_teapot_minimal.png"):
         assert (tmp_path / name).is_file(), name
     assert rendered[-1] == ["3dgs", "full"]  # the grid shows every finished run
