@@ -21,9 +21,7 @@
   simulated grasps added to an existing scene;
 * :mod:`~tacsplat.acquisition.paper_touches`: ``--touch-model paper`` of both,
   the touches of the paper's official code, recorded as pad touches.
+
+Import from the modules themselves: the package imports nothing, so that
+``tacsplat --help`` loads no rig configuration.
 """
-
-from tacsplat.acquisition.config import RigConfig, load_rig
-from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
-
-__all__ = ["RigConfig", "load_rig", "CaptureLogger", "CaptureRejected"]

@@ -29,18 +29,16 @@ A scene directory is what acquisition, the simulator and the importers write
 
 Inside the code poses are OpenCV camera-to-world (``Frame.T_world_cam``) in
 metres; the OpenGL matrices of nerfstudio and Blender are converted only in
-this package. Importers: :func:`import_blender` (NeRF-synthetic / Shiny
-Blender), :func:`import_colmap` (COLMAP sparse models through pycolmap),
-:func:`import_nerfstudio` (nerfstudio / instant-ngp ``transforms.json``);
-:func:`copy_scene` writes a copy of a scene (a subset of its touches, new
+this package. Importers, each in its own module so that reading a scene loads
+neither OpenCV nor pycolmap: ``datasets.blender.import_blender`` (NeRF-synthetic
+/ Shiny Blender), ``datasets.colmap.import_colmap`` (COLMAP sparse models through
+pycolmap), ``datasets.nerfstudio.import_nerfstudio`` (nerfstudio / instant-ngp
+``transforms.json``); :func:`copy_scene` writes a copy of a scene (a subset of its touches, new
 provenance or sensor model).
 Command line: ``tacsplat import blender|colmap|nerfstudio`` and ``tacsplat inspect DIR [--json] [--plot PNG]``.
 """
 
-from .blender import import_blender
-from .colmap import import_colmap
 from .copying import copy_scene
-from .nerfstudio import import_nerfstudio
 from .reader import Scene, check_scene
 from .records import SPLITS, Frame, SceneMeta, SensorModel, Touch
 from .writer import SceneWriter
@@ -55,7 +53,4 @@ __all__ = [
     "check_scene",
     "SceneWriter",
     "copy_scene",
-    "import_blender",
-    "import_colmap",
-    "import_nerfstudio",
 ]
