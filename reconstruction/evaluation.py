@@ -25,7 +25,7 @@ from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
     chamfer_distance,
-    chamfer_distance_paper,
+    chamfer_terms_paper,
     depth_to_points,
     psnr,
     ssim,
@@ -197,7 +197,7 @@ def evaluate_views(
             predicted_median.append(depth_to_points(median, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth)
-    cd = cd_paper = float("nan")
+    cd = accuracy = completeness = float("nan")
     gt_cloud = None if ground_truth is None else ground_truth.cloud([f.id for f in frames])
     if gt_cloud is not None and len(gt_cloud):
         cd = chamfer_distance(np.concatenate(predicted), gt_cloud, ground_truth.radius)
@@ -205,12 +205,14 @@ def evaluate_views(
         cloud = np.concatenate(predicted_median)
         if len(cloud) > PAPER_MAX_POINTS:
             cloud = cloud[np.random.default_rng(0).choice(len(cloud), PAPER_MAX_POINTS, replace=False)]
-        cd_paper = chamfer_distance_paper(cloud, ground_truth.surface, ground_truth.radius)
+        accuracy, completeness = chamfer_terms_paper(cloud, ground_truth.surface, ground_truth.radius)
     return {
         "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
         "ssim": float(np.mean(ssims)) if ssims else float("nan"),
         "cd": cd,
-        "cd_paper": cd_paper,
+        "cd_paper": accuracy + completeness,
+        "cd_paper_accuracy": accuracy,  # its two summands: predicted -> ground truth ...
+        "cd_paper_completeness": completeness,  # ... and ground truth -> predicted (includes unseen surface)
         "normal_error_deg": float(np.mean(np.concatenate(angles))) if angles and sum(map(len, angles)) else float("nan"),
     }
 

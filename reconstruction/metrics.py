@@ -149,8 +149,16 @@ def chamfer_distance_paper(predicted: np.ndarray, ground_truth: np.ndarray, radi
     Both clouds are divided by ``radius`` first, so objects of any size compare with the paper's unit-scale
     ones. An empty predicted cloud gives ``inf``.
     """
+    return sum(chamfer_terms_paper(predicted, ground_truth, radius))
+
+
+def chamfer_terms_paper(predicted: np.ndarray, ground_truth: np.ndarray, radius: float = 1.0) -> tuple[float, float]:
+    """The two summands of :func:`chamfer_distance_paper`: accuracy (mean squared distance from each predicted
+    point to the ground truth) and completeness (from each ground-truth point to the prediction); ``inf`` both
+    for an empty prediction. With a whole-surface ground truth and a prediction seen from the test views only,
+    completeness also counts the surface no test view sees, the same for every method."""
     distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_distance_paper")
     if distances is None:
-        return float("inf")
+        return float("inf"), float("inf")
     d_pred_to_gt, d_gt_to_pred = distances
-    return float(np.mean(d_pred_to_gt**2)) + float(np.mean(d_gt_to_pred**2))
+    return float(np.mean(d_pred_to_gt**2)), float(np.mean(d_gt_to_pred**2))

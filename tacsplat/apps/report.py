@@ -19,7 +19,8 @@ from tacsplat.reconstruction.variants import VARIANTS, variant_label
 METRICS = {"cd": ("CD (↓)", True, 4), "cd_paper": ("CD as the paper measures it (↓)", True, 5),
            "psnr": ("PSNR (↑)", False, 2), "ssim": ("SSIM (↑)", False, 3),
            "normal_error_deg": ("Normal error, degrees (↓)", True, 1)}
-NUMBER_COLUMNS = (*METRICS, "train_seconds", "num_gaussians")  # a run's numbers in results.csv
+NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "train_seconds", "num_gaussians")  # a
+# run's numbers in results.csv
 RESULT_COLUMNS = ("object", "setting", "variant", *NUMBER_COLUMNS, "seed")
 
 
@@ -62,7 +63,7 @@ def metric_table(rows: list[dict], metric: str, setting: str) -> tuple[list[str]
     values = np.full((len(variants), len(objects) + 1), np.nan)
     for i, variant in enumerate(variants):
         for j, obj in enumerate(objects):
-            values[i, j] = _mean([r[metric] for r in selected if r["variant"] == variant and r["object"] == obj])
+            values[i, j] = _mean([r.get(metric) for r in selected if r["variant"] == variant and r["object"] == obj])
         values[i, -1] = _mean(list(values[i, :-1]))
     return objects, variants, values
 

@@ -71,6 +71,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     for key in ("cd", "cd_paper", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians",
                 "num_touch_gaussians", "variant", "settings"):
         assert key in saved
+    assert saved["cd_paper"] == pytest.approx(saved["cd_paper_accuracy"] + saved["cd_paper_completeness"])
     assert (run / "error_vs_time.png").stat().st_size > 0
     assert len(list((run / "renders").glob("*.png"))) == len(Scene.load(sphere_scene).split("test"))
 

@@ -131,7 +131,7 @@ def test_both_chamfer_distances_on_clouds_with_known_distances():
     """Two parallel planes of points 0.1 apart (every nearest neighbour at 0.1): the design's CD is the
     mean unsquared distance each way, halved = 0.1; the paper's is the mean squared distance each way,
     summed = 2 * 0.01. A radius of 2 divides every distance by 2 first."""
-    from tacsplat.reconstruction.metrics import chamfer_distance, chamfer_distance_paper
+    from tacsplat.reconstruction.metrics import chamfer_distance, chamfer_distance_paper, chamfer_terms_paper
 
     g = np.stack(np.meshgrid(np.arange(5.0), np.arange(5.0), indexing="ij"), -1).reshape(-1, 2)
     gt = np.column_stack([g, np.zeros(len(g))])
@@ -149,4 +149,5 @@ def test_both_chamfer_distances_on_clouds_with_known_distances():
     far = np.sqrt(1.0 + 0.01)  # gt points in row 2 are 1 column from row 1's predicted points (and 0.1 below)
     expected = (10 * 0.01 + 5 * far**2 + 5 * (4 + 0.01) + 5 * (9 + 0.01)) / 25 + 0.01
     assert chamfer_distance_paper(half, gt) == pytest.approx(expected)
+    assert chamfer_terms_paper(half, gt) == pytest.approx((0.01, expected - 0.01))  # accuracy, completeness
     assert chamfer_distance_paper(np.zeros((0, 3)), gt) == float("inf")
