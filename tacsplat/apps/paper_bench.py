@@ -408,6 +408,8 @@ def config_from_args(args) -> PaperBenchConfig:
         config.settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
     if args.seeds is not None:
         config.seeds = comma_separated_ints(args.seeds, "--seeds")
+    if args.variants is not None:
+        config.variants = tuple(v.strip() for v in args.variants.split(",") if v.strip())
     config.preset, config.touch_model = args.preset, args.touch_model
     config.validate()
     return config
@@ -438,6 +440,8 @@ def register(cli) -> None:
     p.add_argument("--test-views", type=int, default=None, help="held-out test views (default 12; quick 8)")
     p.add_argument("--settings", default=None, help="comma-separated: minimal,full-views (quick: minimal)")
     p.add_argument("--seeds", default=None, help="comma-separated capture and training seeds (default 0)")
+    p.add_argument("--variants", default=None,
+                   help="comma-separated method variants (default: all of reconstruct --variant's choices)")
     add_executor_options(p)
     p.set_defaults(func=_run)
 
