@@ -48,6 +48,6 @@ def run(args) -> int:
     report = bench.out.resolve()
     print(f"report: {report / 'report.md'} (tables, plots and renders)")
     print(f"open first: {report / f'renders_{args.object}_minimal.png'} "
-          "(test views: ground truth, 3DGS and with touch; RGB above depth)")
+          "(test views: ground truth, 3DGS and with touch; RGB, depth and normals)")
     print(f"total {(time.perf_counter() - started) / 60:.1f} min")
     return 0
