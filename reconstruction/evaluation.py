@@ -70,13 +70,6 @@ def render_frame(gaussians: Gaussians, frame, background: torch.Tensor, backend:
     return FrameRender(rgb, depth, alpha.numpy(), normal)
 
 
-def render_view(gaussians: Gaussians, frame, background: torch.Tensor, backend: str, with_depth: bool = True,
-                look: Look | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
-    """(rgb [H, W, 3] in [0, 1], expected depth [H, W] (0 where alpha <= 0.5) or None, alpha [H, W])."""
-    view = render_frame(gaussians, frame, background, backend, with_depth, look=look)
-    return view.rgb, view.depth, view.alpha
-
-
 def normal_error_degrees(rendered: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
     """Angles [M] in degrees between rendered and ground-truth unit normals [H, W, 3] where both are known."""
     known = (np.linalg.norm(rendered, axis=-1) > 0.5) & (np.linalg.norm(ground_truth, axis=-1) > 0.5)

@@ -142,22 +142,14 @@ def chamfer_distance(predicted: np.ndarray, ground_truth: np.ndarray, radius: fl
     return 0.5 * (float(d_pred_to_gt.mean()) + float(d_gt_to_pred.mean()))
 
 
-def chamfer_distance_paper(predicted: np.ndarray, ground_truth: np.ndarray, radius: float = 1.0) -> float:
-    """The paper's Chamfer distance (its official code: pytorch3d's ``chamfer_distance`` at its defaults):
-    the mean SQUARED nearest-neighbour distance each way, the two directions SUMMED (no root, no halving).
-
-    Both clouds are divided by ``radius`` first, so objects of any size compare with the paper's unit-scale
-    ones. An empty predicted cloud gives ``inf``.
-    """
-    return sum(chamfer_terms_paper(predicted, ground_truth, radius))
-
-
 def chamfer_terms_paper(predicted: np.ndarray, ground_truth: np.ndarray, radius: float = 1.0) -> tuple[float, float]:
-    """The two summands of :func:`chamfer_distance_paper`: accuracy (mean squared distance from each predicted
-    point to the ground truth) and completeness (from each ground-truth point to the prediction); ``inf`` both
-    for an empty prediction. With a whole-surface ground truth and a prediction seen from the test views only,
-    completeness also counts the surface no test view sees, the same for every method."""
-    distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_distance_paper")
+    """The paper's Chamfer distance (its official code: pytorch3d's ``chamfer_distance`` at its defaults) as its
+    two summands: the mean SQUARED nearest-neighbour distance each way (no root, no halving); ``cd_paper`` is
+    their sum. Accuracy: from each predicted point to the ground truth; completeness: from each ground-truth
+    point to the prediction. Both clouds are divided by ``radius`` first, so objects of any size compare with the
+    paper's unit-scale ones; ``inf`` both for an empty prediction. With a whole-surface ground truth and a
+    prediction seen from the test views only, completeness also counts the surface no test view sees."""
+    distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_terms_paper")
     if distances is None:
         return float("inf"), float("inf")
     d_pred_to_gt, d_gt_to_pred = distances

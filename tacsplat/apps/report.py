@@ -19,8 +19,8 @@ from tacsplat.reconstruction.variants import VARIANTS, variant_label
 METRICS = {"cd": ("CD (↓)", True, 4), "cd_paper": ("CD as the paper measures it (↓)", True, 5),
            "psnr": ("PSNR (↑)", False, 2), "ssim": ("SSIM (↑)", False, 3),
            "normal_error_deg": ("Normal error, degrees (↓)", True, 1)}
-NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "train_seconds", "num_gaussians")  # a
-# run's numbers in results.csv
+# a run's numbers in results.csv
+NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "train_seconds", "num_gaussians")
 RESULT_COLUMNS = ("object", "setting", "variant", *NUMBER_COLUMNS, "seed")
 
 
