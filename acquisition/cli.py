@@ -34,7 +34,8 @@ def register(cli) -> None:
         description="Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin "
         "places the camera on the hemisphere and the hand on sampled approaches; the logger closes the hand until "
         "the fingers stall, reads the pads and writes). --grasp-strategy next-best reconstructs the scene so far "
-        "before each grasp and grasps where it is least sure (its decisions in OUT/next_touch.json). "
+        "before each grasp and grasps where it is least sure (its decisions and their scores in OUT/scene.json, "
+        "under annotations.next_touch). "
         "--touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in "
         "--seed; --resume continues a killed capture with the same options (any other value is refused, naming "
         "the option).",

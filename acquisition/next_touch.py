@@ -21,14 +21,14 @@ The selector, shared by the twin's closed loop and the operator session:
 The closed loop (:class:`NextTouchPlanner`, ``sim-capture --grasp-strategy next-best``): before grasp ``g`` the
 scene so far (its train views and the touches of the grasps before ``g``) is reconstructed for ``selection_steps``
 steps (:func:`~tacsplat.reconstruction.uncertainty.brief_reconstruction`: the same Gaussians from the same scene
-on every CPU run), the candidates are scored, and the decision is written to ``next_touch.json`` in the scene
-folder before the hand moves. A resumed capture reuses the decision of a grasp cut short and re-creates the
-reconstruction of the later ones from the scene, so it chooses the grasps an uninterrupted capture chooses.
+on every CPU run), the candidates are scored, and the decision is recorded through the scene's writer, in
+scene.json's ``annotations["next_touch"]``, before the hand moves. A resumed capture reuses the decision of a grasp
+cut short (the writer's journal holds it) and re-creates the reconstruction of the later ones from the scene, so it
+chooses the grasps an uninterrupted capture chooses.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import dataclass, field
@@ -40,8 +40,7 @@ import torch
 from tacsplat.acquisition.config import GraspPlan
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected, GraspOutcome
 from tacsplat.acquisition.twin_planner import MAX_ATTEMPTS_PER_GRASP, TwinPlanner
-from tacsplat.datasets import Scene, SensorModel
-from tacsplat.datasets.writer import atomic_write_json
+from tacsplat.datasets import Scene, SceneWriter, SensorModel
 from tacsplat.geometry import invert_pose, make_pose
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.uncertainty import (
@@ -57,7 +56,7 @@ from tacsplat.reconstruction.uncertainty import (
 
 log = logging.getLogger(__name__)
 
-CHOICES_FILE = "next_touch.json"  # the decisions of a next-best capture, in its scene folder
+DECISIONS_KEY = "next_touch"  # the decisions of a next-best capture: this key of its scene.json's annotations
 STANDOFF_M = 0.5  # the patch camera's distance behind the pad: a near-orthographic view of the pad's area
 
 
@@ -218,23 +217,26 @@ def belief_of(scene, gaussians: Gaussians, score: str, seed: int = 0) -> Belief:
 # --- the twin's closed loop --------------------------------------------------------------------------------
 
 class ChoiceLog:
-    """The decisions of a next-best capture: ``next_touch.json`` in its scene folder, rewritten atomically.
+    """The decisions of a next-best capture: ``{"grasps": [...]}`` under ``DECISIONS_KEY`` in scene.json's
+    annotations, recorded (journaled) and read back through the scene's writer.
 
     One entry per grasp: the scene it was decided on (train views, touches), every candidate's score, the
     ranking, the candidate executed, and the seconds the decision took."""
 
-    def __init__(self, scene_dir: str | Path):
-        self.path = Path(scene_dir) / CHOICES_FILE
-        self.data = json.loads(self.path.read_text()) if self.path.is_file() else {"grasps": []}
+    def __init__(self, writer: SceneWriter):
+        self.writer = writer
+
+    @property
+    def grasps(self) -> list[dict]:
+        return self.writer.annotations.get(DECISIONS_KEY, {"grasps": []})["grasps"]
 
     def decision(self, index: int, state: dict) -> dict | None:
         """The decision of grasp ``index`` taken on a scene in ``state``, if there is one."""
-        return next((d for d in self.data["grasps"] if d["grasp"] == index and d["scene"] == state), None)
+        return next((d for d in self.grasps if d["grasp"] == index and d["scene"] == state), None)
 
     def save(self, decision: dict) -> None:
-        others = [d for d in self.data["grasps"] if d["grasp"] != decision["grasp"]]
-        self.data["grasps"] = sorted([*others, decision], key=lambda d: d["grasp"])
-        atomic_write_json(self.path, self.data)
+        others = [d for d in self.grasps if d["grasp"] != decision["grasp"]]
+        self.writer.annotate(DECISIONS_KEY, {"grasps": sorted([*others, decision], key=lambda d: d["grasp"])})
 
 
 def scene_state(scene) -> dict:
@@ -300,7 +302,7 @@ class NextTouchPlanner:
         """Grasp number ``index``: decide (or reuse the decision taken on this same scene), then execute the best
         candidate, the next best when one touches nothing, up to ``MAX_ATTEMPTS_PER_GRASP``; None when none
         touched."""
-        choices = ChoiceLog(logger.writer.path)
+        choices = ChoiceLog(logger.writer)
         scene = Scene.load(logger.writer.path)
         decision = choices.decision(index, scene_state(scene))
         if decision is None:

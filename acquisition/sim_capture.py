@@ -10,8 +10,8 @@ the hand pose, writes the touches and opens the hand.
 
 With ``grasp_strategy="next-best"`` the hand goes where a brief reconstruction of the scene so far is least
 sure (:class:`~tacsplat.acquisition.next_touch.NextTouchPlanner`): before each grasp it reconstructs, scores
-``candidates`` approaches and executes the best; the decisions and their scores are written to
-``next_touch.json`` in the scene, which is otherwise an ordinary scene.
+``candidates`` approaches and executes the best; the scene is an ordinary one with the decisions and their scores
+recorded in its scene.json (``annotations["next_touch"]``).
 
 With ``touch_model="paper"`` no grasp is executed: the touches are the
 paper's (:mod:`~tacsplat.acquisition.paper_touches`), four for each planned

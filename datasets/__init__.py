@@ -21,7 +21,8 @@ A scene directory is what acquisition, the simulator and the importers write
                        indentation (0 = no contact)
       scene.json       provenance: format, source (sim | real | import), object,
                        units "m", capture_plan, extra, tacsplat_version, created,
-                       gt {mesh, depth {frame id: file}}
+                       gt {mesh, depth {frame id: file}}, annotations {key:
+                       plain JSON} (e.g. next_touch: next-best's decisions)
       gt/              evaluation only, never read by training: mesh.ply and
                        depth/<frame id>.npz (key "depth", z-depth in metres)
       journal.jsonl    the writer's append-only log the index files are

@@ -16,8 +16,8 @@ from .writer import JOURNAL
 
 
 def summarise(path) -> dict:
-    """Frames per split, touches per grasp and finger, bounds, ground truth and every problem (those of
-    :func:`check_scene`: what it lists, ``Scene.load`` raises), as one JSON-able dict."""
+    """Frames per split, touches per grasp and finger, bounds, ground truth, annotation keys and every problem
+    (those of :func:`check_scene`: what it lists, ``Scene.load`` raises), as one JSON-able dict."""
     path = Path(path)
     scene, errors = check_scene(path)
     problems = [str(e) for e in errors]
@@ -35,6 +35,7 @@ def summarise(path) -> dict:
         "sensor": None,
         "bounds": None,
         "gt": {"mesh": None, "depth_maps": 0},
+        "annotations": [],
         "journal": (path / JOURNAL).is_file(),
         "problems": problems,
     }
@@ -56,6 +57,7 @@ def summarise(path) -> dict:
         lo, hi = scene.bounds()
         summary["bounds"] = {"lo": lo.tolist(), "hi": hi.tolist()}
     summary["gt"] = {"mesh": scene.gt_mesh_file, "depth_maps": len(scene.gt_depth_files)}
+    summary["annotations"] = sorted(scene.annotations)
     return summary
 
 
@@ -81,6 +83,8 @@ def format_summary(summary: dict) -> str:
         lines.append(f"bounds    {fmt(lo)} .. {fmt(hi)} m  (size {fmt(hi - lo)})")
     gt = summary["gt"]
     lines.append(f"gt        mesh: {gt['mesh'] or 'none'}, depth maps: {gt['depth_maps']}")
+    if summary["annotations"]:
+        lines.append("annotated " + ", ".join(summary["annotations"]))
     problems = summary["problems"]
     lines.append(f"problems  {len(problems) or 'none'}")
     lines.extend(f"  - {p}" for p in problems)

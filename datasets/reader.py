@@ -40,7 +40,7 @@ from .records import (
     pose_problem,
     touch_depth_limit,
 )
-from .writer import JOURNAL, journaled_counts
+from .writer import JOURNAL, journaled_state
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -189,6 +189,7 @@ class Scene:
     tacsplat_version: str = ""
     gt_depth_files: dict[int, str] = field(default_factory=dict)
     gt_mesh_file: str | None = None
+    annotations: dict = field(default_factory=dict)  # scene.json's: what the capture recorded beside its records
 
     @classmethod
     def load(cls, path, check_files: bool = True) -> "Scene":
@@ -355,12 +356,13 @@ def _read_scene(path: Path, problems: _Problems, check_files: bool) -> tuple[Sce
         problems.report(path, None, "a nerfstudio or instant-ngp dataset (transforms.json with frames, no scene.json), "
                         f"not a tacsplat scene: import it first with `tacsplat import nerfstudio {path} --out SCENE`")
         return None, problems
-    meta, version, gt = _read_scene_json(path, problems)
+    meta, version, gt, annotations = _read_scene_json(path, problems)
     frames, declared_ids = _read_frames(path, problems, check_files)
     sensor, touches = _read_touches(path, problems, check_files)
     if meta is None:
         return None, problems
-    scene = Scene(path=path, frames=frames, touches=touches, sensor=sensor, meta=meta, tacsplat_version=version)
+    scene = Scene(path=path, frames=frames, touches=touches, sensor=sensor, meta=meta, tacsplat_version=version,
+                  annotations=annotations)
     _read_gt(scene, gt, declared_ids, problems, check_files)
     _check_complete(scene, problems)
     return scene, problems
@@ -371,14 +373,17 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
     journal = scene.path / JOURNAL
     if journal.is_file():
         try:
-            frames, touches = journaled_counts(scene.path)
+            journaled = journaled_state(scene.path)
         except SceneFormatError as exc:
             problems.add(exc)
         else:  # (with other problems the index holds fewer valid records anyway)
+            frames, touches = journaled.num_frames, journaled.num_touches
+            resume = "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites the index"
             if (frames, touches) != (len(scene.frames), len(scene.touches)) and not problems.errors:
                 problems.report(journal, None, f"records {frames} frames and {touches} touches but the index files "
-                                f"hold {len(scene.frames)} and {len(scene.touches)}: a writer stopped between the two; "
-                                "SceneWriter.resume (or resuming the capture) rewrites the index")
+                                f"hold {len(scene.frames)} and {len(scene.touches)}: {resume}")
+            elif journaled.annotations != scene.annotations and not problems.errors:
+                problems.report(journal, "annotations", f"records other annotations than scene.json holds: {resume}")
     index = scene.path / "transforms.json"
     if not scene.frames:
         problems.report(index, "frames", "the scene has no frames")
@@ -386,11 +391,12 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
         problems.report(index, "frames", "the scene has no train frames")
 
 
-def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None, str, dict]:
+def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None, str, dict, dict]:
+    """Provenance, tacsplat version, ground truth and annotations (none in a scene older than them)."""
     index = path / "scene.json"
     data = _read_json(index, problems)
     if data is None:
-        return None, "", {}
+        return None, "", {}, {}
     ok = True
     if data.get("format", FORMAT_NAME) != FORMAT_NAME:
         problems.report(index, "format", f"expected {FORMAT_NAME!r}, got {data.get('format')!r}")
@@ -414,11 +420,15 @@ def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None,
     if not isinstance(gt, dict):
         problems.report(index, "gt", f"expected an object, got {type(gt).__name__}")
         gt = {}
+    annotations = data.get("annotations", {})
+    if not isinstance(annotations, dict):
+        problems.report(index, "annotations", f"expected an object {{key: value}}, got {type(annotations).__name__}")
+        annotations = {}
     if not ok:
-        return None, "", {}
+        return None, "", {}, {}
     meta = SceneMeta(source=data["source"], object=data["object"], capture_plan=data.get("capture_plan", {}),
                      extra=data.get("extra", {}))
-    return meta, str(data.get("tacsplat_version", "")), gt
+    return meta, str(data.get("tacsplat_version", "")), gt, annotations
 
 
 def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[list[Frame], set[int]]:

@@ -5,7 +5,10 @@ to disk (fsync) and renamed over its final name (``os.replace``), so a reader
 never sees a partial file. Records are appended one line each to
 ``journal.jsonl`` (fsync'ed); the index files ``transforms.json``,
 ``touches.json`` and ``scene.json`` are re-materialised atomically from the
-in-memory state after each record. After ``kill -9`` at any point:
+in-memory state after each record. Besides frames, touches and the ground
+truth, a record can be a capture annotation (:meth:`SceneWriter.annotate`: plain
+JSON under a key of scene.json's ``annotations``, the latest value of a key
+wins), e.g. the decisions of a next-best capture. After ``kill -9`` at any point:
 
 * the index files are a consistent snapshot, at most one record behind the
   journal (readers refuse such a scene, naming the journal, until it is resumed);
@@ -179,6 +182,7 @@ class SceneWriter:
         self.touches: list[Touch] = []
         self._gt_depth: dict[int, str] = {}
         self._gt_mesh: str | None = None
+        self.annotations: dict = {}  # key -> plain JSON value, the latest recorded; read it, change it by annotate
         self._order: list[tuple[str, int]] = []  # live records, oldest first, for remove_last
         self._journal = None
 
@@ -330,6 +334,11 @@ class SceneWriter:
                 self.touches.pop()
         elif op == "gt_mesh":
             self._gt_mesh = entry["path"]
+        elif op == "annotation":
+            key = entry["key"]
+            if not isinstance(key, str) or not key:
+                raise ValueError(f"annotation key: expected a non-empty string, got {key!r}")
+            self.annotations[key] = entry["value"]
         else:
             raise ValueError(f"unknown op {op!r}")
 
@@ -375,6 +384,7 @@ class SceneWriter:
             "tacsplat_version": self._version,
             "created": self._created,
             "gt": {"mesh": self._gt_mesh, "depth": {str(k): v for k, v in sorted(self._gt_depth.items())}},
+            "annotations": self.annotations,
         }
 
     # --- records ------------------------------------------------------------------------------
@@ -472,6 +482,21 @@ class SceneWriter:
         self._record({"op": "gt_mesh", "path": rel}, "scene")
         return self.path / rel
 
+    def annotate(self, key: str, value) -> None:
+        """Record ``value`` (plain JSON: dicts with string keys, lists, strings, finite numbers, booleans, None)
+        as scene.json's ``annotations[key]``, replacing an earlier value of ``key``; journaled like every record,
+        so a resumed writer holds it in :attr:`annotations`."""
+        if not isinstance(key, str) or not key:
+            raise InvalidInputError(f"annotation key: expected a non-empty string, got {key!r}")
+        try:
+            plain = json.loads(json.dumps(value, allow_nan=False))
+        except (TypeError, ValueError) as exc:
+            raise InvalidInputError(f"annotation {key!r}: expected plain JSON data: {exc}") from exc
+        if plain != value:
+            raise InvalidInputError(f"annotation {key!r}: expected plain JSON data; it would read back changed "
+                                    "(a tuple, or a dict key that is not a string?)")
+        self._record({"op": "annotation", "key": key, "value": plain}, "scene")
+
     def remove_last(self) -> Frame | Touch:
         """Undo the most recent frame or touch (the operator's undo); its id is reused next."""
         if not self._order:
@@ -512,12 +537,11 @@ def _lock_journal(path: Path):
     return journal
 
 
-def journaled_counts(path) -> tuple[int, int]:
-    """``(frames, touches)`` recorded in a scene's journal, read-only (for ``inspect``: the index files are
-    behind the journal only when a writer died between the two; resuming rewrites them)."""
+def journaled_state(path) -> SceneWriter:
+    """What a scene's journal records, read-only: a closed writer (for the reader: the index files are behind the
+    journal only when a writer died between the two; resuming rewrites them)."""
     path = Path(path)
-    writer = SceneWriter._replay(path, _read_journal(path / JOURNAL, truncate=False))
-    return writer.num_frames, writer.num_touches
+    return SceneWriter._replay(path, _read_journal(path / JOURNAL, truncate=False))
 
 
 def _read_journal(path: Path, truncate: bool = True) -> list[dict]:

@@ -14,7 +14,7 @@ the depth error against the ground truth, and the Spearman rank correlation of t
 
 Output (resumable: finished captures, copies and runs are kept)::
 
-    OUT/scenes/<object>-s<seed>-<strategy>/        the captures (next_touch.json: next-best's decisions)
+    OUT/scenes/<object>-s<seed>-<strategy>/        the captures (next-best's decisions in their scene.json)
     OUT/scenes/<object>-s<seed>-<strategy>-g<k>/   their first k grasps
     OUT/runs/<object>-s<seed>-<strategy>-g<k>/     `tacsplat reconstruct` run folders
     OUT/results.csv  OUT/report.md  OUT/cd_vs_grasps.png  OUT/uncertainty_<object>.png
@@ -199,12 +199,11 @@ class NextTouchBench:
 
 def selection_seconds(scene: Path, count: int) -> float:
     """The seconds next-best spent choosing the first ``count`` grasps of a capture (0 for random)."""
-    from tacsplat.acquisition.next_touch import CHOICES_FILE
+    from tacsplat.acquisition.next_touch import DECISIONS_KEY
+    from tacsplat.datasets import Scene
 
-    path = scene / CHOICES_FILE
-    if not path.is_file():
-        return 0.0
-    decisions = sorted(json.loads(path.read_text())["grasps"], key=lambda d: d["grasp"])
+    recorded = Scene.load(scene, check_files=False).annotations.get(DECISIONS_KEY, {"grasps": []})
+    decisions = sorted(recorded["grasps"], key=lambda d: d["grasp"])
     return float(sum(d["selection_seconds"] for d in decisions[:count]))
 
 

@@ -94,6 +94,6 @@ def test_a_rerun_with_other_settings_in_the_same_folder_is_refused(bench):
 
     bench, _ = bench
     with pytest.raises(ConfigError, match="--out.*another plan"):
-        NextTouchBench(bench.out, replace(TINY, uncertainty="depth-variance")).run(progress=False)
+        NextTouchBench(bench.out, replace(TINY, uncertainty="fisher")).run(progress=False)
     with pytest.raises(ConfigError, match="--out.*trained for 4 steps"):
         NextTouchBench(bench.out, replace(TINY, iterations=5)).run(progress=False)

@@ -1,6 +1,6 @@
-"""The closed loop on the twin (`sim-capture --grasp-strategy next-best`): an ordinary scene with its decisions
-beside it, the strategy checked on resume, and a capture killed with SIGKILL in the middle of the loop that resumes
-choosing and recording exactly the grasps of an uninterrupted capture."""
+"""The closed loop on the twin (`sim-capture --grasp-strategy next-best`): an ordinary scene with its decisions in
+its scene.json, the strategy checked on resume, and a capture killed with SIGKILL in the middle of the loop that
+resumes choosing and recording exactly the grasps of an uninterrupted capture."""
 
 import json
 import os
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tacsplat.acquisition.next_touch import CHOICES_FILE
+from tacsplat.acquisition.next_touch import DECISIONS_KEY
 from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
 from tacsplat.cli import main
 from tacsplat.datasets import Scene, check_scene
@@ -33,9 +33,18 @@ def _records(path: Path) -> list:
 
 
 def _decisions(path: Path) -> list[dict]:
-    """The decisions, less how long they took."""
-    grasps = json.loads((path / CHOICES_FILE).read_text())["grasps"]
+    """The decisions recorded in scene.json, less how long they took."""
+    grasps = Scene.load(path).annotations[DECISIONS_KEY]["grasps"]
     return [{k: v for k, v in d.items() if k != "selection_seconds"} for d in grasps]
+
+
+def _decided(path: Path, index: int) -> bool:
+    """Whether grasp ``index`` is decided, from scene.json as a capture writes it (replaced whole, atomically)."""
+    index_file = path / "scene.json"
+    if not index_file.is_file():
+        return False
+    recorded = json.loads(index_file.read_text()).get("annotations", {}).get(DECISIONS_KEY, {"grasps": []})
+    return any(d["grasp"] == index for d in recorded["grasps"])
 
 
 @pytest.fixture(scope="module")
@@ -59,6 +68,7 @@ def test_the_closed_loop_writes_an_ordinary_scene_and_its_decisions(uninterrupte
         assert d["executed"] in d["ranking"] and d["scene"] == {"train_views": 2, "touches": 4 * d["grasp"]}
         assert d["reconstruction"]["steps"] == 8 and d["reconstruction"]["gaussians"] > 0
     assert sorted({t.grasp for t in scene.touches}) == [0, 1, 2]
+    assert not list(uninterrupted.glob("next_touch*"))  # no side file: the scene is all there is
 
 
 def test_a_resume_with_another_grasp_strategy_is_refused(uninterrupted, capsys):
@@ -75,10 +85,9 @@ def test_sigkill_in_the_loop_then_resume_chooses_the_same_grasps(uninterrupted, 
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     proc = subprocess.Popen([sys.executable, "-m", "tacsplat.cli", *ARGS, "--out", str(out)], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    choices = out / CHOICES_FILE
     try:
         deadline = time.monotonic() + 200
-        while not (choices.is_file() and any(d["grasp"] == 1 for d in json.loads(choices.read_text())["grasps"])):
+        while not _decided(out, 1):
             assert proc.poll() is None, proc.stderr.read().decode()
             assert time.monotonic() < deadline, "grasp 1 was never decided"
             time.sleep(0.02)
