@@ -12,12 +12,15 @@ Beside the table, for each object's first seed: how well the two uncertainty sco
 reconstruction that chose the first grasp predict its real error: each score rendered on the test views beside
 the depth error against the ground truth, and the Spearman rank correlation of the two over the test pixels.
 
+The captures, copies and runs are batch jobs, run here or as Ray tasks (``--executor ray``,
+:mod:`tacsplat.apps.executors`); the report is written here once they are done.
 Output (resumable: finished captures, copies and runs are kept)::
 
     OUT/scenes/<object>-s<seed>-<strategy>/        the captures (next-best's decisions in their scene.json)
-    OUT/scenes/<object>-s<seed>-<strategy>-g<k>/   their first k grasps
+    OUT/scenes/<object>-s<seed>-<strategy>-g<k>/   their first k grasps (+ <copy>.json: what it holds)
     OUT/runs/<object>-s<seed>-<strategy>-g<k>/     `tacsplat reconstruct` run folders
     OUT/results.csv  OUT/report.md  OUT/cd_vs_grasps.png  OUT/uncertainty_<object>.png
+    OUT/failures.csv                               the jobs that failed, if any
 """
 
 from __future__ import annotations
@@ -28,11 +31,13 @@ import logging
 import math
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
+from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
 
@@ -73,6 +78,10 @@ class NextTouchBenchConfig:
             raise ConfigError("--seeds", f"need at least one seed, each >= 0, got {self.seeds}")
         if not self.grasps or min(self.grasps) < 0:
             raise ConfigError("--grasps", f"need at least one grasp budget, each >= 0, got {self.grasps}")
+        for key in ("objects", "seeds", "grasps"):  # each value names its folders (and jobs) once
+            values = getattr(self, key)
+            if len(set(values)) < len(values):
+                raise ConfigError(f"--{key}", f"a value is repeated in {', '.join(map(str, values))}")
         for key in ("views", "test_views", "resolution", "iterations", "candidates", "selection_steps"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"--{key.replace('_', '-')}", f"must be >= 1, got {getattr(self, key)}")
@@ -103,6 +112,55 @@ def first_grasps(scene_path: str | Path, out: str | Path, count: int) -> tuple[i
     return len(kept), sum(t.in_contact for t in touches)
 
 
+@dataclass(frozen=True, kw_only=True)
+class StrategyCaptureJob(CaptureJob):
+    """A capture job whose grasps follow ``grasp_strategy``: random, or next-best (``candidates`` approaches
+    scored per grasp on a ``selection_steps``-step reconstruction of the scene so far by the ``uncertainty``
+    score)."""
+
+    grasp_strategy: Literal["random", "next-best"]
+    candidates: int
+    selection_steps: int
+    uncertainty: str
+
+    def rig(self):
+        from tacsplat.acquisition.sim_capture import sim_rig_config
+
+        return sim_rig_config(object=self.object, mesh=self.mesh, object_radius=self.object_radius, views=self.views,
+                              test_views=self.test_views, grasps=self.grasps, resolution=self.resolution,
+                              seed=self.seed, touch_model=self.touch_model, grasp_strategy=self.grasp_strategy,
+                              candidates=self.candidates, selection_steps=self.selection_steps,
+                              uncertainty=self.uncertainty)
+
+
+@dataclass(frozen=True, kw_only=True)
+class FirstGraspsJob(BatchJob):
+    """A copy of the capture ``base`` with its first ``count`` grasps (:func:`first_grasps`), marked by
+    ``OUT.json`` beside it (grasps and touches kept, seconds next-best spent choosing them)."""
+
+    kind: Literal["first-grasps"] = "first-grasps"
+    out: Path
+    base: Path
+    count: int
+
+    @property
+    def marker(self) -> Path:
+        return self.out.with_name(self.out.name + ".json")
+
+    def complete(self) -> bool:
+        return self.marker.is_file()
+
+    def __call__(self) -> dict:
+        if self.complete():
+            return json.loads(self.marker.read_text())
+        if self.out.exists():  # a copy interrupted before its marker: ours to redo
+            shutil.rmtree(self.out)
+        grasps, touches = first_grasps(self.base, self.out, self.count)
+        info = {"grasps": grasps, "touches": touches, "selection_seconds": selection_seconds(self.base, self.count)}
+        self.marker.write_text(json.dumps(info))
+        return info
+
+
 class NextTouchBench:
     """The sweep in a folder; :meth:`run` does whatever is not done yet."""
 
@@ -111,90 +169,120 @@ class NextTouchBench:
         self.config = config or NextTouchBenchConfig()
         self.config.validate()
 
-    def rig(self, subject: str, seed: int, strategy: str):
-        """The sim capture's config of one object, seed and strategy."""
-        from tacsplat.acquisition.sim_capture import sim_rig_config
-
+    def sweep(self) -> list[tuple[str, int, str, int]]:
+        """``(object, seed, strategy, grasps)`` of every run, in the order of the sweep."""
         c = self.config
-        return sim_rig_config(object=subject if c.mesh is None else "teapot", mesh=c.mesh, views=c.views,
-                              test_views=c.test_views, grasps=max(c.grasps), resolution=c.resolution, seed=seed,
-                              grasp_strategy=strategy, candidates=c.candidates, selection_steps=c.selection_steps,
-                              uncertainty=c.uncertainty)
-
-    def scene_dir(self, subject: str, seed: int, strategy: str) -> Path:
-        return self.out / "scenes" / f"{subject}-s{seed}-{strategy}"
-
-    def check_captures(self) -> None:
-        """Refuse a folder whose finished captures were made with another plan, before anything runs."""
-        from tacsplat.apps.batch import CAPTURE_MARKER
-
-        c = self.config
-        for subject in c.subjects:
-            for seed in c.seeds:
-                for strategy in STRATEGIES:
-                    marker = self.scene_dir(subject, seed, strategy) / CAPTURE_MARKER
-                    plan = self.rig(subject, seed, strategy).plan.to_json()
-                    if marker.is_file() and json.loads(marker.read_text())["plan"] != plan:
-                        raise ConfigError("--out", f"{marker.parent} was captured with another plan ({marker}); "
-                                          "use the same options or a new --out")
-
-    def capture(self, subject: str, seed: int, strategy: str) -> Path:
-        from tacsplat.apps.batch import capture_once
-
-        return capture_once(self.rig(subject, seed, strategy), self.scene_dir(subject, seed, strategy))
-
-    def budget_scene(self, subject: str, seed: int, strategy: str, count: int) -> tuple[Path, dict]:
-        """The copy of a capture with its first ``count`` grasps, and what it holds (marker ``<copy>.json``)."""
-        path = self.out / "scenes" / f"{subject}-s{seed}-{strategy}-g{count}"
-        marker = path.with_name(path.name + ".json")
-        if marker.is_file():
-            return path, json.loads(marker.read_text())
-        if path.exists():  # a copy interrupted before its marker: ours to redo
-            shutil.rmtree(path)
-        source = self.capture(subject, seed, strategy)
-        grasps, touches = first_grasps(source, path, count)
-        info = {"grasps": grasps, "touches": touches, "selection_seconds": selection_seconds(source, count)}
-        marker.write_text(json.dumps(info))
-        return path, info
-
-    def run(self, progress: bool = True) -> list[dict]:
-        from tacsplat.progress import progress_bar
-        from tacsplat.reconstruction.config import TrainConfig
-        from tacsplat.reconstruction.trainer import reconstruct
-
-        c = self.config
-        self.check_captures()
-        jobs = [(subject, seed, strategy, k) for subject in c.subjects for seed in c.seeds for strategy in STRATEGIES
+        return [(subject, seed, strategy, k) for subject in c.subjects for seed in c.seeds for strategy in STRATEGIES
                 for k in c.grasps]
-        rows = []
-        bar = progress_bar(jobs, desc="bench next-touch", unit="run", enabled=progress)
-        for subject, seed, strategy, k in bar:
-            bar.set_postfix_str(f"{subject} seed {seed}, {strategy}, {k} grasps")
-            scene, info = self.budget_scene(subject, seed, strategy, k)
-            out = self.out / "runs" / scene.name
-            if (out / "metrics.json").is_file():
-                metrics = json.loads((out / "metrics.json").read_text())
+
+    def captures(self) -> list[tuple[str, int, str]]:
+        """``(object, seed, strategy)`` of every capture, in the order of the sweep."""
+        return list(dict.fromkeys(key[:3] for key in self.sweep()))
+
+    def capture_job(self, subject: str, seed: int, strategy: str) -> StrategyCaptureJob:
+        """The sim capture of one object, seed and strategy, with the largest grasp budget."""
+        c = self.config
+        out = self.out / "scenes" / f"{subject}-s{seed}-{strategy}"
+        return StrategyCaptureJob(out=out, object=subject if c.mesh is None else "teapot", mesh=c.mesh, views=c.views,
+                                  test_views=c.test_views, grasps=max(c.grasps), resolution=c.resolution, seed=seed,
+                                  grasp_strategy=strategy, candidates=c.candidates,
+                                  selection_steps=c.selection_steps, uncertainty=c.uncertainty,
+                                  name=f"capture {out.name}")
+
+    def copy_job(self, subject: str, seed: int, strategy: str, count: int,
+                 needs: tuple[str, ...] = ()) -> FirstGraspsJob:
+        """The copy of a capture with its first ``count`` grasps."""
+        base = self.capture_job(subject, seed, strategy).out
+        out = base.with_name(f"{base.name}-g{count}")
+        return FirstGraspsJob(out=out, base=base, count=count, name=f"copy {out.name}", needs=needs)
+
+    def run_dir(self, copy: FirstGraspsJob) -> Path:
+        return self.out / "runs" / copy.out.name
+
+    def check_out(self) -> None:
+        """Refuse a folder whose finished captures were made with another plan, or whose finished runs with
+        another number of steps, before anything runs."""
+        c = self.config
+        for subject, seed, strategy in self.captures():
+            capture = self.capture_job(subject, seed, strategy)
+            marker = capture.out / CAPTURE_MARKER
+            if marker.is_file() and json.loads(marker.read_text())["plan"] != capture.rig().plan.to_json():
+                raise ConfigError("--out", f"{marker.parent} was captured with another plan ({marker}); "
+                                  "use the same options or a new --out")
+        for key in self.sweep():
+            out = self.run_dir(self.copy_job(*key))
+            if (out / METRICS).is_file():
+                metrics = json.loads((out / METRICS).read_text())
                 if metrics["iterations"] != c.iterations:
                     raise ConfigError("--out", f"{out} was trained for {metrics['iterations']} steps, this run asks "
                                       f"for {c.iterations}: use the same --iterations or a new --out")
+
+    def jobs(self) -> list[BatchJob]:
+        """Per object, seed and strategy its capture (if a copy of it is still to make), then per budget the copy
+        with that many grasps and its reconstruction (the trainer's defaults, ``iterations`` steps)."""
+        c = self.config
+        jobs: list[BatchJob] = []
+        for subject, seed, strategy in self.captures():
+            capture = self.capture_job(subject, seed, strategy)
+            copies = [self.copy_job(subject, seed, strategy, k, needs=(capture.name,)) for k in c.grasps]
+            if not all(copy.complete() for copy in copies):
+                jobs.append(capture)
             else:
-                resume = (out / "checkpoint.pt").is_file()
-                metrics = reconstruct(scene, out, TrainConfig(iterations=c.iterations, seed=seed), resume=resume,
-                                      overwrite=not resume, show_progress=False)
+                copies = [replace(copy, needs=()) for copy in copies]
+            for copy in copies:
+                out = self.run_dir(copy)
+                jobs += [copy, ReconstructJob(out=out, scene=copy.out, seed=seed, iterations=c.iterations,
+                                              name=f"reconstruct {out.name}", needs=(copy.name,))]
+        return jobs
+
+    def results(self) -> list[dict]:
+        """One row per finished run, in the order of the sweep."""
+        rows = []
+        for subject, seed, strategy, k in self.sweep():
+            copy = self.copy_job(subject, seed, strategy, k)
+            metrics_path = self.run_dir(copy) / METRICS
+            if not metrics_path.is_file():
+                continue
+            metrics, info = json.loads(metrics_path.read_text()), json.loads(copy.marker.read_text())
             rows.append({"object": subject, "strategy": strategy, "grasps": k, "seed": seed, "cd": metrics["cd"],
                          "cd_paper": metrics.get("cd_paper"), "psnr": metrics["psnr"],
                          "seconds": metrics["train_seconds"], "selection_seconds": info["selection_seconds"],
                          "touches": info["touches"]})
-            bar.write(f"{subject} s{seed} {strategy:9s} {k} grasps ({info['touches']} touches): CD {metrics['cd']:.4f}")
-        bar.close()
-        correlations = {subject: self.uncertainty_picture(subject, c.seeds[0]) for subject in c.subjects}
+        return rows
+
+    def run(self, progress: bool = True, **executor) -> list[dict]:
+        """Capture, copy and train whatever is not done yet (``executor``: the executor, ray_address and retries of
+        :func:`~tacsplat.apps.executors.run_jobs`), then write the report; returns the rows. A BatchError at the
+        end when jobs failed (listed in failures.csv)."""
+        from tacsplat.apps.executors import run_jobs
+
+        c = self.config
+        self.check_out()
+        runs = {f"reconstruct {self.run_dir(self.copy_job(*key)).name}": key for key in self.sweep()}
+
+        def on_done(job, metrics: dict) -> str | None:
+            if job.name not in runs:
+                return None
+            subject, seed, strategy, k = runs[job.name]
+            touches = json.loads(self.copy_job(subject, seed, strategy, k).marker.read_text())["touches"]
+            return f"{subject} s{seed} {strategy:9s} {k} grasps ({touches} touches): CD {metrics['cd']:.4f}"
+
+        outcome = run_jobs(self.jobs(), self.out, on_done=on_done, desc="bench next-touch", progress=progress,
+                           **executor)
+        rows = self.results()
+        correlations = {subject: self.uncertainty_picture(subject, c.seeds[0]) for subject in c.subjects
+                        if self.capture_job(subject, c.seeds[0], "next-best").complete()}
         write_report(self.out, rows, correlations, c)
+        outcome.raise_if_failed(self.out)
         return rows
 
     def uncertainty_picture(self, subject: str, seed: int) -> dict[str, float]:
-        """``uncertainty_<subject>.png`` and the Spearman correlation of each score with the depth error."""
-        scene, _ = self.budget_scene(subject, seed, "next-best", 0)
-        return uncertainty_vs_error(scene, self.config.selection_steps, seed, self.out / f"uncertainty_{subject}.png")
+        """``uncertainty_<subject>.png`` and the Spearman correlation of each score with the depth error (on the
+        views-only copy of the next-best capture, made here if 0 is not a budget)."""
+        copy = self.copy_job(subject, seed, "next-best", 0)
+        copy()
+        return uncertainty_vs_error(copy.out, self.config.selection_steps, seed,
+                                    self.out / f"uncertainty_{subject}.png")
 
 
 def selection_seconds(scene: Path, count: int) -> float:
@@ -348,12 +436,16 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
 
 
 def register(cli) -> None:
+    from tacsplat.apps.executors import add_executor_options
+
     p = cli.command(
         "bench next-touch",
         help="next-best against random grasps: CD against the number of grasps, both strategies",
         description="Per object, seed and strategy one sim capture (5 views, the largest grasp budget); per budget "
         "k a copy with the first k grasps, reconstructed with --iterations steps whatever the strategy. Writes "
-        "OUT/results.csv, OUT/report.md (tables, uncertainty against error), OUT/cd_vs_grasps.png. Resumable.",
+        "OUT/results.csv, OUT/report.md (tables, uncertainty against error), OUT/cd_vs_grasps.png. Resumable. "
+        "--executor ray runs the captures, copies and runs as Ray tasks (an embedded local Ray, or the cluster at "
+        "--ray-address; --out on storage every node sees).",
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--objects", default="all", help="'all' or comma-separated library objects")
@@ -367,10 +459,14 @@ def register(cli) -> None:
     p.add_argument("--selection-steps", type=int, default=300,
                    help="next-best: steps of the reconstruction that chooses each grasp")
     p.add_argument("--uncertainty", default="depth-variance", help="next-best: the score (depth-variance or fisher)")
+    add_executor_options(p)
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
+    from tacsplat.apps.executors import executor_options
+
+    executor = executor_options(args)
     config = NextTouchBenchConfig(
         objects=() if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip()),
         mesh=args.mesh, seeds=comma_separated_ints(args.seeds, "--seeds"),
@@ -380,7 +476,7 @@ def _run(args) -> int:
     )  # fmt: skip
     started = time.perf_counter()
     bench = NextTouchBench(args.out, config)
-    bench.run()
+    bench.run(**executor)
     print((bench.out / "report.md").read_text())
     print(f"done in {(time.perf_counter() - started) / 60:.1f} min; report: {bench.out / 'report.md'}")
     return 0

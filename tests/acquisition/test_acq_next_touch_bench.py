@@ -1,12 +1,15 @@
 """`tacsplat bench next-touch` on a tiny configuration: both strategies at each budget from the same captures, the
-first k grasps of a capture kept whole, the CSV, report and pictures written, a rerun redoing nothing."""
+first k grasps of a capture kept whole, the CSV, report and pictures written, a rerun redoing nothing, and
+`--executor ray` (an embedded local Ray) giving the same scenes and results as the local executor."""
 
 import csv
 import json
 
 import pytest
 
-from tacsplat.apps.next_touch_bench import NextTouchBench, NextTouchBenchConfig, first_grasps
+from tacsplat.apps.executors import RETRIES
+from tacsplat.apps.next_touch_bench import STRATEGIES, NextTouchBench, NextTouchBenchConfig, first_grasps
+from tacsplat.cli import build_parser, main
 from tacsplat.datasets import Scene
 from tacsplat.errors import ConfigError
 
@@ -79,7 +82,7 @@ def test_first_grasps_keeps_whole_grasps_in_number_order(bench, tmp_path):
 
 @pytest.mark.parametrize("change, option", [({"objects": ("vase",)}, "--objects"), ({"grasps": ()}, "--grasps"),
                                             ({"uncertainty": "entropy"}, "--uncertainty"),
-                                            ({"mesh": "/no/such.obj"}, "--mesh")])
+                                            ({"mesh": "/no/such.obj"}, "--mesh"), ({"grasps": (2, 2)}, "--grasps")])
 def test_bad_settings_name_their_option(change, option, tmp_path):
     from dataclasses import replace
 
@@ -97,3 +100,37 @@ def test_a_rerun_with_other_settings_in_the_same_folder_is_refused(bench):
         NextTouchBench(bench.out, replace(TINY, uncertainty="fisher")).run(progress=False)
     with pytest.raises(ConfigError, match="--out.*trained for 4 steps"):
         NextTouchBench(bench.out, replace(TINY, iterations=5)).run(progress=False)
+
+
+def read_rows(path) -> list[dict]:
+    with path.open() as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.mark.slow  # the tiny bench again, its jobs as Ray tasks: ~1 min
+def test_executor_ray_gives_the_local_scenes_and_results(bench, tmp_path, monkeypatch):
+    local, _ = bench
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)  # an embedded Ray for this batch
+    on_ray = NextTouchBench(tmp_path / "R", TINY)
+    rows = on_ray.run(progress=False, executor="ray", retries=0)
+    for strategy in STRATEGIES:
+        scenes = [Scene.load(b.out / "scenes" / f"bell-s0-{strategy}") for b in (on_ray, local)]
+        assert scenes[0].touches == scenes[1].touches and len(scenes[0].frames) == len(scenes[1].frames)
+    timings = ("seconds", "selection_seconds")
+    table, expected = read_rows(on_ray.out / "results.csv"), read_rows(local.out / "results.csv")
+    assert [{k: v for k, v in r.items() if k not in timings} for r in table] == [
+        {k: v for k, v in r.items() if k not in timings} for r in expected]
+    assert len(rows) == 4 and all(r["cd"] > 0 for r in rows)
+    assert not (on_ray.out / "failures.csv").exists() and (on_ray.out / "report.md").is_file()
+
+
+def test_the_executor_options_are_on_the_command(tmp_path, capsys):
+    args = build_parser(["bench", "next-touch"]).parse_args(
+        ["bench", "next-touch", "--out", str(tmp_path), "--executor", "ray", "--ray-address", "head:6379",
+         "--retries", "1"])
+    assert (args.executor, args.ray_address, args.retries) == ("ray", "head:6379", 1)
+    args = build_parser(["bench", "next-touch"]).parse_args(["bench", "next-touch", "--out", str(tmp_path)])
+    assert (args.executor, args.ray_address, args.retries) == ("local", None, RETRIES)
+    assert main(["bench", "next-touch", "--out", str(tmp_path / "R"), "--ray-address", "head:6379"]) == 2
+    assert "--ray-address: runs jobs on a Ray cluster: add --executor ray" in capsys.readouterr().err
+    assert not (tmp_path / "R").exists()
