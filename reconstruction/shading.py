@@ -33,6 +33,7 @@ from tacsplat.reconstruction.raster.spherical_harmonics import spherical_harmoni
 
 Appearance = Literal["sh", "reflective"]
 REFLECTIVE_PARAMS = {"tint": 3, "roughness": 1}  # extra per-Gaussian parameters (logits) of "reflective"
+_TINY = 1e-12  # squared length under which a direction's azimuth (or a pixel's blended normal) is undefined
 
 
 def add_reflective_params(gaussians: Gaussians) -> None:
@@ -73,10 +74,16 @@ class EnvironmentMap(torch.nn.Module):
         return levels
 
     def lookup(self, directions: Tensor, roughness: Tensor) -> Tensor:
-        """Radiance [P, 3] along unit world ``directions`` [P, 3] at ``roughness`` [P] in [0, 1]."""
-        x, y, z = directions.unbind(-1)
-        u = torch.atan2(y, x) / math.pi  # azimuth about the vertical (world z up), [-1, 1]
-        v = -torch.asin(z.clamp(-1.0, 1.0)) / (math.pi / 2)  # -1 at the zenith, +1 at the nadir
+        """Radiance [P, 3] along world ``directions`` [P, 3] (any length; zero: the horizon at azimuth 0) at
+        ``roughness`` [P] in [0, 1]. Gradients stay finite everywhere, the zenith and nadir included."""
+        squared = (directions * directions).sum(-1, keepdim=True)  # [P, 1]
+        none = squared <= _TINY
+        unit = torch.where(none, directions.new_tensor([1.0, 0.0, 0.0]), directions)
+        x, y, z = (unit / torch.sqrt(torch.where(none, 1.0, squared))).unbind(-1)
+        flat = x * x + y * y
+        pole = flat <= _TINY  # straight up or down: any azimuth will do, and atan2's gradient there is 0/0
+        u = torch.atan2(torch.where(pole, 0.0, y), torch.where(pole, 1.0, x)) / math.pi  # azimuth, world z up
+        v = -torch.atan2(z, torch.sqrt(flat + _TINY)) / (math.pi / 2)  # elevation: -1 zenith, +1 nadir
         grid = torch.stack([u, v], dim=-1)[None, :, None, :]  # [1, P, 1, 2]
         samples = torch.stack([F.grid_sample(level, grid, align_corners=False, padding_mode="border")[0, :, :, 0]
                                for level in self.pyramid()])  # [L, 3, P]

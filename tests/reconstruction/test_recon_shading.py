@@ -85,3 +85,21 @@ def test_the_environment_lookup_of_a_mirror_returns_the_maps_value():
     left, right = radiance[:, :, :16].mean(dim=(1, 2)), radiance[:, :, 16:].mean(dim=(1, 2))
     weight = (20.5 / 32) * 2 - 1 + 0.5  # of the right half (texel centres at u = -0.5 and 0.5)
     torch.testing.assert_close(rough[0], weight * right + (1 - weight) * left, rtol=1e-5, atol=1e-6)
+
+
+def test_the_environment_lookup_has_finite_gradients_at_the_poles_and_for_no_direction():
+    """Reflected rays straight up or down (asin's infinite slope once made the trainer's means NaN) and a zero
+    direction (no blended normal) give finite gradients; elsewhere the float64 gradient is the numerical one."""
+    environment = EnvironmentMap(height=8).double()
+    with torch.no_grad():
+        environment.log_radiance.copy_(torch.randn(3, 8, 16, generator=torch.Generator().manual_seed(1)))
+    awkward = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1e-9, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1e-9],
+                            [-1.0, 0.0, 0.0], [-1.0, -1e-12, 0.0], [3.0, 4.0, 0.0]], dtype=torch.float64,
+                           requires_grad=True)
+    roughness = torch.full((len(awkward),), 0.3, dtype=torch.float64, requires_grad=True)
+    environment.lookup(awkward, roughness).sum().backward()
+    assert torch.isfinite(awkward.grad).all() and torch.isfinite(roughness.grad).all()
+    assert torch.isfinite(environment.log_radiance.grad).all()
+    generic = torch.tensor([[0.3, -0.5, 0.4], [-0.2, 0.1, -0.9]], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda d: environment.lookup(d, torch.full((2,), 0.3, dtype=torch.float64)),
+                                    (generic,))
