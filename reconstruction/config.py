@@ -57,11 +57,11 @@ class TrainConfig:
     use_proximity_mask: bool = True  # L_S weighted by 1 - the proximity mask of the visible touches
     proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
     occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
-    # -- surfaces and reflections (beyond the paper; each 0 / "sh" = off)
-    lambda_flatten: float = 0.0  # minimum-scale loss (PGSR): surfel-like Gaussians whose shortest axis is a normal
-    lambda_depth_normal: float = 0.0  # depth-normal consistency (2DGS): rendered normals agree with the depth's
-    depth_normal_start_iter: int = 0  # ... from this step on (after the geometry has formed)
-    lambda_touch_normal: float = 0.0  # touch Gaussians' normals agree with the tactile maps' surface normals
+    # -- surfaces and reflections (beyond the paper; each 0 / "sh" = off, as the paper's variants set them)
+    lambda_flatten: float = 10.0  # minimum-scale loss (PGSR): surfel-like Gaussians whose shortest axis is a normal
+    lambda_depth_normal: float = 0.05  # depth-normal consistency (2DGS): rendered normals agree with the depth's
+    depth_normal_start_iter: int = 300  # ... from this step on (after the geometry has formed)
+    lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
     appearance: Literal["sh", "reflective"] = "sh"  # colour: view-dependent SH (3DGS), or diffuse + specular tint x
     # a learned environment map along the reflected view direction, prefiltered by roughness (deferred shading)
     env_map_height: int = 16  # environment map height in pixels (its width is twice that)
@@ -261,6 +261,11 @@ def paper_preset(iterations: int = PAPER_ITERATIONS) -> dict:
 def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: int | None = None) -> list[str]:
     """What still differs from the paper's official runs for ``config`` (one line each)."""
     lines = []
+    if config.lambda_flatten > 0 or config.lambda_depth_normal > 0 or config.lambda_touch_normal > 0:
+        lines.append("surface normals (flattening, depth-normal consistency, tactile normals; variant "
+                     f"{config.variant}): not in the paper (its method is the variant `full`)")
+    if config.appearance != "sh":
+        lines.append(f"{config.appearance} appearance instead of view-dependent SH colour; not in the paper")
     if config.init.use_silhouette_hull:
         lines.append("initialisation: G_c on the visual hull of the silhouettes when SfM finds too few points (the "
                      "official data preparation triangulates COLMAP points from the train and test images)")

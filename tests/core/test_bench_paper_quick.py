@@ -14,7 +14,7 @@ def test_bench_paper_quick_full_beats_vanilla_3dgs(tmp_path):
 
     config = PaperBenchConfig.quick()
     rows = PaperBench(tmp_path, config).run(progress=False)
-    assert len(rows) == len(config.objects) * 4
+    assert len(rows) == len(config.objects) * len(config.variants)
     cd = {(r["object"], r["variant"]): r["cd"] for r in rows if r["setting"] == "minimal"}
     for obj in config.objects:
         assert cd[obj, "full"] < cd[obj, "3dgs"], f"{obj}: full CD {cd[obj, 'full']:.4f} >= 3DGS {cd[obj, '3dgs']:.4f}"

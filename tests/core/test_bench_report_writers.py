@@ -115,7 +115,8 @@ def test_variant_table_and_config_errors():
 
     for name, variant in VARIANTS.items():  # each row's overrides give a config of that variant
         assert TrainConfig(**variant.overrides).variant == name
-    assert get_variant("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0}
+    assert get_variant("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
+                                             "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh"}
     with pytest.raises(ConfigError, match="variant"):
         get_variant("ours")
     with pytest.raises(ConfigError, match="variants"):
@@ -268,6 +269,17 @@ def test_full_vs_vanilla_sentence():
     assert full_vs_vanilla([r for r in synthetic_rows() if r["variant"] != "full"], "minimal") == ""
 
 
+def test_default_vs_full_sentence():
+    from tacsplat.apps.paper_bench import default_vs_full
+
+    rows = synthetic_rows()
+    assert default_vs_full(rows, "minimal") == ""  # no default-variant runs
+    rows += [{**r, "variant": "full+n+tn", "cd": r["cd"] * (0.5 if r["object"] == "teapot" else 1.5)}
+             for r in synthetic_rows() if r["variant"] == "full"]
+    text = default_vs_full(rows, "minimal")  # teapot 0.0025 (< 0.005), bell 0.009 (> 0.006)
+    assert "lower CD on 1 of 2 objects" in text and "0.0058 vs 0.0055 (+5%)" in text
+
+
 def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures():
     from tacsplat.apps.paper_bench import where_we_stand
 
@@ -279,6 +291,7 @@ def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures
     # 3DGS/full: our CD 0.025/0.0055 = 4.55x, cd_paper 0.00065/0.0000305 = 21.31x, the paper's 4.3x
     assert "4.55x in our CD, 21.31x in the paper's CD (the paper: 4.3x)" in text
     assert "touches: gel contact patches" in text and "resolution 128 px" in text
+    assert "surface normals" not in text  # the departures of the paper's full method, not of the default variant
     paper = where_we_stand(synthetic_rows(), PaperBenchConfig(preset="paper", touch_model="paper", iterations=30000,
                                                               resolution=800))
     assert "touches:" not in paper and "resolution" not in paper and "steps" not in paper.split("in force")[1]

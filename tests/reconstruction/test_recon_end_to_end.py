@@ -62,7 +62,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     # the paper's CD (squared, summed, median depth against the whole mesh surface) falls too
     assert 0 < metrics["cd_paper"] < 0.5 * float(rows[0]["cd_paper"])
     assert metrics["psnr"] > 18.0
-    assert metrics["variant"] == "full" and metrics["iterations"] == 400
+    assert metrics["variant"] == "full+n+tn" and metrics["iterations"] == 400
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds)

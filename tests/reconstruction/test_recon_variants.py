@@ -1,16 +1,28 @@
-"""The normals variant is recognised only with both of its losses on (the name metrics.json records);
+"""Which variant a config runs (the name metrics.json records): TrainConfig's defaults are the default variant,
+the paper's rows switch every surface-normal loss off, and the normals variants need both of their losses on;
 every variant's round trip is checked in tests/core/test_bench_report_writers.py."""
 
 import dataclasses
 
 from tacsplat.reconstruction.config import TrainConfig
-from tacsplat.reconstruction.variants import variant_of
+from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, VARIANTS, get_variant, variant_of
+
+
+def test_the_defaults_are_the_default_variant_and_the_papers_rows_have_no_normal_losses():
+    assert variant_of(TrainConfig()) == DEFAULT_VARIANT == "full+n+tn"
+    for name in PAPER_VARIANTS:
+        config = TrainConfig(**get_variant(name).overrides)
+        assert (config.lambda_flatten, config.lambda_depth_normal, config.lambda_touch_normal) == (0, 0, 0)
+        assert config.appearance == "sh"
+    assert set(PAPER_VARIANTS) < set(VARIANTS)
 
 
 def test_normals_need_both_losses():
-    both = dataclasses.replace(TrainConfig(), lambda_flatten=10.0, lambda_depth_normal=0.05)
+    paper = TrainConfig(**get_variant("full").overrides)
+    both = dataclasses.replace(paper, lambda_flatten=10.0, lambda_depth_normal=0.05)
     assert variant_of(both) == "full+n"
-    only_flat = dataclasses.replace(TrainConfig(), lambda_flatten=10.0)
+    assert variant_of(dataclasses.replace(both, lambda_touch_normal=0.1, appearance="reflective")) == "full+n+tn+r"
+    only_flat = dataclasses.replace(paper, lambda_flatten=10.0)
     assert variant_of(only_flat) == "full"
-    no_touch = dataclasses.replace(TrainConfig(), use_touch=False, lambda_flatten=10.0, lambda_depth_normal=0.05)
+    no_touch = dataclasses.replace(paper, use_touch=False, lambda_flatten=10.0, lambda_depth_normal=0.05)
     assert variant_of(no_touch) == "3dgs+s"
