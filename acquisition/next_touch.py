@@ -44,10 +44,10 @@ from tacsplat.datasets import Scene, SceneWriter, SensorModel
 from tacsplat.geometry import invert_pose, make_pose
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.uncertainty import (
-    DEPTH_TOLERANCE,
     Views,
     brief_reconstruction,
     depth_moments,
+    depth_tolerance,
     extent,
     gaussian_uncertainty,
     one_thread,
@@ -210,8 +210,9 @@ def belief_of(scene, gaussians: Gaussians, score: str, seed: int = 0) -> Belief:
     """The belief of a reconstruction of ``scene``: its ``score`` under the scene's train views (``depth-variance``:
     and along the candidate rays), and the scene's touch points."""
     views = Views.of_frames(scene, scene.split("train"), gaussians.means.device)
-    tolerance = DEPTH_TOLERANCE * extent(gaussians) if score == "depth-variance" else None
-    return Belief(gaussians, gaussian_uncertainty(gaussians, views, score, seed=seed), scene.touch_points(), tolerance)
+    tolerance = depth_tolerance(gaussians, views) if score == "depth-variance" else None
+    return Belief(gaussians, gaussian_uncertainty(gaussians, views, score, seed=seed, tolerance_m=tolerance),
+                  scene.touch_points(), tolerance)
 
 
 # --- the twin's closed loop --------------------------------------------------------------------------------

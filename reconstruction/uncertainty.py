@@ -10,7 +10,8 @@ Two scores, each in [0, 1], 1 for geometry that no view constrains:
   information of the Gaussians some view sees.
 * ``"depth-variance"``: the spread of depth along each training ray, the variance of the Gaussians' depths
   under the blending weights, ``Var = sum w z^2 / a - (sum w z / a)^2`` (``a`` the pixel's alpha), as
-  ``Var / (Var + tol^2)`` per pixel; per Gaussian the blending-weight mean over every pixel it draws, with a
+  ``Var / (Var + tol^2)`` per pixel (``tol``: 5 % of the extent, or the median spread of the views' rays
+  where larger, so the score ranks rays rather than saturating); per Gaussian the blending-weight mean over every pixel it draws, with a
   prior of one pixel of full uncertainty (a Gaussian no view draws scores 1).
 
 A per-Gaussian score is seen from any camera with :func:`render_uncertainty` (blended like a colour) and at
@@ -38,7 +39,7 @@ from tacsplat.reconstruction.views import background_image, camera_tensors
 SCORES = ("fisher", "depth-variance")
 FISHER_PROBES = 4  # Rademacher probes per estimate of the Fisher diagonal
 FISHER_PRIOR = 0.1  # prior precision, as a fraction of the median information of the seen Gaussians
-DEPTH_TOLERANCE = 0.05  # depth spread (standard deviation) that scores 0.5, as a fraction of the Gaussians' extent
+MIN_DEPTH_TOLERANCE = 0.05  # the least depth spread that scores 0.5, as a fraction of the Gaussians' extent
 MIN_ALPHA = 0.05  # pixels drawn less than this have no depth spread to speak of
 POINT_NEIGHBOURS = 16  # Gaussians that a point's score is read from
 
@@ -141,12 +142,25 @@ def extent(gaussians: Gaussians) -> float:
     return max(float((q[1] - q[0]).norm()), 1e-6)
 
 
+def depth_tolerance(gaussians: Gaussians, views: Views, backend: str = "auto") -> float:
+    """The depth spread (standard deviation, metres) that scores 0.5: ``MIN_DEPTH_TOLERANCE`` of the :func:`extent`,
+    or the median spread over the pixels ``views`` draw where that is larger, so that the score of a reconstruction
+    whose every ray is uncertain (a brief one) still ranks its rays instead of saturating at 1."""
+    spreads = []
+    for viewmat, K in zip(views.viewmats, views.Ks):
+        alpha, _, variance = depth_moments(gaussians, viewmat, K, views.width, views.height, backend)
+        spreads.append(variance[alpha >= MIN_ALPHA].sqrt())
+    drawn = torch.cat(spreads)
+    floor = MIN_DEPTH_TOLERANCE * extent(gaussians)
+    return max(float(drawn.median()), floor) if len(drawn) else floor
+
+
 def depth_variance_uncertainty(gaussians: Gaussians, views: Views, tolerance_m: float | None = None,
                                backend: str = "auto") -> Tensor:
     """The ``"depth-variance"`` score [N]; ``tolerance_m``: the depth spread that scores 0.5 (default
-    ``DEPTH_TOLERANCE`` of the :func:`extent`)."""
+    :func:`depth_tolerance`)."""
     g = gaussians
-    tol = DEPTH_TOLERANCE * extent(g) if tolerance_m is None else float(tolerance_m)
+    tol = depth_tolerance(g, views, backend) if tolerance_m is None else float(tolerance_m)
     uncertain = torch.zeros(len(g), device=g.means.device)
     weight = torch.zeros(len(g), device=g.means.device)
     for viewmat, K in zip(views.viewmats, views.Ks):
@@ -161,12 +175,13 @@ def depth_variance_uncertainty(gaussians: Gaussians, views: Views, tolerance_m: 
 
 
 def gaussian_uncertainty(gaussians: Gaussians, views: Views, score: str = "fisher", seed: int = 0,
-                         backend: str = "auto") -> Tensor:
-    """The per-Gaussian ``score`` [N] (one of ``SCORES``) of a reconstruction seen by ``views``."""
+                         backend: str = "auto", tolerance_m: float | None = None) -> Tensor:
+    """The per-Gaussian ``score`` [N] (one of ``SCORES``) of a reconstruction seen by ``views`` (``tolerance_m``:
+    the depth-variance score's, default :func:`depth_tolerance`)."""
     if score == "fisher":
         return fisher_uncertainty(gaussians, views, seed=seed, backend=backend)
     if score == "depth-variance":
-        return depth_variance_uncertainty(gaussians, views, backend=backend)
+        return depth_variance_uncertainty(gaussians, views, tolerance_m, backend=backend)
     raise InvalidInputError(f"score: must be one of {', '.join(SCORES)}, got {score!r}")
 
 

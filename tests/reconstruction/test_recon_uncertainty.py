@@ -117,3 +117,24 @@ def test_brief_reconstruction_is_the_same_bit_for_bit(tmp_path):
     assert len(first) > 0
     for name, value in first.params.items():
         assert torch.equal(value, second.params[name]), name
+
+
+def test_the_depth_tolerance_grows_to_the_median_spread_so_a_fuzzy_reconstruction_still_ranks_its_rays():
+    from tacsplat.reconstruction.uncertainty import MIN_DEPTH_TOLERANCE, depth_tolerance, extent
+
+    views = _views_from_plus_x()
+    sharp = _sphere()
+    assert depth_tolerance(sharp, views) == pytest.approx(MIN_DEPTH_TOLERANCE * extent(sharp))  # a crisp surface
+    fuzzy = _sphere()  # the same Gaussians scattered in depth, half transparent: every ray blends many depths
+    radial = torch.empty(600, 1).uniform_(0.3, 1.7, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        fuzzy.params["means"].mul_(radial)
+        fuzzy.params["opacities"].fill_(0.0)
+    floor = MIN_DEPTH_TOLERANCE * extent(fuzzy)
+    tolerance = depth_tolerance(fuzzy, views)
+    assert tolerance > 1.5 * floor
+    saturated = gaussian_uncertainty(fuzzy, views, "depth-variance", tolerance_m=floor)
+    ranked = gaussian_uncertainty(fuzzy, views, "depth-variance")
+    seen = fuzzy.means[:, 0].detach() > 0.3 * RADIUS
+    assert saturated[seen].median() > ranked[seen].median() + 0.1
+    assert ranked[seen].std() > saturated[seen].std()
