@@ -43,7 +43,7 @@ def served(path, *options, timeout: float = 180.0):
     finally:
         process.send_signal(signal.SIGINT)
         try:
-            code = process.wait(timeout=120)  # a loaded machine stops viser slowly
+            code = process.wait(timeout=30)
         except subprocess.TimeoutExpired:
             process.kill()
             raise
