@@ -26,6 +26,7 @@ import csv
 import functools
 import json
 import logging
+import shutil
 import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -73,6 +74,36 @@ class BatchJob:
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         return 0
+
+
+@dataclass(frozen=True, kw_only=True)
+class SceneCopyJob(BatchJob):
+    """A reduced copy ``out`` of the capture ``base`` (``count`` of something kept), done once: marked by
+    ``OUT.json`` beside it, holding what :meth:`make_copy` returned; a copy cut short before its marker is redone."""
+
+    out: Path
+    base: Path
+    count: int
+
+    @property
+    def marker(self) -> Path:
+        return self.out.with_name(self.out.name + ".json")
+
+    def complete(self) -> bool:
+        return self.marker.is_file()
+
+    def make_copy(self) -> dict:
+        """Write the copy into the (absent) ``out``; what the marker records."""
+        raise NotImplementedError
+
+    def __call__(self) -> dict:
+        if self.complete():
+            return json.loads(self.marker.read_text())
+        if self.out.exists():  # a copy interrupted before its marker: ours to redo
+            shutil.rmtree(self.out)
+        summary = self.make_copy()
+        self.marker.write_text(json.dumps(summary))
+        return summary
 
 
 _RIG_FIELDS = {"sim.object": "object", "sim.mesh": "mesh", "sim.object_radius": "object_radius",

@@ -29,7 +29,6 @@ import csv
 import json
 import logging
 import math
-import shutil
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -37,7 +36,7 @@ from typing import Literal
 
 import numpy as np
 
-from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob
+from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
 
@@ -134,31 +133,15 @@ class StrategyCaptureJob(CaptureJob):
 
 
 @dataclass(frozen=True, kw_only=True)
-class FirstGraspsJob(BatchJob):
-    """A copy of the capture ``base`` with its first ``count`` grasps (:func:`first_grasps`), marked by
-    ``OUT.json`` beside it (grasps and touches kept, seconds next-best spent choosing them)."""
+class FirstGraspsJob(SceneCopyJob):
+    """A copy of the capture ``base`` with its first ``count`` grasps (:func:`first_grasps`); its marker holds the
+    grasps and touches kept and the seconds next-best spent choosing them."""
 
     kind: Literal["first-grasps"] = "first-grasps"
-    out: Path
-    base: Path
-    count: int
 
-    @property
-    def marker(self) -> Path:
-        return self.out.with_name(self.out.name + ".json")
-
-    def complete(self) -> bool:
-        return self.marker.is_file()
-
-    def __call__(self) -> dict:
-        if self.complete():
-            return json.loads(self.marker.read_text())
-        if self.out.exists():  # a copy interrupted before its marker: ours to redo
-            shutil.rmtree(self.out)
+    def make_copy(self) -> dict:
         grasps, touches = first_grasps(self.base, self.out, self.count)
-        info = {"grasps": grasps, "touches": touches, "selection_seconds": selection_seconds(self.base, self.count)}
-        self.marker.write_text(json.dumps(info))
-        return info
+        return {"grasps": grasps, "touches": touches, "selection_seconds": selection_seconds(self.base, self.count)}
 
 
 class NextTouchBench:

@@ -27,7 +27,6 @@ import csv
 import json
 import logging
 import math
-import shutil
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -35,7 +34,7 @@ from typing import Literal
 
 import numpy as np
 
-from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob
+from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
 
@@ -90,31 +89,14 @@ def subsample_touches(scene_path: str | Path, out: str | Path, num_touches: int)
 
 
 @dataclass(frozen=True, kw_only=True)
-class SubsampleJob(BatchJob):
-    """A copy of the capture ``base`` with its first ``count`` touches in contact, marked by ``OUT.json``
-    (requested and kept counts) beside it."""
+class SubsampleJob(SceneCopyJob):
+    """A copy of the capture ``base`` with its first ``count`` touches in contact; its marker holds the requested
+    and kept counts."""
 
     kind: Literal["subsample"] = "subsample"
-    out: Path
-    base: Path
-    count: int
 
-    @property
-    def marker(self) -> Path:
-        return self.out.with_name(self.out.name + ".json")
-
-    def complete(self) -> bool:
-        return self.marker.is_file()
-
-    def __call__(self) -> dict:
-        if self.complete():
-            return json.loads(self.marker.read_text())
-        if self.out.exists():  # a copy interrupted before its marker: ours to redo
-            shutil.rmtree(self.out)
-        kept = subsample_touches(self.base, self.out, self.count)
-        summary = {"requested": self.count, "touches": kept}
-        self.marker.write_text(json.dumps(summary))
-        return summary
+    def make_copy(self) -> dict:
+        return {"requested": self.count, "touches": subsample_touches(self.base, self.out, self.count)}
 
 
 class TouchBench:
