@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction.gaussians import precisions
+from tacsplat.reconstruction.gaussians import precisions, unit
 from tacsplat.reconstruction.metrics import ssim_map
 
 
@@ -135,7 +135,8 @@ def transmittance_loss(
     prec = precisions(quats[used], scales[used])[inverse]  # [P, C, 3, 3]
     mu = means[used][inverse]  # [P, C, 3]
     influence = gaussian_influence(touch_points, mu, prec) * opacities[used][inverse]  # [P, C]
-    valid = valid & ((touch_points[:, None, :] - mu).norm(dim=-1) <= max_distance)
+    offset = touch_points[:, None, :] - mu
+    valid = valid & ((offset * offset).sum(-1) <= max_distance**2)
     ranked = torch.where(valid, influence, torch.full_like(influence, -1.0))
     k = min(top_k, ranked.shape[1])
     top, order = torch.topk(ranked, k, dim=1)
@@ -278,8 +279,8 @@ def depth_normals(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     points = torch.stack([(u - K[0, 2]) / K[0, 0] * depth, (v - K[1, 2]) / K[1, 1] * depth, depth], dim=-1)
     du = points[1:-1, 2:] - points[1:-1, :-2]  # [H-2, W-2, 3]
     dv = points[2:, 1:-1] - points[:-2, 1:-1]
-    n = torch.cross(du, dv, dim=-1)
-    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    (ux, uy, uz), (vx, vy, vz) = du.unbind(-1), dv.unbind(-1)
+    n = unit(torch.stack([uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx], dim=-1))  # du x dv
     n = torch.where((n * points[1:-1, 1:-1]).sum(-1, keepdim=True) > 0, -n, n)
     valid = (depth > 0).float()
     around = F.max_pool2d(1.0 - valid[None, None], 3, stride=1)[0, 0] == 0  # [H-2, W-2]: all 9 positive
@@ -289,7 +290,7 @@ def depth_normals(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
 def normal_consistency_loss(rendered: torch.Tensor, from_depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     """Depth-normal consistency (2DGS): the alpha-weighted mean of 1 - <rendered normal, depth normal> over the
     pixels where the depth normal is known ([H, W, 3] unit normals, alpha [H, W])."""
-    known = (from_depth.norm(dim=-1) > 0.5).float() * alpha
+    known = ((from_depth * from_depth).sum(-1) > 0.25).float() * alpha  # unit normals where known, 0 elsewhere
     return ((1.0 - (rendered * from_depth).sum(-1)) * known).sum() / known.sum().clamp_min(1e-6)
 
 
@@ -313,7 +314,8 @@ def touch_normal_loss(
     ids = candidates.clamp_min(0)
     known = torch.isfinite(touch_normals).all(dim=1)  # [P]
     target = torch.nan_to_num(touch_normals)
-    near = (candidates >= 0) & ((means[ids] - touch_points[:, None, :]).norm(dim=-1) <= max_distance)  # [P, C]
+    offset = means[ids] - touch_points[:, None, :]  # [P, C, 3]
+    near = (candidates >= 0) & ((offset * offset).sum(-1) <= max_distance**2)
     weights = opacities[ids] * near * known[:, None]
     misalignment = 1.0 - (normals[ids] * target[:, None, :]).sum(-1).abs()  # [P, C]
     per_point = (weights * misalignment).sum(1) / weights.sum(1).clamp_min(1e-12)

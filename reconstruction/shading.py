@@ -27,9 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
+from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb, unit
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
-from tacsplat.reconstruction.raster.spherical_harmonics import spherical_harmonics
 
 Appearance = Literal["sh", "reflective"]
 REFLECTIVE_PARAMS = {"tint": 3, "roughness": 1}  # extra per-Gaussian parameters (logits) of "reflective"
@@ -123,8 +122,10 @@ def render(
     normals: bool = False,
     appearance: Appearance = "sh",
     environment: EnvironmentMap | None = None,
+    world_normals: Tensor | None = None,  # [N, 3] gaussian_normals(g.quats, g.scales), when the caller has them
 ) -> RenderOutput:
-    """Render one view; see the module docstring for what each option adds to the pass."""
+    """Render one view; see the module docstring for what each option adds to the pass. A caller that also needs
+    the Gaussians' normals (a loss) computes them once and passes them as ``world_normals``."""
     g = gaussians
     if not normals and appearance == "sh":
         mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
@@ -138,14 +139,14 @@ def render(
     campos = -viewmat[0, :3, :3].T @ viewmat[0, :3, 3]  # [3]
     to_gaussian = g.means - campos  # [N, 3]
     if appearance == "sh":
-        features = (spherical_harmonics(sh_degree, to_gaussian, g.sh_coefficients(sh_degree)) + 0.5).clamp_min(0.0)
+        features = raster.sh_colors(sh_degree, g.means, campos, g.sh_coefficients(sh_degree), backend)
     else:
         features = torch.cat([sh0_to_rgb(g.params["sh0"][:, 0]).clamp_min(0.0), torch.sigmoid(g.params["tint"]),
                               torch.sigmoid(g.params["roughness"])], dim=-1)  # [N, 7]
     channels = [features]
     with_normals = normals or appearance == "reflective"
     if with_normals:
-        n = gaussian_normals(g.quats, g.scales)  # [N, 3] world
+        n = gaussian_normals(g.quats, g.scales) if world_normals is None else world_normals  # [N, 3] world
         n = torch.where(((n * to_gaussian).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
         channels.append(n @ viewmat[0, :3, :3].T)  # camera frame
     mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
@@ -158,7 +159,7 @@ def render(
     normal = None
     if with_normals:
         summed = out[..., features.shape[1] : features.shape[1] + 3]
-        normal = summed / summed.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        normal = unit(summed, 1e-8)
     if appearance == "sh":
         rgb = out[..., :3]
     else:

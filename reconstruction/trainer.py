@@ -250,11 +250,12 @@ class Trainer:
                                                                                self.step // cfg.sh_degree_interval)
         with_depth = cfg.lambda_s > 0 and self.step >= cfg.smoothness_start_iter
         with_normals = cfg.lambda_depth_normal > 0 and self.step >= cfg.depth_normal_start_iter
+        world_normals = shading.gaussian_normals(g.quats, g.scales) if self.use_touch_normals else None
         out = shading.render(
             g, self.viewmats[view : view + 1], self.Ks[view : view + 1], frame.intrinsics.width,
             frame.intrinsics.height, sh_degree=active_degree, backend=cfg.backend,
             depth_mode="D" if with_depth or with_normals else None, normals=with_normals,
-            appearance=cfg.appearance, environment=self.environment,
+            appearance=cfg.appearance, environment=self.environment, world_normals=world_normals,
         )  # fmt: skip
         meta, alpha = out.meta, out.alpha
         target = self.images[view]
@@ -286,7 +287,7 @@ class Trainer:
                 terms["transmittance"] = transmittance.detach()
             if self.use_touch_normals:
                 aligned = losses.touch_normal_loss(
-                    points, normals, g.means, shading.gaussian_normals(g.quats, g.scales), g.opacities.detach(),
+                    points, normals, g.means, world_normals, g.opacities.detach(),
                     candidates, cfg.touch_max_distance,
                 )  # fmt: skip
                 loss = loss + cfg.lambda_touch_normal * aligned

@@ -85,6 +85,25 @@ def _choose_backend(backend: str, means: Tensor) -> str:
     return "cpu" if means.dtype == torch.float32 and means.device.type == "cpu" else "torch"
 
 
+def sh_colors(
+    degree: int,
+    means: Tensor,  # [N, 3]
+    campos: Tensor,  # [3] camera centre
+    coeffs: Tensor,  # [N, K, D] SH coefficients, K >= (degree + 1)^2
+    backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto",
+) -> Tensor:
+    """gsplat's SH colour max(SH(camera -> mean) + 0.5, 0) of every Gaussian -> [N, D], for a caller that
+    composites its own channels: the fused numba kernel on the ``cpu`` backend (what ``rasterization``
+    uses inside), :func:`.spherical_harmonics.spherical_harmonics` in torch otherwise or when the camera
+    centre requires gradients."""
+    if _choose_backend(backend, means) == "cpu" and not campos.requires_grad:
+        from tacsplat.reconstruction.raster.cpu_project import sh_colors_cpu
+
+        every = torch.ones(1, means.shape[0], 2, dtype=torch.int32)  # radii > 0: no Gaussian culled
+        return sh_colors_cpu(degree, means, campos[None], coeffs[:, : num_sh_bases(degree)].contiguous(), every)[0]
+    return (spherical_harmonics(degree, means - campos, coeffs) + 0.5).clamp_min(0.0)
+
+
 def rasterization(
     means: Tensor,  # [N, 3]
     quats: Tensor,  # [N, 4] wxyz, unnormalised

@@ -103,3 +103,23 @@ def test_the_environment_lookup_has_finite_gradients_at_the_poles_and_for_no_dir
     generic = torch.tensor([[0.3, -0.5, 0.4], [-0.2, 0.1, -0.9]], dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda d: environment.lookup(d, torch.full((2,), 0.3, dtype=torch.float64)),
                                     (generic,))
+
+
+def test_sh_colors_of_the_cpu_kernel_match_the_float64_torch_formula_and_its_gradients():
+    # render() composites its own channels when normals are on: the SH colours come from the fused numba kernel
+    from tacsplat.reconstruction.raster import sh_colors
+
+    g = torch.Generator().manual_seed(4)
+    means = torch.randn(300, 3, generator=g, dtype=torch.float64)
+    coeffs = 0.3 * torch.randn(300, 16, 3, generator=g, dtype=torch.float64)
+    campos = torch.tensor([0.3, -2.0, 4.0], dtype=torch.float64)
+    weights = torch.randn(300, 3, generator=g, dtype=torch.float64)
+    results = {}
+    for backend, dtype in (("torch", torch.float64), ("cpu", torch.float32)):
+        m, c = means.to(dtype).clone().requires_grad_(True), coeffs.to(dtype).clone().requires_grad_(True)
+        colors = sh_colors(3, m, campos.to(dtype), c, backend=backend)
+        (colors * weights.to(dtype)).sum().backward()
+        results[backend] = [colors.double(), m.grad.double(), c.grad.double()]
+    assert (results["torch"][0] == 0).any() and (results["torch"][0] > 0).any()  # the clamp at 0 is exercised
+    for cpu, ref, name in zip(results["cpu"], results["torch"], ("colours", "d/d means", "d/d coefficients")):
+        torch.testing.assert_close(cpu, ref, rtol=1e-4, atol=1e-5, msg=name)
