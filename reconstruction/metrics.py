@@ -48,12 +48,16 @@ def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sig
     y = target.permute(0, 3, 1, 2)
     channels = x.shape[1]
     g = _gaussian_window(window, sigma, x)
-    stacked = torch.cat([x, y, x * x, y * y, x * y], dim=1)  # one separable blur of all five moments
-    k = stacked.shape[1]
     pad = 0 if valid else window // 2
-    blurred = F.conv2d(stacked, g.reshape(1, 1, 1, window).expand(k, 1, 1, window), padding=(0, pad), groups=k)
-    blurred = F.conv2d(blurred, g.reshape(1, 1, window, 1).expand(k, 1, window, 1), padding=(pad, 0), groups=k)
-    mu_x, mu_y, xx, yy, xy = blurred.split(channels, dim=1)
+
+    def blur(stacked):  # one separable Gaussian blur of stacked moments [B, k, H, W]
+        k = stacked.shape[1]
+        stacked = F.conv2d(stacked, g.reshape(1, 1, 1, window).expand(k, 1, 1, window), padding=(0, pad), groups=k)
+        return F.conv2d(stacked, g.reshape(1, 1, window, 1).expand(k, 1, window, 1), padding=(pad, 0), groups=k)
+
+    # the rendered image's moments and the target's apart: a target without gradient costs no backward
+    mu_x, xx, xy = blur(torch.cat([x, x * x, x * y], dim=1)).split(channels, dim=1)
+    mu_y, yy = blur(torch.cat([y, y * y], dim=1)).split(channels, dim=1)
     var_x = xx - mu_x**2
     var_y = yy - mu_y**2
     cov = xy - mu_x * mu_y
