@@ -54,6 +54,12 @@ def quats_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
     ).reshape(quats.shape[:-1] + (3, 3))
 
 
+def whitening(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """S^-1 R^T [N, 3, 3] from activated scales [N, 3]: maps an offset from a Gaussian's mean into its unit frame,
+    so that |W d|^2 = d^T Sigma^-1 d with Sigma = R S S^T R^T (paper Eq. 3), without a 3x3 matrix product."""
+    return quats_to_rotmats(quats).transpose(-1, -2) / scales[..., :, None]
+
+
 def precisions(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     """Inverse covariances [N, 3, 3] of Sigma = R S S^T R^T (paper Eq. 3), from activated scales [N, 3]."""
     R = quats_to_rotmats(quats)

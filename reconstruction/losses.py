@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction.gaussians import precisions, unit
+from tacsplat.reconstruction.gaussians import unit, whitening
 from tacsplat.reconstruction.metrics import ssim_map
 
 
@@ -41,15 +41,18 @@ def backdrop_alpha_loss(alpha: torch.Tensor, backdrop_mask: torch.Tensor) -> tor
 # --------------------------------------------------------------------------- transmittance
 
 
+MAX_MAHALANOBIS = 160.0  # exp(-80) ~ 2e-35 is still a normal float32; past it exp returns subnormal numbers,
+# 10-20x slower on the CPU, for an influence no loss can tell from 0
+
+
 def gaussian_influence(
     points: torch.Tensor,  # [P, 3]
     means: torch.Tensor,  # [P, K, 3]
-    precision: torch.Tensor,  # [P, K, 3, 3]
+    whitened: torch.Tensor,  # [P, K, 3, 3] S^-1 R^T of each Gaussian (gaussians.whitening)
 ) -> torch.Tensor:
     """Eq. 1: f(p; Sigma, mu) = exp(-1/2 (p - mu)^T Sigma^-1 (p - mu)) for each point and its K Gaussians, [P, K]."""
-    d = points[:, None, :] - means
-    maha = torch.einsum("pki,pkij,pkj->pk", d, precision, d)
-    return torch.exp(-0.5 * maha.clamp_min(0.0))
+    local = (whitened * (points[:, None, :] - means)[..., None, :]).sum(-1)  # [P, K, 3]: the offset in unit frames
+    return torch.exp(-0.5 * (local * local).sum(-1).clamp(0.0, MAX_MAHALANOBIS))
 
 
 class TouchNeighbours:
@@ -128,13 +131,18 @@ def transmittance_loss(
     """
     valid = candidates >= 0
     ids = candidates.clamp_min(0)
-    if ids.is_cuda:  # torch.unique would wait for the device; [P, C] precisions cost it little
+    if ids.is_cuda:  # finding the distinct ids would wait for the device; [P, C] whitenings cost it little
         used, inverse = ids.reshape(-1), torch.arange(ids.numel(), device=ids.device).reshape(ids.shape)
-    else:  # evaluate each Gaussian's precision once
-        used, inverse = torch.unique(ids, return_inverse=True)
-    prec = precisions(quats[used], scales[used])[inverse]  # [P, C, 3, 3]
+    else:  # each Gaussian's whitening once: distinct ids by marking (a sort, as in torch.unique, costs more)
+        marked = torch.zeros(means.shape[0], dtype=torch.bool)
+        marked[ids] = True
+        used = marked.nonzero()[:, 0]
+        slot = torch.empty(means.shape[0], dtype=torch.long)
+        slot[used] = torch.arange(len(used))
+        inverse = slot[ids]
+    white = whitening(quats[used], scales[used])[inverse]  # [P, C, 3, 3]
     mu = means[used][inverse]  # [P, C, 3]
-    influence = gaussian_influence(touch_points, mu, prec) * opacities[used][inverse]  # [P, C]
+    influence = gaussian_influence(touch_points, mu, white) * opacities[used][inverse]  # [P, C]
     offset = touch_points[:, None, :] - mu
     valid = valid & ((offset * offset).sum(-1) <= max_distance**2)
     ranked = torch.where(valid, influence, torch.full_like(influence, -1.0))

@@ -221,3 +221,23 @@ def test_touch_normal_loss_is_zero_for_aligned_normals_of_either_sign_and_skips_
     assert touch_normal_loss(points, target, means, aligned, opacities, candidates, 0.01).item() == 0.0
     tilted = torch.tensor([[1.0, 0, 0], [0.0, 0, 1], [1.0, 0, 0]])  # one perpendicular, one aligned
     assert touch_normal_loss(points, target, means, tilted, opacities, candidates, 0.01).item() == pytest.approx(0.5)
+
+
+def test_the_influence_from_the_whitening_matches_eq1_with_the_precision_matrix_and_stays_finite_far_away():
+    from tacsplat.reconstruction.gaussians import precisions, whitening
+    from tacsplat.reconstruction.losses import MAX_MAHALANOBIS, gaussian_influence
+
+    g = torch.Generator().manual_seed(2)
+    quats = torch.randn(40, 4, generator=g, dtype=torch.float64)
+    scales = 0.01 + 0.05 * torch.rand(40, 3, generator=g, dtype=torch.float64)
+    means = 0.05 * torch.randn(40, 3, generator=g, dtype=torch.float64)
+    points = 0.05 * torch.randn(5, 3, generator=g, dtype=torch.float64)
+    d = points[:, None, :] - means[None]  # [5, 40, 3]
+    maha = torch.einsum("pki,kij,pkj->pk", d, precisions(quats, scales), d)
+    influence = gaussian_influence(points, means[None].expand(5, -1, -1), whitening(quats, scales)[None].expand(5, -1, -1, -1))
+    assert (maha > MAX_MAHALANOBIS).any() and (maha < 10).any()  # both sides of the floor
+    torch.testing.assert_close(influence, torch.exp(-0.5 * maha.clamp(max=MAX_MAHALANOBIS)), rtol=1e-12, atol=1e-300)
+    far = means.clone().requires_grad_(True)  # 1e3 scales away: the exponent is floored, no subnormal, no NaN
+    out = gaussian_influence(torch.full((1, 3), 100.0, dtype=torch.float64), far[None], whitening(quats, scales)[None])
+    out.sum().backward()
+    assert torch.isfinite(far.grad).all() and (out > 0).all() and (out <= math.exp(-80)).all()
