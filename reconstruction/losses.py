@@ -134,11 +134,11 @@ def transmittance_loss(
     if ids.is_cuda:  # finding the distinct ids would wait for the device; [P, C] whitenings cost it little
         used, inverse = ids.reshape(-1), torch.arange(ids.numel(), device=ids.device).reshape(ids.shape)
     else:  # each Gaussian's whitening once: distinct ids by marking (a sort, as in torch.unique, costs more)
-        marked = torch.zeros(means.shape[0], dtype=torch.bool)
+        marked = torch.zeros(means.shape[0], dtype=torch.bool, device=ids.device)
         marked[ids] = True
         used = marked.nonzero()[:, 0]
-        slot = torch.empty(means.shape[0], dtype=torch.long)
-        slot[used] = torch.arange(len(used))
+        slot = torch.empty(means.shape[0], dtype=torch.long, device=ids.device)
+        slot[used] = torch.arange(len(used), device=ids.device)
         inverse = slot[ids]
     white = whitening(quats[used], scales[used])[inverse]  # [P, C, 3, 3]
     mu = means[used][inverse]  # [P, C, 3]

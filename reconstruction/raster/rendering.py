@@ -99,7 +99,7 @@ def sh_colors(
     if _choose_backend(backend, means) == "cpu" and not campos.requires_grad:
         from tacsplat.reconstruction.raster.cpu_project import sh_colors_cpu
 
-        every = torch.ones(1, means.shape[0], 2, dtype=torch.int32)  # radii > 0: no Gaussian culled
+        every = torch.ones(1, means.shape[0], 2, dtype=torch.int32, device=means.device)  # radii > 0: none culled
         return sh_colors_cpu(degree, means, campos[None], coeffs[:, : num_sh_bases(degree)].contiguous(), every)[0]
     return (spherical_harmonics(degree, means - campos, coeffs) + 0.5).clamp_min(0.0)
 
