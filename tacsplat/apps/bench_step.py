@@ -209,7 +209,10 @@ def profile_resolution(out: Path, resolution: int, iterations: int, variant: str
                                              for s in steps]}  # fmt: skip
 
 
-def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str, seed: int) -> dict:
+def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str, seed: int,
+                reference: str | None = None) -> dict:
+    """The profile of ``variant`` at each resolution; with ``reference``, that variant's profile is taken just before
+    each (back to back: the machine's speed drifts by ~10% between runs minutes apart) and the ratios reported."""
     import os
     import platform
 
@@ -223,8 +226,20 @@ def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str,
                     "numba": numba.__version__, "torch": torch.__version__},
         "settings": {"object": obj, "variant": variant, "iterations": iterations, "seed": seed,
                      "warmup_steps": WARMUP_STEPS},
-        "resolutions": [profile_resolution(out, r, iterations, variant, obj, seed) for r in resolutions],
+        "resolutions": [],
     }  # fmt: skip
+    if reference is not None:
+        results["settings"]["reference"] = reference
+        results["reference"] = []
+    for r in resolutions:
+        if reference is not None:
+            results["reference"].append(profile_resolution(out, r, iterations, reference, obj, seed))
+        results["resolutions"].append(profile_resolution(out, r, iterations, variant, obj, seed))
+        if reference is not None:
+            ref, row = results["reference"][-1], results["resolutions"][-1]
+            row["ratio_to_reference"] = {"step_median": row["step_median_ms"] / ref["step_median_ms"],
+                                         "step_mean": row["step_mean_ms"] / ref["step_mean_ms"],
+                                         "train_seconds": row["train_seconds"] / ref["train_seconds"]}  # fmt: skip
     results["machine"]["load_average_at_end"] = list(os.getloadavg())
     return results
 
@@ -248,6 +263,12 @@ def format_table(results: dict) -> str:
         + "; ".join(f"{r['label']}: {r['steps_per_second']:.1f} steps/s, {r['n_gaussians_mean']:.0f} Gaussians on "
                     f"average, train {r['train_seconds']:.1f} s" for r in rows)
     )  # fmt: skip
+    for ref, r in zip(results.get("reference", []), rows):
+        ratio = r["ratio_to_reference"]
+        lines.append(f"{r['label']}: {s['variant']} / {s['reference']} (run just before): step median "
+                     f"{ratio['step_median']:.2f}x ({r['step_median_ms']:.2f} / {ref['step_median_ms']:.2f} ms), "
+                     f"mean {ratio['step_mean']:.2f}x, train time {ratio['train_seconds']:.2f}x "
+                     f"({r['train_seconds']:.1f} / {ref['train_seconds']:.1f} s)")  # fmt: skip
     lines.append(f"{s['object']}, variant {s['variant']}, seed {s['seed']}; {m['cpu_count']} cores, numba threads "
                  f"{m['numba_threads']}, load average {m['load_average_at_start'][0]:.1f} at start, "
                  f"{m['load_average_at_end'][0]:.1f} at end")  # fmt: skip
@@ -283,7 +304,8 @@ def register(cli) -> None:
     p.add_argument("--out", default="bench-output/step", help="output folder (scenes are captured here once)")
     p.add_argument("--resolutions", default="128,256", help="comma-separated image sizes in pixels")
     p.add_argument("--iterations", type=int, default=1200, help="training steps per resolution (the demo's 1200)")
-    p.add_argument("--variant", default="full", help="method variant (3dgs, 3dgs+s, 3dgs+t, full)")
+    p.add_argument("--variant", default="full", help="method variant (3dgs, 3dgs+s, 3dgs+t, full, full+n+tn, ...)")
+    p.add_argument("--reference", default=None, help="also profile this variant just before, and print the ratios")
     p.add_argument("--object", default="teapot", help="library object")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_handler)
@@ -302,11 +324,16 @@ def _handler(args) -> int:
     if args.iterations <= WARMUP_STEPS:
         raise UsageError("--iterations", f"must be more than the {WARMUP_STEPS} warm-up steps, got {args.iterations}")
     get_variant(args.variant, "--variant")
+    if args.reference is not None:
+        get_variant(args.reference, "--reference")
     out = Path(args.out)
-    results = run_profile(out, resolutions, args.iterations, args.variant, args.object, args.seed)
+    results = run_profile(out, resolutions, args.iterations, args.variant, args.object, args.seed, args.reference)
     print(format_table(results))
     out.mkdir(parents=True, exist_ok=True)
     (out / "step.json").write_text(json.dumps(results, indent=1))
-    plot_phases([("", results)], out / "step.png")
+    bars = [("", results)]
+    if args.reference is not None:
+        bars = [(args.reference, {"resolutions": results["reference"]}), (args.variant, results)]
+    plot_phases(bars, out / "step.png")
     print(f"wrote {out / 'step.json'} and {out / 'step.png'}")
     return 0
