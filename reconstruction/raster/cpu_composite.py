@@ -44,7 +44,7 @@ N_GRAD = 6  # per-intersection gradient row: d means2d (2), d conic (3), d opaci
 _SPAN_EPS = 1e-3  # pixels of margin around the exact row and column ranges (float rounding)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _row_range(a, b, c, limit, my, y_lo, y_hi):
     """Rows [r0, r1) of a tile whose pixel centres can have an exponent <= limit.
 
@@ -61,12 +61,14 @@ def _row_range(a, b, c, limit, my, y_lo, y_hi):
     return max(y_lo, int(math.ceil(lo))), min(y_hi, int(math.floor(hi)) + 1)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True)
 def _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi):
     """Columns [x0, x1) of one pixel row (dy = mean_y - centre_y) whose centres can have an exponent <= limit.
 
     Solves 0.5 a dx^2 + b dy dx + 0.5 c dy^2 <= limit for dx = mean_x - centre_x in float64
     (``inv_a`` = 1 / a in float64), widens by a thousandth of a pixel and clips to [x_lo, x_hi).
+    Like ``_row_range``, not inlined by numba: inside the backward (compiled with fused multiply-adds) it keeps
+    its own rounding, so both passes find the same spans, by which the cache of exp values is laid out.
     """
     a64, b64, c64, dy64 = float(a), float(b), float(c), float(dy)
     if not a64 > 0.0:
