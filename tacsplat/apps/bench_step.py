@@ -210,11 +210,14 @@ def profile_resolution(out: Path, resolution: int, iterations: int, variant: str
 
 
 def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str, seed: int,
-                reference: str | None = None) -> dict:
+                reference: str | None = None, rounds: int = 1) -> dict:
     """The profile of ``variant`` at each resolution; with ``reference``, that variant's profile is taken just before
-    each (back to back: the machine's speed drifts by ~10% between runs minutes apart) and the ratios reported."""
+    each (back to back: the machine's speed drifts by ~10% between runs minutes apart) and the ratios reported,
+    ``rounds`` times in alternation: the ratios are the medians over the rounds (each round's are kept too), the
+    profiles those of the first round."""
     import os
     import platform
+    import statistics
 
     import numba
     import torch
@@ -228,18 +231,24 @@ def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str,
                      "warmup_steps": WARMUP_STEPS},
         "resolutions": [],
     }  # fmt: skip
-    if reference is not None:
-        results["settings"]["reference"] = reference
+    if reference is None:
+        results["resolutions"] = [profile_resolution(out, r, iterations, variant, obj, seed) for r in resolutions]
+    else:
+        results["settings"].update(reference=reference, rounds=rounds)
         results["reference"] = []
-    for r in resolutions:
-        if reference is not None:
-            results["reference"].append(profile_resolution(out, r, iterations, reference, obj, seed))
-        results["resolutions"].append(profile_resolution(out, r, iterations, variant, obj, seed))
-        if reference is not None:
-            ref, row = results["reference"][-1], results["resolutions"][-1]
-            row["ratio_to_reference"] = {"step_median": row["step_median_ms"] / ref["step_median_ms"],
-                                         "step_mean": row["step_mean_ms"] / ref["step_mean_ms"],
-                                         "train_seconds": row["train_seconds"] / ref["train_seconds"]}  # fmt: skip
+    for r in resolutions if reference is not None else ():
+        per_round = []
+        for _ in range(rounds):
+            ref = profile_resolution(out, r, iterations, reference, obj, seed)
+            row = profile_resolution(out, r, iterations, variant, obj, seed)
+            per_round.append({"step_median": row["step_median_ms"] / ref["step_median_ms"],
+                              "step_mean": row["step_mean_ms"] / ref["step_mean_ms"],
+                              "train_seconds": row["train_seconds"] / ref["train_seconds"]})  # fmt: skip
+            if len(per_round) == 1:
+                results["reference"].append(ref)
+                results["resolutions"].append(row)
+        ratios = {key: statistics.median(p[key] for p in per_round) for key in per_round[0]}
+        results["resolutions"][-1]["ratio_to_reference"] = {**ratios, "rounds": per_round}
     results["machine"]["load_average_at_end"] = list(os.getloadavg())
     return results
 
@@ -263,12 +272,13 @@ def format_table(results: dict) -> str:
         + "; ".join(f"{r['label']}: {r['steps_per_second']:.1f} steps/s, {r['n_gaussians_mean']:.0f} Gaussians on "
                     f"average, train {r['train_seconds']:.1f} s" for r in rows)
     )  # fmt: skip
-    for ref, r in zip(results.get("reference", []), rows):
+    for r in rows if "reference" in results else ():
         ratio = r["ratio_to_reference"]
-        lines.append(f"{r['label']}: {s['variant']} / {s['reference']} (run just before): step median "
-                     f"{ratio['step_median']:.2f}x ({r['step_median_ms']:.2f} / {ref['step_median_ms']:.2f} ms), "
-                     f"mean {ratio['step_mean']:.2f}x, train time {ratio['train_seconds']:.2f}x "
-                     f"({r['train_seconds']:.1f} / {ref['train_seconds']:.1f} s)")  # fmt: skip
+        each = ", ".join(f"{p['step_median']:.2f}x" for p in ratio["rounds"])
+        lines.append(f"{r['label']}: {s['variant']} / {s['reference']} (each run just after its reference): step "
+                     f"median {ratio['step_median']:.2f}x, mean {ratio['step_mean']:.2f}x, train time "
+                     f"{ratio['train_seconds']:.2f}x (medians over {len(ratio['rounds'])} rounds; step median by "
+                     f"round: {each})")  # fmt: skip
     lines.append(f"{s['object']}, variant {s['variant']}, seed {s['seed']}; {m['cpu_count']} cores, numba threads "
                  f"{m['numba_threads']}, load average {m['load_average_at_start'][0]:.1f} at start, "
                  f"{m['load_average_at_end'][0]:.1f} at end")  # fmt: skip
@@ -306,6 +316,8 @@ def register(cli) -> None:
     p.add_argument("--iterations", type=int, default=1200, help="training steps per resolution (the demo's 1200)")
     p.add_argument("--variant", default="full", help="method variant (3dgs, 3dgs+s, 3dgs+t, full, full+n+tn, ...)")
     p.add_argument("--reference", default=None, help="also profile this variant just before, and print the ratios")
+    p.add_argument("--rounds", type=int, default=1, help="with --reference: alternate the two this many times "
+                   "(ratios: medians over the rounds)")
     p.add_argument("--object", default="teapot", help="library object")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_handler)
@@ -326,8 +338,11 @@ def _handler(args) -> int:
     get_variant(args.variant, "--variant")
     if args.reference is not None:
         get_variant(args.reference, "--reference")
+    if args.rounds < 1 or (args.rounds > 1 and args.reference is None):
+        raise UsageError("--rounds", f"needs --reference and a count of at least 1, got {args.rounds}")
     out = Path(args.out)
-    results = run_profile(out, resolutions, args.iterations, args.variant, args.object, args.seed, args.reference)
+    results = run_profile(out, resolutions, args.iterations, args.variant, args.object, args.seed, args.reference,
+                          args.rounds)
     print(format_table(results))
     out.mkdir(parents=True, exist_ok=True)
     (out / "step.json").write_text(json.dumps(results, indent=1))
