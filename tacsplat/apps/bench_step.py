@@ -211,10 +211,10 @@ def profile_resolution(out: Path, resolution: int, iterations: int, variant: str
 
 def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str, seed: int,
                 reference: str | None = None, rounds: int = 1) -> dict:
-    """The profile of ``variant`` at each resolution; with ``reference``, that variant's profile is taken just before
-    each (back to back: the machine's speed drifts by ~10% between runs minutes apart) and the ratios reported,
-    ``rounds`` times in alternation: the ratios are the medians over the rounds (each round's are kept too), the
-    profiles those of the first round."""
+    """The profile of ``variant`` at each resolution; with ``reference``, that variant's profile is taken next to
+    each (back to back: this machine's speed drifts by 10-30% between runs minutes apart) and the ratios reported,
+    ``rounds`` times, the reference first in even rounds and second in odd ones: the ratios are the medians over the
+    rounds (each round's are kept too), the profiles those of the first round."""
     import os
     import platform
     import statistics
@@ -238,9 +238,13 @@ def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str,
         results["reference"] = []
     for r in resolutions if reference is not None else ():
         per_round = []
-        for _ in range(rounds):
-            ref = profile_resolution(out, r, iterations, reference, obj, seed)
-            row = profile_resolution(out, r, iterations, variant, obj, seed)
+        for k in range(rounds):  # ABAB..., then BABA...: a machine slowing down or speeding up favours neither
+            if k % 2 == 0:
+                ref = profile_resolution(out, r, iterations, reference, obj, seed)
+                row = profile_resolution(out, r, iterations, variant, obj, seed)
+            else:
+                row = profile_resolution(out, r, iterations, variant, obj, seed)
+                ref = profile_resolution(out, r, iterations, reference, obj, seed)
             per_round.append({"step_median": row["step_median_ms"] / ref["step_median_ms"],
                               "step_mean": row["step_mean_ms"] / ref["step_mean_ms"],
                               "train_seconds": row["train_seconds"] / ref["train_seconds"]})  # fmt: skip
@@ -275,7 +279,7 @@ def format_table(results: dict) -> str:
     for r in rows if "reference" in results else ():
         ratio = r["ratio_to_reference"]
         each = ", ".join(f"{p['step_median']:.2f}x" for p in ratio["rounds"])
-        lines.append(f"{r['label']}: {s['variant']} / {s['reference']} (each run just after its reference): step "
+        lines.append(f"{r['label']}: {s['variant']} / {s['reference']} (each run next to its reference): step "
                      f"median {ratio['step_median']:.2f}x, mean {ratio['step_mean']:.2f}x, train time "
                      f"{ratio['train_seconds']:.2f}x (medians over {len(ratio['rounds'])} rounds; step median by "
                      f"round: {each})")  # fmt: skip
@@ -315,9 +319,9 @@ def register(cli) -> None:
     p.add_argument("--resolutions", default="128,256", help="comma-separated image sizes in pixels")
     p.add_argument("--iterations", type=int, default=1200, help="training steps per resolution (the demo's 1200)")
     p.add_argument("--variant", default="full", help="method variant (3dgs, 3dgs+s, 3dgs+t, full, full+n+tn, ...)")
-    p.add_argument("--reference", default=None, help="also profile this variant just before, and print the ratios")
-    p.add_argument("--rounds", type=int, default=1, help="with --reference: alternate the two this many times "
-                   "(ratios: medians over the rounds)")
+    p.add_argument("--reference", default=None, help="also profile this variant next to it, and print the ratios")
+    p.add_argument("--rounds", type=int, default=1, help="with --reference: profile the pair this many times, "
+                   "the reference first, then second, ... (ratios: medians over the rounds)")
     p.add_argument("--object", default="teapot", help="library object")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_handler)

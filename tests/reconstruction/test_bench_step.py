@@ -88,7 +88,7 @@ def test_bench_step_with_a_reference_profiles_both_back_to_back_and_prints_their
     ratio = row["ratio_to_reference"]
     assert len(ratio["rounds"]) == 3 and ratio["rounds"][0]["step_median"] == row["step_median_ms"] / ref["step_median_ms"]
     assert ratio["step_median"] == sorted(r["step_median"] for r in ratio["rounds"])[1]
-    assert "full+n+tn / full (each run just after its reference): step median" in capsys.readouterr().out
+    assert "full+n+tn / full (each run next to its reference): step median" in capsys.readouterr().out
     assert main(["bench", "step", "--out", str(out), "--rounds", "2"]) == 2  # rounds without a reference
     assert main(["bench", "step", "--out", str(out), "--reference", "nonsense"]) != 0
     assert "--reference" in capsys.readouterr().err
