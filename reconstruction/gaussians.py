@@ -34,16 +34,9 @@ def num_sh_bases(degree: int) -> int:
     return (degree + 1) ** 2
 
 
-def unit(vectors: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """``vectors / max(|vectors|, eps)`` along the last axis: what ``F.normalize`` computes, with the norm as the
-    square root of a sum (torch's vector-norm kernel is ~10x slower on a last axis of 3 or 4), clamped before
-    the root so that a zero vector has a zero gradient, not NaN."""
-    return vectors / (vectors * vectors).sum(dim=-1, keepdim=True).clamp_min(eps * eps).sqrt()
-
-
 def quats_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
     """Rotation matrices [N, 3, 3] of quaternions [N, 4] (w, x, y, z), normalised first."""
-    w, x, y, z = unit(quats).unbind(-1)
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
     return torch.stack(
         [
             1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),

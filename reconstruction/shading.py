@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb, unit
+from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 
 Appearance = Literal["sh", "reflective"]
@@ -159,7 +159,7 @@ def render(
     normal = None
     if with_normals:
         summed = out[..., features.shape[1] : features.shape[1] + 3]
-        normal = unit(summed, 1e-8)
+        normal = F.normalize(summed, dim=-1, eps=1e-8)
     if appearance == "sh":
         rgb = out[..., :3]
     else:

@@ -234,10 +234,10 @@ def test_the_influence_from_the_whitening_matches_eq1_with_the_precision_matrix_
     points = 0.05 * torch.randn(5, 3, generator=g, dtype=torch.float64)
     d = points[:, None, :] - means[None]  # [5, 40, 3]
     maha = torch.einsum("pki,kij,pkj->pk", d, precisions(quats, scales), d)
-    influence = gaussian_influence(points, means[None].expand(5, -1, -1), whitening(quats, scales)[None].expand(5, -1, -1, -1))
+    influence = gaussian_influence(d, whitening(quats, scales)[None].expand(5, -1, -1, -1))
     assert (maha > MAX_MAHALANOBIS).any() and (maha < 10).any()  # both sides of the floor
     torch.testing.assert_close(influence, torch.exp(-0.5 * maha.clamp(max=MAX_MAHALANOBIS)), rtol=1e-12, atol=1e-300)
     far = means.clone().requires_grad_(True)  # 1e3 scales away: the exponent is floored, no subnormal, no NaN
-    out = gaussian_influence(torch.full((1, 3), 100.0, dtype=torch.float64), far[None], whitening(quats, scales)[None])
+    out = gaussian_influence(torch.full((1, 3), 100.0, dtype=torch.float64) - far[None], whitening(quats, scales)[None])
     out.sum().backward()
     assert torch.isfinite(far.grad).all() and (out > 0).all() and (out <= math.exp(-80)).all()
