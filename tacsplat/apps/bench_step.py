@@ -233,10 +233,11 @@ def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str,
     }  # fmt: skip
     if reference is None:
         results["resolutions"] = [profile_resolution(out, r, iterations, variant, obj, seed) for r in resolutions]
-    else:
-        results["settings"].update(reference=reference, rounds=rounds)
-        results["reference"] = []
-    for r in resolutions if reference is not None else ():
+        results["machine"]["load_average_at_end"] = list(os.getloadavg())
+        return results
+    results["settings"].update(reference=reference, rounds=rounds)
+    results["reference"] = []
+    for r in resolutions:
         per_round = []
         for k in range(rounds):  # ABAB..., then BABA...: a machine slowing down or speeding up favours neither
             if k % 2 == 0:
@@ -276,7 +277,9 @@ def format_table(results: dict) -> str:
         + "; ".join(f"{r['label']}: {r['steps_per_second']:.1f} steps/s, {r['n_gaussians_mean']:.0f} Gaussians on "
                     f"average, train {r['train_seconds']:.1f} s" for r in rows)
     )  # fmt: skip
-    for r in rows if "reference" in results else ():
+    for r in rows:
+        if "ratio_to_reference" not in r:
+            continue
         ratio = r["ratio_to_reference"]
         each = ", ".join(f"{p['step_median']:.2f}x" for p in ratio["rounds"])
         lines.append(f"{r['label']}: {s['variant']} / {s['reference']} (each run next to its reference): step "
