@@ -25,6 +25,7 @@ from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
     chamfer_distance,
+    chamfer_distance_split,
     chamfer_terms_paper,
     depth_to_points,
     psnr,
@@ -39,6 +40,7 @@ log = logging.getLogger(__name__)
 ALPHA_MASK_THRESHOLD = 0.5  # rendered pixels with alpha above this give predicted surface points
 PAPER_MAX_POINTS = 200_000  # cd_paper: the predicted cloud is subsampled to at most this many points (official code)
 PAPER_GT_POINTS = 200_000  # cd_paper: points sampled on the ground-truth mesh surface
+SEEN_TOLERANCE = 1e-3  # of the GT radius: a mesh hit this little in front of a surface point does not hide it
 
 
 @dataclass
@@ -98,15 +100,51 @@ class GroundTruth:
     source: str
     shared: np.ndarray | None = None  # [M, 3] one cloud for every view (a GT point cloud given by path)
     surface: np.ndarray | None = None  # [S, 3] cd_paper's ground truth: points on the whole object surface
+    seen: dict[int, np.ndarray] | None = None  # frame id -> [M] bool: the point is in a training camera's view
 
     def cloud(self, frame_ids: list[int]) -> np.ndarray:
         if self.shared is not None:
             return self.shared
         return np.concatenate([self.points[i] for i in frame_ids if i in self.points] or [np.zeros((0, 3))])
 
+    def seen_mask(self, frame_ids: list[int]) -> np.ndarray | None:
+        """[M] bool along :meth:`cloud`: which points a training camera sees; None without a mesh to tell."""
+        if self.shared is not None or self.seen is None:
+            return None
+        return np.concatenate([self.seen[i] for i in frame_ids if i in self.points] or [np.zeros(0, bool)])
 
-def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) -> GroundTruth | None:
-    """The CD ground truth of ``frames``: from ``gt_path`` (mesh or point cloud) or the scene's gt/; None if absent."""
+
+def seen_by_cameras(mesh, points: dict[int, np.ndarray], cameras: list, radius: float) -> dict[int, np.ndarray]:
+    """Per frame, which of its surface points [M, 3] at least one of ``cameras`` sees: inside its image, and the
+    mesh hit first by the ray from that camera's centre towards the point lies no nearer than the point
+    (within ``SEEN_TOLERANCE`` radii)."""
+    seen = {i: np.zeros(len(p), bool) for i, p in points.items()}
+    for camera in cameras:
+        world_to_camera = np.linalg.inv(camera.T_world_cam)
+        K, centre = camera.intrinsics.K, camera.T_world_cam[:3, 3]
+        for i, p in points.items():
+            z = p @ world_to_camera[2, :3] + world_to_camera[2, 3]  # [M]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = (p @ world_to_camera[0, :3] + world_to_camera[0, 3]) / z * K[0, 0] + K[0, 2]
+                v = (p @ world_to_camera[1, :3] + world_to_camera[1, 3]) / z * K[1, 1] + K[1, 2]
+            candidates = np.flatnonzero((z > 0) & (u >= 0) & (v >= 0) & (u < camera.intrinsics.width)
+                                        & (v < camera.intrinsics.height) & ~seen[i])
+            if not len(candidates):
+                continue
+            towards = p[candidates] - centre  # [K, 3]
+            distance = np.linalg.norm(towards, axis=1)
+            hits, ray, _ = mesh.ray.intersects_location(np.broadcast_to(centre, towards.shape),
+                                                        towards / distance[:, None], multiple_hits=False)
+            first = np.full(len(candidates), np.inf)
+            first[ray] = np.linalg.norm(hits - centre, axis=1)
+            seen[i][candidates] = first >= distance - SEEN_TOLERANCE * radius
+    return seen
+
+
+def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None,
+                      train_frames: list | None = None) -> GroundTruth | None:
+    """The CD ground truth of ``frames``: from ``gt_path`` (mesh or point cloud) or the scene's gt/; None if absent.
+    With ``train_frames`` and a mesh, it also marks which points those cameras see (:func:`seen_by_cameras`)."""
     import trimesh
 
     if gt_path is not None:
@@ -119,8 +157,9 @@ def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) ->
             loaded = loaded.to_geometry()
         if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces):
             points = {f.id: depth_to_points(mesh_depth(loaded, f), f.intrinsics.K, f.T_world_cam) for f in frames}
-            return GroundTruth(points, bounding_sphere_radius(loaded.vertices), f"mesh {gt_path}",
-                               surface=surface_points(loaded))
+            radius = bounding_sphere_radius(loaded.vertices)
+            seen = None if train_frames is None else seen_by_cameras(loaded, points, train_frames, radius)
+            return GroundTruth(points, radius, f"mesh {gt_path}", surface=surface_points(loaded), seen=seen)
         cloud = np.asarray(getattr(loaded, "vertices", []), dtype=np.float64)
         if len(cloud) == 0:
             raise SceneFormatError(gt_path, None, "no faces and no points")
@@ -133,6 +172,7 @@ def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) ->
     if not points:
         return None
     mesh_path = scene.gt_mesh_path
+    mesh = None
     if mesh_path is not None and mesh_path.is_file():
         mesh = trimesh.load(str(mesh_path), force="mesh")
         radius, surface = bounding_sphere_radius(mesh.vertices), surface_points(mesh)
@@ -142,7 +182,8 @@ def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None) ->
     if not radius > 0:
         log.warning("the ground-truth surface of the test views is a single point: no Chamfer distance")
         return None
-    return GroundTruth(points, radius, "scene gt/", surface=surface)
+    seen = None if mesh is None or train_frames is None else seen_by_cameras(mesh, points, train_frames, radius)
+    return GroundTruth(points, radius, "scene gt/", surface=surface, seen=seen)
 
 
 def surface_points(mesh, count: int = PAPER_GT_POINTS, seed: int = 0) -> np.ndarray:
@@ -167,7 +208,10 @@ def evaluate_views(
     and ground-truth normals (``normal_error_deg``; the ground truth's from its depth maps) (NaN where not available).
 
     ``cd`` (the design's): expected depth (alpha > 0.5) of the views against their visible ground-truth
-    surface, mean distance each way, halved. ``cd_paper`` (the paper's official code): median depth of the
+    surface, mean distance each way, halved; where the ground truth knows which of that surface the training
+    cameras see, ``cd_seen`` and ``cd_unseen`` split it there (:func:`chamfer_distance_split`) and
+    ``unseen_fraction`` is the share of the surface no training camera sees (nothing but priors and touches
+    can place it). ``cd_paper`` (the paper's official code): median depth of the
     views, subsampled to at most ``PAPER_MAX_POINTS`` (fixed seed), against points on the whole ground-truth
     surface, mean squared distance each way, summed. Both in units of the ground-truth bounding-sphere radius.
     Each view's backdrop is ``background_colour``, or (None) fitted to that view's image border.
@@ -190,10 +234,14 @@ def evaluate_views(
             predicted_median.append(depth_to_points(median, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth)
-    cd = accuracy = completeness = float("nan")
+    cd = accuracy = completeness = cd_seen = cd_unseen = unseen_fraction = float("nan")
     gt_cloud = None if ground_truth is None else ground_truth.cloud([f.id for f in frames])
     if gt_cloud is not None and len(gt_cloud):
         cd = chamfer_distance(np.concatenate(predicted), gt_cloud, ground_truth.radius)
+        seen = ground_truth.seen_mask([f.id for f in frames])
+        if seen is not None:
+            cd_seen, cd_unseen = chamfer_distance_split(np.concatenate(predicted), gt_cloud, seen, ground_truth.radius)
+            unseen_fraction = 1.0 - float(seen.mean())
     if predicted_median:
         cloud = np.concatenate(predicted_median)
         if len(cloud) > PAPER_MAX_POINTS:
@@ -206,6 +254,9 @@ def evaluate_views(
         "cd_paper": accuracy + completeness,
         "cd_paper_accuracy": accuracy,  # its two summands: predicted -> ground truth ...
         "cd_paper_completeness": completeness,  # ... and ground truth -> predicted (includes unseen surface)
+        "cd_seen": cd_seen,  # cd on the test views' surface that a training camera sees ...
+        "cd_unseen": cd_unseen,  # ... and on the rest
+        "unseen_fraction": unseen_fraction,
         "normal_error_deg": float(np.mean(np.concatenate(angles))) if angles and sum(map(len, angles)) else float("nan"),
     }
 
@@ -247,7 +298,7 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
     appearance, ``environment.png`` (its learned environment map) into ``run_dir``."""
     test = scene.split("test")
     backend = backend or config.backend
-    ground_truth = load_ground_truth(scene, test, gt_path)
+    ground_truth = load_ground_truth(scene, test, gt_path, train_frames=scene.split("train"))
     metrics = evaluate_views(gaussians, scene, test, config.background, backend, ground_truth,
                              Path(run_dir) / "renders", look)
     if look is not None and look.environment is not None:

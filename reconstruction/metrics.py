@@ -113,9 +113,10 @@ def bounding_sphere_radius(points: np.ndarray) -> float:
     return float(radius)
 
 
-def _nearest_distances(predicted, ground_truth, radius: float, name: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """Nearest-neighbour distances pred -> gt and gt -> pred of both clouds divided by ``radius``; None if
-    the predicted cloud is empty."""
+def _nearest_distances(predicted, ground_truth, radius: float, name: str
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Nearest-neighbour distances pred -> gt (with the index of each predicted point's nearest ground-truth
+    point) and gt -> pred of both clouds divided by ``radius``; None if the predicted cloud is empty."""
     predicted = np.asarray(predicted, dtype=np.float64).reshape(-1, 3)
     ground_truth = np.asarray(ground_truth, dtype=np.float64).reshape(-1, 3)
     if len(ground_truth) == 0:
@@ -127,9 +128,9 @@ def _nearest_distances(predicted, ground_truth, radius: float, name: str) -> tup
     if len(predicted) == 0:
         return None
     pred, gt = predicted / radius, ground_truth / radius
-    d_pred_to_gt, _ = cKDTree(gt).query(pred, workers=-1)
+    d_pred_to_gt, nearest_gt = cKDTree(gt).query(pred, workers=-1)
     d_gt_to_pred, _ = cKDTree(pred).query(gt, workers=-1)
-    return d_pred_to_gt, d_gt_to_pred
+    return d_pred_to_gt, nearest_gt, d_gt_to_pred
 
 
 def chamfer_distance(predicted: np.ndarray, ground_truth: np.ndarray, radius: float = 1.0) -> float:
@@ -142,8 +143,36 @@ def chamfer_distance(predicted: np.ndarray, ground_truth: np.ndarray, radius: fl
     distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_distance")
     if distances is None:
         return float("inf")
-    d_pred_to_gt, d_gt_to_pred = distances
+    d_pred_to_gt, _, d_gt_to_pred = distances
     return 0.5 * (float(d_pred_to_gt.mean()) + float(d_gt_to_pred.mean()))
+
+
+def chamfer_distance_split(predicted: np.ndarray, ground_truth: np.ndarray, part: np.ndarray,
+                           radius: float = 1.0) -> tuple[float, float]:
+    """:func:`chamfer_distance` of two parts of the ground truth: ``part`` [M] bool marks its points in the first.
+
+    Each predicted point belongs to the part of its nearest ground-truth point; a part's CD is the mean
+    distance of its predicted points to the ground truth (0 when it has none: nothing there to be wrong)
+    and of its ground-truth points to the prediction, halved. NaN for a part with no ground-truth point;
+    ``inf`` both for an empty prediction.
+    """
+    part = np.asarray(part, dtype=bool).reshape(-1)
+    if part.shape[0] != np.asarray(ground_truth).reshape(-1, 3).shape[0]:
+        raise InvalidInputError(f"chamfer_distance_split: part has {part.shape[0]} entries for "
+                                f"{np.asarray(ground_truth).reshape(-1, 3).shape[0]} ground-truth points")
+    distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_distance_split")
+    if distances is None:
+        return float("inf"), float("inf")
+    d_pred_to_gt, nearest_gt, d_gt_to_pred = distances
+    result = []
+    for gt_mask in (part, ~part):
+        if not gt_mask.any():
+            result.append(float("nan"))
+            continue
+        pred_mask = gt_mask[nearest_gt]
+        accuracy = float(d_pred_to_gt[pred_mask].mean()) if pred_mask.any() else 0.0
+        result.append(0.5 * (accuracy + float(d_gt_to_pred[gt_mask].mean())))
+    return result[0], result[1]
 
 
 def chamfer_terms_paper(predicted: np.ndarray, ground_truth: np.ndarray, radius: float = 1.0) -> tuple[float, float]:
@@ -156,5 +185,5 @@ def chamfer_terms_paper(predicted: np.ndarray, ground_truth: np.ndarray, radius:
     distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_terms_paper")
     if distances is None:
         return float("inf"), float("inf")
-    d_pred_to_gt, d_gt_to_pred = distances
+    d_pred_to_gt, _, d_gt_to_pred = distances
     return float(np.mean(d_pred_to_gt**2)), float(np.mean(d_gt_to_pred**2))

@@ -16,11 +16,15 @@ import numpy as np
 from tacsplat.reconstruction.variants import VARIANTS, variant_label
 
 # metric -> (heading, True when lower is better, decimals)
-METRICS = {"cd": ("CD (↓)", True, 4), "cd_paper": ("CD as the paper measures it (↓)", True, 5),
+METRICS = {"cd": ("CD (↓)", True, 4),
+           "cd_seen": ("CD on the surface a training view sees (↓)", True, 4),
+           "cd_unseen": ("CD on the surface no training view sees (↓)", True, 4),
+           "cd_paper": ("CD as the paper measures it (↓)", True, 5),
            "psnr": ("PSNR (↑)", False, 2), "ssim": ("SSIM (↑)", False, 3),
            "normal_error_deg": ("Normal error, degrees (↓)", True, 1)}
 # a run's numbers in results.csv
-NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "train_seconds", "num_gaussians")
+NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "unseen_fraction", "train_seconds",
+                  "num_gaussians")
 RESULT_COLUMNS = ("object", "setting", "variant", *NUMBER_COLUMNS, "seed")
 
 

@@ -72,6 +72,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
                 "num_touch_gaussians", "variant", "settings"):
         assert key in saved
     assert saved["cd_paper"] == pytest.approx(saved["cd_paper_accuracy"] + saved["cd_paper_completeness"])
+    assert saved["cd_seen"] is None and saved["unseen_fraction"] is None  # no mesh to tell what cameras see
     assert (run / "error_vs_time.png").stat().st_size > 0
     assert len(list((run / "renders").glob("*.png"))) == len(Scene.load(sphere_scene).split("test"))
 
@@ -188,6 +189,8 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
     assert again["gt_source"].startswith("mesh") and again["gt_radius"] == pytest.approx(RADIUS, rel=1e-3)
     assert printed["cd"] == pytest.approx(again["cd"])
     assert again["cd"] == pytest.approx(metrics["cd"], rel=0.2)  # mesh and analytic depth give the same surface
+    # with a mesh, cd is also split where the training cameras see the surface and where none does (here: nowhere)
+    assert again["unseen_fraction"] == 0 and again["cd_seen"] > 0 and again["cd_unseen"] is None
     cloud_path = tmp_path / "sphere_points.ply"
     trimesh.PointCloud(trimesh.creation.icosphere(subdivisions=5, radius=RADIUS).vertices).export(cloud_path)
     assert tacsplat_main(["evaluate", str(run), "--gt-mesh", str(cloud_path)]) == 0

@@ -9,7 +9,15 @@ from plyfile import PlyData, PlyElement
 
 from tacsplat.errors import InvalidInputError, SceneFormatError
 from tacsplat.reconstruction.gaussians import Gaussians, num_sh_bases
-from tacsplat.reconstruction.metrics import bounding_sphere_radius, chamfer_distance, psnr, ssim, ssim_map
+from tacsplat.reconstruction.metrics import (
+    bounding_sphere_radius,
+    chamfer_distance,
+    chamfer_distance_split,
+    depth_to_points,
+    psnr,
+    ssim,
+    ssim_map,
+)
 from tacsplat.reconstruction.ply import load_ply, save_ply
 
 
@@ -38,6 +46,25 @@ def test_chamfer_distance_of_identical_clouds_is_zero_and_of_a_shift_is_shift_ov
     assert chamfer_distance(np.zeros((0, 3)), grid) == math.inf
     with pytest.raises(InvalidInputError, match="NaN"):
         chamfer_distance(grid + np.nan, grid)
+
+
+def test_chamfer_split_gives_each_part_its_own_error():
+    grid = np.stack(np.meshgrid(*[np.arange(5) * 0.01] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    far = grid + np.array([1.0, 0.0, 0.0])  # a second part far from the first
+    gt = np.concatenate([grid, far])
+    part = np.arange(len(gt)) < len(grid)
+    predicted = np.concatenate([grid, far + np.array([0.0, 0.002, 0.0])])  # only the second part is off
+    exact, off = chamfer_distance_split(predicted, gt, part, radius=0.05)
+    assert exact == 0.0
+    assert off == pytest.approx(0.002 / 0.05, rel=1e-9)
+    # the parts add up to the whole CD when they hold equal numbers of points each way
+    assert 0.5 * (exact + off) == pytest.approx(chamfer_distance(predicted, gt, radius=0.05), rel=1e-9)
+    # nothing predicted near the second part: its accuracy term is 0, its completeness the distance to the first
+    missing = chamfer_distance_split(grid, gt, part, radius=0.05)[1]
+    assert missing == pytest.approx(0.5 * float(np.linalg.norm(far[:, None] - grid[None], axis=-1).min(1).mean()) / 0.05)
+    assert math.isnan(chamfer_distance_split(predicted, gt, np.ones(len(gt), bool))[1])
+    with pytest.raises(InvalidInputError, match="part has 3 entries"):
+        chamfer_distance_split(predicted, gt, np.ones(3, bool))
 
 
 def test_bounding_sphere_radius_of_sphere_points():
@@ -154,3 +181,28 @@ def test_both_chamfer_distances_on_clouds_with_known_distances():
     assert chamfer_distance_paper(half, gt) == pytest.approx(expected)
     assert chamfer_terms_paper(half, gt) == pytest.approx((0.01, expected - 0.01))  # accuracy, completeness
     assert chamfer_distance_paper(np.zeros((0, 3)), gt) == float("inf")
+
+
+def test_seen_by_cameras_marks_the_surface_a_camera_sees_and_not_the_far_side():
+    import trimesh
+
+    from tacsplat.datasets.records import Frame
+    from tacsplat.geometry import look_at
+    from tacsplat.reconstruction.evaluation import seen_by_cameras
+    from tacsplat.reconstruction.views import mesh_depth
+    from tacsplat.types import CameraIntrinsics
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
+    intrinsics = CameraIntrinsics(np.array([[80.0, 0, 32], [0, 80.0, 32], [0, 0, 1]]), 64, 64)
+
+    def camera(i, eye):
+        return Frame(i, f"{i}.png", look_at(eye, (0, 0, 0), up=(0, 1, 0) if eye[2] else (0, 0, 1)), "test", intrinsics)
+
+    top, bottom, side = camera(0, (0, 0, 0.5)), camera(1, (0, 0, -0.5)), camera(2, (0.5, 0, 0))
+    points = {f.id: depth_to_points(mesh_depth(sphere, f), f.intrinsics.K, f.T_world_cam) for f in (top, bottom, side)}
+    seen = seen_by_cameras(sphere, points, [top], radius=0.1)
+    assert seen[0].mean() > 0.99  # what the camera itself sees
+    assert not seen[1].any()  # the far side
+    # from the side, the upper half is in view of the top camera (above its tangent circle at z = r^2 / d = 0.02)
+    expected = points[2][:, 2] > 0.02
+    assert (seen[2] == expected).mean() > 0.99
