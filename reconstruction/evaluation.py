@@ -33,7 +33,7 @@ from tacsplat.reconstruction.metrics import (
 )
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import load_run
-from tacsplat.reconstruction.views import background_image, camera_tensors, mesh_depth, scene_at
+from tacsplat.reconstruction.views import background_image, camera_tensors, mesh_depth, scene_at, training_frames
 
 log = logging.getLogger(__name__)
 
@@ -298,7 +298,7 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
     appearance, ``environment.png`` (its learned environment map) into ``run_dir``."""
     test = scene.split("test")
     backend = backend or config.backend
-    ground_truth = load_ground_truth(scene, test, gt_path, train_frames=scene.split("train"))
+    ground_truth = load_ground_truth(scene, test, gt_path, train_frames=training_frames(scene, config.train_views))
     metrics = evaluate_views(gaussians, scene, test, config.background, backend, ground_truth,
                              Path(run_dir) / "renders", look)
     if look is not None and look.environment is not None:

@@ -60,7 +60,7 @@ from tacsplat.reconstruction.run_dir import (
     remove_run_files,
     run_checkpoint,
 )
-from tacsplat.reconstruction.views import background_image, camera_tensors, fit_backdrop, scene_at
+from tacsplat.reconstruction.views import background_image, camera_tensors, fit_backdrop, scene_at, training_frames
 
 log = logging.getLogger(__name__)
 
@@ -116,9 +116,7 @@ class Trainer:
         self.scene = scene
         self.out = Path(out_dir)
         self.config = config
-        train = scene.split("train")
-        if config.train_views is not None:
-            train = train[: config.train_views]
+        train = training_frames(scene, config.train_views)
         if not train:
             raise SceneFormatError(scene.path / "transforms.json", "frames", "no training views")
         self.train_frames = train

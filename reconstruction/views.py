@@ -53,6 +53,12 @@ def composite(colors: torch.Tensor, alphas: torch.Tensor, background: torch.Tens
     return colors + (1.0 - alphas) * background
 
 
+def training_frames(scene, train_views: int | None) -> list:
+    """The training views a run uses: the scene's first ``train_views`` (all of them when None)."""
+    train = scene.split("train")
+    return train if train_views is None else train[:train_views]
+
+
 def mesh_depth(mesh, frame) -> np.ndarray:
     """z-depth [H, W] of a trimesh mesh seen from a frame (0 where no surface), by ray casting."""
     intr = frame.intrinsics
