@@ -233,7 +233,9 @@ def evaluate_views(
             median = render_median_depth(gaussians, f, backend)
             predicted_median.append(depth_to_points(median, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
-            save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth)
+            seen = None if ground_truth is None or ground_truth.seen is None else ground_truth.seen.get(f.id)
+            save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth,
+                            None if ground_truth is None else ground_truth.radius, seen)
     cd = accuracy = completeness = cd_seen = cd_unseen = unseen_fraction = float("nan")
     gt_cloud = None if ground_truth is None else ground_truth.cloud([f.id for f in frames])
     if gt_cloud is not None and len(gt_cloud):
@@ -268,15 +270,51 @@ def _depth_colour(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
     return cv2.cvtColor(coloured, cv2.COLOR_BGR2RGB)
 
 
-def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth) -> None:
-    """One PNG: top row rendered RGB | GT RGB, bottom row rendered depth | GT depth (shared colour scale)."""
+ERROR_SCALE = 0.1  # of the GT radius: the depth-error panel saturates at this signed error
+
+
+def _error_colour(depth: np.ndarray, gt_depth: np.ndarray, scale: float) -> np.ndarray:
+    """Signed depth error as RGB [H, W, 3] uint8: white 0, red behind the truth, blue in front (saturating at
+    ``scale``); green where the truth has surface and the render none, dark grey the reverse, black neither."""
+    both = (depth > 0) & (gt_depth > 0)
+    error = np.clip(np.where(both, depth - gt_depth, 0.0) / scale, -1.0, 1.0)[..., None]  # [H, W, 1]
+    behind, front = np.clip(error, 0, 1), np.clip(-error, 0, 1)
+    image = np.concatenate([1 - front, 1 - behind - front, 1 - behind], axis=-1)
+    image[~both] = 0.0
+    image[(gt_depth > 0) & ~(depth > 0)] = (0.0, 1.0, 0.0)
+    image[~(gt_depth > 0) & (depth > 0)] = (0.25, 0.25, 0.25)
+    return (image * 255).round().astype(np.uint8)
+
+
+def _seen_colour(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """The ground-truth surface of a view [H, W, 3] uint8: light grey where a training camera sees it, magenta
+    where none does (``seen`` [M] along the valid pixels of ``gt_depth``, as :func:`depth_to_points` orders them)."""
+    image = np.zeros(gt_depth.shape + (3,), np.uint8)
+    valid = np.isfinite(gt_depth) & (gt_depth > 0)
+    image[valid] = np.where(seen[:, None], np.uint8(200), np.array([230, 0, 200], np.uint8))
+    return image
+
+
+def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | None = None,
+                    seen: np.ndarray | None = None) -> None:
+    """One PNG: top row rendered RGB | GT RGB | signed depth error (``_error_colour``, saturating at
+    ``ERROR_SCALE`` radii), bottom row rendered depth | GT depth (shared colour scale) | where training cameras
+    see the surface (``_seen_colour``); the third column is black where its input is missing."""
     path.parent.mkdir(parents=True, exist_ok=True)
     valid = [d[d > 0] for d in (depth, gt_depth) if d is not None and (d > 0).any()]
     lo, hi = (min(v.min() for v in valid), max(v.max() for v in valid)) if valid else (0.0, 1.0)
     blank = np.zeros_like(gt_rgb, dtype=np.uint8)
-    top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8)], axis=1)
+    error = blank
+    if gt_depth is not None and depth is not None:
+        error = _error_colour(depth, gt_depth, ERROR_SCALE * (radius if radius else max(hi - lo, 1e-9)))
+    coverage = blank
+    if gt_depth is not None and seen is not None and len(seen) == int((np.isfinite(gt_depth) & (gt_depth > 0)).sum()):
+        coverage = _seen_colour(gt_depth, seen)
+    top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8), error],
+                         axis=1)
     bottom = np.concatenate(
-        [_depth_colour(depth, lo, hi), blank if gt_depth is None else _depth_colour(gt_depth, lo, hi)], axis=1
+        [_depth_colour(depth, lo, hi), blank if gt_depth is None else _depth_colour(gt_depth, lo, hi), coverage],
+        axis=1,
     )
     cv2.imwrite(str(path), cv2.cvtColor(np.concatenate([top, bottom], axis=0), cv2.COLOR_RGB2BGR))
 

@@ -54,6 +54,6 @@ def test_reconstruct_trains_and_evaluates_at_the_downscaled_size(tmp_path):
                          eval_every_seconds=1e9, init=InitConfig(use_sfm=False, num_random_points=200))
     metrics = reconstruct(scene, tmp_path / "run", config, show_progress=False)
     render = cv2.imread(str(next((tmp_path / "run" / "renders").glob("*.png"))))
-    assert render.shape[:2] == (48, 48)  # 2x2 panels of 24 px
+    assert render.shape[:2] == (48, 72)  # 2x3 panels of 24 px
     assert np.isfinite(metrics["psnr"]) and metrics["settings"]["downscale"] == 2
     assert torch.isfinite(torch.tensor(metrics["cd"]))

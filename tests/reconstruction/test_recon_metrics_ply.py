@@ -206,3 +206,28 @@ def test_seen_by_cameras_marks_the_surface_a_camera_sees_and_not_the_far_side():
     # from the side, the upper half is in view of the top camera (above its tangent circle at z = r^2 / d = 0.02)
     expected = points[2][:, 2] > 0.02
     assert (seen[2] == expected).mean() > 0.99
+
+
+def test_comparison_picture_shows_the_signed_depth_error_and_what_training_cameras_see(tmp_path):
+    import cv2
+
+    from tacsplat.reconstruction.evaluation import save_comparison
+
+    gt_depth = np.zeros((4, 5))
+    gt_depth[1:3, 1:4] = 1.0  # six surface pixels
+    depth = gt_depth.copy()
+    depth[1, 1] = 1.2  # behind the truth
+    depth[1, 2] = 0.8  # in front of it
+    depth[2, 3] = 0.0  # a hole
+    depth[0, 0] = 1.0  # surface where the truth has none
+    seen = np.array([True, True, False, True, True, True])  # along the valid pixels, row by row
+    rgb = np.zeros((4, 5, 3))
+    save_comparison(tmp_path / "v.png", rgb, rgb, depth, gt_depth, radius=1.0, seen=seen)
+    picture = cv2.cvtColor(cv2.imread(str(tmp_path / "v.png")), cv2.COLOR_BGR2RGB)
+    assert picture.shape == (8, 15, 3)
+    error, coverage = picture[:4, 10:], picture[4:, 10:]
+    assert tuple(error[1, 1]) == (255, 0, 0) and tuple(error[1, 2]) == (0, 0, 255)  # saturated at 0.1 radius
+    assert tuple(error[2, 1]) == (255, 255, 255)  # exact
+    assert tuple(error[2, 3]) == (0, 255, 0) and tuple(error[0, 0]) == (64, 64, 64)
+    assert tuple(coverage[1, 3]) == (230, 0, 200) and tuple(coverage[1, 1]) == (200, 200, 200)
+    assert tuple(coverage[0, 0]) == (0, 0, 0)
