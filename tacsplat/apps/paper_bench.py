@@ -322,33 +322,46 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     return "\n".join(lines) + "\n"
 
 
-def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | None]:
-    """``({variant: (rgb, depth, normal)}, gt_rgb, gt_depth, gt_normal)`` of the first test view of one scene,
-    rendered from each run's last checkpoint (the evaluation's renders, whose depth colours are scaled per run, are
-    not reused); normals in the camera frame, the ground truth's from its depth map as the evaluation takes them."""
+def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | None,
+                                                     np.ndarray | None]:
+    """``({variant: (rgb, depth, normal)}, gt_rgb, gt_depth, gt_normal, gt_seen)`` of the first test view of one
+    scene, rendered from each run's last checkpoint (the evaluation's renders, whose depth colours are scaled per
+    run, are not reused); normals in the camera frame, the ground truth's from its depth map as the evaluation
+    takes them; ``gt_seen`` [H, W] bool: which ground-truth pixels the first run's training cameras see (None
+    without a ground-truth mesh)."""
     import torch
+    import trimesh
 
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.evaluation import render_frame
+    from tacsplat.reconstruction.evaluation import render_frame, seen_by_cameras
     from tacsplat.reconstruction.losses import depth_normals
+    from tacsplat.reconstruction.metrics import bounding_sphere_radius, depth_to_points
     from tacsplat.reconstruction.run_dir import load_run
-    from tacsplat.reconstruction.views import background_image
+    from tacsplat.reconstruction.views import background_image, training_frames
 
     scene = Scene.load(runs[0].scene)
     frame = scene.split("test")[0]
     gt_rgb = scene.load_image(frame)
     gt_depth = scene.gt_depth(frame)
-    panels = {}
+    panels, train_views = {}, None
     for run in runs:
         loaded = load_run(run.out)
         background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
         view = render_frame(loaded.gaussians, frame, background, loaded.config.backend, with_depth=True,
                             with_normals=True)
         panels[run.variant] = (view.rgb, view.depth, view.normal)
+        train_views = loaded.config.train_views if train_views is None else train_views
     if gt_depth is None:
-        return panels, gt_rgb, np.zeros(gt_rgb.shape[:2], np.float32), None
+        return panels, gt_rgb, np.zeros(gt_rgb.shape[:2], np.float32), None, None
     gt_normal = depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(frame.intrinsics.K)).numpy()
-    return panels, gt_rgb, gt_depth, gt_normal
+    gt_seen = None
+    if scene.gt_mesh_path is not None and scene.gt_mesh_path.is_file():
+        mesh = trimesh.load(str(scene.gt_mesh_path), force="mesh")
+        points = {frame.id: depth_to_points(gt_depth, frame.intrinsics.K, frame.T_world_cam)}
+        seen = seen_by_cameras(mesh, points, training_frames(scene, train_views), bounding_sphere_radius(mesh.vertices))
+        gt_seen = np.zeros(gt_depth.shape, bool)
+        gt_seen[np.isfinite(gt_depth) & (gt_depth > 0)] = seen[frame.id]
+    return panels, gt_rgb, gt_depth, gt_normal, gt_seen
 
 
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
@@ -404,9 +417,9 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         for obj in dict.fromkeys(r.object for r in runs if r.setting == setting):
             finished = [r for r in runs if r.object == obj and r.setting == setting and r.seed == config.seeds[0] and r.done]
             if finished:
-                panels, gt_rgb, gt_depth, gt_normal = render_first_test_view(finished)
+                panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(finished)
                 png = render_grid(panels, gt_rgb, gt_depth, out / f"renders_{obj}_{setting}.png",
-                                  f"{obj}, {setting}: first test view", gt_normal=gt_normal)
+                                  f"{obj}, {setting}: first test view", gt_normal=gt_normal, gt_seen=gt_seen)
                 lines += [f"![renders {obj} {setting}]({png.name})", ""]
     (out / "report.md").write_text("\n".join(lines))
 

@@ -165,11 +165,17 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     return save_figure(fig, path)
 
 
+UNSEEN_COLOUR = (0.9, 0.0, 0.8)  # magenta: ground-truth surface no training camera sees
+
+
 def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarray, path: str | Path,
-                title: str = "", gt_normal: np.ndarray | None = None) -> Path:
+                title: str = "", gt_normal: np.ndarray | None = None, gt_seen: np.ndarray | None = None) -> Path:
     """Ground truth then one column per variant; RGB on top, depth below on ONE colour scale (the ground
     truth's depth range), so that a surface behind or in front of the true one shows as a colour shift; a third
-    row of camera-frame normals (as RGB, (n + 1) / 2; black where empty) when the panels carry them.
+    row of camera-frame normals (as RGB, (n + 1) / 2; black where empty) when the panels carry them; with
+    ``gt_seen`` [H, W] bool (which ground-truth pixels a training camera sees), a last row: under the ground
+    truth that coverage (grey seen, magenta unseen), under each variant its depth minus the truth's (red
+    behind, blue in front, on one symmetric scale of a quarter of the truth's depth range).
 
     ``panels[variant] = (rgb [H, W, 3] in [0, 1], depth [H, W] metres, 0 = empty)`` of the same test view, or
     ``(rgb, depth, normal [H, W, 3])``; ``gt_normal`` the ground truth's (e.g. from its depth map).
@@ -182,10 +188,13 @@ def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarr
         (variant_label(v), p[0], p[1], p[2] if len(p) > 2 else None) for v, p in panels.items()
     ]
     with_normals = any(c[3] is not None for c in columns)
-    rows = 3 if with_normals else 2
+    with_error = gt_seen is not None and valid.size > 0
+    rows = 2 + with_normals + with_error
     fig, axes = plt.subplots(rows, len(columns), figsize=(2.6 * len(columns) + 0.8, 2.7 * rows), squeeze=False)
     cmap = plt.get_cmap("turbo").with_extremes(bad="black")
-    image = None
+    error_cmap = plt.get_cmap("RdBu_r").with_extremes(bad="black")
+    error_range = 0.25 * max(hi - lo, 1e-6)
+    image = error_image = None
     for j, (label, rgb, depth, normal) in enumerate(columns):
         axes[0, j].imshow(np.clip(rgb, 0, 1))
         image = axes[1, j].imshow(np.ma.masked_less_equal(depth, 0), cmap=cmap, vmin=lo - pad, vmax=hi + pad)
@@ -193,6 +202,15 @@ def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarr
             shown = np.zeros(rgb.shape[:2] + (3,)) if normal is None else normal
             empty = ~np.any(shown != 0, axis=-1, keepdims=True)
             axes[2, j].imshow(np.where(empty, 0.0, np.clip((shown + 1.0) / 2.0, 0, 1)))
+        if with_error and j == 0:
+            coverage = np.zeros(gt_depth.shape + (3,))
+            coverage[(gt_depth > 0) & gt_seen] = 0.8
+            coverage[(gt_depth > 0) & ~gt_seen] = UNSEEN_COLOUR
+            axes[-1, j].imshow(coverage)
+        elif with_error:
+            both = (depth > 0) & (gt_depth > 0)
+            error_image = axes[-1, j].imshow(np.ma.masked_array(depth - gt_depth, ~both), cmap=error_cmap,
+                                             vmin=-error_range, vmax=error_range)
         axes[0, j].set_title(label, fontsize=10)
         for ax in axes[:, j]:
             ax.set_xticks([])
@@ -202,6 +220,10 @@ def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarr
     if with_normals:
         axes[2, 0].set_ylabel("normals (camera frame)")
     fig.colorbar(image, ax=list(axes[1]), fraction=0.02, label="depth [m]")
+    if with_error:
+        axes[-1, 0].set_ylabel("seen by training views\n(magenta: not) | depth error")
+        if error_image is not None:
+            fig.colorbar(error_image, ax=list(axes[-1]), fraction=0.02, label="depth - true depth [m]")
     if title:
         fig.suptitle(title)
     return save_figure(fig, path, bbox_inches="tight")

@@ -162,7 +162,8 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
         rendered.append([r.variant for r in runs])
         depth = np.full((8, 8), 0.3, np.float32)
         normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
-        return {r.variant: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal
+        seen = np.ones((8, 8), bool)
+        return {r.variant: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal, seen
 
     monkeypatch.setattr(batch.CaptureJob, "__call__", capture)
     monkeypatch.setattr(batch.ReconstructJob, "__call__", train)
