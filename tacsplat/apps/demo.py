@@ -53,6 +53,7 @@ def run(args) -> int:
     report = bench.out.resolve()
     print(f"report: {report / 'report.md'} (tables, plots and renders)")
     print(f"open first: {report / f'renders_{args.object}_minimal.png'} "
-          "(test views: ground truth and the three methods; RGB, depth and normals)")
+          "(a test view: ground truth and the three methods; RGB, depth, normals, and the depth error beside "
+          "what the training views see)")
     print(f"total {(time.perf_counter() - started) / 60:.1f} min")
     return 0
