@@ -48,6 +48,18 @@ VARIANTS: dict[str, Variant] = {
                 {**NORMALS, "lambda_touch_normal": 0.0, "appearance": "reflective"},
                 "full+n, with diffuse + specular environment-map shading instead of view-dependent SH "
                 "(beyond the paper)"),
+        # the default with one mechanism off or on, for the ablation (README: "each mechanism on and off")
+        Variant("full+tn", "Ours + tactile normals", {**PAPER, "lambda_touch_normal": 0.1},
+                "full plus tactile normals only (ablation)"),
+        Variant("full+flat+tn", "Ours + flat Gaussians + tactile normals",
+                {**NORMALS, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.1, "appearance": "sh"},
+                "the default without depth-normal consistency (ablation)"),
+        Variant("full+dn+tn", "Ours + depth-normal consistency + tactile normals",
+                {**NORMALS, "lambda_flatten": 0.0, "lambda_touch_normal": 0.1, "appearance": "sh"},
+                "the default without flattening (ablation)"),
+        Variant("full+n+tn+r", "Ours + normals + tactile normals + reflections",
+                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "reflective"},
+                "the default with the reflective appearance (ablation)"),
     )
 }
 PAPER_VARIANTS = ("3dgs", "3dgs+s", "3dgs+t", "full")  # the paper's Table 3
@@ -62,18 +74,20 @@ def get_variant(name: str, option: str = "variant") -> Variant:
 
 
 def variant_of(config) -> str:
-    """The name of the variant a TrainConfig runs: touch used (with lambda_t > 0), smoothness (lambda_s > 0) and,
-    for the full method, surface normals (flattening and depth-normal consistency both on), then tactile normals
-    and reflective appearance on top of them (a combination without a row, e.g. both, names itself the same way)."""
+    """The name of the variant a TrainConfig runs, built from what is switched on: touch used (with lambda_t > 0)
+    and smoothness (lambda_s > 0) give the paper's four rows; then ``+n`` for surface normals (flattening and
+    depth-normal consistency both on; ``+flat`` or ``+dn`` for one of them alone), ``+tn`` for tactile normals
+    (with touch on) and ``+r`` for the reflective appearance. A combination without a row names itself the same
+    way, so a run's metrics.json never calls it by a row it is not."""
     touch = config.use_touch and config.lambda_t > 0
     smooth = config.lambda_s > 0
     name = {(False, False): "3dgs", (False, True): "3dgs+s", (True, False): "3dgs+t", (True, True): "full"}[(touch, smooth)]
-    if name == "full" and config.lambda_flatten > 0 and config.lambda_depth_normal > 0:
-        name = "full+n"
-        if config.lambda_touch_normal > 0:
-            name += "+tn"
-        if config.appearance == "reflective":
-            name += "+r"
+    flat, depth_normal = config.lambda_flatten > 0, config.lambda_depth_normal > 0
+    name += "+n" if flat and depth_normal else "+flat" if flat else "+dn" if depth_normal else ""
+    if touch and config.lambda_touch_normal > 0:
+        name += "+tn"
+    if config.appearance == "reflective":
+        name += "+r"
     return name
 
 

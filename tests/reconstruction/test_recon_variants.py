@@ -24,6 +24,8 @@ def test_normals_need_both_losses():
     assert variant_of(both) == "full+n"
     assert variant_of(dataclasses.replace(both, lambda_touch_normal=0.1, appearance="reflective")) == "full+n+tn+r"
     only_flat = dataclasses.replace(paper, lambda_flatten=10.0)
-    assert variant_of(only_flat) == "full"
-    no_touch = dataclasses.replace(paper, use_touch=False, lambda_flatten=10.0, lambda_depth_normal=0.05)
-    assert variant_of(no_touch) == "3dgs+s"
+    assert variant_of(only_flat) == "full+flat"  # not the paper's full method: named by what is on
+    assert variant_of(dataclasses.replace(paper, lambda_depth_normal=0.05, lambda_touch_normal=0.1)) == "full+dn+tn"
+    no_touch = dataclasses.replace(paper, use_touch=False, lambda_flatten=10.0, lambda_depth_normal=0.05,
+                                   lambda_touch_normal=0.1)
+    assert variant_of(no_touch) == "3dgs+s+n"  # tactile normals need touches: not named without them
