@@ -281,6 +281,17 @@ def test_default_vs_full_sentence():
     assert "lower CD on 1 of 2 objects" in text and "0.0058 vs 0.0055 (+5%)" in text
 
 
+def test_coverage_sentence():
+    from tacsplat.apps.paper_bench import coverage_sentence
+
+    assert coverage_sentence(synthetic_rows(), "minimal") == ""  # no ground-truth mesh: no split
+    rows = [{**r, "unseen_fraction": 0.1 if r["object"] == "teapot" else 0.3, "cd_seen": r["cd"],
+             "cd_unseen": 2 * r["cd"]} for r in synthetic_rows()]
+    text = coverage_sentence(rows, "minimal")
+    assert "20% of the test views' surface" in text and "teapot 10%, bell 30%" in text
+    assert "Ours (full) 0.0110 vs 0.0055" in text
+
+
 def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures():
     from tacsplat.apps.paper_bench import where_we_stand
 
