@@ -51,7 +51,7 @@ def gaussian_influence(
     whitened: torch.Tensor,  # [P, K, 3, 3] S^-1 R^T of each Gaussian (gaussians.whitening)
 ) -> torch.Tensor:
     """Eq. 1: f(p; Sigma, mu) = exp(-1/2 (p - mu)^T Sigma^-1 (p - mu)) for each point and its K Gaussians, [P, K]."""
-    local = (whitened * offsets[..., None, :]).sum(-1)  # [P, K, 3]: the offset in the Gaussian's unit frame
+    local = torch.einsum("pkij,pkj->pki", whitened, offsets)  # [P, K, 3]: the offset in the Gaussian's unit frame
     return torch.exp(-0.5 * (local * local).sum(-1).clamp(0.0, MAX_MAHALANOBIS))
 
 
