@@ -62,6 +62,8 @@ class TrainConfig:
     lambda_depth_normal: float = 0.05  # depth-normal consistency (2DGS): rendered normals agree with the depth's
     depth_normal_start_iter: int = 300  # ... from this step on (after the geometry has formed)
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
+    lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
+    # (needs the rendered normals: with depth-normal consistency on, from its start step)
     appearance: Literal["sh", "reflective"] = "sh"  # colour: view-dependent SH (3DGS), or diffuse + specular tint x
     # a learned environment map along the reflected view direction, prefiltered by roughness (deferred shading)
     env_map_height: int = 16  # environment map height in pixels (its width is twice that)
@@ -186,7 +188,7 @@ _FLOAT_RANGES = {
     "lr_means_final_factor": (0.0, 1.0), "lr_quats": (0.0, None), "lr_scales": (0.0, None),
     "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "eval_every_seconds": (0.0, None),
     "lambda_flatten": (0.0, None), "lambda_depth_normal": (0.0, None), "lambda_touch_normal": (0.0, None),
-    "lr_reflective": (0.0, None), "lr_env_map": (0.0, None),
+    "lambda_touch_normal_pixels": (0.0, None), "lr_reflective": (0.0, None), "lr_env_map": (0.0, None),
 }  # fmt: skip
 _POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
 
@@ -261,7 +263,8 @@ def paper_preset(iterations: int = PAPER_ITERATIONS) -> dict:
 def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: int | None = None) -> list[str]:
     """What still differs from the paper's official runs for ``config`` (one line each)."""
     lines = []
-    if config.lambda_flatten > 0 or config.lambda_depth_normal > 0 or config.lambda_touch_normal > 0:
+    if (config.lambda_flatten > 0 or config.lambda_depth_normal > 0 or config.lambda_touch_normal > 0
+            or config.lambda_touch_normal_pixels > 0):
         lines.append("surface normals (flattening, depth-normal consistency, tactile normals; variant "
                      f"{config.variant}): not in the paper (its method is the variant `full`)")
     if config.appearance != "sh":

@@ -131,7 +131,8 @@ class Trainer:
         if config.use_touch and scene.touches:
             kept = thin_touch_points(scene.touch_points(), config.init, self.rng)
             self.touch_points = scene.touch_points()[kept]
-            touch_normals = scene.touch_normals()[kept] if config.lambda_touch_normal > 0 else touch_normals
+            if config.lambda_touch_normal > 0 or config.lambda_touch_normal_pixels > 0:
+                touch_normals = scene.touch_normals()[kept]
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
         self.use_touch_normals = len(self.touch_points) > 0 and config.lambda_touch_normal > 0
         self.neighbours = (
@@ -302,6 +303,13 @@ class Trainer:
             )  # fmt: skip
             loss = loss + cfg.lambda_depth_normal * consistency
             terms["normals"] = terms["normals"] + consistency.detach()
+            if len(self.touch_points) and cfg.lambda_touch_normal_pixels > 0:
+                pixels = losses.touch_pixel_normal_loss(
+                    out.normal, self.touch_tensor, self.touch_normals, self.Ks[view], self.viewmats[view], surface,
+                    cfg.occlusion_tolerance,
+                )  # fmt: skip
+                loss = loss + cfg.lambda_touch_normal_pixels * pixels
+                terms["normals"] = terms["normals"] + pixels.detach()
         if with_depth:
             depth = out.depth  # accumulated depth, paper Eq. 5
             proximity = None

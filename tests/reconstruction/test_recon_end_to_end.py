@@ -125,6 +125,18 @@ def test_touch_scene_runs_the_touch_and_smoothness_paths(sphere_scene, tmp_path,
     assert _training_render_modes(spies["render"]) == {"RGB+D"}
 
 
+def test_touch_pixel_normals_run_with_the_rendered_normals_and_only_when_weighted(sphere_scene, tmp_path, monkeypatch):
+    spy = _Spy(losses.touch_pixel_normal_loss)
+    monkeypatch.setattr(losses, "touch_pixel_normal_loss", spy)
+    Trainer(Scene.load(sphere_scene), tmp_path / "off", _config(4, depth_normal_start_iter=2)).run(show_progress=False)
+    assert spy.calls == []  # weight 0 (the default)
+    trainer = Trainer(Scene.load(sphere_scene), tmp_path / "on",
+                      _config(4, depth_normal_start_iter=2, lambda_touch_normal=0.0, lambda_touch_normal_pixels=0.1))
+    trainer.run(show_progress=False)
+    assert len(spy.calls) == 2  # steps 2 and 3, once the normals are rendered; the tactile normals were loaded
+    assert torch.isfinite(trainer.touch_normals).any()
+
+
 def test_smoothness_waits_for_its_start_step_and_the_proximity_mask_can_be_off(sphere_scene, tmp_path, monkeypatch):
     spies = _spy_paths(monkeypatch)
     trainer = Trainer(Scene.load(sphere_scene), tmp_path / "run", _config(5, smoothness_start_iter=3,
