@@ -286,12 +286,24 @@ def _error_colour(depth: np.ndarray, gt_depth: np.ndarray, scale: float) -> np.n
     return (image * 255).round().astype(np.uint8)
 
 
-def _seen_colour(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray:
-    """The ground-truth surface of a view [H, W, 3] uint8: light grey where a training camera sees it, magenta
-    where none does (``seen`` [M] along the valid pixels of ``gt_depth``, as :func:`depth_to_points` orders them)."""
-    image = np.zeros(gt_depth.shape + (3,), np.uint8)
+def seen_pixels(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray | None:
+    """``seen`` [M] (along the valid pixels of ``gt_depth``, as :func:`depth_to_points` orders them) as an image
+    [H, W] bool; None when the counts differ (the points came from another depth map)."""
     valid = np.isfinite(gt_depth) & (gt_depth > 0)
-    image[valid] = np.where(seen[:, None], np.uint8(200), np.array([230, 0, 200], np.uint8))
+    if len(seen) != int(valid.sum()):
+        return None
+    image = np.zeros(gt_depth.shape, bool)
+    image[valid] = seen
+    return image
+
+
+def _seen_colour(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """The ground-truth surface of a view [H, W, 3] uint8: light grey where a training camera sees it (``seen``
+    [H, W] bool), magenta where none does, black off the surface."""
+    image = np.zeros(gt_depth.shape + (3,), np.uint8)
+    surface = np.isfinite(gt_depth) & (gt_depth > 0)
+    image[surface & seen] = 200
+    image[surface & ~seen] = (230, 0, 200)
     return image
 
 
@@ -308,8 +320,9 @@ def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | No
     if gt_depth is not None and depth is not None:
         error = _error_colour(depth, gt_depth, ERROR_SCALE * (radius if radius else max(hi - lo, 1e-9)))
     coverage = blank
-    if gt_depth is not None and seen is not None and len(seen) == int((np.isfinite(gt_depth) & (gt_depth > 0)).sum()):
-        coverage = _seen_colour(gt_depth, seen)
+    seen_image = None if gt_depth is None or seen is None else seen_pixels(gt_depth, seen)
+    if seen_image is not None:
+        coverage = _seen_colour(gt_depth, seen_image)
     top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8), error],
                          axis=1)
     bottom = np.concatenate(

@@ -157,9 +157,9 @@ def chamfer_distance_split(predicted: np.ndarray, ground_truth: np.ndarray, part
     ``inf`` both for an empty prediction.
     """
     part = np.asarray(part, dtype=bool).reshape(-1)
-    if part.shape[0] != np.asarray(ground_truth).reshape(-1, 3).shape[0]:
-        raise InvalidInputError(f"chamfer_distance_split: part has {part.shape[0]} entries for "
-                                f"{np.asarray(ground_truth).reshape(-1, 3).shape[0]} ground-truth points")
+    n_gt = np.asarray(ground_truth).reshape(-1, 3).shape[0]
+    if len(part) != n_gt:
+        raise InvalidInputError(f"chamfer_distance_split: part has {len(part)} entries for {n_gt} ground-truth points")
     distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_distance_split")
     if distances is None:
         return float("inf"), float("inf")

@@ -349,12 +349,10 @@ def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarra
     takes them; ``gt_seen`` [H, W] bool: which ground-truth pixels the first run's training cameras see (None
     without a ground-truth mesh)."""
     import torch
-    import trimesh
 
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.evaluation import render_frame, seen_by_cameras
+    from tacsplat.reconstruction.evaluation import load_ground_truth, render_frame, seen_pixels
     from tacsplat.reconstruction.losses import depth_normals
-    from tacsplat.reconstruction.metrics import bounding_sphere_radius, depth_to_points
     from tacsplat.reconstruction.run_dir import load_run
     from tacsplat.reconstruction.views import background_image, training_frames
 
@@ -362,24 +360,21 @@ def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarra
     frame = scene.split("test")[0]
     gt_rgb = scene.load_image(frame)
     gt_depth = scene.gt_depth(frame)
-    panels, train_views = {}, None
-    for run in runs:
-        loaded = load_run(run.out)
+    loaded_runs = [load_run(run.out) for run in runs]
+    panels = {}
+    for run, loaded in zip(runs, loaded_runs):
         background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
         view = render_frame(loaded.gaussians, frame, background, loaded.config.backend, with_depth=True,
                             with_normals=True)
         panels[run.variant] = (view.rgb, view.depth, view.normal)
-        train_views = loaded.config.train_views if train_views is None else train_views
     if gt_depth is None:
         return panels, gt_rgb, np.zeros(gt_rgb.shape[:2], np.float32), None, None
     gt_normal = depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(frame.intrinsics.K)).numpy()
+    train = training_frames(scene, loaded_runs[0].config.train_views)
+    ground_truth = load_ground_truth(scene, [frame], train_frames=train)
     gt_seen = None
-    if scene.gt_mesh_path is not None and scene.gt_mesh_path.is_file():
-        mesh = trimesh.load(str(scene.gt_mesh_path), force="mesh")
-        points = {frame.id: depth_to_points(gt_depth, frame.intrinsics.K, frame.T_world_cam)}
-        seen = seen_by_cameras(mesh, points, training_frames(scene, train_views), bounding_sphere_radius(mesh.vertices))
-        gt_seen = np.zeros(gt_depth.shape, bool)
-        gt_seen[np.isfinite(gt_depth) & (gt_depth > 0)] = seen[frame.id]
+    if ground_truth is not None and ground_truth.seen is not None:
+        gt_seen = seen_pixels(gt_depth, ground_truth.seen[frame.id])
     return panels, gt_rgb, gt_depth, gt_normal, gt_seen
 
 
