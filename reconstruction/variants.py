@@ -77,7 +77,8 @@ def variant_of(config) -> str:
     """The name of the variant a TrainConfig runs, built from what is switched on: touch used (with lambda_t > 0)
     and smoothness (lambda_s > 0) give the paper's four rows; then ``+n`` for surface normals (flattening and
     depth-normal consistency both on; ``+flat`` or ``+dn`` for one of them alone), ``+tn`` for tactile normals
-    (with touch on) and ``+r`` for the reflective appearance. A combination without a row names itself the same
+    (with touch on), ``+tnp`` for tactile normals at the touch pixels (with touch and the rendered normals of
+    depth-normal consistency on, which it needs) and ``+r`` for the reflective appearance. A combination without a row names itself the same
     way, so a run's metrics.json never calls it by a row it is not."""
     touch = config.use_touch and config.lambda_t > 0
     smooth = config.lambda_s > 0
@@ -86,6 +87,8 @@ def variant_of(config) -> str:
     name += "+n" if flat and depth_normal else "+flat" if flat else "+dn" if depth_normal else ""
     if touch and config.lambda_touch_normal > 0:
         name += "+tn"
+    if touch and depth_normal and config.lambda_touch_normal_pixels > 0:
+        name += "+tnp"
     if config.appearance == "reflective":
         name += "+r"
     return name

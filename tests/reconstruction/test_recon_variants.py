@@ -29,3 +29,6 @@ def test_normals_need_both_losses():
     no_touch = dataclasses.replace(paper, use_touch=False, lambda_flatten=10.0, lambda_depth_normal=0.05,
                                    lambda_touch_normal=0.1)
     assert variant_of(no_touch) == "3dgs+s+n"  # tactile normals need touches: not named without them
+    pixels = dataclasses.replace(both, lambda_touch_normal=0.1, lambda_touch_normal_pixels=0.1)
+    assert variant_of(pixels) == "full+n+tn+tnp"
+    assert variant_of(dataclasses.replace(pixels, lambda_depth_normal=0.0)) == "full+flat+tn"  # no rendered normals
