@@ -28,7 +28,7 @@ class TrainConfig:
     train_views: int | None = None  # use only the first K training views (None = all)
     downscale: int = 1  # train and evaluate at 1/N of the images' size (area-averaged; intrinsics scaled)
     backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto"  # rasterization backend (auto: gsplat on CUDA,
-    # else the numba CPU backend for float32)
+    # else the numba CPU backend for float32); "torch" also keeps the losses' torch references (no fused kernels)
     device: Literal["auto", "cpu", "cuda"] = "auto"  # where training runs (auto: CUDA when torch sees a GPU)
     torch_threads: int | None = 1  # torch intra-op threads while training (the cpu backend's kernels run
     # their own threads; one torch thread avoids oversubscribing a small machine); None = torch's default

@@ -135,6 +135,7 @@ class Trainer:
                 touch_normals = scene.touch_normals()[kept]
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
         self.use_touch_normals = len(self.touch_points) > 0 and config.lambda_touch_normal > 0
+        self.fused_losses = config.backend != "torch"  # the torch backend is the reference: torch losses too
         self.neighbours = (
             losses.TouchNeighbours(
                 self.touch_points, config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every
@@ -259,7 +260,7 @@ class Trainer:
         meta, alpha = out.meta, out.alpha
         target = self.images[view]
         rgb = out.rgb + (1.0 - alpha[..., None]) * self.backgrounds[view]
-        photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight)
+        photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight, fused=self.fused_losses)
         loss = photometric
         terms = dict.fromkeys(LOSS_TERMS, self._zero)  # detached device scalars: no host synchronisation
         terms["photometric"] = photometric.detach()
@@ -280,7 +281,7 @@ class Trainer:
                                  else (g.quats.detach(), g.scales.detach()))
                 transmittance = losses.transmittance_loss(
                     points, g.means, quats, scales, g.opacities, candidates,
-                    cfg.touch_top_k, cfg.touch_max_distance,
+                    cfg.touch_top_k, cfg.touch_max_distance, fused=self.fused_losses,
                 )  # fmt: skip
                 loss = loss + cfg.lambda_t * transmittance
                 terms["transmittance"] = transmittance.detach()

@@ -50,6 +50,22 @@ def _rotation(qw, qx, qy, qz):
     )  # fmt: skip
 
 
+@nb.njit(cache=True, inline="always")
+def _rotation_backward(w, qx, qy, qz, qnorm, vr):
+    """d loss / d (unnormalised) quaternion from vr [3, 3] = d loss / d R, with (w, qx, qy, qz) and qnorm the
+    normalised quaternion and the norm :func:`_rotation` returned."""
+    v_w = 2.0 * (-qz * vr[0, 1] + qy * vr[0, 2] + qz * vr[1, 0] - qx * vr[1, 2] - qy * vr[2, 0] + qx * vr[2, 1])
+    v_x = 2.0 * (qy * vr[0, 1] + qz * vr[0, 2] + qy * vr[1, 0] - 2.0 * qx * vr[1, 1] - w * vr[1, 2]
+                 + qz * vr[2, 0] + w * vr[2, 1] - 2.0 * qx * vr[2, 2])  # fmt: skip
+    v_y = 2.0 * (-2.0 * qy * vr[0, 0] + qx * vr[0, 1] + w * vr[0, 2] + qx * vr[1, 0] + qz * vr[1, 2]
+                 - w * vr[2, 0] + qz * vr[2, 1] - 2.0 * qy * vr[2, 2])  # fmt: skip
+    v_z = 2.0 * (-2.0 * qz * vr[0, 0] - w * vr[0, 1] + qx * vr[0, 2] + w * vr[1, 0] - 2.0 * qz * vr[1, 1]
+                 + qy * vr[1, 2] + qx * vr[2, 0] + qy * vr[2, 1])  # fmt: skip
+    # through q / max(|q|, 1e-12)
+    dot = (w * v_w + qx * v_x + qy * v_y + qz * v_z) if qnorm > 1e-12 else 0.0
+    return (v_w - w * dot) / qnorm, (v_x - qx * dot) / qnorm, (v_y - qy * dot) / qnorm, (v_z - qz * dot) / qnorm
+
+
 @nb.njit(parallel=True, cache=True)
 def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
                      means2d, conics, depths, radii):  # fmt: skip
@@ -223,20 +239,7 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
                 v_scales[g, k] = v_m[0, k] * rot[0, k] + v_m[1, k] * rot[1, k] + v_m[2, k] * rot[2, k]
                 for r in range(3):
                     v_m[r, k] *= float(scales[g, k])  # now d loss / d R
-            vr = v_m
-            v_w = 2.0 * (-qz * vr[0, 1] + qy * vr[0, 2] + qz * vr[1, 0] - qx * vr[1, 2] - qy * vr[2, 0] + qx * vr[2, 1])
-            v_x_ = 2.0 * (qy * vr[0, 1] + qz * vr[0, 2] + qy * vr[1, 0] - 2.0 * qx * vr[1, 1] - w * vr[1, 2]
-                          + qz * vr[2, 0] + w * vr[2, 1] - 2.0 * qx * vr[2, 2])  # fmt: skip
-            v_y_ = 2.0 * (-2.0 * qy * vr[0, 0] + qx * vr[0, 1] + w * vr[0, 2] + qx * vr[1, 0] + qz * vr[1, 2]
-                          - w * vr[2, 0] + qz * vr[2, 1] - 2.0 * qy * vr[2, 2])  # fmt: skip
-            v_z_ = 2.0 * (-2.0 * qz * vr[0, 0] - w * vr[0, 1] + qx * vr[0, 2] + w * vr[1, 0] - 2.0 * qz * vr[1, 1]
-                          + qy * vr[1, 2] + qx * vr[2, 0] + qy * vr[2, 1])  # fmt: skip
-            # through q / max(|q|, 1e-12)
-            dot = (w * v_w + qx * v_x_ + qy * v_y_ + qz * v_z_) if qnorm > 1e-12 else 0.0
-            v_quats[g, 0] = (v_w - w * dot) / qnorm
-            v_quats[g, 1] = (v_x_ - qx * dot) / qnorm
-            v_quats[g, 2] = (v_y_ - qy * dot) / qnorm
-            v_quats[g, 3] = (v_z_ - qz * dot) / qnorm
+            v_quats[g, 0], v_quats[g, 1], v_quats[g, 2], v_quats[g, 3] = _rotation_backward(w, qx, qy, qz, qnorm, v_m)
 
 
 @nb.njit(cache=True, inline="always")

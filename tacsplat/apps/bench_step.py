@@ -98,13 +98,13 @@ def instrumented(timer: PhaseTimer):
     from tacsplat.reconstruction.trainer import Trainer
 
     marker = _backward_marker()
-    ssim_map = losses.ssim_map
+    d_ssim = losses.d_ssim
 
-    def timed_ssim_map(rendered, target, *args, **kwargs):  # forward, and backward between the two markers
+    def timed_d_ssim(rendered, target, fused=True):  # forward, and backward between the two markers
         with timer.phase("SSIM"):
             if rendered.requires_grad:
                 rendered = marker.apply(timer.leave, rendered)
-            out = ssim_map(rendered, target, *args, **kwargs)
+            out = d_ssim(rendered, target, fused)
             return marker.apply(lambda: timer.enter("SSIM"), out) if out.requires_grad else out
 
     steps: list[dict[str, float]] = []
@@ -147,8 +147,8 @@ def instrumented(timer: PhaseTimer):
             function = original.__func__ if isinstance(original, staticmethod) else original
             wrapped = _timed(timer, phase, function)
             setattr(owner, name, staticmethod(wrapped) if static else wrapped)
-        saved.append((losses, "ssim_map", ssim_map))
-        losses.ssim_map = timed_ssim_map
+        saved.append((losses, "d_ssim", d_ssim))
+        losses.d_ssim = timed_d_ssim
         saved.append((Trainer, "train_step", step_function))
         Trainer.train_step = timed_step
         yield steps

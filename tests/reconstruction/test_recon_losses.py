@@ -71,6 +71,49 @@ def test_minimising_transmittance_raises_opacity_and_pulls_the_mean_onto_the_poi
     assert means.grad[0, 0].item() > 0  # descending moves the mean towards x = 0
 
 
+def _touch_cluster(dtype, n=300, points=64, candidates=16, seed=0):
+    """Gaussians and touch points in a 2 cm cube: pairs in and out of reach, shared candidates, missing ones,
+    a zero quaternion, and Gaussians so thin that the exponent is clamped."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.rand(n, 3, generator=g, dtype=dtype) * 0.02
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    quats[0] = 0.0
+    scales = torch.rand(n, 3, generator=g, dtype=dtype) * 0.002 + 0.0003
+    scales[1:20, 2] = 1e-7  # exponent beyond MAX_MAHALANOBIS off their plane
+    opacities = torch.rand(n, generator=g, dtype=dtype)
+    touch = torch.rand(points, 3, generator=g, dtype=dtype) * 0.02
+    ids = torch.randint(0, n, (points, candidates), generator=g)
+    ids[:, 12:] = -1
+    ids[5] = -1
+    ids[7, :4] = torch.arange(1, 5)  # thin ones
+    return touch, means, quats, scales, opacities, ids
+
+
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+def test_fused_transmittance_matches_the_torch_reference_in_value_and_every_gradient(dtype, tol):
+    touch, *params, ids = _touch_cluster(dtype)
+    params = [p.requires_grad_(True) for p in params]
+    reference = losses.transmittance_loss_torch(touch, *params, ids, top_k=4, max_distance=0.006)
+    expected = torch.autograd.grad(reference, params)
+    fused = losses.transmittance_loss(touch, *params, ids, top_k=4, max_distance=0.006)  # CPU: numba kernels
+    got = torch.autograd.grad(2.0 * fused, params)
+    assert 0.05 < reference.item() < 1.0
+    assert fused.item() == pytest.approx(reference.item(), abs=tol)
+    for name, want, have in zip(("means", "quats", "scales", "opacities"), expected, got):
+        assert want.abs().max() > 0, name
+        torch.testing.assert_close(have, 2.0 * want, rtol=0, atol=tol * float(want.abs().max()), msg=name)
+
+
+def test_fused_transmittance_gradient_is_the_float64_finite_difference():
+    touch, means, quats, scales, opacities, ids = _touch_cluster(torch.float64, n=40, points=8, candidates=6)
+    for param in (means, quats, scales, opacities):
+        param.requires_grad_(True)
+    torch.autograd.gradcheck(
+        lambda m, q, s, o: losses.transmittance_loss(touch, m, q, s, o, ids, top_k=3, max_distance=0.006),
+        (means, quats, scales, opacities), eps=1e-9, atol=1e-6,
+    )  # fmt: skip
+
+
 def test_touch_neighbours_see_only_touch_gaussians_and_rebuild_on_schedule():
     means = torch.tensor([[0.0, 0, 0], [0.001, 0, 0], [0.002, 0, 0], [0.5, 0, 0]])
     from_touch = torch.tensor([False, True, True, True])

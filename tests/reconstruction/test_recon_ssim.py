@@ -1,4 +1,5 @@
-"""SSIM: the evaluation metric on the valid region (against pytorch-msssim), the training loss's padded map."""
+"""SSIM: the evaluation metric on the valid region (against pytorch-msssim), the training loss's padded map, and
+the fused CPU D-SSIM of the loss against that map in float64."""
 
 import numpy as np
 import pytest
@@ -7,6 +8,7 @@ import torch.nn.functional as F
 from pytorch_msssim import ssim as msssim_ssim
 
 from tacsplat.errors import InvalidInputError
+from tacsplat.reconstruction.fused_ssim import d_ssim
 from tacsplat.reconstruction.metrics import ssim, ssim_map
 
 
@@ -107,3 +109,37 @@ def test_images_smaller_than_the_window_are_refused_naming_the_size():
     a = torch.rand(10, 30, 3)
     with pytest.raises(InvalidInputError, match="10x30.*11x11"):
         ssim(a, a)
+
+
+@pytest.mark.parametrize("shape", [(20, 26, 3), (2, 13, 40, 1), (64, 48, 3)])
+def test_fused_d_ssim_is_one_minus_the_padded_map_mean_with_its_gradient(shape):
+    """The numba kernels (hand-written backward) against autograd through ssim_map, both in float64."""
+    g = torch.Generator().manual_seed(sum(shape))
+    target = torch.rand(shape, generator=g, dtype=torch.float64)
+    render = (target + 0.3 * torch.randn(shape, generator=g, dtype=torch.float64)).clamp(0, 1).requires_grad_(True)
+    reference = 1.0 - ssim_map(render, target).mean()
+    (expected,) = torch.autograd.grad(reference, render)
+    fused = d_ssim(render, target)
+    (got,) = torch.autograd.grad(3.0 * fused, render)  # an upstream gradient other than 1 scales it
+    assert fused.item() == pytest.approx(reference.item(), abs=1e-12)
+    torch.testing.assert_close(got, 3.0 * expected, rtol=1e-9, atol=1e-15)
+    assert got.abs().max() > 0
+    # float32 (what training uses) stays within float32 rounding of the float64 result
+    render32 = render.detach().float().requires_grad_(True)
+    fused32 = d_ssim(render32, target.float())
+    (got32,) = torch.autograd.grad(fused32, render32)
+    assert fused32.item() == pytest.approx(reference.item(), abs=1e-6)
+    assert float((got32.double() - expected).abs().max() / expected.abs().max()) < 1e-5
+
+
+def test_fused_d_ssim_is_zero_for_identical_images_and_ignores_the_targets_gradient():
+    image = _structured(32, 32, seed=1).float()
+    render = image.clone().requires_grad_(True)
+    loss = d_ssim(render, image)
+    loss.backward()
+    assert loss.item() == pytest.approx(0.0, abs=1e-6)
+    assert render.grad.abs().max() < 1e-5  # a maximum: the gradient vanishes
+    a, b = torch.rand(16, 16, 3, requires_grad=True), torch.rand(16, 16, 3, requires_grad=True)
+    both = d_ssim(a, b)  # a target that needs gradients takes the autograd reference
+    both.backward()
+    assert b.grad is not None and a.grad is not None
