@@ -17,6 +17,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
+from tacsplat.reconstruction.fused_normals import depth_normal_consistency_cpu
 from tacsplat.reconstruction.fused_ssim import d_ssim
 from tacsplat.reconstruction.fused_touch import transmittance_cpu
 from tacsplat.reconstruction.gaussians import whitening
@@ -370,6 +371,16 @@ def normal_consistency_loss(rendered: torch.Tensor, from_depth: torch.Tensor, al
     pixels where the depth normal is known ([H, W, 3] unit normals, alpha [H, W])."""
     known = ((from_depth * from_depth).sum(-1) > 0.25).float() * alpha  # unit normals where known, 0 elsewhere
     return ((1.0 - (rendered * from_depth).sum(-1)) * known).sum() / known.sum().clamp_min(1e-6)
+
+
+def depth_normal_consistency(rendered: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, weight: torch.Tensor,
+                             fused: bool = True) -> torch.Tensor:
+    """:func:`normal_consistency_loss` of the rendered normals [H, W, 3] against :func:`depth_normals` of the
+    z-depth [H, W] (weights [H, W], no gradient); for CPU tensors in one fused pass each way
+    (:mod:`.fused_normals`) unless ``fused`` is False."""
+    if fused and depth.device.type == "cpu":
+        return depth_normal_consistency_cpu(rendered, depth, K, weight)
+    return normal_consistency_loss(rendered, depth_normals(depth, K), weight)
 
 
 def flatten_loss(scales: torch.Tensor, scene_scale: float) -> torch.Tensor:

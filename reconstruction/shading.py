@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from tacsplat.reconstruction.fused_normals import gaussian_normals_cpu
 from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 
@@ -42,8 +43,11 @@ def add_reflective_params(gaussians: Gaussians) -> None:
     gaussians.params["roughness"] = torch.nn.Parameter(torch.zeros((n, 1), device=device))
 
 
-def gaussian_normals(quats: Tensor, scales: Tensor) -> Tensor:
-    """Unit normals [N, 3]: the rotation's column of each Gaussian's shortest axis (sign arbitrary)."""
+def gaussian_normals(quats: Tensor, scales: Tensor, fused: bool = True) -> Tensor:
+    """Unit normals [N, 3]: the rotation's column of each Gaussian's shortest axis (sign arbitrary). For CPU
+    tensors the numba kernels of :mod:`.fused_normals` unless ``fused`` is False (this torch reference)."""
+    if fused and quats.device.type == "cpu":
+        return gaussian_normals_cpu(quats, scales)
     rotations = quats_to_rotmats(quats)  # [N, 3, 3]
     shortest = scales.detach().argmin(dim=-1)  # [N]
     return torch.gather(rotations, 2, shortest[:, None, None].expand(-1, 3, 1))[..., 0]
@@ -146,7 +150,7 @@ def render(
     channels = [features]
     with_normals = normals or appearance == "reflective"
     if with_normals:
-        n = gaussian_normals(g.quats, g.scales) if world_normals is None else world_normals  # [N, 3] world
+        n = gaussian_normals(g.quats, g.scales, backend != "torch") if world_normals is None else world_normals
         n = torch.where(((n * to_gaussian).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
         channels.append(n @ viewmat[0, :3, :3].T)  # camera frame
     mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"

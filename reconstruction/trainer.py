@@ -250,7 +250,8 @@ class Trainer:
                                                                                self.step // cfg.sh_degree_interval)
         with_depth = cfg.lambda_s > 0 and self.step >= cfg.smoothness_start_iter
         with_normals = cfg.lambda_depth_normal > 0 and self.step >= cfg.depth_normal_start_iter
-        world_normals = shading.gaussian_normals(g.quats, g.scales) if self.use_touch_normals else None
+        world_normals = (shading.gaussian_normals(g.quats, g.scales, self.fused_losses) if self.use_touch_normals
+                         else None)
         out = shading.render(
             g, self.viewmats[view : view + 1], self.Ks[view : view + 1], frame.intrinsics.width,
             frame.intrinsics.height, sh_degree=active_degree, backend=cfg.backend,
@@ -299,8 +300,8 @@ class Trainer:
         if with_normals:
             seen = alpha.detach() > 0.5
             surface = torch.where(seen, losses.expected_depth(out.depth, alpha), torch.zeros_like(alpha))
-            consistency = losses.normal_consistency_loss(
-                out.normal, losses.depth_normals(surface, self.Ks[view]), alpha.detach() * seen
+            consistency = losses.depth_normal_consistency(
+                out.normal, surface, self.Ks[view], alpha.detach() * seen, fused=self.fused_losses
             )  # fmt: skip
             loss = loss + cfg.lambda_depth_normal * consistency
             terms["normals"] = terms["normals"] + consistency.detach()

@@ -121,6 +121,7 @@ def instrumented(timer: PhaseTimer):
         return terms
 
     loss_functions = ("photometric_loss", "backdrop_alpha_loss", "transmittance_loss", "edge_aware_smoothness",
+                      "depth_normal_consistency", "touch_normal_loss", "touch_pixel_normal_loss", "flatten_loss",
                       "visible_touch_pixels", "proximity_mask", "expected_depth", "image_edge_weights", "window_inside")
     patches = [
         (cpu_project._ProjectCPU, "forward", "projection + SH", True),

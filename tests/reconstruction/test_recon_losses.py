@@ -245,6 +245,29 @@ def test_a_planar_depth_map_gives_a_constant_depth_normal():
     assert (n[0] == 0).all() and (n[:, -1] == 0).all()
 
 
+def test_fused_depth_normal_consistency_matches_the_torch_reference_with_its_gradients():
+    """A wavy depth map with an empty corner (normals unknown there and around it), random rendered normals and
+    weights, float64: the fused pass against normal_consistency_loss(depth_normals(...)) through autograd."""
+    g = torch.Generator().manual_seed(2)
+    K = torch.tensor([[60.0, 0, 26], [0, 60.0, 20], [0, 0, 1]], dtype=torch.float64)
+    v, u = torch.meshgrid(torch.arange(40.0, dtype=torch.float64), torch.arange(52.0, dtype=torch.float64),
+                          indexing="ij")
+    depth = 1.0 + 0.2 * torch.sin(u / 7) * torch.cos(v / 5) + 0.01 * torch.rand(40, 52, generator=g, dtype=torch.float64)
+    depth[:5, :8] = 0.0
+    depth.requires_grad_(True)
+    rendered = torch.nn.functional.normalize(torch.randn(40, 52, 3, generator=g, dtype=torch.float64), dim=-1)
+    rendered.requires_grad_(True)
+    weight = torch.rand(40, 52, generator=g, dtype=torch.float64)
+    reference = losses.depth_normal_consistency(rendered, depth, K, weight, fused=False)
+    expected = torch.autograd.grad(reference, (rendered, depth))
+    fused = losses.depth_normal_consistency(rendered, depth, K, weight)
+    got = torch.autograd.grad(fused, (rendered, depth))
+    assert fused.item() == pytest.approx(reference.item(), abs=1e-12)
+    for want, have in zip(expected, got):
+        assert want.abs().max() > 0
+        torch.testing.assert_close(have, want, rtol=0, atol=1e-12 * float(want.abs().max()))
+
+
 def test_the_flattening_loss_is_the_mean_shortest_axis_over_the_scene_scale():
     from tacsplat.reconstruction.losses import flatten_loss
 
