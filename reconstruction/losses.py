@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
 from tacsplat.reconstruction.fused_normals import depth_normal_consistency_cpu
+from tacsplat.reconstruction.fused_smoothness import edge_aware_smoothness_cpu
 from tacsplat.reconstruction.fused_ssim import d_ssim
 from tacsplat.reconstruction.fused_touch import transmittance_cpu
 from tacsplat.reconstruction.gaussians import whitening
@@ -223,12 +224,15 @@ def edge_aware_smoothness(
     proximity: torch.Tensor | None = None,  # [H, W] in [0, 1]
     beta: float = 10.0,
     weights: torch.Tensor | None = None,  # [2, H-4, W-4] from image_edge_weights, instead of image
+    fused: bool = True,
 ) -> torch.Tensor:
     """Eq. 8: mean of |dD/dx| e^{-beta |dI/dx|} + |dD/dy| e^{-beta |dI/dy|}, weighted by 1 - proximity.
 
     Gradients are 5x5 Sobel responses (paper Sec. 4.2.2), normalised so that a
     ramp of slope a per pixel gives a; the image gradient is the mean over
     colour channels. Only pixels whose 5x5 window lies inside the image count.
+    For a CPU depth map the fused kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the torch
+    convolutions below, the reference).
     """
     if weights is None:
         if image is None or depth.ndim != 2 or image.shape[:2] != depth.shape:
@@ -241,6 +245,9 @@ def edge_aware_smoothness(
         raise InvalidInputError(
             f"edge_aware_smoothness: weights {tuple(weights.shape)} do not fit depth {tuple(depth.shape)}"
         )
+    if fused and depth.device.type == "cpu" and not weights.requires_grad:
+        factors = weights if proximity is None else weights * (1.0 - proximity[2:-2, 2:-2].detach())
+        return edge_aware_smoothness_cpu(depth, sobel_kernels_5x5(depth.dtype)[:, 0], factors)
     dx_d, dy_d = _gradients(depth[None])
     term = dx_d[0] * weights[0] + dy_d[0] * weights[1]
     if proximity is not None:

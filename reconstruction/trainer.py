@@ -326,7 +326,8 @@ class Trainer:
             weights = self._smoothness_weights(view, alpha.detach())
             if cfg.smoothness_depth == "expected":
                 depth = losses.expected_depth(depth, alpha)
-            smoothness = losses.edge_aware_smoothness(depth / self.scene_scale, proximity=proximity, weights=weights)
+            smoothness = losses.edge_aware_smoothness(depth / self.scene_scale, proximity=proximity, weights=weights,
+                                                     fused=self.fused_losses)
             loss = loss + cfg.lambda_s * smoothness
             terms["smoothness"] = smoothness.detach()
         terms["loss"] = loss.detach()

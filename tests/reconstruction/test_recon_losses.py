@@ -245,6 +245,23 @@ def test_a_planar_depth_map_gives_a_constant_depth_normal():
     assert (n[0] == 0).all() and (n[:, -1] == 0).all()
 
 
+@pytest.mark.parametrize("with_proximity", [False, True])
+def test_fused_smoothness_matches_the_torch_convolutions_with_its_gradient(with_proximity):
+    g = torch.Generator().manual_seed(4)
+    depth = torch.rand(37, 45, generator=g, dtype=torch.float64)
+    depth[10:25, 10:30] = 0.5  # flat: zero Sobel responses, whose |.| passes no gradient
+    depth.requires_grad_(True)
+    weights = torch.rand(2, 33, 41, generator=g, dtype=torch.float64)
+    proximity = torch.rand(37, 45, generator=g, dtype=torch.float64) if with_proximity else None
+    reference = edge_aware_smoothness(depth, proximity=proximity, weights=weights, fused=False)
+    (expected,) = torch.autograd.grad(reference, depth)
+    fused = edge_aware_smoothness(depth, proximity=proximity, weights=weights)  # CPU: the numba kernels
+    (got,) = torch.autograd.grad(fused, depth)
+    assert fused.item() == pytest.approx(reference.item(), abs=1e-14)
+    torch.testing.assert_close(got, expected, rtol=0, atol=1e-12 * float(expected.abs().max()))
+    assert expected[15:20, 16:24].abs().max() == 0 and got[15:20, 16:24].abs().max() == 0
+
+
 def test_fused_depth_normal_consistency_matches_the_torch_reference_with_its_gradients():
     """A wavy depth map with an empty corner (normals unknown there and around it), random rendered normals and
     weights, float64: the fused pass against normal_consistency_loss(depth_normals(...)) through autograd."""
