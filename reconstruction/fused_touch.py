@@ -1,4 +1,5 @@
-"""``transmittance_cpu(...)``: the tactile transmittance loss (paper Eq. 6-7) fused in numba for CPU tensors.
+"""The touch losses fused in numba for CPU tensors: ``transmittance_cpu`` (paper Eq. 6-7) and
+``touch_normal_cpu`` (the tactile normals' alignment, :func:`.losses.touch_normal_loss`).
 
 Same value and gradients as the torch reference :func:`.losses.transmittance_loss_torch` (which CUDA
 tensors use): for each touch point, the influence f alpha (Eq. 1) of each candidate Gaussian in reach, the
@@ -124,6 +125,74 @@ def _sum_rows(candidates, chosen, rows, v_means, v_quats, v_scales, v_opacities)
             v_opacities[g] += rows[p, c, 10]
 
 
+@nb.njit(parallel=True, cache=True)
+def _normal_forward(points, normals_t, means, normals, opacities, candidates, max_d2, per_point, weight_sums):
+    """Per touch point with a known normal: the opacity-weighted mean over its candidates in reach of
+    1 - |<Gaussian normal, tactile normal>| (``per_point``) and the weights' sum (``weight_sums``)."""
+    n_points, n_cand = candidates.shape
+    for p in nb.prange(n_points):
+        tx, ty, tz = float(normals_t[p, 0]), float(normals_t[p, 1]), float(normals_t[p, 2])
+        total = weights = 0.0
+        if math.isfinite(tx) and math.isfinite(ty) and math.isfinite(tz):
+            for c in range(n_cand):
+                g = candidates[p, c]
+                if g < 0:
+                    continue
+                ox = float(means[g, 0]) - float(points[p, 0])
+                oy = float(means[g, 1]) - float(points[p, 1])
+                oz = float(means[g, 2]) - float(points[p, 2])
+                if ox * ox + oy * oy + oz * oz > max_d2:
+                    continue
+                w = float(opacities[g])
+                total += w * (1.0 - abs(normals[g, 0] * tx + normals[g, 1] * ty + normals[g, 2] * tz))
+                weights += w
+        weight_sums[p] = weights
+        per_point[p] = total / max(weights, 1e-12)
+
+
+@nb.njit(parallel=True, cache=True)
+def _normal_pair_gradients(points, normals_t, means, normals, opacities, candidates, max_d2, per_point,
+                           weight_sums, point_scale, rows):  # fmt: skip
+    """rows[p, c] = d loss / d (Gaussian normal (3), opacity) of pair (p, c); the loss weighs T_n(p) by
+    ``point_scale[p]``."""
+    n_points, n_cand = candidates.shape
+    for p in nb.prange(n_points):
+        tx, ty, tz = float(normals_t[p, 0]), float(normals_t[p, 1]), float(normals_t[p, 2])
+        denominator = max(weight_sums[p], 1e-12)
+        for c in range(n_cand):
+            for j in range(4):
+                rows[p, c, j] = 0.0
+            g = candidates[p, c]
+            if point_scale[p] == 0.0 or g < 0:
+                continue
+            ox = float(means[g, 0]) - float(points[p, 0])
+            oy = float(means[g, 1]) - float(points[p, 1])
+            oz = float(means[g, 2]) - float(points[p, 2])
+            if ox * ox + oy * oy + oz * oz > max_d2:
+                continue
+            dot = normals[g, 0] * tx + normals[g, 1] * ty + normals[g, 2] * tz
+            w = float(opacities[g])
+            sign = 1.0 if dot > 0.0 else -1.0 if dot < 0.0 else 0.0
+            factor = -point_scale[p] * w / denominator * sign  # d / d normal = factor * target
+            rows[p, c, 0], rows[p, c, 1], rows[p, c, 2] = factor * tx, factor * ty, factor * tz
+            # per_point = sum w m / max(sum w, 1e-12): d / d w = m / denominator - per_point / denominator
+            passes = 1.0 if weight_sums[p] >= 1e-12 else 0.0
+            rows[p, c, 3] = point_scale[p] * ((1.0 - abs(dot)) - passes * per_point[p]) / denominator
+
+
+@nb.njit(cache=True)
+def _sum_normal_rows(candidates, rows, v_normals, v_opacities):
+    """Each Gaussian's gradient: the sum of its pairs' rows (serial)."""
+    for p in range(candidates.shape[0]):
+        for c in range(candidates.shape[1]):
+            g = candidates[p, c]
+            if g < 0:
+                continue
+            for j in range(3):
+                v_normals[g, j] += rows[p, c, j]
+            v_opacities[g] += rows[p, c, 3]
+
+
 def _numpy(x: torch.Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().numpy())
 
@@ -152,6 +221,36 @@ class _TransmittanceCPU(torch.autograd.Function):
         _sum_rows(candidates, chosen, rows, *v)
         v_means, v_quats, v_scales, v_opacities = (torch.from_numpy(a.astype(means.dtype)) for a in v)
         return None, v_means, v_quats, v_scales, v_opacities, None, None, None, None
+
+
+class _TouchNormalCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, points, touch_normals, means, normals, opacities, candidates, max_distance):
+        arrays = tuple(_numpy(t) for t in (points, touch_normals, means, normals, opacities, candidates))
+        n_points = candidates.shape[0]
+        per_point, weight_sums = np.empty(n_points), np.empty(n_points)
+        _normal_forward(*arrays, float(max_distance) ** 2, per_point, weight_sums)
+        counted = weight_sums > 0
+        n_counted = max(int(counted.sum()), 1)
+        ctx.arrays, ctx.max_d2 = arrays, float(max_distance) ** 2
+        ctx.per_point, ctx.weight_sums, ctx.point_scale = per_point, weight_sums, counted / n_counted
+        return torch.tensor((per_point * counted).sum() / n_counted, dtype=means.dtype)
+
+    @staticmethod
+    def backward(ctx, grad):
+        points, touch_normals, means, normals, opacities, candidates = ctx.arrays
+        rows = np.empty(candidates.shape + (4,))
+        _normal_pair_gradients(points, touch_normals, means, normals, opacities, candidates, ctx.max_d2,
+                               ctx.per_point, ctx.weight_sums, float(grad) * ctx.point_scale, rows)  # fmt: skip
+        v_normals, v_opacities = np.zeros(normals.shape), np.zeros(opacities.shape)
+        _sum_normal_rows(candidates, rows, v_normals, v_opacities)
+        return (None, None, None, torch.from_numpy(v_normals.astype(normals.dtype)),
+                torch.from_numpy(v_opacities.astype(opacities.dtype)), None, None)
+
+
+def touch_normal_cpu(points, touch_normals, means, normals, opacities, candidates, max_distance):
+    """The tactile-normal loss of CPU tensors (see :func:`.losses.touch_normal_loss`)."""
+    return _TouchNormalCPU.apply(points, touch_normals, means, normals, opacities, candidates, max_distance)
 
 
 def transmittance_cpu(points, means, quats, scales, opacities, candidates, top_k, max_distance, max_mahalanobis):

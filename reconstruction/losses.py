@@ -20,7 +20,7 @@ from tacsplat.errors import InvalidInputError
 from tacsplat.reconstruction.fused_normals import depth_normal_consistency_cpu
 from tacsplat.reconstruction.fused_smoothness import edge_aware_smoothness_cpu
 from tacsplat.reconstruction.fused_ssim import d_ssim
-from tacsplat.reconstruction.fused_touch import transmittance_cpu
+from tacsplat.reconstruction.fused_touch import touch_normal_cpu, transmittance_cpu
 from tacsplat.reconstruction.gaussians import whitening
 
 
@@ -404,9 +404,13 @@ def touch_normal_loss(
     opacities: torch.Tensor,  # [N]
     candidates: torch.Tensor,  # [P, C] long, -1 = none
     max_distance: float,
+    fused: bool = True,
 ) -> torch.Tensor:
     """Tactile normals: 1 - |<Gaussian normal, touched surface normal>| averaged over each touch point's candidate
-    G_t within ``max_distance`` (weighted by opacity), then over the touch points with a known normal."""
+    G_t within ``max_distance`` (weighted by opacity), then over the touch points with a known normal. For CPU
+    tensors the fused kernels of :mod:`.fused_touch` unless ``fused`` is False (the torch below, the reference)."""
+    if fused and means.device.type == "cpu":
+        return touch_normal_cpu(touch_points, touch_normals, means, normals, opacities, candidates, max_distance)
     ids = candidates.clamp_min(0)
     known = torch.isfinite(touch_normals).all(dim=1)  # [P]
     target = torch.nan_to_num(touch_normals)

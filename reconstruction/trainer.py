@@ -289,7 +289,7 @@ class Trainer:
             if self.use_touch_normals:
                 aligned = losses.touch_normal_loss(
                     points, normals, g.means, world_normals, g.opacities.detach(),
-                    candidates, cfg.touch_max_distance,
+                    candidates, cfg.touch_max_distance, fused=self.fused_losses,
                 )  # fmt: skip
                 loss = loss + cfg.lambda_touch_normal * aligned
                 terms["normals"] = terms["normals"] + aligned.detach()

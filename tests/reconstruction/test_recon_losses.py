@@ -104,6 +104,25 @@ def test_fused_transmittance_matches_the_torch_reference_in_value_and_every_grad
         torch.testing.assert_close(have, 2.0 * want, rtol=0, atol=tol * float(want.abs().max()), msg=name)
 
 
+@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
+def test_fused_touch_normal_loss_matches_the_torch_reference_in_value_and_gradients(dtype, tol):
+    touch, means, _, _, opacities, ids = _touch_cluster(dtype)
+    g = torch.Generator().manual_seed(9)
+    normals = torch.nn.functional.normalize(torch.randn(len(means), 3, generator=g, dtype=dtype), dim=-1)
+    targets = torch.nn.functional.normalize(torch.randn(len(touch), 3, generator=g, dtype=dtype), dim=-1)
+    targets[3] = float("nan")  # a touch without a normal is skipped
+    params = [normals.requires_grad_(True), opacities.requires_grad_(True)]
+    reference = losses.touch_normal_loss(touch, targets, means, *params, ids, 0.006, fused=False)
+    expected = torch.autograd.grad(reference, params)
+    fused = losses.touch_normal_loss(touch, targets, means, *params, ids, 0.006)
+    got = torch.autograd.grad(fused, params)
+    assert 0.1 < reference.item() < 1.0
+    assert fused.item() == pytest.approx(reference.item(), abs=tol)
+    for want, have in zip(expected, got):
+        assert want.abs().max() > 0
+        torch.testing.assert_close(have, want, rtol=0, atol=tol * float(want.abs().max()))
+
+
 def test_fused_transmittance_gradient_is_the_float64_finite_difference():
     touch, means, quats, scales, opacities, ids = _touch_cluster(torch.float64, n=40, points=8, candidates=6)
     for param in (means, quats, scales, opacities):
