@@ -92,7 +92,9 @@ def _pair_gradients(points, means, quats, scales, opacities, candidates, chosen,
             alpha = float(opacities[g])
             v_influence = -scale_per_point[p]  # d loss / d (f alpha)
             rows[p, c, 10] = v_influence * f
-            v_m = -0.5 * f * alpha * v_influence if m <= max_m else 0.0  # the clamp passes no gradient
+            if not m <= max_m:  # clamped (or a zero scale's infinite offset): no gradient but the opacity's
+                continue
+            v_m = -0.5 * f * alpha * v_influence
             vl = (2.0 * lx * v_m, 2.0 * ly * v_m, 2.0 * lz * v_m)  # d / d local
             s = (float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2]))
             a0, a1, a2 = vl[0] / s[0], vl[1] / s[1], vl[2] / s[2]  # d / d (R^T o)

@@ -123,6 +123,21 @@ def test_fused_touch_normal_loss_matches_the_torch_reference_in_value_and_gradie
         torch.testing.assert_close(have, want, rtol=0, atol=tol * float(want.abs().max()))
 
 
+def test_fused_transmittance_stays_finite_for_a_gaussian_with_a_zero_scale():
+    """A collapsed axis puts the point at an infinite Mahalanobis distance: influence exp(-80) alpha, gradients
+    finite (the opacity's only), where the torch reference's 2 * local * 0 is inf * 0 = NaN."""
+    means, quats, scales, opac = _one_gaussian([0.001, 0.0, 0.0], 0.002, 0.5)
+    scales[0, 0] = 0.0
+    params = [p.requires_grad_(True) for p in (means, quats, scales, opac)]
+    loss = transmittance_loss(torch.zeros(1, 3, dtype=torch.float64), *params, torch.tensor([[0]]), top_k=1,
+                              max_distance=0.01)
+    grads = torch.autograd.grad(loss, params)
+    assert loss.item() == pytest.approx(1.0, abs=1e-30)
+    assert all(torch.isfinite(g).all() for g in grads)
+    assert grads[3].item() == pytest.approx(-math.exp(-80.0), rel=1e-12)
+    assert all(g.abs().max() == 0 for g in grads[:3])
+
+
 def test_fused_transmittance_gradient_is_the_float64_finite_difference():
     touch, means, quats, scales, opacities, ids = _touch_cluster(torch.float64, n=40, points=8, candidates=6)
     for param in (means, quats, scales, opacities):
