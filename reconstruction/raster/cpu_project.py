@@ -23,18 +23,7 @@ _C2_0, _C2_1, _C2_2, _C2_3, _C2_4 = SH_C2
 _C3_0, _C3_1, _C3_2, _C3_3, _C3_4, _C3_5, _C3_6 = SH_C3
 
 
-_CHUNK = 256  # Gaussians per parallel work item (scratch matrices are allocated once per chunk)
-
-
-@nb.njit(cache=True, inline="always")
-def _matmul(a, b, out):
-    """out = a @ b for tiny matrices (no BLAS call)."""
-    for i in range(a.shape[0]):
-        for j in range(b.shape[1]):
-            acc = 0.0
-            for k in range(a.shape[1]):
-                acc += a[i, k] * b[k, j]
-            out[i, j] = acc
+_CHUNK = 256  # Gaussians per parallel work item of a backward (its scratch array is allocated once per chunk)
 
 
 @nb.njit(cache=True, inline="always")
@@ -66,109 +55,104 @@ def _rotation_backward(w, qx, qy, qz, qnorm, vr):
     return (v_w - w * dot) / qnorm, (v_x - qx * dot) / qnorm, (v_y - qy * dot) / qnorm, (v_z - qz * dot) / qnorm
 
 
+@nb.njit(cache=True, inline="always")
+def _mul3(a, b):
+    """a @ b of 3x3 matrices held as row-major 9-tuples (in registers, not arrays)."""
+    return (
+        a[0] * b[0] + a[1] * b[3] + a[2] * b[6], a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
+        a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
+        a[3] * b[0] + a[4] * b[3] + a[5] * b[6], a[3] * b[1] + a[4] * b[4] + a[5] * b[7],
+        a[3] * b[2] + a[4] * b[5] + a[5] * b[8],
+        a[6] * b[0] + a[7] * b[3] + a[8] * b[6], a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
+        a[6] * b[2] + a[7] * b[5] + a[8] * b[8],
+    )  # fmt: skip
+
+
+@nb.njit(cache=True, inline="always")
+def _transpose3(a):
+    return a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]
+
+
 @nb.njit(parallel=True, cache=True)
 def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
                      means2d, conics, depths, radii):  # fmt: skip
     """EWA projection of every (camera, Gaussian); culled ones get zeros. viewmats, Ks: float64."""
     n_cams, n = means2d.shape[0], means2d.shape[1]
     margin = FOV_CLAMP - 1.0
-    for chunk in nb.prange((n + _CHUNK - 1) // _CHUNK):
-        m = np.empty((3, 3))
-        cov = np.empty((3, 3))
-        tmp = np.empty((3, 3))
-        cov_c = np.empty((3, 3))
-        j = np.zeros((2, 3))
-        jc = np.empty((2, 3))
-        cov2d = np.empty((2, 2))
-        for g in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
-            r00, r01, r02, r10, r11, r12, r20, r21, r22, _, _, _, _, _ = _rotation(
-                float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
-            )
-            sx, sy, sz = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
-            m[0, 0], m[0, 1], m[0, 2] = r00 * sx, r01 * sy, r02 * sz
-            m[1, 0], m[1, 1], m[1, 2] = r10 * sx, r11 * sy, r12 * sz
-            m[2, 0], m[2, 1], m[2, 2] = r20 * sx, r21 * sy, r22 * sz
-            _matmul(m, m.T, cov)
-            opac = float(opacities[g])
-            px, py, pz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
-            for c in range(n_cams):
-                rv = viewmats[c]
-                x = rv[0, 0] * px + rv[0, 1] * py + rv[0, 2] * pz + rv[0, 3]
-                y = rv[1, 0] * px + rv[1, 1] * py + rv[1, 2] * pz + rv[1, 3]
-                z = rv[2, 0] * px + rv[2, 1] * py + rv[2, 2] * pz + rv[2, 3]
-                means2d[c, g, 0] = means2d[c, g, 1] = 0.0
-                conics[c, g, 0] = conics[c, g, 1] = conics[c, g, 2] = 0.0
-                depths[c, g] = 0.0
-                radii[c, g, 0] = radii[c, g, 1] = 0
-                if not (z >= near and z <= far):
-                    continue
-                fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
-                tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
-                lim_xp, lim_xn = (width - cx) / fx + margin * tan_fovx, cx / fx + margin * tan_fovx
-                lim_yp, lim_yn = (height - cy) / fy + margin * tan_fovy, cy / fy + margin * tan_fovy
-                rz = 1.0 / z
-                ux = min(lim_xp, max(-lim_xn, x * rz))
-                uy = min(lim_yp, max(-lim_yn, y * rz))
-                _matmul(rv[:3, :3], cov, tmp)
-                _matmul(tmp, rv[:3, :3].T, cov_c)
-                j[0, 0], j[0, 2] = fx * rz, -fx * ux * rz
-                j[1, 1], j[1, 2] = fy * rz, -fy * uy * rz
-                _matmul(j, cov_c, jc)
-                _matmul(jc, j.T, cov2d)
-                a, b, cc = cov2d[0, 0] + eps2d, cov2d[0, 1], cov2d[1, 1] + eps2d
-                det = a * cc - b * b
-                if not det > 0 or opac < ALPHA_THRESHOLD:
-                    continue
-                extend = min(GAUSSIAN_EXTEND, math.sqrt(2.0 * math.log(opac / ALPHA_THRESHOLD)))
-                rad_x, rad_y = math.ceil(extend * math.sqrt(a)), math.ceil(extend * math.sqrt(cc))
-                if rad_x <= radius_clip and rad_y <= radius_clip:
-                    continue
-                mx, my = fx * x * rz + cx, fy * y * rz + cy
-                if mx + rad_x <= 0 or mx - rad_x >= width or my + rad_y <= 0 or my - rad_y >= height:
-                    continue
-                if not (math.isfinite(rad_x) and math.isfinite(rad_y)):
-                    continue
-                means2d[c, g, 0], means2d[c, g, 1] = mx, my
-                conics[c, g, 0], conics[c, g, 1], conics[c, g, 2] = cc / det, -b / det, a / det
-                depths[c, g] = z
-                radii[c, g, 0], radii[c, g, 1] = min(rad_x, 2.0**30), min(rad_y, 2.0**30)
+    for g in nb.prange(n):
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, _, _, _, _, _ = _rotation(
+            float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
+        )
+        sx, sy, sz = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
+        m = (r00 * sx, r01 * sy, r02 * sz, r10 * sx, r11 * sy, r12 * sz, r20 * sx, r21 * sy, r22 * sz)
+        cov = _mul3(m, _transpose3(m))
+        opac = float(opacities[g])
+        px, py, pz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+        for c in range(n_cams):
+            rv = viewmats[c]
+            x = rv[0, 0] * px + rv[0, 1] * py + rv[0, 2] * pz + rv[0, 3]
+            y = rv[1, 0] * px + rv[1, 1] * py + rv[1, 2] * pz + rv[1, 3]
+            z = rv[2, 0] * px + rv[2, 1] * py + rv[2, 2] * pz + rv[2, 3]
+            means2d[c, g, 0] = means2d[c, g, 1] = 0.0
+            conics[c, g, 0] = conics[c, g, 1] = conics[c, g, 2] = 0.0
+            depths[c, g] = 0.0
+            radii[c, g, 0] = radii[c, g, 1] = 0
+            if not (z >= near and z <= far):
+                continue
+            fx, fy, cx, cy = Ks[c, 0, 0], Ks[c, 1, 1], Ks[c, 0, 2], Ks[c, 1, 2]
+            tan_fovx, tan_fovy = 0.5 * width / fx, 0.5 * height / fy
+            lim_xp, lim_xn = (width - cx) / fx + margin * tan_fovx, cx / fx + margin * tan_fovx
+            lim_yp, lim_yn = (height - cy) / fy + margin * tan_fovy, cy / fy + margin * tan_fovy
+            rz = 1.0 / z
+            ux = min(lim_xp, max(-lim_xn, x * rz))
+            uy = min(lim_yp, max(-lim_yn, y * rz))
+            rot = (rv[0, 0], rv[0, 1], rv[0, 2], rv[1, 0], rv[1, 1], rv[1, 2], rv[2, 0], rv[2, 1], rv[2, 2])
+            cc_ = _mul3(_mul3(rot, cov), _transpose3(rot))  # the camera-frame covariance
+            # cov2d = J cov_c J^T with J = [[j00, 0, j02], [0, j11, j12]]
+            j00, j02 = fx * rz, -fx * ux * rz
+            j11, j12 = fy * rz, -fy * uy * rz
+            jc00, jc01, jc02 = j00 * cc_[0] + j02 * cc_[6], j00 * cc_[1] + j02 * cc_[7], j00 * cc_[2] + j02 * cc_[8]
+            jc11, jc12 = j11 * cc_[4] + j12 * cc_[7], j11 * cc_[5] + j12 * cc_[8]
+            a = jc00 * j00 + jc02 * j02 + eps2d
+            b = jc01 * j11 + jc02 * j12
+            cc = jc11 * j11 + jc12 * j12 + eps2d
+            det = a * cc - b * b
+            if not det > 0 or opac < ALPHA_THRESHOLD:
+                continue
+            extend = min(GAUSSIAN_EXTEND, math.sqrt(2.0 * math.log(opac / ALPHA_THRESHOLD)))
+            rad_x, rad_y = math.ceil(extend * math.sqrt(a)), math.ceil(extend * math.sqrt(cc))
+            if rad_x <= radius_clip and rad_y <= radius_clip:
+                continue
+            mx, my = fx * x * rz + cx, fy * y * rz + cy
+            if mx + rad_x <= 0 or mx - rad_x >= width or my + rad_y <= 0 or my - rad_y >= height:
+                continue
+            if not (math.isfinite(rad_x) and math.isfinite(rad_y)):
+                continue
+            means2d[c, g, 0], means2d[c, g, 1] = mx, my
+            conics[c, g, 0], conics[c, g, 1], conics[c, g, 2] = cc / det, -b / det, a / det
+            depths[c, g] = z
+            radii[c, g, 0], radii[c, g, 1] = min(rad_x, 2.0**30), min(rad_y, 2.0**30)
 
 
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
 def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
                       v_means2d, v_conics, v_depths, v_means, v_quats, v_scales):  # fmt: skip
-    """Gradients of means2d, conics and depths w.r.t. means, quats and scales (summed over cameras)."""
+    """Gradients of means2d, conics and depths w.r.t. means, quats and scales (summed over cameras); the small
+    matrices are 9-tuples (J's two zeros left out), so they stay in registers."""
     n_cams, n = v_means2d.shape[0], v_means2d.shape[1]
     margin = FOV_CLAMP - 1.0
     for chunk in nb.prange((n + _CHUNK - 1) // _CHUNK):
-        rot = np.empty((3, 3))
-        m = np.empty((3, 3))
-        cov = np.empty((3, 3))
-        tmp = np.empty((3, 3))
-        cov_c = np.empty((3, 3))
-        v_cov = np.empty((3, 3))
-        v_cov_c = np.empty((3, 3))
-        v_m = np.empty((3, 3))
-        j = np.zeros((2, 3))
-        jc = np.empty((2, 3))
-        t23 = np.empty((2, 3))
-        v2 = np.zeros((2, 2))
-        v2s = np.zeros((2, 2))
-        v_j = np.empty((2, 3))
+        vr = np.empty((3, 3))
         for g in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
             r00, r01, r02, r10, r11, r12, r20, r21, r22, w, qx, qy, qz, qnorm = _rotation(
                 float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
             )
-            rot[0, 0], rot[0, 1], rot[0, 2] = r00, r01, r02
-            rot[1, 0], rot[1, 1], rot[1, 2] = r10, r11, r12
-            rot[2, 0], rot[2, 1], rot[2, 2] = r20, r21, r22
-            for r in range(3):
-                for k in range(3):
-                    m[r, k] = rot[r, k] * float(scales[g, k])
-                    v_cov[r, k] = 0.0
-            _matmul(m, m.T, cov)
+            sx, sy, sz = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
+            m = (r00 * sx, r01 * sy, r02 * sz, r10 * sx, r11 * sy, r12 * sz, r20 * sx, r21 * sy, r22 * sz)
+            cov = _mul3(m, _transpose3(m))
             px, py, pz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
             vm0 = vm1 = vm2 = 0.0
+            v_cov = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
             for c in range(n_cams):
                 if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
                     continue
@@ -185,61 +169,69 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
                 clamp_x = ux < -lim_xn or ux > lim_xp
                 clamp_y = uy < -lim_yn or uy > lim_yp
                 ux, uy = min(lim_xp, max(-lim_xn, ux)), min(lim_yp, max(-lim_yn, uy))
-                _matmul(rv[:3, :3], cov, tmp)
-                _matmul(tmp, rv[:3, :3].T, cov_c)
-                j[0, 0], j[0, 2] = fx * rz, -fx * ux * rz
-                j[1, 1], j[1, 2] = fy * rz, -fy * uy * rz
-                _matmul(j, cov_c, jc)
-                a = jc[0, 0] * j[0, 0] + jc[0, 1] * j[0, 1] + jc[0, 2] * j[0, 2] + eps2d
-                b = jc[0, 0] * j[1, 0] + jc[0, 1] * j[1, 1] + jc[0, 2] * j[1, 2]
-                cc = jc[1, 0] * j[1, 0] + jc[1, 1] * j[1, 1] + jc[1, 2] * j[1, 2] + eps2d
+                rot = (rv[0, 0], rv[0, 1], rv[0, 2], rv[1, 0], rv[1, 1], rv[1, 2], rv[2, 0], rv[2, 1], rv[2, 2])
+                cc_ = _mul3(_mul3(rot, cov), _transpose3(rot))  # the camera-frame covariance
+                # J = [[j00, 0, j02], [0, j11, j12]]
+                j00, j02 = fx * rz, -fx * ux * rz
+                j11, j12 = fy * rz, -fy * uy * rz
+                jc00, jc01, jc02 = j00 * cc_[0] + j02 * cc_[6], j00 * cc_[1] + j02 * cc_[7], j00 * cc_[2] + j02 * cc_[8]
+                jc10, jc11, jc12 = j11 * cc_[3] + j12 * cc_[6], j11 * cc_[4] + j12 * cc_[7], j11 * cc_[5] + j12 * cc_[8]
+                a = jc00 * j00 + jc02 * j02 + eps2d
+                b = jc01 * j11 + jc02 * j12
+                cc = jc11 * j11 + jc12 * j12 + eps2d
                 det = a * cc - b * b
                 # conic = (cc, -b, a) / det
                 pa, pb, pc = float(v_conics[c, g, 0]), float(v_conics[c, g, 1]), float(v_conics[c, g, 2])
                 inv, inv2 = 1.0 / det, 1.0 / (det * det)
-                v2[0, 0] = pa * (-cc * cc * inv2) + pb * (b * cc * inv2) + pc * (inv - a * cc * inv2)
-                v2[0, 1] = pa * (2.0 * b * cc * inv2) + pb * (-inv - 2.0 * b * b * inv2) + pc * (2.0 * a * b * inv2)
-                v2[1, 1] = pa * (inv - a * cc * inv2) + pb * (a * b * inv2) + pc * (-a * a * inv2)
-                # cov2d = J cov_c J^T, only its [0,0], [0,1], [1,1] entries are used
-                _matmul(v2, j, t23)
-                _matmul(j.T, t23, v_cov_c)
-                v2s[0, 0], v2s[1, 1] = 2.0 * v2[0, 0], 2.0 * v2[1, 1]
-                v2s[0, 1] = v2s[1, 0] = v2[0, 1]
-                _matmul(v2s, jc, v_j)  # (V + V^T) J cov_c, cov_c symmetric
-                _matmul(rv[:3, :3].T, v_cov_c, tmp)
-                for r in range(3):
-                    for k in range(3):
-                        v_cov[r, k] += tmp[r, 0] * rv[0, k] + tmp[r, 1] * rv[1, k] + tmp[r, 2] * rv[2, k]
+                va = pa * (-cc * cc * inv2) + pb * (b * cc * inv2) + pc * (inv - a * cc * inv2)
+                vb = pa * (2.0 * b * cc * inv2) + pb * (-inv - 2.0 * b * b * inv2) + pc * (2.0 * a * b * inv2)
+                vc = pa * (inv - a * cc * inv2) + pb * (a * b * inv2) + pc * (-a * a * inv2)
+                # d / d cov_c = J^T V J with V = [[va, vb], [0, vc]] (cov2d's [0, 1] entry stands for both)
+                t0, t1, t2 = va * j00, vb * j11, va * j02 + vb * j12  # V J, first row
+                u1, u2 = vc * j11, vc * j12  # second row (its first entry is 0)
+                v_cov_c = (j00 * t0, j00 * t1, j00 * t2, 0.0, j11 * u1, j11 * u2,
+                           j02 * t0, j02 * t1 + j12 * u1, j02 * t2 + j12 * u2)  # fmt: skip
+                contribution = _mul3(_mul3(_transpose3(rot), v_cov_c), rot)
+                v_cov = (v_cov[0] + contribution[0], v_cov[1] + contribution[1], v_cov[2] + contribution[2],
+                         v_cov[3] + contribution[3], v_cov[4] + contribution[4], v_cov[5] + contribution[5],
+                         v_cov[6] + contribution[6], v_cov[7] + contribution[7], v_cov[8] + contribution[8])  # fmt: skip
+                # d / d J = (V + V^T) J cov_c: only the entries J depends on
+                vj00 = 2.0 * va * jc00 + vb * jc10
+                vj02 = 2.0 * va * jc02 + vb * jc12
+                vj11 = vb * jc01 + 2.0 * vc * jc11
+                vj12 = vb * jc02 + 2.0 * vc * jc12
                 vmx, vmy = float(v_means2d[c, g, 0]), float(v_means2d[c, g, 1])
                 v_x = vmx * fx * rz
                 v_y = vmy * fy * rz
                 v_z = -(vmx * fx * x + vmy * fy * y) * rz * rz + float(v_depths[c, g])
-                v_z += -(v_j[0, 0] * fx + v_j[1, 1] * fy) * rz * rz
+                v_z += -(vj00 * fx + vj11 * fy) * rz * rz
                 # J02 = -fx * ux / z with ux = clamp(x / z), likewise J12
                 if clamp_x:
-                    v_z += v_j[0, 2] * fx * ux * rz * rz
+                    v_z += vj02 * fx * ux * rz * rz
                 else:
-                    v_x += v_j[0, 2] * (-fx * rz * rz)
-                    v_z += v_j[0, 2] * 2.0 * fx * x * rz * rz * rz
+                    v_x += vj02 * (-fx * rz * rz)
+                    v_z += vj02 * 2.0 * fx * x * rz * rz * rz
                 if clamp_y:
-                    v_z += v_j[1, 2] * fy * uy * rz * rz
+                    v_z += vj12 * fy * uy * rz * rz
                 else:
-                    v_y += v_j[1, 2] * (-fy * rz * rz)
-                    v_z += v_j[1, 2] * 2.0 * fy * y * rz * rz * rz
+                    v_y += vj12 * (-fy * rz * rz)
+                    v_z += vj12 * 2.0 * fy * y * rz * rz * rz
                 vm0 += rv[0, 0] * v_x + rv[1, 0] * v_y + rv[2, 0] * v_z
                 vm1 += rv[0, 1] * v_x + rv[1, 1] * v_y + rv[2, 1] * v_z
                 vm2 += rv[0, 2] * v_x + rv[1, 2] * v_y + rv[2, 2] * v_z
             v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
-            # covariance = M M^T with M = R diag(s)
-            for r in range(3):
-                for k in range(3):
-                    tmp[r, k] = v_cov[r, k] + v_cov[k, r]
-            _matmul(tmp, m, v_m)
+            # covariance = M M^T with M = R diag(s): d / d M = (V + V^T) M
+            sym = _transpose3(v_cov)
+            sym = (v_cov[0] + sym[0], v_cov[1] + sym[1], v_cov[2] + sym[2], v_cov[3] + sym[3], v_cov[4] + sym[4],
+                   v_cov[5] + sym[5], v_cov[6] + sym[6], v_cov[7] + sym[7], v_cov[8] + sym[8])  # fmt: skip
+            v_m = _mul3(sym, m)
+            rot_g = (r00, r01, r02, r10, r11, r12, r20, r21, r22)
+            s3 = (sx, sy, sz)
             for k in range(3):
-                v_scales[g, k] = v_m[0, k] * rot[0, k] + v_m[1, k] * rot[1, k] + v_m[2, k] * rot[2, k]
+                v_scales[g, k] = v_m[k] * rot_g[k] + v_m[3 + k] * rot_g[3 + k] + v_m[6 + k] * rot_g[6 + k]
                 for r in range(3):
-                    v_m[r, k] *= float(scales[g, k])  # now d loss / d R
-            v_quats[g, 0], v_quats[g, 1], v_quats[g, 2], v_quats[g, 3] = _rotation_backward(w, qx, qy, qz, qnorm, v_m)
+                    vr[r, k] = v_m[3 * r + k] * s3[k]  # d loss / d R
+            v_quats[g, 0], v_quats[g, 1], v_quats[g, 2], v_quats[g, 3] = _rotation_backward(w, qx, qy, qz, qnorm, vr)
 
 
 @nb.njit(cache=True, inline="always")
