@@ -17,7 +17,7 @@ import numba as nb
 import numpy as np
 import torch
 
-from tacsplat.reconstruction.raster.cpu_project import _CHUNK, _rotation, _rotation_backward
+from tacsplat.reconstruction.raster.cpu_project import _CHUNK, _np, _rotation, _rotation_backward
 
 
 @nb.njit(cache=True, inline="always")
@@ -61,7 +61,7 @@ def _backward(quats, scales, v_normals, v_quats):
 class _GaussianNormalsCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, quats, scales):
-        q, s = (np.ascontiguousarray(t.detach().numpy()) for t in (quats, scales))
+        q, s = _np(quats), _np(scales)
         normals = np.empty((q.shape[0], 3), q.dtype)
         _forward(q, s, normals)
         ctx.arrays = (q, s)
@@ -71,7 +71,7 @@ class _GaussianNormalsCPU(torch.autograd.Function):
     def backward(ctx, v_normals):
         q, s = ctx.arrays
         v_quats = np.empty_like(q)
-        _backward(q, s, np.ascontiguousarray(v_normals.numpy()), v_quats)
+        _backward(q, s, _np(v_normals), v_quats)
         return torch.from_numpy(v_quats), None
 
 
@@ -182,7 +182,7 @@ def _pixel_rays(K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.
 class _DepthNormalConsistencyCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, normal, depth, K, weight):
-        arrays = tuple(np.ascontiguousarray(t.detach().numpy()) for t in (normal, depth, weight))
+        arrays = tuple(_np(t) for t in (normal, depth, weight))
         rx, ry = _pixel_rays(K.detach().double().numpy(), depth.shape[1], depth.shape[0])
         sums = np.zeros((depth.shape[0], 2))
         _consistency_forward(arrays[0], arrays[1], arrays[2], rx, ry, sums)

@@ -3,8 +3,8 @@
 Same value and gradient as the torch reference in :func:`.losses.edge_aware_smoothness` (5x5 Sobel responses
 of the depth, 'valid' region, weighted by the image factors and by 1 - the touch proximity, averaged), without
 torch's convolution backward, which at one channel costs more than the rest of the loss: the forward
-correlates each valid pixel's window with both kernels, the backward gathers each depth pixel's share from
-the windows that contain it (the adjoint of the correlation).
+correlates each valid pixel's window with both kernels and keeps the responses, the backward gathers each
+depth pixel's share of their signs from the windows that contain it (the adjoint of the correlation).
 """
 
 from __future__ import annotations
@@ -13,11 +13,13 @@ import numba as nb
 import numpy as np
 import torch
 
+from tacsplat.reconstruction.raster.cpu_project import _np
+
 
 @nb.njit(parallel=True, cache=True)
-def _forward(depth, kernels, factors, rows):
-    """rows[i] = sum over valid row i of |Sx * D| f_x + |Sy * D| f_y (``factors`` [2, H-4, W-4] already include
-    1 - proximity)."""
+def _forward(depth, kernels, factors, responses, rows):
+    """The Sobel responses of every valid pixel into ``responses`` [2, H-4, W-4] and rows[i] = the sum over valid
+    row i of |Sx * D| f_x + |Sy * D| f_y (``factors`` [2, H-4, W-4] already include 1 - proximity)."""
     out_h, out_w = factors.shape[1], factors.shape[2]
     for i in nb.prange(out_h):
         total = 0.0
@@ -28,26 +30,17 @@ def _forward(depth, kernels, factors, rows):
                     d = float(depth[i + u, j + v])
                     gx += kernels[0, u, v] * d
                     gy += kernels[1, u, v] * d
+            responses[0, i, j], responses[1, i, j] = gx, gy
             total += abs(gx) * factors[0, i, j] + abs(gy) * factors[1, i, j]
         rows[i] = total
 
 
 @nb.njit(parallel=True, cache=True)
-def _backward(depth, kernels, factors, scale, signed, v_depth):
-    """v_depth = scale times the adjoint correlation of the signed factors (``signed`` [2, H-4, W-4] is scratch:
-    sign(S * D) f for each kernel)."""
-    out_h, out_w = factors.shape[1], factors.shape[2]
-    for i in nb.prange(out_h):
-        for j in range(out_w):
-            gx = gy = 0.0
-            for u in range(5):
-                for v in range(5):
-                    d = float(depth[i + u, j + v])
-                    gx += kernels[0, u, v] * d
-                    gy += kernels[1, u, v] * d
-            signed[0, i, j] = (1.0 if gx > 0.0 else -1.0 if gx < 0.0 else 0.0) * factors[0, i, j] * scale
-            signed[1, i, j] = (1.0 if gy > 0.0 else -1.0 if gy < 0.0 else 0.0) * factors[1, i, j] * scale
-    height, width = depth.shape
+def _adjoint(kernels, signed, v_depth):
+    """v_depth [H, W] = the adjoint of the valid correlation with both kernels applied to ``signed``
+    [2, H-4, W-4]: each depth pixel gathers from the windows that contain it."""
+    out_h, out_w = signed.shape[1], signed.shape[2]
+    height, width = v_depth.shape
     for a in nb.prange(height):
         for b in range(width):
             total = 0.0
@@ -60,19 +53,21 @@ def _backward(depth, kernels, factors, scale, signed, v_depth):
 class _SmoothnessCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, depth, kernels, factors):
-        arrays = tuple(np.ascontiguousarray(t.detach().numpy()) for t in (depth, kernels, factors))
-        rows = np.empty(factors.shape[1])
-        _forward(*arrays, rows)
-        ctx.arrays = arrays
-        return torch.tensor(rows.sum() / (factors.shape[1] * factors.shape[2]), dtype=depth.dtype)
+        d, k, f = (_np(t) for t in (depth, kernels, factors))
+        responses = np.empty(f.shape)
+        rows = np.empty(f.shape[1])
+        _forward(d, k, f, responses, rows)
+        ctx.arrays, ctx.shape, ctx.dtype = (k, f, responses), d.shape, d.dtype
+        return torch.tensor(rows.sum() / (f.shape[1] * f.shape[2]), dtype=depth.dtype)
 
     @staticmethod
     def backward(ctx, grad):
-        depth, kernels, factors = ctx.arrays
-        v_depth = np.empty(depth.shape, np.float64)
-        scale = float(grad) / (factors.shape[1] * factors.shape[2])
-        _backward(depth, kernels, factors, scale, np.empty(factors.shape, np.float64), v_depth)
-        return torch.from_numpy(v_depth.astype(depth.dtype)), None, None
+        kernels, factors, responses = ctx.arrays
+        # |r| passes sign(r) (0 at 0, as torch's abs does), times the factor and the mean's 1 / count
+        signed = np.sign(responses) * factors * (float(grad) / (factors.shape[1] * factors.shape[2]))
+        v_depth = np.empty(ctx.shape)
+        _adjoint(kernels, signed, v_depth)
+        return torch.from_numpy(v_depth.astype(ctx.dtype)), None, None
 
 
 def edge_aware_smoothness_cpu(depth: torch.Tensor, kernels: torch.Tensor, factors: torch.Tensor) -> torch.Tensor:

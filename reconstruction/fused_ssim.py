@@ -10,6 +10,8 @@ symmetric blur is its own adjoint) and combined, d/dx = blur(dS/dmu_x) + 2 x blu
 
 from __future__ import annotations
 
+import functools
+
 import numba as nb
 import numpy as np
 import torch
@@ -96,6 +98,12 @@ def _combine(x, y, blurred_partials, scale, out):
                                         + y[c, i, j] * blurred_partials[2 * k + c, i, j])  # fmt: skip
 
 
+@functools.lru_cache(maxsize=None)
+def _window(dtype: np.dtype) -> np.ndarray:
+    """The metric's 1D Gaussian window in ``dtype``, made once per dtype (a training step reuses it)."""
+    return _gaussian_window(WINDOW, SIGMA, torch.zeros(1, dtype=torch.float64)).numpy().astype(dtype)
+
+
 def _channel_major(images: torch.Tensor) -> np.ndarray:
     """[B, H, W, C] -> contiguous [B * C, H, W] numpy."""
     b, h, w, c = images.shape
@@ -107,7 +115,7 @@ class _DSSIMCPU(torch.autograd.Function):
     def forward(ctx, rendered, target):  # [B, H, W, C] each, same dtype
         x, y = _channel_major(rendered), _channel_major(target)
         dtype = x.dtype
-        g = _gaussian_window(WINDOW, SIGMA, torch.zeros(1, dtype=torch.float64)).numpy().astype(dtype)
+        g = _window(dtype)
         moments = np.empty((5 * x.shape[0],) + x.shape[1:], dtype)
         _moment_maps(x, y, moments)
         blurred = np.empty_like(moments)

@@ -18,7 +18,7 @@ import numba as nb
 import numpy as np
 import torch
 
-from tacsplat.reconstruction.raster.cpu_project import _rotation, _rotation_backward
+from tacsplat.reconstruction.raster.cpu_project import _np, _rotation, _rotation_backward
 
 N_ROW = 11  # per (point, candidate) gradient: mean (3), quaternion (4), scale (3), opacity (1)
 
@@ -112,19 +112,24 @@ def _pair_gradients(points, means, quats, scales, opacities, candidates, chosen,
 
 
 @nb.njit(cache=True)
-def _sum_rows(candidates, chosen, rows, v_means, v_quats, v_scales, v_opacities):
-    """Each Gaussian's gradient: the sum of its chosen pairs' rows (serial: a Gaussian is many points' candidate)."""
+def _sum_rows(candidates, counted, rows, out):
+    """out[g] = the sum of rows[p, c] over the ``counted`` pairs whose candidate is Gaussian g (serial: a Gaussian
+    is many points' candidate)."""
     for p in range(candidates.shape[0]):
         for c in range(candidates.shape[1]):
-            if not chosen[p, c]:
-                continue
             g = candidates[p, c]
-            for j in range(3):
-                v_means[g, j] += rows[p, c, j]
-                v_scales[g, j] += rows[p, c, 7 + j]
-            for j in range(4):
-                v_quats[g, j] += rows[p, c, 3 + j]
-            v_opacities[g] += rows[p, c, 10]
+            if g >= 0 and counted[p, c]:
+                for j in range(out.shape[1]):
+                    out[g, j] += rows[p, c, j]
+
+
+@nb.njit(cache=True, inline="always")
+def _in_reach(points, means, p, g, max_d2):
+    """Whether Gaussian g's mean lies within sqrt(max_d2) of touch point p."""
+    ox = float(means[g, 0]) - float(points[p, 0])
+    oy = float(means[g, 1]) - float(points[p, 1])
+    oz = float(means[g, 2]) - float(points[p, 2])
+    return ox * ox + oy * oy + oz * oz <= max_d2
 
 
 @nb.njit(parallel=True, cache=True)
@@ -138,12 +143,7 @@ def _normal_forward(points, normals_t, means, normals, opacities, candidates, ma
         if math.isfinite(tx) and math.isfinite(ty) and math.isfinite(tz):
             for c in range(n_cand):
                 g = candidates[p, c]
-                if g < 0:
-                    continue
-                ox = float(means[g, 0]) - float(points[p, 0])
-                oy = float(means[g, 1]) - float(points[p, 1])
-                oz = float(means[g, 2]) - float(points[p, 2])
-                if ox * ox + oy * oy + oz * oz > max_d2:
+                if g < 0 or not _in_reach(points, means, p, g, max_d2):
                     continue
                 w = float(opacities[g])
                 total += w * (1.0 - abs(normals[g, 0] * tx + normals[g, 1] * ty + normals[g, 2] * tz))
@@ -165,12 +165,7 @@ def _normal_pair_gradients(points, normals_t, means, normals, opacities, candida
             for j in range(4):
                 rows[p, c, j] = 0.0
             g = candidates[p, c]
-            if point_scale[p] == 0.0 or g < 0:
-                continue
-            ox = float(means[g, 0]) - float(points[p, 0])
-            oy = float(means[g, 1]) - float(points[p, 1])
-            oz = float(means[g, 2]) - float(points[p, 2])
-            if ox * ox + oy * oy + oz * oz > max_d2:
+            if point_scale[p] == 0.0 or g < 0 or not _in_reach(points, means, p, g, max_d2):
                 continue
             dot = normals[g, 0] * tx + normals[g, 1] * ty + normals[g, 2] * tz
             w = float(opacities[g])
@@ -182,27 +177,10 @@ def _normal_pair_gradients(points, normals_t, means, normals, opacities, candida
             rows[p, c, 3] = point_scale[p] * ((1.0 - abs(dot)) - passes * per_point[p]) / denominator
 
 
-@nb.njit(cache=True)
-def _sum_normal_rows(candidates, rows, v_normals, v_opacities):
-    """Each Gaussian's gradient: the sum of its pairs' rows (serial)."""
-    for p in range(candidates.shape[0]):
-        for c in range(candidates.shape[1]):
-            g = candidates[p, c]
-            if g < 0:
-                continue
-            for j in range(3):
-                v_normals[g, j] += rows[p, c, j]
-            v_opacities[g] += rows[p, c, 3]
-
-
-def _numpy(x: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(x.detach().numpy())
-
-
 class _TransmittanceCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, points, means, quats, scales, opacities, candidates, top_k, max_distance, max_mahalanobis):
-        arrays = tuple(_numpy(t) for t in (points, means, quats, scales, opacities, candidates))
+        arrays = tuple(_np(t) for t in (points, means, quats, scales, opacities, candidates))
         n_points = candidates.shape[0]
         chosen = np.empty(candidates.shape, np.bool_)
         per_point = np.empty(n_points, np.float64)
@@ -219,16 +197,16 @@ class _TransmittanceCPU(torch.autograd.Function):
         rows = np.empty(candidates.shape + (N_ROW,), np.float64)
         _pair_gradients(points, means, quats, scales, opacities, candidates, chosen, scale_per_point, ctx.max_m,
                         rows)  # fmt: skip
-        v = [np.zeros(a.shape, np.float64) for a in (means, quats, scales, opacities)]
-        _sum_rows(candidates, chosen, rows, *v)
-        v_means, v_quats, v_scales, v_opacities = (torch.from_numpy(a.astype(means.dtype)) for a in v)
-        return None, v_means, v_quats, v_scales, v_opacities, None, None, None, None
+        summed = np.zeros((len(means), N_ROW))
+        _sum_rows(candidates, chosen, rows, summed)
+        v = torch.from_numpy(summed.astype(means.dtype))
+        return None, v[:, 0:3], v[:, 3:7], v[:, 7:10], v[:, 10], None, None, None, None
 
 
 class _TouchNormalCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, points, touch_normals, means, normals, opacities, candidates, max_distance):
-        arrays = tuple(_numpy(t) for t in (points, touch_normals, means, normals, opacities, candidates))
+        arrays = tuple(_np(t) for t in (points, touch_normals, means, normals, opacities, candidates))
         n_points = candidates.shape[0]
         per_point, weight_sums = np.empty(n_points), np.empty(n_points)
         _normal_forward(*arrays, float(max_distance) ** 2, per_point, weight_sums)
@@ -244,10 +222,10 @@ class _TouchNormalCPU(torch.autograd.Function):
         rows = np.empty(candidates.shape + (4,))
         _normal_pair_gradients(points, touch_normals, means, normals, opacities, candidates, ctx.max_d2,
                                ctx.per_point, ctx.weight_sums, float(grad) * ctx.point_scale, rows)  # fmt: skip
-        v_normals, v_opacities = np.zeros(normals.shape), np.zeros(opacities.shape)
-        _sum_normal_rows(candidates, rows, v_normals, v_opacities)
-        return (None, None, None, torch.from_numpy(v_normals.astype(normals.dtype)),
-                torch.from_numpy(v_opacities.astype(opacities.dtype)), None, None)
+        summed = np.zeros((len(normals), 4))
+        _sum_rows(candidates, candidates >= 0, rows, summed)
+        v = torch.from_numpy(summed.astype(normals.dtype))
+        return None, None, None, v[:, 0:3], v[:, 3], None, None
 
 
 def touch_normal_cpu(points, touch_normals, means, normals, opacities, candidates, max_distance):

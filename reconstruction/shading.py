@@ -43,6 +43,12 @@ def add_reflective_params(gaussians: Gaussians) -> None:
     gaussians.params["roughness"] = torch.nn.Parameter(torch.zeros((n, 1), device=device))
 
 
+def fused_kernels(backend: str) -> bool:
+    """Whether the fused CPU kernels (the Gaussians' normals, the losses) run for CPU tensors: on every backend
+    but ``"torch"``, which stays the pure-PyTorch reference end to end."""
+    return backend != "torch"
+
+
 def gaussian_normals(quats: Tensor, scales: Tensor, fused: bool = True) -> Tensor:
     """Unit normals [N, 3]: the rotation's column of each Gaussian's shortest axis (sign arbitrary). For CPU
     tensors the numba kernels of :mod:`.fused_normals` unless ``fused`` is False (this torch reference)."""
@@ -150,7 +156,7 @@ def render(
     channels = [features]
     with_normals = normals or appearance == "reflective"
     if with_normals:
-        n = gaussian_normals(g.quats, g.scales, backend != "torch") if world_normals is None else world_normals
+        n = gaussian_normals(g.quats, g.scales, fused_kernels(backend)) if world_normals is None else world_normals
         n = torch.where(((n * to_gaussian).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
         channels.append(n @ viewmat[0, :3, :3].T)  # camera frame
     mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"

@@ -135,7 +135,7 @@ class Trainer:
                 touch_normals = scene.touch_normals()[kept]
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
         self.use_touch_normals = len(self.touch_points) > 0 and config.lambda_touch_normal > 0
-        self.fused_losses = config.backend != "torch"  # the torch backend is the reference: torch losses too
+        self.fused_losses = shading.fused_kernels(config.backend)
         self.neighbours = (
             losses.TouchNeighbours(
                 self.touch_points, config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every
