@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -24,8 +24,8 @@ from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
-    chamfer_distance,
-    chamfer_distance_split,
+    ReferenceCloud,
+    chamfer_distance_parts,
     chamfer_terms_paper,
     depth_to_points,
     psnr,
@@ -101,11 +101,22 @@ class GroundTruth:
     shared: np.ndarray | None = None  # [M, 3] one cloud for every view (a GT point cloud given by path)
     surface: np.ndarray | None = None  # [S, 3] cd_paper's ground truth: points on the whole object surface
     seen: dict[int, np.ndarray] | None = None  # frame id -> [M] bool: the point is in a training camera's view
+    _references: dict = field(default_factory=dict, repr=False, compare=False)  # k-d trees, built once each
 
     def cloud(self, frame_ids: list[int]) -> np.ndarray:
         if self.shared is not None:
             return self.shared
         return np.concatenate([self.points[i] for i in frame_ids if i in self.points] or [np.zeros((0, 3))])
+
+    def reference(self, frame_ids: list[int] | None) -> ReferenceCloud | None:
+        """:meth:`cloud` of ``frame_ids`` (None: :attr:`surface`) with its k-d tree, made on first use and kept;
+        None when that cloud is empty."""
+        key = None if frame_ids is None else tuple(frame_ids)
+        if key not in self._references:
+            cloud = self.surface if key is None else self.cloud(list(key))
+            empty = cloud is None or len(cloud) == 0
+            self._references[key] = None if empty else ReferenceCloud(cloud, self.radius, f"ground truth ({self.source})")
+        return self._references[key]
 
     def seen_mask(self, frame_ids: list[int]) -> np.ndarray | None:
         """[M] bool along :meth:`cloud`: which points a training camera sees; None without a mesh to tell."""
@@ -203,9 +214,11 @@ def evaluate_views(
     ground_truth: GroundTruth | None,
     render_dir: Path | None = None,
     look: Look | None = None,
+    progress: bool = False,
 ) -> dict:
     """PSNR, SSIM over ``frames``, CD and cd_paper against ``ground_truth``, and the mean angle between rendered
     and ground-truth normals (``normal_error_deg``; the ground truth's from its depth maps) (NaN where not available).
+    ``progress``: only what a training's progress row records (PSNR, CD and cd_paper; the rest NaN).
 
     ``cd`` (the design's): expected depth (alpha > 0.5) of the views against their visible ground-truth
     surface, mean distance each way, halved; where the ground truth knows which of that surface the training
@@ -220,14 +233,15 @@ def evaluate_views(
     for f in frames:
         gt_rgb = scene.load_image(f)
         background = torch.from_numpy(background_image(gt_rgb, background_colour))
-        view = render_frame(gaussians, f, background, backend, with_depth=True, with_normals=True, look=look)
+        view = render_frame(gaussians, f, background, backend, with_depth=True, with_normals=not progress, look=look)
         rgb, depth = view.rgb, view.depth
         gt_depth = scene.gt_depth(f)
-        if gt_depth is not None:
+        if gt_depth is not None and not progress:
             gt_normal = losses.depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(f.intrinsics.K))
             angles.append(normal_error_degrees(view.normal, gt_normal.numpy()))
         psnrs.append(psnr(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
-        ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
+        if not progress:
+            ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         predicted.append(depth_to_points(depth, f.intrinsics.K, f.T_world_cam))
         if ground_truth is not None and ground_truth.surface is not None:
             median = render_median_depth(gaussians, f, backend)
@@ -237,18 +251,17 @@ def evaluate_views(
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth,
                             None if ground_truth is None else ground_truth.radius, seen)
     cd = accuracy = completeness = cd_seen = cd_unseen = unseen_fraction = float("nan")
-    gt_cloud = None if ground_truth is None else ground_truth.cloud([f.id for f in frames])
-    if gt_cloud is not None and len(gt_cloud):
-        cd = chamfer_distance(np.concatenate(predicted), gt_cloud, ground_truth.radius)
-        seen = ground_truth.seen_mask([f.id for f in frames])
+    reference = None if ground_truth is None else ground_truth.reference([f.id for f in frames])
+    if reference is not None:
+        seen = None if progress else ground_truth.seen_mask([f.id for f in frames])
+        cd, cd_seen, cd_unseen = chamfer_distance_parts(np.concatenate(predicted), reference, seen)
         if seen is not None:
-            cd_seen, cd_unseen = chamfer_distance_split(np.concatenate(predicted), gt_cloud, seen, ground_truth.radius)
             unseen_fraction = 1.0 - float(seen.mean())
     if predicted_median:
         cloud = np.concatenate(predicted_median)
         if len(cloud) > PAPER_MAX_POINTS:
             cloud = cloud[np.random.default_rng(0).choice(len(cloud), PAPER_MAX_POINTS, replace=False)]
-        accuracy, completeness = chamfer_terms_paper(cloud, ground_truth.surface, ground_truth.radius)
+        accuracy, completeness = chamfer_terms_paper(cloud, ground_truth.reference(None))
     return {
         "psnr": float(np.mean(psnrs)) if psnrs else float("nan"),
         "ssim": float(np.mean(ssims)) if ssims else float("nan"),

@@ -113,41 +113,55 @@ def bounding_sphere_radius(points: np.ndarray) -> float:
     return float(radius)
 
 
+class ReferenceCloud:
+    """A ground-truth cloud [M, 3] divided by its ``radius``, with its k-d tree built once: every Chamfer function
+    below takes one in place of the array, so that evaluations against the same ground truth (a training's
+    progress rows) do not rebuild the tree each time."""
+
+    def __init__(self, points: np.ndarray, radius: float, name: str = "ground truth"):
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if len(points) == 0:
+            raise InvalidInputError(f"{name}: the ground-truth cloud is empty")
+        if not np.isfinite(points).all():
+            raise InvalidInputError(f"{name}: point clouds contain NaN or infinite values")
+        if not radius > 0:
+            raise InvalidInputError(f"{name}: radius must be positive, got {radius}")
+        self.radius = float(radius)
+        self.points = points / self.radius  # [M, 3]
+        self.tree = cKDTree(self.points)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
 def _nearest_distances(predicted, ground_truth, radius: float, name: str
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Nearest-neighbour distances pred -> gt (with the index of each predicted point's nearest ground-truth
-    point) and gt -> pred of both clouds divided by ``radius``; None if the predicted cloud is empty."""
+    point) and gt -> pred of both clouds divided by ``radius`` (a :class:`ReferenceCloud` brings its own);
+    None if the predicted cloud is empty."""
+    reference = ground_truth if isinstance(ground_truth, ReferenceCloud) else ReferenceCloud(ground_truth, radius, name)
     predicted = np.asarray(predicted, dtype=np.float64).reshape(-1, 3)
-    ground_truth = np.asarray(ground_truth, dtype=np.float64).reshape(-1, 3)
-    if len(ground_truth) == 0:
-        raise InvalidInputError(f"{name}: the ground-truth cloud is empty")
-    if not (np.isfinite(predicted).all() and np.isfinite(ground_truth).all()):
+    if not np.isfinite(predicted).all():
         raise InvalidInputError(f"{name}: point clouds contain NaN or infinite values")
-    if not radius > 0:
-        raise InvalidInputError(f"{name}: radius must be positive, got {radius}")
     if len(predicted) == 0:
         return None
-    pred, gt = predicted / radius, ground_truth / radius
-    d_pred_to_gt, nearest_gt = cKDTree(gt).query(pred, workers=-1)
-    d_gt_to_pred, _ = cKDTree(pred).query(gt, workers=-1)
+    pred = predicted / reference.radius
+    d_pred_to_gt, nearest_gt = reference.tree.query(pred, workers=-1)
+    d_gt_to_pred, _ = cKDTree(pred).query(reference.points, workers=-1)
     return d_pred_to_gt, nearest_gt, d_gt_to_pred
 
 
-def chamfer_distance(predicted: np.ndarray, ground_truth: np.ndarray, radius: float = 1.0) -> float:
+def chamfer_distance(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud, radius: float = 1.0) -> float:
     """Symmetric Chamfer distance of the design: the mean nearest-neighbour distance each way, halved.
 
     Both clouds ([N, 3], [M, 3]) are divided by ``radius`` (the ground-truth
     object's bounding-sphere radius) first, so the result is in units of it.
     An empty predicted cloud gives ``inf``.
     """
-    distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_distance")
-    if distances is None:
-        return float("inf")
-    d_pred_to_gt, _, d_gt_to_pred = distances
-    return 0.5 * (float(d_pred_to_gt.mean()) + float(d_gt_to_pred.mean()))
+    return chamfer_distance_parts(predicted, ground_truth, None, radius, "chamfer_distance")[0]
 
 
-def chamfer_distance_split(predicted: np.ndarray, ground_truth: np.ndarray, part: np.ndarray,
+def chamfer_distance_split(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud, part: np.ndarray,
                            radius: float = 1.0) -> tuple[float, float]:
     """:func:`chamfer_distance` of two parts of the ground truth: ``part`` [M] bool marks its points in the first.
 
@@ -156,26 +170,38 @@ def chamfer_distance_split(predicted: np.ndarray, ground_truth: np.ndarray, part
     and of its ground-truth points to the prediction, halved. NaN for a part with no ground-truth point;
     ``inf`` both for an empty prediction.
     """
-    part = np.asarray(part, dtype=bool).reshape(-1)
-    n_gt = np.asarray(ground_truth).reshape(-1, 3).shape[0]
-    if len(part) != n_gt:
-        raise InvalidInputError(f"chamfer_distance_split: part has {len(part)} entries for {n_gt} ground-truth points")
-    distances = _nearest_distances(predicted, ground_truth, radius, "chamfer_distance_split")
+    _, first, second = chamfer_distance_parts(predicted, ground_truth, part, radius, "chamfer_distance_split")
+    return first, second
+
+
+def chamfer_distance_parts(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud,
+                           part: np.ndarray | None, radius: float = 1.0, name: str = "chamfer_distance_parts"
+                           ) -> tuple[float, float, float]:
+    """:func:`chamfer_distance` and, with ``part``, :func:`chamfer_distance_split` from one nearest-neighbour
+    search: ``(cd, cd of part, cd of the rest)`` (the last two NaN without ``part``)."""
+    n_gt = len(ground_truth) if isinstance(ground_truth, ReferenceCloud) else np.asarray(ground_truth).reshape(-1, 3).shape[0]
+    if part is not None:
+        part = np.asarray(part, dtype=bool).reshape(-1)
+        if len(part) != n_gt:
+            raise InvalidInputError(f"{name}: part has {len(part)} entries for {n_gt} ground-truth points")
+    distances = _nearest_distances(predicted, ground_truth, radius, name)
     if distances is None:
-        return float("inf"), float("inf")
+        return float("inf"), float("inf"), float("inf")
     d_pred_to_gt, nearest_gt, d_gt_to_pred = distances
-    result = []
-    for gt_mask in (part, ~part):
+    result = [0.5 * (float(d_pred_to_gt.mean()) + float(d_gt_to_pred.mean()))]
+    for gt_mask in () if part is None else (part, ~part):
         if not gt_mask.any():
             result.append(float("nan"))
             continue
         pred_mask = gt_mask[nearest_gt]
         accuracy = float(d_pred_to_gt[pred_mask].mean()) if pred_mask.any() else 0.0
         result.append(0.5 * (accuracy + float(d_gt_to_pred[gt_mask].mean())))
-    return result[0], result[1]
+    if part is None:
+        result += [float("nan"), float("nan")]
+    return result[0], result[1], result[2]
 
 
-def chamfer_terms_paper(predicted: np.ndarray, ground_truth: np.ndarray, radius: float = 1.0) -> tuple[float, float]:
+def chamfer_terms_paper(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud, radius: float = 1.0) -> tuple[float, float]:
     """The paper's Chamfer distance (its official code: pytorch3d's ``chamfer_distance`` at its defaults) as its
     two summands: the mean SQUARED nearest-neighbour distance each way (no root, no halving); ``cd_paper`` is
     their sum. Accuracy: from each predicted point to the ground truth; completeness: from each ground-truth

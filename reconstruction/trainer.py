@@ -380,7 +380,7 @@ class Trainer:
                 self._ground_truth = load_ground_truth(self.scene, self.test_frames) or False
             metrics = evaluate_views(
                 self.gaussians, self.scene, frames, cfg.background, cfg.backend, self._ground_truth or None,
-                look=self.look,
+                look=self.look, progress=True,
             )
             psnr_value, cd_value, cd_paper = metrics["psnr"], metrics["cd"], metrics["cd_paper"]
         n = max(self._sum_count, 1)

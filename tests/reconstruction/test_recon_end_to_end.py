@@ -66,6 +66,10 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds)
+    # the last progress row (all test views: there are fewer than eval_max_views) is the final evaluation's
+    assert len(Scene.load(sphere_scene).split("test")) <= TrainConfig().eval_max_views
+    for key in ("psnr", "cd", "cd_paper"):
+        assert float(rows[-1][key]) == pytest.approx(metrics[key], rel=1e-5)
     assert all(float(r["transmittance"]) > 0 for r in rows[1:])
     saved = json.loads((run / "metrics.json").read_text())
     for key in ("cd", "cd_paper", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians",

@@ -11,8 +11,11 @@ from tacsplat.errors import InvalidInputError, SceneFormatError
 from tacsplat.reconstruction.gaussians import Gaussians, num_sh_bases
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
+    ReferenceCloud,
     chamfer_distance,
+    chamfer_distance_parts,
     chamfer_distance_split,
+    chamfer_terms_paper,
     depth_to_points,
     psnr,
     ssim,
@@ -65,6 +68,26 @@ def test_chamfer_split_gives_each_part_its_own_error():
     assert math.isnan(chamfer_distance_split(predicted, gt, np.ones(len(gt), bool))[1])
     with pytest.raises(InvalidInputError, match="part has 3 entries"):
         chamfer_distance_split(predicted, gt, np.ones(3, bool))
+
+
+def test_a_reference_cloud_reused_gives_what_the_array_gives():
+    rng = np.random.default_rng(3)
+    gt = rng.normal(size=(500, 3))
+    part = gt[:, 0] > 0
+    reference = ReferenceCloud(gt, radius=2.0)
+    for predicted in (gt + 0.01 * rng.normal(size=gt.shape), rng.normal(size=(80, 3))):  # the tree serves both
+        cd, first, second = chamfer_distance_parts(predicted, reference, part)
+        assert cd == chamfer_distance(predicted, gt, radius=2.0)
+        assert (first, second) == chamfer_distance_split(predicted, gt, part, radius=2.0)
+        assert chamfer_terms_paper(predicted, reference) == chamfer_terms_paper(predicted, gt, radius=2.0)
+    assert all(math.isnan(v) for v in chamfer_distance_parts(gt, reference, None)[1:])
+    assert chamfer_distance(np.zeros((0, 3)), reference) == math.inf
+    with pytest.raises(InvalidInputError, match="NaN"):
+        chamfer_distance(gt + np.nan, reference)
+    with pytest.raises(InvalidInputError, match="radius must be positive"):
+        ReferenceCloud(gt, radius=0.0)
+    with pytest.raises(InvalidInputError, match="empty"):
+        ReferenceCloud(np.zeros((0, 3)), radius=1.0)
 
 
 def test_bounding_sphere_radius_of_sphere_points():
