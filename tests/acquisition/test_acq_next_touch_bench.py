@@ -130,7 +130,7 @@ def test_the_executor_options_are_on_the_command(tmp_path, capsys):
          "--retries", "1"])
     assert (args.executor, args.ray_address, args.retries) == ("ray", "head:6379", 1)
     args = build_parser(["bench", "next-touch"]).parse_args(["bench", "next-touch", "--out", str(tmp_path)])
-    assert (args.executor, args.ray_address, args.retries) == ("local", None, RETRIES)
+    assert (args.executor, args.ray_address, args.retries, args.workers) == ("auto", None, RETRIES, None)
     assert main(["bench", "next-touch", "--out", str(tmp_path / "R"), "--ray-address", "head:6379"]) == 2
     assert "--ray-address: runs jobs on a Ray cluster: add --executor ray" in capsys.readouterr().err
     assert not (tmp_path / "R").exists()

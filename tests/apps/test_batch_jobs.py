@@ -160,6 +160,8 @@ def test_batch_command_refuses_a_bad_file_before_writing_anything(tmp_path, caps
 @pytest.mark.parametrize("options, message", [
     (["--ray-address", "127.0.0.1:6379"], "--ray-address: runs jobs on a Ray cluster: add --executor ray"),
     (["--executor", "ray", "--retries", "-1"], "--retries: must be >= 0, got -1"),
+    (["--workers", "0"], "--workers: must be >= 1, got 0"),
+    (["--executor", "local", "--workers", "2"], "--workers: sets the jobs run side by side by --executor processes"),
 ])
 def test_executor_option_mistakes_are_usage_errors(tmp_path, capsys, options, message):
     path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")

@@ -1,0 +1,124 @@
+"""The processes executor: jobs side by side in spawned worker processes of this machine, started in order once
+their needs have finished and while CPUs are free; failures listed while the others finish, a dead worker failing
+only the jobs it ran, the workers' log records reaching this process, and Ctrl-C interrupting the running jobs
+(which keep what they finished) while the queued ones never start."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from tacsplat.apps.executors import FAILURES_CSV, resolve_executor, run_jobs, usable_cpus
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders; spawned
+# workers get this process's sys.path
+
+from batch_test_jobs import FileJob, wait_until  # noqa: E402
+
+
+def read_rows(path: Path) -> list[dict]:
+    with path.open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_jobs_run_side_by_side_in_workers_and_failures_are_listed(tmp_path):
+    # "second" finishes only once "first" has started, and "first" only once "second" has: both must run at once
+    first = FileJob("first", tmp_path / "first", wait_for=tmp_path / "second" / "attempts")
+    second = FileJob("second", tmp_path / "second", wait_for=tmp_path / "first" / "attempts")
+    jobs = [first, second,
+            FileJob("flaky", tmp_path / "flaky", "raise-while-broken"),
+            FileJob("after-flaky", tmp_path / "after-flaky", needs=("flaky",)),
+            FileJob("bad-input", tmp_path / "bad-input", "config-error"),
+            FileJob("after-first", tmp_path / "after-first", needs=("first",))]
+    (tmp_path / "flaky").mkdir()
+    (tmp_path / "flaky" / "broken").touch()
+    finished = []
+    outcome = run_jobs(jobs, tmp_path, executor="processes", workers=2, progress=False,
+                       on_done=lambda job, summary: finished.append(job.name))
+
+    assert sorted(outcome.done) == ["after-first", "first", "second"] and sorted(finished) == sorted(outcome.done)
+    assert finished.index("first") < finished.index("after-first")
+    pids = {job.name: job.attempts() for job in jobs}
+    assert os.getpid() not in pids["first"] + pids["second"] and pids["after-flaky"] == []
+    failures = {r["job"]: r for r in read_rows(tmp_path / FAILURES_CSV)}
+    assert set(failures) == {"flaky", "after-flaky", "bad-input"}
+    assert failures["flaky"]["error"].startswith("RuntimeError: ") and "broken is there" in failures["flaky"]["error"]
+    assert failures["after-flaky"]["error"] == "not run: needs flaky, which failed"
+    assert failures["bad-input"]["error"] == "threshold: must be > 0, got -1"
+
+    (tmp_path / "flaky" / "broken").unlink()
+    rerun = run_jobs(jobs[:4], tmp_path, executor="processes", workers=2, progress=False)
+    assert rerun.skipped == ["first", "second"] and rerun.done == ["flaky", "after-flaky"] and not rerun.failed
+    assert not (tmp_path / FAILURES_CSV).exists()
+
+
+@dataclass(frozen=True)
+class SlowJob(FileJob):
+    def __call__(self) -> dict:
+        time.sleep(0.5)
+        return super().__call__()
+
+
+def test_a_job_wanting_every_cpu_runs_alone(tmp_path):
+    big = SlowJob("big", tmp_path / "big", cpus=2.0)
+    small = FileJob("small", tmp_path / "small")
+    outcome = run_jobs([big, small], tmp_path, executor="processes", workers=2, progress=False)
+    assert outcome.done == ["big", "small"]
+    # side by side, "small" would have started (and logged its attempt) while "big" slept
+    assert (small.folder / "attempts").stat().st_mtime_ns >= (big.folder / "done").stat().st_mtime_ns
+
+
+def test_a_dead_worker_fails_its_job_and_the_rest_go_on(tmp_path):
+    jobs = [FileJob("dies", tmp_path / "dies", "die-once"), FileJob("later", tmp_path / "later")]
+    outcome = run_jobs(jobs, tmp_path, executor="processes", workers=1, progress=False)
+    assert outcome.done == ["later"]
+    assert read_rows(tmp_path / FAILURES_CSV) == [{"job": "dies", "attempts": "1",
+                                                   "error": "its worker process died (out of memory, or killed)"}]
+    assert jobs[0].attempts()[0] != jobs[1].attempts()[0]  # the rest ran in a new worker
+
+
+@dataclass(frozen=True)
+class LoggingJob(FileJob):
+    def __call__(self) -> dict:
+        logging.getLogger("tacsplat.test_worker").warning("hello from %s", self.name)
+        return super().__call__()
+
+
+def test_worker_log_records_reach_this_process(tmp_path, caplog):
+    with caplog.at_level(logging.INFO):
+        run_jobs([LoggingJob("talks", tmp_path / "talks")], tmp_path, executor="processes", progress=False)
+    assert [(r.name, r.getMessage()) for r in caplog.records if r.name == "tacsplat.test_worker"] == [
+        ("tacsplat.test_worker", "hello from talks")]
+
+
+def test_ctrl_c_interrupts_running_jobs_and_keeps_finished_ones(tmp_path):
+    hangs = FileJob("hangs", tmp_path / "hangs", "block")
+    first = FileJob("first", tmp_path / "first", wait_for=hangs.folder / "started")
+    queued = FileJob("queued", tmp_path / "queued")
+
+    def interrupt(job, summary):
+        raise KeyboardInterrupt  # Ctrl-C as the first job finishes
+
+    with pytest.raises(KeyboardInterrupt):
+        run_jobs([hangs, first, queued], tmp_path, executor="processes", workers=2, on_done=interrupt,
+                 progress=False)
+    assert first.complete()
+    assert (hangs.folder / "interrupted").exists()  # the running job got KeyboardInterrupt (and could save)
+    assert not hangs.complete() and queued.attempts() == []
+
+
+def test_auto_is_processes_on_a_cpu_machine_with_cores_to_share(monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_executor("auto") == ("processes" if usable_cpus() >= 2 else "local")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_executor("auto") == "local"
+    assert resolve_executor("ray") == "ray"
