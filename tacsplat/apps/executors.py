@@ -274,23 +274,46 @@ def _run_local(todo: list[Job], batch: _Batch) -> None:
 
 # ---------------------------------------------------------------------- processes
 
-_job_running = False  # in a worker: a job is running (Ctrl-C interrupts it; an idle worker ignores Ctrl-C)
+_job_running = False  # in a worker: a job is running (SIGINT interrupts it; an idle worker ignores SIGINT)
+_batch_pid = 0  # in a worker: the batch's process (the worker's parent until that dies)
+PR_SET_PDEATHSIG = 1  # Linux prctl option: a signal for this process when its parent dies
+
+
+def _orphaned() -> bool:
+    return os.getppid() != _batch_pid
 
 
 def _on_interrupt(signum, frame) -> None:
-    """A worker's SIGINT: KeyboardInterrupt in its job (a training checkpoints), once; nothing while idle."""
+    """A worker's SIGINT: KeyboardInterrupt in its job (a training stops after its step and checkpoints), once;
+    nothing while idle, unless the batch's process is gone (then the worker exits)."""
     global _job_running
     if _job_running:
         _job_running = False
         raise KeyboardInterrupt
+    if _orphaned():
+        os._exit(1)
 
 
-def _start_worker(log_queue, level: int) -> None:
-    """A worker's set-up: its log records go to the batch's process, Ctrl-C as :func:`_on_interrupt` says."""
+def _start_worker(log_queue, level: int, batch_pid: int) -> None:
+    """A worker's set-up: its log records go to the batch's process; it leaves the terminal's process group
+    (a Ctrl-C reaches the batch's process alone, which passes one SIGINT on to each worker: a training stops
+    at the second); on Linux it gets SIGINT when the batch's process dies (killed), so that its job stops as
+    after Ctrl-C and the worker exits instead of running on unseen."""
+    global _batch_pid
+    _batch_pid = batch_pid
     root = logging.getLogger()
     root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
     root.setLevel(level)
     signal.signal(signal.SIGINT, _on_interrupt)
+    os.setpgid(0, 0)
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGINT)
+    except (OSError, AttributeError):  # not Linux: an orphaned worker finishes its job first
+        pass
+    if _orphaned():  # the batch's process died before prctl took effect
+        os._exit(1)
 
 
 def _run_in_worker(job: Job) -> tuple[str, object]:
@@ -311,6 +334,8 @@ def _run_in_worker(job: Job) -> tuple[str, object]:
         return "failed", _describe(exc)
     finally:
         _job_running = False
+        if _orphaned():  # the job has stopped (a training saved its checkpoint); nobody waits for its result
+            os._exit(1)
 
 
 def _run_processes(todo: list[Job], batch: _Batch, workers: int) -> None:
@@ -329,7 +354,8 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
     listener.start()
     running: dict[futures.Future, Job] = {}
     pool = futures.ProcessPoolExecutor(max_workers=min(workers, len(pending)), mp_context=context,
-                                       initializer=_start_worker, initargs=(log_queue, logging.getLogger().level))
+                                       initializer=_start_worker,
+                                       initargs=(log_queue, logging.getLogger().level, os.getpid()))
     try:
         while pending or running:
             for job in list(pending):  # in order: a job waits for its needs, and for CPUs behind earlier jobs
@@ -365,8 +391,8 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
     except KeyboardInterrupt:
         if running:
             log.warning("interrupted: stopping %d running jobs", len(running))
-            for child in multiprocessing.active_children():  # (a Ctrl-C at a terminal reached them already)
-                os.kill(child.pid, signal.SIGINT)
+            for child in multiprocessing.active_children():  # (in their own process group: a Ctrl-C at the
+                os.kill(child.pid, signal.SIGINT)  # terminal reached this process only)
             futures.wait(running, timeout=CANCEL_GRACE_S)  # a training saves its checkpoint
         raise
     finally:

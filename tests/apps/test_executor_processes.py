@@ -8,6 +8,7 @@ from __future__ import annotations
 import csv
 import logging
 import os
+import subprocess
 import sys
 import time
 from dataclasses import dataclass
@@ -122,3 +123,30 @@ def test_auto_is_processes_on_a_cpu_machine_with_cores_to_share(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_executor("auto") == "local"
     assert resolve_executor("ray") == "ray"
+
+
+def test_workers_stop_their_jobs_and_exit_when_the_batch_process_is_killed(tmp_path):
+    hangs = FileJob("hangs", tmp_path / "hangs", "block")
+    script = ("import sys; from pathlib import Path; from batch_test_jobs import FileJob; "
+              "from tacsplat.apps.executors import run_jobs; "
+              f"run_jobs([FileJob('hangs', Path({str(hangs.folder)!r}), 'block')], Path({str(tmp_path)!r}), "
+              "executor='processes', progress=False)")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
+    batch = subprocess.Popen([sys.executable, "-c", script], env=env)
+    try:
+        wait_until((hangs.folder / "started").exists)
+        batch.kill()  # SIGKILL: no chance to clean up
+        batch.wait()
+        wait_until((hangs.folder / "interrupted").exists, timeout_s=10)  # the job got KeyboardInterrupt
+        worker = hangs.attempts()[0]
+        wait_until(lambda: not _alive(worker), timeout_s=10)  # and its worker exited
+    finally:
+        batch.kill()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return Path(f"/proc/{pid}/stat").is_file() and Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
