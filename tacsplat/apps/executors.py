@@ -396,9 +396,9 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
             futures.wait(running, timeout=CANCEL_GRACE_S)  # a training saves its checkpoint
         raise
     finally:
-        pool.shutdown(wait=not running, cancel_futures=True)
-        for child in multiprocessing.active_children():  # workers still busy after the grace period
-            child.terminate()
+        pool.shutdown(wait=False, cancel_futures=True)
+        for child in multiprocessing.active_children():  # idle workers (leaving by themselves takes a second or
+            child.terminate()  # two), or busy ones after the grace period
         listener.stop()
     return []
 
