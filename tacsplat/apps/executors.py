@@ -9,7 +9,8 @@ outputs it reads: they run first, and a job whose need failed is not run.
 Jobs hand each other paths on a filesystem every worker sees, never arrays.
 
 - ``local``: one job after another in this process, in the order given.
-- ``processes``: up to ``workers`` jobs at once (default: this machine's cores, a job taking ``cpus`` of them),
+- ``processes``: up to ``workers`` jobs at once (default: this machine's cores, as far as its memory holds 2 GB
+  for each; a job takes ``cpus`` of them),
   each in a worker process of this machine, started in the order given once its needs have finished. A CPU
   training spends most of a step in single-threaded torch code, so on 2 cores two trainings side by side on
   one core each finish sooner than one after the other on both (``tacsplat demo``: 1.65x the throughput).
@@ -58,6 +59,7 @@ EMBEDDED_OBJECT_STORE_BYTES = 256 * 1024**2  # jobs pass paths and small summari
 POLL_S = 1.0  # progress refresh while waiting for Ray tasks
 PROBE_S = 5.0  # for an answer at --ray-address
 CANCEL_GRACE_S = 10.0  # after Ctrl-C: time for cancelled tasks to stop (a training saves its checkpoint)
+WORKER_MEMORY_BYTES = 2 * 1024**3  # memory a processes-executor worker may need (default_workers)
 
 
 class BatchError(TacsplatError):
@@ -102,7 +104,8 @@ def add_executor_options(parser) -> None:
                         "processes of this machine (--workers); ray: each job a Ray task; auto: processes on a "
                         "machine with 2 or more cores and no CUDA device, else local")
     parser.add_argument("--workers", type=int, default=None,
-                        help="--executor processes: CPUs to fill with jobs (default: this machine's cores)")
+                        help="--executor processes: CPUs to fill with jobs (default: this machine's cores, at most one per "
+                        "2 GB of memory)")
     parser.add_argument("--ray-address", default=None,
                         help="Ray cluster to run on (host:port of `ray start --head`, or auto); default RAY_ADDRESS, "
                         "else an embedded local Ray for this batch (--executor ray)")
@@ -129,6 +132,16 @@ def usable_cpus() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+def default_workers() -> int:
+    """The processes executor's CPUs to fill: :func:`usable_cpus`, but no more workers than the memory holds at
+    :data:`WORKER_MEMORY_BYTES` each (a worker training the demo holds about 0.8 GB)."""
+    try:
+        memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # no sysconf (Windows): cores only
+        return usable_cpus()
+    return max(1, min(usable_cpus(), memory // WORKER_MEMORY_BYTES))
+
+
 def resolve_executor(executor: str) -> str:
     """``auto`` made concrete (see the module docstring); the others unchanged."""
     if executor != "auto":
@@ -145,7 +158,7 @@ def run_jobs(jobs: Sequence[Job], out: str | Path, executor: str = "local", ray_
 
     ``on_done(job, summary)`` runs in this process as each job finishes (to write a report so far); the line it
     returns, if any, is printed. Failures are written to ``out/failures.csv``. ``workers``: the CPUs the
-    ``processes`` executor fills (default :func:`usable_cpus`).
+    ``processes`` executor fills (default :func:`default_workers`).
     """
     if executor not in EXECUTORS:
         raise ConfigError("executor", f"unknown executor {executor!r}; choose from {', '.join(EXECUTORS)}")
@@ -163,7 +176,7 @@ def run_jobs(jobs: Sequence[Job], out: str | Path, executor: str = "local", ray_
         if executor == "local":
             _run_local(todo, batch)
         elif executor == "processes":
-            _run_processes(todo, batch, workers or usable_cpus())
+            _run_processes(todo, batch, workers or default_workers())
         else:
             _run_ray(todo, batch, retries)
     finally:
@@ -305,7 +318,8 @@ def _start_worker(log_queue, level: int, batch_pid: int) -> None:
     root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
     root.setLevel(level)
     signal.signal(signal.SIGINT, _on_interrupt)
-    os.setpgid(0, 0)
+    if hasattr(os, "setpgid"):  # (POSIX)
+        os.setpgid(0, 0)
     try:
         import ctypes
 

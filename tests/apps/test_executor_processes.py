@@ -16,7 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from tacsplat.apps.executors import FAILURES_CSV, resolve_executor, run_jobs, usable_cpus
+from tacsplat.apps import executors
+from tacsplat.apps.executors import FAILURES_CSV, default_workers, resolve_executor, run_jobs, usable_cpus
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders; spawned
 # workers get this process's sys.path
@@ -113,6 +114,17 @@ def test_ctrl_c_interrupts_running_jobs_and_keeps_finished_ones(tmp_path):
     assert first.complete()
     assert (hangs.folder / "interrupted").exists()  # the running job got KeyboardInterrupt (and could save)
     assert not hangs.complete() and queued.attempts() == []
+
+
+def test_default_workers_are_the_cores_the_memory_can_hold(monkeypatch):
+    monkeypatch.setattr(executors, "usable_cpus", lambda: 16)
+    pages = {"SC_PAGE_SIZE": 4096, "SC_PHYS_PAGES": 8 * 1024**3 // 4096}  # 8 GB: 4 workers of 2 GB
+    monkeypatch.setattr(os, "sysconf", pages.__getitem__)
+    assert default_workers() == 4
+    pages["SC_PHYS_PAGES"] = 1024**3 // 4096  # 1 GB: still one
+    assert default_workers() == 1
+    pages["SC_PHYS_PAGES"] = 128 * 1024**3 // 4096
+    assert default_workers() == 16
 
 
 def test_auto_is_processes_on_a_cpu_machine_with_cores_to_share(monkeypatch):
