@@ -128,6 +128,7 @@ class PaperBench:
 
     out: Path
     config: PaperBenchConfig = field(default_factory=PaperBenchConfig)
+    wall_note: str = field(default="", init=False, repr=False)  # how the last run() ran its jobs, for report.md
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -186,8 +187,14 @@ class PaperBench:
         """Capture and train everything not done yet (``executor``: :func:`~tacsplat.apps.executors.run_jobs`'s
         executor, ray_address and retries), writing the report as runs finish; returns the results rows. A
         BatchError at the end when jobs failed (listed in failures.csv)."""
-        from tacsplat.apps.executors import run_jobs
+        from tacsplat.apps.executors import default_workers, resolve_executor, run_jobs
 
+        executor["executor"] = resolve_executor(executor.get("executor", "local"))
+        side_by_side = {"local": None, "ray": "Ray tasks",
+                        "processes": f"up to {executor.get('workers') or default_workers()} worker processes"}
+        how = side_by_side[executor["executor"]]
+        self.wall_note = "" if how is None else (f" (jobs side by side as {how}: a run's train seconds include "
+                                                 "the time it shared the cores)")
         runs = self.runs()
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
@@ -230,7 +237,8 @@ class PaperBench:
 
     def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
         """results.csv, report.md and (``figures``) the plots from the runs on disk."""
-        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures)
+        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures,
+                           self.wall_note)
         return self.out / "report.md"
 
 
@@ -379,9 +387,10 @@ def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarra
 
 
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
-                       wall_seconds: float | None = None, figures: bool = True) -> None:
+                       wall_seconds: float | None = None, figures: bool = True, wall_note: str = "") -> None:
     """Write ``results.csv``, ``report.md`` and (``figures``) CD bar charts, error-vs-time curves and render
-    grids into ``out``; without figures, report.md holds the tables only."""
+    grids into ``out``; without figures, report.md holds the tables only. ``wall_note`` follows the wall time
+    (how the jobs ran)."""
     from tacsplat.apps.report import (
         markdown_table,
         METRICS,
@@ -407,7 +416,7 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         "",
     ]
     if wall_seconds is not None:
-        lines += [f"Wall time of the last invocation: {wall_seconds / 60:.1f} min; "
+        lines += [f"Wall time of the last invocation: {wall_seconds / 60:.1f} min{wall_note}; "
                   f"{len(rows)} of {len(runs)} runs finished.", ""]
     for setting in settings:
         lines += [f"## {setting}", ""]

@@ -326,3 +326,12 @@ def read_results_rows(path):
 
     with open(path) as fh:
         return list(csv.DictReader(fh))
+
+
+def test_the_report_says_how_its_jobs_ran(tmp_path):
+    from tacsplat.apps.paper_bench import PaperBenchConfig, write_paper_report
+
+    note = " (jobs side by side as up to 2 worker processes: a run's train seconds include the time it shared the cores)"
+    write_paper_report(tmp_path, [], [], PaperBenchConfig(), wall_seconds=90.0, figures=False, wall_note=note)
+    assert f"Wall time of the last invocation: 1.5 min{note}; 0 of 0 runs finished." in (
+        tmp_path / "report.md").read_text()
