@@ -12,8 +12,8 @@ Same maths as :func:`.reference.rasterize_to_pixels_torch` (float32):
    widened by 1e-3 pixel, then each pixel tested exactly before any ``exp``),
    compositing front to back with alpha clamped at 0.99, skipped under 1/255,
    and a pixel stopping before its transmittance would reach 1e-4;
-3. backward -- parallel over tiles, back to front, transmittance recovered by
-   dividing by (1 - alpha); no atomics: the thread owning a tile writes one
+3. backward -- parallel over tiles, back to front, over the forward's rows and
+   exp values, transmittance recovered by dividing by (1 - alpha); no atomics: the thread owning a tile writes one
    gradient row per intersection, and a second parallel pass sums the rows of
    each Gaussian. Results are deterministic.
 """
@@ -201,14 +201,15 @@ def _pair_capacity(tile_start, tile_gauss, means2d, conics, limits, width, heigh
 def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
              width, height, tile_size, tiles_x, tiles_per_cam, max_alpha, depths, out_color, out_trans, out_last,
              out_median,
-             tile_pairs, cache_start, vis_cache, pair_start, tile_cached):  # fmt: skip
+             tile_pairs, cache_start, vis_cache, pair_start, tile_cached, spans):  # fmt: skip
     """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T, n_contrib and the
     median depth (the depth of the Gaussian at which T first falls below 0.5, else 0).
 
     ``tile_pairs[t]`` receives the number of pixel-Gaussian pairs evaluated in tile t. For the
     backward, each visited pair's ``exp(-exponent)`` (0 where the pair does not count) goes to
     ``vis_cache`` from ``cache_start[tile_start[t]]`` on, intersection k's first one at
-    ``pair_start[k]``; ``tile_cached[t]`` says whether the tile's pairs fitted.
+    ``pair_start[k]``; ``tile_cached[t]`` says whether the tile's pairs fitted; the columns [x0, x1) of each row
+    it visits go to ``spans[k, row in tile]`` (relative to the tile).
     """
     n_ch = colors.shape[1]
     for t in nb.prange(tile_start.shape[0] - 1):
@@ -241,6 +242,8 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
                 x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
+                spans[k, y - y_lo, 0] = x0 - x_lo
+                spans[k, y - y_lo, 1] = max(x1, x0) - x_lo
                 pairs += max(x1 - x0, 0)
                 if pos + max(x1 - x0, 0) > cache_end:
                     cached = False  # cannot happen with the capacity bound; the backward then recomputes
@@ -285,11 +288,11 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
 def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
               width, height, tile_size, tiles_x, tiles_per_cam, max_alpha, final_trans, last_contrib, v_color, v_alpha,
-              vis_cache, pair_start, tile_cached, rows):  # fmt: skip
+              vis_cache, pair_start, tile_cached, spans, rows):  # fmt: skip
     """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``.
 
-    Pairs read ``exp(-exponent)`` back from the forward's ``vis_cache`` (recomputed where
-    ``tile_cached`` is false).
+    Pairs read ``exp(-exponent)`` back from the forward's ``vis_cache`` and rows their columns from its
+    ``spans`` (both recomputed where ``tile_cached`` is false).
     """
     n_ch = colors.shape[1]
     for t in nb.prange(tile_start.shape[0] - 1):
@@ -334,7 +337,10 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
             pos = pair_start[k]
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
-                x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
+                if use_cache:  # the forward's columns of this row (the same solve, not done twice)
+                    x0, x1 = x_lo + np.int64(spans[k, y - y_lo, 0]), x_lo + np.int64(spans[k, y - y_lo, 1])
+                else:
+                    x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
                     vis = _ZERO
@@ -475,16 +481,18 @@ class _RasterizeCPU(torch.autograd.Function):
         vis_cache = np.empty(int(cache_start[-1]), np.float32)
         pair_start = np.zeros(n_isect, np.int64)
         tile_cached = np.empty(n_cams * tiles_per_cam, np.bool_)
+        # each visited row's columns [x0, x1) within its tile, for the backward
+        spans = np.empty((n_isect, tile_size, 2), np.uint8 if tile_size <= 255 else np.int64)
         with nb.parallel_chunksize(_TILE_CHUNK):
             _forward(tile_start, tile_gauss, m2d, con, opa, limits, col, bgs, width, height, tile_size,
                      tiles_x, tiles_per_cam, F32(max_alpha), dep, out_color.numpy(), out_trans.numpy(), last,
                      out_median.numpy()[..., 0],
-                     tile_pairs, cache_start, vis_cache, pair_start, tile_cached)  # fmt: skip
+                     tile_pairs, cache_start, vis_cache, pair_start, tile_cached, spans)  # fmt: skip
         stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
 
         ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, limits, col, bgs,
                            width, height, tile_size, tiles_x, tiles_per_cam, F32(max_alpha))  # fmt: skip
-        ctx.binning = (gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached)
+        ctx.binning = (gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached, spans)
         ctx.shapes = (n_cams, n, n_ch)
         ctx.has_background = backgrounds is not None
         ctx.save_for_backward(out_trans)
@@ -495,14 +503,14 @@ class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_color, v_alphas, _v_stats, _v_median):
         (out_trans,) = ctx.saved_tensors
-        gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached = ctx.binning
+        gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached, spans = ctx.binning
         n_cams, n, n_ch = ctx.shapes
         v_col = _numpy32(v_color)
         v_alp = _numpy32(v_alphas[..., 0])
         rows = np.empty((gauss_isect.shape[0], N_GRAD + n_ch), np.float32)
         with nb.parallel_chunksize(_TILE_CHUNK):
             _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, vis_cache, pair_start, tile_cached,
-                      rows)  # fmt: skip
+                      spans, rows)  # fmt: skip
         per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
         _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
         grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)

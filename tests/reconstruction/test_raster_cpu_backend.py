@@ -250,10 +250,11 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     cache_start = np.concatenate([[0], np.cumsum(capacity)])
     vis_cache, pair_start = np.empty(int(cache_start[-1]), np.float32), np.zeros(n_isect, np.int64)
     cached = np.empty(n_tiles, np.bool_)
+    spans = np.empty((n_isect, 16, 2), np.uint8)
     trans, last = np.empty((1, height, width), np.float32), np.empty((1, height, width), np.int64)
     rc._forward(*args, proj.depths[0].numpy(), np.empty((1, height, width, 3), np.float32), trans, last,
                 np.empty((1, height, width), np.float32), np.empty(n_tiles, np.int64), cache_start, vis_cache,
-                pair_start, cached)  # fmt: skip
+                pair_start, cached, spans)  # fmt: skip
     assert cached.all()
     v_color = np.random.default_rng(1).standard_normal((1, height, width, 3)).astype(np.float32)
     v_alpha = np.random.default_rng(2).standard_normal((1, height, width)).astype(np.float32)
@@ -261,6 +262,6 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     for use_cache in (True, False):
         rows[use_cache] = np.empty((n_isect, rc.N_GRAD + 3), np.float32)
         rc._backward(*args, trans, last, v_color, v_alpha, vis_cache, pair_start, np.full(n_tiles, use_cache),
-                     rows[use_cache])  # fmt: skip
+                     spans, rows[use_cache])  # fmt: skip
     np.testing.assert_allclose(rows[True], rows[False], rtol=1e-5, atol=1e-6 * np.abs(rows[False]).max())
     assert np.abs(rows[False]).max() > 0
