@@ -56,7 +56,7 @@ FAILURES_CSV = "failures.csv"
 FAILURE_COLUMNS = ("job", "attempts", "error")
 RETRIES = 2  # extra attempts of a Ray task that raised or whose worker died
 EMBEDDED_OBJECT_STORE_BYTES = 256 * 1024**2  # jobs pass paths and small summaries, never arrays
-POLL_S = 1.0  # progress refresh while waiting for Ray tasks
+POLL_S = 1.0  # progress refresh while waiting for Ray tasks or worker processes
 PROBE_S = 5.0  # for an answer at --ray-address
 CANCEL_GRACE_S = 10.0  # after Ctrl-C: time for cancelled tasks to stop (a training saves its checkpoint)
 WORKER_MEMORY_BYTES = 2 * 1024**3  # memory a processes-executor worker may need (default_workers)
@@ -388,7 +388,8 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
             batch.started(j.name for j in running.values())
             if not running:
                 continue
-            done, _ = futures.wait(running, return_when=futures.FIRST_COMPLETED)
+            done, _ = futures.wait(running, timeout=POLL_S, return_when=futures.FIRST_COMPLETED)
+            batch.show()  # (the bar's clock moves while long jobs run)
             for future in done:
                 job = running.pop(future)
                 try:
