@@ -9,12 +9,12 @@ outputs it reads: they run first, and a job whose need failed is not run.
 Jobs hand each other paths on a filesystem every worker sees, never arrays.
 
 - ``local``: one job after another in this process, in the order given.
-- ``processes``: up to ``workers`` jobs at once (default: this machine's cores, as far as its memory holds 2 GB
-  for each; a job takes ``cpus`` of them),
-  each in a worker process of this machine, started in the order given once its needs have finished. A CPU
-  training spends most of a step in single-threaded torch code, so on 2 cores two trainings side by side on
-  one core each finish sooner than one after the other on both (``tacsplat demo``: 1.65x the throughput).
-  The workers' log records reach this process's handlers. A worker that dies fails its job; the rest go on.
+- ``processes``: jobs side by side, each in a worker process of this machine, started in the order given once
+  its needs have finished, filling ``workers`` CPUs (default: this machine's cores, as far as its memory holds
+  2 GB for each; a job takes ``cpus`` of them). A CPU training spends most of a step in single-threaded torch
+  code, so on 2 cores two trainings side by side finish sooner than one after the other on both (two of the
+  demo's: 1.6x the throughput). The workers' log records reach this process's handlers. A worker that dies
+  fails its job; the rest go on.
 - ``auto``: ``processes`` on a machine with at least 2 cores and no CUDA device, else ``local``.
 - ``ray``: every job a Ray task declaring its CPUs (and a GPU where it trains on
   CUDA); a task waits for its needs' tasks (their object refs are its
