@@ -10,6 +10,7 @@ import pytest
 from tacsplat.acquisition.config import load_rig
 from tacsplat.acquisition.operator_session import EXIT_FAULT, run_capture
 from tacsplat.datasets import Scene, check_scene
+from tacsplat.errors import CameraError
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from acq_helpers import ScriptedKeys, write_mock_rig  # noqa: E402
@@ -52,9 +53,18 @@ def test_servo_that_stops_answering_mid_grasp(tmp_path):
     assert [f.split for f in scene.frames] == ["train"] * 3 + ["test"]
 
 
+def _stall_camera(opened) -> None:
+    """The camera hangs; a frame it delivered just before is still there to read (as from a real one): taken
+    here, so that the grasp's read is the one that times out, whatever the timing."""
+    opened["rig"].mock.stall_camera()
+    try:
+        opened["rig"].camera.read()
+    except CameraError:
+        pass
+
+
 def test_camera_that_stops_giving_frames(tmp_path):
-    code, text, mock, rig, out = _capture_with_fault(
-        tmp_path, "\n\ng\n", 2, lambda opened: opened["rig"].mock.stall_camera())
+    code, text, mock, rig, out = _capture_with_fault(tmp_path, "\n\ng\n", 2, _stall_camera)
     assert code == EXIT_FAULT, text
     assert "DEVICE FAULT: wrist camera: no new frame within 1 s" in text, text
     assert f"--out {out} --resume --mock" in text
