@@ -222,7 +222,7 @@ def evaluate_views(
 
     ``cd`` (the design's): expected depth (alpha > 0.5) of the views against their visible ground-truth
     surface, mean distance each way, halved; where the ground truth knows which of that surface the training
-    cameras see, ``cd_seen`` and ``cd_unseen`` split it there (:func:`chamfer_distance_split`) and
+    cameras see, ``cd_seen`` and ``cd_unseen`` split it there (:func:`chamfer_distance_parts`) and
     ``unseen_fraction`` is the share of the surface no training camera sees (nothing but priors and touches
     can place it). ``cd_paper`` (the paper's official code): median depth of the
     views, subsampled to at most ``PAPER_MAX_POINTS`` (fixed seed), against points on the whole ground-truth

@@ -161,24 +161,18 @@ def chamfer_distance(predicted: np.ndarray, ground_truth: np.ndarray | Reference
     return chamfer_distance_parts(predicted, ground_truth, None, radius, "chamfer_distance")[0]
 
 
-def chamfer_distance_split(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud, part: np.ndarray,
-                           radius: float = 1.0) -> tuple[float, float]:
-    """:func:`chamfer_distance` of two parts of the ground truth: ``part`` [M] bool marks its points in the first.
+def chamfer_distance_parts(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud,
+                           part: np.ndarray | None, radius: float = 1.0, name: str = "chamfer_distance_parts"
+                           ) -> tuple[float, float, float]:
+    """:func:`chamfer_distance` and, with ``part`` [M] bool marking ground-truth points, the CD of that part and
+    of the rest, from one nearest-neighbour search: ``(cd, cd of part, cd of the rest)`` (the last two NaN
+    without ``part``).
 
     Each predicted point belongs to the part of its nearest ground-truth point; a part's CD is the mean
     distance of its predicted points to the ground truth (0 when it has none: nothing there to be wrong)
     and of its ground-truth points to the prediction, halved. NaN for a part with no ground-truth point;
-    ``inf`` both for an empty prediction.
+    ``inf`` all three for an empty prediction.
     """
-    _, first, second = chamfer_distance_parts(predicted, ground_truth, part, radius, "chamfer_distance_split")
-    return first, second
-
-
-def chamfer_distance_parts(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud,
-                           part: np.ndarray | None, radius: float = 1.0, name: str = "chamfer_distance_parts"
-                           ) -> tuple[float, float, float]:
-    """:func:`chamfer_distance` and, with ``part``, :func:`chamfer_distance_split` from one nearest-neighbour
-    search: ``(cd, cd of part, cd of the rest)`` (the last two NaN without ``part``)."""
     n_gt = len(ground_truth) if isinstance(ground_truth, ReferenceCloud) else np.asarray(ground_truth).reshape(-1, 3).shape[0]
     if part is not None:
         part = np.asarray(part, dtype=bool).reshape(-1)

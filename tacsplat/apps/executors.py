@@ -151,6 +151,13 @@ def resolve_executor(executor: str) -> str:
     return "processes" if usable_cpus() >= 2 and not torch.cuda.is_available() else "local"
 
 
+def side_by_side(executor: str, workers: int | None = None) -> str | None:
+    """How a resolved executor runs jobs at once ("up to 2 worker processes", "Ray tasks"); None for ``local``
+    (reports say so: a run's train seconds then include the time it shared the cores)."""
+    return {"local": None, "ray": "Ray tasks",
+            "processes": f"up to {workers or default_workers()} worker processes"}[executor]
+
+
 def run_jobs(jobs: Sequence[Job], out: str | Path, executor: str = "local", ray_address: str | None = None,
              retries: int = RETRIES, on_done: Callable[[Job, dict], str | None] | None = None, desc: str = "batch",
              progress: bool = True, workers: int | None = None) -> BatchOutcome:

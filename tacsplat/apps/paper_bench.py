@@ -187,12 +187,10 @@ class PaperBench:
         """Capture and train everything not done yet (``executor``: :func:`~tacsplat.apps.executors.run_jobs`'s
         executor, ray_address and retries), writing the report as runs finish; returns the results rows. A
         BatchError at the end when jobs failed (listed in failures.csv)."""
-        from tacsplat.apps.executors import default_workers, resolve_executor, run_jobs
+        from tacsplat.apps.executors import resolve_executor, run_jobs, side_by_side
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
-        side_by_side = {"local": None, "ray": "Ray tasks",
-                        "processes": f"up to {executor.get('workers') or default_workers()} worker processes"}
-        how = side_by_side[executor["executor"]]
+        how = side_by_side(executor["executor"], executor.get("workers"))
         self.wall_note = "" if how is None else (f" (jobs side by side as {how}: a run's train seconds include "
                                                  "the time it shared the cores)")
         runs = self.runs()
@@ -237,8 +235,7 @@ class PaperBench:
 
     def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
         """results.csv, report.md and (``figures``) the plots from the runs on disk."""
-        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures,
-                           self.wall_note)
+        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures, self.wall_note)
         return self.out / "report.md"
 
 

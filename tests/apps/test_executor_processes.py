@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 
 from tacsplat.apps import executors
-from tacsplat.apps.executors import FAILURES_CSV, default_workers, resolve_executor, run_jobs, usable_cpus
+from tacsplat.apps.executors import (FAILURES_CSV, default_workers, resolve_executor, run_jobs, side_by_side,
+                                     usable_cpus)
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders; spawned
 # workers get this process's sys.path
@@ -135,6 +136,7 @@ def test_auto_is_processes_on_a_cpu_machine_with_cores_to_share(monkeypatch):
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert resolve_executor("auto") == "local"
     assert resolve_executor("ray") == "ray"
+    assert side_by_side("local") is None and side_by_side("processes", 3) == "up to 3 worker processes"
 
 
 def test_workers_stop_their_jobs_and_exit_when_the_batch_process_is_killed(tmp_path):

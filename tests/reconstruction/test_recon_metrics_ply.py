@@ -14,7 +14,6 @@ from tacsplat.reconstruction.metrics import (
     ReferenceCloud,
     chamfer_distance,
     chamfer_distance_parts,
-    chamfer_distance_split,
     chamfer_terms_paper,
     depth_to_points,
     psnr,
@@ -57,17 +56,17 @@ def test_chamfer_split_gives_each_part_its_own_error():
     gt = np.concatenate([grid, far])
     part = np.arange(len(gt)) < len(grid)
     predicted = np.concatenate([grid, far + np.array([0.0, 0.002, 0.0])])  # only the second part is off
-    exact, off = chamfer_distance_split(predicted, gt, part, radius=0.05)
+    _, exact, off = chamfer_distance_parts(predicted, gt, part, radius=0.05)
     assert exact == 0.0
     assert off == pytest.approx(0.002 / 0.05, rel=1e-9)
     # the parts add up to the whole CD when they hold equal numbers of points each way
     assert 0.5 * (exact + off) == pytest.approx(chamfer_distance(predicted, gt, radius=0.05), rel=1e-9)
     # nothing predicted near the second part: its accuracy term is 0, its completeness the distance to the first
-    missing = chamfer_distance_split(grid, gt, part, radius=0.05)[1]
+    missing = chamfer_distance_parts(grid, gt, part, radius=0.05)[2]
     assert missing == pytest.approx(0.5 * float(np.linalg.norm(far[:, None] - grid[None], axis=-1).min(1).mean()) / 0.05)
-    assert math.isnan(chamfer_distance_split(predicted, gt, np.ones(len(gt), bool))[1])
+    assert math.isnan(chamfer_distance_parts(predicted, gt, np.ones(len(gt), bool))[2])
     with pytest.raises(InvalidInputError, match="part has 3 entries"):
-        chamfer_distance_split(predicted, gt, np.ones(3, bool))
+        chamfer_distance_parts(predicted, gt, np.ones(3, bool))
 
 
 def test_a_reference_cloud_reused_gives_what_the_array_gives():
@@ -76,9 +75,8 @@ def test_a_reference_cloud_reused_gives_what_the_array_gives():
     part = gt[:, 0] > 0
     reference = ReferenceCloud(gt, radius=2.0)
     for predicted in (gt + 0.01 * rng.normal(size=gt.shape), rng.normal(size=(80, 3))):  # the tree serves both
-        cd, first, second = chamfer_distance_parts(predicted, reference, part)
-        assert cd == chamfer_distance(predicted, gt, radius=2.0)
-        assert (first, second) == chamfer_distance_split(predicted, gt, part, radius=2.0)
+        assert chamfer_distance_parts(predicted, reference, part) == chamfer_distance_parts(predicted, gt, part, 2.0)
+        assert chamfer_distance_parts(predicted, reference, part)[0] == chamfer_distance(predicted, gt, radius=2.0)
         assert chamfer_terms_paper(predicted, reference) == chamfer_terms_paper(predicted, gt, radius=2.0)
     assert all(math.isnan(v) for v in chamfer_distance_parts(gt, reference, None)[1:])
     assert chamfer_distance(np.zeros((0, 3)), reference) == math.inf
