@@ -9,9 +9,13 @@ Same maths as :func:`.reference.rasterize_to_pixels_torch` (float32):
 2. forward -- parallel over tiles; inside a tile the loop is Gaussian-outer:
    each Gaussian visits only the rows and, per row, the columns where its
    exponent can stay under ``ln(255 * opacity)`` (the ellipse solved in float64,
-   widened by 1e-3 pixel, then each pixel tested exactly before any ``exp``),
-   compositing front to back with alpha clamped at 0.99, skipped under 1/255,
-   and a pixel stopping before its transmittance would reach 1e-4;
+   widened by 1e-3 pixel), compositing front to back with alpha clamped at 0.99,
+   skipped under 1/255, and a pixel stopping before its transmittance would
+   reach 1e-4. Along a row, ``exp(-exponent)`` comes from a float64 recurrence
+   instead of one ``exp`` per pixel: one pixel to the right changes the exponent
+   by an amount that itself grows by the conic's ``a``, so the value is
+   multiplied by a ratio that is multiplied by ``exp(-a)`` (two ``exp`` per row;
+   a degenerate conic takes one per pixel);
 3. backward -- parallel over tiles, back to front, over the forward's rows and
    exp values, transmittance recovered by dividing by (1 - alpha); no atomics: the thread owning a tile writes one
    gradient row per intersection, and a second parallel pass sums the rows of
@@ -35,7 +39,7 @@ _ONE = F32(1.0)
 _ZERO = F32(0.0)
 _ALPHA_MIN = F32(ALPHA_THRESHOLD)
 _T_MIN = F32(TRANSMITTANCE_THRESHOLD)
-_LOG_SLACK = F32(1e-3)  # the pre-test skips exp only when the exponent is clearly past ln(255 o)
+_LOG_SLACK = F32(1e-3)  # spans reach a little past ln(255 o): no pair with alpha >= 1/255 is left out
 _FILL_CHUNK = 8192  # Gaussians per chunk of the parallel counting sort
 _TILE_CHUNK = 4  # tiles per scheduling chunk: tile costs vary a lot, so threads take chunks dynamically
 N_GRAD = 6  # per-intersection gradient row: d means2d (2), d conic (3), d opacity (1), then d colour (D)
@@ -87,10 +91,11 @@ def _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi):
 
 @nb.njit(cache=True)
 def _exponent(a, b, c, dx, dy):
-    """Gaussian exponent at offset (dx, dy) = mean - pixel centre, with the conic (a, b, c).
+    """Gaussian exponent at offset (dx, dy) = mean - pixel centre, with the conic (a, b, c): the forward's for a
+    degenerate conic (no recurrence), the backward's for a tile whose pairs did not fit the cache.
 
     Deliberately not inlined: compiled without fused multiply-adds, it rounds the same way in
-    the forward and in the (FMA-contracted) backward, so both passes agree on which pairs count.
+    the forward and in the (FMA-contracted) backward.
     """
     return _HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
 
@@ -240,6 +245,9 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             opac, limit = opacities[g], limits[g]
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
             inv_a = 1.0 / float(a) if a > _ZERO else 0.0
+            a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)  # (numba's float() keeps a float32)
+            recurrence = a64 > 0.0 and a64 * c64 - b64 * b64 > 0.0  # a positive-definite conic
+            ratio_step = math.exp(-a64)
             pair_start[k] = pos
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
@@ -249,14 +257,25 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
                 pairs += max(x1 - x0, 0)
                 if pos + max(x1 - x0, 0) > cache_end:
                     cached = False  # cannot happen with the capacity bound; the backward then recomputes
+                # exp(-exponent) at (x0, y) and its ratio from x to x + 1 (both in float64); inside the span
+                # both stay within exp(+-limit), so the recurrence neither overflows nor underflows
+                dx0, dy64 = np.float64(mx) - (x0 + 0.5), np.float64(my) - (y + 0.5)
+                vis_next = math.exp(-(0.5 * (a64 * dx0 * dx0 + c64 * dy64 * dy64) + b64 * dx0 * dy64))
+                ratio = math.exp(a64 * dx0 + b64 * dy64 - 0.5 * a64)
                 for x in range(x0, x1):
                     p = (y - y_lo) * tw + (x - x_lo)
                     stored = _ZERO
+                    vis = F32(vis_next)
+                    vis_next *= ratio
+                    ratio *= ratio_step
                     if not done[p]:
-                        dx = mx - (F32(x) + _HALF)
-                        sigma = _exponent(a, b, c, dx, dy)
-                        if sigma >= _ZERO and sigma <= limit:
-                            vis = math.exp(-sigma)
+                        counts = True  # a positive-definite conic: the alpha test below decides
+                        if not recurrence:
+                            sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
+                            counts = sigma >= _ZERO and sigma <= limit
+                            if counts:
+                                vis = math.exp(-sigma)
+                        if counts:
                             alpha = min(max_alpha, opac * vis)
                             if alpha >= _ALPHA_MIN:
                                 next_t = trans[p] * (_ONE - alpha)

@@ -225,15 +225,14 @@ def test_parallel_binning_matches_the_reference_tile_lists():
     assert (torch.from_numpy(tile_gauss[isect]) == owners).all()
 
 
-def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
-    # the backward reads exp(-exponent) back from the forward; a tile whose pairs did not fit recomputes them
+def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
+    """Project a random scene and run the cpu forward kernel directly -> (kernel args, its outputs as a dict)."""
     import numpy as np
 
     from tacsplat.reconstruction.raster import cpu_composite as rc
     from tacsplat.reconstruction.raster.reference import project_gaussians
 
-    width, height, n = 40, 30, 300
-    scene = random_scene(n, width, height, sh_degree=0, seed=13)
+    scene = random_scene(n, width, height, sh_degree=0, seed=seed, radius_px=radius_px)
     proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
                              scene["viewmats"], scene["Ks"], width, height)  # fmt: skip
     m2d, con = proj.means2d[0].numpy().copy(), proj.conics[0].numpy().copy()
@@ -241,21 +240,67 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     tile_start, tile_gauss, _, _ = rc.bin_gaussians(m2d, proj.radii[0].double().numpy(), proj.depths[0].numpy(),
                                                     1, n, width, height, 16)  # fmt: skip
     n_tiles, n_isect = tile_start.shape[0] - 1, tile_gauss.shape[0]
+    tiles_x = math.ceil(width / 16)
     limits = (np.log(np.float32(255.0) * opa) + rc._LOG_SLACK).astype(np.float32)
     colors = np.random.default_rng(0).random((n, 3), dtype=np.float32)
     args = (tile_start, tile_gauss, m2d, con, opa, limits, colors, np.zeros((1, 3), np.float32),
-            width, height, 16, 3, n_tiles, np.float32(rc.MAX_ALPHA))  # fmt: skip
+            width, height, 16, tiles_x, n_tiles, np.float32(rc.MAX_ALPHA))  # fmt: skip
     capacity = np.empty(n_isect, np.int64)
-    rc._pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, 16, 3, n_tiles, capacity)
-    cache_start = np.concatenate([[0], np.cumsum(capacity)])
-    vis_cache, pair_start = np.empty(int(cache_start[-1]), np.float32), np.zeros(n_isect, np.int64)
-    cached = np.empty(n_tiles, np.bool_)
-    spans = np.empty((n_isect, 16, 2), np.uint8)
-    trans, last = np.empty((1, height, width), np.float32), np.empty((1, height, width), np.int64)
-    rc._forward(*args, proj.depths[0].numpy(), np.empty((1, height, width, 3), np.float32), trans, last,
-                np.empty((1, height, width), np.float32), np.empty(n_tiles, np.int64), cache_start, vis_cache,
-                pair_start, cached, spans)  # fmt: skip
-    assert cached.all()
+    rc._pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, 16, tiles_x, n_tiles, capacity)
+    out = {"cache_start": np.concatenate([[0], np.cumsum(capacity)]), "pair_start": np.zeros(n_isect, np.int64),
+           "cached": np.empty(n_tiles, np.bool_), "spans": np.empty((n_isect, 16, 2), np.uint8),
+           "trans": np.empty((1, height, width), np.float32), "last": np.empty((1, height, width), np.int64)}
+    out["vis_cache"] = np.empty(int(out["cache_start"][-1]), np.float32)
+    rc._forward(*args, proj.depths[0].numpy(), np.empty((1, height, width, 3), np.float32), out["trans"],
+                out["last"], np.empty((1, height, width), np.float32), np.empty(n_tiles, np.int64),
+                out["cache_start"], out["vis_cache"], out["pair_start"], out["cached"], out["spans"])  # fmt: skip
+    return args, out
+
+
+def test_forward_exp_recurrence_matches_float64_exp():
+    # along a row the forward multiplies exp(-exponent) by a ratio instead of calling exp per pixel: every value it
+    # keeps for the backward is exp(-exponent) evaluated in float64 and rounded to float32, on rows up to a tile
+    import numpy as np
+
+    from tacsplat.reconstruction.raster import cpu_composite as rc
+
+    args, out = _cpu_forward(64, 48, 60, seed=5, radius_px=(4.0, 40.0))
+    tile_start, tile_gauss, m2d, con, _, limits = args[:6]
+    checked, worst, longest = 0, 0.0, 0
+    for t in range(tile_start.shape[0] - 1):
+        y_lo, x_lo = divmod(t, 4)
+        y_lo, x_lo = 16 * y_lo, 16 * x_lo
+        for k in range(tile_start[t], tile_start[t + 1]):
+            g, pos = tile_gauss[k], out["pair_start"][k]
+            a, b, c = (float(v) for v in con[g])
+            r0, r1 = rc._row_range(con[g, 0], con[g, 1], con[g, 2], limits[g], m2d[g, 1], y_lo, min(y_lo + 16, 48))
+            for y in range(r0, r1):  # the rows the forward visited, their pairs stored one after the other
+                x0, x1 = (x_lo + int(v) for v in out["spans"][k, y - y_lo])
+                longest = max(longest, x1 - x0)
+                for x in range(x0, x1):
+                    kept = float(out["vis_cache"][pos])
+                    pos += 1
+                    if kept == 0.0:  # a pixel the pair does not count for
+                        continue
+                    dx, dy = float(m2d[g, 0]) - (x + 0.5), float(m2d[g, 1]) - (y + 0.5)
+                    exact = math.exp(-(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy))
+                    worst = max(worst, abs(kept - exact) / exact)
+                    checked += 1
+    assert checked > 2000 and longest == 16
+    assert worst < 1e-7, worst  # float32 rounding (at most 6e-8) and nothing more
+
+
+def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
+    # the backward reads exp(-exponent) back from the forward; a tile whose pairs did not fit recomputes them
+    import numpy as np
+
+    from tacsplat.reconstruction.raster import cpu_composite as rc
+
+    width, height = 40, 30
+    args, out = _cpu_forward(width, height, 300, seed=13)
+    n_isect, n_tiles = args[1].shape[0], args[0].shape[0] - 1
+    trans, last, vis_cache, pair_start, spans = (out[k] for k in ("trans", "last", "vis_cache", "pair_start", "spans"))
+    assert out["cached"].all()
     v_color = np.random.default_rng(1).standard_normal((1, height, width, 3)).astype(np.float32)
     v_alpha = np.random.default_rng(2).standard_normal((1, height, width)).astype(np.float32)
     rows = {}
