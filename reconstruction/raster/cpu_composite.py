@@ -57,13 +57,13 @@ def _row_range(a, b, c, limit, my, y_lo, y_hi):
     with fused multiply-adds) it keeps its own rounding, so both passes visit the same rows, by which the cache
     of exp values and the row spans are laid out.
     """
-    a64, b64, c64 = float(a), float(b), float(c)
+    a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
     det = a64 * c64 - b64 * b64
     if not (det > 0.0 and a64 > 0.0):
         return y_lo, y_hi
-    ext = math.sqrt(2.0 * float(limit) * a64 / det)
-    lo = min(max(float(my) - ext - 0.5 - _SPAN_EPS, y_lo - 1.0), y_hi + 1.0)
-    hi = min(max(float(my) + ext - 0.5 + _SPAN_EPS, y_lo - 1.0), y_hi + 1.0)
+    ext = math.sqrt(2.0 * np.float64(limit) * a64 / det)
+    lo = min(max(np.float64(my) - ext - 0.5 - _SPAN_EPS, y_lo - 1.0), y_hi + 1.0)
+    hi = min(max(np.float64(my) + ext - 0.5 + _SPAN_EPS, y_lo - 1.0), y_hi + 1.0)
     return max(y_lo, int(math.ceil(lo))), min(y_hi, int(math.floor(hi)) + 1)
 
 
@@ -76,16 +76,16 @@ def _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi):
     The backward reads the forward's spans; it solves them again only for a tile whose pairs did not fit the
     cache. (Inlined into the forward it was slower: 19.3 -> 22.1 ns per pair at 256 px, 20k Gaussians.)
     """
-    a64, b64, c64, dy64 = float(a), float(b), float(c), float(dy)
+    a64, b64, c64, dy64 = np.float64(a), np.float64(b), np.float64(c), np.float64(dy)
     if not a64 > 0.0:
         return x_lo, x_hi
-    disc = (b64 * dy64) ** 2 - a64 * (c64 * dy64 * dy64 - 2.0 * float(limit))
+    disc = (b64 * dy64) ** 2 - a64 * (c64 * dy64 * dy64 - 2.0 * np.float64(limit))
     if not disc >= 0.0:
         return x_lo, x_lo
     half = math.sqrt(disc) * inv_a
     centre = -b64 * dy64 * inv_a
-    lo = min(max(float(mx) - (centre + half) - 0.5 - _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
-    hi = min(max(float(mx) - (centre - half) - 0.5 + _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
+    lo = min(max(np.float64(mx) - (centre + half) - 0.5 - _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
+    hi = min(max(np.float64(mx) - (centre - half) - 0.5 + _SPAN_EPS, x_lo - 1.0), x_hi + 1.0)
     return max(x_lo, int(math.ceil(lo))), min(x_hi, int(math.floor(hi)) + 1)
 
 
@@ -195,11 +195,11 @@ def _pair_capacity(tile_start, tile_gauss, means2d, conics, limits, width, heigh
             g = tile_gauss[k]
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
             r0, r1 = _row_range(a, b, c, limits[g], means2d[g, 1], y_lo, y_hi)
-            a64, b64, c64 = float(a), float(b), float(c)
+            a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
             det = a64 * c64 - b64 * b64
             cols = x_hi - x_lo
             if det > 0.0 and a64 > 0.0:
-                width_px = 2.0 * math.sqrt(2.0 * float(limits[g]) * c64 / det) + 2.0 * _SPAN_EPS
+                width_px = 2.0 * math.sqrt(2.0 * np.float64(limits[g]) * c64 / det) + 2.0 * _SPAN_EPS
                 cols = min(cols, int(min(width_px, 1e9)) + 2)
             capacity[k] = max(r1 - r0, 0) * cols
 
@@ -244,7 +244,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
             opac, limit = opacities[g], limits[g]
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
-            inv_a = 1.0 / float(a) if a > _ZERO else 0.0
+            inv_a = 1.0 / np.float64(a) if a > _ZERO else 0.0
             a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)  # (numba's float() keeps a float32)
             recurrence = a64 > 0.0 and a64 * c64 - b64 * b64 > 0.0  # a positive-definite conic
             ratio_step = math.exp(-a64)
@@ -354,7 +354,7 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
             for d in range(n_ch):
                 rows[k, N_GRAD + d] = _ZERO
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
-            inv_a = 1.0 / float(a) if a > _ZERO else 0.0
+            inv_a = 1.0 / np.float64(a) if a > _ZERO else 0.0
             pos = pair_start[k]
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
