@@ -28,7 +28,10 @@ _CHUNK = 256  # Gaussians per parallel work item of a backward (its scratch arra
 
 @nb.njit(cache=True, inline="always")
 def _rotation(qw, qx, qy, qz):
-    """Rotation matrix entries of a quaternion (normalised here, zero -> identity) and the norm used."""
+    """Rotation matrix entries of a quaternion (normalised here, zero -> identity) and the norm used.
+
+    Computed in the quaternion's own precision (float32 here, as in the reference and gsplat, so that a
+    quaternion too large to square overflows the same way in every backend)."""
     norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
     w, x, y, z = qw / norm, qx / norm, qy / norm, qz / norm
     return (
@@ -81,13 +84,13 @@ def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, heigh
     margin = FOV_CLAMP - 1.0
     for g in nb.prange(n):
         r00, r01, r02, r10, r11, r12, r20, r21, r22, _, _, _, _, _ = _rotation(
-            float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
+            quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
         )
-        sx, sy, sz = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
+        sx, sy, sz = np.float64(scales[g, 0]), np.float64(scales[g, 1]), np.float64(scales[g, 2])
         m = (r00 * sx, r01 * sy, r02 * sz, r10 * sx, r11 * sy, r12 * sz, r20 * sx, r21 * sy, r22 * sz)
         cov = _mul3(m, _transpose3(m))
-        opac = float(opacities[g])
-        px, py, pz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+        opac = np.float64(opacities[g])
+        px, py, pz = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
         for c in range(n_cams):
             rv = viewmats[c]
             x = rv[0, 0] * px + rv[0, 1] * py + rv[0, 2] * pz + rv[0, 3]
@@ -145,12 +148,12 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
         vr = np.empty((3, 3))
         for g in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
             r00, r01, r02, r10, r11, r12, r20, r21, r22, w, qx, qy, qz, qnorm = _rotation(
-                float(quats[g, 0]), float(quats[g, 1]), float(quats[g, 2]), float(quats[g, 3])
+                quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
             )
-            sx, sy, sz = float(scales[g, 0]), float(scales[g, 1]), float(scales[g, 2])
+            sx, sy, sz = np.float64(scales[g, 0]), np.float64(scales[g, 1]), np.float64(scales[g, 2])
             m = (r00 * sx, r01 * sy, r02 * sz, r10 * sx, r11 * sy, r12 * sz, r20 * sx, r21 * sy, r22 * sz)
             cov = _mul3(m, _transpose3(m))
-            px, py, pz = float(means[g, 0]), float(means[g, 1]), float(means[g, 2])
+            px, py, pz = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
             vm0 = vm1 = vm2 = 0.0
             v_cov = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
             for c in range(n_cams):
@@ -181,7 +184,7 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
                 cc = jc11 * j11 + jc12 * j12 + eps2d
                 det = a * cc - b * b
                 # conic = (cc, -b, a) / det
-                pa, pb, pc = float(v_conics[c, g, 0]), float(v_conics[c, g, 1]), float(v_conics[c, g, 2])
+                pa, pb, pc = np.float64(v_conics[c, g, 0]), np.float64(v_conics[c, g, 1]), np.float64(v_conics[c, g, 2])
                 inv, inv2 = 1.0 / det, 1.0 / (det * det)
                 va = pa * (-cc * cc * inv2) + pb * (b * cc * inv2) + pc * (inv - a * cc * inv2)
                 vb = pa * (2.0 * b * cc * inv2) + pb * (-inv - 2.0 * b * b * inv2) + pc * (2.0 * a * b * inv2)
@@ -200,10 +203,10 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
                 vj02 = 2.0 * va * jc02 + vb * jc12
                 vj11 = vb * jc01 + 2.0 * vc * jc11
                 vj12 = vb * jc02 + 2.0 * vc * jc12
-                vmx, vmy = float(v_means2d[c, g, 0]), float(v_means2d[c, g, 1])
+                vmx, vmy = np.float64(v_means2d[c, g, 0]), np.float64(v_means2d[c, g, 1])
                 v_x = vmx * fx * rz
                 v_y = vmy * fy * rz
-                v_z = -(vmx * fx * x + vmy * fy * y) * rz * rz + float(v_depths[c, g])
+                v_z = -(vmx * fx * x + vmy * fy * y) * rz * rz + np.float64(v_depths[c, g])
                 v_z += -(vj00 * fx + vj11 * fy) * rz * rz
                 # J02 = -fx * ux / z with ux = clamp(x / z), likewise J12
                 if clamp_x:
@@ -288,9 +291,9 @@ def _sh_forward(degree, means, campos, coeffs, radii, colors):
     for g in nb.prange(n):
         basis = np.empty(16)
         for c in range(n_cams):
-            dx = float(means[g, 0]) - campos[c, 0]
-            dy = float(means[g, 1]) - campos[c, 1]
-            dz = float(means[g, 2]) - campos[c, 2]
+            dx = np.float64(means[g, 0]) - campos[c, 0]
+            dy = np.float64(means[g, 1]) - campos[c, 1]
+            dz = np.float64(means[g, 2]) - campos[c, 2]
             norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
             visible = radii[c, g, 0] > 0 and radii[c, g, 1] > 0
             _sh_basis(degree, dx / norm, dy / norm, dz / norm, basis)
@@ -317,9 +320,9 @@ def _sh_backward(degree, means, campos, coeffs, radii, colors, v_colors, v_coeff
         for c in range(n_cams):
             if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
                 continue
-            dx = float(means[g, 0]) - campos[c, 0]
-            dy = float(means[g, 1]) - campos[c, 1]
-            dz = float(means[g, 2]) - campos[c, 2]
+            dx = np.float64(means[g, 0]) - campos[c, 0]
+            dy = np.float64(means[g, 1]) - campos[c, 1]
+            dz = np.float64(means[g, 2]) - campos[c, 2]
             norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
             ux, uy, uz = dx / norm, dy / norm, dz / norm
             _sh_basis(degree, ux, uy, uz, basis)
@@ -328,7 +331,7 @@ def _sh_backward(degree, means, campos, coeffs, radii, colors, v_colors, v_coeff
             for ch in range(n_ch):
                 if colors[c, g, ch] <= 0.0:  # clamped at 0: no gradient
                     continue
-                v = float(v_colors[c, g, ch])
+                v = np.float64(v_colors[c, g, ch])
                 for k in range(n_bases):
                     v_coeffs[g, k, ch] += basis[k] * v
                     weights[k] += coeffs[g, k, ch] * v
