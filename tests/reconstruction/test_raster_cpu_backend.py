@@ -253,7 +253,7 @@ def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
     out["vis_cache"] = np.empty(int(out["cache_start"][-1]), np.float32)
     rc._forward(*args, proj.depths[0].numpy(), np.empty((1, height, width, 3), np.float32), out["trans"],
                 out["last"], np.empty((1, height, width), np.float32), np.empty(n_tiles, np.int64),
-                out["cache_start"], out["vis_cache"], out["pair_start"], out["cached"], out["spans"])  # fmt: skip
+                out["cache_start"], out["vis_cache"], out["pair_start"], out["cached"], out["spans"], (0, 1, 2))  # fmt: skip
     return args, out
 
 
