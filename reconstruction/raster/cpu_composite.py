@@ -332,7 +332,7 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
         last = np.empty(n_pix, np.int64)
         v_c = np.empty((n_pix, n_ch), np.float32)
         tv_a = np.empty(n_pix, np.float32)  # T_final * (d loss / d alpha-image minus the background's share)
-        buf = np.zeros((n_pix, n_ch), np.float32)
+        behind = np.zeros(n_pix, np.float32)  # colour composited behind so far, dotted with the pixel's v_color
         use_cache = tile_cached[t]
         max_last = start
         for p in range(n_pix):
@@ -389,11 +389,13 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                     trans[p] = t_p
                     fac = alpha * t_p
                     v_alpha_p = ra * tv_a[p]
+                    col_dot = _ZERO
                     for d in range(n_ch):
-                        col, vcol = colors[g, d], v_c[p, d]
+                        vcol = v_c[p, d]
                         rows[k, N_GRAD + d] += fac * vcol
-                        v_alpha_p += (col * t_p - buf[p, d] * ra) * vcol
-                        buf[p, d] += col * fac
+                        col_dot += colors[g, d] * vcol
+                    v_alpha_p += col_dot * t_p - behind[p] * ra
+                    behind[p] += col_dot * fac
                     if opac * vis <= max_alpha:
                         v_sigma = -opac * vis * v_alpha_p
                         s_x += v_sigma * dx
