@@ -311,13 +311,14 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
 def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
               width, height, tile_size, tiles_x, tiles_per_cam, max_alpha, final_trans, last_contrib, v_color, v_alpha,
-              vis_cache, pair_start, tile_cached, spans, rows):  # fmt: skip
+              vis_cache, pair_start, tile_cached, spans, rows, channels):  # fmt: skip
     """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``.
 
     Pairs read ``exp(-exponent)`` back from the forward's ``vis_cache`` and rows their columns from its
-    ``spans`` (both recomputed where ``tile_cached`` is false).
+    ``spans`` (both recomputed where ``tile_cached`` is false). ``channels``: as in the forward, one compiled kernel
+    per channel count.
     """
-    n_ch = colors.shape[1]
+    n_ch = len(channels)
     for t in nb.prange(tile_start.shape[0] - 1):
         start, end = tile_start[t], tile_start[t + 1]
         if start == end:
@@ -535,7 +536,7 @@ class _RasterizeCPU(torch.autograd.Function):
         rows = np.empty((gauss_isect.shape[0], N_GRAD + n_ch), np.float32)
         with nb.parallel_chunksize(_TILE_CHUNK):
             _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, vis_cache, pair_start, tile_cached,
-                      spans, rows)  # fmt: skip
+                      spans, rows, tuple(range(n_ch)))  # fmt: skip
         per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
         _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
         grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)

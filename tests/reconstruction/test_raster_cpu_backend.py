@@ -307,6 +307,6 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     for use_cache in (True, False):
         rows[use_cache] = np.empty((n_isect, rc.N_GRAD + 3), np.float32)
         rc._backward(*args, trans, last, v_color, v_alpha, vis_cache, pair_start, np.full(n_tiles, use_cache),
-                     spans, rows[use_cache])  # fmt: skip
+                     spans, rows[use_cache], (0, 1, 2))  # fmt: skip
     np.testing.assert_allclose(rows[True], rows[False], rtol=1e-5, atol=1e-6 * np.abs(rows[False]).max())
     assert np.abs(rows[False]).max() > 0
