@@ -266,14 +266,15 @@ def test_forward_exp_recurrence_matches_float64_exp():
 
     args, out = _cpu_forward(64, 48, 60, seed=5, radius_px=(4.0, 40.0))
     tile_start, tile_gauss, m2d, con, _, limits = args[:6]
+    height, tiles_x = args[9], args[11]
     checked, worst, longest = 0, 0.0, 0
     for t in range(tile_start.shape[0] - 1):
-        y_lo, x_lo = divmod(t, 4)
-        y_lo, x_lo = 16 * y_lo, 16 * x_lo
+        ty, tx = divmod(t, tiles_x)
+        y_lo, x_lo = 16 * ty, 16 * tx
         for k in range(tile_start[t], tile_start[t + 1]):
             g, pos = tile_gauss[k], out["pair_start"][k]
             a, b, c = (float(v) for v in con[g])
-            r0, r1 = rc._row_range(con[g, 0], con[g, 1], con[g, 2], limits[g], m2d[g, 1], y_lo, min(y_lo + 16, 48))
+            r0, r1 = rc._row_range(con[g, 0], con[g, 1], con[g, 2], limits[g], m2d[g, 1], y_lo, min(y_lo + 16, height))
             for y in range(r0, r1):  # the rows the forward visited, their pairs stored one after the other
                 x0, x1 = (x_lo + int(v) for v in out["spans"][k, y - y_lo])
                 longest = max(longest, x1 - x0)
