@@ -3,9 +3,9 @@
 Same maths as :func:`.reference.rasterize_to_pixels_torch` (float32):
 
 1. binning -- each visible Gaussian covers the 16x16 tiles its box (``radii``)
-   touches; Gaussians are ordered by one 64-bit key (depth bits, index) and a
-   two-pass counting sort lays the (tile, Gaussian) intersections out tile by
-   tile, front to back;
+   touches; Gaussians are ordered by depth (ties by index) with a radix sort of
+   the depths' bits and a two-pass counting sort lays the (tile, Gaussian)
+   intersections out tile by tile, front to back;
 2. forward -- parallel over tiles; inside a tile the loop is Gaussian-outer:
    each Gaussian visits only the rows and, per row, the columns where its
    exponent can stay under ``ln(255 * opacity)`` (the ellipse solved in float64,
@@ -119,23 +119,39 @@ def _tile_boxes(means2d, radii, tile_size, tiles_x, tiles_y, boxes, counts):
 
 
 @nb.njit(cache=True)
-def _depth_keys(depth_bits, counts):
-    """The 64-bit keys (depth bits, index) of the Gaussians with tiles, unsorted.
-
-    ``depth_bits`` [M] int32 is the bit pattern of the float32 depths: for the
-    positive depths of visible Gaussians it sorts like the floats.
-    """
+def _depth_order(depth_bits, counts):
+    """Indices of the Gaussians with tiles, nearest first and ties by index: an LSD radix sort (3 passes of 11
+    bits) of ``depth_bits`` [M] int32, the bit patterns of the float32 depths, which for the positive depths of
+    visible Gaussians sort like the floats. (numpy's sort of 64-bit (depth, index) keys, used before: 3.6 ms
+    for 100k Gaussians against 0.6 ms.)"""
     n_visible = 0
     for g in range(depth_bits.shape[0]):
         if counts[g] > 0:
             n_visible += 1
-    keys = np.empty(n_visible, np.int64)
+    order, key = np.empty(n_visible, np.int64), np.empty(n_visible, np.uint32)
     j = 0
     for g in range(depth_bits.shape[0]):
         if counts[g] > 0:
-            keys[j] = (np.int64(depth_bits[g]) << 32) | g
+            order[j], key[j] = g, np.uint32(depth_bits[g])
             j += 1
-    return keys
+    order_out, key_out = np.empty_like(order), np.empty_like(key)
+    starts = np.empty(2048, np.int64)
+    for shift in (0, 11, 22):
+        starts[:] = 0
+        for i in range(n_visible):
+            starts[(key[i] >> shift) & 2047] += 1
+        running = 0
+        for b in range(2048):
+            count = starts[b]
+            starts[b] = running
+            running += count
+        for i in range(n_visible):  # stable scatter: equal digits keep their order, so ties stay by index
+            b = (key[i] >> shift) & 2047
+            order_out[starts[b]], key_out[starts[b]] = order[i], key[i]
+            starts[b] += 1
+        order, order_out = order_out, order
+        key, key_out = key_out, key
+    return order
 
 
 @nb.njit(parallel=True, cache=True)
@@ -458,8 +474,7 @@ def bin_gaussians(
     gauss_offsets = np.zeros(n_total + 1, np.int64)
     np.cumsum(counts, out=gauss_offsets[1:])
     n_isect = int(gauss_offsets[-1])
-    # numpy's (SIMD) sort is ~15x faster than numba's quicksort here; keys are unique, so the order is the same
-    order = np.sort(_depth_keys(depths.view(np.int32), counts)) & 0xFFFFFFFF
+    order = _depth_order(depths.view(np.int32), counts)
     tile_start = np.empty(n_cams * tiles_x * tiles_y + 1, np.int64)
     tile_start[0] = 0
     tile_gauss = np.empty(n_isect, np.int64)

@@ -225,6 +225,22 @@ def test_parallel_binning_matches_the_reference_tile_lists():
     assert (torch.from_numpy(tile_gauss[isect]) == owners).all()
 
 
+def test_depth_order_is_by_depth_then_index_and_skips_gaussians_without_tiles():
+    # the binning's radix sort against numpy's lexsort, with many equal depths (ties keep the index order)
+    import numpy as np
+
+    from tacsplat.reconstruction.raster import cpu_composite as rc
+
+    rng = np.random.default_rng(3)
+    depths = rng.choice(np.float32([0.01, 0.5, 1.0, 2.5, 1e3, 3e38]), size=5000).astype(np.float32)
+    depths[::7] = rng.random(len(depths[::7])).astype(np.float32) + 0.1
+    counts = (rng.random(5000) > 0.2).astype(np.int64)
+    order = rc._depth_order(depths.view(np.int32), counts)
+    visible = np.flatnonzero(counts)
+    expected = visible[np.lexsort((visible, depths[visible]))]
+    assert np.array_equal(order, expected)
+
+
 def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
     """Project a random scene and run the cpu forward kernel directly -> (kernel args, its outputs as a dict)."""
     import numpy as np
