@@ -262,8 +262,8 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
             opac, limit = opacities[g], limits[g]
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
-            inv_a = 1.0 / np.float64(a) if a > _ZERO else 0.0
             a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)  # (numba's float() keeps a float32)
+            inv_a = 1.0 / a64 if a64 > 0.0 else 0.0
             recurrence = a64 > 0.0 and a64 * c64 - b64 * b64 > 0.0  # a positive-definite conic
             ratio_step = math.exp(-a64)
             pair_start[k] = pos
