@@ -19,35 +19,42 @@ from tacsplat.reconstruction.raster.cpu_project import _np
 @nb.njit(parallel=True, cache=True)
 def _forward(depth, kernels, factors, responses, rows):
     """The Sobel responses of every valid pixel into ``responses`` [2, H-4, W-4] and rows[i] = the sum over valid
-    row i of |Sx * D| f_x + |Sy * D| f_y (``factors`` [2, H-4, W-4] already include 1 - proximity)."""
+    row i of |Sx * D| f_x + |Sy * D| f_y (``factors`` [2, H-4, W-4] already include 1 - proximity).
+
+    Both passes add one kernel tap at a time to a whole row, so the loops over a row vectorise (3.4x faster than
+    a window per pixel for the forward, 7x for the adjoint, at 128 x 128 on one thread; same sums in the same
+    order per pixel)."""
     out_h, out_w = factors.shape[1], factors.shape[2]
     for i in nb.prange(out_h):
+        gx, gy = np.zeros(out_w), np.zeros(out_w)
+        for u in range(5):
+            for v in range(5):
+                kx, ky = kernels[0, u, v], kernels[1, u, v]
+                for j in range(out_w):
+                    d = np.float64(depth[i + u, j + v])
+                    gx[j] += kx * d
+                    gy[j] += ky * d
         total = 0.0
         for j in range(out_w):
-            gx = gy = 0.0
-            for u in range(5):
-                for v in range(5):
-                    d = float(depth[i + u, j + v])
-                    gx += kernels[0, u, v] * d
-                    gy += kernels[1, u, v] * d
-            responses[0, i, j], responses[1, i, j] = gx, gy
-            total += abs(gx) * factors[0, i, j] + abs(gy) * factors[1, i, j]
+            responses[0, i, j], responses[1, i, j] = gx[j], gy[j]
+            total += abs(gx[j]) * factors[0, i, j] + abs(gy[j]) * factors[1, i, j]
         rows[i] = total
 
 
 @nb.njit(parallel=True, cache=True)
 def _adjoint(kernels, signed, v_depth):
     """v_depth [H, W] = the adjoint of the valid correlation with both kernels applied to ``signed``
-    [2, H-4, W-4]: each depth pixel gathers from the windows that contain it."""
+    [2, H-4, W-4]: each depth row gathers from the response rows whose windows contain it."""
     out_h, out_w = signed.shape[1], signed.shape[2]
     height, width = v_depth.shape
     for a in nb.prange(height):
-        for b in range(width):
-            total = 0.0
-            for u in range(max(0, a - out_h + 1), min(5, a + 1)):
-                for v in range(max(0, b - out_w + 1), min(5, b + 1)):
-                    total += kernels[0, u, v] * signed[0, a - u, b - v] + kernels[1, u, v] * signed[1, a - u, b - v]
-            v_depth[a, b] = total
+        row = np.zeros(width)
+        for u in range(max(0, a - out_h + 1), min(5, a + 1)):
+            for v in range(5):
+                k0, k1 = kernels[0, u, v], kernels[1, u, v]
+                for t in range(out_w):
+                    row[t + v] += k0 * signed[0, a - u, t] + k1 * signed[1, a - u, t]
+        v_depth[a] = row
 
 
 class _SmoothnessCPU(torch.autograd.Function):
