@@ -13,6 +13,7 @@ import pytest
 from tacsplat.apps import batch, paper_bench
 from tacsplat.errors import ConfigError
 from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
+from tacsplat.reconstruction.variants import step_work
 from tacsplat.apps.report import (
     RESULT_COLUMNS,
     best_rows,
@@ -180,6 +181,18 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
     trained.clear()
     bench.run(progress=False)
     assert trained == []  # everything finished: nothing retrained
+
+
+def test_each_capture_starts_its_costliest_variants_first(tmp_path):
+    """Runs of one capture are started most work per step first (the longest no longer starts last on few
+    cores); captures and settings keep the order of runs()."""
+    config = PaperBenchConfig(objects=("teapot", "bell"), settings=("minimal",),
+                              variants=("3dgs", "full", "full+n+tn", "3dgs+t"))
+    names = [job.name.split("/")[-1] if run else job.name for run, job in PaperBench(tmp_path, config).jobs()]
+    assert names == ["capture scenes/teapot/minimal-s0", "full+n+tn-s0", "full-s0", "3dgs+t-s0", "3dgs-s0",
+                     "capture scenes/bell/minimal-s0", "full+n+tn-s0", "full-s0", "3dgs+t-s0", "3dgs-s0"]
+    assert step_work("3dgs") < step_work("3dgs+s") == step_work("3dgs+t") < step_work("full") < step_work("full+n")
+    assert step_work("full+n") < step_work("full+n+tn") < step_work("full+n+tn+r")
 
 
 def _small_scene(path):
