@@ -51,6 +51,7 @@ class FrameRender:
     depth: np.ndarray | None  # [H, W] expected depth, 0 where alpha <= 0.5
     alpha: np.ndarray  # [H, W]
     normal: np.ndarray | None  # [H, W, 3] unit camera-frame normals towards the camera, 0 where alpha <= 0.5
+    median_depth: np.ndarray | None = None  # [H, W] as render_median_depth's, where the backend found it
 
 
 @torch.no_grad()
@@ -69,7 +70,9 @@ def render_frame(gaussians: Gaussians, frame, background: torch.Tensor, backend:
     drawn = alpha.numpy() > ALPHA_MASK_THRESHOLD
     depth = None if out.depth is None else np.where(drawn, out.depth.cpu().numpy(), 0.0).astype(np.float32)
     normal = None if out.normal is None else (out.normal.cpu().numpy() * drawn[..., None]).astype(np.float32)
-    return FrameRender(rgb, depth, alpha.numpy(), normal)
+    median = out.meta.get("median_depths")
+    median = None if median is None else median[0, ..., 0].cpu().numpy().astype(np.float32)
+    return FrameRender(rgb, depth, alpha.numpy(), normal, median)
 
 
 def normal_error_degrees(rendered: np.ndarray, ground_truth: np.ndarray) -> np.ndarray:
@@ -244,7 +247,7 @@ def evaluate_views(
             ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         predicted.append(depth_to_points(depth, f.intrinsics.K, f.T_world_cam))
         if ground_truth is not None and ground_truth.surface is not None:
-            median = render_median_depth(gaussians, f, backend)
+            median = view.median_depth if view.median_depth is not None else render_median_depth(gaussians, f, backend)
             predicted_median.append(depth_to_points(median, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
             seen = None if ground_truth is None or ground_truth.seen is None else ground_truth.seen.get(f.id)

@@ -141,7 +141,10 @@ def rasterization(
     [C, N, 2] int32 (0 = culled), ``depths`` [C, N], ``conics`` [C, N, 3],
     ``opacities`` [C, N], ``width``, ``height``, ``tile_size``, ``n_cameras``,
     ``backend``; the ``cpu`` backend adds ``n_intersections`` (tile-Gaussian
-    pairs) and ``n_pairs`` (pixel-Gaussian pairs its forward pass evaluated).
+    pairs) and ``n_pairs`` (pixel-Gaussian pairs its forward pass evaluated),
+    the ``cpu`` and ``torch`` backends ``median_depths`` [C, H, W, 1] (what
+    "MD" renders, found by every pass: an evaluation needing both depths
+    renders once).
 
     Degenerate Gaussians have one finite meaning on every backend: scales
     enter only through the covariance ``R diag(s^2) R^T`` (their sign does not
@@ -267,13 +270,13 @@ def rasterization(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
             width, height, tile_size, bg, max_alpha,
         )  # fmt: skip
-        extra_meta = {"n_intersections": int(stats[0]), "n_pairs": int(stats[1])}
+        extra_meta = {"n_intersections": int(stats[0]), "n_pairs": int(stats[1]), "median_depths": median}
     else:
-        extra_meta = {}
         render_colors, render_alphas, median = rasterize_to_pixels_torch(
             proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
             width, height, tile_size, bg, max_alpha,
         )  # fmt: skip
+        extra_meta = {"median_depths": median}
     if render_mode in ("ED", "RGB+ED"):
         expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
         render_colors = torch.cat([render_colors[..., :-1], expected], dim=-1)

@@ -65,3 +65,15 @@ def test_median_depth_has_no_gradient_but_rgb_does():
     assert colors.requires_grad
     colors[..., :3].sum().backward()
     assert scene["colors"].grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_every_pass_hands_back_the_median_depth_that_md_renders(backend):
+    """meta["median_depths"] of an RGB+ED pass is what "MD" renders, so an evaluation renders each view once."""
+    args = random_scene(2000, 40, 32, sh_degree=None, seed=5)
+    if backend == "torch":
+        args = {k: v.double() if torch.is_tensor(v) else v for k, v in args.items()}
+    md, _, _ = rasterization(**args, render_mode="MD", backend=backend)
+    _, _, meta = rasterization(**args, render_mode="RGB+ED", backend=backend)
+    assert (md > 0).float().mean() > 0.2  # the scene is not empty
+    torch.testing.assert_close(meta["median_depths"], md, rtol=0, atol=0)
