@@ -30,7 +30,7 @@ import shutil
 import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
 from tacsplat.errors import ConfigError
 
@@ -66,6 +66,7 @@ class BatchJob:
     cpus: float = 1.0  # CPUs it uses (Ray reserves them)
     name: str = ""  # default: "<kind> <out or run as written>"
     needs: tuple[str, ...] = ()
+    imports: ClassVar[tuple[str, ...]] = ()  # what its call imports (a processes-executor worker may load it ahead)
 
     def check(self) -> None:
         """A ConfigError naming the field at fault, before anything runs."""
@@ -157,6 +158,8 @@ class ReconstructJob(BatchJob):
     from its checkpoint when one was interrupted)."""
 
     kind: Literal["reconstruct"] = "reconstruct"
+    # (torch.optim's first optimizer imports torch._dynamo: a second)
+    imports: ClassVar[tuple[str, ...]] = ("tacsplat.reconstruction.trainer", "torch._dynamo")
     out: Path
     scene: Path
     preset: str = "default"  # reconstruction.config.PRESETS
@@ -202,6 +205,7 @@ class EvaluateJob(BatchJob):
     elsewhere, or whose metrics.json was deleted to evaluate it again)."""
 
     kind: Literal["evaluate"] = "evaluate"
+    imports: ClassVar[tuple[str, ...]] = ("tacsplat.reconstruction.evaluation",)
     run: Path
     gt_mesh: str | None = None  # a ground-truth mesh instead of the scene's gt/
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
+from typing import ClassVar
 from pathlib import Path
 
 from tacsplat.errors import ConfigError
@@ -54,6 +55,13 @@ class FileJob:
             wait_until(self.wait_for.exists)
         (self.folder / "done").write_text("ok")
         return {"attempts": len(self.attempts())}
+
+
+@dataclass(frozen=True)
+class ImportingJob(FileJob):
+    """A FileJob that declares what its call imports (``batch_test_warm``)."""
+
+    imports: ClassVar[tuple[str, ...]] = ("batch_test_warm",)
 
 
 def wait_until(condition, timeout_s: float = WAIT_S) -> None:

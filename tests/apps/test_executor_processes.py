@@ -23,7 +23,7 @@ from tacsplat.apps.executors import (FAILURES_CSV, default_workers, resolve_exec
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders; spawned
 # workers get this process's sys.path
 
-from batch_test_jobs import FileJob, wait_until  # noqa: E402
+from batch_test_jobs import FileJob, ImportingJob, wait_until  # noqa: E402
 
 
 def read_rows(path: Path) -> list[dict]:
@@ -76,6 +76,19 @@ def test_a_job_wanting_every_cpu_runs_alone(tmp_path):
     assert outcome.done == ["big", "small"]
     # side by side, "small" would have started (and logged its attempt) while "big" slept
     assert (small.folder / "attempts").stat().st_mtime_ns >= (big.folder / "done").stat().st_mtime_ns
+
+
+def test_a_free_cpu_starts_a_worker_that_imports_what_waiting_jobs_import(tmp_path, monkeypatch):
+    # "capture" finishes only once another worker has imported what "train" (waiting for it) declares
+    warm = tmp_path / "warm"
+    warm.mkdir()
+    monkeypatch.setenv("TACSPLAT_TEST_WARM_DIR", str(warm))
+    capture = FileJob("capture", tmp_path / "capture", wait_for=warm / "imported")
+    train = ImportingJob("train", tmp_path / "train", needs=("capture",))
+    outcome = run_jobs([capture, train], tmp_path, executor="processes", workers=2, progress=False)
+    assert outcome.done == ["capture", "train"]
+    importer = int((warm / "imported").read_text())
+    assert importer not in capture.attempts() + [os.getpid()]  # a second worker, started while capture ran
 
 
 def test_a_dead_worker_fails_its_job_and_the_rest_go_on(tmp_path):

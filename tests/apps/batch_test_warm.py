@@ -1,0 +1,7 @@
+"""A module a test job declares in its ``imports``: importing it records the importing process's id in
+``$TACSPLAT_TEST_WARM_DIR/imported``."""
+
+import os
+from pathlib import Path
+
+Path(os.environ["TACSPLAT_TEST_WARM_DIR"], "imported").write_text(str(os.getpid()))
