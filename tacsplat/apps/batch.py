@@ -158,8 +158,10 @@ class ReconstructJob(BatchJob):
     from its checkpoint when one was interrupted)."""
 
     kind: Literal["reconstruct"] = "reconstruct"
-    # (torch.optim's first optimizer imports torch._dynamo: a second)
-    imports: ClassVar[tuple[str, ...]] = ("tacsplat.reconstruction.trainer", "torch._dynamo")
+    # also what a training imports on first use: torch.optim's first optimizer torch._dynamo (a second), the
+    # evaluation trimesh, the error-vs-time plot pyplot
+    imports: ClassVar[tuple[str, ...]] = ("tacsplat.reconstruction.trainer", "torch._dynamo", "trimesh",
+                                          "matplotlib.pyplot")
     out: Path
     scene: Path
     preset: str = "default"  # reconstruction.config.PRESETS
