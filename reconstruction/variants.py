@@ -94,20 +94,5 @@ def variant_of(config) -> str:
     return name
 
 
-def step_work(name: str) -> int:
-    """How many of the mechanisms that add work to a training step the variant ``name`` switches on (touch,
-    smoothness, flattening, depth-normal consistency with its normal render, tactile normals, the reflective
-    appearance; see :func:`variant_of`): a batch starts the variants with more of them first, so that on few
-    cores the longest runs do not start last."""
-    from tacsplat.reconstruction.config import TrainConfig
-
-    config = TrainConfig()
-    for key, value in get_variant(name).overrides.items():
-        setattr(config, key, value)
-    return sum((config.use_touch and config.lambda_t > 0, config.lambda_s > 0, config.lambda_flatten > 0,
-                config.lambda_depth_normal > 0, config.use_touch and config.lambda_touch_normal > 0,
-                config.appearance == "reflective"))
-
-
 def variant_label(name: str) -> str:
     return VARIANTS[name].label if name in VARIANTS else name

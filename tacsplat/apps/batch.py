@@ -30,7 +30,7 @@ import shutil
 import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import ClassVar, Literal
+from typing import Literal
 
 from tacsplat.errors import ConfigError
 
@@ -66,7 +66,6 @@ class BatchJob:
     cpus: float = 1.0  # CPUs it uses (Ray reserves them)
     name: str = ""  # default: "<kind> <out or run as written>"
     needs: tuple[str, ...] = ()
-    imports: ClassVar[tuple[str, ...]] = ()  # what its call imports (a processes-executor worker may load it ahead)
 
     def check(self) -> None:
         """A ConfigError naming the field at fault, before anything runs."""
@@ -75,6 +74,9 @@ class BatchJob:
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         return 0
+
+    def warm_up(self) -> None:
+        """Import what the call will (the processes executor runs this ahead, in a worker that would idle)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -147,6 +149,9 @@ class CaptureJob(BatchJob):
     def complete(self) -> bool:
         return (self.out / CAPTURE_MARKER).is_file()
 
+    def warm_up(self) -> None:
+        import tacsplat.acquisition.sim_capture  # noqa: F401
+
     def __call__(self) -> dict:
         capture_once(self.rig(), self.out)
         return {"scene": str(self.out)}
@@ -158,10 +163,6 @@ class ReconstructJob(BatchJob):
     from its checkpoint when one was interrupted)."""
 
     kind: Literal["reconstruct"] = "reconstruct"
-    # also what a training imports on first use: torch.optim's first optimizer torch._dynamo (a second), the
-    # evaluation trimesh, the error-vs-time plot pyplot
-    imports: ClassVar[tuple[str, ...]] = ("tacsplat.reconstruction.trainer", "torch._dynamo", "trimesh",
-                                          "matplotlib.pyplot")
     out: Path
     scene: Path
     preset: str = "default"  # reconstruction.config.PRESETS
@@ -191,6 +192,15 @@ class ReconstructJob(BatchJob):
     def complete(self) -> bool:
         return (self.out / METRICS).is_file()
 
+    def warm_up(self) -> None:
+        """The trainer and what a training imports on first use: torch.optim's first optimizer torch._dynamo
+        (a second), the evaluation trimesh, the error-vs-time plot pyplot."""
+        import matplotlib.pyplot  # noqa: F401
+        import torch._dynamo  # noqa: F401
+        import trimesh  # noqa: F401
+
+        import tacsplat.reconstruction.trainer  # noqa: F401
+
     def __call__(self) -> dict:
         from tacsplat.reconstruction.trainer import reconstruct
 
@@ -207,7 +217,6 @@ class EvaluateJob(BatchJob):
     elsewhere, or whose metrics.json was deleted to evaluate it again)."""
 
     kind: Literal["evaluate"] = "evaluate"
-    imports: ClassVar[tuple[str, ...]] = ("tacsplat.reconstruction.evaluation",)
     run: Path
     gt_mesh: str | None = None  # a ground-truth mesh instead of the scene's gt/
 
@@ -218,6 +227,9 @@ class EvaluateJob(BatchJob):
 
     def complete(self) -> bool:
         return (self.run / METRICS).is_file()
+
+    def warm_up(self) -> None:
+        import tacsplat.reconstruction.evaluation  # noqa: F401
 
     def __call__(self) -> dict:
         from tacsplat.reconstruction.evaluation import evaluate_run

@@ -14,7 +14,7 @@ Jobs hand each other paths on a filesystem every worker sees, never arrays.
   2 GB for each; a job takes ``cpus`` of them). A CPU training spends most of a step in single-threaded torch
   code, so on 2 cores two trainings side by side finish sooner than one after the other on both (two of the
   demo's: 1.6x the throughput). A CPU that would idle while the pending jobs wait for another's output starts
-  a worker that imports what they declare in ``imports`` (torch and the trainer: 3 s), so they start at once.
+  a worker that runs their ``warm_up`` (a training's imports: 3 s), so the first of them starts at once.
   The workers' log records reach this process's handlers. A worker that dies fails its job; the rest go on.
 - ``auto``: ``processes`` on a machine with at least 2 cores and no CUDA device, else ``local``.
 - ``ray``: every job a Ray task declaring its CPUs (and a GPU where it trains on
@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import csv
 import functools
-import importlib
 import logging
 import logging.handlers
 import multiprocessing
@@ -74,7 +73,7 @@ class Job(Protocol):
     name: str  # unique in its batch; shown in the progress, the log and failures.csv
     needs: tuple[str, ...]  # names of the jobs whose outputs this one reads
     cpus: float  # CPUs it uses (Ray reserves them; its numba threads are limited to them)
-    # optional: ``imports``, the modules its call imports (:func:`_import_modules` loads them ahead)
+    # optional: ``warm_up()``, which imports what its call will (:func:`_warm_up` runs it ahead)
 
     def gpus(self, cluster_has_gpus: bool) -> float: ...
 
@@ -340,12 +339,12 @@ def _start_worker(log_queue, level: int, batch_pid: int) -> None:
         os._exit(1)
 
 
-def _import_modules(modules: tuple[str, ...]) -> None:
+def _warm_up(jobs: list[Job]) -> None:
     """A warm-up task: a CPU that would idle while every pending job waits for another's output starts a worker
-    that imports what those jobs import (seconds each: torch alone takes 1.5), so the first of them to start
-    there starts at once. A failing import is left to the job to report."""
-    for module in modules:
-        importlib.import_module(module)
+    that imports what those jobs will (``warm_up``; seconds each: torch alone takes 1.5), so the first of them to
+    start there starts at once. A failure is left to the job itself to report."""
+    for job in jobs:
+        job.warm_up()
 
 
 def _run_in_worker(job: Job) -> tuple[str, object]:
@@ -406,9 +405,9 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
                 running[pool.submit(_run_in_worker, job)] = job
             batch.started(j.name for j in running.values())
             free = workers - sum(j.cpus for j in running.values())
-            modules = tuple(sorted({m for job in pending for m in getattr(job, "imports", ())}))
-            while modules and free >= 1 and len(running) + warm_ups < size:  # (the pool starts a worker per
-                pool.submit(_import_modules, modules)  # task submitted while none is idle)
+            kinds = list({type(job): job for job in pending if hasattr(job, "warm_up")}.values())  # one per class
+            while kinds and free >= 1 and len(running) + warm_ups < size:  # (the pool starts a worker per task
+                pool.submit(_warm_up, kinds)  # submitted while none is idle)
                 warm_ups, free = warm_ups + 1, free - 1
             if not running:
                 continue

@@ -38,7 +38,7 @@ import numpy as np
 from tacsplat.apps.batch import CaptureJob, ReconstructJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, get_variant, step_work, variant_label
+from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, get_variant, variant_label
 
 log = logging.getLogger(__name__)
 
@@ -120,6 +120,19 @@ class Run:
     @property
     def done(self) -> bool:
         return (self.out / "metrics.json").is_file()
+
+
+def step_work(variant: str) -> int:
+    """How many of the mechanisms that add work to a training step ``variant`` switches on (touch, smoothness,
+    flattening, depth-normal consistency with its normal render, tactile normals, the reflective appearance):
+    :meth:`PaperBench.jobs` starts the variants with more of them first, so that on few cores the longest runs
+    do not start last."""
+    from tacsplat.reconstruction.config import TrainConfig
+
+    config = TrainConfig(**get_variant(variant).overrides)
+    return sum((config.use_touch and config.lambda_t > 0, config.lambda_s > 0, config.lambda_flatten > 0,
+                config.lambda_depth_normal > 0, config.use_touch and config.lambda_touch_normal > 0,
+                config.appearance == "reflective"))
 
 
 @dataclass

@@ -6,7 +6,6 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass
-from typing import ClassVar
 from pathlib import Path
 
 from tacsplat.errors import ConfigError
@@ -59,9 +58,10 @@ class FileJob:
 
 @dataclass(frozen=True)
 class ImportingJob(FileJob):
-    """A FileJob that declares what its call imports (``batch_test_warm``)."""
+    """A FileJob whose ``warm_up`` imports ``batch_test_warm``."""
 
-    imports: ClassVar[tuple[str, ...]] = ("batch_test_warm",)
+    def warm_up(self) -> None:
+        import batch_test_warm  # noqa: F401
 
 
 def wait_until(condition, timeout_s: float = WAIT_S) -> None:

@@ -1,4 +1,4 @@
-"""A module a test job declares in its ``imports``: importing it records the importing process's id in
+"""A module a test job's ``warm_up`` imports: importing it records the importing process's id in
 ``$TACSPLAT_TEST_WARM_DIR/imported``."""
 
 import os

@@ -12,8 +12,7 @@ import pytest
 
 from tacsplat.apps import batch, paper_bench
 from tacsplat.errors import ConfigError
-from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
-from tacsplat.reconstruction.variants import step_work
+from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig, step_work
 from tacsplat.apps.report import (
     RESULT_COLUMNS,
     best_rows,
