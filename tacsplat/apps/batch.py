@@ -193,11 +193,10 @@ class ReconstructJob(BatchJob):
         return (self.out / METRICS).is_file()
 
     def warm_up(self) -> None:
-        """The trainer and what a training imports on first use: torch.optim's first optimizer torch._dynamo
-        (a second), the evaluation trimesh, the error-vs-time plot pyplot."""
-        import matplotlib.pyplot  # noqa: F401
+        """The trainer, and torch._dynamo, which torch.optim's first optimizer imports (a second). Not what a
+        training imports later (trimesh, pyplot): the demo's warm-up would then outlast its capture, and the
+        capture's worker would take the first training."""
         import torch._dynamo  # noqa: F401
-        import trimesh  # noqa: F401
 
         import tacsplat.reconstruction.trainer  # noqa: F401
 
