@@ -25,6 +25,7 @@ Same maths as :func:`.reference.rasterize_to_pixels_torch` (float32):
 from __future__ import annotations
 
 import math
+import weakref
 
 import numba as nb
 import numpy as np
@@ -483,6 +484,29 @@ def bin_gaussians(
     return tile_start, tile_gauss, gauss_offsets, gauss_isect
 
 
+_FREE_CACHES: list[np.ndarray] = []  # exp caches of forwards whose autograd context has died, for reuse
+_KEPT_CACHES = 2
+
+
+def _exp_cache(ctx, size: int) -> np.ndarray:
+    """A float32 buffer of ``size`` for a forward's exp cache, handed back for reuse when ``ctx`` dies: the
+    smallest free one that fits, else a new one. (Tens of MB each call otherwise: mapped fresh, faulted in and
+    zeroed by the kernel every call.)"""
+    fits = [i for i, b in enumerate(_FREE_CACHES) if b.size >= size]
+    if fits:
+        buffer = _FREE_CACHES.pop(min(fits, key=lambda i: _FREE_CACHES[i].size))
+    else:
+        buffer = np.empty(max(size, 1), np.float32)
+    weakref.finalize(ctx, _free_cache, buffer)
+    return buffer[:size]
+
+
+def _free_cache(buffer: np.ndarray) -> None:
+    _FREE_CACHES.append(buffer)
+    _FREE_CACHES.sort(key=lambda b: -b.size)
+    del _FREE_CACHES[_KEPT_CACHES:]  # the largest: any smaller cache fits in them (a process keeps at most two)
+
+
 def _numpy32(x: Tensor) -> np.ndarray:
     return np.ascontiguousarray(x.detach().to(torch.float32).cpu().numpy())
 
@@ -519,7 +543,7 @@ class _RasterizeCPU(torch.autograd.Function):
                        capacity)  # fmt: skip
         cache_start = np.zeros(n_isect + 1, np.int64)
         np.cumsum(capacity, out=cache_start[1:])
-        vis_cache = np.empty(int(cache_start[-1]), np.float32)
+        vis_cache = _exp_cache(ctx, int(cache_start[-1]))
         pair_start = np.zeros(n_isect, np.int64)
         tile_cached = np.empty(n_cams * tiles_per_cam, np.bool_)
         # each visited row's columns [x0, x1) within its tile, for the backward

@@ -74,6 +74,29 @@ def test_cpu_backward_is_deterministic():
         assert torch.equal(first[name], second[name]), name
 
 
+def test_exp_caches_are_reused_only_once_their_forward_is_gone():
+    """A forward's exp cache goes back to the pool when its autograd context dies, never before: a pending
+    backward keeps reading its own forward's values while other renders come and go."""
+    from tacsplat.reconstruction.raster import cpu_composite
+
+    def forward(scene):
+        params = {k: scene[k].detach().clone().requires_grad_(True) for k in PARAMS}
+        img, alpha, _ = rasterization(**params, **{k: v for k, v in scene.items() if k not in PARAMS}, backend="cpu")
+        return params, img.sum() + alpha.sum()
+
+    scene_a, scene_b = random_scene(900, 40, 32, seed=3), random_scene(300, 40, 32, seed=4)  # b fits in a's
+    params, loss = forward(scene_a)
+    loss.backward()
+    expected = {k: p.grad for k, p in params.items()}
+    params, loss = forward(scene_a)  # its backward waits
+    for _ in range(3):  # renders of another scene take and return caches meanwhile
+        forward(scene_b)[1].backward()
+        assert cpu_composite._FREE_CACHES, "a finished render returns its cache"
+    loss.backward()
+    for name, grad in expected.items():
+        assert torch.equal(params[name].grad, grad), name
+
+
 def test_cpu_single_gaussian_alpha_profile_is_analytic():
     means = torch.tensor([[0.0, 0.0, 2.0]])
     quats = torch.tensor([[0.3, 0.0, 0.0, 0.0]])  # unnormalised identity
