@@ -185,8 +185,9 @@ class PaperBench:
 
     def jobs(self) -> list[tuple[Run | None, CaptureJob | ReconstructJob]]:
         """``(run, job)`` of every unfinished run, its capture first (``run`` None), in the order of :meth:`runs`
-        except that a capture's runs start with the variants whose steps do more work (:func:`step_work`): on
-        two cores the demo's three runs then finish sooner (the longest, started last, used to run alone)."""
+        except that a capture's runs start with the variants whose steps do more work (:func:`step_work`), so
+        that the longest training is the first to start (on the processes executor, in the worker its warm-up
+        made ready)."""
         runs = self.runs()
         group = {(r.object, r.setting, r.seed): i for i, r in reversed(list(enumerate(runs)))}  # first position
         runs.sort(key=lambda r: (group[r.object, r.setting, r.seed], -step_work(r.variant)))  # (stable)
