@@ -80,18 +80,29 @@ def variant_of(config) -> str:
     (with touch on), ``+tnp`` for tactile normals at the touch pixels (with touch and the rendered normals of
     depth-normal consistency on, which it needs) and ``+r`` for the reflective appearance. A combination without a row names itself the same
     way, so a run's metrics.json never calls it by a row it is not."""
-    touch = config.use_touch and config.lambda_t > 0
-    smooth = config.lambda_s > 0
-    name = {(False, False): "3dgs", (False, True): "3dgs+s", (True, False): "3dgs+t", (True, True): "full"}[(touch, smooth)]
-    flat, depth_normal = config.lambda_flatten > 0, config.lambda_depth_normal > 0
+    on = mechanisms(config)
+    name = {(False, False): "3dgs", (False, True): "3dgs+s", (True, False): "3dgs+t",
+            (True, True): "full"}[(on["touch"], on["smoothness"])]  # fmt: skip
+    flat, depth_normal = on["flattening"], on["depth_normal"]
     name += "+n" if flat and depth_normal else "+flat" if flat else "+dn" if depth_normal else ""
-    if touch and config.lambda_touch_normal > 0:
-        name += "+tn"
-    if touch and depth_normal and config.lambda_touch_normal_pixels > 0:
-        name += "+tnp"
-    if config.appearance == "reflective":
-        name += "+r"
+    name += "+tn" if on["tactile_normals"] else ""
+    name += "+tnp" if on["tactile_normal_pixels"] else ""
+    name += "+r" if on["reflective"] else ""
     return name
+
+
+def mechanisms(config) -> dict[str, bool]:
+    """Which of the optional mechanisms a TrainConfig switches on, read once for the variant's name
+    (:func:`variant_of`) and for how much work its step does (``bench paper``'s scheduling): touch (used, with
+    lambda_t > 0), smoothness, flattening, depth-normal consistency, tactile normals (with touch), tactile
+    normals at the touch pixels (with touch and depth-normal consistency), the reflective appearance."""
+    touch, depth_normal = config.use_touch and config.lambda_t > 0, config.lambda_depth_normal > 0
+    return {
+        "touch": touch, "smoothness": config.lambda_s > 0, "flattening": config.lambda_flatten > 0,
+        "depth_normal": depth_normal, "tactile_normals": touch and config.lambda_touch_normal > 0,
+        "tactile_normal_pixels": touch and depth_normal and config.lambda_touch_normal_pixels > 0,
+        "reflective": config.appearance == "reflective",
+    }  # fmt: skip
 
 
 def variant_label(name: str) -> str:

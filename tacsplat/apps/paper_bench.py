@@ -38,7 +38,7 @@ import numpy as np
 from tacsplat.apps.batch import CaptureJob, ReconstructJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, get_variant, variant_label
+from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, get_variant, mechanisms, variant_label
 
 log = logging.getLogger(__name__)
 
@@ -123,16 +123,12 @@ class Run:
 
 
 def step_work(variant: str) -> int:
-    """How many of the mechanisms that add work to a training step ``variant`` switches on (touch, smoothness,
-    flattening, depth-normal consistency with its normal render, tactile normals, the reflective appearance):
-    :meth:`PaperBench.jobs` starts the variants with more of them first, so that on few cores the longest runs
-    do not start last."""
+    """How many of the optional mechanisms (:func:`~tacsplat.reconstruction.variants.mechanisms`), each adding
+    work to a training step, ``variant`` switches on: :meth:`PaperBench.jobs` starts the variants with more of
+    them first, so that on few cores the longest runs do not start last."""
     from tacsplat.reconstruction.config import TrainConfig
 
-    config = TrainConfig(**get_variant(variant).overrides)
-    return sum((config.use_touch and config.lambda_t > 0, config.lambda_s > 0, config.lambda_flatten > 0,
-                config.lambda_depth_normal > 0, config.use_touch and config.lambda_touch_normal > 0,
-                config.appearance == "reflective"))
+    return sum(mechanisms(TrainConfig(**get_variant(variant).overrides)).values())
 
 
 @dataclass
@@ -189,7 +185,9 @@ class PaperBench:
         that the longest training is the first to start (on the processes executor, in the worker its warm-up
         made ready)."""
         runs = self.runs()
-        group = {(r.object, r.setting, r.seed): i for i, r in reversed(list(enumerate(runs)))}  # first position
+        group: dict[tuple, int] = {}  # capture -> its place among the captures
+        for r in runs:
+            group.setdefault((r.object, r.setting, r.seed), len(group))
         runs.sort(key=lambda r: (group[r.object, r.setting, r.seed], -step_work(r.variant)))  # (stable)
         jobs, captures = [], {}
         for run in runs:

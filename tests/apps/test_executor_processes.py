@@ -79,7 +79,7 @@ def test_a_job_wanting_every_cpu_runs_alone(tmp_path):
 
 
 def test_a_free_cpu_starts_a_worker_that_imports_what_waiting_jobs_import(tmp_path, monkeypatch):
-    # "capture" finishes only once another worker has imported what "train" (waiting for it) declares
+    # "capture" finishes only once another worker has run the warm-up of "train" (which waits for it)
     warm = tmp_path / "warm"
     warm.mkdir()
     monkeypatch.setenv("TACSPLAT_TEST_WARM_DIR", str(warm))
