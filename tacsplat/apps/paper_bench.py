@@ -138,6 +138,7 @@ class PaperBench:
     out: Path
     config: PaperBenchConfig = field(default_factory=PaperBenchConfig)
     wall_note: str = field(default="", init=False, repr=False)  # how the last run() ran its jobs, for report.md
+    first_views: dict = field(default_factory=dict, init=False, repr=False)  # render_first_test_view's renders
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -224,6 +225,7 @@ class PaperBench:
                 return None
             # partial tables after every run; the pictures (re-rendered from every checkpoint, seconds) at the end
             self.write_report(self.results(), wall_seconds=time.perf_counter() - started, figures=False)
+            self.prepare_pictures(run)
             return (f"{run.object:8s} {run.setting:10s} {run.variant:7s} seed {run.seed}: "
                     f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
                     f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s")
@@ -252,8 +254,24 @@ class PaperBench:
 
     def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
         """results.csv, report.md and (``figures``) the plots from the runs on disk."""
-        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures, self.wall_note)
+        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures, self.wall_note,
+                           self.first_views)
         return self.out / "report.md"
+
+    def prepare_pictures(self, run: Run) -> None:
+        """What the final report's pictures need from ``run``, which has just finished, made while other runs
+        still train: pyplot imported, and the run's first test view rendered (kept in ``first_views``; a
+        finished run's checkpoint no longer changes). In the demo's runs this takes 0.4-0.7 s off the report
+        that follows the last run. A failure here is left to that report."""
+        if run.seed != self.config.seeds[0]:  # (the render grid shows the first seed)
+            return
+        try:
+            from tacsplat.apps.report import pyplot
+
+            pyplot()
+            render_first_test_view([run], self.first_views)
+        except Exception:  # noqa: BLE001 - the final report renders it again and reports what fails
+            log.debug("preparing the pictures of %s failed", run.out, exc_info=True)
 
 
 def _number(value) -> float:
@@ -363,48 +381,70 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     return "\n".join(lines) + "\n"
 
 
-def render_first_test_view(runs: list[Run]) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | None,
-                                                     np.ndarray | None]:
+def render_first_test_view(runs: list[Run], rendered: dict | None = None) -> tuple[dict, np.ndarray, np.ndarray,
+                                                                         np.ndarray | None, np.ndarray | None]:
     """``({variant: (rgb, depth, normal)}, gt_rgb, gt_depth, gt_normal, gt_seen)`` of the first test view of one
     scene, rendered from each run's last checkpoint (the evaluation's renders, whose depth colours are scaled per
     run, are not reused); normals in the camera frame, the ground truth's from its depth map as the evaluation
-    takes them; ``gt_seen`` [H, W] bool: which ground-truth pixels the first run's training cameras see (None
-    without a ground-truth mesh)."""
-    import torch
-
+    takes them; ``gt_seen`` [H, W] bool: which ground-truth pixels the first rendered run's training cameras see
+    (None without a ground-truth mesh). ``rendered``: what earlier calls rendered (run folder -> its view, scene
+    folder -> its ground truth), used and added to."""
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.evaluation import load_ground_truth, render_frame, seen_pixels
-    from tacsplat.reconstruction.losses import depth_normals
     from tacsplat.reconstruction.run_dir import load_run
-    from tacsplat.reconstruction.views import background_image, training_frames
 
+    rendered = {} if rendered is None else rendered
     scene = Scene.load(runs[0].scene)
     frame = scene.split("test")[0]
     gt_rgb = scene.load_image(frame)
+    for run in runs:
+        if run.out in rendered:
+            continue
+        loaded = load_run(run.out)
+        rendered[run.out] = _render_view(loaded, frame, gt_rgb)
+        if run.scene not in rendered:
+            rendered[run.scene] = _first_view_truth(scene, frame, gt_rgb, loaded.config.train_views)
+    panels = {run.variant: rendered[run.out] for run in runs}
+    return panels, gt_rgb, *rendered[runs[0].scene]
+
+
+def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rgb, depth, normal)`` of a loaded run's Gaussians in ``frame`` over the backdrop of its image."""
+    import torch
+
+    from tacsplat.reconstruction.evaluation import render_frame
+    from tacsplat.reconstruction.views import background_image
+
+    background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
+    view = render_frame(loaded.gaussians, frame, background, loaded.config.backend, with_depth=True, with_normals=True)
+    return view.rgb, view.depth, view.normal
+
+
+def _first_view_truth(scene, frame, gt_rgb: np.ndarray, train_views: int | None
+                      ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """``(gt_depth, gt_normal, gt_seen)`` of ``frame`` (zeros, None, None without ground-truth depth)."""
+    import torch
+
+    from tacsplat.reconstruction.evaluation import load_ground_truth, seen_pixels
+    from tacsplat.reconstruction.losses import depth_normals
+    from tacsplat.reconstruction.views import training_frames
+
     gt_depth = scene.gt_depth(frame)
-    loaded_runs = [load_run(run.out) for run in runs]
-    panels = {}
-    for run, loaded in zip(runs, loaded_runs):
-        background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
-        view = render_frame(loaded.gaussians, frame, background, loaded.config.backend, with_depth=True,
-                            with_normals=True)
-        panels[run.variant] = (view.rgb, view.depth, view.normal)
     if gt_depth is None:
-        return panels, gt_rgb, np.zeros(gt_rgb.shape[:2], np.float32), None, None
+        return np.zeros(gt_rgb.shape[:2], np.float32), None, None
     gt_normal = depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(frame.intrinsics.K)).numpy()
-    train = training_frames(scene, loaded_runs[0].config.train_views)
-    ground_truth = load_ground_truth(scene, [frame], train_frames=train)
+    ground_truth = load_ground_truth(scene, [frame], train_frames=training_frames(scene, train_views))
     gt_seen = None
     if ground_truth is not None and ground_truth.seen is not None:
         gt_seen = seen_pixels(gt_depth, ground_truth.seen[frame.id])
-    return panels, gt_rgb, gt_depth, gt_normal, gt_seen
+    return gt_depth, gt_normal, gt_seen
 
 
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
-                       wall_seconds: float | None = None, figures: bool = True, wall_note: str = "") -> None:
+                       wall_seconds: float | None = None, figures: bool = True, wall_note: str = "",
+                       first_views: dict | None = None) -> None:
     """Write ``results.csv``, ``report.md`` and (``figures``) CD bar charts, error-vs-time curves and render
     grids into ``out``; without figures, report.md holds the tables only. ``wall_note`` follows the wall time
-    (how the jobs ran)."""
+    (how the jobs ran); ``first_views``: :func:`render_first_test_view`'s renders so far."""
     from tacsplat.apps.report import (
         markdown_table,
         METRICS,
@@ -455,7 +495,7 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         for obj in dict.fromkeys(r.object for r in runs if r.setting == setting):
             finished = [r for r in runs if r.object == obj and r.setting == setting and r.seed == config.seeds[0] and r.done]
             if finished:
-                panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(finished)
+                panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(finished, first_views)
                 png = render_grid(panels, gt_rgb, gt_depth, out / f"renders_{obj}_{setting}.png",
                                   f"{obj}, {setting}: first test view", gt_normal=gt_normal, gt_seen=gt_seen)
                 lines += [f"![renders {obj} {setting}]({png.name})", ""]

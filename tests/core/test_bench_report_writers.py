@@ -156,10 +156,13 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
         _finish(run, 0.01)
         return json.loads((run.out / "metrics.json").read_text())
 
-    rendered = []
+    rendered, drawn = [], []  # the runs of each call; the runs each call had to render (not in its cache)
 
-    def render_first_test_view(runs):
+    def render_first_test_view(runs, cache=None):
         rendered.append([r.variant for r in runs])
+        cache = {} if cache is None else cache
+        drawn.extend(r.variant for r in runs if r.out not in cache)
+        cache.update({r.out: None for r in runs})
         depth = np.full((8, 8), 0.3, np.float32)
         normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
         seen = np.ones((8, 8), bool)
@@ -177,6 +180,7 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
     for name in ("results.csv", "cd_minimal.png", "error_vs_time_minimal.png", "renders_teapot_minimal.png"):
         assert (tmp_path / name).is_file(), name
     assert rendered[-1] == ["3dgs", "full"]  # the grid shows every finished run
+    assert drawn == ["full", "3dgs"]  # full while the batch ran (pictures prepared), 3dgs (finished before) at the end
     trained.clear()
     bench.run(progress=False)
     assert trained == []  # everything finished: nothing retrained
