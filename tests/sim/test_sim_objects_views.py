@@ -64,3 +64,19 @@ def test_hemisphere_views_look_at_the_object_from_above():
     assert not np.allclose(train[0], other[0])
     with pytest.raises(ConfigError):
         hemisphere_views(-1, 3, 0.08)
+
+
+def test_bounding_sphere_follows_the_vertices_it_is_kept_for():
+    """The kept spheres are keyed by the vertices: a mesh changed in place gets its new sphere, and changing a
+    returned centre changes nothing kept."""
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.5)
+    centre, radius = bounding_sphere(mesh)
+    assert radius == pytest.approx(0.5, rel=1e-6) and np.allclose(centre, 0.0, atol=1e-9)
+    centre += 7.0
+    mesh.apply_scale(2.0)
+    mesh.apply_translation([0.1, 0.0, 0.0])
+    centre, radius = bounding_sphere(mesh)
+    assert radius == pytest.approx(1.0, rel=1e-6) and np.allclose(centre, [0.1, 0.0, 0.0], atol=1e-6)
+    mesh.apply_translation([-0.1, 0.0, 0.0])
+    mesh.apply_scale(0.5)
+    assert np.allclose(bounding_sphere(mesh)[0], 0.0, atol=1e-9)
