@@ -351,3 +351,20 @@ def test_the_report_says_how_its_jobs_ran(tmp_path):
     write_paper_report(tmp_path, [], [], PaperBenchConfig(), wall_seconds=90.0, figures=False, wall_note=note)
     assert f"Wall time of the last invocation: 1.5 min{note}; 0 of 0 runs finished." in (
         tmp_path / "report.md").read_text()
+
+
+def test_prepared_pictures_keep_only_the_latest_scene(tmp_path, monkeypatch):
+    """The views rendered as runs finish are kept for one scene at a time (one grid's worth of images)."""
+    config = PaperBenchConfig(objects=("teapot", "bell"), settings=("minimal",), variants=("3dgs", "full"))
+    bench = PaperBench(tmp_path, config)
+
+    def render_first_test_view(runs, cache):
+        cache.update({key: None for r in runs for key in (r.out, r.scene)})
+
+    monkeypatch.setattr(paper_bench, "render_first_test_view", render_first_test_view)
+    runs = {(r.object, r.variant): r for r in bench.runs()}
+    bench.prepare_pictures(runs["teapot", "full"])
+    bench.prepare_pictures(runs["teapot", "3dgs"])
+    assert set(bench.first_views) == {runs["teapot", "full"].out, runs["teapot", "3dgs"].out, runs["teapot", "full"].scene}
+    bench.prepare_pictures(runs["bell", "3dgs"])  # another scene: the teapot's views go
+    assert set(bench.first_views) == {runs["bell", "3dgs"].out, runs["bell", "3dgs"].scene}
