@@ -387,28 +387,34 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
     size = min(workers, len(pending))
     pool = futures.ProcessPoolExecutor(max_workers=size, mp_context=context, initializer=_start_worker,
                                        initargs=(log_queue, logging.getLogger().level, os.getpid()))
-    warm_ups = 0  # workers started ahead of the jobs that wait for another's output
+    warm_ups: list[futures.Future] = []  # workers started ahead of the jobs that wait for another's output
     try:
         while pending or running:
+            starting: list[Job] = []
             for job in list(pending):  # in order: a job waits for its needs, and for CPUs behind earlier jobs
                 need = batch.blocked_by(job)
                 if need:
                     pending.remove(job)
                     batch.failed(job, _not_run(need), attempts=0)
                     continue
-                unfinished = {j.name for j in pending} | {j.name for j in running.values()}
+                unfinished = {j.name for j in (*pending, *starting, *running.values())}
                 if any(n in unfinished for n in job.needs):
                     continue
-                if running and sum(j.cpus for j in running.values()) + job.cpus > workers:
+                busy = [*running.values(), *starting]
+                if busy and sum(j.cpus for j in busy) + job.cpus > workers:
                     break
                 pending.remove(job)
+                starting.append(job)
+            if any(not w.done() for w in warm_ups):  # the idle workers are cold: they take the later jobs, and
+                starting.reverse()  # the first waits for the worker still warming up (the queue is first come)
+            for job in starting:
                 running[pool.submit(_run_in_worker, job)] = job
             batch.started(j.name for j in running.values())
             free = workers - sum(j.cpus for j in running.values())
             kinds = list({type(job): job for job in pending if hasattr(job, "warm_up")}.values())  # one per class
-            while kinds and free >= 1 and len(running) + warm_ups < size:  # (the pool starts a worker per task
-                pool.submit(_warm_up, kinds)  # submitted while none is idle)
-                warm_ups, free = warm_ups + 1, free - 1
+            while kinds and free >= 1 and len(running) + len(warm_ups) < size:  # (the pool starts a worker per
+                warm_ups.append(pool.submit(_warm_up, kinds))  # task submitted while none is idle)
+                free -= 1
             if not running:
                 continue
             done, _ = futures.wait(running, timeout=POLL_S, return_when=futures.FIRST_COMPLETED)

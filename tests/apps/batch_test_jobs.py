@@ -64,6 +64,17 @@ class ImportingJob(FileJob):
         import batch_test_warm  # noqa: F401
 
 
+@dataclass(frozen=True)
+class SlowWarmJob(FileJob):
+    """A FileJob whose ``warm_up`` lasts until a second after ``wait_for`` appears, then records its process id in
+    ``FOLDER/../warmed``: a warm-up still running when the job it waits for has finished."""
+
+    def warm_up(self) -> None:
+        wait_until(self.wait_for.exists)
+        time.sleep(1.0)
+        (self.folder.parent / "warmed").write_text(str(os.getpid()))
+
+
 def wait_until(condition, timeout_s: float = WAIT_S) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():

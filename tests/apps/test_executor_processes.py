@@ -23,7 +23,7 @@ from tacsplat.apps.executors import (FAILURES_CSV, default_workers, resolve_exec
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders; spawned
 # workers get this process's sys.path
 
-from batch_test_jobs import FileJob, ImportingJob, wait_until  # noqa: E402
+from batch_test_jobs import FileJob, ImportingJob, SlowWarmJob, wait_until  # noqa: E402
 
 
 def read_rows(path: Path) -> list[dict]:
@@ -89,6 +89,18 @@ def test_a_free_cpu_starts_a_worker_that_imports_what_waiting_jobs_import(tmp_pa
     assert outcome.done == ["capture", "train"]
     importer = int((warm / "imported").read_text())
     assert importer not in capture.attempts() + [os.getpid()]  # a second worker, started while capture ran
+
+
+def test_the_first_job_waits_for_the_worker_still_warming_up(tmp_path):
+    # "capture" ends while the other worker still warms up for the trainings: the capture's idle, cold worker
+    # takes the second training, and the first (the longest, as bench paper orders them) the warm worker
+    capture = FileJob("capture", tmp_path / "capture")
+    first = SlowWarmJob("first", tmp_path / "first", needs=("capture",), wait_for=capture.folder / "done")
+    second = FileJob("second", tmp_path / "second", needs=("capture",), wait_for=tmp_path / "warmed")  # (long)
+    outcome = run_jobs([capture, first, second], tmp_path, executor="processes", workers=2, progress=False)
+    assert sorted(outcome.done) == ["capture", "first", "second"]
+    warm = int((tmp_path / "warmed").read_text())
+    assert first.attempts() == [warm] and second.attempts() == capture.attempts()
 
 
 def test_a_dead_worker_fails_its_job_and_the_rest_go_on(tmp_path):
