@@ -22,6 +22,8 @@ def test_help_lists_commands_and_every_command_has_help(capsys):
 def test_console_script_runs():
     out = subprocess.run([sys.executable, "-m", "tacsplat.cli", "--version"], capture_output=True, text=True)
     assert out.returncode == 0 and "tacsplat" in out.stdout
+    out = subprocess.run([sys.executable, "-m", "tacsplat"], capture_output=True, text=True)  # cli.run exits
+    assert out.returncode == 2 and "usage: tacsplat" in out.stdout  # with main's code (no command: 2)
 
 
 def test_no_command_prints_help_and_fails(capsys):
