@@ -245,11 +245,12 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
         x_hi, y_hi = min(x_lo + tile_size, width), min(y_lo + tile_size, height)
         tw = x_hi - x_lo
         n_pix = tw * (y_hi - y_lo)
-        trans = np.ones(n_pix, np.float32)
+        trans = np.ones(n_pix, np.float32)  # negated once the pixel has finished (T would fall below 1e-4)
         acc = np.zeros((n_pix, n_ch), np.float32)
         last = np.zeros(n_pix, np.int64)
         median = np.zeros(n_pix, np.float32)
-        done = np.zeros(n_pix, np.bool_)
+        color_g = np.empty(n_ch, np.float32)
+        scratch = np.empty(tile_size, np.float32)
         alive = n_pix
         pairs = 0
         pos = cache_start[tile_start[t]]
@@ -261,7 +262,9 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             g = tile_gauss[k]
             mx, my = means2d[g, 0], means2d[g, 1]
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-            opac, limit = opacities[g], limits[g]
+            opac, limit, depth = opacities[g], limits[g], depths[g]
+            for d in range(n_ch):
+                color_g[d] = colors[g, d]
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
             a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)  # (numba's float() keeps a float32)
             inv_a = 1.0 / a64 if a64 > 0.0 else 0.0
@@ -271,58 +274,67 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
                 x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
+                x1 = max(x1, x0)
                 spans[k, y - y_lo, 0] = x0 - x_lo
-                spans[k, y - y_lo, 1] = max(x1, x0) - x_lo
-                pairs += max(x1 - x0, 0)
-                if pos + max(x1 - x0, 0) > cache_end:
+                spans[k, y - y_lo, 1] = x1 - x_lo
+                pairs += x1 - x0
+                if pos + (x1 - x0) > cache_end:
                     cached = False  # cannot happen with the capacity bound; the backward then recomputes
-                # exp(-exponent) at (x0, y) and its ratio from x to x + 1 (both in float64); inside the span
-                # both stay within exp(+-limit), so the recurrence neither overflows nor underflows
-                dx0, dy64 = np.float64(mx) - (x0 + 0.5), np.float64(my) - (y + 0.5)
-                vis_next = math.exp(-(0.5 * (a64 * dx0 * dx0 + c64 * dy64 * dy64) + b64 * dx0 * dy64))
-                ratio = math.exp(a64 * dx0 + b64 * dy64 - 0.5 * a64)
-                for x in range(x0, x1):
-                    p = (y - y_lo) * tw + (x - x_lo)
-                    stored = _ZERO
-                    vis = F32(vis_next)
-                    vis_next *= ratio
-                    ratio *= ratio_step
-                    if not done[p]:
-                        counts = True  # a positive-definite conic: the alpha test below decides
-                        if not recurrence:
-                            sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
-                            counts = sigma >= _ZERO and sigma <= limit
-                            if counts:
-                                vis = math.exp(-sigma)
-                        if counts:
-                            alpha = min(max_alpha, opac * vis)
-                            if alpha >= _ALPHA_MIN:
-                                next_t = trans[p] * (_ONE - alpha)
-                                if next_t <= _T_MIN:
-                                    done[p] = True
-                                    alive -= 1
-                                else:
-                                    weight = alpha * trans[p]
-                                    for d in range(n_ch):
-                                        acc[p, d] += weight * colors[g, d]
-                                    if trans[p] >= _HALF and next_t < _HALF:
-                                        median[p] = depths[g]
-                                    trans[p] = next_t
-                                    last[p] = k + 1
-                                    stored = vis
-                    if cached:
-                        vis_cache[pos] = stored
-                        pos += 1
+                row = vis_cache[pos:pos + (x1 - x0)] if cached else scratch[:x1 - x0]
+                if cached:
+                    pos += x1 - x0
+                p0 = (y - y_lo) * tw - x_lo
+                if recurrence:  # exp(-exponent) at (x0, y) and its ratio from x to x + 1 (both in float64); inside
+                    # the span both stay within exp(+-limit), so the recurrence neither overflows nor underflows
+                    dx0, dy64 = np.float64(mx) - (x0 + 0.5), np.float64(my) - (y + 0.5)
+                    vis_next = math.exp(-(0.5 * (a64 * dx0 * dx0 + c64 * dy64 * dy64) + b64 * dx0 * dy64))
+                    ratio = math.exp(a64 * dx0 + b64 * dy64 - 0.5 * a64)
+                    for x in range(x0, x1):
+                        vis = F32(vis_next)
+                        vis_next *= ratio
+                        ratio *= ratio_step
+                        row[x - x0], alive = _composite(trans, acc, last, median, p0 + x, vis, opac, max_alpha,
+                                                        color_g, depth, k, alive, channels)
+                else:
+                    for x in range(x0, x1):
+                        stored = _ZERO
+                        sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
+                        if sigma >= _ZERO and sigma <= limit:
+                            stored, alive = _composite(trans, acc, last, median, p0 + x, F32(math.exp(-sigma)),
+                                                       opac, max_alpha, color_g, depth, k, alive, channels)
+                        row[x - x0] = stored
         tile_pairs[t] = pairs
         tile_cached[t] = cached
         for p in range(n_pix):
             py, px = divmod(p, tw)
             y, x = y_lo + py, x_lo + px
+            t_p = abs(trans[p])
             for d in range(n_ch):
-                out_color[cam, y, x, d] = acc[p, d] + trans[p] * backgrounds[cam, d]
-            out_trans[cam, y, x] = trans[p]
+                out_color[cam, y, x, d] = acc[p, d] + t_p * backgrounds[cam, d]
+            out_trans[cam, y, x] = t_p
             out_last[cam, y, x] = last[p]
-            out_median[cam, y, x] = median[p]
+            out_median[cam, y, x] = median[p] if t_p < _HALF else _ZERO
+
+
+@nb.njit(cache=True, inline="always")
+def _composite(trans, acc, last, median, p, vis, opac, max_alpha, color_g, depth, k, alive, channels):
+    """One pair of the forward: (the value the backward reads for it, alive pixels)."""
+    t_p = trans[p]
+    if t_p > _ZERO:
+        alpha = min(max_alpha, opac * vis)
+        if alpha >= _ALPHA_MIN:
+            next_t = t_p * (_ONE - alpha)
+            if next_t <= _T_MIN:
+                trans[p] = -t_p
+                return _ZERO, alive - 1
+            weight = alpha * t_p
+            for d in range(len(channels)):
+                acc[p, d] += weight * color_g[d]
+            median[p] = depth if t_p >= _HALF else median[p]
+            trans[p] = next_t
+            last[p] = k + 1
+            return vis, alive
+    return _ZERO, alive
 
 
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
@@ -351,6 +363,7 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
         v_c = np.empty((n_pix, n_ch), np.float32)
         tv_a = np.empty(n_pix, np.float32)  # T_final * (d loss / d alpha-image minus the background's share)
         behind = np.zeros(n_pix, np.float32)  # colour composited behind so far, dotted with the pixel's v_color
+        v_col_g = np.empty(n_ch, np.float32)  # d loss / d colour of the current Gaussian
         use_cache = tile_cached[t]
         max_last = start
         for p in range(n_pix):
@@ -372,54 +385,33 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
             g_o = s_xr = s_y = s_xy = s_yy = s_xx_tot = _ZERO  # sums over the tile of v_sigma times dx, dy, ...
             s_x = s_xx = row_s = _ZERO  # sums along the current row
             for d in range(n_ch):
-                rows[k, N_GRAD + d] = _ZERO
+                v_col_g[d] = _ZERO
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
             inv_a = 1.0 / np.float64(a) if a > _ZERO else 0.0
             pos = pair_start[k]
             for y in range(r0, r1):
                 dy = my - (F32(y) + _HALF)
+                p0 = (y - y_lo) * tw - x_lo
                 if use_cache:  # the forward's columns of this row (the same solve, not done twice)
                     x0, x1 = x_lo + np.int64(spans[k, y - y_lo, 0]), x_lo + np.int64(spans[k, y - y_lo, 1])
+                    row = vis_cache[pos:pos + (x1 - x0)]
+                    pos += x1 - x0
+                    for x in range(x0, x1):
+                        vis = row[x - x0]
+                        if vis != _ZERO and k < last[p0 + x]:
+                            s_x, s_xx, row_s, g_o = _pair_backward(
+                                trans, tv_a, behind, v_c, v_col_g, p0 + x, vis, opac, max_alpha, colors, g,
+                                mx - (F32(x) + _HALF), s_x, s_xx, row_s, g_o, channels)
                 else:
                     x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
-                for x in range(x0, x1):
-                    p = (y - y_lo) * tw + (x - x_lo)
-                    vis = _ZERO
-                    if use_cache:
-                        vis = vis_cache[pos]
-                        pos += 1
-                    if k >= last[p]:
-                        continue
-                    dx = mx - (F32(x) + _HALF)
-                    if use_cache:
-                        if vis == _ZERO:
-                            continue
-                    else:
-                        sigma = _exponent(a, b, c, dx, dy)
-                        if sigma < _ZERO or sigma > limit:
-                            continue
-                        vis = math.exp(-sigma)
-                    alpha = min(max_alpha, opac * vis)
-                    if alpha < _ALPHA_MIN:
-                        continue
-                    ra = _ONE / (_ONE - alpha)
-                    t_p = trans[p] * ra  # transmittance in front of this Gaussian
-                    trans[p] = t_p
-                    fac = alpha * t_p
-                    v_alpha_p = ra * tv_a[p]
-                    col_dot = _ZERO
-                    for d in range(n_ch):
-                        vcol = v_c[p, d]
-                        rows[k, N_GRAD + d] += fac * vcol
-                        col_dot += colors[g, d] * vcol
-                    v_alpha_p += col_dot * t_p - behind[p] * ra
-                    behind[p] += col_dot * fac
-                    if opac * vis <= max_alpha:
-                        v_sigma = -opac * vis * v_alpha_p
-                        s_x += v_sigma * dx
-                        s_xx += v_sigma * dx * dx
-                        row_s += v_sigma
-                        g_o += vis * v_alpha_p
+                    for x in range(x0, x1):
+                        if k < last[p0 + x]:
+                            dx = mx - (F32(x) + _HALF)
+                            sigma = _exponent(a, b, c, dx, dy)
+                            if sigma >= _ZERO and sigma <= limit:
+                                s_x, s_xx, row_s, g_o = _pair_backward(
+                                    trans, tv_a, behind, v_c, v_col_g, p0 + x, math.exp(-sigma), opac, max_alpha,
+                                    colors, g, dx, s_x, s_xx, row_s, g_o, channels)
                 # fold the row's sums in, dy being constant along the row
                 s_xr += s_x
                 s_y += row_s * dy
@@ -427,6 +419,8 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                 s_yy += row_s * dy * dy
                 s_xx_tot += s_xx
                 s_x = s_xx = row_s = _ZERO
+            for d in range(n_ch):
+                rows[k, N_GRAD + d] = v_col_g[d]
             # d sigma / d (mean, conic) = (a dx + b dy, b dx + c dy, dx^2 / 2, dx dy, dy^2 / 2), summed
             rows[k, 0] = a * s_xr + b * s_y
             rows[k, 1] = b * s_xr + c * s_y
@@ -437,6 +431,35 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
         for k in range(max_last, end):  # behind every pixel's last contributor: no gradient
             for j in range(rows.shape[1]):
                 rows[k, j] = _ZERO
+
+
+@nb.njit(cache=True, inline="always", fastmath={"contract"})
+def _pair_backward(trans, tv_a, behind, v_c, v_col_g, p, vis, opac, max_alpha, colors, g, dx, s_x, s_xx, row_s, g_o,
+                   channels):
+    """One pair of the backward (back to front): updates the pixel's transmittance and colour behind, the
+    Gaussian's colour gradient; returns the row's sums with this pair's share."""
+    alpha = min(max_alpha, opac * vis)
+    if alpha < _ALPHA_MIN:
+        return s_x, s_xx, row_s, g_o
+    ra = _ONE / (_ONE - alpha)
+    t_p = trans[p] * ra  # transmittance in front of this Gaussian
+    trans[p] = t_p
+    fac = alpha * t_p
+    v_alpha_p = ra * tv_a[p]
+    col_dot = _ZERO
+    for d in range(len(channels)):
+        vcol = v_c[p, d]
+        v_col_g[d] += fac * vcol
+        col_dot += colors[g, d] * vcol
+    v_alpha_p += col_dot * t_p - behind[p] * ra
+    behind[p] += col_dot * fac
+    if opac * vis <= max_alpha:
+        v_sigma = -opac * vis * v_alpha_p
+        s_x += v_sigma * dx
+        s_xx += v_sigma * dx * dx
+        row_s += v_sigma
+        g_o += vis * v_alpha_p
+    return s_x, s_xx, row_s, g_o
 
 
 @nb.njit(parallel=True, cache=True)
