@@ -249,7 +249,6 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
         acc = np.zeros((n_pix, n_ch), np.float32)
         last = np.zeros(n_pix, np.int64)
         median = np.zeros(n_pix, np.float32)
-        color_g = np.empty(n_ch, np.float32)
         scratch = np.empty(tile_size, np.float32)
         alive = n_pix
         pairs = 0
@@ -263,8 +262,6 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
             mx, my = means2d[g, 0], means2d[g, 1]
             a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
             opac, limit, depth = opacities[g], limits[g], depths[g]
-            for d in range(n_ch):
-                color_g[d] = colors[g, d]
             r0, r1 = _row_range(a, b, c, limit, my, y_lo, y_hi)
             a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)  # (numba's float() keeps a float32)
             inv_a = 1.0 / a64 if a64 > 0.0 else 0.0
@@ -294,14 +291,14 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
                         vis_next *= ratio
                         ratio *= ratio_step
                         row[x - x0], alive = _composite(trans, acc, last, median, p0 + x, vis, opac, max_alpha,
-                                                        color_g, depth, k, alive, channels)
+                                                        colors, g, depth, k, alive, channels)
                 else:
                     for x in range(x0, x1):
                         stored = _ZERO
                         sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
                         if sigma >= _ZERO and sigma <= limit:
                             stored, alive = _composite(trans, acc, last, median, p0 + x, F32(math.exp(-sigma)),
-                                                       opac, max_alpha, color_g, depth, k, alive, channels)
+                                                       opac, max_alpha, colors, g, depth, k, alive, channels)
                         row[x - x0] = stored
         tile_pairs[t] = pairs
         tile_cached[t] = cached
@@ -317,7 +314,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
 
 
 @nb.njit(cache=True, inline="always")
-def _composite(trans, acc, last, median, p, vis, opac, max_alpha, color_g, depth, k, alive, channels):
+def _composite(trans, acc, last, median, p, vis, opac, max_alpha, colors, g, depth, k, alive, channels):
     """One pair of the forward: (the value the backward reads for it, alive pixels)."""
     t_p = trans[p]
     if t_p > _ZERO:
@@ -329,7 +326,7 @@ def _composite(trans, acc, last, median, p, vis, opac, max_alpha, color_g, depth
                 return _ZERO, alive - 1
             weight = alpha * t_p
             for d in range(len(channels)):
-                acc[p, d] += weight * color_g[d]
+                acc[p, d] += weight * colors[g, d]
             median[p] = depth if t_p >= _HALF else median[p]
             trans[p] = next_t
             last[p] = k + 1
