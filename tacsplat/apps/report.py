@@ -72,6 +72,25 @@ def metric_table(rows: list[dict], metric: str, setting: str) -> tuple[list[str]
     return objects, variants, values
 
 
+def seed_spread(rows: list[dict], metric: str, setting: str) -> dict[str, float]:
+    """Per variant, the standard deviation over seeds of each seed's average of ``metric`` over the objects: how
+    far the tables' ``Avg.`` moves from one seed to the next. A seed counts where the variant has a finite value
+    on every object of the setting; NaN with fewer than two such seeds."""
+    selected = [r for r in rows if r["setting"] == setting]
+    objects = list(dict.fromkeys(r["object"] for r in selected))
+    spread = {}
+    for variant in dict.fromkeys(r["variant"] for r in selected):
+        averages = []
+        for seed in dict.fromkeys(r["seed"] for r in selected if r["variant"] == variant):
+            per_object = [_mean([r.get(metric) for r in selected
+                                 if r["variant"] == variant and r["object"] == obj and r["seed"] == seed])
+                          for obj in objects]
+            if all(math.isfinite(v) for v in per_object):
+                averages.append(float(np.mean(per_object)))
+        spread[variant] = float(np.std(averages, ddof=1)) if len(averages) >= 2 else float("nan")
+    return spread
+
+
 def best_rows(values: np.ndarray, lower_is_better: bool) -> list[set[int]]:
     """Per column, the row indices holding the best finite value (ties all count)."""
     best = []
@@ -90,17 +109,24 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     heading, lower, decimals = METRICS[metric]
     objects, variants, values = metric_table(rows, metric, setting)
     best = best_rows(np.round(values, decimals), lower)  # values equal as printed are equally best
+    spread = seed_spread(rows, metric, setting)
+    with_spread = any(math.isfinite(v) for v in spread.values())
+    extra = ["Seed s.d."] if with_spread else []
     lines = [
-        "| Method | " + " | ".join(objects + ["Avg."]) + " |",
-        "| --- |" + " ---: |" * (len(objects) + 1),
+        "| Method | " + " | ".join(objects + ["Avg."] + extra) + " |",
+        "| --- |" + " ---: |" * (len(objects) + 1 + len(extra)),
     ]
     for i, variant in enumerate(variants):
         cells = []
         for j, value in enumerate(values[i]):
             text = "–" if not math.isfinite(value) else f"{value:.{decimals}f}"
             cells.append(f"**{text}**" if i in best[j] else text)
+        if with_spread:
+            cells.append("–" if not math.isfinite(spread[variant]) else f"{spread[variant]:.{decimals}f}")
         lines.append(f"| {variant_label(variant)} | " + " | ".join(cells) + " |")
-    return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n"
+    note = ("\n*Seed s.d.: the standard deviation over the seeds of each seed's average over the objects; a "
+            "difference in Avg. smaller than it may be the seeds' luck.*\n" if with_spread else "")
+    return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n" + note
 
 
 def pyplot():
