@@ -81,9 +81,9 @@ def seed_spread(rows: list[dict], metric: str, setting: str) -> dict[str, float]
     spread = {}
     for variant in dict.fromkeys(r["variant"] for r in selected):
         averages = []
-        for seed in dict.fromkeys(r["seed"] for r in selected if r["variant"] == variant):
+        for seed in dict.fromkeys(r.get("seed") for r in selected if r["variant"] == variant):
             per_object = [_mean([r.get(metric) for r in selected
-                                 if r["variant"] == variant and r["object"] == obj and r["seed"] == seed])
+                                 if r["variant"] == variant and r["object"] == obj and r.get("seed") == seed])
                           for obj in objects]
             if all(math.isfinite(v) for v in per_object):
                 averages.append(float(np.mean(per_object)))
