@@ -73,22 +73,20 @@ def metric_table(rows: list[dict], metric: str, setting: str) -> tuple[list[str]
 
 
 def seed_spread(rows: list[dict], metric: str, setting: str) -> dict[str, float]:
-    """Per variant, the standard deviation over seeds of each seed's average of ``metric`` over the objects: how
-    far the tables' ``Avg.`` moves from one seed to the next. A seed counts where the variant has a finite value
-    on every object of the setting; NaN with fewer than two such seeds."""
-    selected = [r for r in rows if r["setting"] == setting]
-    objects = list(dict.fromkeys(r["object"] for r in selected))
-    spread = {}
-    for variant in dict.fromkeys(r["variant"] for r in selected):
-        averages = []
-        for seed in dict.fromkeys(r.get("seed") for r in selected if r["variant"] == variant):
-            per_object = [_mean([r.get(metric) for r in selected
-                                 if r["variant"] == variant and r["object"] == obj and r.get("seed") == seed])
-                          for obj in objects]
-            if all(math.isfinite(v) for v in per_object):
-                averages.append(float(np.mean(per_object)))
-        spread[variant] = float(np.std(averages, ddof=1)) if len(averages) >= 2 else float("nan")
-    return spread
+    """Per variant, the standard deviation over seeds of each seed's average of ``metric`` over the objects
+    (:func:`metric_table`'s ``Avg.`` on that seed's rows): how far the tables' ``Avg.`` moves from one seed to the
+    next. A seed counts where the variant has a finite value on every object of the setting; NaN with fewer than
+    two such seeds."""
+    objects, variants, _ = metric_table(rows, metric, setting)
+    averages = {variant: [] for variant in variants}
+    for seed in dict.fromkeys(r.get("seed") for r in rows if r["setting"] == setting):
+        seed_objects, seed_variants, values = metric_table([r for r in rows if r.get("seed") == seed], metric, setting)
+        if set(seed_objects) != set(objects):
+            continue
+        for variant, row in zip(seed_variants, values):
+            if np.isfinite(row[:-1]).all():
+                averages[variant].append(float(row[-1]))
+    return {variant: float(np.std(a, ddof=1)) if len(a) >= 2 else float("nan") for variant, a in averages.items()}
 
 
 def best_rows(values: np.ndarray, lower_is_better: bool) -> list[set[int]]:
