@@ -64,9 +64,14 @@ class TrainConfig:
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
     lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
     # (needs the rendered normals: with depth-normal consistency on, from its start step)
-    appearance: Literal["sh", "reflective"] = "sh"  # colour: view-dependent SH (3DGS), or diffuse + specular tint x
-    # a learned environment map along the reflected view direction, prefiltered by roughness (deferred shading)
+    appearance: Literal["sh", "reflective", "lit"] = "sh"  # colour: view-dependent SH (3DGS), or diffuse + specular
+    # tint x a learned environment map along the reflected view direction, prefiltered by roughness (deferred
+    # shading), or "lit": that, with the diffuse colour an albedo times a learned distant light's irradiance at the
+    # normal, and colours saturating at 1
     env_map_height: int = 16  # environment map height in pixels (its width is twice that)
+    lit_start_iter: int = 300  # "lit": the light shades the albedo from this step on (before: diffuse = albedo)
+    lambda_albedo_smoothness: float = 0.0  # L1 differences of neighbouring pixels' rendered diffuse colour inside
+    # the silhouette ("reflective" and "lit"): shading has to come from the normals and the environment
     # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
     lr_means: float = 1.6e-4  # means (times the scene scale)
     lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
@@ -117,8 +122,8 @@ class TrainConfig:
             len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
         ):
             return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
-        if self.appearance not in ("sh", "reflective"):
-            return "appearance", f"must be 'sh' or 'reflective', got {self.appearance!r}"
+        if self.appearance not in ("sh", "reflective", "lit"):
+            return "appearance", f"must be 'sh', 'reflective' or 'lit', got {self.appearance!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:
@@ -178,7 +183,7 @@ _INT_RANGES = {
     "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
     "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
     "eval_max_views": (1, None), "checkpoint_every": (1, None), "smoothness_start_iter": (0, None),
-    "depth_normal_start_iter": (0, None), "env_map_height": (2, 256),
+    "depth_normal_start_iter": (0, None), "env_map_height": (2, 256), "lit_start_iter": (0, None),
 }  # fmt: skip
 _OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
 _FLOAT_RANGES = {
@@ -189,6 +194,7 @@ _FLOAT_RANGES = {
     "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "eval_every_seconds": (0.0, None),
     "lambda_flatten": (0.0, None), "lambda_depth_normal": (0.0, None), "lambda_touch_normal": (0.0, None),
     "lambda_touch_normal_pixels": (0.0, None), "lr_reflective": (0.0, None), "lr_env_map": (0.0, None),
+    "lambda_albedo_smoothness": (0.0, None),
 }  # fmt: skip
 _POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
 

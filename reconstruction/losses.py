@@ -396,6 +396,19 @@ def flatten_loss(scales: torch.Tensor, scene_scale: float) -> torch.Tensor:
     return scales.min(dim=-1).values.mean() / scene_scale
 
 
+def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """Mean L1 difference [] of the rendered diffuse colour ``albedo`` [H, W, 3] between horizontally and vertically
+    neighbouring pixels that are both ``inside`` [H, W] bool the silhouette (0 with no such pair). L1 keeps a
+    texture's edges and flattens the gradual shading a free diffuse colour would otherwise paint: that shading
+    then has to come from the normals (through the "lit" appearance's light) or the environment."""
+    inside = inside.to(albedo.dtype)
+    across = inside[:, 1:] * inside[:, :-1]  # [H, W-1]
+    down = inside[1:] * inside[:-1]  # [H-1, W]
+    total = ((albedo[:, 1:] - albedo[:, :-1]).abs().sum(-1) * across).sum() + (
+        (albedo[1:] - albedo[:-1]).abs().sum(-1) * down).sum()
+    return total / (across.sum() + down.sum()).clamp_min(1.0)
+
+
 def touch_normal_loss(
     touch_points: torch.Tensor,  # [P, 3]
     touch_normals: torch.Tensor,  # [P, 3] unit (rows of NaN are skipped)

@@ -12,7 +12,11 @@ Its extra outputs ride in the same pass as extra colour channels:
   the pass blends them with the normals, and each pixel is shaded as
   ``diffuse + tint * L(reflect(view, normal), roughness)``, ``L`` a learned environment map
   (:class:`EnvironmentMap`) prefiltered by roughness. A reflection then no longer has to be
-  painted as geometry behind the surface.
+  painted as geometry behind the surface;
+  ``"lit"``: "reflective" whose diffuse colour is an albedo times the irradiance of a learned distant
+  light at the pixel's normal (:class:`DiffuseLight`), and whose colour saturates at 1 as a camera's
+  does. Shading then has to come from the normals, which ties the colours of the views to the
+  geometry even where a glossy surface has no texture.
 
 Plain RGB(+depth) with SH goes straight through :func:`rasterization` (its fused SH path).
 """
@@ -30,9 +34,10 @@ from torch import Tensor
 from tacsplat.reconstruction.fused_normals import gaussian_normals_cpu
 from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
+from tacsplat.reconstruction.raster.spherical_harmonics import SH_C0, sh_basis
 
-Appearance = Literal["sh", "reflective"]
-REFLECTIVE_PARAMS = {"tint": 3, "roughness": 1}  # extra per-Gaussian parameters (logits) of "reflective"
+Appearance = Literal["sh", "reflective", "lit"]
+REFLECTIVE_PARAMS = {"tint": 3, "roughness": 1}  # extra per-Gaussian parameters (logits) of "reflective" and "lit"
 _TINY = 1e-12  # squared length under which a direction's azimuth (or a pixel's blended normal) is undefined
 
 
@@ -102,12 +107,37 @@ class EnvironmentMap(torch.nn.Module):
         return torch.einsum("lp,lcp->pc", weights, samples)
 
 
+class DiffuseLight(torch.nn.Module):
+    """A learned distant light as a diffuse surface receives it: the irradiance [..., 3] at a world normal ``n``
+    seen along the world view direction ``v`` is ``max(SH_2(n) . c + k * max(<n, -v>, 0), 0)``.
+
+    ``c`` [9, 3]: second-order spherical harmonics, which hold a distant light's irradiance (a clamped-cosine
+    convolution) to within a few per cent (Ramamoorthi & Hanrahan 2001); ``k`` [3]: a light at the camera (a lamp
+    beside the lens, or a renderer's headlight). It starts as uniform irradiance 1 with no camera light, so
+    that a lit colour starts as its albedo.
+    """
+
+    def __init__(self, device=None):
+        super().__init__()
+        coefficients = torch.zeros((9, 3), device=device)
+        coefficients[0] = 1.0 / SH_C0
+        self.coefficients = torch.nn.Parameter(coefficients)
+        self.camera = torch.nn.Parameter(torch.zeros(3, device=device))
+
+    def irradiance(self, normals: Tensor, views: Tensor) -> Tensor:
+        """Irradiance [..., 3] at unit world ``normals`` [..., 3] seen along unit world ``views`` [..., 3]."""
+        facing = (-(normals * views).sum(-1, keepdim=True)).clamp_min(0.0)  # [..., 1]
+        return (sh_basis(2, normals) @ self.coefficients + facing * self.camera).clamp_min(0.0)
+
+
 @dataclass
 class Look:
-    """How Gaussians are coloured: their ``appearance`` and, for "reflective", the learned environment."""
+    """How Gaussians are coloured: their ``appearance``, for "reflective" and "lit" the learned environment, and
+    for "lit" the diffuse light (None: the albedo unlit)."""
 
     appearance: Appearance = "sh"
     environment: EnvironmentMap | None = None
+    light: DiffuseLight | None = None
 
 
 @dataclass
@@ -117,6 +147,7 @@ class RenderOutput:
     depth: Tensor | None  # [H, W] accumulated ("D") or expected ("ED") depth
     normal: Tensor | None  # [H, W, 3] unit camera-frame normal towards the camera (0 where nothing is drawn)
     meta: dict
+    albedo: Tensor | None = None  # [H, W, 3] the blended diffuse colour per unit alpha ("reflective", "lit")
 
 
 def render(
@@ -132,6 +163,7 @@ def render(
     normals: bool = False,
     appearance: Appearance = "sh",
     environment: EnvironmentMap | None = None,
+    light: DiffuseLight | None = None,  # "lit": the diffuse light (None: unlit, the albedo)
     world_normals: Tensor | None = None,  # [N, 3] gaussian_normals(g.quats, g.scales), when the caller has them
 ) -> RenderOutput:
     """Render one view; see the module docstring for what each option adds to the pass. A caller that also needs
@@ -154,7 +186,7 @@ def render(
         features = torch.cat([sh0_to_rgb(g.params["sh0"][:, 0]).clamp_min(0.0), torch.sigmoid(g.params["tint"]),
                               torch.sigmoid(g.params["roughness"])], dim=-1)  # [N, 7]
     channels = [features]
-    with_normals = normals or appearance == "reflective"
+    with_normals = normals or appearance != "sh"
     if with_normals:
         n = gaussian_normals(g.quats, g.scales, fused_kernels(backend)) if world_normals is None else world_normals
         n = torch.where(((n * to_gaussian).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
@@ -171,10 +203,10 @@ def render(
         summed = out[..., features.shape[1] : features.shape[1] + 3]
         normal = F.normalize(summed, dim=-1, eps=1e-8)
     if appearance == "sh":
-        rgb = out[..., :3]
-    else:
-        rgb = _shade(out[..., :7], alpha, normal, viewmat[0], K[0], environment)
-    return RenderOutput(rgb, alpha, depth, normal, meta)
+        return RenderOutput(out[..., :3], alpha, depth, normal, meta)
+    rgb, albedo = _shade(out[..., :7], alpha, normal, viewmat[0], K[0], environment,
+                         light if appearance == "lit" else None, saturate=appearance == "lit")
+    return RenderOutput(rgb, alpha, depth, normal, meta, albedo)
 
 
 def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:
@@ -185,9 +217,11 @@ def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:
     return rays / rays.norm(dim=-1, keepdim=True)
 
 
-def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: Tensor,
-           environment: EnvironmentMap) -> Tensor:
-    """Deferred reflective shading of alpha-blended [H, W, 7] (diffuse, tint, roughness) -> premultiplied RGB."""
+def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: Tensor, environment: EnvironmentMap,
+           light: DiffuseLight | None = None, saturate: bool = False) -> tuple[Tensor, Tensor]:
+    """Deferred reflective shading of alpha-blended [H, W, 7] (diffuse, tint, roughness) -> (premultiplied RGB,
+    the diffuse colour per unit alpha [H, W, 3]); with a ``light`` the diffuse colour is an albedo it lights;
+    ``saturate``: colours clipped at 1 before the alpha."""
     h, w = alpha.shape
     a = alpha.clamp_min(1e-6)[..., None]
     diffuse, tint, roughness = blended[..., :3] / a, blended[..., 3:6] / a, blended[..., 6] / a[..., 0]
@@ -196,4 +230,8 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
     n = normal @ rotation.T
     reflected = view - 2.0 * (view * n).sum(-1, keepdim=True) * n
     specular = environment.lookup(reflected.reshape(-1, 3), roughness.reshape(-1)).reshape(h, w, 3)
-    return (diffuse + tint * specular) * alpha[..., None]
+    lit = diffuse if light is None else diffuse * light.irradiance(n, view)
+    colour = lit + tint * specular
+    if saturate:
+        colour = colour.clamp(max=1.0)
+    return colour * alpha[..., None], diffuse

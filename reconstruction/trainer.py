@@ -146,8 +146,9 @@ class Trainer:
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
         self.touch_normals = torch.as_tensor(touch_normals, dtype=torch.float32, device=dev)
         self.environment = (shading.EnvironmentMap(config.env_map_height, device=dev)
-                            if config.appearance == "reflective" else None)
-        self.look = shading.Look(config.appearance, self.environment)
+                            if config.appearance != "sh" else None)
+        self.light = shading.DiffuseLight(device=dev) if config.appearance == "lit" else None
+        self.look = shading.Look(config.appearance, self.environment, self.light)
         backgrounds = [background_image(im, config.background) for im in images]
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
         self.backdrop_pixels: list[np.ndarray | None] = [
@@ -195,7 +196,7 @@ class Trainer:
             log.info("initialisation: %d SfM points (< %d): %d random points %s",
                      found, cfg.init.min_sfm_points, len(points), where)  # fmt: skip
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
-        if cfg.appearance == "reflective":
+        if cfg.appearance != "sh":
             shading.add_reflective_params(gaussians)
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
@@ -230,9 +231,9 @@ class Trainer:
             name: torch.optim.Adam([self.gaussians.params[name]], lr=lr, eps=1e-15, fused=True)
             for name, lr in rates.items()
         }
-        if self.environment is not None:
-            self.optimizers["environment"] = torch.optim.Adam(self.environment.parameters(), lr=cfg.lr_env_map,
-                                                              fused=True)  # fmt: skip
+        for name, module in (("environment", self.environment), ("light", self.light)):
+            if module is not None:
+                self.optimizers[name] = torch.optim.Adam(module.parameters(), lr=cfg.lr_env_map, fused=True)
 
     # ------------------------------------------------------------------ one step
 
@@ -257,6 +258,7 @@ class Trainer:
             frame.intrinsics.height, sh_degree=active_degree, backend=cfg.backend,
             depth_mode="D" if with_depth or with_normals else None, normals=with_normals,
             appearance=cfg.appearance, environment=self.environment, world_normals=world_normals,
+            light=self.light if self.step >= cfg.lit_start_iter else None,
         )  # fmt: skip
         meta, alpha = out.meta, out.alpha
         target = self.images[view]
@@ -293,6 +295,10 @@ class Trainer:
                 )  # fmt: skip
                 loss = loss + cfg.lambda_touch_normal * aligned
                 terms["normals"] = terms["normals"] + aligned.detach()
+        if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
+            flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5)
+            loss = loss + cfg.lambda_albedo_smoothness * flat_albedo
+            terms["smoothness"] = flat_albedo.detach()
         if cfg.lambda_flatten > 0:
             flat = losses.flatten_loss(g.scales, self.scene_scale)
             loss = loss + cfg.lambda_flatten * flat
@@ -329,7 +335,7 @@ class Trainer:
             smoothness = losses.edge_aware_smoothness(depth / self.scene_scale, proximity=proximity, weights=weights,
                                                      fused=self.fused_losses)
             loss = loss + cfg.lambda_s * smoothness
-            terms["smoothness"] = smoothness.detach()
+            terms["smoothness"] = terms["smoothness"] + smoothness.detach()
         terms["loss"] = loss.detach()
 
         cfg.densify.step_pre_backward(meta)
@@ -412,6 +418,7 @@ class Trainer:
                          "last_eval": self._last_eval},
             "device": self.device.type,
             "environment": None if self.environment is None else self.environment.state_dict(),
+            "light": None if self.light is None else self.light.state_dict(),
         }
         tmp = self.out / "checkpoint.pt.tmp"
         torch.save(state, tmp)
@@ -428,6 +435,8 @@ class Trainer:
         self.gaussians = Gaussians.from_state_dict(ckpt["gaussians"]).to(self.device)
         if self.environment is not None:
             self.environment.load_state_dict(ckpt["environment"])
+        if self.light is not None:
+            self.light.load_state_dict(ckpt["light"])
         self._make_optimizers()
         for name, optimizer in self.optimizers.items():
             optimizer.load_state_dict(ckpt["optimizers"][name])

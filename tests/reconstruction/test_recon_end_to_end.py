@@ -183,6 +183,33 @@ def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_sce
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
+def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch):
+    """The lit appearance shades from its start step on (the light gets gradients only then), its smooth albedo
+    reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light included, to the
+    same numbers."""
+    from tacsplat.reconstruction.evaluation import evaluate_run
+    from tacsplat.reconstruction.shading import DiffuseLight
+
+    smoothness = _Spy(losses.albedo_smoothness_loss)
+    monkeypatch.setattr(losses, "albedo_smoothness_loss", smoothness)
+    config = _config(30, appearance="lit", lit_start_iter=20, lambda_albedo_smoothness=0.1, checkpoint_every=10)
+    run = tmp_path / "lit"
+    trainer = Trainer(Scene.load(sphere_scene), run, config)
+    trainer.initialize()
+    for _ in range(20):
+        trainer.train_step()
+    start = DiffuseLight()
+    assert torch.equal(trainer.light.coefficients.detach(), start.coefficients)  # not yet used: not yet moved
+    assert len(smoothness.calls) == 20  # from the first step
+    trainer.train_step()
+    assert not torch.equal(trainer.light.coefficients.detach(), start.coefficients)
+    metrics = reconstruct(sphere_scene, run, config, show_progress=False, overwrite=True)
+    assert metrics["variant"] == "full+n+tn+l+as" and (run / "environment.png").is_file()
+    again = evaluate_run(run)
+    for key in ("psnr", "cd", "normal_error_deg"):
+        assert again[key] == pytest.approx(metrics[key], rel=1e-6)
+
+
 def _covariances(g) -> torch.Tensor:
     R = quats_to_rotmats(g.quats.detach().double())
     return R @ torch.diag_embed(g.scales.detach().double() ** 2) @ R.transpose(-1, -2)

@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
-from tacsplat.reconstruction.shading import EnvironmentMap, gaussian_normals, render
+from tacsplat.reconstruction.shading import DiffuseLight, EnvironmentMap, gaussian_normals, render
 
 
 def test_the_normal_of_a_flat_gaussian_is_its_shortest_axis():
@@ -143,3 +143,79 @@ def test_sh_colors_of_the_cpu_kernel_match_the_float64_torch_formula_and_its_gra
     assert (results["torch"][0] == 0).any() and (results["torch"][0] > 0).any()  # the clamp at 0 is exercised
     for cpu, ref, name in zip(results["cpu"], results["torch"], ("colours", "d/d means", "d/d coefficients")):
         torch.testing.assert_close(cpu, ref, rtol=1e-4, atol=1e-5, msg=name)
+
+
+def _unit_sphere_directions(count: int, seed: int) -> torch.Tensor:
+    directions = torch.randn(count, 3, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+    return directions / directions.norm(dim=-1, keepdim=True)
+
+
+def test_a_diffuse_light_holds_a_directional_lights_irradiance_to_a_few_per_cent():
+    """Least squares puts the clamped cosine of a sun (irradiance max(<n, l>, 0) + ambient) into the nine SH
+    coefficients: Ramamoorthi & Hanrahan's second-order approximation, within 0.1 at worst and 0.035 on average
+    (3 % of the peak of 1.2); and the camera light adds its share only on normals that face the camera."""
+    light = DiffuseLight().double()
+    normals = _unit_sphere_directions(4000, 0)
+    sun = torch.tensor([0.3, -0.4, 0.866], dtype=torch.float64)
+    truth = 0.2 + (normals @ sun).clamp_min(0.0)  # [P]
+    from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
+
+    fit = torch.linalg.lstsq(sh_basis(2, normals), truth[:, None]).solution  # [9, 1]
+    with torch.no_grad():
+        light.coefficients.copy_(fit.expand(9, 3))
+    views = -normals  # every normal faces its camera head-on: the camera light counts fully
+    irradiance = light.irradiance(normals, views)  # [P, 3]
+    assert (irradiance[:, 0] - truth).abs().max() < 0.1
+    assert (irradiance[:, 0] - truth).abs().mean() < 0.035
+    with torch.no_grad():
+        light.camera.copy_(torch.tensor([0.5, 0.0, 0.0], dtype=torch.float64))
+    head_on, grazing = light.irradiance(normals, views), light.irradiance(normals, normals)
+    torch.testing.assert_close(head_on[:, 0] - irradiance[:, 0], torch.full_like(truth, 0.5))
+    torch.testing.assert_close(grazing, irradiance)  # a normal facing away from the camera gets none of it
+
+
+def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_gradients():
+    """The light starts as irradiance 1 everywhere (a lit colour starts as its albedo); the lit, saturating
+    shading's gradient with respect to the albedo, the normal and the light is the numerical one."""
+    from tacsplat.reconstruction.shading import _shade
+
+    light = DiffuseLight().double()
+    normals = _unit_sphere_directions(50, 1)
+    torch.testing.assert_close(light.irradiance(normals, -normals), torch.ones(50, 3, dtype=torch.float64))
+    environment = EnvironmentMap(height=4).double()
+    g = torch.Generator().manual_seed(2)
+    with torch.no_grad():
+        light.coefficients.add_(0.3 * torch.randn(9, 3, generator=g, dtype=torch.float64))
+        light.camera.fill_(0.2)
+    blended = torch.rand(3, 4, 7, generator=g, dtype=torch.float64)
+    blended[0, 0, :3] = 3.0  # a saturated pixel: its colour is clipped at 1
+    alpha = torch.full((3, 4), 0.9, dtype=torch.float64)
+    normal = torch.nn.functional.normalize(torch.randn(3, 4, 3, generator=g, dtype=torch.float64) + torch.tensor(
+        [0.0, 0.0, -2.0], dtype=torch.float64), dim=-1).requires_grad_(True)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    K = torch.tensor([[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]], dtype=torch.float64)
+    rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment, light, saturate=True)
+    assert torch.all(rgb <= 0.9 + 1e-12) and rgb[0, 0].max() == 0.9  # clipped at 1, times alpha
+    torch.testing.assert_close(albedo, blended[..., :3] / 0.9)
+    def shaded(b, n, coefficients, camera):  # the light's parameters as inputs, for gradcheck
+        lit = DiffuseLight().double()
+        del lit.coefficients, lit.camera
+        lit.coefficients, lit.camera = coefficients, camera
+        return _shade(b, alpha, n, viewmat, K, environment, lit, saturate=True)[0]
+
+    inputs = (blended.clone().requires_grad_(True), normal, light.coefficients.detach().clone().requires_grad_(True),
+              light.camera.detach().clone().requires_grad_(True))
+    assert torch.autograd.gradcheck(shaded, inputs)
+
+
+def test_albedo_smoothness_is_zero_on_a_uniform_albedo_and_counts_only_pairs_inside():
+    albedo = torch.full((6, 8, 3), 0.4)
+    inside = torch.zeros(6, 8, dtype=torch.bool)
+    inside[1:5, 2:7] = True
+    assert losses.albedo_smoothness_loss(albedo, inside).item() == 0.0
+    albedo[:, :, 0] = torch.arange(8.0)[None, :] * 0.1  # a ramp across: 0.1 per pixel step in one channel
+    albedo[0, 0] = 9.0  # outside the silhouette: ignored
+    pairs_across, pairs_down = 4 * 4, 3 * 5
+    expected = 0.1 * pairs_across / (pairs_across + pairs_down)
+    assert abs(losses.albedo_smoothness_loss(albedo, inside).item() - expected) < 1e-6
+    assert losses.albedo_smoothness_loss(albedo, torch.zeros_like(inside)).item() == 0.0

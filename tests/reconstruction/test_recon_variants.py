@@ -23,6 +23,10 @@ def test_normals_need_both_losses():
     both = dataclasses.replace(paper, lambda_flatten=10.0, lambda_depth_normal=0.05)
     assert variant_of(both) == "full+n"
     assert variant_of(dataclasses.replace(both, lambda_touch_normal=0.1, appearance="reflective")) == "full+n+tn+r"
+    lit = dataclasses.replace(both, lambda_touch_normal=0.1, appearance="lit")
+    assert variant_of(lit) == "full+n+tn+l"
+    assert variant_of(dataclasses.replace(lit, lambda_albedo_smoothness=0.1)) == "full+n+tn+l+as"
+    assert variant_of(dataclasses.replace(both, lambda_albedo_smoothness=0.1)) == "full+n"  # SH colour: no albedo
     only_flat = dataclasses.replace(paper, lambda_flatten=10.0)
     assert variant_of(only_flat) == "full+flat"  # not the paper's full method: named by what is on
     assert variant_of(dataclasses.replace(paper, lambda_depth_normal=0.05, lambda_touch_normal=0.1)) == "full+dn+tn"
