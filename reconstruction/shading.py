@@ -224,14 +224,21 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
     ``saturate``: colours clipped at 1 before the alpha."""
     h, w = alpha.shape
     a = alpha.clamp_min(1e-6)[..., None]
-    diffuse, tint, roughness = blended[..., :3] / a, blended[..., 3:6] / a, blended[..., 6] / a[..., 0]
+    diffuse = blended[..., :3] / a  # [H, W, 3]
+    # only pixels some Gaussian reaches: elsewhere the colour is multiplied by an alpha of exactly 0 and no
+    # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)
+    drawn = torch.nonzero(alpha.reshape(-1) > 0)[:, 0]  # [P]
+    a, blended = a.reshape(-1, 1)[drawn], blended.reshape(-1, blended.shape[-1])[drawn]  # [P, 1], [P, 7]
+    tint, roughness = blended[:, 3:6] / a, blended[:, 6] / a[:, 0]
     rotation = viewmat[:3, :3].T  # camera -> world
-    view = pixel_rays(K, w, h) @ rotation.T  # [H, W, 3] world
-    n = normal @ rotation.T
+    view = pixel_rays(K, w, h).reshape(-1, 3)[drawn] @ rotation.T  # [P, 3] world
+    n = normal.reshape(-1, 3)[drawn] @ rotation.T
     reflected = view - 2.0 * (view * n).sum(-1, keepdim=True) * n
-    specular = environment.lookup(reflected.reshape(-1, 3), roughness.reshape(-1)).reshape(h, w, 3)
-    lit = diffuse if light is None else diffuse * light.irradiance(n, view)
-    colour = lit + tint * specular
+    specular = environment.lookup(reflected, roughness)  # [P, 3]
+    albedo = diffuse.reshape(-1, 3)[drawn]
+    lit = albedo if light is None else albedo * light.irradiance(n, view)
+    shaded = lit + tint * specular
     if saturate:
-        colour = colour.clamp(max=1.0)
+        shaded = shaded.clamp(max=1.0)
+    colour = diffuse.new_zeros(h * w, 3).index_copy(0, drawn, shaded).reshape(h, w, 3)
     return colour * alpha[..., None], diffuse
