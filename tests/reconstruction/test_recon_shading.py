@@ -176,7 +176,8 @@ def test_a_diffuse_light_holds_a_directional_lights_irradiance_to_a_few_per_cent
 
 def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_gradients():
     """The light starts as irradiance 1 everywhere (a lit colour starts as its albedo); the lit, saturating
-    shading's gradient with respect to the albedo, the normal and the light is the numerical one."""
+    shading's gradient with respect to the albedo, the normal and the light is the numerical one, a pixel with
+    alpha 0 included."""
     from tacsplat.reconstruction.shading import _shade
 
     light = DiffuseLight().double()
@@ -190,13 +191,15 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
     blended = torch.rand(3, 4, 7, generator=g, dtype=torch.float64)
     blended[0, 0, :3] = 3.0  # a saturated pixel: its colour is clipped at 1
     alpha = torch.full((3, 4), 0.9, dtype=torch.float64)
+    alpha[2, 3], blended[2, 3] = 0.0, 0.0  # a pixel no Gaussian reaches: not shaded, black
     normal = torch.nn.functional.normalize(torch.randn(3, 4, 3, generator=g, dtype=torch.float64) + torch.tensor(
         [0.0, 0.0, -2.0], dtype=torch.float64), dim=-1).requires_grad_(True)
     viewmat = torch.eye(4, dtype=torch.float64)
     K = torch.tensor([[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]], dtype=torch.float64)
     rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment, light, saturate=True)
     assert torch.all(rgb <= 0.9 + 1e-12) and rgb[0, 0].max() == 0.9  # clipped at 1, times alpha
-    torch.testing.assert_close(albedo, blended[..., :3] / 0.9)
+    assert torch.all(rgb[2, 3] == 0)
+    torch.testing.assert_close(albedo, blended[..., :3] / alpha.clamp_min(1e-6)[..., None])
     def shaded(b, n, coefficients, camera):  # the light's parameters as inputs, for gradcheck
         lit = DiffuseLight().double()
         del lit.coefficients, lit.camera
