@@ -68,7 +68,8 @@ VARIANTS: dict[str, Variant] = {
     )
 }
 PAPER_VARIANTS = ("3dgs", "3dgs+s", "3dgs+t", "full")  # the paper's Table 3
-DEFAULT_VARIANT = "full+n+tn"  # the best on the twin's glossy objects (bench paper; see the README)
+DEFAULT_VARIANT = "full+n+tn"  # the best on the twin's glossy objects of those whose step costs at most 1.5x the
+# paper method's (full+n+tn+l+as has a lower CD at 1.8x; bench paper, bench step and the README)
 
 
 def get_variant(name: str, option: str = "variant") -> Variant:
