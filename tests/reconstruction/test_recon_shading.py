@@ -1,4 +1,5 @@
-"""Normals and reflections: flat Gaussians, depth-normal consistency on a plane, the environment lookup."""
+"""Normals, reflections and lit shading: flat Gaussians, depth-normal consistency on a plane, the environment
+lookup, the diffuse light and the lit shading's gradients."""
 
 import math
 
@@ -9,7 +10,8 @@ from scipy.spatial.transform import Rotation
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
-from tacsplat.reconstruction.shading import DiffuseLight, EnvironmentMap, gaussian_normals, render
+from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
+from tacsplat.reconstruction.shading import DiffuseLight, EnvironmentMap, _shade, gaussian_normals, render
 
 
 def test_the_normal_of_a_flat_gaussian_is_its_shortest_axis():
@@ -158,8 +160,6 @@ def test_a_diffuse_light_holds_a_directional_lights_irradiance_to_a_few_per_cent
     normals = _unit_sphere_directions(4000, 0)
     sun = torch.tensor([0.3, -0.4, 0.866], dtype=torch.float64)
     truth = 0.2 + (normals @ sun).clamp_min(0.0)  # [P]
-    from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
-
     fit = torch.linalg.lstsq(sh_basis(2, normals), truth[:, None]).solution  # [9, 1]
     with torch.no_grad():
         light.coefficients.copy_(fit.expand(9, 3))
@@ -178,8 +178,6 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
     """The light starts as irradiance 1 everywhere (a lit colour starts as its albedo); the lit, saturating
     shading's gradient with respect to the albedo, the normal and the light is the numerical one, a pixel with
     alpha 0 included."""
-    from tacsplat.reconstruction.shading import _shade
-
     light = DiffuseLight().double()
     normals = _unit_sphere_directions(50, 1)
     torch.testing.assert_close(light.irradiance(normals, -normals), torch.ones(50, 3, dtype=torch.float64))
@@ -200,6 +198,7 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
     assert torch.all(rgb <= 0.9 + 1e-12) and rgb[0, 0].max() == 0.9  # clipped at 1, times alpha
     assert torch.all(rgb[2, 3] == 0)
     torch.testing.assert_close(albedo, blended[..., :3] / alpha.clamp_min(1e-6)[..., None])
+
     def shaded(b, n, coefficients, camera):  # the light's parameters as inputs, for gradcheck
         lit = DiffuseLight().double()
         del lit.coefficients, lit.camera
