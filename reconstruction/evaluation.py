@@ -362,7 +362,8 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
                             run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None,
                             look: Look | None = None) -> dict:
     """Evaluate Gaussians on a scene's test views: writes ``metrics.json``, ``renders/`` and, for a reflective
-    appearance, ``environment.png`` (its learned environment map) into ``run_dir``."""
+    appearance, ``environment.png`` (its learned environment map) and for a lit one ``light.png`` (its diffuse light,
+    :func:`save_light`) into ``run_dir``."""
     test = scene.split("test")
     backend = backend or config.backend
     ground_truth = load_ground_truth(scene, test, gt_path, train_frames=training_frames(scene, config.train_views))
@@ -370,6 +371,8 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
                              Path(run_dir) / "renders", look)
     if look is not None and look.environment is not None:
         save_environment(look.environment, Path(run_dir) / "environment.png")
+    if look is not None and look.light is not None:
+        save_light(look.light, Path(run_dir) / "light.png")
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
     result = {
@@ -396,6 +399,23 @@ def save_environment(environment, path: Path) -> None:
         radiance = torch.exp(environment.log_radiance).permute(1, 2, 0).cpu().numpy()
     image = (255 * radiance / (1.0 + radiance)).round().astype(np.uint8)
     image = cv2.resize(image, (image.shape[1] * 8, image.shape[0] * 8), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+
+
+def save_light(light, path: Path, height: int = 32) -> None:
+    """The lit appearance's diffuse light as an equirectangular PNG in the environment map's layout (zenith at the
+    top, azimuth -180 to 180 degrees from the left): the irradiance a normal pointing each way receives, the
+    camera light left out (it follows the camera), tone-mapped x / (1 + x), 4x upscaled."""
+    v = (2 * np.arange(height) + 1) / height - 1.0  # [H] texel centres, -1 at the top
+    u = (2 * np.arange(2 * height) + 1) / (2 * height) - 1.0  # [2H]
+    elevation, azimuth = np.meshgrid(-v * np.pi / 2, u * np.pi, indexing="ij")
+    normals = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)],
+                       axis=-1)  # [H, 2H, 3]
+    with torch.no_grad():
+        directions = torch.as_tensor(normals, dtype=light.coefficients.dtype, device=light.coefficients.device)
+        irradiance = light.irradiance(directions, directions).cpu().numpy()  # views along the normals: no camera light
+    image = (255 * irradiance / (1.0 + irradiance)).round().astype(np.uint8)
+    image = cv2.resize(image, (image.shape[1] * 4, image.shape[0] * 4), interpolation=cv2.INTER_NEAREST)
     cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
 
 

@@ -28,7 +28,7 @@ from tacsplat.reconstruction.shading import DiffuseLight, EnvironmentMap, Look
 # A run directory's own files (anything else in it is someone else's and is never deleted).
 RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "splat.touch.npy",
              "splat.touch.npy.tmp", "progress.csv",
-             "progress.csv.tmp", "error_vs_time.png", "metrics.json", "environment.png")
+             "progress.csv.tmp", "error_vs_time.png", "metrics.json", "environment.png", "light.png")
 RENDERS = "renders"
 RENDER_FILE = re.compile(r"view_\d{4,}\.png")
 

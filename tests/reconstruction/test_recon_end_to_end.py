@@ -205,6 +205,7 @@ def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(
     assert not torch.equal(trainer.light.coefficients.detach(), start.coefficients)
     metrics = reconstruct(sphere_scene, run, config, show_progress=False, overwrite=True)
     assert metrics["variant"] == "full+n+tn+l+as" and (run / "environment.png").is_file()
+    assert (run / "light.png").is_file()
     again = evaluate_run(run)
     for key in ("psnr", "cd", "normal_error_deg"):
         assert again[key] == pytest.approx(metrics[key], rel=1e-6)

@@ -210,6 +210,22 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
     assert torch.autograd.gradcheck(shaded, inputs)
 
 
+def test_the_light_picture_has_the_zenith_at_the_top(tmp_path):
+    """light.png in the environment map's layout: a light from above (the z band of its SH) brightens the top rows."""
+    import cv2
+
+    from tacsplat.reconstruction.evaluation import save_light
+
+    light = DiffuseLight()
+    with torch.no_grad():
+        light.coefficients[2] = 1.5  # band 1, z: more irradiance on normals pointing up
+    save_light(light, tmp_path / "light.png")
+    image = cv2.imread(str(tmp_path / "light.png"), cv2.IMREAD_GRAYSCALE).astype(float)
+    assert image.shape == (128, 256)
+    assert image[:8].mean() > image[-8:].mean() + 20
+    assert np.ptp(image[:, 100]) > 20 and np.ptp(image[60]) < 2  # varies with elevation, not along the equator
+
+
 def test_albedo_smoothness_is_zero_on_a_uniform_albedo_and_counts_only_pairs_inside():
     albedo = torch.full((6, 8, 3), 0.4)
     inside = torch.zeros(6, 8, dtype=torch.bool)
