@@ -3,12 +3,14 @@ lookup, the diffuse light and the lit shading's gradients."""
 
 import math
 
+import cv2
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction import losses
+from tacsplat.reconstruction.evaluation import save_light
 from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
 from tacsplat.reconstruction.shading import DiffuseLight, EnvironmentMap, _shade, gaussian_normals, render
@@ -212,10 +214,6 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
 
 def test_the_light_picture_has_the_zenith_at_the_top(tmp_path):
     """light.png in the environment map's layout: a light from above (the z band of its SH) brightens the top rows."""
-    import cv2
-
-    from tacsplat.reconstruction.evaluation import save_light
-
     light = DiffuseLight()
     with torch.no_grad():
         light.coefficients[2] = 1.5  # band 1, z: more irradiance on normals pointing up
