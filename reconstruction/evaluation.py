@@ -393,30 +393,28 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
     return result
 
 
+def _save_equirect(radiance: np.ndarray, path: Path, scale: int) -> None:
+    """An equirectangular map [H, 2H, 3] of radiance (>= 0) as a PNG: tone-mapped x / (1 + x), ``scale`` x upscaled."""
+    image = (255 * radiance / (1.0 + radiance)).round().astype(np.uint8)
+    image = cv2.resize(image, (image.shape[1] * scale, image.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+
+
 def save_environment(environment, path: Path) -> None:
-    """The environment map as an equirectangular PNG (tone-mapped x / (1 + x), 8x upscaled)."""
+    """The environment map as an equirectangular PNG, 8x upscaled."""
     with torch.no_grad():
         radiance = torch.exp(environment.log_radiance).permute(1, 2, 0).cpu().numpy()
-    image = (255 * radiance / (1.0 + radiance)).round().astype(np.uint8)
-    image = cv2.resize(image, (image.shape[1] * 8, image.shape[0] * 8), interpolation=cv2.INTER_NEAREST)
-    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    _save_equirect(radiance, path, 8)
 
 
 def save_light(light, path: Path, height: int = 32) -> None:
-    """The lit appearance's diffuse light as an equirectangular PNG in the environment map's layout (zenith at the
-    top, azimuth -180 to 180 degrees from the left): the irradiance a normal pointing each way receives, the
-    camera light left out (it follows the camera), tone-mapped x / (1 + x), 4x upscaled."""
-    v = (2 * np.arange(height) + 1) / height - 1.0  # [H] texel centres, -1 at the top
-    u = (2 * np.arange(2 * height) + 1) / (2 * height) - 1.0  # [2H]
-    elevation, azimuth = np.meshgrid(-v * np.pi / 2, u * np.pi, indexing="ij")
-    normals = np.stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)],
-                       axis=-1)  # [H, 2H, 3]
+    """The lit appearance's diffuse light as an equirectangular PNG in the environment map's layout
+    (:func:`~.shading.equirect_directions`), 4x upscaled: the irradiance a normal pointing each way receives, the
+    camera light left out (it follows the camera)."""
     with torch.no_grad():
-        directions = torch.as_tensor(normals, dtype=light.coefficients.dtype, device=light.coefficients.device)
-        irradiance = light.irradiance(directions, directions).cpu().numpy()  # views along the normals: no camera light
-    image = (255 * irradiance / (1.0 + irradiance)).round().astype(np.uint8)
-    image = cv2.resize(image, (image.shape[1] * 4, image.shape[0] * 4), interpolation=cv2.INTER_NEAREST)
-    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        normals = shading.equirect_directions(height, light.coefficients.device).to(light.coefficients.dtype)
+        irradiance = light.irradiance(normals, normals).cpu().numpy()  # views along the normals: no camera light
+    _save_equirect(irradiance, path, 4)
 
 
 def _json_default(value):

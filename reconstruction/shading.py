@@ -107,6 +107,16 @@ class EnvironmentMap(torch.nn.Module):
         return torch.einsum("lp,lcp->pc", weights, samples)
 
 
+def equirect_directions(height: int, device=None) -> Tensor:
+    """Unit world directions [H, 2H, 3] through the texel centres of an equirectangular map in
+    :class:`EnvironmentMap`'s layout (the inverse of its lookup's mapping): zenith at the top row, azimuth from
+    -180 degrees at the left."""
+    v = (2 * torch.arange(height, device=device, dtype=torch.float64) + 1) / height - 1.0  # [H], -1 at the top
+    u = (2 * torch.arange(2 * height, device=device, dtype=torch.float64) + 1) / (2 * height) - 1.0  # [2H]
+    elevation, azimuth = torch.meshgrid(-v * (math.pi / 2), u * math.pi, indexing="ij")
+    return torch.stack([elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin()], dim=-1)
+
+
 class DiffuseLight(torch.nn.Module):
     """A learned distant light as a diffuse surface receives it: the irradiance [..., 3] at a world normal ``n``
     seen along the world view direction ``v`` is ``max(SH_2(n) . c + k * max(<n, -v>, 0), 0)``.
@@ -223,13 +233,13 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
     the diffuse colour per unit alpha [H, W, 3]); with a ``light`` the diffuse colour is an albedo it lights;
     ``saturate``: colours clipped at 1 before the alpha."""
     h, w = alpha.shape
-    a = alpha.clamp_min(1e-6)[..., None]
-    diffuse = blended[..., :3] / a  # [H, W, 3]
+    diffuse = blended[..., :3] / alpha.clamp_min(1e-6)[..., None]  # [H, W, 3]
     # only pixels some Gaussian reaches: elsewhere the colour is multiplied by an alpha of exactly 0 and no
     # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)
     drawn = torch.nonzero(alpha.reshape(-1) > 0)[:, 0]  # [P]
-    a, blended = a.reshape(-1, 1)[drawn], blended.reshape(-1, blended.shape[-1])[drawn]  # [P, 1], [P, 7]
-    tint, roughness = blended[:, 3:6] / a, blended[:, 6] / a[:, 0]
+    drawn_alpha = alpha.reshape(-1, 1)[drawn].clamp_min(1e-6)  # [P, 1]
+    drawn_blended = blended.reshape(-1, blended.shape[-1])[drawn]  # [P, 7]
+    tint, roughness = drawn_blended[:, 3:6] / drawn_alpha, drawn_blended[:, 6] / drawn_alpha[:, 0]
     rotation = viewmat[:3, :3].T  # camera -> world
     view = pixel_rays(K, w, h).reshape(-1, 3)[drawn] @ rotation.T  # [P, 3] world
     n = normal.reshape(-1, 3)[drawn] @ rotation.T

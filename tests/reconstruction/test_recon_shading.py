@@ -13,7 +13,14 @@ from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.evaluation import save_light
 from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
-from tacsplat.reconstruction.shading import DiffuseLight, EnvironmentMap, _shade, gaussian_normals, render
+from tacsplat.reconstruction.shading import (
+    DiffuseLight,
+    EnvironmentMap,
+    _shade,
+    equirect_directions,
+    gaussian_normals,
+    render,
+)
 
 
 def test_the_normal_of_a_flat_gaussian_is_its_shortest_axis():
@@ -210,6 +217,16 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
     inputs = (blended.clone().requires_grad_(True), normal, light.coefficients.detach().clone().requires_grad_(True),
               light.camera.detach().clone().requires_grad_(True))
     assert torch.autograd.gradcheck(shaded, inputs)
+
+
+def test_equirect_directions_are_the_texel_centres_the_environment_lookup_reads():
+    environment = EnvironmentMap(height=8)
+    with torch.no_grad():
+        environment.log_radiance.copy_(torch.randn(3, 8, 16, generator=torch.Generator().manual_seed(3)))
+    directions = equirect_directions(8).float()  # [8, 16, 3]
+    torch.testing.assert_close(directions.norm(dim=-1), torch.ones(8, 16))
+    mirrored = environment.lookup(directions.reshape(-1, 3), torch.zeros(8 * 16)).reshape(8, 16, 3)
+    torch.testing.assert_close(mirrored, torch.exp(environment.log_radiance).permute(1, 2, 0), rtol=1e-5, atol=1e-6)
 
 
 def test_the_light_picture_has_the_zenith_at_the_top(tmp_path):
