@@ -1,10 +1,13 @@
-"""``edge_aware_smoothness_cpu(depth, weights, proximity)``: paper Eq. 8 in numba for CPU tensors.
+"""Smoothness losses in numba for CPU tensors, with hand-written backward; the torch versions are the references.
 
-Same value and gradient as the torch reference in :func:`.losses.edge_aware_smoothness` (5x5 Sobel responses
-of the depth, 'valid' region, weighted by the image factors and by 1 - the touch proximity, averaged), without
-torch's convolution backward, which at one channel costs more than the rest of the loss: the forward
-correlates each valid pixel's window with both kernels and keeps the responses, the backward gathers each
-depth pixel's share of their signs from the windows that contain it (the adjoint of the correlation).
+* ``edge_aware_smoothness_cpu(depth, weights, proximity)``: paper Eq. 8. Same value and gradient as
+  :func:`.losses.edge_aware_smoothness` (5x5 Sobel responses of the depth, 'valid' region, weighted by the image
+  factors and by 1 - the touch proximity, averaged), without torch's convolution backward, which at one channel
+  costs more than the rest of the loss: the forward correlates each valid pixel's window with both kernels and
+  keeps the responses, the backward gathers each depth pixel's share of their signs from the windows that
+  contain it (the adjoint of the correlation).
+* ``albedo_smoothness_cpu(albedo, inside)``: :func:`.losses.albedo_smoothness_loss` (mean L1 difference of
+  neighbouring pixels both inside), one pass each way instead of some thirty small torch operations.
 """
 
 from __future__ import annotations
@@ -81,3 +84,66 @@ def edge_aware_smoothness_cpu(depth: torch.Tensor, kernels: torch.Tensor, factor
     """Mean over the valid region of |Sx * D| f_x + |Sy * D| f_y for a CPU depth map [H, W], the two 5x5 kernels
     [2, 5, 5] and the per-pixel factors [2, H-4, W-4] (no gradient)."""
     return _SmoothnessCPU.apply(depth, kernels, factors)
+
+
+@nb.njit(parallel=True, cache=True)
+def _albedo_forward(albedo, inside, rows):
+    """rows[i] = (the L1 differences of row i's pairs inside: with its right and its lower neighbour, their
+    number)."""
+    height, width = inside.shape
+    for i in nb.prange(height):
+        total = count = 0.0
+        for j in range(width):
+            if not inside[i, j]:
+                continue
+            if j + 1 < width and inside[i, j + 1]:
+                count += 1.0
+                for c in range(3):
+                    total += abs(np.float64(albedo[i, j + 1, c]) - albedo[i, j, c])
+            if i + 1 < height and inside[i + 1, j]:
+                count += 1.0
+                for c in range(3):
+                    total += abs(np.float64(albedo[i + 1, j, c]) - albedo[i, j, c])
+        rows[i, 0], rows[i, 1] = total, count
+
+
+@nb.njit(parallel=True, cache=True)
+def _albedo_backward(albedo, inside, scale, v_albedo):
+    """v_albedo [H, W, 3] = scale * the sum of sign(this pixel - its neighbour) over its four pairs inside
+    (sign 0 at 0, as torch's abs)."""
+    height, width = inside.shape
+    for i in nb.prange(height):
+        for j in range(width):
+            for c in range(3):
+                v = 0.0
+                if inside[i, j]:
+                    here = np.float64(albedo[i, j, c])
+                    for di, dj in ((0, -1), (0, 1), (-1, 0), (1, 0)):
+                        y, x = i + di, j + dj
+                        if 0 <= y < height and 0 <= x < width and inside[y, x]:
+                            v += np.sign(here - albedo[y, x, c])
+                v_albedo[i, j, c] = v * scale
+
+
+class _AlbedoSmoothnessCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, albedo, inside):
+        a, m = _np(albedo), _np(inside)
+        rows = np.empty((m.shape[0], 2))
+        _albedo_forward(a, m, rows)
+        total, count = rows.sum(axis=0)
+        ctx.arrays, ctx.count = (a, m), max(count, 1.0)
+        return torch.tensor(total / ctx.count, dtype=albedo.dtype)
+
+    @staticmethod
+    def backward(ctx, grad):
+        albedo, inside = ctx.arrays
+        v_albedo = np.empty(albedo.shape, albedo.dtype)
+        _albedo_backward(albedo, inside, float(grad) / ctx.count, v_albedo)
+        return torch.from_numpy(v_albedo), None
+
+
+def albedo_smoothness_cpu(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+    """Mean L1 difference of neighbouring pixels of a CPU ``albedo`` [H, W, 3] that are both ``inside`` [H, W]
+    bool (0 with no such pair); see :func:`.losses.albedo_smoothness_loss`."""
+    return _AlbedoSmoothnessCPU.apply(albedo, inside)

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
 from tacsplat.reconstruction.fused_normals import depth_normal_consistency_cpu
-from tacsplat.reconstruction.fused_smoothness import edge_aware_smoothness_cpu
+from tacsplat.reconstruction.fused_smoothness import albedo_smoothness_cpu, edge_aware_smoothness_cpu
 from tacsplat.reconstruction.fused_ssim import d_ssim
 from tacsplat.reconstruction.fused_touch import touch_normal_cpu, transmittance_cpu
 from tacsplat.reconstruction.gaussians import whitening
@@ -396,11 +396,14 @@ def flatten_loss(scales: torch.Tensor, scene_scale: float) -> torch.Tensor:
     return scales.min(dim=-1).values.mean() / scene_scale
 
 
-def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
+def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor, fused: bool = True) -> torch.Tensor:
     """Mean L1 difference [] of the rendered diffuse colour ``albedo`` [H, W, 3] between horizontally and vertically
     neighbouring pixels that are both ``inside`` [H, W] bool the silhouette (0 with no such pair). L1 keeps a
     texture's edges and flattens the gradual shading a free diffuse colour would otherwise paint: that shading
-    then has to come from the normals (through the "lit" appearance's light) or the environment."""
+    then has to come from the normals (through the "lit" appearance's light) or the environment. For CPU tensors
+    the fused kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the torch below, the reference)."""
+    if fused and albedo.device.type == "cpu":
+        return albedo_smoothness_cpu(albedo, inside)
     inside = inside.to(albedo.dtype)
     across = inside[:, 1:] * inside[:, :-1]  # [H, W-1]
     down = inside[1:] * inside[:-1]  # [H-1, W]

@@ -32,6 +32,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from tacsplat.reconstruction.fused_normals import gaussian_normals_cpu
+from tacsplat.reconstruction.fused_shading import shade_cpu
 from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.raster.spherical_harmonics import SH_C0, sh_basis
@@ -215,7 +216,8 @@ def render(
     if appearance == "sh":
         return RenderOutput(out[..., :3], alpha, depth, normal, meta)
     rgb, albedo = _shade(out[..., :7], alpha, normal, viewmat[0], K[0], environment,
-                         light if appearance == "lit" else None, saturate=appearance == "lit")
+                         light if appearance == "lit" else None, saturate=appearance == "lit",
+                         fused=fused_kernels(backend))
     return RenderOutput(rgb, alpha, depth, normal, meta, albedo)
 
 
@@ -228,11 +230,16 @@ def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:
 
 
 def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: Tensor, environment: EnvironmentMap,
-           light: DiffuseLight | None = None, saturate: bool = False) -> tuple[Tensor, Tensor]:
+           light: DiffuseLight | None = None, saturate: bool = False, fused: bool = True) -> tuple[Tensor, Tensor]:
     """Deferred reflective shading of alpha-blended [H, W, 7] (diffuse, tint, roughness) -> (premultiplied RGB,
     the diffuse colour per unit alpha [H, W, 3]); with a ``light`` the diffuse colour is an albedo it lights;
-    ``saturate``: colours clipped at 1 before the alpha."""
+    ``saturate``: colours clipped at 1 before the alpha. For CPU tensors (and a fixed camera) the numba kernels
+    of :mod:`.fused_shading` unless ``fused`` is False (the torch below, the reference)."""
     h, w = alpha.shape
+    if fused and alpha.device.type == "cpu" and not viewmat.requires_grad:
+        return shade_cpu(blended, alpha, normal, K, viewmat[:3, :3].T, environment.log_radiance,
+                         None if light is None else light.coefficients, None if light is None else light.camera,
+                         saturate)
     diffuse = blended[..., :3] / alpha.clamp_min(1e-6)[..., None]  # [H, W, 3]
     # only pixels some Gaussian reaches: elsewhere the colour is multiplied by an alpha of exactly 0 and no
     # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)

@@ -296,7 +296,7 @@ class Trainer:
                 loss = loss + cfg.lambda_touch_normal * aligned
                 terms["normals"] = terms["normals"] + aligned.detach()
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
-            flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5)
+            flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5, self.fused_losses)
             loss = loss + cfg.lambda_albedo_smoothness * flat_albedo
             terms["smoothness"] = flat_albedo.detach()
         if cfg.lambda_flatten > 0:

@@ -5,6 +5,7 @@ import math
 
 import cv2
 import numpy as np
+import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
@@ -19,6 +20,7 @@ from tacsplat.reconstruction.shading import (
     _shade,
     equirect_directions,
     gaussian_normals,
+    pixel_rays,
     render,
 )
 
@@ -183,10 +185,11 @@ def test_a_diffuse_light_holds_a_directional_lights_irradiance_to_a_few_per_cent
     torch.testing.assert_close(grazing, irradiance)  # a normal facing away from the camera gets none of it
 
 
-def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_gradients():
+@pytest.mark.parametrize("fused", [True, False], ids=["numba", "torch"])
+def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_gradients(fused):
     """The light starts as irradiance 1 everywhere (a lit colour starts as its albedo); the lit, saturating
     shading's gradient with respect to the albedo, the normal and the light is the numerical one, a pixel with
-    alpha 0 included."""
+    alpha 0 included (the numba kernels and the torch reference)."""
     light = DiffuseLight().double()
     normals = _unit_sphere_directions(50, 1)
     torch.testing.assert_close(light.irradiance(normals, -normals), torch.ones(50, 3, dtype=torch.float64))
@@ -203,7 +206,7 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
         [0.0, 0.0, -2.0], dtype=torch.float64), dim=-1).requires_grad_(True)
     viewmat = torch.eye(4, dtype=torch.float64)
     K = torch.tensor([[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]], dtype=torch.float64)
-    rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment, light, saturate=True)
+    rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment, light, saturate=True, fused=fused)
     assert torch.all(rgb <= 0.9 + 1e-12) and rgb[0, 0].max() == 0.9  # clipped at 1, times alpha
     assert torch.all(rgb[2, 3] == 0)
     torch.testing.assert_close(albedo, blended[..., :3] / alpha.clamp_min(1e-6)[..., None])
@@ -212,11 +215,52 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
         lit = DiffuseLight().double()
         del lit.coefficients, lit.camera
         lit.coefficients, lit.camera = coefficients, camera
-        return _shade(b, alpha, n, viewmat, K, environment, lit, saturate=True)[0]
+        return _shade(b, alpha, n, viewmat, K, environment, lit, saturate=True, fused=fused)[0]
 
     inputs = (blended.clone().requires_grad_(True), normal, light.coefficients.detach().clone().requires_grad_(True),
               light.camera.detach().clone().requires_grad_(True))
     assert torch.autograd.gradcheck(shaded, inputs)
+
+
+@pytest.mark.parametrize("lit", [True, False], ids=["lit", "reflective"])
+@pytest.mark.parametrize("saturate", [True, False], ids=["saturate", "linear"])
+def test_fused_shading_matches_the_torch_reference_with_its_gradients(lit, saturate):
+    """The numba shading (:mod:`.fused_shading`) against the torch reference in float64: values and the gradients
+    of every input (blended channels, alpha, normals, environment, light), with a pixel no Gaussian reaches, one
+    under the alpha floor, a saturated one, and one whose reflection looks straight up (the map's pole)."""
+    g = torch.Generator().manual_seed(5)
+    h, w = 9, 11
+    alpha = torch.rand(h, w, generator=g, dtype=torch.float64)
+    alpha[:, 0] = 0.0  # nothing drawn
+    alpha[1, 1] = 1e-7  # drawn, under the floor the colours are divided by
+    blended = torch.rand(h, w, 7, generator=g, dtype=torch.float64) * alpha[..., None]
+    blended[2, 2, :3] = 3.0 * alpha[2, 2]  # saturates
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, :3] = torch.tensor(Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix())
+    K = torch.tensor([[9.0, 0, 5.5], [0, 9.0, 4.5], [0, 0, 1]], dtype=torch.float64)
+    normal = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g, dtype=torch.float64) + torch.tensor(
+        [0.0, 0.0, -1.5], dtype=torch.float64), dim=-1)
+    view = pixel_rays(K, w, h)[3, 3]  # camera frame
+    up = viewmat[:3, :3] @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)  # world +z in the camera frame
+    normal[3, 3] = torch.nn.functional.normalize(view - up, dim=0)  # reflects the view straight up
+    environment = EnvironmentMap(height=8).double()
+    light = DiffuseLight().double()
+    with torch.no_grad():
+        environment.log_radiance.normal_(0.0, 0.5, generator=g)
+        light.coefficients.add_(0.5 * torch.randn(9, 3, generator=g, dtype=torch.float64))
+        light.camera.normal_(0.0, 0.3, generator=g)
+    inputs = [blended.requires_grad_(True), alpha.requires_grad_(True), normal.requires_grad_(True),
+              environment.log_radiance, light.coefficients, light.camera]
+    weights = torch.randn(2, h, w, 3, generator=g, dtype=torch.float64)
+    results = []
+    for fused in (True, False):
+        rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment, light if lit else None, saturate,
+                             fused=fused)
+        loss = (rgb * weights[0]).sum() + (albedo * weights[1]).sum()
+        results.append((rgb, albedo, *torch.autograd.grad(loss, inputs[: 6 if lit else 4])))
+    assert not saturate or results[1][0][2, 2].max() == alpha[2, 2]  # the reference clips the saturated pixel
+    for got, expected in zip(*results):
+        torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
 
 
 def test_equirect_directions_are_the_texel_centres_the_environment_lookup_reads():
@@ -241,14 +285,29 @@ def test_the_light_picture_has_the_zenith_at_the_top(tmp_path):
     assert np.ptp(image[:, 100]) > 20 and np.ptp(image[60]) < 2  # varies with elevation, not along the equator
 
 
-def test_albedo_smoothness_is_zero_on_a_uniform_albedo_and_counts_only_pairs_inside():
+@pytest.mark.parametrize("fused", [True, False], ids=["numba", "torch"])
+def test_albedo_smoothness_is_zero_on_a_uniform_albedo_and_counts_only_pairs_inside(fused):
     albedo = torch.full((6, 8, 3), 0.4)
     inside = torch.zeros(6, 8, dtype=torch.bool)
     inside[1:5, 2:7] = True
-    assert losses.albedo_smoothness_loss(albedo, inside).item() == 0.0
+    assert losses.albedo_smoothness_loss(albedo, inside, fused).item() == 0.0
     albedo[:, :, 0] = torch.arange(8.0)[None, :] * 0.1  # a ramp across: 0.1 per pixel step in one channel
     albedo[0, 0] = 9.0  # outside the silhouette: ignored
     pairs_across, pairs_down = 4 * 4, 3 * 5
     expected = 0.1 * pairs_across / (pairs_across + pairs_down)
-    assert abs(losses.albedo_smoothness_loss(albedo, inside).item() - expected) < 1e-6
-    assert losses.albedo_smoothness_loss(albedo, torch.zeros_like(inside)).item() == 0.0
+    assert abs(losses.albedo_smoothness_loss(albedo, inside, fused).item() - expected) < 1e-6
+    assert losses.albedo_smoothness_loss(albedo, torch.zeros_like(inside), fused).item() == 0.0
+
+
+def test_fused_albedo_smoothness_matches_the_torch_reference_with_its_gradient():
+    g = torch.Generator().manual_seed(4)
+    albedo = torch.rand(10, 13, 3, generator=g, dtype=torch.float64)
+    albedo[4, 5] = albedo[4, 6]  # equal neighbours: |0| passes gradient 0, as torch's abs
+    albedo.requires_grad_(True)
+    inside = torch.rand(10, 13, generator=g) > 0.3
+    results = []
+    for fused in (True, False):
+        loss = losses.albedo_smoothness_loss(albedo, inside, fused)
+        results.append((loss, *torch.autograd.grad(loss, albedo)))
+    for got, expected in zip(*results):
+        torch.testing.assert_close(got, expected, rtol=1e-13, atol=1e-13)
