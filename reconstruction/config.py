@@ -64,14 +64,15 @@ class TrainConfig:
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
     lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
     # (needs the rendered normals: with depth-normal consistency on, from its start step)
-    appearance: Literal["sh", "reflective", "lit"] = "sh"  # colour: view-dependent SH (3DGS), or diffuse + specular
-    # tint x a learned environment map along the reflected view direction, prefiltered by roughness (deferred
-    # shading), or "lit": that, with the diffuse colour an albedo times a learned distant light's irradiance at the
-    # normal, and colours saturating at 1
+    appearance: Literal["sh", "reflective", "lit", "sh-lit"] = "sh"  # colour: view-dependent SH (3DGS), or
+    # "reflective": diffuse + specular tint x a learned environment map along the reflected view direction,
+    # prefiltered by roughness (deferred shading), or "lit": that, with the diffuse colour an albedo times a learned
+    # distant light's irradiance at the normal, and colours saturating at 1, or "sh-lit": the view-dependent SH
+    # colour as that albedo (no environment)
     env_map_height: int = 16  # environment map height in pixels (its width is twice that)
-    lit_start_iter: int = 300  # "lit": the light shades the albedo from this step on (before: diffuse = albedo)
+    lit_start_iter: int = 300  # "lit", "sh-lit": the light shades the albedo from this step on (before: unlit)
     lambda_albedo_smoothness: float = 0.0  # L1 differences of neighbouring pixels' rendered diffuse colour inside
-    # the silhouette ("reflective" and "lit"): shading has to come from the normals and the environment
+    # the silhouette (all but "sh"): shading has to come from the normals (and the environment)
     # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
     lr_means: float = 1.6e-4  # means (times the scene scale)
     lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
@@ -122,8 +123,8 @@ class TrainConfig:
             len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
         ):
             return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
-        if self.appearance not in ("sh", "reflective", "lit"):
-            return "appearance", f"must be 'sh', 'reflective' or 'lit', got {self.appearance!r}"
+        if self.appearance not in ("sh", "reflective", "lit", "sh-lit"):
+            return "appearance", f"must be 'sh', 'reflective', 'lit' or 'sh-lit', got {self.appearance!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:

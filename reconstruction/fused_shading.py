@@ -46,8 +46,10 @@ def _sh2(x, y, z, basis):
 @nb.njit(cache=True, inline="always")
 def _sh2_backward(x, y, z, g):
     """(d/dx, d/dy, d/dz) of sum_k g[k] basis_k(x, y, z)."""
-    gx = -SH_C1 * g[3] + SH_C2[0] * y * g[4] - 2.0 * SH_C2[2] * x * g[6] + SH_C2[3] * z * g[7] + 2.0 * SH_C2[4] * x * g[8]
-    gy = -SH_C1 * g[1] + SH_C2[0] * x * g[4] + SH_C2[1] * z * g[5] - 2.0 * SH_C2[2] * y * g[6] - 2.0 * SH_C2[4] * y * g[8]
+    gx = (-SH_C1 * g[3] + SH_C2[0] * y * g[4] - 2.0 * SH_C2[2] * x * g[6] + SH_C2[3] * z * g[7]
+          + 2.0 * SH_C2[4] * x * g[8])
+    gy = (-SH_C1 * g[1] + SH_C2[0] * x * g[4] + SH_C2[1] * z * g[5] - 2.0 * SH_C2[2] * y * g[6]
+          - 2.0 * SH_C2[4] * y * g[8])
     gz = SH_C1 * g[2] + SH_C2[1] * y * g[5] + 4.0 * SH_C2[2] * z * g[6] + SH_C2[3] * x * g[7]
     return gx, gy, gz
 
@@ -121,30 +123,31 @@ def _pixel(blended, alpha, normal, K, rotation, env, level_h, level_w, level_off
     nx, ny, nz = state[_NORMAL], state[_NORMAL + 1], state[_NORMAL + 2]
     vn = vx * nx + vy * ny + vz * nz
     state[_VN] = vn
-    # the reflected direction -> the map's (u, v) (EnvironmentMap.lookup's mapping)
-    dx, dy, dz = vx - 2.0 * vn * nx, vy - 2.0 * vn * ny, vz - 2.0 * vn * nz
-    squared = dx * dx + dy * dy + dz * dz
-    length = math.sqrt(squared) if squared > _TINY else 0.0  # 0: no direction, the horizon at azimuth 0
-    x, y, z = (dx / length, dy / length, dz / length) if length > 0.0 else (1.0, 0.0, 0.0)
-    flat = x * x + y * y
-    u = math.atan2(y, x) / math.pi if flat > _TINY else 0.0  # straight up or down: azimuth 0
-    v = -math.atan2(z, math.sqrt(flat + _TINY)) / (math.pi / 2)
-    state[_UV], state[_UV + 1] = u, v
-    state[_UNIT], state[_UNIT + 1], state[_UNIT + 2], state[_LENGTH] = x, y, z, length
-    # the levels around roughness * (levels - 1), tent-weighted (every level within 1 is sampled: the backward
-    # needs those a weight of exactly 0 passes the gradient of)
-    levels = level_h.shape[0]
-    position = min(max(float(blended[i, j, 6]) / a, 0.0), 1.0) * (levels - 1)
-    state[_POSITION] = position
     for c in range(3):
         state[_SPECULAR + c] = 0.0
-    for level in range(levels):
-        weight = 1.0 - abs(position - level)
-        if weight >= 0.0:
-            sample = state[_SAMPLES + 3 * level : _SAMPLES + 3 * level + 3]
-            _sample(env, level_offset[level], level_h[level], level_w[level], u, v, sample)
-            for c in range(3):
-                state[_SPECULAR + c] += weight * sample[c]
+    if blended.shape[2] > 3:  # reflective: the specular
+        # the reflected direction -> the map's (u, v) (EnvironmentMap.lookup's mapping)
+        dx, dy, dz = vx - 2.0 * vn * nx, vy - 2.0 * vn * ny, vz - 2.0 * vn * nz
+        squared = dx * dx + dy * dy + dz * dz
+        length = math.sqrt(squared) if squared > _TINY else 0.0  # 0: no direction, the horizon at azimuth 0
+        x, y, z = (dx / length, dy / length, dz / length) if length > 0.0 else (1.0, 0.0, 0.0)
+        flat = x * x + y * y
+        u = math.atan2(y, x) / math.pi if flat > _TINY else 0.0  # straight up or down: azimuth 0
+        v = -math.atan2(z, math.sqrt(flat + _TINY)) / (math.pi / 2)
+        state[_UV], state[_UV + 1] = u, v
+        state[_UNIT], state[_UNIT + 1], state[_UNIT + 2], state[_LENGTH] = x, y, z, length
+        # the levels around roughness * (levels - 1), tent-weighted (every level within 1 is sampled: the
+        # backward needs those a weight of exactly 0 passes the gradient of)
+        levels = level_h.shape[0]
+        position = min(max(float(blended[i, j, 6]) / a, 0.0), 1.0) * (levels - 1)
+        state[_POSITION] = position
+        for level in range(levels):
+            weight = 1.0 - abs(position - level)
+            if weight >= 0.0:
+                sample = state[_SAMPLES + 3 * level : _SAMPLES + 3 * level + 3]
+                _sample(env, level_offset[level], level_h[level], level_w[level], u, v, sample)
+                for c in range(3):
+                    state[_SPECULAR + c] += weight * sample[c]
     facing = max(-vn, 0.0)
     state[_FACING] = facing
     basis = state[_BASIS : _BASIS + 9]
@@ -158,8 +161,9 @@ def _pixel(blended, alpha, normal, K, rotation, env, level_h, level_w, level_off
                 e += basis[k] * coefficients[k, c]
             state[_E + c] = e
             irradiance = max(e, 0.0)
-        state[_SHADED + c] = (float(blended[i, j, c]) * irradiance + float(blended[i, j, 3 + c])
-                              * state[_SPECULAR + c]) / a
+        state[_SHADED + c] = float(blended[i, j, c]) * irradiance / a
+        if blended.shape[2] > 3:
+            state[_SHADED + c] += float(blended[i, j, 3 + c]) * state[_SPECULAR + c] / a
 
 
 @nb.njit(parallel=True, cache=True)
@@ -188,11 +192,11 @@ def _forward(blended, alpha, normal, K, rotation, env, level_h, level_w, level_o
 @nb.njit(parallel=True, cache=True)
 def _backward(blended, alpha, rotation, env, level_h, level_w, level_offset, coefficients, camera, lit, saturate,
               first, states, g_rgb, g_albedo, g_blended, g_alpha, g_normal, g_env, g_coefficients, g_camera):
-    """Gradients per pixel into g_blended [H, W, 7], g_alpha [H, W], g_normal [H, W, 3] from the forward's
+    """Gradients per pixel into g_blended [H, W, 7 or 3], g_alpha [H, W], g_normal [H, W, 3] from the forward's
     ``states``; the environment's (flat pyramid), the SH coefficients' and the camera light's summed per row chunk
     into g_env [C, E], g_coefficients [C, 9, 3], g_camera [C, 3]."""
     height, width = alpha.shape
-    chunks, levels = g_env.shape[0], level_h.shape[0]
+    chunks, levels, reflective = g_coefficients.shape[0], level_h.shape[0], blended.shape[2] > 3
     for chunk in nb.prange(chunks):
         g_spec, g_sample, g_basis, g_diffuse = np.empty(3), np.empty(3), np.empty(9), np.empty(3)
         for i in range(chunk * height // chunks, (chunk + 1) * height // chunks):
@@ -202,7 +206,7 @@ def _backward(blended, alpha, rotation, env, level_h, level_w, level_offset, coe
                 g_a = 0.0  # d loss / d a (alpha after its floor)
                 for c in range(3):
                     g_diffuse[c] = g_albedo[i, j, c]
-                for k in range(3, 7):
+                for k in range(3, blended.shape[2]):
                     g_blended[i, j, k] = 0.0
                 g_normal[i, j, 0] = g_normal[i, j, 1] = g_normal[i, j, 2] = 0.0
                 g_alpha[i, j] = 0.0
@@ -220,11 +224,12 @@ def _backward(blended, alpha, rotation, env, level_h, level_w, level_offset, coe
                         clipped = saturate and shaded > 1.0
                         g_alpha[i, j] += g_rgb[i, j, c] * (1.0 if clipped else shaded)
                         g_shaded = 0.0 if clipped else g_rgb[i, j, c] * alpha[i, j]
-                        tint = float(blended[i, j, 3 + c]) / a
-                        g_tint = g_shaded * state[_SPECULAR + c]
-                        g_spec[c] = g_shaded * tint
-                        g_blended[i, j, 3 + c] = g_tint / a
-                        g_a -= g_tint * tint / a
+                        if reflective:
+                            tint = float(blended[i, j, 3 + c]) / a
+                            g_tint = g_shaded * state[_SPECULAR + c]
+                            g_spec[c] = g_shaded * tint
+                            g_blended[i, j, 3 + c] = g_tint / a
+                            g_a -= g_tint * tint / a
                         if lit:
                             e = state[_E + c]
                             g_diffuse[c] += g_shaded * max(e, 0.0)
@@ -236,49 +241,53 @@ def _backward(blended, alpha, rotation, env, level_h, level_w, level_offset, coe
                             g_facing += camera[c] * g_e
                         else:
                             g_diffuse[c] += g_shaded
-                    # the lookup: tent over the levels, bilinear samples
-                    u, v = state[_UV], state[_UV + 1]
-                    g_position = g_u = g_v = 0.0
-                    for level in range(levels):
-                        distance = position - level
-                        weight = 1.0 - abs(distance)
-                        if weight >= 0.0:  # clamp_min passes its gradient at 0 too
-                            sample = state[_SAMPLES + 3 * level : _SAMPLES + 3 * level + 3]
-                            sign = 1.0 if distance > 0.0 else (-1.0 if distance < 0.0 else 0.0)
-                            g_position -= sign * (g_spec[0] * sample[0] + g_spec[1] * sample[1] + g_spec[2] * sample[2])
-                        if weight > 0.0:
-                            for c in range(3):
-                                g_sample[c] = weight * g_spec[c]
-                            gu, gv = _sample_backward(env, level_offset[level], level_h[level], level_w[level], u, v,
-                                                      g_sample, g_env[chunk])
-                            g_u += gu
-                            g_v += gv
-                    roughness = float(blended[i, j, 6]) / a
-                    g_roughness = g_position * (levels - 1) if 0.0 <= roughness <= 1.0 else 0.0
-                    g_blended[i, j, 6] = g_roughness / a
-                    g_a -= g_roughness * roughness / a
-                    # (u, v) -> unit direction -> reflected direction
-                    x, y, z, length = state[_UNIT], state[_UNIT + 1], state[_UNIT + 2], state[_LENGTH]
-                    flat = x * x + y * y
-                    gx = gy = gz = 0.0
-                    if flat > _TINY:
-                        gx -= g_u * y / (flat * math.pi)
-                        gy += g_u * x / (flat * math.pi)
-                    s = math.sqrt(flat + _TINY)
-                    d_atan = -g_v / (math.pi / 2) / (z * z + s * s)
-                    gz += d_atan * s
-                    gx -= d_atan * z * x / s
-                    gy -= d_atan * z * y / s
-                    g_dx = g_dy = g_dz = 0.0
-                    if length > 0.0:
-                        dot = x * gx + y * gy + z * gz
-                        g_dx, g_dy, g_dz = (gx - x * dot) / length, (gy - y * dot) / length, (gz - z * dot) / length
-                    # reflected = view - 2 <view, n> n;  facing = max(-<view, n>, 0);  basis(n)
-                    g_dn = g_dx * nx + g_dy * ny + g_dz * nz
-                    g_nx = -2.0 * (vx * g_dn + vn * g_dx)
-                    g_ny = -2.0 * (vy * g_dn + vn * g_dy)
-                    g_nz = -2.0 * (vz * g_dn + vn * g_dz)
-                    if lit:
+                    g_nx = g_ny = g_nz = 0.0
+                    if reflective:
+                        # the lookup: tent over the levels, bilinear samples
+                        u, v = state[_UV], state[_UV + 1]
+                        g_position = g_u = g_v = 0.0
+                        for level in range(levels):
+                            distance = position - level
+                            weight = 1.0 - abs(distance)
+                            if weight >= 0.0:  # clamp_min passes its gradient at 0 too
+                                sample = state[_SAMPLES + 3 * level : _SAMPLES + 3 * level + 3]
+                                sign = 1.0 if distance > 0.0 else (-1.0 if distance < 0.0 else 0.0)
+                                g_position -= sign * (g_spec[0] * sample[0] + g_spec[1] * sample[1]
+                                                      + g_spec[2] * sample[2])
+                            if weight > 0.0:
+                                for c in range(3):
+                                    g_sample[c] = weight * g_spec[c]
+                                gu, gv = _sample_backward(env, level_offset[level], level_h[level], level_w[level],
+                                                          u, v, g_sample, g_env[chunk])
+                                g_u += gu
+                                g_v += gv
+                        roughness = float(blended[i, j, 6]) / a
+                        g_roughness = g_position * (levels - 1) if 0.0 <= roughness <= 1.0 else 0.0
+                        g_blended[i, j, 6] = g_roughness / a
+                        g_a -= g_roughness * roughness / a
+                        # (u, v) -> unit direction -> reflected direction
+                        x, y, z, length = state[_UNIT], state[_UNIT + 1], state[_UNIT + 2], state[_LENGTH]
+                        flat = x * x + y * y
+                        gx = gy = gz = 0.0
+                        if flat > _TINY:
+                            gx -= g_u * y / (flat * math.pi)
+                            gy += g_u * x / (flat * math.pi)
+                        s = math.sqrt(flat + _TINY)
+                        d_atan = -g_v / (math.pi / 2) / (z * z + s * s)
+                        gz += d_atan * s
+                        gx -= d_atan * z * x / s
+                        gy -= d_atan * z * y / s
+                        g_dx = g_dy = g_dz = 0.0
+                        if length > 0.0:
+                            dot = x * gx + y * gy + z * gz
+                            g_dx, g_dy, g_dz = ((gx - x * dot) / length, (gy - y * dot) / length,
+                                                (gz - z * dot) / length)
+                        # reflected = view - 2 <view, n> n
+                        g_dn = g_dx * nx + g_dy * ny + g_dz * nz
+                        g_nx = -2.0 * (vx * g_dn + vn * g_dx)
+                        g_ny = -2.0 * (vy * g_dn + vn * g_dy)
+                        g_nz = -2.0 * (vz * g_dn + vn * g_dz)
+                    if lit:  # basis(n) and facing = max(-<view, n>, 0)
                         bx, by, bz = _sh2_backward(nx, ny, nz, g_basis)
                         g_nx += bx - (g_facing * vx if vn <= 0.0 else 0.0)
                         g_ny += by - (g_facing * vy if vn <= 0.0 else 0.0)
@@ -323,7 +332,11 @@ class _ShadeCPU(torch.autograd.Function):
     def forward(ctx, blended, alpha, normal, K, rotation, log_radiance, coefficients, camera, lit, saturate):
         arrays = tuple(_np(t) for t in (blended, alpha, normal))
         fixed = tuple(_np(t).astype(np.float64) for t in (K, rotation, coefficients, camera))
-        env, heights, widths, offsets = layout = _pyramid(_np(log_radiance).astype(np.float64))
+        if log_radiance is None:  # no specular: no pyramid
+            layout = (np.zeros(0),) + (np.zeros(0, np.int64),) * 3
+        else:
+            layout = _pyramid(_np(log_radiance).astype(np.float64))
+        env, heights, widths, offsets = layout
         drawn = (arrays[1] > 0).sum(axis=1)  # [H]
         first = np.concatenate([[0], np.cumsum(drawn)[:-1]])
         states = np.empty((drawn.sum(), _SAMPLES + 3 * len(heights)))
@@ -332,7 +345,7 @@ class _ShadeCPU(torch.autograd.Function):
                  albedo)
         ctx.arrays, ctx.fixed, ctx.layout, ctx.flags, ctx.states = arrays, fixed, layout, (lit, saturate), (first,
                                                                                                          states)
-        ctx.dtypes = tuple(t.dtype for t in (log_radiance, coefficients, camera))
+        ctx.dtypes = tuple(None if t is None else t.dtype for t in (log_radiance, coefficients, camera))
         return torch.from_numpy(rgb), torch.from_numpy(albedo)
 
     @staticmethod
@@ -346,22 +359,26 @@ class _ShadeCPU(torch.autograd.Function):
         g_env, g_coefficients, g_camera = np.zeros((chunks, env.size)), np.zeros((chunks, 9, 3)), np.zeros((chunks, 3))
         _backward(blended, alpha, ctx.fixed[1], env, heights, widths, offsets, *ctx.fixed[2:], *ctx.flags,
                   *ctx.states, *g, g_blended, g_alpha, g_normal, g_env, g_coefficients, g_camera)
-        radiance = env[: 3 * heights[0] * widths[0]].reshape(3, heights[0], widths[0])  # the finest level
-        g_log = _pyramid_backward(g_env.sum(0), radiance, heights, widths, offsets)
-        g_log, g_coefficients, g_camera = (torch.from_numpy(array).to(dtype) for array, dtype in zip(
-            (g_log, g_coefficients.sum(0), g_camera.sum(0)), ctx.dtypes))
+        g_log = None
+        if len(heights):
+            radiance = env[: 3 * heights[0] * widths[0]].reshape(3, heights[0], widths[0])  # the finest level
+            g_log = _pyramid_backward(g_env.sum(0), radiance, heights, widths, offsets)
+        g_log, g_coefficients, g_camera = (None if array is None else torch.from_numpy(array).to(dtype)
+                                           for array, dtype in zip((g_log, g_coefficients.sum(0), g_camera.sum(0)),
+                                                                   ctx.dtypes))
         return (torch.from_numpy(g_blended), torch.from_numpy(g_alpha), torch.from_numpy(g_normal), None, None, g_log,
                 g_coefficients, g_camera, None, None)
 
 
 def shade_cpu(blended: torch.Tensor, alpha: torch.Tensor, normal: torch.Tensor, K: torch.Tensor,
-              rotation: torch.Tensor, log_radiance: torch.Tensor, coefficients: torch.Tensor | None,
+              rotation: torch.Tensor, log_radiance: torch.Tensor | None, coefficients: torch.Tensor | None,
               camera: torch.Tensor | None, saturate: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """(premultiplied RGB [H, W, 3], albedo [H, W, 3]) of CPU tensors: blended [H, W, 7], alpha [H, W], unit
-    camera-frame normals [H, W, 3], the intrinsics [3, 3] and the camera-to-world ``rotation`` [3, 3] (no
-    gradient), the environment's ``log_radiance`` [3, H, 2H], and the diffuse light's SH ``coefficients`` [9, 3]
-    and ``camera`` light [3] (None: unlit); see :func:`.shading._shade`."""
+    """(premultiplied RGB [H, W, 3], albedo [H, W, 3]) of CPU tensors: blended [H, W, 7] (diffuse, tint,
+    roughness; [H, W, 3] without the environment: diffuse only), alpha [H, W], unit camera-frame normals [H, W, 3],
+    the intrinsics [3, 3] and the camera-to-world ``rotation`` [3, 3] (no gradient), the environment's
+    ``log_radiance`` [3, H, 2H] (None: no specular), and the diffuse light's SH ``coefficients`` [9, 3] and
+    ``camera`` light [3] (None: unlit); see :func:`.shading._shade`."""
     lit = coefficients is not None
     if not lit:
-        coefficients, camera = log_radiance.new_zeros((9, 3)), log_radiance.new_zeros(3)
+        coefficients, camera = blended.new_zeros((9, 3)), blended.new_zeros(3)
     return _ShadeCPU.apply(blended, alpha, normal, K, rotation, log_radiance, coefficients, camera, lit, saturate)

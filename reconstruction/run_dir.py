@@ -23,7 +23,7 @@ import torch
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.gaussians import Gaussians
-from tacsplat.reconstruction.shading import DiffuseLight, EnvironmentMap, Look
+from tacsplat.reconstruction.shading import LIT, SPECULAR, DiffuseLight, EnvironmentMap, Look
 
 # A run directory's own files (anything else in it is someone else's and is never deleted).
 RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "splat.touch.npy",
@@ -81,10 +81,10 @@ def load_run(run_dir: Path) -> LoadedRun:
     ckpt = read_checkpoint(ckpt_path)
     config = TrainConfig.from_json(ckpt["config"], ckpt_path)
     look = Look(config.appearance)
-    if config.appearance != "sh":
+    if config.appearance in SPECULAR:
         look.environment = EnvironmentMap(config.env_map_height)
         look.environment.load_state_dict(ckpt["environment"])
-    if config.appearance == "lit":
+    if config.appearance in LIT:
         look.light = DiffuseLight()
         look.light.load_state_dict(ckpt["light"])
     return LoadedRun(Path(ckpt["scene_path"]), config, Gaussians.from_state_dict(ckpt["gaussians"]),

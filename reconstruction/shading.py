@@ -16,7 +16,9 @@ Its extra outputs ride in the same pass as extra colour channels:
   ``"lit"``: "reflective" whose diffuse colour is an albedo times the irradiance of a learned distant
   light at the pixel's normal (:class:`DiffuseLight`), and whose colour saturates at 1 as a camera's
   does. Shading then has to come from the normals, which ties the colours of the views to the
-  geometry even where a glossy surface has no texture.
+  geometry even where a glossy surface has no texture;
+  ``"sh-lit"``: the view-dependent SH colour as the albedo that light lights (no environment: the SH
+  bands above the first keep the view-dependent part, highlights and reflections, as in 3DGS).
 
 Plain RGB(+depth) with SH goes straight through :func:`rasterization` (its fused SH path).
 """
@@ -37,8 +39,10 @@ from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_t
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.raster.spherical_harmonics import SH_C0, sh_basis
 
-Appearance = Literal["sh", "reflective", "lit"]
+Appearance = Literal["sh", "reflective", "lit", "sh-lit"]
 REFLECTIVE_PARAMS = {"tint": 3, "roughness": 1}  # extra per-Gaussian parameters (logits) of "reflective" and "lit"
+SPECULAR = ("reflective", "lit")  # the appearances with a specular tint, a roughness and an environment map
+LIT = ("lit", "sh-lit")  # the appearances a learned diffuse light shades
 _TINY = 1e-12  # squared length under which a direction's azimuth (or a pixel's blended normal) is undefined
 
 
@@ -144,7 +148,7 @@ class DiffuseLight(torch.nn.Module):
 @dataclass
 class Look:
     """How Gaussians are coloured: their ``appearance``, for "reflective" and "lit" the learned environment, and
-    for "lit" the diffuse light (None: the albedo unlit)."""
+    for "lit" and "sh-lit" the diffuse light (None: the albedo unlit)."""
 
     appearance: Appearance = "sh"
     environment: EnvironmentMap | None = None
@@ -158,7 +162,7 @@ class RenderOutput:
     depth: Tensor | None  # [H, W] accumulated ("D") or expected ("ED") depth
     normal: Tensor | None  # [H, W, 3] unit camera-frame normal towards the camera (0 where nothing is drawn)
     meta: dict
-    albedo: Tensor | None = None  # [H, W, 3] the blended diffuse colour per unit alpha ("reflective", "lit")
+    albedo: Tensor | None = None  # [H, W, 3] the blended diffuse colour per unit alpha (all but "sh")
 
 
 def render(
@@ -174,7 +178,7 @@ def render(
     normals: bool = False,
     appearance: Appearance = "sh",
     environment: EnvironmentMap | None = None,
-    light: DiffuseLight | None = None,  # "lit": the diffuse light (None: unlit, the albedo)
+    light: DiffuseLight | None = None,  # "lit", "sh-lit": the diffuse light (None: unlit, the albedo)
     world_normals: Tensor | None = None,  # [N, 3] gaussian_normals(g.quats, g.scales), when the caller has them
 ) -> RenderOutput:
     """Render one view; see the module docstring for what each option adds to the pass. A caller that also needs
@@ -191,7 +195,7 @@ def render(
 
     campos = -viewmat[0, :3, :3].T @ viewmat[0, :3, 3]  # [3]
     to_gaussian = g.means - campos  # [N, 3]
-    if appearance == "sh":
+    if appearance in ("sh", "sh-lit"):
         features = raster.sh_colors(sh_degree, g.means, campos, g.sh_coefficients(sh_degree), backend)
     else:
         features = torch.cat([sh0_to_rgb(g.params["sh0"][:, 0]).clamp_min(0.0), torch.sigmoid(g.params["tint"]),
@@ -215,9 +219,9 @@ def render(
         normal = F.normalize(summed, dim=-1, eps=1e-8)
     if appearance == "sh":
         return RenderOutput(out[..., :3], alpha, depth, normal, meta)
-    rgb, albedo = _shade(out[..., :7], alpha, normal, viewmat[0], K[0], environment,
-                         light if appearance == "lit" else None, saturate=appearance == "lit",
-                         fused=fused_kernels(backend))
+    rgb, albedo = _shade(out[..., : features.shape[1]], alpha, normal, viewmat[0], K[0],
+                         environment if appearance in SPECULAR else None, light if appearance in LIT else None,
+                         saturate=appearance in LIT, fused=fused_kernels(backend))
     return RenderOutput(rgb, alpha, depth, normal, meta, albedo)
 
 
@@ -229,15 +233,18 @@ def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:
     return rays / rays.norm(dim=-1, keepdim=True)
 
 
-def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: Tensor, environment: EnvironmentMap,
-           light: DiffuseLight | None = None, saturate: bool = False, fused: bool = True) -> tuple[Tensor, Tensor]:
-    """Deferred reflective shading of alpha-blended [H, W, 7] (diffuse, tint, roughness) -> (premultiplied RGB,
-    the diffuse colour per unit alpha [H, W, 3]); with a ``light`` the diffuse colour is an albedo it lights;
-    ``saturate``: colours clipped at 1 before the alpha. For CPU tensors (and a fixed camera) the numba kernels
-    of :mod:`.fused_shading` unless ``fused`` is False (the torch below, the reference)."""
+def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: Tensor,
+           environment: EnvironmentMap | None, light: DiffuseLight | None = None, saturate: bool = False,
+           fused: bool = True) -> tuple[Tensor, Tensor]:
+    """Deferred shading of alpha-blended [H, W, 7] (diffuse, tint, roughness; [H, W, 3] diffuse only without an
+    ``environment``) -> (premultiplied RGB, the diffuse colour per unit alpha [H, W, 3]); with a ``light`` the
+    diffuse colour is an albedo it lights; ``saturate``: colours clipped at 1 before the alpha. For CPU tensors
+    (and a fixed camera) the numba kernels of :mod:`.fused_shading` unless ``fused`` is False (the torch below,
+    the reference)."""
     h, w = alpha.shape
     if fused and alpha.device.type == "cpu" and not viewmat.requires_grad:
-        return shade_cpu(blended, alpha, normal, K, viewmat[:3, :3].T, environment.log_radiance,
+        return shade_cpu(blended, alpha, normal, K, viewmat[:3, :3].T,
+                         None if environment is None else environment.log_radiance,
                          None if light is None else light.coefficients, None if light is None else light.camera,
                          saturate)
     diffuse = blended[..., :3] / alpha.clamp_min(1e-6)[..., None]  # [H, W, 3]
@@ -245,16 +252,16 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
     # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)
     drawn = torch.nonzero(alpha.reshape(-1) > 0)[:, 0]  # [P]
     drawn_alpha = alpha.reshape(-1, 1)[drawn].clamp_min(1e-6)  # [P, 1]
-    drawn_blended = blended.reshape(-1, blended.shape[-1])[drawn]  # [P, 7]
-    tint, roughness = drawn_blended[:, 3:6] / drawn_alpha, drawn_blended[:, 6] / drawn_alpha[:, 0]
     rotation = viewmat[:3, :3].T  # camera -> world
     view = pixel_rays(K, w, h).reshape(-1, 3)[drawn] @ rotation.T  # [P, 3] world
     n = normal.reshape(-1, 3)[drawn] @ rotation.T
-    reflected = view - 2.0 * (view * n).sum(-1, keepdim=True) * n
-    specular = environment.lookup(reflected, roughness)  # [P, 3]
     albedo = diffuse.reshape(-1, 3)[drawn]
-    lit = albedo if light is None else albedo * light.irradiance(n, view)
-    shaded = lit + tint * specular
+    shaded = albedo if light is None else albedo * light.irradiance(n, view)
+    if environment is not None:
+        drawn_blended = blended.reshape(-1, blended.shape[-1])[drawn]  # [P, 7]
+        tint, roughness = drawn_blended[:, 3:6] / drawn_alpha, drawn_blended[:, 6] / drawn_alpha[:, 0]
+        reflected = view - 2.0 * (view * n).sum(-1, keepdim=True) * n
+        shaded = shaded + tint * environment.lookup(reflected, roughness)  # [P, 3]
     if saturate:
         shaded = shaded.clamp(max=1.0)
     colour = diffuse.new_zeros(h * w, 3).index_copy(0, drawn, shaded).reshape(h, w, 3)

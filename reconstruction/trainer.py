@@ -146,8 +146,8 @@ class Trainer:
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
         self.touch_normals = torch.as_tensor(touch_normals, dtype=torch.float32, device=dev)
         self.environment = (shading.EnvironmentMap(config.env_map_height, device=dev)
-                            if config.appearance != "sh" else None)
-        self.light = shading.DiffuseLight(device=dev) if config.appearance == "lit" else None
+                            if config.appearance in shading.SPECULAR else None)
+        self.light = shading.DiffuseLight(device=dev) if config.appearance in shading.LIT else None
         self.look = shading.Look(config.appearance, self.environment, self.light)
         backgrounds = [background_image(im, config.background) for im in images]
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
@@ -196,7 +196,7 @@ class Trainer:
             log.info("initialisation: %d SfM points (< %d): %d random points %s",
                      found, cfg.init.min_sfm_points, len(points), where)  # fmt: skip
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
-        if cfg.appearance != "sh":
+        if cfg.appearance in shading.SPECULAR:
             shading.add_reflective_params(gaussians)
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()

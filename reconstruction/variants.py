@@ -65,6 +65,10 @@ VARIANTS: dict[str, Variant] = {
                 "the default with the lit appearance (a learned light shades an albedo at the normals, the "
                 "specular from the environment) and a smooth albedo, so that shading has to come from the "
                 "geometry (beyond the paper)"),
+        Variant("full+n+tn+sl+as", "Ours + normals + tactile normals + lit SH colour",
+                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "sh-lit", "lambda_albedo_smoothness": 0.1},
+                "the default with the view-dependent colour lit by a learned light at the normals (sh-lit) and "
+                "kept smooth, so that shading has to come from the geometry (beyond the paper)"),
     )
 }
 PAPER_VARIANTS = ("3dgs", "3dgs+s", "3dgs+t", "full")  # the paper's Table 3
@@ -84,8 +88,8 @@ def variant_of(config) -> str:
     and smoothness (lambda_s > 0) give the paper's four rows; then ``+n`` for surface normals (flattening and
     depth-normal consistency both on; ``+flat`` or ``+dn`` for one of them alone), ``+tn`` for tactile normals
     (with touch on), ``+tnp`` for tactile normals at the touch pixels (with touch and the rendered normals of
-    depth-normal consistency on, which it needs), ``+r`` / ``+l`` for the reflective / lit appearance and ``+as`` for a
-    smooth albedo (with either). A combination without a row names itself the same
+    depth-normal consistency on, which it needs), ``+r`` / ``+l`` / ``+sl`` for the reflective / lit / sh-lit
+    appearance and ``+as`` for a smooth albedo (with any of them). A combination without a row names itself the same
     way, so a run's metrics.json never calls it by a row it is not."""
     on = mechanisms(config)
     name = {(False, False): "3dgs", (False, True): "3dgs+s", (True, False): "3dgs+t",
@@ -94,7 +98,7 @@ def variant_of(config) -> str:
     name += "+n" if flat and depth_normal else "+flat" if flat else "+dn" if depth_normal else ""
     name += "+tn" if on["tactile_normals"] else ""
     name += "+tnp" if on["tactile_normal_pixels"] else ""
-    name += "+r" if on["reflective"] else "+l" if on["lit"] else ""
+    name += "+r" if on["reflective"] else "+l" if on["lit"] else "+sl" if on["sh_lit"] else ""
     name += "+as" if on["albedo_smoothness"] else ""
     return name
 
@@ -103,14 +107,15 @@ def mechanisms(config) -> dict[str, bool]:
     """Which of the optional mechanisms a TrainConfig switches on, read once for the variant's name
     (:func:`variant_of`) and for how much work its step does (``bench paper``'s scheduling): touch (used, with
     lambda_t > 0), smoothness, flattening, depth-normal consistency, tactile normals (with touch), tactile
-    normals at the touch pixels (with touch and depth-normal consistency), the reflective or the lit appearance,
-    a smooth albedo (with either)."""
+    normals at the touch pixels (with touch and depth-normal consistency), the reflective, lit or sh-lit
+    appearance, a smooth albedo (with any of them)."""
     touch, depth_normal = config.use_touch and config.lambda_t > 0, config.lambda_depth_normal > 0
     return {
         "touch": touch, "smoothness": config.lambda_s > 0, "flattening": config.lambda_flatten > 0,
         "depth_normal": depth_normal, "tactile_normals": touch and config.lambda_touch_normal > 0,
         "tactile_normal_pixels": touch and depth_normal and config.lambda_touch_normal_pixels > 0,
         "reflective": config.appearance == "reflective", "lit": config.appearance == "lit",
+        "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
     }  # fmt: skip
 

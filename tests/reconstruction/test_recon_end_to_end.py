@@ -183,17 +183,19 @@ def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_sce
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
-def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch):
-    """The lit appearance shades from its start step on (the light gets gradients only then), its smooth albedo
-    reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light included, to the
-    same numbers."""
+@pytest.mark.parametrize("appearance, variant", [("lit", "full+n+tn+l+as"), ("sh-lit", "full+n+tn+sl+as")])
+def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch,
+                                                                              appearance, variant):
+    """The lit appearances shade from their start step on (the light gets gradients only then), the smooth albedo
+    reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light (and environment)
+    included, to the same numbers."""
     from tacsplat.reconstruction.evaluation import evaluate_run
     from tacsplat.reconstruction.shading import DiffuseLight
 
     smoothness = _Spy(losses.albedo_smoothness_loss)
     monkeypatch.setattr(losses, "albedo_smoothness_loss", smoothness)
-    config = _config(30, appearance="lit", lit_start_iter=20, lambda_albedo_smoothness=0.1, checkpoint_every=10)
-    run = tmp_path / "lit"
+    config = _config(30, appearance=appearance, lit_start_iter=20, lambda_albedo_smoothness=0.1, checkpoint_every=10)
+    run = tmp_path / appearance
     trainer = Trainer(Scene.load(sphere_scene), run, config)
     trainer.initialize()
     for _ in range(20):
@@ -204,8 +206,8 @@ def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(
     trainer.train_step()
     assert not torch.equal(trainer.light.coefficients.detach(), start.coefficients)
     metrics = reconstruct(sphere_scene, run, config, show_progress=False, overwrite=True)
-    assert metrics["variant"] == "full+n+tn+l+as" and (run / "environment.png").is_file()
-    assert (run / "light.png").is_file()
+    assert metrics["variant"] == variant and (run / "light.png").is_file()
+    assert (run / "environment.png").is_file() == (appearance == "lit")  # sh-lit has no environment
     again = evaluate_run(run)
     for key in ("psnr", "cd", "normal_error_deg"):
         assert again[key] == pytest.approx(metrics[key], rel=1e-6)

@@ -16,6 +16,8 @@ from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
 from tacsplat.reconstruction.shading import (
     DiffuseLight,
+    LIT,
+    SPECULAR,
     EnvironmentMap,
     _shade,
     equirect_directions,
@@ -222,12 +224,13 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
     assert torch.autograd.gradcheck(shaded, inputs)
 
 
-@pytest.mark.parametrize("lit", [True, False], ids=["lit", "reflective"])
+@pytest.mark.parametrize("appearance", ["lit", "reflective", "sh-lit"])
 @pytest.mark.parametrize("saturate", [True, False], ids=["saturate", "linear"])
-def test_fused_shading_matches_the_torch_reference_with_its_gradients(lit, saturate):
+def test_fused_shading_matches_the_torch_reference_with_its_gradients(appearance, saturate):
     """The numba shading (:mod:`.fused_shading`) against the torch reference in float64: values and the gradients
     of every input (blended channels, alpha, normals, environment, light), with a pixel no Gaussian reaches, one
     under the alpha floor, a saturated one, and one whose reflection looks straight up (the map's pole)."""
+    lit, specular = appearance in LIT, appearance in SPECULAR
     g = torch.Generator().manual_seed(5)
     h, w = 9, 11
     alpha = torch.rand(h, w, generator=g, dtype=torch.float64)
@@ -249,15 +252,18 @@ def test_fused_shading_matches_the_torch_reference_with_its_gradients(lit, satur
         environment.log_radiance.normal_(0.0, 0.5, generator=g)
         light.coefficients.add_(0.5 * torch.randn(9, 3, generator=g, dtype=torch.float64))
         light.camera.normal_(0.0, 0.3, generator=g)
-    inputs = [blended.requires_grad_(True), alpha.requires_grad_(True), normal.requires_grad_(True),
-              environment.log_radiance, light.coefficients, light.camera]
+    if not specular:
+        blended = blended[..., :3].contiguous()  # the diffuse colour only
+    inputs = [blended.requires_grad_(True), alpha.requires_grad_(True), normal.requires_grad_(True)]
+    inputs += [environment.log_radiance] if specular else []
+    inputs += [light.coefficients, light.camera] if lit else []
     weights = torch.randn(2, h, w, 3, generator=g, dtype=torch.float64)
     results = []
     for fused in (True, False):
-        rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment, light if lit else None, saturate,
-                             fused=fused)
+        rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment if specular else None,
+                             light if lit else None, saturate, fused=fused)
         loss = (rgb * weights[0]).sum() + (albedo * weights[1]).sum()
-        results.append((rgb, albedo, *torch.autograd.grad(loss, inputs[: 6 if lit else 4])))
+        results.append((rgb, albedo, *torch.autograd.grad(loss, inputs)))
     assert not saturate or results[1][0][2, 2].max() == alpha[2, 2]  # the reference clips the saturated pixel
     for got, expected in zip(*results):
         torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)

@@ -26,6 +26,8 @@ def test_normals_need_both_losses():
     lit = dataclasses.replace(both, lambda_touch_normal=0.1, appearance="lit")
     assert variant_of(lit) == "full+n+tn+l"
     assert variant_of(dataclasses.replace(lit, lambda_albedo_smoothness=0.1)) == "full+n+tn+l+as"
+    sh_lit = dataclasses.replace(both, lambda_touch_normal=0.1, appearance="sh-lit", lambda_albedo_smoothness=0.1)
+    assert variant_of(sh_lit) == "full+n+tn+sl+as"
     assert variant_of(dataclasses.replace(both, lambda_albedo_smoothness=0.1)) == "full+n"  # SH colour: no albedo
     only_flat = dataclasses.replace(paper, lambda_flatten=10.0)
     assert variant_of(only_flat) == "full+flat"  # not the paper's full method: named by what is on
