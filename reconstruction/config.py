@@ -64,14 +64,14 @@ class TrainConfig:
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
     lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
     # (needs the rendered normals: with depth-normal consistency on, from its start step)
-    appearance: Literal["sh", "reflective", "lit", "sh-lit"] = "sh"  # colour: view-dependent SH (3DGS), or
+    appearance: Literal["sh", "reflective", "lit", "sh-lit"] = "sh-lit"  # colour: view-dependent SH (3DGS), or
     # "reflective": diffuse + specular tint x a learned environment map along the reflected view direction,
     # prefiltered by roughness (deferred shading), or "lit": that, with the diffuse colour an albedo times a learned
     # distant light's irradiance at the normal, and colours saturating at 1, or "sh-lit": the view-dependent SH
     # colour as that albedo (no environment)
     env_map_height: int = 16  # environment map height in pixels (its width is twice that)
     lit_start_iter: int = 300  # "lit", "sh-lit": the light shades the albedo from this step on (before: unlit)
-    lambda_albedo_smoothness: float = 0.0  # L1 differences of neighbouring pixels' rendered diffuse colour inside
+    lambda_albedo_smoothness: float = 0.1  # L1 differences of neighbouring pixels' rendered diffuse colour inside
     # the silhouette (all but "sh"): shading has to come from the normals (and the environment)
     # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
     lr_means: float = 1.6e-4  # means (times the scene scale)
@@ -274,8 +274,13 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
             or config.lambda_touch_normal_pixels > 0):
         lines.append("surface normals (flattening, depth-normal consistency, tactile normals; variant "
                      f"{config.variant}): not in the paper (its method is the variant `full`)")
-    if config.appearance != "sh":
+    if config.appearance == "sh-lit":
+        lines.append("sh-lit appearance: the view-dependent SH colour shaded by a learned light at the rendered "
+                     "normals; not in the paper")
+    elif config.appearance != "sh":
         lines.append(f"{config.appearance} appearance instead of view-dependent SH colour; not in the paper")
+    if config.appearance != "sh" and config.lambda_albedo_smoothness > 0:
+        lines.append(f"smooth albedo (lambda_albedo_smoothness {config.lambda_albedo_smoothness}); not in the paper")
     if config.init.use_silhouette_hull:
         lines.append("initialisation: G_c on the visual hull of the silhouettes when SfM finds too few points (the "
                      "official data preparation triangulates COLMAP points from the train and test images)")

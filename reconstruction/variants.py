@@ -4,7 +4,8 @@ the report.
 A variant is a name, the label the paper's tables print, and the
 :class:`~tacsplat.reconstruction.config.TrainConfig` fields it sets; every
 other field keeps its default. TrainConfig's defaults are ``DEFAULT_VARIANT``
-(beyond the paper), so the paper's rows switch the surface-normal losses off.
+(beyond the paper), so the paper's rows switch the surface-normal losses and
+the lit colour off.
 A config's variant is the row whose fields it matches on the switches that
 define variants (touch on/off, smoothness on/off, surface normals on/off, then
 tactile normals, appearance and a smooth albedo).
@@ -25,7 +26,8 @@ class Variant:
     description: str = ""
 
 
-PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh"}
+SH = {"appearance": "sh", "lambda_albedo_smoothness": 0.0}  # view-dependent colour, unlit (3DGS)
+PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, **SH}
 NORMALS = {"lambda_flatten": 10.0, "lambda_depth_normal": 0.05, "depth_normal_start_iter": 300}  # (TrainConfig's)
 
 VARIANTS: dict[str, Variant] = {
@@ -37,43 +39,43 @@ VARIANTS: dict[str, Variant] = {
         Variant("3dgs+t", "3DGS + T", {"lambda_s": 0.0, **PAPER},
                 "touch Gaussians and transmittance L_T (Eq. 7), no smoothness"),
         Variant("full", "Ours (full)", PAPER, "touch and smoothness: the paper's method"),
-        Variant("full+n", "Ours + normals", {**NORMALS, "lambda_touch_normal": 0.0, "appearance": "sh"},
+        Variant("full+n", "Ours + normals", {**NORMALS, "lambda_touch_normal": 0.0, **SH},
                 "full, plus flat Gaussians (minimum-scale loss) and depth-normal consistency from step 300 "
                 "(beyond the paper)"),
         Variant("full+n+tn", "Ours + normals + tactile normals",
-                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "sh"},
-                "full+n, plus touch Gaussians' normals aligned with the tactile maps' normals (beyond the paper; "
-                "TrainConfig's defaults, what `tacsplat reconstruct` runs)"),
+                {**NORMALS, "lambda_touch_normal": 0.1, **SH},
+                "full+n, plus touch Gaussians' normals aligned with the tactile maps' normals (beyond the paper)"),
         Variant("full+n+r", "Ours + normals + reflections",
-                {**NORMALS, "lambda_touch_normal": 0.0, "appearance": "reflective"},
+                {**NORMALS, "lambda_touch_normal": 0.0, "appearance": "reflective", "lambda_albedo_smoothness": 0.0},
                 "full+n, with diffuse + specular environment-map shading instead of view-dependent SH "
                 "(beyond the paper)"),
-        # the default with one mechanism off or on, for the ablation (README: "each mechanism on and off")
+        # full+n+tn with one mechanism off or on, for the ablation (README: "each mechanism on and off")
         Variant("full+tn", "Ours + tactile normals", {**PAPER, "lambda_touch_normal": 0.1},
                 "full plus tactile normals only (ablation)"),
         Variant("full+flat+tn", "Ours + flat Gaussians + tactile normals",
-                {**NORMALS, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.1, "appearance": "sh"},
-                "the default without depth-normal consistency (ablation)"),
+                {**NORMALS, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.1, **SH},
+                "full+n+tn without depth-normal consistency (ablation)"),
         Variant("full+dn+tn", "Ours + depth-normal consistency + tactile normals",
-                {**NORMALS, "lambda_flatten": 0.0, "lambda_touch_normal": 0.1, "appearance": "sh"},
-                "the default without flattening (ablation)"),
+                {**NORMALS, "lambda_flatten": 0.0, "lambda_touch_normal": 0.1, **SH},
+                "full+n+tn without flattening (ablation)"),
         Variant("full+n+tn+r", "Ours + normals + tactile normals + reflections",
-                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "reflective"},
-                "the default with the reflective appearance (ablation)"),
+                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "reflective", "lambda_albedo_smoothness": 0.0},
+                "full+n+tn with the reflective appearance (ablation)"),
         Variant("full+n+tn+l+as", "Ours + normals + tactile normals + lit shading",
                 {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "lit", "lambda_albedo_smoothness": 0.1},
-                "the default with the lit appearance (a learned light shades an albedo at the normals, the "
+                "full+n+tn with the lit appearance (a learned light shades an albedo at the normals, the "
                 "specular from the environment) and a smooth albedo, so that shading has to come from the "
                 "geometry (beyond the paper)"),
         Variant("full+n+tn+sl+as", "Ours + normals + tactile normals + lit SH colour",
                 {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "sh-lit", "lambda_albedo_smoothness": 0.1},
-                "the default with the view-dependent colour lit by a learned light at the normals (sh-lit) and "
-                "kept smooth, so that shading has to come from the geometry (beyond the paper)"),
+                "full+n+tn with the view-dependent colour lit by a learned light at the rendered normals (sh-lit) "
+                "and kept smooth, so that shading has to come from the geometry (beyond the paper; TrainConfig's "
+                "defaults, what `tacsplat reconstruct` runs)"),
     )
 }
 PAPER_VARIANTS = ("3dgs", "3dgs+s", "3dgs+t", "full")  # the paper's Table 3
-DEFAULT_VARIANT = "full+n+tn"  # the best on the twin's glossy objects of those whose step costs at most 1.5x the
-# paper method's (full+n+tn+l+as has a lower CD at 1.8x; bench paper, bench step and the README)
+DEFAULT_VARIANT = "full+n+tn+sl+as"  # the lowest CD on the twin's glossy objects, at a step cost under 1.5x the
+# paper method's (bench paper, bench step and the README)
 
 
 def get_variant(name: str, option: str = "variant") -> Variant:

@@ -3,7 +3,7 @@
 Simulated capture of one glossy object (5 train views, 5 grasps of 4 touches),
 reconstruction without touch (vanilla 3DGS), with it (the paper's full method)
 and with what `tacsplat reconstruct` does by default (the full method plus
-surface normals from views and touch), the results side by side and a small
+surface normals from views and touch, and colour shaded at those normals), the results side by side and a small
 report (report.md, CD bars, error against run time, renders next to ground
 truth) in the output folder. It is the
 minimal-views slice of `tacsplat bench paper` for one object, so it is
@@ -18,7 +18,7 @@ from pathlib import Path
 from tacsplat.reconstruction.variants import DEFAULT_VARIANT
 
 DEMO_OBJECT = "teapot"
-COLUMNS = {"3dgs": "3DGS (no touch)", "full": "paper (touch)", DEFAULT_VARIANT: "default (+normals)"}  # variant: heading
+COLUMNS = {"3dgs": "3DGS (no touch)", "full": "paper (touch)", DEFAULT_VARIANT: "default (+normals, lit)"}  # variant: heading
 
 
 def demo_config(object_name: str = DEMO_OBJECT, resolution: int = 128, iterations: int = 1200):
@@ -46,10 +46,11 @@ def run(args) -> int:
     rows = {r["variant"]: r for r in bench.run(executor="auto")}  # the three trainings side by side on 2+ cores
     print()
     print(f"{args.object}, 5 views + 5 grasps (20 touches), {args.resolution} px, {args.iterations} steps:")
-    print(f"{'':22s}" + "".join(f"{heading:>20s}" for heading in COLUMNS.values()))
+    width = 2 + max(len(heading) for heading in COLUMNS.values())
+    print(f"{'':22s}" + "".join(f"{heading:>{width}s}" for heading in COLUMNS.values()))
     for key, label, decimals in (("cd", "Chamfer distance (↓)", 4), ("psnr", "PSNR dB (↑)", 2),
                                  ("ssim", "SSIM (↑)", 3), ("train_seconds", "train seconds", 0)):
-        print(f"{label:22s}" + "".join(f"{rows[v][key]:>20.{decimals}f}" for v in COLUMNS))
+        print(f"{label:22s}" + "".join(f"{rows[v][key]:>{width}.{decimals}f}" for v in COLUMNS))
     report = bench.out.resolve()
     print(f"report: {report / 'report.md'} (tables, plots and renders)")
     print(f"open first: {report / f'renders_{args.object}_minimal.png'} "

@@ -11,7 +11,7 @@ held-out test views (an even Fibonacci spiral, independent of the train views)
 are the same for every run of that object. Each setting is reconstructed with
 the four variants of Table 3: ``3dgs`` (no touch, no smoothness), ``3dgs+s``,
 ``3dgs+t`` and ``full``, and with what ``tacsplat reconstruct`` runs by
-default (``full+n+tn``, beyond the paper); ``--variants`` picks others.
+default (``full+n+tn+sl+as``, beyond the paper); ``--variants`` picks others.
 Everything else is the trainer's defaults.
 
 The job is resumable: a finished capture is marked by ``capture.json``, a run

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -235,7 +236,7 @@ def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarr
             both = (depth > 0) & (gt_depth > 0)
             error_image = axes[-1, j].imshow(np.ma.masked_array(depth - gt_depth, ~both), cmap=error_cmap,
                                              vmin=-error_range, vmax=error_range)
-        axes[0, j].set_title(label, fontsize=10)
+        axes[0, j].set_title(textwrap.fill(label, 28), fontsize=10)  # long variant labels on two lines
         for ax in axes[:, j]:
             ax.set_xticks([])
             ax.set_yticks([])

@@ -133,7 +133,8 @@ def test_variant_table_and_config_errors():
     for name, variant in VARIANTS.items():  # each row's overrides give a config of that variant
         assert TrainConfig(**variant.overrides).variant == name
     assert get_variant("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
-                                             "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh"}
+                                             "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
+                                             "lambda_albedo_smoothness": 0.0}
     with pytest.raises(ConfigError, match="variant"):
         get_variant("ours")
     with pytest.raises(ConfigError, match="variants"):
@@ -305,10 +306,11 @@ def test_full_vs_vanilla_sentence():
 
 def test_default_vs_full_sentence():
     from tacsplat.apps.paper_bench import default_vs_full
+    from tacsplat.reconstruction.variants import DEFAULT_VARIANT
 
     rows = synthetic_rows()
     assert default_vs_full(rows, "minimal") == ""  # no default-variant runs
-    rows += [{**r, "variant": "full+n+tn", "cd": r["cd"] * (0.5 if r["object"] == "teapot" else 1.5)}
+    rows += [{**r, "variant": DEFAULT_VARIANT, "cd": r["cd"] * (0.5 if r["object"] == "teapot" else 1.5)}
              for r in synthetic_rows() if r["variant"] == "full"]
     text = default_vs_full(rows, "minimal")  # teapot 0.0025 (< 0.005), bell 0.009 (> 0.006)
     assert "lower CD on 1 of 2 objects" in text and "0.0058 vs 0.0055 (+5%)" in text

@@ -62,7 +62,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     # the paper's CD (squared, summed, median depth against the whole mesh surface) falls too
     assert 0 < metrics["cd_paper"] < 0.5 * float(rows[0]["cd_paper"])
     assert metrics["psnr"] > 18.0
-    assert metrics["variant"] == "full+n+tn" and metrics["iterations"] == 400
+    assert metrics["variant"] == "full+n+tn+sl+as" and metrics["iterations"] == 400
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds)
@@ -224,7 +224,7 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
                           "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet", "--train-views", "4"])
     assert code == 0
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["variant"] == "3dgs+t+n+tn" and metrics["settings"]["train_views"] == 4  # the default, no L_S
+    assert metrics["variant"] == "3dgs+t+n+tn+sl+as" and metrics["settings"]["train_views"] == 4  # the default, no L_S
     assert metrics["iterations"] == 5 and np.isfinite(metrics["cd"])
     mesh_path = tmp_path / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=4, radius=RADIUS).export(mesh_path)
@@ -269,7 +269,7 @@ def test_cli_options_reach_the_train_config():
     config = config_from_args(args)
     assert (config.seed, config.sh_degree, config.backend, config.iterations, config.lambda_s) == (3, 1, "cpu", 7, 0.5)
     assert (config.smoothness_depth, config.use_touch, config.densify.max_gaussians) == ("accumulated", False, 500)
-    assert config.init.use_sfm is False and config.train_views is None and config.variant == "3dgs+s+n"
+    assert config.init.use_sfm is False and config.train_views is None and config.variant == "3dgs+s+n+sl+as"
     defaults = config_from_args(_reconstruct_args())
     assert defaults.to_json() == TrainConfig().to_json()  # no option given: exactly TrainConfig's defaults
     assert config_from_args(_reconstruct_args("--variant", "3dgs")).variant == "3dgs"

@@ -9,12 +9,12 @@ from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, VA
 
 
 def test_the_defaults_are_the_default_variant_and_the_papers_rows_have_no_normal_losses():
-    assert variant_of(TrainConfig()) == DEFAULT_VARIANT == "full+n+tn"
+    assert variant_of(TrainConfig()) == DEFAULT_VARIANT == "full+n+tn+sl+as"
     assert TrainConfig(**get_variant(DEFAULT_VARIANT).overrides) == TrainConfig()  # the row is the defaults, exactly
     for name in PAPER_VARIANTS:
         config = TrainConfig(**get_variant(name).overrides)
         assert (config.lambda_flatten, config.lambda_depth_normal, config.lambda_touch_normal) == (0, 0, 0)
-        assert config.appearance == "sh"
+        assert (config.appearance, config.lambda_albedo_smoothness) == ("sh", 0)
     assert set(PAPER_VARIANTS) < set(VARIANTS)
 
 
