@@ -251,13 +251,13 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
     # only pixels some Gaussian reaches: elsewhere the colour is multiplied by an alpha of exactly 0 and no
     # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)
     drawn = torch.nonzero(alpha.reshape(-1) > 0)[:, 0]  # [P]
-    drawn_alpha = alpha.reshape(-1, 1)[drawn].clamp_min(1e-6)  # [P, 1]
     rotation = viewmat[:3, :3].T  # camera -> world
     view = pixel_rays(K, w, h).reshape(-1, 3)[drawn] @ rotation.T  # [P, 3] world
     n = normal.reshape(-1, 3)[drawn] @ rotation.T
     albedo = diffuse.reshape(-1, 3)[drawn]
     shaded = albedo if light is None else albedo * light.irradiance(n, view)
     if environment is not None:
+        drawn_alpha = alpha.reshape(-1, 1)[drawn].clamp_min(1e-6)  # [P, 1]
         drawn_blended = blended.reshape(-1, blended.shape[-1])[drawn]  # [P, 7]
         tint, roughness = drawn_blended[:, 3:6] / drawn_alpha, drawn_blended[:, 6] / drawn_alpha[:, 0]
         reflected = view - 2.0 * (view * n).sum(-1, keepdim=True) * n
