@@ -162,9 +162,10 @@ class TrainConfig:
 
     @classmethod
     def from_json(cls, data: dict, source: str | Path | None = None) -> "TrainConfig":
-        """The config of ``to_json`` (a run's ``config.json``); a ConfigError naming ``source`` if it is not one."""
+        """The config of ``to_json`` (a run's ``config.json``; a field it lacks was written before the field existed:
+        see ``_BEFORE_THEY_EXISTED``); a ConfigError naming ``source`` if it is not one."""
         try:
-            data = dict(data)
+            data = {**_BEFORE_THEY_EXISTED, **data}
             init = InitConfig(**data.pop("init", {}))
             densify = DensifyStrategy(**data.pop("densify", {}))
             if data.get("background") is not None:
@@ -177,6 +178,10 @@ class TrainConfig:
             raise ConfigError(*problem, source)
         return config
 
+
+# Fields a config.json written before they existed leaves out, with the value such a run trained with (where that
+# differs from today's default): the colour was unlit SH without a smooth albedo.
+_BEFORE_THEY_EXISTED = {"appearance": "sh", "lambda_albedo_smoothness": 0.0}
 
 # Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
 _INT_RANGES = {

@@ -408,7 +408,7 @@ def save_environment(environment, path: Path) -> None:
 
 
 def save_light(light, path: Path, height: int = 32) -> None:
-    """The lit appearance's diffuse light as an equirectangular PNG in the environment map's layout
+    """The lit and sh-lit appearances' diffuse light as an equirectangular PNG in the environment map's layout
     (:func:`~.shading.equirect_directions`), 4x upscaled: the irradiance a normal pointing each way receives, the
     camera light left out (it follows the camera)."""
     with torch.no_grad():

@@ -20,8 +20,8 @@ import torch
 from tacsplat.reconstruction.raster.cpu_project import _np
 from tacsplat.reconstruction.raster.spherical_harmonics import SH_C0, SH_C1, SH_C2
 
-_TINY = 1e-12  # as .shading._TINY: a direction (or its horizontal part) shorter than this has no azimuth
-_ALPHA_FLOOR = 1e-6  # the alpha the blended channels are divided by at least
+TINY = 1e-12  # squared length under which a direction's azimuth (or a pixel's blended normal) is undefined
+ALPHA_FLOOR = 1e-6  # the alpha the blended channels are divided by at least
 _CHUNKS = 16  # row chunks of the backward's reductions (each with its own gradient buffers)
 
 # one drawn pixel's forward, as the backward needs it (_pixel's ``state``)
@@ -57,8 +57,9 @@ def _sh2_backward(x, y, z, g):
 @nb.njit(cache=True, inline="always")
 def _clip(coordinate, size):
     """grid_sample's border padding: the pixel coordinate clipped to [0, size - 1], and 1 where the clip passes
-    the gradient (strictly inside: the borders count as outside)."""
-    if coordinate <= 0.0:
+    the gradient (strictly inside: the borders count as outside). NaN reads texel 0 (its colour is NaN anyway:
+    the index must stay inside the map)."""
+    if not coordinate > 0.0:
         return 0.0, 0.0
     if coordinate >= size - 1:
         return float(size - 1), 0.0
@@ -106,11 +107,11 @@ def _sample_backward(env, offset, h, w, u, v, g_out, g_env):
 
 
 @nb.njit(cache=True, inline="always")
-def _pixel(blended, alpha, normal, K, rotation, env, level_h, level_w, level_offset, coefficients, camera, lit,
-           i, j, state):
+def _pixel(blended, alpha, floor, normal, K, rotation, env, level_h, level_w, level_offset, coefficients, camera,
+           lit, i, j, state):
     """The forward of drawn pixel (i, j) into ``state`` (layout: the offsets above); the colour before the
     saturation is state[_SHADED:_SHADED + 3]."""
-    a = max(float(alpha[i, j]), _ALPHA_FLOOR)
+    a = max(float(alpha[i, j]), floor)
     # the unit camera ray through the pixel centre, and it and the normal in the world (rotation: camera -> world)
     cx, cy = (j + 0.5 - K[0, 2]) / K[0, 0], (i + 0.5 - K[1, 2]) / K[1, 1]
     ray = 1.0 / math.sqrt(cx * cx + cy * cy + 1.0)
@@ -129,11 +130,11 @@ def _pixel(blended, alpha, normal, K, rotation, env, level_h, level_w, level_off
         # the reflected direction -> the map's (u, v) (EnvironmentMap.lookup's mapping)
         dx, dy, dz = vx - 2.0 * vn * nx, vy - 2.0 * vn * ny, vz - 2.0 * vn * nz
         squared = dx * dx + dy * dy + dz * dz
-        length = math.sqrt(squared) if squared > _TINY else 0.0  # 0: no direction, the horizon at azimuth 0
+        length = math.sqrt(squared) if squared > TINY else 0.0  # 0: no direction, the horizon at azimuth 0
         x, y, z = (dx / length, dy / length, dz / length) if length > 0.0 else (1.0, 0.0, 0.0)
         flat = x * x + y * y
-        u = math.atan2(y, x) / math.pi if flat > _TINY else 0.0  # straight up or down: azimuth 0
-        v = -math.atan2(z, math.sqrt(flat + _TINY)) / (math.pi / 2)
+        u = math.atan2(y, x) / math.pi if flat > TINY else 0.0  # straight up or down: azimuth 0
+        v = -math.atan2(z, math.sqrt(flat + TINY)) / (math.pi / 2)
         state[_UV], state[_UV + 1] = u, v
         state[_UNIT], state[_UNIT + 1], state[_UNIT + 2], state[_LENGTH] = x, y, z, length
         # the levels around roughness * (levels - 1), tent-weighted (every level within 1 is sampled: the
@@ -167,31 +168,32 @@ def _pixel(blended, alpha, normal, K, rotation, env, level_h, level_w, level_off
 
 
 @nb.njit(parallel=True, cache=True)
-def _forward(blended, alpha, normal, K, rotation, env, level_h, level_w, level_offset, coefficients, camera, lit,
-             saturate, first, states, rgb, albedo):
+def _forward(blended, alpha, floor, normal, K, rotation, env, level_h, level_w, level_offset, coefficients, camera,
+             lit, saturate, first, states, rgb, albedo):
     """rgb and albedo [H, W, 3]; each drawn pixel's forward into its row of ``states`` [P, S], row i's drawn
     pixels from states[first[i]] on, left to right."""
     height, width = alpha.shape
     for i in nb.prange(height):
         drawn = first[i]
         for j in range(width):
-            a = max(float(alpha[i, j]), _ALPHA_FLOOR)
+            a = max(float(alpha[i, j]), floor)
             for c in range(3):
                 albedo[i, j, c] = blended[i, j, c] / a
                 rgb[i, j, c] = 0.0
             if alpha[i, j] > 0.0:
                 state = states[drawn]
                 drawn += 1
-                _pixel(blended, alpha, normal, K, rotation, env, level_h, level_w, level_offset, coefficients,
-                       camera, lit, i, j, state)
+                _pixel(blended, alpha, floor, normal, K, rotation, env, level_h, level_w, level_offset,
+                       coefficients, camera, lit, i, j, state)
                 for c in range(3):
                     shaded = state[_SHADED + c]
                     rgb[i, j, c] = (min(shaded, 1.0) if saturate else shaded) * alpha[i, j]
 
 
 @nb.njit(parallel=True, cache=True)
-def _backward(blended, alpha, rotation, env, level_h, level_w, level_offset, coefficients, camera, lit, saturate,
-              first, states, g_rgb, g_albedo, g_blended, g_alpha, g_normal, g_env, g_coefficients, g_camera):
+def _backward(blended, alpha, floor, rotation, env, level_h, level_w, level_offset, coefficients, camera, lit,
+              saturate, first, states, g_rgb, g_albedo, g_blended, g_alpha, g_normal, g_env, g_coefficients,
+              g_camera):
     """Gradients per pixel into g_blended [H, W, 7 or 3], g_alpha [H, W], g_normal [H, W, 3] from the forward's
     ``states``; the environment's (flat pyramid), the SH coefficients' and the camera light's summed per row chunk
     into g_env [C, E], g_coefficients [C, 9, 3], g_camera [C, 3]."""
@@ -202,7 +204,7 @@ def _backward(blended, alpha, rotation, env, level_h, level_w, level_offset, coe
         for i in range(chunk * height // chunks, (chunk + 1) * height // chunks):
             drawn = first[i]
             for j in range(width):
-                a = max(float(alpha[i, j]), _ALPHA_FLOOR)
+                a = max(float(alpha[i, j]), floor)
                 g_a = 0.0  # d loss / d a (alpha after its floor)
                 for c in range(3):
                     g_diffuse[c] = g_albedo[i, j, c]
@@ -269,10 +271,10 @@ def _backward(blended, alpha, rotation, env, level_h, level_w, level_offset, coe
                         x, y, z, length = state[_UNIT], state[_UNIT + 1], state[_UNIT + 2], state[_LENGTH]
                         flat = x * x + y * y
                         gx = gy = gz = 0.0
-                        if flat > _TINY:
+                        if flat > TINY:
                             gx -= g_u * y / (flat * math.pi)
                             gy += g_u * x / (flat * math.pi)
-                        s = math.sqrt(flat + _TINY)
+                        s = math.sqrt(flat + TINY)
                         d_atan = -g_v / (math.pi / 2) / (z * z + s * s)
                         gz += d_atan * s
                         gx -= d_atan * z * x / s
@@ -297,7 +299,7 @@ def _backward(blended, alpha, rotation, env, level_h, level_w, level_offset, coe
                 for c in range(3):
                     g_blended[i, j, c] = g_diffuse[c] / a
                     g_a -= g_diffuse[c] * blended[i, j, c] / a / a
-                if alpha[i, j] >= _ALPHA_FLOOR:  # where the floor passes alpha's gradient
+                if alpha[i, j] >= floor:  # where the floor passes alpha's gradient
                     g_alpha[i, j] += g_a
 
 
@@ -331,6 +333,7 @@ class _ShadeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, blended, alpha, normal, K, rotation, log_radiance, coefficients, camera, lit, saturate):
         arrays = tuple(_np(t) for t in (blended, alpha, normal))
+        floor = float(np.asarray(ALPHA_FLOOR, arrays[1].dtype))  # as torch's clamp_min(1e-6) in alpha's dtype
         fixed = tuple(_np(t).astype(np.float64) for t in (K, rotation, coefficients, camera))
         if log_radiance is None:  # no specular: no pyramid
             layout = (np.zeros(0),) + (np.zeros(0, np.int64),) * 3
@@ -341,10 +344,11 @@ class _ShadeCPU(torch.autograd.Function):
         first = np.concatenate([[0], np.cumsum(drawn)[:-1]])
         states = np.empty((drawn.sum(), _SAMPLES + 3 * len(heights)))
         rgb, albedo = np.empty(alpha.shape + (3,), arrays[0].dtype), np.empty(alpha.shape + (3,), arrays[0].dtype)
-        _forward(*arrays, *fixed[:2], env, heights, widths, offsets, *fixed[2:], lit, saturate, first, states, rgb,
-                 albedo)
+        _forward(arrays[0], arrays[1], floor, arrays[2], *fixed[:2], env, heights, widths, offsets, *fixed[2:], lit,
+                 saturate, first, states, rgb, albedo)
         ctx.arrays, ctx.fixed, ctx.layout, ctx.flags, ctx.states = arrays, fixed, layout, (lit, saturate), (first,
                                                                                                          states)
+        ctx.floor = floor
         ctx.dtypes = tuple(None if t is None else t.dtype for t in (log_radiance, coefficients, camera))
         return torch.from_numpy(rgb), torch.from_numpy(albedo)
 
@@ -352,12 +356,12 @@ class _ShadeCPU(torch.autograd.Function):
     def backward(ctx, g_rgb, g_albedo):
         blended, alpha, normal = ctx.arrays
         env, heights, widths, offsets = ctx.layout
-        g = tuple(np.zeros(alpha.shape + (3,), blended.dtype) if t is None else _np(t) for t in (g_rgb, g_albedo))
+        g = (_np(g_rgb), _np(g_albedo))  # autograd passes zeros for an output without gradient
         g_blended, g_normal = np.empty(blended.shape, blended.dtype), np.empty(normal.shape, normal.dtype)
         g_alpha = np.empty(alpha.shape, alpha.dtype)
         chunks = min(_CHUNKS, alpha.shape[0])
         g_env, g_coefficients, g_camera = np.zeros((chunks, env.size)), np.zeros((chunks, 9, 3)), np.zeros((chunks, 3))
-        _backward(blended, alpha, ctx.fixed[1], env, heights, widths, offsets, *ctx.fixed[2:], *ctx.flags,
+        _backward(blended, alpha, ctx.floor, ctx.fixed[1], env, heights, widths, offsets, *ctx.fixed[2:], *ctx.flags,
                   *ctx.states, *g, g_blended, g_alpha, g_normal, g_env, g_coefficients, g_camera)
         g_log = None
         if len(heights):

@@ -1,6 +1,6 @@
 """Smoothness losses in numba for CPU tensors, with hand-written backward; the torch versions are the references.
 
-* ``edge_aware_smoothness_cpu(depth, weights, proximity)``: paper Eq. 8. Same value and gradient as
+* ``edge_aware_smoothness_cpu(depth, kernels, factors)``: paper Eq. 8. Same value and gradient as
   :func:`.losses.edge_aware_smoothness` (5x5 Sobel responses of the depth, 'valid' region, weighted by the image
   factors and by 1 - the touch proximity, averaged), without torch's convolution backward, which at one channel
   costs more than the rest of the loss: the forward correlates each valid pixel's window with both kernels and

@@ -45,7 +45,7 @@ class LoadedRun:
     gaussians: Gaussians
     step: int
     train_seconds: float
-    look: Look  # the appearance (with its environment map when reflective)
+    look: Look  # the appearance (with its environment map and its light where it has them)
 
 
 def is_run_folder(path: Path) -> bool:

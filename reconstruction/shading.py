@@ -17,8 +17,9 @@ Its extra outputs ride in the same pass as extra colour channels:
   light at the pixel's normal (:class:`DiffuseLight`), and whose colour saturates at 1 as a camera's
   does. Shading then has to come from the normals, which ties the colours of the views to the
   geometry even where a glossy surface has no texture;
-  ``"sh-lit"``: the view-dependent SH colour as the albedo that light lights (no environment: the SH
-  bands above the first keep the view-dependent part, highlights and reflections, as in 3DGS).
+  ``"sh-lit"``: the view-dependent SH colour as the albedo that light lights, saturating at 1 (no
+  environment: the SH bands above the first keep the view-dependent part, highlights and reflections, as in
+  3DGS).
 
 Plain RGB(+depth) with SH goes straight through :func:`rasterization` (its fused SH path).
 """
@@ -34,7 +35,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from tacsplat.reconstruction.fused_normals import gaussian_normals_cpu
-from tacsplat.reconstruction.fused_shading import shade_cpu
+from tacsplat.reconstruction.fused_shading import ALPHA_FLOOR, TINY, shade_cpu
 from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.raster.spherical_harmonics import SH_C0, sh_basis
@@ -43,7 +44,6 @@ Appearance = Literal["sh", "reflective", "lit", "sh-lit"]
 REFLECTIVE_PARAMS = {"tint": 3, "roughness": 1}  # extra per-Gaussian parameters (logits) of "reflective" and "lit"
 SPECULAR = ("reflective", "lit")  # the appearances with a specular tint, a roughness and an environment map
 LIT = ("lit", "sh-lit")  # the appearances a learned diffuse light shades
-_TINY = 1e-12  # squared length under which a direction's azimuth (or a pixel's blended normal) is undefined
 
 
 def add_reflective_params(gaussians: Gaussians) -> None:
@@ -54,8 +54,8 @@ def add_reflective_params(gaussians: Gaussians) -> None:
 
 
 def fused_kernels(backend: str) -> bool:
-    """Whether the fused CPU kernels (the Gaussians' normals, the losses) run for CPU tensors: on every backend
-    but ``"torch"``, which stays the pure-PyTorch reference end to end."""
+    """Whether the fused CPU kernels (the Gaussians' normals, the deferred shading, the losses) run for CPU
+    tensors: on every backend but ``"torch"``, which stays the pure-PyTorch reference end to end."""
     return backend != "torch"
 
 
@@ -96,13 +96,13 @@ class EnvironmentMap(torch.nn.Module):
         """Radiance [P, 3] along world ``directions`` [P, 3] (any length; zero: the horizon at azimuth 0) at
         ``roughness`` [P] in [0, 1]. Gradients stay finite everywhere, the zenith and nadir included."""
         squared = (directions * directions).sum(-1, keepdim=True)  # [P, 1]
-        none = squared <= _TINY
+        none = squared <= TINY
         unit = torch.where(none, directions.new_tensor([1.0, 0.0, 0.0]), directions)
         x, y, z = (unit / torch.sqrt(torch.where(none, 1.0, squared))).unbind(-1)
         flat = x * x + y * y
-        pole = flat <= _TINY  # straight up or down: any azimuth will do, and atan2's gradient there is 0/0
+        pole = flat <= TINY  # straight up or down: any azimuth will do, and atan2's gradient there is 0/0
         u = torch.atan2(torch.where(pole, 0.0, y), torch.where(pole, 1.0, x)) / math.pi  # azimuth, world z up
-        v = -torch.atan2(z, torch.sqrt(flat + _TINY)) / (math.pi / 2)  # elevation: -1 zenith, +1 nadir
+        v = -torch.atan2(z, torch.sqrt(flat + TINY)) / (math.pi / 2)  # elevation: -1 zenith, +1 nadir
         grid = torch.stack([u, v], dim=-1)[None, :, None, :]  # [1, P, 1, 2]
         samples = torch.stack([F.grid_sample(level, grid, align_corners=False, padding_mode="border")[0, :, :, 0]
                                for level in self.pyramid()])  # [L, 3, P]
@@ -247,7 +247,7 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
                          None if environment is None else environment.log_radiance,
                          None if light is None else light.coefficients, None if light is None else light.camera,
                          saturate)
-    diffuse = blended[..., :3] / alpha.clamp_min(1e-6)[..., None]  # [H, W, 3]
+    diffuse = blended[..., :3] / alpha.clamp_min(ALPHA_FLOOR)[..., None]  # [H, W, 3]
     # only pixels some Gaussian reaches: elsewhere the colour is multiplied by an alpha of exactly 0 and no
     # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)
     drawn = torch.nonzero(alpha.reshape(-1) > 0)[:, 0]  # [P]
@@ -257,7 +257,7 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
     albedo = diffuse.reshape(-1, 3)[drawn]
     shaded = albedo if light is None else albedo * light.irradiance(n, view)
     if environment is not None:
-        drawn_alpha = alpha.reshape(-1, 1)[drawn].clamp_min(1e-6)  # [P, 1]
+        drawn_alpha = alpha.reshape(-1, 1)[drawn].clamp_min(ALPHA_FLOOR)  # [P, 1]
         drawn_blended = blended.reshape(-1, blended.shape[-1])[drawn]  # [P, 7]
         tint, roughness = drawn_blended[:, 3:6] / drawn_alpha, drawn_blended[:, 6] / drawn_alpha[:, 0]
         reflected = view - 2.0 * (view * n).sum(-1, keepdim=True) * n

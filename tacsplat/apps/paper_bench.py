@@ -411,14 +411,16 @@ def render_first_test_view(runs: list[Run], rendered: dict | None = None) -> tup
 
 
 def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(rgb, depth, normal)`` of a loaded run's Gaussians in ``frame`` over the backdrop of its image."""
+    """``(rgb, depth, normal)`` of a loaded run's Gaussians, with their appearance (light, environment), in
+    ``frame`` over the backdrop of its image."""
     import torch
 
     from tacsplat.reconstruction.evaluation import render_frame
     from tacsplat.reconstruction.views import background_image
 
     background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
-    view = render_frame(loaded.gaussians, frame, background, loaded.config.backend, with_depth=True, with_normals=True)
+    view = render_frame(loaded.gaussians, frame, background, loaded.config.backend, with_depth=True, with_normals=True,
+                        look=loaded.look)
     return view.rgb, view.depth, view.normal
 
 

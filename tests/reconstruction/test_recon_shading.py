@@ -269,6 +269,30 @@ def test_fused_shading_matches_the_torch_reference_with_its_gradients(appearance
         torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
 
 
+def test_fused_shading_in_float32_follows_torch_at_the_alpha_floor_and_survives_nan():
+    """Training runs in float32: alpha exactly at float32(1e-6) passes its gradient as torch's clamp_min in float32
+    does; a NaN normal gives a NaN pixel, never a read outside the environment map."""
+    g = torch.Generator().manual_seed(6)
+    h, w = 5, 6
+    alpha = torch.rand(h, w, generator=g)
+    alpha[1, 2] = 1e-6  # the floor itself, in float32
+    blended = (torch.rand(h, w, 7, generator=g) * alpha[..., None]).requires_grad_(True)
+    alpha.requires_grad_(True)
+    normal = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g) - torch.tensor([0.0, 0.0, 2.0]), dim=-1)
+    K = torch.tensor([[6.0, 0, 3.0], [0, 6.0, 2.5], [0, 0, 1]])
+    environment, light = EnvironmentMap(height=8), DiffuseLight()
+    weights = torch.randn(2, h, w, 3, generator=g)
+    grads = []
+    for fused in (True, False):
+        rgb, albedo = _shade(blended, alpha, normal, torch.eye(4), K, environment, light, True, fused=fused)
+        grads.append(torch.autograd.grad((rgb * weights[0]).sum() + (albedo * weights[1]).sum(), alpha)[0])
+    assert grads[1][1, 2] != 0
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-3 * grads[1].abs().max().item())
+    normal[3, 3] = float("nan")
+    rgb, _ = _shade(blended.detach(), alpha.detach(), normal, torch.eye(4), K, environment, light, True)
+    assert torch.isnan(rgb[3, 3]).all() and torch.isfinite(rgb[torch.arange(h) != 3]).all()
+
+
 def test_equirect_directions_are_the_texel_centres_the_environment_lookup_reads():
     environment = EnvironmentMap(height=8)
     with torch.no_grad():
@@ -311,6 +335,7 @@ def test_fused_albedo_smoothness_matches_the_torch_reference_with_its_gradient()
     albedo[4, 5] = albedo[4, 6]  # equal neighbours: |0| passes gradient 0, as torch's abs
     albedo.requires_grad_(True)
     inside = torch.rand(10, 13, generator=g) > 0.3
+    inside[4, 5] = inside[4, 6] = True  # ... and a pair that counts
     results = []
     for fused in (True, False):
         loss = losses.albedo_smoothness_loss(albedo, inside, fused)

@@ -38,3 +38,13 @@ def test_normals_need_both_losses():
     pixels = dataclasses.replace(both, lambda_touch_normal=0.1, lambda_touch_normal_pixels=0.1)
     assert variant_of(pixels) == "full+n+tn+tnp"
     assert variant_of(dataclasses.replace(pixels, lambda_depth_normal=0.0)) == "full+flat+tn"  # no rendered normals
+
+
+def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_trained():
+    """config.json of a run from before ``appearance`` and ``lambda_albedo_smoothness`` existed: unlit SH colour, no
+    smooth albedo (the defaults of its day), not today's defaults."""
+    old = TrainConfig(**get_variant("full+n+tn").overrides).to_json()
+    del old["appearance"], old["lambda_albedo_smoothness"]
+    config = TrainConfig.from_json(old)
+    assert (config.appearance, config.lambda_albedo_smoothness, config.variant) == ("sh", 0.0, "full+n+tn")
+    assert TrainConfig.from_json(TrainConfig().to_json()) == TrainConfig()  # a complete one reads as written
