@@ -4,7 +4,8 @@ The demo's capture (one glossy object, 5 views, 5 grasps; made once per
 resolution and reused) is reconstructed by the trainer itself (``Trainer.run``,
 the demo's settings), while the functions a step calls are timed in place:
 projection and SH, binning and depth sort, compositing forward and backward,
-SSIM (forward and backward), the other losses, the transmittance neighbour
+the deferred shading of the lit and reflective appearances (forward and
+backward), SSIM (forward and backward), the other losses, the transmittance neighbour
 search, the optimiser and densification. Each phase is timed exclusively
 (a phase nested in another is not counted twice); ``autograd (other)`` is
 what ``loss.backward()`` spends outside the timed backward passes, ``rest``
@@ -20,7 +21,7 @@ from collections import defaultdict
 from pathlib import Path
 
 PHASES = (
-    "projection + SH", "binning + sort", "composite forward", "composite backward", "SSIM", "other losses",
+    "projection + SH", "binning + sort", "composite forward", "composite backward", "shading", "SSIM", "other losses",
     "autograd (other)", "neighbour search", "optimiser", "densification", "rest",
 )  # fmt: skip
 WARMUP_STEPS = 10  # first steps left out of the statistics (kernel loading, first allocations)
@@ -92,7 +93,7 @@ def instrumented(timer: PhaseTimer):
     receives one ``{phase: seconds}`` per ``Trainer.train_step`` call."""
     import torch
 
-    from tacsplat.reconstruction import losses
+    from tacsplat.reconstruction import fused_shading, losses
     from tacsplat.reconstruction.densification import DensifyStrategy
     from tacsplat.reconstruction.raster import cpu_composite, cpu_project
     from tacsplat.reconstruction.trainer import Trainer
@@ -122,7 +123,8 @@ def instrumented(timer: PhaseTimer):
 
     loss_functions = ("photometric_loss", "backdrop_alpha_loss", "transmittance_loss", "edge_aware_smoothness",
                       "depth_normal_consistency", "touch_normal_loss", "touch_pixel_normal_loss", "flatten_loss",
-                      "visible_touch_pixels", "proximity_mask", "expected_depth", "image_edge_weights", "window_inside")
+                      "visible_touch_pixels", "proximity_mask", "expected_depth", "image_edge_weights", "window_inside",
+                      "albedo_smoothness_loss")
     patches = [
         (cpu_project._ProjectCPU, "forward", "projection + SH", True),
         (cpu_project._ProjectCPU, "backward", "projection + SH", True),
@@ -131,6 +133,8 @@ def instrumented(timer: PhaseTimer):
         (cpu_composite, "bin_gaussians", "binning + sort", False),
         (cpu_composite._RasterizeCPU, "forward", "composite forward", True),
         (cpu_composite._RasterizeCPU, "backward", "composite backward", True),
+        (fused_shading._ShadeCPU, "forward", "shading", True),
+        (fused_shading._ShadeCPU, "backward", "shading", True),
         *[(losses, name, "other losses", False) for name in loss_functions if hasattr(losses, name)],
         (Trainer, "_smoothness_weights", "other losses", False),
         (losses.TouchNeighbours, "candidates", "neighbour search", False),
@@ -304,7 +308,7 @@ def plot_phases(results_list: list[tuple[str, dict]], path: Path) -> Path:
     colors = plt.get_cmap("tab20").colors
     bottoms = [0.0] * len(bars)
     for i, phase in enumerate(PHASES):
-        heights = [r["phases"][phase]["mean_ms"] for _, r in bars]
+        heights = [r["phases"].get(phase, {}).get("mean_ms", 0.0) for _, r in bars]  # (a phase added later: 0)
         ax.bar(range(len(bars)), heights, bottom=bottoms, color=colors[i % len(colors)], label=phase)
         bottoms = [b + h for b, h in zip(bottoms, heights)]
     ax.set_xticks(range(len(bars)), [label for label, _ in bars])
