@@ -6,7 +6,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 
@@ -15,6 +15,8 @@ from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.raster.rendering import BACKENDS
 from tacsplat.reconstruction.variants import variant_of
+
+Appearance = Literal["sh", "reflective", "lit", "sh-lit"]  # how Gaussians are coloured (see TrainConfig.appearance)
 
 
 @dataclass
@@ -64,7 +66,7 @@ class TrainConfig:
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
     lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
     # (needs the rendered normals: with depth-normal consistency on, from its start step)
-    appearance: Literal["sh", "reflective", "lit", "sh-lit"] = "sh-lit"  # colour: view-dependent SH (3DGS), or
+    appearance: Appearance = "sh-lit"  # colour: view-dependent SH (3DGS), or
     # "reflective": diffuse + specular tint x a learned environment map along the reflected view direction,
     # prefiltered by roughness (deferred shading), or "lit": that, with the diffuse colour an albedo times a learned
     # distant light's irradiance at the normal, and colours saturating at 1, or "sh-lit": the view-dependent SH
@@ -123,8 +125,8 @@ class TrainConfig:
             len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
         ):
             return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
-        if self.appearance not in ("sh", "reflective", "lit", "sh-lit"):
-            return "appearance", f"must be 'sh', 'reflective', 'lit' or 'sh-lit', got {self.appearance!r}"
+        if self.appearance not in (names := get_args(Appearance)):
+            return "appearance", f"must be {', '.join(map(repr, names[:-1]))} or {names[-1]!r}, got {self.appearance!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:
@@ -272,6 +274,12 @@ def paper_preset(iterations: int = PAPER_ITERATIONS) -> dict:
     }
 
 
+_APPEARANCE_DEPARTURES = {  # what each appearance but "sh" puts in place of the paper's view-dependent SH colour
+    "reflective": " instead of view-dependent SH colour", "lit": " instead of view-dependent SH colour",
+    "sh-lit": ": the view-dependent SH colour shaded by a learned light at the rendered normals",
+}
+
+
 def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: int | None = None) -> list[str]:
     """What still differs from the paper's official runs for ``config`` (one line each)."""
     lines = []
@@ -279,11 +287,8 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
             or config.lambda_touch_normal_pixels > 0):
         lines.append("surface normals (flattening, depth-normal consistency, tactile normals; variant "
                      f"{config.variant}): not in the paper (its method is the variant `full`)")
-    if config.appearance == "sh-lit":
-        lines.append("sh-lit appearance: the view-dependent SH colour shaded by a learned light at the rendered "
-                     "normals; not in the paper")
-    elif config.appearance != "sh":
-        lines.append(f"{config.appearance} appearance instead of view-dependent SH colour; not in the paper")
+    if config.appearance != "sh":
+        lines.append(f"{config.appearance} appearance{_APPEARANCE_DEPARTURES[config.appearance]}; not in the paper")
     if config.appearance != "sh" and config.lambda_albedo_smoothness > 0:
         lines.append(f"smooth albedo (lambda_albedo_smoothness {config.lambda_albedo_smoothness}); not in the paper")
     if config.init.use_silhouette_hull:

@@ -179,7 +179,6 @@ def _forward(blended, alpha, floor, normal, K, rotation, env, level_h, level_w, 
             a = max(float(alpha[i, j]), floor)
             for c in range(3):
                 albedo[i, j, c] = blended[i, j, c] / a
-                rgb[i, j, c] = 0.0
             if alpha[i, j] > 0.0:
                 state = states[drawn]
                 drawn += 1
@@ -188,6 +187,9 @@ def _forward(blended, alpha, floor, normal, K, rotation, env, level_h, level_w, 
                 for c in range(3):
                     shaded = state[_SHADED + c]
                     rgb[i, j, c] = (min(shaded, 1.0) if saturate else shaded) * alpha[i, j]
+            else:
+                for c in range(3):
+                    rgb[i, j, c] = 0.0
 
 
 @nb.njit(parallel=True, cache=True)

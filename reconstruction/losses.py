@@ -401,8 +401,8 @@ def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor, fused: bo
     neighbouring pixels that are both ``inside`` [H, W] bool the silhouette (0 with no such pair). L1 keeps a
     texture's edges and flattens the gradual shading a free diffuse colour would otherwise paint: that shading
     then has to come from the normals (through the "lit" and "sh-lit" appearances' light) or the
-    environment. For CPU tensors
-    the fused kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the torch below, the reference)."""
+    environment. For CPU tensors the fused kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the
+    torch below, the reference)."""
     if fused and albedo.device.type == "cpu":
         return albedo_smoothness_cpu(albedo, inside)
     inside = inside.to(albedo.dtype)
