@@ -75,11 +75,9 @@ def read_checkpoint(path: Path) -> dict:
     return ckpt
 
 
-def load_run(run_dir: Path) -> LoadedRun:
-    """The last checkpoint of a run directory (for evaluation)."""
-    ckpt_path = run_checkpoint(run_dir)
-    ckpt = read_checkpoint(ckpt_path)
-    config = TrainConfig.from_json(ckpt["config"], ckpt_path)
+def checkpoint_look(ckpt: dict, config: TrainConfig) -> Look:
+    """The appearance of a checkpoint's Gaussians (:func:`read_checkpoint`'s dict), with its environment map
+    and its light where it has them."""
     look = Look(config.appearance)
     if config.appearance in SPECULAR:
         look.environment = EnvironmentMap(config.env_map_height)
@@ -87,8 +85,16 @@ def load_run(run_dir: Path) -> LoadedRun:
     if config.appearance in LIT:
         look.light = DiffuseLight()
         look.light.load_state_dict(ckpt["light"])
+    return look
+
+
+def load_run(run_dir: Path) -> LoadedRun:
+    """The last checkpoint of a run directory (for evaluation)."""
+    ckpt_path = run_checkpoint(run_dir)
+    ckpt = read_checkpoint(ckpt_path)
+    config = TrainConfig.from_json(ckpt["config"], ckpt_path)
     return LoadedRun(Path(ckpt["scene_path"]), config, Gaussians.from_state_dict(ckpt["gaussians"]),
-                     int(ckpt["step"]), float(ckpt["train_seconds"]), look)
+                     int(ckpt["step"]), float(ckpt["train_seconds"]), checkpoint_look(ckpt, config))
 
 
 def cut_progress(path: Path, step: int) -> None:

@@ -254,15 +254,25 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
     rotation = viewmat[:3, :3].T  # camera -> world
     view = pixel_rays(K, w, h).reshape(-1, 3)[drawn] @ rotation.T  # [P, 3] world
     n = normal.reshape(-1, 3)[drawn] @ rotation.T
-    albedo = diffuse.reshape(-1, 3)[drawn]
-    shaded = albedo if light is None else albedo * light.irradiance(n, view)
+    tint = roughness = None
     if environment is not None:
         drawn_alpha = alpha.reshape(-1, 1)[drawn].clamp_min(ALPHA_FLOOR)  # [P, 1]
         drawn_blended = blended.reshape(-1, blended.shape[-1])[drawn]  # [P, 7]
         tint, roughness = drawn_blended[:, 3:6] / drawn_alpha, drawn_blended[:, 6] / drawn_alpha[:, 0]
-        reflected = view - 2.0 * (view * n).sum(-1, keepdim=True) * n
-        shaded = shaded + tint * environment.lookup(reflected, roughness)  # [P, 3]
-    if saturate:
-        shaded = shaded.clamp(max=1.0)
+    shaded = shade_points(diffuse.reshape(-1, 3)[drawn], n, view, light, environment, tint, roughness, saturate)
     colour = diffuse.new_zeros(h * w, 3).index_copy(0, drawn, shaded).reshape(h, w, 3)
     return colour * alpha[..., None], diffuse
+
+
+def shade_points(albedo: Tensor, normals: Tensor, views: Tensor, light: DiffuseLight | None = None,
+                 environment: EnvironmentMap | None = None, tint: Tensor | None = None,
+                 roughness: Tensor | None = None, saturate: bool = False) -> Tensor:
+    """The colour [P, 3] of surface points [P] seen along unit world ``views`` [P, 3] with unit world
+    ``normals`` [P, 3] (towards the viewer): the diffuse colour ``albedo`` [P, 3], lit by ``light`` where there
+    is one, plus the specular ``tint`` [P, 3] times the ``environment``'s radiance along the reflected view at
+    ``roughness`` [P] where there is one; clipped at 1 if ``saturate``."""
+    shaded = albedo if light is None else albedo * light.irradiance(normals, views)
+    if environment is not None:
+        reflected = views - 2.0 * (views * normals).sum(-1, keepdim=True) * normals
+        shaded = shaded + tint * environment.lookup(reflected, roughness)  # [P, 3]
+    return shaded.clamp(max=1.0) if saturate else shaded

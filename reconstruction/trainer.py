@@ -36,6 +36,7 @@ import torch
 from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.reconstruction import losses
+from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyState
 from tacsplat.reconstruction.evaluation import evaluate_reconstruction, evaluate_views, load_ground_truth
@@ -536,7 +537,7 @@ class Trainer:
         if stop.signum is not None:
             self.save_checkpoint()
             raise TrainingInterrupted(stop.signum, self.step)
-        save_ply(self.gaussians, self.out / "splat.ply")
+        save_ply(bake_appearance(self.gaussians, self.look), self.out / "splat.ply")  # what a 3DGS viewer shows
         plot_error_vs_time(progress_path, self.out / "error_vs_time.png")
         return self.gaussians
 

@@ -220,15 +220,16 @@ def load_content(path: Path) -> Content:
 
 def read_run(path: Path, label: str, report: Path | None = None) -> RunData:
     """A run directory's splat, metrics and scene (searched for in ``report`` too)."""
+    from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.ply import load_ply
     from tacsplat.reconstruction.run_dir import load_run, read_json
 
     metrics = read_json(path / "metrics.json") if (path / "metrics.json").is_file() else {}
     if (path / "splat.ply").is_file():
         gaussians, recorded_scene = load_ply(path / "splat.ply"), metrics.get("scene")
-    else:  # a run stopped before its splat.ply: its last checkpoint
+    else:  # a run stopped before its splat.ply: its last checkpoint, coloured as its splat.ply will be
         loaded = load_run(path)
-        gaussians, recorded_scene = loaded.gaussians, loaded.scene_path
+        gaussians, recorded_scene = bake_appearance(loaded.gaussians, loaded.look), loaded.scene_path
     if recorded_scene is None:
         recorded_scene = _checkpoint_scene(path)
     return RunData(path, label, gaussians, metrics, find_scene(recorded_scene, path, report), kept_checkpoints(path))
@@ -441,8 +442,10 @@ def _gaussian_sets(server, view: View) -> None:
 
 def _checkpoint_slider(server, view: View, run: RunData) -> None:
     """A slider over the run's kept checkpoints (only when there are several)."""
+    from tacsplat.reconstruction.baking import bake_appearance
+    from tacsplat.reconstruction.config import TrainConfig
     from tacsplat.reconstruction.gaussians import Gaussians
-    from tacsplat.reconstruction.run_dir import read_checkpoint
+    from tacsplat.reconstruction.run_dir import checkpoint_look, read_checkpoint
 
     if len(run.checkpoints) < 2:
         return
@@ -456,10 +459,11 @@ def _checkpoint_slider(server, view: View, run: RunData) -> None:
         path = run.checkpoints[event.target.value]
         try:
             ckpt = read_checkpoint(path)
+            look = checkpoint_look(ckpt, TrainConfig.from_json(ckpt["config"], path))
         except TacsplatError as exc:
             shown.content = f"**cannot show {path.name}**: {exc}"
             return
-        view.slots[0].show(run, Gaussians.from_state_dict(ckpt["gaussians"]))
+        view.slots[0].show(run, bake_appearance(Gaussians.from_state_dict(ckpt["gaussians"]), look))  # as splat.ply
         shown.content = f"showing {path.name}: step {ckpt['step']}, {len(view.slots[0].gaussians)} Gaussians"
 
 

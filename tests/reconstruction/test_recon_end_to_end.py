@@ -77,6 +77,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
         assert key in saved
     assert saved["cd_paper"] == pytest.approx(saved["cd_paper_accuracy"] + saved["cd_paper_completeness"])
     assert saved["cd_seen"] is None and saved["unseen_fraction"] is None  # no mesh to tell what cameras see
+    assert abs(saved["psnr_splat"] - saved["psnr"]) < 1.0  # splat.ply's baked shading looks like the lit render
     assert (run / "error_vs_time.png").stat().st_size > 0
     assert len(list((run / "renders").glob("*.png"))) == len(Scene.load(sphere_scene).split("test"))
 
@@ -189,7 +190,9 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
     """The lit appearances shade from their start step on (the light gets gradients only then), the smooth albedo
     reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light (and environment)
     included, to the same numbers."""
+    from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.evaluation import evaluate_run
+    from tacsplat.reconstruction.run_dir import load_run
     from tacsplat.reconstruction.shading import DiffuseLight
 
     smoothness = _Spy(losses.albedo_smoothness_loss)
@@ -209,8 +212,13 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
     assert metrics["variant"] == variant and (run / "light.png").is_file()
     assert (run / "environment.png").is_file() == (appearance == "lit")  # sh-lit has no environment
     again = evaluate_run(run)
-    for key in ("psnr", "cd", "normal_error_deg"):
+    for key in ("psnr", "cd", "normal_error_deg", "psnr_splat"):
         assert again[key] == pytest.approx(metrics[key], rel=1e-6)
+    # splat.ply holds the shading baked into plain SH (what a 3DGS viewer can show), not the unlit SH
+    splat, final = load_ply(run / "splat.ply"), load_run(run)
+    baked = bake_appearance(final.gaussians, final.look)
+    assert splat.sh_degree == 3 and len(splat) == len(final.gaussians)
+    torch.testing.assert_close(splat.sh_coefficients(), baked.sh_coefficients())
 
 
 def _covariances(g) -> torch.Tensor:
