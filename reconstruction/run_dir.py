@@ -34,8 +34,8 @@ RENDER_FILE = re.compile(r"view_\d{4,}\.png")
 
 PROGRESS_COLUMNS = (
     "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "normals", "num_gaussians",
-    "psnr", "cd", "cd_paper",
-)  # fmt: skip
+    "psnr", "cd", "cd_paper", "albedo_smoothness",
+)  # fmt: skip  (a column added later goes last: older files read and resume by name, see cut_progress)
 
 
 @dataclass
@@ -98,15 +98,19 @@ def load_run(run_dir: Path) -> LoadedRun:
 
 
 def cut_progress(path: Path, step: int) -> None:
-    """Keep the rows of ``progress.csv`` up to ``step`` (a resumed checkpoint's): later ones are redone."""
+    """Keep the rows of ``progress.csv`` up to ``step`` (a resumed checkpoint's): later ones are redone. The file
+    is rewritten with today's columns, each kept row's values under their own names (a column an older version
+    did not write stays empty)."""
     rows = []
     if path.is_file():
         with path.open(newline="") as fh:
-            rows = [r for r in csv.reader(fh)][1:]
-    kept = [r for r in rows if r and r[0].isdigit() and int(r[0]) <= step]
+            rows = list(csv.DictReader(fh))
+    kept = [r for r in rows if (r.get("iteration") or "").isdigit() and int(r["iteration"]) <= step]
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("w", newline="") as fh:
-        csv.writer(fh).writerows([PROGRESS_COLUMNS, *kept])
+        writer = csv.DictWriter(fh, PROGRESS_COLUMNS, restval="", extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(kept)
     tmp.replace(path)
 
 

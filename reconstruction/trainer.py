@@ -65,7 +65,7 @@ from tacsplat.reconstruction.views import background_image, camera_tensors, fit_
 
 log = logging.getLogger(__name__)
 
-LOSS_TERMS = ("loss", "photometric", "transmittance", "smoothness", "backdrop", "normals")  # progress.csv's loss columns
+LOSS_TERMS = ("loss", "photometric", "transmittance", "smoothness", "backdrop", "normals", "albedo_smoothness")  # progress.csv's loss columns
 POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
 
 
@@ -299,7 +299,7 @@ class Trainer:
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5, self.fused_losses)
             loss = loss + cfg.lambda_albedo_smoothness * flat_albedo
-            terms["smoothness"] = flat_albedo.detach()
+            terms["albedo_smoothness"] = flat_albedo.detach()
         if cfg.lambda_flatten > 0:
             flat = losses.flatten_loss(g.scales, self.scene_scale)
             loss = loss + cfg.lambda_flatten * flat
@@ -391,11 +391,10 @@ class Trainer:
             )
             psnr_value, cd_value, cd_paper = metrics["psnr"], metrics["cd"], metrics["cd_paper"]
         n = max(self._sum_count, 1)
-        writer.writerow(
-            [self.step, f"{self.train_seconds:.3f}"]
-            + [f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS]
-            + [len(self.gaussians), f"{psnr_value:.4f}", f"{cd_value:.6g}", f"{cd_paper:.6g}"]
-        )
+        row = {"iteration": self.step, "seconds": f"{self.train_seconds:.3f}", "num_gaussians": len(self.gaussians),
+               "psnr": f"{psnr_value:.4f}", "cd": f"{cd_value:.6g}", "cd_paper": f"{cd_paper:.6g}",
+               **{k: f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS}}
+        writer.writerow([row[column] for column in PROGRESS_COLUMNS])
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)
         self._sum_count = 0
         return psnr_value, cd_value

@@ -210,6 +210,8 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
     assert not torch.equal(trainer.light.coefficients.detach(), start.coefficients)
     metrics = reconstruct(sphere_scene, run, config, show_progress=False, overwrite=True)
     assert metrics["variant"] == variant and (run / "light.png").is_file()
+    with (run / "progress.csv").open() as fh:  # the albedo smoothness has its own column
+        assert float(list(csv.DictReader(fh))[-1]["albedo_smoothness"]) > 0
     assert (run / "environment.png").is_file() == (appearance == "lit")  # sh-lit has no environment
     again = evaluate_run(run)
     for key in ("psnr", "cd", "normal_error_deg", "psnr_splat"):

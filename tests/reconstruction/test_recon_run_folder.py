@@ -172,6 +172,30 @@ def test_resume_after_a_crash_drops_the_progress_rows_after_the_checkpoint(scene
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 2, 4, 6, 8, 10]
 
 
+def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp_path):
+    """A progress.csv written before some columns existed (normals, cd_paper, albedo_smoothness: a run from before
+    the normals) is cut at the checkpoint and rewritten with today's columns: each value stays under its own
+    name, the newer columns empty."""
+    from tacsplat.reconstruction.run_dir import PROGRESS_COLUMNS, cut_progress, read_progress
+
+    newer = ("normals", "cd_paper", "albedo_smoothness")
+    old_columns = [c for c in PROGRESS_COLUMNS if c not in newer]
+    path = tmp_path / "progress.csv"
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(old_columns)
+        for step in (0, 2, 4, 6):
+            writer.writerow([step] + [f"{step}.{i}" for i in range(1, len(old_columns))])
+    cut_progress(path, 4)
+    with path.open(newline="") as fh:
+        assert next(csv.reader(fh)) == list(PROGRESS_COLUMNS)
+    progress = read_progress(path)
+    assert list(progress["iteration"]) == [0, 2, 4]
+    for i, column in enumerate(old_columns[1:], start=1):
+        assert list(progress[column]) == [float(f"{step}.{i}") for step in (0, 2, 4)], column
+    assert all(v != v for column in newer for v in progress[column])  # NaN: never written
+
+
 def test_resume_without_a_checkpoint_is_refused(scene, tmp_path, capsys):
     assert _reconstruct(scene, tmp_path / "new", "--resume") == 1
     _one_error_line(capsys, "--resume", "no checkpoint")
