@@ -161,12 +161,12 @@ def _sim_settings(config: RigConfig) -> dict:
 
     s = config.sim
     mesh = config.path(s.mesh).resolve() if s.mesh else None
-    in_sim = ("object", "mesh_path", "object_radius", "seed", "camera_width", "camera_height")
+    in_sim = ("object", "mesh_path", "object_radius", "seed", "camera_width", "camera_height", "texture")
     twin = {k: v for k, v in asdict(twin_config(config)).items() if k not in in_sim}
     return {
         "sim": {"object": None if mesh else s.object, "mesh": str(mesh) if mesh else None,
                 "mesh_sha256": _sha256(mesh, "sim.mesh", config.source) if mesh else None,
-                "object_radius": s.object_radius, "resolution": s.resolution, "seed": s.seed},
+                "object_radius": s.object_radius, "resolution": s.resolution, "seed": s.seed, "texture": s.texture},
         "twin": {**twin, "grasp_control": asdict(TWIN_CONTROL), "grasping": asdict(GraspConfig()),
                  "views": asdict(ViewConfig())},
     }

@@ -48,6 +48,9 @@ def register(cli) -> None:
     p.add_argument("--grasps", type=int, default=5, help="grasps of four touches each (0 or more)")
     p.add_argument("--resolution", type=int, default=200, help="image width and height in pixels (8 to 4096)")
     p.add_argument("--seed", type=int, default=0, help="seed of the views and grasps (0 or more)")
+    p.add_argument("--texture", default="none",
+                   help="the object's surface: none (its one colour, the glossy library's) or checker (a checker of "
+                   "its colour and a contrasting grey, for measuring on a textured object)")
     _touch_model_options(p)
     p.add_argument("--grasp-strategy", default="random",
                    help="random: each grasp on an approach the twin samples; next-best: before each grasp, "
@@ -114,7 +117,7 @@ def _sim_capture(args) -> int:
                                 views=args.views, test_views=args.test_views, grasps=args.grasps,
                                 resolution=args.resolution, seed=args.seed, grasp_strategy=args.grasp_strategy,
                                 candidates=args.candidates, selection_steps=args.selection_steps,
-                                uncertainty=args.uncertainty, **_touch_args(args))
+                                uncertainty=args.uncertainty, texture=args.texture, **_touch_args(args))
         timings = sim_capture(config, args.out, resume=args.resume)
     except ConfigError as exc:
         raise _naming_options(exc, _SIM_OPTIONS) from None
@@ -149,6 +152,7 @@ def _naming_options(exc: ConfigError, options: dict[str, str]) -> ConfigError:
 _SIM_OPTIONS = {
     "object": "--object", "sim.object": "--object", "sim.mesh": "--mesh", "sim.mesh_sha256": "--mesh",
     "sim.object_radius": "--object-radius", "sim.resolution": "--resolution", "sim.seed": "--seed",
+    "sim.texture": "--texture",
     "plan.views.train": "--views", "plan.views.test": "--test-views", "plan.grasps.count": "--grasps",
     "plan.grasps.seed": "--seed", "plan.grasps.mode": "--grasp-strategy", "plan.grasps.candidates": "--candidates",
     "plan.grasps.selection_steps": "--selection-steps", "plan.grasps.uncertainty": "--uncertainty",

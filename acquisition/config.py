@@ -247,6 +247,7 @@ class SimConfig:
     object_radius: float = positive(0.08, MAX_OBJECT_RADIUS_M, "m")  # bounding-sphere radius
     resolution: int = bounded(200, 8, 4096, "px")
     seed: int = bounded(0, 0)
+    texture: Text = "none"  # the object's surface: its one colour, or "checker" (tacsplat.sim.objects.TEXTURES)
 
 
 @with_config(YAML_SECTION)
@@ -500,9 +501,11 @@ def _validate_sim(c: RigConfig, src) -> None:
     s = c.sim
     if s.mesh is not None and not c.path(s.mesh).is_file():
         raise ConfigError("sim.mesh", f"file not found: {c.path(s.mesh)}", src)
-    if s.mesh is None:
-        from tacsplat.sim.objects import OBJECT_NAMES
+    from tacsplat.sim.objects import OBJECT_NAMES, TEXTURES
 
+    if s.texture not in TEXTURES:
+        raise ConfigError("sim.texture", f"must be one of {', '.join(map(repr, TEXTURES))}, got {s.texture!r}", src)
+    if s.mesh is None:
         if s.object not in OBJECT_NAMES:
             raise ConfigError("sim.object", f"unknown library object {s.object!r} (one of {list(OBJECT_NAMES)})", src)
     radius = c.plan.views.radius_m

@@ -131,7 +131,8 @@ def twin_config(config: RigConfig):
 
     s = config.sim
     return TwinConfig(object=s.object, mesh_path=str(config.path(s.mesh)) if s.mesh else None,
-                      object_radius=s.object_radius, seed=s.seed, camera_width=s.resolution, camera_height=s.resolution)
+                      object_radius=s.object_radius, seed=s.seed, camera_width=s.resolution, camera_height=s.resolution,
+                      texture=s.texture)
 
 
 @contextmanager

@@ -47,7 +47,7 @@ def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radiu
                    touch_model: str = "gel", surface_points: int = TouchPlan.surface_points,
                    grasp_strategy: str = "random", candidates: int = GraspPlan.candidates,
                    selection_steps: int = GraspPlan.selection_steps,
-                   uncertainty: str = GraspPlan.uncertainty) -> RigConfig:
+                   uncertainty: str = GraspPlan.uncertainty, texture: str = "none") -> RigConfig:
     """The ``rig: sim`` config of ``tacsplat sim-capture``'s options (``surface_points``: the paper model's;
     ``candidates``, ``selection_steps`` and ``uncertainty``: the next-best strategy's)."""
     if grasp_strategy not in GRASP_STRATEGIES:
@@ -55,7 +55,8 @@ def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radiu
                           f"{grasp_strategy!r}")
     config = RigConfig(
         rig="sim",
-        sim=SimConfig(object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed),
+        sim=SimConfig(object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed,
+                      texture=texture),
         plan=CapturePlan(ViewPlan(train=views, test=test_views, mode="hemisphere"),
                          GraspPlan(count=grasps, mode=grasp_strategy, seed=seed, candidates=candidates,
                                    selection_steps=selection_steps, uncertainty=uncertainty),

@@ -162,6 +162,18 @@ _BUILDERS = {
 }
 OBJECT_NAMES = list(_BUILDERS)
 DEFAULT_OBJECT_RADIUS = 0.08
+TEXTURES = ("none", "checker")  # the object's surface: its one colour, or a checker of it and a contrasting grey
+CHECKER_SQUARES = 6  # squares along each side of a face of the checker's cube map
+
+
+def checker_texture(rgba: tuple[float, float, float, float], squares: int = CHECKER_SQUARES,
+                    texels: int = 32) -> np.ndarray:
+    """A face of the "checker" texture, RGB uint8 [squares * texels, squares * texels, 3]: the material's colour
+    and a grey far from it (dark on a light object, light on a dark one), alternating."""
+    parity = np.add.outer(np.arange(squares * texels) // texels, np.arange(squares * texels) // texels) % 2
+    colour = 255.0 * np.asarray(rgba[:3], dtype=np.float64)
+    grey = np.full(3, 40.0 if colour.mean() > 127.5 else 235.0)
+    return np.where(parity[..., None] == 1, colour, grey).round().astype(np.uint8)
 
 
 def normalise_mesh(mesh: trimesh.Trimesh, radius: float, name: str) -> trimesh.Trimesh:

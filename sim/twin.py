@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
+import cv2
 import mujoco
 import numpy as np
 import trimesh
@@ -35,7 +36,14 @@ from tacsplat.sim.hand import (
     site_pose,
 )
 from tacsplat.sim.collision import DecompositionConfig, convex_decomposition
-from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, SimObject, load_mesh_object, make_object
+from tacsplat.sim.objects import (
+    DEFAULT_OBJECT_RADIUS,
+    TEXTURES,
+    SimObject,
+    checker_texture,
+    load_mesh_object,
+    make_object,
+)
 from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer
 from tacsplat.types import TactileReading
 
@@ -77,6 +85,7 @@ class TwinConfig:
     tactile: TactileConfig = field(default_factory=TactileConfig)
     decomposition: DecompositionConfig = field(default_factory=DecompositionConfig)
     background: str = "gradient"  # "gradient" skybox or plain "white"
+    texture: str = "none"  # the object's surface (sim.objects.TEXTURES): its one colour, or "checker" (textured)
 
 
 def check_physics(config: TwinConfig, model: mujoco.MjModel | None = None) -> None:
@@ -119,6 +128,16 @@ def _mesh_asset(name: str, mesh: trimesh.Trimesh) -> str:
     return f'<mesh name="{name}" vertex="{verts}" face="{faces}"/>'
 
 
+CHECKER_FILE = "object_checker.png"  # the "checker" texture's file among the model's assets
+
+
+def twin_assets(config: TwinConfig, obj: SimObject) -> dict[str, bytes]:
+    """The files :func:`build_twin_mjcf`'s model refers to, by name (its texture's image, if it has one)."""
+    if config.texture != "checker":
+        return {}
+    return {CHECKER_FILE: cv2.imencode(".png", checker_texture(obj.material.rgba)[..., ::-1])[1].tobytes()}
+
+
 def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trimesh]) -> str:
     """The full scene: lights, background, the static object (visual mesh + convex hulls), cameras, hand."""
     check_physics(config)
@@ -132,6 +151,11 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
         sky = '<texture name="sky" type="skybox" builtin="flat" rgb1="1 1 1" rgb2="1 1 1" width="16" height="16"/>'
     else:
         raise ConfigError("background", f"must be 'gradient' or 'white', got {config.background!r}")
+    if config.texture not in TEXTURES:
+        raise ConfigError("texture", f"must be one of {', '.join(map(repr, TEXTURES))}, got {config.texture!r}")
+    textured = config.texture == "checker"  # a cube map: MuJoCo projects it onto a mesh without texture coordinates
+    texture = f'<texture name="object" type="cube" file="{CHECKER_FILE}"/>' if textured else ""
+    colour = "1 1 1 1" if textured else " ".join(f"{c:.4g}" for c in m.rgba)  # the texture holds the colour
     hull_assets = "\n".join(_mesh_asset(f"hull{i}", h) for i, h in enumerate(hulls))
     hull_geoms = "\n".join(
         f'<geom name="object_hull{i}" type="mesh" mesh="hull{i}" group="3" contype="0" conaffinity="1"/>'
@@ -154,8 +178,9 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
   <asset>
     {sky}
     {HAND_MATERIALS}
-    <material name="object" rgba="{" ".join(f"{c:.4g}" for c in m.rgba)}" specular="{m.specular:.4g}"
-              shininess="{m.shininess:.4g}" reflectance="{m.reflectance:.4g}"/>
+    {texture}
+    <material name="object" rgba="{colour}" specular="{m.specular:.4g}" shininess="{m.shininess:.4g}"
+              reflectance="{m.reflectance:.4g}"{' texture="object"' if textured else ""}/>
     {_mesh_asset("object_visual", obj.mesh)}
 {hull_assets}
   </asset>
@@ -279,7 +304,8 @@ class SimTwin:
             self.object = make_object(config.object, config.object_radius)
         check_physics(config)
         self.hulls = convex_decomposition(self.object.mesh, config.decomposition)
-        self.model = mujoco.MjModel.from_xml_string(build_twin_mjcf(config, self.object, self.hulls))
+        self.model = mujoco.MjModel.from_xml_string(build_twin_mjcf(config, self.object, self.hulls),
+                                                    assets=twin_assets(config, self.object))
         check_physics(config, self.model)
         self.data = mujoco.MjData(self.model)
         self._mocap = self.model.body("hand").mocapid[0]

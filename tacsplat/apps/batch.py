@@ -112,7 +112,7 @@ class SceneCopyJob(BatchJob):
 _RIG_FIELDS = {"sim.object": "object", "sim.mesh": "mesh", "sim.object_radius": "object_radius",
                "sim.resolution": "resolution", "sim.seed": "seed", "plan.grasps.seed": "seed",
                "plan.views.train": "views", "plan.views.test": "test_views", "plan.grasps.count": "grasps",
-               "plan.touches.model": "touch_model"}  # the rig config's fields a capture job sets
+               "plan.touches.model": "touch_model", "sim.texture": "texture"}  # the rig config's fields a capture job sets
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -130,13 +130,14 @@ class CaptureJob(BatchJob):
     grasps: int = 5  # grasps of 4 touches
     resolution: int = 128  # image width and height, pixels
     touch_model: Literal["gel", "paper"] = "gel"
+    texture: Literal["none", "checker"] = "none"  # the object's surface (tacsplat.sim.objects.TEXTURES)
 
     def rig(self):
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
         return sim_rig_config(object=self.object, mesh=self.mesh, object_radius=self.object_radius, views=self.views,
                               test_views=self.test_views, grasps=self.grasps, resolution=self.resolution,
-                              seed=self.seed, touch_model=self.touch_model)
+                              seed=self.seed, touch_model=self.touch_model, texture=self.texture)
 
     def check(self) -> None:
         super().check()

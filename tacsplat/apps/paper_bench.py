@@ -63,6 +63,7 @@ class PaperBenchConfig:
     grasps: int = GRASPS
     preset: str = "default"  # training preset (reconstruction.config.PRESETS): default or paper
     touch_model: str = "gel"  # gel (grasps with gel contact patches) or paper (the official code's sampling)
+    texture: str = "none"  # the objects' surface: their one colour, or "checker" (tacsplat.sim.objects.TEXTURES)
 
     @classmethod
     def quick(cls) -> "PaperBenchConfig":
@@ -93,12 +94,21 @@ class PaperBenchConfig:
             raise ConfigError("preset", f"unknown preset {self.preset!r}; choose from {', '.join(PRESETS)}")
         if self.touch_model not in ("gel", "paper"):
             raise ConfigError("touch_model", f"must be gel or paper, got {self.touch_model!r}")
+        from tacsplat.sim.objects import TEXTURES
+
+        if self.texture not in TEXTURES:
+            raise ConfigError("texture", f"must be one of {', '.join(TEXTURES)}, got {self.texture!r}")
 
     @property
     def tag(self) -> str:
         """Suffix of run folders that are not the default preset with gel touches (so they never mix)."""
         return ("" if self.preset == "default" else f"-{self.preset}") + (
-            "" if self.touch_model == "gel" else f"-{self.touch_model}-touches")
+            "" if self.touch_model == "gel" else f"-{self.touch_model}-touches") + self.texture_tag
+
+    @property
+    def texture_tag(self) -> str:
+        """Suffix of the scene and run folders of textured objects."""
+        return "" if self.texture == "none" else f"-{self.texture}"
 
     def object_list(self) -> list[str]:
         from tacsplat.sim.objects import OBJECT_NAMES
@@ -146,7 +156,7 @@ class PaperBench:
 
     def scene_dir(self, obj: str, setting: str, seed: int) -> Path:
         touches = "" if self.config.touch_model == "gel" else f"-{self.config.touch_model}-touches"
-        return self.out / "scenes" / obj / f"{setting}-s{seed}{touches}"
+        return self.out / "scenes" / obj / f"{setting}-s{seed}{touches}{self.config.texture_tag}"
 
     def runs(self) -> list[Run]:
         """Every run, setting by setting (the minimal-views table fills first), then object, seed, variant."""
@@ -165,7 +175,7 @@ class PaperBench:
         scene = self.scene_dir(obj, setting, seed)
         views = MINIMAL_VIEWS if setting == "minimal" else c.full_views
         return CaptureJob(out=scene, object=obj, seed=seed, views=views, test_views=c.test_views, grasps=c.grasps,
-                          resolution=c.resolution, touch_model=c.touch_model,
+                          resolution=c.resolution, touch_model=c.touch_model, texture=c.texture,
                           name=f"capture {scene.relative_to(self.out)}")
 
     def capture(self, obj: str, setting: str, seed: int) -> Path:
@@ -470,7 +480,8 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         f"{config.test_views} held-out test views per object, {config.grasps} grasps of 4 touches, "
         + "".join(f"{s} = {MINIMAL_VIEWS if s == 'minimal' else config.full_views} train views, " for s in config.settings)
         + f"seeds {', '.join(map(str, config.seeds))} (tables: mean over seeds), preset {config.preset}, "
-        f"{config.touch_model} touches. "
+        f"{config.touch_model} touches"
+        + ("" if config.texture == "none" else f", {config.texture} texture on every object") + ". "
         "CD is in units of the ground-truth bounding-sphere radius; best per column in bold.",
         "",
     ]
@@ -526,7 +537,7 @@ def config_from_args(args) -> PaperBenchConfig:
         config.seeds = comma_separated_ints(args.seeds, "--seeds")
     if args.variants is not None:
         config.variants = tuple(v.strip() for v in args.variants.split(",") if v.strip())
-    config.preset, config.touch_model = args.preset, args.touch_model
+    config.preset, config.touch_model, config.texture = args.preset, args.touch_model, args.texture
     config.validate()
     return config
 
@@ -553,6 +564,9 @@ def register(cli) -> None:
                    help="training preset: default, or paper (the official schedule scaled to --iterations)")
     p.add_argument("--touch-model", default="gel", choices=("gel", "paper"),
                    help="touches: gel (grasps with gel contact patches) or paper (the official code's sampling)")
+    p.add_argument("--texture", default="none",
+                   help="the objects' surface: none (their one colour) or checker (textured: a checker of their "
+                   "colour and a contrasting grey); textured scenes and runs get their own folders")
     p.add_argument("--test-views", type=int, default=None, help="held-out test views (default 12; quick 8)")
     p.add_argument("--settings", default=None, help="comma-separated: minimal,full-views (quick: minimal)")
     p.add_argument("--seeds", default=None, help="comma-separated capture and training seeds (default 0)")

@@ -139,6 +139,21 @@ def test_a_scene_of_older_code_is_refused_on_the_settings_it_recorded(killed, ca
     assert _files(killed) == before
 
 
+def test_resume_with_another_texture_is_refused_and_a_scene_from_before_textures_resumes(torus, killed, capsys):
+    before = _files(killed)
+    assert _sim_capture(killed, {"--texture": "checker"}, resume=True) == 1
+    err = capsys.readouterr().err
+    assert f"error: --texture: {killed} was captured with 'none', this run asks for 'checker'" in err, err
+    assert _files(killed) == before
+    journal = killed / "journal.jsonl"  # a scene captured before the texture was a setting
+    lines = journal.read_text().splitlines(keepends=True)
+    header = json.loads(lines[0])
+    del header["meta"]["extra"]["capture_settings"]["sim"]["texture"]
+    journal.write_text(json.dumps(header) + "\n" + "".join(lines[1:]))
+    assert _sim_capture(killed, resume=True) == 0
+    assert _records(killed) == _records(torus / "complete")
+
+
 def test_a_scene_of_older_code_resumes_when_its_recorded_settings_agree(torus, killed):
     _as_written_by_older_code(killed)
     assert _sim_capture(killed, resume=True) == 0

@@ -143,6 +143,25 @@ def test_variant_table_and_config_errors():
         PaperBench("x", PaperBenchConfig(full_views=10))
     with pytest.raises(ConfigError, match="objects"):
         PaperBench("x", PaperBenchConfig(objects=("sphere",)))
+    with pytest.raises(ConfigError, match="texture"):
+        PaperBench("x", PaperBenchConfig(texture="plaid"))
+
+
+def test_textured_objects_get_their_own_scenes_and_runs(tmp_path):
+    """--texture checker captures textured scenes in their own folders and its runs never mix with the glossy
+    ones in one report folder; the batch job's choices are the twin's."""
+    from typing import get_args, get_type_hints
+
+    from tacsplat.sim.objects import TEXTURES
+
+    plain, textured = (PaperBench(tmp_path, PaperBenchConfig(objects=("torus",), settings=("minimal",),
+                                                              variants=("full",), texture=t)) for t in TEXTURES)
+    assert [r.scene.name for r in plain.runs()] == ["minimal-s0"]
+    assert [r.scene.name for r in textured.runs()] == ["minimal-s0-checker"]
+    assert [r.out.name for r in textured.runs()] == ["full-s0-checker"]
+    job = textured.capture_job("torus", "minimal", 0)
+    assert job.texture == "checker" and job.rig().sim.texture == "checker"
+    assert get_args(get_type_hints(batch.CaptureJob)["texture"]) == TEXTURES
 
 
 def _finish(run, cd: float) -> None:

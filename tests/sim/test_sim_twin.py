@@ -96,6 +96,33 @@ def test_projected_mesh_lands_on_the_rendered_silhouette_and_depth_lies_on_the_m
         assert distance.max() < 3e-4
 
 
+def test_a_checker_texture_paints_the_object_in_its_colour_and_a_contrasting_grey():
+    """The "checker" texture (a cube map MuJoCo projects onto the mesh) shows the helmet's blue and a light grey in
+    alternating patches; without it the helmet is one hue."""
+    from tacsplat.sim.objects import make_object
+
+    blue = np.array(make_object("helmet").material.rgba[:3])
+    hues = {}
+    for texture in ("none", "checker"):
+        twin = twin_of("helmet", texture=texture, camera_width=96, camera_height=96)
+        twin.move_camera(look_at([0.2, -0.15, 0.15], [0.0, 0.0, 0.0]))
+        image, depth = twin.render_view()
+        pixels = image[depth > 0].astype(np.float64) / 255.0  # [P, 3] RGB
+        blueness = pixels[:, 2] - pixels[:, :2].mean(axis=1)  # the blue channel's lead over red and green
+        hues[texture] = blueness
+    assert (hues["none"] > 0.1).mean() > 0.9  # blue (shaded, highlights aside) almost everywhere
+    grey = np.abs(hues["checker"]) < 0.08
+    assert 0.25 < grey.mean() < 0.75 and (hues["checker"] > 0.2).mean() > 0.25  # both colours, in patches
+    assert blue[2] > blue[:2].mean() + 0.3
+
+
+def test_an_unknown_texture_is_one_error_naming_it():
+    from tacsplat.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="texture.*'plaid'"):
+        SimTwin(TwinConfig(object="torus", texture="plaid"))
+
+
 def test_reset_returns_to_the_initial_state_and_restarts_the_penetration_peak():
     twin = twin_of("car")
     twin.reset()
