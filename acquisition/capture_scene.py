@@ -110,6 +110,8 @@ def recorded_settings(writer: SceneWriter) -> dict:
     meta = writer.meta
     recorded = {"plan.touches.model": "gel", **_flatten({"rig": meta.source, "object": meta.object,
                                                          "plan": meta.capture_plan})}
+    if meta.source == "sim":
+        recorded["sim.texture"] = "none"  # what every twin capture was before the texture became a setting
     if SETTINGS_KEY in meta.extra:
         return {**recorded, **_flatten(meta.extra[SETTINGS_KEY])}
     # A scene of an older version records no capture_settings; it resumes when what it does record agrees: the rig

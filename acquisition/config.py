@@ -501,10 +501,10 @@ def _validate_sim(c: RigConfig, src) -> None:
     s = c.sim
     if s.mesh is not None and not c.path(s.mesh).is_file():
         raise ConfigError("sim.mesh", f"file not found: {c.path(s.mesh)}", src)
-    from tacsplat.sim.objects import OBJECT_NAMES, TEXTURES
+    from tacsplat.sim.objects import OBJECT_NAMES, texture_problem
 
-    if s.texture not in TEXTURES:
-        raise ConfigError("sim.texture", f"must be one of {', '.join(map(repr, TEXTURES))}, got {s.texture!r}", src)
+    if texture_problem(s.texture):
+        raise ConfigError("sim.texture", texture_problem(s.texture), src)
     if s.mesh is None:
         if s.object not in OBJECT_NAMES:
             raise ConfigError("sim.object", f"unknown library object {s.object!r} (one of {list(OBJECT_NAMES)})", src)

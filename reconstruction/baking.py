@@ -71,14 +71,14 @@ def bake_appearance(gaussians: Gaussians, look: Look, directions: int = BAKE_DIR
     dirs = sphere_directions(directions).to(g.means.device)  # [D, 3] float64
     basis = sh_basis(MAX_SH_DEGREE, dirs)  # [D, 16]
     normals = gaussian_normals(g.quats, g.scales).double()  # [N, 3]
-    fitted = []
+    fitted = [basis.new_zeros(0, basis.shape[1], 3)]  # (no Gaussians: no rows)
     for start in range(0, len(g), BAKE_CHUNK):
         rows = slice(start, min(start + BAKE_CHUNK, len(g)))
         part = Gaussians({k: v[rows] for k, v in g.params.items()}, g.from_touch[rows], g.sh_degree)
         target = shaded_colours(part, look, dirs.to(g.means.dtype), normals[rows].to(g.means.dtype)).double() - 0.5
         weight = (normals[rows] @ dirs.T).abs() + 1e-3  # [n, D]: projected area (never exactly 0)
         normal_matrix = torch.einsum("dk,nd,dl->nkl", basis, weight, basis)  # [n, 16, 16]
-        normal_matrix += 1e-6 * torch.eye(basis.shape[1], dtype=basis.dtype)
+        normal_matrix += 1e-6 * torch.eye(basis.shape[1], dtype=basis.dtype, device=basis.device)
         rhs = torch.einsum("dk,nd,ndc->nkc", basis, weight, target)  # [n, 16, 3]
         fitted.append(torch.linalg.solve(normal_matrix, rhs))
     coeffs = torch.cat(fitted).to(g.means.dtype)  # [N, 16, 3]

@@ -22,6 +22,7 @@ from tacsplat.errors import SceneFormatError
 from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.gaussians import Gaussians
+from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
@@ -349,35 +350,27 @@ def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | No
     cv2.imwrite(str(path), cv2.cvtColor(np.concatenate([top, bottom], axis=0), cv2.COLOR_RGB2BGR))
 
 
-def splat_psnr(gaussians: Gaussians, scene, frames: list, background_colour: tuple[float, float, float] | None,
-               backend: str, look: Look) -> float:
-    """The mean PSNR over ``frames`` of what a run's ``splat.ply`` shows a plain 3DGS renderer when ``look``
-    shades the Gaussians: their bake into SH colours (:func:`.baking.bake_appearance`)."""
-    baked = bake_appearance(gaussians, look)
-    psnrs = []
-    for f in frames:
-        gt_rgb = scene.load_image(f)
-        background = torch.from_numpy(background_image(gt_rgb, background_colour))
-        rgb = render_frame(baked, f, background, backend, with_depth=False).rgb
-        psnrs.append(psnr(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
-    return float(np.mean(psnrs)) if psnrs else float("nan")
-
-
 def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
-    """Evaluate a run on disk (its last checkpoint): writes ``metrics.json`` and ``renders/``; returns the metrics."""
+    """Evaluate a run on disk (its last checkpoint): writes ``metrics.json`` and ``renders/`` and, where the run has
+    a ``splat.ply``, writes it again from the checkpoint (a lit run from before the bake holds its unlit colour
+    there); returns the metrics."""
     from tacsplat.datasets import Scene
 
     run = load_run(Path(run_dir))
     scene = scene_at(Scene.load(run.scene_path), run.config.downscale)
+    splat = bake_appearance(run.gaussians, run.look)
+    if (Path(run_dir) / "splat.ply").is_file():
+        save_ply(splat, Path(run_dir) / "splat.ply")
     return evaluate_reconstruction(run.gaussians, scene, run.config, run.step,
-                                   run.train_seconds, run_dir, gt_path, backend, run.look)
+                                   run.train_seconds, run_dir, gt_path, backend, run.look, splat)
 
 
 def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, train_seconds: float,
                             run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None,
-                            look: Look | None = None) -> dict:
-    """Evaluate Gaussians on a scene's test views (``psnr_splat``: the PSNR of what ``splat.ply`` shows, see
-    :func:`splat_psnr`): writes ``metrics.json``, ``renders/`` and, for a reflective
+                            look: Look | None = None, splat: Gaussians | None = None) -> dict:
+    """Evaluate Gaussians on a scene's test views (``psnr_splat``: the PSNR of what ``splat.ply`` shows a plain
+    3DGS renderer, ``splat`` when the caller has baked it, :func:`.baking.bake_appearance` of ``gaussians`` and
+    ``look`` otherwise): writes ``metrics.json``, ``renders/`` and, for a reflective
     appearance, ``environment.png`` (its learned environment map) and for a lit one ``light.png`` (its diffuse light,
     :func:`save_light`) into ``run_dir``."""
     test = scene.split("test")
@@ -385,9 +378,12 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
     ground_truth = load_ground_truth(scene, test, gt_path, train_frames=training_frames(scene, config.train_views))
     metrics = evaluate_views(gaussians, scene, test, config.background, backend, ground_truth,
                              Path(run_dir) / "renders", look)
-    shaded = look is not None and look.appearance != "sh"  # splat.ply holds a bake of the shading, not the SH
-    metrics["psnr_splat"] = (splat_psnr(gaussians, scene, test, config.background, backend, look) if shaded
-                             else metrics["psnr"])
+    if look is not None and look.appearance != "sh":  # splat.ply holds the shading baked into SH
+        splat = bake_appearance(gaussians, look) if splat is None else splat
+        metrics["psnr_splat"] = evaluate_views(splat, scene, test, config.background, backend, None,
+                                               progress=True)["psnr"]
+    else:
+        metrics["psnr_splat"] = metrics["psnr"]  # splat.ply holds the Gaussians as they are
     if look is not None and look.environment is not None:
         save_environment(look.environment, Path(run_dir) / "environment.png")
     if look is not None and look.light is not None:

@@ -2,7 +2,8 @@
 
 ``tacsplat reconstruct`` writes, in one folder: ``config.json`` (the
 :class:`~tacsplat.reconstruction.config.TrainConfig`), ``checkpoint.pt`` (the
-last checkpoint: resumable), ``splat.ply``, ``progress.csv`` (iteration,
+last checkpoint: resumable), ``splat.ply`` (the final Gaussians, a shaded
+appearance baked into their SH: :mod:`.baking`), ``progress.csv`` (``PROGRESS_COLUMNS``: iteration,
 seconds of run time excluding evaluation, each loss term averaged since the
 previous row, Gaussian count, held-out PSNR, CD and the paper's CD), ``error_vs_time.png``,
 ``metrics.json`` and ``renders/``. Anything else in the folder is someone
@@ -100,7 +101,7 @@ def load_run(run_dir: Path) -> LoadedRun:
 def cut_progress(path: Path, step: int) -> None:
     """Keep the rows of ``progress.csv`` up to ``step`` (a resumed checkpoint's): later ones are redone. The file
     is rewritten with today's columns, each kept row's values under their own names (a column an older version
-    did not write stays empty)."""
+    did not write stays empty; such a version summed the albedo smoothness into ``smoothness``)."""
     rows = []
     if path.is_file():
         with path.open(newline="") as fh:

@@ -150,6 +150,7 @@ class Trainer:
                             if config.appearance in shading.SPECULAR else None)
         self.light = shading.DiffuseLight(device=dev) if config.appearance in shading.LIT else None
         self.look = shading.Look(config.appearance, self.environment, self.light)
+        self.splat: Gaussians | None = None  # splat.ply's Gaussians: the final ones, shading baked (run() sets it)
         backgrounds = [background_image(im, config.background) for im in images]
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
         self.backdrop_pixels: list[np.ndarray | None] = [
@@ -454,7 +455,8 @@ class Trainer:
             self.neighbours.load_state_dict(ckpt["neighbours"])
         progress = ckpt.get("progress")  # (checkpoints of older runs have none)
         if progress is not None:
-            self._sums = {k: torch.tensor(float(progress["sums"][k]), device=self.device) for k in LOSS_TERMS}
+            self._sums = {k: torch.tensor(float(progress["sums"].get(k, 0.0)), device=self.device)  # a term added
+                          for k in LOSS_TERMS}  # since the checkpoint was written: nothing summed yet
             self._sum_count = int(progress["count"])
             self._last_eval = tuple(progress["last_eval"])
         else:
@@ -536,7 +538,8 @@ class Trainer:
         if stop.signum is not None:
             self.save_checkpoint()
             raise TrainingInterrupted(stop.signum, self.step)
-        save_ply(bake_appearance(self.gaussians, self.look), self.out / "splat.ply")  # what a 3DGS viewer shows
+        self.splat = bake_appearance(self.gaussians, self.look)  # what a 3DGS viewer can show
+        save_ply(self.splat, self.out / "splat.ply")
         plot_error_vs_time(progress_path, self.out / "error_vs_time.png")
         return self.gaussians
 
@@ -575,6 +578,6 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
         trainer = Trainer(scene, out_dir, config)
         gaussians = trainer.run(resume=resume, show_progress=show_progress)
         return evaluate_reconstruction(gaussians, scene, trainer.config, trainer.step, trainer.train_seconds, out_dir,
-                                       look=trainer.look)
+                                       look=trainer.look, splat=trainer.splat)
 
 

@@ -166,6 +166,11 @@ TEXTURES = ("none", "checker")  # the object's surface: its one colour, or a che
 CHECKER_SQUARES = 6  # squares along each side of a face of the checker's cube map
 
 
+def texture_problem(texture) -> str | None:
+    """What is wrong with ``texture`` as one of :data:`TEXTURES` (None: nothing)."""
+    return None if texture in TEXTURES else f"must be one of {', '.join(map(repr, TEXTURES))}, got {texture!r}"
+
+
 def checker_texture(rgba: tuple[float, float, float, float], squares: int = CHECKER_SQUARES,
                     texels: int = 32) -> np.ndarray:
     """A face of the "checker" texture, RGB uint8 [squares * texels, squares * texels, 3]: the material's colour

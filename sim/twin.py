@@ -38,11 +38,11 @@ from tacsplat.sim.hand import (
 from tacsplat.sim.collision import DecompositionConfig, convex_decomposition
 from tacsplat.sim.objects import (
     DEFAULT_OBJECT_RADIUS,
-    TEXTURES,
     SimObject,
     checker_texture,
     load_mesh_object,
     make_object,
+    texture_problem,
 )
 from tacsplat.sim.tactile import TactileConfig, TactileDepthRenderer
 from tacsplat.types import TactileReading
@@ -151,8 +151,9 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
         sky = '<texture name="sky" type="skybox" builtin="flat" rgb1="1 1 1" rgb2="1 1 1" width="16" height="16"/>'
     else:
         raise ConfigError("background", f"must be 'gradient' or 'white', got {config.background!r}")
-    if config.texture not in TEXTURES:
-        raise ConfigError("texture", f"must be one of {', '.join(map(repr, TEXTURES))}, got {config.texture!r}")
+    problem = texture_problem(config.texture)
+    if problem:
+        raise ConfigError("texture", problem)
     textured = config.texture == "checker"  # a cube map: MuJoCo projects it onto a mesh without texture coordinates
     texture = f'<texture name="object" type="cube" file="{CHECKER_FILE}"/>' if textured else ""
     colour = "1 1 1 1" if textured else " ".join(f"{c:.4g}" for c in m.rgba)  # the texture holds the colour

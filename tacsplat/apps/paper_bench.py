@@ -94,10 +94,10 @@ class PaperBenchConfig:
             raise ConfigError("preset", f"unknown preset {self.preset!r}; choose from {', '.join(PRESETS)}")
         if self.touch_model not in ("gel", "paper"):
             raise ConfigError("touch_model", f"must be gel or paper, got {self.touch_model!r}")
-        from tacsplat.sim.objects import TEXTURES
+        from tacsplat.sim.objects import texture_problem
 
-        if self.texture not in TEXTURES:
-            raise ConfigError("texture", f"must be one of {', '.join(TEXTURES)}, got {self.texture!r}")
+        if texture_problem(self.texture):
+            raise ConfigError("texture", texture_problem(self.texture))
 
     @property
     def tag(self) -> str:

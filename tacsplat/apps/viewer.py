@@ -453,18 +453,22 @@ def _checkpoint_slider(server, view: View, run: RunData) -> None:
     slider = view.controls["checkpoint"] = server.gui.add_slider(
         "checkpoint", 0, len(names) - 1, 1, len(names) - 1, hint="the run's checkpoint*.pt files, oldest first")
     shown = view.controls["checkpoint shown"] = server.gui.add_markdown(f"showing splat.ply (newest: {names[-1]})")
+    baked: dict[Path, tuple] = {}  # checkpoint -> (its Gaussians as splat.ply would hold them, its step): bake once
 
     @slider.on_update
     def _(event) -> None:
         path = run.checkpoints[event.target.value]
-        try:
-            ckpt = read_checkpoint(path)
-            look = checkpoint_look(ckpt, TrainConfig.from_json(ckpt["config"], path))
-        except TacsplatError as exc:
-            shown.content = f"**cannot show {path.name}**: {exc}"
-            return
-        view.slots[0].show(run, bake_appearance(Gaussians.from_state_dict(ckpt["gaussians"]), look))  # as splat.ply
-        shown.content = f"showing {path.name}: step {ckpt['step']}, {len(view.slots[0].gaussians)} Gaussians"
+        if path not in baked:
+            try:
+                ckpt = read_checkpoint(path)
+                look = checkpoint_look(ckpt, TrainConfig.from_json(ckpt["config"], path))
+            except TacsplatError as exc:
+                shown.content = f"**cannot show {path.name}**: {exc}"
+                return
+            baked[path] = bake_appearance(Gaussians.from_state_dict(ckpt["gaussians"]), look), ckpt["step"]
+        gaussians, step = baked[path]
+        view.slots[0].show(run, gaussians)
+        shown.content = f"showing {path.name}: step {step}, {len(gaussians)} Gaussians"
 
 
 def metrics_markdown(columns: dict[str, dict]) -> str:

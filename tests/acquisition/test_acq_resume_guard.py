@@ -150,6 +150,8 @@ def test_resume_with_another_texture_is_refused_and_a_scene_from_before_textures
     header = json.loads(lines[0])
     del header["meta"]["extra"]["capture_settings"]["sim"]["texture"]
     journal.write_text(json.dumps(header) + "\n" + "".join(lines[1:]))
+    assert _sim_capture(killed, {"--texture": "checker"}, resume=True) == 1  # it was a plain one
+    assert "error: --texture: " in capsys.readouterr().err
     assert _sim_capture(killed, resume=True) == 0
     assert _records(killed) == _records(torus / "complete")
 

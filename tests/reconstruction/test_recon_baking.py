@@ -87,16 +87,18 @@ def test_a_baked_surfel_looks_as_its_shading_from_the_front_the_side_and_the_bac
     assert baked_total < 0.25 * unbaked_total
 
 
+@pytest.mark.parametrize("appearance", ["sh-lit", "lit", "reflective"])
 @torch.no_grad()
-def test_shaded_colours_are_the_deferred_shading_of_one_gaussian():
-    """Along the ray through the surfel's centre, :func:`shaded_colours` is the colour the renderer gives the
-    centre pixel (the same light, normal turned towards the viewer, SH colour along that ray)."""
+def test_shaded_colours_are_the_deferred_shading_of_one_gaussian(appearance):
+    """Along the ray through the surfel's centre, :func:`shaded_colours` is the colour the renderer (its fused
+    shading kernels) gives the centre pixel: the same light and environment, the normal turned towards the
+    viewer, the SH colour along that ray."""
     surfel = _surfel()
-    look = _look("lit", surfel)
+    look = _look(appearance, surfel)
     eye = (0.3 * (0.8 * NORMAL + 0.6 * torch.tensor([1.0, 0.0, 0.0]))).tolist()
     viewmat = torch.tensor(invert_pose(look_at(eye, [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
     K = torch.tensor([[[80.0, 0, 16], [0, 80.0, 16], [0, 0, 1]]])  # the centre maps to the corner of 4 pixels
-    out = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu", appearance="lit",
+    out = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu", appearance=appearance,
                  environment=look.environment, light=look.light)
     centre = (out.rgb[15:17, 15:17] / out.alpha[15:17, 15:17, None]).mean(dim=(0, 1))
     direction = -torch.nn.functional.normalize(torch.tensor(eye), dim=0)
@@ -113,6 +115,14 @@ def test_baking_keeps_the_geometry_and_leaves_an_sh_appearance_alone():
         assert torch.equal(baked.params[name], surfel.params[name])
     assert torch.equal(baked.from_touch, surfel.from_touch) and baked.params["shN"].shape == (1, 15, 3)
     assert torch.isfinite(baked.params["sh0"]).all() and torch.isfinite(baked.params["shN"]).all()
+
+
+def test_no_gaussians_bake_to_no_gaussians():
+    surfel = _surfel()
+    look = _look("sh-lit", surfel)
+    empty = Gaussians({k: v.detach()[:0] for k, v in surfel.params.items()}, surfel.from_touch[:0], 3)
+    baked = bake_appearance(empty, look)
+    assert len(baked) == 0 and baked.params["shN"].shape == (0, 15, 3)
 
 
 def test_sphere_directions_are_unit_and_balanced():

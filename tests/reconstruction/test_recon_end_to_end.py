@@ -192,6 +192,7 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
     included, to the same numbers."""
     from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.evaluation import evaluate_run
+    from tacsplat.reconstruction.ply import save_ply
     from tacsplat.reconstruction.run_dir import load_run
     from tacsplat.reconstruction.shading import DiffuseLight
 
@@ -221,6 +222,10 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
     baked = bake_appearance(final.gaussians, final.look)
     assert splat.sh_degree == 3 and len(splat) == len(final.gaussians)
     torch.testing.assert_close(splat.sh_coefficients(), baked.sh_coefficients())
+    # a run from before the bake (its splat.ply unlit) gets the baked one from evaluate
+    save_ply(final.gaussians, run / "splat.ply")
+    evaluate_run(run)
+    torch.testing.assert_close(load_ply(run / "splat.ply").sh_coefficients(), baked.sh_coefficients())
 
 
 def _covariances(g) -> torch.Tensor:

@@ -172,6 +172,32 @@ def test_resume_after_a_crash_drops_the_progress_rows_after_the_checkpoint(scene
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 2, 4, 6, 8, 10]
 
 
+def test_a_checkpoint_from_before_a_loss_term_existed_resumes(scene, tmp_path, monkeypatch):
+    """A checkpoint whose running sums lack a loss term added since (albedo_smoothness) resumes to the end."""
+    from tacsplat.datasets import Scene
+    from tacsplat.reconstruction.config import TrainConfig
+
+    config = TrainConfig(iterations=6, sh_degree=0, backend="cpu", lambda_s=0.0, eval_every_iters=2,
+                         eval_every_seconds=1e9, checkpoint_every=3)
+    real_step = Trainer.train_step
+
+    def power_cut_in_step_5(self):
+        if self.step == 4:
+            raise SystemError("power cut")
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", power_cut_in_step_5)
+    with pytest.raises(SystemError):
+        Trainer(Scene.load(scene), tmp_path / "run", config).run(show_progress=False)
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    checkpoint = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
+    del checkpoint["progress"]["sums"]["albedo_smoothness"]
+    torch.save(checkpoint, tmp_path / "run" / "checkpoint.pt")
+    Trainer(Scene.load(scene), tmp_path / "run", config).run(resume=True, show_progress=False)
+    with (tmp_path / "run" / "progress.csv").open() as fh:
+        assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 2, 4, 6]
+
+
 def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp_path):
     """A progress.csv written before some columns existed (normals, cd_paper, albedo_smoothness: a run from before
     the normals) is cut at the checkpoint and rewritten with today's columns: each value stays under its own
