@@ -25,7 +25,7 @@ METRICS = {"cd": ("CD (↓)", True, 4),
            "normal_error_deg": ("Normal error, degrees (↓)", True, 1)}
 # a run's numbers in results.csv
 NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "unseen_fraction", "train_seconds",
-                  "num_gaussians")
+                  "num_gaussians", "psnr_splat")  # psnr_splat: what splat.ply shows a plain 3DGS renderer
 RESULT_COLUMNS = ("object", "setting", "variant", *NUMBER_COLUMNS, "seed")
 
 
