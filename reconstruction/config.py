@@ -75,6 +75,8 @@ class TrainConfig:
     lit_start_iter: int = 300  # "lit", "sh-lit": the light shades the albedo from this step on (before: unlit)
     lambda_albedo_smoothness: float = 0.1  # L1 differences of neighbouring pixels' rendered diffuse colour inside
     # the silhouette (all but "sh"): shading has to come from the normals (and the environment)
+    albedo_smoothness_beta: float = 10.0  # ... each pair weighted e^{-beta |dI|} by the training image's own
+    # difference there, so that a texture's edges stay in the albedo (0: every pair weighs 1)
     # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
     lr_means: float = 1.6e-4  # means (times the scene scale)
     lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
@@ -183,7 +185,7 @@ class TrainConfig:
 
 # Fields a config.json written before they existed leaves out, with the value such a run trained with (where that
 # differs from today's default): the colour was unlit SH without a smooth albedo.
-_BEFORE_THEY_EXISTED = {"appearance": "sh", "lambda_albedo_smoothness": 0.0}
+_BEFORE_THEY_EXISTED = {"appearance": "sh", "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
 
 # Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
 _INT_RANGES = {
@@ -202,7 +204,7 @@ _FLOAT_RANGES = {
     "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "eval_every_seconds": (0.0, None),
     "lambda_flatten": (0.0, None), "lambda_depth_normal": (0.0, None), "lambda_touch_normal": (0.0, None),
     "lambda_touch_normal_pixels": (0.0, None), "lr_reflective": (0.0, None), "lr_env_map": (0.0, None),
-    "lambda_albedo_smoothness": (0.0, None),
+    "lambda_albedo_smoothness": (0.0, None), "albedo_smoothness_beta": (0.0, None),
 }  # fmt: skip
 _POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
 

@@ -6,8 +6,9 @@
   costs more than the rest of the loss: the forward correlates each valid pixel's window with both kernels and
   keeps the responses, the backward gathers each depth pixel's share of their signs from the windows that
   contain it (the adjoint of the correlation).
-* ``albedo_smoothness_cpu(albedo, inside)``: :func:`.losses.albedo_smoothness_loss` (mean L1 difference of
-  neighbouring pixels both inside), one pass each way instead of some thirty small torch operations.
+* ``albedo_smoothness_cpu(albedo, inside, across, down)``: :func:`.losses.albedo_smoothness_loss` (weighted L1
+  differences of neighbouring pixels both inside), one pass each way instead of some thirty small torch
+  operations.
 """
 
 from __future__ import annotations
@@ -87,9 +88,9 @@ def edge_aware_smoothness_cpu(depth: torch.Tensor, kernels: torch.Tensor, factor
 
 
 @nb.njit(parallel=True, cache=True)
-def _albedo_forward(albedo, inside, rows):
-    """rows[i] = (the L1 differences of row i's pairs inside: with its right and its lower neighbour, their
-    number)."""
+def _albedo_forward(albedo, inside, across, down, rows):
+    """rows[i] = (the weighted L1 differences of row i's pairs inside: with its right neighbour (weight
+    across[i, j]) and its lower one (down[i, j]), their number)."""
     height, width = inside.shape
     for i in nb.prange(height):
         total = count = 0.0
@@ -99,17 +100,17 @@ def _albedo_forward(albedo, inside, rows):
             if j + 1 < width and inside[i, j + 1]:
                 count += 1.0
                 for c in range(3):
-                    total += abs(np.float64(albedo[i, j + 1, c]) - albedo[i, j, c])
+                    total += across[i, j] * abs(np.float64(albedo[i, j + 1, c]) - albedo[i, j, c])
             if i + 1 < height and inside[i + 1, j]:
                 count += 1.0
                 for c in range(3):
-                    total += abs(np.float64(albedo[i + 1, j, c]) - albedo[i, j, c])
+                    total += down[i, j] * abs(np.float64(albedo[i + 1, j, c]) - albedo[i, j, c])
         rows[i, 0], rows[i, 1] = total, count
 
 
 @nb.njit(parallel=True, cache=True)
-def _albedo_backward(albedo, inside, scale, v_albedo):
-    """v_albedo [H, W, 3] = scale * the sum of sign(this pixel - its neighbour) over its four pairs inside
+def _albedo_backward(albedo, inside, across, down, scale, v_albedo):
+    """v_albedo [H, W, 3] = scale * the sum of weight * sign(this pixel - its neighbour) over its four pairs inside
     (sign 0 at 0, as torch's abs)."""
     height, width = inside.shape
     for i in nb.prange(height):
@@ -118,32 +119,38 @@ def _albedo_backward(albedo, inside, scale, v_albedo):
                 v = 0.0
                 if inside[i, j]:
                     here = np.float64(albedo[i, j, c])
-                    for di, dj in ((0, -1), (0, 1), (-1, 0), (1, 0)):
-                        y, x = i + di, j + dj
-                        if 0 <= y < height and 0 <= x < width and inside[y, x]:
-                            v += np.sign(here - albedo[y, x, c])
+                    if j > 0 and inside[i, j - 1]:
+                        v += across[i, j - 1] * np.sign(here - albedo[i, j - 1, c])
+                    if j + 1 < width and inside[i, j + 1]:
+                        v += across[i, j] * np.sign(here - albedo[i, j + 1, c])
+                    if i > 0 and inside[i - 1, j]:
+                        v += down[i - 1, j] * np.sign(here - albedo[i - 1, j, c])
+                    if i + 1 < height and inside[i + 1, j]:
+                        v += down[i, j] * np.sign(here - albedo[i + 1, j, c])
                 v_albedo[i, j, c] = v * scale
 
 
 class _AlbedoSmoothnessCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, albedo, inside):
-        a, m = _np(albedo), _np(inside)
+    def forward(ctx, albedo, inside, across, down):
+        a, m, wa, wd = _np(albedo), _np(inside), _np(across), _np(down)
         rows = np.empty((m.shape[0], 2))
-        _albedo_forward(a, m, rows)
+        _albedo_forward(a, m, wa, wd, rows)
         total, count = rows.sum(axis=0)
-        ctx.arrays, ctx.count = (a, m), max(count, 1.0)
+        ctx.arrays, ctx.count = (a, m, wa, wd), max(count, 1.0)
         return torch.tensor(total / ctx.count, dtype=albedo.dtype)
 
     @staticmethod
     def backward(ctx, grad):
-        albedo, inside = ctx.arrays
+        albedo, inside, across, down = ctx.arrays
         v_albedo = np.empty(albedo.shape, albedo.dtype)
-        _albedo_backward(albedo, inside, float(grad) / ctx.count, v_albedo)
-        return torch.from_numpy(v_albedo), None
+        _albedo_backward(albedo, inside, across, down, float(grad) / ctx.count, v_albedo)
+        return torch.from_numpy(v_albedo), None, None, None
 
 
-def albedo_smoothness_cpu(albedo: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
-    """Mean L1 difference of neighbouring pixels of a CPU ``albedo`` [H, W, 3] that are both ``inside`` [H, W]
-    bool (0 with no such pair); see :func:`.losses.albedo_smoothness_loss`."""
-    return _AlbedoSmoothnessCPU.apply(albedo, inside)
+def albedo_smoothness_cpu(albedo: torch.Tensor, inside: torch.Tensor, across: torch.Tensor,
+                          down: torch.Tensor) -> torch.Tensor:
+    """Weighted L1 differences of neighbouring pixels of a CPU ``albedo`` [H, W, 3] that are both ``inside``
+    [H, W] bool, per pair inside (0 with no such pair), the pairs' weights ``across`` [H, W-1] and ``down``
+    [H-1, W] (no gradient); see :func:`.losses.albedo_smoothness_loss`."""
+    return _AlbedoSmoothnessCPU.apply(albedo, inside, across.detach().contiguous(), down.detach().contiguous())

@@ -207,6 +207,15 @@ def image_edge_weights(image: torch.Tensor, beta: float = 10.0) -> torch.Tensor:
     return torch.stack([torch.exp(-beta * dx_i.mean(0)), torch.exp(-beta * dy_i.mean(0))])
 
 
+def image_pair_weights(image: torch.Tensor, beta: float) -> tuple[torch.Tensor, torch.Tensor]:  # image [H, W, 3]
+    """e^{-beta |I(p) - I(q)|} of horizontally ([H, W-1]) and vertically ([H-1, W]) neighbouring pixels p, q of a
+    ground-truth image (the difference averaged over colour channels): near 1 across gradual shading, near 0
+    across a texture's edges. They depend on the image only, so a trainer computes them once per view."""
+    across = (image[:, 1:] - image[:, :-1]).abs().mean(-1)
+    down = (image[1:] - image[:-1]).abs().mean(-1)
+    return torch.exp(-beta * across), torch.exp(-beta * down)
+
+
 def expected_depth(depth: torch.Tensor, alpha: torch.Tensor, min_alpha: float = 1e-3) -> torch.Tensor:
     """Expected depth [H, W]: the accumulated depth of Eq. 5 [H, W] over the alpha [H, W] of the same pixels."""
     return depth / alpha.clamp_min(min_alpha)
@@ -396,20 +405,27 @@ def flatten_loss(scales: torch.Tensor, scene_scale: float) -> torch.Tensor:
     return scales.min(dim=-1).values.mean() / scene_scale
 
 
-def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor, fused: bool = True) -> torch.Tensor:
-    """Mean L1 difference [] of the rendered diffuse colour ``albedo`` [H, W, 3] between horizontally and vertically
-    neighbouring pixels that are both ``inside`` [H, W] bool the silhouette (0 with no such pair). L1 keeps a
-    texture's edges and flattens the gradual shading a free diffuse colour would otherwise paint: that shading
-    then has to come from the normals (through the "lit" and "sh-lit" appearances' light) or the
-    environment. For CPU tensors the fused kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the
-    torch below, the reference)."""
+def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor,
+                           pair_weights: tuple[torch.Tensor, torch.Tensor] | None = None,
+                           fused: bool = True) -> torch.Tensor:
+    """L1 differences [] of the rendered diffuse colour ``albedo`` [H, W, 3] between horizontally and vertically
+    neighbouring pixels that are both ``inside`` [H, W] bool the silhouette, each times its ``pair_weights``
+    ([H, W-1], [H-1, W], no gradient; None: 1, see :func:`image_pair_weights`), summed over the pairs inside and
+    divided by their number (0 with no such pair). It flattens the gradual shading a free diffuse colour would
+    otherwise paint: that shading then has to come from the normals (through the "lit" and "sh-lit" appearances'
+    light) or the environment. L1, and weights that vanish across the image's edges, leave a texture's edges to
+    the albedo (Retinex's assumption: shading varies slowly, reflectance in steps). For CPU tensors the fused
+    kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the torch below, the reference)."""
+    if pair_weights is None:
+        pair_weights = (albedo.new_ones(albedo.shape[0], albedo.shape[1] - 1),
+                        albedo.new_ones(albedo.shape[0] - 1, albedo.shape[1]))
     if fused and albedo.device.type == "cpu":
-        return albedo_smoothness_cpu(albedo, inside)
+        return albedo_smoothness_cpu(albedo, inside, *pair_weights)
     inside = inside.to(albedo.dtype)
     across = inside[:, 1:] * inside[:, :-1]  # [H, W-1]
     down = inside[1:] * inside[:-1]  # [H-1, W]
-    total = ((albedo[:, 1:] - albedo[:, :-1]).abs().sum(-1) * across).sum() + (
-        (albedo[1:] - albedo[:-1]).abs().sum(-1) * down).sum()
+    total = ((albedo[:, 1:] - albedo[:, :-1]).abs().sum(-1) * across * pair_weights[0]).sum() + (
+        (albedo[1:] - albedo[:-1]).abs().sum(-1) * down * pair_weights[1]).sum()
     return total / (across.sum() + down.sum()).clamp_min(1.0)
 
 

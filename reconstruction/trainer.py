@@ -170,6 +170,7 @@ class Trainer:
         self.densify_state: DensifyState | None = None
         self._ground_truth = None
         self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
+        self._pair_weights: dict[int, tuple] = {}  # per training view, the albedo smoothness's pair weights
         self._zero = torch.zeros((), device=dev)
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)  # device scalars: read at progress rows only
         self._sum_count = 0
@@ -298,7 +299,10 @@ class Trainer:
                 loss = loss + cfg.lambda_touch_normal * aligned
                 terms["normals"] = terms["normals"] + aligned.detach()
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
-            flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5, self.fused_losses)
+            if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
+                self._pair_weights[view] = losses.image_pair_weights(self.images[view], cfg.albedo_smoothness_beta)
+            flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5,
+                                                        self._pair_weights.get(view), self.fused_losses)
             loss = loss + cfg.lambda_albedo_smoothness * flat_albedo
             terms["albedo_smoothness"] = flat_albedo.detach()
         if cfg.lambda_flatten > 0:

@@ -320,25 +320,45 @@ def test_albedo_smoothness_is_zero_on_a_uniform_albedo_and_counts_only_pairs_ins
     albedo = torch.full((6, 8, 3), 0.4)
     inside = torch.zeros(6, 8, dtype=torch.bool)
     inside[1:5, 2:7] = True
-    assert losses.albedo_smoothness_loss(albedo, inside, fused).item() == 0.0
+    assert losses.albedo_smoothness_loss(albedo, inside, fused=fused).item() == 0.0
     albedo[:, :, 0] = torch.arange(8.0)[None, :] * 0.1  # a ramp across: 0.1 per pixel step in one channel
     albedo[0, 0] = 9.0  # outside the silhouette: ignored
     pairs_across, pairs_down = 4 * 4, 3 * 5
     expected = 0.1 * pairs_across / (pairs_across + pairs_down)
-    assert abs(losses.albedo_smoothness_loss(albedo, inside, fused).item() - expected) < 1e-6
-    assert losses.albedo_smoothness_loss(albedo, torch.zeros_like(inside), fused).item() == 0.0
+    assert abs(losses.albedo_smoothness_loss(albedo, inside, fused=fused).item() - expected) < 1e-6
+    assert losses.albedo_smoothness_loss(albedo, torch.zeros_like(inside), fused=fused).item() == 0.0
 
 
-def test_fused_albedo_smoothness_matches_the_torch_reference_with_its_gradient():
+@pytest.mark.parametrize("weighted", [True, False], ids=["pair-weights", "unweighted"])
+def test_fused_albedo_smoothness_matches_the_torch_reference_with_its_gradient(weighted):
     g = torch.Generator().manual_seed(4)
     albedo = torch.rand(10, 13, 3, generator=g, dtype=torch.float64)
     albedo[4, 5] = albedo[4, 6]  # equal neighbours: |0| passes gradient 0, as torch's abs
     albedo.requires_grad_(True)
     inside = torch.rand(10, 13, generator=g) > 0.3
     inside[4, 5] = inside[4, 6] = True  # ... and a pair that counts
+    weights = losses.image_pair_weights(torch.rand(10, 13, 3, generator=g, dtype=torch.float64), 3.0) if weighted \
+        else None
     results = []
     for fused in (True, False):
-        loss = losses.albedo_smoothness_loss(albedo, inside, fused)
+        loss = losses.albedo_smoothness_loss(albedo, inside, weights, fused=fused)
         results.append((loss, *torch.autograd.grad(loss, albedo)))
     for got, expected in zip(*results):
         torch.testing.assert_close(got, expected, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize("fused", [True, False], ids=["numba", "torch"])
+def test_edge_weighted_albedo_smoothness_leaves_a_textures_edge_and_flattens_shading(fused):
+    """With the image's pair weights, an albedo step where the image steps too (a texture's edge) costs almost
+    nothing, while the same step under a smooth image (shading painted into the albedo) costs what it does
+    unweighted."""
+    image = torch.full((8, 10, 3), 0.3)
+    image[:, 5:] = 0.9  # a texture's edge between columns 4 and 5
+    albedo = image.clone()
+    inside = torch.ones(8, 10, dtype=torch.bool)
+    unweighted = losses.albedo_smoothness_loss(albedo, inside, fused=fused).item()
+    edge = losses.albedo_smoothness_loss(albedo, inside, losses.image_pair_weights(image, 10.0), fused=fused).item()
+    shading = torch.linspace(0.3, 0.5, 10)[None, :, None].expand(8, 10, 3)  # a smooth image: weights near 1
+    painted = losses.albedo_smoothness_loss(albedo, inside, losses.image_pair_weights(shading, 10.0),
+                                            fused=fused).item()
+    assert unweighted > 0.1 and edge < 0.01 * unweighted and painted > 0.75 * unweighted
