@@ -75,8 +75,8 @@ class TrainConfig:
     lit_start_iter: int = 300  # "lit", "sh-lit": the light shades the albedo from this step on (before: unlit)
     lambda_albedo_smoothness: float = 0.1  # L1 differences of neighbouring pixels' rendered diffuse colour inside
     # the silhouette (all but "sh"): shading has to come from the normals (and the environment)
-    albedo_smoothness_beta: float = 10.0  # ... each pair weighted e^{-beta |dI|} by the training image's own
-    # difference there, so that a texture's edges stay in the albedo (0: every pair weighs 1)
+    albedo_smoothness_beta: float = 10.0  # albedo smoothness: each pair of neighbouring pixels weighted
+    # e^{-beta |dI|} by the training image's own difference there, so a texture's edges stay in the albedo (0: all 1)
     # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
     lr_means: float = 1.6e-4  # means (times the scene scale)
     lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
@@ -292,7 +292,8 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
     if config.appearance != "sh":
         lines.append(f"{config.appearance} appearance{_APPEARANCE_DEPARTURES[config.appearance]}; not in the paper")
     if config.appearance != "sh" and config.lambda_albedo_smoothness > 0:
-        lines.append(f"smooth albedo (lambda_albedo_smoothness {config.lambda_albedo_smoothness}); not in the paper")
+        lines.append(f"smooth albedo (lambda_albedo_smoothness {config.lambda_albedo_smoothness}, pairs weighted by the "
+                     f"image with albedo_smoothness_beta {config.albedo_smoothness_beta}); not in the paper")
     if config.init.use_silhouette_hull:
         lines.append("initialisation: G_c on the visual hull of the silhouettes when SfM finds too few points (the "
                      "official data preparation triangulates COLMAP points from the train and test images)")

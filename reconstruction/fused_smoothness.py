@@ -153,4 +153,8 @@ def albedo_smoothness_cpu(albedo: torch.Tensor, inside: torch.Tensor, across: to
     """Weighted L1 differences of neighbouring pixels of a CPU ``albedo`` [H, W, 3] that are both ``inside``
     [H, W] bool, per pair inside (0 with no such pair), the pairs' weights ``across`` [H, W-1] and ``down``
     [H-1, W] (no gradient); see :func:`.losses.albedo_smoothness_loss`."""
+    height, width = inside.shape
+    if tuple(across.shape) != (height, width - 1) or tuple(down.shape) != (height - 1, width):
+        raise ValueError(f"albedo_smoothness_cpu: pair weights {tuple(across.shape)}, {tuple(down.shape)} do not fit "
+                         f"a {height}x{width} albedo")
     return _AlbedoSmoothnessCPU.apply(albedo, inside, across.detach().contiguous(), down.detach().contiguous())

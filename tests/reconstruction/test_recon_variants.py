@@ -48,3 +48,6 @@ def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_tra
     config = TrainConfig.from_json(old)
     assert (config.appearance, config.lambda_albedo_smoothness, config.variant) == ("sh", 0.0, "full+n+tn")
     assert TrainConfig.from_json(TrainConfig().to_json()) == TrainConfig()  # a complete one reads as written
+    sh_lit = TrainConfig().to_json()  # a default run from before the albedo smoothness had image weights
+    del sh_lit["albedo_smoothness_beta"]
+    assert TrainConfig.from_json(sh_lit) == TrainConfig(albedo_smoothness_beta=0.0)  # unweighted, as it trained
