@@ -148,6 +148,7 @@ class PaperBench:
     out: Path
     config: PaperBenchConfig = field(default_factory=PaperBenchConfig)
     wall_note: str = field(default="", init=False, repr=False)  # how the last run() ran its jobs, for report.md
+    stale_note: str = field(default="", init=False, repr=False)  # finished runs trained otherwise, for report.md
     first_views: dict = field(default_factory=dict, init=False, repr=False)  # render_first_test_view's renders
 
     def __post_init__(self):
@@ -225,6 +226,14 @@ class PaperBench:
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
             log.info("%d of %d runs already finished in %s: skipped", len(runs) - unfinished, len(runs), self.out)
+        stale = self.stale_runs()
+        self.stale_note = "" if not stale else (
+            f"{len(stale)} finished run(s) were trained with other settings than this bench trains their variant "
+            "with now (a default changed since); their numbers stand in the tables as they were measured; delete "
+            "their folders to measure them again: " + "; ".join(
+                f"{run.out.relative_to(self.out)} ({', '.join(changes)})" for run, changes in stale))
+        if stale:
+            log.warning("%s", self.stale_note)
         started = time.perf_counter()
         jobs = self.jobs()
         run_of = {job.name: run for run, job in jobs}
@@ -247,6 +256,25 @@ class PaperBench:
         outcome.raise_if_failed(self.out)
         return rows
 
+    def stale_runs(self) -> list[tuple[Run, list[str]]]:
+        """Finished runs whose ``config.json`` differs from the config this bench trains their variant with now,
+        each with what differs (``"name recorded -> now"``; the device aside)."""
+        from tacsplat.reconstruction.config import TrainConfig
+        from tacsplat.reconstruction.run_dir import read_json
+
+        stale = []
+        for run in self.runs():
+            path = run.out / "config.json"
+            if not (run.done and path.is_file()):
+                continue
+            recorded = TrainConfig.from_json(read_json(path), path).to_json()
+            now = self.reconstruct_job(run).config().to_json()
+            changes = [f"{key} {recorded.get(key)!r} -> {value!r}" for key, value in now.items()
+                       if key != "device" and recorded.get(key) != value]
+            if changes:
+                stale.append((run, changes))
+        return stale
+
     # ------------------------------------------------------------------ report
 
     def results(self) -> list[dict]:
@@ -265,7 +293,7 @@ class PaperBench:
     def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
         """results.csv, report.md and (``figures``) the plots from the runs on disk."""
         write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures, self.wall_note,
-                           self.first_views)
+                           self.first_views, self.stale_note)
         return self.out / "report.md"
 
     def prepare_pictures(self, run: Run) -> None:
@@ -456,10 +484,11 @@ def _first_view_truth(scene, frame, gt_rgb: np.ndarray, train_views: int | None
 
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
                        wall_seconds: float | None = None, figures: bool = True, wall_note: str = "",
-                       first_views: dict | None = None) -> None:
+                       first_views: dict | None = None, stale_note: str = "") -> None:
     """Write ``results.csv``, ``report.md`` and (``figures``) CD bar charts, error-vs-time curves and render
     grids into ``out``; without figures, report.md holds the tables only. ``wall_note`` follows the wall time
-    (how the jobs ran); ``first_views``: :func:`render_first_test_view`'s renders so far."""
+    (how the jobs ran); ``first_views``: :func:`render_first_test_view`'s renders so far; ``stale_note``: which
+    finished runs were trained with other settings (:meth:`PaperBench.stale_runs`)."""
     from tacsplat.apps.report import (
         markdown_table,
         METRICS,
@@ -488,6 +517,8 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
     if wall_seconds is not None:
         lines += [f"Wall time of the last invocation: {wall_seconds / 60:.1f} min{wall_note}; "
                   f"{len(rows)} of {len(runs)} runs finished.", ""]
+    if stale_note:
+        lines += [f"**Note:** {stale_note}.", ""]
     for setting in settings:
         lines += [f"## {setting}", ""]
         for metric in METRICS:

@@ -13,6 +13,7 @@ import pytest
 from tacsplat.apps import batch, paper_bench
 from tacsplat.errors import ConfigError
 from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig, step_work
+from tacsplat.reconstruction.variants import DEFAULT_VARIANT
 from tacsplat.apps.report import (
     RESULT_COLUMNS,
     best_rows,
@@ -134,7 +135,7 @@ def test_variant_table_and_config_errors():
         assert TrainConfig(**variant.overrides).variant == name
     assert get_variant("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
                                              "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
-                                             "lambda_albedo_smoothness": 0.0}
+                                             "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
     with pytest.raises(ConfigError, match="variant"):
         get_variant("ours")
     with pytest.raises(ConfigError, match="variants"):
@@ -145,6 +146,30 @@ def test_variant_table_and_config_errors():
         PaperBench("x", PaperBenchConfig(objects=("sphere",)))
     with pytest.raises(ConfigError, match="texture"):
         PaperBench("x", PaperBenchConfig(texture="plaid"))
+
+
+def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_path, monkeypatch):
+    """A finished run whose config.json differs from what the bench trains its variant with now (a default
+    changed since) is listed with what differs, and report.md says so; a run from before a setting existed that
+    its variant does not use (the albedo smoothness's weights of a `full` run) is not."""
+    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), variants=("full", DEFAULT_VARIANT))
+    bench = PaperBench(tmp_path, config)
+    for run in bench.runs():
+        _finish(run, 0.03)
+        recorded = bench.reconstruct_job(run).config().to_json()
+        del recorded["albedo_smoothness_beta"]  # written before the setting existed
+        (run.out / "config.json").write_text(json.dumps(recorded))
+    stale = bench.stale_runs()
+    assert [(run.variant, changes) for run, changes in stale] == [
+        (DEFAULT_VARIANT, ["albedo_smoothness_beta 0.0 -> 10.0"])]
+    depth = np.full((8, 8), 0.3, np.float32)
+    normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
+    monkeypatch.setattr(paper_bench, "render_first_test_view", lambda runs, cache=None: (
+        {r.variant: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal,
+        np.ones((8, 8), bool)))
+    bench.run(progress=False)
+    report = (tmp_path / "report.md").read_text()
+    assert "1 finished run(s) were trained with other settings" in report and f"{DEFAULT_VARIANT}-s0" in report
 
 
 def test_textured_objects_get_their_own_scenes_and_runs(tmp_path):
