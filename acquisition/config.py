@@ -503,8 +503,8 @@ def _validate_sim(c: RigConfig, src) -> None:
         raise ConfigError("sim.mesh", f"file not found: {c.path(s.mesh)}", src)
     from tacsplat.sim.objects import OBJECT_NAMES, texture_problem
 
-    if texture_problem(s.texture):
-        raise ConfigError("sim.texture", texture_problem(s.texture), src)
+    if problem := texture_problem(s.texture):
+        raise ConfigError("sim.texture", problem, src)
     if s.mesh is None:
         if s.object not in OBJECT_NAMES:
             raise ConfigError("sim.object", f"unknown library object {s.object!r} (one of {list(OBJECT_NAMES)})", src)

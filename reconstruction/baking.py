@@ -75,7 +75,7 @@ def bake_appearance(gaussians: Gaussians, look: Look, directions: int = BAKE_DIR
     for start in range(0, len(g), BAKE_CHUNK):
         rows = slice(start, min(start + BAKE_CHUNK, len(g)))
         part = Gaussians({k: v[rows] for k, v in g.params.items()}, g.from_touch[rows], g.sh_degree)
-        target = shaded_colours(part, look, dirs.to(g.means.dtype), normals[rows].to(g.means.dtype)).double() - 0.5
+        target = shaded_colours(part, look, dirs, normals[rows].to(g.means.dtype)).double() - 0.5
         weight = (normals[rows] @ dirs.T).abs() + 1e-3  # [n, D]: projected area (never exactly 0)
         normal_matrix = torch.einsum("dk,nd,dl->nkl", basis, weight, basis)  # [n, 16, 16]
         normal_matrix += 1e-6 * torch.eye(basis.shape[1], dtype=basis.dtype, device=basis.device)

@@ -359,7 +359,7 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     run = load_run(Path(run_dir))
     scene = scene_at(Scene.load(run.scene_path), run.config.downscale)
     splat = bake_appearance(run.gaussians, run.look)
-    if (Path(run_dir) / "splat.ply").is_file():
+    if splat is not run.gaussians and (Path(run_dir) / "splat.ply").is_file():  # (an SH run's is already right)
         save_ply(splat, Path(run_dir) / "splat.ply")
     return evaluate_reconstruction(run.gaussians, scene, run.config, run.step,
                                    run.train_seconds, run_dir, gt_path, backend, run.look, splat)

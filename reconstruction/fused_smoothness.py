@@ -157,4 +157,4 @@ def albedo_smoothness_cpu(albedo: torch.Tensor, inside: torch.Tensor, across: to
     if tuple(across.shape) != (height, width - 1) or tuple(down.shape) != (height - 1, width):
         raise ValueError(f"albedo_smoothness_cpu: pair weights {tuple(across.shape)}, {tuple(down.shape)} do not fit "
                          f"a {height}x{width} albedo")
-    return _AlbedoSmoothnessCPU.apply(albedo, inside, across.detach().contiguous(), down.detach().contiguous())
+    return _AlbedoSmoothnessCPU.apply(albedo, inside, across, down)  # (forward's _np: detached, contiguous)

@@ -76,9 +76,11 @@ def read_checkpoint(path: Path) -> dict:
     return ckpt
 
 
-def checkpoint_look(ckpt: dict, config: TrainConfig) -> Look:
-    """The appearance of a checkpoint's Gaussians (:func:`read_checkpoint`'s dict), with its environment map
-    and its light where it has them."""
+def load_checkpoint(path: Path) -> LoadedRun:
+    """A checkpoint file of a run (``checkpoint.pt`` or a kept ``checkpoint_*.pt``): its Gaussians, config and
+    appearance (with its environment map and its light where it has them)."""
+    ckpt = read_checkpoint(path)
+    config = TrainConfig.from_json(ckpt["config"], path)
     look = Look(config.appearance)
     if config.appearance in SPECULAR:
         look.environment = EnvironmentMap(config.env_map_height)
@@ -86,16 +88,13 @@ def checkpoint_look(ckpt: dict, config: TrainConfig) -> Look:
     if config.appearance in LIT:
         look.light = DiffuseLight()
         look.light.load_state_dict(ckpt["light"])
-    return look
+    return LoadedRun(Path(ckpt["scene_path"]), config, Gaussians.from_state_dict(ckpt["gaussians"]),
+                     int(ckpt["step"]), float(ckpt["train_seconds"]), look)
 
 
 def load_run(run_dir: Path) -> LoadedRun:
     """The last checkpoint of a run directory (for evaluation)."""
-    ckpt_path = run_checkpoint(run_dir)
-    ckpt = read_checkpoint(ckpt_path)
-    config = TrainConfig.from_json(ckpt["config"], ckpt_path)
-    return LoadedRun(Path(ckpt["scene_path"]), config, Gaussians.from_state_dict(ckpt["gaussians"]),
-                     int(ckpt["step"]), float(ckpt["train_seconds"]), checkpoint_look(ckpt, config))
+    return load_checkpoint(run_checkpoint(run_dir))
 
 
 def cut_progress(path: Path, step: int) -> None:

@@ -151,8 +151,7 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
         sky = '<texture name="sky" type="skybox" builtin="flat" rgb1="1 1 1" rgb2="1 1 1" width="16" height="16"/>'
     else:
         raise ConfigError("background", f"must be 'gradient' or 'white', got {config.background!r}")
-    problem = texture_problem(config.texture)
-    if problem:
+    if problem := texture_problem(config.texture):
         raise ConfigError("texture", problem)
     textured = config.texture == "checker"  # a cube map: MuJoCo projects it onto a mesh without texture coordinates
     texture = f'<texture name="object" type="cube" file="{CHECKER_FILE}"/>' if textured else ""

@@ -96,19 +96,19 @@ class PaperBenchConfig:
             raise ConfigError("touch_model", f"must be gel or paper, got {self.touch_model!r}")
         from tacsplat.sim.objects import texture_problem
 
-        if texture_problem(self.texture):
-            raise ConfigError("texture", texture_problem(self.texture))
+        if problem := texture_problem(self.texture):
+            raise ConfigError("texture", problem)
+
+    @property
+    def scene_tag(self) -> str:
+        """Suffix of scene folders that are not gel touches on untextured objects (so they never mix)."""
+        return ("" if self.touch_model == "gel" else f"-{self.touch_model}-touches") + (
+            "" if self.texture == "none" else f"-{self.texture}")
 
     @property
     def tag(self) -> str:
-        """Suffix of run folders that are not the default preset with gel touches (so they never mix)."""
-        return ("" if self.preset == "default" else f"-{self.preset}") + (
-            "" if self.touch_model == "gel" else f"-{self.touch_model}-touches") + self.texture_tag
-
-    @property
-    def texture_tag(self) -> str:
-        """Suffix of the scene and run folders of textured objects."""
-        return "" if self.texture == "none" else f"-{self.texture}"
+        """Suffix of run folders that are not the default preset on the default scenes (so they never mix)."""
+        return ("" if self.preset == "default" else f"-{self.preset}") + self.scene_tag
 
     def object_list(self) -> list[str]:
         from tacsplat.sim.objects import OBJECT_NAMES
@@ -156,8 +156,7 @@ class PaperBench:
         self.config.validate()
 
     def scene_dir(self, obj: str, setting: str, seed: int) -> Path:
-        touches = "" if self.config.touch_model == "gel" else f"-{self.config.touch_model}-touches"
-        return self.out / "scenes" / obj / f"{setting}-s{seed}{touches}{self.config.texture_tag}"
+        return self.out / "scenes" / obj / f"{setting}-s{seed}{self.config.scene_tag}"
 
     def runs(self) -> list[Run]:
         """Every run, setting by setting (the minimal-views table fills first), then object, seed, variant."""

@@ -443,9 +443,7 @@ def _gaussian_sets(server, view: View) -> None:
 def _checkpoint_slider(server, view: View, run: RunData) -> None:
     """A slider over the run's kept checkpoints (only when there are several)."""
     from tacsplat.reconstruction.baking import bake_appearance
-    from tacsplat.reconstruction.config import TrainConfig
-    from tacsplat.reconstruction.gaussians import Gaussians
-    from tacsplat.reconstruction.run_dir import checkpoint_look, read_checkpoint
+    from tacsplat.reconstruction.run_dir import load_checkpoint
 
     if len(run.checkpoints) < 2:
         return
@@ -460,12 +458,11 @@ def _checkpoint_slider(server, view: View, run: RunData) -> None:
         path = run.checkpoints[event.target.value]
         if path not in baked:
             try:
-                ckpt = read_checkpoint(path)
-                look = checkpoint_look(ckpt, TrainConfig.from_json(ckpt["config"], path))
+                loaded = load_checkpoint(path)
             except TacsplatError as exc:
                 shown.content = f"**cannot show {path.name}**: {exc}"
                 return
-            baked[path] = bake_appearance(Gaussians.from_state_dict(ckpt["gaussians"]), look), ckpt["step"]
+            baked[path] = bake_appearance(loaded.gaussians, loaded.look), loaded.step
         gaussians, step = baked[path]
         view.slots[0].show(run, gaussians)
         shown.content = f"showing {path.name}: step {step}, {len(gaussians)} Gaussians"

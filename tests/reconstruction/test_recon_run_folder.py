@@ -150,52 +150,48 @@ def test_a_signal_checkpoints_the_step_reached_and_resume_matches_a_straight_run
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
-def test_resume_after_a_crash_drops_the_progress_rows_after_the_checkpoint(scene, tmp_path, monkeypatch):
+def _power_cut_then_resume(scene, run: Path, iterations: int, checkpoint_every: int, cut_at: int, monkeypatch,
+                           between=lambda: None) -> list[int]:
+    """Train ``iterations`` steps (a progress row every 2), killed without a signal (no last checkpoint) when
+    step ``cut_at`` starts; call ``between()``, resume; the iterations of progress.csv's rows."""
     from tacsplat.datasets import Scene
     from tacsplat.reconstruction.config import TrainConfig
 
-    config = TrainConfig(iterations=10, sh_degree=0, backend="cpu", lambda_s=0.0, eval_every_iters=2,
-                         eval_every_seconds=1e9, checkpoint_every=4)
+    config = TrainConfig(iterations=iterations, sh_degree=0, backend="cpu", lambda_s=0.0, eval_every_iters=2,
+                         eval_every_seconds=1e9, checkpoint_every=checkpoint_every)
     real_step = Trainer.train_step
 
-    def power_cut_in_step_8(self):
-        if self.step == 7:
-            raise SystemError("power cut")  # no signal, no checkpoint: the last one is step 4's
+    def power_cut(self):
+        if self.step == cut_at:
+            raise SystemError("power cut")
         return real_step(self)
 
-    monkeypatch.setattr(Trainer, "train_step", power_cut_in_step_8)
+    monkeypatch.setattr(Trainer, "train_step", power_cut)
     with pytest.raises(SystemError):
-        Trainer(Scene.load(scene), tmp_path / "run", config).run(show_progress=False)
+        Trainer(Scene.load(scene), run, config).run(show_progress=False)
     monkeypatch.setattr(Trainer, "train_step", real_step)
-    Trainer(Scene.load(scene), tmp_path / "run", config).run(resume=True, show_progress=False)
-    with (tmp_path / "run" / "progress.csv").open() as fh:
-        assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 2, 4, 6, 8, 10]
+    between()
+    Trainer(Scene.load(scene), run, config).run(resume=True, show_progress=False)
+    with (run / "progress.csv").open() as fh:
+        return [int(r["iteration"]) for r in csv.DictReader(fh)]
+
+
+def test_resume_after_a_crash_drops_the_progress_rows_after_the_checkpoint(scene, tmp_path, monkeypatch):
+    # cut in step 8: the last checkpoint is step 4's; the rows after it are dropped and written again
+    assert _power_cut_then_resume(scene, tmp_path / "run", 10, 4, 7, monkeypatch) == [0, 2, 4, 6, 8, 10]
 
 
 def test_a_checkpoint_from_before_a_loss_term_existed_resumes(scene, tmp_path, monkeypatch):
     """A checkpoint whose running sums lack a loss term added since (albedo_smoothness) resumes to the end."""
-    from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.config import TrainConfig
+    path = tmp_path / "run" / "checkpoint.pt"
 
-    config = TrainConfig(iterations=6, sh_degree=0, backend="cpu", lambda_s=0.0, eval_every_iters=2,
-                         eval_every_seconds=1e9, checkpoint_every=3)
-    real_step = Trainer.train_step
+    def as_written_before_the_term():
+        checkpoint = torch.load(path, weights_only=False)
+        del checkpoint["progress"]["sums"]["albedo_smoothness"]
+        torch.save(checkpoint, path)
 
-    def power_cut_in_step_5(self):
-        if self.step == 4:
-            raise SystemError("power cut")
-        return real_step(self)
-
-    monkeypatch.setattr(Trainer, "train_step", power_cut_in_step_5)
-    with pytest.raises(SystemError):
-        Trainer(Scene.load(scene), tmp_path / "run", config).run(show_progress=False)
-    monkeypatch.setattr(Trainer, "train_step", real_step)
-    checkpoint = torch.load(tmp_path / "run" / "checkpoint.pt", weights_only=False)
-    del checkpoint["progress"]["sums"]["albedo_smoothness"]
-    torch.save(checkpoint, tmp_path / "run" / "checkpoint.pt")
-    Trainer(Scene.load(scene), tmp_path / "run", config).run(resume=True, show_progress=False)
-    with (tmp_path / "run" / "progress.csv").open() as fh:
-        assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 2, 4, 6]
+    assert _power_cut_then_resume(scene, tmp_path / "run", 6, 3, 4, monkeypatch,
+                                  as_written_before_the_term) == [0, 2, 4, 6]
 
 
 def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp_path):
