@@ -29,7 +29,7 @@ class Variant:
 NO_SMOOTH_ALBEDO = {"lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}  # (its weights unused too)
 SH = {"appearance": "sh", **NO_SMOOTH_ALBEDO}  # view-dependent colour, unlit (3DGS)
 PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, **SH}
-NORMALS = {"lambda_flatten": 10.0, "lambda_depth_normal": 0.05, "depth_normal_start_iter": 300}  # (TrainConfig's)
+NORMALS = {"lambda_flatten": 10.0, "lambda_depth_normal": 0.05, "depth_normal_start_iter": 700}  # (TrainConfig's)
 
 VARIANTS: dict[str, Variant] = {
     v.name: v
@@ -41,7 +41,7 @@ VARIANTS: dict[str, Variant] = {
                 "touch Gaussians and transmittance L_T (Eq. 7), no smoothness"),
         Variant("full", "Ours (full)", PAPER, "touch and smoothness: the paper's method"),
         Variant("full+n", "Ours + normals", {**NORMALS, "lambda_touch_normal": 0.0, **SH},
-                "full, plus flat Gaussians (minimum-scale loss) and depth-normal consistency from step 300 "
+                "full, plus flat Gaussians (minimum-scale loss) and depth-normal consistency from step 700 "
                 "(beyond the paper)"),
         Variant("full+n+tn", "Ours + normals + tactile normals",
                 {**NORMALS, "lambda_touch_normal": 0.1, **SH},
