@@ -17,6 +17,8 @@ from tacsplat.reconstruction.raster.rendering import BACKENDS
 from tacsplat.reconstruction.variants import variant_of
 
 Appearance = Literal["sh", "reflective", "lit", "sh-lit"]  # how Gaussians are coloured (see TrainConfig.appearance)
+SPECULAR = ("reflective", "lit")  # the appearances with a specular tint, a roughness and an environment map
+LIT = ("lit", "sh-lit")  # the appearances a learned diffuse light shades
 
 
 @dataclass
@@ -100,6 +102,21 @@ class TrainConfig:
     def variant(self) -> str:
         """The name of the method variant this config runs (:mod:`.variants`)."""
         return variant_of(self)
+
+    def unused_fields(self) -> set[str]:
+        """The fields that cannot change what this config trains: the settings of the mechanisms it switches off."""
+        unused = set()
+        if self.lambda_depth_normal == 0:
+            unused.add("depth_normal_start_iter")
+        if self.appearance == "sh" or self.lambda_albedo_smoothness == 0:
+            unused.add("albedo_smoothness_beta")
+        if self.appearance == "sh":
+            unused.add("lambda_albedo_smoothness")
+        if self.appearance not in LIT:
+            unused.add("lit_start_iter")
+        if self.appearance not in SPECULAR:
+            unused.add("env_map_height")
+        return unused
 
     def validate(self, names: dict[str, str] | None = None) -> None:
         """A ConfigError for the first setting out of its range, naming it (as ``names[field]`` when given,

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from tacsplat.reconstruction.config import Appearance
+from tacsplat.reconstruction.config import LIT, SPECULAR, Appearance
 from tacsplat.reconstruction.fused_normals import gaussian_normals_cpu
 from tacsplat.reconstruction.fused_shading import ALPHA_FLOOR, TINY, shade_cpu
 from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
@@ -42,8 +42,6 @@ from tacsplat.reconstruction.raster import rendering as raster  # the module: te
 from tacsplat.reconstruction.raster.spherical_harmonics import SH_C0, sh_basis
 
 REFLECTIVE_PARAMS = {"tint": 3, "roughness": 1}  # extra per-Gaussian parameters (logits) of "reflective" and "lit"
-SPECULAR = ("reflective", "lit")  # the appearances with a specular tint, a roughness and an environment map
-LIT = ("lit", "sh-lit")  # the appearances a learned diffuse light shades
 
 
 def add_reflective_params(gaussians: Gaussians) -> None:

@@ -26,7 +26,7 @@ class Variant:
     description: str = ""
 
 
-NO_SMOOTH_ALBEDO = {"lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}  # (its weights unused too)
+NO_SMOOTH_ALBEDO = {"lambda_albedo_smoothness": 0.0}
 SH = {"appearance": "sh", **NO_SMOOTH_ALBEDO}  # view-dependent colour, unlit (3DGS)
 PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, **SH}
 NORMALS = {"lambda_flatten": 10.0, "lambda_depth_normal": 0.05, "depth_normal_start_iter": 700}  # (TrainConfig's)

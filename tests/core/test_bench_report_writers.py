@@ -135,7 +135,7 @@ def test_variant_table_and_config_errors():
         assert TrainConfig(**variant.overrides).variant == name
     assert get_variant("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
                                              "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
-                                             "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
+                                             "lambda_albedo_smoothness": 0.0}
     with pytest.raises(ConfigError, match="variant"):
         get_variant("ours")
     with pytest.raises(ConfigError, match="variants"):
@@ -150,18 +150,20 @@ def test_variant_table_and_config_errors():
 
 def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_path, monkeypatch):
     """A finished run whose config.json differs from what the bench trains its variant with now (a default
-    changed since) is listed with what differs, and report.md says so; a run from before a setting existed that
-    its variant does not use (the albedo smoothness's weights of a `full` run) is not."""
+    changed since) is listed with what differs, and report.md says so; a setting that the variant's config does not
+    use, then or now, does not count (the albedo smoothness's weights, from before they existed, and the start of
+    the depth-normal consistency of a `full` run, which has none)."""
     config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), variants=("full", DEFAULT_VARIANT))
     bench = PaperBench(tmp_path, config)
     for run in bench.runs():
         _finish(run, 0.03)
         recorded = bench.reconstruct_job(run).config().to_json()
         del recorded["albedo_smoothness_beta"]  # written before the setting existed
+        recorded["depth_normal_start_iter"] = 300  # the default until 2026-11-25
         (run.out / "config.json").write_text(json.dumps(recorded))
     stale = bench.stale_runs()
     assert [(run.variant, changes) for run, changes in stale] == [
-        (DEFAULT_VARIANT, ["albedo_smoothness_beta 0.0 -> 10.0"])]
+        (DEFAULT_VARIANT, ["depth_normal_start_iter 300 -> 700", "albedo_smoothness_beta 0.0 -> 10.0"])]
     depth = np.full((8, 8), 0.3, np.float32)
     normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
     monkeypatch.setattr(paper_bench, "render_first_test_view", lambda runs, cache=None: (

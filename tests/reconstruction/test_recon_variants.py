@@ -51,3 +51,12 @@ def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_tra
     sh_lit = TrainConfig().to_json()  # a default run from before the albedo smoothness had image weights
     del sh_lit["albedo_smoothness_beta"]
     assert TrainConfig.from_json(sh_lit) == TrainConfig(albedo_smoothness_beta=0.0)  # unweighted, as it trained
+
+
+def test_a_switched_off_mechanisms_settings_are_unused():
+    assert TrainConfig().unused_fields() == {"env_map_height"}  # sh-lit: no environment map
+    assert TrainConfig(**get_variant("full").overrides).unused_fields() == {
+        "depth_normal_start_iter", "albedo_smoothness_beta", "lambda_albedo_smoothness", "lit_start_iter",
+        "env_map_height"}
+    assert TrainConfig(appearance="reflective").unused_fields() == {"lit_start_iter"}
+    assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
