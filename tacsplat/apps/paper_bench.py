@@ -226,11 +226,15 @@ class PaperBench:
         if unfinished < len(runs):
             log.info("%d of %d runs already finished in %s: skipped", len(runs) - unfinished, len(runs), self.out)
         stale = self.stale_runs()
+        groups: dict[tuple[str, str], list[str]] = {}  # (variant, what differs) -> its run folders
+        for run, changes in stale:
+            groups.setdefault((run.variant, ", ".join(changes)), []).append(str(run.out.relative_to(self.out)))
         self.stale_note = "" if not stale else (
             f"{len(stale)} finished run(s) were trained with other settings than this bench trains their variant "
             "with now (a default changed since); their numbers stand in the tables as they were measured; delete "
             "their folders to measure them again: " + "; ".join(
-                f"{run.out.relative_to(self.out)} ({', '.join(changes)})" for run, changes in stale))
+                f"{variant} ({changes}), {len(folders)} run(s): {', '.join(folders)}"
+                for (variant, changes), folders in groups.items()))
         if stale:
             log.warning("%s", self.stale_note)
         started = time.perf_counter()
