@@ -65,7 +65,8 @@ class TrainConfig:
     lambda_flatten: float = 10.0  # minimum-scale loss (PGSR): surfel-like Gaussians whose shortest axis is a normal
     lambda_depth_normal: float = 0.05  # depth-normal consistency (2DGS): rendered normals agree with the depth's
     depth_normal_start_iter: int = 700  # ... from this step on (after the geometry has formed; from 300, the
-    # paper metric's completeness was 14 per cent worse on the twin's glossy objects: README)
+    # paper metric's completeness was 16 per cent worse on the twin's glossy objects: README); a step number, as
+    # the other start steps are, so a run of 700 steps or fewer has none
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
     lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
     # (needs the rendered normals: with depth-normal consistency on, from its start step)
@@ -202,8 +203,9 @@ class TrainConfig:
 
 
 # Fields a config.json written before they existed leaves out, with the value such a run trained with (where that
-# differs from today's default): the colour was unlit SH without a smooth albedo.
-_BEFORE_THEY_EXISTED = {"appearance": "sh", "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
+# differs from today's default): no surface-normal losses, and the colour was unlit SH without a smooth albedo.
+_BEFORE_THEY_EXISTED = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0,
+                        "appearance": "sh", "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
 
 # Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
 _INT_RANGES = {

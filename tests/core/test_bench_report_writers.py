@@ -153,7 +153,7 @@ def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_p
     changed since) is listed with what differs, and report.md says so; a setting that the variant's config does not
     use, then or now, does not count (the albedo smoothness's weights, from before they existed, and the start of
     the depth-normal consistency of a `full` run, which has none)."""
-    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), variants=("full", DEFAULT_VARIANT))
+    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), seeds=(0, 1), variants=("full", DEFAULT_VARIANT))
     bench = PaperBench(tmp_path, config)
     for run in bench.runs():
         _finish(run, 0.03)
@@ -162,8 +162,9 @@ def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_p
         recorded["depth_normal_start_iter"] = 300  # the default until 2026-11-25
         (run.out / "config.json").write_text(json.dumps(recorded))
     stale = bench.stale_runs()
-    assert [(run.variant, changes) for run, changes in stale] == [
-        (DEFAULT_VARIANT, ["depth_normal_start_iter 300 -> 700", "albedo_smoothness_beta 0.0 -> 10.0"])]
+    assert [(run.variant, run.seed, changes) for run, changes in stale] == [
+        (DEFAULT_VARIANT, seed, ["depth_normal_start_iter 300 -> 700", "albedo_smoothness_beta 0.0 -> 10.0"])
+        for seed in (0, 1)]
     depth = np.full((8, 8), 0.3, np.float32)
     normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
     monkeypatch.setattr(paper_bench, "render_first_test_view", lambda runs, cache=None: (
@@ -171,7 +172,9 @@ def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_p
         np.ones((8, 8), bool)))
     bench.run(progress=False)
     report = (tmp_path / "report.md").read_text()
-    assert "1 finished run(s) were trained with other settings" in report and f"{DEFAULT_VARIANT}-s0" in report
+    assert "2 finished run(s) were trained with other settings" in report  # one group: same variant, same change
+    assert (f"{DEFAULT_VARIANT} (depth_normal_start_iter 300 -> 700, albedo_smoothness_beta 0.0 -> 10.0), 2 run(s): "
+            f"runs/teapot/minimal/{DEFAULT_VARIANT}-s0, runs/teapot/minimal/{DEFAULT_VARIANT}-s1") in report
 
 
 def test_textured_objects_get_their_own_scenes_and_runs(tmp_path):

@@ -142,6 +142,23 @@ def test_touch_pixel_normals_run_with_the_rendered_normals_and_only_when_weighte
     assert torch.isfinite(trainer.touch_normals).any()
 
 
+def test_the_settings_of_a_switched_off_mechanism_change_nothing(sphere_scene, tmp_path):
+    """TrainConfig.unused_fields is what bench paper ignores when it compares a run's settings with today's: changing
+    them leaves the trained Gaussians identical (here the consistency's start step, with the touch-pixel normals
+    that ride on it weighted but the consistency off, and the albedo smoothness's weights, with the smoothness off)."""
+    def trained(name: str, **changes) -> dict:
+        config = _config(4, lambda_depth_normal=0.0, lambda_touch_normal_pixels=0.1, lambda_albedo_smoothness=0.0,
+                         **changes)
+        trainer = Trainer(Scene.load(sphere_scene), tmp_path / name, config)
+        trainer.run(show_progress=False)
+        return {"unused": config.unused_fields(), **trainer.gaussians.params}
+
+    base = trained("base", depth_normal_start_iter=0, albedo_smoothness_beta=10.0)
+    other = trained("other", depth_normal_start_iter=700, albedo_smoothness_beta=0.0)
+    assert {"depth_normal_start_iter", "albedo_smoothness_beta"} <= base.pop("unused") == other.pop("unused")
+    assert base.keys() == other.keys() and all(torch.equal(base[k], other[k]) for k in base)
+
+
 def test_smoothness_waits_for_its_start_step_and_the_proximity_mask_can_be_off(sphere_scene, tmp_path, monkeypatch):
     spies = _spy_paths(monkeypatch)
     trainer = Trainer(Scene.load(sphere_scene), tmp_path / "run", _config(5, smoothness_start_iter=3,

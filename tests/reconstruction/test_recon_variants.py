@@ -51,6 +51,11 @@ def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_tra
     sh_lit = TrainConfig().to_json()  # a default run from before the albedo smoothness had image weights
     del sh_lit["albedo_smoothness_beta"]
     assert TrainConfig.from_json(sh_lit) == TrainConfig(albedo_smoothness_beta=0.0)  # unweighted, as it trained
+    paper = TrainConfig(**get_variant("full").overrides).to_json()  # from before the surface-normal losses
+    for name in ("lambda_flatten", "lambda_depth_normal", "lambda_touch_normal", "appearance",
+                 "lambda_albedo_smoothness", "albedo_smoothness_beta"):
+        del paper[name]
+    assert TrainConfig.from_json(paper).variant == "full"
 
 
 def test_a_switched_off_mechanisms_settings_are_unused():
