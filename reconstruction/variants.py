@@ -26,8 +26,7 @@ class Variant:
     description: str = ""
 
 
-NO_SMOOTH_ALBEDO = {"lambda_albedo_smoothness": 0.0}
-SH = {"appearance": "sh", **NO_SMOOTH_ALBEDO}  # view-dependent colour, unlit (3DGS)
+SH = {"appearance": "sh", "lambda_albedo_smoothness": 0.0}  # view-dependent colour, unlit (3DGS)
 PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, **SH}
 NORMALS = {"lambda_flatten": 10.0, "lambda_depth_normal": 0.05, "depth_normal_start_iter": 700}  # (TrainConfig's)
 
@@ -47,7 +46,7 @@ VARIANTS: dict[str, Variant] = {
                 {**NORMALS, "lambda_touch_normal": 0.1, **SH},
                 "full+n, plus touch Gaussians' normals aligned with the tactile maps' normals (beyond the paper)"),
         Variant("full+n+r", "Ours + normals + reflections",
-                {**NORMALS, "lambda_touch_normal": 0.0, "appearance": "reflective", **NO_SMOOTH_ALBEDO},
+                {**NORMALS, "lambda_touch_normal": 0.0, "appearance": "reflective", "lambda_albedo_smoothness": 0.0},
                 "full+n, with diffuse + specular environment-map shading instead of view-dependent SH "
                 "(beyond the paper)"),
         # full+n+tn with one mechanism off or on, for the ablation (README: "each mechanism on and off")
@@ -60,7 +59,7 @@ VARIANTS: dict[str, Variant] = {
                 {**NORMALS, "lambda_flatten": 0.0, "lambda_touch_normal": 0.1, **SH},
                 "full+n+tn without flattening (ablation)"),
         Variant("full+n+tn+r", "Ours + normals + tactile normals + reflections",
-                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "reflective", **NO_SMOOTH_ALBEDO},
+                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "reflective", "lambda_albedo_smoothness": 0.0},
                 "full+n+tn with the reflective appearance (ablation)"),
         Variant("full+n+tn+l+as", "Ours + normals + tactile normals + lit shading",
                 {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "lit", "lambda_albedo_smoothness": 0.1},

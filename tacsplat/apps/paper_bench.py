@@ -225,17 +225,8 @@ class PaperBench:
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
             log.info("%d of %d runs already finished in %s: skipped", len(runs) - unfinished, len(runs), self.out)
-        stale = self.stale_runs()
-        groups: dict[tuple[str, str], list[str]] = {}  # (variant, what differs) -> its run folders
-        for run, changes in stale:
-            groups.setdefault((run.variant, ", ".join(changes)), []).append(str(run.out.relative_to(self.out)))
-        self.stale_note = "" if not stale else (
-            f"{len(stale)} finished run(s) were trained with other settings than this bench trains their variant "
-            "with now (a default changed since); their numbers stand in the tables as they were measured; delete "
-            "their folders to measure them again: " + "; ".join(
-                f"{variant} ({changes}), {len(folders)} run(s): {', '.join(folders)}"
-                for (variant, changes), folders in groups.items()))
-        if stale:
+        self.stale_note = _stale_note(self.stale_runs(), self.out)
+        if self.stale_note:
             log.warning("%s", self.stale_note)
         started = time.perf_counter()
         jobs = self.jobs()
@@ -485,6 +476,21 @@ def _first_view_truth(scene, frame, gt_rgb: np.ndarray, train_views: int | None
     if ground_truth is not None and ground_truth.seen is not None:
         gt_seen = seen_pixels(gt_depth, ground_truth.seen[frame.id])
     return gt_depth, gt_normal, gt_seen
+
+
+def _stale_note(stale: list[tuple[Run, list[str]]], out: Path) -> str:
+    """What report.md and the log say about :meth:`PaperBench.stale_runs` ("" when none): the runs grouped by
+    variant and what differs, each group with its folders (relative to ``out``)."""
+    if not stale:
+        return ""
+    groups: dict[tuple[str, str], list[str]] = {}  # (variant, what differs) -> its run folders
+    for run, changes in stale:
+        groups.setdefault((run.variant, ", ".join(changes)), []).append(str(run.out.relative_to(out)))
+    return (f"{len(stale)} finished run(s) were trained with other settings than this bench trains their variant "
+            "with now (a default changed since); their numbers stand in the tables as they were measured; delete "
+            "their folders to measure them again: " + "; ".join(
+                f"{variant} ({changes}), {len(folders)} run(s): {', '.join(folders)}"
+                for (variant, changes), folders in groups.items()))
 
 
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
