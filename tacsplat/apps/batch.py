@@ -14,6 +14,7 @@ The YAML file lists jobs; ``out``, ``scene`` and ``run`` are relative to
       - {kind: reconstruct, out: runs/teapot/full-s0, scene: scenes/teapot-s0, variant: full, seed: 0}
       - {kind: evaluate, run: /shared/older/run, gt_mesh: teapot.obj}
 
+A reconstruction without ``variant`` or ``preset`` trains what `tacsplat reconstruct` trains without options.
 A reconstruction of a scene that a capture of the batch writes needs that
 capture (listed before it), and an evaluation of a run needs its reconstruction.
 Writes ``DIR/results.csv`` (one row per run with a metrics.json, rewritten as
@@ -33,6 +34,7 @@ from pathlib import Path
 from typing import Literal
 
 from tacsplat.errors import ConfigError
+from tacsplat.reconstruction.variants import DEFAULT_VARIANT
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +73,13 @@ class BatchJob:
         """A ConfigError naming the field at fault, before anything runs."""
         if not self.cpus > 0:
             raise ConfigError("cpus", f"must be > 0, got {self.cpus}")
+
+    def refuse_changed_settings(self) -> None:
+        """A benchmark's check before it runs: a finished run trained with other settings than this job's is an
+        error on ``--out`` (:meth:`settings_changed`), not a number silently reused."""
+        if changes := self.settings_changed():
+            raise ConfigError("--out", f"{self.out} was trained with other settings ({', '.join(changes)}): use the "
+                              "same options or a new --out, or delete that run folder to train it again")
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         return 0
@@ -167,7 +176,7 @@ class ReconstructJob(BatchJob):
     out: Path
     scene: Path
     preset: str = "default"  # reconstruction.config.PRESETS
-    variant: str = "full"  # reconstruction.variants.VARIANTS
+    variant: str = DEFAULT_VARIANT  # reconstruction.variants.VARIANTS; by default what `tacsplat reconstruct` trains
     seed: int = 0
     iterations: int | None = None  # None: the preset's
     device: Literal["auto", "cpu", "cuda"] = "auto"
@@ -185,6 +194,22 @@ class ReconstructJob(BatchJob):
     def check(self) -> None:
         super().check()
         self.config().validate()
+
+    def settings_changed(self) -> list[str]:
+        """What differs between the config a finished run recorded (``out/config.json``) and the one this job
+        trains now, as ``"name recorded -> now"`` (the device and the settings of mechanisms that both switch off
+        aside: :meth:`TrainConfig.unused_fields`); empty for an unfinished run or one without a config.json."""
+        from tacsplat.reconstruction.config import TrainConfig
+        from tacsplat.reconstruction.run_dir import read_json
+
+        path = self.out / "config.json"
+        if not (self.complete() and path.is_file()):
+            return []
+        recorded, now = TrainConfig.from_json(read_json(path), path), self.config()
+        unused = recorded.unused_fields() & now.unused_fields()  # (a switched-off mechanism's settings)
+        before = recorded.to_json()
+        return [f"{key} {before.get(key)!r} -> {value!r}" for key, value in now.to_json().items()
+                if key != "device" and key not in unused and before.get(key) != value]
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         """One GPU for a CUDA training (``auto`` trains on CUDA where the cluster has GPUs)."""

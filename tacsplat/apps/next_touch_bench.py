@@ -4,8 +4,8 @@ Per object, seed and strategy one simulated capture with 5 train views and the l
 (``sim-capture --grasp-strategy random|next-best``); both strategies of an object and seed see the same views
 (the views do not depend on the strategy). Choices are sequential, so the first ``k`` grasps of a capture are the
 ``k``-grasp capture: per budget ``k`` a copy of the scene keeps every frame and the touches of its first ``k``
-recorded grasps, and is reconstructed with the trainer's defaults for the same ``--iterations`` whatever the
-strategy. The training next-best spends choosing (``selection_steps`` per grasp) is not in these steps; it is
+recorded grasps, and is reconstructed with ``--variant`` (default: what `tacsplat reconstruct` trains) for the
+same ``--iterations`` whatever the strategy. The training next-best spends choosing (``selection_steps`` per grasp) is not in these steps; it is
 reported as ``selection_seconds``.
 
 Beside the table, for each object's first seed: how well the two uncertainty scores of the views-only
@@ -39,6 +39,7 @@ import numpy as np
 from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
+from tacsplat.reconstruction.variants import DEFAULT_VARIANT
 
 log = logging.getLogger(__name__)
 
@@ -59,12 +60,14 @@ class NextTouchBenchConfig:
     test_views: int = 12
     resolution: int = 128
     iterations: int = 1500  # steps of every final reconstruction
+    variant: str = DEFAULT_VARIANT  # the method of every final reconstruction (reconstruction.variants.VARIANTS)
     candidates: int = 16  # next-best: approaches scored per grasp
     selection_steps: int = 300  # next-best: steps of the reconstruction that chooses each grasp
     uncertainty: str = "depth-variance"  # next-best: the score
 
     def validate(self) -> None:
         from tacsplat.reconstruction.uncertainty import SCORES
+        from tacsplat.reconstruction.variants import VARIANTS
         from tacsplat.sim.objects import OBJECT_NAMES
 
         unknown = [o for o in self.objects if o not in OBJECT_NAMES]
@@ -84,6 +87,8 @@ class NextTouchBenchConfig:
         for key in ("views", "test_views", "resolution", "iterations", "candidates", "selection_steps"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"--{key.replace('_', '-')}", f"must be >= 1, got {getattr(self, key)}")
+        if self.variant not in VARIANTS:
+            raise ConfigError("--variant", f"unknown variant {self.variant!r}; choose from {', '.join(VARIANTS)}")
         if self.uncertainty not in SCORES:
             raise ConfigError("--uncertainty", f"must be one of {', '.join(SCORES)}, got {self.uncertainty!r}")
 
@@ -184,8 +189,8 @@ class NextTouchBench:
 
     def check_out(self) -> None:
         """Refuse a folder whose finished captures were made with another plan, or whose finished runs with
-        another number of steps, before anything runs."""
-        c = self.config
+        other training settings (another number of steps or variant, or a default changed since), before anything
+        runs."""
         for subject, seed, strategy in self.captures():
             capture = self.capture_job(subject, seed, strategy)
             marker = capture.out / CAPTURE_MARKER
@@ -193,16 +198,11 @@ class NextTouchBench:
                 raise ConfigError("--out", f"{marker.parent} was captured with another plan ({marker}); "
                                   "use the same options or a new --out")
         for key in self.sweep():
-            out = self.run_dir(self.copy_job(*key))
-            if (out / METRICS).is_file():
-                metrics = json.loads((out / METRICS).read_text())
-                if metrics["iterations"] != c.iterations:
-                    raise ConfigError("--out", f"{out} was trained for {metrics['iterations']} steps, this run asks "
-                                      f"for {c.iterations}: use the same --iterations or a new --out")
+            self.reconstruct_job(*key).refuse_changed_settings()
 
     def jobs(self) -> list[BatchJob]:
         """Per object, seed and strategy its capture (if a copy of it is still to make), then per budget the copy
-        with that many grasps and its reconstruction (the trainer's defaults, ``iterations`` steps)."""
+        with that many grasps and its reconstruction (``variant``, ``iterations`` steps)."""
         c = self.config
         jobs: list[BatchJob] = []
         for subject, seed, strategy in self.captures():
@@ -212,11 +212,18 @@ class NextTouchBench:
                 jobs.append(capture)
             else:
                 copies = [replace(copy, needs=()) for copy in copies]
-            for copy in copies:
-                out = self.run_dir(copy)
-                jobs += [copy, ReconstructJob(out=out, scene=copy.out, seed=seed, iterations=c.iterations,
-                                              name=f"reconstruct {out.name}", needs=(copy.name,))]
+            for k, copy in zip(c.grasps, copies):
+                jobs += [copy, self.reconstruct_job(subject, seed, strategy, k, needs=(copy.name,))]
         return jobs
+
+    def reconstruct_job(self, subject: str, seed: int, strategy: str, count: int,
+                        needs: tuple[str, ...] = ()) -> ReconstructJob:
+        """The final reconstruction of the copy with a capture's first ``count`` grasps."""
+        c = self.config
+        copy = self.copy_job(subject, seed, strategy, count)
+        out = self.run_dir(copy)
+        return ReconstructJob(out=out, scene=copy.out, variant=c.variant, seed=seed, iterations=c.iterations,
+                              name=f"reconstruct {out.name}", needs=needs)
 
     def results(self) -> list[dict]:
         """One row per finished run, in the order of the sweep."""
@@ -384,8 +391,8 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
     subjects = list(dict.fromkeys(r["object"] for r in rows))
     lines = ["# Next-best touch against random grasps", "",
              f"{len(subjects)} object(s), seeds {', '.join(map(str, config.seeds))}; {config.views} train views, "
-             f"{config.test_views} test views, {config.resolution} px; every reconstruction {config.iterations} "
-             f"steps. Next-best: {config.candidates} candidate approaches per grasp, scored on a "
+             f"{config.test_views} test views, {config.resolution} px; every reconstruction `{config.variant}`, "
+             f"{config.iterations} steps. Next-best: {config.candidates} candidate approaches per grasp, scored on a "
              f"{config.selection_steps}-step reconstruction of the scene so far with the {config.uncertainty} score.",
              "", "## Mean CD (x GT radius, lower is better) over seeds", "",
              "| object | strategy | " + " | ".join(f"{k} grasps" for k in budgets) + " |",
@@ -438,6 +445,8 @@ def register(cli) -> None:
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--test-views", type=int, default=12, help="held-out test views")
     p.add_argument("--iterations", type=int, default=1500, help="steps of every final reconstruction")
+    p.add_argument("--variant", default=DEFAULT_VARIANT, help="the method of every final reconstruction (default: "
+                   "what `tacsplat reconstruct` trains; `full` for the paper's)")
     p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp")
     p.add_argument("--selection-steps", type=int, default=300,
                    help="next-best: steps of the reconstruction that chooses each grasp")
@@ -454,7 +463,7 @@ def _run(args) -> int:
         objects=() if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip()),
         mesh=args.mesh, seeds=comma_separated_ints(args.seeds, "--seeds"),
         grasps=comma_separated_ints(args.grasps, "--grasps"), resolution=args.resolution, test_views=args.test_views,
-        iterations=args.iterations, candidates=args.candidates, selection_steps=args.selection_steps,
+        iterations=args.iterations, variant=args.variant, candidates=args.candidates, selection_steps=args.selection_steps,
         uncertainty=args.uncertainty,
     )  # fmt: skip
     started = time.perf_counter()

@@ -252,24 +252,9 @@ class PaperBench:
 
     def stale_runs(self) -> list[tuple[Run, list[str]]]:
         """Finished runs whose ``config.json`` differs from the config this bench trains their variant with now,
-        each with what differs (``"name recorded -> now"``; the device and the settings of mechanisms both
-        switch off aside: :meth:`TrainConfig.unused_fields`)."""
-        from tacsplat.reconstruction.config import TrainConfig
-        from tacsplat.reconstruction.run_dir import read_json
-
-        stale = []
-        for run in self.runs():
-            path = run.out / "config.json"
-            if not (run.done and path.is_file()):
-                continue
-            recorded, now = TrainConfig.from_json(read_json(path), path), self.reconstruct_job(run).config()
-            unused = recorded.unused_fields() & now.unused_fields()  # (a switched-off mechanism's settings)
-            before = recorded.to_json()
-            changes = [f"{key} {before.get(key)!r} -> {value!r}" for key, value in now.to_json().items()
-                       if key != "device" and key not in unused and before.get(key) != value]
-            if changes:
-                stale.append((run, changes))
-        return stale
+        each with what differs (:meth:`ReconstructJob.settings_changed`)."""
+        stale = [(run, self.reconstruct_job(run).settings_changed()) for run in self.runs() if run.done]
+        return [(run, changes) for run, changes in stale if changes]
 
     # ------------------------------------------------------------------ report
 

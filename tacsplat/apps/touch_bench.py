@@ -128,8 +128,9 @@ class TouchBench:
                 copies = [replace(copy, needs=()) for copy in copies]
             for copy in copies:
                 out = self.run_dir(seed, copy.count)
-                jobs += [copy, ReconstructJob(out=out, scene=copy.out, seed=seed, iterations=c.iterations,
-                                              name=f"reconstruct {out.name}", needs=(copy.name,))]
+                jobs += [copy, ReconstructJob(out=out, scene=copy.out, variant="full", seed=seed,
+                                              iterations=c.iterations, name=f"reconstruct {out.name}",
+                                              needs=(copy.name,))]
         return jobs
 
     def results(self) -> list[dict]:
@@ -157,6 +158,9 @@ class TouchBench:
             return f"seed {job.seed}: {kept:3d} touches -> CD {metrics['cd']:.4f}  PSNR {metrics['psnr']:.2f}"
 
         jobs = self.jobs()
+        for job in jobs:
+            if isinstance(job, ReconstructJob):
+                job.refuse_changed_settings()
         outcome = run_jobs(jobs, self.out, on_done=on_done, desc="bench touches", progress=progress, **executor)
         rows = self.results()
         write_touch_report(self.out, rows)

@@ -82,7 +82,8 @@ def test_first_grasps_keeps_whole_grasps_in_number_order(bench, tmp_path):
 
 @pytest.mark.parametrize("change, option", [({"objects": ("vase",)}, "--objects"), ({"grasps": ()}, "--grasps"),
                                             ({"uncertainty": "entropy"}, "--uncertainty"),
-                                            ({"mesh": "/no/such.obj"}, "--mesh"), ({"grasps": (2, 2)}, "--grasps")])
+                                            ({"mesh": "/no/such.obj"}, "--mesh"), ({"grasps": (2, 2)}, "--grasps"),
+                                            ({"variant": "ours"}, "--variant")])
 def test_bad_settings_name_their_option(change, option, tmp_path):
     from dataclasses import replace
 
@@ -98,8 +99,23 @@ def test_a_rerun_with_other_settings_in_the_same_folder_is_refused(bench):
     bench, _ = bench
     with pytest.raises(ConfigError, match="--out.*another plan"):
         NextTouchBench(bench.out, replace(TINY, uncertainty="fisher")).run(progress=False)
-    with pytest.raises(ConfigError, match="--out.*trained for 4 steps"):
+    with pytest.raises(ConfigError, match="--out.*other settings.*iterations 4 -> 5"):
         NextTouchBench(bench.out, replace(TINY, iterations=5)).run(progress=False)
+    with pytest.raises(ConfigError, match="--out.*other settings.*appearance 'sh-lit' -> 'sh'"):
+        NextTouchBench(bench.out, replace(TINY, variant="full")).run(progress=False)
+
+
+def test_the_final_runs_train_the_bench_variant_by_default_what_reconstruct_trains(tmp_path):
+    from dataclasses import replace
+
+    from tacsplat.apps.batch import ReconstructJob
+    from tacsplat.reconstruction.config import TrainConfig
+
+    for config, expected in ((TINY, TrainConfig()), (replace(TINY, variant="full"), None)):
+        runs = [job for job in NextTouchBench(tmp_path / "R", config).jobs() if isinstance(job, ReconstructJob)]
+        assert len(runs) == 4 and {job.variant for job in runs} == {config.variant}
+        if expected is not None:  # the defaults: TrainConfig's, the steps and seed aside
+            assert replace(runs[0].config(), iterations=expected.iterations, seed=expected.seed) == expected
 
 
 def read_rows(path) -> list[dict]:

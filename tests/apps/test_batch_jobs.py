@@ -5,6 +5,7 @@ rerun running only what failed."""
 from __future__ import annotations
 
 import csv
+import json
 import os
 import re
 import socket
@@ -80,9 +81,9 @@ def write(path: Path, text: str) -> Path:
 GOOD = """\
 jobs:
   - {kind: capture, out: scenes/teapot, object: teapot, resolution: 48, seed: 3}
-  - {kind: reconstruct, out: runs/teapot-full, scene: scenes/teapot, iterations: 20, seed: 3}
+  - {kind: reconstruct, out: runs/teapot-default, scene: scenes/teapot, iterations: 20, seed: 3}
   - {kind: reconstruct, out: runs/old, scene: %(existing)s, variant: 3dgs, preset: paper, name: old scene}
-  - {kind: evaluate, run: runs/teapot-full}
+  - {kind: evaluate, run: runs/teapot-default}
   - {kind: evaluate, run: %(existing)s, gt_mesh: mesh.obj, cpus: 2}
 """
 
@@ -96,15 +97,40 @@ def test_batch_file_resolves_paths_and_infers_needs(tmp_path):
                                                                out)
     assert capture == CaptureJob(out=out / "scenes/teapot", object="teapot", resolution=48, seed=3,
                                  name="capture scenes/teapot")
-    assert train == ReconstructJob(out=out / "runs/teapot-full", scene=out / "scenes/teapot", iterations=20, seed=3,
-                                   name="reconstruct runs/teapot-full", needs=("capture scenes/teapot",))
+    assert train == ReconstructJob(out=out / "runs/teapot-default", scene=out / "scenes/teapot", iterations=20,
+                                   seed=3, name="reconstruct runs/teapot-default", needs=("capture scenes/teapot",))
     assert (old.scene, old.needs, old.name, old.config().variant) == (existing, (), "old scene", "3dgs")
-    assert evaluate == EvaluateJob(run=out / "runs/teapot-full", name="evaluate runs/teapot-full",
-                                   needs=("reconstruct runs/teapot-full",))
+    assert evaluate == EvaluateJob(run=out / "runs/teapot-default", name="evaluate runs/teapot-default",
+                                   needs=("reconstruct runs/teapot-default",))
     assert evaluate_old.gt_mesh == str(tmp_path / "mesh.obj") and evaluate_old.cpus == 2 and not evaluate_old.needs
     assert train.gpus(cluster_has_gpus=False) == 0 and train.gpus(cluster_has_gpus=True) == 1
     assert capture.gpus(cluster_has_gpus=True) == 0
 
+
+
+def test_a_reconstruct_job_without_a_variant_trains_what_reconstruct_trains(tmp_path):
+    from tacsplat.cli import build_parser
+    from tacsplat.reconstruction.cli import config_from_args
+
+    args = build_parser(["reconstruct"]).parse_args(["reconstruct", str(tmp_path), "--out", str(tmp_path / "r"),
+                                                     "--iterations", "20", "--seed", "3"])
+    assert ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3).config() == config_from_args(args)
+
+
+def test_a_finished_run_names_the_settings_that_changed_since(tmp_path):
+    job = ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3)
+    job.out.mkdir()
+    (job.out / "config.json").write_text(json.dumps(job.config().to_json()))
+    assert job.settings_changed() == []  # unfinished: nothing to compare
+    (job.out / "metrics.json").write_text("{}")
+    assert job.settings_changed() == []
+    job.refuse_changed_settings()
+    paper = ReconstructJob(out=job.out, scene=tmp_path, variant="full", iterations=20, seed=3)
+    changes = paper.settings_changed()
+    assert "lambda_depth_normal 0.05 -> 0.0" in changes and "appearance 'sh-lit' -> 'sh'" in changes
+    assert not any(c.startswith("depth_normal_start_iter") for c in changes)  # unused by full: not a change
+    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(.*lambda_flatten"):
+        paper.refuse_changed_settings()
 
 @pytest.mark.parametrize("jobs, key, message", [
     ("- {kind: train, out: a}", "jobs[0].kind", "expected one of capture, reconstruct, evaluate, got 'train'"),

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -331,6 +332,15 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     captured.clear(), trained.clear()
     assert len(bench.run(progress=False)) == 6
     assert captured == [] and trained == ["t003-s1"]
+
+    runs = [job for job in bench.jobs() if isinstance(job, batch.ReconstructJob)]
+    assert {job.variant for job in runs} == {"full"}  # the paper's method, as its Fig. 6
+    stale = replace(runs[0], variant=DEFAULT_VARIANT).config()  # a run trained with other settings ...
+    (runs[0].out / "config.json").write_text(json.dumps(stale.to_json()))
+    trained.clear()
+    with pytest.raises(ConfigError, match="--out.*t000-s0 was trained with other settings"):
+        bench.run(progress=False)  # ... is refused before any job runs
+    assert trained == []
 
 
 def test_touch_summary_and_plot(tmp_path):
