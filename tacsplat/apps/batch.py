@@ -74,13 +74,6 @@ class BatchJob:
         if not self.cpus > 0:
             raise ConfigError("cpus", f"must be > 0, got {self.cpus}")
 
-    def refuse_changed_settings(self) -> None:
-        """A benchmark's check before it runs: a finished run trained with other settings than this job's is an
-        error on ``--out`` (:meth:`settings_changed`), not a number silently reused."""
-        if changes := self.settings_changed():
-            raise ConfigError("--out", f"{self.out} was trained with other settings ({', '.join(changes)}): use the "
-                              "same options or a new --out, or delete that run folder to train it again")
-
     def gpus(self, cluster_has_gpus: bool) -> float:
         return 0
 
@@ -210,6 +203,13 @@ class ReconstructJob(BatchJob):
         before = recorded.to_json()
         return [f"{key} {before.get(key)!r} -> {value!r}" for key, value in now.to_json().items()
                 if key != "device" and key not in unused and before.get(key) != value]
+
+    def refuse_changed_settings(self) -> None:
+        """A benchmark's check before it runs: a finished run trained with other settings than this job's is an
+        error on ``--out`` (:meth:`settings_changed`), not a number silently reused."""
+        if changes := self.settings_changed():
+            raise ConfigError("--out", f"{self.out} was trained with other settings ({', '.join(changes)}): use the "
+                              "same options or a new --out, or delete that run folder to train it again")
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         """One GPU for a CUDA training (``auto`` trains on CUDA where the cluster has GPUs)."""

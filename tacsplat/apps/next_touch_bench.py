@@ -5,8 +5,8 @@ Per object, seed and strategy one simulated capture with 5 train views and the l
 (the views do not depend on the strategy). Choices are sequential, so the first ``k`` grasps of a capture are the
 ``k``-grasp capture: per budget ``k`` a copy of the scene keeps every frame and the touches of its first ``k``
 recorded grasps, and is reconstructed with ``--variant`` (default: what `tacsplat reconstruct` trains) for the
-same ``--iterations`` whatever the strategy. The training next-best spends choosing (``selection_steps`` per grasp) is not in these steps; it is
-reported as ``selection_seconds``.
+same ``--iterations`` whatever the strategy. The training next-best spends choosing (``selection_steps`` per grasp,
+with the trainer's defaults) is not in these steps; it is reported as ``selection_seconds``.
 
 Beside the table, for each object's first seed: how well the two uncertainty scores of the views-only
 reconstruction that chose the first grasp predict its real error: each score rendered on the test views beside
