@@ -14,7 +14,8 @@ The YAML file lists jobs; ``out``, ``scene`` and ``run`` are relative to
       - {kind: reconstruct, out: runs/teapot/full-s0, scene: scenes/teapot-s0, variant: full, seed: 0}
       - {kind: evaluate, run: /shared/older/run, gt_mesh: teapot.obj}
 
-A reconstruction without ``variant`` or ``preset`` trains what `tacsplat reconstruct` trains without options.
+A reconstruction with neither ``variant`` nor ``preset`` trains what `tacsplat reconstruct` trains without
+options.
 A reconstruction of a scene that a capture of the batch writes needs that
 capture (listed before it), and an evaluation of a run needs its reconstruction.
 Writes ``DIR/results.csv`` (one row per run with a metrics.json, rewritten as
@@ -188,28 +189,46 @@ class ReconstructJob(BatchJob):
         super().check()
         self.config().validate()
 
-    def settings_changed(self) -> list[str]:
-        """What differs between the config a finished run recorded (``out/config.json``) and the one this job
-        trains now, as ``"name recorded -> now"`` (the device and the settings of mechanisms that both switch off
-        aside: :meth:`TrainConfig.unused_fields`); empty for an unfinished run or one without a config.json."""
+    def changed_settings(self) -> list[str]:
+        """What differs between the config a run folder recorded (``out/config.json``, or a finished run's
+        metrics.json) and the one this job trains now, as ``"name recorded -> now"`` (the device and the settings
+        of mechanisms that both switch off aside: :meth:`TrainConfig.unused_fields`); one entry saying so for a
+        record that cannot be read. Empty for a folder with nothing to reuse or resume (no metrics.json, no
+        checkpoint) or no settings recorded."""
         from tacsplat.reconstruction.config import TrainConfig
         from tacsplat.reconstruction.run_dir import read_json
 
-        path = self.out / "config.json"
-        if not (self.complete() and path.is_file()):
+        checkpoint, path = self.out / "checkpoint.pt", self.out / "config.json"
+        if not (self.complete() or checkpoint.is_file()):
             return []
-        recorded, now = TrainConfig.from_json(read_json(path), path), self.config()
+        try:
+            if path.is_file():
+                recorded = TrainConfig.from_json(read_json(path), path)
+            elif self.complete():  # a run trained elsewhere and evaluated here: its metrics.json has the settings
+                path = self.out / METRICS
+                if not (settings := read_json(path).get("settings")):
+                    return []  # (none recorded: nothing to compare)
+                recorded = TrainConfig.from_json(settings, path)
+            else:
+                return [f"{checkpoint.name} without {path.name}"]
+        except (ConfigError, AttributeError) as exc:
+            return [f"{path.name} unreadable ({exc})"]
+        now = self.config()
         unused = recorded.unused_fields() & now.unused_fields()  # (a switched-off mechanism's settings)
         before = recorded.to_json()
-        return [f"{key} {before.get(key)!r} -> {value!r}" for key, value in now.to_json().items()
-                if key != "device" and key not in unused and before.get(key) != value]
+        changes = [f"{key} {before.get(key)!r} -> {value!r}" for key, value in now.to_json().items()
+                   if key != "device" and key not in unused and before.get(key) != value]
+        if changes and recorded.variant != now.variant:
+            changes.insert(0, f"variant {recorded.variant} -> {now.variant}")
+        return changes
 
     def refuse_changed_settings(self) -> None:
-        """A benchmark's check before it runs: a finished run trained with other settings than this job's is an
-        error on ``--out`` (:meth:`settings_changed`), not a number silently reused."""
-        if changes := self.settings_changed():
+        """A benchmark's check before it runs: a finished or interrupted run trained with other settings than this
+        job's is an error on ``--out`` (:meth:`changed_settings`), not a number silently reused or resumed."""
+        if changes := self.changed_settings():
             raise ConfigError("--out", f"{self.out} was trained with other settings ({', '.join(changes)}): use the "
-                              "same options or a new --out, or delete that run folder to train it again")
+                              "options it was trained with or a new --out, or delete that run folder to train it "
+                              "again")
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         """One GPU for a CUDA training (``auto`` trains on CUDA where the cluster has GPUs)."""
@@ -404,6 +423,10 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
     from tacsplat.apps.executors import run_jobs
 
     out = Path(out)
+    for job in jobs:  # kept, not refused: a batch file says what each job is, and a folder may be reused on purpose
+        if isinstance(job, ReconstructJob) and (changes := job.changed_settings()):
+            log.warning("%s: %s holds a run trained with other settings (%s); it is kept, or resumed, as it was "
+                        "trained (delete the folder to train it anew)", job.name, job.out, ", ".join(changes))
 
     def on_done(job, summary: dict) -> str | None:
         if run_folder(job) is None:

@@ -39,7 +39,7 @@ import numpy as np
 from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT
+from tacsplat.reconstruction.variants import DEFAULT_VARIANT, VARIANTS, get_variant
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +67,6 @@ class NextTouchBenchConfig:
 
     def validate(self) -> None:
         from tacsplat.reconstruction.uncertainty import SCORES
-        from tacsplat.reconstruction.variants import VARIANTS
         from tacsplat.sim.objects import OBJECT_NAMES
 
         unknown = [o for o in self.objects if o not in OBJECT_NAMES]
@@ -87,8 +86,7 @@ class NextTouchBenchConfig:
         for key in ("views", "test_views", "resolution", "iterations", "candidates", "selection_steps"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"--{key.replace('_', '-')}", f"must be >= 1, got {getattr(self, key)}")
-        if self.variant not in VARIANTS:
-            raise ConfigError("--variant", f"unknown variant {self.variant!r}; choose from {', '.join(VARIANTS)}")
+        get_variant(self.variant, "--variant")
         if self.uncertainty not in SCORES:
             raise ConfigError("--uncertainty", f"must be one of {', '.join(SCORES)}, got {self.uncertainty!r}")
 
@@ -212,8 +210,8 @@ class NextTouchBench:
                 jobs.append(capture)
             else:
                 copies = [replace(copy, needs=()) for copy in copies]
-            for k, copy in zip(c.grasps, copies):
-                jobs += [copy, self.reconstruct_job(subject, seed, strategy, k, needs=(copy.name,))]
+            for copy in copies:
+                jobs += [copy, self.reconstruct_job(subject, seed, strategy, copy.count, needs=(copy.name,))]
         return jobs
 
     def reconstruct_job(self, subject: str, seed: int, strategy: str, count: int,
@@ -248,7 +246,7 @@ class NextTouchBench:
 
         c = self.config
         self.check_out()
-        runs = {f"reconstruct {self.run_dir(self.copy_job(*key)).name}": key for key in self.sweep()}
+        runs = {self.reconstruct_job(*key).name: key for key in self.sweep()}
 
         def on_done(job, metrics: dict) -> str | None:
             if job.name not in runs:
@@ -445,7 +443,7 @@ def register(cli) -> None:
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--test-views", type=int, default=12, help="held-out test views")
     p.add_argument("--iterations", type=int, default=1500, help="steps of every final reconstruction")
-    p.add_argument("--variant", default=DEFAULT_VARIANT, help="the method of every final reconstruction (default: "
+    p.add_argument("--variant", default=DEFAULT_VARIANT, choices=list(VARIANTS), help="the method of every final reconstruction (default: "
                    "what `tacsplat reconstruct` trains; `full` for the paper's)")
     p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp")
     p.add_argument("--selection-steps", type=int, default=300,

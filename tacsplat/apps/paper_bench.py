@@ -252,8 +252,8 @@ class PaperBench:
 
     def stale_runs(self) -> list[tuple[Run, list[str]]]:
         """Finished runs whose ``config.json`` differs from the config this bench trains their variant with now,
-        each with what differs (:meth:`ReconstructJob.settings_changed`)."""
-        stale = [(run, self.reconstruct_job(run).settings_changed()) for run in self.runs() if run.done]
+        each with what differs (:meth:`ReconstructJob.changed_settings`)."""
+        stale = [(run, self.reconstruct_job(run).changed_settings()) for run in self.runs() if run.done]
         return [(run, changes) for run, changes in stale if changes]
 
     # ------------------------------------------------------------------ report

@@ -11,12 +11,13 @@ sees the same views. Fingers that touched nothing are dropped (they add no
 points). When the capture has fewer than ``n`` touches in contact (a grasp was
 skipped or a finger missed), the copy holds all of them and the CSV records
 the count actually used. ``n = 0`` is the same method without touch (no G_t, no
-L_T; the smoothness term is unmasked). Every run is the full method with the
-trainer's defaults.
+L_T; the smoothness term is unmasked). Every run is the paper's full method
+(variant ``full``; the trainer's defaults otherwise).
 
 Output: ``OUT/touches.csv`` (one row per run), ``OUT/summary.csv`` (mean and
 standard deviation per requested count), ``OUT/cd_vs_touches.png``.
-Resumable like `bench paper`: runs with a metrics.json are skipped. The
+Resumable: runs with a metrics.json are skipped; unlike `bench paper`, which notes and keeps them, a finished or
+interrupted run trained with other settings is refused before anything runs. The
 captures, copies and runs are batch jobs, run here or as Ray tasks
 (``--executor ray``, :mod:`tacsplat.apps.executors`).
 """
@@ -112,7 +113,7 @@ class TouchBench:
 
     def jobs(self) -> list[BatchJob]:
         """Per seed its capture (if a copy of it is still to make), then per count the copy with that many
-        touches and its reconstruction (the full method with the trainer's defaults), in the order of the sweep."""
+        touches and its reconstruction (the paper's full method), in the order of the sweep."""
         c = self.config
         jobs: list[BatchJob] = []
         for seed in c.seeds:
@@ -145,6 +146,13 @@ class TouchBench:
                          **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}})
         return rows
 
+    def check_out(self, jobs: list[BatchJob]) -> None:
+        """Refuse a folder whose finished or interrupted runs were trained with other settings, before anything
+        runs (:meth:`ReconstructJob.refuse_changed_settings`)."""
+        for job in jobs:
+            if isinstance(job, ReconstructJob):
+                job.refuse_changed_settings()
+
     def run(self, progress: bool = True, **executor) -> list[dict]:
         """Capture, copy and train whatever is not done yet (``executor``: the executor, ray_address and retries of
         :func:`~tacsplat.apps.executors.run_jobs`), then write the report; returns the rows. A BatchError at the
@@ -158,9 +166,7 @@ class TouchBench:
             return f"seed {job.seed}: {kept:3d} touches -> CD {metrics['cd']:.4f}  PSNR {metrics['psnr']:.2f}"
 
         jobs = self.jobs()
-        for job in jobs:
-            if isinstance(job, ReconstructJob):
-                job.refuse_changed_settings()
+        self.check_out(jobs)
         outcome = run_jobs(jobs, self.out, on_done=on_done, desc="bench touches", progress=progress, **executor)
         rows = self.results()
         write_touch_report(self.out, rows)

@@ -54,6 +54,7 @@ def test_results_report_and_pictures(bench):
     assert len(table) == 4 and float(table[0]["cd"]) == pytest.approx(rows[0]["cd"])
     report = (bench.out / "report.md").read_text()
     assert "| bell | next-best |" in report and "| 2 |" in report and "Spearman" in report
+    assert f"every reconstruction `{TINY.variant}`" in report
     assert (bench.out / "cd_vs_grasps.png").stat().st_size > 0 and (bench.out / "uncertainty_bell.png").stat().st_size > 0
     rho = [line for line in report.splitlines() if line.startswith("| bell | ") and "%" not in line][-1]
     assert len(rho.split("|")) == 5  # one correlation per score
@@ -116,6 +117,20 @@ def test_the_final_runs_train_the_bench_variant_by_default_what_reconstruct_trai
         assert len(runs) == 4 and {job.variant for job in runs} == {config.variant}
         if expected is not None:  # the defaults: TrainConfig's, the steps and seed aside
             assert replace(runs[0].config(), iterations=expected.iterations, seed=expected.seed) == expected
+
+
+def test_a_folder_with_a_run_of_other_settings_is_refused_before_anything_runs(tmp_path):
+    from dataclasses import replace
+
+    bench = NextTouchBench(tmp_path / "R", TINY)
+    run = next(job for job in bench.jobs() if job.kind == "reconstruct")
+    run.out.mkdir(parents=True)
+    (run.out / "config.json").write_text(json.dumps(replace(run, variant="full").config().to_json()))
+    (run.out / "metrics.json").write_text("{}")
+    with pytest.raises(ConfigError, match=f"--out: {run.out} was trained with other settings \\(variant full -> "):
+        bench.run(progress=False)
+    assert sorted(p.name for p in (tmp_path / "R").iterdir()) == ["runs"]  # no capture, nothing else
+    NextTouchBench(tmp_path / "R", replace(TINY, variant="full")).check_out()  # the options it was trained with
 
 
 def read_rows(path) -> list[dict]:

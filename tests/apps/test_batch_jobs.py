@@ -117,20 +117,32 @@ def test_a_reconstruct_job_without_a_variant_trains_what_reconstruct_trains(tmp_
     assert ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3).config() == config_from_args(args)
 
 
-def test_a_finished_run_names_the_settings_that_changed_since(tmp_path):
-    job = ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3)
-    job.out.mkdir()
-    (job.out / "config.json").write_text(json.dumps(job.config().to_json()))
-    assert job.settings_changed() == []  # unfinished: nothing to compare
-    (job.out / "metrics.json").write_text("{}")
-    assert job.settings_changed() == []
-    job.refuse_changed_settings()
-    paper = ReconstructJob(out=job.out, scene=tmp_path, variant="full", iterations=20, seed=3)
-    changes = paper.settings_changed()
-    assert "lambda_depth_normal 0.05 -> 0.0" in changes and "appearance 'sh-lit' -> 'sh'" in changes
-    assert not any(c.startswith("depth_normal_start_iter") for c in changes)  # unused by full: not a change
-    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(.*lambda_flatten"):
-        paper.refuse_changed_settings()
+def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):
+    from tacsplat.reconstruction.variants import DEFAULT_VARIANT
+
+    paper = ReconstructJob(out=tmp_path / "r", scene=tmp_path, variant="full", iterations=20, seed=3)
+    default = ReconstructJob(out=paper.out, scene=tmp_path, iterations=20, seed=3)
+    recorded = paper.config().to_json() | {"depth_normal_start_iter": 123}  # unused by full: not a change for it
+    paper.out.mkdir()
+    (paper.out / "config.json").write_text(json.dumps(recorded))
+    assert default.changed_settings() == []  # neither finished nor interrupted: nothing to reuse or resume
+    (paper.out / "checkpoint.pt").write_bytes(b"")  # interrupted: a rerun would resume it as recorded
+    changes = default.changed_settings()
+    assert changes[0] == f"variant full -> {DEFAULT_VARIANT}"
+    assert {"lambda_depth_normal 0.0 -> 0.05", "appearance 'sh' -> 'sh-lit'",
+            "depth_normal_start_iter 123 -> 700"} <= set(changes)
+    assert paper.changed_settings() == []
+    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(variant full -> .*delete"):
+        default.refuse_changed_settings()
+    paper.refuse_changed_settings()
+
+    (paper.out / "metrics.json").write_text(json.dumps({"settings": recorded}))  # finished ...
+    (paper.out / "config.json").unlink()  # ... and recorded in metrics.json only (evaluated here)
+    assert default.changed_settings()[0] == f"variant full -> {DEFAULT_VARIANT}" and paper.changed_settings() == []
+    (paper.out / "config.json").write_text("[1, 2]")
+    assert default.changed_settings() == paper.changed_settings() != []
+    assert paper.changed_settings()[0].startswith("config.json unreadable (")
+
 
 @pytest.mark.parametrize("jobs, key, message", [
     ("- {kind: train, out: a}", "jobs[0].kind", "expected one of capture, reconstruct, evaluate, got 'train'"),
@@ -207,3 +219,17 @@ def test_an_address_where_no_cluster_answers_is_one_error(tmp_path, capsys, monk
     monkeypatch.setenv("RAY_ADDRESS", address)
     with pytest.raises(ConfigError, match=f"^RAY_ADDRESS: nothing answers at {address} "):
         run_jobs([FileJob("a", tmp_path / "a")], tmp_path, executor="ray", progress=False)
+
+
+def test_batch_warns_of_a_run_trained_with_other_settings_and_keeps_it(tmp_path, caplog):
+    from tacsplat.apps.batch import run_batch
+
+    job = ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3, name="reconstruct r")
+    job.out.mkdir()
+    recorded = ReconstructJob(out=job.out, scene=tmp_path, variant="full", iterations=20, seed=3).config().to_json()
+    (job.out / "config.json").write_text(json.dumps(recorded))
+    (job.out / "metrics.json").write_text(json.dumps({"cd": 0.02, "psnr": 20.0, "variant": "full"}))
+    with caplog.at_level("WARNING"):
+        run_batch([job], tmp_path, progress=False, executor="local")
+    assert "reconstruct r:" in caplog.text and "trained with other settings (variant full -> " in caplog.text
+    assert json.loads((job.out / "metrics.json").read_text())["variant"] == "full"  # kept

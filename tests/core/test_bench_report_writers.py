@@ -337,6 +337,7 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     assert {job.variant for job in runs} == {"full"}  # the paper's method, as its Fig. 6
     stale = replace(runs[0], variant=DEFAULT_VARIANT).config()  # a run trained with other settings ...
     (runs[0].out / "config.json").write_text(json.dumps(stale.to_json()))
+    (runs[-1].out / "metrics.json").unlink()  # a run still to do, which the refusal must come before
     trained.clear()
     with pytest.raises(ConfigError, match="--out.*t000-s0 was trained with other settings"):
         bench.run(progress=False)  # ... is refused before any job runs
