@@ -302,6 +302,16 @@ def test_subsample_keeps_first_touches_in_contact(tmp_path):
     assert Scene.load(tmp_path / "t0").touches == []
 
 
+def test_touch_bench_trains_the_variant_it_is_asked_for(tmp_path):
+    from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
+
+    for config, variant in ((TouchBenchConfig(), "full"), (TouchBenchConfig(variant=DEFAULT_VARIANT), DEFAULT_VARIANT)):
+        runs = [job for job in TouchBench(tmp_path, config).jobs() if isinstance(job, batch.ReconstructJob)]
+        assert len(runs) == 18 and {job.variant for job in runs} == {variant}
+    with pytest.raises(ConfigError, match="variant: unknown variant 'ours'"):
+        TouchBench(tmp_path, TouchBenchConfig(variant="ours"))
+
+
 def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
 
