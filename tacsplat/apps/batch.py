@@ -211,7 +211,7 @@ class ReconstructJob(BatchJob):
                 recorded = TrainConfig.from_json(settings, path)
             else:
                 return [f"{checkpoint.name} without {path.name}"]
-        except (ConfigError, AttributeError) as exc:
+        except ConfigError as exc:  # (read_json and from_json raise nothing else for a bad record)
             return [f"{path.name} unreadable ({exc})"]
         now = self.config()
         unused = recorded.unused_fields() & now.unused_fields()  # (a switched-off mechanism's settings)

@@ -443,8 +443,9 @@ def register(cli) -> None:
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--test-views", type=int, default=12, help="held-out test views")
     p.add_argument("--iterations", type=int, default=1500, help="steps of every final reconstruction")
-    p.add_argument("--variant", default=DEFAULT_VARIANT, choices=list(VARIANTS), help="the method of every final reconstruction (default: "
-                   "what `tacsplat reconstruct` trains; `full` for the paper's)")
+    p.add_argument("--variant", default=DEFAULT_VARIANT, choices=list(VARIANTS),
+                   help="the method of every final reconstruction (default: what `tacsplat reconstruct` trains; "
+                   "`full` for the paper's)")
     p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp")
     p.add_argument("--selection-steps", type=int, default=300,
                    help="next-best: steps of the reconstruction that chooses each grasp")
@@ -461,8 +462,8 @@ def _run(args) -> int:
         objects=() if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip()),
         mesh=args.mesh, seeds=comma_separated_ints(args.seeds, "--seeds"),
         grasps=comma_separated_ints(args.grasps, "--grasps"), resolution=args.resolution, test_views=args.test_views,
-        iterations=args.iterations, variant=args.variant, candidates=args.candidates, selection_steps=args.selection_steps,
-        uncertainty=args.uncertainty,
+        iterations=args.iterations, variant=args.variant, candidates=args.candidates,
+        selection_steps=args.selection_steps, uncertainty=args.uncertainty,
     )  # fmt: skip
     started = time.perf_counter()
     bench = NextTouchBench(args.out, config)

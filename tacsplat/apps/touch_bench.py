@@ -199,7 +199,7 @@ def summarise(rows: list[dict]) -> list[dict]:
     return summary
 
 
-def write_touch_report(out: str | Path, rows: list[dict], variant: str = "full") -> dict[str, Path]:
+def write_touch_report(out: str | Path, rows: list[dict], variant: str) -> dict[str, Path]:
     """``touches.csv``, ``summary.csv`` and ``cd_vs_touches.png`` (mean +- std over seeds, each run a dot; the
     title names the ``variant`` the runs trained)."""
     from tacsplat.apps.report import pyplot, save_figure
@@ -252,7 +252,7 @@ def register(cli) -> None:
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (capture and training)")
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--iterations", type=int, default=800, help="steps per run")
-    p.add_argument("--variant", default="full", choices=list(VARIANTS),
+    p.add_argument("--variant", default=TouchBenchConfig.variant, choices=list(VARIANTS),
                    help="the method of every run (default: the paper's, as in its Fig. 6)")
     add_executor_options(p)
     p.set_defaults(func=_run)

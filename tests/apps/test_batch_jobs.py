@@ -107,7 +107,6 @@ def test_batch_file_resolves_paths_and_infers_needs(tmp_path):
     assert capture.gpus(cluster_has_gpus=True) == 0
 
 
-
 def test_a_reconstruct_job_without_a_variant_trains_what_reconstruct_trains(tmp_path):
     from tacsplat.cli import build_parser
     from tacsplat.reconstruction.cli import config_from_args

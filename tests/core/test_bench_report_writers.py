@@ -360,7 +360,7 @@ def test_touch_summary_and_plot(tmp_path):
     summary = summarise(rows)
     assert [s["requested_touches"] for s in summary] == [0, 4, 8]
     assert summary[0]["cd_mean"] == pytest.approx(0.0105) and summary[0]["cd_std"] == pytest.approx(0.0005)
-    paths = write_touch_report(tmp_path, rows)
+    paths = write_touch_report(tmp_path, rows, "full")
     assert cv2.imread(str(paths["plot"])) is not None
     with paths["summary"].open() as fh:
         assert len(list(csv.DictReader(fh))) == 3
