@@ -222,7 +222,10 @@ def evaluate_views(
     progress: bool = False,
 ) -> dict:
     """PSNR, SSIM over ``frames``, CD and cd_paper against ``ground_truth``, and the mean angle between rendered
-    and ground-truth normals (``normal_error_deg``; the ground truth's from its depth maps) (NaN where not available).
+    and ground-truth normals (``normal_error_deg``; the ground truth's from its depth maps), and ``depth_bias``: the
+    median over the pixels where both have surface of the rendered (expected) depth minus the true one, in units of
+    the ground-truth radius, positive behind the truth (where reflections modelled as geometry put it) (NaN where
+    not available).
     ``progress``: only what a training's progress row records (PSNR, CD and cd_paper; the rest NaN).
 
     ``cd`` (the design's): expected depth (alpha > 0.5) of the views against their visible ground-truth
@@ -234,7 +237,7 @@ def evaluate_views(
     surface, mean squared distance each way, summed. Both in units of the ground-truth bounding-sphere radius.
     Each view's backdrop is ``background_colour``, or (None) fitted to that view's image border.
     """
-    psnrs, ssims, predicted, predicted_median, angles = [], [], [], [], []
+    psnrs, ssims, predicted, predicted_median, angles, signed = [], [], [], [], [], []
     for f in frames:
         gt_rgb = scene.load_image(f)
         background = torch.from_numpy(background_image(gt_rgb, background_colour))
@@ -244,6 +247,9 @@ def evaluate_views(
         if gt_depth is not None and not progress:
             gt_normal = losses.depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(f.intrinsics.K))
             angles.append(normal_error_degrees(view.normal, gt_normal.numpy()))
+            if ground_truth is not None:
+                both = (depth > 0) & np.isfinite(gt_depth) & (gt_depth > 0)  # [H, W]
+                signed.append((depth - gt_depth)[both] / ground_truth.radius)
         psnrs.append(psnr(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         if not progress:
             ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
@@ -278,6 +284,7 @@ def evaluate_views(
         "cd_unseen": cd_unseen,  # ... and on the rest
         "unseen_fraction": unseen_fraction,
         "normal_error_deg": float(np.mean(np.concatenate(angles))) if angles and sum(map(len, angles)) else float("nan"),
+        "depth_bias": float(np.median(np.concatenate(signed))) if sum(map(len, signed)) else float("nan"),
     }
 
 

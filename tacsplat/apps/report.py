@@ -11,18 +11,23 @@ import csv
 import math
 import textwrap
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from tacsplat.reconstruction.variants import VARIANTS, variant_label
 
-# metric -> (heading, True when lower is better, decimals)
-METRICS = {"cd": ("CD (↓)", True, 4),
-           "cd_seen": ("CD on the surface a training view sees (↓)", True, 4),
-           "cd_unseen": ("CD on the surface no training view sees (↓)", True, 4),
-           "cd_paper": ("CD as the paper measures it (↓)", True, 5),
-           "psnr": ("PSNR (↑)", False, 2), "ssim": ("SSIM (↑)", False, 3),
-           "normal_error_deg": ("Normal error, degrees (↓)", True, 1)}
+Better = Literal["lower", "higher", "zero"]  # which value of a metric is best: "zero" the one nearest 0
+# metric -> (heading, which is better, decimals)
+METRICS: dict[str, tuple[str, Better, int]] = {
+    "cd": ("CD (↓)", "lower", 4),
+    "cd_seen": ("CD on the surface a training view sees (↓)", "lower", 4),
+    "cd_unseen": ("CD on the surface no training view sees (↓)", "lower", 4),
+    "cd_paper": ("CD as the paper measures it (↓)", "lower", 5),
+    "psnr": ("PSNR (↑)", "higher", 2), "ssim": ("SSIM (↑)", "higher", 3),
+    "normal_error_deg": ("Normal error, degrees (↓)", "lower", 1),
+    "depth_bias": ("Depth bias: median rendered minus true depth, + behind the truth (→ 0)", "zero", 4),
+}
 # a run's numbers in results.csv
 NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "unseen_fraction", "train_seconds",
                   "num_gaussians", "psnr_splat")  # psnr_splat: what splat.ply shows a plain 3DGS renderer
@@ -90,7 +95,7 @@ def seed_spread(rows: list[dict], metric: str, setting: str) -> dict[str, float]
     return {variant: float(np.std(a, ddof=1)) if len(a) >= 2 else float("nan") for variant, a in averages.items()}
 
 
-def best_rows(values: np.ndarray, lower_is_better: bool) -> list[set[int]]:
+def best_rows(values: np.ndarray, better: Better) -> list[set[int]]:
     """Per column, the row indices holding the best finite value (ties all count)."""
     best = []
     for column in values.T:
@@ -98,16 +103,16 @@ def best_rows(values: np.ndarray, lower_is_better: bool) -> list[set[int]]:
         if not finite.any():
             best.append(set())
             continue
-        target = np.nanmin(column) if lower_is_better else np.nanmax(column)
-        best.append({i for i in np.flatnonzero(finite) if column[i] == target})
+        score = {"lower": column, "higher": -column, "zero": np.abs(column)}[better]
+        best.append({i for i in np.flatnonzero(finite) if score[i] == np.nanmin(score)})
     return best
 
 
 def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     """A paper-style Markdown table of one metric in one setting; the best value per column in bold."""
-    heading, lower, decimals = METRICS[metric]
+    heading, better, decimals = METRICS[metric]
     objects, variants, values = metric_table(rows, metric, setting)
-    best = best_rows(np.round(values, decimals), lower)  # values equal as printed are equally best
+    best = best_rows(np.round(values, decimals), better)  # values equal as printed are equally best
     spread = seed_spread(rows, metric, setting)
     with_spread = any(math.isfinite(v) for v in spread.values())
     extra = ["Seed s.d."] if with_spread else []

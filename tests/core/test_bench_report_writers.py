@@ -66,8 +66,13 @@ def test_best_per_column_bold_lower_and_higher():
 
 def test_best_rows_ties_and_missing():
     values = np.array([[1.0, np.nan, 2.0], [1.0, np.nan, 3.0]])
-    assert best_rows(values, lower_is_better=True) == [{0, 1}, set(), {0}]
-    assert best_rows(values, lower_is_better=False) == [{0, 1}, set(), {1}]
+    assert best_rows(values, "lower") == [{0, 1}, set(), {0}]
+    assert best_rows(values, "higher") == [{0, 1}, set(), {1}]
+
+
+def test_best_signed_value_is_the_one_nearest_zero():
+    values = np.array([[0.03, -0.01, np.nan], [-0.02, 0.01, 0.5], [0.05, 0.2, np.nan]])
+    assert best_rows(values, "zero") == [{1}, {0, 1}, {1}]
 
 
 def test_values_equal_as_printed_are_both_bold():

@@ -21,7 +21,7 @@ from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.trainer import Trainer, reconstruct
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from recon_synthetic import RADIUS, build_sphere_scene  # noqa: E402
+from recon_synthetic import RADIUS, build_sphere_scene, sphere_gaussians  # noqa: E402
 
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 
@@ -80,6 +80,33 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     assert abs(saved["psnr_splat"] - saved["psnr"]) < 1.0  # splat.ply's baked shading looks like the lit render
     assert (run / "error_vs_time.png").stat().st_size > 0
     assert len(list((run / "renders").glob("*.png"))) == len(Scene.load(sphere_scene).split("test"))
+
+
+def _sphere_of_gaussians(scale: float):
+    """The scene's textured sphere of flat Gaussians, its radius times ``scale``."""
+    from tacsplat.reconstruction.gaussians import Gaussians
+
+    means, quats, scales, opacities, colors = sphere_gaussians()
+    params = {"means": means * scale, "quats": quats, "scales": (scales * scale).log(),
+              "opacities": torch.logit(opacities), "sh0": ((colors - 0.5) / 0.28209479177387814)[:, None],
+              "shN": torch.zeros(len(means), 0, 3)}  # fmt: skip
+    return Gaussians(params, torch.zeros(len(means), dtype=torch.bool), sh_degree=0)
+
+
+def test_depth_bias_is_positive_behind_the_truth_in_radii(sphere_scene):
+    """A sphere 4 % smaller than the true one renders behind it: the median signed depth error rises by 0.04 radii
+    at the view's centre and a little more towards its rim; 4 % larger lowers it as much. (The flat Gaussians of
+    the true size already sit in front of the analytic sphere away from the centre: they stand off it.)"""
+    from tacsplat.reconstruction.evaluation import evaluate_views, load_ground_truth
+
+    scene = Scene.load(sphere_scene)
+    test = scene.split("test")
+    truth = load_ground_truth(scene, test)
+    bias = {s: evaluate_views(_sphere_of_gaussians(s), scene, test, None, "cpu", truth)["depth_bias"]
+            for s in (0.96, 1.0, 1.04)}
+    assert 0.035 < bias[0.96] - bias[1.0] < 0.07
+    assert 0.035 < bias[1.0] - bias[1.04] < 0.07
+    assert np.isnan(evaluate_views(_sphere_of_gaussians(1.0), scene, test, None, "cpu", None)["depth_bias"])
 
 
 class _Spy:
