@@ -19,6 +19,7 @@ from tacsplat.reconstruction.variants import variant_of
 Appearance = Literal["sh", "reflective", "lit", "sh-lit"]  # how Gaussians are coloured (see TrainConfig.appearance)
 SPECULAR = ("reflective", "lit")  # the appearances with a specular tint, a roughness and an environment map
 LIT = ("lit", "sh-lit")  # the appearances a learned diffuse light shades
+DepthRender = Literal["centre", "plane"]  # how depth is rendered (see TrainConfig.depth_render)
 
 
 @dataclass
@@ -68,6 +69,11 @@ class TrainConfig:
     # paper metric's completeness was 16 per cent worse on the twin's glossy objects: README); a step number, as
     # the other start steps are, so a run of 700 steps or fewer has none
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
+    depth_render: DepthRender = "centre"  # "centre": each Gaussian's centre depth over its whole footprint
+    # (3DGS); "plane": the pixel ray's hit with the blended plane of the Gaussians' normals and centres (PGSR's
+    # unbiased depth), in training (smoothness, depth-normal consistency) and in evaluation (cd)
+    plane_depth_start_iter: int = 700  # "plane": in training from this step on (before: "centre"; as the
+    # depth-normal consistency, once the Gaussians are flat and their normals mean something)
     lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
     # (needs the rendered normals: with depth-normal consistency on, from its start step)
     appearance: Appearance = "sh-lit"  # colour: view-dependent SH (3DGS), or
@@ -117,6 +123,8 @@ class TrainConfig:
             unused.add("lit_start_iter")
         if self.appearance not in SPECULAR:
             unused.add("env_map_height")
+        if self.depth_render == "centre":
+            unused.add("plane_depth_start_iter")
         return unused
 
     def validate(self, names: dict[str, str] | None = None) -> None:
@@ -148,6 +156,8 @@ class TrainConfig:
             return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
         if self.appearance not in (names := get_args(Appearance)):
             return "appearance", f"must be {', '.join(map(repr, names[:-1]))} or {names[-1]!r}, got {self.appearance!r}"
+        if self.depth_render not in get_args(DepthRender):
+            return "depth_render", f"must be 'centre' or 'plane', got {self.depth_render!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:
@@ -213,7 +223,8 @@ _INT_RANGES = {
     "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
     "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
     "eval_max_views": (1, None), "checkpoint_every": (1, None), "smoothness_start_iter": (0, None),
-    "depth_normal_start_iter": (0, None), "env_map_height": (2, 256), "lit_start_iter": (0, None),
+    "depth_normal_start_iter": (0, None), "plane_depth_start_iter": (0, None), "env_map_height": (2, 256),
+    "lit_start_iter": (0, None),
 }  # fmt: skip
 _OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
 _FLOAT_RANGES = {
@@ -317,6 +328,9 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
     if config.init.use_silhouette_hull:
         lines.append("initialisation: G_c on the visual hull of the silhouettes when SfM finds too few points (the "
                      "official data preparation triangulates COLMAP points from the train and test images)")
+    if config.depth_render == "plane":
+        lines.append("depth rendered where each pixel's ray meets the blended plane of the Gaussians (PGSR's unbiased "
+                     f"depth; in training from step {config.plane_depth_start_iter}, and for cd); not in the paper")
     if config.lambda_backdrop > 0:
         lines.append(f"backdrop alpha loss (lambda_backdrop {config.lambda_backdrop}) on pixels showing the fitted "
                      "backdrop; not in the paper")

@@ -66,7 +66,8 @@ def render_frame(gaussians: Gaussians, frame, background: torch.Tensor, backend:
     intr = frame.intrinsics
     out = shading.render(gaussians, viewmat, K, intr.width, intr.height, sh_degree=gaussians.sh_degree,
                          backend=backend, depth_mode="ED" if with_depth else None, normals=with_normals,
-                         appearance=look.appearance, environment=look.environment, light=look.light)
+                         appearance=look.appearance, environment=look.environment, light=look.light,
+                         depth_render=look.depth)
     alpha = out.alpha.cpu()
     rgb = (out.rgb.cpu() + (1.0 - alpha[..., None]) * background.cpu()).clamp(0, 1).numpy()
     drawn = alpha.numpy() > ALPHA_MASK_THRESHOLD

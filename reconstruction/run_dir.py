@@ -81,7 +81,7 @@ def load_checkpoint(path: Path) -> LoadedRun:
     appearance (with its environment map and its light where it has them)."""
     ckpt = read_checkpoint(path)
     config = TrainConfig.from_json(ckpt["config"], path)
-    look = Look(config.appearance)
+    look = Look(config.appearance, depth=config.depth_render)
     if config.appearance in SPECULAR:
         look.environment = EnvironmentMap(config.env_map_height)
         look.environment.load_state_dict(ckpt["environment"])

@@ -19,7 +19,11 @@ Its extra outputs ride in the same pass as extra colour channels:
   geometry even where a glossy surface has no texture;
   ``"sh-lit"``: the view-dependent SH colour as the albedo that light lights, saturating at 1 (no
   environment: the SH bands above the first keep the view-dependent part, highlights and reflections, as in
-  3DGS).
+  3DGS);
+* **plane depth** -- each Gaussian's distance from the camera to the plane it lies in (its normal through
+  its mean), blended like a colour; with the blended normal it gives each pixel's depth as the hit of its
+  ray with the blended plane, ``sum w d / <sum w n, ray>`` (PGSR's unbiased depth), where the centre depth
+  of 3DGS gives each Gaussian one depth over its whole footprint.
 
 Plain RGB(+depth) with SH goes straight through :func:`rasterization` (its fused SH path).
 """
@@ -34,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from tacsplat.reconstruction.config import LIT, SPECULAR, Appearance
+from tacsplat.reconstruction.config import LIT, SPECULAR, Appearance, DepthRender
 from tacsplat.reconstruction.fused_normals import gaussian_normals_cpu
 from tacsplat.reconstruction.fused_shading import ALPHA_FLOOR, TINY, shade_cpu
 from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_to_rgb
@@ -151,6 +155,7 @@ class Look:
     appearance: Appearance = "sh"
     environment: EnvironmentMap | None = None
     light: DiffuseLight | None = None
+    depth: DepthRender = "centre"  # how its depth is rendered (TrainConfig.depth_render)
 
 
 @dataclass
@@ -178,11 +183,14 @@ def render(
     environment: EnvironmentMap | None = None,
     light: DiffuseLight | None = None,  # "lit", "sh-lit": the diffuse light (None: unlit, the albedo)
     world_normals: Tensor | None = None,  # [N, 3] gaussian_normals(g.quats, g.scales), when the caller has them
+    depth_render: DepthRender = "centre",  # with depth_mode: each Gaussian's centre depth, or the ray's hit with the
+    # blended plane ("plane"; renders the normals too)
 ) -> RenderOutput:
     """Render one view; see the module docstring for what each option adds to the pass. A caller that also needs
     the Gaussians' normals (a loss) computes them once and passes them as ``world_normals``."""
     g = gaussians
-    if not normals and appearance == "sh":
+    plane = depth_mode is not None and depth_render == "plane"
+    if not normals and appearance == "sh" and not plane:
         mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
         colors, alphas, meta = raster.rasterization(
             g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(sh_degree), viewmat, K, width, height,
@@ -199,11 +207,13 @@ def render(
         features = torch.cat([sh0_to_rgb(g.params["sh0"][:, 0]).clamp_min(0.0), torch.sigmoid(g.params["tint"]),
                               torch.sigmoid(g.params["roughness"])], dim=-1)  # [N, 7]
     channels = [features]
-    with_normals = normals or appearance != "sh"
+    with_normals = normals or appearance != "sh" or plane
     if with_normals:
         n = gaussian_normals(g.quats, g.scales, fused_kernels(backend)) if world_normals is None else world_normals
         n = torch.where(((n * to_gaussian).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
         channels.append(n @ viewmat[0, :3, :3].T)  # camera frame
+    if plane:
+        channels.append((n * to_gaussian).sum(-1, keepdim=True))  # [N, 1] <n, mu - c>: minus the plane's distance
     mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
     colors, alphas, meta = raster.rasterization(
         g.means, g.quats, g.scales, g.opacities, torch.cat(channels, dim=-1)[None], viewmat, K, width, height,
@@ -215,12 +225,34 @@ def render(
     if with_normals:
         summed = out[..., features.shape[1] : features.shape[1] + 3]
         normal = F.normalize(summed, dim=-1, eps=1e-8)
+    if plane:
+        blended = out[..., features.shape[1] : features.shape[1] + 4]  # [H, W, 4] sum w n, sum w <n, mu - c>
+        centre = depth if depth_mode == "ED" else depth / alpha.clamp_min(ALPHA_FLOOR)
+        hit = plane_hit_depth(blended[..., :3], blended[..., 3], K[0], centre)
+        depth = hit if depth_mode == "ED" else hit * alpha
     if appearance == "sh":
         return RenderOutput(out[..., :3], alpha, depth, normal, meta)
     rgb, albedo = _shade(out[..., : features.shape[1]], alpha, normal, viewmat[0], K[0],
                          environment if appearance in SPECULAR else None, light if appearance in LIT else None,
                          saturate=appearance in LIT, fused=fused_kernels(backend))
     return RenderOutput(rgb, alpha, depth, normal, meta, albedo)
+
+
+PLANE_MIN_COS = 0.1  # plane depth: a pixel whose ray meets its blended plane more obliquely keeps the centre depth
+
+
+def plane_hit_depth(normal_sum: Tensor, offset_sum: Tensor, K: Tensor, centre: Tensor) -> Tensor:
+    """The depth [H, W] at which each pixel's ray meets its blended plane {x : <N, x> = O} (camera frame, x from
+    the camera centre), N = ``normal_sum`` [H, W, 3] = sum w n (normals towards the camera) and O = ``offset_sum``
+    [H, W] = sum w <n, mu - c>: both sums carry the same weights, so the plane is their blend. ``centre`` [H, W]
+    where the ray grazes that plane (|cos| under PLANE_MIN_COS) or nothing is drawn."""
+    height, width = centre.shape
+    unit = pixel_rays(K, width, height)  # [H, W, 3]
+    along = (normal_sum * unit).sum(-1) / unit[..., 2]  # [H, W] <sum w n, ray at depth 1>, negative when facing
+    cos = -along * unit[..., 2] / normal_sum.norm(dim=-1).clamp_min(TINY)
+    meets = cos > PLANE_MIN_COS
+    hit = offset_sum / torch.where(meets, along, -torch.ones_like(along))
+    return torch.where(meets, hit, centre)
 
 
 def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:

@@ -149,7 +149,7 @@ class Trainer:
         self.environment = (shading.EnvironmentMap(config.env_map_height, device=dev)
                             if config.appearance in shading.SPECULAR else None)
         self.light = shading.DiffuseLight(device=dev) if config.appearance in shading.LIT else None
-        self.look = shading.Look(config.appearance, self.environment, self.light)
+        self.look = shading.Look(config.appearance, self.environment, self.light, config.depth_render)
         self.splat: Gaussians | None = None  # splat.ply's Gaussians: the final ones, shading baked (run() sets it)
         backgrounds = [background_image(im, config.background) for im in images]
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
@@ -260,6 +260,7 @@ class Trainer:
             g, self.viewmats[view : view + 1], self.Ks[view : view + 1], frame.intrinsics.width,
             frame.intrinsics.height, sh_degree=active_degree, backend=cfg.backend,
             depth_mode="D" if with_depth or with_normals else None, normals=with_normals,
+            depth_render=cfg.depth_render if self.step >= cfg.plane_depth_start_iter else "centre",
             appearance=cfg.appearance, environment=self.environment, world_normals=world_normals,
             light=self.light if self.step >= cfg.lit_start_iter else None,
         )  # fmt: skip

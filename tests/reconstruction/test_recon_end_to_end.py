@@ -345,6 +345,8 @@ def test_cli_options_reach_the_train_config():
         config_from_args(_reconstruct_args("--densify-max-gaussians", "-1"))
     with pytest.raises(ConfigError, match="smoothness_depth"):
         TrainConfig(smoothness_depth="median").validate()
+    with pytest.raises(ConfigError, match="depth_render"):
+        TrainConfig(depth_render="median").validate()
 
 
 def test_every_training_setting_has_a_documented_option_with_its_default():

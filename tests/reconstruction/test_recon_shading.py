@@ -17,6 +17,7 @@ from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
 from tacsplat.reconstruction.shading import (
     DiffuseLight,
     LIT,
+    PLANE_MIN_COS,
     SPECULAR,
     EnvironmentMap,
     _shade,
@@ -102,6 +103,55 @@ def test_depth_normal_consistency_is_zero_for_a_plane_of_flat_gaussians_lying_in
     # the fused CPU pass the trainer uses agrees on both
     fused = [losses.depth_normal_consistency(o.normal, surface, K[0], out.alpha * drawn).item() for o in (out, out_t)]
     assert fused[0] < 2e-3 and fused[1] > 0.05
+
+
+def _true_plane_depth(normal: np.ndarray, offset: float, viewmat: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """[H, W] depth of the plane normal . p = offset along each pixel's ray (float64)."""
+    rotation, translation = viewmat[0, :3, :3].double(), viewmat[0, :3, 3].double()
+    normal = torch.tensor(normal / np.linalg.norm(normal))
+    centre = -rotation.T @ translation
+    rays = pixel_rays(K[0].double(), 48, 48)
+    rays = rays / rays[..., 2:3]  # [H, W, 3] at depth 1
+    return (offset / np.linalg.norm(normal.numpy()) - normal @ centre) / (rays @ (rotation @ normal))
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_plane_depth_of_flat_gaussians_in_a_tilted_plane_is_where_each_ray_meets_it(backend):
+    normal = np.array([0.3, 0.2, 1.0])
+    gaussians = _plane_of_flat_gaussians(normal, 0.1, n=12)  # few, large Gaussians: one spans several pixels
+    viewmat = torch.tensor(invert_pose(look_at([0.8, -0.5, 2.5], [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
+    K = torch.tensor([[[60.0, 0, 24], [0, 60.0, 24], [0, 0, 1]]])
+    truth = _true_plane_depth(normal, 0.1, viewmat, K)
+    errors = {}
+    for mode in ("ED", "D"):
+        for how in ("centre", "plane"):
+            out = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend=backend, depth_mode=mode,
+                         depth_render=how)
+            drawn = out.alpha > 0.5
+            assert drawn.sum() > 1000
+            depth = out.depth if mode == "ED" else out.depth / out.alpha  # "D" accumulates: times alpha
+            errors[mode, how] = float((depth.detach().double() - truth)[drawn].abs().max())
+    assert errors["ED", "plane"] < 1e-5 and errors["D", "plane"] < 1e-5  # exact up to float32
+    assert errors["ED", "centre"] > 0.05  # each Gaussian's one depth over its footprint is not the plane
+
+
+def test_plane_depth_keeps_the_centre_depth_where_rays_graze_and_its_gradients_stay_finite():
+    normal = np.array([1.0, 0.0, 0.07])  # a plane through the z axis tilted by 4 degrees, seen from the z axis:
+    gaussians = _plane_of_flat_gaussians(normal, 0.0, n=20)  # every ray meets it at |cos| < PLANE_MIN_COS
+    gaussians.params["means"].requires_grad_(True)
+    viewmat = torch.tensor(invert_pose(look_at([0.0, 0.0, 2.5], [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
+    K = torch.tensor([[[60.0, 0, 24], [0, 60.0, 24], [0, 0, 1]]])
+    plane = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode="ED", depth_render="plane")
+    centre = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode="ED")
+    drawn = plane.alpha > 0.01
+    facing = -(plane.normal * pixel_rays(K[0], 48, 48)).sum(-1)  # |cos| of each ray with the blended normal
+    grazing = drawn & (facing < PLANE_MIN_COS)
+    assert grazing.sum() > 100
+    assert torch.isfinite(plane.depth).all()
+    torch.testing.assert_close(plane.depth[grazing], centre.depth[grazing], rtol=0, atol=1e-6)
+    plane.depth[drawn].sum().backward()
+    assert torch.isfinite(gaussians.params["means"].grad).all()
+    assert torch.isfinite(gaussians.params["quats"].grad).all()
 
 
 def test_the_environment_lookup_of_a_mirror_returns_the_maps_value():

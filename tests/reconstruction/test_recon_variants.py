@@ -59,9 +59,16 @@ def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_tra
 
 
 def test_a_switched_off_mechanisms_settings_are_unused():
-    assert TrainConfig().unused_fields() == {"env_map_height"}  # sh-lit: no environment map
+    # sh-lit: no environment map; centre depth: no plane depth to start
+    assert TrainConfig().unused_fields() == {"env_map_height", "plane_depth_start_iter"}
     assert TrainConfig(**get_variant("full").overrides).unused_fields() == {
         "depth_normal_start_iter", "albedo_smoothness_beta", "lambda_albedo_smoothness", "lit_start_iter",
-        "env_map_height"}
-    assert TrainConfig(appearance="reflective").unused_fields() == {"lit_start_iter"}
+        "env_map_height", "plane_depth_start_iter"}
+    assert TrainConfig(appearance="reflective").unused_fields() == {"lit_start_iter", "plane_depth_start_iter"}
+    plane = TrainConfig(**get_variant("full+n+tn+sl+as+pd").overrides)
+    assert plane.unused_fields() == {"env_map_height"} and plane.variant == "full+n+tn+sl+as+pd"
+    from tacsplat.reconstruction.config import paper_departures
+
+    assert [line for line in paper_departures(plane) if "blended plane" in line]
+    assert not [line for line in paper_departures(TrainConfig()) if "blended plane" in line]
     assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
