@@ -452,7 +452,11 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
 
 def _execute(job: Job, starts, *needs: tuple) -> tuple[str, str, object]:
     """The body of a job's Ray task: ``(status, job name, summary or error)``; ``needs`` are its needs' results."""
-    starts.started.remote(job.name)
+    import ray
+
+    # waited for: an attempt that fails at once must be counted before its failure reaches the driver, which
+    # reads the counts then (unawaited, the driver's read could overtake this call and count one attempt short)
+    ray.get(starts.started.remote(job.name))
     failed = next((name for status, name, _ in needs if status != "done"), None)
     if failed:
         return "blocked", job.name, failed
