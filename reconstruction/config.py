@@ -69,13 +69,13 @@ class TrainConfig:
     # paper metric's completeness was 16 per cent worse on the twin's glossy objects: README); a step number, as
     # the other start steps are, so a run of 700 steps or fewer has none
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
-    depth_render: DepthRender = "centre"  # "centre": each Gaussian's centre depth over its whole footprint
-    # (3DGS); "plane": the pixel ray's hit with the blended plane of the Gaussians' normals and centres (PGSR's
-    # unbiased depth), in training (smoothness, depth-normal consistency) and in evaluation (cd)
-    plane_depth_start_iter: int = 700  # "plane": in training from this step on (before: "centre"; as the
-    # depth-normal consistency, once the Gaussians are flat and their normals mean something)
     lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
     # (needs the rendered normals: with depth-normal consistency on, from its start step)
+    depth_render: DepthRender = "centre"  # "centre": each Gaussian's centre depth over its whole footprint
+    # (3DGS); "plane": the pixel ray's hit with the blended plane of the Gaussians' normals and centres (PGSR's
+    # unbiased depth), in training (smoothness, depth-normal consistency) and in evaluation (cd, progress rows too)
+    plane_depth_start_iter: int = 700  # "plane": in training from this step on (before: "centre"; as the
+    # depth-normal consistency, once the Gaussians are flat and their normals mean something)
     appearance: Appearance = "sh-lit"  # colour: view-dependent SH (3DGS), or
     # "reflective": diffuse + specular tint x a learned environment map along the reflected view direction,
     # prefiltered by roughness (deferred shading), or "lit": that, with the diffuse colour an albedo times a learned

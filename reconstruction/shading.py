@@ -227,9 +227,8 @@ def render(
         normal = F.normalize(summed, dim=-1, eps=1e-8)
     if plane:
         blended = out[..., features.shape[1] : features.shape[1] + 4]  # [H, W, 4] sum w n, sum w <n, mu - c>
-        centre = depth if depth_mode == "ED" else depth / alpha.clamp_min(ALPHA_FLOOR)
-        hit = plane_hit_depth(blended[..., :3], blended[..., 3], K[0], centre)
-        depth = hit if depth_mode == "ED" else hit * alpha
+        hit, meets = plane_hit_depth(blended[..., :3], blended[..., 3], K[0])
+        depth = torch.where(meets, hit if depth_mode == "ED" else hit * alpha, depth)  # else the centre depth
     if appearance == "sh":
         return RenderOutput(out[..., :3], alpha, depth, normal, meta)
     rgb, albedo = _shade(out[..., : features.shape[1]], alpha, normal, viewmat[0], K[0],
@@ -238,21 +237,22 @@ def render(
     return RenderOutput(rgb, alpha, depth, normal, meta, albedo)
 
 
-PLANE_MIN_COS = 0.1  # plane depth: a pixel whose ray meets its blended plane more obliquely keeps the centre depth
+PLANE_MIN_COS = 0.1  # plane depth: a pixel whose blended plane faces its ray less (grazing, or facing away, or
+# no plane: nothing drawn) keeps the centre depth
 
 
-def plane_hit_depth(normal_sum: Tensor, offset_sum: Tensor, K: Tensor, centre: Tensor) -> Tensor:
+def plane_hit_depth(normal_sum: Tensor, offset_sum: Tensor, K: Tensor) -> tuple[Tensor, Tensor]:
     """The depth [H, W] at which each pixel's ray meets its blended plane {x : <N, x> = O} (camera frame, x from
     the camera centre), N = ``normal_sum`` [H, W, 3] = sum w n (normals towards the camera) and O = ``offset_sum``
-    [H, W] = sum w <n, mu - c>: both sums carry the same weights, so the plane is their blend. ``centre`` [H, W]
-    where the ray grazes that plane (|cos| under PLANE_MIN_COS) or nothing is drawn."""
-    height, width = centre.shape
+    [H, W] = sum w <n, mu - c>: both sums carry the same weights, so the plane is their blend. Also [H, W] bool
+    where that depth holds: the cosine between the plane's normal and the reversed ray is at least PLANE_MIN_COS
+    (elsewhere the depth is a finite placeholder with finite gradients)."""
+    height, width = offset_sum.shape
     unit = pixel_rays(K, width, height)  # [H, W, 3]
     along = (normal_sum * unit).sum(-1) / unit[..., 2]  # [H, W] <sum w n, ray at depth 1>, negative when facing
     cos = -along * unit[..., 2] / normal_sum.norm(dim=-1).clamp_min(TINY)
-    meets = cos > PLANE_MIN_COS
-    hit = offset_sum / torch.where(meets, along, -torch.ones_like(along))
-    return torch.where(meets, hit, centre)
+    meets = cos >= PLANE_MIN_COS
+    return offset_sum / torch.where(meets, along, -torch.ones_like(along)), meets
 
 
 def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:

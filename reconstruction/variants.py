@@ -75,7 +75,7 @@ VARIANTS: dict[str, Variant] = {
                 {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "sh-lit", "lambda_albedo_smoothness": 0.1,
                  "depth_render": "plane"},
                 "the default with each pixel's depth where its ray meets the blended plane of the Gaussians (PGSR's "
-                "unbiased depth) in training from step 700 and in evaluation: exact on flat faces, worse where "
+                "unbiased depth) in training (from plane_depth_start_iter) and in evaluation: exact on flat faces, worse where "
                 "the normals are off (beyond the paper)"),
     )
 }

@@ -454,17 +454,19 @@ def _execute(job: Job, starts, *needs: tuple) -> tuple[str, str, object]:
     """The body of a job's Ray task: ``(status, job name, summary or error)``; ``needs`` are its needs' results."""
     import ray
 
-    # waited for: an attempt that fails at once must be counted before its failure reaches the driver, which
-    # reads the counts then (unawaited, the driver's read could overtake this call and count one attempt short)
-    ray.get(starts.started.remote(job.name))
-    failed = next((name for status, name, _ in needs if status != "done"), None)
-    if failed:
-        return "blocked", job.name, failed
-    _limit_threads(job.cpus)
+    started = starts.started.remote(job.name)
     try:
-        return "done", job.name, job()
-    except TacsplatError as exc:  # a mistake in its input: a retry would repeat it
-        return "failed", job.name, str(exc)
+        failed = next((name for status, name, _ in needs if status != "done"), None)
+        if failed:
+            return "blocked", job.name, failed
+        _limit_threads(job.cpus)
+        try:
+            return "done", job.name, job()
+        except TacsplatError as exc:  # a mistake in its input: a retry would repeat it
+            return "failed", job.name, str(exc)
+    finally:  # counted before the attempt's result or error reaches the driver, which reads the counts then;
+        # awaited at the end, not the start: a task blocked in ray.get lends its CPUs to the next queued task
+        ray.get(started)
 
 
 def _limit_threads(cpus: float) -> None:

@@ -12,11 +12,12 @@ import trimesh
 
 from tacsplat.cli import main as tacsplat_main
 from tacsplat.datasets import Scene
-from tacsplat.reconstruction import losses
+from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.gaussians import quats_to_rotmats
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.ply import load_ply
+from tacsplat.reconstruction.run_dir import load_run
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.trainer import Trainer, reconstruct
 
@@ -167,6 +168,19 @@ def test_touch_pixel_normals_run_with_the_rendered_normals_and_only_when_weighte
     trainer.run(show_progress=False)
     assert len(spy.calls) == 2  # steps 2 and 3, once the normals are rendered; the tactile normals were loaded
     assert torch.isfinite(trainer.touch_normals).any()
+
+
+def test_plane_depth_reaches_training_from_its_start_step_and_every_evaluation(sphere_scene, tmp_path, monkeypatch):
+    spy = _Spy(shading.render)
+    monkeypatch.setattr(shading, "render", spy)
+    run = tmp_path / "run"
+    reconstruct(sphere_scene, run, _config(4, depth_render="plane", plane_depth_start_iter=2), show_progress=False)
+    assert [kwargs["depth_render"] for kwargs, grad in spy.calls if grad] == ["centre", "centre", "plane", "plane"]
+    evaluations = [(kwargs["appearance"], kwargs["depth_render"]) for kwargs, grad in spy.calls if not grad]
+    run_views = {how for appearance, how in evaluations if appearance == "sh-lit"}  # progress rows, metrics.json
+    splat_views = {how for appearance, how in evaluations if appearance == "sh"}  # psnr_splat: splat.ply, as a
+    assert run_views == {"plane"} and splat_views == {"centre"}  # 3DGS viewer renders it
+    assert load_run(run).look.depth == "plane"  # what a later `tacsplat evaluate RUN` renders with
 
 
 def test_the_settings_of_a_switched_off_mechanism_change_nothing(sphere_scene, tmp_path):

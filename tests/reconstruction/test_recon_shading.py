@@ -24,6 +24,7 @@ from tacsplat.reconstruction.shading import (
     equirect_directions,
     gaussian_normals,
     pixel_rays,
+    plane_hit_depth,
     render,
 )
 
@@ -105,14 +106,15 @@ def test_depth_normal_consistency_is_zero_for_a_plane_of_flat_gaussians_lying_in
     assert fused[0] < 2e-3 and fused[1] > 0.05
 
 
-def _true_plane_depth(normal: np.ndarray, offset: float, viewmat: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
-    """[H, W] depth of the plane normal . p = offset along each pixel's ray (float64)."""
+def _true_plane_depth(normal: np.ndarray, offset: float, viewmat: torch.Tensor, K: torch.Tensor, width: int,
+                      height: int) -> torch.Tensor:
+    """[H, W] depth along each pixel's ray of the plane {p : <n, p> = offset}, n = normal / |normal| (float64)."""
     rotation, translation = viewmat[0, :3, :3].double(), viewmat[0, :3, 3].double()
     normal = torch.tensor(normal / np.linalg.norm(normal))
     centre = -rotation.T @ translation
-    rays = pixel_rays(K[0].double(), 48, 48)
+    rays = pixel_rays(K[0].double(), width, height)
     rays = rays / rays[..., 2:3]  # [H, W, 3] at depth 1
-    return (offset / np.linalg.norm(normal.numpy()) - normal @ centre) / (rays @ (rotation @ normal))
+    return (offset - normal @ centre) / (rays @ (rotation @ normal))
 
 
 @pytest.mark.parametrize("backend", ["cpu", "torch"])
@@ -121,7 +123,7 @@ def test_plane_depth_of_flat_gaussians_in_a_tilted_plane_is_where_each_ray_meets
     gaussians = _plane_of_flat_gaussians(normal, 0.1, n=12)  # few, large Gaussians: one spans several pixels
     viewmat = torch.tensor(invert_pose(look_at([0.8, -0.5, 2.5], [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
     K = torch.tensor([[[60.0, 0, 24], [0, 60.0, 24], [0, 0, 1]]])
-    truth = _true_plane_depth(normal, 0.1, viewmat, K)
+    truth = _true_plane_depth(normal, 0.1, viewmat, K, 48, 48)
     errors = {}
     for mode in ("ED", "D"):
         for how in ("centre", "plane"):
@@ -141,17 +143,36 @@ def test_plane_depth_keeps_the_centre_depth_where_rays_graze_and_its_gradients_s
     gaussians.params["means"].requires_grad_(True)
     viewmat = torch.tensor(invert_pose(look_at([0.0, 0.0, 2.5], [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
     K = torch.tensor([[[60.0, 0, 24], [0, 60.0, 24], [0, 0, 1]]])
-    plane = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode="ED", depth_render="plane")
-    centre = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode="ED")
-    drawn = plane.alpha > 0.01
-    facing = -(plane.normal * pixel_rays(K[0], 48, 48)).sum(-1)  # |cos| of each ray with the blended normal
-    grazing = drawn & (facing < PLANE_MIN_COS)
-    assert grazing.sum() > 100
-    assert torch.isfinite(plane.depth).all()
-    torch.testing.assert_close(plane.depth[grazing], centre.depth[grazing], rtol=0, atol=1e-6)
-    plane.depth[drawn].sum().backward()
-    assert torch.isfinite(gaussians.params["means"].grad).all()
-    assert torch.isfinite(gaussians.params["quats"].grad).all()
+    for mode in ("ED", "D"):
+        plane = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode=mode,
+                       depth_render="plane")
+        centre = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode=mode)
+        drawn = plane.alpha > 0.01
+        facing = -(plane.normal * pixel_rays(K[0], 48, 48)).sum(-1)  # cos of each ray with the blended normal
+        grazing = drawn & (facing < PLANE_MIN_COS)
+        assert grazing.sum() > 100
+        assert torch.isfinite(plane.depth).all()
+        torch.testing.assert_close(plane.depth[grazing], centre.depth[grazing], rtol=0, atol=1e-6)
+        gaussians.params["means"].grad = None
+        plane.depth[drawn].sum().backward()
+        assert torch.isfinite(gaussians.params["means"].grad).all()
+
+
+def test_plane_hit_depth_holds_only_where_the_plane_faces_the_ray_with_finite_gradients_everywhere():
+    K = torch.tensor([[4.0, 0, 1.5], [0, 4.0, 0.5], [0, 0, 1]], dtype=torch.float64)  # 3 x 1 px, centre ray (0, 0, 1)
+    towards = [0.0, 0.0, -2.0]  # facing the camera: the plane z = 1.5 (offset <n, x> = -2 * 1.5 = -3)
+    normal_sum = torch.tensor([[towards, [0.0, 0.0, 0.0], [2.0, 0.0, 0.05]]], dtype=torch.float64)  # faces, none,
+    offset_sum = torch.tensor([[-3.0, 0.0, -1.0]], dtype=torch.float64)  # grazes (cos 0.025)
+    normal_sum.requires_grad_(True)
+    offset_sum.requires_grad_(True)
+    hit, meets = plane_hit_depth(normal_sum, offset_sum, K)
+    assert meets.tolist() == [[True, False, False]]
+    assert hit[0, 0].item() == pytest.approx(1.5)
+    hit.sum().backward()
+    assert torch.isfinite(normal_sum.grad).all() and torch.isfinite(offset_sum.grad).all()
+    # a plane facing away from the camera (towards it reversed) is not one the ray can meet from the front
+    _, meets = plane_hit_depth(-normal_sum.detach(), offset_sum.detach(), K)
+    assert not meets[0, 0]
 
 
 def test_the_environment_lookup_of_a_mirror_returns_the_maps_value():

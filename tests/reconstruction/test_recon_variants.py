@@ -4,7 +4,7 @@ every variant's round trip is checked in tests/core/test_bench_report_writers.py
 
 import dataclasses
 
-from tacsplat.reconstruction.config import TrainConfig
+from tacsplat.reconstruction.config import TrainConfig, paper_departures
 from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, VARIANTS, get_variant, variant_of
 
 
@@ -67,8 +67,10 @@ def test_a_switched_off_mechanisms_settings_are_unused():
     assert TrainConfig(appearance="reflective").unused_fields() == {"lit_start_iter", "plane_depth_start_iter"}
     plane = TrainConfig(**get_variant("full+n+tn+sl+as+pd").overrides)
     assert plane.unused_fields() == {"env_map_height"} and plane.variant == "full+n+tn+sl+as+pd"
-    from tacsplat.reconstruction.config import paper_departures
+    assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
 
+
+def test_plane_depth_is_listed_among_the_departures_from_the_paper_only_when_on():
+    plane = TrainConfig(**get_variant("full+n+tn+sl+as+pd").overrides)
     assert [line for line in paper_departures(plane) if "blended plane" in line]
     assert not [line for line in paper_departures(TrainConfig()) if "blended plane" in line]
-    assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
