@@ -154,10 +154,9 @@ class TrainConfig:
             len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
         ):
             return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
-        if self.appearance not in (names := get_args(Appearance)):
-            return "appearance", f"must be {', '.join(map(repr, names[:-1]))} or {names[-1]!r}, got {self.appearance!r}"
-        if self.depth_render not in get_args(DepthRender):
-            return "depth_render", f"must be 'centre' or 'plane', got {self.depth_render!r}"
+        for key, choices in (("appearance", Appearance), ("depth_render", DepthRender)):
+            if getattr(self, key) not in (names := get_args(choices)):
+                return key, f"must be {', '.join(map(repr, names[:-1]))} or {names[-1]!r}, got {getattr(self, key)!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:

@@ -249,9 +249,9 @@ def plane_hit_depth(normal_sum: Tensor, offset_sum: Tensor, K: Tensor) -> tuple[
     (elsewhere the depth is a finite placeholder with finite gradients)."""
     height, width = offset_sum.shape
     unit = pixel_rays(K, width, height)  # [H, W, 3]
-    along = (normal_sum * unit).sum(-1) / unit[..., 2]  # [H, W] <sum w n, ray at depth 1>, negative when facing
-    cos = -along * unit[..., 2] / normal_sum.norm(dim=-1).clamp_min(TINY)
-    meets = cos >= PLANE_MIN_COS
+    facing = (normal_sum * unit).sum(-1)  # [H, W] <sum w n, unit ray>, negative where the plane faces the camera
+    meets = -facing >= PLANE_MIN_COS * normal_sum.norm(dim=-1).clamp_min(TINY)
+    along = facing / unit[..., 2]  # <sum w n, ray at depth 1>
     return offset_sum / torch.where(meets, along, -torch.ones_like(along)), meets
 
 

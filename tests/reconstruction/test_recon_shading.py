@@ -139,7 +139,7 @@ def test_plane_depth_of_flat_gaussians_in_a_tilted_plane_is_where_each_ray_meets
 
 def test_plane_depth_keeps_the_centre_depth_where_rays_graze_and_its_gradients_stay_finite():
     normal = np.array([1.0, 0.0, 0.07])  # a plane through the z axis tilted by 4 degrees, seen from the z axis:
-    gaussians = _plane_of_flat_gaussians(normal, 0.0, n=20)  # every ray meets it at |cos| < PLANE_MIN_COS
+    gaussians = _plane_of_flat_gaussians(normal, 0.0, n=20)  # most rays meet it at cos < PLANE_MIN_COS
     gaussians.params["means"].requires_grad_(True)
     viewmat = torch.tensor(invert_pose(look_at([0.0, 0.0, 2.5], [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
     K = torch.tensor([[[60.0, 0, 24], [0, 60.0, 24], [0, 0, 1]]])
