@@ -63,8 +63,7 @@ def config_from_args(args):
     from tacsplat.reconstruction.variants import get_variant
 
     config = preset_config(args.preset, getattr(args, "cfg__iterations", None))
-    for key, value in get_variant(args.variant, "--variant").overrides.items():
-        setattr(config, key, value)
+    get_variant(args.variant, "--variant").apply(config)
     apply_options(config, args, args.config_options)
     if args.no_smoothness:
         config.lambda_s = 0.0

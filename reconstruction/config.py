@@ -198,7 +198,7 @@ class TrainConfig:
         see ``_BEFORE_THEY_EXISTED``); a ConfigError naming ``source`` if it is not one."""
         try:
             data = {**_BEFORE_THEY_EXISTED, **data}
-            init = InitConfig(**data.pop("init", {}))
+            init = InitConfig(**{**_INIT_BEFORE_THEY_EXISTED, **data.pop("init", {})})
             densify = DensifyStrategy(**data.pop("densify", {}))
             if data.get("background") is not None:
                 data["background"] = tuple(data["background"])
@@ -215,6 +215,7 @@ class TrainConfig:
 # differs from today's default): no surface-normal losses, and the colour was unlit SH without a smooth albedo.
 _BEFORE_THEY_EXISTED = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0,
                         "appearance": "sh", "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
+_INIT_BEFORE_THEY_EXISTED = {"colours_from_views": False}  # ... and of its InitConfig: random initial colours
 
 # Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
 _INT_RANGES = {
@@ -327,6 +328,9 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
     if config.init.use_silhouette_hull:
         lines.append("initialisation: G_c on the visual hull of the silhouettes when SfM finds too few points (the "
                      "official data preparation triangulates COLMAP points from the train and test images)")
+    if config.init.colours_from_views and (config.use_touch or config.init.use_silhouette_hull):
+        lines.append("initial colours of the touch Gaussians (and of a failed SfM's points) from the training pixels "
+                     "they project to; the paper: random")
     if config.depth_render == "plane":
         lines.append("depth rendered where each pixel's ray meets the blended plane of the Gaussians (PGSR's unbiased "
                      f"depth; in training from step {config.plane_depth_start_iter}, and for cd); not in the paper")

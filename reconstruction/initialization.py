@@ -34,6 +34,9 @@ class InitConfig:
     use_silhouette_hull: bool = True  # failed SfM: draw them on the visual hull of the object's silhouettes
     # (views whose border fits a smooth backdrop) rather than in the whole bounding box
     hull_resolution: int = 64  # voxels along the longest side of the bounds when carving the hull
+    colours_from_views: bool = True  # G_t and the fallback's points start with the median colour of the training
+    # pixels they project to (on the object's silhouette where a view has one; occlusion ignored); False: random
+    # colours (paper Sec. 4.1, for G_t)
     initial_opacity: float = 0.1  # of G_c, and of G_t unless touch_initial_opacity is set (paper Sec. 4.1)
     touch_initial_opacity: float | None = None  # of G_t; None: initial_opacity
     touch_voxel_size: float = 0.001  # metres: touch points are thinned to one per voxel
@@ -159,6 +162,37 @@ def initial_gaussians(
     touch_opacity = config.initial_opacity if config.touch_initial_opacity is None else config.touch_initial_opacity
     opacities = np.where(from_touch, touch_opacity, config.initial_opacity)
     return Gaussians.from_points(points, colors, neighbour_scales(points), from_touch, sh_degree, opacities)
+
+
+def view_colours(
+    points: np.ndarray,  # [N, 3] world
+    images: list[np.ndarray],  # each [H, W, 3] float in [0, 1]
+    Ks: list[np.ndarray],  # each [3, 3]
+    T_world_cams: list[np.ndarray],  # each [4, 4] OpenCV camera-to-world
+    silhouettes: list[np.ndarray | None],  # each [H, W] bool (True on the object) or None: the whole frame counts
+) -> np.ndarray:
+    """Per point, the median colour [N, 3] of the pixels it projects to in the views where it lands on the object
+    (occlusion ignored); NaN where it lands on no view's object."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    samples = np.full((len(images), len(points), 3), np.nan)  # [V, N, 3]
+    for k, (image, K, T_world_cam, silhouette) in enumerate(zip(images, Ks, T_world_cams, silhouettes)):
+        T = invert_pose(T_world_cam)
+        cam = points @ T[:3, :3].T + T[:3, 3]
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.floor(K[0, 0] * cam[:, 0] / z + K[0, 2])
+            v = np.floor(K[1, 1] * cam[:, 1] / z + K[1, 2])
+        h, w = image.shape[:2]
+        inside = np.flatnonzero((z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h))
+        rows, cols = v[inside].astype(np.int64), u[inside].astype(np.int64)
+        if silhouette is not None:
+            on_object = silhouette[rows, cols]
+            inside, rows, cols = inside[on_object], rows[on_object], cols[on_object]
+        samples[k, inside] = np.asarray(image, dtype=np.float64)[rows, cols]
+    seen = np.isfinite(samples[..., 0]).any(axis=0)  # [N]
+    colours = np.full((len(points), 3), np.nan)
+    colours[seen] = np.nanmedian(samples[:, seen], axis=0)
+    return colours
 
 
 def foreground_mask(backdrop: np.ndarray) -> np.ndarray:

@@ -40,7 +40,7 @@ from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyState
 from tacsplat.reconstruction.evaluation import evaluate_reconstruction, evaluate_views, load_ground_truth
-from tacsplat.reconstruction.gaussians import Gaussians
+from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.initialization import (
     foreground_mask,
     initial_gaussians,
@@ -48,6 +48,7 @@ from tacsplat.reconstruction.initialization import (
     sfm_points,
     silhouette_hull_points,
     thin_touch_points,
+    view_colours,
 )
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction import shading
@@ -190,7 +191,8 @@ class Trainer:
                 cfg.init,
                 cfg.seed,
             )
-        if sfm is not None and len(sfm.points) >= cfg.init.min_sfm_points:
+        sfm_found = sfm is not None and len(sfm.points) >= cfg.init.min_sfm_points
+        if sfm_found:
             points, colors = sfm.points, sfm.colors
             log.info("initialisation: %d SfM points", len(points))
         else:
@@ -199,11 +201,26 @@ class Trainer:
             log.info("initialisation: %d SfM points (< %d): %d random points %s",
                      found, cfg.init.min_sfm_points, len(points), where)  # fmt: skip
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
+        if cfg.init.colours_from_views:  # the randomly coloured ones: G_t, after the fallback's points if SfM failed
+            first = len(points) if sfm_found else 0
+            self._colour_from_views(gaussians, np.concatenate([points, self.touch_points])[first:], first)
         if cfg.appearance in shading.SPECULAR:
             shading.add_reflective_params(gaussians)
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
+
+    def _colour_from_views(self, gaussians: Gaussians, points: np.ndarray, first: int) -> None:
+        """Gaussians ``first`` on, at ``points`` [M, 3], take the :func:`view_colours` of the training views (on
+        their silhouettes where known); those that land on no view's object keep their colour."""
+        colours = view_colours(
+            points, [im.cpu().numpy() for im in self.images], [f.intrinsics.K for f in self.train_frames],
+            [f.T_world_cam for f in self.train_frames],
+            [None if mask is None else foreground_mask(mask) for mask in self.backdrop_pixels],
+        )  # [M, 3]
+        found = np.isfinite(colours).all(axis=1)
+        rows = torch.from_numpy(first + np.flatnonzero(found))
+        gaussians.params["sh0"].data[rows] = rgb_to_sh0(torch.as_tensor(colours[found], dtype=torch.float32)[:, None])
 
     def _fallback_points(self) -> tuple[np.ndarray, np.ndarray, str]:
         """Random coloured points on the silhouettes' visual hull, or in the scene bounds without silhouettes."""

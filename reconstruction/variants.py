@@ -4,11 +4,12 @@ the report.
 A variant is a name, the label the paper's tables print, and the
 :class:`~tacsplat.reconstruction.config.TrainConfig` fields it sets; every
 other field keeps its default. TrainConfig's defaults are ``DEFAULT_VARIANT``
-(beyond the paper), so the paper's rows switch the surface-normal losses and
-the lit colour off.
+(beyond the paper), so the paper's rows switch the surface-normal losses, the initial
+colours from the views and the lit colour off.
 A config's variant is the row whose fields it matches on the switches that
 define variants (touch on/off, smoothness on/off, surface normals on/off, then
-tactile normals, appearance and a smooth albedo).
+tactile normals, appearance, a smooth albedo, plane depth and initial colours from the views). The rows measured
+before the initial colours from the views existed set them off (``RANDOM_COLOURS``), as they were measured.
 """
 
 from __future__ import annotations
@@ -22,12 +23,20 @@ from tacsplat.errors import ConfigError
 class Variant:
     name: str  # as in file names, results.csv and metrics.json
     label: str  # as in the paper's tables
-    overrides: dict = field(default_factory=dict)  # TrainConfig fields it sets
+    overrides: dict = field(default_factory=dict)  # TrainConfig fields it sets ("init.x": its InitConfig's x)
     description: str = ""
+
+    def apply(self, config):
+        """Set the variant's fields on a TrainConfig (and its InitConfig) and return it."""
+        for key, value in self.overrides.items():
+            owner, _, name = key.rpartition(".")
+            setattr(getattr(config, owner) if owner else config, name, value)
+        return config
 
 
 SH = {"appearance": "sh", "lambda_albedo_smoothness": 0.0}  # view-dependent colour, unlit (3DGS)
-PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, **SH}
+RANDOM_COLOURS = {"init.colours_from_views": False}  # G_t (and a failed SfM's points) start with random colours
+PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, **SH, **RANDOM_COLOURS}
 NORMALS = {"lambda_flatten": 10.0, "lambda_depth_normal": 0.05, "depth_normal_start_iter": 700}  # (TrainConfig's)
 
 VARIANTS: dict[str, Variant] = {
@@ -39,48 +48,58 @@ VARIANTS: dict[str, Variant] = {
         Variant("3dgs+t", "3DGS + T", {"lambda_s": 0.0, **PAPER},
                 "touch Gaussians and transmittance L_T (Eq. 7), no smoothness"),
         Variant("full", "Ours (full)", PAPER, "touch and smoothness: the paper's method"),
-        Variant("full+n", "Ours + normals", {**NORMALS, "lambda_touch_normal": 0.0, **SH},
+        Variant("full+n", "Ours + normals", {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.0, **SH},
                 "full, plus flat Gaussians (minimum-scale loss) and depth-normal consistency from step 700 "
                 "(beyond the paper)"),
         Variant("full+n+tn", "Ours + normals + tactile normals",
-                {**NORMALS, "lambda_touch_normal": 0.1, **SH},
+                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, **SH},
                 "full+n, plus touch Gaussians' normals aligned with the tactile maps' normals (beyond the paper)"),
         Variant("full+n+r", "Ours + normals + reflections",
-                {**NORMALS, "lambda_touch_normal": 0.0, "appearance": "reflective", "lambda_albedo_smoothness": 0.0},
+                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.0, "appearance": "reflective",
+                 "lambda_albedo_smoothness": 0.0},
                 "full+n, with diffuse + specular environment-map shading instead of view-dependent SH "
                 "(beyond the paper)"),
         # full+n+tn with one mechanism off or on, for the ablation (README: "each mechanism on and off")
         Variant("full+tn", "Ours + tactile normals", {**PAPER, "lambda_touch_normal": 0.1},
                 "full plus tactile normals only (ablation)"),
+        Variant("full+vc", "Ours + view colours", {**PAPER, "init.colours_from_views": True},
+                "full plus initial colours from the views only (ablation)"),
         Variant("full+flat+tn", "Ours + flat Gaussians + tactile normals",
-                {**NORMALS, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.1, **SH},
+                {**NORMALS, **RANDOM_COLOURS, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.1, **SH},
                 "full+n+tn without depth-normal consistency (ablation)"),
         Variant("full+dn+tn", "Ours + depth-normal consistency + tactile normals",
-                {**NORMALS, "lambda_flatten": 0.0, "lambda_touch_normal": 0.1, **SH},
+                {**NORMALS, **RANDOM_COLOURS, "lambda_flatten": 0.0, "lambda_touch_normal": 0.1, **SH},
                 "full+n+tn without flattening (ablation)"),
         Variant("full+n+tn+r", "Ours + normals + tactile normals + reflections",
-                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "reflective", "lambda_albedo_smoothness": 0.0},
+                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, "appearance": "reflective",
+                 "lambda_albedo_smoothness": 0.0},
                 "full+n+tn with the reflective appearance (ablation)"),
         Variant("full+n+tn+l+as", "Ours + normals + tactile normals + lit shading",
-                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "lit", "lambda_albedo_smoothness": 0.1},
+                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, "appearance": "lit",
+                 "lambda_albedo_smoothness": 0.1},
                 "full+n+tn with the lit appearance (a learned light shades an albedo at the normals, the "
                 "specular from the environment) and a smooth albedo, so that shading has to come from the "
                 "geometry (beyond the paper)"),
         Variant("full+n+tn+sl+as", "Ours + normals + tactile normals + lit SH colour",
-                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "sh-lit", "lambda_albedo_smoothness": 0.1},
+                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, "appearance": "sh-lit",
+                 "lambda_albedo_smoothness": 0.1},
                 "full+n+tn with the view-dependent colour lit by a learned light at the rendered normals (sh-lit) "
-                "and kept smooth, so that shading has to come from the geometry (beyond the paper; TrainConfig's "
-                "defaults, what `tacsplat reconstruct` runs)"),
+                "and kept smooth, so that shading has to come from the geometry (beyond the paper)"),
         Variant("full+n+tn+sl+as+pd", "Ours + normals + tactile normals + lit SH colour + plane depth",
-                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "sh-lit", "lambda_albedo_smoothness": 0.1,
-                 "depth_render": "plane"},
-                "the default with each pixel's depth where its ray meets the blended plane of the Gaussians (PGSR's "
-                "unbiased depth) in training (from plane_depth_start_iter) and in evaluation: exact on flat faces, worse where "
-                "the normals are off (beyond the paper)"),
+                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, "appearance": "sh-lit",
+                 "lambda_albedo_smoothness": 0.1, "depth_render": "plane"},
+                "full+n+tn+sl+as with each pixel's depth where its ray meets the blended plane of the Gaussians "
+                "(PGSR's unbiased depth) in training (from plane_depth_start_iter) and in evaluation: exact on flat "
+                "faces, worse where the normals are off (beyond the paper)"),
+        Variant("full+n+tn+sl+as+vc", "Ours + normals + tactile normals + lit SH colour + view colours",
+                {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "sh-lit", "lambda_albedo_smoothness": 0.1},
+                "full+n+tn+sl+as with the touch Gaussians (and a failed SfM's points) starting with the median colour "
+                "of the training pixels they project to instead of random colours (beyond the paper; TrainConfig's "
+                "defaults, what `tacsplat reconstruct` runs)"),
     )
 }
 PAPER_VARIANTS = ("3dgs", "3dgs+s", "3dgs+t", "full")  # the paper's Table 3
-DEFAULT_VARIANT = "full+n+tn+sl+as"  # the lowest CD on the twin's glossy objects, at a step cost under 1.5x the
+DEFAULT_VARIANT = "full+n+tn+sl+as+vc"  # the lowest CD on the twin's glossy objects, at a step cost under 1.5x the
 # paper method's (bench paper, bench step and the README)
 
 
@@ -97,7 +116,8 @@ def variant_of(config) -> str:
     depth-normal consistency both on; ``+flat`` or ``+dn`` for one of them alone), ``+tn`` for tactile normals
     (with touch on), ``+tnp`` for tactile normals at the touch pixels (with touch and the rendered normals of
     depth-normal consistency on, which it needs), ``+r`` / ``+l`` / ``+sl`` for the reflective / lit / sh-lit
-    appearance, ``+as`` for a smooth albedo (with any of them) and ``+pd`` for plane depth. A combination without
+    appearance, ``+as`` for a smooth albedo (with any of them), ``+pd`` for plane depth and ``+vc`` for initial
+    colours from the views (InitConfig.colours_from_views). A combination without
     a row names itself the same way, so a run's metrics.json never calls it by a row it is not."""
     on = mechanisms(config)
     name = {(False, False): "3dgs", (False, True): "3dgs+s", (True, False): "3dgs+t",
@@ -109,6 +129,7 @@ def variant_of(config) -> str:
     name += "+r" if on["reflective"] else "+l" if on["lit"] else "+sl" if on["sh_lit"] else ""
     name += "+as" if on["albedo_smoothness"] else ""
     name += "+pd" if on["plane_depth"] else ""
+    name += "+vc" if on["view_colours"] else ""
     return name
 
 
@@ -117,7 +138,7 @@ def mechanisms(config) -> dict[str, bool]:
     (:func:`variant_of`) and for how much work its step does (``bench paper``'s scheduling): touch (used, with
     lambda_t > 0), smoothness, flattening, depth-normal consistency, tactile normals (with touch), tactile
     normals at the touch pixels (with touch and depth-normal consistency), the reflective, lit or sh-lit
-    appearance, a smooth albedo (with any of them), plane depth."""
+    appearance, a smooth albedo (with any of them), plane depth, initial colours from the views."""
     touch, depth_normal = config.use_touch and config.lambda_t > 0, config.lambda_depth_normal > 0
     return {
         "touch": touch, "smoothness": config.lambda_s > 0, "flattening": config.lambda_flatten > 0,
@@ -126,7 +147,7 @@ def mechanisms(config) -> dict[str, bool]:
         "reflective": config.appearance == "reflective", "lit": config.appearance == "lit",
         "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
-        "plane_depth": config.depth_render == "plane",
+        "plane_depth": config.depth_render == "plane", "view_colours": config.init.colours_from_views,
     }  # fmt: skip
 
 

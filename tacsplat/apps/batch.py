@@ -180,8 +180,7 @@ class ReconstructJob(BatchJob):
         from tacsplat.reconstruction.variants import get_variant
 
         config = preset_config(self.preset, self.iterations)
-        for key, value in get_variant(self.variant).overrides.items():
-            setattr(config, key, value)
+        get_variant(self.variant).apply(config)
         config.seed, config.device = self.seed, self.device
         return config
 

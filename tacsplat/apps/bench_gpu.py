@@ -73,8 +73,7 @@ def _train(scene: Path, out: Path, variant: str, args) -> dict:
     from tacsplat.reconstruction.variants import get_variant
 
     config = preset_config(args.preset, args.iterations)
-    for key, value in get_variant(variant).overrides.items():
-        setattr(config, key, value)
+    get_variant(variant).apply(config)
     config.seed, config.device = args.seed, "cuda"
     config.init.use_sfm = not args.no_sfm
     torch.cuda.reset_peak_memory_stats()

@@ -200,8 +200,7 @@ def profile_resolution(out: Path, resolution: int, iterations: int, variant: str
     bench = PaperBench(out / f"{resolution}px", demo_config(obj, resolution, iterations))
     scene_path = bench.capture(obj, "minimal", seed)
     config = preset_config(bench.config.preset, iterations)
-    for key, value in get_variant(variant).overrides.items():
-        setattr(config, key, value)
+    get_variant(variant).apply(config)
     config.seed = seed
     config.device = "cpu"
     timer = PhaseTimer()

@@ -11,7 +11,7 @@ held-out test views (an even Fibonacci spiral, independent of the train views)
 are the same for every run of that object. Each setting is reconstructed with
 the four variants of Table 3: ``3dgs`` (no touch, no smoothness), ``3dgs+s``,
 ``3dgs+t`` and ``full``, and with what ``tacsplat reconstruct`` runs by
-default (``full+n+tn+sl+as``, beyond the paper); ``--variants`` picks others.
+default (``DEFAULT_VARIANT``, beyond the paper); ``--variants`` picks others.
 Everything else is the trainer's defaults.
 
 The job is resumable: a finished capture is marked by ``capture.json``, a run
@@ -138,7 +138,7 @@ def step_work(variant: str) -> int:
     them first, so that on few cores the longest runs do not start last."""
     from tacsplat.reconstruction.config import TrainConfig
 
-    return sum(mechanisms(TrainConfig(**get_variant(variant).overrides)).values())
+    return sum(mechanisms(get_variant(variant).apply(TrainConfig())).values())
 
 
 @dataclass
@@ -397,8 +397,7 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
               "camera sees, so it rewards a reconstruction that bulges there as much as one that is right where it "
               "is seen.", "", "Departures from the paper in force for these runs:", ""]
     full_config = preset_config(config.preset, config.iterations)
-    for key, value in get_variant("full").overrides.items():
-        setattr(full_config, key, value)
+    get_variant("full").apply(full_config)
     lines += [f"- {line}" for line in paper_departures(full_config, config.touch_model, config.resolution)]
     return "\n".join(lines) + "\n"
 

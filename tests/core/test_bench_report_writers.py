@@ -138,10 +138,10 @@ def test_variant_table_and_config_errors():
     from tacsplat.reconstruction.variants import VARIANTS, get_variant
 
     for name, variant in VARIANTS.items():  # each row's overrides give a config of that variant
-        assert TrainConfig(**variant.overrides).variant == name
+        assert variant.apply(TrainConfig()).variant == name
     assert get_variant("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
                                              "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
-                                             "lambda_albedo_smoothness": 0.0}
+                                             "lambda_albedo_smoothness": 0.0, "init.colours_from_views": False}
     with pytest.raises(ConfigError, match="variant"):
         get_variant("ours")
     with pytest.raises(ConfigError, match="variants"):

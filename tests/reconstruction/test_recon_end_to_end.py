@@ -48,6 +48,32 @@ def _config(iterations: int, **overrides) -> TrainConfig:
     return TrainConfig(**base)
 
 
+def test_touch_and_fallback_gaussians_start_with_the_colours_their_pixels_show(sphere_scene, tmp_path):
+    """``init.colours_from_views``: the randomly coloured Gaussians (here all of them: no SfM) take the median colour
+    of the training pixels they project to on the silhouettes; off, they keep random colours. Nothing else of the
+    initialisation changes (the same random draws)."""
+    from tacsplat.reconstruction.gaussians import sh0_to_rgb
+    from tacsplat.reconstruction.initialization import foreground_mask, view_colours
+
+    trainers = {}
+    for on in (True, False):
+        trainers[on] = Trainer(Scene.load(sphere_scene), tmp_path / str(on),
+                               _config(10, init=InitConfig(use_sfm=False, num_random_points=500, colours_from_views=on)))
+        trainers[on].initialize()
+    seen, unseen = (trainers[on].gaussians for on in (True, False))
+    assert torch.equal(seen.means, unseen.means) and seen.num_touch > 0
+    t = trainers[True]
+    expected = view_colours(seen.means.detach().double().numpy(), [im.numpy() for im in t.images],
+                            [f.intrinsics.K for f in t.train_frames], [f.T_world_cam for f in t.train_frames],
+                            [foreground_mask(m) for m in t.backdrop_pixels])  # [N, 3]
+    found = np.isfinite(expected).all(axis=1)
+    assert found.mean() > 0.9
+    rgb = sh0_to_rgb(seen.params["sh0"].detach()[:, 0]).numpy()
+    np.testing.assert_allclose(rgb[found], expected[found], atol=0.02)  # float32 means: a pixel's neighbour at most
+    random_rgb = sh0_to_rgb(unseen.params["sh0"].detach()[:, 0]).numpy()
+    assert np.abs(random_rgb[found] - expected[found]).mean() > 0.1
+
+
 def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path):
     run = tmp_path / "run"
     # random points in the bounds (no visual hull): the optimisation itself must find the sphere
@@ -63,7 +89,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     # the paper's CD (squared, summed, median depth against the whole mesh surface) falls too
     assert 0 < metrics["cd_paper"] < 0.5 * float(rows[0]["cd_paper"])
     assert metrics["psnr"] > 18.0
-    assert metrics["variant"] == "full+n+tn+sl+as" and metrics["iterations"] == 400
+    assert metrics["variant"] == "full+n+tn+sl+as+vc" and metrics["iterations"] == 400
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds)
@@ -242,7 +268,7 @@ def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_sce
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
-@pytest.mark.parametrize("appearance, variant", [("lit", "full+n+tn+l+as"), ("sh-lit", "full+n+tn+sl+as")])
+@pytest.mark.parametrize("appearance, variant", [("lit", "full+n+tn+l+as+vc"), ("sh-lit", "full+n+tn+sl+as+vc")])
 def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch,
                                                                               appearance, variant):
     """The lit appearances shade from their start step on (the light gets gradients only then), the smooth albedo
@@ -297,7 +323,7 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
                           "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet", "--train-views", "4"])
     assert code == 0
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["variant"] == "3dgs+t+n+tn+sl+as" and metrics["settings"]["train_views"] == 4  # the default, no L_S
+    assert metrics["variant"] == "3dgs+t+n+tn+sl+as+vc" and metrics["settings"]["train_views"] == 4  # the default, no L_S
     assert metrics["iterations"] == 5 and np.isfinite(metrics["cd"])
     mesh_path = tmp_path / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=4, radius=RADIUS).export(mesh_path)
@@ -342,7 +368,7 @@ def test_cli_options_reach_the_train_config():
     config = config_from_args(args)
     assert (config.seed, config.sh_degree, config.backend, config.iterations, config.lambda_s) == (3, 1, "cpu", 7, 0.5)
     assert (config.smoothness_depth, config.use_touch, config.densify.max_gaussians) == ("accumulated", False, 500)
-    assert config.init.use_sfm is False and config.train_views is None and config.variant == "3dgs+s+n+sl+as"
+    assert config.init.use_sfm is False and config.train_views is None and config.variant == "3dgs+s+n+sl+as+vc"
     defaults = config_from_args(_reconstruct_args())
     assert defaults.to_json() == TrainConfig().to_json()  # no option given: exactly TrainConfig's defaults
     assert config_from_args(_reconstruct_args("--variant", "3dgs")).variant == "3dgs"

@@ -10,6 +10,7 @@ from tacsplat.reconstruction.initialization import (
     foreground_mask,
     silhouette_hull_points,
     initial_gaussians,
+    view_colours,
     neighbour_scales,
     random_points,
     sfm_points,
@@ -127,3 +128,22 @@ def test_foreground_keeps_backdrop_coloured_reflections_inside_the_object():
     fg = foreground_mask(backdrop)
     assert fg[5:15, 5:15].all() and fg.sum() == 100
     assert not foreground_mask(np.ones((6, 6), bool)).any()
+
+
+def test_view_colours_are_the_median_pixel_on_the_object_and_nan_off_it():
+    # four views of a plane whose left half (x < 0) is red and right half blue; views 0 and 3 are all green
+    texture = np.zeros((400, 400, 3), np.uint8)
+    texture[:, :200] = (255, 0, 0)
+    texture[:, 200:] = (0, 0, 255)
+    images, Ks, poses = _plane_views(texture)
+    images = [im.astype(np.float64) / 255.0 for im in images]
+    images[0][:] = images[3][:] = (0.0, 1.0, 0.0)
+    points = np.array([[-0.05, 0.02, 0.0], [0.05, -0.03, 0.0], [0.0, 0.0, 5.0]])  # the last behind every camera
+    silhouettes = [np.ones((200, 200), bool)] * 3 + [np.zeros((200, 200), bool)]  # view 3 sees no object
+    colours = view_colours(points, images, Ks, poses, silhouettes)
+    assert colours.shape == (3, 3)
+    np.testing.assert_allclose(colours[0], [1.0, 0.0, 0.0], atol=0.02)  # median of green, red, red: view 3 is out
+    np.testing.assert_allclose(colours[1], [0.0, 0.0, 1.0], atol=0.02)
+    assert np.isnan(colours[2]).all()
+    no_silhouettes = view_colours(points, images, Ks, poses, [None] * 4)
+    np.testing.assert_allclose(no_silhouettes[0], [0.5, 0.5, 0.0], atol=0.02)  # green, red, red, green

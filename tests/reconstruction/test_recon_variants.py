@@ -5,21 +5,22 @@ every variant's round trip is checked in tests/core/test_bench_report_writers.py
 import dataclasses
 
 from tacsplat.reconstruction.config import TrainConfig, paper_departures
+from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, VARIANTS, get_variant, variant_of
 
 
 def test_the_defaults_are_the_default_variant_and_the_papers_rows_have_no_normal_losses():
-    assert variant_of(TrainConfig()) == DEFAULT_VARIANT == "full+n+tn+sl+as"
-    assert TrainConfig(**get_variant(DEFAULT_VARIANT).overrides) == TrainConfig()  # the row is the defaults, exactly
+    assert variant_of(TrainConfig()) == DEFAULT_VARIANT == "full+n+tn+sl+as+vc"
+    assert get_variant(DEFAULT_VARIANT).apply(TrainConfig()) == TrainConfig()  # the row is the defaults, exactly
     for name in PAPER_VARIANTS:
-        config = TrainConfig(**get_variant(name).overrides)
+        config = get_variant(name).apply(TrainConfig())
         assert (config.lambda_flatten, config.lambda_depth_normal, config.lambda_touch_normal) == (0, 0, 0)
         assert (config.appearance, config.lambda_albedo_smoothness) == ("sh", 0)
     assert set(PAPER_VARIANTS) < set(VARIANTS)
 
 
 def test_normals_need_both_losses():
-    paper = TrainConfig(**get_variant("full").overrides)
+    paper = get_variant("full").apply(TrainConfig())
     both = dataclasses.replace(paper, lambda_flatten=10.0, lambda_depth_normal=0.05)
     assert variant_of(both) == "full+n"
     assert variant_of(dataclasses.replace(both, lambda_touch_normal=0.1, appearance="reflective")) == "full+n+tn+r"
@@ -38,12 +39,22 @@ def test_normals_need_both_losses():
     pixels = dataclasses.replace(both, lambda_touch_normal=0.1, lambda_touch_normal_pixels=0.1)
     assert variant_of(pixels) == "full+n+tn+tnp"
     assert variant_of(dataclasses.replace(pixels, lambda_depth_normal=0.0)) == "full+flat+tn"  # no rendered normals
+    assert variant_of(get_variant("full").apply(TrainConfig(init=InitConfig(colours_from_views=True)))) == "full"
+    assert variant_of(dataclasses.replace(sh_lit, init=InitConfig())) == "full+n+tn+sl+as+vc"
+
+
+def test_a_variant_sets_its_init_fields_and_leaves_the_rest():
+    config = TrainConfig(init=InitConfig(num_random_points=7))
+    assert get_variant("full").apply(config) is config
+    assert (config.init.colours_from_views, config.init.num_random_points, config.appearance) == (False, 7, "sh")
+    fresh = TrainConfig(init=InitConfig(num_random_points=7))
+    assert get_variant(DEFAULT_VARIANT).apply(fresh) == TrainConfig(init=InitConfig(num_random_points=7))
 
 
 def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_trained():
     """config.json of a run from before ``appearance`` and ``lambda_albedo_smoothness`` existed: unlit SH colour, no
     smooth albedo (the defaults of its day), not today's defaults."""
-    old = TrainConfig(**get_variant("full+n+tn").overrides).to_json()
+    old = get_variant("full+n+tn").apply(TrainConfig()).to_json()
     del old["appearance"], old["lambda_albedo_smoothness"]
     config = TrainConfig.from_json(old)
     assert (config.appearance, config.lambda_albedo_smoothness, config.variant) == ("sh", 0.0, "full+n+tn")
@@ -51,26 +62,34 @@ def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_tra
     sh_lit = TrainConfig().to_json()  # a default run from before the albedo smoothness had image weights
     del sh_lit["albedo_smoothness_beta"]
     assert TrainConfig.from_json(sh_lit) == TrainConfig(albedo_smoothness_beta=0.0)  # unweighted, as it trained
-    paper = TrainConfig(**get_variant("full").overrides).to_json()  # from before the surface-normal losses
+    paper = get_variant("full").apply(TrainConfig()).to_json()  # from before the surface-normal losses
     for name in ("lambda_flatten", "lambda_depth_normal", "lambda_touch_normal", "appearance",
                  "lambda_albedo_smoothness", "albedo_smoothness_beta"):
         del paper[name]
     assert TrainConfig.from_json(paper).variant == "full"
+    before_view_colours = TrainConfig().to_json()  # a default run from before the initial colours from the views
+    del before_view_colours["init"]["colours_from_views"]
+    assert TrainConfig.from_json(before_view_colours).variant == "full+n+tn+sl+as"  # random colours, as it trained
 
 
 def test_a_switched_off_mechanisms_settings_are_unused():
     # sh-lit: no environment map; centre depth: no plane depth to start
     assert TrainConfig().unused_fields() == {"env_map_height", "plane_depth_start_iter"}
-    assert TrainConfig(**get_variant("full").overrides).unused_fields() == {
+    assert get_variant("full").apply(TrainConfig()).unused_fields() == {
         "depth_normal_start_iter", "albedo_smoothness_beta", "lambda_albedo_smoothness", "lit_start_iter",
         "env_map_height", "plane_depth_start_iter"}
     assert TrainConfig(appearance="reflective").unused_fields() == {"lit_start_iter", "plane_depth_start_iter"}
-    plane = TrainConfig(**get_variant("full+n+tn+sl+as+pd").overrides)
+    plane = get_variant("full+n+tn+sl+as+pd").apply(TrainConfig())
     assert plane.unused_fields() == {"env_map_height"} and plane.variant == "full+n+tn+sl+as+pd"
     assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
 
 
 def test_plane_depth_is_listed_among_the_departures_from_the_paper_only_when_on():
-    plane = TrainConfig(**get_variant("full+n+tn+sl+as+pd").overrides)
+    plane = get_variant("full+n+tn+sl+as+pd").apply(TrainConfig())
     assert [line for line in paper_departures(plane) if "blended plane" in line]
     assert not [line for line in paper_departures(TrainConfig()) if "blended plane" in line]
+
+
+def test_colours_from_the_views_are_listed_among_the_departures_from_the_paper_only_when_on():
+    assert [line for line in paper_departures(TrainConfig()) if "initial colours" in line]
+    assert not [line for line in paper_departures(get_variant("full").apply(TrainConfig())) if "initial colours" in line]
