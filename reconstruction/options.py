@@ -120,6 +120,14 @@ def add_config_options(parser: argparse.ArgumentParser, cls, prefix: tuple[str, 
     return added
 
 
+def set_field(config, path: tuple[str, ...], value) -> None:
+    """Set the field at ``path`` of a config, ``("init", "use_sfm")`` being ``config.init.use_sfm``."""
+    target = config
+    for name in path[:-1]:
+        target = getattr(target, name)
+    setattr(target, path[-1], value)
+
+
 def apply_options(config, args: argparse.Namespace, options: list[FieldOption]) -> list[str]:
     """Set the fields of ``config`` given on the command line; returns the field paths that were set."""
     given = []
@@ -127,12 +135,7 @@ def apply_options(config, args: argparse.Namespace, options: list[FieldOption]) 
         if not hasattr(args, option.dest):
             continue
         value = getattr(args, option.dest)
-        target = config
-        for name in option.path[:-1]:
-            target = getattr(target, name)
-        if isinstance(value, list):
-            value = tuple(value)
-        setattr(target, option.path[-1], value)
+        set_field(config, option.path, tuple(value) if isinstance(value, list) else value)
         given.append(".".join(option.path))
     return given
 

@@ -159,6 +159,7 @@ class Trainer:
             if config.background is not None or fit_backdrop(im) is not None else None
             for im, bg in zip(images, backgrounds)
         ]  # fmt: skip
+        self.silhouettes = [None if m is None else foreground_mask(m) for m in self.backdrop_pixels]  # [H, W] bool
         # everything a step reads lives on the device, created once
         self.images = [torch.from_numpy(im).to(dev) for im in images]
         self.backgrounds = [torch.from_numpy(bg).to(dev) for bg in backgrounds]
@@ -203,7 +204,8 @@ class Trainer:
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
         if cfg.init.colours_from_views:  # the randomly coloured ones: G_t, after the fallback's points if SfM failed
             first = len(points) if sfm_found else 0
-            self._colour_from_views(gaussians, np.concatenate([points, self.touch_points])[first:], first)
+            recoloured = self.touch_points if sfm_found else np.concatenate([points, self.touch_points])
+            self._colour_from_views(gaussians, recoloured, first)
         if cfg.appearance in shading.SPECULAR:
             shading.add_reflective_params(gaussians)
         self.gaussians = gaussians.to(self.device)
@@ -215,8 +217,7 @@ class Trainer:
         their silhouettes where known); those that land on no view's object keep their colour."""
         colours = view_colours(
             points, [im.cpu().numpy() for im in self.images], [f.intrinsics.K for f in self.train_frames],
-            [f.T_world_cam for f in self.train_frames],
-            [None if mask is None else foreground_mask(mask) for mask in self.backdrop_pixels],
+            [f.T_world_cam for f in self.train_frames], self.silhouettes,
         )  # [M, 3]
         found = np.isfinite(colours).all(axis=1)
         rows = torch.from_numpy(first + np.flatnonzero(found))
@@ -230,7 +231,7 @@ class Trainer:
         views = [i for i, mask in enumerate(self.backdrop_pixels) if mask is not None]
         if cfg.init.use_silhouette_hull and views:
             hull = silhouette_hull_points(
-                [foreground_mask(self.backdrop_pixels[i]) for i in views],
+                [self.silhouettes[i] for i in views],
                 [self.train_frames[i].intrinsics.K for i in views],
                 [self.train_frames[i].T_world_cam for i in views],
                 lo, hi, cfg.init.num_random_points, cfg.init.hull_resolution, self.rng,
@@ -389,7 +390,7 @@ class Trainer:
         if view not in self._edge_weights:
             weights = losses.image_edge_weights(self.images[view], cfg.smoothness_beta)
             if cfg.smoothness_depth == "expected" and self.backdrop_pixels[view] is not None:
-                silhouette = torch.from_numpy(foreground_mask(self.backdrop_pixels[view])).to(self.device)
+                silhouette = torch.from_numpy(self.silhouettes[view]).to(self.device)
                 weights = weights * losses.window_inside(silhouette)
             self._edge_weights[view] = weights
         weights = self._edge_weights[view]

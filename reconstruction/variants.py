@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from tacsplat.errors import ConfigError
+from tacsplat.reconstruction.options import set_field
 
 
 @dataclass(frozen=True)
@@ -29,8 +30,7 @@ class Variant:
     def apply(self, config):
         """Set the variant's fields on a TrainConfig (and its InitConfig) and return it."""
         for key, value in self.overrides.items():
-            owner, _, name = key.rpartition(".")
-            setattr(getattr(config, owner) if owner else config, name, value)
+            set_field(config, tuple(key.split(".")), value)
         return config
 
 

@@ -47,8 +47,6 @@ def test_a_variant_sets_its_init_fields_and_leaves_the_rest():
     config = TrainConfig(init=InitConfig(num_random_points=7))
     assert get_variant("full").apply(config) is config
     assert (config.init.colours_from_views, config.init.num_random_points, config.appearance) == (False, 7, "sh")
-    fresh = TrainConfig(init=InitConfig(num_random_points=7))
-    assert get_variant(DEFAULT_VARIANT).apply(fresh) == TrainConfig(init=InitConfig(num_random_points=7))
 
 
 def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_trained():
