@@ -177,6 +177,14 @@ def main(argv: list[str] | None = None) -> int:
     except TacsplatError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    except OSError as exc:
+        from tacsplat.files import is_storage_failure, storage_error
+
+        if not is_storage_failure(exc):
+            raise
+        # a write no command turned into a StorageError itself: still one line naming the file
+        print(f"error: {storage_error(exc, exc.filename or 'a file')}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

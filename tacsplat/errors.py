@@ -66,3 +66,13 @@ class TactileError(DeviceError):
 
 class SimulationError(TacsplatError):
     """The simulation became unstable or was configured with unsafe settings."""
+
+
+class StorageError(TacsplatError):
+    """A file could not be written or read back: the disk is full, the file system is read-only, or the folder
+    is not writable. ``path`` is the file (or folder) at fault; nothing written before it is lost."""
+
+    def __init__(self, path: str | Path, reason: str):
+        self.path = Path(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")

@@ -1,6 +1,7 @@
 """Session-wide checks for the whole suite."""
 
 import os
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -18,3 +19,46 @@ def pytest_sessionstart(session):
         leftovers = [p for p in Path(folder).rglob("*") if p.is_file()] if Path(folder).exists() else []
         if leftovers:
             raise pytest.UsageError(f"{var}={folder} is not empty at the start of the tests: {leftovers[:3]}")
+
+
+class Mount:
+    """A tmpfs mounted for one test (the suite runs as root): ``path``, and :meth:`read_only` to remount it."""
+
+    def __init__(self, path: Path, size: str):
+        self.path = path
+        self.size = size
+
+    def read_only(self) -> None:
+        subprocess.run(["mount", "-o", "remount,ro", str(self.path)], check=True, capture_output=True)
+
+    def writable(self) -> None:
+        subprocess.run(["mount", "-o", f"remount,rw,size={self.size}", str(self.path)], check=True,
+                       capture_output=True)
+
+    def resize(self, size: str) -> None:
+        """Change the size limit (to free space, as a person would, without deleting anything)."""
+        self.size = size
+        subprocess.run(["mount", "-o", f"remount,size={size}", str(self.path)], check=True, capture_output=True)
+
+
+@pytest.fixture
+def tmpfs(tmp_path):
+    """``tmpfs(size="2m") -> Mount``: a size-limited file system of its own, unmounted after the test. Full-disk
+    and read-only cases need one: the tests run as root, and ``chmod`` does not stop root."""
+    mounts = []
+
+    def make(size: str = "2m", name: str = "mnt") -> Mount:
+        if os.geteuid() != 0:
+            pytest.skip("mounting a tmpfs needs root")
+        path = tmp_path / name
+        path.mkdir()
+        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True,
+                              text=True)
+        if done.returncode != 0:
+            pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
+        mounts.append(path)
+        return Mount(path, size)
+
+    yield make
+    for path in reversed(mounts):
+        subprocess.run(["umount", "-l", str(path)], capture_output=True)
