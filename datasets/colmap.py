@@ -1,4 +1,4 @@
-"""Import a COLMAP sparse model (text or binary, read with pycolmap) into a scene directory.
+"""Import a COLMAP sparse model (text or binary) into a scene directory.
 
 COLMAP stores world-to-camera poses with OpenCV camera axes (x right, y down,
 z forward) and puts the centre of the top-left pixel at (0.5, 0.5), the same
@@ -8,41 +8,563 @@ Undistortion is out of scope: cameras must be pinhole (``PINHOLE``,
 zero (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``); run ``colmap
 image_undistorter`` first otherwise. The test split holds every
 ``test_every``-th image in name order (the 3DGS/LLFF hold-out convention).
+
+The model is read here, not by ``pycolmap.Reconstruction``: pycolmap indexes
+what the files reference before checking it (a camera id that cameras.txt
+lacks is ``IndexError: Rig with ID 7 does not exist``, a track naming a
+missing 2D point ``vector::_M_range_check``) and reads a repeated image NAME as
+two images. Every record is checked first, and an error names the file and
+its line (text) or entry (binary). Both layouts are read: cameras, images and
+points3D alone (COLMAP before 3.12: each image holds its pose), or with rigs
+and frames (COLMAP 3.12 on: the pose of an image is its frame's
+``rig_from_world`` then its camera's ``sensor_from_rig``). pycolmap supplies
+the camera models (parameter counts and meanings).
 """
 
 from __future__ import annotations
 
+import logging
+import struct
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
-from tacsplat.geometry import intrinsics_matrix, invert_pose
+from tacsplat.geometry import intrinsics_matrix, invert_pose, make_pose
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_scale, composite, read_rgba
 from .outputs import claim_output_dir
-from .records import SceneMeta
+from .records import SceneMeta, camera_problem
 from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+
+log = logging.getLogger(__name__)
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 ZERO_DISTORTION_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV")
+MODEL_FILES = ("cameras", "images", "points3D")
+RIG_FILES = ("rigs", "frames")
+# |q| of a stored rotation: COLMAP writes 17 digits, so |q| - 1 is ~1e-16; other tools write 6-8 digits
+# (up to ~1e-6, normalised silently). Up to 1e-2 (a quaternion written with 2-3 digits) it is normalised with a
+# warning; beyond that the four numbers are no rotation (a typo, a column shifted).
+QUATERNION_ROUNDING = 1e-6
+QUATERNION_TOLERANCE = 1e-2
 
 
-def camera_intrinsics(camera, model_path: Path) -> CameraIntrinsics:
-    """Intrinsics of a pycolmap camera, or a SceneFormatError naming the camera and its model."""
-    model = camera.model_name
-    field = f"camera {camera.camera_id}"
-    if model not in PINHOLE_MODELS + ZERO_DISTORTION_MODELS:
-        raise SceneFormatError(model_path, field, f"camera model {model} is not supported: undistort the images first "
-                               "(colmap image_undistorter) to get a PINHOLE model")
-    distortion = np.asarray(camera.params)[list(camera.extra_params_idxs())]
+@dataclass
+class _Record:
+    """One camera, image, 3D point, rig or frame of the model, with where it was read."""
+
+    path: Path
+    where: str  # "line 12" (text) or "entry 3" (binary)
+
+    def error(self, message: str) -> SceneFormatError:
+        return SceneFormatError(self.path, self.where, message)
+
+
+@dataclass
+class _Camera(_Record):
+    camera_id: int = 0
+    model: str = ""
+    width: int = 0
+    height: int = 0
+    params: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass
+class _Pose:
+    """A stored Rigid3d: quaternion (w, x, y, z) and translation."""
+
+    q: np.ndarray
+    t: np.ndarray
+
+    def matrix(self) -> np.ndarray:
+        w, x, y, z = self.q
+        return make_pose(Rotation.from_quat([x, y, z, w]).as_matrix(), self.t)  # scipy normalises q
+
+
+@dataclass
+class _Image(_Record):
+    image_id: int = 0
+    pose: _Pose | None = None  # cam_from_world as images.txt holds it
+    camera_id: int = 0
+    name: str = ""
+    point3D_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # -1: none
+
+
+@dataclass
+class _Point(_Record):
+    point3D_id: int = 0
+    xyz: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    track: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))  # (image_id, point2D_idx)
+
+
+@dataclass
+class _Rig(_Record):
+    rig_id: int = 0
+    sensors: dict = field(default_factory=dict)  # (type, id) -> sensor_from_rig _Pose or None (unknown); ref first
+
+
+@dataclass
+class _Frame(_Record):
+    frame_id: int = 0
+    rig_id: int = 0
+    pose: _Pose | None = None  # rig_from_world
+    data_ids: list = field(default_factory=list)  # (sensor type, sensor id, data id)
+
+
+@dataclass
+class _Model:
+    cameras: list
+    images: list
+    points: list
+    rigs: list | None  # None: a model without rigs and frames
+    frames: list | None
+    suffix: str = ".txt"  # or ".bin"
+
+    def file(self, name: str) -> str:
+        return name + self.suffix
+
+
+def _num_params(model: str) -> int | None:
+    """How many parameters a COLMAP camera model takes; None for a name COLMAP does not know."""
+    import pycolmap
+
+    if model not in pycolmap.CameraModelId.__members__ or model == "INVALID":
+        return None
+    return int(pycolmap.Camera.create_from_model_name(0, model, 1.0, 1, 1).params.size)
+
+
+# --- text ------------------------------------------------------------------------------------------------------
+
+class _Tokens:
+    """The fields of one text line, read in order; errors name the file and line."""
+
+    def __init__(self, path: Path, line: int, text: str):
+        self.record = _Record(path, f"line {line}")
+        self.items = text.split()
+        self.at = 0
+
+    def error(self, message: str) -> SceneFormatError:
+        return self.record.error(message)
+
+    def left(self) -> int:
+        return len(self.items) - self.at
+
+    def word(self, what: str) -> str:
+        if self.at >= len(self.items):
+            raise self.error(f"{what} is missing (the line ends after {self.at} fields)")
+        self.at += 1
+        return self.items[self.at - 1]
+
+    def int(self, what: str) -> int:
+        text = self.word(what)
+        try:
+            return int(text)
+        except ValueError:
+            raise self.error(f"{what} must be an integer, got {text!r}") from None
+
+    def float(self, what: str) -> float:
+        text = self.word(what)
+        try:
+            return float(text)
+        except ValueError:
+            raise self.error(f"{what} must be a number, got {text!r}") from None
+
+    def pose(self, what: str) -> _Pose:
+        values = [self.float(f"{what} {name}") for name in ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")]
+        return _Pose(np.array(values[:4]), np.array(values[4:]))
+
+    def groups(self, names: tuple[str, ...], what: str) -> list[np.ndarray]:
+        """The rest of the line as (names...) groups: one array per name, float for X and Y, else integer."""
+        fields = self.items[self.at:]
+        if len(fields) % len(names):
+            raise self.error(f"{what} must be ({', '.join(names)}) groups, got {len(fields)} fields")
+        self.at = len(self.items)
+        columns = []
+        for k, name in enumerate(names):
+            column, number = fields[k::len(names)], name in ("X", "Y")
+            try:
+                columns.append(np.array(column, np.float64 if number else np.int64))
+            except (ValueError, OverflowError):
+                for i, text in enumerate(column):
+                    try:
+                        float(text) if number else np.int64(int(text))
+                    except (ValueError, OverflowError):
+                        break
+                raise self.error(f"{what}[{i}] {name} must be {'a number' if number else 'an integer'}, got "
+                                 f"{text!r}") from None
+        return columns
+
+    def done(self) -> None:
+        if self.left():
+            raise self.error(f"{self.left()} fields too many: {' '.join(self.items[self.at:self.at + 3])} ...")
+
+
+def _text_lines(path: Path):
+    """(line number, text) of each line, comments and blank lines included."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SceneFormatError(path, None, f"not a readable COLMAP text file: {exc}") from exc
+    return list(enumerate(text.splitlines(), start=1))
+
+
+def _data_lines(path: Path):
+    for number, text in _text_lines(path):
+        if text.strip() and not text.lstrip().startswith("#"):
+            yield _Tokens(path, number, text)
+
+
+def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
+    cameras = []
+    for tok in _data_lines(model_dir / "cameras.txt"):
+        camera = _Camera(**vars(tok.record), camera_id=tok.int("CAMERA_ID"), model=tok.word("MODEL"),
+                         width=tok.int("WIDTH"), height=tok.int("HEIGHT"))
+        camera.params = np.array([tok.float(f"PARAMS[{i}]") for i in range(tok.left())])
+        cameras.append(camera)
+
+    images, path = [], model_dir / "images.txt"
+    lines = iter(_text_lines(path))
+    for number, text in lines:  # two lines per image: the image, then its POINTS2D (maybe blank)
+        if not text.strip() or text.lstrip().startswith("#"):
+            continue
+        tok = _Tokens(path, number, text)
+        image = _Image(**vars(tok.record), image_id=tok.int("IMAGE_ID"), pose=tok.pose("cam_from_world"),
+                       camera_id=tok.int("CAMERA_ID"), name=tok.word("NAME"))
+        tok.done()
+        number, text = next(lines, (number + 1, ""))
+        points = _Tokens(path, number, text)
+        x, y, image.point3D_ids = points.groups(("X", "Y", "POINT3D_ID"), f"POINTS2D of image {image.image_id}")
+        k = _first_bad(~np.isfinite(x) | ~np.isfinite(y))
+        if k is not None:
+            raise points.error(f"POINTS2D[{k}] of image {image.image_id} is not finite: ({x[k]}, {y[k]})")
+        images.append(image)
+
+    points = []
+    for tok in _data_lines(model_dir / "points3D.txt"):
+        point = _Point(**vars(tok.record), point3D_id=tok.int("POINT3D_ID"))
+        point.xyz = np.array([tok.float(name) for name in ("X", "Y", "Z")])
+        for name in ("R", "G", "B"):
+            tok.int(name)
+        tok.float("ERROR")
+        point.track = np.column_stack(tok.groups(("IMAGE_ID", "POINT2D_IDX"), f"TRACK of point {point.point3D_id}"))
+        points.append(point)
+    if not with_rigs:
+        return _Model(cameras, images, points, None, None)
+
+    rigs = []
+    for tok in _data_lines(model_dir / "rigs.txt"):
+        rig = _Rig(**vars(tok.record), rig_id=tok.int("RIG_ID"))
+        for k in range(tok.int("NUM_SENSORS")):
+            sensor = (tok.word(f"sensor {k} type"), tok.int(f"sensor {k} id"))
+            rig.sensors[sensor] = _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3)) if k == 0 else \
+                tok.pose(f"sensor {k} sensor_from_rig") if tok.int(f"sensor {k} HAS_POSE") else None
+        tok.done()
+        rigs.append(rig)
+    frames = []
+    for tok in _data_lines(model_dir / "frames.txt"):
+        frame = _Frame(**vars(tok.record), frame_id=tok.int("FRAME_ID"), rig_id=tok.int("RIG_ID"),
+                       pose=tok.pose("rig_from_world"))
+        frame.data_ids = [(tok.word(f"data {k} SENSOR_TYPE"), tok.int(f"data {k} SENSOR_ID"),
+                           tok.int(f"data {k} DATA_ID")) for k in range(tok.int("NUM_DATA_IDS"))]
+        tok.done()
+        frames.append(frame)
+    return _Model(cameras, images, points, rigs, frames)
+
+
+# --- binary ----------------------------------------------------------------------------------------------------
+
+_SENSOR_TYPES = {-1: "INVALID", 0: "CAMERA", 1: "IMU"}  # COLMAP's SensorType, as text files spell it
+
+
+class _Bytes:
+    """A binary model file read in order (little-endian); errors name the file and entry."""
+
+    def __init__(self, path: Path):
+        try:
+            self.data = path.read_bytes()
+        except OSError as exc:
+            raise SceneFormatError(path, None, f"not a readable COLMAP binary file: {exc}") from exc
+        self.path, self.at, self.entry = path, 0, None
+
+    def record(self) -> _Record:
+        return _Record(self.path, f"entry {self.entry}")
+
+    def take(self, fmt: str, what: str):
+        size = struct.calcsize("<" + fmt)
+        if self.at + size > len(self.data):
+            where = f"entry {self.entry}" if self.entry else None
+            raise SceneFormatError(self.path, where, f"the file ends inside {what} (truncated?)")
+        values = struct.unpack_from("<" + fmt, self.data, self.at)
+        self.at += size
+        return values if len(values) > 1 else values[0]
+
+    def array(self, dtype, count: int, what: str) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        if self.at + dtype.itemsize * count > len(self.data):
+            raise self.record().error(f"the file ends inside {what} (truncated?)")
+        values = np.frombuffer(self.data, dtype, count, self.at)
+        self.at += dtype.itemsize * count
+        return values
+
+    def pose(self, what: str) -> _Pose:
+        values = self.take("7d", what)
+        return _Pose(np.array(values[:4]), np.array(values[4:]))
+
+    def entries(self, what: str):
+        """1, 2, ... for each of the entries the file's count announces; then checks nothing is left over."""
+        for self.entry in range(1, self.take("Q", f"the number of {what}") + 1):
+            yield self.entry
+        if self.at != len(self.data):
+            raise SceneFormatError(self.path, None, f"{len(self.data) - self.at} bytes after the last of the "
+                                   f"{self.entry or 0} {what} the file announces")
+
+
+def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
+    import pycolmap
+
+    models = {int(v): name for name, v in pycolmap.CameraModelId.__members__.items() if name != "INVALID"}
+    cameras, src = [], _Bytes(model_dir / "cameras.bin")
+    for _ in src.entries("cameras"):
+        camera_id, model_id, width, height = src.take("IiQQ", "a camera")
+        model = models.get(model_id)
+        if model is None:
+            raise src.record().error(f"camera {camera_id}: unknown camera model id {model_id}")
+        params = src.array("<f8", _num_params(model), f"the parameters of camera {camera_id}")
+        cameras.append(_Camera(**vars(src.record()), camera_id=camera_id, model=model, width=width,
+                               height=height, params=params.copy()))
+
+    images, src = [], _Bytes(model_dir / "images.bin")
+    for _ in src.entries("images"):
+        image_id = src.take("I", "an image")
+        image = _Image(**vars(src.record()), image_id=image_id, pose=src.pose(f"image {image_id}"),
+                       camera_id=src.take("I", f"image {image_id}"))
+        end = src.data.find(b"\0", src.at)
+        if end < 0:
+            raise image.error(f"the file ends inside the name of image {image_id} (truncated?)")
+        image.name = src.data[src.at:end].decode("utf-8", "replace")
+        src.at = end + 1
+        count = src.take("Q", f"image {image_id}")
+        points = src.array([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], count, f"the 2D points of image {image_id}")
+        bad = np.flatnonzero(~np.isfinite(points["x"]) | ~np.isfinite(points["y"]))
+        if bad.size:
+            raise image.error(f"POINTS2D[{bad[0]}] of image {image_id} is not finite")
+        image.point3D_ids = points["id"].astype(np.int64)  # COLMAP's invalid id, 2^64 - 1, reads as -1
+        images.append(image)
+
+    points, src = [], _Bytes(model_dir / "points3D.bin")
+    for _ in src.entries("points"):
+        point3D_id, *xyz = src.take("Q3d", "a point")
+        src.take("3Bd", f"point {point3D_id}")
+        length = src.take("Q", f"point {point3D_id}")
+        track = src.array("<u4", 2 * length, f"the track of point {point3D_id}")
+        points.append(_Point(**vars(src.record()), point3D_id=point3D_id, xyz=np.array(xyz),
+                             track=track.astype(np.int64).reshape(-1, 2)))
+    if not with_rigs:
+        return _Model(cameras, images, points, None, None, ".bin")
+
+    rigs, src = [], _Bytes(model_dir / "rigs.bin")
+    for _ in src.entries("rigs"):
+        rig_id, count = src.take("II", "a rig")
+        rig = _Rig(**vars(src.record()), rig_id=rig_id)
+        for k in range(count):
+            kind, sensor_id = src.take("iI", f"sensor {k} of rig {rig_id}")
+            sensor = (_SENSOR_TYPES.get(kind, str(kind)), sensor_id)
+            rig.sensors[sensor] = _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3)) if k == 0 else \
+                src.pose(f"sensor {k} of rig {rig_id}") if src.take("B", f"sensor {k} of rig {rig_id}") else None
+        rigs.append(rig)
+    frames, src = [], _Bytes(model_dir / "frames.bin")
+    for _ in src.entries("frames"):
+        frame_id, rig_id = src.take("II", "a frame")
+        frame = _Frame(**vars(src.record()), frame_id=frame_id, rig_id=rig_id,
+                       pose=src.pose(f"frame {frame_id}"))
+        for k in range(src.take("I", f"frame {frame_id}")):
+            kind, sensor_id, data_id = src.take("iIQ", f"data id {k} of frame {frame_id}")
+            frame.data_ids.append((_SENSOR_TYPES.get(kind, str(kind)), sensor_id, data_id))
+        frames.append(frame)
+    return _Model(cameras, images, points, rigs, frames, ".bin")
+
+
+# --- checks ----------------------------------------------------------------------------------------------------
+
+def _read_model(model_dir: Path) -> _Model:
+    """The model in ``model_dir``, binary when its three .bin files are there (as COLMAP decides), else text."""
+    for suffix, reader in ((".bin", _read_binary), (".txt", _read_text)):
+        if all((model_dir / f"{name}{suffix}").is_file() for name in MODEL_FILES):
+            present = {name: (model_dir / f"{name}{suffix}").is_file() for name in RIG_FILES}
+            if any(present.values()) and not all(present.values()):
+                missing = next(name for name, there in present.items() if not there)
+                raise SceneFormatError(model_dir / f"{missing}{suffix}", None, "missing: a model holds rigs and "
+                                       "frames together (COLMAP 3.12 on) or neither")
+            return reader(model_dir, all(present.values()))
+    raise SceneFormatError(model_dir, None, "not a readable COLMAP sparse model: expected cameras, images and "
+                           "points3D as .bin or .txt files")
+
+
+def _by_id(records: list, key: str, what: str) -> dict:
+    """``{id: record}``; a SceneFormatError on the second record of an id."""
+    seen = {}
+    for record in records:
+        value = getattr(record, key)
+        if value in seen:
+            raise record.error(f"{what} {value} again (also {seen[value].where})")
+        seen[value] = record
+    return seen
+
+
+def _check_pose(record: _Record, pose: _Pose, what: str) -> None:
+    """Finite, with a unit quaternion (normalised here: silently when off by rounding, with a warning up to
+    QUATERNION_TOLERANCE); a SceneFormatError otherwise."""
+    if not (np.isfinite(pose.q).all() and np.isfinite(pose.t).all()):
+        raise record.error(f"{what} is not finite: QW QX QY QZ {pose.q.tolist()}, TX TY TZ {pose.t.tolist()}")
+    norm = float(np.linalg.norm(pose.q))
+    if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        raise record.error(f"{what}: the quaternion QW QX QY QZ {pose.q.tolist()} has length {norm:.6g}, not 1: "
+                           "it is no rotation")
+    if abs(norm - 1.0) > QUATERNION_ROUNDING:
+        log.warning("%s [%s]: %s: the quaternion has length %.6g, normalised", record.path, record.where, what, norm)
+    pose.q = pose.q / norm
+
+
+def _joined(arrays: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The arrays concatenated along axis 0, and for each row the index of the array it came from."""
+    if not arrays:
+        return np.zeros((0, 2), np.int64), np.zeros(0, np.int64)
+    return np.concatenate(arrays), np.repeat(np.arange(len(arrays)), [len(a) for a in arrays])
+
+
+def _first_bad(bad: np.ndarray) -> int | None:
+    hits = np.flatnonzero(bad)
+    return int(hits[0]) if hits.size else None
+
+
+def _check_model(model: _Model) -> dict[int, np.ndarray]:
+    """Every reference and number of the model checked; the cam_from_world [4, 4] of each posed image by id."""
+    cameras = _by_id(model.cameras, "camera_id", "camera")
+    for camera in model.cameras:
+        count = _num_params(camera.model)
+        if count is None:
+            raise camera.error(f"camera {camera.camera_id}: unknown camera model {camera.model!r}")
+        if camera.params.size != count:
+            raise camera.error(f"camera {camera.camera_id}: a {camera.model} camera has {count} parameters, got "
+                               f"{camera.params.size}")
+    images = _by_id(model.images, "image_id", "image")
+    names = {}
+    for image in model.images:
+        if image.camera_id not in cameras:
+            raise image.error(f"image {image.image_id} names camera {image.camera_id}, which "
+                              f"{model.file('cameras')} does not hold")
+        _check_pose(image, image.pose, f"image {image.image_id}'s pose")
+        other = names.setdefault(image.name, image)
+        if other is not image:
+            raise image.error(f"NAME {image.name} again: image {image.image_id} here and image {other.image_id} on "
+                              f"{other.where} would be two frames with one picture")
+    points = _by_id(model.points, "point3D_id", "point")
+    refs, owner = _joined([image.point3D_ids for image in model.images])
+    k = _first_bad((refs != -1) & ~np.isin(refs, np.array(list(points), np.int64)))
+    if k is not None:
+        image, line = model.images[owner[k]], " (on the next line)" if model.suffix == ".txt" else ""
+        raise image.error(f"POINTS2D[{k - np.searchsorted(owner, owner[k])}] of image {image.image_id}{line} names "
+                          f"3D point {refs[k]}, which {model.file('points3D')} does not hold")
+    k = _first_bad(~np.isfinite(np.array([point.xyz for point in model.points]).reshape(-1, 3)).all(axis=1))
+    if k is not None:
+        raise model.points[k].error(f"point {model.points[k].point3D_id}: X Y Z {model.points[k].xyz.tolist()} "
+                                    "is not finite")
+    track, owner = _joined([point.track for point in model.points])
+    image_ids = np.array(sorted(images), np.int64)
+    at = np.clip(np.searchsorted(image_ids, track[:, 0]), 0, max(len(image_ids) - 1, 0))
+    known = image_ids[at] == track[:, 0] if len(image_ids) else np.zeros(len(track), bool)
+    counts = np.array([images[i].point3D_ids.size for i in image_ids], np.int64)
+    for k, what in ((_first_bad(~known), "image"), (_first_bad(known & (track[:, 1] >= counts[at])), "idx")):
+        if k is None:
+            continue
+        point, (iid, idx) = model.points[owner[k]], track[k]
+        if what == "image":
+            raise point.error(f"the track of point {point.point3D_id} names image {iid}, which "
+                              f"{model.file('images')} does not hold")
+        raise point.error(f"the track of point {point.point3D_id} names POINT2D_IDX {idx} of image {iid}, "
+                          f"which has {counts[at[k]]} 2D points ({images[iid].where} of {model.file('images')})")
+    if model.rigs is None:
+        return {image.image_id: image.pose.matrix() for image in model.images}
+    return _rig_poses(model, cameras, images)
+
+
+def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarray]:
+    """cam_from_world of each image in a model with rigs and frames: sensor_from_rig after rig_from_world.
+    An image whose camera has no pose in its rig is left out (COLMAP's unposed image)."""
+    rigs = _by_id(model.rigs, "rig_id", "rig")
+    for rig in model.rigs:
+        for (kind, sensor_id), pose in rig.sensors.items():
+            if kind == "CAMERA" and sensor_id not in cameras:
+                raise rig.error(f"rig {rig.rig_id} holds camera {sensor_id}, which "
+                                f"{model.file('cameras')} does not hold")
+            if pose is not None:
+                _check_pose(rig, pose, f"rig {rig.rig_id}'s sensor_from_rig of {kind} {sensor_id}")
+    frame_of = {}
+    for frame in _by_id(model.frames, "frame_id", "frame").values():
+        rig = rigs.get(frame.rig_id)
+        if rig is None:
+            raise frame.error(f"frame {frame.frame_id} names rig {frame.rig_id}, which "
+                              f"{model.file('rigs')} does not hold")
+        _check_pose(frame, frame.pose, f"frame {frame.frame_id}'s rig_from_world")
+        for kind, sensor_id, data_id in frame.data_ids:
+            if (kind, sensor_id) not in rig.sensors:
+                raise frame.error(f"frame {frame.frame_id} holds data of {kind} {sensor_id}, which is not in its "
+                                  f"rig {rig.rig_id}")
+            if kind != "CAMERA":
+                continue
+            image = images.get(data_id)
+            if image is None:
+                raise frame.error(f"frame {frame.frame_id} holds image {data_id}, which "
+                                  f"{model.file('images')} does not hold")
+            if image.camera_id != sensor_id:
+                raise frame.error(f"frame {frame.frame_id} holds image {data_id} as camera {sensor_id}, but the "
+                                  f"image names camera {image.camera_id} ({image.where} of {model.file('images')})")
+            if data_id in frame_of:
+                raise frame.error(f"image {data_id} is in frame {frame.frame_id} and in frame "
+                                  f"{frame_of[data_id].frame_id} ({frame_of[data_id].where})")
+            frame_of[data_id] = frame
+    poses = {}
+    for image in model.images:
+        frame = frame_of.get(image.image_id)
+        if frame is None:
+            raise image.error(f"image {image.image_id} is in no frame of {model.file('frames')}")
+        sensor_from_rig = rigs[frame.rig_id].sensors[("CAMERA", image.camera_id)]
+        if sensor_from_rig is not None:
+            poses[image.image_id] = sensor_from_rig.matrix() @ frame.pose.matrix()
+    return poses
+
+
+PARAMETER_NAMES = {"w": "WIDTH", "h": "HEIGHT", "fl_x": "the focal length (x)", "fl_y": "the focal length (y)",
+                   "cx": "the principal point (x)", "cy": "the principal point (y)"}
+
+
+def camera_intrinsics(camera: _Camera) -> CameraIntrinsics:
+    """Intrinsics of a model's camera, or a SceneFormatError naming its file, line or entry, id and model."""
+    import pycolmap
+
+    what = f"camera {camera.camera_id}"
+    if camera.model not in PINHOLE_MODELS + ZERO_DISTORTION_MODELS:
+        raise camera.error(f"{what}: camera model {camera.model} is not supported: undistort the images first "
+                           "(colmap image_undistorter) to get a PINHOLE model")
+    layout = pycolmap.Camera.create_from_model_name(0, camera.model, 1.0, 1, 1)
+    if not np.isfinite(camera.params).all():
+        raise camera.error(f"{what}: PARAMS {camera.params.tolist()} are not all finite")
+    distortion = camera.params[list(layout.extra_params_idxs())]
     if np.any(distortion != 0):
-        raise SceneFormatError(model_path, field, f"camera model {model} has non-zero distortion {distortion.tolist()}: "
-                               "undistort the images first (colmap image_undistorter)")
-    K = intrinsics_matrix(camera.focal_length_x, camera.focal_length_y, camera.principal_point_x, camera.principal_point_y)
-    return CameraIntrinsics(K, int(camera.width), int(camera.height))
+        raise camera.error(f"{what}: camera model {camera.model} has non-zero distortion {distortion.tolist()}: "
+                           "undistort the images first (colmap image_undistorter)")
+    focal = camera.params[list(layout.focal_length_idxs())].tolist()
+    fx, fy = focal[0], focal[-1]
+    cx, cy = camera.params[list(layout.principal_point_idxs())].tolist()
+    problem = camera_problem(fx, fy, cx, cy, camera.width, camera.height)
+    if problem:
+        raise camera.error(f"{what}: {PARAMETER_NAMES[problem[0]]}: {problem[1]}")
+    return CameraIntrinsics(intrinsics_matrix(fx, fy, cx, cy), int(camera.width), int(camera.height))
 
 
 def _dataset_name(model_dir: Path) -> str:
@@ -60,42 +582,50 @@ def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float 
     claims metres). ``test_every = 0`` puts every image in the train split.
     ``out`` is claimed as the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
-    import pycolmap
-
     model_dir, images_dir, out = Path(model_dir), Path(images_dir), Path(out)
     check_scale(scale)
     if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
         raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
-    try:
-        rec = pycolmap.Reconstruction(str(model_dir))
-    except (ValueError, RuntimeError) as exc:
-        raise SceneFormatError(model_dir, None, f"not a readable COLMAP sparse model: {exc}") from exc
-    images = sorted((img for img in rec.images.values() if img.has_pose), key=lambda img: img.name)
+    model = _read_model(model_dir)
+    poses = _check_model(model)
+    unposed = len(model.images) - len(poses)
+    if unposed:
+        log.warning("%s: %d images have no pose (their camera's pose in the rig is unknown) and are left out",
+                    model_dir, unposed)
+    images = sorted((img for img in model.images if img.image_id in poses), key=lambda img: img.name)
     if not images:
         raise SceneFormatError(model_dir, "images", "the model has no registered images")
-    intrinsics = {cid: camera_intrinsics(cam, model_dir) for cid, cam in rec.cameras.items()}
+    cameras = {camera.camera_id: camera for camera in model.cameras}
+    intrinsics = {cid: camera_intrinsics(cameras[cid]) for cid in sorted({img.camera_id for img in images})}
+    missing = [img for img in images if not (images_dir / img.name).is_file()]
+    if missing:
+        more = f" (and {len(missing) - 1} more images)" if len(missing) > 1 else ""
+        raise missing[0].error(f"image {missing[0].image_id}: {images_dir / missing[0].name} does not exist{more}; "
+                               "--images must be the folder the NAMEs are relative to")
+    splits = ["test" if test_every and i % test_every == 0 else "train" for i in range(len(images))]
+    if "train" not in splits:
+        raise SceneFormatError(model_dir, "images", f"no train frame to import: the test split takes every "
+                               f"{test_every}-th of the {len(images)} images, the first included; --test-every 0 "
+                               "keeps them all for training")
 
     meta = SceneMeta(
         source="import",
         object=object_name or _dataset_name(model_dir),
         extra={"importer": "colmap", "source_path": str(model_dir.resolve()), "images_path": str(images_dir.resolve()),
-               "scale": scale, "test_every": test_every, "num_points3D": rec.num_points3D(),
+               "scale": scale, "test_every": test_every, "num_points3D": len(model.points),
                "colmap_names": [img.name for img in images]},
     )
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
     with claim_output_dir(out), removed_on_failure(out), \
             SceneWriter.create(out, intrinsics[images[0].camera_id], meta) as writer:
-        for i, img in enumerate(progress_bar(images, desc=f"import {model_dir}", unit="frame")):
+        for img, split in progress_bar(list(zip(images, splits)), desc=f"import {model_dir}", unit="frame"):
             intr = intrinsics[img.camera_id]
             image_path = images_dir / img.name
             rgb = composite(read_rgba(image_path)[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped
             if rgb.shape[:2] != (intr.height, intr.width):
                 raise SceneFormatError(image_path, f"image {img.image_id}", f"image is {rgb.shape[1]}x{rgb.shape[0]} but "
                                        f"camera {img.camera_id} is {intr.width}x{intr.height}")
-            T_cam_world = np.eye(4)
-            T_cam_world[:3] = img.cam_from_world().matrix()
-            T_world_cam = invert_pose(T_cam_world)
+            T_world_cam = invert_pose(poses[img.image_id])
             T_world_cam[:3, 3] *= scale
-            split = "test" if test_every and i % test_every == 0 else "train"
             writer.add_frame(rgb, T_world_cam, split=split, intrinsics=intr)
     return out

@@ -165,7 +165,7 @@ def test_colmap_import_rejects_distorted_cameras_naming_the_model(tmp_path, mode
     _, images_dir, _ = _colmap_fixture(tmp_path / "colmap", models=models, distortion=distortion)
     with pytest.raises(SceneFormatError, match=words) as info:
         import_colmap(tmp_path / "colmap" / "text", images_dir, tmp_path / "scene")
-    assert info.value.field == "camera 1"
+    assert info.value.path.name == "cameras.txt" and info.value.field == "line 4" and "camera 1" in str(info.value)
     assert not (tmp_path / "scene").exists()
 
 
