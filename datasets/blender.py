@@ -50,11 +50,32 @@ def check_scale(scale: float) -> None:
         raise ConfigError("scale", f"must be a finite positive number of metres per unit, got {scale!r}")
 
 
-def read_rgba(path: Path) -> np.ndarray:
-    """An image file as float RGB(A) in [0, 1], [H, W, 3 or 4] (8- or 16-bit, grey or colour)."""
+def check_readable(path: Path, field: str | None = None, what: str = "image") -> None:
+    """A SceneFormatError naming the file (and ``field``, the record that lists it) unless it exists in a format
+    OpenCV reads here; OpenEXR is not one (this OpenCV is built without it), and the error says how to convert."""
+    if not path.is_file():
+        raise SceneFormatError(path, field, f"missing {what} (no such file)")
+    if not cv2.haveImageReader(str(path)):
+        raise SceneFormatError(path, field, (
+            "OpenEXR images are not supported (OpenCV here is built without OpenEXR): convert them to PNG, 8 or 16 "
+            "bits, sRGB (Blender writes linear EXR: e.g. oiiotool r_0.exr --colorconvert linear sRGB -d uint16 -o "
+            "r_0.png, or render with File Format PNG) and point file_path at them"
+            if path.suffix.lower() == ".exr" else "not a format OpenCV reads: convert it to PNG"))
+
+
+def read_raw(path: Path, field: str | None = None, what: str = "image") -> np.ndarray:
+    """An image file as OpenCV reads it (BGR(A) or grey, any depth); errors as :func:`check_readable`'s."""
+    check_readable(path, field, what)
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
-        raise SceneFormatError(path, None, "missing or unreadable image")
+        raise SceneFormatError(path, field, f"unreadable {what} (damaged or truncated?)")
+    return raw
+
+
+def read_rgba(path: Path, field: str | None = None) -> np.ndarray:
+    """An image file as float RGB(A) in [0, 1], [H, W, 3 or 4] (8- or 16-bit, grey or colour); errors name the
+    file and ``field`` (:func:`check_readable`)."""
+    raw = read_raw(path, field)
     scale = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else 1.0
     img = raw.astype(np.float64) / scale
     if img.ndim == 2:
@@ -138,7 +159,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     # The image size comes from the first image; every split shares it.
     first_index, _, first_frames = splits[0][1:]
     first_image = _image_path(src, str(first_frames[0].get("file_path", "")))
-    height, width = read_rgba(first_image).shape[:2]
+    height, width = read_rgba(first_image, f"{first_index.name} frames[0]").shape[:2]
 
     def intrinsics_for(angle: float) -> CameraIntrinsics:
         f = focal_from_fov(angle, width)
@@ -162,7 +183,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                 if not isinstance(raw, dict) or not isinstance(raw.get("file_path"), str):
                     raise SceneFormatError(index, f"{field}.file_path", "expected an object with a file_path string")
                 image_path = _image_path(src, raw["file_path"])
-                rgba = read_rgba(image_path)
+                rgba = read_rgba(image_path, f"{index.name} {field}")
                 if rgba.shape[:2] != (height, width):
                     raise SceneFormatError(image_path, f"{index.name} {field}",
                                            f"image is {rgba.shape[1]}x{rgba.shape[0]}, but {first_image.name} is {width}x{height}")

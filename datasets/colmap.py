@@ -621,7 +621,7 @@ def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float 
         for img, split in progress_bar(list(zip(images, splits)), desc=f"import {model_dir}", unit="frame"):
             intr = intrinsics[img.camera_id]
             image_path = images_dir / img.name
-            rgb = composite(read_rgba(image_path)[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped
+            rgb = composite(read_rgba(image_path, f"image {img.image_id}")[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped
             if rgb.shape[:2] != (intr.height, intr.width):
                 raise SceneFormatError(image_path, f"image {img.image_id}", f"image is {rgb.shape[1]}x{rgb.shape[0]} but "
                                        f"camera {img.camera_id} is {intr.width}x{intr.height}")

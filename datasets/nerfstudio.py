@@ -47,7 +47,7 @@ from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_problem
 from tacsplat.types import CameraIntrinsics
 
-from .blender import check_scale, composite, pose_from_opengl, read_rgba
+from .blender import check_readable, check_scale, composite, pose_from_opengl, read_raw, read_rgba
 from .outputs import claim_output_dir
 from .records import SceneMeta, as_size, camera_problem, is_finite_number
 from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
@@ -57,6 +57,8 @@ log = logging.getLogger(__name__)
 PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "PERSPECTIVE")
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")  # OpenCV's order of its radial-tangential coefficients
 SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
+MAX_CORNER_SCALE = 2.0  # distortion at the image corner: distorted over undistorted radius (distortion_problem)
+MAX_TANGENTIAL = 0.1  # tangential distortion: the largest shift of a point, over its radius (distortion_problem)
 _PIXEL_CENTRE_SHIFT = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # ours (+0.5) -> OpenCV's (0)
 
 
@@ -164,6 +166,7 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
     for key, axis in (("w", 0), ("h", 1)):
         value, field = _number(key, frame, data)
         if value is None:
+            check_readable(frame.image, frame.field)
             try:
                 with Image.open(frame.image) as img:
                     value = img.size[axis]
@@ -199,7 +202,72 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
         if not is_finite_number(value):
             raise SceneFormatError(index, field, f"expected a finite number, got {value!r}")
         distortion.append(float(value))
-    return Camera(float(focal["fl_x"]), float(focal["fl_y"]), float(cx), float(cy), w, h, tuple(distortion))
+    camera = Camera(float(focal["fl_x"]), float(focal["fl_y"]), float(cx), float(cy), w, h, tuple(distortion))
+    problem = distortion_problem(camera)
+    if problem:
+        raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
+    return camera
+
+
+def distortion_problem(camera: Camera) -> tuple[str, str] | None:
+    """``(key, why)`` when the distortion is no lens's over this image, or None.
+
+    Every pixel must see exactly one ray, and the lens must stay a perspective one:
+
+    1. The model ``(x, y) -> (x_d, y_d)`` is invertible over the image: radially, ``r (1 + k1 r^2 + k2 r^4 +
+       k3 r^6)`` keeps growing until it reaches the farthest image corner, and the Jacobian determinant of the
+       whole model (tangential terms included) stays positive on that disc. A model that folds back sends two
+       rays to some pixels and none to others, and OpenCV's undistortion returns nonsense.
+    2. At the corner, the distorted radius is within a factor MAX_CORNER_SCALE of the undistorted one. Real
+       perspective lenses stay well inside (a wide-angle webcam's k1 -0.28, k2 0.09 gives 0.8 at a corner
+       radius of 1); beyond it the undistorted camera's focal length is off by about that factor (k1 = 50 turned
+       88 px into 1046 px): coefficients in the wrong units, or a fisheye lens, which this model cannot describe.
+    3. The tangential (decentering) part moves no point by more than MAX_TANGENTIAL of its radius: it comes from
+       lens elements a fraction of a millimetre off the axis; calibrations give |p1|, |p2| ~ 1e-3, a shift well
+       under 1 % at the corner.
+    """
+    k1, k2, p1, p2, k3 = camera.distortion
+    if not any(camera.distortion):
+        return None
+    x = (np.array([0.0, camera.width]) - camera.cx) / camera.fx
+    y = (np.array([0.0, camera.height]) - camera.cy) / camera.fy
+    corner = float(np.hypot(*np.meshgrid(x, y)).max())  # distorted (image) radius of the farthest corner
+    coefficients = f"k1 {k1:g}, k2 {k2:g}, k3 {k3:g} (OpenCV's model, on normalised image coordinates)"
+    r = np.linspace(0.0, MAX_CORNER_SCALE * corner, 2001)  # undistorted radii
+    distorted = r * (1 + k1 * r**2 + k2 * r**4 + k3 * r**6)
+    reached = np.flatnonzero(distorted >= corner)
+    end = reached[0] if reached.size else len(r) - 1
+    terms = {"k1": abs(k1) * r[end] ** 2, "k2": abs(k2) * r[end] ** 4, "k3": abs(k3) * r[end] ** 6}
+    radial = max(terms, key=terms.get)  # the coefficient that dominates at the corner
+    folds = np.flatnonzero(np.diff(distorted[: end + 1]) <= 0)
+    if folds.size:
+        return radial, (f"the distortion folds the image back: the distorted radius grows only up to "
+                        f"{distorted[folds[0]]:.3g}, short of the image corner at {corner:.3g}, so pixels near the "
+                        f"corners would see two rays or none; no lens does this: check {coefficients}")
+    scale = corner / r[end] if reached.size else 0.0
+    if not 1 / MAX_CORNER_SCALE <= scale <= MAX_CORNER_SCALE:
+        size = f"{scale:.3g}" if reached.size else f"less than {1 / MAX_CORNER_SCALE:g}"
+        return radial, (f"the distortion scales the image corner by {size} (distorted over undistorted radius), "
+                        f"beyond a perspective lens's 1/{MAX_CORNER_SCALE:g} to {MAX_CORNER_SCALE:g}: check "
+                        f"{coefficients}; a fisheye lens needs undistorting first")
+    angle = np.linspace(0.0, 2 * np.pi, 181)
+    xu, yu = r[1 : end + 1, None] * np.cos(angle), r[1 : end + 1, None] * np.sin(angle)
+    rr = xu**2 + yu**2
+    factor = 1 + k1 * rr + k2 * rr**2 + k3 * rr**3
+    g = 2 * k1 + 4 * k2 * rr + 6 * k3 * rr**2  # d(factor)/dx = g x, d(factor)/dy = g y
+    cross = g * xu * yu + 2 * p1 * xu + 2 * p2 * yu  # d(x_d)/dy = d(y_d)/dx
+    det = (factor + g * xu**2 + 2 * p1 * yu + 6 * p2 * xu) * (factor + g * yu**2 + 6 * p1 * yu + 2 * p2 * xu) \
+        - cross**2
+    shift = np.hypot(2 * p1 * xu * yu + p2 * (rr + 2 * xu**2), p1 * (rr + 2 * yu**2) + 2 * p2 * xu * yu)
+    tangential = "p1" if abs(p1) >= abs(p2) else "p2"
+    if (det <= 0).any():
+        return tangential, (f"the tangential distortion p1 {p1:g}, p2 {p2:g} folds the image back within its "
+                            "corners (pixels there would see two rays or none); no lens does this")
+    if (shift > MAX_TANGENTIAL * np.sqrt(rr)).any():
+        return tangential, (f"the tangential distortion p1 {p1:g}, p2 {p2:g} moves the image corners by "
+                            f"{(shift / np.sqrt(rr)).max():.0%} of their radius, beyond a lens's "
+                            f"{MAX_TANGENTIAL:.0%} (decentering is ~1e-3): check p1 and p2")
+    return None
 
 
 def undistortion(camera: Camera) -> tuple[CameraIntrinsics, tuple[np.ndarray, np.ndarray] | None]:
@@ -243,9 +311,7 @@ def _applied_transform(data: dict, index: Path) -> tuple[np.ndarray | None, floa
 
 def _read_mask(path: Path, camera: Camera, frame: _SourceFrame) -> np.ndarray:
     """A mask file as uint8 0/255 [H, W] (any non-zero channel means: use the pixel)."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise SceneFormatError(path, f"{frame.field}.mask_path", "missing or unreadable mask")
+    raw = read_raw(path, f"{frame.field}.mask_path", "mask")
     keep = raw != 0 if raw.ndim == 2 else (raw != 0).any(axis=2)
     if keep.shape != (camera.height, camera.width):
         raise SceneFormatError(path, f"{frame.field}.mask_path", f"mask is {keep.shape[1]}x{keep.shape[0]} but the "
@@ -275,7 +341,12 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
         for k, f in enumerate(frames):
             f.split = "test" if test_every and k % test_every == 0 else "train"
     if not any(f.split == "train" for f in frames):
-        raise SceneFormatError(index, "train_filenames" if has_lists else "frames", "no train frame to import")
+        if has_lists:
+            raise SceneFormatError(index, "train_filenames", f"no train frame to import: none of the {len(frames)} "
+                                   "frames to import is in train_filenames")
+        raise SceneFormatError(index, "frames", f"no train frame to import: the test split takes every "
+                               f"{test_every}-th of the {len(frames)} frames in file-name order, the first included; "
+                               "--test-every 0 (test_every=0) keeps them all for training")
     in_file_order = sorted(frames, key=lambda f: f.position)
     first = in_file_order[0]
     odd = next((f for f in in_file_order if ("mask_path" in f.raw) != ("mask_path" in first.raw)), None)
@@ -338,7 +409,7 @@ def import_nerfstudio(src, out, test_every: int = 8, scale: float = 1.0, skip_mi
         for f, camera, pose in progress_bar(list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}",
                                            unit="frame"):
             intr, maps = tables[camera]
-            rgb = read_rgba(f.image)[:, :, :3].astype(np.float32)
+            rgb = read_rgba(f.image, f.field)[:, :, :3].astype(np.float32)
             if rgb.shape[:2] != (camera.height, camera.width):
                 raise SceneFormatError(f.image, f.field, f"image is {rgb.shape[1]}x{rgb.shape[0]} but the camera says "
                                        f"w x h = {camera.width}x{camera.height}")

@@ -17,8 +17,9 @@ from scipy.spatial.transform import Rotation
 from tacsplat.cli import main
 from tacsplat.datasets import Scene
 from tacsplat.datasets.colmap import import_colmap
+from tacsplat.datasets.nerfstudio import import_nerfstudio
 from tacsplat.errors import SceneFormatError
-from tacsplat.geometry import invert_pose, look_at
+from tacsplat.geometry import invert_pose, look_at, opencv_to_opengl
 
 W, H = 10, 8
 
@@ -239,3 +240,107 @@ def test_a_model_too_small_for_the_test_split_says_how_to_train_on_it(colmap_mod
                  "--test-every", "1"]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no train frame to import" in err and "--test-every 0" in err, err
+
+
+# --- nerfstudio: implausible distortion, a file too small for the test split -----------------------------------
+
+NS_W, NS_H = 64, 48
+
+
+def _nerfstudio(root: Path, frames: int = 5, **top) -> Path:
+    """transforms.json with an OPENCV camera (top-level keys, overridden by ``top``) over ``frames`` images."""
+    root.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for i in range(frames):
+        cv2.imwrite(str(root / f"frame_{i:03d}.png"), np.full((NS_H, NS_W, 3), 30 * i, np.uint8))
+        T_world_cam = look_at([2.0 * np.cos(i), 2.0 * np.sin(i), 0.5], [0.0, 0.0, 0.0])
+        entries.append({"file_path": f"frame_{i:03d}.png", "transform_matrix": opencv_to_opengl(T_world_cam).tolist()})
+    data = {"camera_model": "OPENCV", "w": NS_W, "h": NS_H, "fl_x": 50.0, "fl_y": 52.0, "cx": 32.5, "cy": 23.5,
+            "frames": entries, **top}
+    (root / "transforms.json").write_text(json.dumps(data))
+    return root
+
+
+@pytest.mark.parametrize("distortion, field, words", [
+    ({"k1": 50.0}, "k1", "scales the image corner by 3.5"),  # the issue's: focal 88 px became 1046 px
+    ({"k1": -1.0}, "k1", "folds the image back"),  # the radius peaks at 0.385, short of the corner at 0.8
+    ({"k1": 0.1, "k2": -3.0}, "k2", "folds the image back"),
+    ({"p1": 0.2}, "p1", "moves the image corners by 48%"),
+    ({"p2": -50.0}, "p2", "folds the image back"),
+])
+def test_implausible_distortion_is_one_error_naming_the_field(tmp_path, distortion, field, words):
+    src = _nerfstudio(tmp_path / "ns", **distortion)
+    with pytest.raises(SceneFormatError, match=words) as info:
+        import_nerfstudio(src, tmp_path / "scene")
+    assert info.value.path == src / "transforms.json" and info.value.field == field
+    assert not (tmp_path / "scene").exists()
+
+
+def test_a_frames_implausible_distortion_names_the_frame_and_the_cli_says_it_in_one_line(tmp_path, capsys):
+    src = _nerfstudio(tmp_path / "ns")
+    data = json.loads((src / "transforms.json").read_text())
+    data["frames"][3]["k1"] = 50.0
+    (src / "transforms.json").write_text(json.dumps(data))
+    assert main(["import", "nerfstudio", str(src), "--out", str(tmp_path / "scene")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "transforms.json [frames[3].k1]" in err and "Traceback" not in err, err
+
+
+def test_a_real_wide_angle_lens_is_imported(tmp_path):
+    """A wide-angle webcam's distortion (k1 -0.28, k2 0.09, the ChArUco tests' lens) and the nerfstudio tests'
+    lens pass the plausibility rule."""
+    for name, distortion in (("webcam", {"k1": -0.28, "k2": 0.09, "p1": 0.0005, "p2": -0.0003}),
+                             ("ns", {"k1": -0.15, "k2": 0.04, "p1": 0.003, "p2": -0.002})):
+        scene = Scene.load(import_nerfstudio(_nerfstudio(tmp_path / name, **distortion), tmp_path / f"s-{name}"))
+        assert 40 < scene.frames[0].intrinsics.K[0, 0] < 60
+
+
+def test_one_frame_says_how_to_train_on_it(tmp_path, capsys):
+    src = _nerfstudio(tmp_path / "ns", frames=1)
+    assert main(["import", "nerfstudio", str(src), "--out", str(tmp_path / "scene")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no train frame to import" in err and "--test-every 0" in err, err
+    assert main(["import", "nerfstudio", str(src), "--out", str(tmp_path / "scene"), "--test-every", "0"]) == 0
+    assert [f.split for f in Scene.load(tmp_path / "scene").frames] == ["train"]
+
+
+# --- Blender: OpenEXR frames --------------------------------------------------------------------------------------
+
+def _write_exr(path: Path, rgba: np.ndarray) -> None:
+    """A minimal OpenEXR 2 file: one part, scan lines, no compression, float32 channels A B G R (the layout
+    Blender's uncompressed RGBA output has; checked with OpenEXR's exrheader and exrmaketiled)."""
+    h, w = rgba.shape[:2]
+
+    def attribute(name: str, kind: str, value: bytes) -> bytes:
+        return name.encode() + b"\0" + kind.encode() + b"\0" + struct.pack("<i", len(value)) + value
+
+    channels = b"".join(c.encode() + b"\0" + struct.pack("<iB3xii", 2, 0, 1, 1) for c in "ABGR") + b"\0"
+    box = struct.pack("<4i", 0, 0, w - 1, h - 1)
+    header = (b"\x76\x2f\x31\x01" + struct.pack("<i", 2) + attribute("channels", "chlist", channels)
+              + attribute("compression", "compression", b"\0") + attribute("dataWindow", "box2i", box)
+              + attribute("displayWindow", "box2i", box) + attribute("lineOrder", "lineOrder", b"\0")
+              + attribute("pixelAspectRatio", "float", struct.pack("<f", 1.0))
+              + attribute("screenWindowCenter", "v2f", struct.pack("<2f", 0.0, 0.0))
+              + attribute("screenWindowWidth", "float", struct.pack("<f", 1.0)) + b"\0")
+    lines = [struct.pack("<ii", y, 16 * w) + b"".join(rgba[y, :, c].astype("<f4").tobytes() for c in (3, 2, 1, 0))
+             for y in range(h)]
+    offsets = len(header) + 8 * h + np.cumsum([0] + [len(line) for line in lines[:-1]])
+    path.write_bytes(header + struct.pack(f"<{h}Q", *offsets) + b"".join(lines))
+
+
+def test_blender_exr_frames_are_refused_naming_the_file_and_the_conversion(tmp_path, capsys):
+    src = tmp_path / "shiny"
+    for split in ("train", "test"):
+        (src / split).mkdir(parents=True)
+        frames = []
+        for k in range(2):
+            _write_exr(src / split / f"r_{k}.exr", np.random.default_rng(k).uniform(0, 1, (8, 10, 4)))
+            T_world_cam = look_at([4.0 * np.cos(k), 4.0 * np.sin(k), 1.0], [0.0, 0.0, 0.0])
+            frames.append({"file_path": f"./{split}/r_{k}.exr", "transform_matrix": opencv_to_opengl(T_world_cam).tolist()})
+        (src / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.69, "frames": frames}))
+    assert main(["import", "blender", str(src), "--out", str(tmp_path / "scene")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{src / 'train' / 'r_0.exr'} [transforms_train.json frames[0]]" in err
+    assert "OpenEXR images are not supported" in err and "convert them to PNG" in err
+    assert not (tmp_path / "scene").exists()
