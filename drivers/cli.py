@@ -17,9 +17,14 @@ def register(cli) -> None:
         "calibrate camera",
         help="intrinsic calibration of the wrist camera from photos of a ChArUco board or a chessboard",
         description="Finds the board's corners (sub-pixel) in every photo, runs cv2.calibrateCameraExtended, prints "
-        "the RMS reprojection error, the intrinsics and their standard deviations, and warns (naming what to add) "
-        "when the focal length is poorly constrained (standard deviation above 1%%) or parts of the image saw no "
-        "corner. Writes the calibration (OpenCV K with pixel centres at integers, distortion, K_std_px, warnings) "
+        "the RMS reprojection error, the intrinsics and their standard deviations. Refuses, naming the photos and "
+        "what to add, a set that cannot determine the intrinsics (fewer than 3 distinct board poses, a repeated "
+        "photo counting once, or the board in fewer than 3 orientations 10 degrees apart: a board facing the "
+        "camera, or boards parallel to each other, leave the focal length unobservable) and a result that is no "
+        "camera (a field of view outside 2-170 degrees, a standard deviation of zero, distortion that folds the "
+        "image where corners were seen). Warns, naming what to add, when the focal length is poorly constrained "
+        "(standard deviation above 1%%), parts of the image saw no corner, the lens model fails in the image "
+        "corners beyond the corners seen, or photos repeat a pose. Writes the calibration (OpenCV K with pixel centres at integers, distortion, K_std_px, warnings) "
         "as JSON, a picture of the detected and reprojected corners (.png) and one of the corner coverage "
         "(_coverage.png) next to it.",
     )

@@ -3,9 +3,12 @@ hand-eye calibration.
 
 Calibration (:func:`calibrate_intrinsics`): board corners at sub-pixel accuracy in every photo, then
 ``cv2.calibrateCameraExtended`` with the distortion model of ``DISTORTION_MODELS`` (default OpenCV's five
-coefficients, k3 free). The result knows its own uncertainty: the standard deviations of fx, fy, cx, cy
-(``K_std_px``), and ``warnings`` (:func:`calibration_warnings`) when the focal length is poorly constrained
-(standard deviation above 1 %) or corners are missing from parts of the image, each naming what to add.
+coefficients, k3 free). Photo sets that cannot determine the intrinsics (:func:`view_set_problem`: too few
+distinct poses or board orientations) and results that are no camera (:func:`calibration_problem`) are refused.
+The result knows its own uncertainty: the standard deviations of fx, fy, cx, cy (``K_std_px``), and ``warnings``
+(:func:`calibration_warnings`) when the focal length is poorly constrained (standard deviation above 1 %),
+corners are missing from parts of the image or the lens model fails beyond them, or photos repeat a pose, each
+naming what to add.
 
 Pixel centres: OpenCV's calibration and detectors put pixel centres at integer
 coordinates; tacsplat's ``K`` (``tacsplat.geometry``) puts them at +0.5. OpenCV
@@ -180,6 +183,23 @@ DISTORTION_MODELS = {  # name -> (cv2.calibrateCamera flags, coefficients)
 }
 MAX_FOCAL_STD = 0.01  # of the focal length: above it the calibration is poorly constrained
 MIN_GOOD_TILT_DEG = 30.0  # a set of views should hold at least one board tilted this much
+# Degenerate photo sets, refused before calibrating (view_set_problem). Zhang's method reads the intrinsics off
+# the homographies of the board, two equations per view: a board parallel to the image plane gives an affine
+# homography, whose equations fix the aspect ratio but say nothing of the focal length, and boards parallel to
+# each other repeat the same equations. Three board planes that are not parallel determine the intrinsics, so the
+# board must be seen in MIN_ORIENTATIONS orientations MIN_ORIENTATION_DEG apart (hence two of them tilted at least
+# that much from facing the camera). The focal length shows through the foreshortening, ~ sin(tilt): below 10
+# degrees its error grows as 1 / tilt. The tilt is estimated with a nominal focal length (the image's larger
+# side), good to a factor of 2 for webcams and phones, which moves a 10-degree tilt by a few degrees only.
+MIN_ORIENTATIONS = 3
+MIN_ORIENTATION_DEG = 10.0
+SAME_POSE_FRACTION = 0.01  # two photos whose common corners lie within 1 % of the image diagonal (RMS): one pose
+# A result that is no camera, refused after calibrating (calibration_problem): a field of view outside 2-170
+# degrees (a lens beyond either end needs another model), a standard deviation of zero or NaN (OpenCV's
+# covariance was singular: a parameter is unobservable), or distortion that folds the image or scales its corner
+# beyond MAX_CORNER_SCALE (distorted over undistorted radius; real perspective lenses stay within ~1.3).
+FIELD_OF_VIEW_DEG = (2.0, 170.0)
+MAX_CORNER_SCALE = 2.0
 _CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"),
                ("bottom-left", "bottom", "bottom-right"))
 
@@ -337,6 +357,10 @@ def calibrate_views(views: Sequence[BoardView], size: tuple[int, int], board_spe
         raise CameraError("calibration", f"the board was found in {len(views)} images; at least 3 are needed")
     obj_points = [v.object_points.astype(np.float32) for v in views]
     img_points = [v.image_points.astype(np.float32) for v in views]
+    distinct, repeats = distinct_views(views, size)
+    problem = view_set_problem(views, distinct, repeats, size)
+    if problem:
+        raise CameraError("calibration", problem)
     flags, count = DISTORTION_MODELS[distortion]
     rms, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
         obj_points, img_points, size, None, None, flags=flags)
@@ -348,9 +372,131 @@ def calibrate_views(views: Sequence[BoardView], size: tuple[int, int], board_spe
     std = {key: float(value) for key, value in zip(_K_NAMES, std_intrinsics.ravel()[:4])}
     calib = CameraCalibration(K, dist, size[0], size[1], float(rms), board_spec, per_image,
                               K_std_px=std, distortion_model=distortion)
+    problem = calibration_problem(calib, views)
+    if problem:
+        raise CameraError("calibration", f"not written: the result is no camera ({problem}); the photos hold too "
+                          "little information: add views with the board tilted 20-45 degrees towards each side")
     tilts = [float(np.degrees(np.arccos(min(1.0, abs(cv2.Rodrigues(r)[0][2, 2]))))) for r in rvecs]
-    calib.warnings = calibration_warnings(calib, views, tilts)
+    calib.warnings = calibration_warnings(calib, views, tilts) + [
+        f"{', '.join(names[1:])} show{'s' * (len(names) == 2)} the board where {names[0]} does (within "
+        f"{SAME_POSE_FRACTION:.0%} of the image), adding nothing: take each photo from a new pose"
+        for names in repeats]
     return calib
+
+
+def _same_pose(a: BoardView, b: BoardView, tolerance_px: float) -> bool:
+    """Whether two views show the board in one place: at least 4 common corners, within ``tolerance_px`` RMS."""
+    index = {key: k for k, key in enumerate(map(tuple, np.round(a.object_points, 9)))}
+    pairs = [(index[key], k) for k, key in enumerate(map(tuple, np.round(b.object_points, 9))) if key in index]
+    if len(pairs) < 4:
+        return False
+    ia, ib = np.array(pairs).T
+    return float(np.sqrt(np.mean(np.sum((a.image_points[ia] - b.image_points[ib]) ** 2, axis=1)))) < tolerance_px
+
+
+def distinct_views(views: Sequence[BoardView], size: tuple[int, int]) -> tuple[list[BoardView], list[list[str]]]:
+    """The views that show the board in a pose of its own (the first of each pose), and the names of the views
+    of each pose seen more than once (the first view's name first)."""
+    tolerance = SAME_POSE_FRACTION * math.hypot(*size)
+    distinct, repeats = [], {}
+    for view in views:
+        twin = next((other for other in distinct if _same_pose(other, view, tolerance)), None)
+        if twin is None:
+            distinct.append(view)
+        else:
+            repeats.setdefault(twin.name, [twin.name]).append(view.name)
+    return distinct, list(repeats.values())
+
+
+def board_normals(views: Sequence[BoardView], size: tuple[int, int]) -> np.ndarray:
+    """[n, 3] unit normal of the board in each view, camera frame, by planar PnP (IPPE) with a nominal camera: focal
+    length the image's larger side, principal point at the centre, no distortion."""
+    f = float(max(size))
+    K = np.array([[f, 0.0, (size[0] - 1) / 2], [0.0, f, (size[1] - 1) / 2], [0.0, 0.0, 1.0]])
+    normals = []
+    for view in views:
+        ok, rvec, _ = cv2.solvePnP(view.object_points, view.image_points, K, None, flags=cv2.SOLVEPNP_IPPE)
+        normals.append(cv2.Rodrigues(rvec)[0][:, 2] if ok else np.array([0.0, 0.0, 1.0]))
+    return np.array(normals)
+
+
+def view_set_problem(views: Sequence[BoardView], distinct: Sequence[BoardView], repeats: Sequence[Sequence[str]],
+                     size: tuple[int, int]) -> str | None:
+    """Why the views cannot determine the intrinsics (fewer than MIN_ORIENTATIONS distinct poses or board
+    orientations), naming the photos and what to add; None when they can."""
+    advice = "take each photo from a new pose, the board tilted 20-45 degrees towards each side"
+    if len(distinct) < MIN_ORIENTATIONS:
+        same = "; ".join(", ".join(names) for names in repeats)
+        return (f"the {len(views)} photos show the board in {len(distinct)} distinct pose(s) ({same} show it in "
+                f"one place, within {SAME_POSE_FRACTION:.0%} of the image); calibration needs at least "
+                f"{MIN_ORIENTATIONS}: {advice}")
+    normals = board_normals(distinct, size)
+    kept = []  # one normal per orientation, MIN_ORIENTATION_DEG apart
+    for normal in normals:
+        if all(np.degrees(np.arccos(min(1.0, abs(normal @ other)))) >= MIN_ORIENTATION_DEG for other in kept):
+            kept.append(normal)
+    if len(kept) < MIN_ORIENTATIONS:
+        tilts = ", ".join(f"{view.name} {np.degrees(np.arccos(min(1.0, abs(n[2])))):.0f}"
+                          for view, n in zip(distinct, normals))
+        return (f"the board is seen in {len(kept)} orientation(s) at least {MIN_ORIENTATION_DEG:g} degrees apart "
+                f"(tilt from facing the camera, degrees: {tilts}); calibration needs {MIN_ORIENTATIONS}: a board "
+                f"facing the camera, or boards parallel to each other, leave the focal length unobservable: {advice}")
+    return None
+
+
+def _lens_problem(calib: CameraCalibration, radius: float) -> str | None:
+    """Why the lens model does not map the ray to the farthest image corner one to one onto the image out to
+    ``radius`` (distorted, normalised): it folds back first, or scales that radius beyond MAX_CORNER_SCALE."""
+    K, w, h = calib.K_opencv, calib.width, calib.height
+    to_normalised = np.linalg.inv(K[:2, :2]).T
+    corners = (np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]]) - K[:2, 2]) @ to_normalised
+    direction = corners[np.argmax(np.hypot(*corners.T))]
+    direction = direction / np.hypot(*direction)
+    r = np.linspace(0.0, MAX_CORNER_SCALE * radius, 401)  # undistorted radii
+    pixels = cv2.projectPoints(np.column_stack([np.outer(r, direction), np.ones(len(r))]), np.zeros(3), np.zeros(3),
+                               K, calib.dist)[0].reshape(-1, 2)
+    distorted = np.hypot(*((pixels - K[:2, 2]) @ to_normalised).T)
+    reached = np.flatnonzero(distorted >= radius)
+    end = reached[0] if reached.size else len(r) - 1
+    dist = "[" + ", ".join(f"{k:.4g}" for k in calib.dist) + "]"
+    folds = np.flatnonzero(np.diff(distorted[: end + 1]) <= 0)
+    if folds.size:
+        return (f"the distortion {dist} folds the image back at radius {distorted[folds[0]]:.3g} (normalised; "
+                f"pixels out to {radius:.3g} would see two rays or none)")
+    scale = radius / r[end] if reached.size else 0.0
+    if not 1 / MAX_CORNER_SCALE <= scale <= MAX_CORNER_SCALE:
+        return (f"the distortion {dist} scales radius {radius:.3g} (normalised) by {scale:.3g}, beyond "
+                f"1/{MAX_CORNER_SCALE:g} to {MAX_CORNER_SCALE:g}")
+    return None
+
+
+def _radii(calib: CameraCalibration, views: Sequence[BoardView]) -> tuple[float, float]:
+    """Distorted normalised radius of the outermost corner seen, and of the farthest image corner."""
+    K, w, h = calib.K_opencv, calib.width, calib.height
+    seen = np.concatenate([view.image_points for view in views])
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    radius = [float(np.hypot(*((points - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T).T).max()) for points in (seen, corners)]
+    return radius[0], radius[1]
+
+
+def calibration_problem(calib: CameraCalibration, views: Sequence[BoardView]) -> str | None:
+    """Why a calibration result is no camera (see FIELD_OF_VIEW_DEG, MAX_CORNER_SCALE; the lens model is judged
+    where the views saw corners: beyond, calibration_warnings says so), or None."""
+    K, std = calib.K_opencv, calib.K_std_px or {}
+    values = np.concatenate([K.ravel(), calib.dist.ravel(), list(std.values())])
+    if not np.isfinite(values).all():
+        return f"K {K.tolist()}, distortion {calib.dist.tolist()} or their standard deviations {std} are not finite"
+    for key, (value, side) in {"fx": (K[0, 0], calib.width), "fy": (K[1, 1], calib.height)}.items():
+        fov = math.degrees(2 * math.atan(side / (2 * value))) if value > 0 else float("nan")
+        if not FIELD_OF_VIEW_DEG[0] <= fov <= FIELD_OF_VIEW_DEG[1]:
+            return (f"{key} {value:.6g} px gives a field of view of {fov:.3g} degrees over {side} px, outside "
+                    f"{FIELD_OF_VIEW_DEG[0]:g}-{FIELD_OF_VIEW_DEG[1]:g}")
+    if not (0 <= K[0, 2] <= calib.width and 0 <= K[1, 2] <= calib.height):
+        return f"the principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) px is outside the image"
+    zero = [key for key, value in std.items() if not value > 0]
+    if zero:
+        return f"the standard deviation of {', '.join(zero)} is zero: OpenCV found it unobservable"
+    return _lens_problem(calib, _radii(calib, views)[0])
 
 
 def empty_image_cells(views: Sequence[BoardView], size: tuple[int, int]) -> list[str]:
@@ -375,6 +521,10 @@ def calibration_warnings(calib: CameraCalibration, views: Sequence[BoardView], t
                        f"tilt it {MIN_GOOD_TILT_DEG:.0f}-45 deg towards each side")
         warnings.append(f"the focal length is poorly constrained: {', '.join(loose)}, more than "
                         f"{MAX_FOCAL_STD:.0%}: {advice}")
+    lens = _lens_problem(calib, _radii(calib, views)[1])
+    if lens:
+        warnings.append(f"the image corners lie beyond the outermost board corner seen and the lens model fails "
+                        f"there: {lens}; add views with the board near the image corners")
     empty = empty_image_cells(views, (calib.width, calib.height))
     if empty:
         warnings.append(f"corner coverage of the image is poor, so the lens distortion there is poorly constrained: "
