@@ -316,6 +316,27 @@ def _on_interrupt(signum, frame) -> None:
         os._exit(1)
 
 
+class _SentAtOnce(logging.handlers.QueueHandler):
+    """A worker's log handler: each record is written into the batch's log pipe (a SimpleQueue) by the logging
+    call itself, not later by a multiprocessing.Queue's feeder thread, so every record a job logs is in the pipe
+    before the job's result, and the batch's process, stopping its listener after the last result, reads them all
+    (a feeder thread slowed by a loaded machine lost them)."""
+
+    def enqueue(self, record: logging.LogRecord) -> None:
+        self.queue.put(record)
+
+
+class _LogListener(logging.handlers.QueueListener):
+    """The batch's process's side of the log pipe: the workers' records to this process's handlers, in the order
+    written, up to the sentinel ``stop`` writes after them."""
+
+    def dequeue(self, block: bool) -> logging.LogRecord | None:
+        return self.queue.get()
+
+    def enqueue_sentinel(self) -> None:
+        self.queue.put(self._sentinel)
+
+
 def _start_worker(log_queue, level: int, batch_pid: int) -> None:
     """A worker's set-up: its log records go to the batch's process; it leaves the terminal's process group
     (a Ctrl-C reaches the batch's process alone, which passes one SIGINT on to each worker: a training stops
@@ -324,7 +345,7 @@ def _start_worker(log_queue, level: int, batch_pid: int) -> None:
     global _batch_pid
     _batch_pid = batch_pid
     root = logging.getLogger()
-    root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
+    root.handlers[:] = [_SentAtOnce(log_queue)]
     root.setLevel(level)
     signal.signal(signal.SIGINT, _on_interrupt)
     if hasattr(os, "setpgid"):  # (POSIX)
@@ -380,8 +401,8 @@ def _run_processes(todo: list[Job], batch: _Batch, workers: int) -> None:
 def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
     """Run ``pending`` on one pool of workers; returns the jobs not started when a worker died (else [])."""
     context = multiprocessing.get_context("spawn")  # never fork a process that holds OpenMP thread pools
-    log_queue = context.Queue()
-    listener = logging.handlers.QueueListener(log_queue, *logging.getLogger().handlers, respect_handler_level=True)
+    log_queue = context.SimpleQueue()
+    listener = _LogListener(log_queue, *logging.getLogger().handlers, respect_handler_level=True)
     listener.start()
     running: dict[futures.Future, Job] = {}
     size = min(workers, len(pending))

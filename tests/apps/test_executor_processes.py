@@ -119,9 +119,27 @@ class LoggingJob(FileJob):
         return super().__call__()
 
 
-def test_worker_log_records_reach_this_process(tmp_path, caplog):
+class SlowToSend:
+    """A log record's attribute whose pickling, as the record leaves its worker, takes a second: the delay a loaded
+    machine can put between a worker logging a record and the record reaching the batch's process."""
+
+    def __reduce__(self):
+        time.sleep(1.0)
+        return str, ("sent",)
+
+
+@dataclass(frozen=True)
+class SlowLoggingJob(FileJob):
+    def __call__(self) -> dict:
+        logging.getLogger("tacsplat.test_worker").warning("hello from %s", self.name, extra={"slow": SlowToSend()})
+        return super().__call__()
+
+
+@pytest.mark.parametrize("job", [LoggingJob, SlowLoggingJob])
+def test_worker_log_records_reach_this_process(tmp_path, caplog, job):
+    # a record logged just before the job returns is handled here before run_jobs returns, however slow to send
     with caplog.at_level(logging.INFO):
-        run_jobs([LoggingJob("talks", tmp_path / "talks")], tmp_path, executor="processes", progress=False)
+        run_jobs([job("talks", tmp_path / "talks")], tmp_path, executor="processes", progress=False)
     assert [(r.name, r.getMessage()) for r in caplog.records if r.name == "tacsplat.test_worker"] == [
         ("tacsplat.test_worker", "hello from talks")]
 
