@@ -9,19 +9,35 @@ instruction, byte-stuffed parameters, CRC-16 of the protocol), and PING, READ,
 WRITE, SYNC_READ and SYNC_WRITE are answered from an X-series control table per
 servo, each servo moving toward its goal position while its torque is on.
 
+The Bus Watchdog (address 98) is the firmware's: armed with 1..127 (unit 20 ms),
+it watches the time between instruction packets that reach the servo while its
+torque is on; past it, the servo stops where it stands and holds there (its goal
+becomes its present position), the register reads -1 and the goal registers
+refuse writes (Data Range error) until 0 is written.
+
 Faults for tests: :meth:`disconnect` (a servo that never answers),
 :meth:`inject` ``"bad_crc"`` (a status packet with a corrupted CRC) or
-``"late"`` (a reply after the host's timeout), and :meth:`set_hardware_error`
+``"late"`` (a reply after the host's timeout), :meth:`inject_position_offset`
+(an encoder that reads off by some ticks) and :meth:`set_hardware_error`
 (the alert bit and Hardware Error Status, with the shutdown that the servo's
 firmware applies). Tests and the mocked operator session use it; it is no
 substitute for the hardware, but the bytes on the wire are real.
+
+``python -m tacsplat.drivers.dxl_emulator`` runs it as a process of its own, so
+that it outlives a process that dies while using the port (a killed capture):
+it prints ``{"port": PATH}`` and answers commands on its standard input, one
+JSON line each (:func:`main`); :class:`EmulatorProcess` starts and drives it.
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import logging
 import os
 import select
+import subprocess
+import sys
 import threading
 import time
 import tty
@@ -29,9 +45,12 @@ from dataclasses import dataclass, field
 
 from tacsplat.drivers.dynamixel_table import (
     ALERT_BIT,
+    BUS_WATCHDOG_TRIPPED,
+    BUS_WATCHDOG_UNIT_S,
     CENTRE_TICK,
     CONTROL_TABLE_SIZE,
     EEPROM_END,
+    GOAL_REGISTERS,
     MODEL_XC330_M288,
     REGISTERS,
     HardwareError,
@@ -116,6 +135,8 @@ class EmulatedServo:
     initial_ticks: float = CENTRE_TICK
     table: bytearray = field(default_factory=lambda: bytearray(CONTROL_TABLE_SIZE))
     position: float = 0.0  # ticks, continuous
+    offset_ticks: int = 0  # what the encoder reads on top of the position (a fault)
+    last_instruction: float = field(default_factory=time.monotonic)  # when an instruction packet last reached it
 
     def __post_init__(self):
         self.set("model_number", self.model_number)
@@ -166,8 +187,16 @@ class EmulatedServo:
             return ERR_DATA_LENGTH  # partial register
         if address < EEPROM_END and self.torque_enabled:
             return ERR_ACCESS  # EEPROM is locked while torque is on
+        tripped = self.get("bus_watchdog") == BUS_WATCHDOG_TRIPPED
+        if tripped and any(r.name in GOAL_REGISTERS for r in touched):
+            return ERR_DATA_RANGE  # goal values are read-only until the Bus Watchdog Error is cleared
         new = bytearray(self.table)
         new[address:end] = data
+        watchdog = REGISTERS["bus_watchdog"].address
+        if address <= watchdog < end:
+            value = to_signed(new[watchdog], 1)
+            if not 0 <= value <= 127 or tripped and value:
+                return ERR_DATA_RANGE  # 0 clears and disarms, 1..127 arms; a tripped watchdog is cleared first
         goal = REGISTERS["goal_position"]
         if address <= goal.address < end and self.get("operating_mode") == 3:  # limits apply in position mode only
             value = to_signed(int.from_bytes(new[goal.address : goal.address + 4], "little"), 4)
@@ -195,8 +224,18 @@ class EmulatedServo:
             self.set("moving", 0)
         self._sync_present()
 
+    def check_watchdog(self, now: float) -> None:
+        """Trip the Bus Watchdog when armed, torque on, and no instruction packet came within its period: the servo
+        stops and holds where it stands."""
+        units = self.get("bus_watchdog")
+        if units > 0 and self.torque_enabled and now - self.last_instruction > units * BUS_WATCHDOG_UNIT_S:
+            self.set("bus_watchdog", BUS_WATCHDOG_TRIPPED)
+            self.set("goal_position", int(round(self.position)))
+            log.debug("servo %d: Bus Watchdog Error after %.3f s without an instruction", self.servo_id,
+                      now - self.last_instruction)
+
     def _sync_present(self) -> None:
-        self.set("present_position", int(round(self.position)))
+        self.set("present_position", int(round(self.position)) + self.offset_ticks)
 
     def status_error(self, number: int = 0) -> int:
         return number | (ALERT_BIT if self.get("hardware_error_status") else 0)
@@ -228,6 +267,7 @@ class DxlEmulator:
         self._buffer = bytearray()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._received = time.monotonic()
         self._master, self._slave = os.openpty()
         tty.setraw(self._slave)  # no echo, no newline translation: bytes pass unchanged
         self.path = os.ttyname(self._slave)
@@ -254,10 +294,19 @@ class DxlEmulator:
         with self._lock:
             self._faults[servo_id] = _Fault(kind, times, delay_s)
 
+    def inject_position_offset(self, servo_id: int, ticks: int) -> None:
+        """The servo's encoder reads ``ticks`` off (a glitch): Present Position reports position + ticks."""
+        with self._lock:
+            servo = self.servos[servo_id]
+            servo.offset_ticks = int(ticks)
+            servo._sync_present()
+
     def clear_faults(self) -> None:
         with self._lock:
             self._faults.clear()
             self._disconnected.clear()
+            for servo in self.servos.values():
+                servo.offset_ticks = 0
 
     def set_hardware_error(self, servo_id: int, bits: int) -> None:
         """Latch Hardware Error Status bits; the shutdown bits turn torque off, as the firmware does."""
@@ -293,6 +342,13 @@ class DxlEmulator:
         with self._lock:
             return {i: s.torque_enabled for i, s in self.servos.items()}
 
+    def status(self) -> dict[int, dict[str, int | bool]]:
+        """Per servo: torque, present and goal position (ticks), Bus Watchdog register."""
+        with self._lock:
+            return {i: {"torque": s.torque_enabled, "present_position": s.get("present_position"),
+                        "goal_position": s.get("goal_position"), "bus_watchdog": s.get("bus_watchdog")}
+                    for i, s in self.servos.items()}
+
     # -- the bus ---------------------------------------------------------
     def _run(self) -> None:
         while not self._stop.is_set():
@@ -310,8 +366,11 @@ class DxlEmulator:
                 continue
             with self._lock:
                 self._advance()
+                self._received = time.monotonic()  # the bytes just read count as arrived now
                 while self._parse_one():
                     pass
+                for servo in self.servos.values():  # after the packets that arrived: a late emulator trips nothing
+                    servo.check_watchdog(self._received)
                 self._flush()
 
     def _advance(self) -> None:
@@ -389,6 +448,7 @@ class DxlEmulator:
             servo = self.servos.get(sid)
             if servo is None or sid in self._disconnected:
                 continue
+            servo.last_instruction = self._received
             error, reply = self._unicast(servo, instruction, params)
             if servo_id != BROADCAST_ID or instruction == Instruction.PING:
                 self._reply(servo, error, reply)
@@ -422,6 +482,7 @@ class DxlEmulator:
         for k in range(0, len(data) - size + 1, size + 1):
             servo = self.servos.get(data[k])
             if servo is not None and data[k] not in self._disconnected:
+                servo.last_instruction = self._received
                 number = servo.write(address, data[k + 1 : k + 1 + size])
                 if number:
                     log.debug("servo %d rejected SYNC_WRITE at %d: error %d", data[k], address, number)
@@ -434,7 +495,117 @@ class DxlEmulator:
             servo = self.servos.get(sid)
             if servo is None or sid in self._disconnected:
                 continue
+            servo.last_instruction = self._received
             if address + size > CONTROL_TABLE_SIZE:
                 self._reply(servo, servo.status_error(ERR_ACCESS), b"")
             else:
                 self._reply(servo, servo.status_error(), bytes(servo.table[address : address + size]))
+
+
+# -- the emulator as a process of its own --------------------------------------------------------------------------
+def _parse_ids(text: str) -> list[int]:
+    """``0-15`` or ``0,1,5``."""
+    if "-" in text:
+        first, last = text.split("-", 1)
+        return list(range(int(first), int(last) + 1))
+    return [int(i) for i in text.split(",")]
+
+
+def _command(emu: DxlEmulator, line: str) -> dict:
+    """One command of :func:`main`'s standard input; its JSON reply."""
+    words = line.split()
+    name, args = (words[0], words[1:]) if words else ("", [])
+    try:
+        if name == "status" and not args:
+            return {"servos": emu.status()}
+        if name in ("disconnect", "reconnect") and len(args) == 1:
+            for sid in emu.servos if args[0] == "all" else [int(args[0])]:
+                getattr(emu, name)(sid)
+            return {"ok": True}
+        if name == "offset" and len(args) == 2:
+            emu.inject_position_offset(int(args[0]), int(args[1]))
+            return {"ok": True}
+    except (KeyError, ValueError) as exc:
+        return {"error": f"{line.strip()!r}: {exc!r}"}
+    return {"error": f"unknown command {line.strip()!r} (status | disconnect ID|all | reconnect ID|all | "
+                     "offset ID TICKS)"}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tacsplat.drivers.dxl_emulator``: servos on a pty until standard input ends.
+
+    Prints ``{"port": PATH}`` (the pty to connect to, e.g. ``mock_devices.servo_port`` of a rig file), then answers
+    each command line with one JSON line: ``status`` (per servo: torque, present and goal position, Bus Watchdog),
+    ``disconnect ID|all``, ``reconnect ID|all``, ``offset ID TICKS``.
+    """
+    parser = argparse.ArgumentParser(prog="python -m tacsplat.drivers.dxl_emulator", description=main.__doc__)
+    parser.add_argument("--ids", default="0-15", help="servo ids: FIRST-LAST or a comma-separated list")
+    parser.add_argument("--speed", type=float, default=4000.0, help="ticks per second toward the goal")
+    args = parser.parse_args(argv)
+    try:
+        with DxlEmulator(_parse_ids(args.ids), speed_ticks_per_s=args.speed) as emu:
+            print(json.dumps({"port": emu.path}), flush=True)
+            for line in sys.stdin:
+                print(json.dumps(_command(emu, line)), flush=True)
+    except KeyboardInterrupt:
+        return 130
+    return 0
+
+
+class EmulatorProcess:
+    """:func:`main` in a child process (``with EmulatorProcess() as emu:``): :attr:`path` is its port; leaving the
+    block kills it (the adapter unplugged)."""
+
+    def __init__(self, ids=range(16), speed_ticks_per_s: float = 4000.0):
+        self.ids = [int(i) for i in ids]
+        self.speed = float(speed_ticks_per_s)
+        self.proc: subprocess.Popen | None = None
+        self.path = ""
+
+    def __enter__(self) -> "EmulatorProcess":
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "tacsplat.drivers.dxl_emulator", "--ids", ",".join(map(str, self.ids)),
+             "--speed", str(self.speed)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        try:
+            self.path = self._reply()["port"]
+        except BaseException:
+            self.kill()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.kill()
+
+    def kill(self) -> None:
+        """End the process at once (SIGKILL: the pty closes as when the adapter is unplugged)."""
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+        if self.proc is not None:
+            self.proc.wait()
+            self.proc.stdin.close()
+            self.proc.stdout.close()
+
+    def _reply(self) -> dict:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"the servo emulator process ended (exit code {self.proc.wait()})")
+        return json.loads(line)
+
+    def send(self, command: str) -> dict:
+        """One command of :func:`main`; its reply (an ``error`` raises RuntimeError)."""
+        self.proc.stdin.write(command + "\n")
+        self.proc.stdin.flush()
+        reply = self._reply()
+        if "error" in reply:
+            raise RuntimeError(reply["error"])
+        return reply
+
+    def status(self) -> dict[int, dict]:
+        return {int(i): s for i, s in self.send("status")["servos"].items()}
+
+    def torque_enabled(self) -> dict[int, bool]:
+        return {i: s["torque"] for i, s in self.status().items()}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -57,7 +57,7 @@ REGISTERS = _registers(
     Register("position_d_gain", 80, 2),
     Register("position_i_gain", 82, 2),
     Register("position_p_gain", 84, 2),
-    Register("bus_watchdog", 98, 1),
+    Register("bus_watchdog", 98, 1, signed=True),  # 0 off, 1..127 on (unit BUS_WATCHDOG_UNIT_S), -1 tripped
     Register("goal_pwm", 100, 2, signed=True),
     Register("goal_current", 102, 2, signed=True),
     Register("goal_velocity", 104, 4, signed=True),
@@ -77,6 +77,10 @@ REGISTERS = _registers(
 
 CONTROL_TABLE_SIZE = 147  # bytes: addresses 0 .. 146
 EEPROM_END = 64  # addresses below this are EEPROM
+
+BUS_WATCHDOG_UNIT_S = 0.02  # Bus Watchdog (98): its unit, 20 ms; 1..127 arms it
+BUS_WATCHDOG_TRIPPED = -1  # the Bus Watchdog Error state: goal values are read-only until 0 is written
+GOAL_REGISTERS = ("goal_pwm", "goal_current", "goal_velocity", "goal_position")  # read-only while tripped
 
 TICKS_PER_REV = 4096  # X-series position resolution
 CENTRE_TICK = 2048  # the middle of one turn; motor angle 0 rad
