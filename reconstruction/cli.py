@@ -23,17 +23,18 @@ def register(cli) -> None:
     p.add_argument("scene", help="scene directory")
     p.add_argument("--out", required=True,
                    help="run directory to write: new or empty, or an earlier run with --resume or --overwrite")
-    p.add_argument("--variant", default=DEFAULT_VARIANT, choices=list(VARIANTS),
+    p.add_argument("--variant", default=None, choices=list(VARIANTS),
                    help="method variant: " + "; ".join(f"{v.name}: {v.description}" for v in VARIANTS.values())
-                   + ". Options given explicitly win over the variant's settings")
-    p.add_argument("--preset", default="default", choices=("default", "paper"),
+                   + f". Options given explicitly win over the variant's settings (default: {DEFAULT_VARIANT})")
+    p.add_argument("--preset", default=None, choices=("default", "paper"),
                    help="starting settings: default (tuned for few views on a CPU) or paper (the official code's "
                    "30k-step schedule, every step-based number scaled to --iterations); the variant and any option "
-                   "given apply on top")
+                   "given apply on top (default: default)")
     p.add_argument("--no-smoothness", action="store_true", help="no L_S and no depth render (same as --lambda-s 0)")
     p.add_argument("--resume", action="store_true",
-                   help="continue the run in --out from its last checkpoint (with its own settings; only "
-                   "--iterations may change)")
+                   help="continue the run in --out from its last checkpoint, on the scene it was trained on, with its "
+                   "own settings: an option given that differs from them is refused, except --iterations, which may "
+                   "raise the step count (not below the step reached)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the earlier run in --out (its files only; other files stay)")
     p.set_defaults(func=_reconstruct)
@@ -55,15 +56,15 @@ def _add_config_options(parser) -> None:
     parser.set_defaults(config_options=add_config_options(parser, TrainConfig))
 
 
-def config_from_args(args):
-    """The TrainConfig of `tacsplat reconstruct`'s options: the preset (scaled to --iterations), the variant's
-    fields, then every option given; a ConfigError naming the option out of range."""
+def config_from_args(args, iterations: int | None = None):
+    """The TrainConfig of `tacsplat reconstruct`'s options: the preset (scaled to ``iterations``, by default
+    --iterations), the variant's fields, then every option given; a ConfigError naming the option out of range."""
     from tacsplat.reconstruction.config import preset_config
     from tacsplat.reconstruction.options import apply_options, option_names
     from tacsplat.reconstruction.variants import get_variant
 
-    config = preset_config(args.preset, getattr(args, "cfg__iterations", None))
-    get_variant(args.variant, "--variant").apply(config)
+    config = preset_config(args.preset or "default", iterations or getattr(args, "cfg__iterations", None))
+    get_variant(args.variant or DEFAULT_VARIANT, "--variant").apply(config)
     apply_options(config, args, args.config_options)
     if args.no_smoothness:
         config.lambda_s = 0.0
@@ -75,6 +76,32 @@ def config_from_args(args):
     return config
 
 
+def refuse_changed_settings(args, recorded) -> None:
+    """With --resume: an option given whose value differs from the one the run in --out recorded (``recorded``)
+    is a ConfigError on --resume naming each such option and both values (--iterations aside: it may raise the
+    step count). --variant compares the variant and the fields it sets, --preset every setting."""
+    from tacsplat.reconstruction.config import changed_settings
+    from tacsplat.reconstruction.options import option_names
+
+    given = config_from_args(args, iterations=recorded.iterations)  # (a paper preset scaled as the run's was)
+    names = option_names(args.config_options)
+    fields = {".".join(o.path) for o in args.config_options if hasattr(args, o.dest)}
+    if args.no_smoothness:
+        fields.add("lambda_s")
+        names["lambda_s"] = "--no-smoothness"
+    if args.variant is not None:
+        fields |= set(VARIANTS[args.variant].overrides)
+    changes = [f"{names.get(path, path)} {before!r} in the run, {now!r} given"
+               for path, before, now in changed_settings(recorded, given, None if args.preset else fields)
+               if path != "iterations"]
+    if args.variant is not None and recorded.variant != given.variant:
+        changes.insert(0, f"--variant {recorded.variant} in the run, {given.variant} given")
+    if changes:
+        raise ConfigError("--resume", f"{args.out} was trained with other settings than this command line gives "
+                          f"({'; '.join(changes)}): a resumed run keeps its own settings (only --iterations may "
+                          "raise its step count); leave those options out, or train into a new --out")
+
+
 def _reconstruct(args) -> int:
     from tacsplat.reconstruction.trainer import TrainingInterrupted, reconstruct
 
@@ -82,7 +109,7 @@ def _reconstruct(args) -> int:
         config = config_from_args(args)
         metrics = reconstruct(args.scene, args.out, config, resume=args.resume, show_progress=True,
                               iterations_override=config.iterations if hasattr(args, "cfg__iterations") else None,
-                              overwrite=args.overwrite)
+                              overwrite=args.overwrite, check_resumed=lambda run: refuse_changed_settings(args, run))
     except TrainingInterrupted as stop:
         again = shlex.join(["tacsplat", "reconstruct", args.scene, "--out", args.out, "--resume"])
         print(f"{stop}; continue with:\n  {again}", file=sys.stderr)
@@ -94,11 +121,13 @@ def _reconstruct(args) -> int:
 
 def _evaluate(args) -> int:
     from tacsplat.datasets.outputs import claim_output_dir
+    from tacsplat.files import check_writable
     from tacsplat.reconstruction.evaluation import evaluate_run
     from tacsplat.reconstruction.run_dir import is_run_folder, run_checkpoint
 
     if not is_run_folder(Path(args.run)):
         run_checkpoint(args.run)  # refused before anything is written into what is not a run
+    check_writable(args.run)  # a read-only or full run folder: one error saying which, before the evaluation
     with claim_output_dir(args.run, "RUN"):
         metrics = evaluate_run(args.run, gt_path=args.gt_mesh, backend=args.backend)
     print(json.dumps({k: metrics[k] for k in ("variant", "cd", "psnr", "ssim", "num_gaussians")}, indent=2))

@@ -6,7 +6,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal, get_args
+from typing import Iterable, Literal, get_args
 
 import torch
 
@@ -195,9 +195,11 @@ class TrainConfig:
     @classmethod
     def from_json(cls, data: dict, source: str | Path | None = None) -> "TrainConfig":
         """The config of ``to_json`` (a run's ``config.json``; a field it lacks was written before the field existed:
-        see ``_BEFORE_THEY_EXISTED``); a ConfigError naming ``source`` if it is not one."""
+        see ``_BEFORE_THEY_EXISTED``; its ``scene``, the run's record of its scene, is not a setting); a ConfigError
+        naming ``source`` if it is not one."""
         try:
             data = {**_BEFORE_THEY_EXISTED, **data}
+            data.pop("scene", None)
             init = InitConfig(**{**_INIT_BEFORE_THEY_EXISTED, **data.pop("init", {})})
             densify = DensifyStrategy(**data.pop("densify", {}))
             if data.get("background") is not None:
@@ -209,6 +211,28 @@ class TrainConfig:
         if problem:
             raise ConfigError(*problem, source)
         return config
+
+
+def changed_settings(recorded: TrainConfig, now: TrainConfig, fields: Iterable[str] | None = None
+                     ) -> list[tuple[str, object, object]]:
+    """``(field, recorded value, value now)`` for each setting of ``fields`` (dotted paths such as
+    ``densify.max_gaussians``; None: every one) that differs, the settings of a mechanism both configs switch off
+    aside (:meth:`TrainConfig.unused_fields`)."""
+    unused = recorded.unused_fields() & now.unused_fields()
+    before, after = _flat(recorded.to_json()), _flat(now.to_json())
+    chosen = after if fields is None else [k for k in after if k in set(fields)]
+    return [(k, before.get(k), after[k]) for k in chosen if k not in unused and before.get(k) != after[k]]
+
+
+def _flat(settings: dict, prefix: str = "") -> dict:
+    """``{"densify.max_gaussians": ...}`` of nested settings."""
+    flat = {}
+    for key, value in settings.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
 
 
 # Fields a config.json written before they existed leaves out, with the value such a run trained with (where that

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from tacsplat.errors import SceneFormatError
+from tacsplat.files import atomic_write, storage_error
 from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.gaussians import Gaussians
@@ -338,7 +339,6 @@ def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | No
     """One PNG: top row rendered RGB | GT RGB | signed depth error (``_error_colour``, saturating at
     ``ERROR_SCALE`` radii), bottom row rendered depth | GT depth (shared colour scale) | where training cameras
     see the surface (``_seen_colour``); the third column is black where its input is missing."""
-    path.parent.mkdir(parents=True, exist_ok=True)
     valid = [d[d > 0] for d in (depth, gt_depth) if d is not None and (d > 0).any()]
     lo, hi = (min(v.min() for v in valid), max(v.max() for v in valid)) if valid else (0.0, 1.0)
     blank = np.zeros_like(gt_rgb, dtype=np.uint8)
@@ -355,7 +355,17 @@ def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | No
         [_depth_colour(depth, lo, hi), blank if gt_depth is None else _depth_colour(gt_depth, lo, hi), coverage],
         axis=1,
     )
-    cv2.imwrite(str(path), cv2.cvtColor(np.concatenate([top, bottom], axis=0), cv2.COLOR_RGB2BGR))
+    write_png(path, np.concatenate([top, bottom], axis=0))
+
+
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    """An RGB uint8 image [H, W, 3] as a PNG at ``path`` (its folder created), replaced atomically: a full or
+    read-only disk is a StorageError naming the file (``cv2.imwrite`` would only return False)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise storage_error(exc, path.parent) from None
+    atomic_write(path, cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))[1].tobytes())
 
 
 def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
@@ -412,7 +422,7 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
         "settings": config.to_json(),
     }
     result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
-    (Path(run_dir) / "metrics.json").write_text(json.dumps(result, indent=2, default=_json_default))
+    atomic_write(Path(run_dir) / "metrics.json", json.dumps(result, indent=2, default=_json_default).encode())
     return result
 
 
@@ -420,7 +430,7 @@ def _save_equirect(radiance: np.ndarray, path: Path, scale: int) -> None:
     """An equirectangular map [H, 2H, 3] of radiance (>= 0) as a PNG: tone-mapped x / (1 + x), ``scale`` x upscaled."""
     image = (255 * radiance / (1.0 + radiance)).round().astype(np.uint8)
     image = cv2.resize(image, (image.shape[1] * scale, image.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
-    cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    write_png(path, image)
 
 
 def save_environment(environment, path: Path) -> None:

@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from plyfile import PlyData, PlyElement, PlyParseError
 
-from tacsplat.errors import SceneFormatError
+from tacsplat.errors import InvalidInputError, SceneFormatError
+from tacsplat.files import atomic_file, storage_error
 from tacsplat.reconstruction.gaussians import MAX_SH_DEGREE, Gaussians, num_sh_bases
 
 INRIA_REST = num_sh_bases(MAX_SH_DEGREE) - 1  # 15 higher-band coefficients per channel
@@ -39,18 +40,15 @@ def touch_sidecar_path(ply_path: str | Path) -> Path:
     return ply_path.with_name(ply_path.stem + ".touch.npy")
 
 
-def _replace(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``<path>.tmp`` and rename it over ``path`` (the run directory's temporary names)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
-
-
 def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
     """Write ``gaussians`` to ``path`` and their touch flags to :func:`touch_sidecar_path` (parent directories
-    created, each file replaced atomically); returns the PLY's path."""
+    created); returns the PLY's path. Both files are written in full before either replaces its old one, so a full
+    or read-only disk (a StorageError naming the file) leaves the old pair as it was and no temporary file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise storage_error(exc, path.parent) from None
     p = {k: v.detach().cpu().float() for k, v in gaussians.params.items()}
     n = len(gaussians)
     rest = torch.zeros(n, INRIA_REST, 3)
@@ -65,8 +63,11 @@ def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
     PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(ply)
     flags = io.BytesIO()
     np.save(flags, gaussians.from_touch.cpu().numpy().astype(bool))
-    _replace(touch_sidecar_path(path), flags.getvalue())
-    _replace(path, ply.getvalue())
+    with atomic_file(touch_sidecar_path(path)) as sidecar:
+        sidecar.write(flags.getvalue())
+        sidecar.flush()  # a full disk fails here, before the PLY replaces its old one
+        with atomic_file(path) as f:
+            f.write(ply.getvalue())
     return path
 
 
@@ -131,4 +132,8 @@ def load_ply(path: str | Path) -> Gaussians:
         "sh0": cols("f_dc_0", "f_dc_1", "f_dc_2").reshape(n, 1, 3),
         "shN": shN[:, : num_sh_bases(degree) - 1].contiguous(),
     }
-    return Gaussians(params, _touch_flags(path, vertex, n), degree)
+    flags = _touch_flags(path, vertex, n)
+    try:
+        return Gaussians(params, flags, degree)
+    except InvalidInputError as exc:  # NaN or infinite values: the file is at fault
+        raise SceneFormatError(path, "vertex", str(exc)) from None

@@ -13,7 +13,10 @@ else's and is never deleted.
 from __future__ import annotations
 
 import csv
+import hashlib
+import io
 import json
+import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,17 +24,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.errors import ConfigError, InvalidInputError, SceneFormatError
+from tacsplat.files import atomic_write, default_temp
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.shading import LIT, SPECULAR, DiffuseLight, EnvironmentMap, Look
 
-# A run directory's own files (anything else in it is someone else's and is never deleted).
-RUN_FILES = ("config.json", "checkpoint.pt", "checkpoint.pt.tmp", "splat.ply", "splat.ply.tmp", "splat.touch.npy",
-             "splat.touch.npy.tmp", "progress.csv",
-             "progress.csv.tmp", "error_vs_time.png", "metrics.json", "environment.png", "light.png")
+log = logging.getLogger(__name__)
+
+# A run directory's own files, each with the temporary name it is written to first (tacsplat.files); anything else
+# in it is someone else's and is never deleted.
+_OUTPUTS = ("config.json", "checkpoint.pt", "splat.ply", "splat.touch.npy", "progress.csv", "error_vs_time.png",
+            "metrics.json", "environment.png", "light.png")
+RUN_FILES = _OUTPUTS + tuple(default_temp(Path(name)).name for name in _OUTPUTS)
 RENDERS = "renders"
-RENDER_FILE = re.compile(r"view_\d{4,}\.png")
+RENDER_FILE = re.compile(r"view_\d{4,}\.png(\.tmp)?")
 
 PROGRESS_COLUMNS = (
     "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "normals", "num_gaussians",
@@ -88,8 +95,16 @@ def load_checkpoint(path: Path) -> LoadedRun:
     if config.appearance in LIT:
         look.light = DiffuseLight()
         look.light.load_state_dict(ckpt["light"])
-    return LoadedRun(Path(ckpt["scene_path"]), config, Gaussians.from_state_dict(ckpt["gaussians"]),
-                     int(ckpt["step"]), float(ckpt["train_seconds"]), look)
+    return LoadedRun(Path(ckpt["scene_path"]), config, checkpoint_gaussians(ckpt, path), int(ckpt["step"]),
+                     float(ckpt["train_seconds"]), look)
+
+
+def checkpoint_gaussians(ckpt: dict, path: Path) -> Gaussians:
+    """The Gaussians of a checkpoint read from ``path``; a SceneFormatError naming it if they are invalid (NaN)."""
+    try:
+        return Gaussians.from_state_dict(ckpt["gaussians"])
+    except InvalidInputError as exc:
+        raise SceneFormatError(path, "gaussians", str(exc)) from None
 
 
 def load_run(run_dir: Path) -> LoadedRun:
@@ -97,21 +112,28 @@ def load_run(run_dir: Path) -> LoadedRun:
     return load_checkpoint(run_checkpoint(run_dir))
 
 
-def cut_progress(path: Path, step: int) -> None:
+def write_progress(path: Path, rows: list[dict]) -> None:
+    """Write ``progress.csv`` (``PROGRESS_COLUMNS``, one row per dict; a column a row lacks stays empty), replacing
+    the old file whole: a full disk leaves the old one (a StorageError naming it)."""
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, PROGRESS_COLUMNS, restval="", extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write(path, text.getvalue().encode())
+
+
+def cut_progress(path: Path, step: int) -> list[dict]:
     """Keep the rows of ``progress.csv`` up to ``step`` (a resumed checkpoint's): later ones are redone. The file
     is rewritten with today's columns, each kept row's values under their own names (a column an older version
-    did not write stays empty; such a version summed the albedo smoothness into ``smoothness``)."""
+    did not write stays empty; such a version summed the albedo smoothness into ``smoothness``); returns the rows
+    kept."""
     rows = []
     if path.is_file():
         with path.open(newline="") as fh:
             rows = list(csv.DictReader(fh))
     kept = [r for r in rows if (r.get("iteration") or "").isdigit() and int(r["iteration"]) <= step]
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, PROGRESS_COLUMNS, restval="", extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(kept)
-    tmp.replace(path)
+    write_progress(path, kept)
+    return kept
 
 
 def read_progress(path: Path) -> dict[str, np.ndarray]:
@@ -146,8 +168,10 @@ def plot_error_vs_time(progress_path: Path, png_path: Path) -> None:
     ax_cd.set_title("geometry error")
     ax_psnr.set_title("image error")
     fig.tight_layout()
-    fig.savefig(png_path, dpi=100)
+    png = io.BytesIO()
+    fig.savefig(png, format="png", dpi=100)
     plt.close(fig)
+    atomic_write(png_path, png.getvalue())
 
 
 def read_json(path: Path) -> dict:
@@ -158,6 +182,62 @@ def read_json(path: Path) -> dict:
     if not isinstance(data, dict):
         raise ConfigError("config", "expected a JSON object", path)
     return data
+
+
+def scene_record(scene) -> dict:
+    """What a run records of its scene in ``config.json``: its absolute ``path`` and ``sha256``, a hash of what
+    training reads (``transforms.json`` and ``touches.json`` byte for byte, and the name and size of every image,
+    mask and touch file they name): a scene moved elsewhere keeps its hash, another or a changed scene has its
+    own."""
+    root = Path(scene.path)
+    digest = hashlib.sha256()
+    for name in ("transforms.json", "touches.json"):
+        index = root / name
+        digest.update(name.encode() + b"\0" + (index.read_bytes() if index.is_file() else b"") + b"\0")
+    names = {f.file_path for f in scene.frames} | {f.mask_path for f in scene.frames if f.mask_path}
+    for name in sorted(names | {t.depth_file for t in scene.touches}):
+        size = (root / name).stat().st_size if (root / name).is_file() else -1
+        digest.update(f"{name}\0{size}\0".encode())
+    return {"path": str(root.resolve()), "sha256": digest.hexdigest()}
+
+
+def write_run_config(out: Path, config: TrainConfig, scene: dict) -> None:
+    """Write ``config.json``: the run's settings and its :func:`scene_record` (``scene``); not rewritten when
+    unchanged."""
+    path = out / "config.json"
+    text = json.dumps({**config.to_json(), "scene": scene}, indent=2)
+    if not (path.is_file() and path.read_text() == text):
+        atomic_write(path, text.encode())
+
+
+def read_run_config(out: Path) -> tuple[TrainConfig, dict | None]:
+    """A run's settings and its :func:`scene_record` (None for a run from before scenes were recorded)."""
+    path = out / "config.json"
+    data = read_json(path)
+    scene = data.get("scene")
+    return TrainConfig.from_json(data, path), scene if isinstance(scene, dict) else None
+
+
+def check_resumed_scene(out: Path, recorded: dict | None, scene) -> None:
+    """Refuse to resume the run in ``out`` on another scene than the one it recorded (or on that scene changed):
+    a ConfigError on ``--resume`` naming both. The same content at another path (a scene moved) resumes."""
+    if recorded is None:
+        return  # a run from before scenes were recorded: nothing to compare
+    now = scene_record(scene)
+    if recorded.get("sha256") == now["sha256"]:
+        if recorded.get("path") != now["path"]:
+            log.info("%s: its scene moved from %s to %s (same content): resuming", out, recorded.get("path"),
+                     now["path"])
+        return
+    then = f"{recorded.get('path')} (content {str(recorded.get('sha256'))[:12]})"
+    given = f"{now['path']} (content {now['sha256'][:12]})"
+    if recorded.get("path") == now["path"]:
+        what = f"its scene {now['path']} has changed since (content {str(recorded.get('sha256'))[:12]} then, " \
+               f"{now['sha256'][:12]} now: other frames, poses, images or touches)"
+    else:
+        what = f"it was trained on the scene {then}, not on {given}"
+    raise ConfigError("--resume", f"{out} cannot continue on this scene: {what}; resume it with the scene it was "
+                      "trained on, or train this one into a new --out")
 
 
 def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> None:

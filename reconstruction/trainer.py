@@ -16,25 +16,27 @@ folder; an earlier run only with ``resume`` or ``overwrite``, and never a
 folder of other files), holds its lock to the end, and trains. SIGINT and
 SIGTERM stop training after the step in progress, with a checkpoint
 (:class:`TrainingInterrupted`); a resume continues from the checkpoint, with
-``progress.csv`` cut back to it.
+``progress.csv`` cut back to it. Every file of the run directory is written
+through :mod:`tacsplat.files` (whole, then renamed over the old one).
 """
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
+import io
 import logging
 import signal
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
 
 from tacsplat.progress import progress_bar
-from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.errors import ConfigError, SceneFormatError, UsageError
+from tacsplat.files import atomic_write, check_writable
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
@@ -53,14 +55,18 @@ from tacsplat.reconstruction.initialization import (
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction import shading
 from tacsplat.reconstruction.run_dir import (
-    PROGRESS_COLUMNS,
+    check_resumed_scene,
     check_run_folder,
+    checkpoint_gaussians,
     cut_progress,
     plot_error_vs_time,
     read_checkpoint,
-    read_json,
+    read_run_config,
     remove_run_files,
     run_checkpoint,
+    scene_record,
+    write_progress,
+    write_run_config,
 )
 from tacsplat.reconstruction.views import background_image, camera_tensors, fit_backdrop, scene_at, training_frames
 
@@ -152,6 +158,8 @@ class Trainer:
         self.light = shading.DiffuseLight(device=dev) if config.appearance in shading.LIT else None
         self.look = shading.Look(config.appearance, self.environment, self.light, config.depth_render)
         self.splat: Gaussians | None = None  # splat.ply's Gaussians: the final ones, shading baked (run() sets it)
+        self.scene_record = scene_record(scene)  # what config.json records of the scene
+        self.progress: list[dict] = []  # progress.csv's rows, rewritten whole with each new one
         backgrounds = [background_image(im, config.background) for im in images]
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
         self.backdrop_pixels: list[np.ndarray | None] = [
@@ -400,7 +408,8 @@ class Trainer:
 
     # ------------------------------------------------------------------ progress, checkpoints
 
-    def _progress_row(self, writer) -> tuple[float, float]:
+    def _progress_row(self) -> tuple[float, float]:
+        """Evaluate on the held-out views and add a row to ``progress.csv``; returns (PSNR, CD)."""
         cfg = self.config
         psnr_value, cd_value, cd_paper = float("nan"), float("nan"), float("nan")
         if self.test_frames:
@@ -418,7 +427,8 @@ class Trainer:
         row = {"iteration": self.step, "seconds": f"{self.train_seconds:.3f}", "num_gaussians": len(self.gaussians),
                "psnr": f"{psnr_value:.4f}", "cd": f"{cd_value:.6g}", "cd_paper": f"{cd_paper:.6g}",
                **{k: f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS}}
-        writer.writerow([row[column] for column in PROGRESS_COLUMNS])
+        self.progress.append(row)
+        write_progress(self.out / "progress.csv", self.progress)
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)
         self._sum_count = 0
         return psnr_value, cd_value
@@ -444,19 +454,20 @@ class Trainer:
             "environment": None if self.environment is None else self.environment.state_dict(),
             "light": None if self.light is None else self.light.state_dict(),
         }
-        tmp = self.out / "checkpoint.pt.tmp"
-        torch.save(state, tmp)
-        tmp.replace(self.out / "checkpoint.pt")
+        data = io.BytesIO()  # (torch.save into the file itself fails a full disk with its own RuntimeError)
+        torch.save(state, data)
+        atomic_write(self.out / "checkpoint.pt", data.getbuffer())
 
     def load_checkpoint(self) -> None:
-        ckpt = read_checkpoint(run_checkpoint(self.out))
+        path = run_checkpoint(self.out)
+        ckpt = read_checkpoint(path)
         saved_on = ckpt.get("device", "cpu")
         if saved_on != self.device.type:
             raise ConfigError("--resume", f"{self.out} was trained on {saved_on} and this run would continue on "
                               f"{self.device.type}: resume on the same kind of device (--device {saved_on})")
         self.step = int(ckpt["step"])
         self.train_seconds = float(ckpt["train_seconds"])
-        self.gaussians = Gaussians.from_state_dict(ckpt["gaussians"]).to(self.device)
+        self.gaussians = checkpoint_gaussians(ckpt, path).to(self.device)
         if self.environment is not None:
             self.environment.load_state_dict(ckpt["environment"])
         if self.light is not None:
@@ -519,44 +530,43 @@ class Trainer:
         progress_path = self.out / "progress.csv"
         if resume:
             self.load_checkpoint()
-            cut_progress(progress_path, self.step)
-            log.info("resuming %s at step %d", self.out, self.step)
+            if self.step > cfg.iterations:
+                raise UsageError("--iterations", f"{self.out} has reached step {self.step}: to resume it, it must be "
+                                 f"{self.step} or more, got {cfg.iterations}")
+            write_run_config(self.out, cfg, self.scene_record)  # (a new step count or scene path: one record)
+            self.progress = cut_progress(progress_path, self.step)
+            log.info("resuming %s at step %d of %d", self.out, self.step, cfg.iterations)
         else:
-            (self.out / "config.json").write_text(json.dumps(cfg.to_json(), indent=2))
+            write_run_config(self.out, cfg, self.scene_record)
             started = time.perf_counter()
             self.initialize()
             self.train_seconds = time.perf_counter() - started
-            with progress_path.open("w", newline="") as fh:
-                csv.writer(fh).writerow(PROGRESS_COLUMNS)
-                self._progress_row(csv.writer(fh))
+            self._progress_row()
             self._last_eval = (self.step, self.train_seconds)
         bar = progress_bar(total=cfg.iterations, initial=self.step, enabled=show_progress, desc="train", unit="it")
-        with progress_path.open("a", newline="") as fh:
-            writer = csv.writer(fh)
-            while self.step < cfg.iterations and stop.signum is None:
-                started = time.perf_counter()
-                terms = self.train_step()
-                self.train_seconds += time.perf_counter() - started
-                for k in LOSS_TERMS:
-                    self._sums[k] = self._sums[k] + terms[k]
-                self._sum_count += 1
-                bar.update(1)
-                if self.step % POSTFIX_EVERY == 0:
-                    bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians), refresh=False)
-                done = self.step >= cfg.iterations
-                if (
-                    done
-                    or self.step - self._last_eval[0] >= cfg.eval_every_iters
-                    or self.train_seconds - self._last_eval[1] >= cfg.eval_every_seconds
-                ):
-                    self.train_seconds += self._wait_for_device()  # queued steps are training time
-                    psnr_value, cd_value = self._progress_row(writer)
-                    fh.flush()
-                    self._last_eval = (self.step, self.train_seconds)
-                    bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians),
-                                    psnr=f"{psnr_value:.2f}", cd=f"{cd_value:.4g}")  # fmt: skip
-                if done or self.step % cfg.checkpoint_every == 0:
-                    self.save_checkpoint()
+        while self.step < cfg.iterations and stop.signum is None:
+            started = time.perf_counter()
+            terms = self.train_step()
+            self.train_seconds += time.perf_counter() - started
+            for k in LOSS_TERMS:
+                self._sums[k] = self._sums[k] + terms[k]
+            self._sum_count += 1
+            bar.update(1)
+            if self.step % POSTFIX_EVERY == 0:
+                bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians), refresh=False)
+            done = self.step >= cfg.iterations
+            if (
+                done
+                or self.step - self._last_eval[0] >= cfg.eval_every_iters
+                or self.train_seconds - self._last_eval[1] >= cfg.eval_every_seconds
+            ):
+                self.train_seconds += self._wait_for_device()  # queued steps are training time
+                psnr_value, cd_value = self._progress_row()
+                self._last_eval = (self.step, self.train_seconds)
+                bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians),
+                                psnr=f"{psnr_value:.2f}", cd=f"{cd_value:.4g}")  # fmt: skip
+            if done or self.step % cfg.checkpoint_every == 0:
+                self.save_checkpoint()
         bar.close()
         if stop.signum is not None:
             self.save_checkpoint()
@@ -568,15 +578,23 @@ class Trainer:
 
 
 def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig, resume: bool = False,
-                show_progress: bool = True, iterations_override: int | None = None, overwrite: bool = False) -> dict:
+                show_progress: bool = True, iterations_override: int | None = None, overwrite: bool = False,
+                check_resumed: Callable[[TrainConfig], None] | None = None) -> dict:
     """Train on a scene directory and evaluate the result; returns the metrics written to ``metrics.json``.
 
     ``out_dir`` must be new or empty, or hold an earlier run: continued with
-    ``resume`` (from its checkpoint, with its own ``config.json``; only the
-    iteration count may change, with ``iterations_override``) or replaced with
-    ``overwrite`` (its files only). It is locked for the whole job. A folder of
-    other files, a run without ``resume`` or ``overwrite``, or ``resume``
-    without a checkpoint is a ConfigError, before anything is written.
+    ``resume`` (from its checkpoint, with its own ``config.json``, on the scene
+    it recorded; only the iteration count may change, with
+    ``iterations_override``, not below the step reached, and config.json then
+    records it; ``check_resumed(recorded config)``, where given, may refuse
+    it first) or replaced with ``overwrite`` (its files only). It is locked
+    for the whole job. A folder of other files, a run without ``resume`` or
+    ``overwrite``, ``resume`` without a checkpoint or on another scene, or a
+    folder that cannot take a file (read-only, full) is an error before any
+    training. Every file is replaced atomically: a disk that fills up stops the
+    job with a StorageError naming the file, and the files written before
+    (the last checkpoint) stay, so that ``resume`` continues once there is
+    space.
     """
     from tacsplat.datasets import Scene
     from tacsplat.datasets.outputs import claim_output_dir
@@ -588,10 +606,15 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
     config.torch_device()  # --device cuda without CUDA fails here, before anything is read or written
     check_run_folder(out_dir, resume, overwrite, locked=False)
     base = Scene.load(scene_path)
+    if out_dir.is_dir():
+        check_writable(out_dir)  # a read-only or full folder: one error saying which, before any training
     with claim_output_dir(out_dir, "--out"):
         check_run_folder(out_dir, resume, overwrite, locked=True)
         if resume:
-            config = TrainConfig.from_json(read_json(out_dir / "config.json"), out_dir / "config.json")
+            config, recorded_scene = read_run_config(out_dir)
+            check_resumed_scene(out_dir, recorded_scene, base)
+            if check_resumed is not None:
+                check_resumed(config)
             if iterations_override is not None:
                 config.iterations = iterations_override
                 config.validate({"iterations": "--iterations"})

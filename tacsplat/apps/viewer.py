@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from tacsplat.errors import ConfigError, TacsplatError, UsageError
+from tacsplat.files import atomic_write, check_writable
 
 log = logging.getLogger(__name__)
 
@@ -70,8 +71,10 @@ def _run(args) -> int:
     if not 0 <= args.port <= 65535:
         raise UsageError("--port", f"must be in [0, 65535], got {args.port}")
     export = Path(args.export) if args.export else None
-    if export is not None and not export.parent.is_dir():
-        raise ConfigError("--export", f"{export.parent} is not a folder")
+    if export is not None:
+        if not export.parent.is_dir():
+            raise ConfigError("--export", f"{export.parent} is not a folder")
+        check_writable(export.parent)  # a read-only or full folder is refused before the view is built
     path = Path(args.path)
     content = load_content(path)
     import viser
@@ -144,16 +147,12 @@ if (location.protocol === "file:") (function () {
 
 
 def write_export(server, path: Path) -> int:
-    """Write the server's scene as a self-contained HTML page (replacing ``path`` atomically); its size in bytes."""
+    """Write the server's scene as a self-contained HTML page (replacing ``path`` atomically; a full or read-only
+    disk is a StorageError naming it); its size in bytes."""
     page = server.get_scene_serializer().as_html()
     head = page.index("<head>") + len("<head>")
     html = (page[:head] + FILE_PAGE_WORKERS + page[head:]).encode()
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_bytes(html)
-        tmp.replace(path)
-    except OSError as exc:
-        raise ConfigError("--export", f"cannot write {path}: {exc.strerror}") from None
+    atomic_write(path, html)
     return len(html)
 
 

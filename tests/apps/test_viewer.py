@@ -139,6 +139,40 @@ def test_a_run_with_a_corrupt_splat_is_one_error(small_run, tmp_path, capsys, da
     _one_error_line(capsys, str(ply), "cannot read a 3DGS PLY")
 
 
+def test_a_run_whose_gaussians_hold_nan_is_one_error_naming_the_file(small_run, tmp_path, capsys):
+    from plyfile import PlyData, PlyElement
+
+    run = Path(shutil.copytree(small_run, tmp_path / "run"))
+    ply, checkpoint = run / "splat.ply", run / "checkpoint.pt"
+    vertex = PlyData.read(str(ply))["vertex"].data.copy()
+    vertex["x"][3] = np.nan
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(ply))
+    assert main(["view", str(run), "--export", str(tmp_path / "view.html")]) == 1
+    _one_error_line(capsys, str(ply), "means", "NaN")
+    ply.unlink()  # a run without its splat.ply: its checkpoint is shown
+    state = torch.load(checkpoint, weights_only=False)
+    state["gaussians"]["params"]["means"][3, 0] = float("nan")
+    torch.save(state, checkpoint)
+    assert main(["view", str(run), "--export", str(tmp_path / "view.html")]) == 1
+    _one_error_line(capsys, str(checkpoint), "means", "NaN")
+
+
+def test_an_export_to_a_full_or_read_only_disk_is_one_error(small_run, tmpfs, monkeypatch, capsys):
+    mount = tmpfs("1m")  # the page is several MB
+    page = mount.path / "view.html"
+    assert main(["view", str(small_run), "--export", str(page)]) == 1
+    _one_error_line(capsys, str(page), "the disk is full")
+    assert list(mount.path.iterdir()) == []  # no temporary file left
+
+    def no_view(*args):
+        raise AssertionError("the view was built for a folder that cannot take it")
+
+    monkeypatch.setattr(viewer, "build_view", no_view)
+    mount.read_only()
+    assert main(["view", str(small_run), "--export", str(page)]) == 1
+    _one_error_line(capsys, str(mount.path), "the file system is read-only")
+
+
 def test_a_report_without_finished_runs_is_one_error(tmp_path, capsys):
     (tmp_path / "runs" / "teapot" / "minimal" / "full-s0").mkdir(parents=True)
     assert main(["view", str(tmp_path)]) == 1

@@ -1,0 +1,134 @@
+"""`tacsplat reconstruct --resume` continues a run only as what it is: on the scene it was trained on (moved or
+not), with its own settings; --iterations may raise its step count, and then every record says the new one."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from tacsplat.cli import main
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from recon_synthetic import build_sphere_scene  # noqa: E402
+
+FAST = ["--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--no-init-sfm", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory):
+    """Two scenes of the sphere seen from other cameras, with other touches (A and B)."""
+    root = tmp_path_factory.mktemp("scenes")
+    return tuple(build_sphere_scene(root / name, size=24, train_views=3, test_views=1, seed=seed)
+                 for name, seed in (("a", 0), ("b", 1)))
+
+
+@pytest.fixture(scope="module")
+def trained(scenes, tmp_path_factory):
+    """A 3-step run of scene A (a copy: tests move it), copied by each test that changes it."""
+    root = tmp_path_factory.mktemp("trained")
+    scene = Path(shutil.copytree(scenes[0], root / "scene"))
+    assert main(["reconstruct", str(scene), "--out", str(root / "run"), "--iterations", "3", *FAST]) == 0
+    return root
+
+
+def _copy(trained: Path, tmp_path: Path) -> tuple[Path, Path]:
+    """(scene, run) copies of :func:`trained`'s: the scene as if moved since the run was trained on it."""
+    return (Path(shutil.copytree(trained / "scene", tmp_path / "scene")),
+            Path(shutil.copytree(trained / "run", tmp_path / "run")))
+
+
+def _one_error_line(capsys, *words, prefix: str = "error: ") -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(prefix) and "Traceback" not in err, err
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _resume(scene: Path, run: Path, *extra: str) -> int:
+    return main(["reconstruct", str(scene), "--out", str(run), *FAST, "--resume", *extra])
+
+
+# --- the scene ---------------------------------------------------------------------------------------------------
+
+
+def test_resume_on_another_scene_is_refused_naming_both(scenes, trained, tmp_path, capsys):
+    _, run = _copy(trained, tmp_path)
+    before = _files(run)
+    capsys.readouterr()
+    assert _resume(scenes[1], run, "--iterations", "6") == 1
+    _one_error_line(capsys, "--resume", str((trained / "scene").resolve()), str(scenes[1].resolve()))
+    assert _files(run) == before
+
+
+def test_a_scene_changed_in_place_is_refused(scenes, tmp_path, capsys):
+    scene, run = Path(shutil.copytree(scenes[0], tmp_path / "scene")), tmp_path / "run"
+    assert main(["reconstruct", str(scene), "--out", str(run), "--iterations", "2", *FAST]) == 0
+    shutil.rmtree(scene)
+    shutil.copytree(scenes[1], scene)  # the same folder now holds another capture
+    before = _files(run)
+    capsys.readouterr()
+    assert _resume(scene, run, "--iterations", "4") == 1
+    _one_error_line(capsys, "--resume", str(scene.resolve()), "has changed")
+    assert _files(run) == before
+
+
+def test_a_moved_scene_resumes_and_the_run_records_where_it_is_now(trained, tmp_path):
+    moved, run = _copy(trained, tmp_path)
+    assert _resume(moved, run, "--iterations", "4") == 0
+    assert json.loads((run / "config.json").read_text())["scene"]["path"] == str(moved.resolve())
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["scene_path"] == str(moved)
+
+
+# --- the settings ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("options, words", [
+    (["--lambda-t", "3"], ["--lambda-t", "0.5 in the run", "3.0 given"]),
+    (["--seed", "7"], ["--seed", "0 in the run", "7 given"]),
+    (["--lambda-backdrop", "1"], ["--lambda-backdrop", "0.1 in the run", "1.0 given"]),
+    (["--densify-max-gaussians", "10"], ["--densify-max-gaussians", "30000 in the run", "10 given"]),
+    (["--variant", "full"], ["--variant 3dgs+t+n+tn+sl+as+vc in the run, 3dgs+t given",  # (full --no-smoothness)
+                             "--appearance 'sh-lit' in the run, 'sh' given"]),
+    (["--preset", "paper"], ["--touch-top-k 8 in the run, 20 given"]),
+])
+def test_resume_refuses_a_setting_that_differs_from_the_runs(trained, tmp_path, capsys, options, words):
+    scene, run = _copy(trained, tmp_path)
+    before = _files(run)
+    capsys.readouterr()
+    assert _resume(scene, run, *options) == 1
+    _one_error_line(capsys, "--resume", str(run), *words)
+    assert _files(run) == before
+
+
+def test_resume_below_the_step_reached_is_refused(trained, tmp_path, capsys):
+    scene, run = _copy(trained, tmp_path)
+    before = _files(run)
+    capsys.readouterr()
+    assert _resume(scene, run, "--iterations", "2") == 2  # a usage error
+    _one_error_line(capsys, "--iterations", "step 3", "3 or more", "got 2", prefix="tacsplat reconstruct: error: ")
+    assert _files(run) == before
+
+
+def test_resume_with_more_iterations_continues_and_every_record_says_so(trained, tmp_path):
+    scene, run = _copy(trained, tmp_path)
+    same = ["--lambda-t", "0.5", "--seed", "0", "--variant", "full+n+tn+sl+as+vc"]  # the run's own: accepted
+    assert _resume(scene, run, "--iterations", "5", *same) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    checkpoint = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert json.loads((run / "config.json").read_text())["iterations"] == 5
+    assert metrics["iterations"] == metrics["settings"]["iterations"] == 5
+    assert checkpoint["step"] == checkpoint["config"]["iterations"] == 5
+    with (run / "progress.csv").open() as fh:
+        assert [int(r["iteration"]) for r in csv.DictReader(fh)][-1] == 5
