@@ -9,12 +9,14 @@ LEAP Hand API leaves to luck is done here on purpose:
 * the status error byte is decoded, and a hardware alert is resolved by reading
   the servo's Hardware Error Status (overload, overheating, input voltage,
   electrical shock, encoder);
+* a position reading farther outside its joint's limits than
+  ``reading_tolerance_rad`` (what no finger can reach: an encoder glitch, a
+  slipped horn) is a fault, not a pose;
 * any failure disables torque on every servo that still answers, records the
   fault (no further motion until a reconnect) and raises one :class:`ServoError`
   naming the servo, its joint, the instruction and the decoded error;
-* the context manager disables torque on exit, on exception and on SIGINT (a
-  Ctrl-C arriving mid-packet is deferred until the exchange completes, so the
-  port is never left half-used);
+  :attr:`DynamixelHand.torque_off_report` says which servos confirmed torque off
+  (at a fault, and again at close) and which did not;
 * connect holds the present pose: before torque comes on, each servo's goal is
   where it stands, or, for a joint standing just outside its limits, the nearest
   limit if that is at most ``connect_tolerance_rad`` away; a calibration (or a
@@ -24,14 +26,36 @@ LEAP Hand API leaves to luck is done here on purpose:
 * commands are checked (InvalidInputError before anything reaches the bus),
   clamped to the joint limits of the twin's model, and clamping is logged; a
   missing servo at connect time is a refusal to move.
+
+What leaves the hand safe when the process ends, by how it ends:
+
+* an exception, ``close()``, or SIGINT, SIGTERM, SIGHUP or SIGQUIT (the context
+  manager): torque off, confirmed servo by servo. A signal arriving mid-packet is
+  deferred until the exchange completes (the port is never left half-used), then
+  raised as :class:`SignalInterrupt` (a KeyboardInterrupt; exit code 128 +
+  signum), and one arriving while torque goes off waits until it is off;
+* any death of the process, SIGKILL included (``guard``): a guard process started
+  at connect holds a pipe from this one; when the pipe ends without the word that
+  the hand was closed, the guard opens the port itself and turns torque off,
+  confirming servo by servo;
+* a host crash, a hung process, or a guard that cannot run (``bus_watchdog_s``):
+  the servos' own Bus Watchdog, armed at connect and fed by a heartbeat thread
+  while torque is on. With no instruction packet for that long, each servo stops
+  where it stands and holds there, at its current limit, refusing new goals until
+  the next connect clears it. It does not turn torque off; the heartbeat reports
+  a tripped watchdog as a fault (a process that was stopped and continued).
 """
 
 from __future__ import annotations
 
+import argparse
 import atexit
 import logging
 import math
+import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -45,6 +69,8 @@ from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration
 from tacsplat.drivers.protocols import HandKinematics
 from tacsplat.drivers.dynamixel_table import (
     ALERT_BIT,
+    BUS_WATCHDOG_TRIPPED,
+    BUS_WATCHDOG_UNIT_S,
     REGISTERS,
     OperatingMode,
     decode_hardware_error,
@@ -79,12 +105,25 @@ COMM_RESULT_NAMES = {
 _STATE_ADDRESS = REGISTERS["present_current"].address
 _STATE_SIZE = REGISTERS["present_position"].address + 4 - _STATE_ADDRESS
 VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * np.pi / 60.0  # Present Velocity unit: 0.229 rpm
-MAX_CONNECT_TOLERANCE_RAD = 0.2
+MAX_TOLERANCE_RAD = 0.2  # the most connect_tolerance_rad and reading_tolerance_rad may be
+MAX_BUS_WATCHDOG_S = 127 * BUS_WATCHDOG_UNIT_S
+# The signals that ask a process to end: each leaves the hand with torque off (see the module docstring).
+END_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
+GUARD_CLOSED = b"closed\n"  # what the guard reads when the hand was closed: it then exits without a word
+
+
+class SignalInterrupt(KeyboardInterrupt):
+    """SIGINT, SIGTERM, SIGHUP or SIGQUIT asked the process to end (``signum``); a KeyboardInterrupt, so that
+    whatever stops on Ctrl-C stops on it too. A command that ends on it exits with 128 + signum."""
+
+    def __init__(self, signum: int):
+        self.signum = int(signum)
+        super().__init__(signal.Signals(self.signum).name)
 
 
 @dataclass(frozen=True)
 class DynamixelHandConfig:
-    """Servo settings written at connect, and the communication policy."""
+    """Servo settings written at connect, and the communication and safety policy."""
 
     operating_mode: int = OperatingMode.CURRENT_BASED_POSITION  # the LEAP Hand's mode: position with a current cap
     current_limit: int = 350  # Current Limit register units (XC330: 1 mA), LEAP's safe grip
@@ -95,15 +134,41 @@ class DynamixelHandConfig:
     min_packet_timeout_s: float = 0.05  # lower bound on the SDK's status-packet timeout (its own is ~34 ms)
     retries: int = 2  # extra attempts after a failed exchange, then raise
     drain_s: float = 0.1  # after a failed exchange: wait, then flush input, so late replies cannot be mistaken
-    handle_sigint: bool = True  # defer Ctrl-C to the end of the packet exchange, then raise KeyboardInterrupt
+    # SIGINT, SIGTERM, SIGHUP, SIGQUIT: deferred to the end of the packet exchange, then SignalInterrupt
+    handle_signals: bool = True
     # how far connect may move a joint that stands just outside its limits onto the nearest limit; farther is refused
     connect_tolerance_rad: float = math.radians(5.0)
+    # a reading farther outside its joint's limits is a fault (encoder glitch, slipped horn, wrong calibration), not
+    # a pose. At least connect_tolerance_rad: a joint that connect accepted reads up to that far out until it is
+    # on its limit; the controller's overshoot at a limit is a few ticks. 1500 ticks of glitch are 2.3 rad.
+    reading_tolerance_rad: float = math.radians(5.0)
+    # the servos' Bus Watchdog: with torque on and no instruction packet for this long, they stop and hold (0: off).
+    # Unit 20 ms, at most 2.54 s; at least twice the silence of a retried exchange, 2 (min_packet_timeout_s + drain_s)
+    # (the heartbeat waits for it), so that a retry never trips it.
+    bus_watchdog_s: float = 0.5
+    guard: bool = True  # a guard process turns torque off when this one dies without closing the hand (SIGKILL too)
 
     def __post_init__(self):
-        tol = self.connect_tolerance_rad
-        if not 0.0 <= tol <= MAX_CONNECT_TOLERANCE_RAD:  # also NaN
-            raise ConfigError("connect_tolerance_rad", f"must be in [0, {MAX_CONNECT_TOLERANCE_RAD}] rad (how far "
-                                                       f"connect may move a servo), got {tol!r}")
+        for key in ("connect_tolerance_rad", "reading_tolerance_rad"):
+            tol = getattr(self, key)
+            if not 0.0 <= tol <= MAX_TOLERANCE_RAD:  # also NaN
+                raise ConfigError(key, f"must be in [0, {MAX_TOLERANCE_RAD}] rad (how far outside its limits a joint "
+                                       f"may be), got {tol!r}")
+        if self.reading_tolerance_rad < self.connect_tolerance_rad:
+            raise ConfigError("reading_tolerance_rad", f"must be at least connect_tolerance_rad "
+                              f"({self.connect_tolerance_rad:g}): a joint connect accepted reads that far out, got "
+                              f"{self.reading_tolerance_rad:g}")
+        shortest = 2 * (self.min_packet_timeout_s + self.drain_s)
+        wd = self.bus_watchdog_s
+        if wd != 0 and not (shortest <= wd <= MAX_BUS_WATCHDOG_S and self.bus_watchdog_units >= 1):  # also NaN
+            raise ConfigError("bus_watchdog_s", f"must be 0 (off) or in [{shortest:g}, {MAX_BUS_WATCHDOG_S:g}] s "
+                              f"(at least 2 (min_packet_timeout_s + drain_s): a retried exchange must not trip it), "
+                              f"got {wd!r}")
+
+    @property
+    def bus_watchdog_units(self) -> int:
+        """The Bus Watchdog register's value (20 ms units; 0 = off)."""
+        return round(self.bus_watchdog_s / BUS_WATCHDOG_UNIT_S) if math.isfinite(self.bus_watchdog_s) else -1
 
 
 @dataclass(frozen=True)
@@ -112,6 +177,29 @@ class HandState:
     velocities: np.ndarray  # [16] radians / second
     currents: np.ndarray  # [16] amperes (signed like the joint)
     timestamp: float  # time.time() when the sync read completed
+
+
+@dataclass(frozen=True)
+class TorqueOffReport:
+    """What one torque-off confirmed: ``servos`` every servo as ``"ID (joint)"``, ``unconfirmed`` those that did not
+    answer the write without error (their torque may still be on)."""
+
+    servos: tuple[str, ...]
+    unconfirmed: tuple[str, ...]
+
+    @property
+    def confirmed(self) -> bool:
+        """Every servo confirmed torque off."""
+        return not self.unconfirmed
+
+    def __str__(self) -> str:
+        n, bad = len(self.servos), self.unconfirmed
+        if not bad:
+            return f"torque off confirmed on all {n} servos"
+        if len(bad) == n:
+            return f"torque off NOT confirmed on any of the {n} servos: cut the servo power"
+        which = f"servo {bad[0]}" if len(bad) == 1 else f"servos {', '.join(bad)}"
+        return f"torque off NOT confirmed on {which}: cut the servo power (confirmed on the other {n - len(bad)})"
 
 
 class ServoError(HandError):
@@ -141,23 +229,48 @@ class _PortHandler(dxl.PortHandler):
         self.packet_timeout = max(self.packet_timeout, self.min_timeout_ms)
 
 
+def torque_off(ph: dxl.PacketHandler, port: dxl.PortHandler, ids: Sequence[int], device: str) -> list[int]:
+    """Broadcast torque off, then confirm servo by servo (two tries each); returns the ids that did not confirm."""
+    address = REGISTERS["torque_enable"].address
+    try:
+        port.is_using = False
+        port.clearPort()
+        ph.write1ByteTxOnly(port, dxl.BROADCAST_ID, address, 0)
+    except PORT_ERRORS as exc:
+        log.error("%s: broadcast torque off failed: %s", device, exc)
+    unconfirmed = []
+    for sid in ids:
+        for _ in range(2):
+            port.is_using = False
+            try:
+                result, error = ph.write1ByteTxRx(port, sid, address, 0)
+            except PORT_ERRORS:
+                result, error = dxl.COMM_TX_FAIL, 0
+            if result == dxl.COMM_SUCCESS and not error & ~ALERT_BIT:  # a latched alert does not refuse the write
+                break
+        else:
+            unconfirmed.append(sid)
+    return unconfirmed
+
+
 class _Exchange:
-    """One packet exchange: holds the bus lock and defers SIGINT until it ends."""
+    """One packet exchange (or a torque-off): holds the bus lock and, in the main thread, defers the ending signals
+    until it ends."""
 
     def __init__(self, hand: "DynamixelHand"):
         self.hand = hand
+        self.main = threading.current_thread() is threading.main_thread()
 
     def __enter__(self):
+        if self.main:
+            self.hand._depth += 1  # before waiting for the lock: a signal meanwhile is deferred too
         self.hand._lock.acquire()
-        self.hand._depth += 1
 
     def __exit__(self, *exc):
-        hand = self.hand
-        hand._depth -= 1
-        hand._lock.release()
-        if hand._depth == 0 and hand._sigint_pending:
-            hand._sigint_pending = False
-            raise KeyboardInterrupt
+        self.hand._lock.release()
+        if self.main:
+            self.hand._depth -= 1
+            self.hand._raise_pending_signal()
 
 
 class DynamixelHand:
@@ -196,11 +309,15 @@ class DynamixelHand:
         self._ph = dxl.PacketHandler(2.0)
         self._port: _PortHandler | None = None
         self._lock = threading.RLock()
-        self._depth = 0
-        self._sigint_pending = False
-        self._previous_sigint = None
+        self._depth = 0  # exchanges of the main thread in progress: its ending signals wait for them
+        self._pending_signal: int | None = None
+        self._previous_handlers: dict[int, object] = {}
         self._fault: str | None = None
         self._torque_on = False
+        self._heartbeat: threading.Thread | None = None
+        self._heartbeat_stop = threading.Event()
+        self._guard: subprocess.Popen | None = None
+        self.torque_off_report: TorqueOffReport | None = None  # the last torque-off's (a fault's, a close's)
 
     # -- Hand Protocol ----------------------------------------------------
     @property
@@ -220,7 +337,8 @@ class DynamixelHand:
         self.close()
 
     def connect(self) -> None:
-        """Open the port, ping every servo, configure them with torque off, hold the present pose, enable torque.
+        """Open the port, ping every servo, configure them with torque off, hold the present pose, arm the Bus
+        Watchdog, enable torque.
 
         On a faulted hand this reconnects from scratch: the goal is again where each servo stands now.
         """
@@ -238,12 +356,14 @@ class DynamixelHand:
             raise HandError(self.device, f"baud rate {self.baudrate} is not one the Dynamixel SDK supports")
         self._port = port
         self._fault = None
-        self._install_sigint()
+        self._install_signal_handlers()
         atexit.register(self.close)
         try:
+            self._start_guard()
             self._ping_all()
             for sid in self.ids:
                 self._write(sid, "torque_enable", 0)
+                self._write(sid, "bus_watchdog", 0)  # clears a tripped one: the goal registers take writes again
                 self._write(sid, "operating_mode", int(self.config.operating_mode))
                 self._write(sid, "current_limit", self.config.current_limit)
                 self._write(sid, "position_p_gain", self.config.position_p_gain)
@@ -253,19 +373,26 @@ class DynamixelHand:
             for sid, tick in zip(self.ids, self._holding_goal(self._read_raw_state()[0])):
                 self._write(sid, "goal_position", int(tick))
             for sid in self.ids:
+                self._write(sid, "bus_watchdog", self.config.bus_watchdog_units)  # watches once torque is on
+            for sid in self.ids:
                 self._write(sid, "torque_enable", 1)
             self._torque_on = True
+            self._start_heartbeat()
             log.info("%s: %d servos connected, torque on", self.device, len(self.ids))
         except BaseException:
             self.close()
             raise
 
     def read_state(self) -> HandState:
-        """Positions, velocities and currents of every joint by one sync read (retried, then raises)."""
+        """Positions, velocities and currents of every joint by one sync read (retried, then raises).
+
+        A position farther outside its joint's limits than ``reading_tolerance_rad`` is a fault (ServoError)."""
         ticks, vel, cur = self._read_raw_state()
         signs = self.calibration.signs
+        positions = self.calibration.radians_from_ticks(ticks)
+        self._check_reachable(ticks, positions)
         return HandState(
-            positions=self.calibration.radians_from_ticks(ticks),
+            positions=positions,
             velocities=signs * vel * VELOCITY_UNIT_RAD_S,
             currents=signs * cur * self.config.current_unit_a,
             timestamp=time.time(),
@@ -293,22 +420,38 @@ class DynamixelHand:
         """``{finger: T_hand_sensor [4, 4]}`` by forward kinematics of the twin's model at the present joints."""
         return self._kinematics.fingertip_poses(self.read_joint_positions())
 
+    def check(self) -> None:
+        """Raise the fault that stopped the hand (HandError), such as one the heartbeat found while nothing else used
+        the hand (a dead bus, a tripped Bus Watchdog); nothing when it is connected and well."""
+        self._check_usable()
+
     def close(self) -> None:
-        """Disable torque on every servo that answers and close the port (idempotent)."""
+        """Disable torque on every servo that answers (:attr:`torque_off_report` says which did) and close the port
+        (idempotent). An ending signal that arrives meanwhile is raised once torque is off."""
         if self._port is None:
             return
-        with self._lock:
-            unconfirmed = self._torque_off_all()
-            if unconfirmed:
-                log.error("%s: torque off not confirmed by servos %s", self.device, self._names(unconfirmed))
-            self._torque_on = False
-            try:
-                self._port.closePort()
-            except PORT_ERRORS as exc:
-                log.error("%s: closing the port: %s", self.device, exc)
-            self._port = None
-        self._restore_sigint()
-        atexit.unregister(self.close)
+        main = threading.current_thread() is threading.main_thread()
+        if main:
+            self._depth += 1  # nothing interrupts the way out
+        try:
+            self._stop_heartbeat()
+            with self._lock:
+                self._torque_off_all()
+                if not self.torque_off_report.confirmed:
+                    log.error("%s: %s", self.device, self.torque_off_report)
+                self._torque_on = False
+                try:
+                    self._port.closePort()
+                except PORT_ERRORS as exc:
+                    log.error("%s: closing the port: %s", self.device, exc)
+                self._port = None
+            self._release_guard()
+        finally:
+            if main:
+                self._depth -= 1
+            self._restore_signal_handlers()
+            atexit.unregister(self.close)
+        self._raise_pending_signal()
 
     # -- internals ---------------------------------------------------------
     def _names(self, ids: Sequence[int]) -> str:
@@ -368,6 +511,22 @@ class DynamixelHand:
                 f"{self._joint_names[i]} {q[i]:+.4f} -> {inside[i]:+.4f} rad" for i in nudged))
         return goal
 
+    def _check_reachable(self, ticks: np.ndarray, q: np.ndarray) -> None:
+        """A fault (torque off, ServoError) when a joint reads farther outside its limits than
+        ``reading_tolerance_rad``: no finger stands there, so the reading is wrong."""
+        tol = self.config.reading_tolerance_rad
+        lo, hi = self._joint_limits[:, 0], self._joint_limits[:, 1]
+        out = np.flatnonzero((q < lo - tol) | (q > hi + tol))
+        if out.size:
+            joints = "; ".join(
+                f"{self._joint_names[i]} (servo {self.ids[i]}) reads {q[i]:+.4f} rad (tick {ticks[i]}), "
+                f"{max(lo[i] - q[i], q[i] - hi[i]):.4f} rad outside its limits [{lo[i]:+.4f}, {hi[i]:+.4f}]"
+                for i in out
+            )
+            self._fail(self.ids[out[0]], "read present position",
+                       f"{joints}; farther than reading_tolerance_rad = {tol:.4f} rad, where the joint cannot be: "
+                       "an encoder fault, a slipped horn or a wrong calibration")
+
     def _clamp(self, q: np.ndarray, what: str) -> np.ndarray:
         lo, hi = self._joint_limits[:, 0], self._joint_limits[:, 1]
         clamped = np.clip(q, lo, hi)
@@ -379,23 +538,92 @@ class DynamixelHand:
             )
         return clamped
 
-    def _install_sigint(self) -> None:
-        if not self.config.handle_sigint or threading.current_thread() is not threading.main_thread():
+    # -- the ways out: signals, the guard process, the Bus Watchdog and its heartbeat
+    def _install_signal_handlers(self) -> None:
+        if not self.config.handle_signals or threading.current_thread() is not threading.main_thread():
             return
 
-        def on_sigint(signum, frame):
+        def on_signal(signum, frame):
             if self._depth:
-                self._sigint_pending = True  # let the packet exchange finish, then stop
+                self._pending_signal = self._pending_signal or signum  # let the exchange finish, then stop
             else:
-                raise KeyboardInterrupt
+                raise SignalInterrupt(signum)
 
-        self._previous_sigint = signal.signal(signal.SIGINT, on_sigint)
+        self._previous_handlers = {s: signal.signal(s, on_signal) for s in END_SIGNALS}
 
-    def _restore_sigint(self) -> None:
-        if self._previous_sigint is not None and threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, self._previous_sigint)
-            self._previous_sigint = None
+    def _restore_signal_handlers(self) -> None:
+        if self._previous_handlers and threading.current_thread() is threading.main_thread():
+            for s, handler in self._previous_handlers.items():  # (None: a handler installed outside Python)
+                signal.signal(s, signal.SIG_DFL if handler is None else handler)
+            self._previous_handlers = {}
 
+    def _raise_pending_signal(self) -> None:
+        if self._depth == 0 and self._pending_signal is not None:
+            signum, self._pending_signal = self._pending_signal, None
+            raise SignalInterrupt(signum)
+
+    def _start_guard(self) -> None:
+        """The guard process (``python -m tacsplat.drivers.dynamixel_hand``, :func:`guard_main`): in a session of its
+        own, so that the terminal's signals reach this process only; it outlives this one."""
+        if not self.config.guard:
+            return
+        servos = ",".join(f"{sid}:{self._joint_of[sid]}" for sid in self.ids)
+        try:
+            self._guard = subprocess.Popen(
+                [sys.executable, "-m", "tacsplat.drivers.dynamixel_hand", "--port", self.port_name, "--baudrate",
+                 str(self.baudrate), "--timeout-s", str(self.config.min_packet_timeout_s), "--drain-s",
+                 str(self.config.drain_s), "--servos", servos],
+                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, start_new_session=True)
+        except OSError as exc:
+            raise HandError(self.device, f"cannot start the guard process, which turns torque off should this "
+                                         f"process die: {exc}") from None
+
+    def _release_guard(self) -> None:
+        """Tell the guard that the hand was closed (it exits without a word); reaped by a thread, never waited for."""
+        guard, self._guard = self._guard, None
+        if guard is None:
+            return
+        try:
+            guard.stdin.write(GUARD_CLOSED)
+            guard.stdin.close()
+        except OSError:  # the guard is gone
+            pass
+        threading.Thread(target=guard.wait, name="hand-guard-reaper", daemon=True).start()
+
+    def _start_heartbeat(self) -> None:
+        if not self.config.bus_watchdog_units:
+            return
+        self._heartbeat_stop = threading.Event()
+        self._heartbeat = threading.Thread(target=self._feed_watchdog, args=(self._heartbeat_stop,),
+                                           name="hand-heartbeat", daemon=True)
+        self._heartbeat.start()
+
+    def _stop_heartbeat(self) -> None:
+        self._heartbeat_stop.set()
+        if self._heartbeat is not None and self._heartbeat is not threading.current_thread():
+            self._heartbeat.join()
+        self._heartbeat = None
+
+    def _feed_watchdog(self, stop: threading.Event) -> None:
+        """Heartbeat thread: every quarter of ``bus_watchdog_s``, read every servo's Bus Watchdog (an instruction
+        packet feeds it); a tripped one is a fault (torque off), which the next use of the hand raises."""
+        address = REGISTERS["bus_watchdog"].address
+        while not stop.wait(self.config.bus_watchdog_s / 4):
+            try:
+                with self._lock:
+                    if stop.is_set() or not self._torque_on or self._fault:
+                        continue
+                    values = self._sync_read(address, 1, "SYNC_READ bus_watchdog (heartbeat)")
+                    tripped = [sid for sid in self.ids if to_signed(values[sid][0], 1) == BUS_WATCHDOG_TRIPPED]
+                    if tripped:
+                        self._fail(tripped[0], "heartbeat", f"Bus Watchdog Error on servos {self._names(tripped)}: no "
+                                   f"instruction reached them for bus_watchdog_s = {self.config.bus_watchdog_s:g} s "
+                                   "(was this process stopped?), so they stopped and held")
+            except HandError as exc:  # recorded in self._fault, torque off
+                log.error("%s", exc)
+                return
+
+    # -- the bus -----------------------------------------------------------
     def _drain(self) -> None:
         """After a failed exchange: let late replies arrive, then discard them."""
         time.sleep(self.config.drain_s)
@@ -410,41 +638,39 @@ class DynamixelHand:
         return f"{COMM_RESULT_NAMES.get(result, result)} ({text})"
 
     def _attempt(self, instruction: str, exchange):
-        """Run ``exchange()`` (returns ``(failed_servo, comm_result)`` or None) with bounded retries."""
+        """Run ``exchange()`` (returns ``(failed_servo, comm_result)`` or None) with bounded retries, holding the bus
+        through the drains too (the heartbeat never takes a late reply for its own)."""
         attempts = self.config.retries + 1
-        for k in range(attempts):
-            try:
-                with _Exchange(self):
-                    failure = exchange()
-            except PORT_ERRORS as exc:
-                self._fail(None, instruction, f"serial port error: {exc} (adapter unplugged?)")
-            if failure is None:
-                return
-            servo_id, result = failure
-            log.warning("%s: %s, servo %s: %s (attempt %d of %d)", self.device, instruction,
-                        self._names([servo_id]), self._comm_text(result), k + 1, attempts)
-            self._drain()
-        self._fail(servo_id, instruction, f"{self._comm_text(result)} after {attempts} attempts",
-                   comm_result=result)
+        with self._lock:
+            if self._fault:  # faulted by the heartbeat meanwhile
+                raise HandError(self.device, f"hand is faulted, reconnect to continue: {self._fault}")
+            for k in range(attempts):
+                try:
+                    with _Exchange(self):
+                        failure = exchange()
+                except PORT_ERRORS as exc:
+                    self._fail(None, instruction, f"serial port error: {exc} (adapter unplugged?)")
+                if failure is None:
+                    return
+                servo_id, result = failure
+                log.warning("%s: %s, servo %s: %s (attempt %d of %d)", self.device, instruction,
+                            self._names([servo_id]), self._comm_text(result), k + 1, attempts)
+                self._drain()
+            self._fail(servo_id, instruction, f"{self._comm_text(result)} after {attempts} attempts",
+                       comm_result=result)
 
     def _fail(self, servo_id: int | None, instruction: str, detail: str, *, comm_result: int | None = None,
               status_error: int = 0, hardware_error: int = 0):
-        """Make the hand safe, record the fault and raise a ServoError."""
-        unconfirmed = self._torque_off_all()
-        self._torque_on = False
-        answered = [s for s in self.ids if s not in unconfirmed]
-        who = f"servo {self._names([servo_id])}" if servo_id is not None else f"port {self.port_name}"
-        if not unconfirmed:
-            safety = "torque disabled on all servos"
-        elif answered:
-            safety = f"torque disabled on servos {answered}, not confirmed by {self._names(unconfirmed)}"
-        else:
-            safety = "no servo confirmed torque off: cut the servo power"
-        message = f"{who}: {instruction} failed: {detail}; {safety}"
-        self._fault = message
-        raise ServoError(self.device, message, servo_id=servo_id, joint=self._joint_of.get(servo_id, None),
-                         instruction=instruction, comm_result=comm_result, status_error=status_error,
-                         hardware_error=hardware_error)
+        """Make the hand safe, record the fault and raise a ServoError (an ending signal meanwhile wins)."""
+        with _Exchange(self):
+            self._torque_off_all()
+            who = f"servo {self._names([servo_id])}" if servo_id is not None else f"port {self.port_name}"
+            message = f"{who}: {instruction} failed: {detail}; {self.torque_off_report}"
+            self._fault = message
+            error = ServoError(self.device, message, servo_id=servo_id, joint=self._joint_of.get(servo_id, None),
+                               instruction=instruction, comm_result=comm_result, status_error=status_error,
+                               hardware_error=hardware_error)
+        raise error
 
     def _status_fail(self, servo_id: int, instruction: str, error: int):
         """Raise for a status packet whose error byte is set, decoding a hardware alert."""
@@ -465,29 +691,13 @@ class DynamixelHand:
         self._fail(servo_id, instruction, f"status error 0x{error:02x} ({detail})", status_error=error,
                    hardware_error=hw)
 
-    def _torque_off_all(self) -> list[int]:
-        """Broadcast torque off, then confirm servo by servo; returns the ids that did not confirm."""
-        port, address = self._port, REGISTERS["torque_enable"].address
-        unconfirmed = []
-        with self._lock:
-            try:
-                port.is_using = False
-                port.clearPort()
-                self._ph.write1ByteTxOnly(port, dxl.BROADCAST_ID, address, 0)
-            except PORT_ERRORS as exc:
-                log.error("%s: broadcast torque off failed: %s", self.device, exc)
-            for sid in self.ids:
-                for _ in range(2):
-                    port.is_using = False
-                    try:
-                        result, _ = self._ph.write1ByteTxRx(port, sid, address, 0)
-                    except PORT_ERRORS:
-                        result = dxl.COMM_TX_FAIL
-                    if result == dxl.COMM_SUCCESS:
-                        break
-                else:
-                    unconfirmed.append(sid)
-        return unconfirmed
+    def _torque_off_all(self) -> None:
+        """Torque off on every servo, confirmed one by one, into :attr:`torque_off_report`."""
+        with _Exchange(self):
+            unconfirmed = torque_off(self._ph, self._port, self.ids, self.device)
+            self._torque_on = False
+            self.torque_off_report = TorqueOffReport(tuple(self._names([s]) for s in self.ids),
+                                                     tuple(self._names([s]) for s in unconfirmed))
 
     def _ping_all(self) -> None:
         missing, comm = [], {}
@@ -578,4 +788,56 @@ class DynamixelHand:
         self._attempt("SYNC_WRITE goal_position", exchange)
 
 
-__all__ = ["DynamixelHand", "DynamixelHandConfig", "HandState", "ServoError"]
+# -- the guard process ------------------------------------------------------------------------------------------
+def guard_main(argv: list[str] | None = None) -> int:
+    """``python -m tacsplat.drivers.dynamixel_hand --port ... --servos ID:JOINT,...``: the guard of one connected hand.
+
+    Started by :meth:`DynamixelHand.connect`; reads its standard input (a pipe from the hand's process) to the end.
+    ``closed`` there: the hand was closed, exit without a word. Anything else (the process died: its end of the pipe
+    closed with it, SIGKILL included): open the port, turn torque off on every servo, confirm each, and say so on
+    standard error. The ending signals are ignored: it ends when the hand's process does.
+    """
+    for s in END_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+    parser = argparse.ArgumentParser(prog="python -m tacsplat.drivers.dynamixel_hand", description=guard_main.__doc__)
+    parser.add_argument("--port", required=True)
+    parser.add_argument("--baudrate", type=int, required=True)
+    parser.add_argument("--timeout-s", type=float, required=True)
+    parser.add_argument("--drain-s", type=float, required=True)
+    parser.add_argument("--servos", required=True, help="ID:JOINT,...")
+    args = parser.parse_args(argv)
+    servos = [item.split(":", 1) for item in args.servos.split(",")]
+    ids = [int(sid) for sid, _ in servos]
+    parent = os.getppid()
+    if sys.stdin.buffer.read() == GUARD_CLOSED:
+        return 0
+    device = f"hand guard of {args.port}"
+    what = f"{device}: the process {parent} ended without closing the hand"
+    port = _PortHandler(args.port, 1000.0 * args.timeout_s)
+    try:
+        if not port.setBaudRate(args.baudrate):
+            raise ValueError(f"baud rate {args.baudrate} is not supported")
+    except (OSError, ValueError) as exc:
+        _say(f"{what}; cannot open the port ({exc}): torque off NOT confirmed on any of the {len(ids)} servos: "
+             "cut the servo power")
+        return 1
+    time.sleep(args.drain_s)  # status packets meant for the dead process arrive, and are dropped
+    unconfirmed = torque_off(dxl.PacketHandler(2.0), port, ids, device)
+    port.closePort()
+    names = {int(sid): f"{sid} ({joint})" for sid, joint in servos}
+    report = TorqueOffReport(tuple(names[s] for s in ids), tuple(names[s] for s in unconfirmed))
+    _say(f"{what}; {report}")
+    return 0 if report.confirmed else 1
+
+
+def _say(line: str) -> None:
+    try:
+        print(line, file=sys.stderr, flush=True)
+    except OSError:  # the terminal went with the process
+        pass
+
+
+__all__ = ["DynamixelHand", "DynamixelHandConfig", "HandState", "ServoError", "SignalInterrupt", "TorqueOffReport"]
+
+if __name__ == "__main__":
+    sys.exit(guard_main())

@@ -190,8 +190,8 @@ def test_servo_that_stops_answering_raises_and_disables_torque(emu, kinematics):
         with pytest.raises(ServoError, match=r"servo 9 \(ring_1\): SYNC_READ .*COMM_RX_TIMEOUT.* after 3 attempts") as exc:
             hand.read_joint_positions()  # never the previous values
         assert exc.value.instruction.startswith("SYNC_READ")
-        assert "torque disabled on servos [0, 1, 2, 3, 4, 5, 6, 7, 8, 10, 11, 12, 13, 14, 15], " \
-               "not confirmed by 9 (ring_1)" in str(exc.value)
+        assert "torque off NOT confirmed on servo 9 (ring_1): cut the servo power (confirmed on the other 15)" \
+            in str(exc.value)
         assert_all_torque_off(emu, except_ids=[9])
         with pytest.raises(HandError, match="faulted"):
             hand.command_joint_positions(np.zeros(16))
@@ -248,19 +248,32 @@ def test_exception_inside_the_block_leaves_torque_off(emu, kinematics):
     assert_all_torque_off(emu)
 
 
-def test_sigint_leaves_torque_off(emu, kinematics):
-    previous = signal.getsignal(signal.SIGINT)
-    reads = []
-    with pytest.raises(KeyboardInterrupt):
-        with make_hand(emu, kinematics) as hand:
-            threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGINT)).start()
-            deadline = time.monotonic() + 10
-            while time.monotonic() < deadline:  # a capture loop, interrupted mid-exchange or between
-                reads.append(hand.read_joint_positions())
-    assert len(reads) > 1
-    assert_all_torque_off(emu)
-    assert signal.getsignal(signal.SIGINT) is previous
-    assert hand._port is None  # port closed
+def _signal_reached_the_test(signum, frame):
+    raise RuntimeError(f"{signal.Signals(signum).name} reached the test: the hand did not handle it")
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT],
+                         ids=lambda s: signal.Signals(s).name)
+def test_an_ending_signal_leaves_torque_off(emu, kinematics, signum):
+    previous = {s: signal.signal(s, _signal_reached_the_test) for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)}
+    try:
+        before = {s: signal.getsignal(s) for s in (signal.SIGINT, *previous)}
+        reads = []
+        with pytest.raises(KeyboardInterrupt) as exc:
+            with make_hand(emu, kinematics) as hand:
+                threading.Timer(0.2, os.kill, (os.getpid(), signum)).start()
+                deadline = time.monotonic() + 10
+                while time.monotonic() < deadline:  # a capture loop, interrupted mid-exchange or between
+                    reads.append(hand.read_joint_positions())
+        assert exc.value.signum == signum  # SignalInterrupt: the exit code is 128 + signum
+        assert len(reads) > 1
+        assert_all_torque_off(emu)
+        assert hand.torque_off_report.confirmed
+        assert {s: signal.getsignal(s) for s in before} == before  # every handler restored
+        assert hand._port is None  # port closed
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def test_missing_port_is_a_clear_error(kinematics):
@@ -273,7 +286,8 @@ def test_unplugged_adapter_is_a_clear_error(emu, kinematics):
     hand = make_hand(emu, kinematics)
     hand.connect()
     emu.stop()  # the U2D2 disappears: the pty's other end is gone
-    with pytest.raises(HandError, match=r"port /dev/.*SYNC_READ.*serial port error.*no servo confirmed torque off"):
+    with pytest.raises(HandError, match=r"port /dev/.*SYNC_READ.*serial port error.*"
+                                        r"torque off NOT confirmed on any of the 16 servos: cut the servo power"):
         hand.read_joint_positions()
     hand.close()  # never raises: it is what runs on the way out
 
@@ -334,7 +348,7 @@ def test_calibration_that_maps_the_pose_outside_the_limits_is_refused_with_torqu
     message = str(exc.value)
     assert exc.value.joint == "index_0" and exc.value.servo_id == 0
     for expected in ("index_0", "offset_rad +1.0000", "sign +1", "index_1", "sign -1", str(path),
-                     "check the sign and offset_rad", "move the finger by hand", "torque disabled on all servos"):
+                     "check the sign and offset_rad", "move the finger by hand", "torque off confirmed on all 16 servos"):
         assert expected in message, (expected, message)
     assert_all_torque_off(emu)
     assert set(goal_ticks(emu).values()) == {2048}  # nothing written

@@ -1,0 +1,232 @@
+"""What stops the hand when its process cannot: the servos' Bus Watchdog (emulated as the firmware has it), the
+driver's heartbeat that feeds it and notices it trip, the guard process after SIGKILL; a reading no joint can
+reach is a fault; a signal during the torque-off waits for it. On the servo emulator over a pty (in this process,
+or in its own where the hand's process is killed or stopped)."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import dynamixel_sdk as dxl
+import numpy as np
+import pytest
+
+from tacsplat.drivers import dynamixel_hand
+from tacsplat.drivers.calibration import RAD_PER_TICK
+from tacsplat.drivers.dxl_emulator import ERR_DATA_RANGE, DxlEmulator, EmulatorProcess
+from tacsplat.drivers.dynamixel_hand import DynamixelHand, DynamixelHandConfig, ServoError, SignalInterrupt
+from tacsplat.drivers.dynamixel_table import REGISTERS
+from tacsplat.errors import ConfigError, HandError
+from tacsplat.sim.hand import HandKinematics
+
+pytestmark = pytest.mark.timeout(120)
+
+TEST_CONFIG = DynamixelHandConfig(min_packet_timeout_s=0.1, drain_s=0.1)  # as in test_dynamixel_hand.py
+WATCHDOG = REGISTERS["bus_watchdog"].address
+GOAL = REGISTERS["goal_position"].address
+TORQUE = REGISTERS["torque_enable"].address
+
+
+@pytest.fixture(scope="module")
+def kinematics():
+    return HandKinematics()
+
+
+@pytest.fixture
+def emu():
+    with DxlEmulator() as e:
+        yield e
+
+
+def poll(condition, what: str, timeout_s: float = 20.0):
+    """``condition()`` once it is true, polled until a generous deadline (a loaded machine)."""
+    deadline = time.monotonic() + timeout_s
+    while not (value := condition()):
+        assert time.monotonic() < deadline, f"not within {timeout_s} s: {what}"
+        time.sleep(0.02)
+    return value
+
+
+def sdk_port(path: str):
+    port, ph = dxl.PortHandler(path), dxl.PacketHandler(2.0)
+    assert port.setBaudRate(4_000_000)
+    return port, ph
+
+
+# -- the emulated Bus Watchdog ------------------------------------------------------------------------------------
+def test_emulated_bus_watchdog_stops_a_silent_servo_and_locks_its_goal(emu):
+    port, ph = sdk_port(emu.path)
+    try:
+        assert ph.write1ByteTxRx(port, 1, WATCHDOG, 200) == (dxl.COMM_SUCCESS, ERR_DATA_RANGE)  # -56: not 0..127
+        for sid in (1, 2):
+            assert ph.write1ByteTxRx(port, sid, WATCHDOG, 5) == (dxl.COMM_SUCCESS, 0)  # 100 ms
+            assert ph.write1ByteTxRx(port, sid, TORQUE, 1) == (dxl.COMM_SUCCESS, 0)
+        assert ph.write4ByteTxRx(port, 1, GOAL, 3500) == (dxl.COMM_SUCCESS, 0)  # 0.36 s away at 4000 ticks/s
+        # servo 2 hears from the host all along; servo 1 hears nothing more and trips while it is moving
+        poll(lambda: ph.ping(port, 2)[1] == dxl.COMM_SUCCESS and emu.servos[1].get("bus_watchdog") == -1,
+             "servo 1's watchdog trips")
+        assert emu.servos[2].get("bus_watchdog") == 5
+        held = emu.servos[1].get("present_position")
+        assert 2048 < held < 3500 and emu.servos[1].get("goal_position") == held  # stopped where it stood
+        time.sleep(0.1)
+        assert emu.servos[1].get("present_position") == held and emu.servos[1].torque_enabled  # holds, torque on
+        assert ph.write4ByteTxRx(port, 1, GOAL, 3500) == (dxl.COMM_SUCCESS, ERR_DATA_RANGE)  # goals are read-only
+        assert ph.write1ByteTxRx(port, 1, WATCHDOG, 5) == (dxl.COMM_SUCCESS, ERR_DATA_RANGE)  # cleared first ...
+        assert ph.write1ByteTxRx(port, 1, WATCHDOG, 0) == (dxl.COMM_SUCCESS, 0)  # ... by writing 0
+        assert ph.write4ByteTxRx(port, 1, GOAL, 3500) == (dxl.COMM_SUCCESS, 0)
+        poll(lambda: emu.servos[1].get("present_position") == 3500, "servo 1 moves again")
+    finally:
+        port.closePort()
+
+
+# -- the driver: watchdog armed and fed, cleared at connect, a trip noticed ------------------------------------
+def test_an_idle_hand_keeps_its_watchdog_fed(emu, kinematics):
+    with DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG) as hand:
+        assert {s.get("bus_watchdog") for s in emu.servos.values()} == {25}  # 0.5 s, armed at connect
+        time.sleep(4 * TEST_CONFIG.bus_watchdog_s)  # an operator thinking: no command, no read
+        assert {s.get("bus_watchdog") for s in emu.servos.values()} == {25}  # the heartbeat fed it
+        assert all(emu.torque_enabled().values())
+        hand.command_joint_positions(np.full(16, 0.2))
+        poll(lambda: np.allclose(hand.read_joint_positions(), 0.2, atol=RAD_PER_TICK), "the hand moves")
+    assert not any(emu.torque_enabled().values())
+
+
+def test_connect_clears_the_watchdog_a_crashed_process_tripped(emu, kinematics):
+    for servo in emu.servos.values():  # what a host crash leaves: torque on, watchdog tripped, goals locked
+        servo.set("torque_enable", 1)
+        servo.set("bus_watchdog", -1)
+    with DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG) as hand:
+        hand.command_joint_positions(np.full(16, 0.2))
+        poll(lambda: np.allclose(hand.read_joint_positions(), 0.2, atol=RAD_PER_TICK), "the hand moves")
+
+
+def test_watchdog_and_tolerance_settings_are_checked():
+    assert DynamixelHandConfig().bus_watchdog_units == 25  # 0.5 s in 20 ms units
+    assert DynamixelHandConfig(bus_watchdog_s=0).bus_watchdog_units == 0  # off
+    for bad in (0.2, 2.6, -1.0, np.nan):  # 0.2 s: shorter than a retried exchange (2 x (0.05 + 0.1) s)
+        with pytest.raises(ConfigError, match=r"bus_watchdog_s: must be 0 \(off\) or in \[0\.3, 2\.54\] s"):
+            DynamixelHandConfig(bus_watchdog_s=bad)
+    with pytest.raises(ConfigError, match=r"bus_watchdog_s: must be 0 \(off\) or in \[0\.6, 2\.54\]"):
+        DynamixelHandConfig(min_packet_timeout_s=0.2, drain_s=0.1)  # the default 0.5 s would trip on a retry
+    with pytest.raises(ConfigError, match=r"reading_tolerance_rad: must be at least connect_tolerance_rad"):
+        DynamixelHandConfig(reading_tolerance_rad=0.01)
+    with pytest.raises(ConfigError, match=r"reading_tolerance_rad: must be in \[0, 0\.2\]"):
+        DynamixelHandConfig(reading_tolerance_rad=0.5)
+
+
+# -- a reading no joint can reach ----------------------------------------------------------------------------------
+def test_an_encoder_glitch_is_a_fault_not_a_pose(emu, kinematics):
+    lo, hi = kinematics.joint_limits[5]  # middle_1: [-0.196, 1.61] rad
+    with DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG) as hand:
+        q = np.zeros(16)
+        q[5] = hi
+        hand.command_joint_positions(q)
+        poll(lambda: abs(hand.read_joint_positions()[5] - hi) < 2 * RAD_PER_TICK, "middle_1 at its upper limit")
+        emu.inject_position_offset(5, round(np.radians(3.0) / RAD_PER_TICK))  # 3 degrees past the limit: a pose
+        assert hand.read_joint_positions()[5] == pytest.approx(hi + np.radians(3.0), abs=RAD_PER_TICK)
+        emu.inject_position_offset(5, 1500)  # 2.3 rad past it: no finger stands there
+        with pytest.raises(ServoError, match=r"servo 5 \(middle_1\): read present position failed: middle_1 "
+                                             r"\(servo 5\) reads \+3\.9\d+ rad \(tick 4\d{3}\), 2\.3\d+ rad outside "
+                                             r"its limits \[-0\.1960, \+1\.6100\].*encoder") as exc:
+            hand.read_joint_positions()
+        assert exc.value.servo_id == 5 and exc.value.joint == "middle_1"
+        assert not any(emu.torque_enabled().values())
+        assert hand.torque_off_report.confirmed and "torque off confirmed on all 16 servos" in str(exc.value)
+        with pytest.raises(HandError, match="faulted"):
+            hand.command_joint_positions(np.zeros(16))
+
+
+# -- signals while the torque goes off -----------------------------------------------------------------------------
+def test_a_signal_during_the_torque_off_waits_until_every_servo_is_off(emu, kinematics, monkeypatch):
+    torque_off = dynamixel_hand.torque_off
+
+    def signalled_midway(ph, port, ids, device):  # SIGTERM after the first servos, as a second Ctrl-C could be
+        unconfirmed = torque_off(ph, port, ids[:3], device)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return unconfirmed + torque_off(ph, port, ids[3:], device)
+
+    previous = signal.getsignal(signal.SIGTERM)
+    hand = DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG)
+    with pytest.raises(SignalInterrupt) as exc:
+        with hand:
+            monkeypatch.setattr(dynamixel_hand, "torque_off", signalled_midway)
+    assert exc.value.signum == signal.SIGTERM
+    assert not any(emu.torque_enabled().values())
+    assert hand.torque_off_report.confirmed and hand._port is None
+    assert signal.getsignal(signal.SIGTERM) is previous
+
+
+# -- the hand's process killed or stopped: the emulator in a process of its own --------------------------------
+def _drive(port: str, guard: bool) -> int:
+    """The hand's process of the tests below: close the hand slowly, reading all along, until killed or faulted."""
+    kinematics = HandKinematics()
+    config = DynamixelHandConfig(min_packet_timeout_s=0.1, drain_s=0.1, guard=guard)
+    with DynamixelHand(port, kinematics=kinematics, config=config) as hand:
+        hand.command_joint_positions(0.9 * kinematics.joint_limits[:, 1])
+        print("moving", flush=True)
+        try:
+            while True:
+                hand.read_joint_positions()
+                time.sleep(0.01)
+        except HandError as exc:
+            print(f"fault: {exc}", flush=True)
+            return 3
+
+
+def _start_driving(emu: EmulatorProcess, guard: bool) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, __file__, emu.path, "guard" if guard else "no-guard"],
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline() == "moving\n"
+    return proc
+
+
+def test_killed_without_a_guard_the_watchdog_stops_the_hand_where_it_is(kinematics):
+    goal = np.rint(0.9 * kinematics.joint_limits[:, 1] / RAD_PER_TICK + 2048).astype(int)
+    with EmulatorProcess(speed_ticks_per_s=200.0) as emu:  # 5 s from open to closed
+        proc = _start_driving(emu, guard=False)
+        try:
+            os.kill(proc.pid, signal.SIGKILL)
+            proc.wait(20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+            proc.stdout.close()
+        def tripped():
+            status = emu.status()
+            return status if all(s["bus_watchdog"] == -1 for s in status.values()) else None
+
+        status = poll(tripped, "every servo's watchdog trips")
+        time.sleep(0.2)
+        assert emu.status() == status  # it stays: stopped and holding (torque on, at the current limit)
+        for sid, servo in status.items():
+            assert servo["torque"] and servo["goal_position"] == servo["present_position"] != goal[sid], (sid, servo)
+        port, ph = sdk_port(emu.path)
+        try:
+            assert ph.write4ByteTxRx(port, 5, GOAL, int(goal[5])) == (dxl.COMM_SUCCESS, ERR_DATA_RANGE)
+        finally:
+            port.closePort()
+
+
+def test_a_stopped_process_trips_the_watchdog_and_continues_into_a_fault():
+    with EmulatorProcess(speed_ticks_per_s=200.0) as emu:
+        proc = _start_driving(emu, guard=True)
+        try:
+            os.kill(proc.pid, signal.SIGSTOP)  # Ctrl-Z, or a debugger: the heartbeat stops with the process
+            poll(lambda: all(s["bus_watchdog"] == -1 for s in emu.status().values()), "every servo's watchdog trips")
+            os.kill(proc.pid, signal.SIGCONT)
+            out, _ = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+        assert proc.returncode == 3, out
+        assert "heartbeat failed: Bus Watchdog Error on servos 0 (index_0)" in out and \
+               "torque off confirmed on all 16 servos" in out, out
+        assert not any(emu.torque_enabled().values())
+
+
+if __name__ == "__main__":
+    sys.exit(_drive(sys.argv[1], guard=sys.argv[2] == "guard"))
