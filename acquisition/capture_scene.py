@@ -66,11 +66,11 @@ def check_out(out: Path, resume: bool) -> None:
 
 
 @contextmanager
-def open_scene(config: RigConfig, out: Path, resume: bool) -> Iterator[tuple[Rig, SceneWriter]]:
+def open_scene(config: RigConfig, out: Path, resume: bool, on_hand=None) -> Iterator[tuple[Rig, SceneWriter]]:
     """The open rig and scene writer of a capture: a new scene recording this run's settings, or the scene in
     ``out`` resumed. ``--out`` is checked, and on ``--resume`` the scene's recorded settings are compared with this
     run's (:func:`check_resume`), before any device opens. A folder made here for a capture that never started (it
-    holds nothing) is removed again."""
+    holds nothing) is removed again. ``on_hand``: see :func:`~tacsplat.acquisition.devices.open_rig`."""
     made = not out.exists()
     try:
         check_out(out, resume)
@@ -79,9 +79,9 @@ def open_scene(config: RigConfig, out: Path, resume: bool) -> Iterator[tuple[Rig
             if resume:
                 writer = stack.enter_context(SceneWriter.resume(out))
                 check_resume(writer, settings, config.source)
-                rig = stack.enter_context(open_rig(config))
+                rig = stack.enter_context(open_rig(config, on_hand))
             else:
-                rig = stack.enter_context(open_rig(config))
+                rig = stack.enter_context(open_rig(config, on_hand))
                 writer = stack.enter_context(SceneWriter.create(out, rig.intrinsics, scene_meta(settings, rig.extra),
                                                                 rig.sensor_model))
                 if rig.twin is not None:
@@ -191,7 +191,8 @@ def _real_settings(c: RigConfig) -> dict:
             for i, s in enumerate(t.sensors)]},
     }
     if c.mock:
-        settings["mock_devices"] = {k: v for k, v in asdict(c.mock_devices).items() if k != "servo_timeout_s"}
+        settings["mock_devices"] = {k: v for k, v in asdict(c.mock_devices).items()
+                                    if k not in ("servo_timeout_s", "servo_port")}  # the servo link, not the scene
     return settings
 
 

@@ -42,18 +42,21 @@ class Rig:
 
 
 @contextmanager
-def open_rig(config: RigConfig) -> Iterator[Rig]:
-    """Open every device of ``config`` (emulated ones with ``config.mock``); closing leaves the hand safe."""
+def open_rig(config: RigConfig, on_hand=None) -> Iterator[Rig]:
+    """Open every device of ``config`` (emulated ones with ``config.mock``); closing leaves the hand safe.
+
+    ``on_hand(hand)``: called with a real rig's hand before it connects, so that the caller can tell what its
+    closing confirmed (``hand.torque_off_report``) however the opening ends."""
     if config.rig == "sim":
         with _open_twin(config) as rig:
             yield rig
     else:
-        with _open_real(config) as rig:
+        with _open_real(config, on_hand) as rig:
             yield rig
 
 
 @contextmanager
-def _open_real(config: RigConfig) -> Iterator[Rig]:
+def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
     from tacsplat.drivers.dynamixel_hand import DynamixelHand, DynamixelHandConfig
     from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
@@ -65,8 +68,10 @@ def _open_real(config: RigConfig) -> Iterator[Rig]:
             from tacsplat.acquisition.mock import MockDevices
 
             mock = stack.enter_context(MockDevices(config))
-            port, hand_cal = mock.emulator.path, None
-            hand_settings = DynamixelHandConfig(min_packet_timeout_s=config.mock_devices.servo_timeout_s, drain_s=0.1)
+            port, hand_cal = mock.servo_port, None
+            timeout, drain = config.mock_devices.servo_timeout_s, 0.1  # the watchdog outlasts a retried exchange
+            hand_settings = DynamixelHandConfig(min_packet_timeout_s=timeout, drain_s=drain, bus_watchdog_s=max(
+                DynamixelHandConfig.bus_watchdog_s, 2 * (timeout + drain)))
             cam_source, cam_cal, cam_factory = mock.camera_source, str(mock.camera_calibration), mock.capture_factory("camera")
         else:
             port, hand_settings = config.hand.port, None
@@ -88,6 +93,8 @@ def _open_real(config: RigConfig) -> Iterator[Rig]:
                                                  timeout_s=config.camera.timeout_s, **kw))
         hand = DynamixelHand(port, config.hand.baudrate, config.hand.ids, hand_cal, config=hand_settings,
                              kinematics=HandKinematics())
+        if on_hand is not None:
+            on_hand(hand)
         stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
         sensors, model = [], None
         for i, s in enumerate(config.tactile.sensors):

@@ -15,7 +15,10 @@
 The generated files (videos, calibrations) are cached in a folder keyed by the
 settings, so a resumed or repeated mock capture reuses them. Faults for tests:
 :meth:`MockDevices.stall_camera` (the camera stops delivering frames) and
-``mock.emulator.disconnect(servo_id)`` (a servo stops answering).
+``mock.emulator.disconnect(servo_id)`` (a servo stops answering). With
+``mock_devices.servo_port`` the servos are an emulator in a process of its own
+(``python -m tacsplat.drivers.dxl_emulator``), which outlives a capture that is
+killed or signalled.
 """
 
 from __future__ import annotations
@@ -145,7 +148,8 @@ class MockDevices:
 
         self.config = config
         m = config.mock_devices
-        key = hashlib.sha1(json.dumps([ASSET_VERSION, asdict(m), asdict(config.board), [s.finger for s in config.tactile.sensors]],
+        files = {k: v for k, v in asdict(m).items() if not k.startswith("servo_")}  # the settings of the files
+        key = hashlib.sha1(json.dumps([ASSET_VERSION, files, asdict(config.board), [s.finger for s in config.tactile.sensors]],
                                       sort_keys=True).encode()).hexdigest()[:12]
         root = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / f"tacsplat-mock-rig-{os.getuid()}"
         self.folder = root / key
@@ -154,7 +158,7 @@ class MockDevices:
         self.camera_poses = camera_poses(config.board.spec(), m.camera_frames)
         if not (self.folder / "done").is_file():
             self._generate()
-        self.emulator = DxlEmulator(ids=config.hand.ids)
+        self.emulator = None if m.servo_port else DxlEmulator(ids=config.hand.ids)  # None: an emulator process's
         self.captures: dict[str, LoopingCapture] = {}
 
     # --- files ------------------------------------------------------------------------------------
@@ -215,6 +219,11 @@ class MockDevices:
 
     # --- devices ----------------------------------------------------------------------------------
     @property
+    def servo_port(self) -> str:
+        """The servos' port: the emulator in this process, or ``mock_devices.servo_port`` (one in its own)."""
+        return self.emulator.path if self.emulator is not None else self.config.mock_devices.servo_port
+
+    @property
     def camera_source(self) -> str:
         """The wrist camera's source name: not a file path, so the driver reads it as a live device (the newest
         frame, paced at 30 fps) rather than a file (every frame in order)."""
@@ -238,10 +247,12 @@ class MockDevices:
         self.captures["camera"].stall()
 
     def __enter__(self) -> "MockDevices":
-        self.emulator.start()
+        if self.emulator is not None:
+            self.emulator.start()
         return self
 
     def __exit__(self, *exc) -> None:
         for cap in self.captures.values():
             cap._released.set()
-        self.emulator.stop()
+        if self.emulator is not None:
+            self.emulator.stop()

@@ -16,6 +16,11 @@ continues only the capture that was started: see
 Input is any text stream: a terminal (put in cbreak mode, so keys need no
 Enter), a pipe or pseudo-terminal (read byte by byte, with the status
 refreshed while waiting), or an in-memory stream of scripted keys.
+
+SIGINT, SIGTERM, SIGHUP and SIGQUIT end a session as a device fault does: the
+rig closes, the command that carries on is printed, and on a real rig the last
+line says which servos confirmed torque off and which did not (cut the servo
+power then); the exit code is 128 + the signal's number.
 """
 
 from __future__ import annotations
@@ -25,8 +30,10 @@ import logging
 import os
 import select
 import shlex
+import signal
 import sys
 import termios
+import threading
 import tty
 from contextlib import contextmanager
 from pathlib import Path
@@ -39,6 +46,7 @@ from tacsplat.acquisition.config import CapturePlan, RigConfig
 from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.datasets.writer import JOURNAL
+from tacsplat.drivers.dynamixel_hand import END_SIGNALS, SignalInterrupt
 from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError, TacsplatError
 
 log = logging.getLogger(__name__)
@@ -46,7 +54,6 @@ log = logging.getLogger(__name__)
 KEYS_HELP = "[Enter] view  [g] grasp  [u] undo  [q] quit"
 SUGGEST_HELP = "  [s] suggest a grasp"
 EXIT_FAULT = 3  # a device failed; the scene is resumable
-EXIT_INTERRUPTED = 130
 
 
 def _fileno(stream) -> int | None:
@@ -86,6 +93,8 @@ class CaptureSession:
         self.refresh_s = refresh_s
         self.suggester = suggester  # a GraspSuggester (--suggest), or None
         self._live = bool(getattr(out, "isatty", lambda: False)())
+        # a real hand's own check: a fault it found while waiting for a key (its heartbeat) ends the session at once
+        self._check_hand = getattr(rig.hand, "check", lambda: None)
 
     # --- display ----------------------------------------------------------------------------------
     def board_status(self) -> str:
@@ -130,6 +139,7 @@ class CaptureSession:
                 ch = self.keys.read(1)
             else:
                 while not select.select([fd], [], [], self.refresh_s)[0]:
+                    self._check_hand()
                     if self._live:
                         self.show_status()
                 ch = os.read(fd, 1).decode(errors="replace")
@@ -253,9 +263,11 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
     ``s`` key suggests the next grasp.
 
     Returns 0 (plan complete), 1 (stopped before the plan was complete),
-    ``EXIT_FAULT`` (a device failed: the hand was left with torque off and the
-    scene is resumable) or 130 (interrupted). ``on_open(rig, logger)`` is
-    called once the devices are open (tests inject faults through it).
+    ``EXIT_FAULT`` (a device failed; the scene is resumable) or 128 + signum
+    (SIGINT, SIGTERM, SIGHUP or SIGQUIT: 130, 143, 129, 131). On a real rig the
+    last line printed says which servos confirmed torque off and which did not.
+    ``on_open(rig, logger)`` is called once the devices are open (tests inject
+    faults through it).
     """
     if config.plan.touches.model != "gel":
         raise ConfigError("plan.touches.model", "an operator capture grasps with the hand: use 'gel' (the paper's "
@@ -264,9 +276,11 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
     output = sys.stdout if output is None else output
     out = Path(out)
     fault: BaseException | None = None
+    interrupted: int | None = None
     complete = False
+    hands = []  # the real rig's hand, once made: its torque-off report is the last line
     try:
-        with open_scene(config, out, resume) as (rig, writer):
+        with _ending_signals_interrupt(), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
             logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
             if logger.dropped_partial_grasp:
                 output.write(f"resumed: removed {logger.dropped_partial_grasp} touches of a grasp cut short; "
@@ -285,22 +299,52 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
             complete = CaptureSession(rig, logger, config.plan, keys, output, planner, suggester=suggester).run()
     except (DeviceError, SimulationError) as exc:
         fault = exc
-    except KeyboardInterrupt:
-        output.write(f"\ninterrupted; the hand's torque is off.\n{_carry_on(config, out)}")
+    except KeyboardInterrupt as exc:
+        interrupted = getattr(exc, "signum", signal.SIGINT)
+    hand = "" if config.rig == "sim" else _hand_line(hands)
+    if interrupted is not None:
+        output.write(f"\ninterrupted ({signal.Signals(interrupted).name}).\n{_carry_on(config, out)}{hand}")
         output.flush()
-        return EXIT_INTERRUPTED
+        return 128 + interrupted
     if fault is not None:
-        held = f" and the scene in {out} holds every record completed before the fault"
-        output.write(f"\nDEVICE FAULT: {fault}\nThe hand's torque is off{held if (out / JOURNAL).is_file() else ''}. "
-                     f"Fix the device.\n{_carry_on(config, out)}")
+        held = f"The scene in {out} holds every record completed before the fault. " if (out / JOURNAL).is_file() else ""
+        output.write(f"\nDEVICE FAULT: {fault}\n{held}Fix the device.\n{_carry_on(config, out)}{hand}")
         output.flush()
         return EXIT_FAULT
     if complete:
-        output.write(f"\nplan complete: scene written to {out}\n")
+        output.write(f"\nplan complete: scene written to {out}\n{hand}")
+        output.flush()
         return 0
-    output.write(f"\nstopped before the plan was complete.\n{_carry_on(config, out)}")
+    output.write(f"\nstopped before the plan was complete.\n{_carry_on(config, out)}{hand}")
     output.flush()
     return 1
+
+
+@contextmanager
+def _ending_signals_interrupt() -> Iterator[None]:
+    """While open (in the main thread): SIGINT, SIGTERM, SIGHUP and SIGQUIT raise SignalInterrupt, so that the rig
+    closes (the hand defers them past its packet exchanges and its torque-off)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum, frame):
+        raise SignalInterrupt(signum)
+
+    previous = {s: signal.signal(s, interrupt) for s in END_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
+
+
+def _hand_line(hands: list) -> str:
+    """The last line of a real rig's capture: what the hand's closing confirmed, and only that."""
+    report = hands[0].torque_off_report if hands else None
+    if report is None:
+        return "Hand: not connected; nothing was sent to its servos.\n"
+    return f"Hand: {report}.\n"
 
 
 def _carry_on(config: RigConfig, out: Path) -> str:

@@ -1,6 +1,10 @@
-"""Shared helpers of the acquisition tests: a mocked real rig file with a short plan, scripted keys."""
+"""Shared helpers of the acquisition tests: a mocked real rig file with a short plan, scripted keys, the operator's
+side of a pseudo-terminal."""
 
 import io
+import os
+import threading
+import time
 
 import yaml
 
@@ -40,3 +44,49 @@ class ScriptedKeys(io.TextIOBase):
         out = self.keys[self.pos : self.pos + 1]
         self.pos += len(out)
         return out
+
+
+class Terminal:
+    """The operator's side of a pseudo-terminal: collects the output in a thread (the live status line has no
+    newline); ``wait_for`` blocks until a text appears after the last ``type``; ``type`` sends keys."""
+
+    def __init__(self, master_fd: int):
+        self.fd = master_fd
+        self.text = ""
+        self._since = 0
+        self._cond = threading.Condition()
+        self._reader = threading.Thread(target=self._run, daemon=True)
+        self._reader.start()
+
+    def _run(self):
+        while True:
+            try:
+                chunk = os.read(self.fd, 4096)
+            except OSError:  # EIO: the other side is gone
+                chunk = b""
+            if not chunk:
+                return
+            with self._cond:
+                self.text += chunk.decode(errors="replace")
+                self._cond.notify_all()
+
+    def type(self, keys: str) -> None:
+        with self._cond:
+            self._since = len(self.text)
+        os.write(self.fd, keys.encode())
+
+    def wait_for(self, text: str, timeout_s: float = 90.0) -> None:  # generous: a loaded 2-core machine
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while text not in self.text[self._since :]:
+                remaining = deadline - time.monotonic()
+                assert remaining > 0, f"no {text!r} in the output:\n{self.text}"
+                self._cond.wait(remaining)
+
+    def wait_closed(self, timeout_s: float = 20.0) -> None:
+        """Until every process that writes to the terminal has closed it (all the output is in ``text``)."""
+        self._reader.join(timeout_s)
+        assert not self._reader.is_alive(), f"the terminal is still open after {timeout_s} s:\n{self.text}"
+
+    def last_line(self) -> str:
+        return self.text.replace("\r\n", "\n").rstrip("\n").rsplit("\n", 1)[-1]

@@ -1,8 +1,11 @@
-"""Device faults mid-capture (a servo stops answering; the camera stops giving frames): a clear message naming
-the device and the exact resume command, torque off on the emulated servos, and a scene that resumes."""
+"""Device faults mid-capture (a servo stops answering; the camera stops giving frames; the bus dies): a clear
+message naming the device and the exact resume command, torque off on the emulated servos that answer, a last line
+that says only what was confirmed, and a scene that resumes."""
 
 import io
+import os
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -28,6 +31,10 @@ def _capture_with_fault(tmp_path, keys: str, fault_before_key: int, inject):
     return code, output.getvalue(), opened["rig"].mock, rig, out
 
 
+def last_line(text: str) -> str:
+    return text.rstrip("\n").rsplit("\n", 1)[-1]
+
+
 def _resume_to_the_end(rig, out, keys):
     output = io.StringIO()
     code = run_capture(load_rig(rig, mock=True), out, resume=True, keys=ScriptedKeys(keys), output=output)
@@ -41,7 +48,9 @@ def test_servo_that_stops_answering_mid_grasp(tmp_path):
         tmp_path, "\ngg\n", 2, lambda opened: opened["rig"].mock.emulator.disconnect(6))
     assert code == EXIT_FAULT, text
     assert "DEVICE FAULT" in text and "Dynamixel hand" in text and "servo 6" in text and "middle_2" in text, text
-    assert "torque is off" in text
+    assert "torque is off" not in text  # servo 6 never confirmed it: only what was confirmed is said
+    assert last_line(text) == "Hand: torque off NOT confirmed on servo 6 (middle_2): cut the servo power (confirmed " \
+                              "on the other 15).", text
     assert f"tacsplat capture --rig {rig} --out {out} --resume --mock" in text
     torque = mock.emulator.torque_enabled()
     assert not any(on for sid, on in torque.items() if sid != 6), torque  # every servo that answers is off
@@ -67,6 +76,7 @@ def test_camera_that_stops_giving_frames(tmp_path):
     code, text, mock, rig, out = _capture_with_fault(tmp_path, "\n\ng\n", 2, _stall_camera)
     assert code == EXIT_FAULT, text
     assert "DEVICE FAULT: wrist camera: no new frame within 1 s" in text, text
+    assert last_line(text) == "Hand: torque off confirmed on all 16 servos.", text
     assert f"--out {out} --resume --mock" in text
     assert not any(mock.emulator.torque_enabled().values())
     scene = Scene.load(out)
@@ -77,14 +87,13 @@ def test_camera_that_stops_giving_frames(tmp_path):
 
 
 def test_ctrl_c_leaves_the_hand_safe_and_says_how_to_resume(tmp_path):
-    from tacsplat.acquisition.operator_session import EXIT_INTERRUPTED
-
     def interrupt(opened):
         raise KeyboardInterrupt
 
     code, text, mock, rig, out = _capture_with_fault(tmp_path, "\ng\n", 2, interrupt)
-    assert code == EXIT_INTERRUPTED, text
-    assert "interrupted; the hand's torque is off" in text and f"--out {out} --resume --mock" in text
+    assert code == 130, text
+    assert "interrupted (SIGINT)" in text and f"--out {out} --resume --mock" in text
+    assert last_line(text) == "Hand: torque off confirmed on all 16 servos.", text
     assert not any(mock.emulator.torque_enabled().values())
     assert len(Scene.load(out).frames) == 1
 
@@ -115,3 +124,71 @@ def test_a_fault_before_the_scene_exists_says_to_start_again_not_to_resume(tmp_p
     output = io.StringIO()  # the advised command works once the servo answers
     assert run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\nq"), output=output) == 1, output.getvalue()
     assert len(Scene.load(out).frames) == 1
+
+
+def _mid_grasp(fault, opened: dict, after_commands: int = 5):
+    """An ``on_open`` that runs ``fault(mock)`` once the hand has taken ``after_commands`` goals (the fingers move);
+    ``opened["mock"]`` is the rig's MockDevices."""
+
+    def on_open(rig, logger):
+        opened["mock"], command, count = rig.mock, rig.hand.command_joint_positions, []
+
+        def counting(q):
+            count.append(1)
+            if len(count) == after_commands:
+                fault(rig.mock)
+            command(q)
+
+        rig.hand.command_joint_positions = counting
+
+    return on_open
+
+
+def _unplug(mock) -> None:
+    mock.emulator.stop()  # the U2D2 disappears: the pty's other end is gone
+
+
+def _every_servo_silent(mock) -> None:
+    for sid in mock.emulator.servos:
+        mock.emulator.disconnect(sid)
+
+
+@pytest.mark.parametrize("fault", [_unplug, _every_servo_silent], ids=["adapter unplugged", "every servo silent"])
+def test_a_dead_bus_mid_grasp_says_that_no_servo_confirmed_torque_off(tmp_path, fault):
+    rig = write_mock_rig(tmp_path)
+    out = tmp_path / "scene"
+    output = io.StringIO()
+    opened = {}
+    code = run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\ng\n"), output=output,
+                       on_open=_mid_grasp(fault, opened))
+    text = output.getvalue()
+    assert code == EXIT_FAULT, text
+    assert "DEVICE FAULT: Dynamixel hand" in text and "torque is off" not in text, text
+    assert last_line(text) == "Hand: torque off NOT confirmed on any of the 16 servos: cut the servo power.", text
+    assert all(opened["mock"].emulator.torque_enabled().values())  # what was said is true: nothing reached them
+    assert len(Scene.load(out).frames) == 1 and Scene.load(out).touches == []
+
+    scene = _resume_to_the_end(rig, out, "\n\nggg\n")
+    assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4
+
+
+def test_a_bus_death_while_the_operator_waits_ends_the_session_at_once(tmp_path):
+    """No key touches the hand: its heartbeat finds the dead bus, turns torque off, and the session says so."""
+    rig = write_mock_rig(tmp_path)
+    out = tmp_path / "scene"
+    read_fd, write_fd = os.pipe()  # keys the session waits for, as from a terminal
+    os.write(write_fd, b"\n")
+    output = io.StringIO()
+
+    bound = threading.Timer(30.0, os.write, (write_fd, b"q"))  # a bound: q stops the session
+    try:
+        with os.fdopen(read_fd) as keys:
+            code = run_capture(load_rig(rig, mock=True), out, keys=keys, output=output,
+                               on_open=lambda rig_, logger: (bound.start(), _every_servo_silent(rig_.mock)))
+    finally:
+        bound.cancel()
+        os.close(write_fd)
+    text = output.getvalue()
+    assert code == EXIT_FAULT, text
+    assert "DEVICE FAULT: Dynamixel hand" in text and "heartbeat" in text, text
+    assert last_line(text) == "Hand: torque off NOT confirmed on any of the 16 servos: cut the servo power.", text

@@ -1,0 +1,91 @@
+"""Every way a capture can be asked to end, on `tacsplat capture --mock` in a subprocess whose servos are an
+emulator in a process of its own (it outlives the capture): SIGINT, SIGTERM, SIGHUP and SIGQUIT mid-grasp leave
+every servo with torque off, the last line says so, the exit code is 128 + signum, and the scene resumes; SIGKILL
+mid-grasp runs no code of the capture, and its guard process turns the torque off."""
+
+import io
+import os
+import pty
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from tacsplat.acquisition.config import load_rig
+from tacsplat.acquisition.operator_session import run_capture
+from tacsplat.datasets import Scene
+from tacsplat.drivers.dxl_emulator import EmulatorProcess
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from acq_helpers import ScriptedKeys, Terminal, write_mock_rig  # noqa: E402
+
+pytestmark = pytest.mark.timeout(300)
+
+
+def _capture_killed_mid_grasp(tmp_path, emu: EmulatorProcess, signum: int) -> tuple[subprocess.Popen, Terminal, Path]:
+    """One view, then a slow grasp (2 s from open to closed) that ``signum`` interrupts while the fingers close."""
+    rig = write_mock_rig(tmp_path, grasp={"close_speed_rad_s": 0.6}, mock_devices={"servo_port": emu.path})
+    out = tmp_path / "scene"
+    master, slave = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "tacsplat", "capture", "--rig", rig, "--out", str(out), "--mock"],
+                            stdin=slave, stdout=slave, stderr=slave, close_fds=True)
+    os.close(slave)
+    term = Terminal(master)
+    try:
+        term.wait_for("board: seen")
+        term.type("\rg")
+        term.wait_for("grasp 0: closing")
+        assert all(emu.torque_enabled().values())
+        time.sleep(0.4)
+        os.kill(proc.pid, signum)
+        proc.wait(60)
+        term.wait_closed()  # the capture, and its guard, are gone: all the output is in
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
+    assert "grasp 0 recorded" not in term.text, f"the signal came after the grasp:\n{term.text[-2000:]}"
+    return proc, term, out
+
+
+def _resume_to_the_end(tmp_path, out: Path) -> Scene:
+    (tmp_path / "resume").mkdir()
+    output = io.StringIO()
+    rig = write_mock_rig(tmp_path / "resume")  # the same plan; the example's quick close, servos in this process
+    code = run_capture(load_rig(rig, mock=True), out, resume=True, keys=ScriptedKeys("\r\r\rggg"), output=output)
+    assert code == 0, output.getvalue()
+    return Scene.load(out)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT],
+                         ids=lambda s: signal.Signals(s).name)
+def test_an_ending_signal_mid_grasp_leaves_every_servo_off_and_says_so(tmp_path, signum):
+    with EmulatorProcess() as emu:
+        proc, term, out = _capture_killed_mid_grasp(tmp_path, emu, signum)
+        torque = emu.torque_enabled()
+    assert not any(torque.values()), torque
+    assert proc.returncode == 128 + signum, term.text[-2000:]
+    assert f"interrupted ({signal.Signals(signum).name})" in term.text, term.text[-2000:]
+    assert f"--out {out} --resume --mock" in term.text
+    assert term.last_line() == "Hand: torque off confirmed on all 16 servos.", term.text[-2000:]
+    assert "Traceback" not in term.text and "hand guard" not in term.text  # closed: the guard said nothing
+
+    scene = _resume_to_the_end(tmp_path, out)
+    assert [f.split for f in scene.frames] == ["train"] * 3 + ["test"]
+    assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4
+
+
+def test_sigkill_mid_grasp_the_guard_turns_the_torque_off(tmp_path):
+    with EmulatorProcess() as emu:
+        proc, term, out = _capture_killed_mid_grasp(tmp_path, emu, signal.SIGKILL)
+        torque = emu.torque_enabled()  # the terminal closed: the guard has done its work and gone
+    assert proc.returncode == -signal.SIGKILL
+    assert not any(torque.values()), torque
+    assert term.last_line().startswith(f"hand guard of {emu.path}: the process {proc.pid} ended without closing the "
+                                       "hand; torque off confirmed on all 16 servos"), term.text[-2000:]
+    scene = _resume_to_the_end(tmp_path, out)
+    assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4
