@@ -192,3 +192,16 @@ def test_a_bus_death_while_the_operator_waits_ends_the_session_at_once(tmp_path)
     assert code == EXIT_FAULT, text
     assert "DEVICE FAULT: Dynamixel hand" in text and "heartbeat" in text, text
     assert last_line(text) == "Hand: torque off NOT confirmed on any of the 16 servos: cut the servo power.", text
+
+
+def test_an_encoder_glitch_mid_grasp_is_a_fault_not_a_recorded_grasp(tmp_path):
+    rig = write_mock_rig(tmp_path)
+    out = tmp_path / "scene"
+    output = io.StringIO()
+    glitch = _mid_grasp(lambda mock: mock.emulator.inject_position_offset(5, 1500), {})  # middle_1 reads 2.3 rad high
+    code = run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\ng\n"), output=output, on_open=glitch)
+    text = output.getvalue()
+    assert code == EXIT_FAULT, text
+    assert "DEVICE FAULT: Dynamixel hand" in text and "servo 5 (middle_1)" in text and "outside its limits" in text
+    assert last_line(text) == "Hand: torque off confirmed on all 16 servos.", text
+    assert len(Scene.load(out).frames) == 1 and Scene.load(out).touches == []  # no grasp at a wrong pose
