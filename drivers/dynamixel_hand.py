@@ -143,8 +143,9 @@ class DynamixelHandConfig:
     # on its limit; the controller's overshoot at a limit is a few ticks. 1500 ticks of glitch are 2.3 rad.
     reading_tolerance_rad: float = math.radians(5.0)
     # the servos' Bus Watchdog: with torque on and no instruction packet for this long, they stop and hold (0: off).
-    # Unit 20 ms, at most 2.54 s; at least twice the silence of a retried exchange, 2 (min_packet_timeout_s + drain_s)
-    # (the heartbeat waits for it), so that a retry never trips it.
+    # Unit 20 ms, at most 2.54 s. At least 2 (min_packet_timeout_s + drain_s), twice the silence of a retried
+    # exchange (the heartbeat waits for the bus meanwhile), so that a retry never trips it; 0.5 s stops a hand whose
+    # host died within half a second, and a heartbeat every 0.125 s has room on a loaded machine.
     bus_watchdog_s: float = 0.5
     guard: bool = True  # a guard process turns torque off when this one dies without closing the hand (SIGKILL too)
 
@@ -168,7 +169,7 @@ class DynamixelHandConfig:
     @property
     def bus_watchdog_units(self) -> int:
         """The Bus Watchdog register's value (20 ms units; 0 = off)."""
-        return round(self.bus_watchdog_s / BUS_WATCHDOG_UNIT_S) if math.isfinite(self.bus_watchdog_s) else -1
+        return round(self.bus_watchdog_s / BUS_WATCHDOG_UNIT_S)
 
 
 @dataclass(frozen=True)
