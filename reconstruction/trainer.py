@@ -544,30 +544,32 @@ class Trainer:
             self._progress_row()
             self._last_eval = (self.step, self.train_seconds)
         bar = progress_bar(total=cfg.iterations, initial=self.step, enabled=show_progress, desc="train", unit="it")
-        while self.step < cfg.iterations and stop.signum is None:
-            started = time.perf_counter()
-            terms = self.train_step()
-            self.train_seconds += time.perf_counter() - started
-            for k in LOSS_TERMS:
-                self._sums[k] = self._sums[k] + terms[k]
-            self._sum_count += 1
-            bar.update(1)
-            if self.step % POSTFIX_EVERY == 0:
-                bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians), refresh=False)
-            done = self.step >= cfg.iterations
-            if (
-                done
-                or self.step - self._last_eval[0] >= cfg.eval_every_iters
-                or self.train_seconds - self._last_eval[1] >= cfg.eval_every_seconds
-            ):
-                self.train_seconds += self._wait_for_device()  # queued steps are training time
-                psnr_value, cd_value = self._progress_row()
-                self._last_eval = (self.step, self.train_seconds)
-                bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians),
-                                psnr=f"{psnr_value:.2f}", cd=f"{cd_value:.4g}")  # fmt: skip
-            if done or self.step % cfg.checkpoint_every == 0:
-                self.save_checkpoint()
-        bar.close()
+        try:
+            while self.step < cfg.iterations and stop.signum is None:
+                started = time.perf_counter()
+                terms = self.train_step()
+                self.train_seconds += time.perf_counter() - started
+                for k in LOSS_TERMS:
+                    self._sums[k] = self._sums[k] + terms[k]
+                self._sum_count += 1
+                bar.update(1)
+                if self.step % POSTFIX_EVERY == 0:
+                    bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians), refresh=False)
+                done = self.step >= cfg.iterations
+                if (
+                    done
+                    or self.step - self._last_eval[0] >= cfg.eval_every_iters
+                    or self.train_seconds - self._last_eval[1] >= cfg.eval_every_seconds
+                ):
+                    self.train_seconds += self._wait_for_device()  # queued steps are training time
+                    psnr_value, cd_value = self._progress_row()
+                    self._last_eval = (self.step, self.train_seconds)
+                    bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians),
+                                    psnr=f"{psnr_value:.2f}", cd=f"{cd_value:.4g}")  # fmt: skip
+                if done or self.step % cfg.checkpoint_every == 0:
+                    self.save_checkpoint()
+        finally:
+            bar.close()  # (a failed write's error then starts a line of its own)
         if stop.signum is not None:
             self.save_checkpoint()
             raise TrainingInterrupted(stop.signum, self.step)
