@@ -63,11 +63,13 @@ class TwinClock:
 
 @dataclass(frozen=True)
 class PoseEstimate:
-    """A pose with its quality: ``reprojection_px`` is the board PnP RMS (None for ground truth)."""
+    """A pose with its quality: the board PnP's RMS reprojection error and the standard deviation of the camera
+    position it implies (None for ground truth)."""
 
     T: np.ndarray  # [4, 4]
     reprojection_px: float | None = None
     corners: int | None = None
+    position_std_m: float | None = None
 
 
 class PoseSource(Protocol):
@@ -98,8 +100,8 @@ class BoardPoseSource:
         """The board pose without the threshold (for the live status line); CameraError when not seen."""
         from tacsplat.drivers.wrist_camera import board_pose
 
-        T, rms, corners = board_pose(image, self.spec, self.K_opencv, None, self.board.min_corners)
-        return PoseEstimate(T, rms, corners)
+        pose = board_pose(image, self.spec, self.K_opencv, None, self.board.min_corners)
+        return PoseEstimate(pose.T_world_cam, pose.rms_px, pose.corners, pose.position_std_m)
 
     def camera_pose(self, image: np.ndarray) -> PoseEstimate:
         try:
@@ -113,7 +115,7 @@ class BoardPoseSource:
 
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
         est = self.camera_pose(image)
-        return PoseEstimate(est.T @ self.T_cam_hand, est.reprojection_px, est.corners)
+        return PoseEstimate(est.T @ self.T_cam_hand, est.reprojection_px, est.corners, est.position_std_m)
 
     def ground_truth_depth(self) -> None:
         return None

@@ -107,7 +107,8 @@ class CaptureSession:
             return "board: NOT SEEN"
         limit = self.rig.poses.board.max_reprojection_px
         flag = "" if est.reprojection_px <= limit else f" OVER {limit:g}"
-        return f"board: seen, {est.corners} corners, {est.reprojection_px:.2f} px{flag}"
+        return (f"board: seen, {est.corners} corners, {est.reprojection_px:.2f} px{flag}, "
+                f"camera +-{1e3 * est.position_std_m:.1f} mm")
 
     def status(self) -> str:
         c, v, g = self.logger.counts(), self.plan.views, self.plan.grasps

@@ -29,7 +29,7 @@ import logging
 import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import cv2
 import numpy as np
@@ -542,9 +542,18 @@ def calibrate_intrinsics(images: Sequence[np.ndarray], board_spec: BoardSpec = C
     return calibrate_views(views, size, board_spec, distortion)
 
 
+class BoardPose(NamedTuple):
+    """A camera pose from the board, with what it is worth."""
+
+    T_world_cam: np.ndarray  # [4, 4]
+    rms_px: float  # reprojection error of the board's corners
+    corners: int
+    position_std_m: float  # the camera position's standard deviation (3D, metres) from the PnP's covariance
+
+
 def board_pose(image: np.ndarray, board_spec: BoardSpec, K_opencv: np.ndarray, dist=None,
-               min_corners: int = 6) -> tuple[np.ndarray, float, int]:
-    """Camera pose in the world (board) frame by PnP: ``(T_world_cam [4, 4], rms reprojection px, corners)``."""
+               min_corners: int = 6) -> BoardPose:
+    """Camera pose in the world (board) frame by PnP, with its reprojection error and uncertainty."""
     obj, img = board_spec.detect(image)
     if len(obj) < min_corners:
         raise CameraError("wrist camera", f"board not found: {len(obj)} corners of the {board_spec.describe()} "
@@ -554,10 +563,31 @@ def board_pose(image: np.ndarray, board_spec: BoardSpec, K_opencv: np.ndarray, d
     if not ok:
         raise CameraError("wrist camera", "solvePnP failed")
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, K_opencv, dist, rvec, tvec)
-    proj, _ = cv2.projectPoints(obj, rvec, tvec, K_opencv, dist)
-    rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
-    T_cam_board = make_pose(cv2.Rodrigues(rvec)[0], tvec.ravel())
-    return T_WORLD_BOARD @ invert_pose(T_cam_board), rms, len(obj)
+    proj, J = cv2.projectPoints(obj, rvec, tvec, K_opencv, dist)
+    residuals = proj.reshape(-1, 2) - img  # [N, 2]
+    rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
+    R, dR = cv2.Rodrigues(rvec)  # dR [3, 9]: d vec(R) / d r_i, row-major
+    T_cam_board = make_pose(R, tvec.ravel())
+    return BoardPose(T_WORLD_BOARD @ invert_pose(T_cam_board), rms, len(obj),
+                     _position_std(residuals, J[:, :6], R, dR, tvec.ravel()))
+
+
+def _position_std(residuals: np.ndarray, J: np.ndarray, R: np.ndarray, dR: np.ndarray, t: np.ndarray) -> float:
+    """Standard deviation (3D, metres) of the camera centre c = -R^T t of a PnP fit: the Gauss-Newton covariance
+    s^2 (J^T J)^-1 of (rvec, tvec), with s^2 the residual variance, carried to c (infinite where the fit leaves
+    the pose undetermined). Few corners, a small board in the image or a far board make it large."""
+    dof = residuals.size - 6
+    if dof <= 0:
+        return float("inf")
+    normal = J.T @ J  # [6, 6]
+    if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
+        return float("inf")
+    cov = float(np.sum(residuals**2)) / dof * np.linalg.inv(normal)
+    dc = np.empty((3, 6))
+    for i in range(3):
+        dc[:, i] = -dR[i].reshape(3, 3).T @ t
+    dc[:, 3:] = -R.T
+    return float(np.sqrt(max(np.trace(dc @ cov @ dc.T), 0.0)))
 
 
 def hand_eye_calibration(T_base_hand: Sequence[np.ndarray], T_world_cam: Sequence[np.ndarray]) -> np.ndarray:
@@ -643,5 +673,5 @@ class WristCamera:
         """``(T_world_cam, rms reprojection px)`` from the board in an undistorted image (a new frame if None)."""
         if image is None:
             image, _ = self.read()
-        T, rms, _ = board_pose(image, self.calibration.board, self._K_new_opencv, None)
-        return T, rms
+        pose = board_pose(image, self.calibration.board, self._K_new_opencv, None)
+        return pose.T_world_cam, pose.rms_px

@@ -11,7 +11,7 @@ import pytest
 from tacsplat.acquisition.config import load_rig
 from tacsplat.acquisition.devices import open_rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
-from tacsplat.acquisition.mock import MOCK_T_HAND_CAM
+from tacsplat.acquisition.mock import MOCK_T_HAND_CAM, render_board
 from tacsplat.acquisition.operator_session import run_capture
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, check_scene
 from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
@@ -75,7 +75,12 @@ def _kinematics_at(q):
 
 
 def test_grasp_touches_are_placed_with_board_pose_and_hand_eye(tmp_path, mock_rig):
-    """T_world_sensor = T_world_cam (board PnP) @ T_cam_hand @ T_hand_sensor (forward kinematics)."""
+    """T_world_sensor = T_world_cam (board PnP) @ T_cam_hand @ T_hand_sensor (forward kinematics).
+
+    The live mock camera loops a video of 24 board views paced at 30 fps, so the frame a grasp sees depends on the
+    wall clock; the PnP error of those views spans 0.15-5 mm (few corners, a far board in a 320 x 240 image). The
+    bound is therefore the pose's own uncertainty: the error of the view the grasp used, within 3 standard
+    deviations of the PnP covariance that board_pose reports for it."""
     config = load_rig(mock_rig, mock=True)
     with open_rig(config) as rig:
         known = [T_WORLD_BOARD @ invert_pose(T) for T in rig.mock.camera_poses]  # the rendered camera poses
@@ -86,16 +91,41 @@ def test_grasp_touches_are_placed_with_board_pose_and_hand_eye(tmp_path, mock_ri
             view = logger.take_view("train")
             q_close = np.asarray(config.grasp.close_pose)
             fk = _kinematics_at(q_close)
+        T_world_cam = outcome.T_world_hand @ MOCK_T_HAND_CAM
+        k = int(np.argmin([np.linalg.norm(T_world_cam[:3, 3] - T[:3, 3]) for T in known]))  # the view it saw
+        m = config.mock_devices
+        seen = rig.poses.measure(render_board(config.board.spec(), rig.mock.K, m.camera_width, m.camera_height,
+                                              rig.mock.camera_poses[k]))
     assert outcome.settled and set(outcome.stopped_by.values()) == {"reached"}  # nothing in the way
-    T_world_cam = outcome.T_world_hand @ MOCK_T_HAND_CAM
-    errors = [(np.linalg.norm(T_world_cam[:3, 3] - T[:3, 3]), rotation_angle_between(T_world_cam[:3, :3], T[:3, :3]))
-              for T in known]
-    best = min(errors)
-    assert best[0] < 0.002 and np.degrees(best[1]) < 0.3, best
+    assert np.allclose(seen.T, T_world_cam, atol=1e-9)  # the grasp's hand pose is that view's PnP @ T_cam_hand
+    position_error = np.linalg.norm(T_world_cam[:3, 3] - known[k][:3, 3])
+    assert 0 < seen.position_std_m < 5e-3 and position_error < 3 * seen.position_std_m, (k, position_error, seen)
+    assert np.degrees(rotation_angle_between(T_world_cam[:3, :3], known[k][:3, :3])) < 1.0
     for touch in outcome.touches:
         expected = outcome.T_world_hand @ fk[touch.finger]
         assert np.allclose(touch.T_world_sensor, expected, atol=2e-3), touch.finger  # servo ticks, not exact
     assert view.reprojection_px < 0.5
+
+
+def test_every_mock_view_is_within_three_of_its_standard_deviations(mock_rig):
+    """Whichever frame the wall clock picks, the PnP pose is as good as its reported uncertainty says (the old
+    fixed 2 mm bound failed on views 1, 14, 16 and 18, one run in a few)."""
+    from tacsplat.acquisition.logger import BoardPoseSource
+    from tacsplat.acquisition.mock import MockDevices
+
+    config = load_rig(mock_rig, mock=True)
+    mock, m = MockDevices(config), config.mock_devices
+
+    class Camera:
+        K = mock.K
+
+    poses = BoardPoseSource(Camera, config.board, MOCK_T_HAND_CAM)
+    ratios = []
+    for T_cam_board in mock.camera_poses:
+        est = poses.measure(render_board(config.board.spec(), mock.K, m.camera_width, m.camera_height, T_cam_board))
+        known = T_WORLD_BOARD @ invert_pose(T_cam_board)
+        ratios.append(np.linalg.norm(est.T[:3, 3] - known[:3, 3]) / est.position_std_m)
+    assert len(ratios) == 24 and max(ratios) < 3.0, ratios
 
 
 def test_views_with_a_bad_board_fit_or_no_board_are_rejected_with_a_message(tmp_path):

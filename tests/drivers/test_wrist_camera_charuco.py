@@ -93,7 +93,7 @@ def test_charuco_calibration_recovers_focal_length(calibration):
 def test_pnp_recovers_held_out_poses(distorted, calibration):
     poses, images = distorted
     for T_cam_board, image in zip(poses[11:], images[11:]):
-        T_world_cam, rms, corners = board_pose(image, SPEC, calibration.K_opencv, calibration.dist)
+        T_world_cam, rms, corners, _ = board_pose(image, SPEC, calibration.K_opencv, calibration.dist)
         assert corners >= 12 and rms < 0.5
         T_world_cam_true = T_WORLD_BOARD @ invert_pose(T_cam_board)
         angle = np.degrees(rotation_angle_between(T_world_cam[:3, :3], T_world_cam_true[:3, :3]))
@@ -138,7 +138,7 @@ def test_wrist_camera_reads_undistorted_frames_from_video(distorted, calibration
         T_world_cam, rms = camera.pose_in_world(rgb)
         assert rms < 0.3
         K_cv_raw = calibration.K_opencv
-        _, rms_raw, _ = board_pose(images[11], SPEC, K_cv_raw, None)
+        rms_raw = board_pose(images[11], SPEC, K_cv_raw, None).rms_px
         assert rms_raw > 3 * rms
         T_world_cam_true = T_WORLD_BOARD @ invert_pose(poses[11])
         assert np.degrees(rotation_angle_between(T_world_cam[:3, :3], T_world_cam_true[:3, :3])) < 0.5
