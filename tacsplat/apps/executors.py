@@ -21,8 +21,10 @@ Jobs hand each other paths on a filesystem every worker sees, never arrays.
   CUDA); a task waits for its needs' tasks (their object refs are its
   arguments). A task that raises, or whose worker dies, is retried ``retries``
   times, except on a :class:`TacsplatError` (a mistake in its input, which a
-  retry would repeat). Without an address (``--ray-address`` or ``RAY_ADDRESS``)
-  an embedded local Ray is started for the batch and stopped after it.
+  retry would repeat). Without an address (``--ray-address`` or ``RAY_ADDRESS``),
+  or with ``local``, an embedded local Ray is started for the batch and stopped
+  after it. An address Ray cannot take (:func:`check_ray_address`), one where
+  nothing answers, or one whose ``ray.init`` fails is one error naming it.
 
 Whichever the executor, a job that fails for good is listed in ``OUT/failures.csv`` with
 its error while the jobs that do not need it go on; rerunning the same command
@@ -39,6 +41,7 @@ import logging
 import logging.handlers
 import multiprocessing
 import os
+import re
 import signal
 import socket
 from collections import Counter
@@ -109,8 +112,9 @@ def add_executor_options(parser) -> None:
                         help="--executor processes: CPUs to fill with jobs (default: this machine's cores, at most one per "
                         "2 GB of memory)")
     parser.add_argument("--ray-address", default=None,
-                        help="Ray cluster to run on (host:port of `ray start --head`, or auto); default RAY_ADDRESS, "
-                        "else an embedded local Ray for this batch (--executor ray)")
+                        help="Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray "
+                        "Client server, or auto); default RAY_ADDRESS, else an embedded local Ray for this batch "
+                        "(--executor ray)")
     parser.add_argument("--retries", type=int, default=RETRIES,
                         help="extra attempts of a Ray task that raised or whose worker died")
 
@@ -121,6 +125,8 @@ def executor_options(args) -> dict:
         raise UsageError("--retries", f"must be >= 0, got {args.retries}")
     if args.ray_address and args.executor != "ray":
         raise UsageError("--ray-address", "runs jobs on a Ray cluster: add --executor ray")
+    if args.ray_address:
+        check_ray_address(args.ray_address, "--ray-address", UsageError)
     if args.workers is not None and args.workers < 1:
         raise UsageError("--workers", f"must be >= 1, got {args.workers}")
     if args.workers is not None and args.executor not in ("processes", "auto"):
@@ -528,31 +534,60 @@ def connect(address: str | None) -> bool:
         return False
     option = "--ray-address" if address else "RAY_ADDRESS"
     address = address or os.environ.get("RAY_ADDRESS")
-    if address:
-        why = _unreachable(address)
+    if address and address != "local":
+        why = _unreachable(check_ray_address(address, option))
         if why:  # (Ray itself would retry for minutes)
             raise ConfigError(option, f"nothing answers at {address} ({why}): give the host:port of the cluster's "
                               "head (`ray start --head --port=PORT` prints it)")
         log.info("connecting to the Ray cluster at %s", address)
         try:
             ray.init(address=address, log_to_driver=True)
-        except (ConnectionError, RuntimeError) as exc:
-            raise ConfigError(option, f"cannot connect to a Ray cluster at {address}: {exc} (check the address, "
-                              "and that this machine has the cluster's token: RAY_AUTH_MODE=token and "
-                              "RAY_AUTH_TOKEN or ~/.ray/auth_token)") from None
+        except Exception as exc:  # noqa: BLE001 - whatever Ray raises (ConnectionError, ValueError, its own
+            # RayErrors, ...) is one line naming the option
+            log.debug("ray.init(address=%r) raised", address, exc_info=True)
+            ray.shutdown()  # (whatever of it had started)
+            raise ConfigError(option, f"cannot connect to a Ray cluster at {address}: "
+                              f"{_describe(exc).strip().splitlines()[0]} (check the address, and that this machine "
+                              "has the cluster's token: RAY_AUTH_MODE=token and RAY_AUTH_TOKEN or "
+                              "~/.ray/auth_token)") from None
     else:
         ray.init(address="local", include_dashboard=False, object_store_memory=EMBEDDED_OBJECT_STORE_BYTES,
                  log_to_driver=True)
     return True
 
 
-def _unreachable(address: str) -> str | None:
-    """Why nothing answers at a ``host:port`` address; None when something does, or for another form (auto)."""
-    host, colon, port = address.rpartition(":")
-    if not colon or not port.isdigit() or "://" in address:
+_HOST = re.compile(r"\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+")  # [IPv6], IPv4 or a host name
+_PORT = re.compile(r"[0-9]{1,5}")
+
+
+def check_ray_address(address: str, option: str, error: type[ConfigError] = ConfigError) -> tuple[str, int] | None:
+    """The host and port of a Ray address in a form ray.init takes (None for ``auto`` and ``local``, which name
+    none): ``HOST:PORT`` of a head node (``[IPv6]:PORT``) or ``ray://HOST:PORT`` of its Ray Client server. Any
+    other value is an ``error`` naming ``option`` (Ray's own comes as a traceback from deep in ray.init)."""
+    if address in ("auto", "local"):
+        return None
+    scheme, sep, rest = address.rpartition("://")
+    host, colon, port = rest.rpartition(":")
+    if sep and scheme != "ray":
+        why = f"{scheme}:// is not a Ray address (ray:// is)"
+    elif not colon:
+        why = "no port"
+    elif not _HOST.fullmatch(host):
+        why = f"{host!r} is not a host name or IP address"
+    elif not _PORT.fullmatch(port) or not 1 <= int(port) <= 65535:
+        why = f"the port must be an integer in 1..65535, got {port!r}"
+    else:
+        return host.strip("[]"), int(port)
+    raise error(option, f"expected HOST:PORT (of the cluster's head: `ray start --head --port=PORT` prints it), "
+                f"ray://HOST:PORT or auto, got {address!r}: {why}")
+
+
+def _unreachable(host_port: tuple[str, int] | None) -> str | None:
+    """Why nothing answers at ``(host, port)``; None when something does, or for no address (auto)."""
+    if host_port is None:
         return None
     try:
-        socket.create_connection((host, int(port)), timeout=PROBE_S).close()
+        socket.create_connection(host_port, timeout=PROBE_S).close()
     except OSError as exc:
         return exc.strerror or type(exc).__name__
     return None

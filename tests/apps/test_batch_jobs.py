@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from tacsplat.apps.batch import CaptureJob, EvaluateJob, ReconstructJob, load_batch
-from tacsplat.apps.executors import FAILURES_CSV, BatchError, run_jobs
+from tacsplat.apps.executors import FAILURES_CSV, BatchError, check_ray_address, run_jobs
 from tacsplat.cli import main
 from tacsplat.errors import ConfigError
 
@@ -218,6 +218,54 @@ def test_an_address_where_no_cluster_answers_is_one_error(tmp_path, capsys, monk
     monkeypatch.setenv("RAY_ADDRESS", address)
     with pytest.raises(ConfigError, match=f"^RAY_ADDRESS: nothing answers at {address} "):
         run_jobs([FileJob("a", tmp_path / "a")], tmp_path, executor="ray", progress=False)
+
+
+@pytest.mark.parametrize("address, why", [
+    ("not a host:xx", "'not a host' is not a host name or IP address"),
+    ("head:xx", "the port must be an integer in 1..65535, got 'xx'"),
+    ("head:0", "the port must be an integer in 1..65535, got '0'"),
+    ("head:65536", "the port must be an integer in 1..65535, got '65536'"),
+    ("head: 6379", "the port must be an integer in 1..65535, got ' 6379'"),
+    ("head", "no port"),
+    ("ray://head", "no port"),
+    ("http://head:8265", "http:// is not a Ray address (ray:// is)"),
+])
+def test_a_malformed_ray_address_is_a_usage_error(tmp_path, capsys, monkeypatch, address, why):
+    path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")
+    assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address", address]) == 2
+    err = capsys.readouterr().err
+    assert f"error: --ray-address: expected HOST:PORT (of the cluster's head: " in err
+    assert f"ray://HOST:PORT or auto, got {address!r}: {why} (see " in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+    monkeypatch.setenv("RAY_ADDRESS", address)  # the same mistake in the environment: an error naming it
+    with pytest.raises(ConfigError, match=f"^RAY_ADDRESS: expected HOST:PORT .*: {re.escape(why)}$"):
+        run_jobs([FileJob("a", tmp_path / "a")], tmp_path, executor="ray", progress=False)
+
+
+def test_the_ray_address_forms_ray_takes():
+    assert check_ray_address("10.0.0.5:6379", "--ray-address") == ("10.0.0.5", 6379)
+    assert check_ray_address("head-node.cluster.local:65535", "--ray-address") == ("head-node.cluster.local", 65535)
+    assert check_ray_address("[fe80::1]:6379", "--ray-address") == ("fe80::1", 6379)
+    assert check_ray_address("ray://head:10001", "--ray-address") == ("head", 10001)
+    assert check_ray_address("auto", "--ray-address") is None and check_ray_address("local", "x") is None
+
+
+def test_a_ray_error_at_init_is_one_line_naming_the_option(tmp_path, capsys, monkeypatch):
+    import ray.client_builder
+
+    # Ray's own error for a ray:// address without its client package (ValueError), whether installed or not
+    monkeypatch.setattr(ray.client_builder, "get_ray_client_dependency_error", lambda: ImportError("no grpc"))
+    path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")
+    with socket.socket() as server:  # something answers at the address
+        server.bind(("127.0.0.1", 0))
+        server.listen()
+        address = f"ray://127.0.0.1:{server.getsockname()[1]}"
+        assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address",
+                     address]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1].startswith(f"error: --ray-address: cannot connect to a Ray cluster at {address}: "
+                                           "ValueError: Ray Client requires pip package `ray[client]`. ")
+    assert "Traceback" not in err
 
 
 def test_batch_warns_of_a_run_trained_with_other_settings_and_keeps_it(tmp_path, caplog):
