@@ -4,7 +4,10 @@
 output) folder: it creates the folder and its parents, proves it writable, and
 takes an exclusive lock held until the returned :class:`OutputLock` is
 released (or the process dies), so two commands never write one folder at once.
-Each failure is one :class:`ConfigError` naming the option and the path.
+Each failure is one :class:`ConfigError` naming the option and the path. The
+lock file holds the PID of the process writing the folder (also of a
+:class:`~tacsplat.datasets.SceneWriter`, which locks its journal), so a refusal
+names that process.
 """
 
 from __future__ import annotations
@@ -30,8 +33,28 @@ def ensure_output_dir(path: str | Path, option: str = "--out") -> Path:
     except OSError as exc:
         raise ConfigError(option, f"cannot create {path}: {exc.strerror or exc}") from None
     if not os.access(path, os.W_OK | os.X_OK):
+        if os.statvfs(path).f_flag & os.ST_RDONLY:
+            raise ConfigError(option, f"{path} is on a read-only file system; choose a folder on another")
         raise ConfigError(option, f"{path} is not writable")
     return path
+
+
+def record_writer(path: Path) -> None:
+    """Write this process's PID into ``path``'s lock file, for :func:`other_writer` to name it."""
+    try:
+        (Path(path) / LOCK_NAME).write_text(f"{os.getpid()}\n")
+    except OSError:
+        pass  # a full or read-only disk: the PID only makes a refusal's message more precise
+
+
+def other_writer(path: Path) -> str:
+    """The process writing ``path`` as a message names it: "another tacsplat process (PID n)", the PID its lock
+    file holds (left out when the file holds none)."""
+    try:
+        pid = int((Path(path) / LOCK_NAME).read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return "another tacsplat process"
+    return f"another tacsplat process (PID {pid})"
 
 
 class OutputLock:
@@ -44,8 +67,9 @@ class OutputLock:
             fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             self._file.close()
-            raise ConfigError(option, f"{path} is being written by another tacsplat process; wait for it or "
+            raise ConfigError(option, f"{path} is being written by {other_writer(path)}; wait for it to end or "
                               "choose another folder") from None
+        record_writer(path)
 
     def release(self) -> None:
         if not self._file.closed:

@@ -384,11 +384,31 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
                                 f"hold {len(scene.frames)} and {len(scene.touches)}: {resume}")
             elif journaled.annotations != scene.annotations and not problems.errors:
                 problems.report(journal, "annotations", f"records other annotations than scene.json holds: {resume}")
+            elif ((journaled.gt_mesh, journaled.gt_depth_files) != (scene.gt_mesh_file, scene.gt_depth_files)
+                  and not problems.errors):
+                problems.report(journal, "gt", f"records other ground truth than scene.json holds: {resume}")
+    if not problems.errors:
+        _check_twin_ground_truth(scene, problems)
     index = scene.path / "transforms.json"
     if not scene.frames:
         problems.report(index, "frames", "the scene has no frames")
     elif not scene.split("train"):
         problems.report(index, "frames", "the scene has no train frames")
+
+
+def _check_twin_ground_truth(scene: Scene, problems: _Problems) -> None:
+    """A capture on the twin (``extra.simulator`` in scene.json) has the ground truth it writes: the object's mesh
+    and the depth of every test view."""
+    if scene.meta.source != "sim" or "simulator" not in scene.meta.extra:
+        return
+    index = scene.path / "scene.json"
+    if scene.gt_mesh_file is None:
+        problems.report(index, "gt.mesh", "a capture on the twin without its ground-truth mesh (its write failed, "
+                        "or the capture stopped before it): resume the capture (--resume) to write it")
+    missing = [f.id for f in scene.split("test") if f.id not in scene.gt_depth_files]
+    if missing:
+        problems.report(index, "gt.depth", f"a capture on the twin without the ground-truth depth of its test "
+                        f"frame(s) {', '.join(map(str, missing))}")
 
 
 def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None, str, dict, dict]:

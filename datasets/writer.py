@@ -16,6 +16,11 @@ wins), e.g. the decisions of a next-best capture. After ``kill -9`` at any point
   deletes leftover temporary files, rewrites the index and continues numbering
   where the journal stopped: only the record in flight can be lost.
 
+A full disk or a read-only file system is one :class:`~tacsplat.errors.StorageError` naming the file
+(:mod:`tacsplat.files`): no temporary file is left, a journal line cut short is cut from the journal again, and
+the scene resumes once there is space. One writer holds a scene at a time (a lock on its journal); a second one
+is refused naming the process that holds it (its PID, in the folder's lock file, ``datasets.outputs``).
+
 Ids are dense per kind (frames 0..N-1, touches 0..M-1): ``remove_last`` (the
 operator's undo) is itself a journal record and the next record reuses the
 freed id, so a scene never has gaps.
@@ -40,9 +45,10 @@ import numpy as np
 
 import tacsplat
 from tacsplat.errors import InvalidInputError, SceneFormatError
+from tacsplat.files import atomic_write, storage_error
 from tacsplat.types import CameraIntrinsics, TactileReading
 
-from .outputs import LOCK_NAME
+from .outputs import LOCK_NAME, other_writer, record_writer
 from .records import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -84,24 +90,10 @@ def is_temp_file(path: Path) -> bool:
     return path.name.startswith(".") and path.name.endswith(TEMP_SUFFIX)
 
 
-def _fsync_dir(directory: Path) -> None:
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that ``path`` is always either the old or the new file."""
-    path = Path(path)
-    tmp = temp_name(path)
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    _fsync_dir(path.parent)
+    """Write ``data`` to ``path`` so that ``path`` is always either the old or the new file (through its hidden
+    temporary name, which a resume deletes after a crash); a full or read-only disk is a StorageError."""
+    atomic_write(path, data, temp=temp_name(Path(path)))
 
 
 def atomic_write_json(path: Path, obj) -> None:
@@ -123,15 +115,19 @@ def encode_npz(**arrays) -> bytes:
 
 
 def has_content(path: Path) -> bool:
-    """Whether a folder holds anything besides the lock file of the command writing it (``datasets.outputs``)."""
-    return any(p.name != LOCK_NAME for p in Path(path).iterdir())
+    """Whether a folder holds anything besides the lock file of the command writing it (``datasets.outputs``) and
+    temporary files."""
+    return any(p.name != LOCK_NAME and not is_temp_file(p) for p in Path(path).iterdir())
 
 
 def check_new_scene_dir(path: Path) -> None:
     """Refuse (InvalidInputError) a folder that holds anything: a scene starts in a new or empty one."""
     path = Path(path)
     if (path / JOURNAL).exists():
-        raise InvalidInputError(f"{path} already holds a scene; use SceneWriter.resume to continue it")
+        if _journal_locked(path / JOURNAL):
+            raise InvalidInputError(f"{path} is being written by {other_writer(path)}: wait for it to end and "
+                                    "continue the scene with --resume, or choose a new folder")
+        raise InvalidInputError(f"{path} already holds a scene: continue it with --resume, or choose a new folder")
     if path.is_dir() and has_content(path):
         raise InvalidInputError(f"{path} exists and is not an empty folder; choose a new output folder")
 
@@ -205,9 +201,39 @@ class SceneWriter:
             raise InvalidInputError(f"meta: capture_plan and extra must be plain JSON data: {exc}") from exc
         if path.exists() and not path.is_dir():
             raise InvalidInputError(f"{path} exists and is not a folder; choose a new output folder")
-        check_new_scene_dir(path)
-        for sub in ("", "images", "touches", "gt", "gt/depth"):
-            (path / sub).mkdir(parents=True, exist_ok=True)
+        _make_folders(path, "")
+        # The journal is written under a name every creator of this folder opens, and locked before the folder is
+        # checked, so of two processes creating one scene at once the second is refused, naming the first.
+        creating = path / f".{JOURNAL}.new{TEMP_SUFFIX}"
+        journal = _lock_journal(creating, path)
+        try:
+            try:
+                check_new_scene_dir(path)
+            except BaseException:
+                creating.unlink(missing_ok=True)
+                raise
+            record_writer(path)
+            try:
+                writer = cls._start(path, intrinsics, meta, sensor, journal)
+                os.rename(creating, path / JOURNAL)
+            except BaseException as exc:
+                # a scene that never got its journal holds nothing: what it wrote goes, so a rerun can start again
+                creating.unlink(missing_ok=True)
+                _remove_index(path)
+                if isinstance(exc, OSError):
+                    raise storage_error(exc, path / JOURNAL) from None
+                raise
+            _fsync_dir(path)
+        except BaseException:
+            journal.close()
+            raise
+        return writer
+
+    @classmethod
+    def _start(cls, path: Path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None,
+               journal) -> "SceneWriter":
+        """The folders and index files of a new scene, and its journal header in ``journal`` (not yet named)."""
+        _make_folders(path, "images", "touches", "gt", "gt/depth")
         created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
         writer = cls(path, intrinsics, meta, sensor, created, tacsplat.__version__)
         writer._materialise("transforms", "touches", "scene")
@@ -222,8 +248,9 @@ class SceneWriter:
             "sensor": sensor_to_json(sensor),
             "meta": meta_to_json(meta),
         }
-        atomic_write_bytes(path / JOURNAL, (json.dumps(header) + "\n").encode())
-        writer._journal = _lock_journal(path / JOURNAL)
+        journal.truncate(0)  # (the file of a creation that crashed before its rename)
+        writer._journal = journal
+        writer._append(header)
         return writer
 
     @classmethod
@@ -233,15 +260,15 @@ class SceneWriter:
         journal_path = path / JOURNAL
         if not journal_path.is_file():
             raise SceneFormatError(journal_path, None, "missing: this folder was not written by SceneWriter (or its creation never finished)")
-        journal = _lock_journal(journal_path)
+        journal = _lock_journal(journal_path, path)
         try:
             writer = cls._replay(path, _read_journal(journal_path))
         except BaseException:
             journal.close()
             raise
         writer._journal = journal
-        for sub in ("images", "touches", "gt", "gt/depth"):
-            (path / sub).mkdir(parents=True, exist_ok=True)
+        record_writer(path)
+        _make_folders(path, "images", "touches", "gt", "gt/depth")
         removed = writer._remove_leftovers()
         writer._materialise("transforms", "touches", "scene")
         log.info("resumed %s: %d frames, %d touches (%d leftover files removed)",
@@ -301,6 +328,16 @@ class SceneWriter:
         return self._order[-1] if self._order else None
 
     @property
+    def gt_mesh(self) -> str | None:
+        """The ground-truth mesh's path in the scene (``gt/mesh.ply``), None until :meth:`set_gt_mesh`."""
+        return self._gt_mesh
+
+    @property
+    def gt_depth_files(self) -> dict[int, str]:
+        """Frame id -> the path in the scene of its ground-truth depth."""
+        return dict(self._gt_depth)
+
+    @property
     def num_grasps(self) -> int:
         """Number of distinct grasp indices among the touches."""
         return len({t.grasp for t in self.touches})
@@ -347,11 +384,27 @@ class SceneWriter:
         if self._journal is None:
             raise InvalidInputError(f"SceneWriter for {self.path} is closed")
         entry = {**entry, "t": time.time()}
-        self._journal.write((json.dumps(entry) + "\n").encode())
-        self._journal.flush()
-        os.fsync(self._journal.fileno())
+        self._append(entry)
         self._apply(entry)
         self._materialise(*index)
+
+    def _append(self, entry: dict) -> None:
+        """Append ``entry`` to the journal as one line, durably (fsync). When the write fails (a full disk) the
+        journal is cut back to where it was, so that no record ever follows a torn line; if even that fails, the
+        writer closes (a resume drops the torn line)."""
+        fd = self._journal.fileno()
+        end = os.lseek(fd, 0, os.SEEK_END)
+        try:
+            line = memoryview((json.dumps(entry) + "\n").encode())
+            while line:
+                line = line[os.write(fd, line):]
+            os.fsync(fd)
+        except OSError as exc:
+            try:
+                os.ftruncate(fd, end)
+            except OSError:
+                self.close()
+            raise storage_error(exc, self.path / JOURNAL) from None
 
     def _materialise(self, *which: str) -> None:
         if "transforms" in which:
@@ -526,15 +579,60 @@ class SceneWriter:
         self.close()
 
 
-def _lock_journal(path: Path):
-    """Open the journal for appending, holding an exclusive lock (released by close or by the process dying)."""
-    journal = open(path, "ab")
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename in ``directory`` durable."""
+    fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _remove_index(scene: Path) -> None:
+    """Remove what :meth:`SceneWriter.create` writes before the journal (index files, empty record folders, the
+    lock file's PID), as far as possible."""
+    try:
+        for name in ("transforms.json", "touches.json", "scene.json", LOCK_NAME):
+            (scene / name).unlink(missing_ok=True)
+        for sub in ("gt/depth", "gt", "touches", "images"):
+            (scene / sub).rmdir()
+    except OSError:
+        pass  # (a read-only disk, or a folder that holds something: a later create names what is in the way)
+
+
+def _make_folders(scene: Path, *subs: str) -> None:
+    for sub in subs:
+        try:
+            (scene / sub).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise storage_error(exc, scene / sub) from None
+
+
+def _lock_journal(path: Path, scene: Path):
+    """Open the journal ``path`` of ``scene`` for appending (unbuffered: :meth:`SceneWriter._append` writes whole
+    lines), holding an exclusive lock (released by close or by the process dying). The holder records its PID in
+    the scene's lock file (``record_writer``), for the message that refuses another writer."""
+    try:
+        journal = open(path, "ab", buffering=0)
+    except OSError as exc:
+        raise storage_error(exc, scene / JOURNAL) from None
     try:
         fcntl.flock(journal.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError as exc:
+    except BlockingIOError:
         journal.close()
-        raise InvalidInputError(f"{path.parent} is open in another SceneWriter; close that one first") from exc
+        raise InvalidInputError(f"{scene} is being written by {other_writer(scene)}: wait for it to end, then "
+                                "continue the scene with --resume") from None
     return journal
+
+
+def _journal_locked(path: Path) -> bool:
+    """Whether a writer (of any process) holds the journal ``path``."""
+    with open(path, "rb") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+    return False
 
 
 def journaled_state(path) -> SceneWriter:

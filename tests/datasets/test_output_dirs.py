@@ -45,3 +45,16 @@ def test_a_second_claim_on_a_locked_folder_is_refused_until_released(tmp_path):
     first.release()
     with claim_output_dir(tmp_path / "run"):
         pass
+
+
+def test_a_refused_claim_names_the_process_holding_the_folder(tmp_path):
+    with claim_output_dir(tmp_path / "run"):
+        with pytest.raises(ConfigError, match=rf"another tacsplat process \(PID {os.getpid()}\)"):
+            claim_output_dir(tmp_path / "run")
+
+
+def test_a_folder_on_a_read_only_mount_is_refused_saying_so(tmpfs):
+    mount = tmpfs("64k")
+    mount.read_only()
+    with pytest.raises(ConfigError, match=f"--out: {mount.path} is on a read-only file system"):
+        ensure_output_dir(mount.path)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -178,9 +179,12 @@ def test_create_rejects_metadata_that_is_not_json(tmp_path, h):
 
 def test_one_writer_at_a_time_and_no_overwrite(scene_dir, h):
     with SceneWriter.resume(scene_dir):
-        with pytest.raises(InvalidInputError, match="another SceneWriter"):
+        with pytest.raises(InvalidInputError, match=rf"being written by another tacsplat process \(PID {os.getpid()}\)"
+                                                    ".* --resume"):
             SceneWriter.resume(scene_dir)
-    with pytest.raises(InvalidInputError, match="SceneWriter.resume"):
+        with pytest.raises(InvalidInputError, match="being written by another tacsplat process"):
+            SceneWriter.create(scene_dir, h.intrinsics(), SceneMeta("sim", "x"))
+    with pytest.raises(InvalidInputError, match="already holds a scene: continue it with --resume"):
         SceneWriter.create(scene_dir, h.intrinsics(), SceneMeta("sim", "x"))
     SceneWriter.resume(scene_dir).close()  # the lock is released on close
 
