@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 
+from tacsplat.errors import ConfigError, UsageError
+
 
 def _background(text: str) -> tuple[int, int, int]:
     from .blender import parse_background
@@ -91,33 +93,50 @@ def register(cli) -> None:
     p.set_defaults(func=_inspect)
 
 
-def _import_blender(args) -> int:
-    from .blender import import_blender
+_IMPORT_OPTIONS = {"scale": "--scale", "test_every": "--test-every"}  # the importers' keys of option values
+
+
+def _importing(run, args) -> int:
+    """Run an importer (``run()``), then inspect the scene; an option value it refuses is a UsageError (exit 2)
+    naming the option."""
     from .inspect import run_inspect
 
-    import_blender(args.src, args.out, background_rgb=args.background, test_split=args.test_split, scale=args.scale)
+    try:
+        run()
+    except ConfigError as exc:
+        if exc.key not in _IMPORT_OPTIONS:
+            raise
+        raise UsageError(_IMPORT_OPTIONS[exc.key], str(exc).removeprefix(f"{exc.key}: ")) from None
     return run_inspect(args.out)
+
+
+def _import_blender(args) -> int:
+    from .blender import import_blender
+
+    return _importing(lambda: import_blender(args.src, args.out, background_rgb=args.background,
+                                             test_split=args.test_split, scale=args.scale), args)
 
 
 def _import_colmap(args) -> int:
     from .colmap import import_colmap
-    from .inspect import run_inspect
 
-    import_colmap(args.src, args.images, args.out, test_every=args.test_every, scale=args.scale,
-                  object_name=getattr(args, "object", None))
-    return run_inspect(args.out)
+    return _importing(lambda: import_colmap(args.src, args.images, args.out, test_every=args.test_every,
+                                            scale=args.scale, object_name=getattr(args, "object", None)), args)
 
 
 def _import_nerfstudio(args) -> int:
-    from .inspect import run_inspect
     from .nerfstudio import import_nerfstudio
 
-    import_nerfstudio(args.src, args.out, test_every=args.test_every, scale=args.scale, skip_missing=args.skip_missing,
-                      object_name=getattr(args, "object", None))
-    return run_inspect(args.out)
+    return _importing(lambda: import_nerfstudio(args.src, args.out, test_every=args.test_every, scale=args.scale,
+                                                skip_missing=args.skip_missing,
+                                                object_name=getattr(args, "object", None)), args)
 
 
 def _inspect(args) -> int:
-    from .inspect import run_inspect
+    from .inspect import picture_format, plot_formats, run_inspect
 
-    return run_inspect(args.dir, as_json=getattr(args, "json", False), plot=getattr(args, "plot", None))
+    plot = getattr(args, "plot", None)
+    if plot is not None and picture_format(plot) not in plot_formats():
+        raise UsageError("--plot", f"cannot save a picture as .{picture_format(plot)}; use one of "
+                         f"{', '.join('.' + f for f in plot_formats())}")
+    return run_inspect(args.dir, as_json=getattr(args, "json", False), plot=plot)

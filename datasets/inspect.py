@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from tacsplat.errors import SceneFormatError
+from tacsplat.files import atomic_write, check_writable
 
 from .reader import check_scene
 from .records import SPLITS
@@ -92,7 +93,8 @@ def format_summary(summary: dict) -> str:
 
 
 def plot_scene(path, png_path) -> Path:
-    """A picture of the capture: camera centres and viewing directions per split, contact points, bounds."""
+    """A picture of the capture: camera centres and viewing directions per split, contact points, bounds; saved
+    (atomically, in the format of its suffix) as ``png_path``, whose folder must exist."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -140,13 +142,28 @@ def plot_scene(path, png_path) -> Path:
     ax.set_title(f"{scene.meta.object} ({scene.meta.source}): cameras, touches and bounds")
     ax.legend(loc="upper left", fontsize="small")
     png_path = Path(png_path)
-    png_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png_path, dpi=100)
+    atomic_write(png_path, lambda f: fig.savefig(f, format=picture_format(png_path), dpi=100))
     return png_path
 
 
+def picture_format(path) -> str:
+    """The picture format :func:`plot_scene` writes to ``path``: its suffix's (png without one)."""
+    return Path(path).suffix.lstrip(".").lower() or "png"
+
+
+def plot_formats() -> list[str]:
+    """The picture formats :func:`plot_scene` can write (matplotlib's)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    return sorted(FigureCanvasAgg(Figure()).get_supported_filetypes())
+
+
 def run_inspect(path, as_json: bool = False, plot: str | Path | None = None) -> int:
-    """Print the summary (text or one JSON object), optionally save :func:`plot_scene`; exit code 1 on problems."""
+    """Print the summary (text or one JSON object), optionally save :func:`plot_scene`; exit code 1 on problems.
+    The picture's folder is made and must be writable before anything is printed (a StorageError naming it)."""
+    if plot is not None:
+        check_writable(Path(plot).parent)
     summary = summarise(path)
     print(json.dumps(summary, indent=1) if as_json else format_summary(summary))
     if plot is not None:
