@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, UsageError
 
 
 def register(cli) -> None:
@@ -39,10 +39,10 @@ def register(cli) -> None:
         "--touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in "
         "--seed; --resume continues a killed capture with the same options (any other value is refused, naming "
         "the option).",
+        build=_object_radius_option("bounding-sphere radius in metres"),
     )
     p.add_argument("--object", default="teapot", help="library object (teapot, toaster, bell, helmet, torus, car)")
     p.add_argument("--mesh", default=None, help="any .obj/.ply/.stl mesh instead of a library object")
-    p.add_argument("--object-radius", type=float, default=0.08, help="bounding-sphere radius in metres (at most 0.3)")
     p.add_argument("--views", type=int, default=5, help="train views (at least 1)")
     p.add_argument("--test-views", type=int, default=24, help="held-out test views (with GT depth in gt/; 0 or more)")
     p.add_argument("--grasps", type=int, default=5, help="grasps of four touches each (0 or more)")
@@ -58,7 +58,7 @@ def register(cli) -> None:
                    "whose fingertips land where the reconstruction is least sure")
     p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp (1 to 1000)")
     p.add_argument("--selection-steps", type=int, default=300,
-                   help="next-best: training steps of the reconstruction before each grasp")
+                   help="next-best: training steps of the reconstruction before each grasp (1 to 1000000)")
     p.add_argument("--uncertainty", default="depth-variance",
                    help="next-best: the score, fisher (Fisher information of the Gaussians' positions under the "
                    "photometric loss) or depth-variance (spread of depth along the training rays)")
@@ -73,15 +73,25 @@ def register(cli) -> None:
         "logger and grasp controller as sim-capture (or, with --touch-model paper, makes four of the paper's touches "
         "per grasp on it), and writes the touches in the scene's frame and units. A scene with this sensor model is "
         "extended in place; one without (an import) is copied into --out first.",
+        build=_object_radius_option("graspable size the mesh is simulated at: its bounding-sphere radius in metres"),
     )
     p.add_argument("--mesh", required=True, help="the object's mesh, in the scene's world frame and units")
     p.add_argument("scene", help="scene directory")
-    p.add_argument("--grasps", type=int, default=5)
+    p.add_argument("--grasps", type=int, default=5, help="grasps to add (at least 1)")
     p.add_argument("--out", default=None, help="new scene directory (needed when SCENE has no tactile sensor model)")
-    p.add_argument("--object-radius", type=float, default=0.08, help="graspable size the mesh is simulated at (m)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the grasps (0 or more)")
     _touch_model_options(p)
     p.set_defaults(func=_simulate_touches)
+
+
+def _object_radius_option(what: str):
+    """The builder of ``--object-radius`` (deferred: its range comes from the twin's objects, which import trimesh)."""
+    def build(p) -> None:
+        from tacsplat.sim.objects import OBJECT_RADIUS_RANGE_M
+
+        p.add_argument("--object-radius", type=float, default=0.08,
+                       help="{} ({:g} to {:g}: the sizes the twin's hand grasps)".format(what, *OBJECT_RADIUS_RANGE_M))
+    return build
 
 
 def _touch_model_options(p) -> None:
@@ -90,8 +100,8 @@ def _touch_model_options(p) -> None:
                    "touches, 4 per grasp and no hand (the official code's: the 50 surface samples nearest to where a "
                    "random ray from the centroid leaves the mesh)")
     p.add_argument("--surface-points", type=int, default=None,
-                   help="paper touches: points sampled evenly on the surface (default 20000, the official code's for "
-                   "Glossy Synthetic; it used 10000 for Shiny Blender)")
+                   help="paper touches: points sampled evenly on the surface, 50 (a touch's) to 10000000 (default "
+                   "20000, the official code's for Glossy Synthetic; it used 10000 for Shiny Blender)")
 
 
 def _touch_args(args) -> dict:
@@ -112,12 +122,12 @@ def _sim_capture(args) -> int:
 
     from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
 
+    config = _option_values(lambda: sim_rig_config(
+        object=args.object, mesh=args.mesh, object_radius=args.object_radius, views=args.views,
+        test_views=args.test_views, grasps=args.grasps, resolution=args.resolution, seed=args.seed,
+        grasp_strategy=args.grasp_strategy, candidates=args.candidates, selection_steps=args.selection_steps,
+        uncertainty=args.uncertainty, texture=args.texture, **_touch_args(args)), _SIM_OPTIONS)
     try:
-        config = sim_rig_config(object=args.object, mesh=args.mesh, object_radius=args.object_radius,
-                                views=args.views, test_views=args.test_views, grasps=args.grasps,
-                                resolution=args.resolution, seed=args.seed, grasp_strategy=args.grasp_strategy,
-                                candidates=args.candidates, selection_steps=args.selection_steps,
-                                uncertainty=args.uncertainty, texture=args.texture, **_touch_args(args))
         timings = sim_capture(config, args.out, resume=args.resume)
     except ConfigError as exc:
         raise _naming_options(exc, _SIM_OPTIONS) from None
@@ -126,8 +136,10 @@ def _sim_capture(args) -> int:
 
 
 def _simulate_touches(args) -> int:
-    from tacsplat.acquisition.touch_simulation import simulate_touches
+    from tacsplat.acquisition.touch_simulation import simulate_touches, touch_settings
 
+    _option_values(lambda: touch_settings(args.grasps, args.object_radius, args.seed, **_touch_args(args)),
+                   _TOUCH_OPTIONS)
     try:
         target = simulate_touches(args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed,
                                   **_touch_args(args))
@@ -135,6 +147,18 @@ def _simulate_touches(args) -> int:
         raise _naming_options(exc, _TOUCH_OPTIONS) from None
     print(f"touches written to {target}")
     return 0
+
+
+def _option_values(check, options: dict[str, str]):
+    """``check()``, which checks the command's option values: a value it refuses is a UsageError (exit 2) naming
+    the option; a file named by an option (``--mesh``) that is missing stays an error of the run (exit 1)."""
+    try:
+        return check()
+    except ConfigError as exc:
+        named = _naming_options(exc, options)
+        if named.key == "--mesh":
+            raise named from None
+        raise UsageError(named.key, str(named).removeprefix(f"{named.key}: ")) from None
 
 
 def _naming_options(exc: ConfigError, options: dict[str, str]) -> ConfigError:
@@ -159,4 +183,5 @@ _SIM_OPTIONS = {
     "plan.touches.model": "--touch-model",
     "plan.touches.surface_points": "--surface-points",
 }
-_TOUCH_OPTIONS = {"model": "--touch-model", "surface_points": "--surface-points"}  # simulate_touches' TouchPlan
+_TOUCH_OPTIONS = {"model": "--touch-model", "surface_points": "--surface-points", "grasps": "--grasps",
+                  "object_radius": "--object-radius", "seed": "--seed", "out": "--out"}  # simulate_touches' keys

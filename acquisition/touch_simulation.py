@@ -26,8 +26,9 @@ from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, 
 from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
 from tacsplat.errors import ConfigError
+from tacsplat.files import check_writable
 from tacsplat.sim.grasps import GraspConfig
-from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere, read_mesh
+from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere, object_radius_problem, read_mesh
 from tacsplat.sim.twin import SimTwin, TwinConfig
 from tacsplat.types import TactileReading
 
@@ -85,6 +86,27 @@ class ScenePoseSource:
         return self.twin_poses.ground_truth_depth() / self.units.scale
 
 
+def touch_settings(grasps: int, object_radius: float, seed: int, touch_model: str = "gel",
+                   surface_points: int = TouchPlan.surface_points) -> TouchPlan:
+    """The touch plan of :func:`simulate_touches`'s settings, each checked against its range (a ConfigError
+    naming it: ``grasps``, ``object_radius``, ``seed``, ``model``, ``surface_points``)."""
+    touches = TouchPlan(model=touch_model, surface_points=surface_points)
+    validate_touches(touches)
+    for key, value in (("grasps", grasps), ("seed", seed)):
+        least = 1 if key == "grasps" else 0
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise ConfigError(key, f"must be an integer >= {least}, got {value!r}")
+    problem = object_radius_problem(object_radius)
+    if problem:
+        raise ConfigError("object_radius", problem)
+    return touches
+
+
+def _existing_folder(path: Path) -> Path:
+    """``path``, or its nearest parent that exists: where a new folder ``path`` would be made."""
+    return next(p for p in (path, *path.parents) if p.exists())
+
+
 def simulate_touches(
     mesh_path: str | Path,
     scene_path: str | Path,
@@ -105,25 +127,26 @@ def simulate_touches(
     ``surface_points`` samples) take the grasps' place. A scene written with this
     sensor model is extended in place, numbering grasps on; one without (an
     import) is copied with its frames into ``out`` first. Returns the scene
-    written.
+    written. The settings (:func:`touch_settings`) and the folder to write (it
+    must be writable) are checked before the twin starts.
     """
-    touches = TouchPlan(model=touch_model, surface_points=surface_points)
-    validate_touches(touches)
+    touches = touch_settings(grasps, object_radius, seed, touch_model, surface_points)
     scene = Scene.load(scene_path)
+    if scene.sensor is not None and out is not None:
+        raise ConfigError("out", f"{scene_path} already holds touches; it is extended in place, drop --out")
+    if scene.sensor is None and out is None:
+        raise ConfigError("out", f"{scene_path} has no tactile sensor model (an import): pass --out NEW_SCENE")
+    check_writable(Path(scene_path) if out is None else _existing_folder(Path(out)))
     centre, radius = bounding_sphere(read_mesh(mesh_path))
     with SimTwin(TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)) as twin:
         units = SceneUnits(centre, twin.object.bounding_radius / radius)
         sensor = twin.sensor_model(units.scale)
         if scene.sensor is not None:
-            if out is not None:
-                raise ConfigError("out", f"{scene_path} already holds touches; it is extended in place, drop --out")
             if not np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
                 raise ConfigError("object_radius", f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
                                   f"this mesh at radius {object_radius} gives {sensor.pixel_size_m}")
             target = Path(scene_path)
         else:
-            if out is None:
-                raise ConfigError("out", f"{scene_path} has no tactile sensor model (an import): pass --out NEW_SCENE")
             plan = {**scene.meta.capture_plan, "simulated_touches": {
                 "mesh": str(mesh_path), "grasps": grasps, "seed": seed, "touches": touches.to_json()}}
             extra = {**scene.meta.extra, "touch_scale": units.scale, "object_bounding_radius_m": object_radius}
