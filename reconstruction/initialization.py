@@ -18,6 +18,8 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tacsplat.errors import StorageError
+from tacsplat.files import storage_error
 from tacsplat.geometry import invert_pose
 from tacsplat.reconstruction.gaussians import Gaussians
 
@@ -51,6 +53,13 @@ class SfmResult:
     colors: np.ndarray  # [M, 3] in [0, 1]
 
 
+def _temporary_folder_error(exc: OSError) -> StorageError:
+    """The StorageError of a full or read-only temporary folder, where SfM writes its images: names the folder and
+    TMPDIR, which chooses another."""
+    error = storage_error(exc, tempfile.gettempdir())
+    return StorageError(error.path, f"{error.reason} (SfM's temporary files; TMPDIR chooses another folder)")
+
+
 def sfm_points(
     images: list[np.ndarray],  # each [H, W, 3] float in [0, 1] or uint8
     Ks: list[np.ndarray],  # each [3, 3]
@@ -66,16 +75,23 @@ def sfm_points(
         return empty
     # COLMAP's INFO lines, and its warnings about fixing the gauge of a bundle whose poses are all known, are noise here
     pycolmap.logging.minloglevel = max(pycolmap.logging.minloglevel, 2)
-    with tempfile.TemporaryDirectory(prefix="tacsplat-sfm-") as tmp:
+    try:
+        workspace = tempfile.TemporaryDirectory(prefix="tacsplat-sfm-")
+    except OSError as exc:
+        raise _temporary_folder_error(exc) from None
+    with workspace as tmp:
         tmp = Path(tmp)
         image_dir = tmp / "images"
-        image_dir.mkdir()
         names = [f"{i:05d}.png" for i in range(len(images))]
-        for name, image in zip(names, images):
-            image = np.asarray(image)
-            if image.dtype != np.uint8:
-                image = np.clip(np.round(image * 255.0), 0, 255).astype(np.uint8)
-            cv2.imwrite(str(image_dir / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        try:  # (cv2.imwrite would only return False on a full or read-only temporary folder)
+            image_dir.mkdir()
+            for name, image in zip(names, images):
+                image = np.asarray(image)
+                if image.dtype != np.uint8:
+                    image = np.clip(np.round(image * 255.0), 0, 255).astype(np.uint8)
+                (image_dir / name).write_bytes(cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))[1])
+        except OSError as exc:
+            raise _temporary_folder_error(exc) from None
         database = tmp / "database.db"
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.sift.max_num_features = config.sift_max_features

@@ -176,3 +176,14 @@ def test_a_read_only_out_is_one_error_before_any_training(scene, straight, tmpfs
     _one_error_line(capsys.readouterr().err, str(mount.path / "new"), "Read-only file system")
     assert main(["evaluate", str(run)]) == 1
     _one_error_line(capsys.readouterr().err, str(run), "the file system is read-only")
+
+
+def test_a_full_temporary_folder_for_sfm_is_one_error_naming_it(scene, tmpfs, monkeypatch, tmp_path, capsys):
+    import tempfile
+
+    mount = tmpfs("1m")
+    _fill(mount.path)
+    monkeypatch.setattr(tempfile, "tempdir", str(mount.path))  # (what TMPDIR sets)
+    with_sfm = [option for option in RUN if option != "--no-init-sfm"]
+    assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), *with_sfm]) == 1
+    _one_error_line(capsys.readouterr().err, str(mount.path), DISK_FULL, "TMPDIR")
