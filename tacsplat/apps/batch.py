@@ -18,6 +18,8 @@ A reconstruction with neither ``variant`` nor ``preset`` trains what `tacsplat r
 options.
 A reconstruction of a scene that a capture of the batch writes needs that
 capture (listed before it), and an evaluation of a run needs its reconstruction.
+A job may also list the names of jobs it needs (``needs: [capture scenes/teapot-s0]``,
+anywhere in the file): it runs after them, and not at all when one of them failed.
 Writes ``DIR/results.csv`` (one row per run with a metrics.json, rewritten as
 runs finish) and, when jobs fail, ``DIR/failures.csv``.
 """
@@ -26,6 +28,7 @@ from __future__ import annotations
 
 import csv
 import functools
+import heapq
 import json
 import logging
 import shutil
@@ -61,8 +64,8 @@ def capture_once(rig, scene: Path) -> Path:
 
 @dataclass(frozen=True, kw_only=True)
 class BatchJob:
-    """What every job has (the :class:`~tacsplat.apps.executors.Job` protocol); a batch file sets ``cpus`` and
-    may set ``name``, the needs are inferred."""
+    """What every job has (the :class:`~tacsplat.apps.executors.Job` protocol); a batch file may set ``cpus``,
+    ``name`` and ``needs`` (names of jobs of the file; those a job's paths imply are added)."""
 
     __pydantic_config__ = {"extra": "forbid"}  # in a batch file, an unknown key is an error
 
@@ -301,8 +304,8 @@ def run_folder(job) -> Path | None:
 
 
 def load_batch(path: str | Path, out: str | Path) -> list:
-    """The jobs of a batch file, validated, with paths resolved and needs inferred; one ConfigError naming the
-    file, the job (``jobs[3]``) and its field otherwise."""
+    """The jobs of a batch file, validated, with paths resolved and needs inferred, each after the jobs it needs
+    (:func:`_in_needs_order`); one ConfigError naming the file, the job (``jobs[3]``) and its field otherwise."""
     import yaml
 
     path, out = Path(path), Path(out)
@@ -321,12 +324,12 @@ def load_batch(path: str | Path, out: str | Path) -> list:
     names: dict[str, int] = {}
     for i, item in enumerate(data["jobs"]):
         job = _parse_job(i, item, path, out)
-        needs = ()
+        needs = job.needs  # as the file lists them
         if isinstance(job, (ReconstructJob, EvaluateJob)):
             key, maker_kind = ("scene", CaptureJob) if isinstance(job, ReconstructJob) else ("run", ReconstructJob)
             source = getattr(job, key)
             if isinstance(made.get(source), maker_kind):
-                needs = (made[source].name,)
+                needs = (*needs, made[source].name)
             elif not source.is_dir():
                 raise ConfigError(f"jobs[{i}].{key}", f"{source} is not a folder, nor the out of a "
                                   f"{maker_kind.__name__.removesuffix('Job').lower()} job listed before this one", path)
@@ -342,8 +345,38 @@ def load_batch(path: str | Path, out: str | Path) -> list:
             job.check()
         except ConfigError as exc:
             raise ConfigError(f"jobs[{i}] ({job.name})", str(exc), path) from None
-        jobs.append(replace(job, needs=needs))
-    return jobs
+        jobs.append(replace(job, needs=tuple(dict.fromkeys(needs))))
+    return _in_needs_order(jobs, path)
+
+
+def _in_needs_order(jobs: list, path: Path) -> list:
+    """``jobs`` in the file's order, but each after the jobs it needs; one ConfigError naming the file and the job
+    for a need that is no job's name, or naming the jobs of a cycle of needs."""
+    from graphlib import CycleError, TopologicalSorter
+
+    index = {job.name: i for i, job in enumerate(jobs)}
+    for i, job in enumerate(jobs):
+        if unknown := [n for n in job.needs if n not in index]:
+            raise ConfigError(f"jobs[{i}].needs", f"{job.name!r} needs {unknown[0]!r}, which is no job of this file "
+                              "(a job's name is its `name:`, else its kind and its out, or run, as written, as in "
+                              f"{jobs[0].name!r})", path)
+    sorter = TopologicalSorter({job.name: job.needs for job in jobs})
+    try:
+        sorter.prepare()
+    except CycleError as exc:
+        cycle = exc.args[1][:0:-1]  # (graphlib lists each job before the jobs that need it, the first twice)
+        first = min(range(len(cycle)), key=lambda k: index[cycle[k]])
+        cycle = [f"{n!r} (jobs[{index[n]}])" for n in (*cycle[first:], *cycle[:first], cycle[first])]
+        raise ConfigError("jobs", f"the needs form a cycle, so none of its jobs can run: {cycle[0]} needs "
+                          f"{', which needs '.join(cycle[1:])}", path) from None
+    order: list = []
+    ready: list[int] = []  # indices of the jobs whose needs are all in order: the first in the file goes next
+    while sorter.is_active():
+        for name in sorter.get_ready():
+            heapq.heappush(ready, index[name])
+        order.append(jobs[heapq.heappop(ready)])
+        sorter.done(order[-1].name)
+    return order
 
 
 def _resolve(value, base: Path) -> Path:
@@ -380,7 +413,7 @@ def _job_error(i: int, item: dict, exc, path: Path) -> ConfigError:
     key = ".".join([f"jobs[{i}]", *loc])
     if kind == "unexpected_keyword_argument":
         cls = {"capture": CaptureJob, "reconstruct": ReconstructJob, "evaluate": EvaluateJob}[item["kind"]]
-        allowed = sorted(f.name for f in fields(cls) if f.name not in ("needs", "kind"))
+        allowed = sorted(f.name for f in fields(cls) if f.name != "kind")
         return ConfigError(key, f"unknown key (a {item['kind']} job takes {', '.join(allowed)})", path)
     if kind == "missing":
         return ConfigError(key, "missing (a required key)", path)

@@ -107,6 +107,41 @@ def test_batch_file_resolves_paths_and_infers_needs(tmp_path):
     assert capture.gpus(cluster_has_gpus=True) == 0
 
 
+def test_needs_in_a_batch_file_run_each_job_after_what_it_needs(tmp_path):
+    text = """\
+jobs:
+  - {kind: capture, out: scenes/z}
+  - {kind: capture, out: scenes/a, needs: [last capture]}
+  - {kind: reconstruct, out: runs/r, scene: scenes/a, needs: [copy, capture scenes/a]}
+  - {kind: capture, out: scenes/b, name: copy}
+  - {kind: evaluate, run: runs/r, name: judge}
+  - {kind: capture, out: scenes/c, name: last capture, needs: [copy, copy]}
+"""
+    jobs = load_batch(write(tmp_path / "b.yaml", text), tmp_path / "out")
+    # the file's order where the needs allow it; a need given and implied (by the scene) counted once
+    assert [(job.name, job.needs) for job in jobs] == [
+        ("capture scenes/z", ()), ("copy", ()), ("last capture", ("copy",)), ("capture scenes/a", ("last capture",)),
+        ("reconstruct runs/r", ("copy", "capture scenes/a")), ("judge", ("reconstruct runs/r",))]
+
+
+def test_a_job_whose_need_failed_is_not_run_and_a_cycle_runs_nothing(tmp_path, capsys):
+    (tmp_path / "out" / "no-run").mkdir(parents=True)  # a folder without a run: its evaluation fails
+    path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a, needs: [judge]}\n"
+                 "  - {kind: evaluate, run: no-run, name: judge}\n")
+    assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "local"]) == 1
+    assert read_failures(tmp_path / "out")["capture a"]["error"] == "not run: needs judge, which failed"
+    assert not (tmp_path / "out" / "a").exists()
+    capsys.readouterr()
+
+    path = write(tmp_path / "cycle.yaml", "jobs:\n  - {kind: capture, out: a, needs: [capture b]}\n"
+                 "  - {kind: capture, out: b, needs: [capture a]}\n")
+    assert main(["batch", str(path), "--out", str(tmp_path / "cycle"), "--executor", "local"]) == 1
+    assert capsys.readouterr().err.splitlines()[-1] == (
+        f"error: {path}: jobs: the needs form a cycle, so none of its jobs can run: 'capture a' (jobs[0]) needs "
+        "'capture b' (jobs[1]), which needs 'capture a' (jobs[0])")
+    assert not (tmp_path / "cycle").exists()
+
+
 def test_a_reconstruct_job_without_a_variant_trains_what_reconstruct_trains(tmp_path):
     from tacsplat.cli import build_parser
     from tacsplat.reconstruction.cli import config_from_args
@@ -166,6 +201,16 @@ def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):
     ("- {kind: capture, out: a}\n- {kind: capture, out: a, seed: 1}", "jobs[1].out", "is also the out of capture a"),
     ("- {kind: capture, out: a, name: x}\n- {kind: capture, out: b, name: x}", "jobs[1].name", "two jobs are named 'x'"),
     ("- 3", "jobs[0]", "expected a mapping with a kind"),
+    ("- {kind: capture, out: a, needs: [capture b]}", "jobs[0].needs",
+     "'capture a' needs 'capture b', which is no job of this file (a job's name is its `name:`, else "),
+    ("- {kind: capture, out: a, name: x, needs: [x]}", "jobs", "the needs form a cycle, so none of its jobs can run: "
+     "'x' (jobs[0]) needs 'x' (jobs[0])"),
+    ("- {kind: capture, out: c, needs: [capture b]}\n- {kind: capture, out: a, needs: [capture c]}\n"
+     "- {kind: capture, out: b, needs: [capture a]}", "jobs", "the needs form a cycle, so none of its jobs can run: "
+     "'capture c' (jobs[0]) needs 'capture b' (jobs[2]), which needs 'capture a' (jobs[1]), which needs 'capture c' "
+     "(jobs[0])"),
+    ("- {kind: capture, out: a, needs: [reconstruct r]}\n- {kind: reconstruct, out: r, scene: a}", "jobs",
+     "'capture a' (jobs[0]) needs 'reconstruct r' (jobs[1]), which needs 'capture a' (jobs[0])"),  # (r's scene)
 ])  # fmt: skip
 def test_batch_file_mistakes_name_the_job_and_field(tmp_path, jobs, key, message):
     path = write(tmp_path / "b.yaml", "jobs:\n" + "\n".join("  " + line for line in jobs.splitlines()) + "\n")
