@@ -87,17 +87,21 @@ class Job(Protocol):
 
 @dataclass
 class BatchOutcome:
-    """What one invocation did: names of the jobs run, skipped (already complete) and failed (-> error)."""
+    """What one invocation did: names of the jobs run, skipped (already complete) and failed (-> error); those of
+    the failed that were not run, since a job they need failed, are also in ``not_run``."""
 
     done: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
+    not_run: list[str] = field(default_factory=list)
 
     def raise_if_failed(self, out: Path) -> None:
         """A :class:`BatchError` naming the first failure and ``failures.csv`` when any job failed."""
         if self.failed:
             name, error = next(iter(self.failed.items()))
-            raise BatchError(f"{len(self.failed)} of {len(self.done) + len(self.failed)} jobs failed (first: {name}: "
+            ran = len(self.failed) - len(self.not_run)
+            not_run = f" and {len(self.not_run)} not run (a job they need failed)" if self.not_run else ""
+            raise BatchError(f"{ran} of {len(self.done) + len(self.failed)} jobs failed{not_run} (first: {name}: "
                              f"{error}); each is listed in {Path(out) / FAILURES_CSV}; rerun the same command to "
                              "retry only those")
 
@@ -258,6 +262,11 @@ class _Batch:
     def blocked_by(self, job: Job) -> str | None:
         return next((n for n in job.needs if n in self.outcome.failed), None)
 
+    def not_run(self, job: Job, need: str) -> None:
+        """``job`` is not run: it needs ``need``, which failed (listed in failures.csv, so a rerun runs it)."""
+        self.outcome.not_run.append(job.name)
+        self.failed(job, f"not run: needs {need}, which failed", attempts=0)
+
     def _write_failures(self) -> None:
         self.out.mkdir(parents=True, exist_ok=True)
         with (self.out / FAILURES_CSV).open("w", newline="") as fh:
@@ -275,10 +284,6 @@ def _describe(exc: BaseException) -> str:
     return str(exc) if isinstance(exc, TacsplatError) else f"{type(exc).__name__}: {exc}"
 
 
-def _not_run(need: str) -> str:
-    return f"not run: needs {need}, which failed"
-
-
 # ---------------------------------------------------------------------- local
 
 
@@ -287,7 +292,7 @@ def _run_local(todo: list[Job], batch: _Batch) -> None:
     for job in todo:
         need = batch.blocked_by(job)
         if need:
-            batch.failed(job, _not_run(need), attempts=0)
+            batch.not_run(job, need)
             continue
         batch.started([job.name])
         try:
@@ -422,7 +427,7 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
                 need = batch.blocked_by(job)
                 if need:
                     pending.remove(job)
-                    batch.failed(job, _not_run(need), attempts=0)
+                    batch.not_run(job, need)
                     continue
                 unfinished = {j.name for j in (*pending, *starting, *running.values())}
                 if any(n in unfinished for n in job.needs):
@@ -637,12 +642,15 @@ def _collect(job: Job, ref, batch: _Batch, attempts: int) -> None:
         status, _, value = ray.get(ref)
     except ray.exceptions.RayError as exc:  # raised after its retries, or its worker died each time
         need = batch.blocked_by(job)
+        if need:  # (its need raised: Ray passed that error on instead of running it)
+            batch.not_run(job, need)
+            return
         cause = exc.cause if isinstance(exc, ray.exceptions.RayTaskError) else exc
-        batch.failed(job, _not_run(need) if need else _describe(cause).strip().splitlines()[0], attempts)
+        batch.failed(job, _describe(cause).strip().splitlines()[0], attempts)
         return
     if status == "done":
         batch.finished(job, value)
     elif status == "blocked":
-        batch.failed(job, _not_run(value), attempts=0)
+        batch.not_run(job, value)
     else:
         batch.failed(job, value, attempts)

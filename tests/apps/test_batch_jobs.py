@@ -50,7 +50,9 @@ def test_local_runs_in_order_here_lists_failures_and_reruns_only_them(tmp_path, 
     assert failures["after-flaky"] == {"job": "after-flaky", "attempts": "0",
                                        "error": "not run: needs flaky, which failed"}
     assert failures["bad-input"]["error"] == "threshold: must be > 0, got -1"
-    with pytest.raises(BatchError, match=r"3 of 5 jobs failed \(first: flaky: RuntimeError: .*failures.csv"):
+    assert outcome.not_run == ["after-flaky"]
+    with pytest.raises(BatchError, match=r"^2 of 5 jobs failed and 1 not run \(a job they need failed\) \(first: "
+                       r"flaky: RuntimeError: .*failures.csv"):
         outcome.raise_if_failed(tmp_path)
 
     (tmp_path / "flaky" / "broken").unlink()
@@ -131,7 +133,8 @@ def test_a_job_whose_need_failed_is_not_run_and_a_cycle_runs_nothing(tmp_path, c
     assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "local"]) == 1
     assert read_failures(tmp_path / "out")["capture a"]["error"] == "not run: needs judge, which failed"
     assert not (tmp_path / "out" / "a").exists()
-    capsys.readouterr()
+    assert capsys.readouterr().err.splitlines()[-1].startswith(
+        "error: 1 of 2 jobs failed and 1 not run (a job they need failed) (first: judge: ")
 
     path = write(tmp_path / "cycle.yaml", "jobs:\n  - {kind: capture, out: a, needs: [capture b]}\n"
                  "  - {kind: capture, out: b, needs: [capture a]}\n")

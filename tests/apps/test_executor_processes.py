@@ -54,6 +54,7 @@ def test_jobs_run_side_by_side_in_workers_and_failures_are_listed(tmp_path):
     assert set(failures) == {"flaky", "after-flaky", "bad-input"}
     assert failures["flaky"]["error"].startswith("RuntimeError: ") and "broken is there" in failures["flaky"]["error"]
     assert failures["after-flaky"]["error"] == "not run: needs flaky, which failed"
+    assert outcome.not_run == ["after-flaky"]
     assert failures["bad-input"]["error"] == "threshold: must be > 0, got -1"
 
     (tmp_path / "flaky" / "broken").unlink()

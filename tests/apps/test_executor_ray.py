@@ -69,6 +69,7 @@ def test_failures_are_retried_listed_and_the_rerun_runs_only_them(tmp_path, embe
     assert "broken is there" in failures["flaky"]["error"]
     assert failures["after-flaky"] == {"job": "after-flaky", "attempts": "0",
                                        "error": "not run: needs flaky, which failed"}
+    assert outcome.not_run == ["after-flaky"]
     assert failures["bad-input"]["error"] == "threshold: must be > 0, got -1"
 
     (tmp_path / "flaky" / "broken").unlink()
