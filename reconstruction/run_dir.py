@@ -255,9 +255,8 @@ def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> 
         shown = ", ".join(entries[:5]) + (f" and {len(entries) - 5} more" if len(entries) > 5 else "")
         raise ConfigError("--out", f"{out} holds files that are not a reconstruction run ({shown}); choose a new "
                           "or empty folder")
-    if (locked or not is_run) and resume and not (out / "checkpoint.pt").is_file():
-        again = "; pass --overwrite to start it again" if is_run else ""
-        raise ConfigError("--resume", f"{out} has no checkpoint.pt: no checkpoint to resume{again}")
+    if resume and not is_run:
+        raise ConfigError("--resume", f"{out} holds no run (no config.json or checkpoint.pt): nothing to resume")
     if locked and is_run and not (resume or overwrite):
         raise ConfigError("--out", f"{out} already holds a reconstruction run; pass --resume to continue it or "
                           "--overwrite to replace it")

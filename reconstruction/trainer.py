@@ -591,7 +591,7 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
     records it; ``check_resumed(recorded config)``, where given, may refuse
     it first) or replaced with ``overwrite`` (its files only). It is locked
     for the whole job. A folder of other files, a run without ``resume`` or
-    ``overwrite``, ``resume`` without a checkpoint or on another scene, or a
+    ``overwrite``, ``resume`` of no run or on another scene, or a
     folder that cannot take a file (read-only, full) is an error before any
     training. Every file is replaced atomically: a disk that fills up stops the
     job with a StorageError naming the file, and the files written before
@@ -624,7 +624,8 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
             remove_run_files(out_dir)
         scene = scene_at(base, config.downscale)
         trainer = Trainer(scene, out_dir, config)
-        gaussians = trainer.run(resume=resume, show_progress=show_progress)
+        # a run stopped before its first checkpoint (killed, or its disk full) starts again with its recorded config
+        gaussians = trainer.run(resume=resume and (out_dir / "checkpoint.pt").is_file(), show_progress=show_progress)
         return evaluate_reconstruction(gaussians, scene, trainer.config, trainer.step, trainer.train_seconds, out_dir,
                                        look=trainer.look, splat=trainer.splat)
 

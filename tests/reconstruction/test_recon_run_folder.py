@@ -218,16 +218,19 @@ def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp
     assert all(v != v for column in newer for v in progress[column])  # NaN: never written
 
 
-def test_resume_without_a_checkpoint_is_refused(scene, tmp_path, capsys):
+def test_resume_of_no_run_is_refused_and_of_a_run_without_checkpoint_starts_it_again(scene, tmp_path, capsys):
     assert _reconstruct(scene, tmp_path / "new", "--resume") == 1
-    _one_error_line(capsys, "--resume", "no checkpoint")
+    _one_error_line(capsys, "--resume", "holds no run")
     assert not (tmp_path / "new").exists()
     run = tmp_path / "run"
-    assert _reconstruct(scene, run) == 0
-    (run / "checkpoint.pt").unlink()  # a run killed before its first checkpoint
+    assert _reconstruct(scene, run, "--lambda-t", "0.25") == 0
+    first = (run / "splat.ply").read_bytes()
+    for name in ("checkpoint.pt", "splat.ply", "metrics.json"):  # a run killed (or out of disk) before its first
+        (run / name).unlink()                                    # checkpoint: its config.json is all there is
     capsys.readouterr()
-    assert _reconstruct(scene, run, "--resume") == 1
-    _one_error_line(capsys, "--resume", "no checkpoint", "--overwrite")
+    assert _reconstruct(scene, run, "--resume") == 0  # trains again from step 0 with the recorded settings
+    assert (run / "splat.ply").read_bytes() == first
+    assert json.loads((run / "config.json").read_text())["lambda_t"] == 0.25
 
 
 # --- 2. one definition of a valid scene --------------------------------------------------------------------------
