@@ -157,6 +157,8 @@ def _configure_logging(args: argparse.Namespace) -> None:
     level = getattr(args, "log_level", None) or ("DEBUG" if getattr(args, "verbose", False) else
                                                   "WARNING" if quiet else "INFO")
     logging.basicConfig(level=getattr(logging, level), format="%(levelname)s %(name)s: %(message)s", force=True)
+    if level != "DEBUG":  # PyOpenGL (under MuJoCo's renderer) says at INFO that an optional speed-up is missing
+        logging.getLogger("OpenGL").setLevel(logging.WARNING)
     set_quiet(quiet)
 
 

@@ -192,16 +192,17 @@ def test_capture_command_checks_the_output_folder_before_opening_devices(tmp_pat
     (["--resolution", "4"], "--resolution", "must be in [8, 4096] px, got 4"),
     (["--resolution", "0"], "--resolution", "must be in [8, 4096] px, got 0"),
     (["--resolution", "100000"], "--resolution", "must be in [8, 4096] px, got 100000"),
-    (["--object-radius", "0"], "--object-radius", "must be in (0, 0.3] m, got 0"),
-    (["--object-radius", "-0.1"], "--object-radius", "must be in (0, 0.3] m, got -0.1"),
-    (["--object-radius", "5"], "--object-radius", "must be in (0, 0.3] m, got 5"),
-    (["--object-radius", "nan"], "--object-radius", "must be in (0, 0.3] m, got nan"),
+    (["--object-radius", "0"], "--object-radius", "must be in [0.025, 0.3] m"),
+    (["--object-radius", "-0.1"], "--object-radius", "must be in [0.025, 0.3] m"),
+    (["--object-radius", "5"], "--object-radius", "must be in [0.025, 0.3] m"),
+    (["--object-radius", "nan"], "--object-radius", "must be in [0.025, 0.3] m"),
     (["--seed", "-1"], "--seed", "must be >= 0, got -1"),
 ])
 def test_sim_capture_options_are_checked_before_the_twin_starts(tmp_path, capsys, args, option, words):
     from tacsplat.cli import main
 
-    assert main(["sim-capture", *args, "--out", str(tmp_path / "scene")]) == 1
+    # a value out of its range is a usage error (2); a file that is not there is a runtime error (1)
+    assert main(["sim-capture", *args, "--out", str(tmp_path / "scene")]) == (1 if option == "--mesh" else 2)
     err = capsys.readouterr().err
     assert f"error: {option}: {words}" in err, err
     assert not (tmp_path / "scene").exists()

@@ -189,10 +189,10 @@ def _import_commands(blender_src, colmap_root, images_dir):
     }
 
 
-def _one_error_line(capsys, *words) -> str:
+def _one_error_line(capsys, *words, prefix: str = "error: ") -> str:
     err = capsys.readouterr().err
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in err, err
+    assert len(lines) == 1 and lines[0].startswith(prefix) and "Traceback" not in err, err
     for word in words:
         assert word in lines[0], lines[0]
     return lines[0]
@@ -212,11 +212,11 @@ def test_import_into_an_unusable_out_or_with_a_bad_scale_is_one_error(blender_sr
         _one_error_line(capsys, "--out", "which is a file")
         assert a_file.read_text() == "not a folder"
         for scale in ("0", "-2", "nan", "inf"):
-            assert main(command(tmp_path / f"{name}-scale", "--scale", scale)) == 1, (name, scale)
-            _one_error_line(capsys, "scale", "positive")
+            assert main(command(tmp_path / f"{name}-scale", "--scale", scale)) == 2, (name, scale)  # a usage error
+            _one_error_line(capsys, "--scale", "positive", prefix=f"tacsplat import {name}: error: ")
             assert not (tmp_path / f"{name}-scale").exists()
-    assert main(commands["colmap"](tmp_path / "every", "--test-every", "-1")) == 1
-    _one_error_line(capsys, "test_every", ">= 0")
+    assert main(commands["colmap"](tmp_path / "every", "--test-every", "-1")) == 2
+    _one_error_line(capsys, "--test-every", ">= 0", prefix="tacsplat import colmap: error: ")
     real_access = os.access
     monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if "locked" in str(path) else real_access(path, mode))
     for name, command in commands.items():
