@@ -39,7 +39,7 @@ from tacsplat.acquisition.config import RigConfig
 from tacsplat.acquisition.devices import TWIN_CONTROL, Rig, open_rig, twin_config
 from tacsplat.datasets import SceneMeta, SceneWriter
 from tacsplat.datasets.outputs import ensure_output_dir
-from tacsplat.datasets.writer import JOURNAL
+from tacsplat.datasets.writer import JOURNAL, has_content
 from tacsplat.errors import ConfigError
 
 SETTINGS_KEY = "capture_settings"  # in scene.json's "extra"
@@ -61,7 +61,7 @@ def check_out(out: Path, resume: bool) -> None:
     ensure_output_dir(out, "--out")
     if not resume and (out / JOURNAL).exists():
         raise ConfigError("--out", f"{out} already holds a scene: add --resume to continue it, or choose a new folder")
-    if not resume and any(out.iterdir()):
+    if not resume and has_content(out):
         raise ConfigError("--out", f"{out} holds other files and no scene; choose an empty or new folder")
 
 
@@ -84,8 +84,8 @@ def open_scene(config: RigConfig, out: Path, resume: bool, on_hand=None) -> Iter
                 rig = stack.enter_context(open_rig(config, on_hand))
                 writer = stack.enter_context(SceneWriter.create(out, rig.intrinsics, scene_meta(settings, rig.extra),
                                                                 rig.sensor_model))
-                if rig.twin is not None:
-                    writer.set_gt_mesh(rig.twin.object_mesh)
+            if rig.twin is not None and writer.gt_mesh is None:  # new, or its first run stopped first (a full disk)
+                writer.set_gt_mesh(rig.twin.object_mesh)
             yield rig, writer
     finally:
         if made and out.is_dir() and not any(out.iterdir()):

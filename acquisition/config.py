@@ -32,11 +32,11 @@ from tacsplat.drivers.wrist_camera import CharucoBoardSpec
 from tacsplat.errors import ConfigError
 from tacsplat.geometry import rigidity_problem
 from tacsplat.sim.hand import FINGER_NAMES
+from tacsplat.sim.objects import OBJECT_RADIUS_RANGE_M
 
 RIGS_DIR = Path(__file__).parent / "rigs"
 DYNAMIXEL_BAUDRATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)  # X-series rates the SDK opens
 DYNAMIXEL_MAX_ID = 252  # protocol 2.0: 253 is reserved, 254 is the broadcast id
-MAX_OBJECT_RADIUS_M = 0.3  # a graspable object (DESIGN.md: about 0.05-0.15 m); the hand spans about 0.2 m
 
 
 @dataclass(frozen=True)
@@ -244,7 +244,7 @@ class SimConfig:
 
     object: Text = "teapot"
     mesh: Text | None = None
-    object_radius: float = positive(0.08, MAX_OBJECT_RADIUS_M, "m")  # bounding-sphere radius
+    object_radius: float = bounded(0.08, *OBJECT_RADIUS_RANGE_M, "m")  # bounding-sphere radius the hand can grasp
     resolution: int = bounded(200, 8, 4096, "px")
     seed: int = bounded(0, 0)
     texture: Text = "none"  # the object's surface: its one colour, or "checker" (tacsplat.sim.objects.TEXTURES)

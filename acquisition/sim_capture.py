@@ -53,7 +53,7 @@ def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radiu
     ``candidates``, ``selection_steps`` and ``uncertainty``: the next-best strategy's); a value out of its range
     is a ConfigError naming its key (``sim.object_radius``)."""
     problem = object_radius_problem(object_radius)
-    if problem:  # (before the rig config's own, wider bound)
+    if problem:  # (before the rig config's own check of the same range, with what the range means)
         raise ConfigError("sim.object_radius", problem)
     if grasp_strategy not in GRASP_STRATEGIES:
         raise ConfigError("plan.grasps.mode", f"must be one of {', '.join(map(repr, GRASP_STRATEGIES))}, got "
@@ -91,8 +91,6 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
         raise ConfigError("rig", f"sim_capture runs the twin; got rig: {config.rig}", config.source)
     t0 = time.perf_counter()
     with open_scene(config, Path(out), resume) as (rig, writer):
-        if writer.gt_mesh is None:  # a resumed capture whose first run stopped before writing it (a full disk)
-            writer.set_gt_mesh(rig.twin.object_mesh)
         logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
         planner = grasp_planner(rig.twin, config)
         t_setup = time.perf_counter()

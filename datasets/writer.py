@@ -45,7 +45,7 @@ import numpy as np
 
 import tacsplat
 from tacsplat.errors import InvalidInputError, SceneFormatError
-from tacsplat.files import atomic_write, storage_error
+from tacsplat.files import atomic_write, fsync_dir, storage_error
 from tacsplat.types import CameraIntrinsics, TactileReading
 
 from .outputs import LOCK_NAME, other_writer, record_writer
@@ -223,7 +223,7 @@ class SceneWriter:
                 if isinstance(exc, OSError):
                     raise storage_error(exc, path / JOURNAL) from None
                 raise
-            _fsync_dir(path)
+            fsync_dir(path)
         except BaseException:
             journal.close()
             raise
@@ -577,15 +577,6 @@ class SceneWriter:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def _fsync_dir(directory: Path) -> None:
-    """Make a rename in ``directory`` durable."""
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _remove_index(scene: Path) -> None:

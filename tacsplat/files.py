@@ -43,7 +43,8 @@ def default_temp(path: Path) -> Path:
     return path.with_name(path.name + ".tmp")
 
 
-def _fsync_dir(directory: Path) -> None:
+def fsync_dir(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (where the file system can)."""
     try:
         fd = os.open(directory, os.O_RDONLY)
     except OSError:
@@ -80,7 +81,7 @@ def atomic_file(path: str | Path, temp: Path | None = None, fsync: bool = True) 
     except OSError as exc:
         raise storage_error(exc, path) from None
     if fsync:
-        _fsync_dir(path.parent)
+        fsync_dir(path.parent)
 
 
 def atomic_write(path: str | Path, data: bytes | Callable[[BinaryIO], None], temp: Path | None = None,
@@ -115,4 +116,5 @@ def check_writable(directory: str | Path) -> None:
             pass
 
 
-__all__ = ["atomic_file", "atomic_write", "check_writable", "default_temp", "is_storage_failure", "storage_error"]
+__all__ = ["atomic_file", "atomic_write", "check_writable", "default_temp", "fsync_dir", "is_storage_failure",
+           "storage_error"]

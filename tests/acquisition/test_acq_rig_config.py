@@ -131,7 +131,7 @@ def test_zero_test_views_and_zero_grasps_are_a_valid_plan(tmp_path):
     "sim, key, words",
     [
         ({"resolution": 10000}, "sim.resolution", "must be in [8, 4096] px, got 10000"),
-        ({"object_radius": 2.0}, "sim.object_radius", "must be in (0, 0.3] m, got 2"),
+        ({"object_radius": 2.0}, "sim.object_radius", "must be in [0.025, 0.3] m, got 2"),
         ({"object_radius": float("inf")}, "sim.object_radius", "expected a finite number"),
         ({"seed": -1}, "sim.seed", "must be >= 0, got -1"),
         ({"texture": "plaid"}, "sim.texture", "must be one of 'none', 'checker', got 'plaid'"),
