@@ -197,7 +197,7 @@ class ReconstructJob(BatchJob):
         of mechanisms that both switch off aside: :meth:`TrainConfig.unused_fields`); one entry saying so for a
         record that cannot be read. Empty for a folder with nothing to reuse or resume (no metrics.json, no
         checkpoint) or no settings recorded."""
-        from tacsplat.reconstruction.config import TrainConfig
+        from tacsplat.reconstruction.config import TrainConfig, changed_settings
         from tacsplat.reconstruction.run_dir import read_json
 
         checkpoint, path = self.out / "checkpoint.pt", self.out / "config.json"
@@ -216,10 +216,8 @@ class ReconstructJob(BatchJob):
         except ConfigError as exc:  # (read_json and from_json raise nothing else for a bad record)
             return [f"{path.name} unreadable ({exc})"]
         now = self.config()
-        unused = recorded.unused_fields() & now.unused_fields()  # (a switched-off mechanism's settings)
-        before = recorded.to_json()
-        changes = [f"{key} {before.get(key)!r} -> {value!r}" for key, value in now.to_json().items()
-                   if key != "device" and key not in unused and before.get(key) != value]
+        changes = [f"{key} {then!r} -> {value!r}" for key, then, value in changed_settings(recorded, now)
+                   if key != "device"]
         if changes and recorded.variant != now.variant:
             changes.insert(0, f"variant {recorded.variant} -> {now.variant}")
         return changes
