@@ -24,6 +24,7 @@ import numpy as np
 
 from tacsplat.drivers.dynamixel_table import CENTRE_TICK, TICKS_PER_REV
 from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.files import atomic_write
 
 FORMAT = "tacsplat-hand-calibration"
 RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
@@ -188,10 +189,7 @@ class HandCalibration:
         }
 
     def save(self, path: str | Path) -> None:
-        path = Path(path)
-        tmp = path.with_suffix(path.suffix + ".tmp")
-        tmp.write_text(json.dumps(self.to_json(), indent=2) + "\n")
-        tmp.replace(path)
+        atomic_write(path, (json.dumps(self.to_json(), indent=2) + "\n").encode())
 
     @classmethod
     def load(cls, path: str | Path, joint_names: Sequence[str]) -> "HandCalibration":

@@ -136,13 +136,16 @@ def _output_file(path: Path) -> Path:
 
 
 def _write_image(path: Path, bgr) -> Path:
-    """Write a picture atomically (a temporary name, then a rename)."""
+    """Write a picture atomically (a temporary name, then a rename; a full disk is one error naming it)."""
     import cv2
 
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    cv2.imwrite(str(tmp), bgr)
-    tmp.replace(path)
-    return path
+    from tacsplat.errors import InvalidInputError
+    from tacsplat.files import atomic_write
+
+    ok, encoded = cv2.imencode(path.suffix or ".png", bgr)
+    if not ok:
+        raise InvalidInputError(f"{path}: OpenCV cannot encode a {path.suffix or '.png'} picture")
+    return atomic_write(path, encoded.tobytes())
 
 
 def _board_spec(args):
@@ -431,6 +434,7 @@ def _tactile_depth(args) -> int:
     from tacsplat.datasets.outputs import claim_output_dir
     from tacsplat.drivers.optical_tactile import TactileCalibration
     from tacsplat.errors import ConfigError, InvalidInputError
+    from tacsplat.files import atomic_write
 
     calib = TactileCalibration.load(args.calibration)
     height, width = calib.image_size
@@ -453,9 +457,7 @@ def _tactile_depth(args) -> int:
         images = dict(inputs)
         for (stem, path), (npz, png) in zip(stems.items(), targets):
             depth = calib.depth(images[path], reference)
-            tmp = npz.with_name(f".{stem}.tmp.npz")
-            np.savez_compressed(tmp, depth=depth)
-            tmp.replace(npz)
+            atomic_write(npz, lambda f: np.savez_compressed(f, depth=depth))
             peak = float(depth.max())
             scaled = np.zeros(depth.shape, np.uint8) if peak <= 0 else np.clip(depth / peak * 255, 0, 255).astype(np.uint8)
             picture = cv2.applyColorMap(scaled, cv2.COLORMAP_VIRIDIS)

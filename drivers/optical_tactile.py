@@ -43,6 +43,7 @@ from scipy.sparse.linalg import spsolve
 
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import InvalidInputError, TactileError
+from tacsplat.files import atomic_write
 from tacsplat.geometry import as_pose, tactile_pixel_grid
 from tacsplat.types import TactileReading
 
@@ -459,9 +460,8 @@ class TactileCalibration:
                 "image_size": list(self.image_size), "ball_radius_m": self.ball_radius_m,
                 "change_threshold": self.change_threshold, "noise_floor_m": self.noise_floor_m,
                 "layers": len(self.weights) // 2, "presses": self.presses, "check_summary": self.check_summary}
-        tmp = path.with_name(path.name + ".tmp.npz")
-        np.savez_compressed(tmp, meta=json.dumps(meta), **{f"w{i}": w for i, w in enumerate(self.weights)})
-        tmp.replace(path)
+        atomic_write(path, lambda f: np.savez_compressed(f, meta=json.dumps(meta),
+                                                         **{f"w{i}": w for i, w in enumerate(self.weights)}))
 
     @classmethod
     def load(cls, path: str | Path) -> "TactileCalibration":

@@ -37,6 +37,7 @@ import numpy as np
 from tacsplat.drivers.calibration import is_json_number, json_array, json_float, json_int, read_calibration_json
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import CameraError, ConfigError, InvalidInputError
+from tacsplat.files import atomic_write
 from tacsplat.geometry import invert_pose, make_pose, rigidity_problem
 
 log = logging.getLogger(__name__)
@@ -235,10 +236,7 @@ class CameraCalibration:
             "T_hand_cam": None if self.T_hand_cam is None else np.asarray(self.T_hand_cam).tolist(),
             "K_std_px": self.K_std_px, "distortion_model": self.distortion_model, "warnings": self.warnings,
         }
-        path = Path(path)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
-        tmp.replace(path)
+        atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
     @classmethod
     def load(cls, path: str | Path) -> "CameraCalibration":

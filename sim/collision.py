@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from tacsplat.files import atomic_write
 from tacsplat.sim.objects import bounding_sphere
 
 SHIPPED_DIR = Path(__file__).resolve().parent / "decompositions"
@@ -76,9 +77,8 @@ def _write(path: Path, pieces) -> None:
     arrays = {"n": np.array(len(pieces))}
     for i, (v, f) in enumerate(pieces):
         arrays[f"v{i}"], arrays[f"f{i}"] = np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int32)
-    tmp = path.with_name(path.stem + f".{os.getpid()}.tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
+    # a per-process temporary name: two processes may fill the same cache entry at once
+    atomic_write(path, lambda f: np.savez_compressed(f, **arrays), temp=path.with_name(f"{path.stem}.{os.getpid()}.tmp"))
 
 
 def _run_coacd(unit: trimesh.Trimesh, config: DecompositionConfig):
