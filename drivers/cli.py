@@ -23,7 +23,7 @@ def register(cli) -> None:
         "camera, or boards parallel to each other, leave the focal length unobservable) and a result that is no "
         "camera (a field of view outside 2-170 degrees, a standard deviation of zero, distortion that folds the "
         "image where corners were seen). Warns, naming what to add, when the focal length is poorly constrained "
-        "(standard deviation above 1%%), parts of the image saw no corner, the lens model fails in the image "
+        "(standard deviation above 1%), parts of the image saw no corner, the lens model fails in the image "
         "corners beyond the corners seen, or photos repeat a pose. Writes the calibration (OpenCV K with pixel centres at integers, distortion, K_std_px, warnings) "
         "as JSON, a picture of the detected and reprojected corners (.png) and one of the corner coverage "
         "(_coverage.png) next to it.",

@@ -18,8 +18,9 @@ from tacsplat.errors import StorageError
 
 # errno -> what a person should be told; anything else keeps the operating system's words
 _REASONS = {
-    errno.ENOSPC: "the disk is full (no space left on device): free space, then resume",
-    errno.EDQUOT: "the disk quota is exceeded: free space, then resume",
+    errno.ENOSPC: "the disk is full (no space left on device): free space and run the command again (with "
+                  "--resume where it has one: what was written before is kept)",
+    errno.EDQUOT: "the disk quota is exceeded: free space and run the command again (with --resume where it has one)",
     errno.EROFS: "the file system is read-only: write to another folder",
     errno.EACCES: "permission denied: write to another folder",
     errno.EPERM: "operation not permitted: write to another folder",

@@ -2,6 +2,7 @@
 the file, no temporary file, nothing recorded lost, and a resumed capture completes everything, the ground-truth
 mesh included."""
 
+import errno
 import subprocess
 import sys
 
@@ -10,6 +11,7 @@ import pytest
 
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, SensorModel, check_scene
 from tacsplat.geometry import look_at
+from tacsplat.files import storage_error
 from tacsplat.types import CameraIntrinsics
 
 pytestmark = pytest.mark.timeout(180)
@@ -17,6 +19,9 @@ pytestmark = pytest.mark.timeout(180)
 # The library teapot's ground-truth mesh (about 180 kB) does not fit on a 150 kB disk.
 CAPTURE = ["sim-capture", "--object", "teapot", "--views", "1", "--test-views", "1", "--grasps", "1",
            "--resolution", "16", "--seed", "2"]
+
+
+DISK_FULL = storage_error(OSError(errno.ENOSPC, 'No space left on device'), '.').reason
 
 
 def _tacsplat(*args) -> subprocess.CompletedProcess:
@@ -29,8 +34,7 @@ def test_sim_capture_on_a_full_disk_stops_cleanly_and_resumes_with_the_ground_tr
     out = mount.path / "scene"
     done = _tacsplat(*CAPTURE, "--out", out)
     assert done.returncode == 1
-    assert done.stderr.splitlines() == [f"error: {out / 'gt' / 'mesh.ply'}: the disk is full (no space left on "
-                                        "device): free space, then resume"], done.stderr
+    assert done.stderr.splitlines() == [f"error: {out / 'gt' / 'mesh.ply'}: {DISK_FULL}"], done.stderr
     assert [p for p in mount.path.rglob("*") if p.name.endswith(".tmp")] == []
     assert (out / "journal.jsonl").is_file()  # the scene exists: --resume continues it
 

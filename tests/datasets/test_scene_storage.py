@@ -13,8 +13,12 @@ import trimesh
 
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, check_scene
 from tacsplat.errors import StorageError
+from tacsplat.files import storage_error
 
 PAGE = 4096  # tmpfs counts space in pages: a file grows into its last page's slack without new space
+
+
+DISK_FULL = storage_error(OSError(errno.ENOSPC, 'No space left on device'), '.').reason
 
 
 def _fill(mount) -> None:
@@ -114,6 +118,5 @@ def test_inspect_plot_on_a_full_disk_leaves_no_partial_picture(tmpfs, scene_dir)
     (mount.path / "filler").write_bytes(b"\0" * (60 * 1024))  # room for the writability probe, not the picture
     done = _inspect(scene_dir, "--plot", mount.path / "pictures" / "p.png")
     assert done.returncode == 1
-    assert done.stderr.splitlines() == [f"error: {mount.path / 'pictures' / 'p.png'}: the disk is full (no space "
-                                        "left on device): free space, then resume"], done.stderr
+    assert done.stderr.splitlines() == [f"error: {mount.path / 'pictures' / 'p.png'}: {DISK_FULL}"], done.stderr
     assert list((mount.path / "pictures").iterdir()) == []
