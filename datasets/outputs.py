@@ -16,7 +16,8 @@ import fcntl
 import os
 from pathlib import Path
 
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, StorageError
+from tacsplat.files import check_writable
 
 LOCK_NAME = ".tacsplat.lock"
 
@@ -33,9 +34,12 @@ def ensure_output_dir(path: str | Path, option: str = "--out") -> Path:
     except OSError as exc:
         raise ConfigError(option, f"cannot create {path}: {exc.strerror or exc}") from None
     if not os.access(path, os.W_OK | os.X_OK):
-        if os.statvfs(path).f_flag & os.ST_RDONLY:
-            raise ConfigError(option, f"{path} is on a read-only file system; choose a folder on another")
-        raise ConfigError(option, f"{path} is not writable")
+        if not os.statvfs(path).f_flag & os.ST_RDONLY:
+            raise ConfigError(option, f"{path} is not writable")
+    try:
+        check_writable(path)  # read-only or full: refused before any work, not after it
+    except StorageError as exc:
+        raise ConfigError(option, str(exc)) from None
     return path
 
 

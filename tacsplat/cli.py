@@ -25,7 +25,7 @@ import logging
 import sys
 
 from tacsplat import __version__
-from tacsplat.errors import TacsplatError, UsageError
+from tacsplat.errors import ConfigError, TacsplatError, UsageError
 
 COMMAND_MODULES = (
     "tacsplat.datasets.cli",
@@ -171,6 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
+        _refuse_unwritable_outputs(args)
         code = args.func(args)
     except UsageError as exc:
         prog = _subparser(parser, argv).prog
@@ -191,6 +192,30 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     return int(code or 0)
+
+
+def _refuse_unwritable_outputs(args: argparse.Namespace) -> None:
+    """Before any work: an output (``--out``, ``--json``) on a read-only or full file system is one error naming the
+    option, so that no benchmark or training runs for minutes only to fail at its first write."""
+    import errno
+    import os
+    from pathlib import Path
+
+    from tacsplat.files import storage_error
+
+    for option in ("out", "json"):
+        value = getattr(args, option, None)
+        if not isinstance(value, (str, os.PathLike)) or not str(value):
+            continue
+        path = Path(value).absolute()
+        existing = next(p for p in (path, *path.parents) if p.exists())
+        try:
+            fs = os.statvfs(existing)
+        except OSError:
+            continue  # (the command reports what it cannot reach)
+        failure = errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if fs.f_bfree == 0 else None
+        if failure is not None:
+            raise ConfigError(f"--{option}", str(storage_error(OSError(failure, os.strerror(failure)), value)))
 
 
 def _subparser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:

@@ -77,5 +77,5 @@ def test_sim_capture_resume_on_a_read_only_disk_says_so(tmpfs):
     mount.read_only()
     done = _tacsplat(*CAPTURE, "--out", out, "--resume")
     assert done.returncode == 1
-    assert done.stderr.splitlines() == [f"error: --out: {out} is on a read-only file system; choose a folder on "
-                                        "another"], done.stderr
+    assert done.stderr.splitlines() == [f"error: --out: {out}: the file system is read-only: write to another "
+                                        "folder"], done.stderr

@@ -1,3 +1,4 @@
+import os
 import subprocess
 import sys
 
@@ -90,3 +91,29 @@ def test_progress_is_plain_lines_without_a_terminal(capsys):
         assert capsys.readouterr().err == ""
     finally:
         set_quiet(False)
+
+
+def test_an_output_on_a_read_only_or_full_disk_is_refused_before_any_work(tmpfs, capsys):
+    """Every command's --out (and bench rasterizer's --json) is checked first: no benchmark or capture runs for
+    minutes to fail at its first write."""
+    read_only = tmpfs("64k", "ro")
+    read_only.read_only()
+    full = tmpfs("64k", "full")
+    fd = os.open(full.path / "filler", os.O_WRONLY | os.O_CREAT)
+    try:
+        while os.write(fd, b"\0" * 4096):
+            pass
+    except OSError:
+        pass  # full
+    finally:
+        os.close(fd)
+    for command, option, path, reason in (
+        (["bench", "rasterizer", "--json"], "--json", read_only.path / "r.json", "the file system is read-only"),
+        (["demo", "--out"], "--out", read_only.path / "demo", "the file system is read-only"),
+        (["sim-capture", "--out"], "--out", full.path / "scene", "the disk is full"),
+    ):
+        assert main([*command, str(path)]) == 1, command
+        out, err = capsys.readouterr()
+        assert err.splitlines() == [line for line in err.splitlines() if line.startswith(f"error: {option}: {path}")]
+        assert len(err.splitlines()) == 1 and reason in err and out == "", (command, err, out)
+        assert not path.exists()

@@ -56,5 +56,5 @@ def test_a_refused_claim_names_the_process_holding_the_folder(tmp_path):
 def test_a_folder_on_a_read_only_mount_is_refused_saying_so(tmpfs):
     mount = tmpfs("64k")
     mount.read_only()
-    with pytest.raises(ConfigError, match=f"--out: {mount.path} is on a read-only file system"):
+    with pytest.raises(ConfigError, match=f"--out: {mount.path}: the file system is read-only"):
         ensure_output_dir(mount.path)

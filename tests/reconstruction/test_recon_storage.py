@@ -173,7 +173,7 @@ def test_a_read_only_out_is_one_error_before_any_training(scene, straight, tmpfs
         assert main(["reconstruct", str(scene), "--out", str(out), *RUN, *extra]) == 1, out
         _one_error_line(capsys.readouterr().err, str(out), "the file system is read-only")
     assert main(["reconstruct", str(scene), "--out", str(mount.path / "new"), *RUN]) == 1
-    _one_error_line(capsys.readouterr().err, str(mount.path / "new"), "Read-only file system")
+    _one_error_line(capsys.readouterr().err, str(mount.path / "new"), "the file system is read-only")
     assert main(["evaluate", str(run)]) == 1
     _one_error_line(capsys.readouterr().err, str(run), "the file system is read-only")
 
