@@ -7,7 +7,6 @@ import pty
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from tacsplat.acquisition.operator_session import run_capture
 from tacsplat.datasets import Scene, SceneWriter
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from acq_helpers import ScriptedKeys, write_mock_rig  # noqa: E402
+from acq_helpers import ScriptedKeys, Terminal, write_mock_rig  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -34,43 +33,6 @@ def _snapshot(scene_dir: Path) -> dict:
     return {**frames, **touches}
 
 
-class _Terminal:
-    """The operator's side of a pseudo-terminal: collects the output in a thread (the live status line has no
-    newline); ``wait_for`` blocks until a text appears after the last ``type``; ``type`` sends keys."""
-
-    def __init__(self, master_fd: int):
-        self.fd = master_fd
-        self.text = ""
-        self._since = 0
-        self._cond = threading.Condition()
-        threading.Thread(target=self._run, daemon=True).start()
-
-    def _run(self):
-        while True:
-            try:
-                chunk = os.read(self.fd, 4096)
-            except OSError:  # EIO: the other side is gone
-                chunk = b""
-            if not chunk:
-                return
-            with self._cond:
-                self.text += chunk.decode(errors="replace")
-                self._cond.notify_all()
-
-    def type(self, keys: str) -> None:
-        with self._cond:
-            self._since = len(self.text)
-        os.write(self.fd, keys.encode())
-
-    def wait_for(self, text: str, timeout_s: float = 90.0) -> None:  # generous: a loaded 2-core machine
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while text not in self.text[self._since :]:
-                remaining = deadline - time.monotonic()
-                assert remaining > 0, f"no {text!r} in the output:\n{self.text}"
-                self._cond.wait(remaining)
-
-
 @pytest.mark.timeout(300)
 def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path):
     # a slow close (2 s from open to closed) so that the kill lands while the fingers are moving
@@ -82,7 +44,7 @@ def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path
                             stdin=slave, stdout=slave, stderr=slave, close_fds=True)
     os.close(slave)
     try:
-        term = _Terminal(master)
+        term = Terminal(master)
         term.wait_for("board: seen")
         term.type("\r\r\rg")
         term.wait_for("grasp 0 recorded")
