@@ -36,7 +36,7 @@ import torch
 
 from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError, UsageError
-from tacsplat.files import atomic_write, check_writable
+from tacsplat.files import atomic_write
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
@@ -608,8 +608,6 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
     config.torch_device()  # --device cuda without CUDA fails here, before anything is read or written
     check_run_folder(out_dir, resume, overwrite, locked=False)
     base = Scene.load(scene_path)
-    if out_dir.is_dir():
-        check_writable(out_dir)  # a read-only or full folder: one error saying which, before any training
     with claim_output_dir(out_dir, "--out"):
         check_run_folder(out_dir, resume, overwrite, locked=True)
         if resume:

@@ -109,3 +109,13 @@ def build_sphere_scene(path: Path, size: int = 48, train_views: int = 6, test_vi
                     depth, T_world_sensor = touch_reading(normal, sensor, 0.0008)
                     writer.add_touch(depth, T_world_sensor, grasp, f"finger{finger}")
     return path
+
+
+def one_error_line(capsys, *words, prefix: str = "error: ") -> str:
+    """The single stderr line of a refused command (no traceback), checked for ``words``."""
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith(prefix) and "Traceback" not in err, err
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]

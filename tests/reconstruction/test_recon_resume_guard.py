@@ -15,7 +15,7 @@ import torch
 from tacsplat.cli import main
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from recon_synthetic import build_sphere_scene  # noqa: E402
+from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
 
 FAST = ["--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--no-init-sfm", "--quiet"]
 
@@ -43,15 +43,6 @@ def _copy(trained: Path, tmp_path: Path) -> tuple[Path, Path]:
             Path(shutil.copytree(trained / "run", tmp_path / "run")))
 
 
-def _one_error_line(capsys, *words, prefix: str = "error: ") -> str:
-    err = capsys.readouterr().err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith(prefix) and "Traceback" not in err, err
-    for word in words:
-        assert word in lines[0], lines[0]
-    return lines[0]
-
-
 def _files(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
@@ -68,7 +59,7 @@ def test_resume_on_another_scene_is_refused_naming_both(scenes, trained, tmp_pat
     before = _files(run)
     capsys.readouterr()
     assert _resume(scenes[1], run, "--iterations", "6") == 1
-    _one_error_line(capsys, "--resume", str((trained / "scene").resolve()), str(scenes[1].resolve()))
+    one_error_line(capsys, "--resume", str((trained / "scene").resolve()), str(scenes[1].resolve()))
     assert _files(run) == before
 
 
@@ -80,7 +71,7 @@ def test_a_scene_changed_in_place_is_refused(scenes, tmp_path, capsys):
     before = _files(run)
     capsys.readouterr()
     assert _resume(scene, run, "--iterations", "4") == 1
-    _one_error_line(capsys, "--resume", str(scene.resolve()), "has changed")
+    one_error_line(capsys, "--resume", str(scene.resolve()), "has changed")
     assert _files(run) == before
 
 
@@ -108,7 +99,7 @@ def test_resume_refuses_a_setting_that_differs_from_the_runs(trained, tmp_path, 
     before = _files(run)
     capsys.readouterr()
     assert _resume(scene, run, *options) == 1
-    _one_error_line(capsys, "--resume", str(run), *words)
+    one_error_line(capsys, "--resume", str(run), *words)
     assert _files(run) == before
 
 
@@ -117,7 +108,7 @@ def test_resume_below_the_step_reached_is_refused(trained, tmp_path, capsys):
     before = _files(run)
     capsys.readouterr()
     assert _resume(scene, run, "--iterations", "2") == 2  # a usage error
-    _one_error_line(capsys, "--iterations", "step 3", "3 or more", "got 2", prefix="tacsplat reconstruct: error: ")
+    one_error_line(capsys, "--iterations", "step 3", "3 or more", "got 2", prefix="tacsplat reconstruct: error: ")
     assert _files(run) == before
 
 

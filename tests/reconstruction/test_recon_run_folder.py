@@ -21,7 +21,7 @@ from tacsplat.reconstruction.run_dir import load_run
 from tacsplat.reconstruction.trainer import Trainer
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from recon_synthetic import build_sphere_scene  # noqa: E402
+from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
 
 FAST = ["--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet"]
 
@@ -33,16 +33,6 @@ def scene(tmp_path_factory):
 
 def _reconstruct(scene, out, *extra, iterations: int = 3) -> int:
     return main(["reconstruct", str(scene), "--out", str(out), "--iterations", str(iterations), *FAST, *extra])
-
-
-def _one_error_line(capsys, *words, prefix: str = "error: ") -> str:
-    """The single stderr line of a refused command (no traceback), checked for ``words``."""
-    err = capsys.readouterr().err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith(prefix) and "Traceback" not in err, err
-    for word in words:
-        assert word in lines[0], lines[0]
-    return lines[0]
 
 
 def _listing(folder: Path) -> dict[str, bytes]:
@@ -59,7 +49,7 @@ def test_an_earlier_run_is_kept_unless_overwrite_and_unrelated_files_survive(sce
     before = _listing(run)
     capsys.readouterr()
     assert _reconstruct(scene, run, "--seed", "1") == 1
-    _one_error_line(capsys, "--out", "already holds a reconstruction run", "--resume", "--overwrite")
+    one_error_line(capsys, "--out", "already holds a reconstruction run", "--resume", "--overwrite")
     assert _listing(run) == before
     assert _reconstruct(scene, run, "--seed", "1", "--overwrite") == 0
     assert json.loads((run / "config.json").read_text())["seed"] == 1
@@ -74,7 +64,7 @@ def test_a_folder_of_unrelated_files_is_refused_and_left_as_it_was(scene, tmp_pa
     (photos / "renders").mkdir()
     for extra in ([], ["--overwrite"], ["--resume"]):
         assert _reconstruct(scene, photos, *extra) == 1, extra
-        _one_error_line(capsys, "--out", str(photos), "img.png")
+        one_error_line(capsys, "--out", str(photos), "img.png")
         assert sorted(p.name for p in photos.iterdir()) == ["img.png", "renders"]  # not even a lock file
 
 
@@ -97,9 +87,9 @@ def test_two_jobs_never_write_one_run_folder_at_once(scene, tmp_path, capsys, mo
         capsys.readouterr()
         for extra in ([], ["--overwrite"], ["--resume"]):
             assert _reconstruct(scene, run, "--seed", "7", *extra) == 1, extra
-            _one_error_line(capsys, "--out", "another tacsplat process")
+            one_error_line(capsys, "--out", "another tacsplat process")
         assert main(["evaluate", str(run)]) == 1
-        _one_error_line(capsys, "another tacsplat process")
+        one_error_line(capsys, "another tacsplat process")
     finally:
         finish.set()
         job.join(120)
@@ -220,7 +210,7 @@ def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp
 
 def test_resume_of_no_run_is_refused_and_of_a_run_without_checkpoint_starts_it_again(scene, tmp_path, capsys):
     assert _reconstruct(scene, tmp_path / "new", "--resume") == 1
-    _one_error_line(capsys, "--resume", "holds no run")
+    one_error_line(capsys, "--resume", "holds no run")
     assert not (tmp_path / "new").exists()
     run = tmp_path / "run"
     assert _reconstruct(scene, run, "--lambda-t", "0.25") == 0
@@ -247,10 +237,10 @@ def test_every_command_refuses_the_scene_inspect_refuses(scene, tmp_path, capsys
                         "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites "
                         "the index"]
     assert _reconstruct(copy, tmp_path / "run2") == 1
-    assert _one_error_line(capsys) == f"error: {problems[0]}"
+    assert one_error_line(capsys) == f"error: {problems[0]}"
     assert not (tmp_path / "run2").exists()
     assert main(["evaluate", str(tmp_path / "run")]) == 1
-    assert _one_error_line(capsys) == f"error: {problems[0]}"
+    assert one_error_line(capsys) == f"error: {problems[0]}"
 
 
 # --- 4. and 6. user mistakes: one line naming the option and what it allows --------------------------------------
@@ -260,14 +250,14 @@ def test_an_out_that_is_a_file_inside_a_file_or_unwritable_is_one_error(scene, t
     a_file = tmp_path / "a_file"
     a_file.write_text("mine")
     assert _reconstruct(scene, a_file) == 1
-    _one_error_line(capsys, "--out", "is a file")
+    one_error_line(capsys, "--out", "is a file")
     assert _reconstruct(scene, a_file / "run") == 1
-    _one_error_line(capsys, "--out", "which is a file")
+    one_error_line(capsys, "--out", "which is a file")
     assert a_file.read_text() == "mine"
     real_access = os.access
     monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if "locked" in str(path) else real_access(path, mode))
     assert _reconstruct(scene, tmp_path / "locked") == 1
-    _one_error_line(capsys, "--out", "is not writable")
+    one_error_line(capsys, "--out", "is not writable")
 
 
 @pytest.mark.parametrize("options, words", [
@@ -281,16 +271,16 @@ def test_an_out_that_is_a_file_inside_a_file_or_unwritable_is_one_error(scene, t
 ])
 def test_an_option_out_of_range_is_one_error_naming_it(scene, tmp_path, capsys, options, words):
     assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), "--quiet", *options]) == 2  # usage error
-    _one_error_line(capsys, *words, prefix="tacsplat reconstruct: error: ")
+    one_error_line(capsys, *words, prefix="tacsplat reconstruct: error: ")
     assert not (tmp_path / "run").exists()  # refused before anything is written
 
 
 def test_evaluate_of_what_is_not_a_run_is_one_error(tmp_path, capsys):
     assert main(["evaluate", str(tmp_path / "nothing")]) == 1
-    _one_error_line(capsys, "nothing")
+    one_error_line(capsys, "nothing")
     assert not (tmp_path / "nothing").exists()
     run = tmp_path / "run"
     run.mkdir()
     (run / "checkpoint.pt").write_bytes(b"PK\x03\x04 cut short")
     assert main(["evaluate", str(run)]) == 1
-    _one_error_line(capsys, "checkpoint.pt", "corrupt")
+    one_error_line(capsys, "checkpoint.pt", "corrupt")
