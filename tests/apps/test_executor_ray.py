@@ -92,6 +92,10 @@ def test_ctrl_c_cancels_outstanding_tasks_and_keeps_finished_ones(tmp_path, embe
     with pytest.raises(KeyboardInterrupt):
         run_jobs([hangs, first, queued], tmp_path, executor="ray", on_done=interrupt, progress=False)
     assert first.complete()
-    wait_until((hangs.folder / "interrupted").exists, timeout_s=10)  # the running task got the cancellation
+    try:  # the running task got the cancellation
+        wait_until((hangs.folder / "interrupted").exists, timeout_s=10)
+    except TimeoutError:
+        raise AssertionError(f"no KeyboardInterrupt in the running task: {hangs.folder} holds "
+                             f"{sorted(p.name for p in hangs.folder.iterdir())}, attempts {hangs.attempts()}") from None
     assert not hangs.complete() and queued.attempts() == []
     assert ray.is_initialized()  # the batch did not own this Ray: it is left running

@@ -24,7 +24,9 @@ URL_LINE = re.compile(r"tacsplat view: \w+ .* at (http://[\w.\-]+:(\d+)) \(Ctrl-
 def served(path, *options, timeout: float = 180.0):
     """Run ``tacsplat view PATH --port 0`` with no display until the block ends (Ctrl-C); yields its URL."""
     headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    process = subprocess.Popen([sys.executable, "-m", "tacsplat", "view", str(path), "--port", "0", *options],
+    # -X faulthandler: a process that does not stop on Ctrl-C is sent SIGABRT, which prints where each thread is
+    process = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "tacsplat", "view", str(path), "--port",
+                                "0", *options],
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=headless)
     output: list[str] = []
     found = threading.Event()
@@ -35,7 +37,8 @@ def served(path, *options, timeout: float = 180.0):
             if URL_LINE.search(line):
                 found.set()
 
-    threading.Thread(target=read, daemon=True).start()
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
     try:
         if not found.wait(timeout):
             raise AssertionError(f"no URL printed in {timeout} s:\n{''.join(output)}")
@@ -45,8 +48,10 @@ def served(path, *options, timeout: float = 180.0):
         try:
             code = process.wait(timeout=30)
         except subprocess.TimeoutExpired:
+            process.send_signal(signal.SIGABRT)
+            reader.join(timeout=30)
             process.kill()
-            raise
+            raise AssertionError(f"tacsplat view did not stop within 30 s of Ctrl-C:\n{''.join(output)}") from None
         assert code == 0, f"tacsplat view exited {code}:\n{''.join(output)}"
 
 
