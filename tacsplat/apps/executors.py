@@ -51,6 +51,7 @@ from pathlib import Path
 from typing import Callable, Protocol, Sequence
 
 from tacsplat.errors import ConfigError, TacsplatError, UsageError
+from tacsplat.interrupts import ctrl_c_interrupts
 from tacsplat.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -493,7 +494,8 @@ def _execute(job: Job, starts, *needs: tuple) -> tuple[str, str, object]:
             return "blocked", job.name, failed
         _limit_threads(job.cpus)
         try:
-            return "done", job.name, job()
+            with ctrl_c_interrupts():  # ray.cancel interrupts the job (a training checkpoints)
+                return "done", job.name, job()
         except TacsplatError as exc:  # a mistake in its input: a retry would repeat it
             return "failed", job.name, str(exc)
     finally:  # counted before the attempt's result or error reaches the driver, which reads the counts then;

@@ -37,6 +37,7 @@ import numpy as np
 
 from tacsplat.errors import ConfigError, TacsplatError, UsageError
 from tacsplat.files import atomic_write, check_writable
+from tacsplat.interrupts import ctrl_c_interrupts
 
 log = logging.getLogger(__name__)
 
@@ -89,9 +90,10 @@ def _run(args) -> int:
             size = write_export(server, export)
             print(f"wrote {export} ({size / 1e6:.1f} MB): open it in a browser, no Python needed")
         else:
-            print(f"tacsplat view: {content.kind} {path} at {server_url(args.host, server.get_port())} "
-                  "(Ctrl-C to stop)", flush=True)
-            server.sleep_forever()
+            with ctrl_c_interrupts():  # (also where it was started with Ctrl-C ignored)
+                print(f"tacsplat view: {content.kind} {path} at {server_url(args.host, server.get_port())} "
+                      "(Ctrl-C to stop)", flush=True)
+                server.sleep_forever()
     except KeyboardInterrupt:  # how a user stops the server
         pass
     finally:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -24,10 +25,15 @@ from batch_test_jobs import FileJob, wait_until  # noqa: E402
 @pytest.fixture(scope="module")
 def embedded_ray():
     """The embedded Ray of ``--executor ray`` with no address; the jobs run in its workers, which cannot import
-    the test folder."""
+    the test folder. Its processes start with SIGINT ignored, as those of a batch started in a script's background
+    job do (Python then leaves Ctrl-C ignored, and ray.cancel's interruption with it)."""
     with pytest.MonkeyPatch.context() as patch:
         patch.delenv("RAY_ADDRESS", raising=False)
-        assert connect(None)  # started here
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            assert connect(None)  # started here
+        finally:
+            signal.signal(signal.SIGINT, previous)
         ray.cloudpickle.register_pickle_by_value(batch_test_jobs)
         try:
             assert not connect(None)  # run_jobs uses it, and leaves it running

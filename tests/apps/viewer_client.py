@@ -22,12 +22,14 @@ URL_LINE = re.compile(r"tacsplat view: \w+ .* at (http://[\w.\-]+:(\d+)) \(Ctrl-
 
 @contextlib.contextmanager
 def served(path, *options, timeout: float = 180.0):
-    """Run ``tacsplat view PATH --port 0`` with no display until the block ends (Ctrl-C); yields its URL."""
+    """Run ``tacsplat view PATH --port 0`` with no display until the block ends (Ctrl-C); yields its URL. It starts
+    with SIGINT ignored, as a script's background job does (Python then leaves Ctrl-C ignored): Ctrl-C must stop
+    it all the same."""
     headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     # -X faulthandler: a process that does not stop on Ctrl-C is sent SIGABRT, which prints where each thread is
     process = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "tacsplat", "view", str(path), "--port",
-                                "0", *options],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=headless)
+                                "0", *options], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=headless,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     output: list[str] = []
     found = threading.Event()
 

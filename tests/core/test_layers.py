@@ -20,7 +20,8 @@ PACKAGE_DIRS = {  # import prefix -> folder (pyproject's package-dir)
     "tacsplat.datasets": "datasets",
     "tacsplat": "tacsplat",
 }
-CORE = {"tacsplat", "tacsplat.errors", "tacsplat.files", "tacsplat.geometry", "tacsplat.types", "tacsplat.progress"}
+CORE = {"tacsplat", "tacsplat.errors", "tacsplat.files", "tacsplat.geometry", "tacsplat.types", "tacsplat.progress",
+        "tacsplat.interrupts"}
 # the layer of each subpackage; a module may import only its own layer or lower ones
 LAYERS = {
     "core": 0,
