@@ -8,7 +8,7 @@ other field keeps its default. TrainConfig's defaults are ``DEFAULT_VARIANT``
 colours from the views and the lit colour off.
 A config's variant is the row whose fields it matches on the switches that
 define variants (touch on/off, smoothness on/off, surface normals on/off, then
-tactile normals, appearance, a smooth albedo, plane depth and initial colours from the views). The rows measured
+tactile normals, appearance, a smooth albedo and initial colours from the views). The rows measured
 before the initial colours from the views existed set them off (``RANDOM_COLOURS``), as they were measured.
 """
 
@@ -54,11 +54,6 @@ VARIANTS: dict[str, Variant] = {
         Variant("full+n+tn", "Ours + normals + tactile normals",
                 {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, **SH},
                 "full+n, plus touch Gaussians' normals aligned with the tactile maps' normals (beyond the paper)"),
-        Variant("full+n+r", "Ours + normals + reflections",
-                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.0, "appearance": "reflective",
-                 "lambda_albedo_smoothness": 0.0},
-                "full+n, with diffuse + specular environment-map shading instead of view-dependent SH "
-                "(beyond the paper)"),
         # full+n+tn with one mechanism off or on, for the ablation (README: "each mechanism on and off")
         Variant("full+tn", "Ours + tactile normals", {**PAPER, "lambda_touch_normal": 0.1},
                 "full plus tactile normals only (ablation)"),
@@ -70,27 +65,11 @@ VARIANTS: dict[str, Variant] = {
         Variant("full+dn+tn", "Ours + depth-normal consistency + tactile normals",
                 {**NORMALS, **RANDOM_COLOURS, "lambda_flatten": 0.0, "lambda_touch_normal": 0.1, **SH},
                 "full+n+tn without flattening (ablation)"),
-        Variant("full+n+tn+r", "Ours + normals + tactile normals + reflections",
-                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, "appearance": "reflective",
-                 "lambda_albedo_smoothness": 0.0},
-                "full+n+tn with the reflective appearance (ablation)"),
-        Variant("full+n+tn+l+as", "Ours + normals + tactile normals + lit shading",
-                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, "appearance": "lit",
-                 "lambda_albedo_smoothness": 0.1},
-                "full+n+tn with the lit appearance (a learned light shades an albedo at the normals, the "
-                "specular from the environment) and a smooth albedo, so that shading has to come from the "
-                "geometry (beyond the paper)"),
         Variant("full+n+tn+sl+as", "Ours + normals + tactile normals + lit SH colour",
                 {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, "appearance": "sh-lit",
                  "lambda_albedo_smoothness": 0.1},
                 "full+n+tn with the view-dependent colour lit by a learned light at the rendered normals (sh-lit) "
                 "and kept smooth, so that shading has to come from the geometry (beyond the paper)"),
-        Variant("full+n+tn+sl+as+pd", "Ours + normals + tactile normals + lit SH colour + plane depth",
-                {**NORMALS, **RANDOM_COLOURS, "lambda_touch_normal": 0.1, "appearance": "sh-lit",
-                 "lambda_albedo_smoothness": 0.1, "depth_render": "plane"},
-                "full+n+tn+sl+as with each pixel's depth where its ray meets the blended plane of the Gaussians "
-                "(PGSR's unbiased depth) in training (from plane_depth_start_iter) and in evaluation: exact on flat "
-                "faces, worse where the normals are off (beyond the paper)"),
         Variant("full+n+tn+sl+as+vc", "Ours + normals + tactile normals + lit SH colour + view colours",
                 {**NORMALS, "lambda_touch_normal": 0.1, "appearance": "sh-lit", "lambda_albedo_smoothness": 0.1},
                 "full+n+tn+sl+as with the touch Gaussians (and a failed SfM's points) starting with the median colour "
@@ -114,10 +93,8 @@ def variant_of(config) -> str:
     """The name of the variant a TrainConfig runs, built from what is switched on: touch used (with lambda_t > 0)
     and smoothness (lambda_s > 0) give the paper's four rows; then ``+n`` for surface normals (flattening and
     depth-normal consistency both on; ``+flat`` or ``+dn`` for one of them alone), ``+tn`` for tactile normals
-    (with touch on), ``+tnp`` for tactile normals at the touch pixels (with touch and the rendered normals of
-    depth-normal consistency on, which it needs), ``+r`` / ``+l`` / ``+sl`` for the reflective / lit / sh-lit
-    appearance, ``+as`` for a smooth albedo (with any of them), ``+pd`` for plane depth and ``+vc`` for initial
-    colours from the views (InitConfig.colours_from_views). A combination without
+    (with touch on), ``+sl`` for the sh-lit appearance, ``+as`` for a smooth albedo (with it) and ``+vc`` for
+    initial colours from the views (InitConfig.colours_from_views). A combination without
     a row names itself the same way, so a run's metrics.json never calls it by a row it is not."""
     on = mechanisms(config)
     name = {(False, False): "3dgs", (False, True): "3dgs+s", (True, False): "3dgs+t",
@@ -125,10 +102,8 @@ def variant_of(config) -> str:
     flat, depth_normal = on["flattening"], on["depth_normal"]
     name += "+n" if flat and depth_normal else "+flat" if flat else "+dn" if depth_normal else ""
     name += "+tn" if on["tactile_normals"] else ""
-    name += "+tnp" if on["tactile_normal_pixels"] else ""
-    name += "+r" if on["reflective"] else "+l" if on["lit"] else "+sl" if on["sh_lit"] else ""
+    name += "+sl" if on["sh_lit"] else ""
     name += "+as" if on["albedo_smoothness"] else ""
-    name += "+pd" if on["plane_depth"] else ""
     name += "+vc" if on["view_colours"] else ""
     return name
 
@@ -136,18 +111,15 @@ def variant_of(config) -> str:
 def mechanisms(config) -> dict[str, bool]:
     """Which of the optional mechanisms a TrainConfig switches on, read once for the variant's name
     (:func:`variant_of`) and for how much work its step does (``bench paper``'s scheduling): touch (used, with
-    lambda_t > 0), smoothness, flattening, depth-normal consistency, tactile normals (with touch), tactile
-    normals at the touch pixels (with touch and depth-normal consistency), the reflective, lit or sh-lit
-    appearance, a smooth albedo (with any of them), plane depth, initial colours from the views."""
-    touch, depth_normal = config.use_touch and config.lambda_t > 0, config.lambda_depth_normal > 0
+    lambda_t > 0), smoothness, flattening, depth-normal consistency, tactile normals (with touch), the sh-lit
+    appearance, a smooth albedo (with it), initial colours from the views."""
+    touch = config.use_touch and config.lambda_t > 0
     return {
         "touch": touch, "smoothness": config.lambda_s > 0, "flattening": config.lambda_flatten > 0,
-        "depth_normal": depth_normal, "tactile_normals": touch and config.lambda_touch_normal > 0,
-        "tactile_normal_pixels": touch and depth_normal and config.lambda_touch_normal_pixels > 0,
-        "reflective": config.appearance == "reflective", "lit": config.appearance == "lit",
+        "depth_normal": config.lambda_depth_normal > 0, "tactile_normals": touch and config.lambda_touch_normal > 0,
         "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
-        "plane_depth": config.depth_render == "plane", "view_colours": config.init.colours_from_views,
+        "view_colours": config.init.colours_from_views,
     }  # fmt: skip
 
 

@@ -4,7 +4,7 @@ The demo's capture (one glossy object, 5 views, 5 grasps; made once per
 resolution and reused) is reconstructed by the trainer itself (``Trainer.run``,
 the demo's settings), while the functions a step calls are timed in place:
 projection and SH, binning and depth sort, compositing forward and backward,
-the deferred shading of the lit and reflective appearances (forward and
+the deferred shading of the sh-lit appearance (forward and
 backward), SSIM (forward and backward), the other losses, the transmittance neighbour
 search, the optimiser and densification. Each phase is timed exclusively
 (a phase nested in another is not counted twice); ``autograd (other)`` is
@@ -122,7 +122,7 @@ def instrumented(timer: PhaseTimer):
         return terms
 
     loss_functions = ("photometric_loss", "backdrop_alpha_loss", "transmittance_loss", "edge_aware_smoothness",
-                      "depth_normal_consistency", "touch_normal_loss", "touch_pixel_normal_loss", "flatten_loss",
+                      "depth_normal_consistency", "touch_normal_loss", "flatten_loss",
                       "visible_touch_pixels", "proximity_mask", "expected_depth", "image_edge_weights", "window_inside",
                       "albedo_smoothness_loss")
     patches = [
@@ -186,8 +186,6 @@ def summarize(steps: list[dict[str, float]], warmup: int = WARMUP_STEPS) -> dict
 def profile_resolution(out: Path, resolution: int, iterations: int, variant: str, obj: str, seed: int) -> dict:
     """Capture (once) the demo scene at ``resolution`` px and time a full reconstruction of it."""
     import tempfile
-
-    import torch
 
     from tacsplat.apps.demo import demo_config
     from tacsplat.apps.paper_bench import PaperBench

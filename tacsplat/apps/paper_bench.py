@@ -429,7 +429,7 @@ def render_first_test_view(runs: list[Run], rendered: dict | None = None) -> tup
 
 
 def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(rgb, depth, normal)`` of a loaded run's Gaussians, with their appearance (light, environment), in
+    """``(rgb, depth, normal)`` of a loaded run's Gaussians, with their appearance (its light), in
     ``frame`` over the backdrop of its image."""
     import torch
 

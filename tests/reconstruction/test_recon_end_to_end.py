@@ -184,38 +184,12 @@ def test_touch_scene_runs_the_touch_and_smoothness_paths(sphere_scene, tmp_path,
     assert _training_render_modes(spies["render"]) == {"RGB+D"}
 
 
-def test_touch_pixel_normals_run_with_the_rendered_normals_and_only_when_weighted(sphere_scene, tmp_path, monkeypatch):
-    spy = _Spy(losses.touch_pixel_normal_loss)
-    monkeypatch.setattr(losses, "touch_pixel_normal_loss", spy)
-    Trainer(Scene.load(sphere_scene), tmp_path / "off", _config(4, depth_normal_start_iter=2)).run(show_progress=False)
-    assert spy.calls == []  # weight 0 (the default)
-    trainer = Trainer(Scene.load(sphere_scene), tmp_path / "on",
-                      _config(4, depth_normal_start_iter=2, lambda_touch_normal=0.0, lambda_touch_normal_pixels=0.1))
-    trainer.run(show_progress=False)
-    assert len(spy.calls) == 2  # steps 2 and 3, once the normals are rendered; the tactile normals were loaded
-    assert torch.isfinite(trainer.touch_normals).any()
-
-
-def test_plane_depth_reaches_training_from_its_start_step_and_every_evaluation(sphere_scene, tmp_path, monkeypatch):
-    spy = _Spy(shading.render)
-    monkeypatch.setattr(shading, "render", spy)
-    run = tmp_path / "run"
-    reconstruct(sphere_scene, run, _config(4, depth_render="plane", plane_depth_start_iter=2), show_progress=False)
-    assert [kwargs["depth_render"] for kwargs, grad in spy.calls if grad] == ["centre", "centre", "plane", "plane"]
-    evaluations = [(kwargs["appearance"], kwargs["depth_render"]) for kwargs, grad in spy.calls if not grad]
-    run_views = {how for appearance, how in evaluations if appearance == "sh-lit"}  # progress rows, metrics.json
-    splat_views = {how for appearance, how in evaluations if appearance == "sh"}  # psnr_splat: splat.ply, as a
-    assert run_views == {"plane"} and splat_views == {"centre"}  # 3DGS viewer renders it
-    assert load_run(run).look.depth == "plane"  # what a later `tacsplat evaluate RUN` renders with
-
-
 def test_the_settings_of_a_switched_off_mechanism_change_nothing(sphere_scene, tmp_path):
     """TrainConfig.unused_fields is what bench paper ignores when it compares a run's settings with today's: changing
-    them leaves the trained Gaussians identical (here the consistency's start step, with the touch-pixel normals
-    that ride on it weighted but the consistency off, and the albedo smoothness's weights, with the smoothness off)."""
+    them leaves the trained Gaussians identical (here the consistency's start step, with the consistency off, and the
+    albedo smoothness's weights, with the smoothness off)."""
     def trained(name: str, **changes) -> dict:
-        config = _config(4, lambda_depth_normal=0.0, lambda_touch_normal_pixels=0.1, lambda_albedo_smoothness=0.0,
-                         **changes)
+        config = _config(4, lambda_depth_normal=0.0, lambda_albedo_smoothness=0.0, **changes)
         trainer = Trainer(Scene.load(sphere_scene), tmp_path / name, config)
         trainer.run(show_progress=False)
         return {"unused": config.unused_fields(), **trainer.gaussians.params}
@@ -268,12 +242,10 @@ def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_sce
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
-@pytest.mark.parametrize("appearance, variant", [("lit", "full+n+tn+l+as+vc"), ("sh-lit", "full+n+tn+sl+as+vc")])
-def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch,
-                                                                              appearance, variant):
-    """The lit appearances shade from their start step on (the light gets gradients only then), the smooth albedo
-    reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light (and environment)
-    included, to the same numbers."""
+def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch):
+    """The sh-lit appearance shades from its start step on (the light gets gradients only then), the smooth albedo
+    reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light included, to the same
+    numbers."""
     from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.evaluation import evaluate_run
     from tacsplat.reconstruction.ply import save_ply
@@ -282,8 +254,8 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
 
     smoothness = _Spy(losses.albedo_smoothness_loss)
     monkeypatch.setattr(losses, "albedo_smoothness_loss", smoothness)
-    config = _config(30, appearance=appearance, lit_start_iter=20, lambda_albedo_smoothness=0.1, checkpoint_every=10)
-    run = tmp_path / appearance
+    config = _config(30, appearance="sh-lit", lit_start_iter=20, lambda_albedo_smoothness=0.1, checkpoint_every=10)
+    run = tmp_path / "run"
     trainer = Trainer(Scene.load(sphere_scene), run, config)
     trainer.initialize()
     for _ in range(20):
@@ -294,10 +266,9 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
     trainer.train_step()
     assert not torch.equal(trainer.light.coefficients.detach(), start.coefficients)
     metrics = reconstruct(sphere_scene, run, config, show_progress=False, overwrite=True)
-    assert metrics["variant"] == variant and (run / "light.png").is_file()
+    assert metrics["variant"] == "full+n+tn+sl+as+vc" and (run / "light.png").is_file()
     with (run / "progress.csv").open() as fh:  # the albedo smoothness has its own column
         assert float(list(csv.DictReader(fh))[-1]["albedo_smoothness"]) > 0
-    assert (run / "environment.png").is_file() == (appearance == "lit")  # sh-lit has no environment
     again = evaluate_run(run)
     for key in ("psnr", "cd", "normal_error_deg", "psnr_splat"):
         assert again[key] == pytest.approx(metrics[key], rel=1e-6)
@@ -385,8 +356,8 @@ def test_cli_options_reach_the_train_config():
         config_from_args(_reconstruct_args("--densify-max-gaussians", "-1"))
     with pytest.raises(ConfigError, match="smoothness_depth"):
         TrainConfig(smoothness_depth="median").validate()
-    with pytest.raises(ConfigError, match="depth_render"):
-        TrainConfig(depth_render="median").validate()
+    with pytest.raises(ConfigError, match="appearance"):
+        TrainConfig(appearance="reflective").validate()
 
 
 def test_every_training_setting_has_a_documented_option_with_its_default():

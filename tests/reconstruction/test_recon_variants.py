@@ -4,6 +4,9 @@ every variant's round trip is checked in tests/core/test_bench_report_writers.py
 
 import dataclasses
 
+import pytest
+
+from tacsplat.errors import ConfigError
 from tacsplat.reconstruction.config import TrainConfig, paper_departures
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, VARIANTS, get_variant, variant_of
@@ -23,10 +26,6 @@ def test_normals_need_both_losses():
     paper = get_variant("full").apply(TrainConfig())
     both = dataclasses.replace(paper, lambda_flatten=10.0, lambda_depth_normal=0.05)
     assert variant_of(both) == "full+n"
-    assert variant_of(dataclasses.replace(both, lambda_touch_normal=0.1, appearance="reflective")) == "full+n+tn+r"
-    lit = dataclasses.replace(both, lambda_touch_normal=0.1, appearance="lit")
-    assert variant_of(lit) == "full+n+tn+l"
-    assert variant_of(dataclasses.replace(lit, lambda_albedo_smoothness=0.1)) == "full+n+tn+l+as"
     sh_lit = dataclasses.replace(both, lambda_touch_normal=0.1, appearance="sh-lit", lambda_albedo_smoothness=0.1)
     assert variant_of(sh_lit) == "full+n+tn+sl+as"
     assert variant_of(dataclasses.replace(both, lambda_albedo_smoothness=0.1)) == "full+n"  # SH colour: no albedo
@@ -36,9 +35,7 @@ def test_normals_need_both_losses():
     no_touch = dataclasses.replace(paper, use_touch=False, lambda_flatten=10.0, lambda_depth_normal=0.05,
                                    lambda_touch_normal=0.1)
     assert variant_of(no_touch) == "3dgs+s+n"  # tactile normals need touches: not named without them
-    pixels = dataclasses.replace(both, lambda_touch_normal=0.1, lambda_touch_normal_pixels=0.1)
-    assert variant_of(pixels) == "full+n+tn+tnp"
-    assert variant_of(dataclasses.replace(pixels, lambda_depth_normal=0.0)) == "full+flat+tn"  # no rendered normals
+    assert variant_of(dataclasses.replace(sh_lit, lambda_albedo_smoothness=0.0)) == "full+n+tn+sl"
     assert variant_of(get_variant("full").apply(TrainConfig(init=InitConfig(colours_from_views=True)))) == "full"
     assert variant_of(dataclasses.replace(sh_lit, init=InitConfig())) == "full+n+tn+sl+as+vc"
 
@@ -70,22 +67,25 @@ def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_tra
     assert TrainConfig.from_json(before_view_colours).variant == "full+n+tn+sl+as"  # random colours, as it trained
 
 
+def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refused_when_on():
+    """config.json written before the reflective and lit appearances, plane depth and the touch-pixel normals were
+    removed: their fields switched off read as today's config (the light's rate, once ``lr_env_map``, kept); a run
+    that used one is refused naming the field and the file."""
+    old = {**TrainConfig().to_json(), "depth_render": "centre", "plane_depth_start_iter": 700, "env_map_height": 16,
+           "lambda_touch_normal_pixels": 0.0, "lr_reflective": 5e-3, "lr_env_map": 0.02}
+    old.pop("lr_light")
+    assert TrainConfig.from_json(old) == TrainConfig(lr_light=0.02)
+    for field, value in (("depth_render", "plane"), ("lambda_touch_normal_pixels", 0.1), ("appearance", "lit"),
+                         ("appearance", "reflective")):
+        with pytest.raises(ConfigError, match=f"run/config.json: {field}: this run used .*reconstruct the scene again"):
+            TrainConfig.from_json({**old, field: value}, "run/config.json")
+
+
 def test_a_switched_off_mechanisms_settings_are_unused():
-    # sh-lit: no environment map; centre depth: no plane depth to start
-    assert TrainConfig().unused_fields() == {"env_map_height", "plane_depth_start_iter"}
+    assert TrainConfig().unused_fields() == set()  # the default uses every setting it has
     assert get_variant("full").apply(TrainConfig()).unused_fields() == {
-        "depth_normal_start_iter", "albedo_smoothness_beta", "lambda_albedo_smoothness", "lit_start_iter",
-        "env_map_height", "plane_depth_start_iter"}
-    assert TrainConfig(appearance="reflective").unused_fields() == {"lit_start_iter", "plane_depth_start_iter"}
-    plane = get_variant("full+n+tn+sl+as+pd").apply(TrainConfig())
-    assert plane.unused_fields() == {"env_map_height"} and plane.variant == "full+n+tn+sl+as+pd"
+        "depth_normal_start_iter", "albedo_smoothness_beta", "lambda_albedo_smoothness", "lit_start_iter"}
     assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
-
-
-def test_plane_depth_is_listed_among_the_departures_from_the_paper_only_when_on():
-    plane = get_variant("full+n+tn+sl+as+pd").apply(TrainConfig())
-    assert [line for line in paper_departures(plane) if "blended plane" in line]
-    assert not [line for line in paper_departures(TrainConfig()) if "blended plane" in line]
 
 
 def test_colours_from_the_views_are_listed_among_the_departures_from_the_paper_only_when_on():
