@@ -14,7 +14,6 @@ from tacsplat.errors import ConfigError
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.raster.rendering import BACKENDS
-from tacsplat.reconstruction.variants import variant_of
 
 Appearance = Literal["sh", "sh-lit"]  # how Gaussians are coloured (see TrainConfig.appearance)
 
@@ -41,7 +40,7 @@ class TrainConfig:
     lambda_s: float = 2.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
     lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
     backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
-    use_touch: bool = True  # False: no touch Gaussians and no L_T (variants 3dgs and 3dgs+s)
+    use_touch: bool = True  # False: no touch Gaussians and no L_T (methods 3dgs and 3dgs+s)
     # -- transmittance (Sec. 4.2.1)
     touch_top_k: int = 8  # most influential G_t per touch point
     touch_candidates: int = 32  # nearest G_t fetched from the k-d tree per touch point
@@ -59,12 +58,12 @@ class TrainConfig:
     use_proximity_mask: bool = True  # L_S weighted by 1 - the proximity mask of the visible touches
     proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
     occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
-    # -- surfaces and reflections (beyond the paper; each 0 / "sh" = off, as the paper's variants set them)
+    # -- surfaces and shading (beyond the paper; each 0 / "sh" = off, as the paper's methods set them)
     lambda_flatten: float = 10.0  # minimum-scale loss (PGSR): surfel-like Gaussians whose shortest axis is a normal
     lambda_depth_normal: float = 0.05  # depth-normal consistency (2DGS): rendered normals agree with the depth's
     depth_normal_start_iter: int = 700  # ... from this step on (after the geometry has formed; from 300, the
-    # paper metric's completeness was 16 per cent worse on the twin's glossy objects: README); a step number, as
-    # the other start steps are, so a run of 700 steps or fewer has none
+    # paper metric's completeness was 16 per cent worse on the twin's glossy objects: docs/experiments.md); a step
+    # number, as the other start steps are, so a run of 700 steps or fewer has none
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
     appearance: Appearance = "sh-lit"  # colour: view-dependent SH (3DGS), or "sh-lit": that colour as an albedo
     # times a learned distant light's irradiance at the rendered normal, saturating at 1 (deferred shading)
@@ -89,11 +88,6 @@ class TrainConfig:
     checkpoint_every: int = 500  # steps between checkpoints (and one at the end, on Ctrl-C and SIGTERM)
     init: InitConfig = field(default_factory=InitConfig)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)
-
-    @property
-    def variant(self) -> str:
-        """The name of the method variant this config runs (:mod:`.variants`)."""
-        return variant_of(self)
 
     def unused_fields(self) -> set[str]:
         """The fields that cannot change what this config trains: the settings of the mechanisms it switches off."""
@@ -166,7 +160,7 @@ class TrainConfig:
         if not torch.cuda.is_available():
             build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
             raise ConfigError("device", f"cuda was asked for but torch {torch.__version__} ({build}) sees no CUDA "
-                              "device; use --device cpu, or install a CUDA build of torch and gsplat (README)")
+                              "device; use --device cpu, or install a CUDA build of torch and gsplat (README: GPU)")
         return torch.device("cuda")
 
     def to_json(self) -> dict:
@@ -336,8 +330,8 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
     """What still differs from the paper's official runs for ``config`` (one line each)."""
     lines = []
     if config.lambda_flatten > 0 or config.lambda_depth_normal > 0 or config.lambda_touch_normal > 0:
-        lines.append("surface normals (flattening, depth-normal consistency, tactile normals; variant "
-                     f"{config.variant}): not in the paper (its method is the variant `full`)")
+        lines.append("surface normals (flattening, depth-normal consistency, tactile normals): not in the paper (its "
+                     "method is `paper`)")
     if config.appearance != "sh":
         lines.append("sh-lit appearance: the view-dependent SH colour shaded by a learned light at the rendered "
                      "normals; not in the paper")

@@ -26,6 +26,7 @@ from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction.shading import Look
+from tacsplat.reconstruction.methods import mechanisms, method_of
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
     ReferenceCloud,
@@ -412,7 +413,8 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
         "num_gaussians": len(gaussians),
         "num_touch_gaussians": gaussians.num_touch,
         "num_test_views": len(test),
-        "variant": config.variant,
+        "method": method_of(config),
+        "mechanisms": mechanisms(config),
         "gt_source": ground_truth.source if ground_truth else None,
         "gt_radius": ground_truth.radius if ground_truth else None,
         "scene": str(scene.path),

@@ -12,12 +12,12 @@ import trimesh
 
 from tacsplat.cli import main as tacsplat_main
 from tacsplat.datasets import Scene
-from tacsplat.reconstruction import losses, shading
+from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.gaussians import quats_to_rotmats
 from tacsplat.reconstruction.initialization import InitConfig
+from tacsplat.reconstruction.methods import method_of
 from tacsplat.reconstruction.ply import load_ply
-from tacsplat.reconstruction.run_dir import load_run
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.trainer import Trainer, reconstruct
 
@@ -89,7 +89,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     # the paper's CD (squared, summed, median depth against the whole mesh surface) falls too
     assert 0 < metrics["cd_paper"] < 0.5 * float(rows[0]["cd_paper"])
     assert metrics["psnr"] > 18.0
-    assert metrics["variant"] == "full+n+tn+sl+as+vc" and metrics["iterations"] == 400
+    assert metrics["method"] == "default" and metrics["iterations"] == 400
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds)
@@ -100,7 +100,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     assert all(float(r["transmittance"]) > 0 for r in rows[1:])
     saved = json.loads((run / "metrics.json").read_text())
     for key in ("cd", "cd_paper", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians",
-                "num_touch_gaussians", "variant", "settings"):
+                "num_touch_gaussians", "method", "settings"):
         assert key in saved
     assert saved["cd_paper"] == pytest.approx(saved["cd_paper_accuracy"] + saved["cd_paper_completeness"])
     assert saved["cd_seen"] is None and saved["unseen_fraction"] is None  # no mesh to tell what cameras see
@@ -266,7 +266,7 @@ def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(
     trainer.train_step()
     assert not torch.equal(trainer.light.coefficients.detach(), start.coefficients)
     metrics = reconstruct(sphere_scene, run, config, show_progress=False, overwrite=True)
-    assert metrics["variant"] == "full+n+tn+sl+as+vc" and (run / "light.png").is_file()
+    assert metrics["method"] == "default" and (run / "light.png").is_file()
     with (run / "progress.csv").open() as fh:  # the albedo smoothness has its own column
         assert float(list(csv.DictReader(fh))[-1]["albedo_smoothness"]) > 0
     again = evaluate_run(run)
@@ -294,7 +294,8 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
                           "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet", "--train-views", "4"])
     assert code == 0
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["variant"] == "3dgs+t+n+tn+sl+as+vc" and metrics["settings"]["train_views"] == 4  # the default, no L_S
+    assert metrics["method"] == "custom" and metrics["settings"]["train_views"] == 4  # the default, no L_S
+    assert metrics["mechanisms"] == {**dict.fromkeys(metrics["mechanisms"], True), "smoothness": False}
     assert metrics["iterations"] == 5 and np.isfinite(metrics["cd"])
     mesh_path = tmp_path / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=4, radius=RADIUS).export(mesh_path)
@@ -339,17 +340,17 @@ def test_cli_options_reach_the_train_config():
     config = config_from_args(args)
     assert (config.seed, config.sh_degree, config.backend, config.iterations, config.lambda_s) == (3, 1, "cpu", 7, 0.5)
     assert (config.smoothness_depth, config.use_touch, config.densify.max_gaussians) == ("accumulated", False, 500)
-    assert config.init.use_sfm is False and config.train_views is None and config.variant == "3dgs+s+n+sl+as+vc"
+    assert config.init.use_sfm is False and config.train_views is None and method_of(config) == "custom"
     defaults = config_from_args(_reconstruct_args())
     assert defaults.to_json() == TrainConfig().to_json()  # no option given: exactly TrainConfig's defaults
-    assert config_from_args(_reconstruct_args("--variant", "3dgs")).variant == "3dgs"
-    assert config_from_args(_reconstruct_args("--variant", "3dgs", "--lambda-s", "1")).variant == "3dgs+s"
+    assert method_of(config_from_args(_reconstruct_args("--method", "3dgs"))) == "3dgs"
+    assert method_of(config_from_args(_reconstruct_args("--method", "3dgs", "--lambda-s", "1"))) == "3dgs+s"
     paper = config_from_args(_reconstruct_args("--preset", "paper", "--iterations", "3000"))
     assert (paper.iterations, paper.smoothness_start_iter, paper.densify.stop_iter) == (3000, 2000, 1500)
     assert paper.lambda_t == 0.5 and paper.touch_top_k == 20 and paper.use_proximity_mask is False
     full_paper = config_from_args(_reconstruct_args("--preset", "paper"))
     assert (full_paper.iterations, full_paper.smoothness_start_iter, full_paper.densify.stop_iter) == (30000, 20000, 15000)
-    assert config_from_args(_reconstruct_args("--preset", "paper", "--variant", "3dgs")).variant == "3dgs"
+    assert method_of(config_from_args(_reconstruct_args("--preset", "paper", "--method", "3dgs"))) == "3dgs"
     with pytest.raises(ConfigError, match="--iterations"):
         config_from_args(_reconstruct_args("--iterations", "-5"))
     with pytest.raises(ConfigError, match="--densify-max-gaussians"):
