@@ -1,8 +1,7 @@
 """Plain 3DGS colours for Gaussians whose appearance is shaded: what a run's ``splat.ply`` carries.
 
-The "reflective", "lit" and "sh-lit" appearances colour a pixel in a deferred pass (:mod:`.shading`) from
-blended normals, a learned light and an environment map, which no 3DGS viewer knows: their SH coefficients
-alone show the unlit albedo. :func:`bake_appearance` replaces each Gaussian's SH with the degree-3 SH that
+The "sh-lit" appearance colours a pixel in a deferred pass (:mod:`.shading`) from blended normals and a learned
+light, which no 3DGS viewer knows: its SH coefficients alone show the unlit albedo. :func:`bake_appearance` replaces each Gaussian's SH with the degree-3 SH that
 best fits the colour it shows from every direction when it is shaded on its own (its own normal as the
 pixel's, turned towards the viewer, as the renderer turns it), weighted by its projected area ``|<d, n>|``:
 an edge-on surfel, where the turned normal flips and the colour jumps, covers nothing.
@@ -15,9 +14,9 @@ import math
 import torch
 from torch import Tensor
 
-from tacsplat.reconstruction.gaussians import MAX_SH_DEGREE, PARAM_NAMES, Gaussians, sh0_to_rgb
+from tacsplat.reconstruction.gaussians import MAX_SH_DEGREE, Gaussians
 from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
-from tacsplat.reconstruction.shading import LIT, SPECULAR, Look, gaussian_normals, shade_points
+from tacsplat.reconstruction.shading import Look, gaussian_normals, shade_points
 
 BAKE_DIRECTIONS = 256  # viewing directions the fit samples (a Fibonacci sphere)
 BAKE_CHUNK = 4096  # Gaussians per batch (the samples of one batch: chunk x directions x 3 floats)
@@ -36,7 +35,7 @@ def shaded_colours(gaussians: Gaussians, look: Look, directions: Tensor, normals
     """The colour [N, D, 3] each Gaussian shows along each unit world view direction ``directions`` [D, 3]
     (camera to Gaussian) when the deferred shading (:func:`.shading.shade_points`) lights it alone: the pixel's
     normal is the Gaussian's (``normals`` [N, 3], default its shortest axis) turned towards the viewer, the
-    pixel's diffuse colour, tint and roughness its own."""
+    pixel's albedo the Gaussian's SH colour along that direction."""
     g = gaussians
     if normals is None:
         normals = gaussian_normals(g.quats, g.scales)
@@ -44,19 +43,9 @@ def shaded_colours(gaussians: Gaussians, look: Look, directions: Tensor, normals
     views = directions.to(g.means.dtype)[None].expand(len(g), -1, -1)  # [N, D, 3]
     n = normals[:, None, :].expand(-1, n_views, -1)  # [N, D, 3]
     n = torch.where((n * views).sum(-1, keepdim=True) > 0, -n, n)  # towards the viewer
-    if look.appearance == "sh-lit":  # the SH colour along each direction (3DGS's +0.5, clipped at 0)
-        basis = sh_basis(g.sh_degree, views[0])  # [D, K]
-        albedo = (torch.einsum("dk,nkc->ndc", basis, g.sh_coefficients(g.sh_degree)) + 0.5).clamp_min(0.0)
-    else:
-        albedo = sh0_to_rgb(g.params["sh0"][:, 0]).clamp_min(0.0)[:, None].expand(-1, n_views, -1)  # [N, D, 3]
-    tint = roughness = None
-    if look.appearance in SPECULAR:
-        tint = torch.sigmoid(g.params["tint"])[:, None].expand(-1, n_views, -1).reshape(-1, 3)
-        roughness = torch.sigmoid(g.params["roughness"]).expand(-1, n_views).reshape(-1)
-    shaded = shade_points(albedo.reshape(-1, 3), n.reshape(-1, 3), views.reshape(-1, 3),
-                          look.light if look.appearance in LIT else None,
-                          look.environment if look.appearance in SPECULAR else None, tint, roughness,
-                          saturate=look.appearance in LIT)
+    basis = sh_basis(g.sh_degree, views[0])  # [D, K]: the SH colour along each direction (3DGS's +0.5, >= 0)
+    albedo = (torch.einsum("dk,nkc->ndc", basis, g.sh_coefficients(g.sh_degree)) + 0.5).clamp_min(0.0)
+    shaded = shade_points(albedo.reshape(-1, 3), n.reshape(-1, 3), views.reshape(-1, 3), look.light)
     return shaded.reshape(len(g), n_views, 3)
 
 
@@ -82,6 +71,6 @@ def bake_appearance(gaussians: Gaussians, look: Look, directions: int = BAKE_DIR
         rhs = torch.einsum("dk,nd,ndc->nkc", basis, weight, target)  # [n, 16, 3]
         fitted.append(torch.linalg.solve(normal_matrix, rhs))
     coeffs = torch.cat(fitted).to(g.means.dtype)  # [N, 16, 3]
-    params = {k: g.params[k].detach().clone() for k in PARAM_NAMES if k not in ("sh0", "shN")}  # no tint, roughness
+    params = {k: g.params[k].detach().clone() for k in ("means", "quats", "scales", "opacities")}
     params["sh0"], params["shN"] = coeffs[:, :1].contiguous(), coeffs[:, 1:].contiguous()
     return Gaussians(params, g.from_touch.clone(), MAX_SH_DEGREE)

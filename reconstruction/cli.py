@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from tacsplat.errors import ConfigError, UsageError
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT, VARIANTS
+from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
@@ -16,19 +16,19 @@ def register(cli) -> None:
         "reconstruct", build=_add_config_options,
         help="tactile-informed 3DGS: train on a scene directory and evaluate",
         description="Optimise Gaussians on SCENE and write a run directory: splat.ply, checkpoint.pt, progress.csv, "
-        "error_vs_time.png, metrics.json, renders/. --variant picks a row of the paper's Table 3; every training "
-        "setting has its own option below (defaults as in TrainConfig). Ctrl-C or SIGTERM stop after the current "
+        "error_vs_time.png, metrics.json, renders/. --method picks a row of the paper's Table 3 or ours (default); every "
+        "training setting has its own option below (defaults as in TrainConfig). Ctrl-C or SIGTERM stop after the current "
         "step with a checkpoint (exit 130 or 143) and print the command that resumes.",
     )
     p.add_argument("scene", help="scene directory")
     p.add_argument("--out", required=True,
                    help="run directory to write: new or empty, or an earlier run with --resume or --overwrite")
-    p.add_argument("--variant", default=None, choices=list(VARIANTS),
-                   help="method variant: " + "; ".join(f"{v.name}: {v.description}" for v in VARIANTS.values())
-                   + f". Options given explicitly win over the variant's settings (default: {DEFAULT_VARIANT})")
+    p.add_argument("--method", default=None, choices=list(METHODS),
+                   help="; ".join(f"{m.name}: {m.description}" for m in METHODS.values())
+                   + f". Options given explicitly win over the method's settings (default: {DEFAULT_METHOD})")
     p.add_argument("--preset", default=None, choices=("default", "paper"),
                    help="starting settings: default (tuned for few views on a CPU) or paper (the official code's "
-                   "30k-step schedule, every step-based number scaled to --iterations); the variant and any option "
+                   "30k-step schedule, every step-based number scaled to --iterations); the method and any option "
                    "given apply on top (default: default)")
     p.add_argument("--no-smoothness", action="store_true", help="no L_S and no depth render (same as --lambda-s 0)")
     p.add_argument("--resume", action="store_true",
@@ -58,13 +58,13 @@ def _add_config_options(parser) -> None:
 
 def config_from_args(args, iterations: int | None = None):
     """The TrainConfig of `tacsplat reconstruct`'s options: the preset (scaled to ``iterations``, by default
-    --iterations), the variant's fields, then every option given; a ConfigError naming the option out of range."""
+    --iterations), the method's fields, then every option given; a ConfigError naming the option out of range."""
     from tacsplat.reconstruction.config import preset_config
+    from tacsplat.reconstruction.methods import get_method, set_fields
     from tacsplat.reconstruction.options import apply_options, option_names
-    from tacsplat.reconstruction.variants import get_variant
 
     config = preset_config(args.preset or "default", iterations or getattr(args, "cfg__iterations", None))
-    get_variant(args.variant or DEFAULT_VARIANT, "--variant").apply(config)
+    set_fields(config, get_method(args.method or DEFAULT_METHOD).overrides)
     apply_options(config, args, args.config_options)
     if args.no_smoothness:
         config.lambda_s = 0.0
@@ -79,8 +79,9 @@ def config_from_args(args, iterations: int | None = None):
 def refuse_changed_settings(args, recorded) -> None:
     """With --resume: an option given whose value differs from the one the run in --out recorded (``recorded``)
     is a ConfigError on --resume naming each such option and both values (--iterations aside: it may raise the
-    step count). --variant compares the variant and the fields it sets, --preset every setting."""
+    step count). --method compares the fields it sets, --preset every setting."""
     from tacsplat.reconstruction.config import changed_settings
+    from tacsplat.reconstruction.methods import method_of
     from tacsplat.reconstruction.options import option_names
 
     given = config_from_args(args, iterations=recorded.iterations)  # (a paper preset scaled as the run's was)
@@ -89,13 +90,13 @@ def refuse_changed_settings(args, recorded) -> None:
     if args.no_smoothness:
         fields.add("lambda_s")
         names["lambda_s"] = "--no-smoothness"
-    if args.variant is not None:
-        fields |= set(VARIANTS[args.variant].overrides)
+    if args.method is not None:
+        fields |= set(METHODS[args.method].overrides)
     changes = [f"{names.get(path, path)} {before!r} in the run, {now!r} given"
                for path, before, now in changed_settings(recorded, given, None if args.preset else fields)
                if path != "iterations"]
-    if args.variant is not None and recorded.variant != given.variant:
-        changes.insert(0, f"--variant {recorded.variant} in the run, {given.variant} given")
+    if args.method is not None and method_of(recorded) != method_of(given):
+        changes.insert(0, f"--method {method_of(recorded)} in the run, {method_of(given)} given")
     if changes:
         raise ConfigError("--resume", f"{args.out} was trained with other settings than this command line gives "
                           f"({'; '.join(changes)}): a resumed run keeps its own settings (only --iterations may "
@@ -114,7 +115,7 @@ def _reconstruct(args) -> int:
         again = shlex.join(["tacsplat", "reconstruct", args.scene, "--out", args.out, "--resume"])
         print(f"{stop}; continue with:\n  {again}", file=sys.stderr)
         return 128 + stop.signum
-    print(json.dumps({k: metrics[k] for k in ("variant", "cd", "psnr", "ssim", "train_seconds", "iterations",
+    print(json.dumps({k: metrics[k] for k in ("method", "cd", "psnr", "ssim", "train_seconds", "iterations",
                                               "num_gaussians", "num_touch_gaussians")}, indent=2))
     return 0
 
@@ -130,5 +131,5 @@ def _evaluate(args) -> int:
     check_writable(args.run)  # a read-only or full run folder: one error saying which, before the evaluation
     with claim_output_dir(args.run, "RUN"):
         metrics = evaluate_run(args.run, gt_path=args.gt_mesh, backend=args.backend)
-    print(json.dumps({k: metrics[k] for k in ("variant", "cd", "psnr", "ssim", "num_gaussians")}, indent=2))
+    print(json.dumps({k: metrics.get(k) for k in ("method", "cd", "psnr", "ssim", "num_gaussians")}, indent=2))
     return 0

@@ -14,12 +14,8 @@ from tacsplat.errors import ConfigError
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.raster.rendering import BACKENDS
-from tacsplat.reconstruction.variants import variant_of
 
-Appearance = Literal["sh", "reflective", "lit", "sh-lit"]  # how Gaussians are coloured (see TrainConfig.appearance)
-SPECULAR = ("reflective", "lit")  # the appearances with a specular tint, a roughness and an environment map
-LIT = ("lit", "sh-lit")  # the appearances a learned diffuse light shades
-DepthRender = Literal["centre", "plane"]  # how depth is rendered (see TrainConfig.depth_render)
+Appearance = Literal["sh", "sh-lit"]  # how Gaussians are coloured (see TrainConfig.appearance)
 
 
 @dataclass
@@ -44,7 +40,7 @@ class TrainConfig:
     lambda_s: float = 2.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
     lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
     backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
-    use_touch: bool = True  # False: no touch Gaussians and no L_T (variants 3dgs and 3dgs+s)
+    use_touch: bool = True  # False: no touch Gaussians and no L_T (methods 3dgs and 3dgs+s)
     # -- transmittance (Sec. 4.2.1)
     touch_top_k: int = 8  # most influential G_t per touch point
     touch_candidates: int = 32  # nearest G_t fetched from the k-d tree per touch point
@@ -62,29 +58,18 @@ class TrainConfig:
     use_proximity_mask: bool = True  # L_S weighted by 1 - the proximity mask of the visible touches
     proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
     occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
-    # -- surfaces and reflections (beyond the paper; each 0 / "sh" = off, as the paper's variants set them)
+    # -- surfaces and shading (beyond the paper; each 0 / "sh" = off, as the paper's methods set them)
     lambda_flatten: float = 10.0  # minimum-scale loss (PGSR): surfel-like Gaussians whose shortest axis is a normal
     lambda_depth_normal: float = 0.05  # depth-normal consistency (2DGS): rendered normals agree with the depth's
     depth_normal_start_iter: int = 700  # ... from this step on (after the geometry has formed; from 300, the
-    # paper metric's completeness was 16 per cent worse on the twin's glossy objects: README); a step number, as
-    # the other start steps are, so a run of 700 steps or fewer has none
+    # paper metric's completeness was 16 per cent worse on the twin's glossy objects: docs/experiments.md); a step
+    # number, as the other start steps are, so a run of 700 steps or fewer has none
     lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
-    lambda_touch_normal_pixels: float = 0.0  # ... and so does the rendered normal at each touch pixel a view sees
-    # (needs the rendered normals: with depth-normal consistency on, from its start step)
-    depth_render: DepthRender = "centre"  # "centre": each Gaussian's centre depth over its whole footprint
-    # (3DGS); "plane": the pixel ray's hit with the blended plane of the Gaussians' normals and centres (PGSR's
-    # unbiased depth), in training (smoothness, depth-normal consistency) and in evaluation (cd, progress rows too)
-    plane_depth_start_iter: int = 700  # "plane": in training from this step on (before: "centre"; as the
-    # depth-normal consistency, once the Gaussians are flat and their normals mean something)
-    appearance: Appearance = "sh-lit"  # colour: view-dependent SH (3DGS), or
-    # "reflective": diffuse + specular tint x a learned environment map along the reflected view direction,
-    # prefiltered by roughness (deferred shading), or "lit": that, with the diffuse colour an albedo times a learned
-    # distant light's irradiance at the normal, and colours saturating at 1, or "sh-lit": the view-dependent SH
-    # colour as that albedo (no environment)
-    env_map_height: int = 16  # environment map height in pixels (its width is twice that)
-    lit_start_iter: int = 300  # "lit", "sh-lit": the light shades the albedo from this step on (before: unlit)
+    appearance: Appearance = "sh-lit"  # colour: view-dependent SH (3DGS), or "sh-lit": that colour as an albedo
+    # times a learned distant light's irradiance at the rendered normal, saturating at 1 (deferred shading)
+    lit_start_iter: int = 300  # "sh-lit": the light shades the albedo from this step on (before: unlit)
     lambda_albedo_smoothness: float = 0.1  # L1 differences of neighbouring pixels' rendered diffuse colour inside
-    # the silhouette (all but "sh"): shading has to come from the normals (and the environment)
+    # the silhouette ("sh-lit"): shading has to come from the normals
     albedo_smoothness_beta: float = 10.0  # albedo smoothness: each pair of neighbouring pixels weighted
     # e^{-beta |dI|} by the training image's own difference there, so a texture's edges stay in the albedo (0: all 1)
     # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
@@ -95,8 +80,7 @@ class TrainConfig:
     lr_opacities: float = 5e-2  # logit opacities
     lr_sh0: float = 2.5e-3  # SH band 0 (base colour)
     lr_shN: float = 2.5e-3 / 20  # higher SH bands
-    lr_reflective: float = 5e-3  # specular tint and roughness of the reflective appearance
-    lr_env_map: float = 1e-2  # the environment map (log radiance)
+    lr_light: float = 1e-2  # "sh-lit": the diffuse light's SH coefficients and camera light
     # -- progress evaluation and checkpoints
     eval_every_iters: int = 250  # held-out PSNR and CD at least this often...
     eval_every_seconds: float = 30.0  # ...and at least this often in run time
@@ -104,11 +88,6 @@ class TrainConfig:
     checkpoint_every: int = 500  # steps between checkpoints (and one at the end, on Ctrl-C and SIGTERM)
     init: InitConfig = field(default_factory=InitConfig)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)
-
-    @property
-    def variant(self) -> str:
-        """The name of the method variant this config runs (:mod:`.variants`)."""
-        return variant_of(self)
 
     def unused_fields(self) -> set[str]:
         """The fields that cannot change what this config trains: the settings of the mechanisms it switches off."""
@@ -119,12 +98,8 @@ class TrainConfig:
             unused.add("albedo_smoothness_beta")
         if self.appearance == "sh":
             unused.add("lambda_albedo_smoothness")
-        if self.appearance not in LIT:
+        if self.appearance == "sh":
             unused.add("lit_start_iter")
-        if self.appearance not in SPECULAR:
-            unused.add("env_map_height")
-        if self.depth_render == "centre":
-            unused.add("plane_depth_start_iter")
         return unused
 
     def validate(self, names: dict[str, str] | None = None) -> None:
@@ -154,9 +129,8 @@ class TrainConfig:
             len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
         ):
             return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
-        for key, choices in (("appearance", Appearance), ("depth_render", DepthRender)):
-            if getattr(self, key) not in (names := get_args(choices)):
-                return key, f"must be {', '.join(map(repr, names[:-1]))} or {names[-1]!r}, got {getattr(self, key)!r}"
+        if self.appearance not in get_args(Appearance):
+            return "appearance", f"must be 'sh' or 'sh-lit', got {self.appearance!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
             return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
         if self.backend not in BACKENDS:
@@ -186,7 +160,7 @@ class TrainConfig:
         if not torch.cuda.is_available():
             build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
             raise ConfigError("device", f"cuda was asked for but torch {torch.__version__} ({build}) sees no CUDA "
-                              "device; use --device cpu, or install a CUDA build of torch and gsplat (README)")
+                              "device; use --device cpu, or install a CUDA build of torch and gsplat (README: GPU)")
         return torch.device("cuda")
 
     def to_json(self) -> dict:
@@ -200,6 +174,7 @@ class TrainConfig:
         try:
             data = {**_BEFORE_THEY_EXISTED, **data}
             data.pop("scene", None)
+            _drop_removed(data, source)
             init = InitConfig(**{**_INIT_BEFORE_THEY_EXISTED, **data.pop("init", {})})
             densify = DensifyStrategy(**data.pop("densify", {}))
             if data.get("background") is not None:
@@ -241,14 +216,35 @@ _BEFORE_THEY_EXISTED = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lamb
                         "appearance": "sh", "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
 _INIT_BEFORE_THEY_EXISTED = {"colours_from_views": False}  # ... and of its InitConfig: random initial colours
 
+# Fields of mechanisms measured not to help and removed (docs/experiments.md, "Removed"): a config.json that has
+# them off (or holds only their settings) reads as today's config; one that used them cannot be resumed or shown.
+_REMOVED_OFF = {"depth_render": "centre", "lambda_touch_normal_pixels": 0.0}  # field: its off value
+_REMOVED_SETTINGS = ("plane_depth_start_iter", "env_map_height", "lr_reflective")
+_REMOVED_APPEARANCES = ("reflective", "lit")
+
+
+def _drop_removed(data: dict, source) -> None:
+    """Remove from ``data`` the fields of removed mechanisms; a ConfigError if it switched one of them on."""
+    for key, off in _REMOVED_OFF.items():
+        if data.pop(key, off) != off:
+            raise ConfigError(key, "this run used a mechanism tacsplat no longer has (measured not to help: "
+                              "docs/experiments.md); reconstruct the scene again", source)
+    if data.get("appearance") in _REMOVED_APPEARANCES:
+        raise ConfigError("appearance", f"this run used the {data['appearance']!r} appearance, which tacsplat no "
+                          "longer has (measured not to help: docs/experiments.md); reconstruct the scene again",
+                          source)
+    for key in _REMOVED_SETTINGS:
+        data.pop(key, None)
+    if "lr_env_map" in data:  # the light's rate, named after the environment map it was shared with
+        data.setdefault("lr_light", data.pop("lr_env_map"))
+
 # Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
 _INT_RANGES = {
     "iterations": (1, None), "seed": (0, 2**32 - 1), "downscale": (1, 64), "sh_degree": (0, 3), "sh_degree_interval": (0, None),
     "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
     "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
     "eval_max_views": (1, None), "checkpoint_every": (1, None), "smoothness_start_iter": (0, None),
-    "depth_normal_start_iter": (0, None), "plane_depth_start_iter": (0, None), "env_map_height": (2, 256),
-    "lit_start_iter": (0, None),
+    "depth_normal_start_iter": (0, None), "lit_start_iter": (0, None),
 }  # fmt: skip
 _OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
 _FLOAT_RANGES = {
@@ -256,9 +252,8 @@ _FLOAT_RANGES = {
     "backdrop_tolerance": (0.0, None), "touch_max_distance": (0.0, None), "smoothness_beta": (0.0, None),
     "proximity_sigma_px": (0.0, None), "occlusion_tolerance": (0.0, None), "lr_means": (0.0, None),
     "lr_means_final_factor": (0.0, 1.0), "lr_quats": (0.0, None), "lr_scales": (0.0, None),
-    "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "eval_every_seconds": (0.0, None),
+    "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "lr_light": (0.0, None), "eval_every_seconds": (0.0, None),
     "lambda_flatten": (0.0, None), "lambda_depth_normal": (0.0, None), "lambda_touch_normal": (0.0, None),
-    "lambda_touch_normal_pixels": (0.0, None), "lr_reflective": (0.0, None), "lr_env_map": (0.0, None),
     "lambda_albedo_smoothness": (0.0, None), "albedo_smoothness_beta": (0.0, None),
 }  # fmt: skip
 _POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
@@ -331,21 +326,15 @@ def paper_preset(iterations: int = PAPER_ITERATIONS) -> dict:
     }
 
 
-_APPEARANCE_DEPARTURES = {  # what each appearance but "sh" puts in place of the paper's view-dependent SH colour
-    "reflective": " instead of view-dependent SH colour", "lit": " instead of view-dependent SH colour",
-    "sh-lit": ": the view-dependent SH colour shaded by a learned light at the rendered normals",
-}
-
-
 def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: int | None = None) -> list[str]:
     """What still differs from the paper's official runs for ``config`` (one line each)."""
     lines = []
-    if (config.lambda_flatten > 0 or config.lambda_depth_normal > 0 or config.lambda_touch_normal > 0
-            or config.lambda_touch_normal_pixels > 0):
-        lines.append("surface normals (flattening, depth-normal consistency, tactile normals; variant "
-                     f"{config.variant}): not in the paper (its method is the variant `full`)")
+    if config.lambda_flatten > 0 or config.lambda_depth_normal > 0 or config.lambda_touch_normal > 0:
+        lines.append("surface normals (flattening, depth-normal consistency, tactile normals): not in the paper (its "
+                     "method is `paper`)")
     if config.appearance != "sh":
-        lines.append(f"{config.appearance} appearance{_APPEARANCE_DEPARTURES[config.appearance]}; not in the paper")
+        lines.append("sh-lit appearance: the view-dependent SH colour shaded by a learned light at the rendered "
+                     "normals; not in the paper")
     if config.appearance != "sh" and config.lambda_albedo_smoothness > 0:
         lines.append(f"smooth albedo (lambda_albedo_smoothness {config.lambda_albedo_smoothness}, pairs weighted by the "
                      f"image with albedo_smoothness_beta {config.albedo_smoothness_beta}); not in the paper")
@@ -355,9 +344,6 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
     if config.init.colours_from_views and (config.use_touch or config.init.use_silhouette_hull):
         lines.append("initial colours of the touch Gaussians (and of a failed SfM's points) from the training pixels "
                      "they project to; the paper: random")
-    if config.depth_render == "plane":
-        lines.append("depth rendered where each pixel's ray meets the blended plane of the Gaussians (PGSR's unbiased "
-                     f"depth; in training from step {config.plane_depth_start_iter}, and for cd); not in the paper")
     if config.lambda_backdrop > 0:
         lines.append(f"backdrop alpha loss (lambda_backdrop {config.lambda_backdrop}) on pixels showing the fitted "
                      "backdrop; not in the paper")

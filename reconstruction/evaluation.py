@@ -10,6 +10,7 @@ when there is one, else of the ground-truth cloud).
 from __future__ import annotations
 
 import json
+import math
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +26,7 @@ from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction.shading import Look
+from tacsplat.reconstruction.methods import mechanisms, method_of
 from tacsplat.reconstruction.metrics import (
     bounding_sphere_radius,
     ReferenceCloud,
@@ -67,8 +69,7 @@ def render_frame(gaussians: Gaussians, frame, background: torch.Tensor, backend:
     intr = frame.intrinsics
     out = shading.render(gaussians, viewmat, K, intr.width, intr.height, sh_degree=gaussians.sh_degree,
                          backend=backend, depth_mode="ED" if with_depth else None, normals=with_normals,
-                         appearance=look.appearance, environment=look.environment, light=look.light,
-                         depth_render=look.depth)
+                         appearance=look.appearance, light=look.light)
     alpha = out.alpha.cpu()
     rgb = (out.rgb.cpu() + (1.0 - alpha[..., None]) * background.cpu()).clamp(0, 1).numpy()
     drawn = alpha.numpy() > ALPHA_MASK_THRESHOLD
@@ -388,9 +389,8 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
                             look: Look | None = None, splat: Gaussians | None = None) -> dict:
     """Evaluate Gaussians on a scene's test views (``psnr_splat``: the PSNR of what ``splat.ply`` shows a plain
     3DGS renderer, ``splat`` when the caller has baked it, :func:`.baking.bake_appearance` of ``gaussians`` and
-    ``look`` otherwise): writes ``metrics.json``, ``renders/`` and, for a reflective
-    appearance, ``environment.png`` (its learned environment map) and for a lit one ``light.png`` (its diffuse light,
-    :func:`save_light`) into ``run_dir``."""
+    ``look`` otherwise): writes ``metrics.json``, ``renders/`` and, for the sh-lit appearance, ``light.png`` (its
+    diffuse light, :func:`save_light`) into ``run_dir``."""
     test = scene.split("test")
     backend = backend or config.backend
     ground_truth = load_ground_truth(scene, test, gt_path, train_frames=training_frames(scene, config.train_views))
@@ -402,8 +402,6 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
                                                progress=True)["psnr"]
     else:
         metrics["psnr_splat"] = metrics["psnr"]  # splat.ply holds the Gaussians as they are
-    if look is not None and look.environment is not None:
-        save_environment(look.environment, Path(run_dir) / "environment.png")
     if look is not None and look.light is not None:
         save_light(look.light, Path(run_dir) / "light.png")
     if ground_truth is None:
@@ -415,7 +413,8 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
         "num_gaussians": len(gaussians),
         "num_touch_gaussians": gaussians.num_touch,
         "num_test_views": len(test),
-        "variant": config.variant,
+        "method": method_of(config),
+        "mechanisms": mechanisms(config),
         "gt_source": ground_truth.source if ground_truth else None,
         "gt_radius": ground_truth.radius if ground_truth else None,
         "scene": str(scene.path),
@@ -426,28 +425,24 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
     return result
 
 
-def _save_equirect(radiance: np.ndarray, path: Path, scale: int) -> None:
-    """An equirectangular map [H, 2H, 3] of radiance (>= 0) as a PNG: tone-mapped x / (1 + x), ``scale`` x upscaled."""
-    image = (255 * radiance / (1.0 + radiance)).round().astype(np.uint8)
-    image = cv2.resize(image, (image.shape[1] * scale, image.shape[0] * scale), interpolation=cv2.INTER_NEAREST)
-    write_png(path, image)
-
-
-def save_environment(environment, path: Path) -> None:
-    """The environment map as an equirectangular PNG, 8x upscaled."""
-    with torch.no_grad():
-        radiance = torch.exp(environment.log_radiance).permute(1, 2, 0).cpu().numpy()
-    _save_equirect(radiance, path, 8)
+def equirect_directions(height: int, device=None) -> torch.Tensor:
+    """Unit world directions [H, 2H, 3] through the texel centres of an equirectangular map: zenith at the top row,
+    azimuth from -180 degrees at the left."""
+    v = (2 * torch.arange(height, device=device, dtype=torch.float64) + 1) / height - 1.0  # [H], -1 at the top
+    u = (2 * torch.arange(2 * height, device=device, dtype=torch.float64) + 1) / (2 * height) - 1.0  # [2H]
+    elevation, azimuth = torch.meshgrid(-v * (math.pi / 2), u * math.pi, indexing="ij")
+    return torch.stack([elevation.cos() * azimuth.cos(), elevation.cos() * azimuth.sin(), elevation.sin()], dim=-1)
 
 
 def save_light(light, path: Path, height: int = 32) -> None:
-    """The lit and sh-lit appearances' diffuse light as an equirectangular PNG in the environment map's layout
-    (:func:`~.shading.equirect_directions`), 4x upscaled: the irradiance a normal pointing each way receives, the
-    camera light left out (it follows the camera)."""
+    """The sh-lit appearance's diffuse light as an equirectangular PNG (:func:`equirect_directions`), 4x
+    upscaled, tone-mapped x / (1 + x): the irradiance a normal pointing each way receives, the camera light left out
+    (it follows the camera)."""
     with torch.no_grad():
-        normals = shading.equirect_directions(height, light.coefficients.device).to(light.coefficients.dtype)
+        normals = equirect_directions(height, light.coefficients.device).to(light.coefficients.dtype)
         irradiance = light.irradiance(normals, normals).cpu().numpy()  # views along the normals: no camera light
-    _save_equirect(irradiance, path, 4)
+    image = (255 * irradiance / (1.0 + irradiance)).round().astype(np.uint8)
+    write_png(path, cv2.resize(image, (image.shape[1] * 4, image.shape[0] * 4), interpolation=cv2.INTER_NEAREST))
 
 
 def _json_default(value):

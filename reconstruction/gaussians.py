@@ -60,21 +60,17 @@ def precisions(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
 
 
 class Gaussians:
-    """A set of 3D Gaussians: a dict of ``torch.nn.Parameter`` (``PARAM_NAMES`` and any extra per-Gaussian
-    parameters, one row per Gaussian) plus the ``from_touch`` mask."""
+    """A set of 3D Gaussians: a dict of ``torch.nn.Parameter`` (``PARAM_NAMES``, one row per Gaussian) plus the
+    ``from_touch`` mask."""
 
     def __init__(self, params: dict[str, torch.Tensor], from_touch: torch.Tensor, sh_degree: int):
-        missing = [k for k in PARAM_NAMES if k not in params]
-        if missing:
-            raise InvalidInputError(f"Gaussians: missing parameters {missing}")
+        if set(params) != set(PARAM_NAMES):
+            raise InvalidInputError(f"Gaussians: expected the parameters {list(PARAM_NAMES)}, got {list(params)}")
         n = params["means"].shape[0]
         expected = {
             "means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,),
             "sh0": (n, 1, 3), "shN": (n, num_sh_bases(sh_degree) - 1, 3),
         }
-        for name in params:  # extra per-Gaussian parameters (e.g. a reflective appearance's): one row each
-            if name not in expected:
-                expected[name] = (n,) + tuple(params[name].shape[1:])
         for name, shape in expected.items():
             if tuple(params[name].shape) != shape:
                 raise InvalidInputError(f"Gaussians.{name}: expected shape {shape}, got {tuple(params[name].shape)}")
@@ -86,7 +82,7 @@ class Gaussians:
             raise InvalidInputError(f"Gaussians: sh_degree must be in [0, {MAX_SH_DEGREE}], got {sh_degree}")
         self.params = {
             k: v if isinstance(v, torch.nn.Parameter) else torch.nn.Parameter(v.detach().float().contiguous())
-            for k, v in ((k, params[k]) for k in (*PARAM_NAMES, *(k for k in params if k not in PARAM_NAMES)))
+            for k, v in ((k, params[k]) for k in PARAM_NAMES)
         }
         self.from_touch = from_touch.to(torch.bool)
         self.sh_degree = sh_degree

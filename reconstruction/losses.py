@@ -264,30 +264,6 @@ def edge_aware_smoothness(
     return term.mean()
 
 
-def _touch_pixels(
-    touch_points: torch.Tensor,  # [P, 3] world
-    K: torch.Tensor,  # [3, 3]
-    viewmat: torch.Tensor,  # [4, 4] world-to-camera
-    width: int,
-    height: int,
-    rendered_depth: torch.Tensor | None,  # [H, W] expected depth, <= 0 where nothing was rendered
-    occlusion_tolerance: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(pixel [P] long, seen [P] bool)``: each touch point's pixel (row-major index; 0 where unseen) and whether
-    the view sees it (projected inside it, in front, not occluded: the rendered surface at its pixel lies at most
-    ``occlusion_tolerance`` metres in front of it). No host synchronisation (no data-dependent shapes)."""
-    p_cam = touch_points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [P, 3]
-    z = p_cam[:, 2]
-    uv = p_cam[:, :2] / z.clamp_min(1e-12)[:, None] @ K[:2, :2].T + K[:2, 2]
-    cols, rows = torch.floor(uv[:, 0]), torch.floor(uv[:, 1])
-    seen = (z > 0) & torch.isfinite(uv).all(dim=1) & (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
-    flat = torch.where(seen, rows * width + cols, torch.zeros_like(cols)).long()
-    if rendered_depth is not None:
-        surface = rendered_depth.reshape(-1)[flat]
-        seen = seen & ((surface <= 0) | (z <= surface + occlusion_tolerance))
-    return flat, seen
-
-
 def visible_touch_pixels(
     touch_points: torch.Tensor,  # [P, 3] world
     K: torch.Tensor,  # [3, 3]
@@ -303,33 +279,18 @@ def visible_touch_pixels(
     ``occlusion_tolerance`` metres in front of it. Computed on the tensors' device
     without host synchronisation (no data-dependent shapes).
     """
-    flat, seen = _touch_pixels(touch_points, K, viewmat, width, height, rendered_depth, occlusion_tolerance)
+    p_cam = touch_points @ viewmat[:3, :3].T + viewmat[:3, 3]  # [P, 3]
+    z = p_cam[:, 2]
+    uv = p_cam[:, :2] / z.clamp_min(1e-12)[:, None] @ K[:2, :2].T + K[:2, 2]
+    cols, rows = torch.floor(uv[:, 0]), torch.floor(uv[:, 1])
+    seen = (z > 0) & torch.isfinite(uv).all(dim=1) & (cols >= 0) & (cols < width) & (rows >= 0) & (rows < height)
+    flat = torch.where(seen, rows * width + cols, torch.zeros_like(cols)).long()  # [P] row-major; 0 where unseen
+    if rendered_depth is not None:
+        surface = rendered_depth.reshape(-1)[flat]
+        seen = seen & ((surface <= 0) | (z <= surface + occlusion_tolerance))
     pixels = torch.zeros(height * width, dtype=torch.float32, device=touch_points.device)
     pixels.scatter_reduce_(0, flat, seen.float(), reduce="amax")
     return pixels.reshape(height, width) > 0
-
-
-def touch_pixel_normal_loss(
-    rendered_normals: torch.Tensor,  # [H, W, 3] camera-frame unit normals, 0 where nothing was drawn
-    touch_points: torch.Tensor,  # [P, 3] world
-    touch_normals: torch.Tensor,  # [P, 3] world unit (rows of NaN are skipped)
-    K: torch.Tensor,  # [3, 3]
-    viewmat: torch.Tensor,  # [4, 4] world-to-camera
-    rendered_depth: torch.Tensor,  # [H, W] expected depth, <= 0 where nothing was rendered
-    occlusion_tolerance: float = 0.005,
-) -> torch.Tensor:
-    """Tactile normals in the image: 1 - |<rendered normal, touched surface normal>| at the pixel of each touch
-    point the view sees (:func:`visible_touch_pixels`' test) with a known normal, averaged over those points;
-    0 when there are none."""
-    height, width = rendered_normals.shape[:2]
-    flat, seen = _touch_pixels(touch_points, K, viewmat, width, height, rendered_depth, occlusion_tolerance)
-    seen = seen & torch.isfinite(touch_normals).all(dim=1)
-    in_camera = torch.nan_to_num(touch_normals) @ viewmat[:3, :3].T  # [P, 3]
-    rendered = rendered_normals.reshape(-1, 3)[flat]  # [P, 3]
-    drawn = (rendered * rendered).sum(-1) > 0.25  # a pixel with a normal
-    weights = (seen & drawn).float()
-    misalignment = 1.0 - (rendered * in_camera).sum(-1).abs()  # [P]
-    return (misalignment * weights).sum() / weights.sum().clamp_min(1.0)
 
 
 def proximity_mask(seeds: torch.Tensor, sigma_px: float) -> torch.Tensor:
@@ -412,8 +373,7 @@ def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor,
     neighbouring pixels that are both ``inside`` [H, W] bool the silhouette, each times its ``pair_weights``
     ([H, W-1], [H-1, W], no gradient; None: 1, see :func:`image_pair_weights`), summed over the pairs inside and
     divided by their number (0 with no such pair). It flattens the gradual shading a free diffuse colour would
-    otherwise paint: that shading then has to come from the normals (through the "lit" and "sh-lit" appearances'
-    light) or the environment. L1, and weights that vanish across the image's edges, leave a texture's edges to
+    otherwise paint: that shading then has to come from the normals (through the sh-lit appearance's light). L1, and weights that vanish across the image's edges, leave a texture's edges to
     the albedo (Retinex's assumption: shading varies slowly, reflectance in steps). For CPU tensors the fused
     kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the torch below, the reference)."""
     if pair_weights is None:

@@ -28,14 +28,14 @@ from tacsplat.errors import ConfigError, InvalidInputError, SceneFormatError
 from tacsplat.files import atomic_write, default_temp
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.gaussians import Gaussians
-from tacsplat.reconstruction.shading import LIT, SPECULAR, DiffuseLight, EnvironmentMap, Look
+from tacsplat.reconstruction.shading import DiffuseLight, Look
 
 log = logging.getLogger(__name__)
 
 # A run directory's own files, each with the temporary name it is written to first (tacsplat.files); anything else
 # in it is someone else's and is never deleted.
 _OUTPUTS = ("config.json", "checkpoint.pt", "splat.ply", "splat.touch.npy", "progress.csv", "error_vs_time.png",
-            "metrics.json", "environment.png", "light.png")
+            "metrics.json", "light.png")
 RUN_FILES = _OUTPUTS + tuple(default_temp(Path(name)).name for name in _OUTPUTS)
 RENDERS = "renders"
 RENDER_FILE = re.compile(r"view_\d{4,}\.png(\.tmp)?")
@@ -53,7 +53,7 @@ class LoadedRun:
     gaussians: Gaussians
     step: int
     train_seconds: float
-    look: Look  # the appearance (with its environment map and its light where it has them)
+    look: Look  # the appearance (with its light where it has one)
 
 
 def is_run_folder(path: Path) -> bool:
@@ -85,14 +85,11 @@ def read_checkpoint(path: Path) -> dict:
 
 def load_checkpoint(path: Path) -> LoadedRun:
     """A checkpoint file of a run (``checkpoint.pt`` or a kept ``checkpoint_*.pt``): its Gaussians, config and
-    appearance (with its environment map and its light where it has them)."""
+    appearance (with its light where it has one)."""
     ckpt = read_checkpoint(path)
     config = TrainConfig.from_json(ckpt["config"], path)
-    look = Look(config.appearance, depth=config.depth_render)
-    if config.appearance in SPECULAR:
-        look.environment = EnvironmentMap(config.env_map_height)
-        look.environment.load_state_dict(ckpt["environment"])
-    if config.appearance in LIT:
+    look = Look(config.appearance)
+    if config.appearance == "sh-lit":
         look.light = DiffuseLight()
         look.light.load_state_dict(ckpt["light"])
     return LoadedRun(Path(ckpt["scene_path"]), config, checkpoint_gaussians(ckpt, path), int(ckpt["step"]),

@@ -139,7 +139,7 @@ class Trainer:
         if config.use_touch and scene.touches:
             kept = thin_touch_points(scene.touch_points(), config.init, self.rng)
             self.touch_points = scene.touch_points()[kept]
-            if config.lambda_touch_normal > 0 or config.lambda_touch_normal_pixels > 0:
+            if config.lambda_touch_normal > 0:
                 touch_normals = scene.touch_normals()[kept]
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
         self.use_touch_normals = len(self.touch_points) > 0 and config.lambda_touch_normal > 0
@@ -153,10 +153,8 @@ class Trainer:
         )
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
         self.touch_normals = torch.as_tensor(touch_normals, dtype=torch.float32, device=dev)
-        self.environment = (shading.EnvironmentMap(config.env_map_height, device=dev)
-                            if config.appearance in shading.SPECULAR else None)
-        self.light = shading.DiffuseLight(device=dev) if config.appearance in shading.LIT else None
-        self.look = shading.Look(config.appearance, self.environment, self.light, config.depth_render)
+        self.light = shading.DiffuseLight(device=dev) if config.appearance == "sh-lit" else None
+        self.look = shading.Look(config.appearance, self.light)
         self.splat: Gaussians | None = None  # splat.ply's Gaussians: the final ones, shading baked (run() sets it)
         self.scene_record = scene_record(scene)  # what config.json records of the scene
         self.progress: list[dict] = []  # progress.csv's rows, rewritten whole with each new one
@@ -214,8 +212,6 @@ class Trainer:
             first = len(points) if sfm_found else 0
             recoloured = self.touch_points if sfm_found else np.concatenate([points, self.touch_points])
             self._colour_from_views(gaussians, recoloured, first)
-        if cfg.appearance in shading.SPECULAR:
-            shading.add_reflective_params(gaussians)
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
@@ -253,16 +249,14 @@ class Trainer:
         rates = {
             "means": cfg.lr_means * self.scene_scale, "quats": cfg.lr_quats, "scales": cfg.lr_scales,
             "opacities": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN,
-            **{name: cfg.lr_reflective for name in shading.REFLECTIVE_PARAMS if name in self.gaussians.params},
         }  # fmt: skip
         # fused: one kernel per parameter instead of a dozen elementwise ops (about 4x less CPU time per step)
         self.optimizers = {
             name: torch.optim.Adam([self.gaussians.params[name]], lr=lr, eps=1e-15, fused=True)
             for name, lr in rates.items()
         }
-        for name, module in (("environment", self.environment), ("light", self.light)):
-            if module is not None:
-                self.optimizers[name] = torch.optim.Adam(module.parameters(), lr=cfg.lr_env_map, fused=True)
+        if self.light is not None:
+            self.optimizers["light"] = torch.optim.Adam(self.light.parameters(), lr=cfg.lr_light, fused=True)
 
     # ------------------------------------------------------------------ one step
 
@@ -286,8 +280,7 @@ class Trainer:
             g, self.viewmats[view : view + 1], self.Ks[view : view + 1], frame.intrinsics.width,
             frame.intrinsics.height, sh_degree=active_degree, backend=cfg.backend,
             depth_mode="D" if with_depth or with_normals else None, normals=with_normals,
-            depth_render=cfg.depth_render if self.step >= cfg.plane_depth_start_iter else "centre",
-            appearance=cfg.appearance, environment=self.environment, world_normals=world_normals,
+            appearance=cfg.appearance, world_normals=world_normals,
             light=self.light if self.step >= cfg.lit_start_iter else None,
         )  # fmt: skip
         meta, alpha = out.meta, out.alpha
@@ -344,13 +337,6 @@ class Trainer:
             )  # fmt: skip
             loss = loss + cfg.lambda_depth_normal * consistency
             terms["normals"] = terms["normals"] + consistency.detach()
-            if len(self.touch_points) and cfg.lambda_touch_normal_pixels > 0:
-                pixels = losses.touch_pixel_normal_loss(
-                    out.normal, self.touch_tensor, self.touch_normals, self.Ks[view], self.viewmats[view], surface,
-                    cfg.occlusion_tolerance,
-                )  # fmt: skip
-                loss = loss + cfg.lambda_touch_normal_pixels * pixels
-                terms["normals"] = terms["normals"] + pixels.detach()
         if with_depth:
             depth = out.depth  # accumulated depth, paper Eq. 5
             proximity = None
@@ -451,7 +437,6 @@ class Trainer:
             "progress": {"sums": {k: float(v) for k, v in self._sums.items()}, "count": self._sum_count,
                          "last_eval": self._last_eval},
             "device": self.device.type,
-            "environment": None if self.environment is None else self.environment.state_dict(),
             "light": None if self.light is None else self.light.state_dict(),
         }
         data = io.BytesIO()  # (torch.save into the file itself fails a full disk with its own RuntimeError)
@@ -468,8 +453,6 @@ class Trainer:
         self.step = int(ckpt["step"])
         self.train_seconds = float(ckpt["train_seconds"])
         self.gaussians = checkpoint_gaussians(ckpt, path).to(self.device)
-        if self.environment is not None:
-            self.environment.load_state_dict(ckpt["environment"])
         if self.light is not None:
             self.light.load_state_dict(ckpt["light"])
         self._make_optimizers()

@@ -11,11 +11,12 @@ The YAML file lists jobs; ``out``, ``scene`` and ``run`` are relative to
 
     jobs:
       - {kind: capture, out: scenes/teapot-s0, object: teapot, seed: 0, resolution: 128}
-      - {kind: reconstruct, out: runs/teapot/full-s0, scene: scenes/teapot-s0, variant: full, seed: 0}
+      - {kind: reconstruct, out: runs/teapot/paper-s0, scene: scenes/teapot-s0, method: paper, seed: 0}
+      - {kind: reconstruct, out: runs/teapot/no-touch-s0, scene: scenes/teapot-s0, overrides: {use_touch: false}}
       - {kind: evaluate, run: /shared/older/run, gt_mesh: teapot.obj}
 
-A reconstruction with neither ``variant`` nor ``preset`` trains what `tacsplat reconstruct` trains without
-options.
+A reconstruction trains ``method`` (default: what `tacsplat reconstruct` trains without options) with its
+``overrides`` (TrainConfig fields, ``init.x`` / ``densify.x`` for theirs) on top.
 A reconstruction of a scene that a capture of the batch writes needs that
 capture (listed before it), and an evaluation of a run needs its reconstruction.
 A job may also list the names of jobs it needs (``needs: [capture scenes/teapot-s0]``,
@@ -33,18 +34,18 @@ import json
 import logging
 import shutil
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
 
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT
+from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
 log = logging.getLogger(__name__)
 
 CAPTURE_MARKER = "capture.json"
 METRICS = "metrics.json"
-RESULT_COLUMNS = ("job", "run", "scene", "variant", "seed", "iterations", "cd", "cd_paper", "psnr", "ssim",
+RESULT_COLUMNS = ("job", "run", "scene", "method", "seed", "iterations", "cd", "cd_paper", "psnr", "ssim",
                   "train_seconds", "num_gaussians")
 KINDS = ("capture", "reconstruct", "evaluate")
 
@@ -166,24 +167,26 @@ class CaptureJob(BatchJob):
 
 @dataclass(frozen=True, kw_only=True)
 class ReconstructJob(BatchJob):
-    """A reconstruction of ``scene`` into the run folder ``out``: a preset, a variant and a seed (continued
-    from its checkpoint when one was interrupted)."""
+    """A reconstruction of ``scene`` into the run folder ``out``: a preset, a method with overrides and a seed
+    (continued from its checkpoint when one was interrupted)."""
 
     kind: Literal["reconstruct"] = "reconstruct"
     out: Path
     scene: Path
     preset: str = "default"  # reconstruction.config.PRESETS
-    variant: str = DEFAULT_VARIANT  # reconstruction.variants.VARIANTS; by default what `tacsplat reconstruct` trains
+    method: str = DEFAULT_METHOD  # reconstruction.methods.METHODS; by default what `tacsplat reconstruct` trains
+    overrides: dict[str, bool | int | float | str | list | None] = field(default_factory=dict)  # on the method
     seed: int = 0
     iterations: int | None = None  # None: the preset's
     device: Literal["auto", "cpu", "cuda"] = "auto"
 
     def config(self):
         from tacsplat.reconstruction.config import preset_config
-        from tacsplat.reconstruction.variants import get_variant
+        from tacsplat.reconstruction.methods import get_method, set_fields
 
         config = preset_config(self.preset, self.iterations)
-        get_variant(self.variant).apply(config)
+        set_fields(config, get_method(self.method, "method").overrides)
+        set_fields(config, self.overrides, "overrides")
         config.seed, config.device = self.seed, self.device
         return config
 
@@ -198,6 +201,7 @@ class ReconstructJob(BatchJob):
         record that cannot be read. Empty for a folder with nothing to reuse or resume (no metrics.json, no
         checkpoint) or no settings recorded."""
         from tacsplat.reconstruction.config import TrainConfig, changed_settings
+        from tacsplat.reconstruction.methods import method_of
         from tacsplat.reconstruction.run_dir import read_json
 
         checkpoint, path = self.out / "checkpoint.pt", self.out / "config.json"
@@ -218,8 +222,8 @@ class ReconstructJob(BatchJob):
         now = self.config()
         changes = [f"{key} {then!r} -> {value!r}" for key, then, value in changed_settings(recorded, now)
                    if key != "device"]
-        if changes and recorded.variant != now.variant:
-            changes.insert(0, f"variant {recorded.variant} -> {now.variant}")
+        if changes and method_of(recorded) != method_of(now):
+            changes.insert(0, f"method {method_of(recorded)} -> {method_of(now)}")
         return changes
 
     def refuse_changed_settings(self) -> None:
@@ -430,7 +434,7 @@ def result_rows(jobs: list, out: Path) -> list[dict]:
             continue
         m = json.loads((run / METRICS).read_text())
         rows.append({"job": job.name, "run": _relative(run, out), "scene": _relative(Path(m.get("scene", "")), out),
-                     "variant": m.get("variant"), "seed": m.get("settings", {}).get("seed"),
+                     "method": m.get("method"), "seed": m.get("settings", {}).get("seed"),
                      "iterations": m.get("iterations"), **{k: m.get(k) for k in RESULT_COLUMNS[6:]}})
     return rows
 

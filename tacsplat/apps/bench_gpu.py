@@ -31,7 +31,8 @@ def register(cli) -> None:
     p.add_argument("--grasps", type=int, default=5, help="grasps of 4 touches")
     p.add_argument("--preset", default="paper", choices=("default", "paper"), help="training preset")
     p.add_argument("--iterations", type=int, default=None, help="steps per run (default: the preset's)")
-    p.add_argument("--variants", default="full,3dgs", help="comma-separated method variants")
+    p.add_argument("--methods", default="paper,3dgs",
+                   help="comma-separated methods (or rows of `bench paper`'s ablations.yaml)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-sfm", action="store_true",
                    help="initialise without pycolmap (visual hull), e.g. on a GPU machine without pycolmap")
@@ -45,12 +46,14 @@ def _run(args) -> int:
         build = "a CPU-only build" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, no device visible"
         print(f"bench gpu: skipped: torch {torch.__version__} ({build}) sees no CUDA device; nothing was measured")
         return 0
-    from tacsplat.reconstruction.variants import get_variant
+    from tacsplat.apps.paper_bench import bench_row
 
-    variants = [get_variant(v.strip(), "--variants").name for v in args.variants.split(",") if v.strip()]
+    methods = [name.strip() for name in args.methods.split(",") if name.strip()]
+    for name in methods:
+        bench_row(name, "--methods")
     out = Path(args.out)
     scene = Path(args.scene) if args.scene else _capture(args, out / "scene")
-    rows = [_train(scene, out / "runs" / variant, variant, args) for variant in variants]
+    rows = [_train(scene, out / "runs" / method, method, args) for method in methods]
     _write_report(out, rows, scene)
     print((out / "gpu.md").read_text())
     return 0
@@ -65,15 +68,13 @@ def _capture(args, scene: Path) -> Path:
     return capture_once(rig, scene)
 
 
-def _train(scene: Path, out: Path, variant: str, args) -> dict:
+def _train(scene: Path, out: Path, method: str, args) -> dict:
     import torch
 
-    from tacsplat.reconstruction.config import preset_config
+    from tacsplat.apps.paper_bench import row_config
     from tacsplat.reconstruction.trainer import reconstruct
-    from tacsplat.reconstruction.variants import get_variant
 
-    config = preset_config(args.preset, args.iterations)
-    get_variant(variant).apply(config)
+    config = row_config(method, args.preset, args.iterations)
     config.seed, config.device = args.seed, "cuda"
     config.init.use_sfm = not args.no_sfm
     torch.cuda.reset_peak_memory_stats()
@@ -82,7 +83,7 @@ def _train(scene: Path, out: Path, variant: str, args) -> dict:
     metrics = reconstruct(scene, out, config, resume=resume, overwrite=not resume, show_progress=True)
     wall = time.perf_counter() - started
     return {
-        "variant": variant, "preset": args.preset, "iterations": metrics["iterations"],
+        "method": method, "preset": args.preset, "iterations": metrics["iterations"],
         "train_seconds": metrics["train_seconds"], "wall_seconds": wall,
         "seconds_per_1k_steps": 1000.0 * metrics["train_seconds"] / max(metrics["iterations"], 1),
         "peak_gpu_memory_gib": torch.cuda.max_memory_allocated() / 2**30,
@@ -107,7 +108,7 @@ def _write_report(out: Path, rows: list[dict], scene: Path) -> None:
         "resolution": f"{train[0].intrinsics.width}x{train[0].intrinsics.height}",
     }  # fmt: skip
     (out / "gpu.json").write_text(json.dumps({"device": device, "runs": rows}, indent=2))
-    curves = {"": {r["variant"]: read_progress(Path(r["run"]) / "progress.csv") for r in rows}}
+    curves = {"": {r["method"]: read_progress(Path(r["run"]) / "progress.csv") for r in rows}}
     plot_error_vs_time(curves, out / "error_vs_time.png", f"{device['gpu']}: held-out error vs train time")
     lines = [
         f"# Training on {device['gpu']}",
@@ -115,11 +116,11 @@ def _write_report(out: Path, rows: list[dict], scene: Path) -> None:
         f"Scene: {device['train_views']} train views at {device['resolution']} px, {device['test_views']} test views, "
         f"{device['touches']} touches. torch {device['torch']} (CUDA {device['cuda']}), gsplat {device['gsplat']}.",
         "",
-        "| variant | preset | steps | s / 1k steps | train s | wall s | peak GPU GiB | Gaussians | CD | cd_paper | PSNR |",
+        "| method | preset | steps | s / 1k steps | train s | wall s | peak GPU GiB | Gaussians | CD | cd_paper | PSNR |",
         "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
-        lines.append(f"| {r['variant']} | {r['preset']} | {r['iterations']} | {r['seconds_per_1k_steps']:.1f} | "
+        lines.append(f"| {r['method']} | {r['preset']} | {r['iterations']} | {r['seconds_per_1k_steps']:.1f} | "
                      f"{r['train_seconds']:.0f} | {r['wall_seconds']:.0f} | {r['peak_gpu_memory_gib']:.2f} | "
                      f"{r['num_gaussians']} | {_fmt(r['cd'], 4)} | {_fmt(r['cd_paper'], 5)} | {_fmt(r['psnr'], 2)} |")
     lines += ["", "![error vs time](error_vs_time.png)", ""]

@@ -4,7 +4,7 @@ One object in the minimal-views setting, reconstructed by the full method and by
 each resolution (default 128, 256 and 400 px) and step count (default 750 and 1500), each a
 `tacsplat bench paper` slice in its own folder (so it resumes the same way). Writes
 ``scaling.csv``, ``report.md`` and ``scaling.png``: the paper's CD and PSNR against train
-seconds, one curve per resolution and variant, a point per step count.
+seconds, one curve per resolution and method, a point per step count.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 from tacsplat.apps.options import comma_separated_ints
 
-COLUMNS = ("resolution", "iterations", "variant", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")
+COLUMNS = ("resolution", "iterations", "method", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")
 
 
 def run_scaling(out: Path, obj: str, resolutions, step_counts, seed: int = 0) -> list[dict]:
@@ -24,20 +24,20 @@ def run_scaling(out: Path, obj: str, resolutions, step_counts, seed: int = 0) ->
     rows = []
     for resolution in resolutions:
         for iterations in step_counts:
-            config = PaperBenchConfig(objects=(obj,), settings=("minimal",), variants=("3dgs", "full"),
+            config = PaperBenchConfig(objects=(obj,), settings=("minimal",), methods=("3dgs", "paper"),
                                       resolution=resolution, iterations=iterations, seeds=(seed,))
             bench = PaperBench(out / f"{resolution}px-{iterations}steps", config)
             for row in bench.run(progress=False):
                 rows.append({"resolution": resolution, "iterations": iterations,
                              **{k: row[k] for k in COLUMNS if k in row}})
-                print(f"{resolution:4d} px {iterations:5d} steps {row['variant']:5s}: cd_paper {row['cd_paper']:.5f} "
+                print(f"{resolution:4d} px {iterations:5d} steps {row['method']:5s}: cd_paper {row['cd_paper']:.5f} "
                       f"PSNR {row['psnr']:.2f} train {row['train_seconds']:.0f} s", flush=True)
     return rows
 
 
 def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
     from tacsplat.apps.report import pyplot, save_figure
-    from tacsplat.reconstruction.variants import variant_label
+    from tacsplat.reconstruction.methods import method_label
 
     with (out / "scaling.csv").open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
@@ -46,13 +46,13 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
     plt = pyplot()
     fig, (ax_cd, ax_psnr) = plt.subplots(1, 2, figsize=(11, 4.2))
     for resolution in sorted({r["resolution"] for r in rows}):
-        for variant, style in (("full", "o-"), ("3dgs", "s--")):
+        for method, style in (("paper", "o-"), ("3dgs", "s--")):
             points = sorted((r["train_seconds"], r["cd_paper"], r["psnr"]) for r in rows
-                            if r["resolution"] == resolution and r["variant"] == variant)
+                            if r["resolution"] == resolution and r["method"] == method)
             if not points:
                 continue
             seconds, cd_paper, psnr = zip(*points)
-            label = f"{resolution} px, {variant_label(variant)}"
+            label = f"{resolution} px, {method_label(method)}"
             ax_cd.plot(seconds, cd_paper, style, label=label)
             ax_psnr.plot(seconds, psnr, style, label=label)
     ax_cd.set_yscale("log")
@@ -66,9 +66,9 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
     fig.tight_layout()
     save_figure(fig, out / "scaling.png")
     lines = [f"# Error against cost: {obj}, minimal views", "",
-             "| px | steps | variant | train s | cd_paper | CD | PSNR |", "| ---: | ---: | --- | ---: | ---: | ---: | ---: |"]
-    for r in sorted(rows, key=lambda r: (r["resolution"], r["iterations"], r["variant"])):
-        lines.append(f"| {r['resolution']} | {r['iterations']} | {r['variant']} | {r['train_seconds']:.0f} | "
+             "| px | steps | method | train s | cd_paper | CD | PSNR |", "| ---: | ---: | --- | ---: | ---: | ---: | ---: |"]
+    for r in sorted(rows, key=lambda r: (r["resolution"], r["iterations"], r["method"])):
+        lines.append(f"| {r['resolution']} | {r['iterations']} | {r['method']} | {r['train_seconds']:.0f} | "
                      f"{r['cd_paper']:.5f} | {r['cd']:.4f} | {r['psnr']:.2f} |")
     lines += ["", "![error against cost](scaling.png)", ""]
     (out / "report.md").write_text("\n".join(lines))
@@ -76,7 +76,7 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
 
 
 def register(cli) -> None:
-    p = cli.command("bench scaling", help="error against cost: resolutions x step counts, full and 3DGS, one object",
+    p = cli.command("bench scaling", help="error against cost: resolutions x step counts, the paper method and 3DGS, one object",
                     description=__doc__.split("\n\n", 1)[1].replace("``", "'"))
     p.add_argument("--out", default="bench-output/scaling", help="output folder")
     p.add_argument("--object", default="teapot", help="library object")

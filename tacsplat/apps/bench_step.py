@@ -4,7 +4,7 @@ The demo's capture (one glossy object, 5 views, 5 grasps; made once per
 resolution and reused) is reconstructed by the trainer itself (``Trainer.run``,
 the demo's settings), while the functions a step calls are timed in place:
 projection and SH, binning and depth sort, compositing forward and backward,
-the deferred shading of the lit and reflective appearances (forward and
+the deferred shading of the sh-lit appearance (forward and
 backward), SSIM (forward and backward), the other losses, the transmittance neighbour
 search, the optimiser and densification. Each phase is timed exclusively
 (a phase nested in another is not counted twice); ``autograd (other)`` is
@@ -122,7 +122,7 @@ def instrumented(timer: PhaseTimer):
         return terms
 
     loss_functions = ("photometric_loss", "backdrop_alpha_loss", "transmittance_loss", "edge_aware_smoothness",
-                      "depth_normal_consistency", "touch_normal_loss", "touch_pixel_normal_loss", "flatten_loss",
+                      "depth_normal_consistency", "touch_normal_loss", "flatten_loss",
                       "visible_touch_pixels", "proximity_mask", "expected_depth", "image_edge_weights", "window_inside",
                       "albedo_smoothness_loss")
     patches = [
@@ -183,24 +183,19 @@ def summarize(steps: list[dict[str, float]], warmup: int = WARMUP_STEPS) -> dict
     }
 
 
-def profile_resolution(out: Path, resolution: int, iterations: int, variant: str, obj: str, seed: int) -> dict:
+def profile_resolution(out: Path, resolution: int, iterations: int, method: str, obj: str, seed: int) -> dict:
     """Capture (once) the demo scene at ``resolution`` px and time a full reconstruction of it."""
     import tempfile
 
-    import torch
-
     from tacsplat.apps.demo import demo_config
-    from tacsplat.apps.paper_bench import PaperBench
+    from tacsplat.apps.paper_bench import PaperBench, row_config
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.config import preset_config
     from tacsplat.reconstruction.trainer import Trainer
-    from tacsplat.reconstruction.variants import get_variant
     from tacsplat.reconstruction.views import scene_at
 
     bench = PaperBench(out / f"{resolution}px", demo_config(obj, resolution, iterations))
     scene_path = bench.capture(obj, "minimal", seed)
-    config = preset_config(bench.config.preset, iterations)
-    get_variant(variant).apply(config)
+    config = row_config(method, bench.config.preset, iterations)
     config.seed = seed
     config.device = "cpu"
     timer = PhaseTimer()
@@ -213,9 +208,9 @@ def profile_resolution(out: Path, resolution: int, iterations: int, variant: str
                                              for s in steps]}  # fmt: skip
 
 
-def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str, seed: int,
+def run_profile(out: Path, resolutions, iterations: int, method: str, obj: str, seed: int,
                 reference: str | None = None, rounds: int = 1) -> dict:
-    """The profile of ``variant`` at each resolution; with ``reference``, that variant's profile is taken next to
+    """The profile of ``method`` at each resolution; with ``reference``, that method's profile is taken next to
     each (back to back: this machine's speed drifts by 10-30% between runs minutes apart) and the ratios reported,
     ``rounds`` times, the reference first in even rounds and second in odd ones: the ratios are the medians over the
     rounds (each round's are kept too), the profiles those of the first round."""
@@ -231,12 +226,12 @@ def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str,
         "machine": {"cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),
                     "load_average_at_start": list(os.getloadavg()), "platform": platform.platform(),
                     "numba": numba.__version__, "torch": torch.__version__},
-        "settings": {"object": obj, "variant": variant, "iterations": iterations, "seed": seed,
+        "settings": {"object": obj, "method": method, "iterations": iterations, "seed": seed,
                      "warmup_steps": WARMUP_STEPS},
         "resolutions": [],
     }  # fmt: skip
     if reference is None:
-        results["resolutions"] = [profile_resolution(out, r, iterations, variant, obj, seed) for r in resolutions]
+        results["resolutions"] = [profile_resolution(out, r, iterations, method, obj, seed) for r in resolutions]
         results["machine"]["load_average_at_end"] = list(os.getloadavg())
         return results
     results["settings"].update(reference=reference, rounds=rounds)
@@ -246,9 +241,9 @@ def run_profile(out: Path, resolutions, iterations: int, variant: str, obj: str,
         for k in range(rounds):  # ABAB..., then BABA...: a machine slowing down or speeding up favours neither
             if k % 2 == 0:
                 ref = profile_resolution(out, r, iterations, reference, obj, seed)
-                row = profile_resolution(out, r, iterations, variant, obj, seed)
+                row = profile_resolution(out, r, iterations, method, obj, seed)
             else:
-                row = profile_resolution(out, r, iterations, variant, obj, seed)
+                row = profile_resolution(out, r, iterations, method, obj, seed)
                 ref = profile_resolution(out, r, iterations, reference, obj, seed)
             per_round.append({"step_median": row["step_median_ms"] / ref["step_median_ms"],
                               "step_mean": row["step_mean_ms"] / ref["step_mean_ms"],
@@ -286,11 +281,11 @@ def format_table(results: dict) -> str:
             continue
         ratio = r["ratio_to_reference"]
         each = ", ".join(f"{p['step_median']:.2f}x" for p in ratio["rounds"])
-        lines.append(f"{r['label']}: {s['variant']} / {s['reference']} (each run next to its reference): step "
+        lines.append(f"{r['label']}: {s['method']} / {s['reference']} (each run next to its reference): step "
                      f"median {ratio['step_median']:.2f}x, mean {ratio['step_mean']:.2f}x, train time "
                      f"{ratio['train_seconds']:.2f}x (medians over {len(ratio['rounds'])} rounds; step median by "
                      f"round: {each})")  # fmt: skip
-    lines.append(f"{s['object']}, variant {s['variant']}, seed {s['seed']}; {m['cpu_count']} cores, numba threads "
+    lines.append(f"{s['object']}, method {s['method']}, seed {s['seed']}; {m['cpu_count']} cores, numba threads "
                  f"{m['numba_threads']}, load average {m['load_average_at_start'][0]:.1f} at start, "
                  f"{m['load_average_at_end'][0]:.1f} at end")  # fmt: skip
     return "\n".join(lines)
@@ -325,8 +320,8 @@ def register(cli) -> None:
     p.add_argument("--out", default="bench-output/step", help="output folder (scenes are captured here once)")
     p.add_argument("--resolutions", default="128,256", help="comma-separated image sizes in pixels")
     p.add_argument("--iterations", type=int, default=1200, help="training steps per resolution (the demo's 1200)")
-    p.add_argument("--variant", default="full", help="method variant (3dgs, 3dgs+s, 3dgs+t, full, full+n+tn, ...)")
-    p.add_argument("--reference", default=None, help="also profile this variant next to it, and print the ratios")
+    p.add_argument("--method", default="paper", help="a method (3dgs, 3dgs+s, 3dgs+t, paper, default) or a row of `bench paper`'s ablations.yaml")
+    p.add_argument("--reference", default=None, help="also profile this method next to it, and print the ratios")
     p.add_argument("--rounds", type=int, default=1, help="with --reference: profile the pair this many times, "
                    "the reference first, then second, ... (ratios: medians over the rounds)")
     p.add_argument("--object", default="teapot", help="library object")
@@ -338,28 +333,28 @@ def _handler(args) -> int:
     import json
 
     from tacsplat.apps.options import comma_separated_ints
+    from tacsplat.apps.paper_bench import bench_row
     from tacsplat.errors import UsageError
-    from tacsplat.reconstruction.variants import get_variant
 
     resolutions = comma_separated_ints(args.resolutions, "--resolutions")
     if not resolutions or min(resolutions) < 16:
         raise UsageError("--resolutions", f"need image sizes of at least 16 px, got {args.resolutions!r}")
     if args.iterations <= WARMUP_STEPS:
         raise UsageError("--iterations", f"must be more than the {WARMUP_STEPS} warm-up steps, got {args.iterations}")
-    get_variant(args.variant, "--variant")
+    bench_row(args.method, "--method")
     if args.reference is not None:
-        get_variant(args.reference, "--reference")
+        bench_row(args.reference, "--reference")
     if args.rounds < 1 or (args.rounds > 1 and args.reference is None):
         raise UsageError("--rounds", f"needs --reference and a count of at least 1, got {args.rounds}")
     out = Path(args.out)
-    results = run_profile(out, resolutions, args.iterations, args.variant, args.object, args.seed, args.reference,
+    results = run_profile(out, resolutions, args.iterations, args.method, args.object, args.seed, args.reference,
                           args.rounds)
     print(format_table(results))
     out.mkdir(parents=True, exist_ok=True)
     (out / "step.json").write_text(json.dumps(results, indent=1))
     bars = [("", results)]
     if args.reference is not None:
-        bars = [(args.reference, {"resolutions": results["reference"]}), (args.variant, results)]
+        bars = [(args.reference, {"resolutions": results["reference"]}), (args.method, results)]
     plot_phases(bars, out / "step.png")
     print(f"wrote {out / 'step.json'} and {out / 'step.png'}")
     return 0

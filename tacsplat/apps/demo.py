@@ -15,17 +15,17 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT
+from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
 DEMO_OBJECT = "teapot"
-COLUMNS = {"3dgs": "3DGS (no touch)", "full": "paper (touch)", DEFAULT_VARIANT: "default (+normals, lit)"}  # variant: heading
+COLUMNS = {"3dgs": "3DGS (no touch)", "paper": "paper (touch)", DEFAULT_METHOD: "default (+normals, lit)"}  # method: heading
 
 
 def demo_config(object_name: str = DEMO_OBJECT, resolution: int = 128, iterations: int = 1200):
-    """The :class:`PaperBenchConfig` of the demo: one object, minimal views, :data:`COLUMNS`' variants."""
+    """The :class:`PaperBenchConfig` of the demo: one object, minimal views, :data:`COLUMNS`' methods."""
     from tacsplat.apps.paper_bench import PaperBenchConfig
 
-    return PaperBenchConfig(objects=(object_name,), settings=("minimal",), variants=tuple(COLUMNS),
+    return PaperBenchConfig(objects=(object_name,), settings=("minimal",), methods=tuple(COLUMNS),
                             resolution=resolution, iterations=iterations, test_views=8)
 
 
@@ -43,7 +43,7 @@ def run(args) -> int:
 
     started = time.perf_counter()
     bench = PaperBench(Path(args.out), demo_config(args.object, args.resolution, args.iterations))
-    rows = {r["variant"]: r for r in bench.run(executor="auto")}  # the three trainings side by side on 2+ cores
+    rows = {r["method"]: r for r in bench.run(executor="auto")}  # the three trainings side by side on 2+ cores
     print()
     print(f"{args.object}, 5 views + 5 grasps (20 touches), {args.resolution} px, {args.iterations} steps:")
     width = 2 + max(len(heading) for heading in COLUMNS.values())

@@ -4,7 +4,7 @@ Per object, seed and strategy one simulated capture with 5 train views and the l
 (``sim-capture --grasp-strategy random|next-best``); both strategies of an object and seed see the same views
 (the views do not depend on the strategy). Choices are sequential, so the first ``k`` grasps of a capture are the
 ``k``-grasp capture: per budget ``k`` a copy of the scene keeps every frame and the touches of its first ``k``
-recorded grasps, and is reconstructed with ``--variant`` (default: what `tacsplat reconstruct` trains) for the
+recorded grasps, and is reconstructed with ``--method`` (default: what `tacsplat reconstruct` trains) for the
 same ``--iterations`` whatever the strategy. The training next-best spends choosing (``selection_steps`` per grasp,
 with the trainer's defaults) is not in these steps; it is reported as ``selection_seconds``.
 
@@ -39,7 +39,7 @@ import numpy as np
 from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT, VARIANTS, get_variant
+from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, get_method
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ class NextTouchBenchConfig:
     test_views: int = 12
     resolution: int = 128
     iterations: int = 1500  # steps of every final reconstruction
-    variant: str = DEFAULT_VARIANT  # the method of every final reconstruction (reconstruction.variants.VARIANTS)
+    method: str = DEFAULT_METHOD  # the method of every final reconstruction (reconstruction.methods.METHODS)
     candidates: int = 16  # next-best: approaches scored per grasp
     selection_steps: int = 300  # next-best: steps of the reconstruction that chooses each grasp
     uncertainty: str = "depth-variance"  # next-best: the score
@@ -86,7 +86,7 @@ class NextTouchBenchConfig:
         for key in ("views", "test_views", "resolution", "iterations", "candidates", "selection_steps"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"--{key.replace('_', '-')}", f"must be >= 1, got {getattr(self, key)}")
-        get_variant(self.variant, "--variant")
+        get_method(self.method, "--method")
         if self.uncertainty not in SCORES:
             raise ConfigError("--uncertainty", f"must be one of {', '.join(SCORES)}, got {self.uncertainty!r}")
 
@@ -187,7 +187,7 @@ class NextTouchBench:
 
     def check_out(self) -> None:
         """Refuse a folder whose finished captures were made with another plan, or whose finished runs with
-        other training settings (another number of steps or variant, or a default changed since), before anything
+        other training settings (another number of steps or method, or a default changed since), before anything
         runs."""
         for subject, seed, strategy in self.captures():
             capture = self.capture_job(subject, seed, strategy)
@@ -200,7 +200,7 @@ class NextTouchBench:
 
     def jobs(self) -> list[BatchJob]:
         """Per object, seed and strategy its capture (if a copy of it is still to make), then per budget the copy
-        with that many grasps and its reconstruction (``variant``, ``iterations`` steps)."""
+        with that many grasps and its reconstruction (``method``, ``iterations`` steps)."""
         c = self.config
         jobs: list[BatchJob] = []
         for subject, seed, strategy in self.captures():
@@ -220,7 +220,7 @@ class NextTouchBench:
         c = self.config
         copy = self.copy_job(subject, seed, strategy, count)
         out = self.run_dir(copy)
-        return ReconstructJob(out=out, scene=copy.out, variant=c.variant, seed=seed, iterations=c.iterations,
+        return ReconstructJob(out=out, scene=copy.out, method=c.method, seed=seed, iterations=c.iterations,
                               name=f"reconstruct {out.name}", needs=needs)
 
     def results(self) -> list[dict]:
@@ -389,7 +389,7 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
     subjects = list(dict.fromkeys(r["object"] for r in rows))
     lines = ["# Next-best touch against random grasps", "",
              f"{len(subjects)} object(s), seeds {', '.join(map(str, config.seeds))}; {config.views} train views, "
-             f"{config.test_views} test views, {config.resolution} px; every reconstruction `{config.variant}`, "
+             f"{config.test_views} test views, {config.resolution} px; every reconstruction `{config.method}`, "
              f"{config.iterations} steps. Next-best: {config.candidates} candidate approaches per grasp, scored on a "
              f"{config.selection_steps}-step reconstruction of the scene so far with the {config.uncertainty} score.",
              "", "## Mean CD (x GT radius, lower is better) over seeds", "",
@@ -443,9 +443,9 @@ def register(cli) -> None:
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--test-views", type=int, default=12, help="held-out test views")
     p.add_argument("--iterations", type=int, default=1500, help="steps of every final reconstruction")
-    p.add_argument("--variant", default=DEFAULT_VARIANT, choices=list(VARIANTS),
+    p.add_argument("--method", default=DEFAULT_METHOD, choices=list(METHODS),
                    help="the method of every final reconstruction (default: what `tacsplat reconstruct` trains; "
-                   "`full` for the paper's)")
+                   "`paper` for the paper's)")
     p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp")
     p.add_argument("--selection-steps", type=int, default=300,
                    help="next-best: steps of the reconstruction that chooses each grasp")
@@ -462,7 +462,7 @@ def _run(args) -> int:
         objects=() if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip()),
         mesh=args.mesh, seeds=comma_separated_ints(args.seeds, "--seeds"),
         grasps=comma_separated_ints(args.grasps, "--grasps"), resolution=args.resolution, test_views=args.test_views,
-        iterations=args.iterations, variant=args.variant, candidates=args.candidates,
+        iterations=args.iterations, method=args.method, candidates=args.candidates,
         selection_steps=args.selection_steps, uncertainty=args.uncertainty,
     )  # fmt: skip
     started = time.perf_counter()

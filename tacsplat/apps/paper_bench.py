@@ -9,9 +9,10 @@ Per object and seed, one seeded simulated capture per setting:
 Both captures of an object use the same seed and test-view count, so their
 held-out test views (an even Fibonacci spiral, independent of the train views)
 are the same for every run of that object. Each setting is reconstructed with
-the four variants of Table 3: ``3dgs`` (no touch, no smoothness), ``3dgs+s``,
-``3dgs+t`` and ``full``, and with what ``tacsplat reconstruct`` runs by
-default (``DEFAULT_VARIANT``, beyond the paper); ``--variants`` picks others.
+the four methods of Table 3: ``3dgs`` (no touch, no smoothness), ``3dgs+s``,
+``3dgs+t`` and ``paper``, and with what ``tacsplat reconstruct`` runs by
+default (``default``, beyond the paper); ``--methods`` picks others, among them
+the ablation rows of ``ablations.yaml`` (a method with settings changed).
 Everything else is the trainer's defaults.
 
 The job is resumable: a finished capture is marked by ``capture.json``, a run
@@ -21,12 +22,13 @@ after another here, or as Ray tasks (:mod:`tacsplat.apps.executors`).
 Output::
 
     REPORT/scenes/<object>/<setting>-s<seed>/      scene directories (+ capture.json)
-    REPORT/runs/<object>/<setting>/<variant>-s<seed>/   run directories of `tacsplat reconstruct`
+    REPORT/runs/<object>/<setting>/<method>-s<seed>/   run directories of `tacsplat reconstruct`
     REPORT/results.csv  REPORT/report.md  REPORT/*.png
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import time
@@ -38,7 +40,7 @@ import numpy as np
 from tacsplat.apps.batch import CaptureJob, ReconstructJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT, PAPER_VARIANTS, get_variant, mechanisms, variant_label
+from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, PAPER_METHODS, get_method, mechanisms, method_label
 
 log = logging.getLogger(__name__)
 
@@ -46,15 +48,46 @@ SETTINGS = ("minimal", "full-views")
 MINIMAL_VIEWS = 5
 GRASPS = 5  # 5 grasps x 4 fingertips = 20 touches (paper: 5 grasps)
 QUICK_OBJECTS = ("teapot", "bell")
+ABLATIONS = Path(__file__).with_name("ablations.yaml")  # the bench's rows beyond the methods
+
+
+@functools.cache
+def ablation_rows() -> dict[str, tuple[str, dict]]:
+    """``{row: (method, overrides)}`` of :data:`ABLATIONS`."""
+    import yaml
+
+    return {name: (row["method"], dict(row.get("overrides", {})))
+            for name, row in yaml.safe_load(ABLATIONS.read_text()).items()}
+
+
+def bench_row(name: str, option: str = "--methods") -> tuple[str, dict]:
+    """``(method, overrides)`` of a row of the bench: a method (no overrides) or an ablation row; a ConfigError
+    naming ``option`` otherwise."""
+    if name in METHODS:
+        return name, {}
+    if name not in ablation_rows():
+        raise ConfigError(option, f"unknown method {name!r}; choose one of {', '.join(METHODS)} or a row of "
+                          f"{ABLATIONS.name} ({', '.join(ablation_rows())})")
+    return ablation_rows()[name]
+
+
+def row_config(name: str, preset: str = "default", iterations: int | None = None, option: str = "--methods"):
+    """The TrainConfig of bench row ``name`` (on the training preset, scaled to ``iterations``)."""
+    from tacsplat.reconstruction.config import preset_config
+    from tacsplat.reconstruction.methods import set_fields
+
+    method, overrides = bench_row(name, option)
+    config = set_fields(preset_config(preset, iterations), get_method(method).overrides)
+    return set_fields(config, overrides, ABLATIONS.name)
 
 
 @dataclass
 class PaperBenchConfig:
-    """Size of the suite; the defaults run 6 objects x 2 settings x 5 variants in about 40 min on 2 free cores."""
+    """Size of the suite; the defaults run 6 objects x 2 settings x 5 methods in about 40 min on 2 free cores."""
 
     objects: tuple[str, ...] = ()  # empty: every library object
     settings: tuple[str, ...] = SETTINGS
-    variants: tuple[str, ...] = (*PAPER_VARIANTS, DEFAULT_VARIANT)  # Table 3's rows and what reconstruct runs
+    methods: tuple[str, ...] = (*PAPER_METHODS, DEFAULT_METHOD)  # Table 3's rows and what reconstruct runs
     seeds: tuple[int, ...] = (0,)
     resolution: int = 128  # image width and height, pixels
     iterations: int = 1500  # optimisation steps per run
@@ -79,8 +112,8 @@ class PaperBenchConfig:
         for s in self.settings:
             if s not in SETTINGS:
                 raise ConfigError("settings", f"unknown setting {s!r}; choose from {', '.join(SETTINGS)}")
-        for v in self.variants:
-            get_variant(v, "variants")
+        for name in self.methods:
+            bench_row(name, "methods")
         if self.full_views < 32:
             raise ConfigError("full_views", f"the full-views setting needs at least 32 train views, got {self.full_views}")
         for key in ("resolution", "iterations", "test_views"):
@@ -122,7 +155,7 @@ class Run:
 
     object: str
     setting: str
-    variant: str
+    method: str
     seed: int
     scene: Path
     out: Path
@@ -132,13 +165,11 @@ class Run:
         return (self.out / "metrics.json").is_file()
 
 
-def step_work(variant: str) -> int:
-    """How many of the optional mechanisms (:func:`~tacsplat.reconstruction.variants.mechanisms`), each adding
-    work to a training step, ``variant`` switches on: :meth:`PaperBench.jobs` starts the variants with more of
+def step_work(method: str) -> int:
+    """How many of the optional mechanisms (:func:`~tacsplat.reconstruction.methods.mechanisms`), each adding
+    work to a training step, ``method`` switches on: :meth:`PaperBench.jobs` starts the methods with more of
     them first, so that on few cores the longest runs do not start last."""
-    from tacsplat.reconstruction.config import TrainConfig
-
-    return sum(mechanisms(get_variant(variant).apply(TrainConfig())).values())
+    return sum(mechanisms(row_config(method)).values())
 
 
 @dataclass
@@ -159,12 +190,12 @@ class PaperBench:
         return self.out / "scenes" / obj / f"{setting}-s{seed}{self.config.scene_tag}"
 
     def runs(self) -> list[Run]:
-        """Every run, setting by setting (the minimal-views table fills first), then object, seed, variant."""
+        """Every run, setting by setting (the minimal-views table fills first), then object, seed, method."""
         c = self.config
         return [
-            Run(obj, setting, variant, seed, self.scene_dir(obj, setting, seed),
-                self.out / "runs" / obj / setting / f"{variant}-s{seed}{c.tag}")
-            for setting in c.settings for obj in c.object_list() for seed in c.seeds for variant in c.variants
+            Run(obj, setting, method, seed, self.scene_dir(obj, setting, seed),
+                self.out / "runs" / obj / setting / f"{method}-s{seed}{c.tag}")
+            for setting in c.settings for obj in c.object_list() for seed in c.seeds for method in c.methods
         ]  # fmt: skip
 
     # ------------------------------------------------------------------ capture and training
@@ -186,20 +217,21 @@ class PaperBench:
 
     def reconstruct_job(self, run: Run, needs: tuple[str, ...] = ()) -> ReconstructJob:
         """One reconstruction (continued from its checkpoint if one exists)."""
-        return ReconstructJob(out=run.out, scene=run.scene, preset=self.config.preset, variant=run.variant,
-                              seed=run.seed, iterations=self.config.iterations,
+        method, overrides = bench_row(run.method)
+        return ReconstructJob(out=run.out, scene=run.scene, preset=self.config.preset, method=method,
+                              overrides=overrides, seed=run.seed, iterations=self.config.iterations,
                               name=f"reconstruct {run.out.relative_to(self.out)}", needs=needs)
 
     def jobs(self) -> list[tuple[Run | None, CaptureJob | ReconstructJob]]:
         """``(run, job)`` of every unfinished run, its capture first (``run`` None), in the order of :meth:`runs`
-        except that a capture's runs start with the variants whose steps do more work (:func:`step_work`), so
+        except that a capture's runs start with the methods whose steps do more work (:func:`step_work`), so
         that the longest training is the first to start (on the processes executor, in the worker its warm-up
         made ready)."""
         runs = self.runs()
         group: dict[tuple, int] = {}  # capture -> its place among the captures
         for r in runs:
             group.setdefault((r.object, r.setting, r.seed), len(group))
-        runs.sort(key=lambda r: (group[r.object, r.setting, r.seed], -step_work(r.variant)))  # (stable)
+        runs.sort(key=lambda r: (group[r.object, r.setting, r.seed], -step_work(r.method)))  # (stable)
         jobs, captures = [], {}
         for run in runs:
             if run.done:
@@ -239,7 +271,7 @@ class PaperBench:
             # partial tables after every run; the pictures (re-rendered from every checkpoint, seconds) at the end
             self.write_report(self.results(), wall_seconds=time.perf_counter() - started, figures=False)
             self.prepare_pictures(run)
-            return (f"{run.object:8s} {run.setting:10s} {run.variant:7s} seed {run.seed}: "
+            return (f"{run.object:8s} {run.setting:10s} {run.method:7s} seed {run.seed}: "
                     f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
                     f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s")
 
@@ -251,7 +283,7 @@ class PaperBench:
         return rows
 
     def stale_runs(self) -> list[tuple[Run, list[str]]]:
-        """Finished runs whose ``config.json`` differs from the config this bench trains their variant with now,
+        """Finished runs whose ``config.json`` differs from the config this bench trains their method with now,
         each with what differs (:meth:`ReconstructJob.changed_settings`)."""
         stale = [(run, self.reconstruct_job(run).changed_settings()) for run in self.runs() if run.done]
         return [(run, changes) for run, changes in stale if changes]
@@ -267,7 +299,7 @@ class PaperBench:
             if not run.done:
                 continue
             m = json.loads((run.out / "metrics.json").read_text())
-            rows.append({"object": run.object, "setting": run.setting, "variant": run.variant, "seed": run.seed,
+            rows.append({"object": run.object, "setting": run.setting, "method": run.method, "seed": run.seed,
                          **{k: _number(m.get(k)) for k in NUMBER_COLUMNS}})
         return rows
 
@@ -304,21 +336,21 @@ def _fmt(value, decimals: int) -> str:
     return "nan" if value is None else f"{value:.{decimals}f}"
 
 
-def _cd_wins(rows: list[dict], setting: str, variant: str, baseline: str) -> tuple[int, int, float, float] | None:
-    """On how many objects ``variant``'s mean CD is below ``baseline``'s, of how many, and their averages."""
+def _cd_wins(rows: list[dict], setting: str, method: str, baseline: str) -> tuple[int, int, float, float] | None:
+    """On how many objects ``method``'s mean CD is below ``baseline``'s, of how many, and their averages."""
     from tacsplat.apps.report import metric_table
 
-    objects, variants, values = metric_table(rows, "cd", setting)
-    if variant not in variants or baseline not in variants:
+    objects, methods, values = metric_table(rows, "cd", setting)
+    if method not in methods or baseline not in methods:
         return None
-    ours, theirs = values[variants.index(variant)], values[variants.index(baseline)]
+    ours, theirs = values[methods.index(method)], values[methods.index(baseline)]
     both = np.isfinite(ours[:-1]) & np.isfinite(theirs[:-1])
     return int((ours[:-1][both] < theirs[:-1][both]).sum()), int(both.sum()), float(ours[-1]), float(theirs[-1])
 
 
 def full_vs_vanilla(rows: list[dict], setting: str) -> str:
     """One sentence: on how many objects the full method's CD is below vanilla 3DGS's, and the average ratio."""
-    if (wins := _cd_wins(rows, setting, "full", "3dgs")) is None:
+    if (wins := _cd_wins(rows, setting, "paper", "3dgs")) is None:
         return ""
     won, n, full, vanilla = wins
     return (f"Full method vs vanilla 3DGS ({setting}): lower CD on {won} of {n} objects; "
@@ -327,28 +359,28 @@ def full_vs_vanilla(rows: list[dict], setting: str) -> str:
 
 
 def default_vs_full(rows: list[dict], setting: str) -> str:
-    """One sentence: how `tacsplat reconstruct`'s default variant compares with the paper's full method."""
-    if (wins := _cd_wins(rows, setting, DEFAULT_VARIANT, "full")) is None:
+    """One sentence: how `tacsplat reconstruct`'s default method compares with the paper's full method."""
+    if (wins := _cd_wins(rows, setting, DEFAULT_METHOD, "paper")) is None:
         return ""
     won, n, ours, full = wins
-    return (f"Default `{DEFAULT_VARIANT}` ({variant_label(DEFAULT_VARIANT)}) vs the paper's full method ({setting}): "
+    return (f"Default `{DEFAULT_METHOD}` ({method_label(DEFAULT_METHOD)}) vs the paper's full method ({setting}): "
             f"lower CD on {won} of {n} objects; average CD {ours:.4f} vs {full:.4f} ({100 * (ours / full - 1):+.0f}%).")
 
 
 def coverage_sentence(rows: list[dict], setting: str) -> str:
-    """One sentence: how much of the test views' surface no training camera sees, and how each variant's CD
+    """One sentence: how much of the test views' surface no training camera sees, and how each method's CD
     there compares with its CD on the seen surface ("" without the split, i.e. without a ground-truth mesh)."""
     from tacsplat.apps.report import metric_table
 
-    objects, variants, unseen = metric_table(rows, "unseen_fraction", setting)
+    objects, methods, unseen = metric_table(rows, "unseen_fraction", setting)
     _, _, seen_cd = metric_table(rows, "cd_seen", setting)
     _, _, unseen_cd = metric_table(rows, "cd_unseen", setting)
-    fractions = np.fmax.reduce(unseen, axis=0) if len(variants) else np.array([np.nan])  # the same for every variant
+    fractions = np.fmax.reduce(unseen, axis=0) if len(methods) else np.array([np.nan])  # the same for every method
     if not np.isfinite(fractions[-1]):
         return ""
     per_object = ", ".join(f"{o} {100 * f:.0f}%" for o, f in zip(objects, fractions[:-1]) if np.isfinite(f))
-    ratios = "; ".join(f"{variant_label(v)} {unseen_cd[i, -1]:.4f} vs {seen_cd[i, -1]:.4f}"
-                       for i, v in enumerate(variants) if np.isfinite(unseen_cd[i, -1]) and np.isfinite(seen_cd[i, -1]))
+    ratios = "; ".join(f"{method_label(v)} {unseen_cd[i, -1]:.4f} vs {seen_cd[i, -1]:.4f}"
+                       for i, v in enumerate(methods) if np.isfinite(unseen_cd[i, -1]) and np.isfinite(seen_cd[i, -1]))
     return (f"Coverage ({setting}): {100 * fractions[-1]:.0f}% of the test views' surface is seen by no training "
             f"camera on average ({per_object}); only priors and touches place it. CD there vs on the seen "
             f"surface: {ratios}.")
@@ -356,7 +388,7 @@ def coverage_sentence(rows: list[dict], setting: str) -> str:
 
 # The paper's Table 2 (Glossy Synthetic, 5 views): CD as its official code measures it, per object and on average.
 PAPER_MINIMAL_CD = {"3dgs": {"bell": 0.0220, "teapot": 0.0079, "Avg.": 0.0111},
-                    "full": {"bell": 0.0082, "teapot": 0.0022, "Avg.": 0.0026}}
+                    "paper": {"bell": 0.0082, "teapot": 0.0022, "Avg.": 0.0026}}
 
 
 def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
@@ -364,13 +396,13 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     numbers (objects of the same name; averages over different objects), the full/3DGS gain in both metrics, and
     the departures from the paper still in force."""
     from tacsplat.apps.report import metric_table
-    from tacsplat.reconstruction.config import paper_departures, preset_config
+    from tacsplat.reconstruction.config import paper_departures
 
-    objects, variants, cd_paper = metric_table(rows, "cd_paper", "minimal")
+    objects, methods, cd_paper = metric_table(rows, "cd_paper", "minimal")
     _, _, cd = metric_table(rows, "cd", "minimal")
-    if "full" not in variants or "3dgs" not in variants:
+    if "paper" not in methods or "3dgs" not in methods:
         return ""
-    full, vanilla = variants.index("full"), variants.index("3dgs")
+    full, vanilla = methods.index("paper"), methods.index("3dgs")
     columns = objects + ["Avg."]
     lines = [
         "## Where we stand against the paper (minimal views)", "",
@@ -386,25 +418,24 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     for key, what in (("accuracy", "predicted -> GT"), ("completeness", "GT -> predicted")):
         for label, index in (("3DGS", vanilla), ("full", full)):
             lines.append(f"| {label}, {key} ({what}) | " + " | ".join(f"{v:.5f}" for v in terms[key][index]) + " |")
-    for label, key in (("3DGS (paper)", "3dgs"), ("full (paper)", "full")):
+    for label, key in (("3DGS (paper)", "3dgs"), ("full (paper)", "paper")):
         lines.append(f"| {label} | " + " | ".join(
             f"{PAPER_MINIMAL_CD[key][c]:.4f}" if c in PAPER_MINIMAL_CD[key] else "–" for c in columns) + " |")
-    paper_ratio = PAPER_MINIMAL_CD["3dgs"]["Avg."] / PAPER_MINIMAL_CD["full"]["Avg."]
+    paper_ratio = PAPER_MINIMAL_CD["3dgs"]["Avg."] / PAPER_MINIMAL_CD["paper"]["Avg."]
     lines += ["", f"Gain of full over 3DGS on average: {cd[vanilla, -1] / cd[full, -1]:.2f}x in our CD, "
               f"{cd_paper[vanilla, -1] / cd_paper[full, -1]:.2f}x in the paper's CD (the paper: {paper_ratio:.1f}x), "
               f"{terms['accuracy'][vanilla, -1] / terms['accuracy'][full, -1]:.2f}x in its accuracy term. The "
               "completeness term compares with the whole ground-truth surface, including the underside that no test "
               "camera sees, so it rewards a reconstruction that bulges there as much as one that is right where it "
               "is seen.", "", "Departures from the paper in force for these runs:", ""]
-    full_config = preset_config(config.preset, config.iterations)
-    get_variant("full").apply(full_config)
+    full_config = row_config("paper", config.preset, config.iterations)
     lines += [f"- {line}" for line in paper_departures(full_config, config.touch_model, config.resolution)]
     return "\n".join(lines) + "\n"
 
 
 def render_first_test_view(runs: list[Run], rendered: dict | None = None) -> tuple[dict, np.ndarray, np.ndarray,
                                                                          np.ndarray | None, np.ndarray | None]:
-    """``({variant: (rgb, depth, normal)}, gt_rgb, gt_depth, gt_normal, gt_seen)`` of the first test view of one
+    """``({method: (rgb, depth, normal)}, gt_rgb, gt_depth, gt_normal, gt_seen)`` of the first test view of one
     scene, rendered from each run's last checkpoint (the evaluation's renders, whose depth colours are scaled per
     run, are not reused); normals in the camera frame, the ground truth's from its depth map as the evaluation
     takes them; ``gt_seen`` [H, W] bool: which ground-truth pixels the first rendered run's training cameras see
@@ -424,12 +455,12 @@ def render_first_test_view(runs: list[Run], rendered: dict | None = None) -> tup
         rendered[run.out] = _render_view(loaded, frame, gt_rgb)
         if run.scene not in rendered:
             rendered[run.scene] = _first_view_truth(scene, frame, gt_rgb, loaded.config.train_views)
-    panels = {run.variant: rendered[run.out] for run in runs}
+    panels = {run.method: rendered[run.out] for run in runs}
     return panels, gt_rgb, *rendered[runs[0].scene]
 
 
 def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(rgb, depth, normal)`` of a loaded run's Gaussians, with their appearance (light, environment), in
+    """``(rgb, depth, normal)`` of a loaded run's Gaussians, with their appearance (its light), in
     ``frame`` over the backdrop of its image."""
     import torch
 
@@ -464,17 +495,17 @@ def _first_view_truth(scene, frame, gt_rgb: np.ndarray, train_views: int | None
 
 def _stale_note(stale: list[tuple[Run, list[str]]], out: Path) -> str:
     """What report.md and the log say about :meth:`PaperBench.stale_runs` ("" when none): the runs grouped by
-    variant and what differs, each group with its folders (relative to ``out``)."""
+    method and what differs, each group with its folders (relative to ``out``)."""
     if not stale:
         return ""
-    groups: dict[tuple[str, str], list[str]] = {}  # (variant, what differs) -> its run folders
+    groups: dict[tuple[str, str], list[str]] = {}  # (method, what differs) -> its run folders
     for run, changes in stale:
-        groups.setdefault((run.variant, ", ".join(changes)), []).append(str(run.out.relative_to(out)))
-    return (f"{len(stale)} finished run(s) were trained with other settings than this bench trains their variant "
+        groups.setdefault((run.method, ", ".join(changes)), []).append(str(run.out.relative_to(out)))
+    return (f"{len(stale)} finished run(s) were trained with other settings than this bench trains their method "
             "with now (a default changed since); their numbers stand in the tables as they were measured; delete "
             "their folders to measure them again: " + "; ".join(
-                f"{variant} ({changes}), {len(folders)} run(s): {', '.join(folders)}"
-                for (variant, changes), folders in groups.items()))
+                f"{method} ({changes}), {len(folders)} run(s): {', '.join(folders)}"
+                for (method, changes), folders in groups.items()))
 
 
 def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
@@ -530,7 +561,7 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         for run in runs:
             progress = run.out / "progress.csv"
             if run.setting == setting and run.seed == config.seeds[0] and run.done and progress.is_file():
-                curves.setdefault(run.object, {})[run.variant] = read_progress(progress)
+                curves.setdefault(run.object, {})[run.method] = read_progress(progress)
         if curves:
             png = plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", f"held-out error vs run time ({setting})")
             lines += [f"![error vs run time, {setting}]({png.name})", ""]
@@ -561,8 +592,8 @@ def config_from_args(args) -> PaperBenchConfig:
         config.settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
     if args.seeds is not None:
         config.seeds = comma_separated_ints(args.seeds, "--seeds")
-    if args.variants is not None:
-        config.variants = tuple(v.strip() for v in args.variants.split(",") if v.strip())
+    if args.methods is not None:
+        config.methods = tuple(v.strip() for v in args.methods.split(",") if v.strip())
     config.preset, config.touch_model, config.texture = args.preset, args.touch_model, args.texture
     config.validate()
     return config
@@ -575,7 +606,7 @@ def register(cli) -> None:
         "bench paper",
         help="the paper's tables on the twin's glossy objects: 3DGS, +S, +T, full; minimal and full views",
         description="Per object: a seeded sim capture per setting (minimal: 5 views + 5 grasps; full-views: "
-        ">= 32 views + 5 grasps), the four variants and reconstruct's default, then REPORT/results.csv, REPORT/report.md and plots. "
+        ">= 32 views + 5 grasps), the four methods and reconstruct's default, then REPORT/results.csv, REPORT/report.md and plots. "
         "Resumable: rerun the same command after an interruption. --executor ray runs the captures and runs as "
         "Ray tasks (an embedded local Ray, or the cluster at --ray-address; --out on storage every node sees).",
     )
@@ -596,8 +627,9 @@ def register(cli) -> None:
     p.add_argument("--test-views", type=int, default=None, help="held-out test views (default 12; quick 8)")
     p.add_argument("--settings", default=None, help="comma-separated: minimal,full-views (quick: minimal)")
     p.add_argument("--seeds", default=None, help="comma-separated capture and training seeds (default 0)")
-    p.add_argument("--variants", default=None,
-                   help="comma-separated method variants (default: the paper's four and reconstruct's default)")
+    p.add_argument("--methods", default=None,
+                   help="comma-separated methods, or rows of ablations.yaml (a method with settings changed: "
+                   + ", ".join(ablation_rows()) + "; default: the paper's four methods and reconstruct's default)")
     add_executor_options(p)
     p.set_defaults(func=_run)
 

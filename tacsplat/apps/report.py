@@ -2,7 +2,7 @@
 
 A result is a dict with the keys of :data:`RESULT_COLUMNS` (one reconstruction run).
 Tables follow the paper's layout (Tables 1-3): objects as columns plus ``Avg.``,
-variants as rows, the best value of each column in bold.
+methods as rows, the best value of each column in bold.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from typing import Literal
 
 import numpy as np
 
-from tacsplat.reconstruction.variants import VARIANTS, variant_label
+from tacsplat.reconstruction.methods import METHODS, method_label
 
 Better = Literal["lower", "higher", "zero"]  # which value of a metric is best: "zero" the one nearest 0
 # metric -> (heading, which is better, decimals)
@@ -31,7 +31,7 @@ METRICS: dict[str, tuple[str, Better, int]] = {
 # a run's numbers in results.csv
 NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "unseen_fraction", "train_seconds",
                   "num_gaussians", "psnr_splat")  # psnr_splat: what splat.ply shows a plain 3DGS renderer
-RESULT_COLUMNS = ("object", "setting", "variant", *NUMBER_COLUMNS, "seed")
+RESULT_COLUMNS = ("object", "setting", "method", *NUMBER_COLUMNS, "seed")
 
 
 def write_results_csv(rows: list[dict], path: str | Path) -> Path:
@@ -64,35 +64,35 @@ def _mean(values: list[float]) -> float:
 
 
 def metric_table(rows: list[dict], metric: str, setting: str) -> tuple[list[str], list[str], np.ndarray]:
-    """``(objects, variants, values [V, O + 1])``: the mean over seeds of ``metric`` per variant and object,
+    """``(objects, methods, values [V, O + 1])``: the mean over seeds of ``metric`` per method and object,
     last column the average over objects (NaN where a run is missing)."""
     selected = [r for r in rows if r["setting"] == setting]
     objects = list(dict.fromkeys(r["object"] for r in selected))
-    present = {r["variant"] for r in selected}
-    variants = [v for v in VARIANTS if v in present] + sorted(present - set(VARIANTS))
-    values = np.full((len(variants), len(objects) + 1), np.nan)
-    for i, variant in enumerate(variants):
+    present = {r["method"] for r in selected}
+    methods = [v for v in METHODS if v in present] + sorted(present - set(METHODS))
+    values = np.full((len(methods), len(objects) + 1), np.nan)
+    for i, method in enumerate(methods):
         for j, obj in enumerate(objects):
-            values[i, j] = _mean([r.get(metric) for r in selected if r["variant"] == variant and r["object"] == obj])
+            values[i, j] = _mean([r.get(metric) for r in selected if r["method"] == method and r["object"] == obj])
         values[i, -1] = _mean(list(values[i, :-1]))
-    return objects, variants, values
+    return objects, methods, values
 
 
 def seed_spread(rows: list[dict], metric: str, setting: str) -> dict[str, float]:
-    """Per variant, the standard deviation over seeds of each seed's average of ``metric`` over the objects
+    """Per method, the standard deviation over seeds of each seed's average of ``metric`` over the objects
     (:func:`metric_table`'s ``Avg.`` on that seed's rows): how far the tables' ``Avg.`` moves from one seed to the
-    next. A seed counts where the variant has a finite value on every object of the setting; NaN with fewer than
+    next. A seed counts where the method has a finite value on every object of the setting; NaN with fewer than
     two such seeds."""
-    objects, variants, _ = metric_table(rows, metric, setting)
-    averages = {variant: [] for variant in variants}
+    objects, methods, _ = metric_table(rows, metric, setting)
+    averages = {method: [] for method in methods}
     for seed in dict.fromkeys(r.get("seed") for r in rows if r["setting"] == setting):
-        seed_objects, seed_variants, values = metric_table([r for r in rows if r.get("seed") == seed], metric, setting)
+        seed_objects, seed_methods, values = metric_table([r for r in rows if r.get("seed") == seed], metric, setting)
         if set(seed_objects) != set(objects):
             continue
-        for variant, row in zip(seed_variants, values):
+        for method, row in zip(seed_methods, values):
             if np.isfinite(row[:-1]).all():
-                averages[variant].append(float(row[-1]))
-    return {variant: float(np.std(a, ddof=1)) if len(a) >= 2 else float("nan") for variant, a in averages.items()}
+                averages[method].append(float(row[-1]))
+    return {method: float(np.std(a, ddof=1)) if len(a) >= 2 else float("nan") for method, a in averages.items()}
 
 
 def best_rows(values: np.ndarray, better: Better) -> list[set[int]]:
@@ -111,7 +111,7 @@ def best_rows(values: np.ndarray, better: Better) -> list[set[int]]:
 def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     """A paper-style Markdown table of one metric in one setting; the best value per column in bold."""
     heading, better, decimals = METRICS[metric]
-    objects, variants, values = metric_table(rows, metric, setting)
+    objects, methods, values = metric_table(rows, metric, setting)
     best = best_rows(np.round(values, decimals), better)  # values equal as printed are equally best
     spread = seed_spread(rows, metric, setting)
     with_spread = any(math.isfinite(v) for v in spread.values())
@@ -120,14 +120,14 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
         "| Method | " + " | ".join(objects + ["Avg."] + extra) + " |",
         "| --- |" + " ---: |" * (len(objects) + 1 + len(extra)),
     ]
-    for i, variant in enumerate(variants):
+    for i, method in enumerate(methods):
         cells = []
         for j, value in enumerate(values[i]):
             text = "–" if not math.isfinite(value) else f"{value:.{decimals}f}"
             cells.append(f"**{text}**" if i in best[j] else text)
         if with_spread:
-            cells.append("–" if not math.isfinite(spread[variant]) else f"{spread[variant]:.{decimals}f}")
-        lines.append(f"| {variant_label(variant)} | " + " | ".join(cells) + " |")
+            cells.append("–" if not math.isfinite(spread[method]) else f"{spread[method]:.{decimals}f}")
+        lines.append(f"| {method_label(method)} | " + " | ".join(cells) + " |")
     note = ("\n*Seed s.d.: the standard deviation over the seeds of each seed's average over the objects; a "
             "difference in Avg. smaller than it may be the seeds' luck.*\n" if with_spread else "")
     return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n" + note
@@ -153,15 +153,15 @@ def save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
 
 
 def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
-    """Grouped bar chart: CD per variant (bars) per object (groups), log scale, mean over seeds."""
+    """Grouped bar chart: CD per method (bars) per object (groups), log scale, mean over seeds."""
     plt = pyplot()
-    objects, variants, values = metric_table(rows, "cd", setting)
+    objects, methods, values = metric_table(rows, "cd", setting)
     fig, ax = plt.subplots(figsize=(max(6.0, 1.3 * (len(objects) + 1)), 4))
-    width = 0.8 / max(len(variants), 1)
+    width = 0.8 / max(len(methods), 1)
     x = np.arange(len(objects) + 1)
-    for i, variant in enumerate(variants):
-        ax.bar(x + (i - (len(variants) - 1) / 2) * width, np.nan_to_num(values[i], nan=0.0), width,
-               label=variant_label(variant))
+    for i, method in enumerate(methods):
+        ax.bar(x + (i - (len(methods) - 1) / 2) * width, np.nan_to_num(values[i], nan=0.0), width,
+               label=method_label(method))
     ax.set_xticks(x, objects + ["Avg."])
     ax.set_ylabel("Chamfer distance [x GT radius]")
     if np.nanmin(np.where(values > 0, values, np.nan), initial=np.inf) < np.inf:
@@ -174,9 +174,9 @@ def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
 
 
 def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path: str | Path, title: str = "") -> Path:
-    """CD (top) and PSNR (bottom) against run time, one column per object, one line per variant.
+    """CD (top) and PSNR (bottom) against run time, one column per object, one line per method.
 
-    ``curves[object][variant]`` holds a run's ``seconds``, ``cd`` and ``psnr`` arrays
+    ``curves[object][method]`` holds a run's ``seconds``, ``cd`` and ``psnr`` arrays
     (:func:`tacsplat.reconstruction.run_dir.read_progress`).
     """
     plt = pyplot()
@@ -185,7 +185,7 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     from tacsplat.reconstruction.run_dir import draw_error_vs_time
 
     for j, obj in enumerate(objects):
-        draw_error_vs_time(axes[0, j], axes[1, j], {variant_label(v): c for v, c in curves[obj].items()})
+        draw_error_vs_time(axes[0, j], axes[1, j], {method_label(v): c for v, c in curves[obj].items()})
         axes[0, j].set_title(obj)
         axes[0, j].set_yscale("log")
     axes[0, 0].legend(fontsize=8)
@@ -200,14 +200,14 @@ UNSEEN_COLOUR = (0.9, 0.0, 0.8)  # magenta: ground-truth surface no training cam
 
 def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarray, path: str | Path,
                 title: str = "", gt_normal: np.ndarray | None = None, gt_seen: np.ndarray | None = None) -> Path:
-    """Ground truth then one column per variant; RGB on top, depth below on ONE colour scale (the ground
+    """Ground truth then one column per method; RGB on top, depth below on ONE colour scale (the ground
     truth's depth range), so that a surface behind or in front of the true one shows as a colour shift; a third
     row of camera-frame normals (as RGB, (n + 1) / 2; black where empty) when the panels carry them; with
     ``gt_seen`` [H, W] bool (which ground-truth pixels a training camera sees), a last row: under the ground
-    truth that coverage (grey seen, magenta unseen), under each variant its depth minus the truth's (red
+    truth that coverage (grey seen, magenta unseen), under each method its depth minus the truth's (red
     behind, blue in front, on one symmetric scale of a quarter of the truth's depth range).
 
-    ``panels[variant] = (rgb [H, W, 3] in [0, 1], depth [H, W] metres, 0 = empty)`` of the same test view, or
+    ``panels[method] = (rgb [H, W, 3] in [0, 1], depth [H, W] metres, 0 = empty)`` of the same test view, or
     ``(rgb, depth, normal [H, W, 3])``; ``gt_normal`` the ground truth's (e.g. from its depth map).
     """
     plt = pyplot()
@@ -215,7 +215,7 @@ def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarr
     lo, hi = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 1.0)
     pad = 0.1 * max(hi - lo, 1e-6)
     columns = [("ground truth", gt_rgb, gt_depth, gt_normal)] + [
-        (variant_label(v), p[0], p[1], p[2] if len(p) > 2 else None) for v, p in panels.items()
+        (method_label(v), p[0], p[1], p[2] if len(p) > 2 else None) for v, p in panels.items()
     ]
     with_normals = any(c[3] is not None for c in columns)
     with_error = gt_seen is not None and valid.size > 0
@@ -241,7 +241,7 @@ def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarr
             both = (depth > 0) & (gt_depth > 0)
             error_image = axes[-1, j].imshow(np.ma.masked_array(depth - gt_depth, ~both), cmap=error_cmap,
                                              vmin=-error_range, vmax=error_range)
-        axes[0, j].set_title(textwrap.fill(label, 28), fontsize=10)  # long variant labels on two lines
+        axes[0, j].set_title(textwrap.fill(label, 28), fontsize=10)  # long method labels on two lines
         for ax in axes[:, j]:
             ax.set_xticks([])
             ax.set_yticks([])

@@ -11,7 +11,7 @@ sees the same views. Fingers that touched nothing are dropped (they add no
 points). When the capture has fewer than ``n`` touches in contact (a grasp was
 skipped or a finger missed), the copy holds all of them and the CSV records
 the count actually used. ``n = 0`` is the same method without touch (no G_t, no
-L_T; the smoothness term is unmasked). Every run is ``variant``, by default the
+L_T; the smoothness term is unmasked). Every run is ``method``, by default the
 paper's full method (``full``; the trainer's defaults otherwise).
 
 Output: ``OUT/touches.csv`` (one row per run), ``OUT/summary.csv`` (mean and
@@ -38,7 +38,7 @@ import numpy as np
 from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.variants import VARIANTS, get_variant
+from tacsplat.reconstruction.methods import METHODS, get_method
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +57,7 @@ class TouchBenchConfig:
     test_views: int = 8
     resolution: int = 128
     iterations: int = 800
-    variant: str = "full"  # the method of every run (reconstruction.variants.VARIANTS); the paper's for its Fig. 6
+    method: str = "paper"  # the method of every run (reconstruction.methods.METHODS); the paper's for its Fig. 6
 
     @property
     def grasps(self) -> int:
@@ -76,7 +76,7 @@ class TouchBenchConfig:
         for key in ("views", "test_views", "resolution", "iterations"):
             if getattr(self, key) < 1:
                 raise ConfigError(key, f"must be >= 1, got {getattr(self, key)}")
-        get_variant(self.variant)
+        get_method(self.method)
 
 
 def subsample_touches(scene_path: str | Path, out: str | Path, num_touches: int) -> int:
@@ -116,7 +116,7 @@ class TouchBench:
 
     def jobs(self) -> list[BatchJob]:
         """Per seed its capture (if a copy of it is still to make), then per count the copy with that many
-        touches and its reconstruction (``variant``), in the order of the sweep."""
+        touches and its reconstruction (``method``), in the order of the sweep."""
         c = self.config
         jobs: list[BatchJob] = []
         for seed in c.seeds:
@@ -132,7 +132,7 @@ class TouchBench:
                 copies = [replace(copy, needs=()) for copy in copies]
             for copy in copies:
                 out = self.run_dir(seed, copy.count)
-                jobs += [copy, ReconstructJob(out=out, scene=copy.out, variant=c.variant, seed=seed,
+                jobs += [copy, ReconstructJob(out=out, scene=copy.out, method=c.method, seed=seed,
                                               iterations=c.iterations, name=f"reconstruct {out.name}",
                                               needs=(copy.name,))]
         return jobs
@@ -172,7 +172,7 @@ class TouchBench:
         self.check_out(jobs)
         outcome = run_jobs(jobs, self.out, on_done=on_done, desc="bench touches", progress=progress, **executor)
         rows = self.results()
-        write_touch_report(self.out, rows, self.config.variant)
+        write_touch_report(self.out, rows, self.config.method)
         outcome.raise_if_failed(self.out)
         return rows
 
@@ -199,9 +199,9 @@ def summarise(rows: list[dict]) -> list[dict]:
     return summary
 
 
-def write_touch_report(out: str | Path, rows: list[dict], variant: str) -> dict[str, Path]:
+def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[str, Path]:
     """``touches.csv``, ``summary.csv`` and ``cd_vs_touches.png`` (mean +- std over seeds, each run a dot; the
-    title names the ``variant`` the runs trained)."""
+    title names the ``method`` the runs trained)."""
     from tacsplat.apps.report import pyplot, save_figure
 
     out = Path(out)
@@ -228,7 +228,7 @@ def write_touch_report(out: str | Path, rows: list[dict], variant: str) -> dict[
     ax.set_xticks(x, [str(int(v)) for v in x])
     ax.set_xlabel("number of touches")
     ax.set_ylabel("Chamfer distance [x GT radius]")
-    ax.set_title(f"CD against number of touches ({variant})")
+    ax.set_title(f"CD against number of touches ({method})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -243,7 +243,7 @@ def register(cli) -> None:
         "bench touches",
         help="Chamfer distance against the number of touches (paper Fig. 6), several seeds",
         description="Per seed one sim capture with enough grasps for the largest count; per count a copy of it "
-        "with the first N touches in contact (whole grasps first), reconstructed with --variant. Writes "
+        "with the first N touches in contact (whole grasps first), reconstructed with --method. Writes "
         "OUT/touches.csv, OUT/summary.csv, OUT/cd_vs_touches.png. Resumable.",
     )
     p.add_argument("--out", required=True, help="output folder")
@@ -252,7 +252,7 @@ def register(cli) -> None:
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (capture and training)")
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--iterations", type=int, default=800, help="steps per run")
-    p.add_argument("--variant", default=TouchBenchConfig.variant, choices=list(VARIANTS),
+    p.add_argument("--method", default=TouchBenchConfig.method, choices=list(METHODS),
                    help="the method of every run (default: the paper's, as in its Fig. 6)")
     add_executor_options(p)
     p.set_defaults(func=_run)
@@ -264,7 +264,7 @@ def _run(args) -> int:
     executor = executor_options(args)
     config = TouchBenchConfig(object=args.object, touch_counts=comma_separated_ints(args.touches, "--touches"),
                               seeds=comma_separated_ints(args.seeds, "--seeds"), resolution=args.resolution,
-                              iterations=args.iterations, variant=args.variant)
+                              iterations=args.iterations, method=args.method)
     started = time.perf_counter()
     bench = TouchBench(args.out, config)
     rows = bench.run(**executor)

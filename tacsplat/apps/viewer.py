@@ -13,7 +13,7 @@ PATH is one of:
   that renders the browser's viewpoint with tacsplat's rasterizer (RGB and
   expected depth) beside the browser's own approximation;
 - a benchmark report folder (``tacsplat bench paper --out``): two of its runs
-  chosen from drop-downs side by side (default: vanilla 3DGS and the full
+  chosen from drop-downs side by side (default: vanilla 3DGS and the paper's
   method), seen from one viewpoint, with their metrics; the render button
   renders both from that same viewpoint.
 
@@ -213,7 +213,7 @@ def load_content(path: Path) -> Content:
         return Content(kind, path, run=read_run(path, path.name))
     runs = report_runs(path)
     if not runs:
-        raise ConfigError("PATH", f"{path} has no finished run (no runs/<object>/<setting>/<variant>/splat.ply)")
+        raise ConfigError("PATH", f"{path} has no finished run (no runs/<object>/<setting>/<method>/splat.ply)")
     left, right = default_pair(runs)
     pair = (read_run(runs[left], left, path), read_run(runs[right], right, path) if right else None)
     return Content(kind, path, report_runs=runs, pair=pair)
@@ -267,21 +267,21 @@ def kept_checkpoints(run: Path) -> list[Path]:
 
 
 def report_runs(report: Path) -> dict[str, Path]:
-    """A report's finished runs (``runs/<object>/<setting>/<variant>-s<seed>`` with a ``splat.ply``), by label."""
+    """A report's finished runs (``runs/<object>/<setting>/<method>-s<seed>`` with a ``splat.ply``), by label."""
     runs = report / "runs"
     return {p.parent.relative_to(runs).as_posix(): p.parent for p in sorted(runs.glob("*/*/*/splat.ply"))}
 
 
 def default_pair(runs: dict[str, Path]) -> tuple[str, str | None]:
-    """The two runs shown first: vanilla 3DGS and the full method of one object, setting and seed when the
+    """The two runs shown first: vanilla 3DGS and the paper's method of one object, setting and seed when the
     report has them, else its first two runs (or its only one)."""
     labels = list(runs)
     for label in labels:
         head, _, name = label.rpartition("/")
         if name.startswith("3dgs-"):
-            full = f"{head}/full-{name.removeprefix('3dgs-')}"
-            if full in runs:
-                return label, full
+            paper = f"{head}/paper-{name.removeprefix('3dgs-')}"
+            if paper in runs:
+                return label, paper
     return labels[0], labels[1] if len(labels) > 1 else None
 
 

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
 from tacsplat.acquisition.next_touch import Belief, Candidate, Pad, PatchModel, predict_patch, rank_candidates
 from tacsplat.datasets import SensorModel

@@ -54,7 +54,7 @@ def test_results_report_and_pictures(bench):
     assert len(table) == 4 and float(table[0]["cd"]) == pytest.approx(rows[0]["cd"])
     report = (bench.out / "report.md").read_text()
     assert "| bell | next-best |" in report and "| 2 |" in report and "Spearman" in report
-    assert f"every reconstruction `{TINY.variant}`" in report
+    assert f"every reconstruction `{TINY.method}`" in report
     assert (bench.out / "cd_vs_grasps.png").stat().st_size > 0 and (bench.out / "uncertainty_bell.png").stat().st_size > 0
     rho = [line for line in report.splitlines() if line.startswith("| bell | ") and "%" not in line][-1]
     assert len(rho.split("|")) == 5  # one correlation per score
@@ -84,7 +84,7 @@ def test_first_grasps_keeps_whole_grasps_in_number_order(bench, tmp_path):
 @pytest.mark.parametrize("change, option", [({"objects": ("vase",)}, "--objects"), ({"grasps": ()}, "--grasps"),
                                             ({"uncertainty": "entropy"}, "--uncertainty"),
                                             ({"mesh": "/no/such.obj"}, "--mesh"), ({"grasps": (2, 2)}, "--grasps"),
-                                            ({"variant": "ours"}, "--variant")])
+                                            ({"method": "ours"}, "--method")])
 def test_bad_settings_name_their_option(change, option, tmp_path):
     from dataclasses import replace
 
@@ -103,7 +103,7 @@ def test_a_rerun_with_other_settings_in_the_same_folder_is_refused(bench):
     with pytest.raises(ConfigError, match="--out.*other settings.*iterations 4 -> 5"):
         NextTouchBench(bench.out, replace(TINY, iterations=5)).run(progress=False)
     with pytest.raises(ConfigError, match="--out.*other settings.*appearance 'sh-lit' -> 'sh'"):
-        NextTouchBench(bench.out, replace(TINY, variant="full")).run(progress=False)
+        NextTouchBench(bench.out, replace(TINY, method="paper")).run(progress=False)
 
 
 def test_the_final_runs_train_the_bench_variant_by_default_what_reconstruct_trains(tmp_path):
@@ -112,9 +112,9 @@ def test_the_final_runs_train_the_bench_variant_by_default_what_reconstruct_trai
     from tacsplat.apps.batch import ReconstructJob
     from tacsplat.reconstruction.config import TrainConfig
 
-    for config, expected in ((TINY, TrainConfig()), (replace(TINY, variant="full"), None)):
+    for config, expected in ((TINY, TrainConfig()), (replace(TINY, method="paper"), None)):
         runs = [job for job in NextTouchBench(tmp_path / "R", config).jobs() if isinstance(job, ReconstructJob)]
-        assert len(runs) == 4 and {job.variant for job in runs} == {config.variant}
+        assert len(runs) == 4 and {job.method for job in runs} == {config.method}
         if expected is not None:  # the defaults: TrainConfig's, the steps and seed aside
             assert replace(runs[0].config(), iterations=expected.iterations, seed=expected.seed) == expected
 
@@ -125,12 +125,12 @@ def test_a_folder_with_a_run_of_other_settings_is_refused_before_anything_runs(t
     bench = NextTouchBench(tmp_path / "R", TINY)
     run = next(job for job in bench.jobs() if job.kind == "reconstruct")
     run.out.mkdir(parents=True)
-    (run.out / "config.json").write_text(json.dumps(replace(run, variant="full").config().to_json()))
+    (run.out / "config.json").write_text(json.dumps(replace(run, method="paper").config().to_json()))
     (run.out / "metrics.json").write_text("{}")
-    with pytest.raises(ConfigError, match=f"--out: {run.out} was trained with other settings \\(variant full -> "):
+    with pytest.raises(ConfigError, match=f"--out: {run.out} was trained with other settings \\(method paper -> "):
         bench.run(progress=False)
     assert sorted(p.name for p in (tmp_path / "R").iterdir()) == ["runs"]  # no capture, nothing else
-    NextTouchBench(tmp_path / "R", replace(TINY, variant="full")).check_out()  # the options it was trained with
+    NextTouchBench(tmp_path / "R", replace(TINY, method="paper")).check_out()  # the options it was trained with
 
 
 def read_rows(path) -> list[dict]:

@@ -80,10 +80,10 @@ TINY_BATCH = """\
 jobs:
   - {kind: capture, out: scenes/teapot, object: teapot, resolution: 48, test_views: 2, grasps: 2}
   - {kind: capture, out: scenes/bell, object: bell, resolution: 48, test_views: 2, grasps: 2}
-  - {kind: reconstruct, out: runs/teapot-3dgs, scene: scenes/teapot, variant: 3dgs, iterations: 20}
-  - {kind: reconstruct, out: runs/teapot-full, scene: scenes/teapot, variant: full, iterations: 20}
-  - {kind: reconstruct, out: runs/bell-3dgs, scene: scenes/bell, variant: 3dgs, iterations: 20}
-  - {kind: reconstruct, out: runs/bell-full, scene: scenes/bell, variant: full, iterations: 20}
+  - {kind: reconstruct, out: runs/teapot-3dgs, scene: scenes/teapot, method: 3dgs, iterations: 20}
+  - {kind: reconstruct, out: runs/teapot-full, scene: scenes/teapot, method: full, iterations: 20}
+  - {kind: reconstruct, out: runs/bell-3dgs, scene: scenes/bell, method: 3dgs, iterations: 20}
+  - {kind: reconstruct, out: runs/bell-full, scene: scenes/bell, method: full, iterations: 20}
 """
 
 
@@ -104,9 +104,9 @@ def test_tiny_batch_on_a_cluster_through_ray_address_equals_local(tmp_path, clus
     assert f"connecting to the Ray cluster at {cluster}" in done.stderr
     assert "Started a local Ray instance" not in done.stderr
     rows, expected = read_rows(out / "results.csv"), read_rows(tmp_path / "local" / "results.csv")
-    assert [r["job"] for r in rows] == [f"reconstruct runs/{o}-{v}" for o in ("teapot", "bell") for v in ("3dgs", "full")]
+    assert [r["job"] for r in rows] == [f"reconstruct runs/{o}-{v}" for o in ("teapot", "bell") for v in ("3dgs", "paper")]
     assert all(math.isfinite(float(r["cd"])) and float(r["psnr"]) > 10 for r in rows)
-    assert [r["variant"] for r in rows] == ["3dgs", "full"] * 2 and {r["iterations"] for r in rows} == {"20"}
+    assert [r["method"] for r in rows] == ["3dgs", "paper"] * 2 and {r["iterations"] for r in rows} == {"20"}
     timing = "train_seconds"
     assert [{k: v for k, v in r.items() if k != timing} for r in rows] == [
         {k: v for k, v in r.items() if k != timing} for r in expected]

@@ -18,6 +18,7 @@ from tacsplat.apps.batch import CaptureJob, EvaluateJob, ReconstructJob, load_ba
 from tacsplat.apps.executors import FAILURES_CSV, BatchError, check_ray_address, run_jobs
 from tacsplat.cli import main
 from tacsplat.errors import ConfigError
+from tacsplat.reconstruction.methods import method_of
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 
@@ -84,7 +85,7 @@ GOOD = """\
 jobs:
   - {kind: capture, out: scenes/teapot, object: teapot, resolution: 48, seed: 3}
   - {kind: reconstruct, out: runs/teapot-default, scene: scenes/teapot, iterations: 20, seed: 3}
-  - {kind: reconstruct, out: runs/old, scene: %(existing)s, variant: 3dgs, preset: paper, name: old scene}
+  - {kind: reconstruct, out: runs/old, scene: %(existing)s, method: 3dgs, preset: paper, name: old scene}
   - {kind: evaluate, run: runs/teapot-default}
   - {kind: evaluate, run: %(existing)s, gt_mesh: mesh.obj, cpus: 2}
 """
@@ -101,7 +102,7 @@ def test_batch_file_resolves_paths_and_infers_needs(tmp_path):
                                  name="capture scenes/teapot")
     assert train == ReconstructJob(out=out / "runs/teapot-default", scene=out / "scenes/teapot", iterations=20,
                                    seed=3, name="reconstruct runs/teapot-default", needs=("capture scenes/teapot",))
-    assert (old.scene, old.needs, old.name, old.config().variant) == (existing, (), "old scene", "3dgs")
+    assert (old.scene, old.needs, old.name, method_of(old.config())) == (existing, (), "old scene", "3dgs")
     assert evaluate == EvaluateJob(run=out / "runs/teapot-default", name="evaluate runs/teapot-default",
                                    needs=("reconstruct runs/teapot-default",))
     assert evaluate_old.gt_mesh == str(tmp_path / "mesh.obj") and evaluate_old.cpus == 2 and not evaluate_old.needs
@@ -155,9 +156,9 @@ def test_a_reconstruct_job_without_a_variant_trains_what_reconstruct_trains(tmp_
 
 
 def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):
-    from tacsplat.reconstruction.variants import DEFAULT_VARIANT
+    from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
-    paper = ReconstructJob(out=tmp_path / "r", scene=tmp_path, variant="full", iterations=20, seed=3)
+    paper = ReconstructJob(out=tmp_path / "r", scene=tmp_path, method="paper", iterations=20, seed=3)
     default = ReconstructJob(out=paper.out, scene=tmp_path, iterations=20, seed=3)
     recorded = paper.config().to_json() | {"depth_normal_start_iter": 123}  # unused by full: not a change for it
     paper.out.mkdir()
@@ -165,17 +166,17 @@ def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):
     assert default.changed_settings() == []  # neither finished nor interrupted: nothing to reuse or resume
     (paper.out / "checkpoint.pt").write_bytes(b"")  # interrupted: a rerun would resume it as recorded
     changes = default.changed_settings()
-    assert changes[0] == f"variant full -> {DEFAULT_VARIANT}"
+    assert changes[0] == f"method paper -> {DEFAULT_METHOD}"
     assert {"lambda_depth_normal 0.0 -> 0.05", "appearance 'sh' -> 'sh-lit'",
             "depth_normal_start_iter 123 -> 700"} <= set(changes)
     assert paper.changed_settings() == []
-    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(variant full -> .*delete"):
+    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(method paper -> .*delete"):
         default.refuse_changed_settings()
     paper.refuse_changed_settings()
 
     (paper.out / "metrics.json").write_text(json.dumps({"settings": recorded}))  # finished ...
     (paper.out / "config.json").unlink()  # ... and recorded in metrics.json only (evaluated here)
-    assert default.changed_settings()[0] == f"variant full -> {DEFAULT_VARIANT}" and paper.changed_settings() == []
+    assert default.changed_settings()[0] == f"method paper -> {DEFAULT_METHOD}" and paper.changed_settings() == []
     (paper.out / "config.json").write_text("[1, 2]")
     assert default.changed_settings() == paper.changed_settings() != []
     assert paper.changed_settings()[0].startswith("config.json unreadable (")
@@ -194,8 +195,8 @@ def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):
     ("- {kind: capture, out: a, views: 0}", "jobs[0] (capture a)", "views: must be >= 1, got 0"),
     ("- {kind: capture, out: a, seed: -1}", "jobs[0] (capture a)", "seed: must be >= 0, got -1"),
     ("- {kind: capture, out: a, cpus: 0}", "jobs[0] (capture a)", "cpus: must be > 0, got 0.0"),
-    ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, variant: ours}", "jobs[1] (reconstruct r)",
-     "unknown variant 'ours'"),
+    ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, method: ours}", "jobs[1] (reconstruct r)",
+     "unknown method 'ours'"),
     ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, iterations: 0}", "jobs[1] (reconstruct r)",
      "iterations"),
     ("- {kind: reconstruct, out: r, scene: a}\n- {kind: capture, out: a}", "jobs[0].scene",
@@ -282,7 +283,7 @@ def test_a_malformed_ray_address_is_a_usage_error(tmp_path, capsys, monkeypatch,
     path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")
     assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address", address]) == 2
     err = capsys.readouterr().err
-    assert f"error: --ray-address: expected HOST:PORT (of the cluster's head: " in err
+    assert "error: --ray-address: expected HOST:PORT (of the cluster's head: " in err
     assert f"ray://HOST:PORT or auto, got {address!r}: {why} (see " in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
     monkeypatch.setenv("RAY_ADDRESS", address)  # the same mistake in the environment: an error naming it
@@ -321,10 +322,10 @@ def test_batch_warns_of_a_run_trained_with_other_settings_and_keeps_it(tmp_path,
 
     job = ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3, name="reconstruct r")
     job.out.mkdir()
-    recorded = ReconstructJob(out=job.out, scene=tmp_path, variant="full", iterations=20, seed=3).config().to_json()
+    recorded = ReconstructJob(out=job.out, scene=tmp_path, method="paper", iterations=20, seed=3).config().to_json()
     (job.out / "config.json").write_text(json.dumps(recorded))
-    (job.out / "metrics.json").write_text(json.dumps({"cd": 0.02, "psnr": 20.0, "variant": "full"}))
+    (job.out / "metrics.json").write_text(json.dumps({"cd": 0.02, "psnr": 20.0, "method": "paper"}))
     with caplog.at_level("WARNING"):
         run_batch([job], tmp_path, progress=False, executor="local")
-    assert "reconstruct r:" in caplog.text and "trained with other settings (variant full -> " in caplog.text
-    assert json.loads((job.out / "metrics.json").read_text())["variant"] == "full"  # kept
+    assert "reconstruct r:" in caplog.text and "trained with other settings (method paper -> " in caplog.text
+    assert json.loads((job.out / "metrics.json").read_text())["method"] == "paper"  # kept

@@ -174,7 +174,7 @@ def test_an_export_to_a_full_or_read_only_disk_is_one_error(small_run, tmpfs, mo
 
 
 def test_a_report_without_finished_runs_is_one_error(tmp_path, capsys):
-    (tmp_path / "runs" / "teapot" / "minimal" / "full-s0").mkdir(parents=True)
+    (tmp_path / "runs" / "teapot" / "minimal" / "paper-s0").mkdir(parents=True)
     assert main(["view", str(tmp_path)]) == 1
     _one_error_line(capsys, "no finished run")
 
@@ -223,28 +223,28 @@ def _report(small_run: Path, small_scene: Path, root: Path) -> Path:
     as a report moved elsewhere has it), the 3dgs run's metrics changed to tell it apart."""
     report = root / "report"
     shutil.copytree(small_scene, report / "scenes" / "teapot" / "minimal-s0")
-    for variant in ("3dgs+t", "3dgs", "full"):
-        run = report / "runs" / "teapot" / "minimal" / f"{variant}-s0"
+    for method in ("3dgs+t", "3dgs", "paper"):
+        run = report / "runs" / "teapot" / "minimal" / f"{method}-s0"
         shutil.copytree(small_run, run)
         metrics = json.loads((run / "metrics.json").read_text())
-        metrics.update(variant=variant, scene="/elsewhere/report/scenes/teapot/minimal-s0")
+        metrics.update(method=method, scene="/elsewhere/report/scenes/teapot/minimal-s0")
         (run / "metrics.json").write_text(json.dumps(metrics))
     return report
 
 
-def test_a_report_shows_3dgs_and_full_side_by_side(small_run, small_scene, tmp_path, server):
+def test_a_report_shows_3dgs_and_the_paper_method_side_by_side(small_run, small_scene, tmp_path, server):
     content = viewer.load_content(_report(small_run, small_scene, tmp_path))
     assert content.kind == "report" and [r.label for r in content.pair] == ["teapot/minimal/3dgs-s0",
-                                                                            "teapot/minimal/full-s0"]
+                                                                            "teapot/minimal/paper-s0"]
     assert content.pair[0].scene is not None  # found inside the report
     view = viewer.build_view(server, content)
     left, right = view.slots
     centre = viewer.object_sphere(content.pair[0])[0]
     assert np.allclose(left.offset + centre, -right.offset - centre) and left.offset[0] < right.offset[0]
     metrics = view.controls["metrics"]
-    assert "3dgs-s0" in view.controls["left run"].value and "| variant | 3dgs | full |" in metrics.content
+    assert "3dgs-s0" in view.controls["left run"].value and "| method | 3dgs | paper |" in metrics.content
     view.controls["left run"].value = "teapot/minimal/3dgs+t-s0"
-    assert left.run.label == "teapot/minimal/3dgs+t-s0" and "| variant | 3dgs+t | full |" in metrics.content
+    assert left.run.label == "teapot/minimal/3dgs+t-s0" and "| method | 3dgs+t | paper |" in metrics.content
     view.controls["right run"].value = "(none)"
     assert right.run is None and not right.nodes
 

@@ -14,7 +14,7 @@ import pytest
 from tacsplat.apps import batch, paper_bench
 from tacsplat.errors import ConfigError
 from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig, step_work
-from tacsplat.reconstruction.variants import DEFAULT_VARIANT
+from tacsplat.reconstruction.methods import DEFAULT_METHOD
 from tacsplat.apps.report import (
     RESULT_COLUMNS,
     best_rows,
@@ -29,19 +29,19 @@ from tacsplat.apps.touch_bench import subsample_touches, summarise, write_touch_
 
 
 def synthetic_rows() -> list[dict]:
-    """Two objects; 'full' has the lowest CD on the teapot, '3dgs+t' on the bell; '3dgs' the best PSNR on the bell."""
-    cd = {("teapot", "3dgs"): 0.02, ("teapot", "3dgs+s"): 0.015, ("teapot", "3dgs+t"): 0.01, ("teapot", "full"): 0.005,
-          ("bell", "3dgs"): 0.03, ("bell", "3dgs+s"): 0.02, ("bell", "3dgs+t"): 0.004, ("bell", "full"): 0.006}
-    psnr = {("teapot", "3dgs"): 20.0, ("teapot", "3dgs+s"): 21.0, ("teapot", "3dgs+t"): 22.0, ("teapot", "full"): 23.0,
-            ("bell", "3dgs"): 25.0, ("bell", "3dgs+s"): 24.0, ("bell", "3dgs+t"): 23.0, ("bell", "full"): 22.0}
-    return [{"object": o, "setting": "minimal", "variant": v, "seed": 0, "cd": cd[o, v], "cd_paper": cd[o, v] ** 2,
+    """Two objects; 'paper' has the lowest CD on the teapot, '3dgs+t' on the bell; '3dgs' the best PSNR on the bell."""
+    cd = {("teapot", "3dgs"): 0.02, ("teapot", "3dgs+s"): 0.015, ("teapot", "3dgs+t"): 0.01, ("teapot", "paper"): 0.005,
+          ("bell", "3dgs"): 0.03, ("bell", "3dgs+s"): 0.02, ("bell", "3dgs+t"): 0.004, ("bell", "paper"): 0.006}
+    psnr = {("teapot", "3dgs"): 20.0, ("teapot", "3dgs+s"): 21.0, ("teapot", "3dgs+t"): 22.0, ("teapot", "paper"): 23.0,
+            ("bell", "3dgs"): 25.0, ("bell", "3dgs+s"): 24.0, ("bell", "3dgs+t"): 23.0, ("bell", "paper"): 22.0}
+    return [{"object": o, "setting": "minimal", "method": v, "seed": 0, "cd": cd[o, v], "cd_paper": cd[o, v] ** 2,
              "psnr": psnr[o, v], "ssim": 0.9, "train_seconds": 10.0, "num_gaussians": 1000} for (o, v) in cd]
 
 
 def test_metric_table_layout_and_average():
-    objects, variants, values = metric_table(synthetic_rows(), "cd", "minimal")
+    objects, methods, values = metric_table(synthetic_rows(), "cd", "minimal")
     assert objects == ["teapot", "bell"]
-    assert variants == ["3dgs", "3dgs+s", "3dgs+t", "full"]
+    assert methods == ["3dgs", "3dgs+s", "3dgs+t", "paper"]
     assert values.shape == (4, 3)
     np.testing.assert_allclose(values[3], [0.005, 0.006, 0.0055])
     np.testing.assert_allclose(values[:, -1], values[:, :2].mean(axis=1))
@@ -52,16 +52,16 @@ def test_best_per_column_bold_lower_and_higher():
     cd_lines = markdown_table(rows, "cd", "minimal").splitlines()
     header = next(line for line in cd_lines if line.startswith("| Method"))
     assert header == "| Method | teapot | bell | Avg. |"
-    full = next(line for line in cd_lines if line.startswith("| Ours"))
+    full = next(line for line in cd_lines if line.startswith("| Paper"))
     plus_t = next(line for line in cd_lines if line.startswith("| 3DGS + T"))
-    assert full == "| Ours (full) | **0.0050** | 0.0060 | **0.0055** |"
+    assert full == "| Paper (T + S) | **0.0050** | 0.0060 | **0.0055** |"
     assert plus_t == "| 3DGS + T | 0.0100 | **0.0040** | 0.0070 |"
     psnr_lines = markdown_table(rows, "psnr", "minimal").splitlines()
     vanilla = next(line for line in psnr_lines if line.startswith("| 3DGS |"))
-    # every variant averages 22.5 dB: a tie marks them all
+    # every method averages 22.5 dB: a tie marks them all
     assert vanilla == "| 3DGS | 20.00 | **25.00** | **22.50** |"
-    full_psnr = next(line for line in psnr_lines if line.startswith("| Ours"))
-    assert full_psnr == "| Ours (full) | **23.00** | 22.00 | **22.50** |"
+    full_psnr = next(line for line in psnr_lines if line.startswith("| Paper"))
+    assert full_psnr == "| Paper (T + S) | **23.00** | 22.00 | **22.50** |"
 
 
 def test_best_rows_ties_and_missing():
@@ -80,30 +80,30 @@ def test_values_equal_as_printed_are_both_bold():
     rows[0]["cd"], rows[3]["cd"] = 0.00501, 0.00499  # teapot 3dgs and full both print as 0.0050
     lines = markdown_table(rows, "cd", "minimal").splitlines()
     assert next(line for line in lines if line.startswith("| 3DGS |")).startswith("| 3DGS | **0.0050** |")
-    assert next(line for line in lines if line.startswith("| Ours")).startswith("| Ours (full) | **0.0050** |")
+    assert next(line for line in lines if line.startswith("| Paper")).startswith("| Paper (T + S) | **0.0050** |")
 
 
 def test_missing_run_shows_dash_and_is_not_best():
-    rows = [r for r in synthetic_rows() if not (r["object"] == "teapot" and r["variant"] == "full")]
+    rows = [r for r in synthetic_rows() if not (r["object"] == "teapot" and r["method"] == "paper")]
     lines = markdown_table(rows, "cd", "minimal").splitlines()
-    full = next(line for line in lines if line.startswith("| Ours"))
-    assert full.startswith("| Ours (full) | – |")
+    full = next(line for line in lines if line.startswith("| Paper"))
+    assert full.startswith("| Paper (T + S) | – |")
     assert "**0.0100**" in next(line for line in lines if line.startswith("| 3DGS + T"))
 
 
 def test_seed_spread_column_with_several_seeds():
-    """With two seeds the table gains the standard deviation of the per-seed averages over objects; a variant
+    """With two seeds the table gains the standard deviation of the per-seed averages over objects; a method
     missing an object on one seed has too few complete seeds and shows a dash."""
     rows = []
     for seed, shift in ((0, 0.0), (1, 0.002)):
         for row in synthetic_rows():
             rows.append({**row, "seed": seed, "cd": row["cd"] + shift})
-    rows = [r for r in rows if not (r["variant"] == "3dgs" and r["object"] == "bell" and r["seed"] == 1)]
+    rows = [r for r in rows if not (r["method"] == "3dgs" and r["object"] == "bell" and r["seed"] == 1)]
     assert "Seed s.d." not in markdown_table(synthetic_rows(), "cd", "minimal")  # one seed: no column
     lines = markdown_table(rows, "cd", "minimal").splitlines()
     assert next(line for line in lines if line.startswith("| Method")) == "| Method | teapot | bell | Avg. | Seed s.d. |"
     # full's averages over objects are 0.0055 and 0.0075: s.d. (ddof 1) 0.0014142
-    assert next(line for line in lines if line.startswith("| Ours")).endswith("| 0.0014 |")
+    assert next(line for line in lines if line.startswith("| Paper")).endswith("| 0.0014 |")
     assert next(line for line in lines if line.startswith("| 3DGS |")).endswith("| – |")
     assert any(line.startswith("*Seed s.d.:") for line in lines)
 
@@ -116,8 +116,8 @@ def test_results_csv_roundtrip(tmp_path):
         assert next(csv.reader(fh)) == list(RESULT_COLUMNS)
     back = read_results_csv(path)
     assert len(back) == len(rows) and np.isnan(back[0]["cd"])
-    assert [(r["object"], r["variant"], r["psnr"]) for r in back[1:]] == [
-        (r["object"], r["variant"], r["psnr"]) for r in rows[1:]
+    assert [(r["object"], r["method"], r["psnr"]) for r in back[1:]] == [
+        (r["object"], r["method"], r["psnr"]) for r in rows[1:]
     ]
 
 
@@ -126,26 +126,31 @@ def test_plots_are_written(tmp_path):
     assert cv2.imread(str(png)) is not None
     gt_depth = np.zeros((8, 10), np.float32)
     gt_depth[2:6, 3:7] = 0.3
-    panels = {"3dgs": (np.full((8, 10, 3), 0.5), gt_depth + 0.01), "full": (np.zeros((8, 10, 3)), gt_depth)}
+    panels = {"3dgs": (np.full((8, 10, 3), 0.5), gt_depth + 0.01), "paper": (np.zeros((8, 10, 3)), gt_depth)}
     grid = render_grid(panels, np.ones((8, 10, 3)), gt_depth, tmp_path / "grid.png")
     assert cv2.imread(str(grid)) is not None
     grid = render_grid(panels, np.ones((8, 10, 3)), np.zeros((8, 10), np.float32), tmp_path / "no_gt.png")
     assert cv2.imread(str(grid)) is not None
 
 
-def test_variant_table_and_config_errors():
-    from tacsplat.reconstruction.config import TrainConfig
-    from tacsplat.reconstruction.variants import VARIANTS, get_variant
+def test_bench_rows_and_config_errors():
+    from tacsplat.apps.paper_bench import ablation_rows, bench_row, row_config
+    from tacsplat.reconstruction.methods import METHODS, get_method, mechanisms, method_config, method_of
 
-    for name, variant in VARIANTS.items():  # each row's overrides give a config of that variant
-        assert variant.apply(TrainConfig()).variant == name
-    assert get_variant("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
+    for name in METHODS:  # a method is a row without overrides
+        assert bench_row(name) == (name, {}) and method_of(row_config(name)) == name
+    for name, (method, overrides) in ablation_rows().items():  # each ablation row changes its method's mechanisms
+        assert method in METHODS and overrides and mechanisms(row_config(name)) != mechanisms(method_config(method))
+    assert not row_config("default-touch").use_touch and row_config("paper+tn").lambda_touch_normal == 0.1
+    with pytest.raises(ConfigError, match="--methods: unknown method 'ours'; choose one of .* or a row of ablations"):
+        bench_row("ours")
+    assert get_method("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
                                              "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
                                              "lambda_albedo_smoothness": 0.0, "init.colours_from_views": False}
-    with pytest.raises(ConfigError, match="variant"):
-        get_variant("ours")
-    with pytest.raises(ConfigError, match="variants"):
-        PaperBench("x", PaperBenchConfig(variants=("3dgs", "ours")))
+    with pytest.raises(ConfigError, match="method"):
+        get_method("ours")
+    with pytest.raises(ConfigError, match="methods"):
+        PaperBench("x", PaperBenchConfig(methods=("3dgs", "ours")))
     with pytest.raises(ConfigError, match="full_views"):
         PaperBench("x", PaperBenchConfig(full_views=10))
     with pytest.raises(ConfigError, match="objects"):
@@ -155,11 +160,11 @@ def test_variant_table_and_config_errors():
 
 
 def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_path, monkeypatch):
-    """A finished run whose config.json differs from what the bench trains its variant with now (a default
-    changed since) is listed with what differs, and report.md says so; a setting that the variant's config does not
+    """A finished run whose config.json differs from what the bench trains its method with now (a default
+    changed since) is listed with what differs, and report.md says so; a setting that the method's config does not
     use, then or now, does not count (the albedo smoothness's weights, from before they existed, and the start of
     the depth-normal consistency of a `full` run, which has none)."""
-    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), seeds=(0, 1), variants=("full", DEFAULT_VARIANT))
+    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), seeds=(0, 1), methods=("paper", DEFAULT_METHOD))
     bench = PaperBench(tmp_path, config)
     for run in bench.runs():
         _finish(run, 0.03)
@@ -168,19 +173,19 @@ def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_p
         recorded["depth_normal_start_iter"] = 300  # the default until 2026-11-25
         (run.out / "config.json").write_text(json.dumps(recorded))
     stale = bench.stale_runs()
-    assert [(run.variant, run.seed, changes) for run, changes in stale] == [
-        (DEFAULT_VARIANT, seed, ["depth_normal_start_iter 300 -> 700", "albedo_smoothness_beta 0.0 -> 10.0"])
+    assert [(run.method, run.seed, changes) for run, changes in stale] == [
+        (DEFAULT_METHOD, seed, ["depth_normal_start_iter 300 -> 700", "albedo_smoothness_beta 0.0 -> 10.0"])
         for seed in (0, 1)]
     depth = np.full((8, 8), 0.3, np.float32)
     normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
     monkeypatch.setattr(paper_bench, "render_first_test_view", lambda runs, cache=None: (
-        {r.variant: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal,
+        {r.method: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal,
         np.ones((8, 8), bool)))
     bench.run(progress=False)
     report = (tmp_path / "report.md").read_text()
-    assert "2 finished run(s) were trained with other settings" in report  # one group: same variant, same change
-    assert (f"{DEFAULT_VARIANT} (depth_normal_start_iter 300 -> 700, albedo_smoothness_beta 0.0 -> 10.0), 2 run(s): "
-            f"runs/teapot/minimal/{DEFAULT_VARIANT}-s0, runs/teapot/minimal/{DEFAULT_VARIANT}-s1") in report
+    assert "2 finished run(s) were trained with other settings" in report  # one group: same method, same change
+    assert (f"{DEFAULT_METHOD} (depth_normal_start_iter 300 -> 700, albedo_smoothness_beta 0.0 -> 10.0), 2 run(s): "
+            f"runs/teapot/minimal/{DEFAULT_METHOD}-s0, runs/teapot/minimal/{DEFAULT_METHOD}-s1") in report
 
 
 def test_textured_objects_get_their_own_scenes_and_runs(tmp_path):
@@ -191,10 +196,10 @@ def test_textured_objects_get_their_own_scenes_and_runs(tmp_path):
     from tacsplat.sim.objects import TEXTURES
 
     plain, textured = (PaperBench(tmp_path, PaperBenchConfig(objects=("torus",), settings=("minimal",),
-                                                              variants=("full",), texture=t)) for t in TEXTURES)
+                                                              methods=("paper",), texture=t)) for t in TEXTURES)
     assert [r.scene.name for r in plain.runs()] == ["minimal-s0"]
     assert [r.scene.name for r in textured.runs()] == ["minimal-s0-checker"]
-    assert [r.out.name for r in textured.runs()] == ["full-s0-checker"]
+    assert [r.out.name for r in textured.runs()] == ["paper-s0-checker"]
     job = textured.capture_job("torus", "minimal", 0)
     assert job.texture == "checker" and job.rig().sim.texture == "checker"
     assert get_args(get_type_hints(batch.CaptureJob)["texture"]) == TEXTURES
@@ -214,7 +219,7 @@ def _finish(run, cd: float) -> None:
 
 
 def test_resume_skips_finished_runs(tmp_path, monkeypatch):
-    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), variants=("3dgs", "full"))
+    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), methods=("3dgs", "paper"))
     bench = PaperBench(tmp_path, config)
     first, second = bench.runs()
     _finish(first, 0.02)
@@ -225,35 +230,35 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
 
     def train(job):
         run = next(r for r in bench.runs() if r.out == job.out)
-        trained.append(run.variant)
+        trained.append(run.method)
         _finish(run, 0.01)
         return json.loads((run.out / "metrics.json").read_text())
 
     rendered, drawn = [], []  # the runs of each call; the runs each call had to render (not in its cache)
 
     def render_first_test_view(runs, cache=None):
-        rendered.append([r.variant for r in runs])
+        rendered.append([r.method for r in runs])
         cache = {} if cache is None else cache
-        drawn.extend(r.variant for r in runs if r.out not in cache)
+        drawn.extend(r.method for r in runs if r.out not in cache)
         cache.update({r.out: None for r in runs})
         depth = np.full((8, 8), 0.3, np.float32)
         normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
         seen = np.ones((8, 8), bool)
-        return {r.variant: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal, seen
+        return {r.method: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal, seen
 
     monkeypatch.setattr(batch.CaptureJob, "__call__", capture)
     monkeypatch.setattr(batch.ReconstructJob, "__call__", train)
     monkeypatch.setattr(paper_bench, "render_first_test_view", render_first_test_view)
     rows = bench.run(progress=False)
-    assert trained == ["full"]  # the 3dgs run had its metrics.json
-    assert {r["variant"]: r["cd"] for r in rows} == {"3dgs": 0.02, "full": 0.01}
+    assert trained == ["paper"]  # the 3dgs run had its metrics.json
+    assert {r["method"]: r["cd"] for r in rows} == {"3dgs": 0.02, "paper": 0.01}
     report = (tmp_path / "report.md").read_text()
-    assert "| Ours (full) | **0.0100** | **0.0100** |" in report
-    assert "Normal error, degrees (↓)" in report and "| Ours (full) | **10.0** | **10.0** |" in report
+    assert "| Paper (T + S) | **0.0100** | **0.0100** |" in report
+    assert "Normal error, degrees (↓)" in report and "| Paper (T + S) | **10.0** | **10.0** |" in report
     for name in ("results.csv", "cd_minimal.png", "error_vs_time_minimal.png", "renders_teapot_minimal.png"):
         assert (tmp_path / name).is_file(), name
-    assert rendered[-1] == ["3dgs", "full"]  # the grid shows every finished run
-    assert drawn == ["full", "3dgs"]  # full while the batch ran (pictures prepared), 3dgs (finished before) at the end
+    assert rendered[-1] == ["3dgs", "paper"]  # the grid shows every finished run
+    assert drawn == ["paper", "3dgs"]  # full while the batch ran (pictures prepared), 3dgs (finished before) at the end
     trained.clear()
     bench.run(progress=False)
     assert trained == []  # everything finished: nothing retrained
@@ -263,12 +268,12 @@ def test_each_capture_starts_its_costliest_variants_first(tmp_path):
     """Runs of one capture are started most work per step first (the longest no longer starts last on few
     cores); captures and settings keep the order of runs()."""
     config = PaperBenchConfig(objects=("teapot", "bell"), settings=("minimal",),
-                              variants=("3dgs", "full", "full+n+tn", "3dgs+t"))
+                              methods=("3dgs", "paper", "paper+n+tn", "3dgs+t"))
     names = [job.name.split("/")[-1] if run else job.name for run, job in PaperBench(tmp_path, config).jobs()]
-    assert names == ["capture scenes/teapot/minimal-s0", "full+n+tn-s0", "full-s0", "3dgs+t-s0", "3dgs-s0",
-                     "capture scenes/bell/minimal-s0", "full+n+tn-s0", "full-s0", "3dgs+t-s0", "3dgs-s0"]
-    assert step_work("3dgs") < step_work("3dgs+s") == step_work("3dgs+t") < step_work("full") < step_work("full+n")
-    assert step_work("full+n") < step_work("full+n+tn") < step_work("full+n+tn+r")
+    assert names == ["capture scenes/teapot/minimal-s0", "paper+n+tn-s0", "paper-s0", "3dgs+t-s0", "3dgs-s0",
+                     "capture scenes/bell/minimal-s0", "paper+n+tn-s0", "paper-s0", "3dgs+t-s0", "3dgs-s0"]
+    assert step_work("3dgs") < step_work("3dgs+s") == step_work("3dgs+t") < step_work("paper") < step_work("paper+n")
+    assert step_work("paper+n") < step_work("paper+n+tn") < step_work("default-vc")
 
 
 def _small_scene(path):
@@ -310,11 +315,11 @@ def test_subsample_keeps_first_touches_in_contact(tmp_path):
 def test_touch_bench_trains_the_variant_it_is_asked_for(tmp_path):
     from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
 
-    for config, variant in ((TouchBenchConfig(), "full"), (TouchBenchConfig(variant=DEFAULT_VARIANT), DEFAULT_VARIANT)):
+    for config, method in ((TouchBenchConfig(), "paper"), (TouchBenchConfig(method=DEFAULT_METHOD), DEFAULT_METHOD)):
         runs = [job for job in TouchBench(tmp_path, config).jobs() if isinstance(job, batch.ReconstructJob)]
-        assert len(runs) == 18 and {job.variant for job in runs} == {variant}
-    with pytest.raises(ConfigError, match="variant: unknown variant 'ours'"):
-        TouchBench(tmp_path, TouchBenchConfig(variant="ours"))
+        assert len(runs) == 18 and {job.method for job in runs} == {method}
+    with pytest.raises(ConfigError, match="method: unknown method 'ours'"):
+        TouchBench(tmp_path, TouchBenchConfig(method="ours"))
 
 
 def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
@@ -349,8 +354,8 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     assert captured == [] and trained == ["t003-s1"]
 
     runs = [job for job in bench.jobs() if isinstance(job, batch.ReconstructJob)]
-    assert {job.variant for job in runs} == {"full"}  # the paper's method, as its Fig. 6
-    stale = replace(runs[0], variant=DEFAULT_VARIANT).config()  # a run trained with other settings ...
+    assert {job.method for job in runs} == {"paper"}  # the paper's method, as its Fig. 6
+    stale = replace(runs[0], method=DEFAULT_METHOD).config()  # a run trained with other settings ...
     (runs[0].out / "config.json").write_text(json.dumps(stale.to_json()))
     (runs[-1].out / "metrics.json").unlink()  # a run still to do, which the refusal must come before
     trained.clear()
@@ -365,7 +370,7 @@ def test_touch_summary_and_plot(tmp_path):
     summary = summarise(rows)
     assert [s["requested_touches"] for s in summary] == [0, 4, 8]
     assert summary[0]["cd_mean"] == pytest.approx(0.0105) and summary[0]["cd_std"] == pytest.approx(0.0005)
-    paths = write_touch_report(tmp_path, rows, "full")
+    paths = write_touch_report(tmp_path, rows, "paper")
     assert cv2.imread(str(paths["plot"])) is not None
     with paths["summary"].open() as fh:
         assert len(list(csv.DictReader(fh))) == 3
@@ -376,17 +381,17 @@ def test_full_vs_vanilla_sentence():
 
     text = full_vs_vanilla(synthetic_rows(), "minimal")
     assert "lower CD on 2 of 2 objects" in text and "0.0055 vs 0.0250" in text
-    assert full_vs_vanilla([r for r in synthetic_rows() if r["variant"] != "full"], "minimal") == ""
+    assert full_vs_vanilla([r for r in synthetic_rows() if r["method"] != "paper"], "minimal") == ""
 
 
 def test_default_vs_full_sentence():
     from tacsplat.apps.paper_bench import default_vs_full
-    from tacsplat.reconstruction.variants import DEFAULT_VARIANT
+    from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
     rows = synthetic_rows()
-    assert default_vs_full(rows, "minimal") == ""  # no default-variant runs
-    rows += [{**r, "variant": DEFAULT_VARIANT, "cd": r["cd"] * (0.5 if r["object"] == "teapot" else 1.5)}
-             for r in synthetic_rows() if r["variant"] == "full"]
+    assert default_vs_full(rows, "minimal") == ""  # no default-method runs
+    rows += [{**r, "method": DEFAULT_METHOD, "cd": r["cd"] * (0.5 if r["object"] == "teapot" else 1.5)}
+             for r in synthetic_rows() if r["method"] == "paper"]
     text = default_vs_full(rows, "minimal")  # teapot 0.0025 (< 0.005), bell 0.009 (> 0.006)
     assert "lower CD on 1 of 2 objects" in text and "0.0058 vs 0.0055 (+5%)" in text
 
@@ -399,7 +404,7 @@ def test_coverage_sentence():
              "cd_unseen": 2 * r["cd"]} for r in synthetic_rows()]
     text = coverage_sentence(rows, "minimal")
     assert "20% of the test views' surface" in text and "teapot 10%, bell 30%" in text
-    assert "Ours (full) 0.0110 vs 0.0055" in text
+    assert "Paper (T + S) 0.0110 vs 0.0055" in text
 
 
 def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures():
@@ -413,7 +418,7 @@ def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures
     # 3DGS/full: our CD 0.025/0.0055 = 4.55x, cd_paper 0.00065/0.0000305 = 21.31x, the paper's 4.3x
     assert "4.55x in our CD, 21.31x in the paper's CD (the paper: 4.3x)" in text
     assert "touches: gel contact patches" in text and "resolution 128 px" in text
-    assert "surface normals" not in text  # the departures of the paper's full method, not of the default variant
+    assert "surface normals" not in text  # the departures of the paper's full method, not of the default method
     paper = where_we_stand(synthetic_rows(), PaperBenchConfig(preset="paper", touch_model="paper", iterations=30000,
                                                               resolution=800))
     assert "touches:" not in paper and "resolution" not in paper and "steps" not in paper.split("in force")[1]
@@ -422,9 +427,9 @@ def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures
 def test_scaling_report_writes_csv_table_and_plot(tmp_path):
     from tacsplat.apps.bench_scaling import write_scaling_report
 
-    rows = [{"resolution": r, "iterations": n, "variant": v, "cd": 0.04 / k, "cd_paper": 0.004 / k, "psnr": 20.0 + k,
+    rows = [{"resolution": r, "iterations": n, "method": v, "cd": 0.04 / k, "cd_paper": 0.004 / k, "psnr": 20.0 + k,
              "ssim": 0.8, "train_seconds": 10.0 * k * r / 128, "num_gaussians": 1000}
-            for r in (128, 256) for k, n in ((1, 750), (2, 1500)) for v in ("3dgs", "full")]
+            for r in (128, 256) for k, n in ((1, 750), (2, 1500)) for v in ("3dgs", "paper")]
     report = write_scaling_report(tmp_path, rows, "teapot").read_text()
     assert report.count("| teapot") == 0 and report.count("\n| 128 |") == 4 and "scaling.png" in report
     assert len(read_results_rows(tmp_path / "scaling.csv")) == 8
@@ -449,16 +454,16 @@ def test_the_report_says_how_its_jobs_ran(tmp_path):
 
 def test_prepared_pictures_keep_only_the_latest_scene(tmp_path, monkeypatch):
     """The views rendered as runs finish are kept for one scene at a time (one grid's worth of images)."""
-    config = PaperBenchConfig(objects=("teapot", "bell"), settings=("minimal",), variants=("3dgs", "full"))
+    config = PaperBenchConfig(objects=("teapot", "bell"), settings=("minimal",), methods=("3dgs", "paper"))
     bench = PaperBench(tmp_path, config)
 
     def render_first_test_view(runs, cache):
         cache.update({key: None for r in runs for key in (r.out, r.scene)})
 
     monkeypatch.setattr(paper_bench, "render_first_test_view", render_first_test_view)
-    runs = {(r.object, r.variant): r for r in bench.runs()}
-    bench.prepare_pictures(runs["teapot", "full"])
+    runs = {(r.object, r.method): r for r in bench.runs()}
+    bench.prepare_pictures(runs["teapot", "paper"])
     bench.prepare_pictures(runs["teapot", "3dgs"])
-    assert set(bench.first_views) == {runs["teapot", "full"].out, runs["teapot", "3dgs"].out, runs["teapot", "full"].scene}
+    assert set(bench.first_views) == {runs["teapot", "paper"].out, runs["teapot", "3dgs"].out, runs["teapot", "paper"].scene}
     bench.prepare_pictures(runs["bell", "3dgs"])  # another scene: the teapot's views go
     assert set(bench.first_views) == {runs["bell", "3dgs"].out, runs["bell", "3dgs"].scene}

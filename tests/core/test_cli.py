@@ -63,8 +63,8 @@ def test_exit_codes_usage_errors_are_2_runtime_errors_1(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "--iterations: must be an integer >= 1, got -5" in err and "Traceback" not in err
     assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--seeds", "0,x"]) == 2
-    assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--variants", "3dgs,fancy"]) in (1, 2)
-    assert "unknown variant 'fancy'" in capsys.readouterr().err
+    assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--methods", "3dgs,fancy"]) in (1, 2)
+    assert "unknown method 'fancy'" in capsys.readouterr().err
     assert main(["reconstruct", str(tmp_path / "none"), "--out", str(tmp_path / "run")]) == 1  # no scene there
 
 

@@ -13,7 +13,7 @@ def _panels(with_normals: bool):
     normal[4:12, 4:12] = (0.0, 0.0, -1.0)  # facing the camera
     rgb = np.full((16, 16, 3), 0.5)
     panel = (rgb, depth, normal) if with_normals else (rgb, depth)
-    return {"3dgs": panel, "full": panel}, depth, normal
+    return {"3dgs": panel, "paper": panel}, depth, normal
 
 
 def test_normals_row_makes_the_grid_taller(tmp_path):
@@ -30,8 +30,8 @@ def test_normals_row_makes_the_grid_taller(tmp_path):
 def test_error_row_shows_unseen_surface_in_magenta_and_signed_depth_error(tmp_path):
     panels, depth, normal = _panels(True)
     behind = depth.copy()
-    behind[4:12, 4:12] += 0.02  # the whole variant surface behind the truth
-    panels = {"full": (panels["full"][0], behind, normal)}
+    behind[4:12, 4:12] += 0.02  # the whole method surface behind the truth
+    panels = {"paper": (panels["paper"][0], behind, normal)}
     seen = np.zeros((16, 16), bool)
     seen[4:8, 4:12] = True  # the top half of the surface seen, the bottom half not
     three = Image.open(render_grid(panels, np.ones((16, 16, 3)), depth, tmp_path / "three.png", gt_normal=normal))

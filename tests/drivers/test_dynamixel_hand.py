@@ -20,7 +20,7 @@ from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.dynamixel_hand import DynamixelHand
 from tacsplat.drivers.calibration import RAD_PER_TICK
 from tacsplat.drivers.dxl_emulator import DxlEmulator, crc16, stuff, unstuff
-from tacsplat.drivers.dynamixel_hand import DynamixelHand, DynamixelHandConfig, ServoError
+from tacsplat.drivers.dynamixel_hand import DynamixelHandConfig, ServoError
 from tacsplat.drivers.dynamixel_table import REGISTERS, HardwareError, Instruction
 from tacsplat.errors import ConfigError, HandError, InvalidInputError
 from tacsplat.sim.hand import HandKinematics

@@ -81,14 +81,14 @@ def test_bench_step_refuses_too_few_iterations(tmp_path):
 def test_bench_step_with_a_reference_profiles_both_back_to_back_and_prints_their_ratio(tmp_path, capsys):
     out = tmp_path / "step"
     assert main(["bench", "step", "--out", str(out), "--resolutions", "16", "--iterations", "12",
-                 "--variant", "full+n+tn", "--reference", "full", "--rounds", "3"]) == 0  # fmt: skip
+                 "--method", "paper+n+tn", "--reference", "paper", "--rounds", "3"]) == 0  # fmt: skip
     results = json.loads((out / "step.json").read_text())
     (row,), (ref,) = results["resolutions"], results["reference"]
-    assert results["settings"]["reference"] == "full" and results["settings"]["variant"] == "full+n+tn"
+    assert results["settings"]["reference"] == "paper" and results["settings"]["method"] == "paper+n+tn"
     ratio = row["ratio_to_reference"]
     assert len(ratio["rounds"]) == 3 and ratio["rounds"][0]["step_median"] == row["step_median_ms"] / ref["step_median_ms"]
     assert ratio["step_median"] == sorted(r["step_median"] for r in ratio["rounds"])[1]
-    assert "full+n+tn / full (each run next to its reference): step median" in capsys.readouterr().out
+    assert "paper+n+tn / paper (each run next to its reference): step median" in capsys.readouterr().out
     assert main(["bench", "step", "--out", str(out), "--rounds", "2"]) == 2  # rounds without a reference
     assert main(["bench", "step", "--out", str(out), "--reference", "nonsense"]) != 0
     assert "--reference" in capsys.readouterr().err

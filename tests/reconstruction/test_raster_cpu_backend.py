@@ -299,7 +299,6 @@ def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
 def test_forward_exp_recurrence_matches_float64_exp():
     # along a row the forward multiplies exp(-exponent) by a ratio instead of calling exp per pixel: every value it
     # keeps for the backward is exp(-exponent) evaluated in float64 and rounded to float32, on rows up to a tile
-    import numpy as np
 
     from tacsplat.reconstruction.raster import cpu_composite as rc
 

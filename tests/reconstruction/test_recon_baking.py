@@ -2,14 +2,13 @@
 
 import math
 
-import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction.baking import bake_appearance, shaded_colours, sphere_directions
 from tacsplat.reconstruction.gaussians import Gaussians, num_sh_bases, rgb_to_sh0
-from tacsplat.reconstruction.shading import LIT, SPECULAR, DiffuseLight, EnvironmentMap, Look, add_reflective_params, render
+from tacsplat.reconstruction.shading import DiffuseLight, Look, render
 
 NORMAL = torch.tensor([0.3, -0.2, 1.0]) / math.sqrt(1.13)  # the surfel's normal (world)
 
@@ -30,21 +29,13 @@ def _surfel(sh_degree: int = 3) -> Gaussians:
     return Gaussians(params, torch.zeros(1, dtype=torch.bool), sh_degree)
 
 
-def _look(appearance: str, gaussians: Gaussians) -> Look:
-    """``appearance`` with a light far from uniform (its SH and a camera light) and a varied environment."""
+def _look() -> Look:
+    """The sh-lit appearance with a light far from uniform (its SH and a camera light)."""
     g = torch.Generator().manual_seed(1)
-    look = Look(appearance)
-    if appearance in LIT:
-        look.light = DiffuseLight()
-        with torch.no_grad():
-            look.light.coefficients.add_(0.4 * torch.randn(9, 3, generator=g))
-            look.light.camera.fill_(0.4)
-    if appearance in SPECULAR:
-        add_reflective_params(gaussians)
-        look.environment = EnvironmentMap(height=8)
-        with torch.no_grad():
-            look.environment.log_radiance.normal_(-0.5, 0.6, generator=g)
-            gaussians.params["tint"].fill_(-0.5)
+    look = Look("sh-lit", DiffuseLight())
+    with torch.no_grad():
+        look.light.coefficients.add_(0.4 * torch.randn(9, 3, generator=g))
+        look.light.camera.fill_(0.4)
     return look
 
 
@@ -56,13 +47,12 @@ def _view(direction) -> tuple[torch.Tensor, torch.Tensor]:
     return viewmat, torch.tensor([[[80.0, 0, 16], [0, 80.0, 16], [0, 0, 1]]])
 
 
-@pytest.mark.parametrize("appearance", ["sh-lit", "lit", "reflective"])
 @torch.no_grad()
-def test_a_baked_surfel_looks_as_its_shading_from_the_front_the_side_and_the_back(appearance):
+def test_a_baked_surfel_looks_as_its_shading_from_the_front_the_side_and_the_back():
     """A plain-SH render of the baked surfel is close to the deferred shading of the original from every side it
     is seen from (head-on, 60 degrees off, behind), where the unbaked SH colour is far off."""
     surfel = _surfel()
-    look = _look(appearance, surfel)
+    look = _look()
     baked = bake_appearance(surfel, look)
     assert baked.sh_degree == 3 and set(baked.params) == {"means", "quats", "scales", "opacities", "sh0", "shN"}
     n = NORMAL.tolist()
@@ -71,8 +61,7 @@ def test_a_baked_surfel_looks_as_its_shading_from_the_front_the_side_and_the_bac
     baked_total = unbaked_total = 0.0
     for direction in (n, oblique, [-c for c in n]):
         viewmat, K = _view(direction)
-        shaded = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu", appearance=appearance,
-                        environment=look.environment, light=look.light)
+        shaded = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu", appearance="sh-lit", light=look.light)
         plain = render(baked, viewmat, K, 32, 32, sh_degree=3, backend="cpu")
         unbaked = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu")
         inside = shaded.alpha > 0.9
@@ -87,19 +76,17 @@ def test_a_baked_surfel_looks_as_its_shading_from_the_front_the_side_and_the_bac
     assert baked_total < 0.25 * unbaked_total
 
 
-@pytest.mark.parametrize("appearance", ["sh-lit", "lit", "reflective"])
 @torch.no_grad()
-def test_shaded_colours_are_the_deferred_shading_of_one_gaussian(appearance):
+def test_shaded_colours_are_the_deferred_shading_of_one_gaussian():
     """Along the ray through the surfel's centre, :func:`shaded_colours` is the colour the renderer (its fused
-    shading kernels) gives the centre pixel: the same light and environment, the normal turned towards the
-    viewer, the SH colour along that ray."""
+    shading kernels) gives the centre pixel: the same light, the normal turned towards the viewer, the SH colour
+    along that ray."""
     surfel = _surfel()
-    look = _look(appearance, surfel)
+    look = _look()
     eye = (0.3 * (0.8 * NORMAL + 0.6 * torch.tensor([1.0, 0.0, 0.0]))).tolist()
     viewmat = torch.tensor(invert_pose(look_at(eye, [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
     K = torch.tensor([[[80.0, 0, 16], [0, 80.0, 16], [0, 0, 1]]])  # the centre maps to the corner of 4 pixels
-    out = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu", appearance=appearance,
-                 environment=look.environment, light=look.light)
+    out = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu", appearance="sh-lit", light=look.light)
     centre = (out.rgb[15:17, 15:17] / out.alpha[15:17, 15:17, None]).mean(dim=(0, 1))
     direction = -torch.nn.functional.normalize(torch.tensor(eye), dim=0)
     expected = shaded_colours(surfel, look, direction[None])[0, 0]
@@ -109,8 +96,7 @@ def test_shaded_colours_are_the_deferred_shading_of_one_gaussian(appearance):
 def test_baking_keeps_the_geometry_and_leaves_an_sh_appearance_alone():
     surfel = _surfel(sh_degree=1)
     assert bake_appearance(surfel, Look("sh")) is surfel
-    look = _look("lit", surfel)
-    baked = bake_appearance(surfel, look)
+    baked = bake_appearance(surfel, _look())
     for name in ("means", "quats", "scales", "opacities"):
         assert torch.equal(baked.params[name], surfel.params[name])
     assert torch.equal(baked.from_touch, surfel.from_touch) and baked.params["shN"].shape == (1, 15, 3)
@@ -119,7 +105,7 @@ def test_baking_keeps_the_geometry_and_leaves_an_sh_appearance_alone():
 
 def test_no_gaussians_bake_to_no_gaussians():
     surfel = _surfel()
-    look = _look("sh-lit", surfel)
+    look = _look()
     empty = Gaussians({k: v.detach()[:0] for k, v in surfel.params.items()}, surfel.from_touch[:0], 3)
     baked = bake_appearance(empty, look)
     assert len(baked) == 0 and baked.params["shN"].shape == (0, 15, 3)

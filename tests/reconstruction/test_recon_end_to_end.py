@@ -12,12 +12,12 @@ import trimesh
 
 from tacsplat.cli import main as tacsplat_main
 from tacsplat.datasets import Scene
-from tacsplat.reconstruction import losses, shading
+from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.gaussians import quats_to_rotmats
 from tacsplat.reconstruction.initialization import InitConfig
+from tacsplat.reconstruction.methods import method_of
 from tacsplat.reconstruction.ply import load_ply
-from tacsplat.reconstruction.run_dir import load_run
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.trainer import Trainer, reconstruct
 
@@ -89,7 +89,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     # the paper's CD (squared, summed, median depth against the whole mesh surface) falls too
     assert 0 < metrics["cd_paper"] < 0.5 * float(rows[0]["cd_paper"])
     assert metrics["psnr"] > 18.0
-    assert metrics["variant"] == "full+n+tn+sl+as+vc" and metrics["iterations"] == 400
+    assert metrics["method"] == "default" and metrics["iterations"] == 400
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds)
@@ -100,7 +100,7 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     assert all(float(r["transmittance"]) > 0 for r in rows[1:])
     saved = json.loads((run / "metrics.json").read_text())
     for key in ("cd", "cd_paper", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians",
-                "num_touch_gaussians", "variant", "settings"):
+                "num_touch_gaussians", "method", "settings"):
         assert key in saved
     assert saved["cd_paper"] == pytest.approx(saved["cd_paper_accuracy"] + saved["cd_paper_completeness"])
     assert saved["cd_seen"] is None and saved["unseen_fraction"] is None  # no mesh to tell what cameras see
@@ -184,38 +184,12 @@ def test_touch_scene_runs_the_touch_and_smoothness_paths(sphere_scene, tmp_path,
     assert _training_render_modes(spies["render"]) == {"RGB+D"}
 
 
-def test_touch_pixel_normals_run_with_the_rendered_normals_and_only_when_weighted(sphere_scene, tmp_path, monkeypatch):
-    spy = _Spy(losses.touch_pixel_normal_loss)
-    monkeypatch.setattr(losses, "touch_pixel_normal_loss", spy)
-    Trainer(Scene.load(sphere_scene), tmp_path / "off", _config(4, depth_normal_start_iter=2)).run(show_progress=False)
-    assert spy.calls == []  # weight 0 (the default)
-    trainer = Trainer(Scene.load(sphere_scene), tmp_path / "on",
-                      _config(4, depth_normal_start_iter=2, lambda_touch_normal=0.0, lambda_touch_normal_pixels=0.1))
-    trainer.run(show_progress=False)
-    assert len(spy.calls) == 2  # steps 2 and 3, once the normals are rendered; the tactile normals were loaded
-    assert torch.isfinite(trainer.touch_normals).any()
-
-
-def test_plane_depth_reaches_training_from_its_start_step_and_every_evaluation(sphere_scene, tmp_path, monkeypatch):
-    spy = _Spy(shading.render)
-    monkeypatch.setattr(shading, "render", spy)
-    run = tmp_path / "run"
-    reconstruct(sphere_scene, run, _config(4, depth_render="plane", plane_depth_start_iter=2), show_progress=False)
-    assert [kwargs["depth_render"] for kwargs, grad in spy.calls if grad] == ["centre", "centre", "plane", "plane"]
-    evaluations = [(kwargs["appearance"], kwargs["depth_render"]) for kwargs, grad in spy.calls if not grad]
-    run_views = {how for appearance, how in evaluations if appearance == "sh-lit"}  # progress rows, metrics.json
-    splat_views = {how for appearance, how in evaluations if appearance == "sh"}  # psnr_splat: splat.ply, as a
-    assert run_views == {"plane"} and splat_views == {"centre"}  # 3DGS viewer renders it
-    assert load_run(run).look.depth == "plane"  # what a later `tacsplat evaluate RUN` renders with
-
-
 def test_the_settings_of_a_switched_off_mechanism_change_nothing(sphere_scene, tmp_path):
     """TrainConfig.unused_fields is what bench paper ignores when it compares a run's settings with today's: changing
-    them leaves the trained Gaussians identical (here the consistency's start step, with the touch-pixel normals
-    that ride on it weighted but the consistency off, and the albedo smoothness's weights, with the smoothness off)."""
+    them leaves the trained Gaussians identical (here the consistency's start step, with the consistency off, and the
+    albedo smoothness's weights, with the smoothness off)."""
     def trained(name: str, **changes) -> dict:
-        config = _config(4, lambda_depth_normal=0.0, lambda_touch_normal_pixels=0.1, lambda_albedo_smoothness=0.0,
-                         **changes)
+        config = _config(4, lambda_depth_normal=0.0, lambda_albedo_smoothness=0.0, **changes)
         trainer = Trainer(Scene.load(sphere_scene), tmp_path / name, config)
         trainer.run(show_progress=False)
         return {"unused": config.unused_fields(), **trainer.gaussians.params}
@@ -268,12 +242,10 @@ def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_sce
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
-@pytest.mark.parametrize("appearance, variant", [("lit", "full+n+tn+l+as+vc"), ("sh-lit", "full+n+tn+sl+as+vc")])
-def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch,
-                                                                              appearance, variant):
-    """The lit appearances shade from their start step on (the light gets gradients only then), the smooth albedo
-    reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light (and environment)
-    included, to the same numbers."""
+def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch):
+    """The sh-lit appearance shades from its start step on (the light gets gradients only then), the smooth albedo
+    reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light included, to the same
+    numbers."""
     from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.evaluation import evaluate_run
     from tacsplat.reconstruction.ply import save_ply
@@ -282,8 +254,8 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
 
     smoothness = _Spy(losses.albedo_smoothness_loss)
     monkeypatch.setattr(losses, "albedo_smoothness_loss", smoothness)
-    config = _config(30, appearance=appearance, lit_start_iter=20, lambda_albedo_smoothness=0.1, checkpoint_every=10)
-    run = tmp_path / appearance
+    config = _config(30, appearance="sh-lit", lit_start_iter=20, lambda_albedo_smoothness=0.1, checkpoint_every=10)
+    run = tmp_path / "run"
     trainer = Trainer(Scene.load(sphere_scene), run, config)
     trainer.initialize()
     for _ in range(20):
@@ -294,10 +266,9 @@ def test_a_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sp
     trainer.train_step()
     assert not torch.equal(trainer.light.coefficients.detach(), start.coefficients)
     metrics = reconstruct(sphere_scene, run, config, show_progress=False, overwrite=True)
-    assert metrics["variant"] == variant and (run / "light.png").is_file()
+    assert metrics["method"] == "default" and (run / "light.png").is_file()
     with (run / "progress.csv").open() as fh:  # the albedo smoothness has its own column
         assert float(list(csv.DictReader(fh))[-1]["albedo_smoothness"]) > 0
-    assert (run / "environment.png").is_file() == (appearance == "lit")  # sh-lit has no environment
     again = evaluate_run(run)
     for key in ("psnr", "cd", "normal_error_deg", "psnr_splat"):
         assert again[key] == pytest.approx(metrics[key], rel=1e-6)
@@ -323,7 +294,8 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
                           "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet", "--train-views", "4"])
     assert code == 0
     metrics = json.loads((run / "metrics.json").read_text())
-    assert metrics["variant"] == "3dgs+t+n+tn+sl+as+vc" and metrics["settings"]["train_views"] == 4  # the default, no L_S
+    assert metrics["method"] == "custom" and metrics["settings"]["train_views"] == 4  # the default, no L_S
+    assert metrics["mechanisms"] == {**dict.fromkeys(metrics["mechanisms"], True), "smoothness": False}
     assert metrics["iterations"] == 5 and np.isfinite(metrics["cd"])
     mesh_path = tmp_path / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=4, radius=RADIUS).export(mesh_path)
@@ -368,25 +340,25 @@ def test_cli_options_reach_the_train_config():
     config = config_from_args(args)
     assert (config.seed, config.sh_degree, config.backend, config.iterations, config.lambda_s) == (3, 1, "cpu", 7, 0.5)
     assert (config.smoothness_depth, config.use_touch, config.densify.max_gaussians) == ("accumulated", False, 500)
-    assert config.init.use_sfm is False and config.train_views is None and config.variant == "3dgs+s+n+sl+as+vc"
+    assert config.init.use_sfm is False and config.train_views is None and method_of(config) == "custom"
     defaults = config_from_args(_reconstruct_args())
     assert defaults.to_json() == TrainConfig().to_json()  # no option given: exactly TrainConfig's defaults
-    assert config_from_args(_reconstruct_args("--variant", "3dgs")).variant == "3dgs"
-    assert config_from_args(_reconstruct_args("--variant", "3dgs", "--lambda-s", "1")).variant == "3dgs+s"
+    assert method_of(config_from_args(_reconstruct_args("--method", "3dgs"))) == "3dgs"
+    assert method_of(config_from_args(_reconstruct_args("--method", "3dgs", "--lambda-s", "1"))) == "3dgs+s"
     paper = config_from_args(_reconstruct_args("--preset", "paper", "--iterations", "3000"))
     assert (paper.iterations, paper.smoothness_start_iter, paper.densify.stop_iter) == (3000, 2000, 1500)
     assert paper.lambda_t == 0.5 and paper.touch_top_k == 20 and paper.use_proximity_mask is False
     full_paper = config_from_args(_reconstruct_args("--preset", "paper"))
     assert (full_paper.iterations, full_paper.smoothness_start_iter, full_paper.densify.stop_iter) == (30000, 20000, 15000)
-    assert config_from_args(_reconstruct_args("--preset", "paper", "--variant", "3dgs")).variant == "3dgs"
+    assert method_of(config_from_args(_reconstruct_args("--preset", "paper", "--method", "3dgs"))) == "3dgs"
     with pytest.raises(ConfigError, match="--iterations"):
         config_from_args(_reconstruct_args("--iterations", "-5"))
     with pytest.raises(ConfigError, match="--densify-max-gaussians"):
         config_from_args(_reconstruct_args("--densify-max-gaussians", "-1"))
     with pytest.raises(ConfigError, match="smoothness_depth"):
         TrainConfig(smoothness_depth="median").validate()
-    with pytest.raises(ConfigError, match="depth_render"):
-        TrainConfig(depth_render="median").validate()
+    with pytest.raises(ConfigError, match="appearance"):
+        TrainConfig(appearance="reflective").validate()
 
 
 def test_every_training_setting_has_a_documented_option_with_its_default():

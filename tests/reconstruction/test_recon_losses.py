@@ -358,32 +358,3 @@ def test_the_influence_from_the_whitening_matches_eq1_with_the_precision_matrix_
     out = gaussian_influence(torch.full((1, 3), 100.0, dtype=torch.float64) - far[None], whitening(quats, scales)[None])
     out.sum().backward()
     assert torch.isfinite(far.grad).all() and (out > 0).all() and (out <= math.exp(-80)).all()
-
-
-def test_touch_pixel_normal_loss_compares_the_rendered_normal_at_each_visible_touch_pixel():
-    from tacsplat.reconstruction.losses import touch_pixel_normal_loss
-
-    K = torch.tensor([[10.0, 0, 5], [0, 10.0, 5], [0, 0, 1]])
-    viewmat = torch.eye(4)  # camera at the origin looking along +z
-    rendered = torch.zeros(10, 10, 3)
-    rendered[..., 2] = -1.0  # every pixel faces the camera
-    depth = torch.full((10, 10), 1.0)
-    points = torch.tensor([[0.0, 0.0, 1.0], [0.2, 0.1, 1.0]])  # pixels (5, 5) and (7, 6), on the surface
-    facing = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])  # either sign: |<n, t>| = 1
-    assert touch_pixel_normal_loss(rendered, points, facing, K, viewmat, depth).item() == pytest.approx(0.0)
-    sideways = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    assert touch_pixel_normal_loss(rendered, points, sideways, K, viewmat, depth).item() == pytest.approx(1.0)
-    half = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])  # one aligned, one at 90 degrees
-    assert touch_pixel_normal_loss(rendered, points, half, K, viewmat, depth).item() == pytest.approx(0.5)
-    # a point hidden behind the rendered surface, one without a known normal and one outside the view do not count
-    hidden = torch.tensor([[0.2, 0.1, 2.0]])
-    assert touch_pixel_normal_loss(rendered, hidden, sideways[:1], K, viewmat, depth).item() == 0.0
-    unknown = torch.tensor([[float("nan")] * 3, [0.0, 1.0, 0.0]])
-    assert touch_pixel_normal_loss(rendered, points, unknown, K, viewmat, depth).item() == pytest.approx(1.0)
-    outside = torch.tensor([[5.0, 0.0, 1.0]])
-    assert touch_pixel_normal_loss(rendered, outside, sideways[:1], K, viewmat, depth).item() == 0.0
-    # the gradient reaches the rendered normals at the touched pixels only
-    rendered.requires_grad_(True)
-    touch_pixel_normal_loss(rendered, points, half, K, viewmat, depth).backward()
-    touched = rendered.grad.abs().sum(-1) > 0
-    assert touched.sum() == 1 and touched[5, 5]  # (the 90-degree one has zero gradient along its normal: 0 there)

@@ -90,7 +90,7 @@ def test_a_moved_scene_resumes_and_the_run_records_where_it_is_now(trained, tmp_
     (["--seed", "7"], ["--seed", "0 in the run", "7 given"]),
     (["--lambda-backdrop", "1"], ["--lambda-backdrop", "0.1 in the run", "1.0 given"]),
     (["--densify-max-gaussians", "10"], ["--densify-max-gaussians", "30000 in the run", "10 given"]),
-    (["--variant", "full"], ["--variant 3dgs+t+n+tn+sl+as+vc in the run, 3dgs+t given",  # (full --no-smoothness)
+    (["--method", "paper"], ["--method custom in the run, 3dgs+t given",  # (paper --no-smoothness)
                              "--appearance 'sh-lit' in the run, 'sh' given"]),
     (["--preset", "paper"], ["--touch-top-k 8 in the run, 20 given"]),
 ])
@@ -114,7 +114,7 @@ def test_resume_below_the_step_reached_is_refused(trained, tmp_path, capsys):
 
 def test_resume_with_more_iterations_continues_and_every_record_says_so(trained, tmp_path):
     scene, run = _copy(trained, tmp_path)
-    same = ["--lambda-t", "0.5", "--seed", "0", "--variant", "full+n+tn+sl+as+vc"]  # the run's own: accepted
+    same = ["--lambda-t", "0.5", "--seed", "0", "--method", "default"]  # the run's own: accepted
     assert _resume(scene, run, "--iterations", "5", *same) == 0
     metrics = json.loads((run / "metrics.json").read_text())
     checkpoint = torch.load(run / "checkpoint.pt", weights_only=False)

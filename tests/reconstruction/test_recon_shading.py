@@ -1,5 +1,5 @@
-"""Normals, reflections and lit shading: flat Gaussians, depth-normal consistency on a plane, the environment
-lookup, the diffuse light and the lit shading's gradients."""
+"""Normals and lit shading: flat Gaussians, depth-normal consistency on a plane, the diffuse light and the lit
+shading's gradients."""
 
 import math
 
@@ -14,19 +14,8 @@ from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.evaluation import save_light
 from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
-from tacsplat.reconstruction.shading import (
-    DiffuseLight,
-    LIT,
-    PLANE_MIN_COS,
-    SPECULAR,
-    EnvironmentMap,
-    _shade,
-    equirect_directions,
-    gaussian_normals,
-    pixel_rays,
-    plane_hit_depth,
-    render,
-)
+from tacsplat.reconstruction.evaluation import equirect_directions
+from tacsplat.reconstruction.shading import DiffuseLight, _shade, gaussian_normals, render
 
 
 def test_the_normal_of_a_flat_gaussian_is_its_shortest_axis():
@@ -106,111 +95,6 @@ def test_depth_normal_consistency_is_zero_for_a_plane_of_flat_gaussians_lying_in
     assert fused[0] < 2e-3 and fused[1] > 0.05
 
 
-def _true_plane_depth(normal: np.ndarray, offset: float, viewmat: torch.Tensor, K: torch.Tensor, width: int,
-                      height: int) -> torch.Tensor:
-    """[H, W] depth along each pixel's ray of the plane {p : <n, p> = offset}, n = normal / |normal| (float64)."""
-    rotation, translation = viewmat[0, :3, :3].double(), viewmat[0, :3, 3].double()
-    normal = torch.tensor(normal / np.linalg.norm(normal))
-    centre = -rotation.T @ translation
-    rays = pixel_rays(K[0].double(), width, height)
-    rays = rays / rays[..., 2:3]  # [H, W, 3] at depth 1
-    return (offset - normal @ centre) / (rays @ (rotation @ normal))
-
-
-@pytest.mark.parametrize("backend", ["cpu", "torch"])
-def test_plane_depth_of_flat_gaussians_in_a_tilted_plane_is_where_each_ray_meets_it(backend):
-    normal = np.array([0.3, 0.2, 1.0])
-    gaussians = _plane_of_flat_gaussians(normal, 0.1, n=12)  # few, large Gaussians: one spans several pixels
-    viewmat = torch.tensor(invert_pose(look_at([0.8, -0.5, 2.5], [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
-    K = torch.tensor([[[60.0, 0, 24], [0, 60.0, 24], [0, 0, 1]]])
-    truth = _true_plane_depth(normal, 0.1, viewmat, K, 48, 48)
-    errors = {}
-    for mode in ("ED", "D"):
-        for how in ("centre", "plane"):
-            out = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend=backend, depth_mode=mode,
-                         depth_render=how)
-            drawn = out.alpha > 0.5
-            assert drawn.sum() > 1000
-            depth = out.depth if mode == "ED" else out.depth / out.alpha  # "D" accumulates: times alpha
-            errors[mode, how] = float((depth.detach().double() - truth)[drawn].abs().max())
-    assert errors["ED", "plane"] < 1e-5 and errors["D", "plane"] < 1e-5  # exact up to float32
-    assert errors["ED", "centre"] > 0.05  # each Gaussian's one depth over its footprint is not the plane
-
-
-def test_plane_depth_keeps_the_centre_depth_where_rays_graze_and_its_gradients_stay_finite():
-    normal = np.array([1.0, 0.0, 0.07])  # a plane through the z axis tilted by 4 degrees, seen from the z axis:
-    gaussians = _plane_of_flat_gaussians(normal, 0.0, n=20)  # most rays meet it at cos < PLANE_MIN_COS
-    gaussians.params["means"].requires_grad_(True)
-    viewmat = torch.tensor(invert_pose(look_at([0.0, 0.0, 2.5], [0.0, 0.0, 0.0])), dtype=torch.float32)[None]
-    K = torch.tensor([[[60.0, 0, 24], [0, 60.0, 24], [0, 0, 1]]])
-    for mode in ("ED", "D"):
-        plane = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode=mode,
-                       depth_render="plane")
-        centre = render(gaussians, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode=mode)
-        drawn = plane.alpha > 0.01
-        facing = -(plane.normal * pixel_rays(K[0], 48, 48)).sum(-1)  # cos of each ray with the blended normal
-        grazing = drawn & (facing < PLANE_MIN_COS)
-        assert grazing.sum() > 100
-        assert torch.isfinite(plane.depth).all()
-        torch.testing.assert_close(plane.depth[grazing], centre.depth[grazing], rtol=0, atol=1e-6)
-        gaussians.params["means"].grad = None
-        plane.depth[drawn].sum().backward()
-        assert torch.isfinite(gaussians.params["means"].grad).all()
-
-
-def test_plane_hit_depth_holds_only_where_the_plane_faces_the_ray_with_finite_gradients_everywhere():
-    K = torch.tensor([[4.0, 0, 1.5], [0, 4.0, 0.5], [0, 0, 1]], dtype=torch.float64)  # 3 x 1 px, centre ray (0, 0, 1)
-    towards = [0.0, 0.0, -2.0]  # facing the camera: the plane z = 1.5 (offset <n, x> = -2 * 1.5 = -3)
-    normal_sum = torch.tensor([[towards, [0.0, 0.0, 0.0], [2.0, 0.0, 0.05]]], dtype=torch.float64)  # faces, none,
-    offset_sum = torch.tensor([[-3.0, 0.0, -1.0]], dtype=torch.float64)  # grazes (cos 0.025)
-    normal_sum.requires_grad_(True)
-    offset_sum.requires_grad_(True)
-    hit, meets = plane_hit_depth(normal_sum, offset_sum, K)
-    assert meets.tolist() == [[True, False, False]]
-    assert hit[0, 0].item() == pytest.approx(1.5)
-    hit.sum().backward()
-    assert torch.isfinite(normal_sum.grad).all() and torch.isfinite(offset_sum.grad).all()
-    # a plane facing away from the camera (towards it reversed) is not one the ray can meet from the front
-    _, meets = plane_hit_depth(-normal_sum.detach(), offset_sum.detach(), K)
-    assert not meets[0, 0]
-
-
-def test_the_environment_lookup_of_a_mirror_returns_the_maps_value():
-    environment = EnvironmentMap(height=16)
-    with torch.no_grad():
-        environment.log_radiance.copy_(torch.log(torch.rand(3, 16, 32, generator=torch.Generator().manual_seed(0))))
-    # the centre of texel (row 5, column 20): u = (20.5 / 32) * 2 - 1 (azimuth), v = (5.5 / 16) * 2 - 1 (elevation)
-    azimuth, elevation = ((20.5 / 32) * 2 - 1) * math.pi, -((5.5 / 16) * 2 - 1) * math.pi / 2
-    direction = torch.tensor([[math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
-                               math.sin(elevation)]])
-    value = environment.lookup(direction, torch.zeros(1))
-    torch.testing.assert_close(value[0], torch.exp(environment.log_radiance[:, 5, 20]), rtol=1e-5, atol=1e-6)
-    # full roughness: the coarsest level, the two hemispheres' averages blended at the direction's azimuth
-    rough = environment.lookup(direction, torch.ones(1))
-    radiance = torch.exp(environment.log_radiance)
-    left, right = radiance[:, :, :16].mean(dim=(1, 2)), radiance[:, :, 16:].mean(dim=(1, 2))
-    weight = (20.5 / 32) * 2 - 1 + 0.5  # of the right half (texel centres at u = -0.5 and 0.5)
-    torch.testing.assert_close(rough[0], weight * right + (1 - weight) * left, rtol=1e-5, atol=1e-6)
-
-
-def test_the_environment_lookup_has_finite_gradients_at_the_poles_and_for_no_direction():
-    """Reflected rays straight up or down (asin's infinite slope once made the trainer's means NaN) and a zero
-    direction (no blended normal) give finite gradients; elsewhere the float64 gradient is the numerical one."""
-    environment = EnvironmentMap(height=8).double()
-    with torch.no_grad():
-        environment.log_radiance.copy_(torch.randn(3, 8, 16, generator=torch.Generator().manual_seed(1)))
-    awkward = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [1e-9, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1e-9],
-                            [-1.0, 0.0, 0.0], [-1.0, -1e-12, 0.0], [3.0, 4.0, 0.0]], dtype=torch.float64,
-                           requires_grad=True)
-    roughness = torch.full((len(awkward),), 0.3, dtype=torch.float64, requires_grad=True)
-    environment.lookup(awkward, roughness).sum().backward()
-    assert torch.isfinite(awkward.grad).all() and torch.isfinite(roughness.grad).all()
-    assert torch.isfinite(environment.log_radiance.grad).all()
-    generic = torch.tensor([[0.3, -0.5, 0.4], [-0.2, 0.1, -0.9]], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda d: environment.lookup(d, torch.full((2,), 0.3, dtype=torch.float64)),
-                                    (generic,))
-
-
 def test_sh_colors_of_the_cpu_kernel_match_the_float64_torch_formula_and_its_gradients():
     # render() composites its own channels when normals are on: the SH colours come from the fused numba kernel
     from tacsplat.reconstruction.raster import sh_colors
@@ -266,116 +150,103 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
     light = DiffuseLight().double()
     normals = _unit_sphere_directions(50, 1)
     torch.testing.assert_close(light.irradiance(normals, -normals), torch.ones(50, 3, dtype=torch.float64))
-    environment = EnvironmentMap(height=4).double()
     g = torch.Generator().manual_seed(2)
     with torch.no_grad():
         light.coefficients.add_(0.3 * torch.randn(9, 3, generator=g, dtype=torch.float64))
         light.camera.fill_(0.2)
-    blended = torch.rand(3, 4, 7, generator=g, dtype=torch.float64)
-    blended[0, 0, :3] = 3.0  # a saturated pixel: its colour is clipped at 1
+    blended = torch.rand(3, 4, 3, generator=g, dtype=torch.float64)
+    blended[0, 0] = 3.0  # a saturated pixel: its colour is clipped at 1
     alpha = torch.full((3, 4), 0.9, dtype=torch.float64)
     alpha[2, 3], blended[2, 3] = 0.0, 0.0  # a pixel no Gaussian reaches: not shaded, black
     normal = torch.nn.functional.normalize(torch.randn(3, 4, 3, generator=g, dtype=torch.float64) + torch.tensor(
         [0.0, 0.0, -2.0], dtype=torch.float64), dim=-1).requires_grad_(True)
     viewmat = torch.eye(4, dtype=torch.float64)
     K = torch.tensor([[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]], dtype=torch.float64)
-    rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment, light, saturate=True, fused=fused)
+    rgb, albedo = _shade(blended, alpha, normal, viewmat, K, light, fused=fused)
     assert torch.all(rgb <= 0.9 + 1e-12) and rgb[0, 0].max() == 0.9  # clipped at 1, times alpha
     assert torch.all(rgb[2, 3] == 0)
-    torch.testing.assert_close(albedo, blended[..., :3] / alpha.clamp_min(1e-6)[..., None])
+    torch.testing.assert_close(albedo, blended / alpha.clamp_min(1e-6)[..., None])
 
     def shaded(b, n, coefficients, camera):  # the light's parameters as inputs, for gradcheck
         lit = DiffuseLight().double()
         del lit.coefficients, lit.camera
         lit.coefficients, lit.camera = coefficients, camera
-        return _shade(b, alpha, n, viewmat, K, environment, lit, saturate=True, fused=fused)[0]
+        return _shade(b, alpha, n, viewmat, K, lit, fused=fused)[0]
 
     inputs = (blended.clone().requires_grad_(True), normal, light.coefficients.detach().clone().requires_grad_(True),
               light.camera.detach().clone().requires_grad_(True))
     assert torch.autograd.gradcheck(shaded, inputs)
 
 
-@pytest.mark.parametrize("appearance", ["lit", "reflective", "sh-lit"])
-@pytest.mark.parametrize("saturate", [True, False], ids=["saturate", "linear"])
-def test_fused_shading_matches_the_torch_reference_with_its_gradients(appearance, saturate):
+@pytest.mark.parametrize("lit", [True, False], ids=["lit", "unlit"])
+def test_fused_shading_matches_the_torch_reference_with_its_gradients(lit):
     """The numba shading (:mod:`.fused_shading`) against the torch reference in float64: values and the gradients
-    of every input (blended channels, alpha, normals, environment, light), with a pixel no Gaussian reaches, one
-    under the alpha floor, a saturated one, and one whose reflection looks straight up (the map's pole)."""
-    lit, specular = appearance in LIT, appearance in SPECULAR
+    of every input (blended albedo, alpha, normals, light), with a pixel no Gaussian reaches, one under the alpha
+    floor and a saturated one; unlit (before ``lit_start_iter``) the albedo clipped at 1."""
     g = torch.Generator().manual_seed(5)
     h, w = 9, 11
     alpha = torch.rand(h, w, generator=g, dtype=torch.float64)
     alpha[:, 0] = 0.0  # nothing drawn
     alpha[1, 1] = 1e-7  # drawn, under the floor the colours are divided by
-    blended = torch.rand(h, w, 7, generator=g, dtype=torch.float64) * alpha[..., None]
-    blended[2, 2, :3] = 3.0 * alpha[2, 2]  # saturates
+    blended = torch.rand(h, w, 3, generator=g, dtype=torch.float64) * alpha[..., None]
+    blended[2, 2] = 3.0 * alpha[2, 2]  # saturates
     viewmat = torch.eye(4, dtype=torch.float64)
     viewmat[:3, :3] = torch.tensor(Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix())
     K = torch.tensor([[9.0, 0, 5.5], [0, 9.0, 4.5], [0, 0, 1]], dtype=torch.float64)
     normal = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g, dtype=torch.float64) + torch.tensor(
         [0.0, 0.0, -1.5], dtype=torch.float64), dim=-1)
-    view = pixel_rays(K, w, h)[3, 3]  # camera frame
-    up = viewmat[:3, :3] @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)  # world +z in the camera frame
-    normal[3, 3] = torch.nn.functional.normalize(view - up, dim=0)  # reflects the view straight up
-    environment = EnvironmentMap(height=8).double()
     light = DiffuseLight().double()
     with torch.no_grad():
-        environment.log_radiance.normal_(0.0, 0.5, generator=g)
         light.coefficients.add_(0.5 * torch.randn(9, 3, generator=g, dtype=torch.float64))
         light.camera.normal_(0.0, 0.3, generator=g)
-    if not specular:
-        blended = blended[..., :3].contiguous()  # the diffuse colour only
-    inputs = [blended.requires_grad_(True), alpha.requires_grad_(True), normal.requires_grad_(True)]
-    inputs += [environment.log_radiance] if specular else []
-    inputs += [light.coefficients, light.camera] if lit else []
+    inputs = [blended.requires_grad_(True), alpha.requires_grad_(True)]
+    inputs += [normal.requires_grad_(True), light.coefficients, light.camera] if lit else []  # (unlit: no normals)
     weights = torch.randn(2, h, w, 3, generator=g, dtype=torch.float64)
     results = []
     for fused in (True, False):
-        rgb, albedo = _shade(blended, alpha, normal, viewmat, K, environment if specular else None,
-                             light if lit else None, saturate, fused=fused)
+        rgb, albedo = _shade(blended, alpha, normal, viewmat, K, light if lit else None, fused=fused)
         loss = (rgb * weights[0]).sum() + (albedo * weights[1]).sum()
         results.append((rgb, albedo, *torch.autograd.grad(loss, inputs)))
-    assert not saturate or results[1][0][2, 2].max() == alpha[2, 2]  # the reference clips the saturated pixel
+    assert results[1][0][2, 2].max() == alpha[2, 2]  # the reference clips the saturated pixel
     for got, expected in zip(*results):
         torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
 
 
 def test_fused_shading_in_float32_follows_torch_at_the_alpha_floor_and_survives_nan():
     """Training runs in float32: alpha exactly at float32(1e-6) passes its gradient as torch's clamp_min in float32
-    does; a NaN normal gives a NaN pixel, never a read outside the environment map."""
+    does; a NaN normal gives a NaN pixel and leaves the others finite."""
     g = torch.Generator().manual_seed(6)
     h, w = 5, 6
     alpha = torch.rand(h, w, generator=g)
     alpha[1, 2] = 1e-6  # the floor itself, in float32
-    blended = (torch.rand(h, w, 7, generator=g) * alpha[..., None]).requires_grad_(True)
+    blended = (torch.rand(h, w, 3, generator=g) * alpha[..., None]).requires_grad_(True)
     alpha.requires_grad_(True)
     normal = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g) - torch.tensor([0.0, 0.0, 2.0]), dim=-1)
     K = torch.tensor([[6.0, 0, 3.0], [0, 6.0, 2.5], [0, 0, 1]])
-    environment, light = EnvironmentMap(height=8), DiffuseLight()
+    light = DiffuseLight()
     weights = torch.randn(2, h, w, 3, generator=g)
     grads = []
     for fused in (True, False):
-        rgb, albedo = _shade(blended, alpha, normal, torch.eye(4), K, environment, light, True, fused=fused)
+        rgb, albedo = _shade(blended, alpha, normal, torch.eye(4), K, light, fused=fused)
         grads.append(torch.autograd.grad((rgb * weights[0]).sum() + (albedo * weights[1]).sum(), alpha)[0])
     assert grads[1][1, 2] != 0
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-3 * grads[1].abs().max().item())
     normal[3, 3] = float("nan")
-    rgb, _ = _shade(blended.detach(), alpha.detach(), normal, torch.eye(4), K, environment, light, True)
+    rgb, _ = _shade(blended.detach(), alpha.detach(), normal, torch.eye(4), K, light)
     assert torch.isnan(rgb[3, 3]).all() and torch.isfinite(rgb[torch.arange(h) != 3]).all()
 
 
-def test_equirect_directions_are_the_texel_centres_the_environment_lookup_reads():
-    environment = EnvironmentMap(height=8)
-    with torch.no_grad():
-        environment.log_radiance.copy_(torch.randn(3, 8, 16, generator=torch.Generator().manual_seed(3)))
-    directions = equirect_directions(8).float()  # [8, 16, 3]
-    torch.testing.assert_close(directions.norm(dim=-1), torch.ones(8, 16))
-    mirrored = environment.lookup(directions.reshape(-1, 3), torch.zeros(8 * 16)).reshape(8, 16, 3)
-    torch.testing.assert_close(mirrored, torch.exp(environment.log_radiance).permute(1, 2, 0), rtol=1e-5, atol=1e-6)
+def test_equirect_directions_are_unit_with_the_zenith_on_top_and_azimuth_from_minus_180_degrees():
+    directions = equirect_directions(8)  # [8, 16, 3]
+    torch.testing.assert_close(directions.norm(dim=-1), torch.ones(8, 16, dtype=torch.float64))
+    assert (directions[0, :, 2] > 0.98).all() and (directions[-1, :, 2] < -0.98).all()  # zenith row, nadir row
+    azimuth = torch.atan2(directions[4, :, 1], directions[4, :, 0])
+    torch.testing.assert_close(azimuth[0], torch.tensor(-math.pi + math.pi / 16, dtype=torch.float64))
+    assert (azimuth.diff() > 0).all()
 
 
 def test_the_light_picture_has_the_zenith_at_the_top(tmp_path):
-    """light.png in the environment map's layout: a light from above (the z band of its SH) brightens the top rows."""
+    """light.png, equirectangular: a light from above (the z band of its SH) brightens the top rows."""
     light = DiffuseLight()
     with torch.no_grad():
         light.coefficients[2] = 1.5  # band 1, z: more irradiance on normals pointing up

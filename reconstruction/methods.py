@@ -1,0 +1,100 @@
+"""The reconstruction methods by name: the paper's Table 3 rows and ours.
+
+A method is a name, the label the tables print, and the :class:`~tacsplat.reconstruction.config.TrainConfig`
+fields it sets on top of TrainConfig's defaults, which are ``default`` (ours, beyond the paper). Any other
+combination is a configuration: a method plus overrides (``--config FILE.yaml`` and options of `tacsplat
+reconstruct`, the ablation rows of `tacsplat bench paper`). A run's metrics.json records the method whose
+mechanisms (:func:`mechanisms`) it has, ``custom`` when none has them, and the mechanisms themselves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from tacsplat.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Method:
+    name: str  # as in file names, results.csv and metrics.json
+    label: str  # as the tables print it
+    description: str
+    overrides: dict = field(default_factory=dict)  # TrainConfig fields it sets ("init.x": its InitConfig's x)
+
+
+# the paper's method: touch and smoothness with view-dependent SH colour; none of our surface-normal losses,
+# unlit colour, touch Gaussians starting with random colours
+_PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
+          "lambda_albedo_smoothness": 0.0, "init.colours_from_views": False}
+
+METHODS: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method("3dgs", "3DGS", "vanilla 3DGS: no touch, no smoothness", {**_PAPER, "use_touch": False, "lambda_s": 0.0}),
+        Method("3dgs+s", "3DGS + S", "edge-aware depth smoothness L_S (Eq. 8), no touch",
+               {**_PAPER, "use_touch": False}),
+        Method("3dgs+t", "3DGS + T", "touch Gaussians and transmittance L_T (Eq. 7), no smoothness",
+               {**_PAPER, "lambda_s": 0.0}),
+        Method("paper", "Paper (T + S)", "touch and smoothness: the paper's full method", _PAPER),
+        Method("default", "Default (ours)", "the paper's method plus flat Gaussians, depth-normal consistency, tactile "
+               "normals, SH colour lit at the rendered normals with a smooth albedo, and touch Gaussians coloured "
+               "from the views (beyond the paper)"),
+    )
+}
+PAPER_METHODS = ("3dgs", "3dgs+s", "3dgs+t", "paper")  # the paper's Table 3
+DEFAULT_METHOD = "default"
+
+
+def get_method(name: str, option: str = "--method") -> Method:
+    """The method called ``name``; a ConfigError naming ``option`` and the choices otherwise."""
+    if name not in METHODS:
+        raise ConfigError(option, f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
+    return METHODS[name]
+
+
+def set_fields(config, overrides: dict, source: str | None = None):
+    """Set ``overrides`` (``{"lambda_s": 0.0, "init.use_sfm": False}``) on a TrainConfig and return it; a
+    ConfigError naming ``source`` for a key that is not a field."""
+    for key, value in overrides.items():
+        *path, name = key.split(".")
+        target = config
+        for part in path:
+            target = getattr(target, part, None)
+        if target is None or not hasattr(target, "__dataclass_fields__") or name not in target.__dataclass_fields__:
+            raise ConfigError(key, "not a training setting (TrainConfig field, or init./densify. one of theirs)",
+                              source)
+        setattr(target, name, tuple(value) if isinstance(value, list) else value)
+    return config
+
+
+def method_config(name: str, option: str = "--method"):
+    """The TrainConfig of method ``name``."""
+    from tacsplat.reconstruction.config import TrainConfig
+
+    return set_fields(TrainConfig(), get_method(name, option).overrides)
+
+
+def mechanisms(config) -> dict[str, bool]:
+    """Which of the optional mechanisms a TrainConfig switches on: touch (used, with lambda_t > 0), smoothness,
+    flattening, depth-normal consistency, tactile normals (with touch), the sh-lit appearance, a smooth albedo
+    (with it), initial colours from the views."""
+    touch = config.use_touch and config.lambda_t > 0
+    return {
+        "touch": touch, "smoothness": config.lambda_s > 0, "flattening": config.lambda_flatten > 0,
+        "depth_normal": config.lambda_depth_normal > 0, "tactile_normals": touch and config.lambda_touch_normal > 0,
+        "sh_lit": config.appearance == "sh-lit",
+        "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
+        "view_colours": config.init.colours_from_views,
+    }  # fmt: skip
+
+
+def method_of(config) -> str:
+    """The name of the method whose mechanisms a TrainConfig has (``custom`` if none's); its other settings
+    (schedule, weights, rates) may differ from the method's."""
+    on = mechanisms(config)
+    return next((name for name in METHODS if mechanisms(method_config(name)) == on), "custom")
+
+
+def method_label(name: str) -> str:
+    """The label the tables print for a method, or the name itself for any other row."""
+    return METHODS[name].label if name in METHODS else name

@@ -1,0 +1,98 @@
+"""The methods by name: TrainConfig's defaults are ``default``, the paper's rows switch every mechanism beyond the
+paper off, a run's metrics name the method whose mechanisms it has (``custom`` for any other combination), and
+old run configs read as what they trained."""
+
+import dataclasses
+
+import pytest
+
+from tacsplat.errors import ConfigError
+from tacsplat.reconstruction.config import TrainConfig, paper_departures
+from tacsplat.reconstruction.initialization import InitConfig
+from tacsplat.reconstruction.methods import (
+    DEFAULT_METHOD,
+    METHODS,
+    PAPER_METHODS,
+    mechanisms,
+    method_config,
+    method_of,
+    set_fields,
+)
+
+
+def test_the_defaults_are_the_default_method_and_the_papers_rows_have_nothing_beyond_the_paper():
+    assert method_config(DEFAULT_METHOD) == TrainConfig() and method_of(TrainConfig()) == "default"
+    assert set(METHODS) == {"3dgs", "3dgs+s", "3dgs+t", "paper", "default"}
+    table_3 = {"3dgs": (False, False), "3dgs+s": (False, True), "3dgs+t": (True, False), "paper": (True, True)}
+    assert tuple(table_3) == PAPER_METHODS
+    for name, (touch, smoothness) in table_3.items():
+        on = mechanisms(method_config(name))
+        assert (on.pop("touch"), on.pop("smoothness")) == (touch, smoothness) and not any(on.values()), name
+        assert method_of(method_config(name)) == name
+    assert all(mechanisms(TrainConfig()).values())  # the default has every mechanism on
+
+
+def test_any_other_combination_is_custom_and_names_no_method():
+    paper = method_config("paper")
+    assert method_of(dataclasses.replace(paper, lambda_flatten=10.0)) == "custom"
+    assert method_of(dataclasses.replace(TrainConfig(), use_touch=False)) == "custom"
+    assert method_of(dataclasses.replace(paper, lambda_s=5.8, touch_top_k=20)) == "paper"  # other weights: same method
+    no_touch = dataclasses.replace(paper, use_touch=False, lambda_touch_normal=0.1)
+    assert mechanisms(no_touch)["tactile_normals"] is False  # tactile normals need touches
+    assert method_of(no_touch) == "3dgs+s"
+
+
+def test_set_fields_sets_nested_fields_and_names_an_unknown_key():
+    config = set_fields(TrainConfig(init=InitConfig(num_random_points=7)), {"lambda_s": 0.0, "init.use_sfm": False})
+    assert (config.lambda_s, config.init.use_sfm, config.init.num_random_points) == (0.0, False, 7)
+    assert set_fields(TrainConfig(), {"background": [1, 1, 1]}).background == (1, 1, 1)  # YAML lists: tuples
+    for key in ("lambda_z", "init.nothing", "densify.max_gaussians.x"):
+        with pytest.raises(ConfigError, match=f"rows.yaml: {key}: not a training setting"):
+            set_fields(TrainConfig(), {key: 1}, "rows.yaml")
+
+
+def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_trained():
+    """config.json of a run from before ``appearance`` and ``lambda_albedo_smoothness`` existed: unlit SH colour, no
+    smooth albedo (the defaults of its day), not today's defaults."""
+    old = TrainConfig().to_json()
+    del old["appearance"], old["lambda_albedo_smoothness"]
+    config = TrainConfig.from_json(old)
+    assert (config.appearance, config.lambda_albedo_smoothness) == ("sh", 0.0)
+    assert TrainConfig.from_json(TrainConfig().to_json()) == TrainConfig()  # a complete one reads as written
+    sh_lit = TrainConfig().to_json()  # a default run from before the albedo smoothness had image weights
+    del sh_lit["albedo_smoothness_beta"]
+    assert TrainConfig.from_json(sh_lit) == TrainConfig(albedo_smoothness_beta=0.0)  # unweighted, as it trained
+    paper = method_config("paper").to_json()  # from before the surface-normal losses
+    for name in ("lambda_flatten", "lambda_depth_normal", "lambda_touch_normal", "appearance",
+                 "lambda_albedo_smoothness", "albedo_smoothness_beta"):
+        del paper[name]
+    assert method_of(TrainConfig.from_json(paper)) == "paper"
+    before_view_colours = TrainConfig().to_json()  # a default run from before the initial colours from the views
+    del before_view_colours["init"]["colours_from_views"]
+    assert not TrainConfig.from_json(before_view_colours).init.colours_from_views  # random colours, as it trained
+
+
+def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refused_when_on():
+    """config.json written before the reflective and lit appearances, plane depth and the touch-pixel normals were
+    removed: their fields switched off read as today's config (the light's rate, once ``lr_env_map``, kept); a run
+    that used one is refused naming the field and the file."""
+    old = {**TrainConfig().to_json(), "depth_render": "centre", "plane_depth_start_iter": 700, "env_map_height": 16,
+           "lambda_touch_normal_pixels": 0.0, "lr_reflective": 5e-3, "lr_env_map": 0.02}
+    old.pop("lr_light")
+    assert TrainConfig.from_json(old) == TrainConfig(lr_light=0.02)
+    for field, value in (("depth_render", "plane"), ("lambda_touch_normal_pixels", 0.1), ("appearance", "lit"),
+                         ("appearance", "reflective")):
+        with pytest.raises(ConfigError, match=f"run/config.json: {field}: this run used .*reconstruct the scene again"):
+            TrainConfig.from_json({**old, field: value}, "run/config.json")
+
+
+def test_a_switched_off_mechanisms_settings_are_unused():
+    assert TrainConfig().unused_fields() == set()  # the default uses every setting it has
+    assert method_config("paper").unused_fields() == {
+        "depth_normal_start_iter", "albedo_smoothness_beta", "lambda_albedo_smoothness", "lit_start_iter"}
+    assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
+
+
+def test_colours_from_the_views_are_listed_among_the_departures_from_the_paper_only_when_on():
+    assert [line for line in paper_departures(TrainConfig()) if "initial colours" in line]
+    assert not [line for line in paper_departures(method_config("paper")) if "initial colours" in line]
