@@ -108,14 +108,14 @@ def plot_scene(path, png_path) -> Path:
     if scene.frames or any(t.in_contact for t in scene.touches):
         lo, hi = scene.bounds()
     arrow = 0.25 * float(np.max(hi - lo)) if lo is not None else 0.05
-    for split, colour in zip(SPLITS, ("tab:blue", "tab:orange")):
+    for split, color in zip(SPLITS, ("tab:blue", "tab:orange")):
         frames = scene.split(split)
         if not frames:
             continue
         c = np.array([f.T_world_cam[:3, 3] for f in frames])
         z = np.array([f.T_world_cam[:3, 2] for f in frames])
-        ax.scatter(*c.T, color=colour, s=12, label=f"{split} cameras ({len(frames)})")
-        ax.quiver(*c.T, *(arrow * z).T, color=colour, linewidth=0.6)
+        ax.scatter(*c.T, color=color, s=12, label=f"{split} cameras ({len(frames)})")
+        ax.quiver(*c.T, *(arrow * z).T, color=color, linewidth=0.6)
     if scene.touches:
         points = scene.touch_points()
         if len(points):

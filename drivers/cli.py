@@ -283,11 +283,11 @@ def _coverage_picture(first_image, views, calib, path: Path) -> Path:
                         cv2.LINE_AA)
         cv2.rectangle(canvas, (x0, y0), (x1 - 1, y1 - 1), (128, 128, 128), 1)
     for i, view in enumerate(views):
-        colour = tuple(int(255 * x) for x in colorsys.hsv_to_rgb(i / max(len(views), 1), 0.9, 1.0))[::-1]
+        color = tuple(int(255 * x) for x in colorsys.hsv_to_rgb(i / max(len(views), 1), 0.9, 1.0))[::-1]
         hull = cv2.convexHull(np.round(view.image_points).astype(np.int32))
-        cv2.polylines(canvas, [hull], True, colour, 1, cv2.LINE_AA)
+        cv2.polylines(canvas, [hull], True, color, 1, cv2.LINE_AA)
         for u, v in view.image_points:
-            cv2.circle(canvas, (int(round(u)), int(round(v))), 2, colour, -1, cv2.LINE_AA)
+            cv2.circle(canvas, (int(round(u)), int(round(v))), 2, color, -1, cv2.LINE_AA)
     text = f"{len(views)} views, {sum(len(v.image_points) for v in views)} corners; " + \
         ("well spread" if not empty else f"no corners: {', '.join(sorted(empty))}")
     cv2.putText(canvas, text, (8, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
@@ -339,9 +339,9 @@ def _press_sheet(images, names, calib, labels, path: Path) -> Path:
                           interpolation=cv2.INTER_NEAREST)
         record = records.get(name, {})
 
-        def circle(centre, radius, colour):
+        def circle(centre, radius, color):
             at = (int(round((centre[0] + 0.5) * scale - 0.5)), int(round((centre[1] + 0.5) * scale - 0.5)))
-            cv2.circle(tile, at, int(round(radius * scale)), colour, 1, cv2.LINE_AA)
+            cv2.circle(tile, at, int(round(radius * scale)), color, 1, cv2.LINE_AA)
 
         label = labels.get(name)
         if label and label["centre"] is not None:

@@ -3,7 +3,7 @@
 Depth the GelSight way (Johnson & Adelson 2009; Yuan et al. 2017; GelSight's SDK), made to survive a
 real gel (illumination drift since the reference, marker dots, noise, a soft rim around each contact):
 
-1. colour change (:func:`colour_change`): marker dots (small dark blobs in the reference and near them in
+1. colour change (:func:`color_change`): marker dots (small dark blobs in the reference and near them in
    the image, found by a black-hat filter, :func:`marker_mask`) are inpainted in both; their difference
    is median-filtered (3x3) and a smooth background of it is subtracted (a normalised Gaussian
    convolution over the pixels that did not change, iterated), which removes slow illumination
@@ -124,7 +124,7 @@ def _robust_threshold(magnitude: np.ndarray, floor: float) -> float:
 
 
 @dataclass
-class ColourChange:
+class ColorChange:
     """The normalised colour change of a tactile image against its reference."""
 
     change: np.ndarray  # [h, w, 3] float32 grey levels, slow illumination differences removed
@@ -136,8 +136,8 @@ class ColourChange:
         return self.magnitude > self.threshold
 
 
-def colour_change(image: np.ndarray, reference: np.ndarray, min_change: float = MIN_CHANGE,
-                  iterations: int = 3) -> ColourChange:
+def color_change(image: np.ndarray, reference: np.ndarray, min_change: float = MIN_CHANGE,
+                  iterations: int = 3) -> ColorChange:
     """The colour change of ``image`` against the no-contact ``reference`` (both [h, w, 3] RGB), see the module doc."""
     image = _as_rgb(image, "image").astype(np.float64)
     reference = _as_rgb(reference, "reference").astype(np.float64)
@@ -160,10 +160,10 @@ def colour_change(image: np.ndarray, reference: np.ndarray, min_change: float = 
         still = ndimage.binary_erosion(magnitude < threshold, iterations=3).astype(np.float64)
         if not still.any():  # everything changed: no background left to model
             break
-    return ColourChange(change.astype(np.float32), magnitude.astype(np.float32), threshold)
+    return ColorChange(change.astype(np.float32), magnitude.astype(np.float32), threshold)
 
 
-def _changed_blobs(change: ColourChange) -> np.ndarray:
+def _changed_blobs(change: ColorChange) -> np.ndarray:
     """Changed pixels in blobs of at least the minimum area (see :func:`_solid_blobs`)."""
     return _solid_blobs(change.changed)
 
@@ -199,7 +199,7 @@ def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
     return cx, cy, float(np.sqrt(max(c + cx**2 + cy**2, 0.0)))
 
 
-def find_contact_circle(change: ColourChange, rays: int = 90) -> ContactCircle | None:
+def find_contact_circle(change: ColorChange, rays: int = 90) -> ContactCircle | None:
     """The contact circle of a ball press: the largest changed blob, refined to where the change peaks along rays.
 
     None when no blob is large enough, or the rim is not a circle (fewer than half the rays find their peak
@@ -398,7 +398,7 @@ class TactileCalibration:
             if image.shape != reference.shape:
                 raise TactileError("calibration", f"{name} is {image.shape[1]}x{image.shape[0]}, the reference "
                                                   f"{reference.shape[1]}x{reference.shape[0]}")
-            change = colour_change(image, reference)
+            change = color_change(image, reference)
             circle = find_contact_circle(change)
             record = {"index": k, "file": name, "role": "fit"}
             if circle is None or circle.radius >= 0.95 * ball_px:
@@ -425,15 +425,15 @@ class TactileCalibration:
         return cls(weights, pixel_size_m, tuple(int(s) for s in reference.shape[:2]), ball_radius_m,
                    max(MIN_CHANGE, float(np.median(thresholds))), MIN_CONTACT_DEPTH_PX * pixel_size_m, presses=used)
 
-    def change(self, image: np.ndarray, reference: np.ndarray) -> ColourChange:
+    def change(self, image: np.ndarray, reference: np.ndarray) -> ColorChange:
         """The colour change of ``image`` against ``reference``, at least this sensor's noise to count."""
         image = _as_rgb(image, "image")
         if image.shape[:2] != tuple(self.image_size):
             raise TactileError("calibration", f"image is {image.shape[1]}x{image.shape[0]}, the calibration is for "
                                               f"{self.image_size[1]}x{self.image_size[0]}")
-        return colour_change(image, reference, min_change=self.change_threshold)
+        return color_change(image, reference, min_change=self.change_threshold)
 
-    def gradients(self, change: ColourChange) -> tuple[np.ndarray, np.ndarray]:
+    def gradients(self, change: ColorChange) -> tuple[np.ndarray, np.ndarray]:
         """Surface gradients (gx, gy) [h, w] of the gel from its colour change."""
         g = _mlp(self.weights, _features(change.change)).reshape(*change.magnitude.shape, 2).astype(np.float64)
         return g[..., 0], g[..., 1]

@@ -31,7 +31,7 @@ def sphere_directions(count: int, dtype=torch.float64) -> Tensor:
     return torch.stack([ring * torch.cos(azimuth), ring * torch.sin(azimuth), z], dim=-1)
 
 
-def shaded_colours(gaussians: Gaussians, look: Look, directions: Tensor, normals: Tensor | None = None) -> Tensor:
+def shaded_colors(gaussians: Gaussians, look: Look, directions: Tensor, normals: Tensor | None = None) -> Tensor:
     """The colour [N, D, 3] each Gaussian shows along each unit world view direction ``directions`` [D, 3]
     (camera to Gaussian) when the deferred shading (:func:`.shading.shade_points`) lights it alone: the pixel's
     normal is the Gaussian's (``normals`` [N, 3], default its shortest axis) turned towards the viewer, the
@@ -64,7 +64,7 @@ def bake_appearance(gaussians: Gaussians, look: Look, directions: int = BAKE_DIR
     for start in range(0, len(g), BAKE_CHUNK):
         rows = slice(start, min(start + BAKE_CHUNK, len(g)))
         part = Gaussians({k: v[rows] for k, v in g.params.items()}, g.from_touch[rows], g.sh_degree)
-        target = shaded_colours(part, look, dirs, normals[rows].to(g.means.dtype)).double() - 0.5
+        target = shaded_colors(part, look, dirs, normals[rows].to(g.means.dtype)).double() - 0.5
         weight = (normals[rows] @ dirs.T).abs() + 1e-3  # [n, D]: projected area (never exactly 0)
         normal_matrix = torch.einsum("dk,nd,dl->nkl", basis, weight, basis)  # [n, 16, 16]
         normal_matrix += 1e-6 * torch.eye(basis.shape[1], dtype=basis.dtype, device=basis.device)

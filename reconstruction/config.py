@@ -175,7 +175,10 @@ class TrainConfig:
             data = {**_BEFORE_THEY_EXISTED, **data}
             data.pop("scene", None)
             _drop_removed(data, source)
-            init = InitConfig(**{**_INIT_BEFORE_THEY_EXISTED, **data.pop("init", {})})
+            init = data.pop("init", {})
+            if "colours_from_views" in init:  # its name before identifiers spelled color
+                init.setdefault("colors_from_views", init.pop("colours_from_views"))
+            init = InitConfig(**{**_INIT_BEFORE_THEY_EXISTED, **init})
             densify = DensifyStrategy(**data.pop("densify", {}))
             if data.get("background") is not None:
                 data["background"] = tuple(data["background"])
@@ -214,7 +217,7 @@ def _flat(settings: dict, prefix: str = "") -> dict:
 # differs from today's default): no surface-normal losses, and the colour was unlit SH without a smooth albedo.
 _BEFORE_THEY_EXISTED = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0,
                         "appearance": "sh", "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
-_INIT_BEFORE_THEY_EXISTED = {"colours_from_views": False}  # ... and of its InitConfig: random initial colours
+_INIT_BEFORE_THEY_EXISTED = {"colors_from_views": False}  # ... and of its InitConfig: random initial colours
 
 # Fields of mechanisms measured not to help and removed (docs/experiments.md, "Removed"): a config.json that has
 # them off (or holds only their settings) reads as today's config; one that used them cannot be resumed or shown.
@@ -341,7 +344,7 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
     if config.init.use_silhouette_hull:
         lines.append("initialisation: G_c on the visual hull of the silhouettes when SfM finds too few points (the "
                      "official data preparation triangulates COLMAP points from the train and test images)")
-    if config.init.colours_from_views and (config.use_touch or config.init.use_silhouette_hull):
+    if config.init.colors_from_views and (config.use_touch or config.init.use_silhouette_hull):
         lines.append("initial colours of the touch Gaussians (and of a failed SfM's points) from the training pixels "
                      "they project to; the paper: random")
     if config.lambda_backdrop > 0:

@@ -217,7 +217,7 @@ def evaluate_views(
     gaussians: Gaussians,
     scene,
     frames: list,
-    background_colour: tuple[float, float, float] | None,
+    background_color: tuple[float, float, float] | None,
     backend: str,
     ground_truth: GroundTruth | None,
     render_dir: Path | None = None,
@@ -238,12 +238,12 @@ def evaluate_views(
     can place it). ``cd_paper`` (the paper's official code): median depth of the
     views, subsampled to at most ``PAPER_MAX_POINTS`` (fixed seed), against points on the whole ground-truth
     surface, mean squared distance each way, summed. Both in units of the ground-truth bounding-sphere radius.
-    Each view's backdrop is ``background_colour``, or (None) fitted to that view's image border.
+    Each view's backdrop is ``background_color``, or (None) fitted to that view's image border.
     """
     psnrs, ssims, predicted, predicted_median, angles, signed = [], [], [], [], [], []
     for f in frames:
         gt_rgb = scene.load_image(f)
-        background = torch.from_numpy(background_image(gt_rgb, background_colour))
+        background = torch.from_numpy(background_image(gt_rgb, background_color))
         view = render_frame(gaussians, f, background, backend, with_depth=True, with_normals=not progress, look=look)
         rgb, depth = view.rgb, view.depth
         gt_depth = scene.gt_depth(f)
@@ -291,17 +291,17 @@ def evaluate_views(
     }
 
 
-def _depth_colour(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
+def _depth_color(depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
     scaled = np.clip((depth - lo) / max(hi - lo, 1e-9), 0, 1)
-    coloured = cv2.applyColorMap((255 * (1 - scaled)).astype(np.uint8), cv2.COLORMAP_TURBO)
-    coloured[depth <= 0] = 0
-    return cv2.cvtColor(coloured, cv2.COLOR_BGR2RGB)
+    colored = cv2.applyColorMap((255 * (1 - scaled)).astype(np.uint8), cv2.COLORMAP_TURBO)
+    colored[depth <= 0] = 0
+    return cv2.cvtColor(colored, cv2.COLOR_BGR2RGB)
 
 
 ERROR_SCALE = 0.1  # of the GT radius: the depth-error panel saturates at this signed error
 
 
-def _error_colour(depth: np.ndarray, gt_depth: np.ndarray, scale: float) -> np.ndarray:
+def _error_color(depth: np.ndarray, gt_depth: np.ndarray, scale: float) -> np.ndarray:
     """Signed depth error as RGB [H, W, 3] uint8: white 0, red behind the truth, blue in front (saturating at
     ``scale``); green where the truth has surface and the render none, dark grey the reverse, black neither."""
     both = (depth > 0) & (gt_depth > 0)
@@ -325,7 +325,7 @@ def seen_pixels(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray | None:
     return image
 
 
-def _seen_colour(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray:
+def _seen_color(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray:
     """The ground-truth surface of a view [H, W, 3] uint8: light grey where a training camera sees it (``seen``
     [H, W] bool), magenta where none does, black off the surface."""
     image = np.zeros(gt_depth.shape + (3,), np.uint8)
@@ -337,23 +337,23 @@ def _seen_colour(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray:
 
 def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | None = None,
                     seen: np.ndarray | None = None) -> None:
-    """One PNG: top row rendered RGB | GT RGB | signed depth error (``_error_colour``, saturating at
+    """One PNG: top row rendered RGB | GT RGB | signed depth error (``_error_color``, saturating at
     ``ERROR_SCALE`` radii), bottom row rendered depth | GT depth (shared colour scale) | where training cameras
-    see the surface (``_seen_colour``); the third column is black where its input is missing."""
+    see the surface (``_seen_color``); the third column is black where its input is missing."""
     valid = [d[d > 0] for d in (depth, gt_depth) if d is not None and (d > 0).any()]
     lo, hi = (min(v.min() for v in valid), max(v.max() for v in valid)) if valid else (0.0, 1.0)
     blank = np.zeros_like(gt_rgb, dtype=np.uint8)
     error = blank
     if gt_depth is not None and depth is not None:
-        error = _error_colour(depth, gt_depth, ERROR_SCALE * (radius if radius else max(hi - lo, 1e-9)))
+        error = _error_color(depth, gt_depth, ERROR_SCALE * (radius if radius else max(hi - lo, 1e-9)))
     coverage = blank
     seen_image = None if gt_depth is None or seen is None else seen_pixels(gt_depth, seen)
     if seen_image is not None:
-        coverage = _seen_colour(gt_depth, seen_image)
+        coverage = _seen_color(gt_depth, seen_image)
     top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8), error],
                          axis=1)
     bottom = np.concatenate(
-        [_depth_colour(depth, lo, hi), blank if gt_depth is None else _depth_colour(gt_depth, lo, hi), coverage],
+        [_depth_color(depth, lo, hi), blank if gt_depth is None else _depth_color(gt_depth, lo, hi), coverage],
         axis=1,
     )
     write_png(path, np.concatenate([top, bottom], axis=0))

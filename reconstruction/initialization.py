@@ -36,7 +36,7 @@ class InitConfig:
     use_silhouette_hull: bool = True  # failed SfM: draw them on the visual hull of the object's silhouettes
     # (views whose border fits a smooth backdrop) rather than in the whole bounding box
     hull_resolution: int = 64  # voxels along the longest side of the bounds when carving the hull
-    colours_from_views: bool = True  # G_t and the fallback's points start with the median colour of the training
+    colors_from_views: bool = True  # G_t and the fallback's points start with the median colour of the training
     # pixels they project to (on the object's silhouette where a view has one; occlusion ignored); False: random
     # colours (paper Sec. 4.1, for G_t)
     initial_opacity: float = 0.1  # of G_c, and of G_t unless touch_initial_opacity is set (paper Sec. 4.1)
@@ -164,23 +164,23 @@ def neighbour_scales(points: np.ndarray, k: int = 3, floor: float = 1e-5) -> np.
 
 
 def initial_gaussians(
-    colour_points: np.ndarray,  # [M, 3]
-    colour_rgb: np.ndarray,  # [M, 3]
+    color_points: np.ndarray,  # [M, 3]
+    color_rgb: np.ndarray,  # [M, 3]
     touch_points: np.ndarray,  # [P, 3]
     sh_degree: int,
     config: InitConfig,
     rng: np.random.Generator,
 ) -> Gaussians:
     """G_c at the coloured points and G_t at the touch points (random colours), scales from neighbour distances."""
-    points = np.concatenate([colour_points, touch_points])
-    colors = np.concatenate([colour_rgb, rng.uniform(0.0, 1.0, size=(len(touch_points), 3))])
-    from_touch = np.concatenate([np.zeros(len(colour_points), bool), np.ones(len(touch_points), bool)])
+    points = np.concatenate([color_points, touch_points])
+    colors = np.concatenate([color_rgb, rng.uniform(0.0, 1.0, size=(len(touch_points), 3))])
+    from_touch = np.concatenate([np.zeros(len(color_points), bool), np.ones(len(touch_points), bool)])
     touch_opacity = config.initial_opacity if config.touch_initial_opacity is None else config.touch_initial_opacity
     opacities = np.where(from_touch, touch_opacity, config.initial_opacity)
     return Gaussians.from_points(points, colors, neighbour_scales(points), from_touch, sh_degree, opacities)
 
 
-def view_colours(
+def view_colors(
     points: np.ndarray,  # [N, 3] world
     images: list[np.ndarray],  # each [H, W, 3] float in [0, 1]
     Ks: list[np.ndarray],  # each [3, 3]
@@ -206,9 +206,9 @@ def view_colours(
             inside, rows, cols = inside[on_object], rows[on_object], cols[on_object]
         samples[k, inside] = np.asarray(image, dtype=np.float64)[rows, cols]
     seen = np.isfinite(samples[..., 0]).any(axis=0)  # [N]
-    colours = np.full((len(points), 3), np.nan)
-    colours[seen] = np.nanmedian(samples[:, seen], axis=0)
-    return colours
+    colors = np.full((len(points), 3), np.nan)
+    colors[seen] = np.nanmedian(samples[:, seen], axis=0)
+    return colors
 
 
 def foreground_mask(backdrop: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ class Method:
 # the paper's method: touch and smoothness with view-dependent SH colour; none of our surface-normal losses,
 # unlit colour, touch Gaussians starting with random colours
 _PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
-          "lambda_albedo_smoothness": 0.0, "init.colours_from_views": False}
+          "lambda_albedo_smoothness": 0.0, "init.colors_from_views": False}
 
 METHODS: dict[str, Method] = {
     m.name: m
@@ -84,7 +84,7 @@ def mechanisms(config) -> dict[str, bool]:
         "depth_normal": config.lambda_depth_normal > 0, "tactile_normals": touch and config.lambda_touch_normal > 0,
         "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
-        "view_colours": config.init.colours_from_views,
+        "view_colors": config.init.colors_from_views,
     }  # fmt: skip
 
 

@@ -162,8 +162,8 @@ def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: T
     view = pixel_rays(K, w, h).reshape(-1, 3)[drawn] @ rotation.T  # [P, 3] world
     n = normal.reshape(-1, 3)[drawn] @ rotation.T
     shaded = shade_points(diffuse.reshape(-1, 3)[drawn], n, view, light)
-    colour = diffuse.new_zeros(h * w, 3).index_copy(0, drawn, shaded).reshape(h, w, 3)
-    return colour * alpha[..., None], diffuse
+    color = diffuse.new_zeros(h * w, 3).index_copy(0, drawn, shaded).reshape(h, w, 3)
+    return color * alpha[..., None], diffuse
 
 
 def shade_points(albedo: Tensor, normals: Tensor, views: Tensor, light: DiffuseLight | None = None) -> Tensor:

@@ -50,7 +50,7 @@ from tacsplat.reconstruction.initialization import (
     sfm_points,
     silhouette_hull_points,
     thin_touch_points,
-    view_colours,
+    view_colors,
 )
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction import shading
@@ -208,24 +208,24 @@ class Trainer:
             log.info("initialisation: %d SfM points (< %d): %d random points %s",
                      found, cfg.init.min_sfm_points, len(points), where)  # fmt: skip
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
-        if cfg.init.colours_from_views:  # the randomly coloured ones: G_t, after the fallback's points if SfM failed
+        if cfg.init.colors_from_views:  # the randomly coloured ones: G_t, after the fallback's points if SfM failed
             first = len(points) if sfm_found else 0
-            recoloured = self.touch_points if sfm_found else np.concatenate([points, self.touch_points])
-            self._colour_from_views(gaussians, recoloured, first)
+            recolored = self.touch_points if sfm_found else np.concatenate([points, self.touch_points])
+            self._color_from_views(gaussians, recolored, first)
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
 
-    def _colour_from_views(self, gaussians: Gaussians, points: np.ndarray, first: int) -> None:
-        """Gaussians ``first`` on, at ``points`` [M, 3], take the :func:`view_colours` of the training views (on
+    def _color_from_views(self, gaussians: Gaussians, points: np.ndarray, first: int) -> None:
+        """Gaussians ``first`` on, at ``points`` [M, 3], take the :func:`view_colors` of the training views (on
         their silhouettes where known); those that land on no view's object keep their colour."""
-        colours = view_colours(
+        colors = view_colors(
             points, [im.cpu().numpy() for im in self.images], [f.intrinsics.K for f in self.train_frames],
             [f.T_world_cam for f in self.train_frames], self.silhouettes,
         )  # [M, 3]
-        found = np.isfinite(colours).all(axis=1)
+        found = np.isfinite(colors).all(axis=1)
         rows = torch.from_numpy(first + np.flatnonzero(found))
-        gaussians.params["sh0"].data[rows] = rgb_to_sh0(torch.as_tensor(colours[found], dtype=torch.float32)[:, None])
+        gaussians.params["sh0"].data[rows] = rgb_to_sh0(torch.as_tensor(colors[found], dtype=torch.float32)[:, None])
 
     def _fallback_points(self) -> tuple[np.ndarray, np.ndarray, str]:
         """Random coloured points on the silhouettes' visual hull, or in the scene bounds without silhouettes."""

@@ -39,11 +39,11 @@ def fit_backdrop(image: np.ndarray, degree: int = 2, max_residual: float = 0.02)
     return np.clip(basis @ coeffs, 0.0, 1.0).astype(np.float32)
 
 
-def background_image(image: np.ndarray, colour: tuple[float, float, float] | None = None) -> np.ndarray:
+def background_image(image: np.ndarray, color: tuple[float, float, float] | None = None) -> np.ndarray:
     """The backdrop behind the object in one view [H, W, 3] float32: ``colour``, else fitted, else black."""
     h, w = image.shape[:2]
-    if colour is not None:
-        return np.broadcast_to(np.asarray(colour, dtype=np.float32), (h, w, 3)).copy()
+    if color is not None:
+        return np.broadcast_to(np.asarray(color, dtype=np.float32), (h, w, 3)).copy()
     fitted = fit_backdrop(image)
     return np.zeros((h, w, 3), np.float32) if fitted is None else fitted
 

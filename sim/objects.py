@@ -182,9 +182,9 @@ def checker_texture(rgba: tuple[float, float, float, float], squares: int = CHEC
     """A face of the "checker" texture, RGB uint8 [squares * texels, squares * texels, 3]: the material's colour
     and a grey far from it (dark on a light object, light on a dark one), alternating."""
     parity = np.add.outer(np.arange(squares * texels) // texels, np.arange(squares * texels) // texels) % 2
-    colour = 255.0 * np.asarray(rgba[:3], dtype=np.float64)
-    grey = np.full(3, 40.0 if colour.mean() > 127.5 else 235.0)
-    return np.where(parity[..., None] == 1, colour, grey).round().astype(np.uint8)
+    color = 255.0 * np.asarray(rgba[:3], dtype=np.float64)
+    grey = np.full(3, 40.0 if color.mean() > 127.5 else 235.0)
+    return np.where(parity[..., None] == 1, color, grey).round().astype(np.uint8)
 
 
 def object_radius_problem(radius) -> str | None:

@@ -155,7 +155,7 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
         raise ConfigError("texture", problem)
     textured = config.texture == "checker"  # a cube map: MuJoCo projects it onto a mesh without texture coordinates
     texture = f'<texture name="object" type="cube" file="{CHECKER_FILE}"/>' if textured else ""
-    colour = "1 1 1 1" if textured else " ".join(f"{c:.4g}" for c in m.rgba)  # the texture holds the colour
+    color = "1 1 1 1" if textured else " ".join(f"{c:.4g}" for c in m.rgba)  # the texture holds the colour
     hull_assets = "\n".join(_mesh_asset(f"hull{i}", h) for i, h in enumerate(hulls))
     hull_geoms = "\n".join(
         f'<geom name="object_hull{i}" type="mesh" mesh="hull{i}" group="3" contype="0" conaffinity="1"/>'
@@ -179,7 +179,7 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
     {sky}
     {HAND_MATERIALS}
     {texture}
-    <material name="object" rgba="{colour}" specular="{m.specular:.4g}" shininess="{m.shininess:.4g}"
+    <material name="object" rgba="{color}" specular="{m.specular:.4g}" shininess="{m.shininess:.4g}"
               reflectance="{m.reflectance:.4g}"{' texture="object"' if textured else ""}/>
     {_mesh_asset("object_visual", obj.mesh)}
 {hull_assets}

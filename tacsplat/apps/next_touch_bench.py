@@ -372,12 +372,12 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
     summary = summarise(rows)
     budgets = sorted({r["grasps"] for r in rows})
     fig, ax = pyplot().subplots(figsize=(5.5, 4))
-    for strategy, colour in zip(STRATEGIES, ("tab:blue", "tab:red")):
+    for strategy, color in zip(STRATEGIES, ("tab:blue", "tab:red")):
         ks = [k for k in budgets if (strategy, k) in summary]
         mean = np.array([summary[strategy, k]["cd"] for k in ks])
         spread = np.array([summary[strategy, k]["spread"] for k in ks])
-        ax.plot(ks, mean, "o-", color=colour, label=strategy)
-        ax.fill_between(ks, mean - spread, mean + spread, color=colour, alpha=0.2)
+        ax.plot(ks, mean, "o-", color=color, label=strategy)
+        ax.fill_between(ks, mean - spread, mean + spread, color=color, alpha=0.2)
     ax.set_xlabel("grasps (4 fingertips each)")
     ax.set_ylabel("Chamfer distance [x GT radius]")
     ax.set_title("CD against grasps (mean; band: spread over seeds)")

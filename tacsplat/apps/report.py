@@ -195,7 +195,7 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     return save_figure(fig, path)
 
 
-UNSEEN_COLOUR = (0.9, 0.0, 0.8)  # magenta: ground-truth surface no training camera sees
+UNSEEN_COLOR = (0.9, 0.0, 0.8)  # magenta: ground-truth surface no training camera sees
 
 
 def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarray, path: str | Path,
@@ -235,7 +235,7 @@ def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarr
         if with_error and j == 0:
             coverage = np.zeros(gt_depth.shape + (3,))
             coverage[(gt_depth > 0) & gt_seen] = 0.8
-            coverage[(gt_depth > 0) & ~gt_seen] = UNSEEN_COLOUR
+            coverage[(gt_depth > 0) & ~gt_seen] = UNSEEN_COLOR
             axes[-1, j].imshow(coverage)
         elif with_error:
             both = (depth > 0) & (gt_depth > 0)

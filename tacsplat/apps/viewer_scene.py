@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 THUMBNAIL_PX = 96  # longest side of a frustum's image
-SPLIT_COLOURS = {"train": (40, 90, 220), "test": (230, 120, 20)}
-MESH_COLOUR = (150, 150, 150)
-SPHERE_COLOUR = (120, 200, 120)
+SPLIT_COLORS = {"train": (40, 90, 220), "test": (230, 120, 20)}
+MESH_COLOR = (150, 150, 150)
+SPHERE_COLOR = (120, 200, 120)
 
 
 @dataclass
@@ -50,7 +50,7 @@ def bounding_sphere(scene, mesh=None) -> Sphere:
     return Sphere((lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2), "cameras and touches (no ground-truth mesh)")
 
 
-def grasp_colours(grasps: list[int]) -> dict[int, tuple[int, int, int]]:
+def grasp_colors(grasps: list[int]) -> dict[int, tuple[int, int, int]]:
     """One colour per grasp (matplotlib's tab10, cycled)."""
     import matplotlib
 
@@ -77,7 +77,7 @@ def add_cameras(scene_api, name: str, scene, size: float) -> list:
         intr = frame.intrinsics
         nodes.append(scene_api.add_camera_frustum(
             f"{name}/{frame.split}/frame_{frame.id:04d}", fov=float(2 * np.arctan2(0.5 * intr.height, intr.fy)),
-            aspect=intr.width / intr.height, scale=size, thickness=0.03 * size, color=SPLIT_COLOURS[frame.split],
+            aspect=intr.width / intr.height, scale=size, thickness=0.03 * size, color=SPLIT_COLORS[frame.split],
             image=_thumbnail(scene.load_image(frame)), wxyz=vtf.SO3.from_matrix(frame.T_world_cam[:3, :3]).wxyz,
             position=frame.T_world_cam[:3, 3],
         ))  # fmt: skip
@@ -94,17 +94,17 @@ def add_touches(scene_api, name: str, scene) -> list:
     if not scene.touches:
         return []
     sensor = scene.sensor
-    colours = grasp_colours([t.grasp for t in scene.touches])
+    colors = grasp_colors([t.grasp for t in scene.touches])
     pad = (sensor.width_px * sensor.pixel_size_m, sensor.height_px * sensor.pixel_size_m, sensor.gel_thickness_m)
     nodes = []
-    for grasp, colour in colours.items():
+    for grasp, color in colors.items():
         touches = [t for t in scene.touches if t.grasp == grasp]
         group = f"{name}/grasp_{grasp:02d}"
         points = [tactile_depth_to_points(scene.load_touch_depth(t), sensor.pixel_size_m, t.T_world_sensor)
                   for t in touches if t.in_contact]
         points = np.concatenate(points) if points else np.zeros((0, 3))
         if len(points):
-            nodes.append(scene_api.add_point_cloud(f"{group}/points", points.astype(np.float32), colour,
+            nodes.append(scene_api.add_point_cloud(f"{group}/points", points.astype(np.float32), color,
                                                    point_size=2 * sensor.pixel_size_m, point_shape="circle",
                                                    precision="float32"))
         for t in touches:
@@ -112,7 +112,7 @@ def add_touches(scene_api, name: str, scene) -> list:
             nodes.append(scene_api.add_frame(frame, axes_length=0.5 * max(pad[:2]), axes_radius=0.02 * max(pad[:2]),
                                              wxyz=vtf.SO3.from_matrix(t.T_world_sensor[:3, :3]).wxyz,
                                              position=t.T_world_sensor[:3, 3]))
-            nodes.append(scene_api.add_box(f"{frame}/gel", colour, dimensions=pad, opacity=0.35,
+            nodes.append(scene_api.add_box(f"{frame}/gel", color, dimensions=pad, opacity=0.35,
                                            position=(0.0, 0.0, -0.5 * pad[2])))
     return nodes
 
@@ -128,10 +128,10 @@ def add_scene(scene_api, name: str, scene, show_mesh: bool = True, show_sphere: 
     if mesh is not None:
         nodes.groups["mesh"] = [scene_api.add_mesh_simple(
             f"{name}/gt_mesh", np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32),
-            color=MESH_COLOUR, visible=show_mesh,
+            color=MESH_COLOR, visible=show_mesh,
         )]  # fmt: skip
     nodes.groups["sphere"] = [scene_api.add_icosphere(
-        f"{name}/bounding_sphere", radius=sphere.radius, color=SPHERE_COLOUR, wireframe=True, position=sphere.centre,
+        f"{name}/bounding_sphere", radius=sphere.radius, color=SPHERE_COLOR, wireframe=True, position=sphere.centre,
         visible=show_sphere,
     )]  # fmt: skip
     return nodes

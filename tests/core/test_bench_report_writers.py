@@ -146,7 +146,7 @@ def test_bench_rows_and_config_errors():
         bench_row("ours")
     assert get_method("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
                                              "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
-                                             "lambda_albedo_smoothness": 0.0, "init.colours_from_views": False}
+                                             "lambda_albedo_smoothness": 0.0, "init.colors_from_views": False}
     with pytest.raises(ConfigError, match="method"):
         get_method("ours")
     with pytest.raises(ConfigError, match="methods"):

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tacsplat.cli import main as tacsplat_main
-from tacsplat.drivers.optical_tactile import TactileCalibration, colour_change, find_contact_circle
+from tacsplat.drivers.optical_tactile import TactileCalibration, color_change, find_contact_circle
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -54,7 +54,7 @@ def calibration_run(tmp_path_factory):
 def test_contact_circles_of_real_presses_agree_with_the_hand_labels():
     reference = read_rgb(DATA / "reference.png")
     for name, label in labels().items():
-        circle = find_contact_circle(colour_change(read_rgb(DATA / name), reference))
+        circle = find_contact_circle(color_change(read_rgb(DATA / name), reference))
         assert circle is not None, name
         centre_error = np.hypot(circle.cx - label["center_xy_px"][0], circle.cy - label["center_xy_px"][1])
         assert centre_error < 5.0, f"{name}: centre {circle.cx:.1f}, {circle.cy:.1f} vs label {label['center_xy_px']}"
@@ -136,13 +136,13 @@ def test_marker_dots_and_illumination_drift_do_not_make_contacts(calibration_run
     h, w = reference.shape[:2]
     ys, xs = np.indices((h, w))
     drift = 1.0 + 0.12 * (xs / w - 0.5) - 0.08 * (ys / h - 0.5)  # the lights dimmed on one side since the reference
-    plain = find_contact_circle(colour_change(press, reference))
+    plain = find_contact_circle(color_change(press, reference))
     marked_ref = with_markers_and_drift(reference, (0, 0), np.ones((h, w)))
-    marked = find_contact_circle(colour_change(with_markers_and_drift(press, (0.6, -0.4), drift), marked_ref))
+    marked = find_contact_circle(color_change(with_markers_and_drift(press, (0.6, -0.4), drift), marked_ref))
     assert marked is not None
     assert np.hypot(marked.cx - plain.cx, marked.cy - plain.cy) < 1.5 and abs(marked.radius - plain.radius) < 1.5
     untouched = with_markers_and_drift(reference, (0.4, 0.3), drift)
-    assert find_contact_circle(colour_change(untouched, marked_ref)) is None
+    assert find_contact_circle(color_change(untouched, marked_ref)) is None
     calib = TactileCalibration.load(calibration_run[1])
     assert not calib.depth(untouched, marked_ref).any()
     assert calib.depth(with_markers_and_drift(press, (0.6, -0.4), drift), marked_ref).max() > 0.2e-3

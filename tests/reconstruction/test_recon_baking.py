@@ -6,7 +6,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from tacsplat.geometry import invert_pose, look_at
-from tacsplat.reconstruction.baking import bake_appearance, shaded_colours, sphere_directions
+from tacsplat.reconstruction.baking import bake_appearance, shaded_colors, sphere_directions
 from tacsplat.reconstruction.gaussians import Gaussians, num_sh_bases, rgb_to_sh0
 from tacsplat.reconstruction.shading import DiffuseLight, Look, render
 
@@ -66,19 +66,19 @@ def test_a_baked_surfel_looks_as_its_shading_from_the_front_the_side_and_the_bac
         unbaked = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu")
         inside = shaded.alpha > 0.9
         assert inside.sum() > 20
-        colour = lambda out: out.rgb[inside] / out.alpha[inside][:, None]  # noqa: E731
-        error = (colour(plain) - colour(shaded)).abs()
+        color = lambda out: out.rgb[inside] / out.alpha[inside][:, None]  # noqa: E731
+        error = (color(plain) - color(shaded)).abs()
         assert error.mean() < 0.04 and error.max() < 0.07, (direction, error.mean(), error.max())
         baked_total += float(error.mean())
-        unbaked_total += float((colour(unbaked) - colour(shaded)).abs().mean())
+        unbaked_total += float((color(unbaked) - color(shaded)).abs().mean())
     # degree-3 SH cannot follow the jump where the surfel turns edge-on (its turned normal flips, and the light
     # on either side differs), which costs the few per cent above; without the bake the colours are far off
     assert baked_total < 0.25 * unbaked_total
 
 
 @torch.no_grad()
-def test_shaded_colours_are_the_deferred_shading_of_one_gaussian():
-    """Along the ray through the surfel's centre, :func:`shaded_colours` is the colour the renderer (its fused
+def test_shaded_colors_are_the_deferred_shading_of_one_gaussian():
+    """Along the ray through the surfel's centre, :func:`shaded_colors` is the colour the renderer (its fused
     shading kernels) gives the centre pixel: the same light, the normal turned towards the viewer, the SH colour
     along that ray."""
     surfel = _surfel()
@@ -89,7 +89,7 @@ def test_shaded_colours_are_the_deferred_shading_of_one_gaussian():
     out = render(surfel, viewmat, K, 32, 32, sh_degree=3, backend="cpu", appearance="sh-lit", light=look.light)
     centre = (out.rgb[15:17, 15:17] / out.alpha[15:17, 15:17, None]).mean(dim=(0, 1))
     direction = -torch.nn.functional.normalize(torch.tensor(eye), dim=0)
-    expected = shaded_colours(surfel, look, direction[None])[0, 0]
+    expected = shaded_colors(surfel, look, direction[None])[0, 0]
     torch.testing.assert_close(centre, expected, rtol=0, atol=0.01)
 
 

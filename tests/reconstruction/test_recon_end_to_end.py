@@ -48,22 +48,22 @@ def _config(iterations: int, **overrides) -> TrainConfig:
     return TrainConfig(**base)
 
 
-def test_touch_and_fallback_gaussians_start_with_the_colours_their_pixels_show(sphere_scene, tmp_path):
-    """``init.colours_from_views``: the randomly coloured Gaussians (here all of them: no SfM) take the median colour
+def test_touch_and_fallback_gaussians_start_with_the_colors_their_pixels_show(sphere_scene, tmp_path):
+    """``init.colors_from_views``: the randomly coloured Gaussians (here all of them: no SfM) take the median colour
     of the training pixels they project to on the silhouettes; off, they keep random colours. Nothing else of the
     initialisation changes (the same random draws)."""
     from tacsplat.reconstruction.gaussians import sh0_to_rgb
-    from tacsplat.reconstruction.initialization import foreground_mask, view_colours
+    from tacsplat.reconstruction.initialization import foreground_mask, view_colors
 
     trainers = {}
     for on in (True, False):
         trainers[on] = Trainer(Scene.load(sphere_scene), tmp_path / str(on),
-                               _config(10, init=InitConfig(use_sfm=False, num_random_points=500, colours_from_views=on)))
+                               _config(10, init=InitConfig(use_sfm=False, num_random_points=500, colors_from_views=on)))
         trainers[on].initialize()
     seen, unseen = (trainers[on].gaussians for on in (True, False))
     assert torch.equal(seen.means, unseen.means) and seen.num_touch > 0
     t = trainers[True]
-    expected = view_colours(seen.means.detach().double().numpy(), [im.numpy() for im in t.images],
+    expected = view_colors(seen.means.detach().double().numpy(), [im.numpy() for im in t.images],
                             [f.intrinsics.K for f in t.train_frames], [f.T_world_cam for f in t.train_frames],
                             [foreground_mask(m) for m in t.backdrop_pixels])  # [N, 3]
     found = np.isfinite(expected).all(axis=1)

@@ -10,7 +10,7 @@ from tacsplat.reconstruction.initialization import (
     foreground_mask,
     silhouette_hull_points,
     initial_gaussians,
-    view_colours,
+    view_colors,
     neighbour_scales,
     random_points,
     sfm_points,
@@ -121,7 +121,7 @@ def test_an_object_cut_by_the_frame_is_not_carved_outside_that_frame():
     assert np.abs(whole).max() < 0.1
 
 
-def test_foreground_keeps_backdrop_coloured_reflections_inside_the_object():
+def test_foreground_keeps_backdrop_colored_reflections_inside_the_object():
     backdrop = np.ones((20, 20), bool)
     backdrop[5:15, 5:15] = False  # the object
     backdrop[8:11, 8:11] = True  # a highlight that mirrors the backdrop colour
@@ -130,7 +130,7 @@ def test_foreground_keeps_backdrop_coloured_reflections_inside_the_object():
     assert not foreground_mask(np.ones((6, 6), bool)).any()
 
 
-def test_view_colours_are_the_median_pixel_on_the_object_and_nan_off_it():
+def test_view_colors_are_the_median_pixel_on_the_object_and_nan_off_it():
     # four views of a plane whose left half (x < 0) is red and right half blue; views 0 and 3 are all green
     texture = np.zeros((400, 400, 3), np.uint8)
     texture[:, :200] = (255, 0, 0)
@@ -140,10 +140,10 @@ def test_view_colours_are_the_median_pixel_on_the_object_and_nan_off_it():
     images[0][:] = images[3][:] = (0.0, 1.0, 0.0)
     points = np.array([[-0.05, 0.02, 0.0], [0.05, -0.03, 0.0], [0.0, 0.0, 5.0]])  # the last behind every camera
     silhouettes = [np.ones((200, 200), bool)] * 3 + [np.zeros((200, 200), bool)]  # view 3 sees no object
-    colours = view_colours(points, images, Ks, poses, silhouettes)
-    assert colours.shape == (3, 3)
-    np.testing.assert_allclose(colours[0], [1.0, 0.0, 0.0], atol=0.02)  # median of green, red, red: view 3 is out
-    np.testing.assert_allclose(colours[1], [0.0, 0.0, 1.0], atol=0.02)
-    assert np.isnan(colours[2]).all()
-    no_silhouettes = view_colours(points, images, Ks, poses, [None] * 4)
+    colors = view_colors(points, images, Ks, poses, silhouettes)
+    assert colors.shape == (3, 3)
+    np.testing.assert_allclose(colors[0], [1.0, 0.0, 0.0], atol=0.02)  # median of green, red, red: view 3 is out
+    np.testing.assert_allclose(colors[1], [0.0, 0.0, 1.0], atol=0.02)
+    assert np.isnan(colors[2]).all()
+    no_silhouettes = view_colors(points, images, Ks, poses, [None] * 4)
     np.testing.assert_allclose(no_silhouettes[0], [0.5, 0.5, 0.0], atol=0.02)  # green, red, red, green

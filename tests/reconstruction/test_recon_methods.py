@@ -51,7 +51,7 @@ def test_set_fields_sets_nested_fields_and_names_an_unknown_key():
             set_fields(TrainConfig(), {key: 1}, "rows.yaml")
 
 
-def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_trained():
+def test_a_run_config_written_before_the_lit_color_existed_reads_as_what_it_trained():
     """config.json of a run from before ``appearance`` and ``lambda_albedo_smoothness`` existed: unlit SH colour, no
     smooth albedo (the defaults of its day), not today's defaults."""
     old = TrainConfig().to_json()
@@ -67,9 +67,12 @@ def test_a_run_config_written_before_the_lit_colour_existed_reads_as_what_it_tra
                  "lambda_albedo_smoothness", "albedo_smoothness_beta"):
         del paper[name]
     assert method_of(TrainConfig.from_json(paper)) == "paper"
-    before_view_colours = TrainConfig().to_json()  # a default run from before the initial colours from the views
-    del before_view_colours["init"]["colours_from_views"]
-    assert not TrainConfig.from_json(before_view_colours).init.colours_from_views  # random colours, as it trained
+    before_view_colors = TrainConfig().to_json()  # a default run from before the initial colours from the views
+    del before_view_colors["init"]["colors_from_views"]
+    assert not TrainConfig.from_json(before_view_colors).init.colors_from_views  # random colours, as it trained
+    british = TrainConfig(init=InitConfig(colors_from_views=False)).to_json()  # the field's name until 2026-11-28
+    british["init"]["colours_from_views"] = british["init"].pop("colors_from_views")
+    assert TrainConfig.from_json(british) == TrainConfig(init=InitConfig(colors_from_views=False))
 
 
 def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refused_when_on():
@@ -93,6 +96,6 @@ def test_a_switched_off_mechanisms_settings_are_unused():
     assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
 
 
-def test_colours_from_the_views_are_listed_among_the_departures_from_the_paper_only_when_on():
+def test_colors_from_the_views_are_listed_among_the_departures_from_the_paper_only_when_on():
     assert [line for line in paper_departures(TrainConfig()) if "initial colours" in line]
     assert not [line for line in paper_departures(method_config("paper")) if "initial colours" in line]

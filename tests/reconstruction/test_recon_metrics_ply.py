@@ -172,7 +172,7 @@ def test_background_is_fitted_to_a_smooth_border_and_black_for_a_cluttered_one()
     np.testing.assert_allclose(background_image(image), backdrop, atol=1e-5)
     cluttered = np.random.default_rng(0).uniform(0, 1, (h, w, 3))
     assert not background_image(cluttered).any()
-    np.testing.assert_allclose(background_image(image, colour=(0.1, 0.2, 0.3))[5, 7], [0.1, 0.2, 0.3], rtol=1e-6)
+    np.testing.assert_allclose(background_image(image, color=(0.1, 0.2, 0.3))[5, 7], [0.1, 0.2, 0.3], rtol=1e-6)
 
 
 def test_both_chamfer_distances_on_clouds_with_known_distances():

@@ -40,7 +40,7 @@ def test_dent_walls_are_lit_by_the_light_they_face():
     assert img[r0 + 10, c0, 0] < bg[r0 + 10, c0, 0] - 20
 
 
-def test_normals_can_be_recovered_from_the_colours():
+def test_normals_can_be_recovered_from_the_colors():
     depth = sphere_dent()
     bg = default_tactile_background(*depth.shape)
     img = render_tactile_rgb(depth, PIX, bg).astype(np.float64)

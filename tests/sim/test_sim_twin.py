@@ -96,7 +96,7 @@ def test_projected_mesh_lands_on_the_rendered_silhouette_and_depth_lies_on_the_m
         assert distance.max() < 3e-4
 
 
-def test_a_checker_texture_paints_the_object_in_its_colour_and_a_contrasting_grey():
+def test_a_checker_texture_paints_the_object_in_its_color_and_a_contrasting_grey():
     """The "checker" texture (a cube map MuJoCo projects onto the mesh) shows the helmet's blue and a light grey in
     alternating patches; without it the helmet is one hue."""
     from tacsplat.sim.objects import make_object
