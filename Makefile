@@ -16,7 +16,8 @@ setup: $(STAMP)
 #   make test TORCH_INDEX=https://download.pytorch.org/whl/cpu   (CPU only)
 TORCH ?= torch==2.13.0
 TORCH_INDEX ?=
-EXTRAS ?= dev
+# every extra (the base install alone, the scene format, reconstruction and the CLI: pip install -e .)
+EXTRAS ?= dev,sim,hardware,viewer,cluster
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip

@@ -46,6 +46,10 @@ COMMAND_MODULES = (
     "tacsplat.apps.viewer",
 )
 
+# The modules of the optional extras (pyproject.toml), by the extra that installs them.
+EXTRAS = {"mujoco": "sim", "coacd": "sim", "manifold3d": "sim", "dynamixel_sdk": "hardware", "serial": "hardware",
+          "viser": "viewer", "ray": "cluster", "gsplat": "cuda"}
+
 GROUP_HELP = {
     "import": "import a dataset (Blender/NeRF-synthetic, COLMAP, nerfstudio/instant-ngp) into a scene directory",
     "bench": "benchmarks: error and run time, medians and ratios against a reference",
@@ -187,6 +191,13 @@ def main(argv: list[str] | None = None) -> int:
             raise
         # a write no command turned into a StorageError itself: still one line naming the file
         print(f"error: {storage_error(exc, exc.filename or 'a file')}", file=sys.stderr)
+        return 1
+    except ModuleNotFoundError as exc:
+        extra = EXTRAS.get((exc.name or "").partition(".")[0])
+        if extra is None:
+            raise
+        print(f"error: {_subparser(parser, argv).prog} needs the {extra} extra ({exc.name} is not installed): "
+              f"pip install 'tacsplat[{extra}]'", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -69,6 +69,8 @@ def register(cli) -> None:
 
 
 def _run(args) -> int:
+    import viser  # (first: without the viewer extra nothing else is worth checking)
+
     if not 0 <= args.port <= 65535:
         raise UsageError("--port", f"must be in [0, 65535], got {args.port}")
     export = Path(args.export) if args.export else None
@@ -78,8 +80,6 @@ def _run(args) -> int:
         check_writable(export.parent)  # a read-only or full folder is refused before the view is built
     path = Path(args.path)
     content = load_content(path)
-    import viser
-
     logging.getLogger("websockets").setLevel(logging.WARNING)
     with _viser_quiet():  # viser prints its own banner; ours follows
         server = viser.ViserServer(host="127.0.0.1" if export else args.host, port=0 if export else args.port,
