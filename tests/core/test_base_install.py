@@ -2,6 +2,7 @@
 small scene, and whose commands that need an extra name it. Slow: a real install (minutes)."""
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -26,7 +27,9 @@ def test_the_base_install_reconstructs_a_scene_and_names_the_extras_it_lacks(tmp
     _run(sys.executable, "-m", "venv", venv)
     python, tacsplat = venv / "bin" / "python", venv / "bin" / "tacsplat"
     _run(python, "-m", "pip", "install", "--quiet", f"torch=={torch.__version__.split('+')[0]}")  # (pip's cache)
-    _run(python, "-m", "pip", "install", "--quiet", ROOT)
+    source = tmp_path / "source"  # (pip builds in the tree it installs: a copy keeps build/ out of this one)
+    shutil.copytree(ROOT, source, ignore=shutil.ignore_patterns(".*", "build", "*.egg-info", "__pycache__", "*-output"))
+    _run(python, "-m", "pip", "install", "--quiet", source)
     found = _run(python, "-c", f"import importlib.util as u; print([m for m in {EXTRA_MODULES!r} if u.find_spec(m)])")
     assert found.stdout.strip() == "[]"  # no extra came with it
     scene, run = tmp_path / "scene", tmp_path / "run"
