@@ -22,70 +22,118 @@ Appearance = Literal["sh", "sh-lit"]  # how Gaussians are coloured (see TrainCon
 class TrainConfig:
     """Training settings; defaults aim at a 5-view 200x200 object in minutes on 2 CPU cores."""
 
-    iterations: int = 2000  # optimisation steps
-    seed: int = 0  # seeds every random draw (initialisation, view order, touch subsets)
-    sh_degree: int = 3  # maximum SH degree (0 for a Lambertian scene)
-    sh_degree_interval: int = 400  # one more SH band every this many steps (0: every band from the start)
-    train_views: int | None = None  # use only the first K training views (None = all)
-    downscale: int = 1  # train and evaluate at 1/N of the images' size (area-averaged; intrinsics scaled)
-    backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto"  # rasterization backend (auto: gsplat on CUDA,
-    # else the numba CPU backend for float32); "torch" also keeps the losses' torch references (no fused kernels)
-    device: Literal["auto", "cpu", "cuda"] = "auto"  # where training runs (auto: CUDA when torch sees a GPU)
-    torch_threads: int | None = 1  # torch intra-op threads while training (the cpu backend's kernels run
-    # their own threads; one torch thread avoids oversubscribing a small machine); None = torch's default
-    background: tuple[float, float, float] | None = None  # None: a smooth backdrop fitted to each image's border
+    iterations: int = 2000
+    """optimisation steps"""
+    seed: int = 0
+    """seeds every random draw (initialisation, view order, touch subsets)"""
+    sh_degree: int = 3
+    """maximum SH degree (0 for a Lambertian scene)"""
+    sh_degree_interval: int = 400
+    """one more SH band every this many steps (0: every band from the start)"""
+    train_views: int | None = None
+    """use only the first K training views (None = all)"""
+    downscale: int = 1
+    """train and evaluate at 1/N of the images' size (area-averaged; intrinsics scaled)"""
+    backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto"
+    """rasterization backend (auto: gsplat on CUDA, else the numba CPU backend for float32); "torch" also keeps
+    the losses' torch references (no fused kernels)"""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """where training runs (auto: CUDA when torch sees a GPU)"""
+    torch_threads: int | None = 1
+    """torch intra-op threads while training (the cpu backend's kernels run their own threads; one torch thread
+    avoids oversubscribing a small machine); None = torch's default"""
+    background: tuple[float, float, float] | None = None
+    """None: a smooth backdrop fitted to each image's border"""
     # -- loss weights (paper Sec. 4.2)
-    ssim_weight: float = 0.2  # D-SSIM share of the photometric loss (Kerbl et al.: 0.8 L1 + 0.2 D-SSIM)
-    lambda_t: float = 0.5  # transmittance L_T; 0 or no touches -> not computed
-    lambda_s: float = 2.0  # edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render
-    lambda_backdrop: float = 0.1  # alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)
-    backdrop_tolerance: float = 0.03  # a pixel within this of the backdrop in every channel shows the backdrop
-    use_touch: bool = True  # False: no touch Gaussians and no L_T (methods 3dgs and 3dgs+s)
+    ssim_weight: float = 0.2
+    """D-SSIM share of the photometric loss (Kerbl et al.: 0.8 L1 + 0.2 D-SSIM)"""
+    lambda_t: float = 0.5
+    """transmittance L_T; 0 or no touches -> not computed"""
+    lambda_s: float = 2.0
+    """edge-aware smoothness L_S (on depth / scene scale); 0 -> no depth render"""
+    lambda_backdrop: float = 0.1
+    """alpha on pixels that match the fitted backdrop (not in the paper; 0 = off)"""
+    backdrop_tolerance: float = 0.03
+    """a pixel within this of the backdrop in every channel shows the backdrop"""
+    use_touch: bool = True
+    """False: no touch Gaussians and no L_T (methods 3dgs and 3dgs+s)"""
     # -- transmittance (Sec. 4.2.1)
-    touch_top_k: int = 8  # most influential G_t per touch point
-    touch_candidates: int = 32  # nearest G_t fetched from the k-d tree per touch point
-    touch_max_distance: float = 0.005  # metres: Gaussians farther from the point are ignored
-    touch_rebuild_every: int = 50  # steps between k-d tree rebuilds (and after every densification)
-    touch_points_per_step: int = 512  # random subset of touch points in L_T per step (0 = all)
-    touch_loss_moves_shape: bool = False  # False: L_T moves means and opacities only (the effect Sec. 4.2.1
-    # describes); True: also scales and rotations, which L_T rewards for growing around the touch point
+    touch_top_k: int = 8
+    """most influential G_t per touch point"""
+    touch_candidates: int = 32
+    """nearest G_t fetched from the k-d tree per touch point"""
+    touch_max_distance: float = 0.005
+    """metres: Gaussians farther from the point are ignored"""
+    touch_rebuild_every: int = 50
+    """steps between k-d tree rebuilds (and after every densification)"""
+    touch_points_per_step: int = 512
+    """random subset of touch points in L_T per step (0 = all)"""
+    touch_loss_moves_shape: bool = False
+    """False: L_T moves means and opacities only (the effect Sec. 4.2.1 describes); True: also scales and
+    rotations, which L_T rewards for growing around the touch point"""
     # -- smoothness (Sec. 4.2.2)
-    smoothness_depth: Literal["expected", "accumulated"] = "expected"  # the depth map D of Eq. 8: "expected"
-    # (Eq. 5 divided by alpha, inside the silhouette) or the paper's "accumulated" Eq. 5, whose gradients at the
-    # silhouette and in semi-transparent regions are alpha's rather than the surface's
-    smoothness_beta: float = 10.0  # edge sensitivity e^{-beta |dI|}
-    smoothness_start_iter: int = 0  # L_S (and the depth render) from this step on
-    use_proximity_mask: bool = True  # L_S weighted by 1 - the proximity mask of the visible touches
-    proximity_sigma_px: float = 4.0  # Gaussian decay of the proximity mask, pixels
-    occlusion_tolerance: float = 0.005  # metres: a touch point this far behind the rendered surface is hidden
+    smoothness_depth: Literal["expected", "accumulated"] = "expected"
+    """the depth map D of Eq. 8: "expected" (Eq. 5 divided by alpha, inside the silhouette) or the paper's
+    "accumulated" Eq. 5, whose gradients at the silhouette and in semi-transparent regions are alpha's rather
+    than the surface's"""
+    smoothness_beta: float = 10.0
+    """edge sensitivity e^{-beta |dI|}"""
+    smoothness_start_iter: int = 0
+    """L_S (and the depth render) from this step on"""
+    use_proximity_mask: bool = True
+    """L_S weighted by 1 - the proximity mask of the visible touches"""
+    proximity_sigma_px: float = 4.0
+    """Gaussian decay of the proximity mask, pixels"""
+    occlusion_tolerance: float = 0.005
+    """metres: a touch point this far behind the rendered surface is hidden"""
     # -- surfaces and shading (beyond the paper; each 0 / "sh" = off, as the paper's methods set them)
-    lambda_flatten: float = 10.0  # minimum-scale loss (PGSR): surfel-like Gaussians whose shortest axis is a normal
-    lambda_depth_normal: float = 0.05  # depth-normal consistency (2DGS): rendered normals agree with the depth's
-    depth_normal_start_iter: int = 700  # ... from this step on (after the geometry has formed; from 300, the
-    # paper metric's completeness was 16 per cent worse on the twin's glossy objects: docs/experiments.md); a step
-    # number, as the other start steps are, so a run of 700 steps or fewer has none
-    lambda_touch_normal: float = 0.1  # touch Gaussians' normals agree with the tactile maps' surface normals
-    appearance: Appearance = "sh-lit"  # colour: view-dependent SH (3DGS), or "sh-lit": that colour as an albedo
-    # times a learned distant light's irradiance at the rendered normal, saturating at 1 (deferred shading)
-    lit_start_iter: int = 300  # "sh-lit": the light shades the albedo from this step on (before: unlit)
-    lambda_albedo_smoothness: float = 0.1  # L1 differences of neighbouring pixels' rendered diffuse colour inside
-    # the silhouette ("sh-lit"): shading has to come from the normals
-    albedo_smoothness_beta: float = 10.0  # albedo smoothness: each pair of neighbouring pixels weighted
-    # e^{-beta |dI|} by the training image's own difference there, so a texture's edges stay in the albedo (0: all 1)
+    lambda_flatten: float = 10.0
+    """minimum-scale loss (PGSR): surfel-like Gaussians whose shortest axis is a normal"""
+    lambda_depth_normal: float = 0.05
+    """depth-normal consistency (2DGS): rendered normals agree with the depth's"""
+    depth_normal_start_iter: int = 700
+    """... from this step on (after the geometry has formed; from 300, the paper metric's completeness was 16 per
+    cent worse on the twin's glossy objects: docs/experiments.md); a step number, as the other start steps
+    are, so a run of 700 steps or fewer has none"""
+    lambda_touch_normal: float = 0.1
+    """touch Gaussians' normals agree with the tactile maps' surface normals"""
+    appearance: Appearance = "sh-lit"
+    """colour: view-dependent SH (3DGS), or "sh-lit": that colour as an albedo times a learned distant light's
+    irradiance at the rendered normal, saturating at 1 (deferred shading)"""
+    lit_start_iter: int = 300
+    """"sh-lit": the light shades the albedo from this step on (before: unlit)"""
+    lambda_albedo_smoothness: float = 0.1
+    """L1 differences of neighbouring pixels' rendered diffuse colour inside the silhouette ("sh-lit"): shading
+    has to come from the normals"""
+    albedo_smoothness_beta: float = 10.0
+    """albedo smoothness: each pair of neighbouring pixels weighted e^{-beta |dI|} by the training image's own
+    difference there, so a texture's edges stay in the albedo (0: all 1)"""
     # -- Adam learning rates (Kerbl et al.); the position rate is multiplied by the scene scale
-    lr_means: float = 1.6e-4  # means (times the scene scale)
-    lr_means_final_factor: float = 0.01  # exponential decay of the position rate to this fraction
-    lr_quats: float = 1e-3  # rotations (quaternions)
-    lr_scales: float = 5e-3  # log scales
-    lr_opacities: float = 5e-2  # logit opacities
-    lr_sh0: float = 2.5e-3  # SH band 0 (base colour)
-    lr_shN: float = 2.5e-3 / 20  # higher SH bands
-    lr_light: float = 1e-2  # "sh-lit": the diffuse light's SH coefficients and camera light
+    lr_means: float = 1.6e-4
+    """means (times the scene scale)"""
+    lr_means_final_factor: float = 0.01
+    """exponential decay of the position rate to this fraction"""
+    lr_quats: float = 1e-3
+    """rotations (quaternions)"""
+    lr_scales: float = 5e-3
+    """log scales"""
+    lr_opacities: float = 5e-2
+    """logit opacities"""
+    lr_sh0: float = 2.5e-3
+    """SH band 0 (base colour)"""
+    lr_shN: float = 2.5e-3 / 20
+    """higher SH bands"""
+    lr_light: float = 1e-2
+    """"sh-lit": the diffuse light's SH coefficients and camera light"""
     # -- progress evaluation and checkpoints
-    eval_every_iters: int = 250  # held-out PSNR and CD at least this often...
-    eval_every_seconds: float = 30.0  # ...and at least this often in run time
-    eval_max_views: int = 6  # test views used for progress rows (the final evaluation uses all)
-    checkpoint_every: int = 500  # steps between checkpoints (and one at the end, on Ctrl-C and SIGTERM)
+    eval_every_iters: int = 250
+    """held-out PSNR and CD at least this often..."""
+    eval_every_seconds: float = 30.0
+    """...and at least this often in run time"""
+    eval_max_views: int = 6
+    """test views used for progress rows (the final evaluation uses all)"""
+    checkpoint_every: int = 500
+    """steps between checkpoints (and one at the end, on Ctrl-C and SIGTERM)"""
     init: InitConfig = field(default_factory=InitConfig)
     densify: DensifyStrategy = field(default_factory=DensifyStrategy)
 
@@ -197,17 +245,17 @@ def changed_settings(recorded: TrainConfig, now: TrainConfig, fields: Iterable[s
     ``densify.max_gaussians``; None: every one) that differs, the settings of a mechanism both configs switch off
     aside (:meth:`TrainConfig.unused_fields`)."""
     unused = recorded.unused_fields() & now.unused_fields()
-    before, after = _flat(recorded.to_json()), _flat(now.to_json())
+    before, after = flat_settings(recorded.to_json()), flat_settings(now.to_json())
     chosen = after if fields is None else [k for k in after if k in set(fields)]
     return [(k, before.get(k), after[k]) for k in chosen if k not in unused and before.get(k) != after[k]]
 
 
-def _flat(settings: dict, prefix: str = "") -> dict:
+def flat_settings(settings: dict, prefix: str = "") -> dict:
     """``{"densify.max_gaussians": ...}`` of nested settings."""
     flat = {}
     for key, value in settings.items():
         if isinstance(value, dict):
-            flat.update(_flat(value, f"{prefix}{key}."))
+            flat.update(flat_settings(value, f"{prefix}{key}."))
         else:
             flat[f"{prefix}{key}"] = value
     return flat
@@ -268,65 +316,57 @@ def _range_text(lo, hi, exclusive: bool = False) -> str:
     return f"{lo} to {hi}" + (f" (not {lo})" if exclusive else "")
 
 
-# ---------------------------------------------------------------------------------------------- presets
+# ------------------------------------------------------------------------------------- settings files
 
 PAPER_ITERATIONS = 30_000
+PAPER_SCHEDULE = Path(__file__).with_name("paper_schedule.yaml")  # the official code's schedule, cited line by line
+_STEP_SETTINGS = ("smoothness_start_iter", "densify.start_iter", "densify.stop_iter", "densify.refine_every",
+                  "densify.reset_every")  # the step numbers of the paper schedule that scale with its iterations
 
 
-def paper_preset(iterations: int = PAPER_ITERATIONS) -> dict:
-    """TrainConfig fields of the paper's official schedule; every step-based number scales with ``iterations``.
+def set_fields(config: TrainConfig, settings: dict, source: str | Path | None = None) -> TrainConfig:
+    """Set ``settings`` (``{"lambda_s": 0.0, "init.use_sfm": False}``) on a TrainConfig and return it; a
+    ConfigError naming ``source`` for a key that is not a field."""
+    for key, value in settings.items():
+        *path, name = key.split(".")
+        target = config
+        for part in path:
+            target = getattr(target, part, None)
+        if not dataclasses.is_dataclass(target) or name not in {f.name for f in dataclasses.fields(target)}:
+            raise ConfigError(key, "not a training setting (a TrainConfig field, or init.x / densify.x)", source)
+        setattr(target, name, tuple(value) if isinstance(value, list) else value)
+    return config
 
-    Source: maurock/Dynamic3DGaussians, branch depth_diff (commit 185ee92), the paper's runs
-    (config/generate_config_files.py ``experiment_1`` over config/train_default.yaml), train.py,
-    external.py, helpers.py and utils/utils_gaussian.py. Where our formulation differs, the number is
-    translated and the comment says how; what cannot be matched is listed by :func:`paper_departures`.
-    """
-    scale = iterations / PAPER_ITERATIONS
 
-    def steps(n: int) -> int:
-        return max(1, round(n * scale))
+def read_settings(path: str | Path) -> dict:
+    """The training settings of a YAML file (``field: value``, ``init:`` and ``densify:`` nested or dotted) as
+    ``{"lambda_s": 5.8, "densify.stop_iter": 15000}``; a ConfigError naming the file if it is not one."""
+    import yaml
 
-    return {
-        "iterations": iterations,  # train.yaml: iterations 30000
-        "sh_degree": 3,  # helpers.py: sh_degree=3 ...
-        "sh_degree_interval": 0,  # ... from the first step (no SH schedule)
-        "ssim_weight": 0.2,  # train.py: 0.8 * L1 + 0.2 * (1 - SSIM)
-        "lambda_t": 0.5,  # experiment_1: lambda_transmittance 0.5
-        "touch_top_k": 20,  # train.yaml: max_NN 20 (the touch Gaussians of highest influence per point)
-        "touch_candidates": 64,  # (our k-d tree shortlist from which the top 20 are ranked)
-        "touch_max_distance": 0.008,  # calculate_transmittance: dists > 0.1 masked, in unit-radius scenes =
-        # 0.1 object radii (0.008 m at the library's 0.08 m radius)
-        "touch_points_per_step": 0,  # every touch point in every step
-        "touch_loss_moves_shape": True,  # the loss reaches every parameter of the touch Gaussians
-        "lambda_s": 5.8,  # experiment_1: lambda_depth_smoothness 0.025 on unnormalised 5x5 Sobel responses (gain 60
-        # for a unit ramp) of raw depth in unit-radius scenes; ours: normalised Sobel of depth / scene scale, which
-        # at our camera distance (3.5 radii, scene scale 3.85 radii) makes 0.025 x 60 x 3.85 = 5.8
-        "smoothness_beta": 60.0,  # utils_gaussian.py: weights exp(-mean_c |Sobel I|) on the same unnormalised kernel
-        "smoothness_depth": "accumulated",  # train.py: the rendered (accumulated) depth of training mode
-        "smoothness_start_iter": steps(20_000),  # train.py: smoothness only when i >= 20000
-        "use_proximity_mask": False,  # train.py computes the mask but passes proximity_mask = 1
-        "lambda_backdrop": 0.0,  # not in the paper
-        "lr_means": 1.6e-4,  # train.py: 0.00016 * scene_radius, decaying log-linearly to 1/100 (external.py)
-        "lr_means_final_factor": 0.01,
-        "lr_quats": 1e-3,
-        "lr_scales": 5e-3,
-        "lr_opacities": 5e-2,
-        "lr_sh0": 2.5e-3,
-        "lr_shN": 2.5e-3 / 20,
-        "init": InitConfig(touch_initial_opacity=0.99999),  # initialise_depth_gaussians: touch opacity 0.99999
-        "densify": DensifyStrategy(  # external.py densify
-            grad_threshold=0.0002,
-            clone_max_scale=0.01,  # clone if max scale <= 0.01 scene_radius, else split in 2 ...
-            split_scale_divisor=1.6,  # ... with scales / (0.8 * 2)
-            prune_opacity=0.005,
-            prune_max_scale=0.1,  # from the first opacity reset on
-            start_iter=steps(500),
-            stop_iter=steps(15_000),  # iterations_densify 15000
-            refine_every=steps(100),
-            reset_every=steps(3_000),
-            max_gaussians=2_000_000,  # (no cap in the official code)
-        ),
-    }
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError("--config", f"cannot read {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError("settings", f"not YAML: {str(exc).splitlines()[0]}", path) from None
+    if not isinstance(data, dict):
+        raise ConfigError("settings", f"expected a mapping of training settings, got {type(data).__name__}", path)
+    flat = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            flat.update({f"{key}.{inner}": v for inner, v in value.items()})
+        else:
+            flat[str(key)] = value
+    return flat
+
+
+def paper_schedule(iterations: int | None = None) -> dict:
+    """The settings of :data:`PAPER_SCHEDULE`, every step number scaled to ``iterations`` (default its 30000)."""
+    settings = read_settings(PAPER_SCHEDULE)
+    if iterations is None:
+        return settings
+    scale = iterations / settings["iterations"]
+    return {**settings, "iterations": iterations, **{k: max(1, round(settings[k] * scale)) for k in _STEP_SETTINGS}}
 
 
 def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: int | None = None) -> list[str]:
@@ -369,12 +409,11 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
 
 
 PRESETS = {"default": lambda iterations=None: {} if iterations is None else {"iterations": iterations},
-           "paper": lambda iterations=None: paper_preset(iterations or PAPER_ITERATIONS)}
+           "paper": paper_schedule}  # the benchmarks' --preset
 
 
 def preset_config(name: str, iterations: int | None = None) -> TrainConfig:
-    """The TrainConfig of a preset (``default``: TrainConfig's defaults; ``paper``: :func:`paper_preset`)."""
+    """The TrainConfig of a benchmark preset (``default``: TrainConfig's defaults; ``paper``: :func:`paper_schedule`)."""
     if name not in PRESETS:
         raise ConfigError("preset", f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
-    return TrainConfig(**PRESETS[name](iterations))
-
+    return set_fields(TrainConfig(), PRESETS[name](iterations), PAPER_SCHEDULE.name)

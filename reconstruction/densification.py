@@ -38,17 +38,28 @@ class DensifyState:
 class DensifyStrategy:
     """Named thresholds and schedule (defaults scaled for short CPU runs; Kerbl et al. use 500/15000/3000)."""
 
-    grad_threshold: float = 0.0002  # mean |d loss / d means2d| in NDC units that triggers growth
-    clone_max_scale: float = 0.01  # x scene scale: at most this large -> clone, larger -> split
-    split_scale_divisor: float = 1.6  # children of a split get the parent's scales divided by this
-    prune_opacity: float = 0.005  # opacity below which a Gaussian is removed
-    prune_max_scale: float = 0.1  # x scene scale: larger Gaussians are removed after the first reset
-    start_iter: int = 100  # first refinement step
-    stop_iter: int = 1200  # no refinement from this step on
-    refine_every: int = 100  # steps between refinements
-    reset_every: int = 1000  # steps between opacity resets
-    pause_after_reset: int = 0  # no refinement for this many steps after a reset
-    max_gaussians: int = 30_000  # growth stops at this count (keeps CPU iterations fast)
+    grad_threshold: float = 0.0002
+    """mean |d loss / d means2d| in NDC units that triggers growth"""
+    clone_max_scale: float = 0.01
+    """x scene scale: at most this large -> clone, larger -> split"""
+    split_scale_divisor: float = 1.6
+    """children of a split get the parent's scales divided by this"""
+    prune_opacity: float = 0.005
+    """opacity below which a Gaussian is removed"""
+    prune_max_scale: float = 0.1
+    """x scene scale: larger Gaussians are removed after the first reset"""
+    start_iter: int = 100
+    """first refinement step"""
+    stop_iter: int = 1200
+    """no refinement from this step on"""
+    refine_every: int = 100
+    """steps between refinements"""
+    reset_every: int = 1000
+    """steps between opacity resets"""
+    pause_after_reset: int = 0
+    """no refinement for this many steps after a reset"""
+    max_gaussians: int = 30_000
+    """growth stops at this count (keeps CPU iterations fast)"""
 
     def initialize_state(self, num_gaussians: int, scene_scale: float, device=None) -> DensifyState:
         return DensifyState(scene_scale, torch.zeros(num_gaussians, device=device),

@@ -30,21 +30,33 @@ log = logging.getLogger(__name__)
 class InitConfig:
     """Initialisation settings."""
 
-    use_sfm: bool = True  # run pycolmap; False -> random points only
-    min_sfm_points: int = 100  # fewer SfM points than this -> random points in the bounds
-    num_random_points: int = 2000  # how many random points replace a failed SfM
-    use_silhouette_hull: bool = True  # failed SfM: draw them on the visual hull of the object's silhouettes
-    # (views whose border fits a smooth backdrop) rather than in the whole bounding box
-    hull_resolution: int = 64  # voxels along the longest side of the bounds when carving the hull
-    colors_from_views: bool = True  # G_t and the fallback's points start with the median colour of the training
-    # pixels they project to (on the object's silhouette where a view has one; occlusion ignored); False: random
-    # colours (paper Sec. 4.1, for G_t)
-    initial_opacity: float = 0.1  # of G_c, and of G_t unless touch_initial_opacity is set (paper Sec. 4.1)
-    touch_initial_opacity: float | None = None  # of G_t; None: initial_opacity
-    touch_voxel_size: float = 0.001  # metres: touch points are thinned to one per voxel
-    max_touch_points: int = 1000  # then capped at this many (random subset)
+    use_sfm: bool = True
+    """run pycolmap; False -> random points only"""
+    min_sfm_points: int = 100
+    """fewer SfM points than this -> random points in the bounds"""
+    num_random_points: int = 2000
+    """how many random points replace a failed SfM"""
+    use_silhouette_hull: bool = True
+    """failed SfM: draw them on the visual hull of the object's silhouettes (views whose border fits a smooth
+    backdrop) rather than in the whole bounding box"""
+    hull_resolution: int = 64
+    """voxels along the longest side of the bounds when carving the hull"""
+    colors_from_views: bool = True
+    """G_t and the fallback's points start with the median colour of the training pixels they project to (on the
+    object's silhouette where a view has one; occlusion ignored); False: random colours (paper Sec. 4.1, for
+    G_t)"""
+    initial_opacity: float = 0.1
+    """of G_c, and of G_t unless touch_initial_opacity is set (paper Sec. 4.1)"""
+    touch_initial_opacity: float | None = None
+    """of G_t; None: initial_opacity"""
+    touch_voxel_size: float = 0.001
+    """metres: touch points are thinned to one per voxel"""
+    max_touch_points: int = 1000
+    """then capped at this many (random subset)"""
     sift_max_features: int = 4096
+    """SfM: SIFT features kept per image"""
     min_triangulation_angle_deg: float = 1.5
+    """SfM: a point's rays must meet at least at this angle"""
 
 
 @dataclass

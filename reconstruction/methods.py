@@ -52,24 +52,9 @@ def get_method(name: str, option: str = "--method") -> Method:
     return METHODS[name]
 
 
-def set_fields(config, overrides: dict, source: str | None = None):
-    """Set ``overrides`` (``{"lambda_s": 0.0, "init.use_sfm": False}``) on a TrainConfig and return it; a
-    ConfigError naming ``source`` for a key that is not a field."""
-    for key, value in overrides.items():
-        *path, name = key.split(".")
-        target = config
-        for part in path:
-            target = getattr(target, part, None)
-        if target is None or not hasattr(target, "__dataclass_fields__") or name not in target.__dataclass_fields__:
-            raise ConfigError(key, "not a training setting (TrainConfig field, or init./densify. one of theirs)",
-                              source)
-        setattr(target, name, tuple(value) if isinstance(value, list) else value)
-    return config
-
-
 def method_config(name: str, option: str = "--method"):
     """The TrainConfig of method ``name``."""
-    from tacsplat.reconstruction.config import TrainConfig
+    from tacsplat.reconstruction.config import TrainConfig, set_fields
 
     return set_fields(TrainConfig(), get_method(name, option).overrides)
 

@@ -563,16 +563,15 @@ class Trainer:
 
 
 def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig, resume: bool = False,
-                show_progress: bool = True, iterations_override: int | None = None, overwrite: bool = False,
-                check_resumed: Callable[[TrainConfig], None] | None = None) -> dict:
+                show_progress: bool = True, overwrite: bool = False,
+                resumed: Callable[[TrainConfig], TrainConfig] | None = None) -> dict:
     """Train on a scene directory and evaluate the result; returns the metrics written to ``metrics.json``.
 
     ``out_dir`` must be new or empty, or hold an earlier run: continued with
     ``resume`` (from its checkpoint, with its own ``config.json``, on the scene
-    it recorded; only the iteration count may change, with
-    ``iterations_override``, not below the step reached, and config.json then
-    records it; ``check_resumed(recorded config)``, where given, may refuse
-    it first) or replaced with ``overwrite`` (its files only). It is locked
+    it recorded; ``resumed(recorded config)``, where given, returns the config
+    to continue with, or refuses it: only the iteration count may change, not
+    below the step reached, and config.json then records it) or replaced with ``overwrite`` (its files only). It is locked
     for the whole job. A folder of other files, a run without ``resume`` or
     ``overwrite``, ``resume`` of no run or on another scene, or a
     folder that cannot take a file (read-only, full) is an error before any
@@ -596,10 +595,8 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
         if resume:
             config, recorded_scene = read_run_config(out_dir)
             check_resumed_scene(out_dir, recorded_scene, base)
-            if check_resumed is not None:
-                check_resumed(config)
-            if iterations_override is not None:
-                config.iterations = iterations_override
+            if resumed is not None:
+                config = resumed(config)
                 config.validate({"iterations": "--iterations"})
         elif overwrite:
             remove_run_files(out_dir)

@@ -25,7 +25,7 @@ import logging
 import sys
 
 from tacsplat import __version__
-from tacsplat.errors import ConfigError, TacsplatError, UsageError
+from tacsplat.errors import TacsplatError, UsageError
 
 COMMAND_MODULES = (
     "tacsplat.datasets.cli",
@@ -91,6 +91,7 @@ class CommandTree:
         self._subparsers = {"": parser.add_subparsers(dest="command", metavar="COMMAND")}
         self._parsers: dict[str, argparse.ArgumentParser] = {"": parser}
         self._builders: dict[str, object] = {}
+        self.own_options: set[str] = set()  # the commands that parse their own options
 
     def _group(self, path: str) -> argparse._SubParsersAction:
         if path not in self._subparsers:
@@ -103,13 +104,18 @@ class CommandTree:
             self._subparsers[path] = parser.add_subparsers(dest=f"{path}_command", metavar="COMMAND")
         return self._subparsers[path]
 
-    def command(self, path: str, help: str, description: str | None = None, build=None) -> argparse.ArgumentParser:
-        """A subcommand at ``path``; ``build(parser)``, if given, adds its options once the command is chosen."""
+    def command(self, path: str, help: str, description: str | None = None, build=None,
+                own_options: bool = False) -> argparse.ArgumentParser:
+        """A subcommand at ``path``; ``build(parser)``, if given, adds its options once the command is chosen.
+        ``own_options``: the command parses what follows it itself (``args.rest``; -v, -q and --log-level aside)."""
         parent, _, name = path.strip().rpartition(" ")
         parser = self._group(parent).add_parser(
-            name, help=help, description=description or help, formatter_class=_HelpFormatter, parents=[self._common]
+            name, help=help, description=description or help, formatter_class=_HelpFormatter, parents=[self._common],
+            add_help=not own_options,
         )
         self._parsers[path] = parser
+        if own_options:
+            self.own_options.add(path)
         if build is not None:
             self._builders[path] = (build, parser)
         return parser
@@ -122,15 +128,30 @@ class CommandTree:
 
     def chosen(self, argv: list[str]) -> str:
         """The command path named on a command line (``""`` if none): its leading words that name commands."""
-        path = ""
-        for token in argv:
+        return self._chosen(argv)[0]
+
+    def _chosen(self, argv: list[str]) -> tuple[str, int]:
+        """``(path, index after its last word in argv)``."""
+        path, end = "", 0
+        for i, token in enumerate(argv):
             if token.startswith("-"):
                 continue
             candidate = f"{path} {token}".strip()
             if candidate not in self._parsers:
                 break
-            path = candidate
-        return path
+            path, end = candidate, i + 1
+        return path, end
+
+    def split_own_options(self, argv: list[str]) -> tuple[list[str], list[str]]:
+        """``(argv, [])``, or for a command that parses its own options ``(what argparse parses, the rest)``: the
+        command line up to the command, with the logging options found after it."""
+        path, end = self._chosen(argv)
+        if path not in self.own_options:
+            return argv, []
+        logging_parser = argparse.ArgumentParser(add_help=False, allow_abbrev=False, parents=[self._common])
+        logging_options, rest = logging_parser.parse_known_args(argv[end:])
+        given = [f"--{k.replace('_', '-')}" + ("" if v is True else f"={v}") for k, v in vars(logging_options).items()]
+        return argv[:end] + given, rest
 
 
 def build_parser(argv: list[str] | None = None, complete: bool = False) -> argparse.ArgumentParser:
@@ -147,6 +168,7 @@ def build_parser(argv: list[str] | None = None, complete: bool = False) -> argpa
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(tree)
     tree.build(None if argv is None else tree.chosen(argv))
+    parser.tree = tree
     if complete:
         import shtab
 
@@ -169,7 +191,9 @@ def _configure_logging(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(argv, complete="--print-completion" in argv)
-    args = parser.parse_args(argv)
+    head, rest = parser.tree.split_own_options(argv)
+    args = parser.parse_args(head)
+    args.rest = rest
     _configure_logging(args)
     if not getattr(args, "func", None):
         parser.print_help()
@@ -208,25 +232,10 @@ def main(argv: list[str] | None = None) -> int:
 def _refuse_unwritable_outputs(args: argparse.Namespace) -> None:
     """Before any work: an output (``--out``, ``--json``) on a read-only or full file system is one error naming the
     option, so that no benchmark or training runs for minutes only to fail at its first write."""
-    import errno
-    import os
-    from pathlib import Path
-
-    from tacsplat.files import storage_error
+    from tacsplat.files import refuse_unwritable
 
     for option in ("out", "json"):
-        value = getattr(args, option, None)
-        if not isinstance(value, (str, os.PathLike)) or not str(value):
-            continue
-        path = Path(value).absolute()
-        existing = next(p for p in (path, *path.parents) if p.exists())
-        try:
-            fs = os.statvfs(existing)
-        except OSError:
-            continue  # (the command reports what it cannot reach)
-        failure = errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if fs.f_bfree == 0 else None
-        if failure is not None:
-            raise ConfigError(f"--{option}", str(storage_error(OSError(failure, os.strerror(failure)), value)))
+        refuse_unwritable(f"--{option}", getattr(args, option, None))
 
 
 def _subparser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:

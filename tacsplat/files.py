@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import BinaryIO, Callable, Iterator
 
-from tacsplat.errors import StorageError
+from tacsplat.errors import ConfigError, StorageError
 
 # errno -> what a person should be told; anything else keeps the operating system's words
 _REASONS = {
@@ -119,3 +119,19 @@ def check_writable(directory: str | Path) -> None:
 
 __all__ = ["atomic_file", "atomic_write", "check_writable", "default_temp", "fsync_dir", "is_storage_failure",
            "storage_error"]
+
+
+def refuse_unwritable(option: str, value) -> None:
+    """A ConfigError naming ``option`` when the path ``value`` (None or "": nothing) would land on a read-only or full
+    file system: checked before a command's work, so that none runs for minutes only to fail at its first write."""
+    if not isinstance(value, (str, os.PathLike)) or not str(value):
+        return
+    path = Path(value).absolute()
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    try:
+        fs = os.statvfs(existing)
+    except OSError:
+        return  # (the command reports what it cannot reach)
+    failure = errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if fs.f_bfree == 0 else None
+    if failure is not None:
+        raise ConfigError(option, str(storage_error(OSError(failure, os.strerror(failure)), value)))

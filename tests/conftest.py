@@ -62,3 +62,11 @@ def tmpfs(tmp_path):
     yield make
     for path in reversed(mounts):
         subprocess.run(["umount", "-l", str(path)], capture_output=True)
+
+
+@pytest.fixture(autouse=True)
+def _progress_shown():
+    """Each test starts with progress shown, whatever an earlier test's ``--quiet`` left in the process."""
+    from tacsplat.progress import set_quiet
+
+    set_quiet(False)

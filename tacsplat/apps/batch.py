@@ -182,7 +182,8 @@ class ReconstructJob(BatchJob):
 
     def config(self):
         from tacsplat.reconstruction.config import preset_config
-        from tacsplat.reconstruction.methods import get_method, set_fields
+        from tacsplat.reconstruction.config import set_fields
+        from tacsplat.reconstruction.methods import get_method
 
         config = preset_config(self.preset, self.iterations)
         set_fields(config, get_method(self.method, "method").overrides)

@@ -74,7 +74,7 @@ def bench_row(name: str, option: str = "--methods") -> tuple[str, dict]:
 def row_config(name: str, preset: str = "default", iterations: int | None = None, option: str = "--methods"):
     """The TrainConfig of bench row ``name`` (on the training preset, scaled to ``iterations``)."""
     from tacsplat.reconstruction.config import preset_config
-    from tacsplat.reconstruction.methods import set_fields
+    from tacsplat.reconstruction.config import set_fields
 
     method, overrides = bench_row(name, option)
     config = set_fields(preset_config(preset, iterations), get_method(method).overrides)

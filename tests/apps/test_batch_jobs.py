@@ -146,13 +146,11 @@ def test_a_job_whose_need_failed_is_not_run_and_a_cycle_runs_nothing(tmp_path, c
     assert not (tmp_path / "cycle").exists()
 
 
-def test_a_reconstruct_job_without_a_variant_trains_what_reconstruct_trains(tmp_path):
-    from tacsplat.cli import build_parser
-    from tacsplat.reconstruction.cli import config_from_args
+def test_a_reconstruct_job_without_a_method_trains_what_reconstruct_trains(tmp_path):
+    from tacsplat.reconstruction.command import parse
 
-    args = build_parser(["reconstruct"]).parse_args(["reconstruct", str(tmp_path), "--out", str(tmp_path / "r"),
-                                                     "--iterations", "20", "--seed", "3"])
-    assert ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3).config() == config_from_args(args)
+    given = parse([str(tmp_path), "--out", str(tmp_path / "r"), "--iterations", "20", "--seed", "3"]).train
+    assert ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3).config() == given
 
 
 def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):

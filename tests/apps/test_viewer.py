@@ -45,7 +45,7 @@ def small_run(small_scene, tmp_path_factory):
     """A 5-step reconstruction of :func:`small_scene` (touch and camera Gaussians, metrics.json)."""
     run = tmp_path_factory.mktemp("viewer") / "run"
     args = ["reconstruct", str(small_scene), "--out", str(run), "--iterations", "5", "--sh-degree", "0",
-            "--backend", "cpu", "--no-init-sfm", "--quiet"]
+            "--backend", "cpu", "--init.no-use-sfm", "--quiet"]
     assert main(args) == 0
     return run
 

@@ -291,7 +291,7 @@ def _covariances(g) -> torch.Tensor:
 def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, tmp_path, capsys):
     run = tmp_path / "run"
     code = tacsplat_main(["reconstruct", str(sphere_scene), "--out", str(run), "--iterations", "5",
-                          "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet", "--train-views", "4"])
+                          "--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--quiet", "--train-views", "4"])
     assert code == 0
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["method"] == "custom" and metrics["settings"]["train_views"] == 4  # the default, no L_S
@@ -324,58 +324,58 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
     assert from_cloud["gt_source"].startswith("points") and np.isfinite(from_cloud["cd"])
 
 
-def _reconstruct_args(*options):
-    from tacsplat.cli import build_parser
+def _parse(*options, config=None):
+    from tacsplat.reconstruction.command import parse
 
-    return build_parser().parse_args(["reconstruct", "SCENE", "--out", "RUN", *options])
+    return parse(["SCENE", "--out", "RUN", *options, *(["--config", str(config)] if config else [])]).train
 
 
-def test_cli_options_reach_the_train_config():
-    from tacsplat.errors import ConfigError
-    from tacsplat.reconstruction.cli import config_from_args
+def test_cli_options_reach_the_train_config_after_the_method_and_the_config_file(tmp_path):
+    from tacsplat.errors import ConfigError, UsageError
+    from tacsplat.reconstruction.config import PAPER_SCHEDULE
 
-    args = _reconstruct_args("--seed", "3", "--sh-degree", "1", "--backend", "cpu", "--iterations", "7",
-                             "--lambda-s", "0.5", "--smoothness-depth", "accumulated", "--no-touch",
-                             "--densify-max-gaussians", "500", "--no-init-sfm", "--train-views", "none")
-    config = config_from_args(args)
+    config = _parse("--seed", "3", "--sh-degree", "1", "--backend", "cpu", "--iterations", "7", "--lambda-s", "0.5",
+                    "--smoothness-depth", "accumulated", "--no-use-touch", "--densify.max-gaussians", "500",
+                    "--init.no-use-sfm", "--train-views", "None")
     assert (config.seed, config.sh_degree, config.backend, config.iterations, config.lambda_s) == (3, 1, "cpu", 7, 0.5)
     assert (config.smoothness_depth, config.use_touch, config.densify.max_gaussians) == ("accumulated", False, 500)
     assert config.init.use_sfm is False and config.train_views is None and method_of(config) == "custom"
-    defaults = config_from_args(_reconstruct_args())
-    assert defaults.to_json() == TrainConfig().to_json()  # no option given: exactly TrainConfig's defaults
-    assert method_of(config_from_args(_reconstruct_args("--method", "3dgs"))) == "3dgs"
-    assert method_of(config_from_args(_reconstruct_args("--method", "3dgs", "--lambda-s", "1"))) == "3dgs+s"
-    paper = config_from_args(_reconstruct_args("--preset", "paper", "--iterations", "3000"))
-    assert (paper.iterations, paper.smoothness_start_iter, paper.densify.stop_iter) == (3000, 2000, 1500)
-    assert paper.lambda_t == 0.5 and paper.touch_top_k == 20 and paper.use_proximity_mask is False
-    full_paper = config_from_args(_reconstruct_args("--preset", "paper"))
-    assert (full_paper.iterations, full_paper.smoothness_start_iter, full_paper.densify.stop_iter) == (30000, 20000, 15000)
-    assert method_of(config_from_args(_reconstruct_args("--preset", "paper", "--method", "3dgs"))) == "3dgs"
-    with pytest.raises(ConfigError, match="--iterations"):
-        config_from_args(_reconstruct_args("--iterations", "-5"))
-    with pytest.raises(ConfigError, match="--densify-max-gaussians"):
-        config_from_args(_reconstruct_args("--densify-max-gaussians", "-1"))
+    assert _parse() == TrainConfig()  # no option given: exactly TrainConfig's defaults
+    assert method_of(_parse("--method", "3dgs")) == "3dgs"
+    assert method_of(_parse("--method", "3dgs", "--lambda-s", "1")) == "3dgs+s"  # the options after the method
+    paper = _parse("--method", "paper", config=PAPER_SCHEDULE)  # the official schedule, as the YAML file cites it
+    assert (paper.iterations, paper.smoothness_start_iter, paper.densify.stop_iter) == (30000, 20000, 15000)
+    assert paper.touch_top_k == 20 and paper.use_proximity_mask is False and method_of(paper) == "paper"
+    settings = tmp_path / "mine.yaml"
+    settings.write_text("lambda_s: 1.5\ndensify:\n  max_gaussians: 900\n")
+    mine = _parse("--method", "paper", "--lambda-s", "2.5", config=settings)  # method, then file, then options
+    assert (mine.lambda_s, mine.densify.max_gaussians, method_of(mine)) == (2.5, 900, "paper")
+    for options, words in ((["--iterations", "-5"], "--iterations: must be an integer >= 1, got -5"),
+                           (["--densify.max-gaussians", "-1"], "--densify.max-gaussians: must be a finite number"),
+                           (["--iterations", "x"], "--iterations: invalid literal"),
+                           (["--method", "fancy"], "--method: unknown method 'fancy'"),
+                           (["--lambda-z", "1"], "--lambda-z: not an option of tacsplat reconstruct")):
+        with pytest.raises(UsageError, match=words):
+            _parse(*options)
+    settings.write_text("lambda_z: 1\n")
+    with pytest.raises(ConfigError, match=f"{settings}: lambda_z: not a training setting"):
+        _parse(config=settings)
     with pytest.raises(ConfigError, match="smoothness_depth"):
         TrainConfig(smoothness_depth="median").validate()
     with pytest.raises(ConfigError, match="appearance"):
         TrainConfig(appearance="reflective").validate()
 
 
-def test_every_training_setting_has_a_documented_option_with_its_default():
+def test_reconstruct_help_fits_in_150_lines_and_every_setting_has_an_option(capsys):
     import dataclasses
 
-    from tacsplat.reconstruction.options import add_config_options, field_docs
-
-    parser = __import__("argparse").ArgumentParser()
-    options = {".".join(o.path): o for o in add_config_options(parser, TrainConfig)}
-    config = TrainConfig()
+    with pytest.raises(SystemExit) as stop:
+        tacsplat_main(["reconstruct", "--help"])
+    text = capsys.readouterr().out
+    assert stop.value.code == 0 and len(text.splitlines()) <= 150
     for f in dataclasses.fields(TrainConfig):
-        nested = getattr(config, f.name)
+        nested = getattr(TrainConfig(), f.name)
         names = [f"{f.name}.{g.name}" for g in dataclasses.fields(nested)] if dataclasses.is_dataclass(nested) else [f.name]
         for name in names:
-            assert name in options, f"TrainConfig.{name} has no command-line option"
-    docs, _ = field_docs(TrainConfig)
-    undocumented = [f.name for f in dataclasses.fields(TrainConfig) if f.name not in ("init", "densify") and not docs[f.name]]
-    assert not undocumented, f"TrainConfig fields without a comment: {undocumented}"
-    help_text = " ".join(parser.format_help().split())
-    assert "optimisation steps (default: 2000)" in help_text
+            flag = f"--{name.replace('_', '-')}"
+            assert f"{flag} " in text or f"{flag}, " in text, f"TrainConfig.{name} has no option"

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.config import TrainConfig, paper_departures
+from tacsplat.reconstruction.config import TrainConfig, paper_departures, set_fields
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.methods import (
     DEFAULT_METHOD,
@@ -16,7 +16,6 @@ from tacsplat.reconstruction.methods import (
     mechanisms,
     method_config,
     method_of,
-    set_fields,
 )
 
 

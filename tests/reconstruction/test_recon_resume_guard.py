@@ -13,11 +13,12 @@ import pytest
 import torch
 
 from tacsplat.cli import main
+from tacsplat.reconstruction.config import PAPER_SCHEDULE
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
 
-FAST = ["--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--no-init-sfm", "--quiet"]
+FAST = ["--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--init.no-use-sfm", "--quiet"]
 
 
 @pytest.fixture(scope="module")
@@ -89,10 +90,10 @@ def test_a_moved_scene_resumes_and_the_run_records_where_it_is_now(trained, tmp_
     (["--lambda-t", "3"], ["--lambda-t", "0.5 in the run", "3.0 given"]),
     (["--seed", "7"], ["--seed", "0 in the run", "7 given"]),
     (["--lambda-backdrop", "1"], ["--lambda-backdrop", "0.1 in the run", "1.0 given"]),
-    (["--densify-max-gaussians", "10"], ["--densify-max-gaussians", "30000 in the run", "10 given"]),
+    (["--densify.max-gaussians", "10"], ["--densify.max-gaussians", "30000 in the run", "10 given"]),
     (["--method", "paper"], ["--method custom in the run, 3dgs+t given",  # (paper --no-smoothness)
                              "--appearance 'sh-lit' in the run, 'sh' given"]),
-    (["--preset", "paper"], ["--touch-top-k 8 in the run, 20 given"]),
+    (["--config", str(PAPER_SCHEDULE)], ["--touch-top-k 8 in the run, 20 given"]),
 ])
 def test_resume_refuses_a_setting_that_differs_from_the_runs(trained, tmp_path, capsys, options, words):
     scene, run = _copy(trained, tmp_path)

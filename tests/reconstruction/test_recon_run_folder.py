@@ -23,7 +23,7 @@ from tacsplat.reconstruction.trainer import Trainer
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
 
-FAST = ["--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet"]
+FAST = ["--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--quiet"]
 
 
 @pytest.fixture(scope="module")

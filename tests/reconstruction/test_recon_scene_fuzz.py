@@ -32,7 +32,7 @@ from tacsplat.cli import main
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import build_sphere_scene  # noqa: E402
 
-RECONSTRUCT = ["--iterations", "2", "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--quiet"]
+RECONSTRUCT = ["--iterations", "2", "--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--quiet"]
 SPECIAL_NUMBERS = [math.nan, math.inf, -math.inf, 0, 0.0, -1, -1e-3, 1e-300, 1e300, -1e300, 10**400, 2**63, 1]
 OTHER_TYPES = [None, "0.5", [], {}, [1.0, 2.0], True, False]
 

@@ -24,7 +24,7 @@ from recon_synthetic import build_sphere_scene  # noqa: E402
 
 # 4 steps, a checkpoint and a progress row every 2 (none by run time): each write point is reached once or twice
 RUN = ["--iterations", "4", "--checkpoint-every", "2", "--eval-every-iters", "2", "--eval-every-seconds", "1e9",
-       "--sh-degree", "0", "--no-smoothness", "--backend", "cpu", "--no-init-sfm", "--quiet"]
+       "--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--init.no-use-sfm", "--quiet"]
 DISK_FULL = "the disk is full"
 
 
@@ -184,6 +184,6 @@ def test_a_full_temporary_folder_for_sfm_is_one_error_naming_it(scene, tmpfs, mo
     mount = tmpfs("1m")
     _fill(mount.path)
     monkeypatch.setattr(tempfile, "tempdir", str(mount.path))  # (what TMPDIR sets)
-    with_sfm = [option for option in RUN if option != "--no-init-sfm"]
+    with_sfm = [option for option in RUN if option != "--init.no-use-sfm"]
     assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), *with_sfm]) == 1
     _one_error_line(capsys.readouterr().err, str(mount.path), DISK_FULL, "TMPDIR")

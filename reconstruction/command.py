@@ -1,0 +1,128 @@
+"""`tacsplat reconstruct`'s options: the fields of :class:`ReconstructCommand` and of its TrainConfig, parsed by
+tyro (typed dataclasses, help from their docstrings and comments, as gsplat's and nerfstudio's trainers do), in one
+order: the method's settings, then those of the ``--config`` file, then the options given."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import io
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from tacsplat.errors import ConfigError, UsageError
+from tacsplat.reconstruction.config import TrainConfig, changed_settings, flat_settings, read_settings, set_fields
+from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, get_method, method_config, method_of
+
+MethodName = Literal["3dgs", "3dgs+s", "3dgs+t", "paper", "default"]  # METHODS' names
+PROG = "tacsplat reconstruct"
+
+
+@dataclass
+class ReconstructCommand:
+    """Optimise Gaussians on SCENE and write a run directory: splat.ply, checkpoint.pt, progress.csv,
+    error_vs_time.png, metrics.json, renders/. The settings come from --method, then from the --config file, then
+    from the options given; -H says what each one does. Ctrl-C or SIGTERM stop after the current step with a
+    checkpoint (exit 130 or 143) and print the command that resumes."""
+
+    scene: tyro.conf.Positional[Path]
+    """scene directory"""
+    out: Path
+    """run directory to write: new or empty, or an earlier run with --resume or --overwrite"""
+    method: MethodName = DEFAULT_METHOD
+    """3dgs, 3dgs+s, 3dgs+t: the paper's Table 3 rows; paper: its method; default: ours"""
+    config: Path | None = None
+    """YAML file of training settings (field: value; init: and densify: nested), applied after the method's, e.g.
+    reconstruction/paper_schedule.yaml, the official code's 30k-step schedule"""
+    resume: bool = False
+    """continue the run in --out from its last checkpoint, with its own settings: an option given that differs is
+    refused, except --iterations, which may raise the step count"""
+    overwrite: bool = False
+    """replace the earlier run in --out (its files only; other files stay)"""
+    train: Annotated[TrainConfig, tyro.conf.arg(name="")] = field(default_factory=TrainConfig)
+
+
+def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCommand:
+    """The command of ``argv``: its options on the settings of --method and of --config, or on ``recorded`` (a
+    run's own settings, which --resume continues with); a UsageError naming the option of a bad value."""
+    early = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    early.add_argument("--method")
+    early.add_argument("--config")
+    given, _ = early.parse_known_args(argv)
+    if given.method is not None and given.method not in METHODS:
+        raise UsageError("--method", f"unknown method {given.method!r}; choose one of {', '.join(METHODS)}")
+    if recorded is None:
+        base = method_config(given.method or DEFAULT_METHOD)
+    else:
+        base = set_fields(TrainConfig.from_json(recorded.to_json()),
+                          get_method(given.method).overrides if given.method else {})
+    if given.config is not None:
+        set_fields(base, read_settings(given.config), given.config)
+    default = ReconstructCommand(scene=tyro.MISSING, out=tyro.MISSING, method=given.method or DEFAULT_METHOD,
+                                 config=None if given.config is None else Path(given.config), train=base)
+    shown, errors = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(shown), contextlib.redirect_stderr(errors):
+            command = tyro.cli(ReconstructCommand, args=argv, default=default, prog=PROG, compact_help=True)
+    except SystemExit as stop:
+        if stop.code == 0:  # --help
+            print(shown.getvalue(), end="")
+            raise
+        raise UsageError(*_tyro_error(errors.getvalue() + shown.getvalue())) from None
+    try:
+        command.train.validate(option_names(command.train))
+    except ConfigError as exc:
+        raise UsageError(exc.key, str(exc).split(": ", 1)[1]) from None
+    return command
+
+
+def option_names(config: TrainConfig) -> dict[str, str]:
+    """``{"densify.max_gaussians": "--densify.max-gaussians", ...}``: the option of each setting, as tyro names it."""
+    return {key: "--" + key.replace("_", "-") for key in flat_settings(config.to_json())}
+
+
+_RULE = re.compile(r"^[\s\u2500-\u257f|+-]*$")  # a line of box drawing (rich's, or its ASCII form)
+
+
+def _tyro_error(text: str) -> tuple[str, str]:
+    """``(option, what is wrong)`` of tyro's error box: its title, a rule, then the message up to the next rule (for
+    missing options, the line after it names the option)."""
+    sections, current = [], []
+    for line in text.splitlines():
+        if _RULE.match(line):
+            if current:
+                sections.append(current)
+            current = []
+        else:
+            current.append(line.strip(" \u2502|"))
+    sections.append(current)
+    title = " ".join(sections[0]).strip() if sections else ""
+    message = " ".join(" ".join(sections[1]).split()) if len(sections) > 1 else "invalid options"
+    if title == "Required options":
+        option = re.search(r"--[\w.-]+", message)
+        return (option.group(0) if option else "options"), "required"
+    body = message
+    option = re.search(r"--[\w.-]+", body)
+    key = option.group(0) if option else "options"
+    body = re.sub(rf"^(Error parsing {re.escape(key)}: |Unrecognized options: {re.escape(key)}, )", "", body)
+    return key, ("not an option of tacsplat reconstruct" if title == "Unrecognized options" else body)
+
+
+def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:
+    """The config a --resume continues with: the run's own (``recorded``) with the options given, which may only
+    raise --iterations; a ConfigError on --resume naming each other option that differs."""
+    given = parse(argv, recorded).train
+    names = option_names(given)
+    changes = [f"{names.get(path, path)} {before!r} in the run, {now!r} given"
+               for path, before, now in changed_settings(recorded, given) if path != "iterations"]
+    if changes and method_of(recorded) != method_of(given):
+        changes.insert(0, f"--method {method_of(recorded)} in the run, {method_of(given)} given")
+    if changes:
+        raise ConfigError("--resume", f"{out} was trained with other settings than this command line gives "
+                          f"({'; '.join(changes)}): a resumed run keeps its own settings (only --iterations may "
+                          "raise its step count); leave those options out, or train into a new --out")
+    return given
