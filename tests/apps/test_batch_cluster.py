@@ -81,9 +81,9 @@ jobs:
   - {kind: capture, out: scenes/teapot, object: teapot, resolution: 48, test_views: 2, grasps: 2}
   - {kind: capture, out: scenes/bell, object: bell, resolution: 48, test_views: 2, grasps: 2}
   - {kind: reconstruct, out: runs/teapot-3dgs, scene: scenes/teapot, method: 3dgs, iterations: 20}
-  - {kind: reconstruct, out: runs/teapot-full, scene: scenes/teapot, method: full, iterations: 20}
+  - {kind: reconstruct, out: runs/teapot-paper, scene: scenes/teapot, method: paper, iterations: 20}
   - {kind: reconstruct, out: runs/bell-3dgs, scene: scenes/bell, method: 3dgs, iterations: 20}
-  - {kind: reconstruct, out: runs/bell-full, scene: scenes/bell, method: full, iterations: 20}
+  - {kind: reconstruct, out: runs/bell-paper, scene: scenes/bell, method: paper, iterations: 20}
 """
 
 

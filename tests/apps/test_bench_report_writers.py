@@ -264,7 +264,7 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
     assert trained == []  # everything finished: nothing retrained
 
 
-def test_each_capture_starts_its_costliest_variants_first(tmp_path):
+def test_each_capture_starts_its_costliest_methods_first(tmp_path):
     """Runs of one capture are started most work per step first (the longest no longer starts last on few
     cores); captures and settings keep the order of runs()."""
     config = PaperBenchConfig(objects=("teapot", "bell"), settings=("minimal",),
@@ -312,7 +312,7 @@ def test_subsample_keeps_first_touches_in_contact(tmp_path):
     assert Scene.load(tmp_path / "t0").touches == []
 
 
-def test_touch_bench_trains_the_variant_it_is_asked_for(tmp_path):
+def test_touch_bench_trains_the_method_it_is_asked_for(tmp_path):
     from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
 
     for config, method in ((TouchBenchConfig(), "paper"), (TouchBenchConfig(method=DEFAULT_METHOD), DEFAULT_METHOD)):

@@ -106,7 +106,7 @@ def test_a_rerun_with_other_settings_in_the_same_folder_is_refused(bench):
         NextTouchBench(bench.out, replace(TINY, method="paper")).run(progress=False)
 
 
-def test_the_final_runs_train_the_bench_variant_by_default_what_reconstruct_trains(tmp_path):
+def test_the_final_runs_train_the_bench_method_by_default_what_reconstruct_trains(tmp_path):
     from dataclasses import replace
 
     from tacsplat.apps.batch import ReconstructJob
