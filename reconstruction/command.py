@@ -104,7 +104,7 @@ def _tyro_error(text: str) -> tuple[str, str]:
     message = " ".join(" ".join(sections[1]).split()) if len(sections) > 1 else "invalid options"
     if title == "Required options":
         option = re.search(r"--[\w.-]+", message)
-        return (option.group(0) if option else "options"), "required"
+        return (option.group(0), "required") if option else ("SCENE", "required (the scene directory)")
     body = message
     option = re.search(r"--[\w.-]+", body)
     key = option.group(0) if option else "options"

@@ -65,6 +65,10 @@ def test_exit_codes_usage_errors_are_2_runtime_errors_1(tmp_path, capsys):
         assert main(["reconstruct", str(tmp_path), "--out", str(tmp_path / "run"), "--iterations", value]) == 2
         err = capsys.readouterr().err
         assert err.strip() == f"tacsplat reconstruct: error: {why} (see tacsplat reconstruct --help)"
+    for argv, why in ((["--out", str(tmp_path / "run")], "SCENE: required (the scene directory)"),
+                      ([str(tmp_path)], "--out: required")):
+        assert main(["reconstruct", *argv]) == 2
+        assert capsys.readouterr().err.strip() == f"tacsplat reconstruct: error: {why} (see tacsplat reconstruct --help)"
     assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--seeds", "0,x"]) == 2
     assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--methods", "3dgs,fancy"]) in (1, 2)
     assert "unknown method 'fancy'" in capsys.readouterr().err
