@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import io
 import re
 from dataclasses import dataclass, field
@@ -18,7 +19,7 @@ from tacsplat.errors import ConfigError, UsageError
 from tacsplat.reconstruction.config import TrainConfig, changed_settings, flat_settings, read_settings, set_fields
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, get_method, method_config, method_of
 
-MethodName = Literal["3dgs", "3dgs+s", "3dgs+t", "paper", "default"]  # METHODS' names
+MethodName = Literal[tuple(METHODS)]  # the names of reconstruction.methods.METHODS
 PROG = "tacsplat reconstruct"
 
 
@@ -58,7 +59,7 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
     if recorded is None:
         base = method_config(given.method or DEFAULT_METHOD)
     else:
-        base = set_fields(TrainConfig.from_json(recorded.to_json()),
+        base = set_fields(copy.deepcopy(recorded),
                           get_method(given.method).overrides if given.method else {})
     if given.config is not None:
         set_fields(base, read_settings(given.config), given.config)
@@ -105,10 +106,9 @@ def _tyro_error(text: str) -> tuple[str, str]:
     if title == "Required options":
         option = re.search(r"--[\w.-]+", message)
         return (option.group(0), "required") if option else ("SCENE", "required (the scene directory)")
-    body = message
-    option = re.search(r"--[\w.-]+", body)
+    option = re.search(r"--[\w.-]+", message)
     key = option.group(0) if option else "options"
-    body = re.sub(rf"^(Error parsing {re.escape(key)}: |Unrecognized options: {re.escape(key)}, )", "", body)
+    body = re.sub(rf"^(Error parsing {re.escape(key)}: |Unrecognized options: {re.escape(key)}, )", "", message)
     return key, ("not an option of tacsplat reconstruct" if title == "Unrecognized options" else body)
 
 
