@@ -144,9 +144,10 @@ class DynamixelHandConfig:
     reading_tolerance_rad: float = math.radians(5.0)
     # the servos' Bus Watchdog: with torque on and no instruction packet for this long, they stop and hold (0: off).
     # Unit 20 ms, at most 2.54 s. At least 2 (min_packet_timeout_s + drain_s), twice the silence of a retried
-    # exchange (the heartbeat waits for the bus meanwhile), so that a retry never trips it; 0.5 s stops a hand whose
-    # host died within half a second, and a heartbeat every 0.125 s has room on a loaded machine.
-    bus_watchdog_s: float = 0.5
+    # exchange (the heartbeat waits for the bus meanwhile), so that a retry never trips it. 1 s stops a hand whose
+    # host died within a second; the heartbeat (every eighth of it) then rides out a host that stalls for 0.875 s
+    # (a loaded machine, a long garbage collection), where a healthy loaded host's longest silence is ~0.16 s.
+    bus_watchdog_s: float = 1.0
     guard: bool = True  # a guard process turns torque off when this one dies without closing the hand (SIGKILL too)
 
     def __post_init__(self):
@@ -606,10 +607,10 @@ class DynamixelHand:
         self._heartbeat = None
 
     def _feed_watchdog(self, stop: threading.Event) -> None:
-        """Heartbeat thread: every quarter of ``bus_watchdog_s``, read every servo's Bus Watchdog (an instruction
+        """Heartbeat thread: every eighth of ``bus_watchdog_s``, read every servo's Bus Watchdog (an instruction
         packet feeds it); a tripped one is a fault (torque off), which the next use of the hand raises."""
         address = REGISTERS["bus_watchdog"].address
-        while not stop.wait(self.config.bus_watchdog_s / 4):
+        while not stop.wait(self.config.bus_watchdog_s / 8):
             try:
                 with self._lock:
                     if stop.is_set() or not self._torque_on or self._fault:

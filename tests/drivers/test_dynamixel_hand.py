@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from tacsplat.drivers import Hand
 from tacsplat.drivers.calibration import HandCalibration
-from tacsplat.drivers.dynamixel_hand import DynamixelHand
+from tacsplat.drivers.dynamixel_hand import DynamixelHand, _PortHandler
 from tacsplat.drivers.calibration import RAD_PER_TICK
 from tacsplat.drivers.dxl_emulator import DxlEmulator, crc16, stuff, unstuff
 from tacsplat.drivers.dynamixel_hand import DynamixelHandConfig, ServoError
@@ -75,7 +75,7 @@ def test_emulator_crc_and_stuffing_agree_with_the_sdk():
 
 
 def test_sdk_packets_with_byte_stuffing_round_trip(emu):
-    port, ph = dxl.PortHandler(emu.path), dxl.PacketHandler(2.0)
+    port, ph = _PortHandler(emu.path, min_timeout_ms=1000.0), dxl.PacketHandler(2.0)  # a busy host's emulator
     assert port.openPort() and port.setBaudRate(4_000_000)  # pyserial accepts 4 Mbps on the pty
     try:
         value = 0xFFFDFFFF  # little endian FF FF FD FF: stuffed in the WRITE and in the READ's status
