@@ -26,7 +26,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 test: $(STAMP)
-	$(PY) -m ruff check --quiet .
+	$(PY) -m ruff format --check --quiet . && $(PY) -m ruff check --quiet .
 	$(PY) -m pytest -m "not slow and not browser" -q
 
 # the viewer in headless Chromium (Debian's package, installed when missing)

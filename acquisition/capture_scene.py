@@ -46,9 +46,13 @@ SETTINGS_KEY = "capture_settings"  # in scene.json's "extra"
 _IN_META = ("rig", "object", "plan")  # recorded as SceneMeta's source, object and capture_plan
 _SIM_OBJECT = ("sim.object", "sim.mesh", "sim.mesh_sha256")  # the twin's object; its name follows from them
 # What scenes of older versions recorded beyond _IN_META, as (extra key, setting); see recorded_settings.
-_OLDER_EXTRAS = (("mock", "mock"), ("object_bounding_radius_m", "sim.object_radius"), ("timestep_s", "twin.timestep"),
-                 ("contact_timeconst_s", "twin.contact_timeconst"),
-                 ("gel_compliance_m", "twin.hand_geometry.gel_compliance"))
+_OLDER_EXTRAS = (
+    ("mock", "mock"),
+    ("object_bounding_radius_m", "sim.object_radius"),
+    ("timestep_s", "twin.timestep"),
+    ("contact_timeconst_s", "twin.contact_timeconst"),
+    ("gel_compliance_m", "twin.hand_geometry.gel_compliance"),
+)
 _MISSING = object()
 
 
@@ -82,8 +86,9 @@ def open_scene(config: RigConfig, out: Path, resume: bool, on_hand=None) -> Iter
                 rig = stack.enter_context(open_rig(config, on_hand))
             else:
                 rig = stack.enter_context(open_rig(config, on_hand))
-                writer = stack.enter_context(SceneWriter.create(out, rig.intrinsics, scene_meta(settings, rig.extra),
-                                                                rig.sensor_model))
+                writer = stack.enter_context(
+                    SceneWriter.create(out, rig.intrinsics, scene_meta(settings, rig.extra), rig.sensor_model)
+                )
             if rig.twin is not None and writer.gt_mesh is None:  # new, or its first run stopped first (a full disk)
                 writer.set_gt_mesh(rig.twin.object_mesh)
             yield rig, writer
@@ -108,8 +113,10 @@ def scene_meta(settings: dict, extra: dict) -> SceneMeta:
 def recorded_settings(writer: SceneWriter) -> dict:
     """The settings a scene was captured with, flat (``"plan.views.train": 20``)."""
     meta = writer.meta
-    recorded = {"plan.touches.model": "gel", **_flatten({"rig": meta.source, "object": meta.object,
-                                                         "plan": meta.capture_plan})}
+    recorded = {
+        "plan.touches.model": "gel",
+        **_flatten({"rig": meta.source, "object": meta.object, "plan": meta.capture_plan}),
+    }
     if meta.source == "sim":
         recorded["sim.texture"] = "none"  # what every twin capture was before the texture became a setting
     if SETTINGS_KEY in meta.extra:
@@ -146,8 +153,11 @@ class ResumeMismatch(ConfigError):
 def check_resume(writer: SceneWriter, settings: dict, source=None) -> None:
     """Refuse (:class:`ResumeMismatch`) to continue ``writer``'s scene with ``settings`` that differ from its own."""
     requested = _flatten(settings)
-    differences = [(key, old, requested.get(key, _MISSING)) for key, old in recorded_settings(writer).items()
-                   if not _same(old, requested.get(key, _MISSING))]
+    differences = [
+        (key, old, requested.get(key, _MISSING))
+        for key, old in recorded_settings(writer).items()
+        if not _same(old, requested.get(key, _MISSING))
+    ]
     if any(key in _SIM_OBJECT for key, _, _ in differences):
         differences = [d for d in differences if d[0] != "object"]
     differences.sort(key=lambda d: d[0] not in ("object", *_SIM_OBJECT))  # the object first, then in file order
@@ -156,6 +166,7 @@ def check_resume(writer: SceneWriter, settings: dict, source=None) -> None:
 
 
 # --- the settings of each rig ----------------------------------------------------------------------
+
 
 def _sim_settings(config: RigConfig) -> dict:
     from tacsplat.sim.grasps import GraspConfig
@@ -166,11 +177,21 @@ def _sim_settings(config: RigConfig) -> dict:
     in_sim = ("object", "mesh_path", "object_radius", "seed", "camera_width", "camera_height", "texture")
     twin = {k: v for k, v in asdict(twin_config(config)).items() if k not in in_sim}
     return {
-        "sim": {"object": None if mesh else s.object, "mesh": str(mesh) if mesh else None,
-                "mesh_sha256": _sha256(mesh, "sim.mesh", config.source) if mesh else None,
-                "object_radius": s.object_radius, "resolution": s.resolution, "seed": s.seed, "texture": s.texture},
-        "twin": {**twin, "grasp_control": asdict(TWIN_CONTROL), "grasping": asdict(GraspConfig()),
-                 "views": asdict(ViewConfig())},
+        "sim": {
+            "object": None if mesh else s.object,
+            "mesh": str(mesh) if mesh else None,
+            "mesh_sha256": _sha256(mesh, "sim.mesh", config.source) if mesh else None,
+            "object_radius": s.object_radius,
+            "resolution": s.resolution,
+            "seed": s.seed,
+            "texture": s.texture,
+        },
+        "twin": {
+            **twin,
+            "grasp_control": asdict(TWIN_CONTROL),
+            "grasping": asdict(GraspConfig()),
+            "views": asdict(ViewConfig()),
+        },
     }
 
 
@@ -183,20 +204,32 @@ def _real_settings(c: RigConfig) -> dict:
         "mock": c.mock,
         "board": asdict(b.spec()),
         "hand": {"ids": c.hand.ids, "calibration_sha256": sha("hand.calibration", c.hand.calibration)},
-        "camera": {"T_hand_cam": c.camera.T_hand_cam,
-                   "calibration_sha256": sha("camera.calibration", c.camera.calibration)},
-        "tactile": {"sensor_name": t.sensor_name, "gel_thickness_m": t.gel_thickness_m, "sensors": [
-            {"finger": s.finger, "T_fingertip_sensor": s.T_fingertip_sensor,
-             "calibration_sha256": sha(f"tactile.sensors[{i}].calibration", s.calibration)}
-            for i, s in enumerate(t.sensors)]},
+        "camera": {
+            "T_hand_cam": c.camera.T_hand_cam,
+            "calibration_sha256": sha("camera.calibration", c.camera.calibration),
+        },
+        "tactile": {
+            "sensor_name": t.sensor_name,
+            "gel_thickness_m": t.gel_thickness_m,
+            "sensors": [
+                {
+                    "finger": s.finger,
+                    "T_fingertip_sensor": s.T_fingertip_sensor,
+                    "calibration_sha256": sha(f"tactile.sensors[{i}].calibration", s.calibration),
+                }
+                for i, s in enumerate(t.sensors)
+            ],
+        },
     }
     if c.mock:
-        settings["mock_devices"] = {k: v for k, v in asdict(c.mock_devices).items()
-                                    if k not in ("servo_timeout_s", "servo_port")}  # the servo link, not the scene
+        settings["mock_devices"] = {
+            k: v for k, v in asdict(c.mock_devices).items() if k not in ("servo_timeout_s", "servo_port")
+        }  # the servo link, not the scene
     return settings
 
 
 # --- helpers ------------------------------------------------------------------------------------
+
 
 def _sha256(path: Path, key: str, source) -> str:
     try:

@@ -19,13 +19,20 @@ def register(cli) -> None:
     p.add_argument("--rig", required=True, help="rig YAML file (devices, calibrations, board, capture plan)")
     p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
     p.add_argument("--resume", action="store_true", help="continue a capture that stopped or was killed")
-    p.add_argument("--mock", action="store_true",
-                   help="emulated devices instead of the real rig's (servo emulator on a pty, video-file tactile "
-                   "sensors, a camera that sees a rendered board)")
-    p.add_argument("--suggest", metavar="RUN", default=None,
-                   help="a reconstruction in progress of this capture (a tacsplat reconstruct folder; its latest "
-                   "checkpoint): the key s then suggests the next grasp, where a fingertip should touch and from "
-                   "which direction, drawn on the wrist camera's image (OUT-suggestion.png)")
+    p.add_argument(
+        "--mock",
+        action="store_true",
+        help="emulated devices instead of the real rig's (servo emulator on a pty, video-file tactile "
+        "sensors, a camera that sees a rendered board)",
+    )
+    p.add_argument(
+        "--suggest",
+        metavar="RUN",
+        default=None,
+        help="a reconstruction in progress of this capture (a tacsplat reconstruct folder; its latest "
+        "checkpoint): the key s then suggests the next grasp, where a fingertip should touch and from "
+        "which direction, drawn on the wrist camera's image (OUT-suggestion.png)",
+    )
     p.set_defaults(func=_capture)
 
     p = cli.command(
@@ -48,20 +55,33 @@ def register(cli) -> None:
     p.add_argument("--grasps", type=int, default=5, help="grasps of four touches each (0 or more)")
     p.add_argument("--resolution", type=int, default=200, help="image width and height in pixels (8 to 4096)")
     p.add_argument("--seed", type=int, default=0, help="seed of the views and grasps (0 or more)")
-    p.add_argument("--texture", default="none",
-                   help="the object's surface: none (its one colour, the glossy library's) or checker (a checker of "
-                   "its colour and a contrasting grey, for measuring on a textured object)")
+    p.add_argument(
+        "--texture",
+        default="none",
+        help="the object's surface: none (its one colour, the glossy library's) or checker (a checker of "
+        "its colour and a contrasting grey, for measuring on a textured object)",
+    )
     _touch_model_options(p)
-    p.add_argument("--grasp-strategy", default="random",
-                   help="random: each grasp on an approach the twin samples; next-best: before each grasp, "
-                   "reconstruct the scene so far briefly and execute, of --candidates sampled approaches, the one "
-                   "whose fingertips land where the reconstruction is least sure")
+    p.add_argument(
+        "--grasp-strategy",
+        default="random",
+        help="random: each grasp on an approach the twin samples; next-best: before each grasp, "
+        "reconstruct the scene so far briefly and execute, of --candidates sampled approaches, the one "
+        "whose fingertips land where the reconstruction is least sure",
+    )
     p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp (1 to 1000)")
-    p.add_argument("--selection-steps", type=int, default=300,
-                   help="next-best: training steps of the reconstruction before each grasp (1 to 1000000)")
-    p.add_argument("--uncertainty", default="depth-variance",
-                   help="next-best: the score, fisher (Fisher information of the Gaussians' positions under the "
-                   "photometric loss) or depth-variance (spread of depth along the training rays)")
+    p.add_argument(
+        "--selection-steps",
+        type=int,
+        default=300,
+        help="next-best: training steps of the reconstruction before each grasp (1 to 1000000)",
+    )
+    p.add_argument(
+        "--uncertainty",
+        default="depth-variance",
+        help="next-best: the score, fisher (Fisher information of the Gaussians' positions under the "
+        "photometric loss) or depth-variance (spread of depth along the training rays)",
+    )
     p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
     p.add_argument("--resume", action="store_true", help="continue a capture that was interrupted")
     p.set_defaults(func=_sim_capture)
@@ -86,22 +106,35 @@ def register(cli) -> None:
 
 def _object_radius_option(what: str):
     """The builder of ``--object-radius`` (deferred: its range comes from the twin's objects, which import trimesh)."""
+
     def build(p) -> None:
         from tacsplat.sim.objects import OBJECT_RADIUS_RANGE_M
 
-        p.add_argument("--object-radius", type=float, default=0.08,
-                       help="{} ({:g} to {:g}: the sizes the twin's hand grasps)".format(what, *OBJECT_RADIUS_RANGE_M))
+        p.add_argument(
+            "--object-radius",
+            type=float,
+            default=0.08,
+            help="{} ({:g} to {:g}: the sizes the twin's hand grasps)".format(what, *OBJECT_RADIUS_RANGE_M),
+        )
+
     return build
 
 
 def _touch_model_options(p) -> None:
-    p.add_argument("--touch-model", default="gel",
-                   help="gel: the hand grasps, each pad's gel contact patch is a touch; paper: the paper's "
-                   "touches, 4 per grasp and no hand (the official code's: the 50 surface samples nearest to where a "
-                   "random ray from the centroid leaves the mesh)")
-    p.add_argument("--surface-points", type=int, default=None,
-                   help="paper touches: points sampled evenly on the surface, 50 (a touch's) to 10000000 (default "
-                   "20000, the official code's for Glossy Synthetic; it used 10000 for Shiny Blender)")
+    p.add_argument(
+        "--touch-model",
+        default="gel",
+        help="gel: the hand grasps, each pad's gel contact patch is a touch; paper: the paper's "
+        "touches, 4 per grasp and no hand (the official code's: the 50 surface samples nearest to where a "
+        "random ray from the centroid leaves the mesh)",
+    )
+    p.add_argument(
+        "--surface-points",
+        type=int,
+        default=None,
+        help="paper touches: points sampled evenly on the surface, 50 (a touch's) to 10000000 (default "
+        "20000, the official code's for Glossy Synthetic; it used 10000 for Shiny Blender)",
+    )
 
 
 def _touch_args(args) -> dict:
@@ -122,11 +155,25 @@ def _sim_capture(args) -> int:
 
     from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
 
-    config = _option_values(lambda: sim_rig_config(
-        object=args.object, mesh=args.mesh, object_radius=args.object_radius, views=args.views,
-        test_views=args.test_views, grasps=args.grasps, resolution=args.resolution, seed=args.seed,
-        grasp_strategy=args.grasp_strategy, candidates=args.candidates, selection_steps=args.selection_steps,
-        uncertainty=args.uncertainty, texture=args.texture, **_touch_args(args)), _SIM_OPTIONS)
+    config = _option_values(
+        lambda: sim_rig_config(
+            object=args.object,
+            mesh=args.mesh,
+            object_radius=args.object_radius,
+            views=args.views,
+            test_views=args.test_views,
+            grasps=args.grasps,
+            resolution=args.resolution,
+            seed=args.seed,
+            grasp_strategy=args.grasp_strategy,
+            candidates=args.candidates,
+            selection_steps=args.selection_steps,
+            uncertainty=args.uncertainty,
+            texture=args.texture,
+            **_touch_args(args),
+        ),
+        _SIM_OPTIONS,
+    )
     try:
         timings = sim_capture(config, args.out, resume=args.resume)
     except ConfigError as exc:
@@ -138,11 +185,13 @@ def _sim_capture(args) -> int:
 def _simulate_touches(args) -> int:
     from tacsplat.acquisition.touch_simulation import simulate_touches, touch_settings
 
-    _option_values(lambda: touch_settings(args.grasps, args.object_radius, args.seed, **_touch_args(args)),
-                   _TOUCH_OPTIONS)
+    _option_values(
+        lambda: touch_settings(args.grasps, args.object_radius, args.seed, **_touch_args(args)), _TOUCH_OPTIONS
+    )
     try:
-        target = simulate_touches(args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed,
-                                  **_touch_args(args))
+        target = simulate_touches(
+            args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed, **_touch_args(args)
+        )
     except ConfigError as exc:
         raise _naming_options(exc, _TOUCH_OPTIONS) from None
     print(f"touches written to {target}")
@@ -174,14 +223,30 @@ def _naming_options(exc: ConfigError, options: dict[str, str]) -> ConfigError:
 
 
 _SIM_OPTIONS = {
-    "object": "--object", "sim.object": "--object", "sim.mesh": "--mesh", "sim.mesh_sha256": "--mesh",
-    "sim.object_radius": "--object-radius", "sim.resolution": "--resolution", "sim.seed": "--seed",
+    "object": "--object",
+    "sim.object": "--object",
+    "sim.mesh": "--mesh",
+    "sim.mesh_sha256": "--mesh",
+    "sim.object_radius": "--object-radius",
+    "sim.resolution": "--resolution",
+    "sim.seed": "--seed",
     "sim.texture": "--texture",
-    "plan.views.train": "--views", "plan.views.test": "--test-views", "plan.grasps.count": "--grasps",
-    "plan.grasps.seed": "--seed", "plan.grasps.mode": "--grasp-strategy", "plan.grasps.candidates": "--candidates",
-    "plan.grasps.selection_steps": "--selection-steps", "plan.grasps.uncertainty": "--uncertainty",
+    "plan.views.train": "--views",
+    "plan.views.test": "--test-views",
+    "plan.grasps.count": "--grasps",
+    "plan.grasps.seed": "--seed",
+    "plan.grasps.mode": "--grasp-strategy",
+    "plan.grasps.candidates": "--candidates",
+    "plan.grasps.selection_steps": "--selection-steps",
+    "plan.grasps.uncertainty": "--uncertainty",
     "plan.touches.model": "--touch-model",
     "plan.touches.surface_points": "--surface-points",
 }
-_TOUCH_OPTIONS = {"model": "--touch-model", "surface_points": "--surface-points", "grasps": "--grasps",
-                  "object_radius": "--object-radius", "seed": "--seed", "out": "--out"}  # simulate_touches' keys
+_TOUCH_OPTIONS = {
+    "model": "--touch-model",
+    "surface_points": "--surface-points",
+    "grasps": "--grasps",
+    "object_radius": "--object-radius",
+    "seed": "--seed",
+    "out": "--out",
+}  # simulate_touches' keys

@@ -74,6 +74,7 @@ def positive(default, hi: float = math.inf, unit: str = ""):
 
 # --- the types of the YAML's values beyond numbers, booleans and lists --------------------------------
 
+
 def _pose(value) -> tuple:
     try:
         T = np.asarray(value, dtype=np.float64)
@@ -81,8 +82,10 @@ def _pose(value) -> tuple:
         raise ValueError(f"expected a 4x4 matrix of numbers, got {value!r}") from None
     problem = rigidity_problem(T)
     if problem:
-        raise ValueError(f"not a rigid transform: {problem} (expected [[R, t], [0, 0, 0, 1]], R a rotation: "
-                         "orthonormal, determinant +1; all finite)")
+        raise ValueError(
+            f"not a rigid transform: {problem} (expected [[R, t], [0, 0, 0, 1]], R a rotation: "
+            "orthonormal, determinant +1; all finite)"
+        )
     return tuple(map(tuple, T.tolist()))
 
 
@@ -162,8 +165,9 @@ class GraspControl:
     """How the logger closes the hand: a speed-limited ramp toward ``close_pose``, each finger stopping when it
     stalls, then a wait until the joints settle; then the read, then ``open_pose``."""
 
-    close_pose: tuple[float, ...] = bounded((0.0, 1.2, 1.0, 1.0) * 3 + (1.2, 0.6, 0.6, 0.8), -math.pi, math.pi,
-                                            "rad")  # [16] joint positions
+    close_pose: tuple[float, ...] = bounded(
+        (0.0, 1.2, 1.0, 1.0) * 3 + (1.2, 0.6, 0.6, 0.8), -math.pi, math.pi, "rad"
+    )  # [16] joint positions
     open_pose: tuple[float, ...] = bounded((0.0,) * 16, -math.pi, math.pi, "rad")  # [16] joint positions
     close_speed_rad_s: float = positive(1.5, 10.0, "rad/s")  # largest joint speed of the commanded ramp
     poll_s: float = positive(0.02, 1.0, "s")  # joint polling period (through the rig's clock)
@@ -307,13 +311,20 @@ def example_rig(name: str) -> Path:
 _SET_BY_LOAD_RIG = ("source", "mock")  # RigConfig fields that come from load_rig, not from the file
 _SECTIONS = tuple(f.name for f in dataclasses.fields(RigConfig) if f.default_factory is not dataclasses.MISSING)
 _EXPECTED = {  # what each kind of pydantic error means in the YAML's terms
-    "int_type": "expected an integer", "int_parsing": "expected an integer", "int_from_float": "expected an integer",
-    "float_type": "expected a finite number", "float_parsing": "expected a finite number",
+    "int_type": "expected an integer",
+    "int_parsing": "expected an integer",
+    "int_from_float": "expected an integer",
+    "float_type": "expected a finite number",
+    "float_parsing": "expected a finite number",
     "finite_number": "expected a finite number",
-    "bool_type": "expected true or false", "bool_parsing": "expected true or false",
-    "string_type": "expected a non-empty string", "string_pattern_mismatch": "expected a non-empty string",
-    "tuple_type": "expected a list", "list_type": "expected a list",
-    "dataclass_type": "expected a mapping", "dict_type": "expected a mapping",
+    "bool_type": "expected true or false",
+    "bool_parsing": "expected true or false",
+    "string_type": "expected a non-empty string",
+    "string_pattern_mismatch": "expected a non-empty string",
+    "tuple_type": "expected a list",
+    "list_type": "expected a list",
+    "dataclass_type": "expected a mapping",
+    "dict_type": "expected a mapping",
 }
 
 
@@ -423,11 +434,15 @@ def validate(c: RigConfig) -> None:
         from tacsplat.reconstruction.uncertainty import SCORES
 
         if g.uncertainty not in SCORES:
-            raise ConfigError("plan.grasps.uncertainty", f"must be one of {', '.join(map(repr, SCORES))}, got "
-                              f"{g.uncertainty!r}", src)
+            raise ConfigError(
+                "plan.grasps.uncertainty", f"must be one of {', '.join(map(repr, SCORES))}, got {g.uncertainty!r}", src
+            )
         if c.plan.touches.model != "gel":
-            raise ConfigError("plan.grasps.mode", "next-best chooses where the hand grasps: it needs the gel touch "
-                              "model (plan.touches.model: gel)", src)
+            raise ConfigError(
+                "plan.grasps.mode",
+                "next-best chooses where the hand grasps: it needs the gel touch model (plan.touches.model: gel)",
+                src,
+            )
     if c.rig == "real" and (v.mode != "operator" or g.mode != "operator"):
         key = "plan.views.mode" if v.mode != "operator" else "plan.grasps.mode"
         hint = " (tacsplat capture --suggest RUN shows where the next grasp should go)" if g.mode == "next-best" else ""
@@ -437,15 +452,20 @@ def validate(c: RigConfig) -> None:
         if len(getattr(gc, key)) != 16:
             raise ConfigError(f"grasp.{key}", f"expected 16 joint positions, got {len(getattr(gc, key))}", src)
     if not gc.settle_tol_rad < gc.stall_error_rad:
-        raise ConfigError("grasp.settle_tol_rad", f"must be smaller than grasp.stall_error_rad ({gc.stall_error_rad:g}),"
-                          f" got {gc.settle_tol_rad:g}", src)
+        raise ConfigError(
+            "grasp.settle_tol_rad",
+            f"must be smaller than grasp.stall_error_rad ({gc.stall_error_rad:g}), got {gc.settle_tol_rad:g}",
+            src,
+        )
     if not gc.max_close_s > gc.poll_s:
-        raise ConfigError("grasp.max_close_s", f"must be longer than grasp.poll_s ({gc.poll_s:g}), got {gc.max_close_s:g}",
-                          src)
+        raise ConfigError(
+            "grasp.max_close_s", f"must be longer than grasp.poll_s ({gc.poll_s:g}), got {gc.max_close_s:g}", src
+        )
     validate_touches(c.plan.touches, "plan.touches.", src)
     if c.plan.touches.model == "paper" and c.rig != "sim":
-        raise ConfigError("plan.touches.model", "the paper's touches are sampled on the twin's mesh: use 'gel' on a "
-                          "real rig", src)
+        raise ConfigError(
+            "plan.touches.model", "the paper's touches are sampled on the twin's mesh: use 'gel' on a real rig", src
+        )
     _validate_board(c.board, src)
     if c.rig == "real":
         _validate_real(c, src)
@@ -456,12 +476,17 @@ def validate(c: RigConfig) -> None:
 def validate_touches(t: TouchPlan, prefix: str = "", src=None) -> None:
     """A touch plan's model and numbers (``prefix`` names its place: ``plan.touches.``)."""
     if t.model not in TOUCH_MODELS:
-        raise ConfigError(f"{prefix}model", f"must be one of {', '.join(map(repr, TOUCH_MODELS))}, got {t.model!r}",
-                          src)
+        raise ConfigError(
+            f"{prefix}model", f"must be one of {', '.join(map(repr, TOUCH_MODELS))}, got {t.model!r}", src
+        )
     _check_bounds(t, prefix, src)
     if t.surface_points < t.points_per_touch:
-        raise ConfigError(f"{prefix}surface_points", f"must be at least the {t.points_per_touch} points of a touch "
-                          f"({prefix}points_per_touch), got {t.surface_points}", src)
+        raise ConfigError(
+            f"{prefix}surface_points",
+            f"must be at least the {t.points_per_touch} points of a touch "
+            f"({prefix}points_per_touch), got {t.surface_points}",
+            src,
+        )
 
 
 def _validate_board(b: BoardConfig, src) -> None:
@@ -470,14 +495,19 @@ def _validate_board(b: BoardConfig, src) -> None:
         raise ConfigError(f"board.{problem[0]}", problem[1], src)
     inner = (b.squares_x - 1) * (b.squares_y - 1)
     if b.min_corners > inner:
-        raise ConfigError("board.min_corners", f"a {b.squares_x} x {b.squares_y} board has {inner} inner corners; "
-                          f"must be in [4, {inner}], got {b.min_corners}", src)
+        raise ConfigError(
+            "board.min_corners",
+            f"a {b.squares_x} x {b.squares_y} board has {inner} inner corners; "
+            f"must be in [4, {inner}], got {b.min_corners}",
+            src,
+        )
 
 
 def _validate_real(c: RigConfig, src) -> None:
     if c.hand.baudrate not in DYNAMIXEL_BAUDRATES:
-        raise ConfigError("hand.baudrate", f"must be one of the Dynamixel rates {DYNAMIXEL_BAUDRATES}, "
-                          f"got {c.hand.baudrate}", src)
+        raise ConfigError(
+            "hand.baudrate", f"must be one of the Dynamixel rates {DYNAMIXEL_BAUDRATES}, got {c.hand.baudrate}", src
+        )
     if len(c.hand.ids) != 16 or len(set(c.hand.ids)) != 16:
         raise ConfigError("hand.ids", f"expected 16 distinct servo ids, got {list(c.hand.ids)}", src)
     if not c.tactile.sensors:
@@ -485,8 +515,7 @@ def _validate_real(c: RigConfig, src) -> None:
     seen = set()
     for i, s in enumerate(c.tactile.sensors):
         if s.finger not in FINGER_NAMES:
-            raise ConfigError(f"tactile.sensors[{i}].finger", f"must be one of {FINGER_NAMES}, got {s.finger!r}",
-                              src)
+            raise ConfigError(f"tactile.sensors[{i}].finger", f"must be one of {FINGER_NAMES}, got {s.finger!r}", src)
         if s.finger in seen:
             raise ConfigError(f"tactile.sensors[{i}].finger", f"{s.finger!r} has two sensors", src)
         seen.add(s.finger)
@@ -512,5 +541,9 @@ def _validate_sim(c: RigConfig, src) -> None:
             raise ConfigError("sim.object", f"unknown library object {s.object!r} (one of {list(OBJECT_NAMES)})", src)
     radius = c.plan.views.radius_m
     if radius is not None and not radius > s.object_radius:
-        raise ConfigError("plan.views.radius_m", f"the camera must stay outside the object: must be larger than "
-                          f"sim.object_radius ({s.object_radius:g}), got {radius:g}", src)
+        raise ConfigError(
+            "plan.views.radius_m",
+            f"the camera must stay outside the object: must be larger than "
+            f"sim.object_radius ({s.object_radius:g}), got {radius:g}",
+            src,
+        )

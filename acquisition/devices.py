@@ -70,9 +70,16 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
             mock = stack.enter_context(MockDevices(config))
             port, hand_cal = mock.servo_port, None
             timeout, drain = config.mock_devices.servo_timeout_s, 0.1  # the watchdog outlasts a retried exchange
-            hand_settings = DynamixelHandConfig(min_packet_timeout_s=timeout, drain_s=drain, bus_watchdog_s=max(
-                DynamixelHandConfig.bus_watchdog_s, 2 * (timeout + drain)))
-            cam_source, cam_cal, cam_factory = mock.camera_source, str(mock.camera_calibration), mock.capture_factory("camera")
+            hand_settings = DynamixelHandConfig(
+                min_packet_timeout_s=timeout,
+                drain_s=drain,
+                bus_watchdog_s=max(DynamixelHandConfig.bus_watchdog_s, 2 * (timeout + drain)),
+            )
+            cam_source, cam_cal, cam_factory = (
+                mock.camera_source,
+                str(mock.camera_calibration),
+                mock.capture_factory("camera"),
+            )
         else:
             port, hand_settings = config.hand.port, None
             hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None
@@ -83,16 +90,24 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
         elif calibration.T_hand_cam is not None:
             T_hand_cam = calibration.T_hand_cam
         else:
-            raise ConfigError("camera.T_hand_cam", f"not given, and {cam_cal} has no hand-eye calibration "
-                                                   "(run the hand-eye calibration or set it here)", config.source)
+            raise ConfigError(
+                "camera.T_hand_cam",
+                f"not given, and {cam_cal} has no hand-eye calibration (run the hand-eye calibration or set it here)",
+                config.source,
+            )
         if calibration.board != config.board.spec():
-            log.warning("the camera calibration's board %s differs from the rig's board %s; using the rig's",
-                        calibration.board, config.board.spec())
+            log.warning(
+                "the camera calibration's board %s differs from the rig's board %s; using the rig's",
+                calibration.board,
+                config.board.spec(),
+            )
         kw = {"capture_factory": cam_factory} if cam_factory else {}
-        camera = stack.enter_context(WristCamera(cam_source, calibration, fps=config.camera.fps,
-                                                 timeout_s=config.camera.timeout_s, **kw))
-        hand = DynamixelHand(port, config.hand.baudrate, config.hand.ids, hand_cal, config=hand_settings,
-                             kinematics=HandKinematics())
+        camera = stack.enter_context(
+            WristCamera(cam_source, calibration, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **kw)
+        )
+        hand = DynamixelHand(
+            port, config.hand.baudrate, config.hand.ids, hand_cal, config=hand_settings, kinematics=HandKinematics()
+        )
         if on_hand is not None:
             on_hand(hand)
         stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
@@ -100,36 +115,67 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
         for i, s in enumerate(config.tactile.sensors):
             T_mount = np.eye(4) if s.T_fingertip_sensor is None else np.asarray(s.T_fingertip_sensor, dtype=np.float64)
             if mock is not None:
-                source, cal, factory = str(mock.tactile_video(s.finger)), str(mock.tactile_calibration), mock.capture_factory(s.finger)
+                source, cal, factory = (
+                    str(mock.tactile_video(s.finger)),
+                    str(mock.tactile_calibration),
+                    mock.capture_factory(s.finger),
+                )
             else:
                 source, cal, factory = s.source, str(config.path(s.calibration)), None
             tcal = TactileCalibration.load(cal)
-            this = SensorModel(config.tactile.sensor_name, int(tcal.image_size[1]), int(tcal.image_size[0]),
-                               float(tcal.pixel_size_m), config.tactile.gel_thickness_m)
+            this = SensorModel(
+                config.tactile.sensor_name,
+                int(tcal.image_size[1]),
+                int(tcal.image_size[0]),
+                float(tcal.pixel_size_m),
+                config.tactile.gel_thickness_m,
+            )
             if model is not None and this != model:
-                raise ConfigError(f"tactile.sensors[{i}].calibration", f"{this} differs from the first sensor's "
-                                  f"{model}: a scene holds one sensor model", config.source)
+                raise ConfigError(
+                    f"tactile.sensors[{i}].calibration",
+                    f"{this} differs from the first sensor's {model}: a scene holds one sensor model",
+                    config.source,
+                )
             model = this
-            pose = (lambda finger=s.finger, T=T_mount: hand.fingertip_poses()[finger] @ T)
+            pose = lambda finger=s.finger, T=T_mount: hand.fingertip_poses()[finger] @ T
             kw = {"capture_factory": factory} if factory else {}
-            sensors.append(stack.enter_context(OpticalTactileSensor(s.finger, source, tcal, pose,
-                                                                    timeout_s=config.tactile.timeout_s, **kw)))
+            sensors.append(
+                stack.enter_context(
+                    OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=config.tactile.timeout_s, **kw)
+                )
+            )
         rig = Rig(
-            kind="real", hand=hand, sensors=sensors, camera=camera, clock=WallClock(),
+            kind="real",
+            hand=hand,
+            sensors=sensors,
+            camera=camera,
+            clock=WallClock(),
             poses=BoardPoseSource(camera, config.board, T_hand_cam),
-            intrinsics=CameraIntrinsics(camera.K, camera.width, camera.height), sensor_model=model,
+            intrinsics=CameraIntrinsics(camera.K, camera.width, camera.height),
+            sensor_model=model,
             control=config.grasp,
-            extra={"rig": str(config.source), "mock": config.mock, "hand_port": port,
-                   "board_max_reprojection_px": config.board.max_reprojection_px,
-                   "T_hand_cam": np.asarray(T_hand_cam).tolist()},
+            extra={
+                "rig": str(config.source),
+                "mock": config.mock,
+                "hand_port": port,
+                "board_max_reprojection_px": config.board.max_reprojection_px,
+                "T_hand_cam": np.asarray(T_hand_cam).tolist(),
+            },
             mock=mock,
         )
         yield rig
 
 
 # The twin's grasp control: its soft position servos lag a 0.6 rad/s ramp by about 0.03 rad in free motion.
-TWIN_CONTROL = GraspControl(close_speed_rad_s=0.6, poll_s=0.01, stall_error_rad=0.08, settle_tol_rad=0.002,
-                            settle_polls=3, max_close_s=2.0, open_s=0.2)
+TWIN_CONTROL = GraspControl(
+    close_speed_rad_s=0.6,
+    poll_s=0.01,
+    stall_error_rad=0.08,
+    settle_tol_rad=0.002,
+    settle_polls=3,
+    max_close_s=2.0,
+    open_s=0.2,
+)
 
 
 def twin_config(config: RigConfig):
@@ -137,9 +183,15 @@ def twin_config(config: RigConfig):
     from tacsplat.sim.twin import TwinConfig
 
     s = config.sim
-    return TwinConfig(object=s.object, mesh_path=str(config.path(s.mesh)) if s.mesh else None,
-                      object_radius=s.object_radius, seed=s.seed, camera_width=s.resolution, camera_height=s.resolution,
-                      texture=s.texture)
+    return TwinConfig(
+        object=s.object,
+        mesh_path=str(config.path(s.mesh)) if s.mesh else None,
+        object_radius=s.object_radius,
+        seed=s.seed,
+        camera_width=s.resolution,
+        camera_height=s.resolution,
+        texture=s.texture,
+    )
 
 
 @contextmanager
@@ -155,9 +207,15 @@ def twin_rig(twin, control: GraspControl = TWIN_CONTROL) -> Rig:
     """A :class:`Rig` of an open twin: its hand, pads and free view camera, its clock and ground-truth poses."""
     cfg = twin.config
     return Rig(
-        kind="sim", hand=twin.hand, sensors=list(twin.tactile_sensors), camera=twin.view_camera,
-        clock=TwinClock(twin), poses=TwinPoseSource(twin), intrinsics=twin.view_camera.intrinsics,
-        sensor_model=twin.sensor_model(), control=control,
+        kind="sim",
+        hand=twin.hand,
+        sensors=list(twin.tactile_sensors),
+        camera=twin.view_camera,
+        clock=TwinClock(twin),
+        poses=TwinPoseSource(twin),
+        intrinsics=twin.view_camera.intrinsics,
+        sensor_model=twin.sensor_model(),
+        control=control,
         extra={
             "simulator": twin.simulator,
             "timestep_s": cfg.timestep,

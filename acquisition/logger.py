@@ -109,8 +109,10 @@ class BoardPoseSource:
         except CameraError as exc:
             raise CaptureRejected(f"board not seen ({exc}); move the camera so the board is in view") from None
         if est.reprojection_px > self.board.max_reprojection_px:
-            raise CaptureRejected(f"board reprojection error {est.reprojection_px:.2f} px is over the threshold "
-                                  f"{self.board.max_reprojection_px:g} px (blur or a bent board?); hold still and retry")
+            raise CaptureRejected(
+                f"board reprojection error {est.reprojection_px:.2f} px is over the threshold "
+                f"{self.board.max_reprojection_px:g} px (blur or a bent board?); hold still and retry"
+            )
         return est
 
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
@@ -186,9 +188,18 @@ class CaptureLogger:
     False (a scene another tool wrote, whose grasps may hold fewer touches).
     """
 
-    def __init__(self, writer: SceneWriter, hand: Hand, sensors: Sequence[TactileSensor], camera: Camera,
-                 clock: Clock, poses: PoseSource, control: GraspControl = GraspControl(),
-                 fingers: dict[str, Sequence[int]] | None = None, redo_partial_grasp: bool = True):
+    def __init__(
+        self,
+        writer: SceneWriter,
+        hand: Hand,
+        sensors: Sequence[TactileSensor],
+        camera: Camera,
+        clock: Clock,
+        poses: PoseSource,
+        control: GraspControl = GraspControl(),
+        fingers: dict[str, Sequence[int]] | None = None,
+        redo_partial_grasp: bool = True,
+    ):
         self.writer = writer
         self.hand = hand
         self.sensors = list(sensors)
@@ -236,7 +247,9 @@ class CaptureLogger:
             return 0
         for _ in range(have):
             w.remove_last()
-        log.warning("grasp %d was cut short (%d of %d touches): removed, to be redone whole", g, have, len(self.sensors))
+        log.warning(
+            "grasp %d was cut short (%d of %d touches): removed, to be redone whole", g, have, len(self.sensors)
+        )
         return have
 
     # --- views ------------------------------------------------------------------------------------
@@ -251,13 +264,22 @@ class CaptureLogger:
         est = self.poses.camera_pose(image)
         gt = self.poses.ground_truth_depth() if split == "test" else None
         frame = self.writer.add_frame(image, est.T, split, gt_depth=gt)
-        log.debug("view %d (%s) recorded%s", frame.id, split,
-                  "" if est.reprojection_px is None else f", board reprojection {est.reprojection_px:.2f} px")
+        log.debug(
+            "view %d (%s) recorded%s",
+            frame.id,
+            split,
+            "" if est.reprojection_px is None else f", board reprojection {est.reprojection_px:.2f} px",
+        )
         return ViewOutcome(frame, est.reprojection_px)
 
     # --- grasps -----------------------------------------------------------------------------------
-    def take_grasp(self, close_pose: np.ndarray | None = None, open_pose: np.ndarray | None = None,
-                   T_world_hand: np.ndarray | None = None, index: int | None = None) -> GraspOutcome:
+    def take_grasp(
+        self,
+        close_pose: np.ndarray | None = None,
+        open_pose: np.ndarray | None = None,
+        T_world_hand: np.ndarray | None = None,
+        index: int | None = None,
+    ) -> GraspOutcome:
         """Close, wait until the fingers settle or stall, read every sensor, append the touches, open.
 
         ``T_world_hand`` [4, 4] defaults to the pose source's (board PnP through
@@ -291,9 +313,14 @@ class CaptureLogger:
         self.open(q_open)
         outcome = GraspOutcome(index, touches, stopped_by, settled, close_s, T_world_hand, hand_rms)
         no_contact = [t.finger for t in touches if not t.in_contact]
-        log.debug("grasp %d recorded: %d touches (%s), stopped by %s%s", index, len(touches),
-                  f"no contact on {', '.join(no_contact)}" if no_contact else "all in contact", stopped_by,
-                  "" if settled else "; the fingers had not settled")
+        log.debug(
+            "grasp %d recorded: %d touches (%s), stopped by %s%s",
+            index,
+            len(touches),
+            f"no contact on {', '.join(no_contact)}" if no_contact else "all in contact",
+            stopped_by,
+            "" if settled else "; the fingers had not settled",
+        )
         return outcome
 
     def open(self, q_open: np.ndarray | None = None) -> None:
@@ -321,7 +348,9 @@ class CaptureLogger:
                     continue
                 if np.abs(target[f.joints] - q[f.joints]).max() > c.stall_error_rad:
                     f.state = "stalled"
-                    target[f.joints] = q[f.joints] + np.clip(target[f.joints] - q[f.joints], -c.stall_error_rad, c.stall_error_rad)
+                    target[f.joints] = q[f.joints] + np.clip(
+                        target[f.joints] - q[f.joints], -c.stall_error_rad, c.stall_error_rad
+                    )
                     continue
                 delta = q_close[f.joints] - target[f.joints]
                 target[f.joints] += np.clip(delta, -step, step)

@@ -115,8 +115,9 @@ def render_board(spec, K: np.ndarray, width: int, height: int, T_cam_board: np.n
     H = H @ np.diag([m_per_px, m_per_px, 1.0])
     shift = lambda d: np.array([[1.0, 0, d], [0, 1.0, d], [0, 0, 1.0]])  # noqa: E731
     H_cv = shift(-0.5) @ H @ shift(0.5)  # warpPerspective puts pixel centres at integers
-    big = cv2.warpPerspective(board_img, H_cv, (width * SUPERSAMPLE, height * SUPERSAMPLE),
-                              flags=cv2.INTER_LINEAR, borderValue=150)
+    big = cv2.warpPerspective(
+        board_img, H_cv, (width * SUPERSAMPLE, height * SUPERSAMPLE), flags=cv2.INTER_LINEAR, borderValue=150
+    )
     gray = cv2.resize(big, (width, height), interpolation=cv2.INTER_AREA)
     return np.repeat(gray[:, :, None], 3, axis=2)
 
@@ -149,12 +150,16 @@ class MockDevices:
         self.config = config
         m = config.mock_devices
         files = {k: v for k, v in asdict(m).items() if not k.startswith("servo_")}  # the settings of the files
-        key = hashlib.sha1(json.dumps([ASSET_VERSION, files, asdict(config.board), [s.finger for s in config.tactile.sensors]],
-                                      sort_keys=True).encode()).hexdigest()[:12]
+        key = hashlib.sha1(
+            json.dumps(
+                [ASSET_VERSION, files, asdict(config.board), [s.finger for s in config.tactile.sensors]], sort_keys=True
+            ).encode()
+        ).hexdigest()[:12]
         root = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / f"tacsplat-mock-rig-{os.getuid()}"
         self.folder = root / key
-        self.K = np.array([[m.camera_focal_px, 0, m.camera_width / 2], [0, m.camera_focal_px, m.camera_height / 2],
-                           [0, 0, 1.0]])
+        self.K = np.array(
+            [[m.camera_focal_px, 0, m.camera_width / 2], [0, m.camera_focal_px, m.camera_height / 2], [0, 0, 1.0]]
+        )
         self.camera_poses = camera_poses(config.board.spec(), m.camera_frames)
         if not (self.folder / "done").is_file():
             self._generate()
@@ -192,12 +197,18 @@ class MockDevices:
             _write_video(self.camera_video, frames)
             K_cv = self.K.copy()
             K_cv[:2, 2] -= 0.5
-            CameraCalibration(K_cv, np.zeros(5), m.camera_width, m.camera_height, 0.0, spec,
-                              T_hand_cam=MOCK_T_HAND_CAM).save(self.camera_calibration)
+            CameraCalibration(
+                K_cv, np.zeros(5), m.camera_width, m.camera_height, 0.0, spec, T_hand_cam=MOCK_T_HAND_CAM
+            ).save(self.camera_calibration)
             h, w, pix = m.tactile_height, m.tactile_width, m.tactile_pixel_size_m
             reference = render_tactile_rgb(np.zeros((h, w), np.float32), pix)
-            presses = [(0.3 * w, 0.35 * h, 6e-4), (0.7 * w, 0.6 * h, 8e-4), (0.5 * w, 0.5 * h, 1e-3),
-                       (0.3 * w, 0.7 * h, 5e-4), (0.7 * w, 0.3 * h, 9e-4)]
+            presses = [
+                (0.3 * w, 0.35 * h, 6e-4),
+                (0.7 * w, 0.6 * h, 8e-4),
+                (0.5 * w, 0.5 * h, 1e-3),
+                (0.3 * w, 0.7 * h, 5e-4),
+                (0.7 * w, 0.3 * h, 9e-4),
+            ]
             press_images = [render_tactile_rgb(_ball_press(h, w, pix, *p), pix) for p in presses]
             TactileCalibration.fit(reference, press_images, BALL_RADIUS_M, pix).save(self.tactile_calibration)
             for i, s in enumerate(self.config.tactile.sensors):

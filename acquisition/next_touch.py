@@ -149,11 +149,19 @@ class ScoredCandidate:
         return float(sum(p.score for p in self.patches))
 
     def to_json(self) -> dict:
-        return {"candidate": self.candidate.index, "score_mm2": round(self.score * 1e6, 4),
-                "approach_from": [round(float(v), 6) for v in self.candidate.approach_from],
-                "patches": {p.finger: {"score_mm2": round(p.score * 1e6, 4),
-                                       "centre": [round(float(v), 6) for v in p.points.mean(axis=0)],
-                                       "area_mm2": round(float(p.area_m2.sum()) * 1e6, 3)} for p in self.patches}}
+        return {
+            "candidate": self.candidate.index,
+            "score_mm2": round(self.score * 1e6, 4),
+            "approach_from": [round(float(v), 6) for v in self.candidate.approach_from],
+            "patches": {
+                p.finger: {
+                    "score_mm2": round(p.score * 1e6, 4),
+                    "centre": [round(float(v), 6) for v in p.points.mean(axis=0)],
+                    "area_mm2": round(float(p.area_m2.sum()) * 1e6, 3),
+                }
+                for p in self.patches
+            },
+        }
 
 
 def _patch_camera(pad: Pad, model: PatchModel, device) -> tuple[torch.Tensor, torch.Tensor, int, int, float]:
@@ -174,8 +182,9 @@ def predict_patch(belief: Belief, pad: Pad, model: PatchModel) -> Patch | None:
     ``model.reach_m`` and everything within the contact depth beyond it; None when it meets nothing."""
     viewmat, K, width, height, footprint = _patch_camera(pad, model, belief.gaussians.means.device)
     near = STANDOFF_M - model.behind_m
-    uncertainty, alpha, depth = render_uncertainty(belief.gaussians, belief.uncertainty, viewmat, K, width, height,
-                                                   near_plane=near)
+    uncertainty, alpha, depth = render_uncertainty(
+        belief.gaussians, belief.uncertainty, viewmat, K, width, height, near_plane=near
+    )
     if belief.ray_tolerance_m is not None:
         _, _, variance = depth_moments(belief.gaussians, viewmat, K, width, height, near_plane=near)
         spread = variance / (variance + belief.ray_tolerance_m**2)
@@ -191,8 +200,14 @@ def predict_patch(belief: Belief, pad: Pad, model: PatchModel) -> Patch | None:
     scale = footprint * (STANDOFF_M + t) / STANDOFF_M  # a pixel's size on the surface
     local = np.stack([(cols + 0.5 - width / 2) * scale, (rows + 0.5 - height / 2) * scale, t], axis=1)
     points = local @ pad.T_world_sensor[:3, :3].T + pad.T_world_sensor[:3, 3]
-    return Patch(pad.finger, points, uncertainty[rows, cols], belief.coverage(points, model.coverage_radius_m),
-                 scale**2, max(first, 0.0))
+    return Patch(
+        pad.finger,
+        points,
+        uncertainty[rows, cols],
+        belief.coverage(points, model.coverage_radius_m),
+        scale**2,
+        max(first, 0.0),
+    )
 
 
 def score_candidate(belief: Belief, candidate: Candidate, model: PatchModel) -> ScoredCandidate:
@@ -211,11 +226,16 @@ def belief_of(scene, gaussians: Gaussians, score: str, seed: int = 0) -> Belief:
     and along the candidate rays), and the scene's touch points."""
     views = Views.of_frames(scene, scene.split("train"), gaussians.means.device)
     tolerance = depth_tolerance(gaussians, views) if score == "depth-variance" else None
-    return Belief(gaussians, gaussian_uncertainty(gaussians, views, score, seed=seed, tolerance_m=tolerance),
-                  scene.touch_points(), tolerance)
+    return Belief(
+        gaussians,
+        gaussian_uncertainty(gaussians, views, score, seed=seed, tolerance_m=tolerance),
+        scene.touch_points(),
+        tolerance,
+    )
 
 
 # --- the twin's closed loop --------------------------------------------------------------------------------
+
 
 class ChoiceLog:
     """The decisions of a next-best capture: ``{"grasps": [...]}`` under ``DECISIONS_KEY`` in scene.json's
@@ -275,8 +295,11 @@ class NextTouchPlanner:
         joints: dict[str, list[int]] = {}
         for i, name in enumerate(twin.hand.joint_names):
             joints.setdefault(name.rsplit("_", 1)[0], []).append(i)
-        pads = [Pad(finger, T_world_hand @ tips[finger]) for finger, j in joints.items()
-                if finger in tips and not np.allclose(q_close[j], q_pre[j])]
+        pads = [
+            Pad(finger, T_world_hand @ tips[finger])
+            for finger, j in joints.items()
+            if finger in tips and not np.allclose(q_close[j], q_pre[j])
+        ]
         return Candidate(k, pads, -T_world_hand[:3, 2]), q_close
 
     def decide(self, scene, index: int) -> dict:
@@ -291,13 +314,24 @@ class NextTouchPlanner:
             candidates = [self.candidate(index, k)[0] for k in range(self.plan.candidates)]
             ranked = rank_candidates(belief, candidates, model)
         best = ranked[0]
-        log.info("grasp %d: candidate %d of %d expects %.1f mm^2 of uncertain surface (median candidate %.1f)", index,
-                 best.candidate.index, len(ranked), best.score * 1e6, ranked[len(ranked) // 2].score * 1e6)
-        return {"grasp": index, "scene": scene_state(scene), "uncertainty": self.plan.uncertainty,
-                "reconstruction": {"steps": self.train_config.iterations, "gaussians": len(gaussians)},
-                "ranking": [s.candidate.index for s in ranked],
-                "candidates": [s.to_json() for s in sorted(ranked, key=lambda s: s.candidate.index)],
-                "executed": None, "selection_seconds": round(time.perf_counter() - started, 3)}
+        log.info(
+            "grasp %d: candidate %d of %d expects %.1f mm^2 of uncertain surface (median candidate %.1f)",
+            index,
+            best.candidate.index,
+            len(ranked),
+            best.score * 1e6,
+            ranked[len(ranked) // 2].score * 1e6,
+        )
+        return {
+            "grasp": index,
+            "scene": scene_state(scene),
+            "uncertainty": self.plan.uncertainty,
+            "reconstruction": {"steps": self.train_config.iterations, "gaussians": len(gaussians)},
+            "ranking": [s.candidate.index for s in ranked],
+            "candidates": [s.to_json() for s in sorted(ranked, key=lambda s: s.candidate.index)],
+            "executed": None,
+            "selection_seconds": round(time.perf_counter() - started, 3),
+        }
 
     def grasp(self, logger: CaptureLogger, index: int) -> GraspOutcome | None:
         """Grasp number ``index``: decide (or reuse the decision taken on this same scene), then execute the best
@@ -323,8 +357,10 @@ class NextTouchPlanner:
 
 # --- suggestions at a real rig -------------------------------------------------------------------------------
 
-def approach_candidates(gaussians: Gaussians, count: int, min_elevation_deg: float = -30.0,
-                        margin_m: float = 0.02) -> list[Candidate]:
+
+def approach_candidates(
+    gaussians: Gaussians, count: int, min_elevation_deg: float = -30.0, margin_m: float = 0.02
+) -> list[Candidate]:
     """``count`` approaches spread evenly (a Fibonacci spiral) over the directions above ``min_elevation_deg``
     around the reconstruction, each one fingertip facing its centre from ``margin_m`` outside it."""
     means = gaussians.means.detach().cpu().numpy().astype(np.float64)
@@ -369,8 +405,9 @@ class GraspSuggester:
         return best if best.score > 0 else None
 
 
-def draw_suggestion(image: np.ndarray, suggestion: ScoredCandidate, T_world_cam: np.ndarray,
-                    K: np.ndarray) -> np.ndarray:
+def draw_suggestion(
+    image: np.ndarray, suggestion: ScoredCandidate, T_world_cam: np.ndarray, K: np.ndarray
+) -> np.ndarray:
     """``image`` [H, W, 3] uint8 RGB with the suggested patch (its points, outlined, and a ring around it that a
     small patch still shows) and the approach (an arrow from 5 cm out to the patch's centre) drawn in, seen by the
     camera at ``T_world_cam`` with intrinsics ``K``."""

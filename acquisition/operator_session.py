@@ -82,8 +82,17 @@ def _cbreak(stream) -> Iterator[None]:
 class CaptureSession:
     """Maps keys to logger actions for one open rig and writer; ``run()`` returns when the operator stops."""
 
-    def __init__(self, rig: Rig, logger: CaptureLogger, plan: CapturePlan, keys: TextIO, out: TextIO,
-                 planner=None, refresh_s: float = 0.5, suggester=None):
+    def __init__(
+        self,
+        rig: Rig,
+        logger: CaptureLogger,
+        plan: CapturePlan,
+        keys: TextIO,
+        out: TextIO,
+        planner=None,
+        refresh_s: float = 0.5,
+        suggester=None,
+    ):
         self.rig = rig
         self.logger = logger
         self.plan = plan
@@ -107,14 +116,18 @@ class CaptureSession:
             return "board: NOT SEEN"
         limit = self.rig.poses.board.max_reprojection_px
         flag = "" if est.reprojection_px <= limit else f" OVER {limit:g}"
-        return (f"board: seen, {est.corners} corners, {est.reprojection_px:.2f} px{flag}, "
-                f"camera +-{1e3 * est.position_std_m:.1f} mm")
+        return (
+            f"board: seen, {est.corners} corners, {est.reprojection_px:.2f} px{flag}, "
+            f"camera +-{1e3 * est.position_std_m:.1f} mm"
+        )
 
     def status(self) -> str:
         c, v, g = self.logger.counts(), self.plan.views, self.plan.grasps
-        return (f"{self.board_status()} | hand: {self.logger.hand_state} | views: train {c.train}/{v.train} "
-                f"test {c.test}/{v.test} | grasps {c.grasps}/{g.count} ({c.contacts}/{c.touches} touches in contact)"
-                f" | {KEYS_HELP}{SUGGEST_HELP if self.suggester is not None else ''}")
+        return (
+            f"{self.board_status()} | hand: {self.logger.hand_state} | views: train {c.train}/{v.train} "
+            f"test {c.test}/{v.test} | grasps {c.grasps}/{g.count} ({c.contacts}/{c.touches} touches in contact)"
+            f" | {KEYS_HELP}{SUGGEST_HELP if self.suggester is not None else ''}"
+        )
 
     def show_status(self) -> None:
         line = self.status()
@@ -191,9 +204,12 @@ class CaptureSession:
             return
         contact = outcome.fingers_in_contact
         missed = [t.finger for t in outcome.touches if not t.in_contact]
-        self.say(f"grasp {outcome.index} recorded: {len(outcome.touches)} touches, contact on "
-                 f"{', '.join(contact) or 'none'}" + (f"; no contact on {', '.join(missed)} (recorded)" if missed else "")
-                 + ("" if outcome.settled else "; fingers had not settled"))
+        self.say(
+            f"grasp {outcome.index} recorded: {len(outcome.touches)} touches, contact on "
+            f"{', '.join(contact) or 'none'}"
+            + (f"; no contact on {', '.join(missed)} (recorded)" if missed else "")
+            + ("" if outcome.settled else "; fingers had not settled")
+        )
 
     def suggest(self) -> None:
         """Suggest the next grasp from the reconstruction in progress; the picture goes beside the scene."""
@@ -216,10 +232,12 @@ class CaptureSession:
         atomic_write_bytes(picture, encode_png(draw_suggestion(image, best, T_world_cam, self.rig.camera.K)))
         centre = np.concatenate([p.points for p in best.patches]).mean(axis=0)
         d = best.candidate.approach_from
-        self.say(f"suggested grasp: touch at ({centre[0]:.3f}, {centre[1]:.3f}, {centre[2]:.3f}) m in the world frame, "
-                 f"approaching from azimuth {np.degrees(np.arctan2(d[1], d[0])):.0f} deg, elevation "
-                 f"{np.degrees(np.arcsin(np.clip(d[2], -1, 1))):.0f} deg; {best.score * 1e6:.0f} mm^2 of uncertain "
-                 f"surface under the fingertip; picture: {picture}")
+        self.say(
+            f"suggested grasp: touch at ({centre[0]:.3f}, {centre[1]:.3f}, {centre[2]:.3f}) m in the world frame, "
+            f"approaching from azimuth {np.degrees(np.arctan2(d[1], d[0])):.0f} deg, elevation "
+            f"{np.degrees(np.arcsin(np.clip(d[2], -1, 1))):.0f} deg; {best.score * 1e6:.0f} mm^2 of uncertain "
+            f"surface under the fingertip; picture: {picture}"
+        )
 
     def undo(self) -> None:
         try:
@@ -251,13 +269,22 @@ class CaptureSession:
 def rerun_command(config: RigConfig, out: Path) -> str:
     """The command that carries on after a stop: it resumes the scene in ``out``, or starts the capture again when
     it never wrote one."""
-    return " ".join(["tacsplat", "capture", "--rig", shlex.quote(str(config.source or "RIG.yaml")), "--out",
-                     shlex.quote(str(out))] + (["--resume"] if (out / JOURNAL).is_file() else [])
-                    + (["--mock"] if config.mock else []))
+    return " ".join(
+        ["tacsplat", "capture", "--rig", shlex.quote(str(config.source or "RIG.yaml")), "--out", shlex.quote(str(out))]
+        + (["--resume"] if (out / JOURNAL).is_file() else [])
+        + (["--mock"] if config.mock else [])
+    )
 
 
-def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: TextIO | None = None,
-                output: TextIO | None = None, on_open=None, suggest: str | Path | None = None) -> int:
+def run_capture(
+    config: RigConfig,
+    out: str | Path,
+    resume: bool = False,
+    keys: TextIO | None = None,
+    output: TextIO | None = None,
+    on_open=None,
+    suggest: str | Path | None = None,
+) -> int:
     """``tacsplat capture``: open the rig and the scene, serve the operator, close everything safely.
 
     ``suggest``: a reconstruction in progress of this capture (a ``tacsplat reconstruct`` folder), from which the
@@ -271,8 +298,12 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
     faults through it).
     """
     if config.plan.touches.model != "gel":
-        raise ConfigError("plan.touches.model", "an operator capture grasps with the hand: use 'gel' (the paper's "
-                          "touches need no operator: tacsplat sim-capture --touch-model paper)", config.source)
+        raise ConfigError(
+            "plan.touches.model",
+            "an operator capture grasps with the hand: use 'gel' (the paper's "
+            "touches need no operator: tacsplat sim-capture --touch-model paper)",
+            config.source,
+        )
     keys = sys.stdin if keys is None else keys
     output = sys.stdout if output is None else output
     out = Path(out)
@@ -284,8 +315,10 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
         with _ending_signals_interrupt(), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
             logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
             if logger.dropped_partial_grasp:
-                output.write(f"resumed: removed {logger.dropped_partial_grasp} touches of a grasp cut short; "
-                             "it will be redone whole\n")
+                output.write(
+                    f"resumed: removed {logger.dropped_partial_grasp} touches of a grasp cut short; "
+                    "it will be redone whole\n"
+                )
             planner = suggester = None
             if rig.kind == "sim":
                 from tacsplat.acquisition.sim_capture import grasp_planner
@@ -308,7 +341,9 @@ def run_capture(config: RigConfig, out: str | Path, resume: bool = False, keys: 
         output.flush()
         return 128 + interrupted
     if fault is not None:
-        held = f"The scene in {out} holds every record completed before the fault. " if (out / JOURNAL).is_file() else ""
+        held = (
+            f"The scene in {out} holds every record completed before the fault. " if (out / JOURNAL).is_file() else ""
+        )
         output.write(f"\nDEVICE FAULT: {fault}\n{held}Fix the device.\n{_carry_on(config, out)}{hand}")
         output.flush()
         return EXIT_FAULT

@@ -114,8 +114,13 @@ def encode_touch(points: np.ndarray, direction: np.ndarray, sensor: SensorModel)
     depths = -local[:, 2]
     recordable = (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h) & (depths <= touch_depth_limit(sensor)[0])
     if not recordable.all():
-        log.warning("%d of a touch's %d points lie outside the pad (%.3g x %.3g) or deeper than it records; not "
-                    "written", int((~recordable).sum()), len(points), w * size, h * size)
+        log.warning(
+            "%d of a touch's %d points lie outside the pad (%.3g x %.3g) or deeper than it records; not written",
+            int((~recordable).sum()),
+            len(points),
+            w * size,
+            h * size,
+        )
     depth = np.zeros((h, w), dtype=np.float32)
     for i in np.flatnonzero(recordable)[np.argsort(-depths[recordable], kind="stable")]:  # the deepest first
         r, c = rows[i], cols[i]
@@ -134,14 +139,18 @@ def _nearest_free_pixel(depth: np.ndarray, xy: np.ndarray, size: float) -> tuple
     return int(r), int(c)
 
 
-def write_paper_touches(writer: SceneWriter, touches: PaperTouches, indices: Iterable[int],
-                        to_scene: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+def write_paper_touches(
+    writer: SceneWriter,
+    touches: PaperTouches,
+    indices: Iterable[int],
+    to_scene: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> None:
     """Append touches ``indices`` to ``writer``'s scene as grasp ``t // 4``, finger ``FINGER_NAMES[t % 4]``;
     ``to_scene`` maps the mesh's points into the scene's frame and units (a uniform scale and a translation;
     default: the same)."""
     for t in indices:
         points, direction = touches.touch(t)
-        depth, T_world_sensor = encode_touch(points if to_scene is None else to_scene(points), direction,
-                                             writer.sensor)
-        writer.add_touch(depth, T_world_sensor, grasp=t // TOUCHES_PER_GRASP,
-                         finger=FINGER_NAMES[t % TOUCHES_PER_GRASP])
+        depth, T_world_sensor = encode_touch(points if to_scene is None else to_scene(points), direction, writer.sensor)
+        writer.add_touch(
+            depth, T_world_sensor, grasp=t // TOUCHES_PER_GRASP, finger=FINGER_NAMES[t % TOUCHES_PER_GRASP]
+        )

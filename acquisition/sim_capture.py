@@ -30,25 +30,35 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-
-from tacsplat.progress import progress_bar
 from tacsplat.acquisition.capture_scene import open_scene
 from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, TouchPlan, ViewPlan, validate
 from tacsplat.acquisition.logger import CaptureLogger
 from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.errors import ConfigError
+from tacsplat.progress import progress_bar
 from tacsplat.sim.objects import object_radius_problem
 
 GRASP_STRATEGIES = ("random", "next-best")  # sim-capture's grasp placements (plan.grasps.mode)
 
 
-def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radius: float = 0.08, views: int = 5,
-                   test_views: int = 24, grasps: int = 5, resolution: int = 200, seed: int = 0,
-                   touch_model: str = "gel", surface_points: int = TouchPlan.surface_points,
-                   grasp_strategy: str = "random", candidates: int = GraspPlan.candidates,
-                   selection_steps: int = GraspPlan.selection_steps,
-                   uncertainty: str = GraspPlan.uncertainty, texture: str = "none") -> RigConfig:
+def sim_rig_config(
+    object: str = "teapot",
+    mesh: str | None = None,
+    object_radius: float = 0.08,
+    views: int = 5,
+    test_views: int = 24,
+    grasps: int = 5,
+    resolution: int = 200,
+    seed: int = 0,
+    touch_model: str = "gel",
+    surface_points: int = TouchPlan.surface_points,
+    grasp_strategy: str = "random",
+    candidates: int = GraspPlan.candidates,
+    selection_steps: int = GraspPlan.selection_steps,
+    uncertainty: str = GraspPlan.uncertainty,
+    texture: str = "none",
+) -> RigConfig:
     """The ``rig: sim`` config of ``tacsplat sim-capture``'s options (``surface_points``: the paper model's;
     ``candidates``, ``selection_steps`` and ``uncertainty``: the next-best strategy's); a value out of its range
     is a ConfigError naming its key (``sim.object_radius``)."""
@@ -56,16 +66,26 @@ def sim_rig_config(object: str = "teapot", mesh: str | None = None, object_radiu
     if problem:  # (before the rig config's own check of the same range, with what the range means)
         raise ConfigError("sim.object_radius", problem)
     if grasp_strategy not in GRASP_STRATEGIES:
-        raise ConfigError("plan.grasps.mode", f"must be one of {', '.join(map(repr, GRASP_STRATEGIES))}, got "
-                          f"{grasp_strategy!r}")
+        raise ConfigError(
+            "plan.grasps.mode", f"must be one of {', '.join(map(repr, GRASP_STRATEGIES))}, got {grasp_strategy!r}"
+        )
     config = RigConfig(
         rig="sim",
-        sim=SimConfig(object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed,
-                      texture=texture),
-        plan=CapturePlan(ViewPlan(train=views, test=test_views, mode="hemisphere"),
-                         GraspPlan(count=grasps, mode=grasp_strategy, seed=seed, candidates=candidates,
-                                   selection_steps=selection_steps, uncertainty=uncertainty),
-                         TouchPlan(model=touch_model, surface_points=surface_points)),
+        sim=SimConfig(
+            object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed, texture=texture
+        ),
+        plan=CapturePlan(
+            ViewPlan(train=views, test=test_views, mode="hemisphere"),
+            GraspPlan(
+                count=grasps,
+                mode=grasp_strategy,
+                seed=seed,
+                candidates=candidates,
+                selection_steps=selection_steps,
+                uncertainty=uncertainty,
+            ),
+            TouchPlan(model=touch_model, surface_points=surface_points),
+        ),
     )
     validate(config)
     return config
@@ -106,8 +126,9 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
             write_paper_touches(writer, touches, progress_bar(todo, desc="touches", unit="touch", enabled=progress))
         else:
             start = logger.next_grasp_index()
-            for g in progress_bar(range(start, config.plan.grasps.count), desc="grasps", unit="grasp",
-                                      enabled=progress):
+            for g in progress_bar(
+                range(start, config.plan.grasps.count), desc="grasps", unit="grasp", enabled=progress
+            ):
                 planner.grasp(logger, g)
         t_end = time.perf_counter()
     return {"setup_s": t_setup - t0, "views_s": t_views - t_setup, "grasps_s": t_end - t_views, "total_s": t_end - t0}

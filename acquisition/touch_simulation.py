@@ -18,7 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-from tacsplat.progress import progress_bar
 from tacsplat.acquisition.config import TouchPlan, validate_touches
 from tacsplat.acquisition.devices import twin_rig
 from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate, TwinPoseSource
@@ -27,6 +26,7 @@ from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
 from tacsplat.errors import ConfigError
 from tacsplat.files import check_writable
+from tacsplat.progress import progress_bar
 from tacsplat.sim.grasps import GraspConfig
 from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere, object_radius_problem, read_mesh
 from tacsplat.sim.twin import SimTwin, TwinConfig
@@ -65,8 +65,9 @@ class ScaledPad:
 
     def read(self) -> TactileReading:
         r, s = self.pad.read(), self.units.scale
-        return TactileReading(r.depth / s, r.pixel_size_m / s, self.units.pose(r.T_ref_sensor, anchored=False),
-                              r.frame, r.timestamp)
+        return TactileReading(
+            r.depth / s, r.pixel_size_m / s, self.units.pose(r.T_ref_sensor, anchored=False), r.frame, r.timestamp
+        )
 
 
 class ScenePoseSource:
@@ -86,8 +87,13 @@ class ScenePoseSource:
         return self.twin_poses.ground_truth_depth() / self.units.scale
 
 
-def touch_settings(grasps: int, object_radius: float, seed: int, touch_model: str = "gel",
-                   surface_points: int = TouchPlan.surface_points) -> TouchPlan:
+def touch_settings(
+    grasps: int,
+    object_radius: float,
+    seed: int,
+    touch_model: str = "gel",
+    surface_points: int = TouchPlan.surface_points,
+) -> TouchPlan:
     """The touch plan of :func:`simulate_touches`'s settings, each checked against its range (a ConfigError
     naming it: ``grasps``, ``object_radius``, ``seed``, ``model``, ``surface_points``)."""
     touches = TouchPlan(model=touch_model, surface_points=surface_points)
@@ -143,27 +149,54 @@ def simulate_touches(
         sensor = twin.sensor_model(units.scale)
         if scene.sensor is not None:
             if not np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
-                raise ConfigError("object_radius", f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
-                                  f"this mesh at radius {object_radius} gives {sensor.pixel_size_m}")
+                raise ConfigError(
+                    "object_radius",
+                    f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
+                    f"this mesh at radius {object_radius} gives {sensor.pixel_size_m}",
+                )
             target = Path(scene_path)
         else:
-            plan = {**scene.meta.capture_plan, "simulated_touches": {
-                "mesh": str(mesh_path), "grasps": grasps, "seed": seed, "touches": touches.to_json()}}
+            plan = {
+                **scene.meta.capture_plan,
+                "simulated_touches": {
+                    "mesh": str(mesh_path),
+                    "grasps": grasps,
+                    "seed": seed,
+                    "touches": touches.to_json(),
+                },
+            }
             extra = {**scene.meta.extra, "touch_scale": units.scale, "object_bounding_radius_m": object_radius}
-            target = copy_scene(scene, out, meta=SceneMeta(scene.meta.source, scene.meta.object, plan, extra),
-                                sensor=sensor, gt_mesh=scene.gt_mesh_path or mesh_path, progress=True)
+            target = copy_scene(
+                scene,
+                out,
+                meta=SceneMeta(scene.meta.source, scene.meta.object, plan, extra),
+                sensor=sensor,
+                gt_mesh=scene.gt_mesh_path or mesh_path,
+                progress=True,
+            )
         with SceneWriter.resume(target) as writer:
             first = max((t.grasp for t in writer.touches), default=-1) + 1
             if touch_model == "paper":
                 todo = range(TOUCHES_PER_GRASP * first, TOUCHES_PER_GRASP * (first + grasps))
-                write_paper_touches(writer, PaperTouches(twin.object_mesh, seed, touches),
-                                    progress_bar(todo, desc="touches", unit="touch"), units.points)
+                write_paper_touches(
+                    writer,
+                    PaperTouches(twin.object_mesh, seed, touches),
+                    progress_bar(todo, desc="touches", unit="touch"),
+                    units.points,
+                )
             else:
                 rig = twin_rig(twin)
-                logger = CaptureLogger(writer, rig.hand, [ScaledPad(p, units) for p in rig.sensors], rig.camera,
-                                       rig.clock, ScenePoseSource(twin, units), rig.control, redo_partial_grasp=False)
+                logger = CaptureLogger(
+                    writer,
+                    rig.hand,
+                    [ScaledPad(p, units) for p in rig.sensors],
+                    rig.camera,
+                    rig.clock,
+                    ScenePoseSource(twin, units),
+                    rig.control,
+                    redo_partial_grasp=False,
+                )
                 planner = TwinPlanner(twin, seed, grasp_config=grasp_config)
                 for g in progress_bar(range(first, first + grasps), desc="grasps", unit="grasp"):
                     planner.grasp(logger, g)
     return target
-

@@ -32,8 +32,9 @@ MAX_ATTEMPTS_PER_GRASP = 6  # approaches tried for one grasp before it is skippe
 class TwinPlanner:
     """Places the twin's view camera (``views``: the plan's, None for a grasps-only job) and its hand."""
 
-    def __init__(self, twin: SimTwin, grasp_seed: int, views: ViewPlan | None = None,
-                 grasp_config: GraspConfig = GraspConfig()):
+    def __init__(
+        self, twin: SimTwin, grasp_seed: int, views: ViewPlan | None = None, grasp_config: GraspConfig = GraspConfig()
+    ):
         self.twin = twin
         self.grasp_seed = grasp_seed
         self.grasp_config = grasp_config

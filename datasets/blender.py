@@ -18,9 +18,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv, rigidity_problem
+from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .outputs import claim_output_dir
@@ -56,11 +56,17 @@ def check_readable(path: Path, field: str | None = None, what: str = "image") ->
     if not path.is_file():
         raise SceneFormatError(path, field, f"missing {what} (no such file)")
     if not cv2.haveImageReader(str(path)):
-        raise SceneFormatError(path, field, (
-            "OpenEXR images are not supported (OpenCV here is built without OpenEXR): convert them to PNG, 8 or 16 "
-            "bits, sRGB (Blender writes linear EXR: e.g. oiiotool r_0.exr --colorconvert linear sRGB -d uint16 -o "
-            "r_0.png, or render with File Format PNG) and point file_path at them"
-            if path.suffix.lower() == ".exr" else "not a format OpenCV reads: convert it to PNG"))
+        raise SceneFormatError(
+            path,
+            field,
+            (
+                "OpenEXR images are not supported (OpenCV here is built without OpenEXR): convert them to PNG, 8 or 16 "
+                "bits, sRGB (Blender writes linear EXR: e.g. oiiotool r_0.exr --colorconvert linear sRGB -d uint16 -o "
+                "r_0.png, or render with File Format PNG) and point file_path at them"
+                if path.suffix.lower() == ".exr"
+                else "not a format OpenCV reads: convert it to PNG"
+            ),
+        )
 
 
 def read_raw(path: Path, field: str | None = None, what: str = "image") -> np.ndarray:
@@ -168,14 +174,22 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     meta = SceneMeta(
         source="import",
         object=src.resolve().name,
-        extra={"importer": "blender", "source_path": str(src.resolve()), "background_rgb": list(background_rgb),
-               "test_split_file": f"transforms_{test_split}.json", "scale": scale},
+        extra={
+            "importer": "blender",
+            "source_path": str(src.resolve()),
+            "background_rgb": list(background_rgb),
+            "test_split_file": f"transforms_{test_split}.json",
+            "scale": scale,
+        },
     )
     total = sum(len(frames) for *_, frames in splits)
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
-    with claim_output_dir(out), removed_on_failure(out), \
-            SceneWriter.create(out, intrinsics_for(splits[0][2]), meta) as writer, \
-            progress_bar(total=total, desc=f"import {src.name}", unit="frame") as progress:
+    with (
+        claim_output_dir(out),
+        removed_on_failure(out),
+        SceneWriter.create(out, intrinsics_for(splits[0][2]), meta) as writer,
+        progress_bar(total=total, desc=f"import {src.name}", unit="frame") as progress,
+    ):
         for split, index, angle, frames in splits:
             intr = intrinsics_for(angle)
             for i, raw in enumerate(frames):
@@ -185,8 +199,11 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                 image_path = _image_path(src, raw["file_path"])
                 rgba = read_rgba(image_path, f"{index.name} {field}")
                 if rgba.shape[:2] != (height, width):
-                    raise SceneFormatError(image_path, f"{index.name} {field}",
-                                           f"image is {rgba.shape[1]}x{rgba.shape[0]}, but {first_image.name} is {width}x{height}")
+                    raise SceneFormatError(
+                        image_path,
+                        f"{index.name} {field}",
+                        f"image is {rgba.shape[1]}x{rgba.shape[0]}, but {first_image.name} is {width}x{height}",
+                    )
                 pose = pose_from_opengl(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
                 pose[:3, 3] *= scale
                 writer.add_frame(composite(rgba, background_rgb), pose, split=split, intrinsics=intr)

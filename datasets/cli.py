@@ -28,14 +28,32 @@ def register(cli) -> None:
         "--test-split.",
     )
     p.add_argument("src", metavar="SRC", help="dataset folder holding transforms_train.json")
-    p.add_argument("--out", required=True, metavar="DIR", default=argparse.SUPPRESS,
-                   help="new scene directory (must not exist or be empty)")
-    p.add_argument("--background", type=_background, default="white", metavar="white|black|R,G,B",
-                   help="colour the transparent background is composited onto (R,G,B as 0-255 integers)")
-    p.add_argument("--test-split", choices=("test", "val"), default="test",
-                   help="which file becomes the scene's test split: transforms_test.json or transforms_val.json")
-    p.add_argument("--scale", type=float, default=1.0,
-                   help="metres per Blender unit (multiplies camera positions; NeRF-synthetic objects are ~2 units across)")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        default=argparse.SUPPRESS,
+        help="new scene directory (must not exist or be empty)",
+    )
+    p.add_argument(
+        "--background",
+        type=_background,
+        default="white",
+        metavar="white|black|R,G,B",
+        help="colour the transparent background is composited onto (R,G,B as 0-255 integers)",
+    )
+    p.add_argument(
+        "--test-split",
+        choices=("test", "val"),
+        default="test",
+        help="which file becomes the scene's test split: transforms_test.json or transforms_val.json",
+    )
+    p.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="metres per Blender unit (multiplies camera positions; NeRF-synthetic objects are ~2 units across)",
+    )
     p.set_defaults(func=_import_blender)
 
     p = cli.command(
@@ -46,15 +64,33 @@ def register(cli) -> None:
         "OPENCV with zero distortion): run `colmap image_undistorter` first otherwise.",
     )
     p.add_argument("src", metavar="SRC", help="COLMAP sparse model folder")
-    p.add_argument("--images", required=True, metavar="DIR", default=argparse.SUPPRESS,
-                   help="folder the model's image names are relative to")
-    p.add_argument("--out", required=True, metavar="DIR", default=argparse.SUPPRESS,
-                   help="new scene directory (must not exist or be empty)")
-    p.add_argument("--test-every", type=int, default=8, metavar="N",
-                   help="every N-th image (in name order) goes to the test split; 0 puts all in train")
+    p.add_argument(
+        "--images",
+        required=True,
+        metavar="DIR",
+        default=argparse.SUPPRESS,
+        help="folder the model's image names are relative to",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        default=argparse.SUPPRESS,
+        help="new scene directory (must not exist or be empty)",
+    )
+    p.add_argument(
+        "--test-every",
+        type=int,
+        default=8,
+        metavar="N",
+        help="every N-th image (in name order) goes to the test split; 0 puts all in train",
+    )
     p.add_argument("--scale", type=float, default=1.0, help="metres per COLMAP unit (COLMAP's scale is arbitrary)")
-    p.add_argument("--object", default=argparse.SUPPRESS,
-                   help="object name recorded in scene.json (when omitted: the dataset folder's name)")
+    p.add_argument(
+        "--object",
+        default=argparse.SUPPRESS,
+        help="object name recorded in scene.json (when omitted: the dataset folder's name)",
+    )
     p.set_defaults(func=_import_colmap)
 
     p = cli.command(
@@ -67,16 +103,32 @@ def register(cli) -> None:
         "Depth maps and point clouds are not imported.",
     )
     p.add_argument("src", metavar="SRC", help="dataset folder holding transforms.json, or the transforms.json file")
-    p.add_argument("--out", required=True, metavar="DIR", default=argparse.SUPPRESS,
-                   help="new scene directory (must not exist or be empty)")
-    p.add_argument("--test-every", type=int, default=8, metavar="N",
-                   help="without split lists in transforms.json: every N-th frame (in file-name order) goes to the "
-                   "test split; 0 puts all in train")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        default=argparse.SUPPRESS,
+        help="new scene directory (must not exist or be empty)",
+    )
+    p.add_argument(
+        "--test-every",
+        type=int,
+        default=8,
+        metavar="N",
+        help="without split lists in transforms.json: every N-th frame (in file-name order) goes to the "
+        "test split; 0 puts all in train",
+    )
     p.add_argument("--scale", type=float, default=1.0, help="metres per dataset unit (multiplies camera positions)")
-    p.add_argument("--skip-missing", action="store_true",
-                   help="leave out frames whose image file is missing (with a warning) instead of refusing")
-    p.add_argument("--object", default=argparse.SUPPRESS,
-                   help="object name recorded in scene.json (when omitted: the dataset folder's name)")
+    p.add_argument(
+        "--skip-missing",
+        action="store_true",
+        help="leave out frames whose image file is missing (with a warning) instead of refusing",
+    )
+    p.add_argument(
+        "--object",
+        default=argparse.SUPPRESS,
+        help="object name recorded in scene.json (when omitted: the dataset folder's name)",
+    )
     p.set_defaults(func=_import_nerfstudio)
 
     p = cli.command(
@@ -86,10 +138,18 @@ def register(cli) -> None:
         "sensor, the bounds and every problem found. Exits with 1 when there are problems.",
     )
     p.add_argument("dir", metavar="DIR", help="scene directory")
-    p.add_argument("--json", action="store_true", default=argparse.SUPPRESS,
-                   help="print one JSON object (frames {split: count}, touches, grasps, problems [...], ...)")
-    p.add_argument("--plot", metavar="PNG", default=argparse.SUPPRESS,
-                   help="also save a 3D picture of the cameras, contact points and bounds")
+    p.add_argument(
+        "--json",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="print one JSON object (frames {split: count}, touches, grasps, problems [...], ...)",
+    )
+    p.add_argument(
+        "--plot",
+        metavar="PNG",
+        default=argparse.SUPPRESS,
+        help="also save a 3D picture of the cameras, contact points and bounds",
+    )
     p.set_defaults(func=_inspect)
 
 
@@ -113,23 +173,44 @@ def _importing(run, args) -> int:
 def _import_blender(args) -> int:
     from .blender import import_blender
 
-    return _importing(lambda: import_blender(args.src, args.out, background_rgb=args.background,
-                                             test_split=args.test_split, scale=args.scale), args)
+    return _importing(
+        lambda: import_blender(
+            args.src, args.out, background_rgb=args.background, test_split=args.test_split, scale=args.scale
+        ),
+        args,
+    )
 
 
 def _import_colmap(args) -> int:
     from .colmap import import_colmap
 
-    return _importing(lambda: import_colmap(args.src, args.images, args.out, test_every=args.test_every,
-                                            scale=args.scale, object_name=getattr(args, "object", None)), args)
+    return _importing(
+        lambda: import_colmap(
+            args.src,
+            args.images,
+            args.out,
+            test_every=args.test_every,
+            scale=args.scale,
+            object_name=getattr(args, "object", None),
+        ),
+        args,
+    )
 
 
 def _import_nerfstudio(args) -> int:
     from .nerfstudio import import_nerfstudio
 
-    return _importing(lambda: import_nerfstudio(args.src, args.out, test_every=args.test_every, scale=args.scale,
-                                                skip_missing=args.skip_missing,
-                                                object_name=getattr(args, "object", None)), args)
+    return _importing(
+        lambda: import_nerfstudio(
+            args.src,
+            args.out,
+            test_every=args.test_every,
+            scale=args.scale,
+            skip_missing=args.skip_missing,
+            object_name=getattr(args, "object", None),
+        ),
+        args,
+    )
 
 
 def _inspect(args) -> int:
@@ -137,6 +218,9 @@ def _inspect(args) -> int:
 
     plot = getattr(args, "plot", None)
     if plot is not None and picture_format(plot) not in plot_formats():
-        raise UsageError("--plot", f"cannot save a picture as .{picture_format(plot)}; use one of "
-                         f"{', '.join('.' + f for f in plot_formats())}")
+        raise UsageError(
+            "--plot",
+            f"cannot save a picture as .{picture_format(plot)}; use one of "
+            f"{', '.join('.' + f for f in plot_formats())}",
+        )
     return run_inspect(args.dir, as_json=getattr(args, "json", False), plot=plot)

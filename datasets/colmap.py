@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import intrinsics_matrix, invert_pose, make_pose
+from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_scale, composite, read_rgba
@@ -140,6 +140,7 @@ def _num_params(model: str) -> int | None:
 
 # --- text ------------------------------------------------------------------------------------------------------
 
+
 class _Tokens:
     """The fields of one text line, read in order; errors name the file and line."""
 
@@ -180,13 +181,13 @@ class _Tokens:
 
     def groups(self, names: tuple[str, ...], what: str) -> list[np.ndarray]:
         """The rest of the line as (names...) groups: one array per name, float for X and Y, else integer."""
-        fields = self.items[self.at:]
+        fields = self.items[self.at :]
         if len(fields) % len(names):
             raise self.error(f"{what} must be ({', '.join(names)}) groups, got {len(fields)} fields")
         self.at = len(self.items)
         columns = []
         for k, name in enumerate(names):
-            column, number = fields[k::len(names)], name in ("X", "Y")
+            column, number = fields[k :: len(names)], name in ("X", "Y")
             try:
                 columns.append(np.array(column, np.float64 if number else np.int64))
             except (ValueError, OverflowError):
@@ -195,13 +196,14 @@ class _Tokens:
                         float(text) if number else np.int64(int(text))
                     except (ValueError, OverflowError):
                         break
-                raise self.error(f"{what}[{i}] {name} must be {'a number' if number else 'an integer'}, got "
-                                 f"{text!r}") from None
+                raise self.error(
+                    f"{what}[{i}] {name} must be {'a number' if number else 'an integer'}, got {text!r}"
+                ) from None
         return columns
 
     def done(self) -> None:
         if self.left():
-            raise self.error(f"{self.left()} fields too many: {' '.join(self.items[self.at:self.at + 3])} ...")
+            raise self.error(f"{self.left()} fields too many: {' '.join(self.items[self.at : self.at + 3])} ...")
 
 
 def _text_lines(path: Path):
@@ -222,8 +224,13 @@ def _data_lines(path: Path):
 def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
     cameras = []
     for tok in _data_lines(model_dir / "cameras.txt"):
-        camera = _Camera(**vars(tok.record), camera_id=tok.int("CAMERA_ID"), model=tok.word("MODEL"),
-                         width=tok.int("WIDTH"), height=tok.int("HEIGHT"))
+        camera = _Camera(
+            **vars(tok.record),
+            camera_id=tok.int("CAMERA_ID"),
+            model=tok.word("MODEL"),
+            width=tok.int("WIDTH"),
+            height=tok.int("HEIGHT"),
+        )
         camera.params = np.array([tok.float(f"PARAMS[{i}]") for i in range(tok.left())])
         cameras.append(camera)
 
@@ -233,8 +240,13 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
         if not text.strip() or text.lstrip().startswith("#"):
             continue
         tok = _Tokens(path, number, text)
-        image = _Image(**vars(tok.record), image_id=tok.int("IMAGE_ID"), pose=tok.pose("cam_from_world"),
-                       camera_id=tok.int("CAMERA_ID"), name=tok.word("NAME"))
+        image = _Image(
+            **vars(tok.record),
+            image_id=tok.int("IMAGE_ID"),
+            pose=tok.pose("cam_from_world"),
+            camera_id=tok.int("CAMERA_ID"),
+            name=tok.word("NAME"),
+        )
         tok.done()
         number, text = next(lines, (number + 1, ""))
         points = _Tokens(path, number, text)
@@ -261,16 +273,24 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
         rig = _Rig(**vars(tok.record), rig_id=tok.int("RIG_ID"))
         for k in range(tok.int("NUM_SENSORS")):
             sensor = (tok.word(f"sensor {k} type"), tok.int(f"sensor {k} id"))
-            rig.sensors[sensor] = _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3)) if k == 0 else \
-                tok.pose(f"sensor {k} sensor_from_rig") if tok.int(f"sensor {k} HAS_POSE") else None
+            rig.sensors[sensor] = (
+                _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
+                if k == 0
+                else tok.pose(f"sensor {k} sensor_from_rig")
+                if tok.int(f"sensor {k} HAS_POSE")
+                else None
+            )
         tok.done()
         rigs.append(rig)
     frames = []
     for tok in _data_lines(model_dir / "frames.txt"):
-        frame = _Frame(**vars(tok.record), frame_id=tok.int("FRAME_ID"), rig_id=tok.int("RIG_ID"),
-                       pose=tok.pose("rig_from_world"))
-        frame.data_ids = [(tok.word(f"data {k} SENSOR_TYPE"), tok.int(f"data {k} SENSOR_ID"),
-                           tok.int(f"data {k} DATA_ID")) for k in range(tok.int("NUM_DATA_IDS"))]
+        frame = _Frame(
+            **vars(tok.record), frame_id=tok.int("FRAME_ID"), rig_id=tok.int("RIG_ID"), pose=tok.pose("rig_from_world")
+        )
+        frame.data_ids = [
+            (tok.word(f"data {k} SENSOR_TYPE"), tok.int(f"data {k} SENSOR_ID"), tok.int(f"data {k} DATA_ID"))
+            for k in range(tok.int("NUM_DATA_IDS"))
+        ]
         tok.done()
         frames.append(frame)
     return _Model(cameras, images, points, rigs, frames)
@@ -320,8 +340,11 @@ class _Bytes:
         for self.entry in range(1, self.take("Q", f"the number of {what}") + 1):
             yield self.entry
         if self.at != len(self.data):
-            raise SceneFormatError(self.path, None, f"{len(self.data) - self.at} bytes after the last of the "
-                                   f"{self.entry or 0} {what} the file announces")
+            raise SceneFormatError(
+                self.path,
+                None,
+                f"{len(self.data) - self.at} bytes after the last of the {self.entry or 0} {what} the file announces",
+            )
 
 
 def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
@@ -335,18 +358,25 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
         if model is None:
             raise src.record().error(f"camera {camera_id}: unknown camera model id {model_id}")
         params = src.array("<f8", _num_params(model), f"the parameters of camera {camera_id}")
-        cameras.append(_Camera(**vars(src.record()), camera_id=camera_id, model=model, width=width,
-                               height=height, params=params.copy()))
+        cameras.append(
+            _Camera(
+                **vars(src.record()), camera_id=camera_id, model=model, width=width, height=height, params=params.copy()
+            )
+        )
 
     images, src = [], _Bytes(model_dir / "images.bin")
     for _ in src.entries("images"):
         image_id = src.take("I", "an image")
-        image = _Image(**vars(src.record()), image_id=image_id, pose=src.pose(f"image {image_id}"),
-                       camera_id=src.take("I", f"image {image_id}"))
+        image = _Image(
+            **vars(src.record()),
+            image_id=image_id,
+            pose=src.pose(f"image {image_id}"),
+            camera_id=src.take("I", f"image {image_id}"),
+        )
         end = src.data.find(b"\0", src.at)
         if end < 0:
             raise image.error(f"the file ends inside the name of image {image_id} (truncated?)")
-        image.name = src.data[src.at:end].decode("utf-8", "replace")
+        image.name = src.data[src.at : end].decode("utf-8", "replace")
         src.at = end + 1
         count = src.take("Q", f"image {image_id}")
         points = src.array([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], count, f"the 2D points of image {image_id}")
@@ -362,8 +392,14 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
         src.take("3Bd", f"point {point3D_id}")
         length = src.take("Q", f"point {point3D_id}")
         track = src.array("<u4", 2 * length, f"the track of point {point3D_id}")
-        points.append(_Point(**vars(src.record()), point3D_id=point3D_id, xyz=np.array(xyz),
-                             track=track.astype(np.int64).reshape(-1, 2)))
+        points.append(
+            _Point(
+                **vars(src.record()),
+                point3D_id=point3D_id,
+                xyz=np.array(xyz),
+                track=track.astype(np.int64).reshape(-1, 2),
+            )
+        )
     if not with_rigs:
         return _Model(cameras, images, points, None, None, ".bin")
 
@@ -374,14 +410,18 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
         for k in range(count):
             kind, sensor_id = src.take("iI", f"sensor {k} of rig {rig_id}")
             sensor = (_SENSOR_TYPES.get(kind, str(kind)), sensor_id)
-            rig.sensors[sensor] = _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3)) if k == 0 else \
-                src.pose(f"sensor {k} of rig {rig_id}") if src.take("B", f"sensor {k} of rig {rig_id}") else None
+            rig.sensors[sensor] = (
+                _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
+                if k == 0
+                else src.pose(f"sensor {k} of rig {rig_id}")
+                if src.take("B", f"sensor {k} of rig {rig_id}")
+                else None
+            )
         rigs.append(rig)
     frames, src = [], _Bytes(model_dir / "frames.bin")
     for _ in src.entries("frames"):
         frame_id, rig_id = src.take("II", "a frame")
-        frame = _Frame(**vars(src.record()), frame_id=frame_id, rig_id=rig_id,
-                       pose=src.pose(f"frame {frame_id}"))
+        frame = _Frame(**vars(src.record()), frame_id=frame_id, rig_id=rig_id, pose=src.pose(f"frame {frame_id}"))
         for k in range(src.take("I", f"frame {frame_id}")):
             kind, sensor_id, data_id = src.take("iIQ", f"data id {k} of frame {frame_id}")
             frame.data_ids.append((_SENSOR_TYPES.get(kind, str(kind)), sensor_id, data_id))
@@ -391,6 +431,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
 
 # --- checks ----------------------------------------------------------------------------------------------------
 
+
 def _read_model(model_dir: Path) -> _Model:
     """The model in ``model_dir``, binary when its three .bin files are there (as COLMAP decides), else text."""
     for suffix, reader in ((".bin", _read_binary), (".txt", _read_text)):
@@ -398,11 +439,17 @@ def _read_model(model_dir: Path) -> _Model:
             present = {name: (model_dir / f"{name}{suffix}").is_file() for name in RIG_FILES}
             if any(present.values()) and not all(present.values()):
                 missing = next(name for name, there in present.items() if not there)
-                raise SceneFormatError(model_dir / f"{missing}{suffix}", None, "missing: a model holds rigs and "
-                                       "frames together (COLMAP 3.12 on) or neither")
+                raise SceneFormatError(
+                    model_dir / f"{missing}{suffix}",
+                    None,
+                    "missing: a model holds rigs and frames together (COLMAP 3.12 on) or neither",
+                )
             return reader(model_dir, all(present.values()))
-    raise SceneFormatError(model_dir, None, "not a readable COLMAP sparse model: expected cameras, images and "
-                           "points3D as .bin or .txt files")
+    raise SceneFormatError(
+        model_dir,
+        None,
+        "not a readable COLMAP sparse model: expected cameras, images and points3D as .bin or .txt files",
+    )
 
 
 def _by_id(records: list, key: str, what: str) -> dict:
@@ -423,8 +470,9 @@ def _check_pose(record: _Record, pose: _Pose, what: str) -> None:
         raise record.error(f"{what} is not finite: QW QX QY QZ {pose.q.tolist()}, TX TY TZ {pose.t.tolist()}")
     norm = float(np.linalg.norm(pose.q))
     if abs(norm - 1.0) > QUATERNION_TOLERANCE:
-        raise record.error(f"{what}: the quaternion QW QX QY QZ {pose.q.tolist()} has length {norm:.6g}, not 1: "
-                           "it is no rotation")
+        raise record.error(
+            f"{what}: the quaternion QW QX QY QZ {pose.q.tolist()} has length {norm:.6g}, not 1: it is no rotation"
+        )
     if abs(norm - 1.0) > QUATERNION_ROUNDING:
         log.warning("%s [%s]: %s: the quaternion has length %.6g, normalised", record.path, record.where, what, norm)
     pose.q = pose.q / norm
@@ -450,30 +498,37 @@ def _check_model(model: _Model) -> dict[int, np.ndarray]:
         if count is None:
             raise camera.error(f"camera {camera.camera_id}: unknown camera model {camera.model!r}")
         if camera.params.size != count:
-            raise camera.error(f"camera {camera.camera_id}: a {camera.model} camera has {count} parameters, got "
-                               f"{camera.params.size}")
+            raise camera.error(
+                f"camera {camera.camera_id}: a {camera.model} camera has {count} parameters, got {camera.params.size}"
+            )
     images = _by_id(model.images, "image_id", "image")
     names = {}
     for image in model.images:
         if image.camera_id not in cameras:
-            raise image.error(f"image {image.image_id} names camera {image.camera_id}, which "
-                              f"{model.file('cameras')} does not hold")
+            raise image.error(
+                f"image {image.image_id} names camera {image.camera_id}, which {model.file('cameras')} does not hold"
+            )
         _check_pose(image, image.pose, f"image {image.image_id}'s pose")
         other = names.setdefault(image.name, image)
         if other is not image:
-            raise image.error(f"NAME {image.name} again: image {image.image_id} here and image {other.image_id} on "
-                              f"{other.where} would be two frames with one picture")
+            raise image.error(
+                f"NAME {image.name} again: image {image.image_id} here and image {other.image_id} on "
+                f"{other.where} would be two frames with one picture"
+            )
     points = _by_id(model.points, "point3D_id", "point")
     refs, owner = _joined([image.point3D_ids for image in model.images])
     k = _first_bad((refs != -1) & ~np.isin(refs, np.array(list(points), np.int64)))
     if k is not None:
         image, line = model.images[owner[k]], " (on the next line)" if model.suffix == ".txt" else ""
-        raise image.error(f"POINTS2D[{k - np.searchsorted(owner, owner[k])}] of image {image.image_id}{line} names "
-                          f"3D point {refs[k]}, which {model.file('points3D')} does not hold")
+        raise image.error(
+            f"POINTS2D[{k - np.searchsorted(owner, owner[k])}] of image {image.image_id}{line} names "
+            f"3D point {refs[k]}, which {model.file('points3D')} does not hold"
+        )
     k = _first_bad(~np.isfinite(np.array([point.xyz for point in model.points]).reshape(-1, 3)).all(axis=1))
     if k is not None:
-        raise model.points[k].error(f"point {model.points[k].point3D_id}: X Y Z {model.points[k].xyz.tolist()} "
-                                    "is not finite")
+        raise model.points[k].error(
+            f"point {model.points[k].point3D_id}: X Y Z {model.points[k].xyz.tolist()} is not finite"
+        )
     track, owner = _joined([point.track for point in model.points])
     image_ids = np.array(sorted(images), np.int64)
     at = np.clip(np.searchsorted(image_ids, track[:, 0]), 0, max(len(image_ids) - 1, 0))
@@ -484,10 +539,13 @@ def _check_model(model: _Model) -> dict[int, np.ndarray]:
             continue
         point, (iid, idx) = model.points[owner[k]], track[k]
         if what == "image":
-            raise point.error(f"the track of point {point.point3D_id} names image {iid}, which "
-                              f"{model.file('images')} does not hold")
-        raise point.error(f"the track of point {point.point3D_id} names POINT2D_IDX {idx} of image {iid}, "
-                          f"which has {counts[at[k]]} 2D points ({images[iid].where} of {model.file('images')})")
+            raise point.error(
+                f"the track of point {point.point3D_id} names image {iid}, which {model.file('images')} does not hold"
+            )
+        raise point.error(
+            f"the track of point {point.point3D_id} names POINT2D_IDX {idx} of image {iid}, "
+            f"which has {counts[at[k]]} 2D points ({images[iid].where} of {model.file('images')})"
+        )
     if model.rigs is None:
         return {image.image_id: image.pose.matrix() for image in model.images}
     return _rig_poses(model, cameras, images)
@@ -500,33 +558,41 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
     for rig in model.rigs:
         for (kind, sensor_id), pose in rig.sensors.items():
             if kind == "CAMERA" and sensor_id not in cameras:
-                raise rig.error(f"rig {rig.rig_id} holds camera {sensor_id}, which "
-                                f"{model.file('cameras')} does not hold")
+                raise rig.error(
+                    f"rig {rig.rig_id} holds camera {sensor_id}, which {model.file('cameras')} does not hold"
+                )
             if pose is not None:
                 _check_pose(rig, pose, f"rig {rig.rig_id}'s sensor_from_rig of {kind} {sensor_id}")
     frame_of = {}
     for frame in _by_id(model.frames, "frame_id", "frame").values():
         rig = rigs.get(frame.rig_id)
         if rig is None:
-            raise frame.error(f"frame {frame.frame_id} names rig {frame.rig_id}, which "
-                              f"{model.file('rigs')} does not hold")
+            raise frame.error(
+                f"frame {frame.frame_id} names rig {frame.rig_id}, which {model.file('rigs')} does not hold"
+            )
         _check_pose(frame, frame.pose, f"frame {frame.frame_id}'s rig_from_world")
         for kind, sensor_id, data_id in frame.data_ids:
             if (kind, sensor_id) not in rig.sensors:
-                raise frame.error(f"frame {frame.frame_id} holds data of {kind} {sensor_id}, which is not in its "
-                                  f"rig {rig.rig_id}")
+                raise frame.error(
+                    f"frame {frame.frame_id} holds data of {kind} {sensor_id}, which is not in its rig {rig.rig_id}"
+                )
             if kind != "CAMERA":
                 continue
             image = images.get(data_id)
             if image is None:
-                raise frame.error(f"frame {frame.frame_id} holds image {data_id}, which "
-                                  f"{model.file('images')} does not hold")
+                raise frame.error(
+                    f"frame {frame.frame_id} holds image {data_id}, which {model.file('images')} does not hold"
+                )
             if image.camera_id != sensor_id:
-                raise frame.error(f"frame {frame.frame_id} holds image {data_id} as camera {sensor_id}, but the "
-                                  f"image names camera {image.camera_id} ({image.where} of {model.file('images')})")
+                raise frame.error(
+                    f"frame {frame.frame_id} holds image {data_id} as camera {sensor_id}, but the "
+                    f"image names camera {image.camera_id} ({image.where} of {model.file('images')})"
+                )
             if data_id in frame_of:
-                raise frame.error(f"image {data_id} is in frame {frame.frame_id} and in frame "
-                                  f"{frame_of[data_id].frame_id} ({frame_of[data_id].where})")
+                raise frame.error(
+                    f"image {data_id} is in frame {frame.frame_id} and in frame "
+                    f"{frame_of[data_id].frame_id} ({frame_of[data_id].where})"
+                )
             frame_of[data_id] = frame
     poses = {}
     for image in model.images:
@@ -539,8 +605,14 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
     return poses
 
 
-PARAMETER_NAMES = {"w": "WIDTH", "h": "HEIGHT", "fl_x": "the focal length (x)", "fl_y": "the focal length (y)",
-                   "cx": "the principal point (x)", "cy": "the principal point (y)"}
+PARAMETER_NAMES = {
+    "w": "WIDTH",
+    "h": "HEIGHT",
+    "fl_x": "the focal length (x)",
+    "fl_y": "the focal length (y)",
+    "cx": "the principal point (x)",
+    "cy": "the principal point (y)",
+}
 
 
 def camera_intrinsics(camera: _Camera) -> CameraIntrinsics:
@@ -549,15 +621,19 @@ def camera_intrinsics(camera: _Camera) -> CameraIntrinsics:
 
     what = f"camera {camera.camera_id}"
     if camera.model not in PINHOLE_MODELS + ZERO_DISTORTION_MODELS:
-        raise camera.error(f"{what}: camera model {camera.model} is not supported: undistort the images first "
-                           "(colmap image_undistorter) to get a PINHOLE model")
+        raise camera.error(
+            f"{what}: camera model {camera.model} is not supported: undistort the images first "
+            "(colmap image_undistorter) to get a PINHOLE model"
+        )
     layout = pycolmap.Camera.create_from_model_name(0, camera.model, 1.0, 1, 1)
     if not np.isfinite(camera.params).all():
         raise camera.error(f"{what}: PARAMS {camera.params.tolist()} are not all finite")
     distortion = camera.params[list(layout.extra_params_idxs())]
     if np.any(distortion != 0):
-        raise camera.error(f"{what}: camera model {camera.model} has non-zero distortion {distortion.tolist()}: "
-                           "undistort the images first (colmap image_undistorter)")
+        raise camera.error(
+            f"{what}: camera model {camera.model} has non-zero distortion {distortion.tolist()}: "
+            "undistort the images first (colmap image_undistorter)"
+        )
     focal = camera.params[list(layout.focal_length_idxs())].tolist()
     fx, fy = focal[0], focal[-1]
     cx, cy = camera.params[list(layout.principal_point_idxs())].tolist()
@@ -575,7 +651,9 @@ def _dataset_name(model_dir: Path) -> str:
     return "colmap"
 
 
-def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float = 1.0, object_name: str | None = None) -> Path:
+def import_colmap(
+    model_dir, images_dir, out, test_every: int = 8, scale: float = 1.0, object_name: str | None = None
+) -> Path:
     """Convert the COLMAP model in ``model_dir`` (e.g. ``sparse/0``) with images in ``images_dir`` into ``out``.
 
     ``scale`` multiplies translations (COLMAP's scale is arbitrary; the scene
@@ -590,8 +668,11 @@ def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float 
     poses = _check_model(model)
     unposed = len(model.images) - len(poses)
     if unposed:
-        log.warning("%s: %d images have no pose (their camera's pose in the rig is unknown) and are left out",
-                    model_dir, unposed)
+        log.warning(
+            "%s: %d images have no pose (their camera's pose in the rig is unknown) and are left out",
+            model_dir,
+            unposed,
+        )
     images = sorted((img for img in model.images if img.image_id in poses), key=lambda img: img.name)
     if not images:
         raise SceneFormatError(model_dir, "images", "the model has no registered images")
@@ -600,31 +681,51 @@ def import_colmap(model_dir, images_dir, out, test_every: int = 8, scale: float 
     missing = [img for img in images if not (images_dir / img.name).is_file()]
     if missing:
         more = f" (and {len(missing) - 1} more images)" if len(missing) > 1 else ""
-        raise missing[0].error(f"image {missing[0].image_id}: {images_dir / missing[0].name} does not exist{more}; "
-                               "--images must be the folder the NAMEs are relative to")
+        raise missing[0].error(
+            f"image {missing[0].image_id}: {images_dir / missing[0].name} does not exist{more}; "
+            "--images must be the folder the NAMEs are relative to"
+        )
     splits = ["test" if test_every and i % test_every == 0 else "train" for i in range(len(images))]
     if "train" not in splits:
-        raise SceneFormatError(model_dir, "images", f"no train frame to import: the test split takes every "
-                               f"{test_every}-th of the {len(images)} images, the first included; --test-every 0 "
-                               "keeps them all for training")
+        raise SceneFormatError(
+            model_dir,
+            "images",
+            f"no train frame to import: the test split takes every "
+            f"{test_every}-th of the {len(images)} images, the first included; --test-every 0 "
+            "keeps them all for training",
+        )
 
     meta = SceneMeta(
         source="import",
         object=object_name or _dataset_name(model_dir),
-        extra={"importer": "colmap", "source_path": str(model_dir.resolve()), "images_path": str(images_dir.resolve()),
-               "scale": scale, "test_every": test_every, "num_points3D": len(model.points),
-               "colmap_names": [img.name for img in images]},
+        extra={
+            "importer": "colmap",
+            "source_path": str(model_dir.resolve()),
+            "images_path": str(images_dir.resolve()),
+            "scale": scale,
+            "test_every": test_every,
+            "num_points3D": len(model.points),
+            "colmap_names": [img.name for img in images],
+        },
     )
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
-    with claim_output_dir(out), removed_on_failure(out), \
-            SceneWriter.create(out, intrinsics[images[0].camera_id], meta) as writer:
+    with (
+        claim_output_dir(out),
+        removed_on_failure(out),
+        SceneWriter.create(out, intrinsics[images[0].camera_id], meta) as writer,
+    ):
         for img, split in progress_bar(list(zip(images, splits)), desc=f"import {model_dir}", unit="frame"):
             intr = intrinsics[img.camera_id]
             image_path = images_dir / img.name
-            rgb = composite(read_rgba(image_path, f"image {img.image_id}")[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped
+            rgb = composite(
+                read_rgba(image_path, f"image {img.image_id}")[:, :, :3], (0, 0, 0)
+            )  # an alpha channel, if any, is dropped
             if rgb.shape[:2] != (intr.height, intr.width):
-                raise SceneFormatError(image_path, f"image {img.image_id}", f"image is {rgb.shape[1]}x{rgb.shape[0]} but "
-                                       f"camera {img.camera_id} is {intr.width}x{intr.height}")
+                raise SceneFormatError(
+                    image_path,
+                    f"image {img.image_id}",
+                    f"image is {rgb.shape[1]}x{rgb.shape[0]} but camera {img.camera_id} is {intr.width}x{intr.height}",
+                )
             T_world_cam = invert_pose(poses[img.image_id])
             T_world_cam[:3, 3] *= scale
             writer.add_frame(rgb, T_world_cam, split=split, intrinsics=intr)

@@ -9,17 +9,24 @@ from typing import Sequence
 
 import numpy as np
 
-from tacsplat.progress import progress_bar
 from tacsplat.errors import InvalidInputError
+from tacsplat.progress import progress_bar
 
 from .reader import Scene
 from .records import SceneMeta, SensorModel, Touch
 from .writer import SceneWriter, removed_on_failure
 
 
-def copy_scene(src: Scene | str | os.PathLike, dst: str | os.PathLike, *, touches: Sequence[Touch] | None = None,
-               meta: SceneMeta | None = None, sensor: SensorModel | None = None, gt_mesh=None,
-               progress: bool = False) -> Path:
+def copy_scene(
+    src: Scene | str | os.PathLike,
+    dst: str | os.PathLike,
+    *,
+    touches: Sequence[Touch] | None = None,
+    meta: SceneMeta | None = None,
+    sensor: SensorModel | None = None,
+    gt_mesh=None,
+    progress: bool = False,
+) -> Path:
     """Write a new scene in ``dst`` (a new or empty folder) holding every frame of ``src`` (a scene folder or a
     loaded :class:`Scene`) with its intrinsics and ground-truth depth, and ``touches`` (records of ``src``, in the
     order given; default all), grasp and finger kept, ids renumbered.
@@ -33,19 +40,28 @@ def copy_scene(src: Scene | str | os.PathLike, dst: str | os.PathLike, *, touche
     touches = list(scene.touches if touches is None else touches)
     for touch in touches:
         if touch not in scene.touches:
-            raise InvalidInputError(f"touches: touch {touch.id} (grasp {touch.grasp}, {touch.finger}) is not a "
-                                    f"touch of {scene.path}")
+            raise InvalidInputError(
+                f"touches: touch {touch.id} (grasp {touch.grasp}, {touch.finger}) is not a touch of {scene.path}"
+            )
     sensor = scene.sensor if sensor is None else sensor
     if touches and sensor != scene.sensor:
-        raise InvalidInputError(f"sensor: {sensor} differs from {scene.path}'s {scene.sensor}, whose touches are "
-                                "copied; copy no touches to give the scene another sensor model")
+        raise InvalidInputError(
+            f"sensor: {sensor} differs from {scene.path}'s {scene.sensor}, whose touches are "
+            "copied; copy no touches to give the scene another sensor model"
+        )
     gt_mesh = scene.gt_mesh_path if gt_mesh is None else gt_mesh
     intrinsics = scene.intrinsics or scene.frames[0].intrinsics
     with removed_on_failure(dst), SceneWriter.create(dst, intrinsics, meta or scene.meta, sensor) as writer:
         for frame in progress_bar(scene.frames, desc="copy frames", unit="frame", enabled=progress):
             image = np.rint(scene.load_image(frame) * 255).astype(np.uint8)
-            writer.add_frame(image, frame.T_world_cam, frame.split, scene.gt_depth(frame), frame.intrinsics,
-                             mask=scene.load_mask(frame))
+            writer.add_frame(
+                image,
+                frame.T_world_cam,
+                frame.split,
+                scene.gt_depth(frame),
+                frame.intrinsics,
+                mask=scene.load_mask(frame),
+            )
         for touch in touches:
             writer.add_touch(scene.load_touch_depth(touch), touch.T_world_sensor, touch.grasp, touch.finger)
         if gt_mesh is not None:

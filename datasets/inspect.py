@@ -52,8 +52,13 @@ def summarise(path) -> dict:
     summary["touches_per_finger"] = dict(sorted(Counter(t.finger for t in scene.touches).items()))
     if scene.sensor is not None:
         s = scene.sensor
-        summary["sensor"] = {"name": s.name, "width_px": s.width_px, "height_px": s.height_px,
-                             "pixel_size_m": s.pixel_size_m, "gel_thickness_m": s.gel_thickness_m}
+        summary["sensor"] = {
+            "name": s.name,
+            "width_px": s.width_px,
+            "height_px": s.height_px,
+            "pixel_size_m": s.pixel_size_m,
+            "gel_thickness_m": s.gel_thickness_m,
+        }
     if scene.frames or any(t.in_contact for t in scene.touches):
         lo, hi = scene.bounds()
         summary["bounds"] = {"lo": lo.tolist(), "hi": hi.tolist()}
@@ -69,15 +74,25 @@ def format_summary(summary: dict) -> str:
         lines.append(f"object    {summary['object']} (source: {summary['source']})")
     frames = summary["frames"]
     sizes = ", ".join(summary["image_sizes"]) or "-"
-    lines.append(f"frames    {sum(frames.values())}: " + ", ".join(f"{n} {s}" for s, n in frames.items()) + f"  [{sizes}]")
-    lines.append(f"touches   {summary['touches']} ({summary['touches_in_contact']} in contact) in {summary['grasps']} grasps")
+    lines.append(
+        f"frames    {sum(frames.values())}: " + ", ".join(f"{n} {s}" for s, n in frames.items()) + f"  [{sizes}]"
+    )
+    lines.append(
+        f"touches   {summary['touches']} ({summary['touches_in_contact']} in contact) in {summary['grasps']} grasps"
+    )
     if summary["touches_per_grasp"]:
         lines.append("  per grasp   " + ", ".join(f"{g}: {n}" for g, n in summary["touches_per_grasp"].items()))
         lines.append("  per finger  " + ", ".join(f"{f}: {n}" for f, n in summary["touches_per_finger"].items()))
     sensor = summary["sensor"]
-    lines.append("sensor    " + ("none" if sensor is None else
-                                 f"{sensor['name']} {sensor['width_px']}x{sensor['height_px']} px, "
-                                 f"{sensor['pixel_size_m'] * 1e3:.3g} mm/px, gel {sensor['gel_thickness_m'] * 1e3:.3g} mm"))
+    lines.append(
+        "sensor    "
+        + (
+            "none"
+            if sensor is None
+            else f"{sensor['name']} {sensor['width_px']}x{sensor['height_px']} px, "
+            f"{sensor['pixel_size_m'] * 1e3:.3g} mm/px, gel {sensor['gel_thickness_m'] * 1e3:.3g} mm"
+        )
+    )
     if summary["bounds"] is not None:
         lo, hi = np.asarray(summary["bounds"]["lo"]), np.asarray(summary["bounds"]["hi"])
         fmt = lambda v: "(" + ", ".join(f"{x:+.3f}" for x in v) + ")"  # noqa: E731

@@ -42,9 +42,9 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_problem
+from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_readable, check_scale, composite, pose_from_opengl, read_raw, read_rgba
@@ -91,8 +91,12 @@ class _SourceFrame:
 def _read_index(src: Path) -> tuple[Path, dict]:
     index = src if src.suffix.lower() == ".json" else src / "transforms.json"
     if not index.is_file():
-        raise SceneFormatError(index, None, "missing (expected a nerfstudio or instant-ngp dataset: a folder holding "
-                               "transforms.json, or the file itself)")
+        raise SceneFormatError(
+            index,
+            None,
+            "missing (expected a nerfstudio or instant-ngp dataset: a folder holding "
+            "transforms.json, or the file itself)",
+        )
     try:
         data = json.loads(index.read_text())
     except (ValueError, UnicodeDecodeError) as exc:
@@ -112,7 +116,9 @@ def _source_frames(index: Path, data: dict) -> list[_SourceFrame]:
             raise SceneFormatError(index, f"frames[{i}].file_path", "expected an object with a file_path string")
         name = Path(raw["file_path"])
         if name in seen:
-            raise SceneFormatError(index, f"frames[{i}].file_path", f"{raw['file_path']!r} again (also frames[{seen[name]}])")
+            raise SceneFormatError(
+                index, f"frames[{i}].file_path", f"{raw['file_path']!r} again (also frames[{seen[name]}])"
+            )
         seen[name] = i
         frames.append(_SourceFrame(i, raw, name, index.parent / name))
     return sorted(frames, key=lambda f: f.name)
@@ -133,15 +139,23 @@ def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
     for key, names in lists.items():
         unknown = sorted(str(n) for n in names - known)
         if unknown:
-            raise SceneFormatError(index, key, f"{len(unknown)} file paths are no frame's file_path: "
-                                   + ", ".join(unknown[:5]) + (" ..." if len(unknown) > 5 else ""))
+            raise SceneFormatError(
+                index,
+                key,
+                f"{len(unknown)} file paths are no frame's file_path: "
+                + ", ".join(unknown[:5])
+                + (" ..." if len(unknown) > 5 else ""),
+            )
     train = lists.get("train_filenames", set())
     test_key = "test_filenames" if "test_filenames" in lists else "val_filenames"
     test = lists.get(test_key, set())
     shared = sorted(str(n) for n in train & test)
     if shared:
-        raise SceneFormatError(index, test_key, f"{', '.join(shared[:5])} also in train_filenames: a frame is a train "
-                               "or a test view, not both")
+        raise SceneFormatError(
+            index,
+            test_key,
+            f"{', '.join(shared[:5])} also in train_filenames: a frame is a train or a test view, not both",
+        )
     for f in frames:
         f.split = "train" if f.name in train else "test" if f.name in test else None
     return True
@@ -157,8 +171,12 @@ def _number(key: str, frame: _SourceFrame, data: dict, default=None):
 def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
     model, field = _number("camera_model", frame, data, "PERSPECTIVE")
     if model not in PERSPECTIVE_MODELS:
-        raise SceneFormatError(index, field, f"camera model {model!r} is not supported: only perspective models "
-                               f"({', '.join(PERSPECTIVE_MODELS)}); undistort the images to a pinhole camera first")
+        raise SceneFormatError(
+            index,
+            field,
+            f"camera model {model!r} is not supported: only perspective models "
+            f"({', '.join(PERSPECTIVE_MODELS)}); undistort the images to a pinhole camera first",
+        )
     fisheye, field = _number("is_fisheye", frame, data, False)
     if fisheye:
         raise SceneFormatError(index, field, "fisheye cameras are not supported; undistort the images first")
@@ -182,7 +200,9 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
         angle, angle_field = _number(angle_key, frame, data)
         if value is None and angle is not None:
             if not is_finite_number(angle) or not 0 < angle < np.pi:
-                raise SceneFormatError(index, angle_field, f"expected a field of view in (0, pi) radians, got {angle!r}")
+                raise SceneFormatError(
+                    index, angle_field, f"expected a field of view in (0, pi) radians, got {angle!r}"
+                )
             value = focal_from_fov(float(angle), side)
         focal[key] = value
     if focal["fl_y"] is None:
@@ -194,8 +214,12 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
         raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
     k4, field = _number("k4", frame, data, 0.0)
     if k4 != 0:
-        raise SceneFormatError(index, field, f"k4 = {k4!r}: a radial r^8 term, which OpenCV's perspective model lacks; "
-                               "only k1 k2 k3 p1 p2 are supported")
+        raise SceneFormatError(
+            index,
+            field,
+            f"k4 = {k4!r}: a radial r^8 term, which OpenCV's perspective model lacks; "
+            "only k1 k2 k3 p1 p2 are supported",
+        )
     distortion = []
     for key in DISTORTION_KEYS:
         value, field = _number(key, frame, data, 0.0)
@@ -241,32 +265,39 @@ def distortion_problem(camera: Camera) -> tuple[str, str] | None:
     radial = max(terms, key=terms.get)  # the coefficient that dominates at the corner
     folds = np.flatnonzero(np.diff(distorted[: end + 1]) <= 0)
     if folds.size:
-        return radial, (f"the distortion folds the image back: the distorted radius grows only up to "
-                        f"{distorted[folds[0]]:.3g}, short of the image corner at {corner:.3g}, so pixels near the "
-                        f"corners would see two rays or none; no lens does this: check {coefficients}")
+        return radial, (
+            f"the distortion folds the image back: the distorted radius grows only up to "
+            f"{distorted[folds[0]]:.3g}, short of the image corner at {corner:.3g}, so pixels near the "
+            f"corners would see two rays or none; no lens does this: check {coefficients}"
+        )
     scale = corner / r[end] if reached.size else 0.0
     if not 1 / MAX_CORNER_SCALE <= scale <= MAX_CORNER_SCALE:
         size = f"{scale:.3g}" if reached.size else f"less than {1 / MAX_CORNER_SCALE:g}"
-        return radial, (f"the distortion scales the image corner by {size} (distorted over undistorted radius), "
-                        f"beyond a perspective lens's 1/{MAX_CORNER_SCALE:g} to {MAX_CORNER_SCALE:g}: check "
-                        f"{coefficients}; a fisheye lens needs undistorting first")
+        return radial, (
+            f"the distortion scales the image corner by {size} (distorted over undistorted radius), "
+            f"beyond a perspective lens's 1/{MAX_CORNER_SCALE:g} to {MAX_CORNER_SCALE:g}: check "
+            f"{coefficients}; a fisheye lens needs undistorting first"
+        )
     angle = np.linspace(0.0, 2 * np.pi, 181)
     xu, yu = r[1 : end + 1, None] * np.cos(angle), r[1 : end + 1, None] * np.sin(angle)
     rr = xu**2 + yu**2
     factor = 1 + k1 * rr + k2 * rr**2 + k3 * rr**3
     g = 2 * k1 + 4 * k2 * rr + 6 * k3 * rr**2  # d(factor)/dx = g x, d(factor)/dy = g y
     cross = g * xu * yu + 2 * p1 * xu + 2 * p2 * yu  # d(x_d)/dy = d(y_d)/dx
-    det = (factor + g * xu**2 + 2 * p1 * yu + 6 * p2 * xu) * (factor + g * yu**2 + 6 * p1 * yu + 2 * p2 * xu) \
-        - cross**2
+    det = (factor + g * xu**2 + 2 * p1 * yu + 6 * p2 * xu) * (factor + g * yu**2 + 6 * p1 * yu + 2 * p2 * xu) - cross**2
     shift = np.hypot(2 * p1 * xu * yu + p2 * (rr + 2 * xu**2), p1 * (rr + 2 * yu**2) + 2 * p2 * xu * yu)
     tangential = "p1" if abs(p1) >= abs(p2) else "p2"
     if (det <= 0).any():
-        return tangential, (f"the tangential distortion p1 {p1:g}, p2 {p2:g} folds the image back within its "
-                            "corners (pixels there would see two rays or none); no lens does this")
+        return tangential, (
+            f"the tangential distortion p1 {p1:g}, p2 {p2:g} folds the image back within its "
+            "corners (pixels there would see two rays or none); no lens does this"
+        )
     if (shift > MAX_TANGENTIAL * np.sqrt(rr)).any():
-        return tangential, (f"the tangential distortion p1 {p1:g}, p2 {p2:g} moves the image corners by "
-                            f"{(shift / np.sqrt(rr)).max():.0%} of their radius, beyond a lens's "
-                            f"{MAX_TANGENTIAL:.0%} (decentering is ~1e-3): check p1 and p2")
+        return tangential, (
+            f"the tangential distortion p1 {p1:g}, p2 {p2:g} moves the image corners by "
+            f"{(shift / np.sqrt(rr)).max():.0%} of their radius, beyond a lens's "
+            f"{MAX_TANGENTIAL:.0%} (decentering is ~1e-3): check p1 and p2"
+        )
     return None
 
 
@@ -314,8 +345,11 @@ def _read_mask(path: Path, camera: Camera, frame: _SourceFrame) -> np.ndarray:
     raw = read_raw(path, f"{frame.field}.mask_path", "mask")
     keep = raw != 0 if raw.ndim == 2 else (raw != 0).any(axis=2)
     if keep.shape != (camera.height, camera.width):
-        raise SceneFormatError(path, f"{frame.field}.mask_path", f"mask is {keep.shape[1]}x{keep.shape[0]} but the "
-                               f"image is {camera.width}x{camera.height}")
+        raise SceneFormatError(
+            path,
+            f"{frame.field}.mask_path",
+            f"mask is {keep.shape[1]}x{keep.shape[0]} but the image is {camera.width}x{camera.height}",
+        )
     return np.where(keep, 255, 0).astype(np.uint8)
 
 
@@ -326,14 +360,24 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
     has_lists = _assign_splits(index, data, frames)
     left_out = [f.raw["file_path"] for f in frames if has_lists and f.split is None]
     if left_out:
-        log.warning("%s: %d frames are in none of %s and are left out: %s", index, len(left_out),
-                    "/".join(SPLIT_LISTS), ", ".join(left_out[:5]) + (" ..." if len(left_out) > 5 else ""))
+        log.warning(
+            "%s: %d frames are in none of %s and are left out: %s",
+            index,
+            len(left_out),
+            "/".join(SPLIT_LISTS),
+            ", ".join(left_out[:5]) + (" ..." if len(left_out) > 5 else ""),
+        )
         frames = [f for f in frames if f.split is not None]
     missing = [f.raw["file_path"] for f in frames if not f.image.is_file()]
     if missing and not skip_missing:
-        raise SceneFormatError(index, "frames", f"the images of {len(missing)} of {len(frames)} frames are missing: "
-                               + ", ".join(missing[:10]) + (" ..." if len(missing) > 10 else "")
-                               + " (--skip-missing imports the others)")
+        raise SceneFormatError(
+            index,
+            "frames",
+            f"the images of {len(missing)} of {len(frames)} frames are missing: "
+            + ", ".join(missing[:10])
+            + (" ..." if len(missing) > 10 else "")
+            + " (--skip-missing imports the others)",
+        )
     if missing:
         log.warning("%s: skipping %d frames whose image is missing: %s", index, len(missing), ", ".join(missing))
         frames = [f for f in frames if f.image.is_file()]
@@ -342,24 +386,39 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
             f.split = "test" if test_every and k % test_every == 0 else "train"
     if not any(f.split == "train" for f in frames):
         if has_lists:
-            raise SceneFormatError(index, "train_filenames", f"no train frame to import: none of the {len(frames)} "
-                                   "frames to import is in train_filenames")
-        raise SceneFormatError(index, "frames", f"no train frame to import: the test split takes every "
-                               f"{test_every}-th of the {len(frames)} frames in file-name order, the first included; "
-                               "--test-every 0 (test_every=0) keeps them all for training")
+            raise SceneFormatError(
+                index,
+                "train_filenames",
+                f"no train frame to import: none of the {len(frames)} frames to import is in train_filenames",
+            )
+        raise SceneFormatError(
+            index,
+            "frames",
+            f"no train frame to import: the test split takes every "
+            f"{test_every}-th of the {len(frames)} frames in file-name order, the first included; "
+            "--test-every 0 (test_every=0) keeps them all for training",
+        )
     in_file_order = sorted(frames, key=lambda f: f.position)
     first = in_file_order[0]
     odd = next((f for f in in_file_order if ("mask_path" in f.raw) != ("mask_path" in first.raw)), None)
     if odd is not None:
-        raise SceneFormatError(index, f"{odd.field}.mask_path", f"{'present' if 'mask_path' in odd.raw else 'missing'}"
-                               f", but {first.field} {'has' if 'mask_path' in first.raw else 'has no'} mask_path: "
-                               "masks go on every frame or none (nerfstudio refuses anything else)")
-    return frames, {"left_out": left_out, "skipped_missing": missing, "split": "lists" if has_lists else
-                    f"every {test_every}-th frame in file-name order is a test view"}
+        raise SceneFormatError(
+            index,
+            f"{odd.field}.mask_path",
+            f"{'present' if 'mask_path' in odd.raw else 'missing'}"
+            f", but {first.field} {'has' if 'mask_path' in first.raw else 'has no'} mask_path: "
+            "masks go on every frame or none (nerfstudio refuses anything else)",
+        )
+    return frames, {
+        "left_out": left_out,
+        "skipped_missing": missing,
+        "split": "lists" if has_lists else f"every {test_every}-th frame in file-name order is a test view",
+    }
 
 
-def _original_world_pose(frame: _SourceFrame, index: Path, applied: np.ndarray | None, applied_scale: float,
-                         scale: float) -> np.ndarray:
+def _original_world_pose(
+    frame: _SourceFrame, index: Path, applied: np.ndarray | None, applied_scale: float, scale: float
+) -> np.ndarray:
     """The frame's OpenCV camera-to-world pose in the original world, in metres (nerfstudio's
     ``transform_poses_to_original_space``, then ``scale``)."""
     pose = pose_from_opengl(frame.raw.get("transform_matrix"), index, f"{frame.field}.transform_matrix")
@@ -370,8 +429,9 @@ def _original_world_pose(frame: _SourceFrame, index: Path, applied: np.ndarray |
     return pose
 
 
-def import_nerfstudio(src, out, test_every: int = 8, scale: float = 1.0, skip_missing: bool = False,
-                      object_name: str | None = None) -> Path:
+def import_nerfstudio(
+    src, out, test_every: int = 8, scale: float = 1.0, skip_missing: bool = False, object_name: str | None = None
+) -> Path:
     """Convert the nerfstudio / instant-ngp dataset ``src`` (its folder or its ``transforms.json``) into ``out``.
 
     See the module docstring for what is read and how. ``out`` is claimed as the ``--out`` of a writing command
@@ -393,31 +453,46 @@ def import_nerfstudio(src, out, test_every: int = 8, scale: float = 1.0, skip_mi
     if "ply_file_path" in data:
         not_imported["ply_file_path"] = data["ply_file_path"]
     if not_imported:
-        log.warning("%s: not imported (training reads neither depth maps nor point clouds): %s", index,
-                    ", ".join(not_imported))
-    extra = {"importer": "nerfstudio", "source_path": str(index.resolve()), "scale": scale,
-             "nerfstudio_names": [f.raw["file_path"] for f in frames], "split": selection.pop("split")}
-    optional = {**selection, "not_imported": not_imported, "applied_scale": data.get("applied_scale"),
-                "applied_transform": None if applied is None else applied[:3].tolist()}
+        log.warning(
+            "%s: not imported (training reads neither depth maps nor point clouds): %s", index, ", ".join(not_imported)
+        )
+    extra = {
+        "importer": "nerfstudio",
+        "source_path": str(index.resolve()),
+        "scale": scale,
+        "nerfstudio_names": [f.raw["file_path"] for f in frames],
+        "split": selection.pop("split"),
+    }
+    optional = {
+        **selection,
+        "not_imported": not_imported,
+        "applied_scale": data.get("applied_scale"),
+        "applied_transform": None if applied is None else applied[:3].tolist(),
+    }
     extra.update({key: value for key, value in optional.items() if value})
     meta = SceneMeta(source="import", object=object_name or index.parent.resolve().name, extra=extra)
 
     tables = {camera: undistortion(camera) for camera in set(cameras)}
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
-    with claim_output_dir(out), removed_on_failure(out), \
-            SceneWriter.create(out, tables[cameras[0]][0], meta) as writer:
-        for f, camera, pose in progress_bar(list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}",
-                                           unit="frame"):
+    with claim_output_dir(out), removed_on_failure(out), SceneWriter.create(out, tables[cameras[0]][0], meta) as writer:
+        for f, camera, pose in progress_bar(
+            list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}", unit="frame"
+        ):
             intr, maps = tables[camera]
             rgb = read_rgba(f.image, f.field)[:, :, :3].astype(np.float32)
             if rgb.shape[:2] != (camera.height, camera.width):
-                raise SceneFormatError(f.image, f.field, f"image is {rgb.shape[1]}x{rgb.shape[0]} but the camera says "
-                                       f"w x h = {camera.width}x{camera.height}")
+                raise SceneFormatError(
+                    f.image,
+                    f.field,
+                    f"image is {rgb.shape[1]}x{rgb.shape[0]} but the camera says "
+                    f"w x h = {camera.width}x{camera.height}",
+                )
             mask = None if "mask_path" not in f.raw else _read_mask(index.parent / str(f.raw["mask_path"]), camera, f)
             if maps is not None:
                 rgb = cv2.remap(rgb, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 if mask is not None:
                     mask = cv2.remap(mask, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
-            writer.add_frame(composite(rgb, (0, 0, 0)), pose, split=f.split, intrinsics=intr,
-                             mask=None if mask is None else mask > 0)
+            writer.add_frame(
+                composite(rgb, (0, 0, 0)), pose, split=f.split, intrinsics=intr, mask=None if mask is None else mask > 0
+            )
     return out

@@ -71,8 +71,9 @@ class OutputLock:
             fcntl.flock(self._file.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             self._file.close()
-            raise ConfigError(option, f"{path} is being written by {other_writer(path)}; wait for it to end or "
-                              "choose another folder") from None
+            raise ConfigError(
+                option, f"{path} is being written by {other_writer(path)}; wait for it to end or choose another folder"
+            ) from None
         record_writer(path)
 
     def release(self) -> None:

@@ -26,7 +26,6 @@ from tacsplat.types import CameraIntrinsics
 
 from .records import (
     FORMAT_NAME,
-    as_size,
     FORMAT_VERSION,
     GT_DEPTH_LIMIT,
     SOURCES,
@@ -35,6 +34,7 @@ from .records import (
     SceneMeta,
     SensorModel,
     Touch,
+    as_size,
     camera_problem,
     depth_problem,
     pose_problem,
@@ -110,8 +110,9 @@ def _pose(value, index: Path, field: str, problems: _Problems) -> np.ndarray | N
     return np.asarray(value, dtype=np.float64)
 
 
-def load_depth_npz(path: Path, shape: tuple[int, int] | None, problems: _Problems, field: str,
-                   limit: tuple[float, str]) -> np.ndarray | None:
+def load_depth_npz(
+    path: Path, shape: tuple[int, int] | None, problems: _Problems, field: str, limit: tuple[float, str]
+) -> np.ndarray | None:
     """Load and check a float32 depth map saved by the writer (key ``depth``); ``limit`` is (deepest value in
     metres, why) as :func:`depth_problem` takes it."""
     if not path.is_file():
@@ -137,8 +138,9 @@ def load_depth_npz(path: Path, shape: tuple[int, int] | None, problems: _Problem
     return depth.astype(np.float32, copy=False)
 
 
-def _check_image(path: Path, intr: CameraIntrinsics, index: Path, field: str, problems: _Problems,
-                 mode: str = "RGB") -> bool:
+def _check_image(
+    path: Path, intr: CameraIntrinsics, index: Path, field: str, problems: _Problems, mode: str = "RGB"
+) -> bool:
     """Header and chunk checksums of an image file (no full decode): exists, intact, ``mode`` (RGB, or L for a
     mask), size w x h."""
     if not path.is_file():
@@ -156,7 +158,9 @@ def _check_image(path: Path, intr: CameraIntrinsics, index: Path, field: str, pr
         problems.report(path, field, f"expected an 8-bit {what}, got PIL mode {actual_mode!r}")
         return False
     if size != (intr.width, intr.height):
-        problems.report(path, field, f"image is {size[0]}x{size[1]} but the camera says w x h = {intr.width}x{intr.height}")
+        problems.report(
+            path, field, f"image is {size[0]}x{size[1]} but the camera says w x h = {intr.width}x{intr.height}"
+        )
         return False
     return True
 
@@ -214,8 +218,12 @@ class Scene:
         if not self.frames:
             return None
         first = self.frames[0].intrinsics
-        same = all(f.intrinsics.width == first.width and f.intrinsics.height == first.height
-                   and np.array_equal(f.intrinsics.K, first.K) for f in self.frames)
+        same = all(
+            f.intrinsics.width == first.width
+            and f.intrinsics.height == first.height
+            and np.array_equal(f.intrinsics.K, first.K)
+            for f in self.frames
+        )
         return first if same else None
 
     @property
@@ -236,8 +244,11 @@ class Scene:
         if bgr is None:
             raise SceneFormatError(path, f"frame {frame.id}", "missing or unreadable image")
         if bgr.shape[:2] != (frame.intrinsics.height, frame.intrinsics.width):
-            raise SceneFormatError(path, f"frame {frame.id}", f"image is {bgr.shape[1]}x{bgr.shape[0]}, expected "
-                                   f"{frame.intrinsics.width}x{frame.intrinsics.height}")
+            raise SceneFormatError(
+                path,
+                f"frame {frame.id}",
+                f"image is {bgr.shape[1]}x{bgr.shape[0]}, expected {frame.intrinsics.width}x{frame.intrinsics.height}",
+            )
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
 
     def load_mask(self, frame: Frame) -> np.ndarray | None:
@@ -247,16 +258,24 @@ class Scene:
         path = self.path / frame.mask_path
         mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if mask is None or mask.shape != (frame.intrinsics.height, frame.intrinsics.width):
-            raise SceneFormatError(path, f"frame {frame.id}", "missing or unreadable mask, or not "
-                                   f"{frame.intrinsics.width}x{frame.intrinsics.height}")
+            raise SceneFormatError(
+                path,
+                f"frame {frame.id}",
+                f"missing or unreadable mask, or not {frame.intrinsics.width}x{frame.intrinsics.height}",
+            )
         return mask > 0
 
     def load_touch_depth(self, touch: Touch) -> np.ndarray:
         """The touch's indentation map, float32 metres [h, w] (0 = no contact)."""
         if self.sensor is None:
             raise SceneFormatError(self.path / "touches.json", "sensor", "touches need a sensor model")
-        return load_depth_npz(self.path / touch.depth_file, (self.sensor.height_px, self.sensor.width_px),
-                              _Problems(collect=False), f"touch {touch.id}", touch_depth_limit(self.sensor))
+        return load_depth_npz(
+            self.path / touch.depth_file,
+            (self.sensor.height_px, self.sensor.width_px),
+            _Problems(collect=False),
+            f"touch {touch.id}",
+            touch_depth_limit(self.sensor),
+        )
 
     def touch_points(self, threshold_m: float = 1e-5) -> np.ndarray:
         """Every touch's contact points in the world, [M, 3] float64 (see ``tactile_depth_to_points``)."""
@@ -282,8 +301,13 @@ class Scene:
         rel = self.gt_depth_files.get(frame.id)
         if rel is None:
             return None
-        return load_depth_npz(self.path / rel, (frame.intrinsics.height, frame.intrinsics.width),
-                              _Problems(collect=False), f"gt depth of frame {frame.id}", GT_DEPTH_LIMIT)
+        return load_depth_npz(
+            self.path / rel,
+            (frame.intrinsics.height, frame.intrinsics.width),
+            _Problems(collect=False),
+            f"gt depth of frame {frame.id}",
+            GT_DEPTH_LIMIT,
+        )
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned box (lo [3], hi [3]) where the object must be, from cameras and touches only.
@@ -353,16 +377,27 @@ def _read_scene(path: Path, problems: _Problems, check_files: bool) -> tuple[Sce
         problems.report(path, None, "scene directory does not exist")
         return None, problems
     if _is_foreign_dataset(path):
-        problems.report(path, None, "a nerfstudio or instant-ngp dataset (transforms.json with frames, no scene.json), "
-                        f"not a tacsplat scene: import it first with `tacsplat import nerfstudio {path} --out SCENE`")
+        problems.report(
+            path,
+            None,
+            "a nerfstudio or instant-ngp dataset (transforms.json with frames, no scene.json), "
+            f"not a tacsplat scene: import it first with `tacsplat import nerfstudio {path} --out SCENE`",
+        )
         return None, problems
     meta, version, gt, annotations = _read_scene_json(path, problems)
     frames, declared_ids = _read_frames(path, problems, check_files)
     sensor, touches = _read_touches(path, problems, check_files)
     if meta is None:
         return None, problems
-    scene = Scene(path=path, frames=frames, touches=touches, sensor=sensor, meta=meta, tacsplat_version=version,
-                  annotations=annotations)
+    scene = Scene(
+        path=path,
+        frames=frames,
+        touches=touches,
+        sensor=sensor,
+        meta=meta,
+        tacsplat_version=version,
+        annotations=annotations,
+    )
     _read_gt(scene, gt, declared_ids, problems, check_files)
     _check_complete(scene, problems)
     return scene, problems
@@ -380,12 +415,18 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
             frames, touches = journaled.num_frames, journaled.num_touches
             resume = "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites the index"
             if (frames, touches) != (len(scene.frames), len(scene.touches)) and not problems.errors:
-                problems.report(journal, None, f"records {frames} frames and {touches} touches but the index files "
-                                f"hold {len(scene.frames)} and {len(scene.touches)}: {resume}")
+                problems.report(
+                    journal,
+                    None,
+                    f"records {frames} frames and {touches} touches but the index files "
+                    f"hold {len(scene.frames)} and {len(scene.touches)}: {resume}",
+                )
             elif journaled.annotations != scene.annotations and not problems.errors:
                 problems.report(journal, "annotations", f"records other annotations than scene.json holds: {resume}")
-            elif ((journaled.gt_mesh, journaled.gt_depth_files) != (scene.gt_mesh_file, scene.gt_depth_files)
-                  and not problems.errors):
+            elif (journaled.gt_mesh, journaled.gt_depth_files) != (
+                scene.gt_mesh_file,
+                scene.gt_depth_files,
+            ) and not problems.errors:
                 problems.report(journal, "gt", f"records other ground truth than scene.json holds: {resume}")
     if not problems.errors:
         _check_twin_ground_truth(scene, problems)
@@ -403,12 +444,19 @@ def _check_twin_ground_truth(scene: Scene, problems: _Problems) -> None:
         return
     index = scene.path / "scene.json"
     if scene.gt_mesh_file is None:
-        problems.report(index, "gt.mesh", "a capture on the twin without its ground-truth mesh (its write failed, "
-                        "or the capture stopped before it): resume the capture (--resume) to write it")
+        problems.report(
+            index,
+            "gt.mesh",
+            "a capture on the twin without its ground-truth mesh (its write failed, "
+            "or the capture stopped before it): resume the capture (--resume) to write it",
+        )
     missing = [f.id for f in scene.split("test") if f.id not in scene.gt_depth_files]
     if missing:
-        problems.report(index, "gt.depth", f"a capture on the twin without the ground-truth depth of its test "
-                        f"frame(s) {', '.join(map(str, missing))}")
+        problems.report(
+            index,
+            "gt.depth",
+            f"a capture on the twin without the ground-truth depth of its test frame(s) {', '.join(map(str, missing))}",
+        )
 
 
 def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None, str, dict, dict]:
@@ -422,8 +470,9 @@ def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None,
         problems.report(index, "format", f"expected {FORMAT_NAME!r}, got {data.get('format')!r}")
     version = data.get("format_version", FORMAT_VERSION)
     if not _is_int(version) or version != FORMAT_VERSION:
-        problems.report(index, "format_version", f"expected {FORMAT_VERSION} (the version this tacsplat reads), "
-                        f"got {version!r}")
+        problems.report(
+            index, "format_version", f"expected {FORMAT_VERSION} (the version this tacsplat reads), got {version!r}"
+        )
     if data.get("units") != "m":
         problems.report(index, "units", f"expected 'm' (all tacsplat scenes are in metres), got {data.get('units')!r}")
     if data.get("source") not in SOURCES:
@@ -446,8 +495,12 @@ def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None,
         annotations = {}
     if not ok:
         return None, "", {}, {}
-    meta = SceneMeta(source=data["source"], object=data["object"], capture_plan=data.get("capture_plan", {}),
-                     extra=data.get("extra", {}))
+    meta = SceneMeta(
+        source=data["source"],
+        object=data["object"],
+        capture_plan=data.get("capture_plan", {}),
+        extra=data.get("extra", {}),
+    )
     return meta, str(data.get("tacsplat_version", "")), gt, annotations
 
 
@@ -458,15 +511,21 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
     if data is None:
         return [], set()
     if data.get("camera_model", "OPENCV") not in ("OPENCV", "PINHOLE"):
-        problems.report(index, "camera_model", f"expected OPENCV or PINHOLE (undistorted images), got {data['camera_model']!r}")
+        problems.report(
+            index, "camera_model", f"expected OPENCV or PINHOLE (undistorted images), got {data['camera_model']!r}"
+        )
         return [], set()
     for key in _DISTORTION_KEYS:
         if data.get(key, 0.0) != 0.0:
             problems.report(index, key, f"images must be undistorted, but {key} = {data[key]!r}")
     for key in _FOREIGN_KEYS:
         if key in data:
-            problems.report(index, key, "not part of a tacsplat scene (poses are in the world frame, in metres); "
-                            "import nerfstudio data with `tacsplat import nerfstudio`")
+            problems.report(
+                index,
+                key,
+                "not part of a tacsplat scene (poses are in the world frame, in metres); "
+                "import nerfstudio data with `tacsplat import nerfstudio`",
+            )
     raw_frames = data.get("frames")
     if not isinstance(raw_frames, list):
         problems.report(index, "frames", f"expected a list, got {type(raw_frames).__name__}")
@@ -495,14 +554,20 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
         if image_path is None:
             continue
         if raw["file_path"] in seen_files:
-            problems.report(index, f"{field}.file_path", f"duplicate file_path {raw['file_path']!r} "
-                            f"(also frames[{seen_files[raw['file_path']]}])")
+            problems.report(
+                index,
+                f"{field}.file_path",
+                f"duplicate file_path {raw['file_path']!r} (also frames[{seen_files[raw['file_path']]}])",
+            )
             continue
         seen_files[raw["file_path"]] = i
         foreign = [key for key in _FOREIGN_FRAME_KEYS if key in raw]
         if foreign:
-            problems.report(index, f"{field}.{foreign[0]}", "not part of a tacsplat scene; import nerfstudio data "
-                            "with `tacsplat import nerfstudio`")
+            problems.report(
+                index,
+                f"{field}.{foreign[0]}",
+                "not part of a tacsplat scene; import nerfstudio data with `tacsplat import nerfstudio`",
+            )
             continue
         mask_path = None
         if raw.get("mask_path") is not None:
@@ -517,12 +582,24 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
             continue
         if check_files and mask_path and not _check_image(mask_path, intr, index, f"{field}.mask_path", problems, "L"):
             continue
-        frames.append(Frame(id=fid, file_path=raw["file_path"], T_world_cam=opengl_to_opencv(T_gl), split=split,
-                            intrinsics=intr, mask_path=raw.get("mask_path")))
+        frames.append(
+            Frame(
+                id=fid,
+                file_path=raw["file_path"],
+                T_world_cam=opengl_to_opencv(T_gl),
+                split=split,
+                intrinsics=intr,
+                mask_path=raw.get("mask_path"),
+            )
+        )
     masked = sum(f.mask_path is not None for f in frames)
     if 0 < masked < len(frames):
-        problems.report(index, "frames", f"{masked} of {len(frames)} frames have a mask_path: a scene has masks on "
-                        "every frame or on none (nerfstudio refuses anything else)")
+        problems.report(
+            index,
+            "frames",
+            f"{masked} of {len(frames)} frames have a mask_path: a scene has masks on "
+            "every frame or on none (nerfstudio refuses anything else)",
+        )
     return frames, set(seen_ids)
 
 
@@ -586,16 +663,32 @@ def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[S
         if depth_path is None or T is None:
             continue
         if check_files:
-            depth = load_depth_npz(depth_path, (sensor.height_px, sensor.width_px), problems, f"touch {tid} depth",
-                                   touch_depth_limit(sensor))
+            depth = load_depth_npz(
+                depth_path,
+                (sensor.height_px, sensor.width_px),
+                problems,
+                f"touch {tid} depth",
+                touch_depth_limit(sensor),
+            )
             if depth is None:
                 continue
             if bool((depth > 0).any()) != in_contact:
-                problems.report(index, f"{field}.in_contact", f"says {in_contact} but the depth map "
-                                f"{'has' if (depth > 0).any() else 'has no'} contact")
+                problems.report(
+                    index,
+                    f"{field}.in_contact",
+                    f"says {in_contact} but the depth map {'has' if (depth > 0).any() else 'has no'} contact",
+                )
                 continue
-        touches.append(Touch(id=tid, grasp=grasp, finger=finger, depth_file=raw["depth_file"], T_world_sensor=T,
-                             in_contact=in_contact))
+        touches.append(
+            Touch(
+                id=tid,
+                grasp=grasp,
+                finger=finger,
+                depth_file=raw["depth_file"],
+                T_world_sensor=T,
+                in_contact=in_contact,
+            )
+        )
     return sensor, touches
 
 
@@ -625,7 +718,16 @@ def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems
         if depth_path is None:
             continue
         frame = frames[fid]
-        if check_files and load_depth_npz(depth_path, (frame.intrinsics.height, frame.intrinsics.width), problems,
-                                          f"gt depth of frame {fid}", GT_DEPTH_LIMIT) is None:
+        if (
+            check_files
+            and load_depth_npz(
+                depth_path,
+                (frame.intrinsics.height, frame.intrinsics.width),
+                problems,
+                f"gt depth of frame {fid}",
+                GT_DEPTH_LIMIT,
+            )
+            is None
+        ):
             continue
         scene.gt_depth_files[fid] = rel

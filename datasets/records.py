@@ -64,9 +64,11 @@ def camera_problem(fx, fy, cx, cy, width, height) -> tuple[str, str] | None:
             return key, f"expected a finite positive number, got {f!r}"
         fov = math.degrees(2 * math.atan(side / (2 * f)))
         if not lo <= fov <= hi:
-            return key, (f"{f:.6g} px gives a field of view of {fov:.3g} degrees over {side} px; a camera has "
-                         f"{lo:g} to {hi:g} (focal length {side / (2 * math.tan(math.radians(hi) / 2)):.3g} to "
-                         f"{side / (2 * math.tan(math.radians(lo) / 2)):.3g} px)")
+            return key, (
+                f"{f:.6g} px gives a field of view of {fov:.3g} degrees over {side} px; a camera has "
+                f"{lo:g} to {hi:g} (focal length {side / (2 * math.tan(math.radians(hi) / 2)):.3g} to "
+                f"{side / (2 * math.tan(math.radians(lo) / 2)):.3g} px)"
+            )
     for key, c, side in (("cx", cx, width), ("cy", cy, height)):
         if not is_finite_number(c) or not 0 <= c <= side:
             return key, f"the principal point must be inside the image, 0..{side} px, got {c!r}"
@@ -170,11 +172,13 @@ class Touch:
     def __eq__(self, other) -> bool:
         if not isinstance(other, Touch):
             return NotImplemented
-        return (
-            (self.id, self.grasp, self.finger, self.depth_file, self.in_contact)
-            == (other.id, other.grasp, other.finger, other.depth_file, other.in_contact)
-            and np.array_equal(self.T_world_sensor, other.T_world_sensor)
-        )
+        return (self.id, self.grasp, self.finger, self.depth_file, self.in_contact) == (
+            other.id,
+            other.grasp,
+            other.finger,
+            other.depth_file,
+            other.in_contact,
+        ) and np.array_equal(self.T_world_sensor, other.T_world_sensor)
 
     __hash__ = None
 
@@ -230,8 +234,10 @@ def sensor_problem(sensor: SensorModel) -> str | None:
             return f"{name} must be positive, got {value}"
     extent = sensor.pixel_size_m * max(sensor.width_px, sensor.height_px)
     if extent > MAX_DISTANCE_M:
-        return (f"pixel_size_m {sensor.pixel_size_m:.3g} makes the sensor {extent:.3g} m wide; no scene is larger than "
-                f"{MAX_DISTANCE_M:g} m (wrong units?)")
+        return (
+            f"pixel_size_m {sensor.pixel_size_m:.3g} makes the sensor {extent:.3g} m wide; no scene is larger than "
+            f"{MAX_DISTANCE_M:g} m (wrong units?)"
+        )
     if sensor.gel_thickness_m > MAX_DISTANCE_M:
         return f"gel_thickness_m {sensor.gel_thickness_m:.3g} is larger than any scene ({MAX_DISTANCE_M:g} m)"
     return None
@@ -273,7 +279,9 @@ def meta_to_json(meta: SceneMeta) -> dict:
 
 
 def meta_from_json(d: dict) -> SceneMeta:
-    return SceneMeta(source=d["source"], object=d["object"], capture_plan=d.get("capture_plan", {}), extra=d.get("extra", {}))
+    return SceneMeta(
+        source=d["source"], object=d["object"], capture_plan=d.get("capture_plan", {}), extra=d.get("extra", {})
+    )
 
 
 def frame_to_json(frame: Frame) -> dict:

@@ -125,8 +125,10 @@ def check_new_scene_dir(path: Path) -> None:
     path = Path(path)
     if (path / JOURNAL).exists():
         if _journal_locked(path / JOURNAL):
-            raise InvalidInputError(f"{path} is being written by {other_writer(path)}: wait for it to end and "
-                                    "continue the scene with --resume, or choose a new folder")
+            raise InvalidInputError(
+                f"{path} is being written by {other_writer(path)}: wait for it to end and "
+                "continue the scene with --resume, or choose a new folder"
+            )
         raise InvalidInputError(f"{path} already holds a scene: continue it with --resume, or choose a new folder")
     if path.is_dir() and has_content(path):
         raise InvalidInputError(f"{path} exists and is not an empty folder; choose a new output folder")
@@ -166,8 +168,15 @@ class SceneWriter:
     (also a context manager).
     """
 
-    def __init__(self, path: Path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None,
-                 created: str, version: str):
+    def __init__(
+        self,
+        path: Path,
+        intrinsics: CameraIntrinsics,
+        meta: SceneMeta,
+        sensor: SensorModel | None,
+        created: str,
+        version: str,
+    ):
         self.path = Path(path)
         self.intrinsics = intrinsics
         self.meta = meta
@@ -185,7 +194,9 @@ class SceneWriter:
     # --- opening ------------------------------------------------------------------------------
 
     @classmethod
-    def create(cls, path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None = None) -> "SceneWriter":
+    def create(
+        cls, path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None = None
+    ) -> "SceneWriter":
         """Start a new scene in ``path`` (which must not exist or be an empty folder)."""
         path = Path(path)
         if not isinstance(intrinsics, CameraIntrinsics):
@@ -230,8 +241,9 @@ class SceneWriter:
         return writer
 
     @classmethod
-    def _start(cls, path: Path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None,
-               journal) -> "SceneWriter":
+    def _start(
+        cls, path: Path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None, journal
+    ) -> "SceneWriter":
         """The folders and index files of a new scene, and its journal header in ``journal`` (not yet named)."""
         _make_folders(path, "images", "touches", "gt", "gt/depth")
         created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
@@ -259,7 +271,11 @@ class SceneWriter:
         path = Path(path)
         journal_path = path / JOURNAL
         if not journal_path.is_file():
-            raise SceneFormatError(journal_path, None, "missing: this folder was not written by SceneWriter (or its creation never finished)")
+            raise SceneFormatError(
+                journal_path,
+                None,
+                "missing: this folder was not written by SceneWriter (or its creation never finished)",
+            )
         journal = _lock_journal(journal_path, path)
         try:
             writer = cls._replay(path, _read_journal(journal_path))
@@ -271,8 +287,13 @@ class SceneWriter:
         _make_folders(path, "images", "touches", "gt", "gt/depth")
         removed = writer._remove_leftovers()
         writer._materialise("transforms", "touches", "scene")
-        log.info("resumed %s: %d frames, %d touches (%d leftover files removed)",
-                 path, writer.num_frames, writer.num_touches, removed)
+        log.info(
+            "resumed %s: %d frames, %d touches (%d leftover files removed)",
+            path,
+            writer.num_frames,
+            writer.num_touches,
+            removed,
+        )
         return writer
 
     @classmethod
@@ -283,30 +304,45 @@ class SceneWriter:
             raise SceneFormatError(journal_path, "line 1", f"expected the 'create' header, got op {header.get('op')!r}")
         try:
             sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
-            writer = cls(path, intrinsics_from_json(header["intrinsics"]), meta_from_json(header["meta"]), sensor,
-                         header["created"], header.get("tacsplat_version", tacsplat.__version__))
+            writer = cls(
+                path,
+                intrinsics_from_json(header["intrinsics"]),
+                meta_from_json(header["meta"]),
+                sensor,
+                header["created"],
+                header.get("tacsplat_version", tacsplat.__version__),
+            )
         except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
             raise SceneFormatError(journal_path, "line 1", f"invalid header: {exc}") from exc
         for lineno, entry in enumerate(entries[1:], start=2):
             try:
                 writer._apply(entry)
             except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
-                raise SceneFormatError(journal_path, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}") from exc
+                raise SceneFormatError(
+                    journal_path, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}"
+                ) from exc
         return writer
 
     def _remove_leftovers(self) -> int:
         """Delete temporary files and record files no journal record refers to (a crash's in-flight record,
         an undo cut short); returns how many."""
-        live = ({f.file_path for f in self.frames} | {f.mask_path for f in self.frames}
-                | {t.depth_file for t in self.touches} | set(self._gt_depth.values()))
+        live = (
+            {f.file_path for f in self.frames}
+            | {f.mask_path for f in self.frames}
+            | {t.depth_file for t in self.touches}
+            | set(self._gt_depth.values())
+        )
         count = 0
         for sub in ("", "images", "masks", "touches", "gt", "gt/depth"):
             if not (self.path / sub).is_dir():
                 continue
             for p in (self.path / sub).iterdir():
                 rel = p.relative_to(self.path).as_posix()
-                orphan = (sub in ("images", "masks", "touches", "gt/depth") and _RECORD_FILE.fullmatch(p.name)
-                          and rel not in live)
+                orphan = (
+                    sub in ("images", "masks", "touches", "gt/depth")
+                    and _RECORD_FILE.fullmatch(p.name)
+                    and rel not in live
+                )
                 if p.is_file() and (is_temp_file(p) or orphan):
                     p.unlink()
                     count += 1
@@ -397,7 +433,7 @@ class SceneWriter:
         try:
             line = memoryview((json.dumps(entry) + "\n").encode())
             while line:
-                line = line[os.write(fd, line):]
+                line = line[os.write(fd, line) :]
             os.fsync(fd)
         except OSError as exc:
             try:
@@ -410,8 +446,10 @@ class SceneWriter:
         if "transforms" in which:
             atomic_write_json(self.path / "transforms.json", self._transforms_json())
         if "touches" in which:
-            atomic_write_json(self.path / "touches.json", {"sensor": sensor_to_json(self.sensor),
-                                                            "touches": [touch_to_json(t) for t in self.touches]})
+            atomic_write_json(
+                self.path / "touches.json",
+                {"sensor": sensor_to_json(self.sensor), "touches": [touch_to_json(t) for t in self.touches]},
+            )
         if "scene" in which:
             atomic_write_json(self.path / "scene.json", self._scene_json())
 
@@ -424,8 +462,13 @@ class SceneWriter:
         out["frames"] = [frame_to_nerfstudio(f, with_intrinsics=not shared) for f in self.frames]
         by_split = {s: [f.file_path for f in self.frames if f.split == s] for s in SPLITS}
         # nerfstudio asks for "val" when evaluating during training: the test views serve both.
-        out.update({"train_filenames": by_split["train"], "val_filenames": by_split["test"],
-                    "test_filenames": by_split["test"]})
+        out.update(
+            {
+                "train_filenames": by_split["train"],
+                "val_filenames": by_split["test"],
+                "test_filenames": by_split["test"],
+            }
+        )
         return out
 
     def _scene_json(self) -> dict:
@@ -442,9 +485,15 @@ class SceneWriter:
 
     # --- records ------------------------------------------------------------------------------
 
-    def add_frame(self, image: np.ndarray, T_world_cam: np.ndarray, split: str = "train",
-                  gt_depth: np.ndarray | None = None, intrinsics: CameraIntrinsics | None = None,
-                  mask: np.ndarray | None = None) -> Frame:
+    def add_frame(
+        self,
+        image: np.ndarray,
+        T_world_cam: np.ndarray,
+        split: str = "train",
+        gt_depth: np.ndarray | None = None,
+        intrinsics: CameraIntrinsics | None = None,
+        mask: np.ndarray | None = None,
+    ) -> Frame:
         """Append a view: ``image`` [H, W, 3] uint8 RGB, ``T_world_cam`` [4, 4] OpenCV camera-to-world.
 
         ``gt_depth`` [H, W] float32 metres (0 = no surface) goes to ``gt/`` for
@@ -460,7 +509,9 @@ class SceneWriter:
         if image.dtype != np.uint8:
             raise InvalidInputError(f"image: expected uint8 RGB, got dtype {image.dtype}")
         if image.shape != (intr.height, intr.width, 3):
-            raise InvalidInputError(f"image: expected shape {(intr.height, intr.width, 3)} from the intrinsics, got {image.shape}")
+            raise InvalidInputError(
+                f"image: expected shape {(intr.height, intr.width, 3)} from the intrinsics, got {image.shape}"
+            )
         pose = check_pose(T_world_cam, "T_world_cam")
         if split not in SPLITS:
             raise InvalidInputError(f"split: expected one of {SPLITS}, got {split!r}")
@@ -469,15 +520,25 @@ class SceneWriter:
         if mask is not None:
             mask = np.asarray(mask)
             if mask.dtype != np.bool_ or mask.shape != (intr.height, intr.width):
-                raise InvalidInputError(f"mask: expected bool {(intr.height, intr.width)} from the intrinsics, got "
-                                        f"{mask.dtype} {mask.shape}")
+                raise InvalidInputError(
+                    f"mask: expected bool {(intr.height, intr.width)} from the intrinsics, got "
+                    f"{mask.dtype} {mask.shape}"
+                )
         if self.frames and (self.frames[0].mask_path is None) != (mask is None):
-            raise InvalidInputError(f"mask: the scene has masks on every frame or on none; frame 0 has "
-                                    f"{'none' if self.frames[0].mask_path is None else 'one'}")
+            raise InvalidInputError(
+                f"mask: the scene has masks on every frame or on none; frame 0 has "
+                f"{'none' if self.frames[0].mask_path is None else 'one'}"
+            )
         fid = self.num_frames
         mask_path = None if mask is None else f"masks/{fid:06d}.png"
-        frame = Frame(id=fid, file_path=f"images/{fid:06d}.png", T_world_cam=pose, split=split, intrinsics=intr,
-                      mask_path=mask_path)
+        frame = Frame(
+            id=fid,
+            file_path=f"images/{fid:06d}.png",
+            T_world_cam=pose,
+            split=split,
+            intrinsics=intr,
+            mask_path=mask_path,
+        )
         atomic_write_bytes(self.path / frame.file_path, encode_png(image))
         if mask_path is not None:
             (self.path / "masks").mkdir(exist_ok=True)
@@ -486,24 +547,36 @@ class SceneWriter:
         if gt_depth is not None:
             gt_file = f"gt/depth/{fid:06d}.npz"
             atomic_write_bytes(self.path / gt_file, encode_npz(depth=gt_depth))
-        self._record({"op": "frame", "frame": frame_to_json(frame), "gt_depth": gt_file},
-                     "transforms", *(["scene"] if gt_file else []))
+        self._record(
+            {"op": "frame", "frame": frame_to_json(frame), "gt_depth": gt_file},
+            "transforms",
+            *(["scene"] if gt_file else []),
+        )
         return frame
 
     def add_touch(self, depth: np.ndarray, T_world_sensor: np.ndarray, grasp: int, finger: str) -> Touch:
         """Append a tactile reading: ``depth`` [h, w] float32 metres of indentation (0 = no contact)."""
         if self.sensor is None:
-            raise InvalidInputError(f"{self.path}: the scene was created without a sensor model; it cannot hold touches")
-        depth = _check_depth(depth, (self.sensor.height_px, self.sensor.width_px), "depth",
-                             touch_depth_limit(self.sensor))
+            raise InvalidInputError(
+                f"{self.path}: the scene was created without a sensor model; it cannot hold touches"
+            )
+        depth = _check_depth(
+            depth, (self.sensor.height_px, self.sensor.width_px), "depth", touch_depth_limit(self.sensor)
+        )
         pose = check_pose(T_world_sensor, "T_world_sensor")
         if isinstance(grasp, bool) or not isinstance(grasp, (int, np.integer)) or grasp < 0:
             raise InvalidInputError(f"grasp: expected a non-negative integer, got {grasp!r}")
         if not isinstance(finger, str) or not finger:
             raise InvalidInputError(f"finger: expected a non-empty name, got {finger!r}")
         tid = self.num_touches
-        touch = Touch(id=tid, grasp=int(grasp), finger=finger, depth_file=f"touches/{tid:06d}.npz",
-                      T_world_sensor=pose, in_contact=bool((depth > 0).any()))
+        touch = Touch(
+            id=tid,
+            grasp=int(grasp),
+            finger=finger,
+            depth_file=f"touches/{tid:06d}.npz",
+            T_world_sensor=pose,
+            in_contact=bool((depth > 0).any()),
+        )
         atomic_write_bytes(self.path / touch.depth_file, encode_npz(depth=depth))
         self._record({"op": "touch", "touch": touch_to_json(touch)}, "touches")
         return touch
@@ -513,8 +586,10 @@ class SceneWriter:
         if reading.frame != "world":
             raise InvalidInputError(f"reading: its pose is in the '{reading.frame}' frame; call to_world() first")
         if self.sensor is not None and not np.isclose(reading.pixel_size_m, self.sensor.pixel_size_m, rtol=1e-6):
-            raise InvalidInputError(f"reading.pixel_size_m {reading.pixel_size_m} differs from the sensor model's "
-                                    f"{self.sensor.pixel_size_m}")
+            raise InvalidInputError(
+                f"reading.pixel_size_m {reading.pixel_size_m} differs from the sensor model's "
+                f"{self.sensor.pixel_size_m}"
+            )
         return self.add_touch(reading.depth, reading.T_world_sensor, grasp, finger)
 
     def set_gt_mesh(self, mesh) -> Path:
@@ -525,7 +600,11 @@ class SceneWriter:
             src = Path(mesh)
             if not src.is_file():
                 raise InvalidInputError(f"mesh: {src} does not exist")
-            data = src.read_bytes() if src.suffix.lower() == ".ply" else trimesh.load(src, force="mesh").export(file_type="ply")
+            data = (
+                src.read_bytes()
+                if src.suffix.lower() == ".ply"
+                else trimesh.load(src, force="mesh").export(file_type="ply")
+            )
         elif isinstance(mesh, trimesh.Trimesh):
             data = mesh.export(file_type="ply")
         else:
@@ -546,8 +625,10 @@ class SceneWriter:
         except (TypeError, ValueError) as exc:
             raise InvalidInputError(f"annotation {key!r}: expected plain JSON data: {exc}") from exc
         if plain != value:
-            raise InvalidInputError(f"annotation {key!r}: expected plain JSON data; it would read back changed "
-                                    "(a tuple, or a dict key that is not a string?)")
+            raise InvalidInputError(
+                f"annotation {key!r}: expected plain JSON data; it would read back changed "
+                "(a tuple, or a dict key that is not a string?)"
+            )
         self._record({"op": "annotation", "key": key, "value": plain}, "scene")
 
     def remove_last(self) -> Frame | Touch:
@@ -557,8 +638,11 @@ class SceneWriter:
         kind, rid = self._order[-1]
         record = self.frames[-1] if kind == "frame" else self.touches[-1]
         gt_file = self._gt_depth.get(rid) if kind == "frame" else None
-        self._record({"op": "remove", "kind": kind, "id": rid},
-                     "transforms" if kind == "frame" else "touches", *(["scene"] if gt_file else []))
+        self._record(
+            {"op": "remove", "kind": kind, "id": rid},
+            "transforms" if kind == "frame" else "touches",
+            *(["scene"] if gt_file else []),
+        )
         files = [record.file_path, record.mask_path, gt_file] if kind == "frame" else [record.depth_file]
         for rel in filter(None, files):
             (self.path / rel).unlink(missing_ok=True)
@@ -611,8 +695,10 @@ def _lock_journal(path: Path, scene: Path):
         fcntl.flock(journal.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         journal.close()
-        raise InvalidInputError(f"{scene} is being written by {other_writer(scene)}: wait for it to end, then "
-                                "continue the scene with --resume") from None
+        raise InvalidInputError(
+            f"{scene} is being written by {other_writer(scene)}: wait for it to end, then "
+            "continue the scene with --resume"
+        ) from None
     return journal
 
 

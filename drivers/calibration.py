@@ -153,8 +153,10 @@ class HandCalibration:
         if len(set(names)) != len(names):
             raise InvalidInputError(f"hand calibration: joint names repeat: {list(names)}")
         if signs.shape != (len(names),) or offsets.shape != (len(names),):
-            raise InvalidInputError(f"hand calibration: {len(names)} joints need {len(names)} signs and offsets, "
-                                    f"got shapes {signs.shape} and {offsets.shape}")
+            raise InvalidInputError(
+                f"hand calibration: {len(names)} joints need {len(names)} signs and offsets, "
+                f"got shapes {signs.shape} and {offsets.shape}"
+            )
         for name, sign, offset in zip(names, signs, offsets):
             for what, problem in (("sign", _sign_problem(sign)), ("offset_rad", _offset_problem(offset))):
                 if problem:
@@ -206,14 +208,18 @@ class HandCalibration:
         for name in joint_names:
             entry = joints.get(name)
             if not isinstance(entry, dict):
-                raise ConfigError(f"joints.{name}", "missing: expected {\"sign\": 1 or -1, \"offset_rad\": radians}",
-                                  source=path)
+                raise ConfigError(
+                    f"joints.{name}", 'missing: expected {"sign": 1 or -1, "offset_rad": radians}', source=path
+                )
             extra = [key for key in entry if key not in JOINT_FIELDS]
             if extra:
-                raise ConfigError(f"joints.{name}.{extra[0]}", f"unknown field (expected {list(JOINT_FIELDS)})",
-                                  source=path)
-            for what, problem in (("sign", _sign_problem(entry.get("sign"))),
-                                  ("offset_rad", _offset_problem(entry.get("offset_rad")))):
+                raise ConfigError(
+                    f"joints.{name}.{extra[0]}", f"unknown field (expected {list(JOINT_FIELDS)})", source=path
+                )
+            for what, problem in (
+                ("sign", _sign_problem(entry.get("sign"))),
+                ("offset_rad", _offset_problem(entry.get("offset_rad"))),
+            ):
                 if problem:
                     raise ConfigError(f"joints.{name}.{what}", problem, source=path)
             signs.append(float(entry["sign"]))

@@ -31,18 +31,29 @@ def register(cli) -> None:
     camera.add_argument("photos", type=Path, nargs="+", help="board photos (png, jpg, ...) or folders of them")
     camera.add_argument("--out", type=Path, required=True, help="calibration file to write (.json)")
     camera.add_argument("--board", choices=("charuco", "chessboard"), default="charuco", help="the printed board")
-    camera.add_argument("--inner-corners", type=_corner_counts, metavar="XxY",
-                        help="chessboard: inner corners (where four squares meet) along x and y, e.g. 9x6")
-    camera.add_argument("--square-mm", type=float,
-                        help="square side in millimetres (default 30 for a ChArUco board; needed for a chessboard)")
+    camera.add_argument(
+        "--inner-corners",
+        type=_corner_counts,
+        metavar="XxY",
+        help="chessboard: inner corners (where four squares meet) along x and y, e.g. 9x6",
+    )
+    camera.add_argument(
+        "--square-mm",
+        type=float,
+        help="square side in millimetres (default 30 for a ChArUco board; needed for a chessboard)",
+    )
     camera.add_argument("--squares-x", type=int, help="ChArUco: squares along x (default 7)")
     camera.add_argument("--squares-y", type=int, help="ChArUco: squares along y (default 5)")
     camera.add_argument("--marker-mm", type=float, help="ChArUco: ArUco marker side, millimetres (default 22)")
     camera.add_argument("--dictionary", help="ChArUco: cv2.aruco predefined dictionary (default DICT_5X5_100)")
     camera.add_argument("--legacy-pattern", action="store_true", help="ChArUco: board printed by OpenCV < 4.6")
-    camera.add_argument("--distortion", choices=tuple(DISTORTION_MODELS), default="opencv5",
-                        help="distortion model: opencv5 = k1 k2 p1 p2 k3 (all free), opencv4 = k3 held at zero, "
-                        "rational8 = k1..k6 p1 p2 (wide-angle lenses)")
+    camera.add_argument(
+        "--distortion",
+        choices=tuple(DISTORTION_MODELS),
+        default="opencv5",
+        help="distortion model: opencv5 = k1 k2 p1 p2 k3 (all free), opencv4 = k3 held at zero, "
+        "rational8 = k1..k6 p1 p2 (wide-angle lenses)",
+    )
     camera.set_defaults(func=_calibrate_camera)
 
     tactile = cli.command(
@@ -59,12 +70,19 @@ def register(cli) -> None:
     tactile.add_argument("--out", type=Path, required=True, help="calibration file to write (.npz)")
     tactile.add_argument("--ball-radius-mm", type=float, required=True, help="radius of the pressed ball, mm")
     tactile.add_argument("--pixel-size-mm", type=float, required=True, help="gel size of one image pixel, mm")
-    tactile.add_argument("--labels", type=Path, help="JSON of hand labels: {\"presses\": [{\"file\": ..., "
-                         "\"contact_radius_px\": ..., \"center_xy_px\": [x, y]}, ...]}, reported beside the fits")
+    tactile.add_argument(
+        "--labels",
+        type=Path,
+        help='JSON of hand labels: {"presses": [{"file": ..., '
+        '"contact_radius_px": ..., "center_xy_px": [x, y]}, ...]}, reported beside the fits',
+    )
     tactile.add_argument("--check-every", type=int, default=3, help="hold out every n-th press to check the fit")
-    tactile.add_argument("--max-radius-error", type=float, default=0.2,
-                         help="refuse when the held-out presses' median fitted radius is off the ball's by more "
-                         "than this fraction")
+    tactile.add_argument(
+        "--max-radius-error",
+        type=float,
+        default=0.2,
+        help="refuse when the held-out presses' median fitted radius is off the ball's by more than this fraction",
+    )
     tactile.set_defaults(func=_calibrate_tactile)
 
     depth = cli.command(
@@ -152,36 +170,61 @@ def _board_spec(args):
     from tacsplat.drivers.wrist_camera import MAX_SQUARE_LENGTH_M, CharucoBoardSpec, ChessboardSpec
     from tacsplat.errors import ConfigError
 
-    charuco_only = {"--squares-x": args.squares_x, "--squares-y": args.squares_y, "--marker-mm": args.marker_mm,
-                    "--dictionary": args.dictionary, "--legacy-pattern": args.legacy_pattern or None}
+    charuco_only = {
+        "--squares-x": args.squares_x,
+        "--squares-y": args.squares_y,
+        "--marker-mm": args.marker_mm,
+        "--dictionary": args.dictionary,
+        "--legacy-pattern": args.legacy_pattern or None,
+    }
     if args.board == "chessboard":
         given = [option for option, value in charuco_only.items() if value is not None]
         if given:
             raise ConfigError(given[0], "is a ChArUco option; a chessboard takes --inner-corners and --square-mm")
         if args.inner_corners is None:
-            raise ConfigError("--inner-corners", "needed with --board chessboard: the inner corners (where four "
-                                                 "squares meet) along x and y, e.g. 9x6")
+            raise ConfigError(
+                "--inner-corners",
+                "needed with --board chessboard: the inner corners (where four squares meet) along x and y, e.g. 9x6",
+            )
         if args.square_mm is None:
             raise ConfigError("--square-mm", "needed with --board chessboard: the printed square side, mm")
         spec = ChessboardSpec(*args.inner_corners, args.square_mm / 1000.0)
-        fields = {"inner_corners_x": "--inner-corners", "inner_corners_y": "--inner-corners",
-                  "square_length_m": "--square-mm"}
+        fields = {
+            "inner_corners_x": "--inner-corners",
+            "inner_corners_y": "--inner-corners",
+            "square_length_m": "--square-mm",
+        }
     else:
         if args.inner_corners is not None:
             raise ConfigError("--inner-corners", "is a chessboard option; a ChArUco board takes --squares-x/-y")
         value = {k: getattr(args, k) if getattr(args, k) is not None else v for k, v in CHARUCO_DEFAULTS.items()}
-        spec = CharucoBoardSpec(value["squares_x"], value["squares_y"], value["square_mm"] / 1000.0,
-                                value["marker_mm"] / 1000.0, value["dictionary"], args.legacy_pattern)
-        fields = {"squares_x": "--squares-x", "squares_y": "--squares-y", "square_length_m": "--square-mm",
-                  "marker_length_m": "--marker-mm", "dictionary": "--dictionary"}
+        spec = CharucoBoardSpec(
+            value["squares_x"],
+            value["squares_y"],
+            value["square_mm"] / 1000.0,
+            value["marker_mm"] / 1000.0,
+            value["dictionary"],
+            args.legacy_pattern,
+        )
+        fields = {
+            "squares_x": "--squares-x",
+            "squares_y": "--squares-y",
+            "square_length_m": "--square-mm",
+            "marker_length_m": "--marker-mm",
+            "dictionary": "--dictionary",
+        }
     lengths = {"square_length_m": "--square-mm", "marker_length_m": "--marker-mm"}
     for name, option in lengths.items():
         if name in fields and not 0 < getattr(spec, name) <= MAX_SQUARE_LENGTH_M:
-            raise ConfigError(option, f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got "
-                                      f"{getattr(spec, name) * 1000:g}")
+            raise ConfigError(
+                option, f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got {getattr(spec, name) * 1000:g}"
+            )
     if isinstance(spec, CharucoBoardSpec) and not spec.marker_length_m < spec.square_length_m:
-        raise ConfigError("--marker-mm", f"must be smaller than the square ({spec.square_length_m * 1000:g} mm), "
-                                         f"got {spec.marker_length_m * 1000:g}")
+        raise ConfigError(
+            "--marker-mm",
+            f"must be smaller than the square ({spec.square_length_m * 1000:g} mm), "
+            f"got {spec.marker_length_m * 1000:g}",
+        )
     problem = spec.problem()
     if problem:
         raise ConfigError(fields.get(problem[0], problem[0]), problem[1])
@@ -191,7 +234,12 @@ def _board_spec(args):
 def _calibrate_camera(args) -> int:
     import numpy as np
 
-    from tacsplat.drivers.wrist_camera import ChessboardSpec, calibrate_views, detect_board_views, tacsplat_K_from_opencv
+    from tacsplat.drivers.wrist_camera import (
+        ChessboardSpec,
+        calibrate_views,
+        detect_board_views,
+        tacsplat_K_from_opencv,
+    )
     from tacsplat.errors import CameraError
 
     spec = _board_spec(args)
@@ -203,9 +251,12 @@ def _calibrate_camera(args) -> int:
     if len(views) < 3:
         option = "--inner-corners" if isinstance(spec, ChessboardSpec) else "--squares-x, --squares-y, --dictionary"
         seen = f" ({', '.join(v.name for v in views)})" if views else ""
-        raise CameraError("calibration", f"the {spec.describe()} was found in {len(views)} of {len(paths)} "
-                                         f"images{seen}; at least 3 are needed: check {option} against the printed "
-                                         "board and that the whole board is in view and sharp")
+        raise CameraError(
+            "calibration",
+            f"the {spec.describe()} was found in {len(views)} of {len(paths)} "
+            f"images{seen}; at least 3 are needed: check {option} against the printed "
+            "board and that the whole board is in view and sharp",
+        )
     calib = calibrate_views(views, size, spec, args.distortion)
     out = _output_file(args.out)
     calib.save(out)
@@ -215,16 +266,20 @@ def _calibrate_camera(args) -> int:
     std = calib.K_std_px
     print(f"{len(views)} of {len(paths)} images used, {calib.width}x{calib.height}, distortion {args.distortion}")
     print(f"RMS reprojection error: {calib.rms_px:.3f} px")
-    print(f"fx {K[0, 0]:.2f} +- {std['fx']:.2f}  fy {K[1, 1]:.2f} +- {std['fy']:.2f}  cx {K[0, 2]:.2f} +- "
-          f"{std['cx']:.2f}  cy {K[1, 2]:.2f} +- {std['cy']:.2f} px (pixel centres at +0.5; {out.name} stores "
-          "OpenCV's K, centres at integers)")
+    print(
+        f"fx {K[0, 0]:.2f} +- {std['fx']:.2f}  fy {K[1, 1]:.2f} +- {std['fy']:.2f}  cx {K[0, 2]:.2f} +- "
+        f"{std['cx']:.2f}  cy {K[1, 2]:.2f} +- {std['cy']:.2f} px (pixel centres at +0.5; {out.name} stores "
+        "OpenCV's K, centres at integers)"
+    )
     print(f"distortion: {np.array2string(calib.dist, precision=5)}")
     for name, err in calib.per_image_rms_px.items():
         print(f"  {name}: {err:.3f} px")
     for warning in calib.warnings:
         print(f"warning: {warning}")
-    print(f"wrote {out}; detected corners (green) and their reprojections (red) in {picture}, "
-          f"corner coverage in {coverage}")
+    print(
+        f"wrote {out}; detected corners (green) and their reprojections (red) in {picture}, "
+        f"corner coverage in {coverage}"
+    )
     return 0
 
 
@@ -248,8 +303,11 @@ def _corner_sheet(images, names, views, calib, path: Path) -> Path:
         view = found.get(name)
         if view is not None:
             ok, rvec, tvec = cv2.solvePnP(view.object_points, view.image_points, calib.K_opencv, calib.dist)
-            proj = cv2.projectPoints(view.object_points, rvec, tvec, calib.K_opencv, calib.dist)[0].reshape(-1, 2) \
-                if ok else view.image_points
+            proj = (
+                cv2.projectPoints(view.object_points, rvec, tvec, calib.K_opencv, calib.dist)[0].reshape(-1, 2)
+                if ok
+                else view.image_points
+            )
             for (u, v), (pu, pv) in zip(view.image_points, proj):  # OpenCV pixel coordinates, drawn at half size
                 cv2.circle(tile, (int(round(u / 2)), int(round(v / 2))), 4, (0, 200, 0), 1, cv2.LINE_AA)
                 cv2.drawMarker(tile, (int(round(pu / 2)), int(round(pv / 2))), (0, 0, 255), cv2.MARKER_CROSS, 5, 1)
@@ -279,8 +337,9 @@ def _coverage_picture(first_image, views, calib, path: Path) -> Path:
         x0, y0, x1, y1 = c * w // 3, r * h // 3, (c + 1) * w // 3, (r + 1) * h // 3
         if name in empty:
             canvas[y0:y1, x0:x1, 2] = np.maximum(canvas[y0:y1, x0:x1, 2], 120)
-            cv2.putText(canvas, "no corners", (x0 + 8, y0 + 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
-                        cv2.LINE_AA)
+            cv2.putText(
+                canvas, "no corners", (x0 + 8, y0 + 24), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA
+            )
         cv2.rectangle(canvas, (x0, y0), (x1 - 1, y1 - 1), (128, 128, 128), 1)
     for i, view in enumerate(views):
         color = tuple(int(255 * x) for x in colorsys.hsv_to_rgb(i / max(len(views), 1), 0.9, 1.0))[::-1]
@@ -288,8 +347,9 @@ def _coverage_picture(first_image, views, calib, path: Path) -> Path:
         cv2.polylines(canvas, [hull], True, color, 1, cv2.LINE_AA)
         for u, v in view.image_points:
             cv2.circle(canvas, (int(round(u)), int(round(v))), 2, color, -1, cv2.LINE_AA)
-    text = f"{len(views)} views, {sum(len(v.image_points) for v in views)} corners; " + \
-        ("well spread" if not empty else f"no corners: {', '.join(sorted(empty))}")
+    text = f"{len(views)} views, {sum(len(v.image_points) for v in views)} corners; " + (
+        "well spread" if not empty else f"no corners: {', '.join(sorted(empty))}"
+    )
     cv2.putText(canvas, text, (8, h - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return _write_image(path, canvas)
 
@@ -316,12 +376,20 @@ def _read_labels(path: Path) -> dict[str, dict]:
         if not isinstance(press, dict) or not isinstance(press.get("file"), str):
             raise ConfigError(f"{where}.file", f"expected an image file name, got {press!r}", source=path)
         radius = press.get("contact_radius_px")
-        if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not (math.isfinite(radius) and radius > 0):
-            raise ConfigError(f"{where}.contact_radius_px", f"expected a number of pixels > 0, got {radius!r}",
-                              source=path)
+        if (
+            isinstance(radius, bool)
+            or not isinstance(radius, (int, float))
+            or not (math.isfinite(radius) and radius > 0)
+        ):
+            raise ConfigError(
+                f"{where}.contact_radius_px", f"expected a number of pixels > 0, got {radius!r}", source=path
+            )
         centre = press.get("center_xy_px")
-        if centre is not None and not (isinstance(centre, list) and len(centre) == 2 and all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in centre)):
+        if centre is not None and not (
+            isinstance(centre, list)
+            and len(centre) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in centre)
+        ):
             raise ConfigError(f"{where}.center_xy_px", f"expected [x, y] pixels, got {centre!r}", source=path)
         labels[press["file"]] = {"radius": float(radius), "centre": None if centre is None else tuple(centre)}
     return labels
@@ -335,8 +403,9 @@ def _press_sheet(images, names, calib, labels, path: Path) -> Path:
     records = {p["file"]: p for p in calib.presses}
     tiles = []
     for image, name in zip(images, names):
-        tile = cv2.resize(cv2.cvtColor(image, cv2.COLOR_RGB2BGR), None, fx=scale, fy=scale,
-                          interpolation=cv2.INTER_NEAREST)
+        tile = cv2.resize(
+            cv2.cvtColor(image, cv2.COLOR_RGB2BGR), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST
+        )
         record = records.get(name, {})
 
         def circle(centre, radius, color):
@@ -353,8 +422,7 @@ def _press_sheet(images, names, calib, labels, path: Path) -> Path:
         else:
             status = "fit" if "skipped" not in record else "fit: skipped"
         for row, text in enumerate((name, status)):
-            cv2.putText(tile, text, (4, 14 + 16 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
-                        cv2.LINE_AA)
+            cv2.putText(tile, text, (4, 14 + 16 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
         tiles.append(tile)
     return _write_image(path, _contact_sheet(tiles))
 
@@ -383,43 +451,60 @@ def _calibrate_tactile(args) -> int:
     images = [_read_rgb(p) for p in presses]
     for path, image in zip(presses, images):
         if image.shape != reference.shape:
-            raise InvalidInputError(f"{path}: {image.shape[1]}x{image.shape[0]}, the reference "
-                                    f"{reference.shape[1]}x{reference.shape[0]}")
+            raise InvalidInputError(
+                f"{path}: {image.shape[1]}x{image.shape[0]}, the reference {reference.shape[1]}x{reference.shape[0]}"
+            )
     names = [p.name for p in presses]
-    calib = calibrate_tactile(reference, images, names, args.ball_radius_mm / 1000.0, args.pixel_size_mm / 1000.0,
-                              labels={name: label["radius"] for name, label in labels.items()},
-                              check_every=args.check_every)
+    calib = calibrate_tactile(
+        reference,
+        images,
+        names,
+        args.ball_radius_mm / 1000.0,
+        args.pixel_size_mm / 1000.0,
+        labels={name: label["radius"] for name, label in labels.items()},
+        check_every=args.check_every,
+    )
     problem = check_problem(calib, args.max_radius_error)
     out = _output_file(args.out)
     picture = out.with_suffix(".png") if problem is None else out.with_name(out.stem + ".rejected.png")
     _press_sheet(images, names, calib, labels, picture)
     fitted = [p for p in calib.presses if p["role"] == "fit"]
-    print(f"{sum('skipped' not in p for p in fitted)} of {len(fitted)} presses fitted, "
-          f"{len(calib.presses) - len(fitted)} held out (1 in {args.check_every}) to check the fit; contact circles "
-          f"drawn in {picture}")
+    print(
+        f"{sum('skipped' not in p for p in fitted)} of {len(fitted)} presses fitted, "
+        f"{len(calib.presses) - len(fitted)} held out (1 in {args.check_every}) to check the fit; contact circles "
+        f"drawn in {picture}"
+    )
     for p in calib.presses:
         label = f", hand label {p['label_radius_px']:g} px" if p.get("label_radius_px") else ""
         if p["role"] == "fit":
-            detail = p.get("skipped") or (f"contact circle ({p['centre_px'][0]:.1f}, {p['centre_px'][1]:.1f}) px, "
-                                          f"radius {p['contact_radius_px']:.1f} px{label}")
+            detail = p.get("skipped") or (
+                f"contact circle ({p['centre_px'][0]:.1f}, {p['centre_px'][1]:.1f}) px, "
+                f"radius {p['contact_radius_px']:.1f} px{label}"
+            )
             print(f"  fit    {p['file']}: {detail}")
         elif p["detected"]:
             phantom = f"; {p['other_contact_px']} px of contact away from the ball" if p["other_contact_px"] else ""
-            print(f"  check  {p['file']}: fitted ball radius {p['fitted_radius_m'] * 1e3:.3f} mm, peak indentation "
-                  f"{p['peak_indentation_m'] * 1e3:.3f} mm, contact radius {p['contact_radius_px']:.1f} px{label}"
-                  f"{phantom}")
+            print(
+                f"  check  {p['file']}: fitted ball radius {p['fitted_radius_m'] * 1e3:.3f} mm, peak indentation "
+                f"{p['peak_indentation_m'] * 1e3:.3f} mm, contact radius {p['contact_radius_px']:.1f} px{label}"
+                f"{phantom}"
+            )
         else:
             print(f"  check  {p['file']}: no contact detected")
     summary = calib.check_summary
     if summary.get("detected"):
-        print(f"held-out presses: {summary['detected']} of {summary['presses']} detected; fitted ball radius median "
-              f"{summary['median_fitted_radius_m'] * 1e3:.3f} mm (ball {args.ball_radius_mm:g} mm), quartiles "
-              f"{summary['q25_fitted_radius_m'] * 1e3:.3f}-{summary['q75_fitted_radius_m'] * 1e3:.3f} mm, range "
-              f"{summary['min_fitted_radius_m'] * 1e3:.3f}-{summary['max_fitted_radius_m'] * 1e3:.3f} mm; median "
-              f"peak indentation {summary['median_peak_indentation_m'] * 1e3:.3f} mm")
+        print(
+            f"held-out presses: {summary['detected']} of {summary['presses']} detected; fitted ball radius median "
+            f"{summary['median_fitted_radius_m'] * 1e3:.3f} mm (ball {args.ball_radius_mm:g} mm), quartiles "
+            f"{summary['q25_fitted_radius_m'] * 1e3:.3f}-{summary['q75_fitted_radius_m'] * 1e3:.3f} mm, range "
+            f"{summary['min_fitted_radius_m'] * 1e3:.3f}-{summary['max_fitted_radius_m'] * 1e3:.3f} mm; median "
+            f"peak indentation {summary['median_peak_indentation_m'] * 1e3:.3f} mm"
+        )
         if "median_contact_radius_over_label" in summary:
-            print(f"contact radius / hand label: median {summary['median_contact_radius_over_label']:.2f} (the circle "
-                  "is the steepest slope, the rim of the ball's print)")
+            print(
+                f"contact radius / hand label: median {summary['median_contact_radius_over_label']:.2f} (the circle "
+                "is the steepest slope, the rim of the ball's print)"
+            )
     if problem:
         raise TactileError("calibration", f"not written: {problem} (the contact circles are drawn in {picture})")
     calib.save(out)
@@ -442,8 +527,9 @@ def _tactile_depth(args) -> int:
     inputs = [(args.reference, reference)] + [(path, _read_rgb(path)) for path in args.images]
     for path, image in inputs:
         if image.shape[:2] != (height, width):
-            raise InvalidInputError(f"{path}: {image.shape[1]}x{image.shape[0]}, but {args.calibration.name} is "
-                                    f"for {width}x{height} images")
+            raise InvalidInputError(
+                f"{path}: {image.shape[1]}x{image.shape[0]}, but {args.calibration.name} is for {width}x{height} images"
+            )
     stems = {}
     for path in args.images:
         if path.stem in stems and stems[path.stem] != path:
@@ -459,9 +545,13 @@ def _tactile_depth(args) -> int:
             depth = calib.depth(images[path], reference)
             atomic_write(npz, lambda f: np.savez_compressed(f, depth=depth))
             peak = float(depth.max())
-            scaled = np.zeros(depth.shape, np.uint8) if peak <= 0 else np.clip(depth / peak * 255, 0, 255).astype(np.uint8)
+            scaled = (
+                np.zeros(depth.shape, np.uint8) if peak <= 0 else np.clip(depth / peak * 255, 0, 255).astype(np.uint8)
+            )
             picture = cv2.applyColorMap(scaled, cv2.COLORMAP_VIRIDIS)
             picture[depth <= 0] = 0
             _write_image(png, picture)
-            print(f"{path.name}: peak indentation {peak * 1e3:.3f} mm, {int((depth > 0).sum())} contact pixels -> {npz}")
+            print(
+                f"{path.name}: peak indentation {peak * 1e3:.3f} mm, {int((depth > 0).sum())} contact pixels -> {npz}"
+            )
     return 0

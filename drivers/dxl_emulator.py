@@ -231,8 +231,11 @@ class EmulatedServo:
         if units > 0 and self.torque_enabled and now - self.last_instruction > units * BUS_WATCHDOG_UNIT_S:
             self.set("bus_watchdog", BUS_WATCHDOG_TRIPPED)
             self.set("goal_position", int(round(self.position)))
-            log.debug("servo %d: Bus Watchdog Error after %.3f s without an instruction", self.servo_id,
-                      now - self.last_instruction)
+            log.debug(
+                "servo %d: Bus Watchdog Error after %.3f s without an instruction",
+                self.servo_id,
+                now - self.last_instruction,
+            )
 
     def _sync_present(self) -> None:
         self.set("present_position", int(round(self.position)) + self.offset_ticks)
@@ -251,8 +254,15 @@ class _Fault:
 class DxlEmulator:
     """Servos on a pseudo-terminal; use as a context manager, connect to :attr:`path`."""
 
-    def __init__(self, ids=range(16), *, model_number: int = MODEL_XC330_M288, speed_ticks_per_s: float = 4000.0,
-                 initial_ticks: dict[int, float] | None = None, return_delay_s: float = 0.0):
+    def __init__(
+        self,
+        ids=range(16),
+        *,
+        model_number: int = MODEL_XC330_M288,
+        speed_ticks_per_s: float = 4000.0,
+        initial_ticks: dict[int, float] | None = None,
+        return_delay_s: float = 0.0,
+    ):
         initial_ticks = initial_ticks or {}
         self.servos = {
             i: EmulatedServo(i, model_number, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK)) for i in ids
@@ -345,9 +355,15 @@ class DxlEmulator:
     def status(self) -> dict[int, dict[str, int | bool]]:
         """Per servo: torque, present and goal position (ticks), Bus Watchdog register."""
         with self._lock:
-            return {i: {"torque": s.torque_enabled, "present_position": s.get("present_position"),
-                        "goal_position": s.get("goal_position"), "bus_watchdog": s.get("bus_watchdog")}
-                    for i, s in self.servos.items()}
+            return {
+                i: {
+                    "torque": s.torque_enabled,
+                    "present_position": s.get("present_position"),
+                    "goal_position": s.get("goal_position"),
+                    "bus_watchdog": s.get("bus_watchdog"),
+                }
+                for i, s in self.servos.items()
+            }
 
     # -- the bus ---------------------------------------------------------
     def _run(self) -> None:
@@ -527,8 +543,9 @@ def _command(emu: DxlEmulator, line: str) -> dict:
             return {"ok": True}
     except (KeyError, ValueError) as exc:
         return {"error": f"{line.strip()!r}: {exc!r}"}
-    return {"error": f"unknown command {line.strip()!r} (status | disconnect ID|all | reconnect ID|all | "
-                     "offset ID TICKS)"}
+    return {
+        "error": f"unknown command {line.strip()!r} (status | disconnect ID|all | reconnect ID|all | offset ID TICKS)"
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -564,8 +581,19 @@ class EmulatorProcess:
 
     def __enter__(self) -> "EmulatorProcess":
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "tacsplat.drivers.dxl_emulator", "--ids", ",".join(map(str, self.ids)),
-             "--speed", str(self.speed)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            [
+                sys.executable,
+                "-m",
+                "tacsplat.drivers.dxl_emulator",
+                "--ids",
+                ",".join(map(str, self.ids)),
+                "--speed",
+                str(self.speed),
+            ],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+        )
         try:
             self.path = self._reply()["port"]
         except BaseException:

@@ -66,7 +66,6 @@ import dynamixel_sdk as dxl
 import numpy as np
 
 from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration
-from tacsplat.drivers.protocols import HandKinematics
 from tacsplat.drivers.dynamixel_table import (
     ALERT_BIT,
     BUS_WATCHDOG_TRIPPED,
@@ -78,6 +77,7 @@ from tacsplat.drivers.dynamixel_table import (
     le_bytes,
     to_signed,
 )
+from tacsplat.drivers.protocols import HandKinematics
 from tacsplat.errors import ConfigError, HandError, InvalidInputError
 
 log = logging.getLogger(__name__)
@@ -154,18 +154,26 @@ class DynamixelHandConfig:
         for key in ("connect_tolerance_rad", "reading_tolerance_rad"):
             tol = getattr(self, key)
             if not 0.0 <= tol <= MAX_TOLERANCE_RAD:  # also NaN
-                raise ConfigError(key, f"must be in [0, {MAX_TOLERANCE_RAD}] rad (how far outside its limits a joint "
-                                       f"may be), got {tol!r}")
+                raise ConfigError(
+                    key,
+                    f"must be in [0, {MAX_TOLERANCE_RAD}] rad (how far outside its limits a joint may be), got {tol!r}",
+                )
         if self.reading_tolerance_rad < self.connect_tolerance_rad:
-            raise ConfigError("reading_tolerance_rad", f"must be at least connect_tolerance_rad "
-                              f"({self.connect_tolerance_rad:g}): a joint connect accepted reads that far out, got "
-                              f"{self.reading_tolerance_rad:g}")
+            raise ConfigError(
+                "reading_tolerance_rad",
+                f"must be at least connect_tolerance_rad "
+                f"({self.connect_tolerance_rad:g}): a joint connect accepted reads that far out, got "
+                f"{self.reading_tolerance_rad:g}",
+            )
         shortest = 2 * (self.min_packet_timeout_s + self.drain_s)
         wd = self.bus_watchdog_s
         if wd != 0 and not (shortest <= wd <= MAX_BUS_WATCHDOG_S and self.bus_watchdog_units >= 1):  # also NaN
-            raise ConfigError("bus_watchdog_s", f"must be 0 (off) or in [{shortest:g}, {MAX_BUS_WATCHDOG_S:g}] s "
-                              f"(at least 2 (min_packet_timeout_s + drain_s): a retried exchange must not trip it), "
-                              f"got {wd!r}")
+            raise ConfigError(
+                "bus_watchdog_s",
+                f"must be 0 (off) or in [{shortest:g}, {MAX_BUS_WATCHDOG_S:g}] s "
+                f"(at least 2 (min_packet_timeout_s + drain_s): a retried exchange must not trip it), "
+                f"got {wd!r}",
+            )
 
     @property
     def bus_watchdog_units(self) -> int:
@@ -207,9 +215,18 @@ class TorqueOffReport:
 class ServoError(HandError):
     """A servo failed, named with its joint, the instruction and the decoded error or comm result."""
 
-    def __init__(self, device: str, message: str, *, servo_id: int | None = None, joint: str | None = None,
-                 instruction: str | None = None, comm_result: int | None = None, status_error: int = 0,
-                 hardware_error: int = 0):
+    def __init__(
+        self,
+        device: str,
+        message: str,
+        *,
+        servo_id: int | None = None,
+        joint: str | None = None,
+        instruction: str | None = None,
+        comm_result: int | None = None,
+        status_error: int = 0,
+        hardware_error: int = 0,
+    ):
         self.servo_id = servo_id
         self.joint = joint
         self.instruction = instruction
@@ -286,9 +303,16 @@ class DynamixelHand:
     assembly: :class:`tacsplat.sim.hand.HandKinematics`).
     """
 
-    def __init__(self, port: str, baudrate: int = 4_000_000, ids: Iterable[int] = range(16),
-                 calibration: HandCalibration | str | Path | None = None, *,
-                 config: DynamixelHandConfig | None = None, kinematics: HandKinematics):
+    def __init__(
+        self,
+        port: str,
+        baudrate: int = 4_000_000,
+        ids: Iterable[int] = range(16),
+        calibration: HandCalibration | str | Path | None = None,
+        *,
+        config: DynamixelHandConfig | None = None,
+        kinematics: HandKinematics,
+    ):
         self._kinematics = kinematics
         self._joint_names = list(kinematics.joint_names)
         self._joint_limits = np.asarray(kinematics.joint_limits, dtype=np.float64)
@@ -350,10 +374,14 @@ class DynamixelHand:
             self.close()
         port = _PortHandler(self.port_name, 1000.0 * self.config.min_packet_timeout_s)
         try:
-            opened = port.setBaudRate(self.baudrate)  # opens the port at this rate (openPort would open at 1 Mbps first)
+            opened = port.setBaudRate(
+                self.baudrate
+            )  # opens the port at this rate (openPort would open at 1 Mbps first)
         except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
-            raise HandError(self.device, f"cannot open serial port: {exc} (is the U2D2 plugged in, "
-                                         "and is this user in the dialout group?)") from None
+            raise HandError(
+                self.device,
+                f"cannot open serial port: {exc} (is the U2D2 plugged in, and is this user in the dialout group?)",
+            ) from None
         if not opened:
             raise HandError(self.device, f"baud rate {self.baudrate} is not one the Dynamixel SDK supports")
         self._port = port
@@ -503,14 +531,20 @@ class DynamixelHand:
                 for i in too_far
             )
             names = ", ".join(self._joint_names[i] for i in too_far)
-            self._fail(self.ids[too_far[0]], "hold present pose",
-                       f"{joints}; that is more than connect_tolerance_rad = {tol:.4f} rad, so the hand will not "
-                       f"move there: check the sign and offset_rad of {names} in "
-                       f"{cal.source or 'the hand calibration'}, or move the finger by hand into its range")
+            self._fail(
+                self.ids[too_far[0]],
+                "hold present pose",
+                f"{joints}; that is more than connect_tolerance_rad = {tol:.4f} rad, so the hand will not "
+                f"move there: check the sign and offset_rad of {names} in "
+                f"{cal.source or 'the hand calibration'}, or move the finger by hand into its range",
+            )
         nudged = np.flatnonzero(goal != ticks)
         if nudged.size:
-            log.warning("%s: present pose clamped to joint limits: %s", self.device, ", ".join(
-                f"{self._joint_names[i]} {q[i]:+.4f} -> {inside[i]:+.4f} rad" for i in nudged))
+            log.warning(
+                "%s: present pose clamped to joint limits: %s",
+                self.device,
+                ", ".join(f"{self._joint_names[i]} {q[i]:+.4f} -> {inside[i]:+.4f} rad" for i in nudged),
+            )
         return goal
 
     def _check_reachable(self, ticks: np.ndarray, q: np.ndarray) -> None:
@@ -525,9 +559,12 @@ class DynamixelHand:
                 f"{max(lo[i] - q[i], q[i] - hi[i]):.4f} rad outside its limits [{lo[i]:+.4f}, {hi[i]:+.4f}]"
                 for i in out
             )
-            self._fail(self.ids[out[0]], "read present position",
-                       f"{joints}; farther than reading_tolerance_rad = {tol:.4f} rad, where the joint cannot be: "
-                       "an encoder fault, a slipped horn or a wrong calibration")
+            self._fail(
+                self.ids[out[0]],
+                "read present position",
+                f"{joints}; farther than reading_tolerance_rad = {tol:.4f} rad, where the joint cannot be: "
+                "an encoder fault, a slipped horn or a wrong calibration",
+            )
 
     def _clamp(self, q: np.ndarray, what: str) -> np.ndarray:
         lo, hi = self._joint_limits[:, 0], self._joint_limits[:, 1]
@@ -535,7 +572,9 @@ class DynamixelHand:
         moved = np.flatnonzero(clamped != q)
         if moved.size:
             log.warning(
-                "%s: %s clamped to joint limits: %s", self.device, what,
+                "%s: %s clamped to joint limits: %s",
+                self.device,
+                what,
                 ", ".join(f"{self._joint_names[i]} {q[i]:+.4f} -> {clamped[i]:+.4f} rad" for i in moved),
             )
         return clamped
@@ -572,13 +611,29 @@ class DynamixelHand:
         servos = ",".join(f"{sid}:{self._joint_of[sid]}" for sid in self.ids)
         try:
             self._guard = subprocess.Popen(
-                [sys.executable, "-m", "tacsplat.drivers.dynamixel_hand", "--port", self.port_name, "--baudrate",
-                 str(self.baudrate), "--timeout-s", str(self.config.min_packet_timeout_s), "--drain-s",
-                 str(self.config.drain_s), "--servos", servos],
-                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, start_new_session=True)
+                [
+                    sys.executable,
+                    "-m",
+                    "tacsplat.drivers.dynamixel_hand",
+                    "--port",
+                    self.port_name,
+                    "--baudrate",
+                    str(self.baudrate),
+                    "--timeout-s",
+                    str(self.config.min_packet_timeout_s),
+                    "--drain-s",
+                    str(self.config.drain_s),
+                    "--servos",
+                    servos,
+                ],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.DEVNULL,
+                start_new_session=True,
+            )
         except OSError as exc:
-            raise HandError(self.device, f"cannot start the guard process, which turns torque off should this "
-                                         f"process die: {exc}") from None
+            raise HandError(
+                self.device, f"cannot start the guard process, which turns torque off should this process die: {exc}"
+            ) from None
 
     def _release_guard(self) -> None:
         """Tell the guard that the hand was closed (it exits without a word); reaped by a thread, never waited for."""
@@ -596,8 +651,9 @@ class DynamixelHand:
         if not self.config.bus_watchdog_units:
             return
         self._heartbeat_stop = threading.Event()
-        self._heartbeat = threading.Thread(target=self._feed_watchdog, args=(self._heartbeat_stop,),
-                                           name="hand-heartbeat", daemon=True)
+        self._heartbeat = threading.Thread(
+            target=self._feed_watchdog, args=(self._heartbeat_stop,), name="hand-heartbeat", daemon=True
+        )
         self._heartbeat.start()
 
     def _stop_heartbeat(self) -> None:
@@ -618,9 +674,13 @@ class DynamixelHand:
                     values = self._sync_read(address, 1, "SYNC_READ bus_watchdog (heartbeat)")
                     tripped = [sid for sid in self.ids if to_signed(values[sid][0], 1) == BUS_WATCHDOG_TRIPPED]
                     if tripped:
-                        self._fail(tripped[0], "heartbeat", f"Bus Watchdog Error on servos {self._names(tripped)}: no "
-                                   f"instruction reached them for bus_watchdog_s = {self.config.bus_watchdog_s:g} s "
-                                   "(was this process stopped?), so they stopped and held")
+                        self._fail(
+                            tripped[0],
+                            "heartbeat",
+                            f"Bus Watchdog Error on servos {self._names(tripped)}: no "
+                            f"instruction reached them for bus_watchdog_s = {self.config.bus_watchdog_s:g} s "
+                            "(was this process stopped?), so they stopped and held",
+                        )
             except HandError as exc:  # recorded in self._fault, torque off
                 log.error("%s", exc)
                 return
@@ -655,23 +715,46 @@ class DynamixelHand:
                 if failure is None:
                     return
                 servo_id, result = failure
-                log.warning("%s: %s, servo %s: %s (attempt %d of %d)", self.device, instruction,
-                            self._names([servo_id]), self._comm_text(result), k + 1, attempts)
+                log.warning(
+                    "%s: %s, servo %s: %s (attempt %d of %d)",
+                    self.device,
+                    instruction,
+                    self._names([servo_id]),
+                    self._comm_text(result),
+                    k + 1,
+                    attempts,
+                )
                 self._drain()
-            self._fail(servo_id, instruction, f"{self._comm_text(result)} after {attempts} attempts",
-                       comm_result=result)
+            self._fail(
+                servo_id, instruction, f"{self._comm_text(result)} after {attempts} attempts", comm_result=result
+            )
 
-    def _fail(self, servo_id: int | None, instruction: str, detail: str, *, comm_result: int | None = None,
-              status_error: int = 0, hardware_error: int = 0):
+    def _fail(
+        self,
+        servo_id: int | None,
+        instruction: str,
+        detail: str,
+        *,
+        comm_result: int | None = None,
+        status_error: int = 0,
+        hardware_error: int = 0,
+    ):
         """Make the hand safe, record the fault and raise a ServoError (an ending signal meanwhile wins)."""
         with _Exchange(self):
             self._torque_off_all()
             who = f"servo {self._names([servo_id])}" if servo_id is not None else f"port {self.port_name}"
             message = f"{who}: {instruction} failed: {detail}; {self.torque_off_report}"
             self._fault = message
-            error = ServoError(self.device, message, servo_id=servo_id, joint=self._joint_of.get(servo_id, None),
-                               instruction=instruction, comm_result=comm_result, status_error=status_error,
-                               hardware_error=hardware_error)
+            error = ServoError(
+                self.device,
+                message,
+                servo_id=servo_id,
+                joint=self._joint_of.get(servo_id, None),
+                instruction=instruction,
+                comm_result=comm_result,
+                status_error=status_error,
+                hardware_error=hardware_error,
+            )
         raise error
 
     def _status_fail(self, servo_id: int, instruction: str, error: int):
@@ -681,8 +764,9 @@ class DynamixelHand:
         if error & ALERT_BIT:
             try:
                 with _Exchange(self):
-                    data, result, _ = self._ph.readTxRx(self._port, servo_id,
-                                                        REGISTERS["hardware_error_status"].address, 1)
+                    data, result, _ = self._ph.readTxRx(
+                        self._port, servo_id, REGISTERS["hardware_error_status"].address, 1
+                    )
             except PORT_ERRORS:
                 data, result = [], dxl.COMM_TX_FAIL
             if result == dxl.COMM_SUCCESS and data:
@@ -690,16 +774,18 @@ class DynamixelHand:
                 detail += f": Hardware Error Status 0x{hw:02x} = {', '.join(decode_hardware_error(hw)) or 'none'}"
             else:
                 detail += " (Hardware Error Status unreadable)"
-        self._fail(servo_id, instruction, f"status error 0x{error:02x} ({detail})", status_error=error,
-                   hardware_error=hw)
+        self._fail(
+            servo_id, instruction, f"status error 0x{error:02x} ({detail})", status_error=error, hardware_error=hw
+        )
 
     def _torque_off_all(self) -> None:
         """Torque off on every servo, confirmed one by one, into :attr:`torque_off_report`."""
         with _Exchange(self):
             unconfirmed = torque_off(self._ph, self._port, self.ids, self.device)
             self._torque_on = False
-            self.torque_off_report = TorqueOffReport(tuple(self._names([s]) for s in self.ids),
-                                                     tuple(self._names([s]) for s in unconfirmed))
+            self.torque_off_report = TorqueOffReport(
+                tuple(self._names([s]) for s in self.ids), tuple(self._names([s]) for s in unconfirmed)
+            )
 
     def _ping_all(self) -> None:
         missing, comm = [], {}
@@ -720,8 +806,13 @@ class DynamixelHand:
                 self._status_fail(sid, "PING", error)
         if missing:
             first = missing[0]
-            self._fail(first, "PING", f"servos {self._names(missing)} did not answer ({self._comm_text(comm[first])}); "
-                                      "refusing to move with a servo missing", comm_result=comm[first])
+            self._fail(
+                first,
+                "PING",
+                f"servos {self._names(missing)} did not answer ({self._comm_text(comm[first])}); "
+                "refusing to move with a servo missing",
+                comm_result=comm[first],
+            )
 
     def _write(self, servo_id: int, name: str, value: int) -> None:
         reg = REGISTERS[name]
@@ -820,8 +911,10 @@ def guard_main(argv: list[str] | None = None) -> int:
         if not port.setBaudRate(args.baudrate):
             raise ValueError(f"baud rate {args.baudrate} is not supported")
     except (OSError, ValueError) as exc:
-        _say(f"{what}; cannot open the port ({exc}): torque off NOT confirmed on any of the {len(ids)} servos: "
-             "cut the servo power")
+        _say(
+            f"{what}; cannot open the port ({exc}): torque off NOT confirmed on any of the {len(ids)} servos: "
+            "cut the servo power"
+        )
         return 1
     time.sleep(args.drain_s)  # status packets meant for the dead process arrive, and are dropped
     unconfirmed = torque_off(dxl.PacketHandler(2.0), port, ids, device)

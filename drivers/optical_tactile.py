@@ -136,14 +136,16 @@ class ColorChange:
         return self.magnitude > self.threshold
 
 
-def color_change(image: np.ndarray, reference: np.ndarray, min_change: float = MIN_CHANGE,
-                  iterations: int = 3) -> ColorChange:
+def color_change(
+    image: np.ndarray, reference: np.ndarray, min_change: float = MIN_CHANGE, iterations: int = 3
+) -> ColorChange:
     """The colour change of ``image`` against the no-contact ``reference`` (both [h, w, 3] RGB), see the module doc."""
     image = _as_rgb(image, "image").astype(np.float64)
     reference = _as_rgb(reference, "reference").astype(np.float64)
     if image.shape != reference.shape:
-        raise InvalidInputError(f"image is {image.shape[1]}x{image.shape[0]}, the reference "
-                                f"{reference.shape[1]}x{reference.shape[0]}")
+        raise InvalidInputError(
+            f"image is {image.shape[1]}x{image.shape[0]}, the reference {reference.shape[1]}x{reference.shape[0]}"
+        )
     markers = marker_mask(image, reference)
     if markers.any():
         image, reference = _inpaint(image, markers), _inpaint(reference, markers)
@@ -220,8 +222,9 @@ def find_contact_circle(change: ColorChange, rays: int = 90) -> ContactCircle | 
         radii = np.arange(0.0, 2.0 * r + 4.0, 0.25)
         xs = cx + radii[None, :] * np.cos(angles)[:, None]
         ys = cy + radii[None, :] * np.sin(angles)[:, None]
-        profile = ndimage.gaussian_filter1d(ndimage.map_coordinates(magnitude, [ys, xs], order=1, mode="nearest"),
-                                            2.0, axis=1)
+        profile = ndimage.gaussian_filter1d(
+            ndimage.map_coordinates(magnitude, [ys, xs], order=1, mode="nearest"), 2.0, axis=1
+        )
         outside = np.cumsum((xs < 0) | (xs > w - 1) | (ys < 0) | (ys > h - 1), axis=1) > 0  # from leaving on
         profile[outside | (radii < 0.4 * r)] = -np.inf
         peak = np.argmax(profile, axis=1)
@@ -256,7 +259,9 @@ def sphere_press_gradients(shape, centre, contact_radius_px: float, ball_radius_
     return np.where(inside, -dx / root, 0.0), np.where(inside, -dy / root, 0.0), rho
 
 
-def poisson_integrate(gx: np.ndarray, gy: np.ndarray, pixel_size_m: float, mask: np.ndarray | None = None) -> np.ndarray:
+def poisson_integrate(
+    gx: np.ndarray, gy: np.ndarray, pixel_size_m: float, mask: np.ndarray | None = None
+) -> np.ndarray:
     """Depth [h, w] metres whose gradient best matches ``(gx, gy)`` [h, w] (slopes) in ``mask``, 0 outside it.
 
     Least squares over every pixel edge touching ``mask`` (default: the whole image, with depth 0 beyond
@@ -295,8 +300,9 @@ def poisson_integrate(gx: np.ndarray, gy: np.ndarray, pixel_size_m: float, mask:
             vals.append(np.full(int(known.sum()), sign))
         rhs.append(target)
         edge += len(target)
-    A = sparse.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                          shape=(edge, int(inside.sum())))
+    A = sparse.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(edge, int(inside.sum()))
+    )
     solution = spsolve((A.T @ A).tocsc(), A.T @ np.concatenate(rhs))
     depth[mask] = solution[index[1:-1, 1:-1][mask]]
     return depth
@@ -338,8 +344,9 @@ def _mlp(weights: Sequence[np.ndarray], x: np.ndarray) -> np.ndarray:
     return x
 
 
-def _train_mlp(x: np.ndarray, y: np.ndarray, hidden: int = 32, steps: int = 1500, batch: int = 1024,
-               seed: int = 0) -> list[np.ndarray]:
+def _train_mlp(
+    x: np.ndarray, y: np.ndarray, hidden: int = 32, steps: int = 1500, batch: int = 1024, seed: int = 0
+) -> list[np.ndarray]:
     """Fit the MLP (two tanh layers) by Adam on mean squared error; deterministic for a seed."""
     import torch
 
@@ -383,8 +390,16 @@ class TactileCalibration:
     check_summary: dict | None = None  # the ball fits of the held-out presses (see calibrate_tactile)
 
     @classmethod
-    def fit(cls, reference: np.ndarray, presses: Sequence[np.ndarray], ball_radius_m: float, pixel_size_m: float,
-            names: Sequence[str] | None = None, steps: int = 1500, seed: int = 0) -> "TactileCalibration":
+    def fit(
+        cls,
+        reference: np.ndarray,
+        presses: Sequence[np.ndarray],
+        ball_radius_m: float,
+        pixel_size_m: float,
+        names: Sequence[str] | None = None,
+        steps: int = 1500,
+        seed: int = 0,
+    ) -> "TactileCalibration":
         """Fit on a no-contact ``reference`` [h, w, 3] RGB and ball-press images [h, w, 3] RGB (see the module doc)."""
         if not (ball_radius_m > 0 and pixel_size_m > 0):
             raise InvalidInputError(f"ball_radius_m ({ball_radius_m}) and pixel_size_m ({pixel_size_m}) must be > 0")
@@ -396,14 +411,20 @@ class TactileCalibration:
         for k, (name, image) in enumerate(zip(names, presses)):
             image = _as_rgb(image, name)
             if image.shape != reference.shape:
-                raise TactileError("calibration", f"{name} is {image.shape[1]}x{image.shape[0]}, the reference "
-                                                  f"{reference.shape[1]}x{reference.shape[0]}")
+                raise TactileError(
+                    "calibration",
+                    f"{name} is {image.shape[1]}x{image.shape[0]}, the reference "
+                    f"{reference.shape[1]}x{reference.shape[0]}",
+                )
             change = color_change(image, reference)
             circle = find_contact_circle(change)
             record = {"index": k, "file": name, "role": "fit"}
             if circle is None or circle.radius >= 0.95 * ball_px:
-                why = "no contact circle" if circle is None else (
-                    f"contact radius {circle.radius:.1f} px is not smaller than the ball's {ball_px:.1f} px")
+                why = (
+                    "no contact circle"
+                    if circle is None
+                    else (f"contact radius {circle.radius:.1f} px is not smaller than the ball's {ball_px:.1f} px")
+                )
                 log.warning("%s: %s, skipped", name, why)
                 used.append({**record, "skipped": why})
                 continue
@@ -418,19 +439,32 @@ class TactileCalibration:
             thresholds.append(float(np.percentile(change.magnitude.ravel()[flat], 99.5)) if len(flat) else MIN_CHANGE)
             used.append({**record, "centre_px": [circle.cx, circle.cy], "contact_radius_px": circle.radius})
         if not inputs:
-            raise TactileError("calibration", "no ball press with a detectable contact circle (press the ball "
-                                              "fully inside the image, 0.5-1.5 mm deep; the reference must show "
-                                              "the untouched gel)")
+            raise TactileError(
+                "calibration",
+                "no ball press with a detectable contact circle (press the ball "
+                "fully inside the image, 0.5-1.5 mm deep; the reference must show "
+                "the untouched gel)",
+            )
         weights = _train_mlp(np.concatenate(inputs), np.concatenate(targets), steps=steps, seed=seed)
-        return cls(weights, pixel_size_m, tuple(int(s) for s in reference.shape[:2]), ball_radius_m,
-                   max(MIN_CHANGE, float(np.median(thresholds))), MIN_CONTACT_DEPTH_PX * pixel_size_m, presses=used)
+        return cls(
+            weights,
+            pixel_size_m,
+            tuple(int(s) for s in reference.shape[:2]),
+            ball_radius_m,
+            max(MIN_CHANGE, float(np.median(thresholds))),
+            MIN_CONTACT_DEPTH_PX * pixel_size_m,
+            presses=used,
+        )
 
     def change(self, image: np.ndarray, reference: np.ndarray) -> ColorChange:
         """The colour change of ``image`` against ``reference``, at least this sensor's noise to count."""
         image = _as_rgb(image, "image")
         if image.shape[:2] != tuple(self.image_size):
-            raise TactileError("calibration", f"image is {image.shape[1]}x{image.shape[0]}, the calibration is for "
-                                              f"{self.image_size[1]}x{self.image_size[0]}")
+            raise TactileError(
+                "calibration",
+                f"image is {image.shape[1]}x{image.shape[0]}, the calibration is for "
+                f"{self.image_size[1]}x{self.image_size[0]}",
+            )
         return color_change(image, reference, min_change=self.change_threshold)
 
     def gradients(self, change: ColorChange) -> tuple[np.ndarray, np.ndarray]:
@@ -456,12 +490,22 @@ class TactileCalibration:
     def save(self, path: str | Path) -> None:
         """Write the calibration (.npz) atomically (a temporary name, then a rename)."""
         path = Path(path)
-        meta = {"format": FORMAT, "version": VERSION, "pixel_size_m": self.pixel_size_m,
-                "image_size": list(self.image_size), "ball_radius_m": self.ball_radius_m,
-                "change_threshold": self.change_threshold, "noise_floor_m": self.noise_floor_m,
-                "layers": len(self.weights) // 2, "presses": self.presses, "check_summary": self.check_summary}
-        atomic_write(path, lambda f: np.savez_compressed(f, meta=json.dumps(meta),
-                                                         **{f"w{i}": w for i, w in enumerate(self.weights)}))
+        meta = {
+            "format": FORMAT,
+            "version": VERSION,
+            "pixel_size_m": self.pixel_size_m,
+            "image_size": list(self.image_size),
+            "ball_radius_m": self.ball_radius_m,
+            "change_threshold": self.change_threshold,
+            "noise_floor_m": self.noise_floor_m,
+            "layers": len(self.weights) // 2,
+            "presses": self.presses,
+            "check_summary": self.check_summary,
+        }
+        atomic_write(
+            path,
+            lambda f: np.savez_compressed(f, meta=json.dumps(meta), **{f"w{i}": w for i, w in enumerate(self.weights)}),
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> "TactileCalibration":
@@ -473,17 +517,27 @@ class TactileCalibration:
         except FileNotFoundError:
             raise TactileError("calibration", f"{path}: file not found") from None
         except (KeyError, ValueError, OSError, TypeError):
-            raise TactileError("calibration", f"{path}: not a tactile calibration file (an .npz written by "
-                                              "`tacsplat calibrate tactile`)") from None
+            raise TactileError(
+                "calibration",
+                f"{path}: not a tactile calibration file (an .npz written by `tacsplat calibrate tactile`)",
+            ) from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             raise TactileError("calibration", f"{path} [format]: expected {FORMAT!r}")
         if meta.get("version") != VERSION:
-            raise TactileError("calibration", f"{path} [version]: {meta.get('version')!r} was written by another "
-                                              f"tacsplat (expected {VERSION}): run `tacsplat calibrate tactile` again")
+            raise TactileError(
+                "calibration",
+                f"{path} [version]: {meta.get('version')!r} was written by another "
+                f"tacsplat (expected {VERSION}): run `tacsplat calibrate tactile` again",
+            )
         for key in ("pixel_size_m", "ball_radius_m", "change_threshold", "noise_floor_m"):
             value = meta.get(key)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value < 0 \
-                    or (key == "pixel_size_m" and value == 0):
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not np.isfinite(value)
+                or value < 0
+                or (key == "pixel_size_m" and value == 0)
+            ):
                 raise TactileError("calibration", f"{path} [{key}]: expected a finite number >= 0, got {value!r}")
         size = meta.get("image_size")
         if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and s >= 3 for s in size)):
@@ -491,12 +545,20 @@ class TactileCalibration:
         shapes = [w.shape for w in weights]
         chained = len(weights) >= 4 and all(
             len(shapes[i]) == 2 and shapes[i + 1] == (shapes[i][1],) and (i == 0 or shapes[i][0] == shapes[i - 2][1])
-            for i in range(0, len(shapes), 2))
+            for i in range(0, len(shapes), 2)
+        )
         if not chained or shapes[0][0] != 5 or shapes[-1] != (2,) or not all(np.all(np.isfinite(w)) for w in weights):
             raise TactileError("calibration", f"{path} [w0..]: not a finite MLP from 5 inputs to 2 outputs: {shapes}")
-        return cls(weights, float(meta["pixel_size_m"]), tuple(size), float(meta["ball_radius_m"]),
-                   float(meta["change_threshold"]), float(meta["noise_floor_m"]), list(meta.get("presses", [])),
-                   meta.get("check_summary"))
+        return cls(
+            weights,
+            float(meta["pixel_size_m"]),
+            tuple(size),
+            float(meta["ball_radius_m"]),
+            float(meta["change_threshold"]),
+            float(meta["noise_floor_m"]),
+            list(meta.get("presses", [])),
+            meta.get("check_summary"),
+        )
 
 
 # --- checking a calibration on ball presses ------------------------------------------------------------------------
@@ -512,8 +574,9 @@ def fit_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
     return refined.x[:3], float(abs(refined.x[3]))
 
 
-def fit_ball(calibration: TactileCalibration, reference: np.ndarray, image: np.ndarray,
-             label_radius_px: float | None = None) -> dict:
+def fit_ball(
+    calibration: TactileCalibration, reference: np.ndarray, image: np.ndarray, label_radius_px: float | None = None
+) -> dict:
     """Check a calibration on one ball press: contact circle, depth, and a sphere fitted to the lifted contact points.
 
     Returns ``detected`` (a contact circle and a contact in the depth), ``centre_px``, ``contact_radius_px``
@@ -530,11 +593,16 @@ def fit_ball(calibration: TactileCalibration, reference: np.ndarray, image: np.n
         inside = np.hypot(xs - circle.cx, ys - circle.cy) < circle.radius
         overlap = np.bincount(labels[inside], minlength=count)[1:]
         ball = labels == 1 + int(np.argmax(overlap)) if overlap.max() > 0 else ball
-    result = {"detected": bool(ball.sum() >= 10), "label_radius_px": label_radius_px,
-              "centre_px": None if circle is None else [circle.cx, circle.cy],
-              "contact_radius_px": None if circle is None else circle.radius,
-              "contact_points": int(ball.sum()), "other_contact_px": int((depth > 0).sum() - ball.sum()),
-              "peak_indentation_m": float(depth[ball].max()) if ball.any() else 0.0, "fitted_radius_m": None}
+    result = {
+        "detected": bool(ball.sum() >= 10),
+        "label_radius_px": label_radius_px,
+        "centre_px": None if circle is None else [circle.cx, circle.cy],
+        "contact_radius_px": None if circle is None else circle.radius,
+        "contact_points": int(ball.sum()),
+        "other_contact_px": int((depth > 0).sum() - ball.sum()),
+        "peak_indentation_m": float(depth[ball].max()) if ball.any() else 0.0,
+        "fitted_radius_m": None,
+    }
     if result["detected"]:
         x, y = tactile_pixel_grid(*depth.shape, calibration.pixel_size_m)
         _, radius = fit_sphere(np.column_stack([x[ball], y[ball], -depth[ball]]))
@@ -545,13 +613,25 @@ def fit_ball(calibration: TactileCalibration, reference: np.ndarray, image: np.n
 def _summary(values) -> dict:
     values = np.asarray(values, dtype=np.float64)
     q25, median, q75 = np.percentile(values, [25, 50, 75])
-    return {"median": float(median), "q25": float(q25), "q75": float(q75), "min": float(values.min()),
-            "max": float(values.max())}
+    return {
+        "median": float(median),
+        "q25": float(q25),
+        "q75": float(q75),
+        "min": float(values.min()),
+        "max": float(values.max()),
+    }
 
 
-def calibrate_tactile(reference: np.ndarray, presses: Sequence[np.ndarray], names: Sequence[str], ball_radius_m: float,
-                      pixel_size_m: float, labels: dict[str, float] | None = None, check_every: int = 3,
-                      steps: int = 1500) -> TactileCalibration:
+def calibrate_tactile(
+    reference: np.ndarray,
+    presses: Sequence[np.ndarray],
+    names: Sequence[str],
+    ball_radius_m: float,
+    pixel_size_m: float,
+    labels: dict[str, float] | None = None,
+    check_every: int = 3,
+    steps: int = 1500,
+) -> TactileCalibration:
     """Fit on the presses but every ``check_every``-th (the 3rd, 6th, ...), and check the fit on those held out.
 
     ``labels`` maps a press's name to a hand-labelled contact radius in pixels. The returned calibration's
@@ -564,10 +644,19 @@ def calibrate_tactile(reference: np.ndarray, presses: Sequence[np.ndarray], name
     held_out = [k for k in range(len(names)) if k % check_every == check_every - 1]
     fitted = [k for k in range(len(names)) if k not in held_out]
     if len(fitted) < 2 or not held_out:
-        raise TactileError("calibration", f"{len(names)} ball presses: at least 3 are needed (2 to fit, 1 to check); "
-                                          "10-30 at different places make a good calibration")
-    calib = TactileCalibration.fit(reference, [presses[k] for k in fitted], ball_radius_m, pixel_size_m,
-                                   names=[names[k] for k in fitted], steps=steps)
+        raise TactileError(
+            "calibration",
+            f"{len(names)} ball presses: at least 3 are needed (2 to fit, 1 to check); "
+            "10-30 at different places make a good calibration",
+        )
+    calib = TactileCalibration.fit(
+        reference,
+        [presses[k] for k in fitted],
+        ball_radius_m,
+        pixel_size_m,
+        names=[names[k] for k in fitted],
+        steps=steps,
+    )
     records = {record["file"]: record for record in calib.presses}
     labels = labels or {}
     for k in held_out:
@@ -582,10 +671,14 @@ def calibrate_tactile(reference: np.ndarray, presses: Sequence[np.ndarray], name
     if radii:
         spread = _summary(radii)
         calib.check_summary.update({f"{key}_fitted_radius_m": value for key, value in spread.items()})
-        calib.check_summary["median_peak_indentation_m"] = float(np.median(
-            [r["peak_indentation_m"] for r in checks if r["detected"]]))
-    ratios = [r["contact_radius_px"] / r["label_radius_px"] for r in checks
-              if r["detected"] and r["label_radius_px"] and r["contact_radius_px"]]
+        calib.check_summary["median_peak_indentation_m"] = float(
+            np.median([r["peak_indentation_m"] for r in checks if r["detected"]])
+        )
+    ratios = [
+        r["contact_radius_px"] / r["label_radius_px"]
+        for r in checks
+        if r["detected"] and r["label_radius_px"] and r["contact_radius_px"]
+    ]
     if ratios:
         calib.check_summary["median_contact_radius_over_label"] = float(np.median(ratios))
     return calib
@@ -596,20 +689,27 @@ def check_problem(calibration: TactileCalibration, max_radius_error: float = 0.2
     summary = calibration.check_summary or {}
     ball_mm = calibration.ball_radius_m * 1e3
     checks = [p for p in calibration.presses if p.get("role") == "check"]
-    capture = (f"capture them again (the same ball of radius {ball_mm:g} mm, pressed about 0.5-1.5 mm deep, wholly "
-               "inside the image, with the reference image of the untouched gel taken just before), "
-               "or check --ball-radius-mm and --pixel-size-mm")
+    capture = (
+        f"capture them again (the same ball of radius {ball_mm:g} mm, pressed about 0.5-1.5 mm deep, wholly "
+        "inside the image, with the reference image of the untouched gel taken just before), "
+        "or check --ball-radius-mm and --pixel-size-mm"
+    )
     missed = [p["file"] for p in checks if not p["detected"]]
     if missed:
         return f"no ball press detected in the held-out {', '.join(missed)}: {capture}"
     median = summary.get("median_fitted_radius_m")
     error = abs(median / calibration.ball_radius_m - 1.0)
     if error > max_radius_error:
-        off = [f"{p['file']} {p['fitted_radius_m'] * 1e3:.2f} mm" for p in checks
-               if abs(p["fitted_radius_m"] / calibration.ball_radius_m - 1.0) > max_radius_error]
-        return (f"on the held-out presses the fitted ball radius is {median * 1e3:.2f} mm (median), {error:.0%} off "
-                f"the ball's {ball_mm:g} mm (at most {max_radius_error:.0%} allowed): {'; '.join(off)}; the calibration "
-                f"does not generalise to these presses: {capture}")
+        off = [
+            f"{p['file']} {p['fitted_radius_m'] * 1e3:.2f} mm"
+            for p in checks
+            if abs(p["fitted_radius_m"] / calibration.ball_radius_m - 1.0) > max_radius_error
+        ]
+        return (
+            f"on the held-out presses the fitted ball radius is {median * 1e3:.2f} mm (median), {error:.0%} off "
+            f"the ball's {ball_mm:g} mm (at most {max_radius_error:.0%} allowed): {'; '.join(off)}; the calibration "
+            f"does not generalise to these presses: {capture}"
+        )
     return None
 
 
@@ -622,16 +722,35 @@ class OpticalTactileSensor:
     reference: the gel must be untouched then.
     """
 
-    def __init__(self, name: str, source: int | str, calibration: TactileCalibration | str | Path,
-                 T_hand_sensor: np.ndarray | Callable[[], np.ndarray] = np.eye(4), *, width: int | None = None,
-                 height: int | None = None, fps: float | None = None, timeout_s: float = 2.0,
-                 reference_frames: int = 5, capture_factory=cv2.VideoCapture):
+    def __init__(
+        self,
+        name: str,
+        source: int | str,
+        calibration: TactileCalibration | str | Path,
+        T_hand_sensor: np.ndarray | Callable[[], np.ndarray] = np.eye(4),
+        *,
+        width: int | None = None,
+        height: int | None = None,
+        fps: float | None = None,
+        timeout_s: float = 2.0,
+        reference_frames: int = 5,
+        capture_factory=cv2.VideoCapture,
+    ):
         self._name = name
-        self.calibration = calibration if isinstance(calibration, TactileCalibration) else TactileCalibration.load(calibration)
+        self.calibration = (
+            calibration if isinstance(calibration, TactileCalibration) else TactileCalibration.load(calibration)
+        )
         self._pose = T_hand_sensor if callable(T_hand_sensor) else (lambda T=as_pose(T_hand_sensor, "T_hand_sensor"): T)
         self.reference_frames = int(reference_frames)
-        self._video = VideoReader(source, width=width, height=height, fps=fps, timeout_s=timeout_s,
-                                  name=f"tactile sensor {name!r}", capture_factory=capture_factory)
+        self._video = VideoReader(
+            source,
+            width=width,
+            height=height,
+            fps=fps,
+            timeout_s=timeout_s,
+            name=f"tactile sensor {name!r}",
+            capture_factory=capture_factory,
+        )
         self.reference: np.ndarray | None = None  # [h, w, 3] float64 RGB
 
     @property
@@ -650,8 +769,11 @@ class OpticalTactileSensor:
         if (self._video.height, self._video.width) != tuple(self.calibration.image_size):
             size = (self._video.height, self._video.width)
             self._video.close()
-            raise TactileError(self._name, f"camera delivers {size[1]}x{size[0]}, the calibration is for "
-                                           f"{self.calibration.image_size[1]}x{self.calibration.image_size[0]}")
+            raise TactileError(
+                self._name,
+                f"camera delivers {size[1]}x{size[0]}, the calibration is for "
+                f"{self.calibration.image_size[1]}x{self.calibration.image_size[0]}",
+            )
         self.capture_reference()
 
     def close(self) -> None:
@@ -677,6 +799,11 @@ class OpticalTactileSensor:
             raise TactileError(self._name, "not open (no reference frame)")
         rgb, frame = self._read_rgb()
         depth = self.calibration.depth(rgb, self.reference)
-        return TactileReading(depth=depth, pixel_size_m=self.calibration.pixel_size_m, T_ref_sensor=self._pose(),
-                              frame="hand", timestamp=frame.timestamp,
-                              meta={"sensor": self._name, "frame_index": frame.index})
+        return TactileReading(
+            depth=depth,
+            pixel_size_m=self.calibration.pixel_size_m,
+            T_ref_sensor=self._pose(),
+            frame="hand",
+            timestamp=frame.timestamp,
+            meta={"sensor": self._name, "frame_index": frame.index},
+        )

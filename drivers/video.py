@@ -43,14 +43,26 @@ class VideoReader:
     ``capture_factory`` builds the capture (``cv2.VideoCapture`` by default).
     """
 
-    def __init__(self, source: int | str, *, width: int | None = None, height: int | None = None,
-                 fps: float | None = None, fourcc: str | None = None, timeout_s: float = 2.0,
-                 sequential: bool | None = None, fps_tolerance: float = 0.05, name: str | None = None,
-                 capture_factory: Callable[[int | str], object] = cv2.VideoCapture):
+    def __init__(
+        self,
+        source: int | str,
+        *,
+        width: int | None = None,
+        height: int | None = None,
+        fps: float | None = None,
+        fourcc: str | None = None,
+        timeout_s: float = 2.0,
+        sequential: bool | None = None,
+        fps_tolerance: float = 0.05,
+        name: str | None = None,
+        capture_factory: Callable[[int | str], object] = cv2.VideoCapture,
+    ):
         self.source = source
         self.name = name or f"camera {source}"
         self.timeout_s = float(timeout_s)
-        self.sequential = isinstance(source, (str, Path)) and Path(source).is_file() if sequential is None else sequential
+        self.sequential = (
+            isinstance(source, (str, Path)) and Path(source).is_file() if sequential is None else sequential
+        )
         self._requested = (width, height, fps, fourcc, fps_tolerance)
         self._factory = capture_factory
         self._cap = None
@@ -69,7 +81,9 @@ class VideoReader:
         source = str(self.source) if isinstance(self.source, Path) else self.source
         cap = self._factory(source)
         if not cap.isOpened():
-            raise CameraError(self.name, f"cannot open {self.source!r} (unplugged, busy, or no permission on /dev/video*?)")
+            raise CameraError(
+                self.name, f"cannot open {self.source!r} (unplugged, busy, or no permission on /dev/video*?)"
+            )
         self._cap = cap
         width, height, fps, fourcc, tol = self._requested
         if fourcc:
@@ -85,7 +99,9 @@ class VideoReader:
         self.fps = float(cap.get(cv2.CAP_PROP_FPS))
         try:
             if (width and self.width != width) or (height and self.height != height):
-                raise CameraError(self.name, f"asked for {width}x{height}, the device delivers {self.width}x{self.height}")
+                raise CameraError(
+                    self.name, f"asked for {width}x{height}, the device delivers {self.width}x{self.height}"
+                )
             if fps and abs(self.fps - fps) > tol * fps:
                 raise CameraError(self.name, f"asked for {fps:g} fps, the device reports {self.fps:g} fps")
         except CameraError:
@@ -100,8 +116,10 @@ class VideoReader:
             self._last_index = first.index - 1
         if (self.width and first.image.shape[1] != self.width) or (self.height and first.image.shape[0] != self.height):
             self.close()
-            raise CameraError(self.name, f"reports {self.width}x{self.height} but delivers "
-                                         f"{first.image.shape[1]}x{first.image.shape[0]} frames")
+            raise CameraError(
+                self.name,
+                f"reports {self.width}x{self.height} but delivers {first.image.shape[1]}x{first.image.shape[0]} frames",
+            )
         self.height, self.width = first.image.shape[:2]
         return self
 
@@ -163,8 +181,10 @@ class VideoReader:
                     raise CameraError(self.name, f"{self._ended} after {self._count} frames")
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
-                    raise CameraError(self.name, f"no new frame within {timeout:g} s (unplugged or stalled?) "
-                                                 f"after {self._count} frames")
+                    raise CameraError(
+                        self.name,
+                        f"no new frame within {timeout:g} s (unplugged or stalled?) after {self._count} frames",
+                    )
                 self._cond.wait(remaining)
 
     def _unread(self) -> int:

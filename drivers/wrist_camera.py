@@ -82,16 +82,22 @@ class CharucoBoardSpec:
             if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:  # (NaN and inf fail too)
                 return name, f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
         if not self.marker_length_m < self.square_length_m:
-            return "marker_length_m", (f"must be smaller than square_length_m ({self.square_length_m:g} m), "
-                                       f"got {self.marker_length_m:g}")
-        if not isinstance(self.dictionary, str) or not self.dictionary.startswith("DICT_") or \
-                not hasattr(cv2.aruco, self.dictionary):
+            return "marker_length_m", (
+                f"must be smaller than square_length_m ({self.square_length_m:g} m), got {self.marker_length_m:g}"
+            )
+        if (
+            not isinstance(self.dictionary, str)
+            or not self.dictionary.startswith("DICT_")
+            or not hasattr(cv2.aruco, self.dictionary)
+        ):
             return "dictionary", f"unknown ArUco dictionary {self.dictionary!r}"
         markers = len(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)).bytesList)
         needed = self.squares_x * self.squares_y // 2
         if needed > markers:
-            return "dictionary", (f"{self.dictionary} has {markers} markers; a {self.squares_x} x {self.squares_y} "
-                                  f"board needs {needed} (choose a larger dictionary or fewer squares)")
+            return "dictionary", (
+                f"{self.dictionary} has {markers} markers; a {self.squares_x} x {self.squares_y} "
+                f"board needs {needed} (choose a larger dictionary or fewer squares)"
+            )
         if not isinstance(self.legacy_pattern, bool):
             return "legacy_pattern", f"expected true or false, got {self.legacy_pattern!r}"
         return None
@@ -101,7 +107,9 @@ class CharucoBoardSpec:
         if problem:
             raise ConfigError(*problem)
         board = cv2.aruco.CharucoBoard(
-            (self.squares_x, self.squares_y), self.square_length_m, self.marker_length_m,
+            (self.squares_x, self.squares_y),
+            self.square_length_m,
+            self.marker_length_m,
             cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)),
         )
         board.setLegacyPattern(self.legacy_pattern)
@@ -148,8 +156,9 @@ class ChessboardSpec:
             raise ConfigError(*problem)
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         size = (self.inner_corners_x, self.inner_corners_y)
-        found, corners = cv2.findChessboardCorners(gray, size, cv2.CALIB_CB_ADAPTIVE_THRESH |
-                                                   cv2.CALIB_CB_NORMALIZE_IMAGE)
+        found, corners = cv2.findChessboardCorners(
+            gray, size, cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        )
         if not found:
             return np.zeros((0, 3)), np.zeros((0, 2))
         grid = corners.reshape(self.inner_corners_y, self.inner_corners_x, 2)
@@ -201,8 +210,7 @@ SAME_POSE_FRACTION = 0.01  # two photos whose common corners lie within 1 % of t
 # beyond MAX_CORNER_SCALE (distorted over undistorted radius; real perspective lenses stay within ~1.3).
 FIELD_OF_VIEW_DEG = (2.0, 170.0)
 MAX_CORNER_SCALE = 2.0
-_CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"),
-               ("bottom-left", "bottom", "bottom-right"))
+_CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
 
 
 @dataclass
@@ -229,12 +237,20 @@ class CameraCalibration:
     def save(self, path: str | Path) -> None:
         board = {"type": next(k for k, v in BOARD_TYPES.items() if isinstance(self.board, v)), **asdict(self.board)}
         data = {
-            "format": FORMAT, "version": 1, "pixel_centres": _PIXEL_CENTRES,
-            "K_opencv": self.K_opencv.tolist(), "dist": self.dist.ravel().tolist(),
-            "width": self.width, "height": self.height, "rms_px": self.rms_px,
-            "board": board, "per_image_rms_px": self.per_image_rms_px,
+            "format": FORMAT,
+            "version": 1,
+            "pixel_centres": _PIXEL_CENTRES,
+            "K_opencv": self.K_opencv.tolist(),
+            "dist": self.dist.ravel().tolist(),
+            "width": self.width,
+            "height": self.height,
+            "rms_px": self.rms_px,
+            "board": board,
+            "per_image_rms_px": self.per_image_rms_px,
             "T_hand_cam": None if self.T_hand_cam is None else np.asarray(self.T_hand_cam).tolist(),
-            "K_std_px": self.K_std_px, "distortion_model": self.distortion_model, "warnings": self.warnings,
+            "K_std_px": self.K_std_px,
+            "distortion_model": self.distortion_model,
+            "warnings": self.warnings,
         }
         atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
@@ -247,34 +263,50 @@ class CameraCalibration:
         if unknown:
             raise ConfigError(unknown[0], f"unknown field (expected {list(_FILE_FIELDS)})", source=path)
         if data.get("pixel_centres", _PIXEL_CENTRES) != _PIXEL_CENTRES:
-            raise ConfigError("pixel_centres", f"must be {_PIXEL_CENTRES!r} (K_opencv is in OpenCV's convention), "
-                                               f"got {data['pixel_centres']!r}", source=path)
+            raise ConfigError(
+                "pixel_centres",
+                f"must be {_PIXEL_CENTRES!r} (K_opencv is in OpenCV's convention), got {data['pixel_centres']!r}",
+                source=path,
+            )
         width = json_int(data.get("width"), "width", path, minimum=1)
         height = json_int(data.get("height"), "height", path, minimum=1)
         K = json_array(data.get("K_opencv"), "K_opencv", path, (3, 3))
         if K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise ConfigError("K_opencv", f"focal lengths must be positive, got fx {K[0, 0]}, fy {K[1, 1]}",
-                              source=path)
+            raise ConfigError(
+                "K_opencv", f"focal lengths must be positive, got fx {K[0, 0]}, fy {K[1, 1]}", source=path
+            )
         if not (-0.5 <= K[0, 2] <= width - 0.5 and -0.5 <= K[1, 2] <= height - 0.5):
-            raise ConfigError("K_opencv", f"principal point ({K[0, 2]}, {K[1, 2]}) is outside the {width}x{height} "
-                                          "image (OpenCV pixel centres)", source=path)
+            raise ConfigError(
+                "K_opencv",
+                f"principal point ({K[0, 2]}, {K[1, 2]}) is outside the {width}x{height} image (OpenCV pixel centres)",
+                source=path,
+            )
         if K[1, 0] != 0 or K[2].tolist() != [0.0, 0.0, 1.0]:
-            raise ConfigError("K_opencv", f"must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}",
-                              source=path)
+            raise ConfigError(
+                "K_opencv", f"must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}", source=path
+            )
         dist = json_array(data.get("dist"), "dist", path, (None,))
         if dist.size not in (4, 5, 8, 12, 14):
             raise ConfigError("dist", f"expected 4, 5, 8, 12 or 14 coefficients (OpenCV), got {dist.size}", source=path)
         model = data.get("distortion_model")
         if model is not None and (model not in DISTORTION_MODELS or DISTORTION_MODELS[model][1] != dist.size):
-            raise ConfigError("distortion_model", f"expected one of {list(DISTORTION_MODELS)} matching the "
-                                                  f"{dist.size} coefficients of dist, got {model!r}", source=path)
+            raise ConfigError(
+                "distortion_model",
+                f"expected one of {list(DISTORTION_MODELS)} matching the "
+                f"{dist.size} coefficients of dist, got {model!r}",
+                source=path,
+            )
         rms = data.get("rms_px")
-        rms = float("nan") if rms is None or (isinstance(rms, float) and math.isnan(rms)) else \
-            json_float(rms, "rms_px", path, low=0.0)
+        rms = (
+            float("nan")
+            if rms is None or (isinstance(rms, float) and math.isnan(rms))
+            else json_float(rms, "rms_px", path, low=0.0)
+        )
         per_image = data.get("per_image_rms_px", {})
         if not isinstance(per_image, dict):
-            raise ConfigError("per_image_rms_px", f"must be an object {{image name: px}}, got {per_image!r}",
-                              source=path)
+            raise ConfigError(
+                "per_image_rms_px", f"must be an object {{image name: px}}, got {per_image!r}", source=path
+            )
         per_image = {name: json_float(v, f"per_image_rms_px.{name}", path, low=0.0) for name, v in per_image.items()}
         T = data.get("T_hand_cam")
         if T is not None:
@@ -290,13 +322,28 @@ class CameraCalibration:
         warnings = data.get("warnings", [])
         if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
             raise ConfigError("warnings", f"must be a list of strings, got {warnings!r}", source=path)
-        return cls(K, dist, width, height, rms, _board_spec(data.get("board", {}), path), per_image, T, std, model,
-                   warnings)
+        return cls(
+            K, dist, width, height, rms, _board_spec(data.get("board", {}), path), per_image, T, std, model, warnings
+        )
 
 
 _K_NAMES = ("fx", "fy", "cx", "cy")
-_FILE_FIELDS = ("format", "version", "pixel_centres", "K_opencv", "dist", "width", "height", "rms_px", "board",
-                "per_image_rms_px", "T_hand_cam", "K_std_px", "distortion_model", "warnings")
+_FILE_FIELDS = (
+    "format",
+    "version",
+    "pixel_centres",
+    "K_opencv",
+    "dist",
+    "width",
+    "height",
+    "rms_px",
+    "board",
+    "per_image_rms_px",
+    "T_hand_cam",
+    "K_std_px",
+    "distortion_model",
+    "warnings",
+)
 
 
 def _board_spec(board, path: Path) -> BoardSpec:
@@ -328,8 +375,9 @@ class BoardView:
     image_points: np.ndarray  # [N, 2] OpenCV pixels
 
 
-def detect_board_views(images: Sequence[np.ndarray], board_spec: BoardSpec, names: Sequence[str],
-                       min_corners: int = 8) -> tuple[list[BoardView], tuple[int, int]]:
+def detect_board_views(
+    images: Sequence[np.ndarray], board_spec: BoardSpec, names: Sequence[str], min_corners: int = 8
+) -> tuple[list[BoardView], tuple[int, int]]:
     """The views of ``images`` (RGB or gray, one size) that show at least ``min_corners`` corners, and (w, h)."""
     views, size = [], None
     for name, image in zip(names, images):
@@ -346,8 +394,9 @@ def detect_board_views(images: Sequence[np.ndarray], board_spec: BoardSpec, name
     return views, size
 
 
-def calibrate_views(views: Sequence[BoardView], size: tuple[int, int], board_spec: BoardSpec,
-                    distortion: str = "opencv5") -> CameraCalibration:
+def calibrate_views(
+    views: Sequence[BoardView], size: tuple[int, int], board_spec: BoardSpec, distortion: str = "opencv5"
+) -> CameraCalibration:
     """Intrinsics, distortion and their uncertainty from board views by ``cv2.calibrateCameraExtended``."""
     if distortion not in DISTORTION_MODELS:
         raise ConfigError("distortion", f"expected one of {list(DISTORTION_MODELS)}, got {distortion!r}")
@@ -361,24 +410,30 @@ def calibrate_views(views: Sequence[BoardView], size: tuple[int, int], board_spe
         raise CameraError("calibration", problem)
     flags, count = DISTORTION_MODELS[distortion]
     rms, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
-        obj_points, img_points, size, None, None, flags=flags)
+        obj_points, img_points, size, None, None, flags=flags
+    )
     dist = dist.ravel()[:count]  # OpenCV may return 14, the rest zeros
     per_image = {}
     for view, obj, img, r, t in zip(views, obj_points, img_points, rvecs, tvecs):
         proj, _ = cv2.projectPoints(obj, r, t, K, dist)
         per_image[view.name] = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
     std = {key: float(value) for key, value in zip(_K_NAMES, std_intrinsics.ravel()[:4])}
-    calib = CameraCalibration(K, dist, size[0], size[1], float(rms), board_spec, per_image,
-                              K_std_px=std, distortion_model=distortion)
+    calib = CameraCalibration(
+        K, dist, size[0], size[1], float(rms), board_spec, per_image, K_std_px=std, distortion_model=distortion
+    )
     problem = calibration_problem(calib, views)
     if problem:
-        raise CameraError("calibration", f"not written: the result is no camera ({problem}); the photos hold too "
-                          "little information: add views with the board tilted 20-45 degrees towards each side")
+        raise CameraError(
+            "calibration",
+            f"not written: the result is no camera ({problem}); the photos hold too "
+            "little information: add views with the board tilted 20-45 degrees towards each side",
+        )
     tilts = [float(np.degrees(np.arccos(min(1.0, abs(cv2.Rodrigues(r)[0][2, 2]))))) for r in rvecs]
     calib.warnings = calibration_warnings(calib, views, tilts) + [
         f"{', '.join(names[1:])} show{'s' * (len(names) == 2)} the board where {names[0]} does (within "
         f"{SAME_POSE_FRACTION:.0%} of the image), adding nothing: take each photo from a new pose"
-        for names in repeats]
+        for names in repeats
+    ]
     return calib
 
 
@@ -418,27 +473,33 @@ def board_normals(views: Sequence[BoardView], size: tuple[int, int]) -> np.ndarr
     return np.array(normals)
 
 
-def view_set_problem(views: Sequence[BoardView], distinct: Sequence[BoardView], repeats: Sequence[Sequence[str]],
-                     size: tuple[int, int]) -> str | None:
+def view_set_problem(
+    views: Sequence[BoardView], distinct: Sequence[BoardView], repeats: Sequence[Sequence[str]], size: tuple[int, int]
+) -> str | None:
     """Why the views cannot determine the intrinsics (fewer than MIN_ORIENTATIONS distinct poses or board
     orientations), naming the photos and what to add; None when they can."""
     advice = "take each photo from a new pose, the board tilted 20-45 degrees towards each side"
     if len(distinct) < MIN_ORIENTATIONS:
         same = "; ".join(", ".join(names) for names in repeats)
-        return (f"the {len(views)} photos show the board in {len(distinct)} distinct pose(s) ({same} show it in "
-                f"one place, within {SAME_POSE_FRACTION:.0%} of the image); calibration needs at least "
-                f"{MIN_ORIENTATIONS}: {advice}")
+        return (
+            f"the {len(views)} photos show the board in {len(distinct)} distinct pose(s) ({same} show it in "
+            f"one place, within {SAME_POSE_FRACTION:.0%} of the image); calibration needs at least "
+            f"{MIN_ORIENTATIONS}: {advice}"
+        )
     normals = board_normals(distinct, size)
     kept = []  # one normal per orientation, MIN_ORIENTATION_DEG apart
     for normal in normals:
         if all(np.degrees(np.arccos(min(1.0, abs(normal @ other)))) >= MIN_ORIENTATION_DEG for other in kept):
             kept.append(normal)
     if len(kept) < MIN_ORIENTATIONS:
-        tilts = ", ".join(f"{view.name} {np.degrees(np.arccos(min(1.0, abs(n[2])))):.0f}"
-                          for view, n in zip(distinct, normals))
-        return (f"the board is seen in {len(kept)} orientation(s) at least {MIN_ORIENTATION_DEG:g} degrees apart "
-                f"(tilt from facing the camera, degrees: {tilts}); calibration needs {MIN_ORIENTATIONS}: a board "
-                f"facing the camera, or boards parallel to each other, leave the focal length unobservable: {advice}")
+        tilts = ", ".join(
+            f"{view.name} {np.degrees(np.arccos(min(1.0, abs(n[2])))):.0f}" for view, n in zip(distinct, normals)
+        )
+        return (
+            f"the board is seen in {len(kept)} orientation(s) at least {MIN_ORIENTATION_DEG:g} degrees apart "
+            f"(tilt from facing the camera, degrees: {tilts}); calibration needs {MIN_ORIENTATIONS}: a board "
+            f"facing the camera, or boards parallel to each other, leave the focal length unobservable: {advice}"
+        )
     return None
 
 
@@ -447,24 +508,31 @@ def _lens_problem(calib: CameraCalibration, radius: float) -> str | None:
     ``radius`` (distorted, normalised): it folds back first, or scales that radius beyond MAX_CORNER_SCALE."""
     K, w, h = calib.K_opencv, calib.width, calib.height
     to_normalised = np.linalg.inv(K[:2, :2]).T
-    corners = (np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]]) - K[:2, 2]) @ to_normalised
+    corners = (
+        np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]]) - K[:2, 2]
+    ) @ to_normalised
     direction = corners[np.argmax(np.hypot(*corners.T))]
     direction = direction / np.hypot(*direction)
     r = np.linspace(0.0, MAX_CORNER_SCALE * radius, 401)  # undistorted radii
-    pixels = cv2.projectPoints(np.column_stack([np.outer(r, direction), np.ones(len(r))]), np.zeros(3), np.zeros(3),
-                               K, calib.dist)[0].reshape(-1, 2)
+    pixels = cv2.projectPoints(
+        np.column_stack([np.outer(r, direction), np.ones(len(r))]), np.zeros(3), np.zeros(3), K, calib.dist
+    )[0].reshape(-1, 2)
     distorted = np.hypot(*((pixels - K[:2, 2]) @ to_normalised).T)
     reached = np.flatnonzero(distorted >= radius)
     end = reached[0] if reached.size else len(r) - 1
     dist = "[" + ", ".join(f"{k:.4g}" for k in calib.dist) + "]"
     folds = np.flatnonzero(np.diff(distorted[: end + 1]) <= 0)
     if folds.size:
-        return (f"the distortion {dist} folds the image back at radius {distorted[folds[0]]:.3g} (normalised; "
-                f"pixels out to {radius:.3g} would see two rays or none)")
+        return (
+            f"the distortion {dist} folds the image back at radius {distorted[folds[0]]:.3g} (normalised; "
+            f"pixels out to {radius:.3g} would see two rays or none)"
+        )
     scale = radius / r[end] if reached.size else 0.0
     if not 1 / MAX_CORNER_SCALE <= scale <= MAX_CORNER_SCALE:
-        return (f"the distortion {dist} scales radius {radius:.3g} (normalised) by {scale:.3g}, beyond "
-                f"1/{MAX_CORNER_SCALE:g} to {MAX_CORNER_SCALE:g}")
+        return (
+            f"the distortion {dist} scales radius {radius:.3g} (normalised) by {scale:.3g}, beyond "
+            f"1/{MAX_CORNER_SCALE:g} to {MAX_CORNER_SCALE:g}"
+        )
     return None
 
 
@@ -473,7 +541,9 @@ def _radii(calib: CameraCalibration, views: Sequence[BoardView]) -> tuple[float,
     K, w, h = calib.K_opencv, calib.width, calib.height
     seen = np.concatenate([view.image_points for view in views])
     corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
-    radius = [float(np.hypot(*((points - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T).T).max()) for points in (seen, corners)]
+    radius = [
+        float(np.hypot(*((points - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T).T).max()) for points in (seen, corners)
+    ]
     return radius[0], radius[1]
 
 
@@ -487,8 +557,10 @@ def calibration_problem(calib: CameraCalibration, views: Sequence[BoardView]) ->
     for key, (value, side) in {"fx": (K[0, 0], calib.width), "fy": (K[1, 1], calib.height)}.items():
         fov = math.degrees(2 * math.atan(side / (2 * value))) if value > 0 else float("nan")
         if not FIELD_OF_VIEW_DEG[0] <= fov <= FIELD_OF_VIEW_DEG[1]:
-            return (f"{key} {value:.6g} px gives a field of view of {fov:.3g} degrees over {side} px, outside "
-                    f"{FIELD_OF_VIEW_DEG[0]:g}-{FIELD_OF_VIEW_DEG[1]:g}")
+            return (
+                f"{key} {value:.6g} px gives a field of view of {fov:.3g} degrees over {side} px, outside "
+                f"{FIELD_OF_VIEW_DEG[0]:g}-{FIELD_OF_VIEW_DEG[1]:g}"
+            )
     if not (0 <= K[0, 2] <= calib.width and 0 <= K[1, 2] <= calib.height):
         return f"the principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) px is outside the image"
     zero = [key for key, value in std.items() if not value > 0]
@@ -510,30 +582,44 @@ def calibration_warnings(calib: CameraCalibration, views: Sequence[BoardView], t
     """Why a calibration is poorly constrained, each naming what to add; empty when it is well constrained."""
     warnings = []
     K, std = calib.K_opencv, calib.K_std_px or {}
-    loose = [f"{key} {K[i, i]:.1f} +- {std[key]:.1f} px ({std[key] / K[i, i]:.1%})"
-             for i, key in enumerate(("fx", "fy")) if key in std and std[key] > MAX_FOCAL_STD * K[i, i]]
+    loose = [
+        f"{key} {K[i, i]:.1f} +- {std[key]:.1f} px ({std[key] / K[i, i]:.1%})"
+        for i, key in enumerate(("fx", "fy"))
+        if key in std and std[key] > MAX_FOCAL_STD * K[i, i]
+    ]
     if loose:
         advice = f"add more views ({len(views)} now; 15-30 make a good calibration)"
         if max(tilts_deg) < MIN_GOOD_TILT_DEG:
-            advice += (f" and more tilt: the most tilted board is {max(tilts_deg):.0f} deg from facing the camera; "
-                       f"tilt it {MIN_GOOD_TILT_DEG:.0f}-45 deg towards each side")
-        warnings.append(f"the focal length is poorly constrained: {', '.join(loose)}, more than "
-                        f"{MAX_FOCAL_STD:.0%}: {advice}")
+            advice += (
+                f" and more tilt: the most tilted board is {max(tilts_deg):.0f} deg from facing the camera; "
+                f"tilt it {MIN_GOOD_TILT_DEG:.0f}-45 deg towards each side"
+            )
+        warnings.append(
+            f"the focal length is poorly constrained: {', '.join(loose)}, more than {MAX_FOCAL_STD:.0%}: {advice}"
+        )
     lens = _lens_problem(calib, _radii(calib, views)[1])
     if lens:
-        warnings.append(f"the image corners lie beyond the outermost board corner seen and the lens model fails "
-                        f"there: {lens}; add views with the board near the image corners")
+        warnings.append(
+            f"the image corners lie beyond the outermost board corner seen and the lens model fails "
+            f"there: {lens}; add views with the board near the image corners"
+        )
     empty = empty_image_cells(views, (calib.width, calib.height))
     if empty:
-        warnings.append(f"corner coverage of the image is poor, so the lens distortion there is poorly constrained: "
-                        f"no corner was seen in the {', '.join(empty)} of the image; add views with the board "
-                        "near those image borders and corners")
+        warnings.append(
+            f"corner coverage of the image is poor, so the lens distortion there is poorly constrained: "
+            f"no corner was seen in the {', '.join(empty)} of the image; add views with the board "
+            "near those image borders and corners"
+        )
     return warnings
 
 
-def calibrate_intrinsics(images: Sequence[np.ndarray], board_spec: BoardSpec = CharucoBoardSpec(),
-                         names: Sequence[str] | None = None, min_corners: int = 8,
-                         distortion: str = "opencv5") -> CameraCalibration:
+def calibrate_intrinsics(
+    images: Sequence[np.ndarray],
+    board_spec: BoardSpec = CharucoBoardSpec(),
+    names: Sequence[str] | None = None,
+    min_corners: int = 8,
+    distortion: str = "opencv5",
+) -> CameraCalibration:
     """Intrinsics and distortion from board images (RGB or gray): :func:`detect_board_views`, :func:`calibrate_views`."""
     names = list(names) if names is not None else [f"image {i}" for i in range(len(images))]
     views, size = detect_board_views(images, board_spec, names, min_corners)
@@ -549,13 +635,15 @@ class BoardPose(NamedTuple):
     position_std_m: float  # the camera position's standard deviation (3D, metres) from the PnP's covariance
 
 
-def board_pose(image: np.ndarray, board_spec: BoardSpec, K_opencv: np.ndarray, dist=None,
-               min_corners: int = 6) -> BoardPose:
+def board_pose(
+    image: np.ndarray, board_spec: BoardSpec, K_opencv: np.ndarray, dist=None, min_corners: int = 6
+) -> BoardPose:
     """Camera pose in the world (board) frame by PnP, with its reprojection error and uncertainty."""
     obj, img = board_spec.detect(image)
     if len(obj) < min_corners:
-        raise CameraError("wrist camera", f"board not found: {len(obj)} corners of the {board_spec.describe()} "
-                                          f"(< {min_corners})")
+        raise CameraError(
+            "wrist camera", f"board not found: {len(obj)} corners of the {board_spec.describe()} (< {min_corners})"
+        )
     dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=np.float64)
     ok, rvec, tvec = cv2.solvePnP(obj, img, K_opencv, dist, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok:
@@ -566,8 +654,9 @@ def board_pose(image: np.ndarray, board_spec: BoardSpec, K_opencv: np.ndarray, d
     rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
     R, dR = cv2.Rodrigues(rvec)  # dR [3, 9]: d vec(R) / d r_i, row-major
     T_cam_board = make_pose(R, tvec.ravel())
-    return BoardPose(T_WORLD_BOARD @ invert_pose(T_cam_board), rms, len(obj),
-                     _position_std(residuals, J[:, :6], R, dR, tvec.ravel()))
+    return BoardPose(
+        T_WORLD_BOARD @ invert_pose(T_cam_board), rms, len(obj), _position_std(residuals, J[:, :6], R, dR, tvec.ravel())
+    )
 
 
 def _position_std(residuals: np.ndarray, J: np.ndarray, R: np.ndarray, dR: np.ndarray, t: np.ndarray) -> float:
@@ -602,8 +691,9 @@ def hand_eye_calibration(T_base_hand: Sequence[np.ndarray], T_world_cam: Sequenc
     from scipy.spatial.transform import Rotation
 
     if len(T_base_hand) != len(T_world_cam) or len(T_base_hand) < 3:
-        raise InvalidInputError(f"hand_eye_calibration: need >= 3 matching pose pairs, got "
-                                f"{len(T_base_hand)} and {len(T_world_cam)}")
+        raise InvalidInputError(
+            f"hand_eye_calibration: need >= 3 matching pose pairs, got {len(T_base_hand)} and {len(T_world_cam)}"
+        )
     hands = [np.asarray(T, dtype=np.float64) for T in T_base_hand]
     cams = [np.asarray(T, dtype=np.float64) for T in T_world_cam]
     alphas, betas, motions = [], [], []
@@ -629,15 +719,34 @@ def hand_eye_calibration(T_base_hand: Sequence[np.ndarray], T_world_cam: Sequenc
 class WristCamera:
     """The wrist camera implementing the ``Camera`` Protocol: undistorted RGB frames and ``K`` of those frames."""
 
-    def __init__(self, source: int | str, calibration: CameraCalibration | str | Path, *, fps: float | None = None,
-                 fourcc: str | None = None, timeout_s: float = 2.0, capture_factory=cv2.VideoCapture):
-        self.calibration = calibration if isinstance(calibration, CameraCalibration) else CameraCalibration.load(calibration)
+    def __init__(
+        self,
+        source: int | str,
+        calibration: CameraCalibration | str | Path,
+        *,
+        fps: float | None = None,
+        fourcc: str | None = None,
+        timeout_s: float = 2.0,
+        capture_factory=cv2.VideoCapture,
+    ):
+        self.calibration = (
+            calibration if isinstance(calibration, CameraCalibration) else CameraCalibration.load(calibration)
+        )
         c = self.calibration
         self._K_new_opencv = c.undistorted_K_opencv()
-        self._maps = cv2.initUndistortRectifyMap(c.K_opencv, c.dist, None, self._K_new_opencv,
-                                                 (c.width, c.height), cv2.CV_16SC2)
-        self._video = VideoReader(source, width=c.width, height=c.height, fps=fps, fourcc=fourcc,
-                                  timeout_s=timeout_s, name="wrist camera", capture_factory=capture_factory)
+        self._maps = cv2.initUndistortRectifyMap(
+            c.K_opencv, c.dist, None, self._K_new_opencv, (c.width, c.height), cv2.CV_16SC2
+        )
+        self._video = VideoReader(
+            source,
+            width=c.width,
+            height=c.height,
+            fps=fps,
+            fourcc=fourcc,
+            timeout_s=timeout_s,
+            name="wrist camera",
+            capture_factory=capture_factory,
+        )
 
     @property
     def K(self) -> np.ndarray:

@@ -6,8 +6,19 @@ loads no torch)::
     from tacsplat.reconstruction import TrainConfig, method_config, reconstruct, rasterization
 """
 
-__all__ = ["rasterization", "TrainConfig", "METHODS", "method_config", "Trainer", "reconstruct", "evaluate_run",
-           "Gaussians", "load_ply", "save_ply", "load_run"]
+__all__ = [
+    "rasterization",
+    "TrainConfig",
+    "METHODS",
+    "method_config",
+    "Trainer",
+    "reconstruct",
+    "evaluate_run",
+    "Gaussians",
+    "load_ply",
+    "save_ply",
+    "load_run",
+]
 
 
 def __getattr__(name: str):

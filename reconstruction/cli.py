@@ -11,15 +11,24 @@ from pathlib import Path
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    cli.command("reconstruct", help="tactile-informed 3DGS: train on a scene directory and evaluate",
-                own_options=True).set_defaults(func=_reconstruct)
+    cli.command(
+        "reconstruct", help="tactile-informed 3DGS: train on a scene directory and evaluate", own_options=True
+    ).set_defaults(func=_reconstruct)
 
     e = cli.command("evaluate", help="evaluate a reconstruction run: PSNR, SSIM, Chamfer distance, renders")
     e.add_argument("run", help="run directory written by `tacsplat reconstruct`")
-    e.add_argument("--gt-mesh", default=None, metavar="PATH",
-                   help="ground-truth mesh or point cloud (for imported scenes without gt/)")
-    e.add_argument("--backend", default=None, choices=("auto", "torch", "cpu", "gsplat"),
-                   help="rasterization backend (default: the run's)")
+    e.add_argument(
+        "--gt-mesh",
+        default=None,
+        metavar="PATH",
+        help="ground-truth mesh or point cloud (for imported scenes without gt/)",
+    )
+    e.add_argument(
+        "--backend",
+        default=None,
+        choices=("auto", "torch", "cpu", "gsplat"),
+        help="rasterization backend (default: the run's)",
+    )
     e.set_defaults(func=_evaluate)
 
 
@@ -32,15 +41,37 @@ def _reconstruct(args) -> int:
     refuse_unwritable("--out", command.out)
     command.train.torch_device()
     try:
-        metrics = reconstruct(command.scene, command.out, command.train, resume=command.resume, show_progress=True,
-                              overwrite=command.overwrite,
-                              resumed=lambda recorded: resumed(args.rest, recorded, command.out))
+        metrics = reconstruct(
+            command.scene,
+            command.out,
+            command.train,
+            resume=command.resume,
+            show_progress=True,
+            overwrite=command.overwrite,
+            resumed=lambda recorded: resumed(args.rest, recorded, command.out),
+        )
     except TrainingInterrupted as stop:
         again = shlex.join(["tacsplat", "reconstruct", str(command.scene), "--out", str(command.out), "--resume"])
         print(f"{stop}; continue with:\n  {again}", file=sys.stderr)
         return 128 + stop.signum
-    print(json.dumps({k: metrics[k] for k in ("method", "cd", "psnr", "ssim", "train_seconds", "iterations",
-                                              "num_gaussians", "num_touch_gaussians")}, indent=2))
+    print(
+        json.dumps(
+            {
+                k: metrics[k]
+                for k in (
+                    "method",
+                    "cd",
+                    "psnr",
+                    "ssim",
+                    "train_seconds",
+                    "iterations",
+                    "num_gaussians",
+                    "num_touch_gaussians",
+                )
+            },
+            indent=2,
+        )
+    )
     return 0
 
 

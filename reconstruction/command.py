@@ -59,12 +59,16 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
     if recorded is None:
         base = method_config(given.method or DEFAULT_METHOD)
     else:
-        base = set_fields(copy.deepcopy(recorded),
-                          get_method(given.method).overrides if given.method else {})
+        base = set_fields(copy.deepcopy(recorded), get_method(given.method).overrides if given.method else {})
     if given.config is not None:
         set_fields(base, read_settings(given.config), given.config)
-    default = ReconstructCommand(scene=tyro.MISSING, out=tyro.MISSING, method=given.method or DEFAULT_METHOD,
-                                 config=None if given.config is None else Path(given.config), train=base)
+    default = ReconstructCommand(
+        scene=tyro.MISSING,
+        out=tyro.MISSING,
+        method=given.method or DEFAULT_METHOD,
+        config=None if given.config is None else Path(given.config),
+        train=base,
+    )
     shown, errors = io.StringIO(), io.StringIO()
     try:
         with contextlib.redirect_stdout(shown), contextlib.redirect_stderr(errors):
@@ -117,12 +121,18 @@ def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:
     raise --iterations; a ConfigError on --resume naming each other option that differs."""
     given = parse(argv, recorded).train
     names = option_names(given)
-    changes = [f"{names.get(path, path)} {before!r} in the run, {now!r} given"
-               for path, before, now in changed_settings(recorded, given) if path != "iterations"]
+    changes = [
+        f"{names.get(path, path)} {before!r} in the run, {now!r} given"
+        for path, before, now in changed_settings(recorded, given)
+        if path != "iterations"
+    ]
     if changes and method_of(recorded) != method_of(given):
         changes.insert(0, f"--method {method_of(recorded)} in the run, {method_of(given)} given")
     if changes:
-        raise ConfigError("--resume", f"{out} was trained with other settings than this command line gives "
-                          f"({'; '.join(changes)}): a resumed run keeps its own settings (only --iterations may "
-                          "raise its step count); leave those options out, or train into a new --out")
+        raise ConfigError(
+            "--resume",
+            f"{out} was trained with other settings than this command line gives "
+            f"({'; '.join(changes)}): a resumed run keeps its own settings (only --iterations may "
+            "raise its step count); leave those options out, or train into a new --out",
+        )
     return given

@@ -207,8 +207,11 @@ class TrainConfig:
             return torch.device("cpu")
         if not torch.cuda.is_available():
             build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"
-            raise ConfigError("device", f"cuda was asked for but torch {torch.__version__} ({build}) sees no CUDA "
-                              "device; use --device cpu, or install a CUDA build of torch and gsplat (README: GPU)")
+            raise ConfigError(
+                "device",
+                f"cuda was asked for but torch {torch.__version__} ({build}) sees no CUDA "
+                "device; use --device cpu, or install a CUDA build of torch and gsplat (README: GPU)",
+            )
         return torch.device("cuda")
 
     def to_json(self) -> dict:
@@ -239,8 +242,9 @@ class TrainConfig:
         return config
 
 
-def changed_settings(recorded: TrainConfig, now: TrainConfig, fields: Iterable[str] | None = None
-                     ) -> list[tuple[str, object, object]]:
+def changed_settings(
+    recorded: TrainConfig, now: TrainConfig, fields: Iterable[str] | None = None
+) -> list[tuple[str, object, object]]:
     """``(field, recorded value, value now)`` for each setting of ``fields`` (dotted paths such as
     ``densify.max_gaussians``; None: every one) that differs, the settings of a mechanism both configs switch off
     aside (:meth:`TrainConfig.unused_fields`)."""
@@ -263,8 +267,14 @@ def flat_settings(settings: dict, prefix: str = "") -> dict:
 
 # Fields a config.json written before they existed leaves out, with the value such a run trained with (where that
 # differs from today's default): no surface-normal losses, and the colour was unlit SH without a smooth albedo.
-_BEFORE_THEY_EXISTED = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0,
-                        "appearance": "sh", "lambda_albedo_smoothness": 0.0, "albedo_smoothness_beta": 0.0}
+_BEFORE_THEY_EXISTED = {
+    "lambda_flatten": 0.0,
+    "lambda_depth_normal": 0.0,
+    "lambda_touch_normal": 0.0,
+    "appearance": "sh",
+    "lambda_albedo_smoothness": 0.0,
+    "albedo_smoothness_beta": 0.0,
+}
 _INIT_BEFORE_THEY_EXISTED = {"colors_from_views": False}  # ... and of its InitConfig: random initial colours
 
 # Fields of mechanisms measured not to help and removed (docs/experiments.md, "Removed"): a config.json that has
@@ -278,35 +288,71 @@ def _drop_removed(data: dict, source) -> None:
     """Remove from ``data`` the fields of removed mechanisms; a ConfigError if it switched one of them on."""
     for key, off in _REMOVED_OFF.items():
         if data.pop(key, off) != off:
-            raise ConfigError(key, "this run used a mechanism tacsplat no longer has (measured not to help: "
-                              "docs/experiments.md); reconstruct the scene again", source)
+            raise ConfigError(
+                key,
+                "this run used a mechanism tacsplat no longer has (measured not to help: "
+                "docs/experiments.md); reconstruct the scene again",
+                source,
+            )
     if data.get("appearance") in _REMOVED_APPEARANCES:
-        raise ConfigError("appearance", f"this run used the {data['appearance']!r} appearance, which tacsplat no "
-                          "longer has (measured not to help: docs/experiments.md); reconstruct the scene again",
-                          source)
+        raise ConfigError(
+            "appearance",
+            f"this run used the {data['appearance']!r} appearance, which tacsplat no "
+            "longer has (measured not to help: docs/experiments.md); reconstruct the scene again",
+            source,
+        )
     for key in _REMOVED_SETTINGS:
         data.pop(key, None)
     if "lr_env_map" in data:  # the light's rate, named after the environment map it was shared with
         data.setdefault("lr_light", data.pop("lr_env_map"))
 
+
 # Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
 _INT_RANGES = {
-    "iterations": (1, None), "seed": (0, 2**32 - 1), "downscale": (1, 64), "sh_degree": (0, 3), "sh_degree_interval": (0, None),
-    "train_views": (1, None), "torch_threads": (1, None), "touch_top_k": (1, None), "touch_candidates": (1, None),
-    "touch_rebuild_every": (1, None), "touch_points_per_step": (0, None), "eval_every_iters": (1, None),
-    "eval_max_views": (1, None), "checkpoint_every": (1, None), "smoothness_start_iter": (0, None),
-    "depth_normal_start_iter": (0, None), "lit_start_iter": (0, None),
-}  # fmt: skip
+    "iterations": (1, None),
+    "seed": (0, 2**32 - 1),
+    "downscale": (1, 64),
+    "sh_degree": (0, 3),
+    "sh_degree_interval": (0, None),
+    "train_views": (1, None),
+    "torch_threads": (1, None),
+    "touch_top_k": (1, None),
+    "touch_candidates": (1, None),
+    "touch_rebuild_every": (1, None),
+    "touch_points_per_step": (0, None),
+    "eval_every_iters": (1, None),
+    "eval_max_views": (1, None),
+    "checkpoint_every": (1, None),
+    "smoothness_start_iter": (0, None),
+    "depth_normal_start_iter": (0, None),
+    "lit_start_iter": (0, None),
+}
 _OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
 _FLOAT_RANGES = {
-    "ssim_weight": (0.0, 1.0), "lambda_t": (0.0, None), "lambda_s": (0.0, None), "lambda_backdrop": (0.0, None),
-    "backdrop_tolerance": (0.0, None), "touch_max_distance": (0.0, None), "smoothness_beta": (0.0, None),
-    "proximity_sigma_px": (0.0, None), "occlusion_tolerance": (0.0, None), "lr_means": (0.0, None),
-    "lr_means_final_factor": (0.0, 1.0), "lr_quats": (0.0, None), "lr_scales": (0.0, None),
-    "lr_opacities": (0.0, None), "lr_sh0": (0.0, None), "lr_shN": (0.0, None), "lr_light": (0.0, None), "eval_every_seconds": (0.0, None),
-    "lambda_flatten": (0.0, None), "lambda_depth_normal": (0.0, None), "lambda_touch_normal": (0.0, None),
-    "lambda_albedo_smoothness": (0.0, None), "albedo_smoothness_beta": (0.0, None),
-}  # fmt: skip
+    "ssim_weight": (0.0, 1.0),
+    "lambda_t": (0.0, None),
+    "lambda_s": (0.0, None),
+    "lambda_backdrop": (0.0, None),
+    "backdrop_tolerance": (0.0, None),
+    "touch_max_distance": (0.0, None),
+    "smoothness_beta": (0.0, None),
+    "proximity_sigma_px": (0.0, None),
+    "occlusion_tolerance": (0.0, None),
+    "lr_means": (0.0, None),
+    "lr_means_final_factor": (0.0, 1.0),
+    "lr_quats": (0.0, None),
+    "lr_scales": (0.0, None),
+    "lr_opacities": (0.0, None),
+    "lr_sh0": (0.0, None),
+    "lr_shN": (0.0, None),
+    "lr_light": (0.0, None),
+    "eval_every_seconds": (0.0, None),
+    "lambda_flatten": (0.0, None),
+    "lambda_depth_normal": (0.0, None),
+    "lambda_touch_normal": (0.0, None),
+    "lambda_albedo_smoothness": (0.0, None),
+    "albedo_smoothness_beta": (0.0, None),
+}
 _POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
 
 
@@ -320,8 +366,13 @@ def _range_text(lo, hi, exclusive: bool = False) -> str:
 
 PAPER_ITERATIONS = 30_000
 PAPER_SCHEDULE = Path(__file__).with_name("paper_schedule.yaml")  # the official code's schedule, cited line by line
-_STEP_SETTINGS = ("smoothness_start_iter", "densify.start_iter", "densify.stop_iter", "densify.refine_every",
-                  "densify.reset_every")  # the step numbers of the paper schedule that scale with its iterations
+_STEP_SETTINGS = (
+    "smoothness_start_iter",
+    "densify.start_iter",
+    "densify.stop_iter",
+    "densify.refine_every",
+    "densify.reset_every",
+)  # the step numbers of the paper schedule that scale with its iterations
 
 
 def set_fields(config: TrainConfig, settings: dict, source: str | Path | None = None) -> TrainConfig:
@@ -373,23 +424,35 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
     """What still differs from the paper's official runs for ``config`` (one line each)."""
     lines = []
     if config.lambda_flatten > 0 or config.lambda_depth_normal > 0 or config.lambda_touch_normal > 0:
-        lines.append("surface normals (flattening, depth-normal consistency, tactile normals): not in the paper (its "
-                     "method is `paper`)")
+        lines.append(
+            "surface normals (flattening, depth-normal consistency, tactile normals): not in the paper (its "
+            "method is `paper`)"
+        )
     if config.appearance != "sh":
-        lines.append("sh-lit appearance: the view-dependent SH colour shaded by a learned light at the rendered "
-                     "normals; not in the paper")
+        lines.append(
+            "sh-lit appearance: the view-dependent SH colour shaded by a learned light at the rendered "
+            "normals; not in the paper"
+        )
     if config.appearance != "sh" and config.lambda_albedo_smoothness > 0:
-        lines.append(f"smooth albedo (lambda_albedo_smoothness {config.lambda_albedo_smoothness}, pairs weighted by the "
-                     f"image with albedo_smoothness_beta {config.albedo_smoothness_beta}); not in the paper")
+        lines.append(
+            f"smooth albedo (lambda_albedo_smoothness {config.lambda_albedo_smoothness}, pairs weighted by the "
+            f"image with albedo_smoothness_beta {config.albedo_smoothness_beta}); not in the paper"
+        )
     if config.init.use_silhouette_hull:
-        lines.append("initialisation: G_c on the visual hull of the silhouettes when SfM finds too few points (the "
-                     "official data preparation triangulates COLMAP points from the train and test images)")
+        lines.append(
+            "initialisation: G_c on the visual hull of the silhouettes when SfM finds too few points (the "
+            "official data preparation triangulates COLMAP points from the train and test images)"
+        )
     if config.init.colors_from_views and (config.use_touch or config.init.use_silhouette_hull):
-        lines.append("initial colours of the touch Gaussians (and of a failed SfM's points) from the training pixels "
-                     "they project to; the paper: random")
+        lines.append(
+            "initial colours of the touch Gaussians (and of a failed SfM's points) from the training pixels "
+            "they project to; the paper: random"
+        )
     if config.lambda_backdrop > 0:
-        lines.append(f"backdrop alpha loss (lambda_backdrop {config.lambda_backdrop}) on pixels showing the fitted "
-                     "backdrop; not in the paper")
+        lines.append(
+            f"backdrop alpha loss (lambda_backdrop {config.lambda_backdrop}) on pixels showing the fitted "
+            "backdrop; not in the paper"
+        )
     if config.smoothness_depth != "accumulated":
         lines.append("edge-aware smoothness on the expected depth inside the silhouette (the paper: accumulated depth)")
     if config.background is None:
@@ -397,19 +460,28 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
     if resolution is not None and resolution != 800:
         lines.append(f"resolution {resolution} px (the paper: 800 px)")
     if config.iterations != PAPER_ITERATIONS:
-        lines.append(f"{config.iterations} steps (the paper: {PAPER_ITERATIONS}; step-based numbers scaled)"
-                     if config.smoothness_start_iter else f"{config.iterations} steps and our schedule (the paper: "
-                     f"{PAPER_ITERATIONS} steps, smoothness from step 20000, densification until 15000)")
+        lines.append(
+            f"{config.iterations} steps (the paper: {PAPER_ITERATIONS}; step-based numbers scaled)"
+            if config.smoothness_start_iter
+            else f"{config.iterations} steps and our schedule (the paper: "
+            f"{PAPER_ITERATIONS} steps, smoothness from step 20000, densification until 15000)"
+        )
     if touch_model != "paper":
-        lines.append("touches: gel contact patches of simulated grasps (the paper: 50 surface samples around the "
-                     "furthest hit of a random ray from the centroid, anywhere on the object)")
-    lines.append("no clipping of depth gradients at +-5 and no second opacity-based pruning at step 5000 (official "
-                 "code details not reproduced)")
+        lines.append(
+            "touches: gel contact patches of simulated grasps (the paper: 50 surface samples around the "
+            "furthest hit of a random ray from the centroid, anywhere on the object)"
+        )
+    lines.append(
+        "no clipping of depth gradients at +-5 and no second opacity-based pruning at step 5000 (official "
+        "code details not reproduced)"
+    )
     return lines
 
 
-PRESETS = {"default": lambda iterations=None: {} if iterations is None else {"iterations": iterations},
-           "paper": paper_schedule}  # the benchmarks' --preset
+PRESETS = {
+    "default": lambda iterations=None: {} if iterations is None else {"iterations": iterations},
+    "paper": paper_schedule,
+}  # the benchmarks' --preset
 
 
 def preset_config(name: str, iterations: int | None = None) -> TrainConfig:

@@ -62,8 +62,9 @@ class DensifyStrategy:
     """growth stops at this count (keeps CPU iterations fast)"""
 
     def initialize_state(self, num_gaussians: int, scene_scale: float, device=None) -> DensifyState:
-        return DensifyState(scene_scale, torch.zeros(num_gaussians, device=device),
-                            torch.zeros(num_gaussians, device=device))
+        return DensifyState(
+            scene_scale, torch.zeros(num_gaussians, device=device), torch.zeros(num_gaussians, device=device)
+        )
 
     def step_pre_backward(self, meta: dict) -> None:
         """Ask autograd to keep ``meta["means2d"].grad``."""

@@ -10,8 +10,8 @@ when there is one, else of the ground-truth cloud).
 from __future__ import annotations
 
 import json
-import math
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,20 +24,20 @@ from tacsplat.files import atomic_write, storage_error
 from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.gaussians import Gaussians
-from tacsplat.reconstruction.ply import save_ply
-from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.methods import mechanisms, method_of
 from tacsplat.reconstruction.metrics import (
-    bounding_sphere_radius,
     ReferenceCloud,
+    bounding_sphere_radius,
     chamfer_distance_parts,
     chamfer_terms_paper,
     depth_to_points,
     psnr,
     ssim,
 )
+from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import load_run
+from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.views import background_image, camera_tensors, mesh_depth, scene_at, training_frames
 
 log = logging.getLogger(__name__)
@@ -60,16 +60,33 @@ class FrameRender:
 
 
 @torch.no_grad()
-def render_frame(gaussians: Gaussians, frame, background: torch.Tensor, backend: str, with_depth: bool = True,
-                 with_normals: bool = False, look: Look | None = None) -> FrameRender:
+def render_frame(
+    gaussians: Gaussians,
+    frame,
+    background: torch.Tensor,
+    backend: str,
+    with_depth: bool = True,
+    with_normals: bool = False,
+    look: Look | None = None,
+) -> FrameRender:
     """One view of ``gaussians`` (``look``: their appearance, default SH); ``background`` [H, W, 3] is the view's
     backdrop (see :func:`background_image`)."""
     look = look or Look()
     viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
     intr = frame.intrinsics
-    out = shading.render(gaussians, viewmat, K, intr.width, intr.height, sh_degree=gaussians.sh_degree,
-                         backend=backend, depth_mode="ED" if with_depth else None, normals=with_normals,
-                         appearance=look.appearance, light=look.light)
+    out = shading.render(
+        gaussians,
+        viewmat,
+        K,
+        intr.width,
+        intr.height,
+        sh_degree=gaussians.sh_degree,
+        backend=backend,
+        depth_mode="ED" if with_depth else None,
+        normals=with_normals,
+        appearance=look.appearance,
+        light=look.light,
+    )
     alpha = out.alpha.cpu()
     rgb = (out.rgb.cpu() + (1.0 - alpha[..., None]) * background.cpu()).clamp(0, 1).numpy()
     drawn = alpha.numpy() > ALPHA_MASK_THRESHOLD
@@ -92,10 +109,19 @@ def render_median_depth(gaussians: Gaussians, frame, backend: str) -> np.ndarray
     """Median depth [H, W] of a view (the paper's evaluation depth; 0 where the transmittance stays >= 0.5)."""
     viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
     depth, _, _ = raster.rasterization(
-        gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
-        gaussians.sh_coefficients(), viewmat, K, frame.intrinsics.width, frame.intrinsics.height,
-        sh_degree=gaussians.sh_degree, render_mode="MD", backend=backend,
-    )  # fmt: skip
+        gaussians.means,
+        gaussians.quats,
+        gaussians.scales,
+        gaussians.opacities,
+        gaussians.sh_coefficients(),
+        viewmat,
+        K,
+        frame.intrinsics.width,
+        frame.intrinsics.height,
+        sh_degree=gaussians.sh_degree,
+        render_mode="MD",
+        backend=backend,
+    )
     return depth[0, ..., 0].cpu().numpy().astype(np.float32)
 
 
@@ -123,7 +149,9 @@ class GroundTruth:
         if key not in self._references:
             cloud = self.surface if key is None else self.cloud(list(key))
             empty = cloud is None or len(cloud) == 0
-            self._references[key] = None if empty else ReferenceCloud(cloud, self.radius, f"ground truth ({self.source})")
+            self._references[key] = (
+                None if empty else ReferenceCloud(cloud, self.radius, f"ground truth ({self.source})")
+            )
         return self._references[key]
 
     def seen_mask(self, frame_ids: list[int]) -> np.ndarray | None:
@@ -146,22 +174,30 @@ def seen_by_cameras(mesh, points: dict[int, np.ndarray], cameras: list, radius: 
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = (p @ world_to_camera[0, :3] + world_to_camera[0, 3]) / z * K[0, 0] + K[0, 2]
                 v = (p @ world_to_camera[1, :3] + world_to_camera[1, 3]) / z * K[1, 1] + K[1, 2]
-            candidates = np.flatnonzero((z > 0) & (u >= 0) & (v >= 0) & (u < camera.intrinsics.width)
-                                        & (v < camera.intrinsics.height) & ~seen[i])
+            candidates = np.flatnonzero(
+                (z > 0)
+                & (u >= 0)
+                & (v >= 0)
+                & (u < camera.intrinsics.width)
+                & (v < camera.intrinsics.height)
+                & ~seen[i]
+            )
             if not len(candidates):
                 continue
             towards = p[candidates] - centre  # [K, 3]
             distance = np.linalg.norm(towards, axis=1)
-            hits, ray, _ = mesh.ray.intersects_location(np.broadcast_to(centre, towards.shape),
-                                                        towards / distance[:, None], multiple_hits=False)
+            hits, ray, _ = mesh.ray.intersects_location(
+                np.broadcast_to(centre, towards.shape), towards / distance[:, None], multiple_hits=False
+            )
             first = np.full(len(candidates), np.inf)
             first[ray] = np.linalg.norm(hits - centre, axis=1)
             seen[i][candidates] = first >= distance - SEEN_TOLERANCE * radius
     return seen
 
 
-def load_ground_truth(scene, frames: list, gt_path: str | Path | None = None,
-                      train_frames: list | None = None) -> GroundTruth | None:
+def load_ground_truth(
+    scene, frames: list, gt_path: str | Path | None = None, train_frames: list | None = None
+) -> GroundTruth | None:
     """The CD ground truth of ``frames``: from ``gt_path`` (mesh or point cloud) or the scene's gt/; None if absent.
     With ``train_frames`` and a mesh, it also marks which points those cameras see (:func:`seen_by_cameras`)."""
     import trimesh
@@ -262,8 +298,15 @@ def evaluate_views(
             predicted_median.append(depth_to_points(median, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
             seen = None if ground_truth is None or ground_truth.seen is None else ground_truth.seen.get(f.id)
-            save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth,
-                            None if ground_truth is None else ground_truth.radius, seen)
+            save_comparison(
+                render_dir / f"view_{f.id:04d}.png",
+                rgb,
+                gt_rgb,
+                depth,
+                gt_depth,
+                None if ground_truth is None else ground_truth.radius,
+                seen,
+            )
     cd = accuracy = completeness = cd_seen = cd_unseen = unseen_fraction = float("nan")
     reference = None if ground_truth is None else ground_truth.reference([f.id for f in frames])
     if reference is not None:
@@ -286,7 +329,9 @@ def evaluate_views(
         "cd_seen": cd_seen,  # cd on the test views' surface that a training camera sees ...
         "cd_unseen": cd_unseen,  # ... and on the rest
         "unseen_fraction": unseen_fraction,
-        "normal_error_deg": float(np.mean(np.concatenate(angles))) if angles and sum(map(len, angles)) else float("nan"),
+        "normal_error_deg": float(np.mean(np.concatenate(angles)))
+        if angles and sum(map(len, angles))
+        else float("nan"),
         "depth_bias": float(np.median(np.concatenate(signed))) if sum(map(len, signed)) else float("nan"),
     }
 
@@ -335,8 +380,9 @@ def _seen_color(gt_depth: np.ndarray, seen: np.ndarray) -> np.ndarray:
     return image
 
 
-def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | None = None,
-                    seen: np.ndarray | None = None) -> None:
+def save_comparison(
+    path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | None = None, seen: np.ndarray | None = None
+) -> None:
     """One PNG: top row rendered RGB | GT RGB | signed depth error (``_error_color``, saturating at
     ``ERROR_SCALE`` radii), bottom row rendered depth | GT depth (shared colour scale) | where training cameras
     see the surface (``_seen_color``); the third column is black where its input is missing."""
@@ -350,8 +396,7 @@ def save_comparison(path: Path, rgb, gt_rgb, depth, gt_depth, radius: float | No
     seen_image = None if gt_depth is None or seen is None else seen_pixels(gt_depth, seen)
     if seen_image is not None:
         coverage = _seen_color(gt_depth, seen_image)
-    top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8), error],
-                         axis=1)
+    top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8), error], axis=1)
     bottom = np.concatenate(
         [_depth_color(depth, lo, hi), blank if gt_depth is None else _depth_color(gt_depth, lo, hi), coverage],
         axis=1,
@@ -380,13 +425,23 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     splat = bake_appearance(run.gaussians, run.look)
     if splat is not run.gaussians and (Path(run_dir) / "splat.ply").is_file():  # (an SH run's is already right)
         save_ply(splat, Path(run_dir) / "splat.ply")
-    return evaluate_reconstruction(run.gaussians, scene, run.config, run.step,
-                                   run.train_seconds, run_dir, gt_path, backend, run.look, splat)
+    return evaluate_reconstruction(
+        run.gaussians, scene, run.config, run.step, run.train_seconds, run_dir, gt_path, backend, run.look, splat
+    )
 
 
-def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, train_seconds: float,
-                            run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None,
-                            look: Look | None = None, splat: Gaussians | None = None) -> dict:
+def evaluate_reconstruction(
+    gaussians: Gaussians,
+    scene,
+    config,
+    step: int,
+    train_seconds: float,
+    run_dir: str | Path,
+    gt_path: str | Path | None = None,
+    backend: str | None = None,
+    look: Look | None = None,
+    splat: Gaussians | None = None,
+) -> dict:
     """Evaluate Gaussians on a scene's test views (``psnr_splat``: the PSNR of what ``splat.ply`` shows a plain
     3DGS renderer, ``splat`` when the caller has baked it, :func:`.baking.bake_appearance` of ``gaussians`` and
     ``look`` otherwise): writes ``metrics.json``, ``renders/`` and, for the sh-lit appearance, ``light.png`` (its
@@ -394,12 +449,14 @@ def evaluate_reconstruction(gaussians: Gaussians, scene, config, step: int, trai
     test = scene.split("test")
     backend = backend or config.backend
     ground_truth = load_ground_truth(scene, test, gt_path, train_frames=training_frames(scene, config.train_views))
-    metrics = evaluate_views(gaussians, scene, test, config.background, backend, ground_truth,
-                             Path(run_dir) / "renders", look)
+    metrics = evaluate_views(
+        gaussians, scene, test, config.background, backend, ground_truth, Path(run_dir) / "renders", look
+    )
     if look is not None and look.appearance != "sh":  # splat.ply holds the shading baked into SH
         splat = bake_appearance(gaussians, look) if splat is None else splat
-        metrics["psnr_splat"] = evaluate_views(splat, scene, test, config.background, backend, None,
-                                               progress=True)["psnr"]
+        metrics["psnr_splat"] = evaluate_views(splat, scene, test, config.background, backend, None, progress=True)[
+            "psnr"
+        ]
     else:
         metrics["psnr_splat"] = metrics["psnr"]  # splat.ply holds the Gaussians as they are
     if look is not None and look.light is not None:

@@ -199,12 +199,17 @@ class _DepthNormalConsistencyCPU(torch.autograd.Function):
         _consistency_backward(normal, depth, weight, rx, ry, float(grad) / ctx.denominator, v_normal, g_u, g_v)
         v_depth = np.empty(depth.shape, np.float64)
         _gather_depth(g_u, g_v, rx, ry, v_depth)
-        return (torch.from_numpy(v_normal.astype(normal.dtype)), torch.from_numpy(v_depth.astype(depth.dtype)),
-                None, None)
+        return (
+            torch.from_numpy(v_normal.astype(normal.dtype)),
+            torch.from_numpy(v_depth.astype(depth.dtype)),
+            None,
+            None,
+        )
 
 
-def depth_normal_consistency_cpu(normal: torch.Tensor, depth: torch.Tensor, K: torch.Tensor,
-                                 weight: torch.Tensor) -> torch.Tensor:
+def depth_normal_consistency_cpu(
+    normal: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, weight: torch.Tensor
+) -> torch.Tensor:
     """Depth-normal consistency of CPU tensors: rendered unit normals [H, W, 3], z-depth [H, W], intrinsics
     [3, 3], per-pixel weight [H, W] (no gradient); see :func:`.losses.normal_consistency_loss`."""
     return _DepthNormalConsistencyCPU.apply(normal, depth, K, weight)

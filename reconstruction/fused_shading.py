@@ -42,10 +42,20 @@ def _sh2(x, y, z, basis):
 @nb.njit(cache=True, inline="always")
 def _sh2_backward(x, y, z, g):
     """(d/dx, d/dy, d/dz) of sum_k g[k] basis_k(x, y, z)."""
-    gx = (-SH_C1 * g[3] + SH_C2[0] * y * g[4] - 2.0 * SH_C2[2] * x * g[6] + SH_C2[3] * z * g[7]
-          + 2.0 * SH_C2[4] * x * g[8])
-    gy = (-SH_C1 * g[1] + SH_C2[0] * x * g[4] + SH_C2[1] * z * g[5] - 2.0 * SH_C2[2] * y * g[6]
-          - 2.0 * SH_C2[4] * y * g[8])
+    gx = (
+        -SH_C1 * g[3]
+        + SH_C2[0] * y * g[4]
+        - 2.0 * SH_C2[2] * x * g[6]
+        + SH_C2[3] * z * g[7]
+        + 2.0 * SH_C2[4] * x * g[8]
+    )
+    gy = (
+        -SH_C1 * g[1]
+        + SH_C2[0] * x * g[4]
+        + SH_C2[1] * z * g[5]
+        - 2.0 * SH_C2[2] * y * g[6]
+        - 2.0 * SH_C2[4] * y * g[8]
+    )
     gz = SH_C1 * g[2] + SH_C2[1] * y * g[5] + 4.0 * SH_C2[2] * z * g[6] + SH_C2[3] * x * g[7]
     return gx, gy, gz
 
@@ -61,8 +71,9 @@ def _pixel(blended, alpha, floor, normal, K, rotation, coefficients, camera, lit
     cx, cy, cz = cx * ray, cy * ray, ray
     for k in range(3):
         state[_VIEW + k] = rotation[k, 0] * cx + rotation[k, 1] * cy + rotation[k, 2] * cz
-        state[_NORMAL + k] = (rotation[k, 0] * normal[i, j, 0] + rotation[k, 1] * normal[i, j, 1]
-                              + rotation[k, 2] * normal[i, j, 2])
+        state[_NORMAL + k] = (
+            rotation[k, 0] * normal[i, j, 0] + rotation[k, 1] * normal[i, j, 1] + rotation[k, 2] * normal[i, j, 2]
+        )
     vx, vy, vz = state[_VIEW], state[_VIEW + 1], state[_VIEW + 2]
     nx, ny, nz = state[_NORMAL], state[_NORMAL + 1], state[_NORMAL + 2]
     vn = vx * nx + vy * ny + vz * nz
@@ -106,8 +117,24 @@ def _forward(blended, alpha, floor, normal, K, rotation, coefficients, camera, l
 
 
 @nb.njit(parallel=True, cache=True)
-def _backward(blended, alpha, floor, rotation, coefficients, camera, lit, first, states, g_rgb, g_albedo, g_blended,
-              g_alpha, g_normal, g_coefficients, g_camera):
+def _backward(
+    blended,
+    alpha,
+    floor,
+    rotation,
+    coefficients,
+    camera,
+    lit,
+    first,
+    states,
+    g_rgb,
+    g_albedo,
+    g_blended,
+    g_alpha,
+    g_normal,
+    g_coefficients,
+    g_camera,
+):
     """Gradients per pixel into g_blended [H, W, 3], g_alpha [H, W], g_normal [H, W, 3] from the forward's
     ``states``; the SH coefficients' and the camera light's summed per row chunk into g_coefficients [C, 9, 3],
     g_camera [C, 3]."""
@@ -187,17 +214,43 @@ class _ShadeCPU(torch.autograd.Function):
         g_alpha = np.empty(alpha.shape, alpha.dtype)
         chunks = min(_CHUNKS, alpha.shape[0])
         g_coefficients, g_camera = np.zeros((chunks, 9, 3)), np.zeros((chunks, 3))
-        _backward(blended, alpha, ctx.floor, *ctx.fixed[1:], ctx.lit, *ctx.states, *g, g_blended, g_alpha, g_normal,
-                  g_coefficients, g_camera)
+        _backward(
+            blended,
+            alpha,
+            ctx.floor,
+            *ctx.fixed[1:],
+            ctx.lit,
+            *ctx.states,
+            *g,
+            g_blended,
+            g_alpha,
+            g_normal,
+            g_coefficients,
+            g_camera,
+        )
         g_coefficients = torch.from_numpy(g_coefficients.sum(0)).to(ctx.dtypes[0])
         g_camera = torch.from_numpy(g_camera.sum(0)).to(ctx.dtypes[1])
-        return (torch.from_numpy(g_blended), torch.from_numpy(g_alpha), torch.from_numpy(g_normal), None, None,
-                g_coefficients, g_camera, None)
+        return (
+            torch.from_numpy(g_blended),
+            torch.from_numpy(g_alpha),
+            torch.from_numpy(g_normal),
+            None,
+            None,
+            g_coefficients,
+            g_camera,
+            None,
+        )
 
 
-def shade_cpu(blended: torch.Tensor, alpha: torch.Tensor, normal: torch.Tensor, K: torch.Tensor,
-              rotation: torch.Tensor, coefficients: torch.Tensor | None, camera: torch.Tensor | None
-              ) -> tuple[torch.Tensor, torch.Tensor]:
+def shade_cpu(
+    blended: torch.Tensor,
+    alpha: torch.Tensor,
+    normal: torch.Tensor,
+    K: torch.Tensor,
+    rotation: torch.Tensor,
+    coefficients: torch.Tensor | None,
+    camera: torch.Tensor | None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(premultiplied RGB [H, W, 3], albedo [H, W, 3]) of CPU tensors: the blended albedo [H, W, 3], alpha
     [H, W], unit camera-frame normals [H, W, 3], the intrinsics [3, 3] and the camera-to-world ``rotation``
     [3, 3] (no gradient), and the diffuse light's SH ``coefficients`` [9, 3] and ``camera`` light [3] (None:

@@ -148,13 +148,16 @@ class _AlbedoSmoothnessCPU(torch.autograd.Function):
         return torch.from_numpy(v_albedo), None, None, None
 
 
-def albedo_smoothness_cpu(albedo: torch.Tensor, inside: torch.Tensor, across: torch.Tensor,
-                          down: torch.Tensor) -> torch.Tensor:
+def albedo_smoothness_cpu(
+    albedo: torch.Tensor, inside: torch.Tensor, across: torch.Tensor, down: torch.Tensor
+) -> torch.Tensor:
     """Weighted L1 differences of neighbouring pixels of a CPU ``albedo`` [H, W, 3] that are both ``inside``
     [H, W] bool, per pair inside (0 with no such pair), the pairs' weights ``across`` [H, W-1] and ``down``
     [H-1, W] (no gradient); see :func:`.losses.albedo_smoothness_loss`."""
     height, width = inside.shape
     if tuple(across.shape) != (height, width - 1) or tuple(down.shape) != (height - 1, width):
-        raise ValueError(f"albedo_smoothness_cpu: pair weights {tuple(across.shape)}, {tuple(down.shape)} do not fit "
-                         f"a {height}x{width} albedo")
+        raise ValueError(
+            f"albedo_smoothness_cpu: pair weights {tuple(across.shape)}, {tuple(down.shape)} do not fit "
+            f"a {height}x{width} albedo"
+        )
     return _AlbedoSmoothnessCPU.apply(albedo, inside, across, down)  # (forward's _np: detached, contiguous)

@@ -99,8 +99,11 @@ def _combine(x, y, blurred_partials, scale, out):
     for c in range(k):
         for i in range(x.shape[1]):
             for j in range(x.shape[2]):
-                out[c, i, j] = scale * (blurred_partials[c, i, j] + 2.0 * x[c, i, j] * blurred_partials[k + c, i, j]
-                                        + y[c, i, j] * blurred_partials[2 * k + c, i, j])  # fmt: skip
+                out[c, i, j] = scale * (
+                    blurred_partials[c, i, j]
+                    + 2.0 * x[c, i, j] * blurred_partials[k + c, i, j]
+                    + y[c, i, j] * blurred_partials[2 * k + c, i, j]
+                )
 
 
 @functools.lru_cache(maxsize=None)
@@ -147,8 +150,12 @@ def d_ssim(rendered: torch.Tensor, target: torch.Tensor, fused: bool = True) -> 
     """1 - mean SSIM of [H, W, C] or [B, H, W, C] images (the training loss's zero-padded map). The fused numba
     kernels for CPU tensors when ``fused`` (gradients to ``rendered`` only), :func:`.metrics.ssim_map` otherwise."""
     _check_images(rendered, target)
-    if (not fused or rendered.device.type != "cpu" or rendered.dtype not in (torch.float32, torch.float64)
-            or target.requires_grad):
+    if (
+        not fused
+        or rendered.device.type != "cpu"
+        or rendered.dtype not in (torch.float32, torch.float64)
+        or target.requires_grad
+    ):
         return 1.0 - ssim_map(rendered, target).mean()
     batched = rendered if rendered.ndim == 4 else rendered[None]
     return _DSSIMCPU.apply(batched, target.reshape(batched.shape).to(rendered.dtype))

@@ -153,8 +153,9 @@ def _normal_forward(points, normals_t, means, normals, opacities, candidates, ma
 
 
 @nb.njit(parallel=True, cache=True)
-def _normal_pair_gradients(points, normals_t, means, normals, opacities, candidates, max_d2, per_point,
-                           weight_sums, point_scale, rows):  # fmt: skip
+def _normal_pair_gradients(
+    points, normals_t, means, normals, opacities, candidates, max_d2, per_point, weight_sums, point_scale, rows
+):
     """rows[p, c] = d loss / d (Gaussian normal (3), opacity) of pair (p, c); the loss weighs T_n(p) by
     ``point_scale[p]``."""
     n_points, n_cand = candidates.shape
@@ -195,8 +196,7 @@ class _TransmittanceCPU(torch.autograd.Function):
         counts = chosen.sum(axis=1)
         scale_per_point = float(grad) / (len(counts) * np.maximum(counts, 1))  # d loss / d T(p) / count
         rows = np.empty(candidates.shape + (N_ROW,), np.float64)
-        _pair_gradients(points, means, quats, scales, opacities, candidates, chosen, scale_per_point, ctx.max_m,
-                        rows)  # fmt: skip
+        _pair_gradients(points, means, quats, scales, opacities, candidates, chosen, scale_per_point, ctx.max_m, rows)
         summed = np.zeros((len(means), N_ROW))
         _sum_rows(candidates, chosen, rows, summed)
         v = torch.from_numpy(summed.astype(means.dtype))
@@ -220,8 +220,19 @@ class _TouchNormalCPU(torch.autograd.Function):
     def backward(ctx, grad):
         points, touch_normals, means, normals, opacities, candidates = ctx.arrays
         rows = np.empty(candidates.shape + (4,))
-        _normal_pair_gradients(points, touch_normals, means, normals, opacities, candidates, ctx.max_d2,
-                               ctx.per_point, ctx.weight_sums, float(grad) * ctx.point_scale, rows)  # fmt: skip
+        _normal_pair_gradients(
+            points,
+            touch_normals,
+            means,
+            normals,
+            opacities,
+            candidates,
+            ctx.max_d2,
+            ctx.per_point,
+            ctx.weight_sums,
+            float(grad) * ctx.point_scale,
+            rows,
+        )
         summed = np.zeros((len(normals), 4))
         _sum_rows(candidates, candidates >= 0, rows, summed)
         v = torch.from_numpy(summed.astype(normals.dtype))
@@ -235,5 +246,6 @@ def touch_normal_cpu(points, touch_normals, means, normals, opacities, candidate
 
 def transmittance_cpu(points, means, quats, scales, opacities, candidates, top_k, max_distance, max_mahalanobis):
     """L_T of CPU tensors (see :func:`.losses.transmittance_loss`); the exponent clamped at ``max_mahalanobis``."""
-    return _TransmittanceCPU.apply(points, means, quats, scales, opacities, candidates, top_k, max_distance,
-                                   max_mahalanobis)  # fmt: skip
+    return _TransmittanceCPU.apply(
+        points, means, quats, scales, opacities, candidates, top_k, max_distance, max_mahalanobis
+    )

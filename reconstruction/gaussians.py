@@ -10,7 +10,6 @@ points, and their clones and splits); the rest form G_c.
 
 from __future__ import annotations
 
-
 import numpy as np
 import torch
 
@@ -39,9 +38,15 @@ def quats_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
     w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(quats.shape[:-1] + (3, 3))
@@ -68,8 +73,12 @@ class Gaussians:
             raise InvalidInputError(f"Gaussians: expected the parameters {list(PARAM_NAMES)}, got {list(params)}")
         n = params["means"].shape[0]
         expected = {
-            "means": (n, 3), "quats": (n, 4), "scales": (n, 3), "opacities": (n,),
-            "sh0": (n, 1, 3), "shN": (n, num_sh_bases(sh_degree) - 1, 3),
+            "means": (n, 3),
+            "quats": (n, 4),
+            "scales": (n, 3),
+            "opacities": (n,),
+            "sh0": (n, 1, 3),
+            "shN": (n, num_sh_bases(sh_degree) - 1, 3),
         }
         for name, shape in expected.items():
             if tuple(params[name].shape) != shape:

@@ -109,8 +109,12 @@ def sfm_points(
         extraction.sift.max_num_features = config.sift_max_features
         extraction.num_threads = 1  # single-threaded extraction and matching: deterministic
         pycolmap.extract_features(
-            database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
-            extraction_options=extraction, device=pycolmap.Device.cpu,
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
         )
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = 1
@@ -124,8 +128,11 @@ def sfm_points(
                 record = by_name[name]
                 height, width = np.asarray(image).shape[:2]
                 camera = pycolmap.Camera(
-                    model="PINHOLE", width=width, height=height,
-                    params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], camera_id=record.camera_id,
+                    model="PINHOLE",
+                    width=width,
+                    height=height,
+                    params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
+                    camera_id=record.camera_id,
                 )
                 db.update_camera(camera)  # the known intrinsics replace the extractor's guess
                 reconstruction.add_camera_with_trivial_rig(camera)

@@ -24,8 +24,9 @@ from tacsplat.reconstruction.fused_touch import touch_normal_cpu, transmittance_
 from tacsplat.reconstruction.gaussians import whitening
 
 
-def photometric_loss(rendered: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2,
-                     fused: bool = True) -> torch.Tensor:
+def photometric_loss(
+    rendered: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2, fused: bool = True
+) -> torch.Tensor:
     """(1 - w) L1 + w D-SSIM of [H, W, 3] (or [B, H, W, 3]) images, w = 0.2 (Kerbl et al., paper Sec. 3); D-SSIM
     by the fused CPU kernels of :mod:`.fused_ssim` for CPU tensors unless ``fused`` is False (the torch reference)."""
     l1 = (rendered - target).abs().mean()
@@ -131,8 +132,9 @@ def transmittance_loss(
     :func:`transmittance_loss_torch`; for CPU tensors the fused kernels of :mod:`.fused_touch` (same value and
     gradients, a tenth of the time) unless ``fused`` is False, elsewhere that torch reference."""
     if fused and means.device.type == "cpu":
-        return transmittance_cpu(touch_points, means, quats, scales, opacities, candidates, top_k, max_distance,
-                                 MAX_MAHALANOBIS)  # fmt: skip
+        return transmittance_cpu(
+            touch_points, means, quats, scales, opacities, candidates, top_k, max_distance, MAX_MAHALANOBIS
+        )
     return transmittance_loss_torch(touch_points, means, quats, scales, opacities, candidates, top_k, max_distance)
 
 
@@ -350,8 +352,9 @@ def normal_consistency_loss(rendered: torch.Tensor, from_depth: torch.Tensor, al
     return ((1.0 - (rendered * from_depth).sum(-1)) * known).sum() / known.sum().clamp_min(1e-6)
 
 
-def depth_normal_consistency(rendered: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, weight: torch.Tensor,
-                             fused: bool = True) -> torch.Tensor:
+def depth_normal_consistency(
+    rendered: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, weight: torch.Tensor, fused: bool = True
+) -> torch.Tensor:
     """:func:`normal_consistency_loss` of the rendered normals [H, W, 3] against :func:`depth_normals` of the
     z-depth [H, W] (weights [H, W], no gradient); for CPU tensors in one fused pass each way
     (:mod:`.fused_normals`) unless ``fused`` is False."""
@@ -366,9 +369,12 @@ def flatten_loss(scales: torch.Tensor, scene_scale: float) -> torch.Tensor:
     return scales.min(dim=-1).values.mean() / scene_scale
 
 
-def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor,
-                           pair_weights: tuple[torch.Tensor, torch.Tensor] | None = None,
-                           fused: bool = True) -> torch.Tensor:
+def albedo_smoothness_loss(
+    albedo: torch.Tensor,
+    inside: torch.Tensor,
+    pair_weights: tuple[torch.Tensor, torch.Tensor] | None = None,
+    fused: bool = True,
+) -> torch.Tensor:
     """L1 differences [] of the rendered diffuse colour ``albedo`` [H, W, 3] between horizontally and vertically
     neighbouring pixels that are both ``inside`` [H, W] bool the silhouette, each times its ``pair_weights``
     ([H, W-1], [H-1, W], no gradient; None: 1, see :func:`image_pair_weights`), summed over the pairs inside and
@@ -377,15 +383,18 @@ def albedo_smoothness_loss(albedo: torch.Tensor, inside: torch.Tensor,
     the albedo (Retinex's assumption: shading varies slowly, reflectance in steps). For CPU tensors the fused
     kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the torch below, the reference)."""
     if pair_weights is None:
-        pair_weights = (albedo.new_ones(albedo.shape[0], albedo.shape[1] - 1),
-                        albedo.new_ones(albedo.shape[0] - 1, albedo.shape[1]))
+        pair_weights = (
+            albedo.new_ones(albedo.shape[0], albedo.shape[1] - 1),
+            albedo.new_ones(albedo.shape[0] - 1, albedo.shape[1]),
+        )
     if fused and albedo.device.type == "cpu":
         return albedo_smoothness_cpu(albedo, inside, *pair_weights)
     inside = inside.to(albedo.dtype)
     across = inside[:, 1:] * inside[:, :-1]  # [H, W-1]
     down = inside[1:] * inside[:-1]  # [H-1, W]
     total = ((albedo[:, 1:] - albedo[:, :-1]).abs().sum(-1) * across * pair_weights[0]).sum() + (
-        (albedo[1:] - albedo[:-1]).abs().sum(-1) * down * pair_weights[1]).sum()
+        (albedo[1:] - albedo[:-1]).abs().sum(-1) * down * pair_weights[1]
+    ).sum()
     return total / (across.sum() + down.sum()).clamp_min(1.0)
 
 

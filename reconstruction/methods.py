@@ -24,21 +24,38 @@ class Method:
 
 # the paper's method: touch and smoothness with view-dependent SH colour; none of our surface-normal losses,
 # unlit colour, touch Gaussians starting with random colours
-_PAPER = {"lambda_flatten": 0.0, "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
-          "lambda_albedo_smoothness": 0.0, "init.colors_from_views": False}
+_PAPER = {
+    "lambda_flatten": 0.0,
+    "lambda_depth_normal": 0.0,
+    "lambda_touch_normal": 0.0,
+    "appearance": "sh",
+    "lambda_albedo_smoothness": 0.0,
+    "init.colors_from_views": False,
+}
 
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
-        Method("3dgs", "3DGS", "vanilla 3DGS: no touch, no smoothness", {**_PAPER, "use_touch": False, "lambda_s": 0.0}),
-        Method("3dgs+s", "3DGS + S", "edge-aware depth smoothness L_S (Eq. 8), no touch",
-               {**_PAPER, "use_touch": False}),
-        Method("3dgs+t", "3DGS + T", "touch Gaussians and transmittance L_T (Eq. 7), no smoothness",
-               {**_PAPER, "lambda_s": 0.0}),
+        Method(
+            "3dgs", "3DGS", "vanilla 3DGS: no touch, no smoothness", {**_PAPER, "use_touch": False, "lambda_s": 0.0}
+        ),
+        Method(
+            "3dgs+s", "3DGS + S", "edge-aware depth smoothness L_S (Eq. 8), no touch", {**_PAPER, "use_touch": False}
+        ),
+        Method(
+            "3dgs+t",
+            "3DGS + T",
+            "touch Gaussians and transmittance L_T (Eq. 7), no smoothness",
+            {**_PAPER, "lambda_s": 0.0},
+        ),
         Method("paper", "Paper (T + S)", "touch and smoothness: the paper's full method", _PAPER),
-        Method("default", "Default (ours)", "the paper's method plus flat Gaussians, depth-normal consistency, tactile "
-               "normals, SH colour lit at the rendered normals with a smooth albedo, and touch Gaussians coloured "
-               "from the views (beyond the paper)"),
+        Method(
+            "default",
+            "Default (ours)",
+            "the paper's method plus flat Gaussians, depth-normal consistency, tactile "
+            "normals, SH colour lit at the rendered normals with a smooth albedo, and touch Gaussians coloured "
+            "from the views (beyond the paper)",
+        ),
     )
 }
 PAPER_METHODS = ("3dgs", "3dgs+s", "3dgs+t", "paper")  # the paper's Table 3
@@ -65,12 +82,15 @@ def mechanisms(config) -> dict[str, bool]:
     (with it), initial colours from the views."""
     touch = config.use_touch and config.lambda_t > 0
     return {
-        "touch": touch, "smoothness": config.lambda_s > 0, "flattening": config.lambda_flatten > 0,
-        "depth_normal": config.lambda_depth_normal > 0, "tactile_normals": touch and config.lambda_touch_normal > 0,
+        "touch": touch,
+        "smoothness": config.lambda_s > 0,
+        "flattening": config.lambda_flatten > 0,
+        "depth_normal": config.lambda_depth_normal > 0,
+        "tactile_normals": touch and config.lambda_touch_normal > 0,
         "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
         "view_colors": config.init.colors_from_views,
-    }  # fmt: skip
+    }
 
 
 def method_of(config) -> str:

@@ -32,8 +32,9 @@ def _gaussian_window(size: int, sigma: float, like: torch.Tensor) -> torch.Tenso
     return g / g.sum()
 
 
-def ssim_map(rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5,
-             valid: bool = False) -> torch.Tensor:
+def ssim_map(
+    rendered: torch.Tensor, target: torch.Tensor, window: int = 11, sigma: float = 1.5, valid: bool = False
+) -> torch.Tensor:
     """Per-pixel SSIM (Wang et al. 2004; Gaussian window ``window`` x ``window``, ``sigma``) of [B, H, W, C] images.
 
     ``valid=False`` zero-pads each moment so the map keeps the image size, as the
@@ -136,8 +137,9 @@ class ReferenceCloud:
         return len(self.points)
 
 
-def _nearest_distances(predicted, ground_truth, radius: float, name: str
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+def _nearest_distances(
+    predicted, ground_truth, radius: float, name: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """Nearest-neighbour distances pred -> gt (with the index of each predicted point's nearest ground-truth
     point) and gt -> pred of both clouds divided by ``radius`` (a :class:`ReferenceCloud` brings its own);
     None if the predicted cloud is empty."""
@@ -163,9 +165,13 @@ def chamfer_distance(predicted: np.ndarray, ground_truth: np.ndarray | Reference
     return chamfer_distance_parts(predicted, ground_truth, None, radius, "chamfer_distance")[0]
 
 
-def chamfer_distance_parts(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud,
-                           part: np.ndarray | None, radius: float = 1.0, name: str = "chamfer_distance_parts"
-                           ) -> tuple[float, float, float]:
+def chamfer_distance_parts(
+    predicted: np.ndarray,
+    ground_truth: np.ndarray | ReferenceCloud,
+    part: np.ndarray | None,
+    radius: float = 1.0,
+    name: str = "chamfer_distance_parts",
+) -> tuple[float, float, float]:
     """:func:`chamfer_distance` and, with ``part`` [M] bool marking ground-truth points, the CD of that part and
     of the rest, from one nearest-neighbour search: ``(cd, cd of part, cd of the rest)`` (the last two NaN
     without ``part``).
@@ -175,7 +181,11 @@ def chamfer_distance_parts(predicted: np.ndarray, ground_truth: np.ndarray | Ref
     and of its ground-truth points to the prediction, halved. NaN for a part with no ground-truth point;
     ``inf`` all three for an empty prediction.
     """
-    n_gt = len(ground_truth) if isinstance(ground_truth, ReferenceCloud) else np.asarray(ground_truth).reshape(-1, 3).shape[0]
+    n_gt = (
+        len(ground_truth)
+        if isinstance(ground_truth, ReferenceCloud)
+        else np.asarray(ground_truth).reshape(-1, 3).shape[0]
+    )
     if part is not None:
         part = np.asarray(part, dtype=bool).reshape(-1)
         if len(part) != n_gt:
@@ -197,7 +207,9 @@ def chamfer_distance_parts(predicted: np.ndarray, ground_truth: np.ndarray | Ref
     return result[0], result[1], result[2]
 
 
-def chamfer_terms_paper(predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud, radius: float = 1.0) -> tuple[float, float]:
+def chamfer_terms_paper(
+    predicted: np.ndarray, ground_truth: np.ndarray | ReferenceCloud, radius: float = 1.0
+) -> tuple[float, float]:
     """The paper's Chamfer distance (its official code: pytorch3d's ``chamfer_distance`` at its defaults) as its
     two summands: the mean SQUARED nearest-neighbour distance each way (no root, no halving); ``cd_paper`` is
     their sum. Accuracy: from each predicted point to the ground truth; completeness: from each ground-truth

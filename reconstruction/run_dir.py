@@ -34,16 +34,36 @@ log = logging.getLogger(__name__)
 
 # A run directory's own files, each with the temporary name it is written to first (tacsplat.files); anything else
 # in it is someone else's and is never deleted.
-_OUTPUTS = ("config.json", "checkpoint.pt", "splat.ply", "splat.touch.npy", "progress.csv", "error_vs_time.png",
-            "metrics.json", "light.png")
+_OUTPUTS = (
+    "config.json",
+    "checkpoint.pt",
+    "splat.ply",
+    "splat.touch.npy",
+    "progress.csv",
+    "error_vs_time.png",
+    "metrics.json",
+    "light.png",
+)
 RUN_FILES = _OUTPUTS + tuple(default_temp(Path(name)).name for name in _OUTPUTS)
 RENDERS = "renders"
 RENDER_FILE = re.compile(r"view_\d{4,}\.png(\.tmp)?")
 
+# a column added later goes last: older files read and resume by name (see cut_progress)
 PROGRESS_COLUMNS = (
-    "iteration", "seconds", "loss", "photometric", "transmittance", "smoothness", "backdrop", "normals", "num_gaussians",
-    "psnr", "cd", "cd_paper", "albedo_smoothness",
-)  # fmt: skip  (a column added later goes last: older files read and resume by name, see cut_progress)
+    "iteration",
+    "seconds",
+    "loss",
+    "photometric",
+    "transmittance",
+    "smoothness",
+    "backdrop",
+    "normals",
+    "num_gaussians",
+    "psnr",
+    "cd",
+    "cd_paper",
+    "albedo_smoothness",
+)
 
 
 @dataclass
@@ -92,8 +112,14 @@ def load_checkpoint(path: Path) -> LoadedRun:
     if config.appearance == "sh-lit":
         look.light = DiffuseLight()
         look.light.load_state_dict(ckpt["light"])
-    return LoadedRun(Path(ckpt["scene_path"]), config, checkpoint_gaussians(ckpt, path), int(ckpt["step"]),
-                     float(ckpt["train_seconds"]), look)
+    return LoadedRun(
+        Path(ckpt["scene_path"]),
+        config,
+        checkpoint_gaussians(ckpt, path),
+        int(ckpt["step"]),
+        float(ckpt["train_seconds"]),
+        look,
+    )
 
 
 def checkpoint_gaussians(ckpt: dict, path: Path) -> Gaussians:
@@ -223,18 +249,24 @@ def check_resumed_scene(out: Path, recorded: dict | None, scene) -> None:
     now = scene_record(scene)
     if recorded.get("sha256") == now["sha256"]:
         if recorded.get("path") != now["path"]:
-            log.info("%s: its scene moved from %s to %s (same content): resuming", out, recorded.get("path"),
-                     now["path"])
+            log.info(
+                "%s: its scene moved from %s to %s (same content): resuming", out, recorded.get("path"), now["path"]
+            )
         return
     then = f"{recorded.get('path')} (content {str(recorded.get('sha256'))[:12]})"
     given = f"{now['path']} (content {now['sha256'][:12]})"
     if recorded.get("path") == now["path"]:
-        what = f"its scene {now['path']} has changed since (content {str(recorded.get('sha256'))[:12]} then, " \
-               f"{now['sha256'][:12]} now: other frames, poses, images or touches)"
+        what = (
+            f"its scene {now['path']} has changed since (content {str(recorded.get('sha256'))[:12]} then, "
+            f"{now['sha256'][:12]} now: other frames, poses, images or touches)"
+        )
     else:
         what = f"it was trained on the scene {then}, not on {given}"
-    raise ConfigError("--resume", f"{out} cannot continue on this scene: {what}; resume it with the scene it was "
-                      "trained on, or train this one into a new --out")
+    raise ConfigError(
+        "--resume",
+        f"{out} cannot continue on this scene: {what}; resume it with the scene it was "
+        "trained on, or train this one into a new --out",
+    )
 
 
 def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> None:
@@ -250,13 +282,16 @@ def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> 
     is_run = is_run_folder(out)
     if entries and not is_run:
         shown = ", ".join(entries[:5]) + (f" and {len(entries) - 5} more" if len(entries) > 5 else "")
-        raise ConfigError("--out", f"{out} holds files that are not a reconstruction run ({shown}); choose a new "
-                          "or empty folder")
+        raise ConfigError(
+            "--out", f"{out} holds files that are not a reconstruction run ({shown}); choose a new or empty folder"
+        )
     if resume and not is_run:
         raise ConfigError("--resume", f"{out} holds no run (no config.json or checkpoint.pt): nothing to resume")
     if locked and is_run and not (resume or overwrite):
-        raise ConfigError("--out", f"{out} already holds a reconstruction run; pass --resume to continue it or "
-                          "--overwrite to replace it")
+        raise ConfigError(
+            "--out",
+            f"{out} already holds a reconstruction run; pass --resume to continue it or --overwrite to replace it",
+        )
 
 
 def remove_run_files(out: Path) -> None:

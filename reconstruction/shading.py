@@ -111,9 +111,19 @@ def render(
     if not normals and appearance == "sh":
         mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
         colors, alphas, meta = raster.rasterization(
-            g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(sh_degree), viewmat, K, width, height,
-            sh_degree=sh_degree, render_mode=mode, backend=backend,
-        )  # fmt: skip
+            g.means,
+            g.quats,
+            g.scales,
+            g.opacities,
+            g.sh_coefficients(sh_degree),
+            viewmat,
+            K,
+            width,
+            height,
+            sh_degree=sh_degree,
+            render_mode=mode,
+            backend=backend,
+        )
         depth = None if depth_mode is None else colors[0, ..., 3]
         return RenderOutput(colors[0, ..., :3], alphas[0, ..., 0], depth, None, meta)
 
@@ -124,9 +134,18 @@ def render(
     channels = [features, n @ viewmat[0, :3, :3].T]  # camera-frame normals
     mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
     colors, alphas, meta = raster.rasterization(
-        g.means, g.quats, g.scales, g.opacities, torch.cat(channels, dim=-1)[None], viewmat, K, width, height,
-        render_mode=mode, backend=backend,
-    )  # fmt: skip
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        torch.cat(channels, dim=-1)[None],
+        viewmat,
+        K,
+        width,
+        height,
+        render_mode=mode,
+        backend=backend,
+    )
     out, alpha = colors[0], alphas[0, ..., 0]
     depth = None if depth_mode is None else out[..., -1]
     normal = F.normalize(out[..., 3:6], dim=-1, eps=1e-8)
@@ -138,22 +157,39 @@ def render(
 
 def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:
     """Unit camera-frame ray directions [H, W, 3] through the pixel centres (+0.5)."""
-    v, u = torch.meshgrid(torch.arange(height, device=K.device, dtype=K.dtype) + 0.5,
-                          torch.arange(width, device=K.device, dtype=K.dtype) + 0.5, indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(height, device=K.device, dtype=K.dtype) + 0.5,
+        torch.arange(width, device=K.device, dtype=K.dtype) + 0.5,
+        indexing="ij",
+    )
     rays = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], dim=-1)
     return rays / rays.norm(dim=-1, keepdim=True)
 
 
-def _shade(blended: Tensor, alpha: Tensor, normal: Tensor, viewmat: Tensor, K: Tensor,
-           light: DiffuseLight | None = None, fused: bool = True) -> tuple[Tensor, Tensor]:
+def _shade(
+    blended: Tensor,
+    alpha: Tensor,
+    normal: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    light: DiffuseLight | None = None,
+    fused: bool = True,
+) -> tuple[Tensor, Tensor]:
     """Deferred shading of the alpha-blended albedo [H, W, 3] -> (premultiplied RGB, the albedo per unit alpha
     [H, W, 3]): the albedo lit by ``light`` (None: unlit), clipped at 1 before the alpha. For CPU tensors (and a
     fixed camera) the numba kernels of :mod:`.fused_shading` unless ``fused`` is False (the torch below, the
     reference)."""
     h, w = alpha.shape
     if fused and alpha.device.type == "cpu" and not viewmat.requires_grad:
-        return shade_cpu(blended, alpha, normal, K, viewmat[:3, :3].T,
-                         None if light is None else light.coefficients, None if light is None else light.camera)
+        return shade_cpu(
+            blended,
+            alpha,
+            normal,
+            K,
+            viewmat[:3, :3].T,
+            None if light is None else light.coefficients,
+            None if light is None else light.camera,
+        )
     diffuse = blended / alpha.clamp_min(ALPHA_FLOOR)[..., None]  # [H, W, 3]
     # only pixels some Gaussian reaches: elsewhere the colour is multiplied by an alpha of exactly 0 and no
     # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)

@@ -34,10 +34,10 @@ from typing import Callable
 import numpy as np
 import torch
 
-from tacsplat.progress import progress_bar
 from tacsplat.errors import ConfigError, SceneFormatError, UsageError
 from tacsplat.files import atomic_write
-from tacsplat.reconstruction import losses
+from tacsplat.progress import progress_bar
+from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyState
@@ -53,7 +53,6 @@ from tacsplat.reconstruction.initialization import (
     view_colors,
 )
 from tacsplat.reconstruction.ply import save_ply
-from tacsplat.reconstruction import shading
 from tacsplat.reconstruction.run_dir import (
     check_resumed_scene,
     check_run_folder,
@@ -72,7 +71,15 @@ from tacsplat.reconstruction.views import background_image, camera_tensors, fit_
 
 log = logging.getLogger(__name__)
 
-LOSS_TERMS = ("loss", "photometric", "transmittance", "smoothness", "backdrop", "normals", "albedo_smoothness")  # progress.csv's loss columns
+LOSS_TERMS = (
+    "loss",
+    "photometric",
+    "transmittance",
+    "smoothness",
+    "backdrop",
+    "normals",
+    "albedo_smoothness",
+)  # progress.csv's loss columns
 POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
 
 
@@ -162,9 +169,10 @@ class Trainer:
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
         self.backdrop_pixels: list[np.ndarray | None] = [
             np.abs(im - bg).max(axis=-1) < config.backdrop_tolerance
-            if config.background is not None or fit_backdrop(im) is not None else None
+            if config.background is not None or fit_backdrop(im) is not None
+            else None
             for im, bg in zip(images, backgrounds)
-        ]  # fmt: skip
+        ]
         self.silhouettes = [None if m is None else foreground_mask(m) for m in self.backdrop_pixels]  # [H, W] bool
         # everything a step reads lives on the device, created once
         self.images = [torch.from_numpy(im).to(dev) for im in images]
@@ -205,8 +213,13 @@ class Trainer:
         else:
             found = 0 if sfm is None else len(sfm.points)
             points, colors, where = self._fallback_points()
-            log.info("initialisation: %d SfM points (< %d): %d random points %s",
-                     found, cfg.init.min_sfm_points, len(points), where)  # fmt: skip
+            log.info(
+                "initialisation: %d SfM points (< %d): %d random points %s",
+                found,
+                cfg.init.min_sfm_points,
+                len(points),
+                where,
+            )
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
         if cfg.init.colors_from_views:  # the randomly coloured ones: G_t, after the fallback's points if SfM failed
             first = len(points) if sfm_found else 0
@@ -220,8 +233,11 @@ class Trainer:
         """Gaussians ``first`` on, at ``points`` [M, 3], take the :func:`view_colors` of the training views (on
         their silhouettes where known); those that land on no view's object keep their colour."""
         colors = view_colors(
-            points, [im.cpu().numpy() for im in self.images], [f.intrinsics.K for f in self.train_frames],
-            [f.T_world_cam for f in self.train_frames], self.silhouettes,
+            points,
+            [im.cpu().numpy() for im in self.images],
+            [f.intrinsics.K for f in self.train_frames],
+            [f.T_world_cam for f in self.train_frames],
+            self.silhouettes,
         )  # [M, 3]
         found = np.isfinite(colors).all(axis=1)
         rows = torch.from_numpy(first + np.flatnonzero(found))
@@ -238,8 +254,12 @@ class Trainer:
                 [self.silhouettes[i] for i in views],
                 [self.train_frames[i].intrinsics.K for i in views],
                 [self.train_frames[i].T_world_cam for i in views],
-                lo, hi, cfg.init.num_random_points, cfg.init.hull_resolution, self.rng,
-            )  # fmt: skip
+                lo,
+                hi,
+                cfg.init.num_random_points,
+                cfg.init.hull_resolution,
+                self.rng,
+            )
             if len(hull):
                 return hull, colors, f"on the visual hull of {len(views)} silhouettes"
         return points, colors, "in the scene bounds"
@@ -247,9 +267,13 @@ class Trainer:
     def _make_optimizers(self) -> None:
         cfg = self.config
         rates = {
-            "means": cfg.lr_means * self.scene_scale, "quats": cfg.lr_quats, "scales": cfg.lr_scales,
-            "opacities": cfg.lr_opacities, "sh0": cfg.lr_sh0, "shN": cfg.lr_shN,
-        }  # fmt: skip
+            "means": cfg.lr_means * self.scene_scale,
+            "quats": cfg.lr_quats,
+            "scales": cfg.lr_scales,
+            "opacities": cfg.lr_opacities,
+            "sh0": cfg.lr_sh0,
+            "shN": cfg.lr_shN,
+        }
         # fused: one kernel per parameter instead of a dozen elementwise ops (about 4x less CPU time per step)
         self.optimizers = {
             name: torch.optim.Adam([self.gaussians.params[name]], lr=lr, eps=1e-15, fused=True)
@@ -270,19 +294,28 @@ class Trainer:
         cfg, g = self.config, self.gaussians
         view = self._next_view()
         frame = self.train_frames[view]
-        active_degree = cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree,
-                                                                               self.step // cfg.sh_degree_interval)
+        active_degree = (
+            cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree, self.step // cfg.sh_degree_interval)
+        )
         with_depth = cfg.lambda_s > 0 and self.step >= cfg.smoothness_start_iter
         with_normals = cfg.lambda_depth_normal > 0 and self.step >= cfg.depth_normal_start_iter
-        world_normals = (shading.gaussian_normals(g.quats, g.scales, self.fused_losses) if self.use_touch_normals
-                         else None)
+        world_normals = (
+            shading.gaussian_normals(g.quats, g.scales, self.fused_losses) if self.use_touch_normals else None
+        )
         out = shading.render(
-            g, self.viewmats[view : view + 1], self.Ks[view : view + 1], frame.intrinsics.width,
-            frame.intrinsics.height, sh_degree=active_degree, backend=cfg.backend,
-            depth_mode="D" if with_depth or with_normals else None, normals=with_normals,
-            appearance=cfg.appearance, world_normals=world_normals,
+            g,
+            self.viewmats[view : view + 1],
+            self.Ks[view : view + 1],
+            frame.intrinsics.width,
+            frame.intrinsics.height,
+            sh_degree=active_degree,
+            backend=cfg.backend,
+            depth_mode="D" if with_depth or with_normals else None,
+            normals=with_normals,
+            appearance=cfg.appearance,
+            world_normals=world_normals,
             light=self.light if self.step >= cfg.lit_start_iter else None,
-        )  # fmt: skip
+        )
         meta, alpha = out.meta, out.alpha
         target = self.images[view]
         rgb = out.rgb + (1.0 - alpha[..., None]) * self.backgrounds[view]
@@ -303,26 +336,41 @@ class Trainer:
                 points, candidates = points[subset], candidates[subset]
                 normals = normals[subset] if self.use_touch_normals else normals
             if self.use_touch_loss:
-                quats, scales = ((g.quats, g.scales) if cfg.touch_loss_moves_shape
-                                 else (g.quats.detach(), g.scales.detach()))
+                quats, scales = (
+                    (g.quats, g.scales) if cfg.touch_loss_moves_shape else (g.quats.detach(), g.scales.detach())
+                )
                 transmittance = losses.transmittance_loss(
-                    points, g.means, quats, scales, g.opacities, candidates,
-                    cfg.touch_top_k, cfg.touch_max_distance, fused=self.fused_losses,
-                )  # fmt: skip
+                    points,
+                    g.means,
+                    quats,
+                    scales,
+                    g.opacities,
+                    candidates,
+                    cfg.touch_top_k,
+                    cfg.touch_max_distance,
+                    fused=self.fused_losses,
+                )
                 loss = loss + cfg.lambda_t * transmittance
                 terms["transmittance"] = transmittance.detach()
             if self.use_touch_normals:
                 aligned = losses.touch_normal_loss(
-                    points, normals, g.means, world_normals, g.opacities.detach(),
-                    candidates, cfg.touch_max_distance, fused=self.fused_losses,
-                )  # fmt: skip
+                    points,
+                    normals,
+                    g.means,
+                    world_normals,
+                    g.opacities.detach(),
+                    candidates,
+                    cfg.touch_max_distance,
+                    fused=self.fused_losses,
+                )
                 loss = loss + cfg.lambda_touch_normal * aligned
                 terms["normals"] = terms["normals"] + aligned.detach()
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
                 self._pair_weights[view] = losses.image_pair_weights(self.images[view], cfg.albedo_smoothness_beta)
-            flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5,
-                                                        self._pair_weights.get(view), self.fused_losses)
+            flat_albedo = losses.albedo_smoothness_loss(
+                out.albedo, alpha.detach() > 0.5, self._pair_weights.get(view), self.fused_losses
+            )
             loss = loss + cfg.lambda_albedo_smoothness * flat_albedo
             terms["albedo_smoothness"] = flat_albedo.detach()
         if cfg.lambda_flatten > 0:
@@ -334,7 +382,7 @@ class Trainer:
             surface = torch.where(seen, losses.expected_depth(out.depth, alpha), torch.zeros_like(alpha))
             consistency = losses.depth_normal_consistency(
                 out.normal, surface, self.Ks[view], alpha.detach() * seen, fused=self.fused_losses
-            )  # fmt: skip
+            )
             loss = loss + cfg.lambda_depth_normal * consistency
             terms["normals"] = terms["normals"] + consistency.detach()
         if with_depth:
@@ -344,15 +392,21 @@ class Trainer:
                 drawn = alpha.detach()
                 surface = torch.where(drawn > 0.5, depth.detach() / drawn.clamp_min(1e-6), torch.zeros_like(drawn))
                 seen = losses.visible_touch_pixels(
-                    self.touch_tensor, self.Ks[view], self.viewmats[view], frame.intrinsics.width,
-                    frame.intrinsics.height, surface, cfg.occlusion_tolerance,
-                )  # fmt: skip
+                    self.touch_tensor,
+                    self.Ks[view],
+                    self.viewmats[view],
+                    frame.intrinsics.width,
+                    frame.intrinsics.height,
+                    surface,
+                    cfg.occlusion_tolerance,
+                )
                 proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px)
             weights = self._smoothness_weights(view, alpha.detach())
             if cfg.smoothness_depth == "expected":
                 depth = losses.expected_depth(depth, alpha)
-            smoothness = losses.edge_aware_smoothness(depth / self.scene_scale, proximity=proximity, weights=weights,
-                                                     fused=self.fused_losses)
+            smoothness = losses.edge_aware_smoothness(
+                depth / self.scene_scale, proximity=proximity, weights=weights, fused=self.fused_losses
+            )
             loss = loss + cfg.lambda_s * smoothness
             terms["smoothness"] = terms["smoothness"] + smoothness.detach()
         terms["loss"] = loss.detach()
@@ -405,14 +459,26 @@ class Trainer:
             if self._ground_truth is None:
                 self._ground_truth = load_ground_truth(self.scene, self.test_frames) or False
             metrics = evaluate_views(
-                self.gaussians, self.scene, frames, cfg.background, cfg.backend, self._ground_truth or None,
-                look=self.look, progress=True,
+                self.gaussians,
+                self.scene,
+                frames,
+                cfg.background,
+                cfg.backend,
+                self._ground_truth or None,
+                look=self.look,
+                progress=True,
             )
             psnr_value, cd_value, cd_paper = metrics["psnr"], metrics["cd"], metrics["cd_paper"]
         n = max(self._sum_count, 1)
-        row = {"iteration": self.step, "seconds": f"{self.train_seconds:.3f}", "num_gaussians": len(self.gaussians),
-               "psnr": f"{psnr_value:.4f}", "cd": f"{cd_value:.6g}", "cd_paper": f"{cd_paper:.6g}",
-               **{k: f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS}}
+        row = {
+            "iteration": self.step,
+            "seconds": f"{self.train_seconds:.3f}",
+            "num_gaussians": len(self.gaussians),
+            "psnr": f"{psnr_value:.4f}",
+            "cd": f"{cd_value:.6g}",
+            "cd_paper": f"{cd_paper:.6g}",
+            **{k: f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS},
+        }
         self.progress.append(row)
         write_progress(self.out / "progress.csv", self.progress)
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)
@@ -434,8 +500,11 @@ class Trainer:
             "order": list(self.order),
             "touch_points": self.touch_points,
             "neighbours": None if self.neighbours is None else self.neighbours.state_dict(),
-            "progress": {"sums": {k: float(v) for k, v in self._sums.items()}, "count": self._sum_count,
-                         "last_eval": self._last_eval},
+            "progress": {
+                "sums": {k: float(v) for k, v in self._sums.items()},
+                "count": self._sum_count,
+                "last_eval": self._last_eval,
+            },
             "device": self.device.type,
             "light": None if self.light is None else self.light.state_dict(),
         }
@@ -448,8 +517,11 @@ class Trainer:
         ckpt = read_checkpoint(path)
         saved_on = ckpt.get("device", "cpu")
         if saved_on != self.device.type:
-            raise ConfigError("--resume", f"{self.out} was trained on {saved_on} and this run would continue on "
-                              f"{self.device.type}: resume on the same kind of device (--device {saved_on})")
+            raise ConfigError(
+                "--resume",
+                f"{self.out} was trained on {saved_on} and this run would continue on "
+                f"{self.device.type}: resume on the same kind of device (--device {saved_on})",
+            )
         self.step = int(ckpt["step"])
         self.train_seconds = float(ckpt["train_seconds"])
         self.gaussians = checkpoint_gaussians(ckpt, path).to(self.device)
@@ -459,8 +531,9 @@ class Trainer:
         for name, optimizer in self.optimizers.items():
             optimizer.load_state_dict(ckpt["optimizers"][name])
         densify = ckpt["densify_state"]
-        self.densify_state = DensifyState(**{k: v.to(self.device) if torch.is_tensor(v) else v
-                                             for k, v in densify.items()})
+        self.densify_state = DensifyState(
+            **{k: v.to(self.device) if torch.is_tensor(v) else v for k, v in densify.items()}
+        )
         self.rng.bit_generator.state = ckpt["rng"]
         self.generator.set_state(ckpt["generator"])
         torch.set_rng_state(ckpt["torch_rng"])
@@ -472,8 +545,10 @@ class Trainer:
             self.neighbours.load_state_dict(ckpt["neighbours"])
         progress = ckpt.get("progress")  # (checkpoints of older runs have none)
         if progress is not None:
-            self._sums = {k: torch.tensor(float(progress["sums"].get(k, 0.0)), device=self.device)  # a term added
-                          for k in LOSS_TERMS}  # since the checkpoint was written: nothing summed yet
+            self._sums = {
+                k: torch.tensor(float(progress["sums"].get(k, 0.0)), device=self.device)  # a term added
+                for k in LOSS_TERMS
+            }  # since the checkpoint was written: nothing summed yet
             self._sum_count = int(progress["count"])
             self._last_eval = tuple(progress["last_eval"])
         else:
@@ -514,8 +589,11 @@ class Trainer:
         if resume:
             self.load_checkpoint()
             if self.step > cfg.iterations:
-                raise UsageError("--iterations", f"{self.out} has reached step {self.step}: to resume it, it must be "
-                                 f"{self.step} or more, got {cfg.iterations}")
+                raise UsageError(
+                    "--iterations",
+                    f"{self.out} has reached step {self.step}: to resume it, it must be "
+                    f"{self.step} or more, got {cfg.iterations}",
+                )
             write_run_config(self.out, cfg, self.scene_record)  # (a new step count or scene path: one record)
             self.progress = cut_progress(progress_path, self.step)
             log.info("resuming %s at step %d of %d", self.out, self.step, cfg.iterations)
@@ -547,8 +625,12 @@ class Trainer:
                     self.train_seconds += self._wait_for_device()  # queued steps are training time
                     psnr_value, cd_value = self._progress_row()
                     self._last_eval = (self.step, self.train_seconds)
-                    bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians),
-                                    psnr=f"{psnr_value:.2f}", cd=f"{cd_value:.4g}")  # fmt: skip
+                    bar.set_postfix(
+                        loss=f"{float(terms['loss']):.4f}",
+                        gaussians=len(self.gaussians),
+                        psnr=f"{psnr_value:.2f}",
+                        cd=f"{cd_value:.4g}",
+                    )
                 if done or self.step % cfg.checkpoint_every == 0:
                     self.save_checkpoint()
         finally:
@@ -562,9 +644,15 @@ class Trainer:
         return self.gaussians
 
 
-def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig, resume: bool = False,
-                show_progress: bool = True, overwrite: bool = False,
-                resumed: Callable[[TrainConfig], TrainConfig] | None = None) -> dict:
+def reconstruct(
+    scene_path: str | Path,
+    out_dir: str | Path,
+    config: TrainConfig,
+    resume: bool = False,
+    show_progress: bool = True,
+    overwrite: bool = False,
+    resumed: Callable[[TrainConfig], TrainConfig] | None = None,
+) -> dict:
     """Train on a scene directory and evaluate the result; returns the metrics written to ``metrics.json``.
 
     ``out_dir`` must be new or empty, or hold an earlier run: continued with
@@ -604,7 +692,13 @@ def reconstruct(scene_path: str | Path, out_dir: str | Path, config: TrainConfig
         trainer = Trainer(scene, out_dir, config)
         # a run stopped before its first checkpoint (killed, or its disk full) starts again with its recorded config
         gaussians = trainer.run(resume=resume and (out_dir / "checkpoint.pt").is_file(), show_progress=show_progress)
-        return evaluate_reconstruction(gaussians, scene, trainer.config, trainer.step, trainer.train_seconds, out_dir,
-                                       look=trainer.look, splat=trainer.splat)
-
-
+        return evaluate_reconstruction(
+            gaussians,
+            scene,
+            trainer.config,
+            trainer.step,
+            trainer.train_seconds,
+            out_dir,
+            look=trainer.look,
+            splat=trainer.splat,
+        )

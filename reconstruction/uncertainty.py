@@ -63,22 +63,32 @@ class Views:
         sizes = {(f.intrinsics.width, f.intrinsics.height) for f in frames}
         if len(sizes) > 1:
             raise InvalidInputError(f"frames: the views must share one image size, got {sorted(sizes)}")
-        (width, height), = sizes
+        ((width, height),) = sizes
         viewmats, Ks = camera_tensors(frames)
         backgrounds = np.stack([background_image(scene.load_image(f)) for f in frames])
         return cls(viewmats.to(device), Ks.to(device), width, height, torch.from_numpy(backgrounds).to(device))
 
 
-def fisher_information(gaussians: Gaussians, views: Views, probes: int = FISHER_PROBES, seed: int = 0,
-                       backend: str = "auto") -> Tensor:
+def fisher_information(
+    gaussians: Gaussians, views: Views, probes: int = FISHER_PROBES, seed: int = 0, backend: str = "auto"
+) -> Tensor:
     """The Fisher information [N] of each Gaussian's position (trace of its 3x3 diagonal block's diagonal) under
     the photometric loss of ``views``, estimated with ``probes`` Rademacher probes seeded by ``seed``."""
     g = gaussians
     means = g.means.detach().clone().requires_grad_(True)
     colors, alphas, _ = raster.rasterization(
-        means, g.quats.detach(), g.scales.detach(), g.opacities.detach(), g.sh_coefficients().detach(),
-        views.viewmats, views.Ks, views.width, views.height, sh_degree=g.sh_degree, backend=backend,
-    )  # fmt: skip
+        means,
+        g.quats.detach(),
+        g.scales.detach(),
+        g.opacities.detach(),
+        g.sh_coefficients().detach(),
+        views.viewmats,
+        views.Ks,
+        views.width,
+        views.height,
+        sh_degree=g.sh_degree,
+        backend=backend,
+    )
     image = colors if views.backgrounds is None else colors + (1.0 - alphas) * views.backgrounds
     generator = torch.Generator(device=means.device).manual_seed(seed)
     information = torch.zeros(len(g), device=means.device)
@@ -89,8 +99,14 @@ def fisher_information(gaussians: Gaussians, views: Views, probes: int = FISHER_
     return information / probes
 
 
-def fisher_uncertainty(gaussians: Gaussians, views: Views, probes: int = FISHER_PROBES, prior: float = FISHER_PRIOR,
-                       seed: int = 0, backend: str = "auto") -> Tensor:
+def fisher_uncertainty(
+    gaussians: Gaussians,
+    views: Views,
+    probes: int = FISHER_PROBES,
+    prior: float = FISHER_PRIOR,
+    seed: int = 0,
+    backend: str = "auto",
+) -> Tensor:
     """The ``"fisher"`` score [N]: ``lam / (F + lam)``, ``lam = prior x`` the median information of the Gaussians
     that some view sees (1 where none does)."""
     information = fisher_information(gaussians, views, probes, seed, backend)
@@ -104,8 +120,15 @@ def _camera_depths(means: Tensor, viewmat: Tensor) -> Tensor:
     return means @ viewmat[2, :3] + viewmat[2, 3]
 
 
-def depth_moments(gaussians: Gaussians, viewmat: Tensor, K: Tensor, width: int, height: int, backend: str = "auto",
-                  near_plane: float = 0.01) -> tuple[Tensor, Tensor, Tensor]:
+def depth_moments(
+    gaussians: Gaussians,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    backend: str = "auto",
+    near_plane: float = 0.01,
+) -> tuple[Tensor, Tensor, Tensor]:
     """``(alpha, mean depth, depth variance)`` [H, W] of one camera (``viewmat`` [4, 4], ``K`` [3, 3]): the moments
     of the Gaussians' depths under each ray's blending weights (mean and variance 0 where alpha < MIN_ALPHA)."""
     with torch.no_grad():
@@ -121,9 +144,18 @@ def _depth_render(g: Gaussians, viewmat, K, width, height, probe, backend, near_
     if probe is not None:
         colors = torch.cat([colors, probe], dim=-1)
     out, alphas, _ = raster.rasterization(
-        g.means.detach(), g.quats.detach(), g.scales.detach(), g.opacities.detach(), colors[None], viewmat[None],
-        K[None], width, height, near_plane=near_plane, backend=backend,
-    )  # fmt: skip
+        g.means.detach(),
+        g.quats.detach(),
+        g.scales.detach(),
+        g.opacities.detach(),
+        colors[None],
+        viewmat[None],
+        K[None],
+        width,
+        height,
+        near_plane=near_plane,
+        backend=backend,
+    )
     alpha = alphas[0, ..., 0]
     drawn = alpha >= MIN_ALPHA
     a = alpha.clamp_min(MIN_ALPHA)
@@ -155,8 +187,9 @@ def depth_tolerance(gaussians: Gaussians, views: Views, backend: str = "auto") -
     return max(float(drawn.median()), floor) if len(drawn) else floor
 
 
-def depth_variance_uncertainty(gaussians: Gaussians, views: Views, tolerance_m: float | None = None,
-                               backend: str = "auto") -> Tensor:
+def depth_variance_uncertainty(
+    gaussians: Gaussians, views: Views, tolerance_m: float | None = None, backend: str = "auto"
+) -> Tensor:
     """The ``"depth-variance"`` score [N]; ``tolerance_m``: the depth spread that scores 0.5 (default
     :func:`depth_tolerance`)."""
     g = gaussians
@@ -174,8 +207,14 @@ def depth_variance_uncertainty(gaussians: Gaussians, views: Views, tolerance_m: 
     return (uncertain + 1.0) / (weight + 1.0)
 
 
-def gaussian_uncertainty(gaussians: Gaussians, views: Views, score: str = "fisher", seed: int = 0,
-                         backend: str = "auto", tolerance_m: float | None = None) -> Tensor:
+def gaussian_uncertainty(
+    gaussians: Gaussians,
+    views: Views,
+    score: str = "fisher",
+    seed: int = 0,
+    backend: str = "auto",
+    tolerance_m: float | None = None,
+) -> Tensor:
     """The per-Gaussian ``score`` [N] (one of ``SCORES``) of a reconstruction seen by ``views`` (``tolerance_m``:
     the depth-variance score's, default :func:`depth_tolerance`)."""
     if score == "fisher":
@@ -186,15 +225,33 @@ def gaussian_uncertainty(gaussians: Gaussians, views: Views, score: str = "fishe
 
 
 @torch.no_grad()
-def render_uncertainty(gaussians: Gaussians, scores: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int,
-                       backend: str = "auto", near_plane: float = 0.01) -> tuple[Tensor, Tensor, Tensor]:
+def render_uncertainty(
+    gaussians: Gaussians,
+    scores: Tensor,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    backend: str = "auto",
+    near_plane: float = 0.01,
+) -> tuple[Tensor, Tensor, Tensor]:
     """``(uncertainty, alpha, expected depth)`` [H, W] of one camera: the per-Gaussian ``scores`` [N] blended like a
     colour and divided by alpha (1 where nothing is drawn: nothing there is known)."""
     g = gaussians
     out, alphas, _ = raster.rasterization(
-        g.means, g.quats, g.scales, g.opacities, scores[:, None].to(g.means.dtype), viewmat[None], K[None], width,
-        height, near_plane=near_plane, render_mode="RGB+ED", backend=backend,
-    )  # fmt: skip
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        scores[:, None].to(g.means.dtype),
+        viewmat[None],
+        K[None],
+        width,
+        height,
+        near_plane=near_plane,
+        render_mode="RGB+ED",
+        backend=backend,
+    )
     alpha = alphas[0, ..., 0]
     drawn = alpha >= MIN_ALPHA
     uncertainty = torch.where(drawn, out[0, ..., 0] / alpha.clamp_min(MIN_ALPHA), torch.ones_like(alpha))
@@ -202,8 +259,14 @@ def render_uncertainty(gaussians: Gaussians, scores: Tensor, viewmat: Tensor, K:
 
 
 @torch.no_grad()
-def point_uncertainty(gaussians: Gaussians, scores: Tensor, points: Tensor, neighbours: int = POINT_NEIGHBOURS,
-                      prior: float = 1e-3, chunk: int = 4096) -> Tensor:
+def point_uncertainty(
+    gaussians: Gaussians,
+    scores: Tensor,
+    points: Tensor,
+    neighbours: int = POINT_NEIGHBOURS,
+    prior: float = 1e-3,
+    chunk: int = 4096,
+) -> Tensor:
     """The score [P] at 3D ``points`` [P, 3]: the mean of the nearest Gaussians' ``scores`` weighted by each one's
     opacity times its density at the point, with a prior of weight ``prior`` at 1 (far from every Gaussian: 1)."""
     g = gaussians

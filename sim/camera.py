@@ -31,8 +31,9 @@ def make_renderer(model: mujoco.MjModel, width: int, height: int, device: str) -
         return mujoco.Renderer(model, height=height, width=width)
     except Exception as exc:  # GL backends raise various types
         raise CameraError(
-            device, f"cannot open a {width}x{height} offscreen renderer with MUJOCO_GL={os.environ.get('MUJOCO_GL')}: "
-            f"{exc} (try MUJOCO_GL=osmesa)"
+            device,
+            f"cannot open a {width}x{height} offscreen renderer with MUJOCO_GL={os.environ.get('MUJOCO_GL')}: "
+            f"{exc} (try MUJOCO_GL=osmesa)",
         ) from exc
 
 

@@ -78,7 +78,9 @@ def _write(path: Path, pieces) -> None:
     for i, (v, f) in enumerate(pieces):
         arrays[f"v{i}"], arrays[f"f{i}"] = np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int32)
     # a per-process temporary name: two processes may fill the same cache entry at once
-    atomic_write(path, lambda f: np.savez_compressed(f, **arrays), temp=path.with_name(f"{path.stem}.{os.getpid()}.tmp"))
+    atomic_write(
+        path, lambda f: np.savez_compressed(f, **arrays), temp=path.with_name(f"{path.stem}.{os.getpid()}.tmp")
+    )
 
 
 def _run_coacd(unit: trimesh.Trimesh, config: DecompositionConfig):
@@ -100,7 +102,9 @@ def _run_coacd(unit: trimesh.Trimesh, config: DecompositionConfig):
     )
 
 
-def convex_decomposition(mesh: trimesh.Trimesh, config: DecompositionConfig = DecompositionConfig()) -> list[trimesh.Trimesh]:
+def convex_decomposition(
+    mesh: trimesh.Trimesh, config: DecompositionConfig = DecompositionConfig()
+) -> list[trimesh.Trimesh]:
     """Convex pieces of ``mesh`` (shipped, cached or computed by CoACD; see the module docstring)."""
     unit, centre, radius = _unit_mesh(mesh)
     key = decomposition_key(unit, config)

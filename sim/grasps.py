@@ -111,8 +111,9 @@ def sample_hand_pose(twin: SimTwin, rng: np.random.Generator, config: GraspConfi
     return make_pose(R, u * (height + config.palm_gap_m))
 
 
-def preshape_fingers(twin: SimTwin, table: PreshapeTable, T_world_hand: np.ndarray,
-                     config: GraspConfig = GraspConfig()) -> tuple[np.ndarray, list[str]]:
+def preshape_fingers(
+    twin: SimTwin, table: PreshapeTable, T_world_hand: np.ndarray, config: GraspConfig = GraspConfig()
+) -> tuple[np.ndarray, list[str]]:
     """Place the hand base at ``T_world_hand`` and each finger at the grid pose whose pad is nearest the surface
     along its normal (within ``max_pretouch_gap_m``, aligned within ``min_alignment_cos``) and whose finger does
     not touch the object's collision hulls; returns ``(q_preshape [16], fingers that found one)``."""
@@ -142,4 +143,3 @@ def tap_close_pose(q_pre: np.ndarray, reachable: list[str], config: GraspConfig 
         if finger in reachable:
             q[4 * i : 4 * i + 4] += config.max_tap_rad * _TAP_DIRECTION
     return np.clip(q, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
-

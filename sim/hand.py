@@ -81,9 +81,7 @@ def _finger_xml(finger: str, geom: HandGeometry, gains: ActuatorGains, limits: n
     prox = g.thumb_proximal_length if thumb else g.proximal_length
     mid = g.thumb_middle_length if thumb else g.middle_length
     w, t = g.link_half_width, g.link_half_thickness
-    joint = (
-        'limited="true" damping="{d}" armature="{a}"'.format(d=_fmt(gains.damping), a=_fmt(gains.armature))
-    )
+    joint = 'limited="true" damping="{d}" armature="{a}"'.format(d=_fmt(gains.damping), a=_fmt(gains.armature))
     link = 'type="box" group="1" contype="1" conaffinity="0" material="hand" mass="{m}"'.format(m=_fmt(g.link_mass))
 
     def box(name, length):

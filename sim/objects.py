@@ -110,7 +110,10 @@ def _teapot() -> trimesh.Trimesh:
 
 def _toaster() -> trimesh.Trimesh:
     body = _rounded_box([1.0, 0.6, 0.7], 0.12, centre=(0, 0, 0.35))
-    slots = [trimesh.creation.box([0.7, 0.08, 0.5], trimesh.transformations.translation_matrix([0, y, 0.65])) for y in (-0.12, 0.12)]
+    slots = [
+        trimesh.creation.box([0.7, 0.08, 0.5], trimesh.transformations.translation_matrix([0, y, 0.65]))
+        for y in (-0.12, 0.12)
+    ]
     lever = _rounded_box([0.14, 0.1, 0.06], 0.02, centre=(0.55, 0.0, 0.45))
     return trimesh.boolean.difference([_union(body, lever), *slots], engine="manifold")
 
@@ -177,8 +180,9 @@ def texture_problem(texture) -> str | None:
     return None if texture in TEXTURES else f"must be one of {', '.join(map(repr, TEXTURES))}, got {texture!r}"
 
 
-def checker_texture(rgba: tuple[float, float, float, float], squares: int = CHECKER_SQUARES,
-                    texels: int = 32) -> np.ndarray:
+def checker_texture(
+    rgba: tuple[float, float, float, float], squares: int = CHECKER_SQUARES, texels: int = 32
+) -> np.ndarray:
     """A face of the "checker" texture, RGB uint8 [squares * texels, squares * texels, 3]: the material's colour
     and a grey far from it (dark on a light object, light on a dark one), alternating."""
     parity = np.add.outer(np.arange(squares * texels) // texels, np.arange(squares * texels) // texels) % 2
@@ -252,15 +256,21 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
         raise ConfigError("mesh", f"{path} holds no triangles (a point cloud or an empty file?)")
     vertices = np.asarray(loaded.vertices, dtype=np.float64)
     if not np.all(np.isfinite(vertices)):
-        raise ConfigError("mesh", f"{path}: {int((~np.isfinite(vertices)).any(axis=1).sum())} vertices have NaN or "
-                                  "infinite coordinates (not finite)")
+        raise ConfigError(
+            "mesh",
+            f"{path}: {int((~np.isfinite(vertices)).any(axis=1).sum())} vertices have NaN or "
+            "infinite coordinates (not finite)",
+        )
     size = float(np.ptp(vertices, axis=0).max())
     if not size > 0:
         raise ConfigError("mesh", f"{path}: every vertex is at the same point (zero size)")
     centred = vertices - vertices.mean(axis=0)
     if np.linalg.svd(centred, compute_uv=False)[-1] <= 1e-9 * size * np.sqrt(len(vertices)):
-        raise ConfigError("mesh", f"{path} is flat (all its vertices lie in one plane): a surface with no volume, "
-                                  "not an object that can be grasped")
+        raise ConfigError(
+            "mesh",
+            f"{path} is flat (all its vertices lie in one plane): a surface with no volume, "
+            "not an object that can be grasped",
+        )
     mesh = trimesh.Trimesh(vertices, loaded.faces, process=False)  # geometry only
     mesh.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=max(0, int(9 - np.floor(np.log10(size)))))
     mesh.update_faces(mesh.nondegenerate_faces())
@@ -318,10 +328,18 @@ def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) ->
     path = Path(path)
     mesh = read_mesh(path)
     if not mesh.is_watertight:
-        log.warning("%s is not watertight even with its holes closed (edges shared by more than two faces?): "
-                    "ray casting works, collision uses its convex pieces", path)
+        log.warning(
+            "%s is not watertight even with its holes closed (edges shared by more than two faces?): "
+            "ray casting works, collision uses its convex pieces",
+            path,
+        )
     _, raw_radius = bounding_sphere(mesh)
     obj = SimObject(path.stem, normalise_mesh(mesh, radius, str(path)), GlossyMaterial((0.8, 0.8, 0.82, 1.0)))
-    log.info("%s: bounding radius %.6g in the file's units, scaled by %.6g to %.6g m", path, raw_radius,
-             obj.bounding_radius / raw_radius, obj.bounding_radius)
+    log.info(
+        "%s: bounding radius %.6g in the file's units, scaled by %.6g to %.6g m",
+        path,
+        raw_radius,
+        obj.bounding_radius / raw_radius,
+        obj.bounding_radius,
+    )
     return obj

@@ -25,6 +25,7 @@ from tacsplat.datasets import SensorModel
 from tacsplat.errors import ConfigError, InvalidInputError, SimulationError
 from tacsplat.geometry import check_rigid, invert_pose, make_pose, opencv_to_opengl
 from tacsplat.sim.camera import MujocoCamera
+from tacsplat.sim.collision import DecompositionConfig, convex_decomposition
 from tacsplat.sim.hand import (
     FINGER_NAMES,
     HAND_MATERIALS,
@@ -35,7 +36,6 @@ from tacsplat.sim.hand import (
     hand_body_xml,
     site_pose,
 )
-from tacsplat.sim.collision import DecompositionConfig, convex_decomposition
 from tacsplat.sim.objects import (
     DEFAULT_OBJECT_RADIUS,
     SimObject,
@@ -304,8 +304,9 @@ class SimTwin:
             self.object = make_object(config.object, config.object_radius)
         check_physics(config)
         self.hulls = convex_decomposition(self.object.mesh, config.decomposition)
-        self.model = mujoco.MjModel.from_xml_string(build_twin_mjcf(config, self.object, self.hulls),
-                                                    assets=twin_assets(config, self.object))
+        self.model = mujoco.MjModel.from_xml_string(
+            build_twin_mjcf(config, self.object, self.hulls), assets=twin_assets(config, self.object)
+        )
         check_physics(config, self.model)
         self.data = mujoco.MjData(self.model)
         self._mocap = self.model.body("hand").mocapid[0]
@@ -330,8 +331,9 @@ class SimTwin:
     def sensor_model(self, scale: float = 1.0) -> SensorModel:
         """The scene's sensor model of the pads, in a scene whose lengths are the twin's divided by ``scale``."""
         t = self.config.tactile
-        return SensorModel(SENSOR_MODEL_NAME, t.width_px, t.height_px, t.pixel_size_m / scale,
-                           t.gel_thickness_m / scale)
+        return SensorModel(
+            SENSOR_MODEL_NAME, t.width_px, t.height_px, t.pixel_size_m / scale, t.gel_thickness_m / scale
+        )
 
     # --- state -------------------------------------------------------------------------------
     def forward(self) -> None:
@@ -360,8 +362,10 @@ class SimTwin:
         raised = {mujoco.mjtWarning(w).name: int(self.data.warning[w].number) for w in _FATAL_WARNINGS}
         raised = {k: v for k, v in raised.items() if v}
         if raised or not (np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel))):
-            raise SimulationError(f"simulation unstable at t={self.data.time:.4f} s: warnings {raised or 'none'}, "
-                                  f"finite state {bool(np.all(np.isfinite(self.data.qpos)))}")
+            raise SimulationError(
+                f"simulation unstable at t={self.data.time:.4f} s: warnings {raised or 'none'}, "
+                f"finite state {bool(np.all(np.isfinite(self.data.qpos)))}"
+            )
 
     @property
     def time(self) -> float:

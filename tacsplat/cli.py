@@ -47,8 +47,16 @@ COMMAND_MODULES = (
 )
 
 # The modules of the optional extras (pyproject.toml), by the extra that installs them.
-EXTRAS = {"mujoco": "sim", "coacd": "sim", "manifold3d": "sim", "dynamixel_sdk": "hardware", "serial": "hardware",
-          "viser": "viewer", "ray": "cluster", "gsplat": "cuda"}
+EXTRAS = {
+    "mujoco": "sim",
+    "coacd": "sim",
+    "manifold3d": "sim",
+    "dynamixel_sdk": "hardware",
+    "serial": "hardware",
+    "viser": "viewer",
+    "ray": "cluster",
+    "gsplat": "cuda",
+}
 
 GROUP_HELP = {
     "import": "import a dataset (Blender/NeRF-synthetic, COLMAP, nerfstudio/instant-ngp) into a scene directory",
@@ -76,10 +84,20 @@ def _common_options() -> argparse.ArgumentParser:
     common = argparse.ArgumentParser(add_help=False)
     group = common.add_argument_group("logging")
     group.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="debug logging")
-    group.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
-                       help="warnings and errors only; no progress display")
-    group.add_argument("--log-level", default=argparse.SUPPRESS, type=str.upper,
-                       choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="logging level (default INFO)")
+    group.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="warnings and errors only; no progress display",
+    )
+    group.add_argument(
+        "--log-level",
+        default=argparse.SUPPRESS,
+        type=str.upper,
+        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+        help="logging level (default INFO)",
+    )
     return common
 
 
@@ -104,13 +122,18 @@ class CommandTree:
             self._subparsers[path] = parser.add_subparsers(dest=f"{path}_command", metavar="COMMAND")
         return self._subparsers[path]
 
-    def command(self, path: str, help: str, description: str | None = None, build=None,
-                own_options: bool = False) -> argparse.ArgumentParser:
+    def command(
+        self, path: str, help: str, description: str | None = None, build=None, own_options: bool = False
+    ) -> argparse.ArgumentParser:
         """A subcommand at ``path``; ``build(parser)``, if given, adds its options once the command is chosen.
         ``own_options``: the command parses what follows it itself (``args.rest``; -v, -q and --log-level aside)."""
         parent, _, name = path.strip().rpartition(" ")
         parser = self._group(parent).add_parser(
-            name, help=help, description=description or help, formatter_class=_HelpFormatter, parents=[self._common],
+            name,
+            help=help,
+            description=description or help,
+            formatter_class=_HelpFormatter,
+            parents=[self._common],
             add_help=not own_options,
         )
         self._parsers[path] = parser
@@ -180,8 +203,9 @@ def _configure_logging(args: argparse.Namespace) -> None:
     from tacsplat.progress import set_quiet
 
     quiet = getattr(args, "quiet", False)
-    level = getattr(args, "log_level", None) or ("DEBUG" if getattr(args, "verbose", False) else
-                                                  "WARNING" if quiet else "INFO")
+    level = getattr(args, "log_level", None) or (
+        "DEBUG" if getattr(args, "verbose", False) else "WARNING" if quiet else "INFO"
+    )
     logging.basicConfig(level=getattr(logging, level), format="%(levelname)s %(name)s: %(message)s", force=True)
     if level != "DEBUG":  # PyOpenGL (under MuJoCo's renderer) says at INFO that an optional speed-up is missing
         logging.getLogger("OpenGL").setLevel(logging.WARNING)
@@ -220,8 +244,11 @@ def main(argv: list[str] | None = None) -> int:
         extra = EXTRAS.get((exc.name or "").partition(".")[0])
         if extra is None:
             raise
-        print(f"error: {_subparser(parser, argv).prog} needs the {extra} extra ({exc.name} is not installed): "
-              f"pip install 'tacsplat[{extra}]'", file=sys.stderr)
+        print(
+            f"error: {_subparser(parser, argv).prog} needs the {extra} extra ({exc.name} is not installed): "
+            f"pip install 'tacsplat[{extra}]'",
+            file=sys.stderr,
+        )
         return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

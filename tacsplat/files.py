@@ -19,7 +19,7 @@ from tacsplat.errors import ConfigError, StorageError
 # errno -> what a person should be told; anything else keeps the operating system's words
 _REASONS = {
     errno.ENOSPC: "the disk is full (no space left on device): free space and run the command again (with "
-                  "--resume where it has one: what was written before is kept)",
+    "--resume where it has one: what was written before is kept)",
     errno.EDQUOT: "the disk quota is exceeded: free space and run the command again (with --resume where it has one)",
     errno.EROFS: "the file system is read-only: write to another folder",
     errno.EACCES: "permission denied: write to another folder",
@@ -85,8 +85,9 @@ def atomic_file(path: str | Path, temp: Path | None = None, fsync: bool = True) 
         fsync_dir(path.parent)
 
 
-def atomic_write(path: str | Path, data: bytes | Callable[[BinaryIO], None], temp: Path | None = None,
-                 fsync: bool = True) -> Path:
+def atomic_write(
+    path: str | Path, data: bytes | Callable[[BinaryIO], None], temp: Path | None = None, fsync: bool = True
+) -> Path:
     """Write ``data`` (bytes, or a function that writes to a binary file) to ``path`` atomically; returns ``path``.
     See :func:`atomic_file` for what a failure leaves."""
     with atomic_file(path, temp, fsync) as f:
@@ -117,8 +118,15 @@ def check_writable(directory: str | Path) -> None:
             pass
 
 
-__all__ = ["atomic_file", "atomic_write", "check_writable", "default_temp", "fsync_dir", "is_storage_failure",
-           "storage_error"]
+__all__ = [
+    "atomic_file",
+    "atomic_write",
+    "check_writable",
+    "default_temp",
+    "fsync_dir",
+    "is_storage_failure",
+    "storage_error",
+]
 
 
 def refuse_unwritable(option: str, value) -> None:

@@ -82,7 +82,9 @@ class TactileReading:
     @property
     def T_world_sensor(self) -> np.ndarray:
         if self.frame != "world":
-            raise InvalidInputError(f"TactileReading is in the '{self.frame}' frame; call to_world(T_world_{self.frame}) first")
+            raise InvalidInputError(
+                f"TactileReading is in the '{self.frame}' frame; call to_world(T_world_{self.frame}) first"
+            )
         return self.T_ref_sensor
 
     def to_world(self, T_world_ref) -> "TactileReading":

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+import tacsplat  # noqa: F401  (before any test module imports torch: the process-wide defaults it sets must come first)
+
 
 def pytest_sessionstart(session):
     """Under ``.ci/run`` (TACSPLAT_EXPECT_COLD_CACHE=1): the caches that could stand in for an
@@ -32,8 +34,7 @@ class Mount:
         subprocess.run(["mount", "-o", "remount,ro", str(self.path)], check=True, capture_output=True)
 
     def writable(self) -> None:
-        subprocess.run(["mount", "-o", f"remount,rw,size={self.size}", str(self.path)], check=True,
-                       capture_output=True)
+        subprocess.run(["mount", "-o", f"remount,rw,size={self.size}", str(self.path)], check=True, capture_output=True)
 
     def resize(self, size: str) -> None:
         """Change the size limit (to free space, as a person would, without deleting anything)."""
@@ -52,8 +53,9 @@ def tmpfs(tmp_path):
             pytest.skip("mounting a tmpfs needs root")
         path = tmp_path / name
         path.mkdir()
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True,
-                              text=True)
+        done = subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True, text=True
+        )
         if done.returncode != 0:
             pytest.skip(f"cannot mount a tmpfs here: {done.stderr.strip()}")
         mounts.append(path)

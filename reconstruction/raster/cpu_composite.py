@@ -200,8 +200,9 @@ def _fill_tiles(order, boxes, gauss_offsets, n_per_cam, tiles_x, tiles_per_cam, 
 
 
 @nb.njit(parallel=True, cache=True)
-def _pair_capacity(tile_start, tile_gauss, means2d, conics, limits, width, height, tile_size, tiles_x, tiles_per_cam,
-                   capacity):  # fmt: skip
+def _pair_capacity(
+    tile_start, tile_gauss, means2d, conics, limits, width, height, tile_size, tiles_x, tiles_per_cam, capacity
+):
     """Upper bound of the pixel-Gaussian pairs each intersection can visit (its ellipse's box within the tile)."""
     for t in nb.prange(tile_start.shape[0] - 1):
         cam = t // tiles_per_cam
@@ -222,10 +223,34 @@ def _pair_capacity(tile_start, tile_gauss, means2d, conics, limits, width, heigh
 
 
 @nb.njit(parallel=True, cache=True)
-def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
-             width, height, tile_size, tiles_x, tiles_per_cam, max_alpha, depths, out_color, out_trans, out_last,
-             out_median,
-             tile_pairs, cache_start, vis_cache, pair_start, tile_cached, spans, channels):  # fmt: skip
+def _forward(
+    tile_start,
+    tile_gauss,
+    means2d,
+    conics,
+    opacities,
+    limits,
+    colors,
+    backgrounds,
+    width,
+    height,
+    tile_size,
+    tiles_x,
+    tiles_per_cam,
+    max_alpha,
+    depths,
+    out_color,
+    out_trans,
+    out_last,
+    out_median,
+    tile_pairs,
+    cache_start,
+    vis_cache,
+    pair_start,
+    tile_cached,
+    spans,
+    channels,
+):
     """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T, n_contrib and the
     median depth (the depth of the Gaussian at which T first falls below 0.5, else 0).
 
@@ -277,7 +302,7 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
                 pairs += x1 - x0
                 if pos + (x1 - x0) > cache_end:
                     cached = False  # cannot happen with the capacity bound; the backward then recomputes
-                row = vis_cache[pos:pos + (x1 - x0)] if cached else scratch[:x1 - x0]
+                row = vis_cache[pos : pos + (x1 - x0)] if cached else scratch[: x1 - x0]
                 if cached:
                     pos += x1 - x0
                 p0 = (y - y_lo) * tw - x_lo
@@ -290,15 +315,30 @@ def _forward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors,
                         vis = F32(vis_next)
                         vis_next *= ratio
                         ratio *= ratio_step
-                        row[x - x0], alive = _composite(trans, acc, last, median, p0 + x, vis, opac, max_alpha,
-                                                        colors, g, depth, k, alive, channels)
+                        row[x - x0], alive = _composite(
+                            trans, acc, last, median, p0 + x, vis, opac, max_alpha, colors, g, depth, k, alive, channels
+                        )
                 else:
                     for x in range(x0, x1):
                         stored = _ZERO
                         sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
                         if sigma >= _ZERO and sigma <= limit:
-                            stored, alive = _composite(trans, acc, last, median, p0 + x, F32(math.exp(-sigma)),
-                                                       opac, max_alpha, colors, g, depth, k, alive, channels)
+                            stored, alive = _composite(
+                                trans,
+                                acc,
+                                last,
+                                median,
+                                p0 + x,
+                                F32(math.exp(-sigma)),
+                                opac,
+                                max_alpha,
+                                colors,
+                                g,
+                                depth,
+                                k,
+                                alive,
+                                channels,
+                            )
                         row[x - x0] = stored
         tile_pairs[t] = pairs
         tile_cached[t] = cached
@@ -335,9 +375,32 @@ def _composite(trans, acc, last, median, p, vis, opac, max_alpha, colors, g, dep
 
 
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
-def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors, backgrounds,
-              width, height, tile_size, tiles_x, tiles_per_cam, max_alpha, final_trans, last_contrib, v_color, v_alpha,
-              vis_cache, pair_start, tile_cached, spans, rows, channels):  # fmt: skip
+def _backward(
+    tile_start,
+    tile_gauss,
+    means2d,
+    conics,
+    opacities,
+    limits,
+    colors,
+    backgrounds,
+    width,
+    height,
+    tile_size,
+    tiles_x,
+    tiles_per_cam,
+    max_alpha,
+    final_trans,
+    last_contrib,
+    v_color,
+    v_alpha,
+    vis_cache,
+    pair_start,
+    tile_cached,
+    spans,
+    rows,
+    channels,
+):
     """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``.
 
     Pairs read ``exp(-exponent)`` back from the forward's ``vis_cache`` and rows their columns from its
@@ -391,14 +454,30 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                 p0 = (y - y_lo) * tw - x_lo
                 if use_cache:  # the forward's columns of this row (the same solve, not done twice)
                     x0, x1 = x_lo + np.int64(spans[k, y - y_lo, 0]), x_lo + np.int64(spans[k, y - y_lo, 1])
-                    row = vis_cache[pos:pos + (x1 - x0)]
+                    row = vis_cache[pos : pos + (x1 - x0)]
                     pos += x1 - x0
                     for x in range(x0, x1):
                         vis = row[x - x0]
                         if vis != _ZERO and k < last[p0 + x]:
                             s_x, s_xx, row_s, g_o = _pair_backward(
-                                trans, tv_a, behind, v_c, v_col_g, p0 + x, vis, opac, max_alpha, colors, g,
-                                mx - (F32(x) + _HALF), s_x, s_xx, row_s, g_o, channels)
+                                trans,
+                                tv_a,
+                                behind,
+                                v_c,
+                                v_col_g,
+                                p0 + x,
+                                vis,
+                                opac,
+                                max_alpha,
+                                colors,
+                                g,
+                                mx - (F32(x) + _HALF),
+                                s_x,
+                                s_xx,
+                                row_s,
+                                g_o,
+                                channels,
+                            )
                 else:
                     x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
                     for x in range(x0, x1):
@@ -407,8 +486,24 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
                             sigma = _exponent(a, b, c, dx, dy)
                             if sigma >= _ZERO and sigma <= limit:
                                 s_x, s_xx, row_s, g_o = _pair_backward(
-                                    trans, tv_a, behind, v_c, v_col_g, p0 + x, math.exp(-sigma), opac, max_alpha,
-                                    colors, g, dx, s_x, s_xx, row_s, g_o, channels)
+                                    trans,
+                                    tv_a,
+                                    behind,
+                                    v_c,
+                                    v_col_g,
+                                    p0 + x,
+                                    math.exp(-sigma),
+                                    opac,
+                                    max_alpha,
+                                    colors,
+                                    g,
+                                    dx,
+                                    s_x,
+                                    s_xx,
+                                    row_s,
+                                    g_o,
+                                    channels,
+                                )
                 # fold the row's sums in, dy being constant along the row
                 s_xr += s_x
                 s_y += row_s * dy
@@ -431,8 +526,9 @@ def _backward(tile_start, tile_gauss, means2d, conics, opacities, limits, colors
 
 
 @nb.njit(cache=True, inline="always", fastmath={"contract"})
-def _pair_backward(trans, tv_a, behind, v_c, v_col_g, p, vis, opac, max_alpha, colors, g, dx, s_x, s_xx, row_s, g_o,
-                   channels):
+def _pair_backward(
+    trans, tv_a, behind, v_c, v_col_g, p, vis, opac, max_alpha, colors, g, dx, s_x, s_xx, row_s, g_o, channels
+):
     """One pair of the backward (back to front): updates the pixel's transmittance and colour behind, the
     Gaussian's colour gradient; returns the row's sums with this pair's share."""
     alpha = min(max_alpha, opac * vis)
@@ -535,8 +631,9 @@ class _RasterizeCPU(torch.autograd.Function):
     """Autograd wrapper: forward and backward run the numba kernels above."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size,
-                max_alpha):
+    def forward(
+        ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size, max_alpha
+    ):
         n_cams, n, n_ch = colors.shape
         tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
         tiles_per_cam = tiles_x * tiles_y
@@ -550,7 +647,9 @@ class _RasterizeCPU(torch.autograd.Function):
         with np.errstate(divide="ignore"):  # alpha >= 1/255 <=> exponent <= ln(255 o); culled o <= 0 gives -inf
             limits = (np.log(np.float32(255.0) * np.maximum(opa, 0)) + _LOG_SLACK).astype(np.float32)
 
-        tile_start, tile_gauss, gauss_offsets, gauss_isect = bin_gaussians(m2d, rad, dep, n_cams, n, width, height, tile_size)
+        tile_start, tile_gauss, gauss_offsets, gauss_isect = bin_gaussians(
+            m2d, rad, dep, n_cams, n, width, height, tile_size
+        )
         n_isect = tile_gauss.shape[0]
 
         out_color = torch.empty((n_cams, height, width, n_ch), dtype=torch.float32)
@@ -559,8 +658,9 @@ class _RasterizeCPU(torch.autograd.Function):
         last = np.empty((n_cams, height, width), np.int64)
         tile_pairs = np.empty(n_cams * tiles_per_cam, np.int64)
         capacity = np.empty(n_isect, np.int64)
-        _pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, tile_size, tiles_x, tiles_per_cam,
-                       capacity)  # fmt: skip
+        _pair_capacity(
+            tile_start, tile_gauss, m2d, con, limits, width, height, tile_size, tiles_x, tiles_per_cam, capacity
+        )
         cache_start = np.zeros(n_isect + 1, np.int64)
         np.cumsum(capacity, out=cache_start[1:])
         vis_cache = _exp_cache(ctx, int(cache_start[-1]))
@@ -569,14 +669,52 @@ class _RasterizeCPU(torch.autograd.Function):
         # each visited row's columns [x0, x1) within its tile, for the backward
         spans = np.empty((n_isect, tile_size, 2), np.uint8 if tile_size <= 255 else np.int64)
         with nb.parallel_chunksize(_TILE_CHUNK):
-            _forward(tile_start, tile_gauss, m2d, con, opa, limits, col, bgs, width, height, tile_size,
-                     tiles_x, tiles_per_cam, F32(max_alpha), dep, out_color.numpy(), out_trans.numpy(), last,
-                     out_median.numpy()[..., 0],
-                     tile_pairs, cache_start, vis_cache, pair_start, tile_cached, spans, tuple(range(n_ch)))  # fmt: skip
+            _forward(
+                tile_start,
+                tile_gauss,
+                m2d,
+                con,
+                opa,
+                limits,
+                col,
+                bgs,
+                width,
+                height,
+                tile_size,
+                tiles_x,
+                tiles_per_cam,
+                F32(max_alpha),
+                dep,
+                out_color.numpy(),
+                out_trans.numpy(),
+                last,
+                out_median.numpy()[..., 0],
+                tile_pairs,
+                cache_start,
+                vis_cache,
+                pair_start,
+                tile_cached,
+                spans,
+                tuple(range(n_ch)),
+            )
         stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
 
-        ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, limits, col, bgs,
-                           width, height, tile_size, tiles_x, tiles_per_cam, F32(max_alpha))  # fmt: skip
+        ctx.kernel_args = (
+            tile_start,
+            tile_gauss,
+            m2d,
+            con,
+            opa,
+            limits,
+            col,
+            bgs,
+            width,
+            height,
+            tile_size,
+            tiles_x,
+            tiles_per_cam,
+            F32(max_alpha),
+        )
         ctx.binning = (gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached, spans)
         ctx.shapes = (n_cams, n, n_ch)
         ctx.has_background = backgrounds is not None
@@ -594,8 +732,19 @@ class _RasterizeCPU(torch.autograd.Function):
         v_alp = _numpy32(v_alphas[..., 0])
         rows = np.empty((gauss_isect.shape[0], N_GRAD + n_ch), np.float32)
         with nb.parallel_chunksize(_TILE_CHUNK):
-            _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, vis_cache, pair_start, tile_cached,
-                      spans, rows, tuple(range(n_ch)))  # fmt: skip
+            _backward(
+                *ctx.kernel_args,
+                out_trans.numpy(),
+                last,
+                v_col,
+                v_alp,
+                vis_cache,
+                pair_start,
+                tile_cached,
+                spans,
+                rows,
+                tuple(range(n_ch)),
+            )
         per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
         _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
         grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)

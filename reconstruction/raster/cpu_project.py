@@ -35,11 +35,21 @@ def _rotation(qw, qx, qy, qz):
     norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
     w, x, y, z = qw / norm, qx / norm, qy / norm, qz / norm
     return (
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-        w, x, y, z, norm,
-    )  # fmt: skip
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
+        w,
+        x,
+        y,
+        z,
+        norm,
+    )
 
 
 @nb.njit(cache=True, inline="always")
@@ -47,12 +57,36 @@ def _rotation_backward(w, qx, qy, qz, qnorm, vr):
     """d loss / d (unnormalised) quaternion from vr [3, 3] = d loss / d R, with (w, qx, qy, qz) and qnorm the
     normalised quaternion and the norm :func:`_rotation` returned."""
     v_w = 2.0 * (-qz * vr[0, 1] + qy * vr[0, 2] + qz * vr[1, 0] - qx * vr[1, 2] - qy * vr[2, 0] + qx * vr[2, 1])
-    v_x = 2.0 * (qy * vr[0, 1] + qz * vr[0, 2] + qy * vr[1, 0] - 2.0 * qx * vr[1, 1] - w * vr[1, 2]
-                 + qz * vr[2, 0] + w * vr[2, 1] - 2.0 * qx * vr[2, 2])  # fmt: skip
-    v_y = 2.0 * (-2.0 * qy * vr[0, 0] + qx * vr[0, 1] + w * vr[0, 2] + qx * vr[1, 0] + qz * vr[1, 2]
-                 - w * vr[2, 0] + qz * vr[2, 1] - 2.0 * qy * vr[2, 2])  # fmt: skip
-    v_z = 2.0 * (-2.0 * qz * vr[0, 0] - w * vr[0, 1] + qx * vr[0, 2] + w * vr[1, 0] - 2.0 * qz * vr[1, 1]
-                 + qy * vr[1, 2] + qx * vr[2, 0] + qy * vr[2, 1])  # fmt: skip
+    v_x = 2.0 * (
+        qy * vr[0, 1]
+        + qz * vr[0, 2]
+        + qy * vr[1, 0]
+        - 2.0 * qx * vr[1, 1]
+        - w * vr[1, 2]
+        + qz * vr[2, 0]
+        + w * vr[2, 1]
+        - 2.0 * qx * vr[2, 2]
+    )
+    v_y = 2.0 * (
+        -2.0 * qy * vr[0, 0]
+        + qx * vr[0, 1]
+        + w * vr[0, 2]
+        + qx * vr[1, 0]
+        + qz * vr[1, 2]
+        - w * vr[2, 0]
+        + qz * vr[2, 1]
+        - 2.0 * qy * vr[2, 2]
+    )
+    v_z = 2.0 * (
+        -2.0 * qz * vr[0, 0]
+        - w * vr[0, 1]
+        + qx * vr[0, 2]
+        + w * vr[1, 0]
+        - 2.0 * qz * vr[1, 1]
+        + qy * vr[1, 2]
+        + qx * vr[2, 0]
+        + qy * vr[2, 1]
+    )
     # through q / max(|q|, 1e-12)
     dot = (w * v_w + qx * v_x + qy * v_y + qz * v_z) if qnorm > 1e-12 else 0.0
     return (v_w - w * dot) / qnorm, (v_x - qx * dot) / qnorm, (v_y - qy * dot) / qnorm, (v_z - qz * dot) / qnorm
@@ -62,13 +96,16 @@ def _rotation_backward(w, qx, qy, qz, qnorm, vr):
 def _mul3(a, b):
     """a @ b of 3x3 matrices held as row-major 9-tuples (in registers, not arrays)."""
     return (
-        a[0] * b[0] + a[1] * b[3] + a[2] * b[6], a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
+        a[0] * b[0] + a[1] * b[3] + a[2] * b[6],
+        a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
         a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
-        a[3] * b[0] + a[4] * b[3] + a[5] * b[6], a[3] * b[1] + a[4] * b[4] + a[5] * b[7],
+        a[3] * b[0] + a[4] * b[3] + a[5] * b[6],
+        a[3] * b[1] + a[4] * b[4] + a[5] * b[7],
         a[3] * b[2] + a[4] * b[5] + a[5] * b[8],
-        a[6] * b[0] + a[7] * b[3] + a[8] * b[6], a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
+        a[6] * b[0] + a[7] * b[3] + a[8] * b[6],
+        a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
         a[6] * b[2] + a[7] * b[5] + a[8] * b[8],
-    )  # fmt: skip
+    )
 
 
 @nb.njit(cache=True, inline="always")
@@ -77,8 +114,24 @@ def _transpose3(a):
 
 
 @nb.njit(parallel=True, cache=True)
-def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip,
-                     means2d, conics, depths, radii):  # fmt: skip
+def _project_forward(
+    means,
+    quats,
+    scales,
+    opacities,
+    viewmats,
+    Ks,
+    width,
+    height,
+    near,
+    far,
+    eps2d,
+    radius_clip,
+    means2d,
+    conics,
+    depths,
+    radii,
+):
     """EWA projection of every (camera, Gaussian); culled ones get zeros. viewmats, Ks: float64."""
     n_cams, n = means2d.shape[0], means2d.shape[1]
     margin = FOV_CLAMP - 1.0
@@ -138,8 +191,23 @@ def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, heigh
 
 
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
-def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
-                      v_means2d, v_conics, v_depths, v_means, v_quats, v_scales):  # fmt: skip
+def _project_backward(
+    means,
+    quats,
+    scales,
+    viewmats,
+    Ks,
+    width,
+    height,
+    eps2d,
+    radii,
+    v_means2d,
+    v_conics,
+    v_depths,
+    v_means,
+    v_quats,
+    v_scales,
+):
     """Gradients of means2d, conics and depths w.r.t. means, quats and scales (summed over cameras); the small
     matrices are 9-tuples (J's two zeros left out), so they stay in registers."""
     n_cams, n = v_means2d.shape[0], v_means2d.shape[1]
@@ -192,12 +260,29 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
                 # d / d cov_c = J^T V J with V = [[va, vb], [0, vc]] (cov2d's [0, 1] entry stands for both)
                 t0, t1, t2 = va * j00, vb * j11, va * j02 + vb * j12  # V J, first row
                 u1, u2 = vc * j11, vc * j12  # second row (its first entry is 0)
-                v_cov_c = (j00 * t0, j00 * t1, j00 * t2, 0.0, j11 * u1, j11 * u2,
-                           j02 * t0, j02 * t1 + j12 * u1, j02 * t2 + j12 * u2)  # fmt: skip
+                v_cov_c = (
+                    j00 * t0,
+                    j00 * t1,
+                    j00 * t2,
+                    0.0,
+                    j11 * u1,
+                    j11 * u2,
+                    j02 * t0,
+                    j02 * t1 + j12 * u1,
+                    j02 * t2 + j12 * u2,
+                )
                 contribution = _mul3(_mul3(_transpose3(rot), v_cov_c), rot)
-                v_cov = (v_cov[0] + contribution[0], v_cov[1] + contribution[1], v_cov[2] + contribution[2],
-                         v_cov[3] + contribution[3], v_cov[4] + contribution[4], v_cov[5] + contribution[5],
-                         v_cov[6] + contribution[6], v_cov[7] + contribution[7], v_cov[8] + contribution[8])  # fmt: skip
+                v_cov = (
+                    v_cov[0] + contribution[0],
+                    v_cov[1] + contribution[1],
+                    v_cov[2] + contribution[2],
+                    v_cov[3] + contribution[3],
+                    v_cov[4] + contribution[4],
+                    v_cov[5] + contribution[5],
+                    v_cov[6] + contribution[6],
+                    v_cov[7] + contribution[7],
+                    v_cov[8] + contribution[8],
+                )
                 # d / d J = (V + V^T) J cov_c: only the entries J depends on
                 vj00 = 2.0 * va * jc00 + vb * jc10
                 vj02 = 2.0 * va * jc02 + vb * jc12
@@ -225,8 +310,17 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
             v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
             # covariance = M M^T with M = R diag(s): d / d M = (V + V^T) M
             sym = _transpose3(v_cov)
-            sym = (v_cov[0] + sym[0], v_cov[1] + sym[1], v_cov[2] + sym[2], v_cov[3] + sym[3], v_cov[4] + sym[4],
-                   v_cov[5] + sym[5], v_cov[6] + sym[6], v_cov[7] + sym[7], v_cov[8] + sym[8])  # fmt: skip
+            sym = (
+                v_cov[0] + sym[0],
+                v_cov[1] + sym[1],
+                v_cov[2] + sym[2],
+                v_cov[3] + sym[3],
+                v_cov[4] + sym[4],
+                v_cov[5] + sym[5],
+                v_cov[6] + sym[6],
+                v_cov[7] + sym[7],
+                v_cov[8] + sym[8],
+            )
             v_m = _mul3(sym, m)
             rot_g = (r00, r01, r02, r10, r11, r12, r20, r21, r22)
             s3 = (sx, sy, sz)
@@ -267,19 +361,44 @@ def _sh_basis_grad(degree, x, y, z, weights):
         gy -= SH_C1 * weights[1]
         gz += SH_C1 * weights[2]
     if degree >= 2:
-        w4, w5, w6, w7, w8 = weights[4] * _C2_0, weights[5] * _C2_1, weights[6] * _C2_2, weights[7] * _C2_3, weights[8] * _C2_4
+        w4, w5, w6, w7, w8 = (
+            weights[4] * _C2_0,
+            weights[5] * _C2_1,
+            weights[6] * _C2_2,
+            weights[7] * _C2_3,
+            weights[8] * _C2_4,
+        )
         gx += w4 * y - 2.0 * w6 * x + w7 * z + 2.0 * w8 * x
         gy += w4 * x + w5 * z - 2.0 * w6 * y - 2.0 * w8 * y
         gz += w5 * y + 4.0 * w6 * z + w7 * x
     if degree >= 3:
         w9, w10, w11 = weights[9] * _C3_0, weights[10] * _C3_1, weights[11] * _C3_2
         w12, w13, w14, w15 = weights[12] * _C3_3, weights[13] * _C3_4, weights[14] * _C3_5, weights[15] * _C3_6
-        gx += (w9 * 6.0 * x * y + w10 * y * z - w11 * 2.0 * x * y - w12 * 6.0 * x * z
-               + w13 * (4.0 * zz - 3.0 * xx - yy) + w14 * 2.0 * x * z + w15 * (3.0 * xx - 3.0 * yy))  # fmt: skip
-        gy += (w9 * (3.0 * xx - 3.0 * yy) + w10 * x * z + w11 * (4.0 * zz - xx - 3.0 * yy) - w12 * 6.0 * y * z
-               - w13 * 2.0 * x * y - w14 * 2.0 * y * z - w15 * 6.0 * x * y)  # fmt: skip
-        gz += (w10 * x * y + w11 * 8.0 * y * z + w12 * (6.0 * zz - 3.0 * xx - 3.0 * yy) + w13 * 8.0 * x * z
-               + w14 * (xx - yy))  # fmt: skip
+        gx += (
+            w9 * 6.0 * x * y
+            + w10 * y * z
+            - w11 * 2.0 * x * y
+            - w12 * 6.0 * x * z
+            + w13 * (4.0 * zz - 3.0 * xx - yy)
+            + w14 * 2.0 * x * z
+            + w15 * (3.0 * xx - 3.0 * yy)
+        )
+        gy += (
+            w9 * (3.0 * xx - 3.0 * yy)
+            + w10 * x * z
+            + w11 * (4.0 * zz - xx - 3.0 * yy)
+            - w12 * 6.0 * y * z
+            - w13 * 2.0 * x * y
+            - w14 * 2.0 * y * z
+            - w15 * 6.0 * x * y
+        )
+        gz += (
+            w10 * x * y
+            + w11 * 8.0 * y * z
+            + w12 * (6.0 * zz - 3.0 * xx - 3.0 * yy)
+            + w13 * 8.0 * x * z
+            + w14 * (xx - yy)
+        )
     return gx, gy, gz
 
 
@@ -357,9 +476,21 @@ class _ProjectCPU(torch.autograd.Function):
         radii = torch.empty(n_cams, n, 2, dtype=torch.int32)
         args = (_np(means), _np(quats), _np(scales))
         cams = (_np(viewmats).astype(np.float64), _np(Ks).astype(np.float64))
-        _project_forward(*args, _np(opacities), *cams, width, height, float(np.float32(near)), float(np.float32(far)),
-                         float(eps2d), float(radius_clip), means2d.numpy(), conics.numpy(), depths.numpy(),
-                         radii.numpy())  # fmt: skip
+        _project_forward(
+            *args,
+            _np(opacities),
+            *cams,
+            width,
+            height,
+            float(np.float32(near)),
+            float(np.float32(far)),
+            float(eps2d),
+            float(radius_clip),
+            means2d.numpy(),
+            conics.numpy(),
+            depths.numpy(),
+            radii.numpy(),
+        )
         ctx.arrays = args + cams + (width, height, float(eps2d), radii.numpy())
         ctx.mark_non_differentiable(radii)
         return means2d, conics, depths, radii
@@ -371,9 +502,23 @@ class _ProjectCPU(torch.autograd.Function):
         v_quats = torch.empty(quats.shape)
         v_scales = torch.empty(scales.shape)
         zeros = torch.zeros(radii.shape[:2])
-        _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, radii,
-                          _np(v_means2d), _np(v_conics), _np(v_depths if v_depths is not None else zeros),
-                          v_means.numpy(), v_quats.numpy(), v_scales.numpy())  # fmt: skip
+        _project_backward(
+            means,
+            quats,
+            scales,
+            viewmats,
+            Ks,
+            width,
+            height,
+            eps2d,
+            radii,
+            _np(v_means2d),
+            _np(v_conics),
+            _np(v_depths if v_depths is not None else zeros),
+            v_means.numpy(),
+            v_quats.numpy(),
+            v_scales.numpy(),
+        )
         return v_means, v_quats, v_scales, None, None, None, None, None, None, None, None, None
 
 
@@ -394,8 +539,9 @@ class _SphericalHarmonicsCPU(torch.autograd.Function):
         means, campos, coeffs, radii = ctx.arrays
         v_coeffs = torch.empty(coeffs.shape)
         v_means = torch.empty(means.shape)
-        _sh_backward(ctx.degree, means, campos, coeffs, radii, colors.numpy(), _np(v_colors),
-                     v_coeffs.numpy(), v_means.numpy())  # fmt: skip
+        _sh_backward(
+            ctx.degree, means, campos, coeffs, radii, colors.numpy(), _np(v_colors), v_coeffs.numpy(), v_means.numpy()
+        )
         return None, v_means, None, v_coeffs, None
 
 

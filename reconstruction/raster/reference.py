@@ -81,9 +81,9 @@ def project_gaussians(
     tx = z_safe * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x * rz))
     ty = z_safe * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y * rz))
     zeros = torch.zeros_like(z)
-    J = torch.stack(
-        [fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1
-    ).reshape(z.shape + (2, 3))  # [C, N, 2, 3]
+    J = torch.stack([fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1).reshape(
+        z.shape + (2, 3)
+    )  # [C, N, 2, 3]
     cov2d = J @ covars_c @ J.transpose(-1, -2)  # [C, N, 2, 2]
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)  # [C, N, 2]
 
@@ -154,8 +154,9 @@ def tile_intersections(
     tile_ids = tile_y * tiles_x + tile_x
     # rank Gaussians by (depth, index), then sort intersections by (tile, rank)
     depth_rank = torch.empty_like(visible)
-    depth_rank[torch.sort(depths[visible].detach(), stable=True).indices] = torch.arange(visible.numel(),
-                                                                                         device=visible.device)
+    depth_rank[torch.sort(depths[visible].detach(), stable=True).indices] = torch.arange(
+        visible.numel(), device=visible.device
+    )
     order = torch.sort(tile_ids * visible.numel() + depth_rank[owner]).indices
     return tile_ids[order], visible[owner[order]]
 

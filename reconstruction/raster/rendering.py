@@ -182,10 +182,19 @@ def rasterization(
     n_channels = colors.shape[-1]
     if backgrounds is not None:
         _check_tensor("backgrounds", backgrounds, (n_cams, n_channels), dtype, device)
-    named = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
-             "viewmats": viewmats, "Ks": Ks}
+    named = {
+        "means": means,
+        "quats": quats,
+        "scales": scales,
+        "opacities": opacities,
+        "colors": colors,
+        "viewmats": viewmats,
+        "Ks": Ks,
+    }
     _check_values(named if backgrounds is None else {**named, "backgrounds": backgrounds}, Ks)
-    if not (isinstance(width, numbers.Integral) and isinstance(height, numbers.Integral) and width >= 1 and height >= 1):
+    if not (
+        isinstance(width, numbers.Integral) and isinstance(height, numbers.Integral) and width >= 1 and height >= 1
+    ):
         raise InvalidInputError(f"width and height must be positive ints, got {width!r} x {height!r}")
     width, height = int(width), int(height)
     if render_mode not in RENDER_MODES:
@@ -204,23 +213,52 @@ def rasterization(
         cpu = [t.detach().float().cpu() for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
         bgs = None if backgrounds is None else backgrounds.detach().float().cpu()
         out_colors, out_alphas, meta = rasterization(
-            *cpu, width, height, near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
-            sh_degree=sh_degree, tile_size=tile_size, backgrounds=bgs, render_mode=render_mode,
-            rasterize_mode=rasterize_mode, backend="cpu", max_alpha=max_alpha,
-        )  # fmt: skip
+            *cpu,
+            width,
+            height,
+            near_plane=near_plane,
+            far_plane=far_plane,
+            radius_clip=radius_clip,
+            eps2d=eps2d,
+            sh_degree=sh_degree,
+            tile_size=tile_size,
+            backgrounds=bgs,
+            render_mode=render_mode,
+            rasterize_mode=rasterize_mode,
+            backend="cpu",
+            max_alpha=max_alpha,
+        )
         return out_colors.to(means.device, dtype), out_alphas.to(means.device, dtype), meta
     if chosen == "gsplat":
         from tacsplat.reconstruction.raster.gsplat_backend import rasterization_gsplat
 
         if max_alpha != MAX_ALPHA:
-            raise InvalidInputError(f"backend='gsplat' clamps alpha at {MAX_ALPHA} (fixed in its kernels), got "
-                                    f"max_alpha={max_alpha}")
+            raise InvalidInputError(
+                f"backend='gsplat' clamps alpha at {MAX_ALPHA} (fixed in its kernels), got max_alpha={max_alpha}"
+            )
         return rasterization_gsplat(
-            means, quats, scales, opacities, colors, viewmats, Ks, width, height,
-            near_plane=near_plane, far_plane=far_plane, radius_clip=radius_clip, eps2d=eps2d,
-            sh_degree=sh_degree, packed=packed, tile_size=tile_size, backgrounds=backgrounds,
-            render_mode=render_mode, rasterize_mode=rasterize_mode, absgrad=absgrad, camera_model=camera_model,
-        )  # fmt: skip
+            means,
+            quats,
+            scales,
+            opacities,
+            colors,
+            viewmats,
+            Ks,
+            width,
+            height,
+            near_plane=near_plane,
+            far_plane=far_plane,
+            radius_clip=radius_clip,
+            eps2d=eps2d,
+            sh_degree=sh_degree,
+            packed=packed,
+            tile_size=tile_size,
+            backgrounds=backgrounds,
+            render_mode=render_mode,
+            rasterize_mode=rasterize_mode,
+            absgrad=absgrad,
+            camera_model=camera_model,
+        )
     if packed or absgrad or camera_model != "pinhole":
         raise InvalidInputError(
             f"backend {chosen!r} supports packed=False, absgrad=False and camera_model='pinhole' only"
@@ -241,10 +279,20 @@ def rasterization(
             point_colors = sh_colors_cpu(sh_degree, means, campos, colors[:, :n_bases].contiguous(), radii)
     else:
         proj = project_gaussians(
-            means, quats, scales, opacities, viewmats, Ks, width, height,
-            near_plane=near_plane, far_plane=far_plane, eps2d=eps2d, radius_clip=radius_clip,
+            means,
+            quats,
+            scales,
+            opacities,
+            viewmats,
+            Ks,
+            width,
+            height,
+            near_plane=near_plane,
+            far_plane=far_plane,
+            eps2d=eps2d,
+            radius_clip=radius_clip,
             antialiased=rasterize_mode == "antialiased",
-        )  # fmt: skip
+        )
         if sh_degree is not None:
             campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C, 3]
             dirs = means[None, :, :] - campos[:, None, :]  # [C, N, 3]
@@ -267,15 +315,33 @@ def rasterization(
         from tacsplat.reconstruction.raster.cpu_composite import rasterize_to_pixels_cpu
 
         render_colors, render_alphas, stats, median = rasterize_to_pixels_cpu(
-            proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
-            width, height, tile_size, bg, max_alpha,
-        )  # fmt: skip
+            proj.means2d,
+            proj.conics,
+            point_colors,
+            proj.opacities,
+            proj.radii,
+            proj.depths,
+            width,
+            height,
+            tile_size,
+            bg,
+            max_alpha,
+        )
         extra_meta = {"n_intersections": int(stats[0]), "n_pairs": int(stats[1]), "median_depths": median}
     else:
         render_colors, render_alphas, median = rasterize_to_pixels_torch(
-            proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths,
-            width, height, tile_size, bg, max_alpha,
-        )  # fmt: skip
+            proj.means2d,
+            proj.conics,
+            point_colors,
+            proj.opacities,
+            proj.radii,
+            proj.depths,
+            width,
+            height,
+            tile_size,
+            bg,
+            max_alpha,
+        )
         extra_meta = {"median_depths": median}
     if render_mode in ("ED", "RGB+ED"):
         expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)

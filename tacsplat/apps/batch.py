@@ -45,8 +45,20 @@ log = logging.getLogger(__name__)
 
 CAPTURE_MARKER = "capture.json"
 METRICS = "metrics.json"
-RESULT_COLUMNS = ("job", "run", "scene", "method", "seed", "iterations", "cd", "cd_paper", "psnr", "ssim",
-                  "train_seconds", "num_gaussians")
+RESULT_COLUMNS = (
+    "job",
+    "run",
+    "scene",
+    "method",
+    "seed",
+    "iterations",
+    "cd",
+    "cd_paper",
+    "psnr",
+    "ssim",
+    "train_seconds",
+    "num_gaussians",
+)
 KINDS = ("capture", "reconstruct", "evaluate")
 
 
@@ -116,10 +128,19 @@ class SceneCopyJob(BatchJob):
         return summary
 
 
-_RIG_FIELDS = {"sim.object": "object", "sim.mesh": "mesh", "sim.object_radius": "object_radius",
-               "sim.resolution": "resolution", "sim.seed": "seed", "plan.grasps.seed": "seed",
-               "plan.views.train": "views", "plan.views.test": "test_views", "plan.grasps.count": "grasps",
-               "plan.touches.model": "touch_model", "sim.texture": "texture"}  # the rig config's fields a capture job sets
+_RIG_FIELDS = {
+    "sim.object": "object",
+    "sim.mesh": "mesh",
+    "sim.object_radius": "object_radius",
+    "sim.resolution": "resolution",
+    "sim.seed": "seed",
+    "plan.grasps.seed": "seed",
+    "plan.views.train": "views",
+    "plan.views.test": "test_views",
+    "plan.grasps.count": "grasps",
+    "plan.touches.model": "touch_model",
+    "sim.texture": "texture",
+}  # the rig config's fields a capture job sets
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -142,9 +163,18 @@ class CaptureJob(BatchJob):
     def rig(self):
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
-        return sim_rig_config(object=self.object, mesh=self.mesh, object_radius=self.object_radius, views=self.views,
-                              test_views=self.test_views, grasps=self.grasps, resolution=self.resolution,
-                              seed=self.seed, touch_model=self.touch_model, texture=self.texture)
+        return sim_rig_config(
+            object=self.object,
+            mesh=self.mesh,
+            object_radius=self.object_radius,
+            views=self.views,
+            test_views=self.test_views,
+            grasps=self.grasps,
+            resolution=self.resolution,
+            seed=self.seed,
+            touch_model=self.touch_model,
+            texture=self.texture,
+        )
 
     def check(self) -> None:
         super().check()
@@ -181,8 +211,7 @@ class ReconstructJob(BatchJob):
     device: Literal["auto", "cpu", "cuda"] = "auto"
 
     def config(self):
-        from tacsplat.reconstruction.config import preset_config
-        from tacsplat.reconstruction.config import set_fields
+        from tacsplat.reconstruction.config import preset_config, set_fields
         from tacsplat.reconstruction.methods import get_method
 
         config = preset_config(self.preset, self.iterations)
@@ -221,8 +250,9 @@ class ReconstructJob(BatchJob):
         except ConfigError as exc:  # (read_json and from_json raise nothing else for a bad record)
             return [f"{path.name} unreadable ({exc})"]
         now = self.config()
-        changes = [f"{key} {then!r} -> {value!r}" for key, then, value in changed_settings(recorded, now)
-                   if key != "device"]
+        changes = [
+            f"{key} {then!r} -> {value!r}" for key, then, value in changed_settings(recorded, now) if key != "device"
+        ]
         if changes and method_of(recorded) != method_of(now):
             changes.insert(0, f"method {method_of(recorded)} -> {method_of(now)}")
         return changes
@@ -231,9 +261,12 @@ class ReconstructJob(BatchJob):
         """A benchmark's check before it runs: a finished or interrupted run trained with other settings than this
         job's is an error on ``--out`` (:meth:`changed_settings`), not a number silently reused or resumed."""
         if changes := self.changed_settings():
-            raise ConfigError("--out", f"{self.out} was trained with other settings ({', '.join(changes)}): use the "
-                              "options it was trained with or a new --out, or delete that run folder to train it "
-                              "again")
+            raise ConfigError(
+                "--out",
+                f"{self.out} was trained with other settings ({', '.join(changes)}): use the "
+                "options it was trained with or a new --out, or delete that run folder to train it "
+                "again",
+            )
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         """One GPU for a CUDA training (``auto`` trains on CUDA where the cluster has GPUs)."""
@@ -256,8 +289,9 @@ class ReconstructJob(BatchJob):
         if self.complete():
             return json.loads((self.out / METRICS).read_text())
         resume = (self.out / "checkpoint.pt").is_file()
-        return reconstruct(self.scene, self.out, self.config(), resume=resume, overwrite=not resume,
-                           show_progress=False)
+        return reconstruct(
+            self.scene, self.out, self.config(), resume=resume, overwrite=not resume, show_progress=False
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -334,15 +368,20 @@ def load_batch(path: str | Path, out: str | Path) -> list:
             if isinstance(made.get(source), maker_kind):
                 needs = (*needs, made[source].name)
             elif not source.is_dir():
-                raise ConfigError(f"jobs[{i}].{key}", f"{source} is not a folder, nor the out of a "
-                                  f"{maker_kind.__name__.removesuffix('Job').lower()} job listed before this one", path)
+                raise ConfigError(
+                    f"jobs[{i}].{key}",
+                    f"{source} is not a folder, nor the out of a "
+                    f"{maker_kind.__name__.removesuffix('Job').lower()} job listed before this one",
+                    path,
+                )
         if not isinstance(job, EvaluateJob):
             if job.out in made:
                 raise ConfigError(f"jobs[{i}].out", f"{job.out} is also the out of {made[job.out].name}", path)
             made[job.out] = job
         if job.name in names:
-            raise ConfigError(f"jobs[{i}].name", f"two jobs are named {job.name!r}: jobs[{names[job.name]}] and this "
-                              "one", path)
+            raise ConfigError(
+                f"jobs[{i}].name", f"two jobs are named {job.name!r}: jobs[{names[job.name]}] and this one", path
+            )
         names[job.name] = i
         try:
             job.check()
@@ -360,9 +399,13 @@ def _in_needs_order(jobs: list, path: Path) -> list:
     index = {job.name: i for i, job in enumerate(jobs)}
     for i, job in enumerate(jobs):
         if unknown := [n for n in job.needs if n not in index]:
-            raise ConfigError(f"jobs[{i}].needs", f"{job.name!r} needs {unknown[0]!r}, which is no job of this file "
-                              "(a job's name is its `name:`, else its kind and its out, or run, as written, as in "
-                              f"{jobs[0].name!r})", path)
+            raise ConfigError(
+                f"jobs[{i}].needs",
+                f"{job.name!r} needs {unknown[0]!r}, which is no job of this file "
+                "(a job's name is its `name:`, else its kind and its out, or run, as written, as in "
+                f"{jobs[0].name!r})",
+                path,
+            )
     sorter = TopologicalSorter({job.name: job.needs for job in jobs})
     try:
         sorter.prepare()
@@ -370,8 +413,11 @@ def _in_needs_order(jobs: list, path: Path) -> list:
         cycle = exc.args[1][:0:-1]  # (graphlib lists each job before the jobs that need it, the first twice)
         first = min(range(len(cycle)), key=lambda k: index[cycle[k]])
         cycle = [f"{n!r} (jobs[{index[n]}])" for n in (*cycle[first:], *cycle[:first], cycle[first])]
-        raise ConfigError("jobs", f"the needs form a cycle, so none of its jobs can run: {cycle[0]} needs "
-                          f"{', which needs '.join(cycle[1:])}", path) from None
+        raise ConfigError(
+            "jobs",
+            f"the needs form a cycle, so none of its jobs can run: {cycle[0]} needs {', which needs '.join(cycle[1:])}",
+            path,
+        ) from None
     order: list = []
     ready: list[int] = []  # indices of the jobs whose needs are all in order: the first in the file goes next
     while sorter.is_active():
@@ -434,9 +480,17 @@ def result_rows(jobs: list, out: Path) -> list[dict]:
         if run is None or not (run / METRICS).is_file():
             continue
         m = json.loads((run / METRICS).read_text())
-        rows.append({"job": job.name, "run": _relative(run, out), "scene": _relative(Path(m.get("scene", "")), out),
-                     "method": m.get("method"), "seed": m.get("settings", {}).get("seed"),
-                     "iterations": m.get("iterations"), **{k: m.get(k) for k in RESULT_COLUMNS[6:]}})
+        rows.append(
+            {
+                "job": job.name,
+                "run": _relative(run, out),
+                "scene": _relative(Path(m.get("scene", "")), out),
+                "method": m.get("method"),
+                "seed": m.get("settings", {}).get("seed"),
+                "iterations": m.get("iterations"),
+                **{k: m.get(k) for k in RESULT_COLUMNS[6:]},
+            }
+        )
     return rows
 
 
@@ -460,15 +514,22 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
     out = Path(out)
     for job in jobs:  # kept, not refused: a batch file says what each job is, and a folder may be reused on purpose
         if isinstance(job, ReconstructJob) and (changes := job.changed_settings()):
-            log.warning("%s: %s holds a run trained with other settings (%s); it is kept, or resumed, as it was "
-                        "trained (delete the folder to train it anew)", job.name, job.out, ", ".join(changes))
+            log.warning(
+                "%s: %s holds a run trained with other settings (%s); it is kept, or resumed, as it was "
+                "trained (delete the folder to train it anew)",
+                job.name,
+                job.out,
+                ", ".join(changes),
+            )
 
     def on_done(job, summary: dict) -> str | None:
         if run_folder(job) is None:
             return None
         write_results(result_rows(jobs, out), out / "results.csv")
-        return (f"{job.name}: CD {_fmt(summary.get('cd'), 4)}  PSNR {_fmt(summary.get('psnr'), 2)}  "
-                f"{summary.get('train_seconds') or 0:.0f} s")
+        return (
+            f"{job.name}: CD {_fmt(summary.get('cd'), 4)}  PSNR {_fmt(summary.get('psnr'), 2)}  "
+            f"{summary.get('train_seconds') or 0:.0f} s"
+        )
 
     outcome = run_jobs(jobs, out, on_done=on_done, desc="batch", progress=progress, **executor)
     rows = result_rows(jobs, out)
@@ -510,6 +571,8 @@ def _run(args) -> int:
     started = time.perf_counter()
     with claim_output_dir(out, "--out"):
         rows = run_batch(jobs, out, **executor)
-    print(f"{len(jobs)} jobs, {len(rows)} runs with metrics in {out / 'results.csv'}; "
-          f"this invocation took {(time.perf_counter() - started) / 60:.1f} min")
+    print(
+        f"{len(jobs)} jobs, {len(rows)} runs with metrics in {out / 'results.csv'}; "
+        f"this invocation took {(time.perf_counter() - started) / 60:.1f} min"
+    )
     return 0

@@ -74,8 +74,10 @@ def format_comparison(rows, name_a: str, name_b: str) -> str:
         return f"{v:12.4g}" if math.isfinite(v) else f"{v!s:>12}"
 
     width = max([len("value")] + [len(key) for key, *_ in rows])
-    lines = [f"{'value':{width}s} {name_a[-12:]:>12} {name_b[-12:]:>12} {'B / A':>8}",
-             f"{'':{width}s} {'(A)':>12} {'(B)':>12}"]  # fmt: skip
+    lines = [
+        f"{'value':{width}s} {name_a[-12:]:>12} {name_b[-12:]:>12} {'B / A':>8}",
+        f"{'':{width}s} {'(A)':>12} {'(B)':>12}",
+    ]
     for key, va, vb, ratio in rows:
         lines.append(f"{key:{width}s} {cell(va)} {cell(vb)} " + (f"{ratio:8.3f}" if ratio is not None else f"{'':8s}"))
     return "\n".join(lines)
@@ -83,8 +85,11 @@ def format_comparison(rows, name_a: str, name_b: str) -> str:
 
 def register(cli) -> None:
     """Add `tacsplat bench compare`."""
-    p = cli.command("bench compare", help="two benchmark JSON files side by side (A before, B after) with ratios",
-                    description=__doc__.split("\n\n", 1)[1].replace("``", "'"))  # fmt: skip
+    p = cli.command(
+        "bench compare",
+        help="two benchmark JSON files side by side (A before, B after) with ratios",
+        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
+    )
     p.add_argument("a", help="benchmark JSON (before)")
     p.add_argument("b", help="benchmark JSON (after)")
     p.add_argument("--match", default=None, help="only the values whose path contains this text, e.g. _ms")

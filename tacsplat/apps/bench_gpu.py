@@ -31,11 +31,15 @@ def register(cli) -> None:
     p.add_argument("--grasps", type=int, default=5, help="grasps of 4 touches")
     p.add_argument("--preset", default="paper", choices=("default", "paper"), help="training preset")
     p.add_argument("--iterations", type=int, default=None, help="steps per run (default: the preset's)")
-    p.add_argument("--methods", default="paper,3dgs",
-                   help="comma-separated methods (or rows of `bench paper`'s ablations.yaml)")
+    p.add_argument(
+        "--methods", default="paper,3dgs", help="comma-separated methods (or rows of `bench paper`'s ablations.yaml)"
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-sfm", action="store_true",
-                   help="initialise without pycolmap (visual hull), e.g. on a GPU machine without pycolmap")
+    p.add_argument(
+        "--no-sfm",
+        action="store_true",
+        help="initialise without pycolmap (visual hull), e.g. on a GPU machine without pycolmap",
+    )
     p.set_defaults(func=_run)
 
 
@@ -63,8 +67,14 @@ def _capture(args, scene: Path) -> Path:
     from tacsplat.acquisition.sim_capture import sim_rig_config
     from tacsplat.apps.batch import capture_once
 
-    rig = sim_rig_config(object=args.object, views=args.views, test_views=args.test_views, grasps=args.grasps,
-                         resolution=args.resolution, seed=args.seed)
+    rig = sim_rig_config(
+        object=args.object,
+        views=args.views,
+        test_views=args.test_views,
+        grasps=args.grasps,
+        resolution=args.resolution,
+        seed=args.seed,
+    )
     return capture_once(rig, scene)
 
 
@@ -83,13 +93,20 @@ def _train(scene: Path, out: Path, method: str, args) -> dict:
     metrics = reconstruct(scene, out, config, resume=resume, overwrite=not resume, show_progress=True)
     wall = time.perf_counter() - started
     return {
-        "method": method, "preset": args.preset, "iterations": metrics["iterations"],
-        "train_seconds": metrics["train_seconds"], "wall_seconds": wall,
+        "method": method,
+        "preset": args.preset,
+        "iterations": metrics["iterations"],
+        "train_seconds": metrics["train_seconds"],
+        "wall_seconds": wall,
         "seconds_per_1k_steps": 1000.0 * metrics["train_seconds"] / max(metrics["iterations"], 1),
         "peak_gpu_memory_gib": torch.cuda.max_memory_allocated() / 2**30,
-        "num_gaussians": metrics["num_gaussians"], "cd": metrics["cd"], "cd_paper": metrics["cd_paper"],
-        "psnr": metrics["psnr"], "ssim": metrics["ssim"], "run": str(out),
-    }  # fmt: skip
+        "num_gaussians": metrics["num_gaussians"],
+        "cd": metrics["cd"],
+        "cd_paper": metrics["cd_paper"],
+        "psnr": metrics["psnr"],
+        "ssim": metrics["ssim"],
+        "run": str(out),
+    }
 
 
 def _write_report(out: Path, rows: list[dict], scene: Path) -> None:
@@ -102,11 +119,16 @@ def _write_report(out: Path, rows: list[dict], scene: Path) -> None:
     loaded = Scene.load(scene)
     train = loaded.split("train")
     device = {
-        "gpu": torch.cuda.get_device_name(), "torch": torch.__version__, "cuda": torch.version.cuda,
-        "gsplat": _version("gsplat"), "scene": str(scene), "train_views": len(train),
-        "test_views": len(loaded.split("test")), "touches": len(loaded.touches),
+        "gpu": torch.cuda.get_device_name(),
+        "torch": torch.__version__,
+        "cuda": torch.version.cuda,
+        "gsplat": _version("gsplat"),
+        "scene": str(scene),
+        "train_views": len(train),
+        "test_views": len(loaded.split("test")),
+        "touches": len(loaded.touches),
         "resolution": f"{train[0].intrinsics.width}x{train[0].intrinsics.height}",
-    }  # fmt: skip
+    }
     (out / "gpu.json").write_text(json.dumps({"device": device, "runs": rows}, indent=2))
     curves = {"": {r["method"]: read_progress(Path(r["run"]) / "progress.csv") for r in rows}}
     plot_error_vs_time(curves, out / "error_vs_time.png", f"{device['gpu']}: held-out error vs train time")
@@ -120,9 +142,11 @@ def _write_report(out: Path, rows: list[dict], scene: Path) -> None:
         "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in rows:
-        lines.append(f"| {r['method']} | {r['preset']} | {r['iterations']} | {r['seconds_per_1k_steps']:.1f} | "
-                     f"{r['train_seconds']:.0f} | {r['wall_seconds']:.0f} | {r['peak_gpu_memory_gib']:.2f} | "
-                     f"{r['num_gaussians']} | {_fmt(r['cd'], 4)} | {_fmt(r['cd_paper'], 5)} | {_fmt(r['psnr'], 2)} |")
+        lines.append(
+            f"| {r['method']} | {r['preset']} | {r['iterations']} | {r['seconds_per_1k_steps']:.1f} | "
+            f"{r['train_seconds']:.0f} | {r['wall_seconds']:.0f} | {r['peak_gpu_memory_gib']:.2f} | "
+            f"{r['num_gaussians']} | {_fmt(r['cd'], 4)} | {_fmt(r['cd_paper'], 5)} | {_fmt(r['psnr'], 2)} |"
+        )
     lines += ["", "![error vs time](error_vs_time.png)", ""]
     (out / "gpu.md").write_text("\n".join(lines))
 

@@ -174,10 +174,10 @@ def run_benchmark(sizes: list[str], repeats: int, torch_repeats: int, skip_torch
     import platform
     import tempfile
 
-    import torch
-    from tacsplat.progress import progress_bar
-
     import numba
+    import torch
+
+    from tacsplat.progress import progress_bar
 
     results = {
         "machine": {
@@ -277,8 +277,13 @@ def register(cli) -> None:
         help="time the cpu rasterizer against the torch reference (forward, forward+backward, memory, compile)",
     )
     parser.add_argument("--json", default=None, help="also write the results to this JSON file")
-    parser.add_argument("--sizes", nargs="+", default=None, metavar="WxH:N",
-                        help=f"image sizes and Gaussian counts (default: {' '.join(DEFAULT_SIZES)})")  # fmt: skip
+    parser.add_argument(
+        "--sizes",
+        nargs="+",
+        default=None,
+        metavar="WxH:N",
+        help=f"image sizes and Gaussian counts (default: {' '.join(DEFAULT_SIZES)})",
+    )
     parser.add_argument("--repeats", type=int, default=7, help="timed runs of the cpu backend per size (median)")
     parser.add_argument("--torch-repeats", type=int, default=3, help="timed runs of the torch reference per size")
     parser.add_argument("--skip-torch", action="store_true", help="do not time the (slow) torch reference")

@@ -24,14 +24,24 @@ def run_scaling(out: Path, obj: str, resolutions, step_counts, seed: int = 0) ->
     rows = []
     for resolution in resolutions:
         for iterations in step_counts:
-            config = PaperBenchConfig(objects=(obj,), settings=("minimal",), methods=("3dgs", "paper"),
-                                      resolution=resolution, iterations=iterations, seeds=(seed,))
+            config = PaperBenchConfig(
+                objects=(obj,),
+                settings=("minimal",),
+                methods=("3dgs", "paper"),
+                resolution=resolution,
+                iterations=iterations,
+                seeds=(seed,),
+            )
             bench = PaperBench(out / f"{resolution}px-{iterations}steps", config)
             for row in bench.run(progress=False):
-                rows.append({"resolution": resolution, "iterations": iterations,
-                             **{k: row[k] for k in COLUMNS if k in row}})
-                print(f"{resolution:4d} px {iterations:5d} steps {row['method']:5s}: cd_paper {row['cd_paper']:.5f} "
-                      f"PSNR {row['psnr']:.2f} train {row['train_seconds']:.0f} s", flush=True)
+                rows.append(
+                    {"resolution": resolution, "iterations": iterations, **{k: row[k] for k in COLUMNS if k in row}}
+                )
+                print(
+                    f"{resolution:4d} px {iterations:5d} steps {row['method']:5s}: cd_paper {row['cd_paper']:.5f} "
+                    f"PSNR {row['psnr']:.2f} train {row['train_seconds']:.0f} s",
+                    flush=True,
+                )
     return rows
 
 
@@ -47,8 +57,11 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
     fig, (ax_cd, ax_psnr) = plt.subplots(1, 2, figsize=(11, 4.2))
     for resolution in sorted({r["resolution"] for r in rows}):
         for method, style in (("paper", "o-"), ("3dgs", "s--")):
-            points = sorted((r["train_seconds"], r["cd_paper"], r["psnr"]) for r in rows
-                            if r["resolution"] == resolution and r["method"] == method)
+            points = sorted(
+                (r["train_seconds"], r["cd_paper"], r["psnr"])
+                for r in rows
+                if r["resolution"] == resolution and r["method"] == method
+            )
             if not points:
                 continue
             seconds, cd_paper, psnr = zip(*points)
@@ -65,19 +78,28 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
     fig.suptitle(f"{obj}, 5 views + 5 grasps: error against cost (a point per step count)")
     fig.tight_layout()
     save_figure(fig, out / "scaling.png")
-    lines = [f"# Error against cost: {obj}, minimal views", "",
-             "| px | steps | method | train s | cd_paper | CD | PSNR |", "| ---: | ---: | --- | ---: | ---: | ---: | ---: |"]
+    lines = [
+        f"# Error against cost: {obj}, minimal views",
+        "",
+        "| px | steps | method | train s | cd_paper | CD | PSNR |",
+        "| ---: | ---: | --- | ---: | ---: | ---: | ---: |",
+    ]
     for r in sorted(rows, key=lambda r: (r["resolution"], r["iterations"], r["method"])):
-        lines.append(f"| {r['resolution']} | {r['iterations']} | {r['method']} | {r['train_seconds']:.0f} | "
-                     f"{r['cd_paper']:.5f} | {r['cd']:.4f} | {r['psnr']:.2f} |")
+        lines.append(
+            f"| {r['resolution']} | {r['iterations']} | {r['method']} | {r['train_seconds']:.0f} | "
+            f"{r['cd_paper']:.5f} | {r['cd']:.4f} | {r['psnr']:.2f} |"
+        )
     lines += ["", "![error against cost](scaling.png)", ""]
     (out / "report.md").write_text("\n".join(lines))
     return out / "report.md"
 
 
 def register(cli) -> None:
-    p = cli.command("bench scaling", help="error against cost: resolutions x step counts, the paper method and 3DGS, one object",
-                    description=__doc__.split("\n\n", 1)[1].replace("``", "'"))
+    p = cli.command(
+        "bench scaling",
+        help="error against cost: resolutions x step counts, the paper method and 3DGS, one object",
+        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
+    )
     p.add_argument("--out", default="bench-output/scaling", help="output folder")
     p.add_argument("--object", default="teapot", help="library object")
     p.add_argument("--resolutions", default="128,256,400", help="comma-separated image sizes in pixels")
@@ -89,8 +111,13 @@ def register(cli) -> None:
 def _run(args) -> int:
     started = time.perf_counter()
     out = Path(args.out)
-    rows = run_scaling(out, args.object, comma_separated_ints(args.resolutions, "--resolutions"),
-                       comma_separated_ints(args.steps, "--steps"), args.seed)
+    rows = run_scaling(
+        out,
+        args.object,
+        comma_separated_ints(args.resolutions, "--resolutions"),
+        comma_separated_ints(args.steps, "--steps"),
+        args.seed,
+    )
     report = write_scaling_report(out, rows, args.object)
     print(report.read_text())
     print(f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; report: {report}")

@@ -65,15 +65,17 @@ def bench_tactile_resolution(widths=(40, 80, 160, 320, 640), repeats: int = 3) -
                 truth, volume, area = _analytic_sphere(x, y), cap_volume, cap_area
             else:
                 truth, volume, area = np.full_like(depth, PRESS_M), PRESS_M * PAD_W_M * PAD_H_M, PAD_W_M * PAD_H_M
-            rows.append({
-                "surface": surface,
-                "grid": f"{h}x{w}",
-                "pixel_mm": pixel * 1e3,
-                "max_depth_error_um": float(np.abs(depth - truth).max() * 1e6),
-                "volume_error_pct": float(abs(depth.sum() * pixel**2 - volume) / volume * 100),
-                "area_error_pct": float(abs((depth > 0).sum() * pixel**2 - area) / area * 100),
-                "ms_per_map": seconds * 1e3,
-            })
+            rows.append(
+                {
+                    "surface": surface,
+                    "grid": f"{h}x{w}",
+                    "pixel_mm": pixel * 1e3,
+                    "max_depth_error_um": float(np.abs(depth - truth).max() * 1e6),
+                    "volume_error_pct": float(abs(depth.sum() * pixel**2 - volume) / volume * 100),
+                    "area_error_pct": float(abs((depth > 0).sum() * pixel**2 - area) / area * 100),
+                    "ms_per_map": seconds * 1e3,
+                }
+            )
     return rows
 
 
@@ -93,8 +95,9 @@ def bench_timestep(timesteps=(0.0005, 0.001, 0.002, 0.004), grasps: int = 3, obj
         twin_cfg = TwinConfig(object=obj, timestep=dt, contact_timeconst=max(0.005, 2.5 * dt))
         with SimTwin(twin_cfg) as twin, tempfile.TemporaryDirectory() as scratch:
             rig = twin_rig(twin)
-            with SceneWriter.create(Path(scratch) / "scene", rig.intrinsics, SceneMeta("sim", obj),
-                                    rig.sensor_model) as writer:
+            with SceneWriter.create(
+                Path(scratch) / "scene", rig.intrinsics, SceneMeta("sim", obj), rig.sensor_model
+            ) as writer:
                 logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
                 planner = TwinPlanner(twin, grasp_seed=0)
                 penetrations, touching, wall = [], 0, 0.0
@@ -105,15 +108,17 @@ def bench_timestep(timesteps=(0.0005, 0.001, 0.002, 0.004), grasps: int = 3, obj
                     if outcome is not None:
                         penetrations.append(twin.peak_penetration_m)  # of the approach kept (each one resets it)
                         touching += len(outcome.fingers_in_contact)
-        rows.append({
-            "timestep_ms": dt * 1e3,
-            "contact_timeconst_ms": twin_cfg.contact_timeconst * 1e3,
-            "max_penetration_mm": float(max(penetrations) * 1e3) if penetrations else float("nan"),
-            "mean_penetration_mm": float(np.mean(penetrations) * 1e3) if penetrations else float("nan"),
-            "pads_in_contact": touching,
-            "grasps": grasps,
-            "wall_s_per_grasp": wall / grasps,
-        })
+        rows.append(
+            {
+                "timestep_ms": dt * 1e3,
+                "contact_timeconst_ms": twin_cfg.contact_timeconst * 1e3,
+                "max_penetration_mm": float(max(penetrations) * 1e3) if penetrations else float("nan"),
+                "mean_penetration_mm": float(np.mean(penetrations) * 1e3) if penetrations else float("nan"),
+                "pads_in_contact": touching,
+                "grasps": grasps,
+                "wall_s_per_grasp": wall / grasps,
+            }
+        )
     return rows
 
 
@@ -135,23 +140,42 @@ def _plot(tactile: list[dict], physics: list[dict], path: Path) -> None:
     ax = axes[0]
     for surface, style in (("sphere", "o-"), ("plane", "s--")):
         rows = [r for r in tactile if r["surface"] == surface]
-        ax.plot([r["ms_per_map"] for r in rows], [max(r["volume_error_pct"], 1e-6) for r in rows], style,
-                label=f"{surface}: indentation volume error")
+        ax.plot(
+            [r["ms_per_map"] for r in rows],
+            [max(r["volume_error_pct"], 1e-6) for r in rows],
+            style,
+            label=f"{surface}: indentation volume error",
+        )
         if surface == "sphere":
-            ax.plot([r["ms_per_map"] for r in rows], [max(r["area_error_pct"], 1e-6) for r in rows], "^:",
-                    label="sphere: contact area error")
+            ax.plot(
+                [r["ms_per_map"] for r in rows],
+                [max(r["area_error_pct"], 1e-6) for r in rows],
+                "^:",
+                label="sphere: contact area error",
+            )
             for r in rows:
                 ax.annotate(r["grid"], (r["ms_per_map"], max(r["volume_error_pct"], 1e-6)), fontsize=7)
-    ax.set(xscale="log", yscale="log", xlabel="time per tactile map (ms)", ylabel="error (%)",
-           title="tactile depth vs ray grid (sphere r=10 mm, plane; 1 mm press)")
+    ax.set(
+        xscale="log",
+        yscale="log",
+        xlabel="time per tactile map (ms)",
+        ylabel="error (%)",
+        title="tactile depth vs ray grid (sphere r=10 mm, plane; 1 mm press)",
+    )
     ax.legend(fontsize=8)
     ax = axes[1]
     ax.plot([r["wall_s_per_grasp"] for r in physics], [r["max_penetration_mm"] for r in physics], "o-", label="max")
-    ax.plot([r["wall_s_per_grasp"] for r in physics], [r["mean_penetration_mm"] for r in physics], "s--", label="mean of grasp maxima")
+    ax.plot(
+        [r["wall_s_per_grasp"] for r in physics],
+        [r["mean_penetration_mm"] for r in physics],
+        "s--",
+        label="mean of grasp maxima",
+    )
     for r in physics:
         ax.annotate(f"dt={r['timestep_ms']:g} ms", (r["wall_s_per_grasp"], r["max_penetration_mm"]), fontsize=7)
-    ax.set(xlabel="wall time per grasp (s)", ylabel="contact penetration (mm)",
-           title="collision penetration vs timestep")
+    ax.set(
+        xlabel="wall time per grasp (s)", ylabel="contact penetration (mm)", title="collision penetration vs timestep"
+    )
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
@@ -163,9 +187,17 @@ def run_bench(out: str | Path, quick: bool = False) -> str:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     tactile = bench_tactile_resolution(widths=(40, 160, 640) if quick else (40, 80, 160, 320, 640))
-    physics = bench_timestep(timesteps=(0.001, 0.004) if quick else (0.0005, 0.001, 0.002, 0.004), grasps=2 if quick else 4)
+    physics = bench_timestep(
+        timesteps=(0.001, 0.004) if quick else (0.0005, 0.001, 0.002, 0.004), grasps=2 if quick else 4
+    )
     (out / "sim.json").write_text(json.dumps({"tactile": tactile, "physics": physics}, indent=2))
-    report = "## Tactile depth vs ray grid\n\n" + _markdown(tactile) + "\n\n## Penetration vs timestep\n\n" + _markdown(physics) + "\n"
+    report = (
+        "## Tactile depth vs ray grid\n\n"
+        + _markdown(tactile)
+        + "\n\n## Penetration vs timestep\n\n"
+        + _markdown(physics)
+        + "\n"
+    )
     (out / "sim.md").write_text(report)
     _plot(tactile, physics, out / "sim.png")
     return report

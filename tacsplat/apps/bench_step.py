@@ -21,9 +21,19 @@ from collections import defaultdict
 from pathlib import Path
 
 PHASES = (
-    "projection + SH", "binning + sort", "composite forward", "composite backward", "shading", "SSIM", "other losses",
-    "autograd (other)", "neighbour search", "optimiser", "densification", "rest",
-)  # fmt: skip
+    "projection + SH",
+    "binning + sort",
+    "composite forward",
+    "composite backward",
+    "shading",
+    "SSIM",
+    "other losses",
+    "autograd (other)",
+    "neighbour search",
+    "optimiser",
+    "densification",
+    "rest",
+)
 WARMUP_STEPS = 10  # first steps left out of the statistics (kernel loading, first allocations)
 
 
@@ -121,10 +131,21 @@ def instrumented(timer: PhaseTimer):
         steps.append(totals)
         return terms
 
-    loss_functions = ("photometric_loss", "backdrop_alpha_loss", "transmittance_loss", "edge_aware_smoothness",
-                      "depth_normal_consistency", "touch_normal_loss", "flatten_loss",
-                      "visible_touch_pixels", "proximity_mask", "expected_depth", "image_edge_weights", "window_inside",
-                      "albedo_smoothness_loss")
+    loss_functions = (
+        "photometric_loss",
+        "backdrop_alpha_loss",
+        "transmittance_loss",
+        "edge_aware_smoothness",
+        "depth_normal_consistency",
+        "touch_normal_loss",
+        "flatten_loss",
+        "visible_touch_pixels",
+        "proximity_mask",
+        "expected_depth",
+        "image_edge_weights",
+        "window_inside",
+        "albedo_smoothness_loss",
+    )
     patches = [
         (cpu_project._ProjectCPU, "forward", "projection + SH", True),
         (cpu_project._ProjectCPU, "backward", "projection + SH", True),
@@ -202,14 +223,27 @@ def profile_resolution(out: Path, resolution: int, iterations: int, method: str,
     with tempfile.TemporaryDirectory() as run_dir, instrumented(timer) as steps:
         trainer = Trainer(scene_at(Scene.load(scene_path), config.downscale), run_dir, config)
         trainer.run(show_progress=False)
-    return {"resolution": resolution, "label": f"{resolution}px", "iterations": iterations,
-            "train_seconds": trainer.train_seconds, "torch_threads": config.torch_threads,
-            **summarize(steps), "per_step": [{k: round(v * 1e3, 4) if k != "n_gaussians" else v for k, v in s.items()}
-                                             for s in steps]}  # fmt: skip
+    return {
+        "resolution": resolution,
+        "label": f"{resolution}px",
+        "iterations": iterations,
+        "train_seconds": trainer.train_seconds,
+        "torch_threads": config.torch_threads,
+        **summarize(steps),
+        "per_step": [{k: round(v * 1e3, 4) if k != "n_gaussians" else v for k, v in s.items()} for s in steps],
+    }
 
 
-def run_profile(out: Path, resolutions, iterations: int, method: str, obj: str, seed: int,
-                reference: str | None = None, rounds: int = 1) -> dict:
+def run_profile(
+    out: Path,
+    resolutions,
+    iterations: int,
+    method: str,
+    obj: str,
+    seed: int,
+    reference: str | None = None,
+    rounds: int = 1,
+) -> dict:
     """The profile of ``method`` at each resolution; with ``reference``, that method's profile is taken next to
     each (back to back: this machine's speed drifts by 10-30% between runs minutes apart) and the ratios reported,
     ``rounds`` times, the reference first in even rounds and second in odd ones: the ratios are the medians over the
@@ -223,13 +257,23 @@ def run_profile(out: Path, resolutions, iterations: int, method: str, obj: str, 
 
     results = {
         "benchmark": "step",
-        "machine": {"cpu_count": os.cpu_count(), "numba_threads": numba.get_num_threads(),
-                    "load_average_at_start": list(os.getloadavg()), "platform": platform.platform(),
-                    "numba": numba.__version__, "torch": torch.__version__},
-        "settings": {"object": obj, "method": method, "iterations": iterations, "seed": seed,
-                     "warmup_steps": WARMUP_STEPS},
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "numba_threads": numba.get_num_threads(),
+            "load_average_at_start": list(os.getloadavg()),
+            "platform": platform.platform(),
+            "numba": numba.__version__,
+            "torch": torch.__version__,
+        },
+        "settings": {
+            "object": obj,
+            "method": method,
+            "iterations": iterations,
+            "seed": seed,
+            "warmup_steps": WARMUP_STEPS,
+        },
         "resolutions": [],
-    }  # fmt: skip
+    }
     if reference is None:
         results["resolutions"] = [profile_resolution(out, r, iterations, method, obj, seed) for r in resolutions]
         results["machine"]["load_average_at_end"] = list(os.getloadavg())
@@ -245,9 +289,13 @@ def run_profile(out: Path, resolutions, iterations: int, method: str, obj: str, 
             else:
                 row = profile_resolution(out, r, iterations, method, obj, seed)
                 ref = profile_resolution(out, r, iterations, reference, obj, seed)
-            per_round.append({"step_median": row["step_median_ms"] / ref["step_median_ms"],
-                              "step_mean": row["step_mean_ms"] / ref["step_mean_ms"],
-                              "train_seconds": row["train_seconds"] / ref["train_seconds"]})  # fmt: skip
+            per_round.append(
+                {
+                    "step_median": row["step_median_ms"] / ref["step_median_ms"],
+                    "step_mean": row["step_mean_ms"] / ref["step_mean_ms"],
+                    "train_seconds": row["train_seconds"] / ref["train_seconds"],
+                }
+            )
             if len(per_round) == 1:
                 results["reference"].append(ref)
                 results["resolutions"].append(row)
@@ -265,29 +313,40 @@ def format_table(results: dict) -> str:
         cells = []
         for r in rows:
             p = r["phases"][phase]
-            cells.append(f" | {p['median_ms']:12.2f} {p['mean_ms']:7.2f} {100 * p['mean_ms'] / r['step_mean_ms']:5.1f}%")
+            cells.append(
+                f" | {p['median_ms']:12.2f} {p['mean_ms']:7.2f} {100 * p['mean_ms'] / r['step_mean_ms']:5.1f}%"
+            )
         lines.append(f"{phase:20s}" + "".join(cells))
     lines.append("-" * len(head))
-    lines.append(f"{'step':20s}" + "".join(f" | {r['step_median_ms']:12.2f} {r['step_mean_ms']:7.2f} {'':6s}"
-                                           for r in rows))  # fmt: skip
+    lines.append(
+        f"{'step':20s}" + "".join(f" | {r['step_median_ms']:12.2f} {r['step_mean_ms']:7.2f} {'':6s}" for r in rows)
+    )
     s, m = results["settings"], results["machine"]
     lines.append(
-        "ms per step (median and mean over steps " f"{s['warmup_steps'] + 1}..{s['iterations']}); "
-        + "; ".join(f"{r['label']}: {r['steps_per_second']:.1f} steps/s, {r['n_gaussians_mean']:.0f} Gaussians on "
-                    f"average, train {r['train_seconds']:.1f} s" for r in rows)
-    )  # fmt: skip
+        "ms per step (median and mean over steps "
+        f"{s['warmup_steps'] + 1}..{s['iterations']}); "
+        + "; ".join(
+            f"{r['label']}: {r['steps_per_second']:.1f} steps/s, {r['n_gaussians_mean']:.0f} Gaussians on "
+            f"average, train {r['train_seconds']:.1f} s"
+            for r in rows
+        )
+    )
     for r in rows:
         if "ratio_to_reference" not in r:
             continue
         ratio = r["ratio_to_reference"]
         each = ", ".join(f"{p['step_median']:.2f}x" for p in ratio["rounds"])
-        lines.append(f"{r['label']}: {s['method']} / {s['reference']} (each run next to its reference): step "
-                     f"median {ratio['step_median']:.2f}x, mean {ratio['step_mean']:.2f}x, train time "
-                     f"{ratio['train_seconds']:.2f}x (medians over {len(ratio['rounds'])} rounds; step median by "
-                     f"round: {each})")  # fmt: skip
-    lines.append(f"{s['object']}, method {s['method']}, seed {s['seed']}; {m['cpu_count']} cores, numba threads "
-                 f"{m['numba_threads']}, load average {m['load_average_at_start'][0]:.1f} at start, "
-                 f"{m['load_average_at_end'][0]:.1f} at end")  # fmt: skip
+        lines.append(
+            f"{r['label']}: {s['method']} / {s['reference']} (each run next to its reference): step "
+            f"median {ratio['step_median']:.2f}x, mean {ratio['step_mean']:.2f}x, train time "
+            f"{ratio['train_seconds']:.2f}x (medians over {len(ratio['rounds'])} rounds; step median by "
+            f"round: {each})"
+        )
+    lines.append(
+        f"{s['object']}, method {s['method']}, seed {s['seed']}; {m['cpu_count']} cores, numba threads "
+        f"{m['numba_threads']}, load average {m['load_average_at_start'][0]:.1f} at start, "
+        f"{m['load_average_at_end'][0]:.1f} at end"
+    )
     return "\n".join(lines)
 
 
@@ -296,8 +355,11 @@ def plot_phases(results_list: list[tuple[str, dict]], path: Path) -> Path:
     from tacsplat.apps.report import pyplot, save_figure
 
     plt = pyplot()
-    bars = [(f"{name} {r['label']}" if name else r["label"], r) for name, results in results_list
-            for r in results["resolutions"]]  # fmt: skip
+    bars = [
+        (f"{name} {r['label']}" if name else r["label"], r)
+        for name, results in results_list
+        for r in results["resolutions"]
+    ]
     fig, ax = plt.subplots(figsize=(max(4.0, 1.4 * len(bars) + 3.0), 4.5))
     colors = plt.get_cmap("tab20").colors
     bottoms = [0.0] * len(bars)
@@ -315,15 +377,27 @@ def plot_phases(results_list: list[tuple[str, dict]], path: Path) -> Path:
 
 def register(cli) -> None:
     """Add `tacsplat bench step`."""
-    p = cli.command("bench step", help="profile of a training step on the demo scene: time per phase, table + PNG",
-                    description=__doc__.split("\n\n", 1)[1].replace("``", "'"))  # fmt: skip
+    p = cli.command(
+        "bench step",
+        help="profile of a training step on the demo scene: time per phase, table + PNG",
+        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
+    )
     p.add_argument("--out", default="bench-output/step", help="output folder (scenes are captured here once)")
     p.add_argument("--resolutions", default="128,256", help="comma-separated image sizes in pixels")
     p.add_argument("--iterations", type=int, default=1200, help="training steps per resolution (the demo's 1200)")
-    p.add_argument("--method", default="paper", help="a method (3dgs, 3dgs+s, 3dgs+t, paper, default) or a row of `bench paper`'s ablations.yaml")
+    p.add_argument(
+        "--method",
+        default="paper",
+        help="a method (3dgs, 3dgs+s, 3dgs+t, paper, default) or a row of `bench paper`'s ablations.yaml",
+    )
     p.add_argument("--reference", default=None, help="also profile this method next to it, and print the ratios")
-    p.add_argument("--rounds", type=int, default=1, help="with --reference: profile the pair this many times, "
-                   "the reference first, then second, ... (ratios: medians over the rounds)")
+    p.add_argument(
+        "--rounds",
+        type=int,
+        default=1,
+        help="with --reference: profile the pair this many times, "
+        "the reference first, then second, ... (ratios: medians over the rounds)",
+    )
     p.add_argument("--object", default="teapot", help="library object")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_handler)
@@ -347,8 +421,9 @@ def _handler(args) -> int:
     if args.rounds < 1 or (args.rounds > 1 and args.reference is None):
         raise UsageError("--rounds", f"needs --reference and a count of at least 1, got {args.rounds}")
     out = Path(args.out)
-    results = run_profile(out, resolutions, args.iterations, args.method, args.object, args.seed, args.reference,
-                          args.rounds)
+    results = run_profile(
+        out, resolutions, args.iterations, args.method, args.object, args.seed, args.reference, args.rounds
+    )
     print(format_table(results))
     out.mkdir(parents=True, exist_ok=True)
     (out / "step.json").write_text(json.dumps(results, indent=1))

@@ -18,19 +18,31 @@ from pathlib import Path
 from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
 DEMO_OBJECT = "teapot"
-COLUMNS = {"3dgs": "3DGS (no touch)", "paper": "paper (touch)", DEFAULT_METHOD: "default (+normals, lit)"}  # method: heading
+COLUMNS = {
+    "3dgs": "3DGS (no touch)",
+    "paper": "paper (touch)",
+    DEFAULT_METHOD: "default (+normals, lit)",
+}  # method: heading
 
 
 def demo_config(object_name: str = DEMO_OBJECT, resolution: int = 128, iterations: int = 1200):
     """The :class:`PaperBenchConfig` of the demo: one object, minimal views, :data:`COLUMNS`' methods."""
     from tacsplat.apps.paper_bench import PaperBenchConfig
 
-    return PaperBenchConfig(objects=(object_name,), settings=("minimal",), methods=tuple(COLUMNS),
-                            resolution=resolution, iterations=iterations, test_views=8)
+    return PaperBenchConfig(
+        objects=(object_name,),
+        settings=("minimal",),
+        methods=tuple(COLUMNS),
+        resolution=resolution,
+        iterations=iterations,
+        test_views=8,
+    )
 
 
 def register(cli) -> None:
-    parser = cli.command("demo", help="the main job: simulated capture of a glossy object, reconstruction without and with touch, report")
+    parser = cli.command(
+        "demo", help="the main job: simulated capture of a glossy object, reconstruction without and with touch, report"
+    )
     parser.add_argument("--out", default="demo-output", help="output folder")
     parser.add_argument("--object", default=DEMO_OBJECT, help="library object (all are glossy)")
     parser.add_argument("--resolution", type=int, default=128, help="image size in pixels")
@@ -48,13 +60,19 @@ def run(args) -> int:
     print(f"{args.object}, 5 views + 5 grasps (20 touches), {args.resolution} px, {args.iterations} steps:")
     width = 2 + max(len(heading) for heading in COLUMNS.values())
     print(f"{'':22s}" + "".join(f"{heading:>{width}s}" for heading in COLUMNS.values()))
-    for key, label, decimals in (("cd", "Chamfer distance (↓)", 4), ("psnr", "PSNR dB (↑)", 2),
-                                 ("ssim", "SSIM (↑)", 3), ("train_seconds", "train seconds", 0)):
+    for key, label, decimals in (
+        ("cd", "Chamfer distance (↓)", 4),
+        ("psnr", "PSNR dB (↑)", 2),
+        ("ssim", "SSIM (↑)", 3),
+        ("train_seconds", "train seconds", 0),
+    ):
         print(f"{label:22s}" + "".join(f"{rows[v][key]:>{width}.{decimals}f}" for v in COLUMNS))
     report = bench.out.resolve()
     print(f"report: {report / 'report.md'} (tables, plots and renders)")
-    print(f"open first: {report / f'renders_{args.object}_minimal.png'} "
-          "(a test view: ground truth and the three methods; RGB, depth, normals, and the depth error beside "
-          "what the training views see)")
+    print(
+        f"open first: {report / f'renders_{args.object}_minimal.png'} "
+        "(a test view: ground truth and the three methods; RGB, depth, normals, and the depth error beside "
+        "what the training views see)"
+    )
     print(f"total {(time.perf_counter() - started) / 60:.1f} min")
     return 0

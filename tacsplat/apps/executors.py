@@ -102,26 +102,40 @@ class BatchOutcome:
             name, error = next(iter(self.failed.items()))
             ran = len(self.failed) - len(self.not_run)
             not_run = f" and {len(self.not_run)} not run (a job they need failed)" if self.not_run else ""
-            raise BatchError(f"{ran} of {len(self.done) + len(self.failed)} jobs failed{not_run} (first: {name}: "
-                             f"{error}); each is listed in {Path(out) / FAILURES_CSV}; rerun the same command to "
-                             "retry only those")
+            raise BatchError(
+                f"{ran} of {len(self.done) + len(self.failed)} jobs failed{not_run} (first: {name}: "
+                f"{error}); each is listed in {Path(out) / FAILURES_CSV}; rerun the same command to "
+                "retry only those"
+            )
 
 
 def add_executor_options(parser) -> None:
     """``--executor``, ``--ray-address`` and ``--retries`` (the same on every command that runs a batch)."""
-    parser.add_argument("--executor", choices=EXECUTORS, default="auto",
-                        help="local: one job after another in this process; processes: jobs side by side in worker "
-                        "processes of this machine (--workers); ray: each job a Ray task; auto: processes on a "
-                        "machine with 2 or more cores and no CUDA device, else local")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="--executor processes: CPUs to fill with jobs (default: this machine's cores, at most one per "
-                        "2 GB of memory)")
-    parser.add_argument("--ray-address", default=None,
-                        help="Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray "
-                        "Client server, or auto); default RAY_ADDRESS, else an embedded local Ray for this batch "
-                        "(--executor ray)")
-    parser.add_argument("--retries", type=int, default=RETRIES,
-                        help="extra attempts of a Ray task that raised or whose worker died")
+    parser.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="auto",
+        help="local: one job after another in this process; processes: jobs side by side in worker "
+        "processes of this machine (--workers); ray: each job a Ray task; auto: processes on a "
+        "machine with 2 or more cores and no CUDA device, else local",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help="--executor processes: CPUs to fill with jobs (default: this machine's cores, at most one per "
+        "2 GB of memory)",
+    )
+    parser.add_argument(
+        "--ray-address",
+        default=None,
+        help="Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray "
+        "Client server, or auto); default RAY_ADDRESS, else an embedded local Ray for this batch "
+        "(--executor ray)",
+    )
+    parser.add_argument(
+        "--retries", type=int, default=RETRIES, help="extra attempts of a Ray task that raised or whose worker died"
+    )
 
 
 def executor_options(args) -> dict:
@@ -136,8 +150,12 @@ def executor_options(args) -> dict:
         raise UsageError("--workers", f"must be >= 1, got {args.workers}")
     if args.workers is not None and args.executor not in ("processes", "auto"):
         raise UsageError("--workers", "sets the jobs run side by side by --executor processes")
-    return {"executor": args.executor, "ray_address": args.ray_address, "retries": args.retries,
-            "workers": args.workers}
+    return {
+        "executor": args.executor,
+        "ray_address": args.ray_address,
+        "retries": args.retries,
+        "workers": args.workers,
+    }
 
 
 def usable_cpus() -> int:
@@ -167,13 +185,22 @@ def resolve_executor(executor: str) -> str:
 def side_by_side(executor: str, workers: int | None = None) -> str | None:
     """How a resolved executor runs jobs at once ("up to 2 worker processes", "Ray tasks"); None for ``local``
     (reports say so: a run's train seconds then include the time it shared the cores)."""
-    return {"local": None, "ray": "Ray tasks",
-            "processes": f"up to {workers or default_workers()} worker processes"}[executor]
+    return {"local": None, "ray": "Ray tasks", "processes": f"up to {workers or default_workers()} worker processes"}[
+        executor
+    ]
 
 
-def run_jobs(jobs: Sequence[Job], out: str | Path, executor: str = "local", ray_address: str | None = None,
-             retries: int = RETRIES, on_done: Callable[[Job, dict], str | None] | None = None, desc: str = "batch",
-             progress: bool = True, workers: int | None = None) -> BatchOutcome:
+def run_jobs(
+    jobs: Sequence[Job],
+    out: str | Path,
+    executor: str = "local",
+    ray_address: str | None = None,
+    retries: int = RETRIES,
+    on_done: Callable[[Job, dict], str | None] | None = None,
+    desc: str = "batch",
+    progress: bool = True,
+    workers: int | None = None,
+) -> BatchOutcome:
     """Run every job of ``jobs`` (needs listed before the jobs that read them) that is not complete yet.
 
     ``on_done(job, summary)`` runs in this process as each job finishes (to write a report so far); the line it
@@ -235,8 +262,9 @@ class _Batch:
         """The bar counts the jobs finished either way; its text says how many are done, running and failed."""
         running = sorted(self.running)
         what = f" ({running[0]})" if len(running) == 1 else ""
-        self.bar.set_postfix_str(f"done {len(self.outcome.done)}, running {len(running)}{what}, "
-                                 f"failed {len(self.outcome.failed)}")
+        self.bar.set_postfix_str(
+            f"done {len(self.outcome.done)}, running {len(running)}{what}, failed {len(self.outcome.failed)}"
+        )
 
     def started(self, names) -> None:
         self.running = set(names)
@@ -418,8 +446,12 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
     listener.start()
     running: dict[futures.Future, Job] = {}
     size = min(workers, len(pending))
-    pool = futures.ProcessPoolExecutor(max_workers=size, mp_context=context, initializer=_start_worker,
-                                       initargs=(log_queue, logging.getLogger().level, os.getpid()))
+    pool = futures.ProcessPoolExecutor(
+        max_workers=size,
+        mp_context=context,
+        initializer=_start_worker,
+        initargs=(log_queue, logging.getLogger().level, os.getpid()),
+    )
     warm_ups: list[futures.Future] = []  # workers started ahead of the jobs that wait for another's output
     try:
         while pending or running:
@@ -544,8 +576,11 @@ def connect(address: str | None) -> bool:
     if address and address != "local":
         why = _unreachable(check_ray_address(address, option))
         if why:  # (Ray itself would retry for minutes)
-            raise ConfigError(option, f"nothing answers at {address} ({why}): give the host:port of the cluster's "
-                              "head (`ray start --head --port=PORT` prints it)")
+            raise ConfigError(
+                option,
+                f"nothing answers at {address} ({why}): give the host:port of the cluster's "
+                "head (`ray start --head --port=PORT` prints it)",
+            )
         log.info("connecting to the Ray cluster at %s", address)
         try:
             ray.init(address=address, log_to_driver=True)
@@ -553,13 +588,20 @@ def connect(address: str | None) -> bool:
             # RayErrors, ...) is one line naming the option
             log.debug("ray.init(address=%r) raised", address, exc_info=True)
             ray.shutdown()  # (whatever of it had started)
-            raise ConfigError(option, f"cannot connect to a Ray cluster at {address}: "
-                              f"{_describe(exc).strip().splitlines()[0]} (check the address, and that this machine "
-                              "has the cluster's token: RAY_AUTH_MODE=token and RAY_AUTH_TOKEN or "
-                              "~/.ray/auth_token)") from None
+            raise ConfigError(
+                option,
+                f"cannot connect to a Ray cluster at {address}: "
+                f"{_describe(exc).strip().splitlines()[0]} (check the address, and that this machine "
+                "has the cluster's token: RAY_AUTH_MODE=token and RAY_AUTH_TOKEN or "
+                "~/.ray/auth_token)",
+            ) from None
     else:
-        ray.init(address="local", include_dashboard=False, object_store_memory=EMBEDDED_OBJECT_STORE_BYTES,
-                 log_to_driver=True)
+        ray.init(
+            address="local",
+            include_dashboard=False,
+            object_store_memory=EMBEDDED_OBJECT_STORE_BYTES,
+            log_to_driver=True,
+        )
     return True
 
 
@@ -585,8 +627,11 @@ def check_ray_address(address: str, option: str, error: type[ConfigError] = Conf
         why = f"the port must be an integer in 1..65535, got {port!r}"
     else:
         return host.strip("[]"), int(port)
-    raise error(option, f"expected HOST:PORT (of the cluster's head: `ray start --head --port=PORT` prints it), "
-                f"ray://HOST:PORT or auto, got {address!r}: {why}")
+    raise error(
+        option,
+        f"expected HOST:PORT (of the cluster's head: `ray start --head --port=PORT` prints it), "
+        f"ray://HOST:PORT or auto, got {address!r}: {why}",
+    )
 
 
 def _unreachable(host_port: tuple[str, int] | None) -> str | None:
@@ -613,7 +658,10 @@ def _run_ray(todo: list[Job], batch: _Batch, retries: int) -> None:
         for job in todo:
             needs = [refs[n] for n in job.needs if n in refs]
             refs[job.name] = execute.options(
-                num_cpus=job.cpus, num_gpus=job.gpus(has_gpus), max_retries=retries, retry_exceptions=True,
+                num_cpus=job.cpus,
+                num_gpus=job.gpus(has_gpus),
+                max_retries=retries,
+                retry_exceptions=True,
                 name=job.name,
             ).remote(job, starts, *needs)
         order = {ref: i for i, ref in enumerate(refs.values())}

@@ -44,8 +44,18 @@ from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, get_method
 log = logging.getLogger(__name__)
 
 STRATEGIES = ("random", "next-best")
-RESULT_COLUMNS = ("object", "strategy", "grasps", "seed", "cd", "cd_paper", "psnr", "seconds", "selection_seconds",
-                  "touches")
+RESULT_COLUMNS = (
+    "object",
+    "strategy",
+    "grasps",
+    "seed",
+    "cd",
+    "cd_paper",
+    "psnr",
+    "seconds",
+    "selection_seconds",
+    "touches",
+)
 
 
 @dataclass
@@ -71,8 +81,9 @@ class NextTouchBenchConfig:
 
         unknown = [o for o in self.objects if o not in OBJECT_NAMES]
         if unknown:
-            raise ConfigError("--objects", f"unknown object(s) {', '.join(unknown)}; choose from "
-                              f"{', '.join(OBJECT_NAMES)} (or all)")
+            raise ConfigError(
+                "--objects", f"unknown object(s) {', '.join(unknown)}; choose from {', '.join(OBJECT_NAMES)} (or all)"
+            )
         if self.mesh is not None and not Path(self.mesh).is_file():
             raise ConfigError("--mesh", f"file not found: {self.mesh}")
         if not self.seeds or min(self.seeds) < 0:
@@ -108,8 +119,12 @@ def first_grasps(scene_path: str | Path, out: str | Path, count: int) -> tuple[i
     scene = Scene.load(scene_path)
     kept = sorted({t.grasp for t in scene.touches})[:count]
     touches = [t for t in scene.touches if t.grasp in kept]
-    meta = SceneMeta(scene.meta.source, scene.meta.object, dict(scene.meta.capture_plan),
-                     {**scene.meta.extra, "first_grasps": {"from": str(scene.path), "grasps": len(kept)}})
+    meta = SceneMeta(
+        scene.meta.source,
+        scene.meta.object,
+        dict(scene.meta.capture_plan),
+        {**scene.meta.extra, "first_grasps": {"from": str(scene.path), "grasps": len(kept)}},
+    )
     copy_scene(scene, out, touches=touches, meta=meta)
     return len(kept), sum(t.in_contact for t in touches)
 
@@ -128,11 +143,21 @@ class StrategyCaptureJob(CaptureJob):
     def rig(self):
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
-        return sim_rig_config(object=self.object, mesh=self.mesh, object_radius=self.object_radius, views=self.views,
-                              test_views=self.test_views, grasps=self.grasps, resolution=self.resolution,
-                              seed=self.seed, touch_model=self.touch_model, grasp_strategy=self.grasp_strategy,
-                              candidates=self.candidates, selection_steps=self.selection_steps,
-                              uncertainty=self.uncertainty)
+        return sim_rig_config(
+            object=self.object,
+            mesh=self.mesh,
+            object_radius=self.object_radius,
+            views=self.views,
+            test_views=self.test_views,
+            grasps=self.grasps,
+            resolution=self.resolution,
+            seed=self.seed,
+            touch_model=self.touch_model,
+            grasp_strategy=self.grasp_strategy,
+            candidates=self.candidates,
+            selection_steps=self.selection_steps,
+            uncertainty=self.uncertainty,
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -158,8 +183,13 @@ class NextTouchBench:
     def sweep(self) -> list[tuple[str, int, str, int]]:
         """``(object, seed, strategy, grasps)`` of every run, in the order of the sweep."""
         c = self.config
-        return [(subject, seed, strategy, k) for subject in c.subjects for seed in c.seeds for strategy in STRATEGIES
-                for k in c.grasps]
+        return [
+            (subject, seed, strategy, k)
+            for subject in c.subjects
+            for seed in c.seeds
+            for strategy in STRATEGIES
+            for k in c.grasps
+        ]
 
     def captures(self) -> list[tuple[str, int, str]]:
         """``(object, seed, strategy)`` of every capture, in the order of the sweep."""
@@ -169,14 +199,25 @@ class NextTouchBench:
         """The sim capture of one object, seed and strategy, with the largest grasp budget."""
         c = self.config
         out = self.out / "scenes" / f"{subject}-s{seed}-{strategy}"
-        return StrategyCaptureJob(out=out, object=subject if c.mesh is None else "teapot", mesh=c.mesh, views=c.views,
-                                  test_views=c.test_views, grasps=max(c.grasps), resolution=c.resolution, seed=seed,
-                                  grasp_strategy=strategy, candidates=c.candidates,
-                                  selection_steps=c.selection_steps, uncertainty=c.uncertainty,
-                                  name=f"capture {out.name}")
+        return StrategyCaptureJob(
+            out=out,
+            object=subject if c.mesh is None else "teapot",
+            mesh=c.mesh,
+            views=c.views,
+            test_views=c.test_views,
+            grasps=max(c.grasps),
+            resolution=c.resolution,
+            seed=seed,
+            grasp_strategy=strategy,
+            candidates=c.candidates,
+            selection_steps=c.selection_steps,
+            uncertainty=c.uncertainty,
+            name=f"capture {out.name}",
+        )
 
-    def copy_job(self, subject: str, seed: int, strategy: str, count: int,
-                 needs: tuple[str, ...] = ()) -> FirstGraspsJob:
+    def copy_job(
+        self, subject: str, seed: int, strategy: str, count: int, needs: tuple[str, ...] = ()
+    ) -> FirstGraspsJob:
         """The copy of a capture with its first ``count`` grasps."""
         base = self.capture_job(subject, seed, strategy).out
         out = base.with_name(f"{base.name}-g{count}")
@@ -193,8 +234,10 @@ class NextTouchBench:
             capture = self.capture_job(subject, seed, strategy)
             marker = capture.out / CAPTURE_MARKER
             if marker.is_file() and json.loads(marker.read_text())["plan"] != capture.rig().plan.to_json():
-                raise ConfigError("--out", f"{marker.parent} was captured with another plan ({marker}); "
-                                  "use the same options or a new --out")
+                raise ConfigError(
+                    "--out",
+                    f"{marker.parent} was captured with another plan ({marker}); use the same options or a new --out",
+                )
         for key in self.sweep():
             self.reconstruct_job(*key).refuse_changed_settings()
 
@@ -214,14 +257,22 @@ class NextTouchBench:
                 jobs += [copy, self.reconstruct_job(subject, seed, strategy, copy.count, needs=(copy.name,))]
         return jobs
 
-    def reconstruct_job(self, subject: str, seed: int, strategy: str, count: int,
-                        needs: tuple[str, ...] = ()) -> ReconstructJob:
+    def reconstruct_job(
+        self, subject: str, seed: int, strategy: str, count: int, needs: tuple[str, ...] = ()
+    ) -> ReconstructJob:
         """The final reconstruction of the copy with a capture's first ``count`` grasps."""
         c = self.config
         copy = self.copy_job(subject, seed, strategy, count)
         out = self.run_dir(copy)
-        return ReconstructJob(out=out, scene=copy.out, method=c.method, seed=seed, iterations=c.iterations,
-                              name=f"reconstruct {out.name}", needs=needs)
+        return ReconstructJob(
+            out=out,
+            scene=copy.out,
+            method=c.method,
+            seed=seed,
+            iterations=c.iterations,
+            name=f"reconstruct {out.name}",
+            needs=needs,
+        )
 
     def results(self) -> list[dict]:
         """One row per finished run, in the order of the sweep."""
@@ -232,10 +283,20 @@ class NextTouchBench:
             if not metrics_path.is_file():
                 continue
             metrics, info = json.loads(metrics_path.read_text()), json.loads(copy.marker.read_text())
-            rows.append({"object": subject, "strategy": strategy, "grasps": k, "seed": seed, "cd": metrics["cd"],
-                         "cd_paper": metrics.get("cd_paper"), "psnr": metrics["psnr"],
-                         "seconds": metrics["train_seconds"], "selection_seconds": info["selection_seconds"],
-                         "touches": info["touches"]})
+            rows.append(
+                {
+                    "object": subject,
+                    "strategy": strategy,
+                    "grasps": k,
+                    "seed": seed,
+                    "cd": metrics["cd"],
+                    "cd_paper": metrics.get("cd_paper"),
+                    "psnr": metrics["psnr"],
+                    "seconds": metrics["train_seconds"],
+                    "selection_seconds": info["selection_seconds"],
+                    "touches": info["touches"],
+                }
+            )
         return rows
 
     def run(self, progress: bool = True, **executor) -> list[dict]:
@@ -255,11 +316,15 @@ class NextTouchBench:
             touches = json.loads(self.copy_job(subject, seed, strategy, k).marker.read_text())["touches"]
             return f"{subject} s{seed} {strategy:9s} {k} grasps ({touches} touches): CD {metrics['cd']:.4f}"
 
-        outcome = run_jobs(self.jobs(), self.out, on_done=on_done, desc="bench next-touch", progress=progress,
-                           **executor)
+        outcome = run_jobs(
+            self.jobs(), self.out, on_done=on_done, desc="bench next-touch", progress=progress, **executor
+        )
         rows = self.results()
-        correlations = {subject: self.uncertainty_picture(subject, c.seeds[0]) for subject in c.subjects
-                        if self.capture_job(subject, c.seeds[0], "next-best").complete()}
+        correlations = {
+            subject: self.uncertainty_picture(subject, c.seeds[0])
+            for subject in c.subjects
+            if self.capture_job(subject, c.seeds[0], "next-best").complete()
+        }
         write_report(self.out, rows, correlations, c)
         outcome.raise_if_failed(self.out)
         return rows
@@ -269,8 +334,9 @@ class NextTouchBench:
         views-only copy of the next-best capture, made here if 0 is not a budget)."""
         copy = self.copy_job(subject, seed, "next-best", 0)
         copy()
-        return uncertainty_vs_error(copy.out, self.config.selection_steps, seed,
-                                    self.out / f"uncertainty_{subject}.png")
+        return uncertainty_vs_error(
+            copy.out, self.config.selection_steps, seed, self.out / f"uncertainty_{subject}.png"
+        )
 
 
 def selection_seconds(scene: Path, count: int) -> float:
@@ -292,8 +358,13 @@ def uncertainty_vs_error(scene_path: Path, steps: int, seed: int, picture: Path,
     from tacsplat.apps.report import pyplot, save_figure
     from tacsplat.datasets import Scene
     from tacsplat.reconstruction.config import TrainConfig
-    from tacsplat.reconstruction.uncertainty import SCORES, Views, brief_reconstruction, gaussian_uncertainty, \
-        render_uncertainty
+    from tacsplat.reconstruction.uncertainty import (
+        SCORES,
+        Views,
+        brief_reconstruction,
+        gaussian_uncertainty,
+        render_uncertainty,
+    )
     from tacsplat.reconstruction.views import camera_tensors
 
     scene = Scene.load(scene_path)
@@ -321,17 +392,21 @@ def uncertainty_vs_error(scene_path: Path, steps: int, seed: int, picture: Path,
         correlation[name] = float(rho)
     shown = range(min(views_shown, len(tests)))
     plt = pyplot()
-    fig, axes = plt.subplots(len(shown) or 1, 2 + len(SCORES), figsize=(3.0 * (2 + len(SCORES)), 3.0 * max(len(shown), 1)),
-                             squeeze=False)
+    fig, axes = plt.subplots(
+        len(shown) or 1, 2 + len(SCORES), figsize=(3.0 * (2 + len(SCORES)), 3.0 * max(len(shown), 1)), squeeze=False
+    )
     scale = np.nanpercentile(np.stack(errors), 95) if errors and pixels.any() else 1.0
-    limits = {name: tuple(np.percentile(np.stack(maps[name])[pixels], [2, 98])) if errors and pixels.any() else (0, 1)
-              for name in SCORES}  # each score on its own scale over the surface: its order is what counts
+    limits = {
+        name: tuple(np.percentile(np.stack(maps[name])[pixels], [2, 98])) if errors and pixels.any() else (0, 1)
+        for name in SCORES
+    }  # each score on its own scale over the surface: its order is what counts
     for row, i in enumerate(shown):
         axes[row, 0].imshow(scene.load_image(tests[i]))
         axes[row, 0].set_title("test view" if row == 0 else "")
         for col, name in enumerate(SCORES, start=1):
-            axes[row, col].imshow(np.where(pixels[i], maps[name][i], np.nan), cmap="magma", vmin=limits[name][0],
-                                  vmax=limits[name][1])
+            axes[row, col].imshow(
+                np.where(pixels[i], maps[name][i], np.nan), cmap="magma", vmin=limits[name][0], vmax=limits[name][1]
+            )
             if row == 0:
                 axes[row, col].set_title(f"{name} (rho {correlation[name]:+.2f})")
         axes[row, -1].imshow(np.ma.masked_invalid(errors[i]), cmap="magma", vmin=0, vmax=scale)
@@ -355,8 +430,11 @@ def summarise(rows: list[dict]) -> dict[tuple[str, int], dict]:
             if not group:
                 continue
             per_seed = [np.mean([r["cd"] for r in group if r["seed"] == s]) for s in sorted({r["seed"] for r in group})]
-            summary[strategy, k] = {"cd": float(np.mean([r["cd"] for r in group])), "spread": float(np.std(per_seed)),
-                                    "runs": len(group)}
+            summary[strategy, k] = {
+                "cd": float(np.mean([r["cd"] for r in group])),
+                "spread": float(np.std(per_seed)),
+                "runs": len(group),
+            }
     return summary
 
 
@@ -387,14 +465,19 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
     save_figure(fig, out / "cd_vs_grasps.png")
 
     subjects = list(dict.fromkeys(r["object"] for r in rows))
-    lines = ["# Next-best touch against random grasps", "",
-             f"{len(subjects)} object(s), seeds {', '.join(map(str, config.seeds))}; {config.views} train views, "
-             f"{config.test_views} test views, {config.resolution} px; every reconstruction `{config.method}`, "
-             f"{config.iterations} steps. Next-best: {config.candidates} candidate approaches per grasp, scored on a "
-             f"{config.selection_steps}-step reconstruction of the scene so far with the {config.uncertainty} score.",
-             "", "## Mean CD (x GT radius, lower is better) over seeds", "",
-             "| object | strategy | " + " | ".join(f"{k} grasps" for k in budgets) + " |",
-             "| --- | --- |" + " ---: |" * len(budgets)]
+    lines = [
+        "# Next-best touch against random grasps",
+        "",
+        f"{len(subjects)} object(s), seeds {', '.join(map(str, config.seeds))}; {config.views} train views, "
+        f"{config.test_views} test views, {config.resolution} px; every reconstruction `{config.method}`, "
+        f"{config.iterations} steps. Next-best: {config.candidates} candidate approaches per grasp, scored on a "
+        f"{config.selection_steps}-step reconstruction of the scene so far with the {config.uncertainty} score.",
+        "",
+        "## Mean CD (x GT radius, lower is better) over seeds",
+        "",
+        "| object | strategy | " + " | ".join(f"{k} grasps" for k in budgets) + " |",
+        "| --- | --- |" + " ---: |" * len(budgets),
+    ]
     for subject in subjects:
         for strategy in STRATEGIES:
             cells = []
@@ -402,21 +485,35 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
                 cds = [r["cd"] for r in rows if (r["object"], r["strategy"], r["grasps"]) == (subject, strategy, k)]
                 cells.append(f"{np.mean(cds):.4f}" if cds else "–")
             lines.append(f"| {subject} | {strategy} | " + " | ".join(cells) + " |")
-    lines += ["", "## Over every object and seed", "",
-              "| grasps | random CD | next-best CD | change | next-best choosing (s, mean per capture) |",
-              "| ---: | ---: | ---: | ---: | ---: |"]
+    lines += [
+        "",
+        "## Over every object and seed",
+        "",
+        "| grasps | random CD | next-best CD | change | next-best choosing (s, mean per capture) |",
+        "| ---: | ---: | ---: | ---: | ---: |",
+    ]
     for k in budgets:
         if ("random", k) in summary and ("next-best", k) in summary:
             r, n = summary["random", k]["cd"], summary["next-best", k]["cd"]
-            choosing = np.mean([x["selection_seconds"] for x in rows if x["strategy"] == "next-best" and x["grasps"] == k])
-            lines.append(f"| {k} | {r:.4f} ± {summary['random', k]['spread']:.4f} | {n:.4f} ± "
-                         f"{summary['next-best', k]['spread']:.4f} | {100 * (n - r) / r:+.1f} % | {choosing:.0f} |")
-    lines += ["", "![CD against grasps](cd_vs_grasps.png)", "",
-              "## Does the uncertainty predict the error?", "",
-              "Spearman rank correlation, over the test pixels, of each score of the views-only reconstruction that "
-              "chose the first grasp with its depth error against the ground truth (1: perfectly ordered).", "",
-              "| object | " + " | ".join(next(iter(correlations.values()), {})) + " |",
-              "| --- |" + " ---: |" * len(next(iter(correlations.values()), {}))]
+            choosing = np.mean(
+                [x["selection_seconds"] for x in rows if x["strategy"] == "next-best" and x["grasps"] == k]
+            )
+            lines.append(
+                f"| {k} | {r:.4f} ± {summary['random', k]['spread']:.4f} | {n:.4f} ± "
+                f"{summary['next-best', k]['spread']:.4f} | {100 * (n - r) / r:+.1f} % | {choosing:.0f} |"
+            )
+    lines += [
+        "",
+        "![CD against grasps](cd_vs_grasps.png)",
+        "",
+        "## Does the uncertainty predict the error?",
+        "",
+        "Spearman rank correlation, over the test pixels, of each score of the views-only reconstruction that "
+        "chose the first grasp with its depth error against the ground truth (1: perfectly ordered).",
+        "",
+        "| object | " + " | ".join(next(iter(correlations.values()), {})) + " |",
+        "| --- |" + " ---: |" * len(next(iter(correlations.values()), {})),
+    ]
     for subject, rho in correlations.items():
         lines.append(f"| {subject} | " + " | ".join(f"{v:+.3f}" for v in rho.values()) + " |")
     lines += [""] + [f"![uncertainty {s}](uncertainty_{s}.png)" for s in correlations] + [""]
@@ -443,12 +540,20 @@ def register(cli) -> None:
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--test-views", type=int, default=12, help="held-out test views")
     p.add_argument("--iterations", type=int, default=1500, help="steps of every final reconstruction")
-    p.add_argument("--method", default=DEFAULT_METHOD, choices=list(METHODS),
-                   help="the method of every final reconstruction (default: what `tacsplat reconstruct` trains; "
-                   "`paper` for the paper's)")
+    p.add_argument(
+        "--method",
+        default=DEFAULT_METHOD,
+        choices=list(METHODS),
+        help="the method of every final reconstruction (default: what `tacsplat reconstruct` trains; "
+        "`paper` for the paper's)",
+    )
     p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp")
-    p.add_argument("--selection-steps", type=int, default=300,
-                   help="next-best: steps of the reconstruction that chooses each grasp")
+    p.add_argument(
+        "--selection-steps",
+        type=int,
+        default=300,
+        help="next-best: steps of the reconstruction that chooses each grasp",
+    )
     p.add_argument("--uncertainty", default="depth-variance", help="next-best: the score (depth-variance or fisher)")
     add_executor_options(p)
     p.set_defaults(func=_run)
@@ -460,11 +565,17 @@ def _run(args) -> int:
     executor = executor_options(args)
     config = NextTouchBenchConfig(
         objects=() if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip()),
-        mesh=args.mesh, seeds=comma_separated_ints(args.seeds, "--seeds"),
-        grasps=comma_separated_ints(args.grasps, "--grasps"), resolution=args.resolution, test_views=args.test_views,
-        iterations=args.iterations, method=args.method, candidates=args.candidates,
-        selection_steps=args.selection_steps, uncertainty=args.uncertainty,
-    )  # fmt: skip
+        mesh=args.mesh,
+        seeds=comma_separated_ints(args.seeds, "--seeds"),
+        grasps=comma_separated_ints(args.grasps, "--grasps"),
+        resolution=args.resolution,
+        test_views=args.test_views,
+        iterations=args.iterations,
+        method=args.method,
+        candidates=args.candidates,
+        selection_steps=args.selection_steps,
+        uncertainty=args.uncertainty,
+    )
     started = time.perf_counter()
     bench = NextTouchBench(args.out, config)
     bench.run(**executor)

@@ -56,8 +56,10 @@ def ablation_rows() -> dict[str, tuple[str, dict]]:
     """``{row: (method, overrides)}`` of :data:`ABLATIONS`."""
     import yaml
 
-    return {name: (row["method"], dict(row.get("overrides", {})))
-            for name, row in yaml.safe_load(ABLATIONS.read_text()).items()}
+    return {
+        name: (row["method"], dict(row.get("overrides", {})))
+        for name, row in yaml.safe_load(ABLATIONS.read_text()).items()
+    }
 
 
 def bench_row(name: str, option: str = "--methods") -> tuple[str, dict]:
@@ -66,15 +68,17 @@ def bench_row(name: str, option: str = "--methods") -> tuple[str, dict]:
     if name in METHODS:
         return name, {}
     if name not in ablation_rows():
-        raise ConfigError(option, f"unknown method {name!r}; choose one of {', '.join(METHODS)} or a row of "
-                          f"{ABLATIONS.name} ({', '.join(ablation_rows())})")
+        raise ConfigError(
+            option,
+            f"unknown method {name!r}; choose one of {', '.join(METHODS)} or a row of "
+            f"{ABLATIONS.name} ({', '.join(ablation_rows())})",
+        )
     return ablation_rows()[name]
 
 
 def row_config(name: str, preset: str = "default", iterations: int | None = None, option: str = "--methods"):
     """The TrainConfig of bench row ``name`` (on the training preset, scaled to ``iterations``)."""
-    from tacsplat.reconstruction.config import preset_config
-    from tacsplat.reconstruction.config import set_fields
+    from tacsplat.reconstruction.config import preset_config, set_fields
 
     method, overrides = bench_row(name, option)
     config = set_fields(preset_config(preset, iterations), get_method(method).overrides)
@@ -108,14 +112,18 @@ class PaperBenchConfig:
 
         unknown = [o for o in self.objects if o not in OBJECT_NAMES]
         if unknown:
-            raise ConfigError("objects", f"unknown object(s) {', '.join(unknown)}; choose from {', '.join(OBJECT_NAMES)}")
+            raise ConfigError(
+                "objects", f"unknown object(s) {', '.join(unknown)}; choose from {', '.join(OBJECT_NAMES)}"
+            )
         for s in self.settings:
             if s not in SETTINGS:
                 raise ConfigError("settings", f"unknown setting {s!r}; choose from {', '.join(SETTINGS)}")
         for name in self.methods:
             bench_row(name, "methods")
         if self.full_views < 32:
-            raise ConfigError("full_views", f"the full-views setting needs at least 32 train views, got {self.full_views}")
+            raise ConfigError(
+                "full_views", f"the full-views setting needs at least 32 train views, got {self.full_views}"
+            )
         for key in ("resolution", "iterations", "test_views"):
             if getattr(self, key) < 1:
                 raise ConfigError(key, f"must be >= 1, got {getattr(self, key)}")
@@ -136,7 +144,8 @@ class PaperBenchConfig:
     def scene_tag(self) -> str:
         """Suffix of scene folders that are not gel touches on untextured objects (so they never mix)."""
         return ("" if self.touch_model == "gel" else f"-{self.touch_model}-touches") + (
-            "" if self.texture == "none" else f"-{self.texture}")
+            "" if self.texture == "none" else f"-{self.texture}"
+        )
 
     @property
     def tag(self) -> str:
@@ -193,10 +202,19 @@ class PaperBench:
         """Every run, setting by setting (the minimal-views table fills first), then object, seed, method."""
         c = self.config
         return [
-            Run(obj, setting, method, seed, self.scene_dir(obj, setting, seed),
-                self.out / "runs" / obj / setting / f"{method}-s{seed}{c.tag}")
-            for setting in c.settings for obj in c.object_list() for seed in c.seeds for method in c.methods
-        ]  # fmt: skip
+            Run(
+                obj,
+                setting,
+                method,
+                seed,
+                self.scene_dir(obj, setting, seed),
+                self.out / "runs" / obj / setting / f"{method}-s{seed}{c.tag}",
+            )
+            for setting in c.settings
+            for obj in c.object_list()
+            for seed in c.seeds
+            for method in c.methods
+        ]
 
     # ------------------------------------------------------------------ capture and training
 
@@ -205,9 +223,18 @@ class PaperBench:
         c = self.config
         scene = self.scene_dir(obj, setting, seed)
         views = MINIMAL_VIEWS if setting == "minimal" else c.full_views
-        return CaptureJob(out=scene, object=obj, seed=seed, views=views, test_views=c.test_views, grasps=c.grasps,
-                          resolution=c.resolution, touch_model=c.touch_model, texture=c.texture,
-                          name=f"capture {scene.relative_to(self.out)}")
+        return CaptureJob(
+            out=scene,
+            object=obj,
+            seed=seed,
+            views=views,
+            test_views=c.test_views,
+            grasps=c.grasps,
+            resolution=c.resolution,
+            touch_model=c.touch_model,
+            texture=c.texture,
+            name=f"capture {scene.relative_to(self.out)}",
+        )
 
     def capture(self, obj: str, setting: str, seed: int) -> Path:
         """The capture of one object and setting, done here and now if it is not done yet; returns its folder."""
@@ -218,9 +245,17 @@ class PaperBench:
     def reconstruct_job(self, run: Run, needs: tuple[str, ...] = ()) -> ReconstructJob:
         """One reconstruction (continued from its checkpoint if one exists)."""
         method, overrides = bench_row(run.method)
-        return ReconstructJob(out=run.out, scene=run.scene, preset=self.config.preset, method=method,
-                              overrides=overrides, seed=run.seed, iterations=self.config.iterations,
-                              name=f"reconstruct {run.out.relative_to(self.out)}", needs=needs)
+        return ReconstructJob(
+            out=run.out,
+            scene=run.scene,
+            preset=self.config.preset,
+            method=method,
+            overrides=overrides,
+            seed=run.seed,
+            iterations=self.config.iterations,
+            name=f"reconstruct {run.out.relative_to(self.out)}",
+            needs=needs,
+        )
 
     def jobs(self) -> list[tuple[Run | None, CaptureJob | ReconstructJob]]:
         """``(run, job)`` of every unfinished run, its capture first (``run`` None), in the order of :meth:`runs`
@@ -251,8 +286,11 @@ class PaperBench:
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
         how = side_by_side(executor["executor"], executor.get("workers"))
-        self.wall_note = "" if how is None else (f" (jobs side by side as {how}: a run's train seconds include "
-                                                 "the time it shared the cores)")
+        self.wall_note = (
+            ""
+            if how is None
+            else (f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)")
+        )
         runs = self.runs()
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
@@ -271,12 +309,15 @@ class PaperBench:
             # partial tables after every run; the pictures (re-rendered from every checkpoint, seconds) at the end
             self.write_report(self.results(), wall_seconds=time.perf_counter() - started, figures=False)
             self.prepare_pictures(run)
-            return (f"{run.object:8s} {run.setting:10s} {run.method:7s} seed {run.seed}: "
-                    f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
-                    f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s")
+            return (
+                f"{run.object:8s} {run.setting:10s} {run.method:7s} seed {run.seed}: "
+                f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
+                f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s"
+            )
 
-        outcome = run_jobs([job for _, job in jobs], self.out, on_done=on_done, desc="bench paper",
-                           progress=progress, **executor)
+        outcome = run_jobs(
+            [job for _, job in jobs], self.out, on_done=on_done, desc="bench paper", progress=progress, **executor
+        )
         rows = self.results()
         self.write_report(rows, wall_seconds=time.perf_counter() - started)
         outcome.raise_if_failed(self.out)
@@ -299,14 +340,30 @@ class PaperBench:
             if not run.done:
                 continue
             m = json.loads((run.out / "metrics.json").read_text())
-            rows.append({"object": run.object, "setting": run.setting, "method": run.method, "seed": run.seed,
-                         **{k: _number(m.get(k)) for k in NUMBER_COLUMNS}})
+            rows.append(
+                {
+                    "object": run.object,
+                    "setting": run.setting,
+                    "method": run.method,
+                    "seed": run.seed,
+                    **{k: _number(m.get(k)) for k in NUMBER_COLUMNS},
+                }
+            )
         return rows
 
     def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
         """results.csv, report.md and (``figures``) the plots from the runs on disk."""
-        write_paper_report(self.out, rows, self.runs(), self.config, wall_seconds, figures, self.wall_note,
-                           self.first_views, self.stale_note)
+        write_paper_report(
+            self.out,
+            rows,
+            self.runs(),
+            self.config,
+            wall_seconds,
+            figures,
+            self.wall_note,
+            self.first_views,
+            self.stale_note,
+        )
         return self.out / "report.md"
 
     def prepare_pictures(self, run: Run) -> None:
@@ -353,9 +410,11 @@ def full_vs_vanilla(rows: list[dict], setting: str) -> str:
     if (wins := _cd_wins(rows, setting, "paper", "3dgs")) is None:
         return ""
     won, n, full, vanilla = wins
-    return (f"Full method vs vanilla 3DGS ({setting}): lower CD on {won} of {n} objects; "
-            f"average CD {full:.4f} vs {vanilla:.4f} (ratio {vanilla / full:.2f}x; paper: "
-            + ("0.0026 vs 0.0111, 4.3x)." if setting == "minimal" else "0.0034 vs 0.0075, 2.2x)."))
+    return (
+        f"Full method vs vanilla 3DGS ({setting}): lower CD on {won} of {n} objects; "
+        f"average CD {full:.4f} vs {vanilla:.4f} (ratio {vanilla / full:.2f}x; paper: "
+        + ("0.0026 vs 0.0111, 4.3x)." if setting == "minimal" else "0.0034 vs 0.0075, 2.2x).")
+    )
 
 
 def default_vs_full(rows: list[dict], setting: str) -> str:
@@ -363,8 +422,10 @@ def default_vs_full(rows: list[dict], setting: str) -> str:
     if (wins := _cd_wins(rows, setting, DEFAULT_METHOD, "paper")) is None:
         return ""
     won, n, ours, full = wins
-    return (f"Default `{DEFAULT_METHOD}` ({method_label(DEFAULT_METHOD)}) vs the paper's full method ({setting}): "
-            f"lower CD on {won} of {n} objects; average CD {ours:.4f} vs {full:.4f} ({100 * (ours / full - 1):+.0f}%).")
+    return (
+        f"Default `{DEFAULT_METHOD}` ({method_label(DEFAULT_METHOD)}) vs the paper's full method ({setting}): "
+        f"lower CD on {won} of {n} objects; average CD {ours:.4f} vs {full:.4f} ({100 * (ours / full - 1):+.0f}%)."
+    )
 
 
 def coverage_sentence(rows: list[dict], setting: str) -> str:
@@ -379,16 +440,23 @@ def coverage_sentence(rows: list[dict], setting: str) -> str:
     if not np.isfinite(fractions[-1]):
         return ""
     per_object = ", ".join(f"{o} {100 * f:.0f}%" for o, f in zip(objects, fractions[:-1]) if np.isfinite(f))
-    ratios = "; ".join(f"{method_label(v)} {unseen_cd[i, -1]:.4f} vs {seen_cd[i, -1]:.4f}"
-                       for i, v in enumerate(methods) if np.isfinite(unseen_cd[i, -1]) and np.isfinite(seen_cd[i, -1]))
-    return (f"Coverage ({setting}): {100 * fractions[-1]:.0f}% of the test views' surface is seen by no training "
-            f"camera on average ({per_object}); only priors and touches place it. CD there vs on the seen "
-            f"surface: {ratios}.")
+    ratios = "; ".join(
+        f"{method_label(v)} {unseen_cd[i, -1]:.4f} vs {seen_cd[i, -1]:.4f}"
+        for i, v in enumerate(methods)
+        if np.isfinite(unseen_cd[i, -1]) and np.isfinite(seen_cd[i, -1])
+    )
+    return (
+        f"Coverage ({setting}): {100 * fractions[-1]:.0f}% of the test views' surface is seen by no training "
+        f"camera on average ({per_object}); only priors and touches place it. CD there vs on the seen "
+        f"surface: {ratios}."
+    )
 
 
 # The paper's Table 2 (Glossy Synthetic, 5 views): CD as its official code measures it, per object and on average.
-PAPER_MINIMAL_CD = {"3dgs": {"bell": 0.0220, "teapot": 0.0079, "Avg.": 0.0111},
-                    "paper": {"bell": 0.0082, "teapot": 0.0022, "Avg.": 0.0026}}
+PAPER_MINIMAL_CD = {
+    "3dgs": {"bell": 0.0220, "teapot": 0.0079, "Avg.": 0.0111},
+    "paper": {"bell": 0.0082, "teapot": 0.0022, "Avg.": 0.0026},
+}
 
 
 def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
@@ -405,13 +473,16 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     full, vanilla = methods.index("paper"), methods.index("3dgs")
     columns = objects + ["Avg."]
     lines = [
-        "## Where we stand against the paper (minimal views)", "",
+        "## Where we stand against the paper (minimal views)",
+        "",
         "CD as the paper's official code measures it (`cd_paper`: squared nearest-neighbour distances, mean each "
         "way, summed; median depth of the test views; in units of the ground-truth radius). The paper's numbers are "
         "its Table 2 (Glossy Synthetic, 5 views); only the teapot and the bell share a name with our objects, and "
-        "its average is over its own eight objects.", "",
-        "| | " + " | ".join(columns) + " |", "| --- |" + " ---: |" * len(columns),
-    ]  # fmt: skip
+        "its average is over its own eight objects.",
+        "",
+        "| | " + " | ".join(columns) + " |",
+        "| --- |" + " ---: |" * len(columns),
+    ]
     for label, index in (("3DGS (ours)", vanilla), ("full (ours)", full)):
         lines.append(f"| {label} | " + " | ".join(f"{v:.5f}" for v in cd_paper[index]) + " |")
     terms = {key: metric_table(rows, f"cd_paper_{key}", "minimal")[2] for key in ("accuracy", "completeness")}
@@ -419,22 +490,32 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
         for label, index in (("3DGS", vanilla), ("full", full)):
             lines.append(f"| {label}, {key} ({what}) | " + " | ".join(f"{v:.5f}" for v in terms[key][index]) + " |")
     for label, key in (("3DGS (paper)", "3dgs"), ("full (paper)", "paper")):
-        lines.append(f"| {label} | " + " | ".join(
-            f"{PAPER_MINIMAL_CD[key][c]:.4f}" if c in PAPER_MINIMAL_CD[key] else "–" for c in columns) + " |")
+        lines.append(
+            f"| {label} | "
+            + " | ".join(f"{PAPER_MINIMAL_CD[key][c]:.4f}" if c in PAPER_MINIMAL_CD[key] else "–" for c in columns)
+            + " |"
+        )
     paper_ratio = PAPER_MINIMAL_CD["3dgs"]["Avg."] / PAPER_MINIMAL_CD["paper"]["Avg."]
-    lines += ["", f"Gain of full over 3DGS on average: {cd[vanilla, -1] / cd[full, -1]:.2f}x in our CD, "
-              f"{cd_paper[vanilla, -1] / cd_paper[full, -1]:.2f}x in the paper's CD (the paper: {paper_ratio:.1f}x), "
-              f"{terms['accuracy'][vanilla, -1] / terms['accuracy'][full, -1]:.2f}x in its accuracy term. The "
-              "completeness term compares with the whole ground-truth surface, including the underside that no test "
-              "camera sees, so it rewards a reconstruction that bulges there as much as one that is right where it "
-              "is seen.", "", "Departures from the paper in force for these runs:", ""]
+    lines += [
+        "",
+        f"Gain of full over 3DGS on average: {cd[vanilla, -1] / cd[full, -1]:.2f}x in our CD, "
+        f"{cd_paper[vanilla, -1] / cd_paper[full, -1]:.2f}x in the paper's CD (the paper: {paper_ratio:.1f}x), "
+        f"{terms['accuracy'][vanilla, -1] / terms['accuracy'][full, -1]:.2f}x in its accuracy term. The "
+        "completeness term compares with the whole ground-truth surface, including the underside that no test "
+        "camera sees, so it rewards a reconstruction that bulges there as much as one that is right where it "
+        "is seen.",
+        "",
+        "Departures from the paper in force for these runs:",
+        "",
+    ]
     full_config = row_config("paper", config.preset, config.iterations)
     lines += [f"- {line}" for line in paper_departures(full_config, config.touch_model, config.resolution)]
     return "\n".join(lines) + "\n"
 
 
-def render_first_test_view(runs: list[Run], rendered: dict | None = None) -> tuple[dict, np.ndarray, np.ndarray,
-                                                                         np.ndarray | None, np.ndarray | None]:
+def render_first_test_view(
+    runs: list[Run], rendered: dict | None = None
+) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """``({method: (rgb, depth, normal)}, gt_rgb, gt_depth, gt_normal, gt_seen)`` of the first test view of one
     scene, rendered from each run's last checkpoint (the evaluation's renders, whose depth colours are scaled per
     run, are not reused); normals in the camera frame, the ground truth's from its depth map as the evaluation
@@ -468,13 +549,15 @@ def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndar
     from tacsplat.reconstruction.views import background_image
 
     background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
-    view = render_frame(loaded.gaussians, frame, background, loaded.config.backend, with_depth=True, with_normals=True,
-                        look=loaded.look)
+    view = render_frame(
+        loaded.gaussians, frame, background, loaded.config.backend, with_depth=True, with_normals=True, look=loaded.look
+    )
     return view.rgb, view.depth, view.normal
 
 
-def _first_view_truth(scene, frame, gt_rgb: np.ndarray, train_views: int | None
-                      ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+def _first_view_truth(
+    scene, frame, gt_rgb: np.ndarray, train_views: int | None
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """``(gt_depth, gt_normal, gt_seen)`` of ``frame`` (zeros, None, None without ground-truth depth)."""
     import torch
 
@@ -501,23 +584,35 @@ def _stale_note(stale: list[tuple[Run, list[str]]], out: Path) -> str:
     groups: dict[tuple[str, str], list[str]] = {}  # (method, what differs) -> its run folders
     for run, changes in stale:
         groups.setdefault((run.method, ", ".join(changes)), []).append(str(run.out.relative_to(out)))
-    return (f"{len(stale)} finished run(s) were trained with other settings than this bench trains their method "
-            "with now (a default changed since); their numbers stand in the tables as they were measured; delete "
-            "their folders to measure them again: " + "; ".join(
-                f"{method} ({changes}), {len(folders)} run(s): {', '.join(folders)}"
-                for (method, changes), folders in groups.items()))
+    return (
+        f"{len(stale)} finished run(s) were trained with other settings than this bench trains their method "
+        "with now (a default changed since); their numbers stand in the tables as they were measured; delete "
+        "their folders to measure them again: "
+        + "; ".join(
+            f"{method} ({changes}), {len(folders)} run(s): {', '.join(folders)}"
+            for (method, changes), folders in groups.items()
+        )
+    )
 
 
-def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: PaperBenchConfig,
-                       wall_seconds: float | None = None, figures: bool = True, wall_note: str = "",
-                       first_views: dict | None = None, stale_note: str = "") -> None:
+def write_paper_report(
+    out: Path,
+    rows: list[dict],
+    runs: list[Run],
+    config: PaperBenchConfig,
+    wall_seconds: float | None = None,
+    figures: bool = True,
+    wall_note: str = "",
+    first_views: dict | None = None,
+    stale_note: str = "",
+) -> None:
     """Write ``results.csv``, ``report.md`` and (``figures``) CD bar charts, error-vs-time curves and render
     grids into ``out``; without figures, report.md holds the tables only. ``wall_note`` follows the wall time
     (how the jobs ran); ``first_views``: :func:`render_first_test_view`'s renders so far; ``stale_note``: which
     finished runs were trained with other settings (:meth:`PaperBench.stale_runs`)."""
     from tacsplat.apps.report import (
-        markdown_table,
         METRICS,
+        markdown_table,
         plot_cd_bars,
         plot_error_vs_time,
         render_grid,
@@ -533,24 +628,36 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
         "",
         f"{len(rows)} runs: {config.resolution}x{config.resolution} px, {config.iterations} steps, "
         f"{config.test_views} held-out test views per object, {config.grasps} grasps of 4 touches, "
-        + "".join(f"{s} = {MINIMAL_VIEWS if s == 'minimal' else config.full_views} train views, " for s in config.settings)
+        + "".join(
+            f"{s} = {MINIMAL_VIEWS if s == 'minimal' else config.full_views} train views, " for s in config.settings
+        )
         + f"seeds {', '.join(map(str, config.seeds))} (tables: mean over seeds), preset {config.preset}, "
         f"{config.touch_model} touches"
-        + ("" if config.texture == "none" else f", {config.texture} texture on every object") + ". "
+        + ("" if config.texture == "none" else f", {config.texture} texture on every object")
+        + ". "
         "CD is in units of the ground-truth bounding-sphere radius; best per column in bold.",
         "",
     ]
     if wall_seconds is not None:
-        lines += [f"Wall time of the last invocation: {wall_seconds / 60:.1f} min{wall_note}; "
-                  f"{len(rows)} of {len(runs)} runs finished.", ""]
+        lines += [
+            f"Wall time of the last invocation: {wall_seconds / 60:.1f} min{wall_note}; "
+            f"{len(rows)} of {len(runs)} runs finished.",
+            "",
+        ]
     if stale_note:
         lines += [f"**Note:** {stale_note}.", ""]
     for setting in settings:
         lines += [f"## {setting}", ""]
         for metric in METRICS:
             lines += [markdown_table(rows, metric, setting), ""]
-        lines += [full_vs_vanilla(rows, setting), "", default_vs_full(rows, setting), "",
-                  coverage_sentence(rows, setting), ""]
+        lines += [
+            full_vs_vanilla(rows, setting),
+            "",
+            default_vs_full(rows, setting),
+            "",
+            coverage_sentence(rows, setting),
+            "",
+        ]
         if setting == "minimal":
             lines += [where_we_stand(rows, config), ""]
         if not figures:
@@ -563,14 +670,25 @@ def write_paper_report(out: Path, rows: list[dict], runs: list[Run], config: Pap
             if run.setting == setting and run.seed == config.seeds[0] and run.done and progress.is_file():
                 curves.setdefault(run.object, {})[run.method] = read_progress(progress)
         if curves:
-            png = plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", f"held-out error vs run time ({setting})")
+            png = plot_error_vs_time(
+                curves, out / f"error_vs_time_{setting}.png", f"held-out error vs run time ({setting})"
+            )
             lines += [f"![error vs run time, {setting}]({png.name})", ""]
         for obj in dict.fromkeys(r.object for r in runs if r.setting == setting):
-            finished = [r for r in runs if r.object == obj and r.setting == setting and r.seed == config.seeds[0] and r.done]
+            finished = [
+                r for r in runs if r.object == obj and r.setting == setting and r.seed == config.seeds[0] and r.done
+            ]
             if finished:
                 panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(finished, first_views)
-                png = render_grid(panels, gt_rgb, gt_depth, out / f"renders_{obj}_{setting}.png",
-                                  f"{obj}, {setting}: first test view", gt_normal=gt_normal, gt_seen=gt_seen)
+                png = render_grid(
+                    panels,
+                    gt_rgb,
+                    gt_depth,
+                    out / f"renders_{obj}_{setting}.png",
+                    f"{obj}, {setting}: first test view",
+                    gt_normal=gt_normal,
+                    gt_seen=gt_seen,
+                )
                 lines += [f"![renders {obj} {setting}]({png.name})", ""]
     (out / "report.md").write_text("\n".join(lines))
 
@@ -612,24 +730,40 @@ def register(cli) -> None:
     )
     p.add_argument("--objects", default="all", help="'all' or comma-separated library objects (--quick: teapot,bell)")
     p.add_argument("--out", required=True, help="report folder (captures, runs, results.csv, report.md, PNGs)")
-    p.add_argument("--quick", action="store_true",
-                   help="two objects, minimal setting, 128 px, 800 steps (about 3 minutes)")
+    p.add_argument(
+        "--quick", action="store_true", help="two objects, minimal setting, 128 px, 800 steps (about 3 minutes)"
+    )
     p.add_argument("--resolution", type=int, default=None, help="image size in pixels (default 128)")
     p.add_argument("--iterations", type=int, default=None, help="steps per run (default 1500; quick 800)")
     p.add_argument("--full-views", type=int, default=None, help="train views of the full-views setting (default 32)")
-    p.add_argument("--preset", default="default", choices=("default", "paper"),
-                   help="training preset: default, or paper (the official schedule scaled to --iterations)")
-    p.add_argument("--touch-model", default="gel", choices=("gel", "paper"),
-                   help="touches: gel (grasps with gel contact patches) or paper (the official code's sampling)")
-    p.add_argument("--texture", default="none",
-                   help="the objects' surface: none (their one colour) or checker (textured: a checker of their "
-                   "colour and a contrasting grey); textured scenes and runs get their own folders")
+    p.add_argument(
+        "--preset",
+        default="default",
+        choices=("default", "paper"),
+        help="training preset: default, or paper (the official schedule scaled to --iterations)",
+    )
+    p.add_argument(
+        "--touch-model",
+        default="gel",
+        choices=("gel", "paper"),
+        help="touches: gel (grasps with gel contact patches) or paper (the official code's sampling)",
+    )
+    p.add_argument(
+        "--texture",
+        default="none",
+        help="the objects' surface: none (their one colour) or checker (textured: a checker of their "
+        "colour and a contrasting grey); textured scenes and runs get their own folders",
+    )
     p.add_argument("--test-views", type=int, default=None, help="held-out test views (default 12; quick 8)")
     p.add_argument("--settings", default=None, help="comma-separated: minimal,full-views (quick: minimal)")
     p.add_argument("--seeds", default=None, help="comma-separated capture and training seeds (default 0)")
-    p.add_argument("--methods", default=None,
-                   help="comma-separated methods, or rows of ablations.yaml (a method with settings changed: "
-                   + ", ".join(ablation_rows()) + "; default: the paper's four methods and reconstruct's default)")
+    p.add_argument(
+        "--methods",
+        default=None,
+        help="comma-separated methods, or rows of ablations.yaml (a method with settings changed: "
+        + ", ".join(ablation_rows())
+        + "; default: the paper's four methods and reconstruct's default)",
+    )
     add_executor_options(p)
     p.set_defaults(func=_run)
 

@@ -24,13 +24,21 @@ METRICS: dict[str, tuple[str, Better, int]] = {
     "cd_seen": ("CD on the surface a training view sees (↓)", "lower", 4),
     "cd_unseen": ("CD on the surface no training view sees (↓)", "lower", 4),
     "cd_paper": ("CD as the paper measures it (↓)", "lower", 5),
-    "psnr": ("PSNR (↑)", "higher", 2), "ssim": ("SSIM (↑)", "higher", 3),
+    "psnr": ("PSNR (↑)", "higher", 2),
+    "ssim": ("SSIM (↑)", "higher", 3),
     "normal_error_deg": ("Normal error, degrees (↓)", "lower", 1),
     "depth_bias": ("Depth bias: median rendered minus true depth, + behind the truth (→ 0)", "zero", 4),
 }
 # a run's numbers in results.csv
-NUMBER_COLUMNS = (*METRICS, "cd_paper_accuracy", "cd_paper_completeness", "unseen_fraction", "train_seconds",
-                  "num_gaussians", "psnr_splat")  # psnr_splat: what splat.ply shows a plain 3DGS renderer
+NUMBER_COLUMNS = (
+    *METRICS,
+    "cd_paper_accuracy",
+    "cd_paper_completeness",
+    "unseen_fraction",
+    "train_seconds",
+    "num_gaussians",
+    "psnr_splat",
+)  # psnr_splat: what splat.ply shows a plain 3DGS renderer
 RESULT_COLUMNS = ("object", "setting", "method", *NUMBER_COLUMNS, "seed")
 
 
@@ -128,8 +136,12 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
         if with_spread:
             cells.append("–" if not math.isfinite(spread[method]) else f"{spread[method]:.{decimals}f}")
         lines.append(f"| {method_label(method)} | " + " | ".join(cells) + " |")
-    note = ("\n*Seed s.d.: the standard deviation over the seeds of each seed's average over the objects; a "
-            "difference in Avg. smaller than it may be the seeds' luck.*\n" if with_spread else "")
+    note = (
+        "\n*Seed s.d.: the standard deviation over the seeds of each seed's average over the objects; a "
+        "difference in Avg. smaller than it may be the seeds' luck.*\n"
+        if with_spread
+        else ""
+    )
     return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n" + note
 
 
@@ -160,8 +172,12 @@ def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
     width = 0.8 / max(len(methods), 1)
     x = np.arange(len(objects) + 1)
     for i, method in enumerate(methods):
-        ax.bar(x + (i - (len(methods) - 1) / 2) * width, np.nan_to_num(values[i], nan=0.0), width,
-               label=method_label(method))
+        ax.bar(
+            x + (i - (len(methods) - 1) / 2) * width,
+            np.nan_to_num(values[i], nan=0.0),
+            width,
+            label=method_label(method),
+        )
     ax.set_xticks(x, objects + ["Avg."])
     ax.set_ylabel("Chamfer distance [x GT radius]")
     if np.nanmin(np.where(values > 0, values, np.nan), initial=np.inf) < np.inf:
@@ -198,8 +214,15 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
 UNSEEN_COLOR = (0.9, 0.0, 0.8)  # magenta: ground-truth surface no training camera sees
 
 
-def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarray, path: str | Path,
-                title: str = "", gt_normal: np.ndarray | None = None, gt_seen: np.ndarray | None = None) -> Path:
+def render_grid(
+    panels: dict[str, tuple],
+    gt_rgb: np.ndarray,
+    gt_depth: np.ndarray,
+    path: str | Path,
+    title: str = "",
+    gt_normal: np.ndarray | None = None,
+    gt_seen: np.ndarray | None = None,
+) -> Path:
     """Ground truth then one column per method; RGB on top, depth below on ONE colour scale (the ground
     truth's depth range), so that a surface behind or in front of the true one shows as a colour shift; a third
     row of camera-frame normals (as RGB, (n + 1) / 2; black where empty) when the panels carry them; with
@@ -239,8 +262,9 @@ def render_grid(panels: dict[str, tuple], gt_rgb: np.ndarray, gt_depth: np.ndarr
             axes[-1, j].imshow(coverage)
         elif with_error:
             both = (depth > 0) & (gt_depth > 0)
-            error_image = axes[-1, j].imshow(np.ma.masked_array(depth - gt_depth, ~both), cmap=error_cmap,
-                                             vmin=-error_range, vmax=error_range)
+            error_image = axes[-1, j].imshow(
+                np.ma.masked_array(depth - gt_depth, ~both), cmap=error_cmap, vmin=-error_range, vmax=error_range
+            )
         axes[0, j].set_title(textwrap.fill(label, 28), fontsize=10)  # long method labels on two lines
         for ax in axes[:, j]:
             ax.set_xticks([])

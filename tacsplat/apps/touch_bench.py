@@ -86,8 +86,12 @@ def subsample_touches(scene_path: str | Path, out: str | Path, num_touches: int)
 
     scene = Scene.load(scene_path)
     kept = [t for t in scene.touches if t.in_contact][:num_touches]
-    meta = SceneMeta(source=scene.meta.source, object=scene.meta.object, capture_plan=dict(scene.meta.capture_plan),
-                     extra={**scene.meta.extra, "touch_subsample": {"from": str(scene.path), "touches": len(kept)}})
+    meta = SceneMeta(
+        source=scene.meta.source,
+        object=scene.meta.object,
+        capture_plan=dict(scene.meta.capture_plan),
+        extra={**scene.meta.extra, "touch_subsample": {"from": str(scene.path), "touches": len(kept)}},
+    )
     copy_scene(scene, out, touches=kept, meta=meta)
     return len(kept)
 
@@ -121,20 +125,44 @@ class TouchBench:
         jobs: list[BatchJob] = []
         for seed in c.seeds:
             base = self.out / "scenes" / f"{c.object}-s{seed}"
-            capture = CaptureJob(out=base, object=c.object, seed=seed, views=c.views, test_views=c.test_views,
-                                 grasps=c.grasps, resolution=c.resolution, name=f"capture {base.name}")
-            copies = [SubsampleJob(out=base.with_name(f"{base.name}-t{count}"), base=base, count=count,
-                                   name=f"subsample {base.name}-t{count}", needs=(capture.name,))
-                      for count in c.touch_counts]
+            capture = CaptureJob(
+                out=base,
+                object=c.object,
+                seed=seed,
+                views=c.views,
+                test_views=c.test_views,
+                grasps=c.grasps,
+                resolution=c.resolution,
+                name=f"capture {base.name}",
+            )
+            copies = [
+                SubsampleJob(
+                    out=base.with_name(f"{base.name}-t{count}"),
+                    base=base,
+                    count=count,
+                    name=f"subsample {base.name}-t{count}",
+                    needs=(capture.name,),
+                )
+                for count in c.touch_counts
+            ]
             if not all(copy.complete() for copy in copies):
                 jobs.append(capture)
             else:
                 copies = [replace(copy, needs=()) for copy in copies]
             for copy in copies:
                 out = self.run_dir(seed, copy.count)
-                jobs += [copy, ReconstructJob(out=out, scene=copy.out, method=c.method, seed=seed,
-                                              iterations=c.iterations, name=f"reconstruct {out.name}",
-                                              needs=(copy.name,))]
+                jobs += [
+                    copy,
+                    ReconstructJob(
+                        out=out,
+                        scene=copy.out,
+                        method=c.method,
+                        seed=seed,
+                        iterations=c.iterations,
+                        name=f"reconstruct {out.name}",
+                        needs=(copy.name,),
+                    ),
+                ]
         return jobs
 
     def results(self) -> list[dict]:
@@ -145,8 +173,14 @@ class TouchBench:
                 continue
             metrics = json.loads((job.out / "metrics.json").read_text())
             marker = json.loads(job.scene.with_name(job.scene.name + ".json").read_text())
-            rows.append({"seed": job.seed, "requested_touches": marker["requested"], "touches": marker["touches"],
-                         **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}})
+            rows.append(
+                {
+                    "seed": job.seed,
+                    "requested_touches": marker["requested"],
+                    "touches": marker["touches"],
+                    **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")},
+                }
+            )
         return rows
 
     def check_out(self, jobs: list[BatchJob]) -> None:
@@ -187,15 +221,17 @@ def summarise(rows: list[dict]) -> list[dict]:
         group = [r for r in rows if r["requested_touches"] == count]
         cds = np.array([r["cd"] for r in group if r["cd"] is not None], dtype=float)
         psnrs = np.array([r["psnr"] for r in group if r["psnr"] is not None], dtype=float)
-        summary.append({
-            "requested_touches": count,
-            "mean_touches": float(np.mean([r["touches"] for r in group])),
-            "runs": len(group),
-            "cd_mean": float(cds.mean()) if len(cds) else float("nan"),
-            "cd_std": float(cds.std()) if len(cds) else float("nan"),
-            "psnr_mean": float(psnrs.mean()) if len(psnrs) else float("nan"),
-            "psnr_std": float(psnrs.std()) if len(psnrs) else float("nan"),
-        })  # fmt: skip
+        summary.append(
+            {
+                "requested_touches": count,
+                "mean_touches": float(np.mean([r["touches"] for r in group])),
+                "runs": len(group),
+                "cd_mean": float(cds.mean()) if len(cds) else float("nan"),
+                "cd_std": float(cds.std()) if len(cds) else float("nan"),
+                "psnr_mean": float(psnrs.mean()) if len(psnrs) else float("nan"),
+                "psnr_std": float(psnrs.std()) if len(psnrs) else float("nan"),
+            }
+        )
     return summary
 
 
@@ -222,8 +258,9 @@ def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[s
     std = np.array([s["cd_std"] for s in summary])
     ax.plot(x, mean, "o-", color="tab:red", label="mean over seeds")
     ax.fill_between(x, mean - std, mean + std, color="tab:red", alpha=0.2, label="± 1 std")
-    ax.scatter([r["requested_touches"] for r in rows], [r["cd"] for r in rows], s=10, color="k", alpha=0.5,
-               label="runs")
+    ax.scatter(
+        [r["requested_touches"] for r in rows], [r["cd"] for r in rows], s=10, color="k", alpha=0.5, label="runs"
+    )
     ax.set_xscale("symlog", linthresh=4)
     ax.set_xticks(x, [str(int(v)) for v in x])
     ax.set_xlabel("number of touches")
@@ -252,8 +289,12 @@ def register(cli) -> None:
     p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (capture and training)")
     p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
     p.add_argument("--iterations", type=int, default=800, help="steps per run")
-    p.add_argument("--method", default=TouchBenchConfig.method, choices=list(METHODS),
-                   help="the method of every run (default: the paper's, as in its Fig. 6)")
+    p.add_argument(
+        "--method",
+        default=TouchBenchConfig.method,
+        choices=list(METHODS),
+        help="the method of every run (default: the paper's, as in its Fig. 6)",
+    )
     add_executor_options(p)
     p.set_defaults(func=_run)
 
@@ -262,14 +303,23 @@ def _run(args) -> int:
     from tacsplat.apps.executors import executor_options
 
     executor = executor_options(args)
-    config = TouchBenchConfig(object=args.object, touch_counts=comma_separated_ints(args.touches, "--touches"),
-                              seeds=comma_separated_ints(args.seeds, "--seeds"), resolution=args.resolution,
-                              iterations=args.iterations, method=args.method)
+    config = TouchBenchConfig(
+        object=args.object,
+        touch_counts=comma_separated_ints(args.touches, "--touches"),
+        seeds=comma_separated_ints(args.seeds, "--seeds"),
+        resolution=args.resolution,
+        iterations=args.iterations,
+        method=args.method,
+    )
     started = time.perf_counter()
     bench = TouchBench(args.out, config)
     rows = bench.run(**executor)
     print("touches  runs  CD mean     CD std      PSNR mean")
     for s in summarise(rows):
-        print(f"{s['requested_touches']:7d}  {s['runs']:4d}  {s['cd_mean']:.5f}  {s['cd_std']:.5f}  {s['psnr_mean']:.2f}")
-    print(f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; plot: {bench.out / 'cd_vs_touches.png'}")
+        print(
+            f"{s['requested_touches']:7d}  {s['runs']:4d}  {s['cd_mean']:.5f}  {s['cd_std']:.5f}  {s['psnr_mean']:.2f}"
+        )
+    print(
+        f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; plot: {bench.out / 'cd_vs_touches.png'}"
+    )
     return 0

@@ -60,11 +60,16 @@ def register(cli) -> None:
     )
     p.add_argument("path", metavar="PATH", help="a scene directory, a run directory or a benchmark report folder")
     p.add_argument("--port", type=int, default=8080, help="port to serve on (the next free one if it is taken)")
-    p.add_argument("--host", default="127.0.0.1",
-                   help="address to listen on; 0.0.0.0 lets a browser on another machine connect")
-    p.add_argument("--export", metavar="FILE.html", default=None,
-                   help="write a self-contained HTML view that opens without Python (the scene, without the side "
-                   "panel's controls), then exit")
+    p.add_argument(
+        "--host", default="127.0.0.1", help="address to listen on; 0.0.0.0 lets a browser on another machine connect"
+    )
+    p.add_argument(
+        "--export",
+        metavar="FILE.html",
+        default=None,
+        help="write a self-contained HTML view that opens without Python (the scene, without the side "
+        "panel's controls), then exit",
+    )
     p.set_defaults(func=_run)
 
 
@@ -82,8 +87,9 @@ def _run(args) -> int:
     content = load_content(path)
     logging.getLogger("websockets").setLevel(logging.WARNING)
     with _viser_quiet():  # viser prints its own banner; ours follows
-        server = viser.ViserServer(host="127.0.0.1" if export else args.host, port=0 if export else args.port,
-                                   verbose=False)
+        server = viser.ViserServer(
+            host="127.0.0.1" if export else args.host, port=0 if export else args.port, verbose=False
+        )
     try:
         build_view(server, content)
         if export is not None:
@@ -91,8 +97,11 @@ def _run(args) -> int:
             print(f"wrote {export} ({size / 1e6:.1f} MB): open it in a browser, no Python needed")
         else:
             with ctrl_c_interrupts():  # (also where it was started with Ctrl-C ignored)
-                print(f"tacsplat view: {content.kind} {path} at {server_url(args.host, server.get_port())} "
-                      "(Ctrl-C to stop)", flush=True)
+                print(
+                    f"tacsplat view: {content.kind} {path} at {server_url(args.host, server.get_port())} "
+                    "(Ctrl-C to stop)",
+                    flush=True,
+                )
                 server.sleep_forever()
     except KeyboardInterrupt:  # how a user stops the server
         pass
@@ -197,9 +206,12 @@ def path_kind(path: Path) -> str:
             return "run"
         if (path / "runs").is_dir():
             return "report"
-    raise ConfigError("PATH", f"{path} is neither a scene directory (with transforms.json), a run directory (with "
-                      "splat.ply, from tacsplat reconstruct) nor a benchmark report folder (with runs/, from tacsplat "
-                      "bench paper)")
+    raise ConfigError(
+        "PATH",
+        f"{path} is neither a scene directory (with transforms.json), a run directory (with "
+        "splat.ply, from tacsplat reconstruct) nor a benchmark report folder (with runs/, from tacsplat "
+        "bench paper)",
+    )
 
 
 def load_content(path: Path) -> Content:
@@ -253,7 +265,7 @@ def find_scene(recorded, run: Path, report: Path | None = None):
     recorded = Path(recorded)
     candidates = [recorded, run / recorded]
     if report is not None and "scenes" in recorded.parts:
-        candidates.append(report.joinpath(*recorded.parts[recorded.parts.index("scenes"):]))
+        candidates.append(report.joinpath(*recorded.parts[recorded.parts.index("scenes") :]))
     for candidate in candidates:
         if (candidate / "transforms.json").is_file():
             return Scene.load(candidate)
@@ -305,8 +317,9 @@ def build_view(server, content: Content) -> View:
     return view
 
 
-def initial_viewpoint(centre: np.ndarray, extent: float, cameras: np.ndarray | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def initial_viewpoint(
+    centre: np.ndarray, extent: float, cameras: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(position, look-at point) of the first view: ``CAMERA_DISTANCE`` x ``extent`` from ``centre``, 27 degrees
     above it (z up), in front (-y) or, given the scene's camera positions ``cameras`` [N, 3], from the azimuth
     farthest from all of them (so that no frustum stands before the object)."""
@@ -333,8 +346,12 @@ def _look_from(server, centre: np.ndarray, extent: float, scene=None) -> None:
 def _toggles(server, view: View, shown: dict[str, bool]) -> None:
     """A checkbox per group of the scene's nodes (cameras, touches, mesh, sphere)."""
     nodes = view.scene_nodes
-    labels = {"cameras": "camera frusta", "touches": "touches (by grasp) and gel frames",
-              "mesh": "ground-truth mesh", "sphere": f"bounding sphere ({nodes.sphere.source})"}
+    labels = {
+        "cameras": "camera frusta",
+        "touches": "touches (by grasp) and gel frames",
+        "mesh": "ground-truth mesh",
+        "sphere": f"bounding sphere ({nodes.sphere.source})",
+    }
     for group, members in nodes.groups.items():
         if not members:
             continue
@@ -348,8 +365,10 @@ def _toggles(server, view: View, shown: dict[str, bool]) -> None:
 
 def _scene_summary(scene) -> str:
     train, test = len(scene.split("train")), len(scene.split("test"))
-    return (f"**{scene.meta.object}** ({scene.meta.source}): {train} train and {test} test views, "
-            f"{len(scene.touches)} touches in {scene.num_grasps} grasps")
+    return (
+        f"**{scene.meta.object}** ({scene.meta.source}): {train} train and {test} test views, "
+        f"{len(scene.touches)} touches in {scene.num_grasps} grasps"
+    )
 
 
 def _scene_view(server, content: Content, view: View) -> None:
@@ -431,9 +450,11 @@ def _gaussian_sets(server, view: View) -> None:
     from tacsplat.apps.viewer_splat import GAUSSIAN_SETS
 
     choice = view.controls["Gaussians"] = server.gui.add_dropdown(
-        "Gaussians", tuple(GAUSSIAN_SETS), initial_value="all",
+        "Gaussians",
+        tuple(GAUSSIAN_SETS),
+        initial_value="all",
         hint="G_t: the Gaussians started on touch points (and their clones and splits); G_c: the others",
-    )  # fmt: skip
+    )
 
     @choice.on_update
     def _(event) -> None:
@@ -450,7 +471,8 @@ def _checkpoint_slider(server, view: View, run: RunData) -> None:
         return
     names = [p.name for p in run.checkpoints]
     slider = view.controls["checkpoint"] = server.gui.add_slider(
-        "checkpoint", 0, len(names) - 1, 1, len(names) - 1, hint="the run's checkpoint*.pt files, oldest first")
+        "checkpoint", 0, len(names) - 1, 1, len(names) - 1, hint="the run's checkpoint*.pt files, oldest first"
+    )
     shown = view.controls["checkpoint shown"] = server.gui.add_markdown(f"showing splat.ply (newest: {names[-1]})")
     baked: dict[Path, tuple] = {}  # checkpoint -> (its Gaussians as splat.ply would hold them, its step): bake once
 
@@ -471,8 +493,11 @@ def _checkpoint_slider(server, view: View, run: RunData) -> None:
 
 def metrics_markdown(columns: dict[str, dict]) -> str:
     """A markdown table of the scalar entries of one or more ``metrics.json`` (one column each)."""
-    keys = list(dict.fromkeys(k for m in columns.values() for k, v in m.items()
-                              if isinstance(v, (int, float, str)) and k != "scene"))
+    keys = list(
+        dict.fromkeys(
+            k for m in columns.values() for k, v in m.items() if isinstance(v, (int, float, str)) and k != "scene"
+        )
+    )
     if not keys:
         return "no metrics.json"
 
@@ -484,8 +509,9 @@ def metrics_markdown(columns: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def render_rows(slots: list[SplatSlot], wxyz, position, fov_y: float, width: int, height: int,
-                browser: np.ndarray | None = None) -> np.ndarray | None:
+def render_rows(
+    slots: list[SplatSlot], wxyz, position, fov_y: float, width: int, height: int, browser: np.ndarray | None = None
+) -> np.ndarray | None:
     """One row per shown run of a browser camera's view: the browser's own picture (when given, uint8
     [H, W, 3]), tacsplat's RGB render and its expected depth; None when no run is shown."""
     from tacsplat.apps.viewer_splat import camera_matrices, depth_picture, render_viewpoint
@@ -498,8 +524,9 @@ def render_rows(slots: list[SplatSlot], wxyz, position, fov_y: float, width: int
         T_world_cam, K = camera_matrices(wxyz, np.asarray(position) - slot.offset, fov_y, width, height)
         rgb, depth, alpha = render_viewpoint(gaussians, T_world_cam, K, width, height)
         panels = [] if browser is None else [browser[..., :3]]
-        rows.append(np.concatenate([*panels, (rgb * 255).round().astype(np.uint8), depth_picture(depth, alpha)],
-                                   axis=1))
+        rows.append(
+            np.concatenate([*panels, (rgb * 255).round().astype(np.uint8), depth_picture(depth, alpha)], axis=1)
+        )
     return np.concatenate(rows, axis=0) if rows else None
 
 
@@ -524,8 +551,10 @@ def _render_button(server, view: View) -> None:
         if image is not None:
             picture.image = image
         shown = "" if browser is not None else " (no picture from the browser)"
-        status.content = (f"{width}x{height} in {time.perf_counter() - started:.1f} s{shown}: browser | tacsplat RGB "
-                          "| expected depth (red near, blue far), one row per run")
+        status.content = (
+            f"{width}x{height} in {time.perf_counter() - started:.1f} s{shown}: browser | tacsplat RGB "
+            "| expected depth (red near, blue far), one row per run"
+        )
 
 
 def _run_view(server, content: Content, view: View) -> None:
@@ -537,8 +566,9 @@ def _run_view(server, content: Content, view: View) -> None:
     view.slots[0].show(run)
     _look_from(server, centre, radius, run.scene)
     with server.gui.add_folder("Splat"):
-        server.gui.add_markdown(f"**{run.label}**: {len(run.gaussians)} Gaussians, "
-                                f"{int(run.gaussians.from_touch.sum())} from touch")
+        server.gui.add_markdown(
+            f"**{run.label}**: {len(run.gaussians)} Gaussians, {int(run.gaussians.from_touch.sum())} from touch"
+        )
         _gaussian_sets(server, view)
         _checkpoint_slider(server, view, run)
     if run.scene is not None:
@@ -555,8 +585,10 @@ def _run_view(server, content: Content, view: View) -> None:
 def _report_view(server, content: Content, view: View) -> None:
     pair = [r for r in content.pair if r is not None]
     spacing = (1 + SIDE_BY_SIDE_GAP) * max(object_sphere(r)[1] for r in pair)
-    view.slots += [SplatSlot(server, "/report/left", (-spacing, 0.0, 0.0)),
-                   SplatSlot(server, "/report/right", (spacing, 0.0, 0.0))]
+    view.slots += [
+        SplatSlot(server, "/report/left", (-spacing, 0.0, 0.0)),
+        SplatSlot(server, "/report/right", (spacing, 0.0, 0.0)),
+    ]
     for slot, run in zip(view.slots, content.pair):
         slot.show(run)
     _look_from(server, np.zeros(3), spacing)
@@ -564,13 +596,19 @@ def _report_view(server, content: Content, view: View) -> None:
     table = None  # the metrics table, made last (the side panel lists what is made in order)
 
     def show_metrics() -> None:
-        table.content = metrics_markdown({side: slot.run.metrics  # the runs' names are in the drop-downs above
-                                          for side, slot in zip(("left", "right"), view.slots) if slot.run})
+        table.content = metrics_markdown(
+            {
+                side: slot.run.metrics  # the runs' names are in the drop-downs above
+                for side, slot in zip(("left", "right"), view.slots)
+                if slot.run
+            }
+        )
 
     with server.gui.add_folder("Runs"):
         for side, slot, run in zip(("left", "right"), view.slots, content.pair):
             choice = view.controls[f"{side} run"] = server.gui.add_dropdown(
-                f"{side} run", ("(none)", *content.report_runs), initial_value=run.label if run else "(none)")
+                f"{side} run", ("(none)", *content.report_runs), initial_value=run.label if run else "(none)"
+            )
 
             @choice.on_update
             def _(event, slot=slot) -> None:

@@ -75,12 +75,19 @@ def add_cameras(scene_api, name: str, scene, size: float) -> list:
     nodes = []
     for frame in scene.frames:
         intr = frame.intrinsics
-        nodes.append(scene_api.add_camera_frustum(
-            f"{name}/{frame.split}/frame_{frame.id:04d}", fov=float(2 * np.arctan2(0.5 * intr.height, intr.fy)),
-            aspect=intr.width / intr.height, scale=size, thickness=0.03 * size, color=SPLIT_COLORS[frame.split],
-            image=_thumbnail(scene.load_image(frame)), wxyz=vtf.SO3.from_matrix(frame.T_world_cam[:3, :3]).wxyz,
-            position=frame.T_world_cam[:3, 3],
-        ))  # fmt: skip
+        nodes.append(
+            scene_api.add_camera_frustum(
+                f"{name}/{frame.split}/frame_{frame.id:04d}",
+                fov=float(2 * np.arctan2(0.5 * intr.height, intr.fy)),
+                aspect=intr.width / intr.height,
+                scale=size,
+                thickness=0.03 * size,
+                color=SPLIT_COLORS[frame.split],
+                image=_thumbnail(scene.load_image(frame)),
+                wxyz=vtf.SO3.from_matrix(frame.T_world_cam[:3, :3]).wxyz,
+                position=frame.T_world_cam[:3, 3],
+            )
+        )
     return nodes
 
 
@@ -100,20 +107,39 @@ def add_touches(scene_api, name: str, scene) -> list:
     for grasp, color in colors.items():
         touches = [t for t in scene.touches if t.grasp == grasp]
         group = f"{name}/grasp_{grasp:02d}"
-        points = [tactile_depth_to_points(scene.load_touch_depth(t), sensor.pixel_size_m, t.T_world_sensor)
-                  for t in touches if t.in_contact]
+        points = [
+            tactile_depth_to_points(scene.load_touch_depth(t), sensor.pixel_size_m, t.T_world_sensor)
+            for t in touches
+            if t.in_contact
+        ]
         points = np.concatenate(points) if points else np.zeros((0, 3))
         if len(points):
-            nodes.append(scene_api.add_point_cloud(f"{group}/points", points.astype(np.float32), color,
-                                                   point_size=2 * sensor.pixel_size_m, point_shape="circle",
-                                                   precision="float32"))
+            nodes.append(
+                scene_api.add_point_cloud(
+                    f"{group}/points",
+                    points.astype(np.float32),
+                    color,
+                    point_size=2 * sensor.pixel_size_m,
+                    point_shape="circle",
+                    precision="float32",
+                )
+            )
         for t in touches:
             frame = f"{group}/{t.finger}_{t.id:04d}"
-            nodes.append(scene_api.add_frame(frame, axes_length=0.5 * max(pad[:2]), axes_radius=0.02 * max(pad[:2]),
-                                             wxyz=vtf.SO3.from_matrix(t.T_world_sensor[:3, :3]).wxyz,
-                                             position=t.T_world_sensor[:3, 3]))
-            nodes.append(scene_api.add_box(f"{frame}/gel", color, dimensions=pad, opacity=0.35,
-                                           position=(0.0, 0.0, -0.5 * pad[2])))
+            nodes.append(
+                scene_api.add_frame(
+                    frame,
+                    axes_length=0.5 * max(pad[:2]),
+                    axes_radius=0.02 * max(pad[:2]),
+                    wxyz=vtf.SO3.from_matrix(t.T_world_sensor[:3, :3]).wxyz,
+                    position=t.T_world_sensor[:3, 3],
+                )
+            )
+            nodes.append(
+                scene_api.add_box(
+                    f"{frame}/gel", color, dimensions=pad, opacity=0.35, position=(0.0, 0.0, -0.5 * pad[2])
+                )
+            )
     return nodes
 
 
@@ -126,12 +152,23 @@ def add_scene(scene_api, name: str, scene, show_mesh: bool = True, show_sphere: 
     nodes.groups["cameras"] = add_cameras(scene_api, f"{name}/cameras", scene, size=0.4 * sphere.radius)
     nodes.groups["touches"] = add_touches(scene_api, f"{name}/touches", scene)
     if mesh is not None:
-        nodes.groups["mesh"] = [scene_api.add_mesh_simple(
-            f"{name}/gt_mesh", np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces, np.uint32),
-            color=MESH_COLOR, visible=show_mesh,
-        )]  # fmt: skip
-    nodes.groups["sphere"] = [scene_api.add_icosphere(
-        f"{name}/bounding_sphere", radius=sphere.radius, color=SPHERE_COLOR, wireframe=True, position=sphere.centre,
-        visible=show_sphere,
-    )]  # fmt: skip
+        nodes.groups["mesh"] = [
+            scene_api.add_mesh_simple(
+                f"{name}/gt_mesh",
+                np.asarray(mesh.vertices, np.float32),
+                np.asarray(mesh.faces, np.uint32),
+                color=MESH_COLOR,
+                visible=show_mesh,
+            )
+        ]
+    nodes.groups["sphere"] = [
+        scene_api.add_icosphere(
+            f"{name}/bounding_sphere",
+            radius=sphere.radius,
+            color=SPHERE_COLOR,
+            wireframe=True,
+            position=sphere.centre,
+            visible=show_sphere,
+        )
+    ]
     return nodes

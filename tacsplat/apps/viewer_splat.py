@@ -61,8 +61,9 @@ def add_splat(scene_api, name: str, gaussians: Gaussians) -> dict[str, object]:
         if not bool(mask.any()):
             continue
         b = splat_buffers(gaussians, mask)
-        nodes[set_name] = scene_api.add_gaussian_splats(f"{name}/{set_name}", b.centers, b.covariances, b.rgbs,
-                                                        b.opacities, scale=b.unit)
+        nodes[set_name] = scene_api.add_gaussian_splats(
+            f"{name}/{set_name}", b.centers, b.covariances, b.rgbs, b.opacities, scale=b.unit
+        )
     return nodes
 
 
@@ -74,13 +75,16 @@ def camera_matrices(wxyz, position, fov_y: float, width: int, height: int) -> tu
     from tacsplat.geometry import focal_from_fov, intrinsics_matrix, make_pose
 
     focal = focal_from_fov(fov_y, height)
-    return (make_pose(vtf.SO3(np.asarray(wxyz, dtype=np.float64)).as_matrix(), position),
-            intrinsics_matrix(focal, focal, 0.5 * width, 0.5 * height))
+    return (
+        make_pose(vtf.SO3(np.asarray(wxyz, dtype=np.float64)).as_matrix(), position),
+        intrinsics_matrix(focal, focal, 0.5 * width, 0.5 * height),
+    )
 
 
 @torch.no_grad()
-def render_viewpoint(gaussians: Gaussians, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int,
-                     background=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_viewpoint(
+    gaussians: Gaussians, T_world_cam: np.ndarray, K: np.ndarray, width: int, height: int, background=(1.0, 1.0, 1.0)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rgb [H, W, 3] in [0, 1] over ``background``, expected depth [H, W] in metres, alpha [H, W]) of
     ``gaussians`` seen from a pinhole camera, by :func:`tacsplat.reconstruction.raster.rasterization`."""
     from tacsplat.geometry import invert_pose
@@ -90,9 +94,19 @@ def render_viewpoint(gaussians: Gaussians, T_world_cam: np.ndarray, K: np.ndarra
     viewmat = torch.tensor(invert_pose(T_world_cam), dtype=torch.float32)[None]
     Ks = torch.tensor(K, dtype=torch.float32)[None]
     out, alpha, _ = rasterization(
-        g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(), viewmat, Ks, width, height,
-        sh_degree=g.sh_degree, render_mode="RGB+ED", backgrounds=torch.tensor([background], dtype=torch.float32),
-    )  # fmt: skip
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.sh_coefficients(),
+        viewmat,
+        Ks,
+        width,
+        height,
+        sh_degree=g.sh_degree,
+        render_mode="RGB+ED",
+        backgrounds=torch.tensor([background], dtype=torch.float32),
+    )
     return out[0, ..., :3].clamp(0, 1).numpy(), out[0, ..., 3].numpy(), alpha[0, ..., 0].numpy()
 
 

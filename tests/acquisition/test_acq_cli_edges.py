@@ -32,21 +32,30 @@ with SceneWriter.create(path, CameraIntrinsics(K, 16, 16), SceneMeta("sim", "hel
 
 
 def _tacsplat(*args, **kw):
-    return subprocess.Popen([sys.executable, "-m", "tacsplat", "-q", *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "tacsplat", "-q", *map(str, args)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+        **kw,
+    )
 
 
 def test_a_resume_while_another_process_writes_the_scene_names_it_and_the_option(tmp_path):
     out = tmp_path / "scene"
-    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], stdin=subprocess.PIPE,
-                              stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, str(out)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
     try:
         assert holder.stdout.readline() == "holding\n"
         resumed = _tacsplat("sim-capture", *TINY, "--out", out, "--resume")
         _, err = resumed.communicate()
         assert resumed.returncode == 1
-        assert err.splitlines() == [f"error: {out} is being written by another tacsplat process (PID {holder.pid}): "
-                                    "wait for it to end, then continue the scene with --resume"], err
+        assert err.splitlines() == [
+            f"error: {out} is being written by another tacsplat process (PID {holder.pid}): "
+            "wait for it to end, then continue the scene with --resume"
+        ], err
     finally:
         holder.stdin.close()
         holder.wait()
@@ -66,21 +75,24 @@ def test_two_captures_into_one_new_folder_at_once_one_wins_and_the_other_is_told
     assert problems == [] and len(scene.frames) == 2 and len(scene.touches) == 4
 
 
-@pytest.mark.parametrize("args, option, words", [
-    (["--object-radius", "0.0005"], "--object-radius", "must be in [0.025, 0.3] m"),
-    (["--object-radius", "0.02"], "--object-radius", "must be in [0.025, 0.3] m"),
-    (["--object-radius", "0.31"], "--object-radius", "must be in [0.025, 0.3] m"),
-    (["--views", "0"], "--views", "must be >= 1, got 0"),
-    (["--test-views", "-1"], "--test-views", "must be >= 0, got -1"),
-    (["--grasps", "-1"], "--grasps", "must be >= 0, got -1"),
-    (["--resolution", "7"], "--resolution", "must be in [8, 4096] px, got 7"),
-    (["--resolution", "4097"], "--resolution", "must be in [8, 4096] px, got 4097"),
-    (["--seed", "-1"], "--seed", "must be >= 0, got -1"),
-    (["--candidates", "0"], "--candidates", "must be in [1, 1000], got 0"),
-    (["--selection-steps", "0"], "--selection-steps", "must be in [1, 1e+06], got 0"),
-    (["--touch-model", "paper", "--surface-points", "49"], "--surface-points", "must be at least the 50 points"),
-    (["--texture", "plaid"], "--texture", "must be one of 'none', 'checker'"),
-])
+@pytest.mark.parametrize(
+    "args, option, words",
+    [
+        (["--object-radius", "0.0005"], "--object-radius", "must be in [0.025, 0.3] m"),
+        (["--object-radius", "0.02"], "--object-radius", "must be in [0.025, 0.3] m"),
+        (["--object-radius", "0.31"], "--object-radius", "must be in [0.025, 0.3] m"),
+        (["--views", "0"], "--views", "must be >= 1, got 0"),
+        (["--test-views", "-1"], "--test-views", "must be >= 0, got -1"),
+        (["--grasps", "-1"], "--grasps", "must be >= 0, got -1"),
+        (["--resolution", "7"], "--resolution", "must be in [8, 4096] px, got 7"),
+        (["--resolution", "4097"], "--resolution", "must be in [8, 4096] px, got 4097"),
+        (["--seed", "-1"], "--seed", "must be >= 0, got -1"),
+        (["--candidates", "0"], "--candidates", "must be in [1, 1000], got 0"),
+        (["--selection-steps", "0"], "--selection-steps", "must be in [1, 1e+06], got 0"),
+        (["--touch-model", "paper", "--surface-points", "49"], "--surface-points", "must be at least the 50 points"),
+        (["--texture", "plaid"], "--texture", "must be one of 'none', 'checker'"),
+    ],
+)
 def test_sim_capture_values_out_of_range_are_usage_errors(tmp_path, capsys, args, option, words):
     out = tmp_path / "scene"
     assert main(["sim-capture", *args, "--out", str(out)]) == 2
@@ -89,13 +101,16 @@ def test_sim_capture_values_out_of_range_are_usage_errors(tmp_path, capsys, args
     assert not out.exists()
 
 
-@pytest.mark.parametrize("args, option, words", [
-    (["--object-radius", "0.0005"], "--object-radius", "must be in [0.025, 0.3] m"),
-    (["--grasps", "0"], "--grasps", "must be an integer >= 1, got 0"),
-    (["--seed", "-1"], "--seed", "must be an integer >= 0, got -1"),
-    (["--touch-model", "paper", "--surface-points", "1"], "--surface-points", "must be at least the 50 points"),
-    (["--touch-model", "nope"], "--touch-model", "must be one of 'gel', 'paper'"),
-])
+@pytest.mark.parametrize(
+    "args, option, words",
+    [
+        (["--object-radius", "0.0005"], "--object-radius", "must be in [0.025, 0.3] m"),
+        (["--grasps", "0"], "--grasps", "must be an integer >= 1, got 0"),
+        (["--seed", "-1"], "--seed", "must be an integer >= 0, got -1"),
+        (["--touch-model", "paper", "--surface-points", "1"], "--surface-points", "must be at least the 50 points"),
+        (["--touch-model", "nope"], "--touch-model", "must be one of 'gel', 'paper'"),
+    ],
+)
 def test_simulate_touches_values_out_of_range_are_usage_errors(tmp_path, capsys, args, option, words):
     assert main(["simulate-touches", "--mesh", str(tmp_path / "m.ply"), str(tmp_path / "scene"), *args]) == 2
     err = capsys.readouterr().err
@@ -104,9 +119,18 @@ def test_simulate_touches_values_out_of_range_are_usage_errors(tmp_path, capsys,
 
 def test_a_rig_file_with_an_object_too_small_to_grasp_is_one_error_naming_the_radius(tmp_path):
     rig = tmp_path / "sim.yaml"
-    rig.write_text(yaml.safe_dump({"rig": "sim", "sim": {"object": "bell", "object_radius": 0.0005, "resolution": 16},
-                                   "plan": {"views": {"train": 1, "test": 0, "mode": "hemisphere"},
-                                            "grasps": {"count": 0, "mode": "random"}}}))
+    rig.write_text(
+        yaml.safe_dump(
+            {
+                "rig": "sim",
+                "sim": {"object": "bell", "object_radius": 0.0005, "resolution": 16},
+                "plan": {
+                    "views": {"train": 1, "test": 0, "mode": "hemisphere"},
+                    "grasps": {"count": 0, "mode": "random"},
+                },
+            }
+        )
+    )
     run = _tacsplat("capture", "--rig", rig, "--out", tmp_path / "scene")
     _, err = run.communicate()
     assert run.returncode == 1 and "Traceback" not in err, err
@@ -115,8 +139,9 @@ def test_a_rig_file_with_an_object_too_small_to_grasp_is_one_error_naming_the_ra
 
 def _documented_radii(command: str) -> tuple[str, str]:
     """The ends of ``--object-radius``'s range as the command's --help states it."""
-    help_text = subprocess.run([sys.executable, "-m", "tacsplat", command, "--help"], capture_output=True,
-                               text=True).stdout
+    help_text = subprocess.run(
+        [sys.executable, "-m", "tacsplat", command, "--help"], capture_output=True, text=True
+    ).stdout
     found = re.search(r"\(([\d.]+) to ([\d.]+): the sizes the twin's hand grasps\)", " ".join(help_text.split()))
     assert found, f"{command} --help states no range of --object-radius"
     return found.group(1), found.group(2)
@@ -127,8 +152,25 @@ def test_the_documented_object_radii_are_grasped_at_both_ends(tmp_path, end):
     radius = _documented_radii("sim-capture")[end]
     assert _documented_radii("simulate-touches")[end] == radius
     out = tmp_path / "scene"
-    run = _tacsplat("sim-capture", "--object", "torus", "--views", "1", "--test-views", "0", "--grasps", "2",
-                    "--resolution", "8", "--seed", "1", "--object-radius", radius, "--out", out)
+    run = _tacsplat(
+        "sim-capture",
+        "--object",
+        "torus",
+        "--views",
+        "1",
+        "--test-views",
+        "0",
+        "--grasps",
+        "2",
+        "--resolution",
+        "8",
+        "--seed",
+        "1",
+        "--object-radius",
+        radius,
+        "--out",
+        out,
+    )
     _, err = run.communicate()
     assert run.returncode == 0, err
     scene = Scene.load(out)

@@ -26,8 +26,13 @@ def _capture_with_fault(tmp_path, keys: str, fault_before_key: int, inject):
     out = tmp_path / "scene"
     opened = {}
     output = io.StringIO()
-    code = run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys(keys, {fault_before_key: lambda: inject(opened)}),
-                       output=output, on_open=lambda rig, logger: opened.update(rig=rig))
+    code = run_capture(
+        load_rig(rig, mock=True),
+        out,
+        keys=ScriptedKeys(keys, {fault_before_key: lambda: inject(opened)}),
+        output=output,
+        on_open=lambda rig, logger: opened.update(rig=rig),
+    )
     return code, output.getvalue(), opened["rig"].mock, rig, out
 
 
@@ -45,12 +50,15 @@ def _resume_to_the_end(rig, out, keys):
 def test_servo_that_stops_answering_mid_grasp(tmp_path):
     # one view, one grasp, then servo 6 (middle_2) is cut off just before the second grasp
     code, text, mock, rig, out = _capture_with_fault(
-        tmp_path, "\ngg\n", 2, lambda opened: opened["rig"].mock.emulator.disconnect(6))
+        tmp_path, "\ngg\n", 2, lambda opened: opened["rig"].mock.emulator.disconnect(6)
+    )
     assert code == EXIT_FAULT, text
     assert "DEVICE FAULT" in text and "Dynamixel hand" in text and "servo 6" in text and "middle_2" in text, text
     assert "torque is off" not in text  # servo 6 never confirmed it: only what was confirmed is said
-    assert last_line(text) == "Hand: torque off NOT confirmed on servo 6 (middle_2): cut the servo power (confirmed " \
-                              "on the other 15).", text
+    assert (
+        last_line(text) == "Hand: torque off NOT confirmed on servo 6 (middle_2): cut the servo power (confirmed "
+        "on the other 15)."
+    ), text
     assert f"tacsplat capture --rig {rig} --out {out} --resume --mock" in text
     torque = mock.emulator.torque_enabled()
     assert not any(on for sid, on in torque.items() if sid != 6), torque  # every servo that answers is off
@@ -159,8 +167,9 @@ def test_a_dead_bus_mid_grasp_says_that_no_servo_confirmed_torque_off(tmp_path, 
     out = tmp_path / "scene"
     output = io.StringIO()
     opened = {}
-    code = run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\ng\n"), output=output,
-                       on_open=_mid_grasp(fault, opened))
+    code = run_capture(
+        load_rig(rig, mock=True), out, keys=ScriptedKeys("\ng\n"), output=output, on_open=_mid_grasp(fault, opened)
+    )
     text = output.getvalue()
     assert code == EXIT_FAULT, text
     assert "DEVICE FAULT: Dynamixel hand" in text and "torque is off" not in text, text
@@ -183,8 +192,13 @@ def test_a_bus_death_while_the_operator_waits_ends_the_session_at_once(tmp_path)
     bound = threading.Timer(30.0, os.write, (write_fd, b"q"))  # a bound: q stops the session
     try:
         with os.fdopen(read_fd) as keys:
-            code = run_capture(load_rig(rig, mock=True), out, keys=keys, output=output,
-                               on_open=lambda rig_, logger: (bound.start(), _every_servo_silent(rig_.mock)))
+            code = run_capture(
+                load_rig(rig, mock=True),
+                out,
+                keys=keys,
+                output=output,
+                on_open=lambda rig_, logger: (bound.start(), _every_servo_silent(rig_.mock)),
+            )
     finally:
         bound.cancel()
         os.close(write_fd)

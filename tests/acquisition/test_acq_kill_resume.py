@@ -26,10 +26,14 @@ pytestmark = pytest.mark.timeout(120)
 def _snapshot(scene_dir: Path) -> dict:
     """Every record of a scene with its file's bytes and pose."""
     scene = Scene.load(scene_dir)
-    frames = {("frame", f.id): ((scene_dir / f.file_path).read_bytes(), f.split, f.T_world_cam.tobytes())
-              for f in scene.frames}
-    touches = {("touch", t.id): ((scene_dir / t.depth_file).read_bytes(), t.grasp, t.finger, t.T_world_sensor.tobytes())
-               for t in scene.touches}
+    frames = {
+        ("frame", f.id): ((scene_dir / f.file_path).read_bytes(), f.split, f.T_world_cam.tobytes())
+        for f in scene.frames
+    }
+    touches = {
+        ("touch", t.id): ((scene_dir / t.depth_file).read_bytes(), t.grasp, t.finger, t.T_world_sensor.tobytes())
+        for t in scene.touches
+    }
     return {**frames, **touches}
 
 
@@ -40,8 +44,13 @@ def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path
     (tmp_path / "fast").mkdir()
     out = tmp_path / "scene"
     master, slave = pty.openpty()  # the session runs in a terminal: single keys (cbreak), a live status line
-    proc = subprocess.Popen([sys.executable, "-m", "tacsplat.cli", "capture", "--rig", rig, "--out", str(out), "--mock"],
-                            stdin=slave, stdout=slave, stderr=slave, close_fds=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tacsplat.cli", "capture", "--rig", rig, "--out", str(out), "--mock"],
+        stdin=slave,
+        stdout=slave,
+        stderr=slave,
+        close_fds=True,
+    )
     os.close(slave)
     try:
         term = Terminal(master)
@@ -101,4 +110,3 @@ def test_a_grasp_cut_short_while_writing_its_touches_is_redone_whole(tmp_path):
     for i in range(4):  # grasp 0 untouched
         assert after[("touch", i)] == partial[("touch", i)]
     assert all(np.isfinite(t.T_world_sensor).all() for t in scene.touches)
-

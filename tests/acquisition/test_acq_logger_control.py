@@ -96,15 +96,35 @@ class FixedPoses:
 
 def _logger(tmp_path, hand, control, T=np.eye(4)):
     camera = BlankCamera()
-    writer = SceneWriter.create(tmp_path / "scene", CameraIntrinsics(camera.K, camera.width, camera.height),
-                                SceneMeta("real", "toy", {}, {}), SENSOR)
-    logger = CaptureLogger(writer, hand, [PadSensor(hand, f) for f in FINGERS], camera=camera, clock=ToyClock(hand),
-                           poses=FixedPoses(T), control=control)
+    writer = SceneWriter.create(
+        tmp_path / "scene",
+        CameraIntrinsics(camera.K, camera.width, camera.height),
+        SceneMeta("real", "toy", {}, {}),
+        SENSOR,
+    )
+    logger = CaptureLogger(
+        writer,
+        hand,
+        [PadSensor(hand, f) for f in FINGERS],
+        camera=camera,
+        clock=ToyClock(hand),
+        poses=FixedPoses(T),
+        control=control,
+    )
     return writer, logger
 
 
-CONTROL = GraspControl(close_pose=(0.0, 0.5, 0.5, 1.5) * 4, open_pose=(0.0,) * 16, close_speed_rad_s=1.0, poll_s=0.01,
-                       stall_error_rad=0.1, settle_tol_rad=1e-3, settle_polls=3, max_close_s=4.0, open_s=0.1)
+CONTROL = GraspControl(
+    close_pose=(0.0, 0.5, 0.5, 1.5) * 4,
+    open_pose=(0.0,) * 16,
+    close_speed_rad_s=1.0,
+    poll_s=0.01,
+    stall_error_rad=0.1,
+    settle_tol_rad=1e-3,
+    settle_polls=3,
+    max_close_s=4.0,
+    open_s=0.1,
+)
 
 
 def test_blocked_finger_stalls_with_a_bounded_squeeze_others_reach_and_the_touches_are_placed(tmp_path):

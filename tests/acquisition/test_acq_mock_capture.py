@@ -51,8 +51,9 @@ def test_scripted_session_writes_a_valid_scene_that_reconstruction_opens(tmp_pat
     assert scene.sensor.width_px == 160 and scene.sensor.height_px == 120
     # each grasp has one touch per finger; the mock tactile videos have no contact on the thumb in the first
     # reading, the index in the second (the undone grasp), the middle in the third and the ring in the fourth
-    assert [(t.grasp, t.finger) for t in scene.touches] == [(g, f) for g in range(3)
-                                                          for f in ("index", "middle", "ring", "thumb")]
+    assert [(t.grasp, t.finger) for t in scene.touches] == [
+        (g, f) for g in range(3) for f in ("index", "middle", "ring", "thumb")
+    ]
     missed = {(t.grasp, t.finger) for t in scene.touches if not t.in_contact}
     assert missed == {(0, "thumb"), (1, "middle"), (2, "ring")}
     for t in scene.touches:  # a no-contact touch is recorded with its (all-zero) depth map, not dropped
@@ -60,12 +61,15 @@ def test_scripted_session_writes_a_valid_scene_that_reconstruction_opens(tmp_pat
     assert len(scene.touch_points()) > 100
 
     # opens in the reconstruction job: initialisation puts a touch Gaussian at each (thinned) touch point
-    from tacsplat.reconstruction.initialization import InitConfig
     from tacsplat.reconstruction.config import TrainConfig
+    from tacsplat.reconstruction.initialization import InitConfig
     from tacsplat.reconstruction.trainer import Trainer
 
-    trainer = Trainer(scene, tmp_path / "run", TrainConfig(iterations=1, backend="torch",
-                                                           init=InitConfig(use_sfm=False, num_random_points=200)))
+    trainer = Trainer(
+        scene,
+        tmp_path / "run",
+        TrainConfig(iterations=1, backend="torch", init=InitConfig(use_sfm=False, num_random_points=200)),
+    )
     trainer.initialize()
     assert int(trainer.gaussians.from_touch.sum()) == len(trainer.touch_points) > 0
 
@@ -94,8 +98,9 @@ def test_grasp_touches_are_placed_with_board_pose_and_hand_eye(tmp_path, mock_ri
         T_world_cam = outcome.T_world_hand @ MOCK_T_HAND_CAM
         k = int(np.argmin([np.linalg.norm(T_world_cam[:3, 3] - T[:3, 3]) for T in known]))  # the view it saw
         m = config.mock_devices
-        seen = rig.poses.measure(render_board(config.board.spec(), rig.mock.K, m.camera_width, m.camera_height,
-                                              rig.mock.camera_poses[k]))
+        seen = rig.poses.measure(
+            render_board(config.board.spec(), rig.mock.K, m.camera_width, m.camera_height, rig.mock.camera_poses[k])
+        )
     assert outcome.settled and set(outcome.stopped_by.values()) == {"reached"}  # nothing in the way
     assert np.allclose(seen.T, T_world_cam, atol=1e-9)  # the grasp's hand pose is that view's PnP @ T_cam_hand
     position_error = np.linalg.norm(T_world_cam[:3, 3] - known[k][:3, 3])

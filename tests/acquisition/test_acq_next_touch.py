@@ -14,8 +14,8 @@ from tacsplat.geometry import make_pose
 from tacsplat.reconstruction.uncertainty import SCORES, gaussian_uncertainty
 
 sys.path.insert(0, str(Path(__file__).parents[1] / "reconstruction"))  # the hand-made sphere of the recon tests
-from test_recon_uncertainty import _sphere, _views_from_plus_x  # noqa: E402
 from recon_synthetic import RADIUS  # noqa: E402
+from test_recon_uncertainty import _sphere, _views_from_plus_x  # noqa: E402
 
 SENSOR = SensorModel("sim-digit", 160, 128, 0.00015, 0.002)  # the twin's pad: 24 x 19 mm
 
@@ -72,7 +72,8 @@ def test_ties_go_to_the_lower_candidate_and_missing_pads_score_nothing(belief):
     model = PatchModel.of_sensor(SENSOR)
     pad = _pad_facing((-1, 0, 0))
     nothing = Candidate(2, [_pad_facing((-1, 0, 0), gap=0.3)], np.array([-1.0, 0, 0]))
-    ranked = rank_candidates(belief, [Candidate(5, [pad], -np.ones(3)), nothing, Candidate(3, [pad], -np.ones(3))],
-                             model)
+    ranked = rank_candidates(
+        belief, [Candidate(5, [pad], -np.ones(3)), nothing, Candidate(3, [pad], -np.ones(3))], model
+    )
     assert [r.candidate.index for r in ranked] == [3, 5, 2]
     assert ranked[2].score == 0.0 and ranked[2].patches == []

@@ -19,16 +19,46 @@ from tacsplat.datasets import Scene, check_scene
 
 pytestmark = pytest.mark.timeout(300)
 
-PLAN = dict(object="bell", views=2, test_views=1, grasps=3, resolution=40, seed=1, grasp_strategy="next-best",
-            candidates=3, selection_steps=8)
-ARGS = ["sim-capture", "--object", "bell", "--views", "2", "--test-views", "1", "--grasps", "3", "--resolution", "40",
-        "--seed", "1", "--grasp-strategy", "next-best", "--candidates", "3", "--selection-steps", "8"]
+PLAN = dict(
+    object="bell",
+    views=2,
+    test_views=1,
+    grasps=3,
+    resolution=40,
+    seed=1,
+    grasp_strategy="next-best",
+    candidates=3,
+    selection_steps=8,
+)
+ARGS = [
+    "sim-capture",
+    "--object",
+    "bell",
+    "--views",
+    "2",
+    "--test-views",
+    "1",
+    "--grasps",
+    "3",
+    "--resolution",
+    "40",
+    "--seed",
+    "1",
+    "--grasp-strategy",
+    "next-best",
+    "--candidates",
+    "3",
+    "--selection-steps",
+    "8",
+]
 
 
 def _records(path: Path) -> list:
     scene = Scene.load(path)
     frames = [((path / f.file_path).read_bytes(), f.split, f.T_world_cam.tobytes()) for f in scene.frames]
-    touches = [(scene.load_touch_depth(t).tobytes(), t.grasp, t.finger, t.T_world_sensor.tobytes()) for t in scene.touches]
+    touches = [
+        (scene.load_touch_depth(t).tobytes(), t.grasp, t.finger, t.T_world_sensor.tobytes()) for t in scene.touches
+    ]
     return frames + touches
 
 
@@ -57,8 +87,14 @@ def uninterrupted(tmp_path_factory) -> Path:
 def test_the_closed_loop_writes_an_ordinary_scene_and_its_decisions(uninterrupted):
     scene, problems = check_scene(uninterrupted)
     assert problems == []
-    assert scene.meta.capture_plan["grasps"] == {"count": 3, "mode": "next-best", "seed": 1, "candidates": 3,
-                                                 "selection_steps": 8, "uncertainty": "depth-variance"}
+    assert scene.meta.capture_plan["grasps"] == {
+        "count": 3,
+        "mode": "next-best",
+        "seed": 1,
+        "candidates": 3,
+        "selection_steps": 8,
+        "uncertainty": "depth-variance",
+    }
     decisions = _decisions(uninterrupted)
     assert [d["grasp"] for d in decisions] == [0, 1, 2]
     for d in decisions:
@@ -83,8 +119,12 @@ def test_a_resume_with_another_grasp_strategy_is_refused(uninterrupted, capsys):
 def test_sigkill_in_the_loop_then_resume_chooses_the_same_grasps(uninterrupted, tmp_path):
     out = tmp_path / "scene"
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    proc = subprocess.Popen([sys.executable, "-m", "tacsplat.cli", *ARGS, "--out", str(out)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tacsplat.cli", *ARGS, "--out", str(out)],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
     try:
         deadline = time.monotonic() + 200
         while not _decided(out, 1):

@@ -28,10 +28,19 @@ def capture(tmp_path_factory):
     """Three train views of the bell taken in the session on the twin, and a brief reconstruction of them."""
     root = tmp_path_factory.mktemp("suggest")
     rig = root / "sim.yaml"
-    rig.write_text(yaml.safe_dump({
-        "rig": "sim", "object": "bell", "sim": {"object": "bell", "resolution": 64, "seed": 2},
-        "plan": {"views": {"train": 3, "test": 0, "mode": "hemisphere"}, "grasps": {"count": 1, "mode": "random"}},
-    }))
+    rig.write_text(
+        yaml.safe_dump(
+            {
+                "rig": "sim",
+                "object": "bell",
+                "sim": {"object": "bell", "resolution": 64, "seed": 2},
+                "plan": {
+                    "views": {"train": 3, "test": 0, "mode": "hemisphere"},
+                    "grasps": {"count": 1, "mode": "random"},
+                },
+            }
+        )
+    )
     config = load_rig(rig)
     assert run_capture(config, root / "scene", keys=ScriptedKeys("\n\n\nq"), output=io.StringIO()) == 1
     reconstruct(root / "scene", root / "run", TrainConfig(iterations=30, device="cpu"), show_progress=False)
@@ -41,17 +50,24 @@ def capture(tmp_path_factory):
 def test_s_suggests_a_touch_on_the_object_drawn_on_the_camera_image(capture):
     config, root = capture
     output = io.StringIO()
-    assert run_capture(config, root / "scene", resume=True, keys=ScriptedKeys("sq"), output=output,
-                       suggest=root / "run") == 1
+    assert (
+        run_capture(config, root / "scene", resume=True, keys=ScriptedKeys("sq"), output=output, suggest=root / "run")
+        == 1
+    )
     text = output.getvalue()
     assert "[s] suggest a grasp" in text
-    found = re.search(r"suggested grasp: touch at \((\S+), (\S+), (\S+)\) m in the world frame, approaching from "
-                      r"azimuth (\S+) deg, elevation (\S+) deg; (\d+) mm\^2 of uncertain surface under the fingertip; "
-                      r"picture: (\S+)", text)
+    found = re.search(
+        r"suggested grasp: touch at \((\S+), (\S+), (\S+)\) m in the world frame, approaching from "
+        r"azimuth (\S+) deg, elevation (\S+) deg; (\d+) mm\^2 of uncertain surface under the fingertip; "
+        r"picture: (\S+)",
+        text,
+    )
     assert found, text
     target = np.array([float(found[i]) for i in (1, 2, 3)])
     azimuth, elevation = np.radians(float(found[4])), np.radians(float(found[5]))
-    towards_hand = np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+    towards_hand = np.array(
+        [np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)]
+    )
     assert np.linalg.norm(target) < 0.1  # on the bell (bounding radius 0.08 at the origin) ...
     assert target @ towards_hand > 0  # ... on the side the fingertip comes from
     assert int(found[6]) > 0
@@ -65,8 +81,9 @@ def test_s_suggests_a_touch_on_the_object_drawn_on_the_camera_image(capture):
 def test_without_a_checkpoint_yet_the_session_says_so_and_goes_on(capture, tmp_path):
     config, root = capture
     output = io.StringIO()
-    code = run_capture(config, root / "scene", resume=True, keys=ScriptedKeys("s\nq"), output=output,
-                       suggest=tmp_path / "empty-run")
+    code = run_capture(
+        config, root / "scene", resume=True, keys=ScriptedKeys("s\nq"), output=output, suggest=tmp_path / "empty-run"
+    )
     text = output.getvalue()
     assert code == 1 and "no suggestion:" in text and "checkpoint" in text, text
     assert "all 3 train and 0 test views of the plan are taken" in text  # the next key was served

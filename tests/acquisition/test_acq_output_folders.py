@@ -7,7 +7,6 @@ from pathlib import Path
 
 import pytest
 
-
 from tacsplat.cli import main  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
@@ -66,5 +65,7 @@ def test_out_that_holds_other_files(command, tmp_path, capsys):
     out.mkdir()
     (out / "IMG_0001.png").write_bytes(b"not ours")
     assert main([*command, "--out", str(out)]) == 1
-    assert f"error: --out: {out} holds other files and no scene; choose an empty or new folder" in capsys.readouterr().err
+    assert (
+        f"error: --out: {out} holds other files and no scene; choose an empty or new folder" in capsys.readouterr().err
+    )
     assert [p.name for p in out.iterdir()] == ["IMG_0001.png"]

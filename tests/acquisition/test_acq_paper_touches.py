@@ -27,8 +27,20 @@ from tacsplat.types import CameraIntrinsics
 pytestmark = pytest.mark.timeout(180)
 
 PLAN = dict(object="bell", views=1, test_views=0, grasps=5, resolution=32, seed=3)
-CLI_PLAN = ["--object", "bell", "--views", "1", "--test-views", "0", "--grasps", "5", "--resolution", "32",
-            "--seed", "3"]
+CLI_PLAN = [
+    "--object",
+    "bell",
+    "--views",
+    "1",
+    "--test-views",
+    "0",
+    "--grasps",
+    "5",
+    "--resolution",
+    "32",
+    "--seed",
+    "3",
+]
 PAD = SensorModel("pad", 160, 128, 1.5e-4, 0.002)  # the twin's pad
 
 
@@ -59,6 +71,7 @@ def paper_scene(tmp_path_factory):
 
 
 # --- the encoding -------------------------------------------------------------------------------
+
 
 def test_a_touch_lifts_back_onto_its_points_the_deeper_of_two_keeps_a_shared_pixel(caplog):
     """A cap of a 3 cm sphere (tilted), with points stacked 1 mm under four of its points; then one off the pad."""
@@ -105,6 +118,7 @@ def test_rays_are_cast_as_the_official_code_casts_them():
 
 # --- sim-capture --touch-model paper --------------------------------------------------------------
 
+
 def test_paper_touches_lie_on_the_surface_fifty_around_each_hit_spread_over_the_object(paper_scene):
     scene = Scene.load(paper_scene)
     assert scene.meta.capture_plan["touches"] == {"model": "paper", "surface_points": 20000, "points_per_touch": 50}
@@ -147,8 +161,22 @@ def test_a_resume_with_another_touch_model_is_refused_naming_the_option(paper_sc
     assert main(["sim-capture", *CLI_PLAN, "--out", str(out), "--resume"]) == 1
     err = capsys.readouterr().err
     assert f"error: --touch-model: {out} was captured with 'paper', this run asks for 'gel'" in err, err
-    assert main(["sim-capture", *CLI_PLAN, "--touch-model", "paper", "--surface-points", "10000", "--out", str(out),
-                 "--resume"]) == 1
+    assert (
+        main(
+            [
+                "sim-capture",
+                *CLI_PLAN,
+                "--touch-model",
+                "paper",
+                "--surface-points",
+                "10000",
+                "--out",
+                str(out),
+                "--resume",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert f"error: --surface-points: {out} was captured with 20000, this run asks for 10000" in err, err
     assert _files(out) == before
@@ -192,6 +220,7 @@ def test_paper_touches_need_the_twin_and_no_operator(tmp_path):
 
 # --- simulate-touches --touch-model paper -----------------------------------------------------------
 
+
 def test_paper_touches_of_an_imported_unit_scale_scene_come_out_in_its_frame_and_units(tmp_path, capsys):
     offset = np.array([0.5, -0.2, 0.1])
     mesh = trimesh.creation.capsule(height=1.0, radius=0.5, count=[48, 48])  # convex: no decomposition to wait for
@@ -204,13 +233,33 @@ def test_paper_touches_of_an_imported_unit_scale_scene_come_out_in_its_frame_and
     with SceneWriter.create(imported, CameraIntrinsics(K, 32, 32), SceneMeta(source="import", object="capsule")) as w:
         w.add_frame(np.full((32, 32, 3), 128, np.uint8), look_at(offset + [0, -3.0, 1.0], offset), "train")
     out = tmp_path / "touched"
-    assert main(["simulate-touches", "--mesh", str(mesh_path), str(imported), "--grasps", "2",
-                 "--out", str(out), "--seed", "1", "--touch-model", "paper"]) == 0
+    assert (
+        main(
+            [
+                "simulate-touches",
+                "--mesh",
+                str(mesh_path),
+                str(imported),
+                "--grasps",
+                "2",
+                "--out",
+                str(out),
+                "--seed",
+                "1",
+                "--touch-model",
+                "paper",
+            ]
+        )
+        == 0
+    )
     assert f"touches written to {out}" in capsys.readouterr().out
     scene = Scene.load(out)
     assert scene.meta.capture_plan["simulated_touches"] == {
-        "mesh": str(mesh_path), "grasps": 2, "seed": 1,
-        "touches": {"model": "paper", "surface_points": 20000, "points_per_touch": 50}}
+        "mesh": str(mesh_path),
+        "grasps": 2,
+        "seed": 1,
+        "touches": {"model": "paper", "surface_points": 20000, "points_per_touch": 50},
+    }
     scale = 1.0 / 0.08  # scene units per twin metre
     assert scene.sensor.pixel_size_m == pytest.approx(1.5e-4 * scale)
     assert [(t.grasp, t.finger) for t in scene.touches] == [(t // 4, FINGER_NAMES[t % 4]) for t in range(8)]
@@ -222,7 +271,22 @@ def test_paper_touches_of_an_imported_unit_scale_scene_come_out_in_its_frame_and
         assert to_surface.max() <= tolerance
         assert np.linalg.norm(lifted - lifted.mean(axis=0), axis=1).max() < 0.15  # one cluster, radius 1
     # a scene with this sensor model is extended in place, numbering grasps on
-    assert main(["simulate-touches", "--mesh", str(mesh_path), str(out), "--grasps", "1",
-                 "--seed", "1", "--touch-model", "paper"]) == 0
+    assert (
+        main(
+            [
+                "simulate-touches",
+                "--mesh",
+                str(mesh_path),
+                str(out),
+                "--grasps",
+                "1",
+                "--seed",
+                "1",
+                "--touch-model",
+                "paper",
+            ]
+        )
+        == 0
+    )
     extended = Scene.load(out)
     assert [t.grasp for t in extended.touches[8:]] == [2] * 4

@@ -13,7 +13,6 @@ import pytest
 import trimesh
 import yaml
 
-
 from tacsplat.acquisition.config import example_rig, load_rig  # noqa: E402
 from tacsplat.acquisition.operator_session import run_capture  # noqa: E402
 from tacsplat.cli import main  # noqa: E402
@@ -25,8 +24,15 @@ from acq_helpers import ScriptedKeys, write_mock_rig  # noqa: E402
 
 pytestmark = pytest.mark.timeout(180)
 
-TORUS = {"--object": "torus", "--object-radius": "0.08", "--views": "2", "--test-views": "1", "--grasps": "1",
-         "--resolution": "32", "--seed": "0"}
+TORUS = {
+    "--object": "torus",
+    "--object-radius": "0.08",
+    "--views": "2",
+    "--test-views": "1",
+    "--grasps": "1",
+    "--resolution": "32",
+    "--seed": "0",
+}
 
 
 def _sim_capture(out: Path, changes: dict | None = None, resume: bool = False) -> int:
@@ -42,7 +48,9 @@ def _files(folder: Path) -> dict:
 def _records(path: Path) -> list:
     scene = Scene.load(path)
     frames = [((path / f.file_path).read_bytes(), f.split, f.T_world_cam.tobytes()) for f in scene.frames]
-    touches = [(scene.load_touch_depth(t).tobytes(), t.grasp, t.finger, t.T_world_sensor.tobytes()) for t in scene.touches]
+    touches = [
+        (scene.load_touch_depth(t).tobytes(), t.grasp, t.finger, t.T_world_sensor.tobytes()) for t in scene.touches
+    ]
     return frames + touches
 
 
@@ -70,8 +78,10 @@ def test_resume_with_another_object_is_refused_then_the_right_one_finishes_ident
     before = _files(killed)
     assert _sim_capture(killed, {"--object": "teapot"}, resume=True) == 1
     err = capsys.readouterr().err
-    assert (f"error: --object: {killed} was captured with 'torus', this run asks for 'teapot'; "
-            "drop --resume to start a new scene") in err, err
+    assert (
+        f"error: --object: {killed} was captured with 'torus', this run asks for 'teapot'; "
+        "drop --resume to start a new scene"
+    ) in err, err
     assert "Traceback" not in err
     assert _files(killed) == before
     assert _sim_capture(killed, resume=True) == 0
@@ -79,10 +89,17 @@ def test_resume_with_another_object_is_refused_then_the_right_one_finishes_ident
     assert Scene.load(killed).meta.object == "torus"
 
 
-@pytest.mark.parametrize("option, value, recorded", [
-    ("--object-radius", "0.1", "0.08"), ("--views", "3", "2"), ("--test-views", "2", "1"), ("--grasps", "2", "1"),
-    ("--resolution", "48", "32"), ("--seed", "1", "0"),
-])
+@pytest.mark.parametrize(
+    "option, value, recorded",
+    [
+        ("--object-radius", "0.1", "0.08"),
+        ("--views", "3", "2"),
+        ("--test-views", "2", "1"),
+        ("--grasps", "2", "1"),
+        ("--resolution", "48", "32"),
+        ("--seed", "1", "0"),
+    ],
+)
 def test_resume_with_another_sim_option_is_refused_naming_it(killed, capsys, option, value, recorded):
     before = _files(killed)
     assert _sim_capture(killed, {option: value}, resume=True) == 1
@@ -102,14 +119,20 @@ def test_resume_with_another_mesh_file_or_changed_mesh_content_is_refused(tmp_pa
     before = _files(out)
     (tmp_path / "copy").mkdir()
     elsewhere = str(shutil.copy(mesh, tmp_path / "copy" / "ball.ply"))
-    assert _sim_capture(out, {"--mesh": elsewhere, "--views": "1", "--test-views": "0", "--grasps": "0"}, resume=True) == 1
+    assert (
+        _sim_capture(out, {"--mesh": elsewhere, "--views": "1", "--test-views": "0", "--grasps": "0"}, resume=True) == 1
+    )
     err = capsys.readouterr().err
     assert f"error: --mesh: {out} was captured with '{mesh}', this run asks for '{elsewhere}'" in err, err
 
     trimesh.creation.box(extents=(1.0, 0.6, 0.4)).export(mesh)  # same path, other content
-    assert _sim_capture(out, {"--mesh": str(mesh), "--views": "1", "--test-views": "0", "--grasps": "0"}, resume=True) == 1
+    assert (
+        _sim_capture(out, {"--mesh": str(mesh), "--views": "1", "--test-views": "0", "--grasps": "0"}, resume=True) == 1
+    )
     err = capsys.readouterr().err
-    assert f"error: --mesh: {out} was captured with a file of sha256 " in err and "this run's file has sha256" in err, err
+    assert f"error: --mesh: {out} was captured with a file of sha256 " in err and "this run's file has sha256" in err, (
+        err
+    )
     assert _files(out) == before
 
 
@@ -126,10 +149,15 @@ def _as_written_by_older_code(scene: Path) -> None:
     assert "capture_settings" not in json.loads((scene / "scene.json").read_text())["extra"]
 
 
-@pytest.mark.parametrize("option, value, recorded, asked", [
-    ("--object", "teapot", "'torus'", "'teapot'"), ("--resolution", "48", "32", "48"),
-    ("--object-radius", "0.1", "0.08", "0.1"), ("--grasps", "2", "1", "2"),
-])
+@pytest.mark.parametrize(
+    "option, value, recorded, asked",
+    [
+        ("--object", "teapot", "'torus'", "'teapot'"),
+        ("--resolution", "48", "32", "48"),
+        ("--object-radius", "0.1", "0.08", "0.1"),
+        ("--grasps", "2", "1", "2"),
+    ],
+)
 def test_a_scene_of_older_code_is_refused_on_the_settings_it_recorded(killed, capsys, option, value, recorded, asked):
     _as_written_by_older_code(killed)
     before = _files(killed)
@@ -164,6 +192,7 @@ def test_a_scene_of_older_code_resumes_when_its_recorded_settings_agree(torus, k
 
 # --- a rig file (tacsplat capture --resume) ------------------------------------------------------
 
+
 def _sensors_with_mount(index: int) -> list:
     sensors = yaml.safe_load(example_rig("mock").read_text())["tactile"]["sensors"]
     T = np.eye(4)
@@ -172,17 +201,28 @@ def _sensors_with_mount(index: int) -> list:
     return sensors
 
 
-@pytest.mark.parametrize("changes, key, recorded, asked", [
-    ({"object": "cup"}, "object", "'mock-board'", "'cup'"),
-    ({"plan": {"views": {"train": 3, "test": 1}, "grasps": {"count": 7}}}, "plan.grasps.count", "3", "7"),
-    ({"board": {"square_length_m": 0.025, "marker_length_m": 0.018}}, "board.square_length_m", "0.03", "0.025"),
-    ({"tactile": {"sensors": _sensors_with_mount(2)}}, "tactile.sensors[2].T_fingertip_sensor", "None", "[[0.0, -1.0"),
-])
-def test_resume_with_a_rig_file_of_another_object_or_plan_is_refused_naming_the_field(tmp_path, changes, key,
-                                                                                     recorded, asked):
+@pytest.mark.parametrize(
+    "changes, key, recorded, asked",
+    [
+        ({"object": "cup"}, "object", "'mock-board'", "'cup'"),
+        ({"plan": {"views": {"train": 3, "test": 1}, "grasps": {"count": 7}}}, "plan.grasps.count", "3", "7"),
+        ({"board": {"square_length_m": 0.025, "marker_length_m": 0.018}}, "board.square_length_m", "0.03", "0.025"),
+        (
+            {"tactile": {"sensors": _sensors_with_mount(2)}},
+            "tactile.sensors[2].T_fingertip_sensor",
+            "None",
+            "[[0.0, -1.0",
+        ),
+    ],
+)
+def test_resume_with_a_rig_file_of_another_object_or_plan_is_refused_naming_the_field(
+    tmp_path, changes, key, recorded, asked
+):
     out = tmp_path / "scene"
-    assert run_capture(load_rig(write_mock_rig(tmp_path), mock=True), out, keys=ScriptedKeys("\n"),
-                       output=io.StringIO()) == 1
+    assert (
+        run_capture(load_rig(write_mock_rig(tmp_path), mock=True), out, keys=ScriptedKeys("\n"), output=io.StringIO())
+        == 1
+    )
     before = _files(out)
     (tmp_path / "other").mkdir()
     other = write_mock_rig(tmp_path / "other", **changes)
@@ -199,7 +239,13 @@ def test_a_mock_capture_is_not_resumed_on_the_real_rig_and_no_device_opens(tmp_p
     out = tmp_path / "scene"
     rig = write_mock_rig(tmp_path)
     assert run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\n"), output=io.StringIO()) == 1
-    for name in ("wrist_camera.json", "tactile_index.npz", "tactile_middle.npz", "tactile_ring.npz", "tactile_thumb.npz"):
+    for name in (
+        "wrist_camera.json",
+        "tactile_index.npz",
+        "tactile_middle.npz",
+        "tactile_ring.npz",
+        "tactile_thumb.npz",
+    ):
         (tmp_path / "calibration").mkdir(exist_ok=True)
         (tmp_path / "calibration" / name).write_text("not a calibration: opening the devices would fail on it")
     with pytest.raises(ConfigError) as err:

@@ -42,8 +42,11 @@ def _real(**changes):
         ({"board/max_reprojection_px": 0}, "board.max_reprojection_px", "must be in (0, 50] px, got 0"),
         ({"board/dictionary": "DICT_9X9_1"}, "board.dictionary", "unknown ArUco dictionary"),
         ({"board/marker_length_m": 0.05}, "board.marker_length_m", "smaller than"),
-        ({"camera/T_hand_cam": [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "camera.T_hand_cam",
-         "not a rigid transform"),
+        (
+            {"camera/T_hand_cam": [[1, 0, 0, 0], [0, 2, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]},
+            "camera.T_hand_cam",
+            "not a rigid transform",
+        ),
         ({"camera/T_hand_cam": [[1, 0], [0, 1]]}, "camera.T_hand_cam", "4x4"),
         ({"tactile/sensors/1/finger": "pinky"}, "tactile.sensors[1].finger", "must be one of"),
         ({"tactile/sensors/1/finger": "index"}, "tactile.sensors[1].finger", "two sensors"),
@@ -86,15 +89,28 @@ PROJECTIVE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0.5, 1]]
         ({"board/min_corners": 30}, "board.min_corners", "a 7 x 5 board has 24 inner corners"),
         ({"board/legacy_pattern": "yes"}, "board.legacy_pattern", "expected true or false"),
         ({"tactile/gel_thickness_m": 0.5}, "tactile.gel_thickness_m", "must be in (0, 0.02] m, got 0.5"),
-        ({"tactile/sensors/2/T_fingertip_sensor": REFLECTION}, "tactile.sensors[2].T_fingertip_sensor",
-         "rotation determinant is -1, expected 1"),
-        ({"tactile/sensors/2/T_fingertip_sensor": PROJECTIVE}, "tactile.sensors[2].T_fingertip_sensor",
-         "last row is [0.0, 0.0, 0.5, 1.0], expected [0, 0, 0, 1]"),
-        ({"tactile/sensors/2/T_fingertip_sensor": [[float("nan")] * 4] * 4}, "tactile.sensors[2].T_fingertip_sensor",
-         "contains NaN"),
+        (
+            {"tactile/sensors/2/T_fingertip_sensor": REFLECTION},
+            "tactile.sensors[2].T_fingertip_sensor",
+            "rotation determinant is -1, expected 1",
+        ),
+        (
+            {"tactile/sensors/2/T_fingertip_sensor": PROJECTIVE},
+            "tactile.sensors[2].T_fingertip_sensor",
+            "last row is [0.0, 0.0, 0.5, 1.0], expected [0, 0, 0, 1]",
+        ),
+        (
+            {"tactile/sensors/2/T_fingertip_sensor": [[float("nan")] * 4] * 4},
+            "tactile.sensors[2].T_fingertip_sensor",
+            "contains NaN",
+        ),
         ({"tactile/sensors/0/source": -3}, "tactile.sensors[0].source", "a device index (>= 0) or a path"),
         ({"tactile/timeout_s": 0}, "tactile.timeout_s", "must be in (0, 60] s"),
-        ({"grasp/close_pose": [0.0] * 3 + [7.0] + [0.0] * 12}, "grasp.close_pose[3]", "must be in [-3.14159, 3.14159] rad"),
+        (
+            {"grasp/close_pose": [0.0] * 3 + [7.0] + [0.0] * 12},
+            "grasp.close_pose[3]",
+            "must be in [-3.14159, 3.14159] rad",
+        ),
         ({"grasp/settle_tol_rad": 0.2}, "grasp.settle_tol_rad", "smaller than grasp.stall_error_rad (0.15)"),
         ({"grasp/max_close_s": 0.01}, "grasp.max_close_s", "longer than grasp.poll_s (0.02)"),
         ({"grasp/open_s": -1}, "grasp.open_s", "must be in [0, 60] s, got -1"),
@@ -141,7 +157,9 @@ def test_zero_test_views_and_zero_grasps_are_a_valid_plan(tmp_path):
 def test_sim_rig_values_are_checked(tmp_path, sim, key, words):
     view_radius = sim.pop("view_radius_m", None)
     path = tmp_path / "sim.yaml"
-    path.write_text(yaml.safe_dump({"rig": "sim", "sim": sim, "plan": {"views": {"mode": "hemisphere", "radius_m": view_radius}}}))
+    path.write_text(
+        yaml.safe_dump({"rig": "sim", "sim": sim, "plan": {"views": {"mode": "hemisphere", "radius_m": view_radius}}})
+    )
     with pytest.raises(ConfigError) as err:
         load_rig(path)
     assert err.value.key == key and words in str(err.value) and str(path) in str(err.value), str(err.value)
@@ -183,21 +201,25 @@ def test_capture_command_checks_the_output_folder_before_opening_devices(tmp_pat
     assert f"{bad}: hand.port: expected a non-empty string" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("args, option, words", [
-    (["--views", "-1"], "--views", "must be >= 1, got -1"), (["--views", "0"], "--views", "must be >= 1, got 0"),
-    (["--test-views", "-1"], "--test-views", "must be >= 0, got -1"),
-    (["--grasps", "-3"], "--grasps", "must be >= 0, got -3"),
-    (["--object", "spaceship"], "--object", "unknown library object"),
-    (["--mesh", "/no/such/mesh.ply"], "--mesh", "file not found"),
-    (["--resolution", "4"], "--resolution", "must be in [8, 4096] px, got 4"),
-    (["--resolution", "0"], "--resolution", "must be in [8, 4096] px, got 0"),
-    (["--resolution", "100000"], "--resolution", "must be in [8, 4096] px, got 100000"),
-    (["--object-radius", "0"], "--object-radius", "must be in [0.025, 0.3] m"),
-    (["--object-radius", "-0.1"], "--object-radius", "must be in [0.025, 0.3] m"),
-    (["--object-radius", "5"], "--object-radius", "must be in [0.025, 0.3] m"),
-    (["--object-radius", "nan"], "--object-radius", "must be in [0.025, 0.3] m"),
-    (["--seed", "-1"], "--seed", "must be >= 0, got -1"),
-])
+@pytest.mark.parametrize(
+    "args, option, words",
+    [
+        (["--views", "-1"], "--views", "must be >= 1, got -1"),
+        (["--views", "0"], "--views", "must be >= 1, got 0"),
+        (["--test-views", "-1"], "--test-views", "must be >= 0, got -1"),
+        (["--grasps", "-3"], "--grasps", "must be >= 0, got -3"),
+        (["--object", "spaceship"], "--object", "unknown library object"),
+        (["--mesh", "/no/such/mesh.ply"], "--mesh", "file not found"),
+        (["--resolution", "4"], "--resolution", "must be in [8, 4096] px, got 4"),
+        (["--resolution", "0"], "--resolution", "must be in [8, 4096] px, got 0"),
+        (["--resolution", "100000"], "--resolution", "must be in [8, 4096] px, got 100000"),
+        (["--object-radius", "0"], "--object-radius", "must be in [0.025, 0.3] m"),
+        (["--object-radius", "-0.1"], "--object-radius", "must be in [0.025, 0.3] m"),
+        (["--object-radius", "5"], "--object-radius", "must be in [0.025, 0.3] m"),
+        (["--object-radius", "nan"], "--object-radius", "must be in [0.025, 0.3] m"),
+        (["--seed", "-1"], "--seed", "must be >= 0, got -1"),
+    ],
+)
 def test_sim_capture_options_are_checked_before_the_twin_starts(tmp_path, capsys, args, option, words):
     from tacsplat.cli import main
 

@@ -30,8 +30,13 @@ def _capture_killed_mid_grasp(tmp_path, emu: EmulatorProcess, signum: int) -> tu
     rig = write_mock_rig(tmp_path, grasp={"close_speed_rad_s": 0.6}, mock_devices={"servo_port": emu.path})
     out = tmp_path / "scene"
     master, slave = pty.openpty()
-    proc = subprocess.Popen([sys.executable, "-m", "tacsplat", "capture", "--rig", rig, "--out", str(out), "--mock"],
-                            stdin=slave, stdout=slave, stderr=slave, close_fds=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tacsplat", "capture", "--rig", rig, "--out", str(out), "--mock"],
+        stdin=slave,
+        stdout=slave,
+        stderr=slave,
+        close_fds=True,
+    )
     os.close(slave)
     term = Terminal(master)
     try:
@@ -61,8 +66,9 @@ def _resume_to_the_end(tmp_path, out: Path) -> Scene:
     return Scene.load(out)
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT],
-                         ids=lambda s: signal.Signals(s).name)
+@pytest.mark.parametrize(
+    "signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT], ids=lambda s: signal.Signals(s).name
+)
 def test_an_ending_signal_mid_grasp_leaves_every_servo_off_and_says_so(tmp_path, signum):
     with EmulatorProcess() as emu:
         proc, term, out = _capture_killed_mid_grasp(tmp_path, emu, signum)
@@ -85,7 +91,9 @@ def test_sigkill_mid_grasp_the_guard_turns_the_torque_off(tmp_path):
         torque = emu.torque_enabled()  # the terminal closed: the guard has done its work and gone
     assert proc.returncode == -signal.SIGKILL
     assert not any(torque.values()), torque
-    assert term.last_line().startswith(f"hand guard of {emu.path}: the process {proc.pid} ended without closing the "
-                                       "hand; torque off confirmed on all 16 servos"), term.text[-2000:]
+    assert term.last_line().startswith(
+        f"hand guard of {emu.path}: the process {proc.pid} ended without closing the "
+        "hand; torque off confirmed on all 16 servos"
+    ), term.text[-2000:]
     scene = _resume_to_the_end(tmp_path, out)
     assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4

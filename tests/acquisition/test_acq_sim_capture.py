@@ -11,7 +11,6 @@ import pytest
 import trimesh
 import yaml
 
-
 from tacsplat.acquisition.config import load_rig  # noqa: E402
 from tacsplat.acquisition.operator_session import run_capture  # noqa: E402
 from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config  # noqa: E402
@@ -29,7 +28,9 @@ PLAN = dict(object="bell", views=2, test_views=1, grasps=2, resolution=64, seed=
 def _records(path: Path) -> list:
     scene = Scene.load(path)
     frames = [((path / f.file_path).read_bytes(), f.split, f.T_world_cam.tobytes()) for f in scene.frames]
-    touches = [(scene.load_touch_depth(t).tobytes(), t.grasp, t.finger, t.T_world_sensor.tobytes()) for t in scene.touches]
+    touches = [
+        (scene.load_touch_depth(t).tobytes(), t.grasp, t.finger, t.T_world_sensor.tobytes()) for t in scene.touches
+    ]
     return frames + touches
 
 
@@ -61,11 +62,19 @@ def test_sim_capture_scene_is_valid_and_every_touch_lies_on_the_object(sim_scene
 
 def test_operator_session_on_the_twin_writes_the_same_scene_as_the_unattended_job(sim_scene, tmp_path):
     rig = tmp_path / "sim.yaml"
-    rig.write_text(yaml.safe_dump({
-        "rig": "sim", "object": "bell",
-        "sim": {"object": "bell", "resolution": 64, "seed": 3},
-        "plan": {"views": {"train": 2, "test": 1, "mode": "hemisphere"}, "grasps": {"count": 2, "mode": "random", "seed": 3}},
-    }))
+    rig.write_text(
+        yaml.safe_dump(
+            {
+                "rig": "sim",
+                "object": "bell",
+                "sim": {"object": "bell", "resolution": 64, "seed": 3},
+                "plan": {
+                    "views": {"train": 2, "test": 1, "mode": "hemisphere"},
+                    "grasps": {"count": 2, "mode": "random", "seed": 3},
+                },
+            }
+        )
+    )
     output = io.StringIO()
     code = run_capture(load_rig(rig), tmp_path / "scene", keys=ScriptedKeys("\n\n\ngg"), output=output)
     assert code == 0, output.getvalue()
@@ -86,12 +95,28 @@ def test_sim_grasp_cut_short_is_redone_identically_on_resume(sim_scene, tmp_path
     assert _records(out) == complete
 
 
-CAPTURE_ARGS = ["sim-capture", "--object", "car", "--views", "2", "--test-views", "3", "--grasps", "2",
-                "--resolution", "64", "--seed", "5"]
+CAPTURE_ARGS = [
+    "sim-capture",
+    "--object",
+    "car",
+    "--views",
+    "2",
+    "--test-views",
+    "3",
+    "--grasps",
+    "2",
+    "--resolution",
+    "64",
+    "--seed",
+    "5",
+]
 
 
 def _touch_signature(scene: Scene):
-    return [(t.grasp, t.finger, t.T_world_sensor.round(9).tolist(), scene.load_touch_depth(t).tobytes()) for t in scene.touches]
+    return [
+        (t.grasp, t.finger, t.T_world_sensor.round(9).tolist(), scene.load_touch_depth(t).tobytes())
+        for t in scene.touches
+    ]
 
 
 @pytest.fixture(scope="module")

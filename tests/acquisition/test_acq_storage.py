@@ -10,23 +10,40 @@ import numpy as np
 import pytest
 
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, SensorModel, check_scene
-from tacsplat.geometry import look_at
 from tacsplat.files import storage_error
+from tacsplat.geometry import look_at
 from tacsplat.types import CameraIntrinsics
 
 pytestmark = pytest.mark.timeout(180)
 
 # The library teapot's ground-truth mesh (about 180 kB) does not fit on a 150 kB disk.
-CAPTURE = ["sim-capture", "--object", "teapot", "--views", "1", "--test-views", "1", "--grasps", "1",
-           "--resolution", "16", "--seed", "2"]
+CAPTURE = [
+    "sim-capture",
+    "--object",
+    "teapot",
+    "--views",
+    "1",
+    "--test-views",
+    "1",
+    "--grasps",
+    "1",
+    "--resolution",
+    "16",
+    "--seed",
+    "2",
+]
 
 
-DISK_FULL = storage_error(OSError(errno.ENOSPC, 'No space left on device'), '.').reason
+DISK_FULL = storage_error(OSError(errno.ENOSPC, "No space left on device"), ".").reason
 
 
 def _tacsplat(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "tacsplat", "-q", *map(str, args)], capture_output=True, text=True,
-                          stdin=subprocess.DEVNULL)
+    return subprocess.run(
+        [sys.executable, "-m", "tacsplat", "-q", *map(str, args)],
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+    )
 
 
 def test_sim_capture_on_a_full_disk_stops_cleanly_and_resumes_with_the_ground_truth_mesh(tmpfs):
@@ -39,8 +56,10 @@ def test_sim_capture_on_a_full_disk_stops_cleanly_and_resumes_with_the_ground_tr
     assert (out / "journal.jsonl").is_file()  # the scene exists: --resume continues it
 
     inspected = _tacsplat("inspect", out)
-    assert inspected.returncode == 1 and "[gt.mesh]: a capture on the twin without its ground-truth mesh" in \
-        inspected.stdout, inspected.stdout
+    assert (
+        inspected.returncode == 1
+        and "[gt.mesh]: a capture on the twin without its ground-truth mesh" in inspected.stdout
+    ), inspected.stdout
 
     mount.resize("8m")  # space freed
     done = _tacsplat(*CAPTURE, "--out", out, "--resume")
@@ -55,8 +74,12 @@ def test_sim_capture_on_a_full_disk_stops_cleanly_and_resumes_with_the_ground_tr
 def test_simulate_touches_on_a_read_only_scene_is_refused_before_the_twin_starts(tmpfs, tmp_path):
     mount = tmpfs("1m")
     path = mount.path / "scene"
-    with SceneWriter.create(path, CameraIntrinsics(np.array([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]), 16, 16),
-                            SceneMeta("sim", "sheet"), SensorModel("gel", 8, 8, 1e-4, 2e-3)) as writer:
+    with SceneWriter.create(
+        path,
+        CameraIntrinsics(np.array([[20.0, 0, 8], [0, 20, 8], [0, 0, 1]]), 16, 16),
+        SceneMeta("sim", "sheet"),
+        SensorModel("gel", 8, 8, 1e-4, 2e-3),
+    ) as writer:
         writer.add_frame(np.zeros((16, 16, 3), np.uint8), look_at([0, 0.3, 0.3], [0, 0, 0]))
     mount.read_only()
     # The mesh is flat (refused when it is read): the read-only scene is refused before the mesh is even read.
@@ -64,8 +87,9 @@ def test_simulate_touches_on_a_read_only_scene_is_refused_before_the_twin_starts
     sheet.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     done = _tacsplat("simulate-touches", "--mesh", sheet, path, "--grasps", "1")
     assert done.returncode == 1
-    assert done.stderr.splitlines() == [f"error: {path}: the file system is read-only: write to another folder"], \
+    assert done.stderr.splitlines() == [f"error: {path}: the file system is read-only: write to another folder"], (
         done.stderr
+    )
     assert len(Scene.load(path).frames) == 1
 
 
@@ -77,5 +101,6 @@ def test_sim_capture_resume_on_a_read_only_disk_says_so(tmpfs):
     mount.read_only()
     done = _tacsplat(*CAPTURE, "--out", out, "--resume")
     assert done.returncode == 1
-    assert done.stderr.splitlines() == [f"error: --out: {out}: the file system is read-only: write to another "
-                                        "folder"], done.stderr
+    assert done.stderr.splitlines() == [
+        f"error: --out: {out}: the file system is read-only: write to another folder"
+    ], done.stderr

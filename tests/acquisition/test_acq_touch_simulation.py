@@ -30,8 +30,9 @@ def capsule(tmp_path_factory):
     root = tmp_path_factory.mktemp("capsule")
     mesh = root / "capsule.ply"
     _capsule(RADIUS).export(mesh)
-    config = sim_rig_config(mesh=str(mesh), object_radius=RADIUS, views=2, test_views=0, grasps=2, resolution=64,
-                            seed=4)
+    config = sim_rig_config(
+        mesh=str(mesh), object_radius=RADIUS, views=2, test_views=0, grasps=2, resolution=64, seed=4
+    )
     sim_capture(config, root / "scene", progress=False)
     return mesh, root / "scene"
 
@@ -65,13 +66,32 @@ def test_touches_of_an_imported_unit_scale_scene_come_back_in_its_frame_and_unit
     with pytest.raises(ConfigError, match="--out"):
         simulate_touches(mesh_path, imported, grasps=1)
     out = tmp_path / "touched"
-    assert main(["simulate-touches", "--mesh", str(mesh_path), str(imported), "--grasps", "1",
-                 "--out", str(out), "--seed", "2"]) == 0
+    assert (
+        main(
+            [
+                "simulate-touches",
+                "--mesh",
+                str(mesh_path),
+                str(imported),
+                "--grasps",
+                "1",
+                "--out",
+                str(out),
+                "--seed",
+                "2",
+            ]
+        )
+        == 0
+    )
     assert f"touches written to {out}" in capsys.readouterr().out
     scene = Scene.load(out)
     assert len(scene.frames) == 2 and len(scene.touches) == 4
-    assert scene.meta.capture_plan["simulated_touches"] == {"mesh": str(mesh_path), "grasps": 1, "seed": 2,
-                                                            "touches": {"model": "gel"}}
+    assert scene.meta.capture_plan["simulated_touches"] == {
+        "mesh": str(mesh_path),
+        "grasps": 1,
+        "seed": 2,
+        "touches": {"model": "gel"},
+    }
     assert scene.sensor.pixel_size_m == pytest.approx(1.5e-4 * scale)
     points = scene.touch_points()
     _, distance, _ = trimesh.proximity.closest_point(mesh, points)

@@ -26,8 +26,14 @@ PENETRATION_BOUND_M = 0.0025  # any allowed gains and closing speeds up to 4 rad
 DEFAULT_PENETRATION_BOUND_M = 0.0005  # the twin's gains and grasp control
 
 
-def twin_grasps(twin: SimTwin, folder, count: int, seed: int, control: GraspControl = TWIN_CONTROL,
-                config: GraspConfig = GraspConfig()) -> tuple[Scene, list[float]]:
+def twin_grasps(
+    twin: SimTwin,
+    folder,
+    count: int,
+    seed: int,
+    control: GraspControl = TWIN_CONTROL,
+    config: GraspConfig = GraspConfig(),
+) -> tuple[Scene, list[float]]:
     """``count`` grasps (and a view, which a valid scene needs) written to a scene in ``folder``, and the peak
     penetration of each grasp kept."""
     rig = twin_rig(twin, control)
@@ -66,7 +72,9 @@ def test_fast_closing_with_the_stiffest_allowed_gains_stays_stable(name, radius,
     fast = dataclasses.replace(TWIN_CONTROL, close_speed_rad_s=4.0, poll_s=0.005)
     config = TwinConfig(object=name, object_radius=radius, gains=gains, camera_width=32, camera_height=32)
     with SimTwin(config) as twin:
-        scene, peaks = twin_grasps(twin, tmp_path / "scene", 2, seed=1, control=fast, config=GraspConfig(max_tap_rad=1.2))
+        scene, peaks = twin_grasps(
+            twin, tmp_path / "scene", 2, seed=1, control=fast, config=GraspConfig(max_tap_rad=1.2)
+        )
         assert peaks
         assert all(0 < p < PENETRATION_BOUND_M for p in peaks), peaks
         assert all(int(w.number) == 0 for w in twin.data.warning)

@@ -42,8 +42,13 @@ def port_open(port: int) -> bool:
 def ray_env() -> dict:
     """The environment of the cluster and of its driver: token authentication with a token made here (as on a
     real cluster), every address on the loopback interface (Ray's switch for single-machine clusters)."""
-    return {**os.environ, "RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": secrets.token_hex(16),
-            "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    return {
+        **os.environ,
+        "RAY_AUTH_MODE": "token",
+        "RAY_AUTH_TOKEN": secrets.token_hex(16),
+        "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0",
+        "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl"),
+    }
 
 
 @pytest.fixture(scope="module")
@@ -54,10 +59,24 @@ def cluster(ray_env):
     log = temp / "head.log"
     with log.open("w") as fh:
         head = subprocess.Popen(
-            [str(RAY), "start", "--head", f"--port={port}", "--node-ip-address=127.0.0.1", "--num-cpus=2",
-             "--include-dashboard=false", f"--object-store-memory={80 * 1024**2}", f"--temp-dir={temp}",
-             "--disable-usage-stats", "--block"],
-            stdout=fh, stderr=subprocess.STDOUT, start_new_session=True, env=ray_env)
+            [
+                str(RAY),
+                "start",
+                "--head",
+                f"--port={port}",
+                "--node-ip-address=127.0.0.1",
+                "--num-cpus=2",
+                "--include-dashboard=false",
+                f"--object-store-memory={80 * 1024**2}",
+                f"--temp-dir={temp}",
+                "--disable-usage-stats",
+                "--block",
+            ],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+            env=ray_env,
+        )
     try:
         wait_until(lambda: head.poll() is not None or "Ray runtime started" in log.read_text(), timeout_s=120)
         assert head.poll() is None and port_open(port), log.read_text()
@@ -98,17 +117,37 @@ def test_tiny_batch_on_a_cluster_through_ray_address_equals_local(tmp_path, clus
     assert main(["batch", str(jobs), "--out", str(tmp_path / "local")]) == 0  # first: fills numba's cache
 
     out = tmp_path / "ray"
-    done = subprocess.run([sys.executable, "-m", "tacsplat", "batch", str(jobs), "--out", str(out), "--executor",
-                           "ray", "--ray-address", cluster], capture_output=True, text=True, env=ray_env, timeout=600)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "tacsplat",
+            "batch",
+            str(jobs),
+            "--out",
+            str(out),
+            "--executor",
+            "ray",
+            "--ray-address",
+            cluster,
+        ],
+        capture_output=True,
+        text=True,
+        env=ray_env,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert f"connecting to the Ray cluster at {cluster}" in done.stderr
     assert "Started a local Ray instance" not in done.stderr
     rows, expected = read_rows(out / "results.csv"), read_rows(tmp_path / "local" / "results.csv")
-    assert [r["job"] for r in rows] == [f"reconstruct runs/{o}-{v}" for o in ("teapot", "bell") for v in ("3dgs", "paper")]
+    assert [r["job"] for r in rows] == [
+        f"reconstruct runs/{o}-{v}" for o in ("teapot", "bell") for v in ("3dgs", "paper")
+    ]
     assert all(math.isfinite(float(r["cd"])) and float(r["psnr"]) > 10 for r in rows)
     assert [r["method"] for r in rows] == ["3dgs", "paper"] * 2 and {r["iterations"] for r in rows} == {"20"}
     timing = "train_seconds"
     assert [{k: v for k, v in r.items() if k != timing} for r in rows] == [
-        {k: v for k, v in r.items() if k != timing} for r in expected]
+        {k: v for k, v in r.items() if k != timing} for r in expected
+    ]
     assert all(float(r[timing]) > 0 for r in rows)
     assert not (out / "failures.csv").exists()

@@ -31,11 +31,13 @@ def read_failures(folder: Path) -> dict[str, dict]:
 
 
 def test_local_runs_in_order_here_lists_failures_and_reruns_only_them(tmp_path, capsys):
-    jobs = [FileJob("first", tmp_path / "first"),
-            FileJob("flaky", tmp_path / "flaky", "raise-while-broken"),
-            FileJob("after-flaky", tmp_path / "after-flaky", needs=("flaky",)),
-            FileJob("bad-input", tmp_path / "bad-input", "config-error"),
-            FileJob("last", tmp_path / "last")]
+    jobs = [
+        FileJob("first", tmp_path / "first"),
+        FileJob("flaky", tmp_path / "flaky", "raise-while-broken"),
+        FileJob("after-flaky", tmp_path / "after-flaky", needs=("flaky",)),
+        FileJob("bad-input", tmp_path / "bad-input", "config-error"),
+        FileJob("last", tmp_path / "last"),
+    ]
     (tmp_path / "flaky").mkdir()
     (tmp_path / "flaky" / "broken").touch()
     finished = []
@@ -48,12 +50,18 @@ def test_local_runs_in_order_here_lists_failures_and_reruns_only_them(tmp_path, 
     failures = read_failures(tmp_path)
     assert list(failures) == ["flaky", "after-flaky", "bad-input"]
     assert failures["flaky"]["error"].startswith("RuntimeError: ") and failures["flaky"]["attempts"] == "1"
-    assert failures["after-flaky"] == {"job": "after-flaky", "attempts": "0",
-                                       "error": "not run: needs flaky, which failed"}
+    assert failures["after-flaky"] == {
+        "job": "after-flaky",
+        "attempts": "0",
+        "error": "not run: needs flaky, which failed",
+    }
     assert failures["bad-input"]["error"] == "threshold: must be > 0, got -1"
     assert outcome.not_run == ["after-flaky"]
-    with pytest.raises(BatchError, match=r"^2 of 5 jobs failed and 1 not run \(a job they need failed\) \(first: "
-                       r"flaky: RuntimeError: .*failures.csv"):
+    with pytest.raises(
+        BatchError,
+        match=r"^2 of 5 jobs failed and 1 not run \(a job they need failed\) \(first: "
+        r"flaky: RuntimeError: .*failures.csv",
+    ):
         outcome.raise_if_failed(tmp_path)
 
     (tmp_path / "flaky" / "broken").unlink()
@@ -96,15 +104,24 @@ def test_batch_file_resolves_paths_and_infers_needs(tmp_path):
     existing.mkdir()
     (tmp_path / "mesh.obj").write_text("v 0 0 0\n")
     out = tmp_path / "out"
-    capture, train, old, evaluate, evaluate_old = load_batch(write(tmp_path / "b.yaml", GOOD % {"existing": existing}),
-                                                               out)
-    assert capture == CaptureJob(out=out / "scenes/teapot", object="teapot", resolution=48, seed=3,
-                                 name="capture scenes/teapot")
-    assert train == ReconstructJob(out=out / "runs/teapot-default", scene=out / "scenes/teapot", iterations=20,
-                                   seed=3, name="reconstruct runs/teapot-default", needs=("capture scenes/teapot",))
+    capture, train, old, evaluate, evaluate_old = load_batch(
+        write(tmp_path / "b.yaml", GOOD % {"existing": existing}), out
+    )
+    assert capture == CaptureJob(
+        out=out / "scenes/teapot", object="teapot", resolution=48, seed=3, name="capture scenes/teapot"
+    )
+    assert train == ReconstructJob(
+        out=out / "runs/teapot-default",
+        scene=out / "scenes/teapot",
+        iterations=20,
+        seed=3,
+        name="reconstruct runs/teapot-default",
+        needs=("capture scenes/teapot",),
+    )
     assert (old.scene, old.needs, old.name, method_of(old.config())) == (existing, (), "old scene", "3dgs")
-    assert evaluate == EvaluateJob(run=out / "runs/teapot-default", name="evaluate runs/teapot-default",
-                                   needs=("reconstruct runs/teapot-default",))
+    assert evaluate == EvaluateJob(
+        run=out / "runs/teapot-default", name="evaluate runs/teapot-default", needs=("reconstruct runs/teapot-default",)
+    )
     assert evaluate_old.gt_mesh == str(tmp_path / "mesh.obj") and evaluate_old.cpus == 2 and not evaluate_old.needs
     assert train.gpus(cluster_has_gpus=False) == 0 and train.gpus(cluster_has_gpus=True) == 1
     assert capture.gpus(cluster_has_gpus=True) == 0
@@ -123,26 +140,39 @@ jobs:
     jobs = load_batch(write(tmp_path / "b.yaml", text), tmp_path / "out")
     # the file's order where the needs allow it; a need given and implied (by the scene) counted once
     assert [(job.name, job.needs) for job in jobs] == [
-        ("capture scenes/z", ()), ("copy", ()), ("last capture", ("copy",)), ("capture scenes/a", ("last capture",)),
-        ("reconstruct runs/r", ("copy", "capture scenes/a")), ("judge", ("reconstruct runs/r",))]
+        ("capture scenes/z", ()),
+        ("copy", ()),
+        ("last capture", ("copy",)),
+        ("capture scenes/a", ("last capture",)),
+        ("reconstruct runs/r", ("copy", "capture scenes/a")),
+        ("judge", ("reconstruct runs/r",)),
+    ]
 
 
 def test_a_job_whose_need_failed_is_not_run_and_a_cycle_runs_nothing(tmp_path, capsys):
     (tmp_path / "out" / "no-run").mkdir(parents=True)  # a folder without a run: its evaluation fails
-    path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a, needs: [judge]}\n"
-                 "  - {kind: evaluate, run: no-run, name: judge}\n")
+    path = write(
+        tmp_path / "b.yaml",
+        "jobs:\n  - {kind: capture, out: a, needs: [judge]}\n  - {kind: evaluate, run: no-run, name: judge}\n",
+    )
     assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "local"]) == 1
     assert read_failures(tmp_path / "out")["capture a"]["error"] == "not run: needs judge, which failed"
     assert not (tmp_path / "out" / "a").exists()
-    assert capsys.readouterr().err.splitlines()[-1].startswith(
-        "error: 1 of 2 jobs failed and 1 not run (a job they need failed) (first: judge: ")
+    assert (
+        capsys.readouterr()
+        .err.splitlines()[-1]
+        .startswith("error: 1 of 2 jobs failed and 1 not run (a job they need failed) (first: judge: ")
+    )
 
-    path = write(tmp_path / "cycle.yaml", "jobs:\n  - {kind: capture, out: a, needs: [capture b]}\n"
-                 "  - {kind: capture, out: b, needs: [capture a]}\n")
+    path = write(
+        tmp_path / "cycle.yaml",
+        "jobs:\n  - {kind: capture, out: a, needs: [capture b]}\n  - {kind: capture, out: b, needs: [capture a]}\n",
+    )
     assert main(["batch", str(path), "--out", str(tmp_path / "cycle"), "--executor", "local"]) == 1
     assert capsys.readouterr().err.splitlines()[-1] == (
         f"error: {path}: jobs: the needs form a cycle, so none of its jobs can run: 'capture a' (jobs[0]) needs "
-        "'capture b' (jobs[1]), which needs 'capture a' (jobs[0])")
+        "'capture b' (jobs[1]), which needs 'capture a' (jobs[0])"
+    )
     assert not (tmp_path / "cycle").exists()
 
 
@@ -165,8 +195,11 @@ def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):
     (paper.out / "checkpoint.pt").write_bytes(b"")  # interrupted: a rerun would resume it as recorded
     changes = default.changed_settings()
     assert changes[0] == f"method paper -> {DEFAULT_METHOD}"
-    assert {"lambda_depth_normal 0.0 -> 0.05", "appearance 'sh' -> 'sh-lit'",
-            "depth_normal_start_iter 123 -> 700"} <= set(changes)
+    assert {
+        "lambda_depth_normal 0.0 -> 0.05",
+        "appearance 'sh' -> 'sh-lit'",
+        "depth_normal_start_iter 123 -> 700",
+    } <= set(changes)
     assert paper.changed_settings() == []
     with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(method paper -> .*delete"):
         default.refuse_changed_settings()
@@ -180,40 +213,79 @@ def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):
     assert paper.changed_settings()[0].startswith("config.json unreadable (")
 
 
-@pytest.mark.parametrize("jobs, key, message", [
-    ("- {kind: train, out: a}", "jobs[0].kind", "expected one of capture, reconstruct, evaluate, got 'train'"),
-    ("- {out: a}", "jobs[0].kind", "expected one of capture, reconstruct, evaluate, got None"),
-    ("- {kind: capture}", "jobs[0].out", "missing (a required key)"),
-    ("- {kind: capture, out: a, steps: 3}", "jobs[0].steps", "unknown key (a capture job takes cpus, grasps, "),
-    ("- {kind: capture, out: a, views: '5'}", "jobs[0].views", "Input should be a valid integer, got '5'"),
-    ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, iterations: 2.5}", "jobs[1].iterations",
-     "Input should be a valid integer"),
-    ("- {kind: capture, out: a, object: sphere}", "jobs[0] (capture a)",
-     "object: unknown library object 'sphere' (one of ['teapot', "),
-    ("- {kind: capture, out: a, views: 0}", "jobs[0] (capture a)", "views: must be >= 1, got 0"),
-    ("- {kind: capture, out: a, seed: -1}", "jobs[0] (capture a)", "seed: must be >= 0, got -1"),
-    ("- {kind: capture, out: a, cpus: 0}", "jobs[0] (capture a)", "cpus: must be > 0, got 0.0"),
-    ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, method: ours}", "jobs[1] (reconstruct r)",
-     "unknown method 'ours'"),
-    ("- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, iterations: 0}", "jobs[1] (reconstruct r)",
-     "iterations"),
-    ("- {kind: reconstruct, out: r, scene: a}\n- {kind: capture, out: a}", "jobs[0].scene",
-     "is not a folder, nor the out of a capture job listed before this one"),
-    ("- {kind: evaluate, run: nowhere}", "jobs[0].run", "is not a folder, nor the out of a reconstruct job"),
-    ("- {kind: capture, out: a}\n- {kind: capture, out: a, seed: 1}", "jobs[1].out", "is also the out of capture a"),
-    ("- {kind: capture, out: a, name: x}\n- {kind: capture, out: b, name: x}", "jobs[1].name", "two jobs are named 'x'"),
-    ("- 3", "jobs[0]", "expected a mapping with a kind"),
-    ("- {kind: capture, out: a, needs: [capture b]}", "jobs[0].needs",
-     "'capture a' needs 'capture b', which is no job of this file (a job's name is its `name:`, else "),
-    ("- {kind: capture, out: a, name: x, needs: [x]}", "jobs", "the needs form a cycle, so none of its jobs can run: "
-     "'x' (jobs[0]) needs 'x' (jobs[0])"),
-    ("- {kind: capture, out: c, needs: [capture b]}\n- {kind: capture, out: a, needs: [capture c]}\n"
-     "- {kind: capture, out: b, needs: [capture a]}", "jobs", "the needs form a cycle, so none of its jobs can run: "
-     "'capture c' (jobs[0]) needs 'capture b' (jobs[2]), which needs 'capture a' (jobs[1]), which needs 'capture c' "
-     "(jobs[0])"),
-    ("- {kind: capture, out: a, needs: [reconstruct r]}\n- {kind: reconstruct, out: r, scene: a}", "jobs",
-     "'capture a' (jobs[0]) needs 'reconstruct r' (jobs[1]), which needs 'capture a' (jobs[0])"),  # (r's scene)
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "jobs, key, message",
+    [
+        ("- {kind: train, out: a}", "jobs[0].kind", "expected one of capture, reconstruct, evaluate, got 'train'"),
+        ("- {out: a}", "jobs[0].kind", "expected one of capture, reconstruct, evaluate, got None"),
+        ("- {kind: capture}", "jobs[0].out", "missing (a required key)"),
+        ("- {kind: capture, out: a, steps: 3}", "jobs[0].steps", "unknown key (a capture job takes cpus, grasps, "),
+        ("- {kind: capture, out: a, views: '5'}", "jobs[0].views", "Input should be a valid integer, got '5'"),
+        (
+            "- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, iterations: 2.5}",
+            "jobs[1].iterations",
+            "Input should be a valid integer",
+        ),
+        (
+            "- {kind: capture, out: a, object: sphere}",
+            "jobs[0] (capture a)",
+            "object: unknown library object 'sphere' (one of ['teapot', ",
+        ),
+        ("- {kind: capture, out: a, views: 0}", "jobs[0] (capture a)", "views: must be >= 1, got 0"),
+        ("- {kind: capture, out: a, seed: -1}", "jobs[0] (capture a)", "seed: must be >= 0, got -1"),
+        ("- {kind: capture, out: a, cpus: 0}", "jobs[0] (capture a)", "cpus: must be > 0, got 0.0"),
+        (
+            "- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, method: ours}",
+            "jobs[1] (reconstruct r)",
+            "unknown method 'ours'",
+        ),
+        (
+            "- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, iterations: 0}",
+            "jobs[1] (reconstruct r)",
+            "iterations",
+        ),
+        (
+            "- {kind: reconstruct, out: r, scene: a}\n- {kind: capture, out: a}",
+            "jobs[0].scene",
+            "is not a folder, nor the out of a capture job listed before this one",
+        ),
+        ("- {kind: evaluate, run: nowhere}", "jobs[0].run", "is not a folder, nor the out of a reconstruct job"),
+        (
+            "- {kind: capture, out: a}\n- {kind: capture, out: a, seed: 1}",
+            "jobs[1].out",
+            "is also the out of capture a",
+        ),
+        (
+            "- {kind: capture, out: a, name: x}\n- {kind: capture, out: b, name: x}",
+            "jobs[1].name",
+            "two jobs are named 'x'",
+        ),
+        ("- 3", "jobs[0]", "expected a mapping with a kind"),
+        (
+            "- {kind: capture, out: a, needs: [capture b]}",
+            "jobs[0].needs",
+            "'capture a' needs 'capture b', which is no job of this file (a job's name is its `name:`, else ",
+        ),
+        (
+            "- {kind: capture, out: a, name: x, needs: [x]}",
+            "jobs",
+            "the needs form a cycle, so none of its jobs can run: 'x' (jobs[0]) needs 'x' (jobs[0])",
+        ),
+        (
+            "- {kind: capture, out: c, needs: [capture b]}\n- {kind: capture, out: a, needs: [capture c]}\n"
+            "- {kind: capture, out: b, needs: [capture a]}",
+            "jobs",
+            "the needs form a cycle, so none of its jobs can run: "
+            "'capture c' (jobs[0]) needs 'capture b' (jobs[2]), which needs 'capture a' (jobs[1]), which needs 'capture c' "
+            "(jobs[0])",
+        ),
+        (
+            "- {kind: capture, out: a, needs: [reconstruct r]}\n- {kind: reconstruct, out: r, scene: a}",
+            "jobs",
+            "'capture a' (jobs[0]) needs 'reconstruct r' (jobs[1]), which needs 'capture a' (jobs[0])",
+        ),  # (r's scene)
+    ],
+)
 def test_batch_file_mistakes_name_the_job_and_field(tmp_path, jobs, key, message):
     path = write(tmp_path / "b.yaml", "jobs:\n" + "\n".join("  " + line for line in jobs.splitlines()) + "\n")
     with pytest.raises(ConfigError) as info:
@@ -221,11 +293,14 @@ def test_batch_file_mistakes_name_the_job_and_field(tmp_path, jobs, key, message
     assert str(info.value).startswith(f"{path}: {key}: ") and message in str(info.value), str(info.value)
 
 
-@pytest.mark.parametrize("text, message", [
-    ("jobs: []", "jobs: expected a non-empty list of jobs"),
-    ("runs: []", "jobs: the file must hold one key, `jobs:`"),
-    ("jobs: [", "jobs: not valid YAML"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("jobs: []", "jobs: expected a non-empty list of jobs"),
+        ("runs: []", "jobs: the file must hold one key, `jobs:`"),
+        ("jobs: [", "jobs: not valid YAML"),
+    ],
+)
 def test_batch_file_shape_errors(tmp_path, text, message):
     path = write(tmp_path / "b.yaml", text)
     with pytest.raises(ConfigError, match=message):
@@ -241,12 +316,18 @@ def test_batch_command_refuses_a_bad_file_before_writing_anything(tmp_path, caps
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.parametrize("options, message", [
-    (["--ray-address", "127.0.0.1:6379"], "--ray-address: runs jobs on a Ray cluster: add --executor ray"),
-    (["--executor", "ray", "--retries", "-1"], "--retries: must be >= 0, got -1"),
-    (["--workers", "0"], "--workers: must be >= 1, got 0"),
-    (["--executor", "local", "--workers", "2"], "--workers: sets the jobs run side by side by --executor processes"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--ray-address", "127.0.0.1:6379"], "--ray-address: runs jobs on a Ray cluster: add --executor ray"),
+        (["--executor", "ray", "--retries", "-1"], "--retries: must be >= 0, got -1"),
+        (["--workers", "0"], "--workers: must be >= 1, got 0"),
+        (
+            ["--executor", "local", "--workers", "2"],
+            "--workers: sets the jobs run side by side by --executor processes",
+        ),
+    ],
+)
 def test_executor_option_mistakes_are_usage_errors(tmp_path, capsys, options, message):
     path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")
     assert main(["batch", str(path), "--out", str(tmp_path / "out"), *options]) == 2
@@ -260,26 +341,33 @@ def test_an_address_where_no_cluster_answers_is_one_error(tmp_path, capsys, monk
         s.bind(("127.0.0.1", 0))
         address = f"127.0.0.1:{s.getsockname()[1]}"
     path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")
-    assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address", address]) == 1
+    assert (
+        main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address", address]) == 1
+    )
     assert capsys.readouterr().err.splitlines()[-1].startswith(f"error: --ray-address: nothing answers at {address} (")
     monkeypatch.setenv("RAY_ADDRESS", address)
     with pytest.raises(ConfigError, match=f"^RAY_ADDRESS: nothing answers at {address} "):
         run_jobs([FileJob("a", tmp_path / "a")], tmp_path, executor="ray", progress=False)
 
 
-@pytest.mark.parametrize("address, why", [
-    ("not a host:xx", "'not a host' is not a host name or IP address"),
-    ("head:xx", "the port must be an integer in 1..65535, got 'xx'"),
-    ("head:0", "the port must be an integer in 1..65535, got '0'"),
-    ("head:65536", "the port must be an integer in 1..65535, got '65536'"),
-    ("head: 6379", "the port must be an integer in 1..65535, got ' 6379'"),
-    ("head", "no port"),
-    ("ray://head", "no port"),
-    ("http://head:8265", "http:// is not a Ray address (ray:// is)"),
-])
+@pytest.mark.parametrize(
+    "address, why",
+    [
+        ("not a host:xx", "'not a host' is not a host name or IP address"),
+        ("head:xx", "the port must be an integer in 1..65535, got 'xx'"),
+        ("head:0", "the port must be an integer in 1..65535, got '0'"),
+        ("head:65536", "the port must be an integer in 1..65535, got '65536'"),
+        ("head: 6379", "the port must be an integer in 1..65535, got ' 6379'"),
+        ("head", "no port"),
+        ("ray://head", "no port"),
+        ("http://head:8265", "http:// is not a Ray address (ray:// is)"),
+    ],
+)
 def test_a_malformed_ray_address_is_a_usage_error(tmp_path, capsys, monkeypatch, address, why):
     path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: a}\n")
-    assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address", address]) == 2
+    assert (
+        main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address", address]) == 2
+    )
     err = capsys.readouterr().err
     assert "error: --ray-address: expected HOST:PORT (of the cluster's head: " in err
     assert f"ray://HOST:PORT or auto, got {address!r}: {why} (see " in err and "Traceback" not in err
@@ -307,11 +395,15 @@ def test_a_ray_error_at_init_is_one_line_naming_the_option(tmp_path, capsys, mon
         server.bind(("127.0.0.1", 0))
         server.listen()
         address = f"ray://127.0.0.1:{server.getsockname()[1]}"
-        assert main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address",
-                     address]) == 1
+        assert (
+            main(["batch", str(path), "--out", str(tmp_path / "out"), "--executor", "ray", "--ray-address", address])
+            == 1
+        )
     err = capsys.readouterr().err
-    assert err.splitlines()[-1].startswith(f"error: --ray-address: cannot connect to a Ray cluster at {address}: "
-                                           "ValueError: Ray Client requires pip package `ray[client]`. ")
+    assert err.splitlines()[-1].startswith(
+        f"error: --ray-address: cannot connect to a Ray cluster at {address}: "
+        "ValueError: Ray Client requires pip package `ray[client]`. "
+    )
     assert "Traceback" not in err
 
 

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-
 import pytest
-
 
 
 @pytest.mark.slow
@@ -17,5 +15,7 @@ def test_bench_paper_quick_full_beats_vanilla_3dgs(tmp_path):
     assert len(rows) == len(config.objects) * len(config.methods)
     cd = {(r["object"], r["method"]): r["cd"] for r in rows if r["setting"] == "minimal"}
     for obj in config.objects:
-        assert cd[obj, "paper"] < cd[obj, "3dgs"], f"{obj}: paper CD {cd[obj, 'paper']:.4f} >= 3DGS {cd[obj, '3dgs']:.4f}"
+        assert cd[obj, "paper"] < cd[obj, "3dgs"], (
+            f"{obj}: paper CD {cd[obj, 'paper']:.4f} >= 3DGS {cd[obj, '3dgs']:.4f}"
+        )
     assert "| Paper (T + S) |" in (tmp_path / "report.md").read_text()

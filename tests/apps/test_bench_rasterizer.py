@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from tacsplat.errors import ConfigError
 from tacsplat.apps.bench_rasterizer import _time_backend, parse_size, random_scene
+from tacsplat.errors import ConfigError
 
 
 def test_parse_size():

@@ -12,9 +12,7 @@ import numpy as np
 import pytest
 
 from tacsplat.apps import batch, paper_bench
-from tacsplat.errors import ConfigError
 from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig, step_work
-from tacsplat.reconstruction.methods import DEFAULT_METHOD
 from tacsplat.apps.report import (
     RESULT_COLUMNS,
     best_rows,
@@ -26,16 +24,47 @@ from tacsplat.apps.report import (
     write_results_csv,
 )
 from tacsplat.apps.touch_bench import subsample_touches, summarise, write_touch_report
+from tacsplat.errors import ConfigError
+from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
 
 def synthetic_rows() -> list[dict]:
     """Two objects; 'paper' has the lowest CD on the teapot, '3dgs+t' on the bell; '3dgs' the best PSNR on the bell."""
-    cd = {("teapot", "3dgs"): 0.02, ("teapot", "3dgs+s"): 0.015, ("teapot", "3dgs+t"): 0.01, ("teapot", "paper"): 0.005,
-          ("bell", "3dgs"): 0.03, ("bell", "3dgs+s"): 0.02, ("bell", "3dgs+t"): 0.004, ("bell", "paper"): 0.006}
-    psnr = {("teapot", "3dgs"): 20.0, ("teapot", "3dgs+s"): 21.0, ("teapot", "3dgs+t"): 22.0, ("teapot", "paper"): 23.0,
-            ("bell", "3dgs"): 25.0, ("bell", "3dgs+s"): 24.0, ("bell", "3dgs+t"): 23.0, ("bell", "paper"): 22.0}
-    return [{"object": o, "setting": "minimal", "method": v, "seed": 0, "cd": cd[o, v], "cd_paper": cd[o, v] ** 2,
-             "psnr": psnr[o, v], "ssim": 0.9, "train_seconds": 10.0, "num_gaussians": 1000} for (o, v) in cd]
+    cd = {
+        ("teapot", "3dgs"): 0.02,
+        ("teapot", "3dgs+s"): 0.015,
+        ("teapot", "3dgs+t"): 0.01,
+        ("teapot", "paper"): 0.005,
+        ("bell", "3dgs"): 0.03,
+        ("bell", "3dgs+s"): 0.02,
+        ("bell", "3dgs+t"): 0.004,
+        ("bell", "paper"): 0.006,
+    }
+    psnr = {
+        ("teapot", "3dgs"): 20.0,
+        ("teapot", "3dgs+s"): 21.0,
+        ("teapot", "3dgs+t"): 22.0,
+        ("teapot", "paper"): 23.0,
+        ("bell", "3dgs"): 25.0,
+        ("bell", "3dgs+s"): 24.0,
+        ("bell", "3dgs+t"): 23.0,
+        ("bell", "paper"): 22.0,
+    }
+    return [
+        {
+            "object": o,
+            "setting": "minimal",
+            "method": v,
+            "seed": 0,
+            "cd": cd[o, v],
+            "cd_paper": cd[o, v] ** 2,
+            "psnr": psnr[o, v],
+            "ssim": 0.9,
+            "train_seconds": 10.0,
+            "num_gaussians": 1000,
+        }
+        for (o, v) in cd
+    ]
 
 
 def test_metric_table_layout_and_average():
@@ -101,7 +130,9 @@ def test_seed_spread_column_with_several_seeds():
     rows = [r for r in rows if not (r["method"] == "3dgs" and r["object"] == "bell" and r["seed"] == 1)]
     assert "Seed s.d." not in markdown_table(synthetic_rows(), "cd", "minimal")  # one seed: no column
     lines = markdown_table(rows, "cd", "minimal").splitlines()
-    assert next(line for line in lines if line.startswith("| Method")) == "| Method | teapot | bell | Avg. | Seed s.d. |"
+    assert (
+        next(line for line in lines if line.startswith("| Method")) == "| Method | teapot | bell | Avg. | Seed s.d. |"
+    )
     # full's averages over objects are 0.0055 and 0.0075: s.d. (ddof 1) 0.0014142
     assert next(line for line in lines if line.startswith("| Paper")).endswith("| 0.0014 |")
     assert next(line for line in lines if line.startswith("| 3DGS |")).endswith("| – |")
@@ -144,9 +175,16 @@ def test_bench_rows_and_config_errors():
     assert not row_config("default-touch").use_touch and row_config("paper+tn").lambda_touch_normal == 0.1
     with pytest.raises(ConfigError, match="--methods: unknown method 'ours'; choose one of .* or a row of ablations"):
         bench_row("ours")
-    assert get_method("3dgs").overrides == {"use_touch": False, "lambda_s": 0.0, "lambda_flatten": 0.0,
-                                             "lambda_depth_normal": 0.0, "lambda_touch_normal": 0.0, "appearance": "sh",
-                                             "lambda_albedo_smoothness": 0.0, "init.colors_from_views": False}
+    assert get_method("3dgs").overrides == {
+        "use_touch": False,
+        "lambda_s": 0.0,
+        "lambda_flatten": 0.0,
+        "lambda_depth_normal": 0.0,
+        "lambda_touch_normal": 0.0,
+        "appearance": "sh",
+        "lambda_albedo_smoothness": 0.0,
+        "init.colors_from_views": False,
+    }
     with pytest.raises(ConfigError, match="method"):
         get_method("ours")
     with pytest.raises(ConfigError, match="methods"):
@@ -164,7 +202,9 @@ def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_p
     changed since) is listed with what differs, and report.md says so; a setting that the method's config does not
     use, then or now, does not count (the albedo smoothness's weights, from before they existed, and the start of
     the depth-normal consistency of a `full` run, which has none)."""
-    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), seeds=(0, 1), methods=("paper", DEFAULT_METHOD))
+    config = PaperBenchConfig(
+        objects=("teapot",), settings=("minimal",), seeds=(0, 1), methods=("paper", DEFAULT_METHOD)
+    )
     bench = PaperBench(tmp_path, config)
     for run in bench.runs():
         _finish(run, 0.03)
@@ -175,17 +215,28 @@ def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_p
     stale = bench.stale_runs()
     assert [(run.method, run.seed, changes) for run, changes in stale] == [
         (DEFAULT_METHOD, seed, ["depth_normal_start_iter 300 -> 700", "albedo_smoothness_beta 0.0 -> 10.0"])
-        for seed in (0, 1)]
+        for seed in (0, 1)
+    ]
     depth = np.full((8, 8), 0.3, np.float32)
     normal = np.broadcast_to(np.array([0.0, 0.0, -1.0], np.float32), (8, 8, 3))
-    monkeypatch.setattr(paper_bench, "render_first_test_view", lambda runs, cache=None: (
-        {r.method: (np.zeros((8, 8, 3)), depth, normal) for r in runs}, np.ones((8, 8, 3)), depth, normal,
-        np.ones((8, 8), bool)))
+    monkeypatch.setattr(
+        paper_bench,
+        "render_first_test_view",
+        lambda runs, cache=None: (
+            {r.method: (np.zeros((8, 8, 3)), depth, normal) for r in runs},
+            np.ones((8, 8, 3)),
+            depth,
+            normal,
+            np.ones((8, 8), bool),
+        ),
+    )
     bench.run(progress=False)
     report = (tmp_path / "report.md").read_text()
     assert "2 finished run(s) were trained with other settings" in report  # one group: same method, same change
-    assert (f"{DEFAULT_METHOD} (depth_normal_start_iter 300 -> 700, albedo_smoothness_beta 0.0 -> 10.0), 2 run(s): "
-            f"runs/teapot/minimal/{DEFAULT_METHOD}-s0, runs/teapot/minimal/{DEFAULT_METHOD}-s1") in report
+    assert (
+        f"{DEFAULT_METHOD} (depth_normal_start_iter 300 -> 700, albedo_smoothness_beta 0.0 -> 10.0), 2 run(s): "
+        f"runs/teapot/minimal/{DEFAULT_METHOD}-s0, runs/teapot/minimal/{DEFAULT_METHOD}-s1"
+    ) in report
 
 
 def test_textured_objects_get_their_own_scenes_and_runs(tmp_path):
@@ -195,8 +246,10 @@ def test_textured_objects_get_their_own_scenes_and_runs(tmp_path):
 
     from tacsplat.sim.objects import TEXTURES
 
-    plain, textured = (PaperBench(tmp_path, PaperBenchConfig(objects=("torus",), settings=("minimal",),
-                                                              methods=("paper",), texture=t)) for t in TEXTURES)
+    plain, textured = (
+        PaperBench(tmp_path, PaperBenchConfig(objects=("torus",), settings=("minimal",), methods=("paper",), texture=t))
+        for t in TEXTURES
+    )
     assert [r.scene.name for r in plain.runs()] == ["minimal-s0"]
     assert [r.scene.name for r in textured.runs()] == ["minimal-s0-checker"]
     assert [r.out.name for r in textured.runs()] == ["paper-s0-checker"]
@@ -208,12 +261,24 @@ def test_textured_objects_get_their_own_scenes_and_runs(tmp_path):
 def _finish(run, cd: float) -> None:
     """What a finished run leaves behind (for the report): metrics.json and progress.csv."""
     run.out.mkdir(parents=True, exist_ok=True)
-    (run.out / "metrics.json").write_text(json.dumps(
-        {"cd": cd, "psnr": 20.0, "ssim": 0.8, "normal_error_deg": 1000 * cd, "train_seconds": 5.0,
-         "num_gaussians": 100}))
+    (run.out / "metrics.json").write_text(
+        json.dumps(
+            {
+                "cd": cd,
+                "psnr": 20.0,
+                "ssim": 0.8,
+                "normal_error_deg": 1000 * cd,
+                "train_seconds": 5.0,
+                "num_gaussians": 100,
+            }
+        )
+    )
     from tacsplat.reconstruction.run_dir import PROGRESS_COLUMNS
 
-    rows = [{"iteration": 0, "seconds": 0.0, "psnr": 10, "cd": 0.1}, {"iteration": 100, "seconds": 5.0, "psnr": 20, "cd": cd}]
+    rows = [
+        {"iteration": 0, "seconds": 0.0, "psnr": 10, "cd": 0.1},
+        {"iteration": 100, "seconds": 5.0, "psnr": 20, "cd": cd},
+    ]
     lines = [",".join(PROGRESS_COLUMNS)] + [",".join(str(r.get(k, 0)) for k in PROGRESS_COLUMNS) for r in rows]
     (run.out / "progress.csv").write_text("\n".join(lines) + "\n")
 
@@ -267,11 +332,22 @@ def test_resume_skips_finished_runs(tmp_path, monkeypatch):
 def test_each_capture_starts_its_costliest_methods_first(tmp_path):
     """Runs of one capture are started most work per step first (the longest no longer starts last on few
     cores); captures and settings keep the order of runs()."""
-    config = PaperBenchConfig(objects=("teapot", "bell"), settings=("minimal",),
-                              methods=("3dgs", "paper", "paper+n+tn", "3dgs+t"))
+    config = PaperBenchConfig(
+        objects=("teapot", "bell"), settings=("minimal",), methods=("3dgs", "paper", "paper+n+tn", "3dgs+t")
+    )
     names = [job.name.split("/")[-1] if run else job.name for run, job in PaperBench(tmp_path, config).jobs()]
-    assert names == ["capture scenes/teapot/minimal-s0", "paper+n+tn-s0", "paper-s0", "3dgs+t-s0", "3dgs-s0",
-                     "capture scenes/bell/minimal-s0", "paper+n+tn-s0", "paper-s0", "3dgs+t-s0", "3dgs-s0"]
+    assert names == [
+        "capture scenes/teapot/minimal-s0",
+        "paper+n+tn-s0",
+        "paper-s0",
+        "3dgs+t-s0",
+        "3dgs-s0",
+        "capture scenes/bell/minimal-s0",
+        "paper+n+tn-s0",
+        "paper-s0",
+        "3dgs+t-s0",
+        "3dgs-s0",
+    ]
     assert step_work("3dgs") < step_work("3dgs+s") == step_work("3dgs+t") < step_work("paper") < step_work("paper+n")
     assert step_work("paper+n") < step_work("paper+n+tn") < step_work("default-vc")
 
@@ -286,8 +362,12 @@ def _small_scene(path):
     with SceneWriter.create(path, intr, SceneMeta(source="sim", object="cube"), sensor) as writer:
         for i, split in enumerate(("train", "train", "test")):
             image = np.full((8, 12, 3), 40 * i, np.uint8)
-            writer.add_frame(image, look_at([0.3, 0.1 * i, 0.2], [0, 0, 0]), split,
-                             gt_depth=np.full((8, 12), 0.3, np.float32) if split == "test" else None)
+            writer.add_frame(
+                image,
+                look_at([0.3, 0.1 * i, 0.2], [0, 0, 0]),
+                split,
+                gt_depth=np.full((8, 12), 0.3, np.float32) if split == "test" else None,
+            )
         for t in range(6):  # touches 1 and 4 miss
             depth = np.zeros((5, 6), np.float32)
             if t not in (1, 4):
@@ -345,7 +425,8 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     assert captured == ["teapot-s0", "teapot-s1"]
     assert trained == [f"t{n:03d}-s{s}" for s in (0, 1) for n in (0, 3, 10)]
     assert [(r["seed"], r["requested_touches"], r["touches"], r["cd"]) for r in rows] == [
-        (s, n, k, 0.01 * (1 + s)) for s in (0, 1) for n, k in ((0, 0), (3, 3), (10, 4))]  # 4 touches in contact
+        (s, n, k, 0.01 * (1 + s)) for s in (0, 1) for n, k in ((0, 0), (3, 3), (10, 4))
+    ]  # 4 touches in contact
     assert (tmp_path / "touches.csv").is_file() and (tmp_path / "summary.csv").is_file()
 
     (tmp_path / "runs" / "t003-s1" / "metrics.json").unlink()  # a run to do again; its copy is there
@@ -365,8 +446,20 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
 
 
 def test_touch_summary_and_plot(tmp_path):
-    rows = [{"seed": s, "requested_touches": n, "touches": n, "cd": 0.01 / (1 + n) + 0.001 * s, "psnr": 20.0 + s,
-             "ssim": 0.9, "train_seconds": 1.0, "num_gaussians": 10} for s in (0, 1) for n in (0, 4, 8)]
+    rows = [
+        {
+            "seed": s,
+            "requested_touches": n,
+            "touches": n,
+            "cd": 0.01 / (1 + n) + 0.001 * s,
+            "psnr": 20.0 + s,
+            "ssim": 0.9,
+            "train_seconds": 1.0,
+            "num_gaussians": 10,
+        }
+        for s in (0, 1)
+        for n in (0, 4, 8)
+    ]
     summary = summarise(rows)
     assert [s["requested_touches"] for s in summary] == [0, 4, 8]
     assert summary[0]["cd_mean"] == pytest.approx(0.0105) and summary[0]["cd_std"] == pytest.approx(0.0005)
@@ -390,8 +483,11 @@ def test_default_vs_full_sentence():
 
     rows = synthetic_rows()
     assert default_vs_full(rows, "minimal") == ""  # no default-method runs
-    rows += [{**r, "method": DEFAULT_METHOD, "cd": r["cd"] * (0.5 if r["object"] == "teapot" else 1.5)}
-             for r in synthetic_rows() if r["method"] == "paper"]
+    rows += [
+        {**r, "method": DEFAULT_METHOD, "cd": r["cd"] * (0.5 if r["object"] == "teapot" else 1.5)}
+        for r in synthetic_rows()
+        if r["method"] == "paper"
+    ]
     text = default_vs_full(rows, "minimal")  # teapot 0.0025 (< 0.005), bell 0.009 (> 0.006)
     assert "lower CD on 1 of 2 objects" in text and "0.0058 vs 0.0055 (+5%)" in text
 
@@ -400,8 +496,10 @@ def test_coverage_sentence():
     from tacsplat.apps.paper_bench import coverage_sentence
 
     assert coverage_sentence(synthetic_rows(), "minimal") == ""  # no ground-truth mesh: no split
-    rows = [{**r, "unseen_fraction": 0.1 if r["object"] == "teapot" else 0.3, "cd_seen": r["cd"],
-             "cd_unseen": 2 * r["cd"]} for r in synthetic_rows()]
+    rows = [
+        {**r, "unseen_fraction": 0.1 if r["object"] == "teapot" else 0.3, "cd_seen": r["cd"], "cd_unseen": 2 * r["cd"]}
+        for r in synthetic_rows()
+    ]
     text = coverage_sentence(rows, "minimal")
     assert "20% of the test views' surface" in text and "teapot 10%, bell 30%" in text
     assert "Paper (T + S) 0.0110 vs 0.0055" in text
@@ -411,25 +509,42 @@ def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures
     from tacsplat.apps.paper_bench import where_we_stand
 
     text = where_we_stand(synthetic_rows(), PaperBenchConfig(iterations=1500, resolution=128))
-    table = {line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
-             for line in text.splitlines() if line.startswith("| ") and "---" not in line}
+    table = {
+        line.split("|")[1].strip(): [c.strip() for c in line.split("|")[2:-1]]
+        for line in text.splitlines()
+        if line.startswith("| ") and "---" not in line
+    }
     assert table["3DGS (ours)"] == ["0.00040", "0.00090", "0.00065"]  # cd_paper = cd^2 in the synthetic rows
     assert table["full (paper)"] == ["0.0022", "0.0082", "0.0026"] and table["3DGS (paper)"][2] == "0.0111"
     # 3DGS/full: our CD 0.025/0.0055 = 4.55x, cd_paper 0.00065/0.0000305 = 21.31x, the paper's 4.3x
     assert "4.55x in our CD, 21.31x in the paper's CD (the paper: 4.3x)" in text
     assert "touches: gel contact patches" in text and "resolution 128 px" in text
     assert "surface normals" not in text  # the departures of the paper's full method, not of the default method
-    paper = where_we_stand(synthetic_rows(), PaperBenchConfig(preset="paper", touch_model="paper", iterations=30000,
-                                                              resolution=800))
+    paper = where_we_stand(
+        synthetic_rows(), PaperBenchConfig(preset="paper", touch_model="paper", iterations=30000, resolution=800)
+    )
     assert "touches:" not in paper and "resolution" not in paper and "steps" not in paper.split("in force")[1]
 
 
 def test_scaling_report_writes_csv_table_and_plot(tmp_path):
     from tacsplat.apps.bench_scaling import write_scaling_report
 
-    rows = [{"resolution": r, "iterations": n, "method": v, "cd": 0.04 / k, "cd_paper": 0.004 / k, "psnr": 20.0 + k,
-             "ssim": 0.8, "train_seconds": 10.0 * k * r / 128, "num_gaussians": 1000}
-            for r in (128, 256) for k, n in ((1, 750), (2, 1500)) for v in ("3dgs", "paper")]
+    rows = [
+        {
+            "resolution": r,
+            "iterations": n,
+            "method": v,
+            "cd": 0.04 / k,
+            "cd_paper": 0.004 / k,
+            "psnr": 20.0 + k,
+            "ssim": 0.8,
+            "train_seconds": 10.0 * k * r / 128,
+            "num_gaussians": 1000,
+        }
+        for r in (128, 256)
+        for k, n in ((1, 750), (2, 1500))
+        for v in ("3dgs", "paper")
+    ]
     report = write_scaling_report(tmp_path, rows, "teapot").read_text()
     assert report.count("| teapot") == 0 and report.count("\n| 128 |") == 4 and "scaling.png" in report
     assert len(read_results_rows(tmp_path / "scaling.csv")) == 8
@@ -446,10 +561,14 @@ def read_results_rows(path):
 def test_the_report_says_how_its_jobs_ran(tmp_path):
     from tacsplat.apps.paper_bench import PaperBenchConfig, write_paper_report
 
-    note = " (jobs side by side as up to 2 worker processes: a run's train seconds include the time it shared the cores)"
+    note = (
+        " (jobs side by side as up to 2 worker processes: a run's train seconds include the time it shared the cores)"
+    )
     write_paper_report(tmp_path, [], [], PaperBenchConfig(), wall_seconds=90.0, figures=False, wall_note=note)
-    assert f"Wall time of the last invocation: 1.5 min{note}; 0 of 0 runs finished." in (
-        tmp_path / "report.md").read_text()
+    assert (
+        f"Wall time of the last invocation: 1.5 min{note}; 0 of 0 runs finished."
+        in (tmp_path / "report.md").read_text()
+    )
 
 
 def test_prepared_pictures_keep_only_the_latest_scene(tmp_path, monkeypatch):
@@ -464,6 +583,10 @@ def test_prepared_pictures_keep_only_the_latest_scene(tmp_path, monkeypatch):
     runs = {(r.object, r.method): r for r in bench.runs()}
     bench.prepare_pictures(runs["teapot", "paper"])
     bench.prepare_pictures(runs["teapot", "3dgs"])
-    assert set(bench.first_views) == {runs["teapot", "paper"].out, runs["teapot", "3dgs"].out, runs["teapot", "paper"].scene}
+    assert set(bench.first_views) == {
+        runs["teapot", "paper"].out,
+        runs["teapot", "3dgs"].out,
+        runs["teapot", "paper"].scene,
+    }
     bench.prepare_pictures(runs["bell", "3dgs"])  # another scene: the teapot's views go
     assert set(bench.first_views) == {runs["bell", "3dgs"].out, runs["bell", "3dgs"].scene}

@@ -38,16 +38,30 @@ def test_summarize_leaves_out_the_warm_up_and_sums_the_phases():
 
 
 def test_compare_matches_list_rows_by_label_and_gives_ratios():
-    a = {"sizes": [{"width": 64, "height": 64, "n_gaussians": 10, "cpu": {"forward_ms": 2.0}},
-                   {"width": 128, "height": 64, "n_gaussians": 10, "cpu": {"forward_ms": 8.0}}],
-         "per_step": [1.0, 2.0], "ok": True}  # fmt: skip
+    a = {
+        "sizes": [
+            {"width": 64, "height": 64, "n_gaussians": 10, "cpu": {"forward_ms": 2.0}},
+            {"width": 128, "height": 64, "n_gaussians": 10, "cpu": {"forward_ms": 8.0}},
+        ],
+        "per_step": [1.0, 2.0],
+        "ok": True,
+    }
     b = {"sizes": [{"width": 128, "height": 64, "n_gaussians": 10, "cpu": {"forward_ms": 4.0}}]}
-    assert flatten(a) == {"sizes.64x64:10.width": 64.0, "sizes.64x64:10.height": 64.0,
-                          "sizes.64x64:10.n_gaussians": 10.0, "sizes.64x64:10.cpu.forward_ms": 2.0,
-                          "sizes.128x64:10.width": 128.0, "sizes.128x64:10.height": 64.0,
-                          "sizes.128x64:10.n_gaussians": 10.0, "sizes.128x64:10.cpu.forward_ms": 8.0}  # fmt: skip
+    assert flatten(a) == {
+        "sizes.64x64:10.width": 64.0,
+        "sizes.64x64:10.height": 64.0,
+        "sizes.64x64:10.n_gaussians": 10.0,
+        "sizes.64x64:10.cpu.forward_ms": 2.0,
+        "sizes.128x64:10.width": 128.0,
+        "sizes.128x64:10.height": 64.0,
+        "sizes.128x64:10.n_gaussians": 10.0,
+        "sizes.128x64:10.cpu.forward_ms": 8.0,
+    }
     rows = {key: (va, vb, r) for key, va, vb, r in compare(a, b, match="_ms")}
-    assert rows == {"sizes.64x64:10.cpu.forward_ms": (2.0, None, None), "sizes.128x64:10.cpu.forward_ms": (8.0, 4.0, 0.5)}
+    assert rows == {
+        "sizes.64x64:10.cpu.forward_ms": (2.0, None, None),
+        "sizes.128x64:10.cpu.forward_ms": (8.0, 4.0, 0.5),
+    }
     assert "0.500" in format_comparison(compare(a, b, match="_ms"), "a.json", "b.json")
 
 
@@ -80,13 +94,34 @@ def test_bench_step_refuses_too_few_iterations(tmp_path):
 
 def test_bench_step_with_a_reference_profiles_both_back_to_back_and_prints_their_ratio(tmp_path, capsys):
     out = tmp_path / "step"
-    assert main(["bench", "step", "--out", str(out), "--resolutions", "16", "--iterations", "12",
-                 "--method", "paper+n+tn", "--reference", "paper", "--rounds", "3"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "bench",
+                "step",
+                "--out",
+                str(out),
+                "--resolutions",
+                "16",
+                "--iterations",
+                "12",
+                "--method",
+                "paper+n+tn",
+                "--reference",
+                "paper",
+                "--rounds",
+                "3",
+            ]
+        )
+        == 0
+    )
     results = json.loads((out / "step.json").read_text())
     (row,), (ref,) = results["resolutions"], results["reference"]
     assert results["settings"]["reference"] == "paper" and results["settings"]["method"] == "paper+n+tn"
     ratio = row["ratio_to_reference"]
-    assert len(ratio["rounds"]) == 3 and ratio["rounds"][0]["step_median"] == row["step_median_ms"] / ref["step_median_ms"]
+    assert (
+        len(ratio["rounds"]) == 3 and ratio["rounds"][0]["step_median"] == row["step_median_ms"] / ref["step_median_ms"]
+    )
     assert ratio["step_median"] == sorted(r["step_median"] for r in ratio["rounds"])[1]
     assert "paper+n+tn / paper (each run next to its reference): step median" in capsys.readouterr().out
     assert main(["bench", "step", "--out", str(out), "--rounds", "2"]) == 2  # rounds without a reference

@@ -17,8 +17,7 @@ from pathlib import Path
 import pytest
 
 from tacsplat.apps import executors
-from tacsplat.apps.executors import (FAILURES_CSV, default_workers, resolve_executor, run_jobs, side_by_side,
-                                     usable_cpus)
+from tacsplat.apps.executors import FAILURES_CSV, default_workers, resolve_executor, run_jobs, side_by_side, usable_cpus
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders; spawned
 # workers get this process's sys.path
@@ -35,16 +34,25 @@ def test_jobs_run_side_by_side_in_workers_and_failures_are_listed(tmp_path):
     # "second" finishes only once "first" has started, and "first" only once "second" has: both must run at once
     first = FileJob("first", tmp_path / "first", wait_for=tmp_path / "second" / "attempts")
     second = FileJob("second", tmp_path / "second", wait_for=tmp_path / "first" / "attempts")
-    jobs = [first, second,
-            FileJob("flaky", tmp_path / "flaky", "raise-while-broken"),
-            FileJob("after-flaky", tmp_path / "after-flaky", needs=("flaky",)),
-            FileJob("bad-input", tmp_path / "bad-input", "config-error"),
-            FileJob("after-first", tmp_path / "after-first", needs=("first",))]
+    jobs = [
+        first,
+        second,
+        FileJob("flaky", tmp_path / "flaky", "raise-while-broken"),
+        FileJob("after-flaky", tmp_path / "after-flaky", needs=("flaky",)),
+        FileJob("bad-input", tmp_path / "bad-input", "config-error"),
+        FileJob("after-first", tmp_path / "after-first", needs=("first",)),
+    ]
     (tmp_path / "flaky").mkdir()
     (tmp_path / "flaky" / "broken").touch()
     finished = []
-    outcome = run_jobs(jobs, tmp_path, executor="processes", workers=2, progress=False,
-                       on_done=lambda job, summary: finished.append(job.name))
+    outcome = run_jobs(
+        jobs,
+        tmp_path,
+        executor="processes",
+        workers=2,
+        progress=False,
+        on_done=lambda job, summary: finished.append(job.name),
+    )
 
     assert sorted(outcome.done) == ["after-first", "first", "second"] and sorted(finished) == sorted(outcome.done)
     assert finished.index("first") < finished.index("after-first")
@@ -108,8 +116,9 @@ def test_a_dead_worker_fails_its_job_and_the_rest_go_on(tmp_path):
     jobs = [FileJob("dies", tmp_path / "dies", "die-once"), FileJob("later", tmp_path / "later")]
     outcome = run_jobs(jobs, tmp_path, executor="processes", workers=1, progress=False)
     assert outcome.done == ["later"]
-    assert read_rows(tmp_path / FAILURES_CSV) == [{"job": "dies", "attempts": "1",
-                                                   "error": "its worker process died (out of memory, or killed)"}]
+    assert read_rows(tmp_path / FAILURES_CSV) == [
+        {"job": "dies", "attempts": "1", "error": "its worker process died (out of memory, or killed)"}
+    ]
     assert jobs[0].attempts()[0] != jobs[1].attempts()[0]  # the rest ran in a new worker
 
 
@@ -142,7 +151,8 @@ def test_worker_log_records_reach_this_process(tmp_path, caplog, job):
     with caplog.at_level(logging.INFO):
         run_jobs([job("talks", tmp_path / "talks")], tmp_path, executor="processes", progress=False)
     assert [(r.name, r.getMessage()) for r in caplog.records if r.name == "tacsplat.test_worker"] == [
-        ("tacsplat.test_worker", "hello from talks")]
+        ("tacsplat.test_worker", "hello from talks")
+    ]
 
 
 def test_ctrl_c_interrupts_running_jobs_and_keeps_finished_ones(tmp_path):
@@ -154,8 +164,7 @@ def test_ctrl_c_interrupts_running_jobs_and_keeps_finished_ones(tmp_path):
         raise KeyboardInterrupt  # Ctrl-C as the first job finishes
 
     with pytest.raises(KeyboardInterrupt):
-        run_jobs([hangs, first, queued], tmp_path, executor="processes", workers=2, on_done=interrupt,
-                 progress=False)
+        run_jobs([hangs, first, queued], tmp_path, executor="processes", workers=2, on_done=interrupt, progress=False)
     assert first.complete()
     assert (hangs.folder / "interrupted").exists()  # the running job got KeyboardInterrupt (and could save)
     assert not hangs.complete() and queued.attempts() == []
@@ -185,10 +194,12 @@ def test_auto_is_processes_on_a_cpu_machine_with_cores_to_share(monkeypatch):
 
 def test_workers_stop_their_jobs_and_exit_when_the_batch_process_is_killed(tmp_path):
     hangs = FileJob("hangs", tmp_path / "hangs", "block")
-    script = ("import sys; from pathlib import Path; from batch_test_jobs import FileJob; "
-              "from tacsplat.apps.executors import run_jobs; "
-              f"run_jobs([FileJob('hangs', Path({str(hangs.folder)!r}), 'block')], Path({str(tmp_path)!r}), "
-              "executor='processes', progress=False)")
+    script = (
+        "import sys; from pathlib import Path; from batch_test_jobs import FileJob; "
+        "from tacsplat.apps.executors import run_jobs; "
+        f"run_jobs([FileJob('hangs', Path({str(hangs.folder)!r}), 'block')], Path({str(tmp_path)!r}), "
+        "executor='processes', progress=False)"
+    )
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
     batch = subprocess.Popen([sys.executable, "-c", script], env=env)
     try:

@@ -59,8 +59,14 @@ def test_failures_are_retried_listed_and_the_rerun_runs_only_them(tmp_path, embe
     (tmp_path / "flaky").mkdir()
     (tmp_path / "flaky" / "broken").touch()
     finished = []
-    outcome = run_jobs(jobs, tmp_path, executor="ray", retries=1, progress=False,
-                       on_done=lambda job, summary: finished.append((job.name, summary)))
+    outcome = run_jobs(
+        jobs,
+        tmp_path,
+        executor="ray",
+        retries=1,
+        progress=False,
+        on_done=lambda job, summary: finished.append((job.name, summary)),
+    )
 
     assert sorted(outcome.done) == ["dies-once", "ok", "ok-too"]
     assert sorted(finished) == [("dies-once", {"attempts": 2}), ("ok", {"attempts": 1}), ("ok-too", {"attempts": 1})]
@@ -73,8 +79,11 @@ def test_failures_are_retried_listed_and_the_rerun_runs_only_them(tmp_path, embe
     assert set(failures) == {"flaky", "after-flaky", "bad-input"}
     assert failures["flaky"]["attempts"] == "2" and failures["flaky"]["error"].startswith("RuntimeError: ")
     assert "broken is there" in failures["flaky"]["error"]
-    assert failures["after-flaky"] == {"job": "after-flaky", "attempts": "0",
-                                       "error": "not run: needs flaky, which failed"}
+    assert failures["after-flaky"] == {
+        "job": "after-flaky",
+        "attempts": "0",
+        "error": "not run: needs flaky, which failed",
+    }
     assert outcome.not_run == ["after-flaky"]
     assert failures["bad-input"]["error"] == "threshold: must be > 0, got -1"
 
@@ -101,7 +110,9 @@ def test_ctrl_c_cancels_outstanding_tasks_and_keeps_finished_ones(tmp_path, embe
     try:  # the running task got the cancellation
         wait_until((hangs.folder / "interrupted").exists, timeout_s=10)
     except TimeoutError:
-        raise AssertionError(f"no KeyboardInterrupt in the running task: {hangs.folder} holds "
-                             f"{sorted(p.name for p in hangs.folder.iterdir())}, attempts {hangs.attempts()}") from None
+        raise AssertionError(
+            f"no KeyboardInterrupt in the running task: {hangs.folder} holds "
+            f"{sorted(p.name for p in hangs.folder.iterdir())}, attempts {hangs.attempts()}"
+        ) from None
     assert not hangs.complete() and queued.attempts() == []
     assert ray.is_initialized()  # the batch did not own this Ray: it is left running

@@ -15,8 +15,17 @@ from tacsplat.errors import ConfigError
 
 pytestmark = pytest.mark.timeout(600)
 
-TINY = NextTouchBenchConfig(objects=("bell",), seeds=(0,), grasps=(0, 2), views=2, test_views=2, resolution=32,
-                            iterations=4, candidates=2, selection_steps=4)
+TINY = NextTouchBenchConfig(
+    objects=("bell",),
+    seeds=(0,),
+    grasps=(0, 2),
+    views=2,
+    test_views=2,
+    resolution=32,
+    iterations=4,
+    candidates=2,
+    selection_steps=4,
+)
 
 
 @pytest.fixture(scope="module")
@@ -28,16 +37,21 @@ def bench(tmp_path_factory):
 @pytest.mark.slow  # the bench's captures and runs, however tiny: ~30 s
 def test_both_strategies_at_every_budget_with_the_same_views(bench):
     bench, rows = bench
-    assert [(r["strategy"], r["grasps"]) for r in rows] == [("random", 0), ("random", 2), ("next-best", 0),
-                                                            ("next-best", 2)]
+    assert [(r["strategy"], r["grasps"]) for r in rows] == [
+        ("random", 0),
+        ("random", 2),
+        ("next-best", 0),
+        ("next-best", 2),
+    ]
     random, chosen = (Scene.load(bench.out / "scenes" / f"bell-s0-{s}") for s in ("random", "next-best"))
     assert [f.T_world_cam.tobytes() for f in random.frames] == [f.T_world_cam.tobytes() for f in chosen.frames]
     for strategy, scene in (("random", random), ("next-best", chosen)):
         kept = Scene.load(bench.out / "scenes" / f"bell-s0-{strategy}-g2")
         assert len(kept.frames) == len(scene.frames)
         first_two = sorted({t.grasp for t in scene.touches})[:2]
-        assert [(t.grasp, t.finger) for t in kept.touches] == [(t.grasp, t.finger) for t in scene.touches
-                                                               if t.grasp in first_two]
+        assert [(t.grasp, t.finger) for t in kept.touches] == [
+            (t.grasp, t.finger) for t in scene.touches if t.grasp in first_two
+        ]
         assert Scene.load(bench.out / "scenes" / f"bell-s0-{strategy}-g0").touches == []
     assert all(r["selection_seconds"] == 0 for r in rows if r["strategy"] == "random")
     assert [r["selection_seconds"] > 0 for r in rows if r["strategy"] == "next-best"] == [False, True]
@@ -49,13 +63,25 @@ def test_results_report_and_pictures(bench):
     bench, rows = bench
     with (bench.out / "results.csv").open() as fh:
         table = list(csv.DictReader(fh))
-    assert list(table[0]) == ["object", "strategy", "grasps", "seed", "cd", "cd_paper", "psnr", "seconds",
-                              "selection_seconds", "touches"]
+    assert list(table[0]) == [
+        "object",
+        "strategy",
+        "grasps",
+        "seed",
+        "cd",
+        "cd_paper",
+        "psnr",
+        "seconds",
+        "selection_seconds",
+        "touches",
+    ]
     assert len(table) == 4 and float(table[0]["cd"]) == pytest.approx(rows[0]["cd"])
     report = (bench.out / "report.md").read_text()
     assert "| bell | next-best |" in report and "| 2 |" in report and "Spearman" in report
     assert f"every reconstruction `{TINY.method}`" in report
-    assert (bench.out / "cd_vs_grasps.png").stat().st_size > 0 and (bench.out / "uncertainty_bell.png").stat().st_size > 0
+    assert (bench.out / "cd_vs_grasps.png").stat().st_size > 0 and (
+        bench.out / "uncertainty_bell.png"
+    ).stat().st_size > 0
     rho = [line for line in report.splitlines() if line.startswith("| bell | ") and "%" not in line][-1]
     assert len(rho.split("|")) == 5  # one correlation per score
 
@@ -81,10 +107,17 @@ def test_first_grasps_keeps_whole_grasps_in_number_order(bench, tmp_path):
     assert json.loads((tmp_path / "one" / "scene.json").read_text())["extra"]["first_grasps"]["grasps"] == 1
 
 
-@pytest.mark.parametrize("change, option", [({"objects": ("vase",)}, "--objects"), ({"grasps": ()}, "--grasps"),
-                                            ({"uncertainty": "entropy"}, "--uncertainty"),
-                                            ({"mesh": "/no/such.obj"}, "--mesh"), ({"grasps": (2, 2)}, "--grasps"),
-                                            ({"method": "ours"}, "--method")])
+@pytest.mark.parametrize(
+    "change, option",
+    [
+        ({"objects": ("vase",)}, "--objects"),
+        ({"grasps": ()}, "--grasps"),
+        ({"uncertainty": "entropy"}, "--uncertainty"),
+        ({"mesh": "/no/such.obj"}, "--mesh"),
+        ({"grasps": (2, 2)}, "--grasps"),
+        ({"method": "ours"}, "--method"),
+    ],
+)
 def test_bad_settings_name_their_option(change, option, tmp_path):
     from dataclasses import replace
 
@@ -150,15 +183,27 @@ def test_executor_ray_gives_the_local_scenes_and_results(bench, tmp_path, monkey
     timings = ("seconds", "selection_seconds")
     table, expected = read_rows(on_ray.out / "results.csv"), read_rows(local.out / "results.csv")
     assert [{k: v for k, v in r.items() if k not in timings} for r in table] == [
-        {k: v for k, v in r.items() if k not in timings} for r in expected]
+        {k: v for k, v in r.items() if k not in timings} for r in expected
+    ]
     assert len(rows) == 4 and all(r["cd"] > 0 for r in rows)
     assert not (on_ray.out / "failures.csv").exists() and (on_ray.out / "report.md").is_file()
 
 
 def test_the_executor_options_are_on_the_command(tmp_path, capsys):
     args = build_parser(["bench", "next-touch"]).parse_args(
-        ["bench", "next-touch", "--out", str(tmp_path), "--executor", "ray", "--ray-address", "head:6379",
-         "--retries", "1"])
+        [
+            "bench",
+            "next-touch",
+            "--out",
+            str(tmp_path),
+            "--executor",
+            "ray",
+            "--ray-address",
+            "head:6379",
+            "--retries",
+            "1",
+        ]
+    )
     assert (args.executor, args.ray_address, args.retries) == ("ray", "head:6379", 1)
     args = build_parser(["bench", "next-touch"]).parse_args(["bench", "next-touch", "--out", str(tmp_path)])
     assert (args.executor, args.ray_address, args.retries, args.workers) == ("auto", None, RETRIES, None)

@@ -35,8 +35,9 @@ def test_error_row_shows_unseen_surface_in_magenta_and_signed_depth_error(tmp_pa
     seen = np.zeros((16, 16), bool)
     seen[4:8, 4:12] = True  # the top half of the surface seen, the bottom half not
     three = Image.open(render_grid(panels, np.ones((16, 16, 3)), depth, tmp_path / "three.png", gt_normal=normal))
-    four = Image.open(render_grid(panels, np.ones((16, 16, 3)), depth, tmp_path / "four.png", gt_normal=normal,
-                                  gt_seen=seen))
+    four = Image.open(
+        render_grid(panels, np.ones((16, 16, 3)), depth, tmp_path / "four.png", gt_normal=normal, gt_seen=seen)
+    )
     assert four.height > 1.2 * three.height
     pixels = np.asarray(four.convert("RGB")).reshape(-1, 3).astype(int)
     assert np.any(np.all(np.abs(pixels - (230, 0, 204)) <= 3, axis=1))  # magenta: unseen ground truth

@@ -34,8 +34,20 @@ from tacsplat.apps.viewer_splat import camera_matrices, render_viewpoint, splat_
 def small_scene(tmp_path_factory):
     """A 32 px simulated capture of the teapot: 2 train views, 1 test view, 1 grasp of 4 touches, a GT mesh."""
     scene = tmp_path_factory.mktemp("viewer") / "scene"
-    args = ["sim-capture", "--resolution", "32", "--views", "2", "--test-views", "1", "--grasps", "1",
-            "--out", str(scene), "--quiet"]
+    args = [
+        "sim-capture",
+        "--resolution",
+        "32",
+        "--views",
+        "2",
+        "--test-views",
+        "1",
+        "--grasps",
+        "1",
+        "--out",
+        str(scene),
+        "--quiet",
+    ]
     assert main(args) == 0
     return scene
 
@@ -44,8 +56,20 @@ def small_scene(tmp_path_factory):
 def small_run(small_scene, tmp_path_factory):
     """A 5-step reconstruction of :func:`small_scene` (touch and camera Gaussians, metrics.json)."""
     run = tmp_path_factory.mktemp("viewer") / "run"
-    args = ["reconstruct", str(small_scene), "--out", str(run), "--iterations", "5", "--sh-degree", "0",
-            "--backend", "cpu", "--init.no-use-sfm", "--quiet"]
+    args = [
+        "reconstruct",
+        str(small_scene),
+        "--out",
+        str(run),
+        "--iterations",
+        "5",
+        "--sh-degree",
+        "0",
+        "--backend",
+        "cpu",
+        "--init.no-use-sfm",
+        "--quiet",
+    ]
     assert main(args) == 0
     return run
 
@@ -92,12 +116,14 @@ def test_a_served_run_holds_its_splat_frusta_and_touches(small_run, small_scene)
     frusta = sorted(name for name, n in nodes.items() if n.message is m.CameraFrustumMessage)
     assert frusta == sorted(f"/run/scene/cameras/{f.split}/frame_{f.id:04d}" for f in scene.frames)
     assert all(len(nodes[name].props["_image_data"]) > 0 for name in frusta)  # each with its thumbnail
-    touch_points = sum(n.buffers["points"].size // 3 for name, n in nodes.items()
-                       if n.message is m.PointCloudMessage and name.startswith("/run/scene/touches/"))
+    touch_points = sum(
+        n.buffers["points"].size // 3
+        for name, n in nodes.items()
+        if n.message is m.PointCloudMessage and name.startswith("/run/scene/touches/")
+    )
     assert touch_points == len(scene.touch_points())
     gels = {f"/run/scene/touches/grasp_{t.grasp:02d}/{t.finger}_{t.id:04d}" for t in scene.touches}
-    assert all(nodes[name].message is m.FrameMessage and nodes[f"{name}/gel"].message is m.BoxMessage
-               for name in gels)
+    assert all(nodes[name].message is m.FrameMessage and nodes[f"{name}/gel"].message is m.BoxMessage for name in gels)
     assert nodes["/run/scene/gt_mesh"].message is m.MeshMessage and not nodes["/run/scene/gt_mesh"].visible
     assert nodes["/run/scene/bounding_sphere"].message is m.IcosphereMessage
 
@@ -107,12 +133,13 @@ def test_export_writes_one_page_holding_the_scene(small_run, tmp_path, capsys):
     assert main(["view", str(small_run), "--export", str(page)]) == 0
     assert f"wrote {page}" in capsys.readouterr().out
     html = page.read_text()
-    assert html.startswith("<!doctype html>") and "<script" in html and "src=\"http" not in html  # no fetches
+    assert html.startswith("<!doctype html>") and "<script" in html and 'src="http' not in html  # no fetches
     nodes = exported_scene(html)
     from viser import _messages as m
 
-    assert {name: splat_count(n) for name, n in nodes.items()
-            if n.message is m.GaussianSplatsMessage} == _split_counts(small_run)
+    assert {name: splat_count(n) for name, n in nodes.items() if n.message is m.GaussianSplatsMessage} == _split_counts(
+        small_run
+    )
     assert any(n.message is m.CameraFrustumMessage for n in nodes.values())
 
 
@@ -203,8 +230,9 @@ def test_the_checkpoint_slider_shows_each_kept_checkpoint(small_run, tmp_path, s
     ckpt = read_checkpoint(run / "checkpoint.pt")
     early = Gaussians.from_state_dict(ckpt["gaussians"])
     keep = torch.arange(len(early)) < 100
-    ckpt["gaussians"] = Gaussians({k: v.detach()[keep] for k, v in early.params.items()}, early.from_touch[keep],
-                                  early.sh_degree).state_dict()
+    ckpt["gaussians"] = Gaussians(
+        {k: v.detach()[keep] for k, v in early.params.items()}, early.from_touch[keep], early.sh_degree
+    ).state_dict()
     ckpt["step"] = 2
     torch.save(ckpt, run / "checkpoint_000002.pt")
     stamp = (run / "checkpoint.pt").stat().st_mtime
@@ -234,8 +262,10 @@ def _report(small_run: Path, small_scene: Path, root: Path) -> Path:
 
 def test_a_report_shows_3dgs_and_the_paper_method_side_by_side(small_run, small_scene, tmp_path, server):
     content = viewer.load_content(_report(small_run, small_scene, tmp_path))
-    assert content.kind == "report" and [r.label for r in content.pair] == ["teapot/minimal/3dgs-s0",
-                                                                            "teapot/minimal/paper-s0"]
+    assert content.kind == "report" and [r.label for r in content.pair] == [
+        "teapot/minimal/3dgs-s0",
+        "teapot/minimal/paper-s0",
+    ]
     assert content.pair[0].scene is not None  # found inside the report
     view = viewer.build_view(server, content)
     left, right = view.slots
@@ -256,14 +286,18 @@ def test_splat_buffers_are_the_gaussians_in_their_own_unit():
     """Covariances are the inverse of the rasterizer's precisions; 0.1 mm Gaussians survive viser's float16."""
     rng = np.random.default_rng(0)
     n = 50
-    gaussians = Gaussians({
-        "means": torch.tensor(rng.normal(0, 0.05, (n, 3)), dtype=torch.float32),
-        "quats": torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32),
-        "scales": torch.tensor(np.log(rng.uniform(5e-5, 2e-4, (n, 3))), dtype=torch.float32),
-        "opacities": torch.tensor(rng.normal(size=n), dtype=torch.float32),
-        "sh0": torch.tensor(rng.normal(size=(n, 1, 3)), dtype=torch.float32),
-        "shN": torch.zeros(n, 0, 3),
-    }, torch.zeros(n, dtype=torch.bool), 0)  # fmt: skip
+    gaussians = Gaussians(
+        {
+            "means": torch.tensor(rng.normal(0, 0.05, (n, 3)), dtype=torch.float32),
+            "quats": torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32),
+            "scales": torch.tensor(np.log(rng.uniform(5e-5, 2e-4, (n, 3))), dtype=torch.float32),
+            "opacities": torch.tensor(rng.normal(size=n), dtype=torch.float32),
+            "sh0": torch.tensor(rng.normal(size=(n, 1, 3)), dtype=torch.float32),
+            "shN": torch.zeros(n, 0, 3),
+        },
+        torch.zeros(n, dtype=torch.bool),
+        0,
+    )
     b = splat_buffers(gaussians)
     expected = torch.linalg.inv(precisions(gaussians.quats.detach().double(), gaussians.scales.detach().double()))
     assert np.allclose(b.covariances * b.unit**2, expected.numpy(), rtol=1e-4, atol=1e-16)
@@ -292,17 +326,27 @@ def test_a_browser_camera_renders_as_the_scene_camera_it_stands_in(small_run, sm
 
     g = load_ply(small_run / "splat.ply")
     viewmat, Ks = camera_tensors([frame])
-    expected, _, _ = rasterization(g.means, g.quats, g.scales, g.opacities, g.sh_coefficients(), viewmat, Ks,
-                                   intr.width, intr.height, sh_degree=g.sh_degree, render_mode="RGB+ED",
-                                   backgrounds=torch.ones(1, 3))
+    expected, _, _ = rasterization(
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.sh_coefficients(),
+        viewmat,
+        Ks,
+        intr.width,
+        intr.height,
+        sh_degree=g.sh_degree,
+        render_mode="RGB+ED",
+        backgrounds=torch.ones(1, 3),
+    )
     rgb, depth, _ = render_viewpoint(g, T_world_cam, K, intr.width, intr.height)
     assert np.allclose(rgb, expected[0, ..., :3].detach().clamp(0, 1).numpy(), atol=1e-5)
     assert np.allclose(depth, expected[0, ..., 3].detach().numpy(), atol=1e-5)
 
     placed = viewer.SplatSlot(None, "/left")
     placed.gaussians, placed.offset = g, np.array([-0.3, 0.1, 0.0])  # where a report puts its left run
-    rows = viewer.render_rows([placed], wxyz, frame.T_world_cam[:3, 3] + placed.offset, fov_y, intr.width,
-                              intr.height)
+    rows = viewer.render_rows([placed], wxyz, frame.T_world_cam[:3, 3] + placed.offset, fov_y, intr.width, intr.height)
     assert rows.shape == (intr.height, 2 * intr.width, 3)
     assert np.abs(rows[:, : intr.width].astype(int) - (rgb * 255).round()).max() <= 1
 

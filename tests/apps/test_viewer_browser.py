@@ -13,8 +13,7 @@ import pytest
 from tacsplat.cli import main
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from viewer_browser import (  # noqa: E402
-    browser_missing, expected_view, headless_chromium, wait_for_object, write_splat_run)
+from viewer_browser import browser_missing, expected_view, headless_chromium, wait_for_object, write_splat_run  # noqa: E402
 from viewer_client import served  # noqa: E402
 
 pytestmark = [pytest.mark.browser, pytest.mark.skipif(browser_missing() is not None, reason=str(browser_missing()))]

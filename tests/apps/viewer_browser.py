@@ -90,11 +90,23 @@ def headless_chromium(timeout: float = 60.0):
 
     with tempfile.TemporaryDirectory() as profile:
         process = subprocess.Popen(
-            [chromium(), "--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--enable-unsafe-swiftshader",
-             "--use-angle=swiftshader", "--no-first-run", "--remote-debugging-port=0", f"--user-data-dir={profile}",
-             f"--window-size={VIEWPORT[0]},{VIEWPORT[1]}", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
+            [
+                chromium(),
+                "--headless=new",
+                "--no-sandbox",
+                "--disable-dev-shm-usage",
+                "--enable-unsafe-swiftshader",
+                "--use-angle=swiftshader",
+                "--no-first-run",
+                "--remote-debugging-port=0",
+                f"--user-data-dir={profile}",
+                f"--window-size={VIEWPORT[0]},{VIEWPORT[1]}",
+                "about:blank",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             port = None
             for line in process.stderr:  # Chromium says where its DevTools listen, then keeps logging
@@ -108,8 +120,13 @@ def headless_chromium(timeout: float = 60.0):
                 tab = next(t for t in json.load(response) if t["type"] == "page")
             with connect(tab["webSocketDebuggerUrl"], max_size=None, open_timeout=timeout) as ws:
                 page = Page(ws)
-                page.call("Emulation.setDeviceMetricsOverride", width=VIEWPORT[0], height=VIEWPORT[1],
-                          deviceScaleFactor=1, mobile=False)
+                page.call(
+                    "Emulation.setDeviceMetricsOverride",
+                    width=VIEWPORT[0],
+                    height=VIEWPORT[1],
+                    deviceScaleFactor=1,
+                    mobile=False,
+                )
                 yield page
         finally:
             process.terminate()
@@ -139,9 +156,14 @@ def sphere_splat(n: int, radius: float = 0.08):
     spacing = math.sqrt(4 * math.pi * radius**2 / n)
     scales = np.tile([0.9 * spacing, 0.9 * spacing, 0.1 * spacing], (n, 1))
     t = lambda a: torch.tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
-    params = {"means": t(radius * normals), "quats": t(quats), "scales": t(np.log(scales)),
-              "opacities": t(np.full(n, 4.0)), "sh0": rgb_to_sh0(t(0.5 + 0.5 * normals))[:, None],
-              "shN": torch.zeros(n, 0, 3)}
+    params = {
+        "means": t(radius * normals),
+        "quats": t(quats),
+        "scales": t(np.log(scales)),
+        "opacities": t(np.full(n, 4.0)),
+        "sh0": rgb_to_sh0(t(0.5 + 0.5 * normals))[:, None],
+        "shN": torch.zeros(n, 0, 3),
+    }
     return Gaussians(params, torch.from_numpy(z > 0.8), 0)
 
 
@@ -191,8 +213,15 @@ def compare(picture: np.ndarray, expected: np.ndarray, mask: np.ndarray) -> tupl
     return float((~background[inside]).mean()), float(background[ring].mean()), float(error)
 
 
-def wait_for_object(page: Page, url: str, expected: np.ndarray, mask: np.ndarray, timeout: float = 180.0,
-                    shown: float = 0.9, max_error: float = 0.1) -> tuple[float | None, np.ndarray | None]:
+def wait_for_object(
+    page: Page,
+    url: str,
+    expected: np.ndarray,
+    mask: np.ndarray,
+    timeout: float = 180.0,
+    shown: float = 0.9,
+    max_error: float = 0.1,
+) -> tuple[float | None, np.ndarray | None]:
     """Open ``url`` and take screenshots until the object covers ``shown`` of its pixels with the colours of
     tacsplat's render (mean error at most ``max_error``) over a background: (seconds from opening the page to
     that screenshot, or None at ``timeout``; the last picture)."""

@@ -27,9 +27,14 @@ def served(path, *options, timeout: float = 180.0):
     it all the same."""
     headless = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     # -X faulthandler: a process that does not stop on Ctrl-C is sent SIGABRT, which prints where each thread is
-    process = subprocess.Popen([sys.executable, "-X", "faulthandler", "-m", "tacsplat", "view", str(path), "--port",
-                                "0", *options], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=headless,
-                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    process = subprocess.Popen(
+        [sys.executable, "-X", "faulthandler", "-m", "tacsplat", "view", str(path), "--port", "0", *options],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env=headless,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
     output: list[str] = []
     found = threading.Event()
 
@@ -109,9 +114,8 @@ def _apply(nodes: dict[str, Node], messages: list[dict], buffers: list[np.ndarra
 def served_scene(url: str, timeout: float = 60.0) -> dict[str, Node]:
     """The scene nodes a new browser connection receives from a viewer at ``url`` (its replay of the scene)."""
     import viser
-    from websockets.sync.client import connect
-
     from viser import _messages
+    from websockets.sync.client import connect
 
     nodes: dict[str, Node] = {}
     ws_url = url.replace("http://", "ws://")
@@ -120,7 +124,8 @@ def served_scene(url: str, timeout: float = 60.0) -> dict[str, Node]:
             frame = ws.recv(timeout=timeout)
             inner, compressed = int.from_bytes(frame[:8], "little"), int.from_bytes(frame[8:16], "little")
             payload = msgspec.msgpack.decode(
-                zstandard.ZstdDecompressor().decompress(frame[16:16 + compressed], max_output_size=inner))
+                zstandard.ZstdDecompressor().decompress(frame[16 : 16 + compressed], max_output_size=inner)
+            )
             buffers = _aligned_buffers(frame, 16 + compressed, payload["binaryBufferLengths"])
             _apply(nodes, payload["messages"], buffers)
             if any(m["type"] == _messages.ReplayDoneMessage.__name__ for m in payload["messages"]):
@@ -134,7 +139,7 @@ def exported_scene(html: str) -> dict[str, Node]:
     data = base64.b64decode(match.group(1))
     inner = zstandard.ZstdDecompressor().decompress(data[8:], max_output_size=int.from_bytes(data[:8], "little"))
     length = int.from_bytes(inner[:8], "little")
-    payload = msgspec.msgpack.decode(inner[8:8 + length])
+    payload = msgspec.msgpack.decode(inner[8 : 8 + length])
     buffers = _aligned_buffers(inner, 8 + length, payload["binaryBufferLengths"])
     nodes: dict[str, Node] = {}
     _apply(nodes, [message for _, message in payload["messages"]], buffers)
@@ -144,4 +149,3 @@ def exported_scene(html: str) -> dict[str, Node]:
 def splat_count(node: Node) -> int:
     """Gaussians in a splat node (viser packs each in 8 uint32 words)."""
     return node.buffers["buffer"].size // 8
-

@@ -33,12 +33,39 @@ def test_the_base_install_reconstructs_a_scene_and_names_the_extras_it_lacks(tmp
     found = _run(python, "-c", f"import importlib.util as u; print([m for m in {EXTRA_MODULES!r} if u.find_spec(m)])")
     assert found.stdout.strip() == "[]"  # no extra came with it
     scene, run = tmp_path / "scene", tmp_path / "run"
-    _run(sys.executable, "-m", "tacsplat", "sim-capture", "--resolution", "32", "--views", "2", "--test-views", "1",
-         "--grasps", "1", "--out", scene, "--quiet")  # (the full install's twin writes it)
-    _run(tacsplat, "reconstruct", scene, "--out", run, "--iterations", "5", "--backend", "cpu", "--init.no-use-sfm",
-         "--quiet")
+    _run(
+        sys.executable,
+        "-m",
+        "tacsplat",
+        "sim-capture",
+        "--resolution",
+        "32",
+        "--views",
+        "2",
+        "--test-views",
+        "1",
+        "--grasps",
+        "1",
+        "--out",
+        scene,
+        "--quiet",
+    )  # (the full install's twin writes it)
+    _run(
+        tacsplat,
+        "reconstruct",
+        scene,
+        "--out",
+        run,
+        "--iterations",
+        "5",
+        "--backend",
+        "cpu",
+        "--init.no-use-sfm",
+        "--quiet",
+    )
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["iterations"] == 5 and metrics["num_gaussians"] > 0 and (run / "splat.ply").is_file()
     missing = _run(tacsplat, "sim-capture", "--out", tmp_path / "twin", check=False)
     assert missing.returncode == 1 and missing.stderr.strip() == (
-        "error: tacsplat sim-capture needs the sim extra (mujoco is not installed): pip install 'tacsplat[sim]'")
+        "error: tacsplat sim-capture needs the sim extra (mujoco is not installed): pip install 'tacsplat[sim]'"
+    )

@@ -32,9 +32,11 @@ def test_no_command_prints_help_and_fails(capsys):
 
 
 def test_help_imports_no_heavy_package_and_python_m_works():
-    code = ("import sys, runpy\nsys.argv = ['tacsplat', '--help']\n"
-            "try:\n    runpy.run_module('tacsplat', run_name='__main__')\nexcept SystemExit:\n    pass\n"
-            "print('HEAVY', sorted(m for m in ('torch', 'numba', 'mujoco', 'trimesh', 'scipy') if m in sys.modules))")
+    code = (
+        "import sys, runpy\nsys.argv = ['tacsplat', '--help']\n"
+        "try:\n    runpy.run_module('tacsplat', run_name='__main__')\nexcept SystemExit:\n    pass\n"
+        "print('HEAVY', sorted(m for m in ('torch', 'numba', 'mujoco', 'trimesh', 'scipy') if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert "usage: tacsplat" in out.stdout and "HEAVY []" in out.stdout, out.stdout + out.stderr
 
@@ -60,15 +62,21 @@ def test_exit_codes_usage_errors_are_2_runtime_errors_1(tmp_path, capsys):
         main(["bench", "paper", "--out", str(tmp_path / "b"), "--iterations", "many"])
     assert stop.value.code == 2
     capsys.readouterr()
-    for value, why in (("many", "--iterations: invalid literal for int() with base 10: 'many'"),
-                       ("-5", "--iterations: must be an integer >= 1, got -5")):  # (reconstruct's own parser)
+    for value, why in (
+        ("many", "--iterations: invalid literal for int() with base 10: 'many'"),
+        ("-5", "--iterations: must be an integer >= 1, got -5"),
+    ):  # (reconstruct's own parser)
         assert main(["reconstruct", str(tmp_path), "--out", str(tmp_path / "run"), "--iterations", value]) == 2
         err = capsys.readouterr().err
         assert err.strip() == f"tacsplat reconstruct: error: {why} (see tacsplat reconstruct --help)"
-    for argv, why in ((["--out", str(tmp_path / "run")], "SCENE: required (the scene directory)"),
-                      ([str(tmp_path)], "--out: required")):
+    for argv, why in (
+        (["--out", str(tmp_path / "run")], "SCENE: required (the scene directory)"),
+        ([str(tmp_path)], "--out: required"),
+    ):
         assert main(["reconstruct", *argv]) == 2
-        assert capsys.readouterr().err.strip() == f"tacsplat reconstruct: error: {why} (see tacsplat reconstruct --help)"
+        assert (
+            capsys.readouterr().err.strip() == f"tacsplat reconstruct: error: {why} (see tacsplat reconstruct --help)"
+        )
     assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--seeds", "0,x"]) == 2
     assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--methods", "3dgs,fancy"]) in (1, 2)
     assert "unknown method 'fancy'" in capsys.readouterr().err
@@ -76,8 +84,9 @@ def test_exit_codes_usage_errors_are_2_runtime_errors_1(tmp_path, capsys):
 
 
 def test_required_options_are_marked_and_completion_is_printed(capsys):
-    help_text = " ".join(build_parser(["sim-capture"])._subparsers._group_actions[0].choices["sim-capture"]
-                         .format_help().split())
+    help_text = " ".join(
+        build_parser(["sim-capture"])._subparsers._group_actions[0].choices["sim-capture"].format_help().split()
+    )
     assert "(required)" in help_text and "(default: None)" not in help_text
     with __import__("pytest").raises(SystemExit):
         main(["--print-completion", "bash"])

@@ -62,7 +62,9 @@ def undeclared_imports(pyproject: dict) -> dict[str, str]:
 def test_every_imported_module_is_declared():
     pyproject = tomllib.loads((ROOT / "pyproject.toml").read_text())
     missing = undeclared_imports(pyproject)
-    assert not missing, "imported but not declared in pyproject.toml: " + "; ".join(f"{m} at {w}" for m, w in missing.items())
+    assert not missing, "imported but not declared in pyproject.toml: " + "; ".join(
+        f"{m} at {w}" for m, w in missing.items()
+    )
 
 
 def test_the_check_catches_a_dependency_removed_from_pyproject():

@@ -1,9 +1,9 @@
 import numpy as np
-from scipy.spatial.transform import Rotation
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy.spatial.transform import Rotation
 
 from tacsplat import geometry as g
 from tacsplat.errors import InvalidInputError
@@ -40,7 +40,6 @@ def test_opencv_opengl_round_trip_and_axes(T):
     assert np.allclose(gl[:3, 3], T[:3, 3])
     assert np.allclose(-gl[:3, 2], T[:3, 2])
     assert np.allclose(-gl[:3, 1], T[:3, 1])
-
 
 
 @settings(max_examples=50)

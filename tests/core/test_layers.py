@@ -20,8 +20,15 @@ PACKAGE_DIRS = {  # import prefix -> folder (pyproject's package-dir)
     "tacsplat.datasets": "datasets",
     "tacsplat": "tacsplat",
 }
-CORE = {"tacsplat", "tacsplat.errors", "tacsplat.files", "tacsplat.geometry", "tacsplat.types", "tacsplat.progress",
-        "tacsplat.interrupts"}
+CORE = {
+    "tacsplat",
+    "tacsplat.errors",
+    "tacsplat.files",
+    "tacsplat.geometry",
+    "tacsplat.types",
+    "tacsplat.progress",
+    "tacsplat.interrupts",
+}
 # the layer of each subpackage; a module may import only its own layer or lower ones
 LAYERS = {
     "core": 0,
@@ -105,7 +112,7 @@ def test_no_import_cycles_between_modules(graph):
         stack.append(node)
         for nxt in internal[node]:
             if state.get(nxt) == "open":
-                cycles.append(stack[stack.index(nxt):] + [nxt])
+                cycles.append(stack[stack.index(nxt) :] + [nxt])
             elif nxt not in state:
                 visit(nxt)
         stack.pop()

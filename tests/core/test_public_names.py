@@ -11,8 +11,10 @@ def _run(code: str) -> str:
 
 
 def test_importing_the_roots_loads_no_torch_and_no_hardware_sdk():
-    loaded = _run("import sys, tacsplat.reconstruction, tacsplat.drivers; "
-                  "print(sorted(m for m in ('torch', 'numba', 'dynamixel_sdk', 'mujoco') if m in sys.modules))")
+    loaded = _run(
+        "import sys, tacsplat.reconstruction, tacsplat.drivers; "
+        "print(sorted(m for m in ('torch', 'numba', 'dynamixel_sdk', 'mujoco') if m in sys.modules))"
+    )
     assert loaded == "[]"
 
 

@@ -17,7 +17,9 @@ SENSOR = SensorModel(name="gel", width_px=10, height_px=8, pixel_size_m=5e-4, ge
 
 
 def intrinsics(width: int = WIDTH, height: int = HEIGHT, f: float = 14.0) -> CameraIntrinsics:
-    return CameraIntrinsics(np.array([[f, 0.0, width / 2], [0.0, f * 1.05, height / 2], [0.0, 0.0, 1.0]]), width, height)
+    return CameraIntrinsics(
+        np.array([[f, 0.0, width / 2], [0.0, f * 1.05, height / 2], [0.0, 0.0, 1.0]]), width, height
+    )
 
 
 def ring_pose(i: int, radius: float = 0.4) -> np.ndarray:

@@ -27,8 +27,10 @@ W, H = 10, 8
 def _posed_image(iid: int, camera_id: int, name: str) -> tuple[pycolmap.Image, pycolmap.Rigid3d]:
     T_world_cam = look_at([np.cos(iid), np.sin(iid), 0.3 * iid], [0.1, 0.0, 0.0])
     points = pycolmap.Point2DList([pycolmap.Point2D(np.array([1.0 + k, 2.0])) for k in range(3)])
-    return (pycolmap.Image(name=name, camera_id=camera_id, image_id=iid, points2D=points),
-            pycolmap.Rigid3d(invert_pose(T_world_cam)[:3, :4]))
+    return (
+        pycolmap.Image(name=name, camera_id=camera_id, image_id=iid, points2D=points),
+        pycolmap.Rigid3d(invert_pose(T_world_cam)[:3, :4]),
+    )
 
 
 @pytest.fixture(params=["text", "binary", "text-legacy", "binary-legacy"])
@@ -36,8 +38,9 @@ def colmap_model(request, tmp_path):
     """Three images of one PINHOLE camera, one 3D point seen by images 1 (2D point 0) and 2 (2D point 1); as
     COLMAP >= 3.12 writes it (with rigs and frames) or older COLMAP (without). Returns (model dir, images dir)."""
     rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[9.0, 9.5, 5.2, 3.9],
-                                                    camera_id=1))
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[9.0, 9.5, 5.2, 3.9], camera_id=1)
+    )
     images = tmp_path / "images"
     images.mkdir()
     for iid in (1, 2, 3):
@@ -89,39 +92,66 @@ CASES = {
     "a repeated NAME": (
         lambda m: _text_field(m / "images.txt", 7, 9, "img_01.png"),
         lambda m: _pack(m / "images.bin", _name_at("img_02.png"), "10s", b"img_01.png"),
-        "images", 2, ("NAME img_01.png again", "image 2", "image 1")),
+        "images",
+        2,
+        ("NAME img_01.png again", "image 2", "image 1"),
+    ),
     "a camera id cameras lacks": (
         lambda m: _text_field(m / "images.txt", 7, 8, "7"),
         lambda m: _pack(m / "images.bin", _after_name("img_02.png", -4), "I", 7),
-        "images", 2, ("image 2 names camera 7",)),
+        "images",
+        2,
+        ("image 2 names camera 7",),
+    ),
     "a track naming a missing 2D point": (
         lambda m: _text_field(m / "points3D.txt", 4, 11, "9"),
         lambda m: _pack(m / "points3D.bin", 71, "I", 9),
-        "points3D", 1, ("point 1", "POINT2D_IDX 9 of image 2", "3 2D points")),
+        "points3D",
+        1,
+        ("point 1", "POINT2D_IDX 9 of image 2", "3 2D points"),
+    ),
     "a track naming a missing image": (
         lambda m: _text_field(m / "points3D.txt", 4, 10, "42"),
         lambda m: _pack(m / "points3D.bin", 67, "I", 42),
-        "points3D", 1, ("point 1", "image 42")),
+        "points3D",
+        1,
+        ("point 1", "image 42"),
+    ),
     "a 2D point naming a missing 3D point": (
         lambda m: _text_field(m / "images.txt", 6, 2, "5"),
         lambda m: _pack(m / "images.bin", _after_name("img_01.png", 11 + 8 + 16), "q", 5),
-        "images", 1, ("POINTS2D[0] of image 1", "3D point 5")),
+        "images",
+        1,
+        ("POINTS2D[0] of image 1", "3D point 5"),
+    ),
     "a NaN in a pose": (
         lambda m: _text_field(m / "images.txt", 7, 1, "nan"),
         lambda m: _pack(m / "images.bin", _after_name("img_02.png", -60), "d", float("nan")),
-        "images", 2, ("image 2's pose is not finite",)),
+        "images",
+        2,
+        ("image 2's pose is not finite",),
+    ),
     "a quaternion that is no rotation": (
         lambda m: _text_field(m / "images.txt", 7, 2, "0.9"),
         lambda m: _pack(m / "images.bin", _after_name("img_02.png", -52), "d", 0.9),
-        "images", 2, ("image 2's pose", "not 1")),
+        "images",
+        2,
+        ("image 2's pose", "not 1"),
+    ),
     "a negative focal length": (
         lambda m: _text_field(m / "cameras.txt", 4, 4, "-9"),
         lambda m: _pack(m / "cameras.bin", 32, "d", -9.0),
-        "cameras", 1, ("camera 1", "focal length", "-9")),
+        "cameras",
+        1,
+        ("camera 1", "focal length", "-9"),
+    ),
     "an unknown camera model": (
         lambda m: _text_field(m / "cameras.txt", 4, 1, "FOOBAR"),
         lambda m: _pack(m / "cameras.bin", 12, "i", 99),
-        "cameras", 1, ("camera 1", "unknown camera model")),
+        "cameras",
+        1,
+        ("camera 1", "unknown camera model"),
+    ),
 }
 
 
@@ -194,8 +224,10 @@ def test_the_poses_of_a_camera_rig_are_pycolmaps(tmp_path):
     """Two cameras on a rig (the second 0.05 m and 21 degrees off the first): each image's pose is its frame's
     rig_from_world, then its camera's sensor_from_rig, as pycolmap composes them."""
     rec = pycolmap.Reconstruction()
-    cameras = [pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[9.0, 9.5, 5.2, 3.9], camera_id=1),
-               pycolmap.Camera(model="SIMPLE_PINHOLE", width=W, height=H, params=[8.0, 5.0, 4.0], camera_id=2)]
+    cameras = [
+        pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[9.0, 9.5, 5.2, 3.9], camera_id=1),
+        pycolmap.Camera(model="SIMPLE_PINHOLE", width=W, height=H, params=[8.0, 5.0, 4.0], camera_id=2),
+    ]
     for camera in cameras:
         rec.add_camera(camera)
     rig = pycolmap.Rig(rig_id=1)
@@ -236,8 +268,22 @@ def test_the_poses_of_a_camera_rig_are_pycolmaps(tmp_path):
 @pytest.mark.parametrize("colmap_model", ["text"], indirect=True)
 def test_a_model_too_small_for_the_test_split_says_how_to_train_on_it(colmap_model, tmp_path, capsys):
     model, images = colmap_model
-    assert main(["import", "colmap", str(model), "--images", str(images), "--out", str(tmp_path / "scene"),
-                 "--test-every", "1"]) == 1
+    assert (
+        main(
+            [
+                "import",
+                "colmap",
+                str(model),
+                "--images",
+                str(images),
+                "--out",
+                str(tmp_path / "scene"),
+                "--test-every",
+                "1",
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no train frame to import" in err and "--test-every 0" in err, err
 
@@ -255,19 +301,31 @@ def _nerfstudio(root: Path, frames: int = 5, **top) -> Path:
         cv2.imwrite(str(root / f"frame_{i:03d}.png"), np.full((NS_H, NS_W, 3), 30 * i, np.uint8))
         T_world_cam = look_at([2.0 * np.cos(i), 2.0 * np.sin(i), 0.5], [0.0, 0.0, 0.0])
         entries.append({"file_path": f"frame_{i:03d}.png", "transform_matrix": opencv_to_opengl(T_world_cam).tolist()})
-    data = {"camera_model": "OPENCV", "w": NS_W, "h": NS_H, "fl_x": 50.0, "fl_y": 52.0, "cx": 32.5, "cy": 23.5,
-            "frames": entries, **top}
+    data = {
+        "camera_model": "OPENCV",
+        "w": NS_W,
+        "h": NS_H,
+        "fl_x": 50.0,
+        "fl_y": 52.0,
+        "cx": 32.5,
+        "cy": 23.5,
+        "frames": entries,
+        **top,
+    }
     (root / "transforms.json").write_text(json.dumps(data))
     return root
 
 
-@pytest.mark.parametrize("distortion, field, words", [
-    ({"k1": 50.0}, "k1", "scales the image corner by 3.5"),  # the issue's: focal 88 px became 1046 px
-    ({"k1": -1.0}, "k1", "folds the image back"),  # the radius peaks at 0.385, short of the corner at 0.8
-    ({"k1": 0.1, "k2": -3.0}, "k2", "folds the image back"),
-    ({"p1": 0.2}, "p1", "moves the image corners by 48%"),
-    ({"p2": -50.0}, "p2", "folds the image back"),
-])
+@pytest.mark.parametrize(
+    "distortion, field, words",
+    [
+        ({"k1": 50.0}, "k1", "scales the image corner by 3.5"),  # the issue's: focal 88 px became 1046 px
+        ({"k1": -1.0}, "k1", "folds the image back"),  # the radius peaks at 0.385, short of the corner at 0.8
+        ({"k1": 0.1, "k2": -3.0}, "k2", "folds the image back"),
+        ({"p1": 0.2}, "p1", "moves the image corners by 48%"),
+        ({"p2": -50.0}, "p2", "folds the image back"),
+    ],
+)
 def test_implausible_distortion_is_one_error_naming_the_field(tmp_path, distortion, field, words):
     src = _nerfstudio(tmp_path / "ns", **distortion)
     with pytest.raises(SceneFormatError, match=words) as info:
@@ -289,8 +347,10 @@ def test_a_frames_implausible_distortion_names_the_frame_and_the_cli_says_it_in_
 def test_a_real_wide_angle_lens_is_imported(tmp_path):
     """A wide-angle webcam's distortion (k1 -0.28, k2 0.09, the ChArUco tests' lens) and the nerfstudio tests'
     lens pass the plausibility rule."""
-    for name, distortion in (("webcam", {"k1": -0.28, "k2": 0.09, "p1": 0.0005, "p2": -0.0003}),
-                             ("ns", {"k1": -0.15, "k2": 0.04, "p1": 0.003, "p2": -0.002})):
+    for name, distortion in (
+        ("webcam", {"k1": -0.28, "k2": 0.09, "p1": 0.0005, "p2": -0.0003}),
+        ("ns", {"k1": -0.15, "k2": 0.04, "p1": 0.003, "p2": -0.002}),
+    ):
         scene = Scene.load(import_nerfstudio(_nerfstudio(tmp_path / name, **distortion), tmp_path / f"s-{name}"))
         assert 40 < scene.frames[0].intrinsics.K[0, 0] < 60
 
@@ -306,6 +366,7 @@ def test_one_frame_says_how_to_train_on_it(tmp_path, capsys):
 
 # --- Blender: OpenEXR frames --------------------------------------------------------------------------------------
 
+
 def _write_exr(path: Path, rgba: np.ndarray) -> None:
     """A minimal OpenEXR 2 file: one part, scan lines, no compression, float32 channels A B G R (the layout
     Blender's uncompressed RGBA output has; checked with OpenEXR's exrheader and exrmaketiled)."""
@@ -316,14 +377,23 @@ def _write_exr(path: Path, rgba: np.ndarray) -> None:
 
     channels = b"".join(c.encode() + b"\0" + struct.pack("<iB3xii", 2, 0, 1, 1) for c in "ABGR") + b"\0"
     box = struct.pack("<4i", 0, 0, w - 1, h - 1)
-    header = (b"\x76\x2f\x31\x01" + struct.pack("<i", 2) + attribute("channels", "chlist", channels)
-              + attribute("compression", "compression", b"\0") + attribute("dataWindow", "box2i", box)
-              + attribute("displayWindow", "box2i", box) + attribute("lineOrder", "lineOrder", b"\0")
-              + attribute("pixelAspectRatio", "float", struct.pack("<f", 1.0))
-              + attribute("screenWindowCenter", "v2f", struct.pack("<2f", 0.0, 0.0))
-              + attribute("screenWindowWidth", "float", struct.pack("<f", 1.0)) + b"\0")
-    lines = [struct.pack("<ii", y, 16 * w) + b"".join(rgba[y, :, c].astype("<f4").tobytes() for c in (3, 2, 1, 0))
-             for y in range(h)]
+    header = (
+        b"\x76\x2f\x31\x01"
+        + struct.pack("<i", 2)
+        + attribute("channels", "chlist", channels)
+        + attribute("compression", "compression", b"\0")
+        + attribute("dataWindow", "box2i", box)
+        + attribute("displayWindow", "box2i", box)
+        + attribute("lineOrder", "lineOrder", b"\0")
+        + attribute("pixelAspectRatio", "float", struct.pack("<f", 1.0))
+        + attribute("screenWindowCenter", "v2f", struct.pack("<2f", 0.0, 0.0))
+        + attribute("screenWindowWidth", "float", struct.pack("<f", 1.0))
+        + b"\0"
+    )
+    lines = [
+        struct.pack("<ii", y, 16 * w) + b"".join(rgba[y, :, c].astype("<f4").tobytes() for c in (3, 2, 1, 0))
+        for y in range(h)
+    ]
     offsets = len(header) + 8 * h + np.cumsum([0] + [len(line) for line in lines[:-1]])
     path.write_bytes(header + struct.pack(f"<{h}Q", *offsets) + b"".join(lines))
 
@@ -336,7 +406,9 @@ def test_blender_exr_frames_are_refused_naming_the_file_and_the_conversion(tmp_p
         for k in range(2):
             _write_exr(src / split / f"r_{k}.exr", np.random.default_rng(k).uniform(0, 1, (8, 10, 4)))
             T_world_cam = look_at([4.0 * np.cos(k), 4.0 * np.sin(k), 1.0], [0.0, 0.0, 0.0])
-            frames.append({"file_path": f"./{split}/r_{k}.exr", "transform_matrix": opencv_to_opengl(T_world_cam).tolist()})
+            frames.append(
+                {"file_path": f"./{split}/r_{k}.exr", "transform_matrix": opencv_to_opengl(T_world_cam).tolist()}
+            )
         (src / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": 0.69, "frames": frames}))
     assert main(["import", "blender", str(src), "--out", str(tmp_path / "scene")]) == 1
     err = capsys.readouterr().err

@@ -66,8 +66,10 @@ def test_the_latest_value_wins_live_and_on_replay(tmp_path, h):
         w.annotate("b", {"grasps": [{"grasp": 0, "score_mm2": 1.25, "executed": None}]})
         w.annotate("a", [3, "x", True])
         w.remove_last()  # undo a touch: annotations are no frame or touch to undo
-        assert w.annotations == {"a": [3, "x", True], "b": {"grasps": [{"grasp": 0, "score_mm2": 1.25,
-                                                                         "executed": None}]}}
+        assert w.annotations == {
+            "a": [3, "x", True],
+            "b": {"grasps": [{"grasp": 0, "score_mm2": 1.25, "executed": None}]},
+        }
         live = dict(w.annotations)
     assert _scene_json(path)["annotations"] == live
     with SceneWriter.resume(path) as w:
@@ -88,13 +90,16 @@ def test_a_torn_annotation_line_leaves_the_value_before_it(tmp_path, h):
     assert Scene.load(path).annotations == {"choice": {"v": 1}}
 
 
-@pytest.mark.parametrize("value, why", [
-    ({"x": float("nan")}, "plain JSON"),
-    ({"x": np.float32(1.0)}, "float32"),
-    (object(), "object"),
-    ((1, 2), "read back changed"),
-    ({1: "a"}, "read back changed"),
-])
+@pytest.mark.parametrize(
+    "value, why",
+    [
+        ({"x": float("nan")}, "plain JSON"),
+        ({"x": np.float32(1.0)}, "float32"),
+        (object(), "object"),
+        ((1, 2), "read back changed"),
+        ({1: "a"}, "read back changed"),
+    ],
+)
 def test_anything_but_plain_json_is_refused_naming_the_key(tmp_path, h, value, why):
     path = h.build_scene(tmp_path / "s", n_frames=2, n_touches=0)
     journal = (path / "journal.jsonl").read_bytes()

@@ -14,13 +14,24 @@ from tacsplat.datasets import SceneMeta, SceneWriter, check_scene
 from tacsplat.datasets.inspect import run_inspect
 
 
-@pytest.mark.parametrize("command, option, words", [
-    (["import", "blender", "SRC", "--scale", "0"], "--scale", "must be a finite positive number"),
-    (["import", "colmap", "SRC", "--images", "IMG", "--scale", "nan"], "--scale", "must be a finite positive number"),
-    (["import", "colmap", "SRC", "--images", "IMG", "--test-every", "-1"], "--test-every", "must be an integer >= 0"),
-    (["import", "nerfstudio", "SRC", "--scale", "-2"], "--scale", "must be a finite positive number"),
-    (["import", "nerfstudio", "SRC", "--test-every", "-3"], "--test-every", "must be an integer >= 0"),
-])
+@pytest.mark.parametrize(
+    "command, option, words",
+    [
+        (["import", "blender", "SRC", "--scale", "0"], "--scale", "must be a finite positive number"),
+        (
+            ["import", "colmap", "SRC", "--images", "IMG", "--scale", "nan"],
+            "--scale",
+            "must be a finite positive number",
+        ),
+        (
+            ["import", "colmap", "SRC", "--images", "IMG", "--test-every", "-1"],
+            "--test-every",
+            "must be an integer >= 0",
+        ),
+        (["import", "nerfstudio", "SRC", "--scale", "-2"], "--scale", "must be a finite positive number"),
+        (["import", "nerfstudio", "SRC", "--test-every", "-3"], "--test-every", "must be an integer >= 0"),
+    ],
+)
 def test_import_values_out_of_range_are_usage_errors(tmp_path, capsys, command, option, words):
     out = tmp_path / "scene"
     args = [str(tmp_path / a) if a in ("SRC", "IMG") else a for a in command]

@@ -10,8 +10,16 @@ from tacsplat.errors import InvalidInputError
 
 
 def _frames(scene: Scene) -> list:
-    return [(f.split, f.T_world_cam.tobytes(), f.intrinsics.K.tobytes(), scene.load_image(f).tobytes(),
-             None if scene.gt_depth(f) is None else scene.gt_depth(f).tobytes()) for f in scene.frames]
+    return [
+        (
+            f.split,
+            f.T_world_cam.tobytes(),
+            f.intrinsics.K.tobytes(),
+            scene.load_image(f).tobytes(),
+            None if scene.gt_depth(f) is None else scene.gt_depth(f).tobytes(),
+        )
+        for f in scene.frames
+    ]
 
 
 def test_a_copy_keeps_every_frame_and_the_chosen_touches_in_order(scene_dir, tmp_path):
@@ -36,8 +44,9 @@ def test_by_default_everything_is_copied(scene_dir, tmp_path):
     source = Scene.load(scene_dir)
     copy = Scene.load(copy_scene(source, tmp_path / "copy"))
     assert _frames(copy) == _frames(source) and copy.meta == source.meta
-    assert [(t.grasp, t.finger, t.in_contact) for t in copy.touches] == \
-        [(t.grasp, t.finger, t.in_contact) for t in source.touches]
+    assert [(t.grasp, t.finger, t.in_contact) for t in copy.touches] == [
+        (t.grasp, t.finger, t.in_contact) for t in source.touches
+    ]
 
 
 def test_a_new_sensor_model_only_without_touches(scene_dir, tmp_path):

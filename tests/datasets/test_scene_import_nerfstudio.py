@@ -57,10 +57,28 @@ def ngp_src(tmp_path):
         name = f"./images/{i:04d}.png"
         if i not in (2, 5):
             _write_png(src / name, _ngp_image(i))
-        frames.append({"file_path": name, "sharpness": 120.5 + i, "transform_matrix": opencv_to_opengl(_pose(i)).tolist()})
-    data = {"camera_angle_x": 1.1, "camera_angle_y": 0.9, "fl_x": 20.0, "fl_y": 20.5, "k1": 0.0, "k2": 0.0, "k3": 0.0,
-            "k4": 0.0, "p1": 0.0, "p2": 0.0, "is_fisheye": False, "cx": 12.0, "cy": 9.25, "w": float(NGP_W),
-            "h": float(NGP_H), "aabb_scale": 16, "frames": frames[::-1]}  # file order is no order: sorted by name
+        frames.append(
+            {"file_path": name, "sharpness": 120.5 + i, "transform_matrix": opencv_to_opengl(_pose(i)).tolist()}
+        )
+    data = {
+        "camera_angle_x": 1.1,
+        "camera_angle_y": 0.9,
+        "fl_x": 20.0,
+        "fl_y": 20.5,
+        "k1": 0.0,
+        "k2": 0.0,
+        "k3": 0.0,
+        "k4": 0.0,
+        "p1": 0.0,
+        "p2": 0.0,
+        "is_fisheye": False,
+        "cx": 12.0,
+        "cy": 9.25,
+        "w": float(NGP_W),
+        "h": float(NGP_H),
+        "aabb_scale": 16,
+        "frames": frames[::-1],
+    }  # file order is no order: sorted by name
     (src / "transforms.json").write_text(json.dumps(data, indent=2))
     return src
 
@@ -101,8 +119,23 @@ def test_the_cli_imports_skipping_missing_images_and_inspect_points_raw_folders_
     assert main(["import", "nerfstudio", str(ngp_src), "--out", str(tmp_path / "scene")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "--skip-missing" in err[0]
-    assert main(["import", "nerfstudio", str(ngp_src / "transforms.json"), "--out", str(tmp_path / "scene"),
-                 "--skip-missing", "--test-every", "3", "--object", "mug"]) == 0
+    assert (
+        main(
+            [
+                "import",
+                "nerfstudio",
+                str(ngp_src / "transforms.json"),
+                "--out",
+                str(tmp_path / "scene"),
+                "--skip-missing",
+                "--test-every",
+                "3",
+                "--object",
+                "mug",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "frames    4: 2 train, 2 test" in out and "object    mug (source: import)" in out and "problems  none" in out
 
@@ -116,9 +149,14 @@ NS_DIST = {"k1": -0.15, "k2": 0.04, "p1": 0.003, "p2": -0.002}
 
 def _pattern(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """The scene as an ideal pinhole camera sees it: smooth colours of normalised image coordinates (x, y)."""
-    return np.stack([0.5 + 0.4 * np.sin(9 * x + 0.3) * np.cos(7 * y),
-                     0.5 + 0.4 * np.cos(10 * x - 4 * y),
-                     0.5 + 0.3 * np.sin(6 * x + 8 * y + 1.0)], axis=-1)
+    return np.stack(
+        [
+            0.5 + 0.4 * np.sin(9 * x + 0.3) * np.cos(7 * y),
+            0.5 + 0.4 * np.cos(10 * x - 4 * y),
+            0.5 + 0.3 * np.sin(6 * x + 8 * y + 1.0),
+        ],
+        axis=-1,
+    )
 
 
 def _inside_mask(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -161,12 +199,28 @@ def ns_src(tmp_path):
         _write_png(src / f"images/frame_{i + 1:05d}.png", rgb)
         _write_png(src / f"masks/frame_{i + 1:05d}.png", mask)
         saved = np.vstack([NS_APPLIED, [0, 0, 0, 1]]) @ opencv_to_opengl(_pose(i))
-        frames.append({"file_path": f"images/frame_{i + 1:05d}.png", "transform_matrix": saved.tolist(),
-                       "colmap_im_id": i + 1, "mask_path": f"masks/frame_{i + 1:05d}.png",
-                       "depth_file_path": f"depths/frame_{i + 1:05d}.png"})
-    data = {"w": NS_W, "h": NS_H, "fl_x": NS_K[0, 0], "fl_y": NS_K[1, 1], "cx": NS_K[0, 2], "cy": NS_K[1, 2],
-            **NS_DIST, "camera_model": "OPENCV", "frames": frames, "applied_transform": NS_APPLIED.tolist(),
-            "ply_file_path": "sparse_pc.ply"}
+        frames.append(
+            {
+                "file_path": f"images/frame_{i + 1:05d}.png",
+                "transform_matrix": saved.tolist(),
+                "colmap_im_id": i + 1,
+                "mask_path": f"masks/frame_{i + 1:05d}.png",
+                "depth_file_path": f"depths/frame_{i + 1:05d}.png",
+            }
+        )
+    data = {
+        "w": NS_W,
+        "h": NS_H,
+        "fl_x": NS_K[0, 0],
+        "fl_y": NS_K[1, 1],
+        "cx": NS_K[0, 2],
+        "cy": NS_K[1, 2],
+        **NS_DIST,
+        "camera_model": "OPENCV",
+        "frames": frames,
+        "applied_transform": NS_APPLIED.tolist(),
+        "ply_file_path": "sparse_pc.ply",
+    }
     (src / "transforms.json").write_text(json.dumps(data, indent=4))
     return src
 
@@ -202,8 +256,15 @@ def test_distorted_images_are_undistorted_with_a_consistent_camera(ns_src, tmp_p
 
 def test_the_undistortion_samples_where_each_pixel_ray_meets_the_distorted_image():
     """Exactly, with pixel centres at +0.5 on both sides (OpenCV's remap indexes them at integers)."""
-    camera = Camera(NS_K[0, 0], NS_K[1, 1], NS_K[0, 2], NS_K[1, 2], NS_W, NS_H,
-                    (NS_DIST["k1"], NS_DIST["k2"], NS_DIST["p1"], NS_DIST["p2"], 0.0))
+    camera = Camera(
+        NS_K[0, 0],
+        NS_K[1, 1],
+        NS_K[0, 2],
+        NS_K[1, 2],
+        NS_W,
+        NS_H,
+        (NS_DIST["k1"], NS_DIST["k2"], NS_DIST["p1"], NS_DIST["p2"], 0.0),
+    )
     intr, (map_x, map_y) = undistortion(camera)
     x, y = _pixel_rays(intr.K, NS_W, NS_H)
     k1, k2, p1, p2 = (NS_DIST[k] for k in ("k1", "k2", "p1", "p2"))
@@ -237,20 +298,36 @@ def _edit(src: Path, edit) -> None:
 
 
 def test_split_lists_decide_the_splits(ns_src, tmp_path):
-    _edit(ns_src, lambda d: d.update(train_filenames=["images/frame_00001.png", "./images/frame_00003.png",
-                                                      "images/frame_00004.png"],
-                                     val_filenames=["images/frame_00002.png"],
-                                     test_filenames=["images/frame_00002.png", "images/frame_00005.png"]))
+    _edit(
+        ns_src,
+        lambda d: d.update(
+            train_filenames=["images/frame_00001.png", "./images/frame_00003.png", "images/frame_00004.png"],
+            val_filenames=["images/frame_00002.png"],
+            test_filenames=["images/frame_00002.png", "images/frame_00005.png"],
+        ),
+    )
     scene = Scene.load(import_nerfstudio(ns_src, tmp_path / "scene", test_every=1))  # the lists win over the rule
     assert [f.split for f in scene.frames] == ["train", "test", "train", "train", "test"]
 
 
-@pytest.mark.parametrize("lists, field, words", [
-    ({"train_filenames": ["images/frame_00001.png", "images/nope.png"], "test_filenames": []},
-     "train_filenames", "images/nope.png"),
-    ({"train_filenames": ["images/frame_00001.png", "images/frame_00002.png"],
-      "test_filenames": ["images/frame_00002.png"]}, "test_filenames", "also in train_filenames"),
-])
+@pytest.mark.parametrize(
+    "lists, field, words",
+    [
+        (
+            {"train_filenames": ["images/frame_00001.png", "images/nope.png"], "test_filenames": []},
+            "train_filenames",
+            "images/nope.png",
+        ),
+        (
+            {
+                "train_filenames": ["images/frame_00001.png", "images/frame_00002.png"],
+                "test_filenames": ["images/frame_00002.png"],
+            },
+            "test_filenames",
+            "also in train_filenames",
+        ),
+    ],
+)
 def test_split_lists_naming_unknown_or_shared_frames_are_refused(ns_src, tmp_path, lists, field, words):
     _edit(ns_src, lambda d: d.update(lists))
     with pytest.raises(SceneFormatError, match=words) as info:
@@ -259,14 +336,21 @@ def test_split_lists_naming_unknown_or_shared_frames_are_refused(ns_src, tmp_pat
     assert not (tmp_path / "scene").exists()
 
 
-@pytest.mark.parametrize("edit, field, words", [
-    (lambda d: d.update(camera_model="OPENCV_FISHEYE"), "camera_model", "OPENCV_FISHEYE"),
-    (lambda d: d.update(k4=0.01), "k4", "k4"),
-    (lambda d: d.update(w=64.5), "w", "64.5"),
-    (lambda d: d["frames"][1].pop("mask_path"), "frames[1].mask_path", "every frame or none"),
-    (lambda d: d.update(applied_transform=[[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0]]), "applied_transform", "rigid"),
-    (lambda d: d["frames"][3].update(transform_matrix=[[1, 0, 0], [0, 1, 0]]), "frames[3].transform_matrix", "4x4"),
-])
+@pytest.mark.parametrize(
+    "edit, field, words",
+    [
+        (lambda d: d.update(camera_model="OPENCV_FISHEYE"), "camera_model", "OPENCV_FISHEYE"),
+        (lambda d: d.update(k4=0.01), "k4", "k4"),
+        (lambda d: d.update(w=64.5), "w", "64.5"),
+        (lambda d: d["frames"][1].pop("mask_path"), "frames[1].mask_path", "every frame or none"),
+        (
+            lambda d: d.update(applied_transform=[[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0]]),
+            "applied_transform",
+            "rigid",
+        ),
+        (lambda d: d["frames"][3].update(transform_matrix=[[1, 0, 0], [0, 1, 0]]), "frames[3].transform_matrix", "4x4"),
+    ],
+)
 def test_what_a_scene_cannot_hold_is_one_error_naming_the_field(ns_src, tmp_path, edit, field, words):
     _edit(ns_src, edit)
     with pytest.raises(SceneFormatError, match=words) as info:
@@ -293,9 +377,21 @@ def test_bad_options_are_config_errors(ns_src, tmp_path):
 
 # --- the reverse: a tacsplat scene is nerfstudio input ---------------------------------------------------------
 
-NERFSTUDIO_CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE",
-                            "EQUIRECTANGULAR", "OMNIDIRECTIONALSTEREO_L", "OMNIDIRECTIONALSTEREO_R", "VR180_L",
-                            "VR180_R", "ORTHOPHOTO", "FISHEYE624")  # nerfstudio's CAMERA_MODEL_TO_TYPE keys
+NERFSTUDIO_CAMERA_MODELS = (
+    "SIMPLE_PINHOLE",
+    "PINHOLE",
+    "SIMPLE_RADIAL",
+    "RADIAL",
+    "OPENCV",
+    "OPENCV_FISHEYE",
+    "EQUIRECTANGULAR",
+    "OMNIDIRECTIONALSTEREO_L",
+    "OMNIDIRECTIONALSTEREO_R",
+    "VR180_L",
+    "VR180_R",
+    "ORTHOPHOTO",
+    "FISHEYE624",
+)  # nerfstudio's CAMERA_MODEL_TO_TYPE keys
 
 
 def nerfstudio_parse(data_dir: Path, split: str) -> dict:
@@ -330,9 +426,13 @@ def nerfstudio_parse(data_dir: Path, split: str) -> dict:
     assert camera_model in NERFSTUDIO_CAMERA_MODELS
     poses = np.array(poses).astype(np.float32)
     assert poses.shape[1:] == (4, 4)
-    return {"indices": indices, "poses": poses[indices], "images": [image_filenames[i] for i in indices],
-            "masks": [mask_filenames[i] for i in indices] if mask_filenames else None,
-            "intrinsics": {k: meta[k] if v else [per_frame[k][i] for i in indices] for k, v in fixed.items()}}
+    return {
+        "indices": indices,
+        "poses": poses[indices],
+        "images": [image_filenames[i] for i in indices],
+        "masks": [mask_filenames[i] for i in indices] if mask_filenames else None,
+        "intrinsics": {k: meta[k] if v else [per_frame[k][i] for i in indices] for k, v in fixed.items()},
+    }
 
 
 def test_a_tacsplat_scene_is_what_nerfstudio_parses_and_imports_back_identically(scene_dir, tmp_path, h):

@@ -45,8 +45,13 @@ def blender_src(tmp_path):
         for k in range(n):
             i = len(frames) + 10 * list(counts).index(split)
             cv2.imwrite(str(src / split / f"r_{k}.png"), cv2.cvtColor(_rgba(i), cv2.COLOR_RGBA2BGRA))
-            frames.append({"file_path": f"./{split}/r_{k}", "rotation": 0.012566370614359171,
-                           "transform_matrix": _blender_pose(i).tolist()})
+            frames.append(
+                {
+                    "file_path": f"./{split}/r_{k}",
+                    "rotation": 0.012566370614359171,
+                    "transform_matrix": _blender_pose(i).tolist(),
+                }
+            )
         (src / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": ANGLE_X, "frames": frames}))
     return src
 
@@ -75,8 +80,24 @@ def test_blender_import_poses_intrinsics_and_compositing(blender_src, tmp_path):
 
 def test_blender_import_cli_black_background_and_val_split(blender_src, tmp_path, capsys):
     out = tmp_path / "scene"
-    assert main(["import", "blender", str(blender_src), "--out", str(out), "--background", "black",
-                 "--test-split", "val", "--scale", "0.05"]) == 0
+    assert (
+        main(
+            [
+                "import",
+                "blender",
+                str(blender_src),
+                "--out",
+                str(out),
+                "--background",
+                "black",
+                "--test-split",
+                "val",
+                "--scale",
+                "0.05",
+            ]
+        )
+        == 0
+    )
     assert "2 test" in capsys.readouterr().out
     scene = Scene.load(out)
     expected = _blender_pose(10)
@@ -107,11 +128,17 @@ def test_blender_import_errors_name_the_file_and_clean_up(blender_src, tmp_path)
 def _colmap_fixture(root, models=("PINHOLE", "SIMPLE_PINHOLE"), distortion=0.0):
     """A COLMAP model of known cameras (written as text and binary) and its images."""
     rec = pycolmap.Reconstruction()
-    params = {"PINHOLE": [9.0, 9.5, 5.2, 3.9], "SIMPLE_PINHOLE": [8.0, 5.0, 4.0],
-              "OPENCV": [9.0, 9.5, 5.2, 3.9, distortion, 0.0, 0.0, 0.0], "SIMPLE_RADIAL": [8.0, 5.0, 4.0, distortion],
-              "FULL_OPENCV": [9.0, 9.5, 5.2, 3.9] + [0.0] * 8}
+    params = {
+        "PINHOLE": [9.0, 9.5, 5.2, 3.9],
+        "SIMPLE_PINHOLE": [8.0, 5.0, 4.0],
+        "OPENCV": [9.0, 9.5, 5.2, 3.9, distortion, 0.0, 0.0, 0.0],
+        "SIMPLE_RADIAL": [8.0, 5.0, 4.0, distortion],
+        "FULL_OPENCV": [9.0, 9.5, 5.2, 3.9] + [0.0] * 8,
+    }
     for cid, model in enumerate(models, start=1):
-        rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=W, height=H, params=params[model], camera_id=cid))
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(model=model, width=W, height=H, params=params[model], camera_id=cid)
+        )
     images_dir = root / "images"
     images_dir.mkdir(parents=True)
     poses = {}
@@ -150,17 +177,22 @@ def test_colmap_import_round_trips_poses_and_cameras(tmp_path, kind):
 
 def test_colmap_import_scale_and_zero_distortion_models(tmp_path):
     _, images_dir, poses = _colmap_fixture(tmp_path / "colmap", models=("OPENCV", "SIMPLE_RADIAL"))
-    scene = Scene.load(import_colmap(tmp_path / "colmap" / "binary", images_dir, tmp_path / "scene", test_every=0, scale=0.25))
+    scene = Scene.load(
+        import_colmap(tmp_path / "colmap" / "binary", images_dir, tmp_path / "scene", test_every=0, scale=0.25)
+    )
     assert all(f.split == "train" for f in scene.frames)
     for frame, name in zip(scene.frames, sorted(poses)):
         np.testing.assert_allclose(frame.T_world_cam[:3, :3], poses[name][:3, :3], atol=1e-6)
         np.testing.assert_allclose(frame.T_world_cam[:3, 3], 0.25 * poses[name][:3, 3], atol=1e-6)
 
 
-@pytest.mark.parametrize("models, distortion, words", [
-    (("OPENCV",), 0.05, "camera model OPENCV has non-zero distortion"),
-    (("FULL_OPENCV",), 0.0, "camera model FULL_OPENCV is not supported"),
-])
+@pytest.mark.parametrize(
+    "models, distortion, words",
+    [
+        (("OPENCV",), 0.05, "camera model OPENCV has non-zero distortion"),
+        (("FULL_OPENCV",), 0.0, "camera model FULL_OPENCV is not supported"),
+    ],
+)
 def test_colmap_import_rejects_distorted_cameras_naming_the_model(tmp_path, models, distortion, words):
     _, images_dir, _ = _colmap_fixture(tmp_path / "colmap", models=models, distortion=distortion)
     with pytest.raises(SceneFormatError, match=words) as info:
@@ -171,8 +203,20 @@ def test_colmap_import_rejects_distorted_cameras_naming_the_model(tmp_path, mode
 
 def test_colmap_import_cli_and_missing_images(tmp_path, capsys):
     _, images_dir, _ = _colmap_fixture(tmp_path / "colmap")
-    assert main(["import", "colmap", str(tmp_path / "colmap" / "text"), "--images", str(images_dir),
-                 "--out", str(tmp_path / "scene")]) == 0
+    assert (
+        main(
+            [
+                "import",
+                "colmap",
+                str(tmp_path / "colmap" / "text"),
+                "--images",
+                str(images_dir),
+                "--out",
+                str(tmp_path / "scene"),
+            ]
+        )
+        == 0
+    )
     assert "1 test" in capsys.readouterr().out  # every 8th image: only the first of five
     (images_dir / "img_03.png").unlink()
     with pytest.raises(SceneFormatError, match="img_03.png"):
@@ -184,8 +228,16 @@ def test_colmap_import_cli_and_missing_images(tmp_path, capsys):
 def _import_commands(blender_src, colmap_root, images_dir):
     return {
         "blender": lambda out, *extra: ["import", "blender", str(blender_src), "--out", str(out), *extra],
-        "colmap": lambda out, *extra: ["import", "colmap", str(colmap_root / "text"), "--images", str(images_dir),
-                                       "--out", str(out), *extra],
+        "colmap": lambda out, *extra: [
+            "import",
+            "colmap",
+            str(colmap_root / "text"),
+            "--images",
+            str(images_dir),
+            "--out",
+            str(out),
+            *extra,
+        ],
     }
 
 
@@ -218,7 +270,9 @@ def test_import_into_an_unusable_out_or_with_a_bad_scale_is_one_error(blender_sr
     assert main(commands["colmap"](tmp_path / "every", "--test-every", "-1")) == 2
     _one_error_line(capsys, "--test-every", ">= 0", prefix="tacsplat import colmap: error: ")
     real_access = os.access
-    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if "locked" in str(path) else real_access(path, mode))
+    monkeypatch.setattr(
+        os, "access", lambda path, mode, **kw: False if "locked" in str(path) else real_access(path, mode)
+    )
     for name, command in commands.items():
         assert main(command(tmp_path / "locked")) == 1, name
         _one_error_line(capsys, "--out", "is not writable")

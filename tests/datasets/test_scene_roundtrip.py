@@ -37,9 +37,9 @@ def test_everything_written_reads_back_exactly(tmp_path, h):
         (i, i // 2, ["index", "thumb"][i % 2], i % 2 == 0) for i in range(6)
     ]
     assert scene.num_grasps == 3
-    expected = np.concatenate([
-        tactile_depth_to_points(h.touch_depth(i), h.SENSOR.pixel_size_m, h.touch_pose(i)) for i in range(0, 6, 2)
-    ])
+    expected = np.concatenate(
+        [tactile_depth_to_points(h.touch_depth(i), h.SENSOR.pixel_size_m, h.touch_pose(i)) for i in range(0, 6, 2)]
+    )
     np.testing.assert_allclose(scene.touch_points(), expected)
     for t in scene.touches:
         np.testing.assert_array_equal(scene.load_touch_depth(t), h.touch_depth(t.id))
@@ -52,7 +52,13 @@ def test_transforms_json_is_nerfstudio_input_with_opengl_matrices(scene_dir, h):
     assert data["camera_model"] == "OPENCV"
     intr = h.intrinsics()
     assert (data["fl_x"], data["fl_y"], data["cx"], data["cy"], data["w"], data["h"]) == (
-        intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
+        intr.fx,
+        intr.fy,
+        intr.cx,
+        intr.cy,
+        intr.width,
+        intr.height,
+    )
     for frame in data["frames"]:
         assert (scene_dir / frame["file_path"]).is_file()
         T = np.array(frame["transform_matrix"])
@@ -111,7 +117,9 @@ def test_remove_last_undoes_in_order_and_ids_are_reused(tmp_path, h):
     with SceneWriter.create(path, h.intrinsics(), SceneMeta("real", "cup"), h.SENSOR) as w:
         w.add_frame(h.frame_image(0), h.ring_pose(0))
         w.add_touch(h.touch_depth(0), h.touch_pose(0), grasp=0, finger="index")
-        f1 = w.add_frame(h.frame_image(1), h.ring_pose(1), split="test", gt_depth=np.ones((h.HEIGHT, h.WIDTH), np.float32))
+        f1 = w.add_frame(
+            h.frame_image(1), h.ring_pose(1), split="test", gt_depth=np.ones((h.HEIGHT, h.WIDTH), np.float32)
+        )
         assert w.remove_last() == f1
         assert not (path / f1.file_path).exists() and not (path / "gt/depth/000001.npz").exists()
         removed = w.remove_last()
@@ -155,7 +163,10 @@ def test_writer_rejects_bad_arguments_naming_them(tmp_path, h):
             (lambda: w.add_frame(h.frame_image(0)[:5], h.ring_pose(0)), "image: expected shape"),
             (lambda: w.add_frame(h.frame_image(0).astype(np.float32), h.ring_pose(0)), "image: expected uint8"),
             (lambda: w.add_frame(h.frame_image(0), h.ring_pose(0), split="val"), "split"),
-            (lambda: w.add_frame(h.frame_image(0), h.ring_pose(0), gt_depth=np.full((12, 16), np.nan, np.float32)), "gt_depth: 192 non-finite"),
+            (
+                lambda: w.add_frame(h.frame_image(0), h.ring_pose(0), gt_depth=np.full((12, 16), np.nan, np.float32)),
+                "gt_depth: 192 non-finite",
+            ),
             (lambda: w.add_touch(-h.touch_depth(0), h.touch_pose(0), 0, "index"), "depth: negative depth values"),
             (lambda: w.add_touch(h.touch_depth(0) * 1e3, h.touch_pose(0), 0, "index"), "deeper than 10 x the gel"),
             (lambda: w.add_frame(h.frame_image(0), far_pose), "T_world_cam: its origin is 2e\\+05 metres"),
@@ -179,8 +190,11 @@ def test_create_rejects_metadata_that_is_not_json(tmp_path, h):
 
 def test_one_writer_at_a_time_and_no_overwrite(scene_dir, h):
     with SceneWriter.resume(scene_dir):
-        with pytest.raises(InvalidInputError, match=rf"being written by another tacsplat process \(PID {os.getpid()}\)"
-                                                    ".* --resume"):
+        with pytest.raises(
+            InvalidInputError,
+            match=rf"being written by another tacsplat process \(PID {os.getpid()}\)"
+            ".* --resume",
+        ):
             SceneWriter.resume(scene_dir)
         with pytest.raises(InvalidInputError, match="being written by another tacsplat process"):
             SceneWriter.create(scene_dir, h.intrinsics(), SceneMeta("sim", "x"))

@@ -18,7 +18,7 @@ from tacsplat.files import storage_error
 PAGE = 4096  # tmpfs counts space in pages: a file grows into its last page's slack without new space
 
 
-DISK_FULL = storage_error(OSError(errno.ENOSPC, 'No space left on device'), '.').reason
+DISK_FULL = storage_error(OSError(errno.ENOSPC, "No space left on device"), ".").reason
 
 
 def _fill(mount) -> None:
@@ -50,8 +50,10 @@ def test_each_write_of_a_record_on_a_full_disk_is_one_storage_error_and_the_scen
     _fill(mount)
 
     _refused(lambda: writer.add_frame(h.frame_image(4), h.ring_pose(4)), path / "images/000004.png")
-    _refused(lambda: writer.add_touch(h.touch_depth(4), h.touch_pose(4), grasp=2, finger="index"),
-             path / "touches/000004.npz")
+    _refused(
+        lambda: writer.add_touch(h.touch_depth(4), h.touch_pose(4), grasp=2, finger="index"),
+        path / "touches/000004.npz",
+    )
     _refused(lambda: writer.set_gt_mesh(trimesh.creation.icosphere(radius=0.05)), path / "gt/mesh.ply")
     # A journal line longer than the slack of the journal's last page: written in part, then the disk is full.
     journaled = journal.read_bytes()
@@ -98,8 +100,9 @@ def test_resume_on_a_read_only_scene_names_the_journal(tmpfs, h):
 
 
 def _inspect(*args):
-    return subprocess.run([sys.executable, "-m", "tacsplat", "inspect", *map(str, args)], capture_output=True,
-                          text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "tacsplat", "inspect", *map(str, args)], capture_output=True, text=True
+    )
 
 
 def test_inspect_plot_on_a_read_only_mount_is_one_error_before_the_summary(tmpfs, scene_dir):
@@ -107,8 +110,9 @@ def test_inspect_plot_on_a_read_only_mount_is_one_error_before_the_summary(tmpfs
     mount.read_only()
     done = _inspect(scene_dir, "--plot", mount.path / "ro" / "p.png")
     assert done.returncode == 1 and done.stdout == ""  # refused before the summary is printed
-    assert done.stderr.splitlines() == [f"error: {mount.path / 'ro'}: the file system is read-only: write to "
-                                        "another folder"], done.stderr
+    assert done.stderr.splitlines() == [
+        f"error: {mount.path / 'ro'}: the file system is read-only: write to another folder"
+    ], done.stderr
 
 
 def test_inspect_plot_on_a_full_disk_leaves_no_partial_picture(tmpfs, scene_dir):

@@ -55,8 +55,12 @@ print("done", flush=True)
 
 
 def _start(path, crash_at=0, limit=10**6):
-    return subprocess.Popen([sys.executable, "-c", CHILD, str(path), str(crash_at), str(limit)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(path), str(crash_at), str(limit)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 class Acked:
@@ -70,8 +74,11 @@ class Acked:
         """Consume the process's output; SIGKILL it after ``stop_after`` confirmed records. Returns its exit code."""
         start = proc.stdout.readline().split()
         if start and start[0] == "ready":  # resumed numbering == what the previous runs confirmed, or one more
-            assert (int(start[1]), int(start[2])) in {(self.frames, self.touches), (self.frames + 1, self.touches),
-                                                      (self.frames, self.touches + 1)}
+            assert (int(start[1]), int(start[2])) in {
+                (self.frames, self.touches),
+                (self.frames + 1, self.touches),
+                (self.frames, self.touches + 1),
+            }
             self.frames, self.touches = int(start[1]), int(start[2])
         seen = 0
         for line in proc.stdout:

@@ -27,9 +27,16 @@ def photo(tilt_deg: float = 0.0, axis=(1.0, 0.0, 0.0), shift=(0.0, 0.0), distanc
     return cv2.warpPerspective(BOARD, homography, (W, H), flags=cv2.INTER_LINEAR, borderValue=160)
 
 
-GOOD = [photo(25, (1, 0, 0)), photo(25, (-1, 0, 0), (0.03, 0)), photo(25, (0, 1, 0), (0, 0.03)),
-        photo(25, (0, -1, 0), (-0.03, 0)), photo(30, (1, 1, 0), (0.04, 0.04)), photo(30, (1, -1, 0), (-0.04, 0.03)),
-        photo(0, shift=(0.05, -0.05), distance=0.5), photo(20, (-1, 1, 0), (-0.05, -0.04))]
+GOOD = [
+    photo(25, (1, 0, 0)),
+    photo(25, (-1, 0, 0), (0.03, 0)),
+    photo(25, (0, 1, 0), (0, 0.03)),
+    photo(25, (0, -1, 0), (-0.03, 0)),
+    photo(30, (1, 1, 0), (0.04, 0.04)),
+    photo(30, (1, -1, 0), (-0.04, 0.03)),
+    photo(0, shift=(0.05, -0.05), distance=0.5),
+    photo(20, (-1, 1, 0), (-0.05, -0.04)),
+]
 
 
 def _calibrate(tmp_path, images, *extra):
@@ -59,8 +66,10 @@ def test_three_copies_of_one_photo_are_refused_naming_them(tmp_path, capsys):
 
 def test_a_board_that_always_faces_the_camera_is_refused(tmp_path, capsys):
     """Distinct poses (moved, nearer, farther) but one orientation: the focal length is unobservable."""
-    photos = [photo(shift=s, distance=d) for s, d in (((0, 0), 0.45), ((0.05, 0.03), 0.4), ((-0.05, -0.04), 0.5),
-                                                      ((0.04, -0.05), 0.55))]
+    photos = [
+        photo(shift=s, distance=d)
+        for s, d in (((0, 0), 0.45), ((0.05, 0.03), 0.4), ((-0.05, -0.04), 0.5), ((0.04, -0.05), 0.55))
+    ]
     assert _calibrate(tmp_path, photos) == 1
     err = _one_error(capsys)
     assert "1 orientation(s)" in err and "view_1.png 0," in err and "focal length unobservable" in err
@@ -83,21 +92,35 @@ def test_a_varied_set_calibrates_and_a_repeated_photo_is_a_warning(tmp_path, cap
     assert any("view_8.png" in w for w in json.loads((tmp_path / "camera.json").read_text())["warnings"])
 
 
-@pytest.mark.parametrize("K_opencv, dist, std, words", [
-    ([[93421543.0, 0, 320], [0, 93421543.0, 240], [0, 0, 1]], [-967953.0, 0, 0, 0, 0], 0.004,
-     "field of view of 0.000393 degrees"),  # the issue's result
-    ([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]], [0.0] * 5, 0.0, "standard deviation of fx, fy, cx, cy is zero"),
-    ([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]], [-30.0, 0, 0, 0, 0], 0.5, "folds the image back"),
-    ([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]], [400.0, 0, 0, 0, 0], 0.5, "beyond 1/2 to 2"),
-    ([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]], [np.nan, 0, 0, 0, 0], 0.5, "not finite"),
-])
+@pytest.mark.parametrize(
+    "K_opencv, dist, std, words",
+    [
+        (
+            [[93421543.0, 0, 320], [0, 93421543.0, 240], [0, 0, 1]],
+            [-967953.0, 0, 0, 0, 0],
+            0.004,
+            "field of view of 0.000393 degrees",
+        ),  # the issue's result
+        ([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]], [0.0] * 5, 0.0, "standard deviation of fx, fy, cx, cy is zero"),
+        ([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]], [-30.0, 0, 0, 0, 0], 0.5, "folds the image back"),
+        ([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]], [400.0, 0, 0, 0, 0], 0.5, "beyond 1/2 to 2"),
+        ([[600.0, 0, 320], [0, 600, 240], [0, 0, 1]], [np.nan, 0, 0, 0, 0], 0.5, "not finite"),
+    ],
+)
 def test_a_result_that_is_no_camera_is_named(K_opencv, dist, std, words):
     from tacsplat.drivers.wrist_camera import calibration_problem
 
     views, _ = detect_board_views([GOOD[0]], SPEC, ["view_0.png"])
-    calib = CameraCalibration(np.array(K_opencv), np.array(dist), W, H, K_std_px=dict.fromkeys(("fx", "fy", "cx", "cy"), std))
+    calib = CameraCalibration(
+        np.array(K_opencv), np.array(dist), W, H, K_std_px=dict.fromkeys(("fx", "fy", "cx", "cy"), std)
+    )
     problem = calibration_problem(calib, views)
     assert problem is not None and words in problem, problem
-    good = CameraCalibration(K.copy(), np.array([-0.28, 0.09, 0.0005, -0.0003, 0.0]), W, H,
-                             K_std_px=dict.fromkeys(("fx", "fy", "cx", "cy"), 0.5))
+    good = CameraCalibration(
+        K.copy(),
+        np.array([-0.28, 0.09, 0.0005, -0.0003, 0.0]),
+        W,
+        H,
+        K_std_px=dict.fromkeys(("fx", "fy", "cx", "cy"), 0.5),
+    )
     assert calibration_problem(good, views) is None  # a wide-angle webcam's lens

@@ -34,21 +34,24 @@ def test_good_hand_calibration_round_trips(tmp_path):
     np.testing.assert_array_equal(loaded.offsets_rad, cal.offsets_rad)
 
 
-@pytest.mark.parametrize("field, value", [
-    ("offset_rad", 45.0),  # the reported calibration: 45 rad moved the servo seven turns
-    ("offset_rad", 1e9),  # wrapped through int32
-    ("offset_rad", -3.2),
-    ("offset_rad", "0.1"),
-    ("offset_rad", True),
-    ("offset_rad", None),
-    ("offset_rad", [0.1]),
-    ("sign", True),
-    ("sign", 0),
-    ("sign", 2),
-    ("sign", -0.5),
-    ("sign", "1"),
-    ("sign", None),
-])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("offset_rad", 45.0),  # the reported calibration: 45 rad moved the servo seven turns
+        ("offset_rad", 1e9),  # wrapped through int32
+        ("offset_rad", -3.2),
+        ("offset_rad", "0.1"),
+        ("offset_rad", True),
+        ("offset_rad", None),
+        ("offset_rad", [0.1]),
+        ("sign", True),
+        ("sign", 0),
+        ("sign", 2),
+        ("sign", -0.5),
+        ("sign", "1"),
+        ("sign", None),
+    ],
+)
 def test_bad_hand_calibration_value_names_file_and_field(tmp_path, field, value):
     path = tmp_path / "hand.json"
     path.write_text(json.dumps(hand_json(**{field: value})))
@@ -95,12 +98,15 @@ def test_hand_calibration_version_must_be_1(tmp_path, version):
         HandCalibration.load(path, JOINTS)
 
 
-@pytest.mark.parametrize("signs, offsets, what", [
-    (np.ones(16), np.full(16, 4.0), "offset"),
-    (np.ones(16), np.full(16, np.nan), "offset"),
-    (np.zeros(16), np.zeros(16), "sign"),
-    (np.ones(15), np.zeros(16), "16"),
-])
+@pytest.mark.parametrize(
+    "signs, offsets, what",
+    [
+        (np.ones(16), np.full(16, 4.0), "offset"),
+        (np.ones(16), np.full(16, np.nan), "offset"),
+        (np.zeros(16), np.zeros(16), "sign"),
+        (np.ones(15), np.zeros(16), "16"),
+    ],
+)
 def test_hand_calibration_built_in_code_is_checked_too(signs, offsets, what):
     with pytest.raises(InvalidInputError, match=what):
         HandCalibration(tuple(JOINTS), signs, offsets)
@@ -115,8 +121,16 @@ T_GOOD = make_pose(np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
 def camera_file(tmp_path):
     """A valid camera calibration file, and a function that rewrites one of its fields."""
     path = tmp_path / "camera.json"
-    CameraCalibration(K_GOOD, np.array([-0.28, 0.09, 0.0005, -0.0003, 0.0]), 640, 480, 0.31, CharucoBoardSpec(),
-                      {"img0.png": 0.3}, T_hand_cam=T_GOOD).save(path)
+    CameraCalibration(
+        K_GOOD,
+        np.array([-0.28, 0.09, 0.0005, -0.0003, 0.0]),
+        640,
+        480,
+        0.31,
+        CharucoBoardSpec(),
+        {"img0.png": 0.3},
+        T_hand_cam=T_GOOD,
+    ).save(path)
 
     def rewrite(update):
         data = json.loads(path.read_text())
@@ -143,6 +157,7 @@ def _set(key, value):
         for p in parents:
             target = target[p]
         target[last] = value
+
     return update
 
 
@@ -204,8 +219,14 @@ def test_bad_camera_calibration_value_names_file_and_field(camera_file, field, v
         CameraCalibration.load(path)
 
 
-@pytest.mark.parametrize("field, value", [("K_opencv", _K(k01=math.nan)), ("dist", [math.inf, 0.0, 0.0, 0.0, 0.0]),
-                                          ("T_hand_cam", np.where(np.eye(4) == 1, T_GOOD, math.nan).tolist())])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("K_opencv", _K(k01=math.nan)),
+        ("dist", [math.inf, 0.0, 0.0, 0.0, 0.0]),
+        ("T_hand_cam", np.where(np.eye(4) == 1, T_GOOD, math.nan).tolist()),
+    ],
+)
 def test_non_finite_camera_values_are_refused(camera_file, field, value):
     path, rewrite = camera_file
     rewrite(_set(field, value))

@@ -21,8 +21,22 @@ OPENCV = {"rms": 0.1963, "fx": 532.810, "fy": 532.933, "cx": 342.495, "cy": 233.
 
 
 def calibrate(out, *photos, extra=()):
-    return tacsplat_main(["calibrate", "camera", *map(str, photos), "--board", "chessboard", "--inner-corners", "9x6",
-                          "--square-mm", "25", "--out", str(out), *extra])
+    return tacsplat_main(
+        [
+            "calibrate",
+            "camera",
+            *map(str, photos),
+            "--board",
+            "chessboard",
+            "--inner-corners",
+            "9x6",
+            "--square-mm",
+            "25",
+            "--out",
+            str(out),
+            *extra,
+        ]
+    )
 
 
 def test_chessboard_calibration_matches_opencvs_own_result(tmp_path, capsys):
@@ -71,15 +85,53 @@ def test_distortion_model_is_chosen_by_a_flag(tmp_path):
 def test_board_and_photo_problems_are_one_clear_error(tmp_path, capsys):
     out = tmp_path / "camera.json"
     out.write_text("an earlier calibration")
-    assert tacsplat_main(["calibrate", "camera", str(DATA), "--board", "chessboard", "--inner-corners", "10x7",
-                          "--square-mm", "25", "--out", str(out)]) == 1
+    assert (
+        tacsplat_main(
+            [
+                "calibrate",
+                "camera",
+                str(DATA),
+                "--board",
+                "chessboard",
+                "--inner-corners",
+                "10x7",
+                "--square-mm",
+                "25",
+                "--out",
+                str(out),
+            ]
+        )
+        == 1
+    )
     err = capsys.readouterr().err
     assert err.count("error:") == 1 and "--inner-corners" in err and "0 of 13" in err
-    assert tacsplat_main(["calibrate", "camera", str(DATA), "--board", "chessboard", "--square-mm", "25",
-                          "--out", str(out)]) == 1
+    assert (
+        tacsplat_main(
+            ["calibrate", "camera", str(DATA), "--board", "chessboard", "--square-mm", "25", "--out", str(out)]
+        )
+        == 1
+    )
     assert "--inner-corners" in capsys.readouterr().err
-    assert tacsplat_main(["calibrate", "camera", str(DATA), "--board", "chessboard", "--inner-corners", "9x6",
-                          "--square-mm", "25", "--marker-mm", "20", "--out", str(out)]) == 1
+    assert (
+        tacsplat_main(
+            [
+                "calibrate",
+                "camera",
+                str(DATA),
+                "--board",
+                "chessboard",
+                "--inner-corners",
+                "9x6",
+                "--square-mm",
+                "25",
+                "--marker-mm",
+                "20",
+                "--out",
+                str(out),
+            ]
+        )
+        == 1
+    )
     assert "--marker-mm" in capsys.readouterr().err
     photos = tmp_path / "photos"
     photos.mkdir()

@@ -16,11 +16,9 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from tacsplat.drivers import Hand
-from tacsplat.drivers.calibration import HandCalibration
-from tacsplat.drivers.dynamixel_hand import DynamixelHand, _PortHandler
-from tacsplat.drivers.calibration import RAD_PER_TICK
+from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration
 from tacsplat.drivers.dxl_emulator import DxlEmulator, crc16, stuff, unstuff
-from tacsplat.drivers.dynamixel_hand import DynamixelHandConfig, ServoError
+from tacsplat.drivers.dynamixel_hand import DynamixelHand, DynamixelHandConfig, ServoError, _PortHandler
 from tacsplat.drivers.dynamixel_table import REGISTERS, HardwareError, Instruction
 from tacsplat.errors import ConfigError, HandError, InvalidInputError
 from tacsplat.sim.hand import HandKinematics
@@ -111,17 +109,24 @@ def test_sync_write_and_sync_read_with_calibration(kinematics, tmp_path):
     signs = np.where(np.arange(16) % 3 == 0, -1, 1)
     offsets = np.linspace(-0.4, 0.4, 16)
     path = tmp_path / "hand.json"
-    path.write_text(json.dumps({
-        "format": "tacsplat-hand-calibration", "version": 1,
-        "joints": {n: {"sign": int(s), "offset_rad": float(o)} for n, s, o in zip(names, signs, offsets)},
-    }))
+    path.write_text(
+        json.dumps(
+            {
+                "format": "tacsplat-hand-calibration",
+                "version": 1,
+                "joints": {n: {"sign": int(s), "offset_rad": float(o)} for n, s, o in zip(names, signs, offsets)},
+            }
+        )
+    )
     limits = kinematics.joint_limits
     target = limits[:, 0] + 0.3 * (limits[:, 1] - limits[:, 0])
     at_zero = dict(enumerate(2048 + offsets / RAD_PER_TICK))  # every joint starts at its zero
     # the packets of each call are counted: no heartbeat (tests/drivers/test_hand_safety.py tests it) may slip in
     quiet = dataclasses.replace(TEST_CONFIG, bus_watchdog_s=0.0)
-    with DxlEmulator(initial_ticks=at_zero) as emu, DynamixelHand(emu.path, kinematics=kinematics, config=quiet,
-                                                               calibration=path) as hand:
+    with (
+        DxlEmulator(initial_ticks=at_zero) as emu,
+        DynamixelHand(emu.path, kinematics=kinematics, config=quiet, calibration=path) as hand,
+    ):
         np.testing.assert_allclose(hand.read_joint_positions(), 0.0, atol=RAD_PER_TICK)
         n_before = len(emu.instructions)
         hand.command_joint_positions(target)
@@ -170,9 +175,16 @@ def test_calibration_file_round_trip_and_bad_file_names_the_key(tmp_path, kinema
     ticks = np.arange(1000, 3000, 125)
     np.testing.assert_array_equal(loaded.ticks_from_radians(loaded.radians_from_ticks(ticks)), ticks)
     path = tmp_path / "cal.json"
-    path.write_text(json.dumps({"format": "tacsplat-hand-calibration", "version": 1,
-                                "joints": {n: {"sign": 1, "offset_rad": 0.0} for n in kinematics.joint_names}
-                                | {"ring_2": {"sign": 0, "offset_rad": 0.0}}}))
+    path.write_text(
+        json.dumps(
+            {
+                "format": "tacsplat-hand-calibration",
+                "version": 1,
+                "joints": {n: {"sign": 1, "offset_rad": 0.0} for n in kinematics.joint_names}
+                | {"ring_2": {"sign": 0, "offset_rad": 0.0}},
+            }
+        )
+    )
     with pytest.raises(ConfigError, match="joints.ring_2.sign"):
         make_hand(emu, kinematics, calibration=path)
 
@@ -191,11 +203,14 @@ def test_missing_servo_refuses_to_move(emu, kinematics):
 def test_servo_that_stops_answering_raises_and_disables_torque(emu, kinematics):
     with make_hand(emu, kinematics) as hand:
         emu.disconnect(9)
-        with pytest.raises(ServoError, match=r"servo 9 \(ring_1\): SYNC_READ .*COMM_RX_TIMEOUT.* after 3 attempts") as exc:
+        with pytest.raises(
+            ServoError, match=r"servo 9 \(ring_1\): SYNC_READ .*COMM_RX_TIMEOUT.* after 3 attempts"
+        ) as exc:
             hand.read_joint_positions()  # never the previous values
         assert exc.value.instruction.startswith("SYNC_READ")
-        assert "torque off NOT confirmed on servo 9 (ring_1): cut the servo power (confirmed on the other 15)" \
-            in str(exc.value)
+        assert "torque off NOT confirmed on servo 9 (ring_1): cut the servo power (confirmed on the other 15)" in str(
+            exc.value
+        )
         assert_all_torque_off(emu, except_ids=[9])
         with pytest.raises(HandError, match="faulted"):
             hand.command_joint_positions(np.zeros(16))
@@ -256,8 +271,9 @@ def _signal_reached_the_test(signum, frame):
     raise RuntimeError(f"{signal.Signals(signum).name} reached the test: the hand did not handle it")
 
 
-@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT],
-                         ids=lambda s: signal.Signals(s).name)
+@pytest.mark.parametrize(
+    "signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT], ids=lambda s: signal.Signals(s).name
+)
 def test_an_ending_signal_leaves_torque_off(emu, kinematics, signum):
     previous = {s: signal.signal(s, _signal_reached_the_test) for s in (signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)}
     try:
@@ -290,8 +306,11 @@ def test_unplugged_adapter_is_a_clear_error(emu, kinematics):
     hand = make_hand(emu, kinematics)
     hand.connect()
     emu.stop()  # the U2D2 disappears: the pty's other end is gone
-    with pytest.raises(HandError, match=r"port /dev/.*SYNC_READ.*serial port error.*"
-                                        r"torque off NOT confirmed on any of the 16 servos: cut the servo power"):
+    with pytest.raises(
+        HandError,
+        match=r"port /dev/.*SYNC_READ.*serial port error.*"
+        r"torque off NOT confirmed on any of the 16 servos: cut the servo power",
+    ):
         hand.read_joint_positions()
     hand.close()  # never raises: it is what runs on the way out
 
@@ -309,10 +328,15 @@ TOLERANCE_RAD = TEST_CONFIG.connect_tolerance_rad
 
 
 def write_hand_json(path, names, signs, offsets):
-    path.write_text(json.dumps({
-        "format": "tacsplat-hand-calibration", "version": 1,
-        "joints": {n: {"sign": s, "offset_rad": o} for n, s, o in zip(names, signs, offsets)},
-    }))
+    path.write_text(
+        json.dumps(
+            {
+                "format": "tacsplat-hand-calibration",
+                "version": 1,
+                "joints": {n: {"sign": s, "offset_rad": o} for n, s, o in zip(names, signs, offsets)},
+            }
+        )
+    )
     return path
 
 
@@ -351,8 +375,17 @@ def test_calibration_that_maps_the_pose_outside_the_limits_is_refused_with_torqu
             pass
     message = str(exc.value)
     assert exc.value.joint == "index_0" and exc.value.servo_id == 0
-    for expected in ("index_0", "offset_rad +1.0000", "sign +1", "index_1", "sign -1", str(path),
-                     "check the sign and offset_rad", "move the finger by hand", "torque off confirmed on all 16 servos"):
+    for expected in (
+        "index_0",
+        "offset_rad +1.0000",
+        "sign +1",
+        "index_1",
+        "sign -1",
+        str(path),
+        "check the sign and offset_rad",
+        "move the finger by hand",
+        "torque off confirmed on all 16 servos",
+    ):
         assert expected in message, (expected, message)
     assert_all_torque_off(emu)
     assert set(goal_ticks(emu).values()) == {2048}  # nothing written
@@ -438,8 +471,11 @@ def hand_calibration_cases(draw):
     for joint in draw(st.lists(st.integers(0, n - 1), max_size=3, unique=True)):
         fault = draw(st.sampled_from(["offset", "sign", "edge", "moved"]))
         if fault == "offset":
-            file_offsets[joint] = draw(st.floats(-np.pi, np.pi) | st.floats(allow_nan=True, allow_infinity=True)
-                                       | st.sampled_from([45.0, 1e9, -4.0]))
+            file_offsets[joint] = draw(
+                st.floats(-np.pi, np.pi)
+                | st.floats(allow_nan=True, allow_infinity=True)
+                | st.sampled_from([45.0, 1e9, -4.0])
+            )
         elif fault == "sign":
             file_signs[joint] = draw(st.sampled_from([-true_signs[joint], 0, 2, True, "1", 1.0]))
         elif fault == "edge":  # just outside the range, either side: inside or beyond the tolerance
@@ -461,11 +497,13 @@ def test_connect_refuses_with_torque_off_or_moves_no_servo_beyond_the_tolerance(
     ticks = ticks % 4096  # after power-up a servo reports its position within one turn
     for joint, t in moved_ticks.items():
         ticks[joint] = t
-    path = write_hand_json(tmp_path_factory.mktemp("cal") / "hand.json", kinematics.joint_names,
-                           file_signs, file_offsets)
+    path = write_hand_json(
+        tmp_path_factory.mktemp("cal") / "hand.json", kinematics.joint_names, file_signs, file_offsets
+    )
 
     file_is_valid = all(not isinstance(s, (bool, str)) and s in (1, -1) for s in file_signs) and all(
-        np.isfinite(o) and abs(o) <= np.pi for o in file_offsets)
+        np.isfinite(o) and abs(o) <= np.pi for o in file_offsets
+    )
     if file_is_valid:  # the calibration's reading of where each joint stands, and how far outside its range
         read = np.asarray(file_signs) * ((ticks - 2048) * RAD_PER_TICK - np.asarray(file_offsets))
         excess = np.maximum(np.maximum(lo - read, read - hi), 0.0).max()

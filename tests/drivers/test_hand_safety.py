@@ -67,8 +67,10 @@ def test_emulated_bus_watchdog_stops_a_silent_servo_and_locks_its_goal(emu):
             assert ph.write1ByteTxRx(port, sid, TORQUE, 1) == (dxl.COMM_SUCCESS, 0)
         assert ph.write4ByteTxRx(port, 1, GOAL, 3500) == (dxl.COMM_SUCCESS, 0)  # 0.36 s away at 4000 ticks/s
         # servo 2 hears from the host all along; servo 1 hears nothing more and trips while it is moving
-        poll(lambda: ph.ping(port, 2)[1] == dxl.COMM_SUCCESS and emu.servos[1].get("bus_watchdog") == -1,
-             "servo 1's watchdog trips")
+        poll(
+            lambda: ph.ping(port, 2)[1] == dxl.COMM_SUCCESS and emu.servos[1].get("bus_watchdog") == -1,
+            "servo 1's watchdog trips",
+        )
         assert emu.servos[2].get("bus_watchdog") == 5
         held = emu.servos[1].get("present_position")
         assert 2048 < held < 3500 and emu.servos[1].get("goal_position") == held  # stopped where it stood
@@ -129,9 +131,12 @@ def test_an_encoder_glitch_is_a_fault_not_a_pose(emu, kinematics):
         emu.inject_position_offset(5, round(np.radians(3.0) / RAD_PER_TICK))  # 3 degrees past the limit: a pose
         assert hand.read_joint_positions()[5] == pytest.approx(hi + np.radians(3.0), abs=RAD_PER_TICK)
         emu.inject_position_offset(5, 1500)  # 2.3 rad past it: no finger stands there
-        with pytest.raises(ServoError, match=r"servo 5 \(middle_1\): read present position failed: middle_1 "
-                                             r"\(servo 5\) reads \+3\.9\d+ rad \(tick 4\d{3}\), 2\.3\d+ rad outside "
-                                             r"its limits \[-0\.1960, \+1\.6100\].*encoder") as exc:
+        with pytest.raises(
+            ServoError,
+            match=r"servo 5 \(middle_1\): read present position failed: middle_1 "
+            r"\(servo 5\) reads \+3\.9\d+ rad \(tick 4\d{3}\), 2\.3\d+ rad outside "
+            r"its limits \[-0\.1960, \+1\.6100\].*encoder",
+        ) as exc:
             hand.read_joint_positions()
         assert exc.value.servo_id == 5 and exc.value.joint == "middle_1"
         assert not any(emu.torque_enabled().values())
@@ -178,8 +183,9 @@ def _drive(port: str, guard: bool) -> int:
 
 
 def _start_driving(emu: EmulatorProcess, guard: bool) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, __file__, emu.path, "guard" if guard else "no-guard"],
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, __file__, emu.path, "guard" if guard else "no-guard"], stdout=subprocess.PIPE, text=True
+    )
     assert proc.stdout.readline() == "moving\n"
     return proc
 
@@ -214,6 +220,7 @@ def test_killed_without_a_guard_the_watchdog_stops_the_hand_where_it_is(kinemati
                 proc.kill()
             proc.wait()
             proc.stdout.close()
+
         def tripped():
             status = emu.status()
             return status if all(s["bus_watchdog"] == -1 for s in status.values()) else None
@@ -243,8 +250,10 @@ def test_a_stopped_process_trips_the_watchdog_and_continues_into_a_fault():
                 proc.kill()
             proc.wait()
         assert proc.returncode == 3, out
-        assert "heartbeat failed: Bus Watchdog Error on servos 0 (index_0)" in out and \
-               "torque off confirmed on all 16 servos" in out, out
+        assert (
+            "heartbeat failed: Bus Watchdog Error on servos 0 (index_0)" in out
+            and "torque off confirmed on all 16 servos" in out
+        ), out
         assert not any(emu.torque_enabled().values())
 
 

@@ -32,8 +32,14 @@ def tactile_image(depth, rng):
     return np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
-CALIBRATION_PRESSES = [(100, 80, 6e-4), (220, 160, 8e-4), (160, 120, 1e-3), (90, 170, 5e-4), (230, 70, 9e-4),
-                       (160, 60, 7e-4)]
+CALIBRATION_PRESSES = [
+    (100, 80, 6e-4),
+    (220, 160, 8e-4),
+    (160, 120, 1e-3),
+    (90, 170, 5e-4),
+    (230, 70, 9e-4),
+    (160, 60, 7e-4),
+]
 
 
 @pytest.fixture(scope="module")
@@ -51,8 +57,19 @@ def calibration_folder(tmp_path_factory):
 @pytest.fixture(scope="module")
 def calibration_file(calibration_folder, tmp_path_factory):
     out = tmp_path_factory.mktemp("cal") / "index_tactile.npz"
-    code = tacsplat_main(["calibrate", "tactile", str(calibration_folder), "--out", str(out),
-                          "--ball-radius-mm", str(BALL_M * 1e3), "--pixel-size-mm", str(PIXEL_M * 1e3)])
+    code = tacsplat_main(
+        [
+            "calibrate",
+            "tactile",
+            str(calibration_folder),
+            "--out",
+            str(out),
+            "--ball-radius-mm",
+            str(BALL_M * 1e3),
+            "--pixel-size-mm",
+            str(PIXEL_M * 1e3),
+        ]
+    )
     assert code == 0
     return out
 

@@ -37,8 +37,20 @@ def labels(folder=DATA) -> dict:
 
 
 def calibrate(folder, out, *extra) -> int:
-    return tacsplat_main(["calibrate", "tactile", str(folder), "--out", str(out), "--ball-radius-mm", str(BALL_MM),
-                          "--pixel-size-mm", str(PIXEL_MM), *extra])
+    return tacsplat_main(
+        [
+            "calibrate",
+            "tactile",
+            str(folder),
+            "--out",
+            str(out),
+            "--ball-radius-mm",
+            str(BALL_MM),
+            "--pixel-size-mm",
+            str(PIXEL_MM),
+            *extra,
+        ]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -83,8 +95,23 @@ def test_tactile_depth_command_on_held_out_presses(calibration_run, tmp_path):
     _, cal = calibration_run
     out = tmp_path / "depth"
     held_out = [DATA / "press_09.png", DATA / "press_26.png"]
-    assert tacsplat_main(["tactile", "depth", "--calibration", str(cal), "--reference", str(DATA / "reference.png"),
-                          "--out", str(out), *map(str, held_out), str(DATA / "reference.png")]) == 0
+    assert (
+        tacsplat_main(
+            [
+                "tactile",
+                "depth",
+                "--calibration",
+                str(cal),
+                "--reference",
+                str(DATA / "reference.png"),
+                "--out",
+                str(out),
+                *map(str, held_out),
+                str(DATA / "reference.png"),
+            ]
+        )
+        == 0
+    )
     for path in held_out:
         with np.load(out / f"{path.stem}.npz") as data:
             depth = data["depth"]
@@ -103,7 +130,16 @@ def test_tactile_depth_command_on_held_out_presses(calibration_run, tmp_path):
 def test_tactile_depth_refuses_bad_images_and_keeps_what_is_written(calibration_run, tmp_path, capsys):
     _, cal = calibration_run
     out = tmp_path / "depth"
-    args = ["tactile", "depth", "--calibration", str(cal), "--reference", str(DATA / "reference.png"), "--out", str(out)]
+    args = [
+        "tactile",
+        "depth",
+        "--calibration",
+        str(cal),
+        "--reference",
+        str(DATA / "reference.png"),
+        "--out",
+        str(out),
+    ]
     assert tacsplat_main(args + [str(DATA / "press_09.png")]) == 0
     written = (out / "press_09.npz").read_bytes()
     small = tmp_path / "small.png"
@@ -159,8 +195,9 @@ def test_calibration_refuses_presses_that_disagree_with_the_ball(tmp_path, capsy
         if k % 3 == 2:  # the held-out ones
             cx, cy = labels()[name]["center_xy_px"]
             zoom = cv2.getRotationMatrix2D((cx, cy), 0.0, 1.6)
-            rgb = cv2.warpAffine(rgb, zoom, (rgb.shape[1], rgb.shape[0]), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_REFLECT)
+            rgb = cv2.warpAffine(
+                rgb, zoom, (rgb.shape[1], rgb.shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT
+            )
         write_rgb(folder / name, rgb)
     out = tmp_path / "gelsight.npz"
     out.write_bytes(b"an earlier calibration")

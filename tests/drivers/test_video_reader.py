@@ -34,8 +34,11 @@ class LiveDevice:
         return False  # this device cannot change its mode
 
     def get(self, prop):
-        return {cv2.CAP_PROP_FRAME_WIDTH: self.width, cv2.CAP_PROP_FRAME_HEIGHT: self.height,
-                cv2.CAP_PROP_FPS: self.fps}.get(prop, 0.0)
+        return {
+            cv2.CAP_PROP_FRAME_WIDTH: self.width,
+            cv2.CAP_PROP_FRAME_HEIGHT: self.height,
+            cv2.CAP_PROP_FPS: self.fps,
+        }.get(prop, 0.0)
 
     def read(self):
         if self.unplugged.is_set():

@@ -37,22 +37,26 @@ class BoardRenderer:
     """Exact images of the planar board: homography of the board image, optional lens distortion, box filter."""
 
     def __init__(self, distort: bool):
-        self.board_img = SPEC.board().generateImage((SPEC.squares_x * BOARD_PX, SPEC.squares_y * BOARD_PX), marginSize=0)
+        self.board_img = SPEC.board().generateImage(
+            (SPEC.squares_x * BOARD_PX, SPEC.squares_y * BOARD_PX), marginSize=0
+        )
         self.metres_per_px = SPEC.square_length_m / BOARD_PX
         self.K_hi = np.diag([SUPERSAMPLE, SUPERSAMPLE, 1.0]) @ K_TRUE  # continuous coords scale exactly
         self.maps = None
         if distort:
             K_cv = _shift(-0.5) @ self.K_hi  # OpenCV convention for OpenCV
-            self.maps = cv2.initInverseRectificationMap(K_cv, DIST_TRUE, None, K_cv,
-                                                        (W * SUPERSAMPLE, H * SUPERSAMPLE), cv2.CV_32FC1)
+            self.maps = cv2.initInverseRectificationMap(
+                K_cv, DIST_TRUE, None, K_cv, (W * SUPERSAMPLE, H * SUPERSAMPLE), cv2.CV_32FC1
+            )
 
     def __call__(self, T_cam_board):
         # board pixel centre (a, b) (continuous, +0.5) -> board metres (s a, s b, 0) -> camera pixel (continuous)
         Hc = self.K_hi @ np.column_stack([T_cam_board[:3, 0], T_cam_board[:3, 1], T_cam_board[:3, 3]])
         Hc = Hc @ np.diag([self.metres_per_px, self.metres_per_px, 1.0])
         H_cv = _shift(-0.5) @ Hc @ _shift(0.5)  # warpPerspective works with integer pixel centres
-        big = cv2.warpPerspective(self.board_img, H_cv, (W * SUPERSAMPLE, H * SUPERSAMPLE),
-                                  flags=cv2.INTER_LINEAR, borderValue=160)
+        big = cv2.warpPerspective(
+            self.board_img, H_cv, (W * SUPERSAMPLE, H * SUPERSAMPLE), flags=cv2.INTER_LINEAR, borderValue=160
+        )
         if self.maps is not None:
             big = cv2.remap(big, self.maps[0], self.maps[1], cv2.INTER_LINEAR, borderValue=160)
         return cv2.resize(big, (W, H), interpolation=cv2.INTER_AREA)

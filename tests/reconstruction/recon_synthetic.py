@@ -35,7 +35,11 @@ def sphere_gaussians(n: int = 400):
         helper = np.array([1.0, 0, 0]) if abs(nrm[0]) < 0.9 else np.array([0, 1.0, 0])
         x = np.cross(helper, nrm)
         x /= np.linalg.norm(x)
-        quats.append(Rotation.from_matrix(np.stack([x, np.cross(nrm, x), nrm], axis=1)).as_quat(canonical=True, scalar_first=True))
+        quats.append(
+            Rotation.from_matrix(np.stack([x, np.cross(nrm, x), nrm], axis=1)).as_quat(
+                canonical=True, scalar_first=True
+            )
+        )
     spacing = math.sqrt(4 * math.pi * RADIUS**2 / n)
     scales = np.tile([0.7 * spacing, 0.7 * spacing, 0.05 * spacing], (n, 1))
     colors = 0.5 + 0.4 * np.stack(
@@ -68,15 +72,19 @@ def touch_reading(normal: np.ndarray, sensor: SensorModel, press: float) -> tupl
     ey = np.cross(-n, ex)  # right-handed frame with z = -n (the gel's normal points at the object)
     T_world_sensor = make_pose(np.stack([ex, ey, -n], axis=1), (RADIUS - press) * n)
     h, w = sensor.height_px, sensor.width_px
-    y, x = np.meshgrid((np.arange(h) + 0.5 - h / 2) * sensor.pixel_size_m,
-                       (np.arange(w) + 0.5 - w / 2) * sensor.pixel_size_m, indexing="ij")
+    y, x = np.meshgrid(
+        (np.arange(h) + 0.5 - h / 2) * sensor.pixel_size_m,
+        (np.arange(w) + 0.5 - w / 2) * sensor.pixel_size_m,
+        indexing="ij",
+    )
     r2 = x**2 + y**2
     depth = press - (RADIUS - np.sqrt(np.maximum(RADIUS**2 - r2, 0)))
     return np.maximum(depth, 0).astype(np.float32), T_world_sensor
 
 
-def build_sphere_scene(path: Path, size: int = 48, train_views: int = 6, test_views: int = 2,
-                       touches: bool = True, seed: int = 0) -> Path:
+def build_sphere_scene(
+    path: Path, size: int = 48, train_views: int = 6, test_views: int = 2, touches: bool = True, seed: int = 0
+) -> Path:
     """Write the synthetic sphere scene to ``path``; returns it."""
     rng = np.random.default_rng(seed)
     focal = size * 1.25
@@ -96,8 +104,17 @@ def build_sphere_scene(path: Path, size: int = 48, train_views: int = 6, test_vi
             T_world_cam = look_at(eye, np.zeros(3))
             viewmat = torch.tensor(invert_pose(T_world_cam))[None]
             image, _, _ = rasterization(
-                means, quats, scales, opacities, colors, viewmat, torch.tensor(K)[None], size, size,
-                backgrounds=torch.zeros(1, 3, dtype=torch.float64), backend="torch",
+                means,
+                quats,
+                scales,
+                opacities,
+                colors,
+                viewmat,
+                torch.tensor(K)[None],
+                size,
+                size,
+                backgrounds=torch.zeros(1, 3, dtype=torch.float64),
+                backend="torch",
             )
             rgb = (image[0].clamp(0, 1).numpy() * 255).round().astype(np.uint8)
             split = "test" if k % (total // test_views) == total // test_views - 1 and test_views else "train"

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from tacsplat.reconstruction.raster import rasterization
 from tacsplat.apps.bench_rasterizer import random_scene
+from tacsplat.reconstruction.raster import rasterization
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -48,9 +48,14 @@ CASES = [
 @pytest.mark.parametrize("case", CASES, ids=lambda c: f"{c['n']}g-{c['width']}x{c['height']}-{c['render_mode']}")
 def test_cpu_matches_reference_forward_and_gradients(case):
     scene = random_scene(
-        case["n"], case["width"], case["height"], n_cams=case["n_cams"], sh_degree=case["sh_degree"],
-        radius_px=(1.0, 10.0), seed=case["n"],
-    )  # fmt: skip
+        case["n"],
+        case["width"],
+        case["height"],
+        n_cams=case["n_cams"],
+        sh_degree=case["sh_degree"],
+        radius_px=(1.0, 10.0),
+        seed=case["n"],
+    )
     n_ch = 3
     bg = torch.rand(case["n_cams"], n_ch, generator=torch.Generator().manual_seed(5)) if case["bg"] else None
     ref = _render_and_grads(scene, "torch", case["render_mode"], bg)
@@ -102,11 +107,13 @@ def test_cpu_single_gaussian_alpha_profile_is_analytic():
     quats = torch.tensor([[0.3, 0.0, 0.0, 0.0]])  # unnormalised identity
     scales = torch.full((1, 3), 0.1)
     K = torch.tensor([[[50.0, 0, 20.0], [0, 50.0, 15.0], [0, 0, 1]]])
-    _, alpha, _ = rasterization(means, quats, scales, torch.tensor([0.7]), torch.ones(1, 3), torch.eye(4)[None], K,
-                                40, 30, backend="cpu")  # fmt: skip
+    _, alpha, _ = rasterization(
+        means, quats, scales, torch.tensor([0.7]), torch.ones(1, 3), torch.eye(4)[None], K, 40, 30, backend="cpu"
+    )
     var = (50.0 * 0.1 / 2.0) ** 2 + 0.3
-    ys, xs = torch.meshgrid(torch.arange(30.0, dtype=torch.float64) + 0.5, torch.arange(40.0, dtype=torch.float64) + 0.5,
-                            indexing="ij")  # fmt: skip
+    ys, xs = torch.meshgrid(
+        torch.arange(30.0, dtype=torch.float64) + 0.5, torch.arange(40.0, dtype=torch.float64) + 0.5, indexing="ij"
+    )
     expected = 0.7 * torch.exp(-0.5 * ((xs - 20) ** 2 + (ys - 15) ** 2) / var)
     expected = torch.where(expected >= 1 / 255, expected, torch.zeros_like(expected))
     torch.testing.assert_close(alpha[0, :, :, 0].double(), expected, rtol=1e-5, atol=1e-6)
@@ -176,8 +183,19 @@ def test_singular_2d_covariance_is_culled_without_dilation(backend):
     quats = torch.tensor([[1.0, 0, 0, 0], [1.0, 0, 0, 0]])
     scales = torch.tensor([[0.0, 0.1, 0.1], [0.1, 0.1, 0.1]])
     K = torch.tensor([[[30.0, 0, 8.0], [0, 30.0, 8.0], [0, 0, 1]]])
-    _, alpha, meta = rasterization(means, quats, scales, torch.tensor([0.9, 0.9]), torch.ones(2, 3),
-                                   torch.eye(4)[None], K, 16, 16, eps2d=0.0, backend=backend)  # fmt: skip
+    _, alpha, meta = rasterization(
+        means,
+        quats,
+        scales,
+        torch.tensor([0.9, 0.9]),
+        torch.ones(2, 3),
+        torch.eye(4)[None],
+        K,
+        16,
+        16,
+        eps2d=0.0,
+        backend=backend,
+    )
     assert meta["radii"][0, 0].tolist() == [0, 0] and (meta["radii"][0, 1] > 0).all()
     assert torch.isfinite(alpha).all() and alpha.max() > 0.5
 
@@ -229,12 +247,19 @@ def test_parallel_binning_matches_the_reference_tile_lists():
     from tacsplat.reconstruction.raster.reference import project_gaussians, tile_intersections
 
     scene = random_scene(20000, 64, 48, n_cams=2, sh_degree=0, seed=12)
-    proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
-                             scene["viewmats"], scene["Ks"], 64, 48)  # fmt: skip
+    proj = project_gaussians(
+        scene["means"], scene["quats"], scene["scales"], scene["opacities"], scene["viewmats"], scene["Ks"], 64, 48
+    )
     tile_start, tile_gauss, offsets, isect = bin_gaussians(
-        proj.means2d.reshape(-1, 2).numpy(), proj.radii.reshape(-1, 2).double().numpy(),
-        proj.depths.reshape(-1).numpy(), 2, 20000, 64, 48, 16,
-    )  # fmt: skip
+        proj.means2d.reshape(-1, 2).numpy(),
+        proj.radii.reshape(-1, 2).double().numpy(),
+        proj.depths.reshape(-1).numpy(),
+        2,
+        20000,
+        64,
+        48,
+        16,
+    )
     tiles_per_cam = 4 * 3
     assert tile_start.shape == (2 * tiles_per_cam + 1,)
     for cam in range(2):
@@ -242,7 +267,9 @@ def test_parallel_binning_matches_the_reference_tile_lists():
         lo, hi = tile_start[cam * tiles_per_cam], tile_start[(cam + 1) * tiles_per_cam]
         assert (tile_gauss[lo:hi] - cam * 20000).tolist() == gauss_ids.tolist()
         counts = torch.bincount(tile_ids, minlength=tiles_per_cam)
-        assert (torch.from_numpy(tile_start[cam * tiles_per_cam : (cam + 1) * tiles_per_cam + 1]).diff() == counts).all()
+        assert (
+            torch.from_numpy(tile_start[cam * tiles_per_cam : (cam + 1) * tiles_per_cam + 1]).diff() == counts
+        ).all()
     # every Gaussian finds its own intersections
     owners = torch.repeat_interleave(torch.arange(40000), torch.from_numpy(offsets).diff())
     assert (torch.from_numpy(tile_gauss[isect]) == owners).all()
@@ -272,27 +299,67 @@ def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
     from tacsplat.reconstruction.raster.reference import project_gaussians
 
     scene = random_scene(n, width, height, sh_degree=0, seed=seed, radius_px=radius_px)
-    proj = project_gaussians(scene["means"], scene["quats"], scene["scales"], scene["opacities"],
-                             scene["viewmats"], scene["Ks"], width, height)  # fmt: skip
+    proj = project_gaussians(
+        scene["means"],
+        scene["quats"],
+        scene["scales"],
+        scene["opacities"],
+        scene["viewmats"],
+        scene["Ks"],
+        width,
+        height,
+    )
     m2d, con = proj.means2d[0].numpy().copy(), proj.conics[0].numpy().copy()
     opa = proj.opacities[0].detach().numpy().copy()
-    tile_start, tile_gauss, _, _ = rc.bin_gaussians(m2d, proj.radii[0].double().numpy(), proj.depths[0].numpy(),
-                                                    1, n, width, height, 16)  # fmt: skip
+    tile_start, tile_gauss, _, _ = rc.bin_gaussians(
+        m2d, proj.radii[0].double().numpy(), proj.depths[0].numpy(), 1, n, width, height, 16
+    )
     n_tiles, n_isect = tile_start.shape[0] - 1, tile_gauss.shape[0]
     tiles_x = math.ceil(width / 16)
     limits = (np.log(np.float32(255.0) * opa) + rc._LOG_SLACK).astype(np.float32)
     colors = np.random.default_rng(0).random((n, 3), dtype=np.float32)
-    args = (tile_start, tile_gauss, m2d, con, opa, limits, colors, np.zeros((1, 3), np.float32),
-            width, height, 16, tiles_x, n_tiles, np.float32(rc.MAX_ALPHA))  # fmt: skip
+    args = (
+        tile_start,
+        tile_gauss,
+        m2d,
+        con,
+        opa,
+        limits,
+        colors,
+        np.zeros((1, 3), np.float32),
+        width,
+        height,
+        16,
+        tiles_x,
+        n_tiles,
+        np.float32(rc.MAX_ALPHA),
+    )
     capacity = np.empty(n_isect, np.int64)
     rc._pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, 16, tiles_x, n_tiles, capacity)
-    out = {"cache_start": np.concatenate([[0], np.cumsum(capacity)]), "pair_start": np.zeros(n_isect, np.int64),
-           "cached": np.empty(n_tiles, np.bool_), "spans": np.empty((n_isect, 16, 2), np.uint8),
-           "trans": np.empty((1, height, width), np.float32), "last": np.empty((1, height, width), np.int64)}
+    out = {
+        "cache_start": np.concatenate([[0], np.cumsum(capacity)]),
+        "pair_start": np.zeros(n_isect, np.int64),
+        "cached": np.empty(n_tiles, np.bool_),
+        "spans": np.empty((n_isect, 16, 2), np.uint8),
+        "trans": np.empty((1, height, width), np.float32),
+        "last": np.empty((1, height, width), np.int64),
+    }
     out["vis_cache"] = np.empty(int(out["cache_start"][-1]), np.float32)
-    rc._forward(*args, proj.depths[0].numpy(), np.empty((1, height, width, 3), np.float32), out["trans"],
-                out["last"], np.empty((1, height, width), np.float32), np.empty(n_tiles, np.int64),
-                out["cache_start"], out["vis_cache"], out["pair_start"], out["cached"], out["spans"], (0, 1, 2))  # fmt: skip
+    rc._forward(
+        *args,
+        proj.depths[0].numpy(),
+        np.empty((1, height, width, 3), np.float32),
+        out["trans"],
+        out["last"],
+        np.empty((1, height, width), np.float32),
+        np.empty(n_tiles, np.int64),
+        out["cache_start"],
+        out["vis_cache"],
+        out["pair_start"],
+        out["cached"],
+        out["spans"],
+        (0, 1, 2),
+    )
     return args, out
 
 
@@ -345,7 +412,18 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     rows = {}
     for use_cache in (True, False):
         rows[use_cache] = np.empty((n_isect, rc.N_GRAD + 3), np.float32)
-        rc._backward(*args, trans, last, v_color, v_alpha, vis_cache, pair_start, np.full(n_tiles, use_cache),
-                     spans, rows[use_cache], (0, 1, 2))  # fmt: skip
+        rc._backward(
+            *args,
+            trans,
+            last,
+            v_color,
+            v_alpha,
+            vis_cache,
+            pair_start,
+            np.full(n_tiles, use_cache),
+            spans,
+            rows[use_cache],
+            (0, 1, 2),
+        )
     np.testing.assert_allclose(rows[True], rows[False], rtol=1e-5, atol=1e-6 * np.abs(rows[False]).max())
     assert np.abs(rows[False]).max() > 0

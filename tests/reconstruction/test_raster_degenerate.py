@@ -26,8 +26,20 @@ def _gaussians(n: int = 6, seed: int = 0) -> dict[str, torch.Tensor]:
 
 def _render(params: dict, backend: str, render_mode: str = "RGB+D"):
     K = torch.tensor([[[18.0, 0.0, WIDTH / 2], [0.0, 18.0, HEIGHT / 2], [0.0, 0.0, 1.0]]])
-    return rasterization(params["means"], params["quats"], params["scales"], params["opacities"], params["colors"],
-                         torch.eye(4)[None], K, WIDTH, HEIGHT, sh_degree=0, render_mode=render_mode, backend=backend)
+    return rasterization(
+        params["means"],
+        params["quats"],
+        params["scales"],
+        params["opacities"],
+        params["colors"],
+        torch.eye(4)[None],
+        K,
+        WIDTH,
+        HEIGHT,
+        sh_degree=0,
+        render_mode=render_mode,
+        backend=backend,
+    )
 
 
 def _forward_backward(params: dict, backend: str):

@@ -17,9 +17,17 @@ def _layers(opacities, depths, dtype=torch.float64):
     quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]] * n, dtype=dtype)
     scales = torch.tensor([[0.5 * z] * 3 for z in depths], dtype=dtype)
     K = torch.tensor([[[20.0, 0.0, 8.5], [0.0, 20.0, 8.5], [0.0, 0.0, 1.0]]], dtype=dtype)  # pixel (8, 8) on the axis
-    return dict(means=means, quats=quats, scales=scales, opacities=torch.tensor(opacities, dtype=dtype),
-                colors=torch.ones(n, 3, dtype=dtype), viewmats=torch.eye(4, dtype=dtype)[None], Ks=K,
-                width=16, height=16)
+    return dict(
+        means=means,
+        quats=quats,
+        scales=scales,
+        opacities=torch.tensor(opacities, dtype=dtype),
+        colors=torch.ones(n, 3, dtype=dtype),
+        viewmats=torch.eye(4, dtype=dtype)[None],
+        Ks=K,
+        width=16,
+        height=16,
+    )
 
 
 @pytest.mark.parametrize("backend", ["torch", "cpu"])
@@ -46,8 +54,9 @@ def test_median_depth_is_the_depth_where_transmittance_crosses_one_half(backend,
 
 def test_cpu_and_reference_median_depth_agree_on_a_random_scene():
     args = random_scene(3000, 64, 48, sh_degree=None, seed=3)
-    ref, ref_alpha, _ = rasterization(**{k: v.double() if torch.is_tensor(v) else v for k, v in args.items()},
-                                      render_mode="RGB+MD", backend="torch")
+    ref, ref_alpha, _ = rasterization(
+        **{k: v.double() if torch.is_tensor(v) else v for k, v in args.items()}, render_mode="RGB+MD", backend="torch"
+    )
     cpu, cpu_alpha, _ = rasterization(**args, render_mode="RGB+MD", backend="cpu")
     # a pixel whose transmittance sits at 0.5 within float32 rounding may pick the neighbouring Gaussian
     near_half = ((ref_alpha - 0.5).abs() < 1e-4)[..., 0]

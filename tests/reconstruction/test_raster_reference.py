@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
+from tacsplat.apps.bench_rasterizer import random_scene
 from tacsplat.errors import InvalidInputError
 from tacsplat.reconstruction.raster import rasterization
-from tacsplat.apps.bench_rasterizer import random_scene
 from tacsplat.reconstruction.raster.reference import _composite_tile, project_gaussians
 from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
 
@@ -29,7 +29,9 @@ def test_single_isotropic_gaussian_alpha_profile_is_analytic(opacity):
     colors = torch.tensor([[0.2, 0.5, 1.0]], dtype=torch.float64)
     img, alpha, meta = rasterization(means, quats, scales, opac, colors, viewmats, K, 40, 30, backend="torch")
     var = (50.0 * 0.1 / 2.0) ** 2 + 0.3  # EWA covariance plus the 0.3 px dilation
-    ys, xs = torch.meshgrid(torch.arange(30.0, dtype=torch.float64) + 0.5, torch.arange(40.0, dtype=torch.float64) + 0.5, indexing="ij")
+    ys, xs = torch.meshgrid(
+        torch.arange(30.0, dtype=torch.float64) + 0.5, torch.arange(40.0, dtype=torch.float64) + 0.5, indexing="ij"
+    )
     r2 = (xs - 20.0) ** 2 + (ys - 15.0) ** 2
     expected = torch.clamp(opacity * torch.exp(-0.5 * r2 / var), max=0.99)
     expected = torch.where(expected >= 1 / 255, expected, torch.zeros_like(expected))
@@ -85,8 +87,9 @@ def test_projection_matches_pinhole_and_culls():
     quats = torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1)
     scales = torch.full((n, 3), 0.05)
     K = torch.tensor([[[100.0, 0, 32.0], [0, 90.0, 24.0], [0, 0, 1]]])
-    proj = project_gaussians(means, quats, scales, torch.full((n,), 0.9), torch.eye(4)[None], K, 64, 48,
-                             near_plane=0.01, far_plane=20.0)  # fmt: skip
+    proj = project_gaussians(
+        means, quats, scales, torch.full((n,), 0.9), torch.eye(4)[None], K, 64, 48, near_plane=0.01, far_plane=20.0
+    )
     torch.testing.assert_close(proj.means2d[0, 0], torch.tensor([32 + 100 * 0.15, 24 - 90 * 0.1]))
     assert proj.radii[0, 0].min() > 0
     assert (proj.radii[0, 1:] == 0).all()  # behind, before the near plane, beyond the far plane

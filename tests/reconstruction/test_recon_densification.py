@@ -104,8 +104,13 @@ def test_opacity_reset_clamps_and_schedule_refines_only_on_refine_steps():
     state = strategy.initialize_state(4, SCENE_SCALE)
     means2d = torch.zeros(1, 4, 2, requires_grad=True)
     (means2d * torch.tensor([[[0.01, 0.0]]] * 4).reshape(1, 4, 2)).sum().backward()
-    meta = {"means2d": means2d, "radii": torch.ones(1, 4, 2, dtype=torch.int32), "width": 100, "height": 100,
-            "n_cameras": 1}
+    meta = {
+        "means2d": means2d,
+        "radii": torch.ones(1, 4, 2, dtype=torch.int32),
+        "width": 100,
+        "height": 100,
+        "n_cameras": 1,
+    }
     changed = [strategy.step_post_backward(g, opts, state, step, meta) for step in range(0, 21)]
     assert [s for s, c in enumerate(changed) if c] == [20]  # > start_iter and a multiple of refine_every
     assert state.history[0][0] == 20

@@ -23,8 +23,21 @@ from tacsplat.reconstruction.densification import DensifyStrategy  # noqa: E402
 from tacsplat.reconstruction.initialization import InitConfig  # noqa: E402
 from tacsplat.reconstruction.trainer import Trainer  # noqa: E402
 
-FACTORIES = {torch.zeros, torch.ones, torch.empty, torch.full, torch.arange, torch.tensor, torch.as_tensor,
-             torch.randn, torch.rand, torch.randint, torch.randperm, torch.eye, torch.linspace}
+FACTORIES = {
+    torch.zeros,
+    torch.ones,
+    torch.empty,
+    torch.full,
+    torch.arange,
+    torch.tensor,
+    torch.as_tensor,
+    torch.randn,
+    torch.rand,
+    torch.randint,
+    torch.randperm,
+    torch.eye,
+    torch.linspace,
+}
 
 
 class HostTensorsCreated(TorchFunctionMode):
@@ -44,10 +57,18 @@ class HostTensorsCreated(TorchFunctionMode):
 
 
 def _config(**overrides) -> TrainConfig:
-    settings = dict(iterations=8, eval_every_iters=100, eval_every_seconds=1e9, checkpoint_every=100,
-                    backend="torch", device="cpu", touch_rebuild_every=3, touch_points_per_step=16,
-                    init=InitConfig(use_sfm=False, num_random_points=200),
-                    densify=DensifyStrategy(start_iter=2, refine_every=3, reset_every=100, stop_iter=100))
+    settings = dict(
+        iterations=8,
+        eval_every_iters=100,
+        eval_every_seconds=1e9,
+        checkpoint_every=100,
+        backend="torch",
+        device="cpu",
+        touch_rebuild_every=3,
+        touch_points_per_step=16,
+        init=InitConfig(use_sfm=False, num_random_points=200),
+        densify=DensifyStrategy(start_iter=2, refine_every=3, reset_every=100, stop_iter=100),
+    )
     return TrainConfig(**{**settings, **overrides})
 
 
@@ -58,10 +79,14 @@ def sphere(tmp_path_factory):
 
 def _tensors_of(trainer: Trainer) -> dict[str, torch.Tensor]:
     found = {
-        "viewmats": trainer.viewmats, "Ks": trainer.Ks, "touch points": trainer.touch_tensor,
-        "densify.grad2d": trainer.densify_state.grad2d, "densify.count": trainer.densify_state.count,
-        "from_touch": trainer.gaussians.from_touch, "candidates": trainer.neighbours._candidates,
-    }  # fmt: skip
+        "viewmats": trainer.viewmats,
+        "Ks": trainer.Ks,
+        "touch points": trainer.touch_tensor,
+        "densify.grad2d": trainer.densify_state.grad2d,
+        "densify.count": trainer.densify_state.count,
+        "from_touch": trainer.gaussians.from_touch,
+        "candidates": trainer.neighbours._candidates,
+    }
     found.update({f"image {i}": t for i, t in enumerate(trainer.images)})
     found.update({f"background {i}": t for i, t in enumerate(trainer.backgrounds)})
     found.update({f"backdrop mask {i}": t for i, t in enumerate(trainer.backdrop_masks) if t is not None})

@@ -22,8 +22,19 @@ from tacsplat.reconstruction.views import ScaledScene, camera_tensors  # noqa: E
 def _alpha(gaussians, frame) -> np.ndarray:
     means, quats, scales, opacities, colors = (t.float() for t in gaussians)
     viewmat, K = camera_tensors([frame])
-    _, alpha, _ = rasterization(means, quats, scales, opacities, colors, viewmat, K, frame.intrinsics.width,
-                                frame.intrinsics.height, eps2d=1e-4, backend="cpu")  # (no pixel-size dilation)
+    _, alpha, _ = rasterization(
+        means,
+        quats,
+        scales,
+        opacities,
+        colors,
+        viewmat,
+        K,
+        frame.intrinsics.width,
+        frame.intrinsics.height,
+        eps2d=1e-4,
+        backend="cpu",
+    )  # (no pixel-size dilation)
     return alpha[0, ..., 0].numpy()
 
 
@@ -50,8 +61,15 @@ def test_a_scene_downscaled_by_two_renders_the_outline_of_the_full_scene_scaled_
 
 def test_reconstruct_trains_and_evaluates_at_the_downscaled_size(tmp_path):
     scene = build_sphere_scene(tmp_path / "sphere", size=48)
-    config = TrainConfig(iterations=4, downscale=2, backend="cpu", sh_degree=0, eval_every_iters=100,
-                         eval_every_seconds=1e9, init=InitConfig(use_sfm=False, num_random_points=200))
+    config = TrainConfig(
+        iterations=4,
+        downscale=2,
+        backend="cpu",
+        sh_degree=0,
+        eval_every_iters=100,
+        eval_every_seconds=1e9,
+        init=InitConfig(use_sfm=False, num_random_points=200),
+    )
     metrics = reconstruct(scene, tmp_path / "run", config, show_progress=False)
     render = cv2.imread(str(next((tmp_path / "run" / "renders").glob("*.png"))))
     assert render.shape[:2] == (48, 72)  # 2x3 panels of 24 px

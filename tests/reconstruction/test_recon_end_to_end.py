@@ -13,12 +13,12 @@ import trimesh
 from tacsplat.cli import main as tacsplat_main
 from tacsplat.datasets import Scene
 from tacsplat.reconstruction import losses
+from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.gaussians import quats_to_rotmats
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.methods import method_of
 from tacsplat.reconstruction.ply import load_ply
-from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.trainer import Trainer, reconstruct
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
@@ -34,13 +34,18 @@ def sphere_scene(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def bare_scene(tmp_path_factory):
-    return build_sphere_scene(tmp_path_factory.mktemp("scenes") / "bare", size=24, train_views=3, test_views=1,
-                              touches=False)
+    return build_sphere_scene(
+        tmp_path_factory.mktemp("scenes") / "bare", size=24, train_views=3, test_views=1, touches=False
+    )
 
 
 def _config(iterations: int, **overrides) -> TrainConfig:
     base = dict(
-        iterations=iterations, backend="cpu", sh_degree=0, eval_every_iters=100, eval_every_seconds=1e9,
+        iterations=iterations,
+        backend="cpu",
+        sh_degree=0,
+        eval_every_iters=100,
+        eval_every_seconds=1e9,
         init=InitConfig(use_sfm=False, num_random_points=500),
         densify=DensifyStrategy(start_iter=100, refine_every=100, reset_every=10**6, stop_iter=iterations),
     )
@@ -57,15 +62,22 @@ def test_touch_and_fallback_gaussians_start_with_the_colors_their_pixels_show(sp
 
     trainers = {}
     for on in (True, False):
-        trainers[on] = Trainer(Scene.load(sphere_scene), tmp_path / str(on),
-                               _config(10, init=InitConfig(use_sfm=False, num_random_points=500, colors_from_views=on)))
+        trainers[on] = Trainer(
+            Scene.load(sphere_scene),
+            tmp_path / str(on),
+            _config(10, init=InitConfig(use_sfm=False, num_random_points=500, colors_from_views=on)),
+        )
         trainers[on].initialize()
     seen, unseen = (trainers[on].gaussians for on in (True, False))
     assert torch.equal(seen.means, unseen.means) and seen.num_touch > 0
     t = trainers[True]
-    expected = view_colors(seen.means.detach().double().numpy(), [im.numpy() for im in t.images],
-                            [f.intrinsics.K for f in t.train_frames], [f.T_world_cam for f in t.train_frames],
-                            [foreground_mask(m) for m in t.backdrop_pixels])  # [N, 3]
+    expected = view_colors(
+        seen.means.detach().double().numpy(),
+        [im.numpy() for im in t.images],
+        [f.intrinsics.K for f in t.train_frames],
+        [f.T_world_cam for f in t.train_frames],
+        [foreground_mask(m) for m in t.backdrop_pixels],
+    )  # [N, 3]
     found = np.isfinite(expected).all(axis=1)
     assert found.mean() > 0.9
     rgb = sh0_to_rgb(seen.params["sh0"].detach()[:, 0]).numpy()
@@ -99,8 +111,18 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
         assert float(rows[-1][key]) == pytest.approx(metrics[key], rel=1e-5)
     assert all(float(r["transmittance"]) > 0 for r in rows[1:])
     saved = json.loads((run / "metrics.json").read_text())
-    for key in ("cd", "cd_paper", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians",
-                "num_touch_gaussians", "method", "settings"):
+    for key in (
+        "cd",
+        "cd_paper",
+        "psnr",
+        "ssim",
+        "train_seconds",
+        "iterations",
+        "num_gaussians",
+        "num_touch_gaussians",
+        "method",
+        "settings",
+    ):
         assert key in saved
     assert saved["cd_paper"] == pytest.approx(saved["cd_paper_accuracy"] + saved["cd_paper_completeness"])
     assert saved["cd_seen"] is None and saved["unseen_fraction"] is None  # no mesh to tell what cameras see
@@ -114,9 +136,14 @@ def _sphere_of_gaussians(scale: float):
     from tacsplat.reconstruction.gaussians import Gaussians
 
     means, quats, scales, opacities, colors = sphere_gaussians()
-    params = {"means": means * scale, "quats": quats, "scales": (scales * scale).log(),
-              "opacities": torch.logit(opacities), "sh0": ((colors - 0.5) / 0.28209479177387814)[:, None],
-              "shN": torch.zeros(len(means), 0, 3)}  # fmt: skip
+    params = {
+        "means": means * scale,
+        "quats": quats,
+        "scales": (scales * scale).log(),
+        "opacities": torch.logit(opacities),
+        "sh0": ((colors - 0.5) / 0.28209479177387814)[:, None],
+        "shN": torch.zeros(len(means), 0, 3),
+    }
     return Gaussians(params, torch.zeros(len(means), dtype=torch.bool), sh_degree=0)
 
 
@@ -129,8 +156,10 @@ def test_depth_bias_is_positive_behind_the_truth_in_radii(sphere_scene):
     scene = Scene.load(sphere_scene)
     test = scene.split("test")
     truth = load_ground_truth(scene, test)
-    bias = {s: evaluate_views(_sphere_of_gaussians(s), scene, test, None, "cpu", truth)["depth_bias"]
-            for s in (0.96, 1.0, 1.04)}
+    bias = {
+        s: evaluate_views(_sphere_of_gaussians(s), scene, test, None, "cpu", truth)["depth_bias"]
+        for s in (0.96, 1.0, 1.04)
+    }
     assert 0.035 < bias[0.96] - bias[1.0] < 0.07
     assert 0.035 < bias[1.0] - bias[1.04] < 0.07
     assert np.isnan(evaluate_views(_sphere_of_gaussians(1.0), scene, test, None, "cpu", None)["depth_bias"])
@@ -188,6 +217,7 @@ def test_the_settings_of_a_switched_off_mechanism_change_nothing(sphere_scene, t
     """TrainConfig.unused_fields is what bench paper ignores when it compares a run's settings with today's: changing
     them leaves the trained Gaussians identical (here the consistency's start step, with the consistency off, and the
     albedo smoothness's weights, with the smoothness off)."""
+
     def trained(name: str, **changes) -> dict:
         config = _config(4, lambda_depth_normal=0.0, lambda_albedo_smoothness=0.0, **changes)
         trainer = Trainer(Scene.load(sphere_scene), tmp_path / name, config)
@@ -202,8 +232,9 @@ def test_the_settings_of_a_switched_off_mechanism_change_nothing(sphere_scene, t
 
 def test_smoothness_waits_for_its_start_step_and_the_proximity_mask_can_be_off(sphere_scene, tmp_path, monkeypatch):
     spies = _spy_paths(monkeypatch)
-    trainer = Trainer(Scene.load(sphere_scene), tmp_path / "run", _config(5, smoothness_start_iter=3,
-                                                                          use_proximity_mask=False))
+    trainer = Trainer(
+        Scene.load(sphere_scene), tmp_path / "run", _config(5, smoothness_start_iter=3, use_proximity_mask=False)
+    )
     trainer.run(show_progress=False)
     assert len(spies["smoothness"].calls) == 2  # steps 3 and 4
     assert all(kwargs.get("proximity") is None for kwargs, _ in spies["smoothness"].calls)
@@ -212,8 +243,12 @@ def test_smoothness_waits_for_its_start_step_and_the_proximity_mask_can_be_off(s
 
 
 def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_scene, tmp_path, monkeypatch):
-    config = _config(10, checkpoint_every=4, touch_rebuild_every=3,
-                     densify=DensifyStrategy(start_iter=2, refine_every=3, reset_every=5, stop_iter=100))
+    config = _config(
+        10,
+        checkpoint_every=4,
+        touch_rebuild_every=3,
+        densify=DensifyStrategy(start_iter=2, refine_every=3, reset_every=5, stop_iter=100),
+    )
     scene = Scene.load(sphere_scene)
     straight = Trainer(scene, tmp_path / "straight", config).run(show_progress=False)
 
@@ -290,8 +325,25 @@ def _covariances(g) -> torch.Tensor:
 
 def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, tmp_path, capsys):
     run = tmp_path / "run"
-    code = tacsplat_main(["reconstruct", str(sphere_scene), "--out", str(run), "--iterations", "5",
-                          "--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--quiet", "--train-views", "4"])
+    code = tacsplat_main(
+        [
+            "reconstruct",
+            str(sphere_scene),
+            "--out",
+            str(run),
+            "--iterations",
+            "5",
+            "--sh-degree",
+            "0",
+            "--lambda-s",
+            "0",
+            "--backend",
+            "cpu",
+            "--quiet",
+            "--train-views",
+            "4",
+        ]
+    )
     assert code == 0
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["method"] == "custom" and metrics["settings"]["train_views"] == 4  # the default, no L_S
@@ -334,9 +386,26 @@ def test_cli_options_reach_the_train_config_after_the_method_and_the_config_file
     from tacsplat.errors import ConfigError, UsageError
     from tacsplat.reconstruction.config import PAPER_SCHEDULE
 
-    config = _parse("--seed", "3", "--sh-degree", "1", "--backend", "cpu", "--iterations", "7", "--lambda-s", "0.5",
-                    "--smoothness-depth", "accumulated", "--no-use-touch", "--densify.max-gaussians", "500",
-                    "--init.no-use-sfm", "--train-views", "None")
+    config = _parse(
+        "--seed",
+        "3",
+        "--sh-degree",
+        "1",
+        "--backend",
+        "cpu",
+        "--iterations",
+        "7",
+        "--lambda-s",
+        "0.5",
+        "--smoothness-depth",
+        "accumulated",
+        "--no-use-touch",
+        "--densify.max-gaussians",
+        "500",
+        "--init.no-use-sfm",
+        "--train-views",
+        "None",
+    )
     assert (config.seed, config.sh_degree, config.backend, config.iterations, config.lambda_s) == (3, 1, "cpu", 7, 0.5)
     assert (config.smoothness_depth, config.use_touch, config.densify.max_gaussians) == ("accumulated", False, 500)
     assert config.init.use_sfm is False and config.train_views is None and method_of(config) == "custom"
@@ -350,11 +419,13 @@ def test_cli_options_reach_the_train_config_after_the_method_and_the_config_file
     settings.write_text("lambda_s: 1.5\ndensify:\n  max_gaussians: 900\n")
     mine = _parse("--method", "paper", "--lambda-s", "2.5", config=settings)  # method, then file, then options
     assert (mine.lambda_s, mine.densify.max_gaussians, method_of(mine)) == (2.5, 900, "paper")
-    for options, words in ((["--iterations", "-5"], "--iterations: must be an integer >= 1, got -5"),
-                           (["--densify.max-gaussians", "-1"], "--densify.max-gaussians: must be a finite number"),
-                           (["--iterations", "x"], "--iterations: invalid literal"),
-                           (["--method", "fancy"], "--method: unknown method 'fancy'"),
-                           (["--lambda-z", "1"], "--lambda-z: not an option of tacsplat reconstruct")):
+    for options, words in (
+        (["--iterations", "-5"], "--iterations: must be an integer >= 1, got -5"),
+        (["--densify.max-gaussians", "-1"], "--densify.max-gaussians: must be a finite number"),
+        (["--iterations", "x"], "--iterations: invalid literal"),
+        (["--method", "fancy"], "--method: unknown method 'fancy'"),
+        (["--lambda-z", "1"], "--lambda-z: not an option of tacsplat reconstruct"),
+    ):
         with pytest.raises(UsageError, match=words):
             _parse(*options)
     settings.write_text("lambda_z: 1\n")
@@ -375,7 +446,9 @@ def test_reconstruct_help_fits_in_150_lines_and_every_setting_has_an_option(caps
     assert stop.value.code == 0 and len(text.splitlines()) <= 150
     for f in dataclasses.fields(TrainConfig):
         nested = getattr(TrainConfig(), f.name)
-        names = [f"{f.name}.{g.name}" for g in dataclasses.fields(nested)] if dataclasses.is_dataclass(nested) else [f.name]
+        names = (
+            [f"{f.name}.{g.name}" for g in dataclasses.fields(nested)] if dataclasses.is_dataclass(nested) else [f.name]
+        )
         for name in names:
             flag = f"--{name.replace('_', '-')}"
             assert f"{flag} " in text or f"{flag}, " in text, f"TrainConfig.{name} has no option"

@@ -8,13 +8,13 @@ from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction.initialization import (
     InitConfig,
     foreground_mask,
-    silhouette_hull_points,
     initial_gaussians,
-    view_colors,
     neighbour_scales,
     random_points,
     sfm_points,
+    silhouette_hull_points,
     thin_touch_points,
+    view_colors,
 )
 
 K = np.array([[200.0, 0, 100], [0, 200.0, 100], [0, 0, 1]])
@@ -36,8 +36,9 @@ def _plane_views(texture: np.ndarray, count: int = 4):
 
 def test_sfm_with_known_poses_triangulates_points_on_the_textured_plane():
     rng = np.random.default_rng(0)
-    texture = cv2.resize((rng.uniform(0, 1, (48, 48, 3)) * 255).astype(np.uint8), (480, 480),
-                         interpolation=cv2.INTER_CUBIC)
+    texture = cv2.resize(
+        (rng.uniform(0, 1, (48, 48, 3)) * 255).astype(np.uint8), (480, 480), interpolation=cv2.INTER_CUBIC
+    )
     result = sfm_points(*_plane_views(texture))
     assert len(result.points) > 50
     assert np.median(np.abs(result.points[:, 2])) < 0.002  # on z = 0 (metres), in the known world frame
@@ -93,8 +94,9 @@ def _sphere_silhouettes(radius: float, directions, size: int = 96):
 def test_visual_hull_points_lie_near_the_sphere_and_not_in_the_box():
     directions = [[1, 0, 0.3], [-1, 0.2, 0.3], [0, 1, 0.3], [0.2, -1, 0.3], [0, 0, 1], [0.5, 0.5, -1]]
     silhouettes, Ks, poses = _sphere_silhouettes(0.05, directions)
-    points = silhouette_hull_points(silhouettes, Ks, poses, np.full(3, -0.1), np.full(3, 0.1), 3000, 48,
-                                    np.random.default_rng(0))
+    points = silhouette_hull_points(
+        silhouettes, Ks, poses, np.full(3, -0.1), np.full(3, 0.1), 3000, 48, np.random.default_rng(0)
+    )
     radii = np.linalg.norm(points, axis=1)
     assert points.shape == (3000, 3)
     assert radii.min() > 0.05 - 0.006  # never carved inside the sphere (one voxel is 4 mm)
@@ -104,8 +106,9 @@ def test_visual_hull_points_lie_near_the_sphere_and_not_in_the_box():
 def test_visual_hull_of_silhouettes_that_see_nothing_is_empty():
     silhouettes, Ks, poses = _sphere_silhouettes(0.05, [[1, 0, 0], [0, 1, 0]])
     empty = [np.zeros_like(s) for s in silhouettes]
-    points = silhouette_hull_points(empty, Ks, poses, np.full(3, -0.1), np.full(3, 0.1), 100, 16,
-                                    np.random.default_rng(0))
+    points = silhouette_hull_points(
+        empty, Ks, poses, np.full(3, -0.1), np.full(3, 0.1), 100, 16, np.random.default_rng(0)
+    )
     assert points.shape == (0, 3)
 
 
@@ -113,10 +116,12 @@ def test_an_object_cut_by_the_frame_is_not_carved_outside_that_frame():
     silhouettes, Ks, poses = _sphere_silhouettes(0.05, [[1, 0, 0], [0, 1, 0]])
     cut = silhouettes[0].copy()
     cut[:, :5] = True  # the object goes on past the left edge of view 0
-    kept = silhouette_hull_points([cut, silhouettes[1]], Ks, poses, np.full(3, -0.2), np.full(3, 0.2), 2000, 32,
-                                  np.random.default_rng(0))
-    whole = silhouette_hull_points(silhouettes, Ks, poses, np.full(3, -0.2), np.full(3, 0.2), 2000, 32,
-                                   np.random.default_rng(0))
+    kept = silhouette_hull_points(
+        [cut, silhouettes[1]], Ks, poses, np.full(3, -0.2), np.full(3, 0.2), 2000, 32, np.random.default_rng(0)
+    )
+    whole = silhouette_hull_points(
+        silhouettes, Ks, poses, np.full(3, -0.2), np.full(3, 0.2), 2000, 32, np.random.default_rng(0)
+    )
     assert np.abs(kept).max() > 0.12  # view 0 no longer bounds the hull outside its frame
     assert np.abs(whole).max() < 0.1
 

@@ -54,8 +54,9 @@ def test_transmittance_uses_top_k_by_influence_within_the_distance_threshold():
     opac = torch.tensor([0.2, 0.9, 0.9, 0.99], dtype=torch.float64)
     point = torch.zeros(1, 3, dtype=torch.float64)
     # influences f*alpha: 0.2, exp(-0.5)*0.9 = 0.546, exp(-4.5)*0.9 = 0.010; the 4th is out of reach
-    loss = transmittance_loss(point, means, quats, scales, opac, torch.tensor([[0, 1, 2, 3]]), top_k=2,
-                              max_distance=0.01)
+    loss = transmittance_loss(
+        point, means, quats, scales, opac, torch.tensor([[0, 1, 2, 3]]), top_k=2, max_distance=0.01
+    )
     expected = 0.5 * ((1 - 0.2) + (1 - math.exp(-0.5) * 0.9))
     assert loss.item() == pytest.approx(expected, abs=1e-12)
 
@@ -64,8 +65,16 @@ def test_minimising_transmittance_raises_opacity_and_pulls_the_mean_onto_the_poi
     means, quats, scales, opac = _one_gaussian([0.001, 0.0, 0.0], 0.002, 0.5)
     means.requires_grad_(True)
     opac.requires_grad_(True)
-    loss = transmittance_loss(torch.zeros(1, 3, dtype=torch.float64), means, quats, scales, opac,
-                              torch.tensor([[0]]), top_k=1, max_distance=0.01)
+    loss = transmittance_loss(
+        torch.zeros(1, 3, dtype=torch.float64),
+        means,
+        quats,
+        scales,
+        opac,
+        torch.tensor([[0]]),
+        top_k=1,
+        max_distance=0.01,
+    )
     loss.backward()
     assert opac.grad.item() < 0  # descending raises opacity
     assert means.grad[0, 0].item() > 0  # descending moves the mean towards x = 0
@@ -129,8 +138,9 @@ def test_fused_transmittance_stays_finite_for_a_gaussian_with_a_zero_scale():
     means, quats, scales, opac = _one_gaussian([0.001, 0.0, 0.0], 0.002, 0.5)
     scales[0, 0] = 0.0
     params = [p.requires_grad_(True) for p in (means, quats, scales, opac)]
-    loss = transmittance_loss(torch.zeros(1, 3, dtype=torch.float64), *params, torch.tensor([[0]]), top_k=1,
-                              max_distance=0.01)
+    loss = transmittance_loss(
+        torch.zeros(1, 3, dtype=torch.float64), *params, torch.tensor([[0]]), top_k=1, max_distance=0.01
+    )
     grads = torch.autograd.grad(loss, params)
     assert loss.item() == pytest.approx(1.0, abs=1e-30)
     assert all(torch.isfinite(g).all() for g in grads)
@@ -144,8 +154,10 @@ def test_fused_transmittance_gradient_is_the_float64_finite_difference():
         param.requires_grad_(True)
     torch.autograd.gradcheck(
         lambda m, q, s, o: losses.transmittance_loss(touch, m, q, s, o, ids, top_k=3, max_distance=0.006),
-        (means, quats, scales, opacities), eps=1e-9, atol=1e-6,
-    )  # fmt: skip
+        (means, quats, scales, opacities),
+        eps=1e-9,
+        atol=1e-6,
+    )
 
 
 def test_touch_neighbours_see_only_touch_gaussians_and_rebuild_on_schedule():
@@ -209,8 +221,9 @@ def test_proximity_mask_matches_the_exact_distance_transform_within_reach():
     seeds = torch.from_numpy(rng.random((50, 70)) < 0.004)
     sigma = 2.5
     free = np.where(seeds.numpy(), 0, 255).astype(np.uint8)
-    exact = np.exp(-cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64) ** 2
-                   / (2 * sigma**2))
+    exact = np.exp(
+        -(cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64) ** 2) / (2 * sigma**2)
+    )
     np.testing.assert_allclose(proximity_mask(seeds, sigma).numpy(), exact, atol=3.4e-4, rtol=1e-5)
 
 
@@ -269,8 +282,9 @@ def test_a_planar_depth_map_gives_a_constant_depth_normal():
     K = torch.tensor([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]], dtype=torch.float64)
     normal = torch.tensor([0.2, -0.3, -1.0], dtype=torch.float64)
     normal = normal / normal.norm()  # the plane n.p = c, facing the camera
-    v, u = torch.meshgrid(torch.arange(24.0, dtype=torch.float64) + 0.5, torch.arange(32.0, dtype=torch.float64) + 0.5,
-                          indexing="ij")
+    v, u = torch.meshgrid(
+        torch.arange(24.0, dtype=torch.float64) + 0.5, torch.arange(32.0, dtype=torch.float64) + 0.5, indexing="ij"
+    )
     rays = torch.stack([(u - 16) / 40, (v - 12) / 40, torch.ones_like(u)], -1)
     depth = -2.0 / (rays @ normal)  # ray hits the plane n.p = -2 at z = depth
     n = depth_normals(depth, K)
@@ -301,9 +315,12 @@ def test_fused_depth_normal_consistency_matches_the_torch_reference_with_its_gra
     weights, float64: the fused pass against normal_consistency_loss(depth_normals(...)) through autograd."""
     g = torch.Generator().manual_seed(2)
     K = torch.tensor([[60.0, 0, 26], [0, 60.0, 20], [0, 0, 1]], dtype=torch.float64)
-    v, u = torch.meshgrid(torch.arange(40.0, dtype=torch.float64), torch.arange(52.0, dtype=torch.float64),
-                          indexing="ij")
-    depth = 1.0 + 0.2 * torch.sin(u / 7) * torch.cos(v / 5) + 0.01 * torch.rand(40, 52, generator=g, dtype=torch.float64)
+    v, u = torch.meshgrid(
+        torch.arange(40.0, dtype=torch.float64), torch.arange(52.0, dtype=torch.float64), indexing="ij"
+    )
+    depth = (
+        1.0 + 0.2 * torch.sin(u / 7) * torch.cos(v / 5) + 0.01 * torch.rand(40, 52, generator=g, dtype=torch.float64)
+    )
     depth[:5, :8] = 0.0
     depth.requires_grad_(True)
     rendered = torch.nn.functional.normalize(torch.randn(40, 52, 3, generator=g, dtype=torch.float64), dim=-1)

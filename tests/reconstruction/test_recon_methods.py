@@ -62,8 +62,14 @@ def test_a_run_config_written_before_the_lit_color_existed_reads_as_what_it_trai
     del sh_lit["albedo_smoothness_beta"]
     assert TrainConfig.from_json(sh_lit) == TrainConfig(albedo_smoothness_beta=0.0)  # unweighted, as it trained
     paper = method_config("paper").to_json()  # from before the surface-normal losses
-    for name in ("lambda_flatten", "lambda_depth_normal", "lambda_touch_normal", "appearance",
-                 "lambda_albedo_smoothness", "albedo_smoothness_beta"):
+    for name in (
+        "lambda_flatten",
+        "lambda_depth_normal",
+        "lambda_touch_normal",
+        "appearance",
+        "lambda_albedo_smoothness",
+        "albedo_smoothness_beta",
+    ):
         del paper[name]
     assert method_of(TrainConfig.from_json(paper)) == "paper"
     before_view_colors = TrainConfig().to_json()  # a default run from before the initial colours from the views
@@ -78,12 +84,23 @@ def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refuse
     """config.json written before the reflective and lit appearances, plane depth and the touch-pixel normals were
     removed: their fields switched off read as today's config (the light's rate, once ``lr_env_map``, kept); a run
     that used one is refused naming the field and the file."""
-    old = {**TrainConfig().to_json(), "depth_render": "centre", "plane_depth_start_iter": 700, "env_map_height": 16,
-           "lambda_touch_normal_pixels": 0.0, "lr_reflective": 5e-3, "lr_env_map": 0.02}
+    old = {
+        **TrainConfig().to_json(),
+        "depth_render": "centre",
+        "plane_depth_start_iter": 700,
+        "env_map_height": 16,
+        "lambda_touch_normal_pixels": 0.0,
+        "lr_reflective": 5e-3,
+        "lr_env_map": 0.02,
+    }
     old.pop("lr_light")
     assert TrainConfig.from_json(old) == TrainConfig(lr_light=0.02)
-    for field, value in (("depth_render", "plane"), ("lambda_touch_normal_pixels", 0.1), ("appearance", "lit"),
-                         ("appearance", "reflective")):
+    for field, value in (
+        ("depth_render", "plane"),
+        ("lambda_touch_normal_pixels", 0.1),
+        ("appearance", "lit"),
+        ("appearance", "reflective"),
+    ):
         with pytest.raises(ConfigError, match=f"run/config.json: {field}: this run used .*reconstruct the scene again"):
             TrainConfig.from_json({**old, field: value}, "run/config.json")
 
@@ -91,7 +108,11 @@ def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refuse
 def test_a_switched_off_mechanisms_settings_are_unused():
     assert TrainConfig().unused_fields() == set()  # the default uses every setting it has
     assert method_config("paper").unused_fields() == {
-        "depth_normal_start_iter", "albedo_smoothness_beta", "lambda_albedo_smoothness", "lit_start_iter"}
+        "depth_normal_start_iter",
+        "albedo_smoothness_beta",
+        "lambda_albedo_smoothness",
+        "lit_start_iter",
+    }
     assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
 
 

@@ -10,8 +10,8 @@ from plyfile import PlyData, PlyElement
 from tacsplat.errors import InvalidInputError, SceneFormatError
 from tacsplat.reconstruction.gaussians import Gaussians, num_sh_bases
 from tacsplat.reconstruction.metrics import (
-    bounding_sphere_radius,
     ReferenceCloud,
+    bounding_sphere_radius,
     chamfer_distance,
     chamfer_distance_parts,
     chamfer_terms_paper,
@@ -63,7 +63,9 @@ def test_chamfer_split_gives_each_part_its_own_error():
     assert 0.5 * (exact + off) == pytest.approx(chamfer_distance(predicted, gt, radius=0.05), rel=1e-9)
     # nothing predicted near the second part: its accuracy term is 0, its completeness the distance to the first
     missing = chamfer_distance_parts(grid, gt, part, radius=0.05)[2]
-    assert missing == pytest.approx(0.5 * float(np.linalg.norm(far[:, None] - grid[None], axis=-1).min(1).mean()) / 0.05)
+    assert missing == pytest.approx(
+        0.5 * float(np.linalg.norm(far[:, None] - grid[None], axis=-1).min(1).mean()) / 0.05
+    )
     assert math.isnan(chamfer_distance_parts(predicted, gt, np.ones(len(gt), bool))[2])
     with pytest.raises(InvalidInputError, match="part has 3 entries"):
         chamfer_distance_parts(predicted, gt, np.ones(3, bool))
@@ -139,8 +141,11 @@ def test_ply_has_the_standard_3dgs_layout(tmp_path):
     g = _random_gaussians(3, 3)
     vertex = PlyData.read(str(save_ply(g, tmp_path / "s.ply")))["vertex"]
     names = [p.name for p in vertex.properties]
-    expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    expected = (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(45)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     assert names == expected
     # higher bands channel-major: f_rest_0..14 are red, 15..29 green, 30..44 blue
     assert vertex["f_rest_15"][1] == pytest.approx(g.params["shN"][1, 0, 1].item())

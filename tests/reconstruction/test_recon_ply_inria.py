@@ -9,8 +9,11 @@ from tacsplat.errors import SceneFormatError
 from tacsplat.reconstruction.gaussians import Gaussians, num_sh_bases
 from tacsplat.reconstruction.ply import load_ply, save_ply, touch_sidecar_path
 
-INRIA_NAMES = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
-               + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+INRIA_NAMES = (
+    ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    + [f"f_rest_{i}" for i in range(45)]
+    + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+)
 
 
 def _gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
@@ -29,9 +32,14 @@ def _gaussians(n: int, degree: int, seed: int = 0) -> Gaussians:
 def inria_load_ply(path, max_sh_degree: int = 3) -> dict[str, torch.Tensor]:
     """``GaussianModel.load_ply`` of graphdeco-inria/gaussian-splatting (scene/gaussian_model.py), on the CPU."""
     plydata = PlyData.read(path)
-    xyz = np.stack((np.asarray(plydata.elements[0]["x"]),
-                    np.asarray(plydata.elements[0]["y"]),
-                    np.asarray(plydata.elements[0]["z"])), axis=1)
+    xyz = np.stack(
+        (
+            np.asarray(plydata.elements[0]["x"]),
+            np.asarray(plydata.elements[0]["y"]),
+            np.asarray(plydata.elements[0]["z"]),
+        ),
+        axis=1,
+    )
     opacities = np.asarray(plydata.elements[0]["opacity"])[..., np.newaxis]
     features_dc = np.zeros((xyz.shape[0], 3, 1))
     features_dc[:, 0, 0] = np.asarray(plydata.elements[0]["f_dc_0"])
@@ -44,13 +52,17 @@ def inria_load_ply(path, max_sh_degree: int = 3) -> dict[str, torch.Tensor]:
     for idx, attr_name in enumerate(extra_f_names):
         features_extra[:, idx] = np.asarray(plydata.elements[0][attr_name])
     features_extra = features_extra.reshape((features_extra.shape[0], 3, (max_sh_degree + 1) ** 2 - 1))
-    scale_names = sorted((p.name for p in plydata.elements[0].properties if p.name.startswith("scale_")),
-                         key=lambda x: int(x.split("_")[-1]))
+    scale_names = sorted(
+        (p.name for p in plydata.elements[0].properties if p.name.startswith("scale_")),
+        key=lambda x: int(x.split("_")[-1]),
+    )
     scales = np.zeros((xyz.shape[0], len(scale_names)))
     for idx, attr_name in enumerate(scale_names):
         scales[:, idx] = np.asarray(plydata.elements[0][attr_name])
-    rot_names = sorted((p.name for p in plydata.elements[0].properties if p.name.startswith("rot")),
-                       key=lambda x: int(x.split("_")[-1]))
+    rot_names = sorted(
+        (p.name for p in plydata.elements[0].properties if p.name.startswith("rot")),
+        key=lambda x: int(x.split("_")[-1]),
+    )
     rots = np.zeros((xyz.shape[0], len(rot_names)))
     for idx, attr_name in enumerate(rot_names):
         rots[:, idx] = np.asarray(plydata.elements[0][attr_name])

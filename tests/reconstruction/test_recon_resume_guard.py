@@ -25,8 +25,10 @@ FAST = ["--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--init.no-us
 def scenes(tmp_path_factory):
     """Two scenes of the sphere seen from other cameras, with other touches (A and B)."""
     root = tmp_path_factory.mktemp("scenes")
-    return tuple(build_sphere_scene(root / name, size=24, train_views=3, test_views=1, seed=seed)
-                 for name, seed in (("a", 0), ("b", 1)))
+    return tuple(
+        build_sphere_scene(root / name, size=24, train_views=3, test_views=1, seed=seed)
+        for name, seed in (("a", 0), ("b", 1))
+    )
 
 
 @pytest.fixture(scope="module")
@@ -40,8 +42,10 @@ def trained(scenes, tmp_path_factory):
 
 def _copy(trained: Path, tmp_path: Path) -> tuple[Path, Path]:
     """(scene, run) copies of :func:`trained`'s: the scene as if moved since the run was trained on it."""
-    return (Path(shutil.copytree(trained / "scene", tmp_path / "scene")),
-            Path(shutil.copytree(trained / "run", tmp_path / "run")))
+    return (
+        Path(shutil.copytree(trained / "scene", tmp_path / "scene")),
+        Path(shutil.copytree(trained / "run", tmp_path / "run")),
+    )
 
 
 def _files(folder: Path) -> dict[str, bytes]:
@@ -86,15 +90,23 @@ def test_a_moved_scene_resumes_and_the_run_records_where_it_is_now(trained, tmp_
 # --- the settings ------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("options, words", [
-    (["--lambda-t", "3"], ["--lambda-t", "0.5 in the run", "3.0 given"]),
-    (["--seed", "7"], ["--seed", "0 in the run", "7 given"]),
-    (["--lambda-backdrop", "1"], ["--lambda-backdrop", "0.1 in the run", "1.0 given"]),
-    (["--densify.max-gaussians", "10"], ["--densify.max-gaussians", "30000 in the run", "10 given"]),
-    (["--method", "paper"], ["--method custom in the run, 3dgs+t given",  # (paper --no-smoothness)
-                             "--appearance 'sh-lit' in the run, 'sh' given"]),
-    (["--config", str(PAPER_SCHEDULE)], ["--touch-top-k 8 in the run, 20 given"]),
-])
+@pytest.mark.parametrize(
+    "options, words",
+    [
+        (["--lambda-t", "3"], ["--lambda-t", "0.5 in the run", "3.0 given"]),
+        (["--seed", "7"], ["--seed", "0 in the run", "7 given"]),
+        (["--lambda-backdrop", "1"], ["--lambda-backdrop", "0.1 in the run", "1.0 given"]),
+        (["--densify.max-gaussians", "10"], ["--densify.max-gaussians", "30000 in the run", "10 given"]),
+        (
+            ["--method", "paper"],
+            [
+                "--method custom in the run, 3dgs+t given",  # (paper --no-smoothness)
+                "--appearance 'sh-lit' in the run, 'sh' given",
+            ],
+        ),
+        (["--config", str(PAPER_SCHEDULE)], ["--touch-top-k 8 in the run, 20 given"]),
+    ],
+)
 def test_resume_refuses_a_setting_that_differs_from_the_runs(trained, tmp_path, capsys, options, words):
     scene, run = _copy(trained, tmp_path)
     before = _files(run)

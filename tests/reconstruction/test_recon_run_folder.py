@@ -106,8 +106,9 @@ def _raise_on_sigterm(signum, frame):
 
 
 @pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
-def test_a_signal_checkpoints_the_step_reached_and_resume_matches_a_straight_run(scene, tmp_path, capsys,
-                                                                                 monkeypatch, signum, code):
+def test_a_signal_checkpoints_the_step_reached_and_resume_matches_a_straight_run(
+    scene, tmp_path, capsys, monkeypatch, signum, code
+):
     straight, run = tmp_path / "straight", tmp_path / "run"
     assert _reconstruct(scene, straight, iterations=10) == 0
     real_step = Trainer.train_step
@@ -140,15 +141,23 @@ def test_a_signal_checkpoints_the_step_reached_and_resume_matches_a_straight_run
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
-def _power_cut_then_resume(scene, run: Path, iterations: int, checkpoint_every: int, cut_at: int, monkeypatch,
-                           between=lambda: None) -> list[int]:
+def _power_cut_then_resume(
+    scene, run: Path, iterations: int, checkpoint_every: int, cut_at: int, monkeypatch, between=lambda: None
+) -> list[int]:
     """Train ``iterations`` steps (a progress row every 2), killed without a signal (no last checkpoint) when
     step ``cut_at`` starts; call ``between()``, resume; the iterations of progress.csv's rows."""
     from tacsplat.datasets import Scene
     from tacsplat.reconstruction.config import TrainConfig
 
-    config = TrainConfig(iterations=iterations, sh_degree=0, backend="cpu", lambda_s=0.0, eval_every_iters=2,
-                         eval_every_seconds=1e9, checkpoint_every=checkpoint_every)
+    config = TrainConfig(
+        iterations=iterations,
+        sh_degree=0,
+        backend="cpu",
+        lambda_s=0.0,
+        eval_every_iters=2,
+        eval_every_seconds=1e9,
+        checkpoint_every=checkpoint_every,
+    )
     real_step = Trainer.train_step
 
     def power_cut(self):
@@ -180,8 +189,12 @@ def test_a_checkpoint_from_before_a_loss_term_existed_resumes(scene, tmp_path, m
         del checkpoint["progress"]["sums"]["albedo_smoothness"]
         torch.save(checkpoint, path)
 
-    assert _power_cut_then_resume(scene, tmp_path / "run", 6, 3, 4, monkeypatch,
-                                  as_written_before_the_term) == [0, 2, 4, 6]
+    assert _power_cut_then_resume(scene, tmp_path / "run", 6, 3, 4, monkeypatch, as_written_before_the_term) == [
+        0,
+        2,
+        4,
+        6,
+    ]
 
 
 def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp_path):
@@ -216,7 +229,7 @@ def test_resume_of_no_run_is_refused_and_of_a_run_without_checkpoint_starts_it_a
     assert _reconstruct(scene, run, "--lambda-t", "0.25") == 0
     first = (run / "splat.ply").read_bytes()
     for name in ("checkpoint.pt", "splat.ply", "metrics.json"):  # a run killed (or out of disk) before its first
-        (run / name).unlink()                                    # checkpoint: its config.json is all there is
+        (run / name).unlink()  # checkpoint: its config.json is all there is
     capsys.readouterr()
     assert _reconstruct(scene, run, "--resume") == 0  # trains again from step 0 with the recorded settings
     assert (run / "splat.ply").read_bytes() == first
@@ -233,9 +246,11 @@ def test_every_command_refuses_the_scene_inspect_refuses(scene, tmp_path, capsys
     capsys.readouterr()
     assert main(["inspect", str(copy), "--json"]) == 1
     problems = json.loads(capsys.readouterr().out)["problems"]
-    assert problems == [f"{copy / 'journal.jsonl'}: records 4 frames and 4 touches but the index files hold 4 and 0: "
-                        "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites "
-                        "the index"]
+    assert problems == [
+        f"{copy / 'journal.jsonl'}: records 4 frames and 4 touches but the index files hold 4 and 0: "
+        "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites "
+        "the index"
+    ]
     assert _reconstruct(copy, tmp_path / "run2") == 1
     assert one_error_line(capsys) == f"error: {problems[0]}"
     assert not (tmp_path / "run2").exists()
@@ -255,20 +270,25 @@ def test_an_out_that_is_a_file_inside_a_file_or_unwritable_is_one_error(scene, t
     one_error_line(capsys, "--out", "which is a file")
     assert a_file.read_text() == "mine"
     real_access = os.access
-    monkeypatch.setattr(os, "access", lambda path, mode, **kw: False if "locked" in str(path) else real_access(path, mode))
+    monkeypatch.setattr(
+        os, "access", lambda path, mode, **kw: False if "locked" in str(path) else real_access(path, mode)
+    )
     assert _reconstruct(scene, tmp_path / "locked") == 1
     one_error_line(capsys, "--out", "is not writable")
 
 
-@pytest.mark.parametrize("options, words", [
-    (["--iterations", "-5"], ["--iterations", ">= 1", "-5"]),
-    (["--iterations", "0"], ["--iterations", ">= 1"]),
-    (["--lambda-t", "-1"], ["--lambda-t", ">= 0"]),
-    (["--lambda-s", "nan"], ["--lambda-s", "finite"]),
-    (["--lambda-t", "inf"], ["--lambda-t", "finite"]),
-    (["--train-views", "0"], ["--train-views", ">= 1"]),
-    (["--seed", "-1"], ["--seed", "0 to"]),
-])
+@pytest.mark.parametrize(
+    "options, words",
+    [
+        (["--iterations", "-5"], ["--iterations", ">= 1", "-5"]),
+        (["--iterations", "0"], ["--iterations", ">= 1"]),
+        (["--lambda-t", "-1"], ["--lambda-t", ">= 0"]),
+        (["--lambda-s", "nan"], ["--lambda-s", "finite"]),
+        (["--lambda-t", "inf"], ["--lambda-t", "finite"]),
+        (["--train-views", "0"], ["--train-views", ">= 1"]),
+        (["--seed", "-1"], ["--seed", "0 to"]),
+    ],
+)
 def test_an_option_out_of_range_is_one_error_naming_it(scene, tmp_path, capsys, options, words):
     assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), "--quiet", *options]) == 2  # usage error
     one_error_line(capsys, *words, prefix="tacsplat reconstruct: error: ")

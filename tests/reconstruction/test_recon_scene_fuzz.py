@@ -91,8 +91,9 @@ new_values = st.one_of(numbers, st.sampled_from(OTHER_TYPES), st.just(_DROP))
 @st.composite
 def damage(draw):
     """One way to damage a scene: (kind, which file (an index into the sorted candidates), details)."""
-    kind = draw(st.sampled_from(["delete", "truncate", "overwrite", "json", "json", "nudge", "nudge", "npz", "npz",
-                                 "image"]))
+    kind = draw(
+        st.sampled_from(["delete", "truncate", "overwrite", "json", "json", "nudge", "nudge", "npz", "npz", "image"])
+    )
     which = draw(st.integers(0, 10**6))
     if kind == "truncate":
         return kind, which, draw(st.floats(0, 1))
@@ -179,8 +180,13 @@ def _run(argv: list[str]) -> tuple[int, str, str]:
     return code, out.getvalue(), err.getvalue()
 
 
-@settings(max_examples=120, deadline=None, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(
+    max_examples=120,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
 @given(damages=st.lists(damage(), min_size=0, max_size=3))
 @example(damages=[])  # the undamaged scene: both accept it
 @example(damages=[("npz", 3, ("all", 0, 0.0))])  # a test view whose ground truth misses the object

@@ -11,10 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction import losses
-from tacsplat.reconstruction.evaluation import save_light
+from tacsplat.reconstruction.evaluation import equirect_directions, save_light
 from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
-from tacsplat.reconstruction.evaluation import equirect_directions
 from tacsplat.reconstruction.shading import DiffuseLight, _shade, gaussian_normals, render
 
 
@@ -86,8 +85,11 @@ def test_depth_normal_consistency_is_zero_for_a_plane_of_flat_gaussians_lying_in
     torch.testing.assert_close(inner, plane.expand_as(inner), rtol=0, atol=1e-4)
     # and a tilted copy of the Gaussians is not consistent with the plane's depth
     tilted = _plane_of_flat_gaussians(np.array([0.1, 0.2, 1.0]), 0.0)
-    tilted.params["quats"].data = torch.tensor(Rotation.from_euler("x", 0.6).as_quat(scalar_first=True),
-                                               dtype=torch.float32).expand_as(tilted.params["quats"]).clone()
+    tilted.params["quats"].data = (
+        torch.tensor(Rotation.from_euler("x", 0.6).as_quat(scalar_first=True), dtype=torch.float32)
+        .expand_as(tilted.params["quats"])
+        .clone()
+    )
     out_t = render(tilted, viewmat, K, 48, 48, sh_degree=0, backend="cpu", depth_mode="D", normals=True)
     assert losses.normal_consistency_loss(out_t.normal, from_depth, out.alpha * drawn).item() > 0.05
     # the fused CPU pass the trainer uses agrees on both
@@ -158,8 +160,10 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
     blended[0, 0] = 3.0  # a saturated pixel: its colour is clipped at 1
     alpha = torch.full((3, 4), 0.9, dtype=torch.float64)
     alpha[2, 3], blended[2, 3] = 0.0, 0.0  # a pixel no Gaussian reaches: not shaded, black
-    normal = torch.nn.functional.normalize(torch.randn(3, 4, 3, generator=g, dtype=torch.float64) + torch.tensor(
-        [0.0, 0.0, -2.0], dtype=torch.float64), dim=-1).requires_grad_(True)
+    normal = torch.nn.functional.normalize(
+        torch.randn(3, 4, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, -2.0], dtype=torch.float64),
+        dim=-1,
+    ).requires_grad_(True)
     viewmat = torch.eye(4, dtype=torch.float64)
     K = torch.tensor([[4.0, 0, 2], [0, 4.0, 1.5], [0, 0, 1]], dtype=torch.float64)
     rgb, albedo = _shade(blended, alpha, normal, viewmat, K, light, fused=fused)
@@ -173,8 +177,12 @@ def test_a_new_diffuse_light_shades_nothing_and_the_lit_shading_has_float64_grad
         lit.coefficients, lit.camera = coefficients, camera
         return _shade(b, alpha, n, viewmat, K, lit, fused=fused)[0]
 
-    inputs = (blended.clone().requires_grad_(True), normal, light.coefficients.detach().clone().requires_grad_(True),
-              light.camera.detach().clone().requires_grad_(True))
+    inputs = (
+        blended.clone().requires_grad_(True),
+        normal,
+        light.coefficients.detach().clone().requires_grad_(True),
+        light.camera.detach().clone().requires_grad_(True),
+    )
     assert torch.autograd.gradcheck(shaded, inputs)
 
 
@@ -193,8 +201,10 @@ def test_fused_shading_matches_the_torch_reference_with_its_gradients(lit):
     viewmat = torch.eye(4, dtype=torch.float64)
     viewmat[:3, :3] = torch.tensor(Rotation.from_rotvec([0.3, -0.2, 0.1]).as_matrix())
     K = torch.tensor([[9.0, 0, 5.5], [0, 9.0, 4.5], [0, 0, 1]], dtype=torch.float64)
-    normal = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g, dtype=torch.float64) + torch.tensor(
-        [0.0, 0.0, -1.5], dtype=torch.float64), dim=-1)
+    normal = torch.nn.functional.normalize(
+        torch.randn(h, w, 3, generator=g, dtype=torch.float64) + torch.tensor([0.0, 0.0, -1.5], dtype=torch.float64),
+        dim=-1,
+    )
     light = DiffuseLight().double()
     with torch.no_grad():
         light.coefficients.add_(0.5 * torch.randn(9, 3, generator=g, dtype=torch.float64))
@@ -279,8 +289,9 @@ def test_fused_albedo_smoothness_matches_the_torch_reference_with_its_gradient(w
     albedo.requires_grad_(True)
     inside = torch.rand(10, 13, generator=g) > 0.3
     inside[4, 5] = inside[4, 6] = True  # ... and a pair that counts
-    weights = losses.image_pair_weights(torch.rand(10, 13, 3, generator=g, dtype=torch.float64), 3.0) if weighted \
-        else None
+    weights = (
+        losses.image_pair_weights(torch.rand(10, 13, 3, generator=g, dtype=torch.float64), 3.0) if weighted else None
+    )
     results = []
     for fused in (True, False):
         loss = losses.albedo_smoothness_loss(albedo, inside, weights, fused=fused)
@@ -301,6 +312,7 @@ def test_edge_weighted_albedo_smoothness_leaves_a_textures_edge_and_flattens_sha
     unweighted = losses.albedo_smoothness_loss(albedo, inside, fused=fused).item()
     edge = losses.albedo_smoothness_loss(albedo, inside, losses.image_pair_weights(image, 10.0), fused=fused).item()
     shading = torch.linspace(0.3, 0.5, 10)[None, :, None].expand(8, 10, 3)  # a smooth image: weights near 1
-    painted = losses.albedo_smoothness_loss(albedo, inside, losses.image_pair_weights(shading, 10.0),
-                                            fused=fused).item()
+    painted = losses.albedo_smoothness_loss(
+        albedo, inside, losses.image_pair_weights(shading, 10.0), fused=fused
+    ).item()
     assert unweighted > 0.1 and edge < 0.01 * unweighted and painted > 0.75 * unweighted

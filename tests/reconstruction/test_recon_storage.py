@@ -23,8 +23,24 @@ sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does n
 from recon_synthetic import build_sphere_scene  # noqa: E402
 
 # 4 steps, a checkpoint and a progress row every 2 (none by run time): each write point is reached once or twice
-RUN = ["--iterations", "4", "--checkpoint-every", "2", "--eval-every-iters", "2", "--eval-every-seconds", "1e9",
-       "--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--init.no-use-sfm", "--quiet"]
+RUN = [
+    "--iterations",
+    "4",
+    "--checkpoint-every",
+    "2",
+    "--eval-every-iters",
+    "2",
+    "--eval-every-seconds",
+    "1e9",
+    "--sh-degree",
+    "0",
+    "--lambda-s",
+    "0",
+    "--backend",
+    "cpu",
+    "--init.no-use-sfm",
+    "--quiet",
+]
 DISK_FULL = "the disk is full"
 
 
@@ -120,14 +136,25 @@ def _fill_when_opened(monkeypatch, mount: Path, name: str, nth: int, run: Path) 
 
 # every file the run writes, and the time it is written at which it fails (the second checkpoint, progress.csv's
 # row of step 4, ...); config.json and the first progress row come before any checkpoint
-WRITE_POINTS = [("config.json", 1), ("progress.csv", 1), ("checkpoint.pt", 1), ("checkpoint.pt", 2),
-                ("progress.csv", 3), ("splat.touch.npy", 1), ("splat.ply", 1), ("error_vs_time.png", 1),
-                ("renders", 1), ("light.png", 1), ("metrics.json", 1)]
+WRITE_POINTS = [
+    ("config.json", 1),
+    ("progress.csv", 1),
+    ("checkpoint.pt", 1),
+    ("checkpoint.pt", 2),
+    ("progress.csv", 3),
+    ("splat.touch.npy", 1),
+    ("splat.ply", 1),
+    ("error_vs_time.png", 1),
+    ("renders", 1),
+    ("light.png", 1),
+    ("metrics.json", 1),
+]
 
 
 @pytest.mark.parametrize("name, nth", WRITE_POINTS)
-def test_a_full_disk_at_any_write_is_one_error_and_the_run_completes_after(scene, straight, tmpfs, monkeypatch,
-                                                                           capsys, name, nth):
+def test_a_full_disk_at_any_write_is_one_error_and_the_run_completes_after(
+    scene, straight, tmpfs, monkeypatch, capsys, name, nth
+):
     mount = tmpfs("16m")
     run = mount.path / "run"
     state = _fill_when_opened(monkeypatch, mount.path, name, nth, run)

@@ -31,8 +31,14 @@ K = torch.tensor([[60.0, 0, SIZE / 2], [0, 60.0, SIZE / 2], [0, 0, 1]])
 
 def _sphere() -> Gaussians:
     means, quats, scales, opacities, colors = (t.float() for t in sphere_gaussians(600))
-    params = {"means": means, "quats": quats, "scales": torch.log(scales),
-              "opacities": torch.logit(opacities), "sh0": rgb_to_sh0(colors)[:, None, :], "shN": torch.zeros(600, 0, 3)}
+    params = {
+        "means": means,
+        "quats": quats,
+        "scales": torch.log(scales),
+        "opacities": torch.logit(opacities),
+        "sh0": rgb_to_sh0(colors)[:, None, :],
+        "shN": torch.zeros(600, 0, 3),
+    }
     return Gaussians(params, torch.zeros(600, dtype=torch.bool), sh_degree=0)
 
 
@@ -82,16 +88,22 @@ def test_depth_spread_is_zero_on_one_surface_and_the_weights_spread_across_two()
     """Two half-transparent layers of Gaussians 2 cm apart, the back one behind the left half only: a ray through
     one layer has no depth spread; a ray through both has the spread of its two blending weights,
     p (1 - p) gap^2 with p the back layer's share of the alpha."""
-    xy = torch.stack(torch.meshgrid(torch.linspace(-0.03, 0.03, 20), torch.linspace(-0.03, 0.03, 20),
-                                    indexing="ij"), -1).reshape(-1, 2)
+    xy = torch.stack(
+        torch.meshgrid(torch.linspace(-0.03, 0.03, 20), torch.linspace(-0.03, 0.03, 20), indexing="ij"), -1
+    ).reshape(-1, 2)
     front = torch.cat([xy, torch.zeros(len(xy), 1)], 1)
     back = torch.cat([xy[xy[:, 0] < 0], torch.full((int((xy[:, 0] < 0).sum()), 1), 0.02)], 1)
 
     def layers(means):
         m = len(means)
-        params = {"means": means, "quats": torch.tensor([1.0, 0, 0, 0]).expand(m, 4).clone(),
-                  "scales": torch.log(torch.tensor([0.003, 0.003, 0.0003])).expand(m, 3).clone(),
-                  "opacities": torch.full((m,), -2.0), "sh0": torch.zeros(m, 1, 3), "shN": torch.zeros(m, 0, 3)}
+        params = {
+            "means": means,
+            "quats": torch.tensor([1.0, 0, 0, 0]).expand(m, 4).clone(),
+            "scales": torch.log(torch.tensor([0.003, 0.003, 0.0003])).expand(m, 3).clone(),
+            "opacities": torch.full((m,), -2.0),
+            "sh0": torch.zeros(m, 1, 3),
+            "shN": torch.zeros(m, 0, 3),
+        }
         return Gaussians(params, torch.zeros(m, dtype=torch.bool), 0)
 
     viewmat = torch.tensor(invert_pose(look_at([0, 0, -0.2], [0, 0, 0], up=(0, 1, 0))), dtype=torch.float32)

@@ -34,8 +34,10 @@ def test_a_user_mesh_is_decomposed_once_then_read_from_the_user_cache(monkeypatc
     monkeypatch.setenv("TACSPLAT_CACHE", str(tmp_path))
     # an L-shaped solid: not convex, so CoACD runs
     mesh = trimesh.boolean.union(
-        [trimesh.creation.box([2, 1, 1], trimesh.transformations.translation_matrix([0.5, 0, 0])),
-         trimesh.creation.box([1, 2, 1], trimesh.transformations.translation_matrix([0, 0.5, 0]))],
+        [
+            trimesh.creation.box([2, 1, 1], trimesh.transformations.translation_matrix([0.5, 0, 0])),
+            trimesh.creation.box([1, 2, 1], trimesh.transformations.translation_matrix([0, 0.5, 0])),
+        ],
         engine="manifold",
     )
     calls = []

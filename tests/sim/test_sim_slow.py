@@ -1,7 +1,5 @@
 """Longer simulator runs (marked slow: `make bench-quick` runs it; many grasps per object: tests/acquisition)."""
 
-
-
 import json  # noqa: E402
 
 import pytest  # noqa: E402
@@ -19,4 +17,3 @@ def test_bench_sim_quick(tmp_path):
     sphere = [r for r in data["tactile"] if r["surface"] == "sphere"]
     assert all(r["max_depth_error_um"] < 1.0 for r in sphere)
     assert all(r["max_penetration_mm"] < 1.0 for r in data["physics"])
-

@@ -1,7 +1,5 @@
 """The MuJoCo twin: Protocols, cameras against the ground-truth mesh, touches on the surface, stable physics."""
 
-
-
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
@@ -138,7 +136,9 @@ def test_reset_returns_to_the_initial_state_and_restarts_the_penetration_peak():
     twin.reset()
     assert twin.time == 0.0 and twin.peak_penetration_m == 0.0 and twin.max_penetration() == 0.0
     assert np.array_equal(twin.T_world_hand(), T0)
-    assert np.array_equal(twin.hand.read_joint_positions(), q0) and np.array_equal(twin.hand.read_joint_targets(), ctrl0)
+    assert np.array_equal(twin.hand.read_joint_positions(), q0) and np.array_equal(
+        twin.hand.read_joint_targets(), ctrl0
+    )
 
 
 def test_the_sensor_model_of_the_pads_in_a_scene_of_other_units():

@@ -71,11 +71,15 @@ def obj_cube(origin, size, first_vertex, first_uv, name, material):
 
 
 def test_multi_part_obj_with_materials_and_uv_seams_is_merged_by_position(tmp_path):
-    lines = ["mtllib parts.mtl"] + obj_cube([0, 0, 0], 40, 1, 1, "body", "red") + \
-        obj_cube([40, 10, 10], 20, 9, 5, "knob", "blue")
+    lines = (
+        ["mtllib parts.mtl"]
+        + obj_cube([0, 0, 0], 40, 1, 1, "body", "red")
+        + obj_cube([40, 10, 10], 20, 9, 5, "knob", "blue")
+    )
     (tmp_path / "parts.obj").write_text("\n".join(lines) + "\n")
-    (tmp_path / "parts.mtl").write_text("newmtl red\nKd 0.8 0.1 0.1\nmap_Kd missing_texture.png\n"
-                                        "newmtl blue\nKd 0.1 0.1 0.8\n")
+    (tmp_path / "parts.mtl").write_text(
+        "newmtl red\nKd 0.8 0.1 0.1\nmap_Kd missing_texture.png\nnewmtl blue\nKd 0.1 0.1 0.8\n"
+    )
     obj = load_mesh_object(tmp_path / "parts.obj", radius=0.08)
     assert len(obj.mesh.vertices) == 16  # 8 + 8 corners: the seams' copies merged by position
     assert obj.mesh.is_watertight and obj.mesh.volume > 0
@@ -89,8 +93,10 @@ def test_meshes_that_cannot_be_an_object_fail_with_one_clear_message(tmp_path):
     sheet.export(tmp_path / "sheet.obj")
     with pytest.raises(ConfigError, match=r"sheet\.obj.*(flat|no volume)"):
         load_mesh_object(tmp_path / "sheet.obj")
-    (tmp_path / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
-                                         "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n")
+    (tmp_path / "points.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+    )
     with pytest.raises(ConfigError, match=r"points\.ply.*no triangles"):
         load_mesh_object(tmp_path / "points.ply")
     (tmp_path / "empty.stl").write_bytes(b"")
@@ -104,8 +110,19 @@ def test_meshes_that_cannot_be_an_object_fail_with_one_clear_message(tmp_path):
 def test_sim_capture_refuses_a_flat_mesh_in_one_line(tmp_path, capsys):
     sheet = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
     sheet.export(tmp_path / "sheet.obj")
-    code = tacsplat_main(["sim-capture", "--mesh", str(tmp_path / "sheet.obj"), "--out", str(tmp_path / "scene"),
-                          "--views", "1", "--grasps", "1"])
+    code = tacsplat_main(
+        [
+            "sim-capture",
+            "--mesh",
+            str(tmp_path / "sheet.obj"),
+            "--out",
+            str(tmp_path / "scene"),
+            "--views",
+            "1",
+            "--grasps",
+            "1",
+        ]
+    )
     err = capsys.readouterr().err
     assert code == 1 and err.count("error:") == 1 and "sheet.obj" in err and "Traceback" not in err
     assert not (tmp_path / "scene" / "transforms.json").exists()
