@@ -1,158 +1,270 @@
-"""`tacsplat bench gpu`: the whole trainer on CUDA with gsplat, at the paper's scale.
+"""`tacsplat bench gpu` (what `make gpu-check` runs on a CUDA machine): the trainer on CUDA at the paper's scale,
+measured in minutes.
 
-One simulated object (default: the teapot at 800x800, 100 train views, 5 grasps, the paper's
-preset), reconstructed with the full method and with vanilla 3DGS on the GPU. Writes, into
-``--out``: ``gpu.json`` and ``gpu.md`` (seconds per 1k steps, total train seconds, peak GPU
-memory, CD, cd_paper and PSNR of each run, the device and library versions) and
-``error_vs_time.png`` (held-out CD and PSNR against train seconds). Without CUDA it says so and
-measures nothing. ``--scene`` reconstructs an existing scene instead of capturing one (a machine
-with a GPU but no simulator).
+One twin capture (default: the teapot, 100 train views at 800x800 px, 24 test views, 5 grasps). The default and
+the paper's method each train the first ``--steps`` steps of the paper's 30k-step schedule
+(reconstruction/paper_schedule.yaml) after a short warm-up run that builds gsplat's kernels: seconds per 1000
+steps, peak GPU memory, and 30k steps at that rate (a lower bound: the Gaussians multiply until densification
+stops at step 15k). With ``--parity DIR``, written beforehand on a CPU machine by ``--prepare DIR``, DIR's small
+scene trains on this device with the seeds and steps of DIR's CPU runs: CD and PSNR beside the CPU's mean and
+spread. Only ``gpu.json`` and ``gpu.md`` go to ``--out``; the capture and the runs go to ``--work``. Without CUDA
+it says so in one line and measures nothing.
 """
 
 from __future__ import annotations
 
+import argparse
+import hashlib
 import json
+import math
+import statistics
 import time
 from pathlib import Path
+
+PARITY_FILE = "cpu.json"  # in a --prepare folder, beside its scene/
 
 
 def register(cli) -> None:
     p = cli.command(
         "bench gpu",
-        help="train on CUDA with gsplat at the paper's scale: seconds per 1k steps, peak GPU memory, error vs time",
+        help="train on CUDA at the paper's scale: seconds per 1k steps, peak GPU memory, CPU/CUDA parity",
         description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
     )
-    p.add_argument("--out", default="bench-output/gpu", help="output folder (capture, runs, gpu.json, gpu.md, plot)")
-    p.add_argument("--scene", default=None, help="reconstruct this scene instead of capturing one")
+    p.add_argument("--out", default="bench-output/gpu", help="folder of gpu.json and gpu.md")
+    p.add_argument("--work", default=None, help="folder of the capture and the runs (default: --out/work)")
     p.add_argument("--object", default="teapot", help="library object to capture")
     p.add_argument("--resolution", type=int, default=800, help="image size of the capture (px)")
     p.add_argument("--views", type=int, default=100, help="train views of the capture")
     p.add_argument("--test-views", type=int, default=24, help="held-out test views of the capture")
     p.add_argument("--grasps", type=int, default=5, help="grasps of 4 touches")
-    p.add_argument("--preset", default="paper", choices=("default", "paper"), help="training preset")
-    p.add_argument("--iterations", type=int, default=None, help="steps per run (default: the preset's)")
+    p.add_argument("--steps", type=int, default=1000, help="steps of the paper's schedule each method trains")
+    p.add_argument("--methods", default="default,paper", help="comma-separated methods (or bench paper rows)")
+    p.add_argument("--parity", default=None, metavar="DIR", help="a folder written by --prepare: its scene on CUDA")
     p.add_argument(
-        "--methods", default="paper,3dgs", help="comma-separated methods (or rows of `bench paper`'s ablations.yaml)"
+        "--prepare",
+        default=None,
+        metavar="DIR",
+        help="on this machine's CPU, write DIR: a 128 px twin scene and its runs (--parity-steps, --parity-seeds)",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument(
-        "--no-sfm",
-        action="store_true",
-        help="initialise without pycolmap (visual hull), e.g. on a GPU machine without pycolmap",
-    )
+    p.add_argument("--parity-steps", type=int, default=1500, help="steps of each parity run")
+    p.add_argument("--parity-seeds", default="0,1,2", help="comma-separated seeds of the parity runs")
+    p.add_argument("--parity-resolution", type=int, default=128, help="image size of the parity scene (px)")
+    p.add_argument("--device", default="cuda", choices=("cuda", "cpu"), help=argparse.SUPPRESS)  # cpu: the tests
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
     import torch
 
-    if not torch.cuda.is_available():
+    from tacsplat.apps.options import comma_separated_ints
+    from tacsplat.apps.paper_bench import bench_row
+
+    seeds = comma_separated_ints(args.parity_seeds, "--parity-seeds")
+    if args.prepare is not None:
+        _prepare(Path(args.prepare), args, seeds)
+        return 0
+    if args.device == "cuda" and not torch.cuda.is_available():
         build = "a CPU-only build" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, no device visible"
         print(f"bench gpu: skipped: torch {torch.__version__} ({build}) sees no CUDA device; nothing was measured")
         return 0
-    from tacsplat.apps.paper_bench import bench_row
-
     methods = [name.strip() for name in args.methods.split(",") if name.strip()]
     for name in methods:
         bench_row(name, "--methods")
+    parity = _read_parity(Path(args.parity)) if args.parity else None
     out = Path(args.out)
-    scene = Path(args.scene) if args.scene else _capture(args, out / "scene")
-    rows = [_train(scene, out / "runs" / method, method, args) for method in methods]
-    _write_report(out, rows, scene)
+    work = Path(args.work) if args.work else out / "work"
+    started = time.perf_counter()
+    scene = _capture(args, work / "scene", args.resolution, args.views, args.test_views)
+    capture_seconds = time.perf_counter() - started
+    _train(scene, work / "warm-up", methods[0], 20, 0, args.device)  # gsplat's kernels build on their first use
+    rows = [_train(scene, work / "runs" / m, m, args.steps, 0, args.device, timed=True) for m in methods]
+    parity_rows = []
+    if parity is not None:
+        parity_scene = Path(args.parity) / "scene"
+        for seed in parity["seeds"]:
+            run = work / "parity" / f"seed{seed}"
+            parity_rows.append(_train(parity_scene, run, parity["method"], parity["steps"], seed, args.device))
+    report = {
+        "device": _device(args.device),
+        "scene": _scene_facts(scene),
+        "capture_seconds": capture_seconds,
+        "runs": rows,
+        "parity": None if parity is None else {"cpu": parity, "device_runs": parity_rows},
+        "wall_seconds": time.perf_counter() - started,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "gpu.json").write_text(json.dumps(report, indent=2))
+    (out / "gpu.md").write_text(gpu_table(report))
     print((out / "gpu.md").read_text())
     return 0
 
 
-def _capture(args, scene: Path) -> Path:
+def _capture(args, scene: Path, resolution: int, views: int, test_views: int) -> Path:
     from tacsplat.acquisition.sim_capture import sim_rig_config
     from tacsplat.apps.batch import capture_once
 
     rig = sim_rig_config(
         object=args.object,
-        views=args.views,
-        test_views=args.test_views,
+        views=views,
+        test_views=test_views,
         grasps=args.grasps,
-        resolution=args.resolution,
-        seed=args.seed,
+        resolution=resolution,
+        seed=0,
     )
     return capture_once(rig, scene)
 
 
-def _train(scene: Path, out: Path, method: str, args) -> dict:
+def _train(scene: Path, out: Path, method: str, steps: int, seed: int, device: str, timed: bool = False) -> dict:
+    """Train ``method`` for the first ``steps`` steps of the paper's schedule (one evaluation, at the end)."""
     import torch
 
     from tacsplat.apps.paper_bench import row_config
     from tacsplat.reconstruction.trainer import reconstruct
 
-    config = row_config(method, args.preset, args.iterations)
-    config.seed, config.device = args.seed, "cuda"
-    config.init.use_sfm = not args.no_sfm
-    torch.cuda.reset_peak_memory_stats()
-    started = time.perf_counter()
-    resume = (out / "checkpoint.pt").is_file()
-    metrics = reconstruct(scene, out, config, resume=resume, overwrite=not resume, show_progress=True)
-    wall = time.perf_counter() - started
+    config = row_config(method, "paper")
+    config.iterations, config.seed, config.device = steps, seed, device
+    config.eval_every_iters, config.eval_every_seconds = steps, 1e9
+    config.init.use_sfm = False  # the visual hull: no pycolmap on the device
+    if device == "cuda":
+        torch.cuda.reset_peak_memory_stats()
+    metrics = reconstruct(scene, out, config, overwrite=True, show_progress=timed)
+    peak = torch.cuda.max_memory_allocated() / 2**30 if device == "cuda" else None
+    per_1k = 1000.0 * metrics["train_seconds"] / max(metrics["iterations"], 1)
     return {
         "method": method,
-        "preset": args.preset,
-        "iterations": metrics["iterations"],
+        "seed": seed,
+        "steps": metrics["iterations"],
         "train_seconds": metrics["train_seconds"],
-        "wall_seconds": wall,
-        "seconds_per_1k_steps": 1000.0 * metrics["train_seconds"] / max(metrics["iterations"], 1),
-        "peak_gpu_memory_gib": torch.cuda.max_memory_allocated() / 2**30,
+        "seconds_per_1k_steps": per_1k,
+        "projected_30k_minutes": 30 * per_1k / 60,
+        "peak_gpu_memory_gib": peak,
         "num_gaussians": metrics["num_gaussians"],
         "cd": metrics["cd"],
-        "cd_paper": metrics["cd_paper"],
         "psnr": metrics["psnr"],
-        "ssim": metrics["ssim"],
-        "run": str(out),
     }
 
 
-def _write_report(out: Path, rows: list[dict], scene: Path) -> None:
+def _prepare(folder: Path, args, seeds: tuple[int, ...]) -> None:
+    """The CPU side of the parity check: a small twin scene and its runs, one per seed, on this machine's CPU (the
+    runs' folders are dropped: their numbers are what travels)."""
+    import tempfile
+
+    from tacsplat.reconstruction.methods import DEFAULT_METHOD
+
+    scene = _capture(args, folder / "scene", args.parity_resolution, 5, 4)
+    with tempfile.TemporaryDirectory(prefix="parity-runs-") as runs_dir:
+        runs = [_train(scene, Path(runs_dir) / f"seed{s}", DEFAULT_METHOD, args.parity_steps, s, "cpu") for s in seeds]
+    record = {"method": DEFAULT_METHOD, "steps": args.parity_steps, "seeds": list(seeds), "source": source_hash()}
+    record["runs"] = [{k: r[k] for k in ("seed", "cd", "psnr", "train_seconds")} for r in runs]
+    (folder / PARITY_FILE).write_text(json.dumps(record, indent=2))
+    print(
+        f"bench gpu: {folder} holds the parity scene and {len(runs)} CPU runs of {DEFAULT_METHOD} (source "
+        f"{record['source']}); carry it to the device and give it to --parity"
+    )
+
+
+def _read_parity(folder: Path) -> dict:
+    from tacsplat.errors import ConfigError
+
+    path = folder / PARITY_FILE
+    try:
+        record = json.loads(path.read_text())
+        if not (folder / "scene").is_dir() or not record["runs"]:
+            raise ValueError("no scene/ or no runs")
+    except (OSError, ValueError, KeyError) as exc:
+        raise ConfigError("--parity", f"not a folder written by `tacsplat bench gpu --prepare` ({exc})", path) from None
+    if record.get("source") != source_hash():
+        print(f"bench gpu: warning: the CPU runs are of source {record.get('source')}, this is {source_hash()}")
+    return record
+
+
+def parity_verdict(cpu: list[float], device: list[float]) -> tuple[float, float, float, bool]:
+    """``(CPU mean, CPU spread (max - min), device mean, whether the device mean lies within the CPU's range)``."""
+    mean = statistics.fmean(device)
+    return statistics.fmean(cpu), max(cpu) - min(cpu), mean, min(cpu) <= mean <= max(cpu)
+
+
+def gpu_table(report: dict) -> str:
+    """The check's one table (Markdown): a row per method, then the parity rows."""
+    dev, scene = report["device"], report["scene"]
+    lines = [
+        f"# {dev['name']}: torch {dev['torch']}, CUDA {dev['cuda']}, gsplat {dev['gsplat']}",
+        "",
+        f"Scene: {scene['train_views']} train views at {scene['resolution']} px, {scene['test_views']} test views, "
+        f"{scene['touches']} touches (captured in {report['capture_seconds']:.0f} s). "
+        f"Whole check: {report['wall_seconds']:.0f} s.",
+        "",
+        "| run | steps | s / 1k steps | 30k steps [min] | peak GPU [GiB] | Gaussians | CD | PSNR |",
+        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in report["runs"]:
+        peak = "n/a" if r["peak_gpu_memory_gib"] is None else f"{r['peak_gpu_memory_gib']:.2f}"
+        lines.append(
+            f"| {r['method']} | {r['steps']} | {r['seconds_per_1k_steps']:.1f} | {r['projected_30k_minutes']:.1f} | "
+            f"{peak} | {r['num_gaussians']} | {_fmt(r['cd'], 4)} | {_fmt(r['psnr'], 2)} |"
+        )
+    parity = report["parity"]
+    if parity is not None:
+        cpu, runs = parity["cpu"], parity["device_runs"]
+        lines += [
+            "",
+            f"Parity: {cpu['method']}, {cpu['steps']} steps, seeds {cpu['seeds']}; the CPU runs' source "
+            f"{cpu['source']}, this one {source_hash()}.",
+            "",
+            "| metric | CPU mean | CPU spread | device mean | within the CPU's range |",
+            "| --- | ---: | ---: | ---: | --- |",
+        ]
+        for key, decimals in (("cd", 4), ("psnr", 2)):
+            c_mean, spread, d_mean, inside = parity_verdict([r[key] for r in cpu["runs"]], [r[key] for r in runs])
+            lines.append(
+                f"| {key} | {c_mean:.{decimals}f} | {spread:.{decimals}f} | {d_mean:.{decimals}f} | "
+                f"{'yes' if inside else 'NO'} |"
+            )
+    return "\n".join(lines) + "\n"
+
+
+def _fmt(value, decimals: int) -> str:
+    return "n/a" if value is None or not math.isfinite(value) else f"{value:.{decimals}f}"
+
+
+def _device(device: str) -> dict:
     import torch
 
-    from tacsplat.apps.report import plot_error_vs_time
+    name = torch.cuda.get_device_name() if device == "cuda" else "CPU (--device cpu)"
+    return {"name": name, "torch": torch.__version__, "cuda": torch.version.cuda, "gsplat": _version("gsplat")}
+
+
+def _scene_facts(scene: Path) -> dict:
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.run_dir import read_progress
 
     loaded = Scene.load(scene)
     train = loaded.split("train")
-    device = {
-        "gpu": torch.cuda.get_device_name(),
-        "torch": torch.__version__,
-        "cuda": torch.version.cuda,
-        "gsplat": _version("gsplat"),
-        "scene": str(scene),
+    return {
+        "path": str(scene),
         "train_views": len(train),
         "test_views": len(loaded.split("test")),
         "touches": len(loaded.touches),
         "resolution": f"{train[0].intrinsics.width}x{train[0].intrinsics.height}",
     }
-    (out / "gpu.json").write_text(json.dumps({"device": device, "runs": rows}, indent=2))
-    curves = {"": {r["method"]: read_progress(Path(r["run"]) / "progress.csv") for r in rows}}
-    plot_error_vs_time(curves, out / "error_vs_time.png", f"{device['gpu']}: held-out error vs train time")
-    lines = [
-        f"# Training on {device['gpu']}",
-        "",
-        f"Scene: {device['train_views']} train views at {device['resolution']} px, {device['test_views']} test views, "
-        f"{device['touches']} touches. torch {device['torch']} (CUDA {device['cuda']}), gsplat {device['gsplat']}.",
-        "",
-        "| method | preset | steps | s / 1k steps | train s | wall s | peak GPU GiB | Gaussians | CD | cd_paper | PSNR |",
-        "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['method']} | {r['preset']} | {r['iterations']} | {r['seconds_per_1k_steps']:.1f} | "
-            f"{r['train_seconds']:.0f} | {r['wall_seconds']:.0f} | {r['peak_gpu_memory_gib']:.2f} | "
-            f"{r['num_gaussians']} | {_fmt(r['cd'], 4)} | {_fmt(r['cd_paper'], 5)} | {_fmt(r['psnr'], 2)} |"
-        )
-    lines += ["", "![error vs time](error_vs_time.png)", ""]
-    (out / "gpu.md").write_text("\n".join(lines))
 
 
-def _fmt(value, decimals: int) -> str:
-    return "n/a" if value is None else f"{value:.{decimals}f}"
+def source_hash() -> str:
+    """12 hex digits of a hash of the package's source (its .py and .yaml files by module path): the same for the
+    same code whether it is installed, editable or linked, with or without git."""
+    import importlib
+
+    files = {}
+    for name in ("", ".acquisition", ".datasets", ".drivers", ".reconstruction", ".sim"):
+        package = importlib.import_module(f"tacsplat{name}")
+        root = Path(package.__file__).resolve().parent
+        prefix = Path("tacsplat", *name.split(".")[1:])
+        for path in root.rglob("*"):
+            if path.suffix in (".py", ".yaml") and "__pycache__" not in path.parts:
+                files[(prefix / path.relative_to(root)).as_posix()] = path
+    digest = hashlib.sha256()
+    for key in sorted(files):
+        digest.update(key.encode() + b"\0" + files[key].read_bytes() + b"\0")
+    return digest.hexdigest()[:12]
 
 
 def _version(package: str) -> str | None:
