@@ -5,10 +5,7 @@ order: the method's settings, then those of the ``--config`` file, then the opti
 from __future__ import annotations
 
 import argparse
-import contextlib
 import copy
-import io
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -16,6 +13,7 @@ from typing import Annotated, Literal
 import tyro
 
 from tacsplat.errors import ConfigError, UsageError
+from tacsplat.options import parse_options
 from tacsplat.reconstruction.config import TrainConfig, changed_settings, flat_settings, read_settings, set_fields
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, get_method, method_config, method_of
 
@@ -30,8 +28,8 @@ class ReconstructCommand:
     from the options given; -H says what each one does. Ctrl-C or SIGTERM stop after the current step with a
     checkpoint (exit 130 or 143) and print the command that resumes."""
 
-    scene: tyro.conf.Positional[Path]
-    """scene directory"""
+    scene: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="SCENE")]
+    """the scene directory"""
     out: Path
     """run directory to write: new or empty, or an earlier run with --resume or --overwrite"""
     method: MethodName = DEFAULT_METHOD
@@ -69,15 +67,7 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
         config=None if given.config is None else Path(given.config),
         train=base,
     )
-    shown, errors = io.StringIO(), io.StringIO()
-    try:
-        with contextlib.redirect_stdout(shown), contextlib.redirect_stderr(errors):
-            command = tyro.cli(ReconstructCommand, args=argv, default=default, prog=PROG, compact_help=True)
-    except SystemExit as stop:
-        if stop.code == 0:  # --help
-            print(shown.getvalue(), end="")
-            raise
-        raise UsageError(*_tyro_error(errors.getvalue() + shown.getvalue())) from None
+    command = parse_options(ReconstructCommand, argv, PROG, default)
     try:
         command.train.validate(option_names(command.train))
     except ConfigError as exc:
@@ -88,32 +78,6 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
 def option_names(config: TrainConfig) -> dict[str, str]:
     """``{"densify.max_gaussians": "--densify.max-gaussians", ...}``: the option of each setting, as tyro names it."""
     return {key: "--" + key.replace("_", "-") for key in flat_settings(config.to_json())}
-
-
-_RULE = re.compile(r"^[\s\u2500-\u257f|+-]*$")  # a line of box drawing (rich's, or its ASCII form)
-
-
-def _tyro_error(text: str) -> tuple[str, str]:
-    """``(option, what is wrong)`` of tyro's error box: its title, a rule, then the message up to the next rule (for
-    missing options, the line after it names the option)."""
-    sections, current = [], []
-    for line in text.splitlines():
-        if _RULE.match(line):
-            if current:
-                sections.append(current)
-            current = []
-        else:
-            current.append(line.strip(" \u2502|"))
-    sections.append(current)
-    title = " ".join(sections[0]).strip() if sections else ""
-    message = " ".join(" ".join(sections[1]).split()) if len(sections) > 1 else "invalid options"
-    if title == "Required options":
-        option = re.search(r"--[\w.-]+", message)
-        return (option.group(0), "required") if option else ("SCENE", "required (the scene directory)")
-    option = re.search(r"--[\w.-]+", message)
-    key = option.group(0) if option else "options"
-    body = re.sub(rf"^(Error parsing {re.escape(key)}: |Unrecognized options: {re.escape(key)}, )", "", message)
-    return key, ("not an option of tacsplat reconstruct" if title == "Unrecognized options" else body)
 
 
 def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:

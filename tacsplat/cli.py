@@ -143,6 +143,20 @@ class CommandTree:
             self._builders[path] = (build, parser)
         return parser
 
+    def typed(self, path: str, options: type, run, help: str) -> None:
+        """A command whose options are the dataclass ``options`` (parsed by tyro: :mod:`tacsplat.options`; its
+        docstring is the description): ``run(values)`` runs it, once a field ``out`` is known to be writable."""
+
+        def func(args) -> int:
+            from tacsplat.files import refuse_unwritable
+            from tacsplat.options import parse_options
+
+            values = parse_options(options, args.rest, f"tacsplat {path}")
+            refuse_unwritable("--out", getattr(values, "out", None))
+            return run(values)
+
+        self.command(path, help=help, own_options=True).set_defaults(func=func)
+
     def build(self, path: str | None = None) -> None:
         """Run the deferred builders: of the command at ``path`` (and no other), or of every command."""
         for key in [k for k in self._builders if path is None or k == path]:

@@ -56,8 +56,8 @@ def register(cli) -> None:
 def _run(args) -> int:
     import torch
 
-    from tacsplat.apps.options import comma_separated_ints
     from tacsplat.apps.paper_bench import bench_row
+    from tacsplat.options import comma_separated_ints
 
     seeds = comma_separated_ints(args.parity_seeds, "--parity-seeds")
     if args.prepare is not None:
@@ -251,13 +251,24 @@ def _scene_facts(scene: Path) -> dict:
 def source_hash() -> str:
     """12 hex digits of a hash of the package's source (its .py and .yaml files by module path): the same for the
     same code whether it is installed, editable or linked, with or without git."""
-    import importlib
+    import tacsplat
+    import tacsplat.acquisition
+    import tacsplat.datasets
+    import tacsplat.drivers
+    import tacsplat.reconstruction
+    import tacsplat.sim
 
     files = {}
-    for name in ("", ".acquisition", ".datasets", ".drivers", ".reconstruction", ".sim"):
-        package = importlib.import_module(f"tacsplat{name}")
+    for package in (
+        tacsplat,
+        tacsplat.acquisition,
+        tacsplat.datasets,
+        tacsplat.drivers,
+        tacsplat.reconstruction,
+        tacsplat.sim,
+    ):
         root = Path(package.__file__).resolve().parent
-        prefix = Path("tacsplat", *name.split(".")[1:])
+        prefix = Path(*package.__name__.split("."))
         for path in root.rglob("*"):
             if path.suffix in (".py", ".yaml") and "__pycache__" not in path.parts:
                 files[(prefix / path.relative_to(root)).as_posix()] = path

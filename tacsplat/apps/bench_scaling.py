@@ -13,7 +13,7 @@ import csv
 import time
 from pathlib import Path
 
-from tacsplat.apps.options import comma_separated_ints
+from tacsplat.options import comma_separated_ints
 
 COLUMNS = ("resolution", "iterations", "method", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")
 

@@ -406,9 +406,9 @@ def register(cli) -> None:
 def _handler(args) -> int:
     import json
 
-    from tacsplat.apps.options import comma_separated_ints
     from tacsplat.apps.paper_bench import bench_row
     from tacsplat.errors import UsageError
+    from tacsplat.options import comma_separated_ints
 
     resolutions = comma_separated_ints(args.resolutions, "--resolutions")
     if not resolutions or min(resolutions) < 16:

@@ -37,8 +37,8 @@ from typing import Literal
 import numpy as np
 
 from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
-from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
+from tacsplat.options import comma_separated_ints
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, get_method
 
 log = logging.getLogger(__name__)

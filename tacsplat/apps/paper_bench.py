@@ -38,8 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from tacsplat.apps.batch import CaptureJob, ReconstructJob
-from tacsplat.apps.options import comma_separated_ints
 from tacsplat.errors import ConfigError
+from tacsplat.options import comma_separated_ints
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, PAPER_METHODS, get_method, mechanisms, method_label
 
 log = logging.getLogger(__name__)

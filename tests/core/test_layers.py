@@ -28,6 +28,7 @@ CORE = {
     "tacsplat.types",
     "tacsplat.progress",
     "tacsplat.interrupts",
+    "tacsplat.options",
 }
 # the layer of each subpackage; a module may import only its own layer or lower ones
 LAYERS = {

@@ -106,10 +106,10 @@ def test_blender_import_cli_black_background_and_val_split(blender_src, tmp_path
     img = np.rint(scene.load_image(scene.frames[0]) * 255).astype(int)
     assert (img[:, :3] == 0).all()
     assert (img[:, 6:] == np.rint(np.array([200, 10, 60]) * 128 / 255)).all()
-    with pytest.raises(SystemExit) as info:
-        main(["import", "blender", str(blender_src), "--out", str(tmp_path / "x"), "--background", "1,2"])
-    assert info.value.code == 2
-    assert "R,G,B with integers 0-255, got '1,2'" in capsys.readouterr().err
+    assert main(["import", "blender", str(blender_src), "--out", str(tmp_path / "x"), "--background", "1,2"]) == 2
+    assert "--background: background must be white, black or R,G,B with integers 0-255, got '1,2'" in (
+        capsys.readouterr().err
+    )
 
 
 def test_blender_import_errors_name_the_file_and_clean_up(blender_src, tmp_path):

@@ -1,0 +1,68 @@
+"""Command options as typed dataclasses, parsed by tyro (help from the fields' docstrings, as gsplat's and
+nerfstudio's trainers do): ``--help`` prints and exits 0, and a bad or missing value is one :class:`UsageError`
+naming the option (exit 2), never tyro's box."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import re
+from typing import TypeVar
+
+from tacsplat.errors import UsageError
+
+T = TypeVar("T")
+
+_RULE = re.compile(r"^[\s\u2500-\u257f|+-]*$")  # a line of box drawing (rich's, or its ASCII form)
+
+
+def parse_options(cls: type[T], argv: list[str], prog: str, default: T | None = None) -> T:
+    """The ``cls`` instance of ``argv`` (over ``default``'s values when given)."""
+    import tyro
+
+    shown, errors = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(shown), contextlib.redirect_stderr(errors):
+            return tyro.cli(cls, args=argv, default=default, prog=prog, compact_help=True)
+    except SystemExit as stop:
+        if stop.code == 0:  # --help
+            print(shown.getvalue(), end="")
+            raise
+        raise UsageError(*tyro_error(errors.getvalue() + shown.getvalue(), prog)) from None
+
+
+def tyro_error(text: str, prog: str) -> tuple[str, str]:
+    """``(option, what is wrong)`` of tyro's error box: its title, a rule, then the message up to the next rule (a
+    missing option or positional is named on the line after "Missing from PROG:", its help on the next)."""
+    sections, current = [], []
+    for line in text.splitlines():
+        if _RULE.match(line):
+            if current:
+                sections.append(current)
+            current = []
+        else:
+            current.append(line.strip(" \u2502|"))
+    sections.append(current)
+    title = " ".join(sections[0]).strip() if sections else ""
+    body = sections[1] if len(sections) > 1 else []
+    message = " ".join(" ".join(body).split()) or "invalid options"
+    if title == "Required options":
+        lines = [line for line in body if line and not line.startswith("Missing from")]
+        missing = lines[0].split()[0] if lines else "options"
+        if missing.startswith("--"):
+            return missing, "required"
+        about = lines[1].removesuffix("(required)").strip() if len(lines) > 1 else ""
+        return missing, f"required ({about})" if about else "required"
+    option = re.search(r"--[\w.-]+", message)
+    key = option.group(0) if option else "options"
+    if title == "Unrecognized options":
+        return key, f"not an option of {prog}"
+    return key, re.sub(rf"^Error parsing {re.escape(key)}: ", "", message)
+
+
+def comma_separated_ints(text: str, option: str) -> tuple[int, ...]:
+    """The integers of an option like ``--seeds 0,1,2``; a UsageError (exit 2) naming ``option`` otherwise."""
+    try:
+        return tuple(int(x) for x in text.split(",") if x.strip())
+    except ValueError:
+        raise UsageError(option, f"expected comma-separated integers, got {text!r}") from None
