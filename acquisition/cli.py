@@ -1,156 +1,160 @@
-"""`tacsplat` subcommands of tacsplat.acquisition: capture, sim-capture, simulate-touches (see tacsplat.cli)."""
+"""`tacsplat` subcommands of tacsplat.acquisition: capture, sim-capture, simulate-touches (see tacsplat.cli); their
+options are the dataclasses below (tacsplat.options)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import tyro
+
 from tacsplat.errors import ConfigError, UsageError
+from tacsplat.sim import OBJECT_RADIUS_RANGE_M
+
+_RADIUS_RANGE = "({:g} to {:g}: the sizes the twin's hand grasps)".format(*OBJECT_RADIUS_RANGE_M)
+
+
+@dataclass
+class Capture:
+    """Guides a person at the rig from the terminal. A status line shows the board (seen or not, reprojection
+    error), the hand and the counts against the plan. Keys: Enter = take a view, g = grasp, u = undo the last
+    record, q = stop. A device fault leaves the hand with torque off and prints the command that carries on
+    (--resume once a scene was written). --resume refuses a rig file whose object, plan, board, mounting or
+    calibrations differ from the scene's. Example rigs: acquisition/rigs/{real,mock,sim}.yaml."""
+
+    rig: Path
+    """rig YAML file (devices, calibrations, board, capture plan)"""
+    out: Path
+    """scene directory to create (or continue with --resume)"""
+    resume: bool = False
+    """continue a capture that stopped or was killed"""
+    mock: bool = False
+    """emulated devices instead of the real rig's (servo emulator on a pty, video-file tactile sensors, a camera
+    that sees a rendered board)"""
+    suggest: Annotated[Path | None, tyro.conf.arg(metavar="RUN")] = None
+    """a reconstruction in progress of this capture (a tacsplat reconstruct folder; its latest checkpoint): the key
+    s then suggests the next grasp, where a fingertip should touch and from which direction, drawn on the wrist
+    camera's image (OUT-suggestion.png)"""
+
+
+@dataclass
+class TouchModel:
+    """The touches of a grasp (sim-capture, simulate-touches)."""
+
+    touch_model: str = "gel"
+    """gel: the hand grasps, each pad's gel contact patch is a touch; paper: the paper's touches, 4 per grasp and no
+    hand (the official code's: the 50 surface samples nearest to where a random ray from the centroid leaves the
+    mesh)"""
+    surface_points: int | None = None
+    """paper touches: points sampled evenly on the surface, 50 (a touch's) to 10000000 (default 20000, the official
+    code's for Glossy Synthetic; it used 10000 for Shiny Blender)"""
+
+    def touch_args(self) -> dict:
+        """The keyword arguments of sim_rig_config and simulate_touches (defaults left to them)."""
+        given = {"surface_points": self.surface_points} if self.surface_points is not None else {}
+        return {"touch_model": self.touch_model, **given}
+
+
+@dataclass
+class SimCapture(TouchModel):
+    """Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin places the camera on
+    the hemisphere and the hand on sampled approaches; the logger closes the hand until the fingers stall, reads
+    the pads and writes). --grasp-strategy next-best reconstructs the scene so far before each grasp and grasps
+    where it is least sure (its decisions and their scores in OUT/scene.json, under annotations.next_touch).
+    --touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in --seed;
+    --resume continues a killed capture with the same options (any other value is refused, naming the option)."""
+
+    out: Path = tyro.MISSING
+    """scene directory to create (or continue with --resume)"""
+    object: str = "teapot"
+    """library object (teapot, toaster, bell, helmet, torus, car)"""
+    mesh: Path | None = None
+    """any .obj/.ply/.stl mesh instead of a library object"""
+    object_radius: Annotated[float, tyro.conf.arg(help=f"bounding-sphere radius in metres {_RADIUS_RANGE}")] = 0.08
+    views: int = 5
+    """train views (at least 1)"""
+    test_views: int = 24
+    """held-out test views (with GT depth in gt/; 0 or more)"""
+    grasps: int = 5
+    """grasps of four touches each (0 or more)"""
+    resolution: int = 200
+    """image width and height in pixels (8 to 4096)"""
+    seed: int = 0
+    """seed of the views and grasps (0 or more)"""
+    texture: str = "none"
+    """the object's surface: none (its one colour, the glossy library's) or checker (a checker of its colour and a
+    contrasting grey, for measuring on a textured object)"""
+    grasp_strategy: str = "random"
+    """random: each grasp on an approach the twin samples; next-best: before each grasp, reconstruct the scene so
+    far briefly and execute, of --candidates sampled approaches, the one whose fingertips land where the
+    reconstruction is least sure"""
+    candidates: int = 16
+    """next-best: approaches scored per grasp (1 to 1000)"""
+    selection_steps: int = 300
+    """next-best: training steps of the reconstruction before each grasp (1 to 1000000)"""
+    uncertainty: str = "depth-variance"
+    """next-best: the score, fisher (Fisher information of the Gaussians' positions under the photometric loss) or
+    depth-variance (spread of depth along the training rays)"""
+    resume: bool = False
+    """continue a capture that was interrupted"""
+
+
+@dataclass
+class SimulateTouches(TouchModel):
+    """Grasps the mesh on the MuJoCo twin (at a graspable size, --object-radius) through the same logger and grasp
+    controller as sim-capture (or, with --touch-model paper, makes four of the paper's touches per grasp on it),
+    and writes the touches in the scene's frame and units. A scene with this sensor model is extended in place; one
+    without (an import) is copied into --out first."""
+
+    scene: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="SCENE")] = tyro.MISSING
+    """scene directory"""
+    mesh: Path = tyro.MISSING
+    """the object's mesh, in the scene's world frame and units"""
+    grasps: int = 5
+    """grasps to add (at least 1)"""
+    out: Path | None = None
+    """new scene directory (needed when SCENE has no tactile sensor model)"""
+    object_radius: Annotated[
+        float,
+        tyro.conf.arg(
+            help=f"graspable size the mesh is simulated at: its bounding-sphere radius in metres {_RADIUS_RANGE}"
+        ),
+    ] = 0.08
+    seed: int = 0
+    """seed of the grasps (0 or more)"""
 
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    p = cli.command(
+    cli.typed(
         "capture",
+        Capture,
+        _capture,
         help="operator capture session on a rig (real, --mock, or the twin): views and grasps into a scene directory",
-        description="Guides a person at the rig from the terminal. A status line shows the board (seen or not, "
-        "reprojection error), the hand and the counts against the plan. Keys: Enter = take a view, g = grasp, "
-        "u = undo the last record, q = stop. A device fault leaves the hand with torque off and prints the "
-        "command that carries on (--resume once a scene was written). --resume refuses a rig file whose object, "
-        "plan, board, mounting or calibrations differ from the scene's. Example rigs: acquisition/rigs/{real,mock,sim}.yaml.",
     )
-    p.add_argument("--rig", required=True, help="rig YAML file (devices, calibrations, board, capture plan)")
-    p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
-    p.add_argument("--resume", action="store_true", help="continue a capture that stopped or was killed")
-    p.add_argument(
-        "--mock",
-        action="store_true",
-        help="emulated devices instead of the real rig's (servo emulator on a pty, video-file tactile "
-        "sensors, a camera that sees a rendered board)",
-    )
-    p.add_argument(
-        "--suggest",
-        metavar="RUN",
-        default=None,
-        help="a reconstruction in progress of this capture (a tacsplat reconstruct folder; its latest "
-        "checkpoint): the key s then suggests the next grasp, where a fingertip should touch and from "
-        "which direction, drawn on the wrist camera's image (OUT-suggestion.png)",
-    )
-    p.set_defaults(func=_capture)
-
-    p = cli.command(
+    cli.typed(
         "sim-capture",
+        SimCapture,
+        _sim_capture,
         help="simulated capture: train views, test views with ground truth, and grasps, into a scene directory",
-        description="Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin "
-        "places the camera on the hemisphere and the hand on sampled approaches; the logger closes the hand until "
-        "the fingers stall, reads the pads and writes). --grasp-strategy next-best reconstructs the scene so far "
-        "before each grasp and grasps where it is least sure (its decisions and their scores in OUT/scene.json, "
-        "under annotations.next_touch). "
-        "--touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in "
-        "--seed; --resume continues a killed capture with the same options (any other value is refused, naming "
-        "the option).",
-        build=_object_radius_option("bounding-sphere radius in metres"),
     )
-    p.add_argument("--object", default="teapot", help="library object (teapot, toaster, bell, helmet, torus, car)")
-    p.add_argument("--mesh", default=None, help="any .obj/.ply/.stl mesh instead of a library object")
-    p.add_argument("--views", type=int, default=5, help="train views (at least 1)")
-    p.add_argument("--test-views", type=int, default=24, help="held-out test views (with GT depth in gt/; 0 or more)")
-    p.add_argument("--grasps", type=int, default=5, help="grasps of four touches each (0 or more)")
-    p.add_argument("--resolution", type=int, default=200, help="image width and height in pixels (8 to 4096)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the views and grasps (0 or more)")
-    p.add_argument(
-        "--texture",
-        default="none",
-        help="the object's surface: none (its one colour, the glossy library's) or checker (a checker of "
-        "its colour and a contrasting grey, for measuring on a textured object)",
-    )
-    _touch_model_options(p)
-    p.add_argument(
-        "--grasp-strategy",
-        default="random",
-        help="random: each grasp on an approach the twin samples; next-best: before each grasp, "
-        "reconstruct the scene so far briefly and execute, of --candidates sampled approaches, the one "
-        "whose fingertips land where the reconstruction is least sure",
-    )
-    p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp (1 to 1000)")
-    p.add_argument(
-        "--selection-steps",
-        type=int,
-        default=300,
-        help="next-best: training steps of the reconstruction before each grasp (1 to 1000000)",
-    )
-    p.add_argument(
-        "--uncertainty",
-        default="depth-variance",
-        help="next-best: the score, fisher (Fisher information of the Gaussians' positions under the "
-        "photometric loss) or depth-variance (spread of depth along the training rays)",
-    )
-    p.add_argument("--out", required=True, help="scene directory to create (or continue with --resume)")
-    p.add_argument("--resume", action="store_true", help="continue a capture that was interrupted")
-    p.set_defaults(func=_sim_capture)
-
-    p = cli.command(
+    cli.typed(
         "simulate-touches",
+        SimulateTouches,
+        _simulate_touches,
         help="add simulated grasps of a mesh to a scene (e.g. an imported Shiny Blender scene)",
-        description="Grasps the mesh on the MuJoCo twin (at a graspable size, --object-radius) through the same "
-        "logger and grasp controller as sim-capture (or, with --touch-model paper, makes four of the paper's touches "
-        "per grasp on it), and writes the touches in the scene's frame and units. A scene with this sensor model is "
-        "extended in place; one without (an import) is copied into --out first.",
-        build=_object_radius_option("graspable size the mesh is simulated at: its bounding-sphere radius in metres"),
-    )
-    p.add_argument("--mesh", required=True, help="the object's mesh, in the scene's world frame and units")
-    p.add_argument("scene", help="scene directory")
-    p.add_argument("--grasps", type=int, default=5, help="grasps to add (at least 1)")
-    p.add_argument("--out", default=None, help="new scene directory (needed when SCENE has no tactile sensor model)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the grasps (0 or more)")
-    _touch_model_options(p)
-    p.set_defaults(func=_simulate_touches)
-
-
-def _object_radius_option(what: str):
-    """The builder of ``--object-radius`` (deferred: its range comes from the twin's objects, which import trimesh)."""
-
-    def build(p) -> None:
-        from tacsplat.sim.objects import OBJECT_RADIUS_RANGE_M
-
-        p.add_argument(
-            "--object-radius",
-            type=float,
-            default=0.08,
-            help="{} ({:g} to {:g}: the sizes the twin's hand grasps)".format(what, *OBJECT_RADIUS_RANGE_M),
-        )
-
-    return build
-
-
-def _touch_model_options(p) -> None:
-    p.add_argument(
-        "--touch-model",
-        default="gel",
-        help="gel: the hand grasps, each pad's gel contact patch is a touch; paper: the paper's "
-        "touches, 4 per grasp and no hand (the official code's: the 50 surface samples nearest to where a "
-        "random ray from the centroid leaves the mesh)",
-    )
-    p.add_argument(
-        "--surface-points",
-        type=int,
-        default=None,
-        help="paper touches: points sampled evenly on the surface, 50 (a touch's) to 10000000 (default "
-        "20000, the official code's for Glossy Synthetic; it used 10000 for Shiny Blender)",
     )
 
 
-def _touch_args(args) -> dict:
-    """The touch model's keyword arguments of sim_rig_config and simulate_touches (defaults left to them)."""
-    given = {"surface_points": args.surface_points} if args.surface_points is not None else {}
-    return {"touch_model": args.touch_model, **given}
-
-
-def _capture(args) -> int:
+def _capture(o: Capture) -> int:
     from tacsplat.acquisition.config import load_rig
     from tacsplat.acquisition.operator_session import run_capture
 
-    return run_capture(load_rig(args.rig, mock=args.mock), args.out, resume=args.resume, suggest=args.suggest)
+    return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume, suggest=o.suggest)
 
 
-def _sim_capture(args) -> int:
+def _sim_capture(args: SimCapture) -> int:
     import json
 
     from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
@@ -170,7 +174,7 @@ def _sim_capture(args) -> int:
             selection_steps=args.selection_steps,
             uncertainty=args.uncertainty,
             texture=args.texture,
-            **_touch_args(args),
+            **args.touch_args(),
         ),
         _SIM_OPTIONS,
     )
@@ -178,19 +182,19 @@ def _sim_capture(args) -> int:
         timings = sim_capture(config, args.out, resume=args.resume)
     except ConfigError as exc:
         raise _naming_options(exc, _SIM_OPTIONS) from None
-    print(json.dumps({"scene": args.out, **{k: round(v, 2) for k, v in timings.items()}}))
+    print(json.dumps({"scene": str(args.out), **{k: round(v, 2) for k, v in timings.items()}}))
     return 0
 
 
-def _simulate_touches(args) -> int:
+def _simulate_touches(args: SimulateTouches) -> int:
     from tacsplat.acquisition.touch_simulation import simulate_touches, touch_settings
 
     _option_values(
-        lambda: touch_settings(args.grasps, args.object_radius, args.seed, **_touch_args(args)), _TOUCH_OPTIONS
+        lambda: touch_settings(args.grasps, args.object_radius, args.seed, **args.touch_args()), _TOUCH_OPTIONS
     )
     try:
         target = simulate_touches(
-            args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed, **_touch_args(args)
+            args.mesh, args.scene, args.grasps, args.out, args.object_radius, args.seed, **args.touch_args()
         )
     except ConfigError as exc:
         raise _naming_options(exc, _TOUCH_OPTIONS) from None

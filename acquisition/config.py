@@ -31,8 +31,8 @@ from pydantic import ConfigDict, PlainValidator, StringConstraints, TypeAdapter,
 from tacsplat.drivers.wrist_camera import CharucoBoardSpec
 from tacsplat.errors import ConfigError
 from tacsplat.geometry import rigidity_problem
+from tacsplat.sim import OBJECT_RADIUS_RANGE_M
 from tacsplat.sim.hand import FINGER_NAMES
-from tacsplat.sim.objects import OBJECT_RADIUS_RANGE_M
 
 RIGS_DIR = Path(__file__).parent / "rigs"
 DYNAMIXEL_BAUDRATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)  # X-series rates the SDK opens

@@ -67,7 +67,7 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
         config=None if given.config is None else Path(given.config),
         train=base,
     )
-    command = parse_options(ReconstructCommand, argv, PROG, default)
+    command = parse_options(ReconstructCommand, argv, PROG, default, compact=True)
     try:
         command.train.validate(option_names(command.train))
     except ConfigError as exc:

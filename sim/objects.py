@@ -22,6 +22,7 @@ import numpy as np
 import trimesh
 
 from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.sim import OBJECT_RADIUS_RANGE_M
 
 log = logging.getLogger(__name__)
 
@@ -166,11 +167,6 @@ _BUILDERS = {
 }
 OBJECT_NAMES = list(_BUILDERS)
 DEFAULT_OBJECT_RADIUS = 0.08
-# The bounding-sphere radii (m) the twin's hand grasps. Measured on the six library objects, 8 grasps each: from
-# 0.025 m most grasps touch the object with two or more pads (73 %, as at 0.03-0.04 m: 77-81 %); at 0.02 m fewer
-# than half do (42 %), below 0.01 m one pad at most; below 0.003 m no grasp touches it, and at 0.0005 m MuJoCo
-# refuses the object's inertia. 0.3 m: larger than the hand (about 0.2 m across); grasps still touch it.
-OBJECT_RADIUS_RANGE_M = (0.025, 0.3)
 TEXTURES = ("none", "checker")  # the object's surface: its one colour, or a checker of it and a contrasting grey
 CHECKER_SQUARES = 6  # squares along each side of a face of the checker's cube map
 

@@ -16,14 +16,15 @@ T = TypeVar("T")
 _RULE = re.compile(r"^[\s\u2500-\u257f|+-]*$")  # a line of box drawing (rich's, or its ASCII form)
 
 
-def parse_options(cls: type[T], argv: list[str], prog: str, default: T | None = None) -> T:
-    """The ``cls`` instance of ``argv`` (over ``default``'s values when given)."""
+def parse_options(cls: type[T], argv: list[str], prog: str, default: T | None = None, compact: bool = False) -> T:
+    """The ``cls`` instance of ``argv`` (over ``default``'s values when given); ``compact``: --help lists the
+    options without their descriptions, which -H adds."""
     import tyro
 
     shown, errors = io.StringIO(), io.StringIO()
     try:
         with contextlib.redirect_stdout(shown), contextlib.redirect_stderr(errors):
-            return tyro.cli(cls, args=argv, default=default, prog=prog, compact_help=True)
+            return tyro.cli(cls, args=argv, default=default, prog=prog, compact_help=compact)
     except SystemExit as stop:
         if stop.code == 0:  # --help
             print(shown.getvalue(), end="")
