@@ -266,7 +266,9 @@ class MockConfig:
     tactile_width: int = bounded(160, 8, 4096, "px")
     tactile_height: int = bounded(120, 8, 4096, "px")
     tactile_pixel_size_m: float = positive(1.6e-4, 1e-3, "m")
-    servo_timeout_s: float = positive(0.1, 1.0, "s")  # the hand's reply timeout (its bus watchdog is sized from it)
+    # the hand's reply timeout (its bus watchdog is sized from it): an emulator shares a host that may be busy with
+    # other work, where it can answer hundreds of ms late; a real servo answers within a millisecond
+    servo_timeout_s: float = positive(0.5, 1.0, "s")
     servo_port: Text | None = None  # the pty of a servo emulator in its own process (python -m
     # tacsplat.drivers.dxl_emulator), which outlives this one; None: an emulator in this process
 

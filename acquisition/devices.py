@@ -57,7 +57,7 @@ def open_rig(config: RigConfig, on_hand=None) -> Iterator[Rig]:
 
 @contextmanager
 def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
-    from tacsplat.drivers.dynamixel_hand import DynamixelHand, DynamixelHandConfig
+    from tacsplat.drivers.dynamixel_hand import MAX_BUS_WATCHDOG_S, DynamixelHand, DynamixelHandConfig
     from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
     from tacsplat.sim.hand import HandKinematics
@@ -69,11 +69,11 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
 
             mock = stack.enter_context(MockDevices(config))
             port, hand_cal = mock.servo_port, None
-            timeout, drain = config.mock_devices.servo_timeout_s, 0.1  # the watchdog outlasts a retried exchange
+            # the emulator shares this host's CPUs (and, in this process, its GIL): on a busy host the heartbeat
+            # and the emulator's answers can both wait over a second, which a real servo's clock never does; so
+            # the Bus Watchdog's longest period (a hand whose host died still stops within 2.54 s)
             hand_settings = DynamixelHandConfig(
-                min_packet_timeout_s=timeout,
-                drain_s=drain,
-                bus_watchdog_s=max(DynamixelHandConfig.bus_watchdog_s, 2 * (timeout + drain)),
+                min_packet_timeout_s=config.mock_devices.servo_timeout_s, drain_s=0.1, bus_watchdog_s=MAX_BUS_WATCHDOG_S
             )
             cam_source, cam_cal, cam_factory = (
                 mock.camera_source,
