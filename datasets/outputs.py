@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import time
 from pathlib import Path
 
 from tacsplat.errors import ConfigError, StorageError
@@ -51,14 +52,18 @@ def record_writer(path: Path) -> None:
         pass  # a full or read-only disk: the PID only makes a refusal's message more precise
 
 
-def other_writer(path: Path) -> str:
+def other_writer(path: Path, wait_s: float = 1.0) -> str:
     """The process writing ``path`` as a message names it: "another tacsplat process (PID n)", the PID its lock
-    file holds (left out when the file holds none)."""
-    try:
-        pid = int((Path(path) / LOCK_NAME).read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return "another tacsplat process"
-    return f"another tacsplat process (PID {pid})"
+    file holds. The holder records it just after taking the lock, so a file without one is read again for up to
+    ``wait_s`` (the PID is left out when it never comes: a full disk)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            return f"another tacsplat process (PID {int((Path(path) / LOCK_NAME).read_text().split()[0])})"
+        except (OSError, ValueError, IndexError):
+            if time.monotonic() >= deadline:
+                return "another tacsplat process"
+            time.sleep(0.02)
 
 
 class OutputLock:

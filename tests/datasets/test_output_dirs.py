@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from tacsplat.datasets.outputs import claim_output_dir, ensure_output_dir
+from tacsplat.datasets.outputs import LOCK_NAME, claim_output_dir, ensure_output_dir, other_writer, record_writer
 from tacsplat.errors import ConfigError
 
 
@@ -51,6 +51,25 @@ def test_a_refused_claim_names_the_process_holding_the_folder(tmp_path):
     with claim_output_dir(tmp_path / "run"):
         with pytest.raises(ConfigError, match=rf"another tacsplat process \(PID {os.getpid()}\)"):
             claim_output_dir(tmp_path / "run")
+
+
+def test_a_claim_refused_before_the_holder_recorded_its_pid_still_names_it(tmp_path):
+    # the holder takes the lock, then records its PID: a second claim in between waits for the PID
+    import fcntl
+    import threading
+
+    folder = tmp_path / "run"
+    folder.mkdir()
+    with (folder / LOCK_NAME).open("a") as held:
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        recorder = threading.Timer(0.2, record_writer, [folder])
+        recorder.start()
+        try:
+            with pytest.raises(ConfigError, match=rf"another tacsplat process \(PID {os.getpid()}\)"):
+                claim_output_dir(folder)
+        finally:
+            recorder.join()
+    assert other_writer(tmp_path, wait_s=0.05) == "another tacsplat process"  # no lock file: no PID, soon
 
 
 def test_a_folder_on_a_read_only_mount_is_refused_saying_so(tmpfs):
