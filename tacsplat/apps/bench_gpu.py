@@ -75,28 +75,48 @@ def _run(args) -> int:
     work = Path(args.work) if args.work else out / "work"
     started = time.perf_counter()
     scene = _capture(args, work / "scene", args.resolution, args.views, args.test_views)
-    capture_seconds = time.perf_counter() - started
-    _train(scene, work / "warm-up", methods[0], 20, 0, args.device)  # gsplat's kernels build on their first use
-    rows = [_train(scene, work / "runs" / m, m, args.steps, 0, args.device, timed=True) for m in methods]
-    parity_rows = []
-    if parity is not None:
-        parity_scene = Path(args.parity) / "scene"
-        for seed in parity["seeds"]:
-            run = work / "parity" / f"seed{seed}"
-            parity_rows.append(_train(parity_scene, run, parity["method"], parity["steps"], seed, args.device))
     report = {
         "device": _device(args.device),
         "scene": _scene_facts(scene),
-        "capture_seconds": capture_seconds,
-        "runs": rows,
-        "parity": None if parity is None else {"cpu": parity, "device_runs": parity_rows},
-        "wall_seconds": time.perf_counter() - started,
+        "capture_seconds": time.perf_counter() - started,
+        "runs": [],
+        "parity": None if parity is None else {"cpu": parity, "device_runs": []},
     }
+    _train(scene, work / "warm-up", methods[0], 20, 0, args.device)  # gsplat's kernels build on their first use
+    for method in methods:  # the report is written after each run: a lease that ends early keeps what was measured
+        report["runs"].append(_attempt(_train, scene, work / "runs" / method, method, args.steps, 0, args.device, True))
+        _write_report(out, report, started)
+    if parity is not None:
+        for seed in parity["seeds"]:
+            run = _attempt(
+                _train,
+                Path(args.parity) / "scene",
+                work / "parity" / f"seed{seed}",
+                parity["method"],
+                parity["steps"],
+                seed,
+                args.device,
+            )
+            report["parity"]["device_runs"].append(run)
+            _write_report(out, report, started)
+    _write_report(out, report, started)
+    print((out / "gpu.md").read_text())
+    return 0
+
+
+def _attempt(train, scene: Path, out: Path, method: str, *args) -> dict:
+    """``train(...)``'s row, or a row saying why it failed (the other runs of the check still run)."""
+    try:
+        return train(scene, out, method, *args)
+    except Exception as exc:  # one run's failure is a row of the table, not the end of the check
+        return {"method": method, "seed": args[1], "error": f"{type(exc).__name__}: {exc}"}
+
+
+def _write_report(out: Path, report: dict, started: float) -> None:
+    report["wall_seconds"] = time.perf_counter() - started
     out.mkdir(parents=True, exist_ok=True)
     (out / "gpu.json").write_text(json.dumps(report, indent=2))
     (out / "gpu.md").write_text(gpu_table(report))
-    print((out / "gpu.md").read_text())
-    return 0
 
 
 def _capture(args, scene: Path, resolution: int, views: int, test_views: int) -> Path:
@@ -198,6 +218,9 @@ def gpu_table(report: dict) -> str:
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in report["runs"]:
+        if "error" in r:
+            lines.append(f"| {r['method']} | failed: {r['error']} | | | | | | |")
+            continue
         peak = "n/a" if r["peak_gpu_memory_gib"] is None else f"{r['peak_gpu_memory_gib']:.2f}"
         lines.append(
             f"| {r['method']} | {r['steps']} | {r['seconds_per_1k_steps']:.1f} | {r['projected_30k_minutes']:.1f} | "
@@ -205,7 +228,8 @@ def gpu_table(report: dict) -> str:
         )
     parity = report["parity"]
     if parity is not None:
-        cpu, runs = parity["cpu"], parity["device_runs"]
+        cpu, failed = parity["cpu"], [r for r in parity["device_runs"] if "error" in r]
+        runs = [r for r in parity["device_runs"] if "error" not in r]
         lines += [
             "",
             f"Parity: {cpu['method']}, {cpu['steps']} steps, seeds {cpu['seeds']}; the CPU runs' source "
@@ -214,12 +238,13 @@ def gpu_table(report: dict) -> str:
             "| metric | CPU mean | CPU spread | device mean | within the CPU's range |",
             "| --- | ---: | ---: | ---: | --- |",
         ]
-        for key, decimals in (("cd", 4), ("psnr", 2)):
+        for key, decimals in (("cd", 4), ("psnr", 2)) if runs else ():
             c_mean, spread, d_mean, inside = parity_verdict([r[key] for r in cpu["runs"]], [r[key] for r in runs])
             lines.append(
                 f"| {key} | {c_mean:.{decimals}f} | {spread:.{decimals}f} | {d_mean:.{decimals}f} | "
                 f"{'yes' if inside else 'NO'} |"
             )
+        lines += ["", *(f"Parity run of seed {r['seed']} failed: {r['error']}" for r in failed)] if failed else []
     return "\n".join(lines) + "\n"
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tacsplat.apps.bench_gpu import parity_verdict, source_hash
+from tacsplat.apps.bench_gpu import gpu_table, parity_verdict, source_hash
 from tacsplat.cli import main
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -66,3 +66,40 @@ def test_parity_is_the_device_mean_within_the_cpu_range_and_a_bad_folder_is_name
     assert main(["bench", "gpu", "--device", "cpu", "--parity", str(tmp_path), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err
     assert "--parity" in err and "cpu.json" in err and "bench gpu --prepare" in err
+
+
+def test_a_failed_run_is_a_row_of_the_table_and_the_others_stay():
+    device = {"name": "GPU", "torch": "2.11", "cuda": "13.0", "gsplat": "1.5.3"}
+    scene = {"train_views": 100, "test_views": 24, "touches": 20, "resolution": "800x800"}
+    row = {
+        "method": "paper",
+        "steps": 1000,
+        "seconds_per_1k_steps": 30.0,
+        "projected_30k_minutes": 15.0,
+        "peak_gpu_memory_gib": 3.5,
+        "num_gaussians": 90000,
+        "cd": 0.03,
+        "psnr": 27.0,
+    }
+    cpu = {"method": "default", "steps": 1500, "seeds": [0, 1], "source": "x", "runs": [{"cd": 0.1, "psnr": 25.0}] * 2}
+    parity = {
+        "cpu": cpu,
+        "device_runs": [
+            {"method": "default", "seed": 0, "error": "RuntimeError: out of memory"},
+            {"method": "default", "seed": 1, "cd": 0.1, "psnr": 25.0},
+        ],
+    }
+    report = {
+        "device": device,
+        "scene": scene,
+        "capture_seconds": 40.0,
+        "wall_seconds": 250.0,
+        "parity": parity,
+        "runs": [{"method": "default", "seed": 0, "error": "RuntimeError: CUDA error"}, row],
+    }
+    table = gpu_table(report)
+    assert (
+        "| default | failed: RuntimeError: CUDA error |" in table and "| paper | 1000 | 30.0 | 15.0 | 3.50 |" in table
+    )
+    assert "| cd | 0.1000 | 0.0000 | 0.1000 | yes |" in table
+    assert table.rstrip().endswith("Parity run of seed 0 failed: RuntimeError: out of memory")
