@@ -70,7 +70,8 @@ def _run(args) -> int:
     methods = [name.strip() for name in args.methods.split(",") if name.strip()]
     for name in methods:
         bench_row(name, "--methods")
-    parity = _read_parity(Path(args.parity)) if args.parity else None
+    source = source_hash()
+    parity = _read_parity(Path(args.parity), source) if args.parity else None
     out = Path(args.out)
     work = Path(args.work) if args.work else out / "work"
     started = time.perf_counter()
@@ -80,36 +81,38 @@ def _run(args) -> int:
         "scene": _scene_facts(scene),
         "capture_seconds": time.perf_counter() - started,
         "runs": [],
+        "source": source,
         "parity": None if parity is None else {"cpu": parity, "device_runs": []},
     }
     _train(scene, work / "warm-up", methods[0], 20, 0, args.device)  # gsplat's kernels build on their first use
     for method in methods:  # the report is written after each run: a lease that ends early keeps what was measured
-        report["runs"].append(_attempt(_train, scene, work / "runs" / method, method, args.steps, 0, args.device, True))
+        run = _attempt(
+            method, 0, lambda: _train(scene, work / "runs" / method, method, args.steps, 0, args.device, True)
+        )
+        report["runs"].append(run)
         _write_report(out, report, started)
     if parity is not None:
         for seed in parity["seeds"]:
+            folder = work / "parity" / f"seed{seed}"
             run = _attempt(
-                _train,
-                Path(args.parity) / "scene",
-                work / "parity" / f"seed{seed}",
                 parity["method"],
-                parity["steps"],
                 seed,
-                args.device,
+                lambda: _train(
+                    Path(args.parity) / "scene", folder, parity["method"], parity["steps"], seed, args.device
+                ),
             )
             report["parity"]["device_runs"].append(run)
             _write_report(out, report, started)
-    _write_report(out, report, started)
     print((out / "gpu.md").read_text())
     return 0
 
 
-def _attempt(train, scene: Path, out: Path, method: str, *args) -> dict:
-    """``train(...)``'s row, or a row saying why it failed (the other runs of the check still run)."""
+def _attempt(method: str, seed: int, train) -> dict:
+    """``train()``'s row, or a row saying why it failed (the other runs of the check still run)."""
     try:
-        return train(scene, out, method, *args)
+        return train()
     except Exception as exc:  # one run's failure is a row of the table, not the end of the check
-        return {"method": method, "seed": args[1], "error": f"{type(exc).__name__}: {exc}"}
+        return {"method": method, "seed": seed, "error": f"{type(exc).__name__}: {exc}"}
 
 
 def _write_report(out: Path, report: dict, started: float) -> None:
@@ -134,7 +137,9 @@ def _capture(args, scene: Path, resolution: int, views: int, test_views: int) ->
     return capture_once(rig, scene)
 
 
-def _train(scene: Path, out: Path, method: str, steps: int, seed: int, device: str, timed: bool = False) -> dict:
+def _train(
+    scene: Path, out: Path, method: str, steps: int, seed: int, device: str, show_progress: bool = False
+) -> dict:
     """Train ``method`` for the first ``steps`` steps of the paper's schedule (one evaluation, at the end)."""
     import torch
 
@@ -147,7 +152,7 @@ def _train(scene: Path, out: Path, method: str, steps: int, seed: int, device: s
     config.init.use_sfm = False  # the visual hull: no pycolmap on the device
     if device == "cuda":
         torch.cuda.reset_peak_memory_stats()
-    metrics = reconstruct(scene, out, config, overwrite=True, show_progress=timed)
+    metrics = reconstruct(scene, out, config, overwrite=True, show_progress=show_progress)
     peak = torch.cuda.max_memory_allocated() / 2**30 if device == "cuda" else None
     per_1k = 1000.0 * metrics["train_seconds"] / max(metrics["iterations"], 1)
     return {
@@ -183,7 +188,8 @@ def _prepare(folder: Path, args, seeds: tuple[int, ...]) -> None:
     )
 
 
-def _read_parity(folder: Path) -> dict:
+def _read_parity(folder: Path, here: str) -> dict:
+    """The record of a ``--prepare`` folder (a warning when its CPU runs ran other source than ``here``)."""
     from tacsplat.errors import ConfigError
 
     path = folder / PARITY_FILE
@@ -193,8 +199,8 @@ def _read_parity(folder: Path) -> dict:
             raise ValueError("no scene/ or no runs")
     except (OSError, ValueError, KeyError) as exc:
         raise ConfigError("--parity", f"not a folder written by `tacsplat bench gpu --prepare` ({exc})", path) from None
-    if record.get("source") != source_hash():
-        print(f"bench gpu: warning: the CPU runs are of source {record.get('source')}, this is {source_hash()}")
+    if record.get("source") != here:
+        print(f"bench gpu: warning: the CPU runs are of source {record.get('source')}, this is {here}")
     return record
 
 
@@ -233,7 +239,7 @@ def gpu_table(report: dict) -> str:
         lines += [
             "",
             f"Parity: {cpu['method']}, {cpu['steps']} steps, seeds {cpu['seeds']}; the CPU runs' source "
-            f"{cpu['source']}, this one {source_hash()}.",
+            f"{cpu['source']}, this one {report['source']}.",
             "",
             "| metric | CPU mean | CPU spread | device mean | within the CPU's range |",
             "| --- | ---: | ---: | ---: | --- |",

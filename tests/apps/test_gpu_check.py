@@ -93,6 +93,7 @@ def test_a_failed_run_is_a_row_of_the_table_and_the_others_stay():
         "device": device,
         "scene": scene,
         "capture_seconds": 40.0,
+        "source": "x",
         "wall_seconds": 250.0,
         "parity": parity,
         "runs": [{"method": "default", "seed": 0, "error": "RuntimeError: CUDA error"}, row],
