@@ -176,6 +176,11 @@ class DynamixelHandConfig:
             )
 
     @property
+    def heartbeat_s(self) -> float:
+        """The heartbeat's period: an eighth of ``bus_watchdog_s``, so that a host may stall for 7/8 of it."""
+        return self.bus_watchdog_s / 8
+
+    @property
     def bus_watchdog_units(self) -> int:
         """The Bus Watchdog register's value (20 ms units; 0 = off)."""
         return round(self.bus_watchdog_s / BUS_WATCHDOG_UNIT_S)
@@ -666,7 +671,7 @@ class DynamixelHand:
         """Heartbeat thread: every eighth of ``bus_watchdog_s``, read every servo's Bus Watchdog (an instruction
         packet feeds it); a tripped one is a fault (torque off), which the next use of the hand raises."""
         address = REGISTERS["bus_watchdog"].address
-        while not stop.wait(self.config.bus_watchdog_s / 8):
+        while not stop.wait(self.config.heartbeat_s):
             try:
                 with self._lock:
                     if stop.is_set() or not self._torque_on or self._fault:
