@@ -19,7 +19,8 @@ from typing import Protocol, Sequence
 import numpy as np
 
 from tacsplat.acquisition.config import BoardConfig, GraspControl
-from tacsplat.datasets import SceneWriter
+from tacsplat.datasets import HandMotion, SceneWriter
+from tacsplat.datasets.records import MOTION_PHASES
 from tacsplat.drivers.protocols import Camera, Hand, TactileSensor
 from tacsplat.errors import CameraError, InvalidInputError, TacsplatError
 from tacsplat.geometry import check_rigid, invert_pose
@@ -150,6 +151,7 @@ class GraspOutcome:
     close_seconds: float  # on the rig's clock
     T_world_hand: np.ndarray
     hand_reprojection_px: float | None = None
+    motion: HandMotion | None = None  # the hand's trajectory through the grasp, as recorded
 
     @property
     def fingers_in_contact(self) -> list[str]:
@@ -218,6 +220,7 @@ class CaptureLogger:
                 fingers.setdefault(joint.rsplit("_", 1)[0], []).append(i)
         self.fingers = {f: np.asarray(j, dtype=int) for f, j in fingers.items()}
         self.hand_state = "open"
+        self._samples: list | None = None  # (t, phase, q, target, effort) while a grasp records its motion
         self.dropped_partial_grasp = self.drop_partial_grasp() if redo_partial_grasp else 0
 
     # --- state ------------------------------------------------------------------------------------
@@ -301,17 +304,28 @@ class CaptureLogger:
             raise InvalidInputError(f"grasp {index} is already recorded")
         self.hand_state = "closing"
         t0 = self.clock.time()
-        stopped_by, settled = self._close(q_close)
-        close_s = self.clock.time() - t0
-        self.hand_state = "closed"
-        readings: list[tuple[str, TactileReading]] = [(s.name, s.read()) for s in self.sensors]
-        touches = []
-        for name, reading in readings:
-            if reading.frame != "hand":
-                raise InvalidInputError(f"sensor {name!r}: expected a reading in the hand frame, got {reading.frame!r}")
-            touches.append(self.writer.add_reading(reading.to_world(T_world_hand), grasp=index, finger=name))
-        self.open(q_open)
-        outcome = GraspOutcome(index, touches, stopped_by, settled, close_s, T_world_hand, hand_rms)
+        self._samples = []
+        try:
+            stopped_by, settled = self._close(q_close)
+            close_s = self.clock.time() - t0
+            self.hand_state = "closed"
+            readings: list[tuple[str, TactileReading]] = [(s.name, s.read()) for s in self.sensors]
+            for name, reading in readings:
+                if reading.frame != "hand":
+                    raise InvalidInputError(
+                        f"sensor {name!r}: expected a reading in the hand frame, got {reading.frame!r}"
+                    )
+            hand_file = self.writer.add_hand_motion(self._motion(index, T_world_hand, t0))
+            touches = [
+                self.writer.add_reading(reading.to_world(T_world_hand), grasp=index, finger=name, hand_file=hand_file)
+                for name, reading in readings
+            ]
+            self.open(q_open)
+            motion = self._motion(index, T_world_hand, t0)  # with the release
+            self.writer.add_hand_motion(motion)
+        finally:
+            self._samples = None
+        outcome = GraspOutcome(index, touches, stopped_by, settled, close_s, T_world_hand, hand_rms, motion)
         no_contact = [t.finger for t in touches if not t.in_contact]
         log.debug(
             "grasp %d recorded: %d touches (%s), stopped by %s%s",
@@ -324,10 +338,45 @@ class CaptureLogger:
         return outcome
 
     def open(self, q_open: np.ndarray | None = None) -> None:
+        """Command the open pose and wait ``open_s`` (sampling the joints every poll while a grasp records)."""
         self.hand_state = "opening"
-        self.hand.command_joint_positions(np.asarray(self.control.open_pose if q_open is None else q_open, float))
-        self.clock.sleep(self.control.open_s)
+        target = np.asarray(self.control.open_pose if q_open is None else q_open, float)
+        self.hand.command_joint_positions(target)
+        if self._samples is None:
+            self.clock.sleep(self.control.open_s)
+        else:
+            t_end = self.clock.time() + self.control.open_s
+            while (left := t_end - self.clock.time()) > 1e-9:
+                self.clock.sleep(min(self.control.poll_s, left))
+                self._sample("open", target)
         self.hand_state = "open"
+
+    def _sample(self, phase: str, target: np.ndarray | None) -> np.ndarray:
+        """Read the joints (and efforts), keep them as a sample of the grasp's motion; returns the positions."""
+        q, effort = self.hand.read_joint_state()
+        if self._samples is not None:
+            target = q if target is None else target  # (the preshape: at rest where it was put)
+            self._samples.append((self.clock.time(), MOTION_PHASES.index(phase), q, np.array(target, float), effort))
+        return q
+
+    def _motion(self, index: int, T_world_hand: np.ndarray, t0: float) -> HandMotion:
+        """The grasp's :class:`HandMotion` from the samples so far, with the hand's boxes placed at each."""
+        t, phase, q, target, effort = (np.array(column) for column in zip(*self._samples))
+        boxes = [self.hand.link_boxes(qs) for qs in q]
+        return HandMotion(
+            grasp=index,
+            joint_names=tuple(self.hand.joint_names),
+            t=t - t0,
+            phase=phase,
+            q=q,
+            q_target=target,
+            effort=effort,
+            effort_unit=self.hand.effort_unit,
+            T_world_hand=T_world_hand,
+            link_names=tuple(self.hand.link_names),
+            link_half_extents=boxes[0][1],
+            link_poses=np.einsum("ij,sljk->slik", T_world_hand, np.stack([T for T, _ in boxes])),
+        )
 
     def _close(self, q_close: np.ndarray) -> tuple[dict[str, str], bool]:
         """Ramp the targets toward ``q_close`` at ``close_speed_rad_s``; a finger whose joints lag their target by
@@ -335,14 +384,14 @@ class CaptureLogger:
         c = self.control
         lo, hi = np.asarray(self.hand.joint_limits, dtype=np.float64).T
         q_close = np.clip(q_close, lo, hi)
-        q_start = self.hand.read_joint_positions()
+        q_start = self._sample("preshape", None)
         target = q_start.copy()
         fingers = {f: _Finger(f, j) for f, j in self.fingers.items()}
         step = c.close_speed_rad_s * c.poll_s
         t_end = self.clock.time() + c.max_close_s
         still, q_prev = 0, q_start
         while True:
-            q = self.hand.read_joint_positions()
+            q = self._sample("close", target)
             for f in fingers.values():
                 if f.state != "closing":
                     continue

@@ -288,8 +288,7 @@ class NextTouchPlanner:
         """Candidate ``k`` of grasp ``index`` and its close pose [16]: the twin placed on the approach, the pads
         of the fingers that tap (those the preshape reached) at their preshape poses."""
         twin = self.twin_planner.twin
-        q_close = self.twin_planner.approach(self._rng(index, k))
-        q_pre = twin.hand.read_joint_positions()
+        q_close, q_pre = self.twin_planner.approach(self._rng(index, k))
         T_world_hand = twin.T_world_hand()
         tips = twin.hand.fingertip_poses()
         joints: dict[str, list[int]] = {}
@@ -345,7 +344,8 @@ class NextTouchPlanner:
             choices.save(decision)  # before the hand moves: a capture cut short redoes this same grasp
         for k in decision["ranking"][:MAX_ATTEMPTS_PER_GRASP]:
             _, q_close = self.candidate(index, k)
-            outcome = logger.take_grasp(close_pose=q_close, open_pose=np.zeros(len(q_close)), index=index)
+            q_pre = self.twin_planner.twin.hand.read_joint_positions()  # the release goes back to the preshape
+            outcome = logger.take_grasp(close_pose=q_close, open_pose=q_pre, index=index)
             if outcome.fingers_in_contact:
                 choices.save({**decision, "executed": k})
                 return outcome

@@ -56,12 +56,13 @@ class TwinPlanner:
             self._table = PreshapeTable(self.twin, c.preshape_grid, c.preshape_abduction)
         return self._table
 
-    def approach(self, rng: np.random.Generator) -> np.ndarray:
-        """Reset the simulation, place the hand on a sampled approach, preshape it; returns the close pose [16]."""
+    def approach(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """Reset the simulation, place the hand on a sampled approach, preshape it; returns the close pose [16] and
+        the preshape [16] (the release goes back to it: the way the fingers came is free)."""
         twin, config = self.twin, self.grasp_config
         twin.reset()
         q_pre, reachable = preshape_fingers(twin, self.table, sample_hand_pose(twin, rng, config), config)
-        return tap_close_pose(q_pre, reachable, config)
+        return tap_close_pose(q_pre, reachable, config), q_pre
 
     def grasp(self, logger: CaptureLogger, index: int) -> GraspOutcome | None:
         """Grasp number ``index``: approach, let the logger grasp; an approach that touched nothing is undone and
@@ -69,8 +70,8 @@ class TwinPlanner:
         grasp are recorded as no-contact touches."""
         rng = np.random.default_rng([self.grasp_seed, index])
         for attempt in range(MAX_ATTEMPTS_PER_GRASP):
-            q_close = self.approach(rng)
-            outcome = logger.take_grasp(close_pose=q_close, open_pose=np.zeros(16), index=index)
+            q_close, q_pre = self.approach(rng)
+            outcome = logger.take_grasp(close_pose=q_close, open_pose=q_pre, index=index)
             if outcome.fingers_in_contact:
                 return outcome
             logger.undo()

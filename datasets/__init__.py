@@ -16,9 +16,12 @@ A scene directory is what acquisition, the simulator and the importers write
       masks/           000000.png ...  optional greyscale uint8, 255 = use the pixel
       touches.json     {"sensor": {name, width_px, height_px, pixel_size_m,
                        gel_thickness_m} | null, "touches": [{id, grasp, finger,
-                       depth_file, T_world_sensor, in_contact}]}
+                       depth_file, T_world_sensor, in_contact, hand_file
+                       (optional: the grasp's hand motion)}]}
       touches/         000000.npz ...  key "depth": float32 [h, w] metres of
                        indentation (0 = no contact)
+      grasps/          000000.npz ...  one per grasp of a hand capture: the
+                       joint trajectory and the hand's boxes (HandMotion)
       scene.json       provenance: format, source (sim | real | import), object,
                        units "m", capture_plan, extra, tacsplat_version, created,
                        gt {mesh, depth {frame id: file}}, annotations {key:
@@ -41,13 +44,14 @@ Command line: ``tacsplat import blender|colmap|nerfstudio`` and ``tacsplat inspe
 
 from .copying import copy_scene
 from .reader import Scene, check_scene
-from .records import SPLITS, Frame, SceneMeta, SensorModel, Touch
+from .records import SPLITS, Frame, HandMotion, SceneMeta, SensorModel, Touch
 from .writer import SceneWriter
 
 __all__ = [
     "SPLITS",
     "Frame",
     "Touch",
+    "HandMotion",
     "SensorModel",
     "SceneMeta",
     "Scene",

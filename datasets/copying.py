@@ -62,8 +62,12 @@ def copy_scene(
                 frame.intrinsics,
                 mask=scene.load_mask(frame),
             )
+        motions = {}  # the source's hand file -> the copy's
         for touch in touches:
-            writer.add_touch(scene.load_touch_depth(touch), touch.T_world_sensor, touch.grasp, touch.finger)
+            if touch.hand_file is not None and touch.hand_file not in motions:
+                motions[touch.hand_file] = writer.add_hand_motion(scene.load_hand_motion(touch))
+            hand_file = motions.get(touch.hand_file)
+            writer.add_touch(scene.load_touch_depth(touch), touch.T_world_sensor, touch.grasp, touch.finger, hand_file)
         if gt_mesh is not None:
             writer.set_gt_mesh(gt_mesh)
     return dst

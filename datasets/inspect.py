@@ -33,6 +33,7 @@ def summarise(path) -> dict:
         "grasps": 0,
         "touches_per_grasp": {},
         "touches_per_finger": {},
+        "hand_motion": None,
         "sensor": None,
         "bounds": None,
         "gt": {"mesh": None, "depth_maps": 0},
@@ -50,6 +51,18 @@ def summarise(path) -> dict:
     summary["grasps"] = scene.num_grasps
     summary["touches_per_grasp"] = {str(g): n for g, n in sorted(Counter(t.grasp for t in scene.touches).items())}
     summary["touches_per_finger"] = dict(sorted(Counter(t.finger for t in scene.touches).items()))
+    motions = scene.hand_motions()
+    if motions:
+        durations = [float(m.t[-1] - m.t[0]) for m in motions]
+        summary["hand_motion"] = {
+            "grasps": len(motions),
+            "samples": int(sum(len(m.t) for m in motions)),
+            "joints": len(motions[0].joint_names),
+            "links": len(motions[0].link_names),
+            "seconds_per_grasp": {"min": min(durations), "median": float(np.median(durations)), "max": max(durations)},
+            "effort_unit": motions[0].effort_unit,
+            "peak_effort": float(np.nanmax([np.nanmax(np.abs(m.effort), initial=0.0) for m in motions])),
+        }
     if scene.sensor is not None:
         s = scene.sensor
         summary["sensor"] = {
@@ -83,6 +96,14 @@ def format_summary(summary: dict) -> str:
     if summary["touches_per_grasp"]:
         lines.append("  per grasp   " + ", ".join(f"{g}: {n}" for g, n in summary["touches_per_grasp"].items()))
         lines.append("  per finger  " + ", ".join(f"{f}: {n}" for f, n in summary["touches_per_finger"].items()))
+    motion = summary["hand_motion"]
+    if motion is not None:
+        d = motion["seconds_per_grasp"]
+        lines.append(
+            f"hand      {motion['grasps']} grasps recorded ({motion['samples']} samples of {motion['joints']} joints, "
+            f"{motion['links']} links): {d['min']:.2f} to {d['max']:.2f} s per grasp (median {d['median']:.2f}), "
+            f"peak effort {motion['peak_effort']:.3g} {motion['effort_unit']}"
+        )
     sensor = summary["sensor"]
     lines.append(
         "sensor    "

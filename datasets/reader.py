@@ -31,6 +31,7 @@ from .records import (
     SOURCES,
     SPLITS,
     Frame,
+    HandMotion,
     SceneMeta,
     SensorModel,
     Touch,
@@ -136,6 +137,21 @@ def load_depth_npz(
         problems.report(path, field, problem)
         return None
     return depth.astype(np.float32, copy=False)
+
+
+def load_hand_motion(path: Path, problems: _Problems, field: str) -> HandMotion | None:
+    """Load and check a grasp's hand motion written by the writer (:meth:`HandMotion.to_arrays`'s keys)."""
+    if not path.is_file():
+        problems.report(path, None, "hand motion file missing")
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return HandMotion.from_arrays(npz)
+    except InvalidInputError as exc:
+        problems.report(path, field, str(exc))
+    except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes; KeyError for a key
+        problems.report(path, field, f"truncated, corrupt or incomplete npz: {_first_line(exc)}")
+    return None
 
 
 def _check_image(
@@ -276,6 +292,20 @@ class Scene:
             f"touch {touch.id}",
             touch_depth_limit(self.sensor),
         )
+
+    def load_hand_motion(self, touch: Touch) -> HandMotion | None:
+        """The hand's motion through the touch's grasp, or None when the scene did not record it."""
+        if touch.hand_file is None:
+            return None
+        return load_hand_motion(self.path / touch.hand_file, _Problems(collect=False), f"touch {touch.id} hand_file")
+
+    def hand_motions(self) -> list[HandMotion]:
+        """Every recorded grasp's hand motion, in grasp order (empty for a scene that recorded none)."""
+        first = {}
+        for t in self.touches:
+            if t.hand_file is not None:
+                first.setdefault(t.hand_file, t)
+        return sorted((self.load_hand_motion(t) for t in first.values()), key=lambda m: m.grasp)
 
     def touch_points(self, threshold_m: float = 1e-5) -> np.ndarray:
         """Every touch's contact points in the world, [M, 3] float64 (see ``tactile_depth_to_points``)."""
@@ -635,6 +665,7 @@ def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[S
         return None, []
     touches: list[Touch] = []
     seen: dict[int, int] = {}
+    motions: dict[Path, HandMotion | None] = {}  # each hand file checked once
     for i, raw in enumerate(raw_touches):
         field = f"touches[{i}]"
         if not isinstance(raw, dict):
@@ -662,6 +693,15 @@ def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[S
         T = _pose(raw.get("T_world_sensor"), index, f"{field}.T_world_sensor", problems)
         if depth_path is None or T is None:
             continue
+        hand_file = raw.get("hand_file")
+        if hand_file is not None:
+            hand_path = _relative_file(path, hand_file, index, f"{field}.hand_file", problems)
+            if hand_path is None:
+                continue
+            if check_files and hand_path not in motions:
+                motions[hand_path] = load_hand_motion(hand_path, problems, f"{field}.hand_file")
+            if check_files and motions[hand_path] is None:
+                continue
         if check_files:
             depth = load_depth_npz(
                 depth_path,
@@ -687,6 +727,7 @@ def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[S
                 depth_file=raw["depth_file"],
                 T_world_sensor=T,
                 in_contact=in_contact,
+                hand_file=hand_file,
             )
         )
     return sensor, touches

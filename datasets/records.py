@@ -165,6 +165,7 @@ class Touch:
     depth_file: str
     T_world_sensor: np.ndarray  # [4, 4] float64
     in_contact: bool
+    hand_file: str | None = None  # the grasp's HandMotion (scenes of a hand capture; None: not recorded)
 
     def __post_init__(self):
         object.__setattr__(self, "T_world_sensor", _frozen_pose(self.T_world_sensor, f"touch {self.id} T_world_sensor"))
@@ -172,15 +173,112 @@ class Touch:
     def __eq__(self, other) -> bool:
         if not isinstance(other, Touch):
             return NotImplemented
-        return (self.id, self.grasp, self.finger, self.depth_file, self.in_contact) == (
+        return (self.id, self.grasp, self.finger, self.depth_file, self.in_contact, self.hand_file) == (
             other.id,
             other.grasp,
             other.finger,
             other.depth_file,
             other.in_contact,
+            other.hand_file,
         ) and np.array_equal(self.T_world_sensor, other.T_world_sensor)
 
     __hash__ = None
+
+
+MOTION_PHASES = ("preshape", "close", "open")  # HandMotion.phase: where the hand was, closing, opening
+
+
+@dataclass(frozen=True, eq=False)
+class HandMotion:
+    """What the hand did through one grasp (proprioception), sampled at the grasp controller's polls.
+
+    The hand base stays at ``T_world_hand`` throughout (the logger measures it
+    once, before the fingers move). ``link_poses`` places the hand model's solid
+    boxes (palm, links, gels up to their undeformed surface) at each sample: the
+    space they occupied was empty then, which is how a grasp tells
+    reconstruction where the object is not.
+    """
+
+    grasp: int
+    joint_names: tuple[str, ...]  # [J]
+    t: np.ndarray  # [S] seconds on the rig's clock since the grasp started
+    phase: np.ndarray  # [S] indices into MOTION_PHASES
+    q: np.ndarray  # [S, J] measured joint positions, radians
+    q_target: np.ndarray  # [S, J] commanded positions, radians
+    effort: np.ndarray  # [S, J] in effort_unit
+    effort_unit: str  # "A" (servo current) | "N m" (joint torque)
+    T_world_hand: np.ndarray  # [4, 4]
+    link_names: tuple[str, ...]  # [L]
+    link_half_extents: np.ndarray  # [L, 3] metres
+    link_poses: np.ndarray  # [S, L, 4, 4] world poses of the boxes
+
+    def __post_init__(self):
+        problem = hand_motion_problem(self)
+        if problem:
+            raise InvalidInputError(f"hand motion of grasp {self.grasp}: {problem}")
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {
+            "grasp": np.int64(self.grasp),
+            "joint_names": np.array(self.joint_names, dtype=str),
+            "t": self.t,
+            "phase": np.asarray(self.phase, dtype=np.uint8),
+            "q": self.q,
+            "q_target": self.q_target,
+            "effort": self.effort,
+            "effort_unit": np.array(self.effort_unit),
+            "T_world_hand": self.T_world_hand,
+            "link_names": np.array(self.link_names, dtype=str),
+            "link_half_extents": self.link_half_extents,
+            "link_poses": self.link_poses,
+        }
+
+    @classmethod
+    def from_arrays(cls, a) -> "HandMotion":
+        return cls(
+            grasp=int(a["grasp"]),
+            joint_names=tuple(str(n) for n in a["joint_names"]),
+            t=np.asarray(a["t"], dtype=np.float64),
+            phase=np.asarray(a["phase"]),
+            q=np.asarray(a["q"], dtype=np.float64),
+            q_target=np.asarray(a["q_target"], dtype=np.float64),
+            effort=np.asarray(a["effort"], dtype=np.float64),
+            effort_unit=str(a["effort_unit"]),
+            T_world_hand=np.asarray(a["T_world_hand"], dtype=np.float64),
+            link_names=tuple(str(n) for n in a["link_names"]),
+            link_half_extents=np.asarray(a["link_half_extents"], dtype=np.float64),
+            link_poses=np.asarray(a["link_poses"], dtype=np.float64),
+        )
+
+
+def hand_motion_problem(m: HandMotion) -> str | None:
+    """Why a HandMotion is not one (shapes that disagree, values that are not finite, a bad pose), or None."""
+    S, J, L = len(np.atleast_1d(m.t)), len(m.joint_names), len(m.link_names)
+    shapes = {
+        "t": (S,),
+        "phase": (S,),
+        "q": (S, J),
+        "q_target": (S, J),
+        "effort": (S, J),
+        "link_half_extents": (L, 3),
+        "link_poses": (S, L, 4, 4),
+    }
+    for name, shape in shapes.items():
+        value = np.asarray(getattr(m, name))
+        if value.shape != shape:
+            return f"{name} has shape {value.shape}, expected {shape}"
+        if name != "effort" and not np.all(np.isfinite(value)):
+            return f"{name} holds NaN or infinite values"
+    if S == 0:
+        return "no samples"
+    if np.any(np.diff(m.t) < 0):
+        return "t goes backwards"
+    if np.any(np.asarray(m.phase) >= len(MOTION_PHASES)):
+        return f"phase must index {MOTION_PHASES}"
+    if np.any(np.asarray(m.link_half_extents) <= 0) or np.any(np.asarray(m.link_half_extents) > MAX_DISTANCE_M):
+        return "link_half_extents must be positive lengths in metres"
+    problem = pose_problem(m.T_world_hand)
+    return f"T_world_hand: {problem}" if problem else None
 
 
 @dataclass(frozen=True)
@@ -325,7 +423,7 @@ def frame_to_nerfstudio(frame: Frame, with_intrinsics: bool) -> dict:
 
 
 def touch_to_json(touch: Touch) -> dict:
-    return {
+    entry = {
         "id": touch.id,
         "grasp": touch.grasp,
         "finger": touch.finger,
@@ -333,6 +431,9 @@ def touch_to_json(touch: Touch) -> dict:
         "T_world_sensor": touch.T_world_sensor.tolist(),
         "in_contact": bool(touch.in_contact),
     }
+    if touch.hand_file is not None:
+        entry["hand_file"] = touch.hand_file
+    return entry
 
 
 def touch_from_json(d: dict) -> Touch:
@@ -343,4 +444,5 @@ def touch_from_json(d: dict) -> Touch:
         depth_file=d["depth_file"],
         T_world_sensor=np.asarray(d["T_world_sensor"], dtype=np.float64),
         in_contact=bool(d["in_contact"]),
+        hand_file=d.get("hand_file"),
     )

@@ -55,6 +55,7 @@ from .records import (
     GT_DEPTH_LIMIT,
     SPLITS,
     Frame,
+    HandMotion,
     SceneMeta,
     SensorModel,
     Touch,
@@ -330,16 +331,17 @@ class SceneWriter:
             {f.file_path for f in self.frames}
             | {f.mask_path for f in self.frames}
             | {t.depth_file for t in self.touches}
+            | {t.hand_file for t in self.touches}
             | set(self._gt_depth.values())
         )
         count = 0
-        for sub in ("", "images", "masks", "touches", "gt", "gt/depth"):
+        for sub in ("", "images", "masks", "touches", "grasps", "gt", "gt/depth"):
             if not (self.path / sub).is_dir():
                 continue
             for p in (self.path / sub).iterdir():
                 rel = p.relative_to(self.path).as_posix()
                 orphan = (
-                    sub in ("images", "masks", "touches", "gt/depth")
+                    sub in ("images", "masks", "touches", "grasps", "gt/depth")
                     and _RECORD_FILE.fullmatch(p.name)
                     and rel not in live
                 )
@@ -554,8 +556,22 @@ class SceneWriter:
         )
         return frame
 
-    def add_touch(self, depth: np.ndarray, T_world_sensor: np.ndarray, grasp: int, finger: str) -> Touch:
-        """Append a tactile reading: ``depth`` [h, w] float32 metres of indentation (0 = no contact)."""
+    def add_hand_motion(self, motion: HandMotion) -> str:
+        """Write a grasp's :class:`HandMotion` as ``grasps/<grasp>.npz`` and return that path, for the grasp's
+        touches to refer to (``add_touch(..., hand_file=)``): it becomes part of the scene with the first of them
+        (a resume deletes it when no touch refers to it)."""
+        if not isinstance(motion, HandMotion):
+            raise InvalidInputError(f"motion: expected a HandMotion, got {type(motion).__name__}")
+        rel = f"grasps/{motion.grasp:06d}.npz"
+        (self.path / "grasps").mkdir(exist_ok=True)
+        atomic_write_bytes(self.path / rel, encode_npz(**motion.to_arrays()))
+        return rel
+
+    def add_touch(
+        self, depth: np.ndarray, T_world_sensor: np.ndarray, grasp: int, finger: str, hand_file: str | None = None
+    ) -> Touch:
+        """Append a tactile reading: ``depth`` [h, w] float32 metres of indentation (0 = no contact); ``hand_file``:
+        its grasp's hand motion (:meth:`add_hand_motion`)."""
         if self.sensor is None:
             raise InvalidInputError(
                 f"{self.path}: the scene was created without a sensor model; it cannot hold touches"
@@ -576,12 +592,15 @@ class SceneWriter:
             depth_file=f"touches/{tid:06d}.npz",
             T_world_sensor=pose,
             in_contact=bool((depth > 0).any()),
+            hand_file=hand_file,
         )
+        if hand_file is not None and not (self.path / hand_file).is_file():
+            raise InvalidInputError(f"hand_file: {self.path / hand_file} does not exist (write it by add_hand_motion)")
         atomic_write_bytes(self.path / touch.depth_file, encode_npz(depth=depth))
         self._record({"op": "touch", "touch": touch_to_json(touch)}, "touches")
         return touch
 
-    def add_reading(self, reading: TactileReading, grasp: int, finger: str) -> Touch:
+    def add_reading(self, reading: TactileReading, grasp: int, finger: str, hand_file: str | None = None) -> Touch:
         """Append a world-frame :class:`TactileReading` (its pixel size must match the sensor model)."""
         if reading.frame != "world":
             raise InvalidInputError(f"reading: its pose is in the '{reading.frame}' frame; call to_world() first")
@@ -590,7 +609,7 @@ class SceneWriter:
                 f"reading.pixel_size_m {reading.pixel_size_m} differs from the sensor model's "
                 f"{self.sensor.pixel_size_m}"
             )
-        return self.add_touch(reading.depth, reading.T_world_sensor, grasp, finger)
+        return self.add_touch(reading.depth, reading.T_world_sensor, grasp, finger, hand_file)
 
     def set_gt_mesh(self, mesh) -> Path:
         """Store the ground-truth mesh (a path to any mesh trimesh reads, or a ``trimesh.Trimesh``) as ``gt/mesh.ply``."""
@@ -644,6 +663,8 @@ class SceneWriter:
             *(["scene"] if gt_file else []),
         )
         files = [record.file_path, record.mask_path, gt_file] if kind == "frame" else [record.depth_file]
+        if kind == "touch" and record.hand_file and all(t.hand_file != record.hand_file for t in self.touches):
+            files.append(record.hand_file)  # its grasp's last touch
         for rel in filter(None, files):
             (self.path / rel).unlink(missing_ok=True)
         return record

@@ -441,6 +441,13 @@ class DynamixelHand:
         """[16] amperes."""
         return self.read_state().currents
 
+    effort_unit = "A"  # the servos' present current
+
+    def read_joint_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(positions [16] radians, currents [16] amperes)`` by one sync read."""
+        state = self.read_state()
+        return state.positions, state.currents
+
     def command_joint_positions(self, q) -> None:
         """Goal positions [16] radians by one sync write, clamped to the joint limits (clamping logged).
 
@@ -454,6 +461,14 @@ class DynamixelHand:
     def fingertip_poses(self) -> dict[str, np.ndarray]:
         """``{finger: T_hand_sensor [4, 4]}`` by forward kinematics of the twin's model at the present joints."""
         return self._kinematics.fingertip_poses(self.read_joint_positions())
+
+    @property
+    def link_names(self) -> list[str]:
+        return list(self._kinematics.link_names)
+
+    def link_boxes(self, q) -> tuple[np.ndarray, np.ndarray]:
+        """The hand's solid shape at joint positions ``q`` [16] (the twin's model): boxes [L, 4, 4], [L, 3]."""
+        return self._kinematics.link_boxes(q)
 
     def check(self) -> None:
         """Raise the fault that stopped the hand (HandError), such as one the heartbeat found while nothing else used

@@ -204,19 +204,37 @@ class HandKinematics:
         self._data = mujoco.MjData(self._model)
         self._qadr = np.array([self._model.joint(n).qposadr[0] for n in JOINT_NAMES])
         self._sites = {f: self._model.site(f"{f}_tactile").id for f in FINGER_NAMES}
+        box = mujoco.mjtGeom.mjGEOM_BOX
+        self._boxes = [
+            g for g in range(self._model.ngeom) if self._model.geom_type[g] == box and self._model.geom_group[g] == 1
+        ]
+        self.link_names = [self._model.geom(g).name for g in self._boxes]  # palm, then each finger's links and gel
+        self._half_extents = self._model.geom_size[self._boxes].copy()  # [L, 3]
 
     @property
     def joint_limits(self) -> np.ndarray:
         """[16, 2] lower and upper limits in radians."""
         return JOINT_LIMITS.copy()
 
-    def fingertip_poses(self, q: np.ndarray) -> dict[str, np.ndarray]:
-        """``{finger: T_hand_sensor [4, 4]}`` for joint positions ``q`` [16] radians."""
+    def _at(self, q: np.ndarray, what: str) -> None:
         q = np.asarray(q, dtype=np.float64)
         if q.shape != (16,):
-            raise InvalidInputError(f"HandKinematics.fingertip_poses: q must have shape (16,), got {q.shape}")
+            raise InvalidInputError(f"HandKinematics.{what}: q must have shape (16,), got {q.shape}")
         if not np.all(np.isfinite(q)):
-            raise InvalidInputError("HandKinematics.fingertip_poses: q contains NaN or infinite values")
+            raise InvalidInputError(f"HandKinematics.{what}: q contains NaN or infinite values")
         self._data.qpos[self._qadr] = q
         self._mujoco.mj_kinematics(self._model, self._data)
+
+    def fingertip_poses(self, q: np.ndarray) -> dict[str, np.ndarray]:
+        """``{finger: T_hand_sensor [4, 4]}`` for joint positions ``q`` [16] radians."""
+        self._at(q, "fingertip_poses")
         return {f: site_pose(self._data, sid) for f, sid in self._sites.items()}
+
+    def link_boxes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The hand's solid shape at joint positions ``q`` [16]: ``(T_hand_box [L, 4, 4], half_extents [L, 3])``,
+        one box per :attr:`link_names` (the palm, every link, and each gel up to its undeformed surface)."""
+        self._at(q, "link_boxes")
+        T = np.tile(np.eye(4), (len(self._boxes), 1, 1))
+        T[:, :3, :3] = self._data.geom_xmat[self._boxes].reshape(-1, 3, 3)
+        T[:, :3, 3] = self._data.geom_xpos[self._boxes]
+        return T, self._half_extents.copy()

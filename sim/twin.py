@@ -33,6 +33,7 @@ from tacsplat.sim.hand import (
     JOINT_NAMES,
     ActuatorGains,
     HandGeometry,
+    HandKinematics,
     hand_body_xml,
     site_pose,
 )
@@ -213,10 +214,17 @@ class SimHand:
         self._dofadr = np.array([model.jnt_dofadr[model.joint(n).id] for n in JOINT_NAMES])
         self._act = np.array([model.actuator(n).id for n in JOINT_NAMES])
         self._sites = {f: model.site(f"{f}_tactile").id for f in FINGER_NAMES}
+        self._kinematics = HandKinematics(twin.config.hand_geometry)
 
     @property
     def joint_names(self) -> list[str]:
         return list(JOINT_NAMES)
+
+    effort_unit = "N m"  # the position servos' torque
+
+    @property
+    def link_names(self) -> list[str]:
+        return list(self._kinematics.link_names)
 
     @property
     def joint_limits(self) -> np.ndarray:
@@ -224,6 +232,10 @@ class SimHand:
 
     def read_joint_positions(self) -> np.ndarray:
         return self._twin.data.qpos[self._qadr].copy()
+
+    def read_joint_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(positions [16] radians, actuator torques [16] N m)``."""
+        return self.read_joint_positions(), self._twin.data.actuator_force[self._act].copy()
 
     def read_joint_targets(self) -> np.ndarray:
         return self._twin.data.ctrl[self._act].copy()
@@ -250,6 +262,10 @@ class SimHand:
     def fingertip_poses(self) -> dict[str, np.ndarray]:
         T_hand_world = invert_pose(self._twin.T_world_hand())
         return {f: T_hand_world @ site_pose(self._twin.data, s) for f, s in self._sites.items()}
+
+    def link_boxes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The hand's solid shape at joint positions ``q`` [16]: boxes [L, 4, 4] in the hand frame, [L, 3]."""
+        return self._kinematics.link_boxes(q)
 
     def close(self) -> None:
         """Hold the current joint positions (the twin's equivalent of a safe stop)."""

@@ -50,6 +50,15 @@ class ToyHand:
     def read_joint_positions(self):
         return self.q.copy()
 
+    effort_unit = "A"
+    link_names = ["palm"]
+
+    def read_joint_state(self):
+        return self.q.copy(), np.full(16, np.nan)
+
+    def link_boxes(self, q):
+        return np.eye(4)[None], np.array([[0.05, 0.04, 0.01]])
+
     def command_joint_positions(self, q):
         self.commands.append(np.array(q))
         self.target = np.array(q)

@@ -14,6 +14,7 @@ from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.acquisition.mock import MOCK_T_HAND_CAM, render_board
 from tacsplat.acquisition.operator_session import run_capture
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, check_scene
+from tacsplat.datasets.records import MOTION_PHASES
 from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
 from tacsplat.geometry import invert_pose, rotation_angle_between
 from tacsplat.sim.hand import HandKinematics
@@ -110,6 +111,21 @@ def test_grasp_touches_are_placed_with_board_pose_and_hand_eye(tmp_path, mock_ri
         expected = outcome.T_world_hand @ fk[touch.finger]
         assert np.allclose(touch.T_world_sensor, expected, atol=2e-3), touch.finger  # servo ticks, not exact
     assert view.reprojection_px < 0.5
+
+    # the real hand's motion through the grasp, recorded through the logger: joints, currents, the hand's boxes
+    motion = outcome.motion
+    recorded = Scene.load(tmp_path / "s").hand_motions()
+    assert len(recorded) == 1 and all(t.hand_file == "grasps/000000.npz" for t in outcome.touches)
+    for key, value in motion.to_arrays().items():
+        assert np.array_equal(getattr(recorded[0], key) if key != "grasp" else recorded[0].grasp, value), key
+    assert motion.effort_unit == "A" and np.isfinite(motion.effort).all()
+    assert {"preshape", "close", "open"} == {MOTION_PHASES[p] for p in motion.phase}
+    closed = motion.q[motion.phase == MOTION_PHASES.index("close")][-1]
+    assert np.allclose(closed, np.clip(q_close, *HandKinematics().joint_limits.T), atol=0.01)  # reached
+    T_hand_box, _ = HandKinematics().link_boxes(closed)
+    last = np.flatnonzero(motion.phase == MOTION_PHASES.index("close"))[-1]
+    assert np.allclose(motion.link_poses[last], outcome.T_world_hand @ T_hand_box)
+    assert np.all(np.diff(motion.t) > 0)
 
 
 def test_every_mock_view_is_within_three_of_its_standard_deviations(mock_rig):
