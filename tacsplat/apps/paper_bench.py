@@ -110,10 +110,11 @@ class PaperBenchConfig:
     def validate(self) -> None:
         from tacsplat.sim.objects import OBJECT_NAMES
 
-        unknown = [o for o in self.objects if o not in OBJECT_NAMES]
+        unknown = [o for o in self.objects if o not in OBJECT_NAMES and not Path(o).is_file()]
         if unknown:
             raise ConfigError(
-                "objects", f"unknown object(s) {', '.join(unknown)}; choose from {', '.join(OBJECT_NAMES)}"
+                "objects",
+                f"unknown object(s) {', '.join(unknown)}; choose from {', '.join(OBJECT_NAMES)} or give mesh files",
             )
         for s in self.settings:
             if s not in SETTINGS:
@@ -153,9 +154,14 @@ class PaperBenchConfig:
         return ("" if self.preset == "default" else f"-{self.preset}") + self.scene_tag
 
     def object_list(self) -> list[str]:
+        """The objects' names: library objects, and the file name (without suffix) of each mesh file."""
         from tacsplat.sim.objects import OBJECT_NAMES
 
-        return list(self.objects) or list(OBJECT_NAMES)
+        return [Path(o).stem if Path(o).is_file() else o for o in self.objects] or list(OBJECT_NAMES)
+
+    def mesh_of(self, name: str) -> str | None:
+        """The mesh file of object ``name`` (None for a library object)."""
+        return next((str(Path(o).resolve()) for o in self.objects if Path(o).is_file() and Path(o).stem == name), None)
 
 
 @dataclass(frozen=True)
@@ -226,6 +232,7 @@ class PaperBench:
         return CaptureJob(
             out=scene,
             object=obj,
+            mesh=c.mesh_of(obj),
             seed=seed,
             views=views,
             test_views=c.test_views,
