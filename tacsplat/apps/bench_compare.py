@@ -11,7 +11,11 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from tacsplat.errors import InvalidInputError
 
@@ -83,20 +87,30 @@ def format_comparison(rows, name_a: str, name_b: str) -> str:
     return "\n".join(lines)
 
 
+@dataclass
+class BenchCompare:
+    """The options of `tacsplat bench compare` (its description: this module's docstring)."""
+
+    a: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="A")]
+    """benchmark JSON (before)"""
+    b: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="B")]
+    """benchmark JSON (after)"""
+    match: str | None = None
+    """only the values whose path contains this text, e.g. _ms"""
+
+
 def register(cli) -> None:
     """Add `tacsplat bench compare`."""
-    p = cli.command(
+    cli.typed(
         "bench compare",
+        BenchCompare,
+        _handler,
         help="two benchmark JSON files side by side (A before, B after) with ratios",
         description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
     )
-    p.add_argument("a", help="benchmark JSON (before)")
-    p.add_argument("b", help="benchmark JSON (after)")
-    p.add_argument("--match", default=None, help="only the values whose path contains this text, e.g. _ms")
-    p.set_defaults(func=_handler)
 
 
-def _handler(args) -> int:
+def _handler(args: BenchCompare) -> int:
     rows = compare(read_results(args.a), read_results(args.b), args.match)
-    print(format_comparison(rows, Path(args.a).name, Path(args.b).name))
+    print(format_comparison(rows, args.a.name, args.b.name))
     return 0
