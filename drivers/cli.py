@@ -17,7 +17,9 @@ CHARUCO_DEFAULTS = {"squares_x": 7, "squares_y": 5, "square_mm": 30.0, "marker_m
 
 @dataclass
 class CalibrateCamera:
-    """Finds the board's corners (sub-pixel) in every photo, runs cv2.calibrateCameraExtended, prints the RMS
+    """intrinsic calibration of the wrist camera from photos of a ChArUco board or a chessboard
+
+    Finds the board's corners (sub-pixel) in every photo, runs cv2.calibrateCameraExtended, prints the RMS
     reprojection error, the intrinsics and their standard deviations. Refuses, naming the photos and what to add, a
     set that cannot determine the intrinsics (fewer than 3 distinct board poses, a repeated photo counting once, or
     the board in fewer than 3 orientations 10 degrees apart: a board facing the camera, or boards parallel to each
@@ -57,14 +59,16 @@ class CalibrateCamera:
 
 @dataclass
 class CalibrateTactile:
-    """FOLDER holds one image of the untouched gel named reference.* and images of presses of a ball of known radius
+    """GelSight-style calibration of an optical tactile sensor from ball presses
+
+    FOLDER holds one image of the untouched gel named reference.* and images of presses of a ball of known radius
     (any other names), taken in name order. Fits colour change -> surface gradient (a small MLP on colour change and
     pixel position) on two thirds of the presses, checks it on every third press (a sphere fitted to the depth of
     each held-out press, against the ball), prints the median and spread of the fitted radii, and refuses to write a
     calibration whose fitted radii are far off. Writes the calibration (.npz) and a picture of the detected contact
     circles over each press (.png) next to it."""
 
-    folder: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="FOLDER")]
+    folder: tyro.conf.Positional[Path]
     """folder with reference.* and ball-press images"""
     out: Path
     """calibration file to write (.npz)"""
@@ -83,7 +87,9 @@ class CalibrateTactile:
 
 @dataclass
 class TactileDepth:
-    """For each IMAGE, writes OUT/<image stem>.npz with a float32 `depth` array (indentation in metres, 0 = no
+    """depth maps of tactile images with a calibration (checks a calibration on new presses)
+
+    For each IMAGE, writes OUT/<image stem>.npz with a float32 `depth` array (indentation in metres, 0 = no
     contact, the image's size) and a picture of it, OUT/<image stem>.png. The sensor driver computes depth the same
     way."""
 
@@ -103,24 +109,9 @@ class TactileDepth:
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    cli.typed(
-        "calibrate camera",
-        CalibrateCamera,
-        _calibrate_camera,
-        help="intrinsic calibration of the wrist camera from photos of a ChArUco board or a chessboard",
-    )
-    cli.typed(
-        "calibrate tactile",
-        CalibrateTactile,
-        _calibrate_tactile,
-        help="GelSight-style calibration of an optical tactile sensor from ball presses",
-    )
-    cli.typed(
-        "tactile depth",
-        TactileDepth,
-        _tactile_depth,
-        help="depth maps of tactile images with a calibration (checks a calibration on new presses)",
-    )
+    cli.typed("calibrate camera", CalibrateCamera, _calibrate_camera)
+    cli.typed("calibrate tactile", CalibrateTactile, _calibrate_tactile)
+    cli.typed("tactile depth", TactileDepth, _tactile_depth)
 
 
 def _corner_counts(text: str) -> tuple[int, int]:

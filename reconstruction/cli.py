@@ -15,10 +15,11 @@ import tyro
 
 @dataclass
 class Evaluate:
-    """Evaluate a reconstruction run (PSNR, SSIM, Chamfer distance, renders) and write its metrics.json and renders
-    into RUN."""
+    """evaluate a reconstruction run: PSNR, SSIM, Chamfer distance, renders
 
-    run: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="RUN")]
+    Evaluates the run's last checkpoint on its scene and writes RUN/metrics.json and RUN/renders/."""
+
+    run: tyro.conf.Positional[Path]
     """run directory written by `tacsplat reconstruct`"""
     gt_mesh: Annotated[Path | None, tyro.conf.arg(metavar="PATH")] = None
     """ground-truth mesh or point cloud (for imported scenes without gt/)"""
@@ -35,12 +36,7 @@ def register(cli) -> None:
         "reconstruct", help="tactile-informed 3DGS: train on a scene directory and evaluate", own_options=True
     ).set_defaults(func=_reconstruct)
 
-    cli.typed(
-        "evaluate",
-        Evaluate,
-        _evaluate,
-        help="evaluate a reconstruction run: PSNR, SSIM, Chamfer distance, renders",
-    )
+    cli.typed("evaluate", Evaluate, _evaluate)
 
 
 def _reconstruct(args) -> int:

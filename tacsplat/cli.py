@@ -2,10 +2,11 @@
 
 Subcommands are registered per package: each module in ``COMMAND_MODULES``
 defines ``register(cli: CommandTree)`` and adds its commands with
-``cli.typed("bench rasterizer", Options, run, help=...)``: ``Options`` is a
-dataclass whose fields are the command's options (parsed by tyro, help from
-the fields' docstrings: :mod:`tacsplat.options`) and ``run(options)`` returns
-an exit code (or None for 0). A module imports what is expensive (torch,
+``cli.typed("bench rasterizer", Options, run)``: ``Options`` is a dataclass
+whose fields are the command's options (parsed by tyro, help from the fields'
+docstrings: :mod:`tacsplat.options`; its docstring's first paragraph is the
+command's line in ``tacsplat --help``) and ``run(options)`` returns an exit
+code (or None for 0). A module imports what is expensive (torch,
 numba, MuJoCo) inside ``run``, so that ``tacsplat --help`` imports none.
 
 Exit codes: 0 success, 1 a runtime error (one ``error:`` line), 2 a usage
@@ -140,21 +141,22 @@ class CommandTree:
             self.own_options.add(path)
         return parser
 
-    def typed(self, path: str, options: type, run, help: str, description: str | None = None) -> None:
+    def typed(self, path: str, options: type, run, help: str | None = None) -> None:
         """A command whose options are the dataclass ``options`` (parsed by tyro: :mod:`tacsplat.options`; its
-        docstring is the description, unless ``description`` is given): ``run(values)`` runs it, once its fields
-        ``out`` and ``json`` (what it writes) are known to be writable."""
+        docstring is the description, and its first paragraph the command list's line unless ``help`` is given):
+        ``run(values)`` runs it, once its fields ``out`` and ``json`` (what it writes) are known to be writable."""
 
         def func(args) -> int:
             from tacsplat.files import refuse_unwritable
             from tacsplat.options import parse_options
 
-            values = parse_options(options, args.rest, f"tacsplat {path}", description=description)
+            values = parse_options(options, args.rest, f"tacsplat {path}")
             for option in ("out", "json"):
                 refuse_unwritable(f"--{option}", getattr(values, option, None))
             return run(values)
 
-        self.command(path, help=help, description=description, own_options=True).set_defaults(func=func)
+        summary = help or " ".join(options.__doc__.split("\n\n")[0].split())
+        self.command(path, help=summary, own_options=True).set_defaults(func=func)
 
     def _chosen(self, argv: list[str]) -> tuple[str, int]:
         """``(path, index after its last word in argv)``."""

@@ -16,17 +16,16 @@ T = TypeVar("T")
 _RULE = re.compile(r"^[\s\u2500-\u257f|+-]*$")  # a line of box drawing (rich's, or its ASCII form)
 
 
-def parse_options(
-    cls: type[T], argv: list[str], prog: str, default: T | None = None, compact: bool = False, description=None
-) -> T:
+def parse_options(cls: type[T], argv: list[str], prog: str, default: T | None = None, compact: bool = False) -> T:
     """The ``cls`` instance of ``argv`` (over ``default``'s values when given); ``compact``: --help lists the
-    options without their descriptions, which -H adds; ``description``: --help's, when not the class docstring."""
+    options without their descriptions, which -H adds. A positional's metavar is its field's name (``RUN``)."""
     import tyro
 
+    names = tyro.conf.PositionalMetavarFromFieldName
     shown, errors = io.StringIO(), io.StringIO()
     try:
         with contextlib.redirect_stdout(shown), contextlib.redirect_stderr(errors):
-            return tyro.cli(cls, args=argv, default=default, prog=prog, compact_help=compact, description=description)
+            return tyro.cli(cls, args=argv, default=default, prog=prog, compact_help=compact, config=(names,))
     except SystemExit as stop:
         if stop.code == 0:  # --help
             print(shown.getvalue(), end="")

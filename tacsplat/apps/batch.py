@@ -328,7 +328,7 @@ class EvaluateJob(BatchJob):
 @functools.cache
 def _job_adapter():
     """pydantic's validator of one job of a batch file, picked by its ``kind`` (unknown keys refused)."""
-    from typing import Annotated, Union
+    from typing import Union
 
     from pydantic import Field, TypeAdapter
 
@@ -550,11 +550,13 @@ def _fmt(value, decimals: int) -> str:
 
 @dataclass
 class BatchCommand:
-    """Runs the jobs of JOBS.yaml (kind: capture | reconstruct | evaluate; see `tacsplat.apps.batch`), skipping those
+    """run a list of captures, reconstructions and evaluations, here or on a Ray cluster
+
+    Runs the jobs of JOBS.yaml (kind: capture | reconstruct | evaluate; see `tacsplat.apps.batch`), skipping those
     whose output is complete; writes DIR/results.csv and, if jobs fail, DIR/failures.csv. Rerun the same command to
     retry what failed or never ran."""
 
-    jobs: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="JOBS")]
+    jobs: tyro.conf.Positional[Path]
     """the batch file (YAML: jobs: [...])"""
     out: Path
     """folder the jobs' relative paths are in (on a cluster: shared storage)"""
@@ -562,12 +564,7 @@ class BatchCommand:
 
 
 def register(cli) -> None:
-    cli.typed(
-        "batch",
-        BatchCommand,
-        _run,
-        help="run a list of captures, reconstructions and evaluations, here or on a Ray cluster",
-    )
+    cli.typed("batch", BatchCommand, _run)
 
 
 def _run(args: BatchCommand) -> int:

@@ -1,10 +1,6 @@
 """`tacsplat bench compare A.json B.json`: two benchmark results side by side (before / after).
 
-Reads any JSON that the benchmarks write (``bench rasterizer --json``, ``bench
-step``'s ``step.json``, ...) and prints every number found in either file
-under the same path, A, B and the ratio B / A. Rows of a list are matched by
-their label (``WxH:N`` for the rasterizer's sizes, ``128px`` for the step
-profile's resolutions), not by their position; per-step records are skipped.
+Its options and what it does: :class:`BenchCompare`.
 """
 
 from __future__ import annotations
@@ -13,7 +9,6 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
 
 import tyro
 
@@ -89,11 +84,16 @@ def format_comparison(rows, name_a: str, name_b: str) -> str:
 
 @dataclass
 class BenchCompare:
-    """The options of `tacsplat bench compare` (its description: this module's docstring)."""
+    """two benchmark JSON files side by side (A before, B after) with ratios
 
-    a: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="A")]
+    Reads any JSON that the benchmarks write ('bench rasterizer --json', 'bench step''s 'step.json', ...) and
+    prints every number found in either file under the same path, A, B and the ratio B / A. Rows of a list are
+    matched by their label ('WxH:N' for the rasterizer's sizes, '128px' for the step profile's resolutions), not
+    by their position; per-step records are skipped."""
+
+    a: tyro.conf.Positional[Path]
     """benchmark JSON (before)"""
-    b: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="B")]
+    b: tyro.conf.Positional[Path]
     """benchmark JSON (after)"""
     match: str | None = None
     """only the values whose path contains this text, e.g. _ms"""
@@ -101,13 +101,7 @@ class BenchCompare:
 
 def register(cli) -> None:
     """Add `tacsplat bench compare`."""
-    cli.typed(
-        "bench compare",
-        BenchCompare,
-        _handler,
-        help="two benchmark JSON files side by side (A before, B after) with ratios",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
-    )
+    cli.typed("bench compare", BenchCompare, _handler)
 
 
 def _handler(args: BenchCompare) -> int:

@@ -1,14 +1,7 @@
 """`tacsplat bench gpu` (what `make gpu-check` runs on a CUDA machine): the trainer on CUDA at the paper's scale,
 measured in minutes.
 
-One twin capture (default: the teapot, 100 train views at 800x800 px, 24 test views, 5 grasps). The default and
-the paper's method each train the first ``--steps`` steps of the paper's 30k-step schedule
-(reconstruction/paper_schedule.yaml) after a short warm-up run that builds gsplat's kernels: seconds per 1000
-steps, peak GPU memory, and 30k steps at that rate (a lower bound: the Gaussians multiply until densification
-stops at step 15k). With ``--parity DIR``, written beforehand on a CPU machine by ``--prepare DIR``, DIR's small
-scene trains on this device with the seeds and steps of DIR's CPU runs: CD and PSNR beside the CPU's mean and
-spread. Only ``gpu.json`` and ``gpu.md`` go to ``--out``; the capture and the runs go to ``--work``. Without CUDA
-it says so in one line and measures nothing.
+Its options and what it does: :class:`BenchGpu`.
 """
 
 from __future__ import annotations
@@ -29,7 +22,16 @@ PARITY_FILE = "cpu.json"  # in a --prepare folder, beside its scene/
 
 @dataclass
 class BenchGpu:
-    """The options of `tacsplat bench gpu` (its description: this module's docstring)."""
+    """train on CUDA at the paper's scale: seconds per 1k steps, peak GPU memory, CPU/CUDA parity
+
+    One twin capture (default: the teapot, 100 train views at 800x800 px, 24 test views, 5 grasps). The
+    default and the paper's method each train the first '--steps' steps of the paper's 30k-step schedule
+    (reconstruction/paper_schedule.yaml) after a short warm-up run that builds gsplat's kernels: seconds per
+    1000 steps, peak GPU memory, and 30k steps at that rate (a lower bound: the Gaussians multiply until
+    densification stops at step 15k). With '--parity DIR', written beforehand on a CPU machine by '--prepare
+    DIR', DIR's small scene trains on this device with the seeds and steps of DIR's CPU runs: CD and PSNR beside
+    the CPU's mean and spread. Only 'gpu.json' and 'gpu.md' go to '--out'; the capture and the runs go to
+    '--work'. Without CUDA it says so in one line and measures nothing."""
 
     out: Path = Path("bench-output/gpu")
     """folder of gpu.json and gpu.md"""
@@ -64,13 +66,7 @@ class BenchGpu:
 
 
 def register(cli) -> None:
-    cli.typed(
-        "bench gpu",
-        BenchGpu,
-        _run,
-        help="train on CUDA at the paper's scale: seconds per 1k steps, peak GPU memory, CPU/CUDA parity",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
-    )
+    cli.typed("bench gpu", BenchGpu, _run)
 
 
 def _run(args: BenchGpu) -> int:

@@ -294,9 +294,4 @@ def _handler(args: BenchRasterizer) -> int:
 
 def register(cli) -> None:
     """Add `tacsplat bench rasterizer`."""
-    cli.typed(
-        "bench rasterizer",
-        BenchRasterizer,
-        _handler,
-        help="time the cpu rasterizer against the torch reference (forward, forward+backward, memory, compile)",
-    )
+    cli.typed("bench rasterizer", BenchRasterizer, _handler)

@@ -1,10 +1,6 @@
 """`tacsplat bench scaling`: error against cost for the whole job, at several resolutions and step counts.
 
-One object in the minimal-views setting, reconstructed by the full method and by vanilla 3DGS at
-each resolution (default 128, 256 and 400 px) and step count (default 750 and 1500), each a
-`tacsplat bench paper` slice in its own folder (so it resumes the same way). Writes
-``scaling.csv``, ``report.md`` and ``scaling.png``: the paper's CD and PSNR against train
-seconds, one curve per resolution and method, a point per step count.
+Its options and what it does: :class:`BenchScaling`.
 """
 
 from __future__ import annotations
@@ -97,7 +93,13 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
 
 @dataclass
 class BenchScaling:
-    """The options of `tacsplat bench scaling` (its description: this module's docstring)."""
+    """error against cost: resolutions x step counts, the paper method and 3DGS, one object
+
+    One object in the minimal-views setting, reconstructed by the full method and by vanilla 3DGS at each
+    resolution (default 128, 256 and 400 px) and step count (default 750 and 1500), each a `tacsplat bench
+    paper` slice in its own folder (so it resumes the same way). Writes 'scaling.csv', 'report.md' and
+    'scaling.png': the paper's CD and PSNR against train seconds, one curve per resolution and method, a point
+    per step count."""
 
     out: Path = Path("bench-output/scaling")
     """output folder"""
@@ -111,13 +113,7 @@ class BenchScaling:
 
 
 def register(cli) -> None:
-    cli.typed(
-        "bench scaling",
-        BenchScaling,
-        _run,
-        help="error against cost: resolutions x step counts, the paper method and 3DGS, one object",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
-    )
+    cli.typed("bench scaling", BenchScaling, _run)
 
 
 def _run(args: BenchScaling) -> int:

@@ -216,9 +216,4 @@ class BenchSim:
 
 def register(cli) -> None:
     """Add ``tacsplat bench sim`` to the command tree."""
-    cli.typed(
-        "bench sim",
-        BenchSim,
-        lambda args: print(run_bench(args.out, quick=args.quick)),
-        help="simulator error against run time: tactile depth vs ray-grid resolution, penetration vs timestep",
-    )
+    cli.typed("bench sim", BenchSim, lambda args: print(run_bench(args.out, quick=args.quick)))

@@ -1,16 +1,6 @@
 """`tacsplat bench step`: where the time of a training step goes, on the demo's scene.
 
-The demo's capture (one glossy object, 5 views, 5 grasps; made once per
-resolution and reused) is reconstructed by the trainer itself (``Trainer.run``,
-the demo's settings), while the functions a step calls are timed in place:
-projection and SH, binning and depth sort, compositing forward and backward,
-the deferred shading of the sh-lit appearance (forward and
-backward), SSIM (forward and backward), the other losses, the transmittance neighbour
-search, the optimiser and densification. Each phase is timed exclusively
-(a phase nested in another is not counted twice); ``autograd (other)`` is
-what ``loss.backward()`` spends outside the timed backward passes, ``rest``
-what a step spends outside every timed phase. Writes ``step.json`` (the
-compare command reads it), ``step.png`` (stacked bars) and prints a table.
+Its options and what it does: :class:`BenchStep`.
 """
 
 from __future__ import annotations
@@ -378,7 +368,16 @@ def plot_phases(results_list: list[tuple[str, dict]], path: Path) -> Path:
 
 @dataclass
 class BenchStep:
-    """The options of `tacsplat bench step` (its description: this module's docstring)."""
+    """profile of a training step on the demo scene: time per phase, table + PNG
+
+    The demo's capture (one glossy object, 5 views, 5 grasps; made once per resolution and reused) is
+    reconstructed by the trainer itself ('Trainer.run', the demo's settings), while the functions a step calls
+    are timed in place: projection and SH, binning and depth sort, compositing forward and backward, the
+    deferred shading of the sh-lit appearance (forward and backward), SSIM (forward and backward), the other
+    losses, the transmittance neighbour search, the optimiser and densification. Each phase is timed exclusively
+    (a phase nested in another is not counted twice); 'autograd (other)' is what 'loss.backward()' spends
+    outside the timed backward passes, 'rest' what a step spends outside every timed phase. Writes 'step.json'
+    (the compare command reads it), 'step.png' (stacked bars) and prints a table."""
 
     out: Path = Path("bench-output/step")
     """output folder (scenes are captured here once)"""
@@ -400,13 +399,7 @@ class BenchStep:
 
 def register(cli) -> None:
     """Add `tacsplat bench step`."""
-    cli.typed(
-        "bench step",
-        BenchStep,
-        _handler,
-        help="profile of a training step on the demo scene: time per phase, table + PNG",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
-    )
+    cli.typed("bench step", BenchStep, _handler)
 
 
 def _handler(args: BenchStep) -> int:

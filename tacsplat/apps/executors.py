@@ -46,7 +46,7 @@ import signal
 import socket
 from collections import Counter
 from concurrent import futures
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Annotated, Callable, Literal, Protocol, Sequence, get_args
 
@@ -142,12 +142,7 @@ class ExecutorOptions:
             raise UsageError("--workers", f"must be >= 1, got {self.workers}")
         if self.workers is not None and self.executor not in ("processes", "auto"):
             raise UsageError("--workers", "sets the jobs run side by side by --executor processes")
-        return {
-            "executor": self.executor,
-            "ray_address": self.ray_address,
-            "retries": self.retries,
-            "workers": self.workers,
-        }
+        return asdict(self)
 
 
 Executors = Annotated[ExecutorOptions, tyro.conf.arg(name="")]  # a field `executors: Executors` of a command's options

@@ -523,7 +523,9 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
 
 @dataclass
 class NextTouchBenchCommand:
-    """Per object, seed and strategy one sim capture (5 views, the largest grasp budget); per budget k a copy with the
+    """next-best against random grasps: CD against the number of grasps, both strategies
+
+    Per object, seed and strategy one sim capture (5 views, the largest grasp budget); per budget k a copy with the
     first k grasps, reconstructed with --iterations steps whatever the strategy. Writes OUT/results.csv,
     OUT/report.md (tables, uncertainty against error), OUT/cd_vs_grasps.png. Resumable. --executor ray runs the
     captures, copies and runs as Ray tasks (an embedded local Ray, or the cluster at --ray-address; --out on storage
@@ -559,12 +561,7 @@ class NextTouchBenchCommand:
 
 
 def register(cli) -> None:
-    cli.typed(
-        "bench next-touch",
-        NextTouchBenchCommand,
-        _run,
-        help="next-best against random grasps: CD against the number of grasps, both strategies",
-    )
+    cli.typed("bench next-touch", NextTouchBenchCommand, _run)
 
 
 def _run(args: NextTouchBenchCommand) -> int:

@@ -701,7 +701,9 @@ def write_paper_report(
 
 @dataclass
 class PaperBenchCommand:
-    """Per object: a seeded sim capture per setting (minimal: 5 views + 5 grasps; full-views: >= 32 views + 5
+    """the paper's tables on the twin's glossy objects: 3DGS, +S, +T, full; minimal and full views
+
+    Per object: a seeded sim capture per setting (minimal: 5 views + 5 grasps; full-views: >= 32 views + 5
     grasps), the four methods and reconstruct's default, then REPORT/results.csv, REPORT/report.md and plots.
     Resumable: rerun the same command after an interruption. --executor ray runs the captures and runs as Ray tasks
     (an embedded local Ray, or the cluster at --ray-address; --out on storage every node sees)."""
@@ -764,12 +766,7 @@ class PaperBenchCommand:
 
 
 def register(cli) -> None:
-    cli.typed(
-        "bench paper",
-        PaperBenchCommand,
-        _run,
-        help="the paper's tables on the twin's glossy objects: 3DGS, +S, +T, full; minimal and full views",
-    )
+    cli.typed("bench paper", PaperBenchCommand, _run)
 
 
 def _run(args: PaperBenchCommand) -> int:

@@ -276,7 +276,9 @@ def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[s
 
 @dataclass
 class TouchBenchCommand:
-    """Per seed one sim capture with enough grasps for the largest count; per count a copy of it with the first N
+    """Chamfer distance against the number of touches (paper Fig. 6), several seeds
+
+    Per seed one sim capture with enough grasps for the largest count; per count a copy of it with the first N
     touches in contact (whole grasps first), reconstructed with --method. Writes OUT/touches.csv, OUT/summary.csv,
     OUT/cd_vs_touches.png. Resumable."""
 
@@ -299,12 +301,7 @@ class TouchBenchCommand:
 
 
 def register(cli) -> None:
-    cli.typed(
-        "bench touches",
-        TouchBenchCommand,
-        _run,
-        help="Chamfer distance against the number of touches (paper Fig. 6), several seeds",
-    )
+    cli.typed("bench touches", TouchBenchCommand, _run)
 
 
 def _run(args: TouchBenchCommand) -> int:

@@ -51,14 +51,16 @@ CAMERA_DISTANCE = 2.5  # initial viewpoint: this many radii from the centre of w
 
 @dataclass
 class ViewCommand:
-    """Serve PATH to a browser: a scene directory (cameras with their images, touches by grasp with their gel frames,
+    """look at a scene, a reconstruction run or a benchmark report in the browser (viser)
+
+    Serve PATH to a browser: a scene directory (cameras with their images, touches by grasp with their gel frames,
     ground-truth mesh, bounding sphere), a run directory (its splat, touch or camera Gaussians alone, its scene, its
     kept checkpoints, metrics.json, renders of the browser's viewpoint with tacsplat's rasterizer) or a benchmark
     report folder (two of its runs side by side from one viewpoint). Needs no display: it prints the URL to open
     (use --host 0.0.0.0 or an SSH tunnel from another machine). --export writes the view as one HTML page that opens
     without Python."""
 
-    path: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="PATH")]
+    path: tyro.conf.Positional[Path]
     """a scene directory, a run directory or a benchmark report folder"""
     port: int = 8080
     """port to serve on (the next free one if it is taken)"""
@@ -70,12 +72,7 @@ class ViewCommand:
 
 
 def register(cli) -> None:
-    cli.typed(
-        "view",
-        ViewCommand,
-        _run,
-        help="look at a scene, a reconstruction run or a benchmark report in the browser (viser)",
-    )
+    cli.typed("view", ViewCommand, _run)
 
 
 def _run(args: ViewCommand) -> int:
