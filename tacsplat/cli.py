@@ -124,9 +124,9 @@ class CommandTree:
     def command(
         self, path: str, help: str, description: str | None = None, own_options: bool = False
     ) -> argparse.ArgumentParser:
-        """A subcommand at ``path``, its argparse parser returned (:meth:`typed` adds one; only demo adds options
-        to the parser);
-        ``own_options``: the command parses what follows it itself (``args.rest``; -v, -q and --log-level aside)."""
+        """A subcommand at ``path``; returns its argparse parser, to which only ``demo`` still adds options (every
+        other command is :meth:`typed`). ``own_options``: the command parses what follows it itself (``args.rest``;
+        -v, -q and --log-level aside)."""
         parent, _, name = path.strip().rpartition(" ")
         parser = self._group(parent).add_parser(
             name,
