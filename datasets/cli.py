@@ -5,22 +5,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Literal
 
 import tyro
 
 from tacsplat.errors import ConfigError, UsageError
 
-SRC = tyro.conf.arg(metavar="SRC")
-
 
 @dataclass
 class ImportBlender:
-    """Convert SRC (transforms_train.json, transforms_val.json, transforms_test.json and their RGBA images) into a
+    """import a Blender/NeRF-synthetic dataset (NeRF synthetic, Shiny Blender) into a scene directory
+
+    Convert SRC (transforms_train.json, transforms_val.json, transforms_test.json and their RGBA images) into a
     scene directory: images composited onto the background colour, OpenGL poses converted to the scene format, the
     train split from transforms_train.json and the test split from the file chosen by --test-split."""
 
-    src: Annotated[tyro.conf.Positional[Path], SRC]
+    src: tyro.conf.Positional[Path]
     """dataset folder holding transforms_train.json"""
     out: Path
     """new scene directory (must not exist or be empty)"""
@@ -34,11 +34,13 @@ class ImportBlender:
 
 @dataclass
 class ImportColmap:
-    """Convert the COLMAP sparse model SRC (a folder with cameras/images/points3D .txt or .bin, such as sparse/0)
+    """import a COLMAP sparse model (text or binary) and its undistorted images into a scene directory
+
+    Convert the COLMAP sparse model SRC (a folder with cameras/images/points3D .txt or .bin, such as sparse/0)
     into a scene directory. Cameras must be PINHOLE or SIMPLE_PINHOLE (or SIMPLE_RADIAL, RADIAL, OPENCV with zero
     distortion): run `colmap image_undistorter` first otherwise."""
 
-    src: Annotated[tyro.conf.Positional[Path], SRC]
+    src: tyro.conf.Positional[Path]
     """COLMAP sparse model folder"""
     images: Path
     """folder the model's image names are relative to"""
@@ -54,13 +56,15 @@ class ImportColmap:
 
 @dataclass
 class ImportNerfstudio:
-    """Convert SRC (a folder holding transforms.json as ns-process-data or instant-ngp write it, or the file itself)
+    """import a nerfstudio or instant-ngp dataset (transforms.json and its images) into a scene directory
+
+    Convert SRC (a folder holding transforms.json as ns-process-data or instant-ngp write it, or the file itself)
     into a scene directory: distorted images (OPENCV k1 k2 k3 p1 p2) undistorted onto a pinhole camera, poses
     mapped back through applied_transform to the original world, masks (mask_path) kept, the splits from
     train_filenames/test_filenames (val_filenames when there is no test list) or every N-th frame. Depth maps and
     point clouds are not imported."""
 
-    src: Annotated[tyro.conf.Positional[Path], SRC]
+    src: tyro.conf.Positional[Path]
     """dataset folder holding transforms.json, or the transforms.json file"""
     out: Path
     """new scene directory (must not exist or be empty)"""
@@ -77,10 +81,12 @@ class ImportNerfstudio:
 
 @dataclass
 class Inspect:
-    """Validate a scene directory and print frames per split, touches per grasp and finger, the sensor, the bounds
+    """summarise a scene directory and list every problem in it
+
+    Validate a scene directory and print frames per split, touches per grasp and finger, the sensor, the bounds
     and every problem found. Exits with 1 when there are problems."""
 
-    dir: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="DIR")]
+    dir: tyro.conf.Positional[Path]
     """scene directory"""
     json: bool = False
     """print one JSON object (frames {split: count}, touches, grasps, problems [...], ...)"""
@@ -90,25 +96,10 @@ class Inspect:
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    cli.typed(
-        "import blender",
-        ImportBlender,
-        _import_blender,
-        help="import a Blender/NeRF-synthetic dataset (NeRF synthetic, Shiny Blender) into a scene directory",
-    )
-    cli.typed(
-        "import colmap",
-        ImportColmap,
-        _import_colmap,
-        help="import a COLMAP sparse model (text or binary) and its undistorted images into a scene directory",
-    )
-    cli.typed(
-        "import nerfstudio",
-        ImportNerfstudio,
-        _import_nerfstudio,
-        help="import a nerfstudio or instant-ngp dataset (transforms.json and its images) into a scene directory",
-    )
-    cli.typed("inspect", Inspect, _inspect, help="summarise a scene directory and list every problem in it")
+    cli.typed("import blender", ImportBlender, _import_blender)
+    cli.typed("import colmap", ImportColmap, _import_colmap)
+    cli.typed("import nerfstudio", ImportNerfstudio, _import_nerfstudio)
+    cli.typed("inspect", Inspect, _inspect)
 
 
 def _importing(run, out: Path) -> int:

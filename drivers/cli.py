@@ -1,110 +1,124 @@
-"""`tacsplat calibrate camera`, `tacsplat calibrate tactile` and `tacsplat tactile depth` (see tacsplat.cli)."""
+"""`tacsplat calibrate camera`, `tacsplat calibrate tactile` and `tacsplat tactile depth` (see tacsplat.cli); their
+options are the dataclasses below (tacsplat.options)."""
 
 from __future__ import annotations
 
-import argparse
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+from tacsplat.errors import UsageError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 CHARUCO_DEFAULTS = {"squares_x": 7, "squares_y": 5, "square_mm": 30.0, "marker_mm": 22.0, "dictionary": "DICT_5X5_100"}
 
 
+@dataclass
+class CalibrateCamera:
+    """intrinsic calibration of the wrist camera from photos of a ChArUco board or a chessboard
+
+    Finds the board's corners (sub-pixel) in every photo, runs cv2.calibrateCameraExtended, prints the RMS
+    reprojection error, the intrinsics and their standard deviations. Refuses, naming the photos and what to add, a
+    set that cannot determine the intrinsics (fewer than 3 distinct board poses, a repeated photo counting once, or
+    the board in fewer than 3 orientations 10 degrees apart: a board facing the camera, or boards parallel to each
+    other, leave the focal length unobservable) and a result that is no camera (a field of view outside 2-170
+    degrees, a standard deviation of zero, distortion that folds the image where corners were seen). Warns, naming
+    what to add, when the focal length is poorly constrained (standard deviation above 1%), parts of the image saw
+    no corner, the lens model fails in the image corners beyond the corners seen, or photos repeat a pose. Writes
+    the calibration (OpenCV K with pixel centres at integers, distortion, K_std_px, warnings) as JSON, a picture of
+    the detected and reprojected corners (.png) and one of the corner coverage (_coverage.png) next to it."""
+
+    photos: Annotated[
+        tyro.conf.Positional[tuple[Path, ...]], tyro.conf.arg(metavar="PHOTOS", help_behavior_hint="(required)")
+    ]
+    """board photos (png, jpg, ...) or folders of them"""
+    out: Path
+    """calibration file to write (.json)"""
+    board: Literal["charuco", "chessboard"] = "charuco"
+    """the printed board"""
+    inner_corners: Annotated[str | None, tyro.conf.arg(metavar="XxY")] = None
+    """chessboard: inner corners (where four squares meet) along x and y, e.g. 9x6"""
+    square_mm: float | None = None
+    """square side in millimetres (default 30 for a ChArUco board; needed for a chessboard)"""
+    squares_x: int | None = None
+    """ChArUco: squares along x (default 7)"""
+    squares_y: int | None = None
+    """ChArUco: squares along y (default 5)"""
+    marker_mm: float | None = None
+    """ChArUco: ArUco marker side, millimetres (default 22)"""
+    dictionary: str | None = None
+    """ChArUco: cv2.aruco predefined dictionary (default DICT_5X5_100)"""
+    legacy_pattern: bool = False
+    """ChArUco: board printed by OpenCV < 4.6"""
+    distortion: Literal["opencv5", "opencv4", "rational8"] = "opencv5"  # wrist_camera.DISTORTION_MODELS
+    """distortion model: opencv5 = k1 k2 p1 p2 k3 (all free), opencv4 = k3 held at zero, rational8 = k1..k6 p1 p2
+    (wide-angle lenses)"""
+
+
+@dataclass
+class CalibrateTactile:
+    """GelSight-style calibration of an optical tactile sensor from ball presses
+
+    FOLDER holds one image of the untouched gel named reference.* and images of presses of a ball of known radius
+    (any other names), taken in name order. Fits colour change -> surface gradient (a small MLP on colour change and
+    pixel position) on two thirds of the presses, checks it on every third press (a sphere fitted to the depth of
+    each held-out press, against the ball), prints the median and spread of the fitted radii, and refuses to write a
+    calibration whose fitted radii are far off. Writes the calibration (.npz) and a picture of the detected contact
+    circles over each press (.png) next to it."""
+
+    folder: tyro.conf.Positional[Path]
+    """folder with reference.* and ball-press images"""
+    out: Path
+    """calibration file to write (.npz)"""
+    ball_radius_mm: float
+    """radius of the pressed ball, mm"""
+    pixel_size_mm: float
+    """gel size of one image pixel, mm"""
+    labels: Path | None = None
+    """JSON of hand labels: {"presses": [{"file": ..., "contact_radius_px": ..., "center_xy_px": [x, y]}, ...]},
+    reported beside the fits"""
+    check_every: int = 3
+    """hold out every n-th press to check the fit"""
+    max_radius_error: float = 0.2
+    """refuse when the held-out presses' median fitted radius is off the ball's by more than this fraction"""
+
+
+@dataclass
+class TactileDepth:
+    """depth maps of tactile images with a calibration (checks a calibration on new presses)
+
+    For each IMAGE, writes OUT/<image stem>.npz with a float32 `depth` array (indentation in metres, 0 = no
+    contact, the image's size) and a picture of it, OUT/<image stem>.png. The sensor driver computes depth the same
+    way."""
+
+    images: Annotated[
+        tyro.conf.Positional[tuple[Path, ...]], tyro.conf.arg(metavar="IMAGE", help_behavior_hint="(required)")
+    ]
+    """tactile images"""
+    calibration: Path
+    """tactile calibration (.npz)"""
+    reference: Path
+    """image of the untouched gel"""
+    out: Path
+    """folder to write into"""
+    overwrite: bool = False
+    """replace results already in OUT"""
+
+
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    from tacsplat.drivers.wrist_camera import DISTORTION_MODELS
-
-    camera = cli.command(
-        "calibrate camera",
-        help="intrinsic calibration of the wrist camera from photos of a ChArUco board or a chessboard",
-        description="Finds the board's corners (sub-pixel) in every photo, runs cv2.calibrateCameraExtended, prints "
-        "the RMS reprojection error, the intrinsics and their standard deviations. Refuses, naming the photos and "
-        "what to add, a set that cannot determine the intrinsics (fewer than 3 distinct board poses, a repeated "
-        "photo counting once, or the board in fewer than 3 orientations 10 degrees apart: a board facing the "
-        "camera, or boards parallel to each other, leave the focal length unobservable) and a result that is no "
-        "camera (a field of view outside 2-170 degrees, a standard deviation of zero, distortion that folds the "
-        "image where corners were seen). Warns, naming what to add, when the focal length is poorly constrained "
-        "(standard deviation above 1%), parts of the image saw no corner, the lens model fails in the image "
-        "corners beyond the corners seen, or photos repeat a pose. Writes the calibration (OpenCV K with pixel centres at integers, distortion, K_std_px, warnings) "
-        "as JSON, a picture of the detected and reprojected corners (.png) and one of the corner coverage "
-        "(_coverage.png) next to it.",
-    )
-    camera.add_argument("photos", type=Path, nargs="+", help="board photos (png, jpg, ...) or folders of them")
-    camera.add_argument("--out", type=Path, required=True, help="calibration file to write (.json)")
-    camera.add_argument("--board", choices=("charuco", "chessboard"), default="charuco", help="the printed board")
-    camera.add_argument(
-        "--inner-corners",
-        type=_corner_counts,
-        metavar="XxY",
-        help="chessboard: inner corners (where four squares meet) along x and y, e.g. 9x6",
-    )
-    camera.add_argument(
-        "--square-mm",
-        type=float,
-        help="square side in millimetres (default 30 for a ChArUco board; needed for a chessboard)",
-    )
-    camera.add_argument("--squares-x", type=int, help="ChArUco: squares along x (default 7)")
-    camera.add_argument("--squares-y", type=int, help="ChArUco: squares along y (default 5)")
-    camera.add_argument("--marker-mm", type=float, help="ChArUco: ArUco marker side, millimetres (default 22)")
-    camera.add_argument("--dictionary", help="ChArUco: cv2.aruco predefined dictionary (default DICT_5X5_100)")
-    camera.add_argument("--legacy-pattern", action="store_true", help="ChArUco: board printed by OpenCV < 4.6")
-    camera.add_argument(
-        "--distortion",
-        choices=tuple(DISTORTION_MODELS),
-        default="opencv5",
-        help="distortion model: opencv5 = k1 k2 p1 p2 k3 (all free), opencv4 = k3 held at zero, "
-        "rational8 = k1..k6 p1 p2 (wide-angle lenses)",
-    )
-    camera.set_defaults(func=_calibrate_camera)
-
-    tactile = cli.command(
-        "calibrate tactile",
-        help="GelSight-style calibration of an optical tactile sensor from ball presses",
-        description="FOLDER holds one image of the untouched gel named reference.* and images of presses of a "
-        "ball of known radius (any other names), taken in name order. Fits colour change -> surface gradient "
-        "(a small MLP on colour change and pixel position) on two thirds of the presses, checks it on every third "
-        "press (a sphere fitted to the depth of each held-out press, against the ball), prints the median and "
-        "spread of the fitted radii, and refuses to write a calibration whose fitted radii are far off. Writes the "
-        "calibration (.npz) and a picture of the detected contact circles over each press (.png) next to it.",
-    )
-    tactile.add_argument("folder", type=Path, help="folder with reference.* and ball-press images")
-    tactile.add_argument("--out", type=Path, required=True, help="calibration file to write (.npz)")
-    tactile.add_argument("--ball-radius-mm", type=float, required=True, help="radius of the pressed ball, mm")
-    tactile.add_argument("--pixel-size-mm", type=float, required=True, help="gel size of one image pixel, mm")
-    tactile.add_argument(
-        "--labels",
-        type=Path,
-        help='JSON of hand labels: {"presses": [{"file": ..., '
-        '"contact_radius_px": ..., "center_xy_px": [x, y]}, ...]}, reported beside the fits',
-    )
-    tactile.add_argument("--check-every", type=int, default=3, help="hold out every n-th press to check the fit")
-    tactile.add_argument(
-        "--max-radius-error",
-        type=float,
-        default=0.2,
-        help="refuse when the held-out presses' median fitted radius is off the ball's by more than this fraction",
-    )
-    tactile.set_defaults(func=_calibrate_tactile)
-
-    depth = cli.command(
-        "tactile depth",
-        help="depth maps of tactile images with a calibration (checks a calibration on new presses)",
-        description="For each IMAGE, writes OUT/<image stem>.npz with a float32 `depth` array (indentation in "
-        "metres, 0 = no contact, the image's size) and a picture of it, OUT/<image stem>.png. The sensor "
-        "driver computes depth the same way.",
-    )
-    depth.add_argument("images", type=Path, nargs="+", metavar="IMAGE", help="tactile images")
-    depth.add_argument("--calibration", type=Path, required=True, help="tactile calibration (.npz)")
-    depth.add_argument("--reference", type=Path, required=True, help="image of the untouched gel")
-    depth.add_argument("--out", type=Path, required=True, help="folder to write into")
-    depth.add_argument("--overwrite", action="store_true", help="replace results already in OUT")
-    depth.set_defaults(func=_tactile_depth)
+    cli.typed("calibrate camera", CalibrateCamera, _calibrate_camera)
+    cli.typed("calibrate tactile", CalibrateTactile, _calibrate_tactile)
+    cli.typed("tactile depth", TactileDepth, _tactile_depth)
 
 
 def _corner_counts(text: str) -> tuple[int, int]:
     try:
         x, y = (int(n) for n in text.lower().split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected XxY (e.g. 9x6), got {text!r}") from None
+        raise UsageError("--inner-corners", f"expected XxY (e.g. 9x6), got {text!r}") from None
     return x, y
 
 
@@ -166,10 +180,11 @@ def _write_image(path: Path, bgr) -> Path:
     return atomic_write(path, encoded.tobytes())
 
 
-def _board_spec(args):
+def _board_spec(args: CalibrateCamera):
     from tacsplat.drivers.wrist_camera import MAX_SQUARE_LENGTH_M, CharucoBoardSpec, ChessboardSpec
     from tacsplat.errors import ConfigError
 
+    inner_corners = None if args.inner_corners is None else _corner_counts(args.inner_corners)
     charuco_only = {
         "--squares-x": args.squares_x,
         "--squares-y": args.squares_y,
@@ -181,14 +196,14 @@ def _board_spec(args):
         given = [option for option, value in charuco_only.items() if value is not None]
         if given:
             raise ConfigError(given[0], "is a ChArUco option; a chessboard takes --inner-corners and --square-mm")
-        if args.inner_corners is None:
+        if inner_corners is None:
             raise ConfigError(
                 "--inner-corners",
                 "needed with --board chessboard: the inner corners (where four squares meet) along x and y, e.g. 9x6",
             )
         if args.square_mm is None:
             raise ConfigError("--square-mm", "needed with --board chessboard: the printed square side, mm")
-        spec = ChessboardSpec(*args.inner_corners, args.square_mm / 1000.0)
+        spec = ChessboardSpec(*inner_corners, args.square_mm / 1000.0)
         fields = {
             "inner_corners_x": "--inner-corners",
             "inner_corners_y": "--inner-corners",
@@ -231,7 +246,7 @@ def _board_spec(args):
     return spec
 
 
-def _calibrate_camera(args) -> int:
+def _calibrate_camera(args: CalibrateCamera) -> int:
     import numpy as np
 
     from tacsplat.drivers.wrist_camera import (
@@ -242,6 +257,8 @@ def _calibrate_camera(args) -> int:
     )
     from tacsplat.errors import CameraError
 
+    if not args.photos:
+        raise UsageError("PHOTOS", "required (board photos or folders of them)")
     spec = _board_spec(args)
     _check_output_file(args.out, ".json")
     paths = _images(args.photos)
@@ -427,7 +444,7 @@ def _press_sheet(images, names, calib, labels, path: Path) -> Path:
     return _write_image(path, _contact_sheet(tiles))
 
 
-def _calibrate_tactile(args) -> int:
+def _calibrate_tactile(args: CalibrateTactile) -> int:
     from tacsplat.drivers.optical_tactile import calibrate_tactile, check_problem
     from tacsplat.errors import ConfigError, InvalidInputError, TactileError
 
@@ -512,7 +529,7 @@ def _calibrate_tactile(args) -> int:
     return 0
 
 
-def _tactile_depth(args) -> int:
+def _tactile_depth(args: TactileDepth) -> int:
     import cv2
     import numpy as np
 
@@ -521,6 +538,8 @@ def _tactile_depth(args) -> int:
     from tacsplat.errors import ConfigError, InvalidInputError
     from tacsplat.files import atomic_write
 
+    if not args.images:
+        raise UsageError("IMAGE", "required (tactile images)")
     calib = TactileCalibration.load(args.calibration)
     height, width = calib.image_size
     reference = _read_rgb(args.reference)

@@ -1,12 +1,33 @@
 """`tacsplat reconstruct` and `tacsplat evaluate` (see tacsplat.cli); reconstruct parses its own options
-(:mod:`.command`)."""
+(:mod:`.command`), evaluate's are :class:`Evaluate`."""
 
 from __future__ import annotations
 
 import json
 import shlex
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
+
+
+@dataclass
+class Evaluate:
+    """evaluate a reconstruction run: PSNR, SSIM, Chamfer distance, renders
+
+    Evaluates the run's last checkpoint on its scene and writes RUN/metrics.json and RUN/renders/."""
+
+    run: tyro.conf.Positional[Path]
+    """run directory written by `tacsplat reconstruct`"""
+    gt_mesh: Annotated[Path | None, tyro.conf.arg(metavar="PATH")] = None
+    """ground-truth mesh or point cloud (for imported scenes without gt/)"""
+    backend: Annotated[
+        Literal["auto", "torch", "cpu", "gsplat"] | None,
+        tyro.conf.arg(metavar="{auto,torch,cpu,gsplat}", help_behavior_hint="(default: the run's)"),
+    ] = None
+    """rasterization backend"""
 
 
 def register(cli) -> None:
@@ -15,21 +36,7 @@ def register(cli) -> None:
         "reconstruct", help="tactile-informed 3DGS: train on a scene directory and evaluate", own_options=True
     ).set_defaults(func=_reconstruct)
 
-    e = cli.command("evaluate", help="evaluate a reconstruction run: PSNR, SSIM, Chamfer distance, renders")
-    e.add_argument("run", help="run directory written by `tacsplat reconstruct`")
-    e.add_argument(
-        "--gt-mesh",
-        default=None,
-        metavar="PATH",
-        help="ground-truth mesh or point cloud (for imported scenes without gt/)",
-    )
-    e.add_argument(
-        "--backend",
-        default=None,
-        choices=("auto", "torch", "cpu", "gsplat"),
-        help="rasterization backend (default: the run's)",
-    )
-    e.set_defaults(func=_evaluate)
+    cli.typed("evaluate", Evaluate, _evaluate)
 
 
 def _reconstruct(args) -> int:
@@ -75,13 +82,13 @@ def _reconstruct(args) -> int:
     return 0
 
 
-def _evaluate(args) -> int:
+def _evaluate(args: Evaluate) -> int:
     from tacsplat.datasets.outputs import claim_output_dir
     from tacsplat.files import check_writable
     from tacsplat.reconstruction.evaluation import evaluate_run
     from tacsplat.reconstruction.run_dir import is_run_folder, run_checkpoint
 
-    if not is_run_folder(Path(args.run)):
+    if not is_run_folder(args.run):
         run_checkpoint(args.run)  # refused before anything is written into what is not a run
     check_writable(args.run)  # a read-only or full run folder: one error saying which, before the evaluation
     with claim_output_dir(args.run, "RUN"):

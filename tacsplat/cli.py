@@ -2,18 +2,18 @@
 
 Subcommands are registered per package: each module in ``COMMAND_MODULES``
 defines ``register(cli: CommandTree)`` and adds its commands with
-``cli.command("bench rasterizer", help=..., description=..., build=...)``,
-which returns an ``argparse.ArgumentParser`` to add arguments to and to
-``set_defaults(func=handler)`` on. A command whose options are expensive to
-make (generated from a config that imports torch) passes ``build(parser)``,
-which runs only when that command is on the command line, so ``tacsplat
---help`` imports no torch, numba or MuJoCo. A handler takes the parsed
-namespace and returns an exit code (or None for 0).
+``cli.typed("bench rasterizer", Options, run)``: ``Options`` is a dataclass
+whose fields are the command's options (parsed by tyro, help from the fields'
+docstrings: :mod:`tacsplat.options`; its docstring's first paragraph is the
+command's line in ``tacsplat --help``) and ``run(options)`` returns an exit
+code (or None for 0). A module imports what is expensive (torch,
+numba, MuJoCo) inside ``run``, so that ``tacsplat --help`` imports none.
 
 Exit codes: 0 success, 1 a runtime error (one ``error:`` line), 2 a usage
-error (argparse's, or an option value out of its range: :class:`UsageError`),
-130 Ctrl-C (143 SIGTERM where a command checkpoints on it). ``-v``, ``-q`` and
-``--log-level`` are accepted before or after the subcommand.
+error (one line naming the option: a bad or missing value, or one out of its
+range: :class:`UsageError`), 130 Ctrl-C (143 SIGTERM where a command
+checkpoints on it). ``-v``, ``-q`` and ``--log-level`` are accepted before or
+after the subcommand.
 """
 
 from __future__ import annotations
@@ -108,7 +108,6 @@ class CommandTree:
         self._common = common
         self._subparsers = {"": parser.add_subparsers(dest="command", metavar="COMMAND")}
         self._parsers: dict[str, argparse.ArgumentParser] = {"": parser}
-        self._builders: dict[str, object] = {}
         self.own_options: set[str] = set()  # the commands that parse their own options
 
     def _group(self, path: str) -> argparse._SubParsersAction:
@@ -123,10 +122,11 @@ class CommandTree:
         return self._subparsers[path]
 
     def command(
-        self, path: str, help: str, description: str | None = None, build=None, own_options: bool = False
+        self, path: str, help: str, description: str | None = None, own_options: bool = False
     ) -> argparse.ArgumentParser:
-        """A subcommand at ``path``; ``build(parser)``, if given, adds its options once the command is chosen.
-        ``own_options``: the command parses what follows it itself (``args.rest``; -v, -q and --log-level aside)."""
+        """A subcommand at ``path``; returns its argparse parser, to which only ``demo`` still adds options (every
+        other command is :meth:`typed`). ``own_options``: the command parses what follows it itself (``args.rest``;
+        -v, -q and --log-level aside)."""
         parent, _, name = path.strip().rpartition(" ")
         parser = self._group(parent).add_parser(
             name,
@@ -139,33 +139,24 @@ class CommandTree:
         self._parsers[path] = parser
         if own_options:
             self.own_options.add(path)
-        if build is not None:
-            self._builders[path] = (build, parser)
         return parser
 
-    def typed(self, path: str, options: type, run, help: str) -> None:
+    def typed(self, path: str, options: type, run, help: str | None = None) -> None:
         """A command whose options are the dataclass ``options`` (parsed by tyro: :mod:`tacsplat.options`; its
-        docstring is the description): ``run(values)`` runs it, once a field ``out`` is known to be writable."""
+        docstring is the description, and its first paragraph the command list's line unless ``help`` is given):
+        ``run(values)`` runs it, once its fields ``out`` and ``json`` (what it writes) are known to be writable."""
 
         def func(args) -> int:
             from tacsplat.files import refuse_unwritable
             from tacsplat.options import parse_options
 
             values = parse_options(options, args.rest, f"tacsplat {path}")
-            refuse_unwritable("--out", getattr(values, "out", None))
+            for option in ("out", "json"):
+                refuse_unwritable(f"--{option}", getattr(values, option, None))
             return run(values)
 
-        self.command(path, help=help, own_options=True).set_defaults(func=func)
-
-    def build(self, path: str | None = None) -> None:
-        """Run the deferred builders: of the command at ``path`` (and no other), or of every command."""
-        for key in [k for k in self._builders if path is None or k == path]:
-            build, parser = self._builders.pop(key)
-            build(parser)
-
-    def chosen(self, argv: list[str]) -> str:
-        """The command path named on a command line (``""`` if none): its leading words that name commands."""
-        return self._chosen(argv)[0]
+        summary = help or " ".join(options.__doc__.split("\n\n")[0].split())
+        self.command(path, help=summary, own_options=True).set_defaults(func=func)
 
     def _chosen(self, argv: list[str]) -> tuple[str, int]:
         """``(path, index after its last word in argv)``."""
@@ -191,8 +182,8 @@ class CommandTree:
         return argv[:end] + given, rest
 
 
-def build_parser(argv: list[str] | None = None, complete: bool = False) -> argparse.ArgumentParser:
-    """The whole parser (every deferred option built when ``argv`` is None), or only what ``argv`` needs."""
+def build_parser(complete: bool = False) -> argparse.ArgumentParser:
+    """The parser of the command tree (``complete``: with --print-completion)."""
     common = _common_options()
     parser = argparse.ArgumentParser(
         prog="tacsplat",
@@ -204,7 +195,6 @@ def build_parser(argv: list[str] | None = None, complete: bool = False) -> argpa
     tree = CommandTree(parser, common)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(tree)
-    tree.build(None if argv is None else tree.chosen(argv))
     parser.tree = tree
     if complete:
         import shtab
@@ -228,7 +218,7 @@ def _configure_logging(args: argparse.Namespace) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = build_parser(argv, complete="--print-completion" in argv)
+    parser = build_parser(complete="--print-completion" in argv)
     head, rest = parser.tree.split_own_options(argv)
     args = parser.parse_args(head)
     args.rest = rest

@@ -18,13 +18,14 @@ _RULE = re.compile(r"^[\s\u2500-\u257f|+-]*$")  # a line of box drawing (rich's,
 
 def parse_options(cls: type[T], argv: list[str], prog: str, default: T | None = None, compact: bool = False) -> T:
     """The ``cls`` instance of ``argv`` (over ``default``'s values when given); ``compact``: --help lists the
-    options without their descriptions, which -H adds."""
+    options without their descriptions, which -H adds. A positional's metavar is its field's name (``RUN``)."""
     import tyro
 
+    names = tyro.conf.PositionalMetavarFromFieldName
     shown, errors = io.StringIO(), io.StringIO()
     try:
         with contextlib.redirect_stdout(shown), contextlib.redirect_stderr(errors):
-            return tyro.cli(cls, args=argv, default=default, prog=prog, compact_help=compact)
+            return tyro.cli(cls, args=argv, default=default, prog=prog, compact_help=compact, config=(names,))
     except SystemExit as stop:
         if stop.code == 0:  # --help
             print(shown.getvalue(), end="")
@@ -58,7 +59,9 @@ def tyro_error(text: str, prog: str) -> tuple[str, str]:
     key = option.group(0) if option else "options"
     if title == "Unrecognized options":
         return key, f"not an option of {prog}"
-    return key, re.sub(rf"^Error parsing {re.escape(key)}: ", "", message)
+    message = re.sub(rf"^Error parsing {re.escape(key)}: ", "", message)
+    optional = re.fullmatch(r"no type matching \{None\}\|(\S+) could be instantiated from \[(.*)\]\.?", message)
+    return key, f"expected {optional[1]} (or None), got {optional[2]}" if optional else message
 
 
 def comma_separated_ints(text: str, option: str) -> tuple[int, ...]:

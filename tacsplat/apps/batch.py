@@ -36,8 +36,11 @@ import shutil
 import time
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
+import tyro
+
+from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
@@ -325,7 +328,7 @@ class EvaluateJob(BatchJob):
 @functools.cache
 def _job_adapter():
     """pydantic's validator of one job of a batch file, picked by its ``kind`` (unknown keys refused)."""
-    from typing import Annotated, Union
+    from typing import Union
 
     from pydantic import Field, TypeAdapter
 
@@ -545,28 +548,30 @@ def _fmt(value, decimals: int) -> str:
 # ---------------------------------------------------------------------- command line
 
 
+@dataclass
+class BatchCommand:
+    """run a list of captures, reconstructions and evaluations, here or on a Ray cluster
+
+    Runs the jobs of JOBS.yaml (kind: capture | reconstruct | evaluate; see `tacsplat.apps.batch`), skipping those
+    whose output is complete; writes DIR/results.csv and, if jobs fail, DIR/failures.csv. Rerun the same command to
+    retry what failed or never ran."""
+
+    jobs: tyro.conf.Positional[Path]
+    """the batch file (YAML: jobs: [...])"""
+    out: Path
+    """folder the jobs' relative paths are in (on a cluster: shared storage)"""
+    executors: Executors = field(default_factory=ExecutorOptions)
+
+
 def register(cli) -> None:
-    from tacsplat.apps.executors import add_executor_options
-
-    p = cli.command(
-        "batch",
-        help="run a list of captures, reconstructions and evaluations, here or on a Ray cluster",
-        description="Runs the jobs of JOBS.yaml (kind: capture | reconstruct | evaluate; see `tacsplat.apps.batch`), "
-        "skipping those whose output is complete; writes DIR/results.csv and, if jobs fail, DIR/failures.csv. "
-        "Rerun the same command to retry what failed or never ran.",
-    )
-    p.add_argument("jobs", help="the batch file (YAML: jobs: [...])")
-    p.add_argument("--out", required=True, help="folder the jobs' relative paths are in (on a cluster: shared storage)")
-    add_executor_options(p)
-    p.set_defaults(func=_run)
+    cli.typed("batch", BatchCommand, _run)
 
 
-def _run(args) -> int:
-    from tacsplat.apps.executors import executor_options
+def _run(args: BatchCommand) -> int:
     from tacsplat.datasets.outputs import claim_output_dir
 
-    executor = executor_options(args)
-    out = Path(args.out)
+    executor = args.executors.run_jobs_args()
+    out = args.out
     jobs = load_batch(args.jobs, out)
     started = time.perf_counter()
     with claim_output_dir(out, "--out"):

@@ -1,17 +1,16 @@
 """`tacsplat bench compare A.json B.json`: two benchmark results side by side (before / after).
 
-Reads any JSON that the benchmarks write (``bench rasterizer --json``, ``bench
-step``'s ``step.json``, ...) and prints every number found in either file
-under the same path, A, B and the ratio B / A. Rows of a list are matched by
-their label (``WxH:N`` for the rasterizer's sizes, ``128px`` for the step
-profile's resolutions), not by their position; per-step records are skipped.
+Its options and what it does: :class:`BenchCompare`.
 """
 
 from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from pathlib import Path
+
+import tyro
 
 from tacsplat.errors import InvalidInputError
 
@@ -83,20 +82,29 @@ def format_comparison(rows, name_a: str, name_b: str) -> str:
     return "\n".join(lines)
 
 
+@dataclass
+class BenchCompare:
+    """two benchmark JSON files side by side (A before, B after) with ratios
+
+    Reads any JSON that the benchmarks write ('bench rasterizer --json', 'bench step''s 'step.json', ...) and
+    prints every number found in either file under the same path, A, B and the ratio B / A. Rows of a list are
+    matched by their label ('WxH:N' for the rasterizer's sizes, '128px' for the step profile's resolutions), not
+    by their position; per-step records are skipped."""
+
+    a: tyro.conf.Positional[Path]
+    """benchmark JSON (before)"""
+    b: tyro.conf.Positional[Path]
+    """benchmark JSON (after)"""
+    match: str | None = None
+    """only the values whose path contains this text, e.g. _ms"""
+
+
 def register(cli) -> None:
     """Add `tacsplat bench compare`."""
-    p = cli.command(
-        "bench compare",
-        help="two benchmark JSON files side by side (A before, B after) with ratios",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
-    )
-    p.add_argument("a", help="benchmark JSON (before)")
-    p.add_argument("b", help="benchmark JSON (after)")
-    p.add_argument("--match", default=None, help="only the values whose path contains this text, e.g. _ms")
-    p.set_defaults(func=_handler)
+    cli.typed("bench compare", BenchCompare, _handler)
 
 
-def _handler(args) -> int:
+def _handler(args: BenchCompare) -> int:
     rows = compare(read_results(args.a), read_results(args.b), args.match)
-    print(format_comparison(rows, Path(args.a).name, Path(args.b).name))
+    print(format_comparison(rows, args.a.name, args.b.name))
     return 0

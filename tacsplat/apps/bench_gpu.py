@@ -1,59 +1,75 @@
 """`tacsplat bench gpu` (what `make gpu-check` runs on a CUDA machine): the trainer on CUDA at the paper's scale,
 measured in minutes.
 
-One twin capture (default: the teapot, 100 train views at 800x800 px, 24 test views, 5 grasps). The default and
-the paper's method each train the first ``--steps`` steps of the paper's 30k-step schedule
-(reconstruction/paper_schedule.yaml) after a short warm-up run that builds gsplat's kernels: seconds per 1000
-steps, peak GPU memory, and 30k steps at that rate (a lower bound: the Gaussians multiply until densification
-stops at step 15k). With ``--parity DIR``, written beforehand on a CPU machine by ``--prepare DIR``, DIR's small
-scene trains on this device with the seeds and steps of DIR's CPU runs: CD and PSNR beside the CPU's mean and
-spread. Only ``gpu.json`` and ``gpu.md`` go to ``--out``; the capture and the runs go to ``--work``. Without CUDA
-it says so in one line and measures nothing.
+Its options and what it does: :class:`BenchGpu`.
 """
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import math
 import statistics
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated, Literal
+
+import tyro
 
 PARITY_FILE = "cpu.json"  # in a --prepare folder, beside its scene/
 
 
+@dataclass
+class BenchGpu:
+    """train on CUDA at the paper's scale: seconds per 1k steps, peak GPU memory, CPU/CUDA parity
+
+    One twin capture (default: the teapot, 100 train views at 800x800 px, 24 test views, 5 grasps). The
+    default and the paper's method each train the first '--steps' steps of the paper's 30k-step schedule
+    (reconstruction/paper_schedule.yaml) after a short warm-up run that builds gsplat's kernels: seconds per
+    1000 steps, peak GPU memory, and 30k steps at that rate (a lower bound: the Gaussians multiply until
+    densification stops at step 15k). With '--parity DIR', written beforehand on a CPU machine by '--prepare
+    DIR', DIR's small scene trains on this device with the seeds and steps of DIR's CPU runs: CD and PSNR beside
+    the CPU's mean and spread. Only 'gpu.json' and 'gpu.md' go to '--out'; the capture and the runs go to
+    '--work'. Without CUDA it says so in one line and measures nothing."""
+
+    out: Path = Path("bench-output/gpu")
+    """folder of gpu.json and gpu.md"""
+    work: Path | None = None
+    """folder of the capture and the runs (default: --out/work)"""
+    object: str = "teapot"
+    """library object to capture"""
+    resolution: int = 800
+    """image size of the capture (px)"""
+    views: int = 100
+    """train views of the capture"""
+    test_views: int = 24
+    """held-out test views of the capture"""
+    grasps: int = 5
+    """grasps of 4 touches"""
+    steps: int = 1000
+    """steps of the paper's schedule each method trains"""
+    methods: str = "default,paper"
+    """comma-separated methods (or bench paper rows)"""
+    parity: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None
+    """a folder written by --prepare: its scene on CUDA"""
+    prepare: Annotated[Path | None, tyro.conf.arg(metavar="DIR")] = None
+    """on this machine's CPU, write DIR: a 128 px twin scene and its runs (--parity-steps, --parity-seeds)"""
+    parity_steps: int = 1500
+    """steps of each parity run"""
+    parity_seeds: str = "0,1,2"
+    """comma-separated seeds of the parity runs"""
+    parity_resolution: int = 128
+    """image size of the parity scene (px)"""
+    device: Literal["cuda", "cpu"] = "cuda"
+    """cpu: the whole device path on this machine's CPU (what the tests run)"""
+
+
 def register(cli) -> None:
-    p = cli.command(
-        "bench gpu",
-        help="train on CUDA at the paper's scale: seconds per 1k steps, peak GPU memory, CPU/CUDA parity",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
-    )
-    p.add_argument("--out", default="bench-output/gpu", help="folder of gpu.json and gpu.md")
-    p.add_argument("--work", default=None, help="folder of the capture and the runs (default: --out/work)")
-    p.add_argument("--object", default="teapot", help="library object to capture")
-    p.add_argument("--resolution", type=int, default=800, help="image size of the capture (px)")
-    p.add_argument("--views", type=int, default=100, help="train views of the capture")
-    p.add_argument("--test-views", type=int, default=24, help="held-out test views of the capture")
-    p.add_argument("--grasps", type=int, default=5, help="grasps of 4 touches")
-    p.add_argument("--steps", type=int, default=1000, help="steps of the paper's schedule each method trains")
-    p.add_argument("--methods", default="default,paper", help="comma-separated methods (or bench paper rows)")
-    p.add_argument("--parity", default=None, metavar="DIR", help="a folder written by --prepare: its scene on CUDA")
-    p.add_argument(
-        "--prepare",
-        default=None,
-        metavar="DIR",
-        help="on this machine's CPU, write DIR: a 128 px twin scene and its runs (--parity-steps, --parity-seeds)",
-    )
-    p.add_argument("--parity-steps", type=int, default=1500, help="steps of each parity run")
-    p.add_argument("--parity-seeds", default="0,1,2", help="comma-separated seeds of the parity runs")
-    p.add_argument("--parity-resolution", type=int, default=128, help="image size of the parity scene (px)")
-    p.add_argument("--device", default="cuda", choices=("cuda", "cpu"), help=argparse.SUPPRESS)  # cpu: the tests
-    p.set_defaults(func=_run)
+    cli.typed("bench gpu", BenchGpu, _run)
 
 
-def _run(args) -> int:
+def _run(args: BenchGpu) -> int:
     import torch
 
     from tacsplat.apps.paper_bench import bench_row
@@ -61,7 +77,7 @@ def _run(args) -> int:
 
     seeds = comma_separated_ints(args.parity_seeds, "--parity-seeds")
     if args.prepare is not None:
-        _prepare(Path(args.prepare), args, seeds)
+        _prepare(args.prepare, args, seeds)
         return 0
     if args.device == "cuda" and not torch.cuda.is_available():
         build = "a CPU-only build" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, no device visible"
@@ -71,9 +87,9 @@ def _run(args) -> int:
     for name in methods:
         bench_row(name, "--methods")
     source = source_hash()
-    parity = _read_parity(Path(args.parity), source) if args.parity else None
-    out = Path(args.out)
-    work = Path(args.work) if args.work else out / "work"
+    parity = _read_parity(args.parity, source) if args.parity else None
+    out = args.out
+    work = args.work or out / "work"
     started = time.perf_counter()
     scene = _capture(args, work / "scene", args.resolution, args.views, args.test_views)
     report = {
@@ -97,9 +113,7 @@ def _run(args) -> int:
             run = _attempt(
                 parity["method"],
                 seed,
-                lambda: _train(
-                    Path(args.parity) / "scene", folder, parity["method"], parity["steps"], seed, args.device
-                ),
+                lambda: _train(args.parity / "scene", folder, parity["method"], parity["steps"], seed, args.device),
             )
             report["parity"]["device_runs"].append(run)
             _write_report(out, report, started)

@@ -7,6 +7,11 @@ benchmark and by the rasterizer tests.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 
 def random_scene(
@@ -253,38 +258,40 @@ def format_table(results: dict) -> str:
     return "\n".join(lines)
 
 
-def _handler(args) -> int:
-    import json
-    from pathlib import Path
+@dataclass
+class BenchRasterizer:
+    """time the cpu rasterizer against the torch reference (forward, forward+backward, memory, compile)"""
 
-    sizes = args.sizes or list(DEFAULT_SIZES)
+    json: Path | None = None
+    """also write the results to this JSON file"""
+    sizes: Annotated[
+        tuple[str, ...] | None,
+        tyro.conf.arg(metavar="WxH:N", help_behavior_hint=f"(default: {' '.join(DEFAULT_SIZES)})"),
+    ] = None
+    """image sizes and Gaussian counts"""
+    repeats: int = 7
+    """timed runs of the cpu backend per size (median)"""
+    torch_repeats: int = 3
+    """timed runs of the torch reference per size"""
+    skip_torch: bool = False
+    """do not time the (slow) torch reference"""
+
+
+def _handler(args: BenchRasterizer) -> int:
+    import json
+
+    sizes = list(args.sizes or DEFAULT_SIZES)
     for text in sizes:
         parse_size(text)
     results = run_benchmark(sizes, args.repeats, args.torch_repeats, skip_torch=args.skip_torch)
     print(format_table(results))
     if args.json:
-        path = Path(args.json)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(results, indent=2))
-        print(f"wrote {path}")
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(results, indent=2))
+        print(f"wrote {args.json}")
     return 0
 
 
 def register(cli) -> None:
     """Add `tacsplat bench rasterizer`."""
-    parser = cli.command(
-        "bench rasterizer",
-        help="time the cpu rasterizer against the torch reference (forward, forward+backward, memory, compile)",
-    )
-    parser.add_argument("--json", default=None, help="also write the results to this JSON file")
-    parser.add_argument(
-        "--sizes",
-        nargs="+",
-        default=None,
-        metavar="WxH:N",
-        help=f"image sizes and Gaussian counts (default: {' '.join(DEFAULT_SIZES)})",
-    )
-    parser.add_argument("--repeats", type=int, default=7, help="timed runs of the cpu backend per size (median)")
-    parser.add_argument("--torch-repeats", type=int, default=3, help="timed runs of the torch reference per size")
-    parser.add_argument("--skip-torch", action="store_true", help="do not time the (slow) torch reference")
-    parser.set_defaults(func=_handler)
+    cli.typed("bench rasterizer", BenchRasterizer, _handler)

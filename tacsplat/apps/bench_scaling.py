@@ -1,16 +1,13 @@
 """`tacsplat bench scaling`: error against cost for the whole job, at several resolutions and step counts.
 
-One object in the minimal-views setting, reconstructed by the full method and by vanilla 3DGS at
-each resolution (default 128, 256 and 400 px) and step count (default 750 and 1500), each a
-`tacsplat bench paper` slice in its own folder (so it resumes the same way). Writes
-``scaling.csv``, ``report.md`` and ``scaling.png``: the paper's CD and PSNR against train
-seconds, one curve per resolution and method, a point per step count.
+Its options and what it does: :class:`BenchScaling`.
 """
 
 from __future__ import annotations
 
 import csv
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from tacsplat.options import comma_separated_ints
@@ -94,23 +91,34 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
     return out / "report.md"
 
 
+@dataclass
+class BenchScaling:
+    """error against cost: resolutions x step counts, the paper method and 3DGS, one object
+
+    One object in the minimal-views setting, reconstructed by the full method and by vanilla 3DGS at each
+    resolution (default 128, 256 and 400 px) and step count (default 750 and 1500), each a `tacsplat bench
+    paper` slice in its own folder (so it resumes the same way). Writes 'scaling.csv', 'report.md' and
+    'scaling.png': the paper's CD and PSNR against train seconds, one curve per resolution and method, a point
+    per step count."""
+
+    out: Path = Path("bench-output/scaling")
+    """output folder"""
+    object: str = "teapot"
+    """library object"""
+    resolutions: str = "128,256,400"
+    """comma-separated image sizes in pixels"""
+    steps: str = "750,1500"
+    """comma-separated step counts"""
+    seed: int = 0
+
+
 def register(cli) -> None:
-    p = cli.command(
-        "bench scaling",
-        help="error against cost: resolutions x step counts, the paper method and 3DGS, one object",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
-    )
-    p.add_argument("--out", default="bench-output/scaling", help="output folder")
-    p.add_argument("--object", default="teapot", help="library object")
-    p.add_argument("--resolutions", default="128,256,400", help="comma-separated image sizes in pixels")
-    p.add_argument("--steps", default="750,1500", help="comma-separated step counts")
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=_run)
+    cli.typed("bench scaling", BenchScaling, _run)
 
 
-def _run(args) -> int:
+def _run(args: BenchScaling) -> int:
     started = time.perf_counter()
-    out = Path(args.out)
+    out = args.out
     rows = run_scaling(
         out,
         args.object,

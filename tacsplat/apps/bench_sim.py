@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -203,17 +204,16 @@ def run_bench(out: str | Path, quick: bool = False) -> str:
     return report
 
 
+@dataclass
+class BenchSim:
+    """simulator error against run time: tactile depth vs ray-grid resolution, penetration vs timestep"""
+
+    out: Path = Path("bench-output/sim")
+    """folder for sim.json, sim.md and sim.png"""
+    quick: bool = False
+    """fewer resolutions and timesteps"""
+
+
 def register(cli) -> None:
     """Add ``tacsplat bench sim`` to the command tree."""
-    p = cli.command(
-        "bench sim",
-        help="simulator error against run time: tactile depth vs ray-grid resolution, penetration vs timestep",
-    )
-    p.add_argument("--out", default="bench-output/sim", help="folder for sim.json, sim.md and sim.png")
-    p.add_argument("--quick", action="store_true", help="fewer resolutions and timesteps")
-    p.set_defaults(func=_bench_sim)
-
-
-def _bench_sim(args) -> int:
-    print(run_bench(args.out, quick=args.quick))
-    return 0
+    cli.typed("bench sim", BenchSim, lambda args: print(run_bench(args.out, quick=args.quick)))

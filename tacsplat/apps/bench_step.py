@@ -1,16 +1,6 @@
 """`tacsplat bench step`: where the time of a training step goes, on the demo's scene.
 
-The demo's capture (one glossy object, 5 views, 5 grasps; made once per
-resolution and reused) is reconstructed by the trainer itself (``Trainer.run``,
-the demo's settings), while the functions a step calls are timed in place:
-projection and SH, binning and depth sort, compositing forward and backward,
-the deferred shading of the sh-lit appearance (forward and
-backward), SSIM (forward and backward), the other losses, the transmittance neighbour
-search, the optimiser and densification. Each phase is timed exclusively
-(a phase nested in another is not counted twice); ``autograd (other)`` is
-what ``loss.backward()`` spends outside the timed backward passes, ``rest``
-what a step spends outside every timed phase. Writes ``step.json`` (the
-compare command reads it), ``step.png`` (stacked bars) and prints a table.
+Its options and what it does: :class:`BenchStep`.
 """
 
 from __future__ import annotations
@@ -18,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import time
 from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 
 PHASES = (
@@ -375,35 +366,43 @@ def plot_phases(results_list: list[tuple[str, dict]], path: Path) -> Path:
     return save_figure(fig, path)
 
 
+@dataclass
+class BenchStep:
+    """profile of a training step on the demo scene: time per phase, table + PNG
+
+    The demo's capture (one glossy object, 5 views, 5 grasps; made once per resolution and reused) is
+    reconstructed by the trainer itself ('Trainer.run', the demo's settings), while the functions a step calls
+    are timed in place: projection and SH, binning and depth sort, compositing forward and backward, the
+    deferred shading of the sh-lit appearance (forward and backward), SSIM (forward and backward), the other
+    losses, the transmittance neighbour search, the optimiser and densification. Each phase is timed exclusively
+    (a phase nested in another is not counted twice); 'autograd (other)' is what 'loss.backward()' spends
+    outside the timed backward passes, 'rest' what a step spends outside every timed phase. Writes 'step.json'
+    (the compare command reads it), 'step.png' (stacked bars) and prints a table."""
+
+    out: Path = Path("bench-output/step")
+    """output folder (scenes are captured here once)"""
+    resolutions: str = "128,256"
+    """comma-separated image sizes in pixels"""
+    iterations: int = 1200
+    """training steps per resolution (the demo's 1200)"""
+    method: str = "paper"
+    """a method (3dgs, 3dgs+s, 3dgs+t, paper, default) or a row of `bench paper`'s ablations.yaml"""
+    reference: str | None = None
+    """also profile this method next to it, and print the ratios"""
+    rounds: int = 1
+    """with --reference: profile the pair this many times, the reference first, then second, ... (ratios: medians
+    over the rounds)"""
+    object: str = "teapot"
+    """library object"""
+    seed: int = 0
+
+
 def register(cli) -> None:
     """Add `tacsplat bench step`."""
-    p = cli.command(
-        "bench step",
-        help="profile of a training step on the demo scene: time per phase, table + PNG",
-        description=__doc__.split("\n\n", 1)[1].replace("``", "'"),
-    )
-    p.add_argument("--out", default="bench-output/step", help="output folder (scenes are captured here once)")
-    p.add_argument("--resolutions", default="128,256", help="comma-separated image sizes in pixels")
-    p.add_argument("--iterations", type=int, default=1200, help="training steps per resolution (the demo's 1200)")
-    p.add_argument(
-        "--method",
-        default="paper",
-        help="a method (3dgs, 3dgs+s, 3dgs+t, paper, default) or a row of `bench paper`'s ablations.yaml",
-    )
-    p.add_argument("--reference", default=None, help="also profile this method next to it, and print the ratios")
-    p.add_argument(
-        "--rounds",
-        type=int,
-        default=1,
-        help="with --reference: profile the pair this many times, "
-        "the reference first, then second, ... (ratios: medians over the rounds)",
-    )
-    p.add_argument("--object", default="teapot", help="library object")
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=_handler)
+    cli.typed("bench step", BenchStep, _handler)
 
 
-def _handler(args) -> int:
+def _handler(args: BenchStep) -> int:
     import json
 
     from tacsplat.apps.paper_bench import bench_row
@@ -420,7 +419,7 @@ def _handler(args) -> int:
         bench_row(args.reference, "--reference")
     if args.rounds < 1 or (args.rounds > 1 and args.reference is None):
         raise UsageError("--rounds", f"needs --reference and a count of at least 1, got {args.rounds}")
-    out = Path(args.out)
+    out = args.out
     results = run_profile(
         out, resolutions, args.iterations, args.method, args.object, args.seed, args.reference, args.rounds
     )

@@ -46,9 +46,11 @@ import signal
 import socket
 from collections import Counter
 from concurrent import futures
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Protocol, Sequence
+from typing import Annotated, Callable, Literal, Protocol, Sequence, get_args
+
+import tyro
 
 from tacsplat.errors import ConfigError, TacsplatError, UsageError
 from tacsplat.interrupts import ctrl_c_interrupts
@@ -56,7 +58,8 @@ from tacsplat.progress import progress_bar
 
 log = logging.getLogger(__name__)
 
-EXECUTORS = ("auto", "local", "processes", "ray")
+Executor = Literal["auto", "local", "processes", "ray"]
+EXECUTORS = get_args(Executor)
 FAILURES_CSV = "failures.csv"
 FAILURE_COLUMNS = ("job", "attempts", "error")
 RETRIES = 2  # extra attempts of a Ray task that raised or whose worker died
@@ -109,53 +112,40 @@ class BatchOutcome:
             )
 
 
-def add_executor_options(parser) -> None:
-    """``--executor``, ``--ray-address`` and ``--retries`` (the same on every command that runs a batch)."""
-    parser.add_argument(
-        "--executor",
-        choices=EXECUTORS,
-        default="auto",
-        help="local: one job after another in this process; processes: jobs side by side in worker "
-        "processes of this machine (--workers); ray: each job a Ray task; auto: processes on a "
-        "machine with 2 or more cores and no CUDA device, else local",
-    )
-    parser.add_argument(
-        "--workers",
-        type=int,
-        default=None,
-        help="--executor processes: CPUs to fill with jobs (default: this machine's cores, at most one per "
-        "2 GB of memory)",
-    )
-    parser.add_argument(
-        "--ray-address",
-        default=None,
-        help="Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray "
-        "Client server, or auto); default RAY_ADDRESS, else an embedded local Ray for this batch "
-        "(--executor ray)",
-    )
-    parser.add_argument(
-        "--retries", type=int, default=RETRIES, help="extra attempts of a Ray task that raised or whose worker died"
-    )
+@dataclass
+class ExecutorOptions:
+    """``--executor``, ``--workers``, ``--ray-address`` and ``--retries``: the options of every command that runs a
+    batch (its options' field ``executors: Executors = field(default_factory=ExecutorOptions)``)."""
+
+    executor: Executor = "auto"
+    """local: one job after another in this process; processes: jobs side by side in worker processes of this
+    machine (--workers); ray: each job a Ray task; auto: processes on a machine with 2 or more cores and no CUDA
+    device, else local"""
+    workers: int | None = None
+    """--executor processes: CPUs to fill with jobs (default: this machine's cores, at most one per 2 GB of
+    memory)"""
+    ray_address: str | None = None
+    """Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray Client server, or auto);
+    default RAY_ADDRESS, else an embedded local Ray for this batch (--executor ray)"""
+    retries: int = RETRIES
+    """extra attempts of a Ray task that raised or whose worker died"""
+
+    def run_jobs_args(self) -> dict:
+        """The keyword arguments of :func:`run_jobs`; a UsageError naming an option whose value it refuses."""
+        if self.retries < 0:
+            raise UsageError("--retries", f"must be >= 0, got {self.retries}")
+        if self.ray_address and self.executor != "ray":
+            raise UsageError("--ray-address", "runs jobs on a Ray cluster: add --executor ray")
+        if self.ray_address:
+            check_ray_address(self.ray_address, "--ray-address", UsageError)
+        if self.workers is not None and self.workers < 1:
+            raise UsageError("--workers", f"must be >= 1, got {self.workers}")
+        if self.workers is not None and self.executor not in ("processes", "auto"):
+            raise UsageError("--workers", "sets the jobs run side by side by --executor processes")
+        return asdict(self)
 
 
-def executor_options(args) -> dict:
-    """The keyword arguments of :func:`run_jobs` from the parsed options of :func:`add_executor_options`."""
-    if args.retries < 0:
-        raise UsageError("--retries", f"must be >= 0, got {args.retries}")
-    if args.ray_address and args.executor != "ray":
-        raise UsageError("--ray-address", "runs jobs on a Ray cluster: add --executor ray")
-    if args.ray_address:
-        check_ray_address(args.ray_address, "--ray-address", UsageError)
-    if args.workers is not None and args.workers < 1:
-        raise UsageError("--workers", f"must be >= 1, got {args.workers}")
-    if args.workers is not None and args.executor not in ("processes", "auto"):
-        raise UsageError("--workers", "sets the jobs run side by side by --executor processes")
-    return {
-        "executor": args.executor,
-        "ray_address": args.ray_address,
-        "retries": args.retries,
-        "workers": args.workers,
-    }
+Executors = Annotated[ExecutorOptions, tyro.conf.arg(name="")]  # a field `executors: Executors` of a command's options
 
 
 def usable_cpus() -> int:

@@ -30,13 +30,14 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
+from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, get_method
@@ -520,49 +521,51 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
     (out / "report.md").write_text("\n".join(lines))
 
 
+@dataclass
+class NextTouchBenchCommand:
+    """next-best against random grasps: CD against the number of grasps, both strategies
+
+    Per object, seed and strategy one sim capture (5 views, the largest grasp budget); per budget k a copy with the
+    first k grasps, reconstructed with --iterations steps whatever the strategy. Writes OUT/results.csv,
+    OUT/report.md (tables, uncertainty against error), OUT/cd_vs_grasps.png. Resumable. --executor ray runs the
+    captures, copies and runs as Ray tasks (an embedded local Ray, or the cluster at --ray-address; --out on storage
+    every node sees)."""
+
+    out: Path
+    """output folder"""
+    objects: str = "all"
+    """'all' or comma-separated library objects"""
+    mesh: str | None = None
+    """any .obj/.ply/.stl mesh instead of the library objects"""
+    seeds: str = "0,1,2"
+    """comma-separated seeds (capture and training)"""
+    grasps: str = "1,2,3,5,8"
+    """comma-separated grasp budgets"""
+    resolution: int = 128
+    """image size in pixels"""
+    test_views: int = 12
+    """held-out test views"""
+    iterations: int = 1500
+    """steps of every final reconstruction"""
+    method: Literal[tuple(METHODS)] = DEFAULT_METHOD
+    """the method of every final reconstruction (default: what `tacsplat reconstruct` trains; `paper` for the
+    paper's)"""
+    candidates: int = 16
+    """next-best: approaches scored per grasp"""
+    selection_steps: int = 300
+    """next-best: steps of the reconstruction that chooses each grasp"""
+    uncertainty: str = "depth-variance"
+    """next-best: the score (depth-variance or fisher)"""
+
+    executors: Executors = field(default_factory=ExecutorOptions)
+
+
 def register(cli) -> None:
-    from tacsplat.apps.executors import add_executor_options
-
-    p = cli.command(
-        "bench next-touch",
-        help="next-best against random grasps: CD against the number of grasps, both strategies",
-        description="Per object, seed and strategy one sim capture (5 views, the largest grasp budget); per budget "
-        "k a copy with the first k grasps, reconstructed with --iterations steps whatever the strategy. Writes "
-        "OUT/results.csv, OUT/report.md (tables, uncertainty against error), OUT/cd_vs_grasps.png. Resumable. "
-        "--executor ray runs the captures, copies and runs as Ray tasks (an embedded local Ray, or the cluster at "
-        "--ray-address; --out on storage every node sees).",
-    )
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--objects", default="all", help="'all' or comma-separated library objects")
-    p.add_argument("--mesh", default=None, help="any .obj/.ply/.stl mesh instead of the library objects")
-    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (capture and training)")
-    p.add_argument("--grasps", default="1,2,3,5,8", help="comma-separated grasp budgets")
-    p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
-    p.add_argument("--test-views", type=int, default=12, help="held-out test views")
-    p.add_argument("--iterations", type=int, default=1500, help="steps of every final reconstruction")
-    p.add_argument(
-        "--method",
-        default=DEFAULT_METHOD,
-        choices=list(METHODS),
-        help="the method of every final reconstruction (default: what `tacsplat reconstruct` trains; "
-        "`paper` for the paper's)",
-    )
-    p.add_argument("--candidates", type=int, default=16, help="next-best: approaches scored per grasp")
-    p.add_argument(
-        "--selection-steps",
-        type=int,
-        default=300,
-        help="next-best: steps of the reconstruction that chooses each grasp",
-    )
-    p.add_argument("--uncertainty", default="depth-variance", help="next-best: the score (depth-variance or fisher)")
-    add_executor_options(p)
-    p.set_defaults(func=_run)
+    cli.typed("bench next-touch", NextTouchBenchCommand, _run)
 
 
-def _run(args) -> int:
-    from tacsplat.apps.executors import executor_options
-
-    executor = executor_options(args)
+def _run(args: NextTouchBenchCommand) -> int:
+    executor = args.executors.run_jobs_args()
     config = NextTouchBenchConfig(
         objects=() if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip()),
         mesh=args.mesh,

@@ -34,10 +34,13 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
+import tyro
 
 from tacsplat.apps.batch import CaptureJob, ReconstructJob
+from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, PAPER_METHODS, get_method, mechanisms, method_label
@@ -703,83 +706,79 @@ def write_paper_report(
 # ---------------------------------------------------------------------- command line
 
 
-def config_from_args(args) -> PaperBenchConfig:
-    """The :class:`PaperBenchConfig` of `tacsplat bench paper`'s options."""
-    config = PaperBenchConfig.quick() if args.quick else PaperBenchConfig()
-    if args.objects != "all":
-        config.objects = tuple(o.strip() for o in args.objects.split(",") if o.strip())
-    elif not args.quick:
-        config.objects = ()
-    for key in ("resolution", "iterations", "full_views", "test_views"):
-        if getattr(args, key) is not None:
-            setattr(config, key, getattr(args, key))
-    if args.settings is not None:
-        config.settings = tuple(s.strip() for s in args.settings.split(",") if s.strip())
-    if args.seeds is not None:
-        config.seeds = comma_separated_ints(args.seeds, "--seeds")
-    if args.methods is not None:
-        config.methods = tuple(v.strip() for v in args.methods.split(",") if v.strip())
-    config.preset, config.touch_model, config.texture = args.preset, args.touch_model, args.texture
-    config.validate()
-    return config
+@dataclass
+class PaperBenchCommand:
+    """the paper's tables on the twin's glossy objects: 3DGS, +S, +T, full; minimal and full views
+
+    Per object: a seeded sim capture per setting (minimal: 5 views + 5 grasps; full-views: >= 32 views + 5
+    grasps), the four methods and reconstruct's default, then REPORT/results.csv, REPORT/report.md and plots.
+    Resumable: rerun the same command after an interruption. --executor ray runs the captures and runs as Ray tasks
+    (an embedded local Ray, or the cluster at --ray-address; --out on storage every node sees)."""
+
+    out: Path
+    """report folder (captures, runs, results.csv, report.md, PNGs)"""
+    objects: str = "all"
+    """'all' or comma-separated library objects (--quick: teapot,bell)"""
+    quick: bool = False
+    """two objects, minimal setting, 128 px, 800 steps (about 3 minutes)"""
+    resolution: int | None = None
+    """image size in pixels (default 128)"""
+    iterations: int | None = None
+    """steps per run (default 1500; quick 800)"""
+    full_views: int | None = None
+    """train views of the full-views setting (default 32)"""
+    preset: Literal["default", "paper"] = "default"
+    """training preset: default, or paper (the official schedule scaled to --iterations)"""
+    touch_model: Literal["gel", "paper"] = "gel"
+    """touches: gel (grasps with gel contact patches) or paper (the official code's sampling)"""
+    texture: str = "none"
+    """the objects' surface: none (their one colour) or checker (textured: a checker of their colour and a
+    contrasting grey); textured scenes and runs get their own folders"""
+    test_views: int | None = None
+    """held-out test views (default 12; quick 8)"""
+    settings: str | None = None
+    """comma-separated: minimal,full-views (quick: minimal)"""
+    seeds: str | None = None
+    """comma-separated capture and training seeds (default 0)"""
+    methods: Annotated[
+        str | None,
+        tyro.conf.arg(
+            help="comma-separated methods, or rows of ablations.yaml (a method with settings changed: "
+            + ", ".join(ablation_rows())
+            + "; default: the paper's four methods and reconstruct's default)"
+        ),
+    ] = None
+
+    executors: Executors = field(default_factory=ExecutorOptions)
+
+    def config(self) -> PaperBenchConfig:
+        """The :class:`PaperBenchConfig` of these options."""
+        config = PaperBenchConfig.quick() if self.quick else PaperBenchConfig()
+        if self.objects != "all":
+            config.objects = tuple(o.strip() for o in self.objects.split(",") if o.strip())
+        elif not self.quick:
+            config.objects = ()
+        for key in ("resolution", "iterations", "full_views", "test_views"):
+            if getattr(self, key) is not None:
+                setattr(config, key, getattr(self, key))
+        if self.settings is not None:
+            config.settings = tuple(s.strip() for s in self.settings.split(",") if s.strip())
+        if self.seeds is not None:
+            config.seeds = comma_separated_ints(self.seeds, "--seeds")
+        if self.methods is not None:
+            config.methods = tuple(v.strip() for v in self.methods.split(",") if v.strip())
+        config.preset, config.touch_model, config.texture = self.preset, self.touch_model, self.texture
+        config.validate()
+        return config
 
 
 def register(cli) -> None:
-    from tacsplat.apps.executors import add_executor_options
-
-    p = cli.command(
-        "bench paper",
-        help="the paper's tables on the twin's glossy objects: 3DGS, +S, +T, full; minimal and full views",
-        description="Per object: a seeded sim capture per setting (minimal: 5 views + 5 grasps; full-views: "
-        ">= 32 views + 5 grasps), the four methods and reconstruct's default, then REPORT/results.csv, REPORT/report.md and plots. "
-        "Resumable: rerun the same command after an interruption. --executor ray runs the captures and runs as "
-        "Ray tasks (an embedded local Ray, or the cluster at --ray-address; --out on storage every node sees).",
-    )
-    p.add_argument("--objects", default="all", help="'all' or comma-separated library objects (--quick: teapot,bell)")
-    p.add_argument("--out", required=True, help="report folder (captures, runs, results.csv, report.md, PNGs)")
-    p.add_argument(
-        "--quick", action="store_true", help="two objects, minimal setting, 128 px, 800 steps (about 3 minutes)"
-    )
-    p.add_argument("--resolution", type=int, default=None, help="image size in pixels (default 128)")
-    p.add_argument("--iterations", type=int, default=None, help="steps per run (default 1500; quick 800)")
-    p.add_argument("--full-views", type=int, default=None, help="train views of the full-views setting (default 32)")
-    p.add_argument(
-        "--preset",
-        default="default",
-        choices=("default", "paper"),
-        help="training preset: default, or paper (the official schedule scaled to --iterations)",
-    )
-    p.add_argument(
-        "--touch-model",
-        default="gel",
-        choices=("gel", "paper"),
-        help="touches: gel (grasps with gel contact patches) or paper (the official code's sampling)",
-    )
-    p.add_argument(
-        "--texture",
-        default="none",
-        help="the objects' surface: none (their one colour) or checker (textured: a checker of their "
-        "colour and a contrasting grey); textured scenes and runs get their own folders",
-    )
-    p.add_argument("--test-views", type=int, default=None, help="held-out test views (default 12; quick 8)")
-    p.add_argument("--settings", default=None, help="comma-separated: minimal,full-views (quick: minimal)")
-    p.add_argument("--seeds", default=None, help="comma-separated capture and training seeds (default 0)")
-    p.add_argument(
-        "--methods",
-        default=None,
-        help="comma-separated methods, or rows of ablations.yaml (a method with settings changed: "
-        + ", ".join(ablation_rows())
-        + "; default: the paper's four methods and reconstruct's default)",
-    )
-    add_executor_options(p)
-    p.set_defaults(func=_run)
+    cli.typed("bench paper", PaperBenchCommand, _run)
 
 
-def _run(args) -> int:
-    from tacsplat.apps.executors import executor_options
-
-    executor = executor_options(args)
-    bench = PaperBench(Path(args.out), config_from_args(args))
+def _run(args: PaperBenchCommand) -> int:
+    executor = args.executors.run_jobs_args()
+    bench = PaperBench(args.out, args.config())
     started = time.perf_counter()
     rows = bench.run(**executor)
     print((bench.out / "report.md").read_text())

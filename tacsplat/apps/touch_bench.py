@@ -29,13 +29,14 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
+from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
 from tacsplat.reconstruction.methods import METHODS, get_method
@@ -273,36 +274,38 @@ def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[s
     return paths
 
 
+@dataclass
+class TouchBenchCommand:
+    """Chamfer distance against the number of touches (paper Fig. 6), several seeds
+
+    Per seed one sim capture with enough grasps for the largest count; per count a copy of it with the first N
+    touches in contact (whole grasps first), reconstructed with --method. Writes OUT/touches.csv, OUT/summary.csv,
+    OUT/cd_vs_touches.png. Resumable."""
+
+    out: Path
+    """output folder"""
+    object: str = "teapot"
+    """library object"""
+    touches: str = "0,4,8,16,32,64"
+    """comma-separated touch counts"""
+    seeds: str = "0,1,2"
+    """comma-separated seeds (capture and training)"""
+    resolution: int = 128
+    """image size in pixels"""
+    iterations: int = 800
+    """steps per run"""
+    method: Literal[tuple(METHODS)] = TouchBenchConfig.method
+    """the method of every run (default: the paper's, as in its Fig. 6)"""
+
+    executors: Executors = field(default_factory=ExecutorOptions)
+
+
 def register(cli) -> None:
-    from tacsplat.apps.executors import add_executor_options
-
-    p = cli.command(
-        "bench touches",
-        help="Chamfer distance against the number of touches (paper Fig. 6), several seeds",
-        description="Per seed one sim capture with enough grasps for the largest count; per count a copy of it "
-        "with the first N touches in contact (whole grasps first), reconstructed with --method. Writes "
-        "OUT/touches.csv, OUT/summary.csv, OUT/cd_vs_touches.png. Resumable.",
-    )
-    p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--object", default="teapot", help="library object")
-    p.add_argument("--touches", default="0,4,8,16,32,64", help="comma-separated touch counts")
-    p.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (capture and training)")
-    p.add_argument("--resolution", type=int, default=128, help="image size in pixels")
-    p.add_argument("--iterations", type=int, default=800, help="steps per run")
-    p.add_argument(
-        "--method",
-        default=TouchBenchConfig.method,
-        choices=list(METHODS),
-        help="the method of every run (default: the paper's, as in its Fig. 6)",
-    )
-    add_executor_options(p)
-    p.set_defaults(func=_run)
+    cli.typed("bench touches", TouchBenchCommand, _run)
 
 
-def _run(args) -> int:
-    from tacsplat.apps.executors import executor_options
-
-    executor = executor_options(args)
+def _run(args: TouchBenchCommand) -> int:
+    executor = args.executors.run_jobs_args()
     config = TouchBenchConfig(
         object=args.object,
         touch_counts=comma_separated_ints(args.touches, "--touches"),

@@ -32,8 +32,10 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+import tyro
 
 from tacsplat.errors import ConfigError, TacsplatError, UsageError
 from tacsplat.files import atomic_write, check_writable
@@ -47,43 +49,43 @@ SIDE_BY_SIDE_GAP = 0.25  # of the larger object's radius, between the two runs o
 CAMERA_DISTANCE = 2.5  # initial viewpoint: this many radii from the centre of what is shown
 
 
+@dataclass
+class ViewCommand:
+    """look at a scene, a reconstruction run or a benchmark report in the browser (viser)
+
+    Serve PATH to a browser: a scene directory (cameras with their images, touches by grasp with their gel frames,
+    ground-truth mesh, bounding sphere), a run directory (its splat, touch or camera Gaussians alone, its scene, its
+    kept checkpoints, metrics.json, renders of the browser's viewpoint with tacsplat's rasterizer) or a benchmark
+    report folder (two of its runs side by side from one viewpoint). Needs no display: it prints the URL to open
+    (use --host 0.0.0.0 or an SSH tunnel from another machine). --export writes the view as one HTML page that opens
+    without Python."""
+
+    path: tyro.conf.Positional[Path]
+    """a scene directory, a run directory or a benchmark report folder"""
+    port: int = 8080
+    """port to serve on (the next free one if it is taken)"""
+    host: str = "127.0.0.1"
+    """address to listen on; 0.0.0.0 lets a browser on another machine connect"""
+    export: Annotated[Path | None, tyro.conf.arg(metavar="FILE.html")] = None
+    """write a self-contained HTML view that opens without Python (the scene, without the side panel's controls),
+    then exit"""
+
+
 def register(cli) -> None:
-    p = cli.command(
-        "view",
-        help="look at a scene, a reconstruction run or a benchmark report in the browser (viser)",
-        description="Serve PATH to a browser: a scene directory (cameras with their images, touches by grasp with "
-        "their gel frames, ground-truth mesh, bounding sphere), a run directory (its splat, touch or camera Gaussians "
-        "alone, its scene, its kept checkpoints, metrics.json, renders of the browser's viewpoint with tacsplat's "
-        "rasterizer) or a benchmark report folder (two of its runs side by side from one viewpoint). Needs no "
-        "display: it prints the URL to open (use --host 0.0.0.0 or an SSH tunnel from another machine). --export "
-        "writes the view as one HTML page that opens without Python.",
-    )
-    p.add_argument("path", metavar="PATH", help="a scene directory, a run directory or a benchmark report folder")
-    p.add_argument("--port", type=int, default=8080, help="port to serve on (the next free one if it is taken)")
-    p.add_argument(
-        "--host", default="127.0.0.1", help="address to listen on; 0.0.0.0 lets a browser on another machine connect"
-    )
-    p.add_argument(
-        "--export",
-        metavar="FILE.html",
-        default=None,
-        help="write a self-contained HTML view that opens without Python (the scene, without the side "
-        "panel's controls), then exit",
-    )
-    p.set_defaults(func=_run)
+    cli.typed("view", ViewCommand, _run)
 
 
-def _run(args) -> int:
+def _run(args: ViewCommand) -> int:
     import viser  # (first: without the viewer extra nothing else is worth checking)
 
     if not 0 <= args.port <= 65535:
         raise UsageError("--port", f"must be in [0, 65535], got {args.port}")
-    export = Path(args.export) if args.export else None
+    export = args.export
     if export is not None:
         if not export.parent.is_dir():
             raise ConfigError("--export", f"{export.parent} is not a folder")
         check_writable(export.parent)  # a read-only or full folder is refused before the view is built
-    path = Path(args.path)
+    path = args.path
     content = load_content(path)
     logging.getLogger("websockets").setLevel(logging.WARNING)
     with _viser_quiet():  # viser prints its own banner; ours follows

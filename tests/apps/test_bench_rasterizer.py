@@ -23,7 +23,10 @@ def test_random_scene_radii_and_timing_row():
 
 
 def test_cli_registers_bench_rasterizer():
+    from tacsplat.apps.bench_rasterizer import BenchRasterizer
     from tacsplat.cli import build_parser
+    from tacsplat.options import parse_options
 
-    args = build_parser().parse_args(["bench", "rasterizer", "--sizes", "64x64:100", "--repeats", "2"])
-    assert args.sizes == ["64x64:100"] and args.repeats == 2 and callable(args.func)
+    assert callable(build_parser().parse_args(["bench", "rasterizer"]).func)
+    args = parse_options(BenchRasterizer, ["--sizes", "64x64:100", "--repeats", "2"], "tacsplat bench rasterizer")
+    assert args.sizes == ("64x64:100",) and args.repeats == 2

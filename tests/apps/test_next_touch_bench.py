@@ -8,10 +8,17 @@ import json
 import pytest
 
 from tacsplat.apps.executors import RETRIES
-from tacsplat.apps.next_touch_bench import STRATEGIES, NextTouchBench, NextTouchBenchConfig, first_grasps
-from tacsplat.cli import build_parser, main
+from tacsplat.apps.next_touch_bench import (
+    STRATEGIES,
+    NextTouchBench,
+    NextTouchBenchCommand,
+    NextTouchBenchConfig,
+    first_grasps,
+)
+from tacsplat.cli import main
 from tacsplat.datasets import Scene
 from tacsplat.errors import ConfigError
+from tacsplat.options import parse_options
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -190,10 +197,11 @@ def test_executor_ray_gives_the_local_scenes_and_results(bench, tmp_path, monkey
 
 
 def test_the_executor_options_are_on_the_command(tmp_path, capsys):
-    args = build_parser(["bench", "next-touch"]).parse_args(
+    def parse(argv):
+        return parse_options(NextTouchBenchCommand, argv, "tacsplat bench next-touch").executors
+
+    args = parse(
         [
-            "bench",
-            "next-touch",
             "--out",
             str(tmp_path),
             "--executor",
@@ -205,7 +213,7 @@ def test_the_executor_options_are_on_the_command(tmp_path, capsys):
         ]
     )
     assert (args.executor, args.ray_address, args.retries) == ("ray", "head:6379", 1)
-    args = build_parser(["bench", "next-touch"]).parse_args(["bench", "next-touch", "--out", str(tmp_path)])
+    args = parse(["--out", str(tmp_path)])
     assert (args.executor, args.ray_address, args.retries, args.workers) == ("auto", None, RETRIES, None)
     assert main(["bench", "next-touch", "--out", str(tmp_path / "R"), "--ray-address", "head:6379"]) == 2
     assert "--ray-address: runs jobs on a Ray cluster: add --executor ray" in capsys.readouterr().err
