@@ -32,9 +32,7 @@ class Evaluate:
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    cli.command(
-        "reconstruct", help="tactile-informed 3DGS: train on a scene directory and evaluate", own_options=True
-    ).set_defaults(func=_reconstruct)
+    cli.own("reconstruct", "tactile-informed 3DGS: train on a scene directory and evaluate", _reconstruct)
 
     cli.typed("evaluate", Evaluate, _evaluate)
 

@@ -66,18 +66,6 @@ GROUP_HELP = {
 }
 
 
-class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Marks required options, and shows a default only when it says something (not for flags or None)."""
-
-    def _get_help_string(self, action):
-        text = action.help or ""
-        if action.required and action.option_strings:
-            return f"{text} (required)"
-        if action.default in (None, False, argparse.SUPPRESS) or "(default:" in text:
-            return text
-        return super()._get_help_string(action)
-
-
 def _common_options() -> argparse.ArgumentParser:
     """-v, -q and --log-level, accepted by the root and by every subcommand (defaults SUPPRESS, so a
     subcommand's absent option never overwrites one given before it)."""
@@ -121,26 +109,6 @@ class CommandTree:
             self._subparsers[path] = parser.add_subparsers(dest=f"{path}_command", metavar="COMMAND")
         return self._subparsers[path]
 
-    def command(
-        self, path: str, help: str, description: str | None = None, own_options: bool = False
-    ) -> argparse.ArgumentParser:
-        """A subcommand at ``path``; returns its argparse parser, to which only ``demo`` still adds options (every
-        other command is :meth:`typed`). ``own_options``: the command parses what follows it itself (``args.rest``;
-        -v, -q and --log-level aside)."""
-        parent, _, name = path.strip().rpartition(" ")
-        parser = self._group(parent).add_parser(
-            name,
-            help=help,
-            description=description or help,
-            formatter_class=_HelpFormatter,
-            parents=[self._common],
-            add_help=not own_options,
-        )
-        self._parsers[path] = parser
-        if own_options:
-            self.own_options.add(path)
-        return parser
-
     def typed(self, path: str, options: type, run, help: str | None = None) -> None:
         """A command whose options are the dataclass ``options`` (parsed by tyro: :mod:`tacsplat.options`; its
         docstring is the description, and its first paragraph the command list's line unless ``help`` is given):
@@ -155,8 +123,18 @@ class CommandTree:
                 refuse_unwritable(f"--{option}", getattr(values, option, None))
             return run(values)
 
-        summary = help or " ".join(options.__doc__.split("\n\n")[0].split())
-        self.command(path, help=summary, own_options=True).set_defaults(func=func)
+        self.own(path, help or " ".join(options.__doc__.split("\n\n")[0].split()), func)
+
+    def own(self, path: str, help: str, func) -> None:
+        """A command that parses what follows it itself: ``func(args)`` reads it as ``args.rest`` (-v, -q and
+        --log-level aside)."""
+        parent, _, name = path.strip().rpartition(" ")
+        parser = self._group(parent).add_parser(
+            name, help=help, description=help, parents=[self._common], add_help=False
+        )
+        parser.set_defaults(func=func)
+        self._parsers[path] = parser
+        self.own_options.add(path)
 
     def _chosen(self, argv: list[str]) -> tuple[str, int]:
         """``(path, index after its last word in argv)``."""

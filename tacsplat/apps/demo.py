@@ -15,6 +15,7 @@ resumable the same way and its numbers are the benchmark's own.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from tacsplat.reconstruction.methods import DEFAULT_METHOD
@@ -43,18 +44,25 @@ def demo_config(object_name: str = DEMO_OBJECT, resolution: int = 128, iteration
     )
 
 
+@dataclass
+class DemoCommand:
+    """the main job: simulated capture of a glossy object, reconstruction without and with touch, report"""
+
+    out: Path = Path("demo-output")
+    """output folder"""
+    object: str = DEMO_OBJECT
+    """library object (all are glossy)"""
+    resolution: int = 128
+    """image size in pixels"""
+    iterations: int = 1200
+    """steps per reconstruction"""
+
+
 def register(cli) -> None:
-    parser = cli.command(
-        "demo", help="the main job: simulated capture of a glossy object, reconstruction without and with touch, report"
-    )
-    parser.add_argument("--out", default="demo-output", help="output folder")
-    parser.add_argument("--object", default=DEMO_OBJECT, help="library object (all are glossy)")
-    parser.add_argument("--resolution", type=int, default=128, help="image size in pixels")
-    parser.add_argument("--iterations", type=int, default=1200, help="steps per reconstruction")
-    parser.set_defaults(func=run)
+    cli.typed("demo", DemoCommand, run)
 
 
-def run(args) -> int:
+def run(args: DemoCommand) -> int:
     from tacsplat.apps.paper_bench import PaperBench
 
     started = time.perf_counter()
