@@ -23,7 +23,7 @@ class Method:
 
 
 # the paper's method: touch and smoothness with view-dependent SH colour; none of our surface-normal losses,
-# unlit colour, touch Gaussians starting with random colours
+# unlit colour, touch Gaussians starting with random colours, no free space
 _PAPER = {
     "lambda_flatten": 0.0,
     "lambda_depth_normal": 0.0,
@@ -31,6 +31,7 @@ _PAPER = {
     "appearance": "sh",
     "lambda_albedo_smoothness": 0.0,
     "init.colors_from_views": False,
+    "lambda_free_space": 0.0,
 }
 
 METHODS: dict[str, Method] = {
@@ -53,8 +54,8 @@ METHODS: dict[str, Method] = {
             "default",
             "Default (ours)",
             "the paper's method plus flat Gaussians, depth-normal consistency, tactile "
-            "normals, SH colour lit at the rendered normals with a smooth albedo, and touch Gaussians coloured "
-            "from the views (beyond the paper)",
+            "normals, SH colour lit at the rendered normals with a smooth albedo, touch Gaussians coloured "
+            "from the views, and the space the hand's motion proved empty (beyond the paper)",
         ),
     )
 }
@@ -79,7 +80,7 @@ def method_config(name: str, option: str = "--method"):
 def mechanisms(config) -> dict[str, bool]:
     """Which of the optional mechanisms a TrainConfig switches on: touch (used, with lambda_t > 0), smoothness,
     flattening, depth-normal consistency, tactile normals (with touch), the sh-lit appearance, a smooth albedo
-    (with it), initial colours from the views."""
+    (with it), initial colours from the views, the free space of the hand's motion."""
     touch = config.use_touch and config.lambda_t > 0
     return {
         "touch": touch,
@@ -90,6 +91,7 @@ def mechanisms(config) -> dict[str, bool]:
         "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
         "view_colors": config.init.colors_from_views,
+        "free_space": config.use_touch and config.lambda_free_space > 0,
     }
 
 
