@@ -68,9 +68,10 @@ class TrainConfig:
     """steps between k-d tree rebuilds (and after every densification)"""
     touch_points_per_step: int = 512
     """random subset of touch points in L_T per step (0 = all)"""
-    lambda_free_space: float = 0.01
+    lambda_free_space: float = 0.0
     """opacity of Gaussians in space the hand's recorded motion proved empty (not in the paper; needs a scene
-    with hand motions; :mod:`~tacsplat.reconstruction.free_space`)"""
+    with hand motions; :mod:`~tacsplat.reconstruction.free_space`; 0.01 won on the twin's glossy objects and not
+    on held-out meshes: off by default, docs/experiments.md)"""
     free_space_margin: float = 0.001
     """metres each hand box is shrunk by (the hand model's and its calibration's error)"""
     free_space_voxel: float = 0.001

@@ -23,7 +23,7 @@ class Method:
 
 
 # the paper's method: touch and smoothness with view-dependent SH colour; none of our surface-normal losses,
-# unlit colour, touch Gaussians starting with random colours, no free space
+# unlit colour, touch Gaussians starting with random colours
 _PAPER = {
     "lambda_flatten": 0.0,
     "lambda_depth_normal": 0.0,
@@ -31,7 +31,6 @@ _PAPER = {
     "appearance": "sh",
     "lambda_albedo_smoothness": 0.0,
     "init.colors_from_views": False,
-    "lambda_free_space": 0.0,
 }
 
 METHODS: dict[str, Method] = {
@@ -54,8 +53,8 @@ METHODS: dict[str, Method] = {
             "default",
             "Default (ours)",
             "the paper's method plus flat Gaussians, depth-normal consistency, tactile "
-            "normals, SH colour lit at the rendered normals with a smooth albedo, touch Gaussians coloured "
-            "from the views, and the space the hand's motion proved empty (beyond the paper)",
+            "normals, SH colour lit at the rendered normals with a smooth albedo, and touch Gaussians coloured "
+            "from the views (beyond the paper)",
         ),
     )
 }
