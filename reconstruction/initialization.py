@@ -271,17 +271,18 @@ def silhouette_hull_points(
     for silhouette, K, T_world_cam in zip(silhouettes, Ks, T_world_cams):
         grown = cv2.dilate(np.asarray(silhouette, np.uint8), kernel) > 0
         T = invert_pose(T_world_cam)
-        cam = centres @ T[:3, :3].T + T[:3, 3]
+        survivors = np.flatnonzero(inside)  # a carved voxel stays carved: only the others are projected
+        cam = centres[survivors] @ T[:3, :3].T + T[:3, 3]
         z = cam[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = np.floor(K[0, 0] * cam[:, 0] / z + K[0, 2]).astype(np.int64, copy=False)
             v = np.floor(K[1, 1] * cam[:, 1] / z + K[1, 2]).astype(np.int64, copy=False)
         h, w = grown.shape
         seen = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        on_object = np.zeros(len(centres), bool)
+        on_object = np.zeros(len(survivors), bool)
         on_object[seen] = grown[v[seen], u[seen]]
         cut_by_frame = grown[0].any() or grown[-1].any() or grown[:, 0].any() or grown[:, -1].any()
-        inside &= (on_object | ~seen) if cut_by_frame else on_object
+        inside[survivors] = (on_object | ~seen) if cut_by_frame else on_object
     hull = inside.reshape(shape)
     boundary = hull & ~ndimage.binary_erosion(hull)
     cells = np.argwhere(boundary)
