@@ -68,14 +68,6 @@ class TrainConfig:
     """steps between k-d tree rebuilds (and after every densification)"""
     touch_points_per_step: int = 512
     """random subset of touch points in L_T per step (0 = all)"""
-    lambda_free_space: float = 0.0
-    """opacity of Gaussians in space the hand's recorded motion proved empty (not in the paper; needs a scene
-    with hand motions; :mod:`~tacsplat.reconstruction.free_space`; 0.01 won on the twin's glossy objects and not
-    on held-out meshes: off by default, docs/experiments.md)"""
-    free_space_margin: float = 0.001
-    """metres each hand box is shrunk by (the hand model's and its calibration's error)"""
-    free_space_voxel: float = 0.001
-    """metres: the free-space grid's voxel"""
     touch_loss_moves_shape: bool = False
     """False: L_T moves means and opacities only (the effect Sec. 4.2.1 describes); True: also scales and
     rotations, which L_T rewards for growing around the touch point"""
@@ -156,8 +148,6 @@ class TrainConfig:
             unused.add("lambda_albedo_smoothness")
         if self.appearance == "sh":
             unused.add("lit_start_iter")
-        if self.lambda_free_space == 0 or not self.use_touch:
-            unused.update({"free_space_margin", "free_space_voxel"})
         return unused
 
     def validate(self, names: dict[str, str] | None = None) -> None:
@@ -362,17 +352,8 @@ _FLOAT_RANGES = {
     "lambda_touch_normal": (0.0, None),
     "lambda_albedo_smoothness": (0.0, None),
     "albedo_smoothness_beta": (0.0, None),
-    "lambda_free_space": (0.0, None),
-    "free_space_margin": (0.0, None),
-    "free_space_voxel": (0.0, None),
 }
-_POSITIVE = {
-    "free_space_voxel",
-    "touch_max_distance",
-    "proximity_sigma_px",
-    "lr_means_final_factor",
-    "eval_every_seconds",
-}
+_POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
 
 
 def _range_text(lo, hi, exclusive: bool = False) -> str:
@@ -466,11 +447,6 @@ def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: 
         lines.append(
             "initial colours of the touch Gaussians (and of a failed SfM's points) from the training pixels "
             "they project to; the paper: random"
-        )
-    if config.use_touch and config.lambda_free_space > 0:
-        lines.append(
-            f"free space (lambda_free_space {config.lambda_free_space}): Gaussians where the hand's recorded motion "
-            "passed lose their opacity; not in the paper"
         )
     if config.lambda_backdrop > 0:
         lines.append(

@@ -79,7 +79,7 @@ def method_config(name: str, option: str = "--method"):
 def mechanisms(config) -> dict[str, bool]:
     """Which of the optional mechanisms a TrainConfig switches on: touch (used, with lambda_t > 0), smoothness,
     flattening, depth-normal consistency, tactile normals (with touch), the sh-lit appearance, a smooth albedo
-    (with it), initial colours from the views, the free space of the hand's motion."""
+    (with it), initial colours from the views."""
     touch = config.use_touch and config.lambda_t > 0
     return {
         "touch": touch,
@@ -90,7 +90,6 @@ def mechanisms(config) -> dict[str, bool]:
         "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
         "view_colors": config.init.colors_from_views,
-        "free_space": config.use_touch and config.lambda_free_space > 0,
     }
 
 

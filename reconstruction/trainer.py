@@ -7,9 +7,7 @@ alpha on pixels that show the fitted smooth backdrop (not in the paper; see
 inside the object's silhouette rather than on Eq. 5's accumulated depth
 (``smoothness_depth``). When SfM finds too few points, the initial G_c lie on
 the visual hull of the silhouettes. Renders are composited over each view's
-backdrop (a constant, or a smooth fit to the image border). With
-``lambda_free_space``, Gaussians in space the hand's recorded motion proved
-empty lose their opacity (:mod:`.free_space`). What a scene does
+backdrop (a constant, or a smooth fit to the image border). What a scene does
 not need is not computed: no touches -> no G_t, no neighbour search, no L_T;
 lambda_s = 0 -> RGB-only renders.
 
@@ -44,7 +42,6 @@ from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyState
 from tacsplat.reconstruction.evaluation import evaluate_reconstruction, evaluate_views, load_ground_truth
-from tacsplat.reconstruction.free_space import free_space, free_space_loss
 from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.initialization import (
     foreground_mask,
@@ -82,7 +79,6 @@ LOSS_TERMS = (
     "backdrop",
     "normals",
     "albedo_smoothness",
-    "free_space",
 )  # progress.csv's loss columns
 POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
 
@@ -146,13 +142,6 @@ class Trainer:
         self.scene_scale = scene_scale(train)
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device=dev).manual_seed(config.seed)
-        self.free_space = None  # the hand's proof of empty space (free_space.FreeSpace), and its grid on the device
-        if config.use_touch and config.lambda_free_space > 0 and (motions := scene.hand_motions()):
-            indentation = max((float(scene.load_touch_depth(t).max()) for t in scene.touches), default=0.0)
-            self.free_space = free_space(
-                motions, scene.touch_points(), indentation, config.free_space_margin, config.free_space_voxel
-            )
-        self.free_grid = None if self.free_space is None else torch.from_numpy(self.free_space.free).to(dev)
         self.touch_points, touch_normals = np.zeros((0, 3)), np.zeros((0, 3))
         if config.use_touch and scene.touches:
             kept = thin_touch_points(scene.touch_points(), config.init, self.rng)
@@ -376,10 +365,6 @@ class Trainer:
                 )
                 loss = loss + cfg.lambda_touch_normal * aligned
                 terms["normals"] = terms["normals"] + aligned.detach()
-        if self.free_space is not None:
-            carved = free_space_loss(g.means, g.opacities, self.free_space, self.free_grid)
-            loss = loss + cfg.lambda_free_space * carved
-            terms["free_space"] = carved.detach()
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
                 self._pair_weights[view] = losses.image_pair_weights(self.images[view], cfg.albedo_smoothness_beta)

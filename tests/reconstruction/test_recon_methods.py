@@ -112,8 +112,6 @@ def test_a_switched_off_mechanisms_settings_are_unused():
         "albedo_smoothness_beta",
         "lambda_albedo_smoothness",
         "lit_start_iter",
-        "free_space_margin",
-        "free_space_voxel",
     }
     assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
 
