@@ -284,9 +284,9 @@ class NextTouchPlanner:
         """Candidate ``k``'s generator; candidate 0 is the random strategy's grasp (TwinPlanner's generator)."""
         return np.random.default_rng([self.plan.seed, index] + ([k] if k else []))
 
-    def candidate(self, index: int, k: int) -> tuple[Candidate, np.ndarray]:
-        """Candidate ``k`` of grasp ``index`` and its close pose [16]: the twin placed on the approach, the pads
-        of the fingers that tap (those the preshape reached) at their preshape poses."""
+    def candidate(self, index: int, k: int) -> tuple[Candidate, np.ndarray, np.ndarray]:
+        """Candidate ``k`` of grasp ``index``, its close pose [16] and its preshape [16]: the twin placed on the
+        approach, the pads of the fingers that tap (those the preshape reached) at their preshape poses."""
         twin = self.twin_planner.twin
         q_close, q_pre = self.twin_planner.approach(self._rng(index, k))
         T_world_hand = twin.T_world_hand()
@@ -299,7 +299,7 @@ class NextTouchPlanner:
             for finger, j in joints.items()
             if finger in tips and not np.allclose(q_close[j], q_pre[j])
         ]
-        return Candidate(k, pads, -T_world_hand[:3, 2]), q_close
+        return Candidate(k, pads, -T_world_hand[:3, 2]), q_close, q_pre
 
     def decide(self, scene, index: int) -> dict:
         """Reconstruct the scene so far briefly, score the candidates of grasp ``index``; the decision."""
@@ -343,9 +343,8 @@ class NextTouchPlanner:
             decision = self.decide(scene, index)
             choices.save(decision)  # before the hand moves: a capture cut short redoes this same grasp
         for k in decision["ranking"][:MAX_ATTEMPTS_PER_GRASP]:
-            _, q_close = self.candidate(index, k)
-            q_pre = self.twin_planner.twin.hand.read_joint_positions()  # the release goes back to the preshape
-            outcome = logger.take_grasp(close_pose=q_close, open_pose=q_pre, index=index)
+            _, q_close, q_pre = self.candidate(index, k)
+            outcome = logger.take_grasp(close_pose=q_close, open_pose=q_pre, index=index)  # released to the preshape
             if outcome.fingers_in_contact:
                 choices.save({**decision, "executed": k})
                 return outcome

@@ -195,8 +195,7 @@ class HandMotion:
     The hand base stays at ``T_world_hand`` throughout (the logger measures it
     once, before the fingers move). ``link_poses`` places the hand model's solid
     boxes (palm, links, gels up to their undeformed surface) at each sample: the
-    space they occupied was empty then, which is how a grasp tells
-    reconstruction where the object is not.
+    space they occupied was empty then.
     """
 
     grasp: int
