@@ -109,7 +109,7 @@ def bounding_sphere_radius(points: np.ndarray) -> float:
     if rank == 1:
         return float(np.ptp(coords) / 2)
     if len(coords) > 20000 and rank == 3:  # the minimum sphere is fixed by the convex hull's vertices
-        coords = coords[trimesh.convex.convex_hull(coords).vertices]
+        coords = np.asarray(trimesh.convex.convex_hull(coords).vertices)  # [V, 3] the hull's corner points
     _, radius = trimesh.nsphere.minimum_nsphere(coords)
     return float(radius)
 

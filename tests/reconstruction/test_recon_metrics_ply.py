@@ -97,6 +97,17 @@ def test_bounding_sphere_radius_of_sphere_points():
     assert bounding_sphere_radius(points) == pytest.approx(0.07, rel=1e-3)
 
 
+def test_bounding_sphere_radius_of_a_large_cloud():
+    """Above 20,000 points only the convex hull's vertices are searched: the same sphere, found faster."""
+    rng = np.random.default_rng(2)
+    inside = rng.uniform(-1, 1, size=(60_000, 3))
+    inside = 0.05 * inside[np.linalg.norm(inside, axis=1) <= 1]
+    pole = np.array([[0.0, 0.0, 0.05], [0.0, 0.0, -0.05]])
+    points = np.concatenate([inside, pole]) + np.array([0.3, -0.2, 1.0])
+    assert len(points) > 20_000
+    assert bounding_sphere_radius(points) == pytest.approx(0.05, rel=1e-6)
+
+
 def test_bounding_sphere_radius_of_flat_and_degenerate_clouds():
     """A flat ground truth (a wall, a constant depth map) is as valid as a round one."""
     rng = np.random.default_rng(1)
