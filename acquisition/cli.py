@@ -109,8 +109,9 @@ class SimulateTouches(TouchModel):
 
     scene: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="SCENE")] = tyro.MISSING
     """scene directory"""
-    mesh: Path = tyro.MISSING
-    """the object's mesh, in the scene's world frame and units"""
+    mesh: Path | None = None
+    """the object's mesh, in the scene's world frame and units (default: the scene's ground-truth mesh, or, for
+    --touch-model paper, its ground-truth points: an imported Shiny Blender or Glossy Synthetic scene)"""
     grasps: int = 5
     """grasps to add (at least 1)"""
     out: Path | None = None
@@ -143,7 +144,7 @@ def register(cli) -> None:
         "simulate-touches",
         SimulateTouches,
         _simulate_touches,
-        help="add simulated grasps of a mesh to a scene (e.g. an imported Shiny Blender scene)",
+        help="add simulated grasps of a mesh to a scene (e.g. an imported Shiny Blender or Glossy Synthetic scene)",
     )
 
 
@@ -253,4 +254,5 @@ _TOUCH_OPTIONS = {
     "object_radius": "--object-radius",
     "seed": "--seed",
     "out": "--out",
+    "mesh": "--mesh",
 }  # simulate_touches' keys

@@ -64,18 +64,46 @@ _SAMPLES_STREAM, _TOUCH_STREAM = 0, 1  # SeedSequence spawn keys: (0,) the surfa
 
 
 class PaperTouches:
-    """The paper's touches of one mesh, in its frame and units: the surface samples drawn once (``seed``), touch
-    ``t`` on demand."""
+    """The paper's touches of one surface, in its frame and units: the surface samples drawn once (``seed``), touch
+    ``t`` on demand.
 
-    def __init__(self, mesh: trimesh.Trimesh, seed: int, plan: TouchPlan = TouchPlan()):
-        self.mesh = mesh
+    ``surface`` is a mesh, or points on the object's surface [N, 3] where a dataset ships no mesh (Glossy
+    Synthetic's ``eval_pts.ply``, Shiny Blender's depth back-projected). On points, the samples are
+    ``surface_points`` of them drawn at random, the rays start at their centroid, and a ray "meets" the samples
+    within one sample spacing (the median distance between nearest samples) of it. A cloud of fewer points is
+    used whole, and a touch takes proportionally fewer of them (at least one), so that it covers the share of the
+    surface the paper's touch covers (``points_per_touch / surface_points``).
+    """
+
+    def __init__(self, surface: trimesh.Trimesh | np.ndarray, seed: int, plan: TouchPlan = TouchPlan()):
         self.seed = seed
         self.plan = plan
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_SAMPLES_STREAM,)))
-        self.samples = trimesh.sample.sample_surface_even(mesh, plan.surface_points, seed=rng)[0]
+        if isinstance(surface, trimesh.Trimesh):
+            self.samples = trimesh.sample.sample_surface_even(surface, plan.surface_points, seed=rng)[0]
+            self.rays = trimesh.ray.ray_triangle.RayMeshIntersector(surface)
+            self.centroid = np.asarray(surface.centroid, dtype=np.float64)
+        else:
+            points = np.asarray(surface, dtype=np.float64)
+            if points.ndim != 2 or points.shape[1] != 3 or len(points) < 2 or not np.isfinite(points).all():
+                raise InvalidInputError(f"surface: expected finite points [N >= 2, 3], got shape {points.shape}")
+            if len(points) > plan.surface_points:
+                points = points[rng.choice(len(points), plan.surface_points, replace=False)]
+            self.samples, self.rays, self.centroid = points, None, points.mean(axis=0)
+        share = min(1.0, len(self.samples) / plan.surface_points)
+        self.points_per_touch = max(1, round(plan.points_per_touch * share))
         self.tree = cKDTree(self.samples)
-        self.rays = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
-        self.centroid = np.asarray(mesh.centroid, dtype=np.float64)
+        if self.rays is None:
+            self.spacing = float(np.median(self.tree.query(self.samples, k=2)[0][:, 1]))
+
+    def _hits(self, direction: np.ndarray) -> np.ndarray:
+        """Where the ray from the centroid along ``direction`` [3] meets the surface: points [K, 3]."""
+        if self.rays is not None:
+            return self.rays.intersects_location(self.centroid[None], direction[None])[0]
+        offsets = self.samples - self.centroid  # [N, 3]
+        along = offsets @ direction
+        across = np.linalg.norm(offsets - along[:, None] * direction, axis=1)
+        return self.samples[(along > 0) & (across <= self.spacing)]
 
     def ray(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """Touch ``index``'s hit [3] (the furthest from the centroid along the first ray that meets the mesh) and
@@ -84,15 +112,15 @@ class PaperTouches:
         for _ in range(MAX_RAYS):
             theta, phi = rng.uniform(0.0, np.pi), rng.uniform(0.0, 2.0 * np.pi)
             direction = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
-            hits, _, _ = self.rays.intersects_location(self.centroid[None], direction[None])
+            hits = self._hits(direction)
             if len(hits):
                 return hits[np.argmax(np.linalg.norm(hits - self.centroid, axis=1))], direction
-        raise InvalidInputError(f"mesh: no ray from its centroid met it in {MAX_RAYS} tries (touch {index})")
+        raise InvalidInputError(f"surface: no ray from its centroid met it in {MAX_RAYS} tries (touch {index})")
 
     def touch(self, index: int) -> tuple[np.ndarray, np.ndarray]:
         """Touch ``index``: its points [k, 3] (the samples nearest to its hit) and its ray's direction [3]."""
         hit, direction = self.ray(index)
-        k = min(self.plan.points_per_touch, len(self.samples))
+        k = min(self.points_per_touch, len(self.samples))
         _, nearest = self.tree.query(hit, k=k)
         return self.samples[np.atleast_1d(nearest)], direction
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from tacsplat.acquisition.config import TouchPlan, validate_touches
 from tacsplat.acquisition.devices import twin_rig
@@ -29,8 +30,10 @@ from tacsplat.files import check_writable
 from tacsplat.progress import progress_bar
 from tacsplat.sim.grasps import GraspConfig
 from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere, object_radius_problem, read_mesh
-from tacsplat.sim.twin import SimTwin, TwinConfig
+from tacsplat.sim.twin import SimTwin, TwinConfig, pad_sensor_model
 from tacsplat.types import TactileReading
+
+GT_POINTS = "gt/points.ply"  # scene.json's record of touches made on the scene's ground-truth points
 
 
 class SceneUnits:
@@ -114,7 +117,7 @@ def _existing_folder(path: Path) -> Path:
 
 
 def simulate_touches(
-    mesh_path: str | Path,
+    mesh_path: str | Path | None,
     scene_path: str | Path,
     grasps: int,
     out: str | Path | None = None,
@@ -124,7 +127,8 @@ def simulate_touches(
     touch_model: str = "gel",
     surface_points: int = TouchPlan.surface_points,
 ) -> Path:
-    """Add ``grasps`` simulated grasps of ``mesh_path`` (in the scene's world frame and units) to a scene.
+    """Add ``grasps`` simulated grasps of ``mesh_path`` (in the scene's world frame and units; None: the scene's
+    ground-truth mesh, else, for the paper's touches only, its ground-truth points) to a scene.
 
     The grasps run on the mesh scaled to a graspable bounding radius
     (``object_radius`` metres); touches are mapped back into the scene's frame
@@ -143,6 +147,9 @@ def simulate_touches(
     if scene.sensor is None and out is None:
         raise ConfigError("out", f"{scene_path} has no tactile sensor model (an import): pass --out NEW_SCENE")
     check_writable(Path(scene_path) if out is None else _existing_folder(Path(out)))
+    if mesh_path is None and scene.gt_mesh_path is None:
+        return _paper_touches_on_points(scene, grasps, out, object_radius, seed, touches)
+    mesh_path = scene.gt_mesh_path if mesh_path is None else mesh_path
     centre, radius = bounding_sphere(read_mesh(mesh_path))
     with SimTwin(TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)) as twin:
         units = SceneUnits(centre, twin.object.bounding_radius / radius)
@@ -156,24 +163,7 @@ def simulate_touches(
                 )
             target = Path(scene_path)
         else:
-            plan = {
-                **scene.meta.capture_plan,
-                "simulated_touches": {
-                    "mesh": str(mesh_path),
-                    "grasps": grasps,
-                    "seed": seed,
-                    "touches": touches.to_json(),
-                },
-            }
-            extra = {**scene.meta.extra, "touch_scale": units.scale, "object_bounding_radius_m": object_radius}
-            target = copy_scene(
-                scene,
-                out,
-                meta=SceneMeta(scene.meta.source, scene.meta.object, plan, extra),
-                sensor=sensor,
-                gt_mesh=scene.gt_mesh_path or mesh_path,
-                progress=True,
-            )
+            target = _copy_with_sensor(scene, out, sensor, str(mesh_path), grasps, seed, touches, units, object_radius)
         with SceneWriter.resume(target) as writer:
             first = max((t.grasp for t in writer.touches), default=-1) + 1
             if touch_model == "paper":
@@ -199,4 +189,58 @@ def simulate_touches(
                 planner = TwinPlanner(twin, seed, grasp_config=grasp_config)
                 for g in progress_bar(range(first, first + grasps), desc="grasps", unit="grasp"):
                     planner.grasp(logger, g)
+    return target
+
+
+def _copy_with_sensor(
+    scene: Scene, out, sensor, surface: str, grasps: int, seed: int, touches: TouchPlan, units, object_radius: float
+) -> Path:
+    """Copy an import into ``out`` with the pads' sensor model, recording where its touches come from."""
+    plan = {
+        **scene.meta.capture_plan,
+        "simulated_touches": {"mesh": surface, "grasps": grasps, "seed": seed, "touches": touches.to_json()},
+    }
+    extra = {**scene.meta.extra, "touch_scale": units.scale, "object_bounding_radius_m": object_radius}
+    gt_mesh = scene.gt_mesh_path or (None if surface == GT_POINTS else surface)
+    meta = SceneMeta(scene.meta.source, scene.meta.object, plan, extra)
+    return copy_scene(scene, out, meta=meta, sensor=sensor, gt_mesh=gt_mesh, progress=True)
+
+
+def _paper_touches_on_points(
+    scene: Scene, grasps: int, out, object_radius: float, seed: int, touches: TouchPlan
+) -> Path:
+    """:func:`simulate_touches` of the paper's touches on a scene whose ground truth is points, not a mesh: the
+    points are scaled to ``object_radius`` as a mesh would be, for the pads' pixel size."""
+    points = scene.gt_points()
+    if points is None:
+        raise ConfigError("mesh", f"{scene.path} has no ground-truth mesh or points: pass --mesh")
+    if touches.model != "paper":
+        raise ConfigError(
+            "mesh",
+            f"{scene.path}'s ground truth is points ({scene.gt_points_file}), and the hand needs a mesh to grasp: "
+            "pass --mesh, or make the paper's touches (--touch-model paper)",
+        )
+    centre, radius = trimesh.nsphere.minimum_nsphere(points)
+    units = SceneUnits(centre, object_radius / radius)
+    sensor = pad_sensor_model(TwinConfig().tactile, units.scale)
+    if scene.sensor is None:
+        target = _copy_with_sensor(scene, out, sensor, GT_POINTS, grasps, seed, touches, units, object_radius)
+    elif np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
+        target = scene.path
+    else:
+        raise ConfigError(
+            "object_radius",
+            f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
+            f"its points at radius {object_radius} give {sensor.pixel_size_m}",
+        )
+    with SceneWriter.resume(target) as writer:
+        first = max((t.grasp for t in writer.touches), default=-1) + 1
+        todo = range(TOUCHES_PER_GRASP * first, TOUCHES_PER_GRASP * (first + grasps))
+        twin_points = (points - centre) * units.scale
+        write_paper_touches(
+            writer,
+            PaperTouches(twin_points, seed, touches),
+            progress_bar(todo, desc="touches", unit="touch"),
+            units.points,
+        )
     return target

@@ -7,7 +7,19 @@ point) and ``frames`` whose ``file_path`` usually has no extension
 (``./train/r_0`` means ``train/r_0.png``) and whose ``transform_matrix`` is an
 OpenGL camera-to-world pose. Images are RGBA with a transparent background,
 composited here onto a chosen colour (straight alpha). Other per-frame keys
-(``rotation``, Shiny Blender's depth and normal maps) are ignored.
+(``rotation``) are ignored.
+
+Shiny Blender (Ref-NeRF) ships a disparity map beside each image,
+``r_N_disp.tiff``: 16 bits, whose first channel as OpenCV reads it (as the
+paper's official code, ``helpers.py``, and Zip-NeRF's loader read it) divided
+by 65535 is ``1 / (1 + z)``, ``z`` the depth along the optical axis (multinerf
+and the official code back-project it as z-depth), 0 on the background. Where
+they exist they become the scene's ground truth, the way the paper evaluates
+(``data_making/refnerf_to_data.py``): each test view's depth is its ``gt/``
+depth map (``cd``), and ``cd_paper``'s ground-truth cloud is the train views'
+depth back-projected, 5000 random pixels of each view (a fixed seed here, none
+there) within ``GT_MAX_DISTANCE`` of its camera. Its normal maps are not read
+(the official code does not either).
 """
 
 from __future__ import annotations
@@ -19,7 +31,7 @@ import cv2
 import numpy as np
 
 from tacsplat.errors import ConfigError, SceneFormatError
-from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv, rigidity_problem
+from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv, rigidity_problem, unproject_depth
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
@@ -28,6 +40,8 @@ from .records import SceneMeta
 from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
 
 BACKGROUNDS = {"white": (255, 255, 255), "black": (0, 0, 0)}
+GT_POINTS_PER_VIEW = 5000  # cd_paper's ground truth: pixels back-projected per train view (the official code's)
+GT_MAX_DISTANCE = 14.5  # dataset units: farther from the camera is background (the official code's filter)
 
 
 def parse_background(text: str) -> tuple[int, int, int]:
@@ -110,6 +124,26 @@ def _image_path(src: Path, file_path: str) -> Path:
     return p if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".exr") else p.with_name(p.name + ".png")
 
 
+def disparity_path(image_path: Path) -> Path:
+    """Shiny Blender's disparity map of an image: ``r_0.png`` -> ``r_0_disp.tiff``."""
+    return image_path.with_name(image_path.stem + "_disp.tiff")
+
+
+def read_disparity_depth(path: Path, shape: tuple[int, int], field: str | None = None) -> np.ndarray:
+    """The z-depth [H, W] (dataset units, float64; 0 on the background) of a Shiny Blender disparity TIFF (module
+    docstring); a SceneFormatError naming the file unless it is a 16-bit map of ``shape``."""
+    raw = read_raw(path, field, "disparity map")
+    if raw.dtype != np.uint16:
+        raise SceneFormatError(path, field, f"expected a 16-bit disparity map, got {raw.dtype}")
+    if raw.shape[:2] != shape:
+        raise SceneFormatError(
+            path, field, f"disparity map is {raw.shape[1]}x{raw.shape[0]}, but its image is {shape[1]}x{shape[0]}"
+        )
+    disparity = (raw if raw.ndim == 2 else raw[:, :, 0]).astype(np.float64) / 65535.0
+    with np.errstate(divide="ignore"):
+        return np.where(disparity > 0, 1.0 / disparity - 1.0, 0.0)
+
+
 def _read_split(src: Path, name: str) -> tuple[Path, float, list[dict]]:
     index = src / f"transforms_{name}.json"
     if not index.is_file():
@@ -154,6 +188,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     ``transforms_{test_split}.json`` (``"test"`` or ``"val"``) the test split.
     ``scale`` (metres per Blender unit) multiplies the camera positions, e.g. to
     give a NeRF-synthetic object (about 2 units across) a graspable size.
+    Shiny Blender's disparity maps, where present, become the ground truth (module docstring).
     ``out`` is claimed as the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
     src, out = Path(src), Path(out)
@@ -182,6 +217,13 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
             "scale": scale,
         },
     )
+    test_index, _, test_frames = splits[1][1:]
+    first_test = _image_path(src, str(test_frames[0].get("file_path", "")))
+    with_depth = disparity_path(first_test).is_file()  # Shiny Blender: every view has its disparity map
+    if with_depth:
+        meta.extra["ground_truth"] = "disparity maps (*_disp.tiff): test views' depth, train views' points"
+    rng = np.random.default_rng(0)  # the ground-truth points' pixels
+    gt_points = []
     total = sum(len(frames) for *_, frames in splits)
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
     with (
@@ -206,6 +248,24 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                     )
                 pose = pose_from_opengl(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
                 pose[:3, 3] *= scale
-                writer.add_frame(composite(rgba, background_rgb), pose, split=split, intrinsics=intr)
+                depth = None
+                if with_depth:
+                    depth = scale * read_disparity_depth(disparity_path(image_path), (height, width), field)
+                    if split == "train":
+                        gt_points.append(_sample_points(depth, intr.K, pose, GT_MAX_DISTANCE * scale, rng))
+                gt_depth = depth.astype(np.float32) if depth is not None and split == "test" else None
+                writer.add_frame(composite(rgba, background_rgb), pose, split=split, gt_depth=gt_depth, intrinsics=intr)
                 progress.update()
+        if gt_points and sum(map(len, gt_points)):
+            writer.set_gt_points(np.concatenate(gt_points))
     return out
+
+
+def _sample_points(depth: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, max_distance: float, rng) -> np.ndarray:
+    """World points [<= GT_POINTS_PER_VIEW, 3] of random pixels of a depth map with surface (depth > 0) closer than
+    ``max_distance`` to the camera."""
+    points = unproject_depth(depth, K, T_world_cam)  # [M, 3]
+    points = points[np.linalg.norm(points - T_world_cam[:3, 3], axis=1) < max_distance]
+    if len(points) > GT_POINTS_PER_VIEW:
+        points = points[rng.choice(len(points), GT_POINTS_PER_VIEW, replace=False)]
+    return points

@@ -1,5 +1,5 @@
-"""`tacsplat` subcommands of tacsplat.datasets: ``import blender``, ``import colmap``, ``import nerfstudio``,
-``inspect``; their options are the dataclasses below (tacsplat.options)."""
+"""`tacsplat` subcommands of tacsplat.datasets: ``import blender``, ``import nero``, ``import colmap``,
+``import nerfstudio``, ``inspect``; their options are the dataclasses below (tacsplat.options)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,9 @@ class ImportBlender:
 
     Convert SRC (transforms_train.json, transforms_val.json, transforms_test.json and their RGBA images) into a
     scene directory: images composited onto the background colour, OpenGL poses converted to the scene format, the
-    train split from transforms_train.json and the test split from the file chosen by --test-split."""
+    train split from transforms_train.json and the test split from the file chosen by --test-split. Shiny
+    Blender's disparity maps (r_N_disp.tiff) become the ground truth: the test views' depth and the train views'
+    points, as the paper evaluates (the paper's code composites onto black: --background black)."""
 
     src: tyro.conf.Positional[Path]
     """dataset folder holding transforms_train.json"""
@@ -30,6 +32,27 @@ class ImportBlender:
     """which file becomes the scene's test split: transforms_test.json or transforms_val.json"""
     scale: float = 1.0
     """metres per Blender unit (multiplies camera positions; NeRF-synthetic objects are ~2 units across)"""
+
+
+@dataclass
+class ImportNero:
+    """import one object of NeRO's Glossy Synthetic dataset (N.png, N-camera.pkl, N-depth.png) into a scene
+
+    Convert SRC (one object's folder, e.g. GlossySynthetic/bell) into a scene directory: the train and test views of
+    NeRO's split file (configs/synthetic_split_128.pkl in NeRO's repository: 96 train, 32 test views), images
+    composited onto the background colour outside the object's depth mask, the test views' depth and eval_pts.ply
+    kept as the ground truth (the paper's code composites onto black: --background black)."""
+
+    src: tyro.conf.Positional[Path]
+    """the object's folder"""
+    out: Path
+    """new scene directory (must not exist or be empty)"""
+    split: Path | None = None
+    """NeRO's synthetic_split_128.pkl (default: looked for in SRC and its parent)"""
+    background: str = "white"
+    """colour outside the object's mask: white, black or R,G,B (0-255 integers)"""
+    scale: float = 1.0
+    """metres per dataset unit (multiplies camera positions, depths and points)"""
 
 
 @dataclass
@@ -97,6 +120,7 @@ class Inspect:
 def register(cli) -> None:
     """Add this package's commands to the tree."""
     cli.typed("import blender", ImportBlender, _import_blender)
+    cli.typed("import nero", ImportNero, _import_nero)
     cli.typed("import colmap", ImportColmap, _import_colmap)
     cli.typed("import nerfstudio", ImportNerfstudio, _import_nerfstudio)
     cli.typed("inspect", Inspect, _inspect)
@@ -126,6 +150,17 @@ def _import_blender(o: ImportBlender) -> int:
     return _importing(
         lambda: import_blender(o.src, o.out, background_rgb=background, test_split=o.test_split, scale=o.scale), o.out
     )
+
+
+def _import_nero(o: ImportNero) -> int:
+    from .blender import parse_background
+    from .nero import import_nero
+
+    try:
+        background = parse_background(o.background)
+    except ValueError as exc:
+        raise UsageError("--background", str(exc)) from None
+    return _importing(lambda: import_nero(o.src, o.out, o.split, background, o.scale), o.out)
 
 
 def _import_colmap(o: ImportColmap) -> int:

@@ -13,7 +13,7 @@ from tacsplat.errors import InvalidInputError
 from tacsplat.progress import progress_bar
 
 from .reader import Scene
-from .records import SceneMeta, SensorModel, Touch
+from .records import Frame, SceneMeta, SensorModel, Touch
 from .writer import SceneWriter, removed_on_failure
 
 
@@ -25,11 +25,13 @@ def copy_scene(
     meta: SceneMeta | None = None,
     sensor: SensorModel | None = None,
     gt_mesh=None,
+    frames: Sequence[Frame] | None = None,
     progress: bool = False,
 ) -> Path:
-    """Write a new scene in ``dst`` (a new or empty folder) holding every frame of ``src`` (a scene folder or a
-    loaded :class:`Scene`) with its intrinsics and ground-truth depth, and ``touches`` (records of ``src``, in the
-    order given; default all), grasp and finger kept, ids renumbered.
+    """Write a new scene in ``dst`` (a new or empty folder) holding ``frames`` of ``src`` (a scene folder or a
+    loaded :class:`Scene`; in the order given, default all) with their intrinsics and ground-truth depth, and
+    ``touches`` (records of ``src``, in the order given; default all), grasp and finger kept, ids renumbered.
+    The ground-truth point cloud, if any, is copied.
 
     ``meta``, ``sensor`` and ``gt_mesh`` (a mesh path or ``trimesh.Trimesh``) default to the source's; a new
     sensor model is refused while touches of the old one are copied. Every record is written crash-safely; when
@@ -38,6 +40,12 @@ def copy_scene(
     scene = src if isinstance(src, Scene) else Scene.load(src)
     dst = Path(dst)
     touches = list(scene.touches if touches is None else touches)
+    frames = list(scene.frames if frames is None else frames)
+    for frame in frames:
+        if frame not in scene.frames:
+            raise InvalidInputError(f"frames: frame {frame.id} ({frame.file_path}) is not a frame of {scene.path}")
+    if not frames:
+        raise InvalidInputError("frames: a scene needs at least one frame")
     for touch in touches:
         if touch not in scene.touches:
             raise InvalidInputError(
@@ -50,9 +58,9 @@ def copy_scene(
             "copied; copy no touches to give the scene another sensor model"
         )
     gt_mesh = scene.gt_mesh_path if gt_mesh is None else gt_mesh
-    intrinsics = scene.intrinsics or scene.frames[0].intrinsics
+    intrinsics = scene.intrinsics or frames[0].intrinsics
     with removed_on_failure(dst), SceneWriter.create(dst, intrinsics, meta or scene.meta, sensor) as writer:
-        for frame in progress_bar(scene.frames, desc="copy frames", unit="frame", enabled=progress):
+        for frame in progress_bar(frames, desc="copy frames", unit="frame", enabled=progress):
             image = np.rint(scene.load_image(frame) * 255).astype(np.uint8)
             writer.add_frame(
                 image,
@@ -70,4 +78,6 @@ def copy_scene(
             writer.add_touch(scene.load_touch_depth(touch), touch.T_world_sensor, touch.grasp, touch.finger, hand_file)
         if gt_mesh is not None:
             writer.set_gt_mesh(gt_mesh)
+        if scene.gt_points_path is not None:
+            writer.set_gt_points(scene.gt_points())
     return dst

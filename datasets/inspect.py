@@ -36,7 +36,7 @@ def summarise(path) -> dict:
         "hand_motion": None,
         "sensor": None,
         "bounds": None,
-        "gt": {"mesh": None, "depth_maps": 0},
+        "gt": {"mesh": None, "points": None, "depth_maps": 0},
         "annotations": [],
         "journal": (path / JOURNAL).is_file(),
         "problems": problems,
@@ -75,7 +75,11 @@ def summarise(path) -> dict:
     if scene.frames or any(t.in_contact for t in scene.touches):
         lo, hi = scene.bounds()
         summary["bounds"] = {"lo": lo.tolist(), "hi": hi.tolist()}
-    summary["gt"] = {"mesh": scene.gt_mesh_file, "depth_maps": len(scene.gt_depth_files)}
+    summary["gt"] = {
+        "mesh": scene.gt_mesh_file,
+        "points": scene.gt_points_file,
+        "depth_maps": len(scene.gt_depth_files),
+    }
     summary["annotations"] = sorted(scene.annotations)
     return summary
 
@@ -119,7 +123,8 @@ def format_summary(summary: dict) -> str:
         fmt = lambda v: "(" + ", ".join(f"{x:+.3f}" for x in v) + ")"  # noqa: E731
         lines.append(f"bounds    {fmt(lo)} .. {fmt(hi)} m  (size {fmt(hi - lo)})")
     gt = summary["gt"]
-    lines.append(f"gt        mesh: {gt['mesh'] or 'none'}, depth maps: {gt['depth_maps']}")
+    points = f", points: {gt['points']}" if gt["points"] else ""
+    lines.append(f"gt        mesh: {gt['mesh'] or 'none'}{points}, depth maps: {gt['depth_maps']}")
     if summary["annotations"]:
         lines.append("annotated " + ", ".join(summary["annotations"]))
     problems = summary["problems"]

@@ -139,6 +139,27 @@ def load_depth_npz(
     return depth.astype(np.float32, copy=False)
 
 
+def load_points_ply(path: Path, problems: _Problems, field: str) -> np.ndarray | None:
+    """The vertices [N, 3] of a PLY point cloud written by the writer (``gt/points.ply``), checked finite."""
+    import trimesh
+
+    if not path.is_file():
+        problems.report(path, None, "point cloud file missing")
+        return None
+    try:
+        points = np.asarray(trimesh.load(str(path), file_type="ply").vertices, dtype=np.float64)
+    except Exception as exc:  # trimesh raises many types for damaged files
+        problems.report(path, field, f"unreadable PLY point cloud: {_first_line(exc)}")
+        return None
+    if points.ndim != 2 or points.shape[1:] != (3,) or not len(points):
+        problems.report(path, field, f"expected a non-empty [N, 3] point cloud, got shape {points.shape}")
+        return None
+    if not np.isfinite(points).all():
+        problems.report(path, field, "contains NaN or infinite coordinates")
+        return None
+    return points
+
+
 def load_hand_motion(path: Path, problems: _Problems, field: str) -> HandMotion | None:
     """Load and check a grasp's hand motion written by the writer (:meth:`HandMotion.to_arrays`'s keys)."""
     if not path.is_file():
@@ -209,6 +230,7 @@ class Scene:
     tacsplat_version: str = ""
     gt_depth_files: dict[int, str] = field(default_factory=dict)
     gt_mesh_file: str | None = None
+    gt_points_file: str | None = None
     annotations: dict = field(default_factory=dict)  # scene.json's: what the capture recorded beside its records
 
     @classmethod
@@ -250,6 +272,18 @@ class Scene:
     def gt_mesh_path(self) -> Path | None:
         """Ground-truth mesh (evaluation only), or None."""
         return None if self.gt_mesh_file is None else self.path / self.gt_mesh_file
+
+    @property
+    def gt_points_path(self) -> Path | None:
+        """Ground-truth point cloud on the object's surface (evaluation only; a dataset without a mesh), or None."""
+        return None if self.gt_points_file is None else self.path / self.gt_points_file
+
+    def gt_points(self) -> np.ndarray | None:
+        """The ground-truth point cloud [N, 3] in metres (:attr:`gt_points_path`), or None."""
+        if self.gt_points_path is None:
+            return None
+        problems = _Problems(collect=False)
+        return load_points_ply(self.gt_points_path, problems, "gt.points")
 
     # --- data ---------------------------------------------------------------------------------
 
@@ -453,8 +487,9 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
                 )
             elif journaled.annotations != scene.annotations and not problems.errors:
                 problems.report(journal, "annotations", f"records other annotations than scene.json holds: {resume}")
-            elif (journaled.gt_mesh, journaled.gt_depth_files) != (
+            elif (journaled.gt_mesh, journaled.gt_points, journaled.gt_depth_files) != (
                 scene.gt_mesh_file,
+                scene.gt_points_file,
                 scene.gt_depth_files,
             ) and not problems.errors:
                 problems.report(journal, "gt", f"records other ground truth than scene.json holds: {resume}")
@@ -743,6 +778,13 @@ def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems
                 problems.report(index, "gt.mesh", f"ground-truth mesh {mesh!r} is missing")
             else:
                 scene.gt_mesh_file = mesh
+    points = gt.get("points")
+    if points is not None:
+        points_path = _relative_file(scene.path, points, index, "gt.points", problems)
+        if points_path is not None and (
+            not check_files or load_points_ply(points_path, problems, "gt.points") is not None
+        ):
+            scene.gt_points_file = points
     depth_files = gt.get("depth", {})
     if not isinstance(depth_files, dict):
         problems.report(index, "gt.depth", f"expected an object {{frame id: file}}, got {type(depth_files).__name__}")

@@ -188,6 +188,7 @@ class SceneWriter:
         self.touches: list[Touch] = []
         self._gt_depth: dict[int, str] = {}
         self._gt_mesh: str | None = None
+        self._gt_points: str | None = None
         self.annotations: dict = {}  # key -> plain JSON value, the latest recorded; read it, change it by annotate
         self._order: list[tuple[str, int]] = []  # live records, oldest first, for remove_last
         self._journal = None
@@ -371,6 +372,11 @@ class SceneWriter:
         return self._gt_mesh
 
     @property
+    def gt_points(self) -> str | None:
+        """The ground-truth point cloud's path in the scene (``gt/points.ply``), None until :meth:`set_gt_points`."""
+        return self._gt_points
+
+    @property
     def gt_depth_files(self) -> dict[int, str]:
         """Frame id -> the path in the scene of its ground-truth depth."""
         return dict(self._gt_depth)
@@ -409,6 +415,8 @@ class SceneWriter:
                 self.touches.pop()
         elif op == "gt_mesh":
             self._gt_mesh = entry["path"]
+        elif op == "gt_points":
+            self._gt_points = entry["path"]
         elif op == "annotation":
             key = entry["key"]
             if not isinstance(key, str) or not key:
@@ -481,7 +489,11 @@ class SceneWriter:
             "units": "m",
             "tacsplat_version": self._version,
             "created": self._created,
-            "gt": {"mesh": self._gt_mesh, "depth": {str(k): v for k, v in sorted(self._gt_depth.items())}},
+            "gt": {
+                "mesh": self._gt_mesh,
+                "points": self._gt_points,
+                "depth": {str(k): v for k, v in sorted(self._gt_depth.items())},
+            },
             "annotations": self.annotations,
         }
 
@@ -631,6 +643,21 @@ class SceneWriter:
         rel = "gt/mesh.ply"
         atomic_write_bytes(self.path / rel, data)
         self._record({"op": "gt_mesh", "path": rel}, "scene")
+        return self.path / rel
+
+    def set_gt_points(self, points: np.ndarray) -> Path:
+        """Store a ground-truth point cloud [N, 3] (metres, world frame) as ``gt/points.ply``: the object's surface
+        where a dataset ships points, not a mesh (NeRO's ``eval_pts.ply``)."""
+        import trimesh
+
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 3 or not len(points):
+            raise InvalidInputError(f"points: expected a non-empty [N, 3] array, got shape {points.shape}")
+        if not np.isfinite(points).all():
+            raise InvalidInputError("points: contain NaN or infinite values")
+        rel = "gt/points.ply"
+        atomic_write_bytes(self.path / rel, trimesh.PointCloud(points).export(file_type="ply"))
+        self._record({"op": "gt_points", "path": rel}, "scene")
         return self.path / rel
 
     def annotate(self, key: str, value) -> None:

@@ -4,7 +4,8 @@ The ground truth of the Chamfer distance is the visible surface of the test
 cameras: the scene's ``gt/`` depth maps, or depth rendered by ray casting a
 mesh given by path (imported scenes), or a point cloud given by path. The
 normaliser is the ground-truth object's bounding-sphere radius (of the mesh
-when there is one, else of the ground-truth cloud).
+when there is one, else of the scene's ground-truth points, else of the
+ground-truth cloud).
 """
 
 from __future__ import annotations
@@ -231,7 +232,9 @@ def load_ground_truth(
     if mesh_path is not None and mesh_path.is_file():
         mesh = trimesh.load(str(mesh_path), force="mesh")
         radius, surface = bounding_sphere_radius(mesh.vertices), surface_points(mesh)
-    else:  # no mesh: cd_paper compares with the visible surface of the test views, like cd
+    elif (cloud := scene.gt_points()) is not None:  # a dataset's points on the object (NeRO's eval_pts.ply)
+        radius, surface = bounding_sphere_radius(cloud), cloud
+    else:  # neither: cd_paper compares with the visible surface of the test views, like cd
         surface = np.concatenate(list(points.values()))
         radius = bounding_sphere_radius(surface)
     if not radius > 0:

@@ -65,6 +65,13 @@ _FATAL_WARNINGS = (
 )
 
 
+def pad_sensor_model(tactile: TactileConfig, scale: float = 1.0) -> SensorModel:
+    """The scene's sensor model of pads made as ``tactile`` says, in a scene whose lengths are the twin's divided by
+    ``scale``."""
+    t = tactile
+    return SensorModel(SENSOR_MODEL_NAME, t.width_px, t.height_px, t.pixel_size_m / scale, t.gel_thickness_m / scale)
+
+
 @dataclass
 class TwinConfig:
     """Settings of a twin (defaults: the library teapot, 2 ms steps, 200x200 views)."""
@@ -346,10 +353,7 @@ class SimTwin:
 
     def sensor_model(self, scale: float = 1.0) -> SensorModel:
         """The scene's sensor model of the pads, in a scene whose lengths are the twin's divided by ``scale``."""
-        t = self.config.tactile
-        return SensorModel(
-            SENSOR_MODEL_NAME, t.width_px, t.height_px, t.pixel_size_m / scale, t.gel_thickness_m / scale
-        )
+        return pad_sensor_model(self.config.tactile, scale)
 
     # --- state -------------------------------------------------------------------------------
     def forward(self) -> None:

@@ -290,3 +290,33 @@ def test_paper_touches_of_an_imported_unit_scale_scene_come_out_in_its_frame_and
     )
     extended = Scene.load(out)
     assert [t.grasp for t in extended.touches[8:]] == [2] * 4
+
+
+def test_paper_touches_on_an_imported_scene_with_ground_truth_points_only(tmp_path, capsys):
+    """Glossy Synthetic ships points, not a mesh: the paper's touches are made on them, and lie on them; the
+    hand's gel touches need a mesh, and the error says so."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parents[1] / "datasets"))
+    from paper_datasets import RADIUS, make_glossy_synthetic
+
+    from tacsplat.datasets.nero import import_nero
+
+    imported = import_nero(make_glossy_synthetic(tmp_path / "src"), tmp_path / "imported", scale=0.5)
+    out = tmp_path / "touched"
+    command = ["simulate-touches", str(imported), "--grasps", "2", "--out", str(out), "--seed", "4"]
+    assert main([*command, "--touch-model", "paper"]) == 0
+    scene = Scene.load(out)
+    assert scene.meta.capture_plan["simulated_touches"]["mesh"] == "gt/points.ply"
+    assert len(scene.touches) == 8 and scene.gt_points().shape == (3000, 3)
+    samples = Scene.load(imported).gt_points()
+    tolerance = COLLISION_TOLERANCE_PX * scene.sensor.pixel_size_m
+    for touch in scene.touches:
+        lifted = _lifted(scene, touch)
+        assert len(lifted) == round(50 * 3000 / 20000)  # the paper's share of the surface: 50 of 20000 samples
+        assert np.linalg.norm(samples[:, None] - lifted[None], axis=2).min(axis=0).max() <= tolerance
+        assert np.linalg.norm(lifted - lifted.mean(axis=0), axis=1).max() < 0.3 * 0.5 * RADIUS  # one cluster
+    capsys.readouterr()
+    assert main([*command[:-4], "--out", str(tmp_path / "gel"), "--seed", "4"]) == 1
+    err = capsys.readouterr().err
+    assert "--mesh" in err and "gt/points.ply" in err and "--touch-model paper" in err
