@@ -15,6 +15,15 @@ default (``default``, beyond the paper); ``--methods`` picks others, among them
 the ablation rows of ``ablations.yaml`` (a method with settings changed).
 Everything else is the trainer's defaults.
 
+With ``--dataset DIR`` the objects are instead the scene directories in
+``DIR``, imported from the paper's own datasets (``tacsplat import nero``,
+``tacsplat import blender``; ``docs/datasets.md``): per setting a copy of each
+keeps its test views and, as train views, all of them (``full-views``) or the
+five the paper's code keeps (``minimal``: :func:`paper_views`), and gets
+``--grasps`` simulated grasps on its ground truth (``simulate-touches``; the
+paper's touches by default); the report prints the paper's Tables 1-3
+(``paper_tables.yaml``) beside ours, in the dataset's units.
+
 The job is resumable: a finished capture is marked by ``capture.json``, a run
 with a ``metrics.json`` is skipped, a run with only a checkpoint is continued.
 The captures and runs are batch jobs (:mod:`tacsplat.apps.batch`): run one
@@ -39,7 +48,7 @@ from typing import Annotated, Literal
 import numpy as np
 import tyro
 
-from tacsplat.apps.batch import CaptureJob, ReconstructJob
+from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
@@ -52,6 +61,29 @@ MINIMAL_VIEWS = 5
 GRASPS = 5  # 5 grasps x 4 fingertips = 20 touches (paper: 5 grasps)
 QUICK_OBJECTS = ("teapot", "bell")
 ABLATIONS = Path(__file__).with_name("ablations.yaml")  # the bench's rows beyond the methods
+PAPER_TABLES = Path(__file__).with_name("paper_tables.yaml")  # the paper's own numbers
+DATASETS = {"nero": "glossy-synthetic", "blender": "shiny-blender"}  # importer -> the paper's dataset
+
+
+@functools.cache
+def paper_tables() -> dict:
+    """``{dataset: {setting: {metric: {method: {object: value}}}}}`` of :data:`PAPER_TABLES`."""
+    import yaml
+
+    return yaml.safe_load(PAPER_TABLES.read_text())
+
+
+def paper_views(train: list, count: int) -> list:
+    """The ``count`` train views the paper's official code keeps (``utils_data.filter_dataset``: every
+    ``int(N / count)``-th of the N train views in the dataset's order, from the first); all for ``count`` 0 or at
+    least N."""
+    if count <= 0 or count >= len(train):
+        return list(train)
+    return list(train[:: len(train) // count][:count])
+
+
+def is_scene_dir(path: Path) -> bool:
+    return (path / "scene.json").is_file() and (path / "transforms.json").is_file()
 
 
 @functools.cache
@@ -104,6 +136,8 @@ class PaperBenchConfig:
     preset: str = "default"  # training preset (reconstruction.config.PRESETS): default or paper
     touch_model: str = "gel"  # gel (grasps with gel contact patches) or paper (the official code's sampling)
     texture: str = "none"  # the objects' surface: their one colour, or "checker" (tacsplat.sim.objects.TEXTURES)
+    dataset: str | None = None  # a folder of imported scenes instead of the twin's objects (module docstring)
+    downscale: int = 1  # with a dataset: its images trained and evaluated at 1/downscale of their size
 
     @classmethod
     def quick(cls) -> "PaperBenchConfig":
@@ -113,18 +147,29 @@ class PaperBenchConfig:
     def validate(self) -> None:
         from tacsplat.sim.objects import OBJECT_NAMES
 
-        unknown = [o for o in self.objects if o not in OBJECT_NAMES and not Path(o).is_file()]
+        if self.dataset is not None:
+            self._validate_dataset()
+        unknown = [
+            o
+            for o in self.objects
+            if (o not in self.dataset_objects() if self.dataset else o not in OBJECT_NAMES and not Path(o).is_file())
+        ]
         if unknown:
             raise ConfigError(
                 "objects",
-                f"unknown object(s) {', '.join(unknown)}; choose from {', '.join(OBJECT_NAMES)} or give mesh files",
+                f"unknown object(s) {', '.join(unknown)}; choose from "
+                + (
+                    f"the scenes in {self.dataset}: {', '.join(self.dataset_objects())}"
+                    if self.dataset
+                    else f"{', '.join(OBJECT_NAMES)} or give mesh files"
+                ),
             )
         for s in self.settings:
             if s not in SETTINGS:
                 raise ConfigError("settings", f"unknown setting {s!r}; choose from {', '.join(SETTINGS)}")
         for name in self.methods:
             bench_row(name, "methods")
-        if self.full_views < 32:
+        if self.full_views < 32 and self.dataset is None:
             raise ConfigError(
                 "full_views", f"the full-views setting needs at least 32 train views, got {self.full_views}"
             )
@@ -144,6 +189,24 @@ class PaperBenchConfig:
         if problem := texture_problem(self.texture):
             raise ConfigError("texture", problem)
 
+    def _validate_dataset(self) -> None:
+        folder = Path(self.dataset)
+        if not folder.is_dir():
+            raise ConfigError("dataset", f"{folder} is not a folder")
+        if not self.dataset_objects():
+            raise ConfigError(
+                "dataset",
+                f"{folder} holds no scene directories: import each object into a folder of it (tacsplat import nero "
+                "or import blender; docs/datasets.md)",
+            )
+        if isinstance(self.downscale, bool) or not isinstance(self.downscale, int) or self.downscale < 1:
+            raise ConfigError("downscale", f"must be an integer >= 1, got {self.downscale!r}")
+
+    def dataset_objects(self) -> list[str]:
+        """The names of the scene directories in :attr:`dataset`, sorted."""
+        folder = Path(self.dataset)
+        return sorted(p.name for p in folder.iterdir() if p.is_dir() and is_scene_dir(p)) if folder.is_dir() else []
+
     @property
     def scene_tag(self) -> str:
         """Suffix of scene folders that are not gel touches on untextured objects (so they never mix)."""
@@ -160,6 +223,8 @@ class PaperBenchConfig:
         """The objects' names: library objects, and the file name (without suffix) of each mesh file."""
         from tacsplat.sim.objects import OBJECT_NAMES
 
+        if self.dataset is not None:
+            return list(self.objects) or self.dataset_objects()
         return [Path(o).stem if Path(o).is_file() else o for o in self.objects] or list(OBJECT_NAMES)
 
     def mesh_of(self, name: str) -> str | None:
@@ -227,10 +292,20 @@ class PaperBench:
 
     # ------------------------------------------------------------------ capture and training
 
-    def capture_job(self, obj: str, setting: str, seed: int) -> CaptureJob:
-        """The seeded sim capture of one object and setting."""
+    def capture_job(self, obj: str, setting: str, seed: int) -> CaptureJob | DatasetSceneJob:
+        """The seeded sim capture of one object and setting (with a dataset: its scene of that setting)."""
         c = self.config
         scene = self.scene_dir(obj, setting, seed)
+        if c.dataset is not None:
+            return DatasetSceneJob(
+                out=scene,
+                base=Path(c.dataset).resolve() / obj,
+                count=MINIMAL_VIEWS if setting == "minimal" else 0,
+                grasps=c.grasps,
+                seed=seed,
+                touch_model=c.touch_model,
+                name=f"prepare {scene.relative_to(self.out)}",
+            )
         views = MINIMAL_VIEWS if setting == "minimal" else c.full_views
         return CaptureJob(
             out=scene,
@@ -255,6 +330,8 @@ class PaperBench:
     def reconstruct_job(self, run: Run, needs: tuple[str, ...] = ()) -> ReconstructJob:
         """One reconstruction (continued from its checkpoint if one exists)."""
         method, overrides = bench_row(run.method)
+        if self.config.downscale != 1:
+            overrides = {**overrides, "downscale": self.config.downscale}
         return ReconstructJob(
             out=run.out,
             scene=run.scene,
@@ -357,6 +434,7 @@ class PaperBench:
                     "method": run.method,
                     "seed": run.seed,
                     **{k: _number(m.get(k)) for k in NUMBER_COLUMNS},
+                    **({"cd_paper_units": _in_dataset_units(m, run.scene)} if self.config.dataset else {}),
                 }
             )
         return rows
@@ -397,6 +475,47 @@ class PaperBench:
 
 def _number(value) -> float:
     return float("nan") if value is None else float(value)
+
+
+def _in_dataset_units(metrics: dict, scene: Path) -> float:
+    """A run's ``cd_paper`` (squared, in units of the ground-truth radius) in the units of the dataset its scene was
+    imported from (``scale``: metres per dataset unit), as the paper reports it."""
+    from tacsplat.datasets import Scene
+
+    cd, radius = _number(metrics.get("cd_paper")), _number(metrics.get("gt_radius"))
+    scale = Scene.load(scene, check_files=False).meta.extra.get("scale", 1.0)
+    return cd * (radius / scale) ** 2
+
+
+@dataclass(frozen=True, kw_only=True)
+class DatasetSceneJob(SceneCopyJob):
+    """One setting's scene of the imported scene ``base``: its test views, the train views the paper keeps
+    (:func:`paper_views` of ``count``; 0: all), and ``grasps`` simulated grasps on its ground truth
+    (``touch_model``, seeded); a scene that holds touches already keeps them instead. Its marker records the
+    dataset's train views kept and the touches."""
+
+    kind: Literal["dataset-scene"] = "dataset-scene"
+    grasps: int = GRASPS
+    seed: int = 0
+    touch_model: Literal["gel", "paper"] = "paper"
+
+    def make_copy(self) -> dict:
+        import shutil
+
+        from tacsplat.acquisition.touch_simulation import simulate_touches
+        from tacsplat.datasets import Scene, copy_scene
+
+        scene = Scene.load(self.base)
+        train = paper_views(scene.split("train"), self.count)
+        if scene.touches:
+            copy_scene(scene, self.out, frames=train + scene.split("test"))
+        else:
+            views = self.out.with_name(self.out.name + ".views")
+            shutil.rmtree(views, ignore_errors=True)  # (a copy cut short)
+            copy_scene(scene, views, frames=train + scene.split("test"))
+            simulate_touches(None, views, self.grasps, self.out, seed=self.seed, touch_model=self.touch_model)
+            shutil.rmtree(views)
+        return {"train_views": [f.file_path for f in train], "touches": len(Scene.load(self.out).touches)}
 
 
 def _fmt(value, decimals: int) -> str:
@@ -462,11 +581,58 @@ def coverage_sentence(rows: list[dict], setting: str) -> str:
     )
 
 
-# The paper's Table 2 (Glossy Synthetic, 5 views): CD as its official code measures it, per object and on average.
-PAPER_MINIMAL_CD = {
-    "3dgs": {"bell": 0.0220, "teapot": 0.0079, "Avg.": 0.0111},
-    "paper": {"bell": 0.0082, "teapot": 0.0022, "Avg.": 0.0026},
-}
+def dataset_of(config: PaperBenchConfig, obj: str) -> str | None:
+    """Which of the paper's datasets (a key of :data:`PAPER_TABLES`) the scene ``obj`` of ``config.dataset`` was
+    imported from: by its importer, and for ``blender`` only with Shiny Blender's ground truth; None otherwise."""
+    from tacsplat.datasets import Scene
+
+    extra = Scene.load(Path(config.dataset) / obj, check_files=False).meta.extra
+    importer = extra.get("importer")
+    if importer == "blender" and "ground_truth" not in extra:
+        return None  # NeRF synthetic: no table of the paper's
+    return DATASETS.get(importer)
+
+
+def paper_tables_section(rows: list[dict], config: PaperBenchConfig, setting: str) -> str:
+    """Ours beside the paper's Tables 1-3 for the objects of ``setting`` imported from its datasets: CD as the
+    paper's code measures it (``cd_paper_units``: in the dataset's units), PSNR and SSIM, the paper's numbers for
+    objects of the same name ("" when no table applies)."""
+    from tacsplat.apps.report import metric_table
+
+    selected = [r for r in rows if r["setting"] == setting]
+    kinds = {obj: dataset_of(config, obj) for obj in dict.fromkeys(r["object"] for r in selected)}
+    labels = {  # metric: (heading, our column, our decimals, the paper's decimals)
+        "cd": ("CD (the paper's, in the dataset's units)", "cd_paper_units", 5, 4),
+        "psnr": ("PSNR", "psnr", 2, 2),
+        "ssim": ("SSIM", "ssim", 3, 3),
+    }
+    lines = []
+    for kind in sorted({k for k in kinds.values() if k is not None}):
+        table = paper_tables()[kind].get(setting)
+        if table is None:
+            continue
+        ours = [r for r in selected if kinds[r["object"]] == kind]
+        lines += [
+            f"## Against the paper: {kind}, {setting}",
+            "",
+            "Ours (mean over seeds) beside the paper's own numbers (its Tables 1-3) for objects of the same name; "
+            "the paper's Avg. is over all of its objects.",
+            "",
+        ]
+        for metric, measures in table.items():
+            heading, key, decimals, theirs = labels[metric]
+            objects, methods, values = metric_table(ours, key, setting)
+            columns = objects + ["Avg."]
+            lines += [f"{heading}:", "", "| | " + " | ".join(columns) + " |", "| --- |" + " ---: |" * len(columns)]
+            for i, method in enumerate(methods):
+                lines.append(f"| {method} (ours) | " + " | ".join(f"{v:.{decimals}f}" for v in values[i]) + " |")
+            for method, numbers in measures.items():
+                cells = [numbers.get(o.lower()) for o in objects] + [numbers.get("Avg.")]
+                lines.append(
+                    f"| {method} (paper) | " + " | ".join("–" if v is None else f"{v:.{theirs}f}" for v in cells) + " |"
+                )
+            lines.append("")
+    return "\n".join(lines)
 
 
 def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
@@ -499,13 +665,12 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     for key, what in (("accuracy", "predicted -> GT"), ("completeness", "GT -> predicted")):
         for label, index in (("3DGS", vanilla), ("full", full)):
             lines.append(f"| {label}, {key} ({what}) | " + " | ".join(f"{v:.5f}" for v in terms[key][index]) + " |")
+    table = paper_tables()["glossy-synthetic"]["minimal"]["cd"]  # the paper's Table 2
     for label, key in (("3DGS (paper)", "3dgs"), ("full (paper)", "paper")):
         lines.append(
-            f"| {label} | "
-            + " | ".join(f"{PAPER_MINIMAL_CD[key][c]:.4f}" if c in PAPER_MINIMAL_CD[key] else "–" for c in columns)
-            + " |"
+            f"| {label} | " + " | ".join(f"{table[key][c]:.4f}" if c in table[key] else "–" for c in columns) + " |"
         )
-    paper_ratio = PAPER_MINIMAL_CD["3dgs"]["Avg."] / PAPER_MINIMAL_CD["paper"]["Avg."]
+    paper_ratio = table["3dgs"]["Avg."] / table["paper"]["Avg."]
     lines += [
         "",
         f"Gain of full over 3DGS on average: {cd[vanilla, -1] / cd[full, -1]:.2f}x in our CD, "
@@ -633,14 +798,17 @@ def write_paper_report(
     out = Path(out)
     write_results_csv(rows, out / "results.csv")
     settings = [s for s in SETTINGS if any(r["setting"] == s for r in rows)]
+    if config.dataset is None:
+        what, size, test = "the twin's glossy objects", f"{config.resolution}x{config.resolution} px", config.test_views
+        full = f"{config.full_views}"
+    else:
+        what, size, test, full = config.dataset, f"images at 1/{config.downscale}", "the dataset's", "all its"
     lines = [
-        "# Tactile-informed 3DGS on the twin's glossy objects",
+        f"# Tactile-informed 3DGS on {what}",
         "",
-        f"{len(rows)} runs: {config.resolution}x{config.resolution} px, {config.iterations} steps, "
-        f"{config.test_views} held-out test views per object, {config.grasps} grasps of 4 touches, "
-        + "".join(
-            f"{s} = {MINIMAL_VIEWS if s == 'minimal' else config.full_views} train views, " for s in config.settings
-        )
+        f"{len(rows)} runs: {size}, {config.iterations} steps, "
+        f"{test} held-out test views per object, {config.grasps} grasps of 4 touches, "
+        + "".join(f"{s} = {MINIMAL_VIEWS if s == 'minimal' else full} train views, " for s in config.settings)
         + f"seeds {', '.join(map(str, config.seeds))} (tables: mean over seeds), preset {config.preset}, "
         f"{config.touch_model} touches"
         + ("" if config.texture == "none" else f", {config.texture} texture on every object")
@@ -668,7 +836,9 @@ def write_paper_report(
             coverage_sentence(rows, setting),
             "",
         ]
-        if setting == "minimal":
+        if config.dataset is not None:
+            lines += [paper_tables_section(rows, config, setting), ""]
+        elif setting == "minimal":
             lines += [where_we_stand(rows, config), ""]
         if not figures:
             continue
@@ -712,13 +882,20 @@ class PaperBenchCommand:
 
     Per object: a seeded sim capture per setting (minimal: 5 views + 5 grasps; full-views: >= 32 views + 5
     grasps), the four methods and reconstruct's default, then REPORT/results.csv, REPORT/report.md and plots.
+    With --dataset DIR, the objects are the scenes imported into DIR from the paper's datasets (import nero, import
+    blender; docs/datasets.md): minimal = the 5 train views the paper's code keeps, full-views = all, 5 grasps
+    simulated on the ground truth, and the paper's Tables 1-3 beside ours.
     Resumable: rerun the same command after an interruption. --executor ray runs the captures and runs as Ray tasks
     (an embedded local Ray, or the cluster at --ray-address; --out on storage every node sees)."""
 
     out: Path
     """report folder (captures, runs, results.csv, report.md, PNGs)"""
     objects: str = "all"
-    """'all' or comma-separated library objects (--quick: teapot,bell)"""
+    """'all' or comma-separated library objects, mesh files or (with --dataset) scene names (--quick: teapot,bell)"""
+    dataset: Path | None = None
+    """a folder of scenes imported from the paper's datasets, one per object (instead of the twin's objects)"""
+    downscale: int = 1
+    """with --dataset: train and evaluate at 1/N of the images' size"""
     quick: bool = False
     """two objects, minimal setting, 128 px, 800 steps (about 3 minutes)"""
     resolution: int | None = None
@@ -729,8 +906,9 @@ class PaperBenchCommand:
     """train views of the full-views setting (default 32)"""
     preset: Literal["default", "paper"] = "default"
     """training preset: default, or paper (the official schedule scaled to --iterations)"""
-    touch_model: Literal["gel", "paper"] = "gel"
-    """touches: gel (grasps with gel contact patches) or paper (the official code's sampling)"""
+    touch_model: Literal["gel", "paper"] | None = None
+    """touches: gel (grasps with gel contact patches) or paper (the official code's sampling); default gel, and
+    paper with --dataset"""
     texture: str = "none"
     """the objects' surface: none (their one colour) or checker (textured: a checker of their colour and a
     contrasting grey); textured scenes and runs get their own folders"""
@@ -767,7 +945,10 @@ class PaperBenchCommand:
             config.seeds = comma_separated_ints(self.seeds, "--seeds")
         if self.methods is not None:
             config.methods = tuple(v.strip() for v in self.methods.split(",") if v.strip())
-        config.preset, config.touch_model, config.texture = self.preset, self.touch_model, self.texture
+        config.preset, config.texture = self.preset, self.texture
+        config.touch_model = self.touch_model or ("gel" if self.dataset is None else "paper")
+        config.dataset = None if self.dataset is None else str(self.dataset)
+        config.downscale = self.downscale
         config.validate()
         return config
 
