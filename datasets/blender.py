@@ -18,8 +18,10 @@ they exist they become the scene's ground truth, the way the paper evaluates
 (``data_making/refnerf_to_data.py``): each test view's depth is its ``gt/``
 depth map (``cd``), and ``cd_paper``'s ground-truth cloud is the train views'
 depth back-projected, 5000 random pixels of each view (a fixed seed here, none
-there) within ``GT_MAX_DISTANCE`` of its camera. Its normal maps are not read
-(the official code does not either).
+there) within ``GT_MAX_DISTANCE`` of its camera. A test view's normal map,
+``r_N_normal.png`` (world-frame ``rgb * 2 / 255 - 1``, as multinerf decodes
+and compares it), is kept with its depth: the evaluation's normal error uses
+it.
 """
 
 from __future__ import annotations
@@ -144,6 +146,20 @@ def read_disparity_depth(path: Path, shape: tuple[int, int], field: str | None =
         return np.where(disparity > 0, 1.0 / disparity - 1.0, 0.0)
 
 
+def read_normal_map(path: Path, depth: np.ndarray, field: str | None = None) -> np.ndarray:
+    """Shiny Blender's world-frame unit normals [H, W, 3] float32 of ``r_N_normal.png`` (module docstring), 0 where
+    ``depth`` has no surface."""
+    rgb = read_rgba(path, field)[:, :, :3]  # [0, 1]
+    if rgb.shape[:2] != depth.shape:
+        raise SceneFormatError(
+            path, field, f"normal map is {rgb.shape[1]}x{rgb.shape[0]}, its depth {depth.shape[::-1]}"
+        )
+    normal = rgb * 2.0 - 1.0
+    length = np.linalg.norm(normal, axis=-1, keepdims=True)
+    keep = (depth > 0)[..., None] & (length > 0.5)  # (a quantised unit vector is within 1 % of unit length)
+    return np.where(keep, normal / np.maximum(length, 1e-12), 0.0).astype(np.float32)
+
+
 def _read_split(src: Path, name: str) -> tuple[Path, float, list[dict]]:
     index = src / f"transforms_{name}.json"
     if not index.is_file():
@@ -253,8 +269,19 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                     depth = scale * read_disparity_depth(disparity_path(image_path), (height, width), field)
                     if split == "train":
                         gt_points.append(_sample_points(depth, intr.K, pose, GT_MAX_DISTANCE * scale, rng))
-                gt_depth = depth.astype(np.float32) if depth is not None and split == "test" else None
-                writer.add_frame(composite(rgba, background_rgb), pose, split=split, gt_depth=gt_depth, intrinsics=intr)
+                gt_depth = gt_normal = None
+                if depth is not None and split == "test":
+                    gt_depth = depth.astype(np.float32)
+                    normal_path = image_path.with_name(image_path.stem + "_normal.png")
+                    gt_normal = read_normal_map(normal_path, depth, field) if normal_path.is_file() else None
+                writer.add_frame(
+                    composite(rgba, background_rgb),
+                    pose,
+                    split=split,
+                    gt_depth=gt_depth,
+                    intrinsics=intr,
+                    gt_normal=gt_normal,
+                )
                 progress.update()
         if gt_points and sum(map(len, gt_points)):
             writer.set_gt_points(np.concatenate(gt_points))

@@ -38,6 +38,7 @@ from .records import (
     as_size,
     camera_problem,
     depth_problem,
+    normal_map_problem,
     pose_problem,
     touch_depth_limit,
 )
@@ -372,6 +373,24 @@ class Scene:
             f"gt depth of frame {frame.id}",
             GT_DEPTH_LIMIT,
         )
+
+    def gt_normal(self, frame: Frame) -> np.ndarray | None:
+        """Ground-truth unit world-frame normals [H, W, 3] float32 of a frame (0 where no surface; evaluation
+        only), or None where the scene has none (its depth's ``normal`` array)."""
+        rel = self.gt_depth_files.get(frame.id)
+        if rel is None:
+            return None
+        path = self.path / rel
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                normal = npz["normal"] if "normal" in npz.files else None
+        except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
+            raise SceneFormatError(path, "normal", f"truncated or corrupt npz: {_first_line(exc)}") from None
+        if normal is not None and (
+            problem := normal_map_problem(normal, (frame.intrinsics.height, frame.intrinsics.width))
+        ):
+            raise SceneFormatError(path, "normal", problem)
+        return normal
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned box (lo [3], hi [3]) where the object must be, from cameras and touches only.

@@ -112,6 +112,18 @@ def depth_problem(depth: np.ndarray, max_m: float, limit: str) -> str | None:
     return None
 
 
+def normal_map_problem(normal: np.ndarray, shape: tuple[int, int]) -> str | None:
+    """Why ``normal`` is not a map [*shape, 3] of unit vectors, or zeros where there is no surface."""
+    if normal.shape != (*shape, 3):
+        return f"expected shape {(*shape, 3)}, got {normal.shape}"
+    if not np.issubdtype(normal.dtype, np.floating) or not np.all(np.isfinite(normal)):
+        return "expected finite float values"
+    length = np.linalg.norm(normal, axis=-1)
+    if not np.all((np.abs(length - 1) < 1e-3) | (length == 0)):
+        return "expected unit vectors, or zeros where there is no surface"
+    return None
+
+
 def touch_depth_limit(sensor: "SensorModel") -> tuple[float, str]:
     """The deepest indentation a sensor can record, and why."""
     return MAX_INDENTATION_GELS * sensor.gel_thickness_m, f"{MAX_INDENTATION_GELS:g} x the gel thickness"

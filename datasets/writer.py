@@ -69,6 +69,7 @@ from .records import (
     intrinsics_to_json,
     meta_from_json,
     meta_to_json,
+    normal_map_problem,
     sensor_to_json,
     touch_depth_limit,
     touch_from_json,
@@ -507,11 +508,13 @@ class SceneWriter:
         gt_depth: np.ndarray | None = None,
         intrinsics: CameraIntrinsics | None = None,
         mask: np.ndarray | None = None,
+        gt_normal: np.ndarray | None = None,
     ) -> Frame:
         """Append a view: ``image`` [H, W, 3] uint8 RGB, ``T_world_cam`` [4, 4] OpenCV camera-to-world.
 
         ``gt_depth`` [H, W] float32 metres (0 = no surface) goes to ``gt/`` for
-        evaluation only. ``intrinsics`` defaults to the scene's. ``mask`` [H, W]
+        evaluation only, with ``gt_normal`` [H, W, 3], the surface's unit
+        world-frame normals (0 where no surface), where a dataset has them. ``intrinsics`` defaults to the scene's. ``mask`` [H, W]
         bool (True = use the pixel) goes to ``masks/``; a scene has a mask on
         every frame or on none (as nerfstudio reads them).
         """
@@ -531,6 +534,12 @@ class SceneWriter:
             raise InvalidInputError(f"split: expected one of {SPLITS}, got {split!r}")
         if gt_depth is not None:
             gt_depth = _check_depth(gt_depth, (intr.height, intr.width), "gt_depth", GT_DEPTH_LIMIT)
+        if gt_normal is not None:
+            if gt_depth is None:
+                raise InvalidInputError("gt_normal: needs gt_depth (both are the ground truth of one view)")
+            gt_normal = np.asarray(gt_normal, dtype=np.float32)
+            if problem := normal_map_problem(gt_normal, (intr.height, intr.width)):
+                raise InvalidInputError(f"gt_normal: {problem}")
         if mask is not None:
             mask = np.asarray(mask)
             if mask.dtype != np.bool_ or mask.shape != (intr.height, intr.width):
@@ -560,7 +569,8 @@ class SceneWriter:
         gt_file = None
         if gt_depth is not None:
             gt_file = f"gt/depth/{fid:06d}.npz"
-            atomic_write_bytes(self.path / gt_file, encode_npz(depth=gt_depth))
+            normal = {} if gt_normal is None else {"normal": gt_normal}
+            atomic_write_bytes(self.path / gt_file, encode_npz(depth=gt_depth, **normal))
         self._record(
             {"op": "frame", "frame": frame_to_json(frame), "gt_depth": gt_file},
             "transforms",

@@ -105,6 +105,15 @@ def normal_error_degrees(rendered: np.ndarray, ground_truth: np.ndarray) -> np.n
     return np.degrees(np.arccos(cos))
 
 
+def ground_truth_normals(scene, frame, gt_depth: np.ndarray) -> np.ndarray:
+    """A test view's true unit normals [H, W, 3] in its camera frame: the scene's own (a dataset's normal maps)
+    where it has them, else from its depth map (:func:`~.losses.depth_normals`)."""
+    normal = scene.gt_normal(frame)
+    if normal is not None:
+        return normal.astype(np.float64) @ frame.T_world_cam[:3, :3]  # world -> camera: R^T n
+    return losses.depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(frame.intrinsics.K)).numpy()
+
+
 @torch.no_grad()
 def render_median_depth(gaussians: Gaussians, frame, backend: str) -> np.ndarray:
     """Median depth [H, W] of a view (the paper's evaluation depth; 0 where the transmittance stays >= 0.5)."""
@@ -264,7 +273,7 @@ def evaluate_views(
     progress: bool = False,
 ) -> dict:
     """PSNR, SSIM over ``frames``, CD and cd_paper against ``ground_truth``, and the mean angle between rendered
-    and ground-truth normals (``normal_error_deg``; the ground truth's from its depth maps), and ``depth_bias``: the
+    and ground-truth normals (``normal_error_deg``; :func:`ground_truth_normals`), and ``depth_bias``: the
     median over the pixels where both have surface of the rendered (expected) depth minus the true one, in units of
     the ground-truth radius, positive behind the truth (where reflections modelled as geometry put it) (NaN where
     not available).
@@ -287,8 +296,7 @@ def evaluate_views(
         rgb, depth = view.rgb, view.depth
         gt_depth = scene.gt_depth(f)
         if gt_depth is not None and not progress:
-            gt_normal = losses.depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(f.intrinsics.K))
-            angles.append(normal_error_degrees(view.normal, gt_normal.numpy()))
+            angles.append(normal_error_degrees(view.normal, ground_truth_normals(scene, f, gt_depth)))
             if ground_truth is not None:
                 both = (depth > 0) & np.isfinite(gt_depth) & (gt_depth > 0)  # [H, W]
                 signed.append((depth - gt_depth)[both] / ground_truth.radius)

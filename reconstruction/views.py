@@ -121,6 +121,14 @@ class ScaledScene:
         size = (frame.intrinsics.width, frame.intrinsics.height)
         return cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
 
+    def gt_normal(self, frame) -> np.ndarray | None:
+        """The scene's ground-truth normals resampled at the nearest pixel, as :meth:`gt_depth` without a mesh."""
+        normal = self.base.gt_normal(self._by_id[frame.id])
+        if normal is None:
+            return None
+        size = (frame.intrinsics.width, frame.intrinsics.height)
+        return cv2.resize(normal, size, interpolation=cv2.INTER_NEAREST)
+
 
 def scene_at(scene, downscale: int):
     """``scene`` itself, or a :class:`ScaledScene` of it when ``downscale`` > 1."""

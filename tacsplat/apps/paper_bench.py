@@ -734,16 +734,14 @@ def _first_view_truth(
     scene, frame, gt_rgb: np.ndarray, train_views: int | None
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """``(gt_depth, gt_normal, gt_seen)`` of ``frame`` (zeros, None, None without ground-truth depth)."""
-    import torch
 
-    from tacsplat.reconstruction.evaluation import load_ground_truth, seen_pixels
-    from tacsplat.reconstruction.losses import depth_normals
+    from tacsplat.reconstruction.evaluation import ground_truth_normals, load_ground_truth, seen_pixels
     from tacsplat.reconstruction.views import training_frames
 
     gt_depth = scene.gt_depth(frame)
     if gt_depth is None:
         return np.zeros(gt_rgb.shape[:2], np.float32), None, None
-    gt_normal = depth_normals(torch.from_numpy(gt_depth).double(), torch.from_numpy(frame.intrinsics.K)).numpy()
+    gt_normal = ground_truth_normals(scene, frame, gt_depth)
     ground_truth = load_ground_truth(scene, [frame], train_frames=training_frames(scene, train_views))
     gt_seen = None
     if ground_truth is not None and ground_truth.seen is not None:

@@ -39,6 +39,16 @@ def sphere_depth(K: np.ndarray, T_world_cam: np.ndarray, size: int = SIZE) -> np
     return np.where(disc > 0, t, 0.0)
 
 
+def sphere_normals(K: np.ndarray, T_world_cam: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World-frame unit normals [H, W, 3] of the sphere where ``depth`` (:func:`sphere_depth`) has it, else 0."""
+    from tacsplat.geometry import unproject_depth
+
+    normal = np.zeros(depth.shape + (3,))
+    points = unproject_depth(depth, K, T_world_cam)  # row-major over the pixels with depth
+    normal[depth > 0] = points / np.linalg.norm(points, axis=1, keepdims=True)
+    return normal
+
+
 def shaded_rgb(depth: np.ndarray, seed: int) -> np.ndarray:
     """Some colour [H, W, 3] uint8 on the sphere (varied per view)."""
     rng = np.random.default_rng(seed)
@@ -64,7 +74,9 @@ def make_shiny_blender(root: Path, n_train: int = 10, n_test: int = 3) -> Path:
             d16 = np.rint(disparity * 65535).astype(np.uint16)
             tiff = np.stack([d16, d16, d16, np.where(depth > 0, 65535, 0).astype(np.uint16)], axis=-1)
             cv2.imwrite(str(src / split / f"r_{k}_disp.tiff"), tiff)
-            cv2.imwrite(str(src / split / f"r_{k}_normal.png"), np.full((SIZE, SIZE, 3), 128, np.uint8))
+            normal = sphere_normals(K, pose, depth)  # world frame, as Blender writes it
+            rgb = np.where((depth > 0)[..., None], np.rint((normal + 1) / 2 * 255), 0).astype(np.uint8)
+            cv2.imwrite(str(src / split / f"r_{k}_normal.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
             frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": opencv_to_opengl(pose).tolist()})
         (src / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": ANGLE_X, "frames": frames}))
     return src

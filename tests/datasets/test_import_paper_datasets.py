@@ -18,6 +18,7 @@ from tacsplat.datasets.blender import import_blender
 from tacsplat.datasets.nero import import_nero
 from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import invert_pose, opencv_to_opengl
+from tacsplat.reconstruction.evaluation import ground_truth_normals
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 
@@ -29,6 +30,7 @@ from paper_datasets import (  # noqa: E402
     make_shiny_blender,
     ring_pose,
     sphere_depth,
+    sphere_normals,
 )
 
 # a disparity of 16 bits resolves depth z to (1 + z)^2 / 65535 (4e-4 units at z = 4): half of that, plus rounding
@@ -57,10 +59,28 @@ def test_shiny_blender_keeps_test_depth_and_train_points_as_ground_truth(tmp_pat
         truth = sphere_depth(frame.intrinsics.K, ring_pose(k + 0.5, 3))  # the dataset's units
         np.testing.assert_array_equal(scene.gt_depth(frame) > 0, truth > 0)
         np.testing.assert_allclose(scene.gt_depth(frame), 0.05 * truth, atol=0.05 * DISPARITY_DEPTH_TOLERANCE)
+        # the normal maps: world-frame unit vectors as decoded, turned into the camera frame for the evaluation
+        world = sphere_normals(frame.intrinsics.K, ring_pose(k + 0.5, 3), truth)
+        np.testing.assert_allclose(scene.gt_normal(frame), world, atol=0.01)
+        camera = ground_truth_normals(scene, frame, scene.gt_depth(frame))
+        from_depth = ground_truth_normals(_without_normals(scene), frame, scene.gt_depth(frame))
+        inside = (cv2.erode((truth > 0).astype(np.uint8), np.ones((3, 3))) > 0) & (np.abs(from_depth).sum(-1) > 0)
+        cos = (camera[inside] * from_depth[inside]).sum(-1)
+        assert inside.sum() > 10 and np.degrees(np.arccos(np.clip(cos, -1, 1))).mean() < 10
     points = scene.gt_points()  # the train views' depth back-projected (at most 5000 per view)
     assert 0 < len(points) <= 6 * 5000
     np.testing.assert_allclose(np.linalg.norm(points / 0.05, axis=1), RADIUS, atol=DISPARITY_DEPTH_TOLERANCE * 2)
     assert scene.meta.extra["ground_truth"].startswith("disparity maps")
+
+
+class _without_normals:
+    """A scene seen without its normal maps (the evaluation then takes normals from the depth)."""
+
+    def __init__(self, scene):
+        self.scene = scene
+
+    def gt_normal(self, frame):
+        return None
 
 
 def test_shiny_blender_cameras_reproject_as_the_dataset_does(tmp_path):
