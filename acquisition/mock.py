@@ -1,7 +1,9 @@
 """Emulated devices for ``tacsplat capture --mock``: a real rig's code path with no hardware attached.
 
 * the hand: the real :class:`~tacsplat.drivers.DynamixelHand` and ``dynamixel_sdk``
-  talking to :class:`~tacsplat.drivers.dxl_emulator.DxlEmulator` on a pseudo-terminal;
+  talking to :class:`~tacsplat.drivers.dxl_emulator.DxlEmulator` on a pseudo-terminal, its servos stopped at the
+  joint limits and off by the rig file's ``sim.true_errors`` (read with ``hand.calibration`` when the rig names
+  one, else sign 1 and offset 0), moved by :class:`EmulatorPerson` for ``calibrate hand``;
 * the wrist camera: the real :class:`~tacsplat.drivers.WristCamera` reading a
   looping video of a ChArUco board rendered with ``cv2.aruco`` and warped by
   known camera poses (``camera_poses`` holds them, OpenCV board frame);
@@ -38,7 +40,11 @@ import cv2
 import numpy as np
 
 from tacsplat.acquisition.config import RigConfig
+from tacsplat.drivers.calibration import RAD_PER_TICK
+from tacsplat.drivers.dynamixel_table import CENTRE_TICK
+from tacsplat.errors import ConfigError
 from tacsplat.geometry import invert_pose, look_at, make_pose
+from tacsplat.sim.hand import JOINT_LIMITS
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +140,48 @@ def camera_poses(spec, count: int) -> list[np.ndarray]:
     return poses
 
 
+def servo_ticks(config: RigConfig, q_true: np.ndarray) -> np.ndarray:
+    """[16] where the emulated servos stand (ticks, unrounded) at true joint angles ``q_true``: the nominal hand's
+    ticks off by ``sim.true_errors``'s servo signs and offsets."""
+    e = config.sim.true_errors
+    theta = np.asarray(e.servo_signs()) * np.asarray(q_true, dtype=np.float64) + np.asarray(e.servo_offsets())
+    return theta / RAD_PER_TICK + CENTRE_TICK
+
+
+class EmulatorPerson:
+    """The person of ``tacsplat calibrate hand --mock``: moves each emulated servo by hand (torque off) against the
+    stop a joint limit puts it at, and holds it there."""
+
+    def __init__(self, mock: "MockDevices", settle_s: float = 0.1):
+        if mock.emulator is None:
+            raise ConfigError(
+                "mock_devices.servo_port",
+                "the servo emulator runs in another process, where no one moves its joints by hand: leave "
+                "servo_port out to calibrate the hand with --mock",
+                mock.config.source,
+            )
+        self.mock, self.settle_s = mock, settle_s
+        self.ids = list(mock.config.hand.ids)
+
+    def hold_at_stop(self, joint: int, upper: bool, instruction: str) -> None:
+        sid = self.ids[joint]
+        target = (self.mock.upper_stop_ticks if upper else self.mock.lower_stop_ticks)[sid]
+        lo, hi = self.mock.servo_stops[sid]
+        self.mock.emulator.move_by_hand(sid, target + (hi - lo) * (1 if target == hi else -1))  # pushed past it
+        # like a person: push until the joint is at its stop, or has not moved for settle_s
+        last, still_since = self.mock.emulator.position(sid), time.monotonic()
+        while time.monotonic() - still_since < self.settle_s:
+            time.sleep(0.005)
+            now = self.mock.emulator.position(sid)
+            if now == target:
+                return
+            if now != last:
+                last, still_since = now, time.monotonic()
+
+    def let_go(self, joint: int) -> None:
+        self.mock.emulator.move_by_hand(self.ids[joint], None)
+
+
 def _ball_press(h: int, w: int, pixel_m: float, cx: float, cy: float, indentation_m: float) -> np.ndarray:
     ys, xs = np.indices((h, w)) + 0.5
     rho2 = ((xs - cx) ** 2 + (ys - cy) ** 2) * pixel_m**2
@@ -163,7 +211,14 @@ class MockDevices:
         self.camera_poses = camera_poses(config.board.spec(), m.camera_frames)
         if not (self.folder / "done").is_file():
             self._generate()
-        self.emulator = None if m.servo_port else DxlEmulator(ids=config.hand.ids)  # None: an emulator process's
+        lower, upper = servo_ticks(config, JOINT_LIMITS[:, 0]), servo_ticks(config, JOINT_LIMITS[:, 1])
+        self.servo_stops = {sid: (min(a, b), max(a, b)) for sid, a, b in zip(config.hand.ids, lower, upper)}
+        self.upper_stop_ticks = dict(zip(config.hand.ids, upper))  # where each joint's upper limit puts its servo
+        self.lower_stop_ticks = dict(zip(config.hand.ids, lower))
+        initial = dict(zip(config.hand.ids, servo_ticks(config, np.zeros(len(JOINT_LIMITS)))))  # the open hand
+        self.emulator = (
+            None if m.servo_port else DxlEmulator(ids=config.hand.ids, initial_ticks=initial, stops=self.servo_stops)
+        )  # None: an emulator process's
         self.captures: dict[str, LoopingCapture] = {}
 
     # --- files ------------------------------------------------------------------------------------
