@@ -59,6 +59,22 @@ class CalibrateHand:
 
 
 @dataclass
+class RigCheck:
+    """checks a rig before a capture: devices, calibration files, the board (one table; exit 1 naming what is wrong)
+
+    Every device answers (the servos, with torque off; the wrist camera and each tactile sensor, at their frame
+    rates), every calibration file the rig names is there, parses, holds values in range and is younger than the
+    rig file's hardware_changed date, the hand reads inside its joint limits with its calibration, T_hand_cam is
+    known, and the wrist camera sees the board well enough to capture. --mock checks the emulated devices (the
+    rig file's mock_devices.unplugged and board_in_view stage faults)."""
+
+    rig: Path
+    """rig YAML file"""
+    mock: bool = False
+    """emulated devices instead of the real rig's"""
+
+
+@dataclass
 class TouchModel:
     """The touches of a grasp (sim-capture, simulate-touches)."""
 
@@ -154,6 +170,7 @@ def register(cli) -> None:
         help="operator capture session on a rig (real, --mock, or the twin): views and grasps into a scene directory",
     )
     cli.typed("calibrate hand", CalibrateHand, _calibrate_hand)
+    cli.typed("rig check", RigCheck, _rig_check)
     cli.typed(
         "sim-capture",
         SimCapture,
@@ -191,6 +208,21 @@ def _calibrate_hand(o: CalibrateHand) -> int:
         signum = getattr(exc, "signum", signal.SIGINT)
         print(f"interrupted ({signal.Signals(signum).name}): {o.out} not written", file=sys.stderr)
         return 128 + signum
+    return 0
+
+
+def _rig_check(o: RigCheck) -> int:
+    from tacsplat.acquisition.config import load_rig
+    from tacsplat.acquisition.rig_check import check_rig, check_twin, table
+
+    config = load_rig(o.rig, mock=o.mock, check_files=False)
+    rows = check_rig(config) if config.rig == "real" else check_twin(config)
+    print(table(rows))
+    failed = [row.item for row in rows if not row.ok]
+    if failed:
+        print(f"error: rig check: {len(failed)} of {len(rows)} checks failed: {'; '.join(failed)}", file=sys.stderr)
+        return 1
+    print(f"all {len(rows)} checks passed")
     return 0
 
 

@@ -328,6 +328,9 @@ class MockConfig:
     servo_timeout_s: float = positive(0.5, 1.0, "s")
     servo_port: Text | None = None  # the pty of a servo emulator in its own process (python -m
     # tacsplat.drivers.dxl_emulator), which outlives this one; None: an emulator in this process
+    # faults, to see rig check name them: devices left unplugged (a sensor's finger, camera, or servo ID) ...
+    unplugged: tuple[Text, ...] = ()
+    board_in_view: bool = True  # ... and a wrist camera that does not see the board
 
 
 @with_config(YAML_SECTION)
@@ -605,6 +608,10 @@ def _validate_real(c: RigConfig, src, check_files: bool) -> None:
         if s.finger in seen:
             raise ConfigError(f"tactile.sensors[{i}].finger", f"{s.finger!r} has two sensors", src)
         seen.add(s.finger)
+    known = [s.finger for s in c.tactile.sensors] + ["camera"] + [f"servo {i}" for i in c.hand.ids]
+    for i, name in enumerate(c.mock_devices.unplugged):
+        if name not in known:
+            raise ConfigError(f"mock_devices.unplugged[{i}]", f"unknown device {name!r} (one of {known})", src)
     if check_files and not c.mock:  # the mock generates its own calibrations; a real rig's files must exist
         files = [("camera.calibration", c.camera.calibration)]
         files += [("hand.calibration", c.hand.calibration)] if c.hand.calibration else []

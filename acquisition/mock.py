@@ -15,7 +15,9 @@
   not the tactile geometry (the twin does that).
 
 The generated files (videos, calibrations) are cached in a folder keyed by the
-settings, so a resumed or repeated mock capture reuses them. Faults for tests:
+settings, so a resumed or repeated mock capture reuses them. ``mock_devices.unplugged`` and
+``board_in_view: false`` leave devices out and the board out of view (what ``rig check`` must name). Faults for
+tests:
 :meth:`MockDevices.stall_camera` (the camera stops delivering frames) and
 ``mock.emulator.disconnect(servo_id)`` (a servo stops answering). With
 ``mock_devices.servo_port`` the servos are an emulator in a process of its own
@@ -197,7 +199,7 @@ class MockDevices:
 
         self.config = config
         m = config.mock_devices
-        files = {k: v for k, v in asdict(m).items() if not k.startswith("servo_")}  # the settings of the files
+        files = {k: v for k, v in asdict(m).items() if not k.startswith("servo_") and k != "unplugged"}  # of the files
         key = hashlib.sha1(
             json.dumps(
                 [ASSET_VERSION, files, asdict(config.board), [s.finger for s in config.tactile.sensors]], sort_keys=True
@@ -245,7 +247,12 @@ class MockDevices:
         m, spec = self.config.mock_devices, self.config.board.spec()
         self.folder.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=".mock-", dir=self.folder.parent))
-        frames = [render_board(spec, self.K, m.camera_width, m.camera_height, T) for T in self.camera_poses]
+        frames = [
+            render_board(spec, self.K, m.camera_width, m.camera_height, T)
+            if m.board_in_view
+            else np.full((m.camera_height, m.camera_width, 3), 150, np.uint8)
+            for T in self.camera_poses
+        ]
         real = self.folder
         self.folder = work
         try:
@@ -299,6 +306,8 @@ class MockDevices:
         """A ``capture_factory`` for the drivers' video readers that loops the file and remembers the capture."""
 
         def factory(source):
+            if name in self.config.mock_devices.unplugged:
+                return cv2.VideoCapture()  # never opened, as a device that is not there
             if name == "camera":
                 cap = LoopingCapture(str(self.camera_video), fps=LIVE_CAMERA_FPS)
             else:
@@ -315,6 +324,9 @@ class MockDevices:
     def __enter__(self) -> "MockDevices":
         if self.emulator is not None:
             self.emulator.start()
+            for name in self.config.mock_devices.unplugged:
+                if name.startswith("servo "):
+                    self.emulator.disconnect(int(name.split()[1]))
         return self
 
     def __exit__(self, *exc) -> None:
