@@ -196,8 +196,8 @@ def _sim_settings(config: RigConfig) -> dict:
 
 
 def _real_settings(c: RigConfig) -> dict:
-    def sha(key: str, name: str | None) -> str | None:  # the mock generates its own calibrations
-        return None if c.mock or name is None else _sha256(c.path(name), key, c.source)
+    def sha(key: str, name: str | None) -> str | None:  # the mock generates its own calibrations, but the hand's
+        return None if c.mock and key != "hand.calibration" or name is None else _sha256(c.path(name), key, c.source)
 
     b, t = c.board, c.tactile
     settings = {

@@ -3,6 +3,8 @@ options are the dataclasses below (tacsplat.options)."""
 
 from __future__ import annotations
 
+import signal
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated
@@ -36,6 +38,40 @@ class Capture:
     """a reconstruction in progress of this capture (a tacsplat reconstruct folder; its latest checkpoint): the key
     s then suggests the next grasp, where a fingertip should touch and from which direction, drawn on the wrist
     camera's image (OUT-suggestion.png)"""
+
+
+@dataclass
+class CalibrateHand:
+    """the hand's joint signs, zeros and ranges, from each joint's hard stops (writes the rig's hand.json)
+
+    With the hand's torque off, each joint in turn is held against its upper, then its lower stop (the model's joint
+    limits); a status line per joint gives its sign, offset and measured range. On a real rig a person moves the
+    joints and presses Enter at each stop; with --mock the servo emulator and on a rig: sim file the twin play the
+    person, so it runs to its end with standard input closed. Refuses, naming the joint and what to do, a joint
+    that does not move or whose range is not the model's. The hand is left with torque off however it ends."""
+
+    rig: Path
+    """rig YAML file (the hand's port and servo ids; sim.true_errors on a twin or --mock)"""
+    out: Path
+    """hand calibration file to write (.json; the rig's hand.calibration)"""
+    mock: bool = False
+    """the servo emulator instead of the real hand"""
+
+
+@dataclass
+class RigCheck:
+    """checks a rig before a capture: devices, calibration files, the board (one table; exit 1 naming what is wrong)
+
+    Every device answers (the servos, with torque off; the wrist camera and each tactile sensor, at their frame
+    rates), every calibration file the rig names is there, parses, holds values in range and is younger than the
+    rig file's hardware_changed date, the hand reads inside its joint limits with its calibration, T_hand_cam is
+    known, and the wrist camera sees the board well enough to capture. --mock checks the emulated devices (the
+    rig file's mock_devices.unplugged and board_in_view stage faults)."""
+
+    rig: Path
+    """rig YAML file"""
+    mock: bool = False
+    """emulated devices instead of the real rig's"""
 
 
 @dataclass
@@ -134,6 +170,8 @@ def register(cli) -> None:
         _capture,
         help="operator capture session on a rig (real, --mock, or the twin): views and grasps into a scene directory",
     )
+    cli.typed("calibrate hand", CalibrateHand, _calibrate_hand)
+    cli.typed("rig check", RigCheck, _rig_check)
     cli.typed(
         "sim-capture",
         SimCapture,
@@ -153,6 +191,40 @@ def _capture(o: Capture) -> int:
     from tacsplat.acquisition.operator_session import run_capture
 
     return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume, suggest=o.suggest)
+
+
+def _calibrate_hand(o: CalibrateHand) -> int:
+    from tacsplat.acquisition.calibrate import calibrate_hand
+    from tacsplat.acquisition.config import load_rig
+
+    if o.out.is_dir():
+        raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
+    from tacsplat.datasets.outputs import ensure_output_dir
+
+    config = load_rig(o.rig, mock=o.mock, check_files=False)
+    ensure_output_dir(o.out.parent, "--out")
+    try:
+        calibrate_hand(config, o.out)
+    except KeyboardInterrupt as exc:  # Ctrl-C, or the hand driver's SignalInterrupt (SIGTERM, SIGHUP, ...)
+        signum = getattr(exc, "signum", signal.SIGINT)
+        print(f"interrupted ({signal.Signals(signum).name}): {o.out} not written", file=sys.stderr)
+        return 128 + signum
+    return 0
+
+
+def _rig_check(o: RigCheck) -> int:
+    from tacsplat.acquisition.config import load_rig
+    from tacsplat.acquisition.rig_check import check_rig, check_twin, table
+
+    config = load_rig(o.rig, mock=o.mock, check_files=False)
+    rows = check_rig(config) if config.rig == "real" else check_twin(config)
+    print(table(rows))
+    failed = [row.item for row in rows if not row.ok]
+    if failed:
+        print(f"error: rig check: {len(failed)} of {len(rows)} checks failed: {'; '.join(failed)}", file=sys.stderr)
+        return 1
+    print(f"all {len(rows)} checks passed")
+    return 0
 
 
 def _sim_capture(args: SimCapture) -> int:

@@ -21,8 +21,9 @@ import functools
 import json
 import math
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
-from typing import Annotated, Any, get_args, get_type_hints
+from typing import Annotated, Any, get_args, get_origin, get_type_hints
 
 import numpy as np
 import yaml
@@ -32,7 +33,7 @@ from tacsplat.drivers.wrist_camera import CharucoBoardSpec
 from tacsplat.errors import ConfigError
 from tacsplat.geometry import rigidity_problem
 from tacsplat.sim import OBJECT_RADIUS_RANGE_M
-from tacsplat.sim.hand import FINGER_NAMES
+from tacsplat.sim.hand import FINGER_NAMES, JOINT_NAMES
 
 RIGS_DIR = Path(__file__).parent / "rigs"
 DYNAMIXEL_BAUDRATES = (9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000)  # X-series rates the SDK opens
@@ -96,7 +97,15 @@ def _device_source(value) -> int | str:
     return value
 
 
+def _when(value) -> datetime:
+    try:
+        return datetime.fromisoformat(str(value))
+    except ValueError:
+        raise ValueError(f"expected a date (2025-03-14) or a date and time (2025-03-14 15:30), got {value!r}") from None
+
+
 Text = Annotated[str, StringConstraints(pattern=r"\S")]  # a non-empty string
+When = Annotated[datetime, PlainValidator(_when)]  # a YAML date or date and time (naive: local time)
 Pose = Annotated[tuple, PlainValidator(_pose)]  # a rigid 4x4 transform, as a tuple of rows
 DeviceSource = Annotated[int | str, PlainValidator(_device_source)]  # a device index, file path or URL
 YAML_SECTION = ConfigDict(extra="forbid", allow_inf_nan=False)  # every section: no unknown key, finite numbers
@@ -241,10 +250,57 @@ class CapturePlan:
         return {**dataclasses.asdict(self), "grasps": self.grasps.to_json(), "touches": self.touches.to_json()}
 
 
+MAX_POSE_ERROR_M = 0.05  # the largest true mounting error a twin may hide, per axis (an error, not another rig)
+MAX_POSE_ERROR_DEG = 30.0
+
+
+@with_config(YAML_SECTION)
+@dataclass(frozen=True)
+class PoseError:
+    """A rigid error: the true transform is the nominal one followed by this one, ``T_true = T_nominal @ E`` (``E``
+    in the child frame: the camera's for the hand-eye, the sensor's for a mount)."""
+
+    translation_m: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), -MAX_POSE_ERROR_M, MAX_POSE_ERROR_M, "m")
+    rotation_deg: tuple[float, float, float] = bounded(
+        (0.0, 0.0, 0.0), -MAX_POSE_ERROR_DEG, MAX_POSE_ERROR_DEG, "deg"
+    )  # a rotation vector (axis times angle), degrees
+
+    def matrix(self) -> np.ndarray:
+        """``E`` [4, 4]."""
+        from scipy.spatial.transform import Rotation
+
+        E = np.eye(4)
+        E[:3, :3] = Rotation.from_rotvec(self.rotation_deg, degrees=True).as_matrix()
+        E[:3, 3] = self.translation_m
+        return E
+
+
+@with_config(YAML_SECTION)
+@dataclass(frozen=True)
+class TrueErrors:
+    """What the twin's (or ``--mock``'s) hardware hides from its nominal model, so that each calibration step is
+    checked against a known truth: the hardware differs from the model by these, the calibration files must find
+    them. Joint errors are the servos': a servo reads ``sign * q + offset`` at true joint angle ``q`` (the
+    nominal hand: sign 1, offset 0), as a horn fitted off its zero or a servo mounted reversed does."""
+
+    joint_offsets_rad: dict[str, float] = field(default_factory=dict)  # joint name -> offset in [-pi, pi] rad
+    joint_signs: dict[str, int] = field(default_factory=dict)  # joint name -> -1 (a reversed servo) or 1
+    hand_eye: PoseError = field(default_factory=PoseError)  # the wrist camera's T_hand_cam
+    mounts: dict[str, PoseError] = field(default_factory=dict)  # finger -> its sensor's T_fingertip_sensor
+
+    def servo_offsets(self) -> tuple[float, ...]:
+        """[16] true offsets in the twin's joint order."""
+        return tuple(float(self.joint_offsets_rad.get(name, 0.0)) for name in JOINT_NAMES)
+
+    def servo_signs(self) -> tuple[int, ...]:
+        """[16] true signs in the twin's joint order."""
+        return tuple(int(self.joint_signs.get(name, 1)) for name in JOINT_NAMES)
+
+
 @with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class SimConfig:
-    """The twin (``rig: sim``)."""
+    """The twin (``rig: sim``); ``true_errors`` also applies to ``--mock``'s emulated hardware of a real rig file."""
 
     object: Text = "teapot"
     mesh: Text | None = None
@@ -252,6 +308,7 @@ class SimConfig:
     resolution: int = bounded(200, 8, 4096, "px")
     seed: int = bounded(0, 0)
     texture: Text = "none"  # the object's surface: its one colour, or "checker" (tacsplat.sim.objects.TEXTURES)
+    true_errors: TrueErrors = field(default_factory=TrueErrors)
 
 
 @with_config(YAML_SECTION)
@@ -271,6 +328,9 @@ class MockConfig:
     servo_timeout_s: float = positive(0.5, 1.0, "s")
     servo_port: Text | None = None  # the pty of a servo emulator in its own process (python -m
     # tacsplat.drivers.dxl_emulator), which outlives this one; None: an emulator in this process
+    # faults, to see rig check name them: devices left unplugged (a sensor's finger, camera, or servo ID) ...
+    unplugged: tuple[Text, ...] = ()
+    board_in_view: bool = True  # ... and a wrist camera that does not see the board
 
 
 @with_config(YAML_SECTION)
@@ -286,6 +346,8 @@ class RigConfig:
     plan: CapturePlan = field(default_factory=CapturePlan)
     sim: SimConfig = field(default_factory=SimConfig)
     mock_devices: MockConfig = field(default_factory=MockConfig)
+    # when the hardware last changed (a servo, a mount, the camera): every calibration file must be younger
+    hardware_changed: When | None = None
     source: str | None = None  # the YAML file it came from
     mock: bool = False  # --mock: emulated devices instead of a real rig's
 
@@ -344,12 +406,15 @@ def _key(loc: tuple) -> str:
 
 
 def _section_fields(loc: tuple) -> list[str]:
-    """The keys the section at ``loc`` (a path of field names and list indices) may hold."""
-    cls = RigConfig
+    """The keys the section at ``loc`` (a path of field names, list indices and mapping keys) may hold."""
+    cls, in_mapping = RigConfig, False
     for part in loc:
-        if not isinstance(part, int):
-            hint = get_type_hints(cls)[part]
-            cls = get_args(hint)[0] if get_args(hint) else hint  # tuple[Item, ...] -> Item
+        if isinstance(part, int) or in_mapping:  # a list index, or the key of a mapping (mounts.index)
+            in_mapping = False
+            continue
+        hint = get_type_hints(cls)[part]
+        in_mapping = get_origin(hint) is dict
+        cls = get_args(hint)[-1] if get_args(hint) else hint  # tuple[Item, ...], dict[str, Item] -> Item
     return [f.name for f in dataclasses.fields(cls) if cls is not RigConfig or f.name not in _SET_BY_LOAD_RIG]
 
 
@@ -360,6 +425,8 @@ def _config_error(exc: ValidationError, source) -> ConfigError:
     if kind == "unexpected_keyword_argument":
         return ConfigError(_key(loc), f"unknown key (expected one of {sorted(_section_fields(loc[:-1]))})", source)
     if kind == "missing":
+        if isinstance(loc[-1], int):  # a fixed-length list that is too short
+            return ConfigError(_key(loc[:-1]), f"expected a list of more than {loc[-1]} values", source)
         return ConfigError(_key(loc), "missing (a required key)", source)
     if kind in _EXPECTED:
         return ConfigError(_key(loc), f"{_EXPECTED[kind]}, got {error['input']!r}", source)
@@ -368,8 +435,9 @@ def _config_error(exc: ValidationError, source) -> ConfigError:
     return ConfigError(_key(loc) or "(top level)", error["msg"], source)
 
 
-def parse_rig(data: Any, source: str | Path | None = None, mock: bool = False) -> RigConfig:
-    """A :class:`RigConfig` from the YAML's data (``source`` names the file in errors)."""
+def parse_rig(data: Any, source: str | Path | None = None, mock: bool = False, check_files: bool = True) -> RigConfig:
+    """A :class:`RigConfig` from the YAML's data (``source`` names the file in errors; ``check_files=False`` leaves
+    the calibration files unchecked: the commands that write them or report on them)."""
     src = None if source is None else str(source)
     if not isinstance(data, dict) or "rig" not in data:
         raise ConfigError("rig", "missing: the file must say `rig: real` or `rig: sim`", src)
@@ -382,12 +450,12 @@ def parse_rig(data: Any, source: str | Path | None = None, mock: bool = False) -
     except ValidationError as exc:
         raise _config_error(exc, src) from None
     config = dataclasses.replace(config, source=src, mock=bool(mock))
-    validate(config)
+    validate(config, check_files)
     return config
 
 
-def load_rig(path: str | Path, mock: bool = False) -> RigConfig:
-    """Read and validate a rig YAML file."""
+def load_rig(path: str | Path, mock: bool = False, check_files: bool = True) -> RigConfig:
+    """Read and validate a rig YAML file (``check_files``: that the calibration files it names exist)."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -397,7 +465,7 @@ def load_rig(path: str | Path, mock: bool = False) -> RigConfig:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError("rig", f"not valid YAML: {exc}", path) from None
-    return parse_rig(data, path, mock)
+    return parse_rig(data, path, mock, check_files)
 
 
 def _check_bounds(config, prefix: str, source) -> None:
@@ -420,9 +488,9 @@ def _check_bounds(config, prefix: str, source) -> None:
                     raise ConfigError(key if i is None else f"{key}[{i}]", f"must be {bounds}, got {shown}", source)
 
 
-def validate(c: RigConfig) -> None:
-    """Every value against its physical and logical range (field bounds first, then cross-field checks); each
-    failure is one ConfigError naming its key."""
+def validate(c: RigConfig, check_files: bool = True) -> None:
+    """Every value against its physical and logical range (field bounds first, then cross-field checks) and, with
+    ``check_files``, that a real rig's calibration files exist; each failure is one ConfigError naming its key."""
     src = c.source
     if c.rig not in ("real", "sim"):
         raise ConfigError("rig", f"must be 'real' or 'sim', got {c.rig!r}", src)
@@ -469,8 +537,9 @@ def validate(c: RigConfig) -> None:
             "plan.touches.model", "the paper's touches are sampled on the twin's mesh: use 'gel' on a real rig", src
         )
     _validate_board(c.board, src)
+    _validate_true_errors(c.sim.true_errors, src)
     if c.rig == "real":
-        _validate_real(c, src)
+        _validate_real(c, src, check_files)
     else:
         _validate_sim(c, src)
 
@@ -505,7 +574,25 @@ def _validate_board(b: BoardConfig, src) -> None:
         )
 
 
-def _validate_real(c: RigConfig, src) -> None:
+def _validate_true_errors(e: TrueErrors, src) -> None:
+    """Known joints and fingers, offsets in [-pi, pi], signs +-1, mounting errors within their bounds."""
+    prefix = "sim.true_errors."
+    for key, allowed in (("joint_offsets_rad", JOINT_NAMES), ("joint_signs", JOINT_NAMES), ("mounts", FINGER_NAMES)):
+        unknown = [name for name in getattr(e, key) if name not in allowed]
+        if unknown:
+            what = "joint" if key != "mounts" else "finger"
+            raise ConfigError(f"{prefix}{key}.{unknown[0]}", f"unknown {what} (one of {list(allowed)})", src)
+    for name, offset in e.joint_offsets_rad.items():
+        if not -math.pi <= offset <= math.pi:
+            raise ConfigError(f"{prefix}joint_offsets_rad.{name}", f"must be in [-pi, pi] rad, got {offset:g}", src)
+    for name, sign in e.joint_signs.items():
+        if sign not in (1, -1):
+            raise ConfigError(f"{prefix}joint_signs.{name}", f"must be 1 or -1 (a reversed servo), got {sign}", src)
+    for finger, mount in e.mounts.items():
+        _check_bounds(mount, f"{prefix}mounts.{finger}.", src)
+
+
+def _validate_real(c: RigConfig, src, check_files: bool) -> None:
     if c.hand.baudrate not in DYNAMIXEL_BAUDRATES:
         raise ConfigError(
             "hand.baudrate", f"must be one of the Dynamixel rates {DYNAMIXEL_BAUDRATES}, got {c.hand.baudrate}", src
@@ -521,7 +608,11 @@ def _validate_real(c: RigConfig, src) -> None:
         if s.finger in seen:
             raise ConfigError(f"tactile.sensors[{i}].finger", f"{s.finger!r} has two sensors", src)
         seen.add(s.finger)
-    if not c.mock:  # the mock generates its own calibrations; a real rig's files must exist
+    known = [s.finger for s in c.tactile.sensors] + ["camera"] + [f"servo {i}" for i in c.hand.ids]
+    for i, name in enumerate(c.mock_devices.unplugged):
+        if name not in known:
+            raise ConfigError(f"mock_devices.unplugged[{i}]", f"unknown device {name!r} (one of {known})", src)
+    if check_files and not c.mock:  # the mock generates its own calibrations; a real rig's files must exist
         files = [("camera.calibration", c.camera.calibration)]
         files += [("hand.calibration", c.hand.calibration)] if c.hand.calibration else []
         files += [(f"tactile.sensors[{i}].calibration", s.calibration) for i, s in enumerate(c.tactile.sensors)]

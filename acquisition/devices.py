@@ -68,7 +68,7 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
             from tacsplat.acquisition.mock import MockDevices
 
             mock = stack.enter_context(MockDevices(config))
-            port, hand_cal = mock.servo_port, None
+            port = mock.servo_port
             # the emulator shares this host's CPUs (and, in this process, its GIL): on a busy host the heartbeat
             # and the emulator's answers can both wait over a second, which a real servo's clock never does; so
             # the Bus Watchdog's longest period (a hand whose host died still stops within 2.54 s)
@@ -82,8 +82,8 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
             )
         else:
             port, hand_settings = config.hand.port, None
-            hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None
             cam_source, cam_cal, cam_factory = config.camera.source, str(config.path(config.camera.calibration)), None
+        hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None  # --mock: as real
         calibration = CameraCalibration.load(cam_cal)
         if config.camera.T_hand_cam is not None:
             T_hand_cam = np.asarray(config.camera.T_hand_cam, dtype=np.float64)
@@ -191,6 +191,9 @@ def twin_config(config: RigConfig):
         camera_width=s.resolution,
         camera_height=s.resolution,
         texture=s.texture,
+        servo_offsets_rad=s.true_errors.servo_offsets(),
+        servo_signs=s.true_errors.servo_signs(),
+        hand_calibration=str(config.path(config.hand.calibration)) if config.hand.calibration else None,
     )
 
 

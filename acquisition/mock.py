@@ -1,7 +1,9 @@
 """Emulated devices for ``tacsplat capture --mock``: a real rig's code path with no hardware attached.
 
 * the hand: the real :class:`~tacsplat.drivers.DynamixelHand` and ``dynamixel_sdk``
-  talking to :class:`~tacsplat.drivers.dxl_emulator.DxlEmulator` on a pseudo-terminal;
+  talking to :class:`~tacsplat.drivers.dxl_emulator.DxlEmulator` on a pseudo-terminal, its servos stopped at the
+  joint limits and off by the rig file's ``sim.true_errors`` (read with ``hand.calibration`` when the rig names
+  one, else sign 1 and offset 0), moved by :class:`EmulatorPerson` for ``calibrate hand``;
 * the wrist camera: the real :class:`~tacsplat.drivers.WristCamera` reading a
   looping video of a ChArUco board rendered with ``cv2.aruco`` and warped by
   known camera poses (``camera_poses`` holds them, OpenCV board frame);
@@ -13,7 +15,9 @@
   not the tactile geometry (the twin does that).
 
 The generated files (videos, calibrations) are cached in a folder keyed by the
-settings, so a resumed or repeated mock capture reuses them. Faults for tests:
+settings, so a resumed or repeated mock capture reuses them. ``mock_devices.unplugged`` and
+``board_in_view: false`` leave devices out and the board out of view (what ``rig check`` must name). Faults for
+tests:
 :meth:`MockDevices.stall_camera` (the camera stops delivering frames) and
 ``mock.emulator.disconnect(servo_id)`` (a servo stops answering). With
 ``mock_devices.servo_port`` the servos are an emulator in a process of its own
@@ -38,7 +42,11 @@ import cv2
 import numpy as np
 
 from tacsplat.acquisition.config import RigConfig
+from tacsplat.drivers.calibration import RAD_PER_TICK
+from tacsplat.drivers.dynamixel_table import CENTRE_TICK
+from tacsplat.errors import ConfigError
 from tacsplat.geometry import invert_pose, look_at, make_pose
+from tacsplat.sim.hand import JOINT_LIMITS
 
 log = logging.getLogger(__name__)
 
@@ -134,6 +142,48 @@ def camera_poses(spec, count: int) -> list[np.ndarray]:
     return poses
 
 
+def servo_ticks(config: RigConfig, q_true: np.ndarray) -> np.ndarray:
+    """[16] where the emulated servos stand (ticks, unrounded) at true joint angles ``q_true``: the nominal hand's
+    ticks off by ``sim.true_errors``'s servo signs and offsets."""
+    e = config.sim.true_errors
+    theta = np.asarray(e.servo_signs()) * np.asarray(q_true, dtype=np.float64) + np.asarray(e.servo_offsets())
+    return theta / RAD_PER_TICK + CENTRE_TICK
+
+
+class EmulatorPerson:
+    """The person of ``tacsplat calibrate hand --mock``: moves each emulated servo by hand (torque off) against the
+    stop a joint limit puts it at, and holds it there."""
+
+    def __init__(self, mock: "MockDevices", settle_s: float = 0.1):
+        if mock.emulator is None:
+            raise ConfigError(
+                "mock_devices.servo_port",
+                "the servo emulator runs in another process, where no one moves its joints by hand: leave "
+                "servo_port out to calibrate the hand with --mock",
+                mock.config.source,
+            )
+        self.mock, self.settle_s = mock, settle_s
+        self.ids = list(mock.config.hand.ids)
+
+    def hold_at_stop(self, joint: int, upper: bool, instruction: str) -> None:
+        sid = self.ids[joint]
+        target = (self.mock.upper_stop_ticks if upper else self.mock.lower_stop_ticks)[sid]
+        lo, hi = self.mock.servo_stops[sid]
+        self.mock.emulator.move_by_hand(sid, target + (hi - lo) * (1 if target == hi else -1))  # pushed past it
+        # like a person: push until the joint is at its stop, or has not moved for settle_s
+        last, still_since = self.mock.emulator.position(sid), time.monotonic()
+        while time.monotonic() - still_since < self.settle_s:
+            time.sleep(0.005)
+            now = self.mock.emulator.position(sid)
+            if now == target:
+                return
+            if now != last:
+                last, still_since = now, time.monotonic()
+
+    def let_go(self, joint: int) -> None:
+        self.mock.emulator.move_by_hand(self.ids[joint], None)
+
+
 def _ball_press(h: int, w: int, pixel_m: float, cx: float, cy: float, indentation_m: float) -> np.ndarray:
     ys, xs = np.indices((h, w)) + 0.5
     rho2 = ((xs - cx) ** 2 + (ys - cy) ** 2) * pixel_m**2
@@ -149,7 +199,7 @@ class MockDevices:
 
         self.config = config
         m = config.mock_devices
-        files = {k: v for k, v in asdict(m).items() if not k.startswith("servo_")}  # the settings of the files
+        files = {k: v for k, v in asdict(m).items() if not k.startswith("servo_") and k != "unplugged"}  # of the files
         key = hashlib.sha1(
             json.dumps(
                 [ASSET_VERSION, files, asdict(config.board), [s.finger for s in config.tactile.sensors]], sort_keys=True
@@ -163,7 +213,14 @@ class MockDevices:
         self.camera_poses = camera_poses(config.board.spec(), m.camera_frames)
         if not (self.folder / "done").is_file():
             self._generate()
-        self.emulator = None if m.servo_port else DxlEmulator(ids=config.hand.ids)  # None: an emulator process's
+        lower, upper = servo_ticks(config, JOINT_LIMITS[:, 0]), servo_ticks(config, JOINT_LIMITS[:, 1])
+        self.servo_stops = {sid: (min(a, b), max(a, b)) for sid, a, b in zip(config.hand.ids, lower, upper)}
+        self.upper_stop_ticks = dict(zip(config.hand.ids, upper))  # where each joint's upper limit puts its servo
+        self.lower_stop_ticks = dict(zip(config.hand.ids, lower))
+        initial = dict(zip(config.hand.ids, servo_ticks(config, np.zeros(len(JOINT_LIMITS)))))  # the open hand
+        self.emulator = (
+            None if m.servo_port else DxlEmulator(ids=config.hand.ids, initial_ticks=initial, stops=self.servo_stops)
+        )  # None: an emulator process's
         self.captures: dict[str, LoopingCapture] = {}
 
     # --- files ------------------------------------------------------------------------------------
@@ -190,7 +247,12 @@ class MockDevices:
         m, spec = self.config.mock_devices, self.config.board.spec()
         self.folder.parent.mkdir(parents=True, exist_ok=True)
         work = Path(tempfile.mkdtemp(prefix=".mock-", dir=self.folder.parent))
-        frames = [render_board(spec, self.K, m.camera_width, m.camera_height, T) for T in self.camera_poses]
+        frames = [
+            render_board(spec, self.K, m.camera_width, m.camera_height, T)
+            if m.board_in_view
+            else np.full((m.camera_height, m.camera_width, 3), 150, np.uint8)
+            for T in self.camera_poses
+        ]
         real = self.folder
         self.folder = work
         try:
@@ -244,6 +306,8 @@ class MockDevices:
         """A ``capture_factory`` for the drivers' video readers that loops the file and remembers the capture."""
 
         def factory(source):
+            if name in self.config.mock_devices.unplugged:
+                return cv2.VideoCapture()  # never opened, as a device that is not there
             if name == "camera":
                 cap = LoopingCapture(str(self.camera_video), fps=LIVE_CAMERA_FPS)
             else:
@@ -260,6 +324,9 @@ class MockDevices:
     def __enter__(self) -> "MockDevices":
         if self.emulator is not None:
             self.emulator.start()
+            for name in self.config.mock_devices.unplugged:
+                if name.startswith("servo "):
+                    self.emulator.disconnect(int(name.split()[1]))
         return self
 
     def __exit__(self, *exc) -> None:

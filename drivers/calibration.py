@@ -31,6 +31,11 @@ RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 JOINT_FIELDS = ("sign", "offset_rad")
 
 
+def motor_angles_from_ticks(ticks) -> np.ndarray:
+    """Servo ticks -> motor angles in radians, 0 at the centre tick."""
+    return (np.asarray(ticks, dtype=np.float64) - CENTRE_TICK) * RAD_PER_TICK
+
+
 class _RepeatedKey(dict):
     """A JSON object whose text gives a key twice (plain ``json.loads`` keeps the last one silently)."""
 
@@ -170,15 +175,21 @@ class HandCalibration:
         n = len(joint_names)
         return cls(tuple(joint_names), np.ones(n), np.zeros(n))
 
+    def motor_angles(self, q) -> np.ndarray:
+        """Joint angles [n] radians -> motor angles [n] radians (``theta = sign * q + offset_rad``)."""
+        return self.signs * np.asarray(q, dtype=np.float64) + self.offsets_rad
+
+    def joint_angles(self, theta) -> np.ndarray:
+        """Motor angles [n] radians -> joint angles [n] radians."""
+        return self.signs * (np.asarray(theta, dtype=np.float64) - self.offsets_rad)
+
     def ticks_from_radians(self, q) -> np.ndarray:
         """Joint angles [n] radians -> goal ticks [n] int64 (rounded)."""
-        theta = self.signs * np.asarray(q, dtype=np.float64) + self.offsets_rad
-        return np.rint(theta / RAD_PER_TICK + CENTRE_TICK).astype(np.int64)
+        return np.rint(self.motor_angles(q) / RAD_PER_TICK + CENTRE_TICK).astype(np.int64)
 
     def radians_from_ticks(self, ticks) -> np.ndarray:
         """Present ticks [n] -> joint angles [n] radians."""
-        theta = (np.asarray(ticks, dtype=np.float64) - CENTRE_TICK) * RAD_PER_TICK
-        return self.signs * (theta - self.offsets_rad)
+        return self.joint_angles(motor_angles_from_ticks(ticks))
 
     def to_json(self) -> dict:
         return {

@@ -15,9 +15,13 @@ torque is on; past it, the servo stops where it stands and holds there (its goal
 becomes its present position), the register reads -1 and the goal registers
 refuse writes (Data Range error) until 0 is written.
 
+A servo may have hard stops (a joint's ends) and be moved by a person's hand while its torque is off
+(:meth:`move_by_hand`: the person of ``tacsplat calibrate hand --mock``).
+
 Faults for tests: :meth:`disconnect` (a servo that never answers),
 :meth:`inject` ``"bad_crc"`` (a status packet with a corrupted CRC) or
-``"late"`` (a reply after the host's timeout), :meth:`inject_position_offset`
+``"late"`` (a reply after the host's timeout), :meth:`slip_horn` (a joint that turns without its servo),
+:meth:`inject_position_offset`
 (an encoder that reads off by some ticks) and :meth:`set_hardware_error`
 (the alert bit and Hardware Error Status, with the shutdown that the servo's
 firmware applies). Tests and the mocked operator session use it; it is no
@@ -137,6 +141,10 @@ class EmulatedServo:
     position: float = 0.0  # ticks, continuous
     offset_ticks: int = 0  # what the encoder reads on top of the position (a fault)
     last_instruction: float = field(default_factory=time.monotonic)  # when an instruction packet last reached it
+    stops: tuple[float, float] | None = None  # the joint's hard stops (ticks): nothing moves it past them
+    hand_goal: float | None = None  # where a person's hand moves it while its torque is off (None: let go)
+    hand_speed_ticks_per_s: float = 10000.0
+    horn_slipped: bool = False  # a fault: the joint turns without the servo, so a hand no longer moves it
 
     def __post_init__(self):
         self.set("model_number", self.model_number)
@@ -219,9 +227,14 @@ class EmulatedServo:
             self.set("present_velocity", int(round(move / max(dt, 1e-6) / 4096 * 60 / 0.229)))
             self.set("moving", int(abs(error - move) > self.get("moving_threshold")))
         else:
+            if self.hand_goal is not None and not self.horn_slipped:
+                step = self.hand_speed_ticks_per_s * dt
+                self.position += max(-step, min(step, self.hand_goal - self.position))
             self.set("present_current", 0)
             self.set("present_velocity", 0)
             self.set("moving", 0)
+        if self.stops is not None:
+            self.position = min(max(self.position, self.stops[0]), self.stops[1])
         self._sync_present()
 
     def check_watchdog(self, now: float) -> None:
@@ -262,10 +275,12 @@ class DxlEmulator:
         speed_ticks_per_s: float = 4000.0,
         initial_ticks: dict[int, float] | None = None,
         return_delay_s: float = 0.0,
+        stops: dict[int, tuple[float, float]] | None = None,
     ):
-        initial_ticks = initial_ticks or {}
+        initial_ticks, stops = initial_ticks or {}, stops or {}
         self.servos = {
-            i: EmulatedServo(i, model_number, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK)) for i in ids
+            i: EmulatedServo(i, model_number, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK), stops=stops.get(i))
+            for i in ids
         }
         self.return_delay_s = return_delay_s
         self.crc_errors = 0  # instruction packets that arrived with a bad CRC
@@ -310,6 +325,22 @@ class DxlEmulator:
             servo = self.servos[servo_id]
             servo.offset_ticks = int(ticks)
             servo._sync_present()
+
+    def move_by_hand(self, servo_id: int, ticks: float | None) -> None:
+        """A person's hand moves the servo toward ``ticks`` (as far as its hard stops let it) while its torque is
+        off, and holds it there; None lets go. A servo with torque on holds against the hand."""
+        with self._lock:
+            self.servos[servo_id].hand_goal = None if ticks is None else float(ticks)
+
+    def slip_horn(self, servo_id: int) -> None:
+        """Fault: the servo's horn slips on its joint, so moving the joint by hand no longer turns the servo."""
+        with self._lock:
+            self.servos[servo_id].horn_slipped = True
+
+    def position(self, servo_id: int) -> float:
+        """Where the servo stands, in ticks (without an injected encoder offset)."""
+        with self._lock:
+            return self.servos[servo_id].position
 
     def clear_faults(self) -> None:
         with self._lock:

@@ -65,7 +65,7 @@ from typing import Iterable, Sequence
 import dynamixel_sdk as dxl
 import numpy as np
 
-from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration
+from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration, motor_angles_from_ticks
 from tacsplat.drivers.dynamixel_table import (
     ALERT_BIT,
     BUS_WATCHDOG_TRIPPED,
@@ -367,10 +367,12 @@ class DynamixelHand:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def connect(self) -> None:
+    def connect(self, torque: bool = True) -> None:
         """Open the port, ping every servo, configure them with torque off, hold the present pose, arm the Bus
         Watchdog, enable torque.
 
+        ``torque=False`` stops after the configuration: the joints move freely by hand (``calibrate hand``), only
+        :meth:`read_motor_angles` reads them (no calibration needed), and closing confirms torque off as ever.
         On a faulted hand this reconnects from scratch: the goal is again where each servo stands now.
         """
         if self._port is not None:
@@ -404,6 +406,9 @@ class DynamixelHand:
                 self._write(sid, "position_p_gain", self.config.position_p_gain)
                 self._write(sid, "position_i_gain", self.config.position_i_gain)
                 self._write(sid, "position_d_gain", self.config.position_d_gain)
+            if not torque:
+                log.info("%s: %d servos connected, torque off", self.device, len(self.ids))
+                return
             # hold where the hand is before torque comes on: no jump (acknowledged writes, not an unanswered sync write)
             for sid, tick in zip(self.ids, self._holding_goal(self._read_raw_state()[0])):
                 self._write(sid, "goal_position", int(tick))
@@ -432,6 +437,10 @@ class DynamixelHand:
             currents=signs * cur * self.config.current_unit_a,
             timestamp=time.time(),
         )
+
+    def read_motor_angles(self) -> np.ndarray:
+        """[16] the servos' motor angles in radians (0 at the centre tick), before the calibration and its checks."""
+        return motor_angles_from_ticks(self._read_raw_state()[0])
 
     def read_joint_positions(self) -> np.ndarray:
         """[16] radians."""

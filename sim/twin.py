@@ -22,8 +22,9 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from tacsplat.datasets import SensorModel
+from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.errors import ConfigError, InvalidInputError, SimulationError
-from tacsplat.geometry import check_rigid, invert_pose, make_pose, opencv_to_opengl
+from tacsplat.geometry import check_rigid, make_pose, opencv_to_opengl
 from tacsplat.sim.camera import MujocoCamera
 from tacsplat.sim.collision import DecompositionConfig, convex_decomposition
 from tacsplat.sim.hand import (
@@ -94,6 +95,11 @@ class TwinConfig:
     decomposition: DecompositionConfig = field(default_factory=DecompositionConfig)
     background: str = "gradient"  # "gradient" skybox or plain "white"
     texture: str = "none"  # the object's surface (sim.objects.TEXTURES): its one colour, or "checker" (textured)
+    # the hand's servos as built (true errors, hidden from the rig): at true joint angle q a servo reads
+    # sign * q + offset radians (its motor angle); the nominal hand reads q
+    servo_offsets_rad: tuple[float, ...] = (0.0,) * 16
+    servo_signs: tuple[int, ...] = (1,) * 16
+    hand_calibration: str | None = None  # the hand.json the rig reads the servos with (None: sign 1, offset 0)
 
 
 def check_physics(config: TwinConfig, model: mujoco.MjModel | None = None) -> None:
@@ -212,15 +218,29 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
 
 
 class SimHand:
-    """The twin's hand (implements ``Hand``): position servos on the sixteen joints."""
+    """The twin's hand (implements ``Hand``): position servos on the sixteen joints.
+
+    Its servos are the real hand's as the twin's config builds them (``servo_signs``, ``servo_offsets_rad``: motor
+    angle ``sign * q + offset`` at true joint angle ``q``), read and commanded through the rig's hand calibration
+    as the real driver does; :meth:`fingertip_poses` is the model's forward kinematics at the joints so read.
+    """
 
     def __init__(self, twin: "SimTwin"):
         self._twin = twin
+        cfg = twin.config
+        self._servo_signs = np.asarray(cfg.servo_signs, dtype=np.float64)
+        self._servo_offsets = np.asarray(cfg.servo_offsets_rad, dtype=np.float64)
+        if self._servo_signs.shape != (16,) or self._servo_offsets.shape != (16,):
+            raise ConfigError("servo_signs", "the twin's servo signs and offsets need 16 values each")
+        self.calibration = (
+            HandCalibration.load(cfg.hand_calibration, JOINT_NAMES)
+            if cfg.hand_calibration
+            else HandCalibration.identity(JOINT_NAMES)
+        )
         model = twin.model
         self._qadr = np.array([model.jnt_qposadr[model.joint(n).id] for n in JOINT_NAMES])
         self._dofadr = np.array([model.jnt_dofadr[model.joint(n).id] for n in JOINT_NAMES])
         self._act = np.array([model.actuator(n).id for n in JOINT_NAMES])
-        self._sites = {f: model.site(f"{f}_tactile").id for f in FINGER_NAMES}
         self._kinematics = HandKinematics(twin.config.hand_geometry)
 
     @property
@@ -237,15 +257,20 @@ class SimHand:
     def joint_limits(self) -> np.ndarray:
         return JOINT_LIMITS.copy()
 
+    def read_motor_angles(self) -> np.ndarray:
+        """[16] the servos' motor angles in radians (before the hand calibration)."""
+        return self._servo_signs * self._twin.data.qpos[self._qadr] + self._servo_offsets
+
     def read_joint_positions(self) -> np.ndarray:
-        return self._twin.data.qpos[self._qadr].copy()
+        """[16] radians, as the hand calibration reads the servos."""
+        return self.calibration.joint_angles(self.read_motor_angles())
 
     def read_joint_state(self) -> tuple[np.ndarray, np.ndarray]:
         """``(positions [16] radians, actuator torques [16] N m)``."""
         return self.read_joint_positions(), self._twin.data.actuator_force[self._act].copy()
 
     def read_joint_targets(self) -> np.ndarray:
-        return self._twin.data.ctrl[self._act].copy()
+        return self.calibration.joint_angles(self._servo_signs * self._twin.data.ctrl[self._act] + self._servo_offsets)
 
     def command_joint_positions(self, q: np.ndarray) -> None:
         q = np.asarray(q, dtype=np.float64)
@@ -257,18 +282,29 @@ class SimHand:
         if np.any(np.abs(clamped - q) > 1e-9):
             names = [JOINT_NAMES[i] for i in np.flatnonzero(np.abs(clamped - q) > 1e-9)]
             log.info("joint command clamped to the limits on %s", ", ".join(names))
-        self._twin.data.ctrl[self._act] = clamped
+        true = self._servo_signs * (self.calibration.motor_angles(clamped) - self._servo_offsets)
+        self._twin.data.ctrl[self._act] = np.clip(true, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])  # the hard stops
+
+    def dof_of(self, joint: int) -> int:
+        """The MuJoCo degree of freedom of joint ``joint`` (an index into ``data.qvel``, ``data.qfrc_applied``)."""
+        return int(self._dofadr[joint])
+
+    def set_torque(self, on: bool) -> None:
+        """Torque on (the position servos act) or off (they exert nothing: the joints move freely)."""
+        flag = mujoco.mjtDisableBit.mjDSBL_ACTUATION
+        opt = self._twin.model.opt
+        opt.disableflags = opt.disableflags & ~flag if on else opt.disableflags | flag
 
     def set_joint_positions(self, q: np.ndarray) -> None:
-        """Teleport the joints (and their servo targets) to ``q``, at rest: a simulator-only reset."""
+        """Teleport the joints (and their servo targets) to the command ``q``, at rest: a simulator-only reset."""
         self.command_joint_positions(q)
         self._twin.data.qpos[self._qadr] = self._twin.data.ctrl[self._act]
         self._twin.data.qvel[self._dofadr] = 0.0
         self._twin.forward()
 
     def fingertip_poses(self) -> dict[str, np.ndarray]:
-        T_hand_world = invert_pose(self._twin.T_world_hand())
-        return {f: T_hand_world @ site_pose(self._twin.data, s) for f, s in self._sites.items()}
+        """``{finger: T_hand_sensor}`` by the model's forward kinematics at the joints as read (as the real driver)."""
+        return self._kinematics.fingertip_poses(self.read_joint_positions())
 
     def link_boxes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The hand's solid shape at joint positions ``q`` [16]: boxes [L, 4, 4] in the hand frame, [L, 3]."""
@@ -302,10 +338,10 @@ class SimTactileSensor:
         return site_pose(self._twin.data, self._site)
 
     def read(self) -> TactileReading:
-        """The indentation map, its pose in the hand frame, the simulated time."""
-        T_world_sensor = self.T_world_sensor()
-        depth = self._twin.tactile_renderer.render(T_world_sensor)
-        T_hand_sensor = invert_pose(self._twin.T_world_hand()) @ T_world_sensor
+        """The indentation map (at the pad's true pose), its pose in the hand frame as the rig computes it (the
+        hand's forward kinematics at its joints as read), the simulated time."""
+        depth = self._twin.tactile_renderer.render(self.T_world_sensor())
+        T_hand_sensor = self._twin.hand.fingertip_poses()[self._name]
         return TactileReading(depth, self.config.pixel_size_m, T_hand_sensor, "hand", float(self._twin.data.time))
 
 

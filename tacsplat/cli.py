@@ -61,7 +61,8 @@ EXTRAS = {
 GROUP_HELP = {
     "import": "import a dataset (Blender/NeRF-synthetic, COLMAP, nerfstudio/instant-ngp) into a scene directory",
     "bench": "benchmarks: error and run time, medians and ratios against a reference",
-    "calibrate": "calibrate real devices (wrist camera, tactile sensors)",
+    "calibrate": "calibrate the rig: the hand's joints, the wrist camera, the tactile sensors",
+    "rig": "the rig as a whole: check it before a capture",
     "tactile": "optical tactile sensors: depth maps from images with a calibration",
 }
 

@@ -1,0 +1,245 @@
+"""``tacsplat rig check``: is the rig ready to capture? Every device answers, every calibration file the rig names
+is there, plausible (it parses, its values are in range) and younger than the rig file's ``hardware_changed``, and
+the wrist camera sees the board; one table, one row per check.
+
+On ``--mock`` the devices are emulated (``mock_devices.unplugged`` and ``board_in_view`` stage faults) and the camera
+and tactile calibrations are the mock's own, as a mock capture uses them; the hand calibration is the rig's.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import nullcontext
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from tacsplat.acquisition.config import RigConfig
+from tacsplat.errors import TacsplatError
+from tacsplat.sim.hand import JOINT_LIMITS, JOINT_NAMES
+
+FPS_WINDOW_S = 0.5  # how long each camera's frame rate is measured
+READ_TOLERANCE_RAD = np.radians(5.0)  # a joint read this far outside its limits with hand.json: a wrong calibration
+
+
+@dataclass(frozen=True)
+class Row:
+    """One check: what (a device, or the rig file's key of a calibration file), ``ok``, and what was found."""
+
+    item: str
+    ok: bool
+    detail: str
+
+
+def _calibration_file(config: RigConfig, key: str, name: str, load: Callable[[Path], object]) -> tuple[Row, object]:
+    """A calibration file's row (there, parses, younger than hardware_changed) and what it loaded (None if not)."""
+    path = config.path(name)
+    if not path.is_file():
+        return Row(key, False, f"{path}: missing"), None
+    try:
+        loaded = load(path)
+    except TacsplatError as exc:
+        return Row(key, False, f"unusable: {exc}"), None
+    written = datetime.fromtimestamp(path.stat().st_mtime)
+    changed = config.hardware_changed
+    if changed is not None and written < changed:
+        return (
+            Row(
+                key,
+                False,
+                f"{path}: stale: written {written:%Y-%m-%d %H:%M}, before hardware_changed {changed:%Y-%m-%d %H:%M}; "
+                "calibrate again",
+            ),
+            loaded,
+        )
+    return Row(key, True, f"{path}: written {written:%Y-%m-%d %H:%M}"), loaded
+
+
+def _servos(config: RigConfig, port: str, settings, hand_calibration) -> Row:
+    """Every servo answers (torque off throughout); with a hand calibration, every joint reads inside its limits."""
+    from tacsplat.drivers.dynamixel_hand import DynamixelHand
+    from tacsplat.sim.hand import HandKinematics
+
+    ids = config.hand.ids
+    hand = DynamixelHand(port, config.hand.baudrate, ids, None, config=settings, kinematics=HandKinematics())
+    item = f"servos ({len(ids)} on {port})"
+    try:
+        hand.connect(torque=False)
+        theta = hand.read_motor_angles()
+    except TacsplatError as exc:
+        return Row(item, False, str(exc))
+    finally:
+        hand.close()
+    detail = f"all answer; {hand.torque_off_report}"
+    if hand_calibration is not None:
+        q = hand_calibration.joint_angles(theta)
+        out = np.flatnonzero(
+            (q < JOINT_LIMITS[:, 0] - READ_TOLERANCE_RAD) | (q > JOINT_LIMITS[:, 1] + READ_TOLERANCE_RAD)
+        )
+        if out.size:
+            joints = ", ".join(f"{JOINT_NAMES[i]} reads {np.degrees(q[i]):+.1f} deg" for i in out)
+            return Row(item, False, f"outside the joint limits with the hand calibration: {joints} (calibrate hand)")
+        detail += "; every joint reads inside its limits"
+    return Row(item, True, detail)
+
+
+def _frames(reader_read, seconds: float) -> tuple[np.ndarray, float]:
+    """The last image read and the frame rate over ``seconds``."""
+    start, count, image = time.monotonic(), 0, None
+    while count < 2 or time.monotonic() - start < seconds:
+        image = reader_read()
+        count += 1
+    return image, (count - 1) / (time.monotonic() - start)
+
+
+def check_rig(config: RigConfig) -> list[Row]:
+    """Every check of a ``rig: real`` config (emulated devices with ``config.mock``)."""
+    from tacsplat.drivers.calibration import HandCalibration
+    from tacsplat.drivers.optical_tactile import TactileCalibration
+    from tacsplat.drivers.video import VideoReader
+    from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
+
+    rows: list[Row] = []
+    hand_cal = None
+    if config.hand.calibration:
+        row, hand_cal = _calibration_file(
+            config, "hand.calibration", config.hand.calibration, lambda p: HandCalibration.load(p, JOINT_NAMES)
+        )
+        rows.append(row)
+    else:
+        rows.append(Row("hand.calibration", False, "none named: tacsplat calibrate hand writes it"))
+    mock = None
+    if config.mock:
+        from tacsplat.acquisition.mock import MockDevices
+
+        mock = MockDevices(config)
+    with mock if mock is not None else nullcontext():
+        if mock is not None:
+            cam_cal = CameraCalibration.load(mock.camera_calibration)
+            rows.append(Row("camera.calibration", True, f"generated by --mock ({mock.camera_calibration})"))
+            tactile = {s.finger: TactileCalibration.load(mock.tactile_calibration) for s in config.tactile.sensors}
+            rows += [
+                Row(f"tactile.sensors[{i}].calibration", True, "generated by --mock")
+                for i in range(len(config.tactile.sensors))
+            ]
+        else:
+            row, cam_cal = _calibration_file(
+                config, "camera.calibration", config.camera.calibration, CameraCalibration.load
+            )
+            rows.append(row)
+            tactile = {}
+            for i, s in enumerate(config.tactile.sensors):
+                key = f"tactile.sensors[{i}].calibration"
+                row, tactile[s.finger] = _calibration_file(config, key, s.calibration, TactileCalibration.load)
+                rows.append(row)
+        T_hand_cam = config.camera.T_hand_cam
+        if T_hand_cam is None and cam_cal is not None and cam_cal.T_hand_cam is not None:
+            T_hand_cam = cam_cal.T_hand_cam
+        rows.append(
+            Row(
+                "camera.T_hand_cam",
+                True,
+                "given in the rig file" if config.camera.T_hand_cam else "from the camera calibration",
+            )
+            if T_hand_cam is not None
+            else Row("camera.T_hand_cam", False, "none: neither the rig file nor the camera calibration gives it")
+        )
+        # the devices
+        if mock is not None:
+            from tacsplat.drivers.dynamixel_hand import MAX_BUS_WATCHDOG_S, DynamixelHandConfig
+
+            settings = DynamixelHandConfig(
+                min_packet_timeout_s=config.mock_devices.servo_timeout_s, bus_watchdog_s=MAX_BUS_WATCHDOG_S
+            )
+            rows.append(_servos(config, mock.servo_port, settings, hand_cal))
+        else:
+            rows.append(_servos(config, config.hand.port, None, hand_cal))
+        rows += _camera_rows(config, mock, cam_cal, WristCamera)
+        for s in config.tactile.sensors:
+            source = str(mock.tactile_video(s.finger)) if mock is not None else s.source
+            factory = {"capture_factory": mock.capture_factory(s.finger)} if mock is not None else {}
+            item = f"tactile {s.finger} (source {s.source})"
+            try:
+                with VideoReader(
+                    source, timeout_s=config.tactile.timeout_s, name=f"tactile {s.finger}", **factory
+                ) as r:
+                    image, fps = _frames(lambda: r.read().image, FPS_WINDOW_S)
+            except TacsplatError as exc:
+                rows.append(Row(item, False, str(exc)))
+                continue
+            size = image.shape[:2]
+            cal = tactile.get(s.finger)
+            if cal is not None and tuple(cal.image_size) != size:
+                rows.append(
+                    Row(
+                        item,
+                        False,
+                        f"{size[1]}x{size[0]} images, its calibration is for {cal.image_size[1]}x{cal.image_size[0]}",
+                    )
+                )
+            else:
+                rows.append(Row(item, True, f"{size[1]}x{size[0]} at {fps:.0f} fps"))
+    return rows
+
+
+def _camera_rows(config: RigConfig, mock, cam_cal, WristCamera) -> list[Row]:
+    """The wrist camera answers (its rate), and sees the board well enough to capture."""
+    from tacsplat.acquisition.logger import BoardPoseSource
+
+    item = f"wrist camera (source {config.camera.source})"
+    if cam_cal is None:
+        return [Row(item, False, "not opened: its calibration is unusable"), Row("board", False, "not looked for")]
+    source = mock.camera_source if mock is not None else config.camera.source
+    factory = {"capture_factory": mock.capture_factory("camera")} if mock is not None else {}
+    try:
+        with WristCamera(source, cam_cal, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **factory) as cam:
+            image, fps = _frames(lambda: cam.read()[0], FPS_WINDOW_S)
+            poses = BoardPoseSource(cam, config.board, np.eye(4))
+            rows = [Row(item, True, f"{cam.width}x{cam.height} at {fps:.0f} fps")]
+            try:
+                est = poses.measure(image)
+            except TacsplatError as exc:
+                return rows + [Row("board", False, f"not seen: {exc}; put the board in the wrist camera's view")]
+    except TacsplatError as exc:
+        return [Row(item, False, str(exc)), Row("board", False, "not looked for")]
+    seen = f"seen: {est.corners} corners, reprojection {est.reprojection_px:.2f} px"
+    if est.reprojection_px > config.board.max_reprojection_px:
+        return rows + [
+            Row("board", False, f"{seen}, over board.max_reprojection_px {config.board.max_reprojection_px:g}")
+        ]
+    return rows + [Row("board", True, seen)]
+
+
+def check_twin(config: RigConfig) -> list[Row]:
+    """A ``rig: sim`` config: its hand calibration file (when named) and the twin's devices."""
+    from tacsplat.acquisition.devices import twin_config
+    from tacsplat.drivers.calibration import HandCalibration
+    from tacsplat.sim.twin import SimTwin
+
+    rows = []
+    if config.hand.calibration:
+        row, _ = _calibration_file(
+            config, "hand.calibration", config.hand.calibration, lambda p: HandCalibration.load(p, JOINT_NAMES)
+        )
+        rows.append(row)
+        if not row.ok:
+            return rows
+    with SimTwin(twin_config(config)) as twin:
+        q = twin.hand.read_joint_positions()
+        rows.append(Row("twin hand", True, f"{len(q)} joints answer"))
+        for sensor in twin.tactile_sensors:
+            h, w = sensor.read().depth.shape
+            rows.append(Row(f"twin tactile {sensor.name}", True, f"{w}x{h} depth maps"))
+    rows.append(Row("board", True, "none: the twin's world frame is MuJoCo's"))
+    return rows
+
+
+def table(rows: list[Row]) -> str:
+    """The rows as a plain-text table."""
+    width = max(len(r.item) for r in rows)
+    lines = [f"{'check':<{width}}  status  detail"]
+    lines += [f"{r.item:<{width}}  {'ok' if r.ok else 'FAIL':<6}  {r.detail}" for r in rows]
+    return "\n".join(lines)
