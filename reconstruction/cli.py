@@ -1,5 +1,5 @@
-"""`tacsplat reconstruct` and `tacsplat evaluate` (see tacsplat.cli); reconstruct parses its own options
-(:mod:`.command`), evaluate's are :class:`Evaluate`."""
+"""`tacsplat reconstruct`, `tacsplat evaluate` and `tacsplat export mesh` (see tacsplat.cli); reconstruct parses its
+own options (:mod:`.command`), the others' are :class:`Evaluate` and :class:`ExportMesh`."""
 
 from __future__ import annotations
 
@@ -30,11 +30,61 @@ class Evaluate:
     """rasterization backend"""
 
 
+@dataclass
+class ExportMesh:
+    """export a watertight mesh of a reconstruction run (PLY, metres, the scene's frame)
+
+    Renders the run's median depth and colour from cameras around the object (those near the training cameras'
+    directions), fuses them and the touches into a signed distance field and extracts its surface (marching cubes):
+    vertex colours, outward normals, and an `observed` flag per vertex (a training camera sees it, or a touch lies
+    on it). Prints the mesh metrics (F-score at 1/2/5 % of the radius, Chamfer distance, normal consistency,
+    watertight) where the scene has a ground truth, and adds them to RUN/metrics.json."""
+
+    run: tyro.conf.Positional[Path]
+    """run directory written by `tacsplat reconstruct`"""
+    out: Path | None = None
+    """mesh file (default: RUN/mesh.ply)"""
+    voxel: float = 0.01
+    """voxel side, as a fraction of the object's radius"""
+    views: int = 64
+    """cameras on a sphere around the object (those within --cone-deg of a training camera are fused)"""
+    cone_deg: float = 30.0
+    """fuse the cameras within this angle of a training camera's direction"""
+    touches: bool = True
+    """fuse the touches' contact points"""
+    all_pieces: bool = False
+    """keep every connected piece (default: only the largest, the object)"""
+
+
 def register(cli) -> None:
     """Add this package's commands to the tree."""
     cli.own("reconstruct", "tactile-informed 3DGS: train on a scene directory and evaluate", _reconstruct)
 
     cli.typed("evaluate", Evaluate, _evaluate)
+    cli.typed("export mesh", ExportMesh, _export_mesh)
+
+
+def _export_mesh(args: ExportMesh) -> int:
+    from tacsplat.errors import InvalidInputError, UsageError
+    from tacsplat.files import check_writable
+    from tacsplat.reconstruction.meshing import MeshConfig, export_mesh
+
+    config = MeshConfig(
+        voxel=args.voxel,
+        views=args.views,
+        cone_deg=args.cone_deg,
+        touches=args.touches,
+        object_only=not args.all_pieces,
+    )
+    try:
+        config.validate()
+    except InvalidInputError as exc:
+        key, _, message = str(exc).partition(": ")
+        raise UsageError("--" + key.replace("_", "-"), message) from None
+    check_writable(args.run if args.out is None else args.out.parent)
+    summary = export_mesh(args.run, args.out, config)
+    print(json.dumps(summary, indent=2))
+    return 0
 
 
 def _reconstruct(args) -> int:

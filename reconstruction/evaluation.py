@@ -474,6 +474,7 @@ def evaluate_reconstruction(
         save_light(look.light, Path(run_dir) / "light.png")
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
+    metrics.update(exported_mesh_metrics(Path(run_dir), scene))
     result = {
         **metrics,
         "train_seconds": train_seconds,
@@ -491,6 +492,18 @@ def evaluate_reconstruction(
     result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
     atomic_write(Path(run_dir) / "metrics.json", json.dumps(result, indent=2, default=_json_default).encode())
     return result
+
+
+def exported_mesh_metrics(run_dir: Path, scene) -> dict:
+    """The mesh metrics (:func:`~.meshing.mesh_metrics`) of ``RUN/mesh.ply`` where ``tacsplat export mesh`` wrote
+    one and the scene has a ground truth; empty otherwise."""
+    import trimesh
+
+    from tacsplat.reconstruction.meshing import ground_truth_surface, mesh_metrics
+
+    path = run_dir / "mesh.ply"
+    truth = ground_truth_surface(scene) if path.is_file() else None
+    return {} if truth is None else mesh_metrics(trimesh.load(str(path), force="mesh"), *truth)
 
 
 def equirect_directions(height: int, device=None) -> torch.Tensor:

@@ -2,7 +2,9 @@
 
 One binary little-endian ``vertex`` element of exactly 62 float32 properties
 ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2 rot_0..3`` (248
-bytes per record, what the SIBR viewer reads): normals are zero, opacity is the
+bytes per record, what the SIBR viewer reads): the normals are each Gaussian's
+shortest axis (a flat Gaussian's normal), turned away from the splat's centre
+of mass (the Inria code writes zeros), opacity is the
 logit, scales are log-scales, ``rot`` is (w, x, y, z), and the higher SH bands
 are stored channel-major (all red coefficients, then green, then blue), padded
 with zeros above the splat's SH degree to degree 3, as the Inria code writes
@@ -55,7 +57,15 @@ def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
     rest[:, : p["shN"].shape[1]] = p["shN"]
     rest = rest.transpose(1, 2).reshape(n, 3 * INRIA_REST)  # [N, 45], channel-major
     columns = torch.cat(
-        [p["means"], torch.zeros(n, 3), p["sh0"].reshape(n, 3), rest, p["opacities"][:, None], p["scales"], p["quats"]],
+        [
+            p["means"],
+            outward_normals(p["means"], p["quats"], p["scales"]),
+            p["sh0"].reshape(n, 3),
+            rest,
+            p["opacities"][:, None],
+            p["scales"],
+            p["quats"],
+        ],
         dim=1,
     ).numpy()
     data = np.rec.fromarrays(columns.T, dtype=[(name, "<f4") for name in _property_names(3 * INRIA_REST)])
@@ -69,6 +79,15 @@ def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
         with atomic_file(path) as f:
             f.write(ply.getvalue())
     return path
+
+
+def outward_normals(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """Unit normals [N, 3]: each Gaussian's shortest axis, signed to point away from the means' centroid."""
+    from tacsplat.reconstruction.shading import gaussian_normals
+
+    normals = gaussian_normals(quats, scales, fused=False)  # [N, 3], sign arbitrary
+    away = ((means - means.mean(dim=0)) * normals).sum(dim=-1, keepdim=True) < 0
+    return torch.where(away, -normals, normals)
 
 
 def _touch_flags(ply_path: Path, vertex, n: int) -> torch.Tensor:

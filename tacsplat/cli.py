@@ -59,7 +59,9 @@ EXTRAS = {
 }
 
 GROUP_HELP = {
-    "import": "import a dataset (Blender/NeRF-synthetic, COLMAP, nerfstudio/instant-ngp) into a scene directory",
+    "import": "import a dataset (Blender/NeRF-synthetic, Shiny Blender, Glossy Synthetic, COLMAP, nerfstudio/instant-ngp) "
+    "into a scene directory",
+    "export": "export a reconstruction: a watertight mesh",
     "bench": "benchmarks: error and run time, medians and ratios against a reference",
     "calibrate": "calibrate the rig: the hand's joints, the wrist camera, the tactile sensors",
     "rig": "the rig as a whole: check it before a capture",

@@ -106,7 +106,7 @@ def test_records_are_the_248_bytes_of_62_floats_the_sibr_viewer_reads(tmp_path):
     assert len(body) == 7 * 248
     records = np.frombuffer(body, dtype="<f4").reshape(7, 62)
     np.testing.assert_array_equal(records[:, 0:3], g.params["means"].detach().numpy())
-    np.testing.assert_array_equal(records[:, 3:6], 0.0)
+    np.testing.assert_allclose(np.linalg.norm(records[:, 3:6], axis=1), 1.0, atol=1e-6)  # the normals
     np.testing.assert_array_equal(records[:, 54], g.params["opacities"].detach().numpy())
     np.testing.assert_array_equal(records[:, 58:62], g.params["quats"].detach().numpy())
 
@@ -155,3 +155,25 @@ def test_a_splat_of_an_earlier_tacsplat_keeps_its_touch_flags(tmp_path):
     old["from_touch"] = g.from_touch.numpy()
     PlyData([PlyElement.describe(old, "vertex")]).write(str(tmp_path / "old.ply"))
     assert torch.equal(load_ply(tmp_path / "old.ply").from_touch, g.from_touch)
+
+
+def test_the_splat_carries_each_gaussians_shortest_axis_as_its_unit_normal(tmp_path):
+    """nerfstudio's exported splats have all-zero normals: ours are the flat Gaussians' normals, facing outward."""
+    gaussians = _gaussians(200, 1, seed=3)
+    vertex = PlyData.read(save_ply(gaussians, tmp_path / "splat.ply"))["vertex"]
+    normals = np.stack([np.asarray(vertex[k], np.float64) for k in ("nx", "ny", "nz")], axis=1)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-6)
+    q = torch.nn.functional.normalize(gaussians.params["quats"].detach().double(), dim=-1).numpy()
+    for i in range(len(normals)):  # the rotation's column of the smallest scale, to float32 precision
+        w, x, y, z = q[i]
+        R = np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+        axis = R[:, int(np.argmin(gaussians.params["scales"][i].detach().numpy()))]
+        assert abs(abs(axis @ normals[i]) - 1.0) < 1e-5
+    means = gaussians.params["means"].detach().numpy()
+    assert np.all(((means - means.mean(axis=0)) * normals).sum(axis=1) >= 0)  # away from the centroid

@@ -1,0 +1,111 @@
+"""Meshes out of a reconstruction: TSDF fusion of depth and touches, marching cubes, the mesh metrics, `export mesh`."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from plyfile import PlyData
+
+from tacsplat.cli import main
+from tacsplat.datasets import SceneWriter
+from tacsplat.reconstruction.meshing import TSDFVolume, mesh_metrics, sphere_cameras
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from recon_synthetic import build_sphere_scene, sphere_depth  # noqa: E402
+
+R = 0.05  # metres: the sphere of recon_synthetic
+
+
+def _sphere_volume(voxel: float, views: int = 24) -> TSDFVolume:
+    """A TSDF of the sphere of radius R at the origin fused from exact depth maps all around it."""
+    extent = 1.2 * R
+    volume = TSDFVolume(np.full(3, -extent), voxel, (int(np.ceil(2 * extent / voxel)),) * 3, 3 * voxel)
+    for frame in sphere_cameras(np.zeros(3), extent, views, 96):
+        depth = sphere_depth(frame.intrinsics.K, frame.T_world_cam, 96, 96).astype(np.float64)
+        rgb = np.full((96, 96, 3), 0.25)
+        volume.integrate_depth(depth, rgb, frame.intrinsics.K, frame.T_world_cam)
+    return volume
+
+
+def test_fused_depth_of_a_sphere_is_a_watertight_mesh_on_it_with_outward_normals():
+    voxel = 0.02 * R
+    mesh = _sphere_volume(voxel).mesh()
+    assert mesh.is_watertight and mesh.body_count == 1
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    assert np.abs(radii - R).max() < voxel and np.abs(radii - R).mean() < 0.2 * voxel  # (nearest-pixel depth)
+    assert np.all((mesh.vertex_normals * mesh.vertices).sum(axis=1) > 0)  # outward
+    assert mesh.volume == pytest.approx(4 / 3 * np.pi * R**3, rel=0.02)
+    np.testing.assert_allclose(mesh.visual.vertex_colors[:, :3], 64, atol=1)  # the views' colour, 0.25
+    metrics = mesh_metrics(
+        mesh, trimesh.creation.icosphere(subdivisions=5, radius=R), R, samples=20_000, targets=400_000
+    )
+    assert metrics["mesh_fscore_1"] > 0.99 and metrics["mesh_cd"] < 0.005 and metrics["mesh_watertight"]
+    assert metrics["mesh_normal_consistency"] > 0.97  # (marching cubes' facets)
+
+
+def test_touch_points_move_the_surface_where_they_landed():
+    """A tactile map is fused as points along their normals: a patch touched 3 % inside the seen surface pulls
+    the mesh there, and nowhere else."""
+    voxel = 0.02 * R
+    volume = _sphere_volume(voxel)
+    d = np.random.default_rng(0).normal(size=(40_000, 3))  # a contact patch is dense: one point per gel pixel
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    cap = d[d[:, 2] > np.cos(np.radians(20))]  # a patch around the top
+    volume.integrate_points(0.97 * R * cap, cap, weight=24.0)  # (as extract_mesh weighs them: all views' weight)
+    mesh = volume.mesh()
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    polar = np.degrees(np.arccos(mesh.vertices[:, 2] / radii))
+    assert np.abs(radii[polar < 12] - 0.97 * R).max() < voxel
+    assert np.abs(radii[polar > 40] - R).max() < voxel
+    assert mesh.is_watertight
+
+
+def test_mesh_metrics_of_the_truth_and_of_a_grown_copy():
+    truth = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    same = mesh_metrics(truth, truth, 1.0, samples=20_000, targets=400_000)
+    assert same["mesh_fscore_1"] > 0.99 and same["mesh_cd"] < 0.004 and same["mesh_normal_consistency"] > 0.999
+    grown = mesh_metrics(truth.copy().apply_scale(1.03), truth, 1.0, samples=20_000, targets=400_000)
+    assert grown["mesh_fscore_1"] < 0.01 and grown["mesh_fscore_2"] < 0.01 and grown["mesh_fscore_5"] > 0.99
+    assert grown["mesh_cd"] == pytest.approx(0.03, rel=0.05)
+    points = mesh_metrics(
+        truth, np.asarray(truth.vertices), 1.0, samples=20_000, targets=400_000
+    )  # a ground truth of points
+    assert np.isnan(points["mesh_normal_consistency"]) and points["mesh_fscore_5"] > 0.99
+
+
+@pytest.fixture(scope="module")
+def sphere_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("mesh")
+    scene = build_sphere_scene(root / "scene", size=32, train_views=6, test_views=1)
+    with SceneWriter.resume(scene) as writer:
+        writer.set_gt_mesh(trimesh.creation.icosphere(subdivisions=4, radius=R))
+    command = ["reconstruct", str(scene), "--out", str(root / "run"), "--iterations", "60", "--backend", "cpu"]
+    assert main(command) == 0
+    return root / "run"
+
+
+def test_export_mesh_writes_a_watertight_coloured_mesh_and_its_metrics(sphere_run, capsys):
+    capsys.readouterr()
+    assert main(["export", "mesh", str(sphere_run), "--voxel", "0.04", "--views", "24"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["mesh"] == str(sphere_run / "mesh.ply") and summary["mesh_watertight"] is True
+    vertex = PlyData.read(str(sphere_run / "mesh.ply"))["vertex"]
+    assert {"nx", "ny", "nz", "red", "green", "blue", "observed"} <= set(vertex.data.dtype.names)
+    observed = np.asarray(vertex["observed"])
+    assert set(np.unique(observed)) <= {0, 1} and observed.any()  # the training cameras see part of it
+    assert 0 < summary["observed_fraction"] <= 1
+    mesh = trimesh.load(str(sphere_run / "mesh.ply"), force="mesh")
+    assert mesh.is_watertight
+    metrics = json.loads((sphere_run / "metrics.json").read_text())
+    for key in ("mesh_fscore_1", "mesh_fscore_2", "mesh_fscore_5", "mesh_cd", "mesh_normal_consistency"):
+        assert np.isfinite(metrics[key]) and metrics[key] == summary[key]
+
+
+def test_export_mesh_refuses_a_voxel_out_of_range_naming_the_option(sphere_run, capsys):
+    assert main(["export", "mesh", str(sphere_run), "--voxel", "0.5"]) == 2
+    assert "--voxel" in capsys.readouterr().err
