@@ -363,10 +363,13 @@ def ground_truth_surface(scene) -> tuple[trimesh.Trimesh | np.ndarray, float] | 
     return None if points is None else (points, bounding_sphere_radius(points))
 
 
-def export_mesh(run_dir: str | Path, out: str | Path | None = None, config: MeshConfig | None = None) -> dict:
+def export_mesh(
+    run_dir: str | Path, out: str | Path | None = None, config: MeshConfig | None = None, record: str | None = None
+) -> dict:
     """Extract a run's mesh (its last checkpoint) into ``out`` (default ``RUN/mesh.ply``); returns a summary: the
     file, vertex and face counts, the share of vertices observed, and the mesh metrics where the scene has a
-    ground truth. Exporting into ``RUN/mesh.ply`` also adds the metrics to ``RUN/metrics.json``."""
+    ground truth. The metrics go into ``RUN/metrics.json`` too, as ``mesh_*`` for ``RUN/mesh.ply``, or under the
+    prefix ``record`` (``mesh_untouched``: ``mesh_untouched_fscore_5``, ...)."""
     import json
 
     from tacsplat.datasets import Scene
@@ -394,8 +397,18 @@ def export_mesh(run_dir: str | Path, out: str | Path | None = None, config: Mesh
     if truth is not None:
         summary.update(mesh_metrics(extracted.mesh, *truth))
         metrics_path = run_dir / "metrics.json"
-        if out.resolve() == (run_dir / "mesh.ply").resolve() and metrics_path.is_file():
+        default = out.resolve() == (run_dir / "mesh.ply").resolve()
+        if (record is not None or default) and metrics_path.is_file():
+            prefix = record or "mesh"
             metrics = json.loads(metrics_path.read_text())
-            metrics.update({k: v for k, v in summary.items() if k.startswith("mesh_")})
+            metrics.update({prefix + k[len("mesh") :]: v for k, v in summary.items() if k.startswith("mesh_")})
             atomic_write(metrics_path, json.dumps(metrics, indent=2).encode())
     return summary
+
+
+def export_meshes(run_dir: str | Path) -> None:
+    """A run's ``mesh.ply`` with its touches fused and ``mesh-untouched.ply`` without (``mesh_untouched_*`` in its
+    metrics.json): what touching buys the mesh (``bench paper --mesh``)."""
+    run_dir = Path(run_dir)
+    export_mesh(run_dir, run_dir / "mesh-untouched.ply", MeshConfig(touches=False), record="mesh_untouched")
+    export_mesh(run_dir)  # last: its file marks the run's meshes done

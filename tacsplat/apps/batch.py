@@ -212,6 +212,7 @@ class ReconstructJob(BatchJob):
     seed: int = 0
     iterations: int | None = None  # None: the preset's
     device: Literal["auto", "cpu", "cuda"] = "auto"
+    export_mesh: bool = False  # then export the run's meshes with and without touches (reconstruction.meshing)
 
     def config(self):
         from tacsplat.reconstruction.config import preset_config, set_fields
@@ -276,7 +277,7 @@ class ReconstructJob(BatchJob):
         return 1 if self.device == "cuda" or (self.device == "auto" and cluster_has_gpus) else 0
 
     def complete(self) -> bool:
-        return (self.out / METRICS).is_file()
+        return (self.out / METRICS).is_file() and (not self.export_mesh or (self.out / "mesh.ply").is_file())
 
     def warm_up(self) -> None:
         """The trainer, and torch._dynamo, which torch.optim's first optimizer imports (a second). Not what a
@@ -291,10 +292,14 @@ class ReconstructJob(BatchJob):
 
         if self.complete():
             return json.loads((self.out / METRICS).read_text())
-        resume = (self.out / "checkpoint.pt").is_file()
-        return reconstruct(
-            self.scene, self.out, self.config(), resume=resume, overwrite=not resume, show_progress=False
-        )
+        if not (self.out / METRICS).is_file():
+            resume = (self.out / "checkpoint.pt").is_file()
+            reconstruct(self.scene, self.out, self.config(), resume=resume, overwrite=not resume, show_progress=False)
+        if self.export_mesh:
+            from tacsplat.reconstruction.meshing import export_meshes
+
+            export_meshes(self.out)
+        return json.loads((self.out / METRICS).read_text())
 
 
 @dataclass(frozen=True, kw_only=True)

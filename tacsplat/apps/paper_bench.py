@@ -136,6 +136,7 @@ class PaperBenchConfig:
     preset: str = "default"  # training preset (reconstruction.config.PRESETS): default or paper
     touch_model: str = "gel"  # gel (grasps with gel contact patches) or paper (the official code's sampling)
     texture: str = "none"  # the objects' surface: their one colour, or "checker" (tacsplat.sim.objects.TEXTURES)
+    mesh: bool = False  # also export each run's meshes (with and without touches) and report the mesh metrics
     dataset: str | None = None  # a folder of imported scenes instead of the twin's objects (module docstring)
     downscale: int = 1  # with a dataset: its images trained and evaluated at 1/downscale of their size
 
@@ -342,6 +343,7 @@ class PaperBench:
             iterations=self.config.iterations,
             name=f"reconstruct {run.out.relative_to(self.out)}",
             needs=needs,
+            export_mesh=self.config.mesh,
         )
 
     def jobs(self) -> list[tuple[Run | None, CaptureJob | ReconstructJob]]:
@@ -356,7 +358,7 @@ class PaperBench:
         runs.sort(key=lambda r: (group[r.object, r.setting, r.seed], -step_work(r.method)))  # (stable)
         jobs, captures = [], {}
         for run in runs:
-            if run.done:
+            if self.reconstruct_job(run).complete():  # (with --mesh: its meshes exported too)
                 continue
             key = (run.object, run.setting, run.seed)
             if key not in captures:
@@ -825,7 +827,9 @@ def write_paper_report(
     for setting in settings:
         lines += [f"## {setting}", ""]
         for metric in METRICS:
-            lines += [markdown_table(rows, metric, setting), ""]
+            measured = any(np.isfinite(r.get(metric, np.nan)) for r in rows if r["setting"] == setting)
+            if measured or not metric.startswith("mesh"):  # (the mesh tables of `--mesh` only)
+                lines += [markdown_table(rows, metric, setting), ""]
         lines += [
             full_vs_vanilla(rows, setting),
             "",
@@ -894,6 +898,9 @@ class PaperBenchCommand:
     """a folder of scenes imported from the paper's datasets, one per object (instead of the twin's objects)"""
     downscale: int = 1
     """with --dataset: train and evaluate at 1/N of the images' size"""
+    mesh: bool = False
+    """also export each run's mesh, with and without its touches fused (tacsplat export mesh), and report F-scores
+    and mesh CD"""
     quick: bool = False
     """two objects, minimal setting, 128 px, 800 steps (about 3 minutes)"""
     resolution: int | None = None
@@ -946,7 +953,7 @@ class PaperBenchCommand:
         config.preset, config.texture = self.preset, self.texture
         config.touch_model = self.touch_model or ("gel" if self.dataset is None else "paper")
         config.dataset = None if self.dataset is None else str(self.dataset)
-        config.downscale = self.downscale
+        config.downscale, config.mesh = self.downscale, self.mesh
         config.validate()
         return config
 

@@ -28,6 +28,12 @@ METRICS: dict[str, tuple[str, Better, int]] = {
     "ssim": ("SSIM (↑)", "higher", 3),
     "normal_error_deg": ("Normal error, degrees (↓)", "lower", 1),
     "depth_bias": ("Depth bias: median rendered minus true depth, + behind the truth (→ 0)", "zero", 4),
+    "mesh_fscore_1": ("Mesh F-score at 1 % of the radius (↑)", "higher", 3),
+    "mesh_fscore_2": ("Mesh F-score at 2 % of the radius (↑)", "higher", 3),
+    "mesh_fscore_5": ("Mesh F-score at 5 % of the radius (↑)", "higher", 3),
+    "mesh_cd": ("Mesh CD, radii (↓)", "lower", 4),
+    "mesh_untouched_fscore_5": ("Mesh F-score at 5 %, touches not fused into the mesh (↑)", "higher", 3),
+    "mesh_untouched_cd": ("Mesh CD, touches not fused into the mesh (↓)", "lower", 4),
 }
 # a run's numbers in results.csv
 NUMBER_COLUMNS = (
