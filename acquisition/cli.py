@@ -108,6 +108,9 @@ class SimCapture(TouchModel):
     mesh: Path | None = None
     """any .obj/.ply/.stl mesh instead of a library object"""
     object_radius: Annotated[float, tyro.conf.arg(help=f"bounding-sphere radius in metres {_RADIUS_RANGE}")] = 0.08
+    keep_size: bool = False
+    """with --mesh: simulate the mesh at its own size, its units read as metres (a mesh exported by tacsplat export
+    mesh), instead of at --object-radius"""
     views: int = 5
     """train views (at least 1)"""
     test_views: int = 24
@@ -232,11 +235,20 @@ def _sim_capture(args: SimCapture) -> int:
 
     from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
 
+    object_radius = args.object_radius
+    if args.keep_size:
+        if args.mesh is None:
+            raise UsageError("--keep-size", "keeps a mesh's own size: give the mesh with --mesh")
+        from tacsplat.sim.objects import bounding_sphere, object_radius_problem, read_mesh
+
+        object_radius = _option_values(lambda: bounding_sphere(read_mesh(args.mesh))[1], _SIM_OPTIONS)
+        if problem := object_radius_problem(object_radius):
+            raise UsageError("--keep-size", f"{args.mesh}'s own bounding radius, read in metres, {problem}")
     config = _option_values(
         lambda: sim_rig_config(
             object=args.object,
             mesh=args.mesh,
-            object_radius=args.object_radius,
+            object_radius=object_radius,
             views=args.views,
             test_views=args.test_views,
             grasps=args.grasps,

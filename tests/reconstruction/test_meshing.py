@@ -109,3 +109,28 @@ def test_export_mesh_writes_a_watertight_coloured_mesh_and_its_metrics(sphere_ru
 def test_export_mesh_refuses_a_voxel_out_of_range_naming_the_option(sphere_run, capsys):
     assert main(["export", "mesh", str(sphere_run), "--voxel", "0.5"]) == 2
     assert "--voxel" in capsys.readouterr().err
+
+
+def test_an_exported_mesh_goes_back_into_the_twin_at_its_own_size(sphere_run, tmp_path, capsys):
+    """The loop: reconstruct, export, simulate grasps on the export at its own size; the touches lie on it."""
+    from tacsplat.datasets import Scene
+    from tacsplat.sim.objects import bounding_sphere
+
+    mesh_path = tmp_path / "export.ply"
+    assert main(["export", "mesh", str(sphere_run), "--out", str(mesh_path), "--voxel", "0.04", "--views", "24"]) == 0
+    command = ["sim-capture", "--mesh", str(mesh_path), "--keep-size", "--out", str(tmp_path / "scene")]
+    assert main([*command, "--views", "1", "--test-views", "0", "--grasps", "2", "--resolution", "32"]) == 0
+    scene = Scene.load(tmp_path / "scene")
+    exported = trimesh.load(str(mesh_path), force="mesh")
+    assert bounding_sphere(trimesh.load(str(scene.gt_mesh_path), force="mesh"))[1] == pytest.approx(
+        bounding_sphere(exported)[1], rel=1e-6
+    )
+    truth = trimesh.load(str(scene.gt_mesh_path), force="mesh")
+    assert truth.area == pytest.approx(exported.area, rel=1e-3)  # the same size, only moved to its sphere's centre
+    points = scene.touch_points()
+    assert len(points) > 0
+    _, distance, _ = trimesh.proximity.closest_point(truth, points)
+    assert np.median(distance) < 1e-4
+    capsys.readouterr()
+    assert main(["sim-capture", "--keep-size", "--out", str(tmp_path / "x")]) == 2
+    assert "--keep-size" in capsys.readouterr().err
