@@ -309,6 +309,7 @@ class View:
     slots: list = field(default_factory=list)  # SplatSlot
     controls: dict[str, object] = field(default_factory=dict)
     scene_nodes: object | None = None  # viewer_scene.SceneNodes
+    mesh_node: object | None = None  # the run's exported mesh (RUN/mesh.ply), when it has one
 
 
 def build_view(server, content: Content) -> View:
@@ -464,6 +465,26 @@ def _gaussian_sets(server, view: View) -> None:
             slot.show_sets(GAUSSIAN_SETS[event.target.value])
 
 
+def _exported_mesh(server, view: View, run: RunData) -> None:
+    """The run's ``mesh.ply`` (``tacsplat export mesh``), with its vertex colours, behind a checkbox; nothing
+    without one."""
+    path = run.path / "mesh.ply"
+    if not path.is_file():
+        return
+    import trimesh
+
+    node = view.mesh_node = server.scene.add_mesh_trimesh(
+        "/run/mesh", trimesh.load(str(path), force="mesh"), visible=False
+    )
+    toggle = view.controls["exported mesh"] = server.gui.add_checkbox(
+        "exported mesh", initial_value=False, hint="RUN/mesh.ply, written by tacsplat export mesh"
+    )
+
+    @toggle.on_update
+    def _(event) -> None:
+        node.visible = event.target.value
+
+
 def _checkpoint_slider(server, view: View, run: RunData) -> None:
     """A slider over the run's kept checkpoints (only when there are several)."""
     from tacsplat.reconstruction.baking import bake_appearance
@@ -573,6 +594,7 @@ def _run_view(server, content: Content, view: View) -> None:
         )
         _gaussian_sets(server, view)
         _checkpoint_slider(server, view, run)
+        _exported_mesh(server, view, run)
     if run.scene is not None:
         view.scene_nodes = add_scene(server.scene, "/run/scene", run.scene, show_mesh=False, show_sphere=False)
         with server.gui.add_folder("Scene"):

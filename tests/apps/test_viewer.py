@@ -360,3 +360,18 @@ def test_the_first_viewpoint_looks_past_the_scene_cameras():
     cameras = centre + 0.3 * np.array([[0.0, -1.0, 0.5], [1.0, 0.0, 0.5], [0.0, 1.0, 0.5]])  # front, right, back
     position, _ = viewer.initial_viewpoint(centre, 0.08, cameras)
     assert np.allclose((position - centre)[:2] / np.linalg.norm((position - centre)[:2]), [-1.0, 0.0])  # left
+
+
+def test_a_runs_exported_mesh_is_shown_behind_a_checkbox(small_run, tmp_path, server):
+    import shutil
+
+    import trimesh
+
+    run = tmp_path / "run"
+    shutil.copytree(small_run, run)
+    trimesh.creation.icosphere(subdivisions=2, radius=0.05).export(run / "mesh.ply")
+    view = viewer.build_view(server, viewer.load_content(run))
+    assert "exported mesh" in view.controls and not view.controls["exported mesh"].value
+    assert view.mesh_node is not None and not view.mesh_node.visible
+    view.controls["exported mesh"].value = True
+    assert view.mesh_node.visible
