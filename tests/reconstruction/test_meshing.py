@@ -119,7 +119,7 @@ def test_an_exported_mesh_goes_back_into_the_twin_at_its_own_size(sphere_run, tm
     mesh_path = tmp_path / "export.ply"
     assert main(["export", "mesh", str(sphere_run), "--out", str(mesh_path), "--voxel", "0.04", "--views", "24"]) == 0
     command = ["sim-capture", "--mesh", str(mesh_path), "--keep-size", "--out", str(tmp_path / "scene")]
-    assert main([*command, "--views", "1", "--test-views", "0", "--grasps", "2", "--resolution", "32"]) == 0
+    assert main([*command, "--views", "1", "--test-views", "0", "--grasps", "1", "--resolution", "32"]) == 0
     scene = Scene.load(tmp_path / "scene")
     exported = trimesh.load(str(mesh_path), force="mesh")
     assert bounding_sphere(trimesh.load(str(scene.gt_mesh_path), force="mesh"))[1] == pytest.approx(
