@@ -194,7 +194,14 @@ def twin_config(config: RigConfig):
         servo_offsets_rad=s.true_errors.servo_offsets(),
         servo_signs=s.true_errors.servo_signs(),
         hand_calibration=str(config.path(config.hand.calibration)) if config.hand.calibration else None,
+        hand_eye_error=_rows(s.true_errors.hand_eye.matrix()),
+        mount_errors={finger: _rows(e.matrix()) for finger, e in s.true_errors.mounts.items()},
     )
+
+
+def _rows(T: np.ndarray) -> tuple:
+    """A [4, 4] matrix as a tuple of rows (what scene.json records)."""
+    return tuple(map(tuple, np.asarray(T, dtype=np.float64).tolist()))
 
 
 @contextmanager
