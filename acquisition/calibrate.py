@@ -1,5 +1,6 @@
 """Calibration commands that run on a rig file: ``tacsplat calibrate hand`` (the hand's joint signs, zeros and
-ranges, :mod:`tacsplat.drivers.joint_calibration`).
+ranges, :mod:`tacsplat.drivers.joint_calibration`), ``calibrate hand-eye`` (the wrist camera's pose on the hand
+from fingertip presses, :mod:`tacsplat.drivers.press_calibration`; on the twin so far).
 
 The same command runs on the real rig (a person at the terminal moves the joints), on ``--mock`` (the servo
 emulator, whose hand moves them) and on a ``rig: sim`` file (the twin pushes them); in the last two the hardware
@@ -13,9 +14,12 @@ from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Callable, Iterator, TextIO
 
+import numpy as np
+
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
+from tacsplat.errors import ConfigError
 
 
 @contextmanager
@@ -76,3 +80,51 @@ def calibrate_hand(
     calibration.save(out)
     say(f"wrote {out} ({len(results)} joints)")
     return calibration, results
+
+
+def _twin_presses(config: RigConfig, say: Callable[[str], None]):
+    """``(presses, the rig's T_hand_cam, the rig's mounts)`` of a plan's presses on the twin of a ``rig: sim``
+    config (the twin plays the person: it presses the fingertips on a sphere resting on the board)."""
+    if config.rig != "sim":
+        raise ConfigError(
+            "rig",
+            "calibrate hand-eye runs on a rig: sim twin only so far (the real rig's and --mock's "
+            "guided presses are not written yet)",
+            config.source,
+        )
+    from tacsplat.acquisition.devices import twin_config
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, TwinPressSession, hand_eye_plan
+    from tacsplat.sim.twin import SimTwin
+
+    plan = hand_eye_plan()
+    say(f"the twin presses its fingertips on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere resting on the board")
+    with SimTwin(twin_config(config)) as twin:
+        presses = TwinPressSession(twin, config.board, say).run(plan)
+        mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
+        return presses, twin.T_hand_cam, mounts
+
+
+def _change(T_from: np.ndarray, T_to: np.ndarray) -> str:
+    from scipy.spatial.transform import Rotation
+
+    D = np.linalg.inv(T_from) @ T_to
+    return (
+        f"{1000 * np.linalg.norm(D[:3, 3]):.2f} mm, {np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()):.2f} deg"
+    )
+
+
+def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] = print):
+    """``T_hand_cam`` from fingertip presses on a sphere resting on the board (the sensors at the rig's mounts),
+    written to ``out``; the press set is refused when it leaves an axis undetermined."""
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M
+    from tacsplat.drivers.press_calibration import fit_presses, save_hand_eye
+
+    presses, T_hand_cam, mounts = _twin_presses(config, say)
+    fit = fit_presses(presses, SPHERE_RADIUS_M, T_hand_cam, mounts, what="hand-eye")
+    save_hand_eye(fit, out)
+    say(
+        f"T_hand_cam: {len(presses)} presses, rms {fit.rms_mm:.3f} mm; {_change(T_hand_cam, fit.T_hand_cam)} from the "
+        "rig's previous value"
+    )
+    say(f"wrote {out} (name it as camera.hand_eye in the rig file)")
+    return fit

@@ -59,6 +59,21 @@ class CalibrateHand:
 
 
 @dataclass
+class CalibrateHandEye:
+    """the wrist camera's pose on the hand (T_hand_cam) from fingertip presses, without an arm
+
+    The fingertips press a 25 mm sphere resting on the board while the wrist camera sees the board (a board of
+    small squares: the camera is about 10 cm from it); the contact points must lie on the sphere, which fixes
+    T_hand_cam and the sphere's place together. Refuses presses that leave an axis undetermined, naming what to
+    add. Runs on a rig: sim twin (the twin presses; standard input may be closed)."""
+
+    rig: Path
+    """rig YAML file (its board; sim.true_errors on a twin)"""
+    out: Path
+    """hand-eye file to write (.json; the rig's camera.hand_eye)"""
+
+
+@dataclass
 class RigCheck:
     """checks a rig before a capture: devices, calibration files, the board (one table; exit 1 naming what is wrong)
 
@@ -171,6 +186,7 @@ def register(cli) -> None:
         help="operator capture session on a rig (real, --mock, or the twin): views and grasps into a scene directory",
     )
     cli.typed("calibrate hand", CalibrateHand, _calibrate_hand)
+    cli.typed("calibrate hand-eye", CalibrateHandEye, _calibrate_hand_eye)
     cli.typed("rig check", RigCheck, _rig_check)
     cli.typed(
         "sim-capture",
@@ -209,6 +225,19 @@ def _calibrate_hand(o: CalibrateHand) -> int:
         signum = getattr(exc, "signum", signal.SIGINT)
         print(f"interrupted ({signal.Signals(signum).name}): {o.out} not written", file=sys.stderr)
         return 128 + signum
+    return 0
+
+
+def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
+    from tacsplat.acquisition.calibrate import calibrate_hand_eye
+    from tacsplat.acquisition.config import load_rig
+    from tacsplat.datasets.outputs import ensure_output_dir
+
+    if o.out.is_dir():
+        raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
+    config = load_rig(o.rig, check_files=False)
+    ensure_output_dir(o.out.parent, "--out")
+    calibrate_hand_eye(config, o.out)
     return 0
 
 

@@ -1,0 +1,259 @@
+"""The wrist camera's pose on the hand (``T_hand_cam``) and each tactile sensor's pose on its fingertip
+(``T_fingertip_sensor``) from fingertip presses, without an arm.
+
+The calibration board lies face up and defines the world (its printed face is the plane ``z = 0``, DESIGN.md). A
+press is a fingertip pressed on the board (or on a sphere of known radius resting on it) while the wrist camera
+sees the board: the board's PnP gives ``T_world_cam``, the joints as read give the fingertip's pose on the hand,
+and the sensor's depth map gives the contact points in the sensor frame. Through the unknowns, each contact point
+must lie on the surface pressed: ``T_world_cam @ inv(T_hand_cam) @ T_hand_fingertip @ T_fingertip_sensor @ p``
+on the plane ``z = 0``, or at the sphere's radius from its centre.
+
+- Hand-eye: each board press gives the board's plane in the camera frame (from PnP) and in the hand frame (the
+  contact patch), so the rotation aligns the planes' normals (two non-parallel ones fix it) and the translation
+  solves ``n_cam . t = d_hand - d_cam`` (three independent normals fix it); scipy's ``least_squares`` then refines
+  all six on every contact point.
+- Mounts: a plane fixes a sensor's tilt and its offset along the gel's normal, never its in-plane offset or its
+  yaw about the normal; sphere presses at several places on the gel fix those. Each sensor's six parameters and
+  each sphere placement's centre on the board are solved together by ``least_squares``.
+
+A press set that leaves an axis undetermined is refused, naming the presses to add.
+
+Files (JSON): ``{"format": "tacsplat-hand-eye", "version": 1, "T_hand_cam": [[4x4]], "presses": n, "rms_mm": x}``
+and ``{"format": "tacsplat-mounts", "version": 1, "sensors": {finger: {"T_fingertip_sensor": [[4x4]],
+"presses": n, "rms_mm": x}}}``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from tacsplat.drivers.calibration import json_array, read_calibration_json
+from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.files import atomic_write
+from tacsplat.geometry import invert_pose, make_pose, rigidity_problem, transform_points
+
+HAND_EYE_FORMAT = "tacsplat-hand-eye"
+MOUNTS_FORMAT = "tacsplat-mounts"
+MIN_CONTACT_POINTS = 30  # a press with fewer contact pixels is not a press
+POINTS_PER_PRESS = 400  # contact points of a press the refinement uses (evenly subsampled)
+
+
+@dataclass(frozen=True)
+class Press:
+    """One fingertip press: which sensor, on what (``"board"`` or ``"sphere"`` with ``placement``, the sphere's
+    placement on the board it rests at), the fingertip's pose on the hand from the joints as read, the contact
+    points in the sensor frame and the wrist camera's pose from the board."""
+
+    finger: str
+    T_hand_fingertip: np.ndarray  # [4, 4]
+    points_sensor: np.ndarray  # [M, 3]
+    T_world_cam: np.ndarray  # [4, 4]
+    surface: str = "board"
+    placement: int = 0  # sphere presses: which placement of the sphere
+
+    def sample(self) -> np.ndarray:
+        """At most :data:`POINTS_PER_PRESS` contact points, evenly spread over the patch."""
+        step = max(1, len(self.points_sensor) // POINTS_PER_PRESS)
+        return self.points_sensor[::step]
+
+
+NOISE_M = 5e-5  # a contact point's error the press set is judged against (an optical gel's depth noise)
+MAX_STD = {"rotation": np.radians(0.1), "translation": 1e-4}  # a parameter known worse than this is undetermined
+PARAM_NAMES = (
+    "rotation about x",
+    "rotation about y",
+    "rotation about z",
+    "offset along x",
+    "offset along y",
+    "offset along z",
+)
+
+
+@dataclass
+class PressFit:
+    """What a press set gave: ``T_hand_cam``, each sensor's ``T_fingertip_sensor``, each sphere placement's centre
+    (world), and the rms of the contact points' distances to the surfaces pressed (all, and per finger)."""
+
+    T_hand_cam: np.ndarray
+    mounts: dict[str, np.ndarray]
+    sphere_centres: list
+    rms_mm: float
+    finger_rms_mm: dict[str, float] = field(default_factory=dict)
+    presses: dict[str, int] = field(default_factory=dict)
+
+
+def _pose(x: np.ndarray) -> np.ndarray:
+    """A rigid [4, 4] from (rotation vector [3], translation [3])."""
+    return make_pose(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6])
+
+
+def _params(T: np.ndarray) -> np.ndarray:
+    return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
+
+
+def check_presses(presses: list[Press], what: str) -> None:
+    """Refuse an empty set and a press without contact."""
+    if not presses:
+        raise InvalidInputError(f"{what}: no presses recorded; press the fingertips on the sphere and the board")
+    for i, p in enumerate(presses):
+        if len(p.points_sensor) < MIN_CONTACT_POINTS:
+            raise InvalidInputError(
+                f"{what}: press {i + 1} ({p.finger} on the {p.surface}) has {len(p.points_sensor)} contact pixels "
+                f"(< {MIN_CONTACT_POINTS}): press the fingertip firmly, then take it again"
+            )
+
+
+def fit_presses(
+    presses: list[Press],
+    sphere_radius_m: float,
+    T_hand_cam: np.ndarray,
+    mounts: dict[str, np.ndarray] | None = None,
+    hand_eye: bool = True,
+    fit_mounts: bool = False,
+    what: str = "hand-eye",
+) -> PressFit:
+    """Solve together what the presses must fix: ``T_hand_cam`` (``hand_eye``), each pressed sensor's
+    ``T_fingertip_sensor`` (``fit_mounts``) and each sphere placement's centre on the board (``z = radius``), from
+    every contact point lying on its surface (scipy ``least_squares``, started at ``T_hand_cam`` and ``mounts``,
+    the nominal or last calibration). A parameter the presses leave undetermined (its standard deviation at
+    :data:`NOISE_M` per point over :data:`MAX_STD`) is refused, naming it and the presses to add."""
+    check_presses(presses, what)
+    mounts = {f: np.asarray(T, dtype=np.float64) for f, T in (mounts or {}).items()}
+    fingers = list(dict.fromkeys(p.finger for p in presses))
+    placements = sorted({p.placement for p in presses if p.surface == "sphere"})
+    blocks = (["hand-eye"] if hand_eye else []) + ([f"{f} mount" for f in fingers] if fit_mounts else [])
+    samples = [p.sample() for p in presses]
+
+    def unpack(x):
+        X = _pose(x[:6]) if hand_eye else T_hand_cam
+        k = 6 * hand_eye
+        M = dict(mounts)
+        if fit_mounts:
+            M.update({f: _pose(x[k + 6 * i : k + 6 * i + 6]) for i, f in enumerate(fingers)})
+        k += 6 * len(fingers) * fit_mounts
+        centres = {c: np.r_[x[k + 2 * j : k + 2 * j + 2], sphere_radius_m] for j, c in enumerate(placements)}
+        return X, M, centres
+
+    def residuals(x):
+        X, M, centres = unpack(x)
+        T_cam_hand = invert_pose(X)
+        out = []
+        for p, pts in zip(presses, samples):
+            world = transform_points(p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ M.get(p.finger, np.eye(4)), pts)
+            if p.surface == "board":
+                out.append(world[:, 2])
+            else:
+                out.append(np.linalg.norm(world - centres[p.placement], axis=1) - sphere_radius_m)
+        return np.concatenate(out)
+
+    x0 = [_params(T_hand_cam)] if hand_eye else []
+    x0 += [_params(mounts.get(f, np.eye(4))) for f in fingers] if fit_mounts else []
+    for c in placements:  # the sphere's centre one radius behind the first patch that touched it
+        p = next(p for p in presses if p.surface == "sphere" and p.placement == c)
+        T = p.T_world_cam @ invert_pose(T_hand_cam) @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4))
+        x0.append(transform_points(T, np.r_[p.points_sensor.mean(axis=0)[:2], sphere_radius_m][None])[0, :2])
+    x0 = np.concatenate(x0)
+    scale = np.r_[np.tile([0.01] * 3 + [0.001] * 3, len(blocks)), [0.001] * 2 * len(placements)]
+    fit = least_squares(residuals, x0, x_scale=scale, method="lm")
+    _refuse_undetermined(fit.jac, blocks, what)
+    X, M, centres = unpack(fit.x)
+    offsets = np.cumsum([0] + [len(s) for s in samples])
+    per = {
+        f: np.concatenate([fit.fun[offsets[i] : offsets[i + 1]] for i, p in enumerate(presses) if p.finger == f])
+        for f in fingers
+    }
+    return PressFit(
+        X,
+        {f: M[f] for f in fingers if f in M},
+        [centres[c] for c in placements],
+        1000 * float(np.sqrt(np.mean(fit.fun**2))),
+        {f: 1000 * float(np.sqrt(np.mean(r**2))) for f, r in per.items()},
+        {f: sum(p.finger == f for p in presses) for f in fingers},
+    )
+
+
+def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
+    """The parameters' standard deviations at :data:`NOISE_M` per point; one error naming those over
+    :data:`MAX_STD`, with the presses that fix them."""
+    normal = J.T @ J
+    try:
+        cov = NOISE_M**2 * np.linalg.inv(normal + 1e-18 * np.eye(len(normal)))
+        std = np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        std = np.full(len(normal), np.inf)
+    weak = []
+    for b, block in enumerate(blocks):
+        for k in range(6):
+            limit = MAX_STD["rotation" if k < 3 else "translation"]
+            if not std[6 * b + k] <= limit:
+                weak.append(f"{block} {PARAM_NAMES[k]}")
+    if weak:
+        mounts = [w for w in weak if "mount" in w]
+        hint = (
+            "press the sphere with each of those pads at places away from the pad's centre (its two ends and a side)"
+            if mounts
+            else "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
+        )
+        raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {hint}")
+
+
+# --- files -----------------------------------------------------------------------------------------------
+
+
+def _rigid(value, key: str, path: Path) -> np.ndarray:
+    T = json_array(value, key, path, (4, 4))
+    problem = rigidity_problem(T)
+    if problem:
+        raise ConfigError(key, f"not a rigid transform: {problem}", source=path)
+    return T
+
+
+def save_hand_eye(fit: PressFit, path: str | Path) -> None:
+    data = {
+        "format": HAND_EYE_FORMAT,
+        "version": 1,
+        "T_hand_cam": fit.T_hand_cam.tolist(),
+        "presses": sum(fit.presses.values()),
+        "rms_mm": fit.rms_mm,
+    }
+    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
+
+
+def load_hand_eye(path: str | Path) -> np.ndarray:
+    """``T_hand_cam`` [4, 4] of a hand-eye file; one ConfigError names the file and field."""
+    path = Path(path)
+    data = read_calibration_json(path, HAND_EYE_FORMAT)
+    return _rigid(data.get("T_hand_cam"), "T_hand_cam", path)
+
+
+def save_mounts(fit: PressFit, path: str | Path) -> None:
+    sensors = {
+        f: {"T_fingertip_sensor": T.tolist(), "presses": fit.presses[f], "rms_mm": fit.finger_rms_mm[f]}
+        for f, T in fit.mounts.items()
+    }
+    data = {"format": MOUNTS_FORMAT, "version": 1, "sensors": sensors}
+    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
+
+
+def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
+    """``{finger: T_fingertip_sensor}`` of a mounts file (fingers among ``fingers``); one ConfigError names the
+    file and field."""
+    path = Path(path)
+    data = read_calibration_json(path, MOUNTS_FORMAT)
+    sensors = data.get("sensors")
+    if not isinstance(sensors, dict) or not sensors:
+        raise ConfigError("sensors", "expected an object mapping fingers to {T_fingertip_sensor}", source=path)
+    out = {}
+    for finger, entry in sensors.items():
+        if finger not in fingers:
+            raise ConfigError(f"sensors.{finger}", f"unknown finger (one of {list(fingers)})", source=path)
+        if not isinstance(entry, dict):
+            raise ConfigError(f"sensors.{finger}", "expected an object with T_fingertip_sensor", source=path)
+        out[finger] = _rigid(entry.get("T_fingertip_sensor"), f"sensors.{finger}.T_fingertip_sensor", path)
+    return out
