@@ -1,26 +1,19 @@
-"""The wrist camera's pose on the hand (``T_hand_cam``) and each tactile sensor's pose on its fingertip
-(``T_fingertip_sensor``) from fingertip presses, without an arm.
+"""The wrist camera's pose on the hand (``T_hand_cam``) from fingertip presses, without an arm; the file format of
+each tactile sensor's pose on its fingertip (``T_fingertip_sensor``).
 
 The calibration board lies face up and defines the world (its printed face is the plane ``z = 0``, DESIGN.md). A
 press is a fingertip pressed on the board (or on a sphere of known radius resting on it) while the wrist camera
 sees the board: the board's PnP gives ``T_world_cam``, the joints as read give the fingertip's pose on the hand,
 and the sensor's depth map gives the contact points in the sensor frame. Through the unknowns, each contact point
 must lie on the surface pressed: ``T_world_cam @ inv(T_hand_cam) @ T_hand_fingertip @ T_fingertip_sensor @ p``
-on the plane ``z = 0``, or at the sphere's radius from its centre.
-
-- Hand-eye: each board press gives the board's plane in the camera frame (from PnP) and in the hand frame (the
-  contact patch), so the rotation aligns the planes' normals (two non-parallel ones fix it) and the translation
-  solves ``n_cam . t = d_hand - d_cam`` (three independent normals fix it); scipy's ``least_squares`` then refines
-  all six on every contact point.
-- Mounts: a plane fixes a sensor's tilt and its offset along the gel's normal, never its in-plane offset or its
-  yaw about the normal; sphere presses at several places on the gel fix those. Each sensor's six parameters and
-  each sphere placement's centre on the board are solved together by ``least_squares``.
+on the plane ``z = 0``, or at the sphere's radius from its centre. ``T_hand_cam`` and each sphere placement's
+centre are solved together by scipy's ``least_squares`` on every contact point, the sensors at the rig's mounts.
 
 A press set that leaves an axis undetermined is refused, naming the presses to add.
 
-Files (JSON): ``{"format": "tacsplat-hand-eye", "version": 1, "T_hand_cam": [[4x4]], "presses": n, "rms_mm": x}``
-and ``{"format": "tacsplat-mounts", "version": 1, "sensors": {finger: {"T_fingertip_sensor": [[4x4]],
-"presses": n, "rms_mm": x}}}``.
+Files (JSON): ``{"format": "tacsplat-hand-eye", "version": 1, "T_hand_cam": [[4x4]], "presses": n, "rms_mm": x}``;
+the rig's ``tactile.mounts`` file: ``{"format": "tacsplat-mounts", "version": 1, "sensors": {finger:
+{"T_fingertip_sensor": [[4x4]], ...}}}``.
 """
 
 from __future__ import annotations
@@ -77,11 +70,10 @@ PARAM_NAMES = (
 
 @dataclass
 class PressFit:
-    """What a press set gave: ``T_hand_cam``, each sensor's ``T_fingertip_sensor``, each sphere placement's centre
-    (world), and the rms of the contact points' distances to the surfaces pressed (all, and per finger)."""
+    """What a hand-eye press set gave: ``T_hand_cam``, each sphere placement's centre (world), and the rms of the
+    contact points' distances to the surfaces pressed (all, and per finger)."""
 
     T_hand_cam: np.ndarray
-    mounts: dict[str, np.ndarray]
     sphere_centres: list
     rms_mm: float
     finger_rms_mm: dict[str, float] = field(default_factory=dict)
@@ -114,55 +106,46 @@ def fit_presses(
     sphere_radius_m: float,
     T_hand_cam: np.ndarray,
     mounts: dict[str, np.ndarray] | None = None,
-    hand_eye: bool = True,
-    fit_mounts: bool = False,
     what: str = "hand-eye",
 ) -> PressFit:
-    """Solve together what the presses must fix: ``T_hand_cam`` (``hand_eye``), each pressed sensor's
-    ``T_fingertip_sensor`` (``fit_mounts``) and each sphere placement's centre on the board (``z = radius``), from
-    every contact point lying on its surface (scipy ``least_squares``, started at ``T_hand_cam`` and ``mounts``,
-    the nominal or last calibration). A parameter the presses leave undetermined (its standard deviation at
-    :data:`NOISE_M` per point over :data:`MAX_STD`) is refused, naming it and the presses to add."""
+    """Solve ``T_hand_cam`` and each sphere placement's centre on the board (``z = radius``) together from every
+    contact point lying on its surface (scipy ``least_squares``, started at ``T_hand_cam``, the nominal or last
+    calibration), the sensors at ``mounts`` (the rig's; the identity for a finger not named). A parameter the presses
+    leave undetermined (its standard deviation at :data:`NOISE_M` per point over :data:`MAX_STD`) is refused,
+    naming it and the presses to add."""
     check_presses(presses, what)
     mounts = {f: np.asarray(T, dtype=np.float64) for f, T in (mounts or {}).items()}
     fingers = list(dict.fromkeys(p.finger for p in presses))
     placements = sorted({p.placement for p in presses if p.surface == "sphere"})
-    blocks = (["hand-eye"] if hand_eye else []) + ([f"{f} mount" for f in fingers] if fit_mounts else [])
     samples = [p.sample() for p in presses]
 
     def unpack(x):
-        X = _pose(x[:6]) if hand_eye else T_hand_cam
-        k = 6 * hand_eye
-        M = dict(mounts)
-        if fit_mounts:
-            M.update({f: _pose(x[k + 6 * i : k + 6 * i + 6]) for i, f in enumerate(fingers)})
-        k += 6 * len(fingers) * fit_mounts
-        centres = {c: np.r_[x[k + 2 * j : k + 2 * j + 2], sphere_radius_m] for j, c in enumerate(placements)}
-        return X, M, centres
+        centres = {c: np.r_[x[6 + 2 * j : 8 + 2 * j], sphere_radius_m] for j, c in enumerate(placements)}
+        return _pose(x[:6]), centres
 
     def residuals(x):
-        X, M, centres = unpack(x)
+        X, centres = unpack(x)
         T_cam_hand = invert_pose(X)
         out = []
         for p, pts in zip(presses, samples):
-            world = transform_points(p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ M.get(p.finger, np.eye(4)), pts)
+            T = p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4))
+            world = transform_points(T, pts)
             if p.surface == "board":
                 out.append(world[:, 2])
             else:
                 out.append(np.linalg.norm(world - centres[p.placement], axis=1) - sphere_radius_m)
         return np.concatenate(out)
 
-    x0 = [_params(T_hand_cam)] if hand_eye else []
-    x0 += [_params(mounts.get(f, np.eye(4))) for f in fingers] if fit_mounts else []
+    x0 = [_params(T_hand_cam)]
     for c in placements:  # the sphere's centre one radius behind the first patch that touched it
         p = next(p for p in presses if p.surface == "sphere" and p.placement == c)
         T = p.T_world_cam @ invert_pose(T_hand_cam) @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4))
         x0.append(transform_points(T, np.r_[p.points_sensor.mean(axis=0)[:2], sphere_radius_m][None])[0, :2])
     x0 = np.concatenate(x0)
-    scale = np.r_[np.tile([0.01] * 3 + [0.001] * 3, len(blocks)), [0.001] * 2 * len(placements)]
+    scale = np.r_[[0.01] * 3 + [0.001] * 3, [0.001] * 2 * len(placements)]
     fit = least_squares(residuals, x0, x_scale=scale, method="lm")
-    _refuse_undetermined(fit.jac, blocks, what)
-    X, M, centres = unpack(fit.x)
+    _refuse_undetermined(fit.jac, ["hand-eye"], what)
+    X, centres = unpack(fit.x)
     offsets = np.cumsum([0] + [len(s) for s in samples])
     per = {
         f: np.concatenate([fit.fun[offsets[i] : offsets[i + 1]] for i, p in enumerate(presses) if p.finger == f])
@@ -170,7 +153,6 @@ def fit_presses(
     }
     return PressFit(
         X,
-        {f: M[f] for f in fingers if f in M},
         [centres[c] for c in placements],
         1000 * float(np.sqrt(np.mean(fit.fun**2))),
         {f: 1000 * float(np.sqrt(np.mean(r**2))) for f, r in per.items()},
@@ -181,12 +163,7 @@ def fit_presses(
 def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
     """The parameters' standard deviations at :data:`NOISE_M` per point; one error naming those over
     :data:`MAX_STD`, with the presses that fix them."""
-    normal = J.T @ J
-    try:
-        cov = NOISE_M**2 * np.linalg.inv(normal + 1e-18 * np.eye(len(normal)))
-        std = np.sqrt(np.clip(np.diag(cov), 0, None))
-    except np.linalg.LinAlgError:
-        std = np.full(len(normal), np.inf)
+    std = _std(J, NOISE_M)
     weak = []
     for b, block in enumerate(blocks):
         for k in range(6):
@@ -194,13 +171,18 @@ def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
             if not std[6 * b + k] <= limit:
                 weak.append(f"{block} {PARAM_NAMES[k]}")
     if weak:
-        mounts = [w for w in weak if "mount" in w]
-        hint = (
-            "press the sphere with each of those pads at places away from the pad's centre (its two ends and a side)"
-            if mounts
-            else "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
-        )
+        hint = "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
         raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {hint}")
+
+
+def _std(J: np.ndarray, noise: float) -> np.ndarray:
+    """The parameters' standard deviations [n] at ``noise`` per residual (inf where undetermined)."""
+    normal = J.T @ J
+    try:
+        cov = noise**2 * np.linalg.inv(normal + 1e-18 * np.eye(len(normal)))
+        return np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        return np.full(len(normal), np.inf)
 
 
 # --- files -----------------------------------------------------------------------------------------------
@@ -230,15 +212,6 @@ def load_hand_eye(path: str | Path) -> np.ndarray:
     path = Path(path)
     data = read_calibration_json(path, HAND_EYE_FORMAT)
     return _rigid(data.get("T_hand_cam"), "T_hand_cam", path)
-
-
-def save_mounts(fit: PressFit, path: str | Path) -> None:
-    sensors = {
-        f: {"T_fingertip_sensor": T.tolist(), "presses": fit.presses[f], "rms_mm": fit.finger_rms_mm[f]}
-        for f, T in fit.mounts.items()
-    }
-    data = {"format": MOUNTS_FORMAT, "version": 1, "sensors": sensors}
-    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
 def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
