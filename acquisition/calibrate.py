@@ -19,7 +19,7 @@ import numpy as np
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, InvalidInputError
 
 
 @contextmanager
@@ -82,22 +82,27 @@ def calibrate_hand(
     return calibration, results
 
 
-def _twin_presses(config: RigConfig, say: Callable[[str], None]):
+def _twin_presses(
+    config: RigConfig,
+    plan: list,
+    say: Callable[[str], None],
+    what: str = "calibrate hand-eye",
+    where: str = "resting on the board",
+):
     """``(presses, the rig's T_hand_cam, the rig's mounts)`` of a plan's presses on the twin of a ``rig: sim``
     config (the twin plays the person: it presses the fingertips on a sphere resting on the board)."""
     if config.rig != "sim":
         raise ConfigError(
             "rig",
-            "calibrate hand-eye runs on a rig: sim twin only so far (the real rig's and --mock's "
+            f"{what} runs on a rig: sim twin only so far (the real rig's and --mock's "
             "guided presses are not written yet)",
             config.source,
         )
     from tacsplat.acquisition.devices import twin_config
-    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, TwinPressSession, hand_eye_plan
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, TwinPressSession
     from tacsplat.sim.twin import SimTwin
 
-    plan = hand_eye_plan()
-    say(f"the twin presses its fingertips on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere resting on the board")
+    say(f"the twin presses its fingertips on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere {where}")
     with SimTwin(twin_config(config)) as twin:
         presses = TwinPressSession(twin, config.board, say).run(plan)
         mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
@@ -116,10 +121,10 @@ def _change(T_from: np.ndarray, T_to: np.ndarray) -> str:
 def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] = print):
     """``T_hand_cam`` from fingertip presses on a sphere resting on the board (the sensors at the rig's mounts),
     written to ``out``; the press set is refused when it leaves an axis undetermined."""
-    from tacsplat.acquisition.presses import SPHERE_RADIUS_M
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, hand_eye_plan
     from tacsplat.drivers.press_calibration import fit_presses, save_hand_eye
 
-    presses, T_hand_cam, mounts = _twin_presses(config, say)
+    presses, T_hand_cam, mounts = _twin_presses(config, hand_eye_plan(), say)
     fit = fit_presses(presses, SPHERE_RADIUS_M, T_hand_cam, mounts, what="hand-eye")
     save_hand_eye(fit, out)
     say(
@@ -128,3 +133,35 @@ def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] 
     )
     say(f"wrote {out} (name it as camera.hand_eye in the rig file)")
     return fit
+
+
+def calibrate_mounts(config: RigConfig, out: Path, say: Callable[[str], None] = print):
+    """Each sensor's ``T_fingertip_sensor`` from presses of four places of its pad on a sphere on a stand of known
+    height over the board (two bends, two spreads each), solved per sensor with the sphere's place, ``T_hand_cam`` the rig's (run calibrate hand-eye
+    first); a residual line per sensor; written to ``out``. A sensor whose presses leave an axis undetermined is
+    refused, naming the presses to add."""
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, STAND_HEIGHT_M, mounts_plan
+    from tacsplat.drivers.press_calibration import fit_mount, save_mounts
+
+    presses, T_hand_cam, mounts = _twin_presses(
+        config,
+        mounts_plan(),
+        say,
+        "calibrate mounts",
+        f"on a stand, its centre {1000 * STAND_HEIGHT_M:.0f} mm over the board",
+    )
+    fits = {}
+    for finger in dict.fromkeys(p.finger for p in presses):
+        start = mounts.get(finger, np.eye(4))
+        mine = [p for p in presses if p.finger == finger]
+        fit = fit_mount(mine, SPHERE_RADIUS_M, T_hand_cam, start, STAND_HEIGHT_M, f"calibrate mounts: {finger}")
+        fits[finger] = fit
+        say(
+            f"{finger}: {fit.presses} presses ({fit.dropped} dropped), rms {fit.rms_mm:.3f} mm; {_change(start, fit.T_fingertip_sensor)} from "
+            "the rig's previous mounting"
+        )
+    if not fits:
+        raise InvalidInputError("calibrate mounts: no presses recorded (the wrist camera never saw the board)")
+    save_mounts(fits, out)
+    say(f"wrote {out} ({len(fits)} sensors; name it as tactile.mounts in the rig file)")
+    return fits

@@ -74,6 +74,23 @@ class CalibrateHandEye:
 
 
 @dataclass
+class CalibrateMounts:
+    """each tactile sensor's pose on its fingertip (T_fingertip_sensor) from presses on a sphere
+
+    Each pad presses a 25 mm sphere on a stand of known height over the board (its centre 60 mm up) with four
+    places of the gel (its two ends and two sides), bent and spread two ways, while the wrist camera sees the board;
+    the patches' curvature and lever arm fix each sensor's six parameters, solved with the sphere's place, T_hand_cam
+    from the rig (run calibrate hand-eye first). A residual line per sensor. Refuses presses that leave an axis
+    undetermined, naming the presses to add. Runs on a rig: sim twin (the twin presses; standard input may be
+    closed)."""
+
+    rig: Path
+    """rig YAML file (camera.hand_eye; sim.true_errors on a twin)"""
+    out: Path
+    """mounts file to write (.json; the rig's tactile.mounts)"""
+
+
+@dataclass
 class RigCheck:
     """checks a rig before a capture: devices, calibration files, the board (one table; exit 1 naming what is wrong)
 
@@ -187,6 +204,7 @@ def register(cli) -> None:
     )
     cli.typed("calibrate hand", CalibrateHand, _calibrate_hand)
     cli.typed("calibrate hand-eye", CalibrateHandEye, _calibrate_hand_eye)
+    cli.typed("calibrate mounts", CalibrateMounts, _calibrate_mounts)
     cli.typed("rig check", RigCheck, _rig_check)
     cli.typed(
         "sim-capture",
@@ -238,6 +256,19 @@ def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
     config = load_rig(o.rig, check_files=False)
     ensure_output_dir(o.out.parent, "--out")
     calibrate_hand_eye(config, o.out)
+    return 0
+
+
+def _calibrate_mounts(o: CalibrateMounts) -> int:
+    from tacsplat.acquisition.calibrate import calibrate_mounts
+    from tacsplat.acquisition.config import load_rig
+    from tacsplat.datasets.outputs import ensure_output_dir
+
+    if o.out.is_dir():
+        raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
+    config = load_rig(o.rig, check_files=False)
+    ensure_output_dir(o.out.parent, "--out")
+    calibrate_mounts(config, o.out)
     return 0
 
 

@@ -1,4 +1,4 @@
-"""The presses of ``tacsplat calibrate hand-eye`` on a twin: the plan (which fingertip,
+"""The presses of ``tacsplat calibrate hand-eye`` and ``calibrate mounts`` on a twin: the plan (which fingertip,
 bent how, pressed where) and its execution by :class:`~tacsplat.sim.person.TwinPresser`, each press recorded as a
 real rig records it: the joints as read, the contact points from the depth map, and the wrist camera's pose by
 PnP on the ChArUco board it sees (rendered at the camera's true pose, :func:`~tacsplat.acquisition.mock.render_board`).
@@ -40,8 +40,11 @@ class PressSpec:
         return f"{self.finger} on {where}"
 
 
-def _pose_q(finger: str, abduction: float, flexion: tuple) -> tuple:
+def _pose_q(finger: str, abduction: float, flexion: tuple, others: tuple = (0.0, 0.0, 0.0)) -> tuple:
+    """Joints [16]: ``finger`` at ``abduction`` and ``flexion``, the other fingers at ``others`` (flexions)."""
     q = np.zeros(16)
+    for j in range(len(FINGER_NAMES)):
+        q[4 * j + 1 : 4 * j + 4] = others
     k = FINGER_NAMES.index(finger)
     q[4 * k : 4 * k + 4] = [abduction, *flexion]
     return tuple(q.tolist())
@@ -49,13 +52,31 @@ def _pose_q(finger: str, abduction: float, flexion: tuple) -> tuple:
 
 FLEXIONS = ((0.5, 0.4, 0.3), (0.9, 0.6, 0.4))
 ABDUCTIONS = (-0.3, 0.3)
-SPHERE_PLACEMENTS = ((0.025, -0.025, SPHERE_RADIUS_M),)  # near a corner of the board (unknown to the solver)
+CURLED = (1.2, 1.2, 1.0)  # the fingers not pressing, out of the way
+SPOTS_M = ((0.006, 0.0), (-0.006, 0.0), (0.0, 0.006), (0.0, -0.006))  # places of the pad away from its centre
+STAND_HEIGHT_M = 0.06  # the sphere's centre over the board on its stand for calibrate mounts (measured)
+SPHERE_PLACEMENTS = (
+    (0.025, -0.025, SPHERE_RADIUS_M),  # resting near a corner of the board (hand-eye; unknown to the solver)
+    (0.105, -0.075, STAND_HEIGHT_M),  # on a stand over the board's centre (mounts; its height known, its place not)
+)
 
 
 def hand_eye_plan(fingers=FINGER_NAMES) -> list[PressSpec]:
     """Every fingertip on the sphere, a little and more bent, spread either way: the hand around the sphere in
     many poses."""
     return [PressSpec(f, _pose_q(f, a, flex), "sphere") for f in fingers for flex in FLEXIONS for a in ABDUCTIONS]
+
+
+def mounts_plan(fingers=FINGER_NAMES) -> list[PressSpec]:
+    """Every fingertip on the sphere with four places of its pad (its two ends and two sides), each at two bends:
+    the patches' lever arm fixes each sensor's rotations, the bends separate its offset from the sphere's place."""
+    return [
+        PressSpec(f, _pose_q(f, a, flex, CURLED), "sphere", spot, placement=1)
+        for f in fingers
+        for spot in SPOTS_M
+        for flex in FLEXIONS
+        for a in ABDUCTIONS
+    ]
 
 
 def _pad_target(spec: PressSpec, direction: np.ndarray, yaw_deg: float) -> np.ndarray:
@@ -71,9 +92,9 @@ def _pad_target(spec: PressSpec, direction: np.ndarray, yaw_deg: float) -> np.nd
 
 
 def _directions() -> list[np.ndarray]:
-    """Where on the sphere a pad may press: around it, from the side to 60 degrees up."""
+    """Where on the sphere a pad may press: around it, from the side to 80 degrees up."""
     out = []
-    for elevation in np.radians([0.0, 30.0, 60.0]):
+    for elevation in np.radians([0.0, 30.0, 60.0, 80.0]):
         for azimuth in np.radians(np.arange(0.0, 360.0, 45.0)):
             out.append(
                 np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
@@ -113,12 +134,15 @@ class TwinPressSession:
         return pose if pose.rms_px <= self.board.max_reprojection_px else None
 
     def _candidates(self, spec: PressSpec) -> list[np.ndarray]:
-        """Pad poses for ``spec`` that keep the hand above the board with the camera looking down at it, best
-        first (the board's centre nearest the image's)."""
+        """Pad poses for ``spec`` that keep the hand and the whole pad above the board with the camera looking down
+        at it, best first (the board's centre nearest the image's)."""
         q = np.array(spec.q)
         T_hand_pad = self.presser.T_hand_pad(spec.finger, q)
         T_hand_cam = self._true_T_hand_cam()
         hand_points = np.array([T[:3, 3] for T in self.presser.T_hand_pads(q).values()] + [[0.0, 0.0, 0.0]])
+        t = self.twin.config.tactile
+        half = np.array([t.width_px, t.height_px]) * t.pixel_size_m / 2
+        pad_corners = np.array([[sx * half[0], sy * half[1], 0.0] for sx in (-1, 1) for sy in (-1, 1)])
         sq = self.spec.square_length_m
         gx, gy = np.meshgrid(np.arange(1, self.spec.squares_x) * sq, -np.arange(1, self.spec.squares_y) * sq)
         corners = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size), np.ones(gx.size)])  # [4, N] board frame
@@ -129,7 +153,10 @@ class TwinPressSession:
                 T_board_hand = T_board_pad @ invert_pose(T_hand_pad)
                 T_board_cam = T_board_hand @ T_hand_cam
                 above = (T_board_hand[:3, :3] @ hand_points.T + T_board_hand[:3, 3:4])[2]
-                if T_board_cam[2, 3] < 0.04 or above.min() < 0.003:
+                gel = (T_board_pad[:3, :3] @ pad_corners.T + T_board_pad[:3, 3:4])[
+                    2
+                ]  # an off-centre press: the pad clear of the board (not yet checked for hand-eye's centred presses)
+                if T_board_cam[2, 3] < 0.04 or above.min() < 0.003 or (any(spec.spot) and gel.min() < 0.002):
                     continue
                 c = invert_pose(T_board_cam) @ corners
                 u = (self.K[:2, :2] @ (c[:2] / np.maximum(c[2], 1e-9)) + self.K[:2, 2:3]).T

@@ -175,6 +175,129 @@ def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
         raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {hint}")
 
 
+MOUNT_MAX_STD = (0.2, 0.1)  # degrees, mm: a mount parameter known worse than this is undetermined
+OUTLIER_FACTOR, OUTLIER_MIN_MM = 3.0, 0.05  # a press this far off the others' fit is dropped (its board pose is bad)
+MAX_CHANGE = (10.0, 20.0)  # mm, degrees: a mount found further than this from its start is refused
+MOUNT_SPREAD_M = 0.004  # the spots pressed on a pad must span this along both of its axes
+
+
+@dataclass
+class MountFit:
+    """What a sensor's presses gave: its ``T_fingertip_sensor``, the sphere placements' centres (world) and the rms
+    of its contact points' distances to the sphere."""
+
+    T_fingertip_sensor: np.ndarray
+    sphere_centres: list
+    rms_mm: float
+    presses: int
+    dropped: int = 0  # presses left out, off the others' fit by more than OUTLIER_FACTOR times their median rms
+
+
+def sphere_centre_in_sensor(points: np.ndarray, radius_m: float) -> np.ndarray:
+    """The centre [3] (sensor frame) of the sphere of ``radius_m`` that a contact patch lies on: the gel faces
+    along the sensor's +z, so the centre lies one radius above the patch's deepest point."""
+    start = np.r_[points[:, :2].mean(axis=0), points[:, 2].min() + radius_m]
+    fit = least_squares(lambda c: np.linalg.norm(points - c, axis=1) - radius_m, start, method="lm")
+    return fit.x
+
+
+def fit_mount(
+    presses: list[Press],
+    sphere_radius_m: float,
+    T_hand_cam: np.ndarray,
+    T_start: np.ndarray | None = None,
+    centre_height_m: float | None = None,
+    what: str = "mounts",
+) -> MountFit:
+    """One sensor's ``T_fingertip_sensor`` from its presses on a sphere of ``sphere_radius_m`` whose centre stands
+    ``centre_height_m`` over the board (a measured stand; None: resting on the board, one radius), solved with each
+    sphere placement's centre on the board: every contact point ``T_world_cam @
+    inv(T_hand_cam) @ T_hand_fingertip @ T_fingertip_sensor @ p`` at the radius from its centre (scipy
+    ``least_squares`` on a correction to ``T_start``, the nominal or last mount, in degrees and millimetres).
+
+    A sphere's patch fixes the centre's place in the sensor frame, three numbers; patches at three or more places of
+    the gel that are not in a line fix the mount (the spots' lever arm fixes the rotations, the yaw about the gel's
+    normal included); the known height fixes the offset along the direction the fingertip keeps vertical, and the
+    fingertip's different poses separate the sphere's place on the board from the mount's other offsets. A
+    press set that leaves a parameter undetermined (its standard deviation at :data:`NOISE_M` per point over
+    :data:`MOUNT_MAX_STD`) is refused, naming it and the presses to add."""
+    check_presses(presses, what)
+    fingers = {p.finger for p in presses}
+    if len(fingers) != 1 or any(p.surface != "sphere" for p in presses):
+        raise InvalidInputError(f"{what}: fit_mount takes one sensor's presses on the sphere, got {sorted(fingers)}")
+    finger = presses[0].finger
+    height = sphere_radius_m if centre_height_m is None else centre_height_m
+    T0 = np.eye(4) if T_start is None else np.asarray(T_start, dtype=np.float64)
+    T_cam_hand = invert_pose(T_hand_cam)
+    T_world_tip = [p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ T0 for p in presses]
+    samples = [p.sample() for p in presses]
+    placements = sorted({p.placement for p in presses})
+    centres_s = [sphere_centre_in_sensor(p.points_sensor, sphere_radius_m) for p in presses]
+    c0 = [
+        np.mean(
+            [
+                transform_points(T, c[None])[0, :2]
+                for T, c, p in zip(T_world_tip, centres_s, presses)
+                if p.placement == k
+            ],
+            axis=0,
+        )
+        for k in placements
+    ]
+
+    def unpack(x):
+        D = make_pose(Rotation.from_rotvec(np.radians(x[:3])).as_matrix(), x[3:6] / 1000)
+        centres = {k: np.r_[x[6 + 2 * j : 8 + 2 * j] / 1000, height] for j, k in enumerate(placements)}
+        return D, centres
+
+    def residuals(x):  # millimetres
+        D, centres = unpack(x)
+        return 1000 * np.concatenate(
+            [
+                np.linalg.norm(transform_points(T @ D, pts) - centres[p.placement], axis=1) - sphere_radius_m
+                for T, pts, p in zip(T_world_tip, samples, presses)
+            ]
+        )
+
+    x0 = np.r_[np.zeros(6), 1000 * np.concatenate(c0)]
+    fit = least_squares(residuals, x0, loss="soft_l1", f_scale=1000 * NOISE_M)  # robust to a press's bad board pose
+    bounds = np.cumsum([0] + [len(s) for s in samples])
+    press_rms = np.array([np.sqrt(np.mean(fit.fun[a:b] ** 2)) for a, b in zip(bounds[:-1], bounds[1:])])
+    outliers = press_rms > max(OUTLIER_FACTOR * np.median(press_rms), OUTLIER_MIN_MM)  # a bad board pose
+    if not (outliers.any() and len(presses) - outliers.sum() >= 3):
+        outliers[:] = False
+    else:
+        weights = np.repeat(~outliers, np.diff(bounds)).astype(np.float64)
+        plain = residuals
+        residuals = lambda x: weights * plain(x)  # noqa: E731
+        fit = least_squares(residuals, fit.x, method="lm")
+    std = _std(fit.jac, 1000 * NOISE_M)[:6]
+    weak = [f"{finger} mount {PARAM_NAMES[k]}" for k in range(6) if not std[k] <= MOUNT_MAX_STD[k >= 3]]
+    if weak:
+        spots = np.array(centres_s)[:, :2]
+        spans = spots.max(axis=0) - spots.min(axis=0) if len(spots) else np.zeros(2)
+        short = [axis for axis, span in zip("xy", spans) if span < MOUNT_SPREAD_M]
+        where = (
+            f"press the sphere with places of the {finger} pad further apart along its {' and '.join(short)} axis "
+            f"(at least {1000 * MOUNT_SPREAD_M:.0f} mm apart, say its two ends and a side)"
+            if short
+            else f"press the sphere with at least three places of the {finger} pad not in a line, the finger bent "
+            "two ways"
+        )
+        raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {where}")
+    D, centres = unpack(fit.x)
+    moved_mm, moved_deg = 1000 * np.linalg.norm(D[:3, 3]), np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude())
+    if moved_mm > MAX_CHANGE[0] or moved_deg > MAX_CHANGE[1]:  # no pad sits that far off; the solve ran off
+        raise InvalidInputError(
+            f"{what}: the {finger} mount came out {moved_mm:.1f} mm, {moved_deg:.1f} deg from its start, more than a "
+            f"pad is mounted off ({MAX_CHANGE[0]:.0f} mm, {MAX_CHANGE[1]:.0f} deg); take its presses again, the "
+            "board in full view"
+        )
+    kept = np.repeat(~outliers, np.diff(bounds))
+    rms = float(np.sqrt(np.mean(fit.fun[kept] ** 2)))
+    return MountFit(T0 @ D, [centres[k] for k in placements], rms, int((~outliers).sum()), int(outliers.sum()))
+
+
 def _std(J: np.ndarray, noise: float) -> np.ndarray:
     """The parameters' standard deviations [n] at ``noise`` per residual (inf where undetermined)."""
     normal = J.T @ J
@@ -212,6 +335,15 @@ def load_hand_eye(path: str | Path) -> np.ndarray:
     path = Path(path)
     data = read_calibration_json(path, HAND_EYE_FORMAT)
     return _rigid(data.get("T_hand_cam"), "T_hand_cam", path)
+
+
+def save_mounts(fits: dict[str, MountFit], path: str | Path) -> None:
+    sensors = {
+        f: {"T_fingertip_sensor": fit.T_fingertip_sensor.tolist(), "presses": fit.presses, "rms_mm": fit.rms_mm}
+        for f, fit in fits.items()
+    }
+    data = {"format": MOUNTS_FORMAT, "version": 1, "sensors": sensors}
+    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
 def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
