@@ -177,6 +177,7 @@ def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
 
 MOUNT_MAX_STD = (0.2, 0.1)  # degrees, mm: a mount parameter known worse than this is undetermined
 OUTLIER_FACTOR, OUTLIER_MIN_MM = 3.0, 0.05  # a press this far off the others' fit is dropped (its board pose is bad)
+START_OUTLIER_M = 0.006  # a press whose sphere centre lands this far from the others' at the start is dropped
 MAX_CHANGE = (10.0, 20.0)  # mm, degrees: a mount found further than this from its start is refused
 MOUNT_SPREAD_M = 0.004  # the spots pressed on a pad must span this along both of its axes
 
@@ -233,48 +234,40 @@ def fit_mount(
     samples = [p.sample() for p in presses]
     placements = sorted({p.placement for p in presses})
     centres_s = [sphere_centre_in_sensor(p.points_sensor, sphere_radius_m) for p in presses]
-    c0 = [
-        np.mean(
-            [
-                transform_points(T, c[None])[0, :2]
-                for T, c, p in zip(T_world_tip, centres_s, presses)
-                if p.placement == k
-            ],
-            axis=0,
-        )
-        for k in placements
-    ]
+    # each patch's sphere centre in the world at the start mount; a press whose centre is far from the others' has a
+    # bad board pose (PnP can flip with few corners) and is dropped
+    world = np.array([transform_points(T, c[None])[0] for T, c in zip(T_world_tip, centres_s)])
+    c0 = [np.median(world[[p.placement == k for p in presses], :2], axis=0) for k in placements]
+    start = {k: np.r_[c, height] for k, c in zip(placements, c0)}
+    outliers = np.array([np.linalg.norm(w - start[p.placement]) > START_OUTLIER_M for w, p in zip(world, presses)])
+    if len(presses) - outliers.sum() < 3:
+        outliers[:] = False
+    bounds = np.cumsum([0] + [len(s) for s in samples])
 
     def unpack(x):
         D = make_pose(Rotation.from_rotvec(np.radians(x[:3])).as_matrix(), x[3:6] / 1000)
         centres = {k: np.r_[x[6 + 2 * j : 8 + 2 * j] / 1000, height] for j, k in enumerate(placements)}
         return D, centres
 
-    def residuals(x):  # millimetres
+    def residuals(x):  # millimetres, 0 for the presses dropped
         D, centres = unpack(x)
-        return 1000 * np.concatenate(
-            [
-                np.linalg.norm(transform_points(T @ D, pts) - centres[p.placement], axis=1) - sphere_radius_m
-                for T, pts, p in zip(T_world_tip, samples, presses)
-            ]
-        )
+        out = [
+            np.linalg.norm(transform_points(T @ D, pts) - centres[p.placement], axis=1) - sphere_radius_m
+            for T, pts, p in zip(T_world_tip, samples, presses)
+        ]
+        return 1000 * np.concatenate(out) * np.repeat(~outliers, np.diff(bounds))
 
     x0 = np.r_[np.zeros(6), 1000 * np.concatenate(c0)]
     fit = least_squares(residuals, x0, loss="soft_l1", f_scale=1000 * NOISE_M)  # robust to a press's bad board pose
-    bounds = np.cumsum([0] + [len(s) for s in samples])
     press_rms = np.array([np.sqrt(np.mean(fit.fun[a:b] ** 2)) for a, b in zip(bounds[:-1], bounds[1:])])
-    outliers = press_rms > max(OUTLIER_FACTOR * np.median(press_rms), OUTLIER_MIN_MM)  # a bad board pose
-    if not (outliers.any() and len(presses) - outliers.sum() >= 3):
-        outliers[:] = False
-    else:
-        weights = np.repeat(~outliers, np.diff(bounds)).astype(np.float64)
-        plain = residuals
-        residuals = lambda x: weights * plain(x)  # noqa: E731
-        fit = least_squares(residuals, fit.x, method="lm")
+    worse = press_rms > max(OUTLIER_FACTOR * np.median(press_rms[~outliers]), OUTLIER_MIN_MM)
+    if worse.any() and len(presses) - (outliers | worse).sum() >= 3:
+        outliers |= worse
+    fit = least_squares(residuals, fit.x, method="lm")
     std = _std(fit.jac, 1000 * NOISE_M)[:6]
     weak = [f"{finger} mount {PARAM_NAMES[k]}" for k in range(6) if not std[k] <= MOUNT_MAX_STD[k >= 3]]
     if weak:
-        spots = np.array(centres_s)[:, :2]
+        spots = np.array(centres_s)[~outliers, :2]
         spans = spots.max(axis=0) - spots.min(axis=0) if len(spots) else np.zeros(2)
         short = [axis for axis, span in zip("xy", spans) if span < MOUNT_SPREAD_M]
         where = (

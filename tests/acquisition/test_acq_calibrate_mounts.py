@@ -68,6 +68,19 @@ def test_it_recovers_each_hidden_mounting_error_within_half_a_mm_and_a_degree(tm
     assert all(mm < 0.5 and deg < 1.0 for mm, deg in found.values())
 
 
+@pytest.mark.slow
+def test_ten_draws_recover_within_half_a_mm_and_a_degree(tmp_path):
+    """The issue's measurement: 10 draws (40 sensors); prints the worst and median errors."""
+    found = [_recovery(tmp_path / str(seed), seed) for seed in range(10, 20)]
+    mm = [m for f in found for m, _ in f.values()]
+    deg = [d for f in found for _, d in f.values()]
+    print(
+        f"10 draws, 40 sensors: max {max(mm):.3f} mm, {max(deg):.3f} deg; median {np.median(mm):.3f} mm, "
+        f"{np.median(deg):.3f} deg"
+    )
+    assert max(mm) < 0.5 and max(deg) < 1.0
+
+
 def _touch_median_mm(tmp_path, rig: str) -> float:
     from tacsplat.acquisition.sim_capture import sim_capture
     from tacsplat.datasets import Scene
@@ -81,7 +94,7 @@ def _touch_median_mm(tmp_path, rig: str) -> float:
 
 def test_the_command_runs_with_stdin_closed_and_a_capture_with_its_file_touches_the_mesh(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sys, "stdin", open(os.devnull))
-    errors = _draw(2)  # draws 7, 11 and 17 are refused today: the index mount's solve runs off by 32 mm
+    errors = _draw(7)  # a draw where one index press has a flipped board pose (6 corners), dropped
     out = tmp_path / "calibration" / "mounts.json"
     assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, errors), "--out", str(out)]) == 0
     lines = capsys.readouterr().out.splitlines()

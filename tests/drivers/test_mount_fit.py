@@ -73,3 +73,17 @@ def test_presses_at_one_spot_are_refused_naming_the_axes_and_the_spots_to_add():
     line = [_press(rng, M, T_hand_cam, centre, spot) for spot in ((0.006, 0.0), (-0.006, 0.0)) for _ in range(2)]
     with pytest.raises(InvalidInputError, match=r"index mount rotation about x.*along its y axis"):
         fit_mount(line, RADIUS, T_hand_cam)
+
+
+def test_a_press_with_a_flipped_board_pose_is_dropped_and_the_mount_still_recovered():
+    rng = np.random.default_rng(3)
+    M, T_hand_cam = _mount(rng), _mount(rng, 50.0, 30.0)
+    centre = np.array([0.03, -0.02, 0.06])
+    presses = [_press(rng, M, T_hand_cam, centre, spot) for spot in SPOTS for _ in range(2)]
+    bad = presses[3]
+    flipped = make_pose(Rotation.from_euler("y", 40, degrees=True).as_matrix(), [0.09, 0.0, 0.05]) @ bad.T_world_cam
+    presses[3] = Press(bad.finger, bad.T_hand_fingertip, bad.points_sensor, flipped, "sphere", 0)
+    fit = fit_mount(presses, RADIUS, T_hand_cam, centre_height_m=0.06)
+    mm, deg = _error(fit.T_fingertip_sensor, M)
+    assert fit.dropped == 1 and fit.presses == 7
+    assert mm < 1e-4 and deg < 1e-4
