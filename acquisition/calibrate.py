@@ -19,7 +19,7 @@ import numpy as np
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
-from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.errors import ConfigError
 
 
 @contextmanager
@@ -126,7 +126,7 @@ def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] 
 
     presses, T_hand_cam, mounts = _twin_presses(config, hand_eye_plan(), say)
     fit = fit_presses(presses, SPHERE_RADIUS_M, T_hand_cam, mounts, what="hand-eye")
-    save_hand_eye(fit, out)
+    save_hand_eye(out, fit.T_hand_cam, sum(fit.presses.values()), fit.rms_mm)
     say(
         f"T_hand_cam: {len(presses)} presses, rms {fit.rms_mm:.3f} mm; {_change(T_hand_cam, fit.T_hand_cam)} from the "
         "rig's previous value"
@@ -135,33 +135,39 @@ def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] 
     return fit
 
 
-def calibrate_mounts(config: RigConfig, out: Path, say: Callable[[str], None] = print):
-    """Each sensor's ``T_fingertip_sensor`` from presses of four places of its pad on a sphere on a stand of known
-    height over the board (two bends, two spreads each), solved per sensor with the sphere's place, ``T_hand_cam`` the rig's (run calibrate hand-eye
-    first); a residual line per sensor; written to ``out``. A sensor whose presses leave an axis undetermined is
-    refused, naming the presses to add."""
-    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, STAND_HEIGHT_M, mounts_plan
-    from tacsplat.drivers.press_calibration import fit_mount, save_mounts
+def calibrate_mounts(
+    config: RigConfig, out: Path, hand_eye_out: Path | None = None, say: Callable[[str], None] = print
+):
+    """Each sensor's ``T_fingertip_sensor`` and ``T_hand_cam``, solved together (they are coupled: a hand-eye
+    solved with the pads at their nominal mounts takes up part of their errors) from two press sets: every
+    fingertip's centre on a sphere resting on the board, and six places of each pad (its two ends, two sides and two
+    corners) on the sphere on a stand of known height (two bends, two spreads each); started at the rig's ``T_hand_cam`` (run
+    calibrate hand-eye first) and mounts. A line per sensor and one for ``T_hand_cam``; the mounts written to
+    ``out``, ``T_hand_cam`` to ``hand_eye_out`` if given. Presses that leave an axis undetermined are refused,
+    naming the presses to add."""
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, STAND_HEIGHT_M, hand_eye_plan, mounts_plan
+    from tacsplat.drivers.press_calibration import fit_mounts, save_hand_eye, save_mounts
 
     presses, T_hand_cam, mounts = _twin_presses(
         config,
-        mounts_plan(),
+        hand_eye_plan() + mounts_plan(),
         say,
         "calibrate mounts",
-        f"on a stand, its centre {1000 * STAND_HEIGHT_M:.0f} mm over the board",
+        f"resting on the board, then on a stand, its centre {1000 * STAND_HEIGHT_M:.0f} mm over the board",
     )
-    fits = {}
-    for finger in dict.fromkeys(p.finger for p in presses):
-        start = mounts.get(finger, np.eye(4))
-        mine = [p for p in presses if p.finger == finger]
-        fit = fit_mount(mine, SPHERE_RADIUS_M, T_hand_cam, start, STAND_HEIGHT_M, f"calibrate mounts: {finger}")
-        fits[finger] = fit
+    fit = fit_mounts(
+        presses, SPHERE_RADIUS_M, {0: SPHERE_RADIUS_M, 1: STAND_HEIGHT_M}, T_hand_cam, mounts, "calibrate mounts"
+    )
+    for finger, T in fit.mounts.items():
         say(
-            f"{finger}: {fit.presses} presses ({fit.dropped} dropped), rms {fit.rms_mm:.3f} mm; {_change(start, fit.T_fingertip_sensor)} from "
-            "the rig's previous mounting"
+            f"{finger}: {fit.presses[finger]} presses ({fit.dropped[finger]} dropped), rms {fit.rms_mm[finger]:.3f} mm; "
+            f"{_change(mounts.get(finger, np.eye(4)), T)} from the rig's previous mounting"
         )
-    if not fits:
-        raise InvalidInputError("calibrate mounts: no presses recorded (the wrist camera never saw the board)")
-    save_mounts(fits, out)
-    say(f"wrote {out} ({len(fits)} sensors; name it as tactile.mounts in the rig file)")
-    return fits
+    say(f"T_hand_cam: {_change(T_hand_cam, fit.T_hand_cam)} from the rig's previous value")
+    save_mounts(fit, out)
+    if hand_eye_out is not None:
+        rms = float(np.sqrt(np.mean([r**2 for r in fit.rms_mm.values()])))
+        save_hand_eye(hand_eye_out, fit.T_hand_cam, sum(fit.presses.values()), rms)
+        say(f"wrote {hand_eye_out} (name it as camera.hand_eye in the rig file)")
+    say(f"wrote {out} ({len(fit.mounts)} sensors; name it as tactile.mounts in the rig file)")
+    return fit

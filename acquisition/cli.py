@@ -75,19 +75,22 @@ class CalibrateHandEye:
 
 @dataclass
 class CalibrateMounts:
-    """each tactile sensor's pose on its fingertip (T_fingertip_sensor) from presses on a sphere
+    """each tactile sensor's pose on its fingertip (T_fingertip_sensor), with T_hand_cam, from presses on a sphere
 
-    Each pad presses a 25 mm sphere on a stand of known height over the board (its centre 60 mm up) with four
-    places of the gel (its two ends and two sides), bent and spread two ways, while the wrist camera sees the board;
-    the patches' curvature and lever arm fix each sensor's six parameters, solved with the sphere's place, T_hand_cam
-    from the rig (run calibrate hand-eye first). A residual line per sensor. Refuses presses that leave an axis
-    undetermined, naming the presses to add. Runs on a rig: sim twin (the twin presses; standard input may be
+    Every fingertip presses a 25 mm sphere resting on the board with its pad's centre, then each pad presses the
+    sphere on a stand of known height (its centre 60 mm up) with six places of the gel (its two ends, two
+    sides and two corners), bent and spread two ways, while the wrist camera sees the board. The patches' curvature and lever arm fix
+    each sensor's six parameters; they and T_hand_cam (coupled to them) are solved together with the sphere's place,
+    started at the rig's (run calibrate hand-eye first). A residual line per sensor. Refuses presses that leave an
+    axis undetermined, naming the presses to add. Runs on a rig: sim twin (the twin presses; standard input may be
     closed)."""
 
     rig: Path
     """rig YAML file (camera.hand_eye; sim.true_errors on a twin)"""
     out: Path
     """mounts file to write (.json; the rig's tactile.mounts)"""
+    hand_eye: Path | None = None
+    """also write the T_hand_cam solved with the mounts to this hand-eye file (.json; the rig's camera.hand_eye)"""
 
 
 @dataclass
@@ -268,7 +271,9 @@ def _calibrate_mounts(o: CalibrateMounts) -> int:
         raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
     config = load_rig(o.rig, check_files=False)
     ensure_output_dir(o.out.parent, "--out")
-    calibrate_mounts(config, o.out)
+    if o.hand_eye is not None:
+        ensure_output_dir(o.hand_eye.parent, "--hand-eye")
+    calibrate_mounts(config, o.out, o.hand_eye)
     return 0
 
 

@@ -53,7 +53,7 @@ def _pose_q(finger: str, abduction: float, flexion: tuple, others: tuple = (0.0,
 FLEXIONS = ((0.5, 0.4, 0.3), (0.9, 0.6, 0.4))
 ABDUCTIONS = (-0.3, 0.3)
 CURLED = (1.2, 1.2, 1.0)  # the fingers not pressing, out of the way
-SPOTS_M = ((0.006, 0.0), (-0.006, 0.0), (0.0, 0.006), (0.0, -0.006))  # places of the pad away from its centre
+SPOTS_M = ((0.008, 0.0), (-0.008, 0.0), (0.0, 0.006), (0.0, -0.006), (0.006, 0.005), (-0.006, -0.005))  # on the pad
 STAND_HEIGHT_M = 0.06  # the sphere's centre over the board on its stand for calibrate mounts (measured)
 SPHERE_PLACEMENTS = (
     (0.025, -0.025, SPHERE_RADIUS_M),  # resting near a corner of the board (hand-eye; unknown to the solver)
@@ -68,8 +68,9 @@ def hand_eye_plan(fingers=FINGER_NAMES) -> list[PressSpec]:
 
 
 def mounts_plan(fingers=FINGER_NAMES) -> list[PressSpec]:
-    """Every fingertip on the sphere with four places of its pad (its two ends and two sides), each at two bends:
-    the patches' lever arm fixes each sensor's rotations, the bends separate its offset from the sphere's place."""
+    """Every fingertip on the sphere on its stand with six places of its pad (its two ends, two sides, two corners),
+    each at two bends and two spreads, the other fingers curled out of the way: the patches' lever arm fixes each
+    sensor's rotations, the fingertip's poses separate its offset from the sphere's place."""
     return [
         PressSpec(f, _pose_q(f, a, flex, CURLED), "sphere", spot, placement=1)
         for f in fingers

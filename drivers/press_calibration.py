@@ -1,19 +1,27 @@
-"""The wrist camera's pose on the hand (``T_hand_cam``) from fingertip presses, without an arm; the file format of
-each tactile sensor's pose on its fingertip (``T_fingertip_sensor``).
+"""The wrist camera's pose on the hand (``T_hand_cam``) and each tactile sensor's pose on its fingertip
+(``T_fingertip_sensor``) from fingertip presses on a sphere, without an arm.
 
 The calibration board lies face up and defines the world (its printed face is the plane ``z = 0``, DESIGN.md). A
-press is a fingertip pressed on the board (or on a sphere of known radius resting on it) while the wrist camera
-sees the board: the board's PnP gives ``T_world_cam``, the joints as read give the fingertip's pose on the hand,
-and the sensor's depth map gives the contact points in the sensor frame. Through the unknowns, each contact point
-must lie on the surface pressed: ``T_world_cam @ inv(T_hand_cam) @ T_hand_fingertip @ T_fingertip_sensor @ p``
-on the plane ``z = 0``, or at the sphere's radius from its centre. ``T_hand_cam`` and each sphere placement's
-centre are solved together by scipy's ``least_squares`` on every contact point, the sensors at the rig's mounts.
+press is a fingertip pressed on a sphere of known radius (resting on the board, or on a stand of known height)
+while the wrist camera sees the board: the board's PnP gives ``T_world_cam``, the joints as read give the
+fingertip's pose on the hand, and the sensor's depth map gives the contact points in the sensor frame. Through the
+unknowns, each contact point must lie at the sphere's radius from its centre:
+``T_world_cam @ inv(T_hand_cam) @ T_hand_fingertip @ T_fingertip_sensor @ p``.
 
-A press set that leaves an axis undetermined is refused, naming the presses to add.
+- :func:`fit_presses` (``calibrate hand-eye``): ``T_hand_cam`` and the sphere's place, the sensors at the rig's
+  mounts: the pads' centres pressed on the sphere by many fingers and hand poses.
+- :func:`fit_mounts` (``calibrate mounts``): every pressed sensor's ``T_fingertip_sensor`` and ``T_hand_cam``
+  together (a hand-eye solved with the pads at their nominal mounts takes up part of their errors): a patch's
+  curvature fixes the sphere's centre in the sensor frame, patches at places of the gel not in a line fix the
+  mount's six numbers (the yaw about the gel's normal and the in-plane offset included, which a plane cannot), and
+  the stand's known height fixes the offset along the direction a fingertip keeps vertical.
 
-Files (JSON): ``{"format": "tacsplat-hand-eye", "version": 1, "T_hand_cam": [[4x4]], "presses": n, "rms_mm": x}``;
-the rig's ``tactile.mounts`` file: ``{"format": "tacsplat-mounts", "version": 1, "sensors": {finger:
-{"T_fingertip_sensor": [[4x4]], ...}}}``.
+Each refuses a press set that leaves an axis undetermined, naming the presses to add; ``fit_mounts`` drops presses
+whose board pose is off the others' (PnP can flip with few corners).
+
+Files (JSON): ``{"format": "tacsplat-hand-eye", "version": 1, "T_hand_cam": [[4x4]], "presses": n, "rms_mm": x}``
+and ``{"format": "tacsplat-mounts", "version": 1, "sensors": {finger: {"T_fingertip_sensor": [[4x4]], "presses": n,
+"rms_mm": x}}}``.
 """
 
 from __future__ import annotations
@@ -175,23 +183,26 @@ def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
         raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {hint}")
 
 
-MOUNT_MAX_STD = (0.2, 0.1)  # degrees, mm: a mount parameter known worse than this is undetermined
+MOUNT_MAX_STD = (0.2, 0.1)  # degrees, mm: a parameter known worse than this is undetermined
 OUTLIER_FACTOR, OUTLIER_MIN_MM = 3.0, 0.05  # a press this far off the others' fit is dropped (its board pose is bad)
-START_OUTLIER_M = 0.006  # a press whose sphere centre lands this far from the others' at the start is dropped
-MAX_CHANGE = (10.0, 20.0)  # mm, degrees: a mount found further than this from its start is refused
+MAX_DROPPED = 0.2  # at most this share of the presses is dropped
+START_OUTLIER_M = 0.015  # a press whose sphere centre lands this far from the others' at the start is dropped
+MAX_CHANGE = (10.0, 20.0)  # mm, degrees: a mount or T_hand_cam found further than this from its start is refused
 MOUNT_SPREAD_M = 0.004  # the spots pressed on a pad must span this along both of its axes
 
 
 @dataclass
-class MountFit:
-    """What a sensor's presses gave: its ``T_fingertip_sensor``, the sphere placements' centres (world) and the rms
-    of its contact points' distances to the sphere."""
+class MountsFit:
+    """What a press set gave: ``T_hand_cam`` (solved, or the start's), each pressed sensor's
+    ``T_fingertip_sensor``, each sphere placement's centre (world), the rms of each sensor's contact points'
+    distances to the sphere, its presses used and dropped (off the others, its board pose bad)."""
 
-    T_fingertip_sensor: np.ndarray
-    sphere_centres: list
-    rms_mm: float
-    presses: int
-    dropped: int = 0  # presses left out, off the others' fit by more than OUTLIER_FACTOR times their median rms
+    T_hand_cam: np.ndarray
+    mounts: dict[str, np.ndarray]
+    sphere_centres: dict[int, np.ndarray]
+    rms_mm: dict[str, float]
+    presses: dict[str, int]
+    dropped: dict[str, int]
 
 
 def sphere_centre_in_sensor(points: np.ndarray, radius_m: float) -> np.ndarray:
@@ -202,93 +213,154 @@ def sphere_centre_in_sensor(points: np.ndarray, radius_m: float) -> np.ndarray:
     return fit.x
 
 
-def fit_mount(
+def _correction(x: np.ndarray) -> np.ndarray:
+    """A rigid [4, 4] from (rotation vector in degrees [3], translation in mm [3])."""
+    return make_pose(Rotation.from_rotvec(np.radians(x[:3])).as_matrix(), x[3:6] / 1000)
+
+
+def fit_mounts(
     presses: list[Press],
     sphere_radius_m: float,
+    centre_heights_m: dict[int, float],
     T_hand_cam: np.ndarray,
-    T_start: np.ndarray | None = None,
-    centre_height_m: float | None = None,
+    mounts: dict[str, np.ndarray] | None = None,
     what: str = "mounts",
-) -> MountFit:
-    """One sensor's ``T_fingertip_sensor`` from its presses on a sphere of ``sphere_radius_m`` whose centre stands
-    ``centre_height_m`` over the board (a measured stand; None: resting on the board, one radius), solved with each
-    sphere placement's centre on the board: every contact point ``T_world_cam @
-    inv(T_hand_cam) @ T_hand_fingertip @ T_fingertip_sensor @ p`` at the radius from its centre (scipy
-    ``least_squares`` on a correction to ``T_start``, the nominal or last mount, in degrees and millimetres).
+) -> MountsFit:
+    """Each pressed sensor's ``T_fingertip_sensor`` and ``T_hand_cam``, solved together with each
+    sphere placement's centre on the board (its height over the board known, ``centre_heights_m[placement]``: one
+    radius when resting on it, a measured stand's otherwise): every contact point ``T_world_cam @ inv(T_hand_cam) @
+    T_hand_fingertip @ T_fingertip_sensor @ p`` at the radius from its centre (scipy ``least_squares`` on
+    corrections to the start, ``T_hand_cam`` and ``mounts``, the rig's, in degrees and millimetres).
 
     A sphere's patch fixes the centre's place in the sensor frame, three numbers; patches at three or more places of
-    the gel that are not in a line fix the mount (the spots' lever arm fixes the rotations, the yaw about the gel's
-    normal included); the known height fixes the offset along the direction the fingertip keeps vertical, and the
-    fingertip's different poses separate the sphere's place on the board from the mount's other offsets. A
-    press set that leaves a parameter undetermined (its standard deviation at :data:`NOISE_M` per point over
-    :data:`MOUNT_MAX_STD`) is refused, naming it and the presses to add."""
+    the gel not in a line fix the mount (their lever arm fixes the rotations, the yaw about the gel's normal
+    included); the known heights fix the offset along the direction a fingertip keeps vertical, and the fingertips'
+    different poses on the hand separate ``T_hand_cam`` from the mounts and the sphere's place. A press whose
+    sphere centre lands far from the others' (a bad board pose) is dropped. A press set that leaves a parameter
+    undetermined (its standard deviation at :data:`NOISE_M` per point over :data:`MOUNT_MAX_STD`) is refused,
+    naming it and the presses to add; so is a solve that runs off (:data:`MAX_CHANGE`)."""
     check_presses(presses, what)
-    fingers = {p.finger for p in presses}
-    if len(fingers) != 1 or any(p.surface != "sphere" for p in presses):
-        raise InvalidInputError(f"{what}: fit_mount takes one sensor's presses on the sphere, got {sorted(fingers)}")
-    finger = presses[0].finger
-    height = sphere_radius_m if centre_height_m is None else centre_height_m
-    T0 = np.eye(4) if T_start is None else np.asarray(T_start, dtype=np.float64)
-    T_cam_hand = invert_pose(T_hand_cam)
-    T_world_tip = [p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ T0 for p in presses]
-    samples = [p.sample() for p in presses]
+    if any(p.surface != "sphere" for p in presses):
+        raise InvalidInputError(f"{what}: fit_mounts takes presses on the sphere only")
+    mounts = {f: np.asarray(T, dtype=np.float64) for f, T in (mounts or {}).items()}
+    fingers = list(dict.fromkeys(p.finger for p in presses))
     placements = sorted({p.placement for p in presses})
-    centres_s = [sphere_centre_in_sensor(p.points_sensor, sphere_radius_m) for p in presses]
-    # each patch's sphere centre in the world at the start mount; a press whose centre is far from the others' has a
-    # bad board pose (PnP can flip with few corners) and is dropped
-    world = np.array([transform_points(T, c[None])[0] for T, c in zip(T_world_tip, centres_s)])
-    c0 = [np.median(world[[p.placement == k for p in presses], :2], axis=0) for k in placements]
-    start = {k: np.r_[c, height] for k, c in zip(placements, c0)}
-    outliers = np.array([np.linalg.norm(w - start[p.placement]) > START_OUTLIER_M for w, p in zip(world, presses)])
-    if len(presses) - outliers.sum() < 3:
-        outliers[:] = False
+    missing = [k for k in placements if k not in centre_heights_m]
+    if missing:
+        raise InvalidInputError(f"{what}: no height given for sphere placements {missing}")
+    T_cam_hand = invert_pose(T_hand_cam)
+    start = [p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4)) for p in presses]
+    samples = [p.sample() for p in presses]
     bounds = np.cumsum([0] + [len(s) for s in samples])
+    centres_s = [sphere_centre_in_sensor(p.points_sensor, sphere_radius_m) for p in presses]
+    # each patch's sphere centre in the world at the start; one far from the others' has a bad board pose (PnP can
+    # flip with few corners) and is dropped
+    world = np.array([transform_points(T, c[None])[0] for T, c in zip(start, centres_s)])
+    c0 = {k: np.median(world[[p.placement == k for p in presses], :2], axis=0) for k in placements}
+    far = [np.linalg.norm(w - np.r_[c0[p.placement], centre_heights_m[p.placement]]) for w, p in zip(world, presses)]
+    dropped = np.array(far) > START_OUTLIER_M
+    n_he = 6
 
     def unpack(x):
-        D = make_pose(Rotation.from_rotvec(np.radians(x[:3])).as_matrix(), x[3:6] / 1000)
-        centres = {k: np.r_[x[6 + 2 * j : 8 + 2 * j] / 1000, height] for j, k in enumerate(placements)}
-        return D, centres
+        X = T_hand_cam @ _correction(x[:6])
+        M = {
+            f: mounts.get(f, np.eye(4)) @ _correction(x[n_he + 6 * i : n_he + 6 * i + 6]) for i, f in enumerate(fingers)
+        }
+        k0 = n_he + 6 * len(fingers)
+        centres = {
+            k: np.r_[x[k0 + 2 * j : k0 + 2 * j + 2] / 1000, centre_heights_m[k]] for j, k in enumerate(placements)
+        }
+        return X, M, centres
 
-    def residuals(x):  # millimetres, 0 for the presses dropped
-        D, centres = unpack(x)
+    def residuals(x, use=None):  # millimetres; 0 for the presses dropped and those not in ``use``
+        X, M, centres = unpack(x)
+        T_cam_hand = invert_pose(X)
         out = [
-            np.linalg.norm(transform_points(T @ D, pts) - centres[p.placement], axis=1) - sphere_radius_m
-            for T, pts, p in zip(T_world_tip, samples, presses)
+            np.linalg.norm(
+                transform_points(p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ M[p.finger], pts)
+                - centres[p.placement],
+                axis=1,
+            )
+            - sphere_radius_m
+            for p, pts in zip(presses, samples)
         ]
-        return 1000 * np.concatenate(out) * np.repeat(~outliers, np.diff(bounds))
+        keep = ~dropped if use is None else ~dropped & use
+        return 1000 * np.concatenate(out) * np.repeat(keep, np.diff(bounds))
 
-    x0 = np.r_[np.zeros(6), 1000 * np.concatenate(c0)]
-    fit = least_squares(residuals, x0, loss="soft_l1", f_scale=1000 * NOISE_M)  # robust to a press's bad board pose
-    press_rms = np.array([np.sqrt(np.mean(fit.fun[a:b] ** 2)) for a, b in zip(bounds[:-1], bounds[1:])])
-    worse = press_rms > max(OUTLIER_FACTOR * np.median(press_rms[~outliers]), OUTLIER_MIN_MM)
-    if worse.any() and len(presses) - (outliers | worse).sum() >= 3:
-        outliers |= worse
-    fit = least_squares(residuals, fit.x, method="lm")
-    std = _std(fit.jac, 1000 * NOISE_M)[:6]
-    weak = [f"{finger} mount {PARAM_NAMES[k]}" for k in range(6) if not std[k] <= MOUNT_MAX_STD[k >= 3]]
-    if weak:
-        spots = np.array(centres_s)[~outliers, :2]
+    def solve(x, free, use=None):
+        """``x`` with the parameters ``free`` (indices) solved on the presses ``use`` (plain Levenberg-Marquardt)."""
+
+        def sub(y):
+            z = x.copy()
+            z[free] = y
+            return residuals(z, use)
+
+        fit = least_squares(sub, x[free], method="lm")
+        out = x.copy()
+        out[free] = fit.x
+        return out, fit
+
+    x = np.r_[np.zeros(n_he + 6 * len(fingers)), 1000 * np.concatenate([c0[k] for k in placements])]
+    centre_params = np.arange(n_he + 6 * len(fingers), len(x))
+    for i, f in enumerate(fingers):  # each mount alone first, T_hand_cam held: a start near the joint solution
+        x, _ = solve(x, np.r_[n_he + 6 * i + np.arange(6), centre_params], np.array([p.finger == f for p in presses]))
+    x, fit = solve(x, np.arange(len(x)))
+    while dropped.sum() < len(presses) * MAX_DROPPED:  # the worst press, while far off the others: a bad board pose
+        press_rms = np.array([np.sqrt(np.mean(fit.fun[a:b] ** 2)) for a, b in zip(bounds[:-1], bounds[1:])])
+        worst = int(np.argmax(np.where(dropped, -1.0, press_rms)))
+        if press_rms[worst] <= max(OUTLIER_FACTOR * np.median(press_rms[~dropped]), OUTLIER_MIN_MM):
+            break
+        dropped[worst] = True
+        x, fit = solve(x, np.arange(len(x)))
+    _refuse_unfixed(fit.jac, presses, fingers, dropped, centres_s, what)
+    X, M, centres = unpack(x)
+    changes = [("T_hand_cam", T_hand_cam, X)] + [(f"the {f} mount", mounts.get(f, np.eye(4)), M[f]) for f in fingers]
+    for name, T0, T in changes:
+        D = invert_pose(T0) @ T
+        mm, deg = 1000 * np.linalg.norm(D[:3, 3]), np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude())
+        if mm > MAX_CHANGE[0] or deg > MAX_CHANGE[1]:  # nothing is mounted that far off: the solve ran off
+            raise InvalidInputError(
+                f"{what}: {name} came out {mm:.1f} mm, {deg:.1f} deg from its start, more than anything is mounted "
+                f"off ({MAX_CHANGE[0]:.0f} mm, {MAX_CHANGE[1]:.0f} deg); take the presses again, the board in full view"
+            )
+    mine = {f: np.array([p.finger == f for p in presses]) & ~dropped for f in fingers}
+    return MountsFit(
+        X,
+        M,
+        centres,
+        {f: float(np.sqrt(np.mean(fit.fun[np.repeat(m, np.diff(bounds))] ** 2))) for f, m in mine.items()},
+        {f: int(m.sum()) for f, m in mine.items()},
+        {f: int(sum(d and p.finger == f for d, p in zip(dropped, presses))) for f in fingers},
+    )
+
+
+def _refuse_unfixed(J, presses, fingers, dropped, centres_s, what) -> None:
+    """One error naming each parameter the presses leave undetermined (:data:`MOUNT_MAX_STD`) and what to press."""
+    std = _std(J, 1000 * NOISE_M)
+    blocks = ["hand-eye"] + [f"{f} mount" for f in fingers]
+    weak = [
+        (block, PARAM_NAMES[k])
+        for b, block in enumerate(blocks)
+        for k in range(6)
+        if not std[6 * b + k] <= MOUNT_MAX_STD[k >= 3]
+    ]
+    if not weak:
+        return
+    hints = []
+    for f in dict.fromkeys(block[: -len(" mount")] for block, _ in weak if block.endswith(" mount")):
+        spots = np.array([c[:2] for c, p, d in zip(centres_s, presses, dropped) if p.finger == f and not d])
         spans = spots.max(axis=0) - spots.min(axis=0) if len(spots) else np.zeros(2)
         short = [axis for axis, span in zip("xy", spans) if span < MOUNT_SPREAD_M]
-        where = (
-            f"press the sphere with places of the {finger} pad further apart along its {' and '.join(short)} axis "
-            f"(at least {1000 * MOUNT_SPREAD_M:.0f} mm apart, say its two ends and a side)"
+        hints.append(
+            f"press the sphere with places of the {f} pad further apart along its {' and '.join(short)} axis (at "
+            f"least {1000 * MOUNT_SPREAD_M:.0f} mm apart, say its two ends and a side)"
             if short
-            else f"press the sphere with at least three places of the {finger} pad not in a line, the finger bent "
-            "two ways"
+            else f"press the sphere with at least three places of the {f} pad not in a line, the finger bent two ways"
         )
-        raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {where}")
-    D, centres = unpack(fit.x)
-    moved_mm, moved_deg = 1000 * np.linalg.norm(D[:3, 3]), np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude())
-    if moved_mm > MAX_CHANGE[0] or moved_deg > MAX_CHANGE[1]:  # no pad sits that far off; the solve ran off
-        raise InvalidInputError(
-            f"{what}: the {finger} mount came out {moved_mm:.1f} mm, {moved_deg:.1f} deg from its start, more than a "
-            f"pad is mounted off ({MAX_CHANGE[0]:.0f} mm, {MAX_CHANGE[1]:.0f} deg); take its presses again, the "
-            "board in full view"
-        )
-    kept = np.repeat(~outliers, np.diff(bounds))
-    rms = float(np.sqrt(np.mean(fit.fun[kept] ** 2)))
-    return MountFit(T0 @ D, [centres[k] for k in placements], rms, int((~outliers).sum()), int(outliers.sum()))
+    if any(block == "hand-eye" for block, _ in weak):
+        hints.append("press with more fingers, bent differently, the hand reaching the sphere from other directions")
+    names = ", ".join(f"{block} {name}" for block, name in weak)
+    raise InvalidInputError(f"{what}: the presses leave undetermined: {names}; {'; '.join(hints)}")
 
 
 def _std(J: np.ndarray, noise: float) -> np.ndarray:
@@ -312,13 +384,13 @@ def _rigid(value, key: str, path: Path) -> np.ndarray:
     return T
 
 
-def save_hand_eye(fit: PressFit, path: str | Path) -> None:
+def save_hand_eye(path: str | Path, T_hand_cam: np.ndarray, presses: int, rms_mm: float) -> None:
     data = {
         "format": HAND_EYE_FORMAT,
         "version": 1,
-        "T_hand_cam": fit.T_hand_cam.tolist(),
-        "presses": sum(fit.presses.values()),
-        "rms_mm": fit.rms_mm,
+        "T_hand_cam": np.asarray(T_hand_cam).tolist(),
+        "presses": presses,
+        "rms_mm": rms_mm,
     }
     atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
@@ -330,10 +402,10 @@ def load_hand_eye(path: str | Path) -> np.ndarray:
     return _rigid(data.get("T_hand_cam"), "T_hand_cam", path)
 
 
-def save_mounts(fits: dict[str, MountFit], path: str | Path) -> None:
+def save_mounts(fit: MountsFit, path: str | Path) -> None:
     sensors = {
-        f: {"T_fingertip_sensor": fit.T_fingertip_sensor.tolist(), "presses": fit.presses, "rms_mm": fit.rms_mm}
-        for f, fit in fits.items()
+        f: {"T_fingertip_sensor": T.tolist(), "presses": fit.presses[f], "rms_mm": fit.rms_mm[f]}
+        for f, T in fit.mounts.items()
     }
     data = {"format": MOUNTS_FORMAT, "version": 1, "sensors": sensors}
     atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
