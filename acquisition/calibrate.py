@@ -1,5 +1,6 @@
 """Calibration commands that run on a rig file: ``tacsplat calibrate hand`` (the hand's joint signs, zeros and
-ranges, :mod:`tacsplat.drivers.joint_calibration`).
+ranges, :mod:`tacsplat.drivers.joint_calibration`), ``calibrate hand-eye`` (the wrist camera's pose on the hand
+from fingertip presses, :mod:`tacsplat.drivers.press_calibration`; on the twin so far).
 
 The same command runs on the real rig (a person at the terminal moves the joints), on ``--mock`` (the servo
 emulator, whose hand moves them) and on a ``rig: sim`` file (the twin pushes them); in the last two the hardware
@@ -13,9 +14,12 @@ from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Callable, Iterator, TextIO
 
+import numpy as np
+
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
+from tacsplat.errors import ConfigError
 
 
 @contextmanager
@@ -76,3 +80,94 @@ def calibrate_hand(
     calibration.save(out)
     say(f"wrote {out} ({len(results)} joints)")
     return calibration, results
+
+
+def _twin_presses(
+    config: RigConfig,
+    plan: list,
+    say: Callable[[str], None],
+    what: str = "calibrate hand-eye",
+    where: str = "resting on the board",
+):
+    """``(presses, the rig's T_hand_cam, the rig's mounts)`` of a plan's presses on the twin of a ``rig: sim``
+    config (the twin plays the person: it presses the fingertips on a sphere resting on the board)."""
+    if config.rig != "sim":
+        raise ConfigError(
+            "rig",
+            f"{what} runs on a rig: sim twin only so far (the real rig's and --mock's "
+            "guided presses are not written yet)",
+            config.source,
+        )
+    from tacsplat.acquisition.devices import twin_config
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, TwinPressSession
+    from tacsplat.sim.twin import SimTwin
+
+    say(f"the twin presses its fingertips on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere {where}")
+    with SimTwin(twin_config(config)) as twin:
+        presses = TwinPressSession(twin, config.board, say).run(plan)
+        mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
+        return presses, twin.T_hand_cam, mounts
+
+
+def _change(T_from: np.ndarray, T_to: np.ndarray) -> str:
+    from scipy.spatial.transform import Rotation
+
+    D = np.linalg.inv(T_from) @ T_to
+    return (
+        f"{1000 * np.linalg.norm(D[:3, 3]):.2f} mm, {np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()):.2f} deg"
+    )
+
+
+def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] = print):
+    """``T_hand_cam`` from fingertip presses on a sphere resting on the board (the sensors at the rig's mounts),
+    written to ``out``; the press set is refused when it leaves an axis undetermined."""
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, hand_eye_plan
+    from tacsplat.drivers.press_calibration import fit_presses, save_hand_eye
+
+    presses, T_hand_cam, mounts = _twin_presses(config, hand_eye_plan(), say)
+    fit = fit_presses(presses, SPHERE_RADIUS_M, T_hand_cam, mounts, what="hand-eye")
+    save_hand_eye(out, fit.T_hand_cam, sum(fit.presses.values()), fit.rms_mm)
+    say(
+        f"T_hand_cam: {len(presses)} presses, rms {fit.rms_mm:.3f} mm; {_change(T_hand_cam, fit.T_hand_cam)} from the "
+        "rig's previous value"
+    )
+    say(f"wrote {out} (name it as camera.hand_eye in the rig file)")
+    return fit
+
+
+def calibrate_mounts(
+    config: RigConfig, out: Path, hand_eye_out: Path | None = None, say: Callable[[str], None] = print
+):
+    """Each sensor's ``T_fingertip_sensor`` and ``T_hand_cam``, solved together (they are coupled: a hand-eye
+    solved with the pads at their nominal mounts takes up part of their errors) from two press sets: every
+    fingertip's centre on a sphere resting on the board, and six places of each pad (its two ends, two sides and two
+    corners) on the sphere on a stand of known height (two bends, two spreads each); started at the rig's ``T_hand_cam`` (run
+    calibrate hand-eye first) and mounts. A line per sensor and one for ``T_hand_cam``; the mounts written to
+    ``out``, ``T_hand_cam`` to ``hand_eye_out`` if given. Presses that leave an axis undetermined are refused,
+    naming the presses to add."""
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, STAND_HEIGHT_M, hand_eye_plan, mounts_plan
+    from tacsplat.drivers.press_calibration import fit_mounts, save_hand_eye, save_mounts
+
+    presses, T_hand_cam, mounts = _twin_presses(
+        config,
+        hand_eye_plan() + mounts_plan(),
+        say,
+        "calibrate mounts",
+        f"resting on the board, then on a stand, its centre {1000 * STAND_HEIGHT_M:.0f} mm over the board",
+    )
+    fit = fit_mounts(
+        presses, SPHERE_RADIUS_M, {0: SPHERE_RADIUS_M, 1: STAND_HEIGHT_M}, T_hand_cam, mounts, "calibrate mounts"
+    )
+    for finger, T in fit.mounts.items():
+        say(
+            f"{finger}: {fit.presses[finger]} presses ({fit.dropped[finger]} dropped), rms {fit.rms_mm[finger]:.3f} mm; "
+            f"{_change(mounts.get(finger, np.eye(4)), T)} from the rig's previous mounting"
+        )
+    say(f"T_hand_cam: {_change(T_hand_cam, fit.T_hand_cam)} from the rig's previous value")
+    save_mounts(fit, out)
+    if hand_eye_out is not None:
+        rms = float(np.sqrt(np.mean([r**2 for r in fit.rms_mm.values()])))
+        save_hand_eye(hand_eye_out, fit.T_hand_cam, sum(fit.presses.values()), rms)
+        say(f"wrote {hand_eye_out} (name it as camera.hand_eye in the rig file)")
+    say(f"wrote {out} ({len(fit.mounts)} sensors; name it as tactile.mounts in the rig file)")
+    return fit

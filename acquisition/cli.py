@@ -59,6 +59,41 @@ class CalibrateHand:
 
 
 @dataclass
+class CalibrateHandEye:
+    """the wrist camera's pose on the hand (T_hand_cam) from fingertip presses, without an arm
+
+    The fingertips press a 25 mm sphere resting on the board while the wrist camera sees the board (a board of
+    small squares: the camera is about 10 cm from it); the contact points must lie on the sphere, which fixes
+    T_hand_cam and the sphere's place together. Refuses presses that leave an axis undetermined, naming what to
+    add. Runs on a rig: sim twin (the twin presses; standard input may be closed)."""
+
+    rig: Path
+    """rig YAML file (its board; sim.true_errors on a twin)"""
+    out: Path
+    """hand-eye file to write (.json; the rig's camera.hand_eye)"""
+
+
+@dataclass
+class CalibrateMounts:
+    """each tactile sensor's pose on its fingertip (T_fingertip_sensor), with T_hand_cam, from presses on a sphere
+
+    Every fingertip presses a 25 mm sphere resting on the board with its pad's centre, then each pad presses the
+    sphere on a stand of known height (its centre 60 mm up) with six places of the gel (its two ends, two
+    sides and two corners), bent and spread two ways, while the wrist camera sees the board. The patches' curvature and lever arm fix
+    each sensor's six parameters; they and T_hand_cam (coupled to them) are solved together with the sphere's place,
+    started at the rig's (run calibrate hand-eye first). A residual line per sensor. Refuses presses that leave an
+    axis undetermined, naming the presses to add. Runs on a rig: sim twin (the twin presses; standard input may be
+    closed)."""
+
+    rig: Path
+    """rig YAML file (camera.hand_eye; sim.true_errors on a twin)"""
+    out: Path
+    """mounts file to write (.json; the rig's tactile.mounts)"""
+    hand_eye: Path | None = None
+    """also write the T_hand_cam solved with the mounts to this hand-eye file (.json; the rig's camera.hand_eye)"""
+
+
+@dataclass
 class RigCheck:
     """checks a rig before a capture: devices, calibration files, the board (one table; exit 1 naming what is wrong)
 
@@ -174,6 +209,8 @@ def register(cli) -> None:
         help="operator capture session on a rig (real, --mock, or the twin): views and grasps into a scene directory",
     )
     cli.typed("calibrate hand", CalibrateHand, _calibrate_hand)
+    cli.typed("calibrate hand-eye", CalibrateHandEye, _calibrate_hand_eye)
+    cli.typed("calibrate mounts", CalibrateMounts, _calibrate_mounts)
     cli.typed("rig check", RigCheck, _rig_check)
     cli.typed(
         "sim-capture",
@@ -212,6 +249,34 @@ def _calibrate_hand(o: CalibrateHand) -> int:
         signum = getattr(exc, "signum", signal.SIGINT)
         print(f"interrupted ({signal.Signals(signum).name}): {o.out} not written", file=sys.stderr)
         return 128 + signum
+    return 0
+
+
+def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
+    from tacsplat.acquisition.calibrate import calibrate_hand_eye
+    from tacsplat.acquisition.config import load_rig
+    from tacsplat.datasets.outputs import ensure_output_dir
+
+    if o.out.is_dir():
+        raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
+    config = load_rig(o.rig, check_files=False)
+    ensure_output_dir(o.out.parent, "--out")
+    calibrate_hand_eye(config, o.out)
+    return 0
+
+
+def _calibrate_mounts(o: CalibrateMounts) -> int:
+    from tacsplat.acquisition.calibrate import calibrate_mounts
+    from tacsplat.acquisition.config import load_rig
+    from tacsplat.datasets.outputs import ensure_output_dir
+
+    if o.out.is_dir():
+        raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
+    config = load_rig(o.rig, check_files=False)
+    ensure_output_dir(o.out.parent, "--out")
+    if o.hand_eye is not None:
+        ensure_output_dir(o.hand_eye.parent, "--hand-eye")
+    calibrate_mounts(config, o.out, o.hand_eye)
     return 0
 
 

@@ -129,7 +129,8 @@ class CameraConfig:
 
     source: DeviceSource = 0
     calibration: Text = "wrist_camera.json"  # CameraCalibration JSON (intrinsics, distortion, board)
-    T_hand_cam: Pose | None = None  # [4, 4] camera in the hand frame; None = the calibration file's hand-eye result
+    T_hand_cam: Pose | None = None  # [4, 4] camera in the hand frame; None = hand_eye's, else the calibration file's
+    hand_eye: Text | None = None  # hand-eye file (tacsplat calibrate hand-eye): T_hand_cam
     fps: float | None = positive(None, 1000.0, "Hz")
     timeout_s: float = positive(2.0, 60.0, "s")  # no frame for this long is a CameraError
 
@@ -166,6 +167,7 @@ class TactileConfig:
     gel_thickness_m: float = positive(0.002, 0.02, "m")
     timeout_s: float = positive(2.0, 60.0, "s")
     sensors: tuple[TactileSensorConfig, ...] = ()
+    mounts: Text | None = None  # mounts file (tacsplat calibrate mounts): each sensor's T_fingertip_sensor
 
 
 @with_config(YAML_SECTION)

@@ -85,14 +85,14 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
             cam_source, cam_cal, cam_factory = config.camera.source, str(config.path(config.camera.calibration)), None
         hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None  # --mock: as real
         calibration = CameraCalibration.load(cam_cal)
-        if config.camera.T_hand_cam is not None:
-            T_hand_cam = np.asarray(config.camera.T_hand_cam, dtype=np.float64)
-        elif calibration.T_hand_cam is not None:
+        T_hand_cam = rig_T_hand_cam(config)
+        if T_hand_cam is None:
             T_hand_cam = calibration.T_hand_cam
-        else:
+        if T_hand_cam is None:
             raise ConfigError(
                 "camera.T_hand_cam",
-                f"not given, and {cam_cal} has no hand-eye calibration (run the hand-eye calibration or set it here)",
+                f"not given, and {cam_cal} has no hand-eye calibration (run tacsplat calibrate hand-eye and name its "
+                "file as camera.hand_eye, or set it here)",
                 config.source,
             )
         if calibration.board != config.board.spec():
@@ -111,9 +111,9 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
         if on_hand is not None:
             on_hand(hand)
         stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
-        sensors, model = [], None
+        sensors, model, mounts = [], None, rig_mounts(config)
         for i, s in enumerate(config.tactile.sensors):
-            T_mount = np.eye(4) if s.T_fingertip_sensor is None else np.asarray(s.T_fingertip_sensor, dtype=np.float64)
+            T_mount = mounts.get(s.finger, np.eye(4))
             if mock is not None:
                 source, cal, factory = (
                     str(mock.tactile_video(s.finger)),
@@ -194,7 +194,42 @@ def twin_config(config: RigConfig):
         servo_offsets_rad=s.true_errors.servo_offsets(),
         servo_signs=s.true_errors.servo_signs(),
         hand_calibration=str(config.path(config.hand.calibration)) if config.hand.calibration else None,
+        hand_eye_error=_rows(s.true_errors.hand_eye.matrix()),
+        T_hand_cam=_rows(rig_T_hand_cam(config)) if rig_T_hand_cam(config) is not None else None,
+        mounts={finger: _rows(T) for finger, T in rig_mounts(config).items()},
+        mount_errors={finger: _rows(e.matrix()) for finger, e in s.true_errors.mounts.items()},
     )
+
+
+def rig_T_hand_cam(config: RigConfig) -> np.ndarray | None:
+    """The rig's ``T_hand_cam``: the rig file's ``camera.T_hand_cam``, else its ``camera.hand_eye`` file's; None."""
+    if config.camera.T_hand_cam is not None:
+        return np.asarray(config.camera.T_hand_cam, dtype=np.float64)
+    if config.camera.hand_eye:
+        from tacsplat.drivers.press_calibration import load_hand_eye
+
+        return load_hand_eye(config.path(config.camera.hand_eye))
+    return None
+
+
+def rig_mounts(config: RigConfig) -> dict[str, np.ndarray]:
+    """Each finger's ``T_fingertip_sensor`` from the rig's ``tactile.mounts`` file, then the sensors' own entries."""
+    from tacsplat.sim.hand import FINGER_NAMES
+
+    mounts = {}
+    if config.tactile.mounts:
+        from tacsplat.drivers.press_calibration import load_mounts
+
+        mounts = load_mounts(config.path(config.tactile.mounts), FINGER_NAMES)
+    for s in config.tactile.sensors:
+        if s.T_fingertip_sensor is not None:
+            mounts[s.finger] = np.asarray(s.T_fingertip_sensor, dtype=np.float64)
+    return mounts
+
+
+def _rows(T: np.ndarray) -> tuple:
+    """A [4, 4] matrix as a tuple of rows (what scene.json records)."""
+    return tuple(map(tuple, np.asarray(T, dtype=np.float64).tolist()))
 
 
 @contextmanager

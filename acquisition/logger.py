@@ -125,7 +125,9 @@ class BoardPoseSource:
 
 
 class TwinPoseSource:
-    """The twin's poses: ground truth for the view camera and the hand base."""
+    """The twin's poses: ground truth for the view camera; the hand base as the rig computes it, from the wrist
+    camera's true pose (what board PnP measures) through the rig's ``T_hand_cam`` (off by a hidden hand-eye
+    error, as on a real rig)."""
 
     def __init__(self, twin):
         self.twin = twin
@@ -134,7 +136,7 @@ class TwinPoseSource:
         return PoseEstimate(self.twin.camera_pose())
 
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
-        return PoseEstimate(self.twin.T_world_hand())
+        return PoseEstimate(self.twin.hand_pose_from_wrist_camera())
 
     def ground_truth_depth(self) -> np.ndarray:
         return self.twin.view_camera.read_depth()

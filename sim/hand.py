@@ -114,14 +114,25 @@ def _finger_xml(finger: str, geom: HandGeometry, gains: ActuatorGains, limits: n
         </body>"""
 
 
-def _wrist_camera_xyaxes(geom: HandGeometry) -> tuple[np.ndarray, str]:
-    """Wrist camera at the heel of the palm, looking along the palm normal tilted towards the fingers."""
+def _wrist_camera_axes(geom: HandGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wrist camera at the heel of the palm, looking along the palm normal tilted towards the fingers: its position
+    and MuJoCo's x and y axes (image right and up) in the hand frame."""
     pos = np.array([-geom.palm_half_length - 0.02, 0.0, 0.05])
     forward = np.array([0.35, 0.0, 1.0])
     forward /= np.linalg.norm(forward)
     x_axis = np.array([0.0, -1.0, 0.0])  # image right
     y_axis = np.cross(-forward, x_axis)  # MuJoCo cameras look along -z: z = -forward
-    return pos, _fmt(*x_axis, *y_axis)
+    return pos, x_axis, y_axis
+
+
+def nominal_T_hand_cam(geom: HandGeometry = HandGeometry()) -> np.ndarray:
+    """The wrist camera's designed pose [4, 4] in the hand frame (OpenCV axes): the rig's hand-eye transform
+    before any calibration."""
+    pos, x_axis, y_axis = _wrist_camera_axes(geom)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x_axis, -y_axis, -np.cross(x_axis, y_axis)])  # OpenGL -> OpenCV: y and z flip
+    T[:3, 3] = pos
+    return T
 
 
 def hand_body_xml(
@@ -142,13 +153,13 @@ def hand_body_xml(
             + _finger_xml(finger, g, gains, limits)
             + "\n      </body>"
         )
-    cam_pos, cam_xyaxes = _wrist_camera_xyaxes(g)
+    cam_pos, cam_x, cam_y = _wrist_camera_axes(g)
     body = f"""
     <body name="hand" mocap="true" pos="{_fmt(*pos)}" quat="{_fmt(*quat)}">
       <geom name="palm" type="box" group="1" contype="1" conaffinity="0" material="hand"
             pos="{_fmt(0, 0, -g.palm_thickness / 2)}"
             size="{_fmt(g.palm_half_length, g.finger_spacing * 1.5, g.palm_thickness / 2)}"/>
-      <camera name="wrist" pos="{_fmt(*cam_pos)}" xyaxes="{cam_xyaxes}" fovy="60"/>
+      <camera name="wrist" pos="{_fmt(*cam_pos)}" xyaxes="{_fmt(*cam_x, *cam_y)}" fovy="60"/>
       {"".join(fingers)}
     </body>"""
     actuators = "\n".join(

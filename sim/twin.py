@@ -24,7 +24,7 @@ from scipy.spatial.transform import Rotation
 from tacsplat.datasets import SensorModel
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.errors import ConfigError, InvalidInputError, SimulationError
-from tacsplat.geometry import check_rigid, make_pose, opencv_to_opengl
+from tacsplat.geometry import check_rigid, invert_pose, make_pose, opencv_to_opengl
 from tacsplat.sim.camera import MujocoCamera
 from tacsplat.sim.collision import DecompositionConfig, convex_decomposition
 from tacsplat.sim.hand import (
@@ -36,6 +36,7 @@ from tacsplat.sim.hand import (
     HandGeometry,
     HandKinematics,
     hand_body_xml,
+    nominal_T_hand_cam,
     site_pose,
 )
 from tacsplat.sim.objects import (
@@ -100,6 +101,14 @@ class TwinConfig:
     servo_offsets_rad: tuple[float, ...] = (0.0,) * 16
     servo_signs: tuple[int, ...] = (1,) * 16
     hand_calibration: str | None = None  # the hand.json the rig reads the servos with (None: sign 1, offset 0)
+    # the wrist camera and the pads as mounted (true errors, hidden from the rig): T_true = T_nominal @ E, E [4, 4]
+    # in the camera's (OpenCV) or the sensor's frame; a finger not named is mounted as designed
+    hand_eye_error: tuple | None = None
+    mount_errors: dict[str, tuple] = field(default_factory=dict)
+    # what the rig believes (its calibration files): T_hand_cam (None: the design's, nominal_T_hand_cam) and each
+    # finger's T_fingertip_sensor (a finger not named: the identity, the design's)
+    T_hand_cam: tuple | None = None
+    mounts: dict[str, tuple] = field(default_factory=dict)
 
 
 def check_physics(config: TwinConfig, model: mujoco.MjModel | None = None) -> None:
@@ -329,19 +338,23 @@ class SimTactileSensor:
         self._name = finger
         self._site = twin.model.site(f"{finger}_tactile").id
         self.config = twin.config.tactile
+        cfg = twin.config
+        self.mount_error = _pose_or_identity(cfg.mount_errors.get(finger), f"mount_errors.{finger}")
+        self.T_fingertip_sensor = _pose_or_identity(cfg.mounts.get(finger), f"mounts.{finger}")  # the rig's
 
     @property
     def name(self) -> str:
         return self._name
 
     def T_world_sensor(self) -> np.ndarray:
-        return site_pose(self._twin.data, self._site)
+        """The pad's true pose: its fingertip's as simulated, off by the hidden mounting error."""
+        return site_pose(self._twin.data, self._site) @ self.mount_error
 
     def read(self) -> TactileReading:
         """The indentation map (at the pad's true pose), its pose in the hand frame as the rig computes it (the
-        hand's forward kinematics at its joints as read), the simulated time."""
+        hand's forward kinematics at its joints as read, then the rig's mounting), the simulated time."""
         depth = self._twin.tactile_renderer.render(self.T_world_sensor())
-        T_hand_sensor = self._twin.hand.fingertip_poses()[self._name]
+        T_hand_sensor = self._twin.hand.fingertip_poses()[self._name] @ self.T_fingertip_sensor
         return TactileReading(depth, self.config.pixel_size_m, T_hand_sensor, "hand", float(self._twin.data.time))
 
 
@@ -377,6 +390,8 @@ class SimTwin:
         self.hand.set_joint_positions(np.zeros(16))
         self.tactile_sensors = [SimTactileSensor(self, f) for f in FINGER_NAMES]
         w, h = config.camera_width, config.camera_height
+        self.T_hand_cam = _pose_or_identity(config.T_hand_cam, "T_hand_cam", nominal_T_hand_cam(config.hand_geometry))
+        self._place_wrist_camera(nominal_T_hand_cam(config.hand_geometry) @ _pose_or_identity(config.hand_eye_error))
         self.model.cam_fovy[self._view_cam] = config.view_fovy_deg
         self.model.cam_fovy[self.model.camera("wrist").id] = config.wrist_fovy_deg
         self.wrist_camera = MujocoCamera(self, "wrist", w, h, visible_groups=(0, 1, 2))
@@ -439,6 +454,19 @@ class SimTwin:
         self.data.mocap_quat[self._mocap] = _matrix_to_quat(T[:3, :3])
         self.forward()
 
+    def _place_wrist_camera(self, T_hand_cam: np.ndarray) -> None:
+        """Mount the wrist camera at ``T_hand_cam`` [4, 4] (OpenCV axes) on the hand."""
+        cam = self.model.camera("wrist").id
+        T_gl = opencv_to_opengl(T_hand_cam)
+        self.model.cam_pos[cam] = T_gl[:3, 3]
+        self.model.cam_quat[cam] = _matrix_to_quat(T_gl[:3, :3])
+        self.forward()
+
+    def hand_pose_from_wrist_camera(self) -> np.ndarray:
+        """``T_world_hand`` as the rig computes it: the wrist camera's pose in the world (what board PnP measures)
+        through the rig's ``T_hand_cam``; off the truth by the hidden hand-eye error."""
+        return self.wrist_camera.pose() @ invert_pose(self.T_hand_cam)
+
     # --- free view camera ----------------------------------------------------------------------
     def move_camera(self, T_world_cam: np.ndarray) -> None:
         """Place the view camera at the OpenCV camera-to-world pose ``T_world_cam`` [4, 4]."""
@@ -496,6 +524,13 @@ class SimTwin:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _pose_or_identity(T, key: str = "hand_eye_error", default: np.ndarray | None = None) -> np.ndarray:
+    """``T`` as a checked rigid [4, 4] (an error naming ``key``), or ``default`` (the identity) when None."""
+    if T is None:
+        return np.eye(4) if default is None else default
+    return check_rigid(T, key)
 
 
 def _quat_to_matrix(q_wxyz) -> np.ndarray:

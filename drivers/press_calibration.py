@@ -1,0 +1,429 @@
+"""The wrist camera's pose on the hand (``T_hand_cam``) and each tactile sensor's pose on its fingertip
+(``T_fingertip_sensor``) from fingertip presses on a sphere, without an arm.
+
+The calibration board lies face up and defines the world (its printed face is the plane ``z = 0``, DESIGN.md). A
+press is a fingertip pressed on a sphere of known radius (resting on the board, or on a stand of known height)
+while the wrist camera sees the board: the board's PnP gives ``T_world_cam``, the joints as read give the
+fingertip's pose on the hand, and the sensor's depth map gives the contact points in the sensor frame. Through the
+unknowns, each contact point must lie at the sphere's radius from its centre:
+``T_world_cam @ inv(T_hand_cam) @ T_hand_fingertip @ T_fingertip_sensor @ p``.
+
+- :func:`fit_presses` (``calibrate hand-eye``): ``T_hand_cam`` and the sphere's place, the sensors at the rig's
+  mounts: the pads' centres pressed on the sphere by many fingers and hand poses.
+- :func:`fit_mounts` (``calibrate mounts``): every pressed sensor's ``T_fingertip_sensor`` and ``T_hand_cam``
+  together (a hand-eye solved with the pads at their nominal mounts takes up part of their errors): a patch's
+  curvature fixes the sphere's centre in the sensor frame, patches at places of the gel not in a line fix the
+  mount's six numbers (the yaw about the gel's normal and the in-plane offset included, which a plane cannot), and
+  the stand's known height fixes the offset along the direction a fingertip keeps vertical.
+
+Each refuses a press set that leaves an axis undetermined, naming the presses to add; ``fit_mounts`` drops presses
+whose board pose is off the others' (PnP can flip with few corners).
+
+Files (JSON): ``{"format": "tacsplat-hand-eye", "version": 1, "T_hand_cam": [[4x4]], "presses": n, "rms_mm": x}``
+and ``{"format": "tacsplat-mounts", "version": 1, "sensors": {finger: {"T_fingertip_sensor": [[4x4]], "presses": n,
+"rms_mm": x}}}``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from tacsplat.drivers.calibration import json_array, read_calibration_json
+from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.files import atomic_write
+from tacsplat.geometry import invert_pose, make_pose, rigidity_problem, transform_points
+
+HAND_EYE_FORMAT = "tacsplat-hand-eye"
+MOUNTS_FORMAT = "tacsplat-mounts"
+MIN_CONTACT_POINTS = 30  # a press with fewer contact pixels is not a press
+POINTS_PER_PRESS = 400  # contact points of a press the refinement uses (evenly subsampled)
+
+
+@dataclass(frozen=True)
+class Press:
+    """One fingertip press: which sensor, on what (``"board"`` or ``"sphere"`` with ``placement``, the sphere's
+    placement on the board it rests at), the fingertip's pose on the hand from the joints as read, the contact
+    points in the sensor frame and the wrist camera's pose from the board."""
+
+    finger: str
+    T_hand_fingertip: np.ndarray  # [4, 4]
+    points_sensor: np.ndarray  # [M, 3]
+    T_world_cam: np.ndarray  # [4, 4]
+    surface: str = "board"
+    placement: int = 0  # sphere presses: which placement of the sphere
+
+    def sample(self) -> np.ndarray:
+        """At most :data:`POINTS_PER_PRESS` contact points, evenly spread over the patch."""
+        step = max(1, len(self.points_sensor) // POINTS_PER_PRESS)
+        return self.points_sensor[::step]
+
+
+NOISE_M = 5e-5  # a contact point's error the press set is judged against (an optical gel's depth noise)
+MAX_STD = {"rotation": np.radians(0.1), "translation": 1e-4}  # a parameter known worse than this is undetermined
+PARAM_NAMES = (
+    "rotation about x",
+    "rotation about y",
+    "rotation about z",
+    "offset along x",
+    "offset along y",
+    "offset along z",
+)
+
+
+@dataclass
+class PressFit:
+    """What a hand-eye press set gave: ``T_hand_cam``, each sphere placement's centre (world), and the rms of the
+    contact points' distances to the surfaces pressed (all, and per finger)."""
+
+    T_hand_cam: np.ndarray
+    sphere_centres: list
+    rms_mm: float
+    finger_rms_mm: dict[str, float] = field(default_factory=dict)
+    presses: dict[str, int] = field(default_factory=dict)
+
+
+def _pose(x: np.ndarray) -> np.ndarray:
+    """A rigid [4, 4] from (rotation vector [3], translation [3])."""
+    return make_pose(Rotation.from_rotvec(x[:3]).as_matrix(), x[3:6])
+
+
+def _params(T: np.ndarray) -> np.ndarray:
+    return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
+
+
+def check_presses(presses: list[Press], what: str) -> None:
+    """Refuse an empty set and a press without contact."""
+    if not presses:
+        raise InvalidInputError(f"{what}: no presses recorded; press the fingertips on the sphere and the board")
+    for i, p in enumerate(presses):
+        if len(p.points_sensor) < MIN_CONTACT_POINTS:
+            raise InvalidInputError(
+                f"{what}: press {i + 1} ({p.finger} on the {p.surface}) has {len(p.points_sensor)} contact pixels "
+                f"(< {MIN_CONTACT_POINTS}): press the fingertip firmly, then take it again"
+            )
+
+
+def fit_presses(
+    presses: list[Press],
+    sphere_radius_m: float,
+    T_hand_cam: np.ndarray,
+    mounts: dict[str, np.ndarray] | None = None,
+    what: str = "hand-eye",
+) -> PressFit:
+    """Solve ``T_hand_cam`` and each sphere placement's centre on the board (``z = radius``) together from every
+    contact point lying on its surface (scipy ``least_squares``, started at ``T_hand_cam``, the nominal or last
+    calibration), the sensors at ``mounts`` (the rig's; the identity for a finger not named). A parameter the presses
+    leave undetermined (its standard deviation at :data:`NOISE_M` per point over :data:`MAX_STD`) is refused,
+    naming it and the presses to add."""
+    check_presses(presses, what)
+    mounts = {f: np.asarray(T, dtype=np.float64) for f, T in (mounts or {}).items()}
+    fingers = list(dict.fromkeys(p.finger for p in presses))
+    placements = sorted({p.placement for p in presses if p.surface == "sphere"})
+    samples = [p.sample() for p in presses]
+
+    def unpack(x):
+        centres = {c: np.r_[x[6 + 2 * j : 8 + 2 * j], sphere_radius_m] for j, c in enumerate(placements)}
+        return _pose(x[:6]), centres
+
+    def residuals(x):
+        X, centres = unpack(x)
+        T_cam_hand = invert_pose(X)
+        out = []
+        for p, pts in zip(presses, samples):
+            T = p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4))
+            world = transform_points(T, pts)
+            if p.surface == "board":
+                out.append(world[:, 2])
+            else:
+                out.append(np.linalg.norm(world - centres[p.placement], axis=1) - sphere_radius_m)
+        return np.concatenate(out)
+
+    x0 = [_params(T_hand_cam)]
+    for c in placements:  # the sphere's centre one radius behind the first patch that touched it
+        p = next(p for p in presses if p.surface == "sphere" and p.placement == c)
+        T = p.T_world_cam @ invert_pose(T_hand_cam) @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4))
+        x0.append(transform_points(T, np.r_[p.points_sensor.mean(axis=0)[:2], sphere_radius_m][None])[0, :2])
+    x0 = np.concatenate(x0)
+    scale = np.r_[[0.01] * 3 + [0.001] * 3, [0.001] * 2 * len(placements)]
+    fit = least_squares(residuals, x0, x_scale=scale, method="lm")
+    _refuse_undetermined(fit.jac, ["hand-eye"], what)
+    X, centres = unpack(fit.x)
+    offsets = np.cumsum([0] + [len(s) for s in samples])
+    per = {
+        f: np.concatenate([fit.fun[offsets[i] : offsets[i + 1]] for i, p in enumerate(presses) if p.finger == f])
+        for f in fingers
+    }
+    return PressFit(
+        X,
+        [centres[c] for c in placements],
+        1000 * float(np.sqrt(np.mean(fit.fun**2))),
+        {f: 1000 * float(np.sqrt(np.mean(r**2))) for f, r in per.items()},
+        {f: sum(p.finger == f for p in presses) for f in fingers},
+    )
+
+
+def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
+    """The parameters' standard deviations at :data:`NOISE_M` per point; one error naming those over
+    :data:`MAX_STD`, with the presses that fix them."""
+    std = _std(J, NOISE_M)
+    weak = []
+    for b, block in enumerate(blocks):
+        for k in range(6):
+            limit = MAX_STD["rotation" if k < 3 else "translation"]
+            if not std[6 * b + k] <= limit:
+                weak.append(f"{block} {PARAM_NAMES[k]}")
+    if weak:
+        hint = "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
+        raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {hint}")
+
+
+MOUNT_MAX_STD = (0.2, 0.1)  # degrees, mm: a parameter known worse than this is undetermined
+OUTLIER_FACTOR, OUTLIER_MIN_MM = 3.0, 0.05  # a press this far off the others' fit is dropped (its board pose is bad)
+MAX_DROPPED = 0.2  # at most this share of the presses is dropped
+START_OUTLIER_M = 0.015  # a press whose sphere centre lands this far from the others' at the start is dropped
+MAX_CHANGE = (10.0, 20.0)  # mm, degrees: a mount or T_hand_cam found further than this from its start is refused
+MOUNT_SPREAD_M = 0.004  # the spots pressed on a pad must span this along both of its axes
+
+
+@dataclass
+class MountsFit:
+    """What a press set gave: ``T_hand_cam`` (solved, or the start's), each pressed sensor's
+    ``T_fingertip_sensor``, each sphere placement's centre (world), the rms of each sensor's contact points'
+    distances to the sphere, its presses used and dropped (off the others, its board pose bad)."""
+
+    T_hand_cam: np.ndarray
+    mounts: dict[str, np.ndarray]
+    sphere_centres: dict[int, np.ndarray]
+    rms_mm: dict[str, float]
+    presses: dict[str, int]
+    dropped: dict[str, int]
+
+
+def sphere_centre_in_sensor(points: np.ndarray, radius_m: float) -> np.ndarray:
+    """The centre [3] (sensor frame) of the sphere of ``radius_m`` that a contact patch lies on: the gel faces
+    along the sensor's +z, so the centre lies one radius above the patch's deepest point."""
+    start = np.r_[points[:, :2].mean(axis=0), points[:, 2].min() + radius_m]
+    fit = least_squares(lambda c: np.linalg.norm(points - c, axis=1) - radius_m, start, method="lm")
+    return fit.x
+
+
+def _correction(x: np.ndarray) -> np.ndarray:
+    """A rigid [4, 4] from (rotation vector in degrees [3], translation in mm [3])."""
+    return make_pose(Rotation.from_rotvec(np.radians(x[:3])).as_matrix(), x[3:6] / 1000)
+
+
+def fit_mounts(
+    presses: list[Press],
+    sphere_radius_m: float,
+    centre_heights_m: dict[int, float],
+    T_hand_cam: np.ndarray,
+    mounts: dict[str, np.ndarray] | None = None,
+    what: str = "mounts",
+) -> MountsFit:
+    """Each pressed sensor's ``T_fingertip_sensor`` and ``T_hand_cam``, solved together with each
+    sphere placement's centre on the board (its height over the board known, ``centre_heights_m[placement]``: one
+    radius when resting on it, a measured stand's otherwise): every contact point ``T_world_cam @ inv(T_hand_cam) @
+    T_hand_fingertip @ T_fingertip_sensor @ p`` at the radius from its centre (scipy ``least_squares`` on
+    corrections to the start, ``T_hand_cam`` and ``mounts``, the rig's, in degrees and millimetres).
+
+    A sphere's patch fixes the centre's place in the sensor frame, three numbers; patches at three or more places of
+    the gel not in a line fix the mount (their lever arm fixes the rotations, the yaw about the gel's normal
+    included); the known heights fix the offset along the direction a fingertip keeps vertical, and the fingertips'
+    different poses on the hand separate ``T_hand_cam`` from the mounts and the sphere's place. A press whose
+    sphere centre lands far from the others' (a bad board pose) is dropped. A press set that leaves a parameter
+    undetermined (its standard deviation at :data:`NOISE_M` per point over :data:`MOUNT_MAX_STD`) is refused,
+    naming it and the presses to add; so is a solve that runs off (:data:`MAX_CHANGE`)."""
+    check_presses(presses, what)
+    if any(p.surface != "sphere" for p in presses):
+        raise InvalidInputError(f"{what}: fit_mounts takes presses on the sphere only")
+    mounts = {f: np.asarray(T, dtype=np.float64) for f, T in (mounts or {}).items()}
+    fingers = list(dict.fromkeys(p.finger for p in presses))
+    placements = sorted({p.placement for p in presses})
+    missing = [k for k in placements if k not in centre_heights_m]
+    if missing:
+        raise InvalidInputError(f"{what}: no height given for sphere placements {missing}")
+    T_cam_hand = invert_pose(T_hand_cam)
+    start = [p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4)) for p in presses]
+    samples = [p.sample() for p in presses]
+    bounds = np.cumsum([0] + [len(s) for s in samples])
+    centres_s = [sphere_centre_in_sensor(p.points_sensor, sphere_radius_m) for p in presses]
+    # each patch's sphere centre in the world at the start; one far from the others' has a bad board pose (PnP can
+    # flip with few corners) and is dropped
+    world = np.array([transform_points(T, c[None])[0] for T, c in zip(start, centres_s)])
+    c0 = {k: np.median(world[[p.placement == k for p in presses], :2], axis=0) for k in placements}
+    far = [np.linalg.norm(w - np.r_[c0[p.placement], centre_heights_m[p.placement]]) for w, p in zip(world, presses)]
+    dropped = np.array(far) > START_OUTLIER_M
+    n_he = 6
+
+    def unpack(x):
+        X = T_hand_cam @ _correction(x[:6])
+        M = {
+            f: mounts.get(f, np.eye(4)) @ _correction(x[n_he + 6 * i : n_he + 6 * i + 6]) for i, f in enumerate(fingers)
+        }
+        k0 = n_he + 6 * len(fingers)
+        centres = {
+            k: np.r_[x[k0 + 2 * j : k0 + 2 * j + 2] / 1000, centre_heights_m[k]] for j, k in enumerate(placements)
+        }
+        return X, M, centres
+
+    def residuals(x, use=None):  # millimetres; 0 for the presses dropped and those not in ``use``
+        X, M, centres = unpack(x)
+        T_cam_hand = invert_pose(X)
+        out = [
+            np.linalg.norm(
+                transform_points(p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ M[p.finger], pts)
+                - centres[p.placement],
+                axis=1,
+            )
+            - sphere_radius_m
+            for p, pts in zip(presses, samples)
+        ]
+        keep = ~dropped if use is None else ~dropped & use
+        return 1000 * np.concatenate(out) * np.repeat(keep, np.diff(bounds))
+
+    def solve(x, free, use=None):
+        """``x`` with the parameters ``free`` (indices) solved on the presses ``use`` (plain Levenberg-Marquardt)."""
+
+        def sub(y):
+            z = x.copy()
+            z[free] = y
+            return residuals(z, use)
+
+        fit = least_squares(sub, x[free], method="lm")
+        out = x.copy()
+        out[free] = fit.x
+        return out, fit
+
+    x = np.r_[np.zeros(n_he + 6 * len(fingers)), 1000 * np.concatenate([c0[k] for k in placements])]
+    centre_params = np.arange(n_he + 6 * len(fingers), len(x))
+    for i, f in enumerate(fingers):  # each mount alone first, T_hand_cam held: a start near the joint solution
+        x, _ = solve(x, np.r_[n_he + 6 * i + np.arange(6), centre_params], np.array([p.finger == f for p in presses]))
+    x, fit = solve(x, np.arange(len(x)))
+    while dropped.sum() < len(presses) * MAX_DROPPED:  # the worst press, while far off the others: a bad board pose
+        press_rms = np.array([np.sqrt(np.mean(fit.fun[a:b] ** 2)) for a, b in zip(bounds[:-1], bounds[1:])])
+        worst = int(np.argmax(np.where(dropped, -1.0, press_rms)))
+        if press_rms[worst] <= max(OUTLIER_FACTOR * np.median(press_rms[~dropped]), OUTLIER_MIN_MM):
+            break
+        dropped[worst] = True
+        x, fit = solve(x, np.arange(len(x)))
+    _refuse_unfixed(fit.jac, presses, fingers, dropped, centres_s, what)
+    X, M, centres = unpack(x)
+    changes = [("T_hand_cam", T_hand_cam, X)] + [(f"the {f} mount", mounts.get(f, np.eye(4)), M[f]) for f in fingers]
+    for name, T0, T in changes:
+        D = invert_pose(T0) @ T
+        mm, deg = 1000 * np.linalg.norm(D[:3, 3]), np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude())
+        if mm > MAX_CHANGE[0] or deg > MAX_CHANGE[1]:  # nothing is mounted that far off: the solve ran off
+            raise InvalidInputError(
+                f"{what}: {name} came out {mm:.1f} mm, {deg:.1f} deg from its start, more than anything is mounted "
+                f"off ({MAX_CHANGE[0]:.0f} mm, {MAX_CHANGE[1]:.0f} deg); take the presses again, the board in full view"
+            )
+    mine = {f: np.array([p.finger == f for p in presses]) & ~dropped for f in fingers}
+    return MountsFit(
+        X,
+        M,
+        centres,
+        {f: float(np.sqrt(np.mean(fit.fun[np.repeat(m, np.diff(bounds))] ** 2))) for f, m in mine.items()},
+        {f: int(m.sum()) for f, m in mine.items()},
+        {f: int(sum(d and p.finger == f for d, p in zip(dropped, presses))) for f in fingers},
+    )
+
+
+def _refuse_unfixed(J, presses, fingers, dropped, centres_s, what) -> None:
+    """One error naming each parameter the presses leave undetermined (:data:`MOUNT_MAX_STD`) and what to press."""
+    std = _std(J, 1000 * NOISE_M)
+    blocks = ["hand-eye"] + [f"{f} mount" for f in fingers]
+    weak = [
+        (block, PARAM_NAMES[k])
+        for b, block in enumerate(blocks)
+        for k in range(6)
+        if not std[6 * b + k] <= MOUNT_MAX_STD[k >= 3]
+    ]
+    if not weak:
+        return
+    hints = []
+    for f in dict.fromkeys(block[: -len(" mount")] for block, _ in weak if block.endswith(" mount")):
+        spots = np.array([c[:2] for c, p, d in zip(centres_s, presses, dropped) if p.finger == f and not d])
+        spans = spots.max(axis=0) - spots.min(axis=0) if len(spots) else np.zeros(2)
+        short = [axis for axis, span in zip("xy", spans) if span < MOUNT_SPREAD_M]
+        hints.append(
+            f"press the sphere with places of the {f} pad further apart along its {' and '.join(short)} axis (at "
+            f"least {1000 * MOUNT_SPREAD_M:.0f} mm apart, say its two ends and a side)"
+            if short
+            else f"press the sphere with at least three places of the {f} pad not in a line, the finger bent two ways"
+        )
+    if any(block == "hand-eye" for block, _ in weak):
+        hints.append("press with more fingers, bent differently, the hand reaching the sphere from other directions")
+    names = ", ".join(f"{block} {name}" for block, name in weak)
+    raise InvalidInputError(f"{what}: the presses leave undetermined: {names}; {'; '.join(hints)}")
+
+
+def _std(J: np.ndarray, noise: float) -> np.ndarray:
+    """The parameters' standard deviations [n] at ``noise`` per residual (inf where undetermined)."""
+    normal = J.T @ J
+    try:
+        cov = noise**2 * np.linalg.inv(normal + 1e-18 * np.eye(len(normal)))
+        return np.sqrt(np.clip(np.diag(cov), 0, None))
+    except np.linalg.LinAlgError:
+        return np.full(len(normal), np.inf)
+
+
+# --- files -----------------------------------------------------------------------------------------------
+
+
+def _rigid(value, key: str, path: Path) -> np.ndarray:
+    T = json_array(value, key, path, (4, 4))
+    problem = rigidity_problem(T)
+    if problem:
+        raise ConfigError(key, f"not a rigid transform: {problem}", source=path)
+    return T
+
+
+def save_hand_eye(path: str | Path, T_hand_cam: np.ndarray, presses: int, rms_mm: float) -> None:
+    data = {
+        "format": HAND_EYE_FORMAT,
+        "version": 1,
+        "T_hand_cam": np.asarray(T_hand_cam).tolist(),
+        "presses": presses,
+        "rms_mm": rms_mm,
+    }
+    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
+
+
+def load_hand_eye(path: str | Path) -> np.ndarray:
+    """``T_hand_cam`` [4, 4] of a hand-eye file; one ConfigError names the file and field."""
+    path = Path(path)
+    data = read_calibration_json(path, HAND_EYE_FORMAT)
+    return _rigid(data.get("T_hand_cam"), "T_hand_cam", path)
+
+
+def save_mounts(fit: MountsFit, path: str | Path) -> None:
+    sensors = {
+        f: {"T_fingertip_sensor": T.tolist(), "presses": fit.presses[f], "rms_mm": fit.rms_mm[f]}
+        for f, T in fit.mounts.items()
+    }
+    data = {"format": MOUNTS_FORMAT, "version": 1, "sensors": sensors}
+    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
+
+
+def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
+    """``{finger: T_fingertip_sensor}`` of a mounts file (fingers among ``fingers``); one ConfigError names the
+    file and field."""
+    path = Path(path)
+    data = read_calibration_json(path, MOUNTS_FORMAT)
+    sensors = data.get("sensors")
+    if not isinstance(sensors, dict) or not sensors:
+        raise ConfigError("sensors", "expected an object mapping fingers to {T_fingertip_sensor}", source=path)
+    out = {}
+    for finger, entry in sensors.items():
+        if finger not in fingers:
+            raise ConfigError(f"sensors.{finger}", f"unknown finger (one of {list(fingers)})", source=path)
+        if not isinstance(entry, dict):
+            raise ConfigError(f"sensors.{finger}", "expected an object with T_fingertip_sensor", source=path)
+        out[finger] = _rigid(entry.get("T_fingertip_sensor"), f"sensors.{finger}.T_fingertip_sensor", path)
+    return out

@@ -1,0 +1,98 @@
+"""tacsplat calibrate hand-eye: on twins hiding random hand-eye errors (up to 5 mm and 3 degrees) it finds T_hand_cam
+within 1 mm and 0.5 degree from fingertip presses on a sphere resting on the board, runs with standard input
+closed, and refuses presses that leave an axis undetermined, naming it."""
+
+import os
+import sys
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from tacsplat.acquisition.calibrate import calibrate_hand_eye
+from tacsplat.acquisition.config import load_rig
+from tacsplat.acquisition.presses import SPHERE_RADIUS_M, hand_eye_plan
+from tacsplat.cli import main
+from tacsplat.drivers.press_calibration import fit_presses, load_hand_eye
+from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.sim.hand import nominal_T_hand_cam
+
+pytestmark = pytest.mark.timeout(300)
+
+FINE_BOARD = {"squares_x": 14, "squares_y": 10, "square_length_m": 0.015, "marker_length_m": 0.011}
+
+
+def _draw(seed: int) -> dict:
+    """A hand-eye error up to 5 mm and 3 degrees."""
+    rng = np.random.default_rng(seed)
+    t, r = rng.normal(size=3), rng.normal(size=3)
+    t *= 0.005 * rng.uniform(0.3, 1.0) / np.linalg.norm(t)
+    r *= 3.0 * rng.uniform(0.3, 1.0) / np.linalg.norm(r)
+    return {"hand_eye": {"translation_m": t.tolist(), "rotation_deg": r.tolist()}}
+
+
+def _rig(tmp_path, errors: dict, **more) -> str:
+    path = tmp_path / "rig.yaml"
+    path.write_text(yaml.safe_dump({"rig": "sim", "board": FINE_BOARD, "sim": {"true_errors": errors}, **more}))
+    return str(path)
+
+
+def _error(T: np.ndarray, errors: dict) -> tuple[float, float]:
+    """(mm, degrees) between ``T`` and the twin's true T_hand_cam."""
+    e = errors["hand_eye"]
+    E = np.eye(4)
+    E[:3, :3] = Rotation.from_rotvec(e["rotation_deg"], degrees=True).as_matrix()
+    E[:3, 3] = e["translation_m"]
+    D = np.linalg.inv(nominal_T_hand_cam() @ E) @ T
+    return 1000 * float(np.linalg.norm(D[:3, 3])), float(np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_it_recovers_a_hidden_hand_eye_error_within_1_mm_and_half_a_degree(tmp_path, seed):
+    errors = _draw(seed)
+    fit = calibrate_hand_eye(load_rig(_rig(tmp_path, errors)), tmp_path / "he.json", lambda s: 0)
+    mm, deg = _error(load_hand_eye(tmp_path / "he.json"), errors)
+    print(f"seed {seed}: {mm:.3f} mm, {deg:.3f} deg, rms {fit.rms_mm:.3f} mm")
+    assert mm < 1.0 and deg < 0.5
+
+
+def test_the_command_runs_with_stdin_closed_and_the_capture_then_uses_the_file(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sys, "stdin", open(os.devnull))
+    errors = _draw(7)
+    rig, out = _rig(tmp_path, errors), tmp_path / "calibration" / "hand_eye.json"
+    assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert any(line.startswith("press 1/16: index on the sphere") for line in lines)
+    assert lines[-2].startswith("T_hand_cam: ") and lines[-1].startswith(f"wrote {out}")
+    from tacsplat.acquisition.devices import twin_config
+    from tacsplat.sim.twin import SimTwin
+
+    rig = _rig(tmp_path, errors, camera={"hand_eye": "calibration/hand_eye.json"})
+    with SimTwin(twin_config(load_rig(rig))) as twin:  # the rig's hand pose from the camera is now the truth
+        D = np.linalg.inv(twin.T_world_hand()) @ twin.hand_pose_from_wrist_camera()
+        assert 1000 * np.linalg.norm(D[:3, 3]) < 1.0
+
+
+def test_presses_that_leave_an_axis_undetermined_are_refused_naming_it(tmp_path):
+    from tacsplat.acquisition.devices import twin_config
+    from tacsplat.acquisition.presses import TwinPressSession
+    from tacsplat.sim.twin import SimTwin
+
+    config = load_rig(_rig(tmp_path, _draw(3)))
+    with SimTwin(twin_config(config)) as twin:
+        presses = TwinPressSession(twin, config.board, lambda s: 0).run(hand_eye_plan(["thumb"])[:1])
+    with pytest.raises(
+        InvalidInputError, match=r"hand-eye: the presses leave undetermined: hand-eye .*press the sphere"
+    ):
+        fit_presses(presses, SPHERE_RADIUS_M, nominal_T_hand_cam())
+    with pytest.raises(InvalidInputError, match="no presses recorded"):
+        fit_presses([], SPHERE_RADIUS_M, nominal_T_hand_cam())
+
+
+def test_a_real_rig_is_one_error_saying_the_twin_only_so_far(tmp_path):
+    from tacsplat.acquisition.config import example_rig
+
+    config = load_rig(example_rig("mock"), mock=True, check_files=False)
+    with pytest.raises(ConfigError, match="rig: sim twin only so far"):
+        calibrate_hand_eye(config, tmp_path / "he.json", lambda s: 0)
