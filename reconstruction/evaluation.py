@@ -32,6 +32,8 @@ from tacsplat.reconstruction.metrics import (
     chamfer_distance_parts,
     chamfer_terms_paper,
     depth_to_points,
+    ground_truth_surface,
+    mesh_metrics,
     psnr,
     ssim,
 )
@@ -495,11 +497,9 @@ def evaluate_reconstruction(
 
 
 def exported_mesh_metrics(run_dir: Path, scene) -> dict:
-    """The mesh metrics (:func:`~.meshing.mesh_metrics`) of ``RUN/mesh.ply`` where ``tacsplat export mesh`` wrote
+    """The mesh metrics (:func:`~.metrics.mesh_metrics`) of ``RUN/mesh.ply`` where ``tacsplat export mesh`` wrote
     one and the scene has a ground truth; empty otherwise."""
     import trimesh
-
-    from tacsplat.reconstruction.meshing import ground_truth_surface, mesh_metrics
 
     path = run_dir / "mesh.ply"
     truth = ground_truth_surface(scene) if path.is_file() else None

@@ -18,10 +18,7 @@ a C++ dependency that pulls a web framework with it, and it keeps only the
 observed band, which leaves holes where no view looked. The default voxel is 1 %
 of the object's radius (about 220^3 voxels): fine enough for an F-score at 1 %.
 
-:func:`mesh_metrics` compares a mesh with the ground-truth surface: F-score at
-1, 2 and 5 % of the radius, the Chamfer distance (mean distance each way,
-halved, in radii), normal consistency (mean ``|n . n_gt|`` of nearest pairs,
-both ways) and watertightness.
+:func:`~.metrics.mesh_metrics` compares a mesh with the ground truth.
 """
 
 from __future__ import annotations
@@ -37,11 +34,9 @@ from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
 from tacsplat.geometry import invert_pose, look_at
+from tacsplat.reconstruction.metrics import ground_truth_surface, mesh_metrics
 from tacsplat.types import CameraIntrinsics
 
-FSCORE_THRESHOLDS = (0.01, 0.02, 0.05)  # of the ground-truth radius
-METRIC_SAMPLES = 100_000  # points sampled on each surface for the mesh metrics ...
-TARGET_SAMPLES = 2_000_000  # ... and on the surface they are measured to: 0.25 % of a sphere's radius apart
 SLAB_VOXELS = 2_000_000  # voxels projected at once (memory: about 100 bytes each)
 
 
@@ -291,76 +286,6 @@ def save_mesh_ply(extracted: ExtractedMesh, path: str | Path) -> Path:
     path = Path(path)
     atomic_write(path, buf.getvalue())
     return path
-
-
-def mesh_metrics(
-    mesh: trimesh.Trimesh,
-    gt,
-    radius: float,
-    thresholds=FSCORE_THRESHOLDS,
-    samples: int = METRIC_SAMPLES,
-    targets: int = TARGET_SAMPLES,
-) -> dict:
-    """F-score at ``thresholds`` (fractions of ``radius``), Chamfer distance (in radii) and normal consistency of a
-    mesh against ``gt``, a ground-truth mesh or points [S, 3] (no normal consistency then), and whether the mesh is
-    watertight (module docstring). ``samples`` points of each surface are measured to ``targets`` points of the
-    other, dense enough that the gaps between them do not count as error (a ground truth of points is its
-    points)."""
-    pred, faces = trimesh.sample.sample_surface(mesh, samples, seed=0)
-    pred_normals = mesh.face_normals[faces]
-    if isinstance(gt, trimesh.Trimesh):
-        truth, gt_faces = trimesh.sample.sample_surface(gt, samples, seed=1)
-        truth_normals = gt.face_normals[gt_faces]
-        target, target_faces = trimesh.sample.sample_surface(gt, max(targets, samples), seed=3)
-        target_normals = gt.face_normals[target_faces]
-    else:
-        truth = target = np.asarray(gt, dtype=np.float64)
-        truth_normals = target_normals = None
-    dense, dense_faces = trimesh.sample.sample_surface(mesh, max(targets, samples), seed=2)
-    reach = 2 * max(thresholds) * radius
-    d_pred, n_pred = _nearest(pred, target, target_normals, truth, truth_normals, reach)  # predicted -> truth
-    d_truth, n_truth = _nearest(truth, dense, mesh.face_normals[dense_faces], pred, pred_normals, reach)
-    result = {}
-    for t in thresholds:
-        precision, recall = float(np.mean(d_pred < t * radius)), float(np.mean(d_truth < t * radius))
-        key = f"mesh_fscore_{round(100 * t)}"
-        result[key] = 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
-    result["mesh_cd"] = float((d_pred.mean() + d_truth.mean()) / 2 / radius)
-    result["mesh_normal_consistency"] = (
-        float("nan")
-        if truth_normals is None
-        else float(
-            (np.abs((pred_normals * n_pred).sum(1)).mean() + np.abs((truth_normals * n_truth).sum(1)).mean()) / 2
-        )
-    )
-    result["mesh_watertight"] = bool(mesh.is_watertight)
-    return result
-
-
-def _nearest(query, dense, dense_normals, coarse, coarse_normals, reach: float):
-    """Distances [Q] from ``query`` to the nearest of ``dense`` points (and that point's normal, or None) within
-    ``reach``; beyond it, to the nearest of the sparser ``coarse`` (a k-d tree slows to a crawl finding far
-    neighbours among millions of points, and a far distance needs no fine sampling)."""
-    distances, index = cKDTree(dense).query(query, distance_upper_bound=reach)
-    far = ~np.isfinite(distances)
-    normals = None if dense_normals is None else dense_normals[np.minimum(index, len(dense) - 1)]
-    if far.any():
-        distances[far], coarse_index = cKDTree(coarse).query(query[far])
-        if normals is not None:
-            normals[far] = coarse_normals[coarse_index]
-    return distances, normals
-
-
-def ground_truth_surface(scene) -> tuple[trimesh.Trimesh | np.ndarray, float] | None:
-    """The scene's ground-truth surface for :func:`mesh_metrics` (its mesh, else its points) and the object's
-    bounding-sphere radius; None without either."""
-    from tacsplat.reconstruction.metrics import bounding_sphere_radius
-
-    if scene.gt_mesh_path is not None and scene.gt_mesh_path.is_file():
-        mesh = trimesh.load(str(scene.gt_mesh_path), force="mesh")
-        return mesh, bounding_sphere_radius(mesh.vertices)
-    points = scene.gt_points()
-    return None if points is None else (points, bounding_sphere_radius(points))
 
 
 def export_mesh(

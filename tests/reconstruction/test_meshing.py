@@ -13,7 +13,8 @@ from plyfile import PlyData
 
 from tacsplat.cli import main
 from tacsplat.datasets import SceneWriter
-from tacsplat.reconstruction.meshing import TSDFVolume, mesh_metrics, sphere_cameras
+from tacsplat.reconstruction.meshing import TSDFVolume, sphere_cameras
+from tacsplat.reconstruction.metrics import mesh_metrics
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import build_sphere_scene, sphere_depth  # noqa: E402
