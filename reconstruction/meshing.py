@@ -199,17 +199,16 @@ class TSDFVolume:
         from skimage.measure import marching_cubes
 
         field = np.pad(self.field(), 1, constant_values=1.0)
+        field[field == 0] = 1e-6  # (a vertex exactly on a voxel corner would be shared by faces of several cells)
         if field.min() >= 0 or field.max() <= 0:
             raise InvalidInputError("the fused field has no surface (nothing inside the object's box)")
-        vertices, faces, _, _ = marching_cubes(field, level=0.0, spacing=(self.voxel,) * 3)
+        vertices, faces, normals, _ = marching_cubes(field, level=0.0, spacing=(self.voxel,) * 3)
         vertices = vertices + self.lo - 0.5 * self.voxel  # padded voxel 1 is voxel 0, whose centre is lo + voxel / 2
         mesh = trimesh.Trimesh(vertices, faces, process=False)
-        # vertices a thousandth of a voxel apart (where the field is 0 at a voxel corner) merged, and the zero-area
-        # faces they leave, which have no normal, gone
-        mesh.merge_vertices(digits_vertex=int(np.ceil(-np.log10(1e-3 * self.voxel))))
-        mesh.update_faces(mesh.nondegenerate_faces())
-        mesh.remove_unreferenced_vertices()
         trimesh.repair.fix_normals(mesh)
+        # vertex normals along the field's gradient, which scikit-image gives pointing to lower values: inward
+        # here (a vertex among the tiny faces near a voxel corner has no face normal to average)
+        mesh.vertex_normals = -normals
         cells = np.clip(np.floor((mesh.vertices - self.lo) / self.voxel).astype(np.int64), 0, np.array(self.shape) - 1)
         w = self.colour_weight[tuple(cells.T)]
         colour = np.where(w[:, None] > 0, self.colour[tuple(cells.T)] / np.maximum(w, 1e-12)[:, None], 0.5)
@@ -254,7 +253,9 @@ def extract_mesh(gaussians, scene, train_frames: list, backend: str, look=None, 
     mesh = volume.mesh()
     if config.object_only:
         pieces = mesh.split(only_watertight=False)
-        mesh = max(pieces, key=lambda m: len(m.faces)) if len(pieces) > 1 else mesh
+        if len(pieces) > 1:
+            whole, mesh = mesh, max(pieces, key=lambda m: len(m.faces))
+            mesh.vertex_normals = whole.vertex_normals[cKDTree(whole.vertices).query(mesh.vertices)[1]]  # (the field's)
     seen = seen_by_cameras(mesh, {0: np.asarray(mesh.vertices)}, train_frames, radius)[0]
     if len(touch_points):
         seen |= cKDTree(touch_points).query(mesh.vertices, distance_upper_bound=voxel)[0] <= voxel

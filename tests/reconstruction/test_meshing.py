@@ -102,6 +102,10 @@ def test_export_mesh_writes_a_watertight_coloured_mesh_and_its_metrics(sphere_ru
     assert 0 < summary["observed_fraction"] <= 1
     mesh = trimesh.load(str(sphere_run / "mesh.ply"), force="mesh")
     assert mesh.is_watertight
+    normals = np.stack([np.asarray(vertex[k], np.float64) for k in ("nx", "ny", "nz")], axis=1)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    from_faces = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).vertex_normals  # of outward faces
+    assert ((normals * from_faces).sum(axis=1) > 0).mean() > 0.99  # the written normals point outward too
     metrics = json.loads((sphere_run / "metrics.json").read_text())
     for key in ("mesh_fscore_1", "mesh_fscore_2", "mesh_fscore_5", "mesh_cd", "mesh_normal_consistency"):
         assert np.isfinite(metrics[key]) and metrics[key] == summary[key]
