@@ -252,8 +252,8 @@ def _calibrate_hand(o: CalibrateHand) -> int:
     return 0
 
 
-def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
-    from tacsplat.acquisition.calibrate import calibrate_hand_eye
+def _press_calibration_rig(o: CalibrateHandEye | CalibrateMounts):
+    """The rig file of a press calibration, its ``--out`` (a .json file) checked writable."""
     from tacsplat.acquisition.config import load_rig
     from tacsplat.datasets.outputs import ensure_output_dir
 
@@ -261,19 +261,21 @@ def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
         raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
     config = load_rig(o.rig, check_files=False)
     ensure_output_dir(o.out.parent, "--out")
-    calibrate_hand_eye(config, o.out)
+    return config
+
+
+def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
+    from tacsplat.acquisition.calibrate import calibrate_hand_eye
+
+    calibrate_hand_eye(_press_calibration_rig(o), o.out)
     return 0
 
 
 def _calibrate_mounts(o: CalibrateMounts) -> int:
     from tacsplat.acquisition.calibrate import calibrate_mounts
-    from tacsplat.acquisition.config import load_rig
     from tacsplat.datasets.outputs import ensure_output_dir
 
-    if o.out.is_dir():
-        raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
-    config = load_rig(o.rig, check_files=False)
-    ensure_output_dir(o.out.parent, "--out")
+    config = _press_calibration_rig(o)
     if o.hand_eye is not None:
         ensure_output_dir(o.hand_eye.parent, "--hand-eye")
     calibrate_mounts(config, o.out, o.hand_eye)
