@@ -46,7 +46,7 @@ def _errors_deg(calibration: HandCalibration, errors: dict) -> tuple[float, bool
     return worst, bool(np.array_equal(calibration.signs, signs))
 
 
-@pytest.mark.parametrize("kind, seeds", [("sim", range(10)), ("mock", range(2))])  # the 10 draws on twins
+@pytest.mark.parametrize("kind, seeds", [("sim", range(10)), ("mock", range(1))])  # the 10 draws on twins
 def test_it_recovers_every_hidden_offset_and_sign_within_half_a_degree(tmp_path, kind, seeds):
     worst = []
     for seed in seeds:

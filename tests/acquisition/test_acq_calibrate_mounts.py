@@ -78,7 +78,7 @@ def _good(found: dict) -> bool:
     return mounts and mm < 1.0 and deg < 0.5
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0])  # (ten more draws: the slow test below; draw 7: the command test)
 def test_it_recovers_each_hidden_mounting_error_and_the_hand_eye_together(tmp_path, seed):
     found = _recovery(tmp_path, seed)
     assert _good(found)
