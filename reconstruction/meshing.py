@@ -155,7 +155,7 @@ class TSDFVolume:
             sdf = np.where(d > 0, d - z[index], np.inf)  # no surface: the voxel is empty
             use = sdf >= -self.truncation  # (far behind the surface: occluded, unknown)
             value = np.clip(sdf[use] / self.truncation, -1.0, 1.0)
-            flat = np.ravel_multi_index(np.unravel_index(index[use], self._slab_shape(x)), self._slab_shape(x))
+            flat = index[use]  # flat indices into the slab (its centres are in C order)
             self._add(x, flat, value, 1.0)
             band = np.abs(sdf[use]) < self.truncation
             self._add_colour(x, flat[band], rgb[vi[use][band], ui[use][band]], 1.0)
@@ -175,9 +175,6 @@ class TSDFVolume:
             flat = np.ravel_multi_index(tuple(cells[near].T), self.shape)
             np.add.at(self.sdf.reshape(-1), flat, weight * np.clip(sdf[near] / self.truncation, -1.0, 1.0))
             np.add.at(self.weight.reshape(-1), flat, weight)
-
-    def _slab_shape(self, x: slice) -> tuple[int, int, int]:
-        return (x.stop - x.start, self.shape[1], self.shape[2])
 
     def _add(self, x: slice, flat: np.ndarray, value: np.ndarray, weight: float) -> None:
         sdf, w = self.sdf[x].reshape(-1), self.weight[x].reshape(-1)  # views of the slab (C-contiguous rows)
@@ -222,7 +219,6 @@ class TSDFVolume:
 class ExtractedMesh:
     mesh: trimesh.Trimesh  # metres, the scene's frame, outward normals, vertex colours
     observed: np.ndarray  # [V] bool: a training camera sees the vertex, or a touch lies within a voxel of it
-    radius: float  # the object's radius the voxel was sized by
     voxel: float  # metres
 
 
@@ -259,7 +255,7 @@ def extract_mesh(gaussians, scene, train_frames: list, backend: str, look=None, 
     seen = seen_by_cameras(mesh, {0: np.asarray(mesh.vertices)}, train_frames, radius)[0]
     if len(touch_points):
         seen |= cKDTree(touch_points).query(mesh.vertices, distance_upper_bound=voxel)[0] <= voxel
-    return ExtractedMesh(mesh, seen, radius, voxel)
+    return ExtractedMesh(mesh, seen, voxel)
 
 
 def save_mesh_ply(extracted: ExtractedMesh, path: str | Path) -> Path:

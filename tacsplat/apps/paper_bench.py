@@ -482,11 +482,16 @@ def _number(value) -> float:
 def _in_dataset_units(metrics: dict, scene: Path) -> float:
     """A run's ``cd_paper`` (squared, in units of the ground-truth radius) in the units of the dataset its scene was
     imported from (``scale``: metres per dataset unit), as the paper reports it."""
+    cd, radius = _number(metrics.get("cd_paper")), _number(metrics.get("gt_radius"))
+    return cd * (radius / _dataset_scale(scene)) ** 2
+
+
+@functools.cache
+def _dataset_scale(scene: Path) -> float:
+    """Metres per dataset unit of an imported scene (read once: the report is rewritten after every run)."""
     from tacsplat.datasets import Scene
 
-    cd, radius = _number(metrics.get("cd_paper")), _number(metrics.get("gt_radius"))
-    scale = Scene.load(scene, check_files=False).meta.extra.get("scale", 1.0)
-    return cd * (radius / scale) ** 2
+    return Scene.load(scene, check_files=False).meta.extra.get("scale", 1.0)
 
 
 @dataclass(frozen=True, kw_only=True)
