@@ -121,8 +121,8 @@ class TSDFVolume:
         self.lo, self.voxel, self.shape, self.truncation = np.asarray(lo, np.float64), float(voxel), shape, truncation
         self.sdf = np.zeros(shape, np.float32)
         self.weight = np.zeros(shape, np.float32)
-        self.colour = np.zeros(shape + (3,), np.float32)
-        self.colour_weight = np.zeros(shape, np.float32)
+        self.color = np.zeros(shape + (3,), np.float32)
+        self.color_weight = np.zeros(shape, np.float32)
 
     def centres(self, x: slice) -> np.ndarray:
         """World centres [n, 3] of the voxels of the slab ``x`` (all y, z), in C order."""
@@ -158,7 +158,7 @@ class TSDFVolume:
             flat = index[use]  # flat indices into the slab (its centres are in C order)
             self._add(x, flat, value, 1.0)
             band = np.abs(sdf[use]) < self.truncation
-            self._add_colour(x, flat[band], rgb[vi[use][band], ui[use][band]], 1.0)
+            self._add_color(x, flat[band], rgb[vi[use][band], ui[use][band]], 1.0)
 
     def integrate_points(self, points: np.ndarray, normals: np.ndarray, weight: float) -> None:
         """Fuse surface points [N, 3] with outward unit normals [N, 3]: each voxel within the truncation of a point
@@ -181,9 +181,9 @@ class TSDFVolume:
         sdf[flat] += weight * value  # (each voxel at most once per view)
         w[flat] += weight
 
-    def _add_colour(self, x: slice, flat: np.ndarray, rgb: np.ndarray, weight: float) -> None:
-        colour, w = self.colour[x].reshape(-1, 3), self.colour_weight[x].reshape(-1)
-        colour[flat] += weight * rgb
+    def _add_color(self, x: slice, flat: np.ndarray, rgb: np.ndarray, weight: float) -> None:
+        color, w = self.color[x].reshape(-1, 3), self.color_weight[x].reshape(-1)
+        color[flat] += weight * rgb
         w[flat] += weight
 
     def field(self) -> np.ndarray:
@@ -207,10 +207,10 @@ class TSDFVolume:
         # here (a vertex among the tiny faces near a voxel corner has no face normal to average)
         mesh.vertex_normals = -normals
         cells = np.clip(np.floor((mesh.vertices - self.lo) / self.voxel).astype(np.int64), 0, np.array(self.shape) - 1)
-        w = self.colour_weight[tuple(cells.T)]
-        colour = np.where(w[:, None] > 0, self.colour[tuple(cells.T)] / np.maximum(w, 1e-12)[:, None], 0.5)
+        w = self.color_weight[tuple(cells.T)]
+        color = np.where(w[:, None] > 0, self.color[tuple(cells.T)] / np.maximum(w, 1e-12)[:, None], 0.5)
         mesh.visual.vertex_colors = np.concatenate(
-            [np.clip(np.rint(colour * 255), 0, 255), np.full((len(colour), 1), 255)], axis=1
+            [np.clip(np.rint(color * 255), 0, 255), np.full((len(color), 1), 255)], axis=1
         ).astype(np.uint8)
         return mesh
 

@@ -90,7 +90,7 @@ def sphere_run(tmp_path_factory):
     return root / "run"
 
 
-def test_export_mesh_writes_a_watertight_coloured_mesh_and_its_metrics(sphere_run, capsys):
+def test_export_mesh_writes_a_watertight_colored_mesh_and_its_metrics(sphere_run, capsys):
     capsys.readouterr()
     assert main(["export", "mesh", str(sphere_run), "--voxel", "0.04", "--views", "24"]) == 0
     summary = json.loads(capsys.readouterr().out)
