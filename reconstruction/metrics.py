@@ -259,9 +259,9 @@ def mesh_metrics(
         truth = target = np.asarray(gt, dtype=np.float64)
         truth_normals = target_normals = None
     dense, dense_faces = trimesh.sample.sample_surface(mesh, max(targets, samples), seed=2)
-    reach = 2 * max(thresholds) * radius
-    d_pred, n_pred = _nearest(pred, target, target_normals, truth, truth_normals, reach)  # predicted -> truth
-    d_truth, n_truth = _nearest(truth, dense, mesh.face_normals[dense_faces], pred, pred_normals, reach)
+    bounds = (2 * min(thresholds) * radius, 2 * max(thresholds) * radius)
+    d_pred, n_pred = _nearest(pred, target, target_normals, bounds if truth_normals is not None else None)
+    d_truth, n_truth = _nearest(truth, dense, mesh.face_normals[dense_faces], bounds)
     result = {}
     for t in thresholds:
         precision, recall = float(np.mean(d_pred < t * radius)), float(np.mean(d_truth < t * radius))
@@ -279,17 +279,28 @@ def mesh_metrics(
     return result
 
 
-def _nearest(query, dense, dense_normals, coarse, coarse_normals, reach: float):
-    """Distances [Q] from ``query`` to the nearest of ``dense`` points (and that point's normal, or None) within
-    ``reach``; beyond it, to the nearest of the sparser ``coarse`` (a k-d tree slows to a crawl finding far
-    neighbours among millions of points, and a far distance needs no fine sampling)."""
-    distances, index = cKDTree(dense).query(query, distance_upper_bound=reach)
-    far = ~np.isfinite(distances)
-    normals = None if dense_normals is None else dense_normals[np.minimum(index, len(dense) - 1)]
-    if far.any():
-        distances[far], coarse_index = cKDTree(coarse).query(query[far])
+def _nearest(query, dense, dense_normals, bounds: tuple[float, float] | None):
+    """Distances [Q] from ``query`` to the nearest of ``dense`` points, and that point's normal (or None).
+
+    With ``bounds``, ``dense`` are random samples of a surface: a k-d tree slows to a crawl finding a neighbour
+    many sample spacings away, and a far distance needs no fine sampling, so all of ``dense`` answers the queries
+    with a neighbour within ``bounds[0]``, its first half (a uniform sample too) those within ``bounds[1]``, its
+    first tenth the rest. A sparser sample only lengthens a distance, by at most its squared spacing over twice
+    the distance. Without ``bounds`` (a ground truth of points), every query goes to all of ``dense``."""
+    distances = np.full(len(query), np.inf)
+    normals = None if dense_normals is None else np.zeros((len(query), 3))
+    tiers = ((1, np.inf),) if bounds is None else ((1, bounds[0]), (2, bounds[1]), (10, np.inf))
+    for keep, bound in tiers:
+        todo = np.flatnonzero(~np.isfinite(distances))
+        if len(todo) == 0:
+            break
+        points = dense[: max(len(dense) // keep, min(len(dense), 1000))]
+        tree = cKDTree(points, balanced_tree=False, compact_nodes=False)  # (faster to build, as exact)
+        found, index = tree.query(query[todo], distance_upper_bound=bound)
+        hit = np.isfinite(found)
+        distances[todo[hit]] = found[hit]
         if normals is not None:
-            normals[far] = coarse_normals[coarse_index]
+            normals[todo[hit]] = dense_normals[index[hit]]
     return distances, normals
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import sys
 from pathlib import Path
@@ -22,9 +23,13 @@ from recon_synthetic import build_sphere_scene, sphere_depth  # noqa: E402
 R = 0.05  # metres: the sphere of recon_synthetic
 
 
-def _sphere_volume(voxel: float, views: int = 24) -> TSDFVolume:
-    """A TSDF of the sphere of radius R at the origin fused from exact depth maps all around it."""
-    extent = 1.2 * R
+VOXEL = 0.025 * R
+
+
+@pytest.fixture(scope="module")
+def sphere_volume() -> TSDFVolume:
+    """A TSDF of the sphere of radius R at the origin fused from exact depth maps all around it (24 views)."""
+    voxel, views, extent = VOXEL, 24, 1.2 * R
     volume = TSDFVolume(np.full(3, -extent), voxel, (int(np.ceil(2 * extent / voxel)),) * 3, 3 * voxel)
     for frame in sphere_cameras(np.zeros(3), extent, views, 96):
         depth = sphere_depth(frame.intrinsics.K, frame.T_world_cam, 96, 96).astype(np.float64)
@@ -33,9 +38,9 @@ def _sphere_volume(voxel: float, views: int = 24) -> TSDFVolume:
     return volume
 
 
-def test_fused_depth_of_a_sphere_is_a_watertight_mesh_on_it_with_outward_normals():
-    voxel = 0.02 * R
-    mesh = _sphere_volume(voxel).mesh()
+def test_fused_depth_of_a_sphere_is_a_watertight_mesh_on_it_with_outward_normals(sphere_volume):
+    voxel = VOXEL
+    mesh = sphere_volume.mesh()
     assert mesh.is_watertight and mesh.body_count == 1
     radii = np.linalg.norm(mesh.vertices, axis=1)
     assert np.abs(radii - R).max() < voxel and np.abs(radii - R).mean() < 0.2 * voxel  # (nearest-pixel depth)
@@ -49,11 +54,11 @@ def test_fused_depth_of_a_sphere_is_a_watertight_mesh_on_it_with_outward_normals
     assert metrics["mesh_normal_consistency"] > 0.97  # (marching cubes' facets)
 
 
-def test_touch_points_move_the_surface_where_they_landed():
+def test_touch_points_move_the_surface_where_they_landed(sphere_volume):
     """A tactile map is fused as points along their normals: a patch touched 3 % inside the seen surface pulls
     the mesh there, and nowhere else."""
-    voxel = 0.02 * R
-    volume = _sphere_volume(voxel)
+    voxel = VOXEL
+    volume = copy.deepcopy(sphere_volume)
     d = np.random.default_rng(0).normal(size=(40_000, 3))  # a contact patch is dense: one point per gel pixel
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     cap = d[d[:, 2] > np.cos(np.radians(20))]  # a patch around the top
@@ -90,10 +95,20 @@ def sphere_run(tmp_path_factory):
     return root / "run"
 
 
-def test_export_mesh_writes_a_watertight_colored_mesh_and_its_metrics(sphere_run, capsys):
-    capsys.readouterr()
-    assert main(["export", "mesh", str(sphere_run), "--voxel", "0.04", "--views", "24"]) == 0
-    summary = json.loads(capsys.readouterr().out)
+@pytest.fixture(scope="module")
+def exported(sphere_run) -> dict:
+    """``export mesh`` of the run once, to its default path; its printed summary."""
+    import contextlib
+    import io
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert main(["export", "mesh", str(sphere_run), "--voxel", "0.04", "--views", "24"]) == 0
+    return json.loads(out.getvalue())
+
+
+def test_export_mesh_writes_a_watertight_colored_mesh_and_its_metrics(sphere_run, exported):
+    summary = exported
     assert summary["mesh"] == str(sphere_run / "mesh.ply") and summary["mesh_watertight"] is True
     vertex = PlyData.read(str(sphere_run / "mesh.ply"))["vertex"]
     assert {"nx", "ny", "nz", "red", "green", "blue", "observed"} <= set(vertex.data.dtype.names)
@@ -116,13 +131,12 @@ def test_export_mesh_refuses_a_voxel_out_of_range_naming_the_option(sphere_run, 
     assert "--voxel" in capsys.readouterr().err
 
 
-def test_an_exported_mesh_goes_back_into_the_twin_at_its_own_size(sphere_run, tmp_path, capsys):
+def test_an_exported_mesh_goes_back_into_the_twin_at_its_own_size(sphere_run, exported, tmp_path, capsys):
     """The loop: reconstruct, export, simulate grasps on the export at its own size; the touches lie on it."""
     from tacsplat.datasets import Scene
     from tacsplat.sim.objects import bounding_sphere
 
-    mesh_path = tmp_path / "export.ply"
-    assert main(["export", "mesh", str(sphere_run), "--out", str(mesh_path), "--voxel", "0.04", "--views", "24"]) == 0
+    mesh_path = Path(exported["mesh"])
     command = ["sim-capture", "--mesh", str(mesh_path), "--keep-size", "--out", str(tmp_path / "scene")]
     assert main([*command, "--views", "1", "--test-views", "0", "--grasps", "1", "--resolution", "32"]) == 0
     scene = Scene.load(tmp_path / "scene")
