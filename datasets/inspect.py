@@ -12,7 +12,7 @@ from tacsplat.errors import SceneFormatError
 from tacsplat.files import atomic_write, check_writable
 
 from .reader import check_scene
-from .records import SPLITS
+from .records import SPLITS, sensor_to_json
 from .writer import JOURNAL
 
 
@@ -63,15 +63,7 @@ def summarise(path) -> dict:
             "effort_unit": motions[0].effort_unit,
             "peak_effort": float(np.nanmax([np.nanmax(np.abs(m.effort), initial=0.0) for m in motions])),
         }
-    if scene.sensor is not None:
-        s = scene.sensor
-        summary["sensor"] = {
-            "name": s.name,
-            "width_px": s.width_px,
-            "height_px": s.height_px,
-            "pixel_size_m": s.pixel_size_m,
-            "gel_thickness_m": s.gel_thickness_m,
-        }
+    summary["sensor"] = sensor_to_json(scene.sensor)
     if scene.frames or any(t.in_contact for t in scene.touches):
         lo, hi = scene.bounds()
         summary["bounds"] = {"lo": lo.tolist(), "hi": hi.tolist()}

@@ -38,6 +38,7 @@ import re
 import shutil
 import time
 from contextlib import contextmanager
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -67,12 +68,9 @@ from .records import (
     intrinsics_equal,
     intrinsics_from_json,
     intrinsics_to_json,
-    meta_from_json,
-    meta_to_json,
     normal_map_problem,
     sensor_to_json,
     touch_depth_limit,
-    touch_from_json,
     touch_to_json,
 )
 
@@ -210,7 +208,7 @@ class SceneWriter:
         if sensor is not None and not isinstance(sensor, SensorModel):
             raise InvalidInputError(f"sensor: expected SensorModel or None, got {type(sensor).__name__}")
         try:
-            json.dumps(meta_to_json(meta), allow_nan=False)
+            json.dumps(asdict(meta), allow_nan=False)
         except (TypeError, ValueError) as exc:
             raise InvalidInputError(f"meta: capture_plan and extra must be plain JSON data: {exc}") from exc
         if path.exists() and not path.is_dir():
@@ -261,7 +259,7 @@ class SceneWriter:
             "tacsplat_version": writer._version,
             "intrinsics": intrinsics_to_json(intrinsics),
             "sensor": sensor_to_json(sensor),
-            "meta": meta_to_json(meta),
+            "meta": asdict(meta),
         }
         journal.truncate(0)  # (the file of a creation that crashed before its rename)
         writer._journal = journal
@@ -310,7 +308,7 @@ class SceneWriter:
             writer = cls(
                 path,
                 intrinsics_from_json(header["intrinsics"]),
-                meta_from_json(header["meta"]),
+                SceneMeta(**header["meta"]),
                 sensor,
                 header["created"],
                 header.get("tacsplat_version", tacsplat.__version__),
@@ -399,7 +397,7 @@ class SceneWriter:
                 self._gt_depth[frame.id] = entry["gt_depth"]
             self._order.append(("frame", frame.id))
         elif op == "touch":
-            touch = touch_from_json(entry["touch"])
+            touch = Touch(**entry["touch"])
             if touch.id != len(self.touches):
                 raise ValueError(f"touch id {touch.id} breaks the numbering (expected {len(self.touches)})")
             self.touches.append(touch)
@@ -486,7 +484,7 @@ class SceneWriter:
         return {
             "format": FORMAT_NAME,
             "format_version": FORMAT_VERSION,
-            **meta_to_json(self.meta),
+            **asdict(self.meta),
             "units": "m",
             "tacsplat_version": self._version,
             "created": self._created,
