@@ -37,9 +37,8 @@ from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_scale, composite, read_rgba
-from .outputs import claim_output_dir
 from .records import SceneMeta, camera_problem
-from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+from .writer import new_import
 
 log = logging.getLogger(__name__)
 
@@ -708,24 +707,13 @@ def import_colmap(
             "colmap_names": [img.name for img in images],
         },
     )
-    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
-    with (
-        claim_output_dir(out),
-        removed_on_failure(out),
-        SceneWriter.create(out, intrinsics[images[0].camera_id], meta) as writer,
-    ):
+    with new_import(out, intrinsics[images[0].camera_id], meta) as writer:
         for img, split in progress_bar(list(zip(images, splits)), desc=f"import {model_dir}", unit="frame"):
             intr = intrinsics[img.camera_id]
             image_path = images_dir / img.name
-            rgb = composite(
-                read_rgba(image_path, f"image {img.image_id}")[:, :, :3], (0, 0, 0)
-            )  # an alpha channel, if any, is dropped
-            if rgb.shape[:2] != (intr.height, intr.width):
-                raise SceneFormatError(
-                    image_path,
-                    f"image {img.image_id}",
-                    f"image is {rgb.shape[1]}x{rgb.shape[0]} but camera {img.camera_id} is {intr.width}x{intr.height}",
-                )
+            size = (intr.width, intr.height)
+            rgba = read_rgba(image_path, f"image {img.image_id}", size, f"camera {img.camera_id}")
+            rgb = composite(rgba[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped
             T_world_cam = invert_pose(poses[img.image_id])
             T_world_cam[:3, 3] *= scale
             writer.add_frame(rgb, T_world_cam, split=split, intrinsics=intr)

@@ -33,7 +33,6 @@ Images are stored as RGB PNG (an alpha channel is dropped, as the COLMAP importe
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,10 +46,9 @@ from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_proble
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .blender import check_readable, check_scale, composite, pose_from_opengl, read_raw, read_rgba
-from .outputs import claim_output_dir
+from .blender import check_readable, check_scale, composite, pose_from_opengl, read_index, read_raw, read_rgba
 from .records import SceneMeta, as_size, camera_problem, is_finite_number
-from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+from .writer import new_import
 
 log = logging.getLogger(__name__)
 
@@ -90,22 +88,9 @@ class _SourceFrame:
 
 def _read_index(src: Path) -> tuple[Path, dict]:
     index = src if src.suffix.lower() == ".json" else src / "transforms.json"
-    if not index.is_file():
-        raise SceneFormatError(
-            index,
-            None,
-            "missing (expected a nerfstudio or instant-ngp dataset: a folder holding "
-            "transforms.json, or the file itself)",
-        )
-    try:
-        data = json.loads(index.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise SceneFormatError(index, None, f"not valid JSON: {exc}") from exc
-    if not isinstance(data, dict):
-        raise SceneFormatError(index, None, f"expected a JSON object, got {type(data).__name__}")
-    if not isinstance(data.get("frames"), list) or not data["frames"]:
-        raise SceneFormatError(index, "frames", "expected a non-empty list")
-    return index, data
+    return index, read_index(
+        index, "expected a nerfstudio or instant-ngp dataset: a folder holding transforms.json, or the file itself"
+    )
 
 
 def _source_frames(index: Path, data: dict) -> list[_SourceFrame]:
@@ -473,20 +458,13 @@ def import_nerfstudio(
     meta = SceneMeta(source="import", object=object_name or index.parent.resolve().name, extra=extra)
 
     tables = {camera: undistortion(camera) for camera in set(cameras)}
-    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
-    with claim_output_dir(out), removed_on_failure(out), SceneWriter.create(out, tables[cameras[0]][0], meta) as writer:
+    with new_import(out, tables[cameras[0]][0], meta) as writer:
         for f, camera, pose in progress_bar(
             list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}", unit="frame"
         ):
             intr, maps = tables[camera]
-            rgb = read_rgba(f.image, f.field)[:, :, :3].astype(np.float32)
-            if rgb.shape[:2] != (camera.height, camera.width):
-                raise SceneFormatError(
-                    f.image,
-                    f.field,
-                    f"image is {rgb.shape[1]}x{rgb.shape[0]} but the camera says "
-                    f"w x h = {camera.width}x{camera.height}",
-                )
+            rgb = read_rgba(f.image, f.field, (camera.width, camera.height), "the camera (w x h)")
+            rgb = rgb[:, :, :3].astype(np.float32)
             mask = None if "mask_path" not in f.raw else _read_mask(index.parent / str(f.raw["mask_path"]), camera, f)
             if maps is not None:
                 rgb = cv2.remap(rgb, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -42,9 +42,8 @@ from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_scale, composite, read_raw, read_rgba
-from .outputs import claim_output_dir
 from .records import SceneMeta
-from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+from .writer import new_import
 
 SPLIT_FILE = "synthetic_split_128.pkl"
 DEPTH_RANGE = 15.0  # dataset units at the depth PNG's 65535
@@ -187,25 +186,16 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
             "ground_truth": "eval_pts.ply" if eval_points.is_file() else f"test views' depth, {EVAL_VOXEL} voxels",
         },
     )
-    check_new_scene_dir(out)
     fallback_points = []
     with (
-        claim_output_dir(out),
-        removed_on_failure(out),
-        SceneWriter.create(out, CameraIntrinsics(cameras[train[0]][1], width, height), meta) as writer,
+        new_import(out, CameraIntrinsics(cameras[train[0]][1], width, height), meta) as writer,
         progress_bar(total=len(train) + len(test), desc=f"import {src.name}", unit="view") as progress,
     ):
         for split_name, views in (("train", train), ("test", test)):
             for name in views:
                 pose, K = cameras[name]
                 image_path = src / f"{name}.png"
-                rgba = read_rgba(image_path)
-                if rgba.shape[:2] != (height, width):
-                    raise SceneFormatError(
-                        image_path,
-                        None,
-                        f"image is {rgba.shape[1]}x{rgba.shape[0]}, {first_image.name} is {width}x{height}",
-                    )
+                rgba = read_rgba(image_path, None, (width, height), first_image.name)
                 depth = read_depth(src / f"{name}-depth.png", (height, width))
                 rgba = np.concatenate([rgba[:, :, :3], (depth > 0)[:, :, None].astype(np.float64)], axis=2)
                 unit_pose, pose = pose, pose.copy()

@@ -49,7 +49,7 @@ from tacsplat.errors import InvalidInputError, SceneFormatError
 from tacsplat.files import atomic_write, fsync_dir, storage_error
 from tacsplat.types import CameraIntrinsics, TactileReading
 
-from .outputs import LOCK_NAME, other_writer, record_writer
+from .outputs import LOCK_NAME, claim_output_dir, other_writer, record_writer
 from .records import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -145,6 +145,15 @@ def removed_on_failure(out: Path):
         if not had_content:
             shutil.rmtree(out, ignore_errors=True)
         raise
+
+
+@contextmanager
+def new_import(out: Path, intrinsics: CameraIntrinsics, meta: SceneMeta):
+    """The writer of an importer's scene ``out``: a new or empty folder, claimed as the ``--out`` of a writing
+    command (``datasets.outputs``) and removed again when the import fails."""
+    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
+    with claim_output_dir(out), removed_on_failure(out), SceneWriter.create(out, intrinsics, meta) as writer:
+        yield writer
 
 
 def _check_depth(depth, shape: tuple[int, int], name: str, limit: tuple[float, str]) -> np.ndarray:
