@@ -194,9 +194,9 @@ class SceneWriter:
         self._version = version
         self.frames: list[Frame] = []
         self.touches: list[Touch] = []
-        self._gt_depth: dict[int, str] = {}
-        self._gt_mesh: str | None = None
-        self._gt_points: str | None = None
+        self.gt_depth_files: dict[int, str] = {}  # frame id -> the path in the scene of its ground-truth depth
+        self.gt_mesh: str | None = None  # the ground-truth mesh's path in the scene (gt/mesh.ply), once set
+        self.gt_points: str | None = None  # the ground-truth point cloud's path in the scene (gt/points.ply), once set
         self.annotations: dict = {}  # key -> plain JSON value, the latest recorded; read it, change it by annotate
         self._order: list[tuple[str, int]] = []  # live records, oldest first, for remove_last
         self._journal = None
@@ -341,7 +341,7 @@ class SceneWriter:
             | {f.mask_path for f in self.frames}
             | {t.depth_file for t in self.touches}
             | {t.hand_file for t in self.touches}
-            | set(self._gt_depth.values())
+            | set(self.gt_depth_files.values())
         )
         count = 0
         for sub in ("", "images", "masks", "touches", "grasps", "gt", "gt/depth"):
@@ -374,57 +374,28 @@ class SceneWriter:
         """``(kind, id)`` of the newest live record ("frame" | "touch"): what :meth:`remove_last` would undo."""
         return self._order[-1] if self._order else None
 
-    @property
-    def gt_mesh(self) -> str | None:
-        """The ground-truth mesh's path in the scene (``gt/mesh.ply``), None until :meth:`set_gt_mesh`."""
-        return self._gt_mesh
-
-    @property
-    def gt_points(self) -> str | None:
-        """The ground-truth point cloud's path in the scene (``gt/points.ply``), None until :meth:`set_gt_points`."""
-        return self._gt_points
-
-    @property
-    def gt_depth_files(self) -> dict[int, str]:
-        """Frame id -> the path in the scene of its ground-truth depth."""
-        return dict(self._gt_depth)
-
-    @property
-    def num_grasps(self) -> int:
-        """Number of distinct grasp indices among the touches."""
-        return len({t.grasp for t in self.touches})
-
     def _apply(self, entry: dict) -> None:
         """Apply one journal record to the in-memory state (used live and on replay)."""
         op = entry["op"]
-        if op == "frame":
-            frame = frame_from_json(entry["frame"])
-            if frame.id != len(self.frames):
-                raise ValueError(f"frame id {frame.id} breaks the numbering (expected {len(self.frames)})")
-            self.frames.append(frame)
+        if op in ("frame", "touch"):
+            record = frame_from_json(entry["frame"]) if op == "frame" else Touch(**entry["touch"])
+            records = self.frames if op == "frame" else self.touches
+            if record.id != len(records):
+                raise ValueError(f"{op} id {record.id} breaks the numbering (expected {len(records)})")
+            records.append(record)
             if entry.get("gt_depth"):
-                self._gt_depth[frame.id] = entry["gt_depth"]
-            self._order.append(("frame", frame.id))
-        elif op == "touch":
-            touch = Touch(**entry["touch"])
-            if touch.id != len(self.touches):
-                raise ValueError(f"touch id {touch.id} breaks the numbering (expected {len(self.touches)})")
-            self.touches.append(touch)
-            self._order.append(("touch", touch.id))
+                self.gt_depth_files[record.id] = entry["gt_depth"]
+            self._order.append((op, record.id))
         elif op == "remove":
             kind, rid = entry["kind"], int(entry["id"])
             if not self._order or self._order[-1] != (kind, rid):
                 raise ValueError(f"removal of {kind} {rid}, which is not the last record")
             self._order.pop()
+            (self.frames if kind == "frame" else self.touches).pop()
             if kind == "frame":
-                self.frames.pop()
-                self._gt_depth.pop(rid, None)
-            else:
-                self.touches.pop()
-        elif op == "gt_mesh":
-            self._gt_mesh = entry["path"]
-        elif op == "gt_points":
-            self._gt_points = entry["path"]
+                self.gt_depth_files.pop(rid, None)
+        elif op in ("gt_mesh", "gt_points"):
+            setattr(self, op, entry["path"])
         elif op == "annotation":
             key = entry["key"]
             if not isinstance(key, str) or not key:
@@ -478,15 +449,9 @@ class SceneWriter:
             out.update(intrinsics_to_json(self.intrinsics))
         out.update({"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0})
         out["frames"] = [frame_to_nerfstudio(f, with_intrinsics=not shared) for f in self.frames]
-        by_split = {s: [f.file_path for f in self.frames if f.split == s] for s in SPLITS}
+        out["train_filenames"] = [f.file_path for f in self.frames if f.split == "train"]
         # nerfstudio asks for "val" when evaluating during training: the test views serve both.
-        out.update(
-            {
-                "train_filenames": by_split["train"],
-                "val_filenames": by_split["test"],
-                "test_filenames": by_split["test"],
-            }
-        )
+        out["val_filenames"] = out["test_filenames"] = [f.file_path for f in self.frames if f.split == "test"]
         return out
 
     def _scene_json(self) -> dict:
@@ -498,9 +463,9 @@ class SceneWriter:
             "tacsplat_version": self._version,
             "created": self._created,
             "gt": {
-                "mesh": self._gt_mesh,
-                "points": self._gt_points,
-                "depth": {str(k): v for k, v in sorted(self._gt_depth.items())},
+                "mesh": self.gt_mesh,
+                "points": self.gt_points,
+                "depth": {str(k): v for k, v in sorted(self.gt_depth_files.items())},
             },
             "annotations": self.annotations,
         }
@@ -561,14 +526,7 @@ class SceneWriter:
             )
         fid = self.num_frames
         mask_path = None if mask is None else f"masks/{fid:06d}.png"
-        frame = Frame(
-            id=fid,
-            file_path=f"images/{fid:06d}.png",
-            T_world_cam=pose,
-            split=split,
-            intrinsics=intr,
-            mask_path=mask_path,
-        )
+        frame = Frame(fid, f"images/{fid:06d}.png", pose, split, intr, mask_path)
         atomic_write_bytes(self.path / frame.file_path, encode_png(image))
         if mask_path is not None:
             (self.path / "masks").mkdir(exist_ok=True)
@@ -614,15 +572,7 @@ class SceneWriter:
         if not isinstance(finger, str) or not finger:
             raise InvalidInputError(f"finger: expected a non-empty name, got {finger!r}")
         tid = self.num_touches
-        touch = Touch(
-            id=tid,
-            grasp=int(grasp),
-            finger=finger,
-            depth_file=f"touches/{tid:06d}.npz",
-            T_world_sensor=pose,
-            in_contact=bool((depth > 0).any()),
-            hand_file=hand_file,
-        )
+        touch = Touch(tid, int(grasp), finger, f"touches/{tid:06d}.npz", pose, bool((depth > 0).any()), hand_file)
         if hand_file is not None and not (self.path / hand_file).is_file():
             raise InvalidInputError(f"hand_file: {self.path / hand_file} does not exist (write it by add_hand_motion)")
         atomic_write_bytes(self.path / touch.depth_file, encode_npz(depth=depth))
@@ -700,7 +650,7 @@ class SceneWriter:
             raise InvalidInputError(f"{self.path}: nothing to remove")
         kind, rid = self._order[-1]
         record = self.frames[-1] if kind == "frame" else self.touches[-1]
-        gt_file = self._gt_depth.get(rid) if kind == "frame" else None
+        gt_file = self.gt_depth_files.get(rid) if kind == "frame" else None
         self._record(
             {"op": "remove", "kind": kind, "id": rid},
             "transforms" if kind == "frame" else "touches",
