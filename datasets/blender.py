@@ -197,8 +197,7 @@ def pose_from_opengl(raw, index: Path, field: str) -> np.ndarray:
         T = np.zeros(0)
     if T.shape != (4, 4):
         raise SceneFormatError(index, field, f"expected a 4x4 matrix, got {np.shape(raw)}")
-    problem = rigidity_problem(T, atol=1e-4)
-    if problem:
+    if problem := rigidity_problem(T, atol=1e-4):
         raise SceneFormatError(index, field, f"not a rigid transform: {problem}")
     U, _, Vt = np.linalg.svd(T[:3, :3])
     T = T.copy()

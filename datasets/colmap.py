@@ -250,8 +250,7 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
         number, text = next(lines, (number + 1, ""))
         points = _Tokens(path, number, text)
         x, y, image.point3D_ids = points.groups(("X", "Y", "POINT3D_ID"), f"POINTS2D of image {image.image_id}")
-        k = _first_bad(~np.isfinite(x) | ~np.isfinite(y))
-        if k is not None:
+        if (k := _first_bad(~np.isfinite(x) | ~np.isfinite(y))) is not None:
             raise points.error(f"POINTS2D[{k}] of image {image.image_id} is not finite: ({x[k]}, {y[k]})")
         images.append(image)
 
@@ -379,8 +378,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
         src.at = end + 1
         count = src.take("Q", f"image {image_id}")
         points = src.array([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], count, f"the 2D points of image {image_id}")
-        bad = np.flatnonzero(~np.isfinite(points["x"]) | ~np.isfinite(points["y"]))
-        if bad.size:
+        if (bad := np.flatnonzero(~np.isfinite(points["x"]) | ~np.isfinite(points["y"]))).size:
             raise image.error(f"POINTS2D[{bad[0]}] of image {image_id} is not finite")
         image.point3D_ids = points["id"].astype(np.int64)  # COLMAP's invalid id, 2^64 - 1, reads as -1
         images.append(image)
@@ -516,8 +514,7 @@ def _check_model(model: _Model) -> dict[int, np.ndarray]:
             )
     points = _by_id(model.points, "point3D_id", "point")
     refs, owner = _joined([image.point3D_ids for image in model.images])
-    k = _first_bad((refs != -1) & ~np.isin(refs, np.array(list(points), np.int64)))
-    if k is not None:
+    if (k := _first_bad((refs != -1) & ~np.isin(refs, np.array(list(points), np.int64)))) is not None:
         image, line = model.images[owner[k]], " (on the next line)" if model.suffix == ".txt" else ""
         raise image.error(
             f"POINTS2D[{k - np.searchsorted(owner, owner[k])}] of image {image.image_id}{line} names "
@@ -636,8 +633,7 @@ def camera_intrinsics(camera: _Camera) -> CameraIntrinsics:
     focal = camera.params[list(layout.focal_length_idxs())].tolist()
     fx, fy = focal[0], focal[-1]
     cx, cy = camera.params[list(layout.principal_point_idxs())].tolist()
-    problem = camera_problem(fx, fy, cx, cy, camera.width, camera.height)
-    if problem:
+    if problem := camera_problem(fx, fy, cx, cy, camera.width, camera.height):
         raise camera.error(f"{what}: {PARAMETER_NAMES[problem[0]]}: {problem[1]}")
     return CameraIntrinsics(intrinsics_matrix(fx, fy, cx, cy), int(camera.width), int(camera.height))
 
@@ -677,8 +673,7 @@ def import_colmap(
         raise SceneFormatError(model_dir, "images", "the model has no registered images")
     cameras = {camera.camera_id: camera for camera in model.cameras}
     intrinsics = {cid: camera_intrinsics(cameras[cid]) for cid in sorted({img.camera_id for img in images})}
-    missing = [img for img in images if not (images_dir / img.name).is_file()]
-    if missing:
+    if missing := [img for img in images if not (images_dir / img.name).is_file()]:
         more = f" (and {len(missing) - 1} more images)" if len(missing) > 1 else ""
         raise missing[0].error(
             f"image {missing[0].image_id}: {images_dir / missing[0].name} does not exist{more}; "

@@ -122,8 +122,7 @@ def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
         return False
     known = {f.name for f in frames}
     for key, names in lists.items():
-        unknown = sorted(str(n) for n in names - known)
-        if unknown:
+        if unknown := sorted(str(n) for n in names - known):
             raise SceneFormatError(
                 index,
                 key,
@@ -134,8 +133,7 @@ def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
     train = lists.get("train_filenames", set())
     test_key = "test_filenames" if "test_filenames" in lists else "val_filenames"
     test = lists.get(test_key, set())
-    shared = sorted(str(n) for n in train & test)
-    if shared:
+    if shared := sorted(str(n) for n in train & test):
         raise SceneFormatError(
             index,
             test_key,
@@ -194,8 +192,7 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
         focal["fl_y"] = focal["fl_x"]
     cx, _ = _number("cx", frame, data, w / 2)
     cy, _ = _number("cy", frame, data, h / 2)
-    problem = camera_problem(focal["fl_x"], focal["fl_y"], cx, cy, w, h)
-    if problem:
+    if problem := camera_problem(focal["fl_x"], focal["fl_y"], cx, cy, w, h):
         raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
     k4, field = _number("k4", frame, data, 0.0)
     if k4 != 0:
@@ -212,8 +209,7 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
             raise SceneFormatError(index, field, f"expected a finite number, got {value!r}")
         distortion.append(float(value))
     camera = Camera(float(focal["fl_x"]), float(focal["fl_y"]), float(cx), float(cy), w, h, tuple(distortion))
-    problem = distortion_problem(camera)
-    if problem:
+    if problem := distortion_problem(camera):
         raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
     return camera
 
@@ -316,8 +312,7 @@ def _applied_transform(data: dict, index: Path) -> tuple[np.ndarray | None, floa
         if A.shape not in ((3, 4), (4, 4)):
             raise SceneFormatError(index, "applied_transform", f"expected a 3x4 matrix, got {np.shape(A)}")
         applied = np.vstack([A[:3], [0.0, 0.0, 0.0, 1.0]])
-        problem = rigidity_problem(applied, atol=1e-6)
-        if problem:
+        if problem := rigidity_problem(applied, atol=1e-6):
             raise SceneFormatError(index, "applied_transform", f"not a rigid transform: {problem}")
     scale = data.get("applied_scale", 1.0)
     if not is_finite_number(scale) or scale <= 0:

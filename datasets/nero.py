@@ -133,8 +133,7 @@ def read_split(path: Path, names: set[str]) -> tuple[list[str], list[str]]:
         raise SceneFormatError(path, None, "expected a pickled [test ids, train ids]") from None
     if not train or not test or set(train) & set(test):
         raise SceneFormatError(path, None, f"expected two disjoint, non-empty lists; got {len(test)} and {len(train)}")
-    unknown = sorted((set(train) | set(test)) - names, key=_number)
-    if unknown:
+    if unknown := sorted((set(train) | set(test)) - names, key=_number):
         raise SceneFormatError(path, None, f"names views the dataset does not have: {', '.join(unknown[:5])}")
     return sorted(train, key=_number), sorted(test, key=_number)
 

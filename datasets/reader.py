@@ -517,8 +517,7 @@ def _check_twin_ground_truth(scene: Scene, problems: _Problems) -> None:
             "a capture on the twin without its ground-truth mesh (its write failed, "
             "or the capture stopped before it): resume the capture (--resume) to write it",
         )
-    missing = [f.id for f in scene.split("test") if f.id not in scene.gt_depth_files]
-    if missing:
+    if missing := [f.id for f in scene.split("test") if f.id not in scene.gt_depth_files]:
         problems.note(
             index,
             "gt.depth",
@@ -637,8 +636,7 @@ def _read_sensor(raw, index: Path, problems: _Problems) -> SensorModel:
     if not isinstance(raw, dict):
         problems.report(index, "sensor", f"expected an object or null, got {type(raw).__name__}")
     keys = [f.name for f in fields(SensorModel)]
-    missing = [k for k in keys if k not in raw]
-    if missing:
+    if missing := [k for k in keys if k not in raw]:
         problems.report(index, "sensor", f"missing keys {missing}")
     try:
         return SensorModel(**{k: raw[k] for k in keys})

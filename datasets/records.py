@@ -81,8 +81,7 @@ def pose_problem(T) -> str | None:
         T = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
         return "expected a 4x4 matrix of numbers"
-    problem = rigidity_problem(T)
-    if problem:
+    if problem := rigidity_problem(T):
         return f"not a rigid transform: {problem}"
     distance = float(np.linalg.norm(T[:3, 3]))
     if distance > MAX_DISTANCE_M:
@@ -92,8 +91,7 @@ def pose_problem(T) -> str | None:
 
 def check_pose(T, name: str) -> np.ndarray:
     """``T`` as float64 [4, 4] if :func:`pose_problem` finds nothing, else InvalidInputError naming ``name``."""
-    problem = pose_problem(T)
-    if problem:
+    if problem := pose_problem(T):
         raise InvalidInputError(f"{name}: {problem}")
     return np.asarray(T, dtype=np.float64)
 
@@ -216,8 +214,7 @@ class HandMotion:
     link_poses: np.ndarray  # [S, L, 4, 4] world poses of the boxes
 
     def __post_init__(self):
-        problem = hand_motion_problem(self)
-        if problem:
+        if problem := hand_motion_problem(self):
             raise InvalidInputError(f"hand motion of grasp {self.grasp}: {problem}")
 
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -279,8 +276,7 @@ class SensorModel:
     gel_thickness_m: float
 
     def __post_init__(self):
-        problem = sensor_problem(self)
-        if problem:
+        if problem := sensor_problem(self):
             raise InvalidInputError(f"SensorModel: {problem}")
         for name, kind in (("width_px", int), ("height_px", int), ("pixel_size_m", float), ("gel_thickness_m", float)):
             object.__setattr__(self, name, kind(getattr(self, name)))  # plain numbers, as the files hold them
@@ -338,8 +334,7 @@ def intrinsics_to_json(intr: CameraIntrinsics) -> dict:
     camera :func:`camera_problem` refuses."""
     if intr.K[0, 1] != 0 or intr.K[1, 0] != 0 or not np.array_equal(intr.K[2], [0.0, 0.0, 1.0]):
         raise InvalidInputError(f"intrinsics: only zero-skew pinhole K is supported, got {intr.K.tolist()}")
-    problem = camera_problem(intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
-    if problem:
+    if problem := camera_problem(intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height):
         raise InvalidInputError(f"intrinsics.{problem[0]}: {problem[1]}")
     return {"fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy, "w": int(intr.width), "h": int(intr.height)}
 

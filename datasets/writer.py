@@ -163,8 +163,7 @@ def _check_depth(depth, shape: tuple[int, int], name: str, limit: tuple[float, s
         raise InvalidInputError(f"{name}: expected shape {shape}, got {depth.shape}")
     if np.issubdtype(depth.dtype, np.floating):
         depth = depth.astype(np.float32)
-    problem = depth_problem(depth, *limit)
-    if problem:
+    if problem := depth_problem(depth, *limit):
         raise InvalidInputError(f"{name}: {problem}")
     return depth
 
