@@ -25,8 +25,9 @@ from __future__ import annotations
 
 import logging
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -53,24 +54,19 @@ QUATERNION_ROUNDING = 1e-6
 QUATERNION_TOLERANCE = 1e-2
 
 
-@dataclass
-class _Record:
-    """One camera, image, 3D point, rig or frame of the model, with where it was read."""
+class _Record(SimpleNamespace):
+    """One camera, image, 3D point, rig or frame of the model, with where it was read (``path``; ``where``: "line
+    12" of a text file, "entry 3" of a binary one), and its fields:
 
-    path: Path
-    where: str  # "line 12" (text) or "entry 3" (binary)
+    - camera: camera_id, model, width, height, params;
+    - image: image_id, pose (cam_from_world as images.txt holds it), camera_id, name, point3D_ids (-1: none);
+    - point: point3D_id, xyz, track [(image_id, point2D_idx)];
+    - rig: rig_id, sensors {(type, id): sensor_from_rig _Pose, or None (unknown); the reference sensor first};
+    - frame: frame_id, rig_id, pose (rig_from_world), data_ids [(sensor type, sensor id, data id)].
+    """
 
     def error(self, message: str) -> SceneFormatError:
         return SceneFormatError(self.path, self.where, message)
-
-
-@dataclass
-class _Camera(_Record):
-    camera_id: int = 0
-    model: str = ""
-    width: int = 0
-    height: int = 0
-    params: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass
@@ -83,36 +79,6 @@ class _Pose:
     def matrix(self) -> np.ndarray:
         w, x, y, z = self.q
         return make_pose(Rotation.from_quat([x, y, z, w]).as_matrix(), self.t)  # scipy normalises q
-
-
-@dataclass
-class _Image(_Record):
-    image_id: int = 0
-    pose: _Pose | None = None  # cam_from_world as images.txt holds it
-    camera_id: int = 0
-    name: str = ""
-    point3D_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # -1: none
-
-
-@dataclass
-class _Point(_Record):
-    point3D_id: int = 0
-    xyz: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    track: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))  # (image_id, point2D_idx)
-
-
-@dataclass
-class _Rig(_Record):
-    rig_id: int = 0
-    sensors: dict = field(default_factory=dict)  # (type, id) -> sensor_from_rig _Pose or None (unknown); ref first
-
-
-@dataclass
-class _Frame(_Record):
-    frame_id: int = 0
-    rig_id: int = 0
-    pose: _Pose | None = None  # rig_from_world
-    data_ids: list = field(default_factory=list)  # (sensor type, sensor id, data id)
 
 
 @dataclass
@@ -144,7 +110,7 @@ class _Tokens:
     """The fields of one text line, read in order; errors name the file and line."""
 
     def __init__(self, path: Path, line: int, text: str):
-        self.record = _Record(path, f"line {line}")
+        self.record = _Record(path=path, where=f"line {line}")
         self.items = text.split()
         self.at = 0
 
@@ -223,7 +189,7 @@ def _data_lines(path: Path):
 def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
     cameras = []
     for tok in _data_lines(model_dir / "cameras.txt"):
-        camera = _Camera(
+        camera = _Record(
             **vars(tok.record),
             camera_id=tok.int("CAMERA_ID"),
             model=tok.word("MODEL"),
@@ -239,7 +205,7 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
         if not text.strip() or text.lstrip().startswith("#"):
             continue
         tok = _Tokens(path, number, text)
-        image = _Image(
+        image = _Record(
             **vars(tok.record),
             image_id=tok.int("IMAGE_ID"),
             pose=tok.pose("cam_from_world"),
@@ -256,7 +222,7 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
 
     points = []
     for tok in _data_lines(model_dir / "points3D.txt"):
-        point = _Point(**vars(tok.record), point3D_id=tok.int("POINT3D_ID"))
+        point = _Record(**vars(tok.record), point3D_id=tok.int("POINT3D_ID"))
         point.xyz = np.array([tok.float(name) for name in ("X", "Y", "Z")])
         for name in ("R", "G", "B"):
             tok.int(name)
@@ -268,7 +234,7 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
 
     rigs = []
     for tok in _data_lines(model_dir / "rigs.txt"):
-        rig = _Rig(**vars(tok.record), rig_id=tok.int("RIG_ID"))
+        rig = _Record(**vars(tok.record), rig_id=tok.int("RIG_ID"), sensors={})
         for k in range(tok.int("NUM_SENSORS")):
             sensor = (tok.word(f"sensor {k} type"), tok.int(f"sensor {k} id"))
             rig.sensors[sensor] = (
@@ -282,7 +248,7 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
         rigs.append(rig)
     frames = []
     for tok in _data_lines(model_dir / "frames.txt"):
-        frame = _Frame(
+        frame = _Record(
             **vars(tok.record), frame_id=tok.int("FRAME_ID"), rig_id=tok.int("RIG_ID"), pose=tok.pose("rig_from_world")
         )
         frame.data_ids = [
@@ -310,7 +276,7 @@ class _Bytes:
         self.path, self.at, self.entry = path, 0, None
 
     def record(self) -> _Record:
-        return _Record(self.path, f"entry {self.entry}")
+        return _Record(path=self.path, where=f"entry {self.entry}")
 
     def take(self, fmt: str, what: str):
         size = struct.calcsize("<" + fmt)
@@ -357,7 +323,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
             raise src.record().error(f"camera {camera_id}: unknown camera model id {model_id}")
         params = src.array("<f8", _num_params(model), f"the parameters of camera {camera_id}")
         cameras.append(
-            _Camera(
+            _Record(
                 **vars(src.record()), camera_id=camera_id, model=model, width=width, height=height, params=params.copy()
             )
         )
@@ -365,7 +331,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
     images, src = [], _Bytes(model_dir / "images.bin")
     for _ in src.entries("images"):
         image_id = src.take("I", "an image")
-        image = _Image(
+        image = _Record(
             **vars(src.record()),
             image_id=image_id,
             pose=src.pose(f"image {image_id}"),
@@ -390,7 +356,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
         length = src.take("Q", f"point {point3D_id}")
         track = src.array("<u4", 2 * length, f"the track of point {point3D_id}")
         points.append(
-            _Point(
+            _Record(
                 **vars(src.record()),
                 point3D_id=point3D_id,
                 xyz=np.array(xyz),
@@ -403,7 +369,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
     rigs, src = [], _Bytes(model_dir / "rigs.bin")
     for _ in src.entries("rigs"):
         rig_id, count = src.take("II", "a rig")
-        rig = _Rig(**vars(src.record()), rig_id=rig_id)
+        rig = _Record(**vars(src.record()), rig_id=rig_id, sensors={})
         for k in range(count):
             kind, sensor_id = src.take("iI", f"sensor {k} of rig {rig_id}")
             sensor = (_SENSOR_TYPES.get(kind, str(kind)), sensor_id)
@@ -418,7 +384,9 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
     frames, src = [], _Bytes(model_dir / "frames.bin")
     for _ in src.entries("frames"):
         frame_id, rig_id = src.take("II", "a frame")
-        frame = _Frame(**vars(src.record()), frame_id=frame_id, rig_id=rig_id, pose=src.pose(f"frame {frame_id}"))
+        frame = _Record(
+            **vars(src.record()), frame_id=frame_id, rig_id=rig_id, pose=src.pose(f"frame {frame_id}"), data_ids=[]
+        )
         for k in range(src.take("I", f"frame {frame_id}")):
             kind, sensor_id, data_id = src.take("iIQ", f"data id {k} of frame {frame_id}")
             frame.data_ids.append((_SENSOR_TYPES.get(kind, str(kind)), sensor_id, data_id))
@@ -611,7 +579,7 @@ PARAMETER_NAMES = {
 }
 
 
-def camera_intrinsics(camera: _Camera) -> CameraIntrinsics:
+def camera_intrinsics(camera: _Record) -> CameraIntrinsics:
     """Intrinsics of a model's camera, or a SceneFormatError naming its file, line or entry, id and model."""
     import pycolmap
 
