@@ -59,10 +59,28 @@ def parse_background(text: str) -> tuple[int, int, int]:
     return rgb
 
 
-def check_scale(scale: float) -> None:
-    """An importer's metres per dataset unit: a ConfigError naming ``scale`` unless finite and positive."""
+def check_options(scale: float, test_every: int = 0) -> None:
+    """An importer's metres per dataset unit (finite, positive) and hold-out interval (an integer >= 0); a
+    ConfigError naming the option otherwise."""
     if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
         raise ConfigError("scale", f"must be a finite positive number of metres per unit, got {scale!r}")
+    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
+        raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
+
+
+def hold_out(count: int, test_every: int, path: Path, field: str, what: str) -> list[str]:
+    """The splits of ``count`` views in order: every ``test_every``-th one, the first included, is a test view
+    (the 3DGS / LLFF hold-out; 0: none); a SceneFormatError naming ``path`` and ``field`` when no train view is
+    left."""
+    splits = ["test" if test_every and i % test_every == 0 else "train" for i in range(count)]
+    if "train" not in splits:
+        raise SceneFormatError(
+            path,
+            field,
+            f"no train frame to import: the test split takes every {test_every}-th of the {count} {what}, the first "
+            "included; --test-every 0 (test_every=0) keeps them all for training",
+        )
+    return splits
 
 
 def check_readable(path: Path, field: str | None = None, what: str = "image") -> None:
@@ -219,7 +237,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     src, out = Path(src), Path(out)
     if test_split not in ("test", "val"):
         raise ConfigError("test_split", f"must be 'test' or 'val', got {test_split!r}")
-    check_scale(scale)
+    check_options(scale)
     splits = [("train", *_read_split(src, "train")), ("test", *_read_split(src, test_split))]
 
     # The image size comes from the first image; every split shares it.

@@ -32,12 +32,12 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import intrinsics_matrix, invert_pose, make_pose
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .blender import check_scale, composite, read_rgba
+from .blender import check_options, composite, hold_out, read_rgba
 from .records import SceneMeta, camera_problem
 from .writer import new_import
 
@@ -624,9 +624,7 @@ def import_colmap(
     ``out`` is claimed as the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
     model_dir, images_dir, out = Path(model_dir), Path(images_dir), Path(out)
-    check_scale(scale)
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
-        raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
+    check_options(scale, test_every)
     model = _read_model(model_dir)
     poses = _check_model(model)
     unposed = len(model.images) - len(poses)
@@ -647,16 +645,7 @@ def import_colmap(
             f"image {missing[0].image_id}: {images_dir / missing[0].name} does not exist{more}; "
             "--images must be the folder the NAMEs are relative to"
         )
-    splits = ["test" if test_every and i % test_every == 0 else "train" for i in range(len(images))]
-    if "train" not in splits:
-        raise SceneFormatError(
-            model_dir,
-            "images",
-            f"no train frame to import: the test split takes every "
-            f"{test_every}-th of the {len(images)} images, the first included; --test-every 0 "
-            "keeps them all for training",
-        )
-
+    splits = hold_out(len(images), test_every, model_dir, "images", "images")
     meta = SceneMeta(
         source="import",
         object=object_name or _dataset_name(model_dir),

@@ -41,12 +41,21 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_problem
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .blender import check_readable, check_scale, composite, pose_from_opengl, read_index, read_raw, read_rgba
+from .blender import (
+    check_options,
+    check_readable,
+    composite,
+    hold_out,
+    pose_from_opengl,
+    read_index,
+    read_raw,
+    read_rgba,
+)
 from .records import SceneMeta, as_size, camera_problem, is_finite_number
 from .writer import new_import
 
@@ -126,9 +135,7 @@ def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
             raise SceneFormatError(
                 index,
                 key,
-                f"{len(unknown)} file paths are no frame's file_path: "
-                + ", ".join(unknown[:5])
-                + (" ..." if len(unknown) > 5 else ""),
+                f"{len(unknown)} file paths are no frame's file_path: {_listed(unknown)}",
             )
     train = lists.get("train_filenames", set())
     test_key = "test_filenames" if "test_filenames" in lists else "val_filenames"
@@ -142,6 +149,10 @@ def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
     for f in frames:
         f.split = "train" if f.name in train else "test" if f.name in test else None
     return True
+
+
+def _listed(names: list[str], most: int = 5) -> str:
+    return ", ".join(names[:most]) + (" ..." if len(names) > most else "")
 
 
 def _number(key: str, frame: _SourceFrame, data: dict, default=None):
@@ -345,7 +356,7 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
             index,
             len(left_out),
             "/".join(SPLIT_LISTS),
-            ", ".join(left_out[:5]) + (" ..." if len(left_out) > 5 else ""),
+            _listed(left_out),
         )
         frames = [f for f in frames if f.split is not None]
     missing = [f.raw["file_path"] for f in frames if not f.image.is_file()]
@@ -353,30 +364,20 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
         raise SceneFormatError(
             index,
             "frames",
-            f"the images of {len(missing)} of {len(frames)} frames are missing: "
-            + ", ".join(missing[:10])
-            + (" ..." if len(missing) > 10 else "")
-            + " (--skip-missing imports the others)",
+            f"the images of {len(missing)} of {len(frames)} frames are missing: {_listed(missing, 10)} "
+            "(--skip-missing imports the others)",
         )
     if missing:
         log.warning("%s: skipping %d frames whose image is missing: %s", index, len(missing), ", ".join(missing))
         frames = [f for f in frames if f.image.is_file()]
     if not has_lists:
-        for k, f in enumerate(frames):
-            f.split = "test" if test_every and k % test_every == 0 else "train"
-    if not any(f.split == "train" for f in frames):
-        if has_lists:
-            raise SceneFormatError(
-                index,
-                "train_filenames",
-                f"no train frame to import: none of the {len(frames)} frames to import is in train_filenames",
-            )
+        for f, split in zip(frames, hold_out(len(frames), test_every, index, "frames", "frames in file-name order")):
+            f.split = split
+    elif not any(f.split == "train" for f in frames):
         raise SceneFormatError(
             index,
-            "frames",
-            f"no train frame to import: the test split takes every "
-            f"{test_every}-th of the {len(frames)} frames in file-name order, the first included; "
-            "--test-every 0 (test_every=0) keeps them all for training",
+            "train_filenames",
+            f"no train frame to import: none of the {len(frames)} frames to import is in train_filenames",
         )
     in_file_order = sorted(frames, key=lambda f: f.position)
     first = in_file_order[0]
@@ -418,9 +419,7 @@ def import_nerfstudio(
     (``datasets.outputs``). Returns ``out``.
     """
     src, out = Path(src), Path(out)
-    check_scale(scale)
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
-        raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
+    check_options(scale, test_every)
     index, data = _read_index(src)
     frames, selection = _select_frames(index, data, test_every, skip_missing)
     cameras = [_camera(f, data, index) for f in frames]

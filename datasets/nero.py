@@ -41,7 +41,7 @@ from tacsplat.geometry import invert_pose, rigidity_problem, unproject_depth
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .blender import check_scale, composite, read_raw, read_rgba
+from .blender import check_options, composite, read_raw, read_rgba
 from .records import SceneMeta
 from .writer import new_import
 
@@ -160,7 +160,7 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     import trimesh
 
     src, out = Path(src), Path(out)
-    check_scale(scale)
+    check_options(scale)
     if not src.is_dir():
         raise SceneFormatError(src, None, "not a folder (expected a Glossy Synthetic object folder, e.g. .../bell)")
     names = {p.name.removesuffix("-camera.pkl") for p in src.glob("*-camera.pkl")}
