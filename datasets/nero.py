@@ -42,6 +42,7 @@ from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_options, composite, read_raw, read_rgba
+from .reader import _Problems, load_points_ply
 from .records import SceneMeta
 from .writer import new_import
 
@@ -157,7 +158,6 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     ``scale`` (metres per dataset unit) multiplies the camera positions, depths and points. ``out`` is claimed as
     the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
-    import trimesh
 
     src, out = Path(src), Path(out)
     check_options(scale)
@@ -205,14 +205,9 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
                 if split_name == "test" and not eval_points.is_file():
                     fallback_points.append(unproject_depth(depth, K, unit_pose))
                 progress.update()
-        if eval_points.is_file():
-            try:
-                points = np.asarray(trimesh.load(str(eval_points), file_type="ply").vertices, dtype=np.float64)
-            except Exception as exc:  # trimesh raises many types for damaged files
-                raise SceneFormatError(eval_points, None, f"unreadable PLY point cloud: {exc}") from exc
+        if eval_points.is_file():  # checked as the reader checks the scene's copy
+            points = load_points_ply(eval_points, _Problems(collect=False), None)
         else:
             points = voxel_downsample(np.concatenate(fallback_points), EVAL_VOXEL)
-        if points.ndim != 2 or points.shape[1:] != (3,) or not len(points) or not np.isfinite(points).all():
-            raise SceneFormatError(eval_points, None, f"expected finite points [N, 3], got shape {points.shape}")
         writer.set_gt_points(scale * points)
     return out
