@@ -127,18 +127,17 @@ class _Tokens:
         return self.items[self.at - 1]
 
     def int(self, what: str) -> int:
-        text = self.word(what)
-        try:
-            return int(text)
-        except ValueError:
-            raise self.error(f"{what} must be an integer, got {text!r}") from None
+        return self._number(what, int, "an integer")
 
     def float(self, what: str) -> float:
+        return self._number(what, float, "a number")
+
+    def _number(self, what: str, kind: type, name: str):
         text = self.word(what)
         try:
-            return float(text)
+            return kind(text)
         except ValueError:
-            raise self.error(f"{what} must be a number, got {text!r}") from None
+            raise self.error(f"{what} must be {name}, got {text!r}") from None
 
     def pose(self, what: str) -> _Pose:
         values = [self.float(f"{what} {name}") for name in ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")]

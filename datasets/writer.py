@@ -156,6 +156,14 @@ def new_import(out: Path, intrinsics: CameraIntrinsics, meta: SceneMeta):
         yield writer
 
 
+def _check_intrinsics(intr) -> CameraIntrinsics:
+    """``intr`` if it is a camera the scene format holds (zero-skew pinhole, see ``records.camera_problem``)."""
+    if not isinstance(intr, CameraIntrinsics):
+        raise InvalidInputError(f"intrinsics: expected CameraIntrinsics, got {type(intr).__name__}")
+    intrinsics_to_json(intr)  # rejects skew and impossible cameras
+    return intr
+
+
 def _check_depth(depth, shape: tuple[int, int], name: str, limit: tuple[float, str]) -> np.ndarray:
     """``depth`` as float32 if it is a depth map the reader accepts (see ``records.depth_problem``)."""
     depth = np.asarray(depth)
@@ -208,9 +216,7 @@ class SceneWriter:
     ) -> "SceneWriter":
         """Start a new scene in ``path`` (which must not exist or be an empty folder)."""
         path = Path(path)
-        if not isinstance(intrinsics, CameraIntrinsics):
-            raise InvalidInputError(f"intrinsics: expected CameraIntrinsics, got {type(intrinsics).__name__}")
-        intrinsics_to_json(intrinsics)  # rejects skew
+        _check_intrinsics(intrinsics)
         if not isinstance(meta, SceneMeta):
             raise InvalidInputError(f"meta: expected SceneMeta, got {type(meta).__name__}")
         if sensor is not None and not isinstance(sensor, SensorModel):
@@ -489,10 +495,7 @@ class SceneWriter:
         bool (True = use the pixel) goes to ``masks/``; a scene has a mask on
         every frame or on none (as nerfstudio reads them).
         """
-        intr = self.intrinsics if intrinsics is None else intrinsics
-        if not isinstance(intr, CameraIntrinsics):
-            raise InvalidInputError(f"intrinsics: expected CameraIntrinsics, got {type(intr).__name__}")
-        intrinsics_to_json(intr)
+        intr = _check_intrinsics(self.intrinsics if intrinsics is None else intrinsics)
         image = np.asarray(image)
         if image.dtype != np.uint8:
             raise InvalidInputError(f"image: expected uint8 RGB, got dtype {image.dtype}")
