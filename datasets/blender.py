@@ -37,9 +37,8 @@ from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_openc
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .outputs import claim_output_dir
 from .records import SceneMeta
-from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+from .writer import new_import
 
 BACKGROUNDS = {"white": (255, 255, 255), "black": (0, 0, 0)}
 GT_POINTS_PER_VIEW = 5000  # cd_paper's ground truth: pixels back-projected per train view (the official code's)
@@ -60,10 +59,28 @@ def parse_background(text: str) -> tuple[int, int, int]:
     return rgb
 
 
-def check_scale(scale: float) -> None:
-    """An importer's metres per dataset unit: a ConfigError naming ``scale`` unless finite and positive."""
+def check_options(scale: float, test_every: int = 0) -> None:
+    """An importer's metres per dataset unit (finite, positive) and hold-out interval (an integer >= 0); a
+    ConfigError naming the option otherwise."""
     if not (isinstance(scale, (int, float)) and np.isfinite(scale) and scale > 0):
         raise ConfigError("scale", f"must be a finite positive number of metres per unit, got {scale!r}")
+    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
+        raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
+
+
+def hold_out(count: int, test_every: int, path: Path, field: str, what: str) -> list[str]:
+    """The splits of ``count`` views in order: every ``test_every``-th one, the first included, is a test view
+    (the 3DGS / LLFF hold-out; 0: none); a SceneFormatError naming ``path`` and ``field`` when no train view is
+    left."""
+    splits = ["test" if test_every and i % test_every == 0 else "train" for i in range(count)]
+    if "train" not in splits:
+        raise SceneFormatError(
+            path,
+            field,
+            f"no train frame to import: the test split takes every {test_every}-th of the {count} {what}, the first "
+            "included; --test-every 0 (test_every=0) keeps them all for training",
+        )
+    return splits
 
 
 def check_readable(path: Path, field: str | None = None, what: str = "image") -> None:
@@ -94,10 +111,13 @@ def read_raw(path: Path, field: str | None = None, what: str = "image") -> np.nd
     return raw
 
 
-def read_rgba(path: Path, field: str | None = None) -> np.ndarray:
+def read_rgba(path: Path, field: str | None = None, size: tuple[int, int] | None = None, of: str = "") -> np.ndarray:
     """An image file as float RGB(A) in [0, 1], [H, W, 3 or 4] (8- or 16-bit, grey or colour); errors name the
-    file and ``field`` (:func:`check_readable`)."""
+    file and ``field`` (:func:`check_readable`), and one is raised unless the image is ``size`` (w, h) pixels, the
+    size ``of`` (its camera, the first image) has."""
     raw = read_raw(path, field)
+    if size is not None and raw.shape[1::-1] != tuple(size):
+        raise SceneFormatError(path, field, f"image is {raw.shape[1]}x{raw.shape[0]}, but {of} is {size[0]}x{size[1]}")
     scale = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else 1.0
     img = raw.astype(np.float64) / scale
     if img.ndim == 2:
@@ -160,21 +180,29 @@ def read_normal_map(path: Path, depth: np.ndarray, field: str | None = None) -> 
     return np.where(keep, normal / np.maximum(length, 1e-12), 0.0).astype(np.float32)
 
 
-def _read_split(src: Path, name: str) -> tuple[Path, float, list[dict]]:
-    index = src / f"transforms_{name}.json"
+def read_index(index: Path, missing: str) -> dict:
+    """A dataset's JSON index file (an object with a non-empty ``frames`` list); a SceneFormatError naming it
+    otherwise, ``missing`` saying what was expected where it does not exist."""
     if not index.is_file():
-        raise SceneFormatError(index, None, "missing (expected a Blender/NeRF-synthetic dataset folder)")
+        raise SceneFormatError(index, None, f"missing ({missing})")
     try:
         data = json.loads(index.read_text())
-    except ValueError as exc:
+    except (ValueError, UnicodeDecodeError) as exc:
         raise SceneFormatError(index, None, f"not valid JSON: {exc}") from exc
-    angle = data.get("camera_angle_x") if isinstance(data, dict) else None
+    if not isinstance(data, dict):
+        raise SceneFormatError(index, None, f"expected a JSON object, got {type(data).__name__}")
+    if not isinstance(data.get("frames"), list) or not data["frames"]:
+        raise SceneFormatError(index, "frames", "expected a non-empty list")
+    return data
+
+
+def _read_split(src: Path, name: str) -> tuple[Path, float, list[dict]]:
+    index = src / f"transforms_{name}.json"
+    data = read_index(index, "expected a Blender/NeRF-synthetic dataset folder")
+    angle = data.get("camera_angle_x")
     if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not 0 < angle < np.pi:
         raise SceneFormatError(index, "camera_angle_x", f"expected a field of view in (0, pi) radians, got {angle!r}")
-    frames = data.get("frames")
-    if not isinstance(frames, list) or not frames:
-        raise SceneFormatError(index, "frames", "expected a non-empty list")
-    return index, float(angle), frames
+    return index, float(angle), data["frames"]
 
 
 def pose_from_opengl(raw, index: Path, field: str) -> np.ndarray:
@@ -187,8 +215,7 @@ def pose_from_opengl(raw, index: Path, field: str) -> np.ndarray:
         T = np.zeros(0)
     if T.shape != (4, 4):
         raise SceneFormatError(index, field, f"expected a 4x4 matrix, got {np.shape(raw)}")
-    problem = rigidity_problem(T, atol=1e-4)
-    if problem:
+    if problem := rigidity_problem(T, atol=1e-4):
         raise SceneFormatError(index, field, f"not a rigid transform: {problem}")
     U, _, Vt = np.linalg.svd(T[:3, :3])
     T = T.copy()
@@ -210,7 +237,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     src, out = Path(src), Path(out)
     if test_split not in ("test", "val"):
         raise ConfigError("test_split", f"must be 'test' or 'val', got {test_split!r}")
-    check_scale(scale)
+    check_options(scale)
     splits = [("train", *_read_split(src, "train")), ("test", *_read_split(src, test_split))]
 
     # The image size comes from the first image; every split shares it.
@@ -241,11 +268,8 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     rng = np.random.default_rng(0)  # the ground-truth points' pixels
     gt_points = []
     total = sum(len(frames) for *_, frames in splits)
-    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
     with (
-        claim_output_dir(out),
-        removed_on_failure(out),
-        SceneWriter.create(out, intrinsics_for(splits[0][2]), meta) as writer,
+        new_import(out, intrinsics_for(splits[0][2]), meta) as writer,
         progress_bar(total=total, desc=f"import {src.name}", unit="frame") as progress,
     ):
         for split, index, angle, frames in splits:
@@ -255,13 +279,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                 if not isinstance(raw, dict) or not isinstance(raw.get("file_path"), str):
                     raise SceneFormatError(index, f"{field}.file_path", "expected an object with a file_path string")
                 image_path = _image_path(src, raw["file_path"])
-                rgba = read_rgba(image_path, f"{index.name} {field}")
-                if rgba.shape[:2] != (height, width):
-                    raise SceneFormatError(
-                        image_path,
-                        f"{index.name} {field}",
-                        f"image is {rgba.shape[1]}x{rgba.shape[0]}, but {first_image.name} is {width}x{height}",
-                    )
+                rgba = read_rgba(image_path, f"{index.name} {field}", (width, height), first_image.name)
                 pose = pose_from_opengl(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
                 pose[:3, 3] *= scale
                 depth = None

@@ -140,26 +140,28 @@ def _importing(run, out: Path) -> int:
     return run_inspect(out)
 
 
-def _import_blender(o: ImportBlender) -> int:
-    from .blender import import_blender, parse_background
+def _background(text: str) -> tuple[int, int, int]:
+    from .blender import parse_background
 
     try:
-        background = parse_background(o.background)
+        return parse_background(text)
     except ValueError as exc:
         raise UsageError("--background", str(exc)) from None
+
+
+def _import_blender(o: ImportBlender) -> int:
+    from .blender import import_blender
+
+    background = _background(o.background)
     return _importing(
         lambda: import_blender(o.src, o.out, background_rgb=background, test_split=o.test_split, scale=o.scale), o.out
     )
 
 
 def _import_nero(o: ImportNero) -> int:
-    from .blender import parse_background
     from .nero import import_nero
 
-    try:
-        background = parse_background(o.background)
-    except ValueError as exc:
-        raise UsageError("--background", str(exc)) from None
+    background = _background(o.background)
     return _importing(lambda: import_nero(o.src, o.out, o.split, background, o.scale), o.out)
 
 

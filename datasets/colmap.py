@@ -25,21 +25,21 @@ from __future__ import annotations
 
 import logging
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import intrinsics_matrix, invert_pose, make_pose
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .blender import check_scale, composite, read_rgba
-from .outputs import claim_output_dir
+from .blender import check_options, composite, hold_out, read_rgba
 from .records import SceneMeta, camera_problem
-from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+from .writer import new_import
 
 log = logging.getLogger(__name__)
 
@@ -54,24 +54,19 @@ QUATERNION_ROUNDING = 1e-6
 QUATERNION_TOLERANCE = 1e-2
 
 
-@dataclass
-class _Record:
-    """One camera, image, 3D point, rig or frame of the model, with where it was read."""
+class _Record(SimpleNamespace):
+    """One camera, image, 3D point, rig or frame of the model, with where it was read (``path``; ``where``: "line
+    12" of a text file, "entry 3" of a binary one), and its fields:
 
-    path: Path
-    where: str  # "line 12" (text) or "entry 3" (binary)
+    - camera: camera_id, model, width, height, params;
+    - image: image_id, pose (cam_from_world as images.txt holds it), camera_id, name, point3D_ids (-1: none);
+    - point: point3D_id, xyz, track [(image_id, point2D_idx)];
+    - rig: rig_id, sensors {(type, id): sensor_from_rig _Pose, or None (unknown); the reference sensor first};
+    - frame: frame_id, rig_id, pose (rig_from_world), data_ids [(sensor type, sensor id, data id)].
+    """
 
     def error(self, message: str) -> SceneFormatError:
         return SceneFormatError(self.path, self.where, message)
-
-
-@dataclass
-class _Camera(_Record):
-    camera_id: int = 0
-    model: str = ""
-    width: int = 0
-    height: int = 0
-    params: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass
@@ -84,36 +79,6 @@ class _Pose:
     def matrix(self) -> np.ndarray:
         w, x, y, z = self.q
         return make_pose(Rotation.from_quat([x, y, z, w]).as_matrix(), self.t)  # scipy normalises q
-
-
-@dataclass
-class _Image(_Record):
-    image_id: int = 0
-    pose: _Pose | None = None  # cam_from_world as images.txt holds it
-    camera_id: int = 0
-    name: str = ""
-    point3D_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # -1: none
-
-
-@dataclass
-class _Point(_Record):
-    point3D_id: int = 0
-    xyz: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    track: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))  # (image_id, point2D_idx)
-
-
-@dataclass
-class _Rig(_Record):
-    rig_id: int = 0
-    sensors: dict = field(default_factory=dict)  # (type, id) -> sensor_from_rig _Pose or None (unknown); ref first
-
-
-@dataclass
-class _Frame(_Record):
-    frame_id: int = 0
-    rig_id: int = 0
-    pose: _Pose | None = None  # rig_from_world
-    data_ids: list = field(default_factory=list)  # (sensor type, sensor id, data id)
 
 
 @dataclass
@@ -145,7 +110,7 @@ class _Tokens:
     """The fields of one text line, read in order; errors name the file and line."""
 
     def __init__(self, path: Path, line: int, text: str):
-        self.record = _Record(path, f"line {line}")
+        self.record = _Record(path=path, where=f"line {line}")
         self.items = text.split()
         self.at = 0
 
@@ -162,18 +127,17 @@ class _Tokens:
         return self.items[self.at - 1]
 
     def int(self, what: str) -> int:
-        text = self.word(what)
-        try:
-            return int(text)
-        except ValueError:
-            raise self.error(f"{what} must be an integer, got {text!r}") from None
+        return self._number(what, int, "an integer")
 
     def float(self, what: str) -> float:
+        return self._number(what, float, "a number")
+
+    def _number(self, what: str, kind: type, name: str):
         text = self.word(what)
         try:
-            return float(text)
+            return kind(text)
         except ValueError:
-            raise self.error(f"{what} must be a number, got {text!r}") from None
+            raise self.error(f"{what} must be {name}, got {text!r}") from None
 
     def pose(self, what: str) -> _Pose:
         values = [self.float(f"{what} {name}") for name in ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")]
@@ -224,7 +188,7 @@ def _data_lines(path: Path):
 def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
     cameras = []
     for tok in _data_lines(model_dir / "cameras.txt"):
-        camera = _Camera(
+        camera = _Record(
             **vars(tok.record),
             camera_id=tok.int("CAMERA_ID"),
             model=tok.word("MODEL"),
@@ -240,7 +204,7 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
         if not text.strip() or text.lstrip().startswith("#"):
             continue
         tok = _Tokens(path, number, text)
-        image = _Image(
+        image = _Record(
             **vars(tok.record),
             image_id=tok.int("IMAGE_ID"),
             pose=tok.pose("cam_from_world"),
@@ -251,14 +215,13 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
         number, text = next(lines, (number + 1, ""))
         points = _Tokens(path, number, text)
         x, y, image.point3D_ids = points.groups(("X", "Y", "POINT3D_ID"), f"POINTS2D of image {image.image_id}")
-        k = _first_bad(~np.isfinite(x) | ~np.isfinite(y))
-        if k is not None:
+        if (k := _first_bad(~np.isfinite(x) | ~np.isfinite(y))) is not None:
             raise points.error(f"POINTS2D[{k}] of image {image.image_id} is not finite: ({x[k]}, {y[k]})")
         images.append(image)
 
     points = []
     for tok in _data_lines(model_dir / "points3D.txt"):
-        point = _Point(**vars(tok.record), point3D_id=tok.int("POINT3D_ID"))
+        point = _Record(**vars(tok.record), point3D_id=tok.int("POINT3D_ID"))
         point.xyz = np.array([tok.float(name) for name in ("X", "Y", "Z")])
         for name in ("R", "G", "B"):
             tok.int(name)
@@ -270,7 +233,7 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
 
     rigs = []
     for tok in _data_lines(model_dir / "rigs.txt"):
-        rig = _Rig(**vars(tok.record), rig_id=tok.int("RIG_ID"))
+        rig = _Record(**vars(tok.record), rig_id=tok.int("RIG_ID"), sensors={})
         for k in range(tok.int("NUM_SENSORS")):
             sensor = (tok.word(f"sensor {k} type"), tok.int(f"sensor {k} id"))
             rig.sensors[sensor] = (
@@ -284,7 +247,7 @@ def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
         rigs.append(rig)
     frames = []
     for tok in _data_lines(model_dir / "frames.txt"):
-        frame = _Frame(
+        frame = _Record(
             **vars(tok.record), frame_id=tok.int("FRAME_ID"), rig_id=tok.int("RIG_ID"), pose=tok.pose("rig_from_world")
         )
         frame.data_ids = [
@@ -312,7 +275,7 @@ class _Bytes:
         self.path, self.at, self.entry = path, 0, None
 
     def record(self) -> _Record:
-        return _Record(self.path, f"entry {self.entry}")
+        return _Record(path=self.path, where=f"entry {self.entry}")
 
     def take(self, fmt: str, what: str):
         size = struct.calcsize("<" + fmt)
@@ -359,7 +322,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
             raise src.record().error(f"camera {camera_id}: unknown camera model id {model_id}")
         params = src.array("<f8", _num_params(model), f"the parameters of camera {camera_id}")
         cameras.append(
-            _Camera(
+            _Record(
                 **vars(src.record()), camera_id=camera_id, model=model, width=width, height=height, params=params.copy()
             )
         )
@@ -367,7 +330,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
     images, src = [], _Bytes(model_dir / "images.bin")
     for _ in src.entries("images"):
         image_id = src.take("I", "an image")
-        image = _Image(
+        image = _Record(
             **vars(src.record()),
             image_id=image_id,
             pose=src.pose(f"image {image_id}"),
@@ -380,8 +343,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
         src.at = end + 1
         count = src.take("Q", f"image {image_id}")
         points = src.array([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], count, f"the 2D points of image {image_id}")
-        bad = np.flatnonzero(~np.isfinite(points["x"]) | ~np.isfinite(points["y"]))
-        if bad.size:
+        if (bad := np.flatnonzero(~np.isfinite(points["x"]) | ~np.isfinite(points["y"]))).size:
             raise image.error(f"POINTS2D[{bad[0]}] of image {image_id} is not finite")
         image.point3D_ids = points["id"].astype(np.int64)  # COLMAP's invalid id, 2^64 - 1, reads as -1
         images.append(image)
@@ -393,7 +355,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
         length = src.take("Q", f"point {point3D_id}")
         track = src.array("<u4", 2 * length, f"the track of point {point3D_id}")
         points.append(
-            _Point(
+            _Record(
                 **vars(src.record()),
                 point3D_id=point3D_id,
                 xyz=np.array(xyz),
@@ -406,7 +368,7 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
     rigs, src = [], _Bytes(model_dir / "rigs.bin")
     for _ in src.entries("rigs"):
         rig_id, count = src.take("II", "a rig")
-        rig = _Rig(**vars(src.record()), rig_id=rig_id)
+        rig = _Record(**vars(src.record()), rig_id=rig_id, sensors={})
         for k in range(count):
             kind, sensor_id = src.take("iI", f"sensor {k} of rig {rig_id}")
             sensor = (_SENSOR_TYPES.get(kind, str(kind)), sensor_id)
@@ -421,7 +383,9 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
     frames, src = [], _Bytes(model_dir / "frames.bin")
     for _ in src.entries("frames"):
         frame_id, rig_id = src.take("II", "a frame")
-        frame = _Frame(**vars(src.record()), frame_id=frame_id, rig_id=rig_id, pose=src.pose(f"frame {frame_id}"))
+        frame = _Record(
+            **vars(src.record()), frame_id=frame_id, rig_id=rig_id, pose=src.pose(f"frame {frame_id}"), data_ids=[]
+        )
         for k in range(src.take("I", f"frame {frame_id}")):
             kind, sensor_id, data_id = src.take("iIQ", f"data id {k} of frame {frame_id}")
             frame.data_ids.append((_SENSOR_TYPES.get(kind, str(kind)), sensor_id, data_id))
@@ -517,8 +481,7 @@ def _check_model(model: _Model) -> dict[int, np.ndarray]:
             )
     points = _by_id(model.points, "point3D_id", "point")
     refs, owner = _joined([image.point3D_ids for image in model.images])
-    k = _first_bad((refs != -1) & ~np.isin(refs, np.array(list(points), np.int64)))
-    if k is not None:
+    if (k := _first_bad((refs != -1) & ~np.isin(refs, np.array(list(points), np.int64)))) is not None:
         image, line = model.images[owner[k]], " (on the next line)" if model.suffix == ".txt" else ""
         raise image.error(
             f"POINTS2D[{k - np.searchsorted(owner, owner[k])}] of image {image.image_id}{line} names "
@@ -615,7 +578,7 @@ PARAMETER_NAMES = {
 }
 
 
-def camera_intrinsics(camera: _Camera) -> CameraIntrinsics:
+def camera_intrinsics(camera: _Record) -> CameraIntrinsics:
     """Intrinsics of a model's camera, or a SceneFormatError naming its file, line or entry, id and model."""
     import pycolmap
 
@@ -637,8 +600,7 @@ def camera_intrinsics(camera: _Camera) -> CameraIntrinsics:
     focal = camera.params[list(layout.focal_length_idxs())].tolist()
     fx, fy = focal[0], focal[-1]
     cx, cy = camera.params[list(layout.principal_point_idxs())].tolist()
-    problem = camera_problem(fx, fy, cx, cy, camera.width, camera.height)
-    if problem:
+    if problem := camera_problem(fx, fy, cx, cy, camera.width, camera.height):
         raise camera.error(f"{what}: {PARAMETER_NAMES[problem[0]]}: {problem[1]}")
     return CameraIntrinsics(intrinsics_matrix(fx, fy, cx, cy), int(camera.width), int(camera.height))
 
@@ -661,9 +623,7 @@ def import_colmap(
     ``out`` is claimed as the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
     model_dir, images_dir, out = Path(model_dir), Path(images_dir), Path(out)
-    check_scale(scale)
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
-        raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
+    check_options(scale, test_every)
     model = _read_model(model_dir)
     poses = _check_model(model)
     unposed = len(model.images) - len(poses)
@@ -678,23 +638,13 @@ def import_colmap(
         raise SceneFormatError(model_dir, "images", "the model has no registered images")
     cameras = {camera.camera_id: camera for camera in model.cameras}
     intrinsics = {cid: camera_intrinsics(cameras[cid]) for cid in sorted({img.camera_id for img in images})}
-    missing = [img for img in images if not (images_dir / img.name).is_file()]
-    if missing:
+    if missing := [img for img in images if not (images_dir / img.name).is_file()]:
         more = f" (and {len(missing) - 1} more images)" if len(missing) > 1 else ""
         raise missing[0].error(
             f"image {missing[0].image_id}: {images_dir / missing[0].name} does not exist{more}; "
             "--images must be the folder the NAMEs are relative to"
         )
-    splits = ["test" if test_every and i % test_every == 0 else "train" for i in range(len(images))]
-    if "train" not in splits:
-        raise SceneFormatError(
-            model_dir,
-            "images",
-            f"no train frame to import: the test split takes every "
-            f"{test_every}-th of the {len(images)} images, the first included; --test-every 0 "
-            "keeps them all for training",
-        )
-
+    splits = hold_out(len(images), test_every, model_dir, "images", "images")
     meta = SceneMeta(
         source="import",
         object=object_name or _dataset_name(model_dir),
@@ -708,24 +658,13 @@ def import_colmap(
             "colmap_names": [img.name for img in images],
         },
     )
-    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
-    with (
-        claim_output_dir(out),
-        removed_on_failure(out),
-        SceneWriter.create(out, intrinsics[images[0].camera_id], meta) as writer,
-    ):
+    with new_import(out, intrinsics[images[0].camera_id], meta) as writer:
         for img, split in progress_bar(list(zip(images, splits)), desc=f"import {model_dir}", unit="frame"):
             intr = intrinsics[img.camera_id]
             image_path = images_dir / img.name
-            rgb = composite(
-                read_rgba(image_path, f"image {img.image_id}")[:, :, :3], (0, 0, 0)
-            )  # an alpha channel, if any, is dropped
-            if rgb.shape[:2] != (intr.height, intr.width):
-                raise SceneFormatError(
-                    image_path,
-                    f"image {img.image_id}",
-                    f"image is {rgb.shape[1]}x{rgb.shape[0]} but camera {img.camera_id} is {intr.width}x{intr.height}",
-                )
+            size = (intr.width, intr.height)
+            rgba = read_rgba(image_path, f"image {img.image_id}", size, f"camera {img.camera_id}")
+            rgb = composite(rgba[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped
             T_world_cam = invert_pose(poses[img.image_id])
             T_world_cam[:3, 3] *= scale
             writer.add_frame(rgb, T_world_cam, split=split, intrinsics=intr)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 from collections import Counter
 from pathlib import Path
@@ -12,7 +13,7 @@ from tacsplat.errors import SceneFormatError
 from tacsplat.files import atomic_write, check_writable
 
 from .reader import check_scene
-from .records import SPLITS
+from .records import SPLITS, sensor_to_json
 from .writer import JOURNAL
 
 
@@ -21,40 +22,22 @@ def summarise(path) -> dict:
     (those of :func:`check_scene`: what it lists, ``Scene.load`` raises), as one JSON-able dict."""
     path = Path(path)
     scene, errors = check_scene(path)
-    problems = [str(e) for e in errors]
-    summary = {
+    frames, touches = (scene.frames, scene.touches) if scene else ([], [])
+    motions = scene.hand_motions() if scene else []
+    durations = [float(m.t[-1] - m.t[0]) for m in motions]
+    lo, hi = scene.bounds() if frames or any(t.in_contact for t in touches) else (None, None)
+    return {
         "path": str(path),
-        "source": None,
-        "object": None,
-        "frames": {s: 0 for s in SPLITS},
-        "image_sizes": [],
-        "touches": 0,
-        "touches_in_contact": 0,
-        "grasps": 0,
-        "touches_per_grasp": {},
-        "touches_per_finger": {},
-        "hand_motion": None,
-        "sensor": None,
-        "bounds": None,
-        "gt": {"mesh": None, "points": None, "depth_maps": 0},
-        "annotations": [],
-        "journal": (path / JOURNAL).is_file(),
-        "problems": problems,
-    }
-    if scene is None:
-        return summary
-    summary.update(source=scene.meta.source, object=scene.meta.object)
-    summary["frames"] = {s: len(scene.split(s)) for s in SPLITS}
-    summary["image_sizes"] = sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in scene.frames})
-    summary["touches"] = len(scene.touches)
-    summary["touches_in_contact"] = sum(t.in_contact for t in scene.touches)
-    summary["grasps"] = scene.num_grasps
-    summary["touches_per_grasp"] = {str(g): n for g, n in sorted(Counter(t.grasp for t in scene.touches).items())}
-    summary["touches_per_finger"] = dict(sorted(Counter(t.finger for t in scene.touches).items()))
-    motions = scene.hand_motions()
-    if motions:
-        durations = [float(m.t[-1] - m.t[0]) for m in motions]
-        summary["hand_motion"] = {
+        "source": scene and scene.meta.source,
+        "object": scene and scene.meta.object,
+        "frames": {s: sum(f.split == s for f in frames) for s in SPLITS},
+        "image_sizes": sorted({f"{f.intrinsics.width}x{f.intrinsics.height}" for f in frames}),
+        "touches": len(touches),
+        "touches_in_contact": sum(t.in_contact for t in touches),
+        "grasps": len({t.grasp for t in touches}),
+        "touches_per_grasp": {str(g): n for g, n in sorted(Counter(t.grasp for t in touches).items())},
+        "touches_per_finger": dict(sorted(Counter(t.finger for t in touches).items())),
+        "hand_motion": {
             "grasps": len(motions),
             "samples": int(sum(len(m.t) for m in motions)),
             "joints": len(motions[0].joint_names),
@@ -63,25 +46,19 @@ def summarise(path) -> dict:
             "effort_unit": motions[0].effort_unit,
             "peak_effort": float(np.nanmax([np.nanmax(np.abs(m.effort), initial=0.0) for m in motions])),
         }
-    if scene.sensor is not None:
-        s = scene.sensor
-        summary["sensor"] = {
-            "name": s.name,
-            "width_px": s.width_px,
-            "height_px": s.height_px,
-            "pixel_size_m": s.pixel_size_m,
-            "gel_thickness_m": s.gel_thickness_m,
-        }
-    if scene.frames or any(t.in_contact for t in scene.touches):
-        lo, hi = scene.bounds()
-        summary["bounds"] = {"lo": lo.tolist(), "hi": hi.tolist()}
-    summary["gt"] = {
-        "mesh": scene.gt_mesh_file,
-        "points": scene.gt_points_file,
-        "depth_maps": len(scene.gt_depth_files),
+        if motions
+        else None,
+        "sensor": sensor_to_json(scene and scene.sensor),
+        "bounds": None if lo is None else {"lo": lo.tolist(), "hi": hi.tolist()},
+        "gt": {
+            "mesh": scene and scene.gt_mesh_file,
+            "points": scene and scene.gt_points_file,
+            "depth_maps": len(scene.gt_depth_files) if scene else 0,
+        },
+        "annotations": sorted(scene.annotations) if scene else [],
+        "journal": (path / JOURNAL).is_file(),
+        "problems": [str(e) for e in errors],
     }
-    summary["annotations"] = sorted(scene.annotations)
-    return summary
 
 
 def format_summary(summary: dict) -> str:
@@ -108,16 +85,11 @@ def format_summary(summary: dict) -> str:
             f"{motion['links']} links): {d['min']:.2f} to {d['max']:.2f} s per grasp (median {d['median']:.2f}), "
             f"peak effort {motion['peak_effort']:.3g} {motion['effort_unit']}"
         )
-    sensor = summary["sensor"]
-    lines.append(
-        "sensor    "
-        + (
-            "none"
-            if sensor is None
-            else f"{sensor['name']} {sensor['width_px']}x{sensor['height_px']} px, "
-            f"{sensor['pixel_size_m'] * 1e3:.3g} mm/px, gel {sensor['gel_thickness_m'] * 1e3:.3g} mm"
-        )
-    )
+    if (s := summary["sensor"]) is None:
+        lines.append("sensor    none")
+    else:
+        mm = f"{s['pixel_size_m'] * 1e3:.3g} mm/px, gel {s['gel_thickness_m'] * 1e3:.3g} mm"
+        lines.append(f"sensor    {s['name']} {s['width_px']}x{s['height_px']} px, {mm}")
     if summary["bounds"] is not None:
         lo, hi = np.asarray(summary["bounds"]["lo"]), np.asarray(summary["bounds"]["hi"])
         fmt = lambda v: "(" + ", ".join(f"{x:+.3f}" for x in v) + ")"  # noqa: E731
@@ -145,9 +117,7 @@ def plot_scene(path, png_path) -> Path:
     fig = Figure(figsize=(7, 6))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(projection="3d")
-    lo = hi = None
-    if scene.frames or any(t.in_contact for t in scene.touches):
-        lo, hi = scene.bounds()
+    lo, hi = scene.bounds() if scene.frames or any(t.in_contact for t in scene.touches) else (None, None)
     arrow = 0.25 * float(np.max(hi - lo)) if lo is not None else 0.05
     for split, color in zip(SPLITS, ("tab:blue", "tab:orange")):
         frames = scene.split(split)
@@ -163,23 +133,15 @@ def plot_scene(path, png_path) -> Path:
             ax.scatter(*points.T, color="tab:red", s=1, label=f"contact points ({len(scene.touches)} touches)")
     if lo is not None:
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        for i in range(8):
-            for j in range(i + 1, 8):
-                if np.count_nonzero(corners[i] != corners[j]) == 1:
-                    ax.plot(*corners[[i, j]].T, color="grey", linewidth=0.5)
-    shown = [np.array([f.T_world_cam[:3, 3] for f in scene.frames]).reshape(-1, 3)]
-    if lo is not None:
-        shown.append(np.stack([lo, hi]))
-    shown = np.concatenate(shown)
+        for a, b in itertools.combinations(corners, 2):
+            if np.count_nonzero(a != b) == 1:  # an edge of the box
+                ax.plot(*np.stack([a, b]).T, color="grey", linewidth=0.5)
+    shown = np.array([f.T_world_cam[:3, 3] for f in scene.frames] + ([] if lo is None else [lo, hi])).reshape(-1, 3)
     centre = (shown.min(axis=0) + shown.max(axis=0)) / 2
     half = max(float(np.max(shown.max(axis=0) - shown.min(axis=0))) / 2, 1e-3) * 1.1
-    ax.set_xlim(centre[0] - half, centre[0] + half)  # equal axes: the capture's real shape
-    ax.set_ylim(centre[1] - half, centre[1] + half)
-    ax.set_zlim(centre[2] - half, centre[2] + half)
+    ax.set(**{f"{axis}lim": (c - half, c + half) for axis, c in zip("xyz", centre)})  # equal axes: the real shape
     ax.set_box_aspect((1, 1, 1))
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.set_zlabel("z [m]")
+    ax.set(xlabel="x [m]", ylabel="y [m]", zlabel="z [m]")
     ax.set_title(f"{scene.meta.object} ({scene.meta.source}): cameras, touches and bounds")
     ax.legend(loc="upper left", fontsize="small")
     png_path = Path(png_path)

@@ -33,7 +33,6 @@ Images are stored as RGB PNG (an alpha channel is dropped, as the COLMAP importe
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,15 +41,23 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_problem
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .blender import check_readable, check_scale, composite, pose_from_opengl, read_raw, read_rgba
-from .outputs import claim_output_dir
+from .blender import (
+    check_options,
+    check_readable,
+    composite,
+    hold_out,
+    pose_from_opengl,
+    read_index,
+    read_raw,
+    read_rgba,
+)
 from .records import SceneMeta, as_size, camera_problem, is_finite_number
-from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+from .writer import new_import
 
 log = logging.getLogger(__name__)
 
@@ -90,22 +97,9 @@ class _SourceFrame:
 
 def _read_index(src: Path) -> tuple[Path, dict]:
     index = src if src.suffix.lower() == ".json" else src / "transforms.json"
-    if not index.is_file():
-        raise SceneFormatError(
-            index,
-            None,
-            "missing (expected a nerfstudio or instant-ngp dataset: a folder holding "
-            "transforms.json, or the file itself)",
-        )
-    try:
-        data = json.loads(index.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise SceneFormatError(index, None, f"not valid JSON: {exc}") from exc
-    if not isinstance(data, dict):
-        raise SceneFormatError(index, None, f"expected a JSON object, got {type(data).__name__}")
-    if not isinstance(data.get("frames"), list) or not data["frames"]:
-        raise SceneFormatError(index, "frames", "expected a non-empty list")
-    return index, data
+    return index, read_index(
+        index, "expected a nerfstudio or instant-ngp dataset: a folder holding transforms.json, or the file itself"
+    )
 
 
 def _source_frames(index: Path, data: dict) -> list[_SourceFrame]:
@@ -137,20 +131,16 @@ def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
         return False
     known = {f.name for f in frames}
     for key, names in lists.items():
-        unknown = sorted(str(n) for n in names - known)
-        if unknown:
+        if unknown := sorted(str(n) for n in names - known):
             raise SceneFormatError(
                 index,
                 key,
-                f"{len(unknown)} file paths are no frame's file_path: "
-                + ", ".join(unknown[:5])
-                + (" ..." if len(unknown) > 5 else ""),
+                f"{len(unknown)} file paths are no frame's file_path: {_listed(unknown)}",
             )
     train = lists.get("train_filenames", set())
     test_key = "test_filenames" if "test_filenames" in lists else "val_filenames"
     test = lists.get(test_key, set())
-    shared = sorted(str(n) for n in train & test)
-    if shared:
+    if shared := sorted(str(n) for n in train & test):
         raise SceneFormatError(
             index,
             test_key,
@@ -159,6 +149,10 @@ def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
     for f in frames:
         f.split = "train" if f.name in train else "test" if f.name in test else None
     return True
+
+
+def _listed(names: list[str], most: int = 5) -> str:
+    return ", ".join(names[:most]) + (" ..." if len(names) > most else "")
 
 
 def _number(key: str, frame: _SourceFrame, data: dict, default=None):
@@ -209,8 +203,7 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
         focal["fl_y"] = focal["fl_x"]
     cx, _ = _number("cx", frame, data, w / 2)
     cy, _ = _number("cy", frame, data, h / 2)
-    problem = camera_problem(focal["fl_x"], focal["fl_y"], cx, cy, w, h)
-    if problem:
+    if problem := camera_problem(focal["fl_x"], focal["fl_y"], cx, cy, w, h):
         raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
     k4, field = _number("k4", frame, data, 0.0)
     if k4 != 0:
@@ -227,8 +220,7 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
             raise SceneFormatError(index, field, f"expected a finite number, got {value!r}")
         distortion.append(float(value))
     camera = Camera(float(focal["fl_x"]), float(focal["fl_y"]), float(cx), float(cy), w, h, tuple(distortion))
-    problem = distortion_problem(camera)
-    if problem:
+    if problem := distortion_problem(camera):
         raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
     return camera
 
@@ -331,8 +323,7 @@ def _applied_transform(data: dict, index: Path) -> tuple[np.ndarray | None, floa
         if A.shape not in ((3, 4), (4, 4)):
             raise SceneFormatError(index, "applied_transform", f"expected a 3x4 matrix, got {np.shape(A)}")
         applied = np.vstack([A[:3], [0.0, 0.0, 0.0, 1.0]])
-        problem = rigidity_problem(applied, atol=1e-6)
-        if problem:
+        if problem := rigidity_problem(applied, atol=1e-6):
             raise SceneFormatError(index, "applied_transform", f"not a rigid transform: {problem}")
     scale = data.get("applied_scale", 1.0)
     if not is_finite_number(scale) or scale <= 0:
@@ -365,7 +356,7 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
             index,
             len(left_out),
             "/".join(SPLIT_LISTS),
-            ", ".join(left_out[:5]) + (" ..." if len(left_out) > 5 else ""),
+            _listed(left_out),
         )
         frames = [f for f in frames if f.split is not None]
     missing = [f.raw["file_path"] for f in frames if not f.image.is_file()]
@@ -373,30 +364,20 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
         raise SceneFormatError(
             index,
             "frames",
-            f"the images of {len(missing)} of {len(frames)} frames are missing: "
-            + ", ".join(missing[:10])
-            + (" ..." if len(missing) > 10 else "")
-            + " (--skip-missing imports the others)",
+            f"the images of {len(missing)} of {len(frames)} frames are missing: {_listed(missing, 10)} "
+            "(--skip-missing imports the others)",
         )
     if missing:
         log.warning("%s: skipping %d frames whose image is missing: %s", index, len(missing), ", ".join(missing))
         frames = [f for f in frames if f.image.is_file()]
     if not has_lists:
-        for k, f in enumerate(frames):
-            f.split = "test" if test_every and k % test_every == 0 else "train"
-    if not any(f.split == "train" for f in frames):
-        if has_lists:
-            raise SceneFormatError(
-                index,
-                "train_filenames",
-                f"no train frame to import: none of the {len(frames)} frames to import is in train_filenames",
-            )
+        for f, split in zip(frames, hold_out(len(frames), test_every, index, "frames", "frames in file-name order")):
+            f.split = split
+    elif not any(f.split == "train" for f in frames):
         raise SceneFormatError(
             index,
-            "frames",
-            f"no train frame to import: the test split takes every "
-            f"{test_every}-th of the {len(frames)} frames in file-name order, the first included; "
-            "--test-every 0 (test_every=0) keeps them all for training",
+            "train_filenames",
+            f"no train frame to import: none of the {len(frames)} frames to import is in train_filenames",
         )
     in_file_order = sorted(frames, key=lambda f: f.position)
     first = in_file_order[0]
@@ -438,9 +419,7 @@ def import_nerfstudio(
     (``datasets.outputs``). Returns ``out``.
     """
     src, out = Path(src), Path(out)
-    check_scale(scale)
-    if isinstance(test_every, bool) or not isinstance(test_every, int) or test_every < 0:
-        raise ConfigError("test_every", f"must be an integer >= 0 (0: no test split), got {test_every!r}")
+    check_options(scale, test_every)
     index, data = _read_index(src)
     frames, selection = _select_frames(index, data, test_every, skip_missing)
     cameras = [_camera(f, data, index) for f in frames]
@@ -473,20 +452,13 @@ def import_nerfstudio(
     meta = SceneMeta(source="import", object=object_name or index.parent.resolve().name, extra=extra)
 
     tables = {camera: undistortion(camera) for camera in set(cameras)}
-    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
-    with claim_output_dir(out), removed_on_failure(out), SceneWriter.create(out, tables[cameras[0]][0], meta) as writer:
+    with new_import(out, tables[cameras[0]][0], meta) as writer:
         for f, camera, pose in progress_bar(
             list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}", unit="frame"
         ):
             intr, maps = tables[camera]
-            rgb = read_rgba(f.image, f.field)[:, :, :3].astype(np.float32)
-            if rgb.shape[:2] != (camera.height, camera.width):
-                raise SceneFormatError(
-                    f.image,
-                    f.field,
-                    f"image is {rgb.shape[1]}x{rgb.shape[0]} but the camera says "
-                    f"w x h = {camera.width}x{camera.height}",
-                )
+            rgb = read_rgba(f.image, f.field, (camera.width, camera.height), "the camera (w x h)")
+            rgb = rgb[:, :, :3].astype(np.float32)
             mask = None if "mask_path" not in f.raw else _read_mask(index.parent / str(f.raw["mask_path"]), camera, f)
             if maps is not None:
                 rgb = cv2.remap(rgb, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

@@ -41,10 +41,10 @@ from tacsplat.geometry import invert_pose, rigidity_problem, unproject_depth
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .blender import check_scale, composite, read_raw, read_rgba
-from .outputs import claim_output_dir
+from .blender import check_options, composite, read_raw, read_rgba
+from .reader import _Problems, load_points_ply
 from .records import SceneMeta
-from .writer import SceneWriter, check_new_scene_dir, removed_on_failure
+from .writer import new_import
 
 SPLIT_FILE = "synthetic_split_128.pkl"
 DEPTH_RANGE = 15.0  # dataset units at the depth PNG's 65535
@@ -134,8 +134,7 @@ def read_split(path: Path, names: set[str]) -> tuple[list[str], list[str]]:
         raise SceneFormatError(path, None, "expected a pickled [test ids, train ids]") from None
     if not train or not test or set(train) & set(test):
         raise SceneFormatError(path, None, f"expected two disjoint, non-empty lists; got {len(test)} and {len(train)}")
-    unknown = sorted((set(train) | set(test)) - names, key=_number)
-    if unknown:
+    if unknown := sorted((set(train) | set(test)) - names, key=_number):
         raise SceneFormatError(path, None, f"names views the dataset does not have: {', '.join(unknown[:5])}")
     return sorted(train, key=_number), sorted(test, key=_number)
 
@@ -159,10 +158,9 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     ``scale`` (metres per dataset unit) multiplies the camera positions, depths and points. ``out`` is claimed as
     the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
-    import trimesh
 
     src, out = Path(src), Path(out)
-    check_scale(scale)
+    check_options(scale)
     if not src.is_dir():
         raise SceneFormatError(src, None, "not a folder (expected a Glossy Synthetic object folder, e.g. .../bell)")
     names = {p.name.removesuffix("-camera.pkl") for p in src.glob("*-camera.pkl")}
@@ -187,25 +185,16 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
             "ground_truth": "eval_pts.ply" if eval_points.is_file() else f"test views' depth, {EVAL_VOXEL} voxels",
         },
     )
-    check_new_scene_dir(out)
     fallback_points = []
     with (
-        claim_output_dir(out),
-        removed_on_failure(out),
-        SceneWriter.create(out, CameraIntrinsics(cameras[train[0]][1], width, height), meta) as writer,
+        new_import(out, CameraIntrinsics(cameras[train[0]][1], width, height), meta) as writer,
         progress_bar(total=len(train) + len(test), desc=f"import {src.name}", unit="view") as progress,
     ):
         for split_name, views in (("train", train), ("test", test)):
             for name in views:
                 pose, K = cameras[name]
                 image_path = src / f"{name}.png"
-                rgba = read_rgba(image_path)
-                if rgba.shape[:2] != (height, width):
-                    raise SceneFormatError(
-                        image_path,
-                        None,
-                        f"image is {rgba.shape[1]}x{rgba.shape[0]}, {first_image.name} is {width}x{height}",
-                    )
+                rgba = read_rgba(image_path, None, (width, height), first_image.name)
                 depth = read_depth(src / f"{name}-depth.png", (height, width))
                 rgba = np.concatenate([rgba[:, :, :3], (depth > 0)[:, :, None].astype(np.float64)], axis=2)
                 unit_pose, pose = pose, pose.copy()
@@ -216,14 +205,9 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
                 if split_name == "test" and not eval_points.is_file():
                     fallback_points.append(unproject_depth(depth, K, unit_pose))
                 progress.update()
-        if eval_points.is_file():
-            try:
-                points = np.asarray(trimesh.load(str(eval_points), file_type="ply").vertices, dtype=np.float64)
-            except Exception as exc:  # trimesh raises many types for damaged files
-                raise SceneFormatError(eval_points, None, f"unreadable PLY point cloud: {exc}") from exc
+        if eval_points.is_file():  # checked as the reader checks the scene's copy
+            points = load_points_ply(eval_points, _Problems(collect=False), None)
         else:
             points = voxel_downsample(np.concatenate(fallback_points), EVAL_VOXEL)
-        if points.ndim != 2 or points.shape[1:] != (3,) or not len(points) or not np.isfinite(points).all():
-            raise SceneFormatError(eval_points, None, f"expected finite points [N, 3], got shape {points.shape}")
         writer.set_gt_points(scale * points)
     return out

@@ -13,15 +13,16 @@ them, so a scene one command refuses, every command refuses.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
+from typing import NoReturn
 
 import cv2
 import numpy as np
 from PIL import Image
 
 from tacsplat.errors import InvalidInputError, SceneFormatError
-from tacsplat.geometry import opengl_to_opencv, tactile_depth_to_normals, tactile_depth_to_points
+from tacsplat.geometry import intrinsics_matrix, opengl_to_opencv, tactile_depth_to_normals, tactile_depth_to_points
 from tacsplat.types import CameraIntrinsics
 
 from .records import (
@@ -38,6 +39,7 @@ from .records import (
     as_size,
     camera_problem,
     depth_problem,
+    intrinsics_equal,
     normal_map_problem,
     pose_problem,
     touch_depth_limit,
@@ -52,6 +54,10 @@ _FOREIGN_KEYS = ("applied_transform", "applied_scale", "ply_file_path")
 _FOREIGN_FRAME_KEYS = ("depth_file_path",)
 
 
+class _Dropped(Exception):
+    """A record (or file) with a problem, reported already, is left out of the scene."""
+
+
 class _Problems:
     """Raises the first problem (``collect=False``) or collects them all."""
 
@@ -59,13 +65,27 @@ class _Problems:
         self.collect = collect
         self.errors: list[SceneFormatError] = []
 
-    def report(self, path: Path, field: str | None, message: str) -> None:
+    def note(self, path: Path, field: str | None, message: str) -> None:
+        """A problem after which reading goes on (when collecting)."""
         self.add(SceneFormatError(path, field, message))
+
+    def report(self, path: Path, field: str | None, message: str) -> NoReturn:
+        """A problem that leaves out what it is in: raised, or collected and then :class:`_Dropped` raised."""
+        self.note(path, field, message)
+        raise _Dropped
 
     def add(self, error: SceneFormatError) -> None:
         if not self.collect:
             raise error
         self.errors.append(error)
+
+    @staticmethod
+    def attempt(read, *args):
+        """``read(*args)``, or None when what it reads was left out (:meth:`report`)."""
+        try:
+            return read(*args)
+        except _Dropped:
+            return None
 
 
 def _first_line(exc: Exception) -> str:
@@ -76,96 +96,91 @@ def _is_int(x) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
 
 
-def _read_json(path: Path, problems: _Problems, required: bool = True):
+def _read_json(path: Path, problems: _Problems, required: bool = True) -> dict:
     if not path.is_file():
         if required:
             problems.report(path, None, "missing (not a scene directory, or its creation never finished)")
-        return None
+        raise _Dropped
     try:
         data = json.loads(path.read_text())
     except (ValueError, UnicodeDecodeError) as exc:
         problems.report(path, None, f"not valid JSON: {exc}")
-        return None
     if not isinstance(data, dict):
         problems.report(path, None, f"expected a JSON object at the top level, got {type(data).__name__}")
-        return None
     return data
 
 
-def _relative_file(scene: Path, rel, index: Path, field: str, problems: _Problems) -> Path | None:
+def _relative_file(scene: Path, rel, index: Path, field: str, problems: _Problems) -> Path:
     """Resolve a path stored in an index file; it must stay inside the scene directory."""
     if not isinstance(rel, str) or not rel:
         problems.report(index, field, f"expected a relative file path, got {rel!r}")
-        return None
-    p = Path(rel)
-    if p.is_absolute() or ".." in p.parts:
+    if Path(rel).is_absolute() or ".." in Path(rel).parts:
         problems.report(index, field, f"{rel!r} must be a path inside the scene directory")
-        return None
-    return scene / p
+    return scene / rel
 
 
-def _pose(value, index: Path, field: str, problems: _Problems) -> np.ndarray | None:
-    problem = pose_problem(value)
-    if problem:
+def _pose(value, index: Path, field: str, problems: _Problems) -> np.ndarray:
+    if problem := pose_problem(value):
         problems.report(index, field, problem)
-        return None
     return np.asarray(value, dtype=np.float64)
 
 
+def _entry_id(raw, index: Path, field: str, kind: str, seen: dict, problems: _Problems) -> int:
+    """The id of entry ``field`` (``frames[3]``) of an index file's list: an object with a new non-negative id."""
+    if not isinstance(raw, dict):
+        problems.report(index, field, f"expected an object, got {type(raw).__name__}")
+    rid = raw.get("id")
+    if not _is_int(rid) or rid < 0:
+        problems.report(index, f"{field}.id", f"expected a non-negative integer, got {rid!r}")
+    if rid in seen:
+        problems.report(index, f"{field}.id", f"duplicate {kind} id {rid} (also {seen[rid]})")
+    seen[rid] = field
+    return rid
+
+
 def load_depth_npz(
-    path: Path, shape: tuple[int, int] | None, problems: _Problems, field: str, limit: tuple[float, str]
-) -> np.ndarray | None:
+    path: Path, shape: tuple[int, int], problems: _Problems, field: str, limit: tuple[float, str]
+) -> np.ndarray:
     """Load and check a float32 depth map saved by the writer (key ``depth``); ``limit`` is (deepest value in
     metres, why) as :func:`depth_problem` takes it."""
     if not path.is_file():
         problems.report(path, None, "depth file missing")
-        return None
     try:
         with np.load(path, allow_pickle=False) as npz:
             names = list(npz.files)
             depth = npz["depth"] if "depth" in names else None
     except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
         problems.report(path, field, f"truncated or corrupt npz: {_first_line(exc)}")
-        return None
     if depth is None:
         problems.report(path, field, f"no 'depth' array (has {names})")
-        return None
-    if shape is not None and depth.shape != shape:
+    if depth.shape != shape:
         problems.report(path, field, f"shape {depth.shape} does not match the expected {shape}")
-        return None
-    problem = depth_problem(depth, *limit)
-    if problem:
+    if problem := depth_problem(depth, *limit):
         problems.report(path, field, problem)
-        return None
     return depth.astype(np.float32, copy=False)
 
 
-def load_points_ply(path: Path, problems: _Problems, field: str) -> np.ndarray | None:
+def load_points_ply(path: Path, problems: _Problems, field: str) -> np.ndarray:
     """The vertices [N, 3] of a PLY point cloud written by the writer (``gt/points.ply``), checked finite."""
     import trimesh
 
     if not path.is_file():
         problems.report(path, None, "point cloud file missing")
-        return None
     try:
         points = np.asarray(trimesh.load(str(path), file_type="ply").vertices, dtype=np.float64)
     except Exception as exc:  # trimesh raises many types for damaged files
         problems.report(path, field, f"unreadable PLY point cloud: {_first_line(exc)}")
-        return None
     if points.ndim != 2 or points.shape[1:] != (3,) or not len(points):
         problems.report(path, field, f"expected a non-empty [N, 3] point cloud, got shape {points.shape}")
-        return None
     if not np.isfinite(points).all():
         problems.report(path, field, "contains NaN or infinite coordinates")
-        return None
     return points
 
 
-def load_hand_motion(path: Path, problems: _Problems, field: str) -> HandMotion | None:
+def load_hand_motion(path: Path, problems: _Problems, field: str) -> HandMotion:
     """Load and check a grasp's hand motion written by the writer (:meth:`HandMotion.to_arrays`'s keys)."""
     if not path.is_file():
         problems.report(path, None, "hand motion file missing")
-        return None
     try:
         with np.load(path, allow_pickle=False) as npz:
             return HandMotion.from_arrays(npz)
@@ -173,49 +188,38 @@ def load_hand_motion(path: Path, problems: _Problems, field: str) -> HandMotion 
         problems.report(path, field, str(exc))
     except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes; KeyError for a key
         problems.report(path, field, f"truncated, corrupt or incomplete npz: {_first_line(exc)}")
-    return None
 
 
 def _check_image(
     path: Path, intr: CameraIntrinsics, index: Path, field: str, problems: _Problems, mode: str = "RGB"
-) -> bool:
+) -> None:
     """Header and chunk checksums of an image file (no full decode): exists, intact, ``mode`` (RGB, or L for a
     mask), size w x h."""
     if not path.is_file():
         problems.report(index, field, f"{'image' if mode == 'RGB' else 'mask'} file {path.name} is missing")
-        return False
     try:
         with Image.open(path) as img:
             size, actual_mode = img.size, img.mode
             img.verify()
     except Exception as exc:  # PIL raises many types for damaged bytes (OSError, SyntaxError, struct.error, ...)
         problems.report(path, field, f"corrupt or truncated image: {_first_line(exc)}")
-        return False
     if actual_mode != mode:
         what = "RGB image" if mode == "RGB" else "greyscale mask"
         problems.report(path, field, f"expected an 8-bit {what}, got PIL mode {actual_mode!r}")
-        return False
     if size != (intr.width, intr.height):
         problems.report(
             path, field, f"image is {size[0]}x{size[1]} but the camera says w x h = {intr.width}x{intr.height}"
         )
-        return False
-    return True
 
 
-def _intrinsics(frame: dict, top: dict, index: Path, field: str, problems: _Problems) -> CameraIntrinsics | None:
-    values = {}
-    for key in _INTRINSIC_KEYS:
-        value = frame.get(key, top.get(key))
+def _intrinsics(frame: dict, top: dict, index: Path, field: str, problems: _Problems) -> CameraIntrinsics:
+    values = {key: frame.get(key, top.get(key)) for key in _INTRINSIC_KEYS}
+    for key, value in values.items():
         if value is None:
             problems.report(index, f"{field}.{key}", "missing (neither in the frame nor at the top level)")
-            return None
-        values[key] = value
-    problem = camera_problem(*(values[key] for key in _INTRINSIC_KEYS))
-    if problem:
+    if problem := camera_problem(*values.values()):
         problems.report(index, f"{field}.{problem[0]}", problem[1])
-        return None
-    K = np.array([[values["fl_x"], 0, values["cx"]], [0, values["fl_y"], values["cy"]], [0, 0, 1]], dtype=np.float64)
+    K = intrinsics_matrix(values["fl_x"], values["fl_y"], values["cx"], values["cy"])
     return CameraIntrinsics(K=K, width=as_size(values["w"]), height=as_size(values["h"]))
 
 
@@ -240,8 +244,7 @@ class Scene:
 
         ``check_files=False`` skips opening images and depth maps (index files only).
         """
-        scene, _ = _read_scene(Path(path), _Problems(collect=False), check_files)
-        return scene
+        return _read_scene(Path(path), _Problems(collect=False), check_files)
 
     # --- views --------------------------------------------------------------------------------
 
@@ -257,13 +260,7 @@ class Scene:
         if not self.frames:
             return None
         first = self.frames[0].intrinsics
-        same = all(
-            f.intrinsics.width == first.width
-            and f.intrinsics.height == first.height
-            and np.array_equal(f.intrinsics.K, first.K)
-            for f in self.frames
-        )
-        return first if same else None
+        return first if all(intrinsics_equal(f.intrinsics, first) for f in self.frames) else None
 
     @property
     def num_grasps(self) -> int:
@@ -283,8 +280,7 @@ class Scene:
         """The ground-truth point cloud [N, 3] in metres (:attr:`gt_points_path`), or None."""
         if self.gt_points_path is None:
             return None
-        problems = _Problems(collect=False)
-        return load_points_ply(self.gt_points_path, problems, "gt.points")
+        return load_points_ply(self.gt_points_path, _Problems(collect=False), "gt.points")
 
     # --- data ---------------------------------------------------------------------------------
 
@@ -344,22 +340,20 @@ class Scene:
 
     def touch_points(self, threshold_m: float = 1e-5) -> np.ndarray:
         """Every touch's contact points in the world, [M, 3] float64 (see ``tactile_depth_to_points``)."""
-        points = [
-            tactile_depth_to_points(self.load_touch_depth(t), self.sensor.pixel_size_m, t.T_world_sensor, threshold_m)
-            for t in self.touches
-            if t.in_contact
-        ]
-        return np.concatenate(points, axis=0) if points else np.zeros((0, 3))
+        return self._in_contact(tactile_depth_to_points, threshold_m)
 
     def touch_normals(self, threshold_m: float = 1e-5) -> np.ndarray:
         """The touched surface's outward normals [M, 3] at :meth:`touch_points` (same order; NaN where a contact
         pixel's slope is not known, see ``tactile_depth_to_normals``)."""
-        normals = [
-            tactile_depth_to_normals(self.load_touch_depth(t), self.sensor.pixel_size_m, t.T_world_sensor, threshold_m)
+        return self._in_contact(tactile_depth_to_normals, threshold_m)
+
+    def _in_contact(self, per_touch, threshold_m: float) -> np.ndarray:
+        rows = [
+            per_touch(self.load_touch_depth(t), self.sensor.pixel_size_m, t.T_world_sensor, threshold_m)
             for t in self.touches
             if t.in_contact
         ]
-        return np.concatenate(normals, axis=0) if normals else np.zeros((0, 3))
+        return np.concatenate(rows, axis=0) if rows else np.zeros((0, 3))
 
     def gt_depth(self, frame: Frame) -> np.ndarray | None:
         """Ground-truth z-depth [H, W] float32 metres of a frame (evaluation only), or None."""
@@ -439,8 +433,7 @@ def _camera_region(frames: list[Frame]) -> tuple[np.ndarray, np.ndarray]:
 def check_scene(path, check_files: bool = True) -> tuple[Scene | None, list[SceneFormatError]]:
     """Validate a scene collecting every problem; returns the readable part (None if nothing is) and the problems."""
     problems = _Problems(collect=True)
-    scene, _ = _read_scene(Path(path), problems, check_files)
-    return scene, problems.errors
+    return problems.attempt(_read_scene, Path(path), problems, check_files), problems.errors
 
 
 def _is_foreign_dataset(path: Path) -> bool:
@@ -455,10 +448,9 @@ def _is_foreign_dataset(path: Path) -> bool:
     return isinstance(data, dict) and isinstance(data.get("frames"), list) and len(data["frames"]) > 0
 
 
-def _read_scene(path: Path, problems: _Problems, check_files: bool) -> tuple[Scene | None, _Problems]:
+def _read_scene(path: Path, problems: _Problems, check_files: bool) -> Scene:
     if not path.is_dir():
         problems.report(path, None, "scene directory does not exist")
-        return None, problems
     if _is_foreign_dataset(path):
         problems.report(
             path,
@@ -466,24 +458,15 @@ def _read_scene(path: Path, problems: _Problems, check_files: bool) -> tuple[Sce
             "a nerfstudio or instant-ngp dataset (transforms.json with frames, no scene.json), "
             f"not a tacsplat scene: import it first with `tacsplat import nerfstudio {path} --out SCENE`",
         )
-        return None, problems
-    meta, version, gt, annotations = _read_scene_json(path, problems)
-    frames, declared_ids = _read_frames(path, problems, check_files)
+    meta, version, gt, annotations = problems.attempt(_read_scene_json, path, problems) or (None, "", {}, {})
+    frames, declared_ids = problems.attempt(_read_frames, path, problems, check_files) or ([], set())
     sensor, touches = _read_touches(path, problems, check_files)
     if meta is None:
-        return None, problems
-    scene = Scene(
-        path=path,
-        frames=frames,
-        touches=touches,
-        sensor=sensor,
-        meta=meta,
-        tacsplat_version=version,
-        annotations=annotations,
-    )
+        raise _Dropped
+    scene = Scene(path, frames, touches, sensor, meta, tacsplat_version=version, annotations=annotations)
     _read_gt(scene, gt, declared_ids, problems, check_files)
     _check_complete(scene, problems)
-    return scene, problems
+    return scene
 
 
 def _check_complete(scene: Scene, problems: _Problems) -> None:
@@ -498,27 +481,27 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
             frames, touches = journaled.num_frames, journaled.num_touches
             resume = "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites the index"
             if (frames, touches) != (len(scene.frames), len(scene.touches)) and not problems.errors:
-                problems.report(
+                problems.note(
                     journal,
                     None,
                     f"records {frames} frames and {touches} touches but the index files "
                     f"hold {len(scene.frames)} and {len(scene.touches)}: {resume}",
                 )
             elif journaled.annotations != scene.annotations and not problems.errors:
-                problems.report(journal, "annotations", f"records other annotations than scene.json holds: {resume}")
+                problems.note(journal, "annotations", f"records other annotations than scene.json holds: {resume}")
             elif (journaled.gt_mesh, journaled.gt_points, journaled.gt_depth_files) != (
                 scene.gt_mesh_file,
                 scene.gt_points_file,
                 scene.gt_depth_files,
             ) and not problems.errors:
-                problems.report(journal, "gt", f"records other ground truth than scene.json holds: {resume}")
+                problems.note(journal, "gt", f"records other ground truth than scene.json holds: {resume}")
     if not problems.errors:
         _check_twin_ground_truth(scene, problems)
     index = scene.path / "transforms.json"
     if not scene.frames:
-        problems.report(index, "frames", "the scene has no frames")
+        problems.note(index, "frames", "the scene has no frames")
     elif not scene.split("train"):
-        problems.report(index, "frames", "the scene has no train frames")
+        problems.note(index, "frames", "the scene has no train frames")
 
 
 def _check_twin_ground_truth(scene: Scene, problems: _Problems) -> None:
@@ -528,63 +511,54 @@ def _check_twin_ground_truth(scene: Scene, problems: _Problems) -> None:
         return
     index = scene.path / "scene.json"
     if scene.gt_mesh_file is None:
-        problems.report(
+        problems.note(
             index,
             "gt.mesh",
             "a capture on the twin without its ground-truth mesh (its write failed, "
             "or the capture stopped before it): resume the capture (--resume) to write it",
         )
-    missing = [f.id for f in scene.split("test") if f.id not in scene.gt_depth_files]
-    if missing:
-        problems.report(
+    if missing := [f.id for f in scene.split("test") if f.id not in scene.gt_depth_files]:
+        problems.note(
             index,
             "gt.depth",
             f"a capture on the twin without the ground-truth depth of its test frame(s) {', '.join(map(str, missing))}",
         )
 
 
-def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta | None, str, dict, dict]:
+def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta, str, dict, dict]:
     """Provenance, tacsplat version, ground truth and annotations (none in a scene older than them)."""
     index = path / "scene.json"
     data = _read_json(index, problems)
-    if data is None:
-        return None, "", {}, {}
-    ok = True
     if data.get("format", FORMAT_NAME) != FORMAT_NAME:
-        problems.report(index, "format", f"expected {FORMAT_NAME!r}, got {data.get('format')!r}")
+        problems.note(index, "format", f"expected {FORMAT_NAME!r}, got {data.get('format')!r}")
     version = data.get("format_version", FORMAT_VERSION)
     if not _is_int(version) or version != FORMAT_VERSION:
-        problems.report(
+        problems.note(
             index, "format_version", f"expected {FORMAT_VERSION} (the version this tacsplat reads), got {version!r}"
         )
     if data.get("units") != "m":
-        problems.report(index, "units", f"expected 'm' (all tacsplat scenes are in metres), got {data.get('units')!r}")
-    if data.get("source") not in SOURCES:
-        problems.report(index, "source", f"expected one of {SOURCES}, got {data.get('source')!r}")
-        ok = False
+        problems.note(index, "units", f"expected 'm' (all tacsplat scenes are in metres), got {data.get('units')!r}")
+    ok = data.get("source") in SOURCES
+    if not ok:
+        problems.note(index, "source", f"expected one of {SOURCES}, got {data.get('source')!r}")
     if not isinstance(data.get("object"), str) or not data.get("object"):
-        problems.report(index, "object", f"expected the object's name, got {data.get('object')!r}")
+        problems.note(index, "object", f"expected the object's name, got {data.get('object')!r}")
         ok = False
     for key in ("capture_plan", "extra"):
         if not isinstance(data.get(key, {}), dict):
-            problems.report(index, key, f"expected an object, got {type(data[key]).__name__}")
+            problems.note(index, key, f"expected an object, got {type(data[key]).__name__}")
             ok = False
     gt = data.get("gt") or {}
     if not isinstance(gt, dict):
-        problems.report(index, "gt", f"expected an object, got {type(gt).__name__}")
+        problems.note(index, "gt", f"expected an object, got {type(gt).__name__}")
         gt = {}
     annotations = data.get("annotations", {})
     if not isinstance(annotations, dict):
-        problems.report(index, "annotations", f"expected an object {{key: value}}, got {type(annotations).__name__}")
+        problems.note(index, "annotations", f"expected an object {{key: value}}, got {type(annotations).__name__}")
         annotations = {}
     if not ok:
-        return None, "", {}, {}
-    meta = SceneMeta(
-        source=data["source"],
-        object=data["object"],
-        capture_plan=data.get("capture_plan", {}),
-        extra=data.get("extra", {}),
-    )
+        raise _Dropped
+    meta = SceneMeta(**{key: data[key] for key in ("source", "object", "capture_plan", "extra") if key in data})
     return meta, str(data.get("tacsplat_version", "")), gt, annotations
 
 
@@ -592,19 +566,16 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
     """The valid frames, and every frame id declared (also by frames dropped for a problem)."""
     index = path / "transforms.json"
     data = _read_json(index, problems)
-    if data is None:
-        return [], set()
     if data.get("camera_model", "OPENCV") not in ("OPENCV", "PINHOLE"):
         problems.report(
             index, "camera_model", f"expected OPENCV or PINHOLE (undistorted images), got {data['camera_model']!r}"
         )
-        return [], set()
     for key in _DISTORTION_KEYS:
         if data.get(key, 0.0) != 0.0:
-            problems.report(index, key, f"images must be undistorted, but {key} = {data[key]!r}")
+            problems.note(index, key, f"images must be undistorted, but {key} = {data[key]!r}")
     for key in _FOREIGN_KEYS:
         if key in data:
-            problems.report(
+            problems.note(
                 index,
                 key,
                 "not part of a tacsplat scene (poses are in the world frame, in metres); "
@@ -613,200 +584,142 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
     raw_frames = data.get("frames")
     if not isinstance(raw_frames, list):
         problems.report(index, "frames", f"expected a list, got {type(raw_frames).__name__}")
-        return [], set()
-    frames: list[Frame] = []
-    seen_ids: dict[int, int] = {}
-    seen_files: dict[str, int] = {}
-    for i, raw in enumerate(raw_frames):
-        field = f"frames[{i}]"
-        if not isinstance(raw, dict):
-            problems.report(index, field, f"expected an object, got {type(raw).__name__}")
-            continue
-        fid = raw.get("id")
-        if not _is_int(fid) or fid < 0:
-            problems.report(index, f"{field}.id", f"expected a non-negative integer, got {fid!r}")
-            continue
-        if fid in seen_ids:
-            problems.report(index, f"{field}.id", f"duplicate frame id {fid} (also frames[{seen_ids[fid]}])")
-            continue
-        seen_ids[fid] = i
-        split = raw.get("split")
-        if split not in SPLITS:
-            problems.report(index, f"{field}.split", f"unknown split {split!r} (expected one of {SPLITS})")
-            continue
-        image_path = _relative_file(path, raw.get("file_path"), index, f"{field}.file_path", problems)
-        if image_path is None:
-            continue
-        if raw["file_path"] in seen_files:
-            problems.report(
-                index,
-                f"{field}.file_path",
-                f"duplicate file_path {raw['file_path']!r} (also frames[{seen_files[raw['file_path']]}])",
-            )
-            continue
-        seen_files[raw["file_path"]] = i
-        foreign = [key for key in _FOREIGN_FRAME_KEYS if key in raw]
-        if foreign:
-            problems.report(
-                index,
-                f"{field}.{foreign[0]}",
-                "not part of a tacsplat scene; import nerfstudio data with `tacsplat import nerfstudio`",
-            )
-            continue
-        mask_path = None
-        if raw.get("mask_path") is not None:
-            mask_path = _relative_file(path, raw["mask_path"], index, f"{field}.mask_path", problems)
-            if mask_path is None:
-                continue
-        T_gl = _pose(raw.get("transform_matrix"), index, f"{field}.transform_matrix", problems)
-        intr = _intrinsics(raw, data, index, field, problems)
-        if T_gl is None or intr is None:
-            continue
-        if check_files and not _check_image(image_path, intr, index, f"{field}.file_path", problems):
-            continue
-        if check_files and mask_path and not _check_image(mask_path, intr, index, f"{field}.mask_path", problems, "L"):
-            continue
-        frames.append(
-            Frame(
-                id=fid,
-                file_path=raw["file_path"],
-                T_world_cam=opengl_to_opencv(T_gl),
-                split=split,
-                intrinsics=intr,
-                mask_path=raw.get("mask_path"),
-            )
-        )
+    seen = {"id": {}, "file_path": {}}  # -> the field of the frame that has it
+    frames = [
+        problems.attempt(_read_frame, path, data, f"frames[{i}]", raw, seen, problems, check_files)
+        for i, raw in enumerate(raw_frames)
+    ]
+    frames = [f for f in frames if f is not None]
     masked = sum(f.mask_path is not None for f in frames)
     if 0 < masked < len(frames):
-        problems.report(
+        problems.note(
             index,
             "frames",
             f"{masked} of {len(frames)} frames have a mask_path: a scene has masks on "
             "every frame or on none (nerfstudio refuses anything else)",
         )
-    return frames, set(seen_ids)
+    return frames, set(seen["id"])
 
 
-def _read_sensor(raw, index: Path, problems: _Problems) -> SensorModel | None:
+def _read_frame(path: Path, data: dict, field: str, raw, seen: dict, problems: _Problems, check_files: bool) -> Frame:
+    index = path / "transforms.json"
+    fid = _entry_id(raw, index, field, "frame", seen["id"], problems)
+    split, file_path, mask = raw.get("split"), raw.get("file_path"), raw.get("mask_path")
+    if split not in SPLITS:
+        problems.report(index, f"{field}.split", f"unknown split {split!r} (expected one of {SPLITS})")
+    image_path = _relative_file(path, file_path, index, f"{field}.file_path", problems)
+    if file_path in seen["file_path"]:
+        problems.report(
+            index, f"{field}.file_path", f"duplicate file_path {file_path!r} (also {seen['file_path'][file_path]})"
+        )
+    seen["file_path"][file_path] = field
+    for key in _FOREIGN_FRAME_KEYS:
+        if key in raw:
+            problems.report(
+                index,
+                f"{field}.{key}",
+                "not part of a tacsplat scene; import nerfstudio data with `tacsplat import nerfstudio`",
+            )
+    mask_path = None if mask is None else _relative_file(path, mask, index, f"{field}.mask_path", problems)
+    T_gl = problems.attempt(_pose, raw.get("transform_matrix"), index, f"{field}.transform_matrix", problems)
+    intr = _intrinsics(raw, data, index, field, problems)
+    if T_gl is None:
+        raise _Dropped
+    if check_files:
+        _check_image(image_path, intr, index, f"{field}.file_path", problems)
+        if mask_path is not None:
+            _check_image(mask_path, intr, index, f"{field}.mask_path", problems, "L")
+    return Frame(fid, file_path, opengl_to_opencv(T_gl), split, intr, mask)
+
+
+def _read_sensor(raw, index: Path, problems: _Problems) -> SensorModel:
     if not isinstance(raw, dict):
         problems.report(index, "sensor", f"expected an object or null, got {type(raw).__name__}")
-        return None
-    keys = ("name", "width_px", "height_px", "pixel_size_m", "gel_thickness_m")
-    missing = [k for k in keys if k not in raw]
-    if missing:
+    keys = [f.name for f in fields(SensorModel)]
+    if missing := [k for k in keys if k not in raw]:
         problems.report(index, "sensor", f"missing keys {missing}")
-        return None
     try:
         return SensorModel(**{k: raw[k] for k in keys})
     except InvalidInputError as exc:
         problems.report(index, "sensor", str(exc))
-        return None
 
 
 def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[SensorModel | None, list[Touch]]:
     index = path / "touches.json"
-    data = _read_json(index, problems, required=False)
+    data = problems.attempt(_read_json, index, problems, False)
     if data is None:
         return None, []
-    sensor = None if data.get("sensor") is None else _read_sensor(data["sensor"], index, problems)
+    sensor = None if data.get("sensor") is None else problems.attempt(_read_sensor, data["sensor"], index, problems)
     raw_touches = data.get("touches", [])
     if not isinstance(raw_touches, list):
-        problems.report(index, "touches", f"expected a list, got {type(raw_touches).__name__}")
+        problems.note(index, "touches", f"expected a list, got {type(raw_touches).__name__}")
         return sensor, []
     if raw_touches and sensor is None:
         if data.get("sensor") is None:
-            problems.report(index, "sensor", f"{len(raw_touches)} touches but no sensor model")
+            problems.note(index, "sensor", f"{len(raw_touches)} touches but no sensor model")
         return None, []
-    touches: list[Touch] = []
-    seen: dict[int, int] = {}
-    motions: dict[Path, HandMotion | None] = {}  # each hand file checked once
-    for i, raw in enumerate(raw_touches):
-        field = f"touches[{i}]"
-        if not isinstance(raw, dict):
-            problems.report(index, field, f"expected an object, got {type(raw).__name__}")
-            continue
-        tid = raw.get("id")
-        if not _is_int(tid) or tid < 0:
-            problems.report(index, f"{field}.id", f"expected a non-negative integer, got {tid!r}")
-            continue
-        if tid in seen:
-            problems.report(index, f"{field}.id", f"duplicate touch id {tid} (also touches[{seen[tid]}])")
-            continue
-        seen[tid] = i
-        grasp, finger, in_contact = raw.get("grasp"), raw.get("finger"), raw.get("in_contact")
-        if not _is_int(grasp) or grasp < 0:
-            problems.report(index, f"{field}.grasp", f"expected a non-negative integer, got {grasp!r}")
-            continue
-        if not isinstance(finger, str) or not finger:
-            problems.report(index, f"{field}.finger", f"expected a finger name, got {finger!r}")
-            continue
-        if not isinstance(in_contact, bool):
-            problems.report(index, f"{field}.in_contact", f"expected true or false, got {in_contact!r}")
-            continue
-        depth_path = _relative_file(path, raw.get("depth_file"), index, f"{field}.depth_file", problems)
-        T = _pose(raw.get("T_world_sensor"), index, f"{field}.T_world_sensor", problems)
-        if depth_path is None or T is None:
-            continue
-        hand_file = raw.get("hand_file")
-        if hand_file is not None:
-            hand_path = _relative_file(path, hand_file, index, f"{field}.hand_file", problems)
-            if hand_path is None:
-                continue
-            if check_files and hand_path not in motions:
-                motions[hand_path] = load_hand_motion(hand_path, problems, f"{field}.hand_file")
-            if check_files and motions[hand_path] is None:
-                continue
-        if check_files:
-            depth = load_depth_npz(
-                depth_path,
-                (sensor.height_px, sensor.width_px),
-                problems,
-                f"touch {tid} depth",
-                touch_depth_limit(sensor),
+    seen, motions = {}, {}  # id -> field; hand file -> its HandMotion (each checked once)
+    touches = [
+        problems.attempt(_read_touch, path, f"touches[{i}]", raw, sensor, seen, motions, problems, check_files)
+        for i, raw in enumerate(raw_touches)
+    ]
+    return sensor, [t for t in touches if t is not None]
+
+
+def _read_touch(
+    path: Path, field: str, raw, sensor: SensorModel, seen: dict, motions: dict, problems: _Problems, check_files: bool
+) -> Touch:
+    index = path / "touches.json"
+    tid = _entry_id(raw, index, field, "touch", seen, problems)
+    grasp, finger, in_contact, hand_file = (
+        raw.get("grasp"),
+        raw.get("finger"),
+        raw.get("in_contact"),
+        raw.get("hand_file"),
+    )
+    if not _is_int(grasp) or grasp < 0:
+        problems.report(index, f"{field}.grasp", f"expected a non-negative integer, got {grasp!r}")
+    if not isinstance(finger, str) or not finger:
+        problems.report(index, f"{field}.finger", f"expected a finger name, got {finger!r}")
+    if not isinstance(in_contact, bool):
+        problems.report(index, f"{field}.in_contact", f"expected true or false, got {in_contact!r}")
+    depth_path = problems.attempt(_relative_file, path, raw.get("depth_file"), index, f"{field}.depth_file", problems)
+    T = _pose(raw.get("T_world_sensor"), index, f"{field}.T_world_sensor", problems)
+    if depth_path is None:
+        raise _Dropped
+    if hand_file is not None:
+        hand_path = _relative_file(path, hand_file, index, f"{field}.hand_file", problems)
+        if check_files and hand_path not in motions:
+            motions[hand_path] = problems.attempt(load_hand_motion, hand_path, problems, f"{field}.hand_file")
+        if check_files and motions[hand_path] is None:
+            raise _Dropped
+    if check_files:
+        shape, limit = (sensor.height_px, sensor.width_px), touch_depth_limit(sensor)
+        depth = load_depth_npz(depth_path, shape, problems, f"touch {tid} depth", limit)
+        if bool((depth > 0).any()) != in_contact:
+            problems.report(
+                index,
+                f"{field}.in_contact",
+                f"says {in_contact} but the depth map {'has' if (depth > 0).any() else 'has no'} contact",
             )
-            if depth is None:
-                continue
-            if bool((depth > 0).any()) != in_contact:
-                problems.report(
-                    index,
-                    f"{field}.in_contact",
-                    f"says {in_contact} but the depth map {'has' if (depth > 0).any() else 'has no'} contact",
-                )
-                continue
-        touches.append(
-            Touch(
-                id=tid,
-                grasp=grasp,
-                finger=finger,
-                depth_file=raw["depth_file"],
-                T_world_sensor=T,
-                in_contact=in_contact,
-                hand_file=hand_file,
-            )
-        )
-    return sensor, touches
+    return Touch(tid, grasp, finger, raw["depth_file"], T, in_contact, hand_file)
 
 
 def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems, check_files: bool) -> None:
     index = scene.path / "scene.json"
-    mesh = gt.get("mesh")
-    if mesh is not None:
-        mesh_path = _relative_file(scene.path, mesh, index, "gt.mesh", problems)
-        if mesh_path is not None:
-            if check_files and not mesh_path.is_file():
-                problems.report(index, "gt.mesh", f"ground-truth mesh {mesh!r} is missing")
-            else:
-                scene.gt_mesh_file = mesh
-    points = gt.get("points")
-    if points is not None:
-        points_path = _relative_file(scene.path, points, index, "gt.points", problems)
-        if points_path is not None and (
-            not check_files or load_points_ply(points_path, problems, "gt.points") is not None
-        ):
+    mesh, points, depth_files = gt.get("mesh"), gt.get("points"), gt.get("depth", {})
+    if mesh is not None and (path := problems.attempt(_relative_file, scene.path, mesh, index, "gt.mesh", problems)):
+        if check_files and not path.is_file():
+            problems.note(index, "gt.mesh", f"ground-truth mesh {mesh!r} is missing")
+        else:
+            scene.gt_mesh_file = mesh
+    if points is not None and (
+        path := problems.attempt(_relative_file, scene.path, points, index, "gt.points", problems)
+    ):
+        if not check_files or problems.attempt(load_points_ply, path, problems, "gt.points") is not None:
             scene.gt_points_file = points
-    depth_files = gt.get("depth", {})
     if not isinstance(depth_files, dict):
-        problems.report(index, "gt.depth", f"expected an object {{frame id: file}}, got {type(depth_files).__name__}")
+        problems.note(index, "gt.depth", f"expected an object {{frame id: file}}, got {type(depth_files).__name__}")
         return
     frames = {f.id: f for f in scene.frames}
     for key, rel in depth_files.items():
@@ -814,22 +727,12 @@ def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems
         fid = int(key) if isinstance(key, str) and key.isdigit() else None
         if fid not in frames:
             if fid not in declared_ids:  # (a declared frame with a problem has been reported already)
-                problems.report(index, field, f"no frame with id {key!r}")
+                problems.note(index, field, f"no frame with id {key!r}")
             continue
-        depth_path = _relative_file(scene.path, rel, index, field, problems)
-        if depth_path is None:
-            continue
-        frame = frames[fid]
-        if (
-            check_files
-            and load_depth_npz(
-                depth_path,
-                (frame.intrinsics.height, frame.intrinsics.width),
-                problems,
-                f"gt depth of frame {fid}",
-                GT_DEPTH_LIMIT,
-            )
-            is None
+        path = problems.attempt(_relative_file, scene.path, rel, index, field, problems)
+        shape = (frames[fid].intrinsics.height, frames[fid].intrinsics.width)
+        what = f"gt depth of frame {fid}"
+        if path is not None and (
+            not check_files or problems.attempt(load_depth_npz, path, shape, problems, what, GT_DEPTH_LIMIT) is not None
         ):
-            continue
-        scene.gt_depth_files[fid] = rel
+            scene.gt_depth_files[fid] = rel

@@ -9,12 +9,12 @@ and parsed only by :func:`frame_to_nerfstudio` / the reader, through
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.geometry import as_pose, opencv_to_opengl, rigidity_problem
+from tacsplat.geometry import as_pose, intrinsics_matrix, opencv_to_opengl, rigidity_problem
 from tacsplat.types import CameraIntrinsics
 
 SPLITS = ("train", "test")
@@ -81,8 +81,7 @@ def pose_problem(T) -> str | None:
         T = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError, OverflowError):
         return "expected a 4x4 matrix of numbers"
-    problem = rigidity_problem(T)
-    if problem:
+    if problem := rigidity_problem(T):
         return f"not a rigid transform: {problem}"
     distance = float(np.linalg.norm(T[:3, 3]))
     if distance > MAX_DISTANCE_M:
@@ -92,8 +91,7 @@ def pose_problem(T) -> str | None:
 
 def check_pose(T, name: str) -> np.ndarray:
     """``T`` as float64 [4, 4] if :func:`pose_problem` finds nothing, else InvalidInputError naming ``name``."""
-    problem = pose_problem(T)
-    if problem:
+    if problem := pose_problem(T):
         raise InvalidInputError(f"{name}: {problem}")
     return np.asarray(T, dtype=np.float64)
 
@@ -139,8 +137,26 @@ def intrinsics_equal(a: CameraIntrinsics, b: CameraIntrinsics) -> bool:
     return a.width == b.width and a.height == b.height and np.array_equal(a.K, b.K)
 
 
+def _same(a, b) -> bool:
+    """Equality of two values of a record's field: arrays by value, intrinsics by size and K."""
+    if isinstance(a, CameraIntrinsics):
+        return isinstance(b, CameraIntrinsics) and intrinsics_equal(a, b)
+    return np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b
+
+
+class _ByValue:
+    """Equality of frozen dataclass records field by field (:func:`_same`); unhashable, as their arrays are."""
+
+    def __eq__(self, other) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        return all(_same(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
+
+    __hash__ = None
+
+
 @dataclass(frozen=True, eq=False)
-class Frame:
+class Frame(_ByValue):
     """One camera view: ``file_path`` relative to the scene directory, OpenCV camera-to-world pose, and
     optionally ``mask_path``, a mask of the pixels to use (nerfstudio's per-frame ``mask_path``)."""
 
@@ -154,21 +170,9 @@ class Frame:
     def __post_init__(self):
         object.__setattr__(self, "T_world_cam", _frozen_pose(self.T_world_cam, f"frame {self.id} T_world_cam"))
 
-    def __eq__(self, other) -> bool:
-        if not isinstance(other, Frame):
-            return NotImplemented
-        return (
-            (self.id, self.file_path, self.split, self.mask_path)
-            == (other.id, other.file_path, other.split, other.mask_path)
-            and np.array_equal(self.T_world_cam, other.T_world_cam)
-            and intrinsics_equal(self.intrinsics, other.intrinsics)
-        )
-
-    __hash__ = None
-
 
 @dataclass(frozen=True, eq=False)
-class Touch:
+class Touch(_ByValue):
     """One tactile reading: depth map file (relative path) and the sensor pose in the world."""
 
     id: int
@@ -181,20 +185,6 @@ class Touch:
 
     def __post_init__(self):
         object.__setattr__(self, "T_world_sensor", _frozen_pose(self.T_world_sensor, f"touch {self.id} T_world_sensor"))
-
-    def __eq__(self, other) -> bool:
-        if not isinstance(other, Touch):
-            return NotImplemented
-        return (self.id, self.grasp, self.finger, self.depth_file, self.in_contact, self.hand_file) == (
-            other.id,
-            other.grasp,
-            other.finger,
-            other.depth_file,
-            other.in_contact,
-            other.hand_file,
-        ) and np.array_equal(self.T_world_sensor, other.T_world_sensor)
-
-    __hash__ = None
 
 
 MOTION_PHASES = ("preshape", "close", "open")  # HandMotion.phase: where the hand was, closing, opening
@@ -224,41 +214,24 @@ class HandMotion:
     link_poses: np.ndarray  # [S, L, 4, 4] world poses of the boxes
 
     def __post_init__(self):
-        problem = hand_motion_problem(self)
-        if problem:
+        if problem := hand_motion_problem(self):
             raise InvalidInputError(f"hand motion of grasp {self.grasp}: {problem}")
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        return {
-            "grasp": np.int64(self.grasp),
-            "joint_names": np.array(self.joint_names, dtype=str),
-            "t": self.t,
-            "phase": np.asarray(self.phase, dtype=np.uint8),
-            "q": self.q,
-            "q_target": self.q_target,
-            "effort": self.effort,
-            "effort_unit": np.array(self.effort_unit),
-            "T_world_hand": self.T_world_hand,
-            "link_names": np.array(self.link_names, dtype=str),
-            "link_half_extents": self.link_half_extents,
-            "link_poses": self.link_poses,
-        }
+        arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
+        names = {k: np.array(getattr(self, k), dtype=str) for k in ("joint_names", "link_names")}
+        return {**arrays, **names, "grasp": np.int64(self.grasp), "phase": arrays["phase"].astype(np.uint8)}
 
     @classmethod
     def from_arrays(cls, a) -> "HandMotion":
+        floats = ("t", "q", "q_target", "effort", "T_world_hand", "link_half_extents", "link_poses")
         return cls(
+            **{k: np.asarray(a[k], dtype=np.float64) for k in floats},
             grasp=int(a["grasp"]),
             joint_names=tuple(str(n) for n in a["joint_names"]),
-            t=np.asarray(a["t"], dtype=np.float64),
             phase=np.asarray(a["phase"]),
-            q=np.asarray(a["q"], dtype=np.float64),
-            q_target=np.asarray(a["q_target"], dtype=np.float64),
-            effort=np.asarray(a["effort"], dtype=np.float64),
             effort_unit=str(a["effort_unit"]),
-            T_world_hand=np.asarray(a["T_world_hand"], dtype=np.float64),
             link_names=tuple(str(n) for n in a["link_names"]),
-            link_half_extents=np.asarray(a["link_half_extents"], dtype=np.float64),
-            link_poses=np.asarray(a["link_poses"], dtype=np.float64),
         )
 
 
@@ -303,9 +276,10 @@ class SensorModel:
     gel_thickness_m: float
 
     def __post_init__(self):
-        problem = sensor_problem(self)
-        if problem:
+        if problem := sensor_problem(self):
             raise InvalidInputError(f"SensorModel: {problem}")
+        for name, kind in (("width_px", int), ("height_px", int), ("pixel_size_m", float), ("gel_thickness_m", float)):
+            object.__setattr__(self, name, kind(getattr(self, name)))  # plain numbers, as the files hold them
 
 
 @dataclass(frozen=True)
@@ -360,62 +334,37 @@ def intrinsics_to_json(intr: CameraIntrinsics) -> dict:
     camera :func:`camera_problem` refuses."""
     if intr.K[0, 1] != 0 or intr.K[1, 0] != 0 or not np.array_equal(intr.K[2], [0.0, 0.0, 1.0]):
         raise InvalidInputError(f"intrinsics: only zero-skew pinhole K is supported, got {intr.K.tolist()}")
-    problem = camera_problem(intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height)
-    if problem:
+    if problem := camera_problem(intr.fx, intr.fy, intr.cx, intr.cy, intr.width, intr.height):
         raise InvalidInputError(f"intrinsics.{problem[0]}: {problem[1]}")
     return {"fl_x": intr.fx, "fl_y": intr.fy, "cx": intr.cx, "cy": intr.cy, "w": int(intr.width), "h": int(intr.height)}
 
 
 def intrinsics_from_json(d: dict) -> CameraIntrinsics:
-    K = np.array([[d["fl_x"], 0.0, d["cx"]], [0.0, d["fl_y"], d["cy"]], [0.0, 0.0, 1.0]], dtype=np.float64)
-    return CameraIntrinsics(K=K, width=int(d["w"]), height=int(d["h"]))
+    return CameraIntrinsics(intrinsics_matrix(d["fl_x"], d["fl_y"], d["cx"], d["cy"]), int(d["w"]), int(d["h"]))
 
 
 def sensor_to_json(sensor: SensorModel | None) -> dict | None:
-    if sensor is None:
-        return None
+    return None if sensor is None else asdict(sensor)
+
+
+def record_to_json(record, **values) -> dict:
+    """A record's fields (``values`` replacing some) as JSON data, arrays as nested lists; an optional path that
+    is None is left out (the writer's journal, ``touches.json``)."""
+    out = {f.name: values.get(f.name, getattr(record, f.name)) for f in fields(record)}
     return {
-        "name": sensor.name,
-        "width_px": int(sensor.width_px),
-        "height_px": int(sensor.height_px),
-        "pixel_size_m": float(sensor.pixel_size_m),
-        "gel_thickness_m": float(sensor.gel_thickness_m),
+        k: v.tolist() if isinstance(v, np.ndarray) else v
+        for k, v in out.items()
+        if v is not None or k not in ("mask_path", "hand_file")
     }
-
-
-def meta_to_json(meta: SceneMeta) -> dict:
-    return {"source": meta.source, "object": meta.object, "capture_plan": meta.capture_plan, "extra": meta.extra}
-
-
-def meta_from_json(d: dict) -> SceneMeta:
-    return SceneMeta(
-        source=d["source"], object=d["object"], capture_plan=d.get("capture_plan", {}), extra=d.get("extra", {})
-    )
 
 
 def frame_to_json(frame: Frame) -> dict:
     """The writer's journal form of a frame (OpenCV pose, full intrinsics, the mask if any)."""
-    entry = {
-        "id": frame.id,
-        "file_path": frame.file_path,
-        "split": frame.split,
-        "T_world_cam": frame.T_world_cam.tolist(),
-        "intrinsics": intrinsics_to_json(frame.intrinsics),
-    }
-    if frame.mask_path is not None:
-        entry["mask_path"] = frame.mask_path
-    return entry
+    return record_to_json(frame, intrinsics=intrinsics_to_json(frame.intrinsics))
 
 
 def frame_from_json(d: dict) -> Frame:
-    return Frame(
-        id=int(d["id"]),
-        file_path=d["file_path"],
-        T_world_cam=np.asarray(d["T_world_cam"], dtype=np.float64),
-        split=d["split"],
-        intrinsics=intrinsics_from_json(d["intrinsics"]),
-        mask_path=d.get("mask_path"),
-    )
+    return Frame(**{**d, "intrinsics": intrinsics_from_json(d["intrinsics"])})
 
 
 def frame_to_nerfstudio(frame: Frame, with_intrinsics: bool) -> dict:
@@ -434,26 +383,4 @@ def frame_to_nerfstudio(frame: Frame, with_intrinsics: bool) -> dict:
 
 
 def touch_to_json(touch: Touch) -> dict:
-    entry = {
-        "id": touch.id,
-        "grasp": touch.grasp,
-        "finger": touch.finger,
-        "depth_file": touch.depth_file,
-        "T_world_sensor": touch.T_world_sensor.tolist(),
-        "in_contact": bool(touch.in_contact),
-    }
-    if touch.hand_file is not None:
-        entry["hand_file"] = touch.hand_file
-    return entry
-
-
-def touch_from_json(d: dict) -> Touch:
-    return Touch(
-        id=int(d["id"]),
-        grasp=int(d["grasp"]),
-        finger=d["finger"],
-        depth_file=d["depth_file"],
-        T_world_sensor=np.asarray(d["T_world_sensor"], dtype=np.float64),
-        in_contact=bool(d["in_contact"]),
-        hand_file=d.get("hand_file"),
-    )
+    return record_to_json(touch, in_contact=bool(touch.in_contact))

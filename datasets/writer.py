@@ -38,6 +38,7 @@ import re
 import shutil
 import time
 from contextlib import contextmanager
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -48,7 +49,7 @@ from tacsplat.errors import InvalidInputError, SceneFormatError
 from tacsplat.files import atomic_write, fsync_dir, storage_error
 from tacsplat.types import CameraIntrinsics, TactileReading
 
-from .outputs import LOCK_NAME, other_writer, record_writer
+from .outputs import LOCK_NAME, claim_output_dir, other_writer, record_writer
 from .records import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -67,12 +68,9 @@ from .records import (
     intrinsics_equal,
     intrinsics_from_json,
     intrinsics_to_json,
-    meta_from_json,
-    meta_to_json,
     normal_map_problem,
     sensor_to_json,
     touch_depth_limit,
-    touch_from_json,
     touch_to_json,
 )
 
@@ -149,6 +147,23 @@ def removed_on_failure(out: Path):
         raise
 
 
+@contextmanager
+def new_import(out: Path, intrinsics: CameraIntrinsics, meta: SceneMeta):
+    """The writer of an importer's scene ``out``: a new or empty folder, claimed as the ``--out`` of a writing
+    command (``datasets.outputs``) and removed again when the import fails."""
+    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
+    with claim_output_dir(out), removed_on_failure(out), SceneWriter.create(out, intrinsics, meta) as writer:
+        yield writer
+
+
+def _check_intrinsics(intr) -> CameraIntrinsics:
+    """``intr`` if it is a camera the scene format holds (zero-skew pinhole, see ``records.camera_problem``)."""
+    if not isinstance(intr, CameraIntrinsics):
+        raise InvalidInputError(f"intrinsics: expected CameraIntrinsics, got {type(intr).__name__}")
+    intrinsics_to_json(intr)  # rejects skew and impossible cameras
+    return intr
+
+
 def _check_depth(depth, shape: tuple[int, int], name: str, limit: tuple[float, str]) -> np.ndarray:
     """``depth`` as float32 if it is a depth map the reader accepts (see ``records.depth_problem``)."""
     depth = np.asarray(depth)
@@ -156,8 +171,7 @@ def _check_depth(depth, shape: tuple[int, int], name: str, limit: tuple[float, s
         raise InvalidInputError(f"{name}: expected shape {shape}, got {depth.shape}")
     if np.issubdtype(depth.dtype, np.floating):
         depth = depth.astype(np.float32)
-    problem = depth_problem(depth, *limit)
-    if problem:
+    if problem := depth_problem(depth, *limit):
         raise InvalidInputError(f"{name}: {problem}")
     return depth
 
@@ -187,9 +201,9 @@ class SceneWriter:
         self._version = version
         self.frames: list[Frame] = []
         self.touches: list[Touch] = []
-        self._gt_depth: dict[int, str] = {}
-        self._gt_mesh: str | None = None
-        self._gt_points: str | None = None
+        self.gt_depth_files: dict[int, str] = {}  # frame id -> the path in the scene of its ground-truth depth
+        self.gt_mesh: str | None = None  # the ground-truth mesh's path in the scene (gt/mesh.ply), once set
+        self.gt_points: str | None = None  # the ground-truth point cloud's path in the scene (gt/points.ply), once set
         self.annotations: dict = {}  # key -> plain JSON value, the latest recorded; read it, change it by annotate
         self._order: list[tuple[str, int]] = []  # live records, oldest first, for remove_last
         self._journal = None
@@ -202,15 +216,13 @@ class SceneWriter:
     ) -> "SceneWriter":
         """Start a new scene in ``path`` (which must not exist or be an empty folder)."""
         path = Path(path)
-        if not isinstance(intrinsics, CameraIntrinsics):
-            raise InvalidInputError(f"intrinsics: expected CameraIntrinsics, got {type(intrinsics).__name__}")
-        intrinsics_to_json(intrinsics)  # rejects skew
+        _check_intrinsics(intrinsics)
         if not isinstance(meta, SceneMeta):
             raise InvalidInputError(f"meta: expected SceneMeta, got {type(meta).__name__}")
         if sensor is not None and not isinstance(sensor, SensorModel):
             raise InvalidInputError(f"sensor: expected SensorModel or None, got {type(sensor).__name__}")
         try:
-            json.dumps(meta_to_json(meta), allow_nan=False)
+            json.dumps(asdict(meta), allow_nan=False)
         except (TypeError, ValueError) as exc:
             raise InvalidInputError(f"meta: capture_plan and extra must be plain JSON data: {exc}") from exc
         if path.exists() and not path.is_dir():
@@ -261,7 +273,7 @@ class SceneWriter:
             "tacsplat_version": writer._version,
             "intrinsics": intrinsics_to_json(intrinsics),
             "sensor": sensor_to_json(sensor),
-            "meta": meta_to_json(meta),
+            "meta": asdict(meta),
         }
         journal.truncate(0)  # (the file of a creation that crashed before its rename)
         writer._journal = journal
@@ -310,7 +322,7 @@ class SceneWriter:
             writer = cls(
                 path,
                 intrinsics_from_json(header["intrinsics"]),
-                meta_from_json(header["meta"]),
+                SceneMeta(**header["meta"]),
                 sensor,
                 header["created"],
                 header.get("tacsplat_version", tacsplat.__version__),
@@ -334,7 +346,7 @@ class SceneWriter:
             | {f.mask_path for f in self.frames}
             | {t.depth_file for t in self.touches}
             | {t.hand_file for t in self.touches}
-            | set(self._gt_depth.values())
+            | set(self.gt_depth_files.values())
         )
         count = 0
         for sub in ("", "images", "masks", "touches", "grasps", "gt", "gt/depth"):
@@ -367,57 +379,28 @@ class SceneWriter:
         """``(kind, id)`` of the newest live record ("frame" | "touch"): what :meth:`remove_last` would undo."""
         return self._order[-1] if self._order else None
 
-    @property
-    def gt_mesh(self) -> str | None:
-        """The ground-truth mesh's path in the scene (``gt/mesh.ply``), None until :meth:`set_gt_mesh`."""
-        return self._gt_mesh
-
-    @property
-    def gt_points(self) -> str | None:
-        """The ground-truth point cloud's path in the scene (``gt/points.ply``), None until :meth:`set_gt_points`."""
-        return self._gt_points
-
-    @property
-    def gt_depth_files(self) -> dict[int, str]:
-        """Frame id -> the path in the scene of its ground-truth depth."""
-        return dict(self._gt_depth)
-
-    @property
-    def num_grasps(self) -> int:
-        """Number of distinct grasp indices among the touches."""
-        return len({t.grasp for t in self.touches})
-
     def _apply(self, entry: dict) -> None:
         """Apply one journal record to the in-memory state (used live and on replay)."""
         op = entry["op"]
-        if op == "frame":
-            frame = frame_from_json(entry["frame"])
-            if frame.id != len(self.frames):
-                raise ValueError(f"frame id {frame.id} breaks the numbering (expected {len(self.frames)})")
-            self.frames.append(frame)
+        if op in ("frame", "touch"):
+            record = frame_from_json(entry["frame"]) if op == "frame" else Touch(**entry["touch"])
+            records = self.frames if op == "frame" else self.touches
+            if record.id != len(records):
+                raise ValueError(f"{op} id {record.id} breaks the numbering (expected {len(records)})")
+            records.append(record)
             if entry.get("gt_depth"):
-                self._gt_depth[frame.id] = entry["gt_depth"]
-            self._order.append(("frame", frame.id))
-        elif op == "touch":
-            touch = touch_from_json(entry["touch"])
-            if touch.id != len(self.touches):
-                raise ValueError(f"touch id {touch.id} breaks the numbering (expected {len(self.touches)})")
-            self.touches.append(touch)
-            self._order.append(("touch", touch.id))
+                self.gt_depth_files[record.id] = entry["gt_depth"]
+            self._order.append((op, record.id))
         elif op == "remove":
             kind, rid = entry["kind"], int(entry["id"])
             if not self._order or self._order[-1] != (kind, rid):
                 raise ValueError(f"removal of {kind} {rid}, which is not the last record")
             self._order.pop()
+            (self.frames if kind == "frame" else self.touches).pop()
             if kind == "frame":
-                self.frames.pop()
-                self._gt_depth.pop(rid, None)
-            else:
-                self.touches.pop()
-        elif op == "gt_mesh":
-            self._gt_mesh = entry["path"]
-        elif op == "gt_points":
-            self._gt_points = entry["path"]
+                self.gt_depth_files.pop(rid, None)
+        elif op in ("gt_mesh", "gt_points"):
+            setattr(self, op, entry["path"])
         elif op == "annotation":
             key = entry["key"]
             if not isinstance(key, str) or not key:
@@ -471,29 +454,23 @@ class SceneWriter:
             out.update(intrinsics_to_json(self.intrinsics))
         out.update({"k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0})
         out["frames"] = [frame_to_nerfstudio(f, with_intrinsics=not shared) for f in self.frames]
-        by_split = {s: [f.file_path for f in self.frames if f.split == s] for s in SPLITS}
+        out["train_filenames"] = [f.file_path for f in self.frames if f.split == "train"]
         # nerfstudio asks for "val" when evaluating during training: the test views serve both.
-        out.update(
-            {
-                "train_filenames": by_split["train"],
-                "val_filenames": by_split["test"],
-                "test_filenames": by_split["test"],
-            }
-        )
+        out["val_filenames"] = out["test_filenames"] = [f.file_path for f in self.frames if f.split == "test"]
         return out
 
     def _scene_json(self) -> dict:
         return {
             "format": FORMAT_NAME,
             "format_version": FORMAT_VERSION,
-            **meta_to_json(self.meta),
+            **asdict(self.meta),
             "units": "m",
             "tacsplat_version": self._version,
             "created": self._created,
             "gt": {
-                "mesh": self._gt_mesh,
-                "points": self._gt_points,
-                "depth": {str(k): v for k, v in sorted(self._gt_depth.items())},
+                "mesh": self.gt_mesh,
+                "points": self.gt_points,
+                "depth": {str(k): v for k, v in sorted(self.gt_depth_files.items())},
             },
             "annotations": self.annotations,
         }
@@ -518,10 +495,7 @@ class SceneWriter:
         bool (True = use the pixel) goes to ``masks/``; a scene has a mask on
         every frame or on none (as nerfstudio reads them).
         """
-        intr = self.intrinsics if intrinsics is None else intrinsics
-        if not isinstance(intr, CameraIntrinsics):
-            raise InvalidInputError(f"intrinsics: expected CameraIntrinsics, got {type(intr).__name__}")
-        intrinsics_to_json(intr)
+        intr = _check_intrinsics(self.intrinsics if intrinsics is None else intrinsics)
         image = np.asarray(image)
         if image.dtype != np.uint8:
             raise InvalidInputError(f"image: expected uint8 RGB, got dtype {image.dtype}")
@@ -554,14 +528,7 @@ class SceneWriter:
             )
         fid = self.num_frames
         mask_path = None if mask is None else f"masks/{fid:06d}.png"
-        frame = Frame(
-            id=fid,
-            file_path=f"images/{fid:06d}.png",
-            T_world_cam=pose,
-            split=split,
-            intrinsics=intr,
-            mask_path=mask_path,
-        )
+        frame = Frame(fid, f"images/{fid:06d}.png", pose, split, intr, mask_path)
         atomic_write_bytes(self.path / frame.file_path, encode_png(image))
         if mask_path is not None:
             (self.path / "masks").mkdir(exist_ok=True)
@@ -607,15 +574,7 @@ class SceneWriter:
         if not isinstance(finger, str) or not finger:
             raise InvalidInputError(f"finger: expected a non-empty name, got {finger!r}")
         tid = self.num_touches
-        touch = Touch(
-            id=tid,
-            grasp=int(grasp),
-            finger=finger,
-            depth_file=f"touches/{tid:06d}.npz",
-            T_world_sensor=pose,
-            in_contact=bool((depth > 0).any()),
-            hand_file=hand_file,
-        )
+        touch = Touch(tid, int(grasp), finger, f"touches/{tid:06d}.npz", pose, bool((depth > 0).any()), hand_file)
         if hand_file is not None and not (self.path / hand_file).is_file():
             raise InvalidInputError(f"hand_file: {self.path / hand_file} does not exist (write it by add_hand_motion)")
         atomic_write_bytes(self.path / touch.depth_file, encode_npz(depth=depth))
@@ -693,7 +652,7 @@ class SceneWriter:
             raise InvalidInputError(f"{self.path}: nothing to remove")
         kind, rid = self._order[-1]
         record = self.frames[-1] if kind == "frame" else self.touches[-1]
-        gt_file = self._gt_depth.get(rid) if kind == "frame" else None
+        gt_file = self.gt_depth_files.get(rid) if kind == "frame" else None
         self._record(
             {"op": "remove", "kind": kind, "id": rid},
             "transforms" if kind == "frame" else "touches",
