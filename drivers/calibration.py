@@ -14,21 +14,25 @@ File (JSON)::
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Annotated, Any, Sequence, TypeVar
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
 from tacsplat.drivers.dynamixel_table import CENTRE_TICK, TICKS_PER_REV
 from tacsplat.errors import ConfigError, InvalidInputError
 from tacsplat.files import atomic_write
+from tacsplat.geometry import rigidity_problem
 
 FORMAT = "tacsplat-hand-calibration"
 RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 JOINT_FIELDS = ("sign", "offset_rad")
+T = TypeVar("T")
 
 
 def motor_angles_from_ticks(ticks) -> np.ndarray:
@@ -65,8 +69,9 @@ def _repeated_key(value, where: tuple[str, ...] = ()) -> str | None:
     return None
 
 
-def read_calibration_json(path: Path, expected_format: str, version: int = 1) -> dict:
-    """A calibration file's JSON object, its ``format``, ``version`` and unique keys checked; errors name the file."""
+def read_calibration(path: Path, expected_format: str, model: type[T], version: int = 1) -> T:
+    """A calibration file's JSON object as ``model`` (its ``format``, ``version`` and unique keys checked, then every
+    other field by pydantic, strictly); one ConfigError names the file and the field."""
     try:
         data = json.loads(path.read_text(), object_pairs_hook=_json_object)
     except FileNotFoundError:
@@ -82,7 +87,29 @@ def read_calibration_json(path: Path, expected_format: str, version: int = 1) ->
         raise ConfigError("format", f"expected {expected_format!r}", source=path)
     if not is_json_number(data.get("version")) or data["version"] != version:
         raise ConfigError("version", f"unsupported version {data.get('version')!r} (expected {version})", source=path)
-    return data
+    try:
+        return model.model_validate({k: v for k, v in data.items() if k not in ("format", "version")})
+    except ValidationError as exc:
+        error = exc.errors(include_url=False)[0]
+        key = ".".join(str(part) for part in error["loc"] if part != "[key]")
+        if error["type"] == "value_error":  # one of the checks below
+            message = str(error["ctx"]["error"])
+        elif error["type"] == "extra_forbidden":
+            message = "unknown field" + (f" (expected {list(model.model_fields)})" if len(error["loc"]) == 1 else "")
+        elif error["type"] == "missing":
+            message = "missing (a required field)"
+        elif error["type"] == "model_type":
+            message = f"expected a JSON object, got {error['input']!r}"
+        else:
+            message = f"{error['msg']}, got {error['input']!r}"
+        raise ConfigError(key, message, source=path) from None
+
+
+class CalibrationFile(BaseModel):
+    """The fields of a calibration file but ``format`` and ``version``: strict types (no string for a number, no
+    boolean for a number), unknown fields refused."""
+
+    model_config = ConfigDict(strict=True, extra="forbid")
 
 
 def is_json_number(value) -> bool:
@@ -90,28 +117,8 @@ def is_json_number(value) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
-def json_int(value, key: str, path: Path, minimum: int) -> int:
-    """An integer >= ``minimum`` (not a float, not a boolean); ConfigError naming the file and key."""
-    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-        raise ConfigError(key, f"must be an integer >= {minimum}, got {value!r}", source=path)
-    return value
-
-
-def json_float(value, key: str, path: Path, low: float = -math.inf, high: float = math.inf) -> float:
-    """A finite number in ``[low, high]``; ConfigError naming the file and key."""
-    number = math.nan
-    if is_json_number(value):
-        try:
-            number = float(value)
-        except OverflowError:  # an integer literal beyond float64
-            number = math.inf
-    if not low <= number <= high or not math.isfinite(number):
-        raise ConfigError(key, f"must be a finite number in [{low}, {high}], got {value!r}", source=path)
-    return number
-
-
-def json_array(value, key: str, path: Path, shape: tuple[int | None, ...]) -> np.ndarray:
-    """Nested JSON lists of finite numbers of this shape (None: any length) as float64; errors name the file and key."""
+def _array(shape: tuple[int | None, ...], value) -> np.ndarray | None:
+    """Nested JSON lists of finite numbers of this shape (None: any length) as float64 (None stays None)."""
 
     def has_shape(v, dims) -> bool:
         if not dims:
@@ -120,15 +127,32 @@ def json_array(value, key: str, path: Path, shape: tuple[int | None, ...]) -> np
 
     if not has_shape(value, shape):
         what = "a list" if shape == (None,) else "a " + "x".join(str(d) for d in shape) + " array"
-        raise ConfigError(key, f"must be {what} of numbers, got {value!r}", source=path)
+        raise ValueError(f"must be {what} of numbers, got {value!r}")
     with np.errstate(over="ignore"):
         try:
             array = np.array(value, dtype=np.float64)
         except OverflowError:  # an integer literal beyond float64
             array = np.full(np.shape(value), np.inf)
     if not np.all(np.isfinite(array)):
-        raise ConfigError(key, f"contains NaN or infinite values: {value!r}", source=path)
+        raise ValueError(f"contains NaN or infinite values: {value!r}")
     return array
+
+
+def _rigid(value) -> np.ndarray | None:
+    T = _array((4, 4), value)
+    problem = rigidity_problem(T)
+    if problem:
+        raise ValueError(f"not a rigid transform: {problem}")
+    return T
+
+
+def Array(*shape: int | None):
+    """A field of nested JSON lists of finite numbers of this shape (None: any length), read as float64."""
+    return Annotated[Any, PlainValidator(functools.partial(_array, shape))]
+
+
+Rigid = Annotated[Any, PlainValidator(_rigid)]  # a rigid 4x4 transform
+NonNegative = Annotated[float, Field(allow_inf_nan=False, ge=0.0)]
 
 
 def _sign_problem(sign) -> str | None:
@@ -141,6 +165,27 @@ def _offset_problem(offset) -> str | None:
     if not is_json_number(offset) or not -math.pi <= offset <= math.pi:
         return f"must be a number of radians in [-pi, pi] (the motor angle at joint zero), got {offset!r}"
     return None
+
+
+def _checked(problem):
+    """A field that ``problem(value)`` (a message or None) checks."""
+
+    def validate(value):
+        message = problem(value)
+        if message:
+            raise ValueError(message)
+        return float(value)
+
+    return Annotated[Any, PlainValidator(validate)]
+
+
+class _Joint(CalibrationFile):
+    sign: _checked(_sign_problem)
+    offset_rad: _checked(_offset_problem)
+
+
+class _HandFile(CalibrationFile):
+    joints: dict[str, _Joint]
 
 
 @dataclass(frozen=True)
@@ -208,33 +253,16 @@ class HandCalibration:
     def load(cls, path: str | Path, joint_names: Sequence[str]) -> "HandCalibration":
         """Read and validate a calibration file for these joints; one ConfigError names the file and field."""
         path = Path(path)
-        data = read_calibration_json(path, FORMAT)
-        joints = data.get("joints")
-        if not isinstance(joints, dict):
-            raise ConfigError("joints", "expected an object mapping joint names to {sign, offset_rad}", source=path)
+        joints = read_calibration(path, FORMAT, _HandFile).joints
         unknown = [name for name in joints if name not in joint_names]
         if unknown:
             raise ConfigError(f"joints.{unknown[0]}", f"unknown joint (known: {list(joint_names)})", source=path)
-        signs, offsets = [], []
-        for name in joint_names:
-            entry = joints.get(name)
-            if not isinstance(entry, dict):
-                raise ConfigError(
-                    f"joints.{name}", 'missing: expected {"sign": 1 or -1, "offset_rad": radians}', source=path
-                )
-            extra = [key for key in entry if key not in JOINT_FIELDS]
-            if extra:
-                raise ConfigError(
-                    f"joints.{name}.{extra[0]}", f"unknown field (expected {list(JOINT_FIELDS)})", source=path
-                )
-            for what, problem in (
-                ("sign", _sign_problem(entry.get("sign"))),
-                ("offset_rad", _offset_problem(entry.get("offset_rad"))),
-            ):
-                if problem:
-                    raise ConfigError(f"joints.{name}.{what}", problem, source=path)
-            signs.append(float(entry["sign"]))
-            offsets.append(float(entry["offset_rad"]))
+        missing = [name for name in joint_names if name not in joints]
+        if missing:
+            raise ConfigError(
+                f"joints.{missing[0]}", 'missing: expected {"sign": 1 or -1, "offset_rad": radians}', source=path
+            )
+        signs, offsets = ([getattr(joints[name], key) for name in joint_names] for key in JOINT_FIELDS)
         return cls(tuple(joint_names), np.array(signs), np.array(offsets), source=str(path))
 
     def check_joints(self, joint_names: Sequence[str]) -> None:

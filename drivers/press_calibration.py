@@ -29,15 +29,17 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from tacsplat.drivers.calibration import json_array, read_calibration_json
+from tacsplat.drivers.calibration import CalibrationFile, Rigid, read_calibration
 from tacsplat.errors import ConfigError, InvalidInputError
 from tacsplat.files import atomic_write
-from tacsplat.geometry import invert_pose, make_pose, rigidity_problem, transform_points
+from tacsplat.geometry import invert_pose, make_pose, transform_points
 
 HAND_EYE_FORMAT = "tacsplat-hand-eye"
 MOUNTS_FORMAT = "tacsplat-mounts"
@@ -376,12 +378,16 @@ def _std(J: np.ndarray, noise: float) -> np.ndarray:
 # --- files -----------------------------------------------------------------------------------------------
 
 
-def _rigid(value, key: str, path: Path) -> np.ndarray:
-    T = json_array(value, key, path, (4, 4))
-    problem = rigidity_problem(T)
-    if problem:
-        raise ConfigError(key, f"not a rigid transform: {problem}", source=path)
-    return T
+class _HandEyeFile(CalibrationFile, extra="ignore"):
+    T_hand_cam: Rigid
+
+
+class _Mount(CalibrationFile, extra="ignore"):
+    T_fingertip_sensor: Rigid
+
+
+class _MountsFile(CalibrationFile, extra="ignore"):
+    sensors: Annotated[dict[str, _Mount], Field(min_length=1)]
 
 
 def save_hand_eye(path: str | Path, T_hand_cam: np.ndarray, presses: int, rms_mm: float) -> None:
@@ -397,9 +403,7 @@ def save_hand_eye(path: str | Path, T_hand_cam: np.ndarray, presses: int, rms_mm
 
 def load_hand_eye(path: str | Path) -> np.ndarray:
     """``T_hand_cam`` [4, 4] of a hand-eye file; one ConfigError names the file and field."""
-    path = Path(path)
-    data = read_calibration_json(path, HAND_EYE_FORMAT)
-    return _rigid(data.get("T_hand_cam"), "T_hand_cam", path)
+    return read_calibration(Path(path), HAND_EYE_FORMAT, _HandEyeFile).T_hand_cam
 
 
 def save_mounts(fit: MountsFit, path: str | Path) -> None:
@@ -415,15 +419,8 @@ def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
     """``{finger: T_fingertip_sensor}`` of a mounts file (fingers among ``fingers``); one ConfigError names the
     file and field."""
     path = Path(path)
-    data = read_calibration_json(path, MOUNTS_FORMAT)
-    sensors = data.get("sensors")
-    if not isinstance(sensors, dict) or not sensors:
-        raise ConfigError("sensors", "expected an object mapping fingers to {T_fingertip_sensor}", source=path)
-    out = {}
-    for finger, entry in sensors.items():
-        if finger not in fingers:
-            raise ConfigError(f"sensors.{finger}", f"unknown finger (one of {list(fingers)})", source=path)
-        if not isinstance(entry, dict):
-            raise ConfigError(f"sensors.{finger}", "expected an object with T_fingertip_sensor", source=path)
-        out[finger] = _rigid(entry.get("T_fingertip_sensor"), f"sensors.{finger}.T_fingertip_sensor", path)
-    return out
+    sensors = read_calibration(path, MOUNTS_FORMAT, _MountsFile).sensors
+    unknown = [finger for finger in sensors if finger not in fingers]
+    if unknown:
+        raise ConfigError(f"sensors.{unknown[0]}", f"unknown finger (one of {list(fingers)})", source=path)
+    return {finger: entry.T_fingertip_sensor for finger, entry in sensors.items()}

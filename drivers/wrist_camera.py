@@ -29,16 +29,17 @@ import logging
 import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import Annotated, Any, Literal, NamedTuple, Sequence
 
 import cv2
 import numpy as np
+from pydantic import Field, PlainValidator
 
-from tacsplat.drivers.calibration import is_json_number, json_array, json_float, json_int, read_calibration_json
+from tacsplat.drivers.calibration import Array, CalibrationFile, NonNegative, Rigid, is_json_number, read_calibration
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import CameraError, ConfigError, InvalidInputError
 from tacsplat.files import atomic_write
-from tacsplat.geometry import invert_pose, make_pose, rigidity_problem
+from tacsplat.geometry import invert_pose, make_pose
 
 log = logging.getLogger(__name__)
 
@@ -210,6 +211,7 @@ SAME_POSE_FRACTION = 0.01  # two photos whose common corners lie within 1 % of t
 # beyond MAX_CORNER_SCALE (distorted over undistorted radius; real perspective lenses stay within ~1.3).
 FIELD_OF_VIEW_DEG = (2.0, 170.0)
 MAX_CORNER_SCALE = 2.0
+_K_NAMES = ("fx", "fy", "cx", "cy")
 _CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
 
 
@@ -258,19 +260,8 @@ class CameraCalibration:
     def load(cls, path: str | Path) -> "CameraCalibration":
         """Read a calibration file; every value is checked here, and one ConfigError names the file and field."""
         path = Path(path)
-        data = read_calibration_json(path, FORMAT)
-        unknown = [key for key in data if key not in _FILE_FIELDS]
-        if unknown:
-            raise ConfigError(unknown[0], f"unknown field (expected {list(_FILE_FIELDS)})", source=path)
-        if data.get("pixel_centres", _PIXEL_CENTRES) != _PIXEL_CENTRES:
-            raise ConfigError(
-                "pixel_centres",
-                f"must be {_PIXEL_CENTRES!r} (K_opencv is in OpenCV's convention), got {data['pixel_centres']!r}",
-                source=path,
-            )
-        width = json_int(data.get("width"), "width", path, minimum=1)
-        height = json_int(data.get("height"), "height", path, minimum=1)
-        K = json_array(data.get("K_opencv"), "K_opencv", path, (3, 3))
+        f = read_calibration(path, FORMAT, _CameraFile)
+        K, width, height, dist = f.K_opencv, f.width, f.height, f.dist
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ConfigError(
                 "K_opencv", f"focal lengths must be positive, got fx {K[0, 0]}, fy {K[1, 1]}", source=path
@@ -285,85 +276,69 @@ class CameraCalibration:
             raise ConfigError(
                 "K_opencv", f"must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}", source=path
             )
-        dist = json_array(data.get("dist"), "dist", path, (None,))
         if dist.size not in (4, 5, 8, 12, 14):
             raise ConfigError("dist", f"expected 4, 5, 8, 12 or 14 coefficients (OpenCV), got {dist.size}", source=path)
-        model = data.get("distortion_model")
-        if model is not None and (model not in DISTORTION_MODELS or DISTORTION_MODELS[model][1] != dist.size):
+        model = f.distortion_model
+        if model is not None and DISTORTION_MODELS[model][1] != dist.size:
             raise ConfigError(
-                "distortion_model",
-                f"expected one of {list(DISTORTION_MODELS)} matching the "
-                f"{dist.size} coefficients of dist, got {model!r}",
-                source=path,
+                "distortion_model", f"{model!r} does not match the {dist.size} coefficients of dist", source=path
             )
-        rms = data.get("rms_px")
-        rms = (
-            float("nan")
-            if rms is None or (isinstance(rms, float) and math.isnan(rms))
-            else json_float(rms, "rms_px", path, low=0.0)
-        )
-        per_image = data.get("per_image_rms_px", {})
-        if not isinstance(per_image, dict):
-            raise ConfigError(
-                "per_image_rms_px", f"must be an object {{image name: px}}, got {per_image!r}", source=path
-            )
-        per_image = {name: json_float(v, f"per_image_rms_px.{name}", path, low=0.0) for name, v in per_image.items()}
-        T = data.get("T_hand_cam")
-        if T is not None:
-            T = json_array(T, "T_hand_cam", path, (4, 4))
-            problem = rigidity_problem(T)
-            if problem:
-                raise ConfigError("T_hand_cam", f"not a rigid transform: {problem}", source=path)
-        std = data.get("K_std_px")
-        if std is not None:
-            if not isinstance(std, dict) or sorted(std) != sorted(_K_NAMES):
-                raise ConfigError("K_std_px", f"must be an object with {list(_K_NAMES)}, got {std!r}", source=path)
-            std = {key: json_float(std[key], f"K_std_px.{key}", path, low=0.0) for key in _K_NAMES}
-        warnings = data.get("warnings", [])
-        if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
-            raise ConfigError("warnings", f"must be a list of strings, got {warnings!r}", source=path)
+        board = dict(f.board)
+        kind = board.pop("type", "charuco")
+        if kind not in BOARD_TYPES:
+            raise ConfigError("board.type", f"expected one of {list(BOARD_TYPES)}, got {kind!r}", source=path)
+        names = [field.name for field in fields(BOARD_TYPES[kind])]
+        unknown = [key for key in board if key not in names]
+        if unknown:
+            raise ConfigError(f"board.{unknown[0]}", f"unknown field of a {kind} board (expected {names})", source=path)
+        spec = BOARD_TYPES[kind](**board)
+        problem = spec.problem()
+        if problem:
+            raise ConfigError(f"board.{problem[0]}", problem[1], source=path)
         return cls(
-            K, dist, width, height, rms, _board_spec(data.get("board", {}), path), per_image, T, std, model, warnings
+            K,
+            dist,
+            width,
+            height,
+            f.rms_px,
+            spec,
+            f.per_image_rms_px,
+            f.T_hand_cam,
+            f.K_std_px and f.K_std_px.model_dump(),
+            model,
+            f.warnings,
         )
 
 
-_K_NAMES = ("fx", "fy", "cx", "cy")
-_FILE_FIELDS = (
-    "format",
-    "version",
-    "pixel_centres",
-    "K_opencv",
-    "dist",
-    "width",
-    "height",
-    "rms_px",
-    "board",
-    "per_image_rms_px",
-    "T_hand_cam",
-    "K_std_px",
-    "distortion_model",
-    "warnings",
-)
+def _rms(value) -> float:
+    """Not recorded (null or NaN), or a finite number of pixels >= 0."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return float("nan")
+    if not is_json_number(value) or not 0 <= value < math.inf:
+        raise ValueError(f"must be a finite number of pixels >= 0, got {value!r}")
+    return float(value)
 
 
-def _board_spec(board, path: Path) -> BoardSpec:
-    """The ``board`` object of a camera calibration file (``type`` charuco, the default, or chessboard), checked
-    field by field."""
-    if not isinstance(board, dict):
-        raise ConfigError("board", f"must be an object of board fields, got {board!r}", source=path)
-    board = dict(board)
-    kind = board.pop("type", "charuco")
-    if kind not in BOARD_TYPES:
-        raise ConfigError("board.type", f"expected one of {list(BOARD_TYPES)}, got {kind!r}", source=path)
-    names = [f.name for f in fields(BOARD_TYPES[kind])]
-    unknown = [key for key in board if key not in names]
-    if unknown:
-        raise ConfigError(f"board.{unknown[0]}", f"unknown field of a {kind} board (expected {names})", source=path)
-    spec = BOARD_TYPES[kind](**board)
-    problem = spec.problem()
-    if problem:
-        raise ConfigError(f"board.{problem[0]}", problem[1], source=path)
-    return spec
+class _KStd(CalibrationFile):
+    fx: NonNegative
+    fy: NonNegative
+    cx: NonNegative
+    cy: NonNegative
+
+
+class _CameraFile(CalibrationFile):
+    pixel_centres: Literal[_PIXEL_CENTRES] = _PIXEL_CENTRES  # K_opencv is in OpenCV's convention
+    K_opencv: Array(3, 3)
+    dist: Array(None)
+    width: Annotated[int, Field(ge=1)]
+    height: Annotated[int, Field(ge=1)]
+    rms_px: Annotated[Any, PlainValidator(_rms)] = float("nan")
+    board: dict = {}
+    per_image_rms_px: dict[str, NonNegative] = {}
+    T_hand_cam: Rigid | None = None
+    K_std_px: _KStd | None = None
+    distortion_model: Literal[tuple(DISTORTION_MODELS)] | None = None
+    warnings: list[str] = []
 
 
 @dataclass
