@@ -69,40 +69,53 @@ def _repeated_key(value, where: tuple[str, ...] = ()) -> str | None:
     return None
 
 
-def read_calibration(path: Path, expected_format: str, model: type[T], version: int = 1) -> T:
-    """A calibration file's JSON object as ``model`` (its ``format``, ``version`` and unique keys checked, then every
-    other field by pydantic, strictly); one ConfigError names the file and the field."""
+def read_calibration(
+    path: Path, model: type[T], expected_format: str | None = None, version: int = 1, key: str = "calibration"
+) -> T:
+    """A JSON file's object as ``model`` (its keys unique, its ``format`` and ``version`` checked when
+    ``expected_format`` is given, then every other field by pydantic, strictly); one ConfigError names the file and
+    the field (``key`` when the file cannot be read)."""
     try:
         data = json.loads(path.read_text(), object_pairs_hook=_json_object)
     except FileNotFoundError:
-        raise ConfigError("calibration", "file not found", source=path) from None
+        raise ConfigError(key, "file not found", source=path) from None
     except OSError as exc:
-        raise ConfigError("calibration", f"cannot read the file: {exc}", source=path) from None
+        raise ConfigError(key, f"cannot read the file: {exc}", source=path) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError("calibration", f"not valid JSON: {exc}", source=path) from None
+        raise ConfigError(key, f"not valid JSON: {exc}", source=path) from None
     repeated = _repeated_key(data)
     if repeated:
         raise ConfigError(repeated, "given twice (the keys of a JSON object must be unique)", source=path)
-    if not isinstance(data, dict) or data.get("format") != expected_format:
-        raise ConfigError("format", f"expected {expected_format!r}", source=path)
-    if not is_json_number(data.get("version")) or data["version"] != version:
-        raise ConfigError("version", f"unsupported version {data.get('version')!r} (expected {version})", source=path)
+    if expected_format is not None:
+        if not isinstance(data, dict) or data.get("format") != expected_format:
+            raise ConfigError("format", f"expected {expected_format!r}", source=path)
+        if not is_json_number(data.get("version")) or data["version"] != version:
+            raise ConfigError(
+                "version", f"unsupported version {data.get('version')!r} (expected {version})", source=path
+            )
+        data = {k: v for k, v in data.items() if k not in ("format", "version")}
     try:
-        return model.model_validate({k: v for k, v in data.items() if k not in ("format", "version")})
+        return model.model_validate(data)
     except ValidationError as exc:
-        error = exc.errors(include_url=False)[0]
-        key = ".".join(str(part) for part in error["loc"] if part != "[key]")
-        if error["type"] == "value_error":  # one of the checks below
-            message = str(error["ctx"]["error"])
-        elif error["type"] == "extra_forbidden":
-            message = "unknown field" + (f" (expected {list(model.model_fields)})" if len(error["loc"]) == 1 else "")
-        elif error["type"] == "missing":
-            message = "missing (a required field)"
-        elif error["type"] == "model_type":
-            message = f"expected a JSON object, got {error['input']!r}"
-        else:
-            message = f"{error['msg']}, got {error['input']!r}"
-        raise ConfigError(key, message, source=path) from None
+        raise ConfigError(*field_error(exc, model), source=path) from None
+
+
+def field_error(exc: ValidationError, model: type[BaseModel]) -> tuple[str, str]:
+    """pydantic's first error as (the field's path, ``presses[0].file``; what is wrong)."""
+    error = exc.errors(include_url=False)[0]
+    loc, kind = error["loc"], error["type"]
+    key = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc if part != "[key]")
+    if kind == "value_error":  # one of the checks below
+        message = str(error["ctx"]["error"])
+    elif kind == "extra_forbidden":
+        message = "unknown field" + (f" (expected {list(model.model_fields)})" if len(loc) == 1 else "")
+    elif kind == "missing":
+        message = "missing (a required field)"
+    elif kind == "model_type":
+        message = f"expected a JSON object, got {error['input']!r}"
+    else:
+        message = f"{error['msg']}, got {error['input']!r}"
+    return key.removeprefix(".") or "(top level)", message
 
 
 class CalibrationFile(BaseModel):
@@ -253,7 +266,7 @@ class HandCalibration:
     def load(cls, path: str | Path, joint_names: Sequence[str]) -> "HandCalibration":
         """Read and validate a calibration file for these joints; one ConfigError names the file and field."""
         path = Path(path)
-        joints = read_calibration(path, FORMAT, _HandFile).joints
+        joints = read_calibration(path, _HandFile, FORMAT).joints
         unknown = [name for name in joints if name not in joint_names]
         if unknown:
             raise ConfigError(f"joints.{unknown[0]}", f"unknown joint (known: {list(joint_names)})", source=path)

@@ -3,6 +3,7 @@ options are the dataclasses below (tacsplat.options)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -12,7 +13,6 @@ import tyro
 from tacsplat.errors import UsageError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-CHARUCO_DEFAULTS = {"squares_x": 7, "squares_y": 5, "square_mm": 30.0, "marker_mm": 22.0, "dictionary": "DICT_5X5_100"}
 
 
 @dataclass
@@ -180,59 +180,47 @@ def _write_image(path: Path, bgr) -> Path:
     return atomic_write(path, encoded.tobytes())
 
 
+_BOARD_OPTIONS = {  # board spec field -> the option that sets it
+    "inner_corners_x": "--inner-corners",
+    "inner_corners_y": "--inner-corners",
+    "square_length_m": "--square-mm",
+    "squares_x": "--squares-x",
+    "squares_y": "--squares-y",
+    "marker_length_m": "--marker-mm",
+    "dictionary": "--dictionary",
+    "legacy_pattern": "--legacy-pattern",
+}
+
+
 def _board_spec(args: CalibrateCamera):
     from tacsplat.drivers.wrist_camera import MAX_SQUARE_LENGTH_M, CharucoBoardSpec, ChessboardSpec
     from tacsplat.errors import ConfigError
 
-    inner_corners = None if args.inner_corners is None else _corner_counts(args.inner_corners)
-    charuco_only = {
-        "--squares-x": args.squares_x,
-        "--squares-y": args.squares_y,
-        "--marker-mm": args.marker_mm,
-        "--dictionary": args.dictionary,
-        "--legacy-pattern": args.legacy_pattern or None,
-    }
+    mm = {"square_length_m": args.square_mm, "marker_length_m": args.marker_mm}
+    charuco = {"squares_x": args.squares_x, "squares_y": args.squares_y, "dictionary": args.dictionary}
+    charuco |= {"marker_length_m": args.marker_mm, "legacy_pattern": args.legacy_pattern or None}
     if args.board == "chessboard":
-        given = [option for option, value in charuco_only.items() if value is not None]
+        given = [_BOARD_OPTIONS[name] for name, value in charuco.items() if value is not None]
         if given:
             raise ConfigError(given[0], "is a ChArUco option; a chessboard takes --inner-corners and --square-mm")
-        if inner_corners is None:
+        if args.inner_corners is None:
             raise ConfigError(
                 "--inner-corners",
                 "needed with --board chessboard: the inner corners (where four squares meet) along x and y, e.g. 9x6",
             )
         if args.square_mm is None:
             raise ConfigError("--square-mm", "needed with --board chessboard: the printed square side, mm")
-        spec = ChessboardSpec(*inner_corners, args.square_mm / 1000.0)
-        fields = {
-            "inner_corners_x": "--inner-corners",
-            "inner_corners_y": "--inner-corners",
-            "square_length_m": "--square-mm",
-        }
+        spec = ChessboardSpec(*_corner_counts(args.inner_corners), args.square_mm / 1000.0)
     else:
         if args.inner_corners is not None:
             raise ConfigError("--inner-corners", "is a chessboard option; a ChArUco board takes --squares-x/-y")
-        value = {k: getattr(args, k) if getattr(args, k) is not None else v for k, v in CHARUCO_DEFAULTS.items()}
-        spec = CharucoBoardSpec(
-            value["squares_x"],
-            value["squares_y"],
-            value["square_mm"] / 1000.0,
-            value["marker_mm"] / 1000.0,
-            value["dictionary"],
-            args.legacy_pattern,
-        )
-        fields = {
-            "squares_x": "--squares-x",
-            "squares_y": "--squares-y",
-            "square_length_m": "--square-mm",
-            "marker_length_m": "--marker-mm",
-            "dictionary": "--dictionary",
-        }
-    lengths = {"square_length_m": "--square-mm", "marker_length_m": "--marker-mm"}
-    for name, option in lengths.items():
-        if name in fields and not 0 < getattr(spec, name) <= MAX_SQUARE_LENGTH_M:
+        given = {**charuco, **{name: value / 1000.0 for name, value in mm.items() if value is not None}}
+        spec = dataclasses.replace(CharucoBoardSpec(), **{k: v for k, v in given.items() if v is not None})
+    for name in (name for name in mm if hasattr(spec, name)):
+        if not 0 < getattr(spec, name) <= MAX_SQUARE_LENGTH_M:
             raise ConfigError(
-                option, f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got {getattr(spec, name) * 1000:g}"
+                _BOARD_OPTIONS[name],
+                f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got {getattr(spec, name) * 1000:g}",
             )
     if isinstance(spec, CharucoBoardSpec) and not spec.marker_length_m < spec.square_length_m:
         raise ConfigError(
@@ -242,7 +230,7 @@ def _board_spec(args: CalibrateCamera):
         )
     problem = spec.problem()
     if problem:
-        raise ConfigError(fields.get(problem[0], problem[0]), problem[1])
+        raise ConfigError(_BOARD_OPTIONS[problem[0]], problem[1])
     return spec
 
 
@@ -373,43 +361,23 @@ def _coverage_picture(first_image, views, calib, path: Path) -> Path:
 
 def _read_labels(path: Path) -> dict[str, dict]:
     """Hand labels of ball presses: file name -> {"radius": px, "centre": (x, y) or None}; errors name the field."""
-    import json
-    import math
 
-    from tacsplat.errors import ConfigError
+    from pydantic import Field
 
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError("--labels", f"{path}: file not found") from None
-    except (OSError, ValueError) as exc:
-        raise ConfigError("--labels", f"{path}: not readable JSON ({exc})") from None
-    presses = data.get("presses") if isinstance(data, dict) else None
-    if not isinstance(presses, list):
-        raise ConfigError("presses", "expected a list of {file, contact_radius_px, center_xy_px}", source=path)
-    labels = {}
-    for i, press in enumerate(presses):
-        where = f"presses[{i}]"
-        if not isinstance(press, dict) or not isinstance(press.get("file"), str):
-            raise ConfigError(f"{where}.file", f"expected an image file name, got {press!r}", source=path)
-        radius = press.get("contact_radius_px")
-        if (
-            isinstance(radius, bool)
-            or not isinstance(radius, (int, float))
-            or not (math.isfinite(radius) and radius > 0)
-        ):
-            raise ConfigError(
-                f"{where}.contact_radius_px", f"expected a number of pixels > 0, got {radius!r}", source=path
-            )
-        centre = press.get("center_xy_px")
-        if centre is not None and not (
-            isinstance(centre, list)
-            and len(centre) == 2
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in centre)
-        ):
-            raise ConfigError(f"{where}.center_xy_px", f"expected [x, y] pixels, got {centre!r}", source=path)
-        labels[press["file"]] = {"radius": float(radius), "centre": None if centre is None else tuple(centre)}
-    return labels
+    from tacsplat.drivers.calibration import CalibrationFile, read_calibration
+
+    class Label(CalibrationFile, extra="ignore"):
+        file: str
+        contact_radius_px: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+        center_xy_px: (
+            Annotated[list[Annotated[float, Field(allow_inf_nan=False)]], Field(min_length=2, max_length=2)] | None
+        ) = None
+
+    class Labels(CalibrationFile, extra="ignore"):
+        presses: list[Label]
+
+    labels = read_calibration(path, Labels, key="--labels").presses
+    return {p.file: {"radius": p.contact_radius_px, "centre": p.center_xy_px and tuple(p.center_xy_px)} for p in labels}
 
 
 def _press_sheet(images, names, calib, labels, path: Path) -> Path:

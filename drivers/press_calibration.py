@@ -403,7 +403,7 @@ def save_hand_eye(path: str | Path, T_hand_cam: np.ndarray, presses: int, rms_mm
 
 def load_hand_eye(path: str | Path) -> np.ndarray:
     """``T_hand_cam`` [4, 4] of a hand-eye file; one ConfigError names the file and field."""
-    return read_calibration(Path(path), HAND_EYE_FORMAT, _HandEyeFile).T_hand_cam
+    return read_calibration(Path(path), _HandEyeFile, HAND_EYE_FORMAT).T_hand_cam
 
 
 def save_mounts(fit: MountsFit, path: str | Path) -> None:
@@ -419,7 +419,7 @@ def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
     """``{finger: T_fingertip_sensor}`` of a mounts file (fingers among ``fingers``); one ConfigError names the
     file and field."""
     path = Path(path)
-    sensors = read_calibration(path, MOUNTS_FORMAT, _MountsFile).sensors
+    sensors = read_calibration(path, _MountsFile, MOUNTS_FORMAT).sensors
     unknown = [finger for finger in sensors if finger not in fingers]
     if unknown:
         raise ConfigError(f"sensors.{unknown[0]}", f"unknown finger (one of {list(fingers)})", source=path)

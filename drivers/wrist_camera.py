@@ -260,7 +260,7 @@ class CameraCalibration:
     def load(cls, path: str | Path) -> "CameraCalibration":
         """Read a calibration file; every value is checked here, and one ConfigError names the file and field."""
         path = Path(path)
-        f = read_calibration(path, FORMAT, _CameraFile)
+        f = read_calibration(path, _CameraFile, FORMAT)
         K, width, height, dist = f.K_opencv, f.width, f.height, f.dist
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ConfigError(
