@@ -77,24 +77,13 @@ ERR_DATA_LIMIT = 6
 ERR_ACCESS = 7
 
 
-def _crc_table() -> list[int]:
-    table = []
-    for byte in range(256):
-        crc = byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else (crc << 1)
-        table.append(crc & 0xFFFF)
-    return table
-
-
-_CRC_TABLE = _crc_table()
-
-
 def crc16(data: bytes | bytearray | list[int]) -> int:
     """CRC-16 of Dynamixel protocol 2.0 (polynomial 0x8005, initial value 0, not reflected)."""
     crc = 0
     for b in data:
-        crc = ((crc << 8) ^ _CRC_TABLE[((crc >> 8) ^ b) & 0xFF]) & 0xFFFF
+        crc ^= b << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x8005 if crc & 0x8000 else crc << 1) & 0xFFFF
     return crc
 
 
@@ -341,13 +330,6 @@ class DxlEmulator:
         """Where the servo stands, in ticks (without an injected encoder offset)."""
         with self._lock:
             return self.servos[servo_id].position
-
-    def clear_faults(self) -> None:
-        with self._lock:
-            self._faults.clear()
-            self._disconnected.clear()
-            for servo in self.servos.values():
-                servo.offset_ticks = 0
 
     def set_hardware_error(self, servo_id: int, bits: int) -> None:
         """Latch Hardware Error Status bits; the shutdown bits turn torque off, as the firmware does."""
@@ -611,20 +593,9 @@ class EmulatorProcess:
         self.path = ""
 
     def __enter__(self) -> "EmulatorProcess":
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "tacsplat.drivers.dxl_emulator",
-                "--ids",
-                ",".join(map(str, self.ids)),
-                "--speed",
-                str(self.speed),
-            ],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
+        ids = ",".join(map(str, self.ids))
+        command = [sys.executable, "-m", "tacsplat.drivers.dxl_emulator", "--ids", ids, "--speed", str(self.speed)]
+        self.proc = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         try:
             self.path = self._reply()["port"]
         except BaseException:

@@ -89,17 +89,7 @@ try:  # what pyserial lets escape when the adapter disappears (termios.error is 
 except ImportError:  # Windows
     PORT_ERRORS = (OSError,)
 
-COMM_RESULT_NAMES = {
-    dxl.COMM_SUCCESS: "COMM_SUCCESS",
-    dxl.COMM_PORT_BUSY: "COMM_PORT_BUSY",
-    dxl.COMM_TX_FAIL: "COMM_TX_FAIL",
-    dxl.COMM_RX_FAIL: "COMM_RX_FAIL",
-    dxl.COMM_TX_ERROR: "COMM_TX_ERROR",
-    dxl.COMM_RX_WAITING: "COMM_RX_WAITING",
-    dxl.COMM_RX_TIMEOUT: "COMM_RX_TIMEOUT",
-    dxl.COMM_RX_CORRUPT: "COMM_RX_CORRUPT",
-    dxl.COMM_NOT_AVAILABLE: "COMM_NOT_AVAILABLE",
-}
+COMM_RESULT_NAMES = {value: name for name, value in vars(dxl).items() if name.startswith("COMM_")}
 
 # One sync read gets current, velocity and position (addresses 126..135).
 _STATE_ADDRESS = REGISTERS["present_current"].address
@@ -446,10 +436,6 @@ class DynamixelHand:
         """[16] radians."""
         return self.read_state().positions
 
-    def read_joint_currents(self) -> np.ndarray:
-        """[16] amperes."""
-        return self.read_state().currents
-
     effort_unit = "A"  # the servos' present current
 
     def read_joint_state(self) -> tuple[np.ndarray, np.ndarray]:
@@ -639,22 +625,10 @@ class DynamixelHand:
             return
         servos = ",".join(f"{sid}:{self._joint_of[sid]}" for sid in self.ids)
         try:
+            args = {"port": self.port_name, "baudrate": self.baudrate, "timeout-s": self.config.min_packet_timeout_s}
+            args |= {"drain-s": self.config.drain_s, "servos": servos}
             self._guard = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "tacsplat.drivers.dynamixel_hand",
-                    "--port",
-                    self.port_name,
-                    "--baudrate",
-                    str(self.baudrate),
-                    "--timeout-s",
-                    str(self.config.min_packet_timeout_s),
-                    "--drain-s",
-                    str(self.config.drain_s),
-                    "--servos",
-                    servos,
-                ],
+                [sys.executable, "-m", "tacsplat.drivers.dynamixel_hand", *(f"--{k}={v}" for k, v in args.items())],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.DEVNULL,
                 start_new_session=True,
@@ -758,32 +732,16 @@ class DynamixelHand:
                 servo_id, instruction, f"{self._comm_text(result)} after {attempts} attempts", comm_result=result
             )
 
-    def _fail(
-        self,
-        servo_id: int | None,
-        instruction: str,
-        detail: str,
-        *,
-        comm_result: int | None = None,
-        status_error: int = 0,
-        hardware_error: int = 0,
-    ):
-        """Make the hand safe, record the fault and raise a ServoError (an ending signal meanwhile wins)."""
+    def _fail(self, servo_id: int | None, instruction: str, detail: str, **codes):
+        """Make the hand safe, record the fault and raise a ServoError (an ending signal meanwhile wins); ``codes``:
+        ServoError's comm_result, status_error, hardware_error."""
         with _Exchange(self):
             self._torque_off_all()
             who = f"servo {self._names([servo_id])}" if servo_id is not None else f"port {self.port_name}"
             message = f"{who}: {instruction} failed: {detail}; {self.torque_off_report}"
             self._fault = message
-            error = ServoError(
-                self.device,
-                message,
-                servo_id=servo_id,
-                joint=self._joint_of.get(servo_id, None),
-                instruction=instruction,
-                comm_result=comm_result,
-                status_error=status_error,
-                hardware_error=hardware_error,
-            )
+            joint = self._joint_of.get(servo_id)
+            error = ServoError(self.device, message, servo_id=servo_id, joint=joint, instruction=instruction, **codes)
         raise error
 
     def _status_fail(self, servo_id: int, instruction: str, error: int):
