@@ -238,22 +238,9 @@ class CameraCalibration:
 
     def save(self, path: str | Path) -> None:
         board = {"type": next(k for k, v in BOARD_TYPES.items() if isinstance(self.board, v)), **asdict(self.board)}
-        data = {
-            "format": FORMAT,
-            "version": 1,
-            "pixel_centres": _PIXEL_CENTRES,
-            "K_opencv": self.K_opencv.tolist(),
-            "dist": self.dist.ravel().tolist(),
-            "width": self.width,
-            "height": self.height,
-            "rms_px": self.rms_px,
-            "board": board,
-            "per_image_rms_px": self.per_image_rms_px,
-            "T_hand_cam": None if self.T_hand_cam is None else np.asarray(self.T_hand_cam).tolist(),
-            "K_std_px": self.K_std_px,
-            "distortion_model": self.distortion_model,
-            "warnings": self.warnings,
-        }
+        data = {"format": FORMAT, "version": 1, "pixel_centres": _PIXEL_CENTRES, **vars(self), "board": board}
+        data |= {"K_opencv": self.K_opencv.tolist(), "dist": self.dist.ravel().tolist()}
+        data["T_hand_cam"] = None if self.T_hand_cam is None else np.asarray(self.T_hand_cam).tolist()
         atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
     @classmethod
@@ -481,18 +468,15 @@ def view_set_problem(
 def _lens_problem(calib: CameraCalibration, radius: float) -> str | None:
     """Why the lens model does not map the ray to the farthest image corner one to one onto the image out to
     ``radius`` (distorted, normalised): it folds back first, or scales that radius beyond MAX_CORNER_SCALE."""
-    K, w, h = calib.K_opencv, calib.width, calib.height
-    to_normalised = np.linalg.inv(K[:2, :2]).T
-    corners = (
-        np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]]) - K[:2, 2]
-    ) @ to_normalised
+    K = calib.K_opencv
+    corners = _normalised(calib, _image_corners(calib))
     direction = corners[np.argmax(np.hypot(*corners.T))]
     direction = direction / np.hypot(*direction)
     r = np.linspace(0.0, MAX_CORNER_SCALE * radius, 401)  # undistorted radii
     pixels = cv2.projectPoints(
         np.column_stack([np.outer(r, direction), np.ones(len(r))]), np.zeros(3), np.zeros(3), K, calib.dist
     )[0].reshape(-1, 2)
-    distorted = np.hypot(*((pixels - K[:2, 2]) @ to_normalised).T)
+    distorted = np.hypot(*_normalised(calib, pixels).T)
     reached = np.flatnonzero(distorted >= radius)
     end = reached[0] if reached.size else len(r) - 1
     dist = "[" + ", ".join(f"{k:.4g}" for k in calib.dist) + "]"
@@ -511,15 +495,22 @@ def _lens_problem(calib: CameraCalibration, radius: float) -> str | None:
     return None
 
 
+def _normalised(calib: CameraCalibration, pixels: np.ndarray) -> np.ndarray:
+    """OpenCV pixels [N, 2] -> normalised (distorted) image coordinates [N, 2]."""
+    K = calib.K_opencv
+    return (pixels - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T
+
+
+def _image_corners(calib: CameraCalibration) -> np.ndarray:
+    """[4, 2] OpenCV pixels of the image's outer corners."""
+    w, h = calib.width, calib.height
+    return np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+
+
 def _radii(calib: CameraCalibration, views: Sequence[BoardView]) -> tuple[float, float]:
     """Distorted normalised radius of the outermost corner seen, and of the farthest image corner."""
-    K, w, h = calib.K_opencv, calib.width, calib.height
     seen = np.concatenate([view.image_points for view in views])
-    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
-    radius = [
-        float(np.hypot(*((points - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T).T).max()) for points in (seen, corners)
-    ]
-    return radius[0], radius[1]
+    return tuple(float(np.hypot(*_normalised(calib, points).T).max()) for points in (seen, _image_corners(calib)))
 
 
 def calibration_problem(calib: CameraCalibration, views: Sequence[BoardView]) -> str | None:
