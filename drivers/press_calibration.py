@@ -67,15 +67,8 @@ class Press:
 
 
 NOISE_M = 5e-5  # a contact point's error the press set is judged against (an optical gel's depth noise)
-MAX_STD = {"rotation": np.radians(0.1), "translation": 1e-4}  # a parameter known worse than this is undetermined
-PARAM_NAMES = (
-    "rotation about x",
-    "rotation about y",
-    "rotation about z",
-    "offset along x",
-    "offset along y",
-    "offset along z",
-)
+MAX_STD = (np.radians(0.1), 1e-4)  # rad, m: a parameter known worse than this is undetermined
+PARAM_NAMES = tuple(f"{kind} {axis}" for kind in ("rotation about", "offset along") for axis in "xyz")
 
 
 @dataclass
@@ -154,7 +147,10 @@ def fit_presses(
     x0 = np.concatenate(x0)
     scale = np.r_[[0.01] * 3 + [0.001] * 3, [0.001] * 2 * len(placements)]
     fit = least_squares(residuals, x0, x_scale=scale, method="lm")
-    _refuse_undetermined(fit.jac, ["hand-eye"], what)
+    weak = _undetermined(fit.jac, ["hand-eye"], NOISE_M, MAX_STD)
+    if weak:
+        hint = "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
+        raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(map(' '.join, weak))}; {hint}")
     X, centres = unpack(fit.x)
     offsets = np.cumsum([0] + [len(s) for s in samples])
     per = {
@@ -170,19 +166,16 @@ def fit_presses(
     )
 
 
-def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
-    """The parameters' standard deviations at :data:`NOISE_M` per point; one error naming those over
-    :data:`MAX_STD`, with the presses that fix them."""
-    std = _std(J, NOISE_M)
-    weak = []
-    for b, block in enumerate(blocks):
-        for k in range(6):
-            limit = MAX_STD["rotation" if k < 3 else "translation"]
-            if not std[6 * b + k] <= limit:
-                weak.append(f"{block} {PARAM_NAMES[k]}")
-    if weak:
-        hint = "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
-        raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {hint}")
+def _undetermined(J: np.ndarray, blocks: list[str], noise: float, limits: tuple[float, float]) -> list[tuple]:
+    """(block, parameter name) of each parameter (six per block: rotations, then offsets) whose standard deviation
+    at ``noise`` per residual is over its limit (``limits``: rotations', offsets')."""
+    std = _std(J, noise)
+    return [
+        (block, PARAM_NAMES[k])
+        for b, block in enumerate(blocks)
+        for k in range(6)
+        if not std[6 * b + k] <= limits[k >= 3]
+    ]
 
 
 MOUNT_MAX_STD = (0.2, 0.1)  # degrees, mm: a parameter known worse than this is undetermined
@@ -338,14 +331,7 @@ def fit_mounts(
 
 def _refuse_unfixed(J, presses, fingers, dropped, centres_s, what) -> None:
     """One error naming each parameter the presses leave undetermined (:data:`MOUNT_MAX_STD`) and what to press."""
-    std = _std(J, 1000 * NOISE_M)
-    blocks = ["hand-eye"] + [f"{f} mount" for f in fingers]
-    weak = [
-        (block, PARAM_NAMES[k])
-        for b, block in enumerate(blocks)
-        for k in range(6)
-        if not std[6 * b + k] <= MOUNT_MAX_STD[k >= 3]
-    ]
+    weak = _undetermined(J, ["hand-eye"] + [f"{f} mount" for f in fingers], 1000 * NOISE_M, MOUNT_MAX_STD)
     if not weak:
         return
     hints = []
