@@ -89,24 +89,12 @@ def crc16(data: bytes | bytearray | list[int]) -> int:
 
 def stuff(body: bytes) -> bytes:
     """Insert 0xFD after every ``FF FF FD`` in a packet body (instruction onwards, CRC excluded)."""
-    out = bytearray()
-    for b in body:
-        out.append(b)
-        if len(out) >= 3 and out[-3:] == b"\xff\xff\xfd":
-            out.append(0xFD)
-    return bytes(out)
+    return bytes(body).replace(b"\xff\xff\xfd", b"\xff\xff\xfd\xfd")  # the pattern cannot overlap itself
 
 
 def unstuff(body: bytes) -> bytes:
     """Remove the 0xFD that :func:`stuff` inserted."""
-    out = bytearray()
-    i = 0
-    while i < len(body):
-        out.append(body[i])
-        if len(out) >= 3 and out[-3:] == b"\xff\xff\xfd" and i + 1 < len(body) and body[i + 1] == 0xFD:
-            i += 1  # skip the stuffing byte
-        i += 1
-    return bytes(out)
+    return bytes(body).replace(b"\xff\xff\xfd\xfd", b"\xff\xff\xfd")
 
 
 def build_packet(servo_id: int, instruction: int, params: bytes | list[int]) -> bytes:
@@ -260,18 +248,17 @@ class DxlEmulator:
         self,
         ids=range(16),
         *,
-        model_number: int = MODEL_XC330_M288,
         speed_ticks_per_s: float = 4000.0,
         initial_ticks: dict[int, float] | None = None,
-        return_delay_s: float = 0.0,
         stops: dict[int, tuple[float, float]] | None = None,
     ):
         initial_ticks, stops = initial_ticks or {}, stops or {}
         self.servos = {
-            i: EmulatedServo(i, model_number, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK), stops=stops.get(i))
+            i: EmulatedServo(
+                i, MODEL_XC330_M288, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK), stops=stops.get(i)
+            )
             for i in ids
         }
-        self.return_delay_s = return_delay_s
         self.crc_errors = 0  # instruction packets that arrived with a bad CRC
         self.instructions: list[tuple[int, int]] = []  # (instruction, id) received, in order
         self._disconnected: set[int] = set()
@@ -446,9 +433,9 @@ class DxlEmulator:
         self._handle(servo_id, body[0], body[1:])
         return True
 
-    def _reply(self, servo: EmulatedServo, error: int, params: bytes, after: float = 0.0) -> None:
+    def _reply(self, servo: EmulatedServo, error: int, params: bytes) -> None:
         packet = bytearray(build_packet(servo.servo_id, Instruction.STATUS, bytes([error]) + bytes(params)))
-        when = max(time.monotonic() + self.return_delay_s, after)
+        when = time.monotonic()
         fault = self._faults.get(servo.servo_id)
         if fault is not None:
             if fault.kind == "bad_crc":
