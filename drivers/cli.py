@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from tacsplat.errors import UsageError
+from tacsplat.errors import CameraError, ConfigError, InvalidInputError, TactileError, UsageError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
@@ -124,7 +124,6 @@ def _corner_counts(text: str) -> tuple[int, int]:
 
 def _images(paths) -> list[Path]:
     """Image files: each path an image, or a folder whose images are taken in name order."""
-    from tacsplat.errors import InvalidInputError
 
     found = []
     for path in paths:
@@ -143,8 +142,6 @@ def _images(paths) -> list[Path]:
 def _read_rgb(path: Path):
     import cv2
 
-    from tacsplat.errors import InvalidInputError
-
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         raise InvalidInputError(f"{path}: cannot read the image")
@@ -153,7 +150,6 @@ def _read_rgb(path: Path):
 
 def _check_output_file(path: Path, suffix: str) -> None:
     """``--out`` must name a file, not a folder (checked before any work)."""
-    from tacsplat.errors import ConfigError
 
     if path.is_dir():
         raise ConfigError("--out", f"{path} is a folder; give a {suffix} file")
@@ -171,7 +167,6 @@ def _write_image(path: Path, bgr) -> Path:
     """Write a picture atomically (a temporary name, then a rename; a full disk is one error naming it)."""
     import cv2
 
-    from tacsplat.errors import InvalidInputError
     from tacsplat.files import atomic_write
 
     ok, encoded = cv2.imencode(path.suffix or ".png", bgr)
@@ -194,7 +189,6 @@ _BOARD_OPTIONS = {  # board spec field -> the option that sets it
 
 def _board_spec(args: CalibrateCamera):
     from tacsplat.drivers.wrist_camera import MAX_SQUARE_LENGTH_M, CharucoBoardSpec, ChessboardSpec
-    from tacsplat.errors import ConfigError
 
     mm = {"square_length_m": args.square_mm, "marker_length_m": args.marker_mm}
     charuco = {"squares_x": args.squares_x, "squares_y": args.squares_y, "dictionary": args.dictionary}
@@ -243,7 +237,6 @@ def _calibrate_camera(args: CalibrateCamera) -> int:
         detect_board_views,
         tacsplat_K_from_opencv,
     )
-    from tacsplat.errors import CameraError
 
     if not args.photos:
         raise UsageError("PHOTOS", "required (board photos or folders of them)")
@@ -414,7 +407,6 @@ def _press_sheet(images, names, calib, labels, path: Path) -> Path:
 
 def _calibrate_tactile(args: CalibrateTactile) -> int:
     from tacsplat.drivers.optical_tactile import calibrate_tactile, check_problem
-    from tacsplat.errors import ConfigError, InvalidInputError, TactileError
 
     for option, value in (("--ball-radius-mm", args.ball_radius_mm), ("--pixel-size-mm", args.pixel_size_mm)):
         if not 0 < value < 1000:
@@ -503,7 +495,6 @@ def _tactile_depth(args: TactileDepth) -> int:
 
     from tacsplat.datasets.outputs import claim_output_dir
     from tacsplat.drivers.optical_tactile import TactileCalibration
-    from tacsplat.errors import ConfigError, InvalidInputError
     from tacsplat.files import atomic_write
 
     if not args.images:
@@ -532,9 +523,7 @@ def _tactile_depth(args: TactileDepth) -> int:
             depth = calib.depth(images[path], reference)
             atomic_write(npz, lambda f: np.savez_compressed(f, depth=depth))
             peak = float(depth.max())
-            scaled = (
-                np.zeros(depth.shape, np.uint8) if peak <= 0 else np.clip(depth / peak * 255, 0, 255).astype(np.uint8)
-            )
+            scaled = np.clip(depth / max(peak, 1e-12) * 255, 0, 255).astype(np.uint8)  # (depth >= 0)
             picture = cv2.applyColorMap(scaled, cv2.COLORMAP_VIRIDIS)
             picture[depth <= 0] = 0
             _write_image(png, picture)
