@@ -432,15 +432,9 @@ def _calibrate_tactile(args: CalibrateTactile) -> int:
                 f"{path}: {image.shape[1]}x{image.shape[0]}, the reference {reference.shape[1]}x{reference.shape[0]}"
             )
     names = [p.name for p in presses]
-    calib = calibrate_tactile(
-        reference,
-        images,
-        names,
-        args.ball_radius_mm / 1000.0,
-        args.pixel_size_mm / 1000.0,
-        labels={name: label["radius"] for name, label in labels.items()},
-        check_every=args.check_every,
-    )
+    sizes_m = args.ball_radius_mm / 1000.0, args.pixel_size_mm / 1000.0
+    label_radii = {name: label["radius"] for name, label in labels.items()}
+    calib = calibrate_tactile(reference, images, names, *sizes_m, labels=label_radii, check_every=args.check_every)
     problem = check_problem(calib, args.max_radius_error)
     out = _output_file(args.out)
     picture = out.with_suffix(".png") if problem is None else out.with_name(out.stem + ".rejected.png")

@@ -438,15 +438,8 @@ class TactileCalibration:
                 "the untouched gel)",
             )
         weights = _train_mlp(np.concatenate(inputs), np.concatenate(targets), steps=steps, seed=seed)
-        return cls(
-            weights,
-            pixel_size_m,
-            tuple(int(s) for s in reference.shape[:2]),
-            ball_radius_m,
-            max(MIN_CHANGE, float(np.median(thresholds))),
-            MIN_CONTACT_DEPTH_PX * pixel_size_m,
-            presses=used,
-        )
+        size, threshold = tuple(int(s) for s in reference.shape[:2]), max(MIN_CHANGE, float(np.median(thresholds)))
+        return cls(weights, pixel_size_m, size, ball_radius_m, threshold, MIN_CONTACT_DEPTH_PX * pixel_size_m, used)
 
     def change(self, image: np.ndarray, reference: np.ndarray) -> ColorChange:
         """The colour change of ``image`` against ``reference``, at least this sensor's noise to count."""
@@ -623,14 +616,8 @@ def calibrate_tactile(
             f"{len(names)} ball presses: at least 3 are needed (2 to fit, 1 to check); "
             "10-30 at different places make a good calibration",
         )
-    calib = TactileCalibration.fit(
-        reference,
-        [presses[k] for k in fitted],
-        ball_radius_m,
-        pixel_size_m,
-        names=[names[k] for k in fitted],
-        steps=steps,
-    )
+    fit_images, fit_names = [presses[k] for k in fitted], [names[k] for k in fitted]
+    calib = TactileCalibration.fit(reference, fit_images, ball_radius_m, pixel_size_m, fit_names, steps)
     records = {record["file"]: record for record in calib.presses}
     labels = labels or {}
     for k in held_out:
@@ -717,15 +704,8 @@ class OpticalTactileSensor:
         )
         self._pose = T_hand_sensor if callable(T_hand_sensor) else (lambda T=as_pose(T_hand_sensor, "T_hand_sensor"): T)
         self.reference_frames = int(reference_frames)
-        self._video = VideoReader(
-            source,
-            width=width,
-            height=height,
-            fps=fps,
-            timeout_s=timeout_s,
-            name=f"tactile sensor {name!r}",
-            capture_factory=capture_factory,
-        )
+        video = dict(width=width, height=height, fps=fps, timeout_s=timeout_s, capture_factory=capture_factory)
+        self._video = VideoReader(source, name=f"tactile sensor {name!r}", **video)
         self.reference: np.ndarray | None = None  # [h, w, 3] float64 RGB
 
     @property

@@ -282,19 +282,8 @@ class CameraCalibration:
         problem = spec.problem()
         if problem:
             raise ConfigError(f"board.{problem[0]}", problem[1], source=path)
-        return cls(
-            K,
-            dist,
-            width,
-            height,
-            f.rms_px,
-            spec,
-            f.per_image_rms_px,
-            f.T_hand_cam,
-            f.K_std_px and f.K_std_px.model_dump(),
-            model,
-            f.warnings,
-        )
+        std = f.K_std_px and f.K_std_px.model_dump()
+        return cls(K, dist, width, height, f.rms_px, spec, f.per_image_rms_px, f.T_hand_cam, std, model, f.warnings)
 
 
 def _rms(value) -> float:
@@ -703,16 +692,8 @@ class WristCamera:
         self._maps = cv2.initUndistortRectifyMap(
             c.K_opencv, c.dist, None, self._K_new_opencv, (c.width, c.height), cv2.CV_16SC2
         )
-        self._video = VideoReader(
-            source,
-            width=c.width,
-            height=c.height,
-            fps=fps,
-            fourcc=fourcc,
-            timeout_s=timeout_s,
-            name="wrist camera",
-            capture_factory=capture_factory,
-        )
+        video = dict(fps=fps, fourcc=fourcc, timeout_s=timeout_s, capture_factory=capture_factory)
+        self._video = VideoReader(source, width=c.width, height=c.height, name="wrist camera", **video)
 
     @property
     def K(self) -> np.ndarray:
