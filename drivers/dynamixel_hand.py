@@ -422,10 +422,7 @@ class DynamixelHand:
         positions = self.calibration.radians_from_ticks(ticks)
         self._check_reachable(ticks, positions)
         return HandState(
-            positions=positions,
-            velocities=signs * vel * VELOCITY_UNIT_RAD_S,
-            currents=signs * cur * self.config.current_unit_a,
-            timestamp=time.time(),
+            positions, signs * vel * VELOCITY_UNIT_RAD_S, signs * cur * self.config.current_unit_a, time.time()
         )
 
     def read_motor_angles(self) -> np.ndarray:
