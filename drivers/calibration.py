@@ -49,12 +49,9 @@ class _RepeatedKey(dict):
 
 
 def _json_object(pairs: list) -> dict:
-    seen = set()
-    for key, _ in pairs:
-        if key in seen:
-            return _RepeatedKey(pairs, key)
-        seen.add(key)
-    return dict(pairs)
+    keys = [key for key, _ in pairs]
+    repeated = next((key for i, key in enumerate(keys) if key in keys[:i]), None)
+    return dict(pairs) if repeated is None else _RepeatedKey(pairs, repeated)
 
 
 def _repeated_key(value, where: tuple[str, ...] = ()) -> str | None:
@@ -130,8 +127,8 @@ def is_json_number(value) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
-def _array(shape: tuple[int | None, ...], value) -> np.ndarray | None:
-    """Nested JSON lists of finite numbers of this shape (None: any length) as float64 (None stays None)."""
+def _array(shape: tuple[int | None, ...], value) -> np.ndarray:
+    """Nested JSON lists of finite numbers of this shape (None: any length) as float64."""
 
     def has_shape(v, dims) -> bool:
         if not dims:
@@ -151,7 +148,7 @@ def _array(shape: tuple[int | None, ...], value) -> np.ndarray | None:
     return array
 
 
-def _rigid(value) -> np.ndarray | None:
+def _rigid(value) -> np.ndarray:
     T = _array((4, 4), value)
     problem = rigidity_problem(T)
     if problem:

@@ -68,13 +68,8 @@ log = logging.getLogger(__name__)
 HEADER = bytes([0xFF, 0xFF, 0xFD, 0x00])
 BROADCAST_ID = 0xFE
 
-# Status error numbers (protocol 2.0)
-ERR_INSTRUCTION = 2
-ERR_CRC = 3
-ERR_DATA_RANGE = 4
-ERR_DATA_LENGTH = 5
-ERR_DATA_LIMIT = 6
-ERR_ACCESS = 7
+# Status error numbers (protocol 2.0; dynamixel_table.STATUS_ERROR_NAMES names them)
+ERR_INSTRUCTION, ERR_CRC, ERR_DATA_RANGE, ERR_DATA_LENGTH, ERR_DATA_LIMIT, ERR_ACCESS = range(2, 8)
 
 
 def crc16(data: bytes | bytearray | list[int]) -> int:
