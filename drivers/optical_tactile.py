@@ -70,11 +70,6 @@ def _odd(n: float) -> int:
     return n + 1 - n % 2
 
 
-def _min_area_px(shape) -> int:
-    """Smallest blob of changed pixels that counts (0.2 % of the image, at least 20 px)."""
-    return max(20, int(0.002 * shape[0] * shape[1]))
-
-
 def _as_rgb(image, name: str) -> np.ndarray:
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:
@@ -119,12 +114,6 @@ def _blur(image: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma, borderType=cv2.BORDER_REPLICATE).astype(np.float64)
 
 
-def _robust_threshold(magnitude: np.ndarray, floor: float) -> float:
-    median = float(np.median(magnitude))
-    mad = 1.4826 * float(np.median(np.abs(magnitude - median)))
-    return max(floor, median + CHANGE_MADS * mad)
-
-
 @dataclass
 class ColorChange:
     """The normalised colour change of a tactile image against its reference."""
@@ -160,7 +149,8 @@ def color_change(
         background = _blur(diff * still[..., None], sigma)
         change = diff - background / np.maximum(weight, 1e-6)[..., None]
         magnitude = np.linalg.norm(_blur(change, 1.0), axis=-1)
-        threshold = _robust_threshold(magnitude, min_change)
+        median = float(np.median(magnitude))
+        threshold = max(min_change, median + CHANGE_MADS * (1.4826 * float(np.median(np.abs(magnitude - median)))))
         still = ndimage.binary_erosion(magnitude < threshold, iterations=3).astype(np.float64)
         if not still.any():  # everything changed: no background left to model
             break
@@ -176,7 +166,7 @@ def _solid_blobs(mask: np.ndarray) -> np.ndarray:
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     keep = np.zeros(count, bool)
-    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= _min_area_px(mask.shape)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= max(20, int(0.002 * mask.shape[0] * mask.shape[1]))  # 0.2 %, >= 20 px
     return ndimage.binary_fill_holes(keep[labels])
 
 
@@ -475,18 +465,8 @@ class TactileCalibration:
     def save(self, path: str | Path) -> None:
         """Write the calibration (.npz) atomically (a temporary name, then a rename)."""
         path = Path(path)
-        meta = {
-            "format": FORMAT,
-            "version": VERSION,
-            "pixel_size_m": self.pixel_size_m,
-            "image_size": list(self.image_size),
-            "ball_radius_m": self.ball_radius_m,
-            "change_threshold": self.change_threshold,
-            "noise_floor_m": self.noise_floor_m,
-            "layers": len(self.weights) // 2,
-            "presses": self.presses,
-            "check_summary": self.check_summary,
-        }
+        meta = {"format": FORMAT, "version": VERSION, "layers": len(self.weights) // 2, **vars(self)}
+        del meta["weights"]  # (the arrays w0, w1, ...)
         atomic_write(
             path,
             lambda f: np.savez_compressed(f, meta=json.dumps(meta), **{f"w{i}": w for i, w in enumerate(self.weights)}),

@@ -377,13 +377,8 @@ class _MountsFile(CalibrationFile, extra="ignore"):
 
 
 def save_hand_eye(path: str | Path, T_hand_cam: np.ndarray, presses: int, rms_mm: float) -> None:
-    data = {
-        "format": HAND_EYE_FORMAT,
-        "version": 1,
-        "T_hand_cam": np.asarray(T_hand_cam).tolist(),
-        "presses": presses,
-        "rms_mm": rms_mm,
-    }
+    data = {"format": HAND_EYE_FORMAT, "version": 1, "T_hand_cam": np.asarray(T_hand_cam).tolist()}
+    data |= {"presses": presses, "rms_mm": rms_mm}
     atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
