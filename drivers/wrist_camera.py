@@ -60,6 +60,20 @@ MAX_BOARD_SQUARES = 100  # per side
 MAX_SQUARE_LENGTH_M = 1.0
 
 
+def _size_problem(spec, counts: tuple[str, ...], lengths: tuple[str, ...]) -> tuple[str, str] | None:
+    """``(field, what is wrong)`` of the first of ``counts`` (integers in [2, MAX_BOARD_SQUARES]) and ``lengths``
+    (metres in (0, MAX_SQUARE_LENGTH_M]) that is out of its range, or None."""
+    for name in counts:
+        n = getattr(spec, name)
+        if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= MAX_BOARD_SQUARES:
+            return name, f"must be an integer in [2, {MAX_BOARD_SQUARES}], got {n!r}"
+    for name in lengths:
+        x = getattr(spec, name)
+        if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:  # (NaN and inf fail too)
+            return name, f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
+    return None
+
+
 @dataclass(frozen=True)
 class CharucoBoardSpec:
     """A printed ChArUco board (OpenCV >= 4.6 pattern unless ``legacy_pattern``); :meth:`problem` tells
@@ -74,23 +88,15 @@ class CharucoBoardSpec:
 
     def problem(self) -> tuple[str, str] | None:
         """``(field, what is wrong and the allowed range)`` of the first impossible value, or None."""
-        for name in ("squares_x", "squares_y"):
-            n = getattr(self, name)
-            if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= MAX_BOARD_SQUARES:
-                return name, f"must be an integer in [2, {MAX_BOARD_SQUARES}], got {n!r}"
-        for name in ("square_length_m", "marker_length_m"):
-            x = getattr(self, name)
-            if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:  # (NaN and inf fail too)
-                return name, f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
+        problem = _size_problem(self, ("squares_x", "squares_y"), ("square_length_m", "marker_length_m"))
+        if problem:
+            return problem
         if not self.marker_length_m < self.square_length_m:
             return "marker_length_m", (
                 f"must be smaller than square_length_m ({self.square_length_m:g} m), got {self.marker_length_m:g}"
             )
-        if (
-            not isinstance(self.dictionary, str)
-            or not self.dictionary.startswith("DICT_")
-            or not hasattr(cv2.aruco, self.dictionary)
-        ):
+        name = self.dictionary
+        if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
             return "dictionary", f"unknown ArUco dictionary {self.dictionary!r}"
         markers = len(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)).bytesList)
         needed = self.squares_x * self.squares_y // 2
@@ -107,12 +113,9 @@ class CharucoBoardSpec:
         problem = self.problem()
         if problem:
             raise ConfigError(*problem)
-        board = cv2.aruco.CharucoBoard(
-            (self.squares_x, self.squares_y),
-            self.square_length_m,
-            self.marker_length_m,
-            cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)),
-        )
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        size = (self.squares_x, self.squares_y)
+        board = cv2.aruco.CharucoBoard(size, self.square_length_m, self.marker_length_m, dictionary)
         board.setLegacyPattern(self.legacy_pattern)
         return board
 
@@ -135,14 +138,7 @@ class ChessboardSpec:
 
     def problem(self) -> tuple[str, str] | None:
         """``(field, what is wrong and the allowed range)`` of the first impossible value, or None."""
-        for name in ("inner_corners_x", "inner_corners_y"):
-            n = getattr(self, name)
-            if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= MAX_BOARD_SQUARES:
-                return name, f"must be an integer in [2, {MAX_BOARD_SQUARES}], got {n!r}"
-        x = self.square_length_m
-        if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:
-            return "square_length_m", f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
-        return None
+        return _size_problem(self, ("inner_corners_x", "inner_corners_y"), ("square_length_m",))
 
     def object_points(self) -> np.ndarray:
         """[N, 3] board metres of the inner corners, row by row (OpenCV's detection order)."""
@@ -157,9 +153,8 @@ class ChessboardSpec:
             raise ConfigError(*problem)
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         size = (self.inner_corners_x, self.inner_corners_y)
-        found, corners = cv2.findChessboardCorners(
-            gray, size, cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-        )
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        found, corners = cv2.findChessboardCorners(gray, size, flags)
         if not found:
             return np.zeros((0, 3)), np.zeros((0, 2))
         grid = corners.reshape(self.inner_corners_y, self.inner_corners_x, 2)
@@ -625,10 +620,7 @@ def _position_std(residuals: np.ndarray, J: np.ndarray, R: np.ndarray, dR: np.nd
     if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
         return float("inf")
     cov = float(np.sum(residuals**2)) / dof * np.linalg.inv(normal)
-    dc = np.empty((3, 6))
-    for i in range(3):
-        dc[:, i] = -dR[i].reshape(3, 3).T @ t
-    dc[:, 3:] = -R.T
+    dc = np.column_stack([*(-dR[i].reshape(3, 3).T @ t for i in range(3)), -R.T])  # [3, 6]: dc / d(rvec, tvec)
     return float(np.sqrt(max(np.trace(dc @ cov @ dc.T), 0.0)))
 
 
