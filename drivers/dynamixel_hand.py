@@ -445,7 +445,7 @@ class DynamixelHand:
 
         The one motion command: bad ``q`` (not 16 real finite numbers) raises InvalidInputError, writing nothing.
         """
-        self._check_usable()
+        self.check()
         if not self._torque_on:
             raise HandError(self.device, "torque is off: connect first (use the hand as a context manager)")
         self._sync_write_goal(self._clamp(self._joint_vector(q), "command"))
@@ -465,7 +465,10 @@ class DynamixelHand:
     def check(self) -> None:
         """Raise the fault that stopped the hand (HandError), such as one the heartbeat found while nothing else used
         the hand (a dead bus, a tripped Bus Watchdog); nothing when it is connected and well."""
-        self._check_usable()
+        if self._port is None:
+            raise HandError(self.device, "not connected (use `with DynamixelHand(...) as hand:`)")
+        if self._fault:
+            raise HandError(self.device, f"hand is faulted, reconnect to continue: {self._fault}")
 
     def close(self) -> None:
         """Disable torque on every servo that answers (:attr:`torque_off_report` says which did) and close the port
@@ -498,12 +501,6 @@ class DynamixelHand:
     # -- internals ---------------------------------------------------------
     def _names(self, ids: Sequence[int]) -> str:
         return ", ".join(f"{s} ({self._joint_of.get(s, '?')})" for s in ids)
-
-    def _check_usable(self) -> None:
-        if self._port is None:
-            raise HandError(self.device, "not connected (use `with DynamixelHand(...) as hand:`)")
-        if self._fault:
-            raise HandError(self.device, f"hand is faulted, reconnect to continue: {self._fault}")
 
     def _joint_vector(self, q) -> np.ndarray:
         """``q`` as [16] float64 radians, or InvalidInputError naming the argument."""
@@ -843,7 +840,7 @@ class DynamixelHand:
 
     def _read_raw_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Present (position ticks, velocity units, current units) of every servo by one sync read."""
-        self._check_usable()
+        self.check()
         raw = self._sync_read(_STATE_ADDRESS, _STATE_SIZE, "SYNC_READ present current/velocity/position")
         ticks = np.array([to_signed(int.from_bytes(raw[s][6:10], "little"), 4) for s in self.ids])
         vel = np.array([to_signed(int.from_bytes(raw[s][2:6], "little"), 4) for s in self.ids])
