@@ -1,5 +1,6 @@
-"""Hand calibration file (per-joint sign and offset between servo ticks and joint radians), and the checked
-readers of calibration JSON values that the camera calibration uses too.
+"""Hand calibration file (per-joint sign and offset between servo ticks and joint radians), and the reader of
+calibration files (JSON, checked by pydantic models: :mod:`tacsplat.drivers.calibration_files`) that the other
+calibration files use too.
 
 Motor angle ``theta = (ticks - 2048) * 2 pi / 4096`` (0 at the centre tick);
 joint angle ``q = sign * (theta - offset_rad)``, so ``theta = sign * q + offset_rad``.
@@ -22,7 +23,6 @@ from pathlib import Path
 from typing import Annotated, Any, Sequence, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PlainValidator, ValidationError
 
 from tacsplat.drivers.dynamixel_table import CENTRE_TICK, TICKS_PER_REV
 from tacsplat.errors import ConfigError, InvalidInputError
@@ -91,14 +91,17 @@ def read_calibration(
                 "version", f"unsupported version {data.get('version')!r} (expected {version})", source=path
             )
         data = {k: v for k, v in data.items() if k not in ("format", "version")}
+    from pydantic import ValidationError
+
     try:
         return model.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(*field_error(exc, model), source=path) from None
 
 
-def field_error(exc: ValidationError, model: type[BaseModel]) -> tuple[str, str]:
-    """pydantic's first error as (the field's path, ``presses[0].file``; what is wrong)."""
+def field_error(exc, model) -> tuple[str, str]:
+    """pydantic's first error (a ValidationError of ``model``) as (the field's path, ``presses[0].file``; what is
+    wrong)."""
     error = exc.errors(include_url=False)[0]
     loc, kind = error["loc"], error["type"]
     key = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc if part != "[key]")
@@ -115,19 +118,7 @@ def field_error(exc: ValidationError, model: type[BaseModel]) -> tuple[str, str]
     return key.removeprefix(".") or "(top level)", message
 
 
-class CalibrationFile(BaseModel):
-    """The fields of a calibration file but ``format`` and ``version``: strict types (no string for a number, no
-    boolean for a number), unknown fields refused."""
-
-    model_config = ConfigDict(strict=True, extra="forbid")
-
-
-def is_json_number(value) -> bool:
-    """A number, never a boolean (JSON ``true`` is Python's ``True``, an ``int``) nor a string."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
-
-
-def _array(shape: tuple[int | None, ...], value) -> np.ndarray:
+def json_array(shape: tuple[int | None, ...], value) -> np.ndarray:
     """Nested JSON lists of finite numbers of this shape (None: any length) as float64."""
 
     def has_shape(v, dims) -> bool:
@@ -148,21 +139,12 @@ def _array(shape: tuple[int | None, ...], value) -> np.ndarray:
     return array
 
 
-def _rigid(value) -> np.ndarray:
-    T = _array((4, 4), value)
+def json_rigid(value) -> np.ndarray:
+    T = json_array((4, 4), value)
     problem = rigidity_problem(T)
     if problem:
         raise ValueError(f"not a rigid transform: {problem}")
     return T
-
-
-def Array(*shape: int | None):
-    """A field of nested JSON lists of finite numbers of this shape (None: any length), read as float64."""
-    return Annotated[Any, PlainValidator(functools.partial(_array, shape))]
-
-
-Rigid = Annotated[Any, PlainValidator(_rigid)]  # a rigid 4x4 transform
-NonNegative = Annotated[float, Field(allow_inf_nan=False, ge=0.0)]
 
 
 def _sign_problem(sign) -> str | None:
@@ -177,25 +159,38 @@ def _offset_problem(offset) -> str | None:
     return None
 
 
-def _checked(problem):
-    """A field that ``problem(value)`` (a message or None) checks."""
-
-    def validate(value):
-        message = problem(value)
-        if message:
-            raise ValueError(message)
-        return float(value)
-
-    return Annotated[Any, PlainValidator(validate)]
+def is_json_number(value) -> bool:
+    """A number, never a boolean (JSON ``true`` is Python's ``True``, an ``int``) nor a string."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
-class _Joint(CalibrationFile):
-    sign: _checked(_sign_problem)
-    offset_rad: _checked(_offset_problem)
+@functools.cache
+def _hand_file():
+    """The pydantic model of a hand calibration file, built on first use (the hand's guard process, which imports
+    this module, starts without pydantic)."""
+    from pydantic import BaseModel, ConfigDict, PlainValidator
 
+    def checked(problem):
+        """A field that ``problem(value)`` (a message or None) checks."""
 
-class _HandFile(CalibrationFile):
-    joints: dict[str, _Joint]
+        def validate(value):
+            message = problem(value)
+            if message:
+                raise ValueError(message)
+            return float(value)
+
+        return Annotated[Any, PlainValidator(validate)]
+
+    class Joint(BaseModel):
+        model_config = ConfigDict(strict=True, extra="forbid")
+        sign: checked(_sign_problem)
+        offset_rad: checked(_offset_problem)
+
+    class HandFile(BaseModel):
+        model_config = ConfigDict(strict=True, extra="forbid")
+        joints: dict[str, Joint]
+
+    return HandFile
 
 
 @dataclass(frozen=True)
@@ -263,7 +258,7 @@ class HandCalibration:
     def load(cls, path: str | Path, joint_names: Sequence[str]) -> "HandCalibration":
         """Read and validate a calibration file for these joints; one ConfigError names the file and field."""
         path = Path(path)
-        joints = read_calibration(path, _HandFile, FORMAT).joints
+        joints = read_calibration(path, _hand_file(), FORMAT).joints
         unknown = [name for name in joints if name not in joint_names]
         if unknown:
             raise ConfigError(f"joints.{unknown[0]}", f"unknown joint (known: {list(joint_names)})", source=path)

@@ -357,7 +357,8 @@ def _read_labels(path: Path) -> dict[str, dict]:
 
     from pydantic import Field
 
-    from tacsplat.drivers.calibration import CalibrationFile, read_calibration
+    from tacsplat.drivers.calibration import read_calibration
+    from tacsplat.drivers.calibration_files import CalibrationFile
 
     class Label(CalibrationFile, extra="ignore"):
         file: str

@@ -42,7 +42,8 @@ from scipy import ndimage, sparse
 from scipy.optimize import least_squares
 from scipy.sparse.linalg import spsolve
 
-from tacsplat.drivers.calibration import CalibrationFile, NonNegative, field_error
+from tacsplat.drivers.calibration import field_error
+from tacsplat.drivers.calibration_files import CalibrationFile, NonNegative
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import InvalidInputError, TactileError
 from tacsplat.files import atomic_write

@@ -36,7 +36,8 @@ from pydantic import Field
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from tacsplat.drivers.calibration import CalibrationFile, Rigid, read_calibration
+from tacsplat.drivers.calibration import read_calibration
+from tacsplat.drivers.calibration_files import CalibrationFile, Rigid
 from tacsplat.errors import ConfigError, InvalidInputError
 from tacsplat.files import atomic_write
 from tacsplat.geometry import invert_pose, make_pose, transform_points
@@ -169,12 +170,9 @@ def fit_presses(
 def _undetermined(J: np.ndarray, blocks: list[str], noise: float, limits: tuple[float, float]) -> list[tuple]:
     """(block, parameter name) of each parameter (six per block: rotations, then offsets) whose standard deviation
     at ``noise`` per residual is over its limit (``limits``: rotations', offsets')."""
-    std = _std(J, noise)
+    std = _std(J, noise)[: 6 * len(blocks)].reshape(-1, 6)  # a row per block
     return [
-        (block, PARAM_NAMES[k])
-        for b, block in enumerate(blocks)
-        for k in range(6)
-        if not std[6 * b + k] <= limits[k >= 3]
+        (block, PARAM_NAMES[k]) for block, row in zip(blocks, std) for k in range(6) if not row[k] <= limits[k >= 3]
     ]
 
 

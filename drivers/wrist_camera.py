@@ -35,7 +35,8 @@ import cv2
 import numpy as np
 from pydantic import Field, PlainValidator
 
-from tacsplat.drivers.calibration import Array, CalibrationFile, NonNegative, Rigid, is_json_number, read_calibration
+from tacsplat.drivers.calibration import is_json_number, read_calibration
+from tacsplat.drivers.calibration_files import Array, CalibrationFile, NonNegative, Rigid
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import CameraError, ConfigError, InvalidInputError
 from tacsplat.files import atomic_write
