@@ -524,8 +524,7 @@ def _parse_ids(text: str) -> list[int]:
 
 def _command(emu: DxlEmulator, line: str) -> dict:
     """One command of :func:`main`'s standard input; its JSON reply."""
-    words = line.split()
-    name, args = (words[0], words[1:]) if words else ("", [])
+    name, *args = line.split() or [""]
     try:
         if name == "status" and not args:
             return {"servos": emu.status()}
@@ -538,9 +537,8 @@ def _command(emu: DxlEmulator, line: str) -> dict:
             return {"ok": True}
     except (KeyError, ValueError) as exc:
         return {"error": f"{line.strip()!r}: {exc!r}"}
-    return {
-        "error": f"unknown command {line.strip()!r} (status | disconnect ID|all | reconnect ID|all | offset ID TICKS)"
-    }
+    usage = "status | disconnect ID|all | reconnect ID|all | offset ID TICKS"
+    return {"error": f"unknown command {line.strip()!r} ({usage})"}
 
 
 def main(argv: list[str] | None = None) -> int:
