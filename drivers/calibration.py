@@ -1,5 +1,6 @@
-"""Hand calibration file (per-joint sign and offset between servo ticks and joint radians), and the checked
-readers of calibration JSON values that the camera calibration uses too.
+"""Hand calibration file (per-joint sign and offset between servo ticks and joint radians), and the reader of
+calibration files (JSON, checked by pydantic models: :mod:`tacsplat.drivers.calibration_files`) that the other
+calibration files use too.
 
 Motor angle ``theta = (ticks - 2048) * 2 pi / 4096`` (0 at the centre tick);
 joint angle ``q = sign * (theta - offset_rad)``, so ``theta = sign * q + offset_rad``.
@@ -14,21 +15,24 @@ File (JSON)::
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Annotated, Any, Sequence, TypeVar
 
 import numpy as np
 
 from tacsplat.drivers.dynamixel_table import CENTRE_TICK, TICKS_PER_REV
 from tacsplat.errors import ConfigError, InvalidInputError
 from tacsplat.files import atomic_write
+from tacsplat.geometry import rigidity_problem
 
 FORMAT = "tacsplat-hand-calibration"
 RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 JOINT_FIELDS = ("sign", "offset_rad")
+T = TypeVar("T")
 
 
 def motor_angles_from_ticks(ticks) -> np.ndarray:
@@ -45,12 +49,9 @@ class _RepeatedKey(dict):
 
 
 def _json_object(pairs: list) -> dict:
-    seen = set()
-    for key, _ in pairs:
-        if key in seen:
-            return _RepeatedKey(pairs, key)
-        seen.add(key)
-    return dict(pairs)
+    keys = [key for key, _ in pairs]
+    repeated = next((key for i, key in enumerate(keys) if key in keys[:i]), None)
+    return dict(pairs) if repeated is None else _RepeatedKey(pairs, repeated)
 
 
 def _repeated_key(value, where: tuple[str, ...] = ()) -> str | None:
@@ -65,53 +66,60 @@ def _repeated_key(value, where: tuple[str, ...] = ()) -> str | None:
     return None
 
 
-def read_calibration_json(path: Path, expected_format: str, version: int = 1) -> dict:
-    """A calibration file's JSON object, its ``format``, ``version`` and unique keys checked; errors name the file."""
+def read_calibration(
+    path: Path, model: type[T], expected_format: str | None = None, version: int = 1, key: str = "calibration"
+) -> T:
+    """A JSON file's object as ``model`` (its keys unique, its ``format`` and ``version`` checked when
+    ``expected_format`` is given, then every other field by pydantic, strictly); one ConfigError names the file and
+    the field (``key`` when the file cannot be read)."""
     try:
         data = json.loads(path.read_text(), object_pairs_hook=_json_object)
     except FileNotFoundError:
-        raise ConfigError("calibration", "file not found", source=path) from None
+        raise ConfigError(key, "file not found", source=path) from None
     except OSError as exc:
-        raise ConfigError("calibration", f"cannot read the file: {exc}", source=path) from None
+        raise ConfigError(key, f"cannot read the file: {exc}", source=path) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError("calibration", f"not valid JSON: {exc}", source=path) from None
+        raise ConfigError(key, f"not valid JSON: {exc}", source=path) from None
     repeated = _repeated_key(data)
     if repeated:
         raise ConfigError(repeated, "given twice (the keys of a JSON object must be unique)", source=path)
-    if not isinstance(data, dict) or data.get("format") != expected_format:
-        raise ConfigError("format", f"expected {expected_format!r}", source=path)
-    if not is_json_number(data.get("version")) or data["version"] != version:
-        raise ConfigError("version", f"unsupported version {data.get('version')!r} (expected {version})", source=path)
-    return data
+    if expected_format is not None:
+        if not isinstance(data, dict) or data.get("format") != expected_format:
+            raise ConfigError("format", f"expected {expected_format!r}", source=path)
+        if not is_json_number(data.get("version")) or data["version"] != version:
+            raise ConfigError(
+                "version", f"unsupported version {data.get('version')!r} (expected {version})", source=path
+            )
+        data = {k: v for k, v in data.items() if k not in ("format", "version")}
+    from pydantic import ValidationError
+
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(*field_error(exc, model), source=path) from None
 
 
-def is_json_number(value) -> bool:
-    """A number, never a boolean (JSON ``true`` is Python's ``True``, an ``int``) nor a string."""
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+def field_error(exc, model) -> tuple[str, str]:
+    """pydantic's first error (a ValidationError of ``model``) as (the field's path, ``presses[0].file``; what is
+    wrong)."""
+    error = exc.errors(include_url=False)[0]
+    loc, kind = error["loc"], error["type"]
+    key = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc if part != "[key]")
+    if kind == "value_error":  # one of the checks below
+        message = str(error["ctx"]["error"])
+    elif kind == "extra_forbidden":
+        message = "unknown field" + (f" (expected {list(model.model_fields)})" if len(loc) == 1 else "")
+    elif kind == "missing":
+        message = "missing (a required field)"
+    elif kind == "model_type":
+        message = f"expected a JSON object, got {error['input']!r}"
+    else:
+        message = f"{error['msg']}, got {error['input']!r}"
+    return key.removeprefix(".") or "(top level)", message
 
 
-def json_int(value, key: str, path: Path, minimum: int) -> int:
-    """An integer >= ``minimum`` (not a float, not a boolean); ConfigError naming the file and key."""
-    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-        raise ConfigError(key, f"must be an integer >= {minimum}, got {value!r}", source=path)
-    return value
-
-
-def json_float(value, key: str, path: Path, low: float = -math.inf, high: float = math.inf) -> float:
-    """A finite number in ``[low, high]``; ConfigError naming the file and key."""
-    number = math.nan
-    if is_json_number(value):
-        try:
-            number = float(value)
-        except OverflowError:  # an integer literal beyond float64
-            number = math.inf
-    if not low <= number <= high or not math.isfinite(number):
-        raise ConfigError(key, f"must be a finite number in [{low}, {high}], got {value!r}", source=path)
-    return number
-
-
-def json_array(value, key: str, path: Path, shape: tuple[int | None, ...]) -> np.ndarray:
-    """Nested JSON lists of finite numbers of this shape (None: any length) as float64; errors name the file and key."""
+def json_array(shape: tuple[int | None, ...], value) -> np.ndarray:
+    """Nested JSON lists of finite numbers of this shape (None: any length) as float64."""
 
     def has_shape(v, dims) -> bool:
         if not dims:
@@ -120,15 +128,23 @@ def json_array(value, key: str, path: Path, shape: tuple[int | None, ...]) -> np
 
     if not has_shape(value, shape):
         what = "a list" if shape == (None,) else "a " + "x".join(str(d) for d in shape) + " array"
-        raise ConfigError(key, f"must be {what} of numbers, got {value!r}", source=path)
+        raise ValueError(f"must be {what} of numbers, got {value!r}")
     with np.errstate(over="ignore"):
         try:
             array = np.array(value, dtype=np.float64)
         except OverflowError:  # an integer literal beyond float64
             array = np.full(np.shape(value), np.inf)
     if not np.all(np.isfinite(array)):
-        raise ConfigError(key, f"contains NaN or infinite values: {value!r}", source=path)
+        raise ValueError(f"contains NaN or infinite values: {value!r}")
     return array
+
+
+def json_rigid(value) -> np.ndarray:
+    T = json_array((4, 4), value)
+    problem = rigidity_problem(T)
+    if problem:
+        raise ValueError(f"not a rigid transform: {problem}")
+    return T
 
 
 def _sign_problem(sign) -> str | None:
@@ -141,6 +157,40 @@ def _offset_problem(offset) -> str | None:
     if not is_json_number(offset) or not -math.pi <= offset <= math.pi:
         return f"must be a number of radians in [-pi, pi] (the motor angle at joint zero), got {offset!r}"
     return None
+
+
+def is_json_number(value) -> bool:
+    """A number, never a boolean (JSON ``true`` is Python's ``True``, an ``int``) nor a string."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+
+
+@functools.cache
+def _hand_file():
+    """The pydantic model of a hand calibration file, built on first use (the hand's guard process, which imports
+    this module, starts without pydantic)."""
+    from pydantic import BaseModel, ConfigDict, PlainValidator
+
+    def checked(problem):
+        """A field that ``problem(value)`` (a message or None) checks."""
+
+        def validate(value):
+            message = problem(value)
+            if message:
+                raise ValueError(message)
+            return float(value)
+
+        return Annotated[Any, PlainValidator(validate)]
+
+    class Joint(BaseModel):
+        model_config = ConfigDict(strict=True, extra="forbid")
+        sign: checked(_sign_problem)
+        offset_rad: checked(_offset_problem)
+
+    class HandFile(BaseModel):
+        model_config = ConfigDict(strict=True, extra="forbid")
+        joints: dict[str, Joint]
+
+    return HandFile
 
 
 @dataclass(frozen=True)
@@ -208,33 +258,16 @@ class HandCalibration:
     def load(cls, path: str | Path, joint_names: Sequence[str]) -> "HandCalibration":
         """Read and validate a calibration file for these joints; one ConfigError names the file and field."""
         path = Path(path)
-        data = read_calibration_json(path, FORMAT)
-        joints = data.get("joints")
-        if not isinstance(joints, dict):
-            raise ConfigError("joints", "expected an object mapping joint names to {sign, offset_rad}", source=path)
+        joints = read_calibration(path, _hand_file(), FORMAT).joints
         unknown = [name for name in joints if name not in joint_names]
         if unknown:
             raise ConfigError(f"joints.{unknown[0]}", f"unknown joint (known: {list(joint_names)})", source=path)
-        signs, offsets = [], []
-        for name in joint_names:
-            entry = joints.get(name)
-            if not isinstance(entry, dict):
-                raise ConfigError(
-                    f"joints.{name}", 'missing: expected {"sign": 1 or -1, "offset_rad": radians}', source=path
-                )
-            extra = [key for key in entry if key not in JOINT_FIELDS]
-            if extra:
-                raise ConfigError(
-                    f"joints.{name}.{extra[0]}", f"unknown field (expected {list(JOINT_FIELDS)})", source=path
-                )
-            for what, problem in (
-                ("sign", _sign_problem(entry.get("sign"))),
-                ("offset_rad", _offset_problem(entry.get("offset_rad"))),
-            ):
-                if problem:
-                    raise ConfigError(f"joints.{name}.{what}", problem, source=path)
-            signs.append(float(entry["sign"]))
-            offsets.append(float(entry["offset_rad"]))
+        missing = [name for name in joint_names if name not in joints]
+        if missing:
+            raise ConfigError(
+                f"joints.{missing[0]}", 'missing: expected {"sign": 1 or -1, "offset_rad": radians}', source=path
+            )
+        signs, offsets = ([getattr(joints[name], key) for name in joint_names] for key in JOINT_FIELDS)
         return cls(tuple(joint_names), np.array(signs), np.array(offsets), source=str(path))
 
     def check_joints(self, joint_names: Sequence[str]) -> None:

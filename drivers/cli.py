@@ -3,16 +3,16 @@ options are the dataclasses below (tacsplat.options)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
 
-from tacsplat.errors import UsageError
+from tacsplat.errors import CameraError, ConfigError, InvalidInputError, TactileError, UsageError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-CHARUCO_DEFAULTS = {"squares_x": 7, "squares_y": 5, "square_mm": 30.0, "marker_mm": 22.0, "dictionary": "DICT_5X5_100"}
 
 
 @dataclass
@@ -124,7 +124,6 @@ def _corner_counts(text: str) -> tuple[int, int]:
 
 def _images(paths) -> list[Path]:
     """Image files: each path an image, or a folder whose images are taken in name order."""
-    from tacsplat.errors import InvalidInputError
 
     found = []
     for path in paths:
@@ -143,8 +142,6 @@ def _images(paths) -> list[Path]:
 def _read_rgb(path: Path):
     import cv2
 
-    from tacsplat.errors import InvalidInputError
-
     image = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if image is None:
         raise InvalidInputError(f"{path}: cannot read the image")
@@ -153,7 +150,6 @@ def _read_rgb(path: Path):
 
 def _check_output_file(path: Path, suffix: str) -> None:
     """``--out`` must name a file, not a folder (checked before any work)."""
-    from tacsplat.errors import ConfigError
 
     if path.is_dir():
         raise ConfigError("--out", f"{path} is a folder; give a {suffix} file")
@@ -171,7 +167,6 @@ def _write_image(path: Path, bgr) -> Path:
     """Write a picture atomically (a temporary name, then a rename; a full disk is one error naming it)."""
     import cv2
 
-    from tacsplat.errors import InvalidInputError
     from tacsplat.files import atomic_write
 
     ok, encoded = cv2.imencode(path.suffix or ".png", bgr)
@@ -180,59 +175,46 @@ def _write_image(path: Path, bgr) -> Path:
     return atomic_write(path, encoded.tobytes())
 
 
+_BOARD_OPTIONS = {  # board spec field -> the option that sets it
+    "inner_corners_x": "--inner-corners",
+    "inner_corners_y": "--inner-corners",
+    "square_length_m": "--square-mm",
+    "squares_x": "--squares-x",
+    "squares_y": "--squares-y",
+    "marker_length_m": "--marker-mm",
+    "dictionary": "--dictionary",
+    "legacy_pattern": "--legacy-pattern",
+}
+
+
 def _board_spec(args: CalibrateCamera):
     from tacsplat.drivers.wrist_camera import MAX_SQUARE_LENGTH_M, CharucoBoardSpec, ChessboardSpec
-    from tacsplat.errors import ConfigError
 
-    inner_corners = None if args.inner_corners is None else _corner_counts(args.inner_corners)
-    charuco_only = {
-        "--squares-x": args.squares_x,
-        "--squares-y": args.squares_y,
-        "--marker-mm": args.marker_mm,
-        "--dictionary": args.dictionary,
-        "--legacy-pattern": args.legacy_pattern or None,
-    }
+    mm = {"square_length_m": args.square_mm, "marker_length_m": args.marker_mm}
+    charuco = {"squares_x": args.squares_x, "squares_y": args.squares_y, "dictionary": args.dictionary}
+    charuco |= {"marker_length_m": args.marker_mm, "legacy_pattern": args.legacy_pattern or None}
     if args.board == "chessboard":
-        given = [option for option, value in charuco_only.items() if value is not None]
+        given = [_BOARD_OPTIONS[name] for name, value in charuco.items() if value is not None]
         if given:
             raise ConfigError(given[0], "is a ChArUco option; a chessboard takes --inner-corners and --square-mm")
-        if inner_corners is None:
+        if args.inner_corners is None:
             raise ConfigError(
                 "--inner-corners",
                 "needed with --board chessboard: the inner corners (where four squares meet) along x and y, e.g. 9x6",
             )
         if args.square_mm is None:
             raise ConfigError("--square-mm", "needed with --board chessboard: the printed square side, mm")
-        spec = ChessboardSpec(*inner_corners, args.square_mm / 1000.0)
-        fields = {
-            "inner_corners_x": "--inner-corners",
-            "inner_corners_y": "--inner-corners",
-            "square_length_m": "--square-mm",
-        }
+        spec = ChessboardSpec(*_corner_counts(args.inner_corners), args.square_mm / 1000.0)
     else:
         if args.inner_corners is not None:
             raise ConfigError("--inner-corners", "is a chessboard option; a ChArUco board takes --squares-x/-y")
-        value = {k: getattr(args, k) if getattr(args, k) is not None else v for k, v in CHARUCO_DEFAULTS.items()}
-        spec = CharucoBoardSpec(
-            value["squares_x"],
-            value["squares_y"],
-            value["square_mm"] / 1000.0,
-            value["marker_mm"] / 1000.0,
-            value["dictionary"],
-            args.legacy_pattern,
-        )
-        fields = {
-            "squares_x": "--squares-x",
-            "squares_y": "--squares-y",
-            "square_length_m": "--square-mm",
-            "marker_length_m": "--marker-mm",
-            "dictionary": "--dictionary",
-        }
-    lengths = {"square_length_m": "--square-mm", "marker_length_m": "--marker-mm"}
-    for name, option in lengths.items():
-        if name in fields and not 0 < getattr(spec, name) <= MAX_SQUARE_LENGTH_M:
+        given = {**charuco, **{name: value / 1000.0 for name, value in mm.items() if value is not None}}
+        spec = dataclasses.replace(CharucoBoardSpec(), **{k: v for k, v in given.items() if v is not None})
+    for name in (name for name in mm if hasattr(spec, name)):
+        if not 0 < getattr(spec, name) <= MAX_SQUARE_LENGTH_M:
             raise ConfigError(
-                option, f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got {getattr(spec, name) * 1000:g}"
+                _BOARD_OPTIONS[name],
+                f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got {getattr(spec, name) * 1000:g}",
             )
     if isinstance(spec, CharucoBoardSpec) and not spec.marker_length_m < spec.square_length_m:
         raise ConfigError(
@@ -242,7 +224,7 @@ def _board_spec(args: CalibrateCamera):
         )
     problem = spec.problem()
     if problem:
-        raise ConfigError(fields.get(problem[0], problem[0]), problem[1])
+        raise ConfigError(_BOARD_OPTIONS[problem[0]], problem[1])
     return spec
 
 
@@ -255,7 +237,6 @@ def _calibrate_camera(args: CalibrateCamera) -> int:
         detect_board_views,
         tacsplat_K_from_opencv,
     )
-    from tacsplat.errors import CameraError
 
     if not args.photos:
         raise UsageError("PHOTOS", "required (board photos or folders of them)")
@@ -373,43 +354,24 @@ def _coverage_picture(first_image, views, calib, path: Path) -> Path:
 
 def _read_labels(path: Path) -> dict[str, dict]:
     """Hand labels of ball presses: file name -> {"radius": px, "centre": (x, y) or None}; errors name the field."""
-    import json
-    import math
 
-    from tacsplat.errors import ConfigError
+    from pydantic import Field
 
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError("--labels", f"{path}: file not found") from None
-    except (OSError, ValueError) as exc:
-        raise ConfigError("--labels", f"{path}: not readable JSON ({exc})") from None
-    presses = data.get("presses") if isinstance(data, dict) else None
-    if not isinstance(presses, list):
-        raise ConfigError("presses", "expected a list of {file, contact_radius_px, center_xy_px}", source=path)
-    labels = {}
-    for i, press in enumerate(presses):
-        where = f"presses[{i}]"
-        if not isinstance(press, dict) or not isinstance(press.get("file"), str):
-            raise ConfigError(f"{where}.file", f"expected an image file name, got {press!r}", source=path)
-        radius = press.get("contact_radius_px")
-        if (
-            isinstance(radius, bool)
-            or not isinstance(radius, (int, float))
-            or not (math.isfinite(radius) and radius > 0)
-        ):
-            raise ConfigError(
-                f"{where}.contact_radius_px", f"expected a number of pixels > 0, got {radius!r}", source=path
-            )
-        centre = press.get("center_xy_px")
-        if centre is not None and not (
-            isinstance(centre, list)
-            and len(centre) == 2
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in centre)
-        ):
-            raise ConfigError(f"{where}.center_xy_px", f"expected [x, y] pixels, got {centre!r}", source=path)
-        labels[press["file"]] = {"radius": float(radius), "centre": None if centre is None else tuple(centre)}
-    return labels
+    from tacsplat.drivers.calibration import read_calibration
+    from tacsplat.drivers.calibration_files import CalibrationFile
+
+    class Label(CalibrationFile, extra="ignore"):
+        file: str
+        contact_radius_px: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+        center_xy_px: (
+            Annotated[list[Annotated[float, Field(allow_inf_nan=False)]], Field(min_length=2, max_length=2)] | None
+        ) = None
+
+    class Labels(CalibrationFile, extra="ignore"):
+        presses: list[Label]
+
+    labels = read_calibration(path, Labels, key="--labels").presses
+    return {p.file: {"radius": p.contact_radius_px, "centre": p.center_xy_px and tuple(p.center_xy_px)} for p in labels}
 
 
 def _press_sheet(images, names, calib, labels, path: Path) -> Path:
@@ -446,7 +408,6 @@ def _press_sheet(images, names, calib, labels, path: Path) -> Path:
 
 def _calibrate_tactile(args: CalibrateTactile) -> int:
     from tacsplat.drivers.optical_tactile import calibrate_tactile, check_problem
-    from tacsplat.errors import ConfigError, InvalidInputError, TactileError
 
     for option, value in (("--ball-radius-mm", args.ball_radius_mm), ("--pixel-size-mm", args.pixel_size_mm)):
         if not 0 < value < 1000:
@@ -472,15 +433,9 @@ def _calibrate_tactile(args: CalibrateTactile) -> int:
                 f"{path}: {image.shape[1]}x{image.shape[0]}, the reference {reference.shape[1]}x{reference.shape[0]}"
             )
     names = [p.name for p in presses]
-    calib = calibrate_tactile(
-        reference,
-        images,
-        names,
-        args.ball_radius_mm / 1000.0,
-        args.pixel_size_mm / 1000.0,
-        labels={name: label["radius"] for name, label in labels.items()},
-        check_every=args.check_every,
-    )
+    sizes_m = args.ball_radius_mm / 1000.0, args.pixel_size_mm / 1000.0
+    label_radii = {name: label["radius"] for name, label in labels.items()}
+    calib = calibrate_tactile(reference, images, names, *sizes_m, labels=label_radii, check_every=args.check_every)
     problem = check_problem(calib, args.max_radius_error)
     out = _output_file(args.out)
     picture = out.with_suffix(".png") if problem is None else out.with_name(out.stem + ".rejected.png")
@@ -535,7 +490,6 @@ def _tactile_depth(args: TactileDepth) -> int:
 
     from tacsplat.datasets.outputs import claim_output_dir
     from tacsplat.drivers.optical_tactile import TactileCalibration
-    from tacsplat.errors import ConfigError, InvalidInputError
     from tacsplat.files import atomic_write
 
     if not args.images:
@@ -564,9 +518,7 @@ def _tactile_depth(args: TactileDepth) -> int:
             depth = calib.depth(images[path], reference)
             atomic_write(npz, lambda f: np.savez_compressed(f, depth=depth))
             peak = float(depth.max())
-            scaled = (
-                np.zeros(depth.shape, np.uint8) if peak <= 0 else np.clip(depth / peak * 255, 0, 255).astype(np.uint8)
-            )
+            scaled = np.clip(depth / max(peak, 1e-12) * 255, 0, 255).astype(np.uint8)  # (depth >= 0)
             picture = cv2.applyColorMap(scaled, cv2.COLORMAP_VIRIDIS)
             picture[depth <= 0] = 0
             _write_image(png, picture)

@@ -68,56 +68,28 @@ log = logging.getLogger(__name__)
 HEADER = bytes([0xFF, 0xFF, 0xFD, 0x00])
 BROADCAST_ID = 0xFE
 
-# Status error numbers (protocol 2.0)
-ERR_INSTRUCTION = 2
-ERR_CRC = 3
-ERR_DATA_RANGE = 4
-ERR_DATA_LENGTH = 5
-ERR_DATA_LIMIT = 6
-ERR_ACCESS = 7
-
-
-def _crc_table() -> list[int]:
-    table = []
-    for byte in range(256):
-        crc = byte << 8
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x8005) if crc & 0x8000 else (crc << 1)
-        table.append(crc & 0xFFFF)
-    return table
-
-
-_CRC_TABLE = _crc_table()
+# Status error numbers (protocol 2.0; dynamixel_table.STATUS_ERROR_NAMES names them)
+ERR_INSTRUCTION, ERR_CRC, ERR_DATA_RANGE, ERR_DATA_LENGTH, ERR_DATA_LIMIT, ERR_ACCESS = range(2, 8)
 
 
 def crc16(data: bytes | bytearray | list[int]) -> int:
     """CRC-16 of Dynamixel protocol 2.0 (polynomial 0x8005, initial value 0, not reflected)."""
     crc = 0
     for b in data:
-        crc = ((crc << 8) ^ _CRC_TABLE[((crc >> 8) ^ b) & 0xFF]) & 0xFFFF
+        crc ^= b << 8
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x8005 if crc & 0x8000 else crc << 1) & 0xFFFF
     return crc
 
 
 def stuff(body: bytes) -> bytes:
     """Insert 0xFD after every ``FF FF FD`` in a packet body (instruction onwards, CRC excluded)."""
-    out = bytearray()
-    for b in body:
-        out.append(b)
-        if len(out) >= 3 and out[-3:] == b"\xff\xff\xfd":
-            out.append(0xFD)
-    return bytes(out)
+    return bytes(body).replace(b"\xff\xff\xfd", b"\xff\xff\xfd\xfd")  # the pattern cannot overlap itself
 
 
 def unstuff(body: bytes) -> bytes:
     """Remove the 0xFD that :func:`stuff` inserted."""
-    out = bytearray()
-    i = 0
-    while i < len(body):
-        out.append(body[i])
-        if len(out) >= 3 and out[-3:] == b"\xff\xff\xfd" and i + 1 < len(body) and body[i + 1] == 0xFD:
-            i += 1  # skip the stuffing byte
-        i += 1
-    return bytes(out)
+    return bytes(body).replace(b"\xff\xff\xfd\xfd", b"\xff\xff\xfd")
 
 
 def build_packet(servo_id: int, instruction: int, params: bytes | list[int]) -> bytes:
@@ -271,18 +243,17 @@ class DxlEmulator:
         self,
         ids=range(16),
         *,
-        model_number: int = MODEL_XC330_M288,
         speed_ticks_per_s: float = 4000.0,
         initial_ticks: dict[int, float] | None = None,
-        return_delay_s: float = 0.0,
         stops: dict[int, tuple[float, float]] | None = None,
     ):
         initial_ticks, stops = initial_ticks or {}, stops or {}
         self.servos = {
-            i: EmulatedServo(i, model_number, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK), stops=stops.get(i))
+            i: EmulatedServo(
+                i, MODEL_XC330_M288, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK), stops=stops.get(i)
+            )
             for i in ids
         }
-        self.return_delay_s = return_delay_s
         self.crc_errors = 0  # instruction packets that arrived with a bad CRC
         self.instructions: list[tuple[int, int]] = []  # (instruction, id) received, in order
         self._disconnected: set[int] = set()
@@ -341,13 +312,6 @@ class DxlEmulator:
         """Where the servo stands, in ticks (without an injected encoder offset)."""
         with self._lock:
             return self.servos[servo_id].position
-
-    def clear_faults(self) -> None:
-        with self._lock:
-            self._faults.clear()
-            self._disconnected.clear()
-            for servo in self.servos.values():
-                servo.offset_ticks = 0
 
     def set_hardware_error(self, servo_id: int, bits: int) -> None:
         """Latch Hardware Error Status bits; the shutdown bits turn torque off, as the firmware does."""
@@ -464,9 +428,9 @@ class DxlEmulator:
         self._handle(servo_id, body[0], body[1:])
         return True
 
-    def _reply(self, servo: EmulatedServo, error: int, params: bytes, after: float = 0.0) -> None:
+    def _reply(self, servo: EmulatedServo, error: int, params: bytes) -> None:
         packet = bytearray(build_packet(servo.servo_id, Instruction.STATUS, bytes([error]) + bytes(params)))
-        when = max(time.monotonic() + self.return_delay_s, after)
+        when = time.monotonic()
         fault = self._faults.get(servo.servo_id)
         if fault is not None:
             if fault.kind == "bad_crc":
@@ -560,8 +524,7 @@ def _parse_ids(text: str) -> list[int]:
 
 def _command(emu: DxlEmulator, line: str) -> dict:
     """One command of :func:`main`'s standard input; its JSON reply."""
-    words = line.split()
-    name, args = (words[0], words[1:]) if words else ("", [])
+    name, *args = line.split() or [""]
     try:
         if name == "status" and not args:
             return {"servos": emu.status()}
@@ -574,9 +537,8 @@ def _command(emu: DxlEmulator, line: str) -> dict:
             return {"ok": True}
     except (KeyError, ValueError) as exc:
         return {"error": f"{line.strip()!r}: {exc!r}"}
-    return {
-        "error": f"unknown command {line.strip()!r} (status | disconnect ID|all | reconnect ID|all | offset ID TICKS)"
-    }
+    usage = "status | disconnect ID|all | reconnect ID|all | offset ID TICKS"
+    return {"error": f"unknown command {line.strip()!r} ({usage})"}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -611,20 +573,9 @@ class EmulatorProcess:
         self.path = ""
 
     def __enter__(self) -> "EmulatorProcess":
-        self.proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "tacsplat.drivers.dxl_emulator",
-                "--ids",
-                ",".join(map(str, self.ids)),
-                "--speed",
-                str(self.speed),
-            ],
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-        )
+        ids = ",".join(map(str, self.ids))
+        command = [sys.executable, "-m", "tacsplat.drivers.dxl_emulator", "--ids", ids, "--speed", str(self.speed)]
+        self.proc = subprocess.Popen(command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         try:
             self.path = self._reply()["port"]
         except BaseException:

@@ -89,17 +89,7 @@ try:  # what pyserial lets escape when the adapter disappears (termios.error is 
 except ImportError:  # Windows
     PORT_ERRORS = (OSError,)
 
-COMM_RESULT_NAMES = {
-    dxl.COMM_SUCCESS: "COMM_SUCCESS",
-    dxl.COMM_PORT_BUSY: "COMM_PORT_BUSY",
-    dxl.COMM_TX_FAIL: "COMM_TX_FAIL",
-    dxl.COMM_RX_FAIL: "COMM_RX_FAIL",
-    dxl.COMM_TX_ERROR: "COMM_TX_ERROR",
-    dxl.COMM_RX_WAITING: "COMM_RX_WAITING",
-    dxl.COMM_RX_TIMEOUT: "COMM_RX_TIMEOUT",
-    dxl.COMM_RX_CORRUPT: "COMM_RX_CORRUPT",
-    dxl.COMM_NOT_AVAILABLE: "COMM_NOT_AVAILABLE",
-}
+COMM_RESULT_NAMES = {value: name for name, value in vars(dxl).items() if name.startswith("COMM_")}
 
 # One sync read gets current, velocity and position (addresses 126..135).
 _STATE_ADDRESS = REGISTERS["present_current"].address
@@ -432,10 +422,7 @@ class DynamixelHand:
         positions = self.calibration.radians_from_ticks(ticks)
         self._check_reachable(ticks, positions)
         return HandState(
-            positions=positions,
-            velocities=signs * vel * VELOCITY_UNIT_RAD_S,
-            currents=signs * cur * self.config.current_unit_a,
-            timestamp=time.time(),
+            positions, signs * vel * VELOCITY_UNIT_RAD_S, signs * cur * self.config.current_unit_a, time.time()
         )
 
     def read_motor_angles(self) -> np.ndarray:
@@ -445,10 +432,6 @@ class DynamixelHand:
     def read_joint_positions(self) -> np.ndarray:
         """[16] radians."""
         return self.read_state().positions
-
-    def read_joint_currents(self) -> np.ndarray:
-        """[16] amperes."""
-        return self.read_state().currents
 
     effort_unit = "A"  # the servos' present current
 
@@ -462,7 +445,7 @@ class DynamixelHand:
 
         The one motion command: bad ``q`` (not 16 real finite numbers) raises InvalidInputError, writing nothing.
         """
-        self._check_usable()
+        self.check()
         if not self._torque_on:
             raise HandError(self.device, "torque is off: connect first (use the hand as a context manager)")
         self._sync_write_goal(self._clamp(self._joint_vector(q), "command"))
@@ -482,7 +465,10 @@ class DynamixelHand:
     def check(self) -> None:
         """Raise the fault that stopped the hand (HandError), such as one the heartbeat found while nothing else used
         the hand (a dead bus, a tripped Bus Watchdog); nothing when it is connected and well."""
-        self._check_usable()
+        if self._port is None:
+            raise HandError(self.device, "not connected (use `with DynamixelHand(...) as hand:`)")
+        if self._fault:
+            raise HandError(self.device, f"hand is faulted, reconnect to continue: {self._fault}")
 
     def close(self) -> None:
         """Disable torque on every servo that answers (:attr:`torque_off_report` says which did) and close the port
@@ -515,12 +501,6 @@ class DynamixelHand:
     # -- internals ---------------------------------------------------------
     def _names(self, ids: Sequence[int]) -> str:
         return ", ".join(f"{s} ({self._joint_of.get(s, '?')})" for s in ids)
-
-    def _check_usable(self) -> None:
-        if self._port is None:
-            raise HandError(self.device, "not connected (use `with DynamixelHand(...) as hand:`)")
-        if self._fault:
-            raise HandError(self.device, f"hand is faulted, reconnect to continue: {self._fault}")
 
     def _joint_vector(self, q) -> np.ndarray:
         """``q`` as [16] float64 radians, or InvalidInputError naming the argument."""
@@ -639,22 +619,10 @@ class DynamixelHand:
             return
         servos = ",".join(f"{sid}:{self._joint_of[sid]}" for sid in self.ids)
         try:
+            args = {"port": self.port_name, "baudrate": self.baudrate, "timeout-s": self.config.min_packet_timeout_s}
+            args |= {"drain-s": self.config.drain_s, "servos": servos}
             self._guard = subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "tacsplat.drivers.dynamixel_hand",
-                    "--port",
-                    self.port_name,
-                    "--baudrate",
-                    str(self.baudrate),
-                    "--timeout-s",
-                    str(self.config.min_packet_timeout_s),
-                    "--drain-s",
-                    str(self.config.drain_s),
-                    "--servos",
-                    servos,
-                ],
+                [sys.executable, "-m", "tacsplat.drivers.dynamixel_hand", *(f"--{k}={v}" for k, v in args.items())],
                 stdin=subprocess.PIPE,
                 stdout=subprocess.DEVNULL,
                 start_new_session=True,
@@ -758,32 +726,16 @@ class DynamixelHand:
                 servo_id, instruction, f"{self._comm_text(result)} after {attempts} attempts", comm_result=result
             )
 
-    def _fail(
-        self,
-        servo_id: int | None,
-        instruction: str,
-        detail: str,
-        *,
-        comm_result: int | None = None,
-        status_error: int = 0,
-        hardware_error: int = 0,
-    ):
-        """Make the hand safe, record the fault and raise a ServoError (an ending signal meanwhile wins)."""
+    def _fail(self, servo_id: int | None, instruction: str, detail: str, **codes):
+        """Make the hand safe, record the fault and raise a ServoError (an ending signal meanwhile wins); ``codes``:
+        ServoError's comm_result, status_error, hardware_error."""
         with _Exchange(self):
             self._torque_off_all()
             who = f"servo {self._names([servo_id])}" if servo_id is not None else f"port {self.port_name}"
             message = f"{who}: {instruction} failed: {detail}; {self.torque_off_report}"
             self._fault = message
-            error = ServoError(
-                self.device,
-                message,
-                servo_id=servo_id,
-                joint=self._joint_of.get(servo_id, None),
-                instruction=instruction,
-                comm_result=comm_result,
-                status_error=status_error,
-                hardware_error=hardware_error,
-            )
+            joint = self._joint_of.get(servo_id)
+            error = ServoError(self.device, message, servo_id=servo_id, joint=joint, instruction=instruction, **codes)
         raise error
 
     def _status_fail(self, servo_id: int, instruction: str, error: int):
@@ -888,7 +840,7 @@ class DynamixelHand:
 
     def _read_raw_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Present (position ticks, velocity units, current units) of every servo by one sync read."""
-        self._check_usable()
+        self.check()
         raw = self._sync_read(_STATE_ADDRESS, _STATE_SIZE, "SYNC_READ present current/velocity/position")
         ticks = np.array([to_signed(int.from_bytes(raw[s][6:10], "little"), 4) for s in self.ids])
         vel = np.array([to_signed(int.from_bytes(raw[s][2:6], "little"), 4) for s in self.ids])

@@ -106,14 +106,6 @@ class HardwareError(IntFlag):
     OVERLOAD = 1 << 5
 
 
-HARDWARE_ERROR_NAMES = {
-    HardwareError.INPUT_VOLTAGE: "input voltage",
-    HardwareError.OVERHEATING: "overheating",
-    HardwareError.MOTOR_ENCODER: "motor encoder",
-    HardwareError.ELECTRICAL_SHOCK: "electrical shock",
-    HardwareError.OVERLOAD: "overload",
-}
-
 # The status packet's error byte: bit 7 = alert (a hardware error is latched),
 # bits 0-6 = the processing error number.
 ALERT_BIT = 0x80
@@ -140,10 +132,8 @@ class Instruction(IntEnum):
 
 def decode_hardware_error(bits: int) -> list[str]:
     """Names of the bits set in a Hardware Error Status value (unknown bits as 'bit N')."""
-    names = [name for flag, name in HARDWARE_ERROR_NAMES.items() if bits & flag]
-    known = sum(int(f) for f in HARDWARE_ERROR_NAMES)
-    names += [f"bit {i}" for i in range(8) if bits & ~known & (1 << i)]
-    return names
+    names = [flag.name.lower().replace("_", " ") for flag in HardwareError if bits & flag]
+    return names + [f"bit {i}" for i in range(8) if bits & ~sum(HardwareError) & (1 << i)]
 
 
 def decode_status_error(error: int) -> list[str]:
@@ -157,10 +147,6 @@ def decode_status_error(error: int) -> list[str]:
     return names
 
 
-def to_unsigned(value: int, size: int) -> int:
-    return int(value) & ((1 << (8 * size)) - 1)
-
-
 def to_signed(value: int, size: int) -> int:
     bits = 8 * size
     value = int(value) & ((1 << bits) - 1)
@@ -169,5 +155,4 @@ def to_signed(value: int, size: int) -> int:
 
 def le_bytes(value: int, size: int) -> list[int]:
     """Little-endian bytes of ``value`` (two's complement for negatives)."""
-    v = to_unsigned(value, size)
-    return [(v >> (8 * i)) & 0xFF for i in range(size)]
+    return list((int(value) & ((1 << (8 * size)) - 1)).to_bytes(size, "little"))

@@ -33,14 +33,17 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Annotated, Callable, Sequence
 
 import cv2
 import numpy as np
+from pydantic import Field, ValidationError
 from scipy import ndimage, sparse
 from scipy.optimize import least_squares
 from scipy.sparse.linalg import spsolve
 
+from tacsplat.drivers.calibration import field_error
+from tacsplat.drivers.calibration_files import CalibrationFile, NonNegative
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import InvalidInputError, TactileError
 from tacsplat.files import atomic_write
@@ -66,11 +69,6 @@ MIN_CONTACT_DEPTH_PX = 0.25  # pixel sizes: a shallower contact cannot be told f
 def _odd(n: float) -> int:
     n = int(round(n))
     return n + 1 - n % 2
-
-
-def _min_area_px(shape) -> int:
-    """Smallest blob of changed pixels that counts (0.2 % of the image, at least 20 px)."""
-    return max(20, int(0.002 * shape[0] * shape[1]))
 
 
 def _as_rgb(image, name: str) -> np.ndarray:
@@ -117,12 +115,6 @@ def _blur(image: np.ndarray, sigma: float) -> np.ndarray:
     return cv2.GaussianBlur(image.astype(np.float32), (0, 0), sigma, borderType=cv2.BORDER_REPLICATE).astype(np.float64)
 
 
-def _robust_threshold(magnitude: np.ndarray, floor: float) -> float:
-    median = float(np.median(magnitude))
-    mad = 1.4826 * float(np.median(np.abs(magnitude - median)))
-    return max(floor, median + CHANGE_MADS * mad)
-
-
 @dataclass
 class ColorChange:
     """The normalised colour change of a tactile image against its reference."""
@@ -158,16 +150,12 @@ def color_change(
         background = _blur(diff * still[..., None], sigma)
         change = diff - background / np.maximum(weight, 1e-6)[..., None]
         magnitude = np.linalg.norm(_blur(change, 1.0), axis=-1)
-        threshold = _robust_threshold(magnitude, min_change)
+        median = float(np.median(magnitude))
+        threshold = max(min_change, median + CHANGE_MADS * (1.4826 * float(np.median(np.abs(magnitude - median)))))
         still = ndimage.binary_erosion(magnitude < threshold, iterations=3).astype(np.float64)
         if not still.any():  # everything changed: no background left to model
             break
     return ColorChange(change.astype(np.float32), magnitude.astype(np.float32), threshold)
-
-
-def _changed_blobs(change: ColorChange) -> np.ndarray:
-    """Changed pixels in blobs of at least the minimum area (see :func:`_solid_blobs`)."""
-    return _solid_blobs(change.changed)
 
 
 def _solid_blobs(mask: np.ndarray) -> np.ndarray:
@@ -179,7 +167,7 @@ def _solid_blobs(mask: np.ndarray) -> np.ndarray:
     mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     keep = np.zeros(count, bool)
-    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= _min_area_px(mask.shape)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= max(20, int(0.002 * mask.shape[0] * mask.shape[1]))  # 0.2 %, >= 20 px
     return ndimage.binary_fill_holes(keep[labels])
 
 
@@ -208,7 +196,7 @@ def find_contact_circle(change: ColorChange, rays: int = 90) -> ContactCircle | 
     inside the image, fewer than a third agree on one circle, or the rim points scatter about it by more
     than 15 % of its radius).
     """
-    blobs = _changed_blobs(change)
+    blobs = _solid_blobs(change.changed)
     count, labels, stats, centroids = cv2.connectedComponentsWithStats(blobs.astype(np.uint8), connectivity=8)
     if count < 2:
         return None
@@ -335,12 +323,12 @@ def _features(change: np.ndarray) -> np.ndarray:
     return np.concatenate([change / CHANGE_SCALE, position], axis=-1).reshape(-1, 5).astype(np.float32)
 
 
-def _mlp(weights: Sequence[np.ndarray], x: np.ndarray) -> np.ndarray:
-    """tanh MLP: weights are (W [in, out], b [out]) pairs."""
+def _mlp(weights: Sequence[np.ndarray], x: np.ndarray, tanh=np.tanh) -> np.ndarray:
+    """tanh MLP: weights are (W [in, out], b [out]) pairs (numpy arrays, or torch tensors with ``torch.tanh``)."""
     for i in range(0, len(weights), 2):
         x = x @ weights[i] + weights[i + 1]
         if i + 2 < len(weights):
-            x = np.tanh(x)
+            x = tanh(x)
     return x
 
 
@@ -363,12 +351,7 @@ def _train_mlp(
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, steps)
     for _ in range(steps):
         pick = torch.randint(len(inputs), (min(batch, len(inputs)),), generator=generator)
-        out = inputs[pick]
-        for i in range(0, len(params), 2):
-            out = out @ params[i] + params[i + 1]
-            if i + 2 < len(params):
-                out = torch.tanh(out)
-        loss = ((out - targets[pick]) ** 2).mean()
+        loss = ((_mlp(params, inputs[pick], torch.tanh) - targets[pick]) ** 2).mean()
         optimiser.zero_grad()
         loss.backward()
         optimiser.step()
@@ -446,15 +429,8 @@ class TactileCalibration:
                 "the untouched gel)",
             )
         weights = _train_mlp(np.concatenate(inputs), np.concatenate(targets), steps=steps, seed=seed)
-        return cls(
-            weights,
-            pixel_size_m,
-            tuple(int(s) for s in reference.shape[:2]),
-            ball_radius_m,
-            max(MIN_CHANGE, float(np.median(thresholds))),
-            MIN_CONTACT_DEPTH_PX * pixel_size_m,
-            presses=used,
-        )
+        size, threshold = tuple(int(s) for s in reference.shape[:2]), max(MIN_CHANGE, float(np.median(thresholds)))
+        return cls(weights, pixel_size_m, size, ball_radius_m, threshold, MIN_CONTACT_DEPTH_PX * pixel_size_m, used)
 
     def change(self, image: np.ndarray, reference: np.ndarray) -> ColorChange:
         """The colour change of ``image`` against ``reference``, at least this sensor's noise to count."""
@@ -475,7 +451,7 @@ class TactileCalibration:
     def depth(self, image: np.ndarray, reference: np.ndarray) -> np.ndarray:
         """Indentation [h, w] float32 metres (>= 0, 0 = no contact) of ``image`` against the no-contact ``reference``."""
         change = self.change(image, reference)
-        deformed = _changed_blobs(change)
+        deformed = _solid_blobs(change.changed)
         if not deformed.any():
             return np.zeros(change.magnitude.shape, np.float32)
         deformed = ndimage.binary_dilation(deformed, iterations=2)
@@ -490,18 +466,8 @@ class TactileCalibration:
     def save(self, path: str | Path) -> None:
         """Write the calibration (.npz) atomically (a temporary name, then a rename)."""
         path = Path(path)
-        meta = {
-            "format": FORMAT,
-            "version": VERSION,
-            "pixel_size_m": self.pixel_size_m,
-            "image_size": list(self.image_size),
-            "ball_radius_m": self.ball_radius_m,
-            "change_threshold": self.change_threshold,
-            "noise_floor_m": self.noise_floor_m,
-            "layers": len(self.weights) // 2,
-            "presses": self.presses,
-            "check_summary": self.check_summary,
-        }
+        meta = {"format": FORMAT, "version": VERSION, "layers": len(self.weights) // 2, **vars(self)}
+        del meta["weights"]  # (the arrays w0, w1, ...)
         atomic_write(
             path,
             lambda f: np.savez_compressed(f, meta=json.dumps(meta), **{f"w{i}": w for i, w in enumerate(self.weights)}),
@@ -529,19 +495,10 @@ class TactileCalibration:
                 f"{path} [version]: {meta.get('version')!r} was written by another "
                 f"tacsplat (expected {VERSION}): run `tacsplat calibrate tactile` again",
             )
-        for key in ("pixel_size_m", "ball_radius_m", "change_threshold", "noise_floor_m"):
-            value = meta.get(key)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, (int, float))
-                or not np.isfinite(value)
-                or value < 0
-                or (key == "pixel_size_m" and value == 0)
-            ):
-                raise TactileError("calibration", f"{path} [{key}]: expected a finite number >= 0, got {value!r}")
-        size = meta.get("image_size")
-        if not (isinstance(size, list) and len(size) == 2 and all(isinstance(s, int) and s >= 3 for s in size)):
-            raise TactileError("calibration", f"{path} [image_size]: expected [height, width] >= 3, got {size!r}")
+        try:
+            m = _Meta.model_validate(meta)
+        except ValidationError as exc:
+            raise TactileError("calibration", "{} [{}]: {}".format(path, *field_error(exc, _Meta))) from None
         shapes = [w.shape for w in weights]
         chained = len(weights) >= 4 and all(
             len(shapes[i]) == 2 and shapes[i + 1] == (shapes[i][1],) and (i == 0 or shapes[i][0] == shapes[i - 2][1])
@@ -549,16 +506,19 @@ class TactileCalibration:
         )
         if not chained or shapes[0][0] != 5 or shapes[-1] != (2,) or not all(np.all(np.isfinite(w)) for w in weights):
             raise TactileError("calibration", f"{path} [w0..]: not a finite MLP from 5 inputs to 2 outputs: {shapes}")
-        return cls(
-            weights,
-            float(meta["pixel_size_m"]),
-            tuple(size),
-            float(meta["ball_radius_m"]),
-            float(meta["change_threshold"]),
-            float(meta["noise_floor_m"]),
-            list(meta.get("presses", [])),
-            meta.get("check_summary"),
-        )
+        return cls(weights, **(m.model_dump() | {"image_size": tuple(m.image_size)}))
+
+
+class _Meta(CalibrationFile, extra="ignore"):
+    """The metadata of a tactile calibration file (``meta`` of the .npz)."""
+
+    pixel_size_m: Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+    image_size: Annotated[list[Annotated[int, Field(ge=3)]], Field(min_length=2, max_length=2)]  # [height, width]
+    ball_radius_m: NonNegative
+    change_threshold: NonNegative
+    noise_floor_m: NonNegative
+    presses: list[dict] = []
+    check_summary: dict | None = None
 
 
 # --- checking a calibration on ball presses ------------------------------------------------------------------------
@@ -610,18 +570,6 @@ def fit_ball(
     return result
 
 
-def _summary(values) -> dict:
-    values = np.asarray(values, dtype=np.float64)
-    q25, median, q75 = np.percentile(values, [25, 50, 75])
-    return {
-        "median": float(median),
-        "q25": float(q25),
-        "q75": float(q75),
-        "min": float(values.min()),
-        "max": float(values.max()),
-    }
-
-
 def calibrate_tactile(
     reference: np.ndarray,
     presses: Sequence[np.ndarray],
@@ -649,14 +597,8 @@ def calibrate_tactile(
             f"{len(names)} ball presses: at least 3 are needed (2 to fit, 1 to check); "
             "10-30 at different places make a good calibration",
         )
-    calib = TactileCalibration.fit(
-        reference,
-        [presses[k] for k in fitted],
-        ball_radius_m,
-        pixel_size_m,
-        names=[names[k] for k in fitted],
-        steps=steps,
-    )
+    fit_images, fit_names = [presses[k] for k in fitted], [names[k] for k in fitted]
+    calib = TactileCalibration.fit(reference, fit_images, ball_radius_m, pixel_size_m, fit_names, steps)
     records = {record["file"]: record for record in calib.presses}
     labels = labels or {}
     for k in held_out:
@@ -669,8 +611,9 @@ def calibrate_tactile(
     radii = [r["fitted_radius_m"] for r in checks if r["detected"]]
     calib.check_summary = {"presses": len(checks), "detected": len(radii), "ball_radius_m": ball_radius_m}
     if radii:
-        spread = _summary(radii)
-        calib.check_summary.update({f"{key}_fitted_radius_m": value for key, value in spread.items()})
+        q25, median, q75 = np.percentile(radii, [25, 50, 75])
+        spread = {"median": median, "q25": q25, "q75": q75, "min": min(radii), "max": max(radii)}
+        calib.check_summary.update({f"{key}_fitted_radius_m": float(value) for key, value in spread.items()})
         calib.check_summary["median_peak_indentation_m"] = float(
             np.median([r["peak_indentation_m"] for r in checks if r["detected"]])
         )
@@ -742,15 +685,8 @@ class OpticalTactileSensor:
         )
         self._pose = T_hand_sensor if callable(T_hand_sensor) else (lambda T=as_pose(T_hand_sensor, "T_hand_sensor"): T)
         self.reference_frames = int(reference_frames)
-        self._video = VideoReader(
-            source,
-            width=width,
-            height=height,
-            fps=fps,
-            timeout_s=timeout_s,
-            name=f"tactile sensor {name!r}",
-            capture_factory=capture_factory,
-        )
+        video = dict(width=width, height=height, fps=fps, timeout_s=timeout_s, capture_factory=capture_factory)
+        self._video = VideoReader(source, name=f"tactile sensor {name!r}", **video)
         self.reference: np.ndarray | None = None  # [h, w, 3] float64 RGB
 
     @property
@@ -787,11 +723,6 @@ class OpticalTactileSensor:
     def _read_rgb(self):
         frame = self._video.read()
         return cv2.cvtColor(frame.image, cv2.COLOR_BGR2RGB), frame
-
-    def read_image(self) -> tuple[np.ndarray, float]:
-        """The raw tactile image [h, w, 3] uint8 RGB and its timestamp."""
-        rgb, frame = self._read_rgb()
-        return rgb, frame.timestamp
 
     def read(self) -> TactileReading:
         """A reading with depth from the newest frame (:meth:`TactileCalibration.depth`), its pose in the hand frame."""

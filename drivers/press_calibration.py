@@ -29,15 +29,18 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+from pydantic import Field
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from tacsplat.drivers.calibration import json_array, read_calibration_json
+from tacsplat.drivers.calibration import read_calibration
+from tacsplat.drivers.calibration_files import CalibrationFile, Rigid
 from tacsplat.errors import ConfigError, InvalidInputError
 from tacsplat.files import atomic_write
-from tacsplat.geometry import invert_pose, make_pose, rigidity_problem, transform_points
+from tacsplat.geometry import invert_pose, make_pose, transform_points
 
 HAND_EYE_FORMAT = "tacsplat-hand-eye"
 MOUNTS_FORMAT = "tacsplat-mounts"
@@ -65,15 +68,8 @@ class Press:
 
 
 NOISE_M = 5e-5  # a contact point's error the press set is judged against (an optical gel's depth noise)
-MAX_STD = {"rotation": np.radians(0.1), "translation": 1e-4}  # a parameter known worse than this is undetermined
-PARAM_NAMES = (
-    "rotation about x",
-    "rotation about y",
-    "rotation about z",
-    "offset along x",
-    "offset along y",
-    "offset along z",
-)
+MAX_STD = (np.radians(0.1), 1e-4)  # rad, m: a parameter known worse than this is undetermined
+PARAM_NAMES = tuple(f"{kind} {axis}" for kind in ("rotation about", "offset along") for axis in "xyz")
 
 
 @dataclass
@@ -152,7 +148,10 @@ def fit_presses(
     x0 = np.concatenate(x0)
     scale = np.r_[[0.01] * 3 + [0.001] * 3, [0.001] * 2 * len(placements)]
     fit = least_squares(residuals, x0, x_scale=scale, method="lm")
-    _refuse_undetermined(fit.jac, ["hand-eye"], what)
+    weak = _undetermined(fit.jac, ["hand-eye"], NOISE_M, MAX_STD)
+    if weak:
+        hint = "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
+        raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(map(' '.join, weak))}; {hint}")
     X, centres = unpack(fit.x)
     offsets = np.cumsum([0] + [len(s) for s in samples])
     per = {
@@ -168,19 +167,13 @@ def fit_presses(
     )
 
 
-def _refuse_undetermined(J: np.ndarray, blocks: list[str], what: str) -> None:
-    """The parameters' standard deviations at :data:`NOISE_M` per point; one error naming those over
-    :data:`MAX_STD`, with the presses that fix them."""
-    std = _std(J, NOISE_M)
-    weak = []
-    for b, block in enumerate(blocks):
-        for k in range(6):
-            limit = MAX_STD["rotation" if k < 3 else "translation"]
-            if not std[6 * b + k] <= limit:
-                weak.append(f"{block} {PARAM_NAMES[k]}")
-    if weak:
-        hint = "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
-        raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(weak)}; {hint}")
+def _undetermined(J: np.ndarray, blocks: list[str], noise: float, limits: tuple[float, float]) -> list[tuple]:
+    """(block, parameter name) of each parameter (six per block: rotations, then offsets) whose standard deviation
+    at ``noise`` per residual is over its limit (``limits``: rotations', offsets')."""
+    std = _std(J, noise)[: 6 * len(blocks)].reshape(-1, 6)  # a row per block
+    return [
+        (block, PARAM_NAMES[k]) for block, row in zip(blocks, std) for k in range(6) if not row[k] <= limits[k >= 3]
+    ]
 
 
 MOUNT_MAX_STD = (0.2, 0.1)  # degrees, mm: a parameter known worse than this is undetermined
@@ -336,14 +329,7 @@ def fit_mounts(
 
 def _refuse_unfixed(J, presses, fingers, dropped, centres_s, what) -> None:
     """One error naming each parameter the presses leave undetermined (:data:`MOUNT_MAX_STD`) and what to press."""
-    std = _std(J, 1000 * NOISE_M)
-    blocks = ["hand-eye"] + [f"{f} mount" for f in fingers]
-    weak = [
-        (block, PARAM_NAMES[k])
-        for b, block in enumerate(blocks)
-        for k in range(6)
-        if not std[6 * b + k] <= MOUNT_MAX_STD[k >= 3]
-    ]
+    weak = _undetermined(J, ["hand-eye"] + [f"{f} mount" for f in fingers], 1000 * NOISE_M, MOUNT_MAX_STD)
     if not weak:
         return
     hints = []
@@ -376,30 +362,27 @@ def _std(J: np.ndarray, noise: float) -> np.ndarray:
 # --- files -----------------------------------------------------------------------------------------------
 
 
-def _rigid(value, key: str, path: Path) -> np.ndarray:
-    T = json_array(value, key, path, (4, 4))
-    problem = rigidity_problem(T)
-    if problem:
-        raise ConfigError(key, f"not a rigid transform: {problem}", source=path)
-    return T
+class _HandEyeFile(CalibrationFile, extra="ignore"):
+    T_hand_cam: Rigid
+
+
+class _Mount(CalibrationFile, extra="ignore"):
+    T_fingertip_sensor: Rigid
+
+
+class _MountsFile(CalibrationFile, extra="ignore"):
+    sensors: Annotated[dict[str, _Mount], Field(min_length=1)]
 
 
 def save_hand_eye(path: str | Path, T_hand_cam: np.ndarray, presses: int, rms_mm: float) -> None:
-    data = {
-        "format": HAND_EYE_FORMAT,
-        "version": 1,
-        "T_hand_cam": np.asarray(T_hand_cam).tolist(),
-        "presses": presses,
-        "rms_mm": rms_mm,
-    }
+    data = {"format": HAND_EYE_FORMAT, "version": 1, "T_hand_cam": np.asarray(T_hand_cam).tolist()}
+    data |= {"presses": presses, "rms_mm": rms_mm}
     atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
 def load_hand_eye(path: str | Path) -> np.ndarray:
     """``T_hand_cam`` [4, 4] of a hand-eye file; one ConfigError names the file and field."""
-    path = Path(path)
-    data = read_calibration_json(path, HAND_EYE_FORMAT)
-    return _rigid(data.get("T_hand_cam"), "T_hand_cam", path)
+    return read_calibration(Path(path), _HandEyeFile, HAND_EYE_FORMAT).T_hand_cam
 
 
 def save_mounts(fit: MountsFit, path: str | Path) -> None:
@@ -415,15 +398,8 @@ def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
     """``{finger: T_fingertip_sensor}`` of a mounts file (fingers among ``fingers``); one ConfigError names the
     file and field."""
     path = Path(path)
-    data = read_calibration_json(path, MOUNTS_FORMAT)
-    sensors = data.get("sensors")
-    if not isinstance(sensors, dict) or not sensors:
-        raise ConfigError("sensors", "expected an object mapping fingers to {T_fingertip_sensor}", source=path)
-    out = {}
-    for finger, entry in sensors.items():
-        if finger not in fingers:
-            raise ConfigError(f"sensors.{finger}", f"unknown finger (one of {list(fingers)})", source=path)
-        if not isinstance(entry, dict):
-            raise ConfigError(f"sensors.{finger}", "expected an object with T_fingertip_sensor", source=path)
-        out[finger] = _rigid(entry.get("T_fingertip_sensor"), f"sensors.{finger}.T_fingertip_sensor", path)
-    return out
+    sensors = read_calibration(path, _MountsFile, MOUNTS_FORMAT).sensors
+    unknown = [finger for finger in sensors if finger not in fingers]
+    if unknown:
+        raise ConfigError(f"sensors.{unknown[0]}", f"unknown finger (one of {list(fingers)})", source=path)
+    return {finger: entry.T_fingertip_sensor for finger, entry in sensors.items()}

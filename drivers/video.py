@@ -5,13 +5,12 @@ returns the newest frame that the caller has not seen yet, with its timestamp
 and sequence number, so a slow consumer never stalls the device, and a stalled
 device (unplugged, driver hang, end of a file) raises :class:`CameraError`
 within ``timeout_s`` even when ``VideoCapture.read`` itself blocks forever.
-Files are read in order instead (``sequential=True``), every frame once.
+Files are read in order instead, every frame once.
 Resolution and fps are verified after they are set.
 """
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections import deque
@@ -24,7 +23,7 @@ import numpy as np
 
 from tacsplat.errors import CameraError
 
-log = logging.getLogger(__name__)
+FPS_TOLERANCE = 0.05  # the fps a device reports may be off the one asked for by this fraction
 
 
 @dataclass(frozen=True)
@@ -52,18 +51,14 @@ class VideoReader:
         fps: float | None = None,
         fourcc: str | None = None,
         timeout_s: float = 2.0,
-        sequential: bool | None = None,
-        fps_tolerance: float = 0.05,
         name: str | None = None,
         capture_factory: Callable[[int | str], object] = cv2.VideoCapture,
     ):
         self.source = source
         self.name = name or f"camera {source}"
         self.timeout_s = float(timeout_s)
-        self.sequential = (
-            isinstance(source, (str, Path)) and Path(source).is_file() if sequential is None else sequential
-        )
-        self._requested = (width, height, fps, fourcc, fps_tolerance)
+        self.sequential = isinstance(source, (str, Path)) and Path(source).is_file()  # a file: every frame, in order
+        self._requested = (width, height, fps, fourcc)
         self._factory = capture_factory
         self._cap = None
         self._thread: threading.Thread | None = None
@@ -85,7 +80,7 @@ class VideoReader:
                 self.name, f"cannot open {self.source!r} (unplugged, busy, or no permission on /dev/video*?)"
             )
         self._cap = cap
-        width, height, fps, fourcc, tol = self._requested
+        width, height, fps, fourcc = self._requested
         if fourcc:
             cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc))
         if width:
@@ -102,7 +97,7 @@ class VideoReader:
                 raise CameraError(
                     self.name, f"asked for {width}x{height}, the device delivers {self.width}x{self.height}"
                 )
-            if fps and abs(self.fps - fps) > tol * fps:
+            if fps and abs(self.fps - fps) > FPS_TOLERANCE * fps:
                 raise CameraError(self.name, f"asked for {fps:g} fps, the device reports {self.fps:g} fps")
         except CameraError:
             cap.release()

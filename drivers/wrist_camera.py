@@ -29,16 +29,18 @@ import logging
 import math
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import Annotated, Any, Literal, NamedTuple, Sequence
 
 import cv2
 import numpy as np
+from pydantic import Field, PlainValidator
 
-from tacsplat.drivers.calibration import is_json_number, json_array, json_float, json_int, read_calibration_json
+from tacsplat.drivers.calibration import is_json_number, read_calibration
+from tacsplat.drivers.calibration_files import Array, CalibrationFile, NonNegative, Rigid
 from tacsplat.drivers.video import VideoReader
 from tacsplat.errors import CameraError, ConfigError, InvalidInputError
 from tacsplat.files import atomic_write
-from tacsplat.geometry import invert_pose, make_pose, rigidity_problem
+from tacsplat.geometry import invert_pose, make_pose
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +61,20 @@ MAX_BOARD_SQUARES = 100  # per side
 MAX_SQUARE_LENGTH_M = 1.0
 
 
+def _size_problem(spec, counts: tuple[str, ...], lengths: tuple[str, ...]) -> tuple[str, str] | None:
+    """``(field, what is wrong)`` of the first of ``counts`` (integers in [2, MAX_BOARD_SQUARES]) and ``lengths``
+    (metres in (0, MAX_SQUARE_LENGTH_M]) that is out of its range, or None."""
+    for name in counts:
+        n = getattr(spec, name)
+        if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= MAX_BOARD_SQUARES:
+            return name, f"must be an integer in [2, {MAX_BOARD_SQUARES}], got {n!r}"
+    for name in lengths:
+        x = getattr(spec, name)
+        if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:  # (NaN and inf fail too)
+            return name, f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
+    return None
+
+
 @dataclass(frozen=True)
 class CharucoBoardSpec:
     """A printed ChArUco board (OpenCV >= 4.6 pattern unless ``legacy_pattern``); :meth:`problem` tells
@@ -73,23 +89,15 @@ class CharucoBoardSpec:
 
     def problem(self) -> tuple[str, str] | None:
         """``(field, what is wrong and the allowed range)`` of the first impossible value, or None."""
-        for name in ("squares_x", "squares_y"):
-            n = getattr(self, name)
-            if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= MAX_BOARD_SQUARES:
-                return name, f"must be an integer in [2, {MAX_BOARD_SQUARES}], got {n!r}"
-        for name in ("square_length_m", "marker_length_m"):
-            x = getattr(self, name)
-            if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:  # (NaN and inf fail too)
-                return name, f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
+        problem = _size_problem(self, ("squares_x", "squares_y"), ("square_length_m", "marker_length_m"))
+        if problem:
+            return problem
         if not self.marker_length_m < self.square_length_m:
             return "marker_length_m", (
                 f"must be smaller than square_length_m ({self.square_length_m:g} m), got {self.marker_length_m:g}"
             )
-        if (
-            not isinstance(self.dictionary, str)
-            or not self.dictionary.startswith("DICT_")
-            or not hasattr(cv2.aruco, self.dictionary)
-        ):
+        name = self.dictionary
+        if not (isinstance(name, str) and name.startswith("DICT_") and hasattr(cv2.aruco, name)):
             return "dictionary", f"unknown ArUco dictionary {self.dictionary!r}"
         markers = len(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)).bytesList)
         needed = self.squares_x * self.squares_y // 2
@@ -106,12 +114,9 @@ class CharucoBoardSpec:
         problem = self.problem()
         if problem:
             raise ConfigError(*problem)
-        board = cv2.aruco.CharucoBoard(
-            (self.squares_x, self.squares_y),
-            self.square_length_m,
-            self.marker_length_m,
-            cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary)),
-        )
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        size = (self.squares_x, self.squares_y)
+        board = cv2.aruco.CharucoBoard(size, self.square_length_m, self.marker_length_m, dictionary)
         board.setLegacyPattern(self.legacy_pattern)
         return board
 
@@ -134,14 +139,7 @@ class ChessboardSpec:
 
     def problem(self) -> tuple[str, str] | None:
         """``(field, what is wrong and the allowed range)`` of the first impossible value, or None."""
-        for name in ("inner_corners_x", "inner_corners_y"):
-            n = getattr(self, name)
-            if not isinstance(n, int) or isinstance(n, bool) or not 2 <= n <= MAX_BOARD_SQUARES:
-                return name, f"must be an integer in [2, {MAX_BOARD_SQUARES}], got {n!r}"
-        x = self.square_length_m
-        if not is_json_number(x) or not 0 < x <= MAX_SQUARE_LENGTH_M:
-            return "square_length_m", f"must be in (0, {MAX_SQUARE_LENGTH_M:g}] m, got {x!r}"
-        return None
+        return _size_problem(self, ("inner_corners_x", "inner_corners_y"), ("square_length_m",))
 
     def object_points(self) -> np.ndarray:
         """[N, 3] board metres of the inner corners, row by row (OpenCV's detection order)."""
@@ -156,9 +154,8 @@ class ChessboardSpec:
             raise ConfigError(*problem)
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         size = (self.inner_corners_x, self.inner_corners_y)
-        found, corners = cv2.findChessboardCorners(
-            gray, size, cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-        )
+        flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+        found, corners = cv2.findChessboardCorners(gray, size, flags)
         if not found:
             return np.zeros((0, 3)), np.zeros((0, 2))
         grid = corners.reshape(self.inner_corners_y, self.inner_corners_x, 2)
@@ -210,6 +207,7 @@ SAME_POSE_FRACTION = 0.01  # two photos whose common corners lie within 1 % of t
 # beyond MAX_CORNER_SCALE (distorted over undistorted radius; real perspective lenses stay within ~1.3).
 FIELD_OF_VIEW_DEG = (2.0, 170.0)
 MAX_CORNER_SCALE = 2.0
+_K_NAMES = ("fx", "fy", "cx", "cy")
 _CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
 
 
@@ -236,41 +234,17 @@ class CameraCalibration:
 
     def save(self, path: str | Path) -> None:
         board = {"type": next(k for k, v in BOARD_TYPES.items() if isinstance(self.board, v)), **asdict(self.board)}
-        data = {
-            "format": FORMAT,
-            "version": 1,
-            "pixel_centres": _PIXEL_CENTRES,
-            "K_opencv": self.K_opencv.tolist(),
-            "dist": self.dist.ravel().tolist(),
-            "width": self.width,
-            "height": self.height,
-            "rms_px": self.rms_px,
-            "board": board,
-            "per_image_rms_px": self.per_image_rms_px,
-            "T_hand_cam": None if self.T_hand_cam is None else np.asarray(self.T_hand_cam).tolist(),
-            "K_std_px": self.K_std_px,
-            "distortion_model": self.distortion_model,
-            "warnings": self.warnings,
-        }
+        data = {"format": FORMAT, "version": 1, "pixel_centres": _PIXEL_CENTRES, **vars(self), "board": board}
+        data |= {"K_opencv": self.K_opencv.tolist(), "dist": self.dist.ravel().tolist()}
+        data["T_hand_cam"] = None if self.T_hand_cam is None else np.asarray(self.T_hand_cam).tolist()
         atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
     @classmethod
     def load(cls, path: str | Path) -> "CameraCalibration":
         """Read a calibration file; every value is checked here, and one ConfigError names the file and field."""
         path = Path(path)
-        data = read_calibration_json(path, FORMAT)
-        unknown = [key for key in data if key not in _FILE_FIELDS]
-        if unknown:
-            raise ConfigError(unknown[0], f"unknown field (expected {list(_FILE_FIELDS)})", source=path)
-        if data.get("pixel_centres", _PIXEL_CENTRES) != _PIXEL_CENTRES:
-            raise ConfigError(
-                "pixel_centres",
-                f"must be {_PIXEL_CENTRES!r} (K_opencv is in OpenCV's convention), got {data['pixel_centres']!r}",
-                source=path,
-            )
-        width = json_int(data.get("width"), "width", path, minimum=1)
-        height = json_int(data.get("height"), "height", path, minimum=1)
-        K = json_array(data.get("K_opencv"), "K_opencv", path, (3, 3))
+        f = read_calibration(path, _CameraFile, FORMAT)
+        K, width, height, dist = f.K_opencv, f.width, f.height, f.dist
         if K[0, 0] <= 0 or K[1, 1] <= 0:
             raise ConfigError(
                 "K_opencv", f"focal lengths must be positive, got fx {K[0, 0]}, fy {K[1, 1]}", source=path
@@ -285,85 +259,58 @@ class CameraCalibration:
             raise ConfigError(
                 "K_opencv", f"must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}", source=path
             )
-        dist = json_array(data.get("dist"), "dist", path, (None,))
         if dist.size not in (4, 5, 8, 12, 14):
             raise ConfigError("dist", f"expected 4, 5, 8, 12 or 14 coefficients (OpenCV), got {dist.size}", source=path)
-        model = data.get("distortion_model")
-        if model is not None and (model not in DISTORTION_MODELS or DISTORTION_MODELS[model][1] != dist.size):
+        model = f.distortion_model
+        if model is not None and DISTORTION_MODELS[model][1] != dist.size:
             raise ConfigError(
-                "distortion_model",
-                f"expected one of {list(DISTORTION_MODELS)} matching the "
-                f"{dist.size} coefficients of dist, got {model!r}",
-                source=path,
+                "distortion_model", f"{model!r} does not match the {dist.size} coefficients of dist", source=path
             )
-        rms = data.get("rms_px")
-        rms = (
-            float("nan")
-            if rms is None or (isinstance(rms, float) and math.isnan(rms))
-            else json_float(rms, "rms_px", path, low=0.0)
-        )
-        per_image = data.get("per_image_rms_px", {})
-        if not isinstance(per_image, dict):
-            raise ConfigError(
-                "per_image_rms_px", f"must be an object {{image name: px}}, got {per_image!r}", source=path
-            )
-        per_image = {name: json_float(v, f"per_image_rms_px.{name}", path, low=0.0) for name, v in per_image.items()}
-        T = data.get("T_hand_cam")
-        if T is not None:
-            T = json_array(T, "T_hand_cam", path, (4, 4))
-            problem = rigidity_problem(T)
-            if problem:
-                raise ConfigError("T_hand_cam", f"not a rigid transform: {problem}", source=path)
-        std = data.get("K_std_px")
-        if std is not None:
-            if not isinstance(std, dict) or sorted(std) != sorted(_K_NAMES):
-                raise ConfigError("K_std_px", f"must be an object with {list(_K_NAMES)}, got {std!r}", source=path)
-            std = {key: json_float(std[key], f"K_std_px.{key}", path, low=0.0) for key in _K_NAMES}
-        warnings = data.get("warnings", [])
-        if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
-            raise ConfigError("warnings", f"must be a list of strings, got {warnings!r}", source=path)
-        return cls(
-            K, dist, width, height, rms, _board_spec(data.get("board", {}), path), per_image, T, std, model, warnings
-        )
+        board = dict(f.board)
+        kind = board.pop("type", "charuco")
+        if kind not in BOARD_TYPES:
+            raise ConfigError("board.type", f"expected one of {list(BOARD_TYPES)}, got {kind!r}", source=path)
+        names = [field.name for field in fields(BOARD_TYPES[kind])]
+        unknown = [key for key in board if key not in names]
+        if unknown:
+            raise ConfigError(f"board.{unknown[0]}", f"unknown field of a {kind} board (expected {names})", source=path)
+        spec = BOARD_TYPES[kind](**board)
+        problem = spec.problem()
+        if problem:
+            raise ConfigError(f"board.{problem[0]}", problem[1], source=path)
+        std = f.K_std_px and f.K_std_px.model_dump()
+        return cls(K, dist, width, height, f.rms_px, spec, f.per_image_rms_px, f.T_hand_cam, std, model, f.warnings)
 
 
-_K_NAMES = ("fx", "fy", "cx", "cy")
-_FILE_FIELDS = (
-    "format",
-    "version",
-    "pixel_centres",
-    "K_opencv",
-    "dist",
-    "width",
-    "height",
-    "rms_px",
-    "board",
-    "per_image_rms_px",
-    "T_hand_cam",
-    "K_std_px",
-    "distortion_model",
-    "warnings",
-)
+def _rms(value) -> float:
+    """Not recorded (null or NaN), or a finite number of pixels >= 0."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return float("nan")
+    if not is_json_number(value) or not 0 <= value < math.inf:
+        raise ValueError(f"must be a finite number of pixels >= 0, got {value!r}")
+    return float(value)
 
 
-def _board_spec(board, path: Path) -> BoardSpec:
-    """The ``board`` object of a camera calibration file (``type`` charuco, the default, or chessboard), checked
-    field by field."""
-    if not isinstance(board, dict):
-        raise ConfigError("board", f"must be an object of board fields, got {board!r}", source=path)
-    board = dict(board)
-    kind = board.pop("type", "charuco")
-    if kind not in BOARD_TYPES:
-        raise ConfigError("board.type", f"expected one of {list(BOARD_TYPES)}, got {kind!r}", source=path)
-    names = [f.name for f in fields(BOARD_TYPES[kind])]
-    unknown = [key for key in board if key not in names]
-    if unknown:
-        raise ConfigError(f"board.{unknown[0]}", f"unknown field of a {kind} board (expected {names})", source=path)
-    spec = BOARD_TYPES[kind](**board)
-    problem = spec.problem()
-    if problem:
-        raise ConfigError(f"board.{problem[0]}", problem[1], source=path)
-    return spec
+class _KStd(CalibrationFile):
+    fx: NonNegative
+    fy: NonNegative
+    cx: NonNegative
+    cy: NonNegative
+
+
+class _CameraFile(CalibrationFile):
+    pixel_centres: Literal[_PIXEL_CENTRES] = _PIXEL_CENTRES  # K_opencv is in OpenCV's convention
+    K_opencv: Array(3, 3)
+    dist: Array(None)
+    width: Annotated[int, Field(ge=1)]
+    height: Annotated[int, Field(ge=1)]
+    rms_px: Annotated[Any, PlainValidator(_rms)] = float("nan")
+    board: dict = {}
+    per_image_rms_px: dict[str, NonNegative] = {}
+    T_hand_cam: Rigid | None = None
+    K_std_px: _KStd | None = None
+    distortion_model: Literal[tuple(DISTORTION_MODELS)] | None = None
+    warnings: list[str] = []
 
 
 @dataclass
@@ -506,18 +453,15 @@ def view_set_problem(
 def _lens_problem(calib: CameraCalibration, radius: float) -> str | None:
     """Why the lens model does not map the ray to the farthest image corner one to one onto the image out to
     ``radius`` (distorted, normalised): it folds back first, or scales that radius beyond MAX_CORNER_SCALE."""
-    K, w, h = calib.K_opencv, calib.width, calib.height
-    to_normalised = np.linalg.inv(K[:2, :2]).T
-    corners = (
-        np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]]) - K[:2, 2]
-    ) @ to_normalised
+    K = calib.K_opencv
+    corners = _normalised(calib, _image_corners(calib))
     direction = corners[np.argmax(np.hypot(*corners.T))]
     direction = direction / np.hypot(*direction)
     r = np.linspace(0.0, MAX_CORNER_SCALE * radius, 401)  # undistorted radii
     pixels = cv2.projectPoints(
         np.column_stack([np.outer(r, direction), np.ones(len(r))]), np.zeros(3), np.zeros(3), K, calib.dist
     )[0].reshape(-1, 2)
-    distorted = np.hypot(*((pixels - K[:2, 2]) @ to_normalised).T)
+    distorted = np.hypot(*_normalised(calib, pixels).T)
     reached = np.flatnonzero(distorted >= radius)
     end = reached[0] if reached.size else len(r) - 1
     dist = "[" + ", ".join(f"{k:.4g}" for k in calib.dist) + "]"
@@ -536,15 +480,22 @@ def _lens_problem(calib: CameraCalibration, radius: float) -> str | None:
     return None
 
 
+def _normalised(calib: CameraCalibration, pixels: np.ndarray) -> np.ndarray:
+    """OpenCV pixels [N, 2] -> normalised (distorted) image coordinates [N, 2]."""
+    K = calib.K_opencv
+    return (pixels - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T
+
+
+def _image_corners(calib: CameraCalibration) -> np.ndarray:
+    """[4, 2] OpenCV pixels of the image's outer corners."""
+    w, h = calib.width, calib.height
+    return np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+
+
 def _radii(calib: CameraCalibration, views: Sequence[BoardView]) -> tuple[float, float]:
     """Distorted normalised radius of the outermost corner seen, and of the farthest image corner."""
-    K, w, h = calib.K_opencv, calib.width, calib.height
     seen = np.concatenate([view.image_points for view in views])
-    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
-    radius = [
-        float(np.hypot(*((points - K[:2, 2]) @ np.linalg.inv(K[:2, :2]).T).T).max()) for points in (seen, corners)
-    ]
-    return radius[0], radius[1]
+    return tuple(float(np.hypot(*_normalised(calib, points).T).max()) for points in (seen, _image_corners(calib)))
 
 
 def calibration_problem(calib: CameraCalibration, views: Sequence[BoardView]) -> str | None:
@@ -670,10 +621,7 @@ def _position_std(residuals: np.ndarray, J: np.ndarray, R: np.ndarray, dR: np.nd
     if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e12:
         return float("inf")
     cov = float(np.sum(residuals**2)) / dof * np.linalg.inv(normal)
-    dc = np.empty((3, 6))
-    for i in range(3):
-        dc[:, i] = -dR[i].reshape(3, 3).T @ t
-    dc[:, 3:] = -R.T
+    dc = np.column_stack([*(-dR[i].reshape(3, 3).T @ t for i in range(3)), -R.T])  # [3, 6]: dc / d(rvec, tvec)
     return float(np.sqrt(max(np.trace(dc @ cov @ dc.T), 0.0)))
 
 
@@ -737,16 +685,8 @@ class WristCamera:
         self._maps = cv2.initUndistortRectifyMap(
             c.K_opencv, c.dist, None, self._K_new_opencv, (c.width, c.height), cv2.CV_16SC2
         )
-        self._video = VideoReader(
-            source,
-            width=c.width,
-            height=c.height,
-            fps=fps,
-            fourcc=fourcc,
-            timeout_s=timeout_s,
-            name="wrist camera",
-            capture_factory=capture_factory,
-        )
+        video = dict(fps=fps, fourcc=fourcc, timeout_s=timeout_s, capture_factory=capture_factory)
+        self._video = VideoReader(source, width=c.width, height=c.height, name="wrist camera", **video)
 
     @property
     def K(self) -> np.ndarray:
