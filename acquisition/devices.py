@@ -15,7 +15,7 @@ from typing import Iterator
 import numpy as np
 
 from tacsplat.acquisition.config import GraspControl, RigConfig
-from tacsplat.acquisition.logger import BoardPoseSource, TwinClock, TwinPoseSource, WallClock
+from tacsplat.acquisition.logger import BoardPoseSource, TwinPoseSource, WallClock
 from tacsplat.datasets import SensorModel
 from tacsplat.errors import ConfigError
 from tacsplat.types import CameraIntrinsics
@@ -249,7 +249,7 @@ def twin_rig(twin, control: GraspControl = TWIN_CONTROL) -> Rig:
         hand=twin.hand,
         sensors=list(twin.tactile_sensors),
         camera=twin.view_camera,
-        clock=TwinClock(twin),
+        clock=twin,  # sleeping advances its physics
         poses=TwinPoseSource(twin),
         intrinsics=twin.view_camera.intrinsics,
         sensor_model=twin.sensor_model(),

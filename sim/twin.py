@@ -396,10 +396,9 @@ class SimTwin:
         self.model.cam_fovy[self.model.camera("wrist").id] = config.wrist_fovy_deg
         self.wrist_camera = MujocoCamera(self, "wrist", w, h, visible_groups=(0, 1, 2))
         self.view_camera = MujocoCamera(self, "view", w, h, visible_groups=(0, 2))  # hand hidden
-        self._hand_geoms = self._body_tree_geoms("hand")
-        self._object_geoms = set(np.flatnonzero(self.model.geom_bodyid == self.model.body("object").id).tolist())
-        self._geom_is_hand = np.isin(np.arange(self.model.ngeom), list(self._hand_geoms))
-        self._geom_is_object = np.isin(np.arange(self.model.ngeom), list(self._object_geoms))
+        root = self.model.body_rootid[self.model.geom_bodyid]  # each geom's body's child of the world
+        self._geom_is_hand = root == self.model.body("hand").id
+        self._geom_is_object = root == self.model.body("object").id
         self.peak_penetration_m = 0.0
 
     def sensor_model(self, scale: float = 1.0) -> SensorModel:
@@ -479,31 +478,13 @@ class SimTwin:
         """OpenCV camera-to-world pose [4, 4] of the view camera."""
         return self.view_camera.pose()
 
-    def render_view(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(image [H, W, 3] uint8, depth [H, W] float32)`` of the object alone from the view camera."""
-        image, _ = self.view_camera.read()
-        return image, self.view_camera.read_depth()
-
     # --- contacts ------------------------------------------------------------------------------
-    def _body_tree_geoms(self, root: str) -> set[int]:
-        root_id = self.model.body(root).id
-        bodies = {root_id}
-        for b in range(self.model.nbody):
-            parent = b
-            while parent not in (0, root_id):
-                parent = self.model.body_parentid[parent]
-            if parent == root_id:
-                bodies.add(b)
-        return set(np.flatnonzero(np.isin(self.model.geom_bodyid, list(bodies))).tolist())
-
     def hand_object_contacts(self) -> list[tuple[str, float]]:
         """``(hand geom name, signed distance)`` of each hand-object contact (negative = penetration)."""
         out = []
         for c in self.data.contact[: self.data.ncon]:
-            g1, g2 = int(c.geom1), int(c.geom2)
-            if g1 in self._object_geoms and g2 in self._hand_geoms:
-                g1, g2 = g2, g1
-            if g1 in self._hand_geoms and g2 in self._object_geoms:
+            g1, g2 = (c.geom2, c.geom1) if self._geom_is_object[c.geom1] else (c.geom1, c.geom2)
+            if self._geom_is_hand[g1] and self._geom_is_object[g2]:
                 out.append((self.model.geom(g1).name, float(c.dist)))
         return out
 
