@@ -70,14 +70,8 @@ class LoopingCapture:
         self._stalled = threading.Event()
         self._released = threading.Event()
 
-    def isOpened(self) -> bool:
-        return self._cap.isOpened()
-
-    def set(self, prop, value) -> bool:
-        return self._cap.set(prop, value)
-
-    def get(self, prop) -> float:
-        return self._cap.get(prop)
+    def __getattr__(self, name: str):  # the rest of cv2.VideoCapture: isOpened, get, set
+        return getattr(self._cap, name)
 
     def read(self):
         if self._period:
