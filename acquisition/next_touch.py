@@ -53,6 +53,7 @@ from tacsplat.reconstruction.uncertainty import (
     one_thread,
     render_uncertainty,
 )
+from tacsplat.sim.views import fibonacci_directions
 
 log = logging.getLogger(__name__)
 
@@ -365,12 +366,8 @@ def approach_candidates(
     means = gaussians.means.detach().cpu().numpy().astype(np.float64)
     centre = np.median(means, axis=0)
     radius = 0.5 * extent(gaussians)
-    i = np.arange(count) + 0.5
-    z = np.sin(np.deg2rad(min_elevation_deg)) + (1.0 - np.sin(np.deg2rad(min_elevation_deg))) * i / count
-    azimuth = i * np.pi * (3.0 - np.sqrt(5.0))
-    directions = np.stack([np.sqrt(1 - z**2) * np.cos(azimuth), np.sqrt(1 - z**2) * np.sin(azimuth), z], axis=1)
     candidates = []
-    for k, d in enumerate(directions):
+    for k, d in enumerate(fibonacci_directions(count, np.deg2rad(min_elevation_deg), np.pi / 2)):
         normal = -d
         helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
         x = np.cross(helper, normal)
