@@ -377,14 +377,14 @@ def approach_candidates(
     return candidates
 
 
+@dataclass
 class GraspSuggester:
     """The next grasp at a real rig, from a reconstruction in progress (``run_dir``: a ``tacsplat reconstruct``
     folder; its latest checkpoint is read each time)."""
 
-    def __init__(self, run_dir: str | Path, uncertainty: str = "depth-variance", candidates: int = 64):
-        self.run_dir = Path(run_dir)
-        self.uncertainty = uncertainty
-        self.candidates = candidates
+    run_dir: str | Path
+    uncertainty: str = "depth-variance"
+    candidates: int = 64
 
     def suggest(self, scene) -> ScoredCandidate | None:
         """The best approach for ``scene`` (the capture so far: its train views and touches); None when no

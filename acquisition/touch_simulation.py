@@ -15,6 +15,7 @@ scene the same way.
 from __future__ import annotations
 
 from contextlib import ExitStack
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -56,12 +57,12 @@ class SceneUnits:
         return T
 
 
+@dataclass
 class ScaledPad:
     """A twin pad (``TactileSensor``) whose readings are in the scene's units."""
 
-    def __init__(self, pad, units: SceneUnits):
-        self.pad = pad
-        self.units = units
+    pad: object
+    units: SceneUnits
 
     @property
     def name(self) -> str:
