@@ -166,12 +166,18 @@ class Counts:
     contacts: int = 0  # touches in contact
 
 
+def finger_joints(joint_names: Sequence[str]) -> dict[str, list[int]]:
+    """Each finger's joint indices, by the joints' names (``index_0`` ... ``index_3``: finger ``index``)."""
+    fingers: dict[str, list[int]] = {}
+    for i, joint in enumerate(joint_names):
+        fingers.setdefault(joint.rsplit("_", 1)[0], []).append(i)
+    return fingers
+
+
 class CaptureLogger:
     """Writes views and grasps through ``writer``; the devices are seen only through their Protocols.
 
-    ``fingers`` maps each finger name to its joint indices in the hand's joint
-    order (default: four joints per finger in the order of ``hand.joint_names``'
-    prefixes). Opening a logger on a resumed writer first removes a grasp cut short
+    Each finger's joints are those named after it (:func:`finger_joints`). Opening a logger on a resumed writer first removes a grasp cut short
     (a last grasp with fewer touches than sensors), unless ``redo_partial_grasp`` is
     False (a scene another tool wrote, whose grasps may hold fewer touches).
     """
@@ -185,7 +191,6 @@ class CaptureLogger:
         clock: Clock,
         poses: PoseSource,
         control: GraspControl = GraspControl(),
-        fingers: dict[str, Sequence[int]] | None = None,
         redo_partial_grasp: bool = True,
     ):
         self.writer = writer
@@ -200,11 +205,7 @@ class CaptureLogger:
         names = [s.name for s in self.sensors]
         if len(set(names)) != len(names):
             raise InvalidInputError(f"sensors: duplicate names {names}")
-        if fingers is None:
-            fingers = {}
-            for i, joint in enumerate(hand.joint_names):
-                fingers.setdefault(joint.rsplit("_", 1)[0], []).append(i)
-        self.fingers = {f: np.asarray(j, dtype=int) for f, j in fingers.items()}
+        self.fingers = {f: np.asarray(j, dtype=int) for f, j in finger_joints(hand.joint_names).items()}
         self.hand_state = "open"
         self._samples: list | None = None  # (t, phase, q, target, effort) while a grasp records its motion
         self.dropped_partial_grasp = self.drop_partial_grasp() if redo_partial_grasp else 0

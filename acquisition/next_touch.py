@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from tacsplat.acquisition.config import GraspPlan
-from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected, GraspOutcome
+from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected, GraspOutcome, finger_joints
 from tacsplat.acquisition.twin_planner import MAX_ATTEMPTS_PER_GRASP, TwinPlanner
 from tacsplat.datasets import Scene, SceneWriter, SensorModel
 from tacsplat.geometry import invert_pose, make_pose
@@ -292,12 +292,9 @@ class NextTouchPlanner:
         q_close, q_pre = self.twin_planner.approach(self._rng(index, k))
         T_world_hand = twin.T_world_hand()
         tips = twin.hand.fingertip_poses()
-        joints: dict[str, list[int]] = {}
-        for i, name in enumerate(twin.hand.joint_names):
-            joints.setdefault(name.rsplit("_", 1)[0], []).append(i)
         pads = [
             Pad(finger, T_world_hand @ tips[finger])
-            for finger, j in joints.items()
+            for finger, j in finger_joints(twin.hand.joint_names).items()
             if finger in tips and not np.allclose(q_close[j], q_pre[j])
         ]
         return Candidate(k, pads, -T_world_hand[:3, 2]), q_close, q_pre
