@@ -39,24 +39,12 @@ def limp_hand(
             twin.hand.set_torque(False)
             yield twin.hand, TwinPerson(twin), [f"joint {k}" for k in range(16)], "the twin's hand"
         return
-    from tacsplat.drivers.dynamixel_hand import MAX_BUS_WATCHDOG_S, DynamixelHand, DynamixelHandConfig
+    from tacsplat.acquisition.devices import dynamixel_hand
+    from tacsplat.acquisition.mock import EmulatorPerson, MockDevices
     from tacsplat.drivers.joint_calibration import TerminalPerson
-    from tacsplat.sim.hand import HandKinematics
 
-    mock = None
-    if config.mock:
-        from tacsplat.acquisition.mock import EmulatorPerson, MockDevices
-
-        mock = MockDevices(config)
-        port = mock.servo_port
-        settings = DynamixelHandConfig(
-            min_packet_timeout_s=config.mock_devices.servo_timeout_s, bus_watchdog_s=MAX_BUS_WATCHDOG_S
-        )
-    else:
-        port, settings = config.hand.port, None
-    hand = DynamixelHand(
-        port, config.hand.baudrate, config.hand.ids, None, config=settings, kinematics=HandKinematics()
-    )
+    mock = MockDevices(config) if config.mock else None
+    hand = dynamixel_hand(config, mock)
     servos = [f"servo {sid}" for sid in config.hand.ids]
     with mock if mock is not None else nullcontext():
         person = EmulatorPerson(mock) if mock is not None else TerminalPerson(stdin)

@@ -233,16 +233,22 @@ def _capture(o: Capture) -> int:
     return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume, suggest=o.suggest)
 
 
-def _calibrate_hand(o: CalibrateHand) -> int:
-    from tacsplat.acquisition.calibrate import calibrate_hand
+def _calibration_rig(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, mock: bool = False):
+    """The rig file of a calibration command, its ``--out`` (a .json file) checked writable."""
     from tacsplat.acquisition.config import load_rig
+    from tacsplat.datasets.outputs import ensure_output_dir
 
     if o.out.is_dir():
         raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
-    from tacsplat.datasets.outputs import ensure_output_dir
-
-    config = load_rig(o.rig, mock=o.mock, check_files=False)
+    config = load_rig(o.rig, mock=mock, check_files=False)
     ensure_output_dir(o.out.parent, "--out")
+    return config
+
+
+def _calibrate_hand(o: CalibrateHand) -> int:
+    from tacsplat.acquisition.calibrate import calibrate_hand
+
+    config = _calibration_rig(o, o.mock)
     try:
         calibrate_hand(config, o.out)
     except KeyboardInterrupt as exc:  # Ctrl-C, or the hand driver's SignalInterrupt (SIGTERM, SIGHUP, ...)
@@ -252,22 +258,10 @@ def _calibrate_hand(o: CalibrateHand) -> int:
     return 0
 
 
-def _press_calibration_rig(o: CalibrateHandEye | CalibrateMounts):
-    """The rig file of a press calibration, its ``--out`` (a .json file) checked writable."""
-    from tacsplat.acquisition.config import load_rig
-    from tacsplat.datasets.outputs import ensure_output_dir
-
-    if o.out.is_dir():
-        raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
-    config = load_rig(o.rig, check_files=False)
-    ensure_output_dir(o.out.parent, "--out")
-    return config
-
-
 def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
     from tacsplat.acquisition.calibrate import calibrate_hand_eye
 
-    calibrate_hand_eye(_press_calibration_rig(o), o.out)
+    calibrate_hand_eye(_calibration_rig(o), o.out)
     return 0
 
 
@@ -275,7 +269,7 @@ def _calibrate_mounts(o: CalibrateMounts) -> int:
     from tacsplat.acquisition.calibrate import calibrate_mounts
     from tacsplat.datasets.outputs import ensure_output_dir
 
-    config = _press_calibration_rig(o)
+    config = _calibration_rig(o)
     if o.hand_eye is not None:
         ensure_output_dir(o.hand_eye.parent, "--hand-eye")
     calibrate_mounts(config, o.out, o.hand_eye)
@@ -298,6 +292,7 @@ def _rig_check(o: RigCheck) -> int:
 
 
 def _sim_capture(args: SimCapture) -> int:
+    import inspect
     import json
 
     from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
@@ -311,25 +306,9 @@ def _sim_capture(args: SimCapture) -> int:
         object_radius = _option_values(lambda: bounding_sphere(read_mesh(args.mesh))[1], _SIM_OPTIONS)
         if problem := object_radius_problem(object_radius):
             raise UsageError("--keep-size", f"{args.mesh}'s own bounding radius, read in metres, {problem}")
-    config = _option_values(
-        lambda: sim_rig_config(
-            object=args.object,
-            mesh=args.mesh,
-            object_radius=object_radius,
-            views=args.views,
-            test_views=args.test_views,
-            grasps=args.grasps,
-            resolution=args.resolution,
-            seed=args.seed,
-            grasp_strategy=args.grasp_strategy,
-            candidates=args.candidates,
-            selection_steps=args.selection_steps,
-            uncertainty=args.uncertainty,
-            texture=args.texture,
-            **args.touch_args(),
-        ),
-        _SIM_OPTIONS,
-    )
+    given = {k: v for k, v in vars(args).items() if k in inspect.signature(sim_rig_config).parameters}
+    given = {k: v for k, v in given.items() if v is not None} | {"object_radius": object_radius}
+    config = _option_values(lambda: sim_rig_config(**given), _SIM_OPTIONS)
     try:
         timings = sim_capture(config, args.out, resume=args.resume)
     except ConfigError as exc:
@@ -378,7 +357,7 @@ def _naming_options(exc: ConfigError, options: dict[str, str]) -> ConfigError:
     return ConfigError(options[exc.key], message)
 
 
-_SIM_OPTIONS = {
+_SIM_OPTIONS = {  # sim_rig_config's keys
     "object": "--object",
     "sim.object": "--object",
     "sim.mesh": "--mesh",
@@ -398,12 +377,7 @@ _SIM_OPTIONS = {
     "plan.touches.model": "--touch-model",
     "plan.touches.surface_points": "--surface-points",
 }
-_TOUCH_OPTIONS = {
+_TOUCH_OPTIONS = {  # simulate_touches' keys
+    **{k: f"--{k.replace('_', '-')}" for k in ("surface_points", "grasps", "object_radius", "seed", "out", "mesh")},
     "model": "--touch-model",
-    "surface_points": "--surface-points",
-    "grasps": "--grasps",
-    "object_radius": "--object-radius",
-    "seed": "--seed",
-    "out": "--out",
-    "mesh": "--mesh",
-}  # simulate_touches' keys
+}

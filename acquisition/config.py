@@ -5,10 +5,10 @@ the grasp controller, and the capture plan, as dataclasses.
 wrist camera; ``rig: sim`` the MuJoCo twin. ``--mock`` (``load_rig(...,
 mock=True)``) keeps a real rig's file and swaps in emulated devices (see
 :mod:`tacsplat.acquisition.mock`). A file is read into the dataclasses by
-pydantic (strict types: no string for a number, no number for a string, no
-unknown key); then :func:`validate` (also for configs built in code) checks the
-physical and logical range each field declares (:func:`bounded`), the board and
-the cross-field rules. Each invalid value raises one
+pydantic (:func:`checked`: strict types, no string for a number, no number for a
+string, no unknown key, and the physical and logical range each field declares,
+:func:`bounded`); then :func:`validate` (also for configs built in code) checks
+the board and the cross-field rules. Each invalid value raises one
 :class:`~tacsplat.errors.ConfigError` naming the file, the field path
 (``tactile.sensors[2].T_fingertip_sensor``) and the allowed range. The example
 files are in ``acquisition/rigs/`` (:func:`example_rig`).
@@ -27,7 +27,15 @@ from typing import Annotated, Any, get_args, get_origin, get_type_hints
 
 import numpy as np
 import yaml
-from pydantic import ConfigDict, PlainValidator, StringConstraints, TypeAdapter, ValidationError, with_config
+from pydantic import (
+    AfterValidator,
+    ConfigDict,
+    PlainValidator,
+    StringConstraints,
+    TypeAdapter,
+    ValidationError,
+    with_config,
+)
 
 from tacsplat.drivers.wrist_camera import CharucoBoardSpec
 from tacsplat.errors import ConfigError
@@ -42,19 +50,22 @@ DYNAMIXEL_MAX_ID = 252  # protocol 2.0: 253 is reserved, 254 is the broadcast id
 
 @dataclass(frozen=True)
 class Bounds:
-    """The values a number (or each number of a list) may take: ``lo <= x <= hi``, ``lo < x`` when ``lo_open``."""
+    """The values a number (or each number of a list) may take: ``lo <= x <= hi``, ``lo < x`` when ``lo_open``; as
+    a pydantic validator (``Annotated[float, Bounds(0, 60, "s", lo_open=True)]``), a value outside is an error."""
 
     lo: float
     hi: float = math.inf
-    lo_open: bool = False
     unit: str = ""
+    lo_open: bool = False
 
-    def holds(self, x: float) -> bool:
+    def __call__(self, x):
         try:
             finite = math.isfinite(x)
         except OverflowError:  # an integer too large for a float
-            return False
-        return finite and (x > self.lo if self.lo_open else x >= self.lo) and x <= self.hi
+            finite = False
+        if not (finite and (x > self.lo if self.lo_open else x >= self.lo) and x <= self.hi):
+            raise ValueError(f"must be {self}, got {x if isinstance(x, int) else f'{x:g}'}")
+        return x
 
     def __str__(self) -> str:
         unit = f" {self.unit}" if self.unit else ""
@@ -63,14 +74,25 @@ class Bounds:
         return f"in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}]{unit}"
 
 
-def bounded(default, lo: float, hi: float = math.inf, unit: str = "", lo_open: bool = False):
-    """A config field whose value (each value, for a list; unchecked when None) must lie within :class:`Bounds`."""
-    return field(default=default, metadata={"bounds": Bounds(lo, hi, lo_open, unit)})
+def bounded(lo: float, hi: float = math.inf, unit: str = "", lo_open: bool = False) -> AfterValidator:
+    """The validator of a number that must lie within :class:`Bounds`."""
+    return AfterValidator(Bounds(lo, hi, unit, lo_open))
 
 
-def positive(default, hi: float = math.inf, unit: str = ""):
-    """A field that must be > 0 (and <= ``hi``)."""
-    return bounded(default, 0, hi, unit, lo_open=True)
+def positive(hi: float = math.inf, unit: str = "") -> AfterValidator:
+    """The validator of a number that must be > 0 (and <= ``hi``)."""
+    return bounded(0, hi, unit, lo_open=True)
+
+
+def one_of(values) -> AfterValidator:
+    """The validator of a value that must be one of ``values``."""
+
+    def check(value):
+        if value not in values:
+            raise ValueError(f"must be one of {', '.join(map(repr, values))}, got {value!r}")
+        return value
+
+    return AfterValidator(check)
 
 
 # --- the types of the YAML's values beyond numbers, booleans and lists --------------------------------
@@ -108,6 +130,7 @@ Text = Annotated[str, StringConstraints(pattern=r"\S")]  # a non-empty string
 When = Annotated[datetime, PlainValidator(_when)]  # a YAML date or date and time (naive: local time)
 Pose = Annotated[tuple, PlainValidator(_pose)]  # a rigid 4x4 transform, as a tuple of rows
 DeviceSource = Annotated[int | str, PlainValidator(_device_source)]  # a device index, file path or URL
+JointAngle = Annotated[float, bounded(-math.pi, math.pi, "rad")]
 YAML_SECTION = ConfigDict(extra="forbid", allow_inf_nan=False)  # every section: no unknown key, finite numbers
 
 
@@ -118,7 +141,8 @@ class HandConfig:
 
     port: Text = "/dev/ttyUSB0"  # the U2D2 adapter
     baudrate: int = 4_000_000  # one of DYNAMIXEL_BAUDRATES
-    ids: tuple[int, ...] = bounded(tuple(range(16)), 0, DYNAMIXEL_MAX_ID)  # servo of each joint, twin's joint order
+    # the servo of each joint, in the twin's joint order
+    ids: tuple[Annotated[int, bounded(0, DYNAMIXEL_MAX_ID)], ...] = tuple(range(16))
     calibration: Text | None = None  # HandCalibration JSON (offsets, signs); None = identity
 
 
@@ -131,8 +155,8 @@ class CameraConfig:
     calibration: Text = "wrist_camera.json"  # CameraCalibration JSON (intrinsics, distortion, board)
     T_hand_cam: Pose | None = None  # [4, 4] camera in the hand frame; None = hand_eye's, else the calibration file's
     hand_eye: Text | None = None  # hand-eye file (tacsplat calibrate hand-eye): T_hand_cam
-    fps: float | None = positive(None, 1000.0, "Hz")
-    timeout_s: float = positive(2.0, 60.0, "s")  # no frame for this long is a CameraError
+    fps: Annotated[float, positive(1000.0, "Hz")] | None = None
+    timeout_s: Annotated[float, positive(60.0, "s")] = 2.0  # no frame for this long is a CameraError
 
 
 @with_config(YAML_SECTION)
@@ -141,8 +165,9 @@ class BoardConfig(CharucoBoardSpec):
     """The ChArUco board that defines the world frame (the printed board's fields and defaults are
     :class:`~tacsplat.drivers.wrist_camera.CharucoBoardSpec`'s), and how well a view must see it."""
 
-    max_reprojection_px: float = positive(1.0, 50.0, "px")  # a view or grasp whose board PnP is worse is rejected
-    min_corners: int = bounded(6, 4, 10_000)  # PnP needs 4; at most the board's inner corners
+    # a view or grasp whose board PnP is worse is rejected
+    max_reprojection_px: Annotated[float, positive(50.0, "px")] = 1.0
+    min_corners: Annotated[int, bounded(4, 10_000)] = 6  # PnP needs 4; at most the board's inner corners
 
     def spec(self) -> CharucoBoardSpec:
         """The printed board alone."""
@@ -154,7 +179,7 @@ class BoardConfig(CharucoBoardSpec):
 class TactileSensorConfig:
     """One optical tactile fingertip (``rig: real``)."""
 
-    finger: Text  # index | middle | ring | thumb: whose fingertip frame it is mounted on
+    finger: Annotated[str, one_of(FINGER_NAMES)]  # whose fingertip frame it is mounted on
     source: DeviceSource
     calibration: Text  # TactileCalibration file (tacsplat calibrate tactile)
     T_fingertip_sensor: Pose | None = None  # [4, 4] mounting: sensor frame in the fingertip pad frame; None = identity
@@ -164,8 +189,8 @@ class TactileSensorConfig:
 @dataclass(frozen=True)
 class TactileConfig:
     sensor_name: Text = "digit"  # the scene's sensor model name
-    gel_thickness_m: float = positive(0.002, 0.02, "m")
-    timeout_s: float = positive(2.0, 60.0, "s")
+    gel_thickness_m: Annotated[float, positive(0.02, "m")] = 0.002
+    timeout_s: Annotated[float, positive(60.0, "s")] = 2.0
     sensors: tuple[TactileSensorConfig, ...] = ()
     mounts: Text | None = None  # mounts file (tacsplat calibrate mounts): each sensor's T_fingertip_sensor
 
@@ -176,26 +201,27 @@ class GraspControl:
     """How the logger closes the hand: a speed-limited ramp toward ``close_pose``, each finger stopping when it
     stalls, then a wait until the joints settle; then the read, then ``open_pose``."""
 
-    close_pose: tuple[float, ...] = bounded(
-        (0.0, 1.2, 1.0, 1.0) * 3 + (1.2, 0.6, 0.6, 0.8), -math.pi, math.pi, "rad"
-    )  # [16] joint positions
-    open_pose: tuple[float, ...] = bounded((0.0,) * 16, -math.pi, math.pi, "rad")  # [16] joint positions
-    close_speed_rad_s: float = positive(1.5, 10.0, "rad/s")  # largest joint speed of the commanded ramp
-    poll_s: float = positive(0.02, 1.0, "s")  # joint polling period (through the rig's clock)
-    stall_error_rad: float = positive(0.15, math.pi, "rad")  # a finger lagging its ramp by this much has stalled
-    settle_tol_rad: float = positive(0.004, math.pi, "rad")  # joints moving less than this per poll ...
-    settle_polls: int = bounded(3, 1, 1000)  # ... for this many polls in a row have settled
-    max_close_s: float = positive(5.0, 60.0, "s")  # give up waiting (the reading is still taken, with a warning)
-    open_s: float = bounded(0.3, 0, 60.0, "s")  # wait after opening
+    close_pose: tuple[JointAngle, ...] = (0.0, 1.2, 1.0, 1.0) * 3 + (1.2, 0.6, 0.6, 0.8)  # [16] joint positions
+    open_pose: tuple[JointAngle, ...] = (0.0,) * 16  # [16] joint positions
+    close_speed_rad_s: Annotated[float, positive(10.0, "rad/s")] = 1.5  # largest joint speed of the commanded ramp
+    poll_s: Annotated[float, positive(1.0, "s")] = 0.02  # joint polling period (through the rig's clock)
+    # a finger lagging its ramp by this much has stalled
+    stall_error_rad: Annotated[float, positive(math.pi, "rad")] = 0.15
+    settle_tol_rad: Annotated[float, positive(math.pi, "rad")] = 0.004  # joints moving less than this per poll ...
+    settle_polls: Annotated[int, bounded(1, 1000)] = 3  # ... for this many polls in a row have settled
+    # give up waiting (the reading is still taken, with a warning)
+    max_close_s: Annotated[float, positive(60.0, "s")] = 5.0
+    open_s: Annotated[float, bounded(0, 60.0, "s")] = 0.3  # wait after opening
 
 
 @with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class ViewPlan:
-    train: int = bounded(20, 1)  # a scene needs a view to train on
-    test: int = bounded(5, 0)
-    mode: Text = "operator"  # operator (a person places the camera) | hemisphere (the twin places it)
-    radius_m: float | None = positive(None, 10.0, "m")  # hemisphere radius; None = the twin's default for the object
+    train: Annotated[int, bounded(1)] = 20  # a scene needs a view to train on
+    test: Annotated[int, bounded(0)] = 5
+    mode: Annotated[str, one_of(("operator", "hemisphere"))] = "operator"  # a person places the camera | the twin
+    # hemisphere radius; None = the twin's default for the object
+    radius_m: Annotated[float, positive(10.0, "m")] | None = None
 
 
 GRASP_MODES = ("operator", "random", "next-best")
@@ -209,11 +235,12 @@ class GraspPlan:
     fingertips land where a reconstruction of the scene so far, ``selection_steps`` training steps, is least sure
     by the ``uncertainty`` score; :mod:`tacsplat.acquisition.next_touch`)."""
 
-    count: int = bounded(5, 0)
+    count: Annotated[int, bounded(0)] = 5
     mode: Text = "operator"  # one of GRASP_MODES
-    seed: int = bounded(0, 0)
-    candidates: int = bounded(16, 1, 1000)  # next-best: approaches scored per grasp
-    selection_steps: int = bounded(300, 1, 1_000_000)  # next-best: training steps of each reconstruction so far
+    seed: Annotated[int, bounded(0)] = 0
+    candidates: Annotated[int, bounded(1, 1000)] = 16  # next-best: approaches scored per grasp
+    # next-best: training steps of each reconstruction so far
+    selection_steps: Annotated[int, bounded(1, 1_000_000)] = 300
     uncertainty: Text = "depth-variance"  # next-best: the score (reconstruction.uncertainty.SCORES)
 
     def to_json(self) -> dict:
@@ -232,9 +259,11 @@ class TouchPlan:
     ``paper``, the touches of the paper's official code, four per planned grasp, with no hand (``rig: sim`` only;
     :mod:`tacsplat.acquisition.paper_touches`)."""
 
-    model: Text = "gel"  # one of TOUCH_MODELS
-    surface_points: int = bounded(20_000, 1, 10_000_000)  # paper: samples spread evenly on the surface (pc_num)
-    points_per_touch: int = bounded(50, 1, 10_000)  # paper: the samples nearest to the hit that make one touch
+    model: Annotated[str, one_of(TOUCH_MODELS)] = "gel"
+    # paper: samples spread evenly on the surface (pc_num)
+    surface_points: Annotated[int, bounded(1, 10_000_000)] = 20_000
+    # paper: the samples nearest to the hit that make one touch
+    points_per_touch: Annotated[int, bounded(1, 10_000)] = 50
 
     def to_json(self) -> dict:
         """As scene.json records it: the paper model's parameters only with the paper model."""
@@ -254,6 +283,8 @@ class CapturePlan:
 
 MAX_POSE_ERROR_M = 0.05  # the largest true mounting error a twin may hide, per axis (an error, not another rig)
 MAX_POSE_ERROR_DEG = 30.0
+Shift = Annotated[float, bounded(-MAX_POSE_ERROR_M, MAX_POSE_ERROR_M, "m")]
+Turn = Annotated[float, bounded(-MAX_POSE_ERROR_DEG, MAX_POSE_ERROR_DEG, "deg")]
 
 
 @with_config(YAML_SECTION)
@@ -262,10 +293,8 @@ class PoseError:
     """A rigid error: the true transform is the nominal one followed by this one, ``T_true = T_nominal @ E`` (``E``
     in the child frame: the camera's for the hand-eye, the sensor's for a mount)."""
 
-    translation_m: tuple[float, float, float] = bounded((0.0, 0.0, 0.0), -MAX_POSE_ERROR_M, MAX_POSE_ERROR_M, "m")
-    rotation_deg: tuple[float, float, float] = bounded(
-        (0.0, 0.0, 0.0), -MAX_POSE_ERROR_DEG, MAX_POSE_ERROR_DEG, "deg"
-    )  # a rotation vector (axis times angle), degrees
+    translation_m: tuple[Shift, Shift, Shift] = (0.0, 0.0, 0.0)
+    rotation_deg: tuple[Turn, Turn, Turn] = (0.0, 0.0, 0.0)  # a rotation vector (axis times angle), degrees
 
     def matrix(self) -> np.ndarray:
         """``E`` [4, 4]."""
@@ -306,9 +335,10 @@ class SimConfig:
 
     object: Text = "teapot"
     mesh: Text | None = None
-    object_radius: float = bounded(0.08, *OBJECT_RADIUS_RANGE_M, "m")  # bounding-sphere radius the hand can grasp
-    resolution: int = bounded(200, 8, 4096, "px")
-    seed: int = bounded(0, 0)
+    # bounding-sphere radius the hand can grasp
+    object_radius: Annotated[float, bounded(*OBJECT_RADIUS_RANGE_M, "m")] = 0.08
+    resolution: Annotated[int, bounded(8, 4096, "px")] = 200
+    seed: Annotated[int, bounded(0)] = 0
     texture: Text = "none"  # the object's surface: its one colour, or "checker" (tacsplat.sim.objects.TEXTURES)
     true_errors: TrueErrors = field(default_factory=TrueErrors)
 
@@ -318,16 +348,16 @@ class SimConfig:
 class MockConfig:
     """The emulated devices of ``--mock`` (a real rig's file, no hardware)."""
 
-    camera_width: int = bounded(320, 16, 4096, "px")
-    camera_height: int = bounded(240, 16, 4096, "px")
-    camera_focal_px: float = positive(280.0, 1e5, "px")
-    camera_frames: int = bounded(24, 1, 1000)  # board renders in the looping video
-    tactile_width: int = bounded(160, 8, 4096, "px")
-    tactile_height: int = bounded(120, 8, 4096, "px")
-    tactile_pixel_size_m: float = positive(1.6e-4, 1e-3, "m")
+    camera_width: Annotated[int, bounded(16, 4096, "px")] = 320
+    camera_height: Annotated[int, bounded(16, 4096, "px")] = 240
+    camera_focal_px: Annotated[float, positive(1e5, "px")] = 280.0
+    camera_frames: Annotated[int, bounded(1, 1000)] = 24  # board renders in the looping video
+    tactile_width: Annotated[int, bounded(8, 4096, "px")] = 160
+    tactile_height: Annotated[int, bounded(8, 4096, "px")] = 120
+    tactile_pixel_size_m: Annotated[float, positive(1e-3, "m")] = 1.6e-4
     # the hand's reply timeout (its bus watchdog is sized from it): an emulator shares a host that may be busy with
     # other work, where it can answer hundreds of ms late; a real servo answers within a millisecond
-    servo_timeout_s: float = positive(0.5, 1.0, "s")
+    servo_timeout_s: Annotated[float, positive(1.0, "s")] = 0.5
     servo_port: Text | None = None  # the pty of a servo emulator in its own process (python -m
     # tacsplat.drivers.dxl_emulator), which outlives this one; None: an emulator in this process
     # faults, to see rig check name them: devices left unplugged (a sensor's finger, camera, or servo ID) ...
@@ -376,27 +406,17 @@ def example_rig(name: str) -> Path:
 
 _SET_BY_LOAD_RIG = ("source", "mock")  # RigConfig fields that come from load_rig, not from the file
 _SECTIONS = tuple(f.name for f in dataclasses.fields(RigConfig) if f.default_factory is not dataclasses.MISSING)
-_EXPECTED = {  # what each kind of pydantic error means in the YAML's terms
-    "int_type": "expected an integer",
-    "int_parsing": "expected an integer",
-    "int_from_float": "expected an integer",
-    "float_type": "expected a finite number",
-    "float_parsing": "expected a finite number",
-    "finite_number": "expected a finite number",
-    "bool_type": "expected true or false",
-    "bool_parsing": "expected true or false",
-    "string_type": "expected a non-empty string",
-    "string_pattern_mismatch": "expected a non-empty string",
-    "tuple_type": "expected a list",
-    "list_type": "expected a list",
-    "dataclass_type": "expected a mapping",
-    "dict_type": "expected a mapping",
+_EXPECTED = {  # what each kind of pydantic error (by its first word) means in the YAML's terms
+    "int": "an integer",
+    "float": "a finite number",
+    "finite": "a finite number",
+    "bool": "true or false",
+    "string": "a non-empty string",
+    "tuple": "a list",
+    "list": "a list",
+    "dataclass": "a mapping",
+    "dict": "a mapping",
 }
-
-
-@functools.cache
-def _rig_adapter() -> TypeAdapter:
-    return TypeAdapter(RigConfig)
 
 
 def _key(loc: tuple) -> str:
@@ -407,9 +427,9 @@ def _key(loc: tuple) -> str:
     return key
 
 
-def _section_fields(loc: tuple) -> list[str]:
-    """The keys the section at ``loc`` (a path of field names, list indices and mapping keys) may hold."""
-    cls, in_mapping = RigConfig, False
+def _section_fields(cls: type, loc: tuple) -> list[str]:
+    """The keys the section at ``loc`` (a path of field names, list indices and mapping keys) of ``cls`` may hold."""
+    in_mapping = False
     for part in loc:
         if isinstance(part, int) or in_mapping:  # a list index, or the key of a mapping (mounts.index)
             in_mapping = False
@@ -420,21 +440,36 @@ def _section_fields(loc: tuple) -> list[str]:
     return [f.name for f in dataclasses.fields(cls) if cls is not RigConfig or f.name not in _SET_BY_LOAD_RIG]
 
 
-def _config_error(exc: ValidationError, source) -> ConfigError:
-    """The first of pydantic's errors as one ConfigError naming the field path and what it expects."""
-    error = exc.errors(include_url=False)[0]
+@functools.cache
+def _adapter(cls: type) -> TypeAdapter:
+    return TypeAdapter(cls)
+
+
+def checked(cls: type, data: Any, prefix: str = "", source=None):
+    """``data`` (the YAML's values, or a ``cls`` built in code) as a ``cls``, every value's type and range checked
+    by pydantic; the first value refused is one ConfigError naming its field path (after ``prefix``) and what it
+    expects."""
+    if dataclasses.is_dataclass(data):
+        data = dataclasses.asdict(data)
+    try:  # as JSON, whose strict mode still reads a list as a tuple and a mapping as a dataclass
+        return _adapter(cls).validate_json(json.dumps(data, default=str), strict=True)
+    except ValidationError as exc:
+        error = exc.errors(include_url=False)[0]
     loc, kind = error["loc"], error["type"]
+    key = prefix + _key(loc)
     if kind == "unexpected_keyword_argument":
-        return ConfigError(_key(loc), f"unknown key (expected one of {sorted(_section_fields(loc[:-1]))})", source)
-    if kind == "missing":
-        if isinstance(loc[-1], int):  # a fixed-length list that is too short
-            return ConfigError(_key(loc[:-1]), f"expected a list of more than {loc[-1]} values", source)
-        return ConfigError(_key(loc), "missing (a required key)", source)
-    if kind in _EXPECTED:
-        return ConfigError(_key(loc), f"{_EXPECTED[kind]}, got {error['input']!r}", source)
-    if kind == "value_error":  # one of the validators above
-        return ConfigError(_key(loc), str(error["ctx"]["error"]), source)
-    return ConfigError(_key(loc) or "(top level)", error["msg"], source)
+        message = f"unknown key (expected one of {sorted(_section_fields(cls, loc[:-1]))})"
+    elif kind == "missing" and isinstance(loc[-1], int):  # a fixed-length list that is too short
+        key, message = prefix + _key(loc[:-1]), f"expected a list of more than {loc[-1]} values"
+    elif kind == "missing":
+        message = "missing (a required key)"
+    elif kind.split("_")[0] in _EXPECTED:
+        message = f"expected {_EXPECTED[kind.split('_')[0]]}, got {error['input']!r}"
+    elif kind == "value_error":  # one of the validators above
+        message = str(error["ctx"]["error"])
+    else:
+        key, message = key or "(top level)", error["msg"]
+    raise ConfigError(key, message, source)
 
 
 def parse_rig(data: Any, source: str | Path | None = None, mock: bool = False, check_files: bool = True) -> RigConfig:
@@ -445,13 +480,9 @@ def parse_rig(data: Any, source: str | Path | None = None, mock: bool = False, c
         raise ConfigError("rig", "missing: the file must say `rig: real` or `rig: sim`", src)
     for key in _SET_BY_LOAD_RIG:
         if key in data:
-            raise ConfigError(key, f"unknown key (expected one of {sorted(_section_fields(()))})", src)
+            raise ConfigError(key, f"unknown key (expected one of {sorted(_section_fields(RigConfig, ()))})", src)
     data = {k: v for k, v in data.items() if not (v is None and k in _SECTIONS)}  # an empty section: the defaults
-    try:  # as JSON, whose strict mode still reads a list as a tuple and a mapping as a dataclass
-        config = _rig_adapter().validate_json(json.dumps(data, default=str), strict=True)
-    except ValidationError as exc:
-        raise _config_error(exc, src) from None
-    config = dataclasses.replace(config, source=src, mock=bool(mock))
+    config = dataclasses.replace(checked(RigConfig, data, "", src), source=src, mock=bool(mock))
     validate(config, check_files)
     return config
 
@@ -470,36 +501,15 @@ def load_rig(path: str | Path, mock: bool = False, check_files: bool = True) -> 
     return parse_rig(data, path, mock, check_files)
 
 
-def _check_bounds(config, prefix: str, source) -> None:
-    """Every bounded field of a config and of the configs inside it; the first value out of its range is a
-    ConfigError naming its field path (``tactile.sensors[2].timeout_s``, ``hand.ids[15]``) and the range."""
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        key = f"{prefix}{f.name}"
-        if dataclasses.is_dataclass(value):
-            _check_bounds(value, f"{key}.", source)
-        elif isinstance(value, tuple) and value and all(dataclasses.is_dataclass(v) for v in value):
-            for i, item in enumerate(value):
-                _check_bounds(item, f"{key}[{i}].", source)
-        elif "bounds" in f.metadata and value is not None:
-            bounds = f.metadata["bounds"]
-            items = enumerate(value) if isinstance(value, tuple) else [(None, value)]
-            for i, x in items:
-                if not bounds.holds(x):
-                    shown = x if isinstance(x, int) else f"{x:g}"
-                    raise ConfigError(key if i is None else f"{key}[{i}]", f"must be {bounds}, got {shown}", source)
-
-
 def validate(c: RigConfig, check_files: bool = True) -> None:
-    """Every value against its physical and logical range (field bounds first, then cross-field checks) and, with
-    ``check_files``, that a real rig's calibration files exist; each failure is one ConfigError naming its key."""
+    """Every value against its type and its physical and logical range (:func:`checked`; a config built in code
+    too), then the cross-field checks and, with ``check_files``, that a real rig's calibration files exist; each
+    failure is one ConfigError naming its key."""
+    checked(RigConfig, c, "", c.source)
     src = c.source
     if c.rig not in ("real", "sim"):
         raise ConfigError("rig", f"must be 'real' or 'sim', got {c.rig!r}", src)
-    _check_bounds(c, "", src)
     v, g = c.plan.views, c.plan.grasps
-    if v.mode not in ("operator", "hemisphere"):
-        raise ConfigError("plan.views.mode", f"must be 'operator' or 'hemisphere', got {v.mode!r}", src)
     if g.mode not in GRASP_MODES:
         raise ConfigError("plan.grasps.mode", f"must be {' or '.join(map(repr, GRASP_MODES))}, got {g.mode!r}", src)
     if g.mode == "next-best":
@@ -548,11 +558,7 @@ def validate(c: RigConfig, check_files: bool = True) -> None:
 
 def validate_touches(t: TouchPlan, prefix: str = "", src=None) -> None:
     """A touch plan's model and numbers (``prefix`` names its place: ``plan.touches.``)."""
-    if t.model not in TOUCH_MODELS:
-        raise ConfigError(
-            f"{prefix}model", f"must be one of {', '.join(map(repr, TOUCH_MODELS))}, got {t.model!r}", src
-        )
-    _check_bounds(t, prefix, src)
+    checked(TouchPlan, t, prefix, src)
     if t.surface_points < t.points_per_touch:
         raise ConfigError(
             f"{prefix}surface_points",
@@ -577,7 +583,7 @@ def _validate_board(b: BoardConfig, src) -> None:
 
 
 def _validate_true_errors(e: TrueErrors, src) -> None:
-    """Known joints and fingers, offsets in [-pi, pi], signs +-1, mounting errors within their bounds."""
+    """Known joints and fingers, offsets in [-pi, pi], signs +-1, (the mounting errors' bounds: :func:`checked`)."""
     prefix = "sim.true_errors."
     for key, allowed in (("joint_offsets_rad", JOINT_NAMES), ("joint_signs", JOINT_NAMES), ("mounts", FINGER_NAMES)):
         unknown = [name for name in getattr(e, key) if name not in allowed]
@@ -590,8 +596,6 @@ def _validate_true_errors(e: TrueErrors, src) -> None:
     for name, sign in e.joint_signs.items():
         if sign not in (1, -1):
             raise ConfigError(f"{prefix}joint_signs.{name}", f"must be 1 or -1 (a reversed servo), got {sign}", src)
-    for finger, mount in e.mounts.items():
-        _check_bounds(mount, f"{prefix}mounts.{finger}.", src)
 
 
 def _validate_real(c: RigConfig, src, check_files: bool) -> None:
@@ -603,13 +607,10 @@ def _validate_real(c: RigConfig, src, check_files: bool) -> None:
         raise ConfigError("hand.ids", f"expected 16 distinct servo ids, got {list(c.hand.ids)}", src)
     if not c.tactile.sensors:
         raise ConfigError("tactile.sensors", "a real rig needs at least one tactile sensor", src)
-    seen = set()
-    for i, s in enumerate(c.tactile.sensors):
-        if s.finger not in FINGER_NAMES:
-            raise ConfigError(f"tactile.sensors[{i}].finger", f"must be one of {FINGER_NAMES}, got {s.finger!r}", src)
-        if s.finger in seen:
-            raise ConfigError(f"tactile.sensors[{i}].finger", f"{s.finger!r} has two sensors", src)
-        seen.add(s.finger)
+    fingers = [s.finger for s in c.tactile.sensors]
+    for i, finger in enumerate(fingers):
+        if finger in fingers[:i]:
+            raise ConfigError(f"tactile.sensors[{i}].finger", f"{finger!r} has two sensors", src)
     known = [s.finger for s in c.tactile.sensors] + ["camera"] + [f"servo {i}" for i in c.hand.ids]
     for i, name in enumerate(c.mock_devices.unplugged):
         if name not in known:
@@ -631,9 +632,8 @@ def _validate_sim(c: RigConfig, src) -> None:
 
     if problem := texture_problem(s.texture):
         raise ConfigError("sim.texture", problem, src)
-    if s.mesh is None:
-        if s.object not in OBJECT_NAMES:
-            raise ConfigError("sim.object", f"unknown library object {s.object!r} (one of {list(OBJECT_NAMES)})", src)
+    if s.mesh is None and s.object not in OBJECT_NAMES:
+        raise ConfigError("sim.object", f"unknown library object {s.object!r} (one of {list(OBJECT_NAMES)})", src)
     radius = c.plan.views.radius_m
     if radius is not None and not radius > s.object_radius:
         raise ConfigError(

@@ -10,12 +10,13 @@ from __future__ import annotations
 import logging
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
 from tacsplat.acquisition.config import GraspControl, RigConfig
-from tacsplat.acquisition.logger import BoardPoseSource, TwinClock, TwinPoseSource, WallClock
+from tacsplat.acquisition.logger import BoardPoseSource, TwinPoseSource, WallClock
 from tacsplat.datasets import SensorModel
 from tacsplat.errors import ConfigError
 from tacsplat.types import CameraIntrinsics
@@ -55,12 +56,30 @@ def open_rig(config: RigConfig, on_hand=None) -> Iterator[Rig]:
             yield rig
 
 
+def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None):
+    """The rig's :class:`~tacsplat.drivers.DynamixelHand`, not yet connected: on ``hand.port``, or on ``mock``'s
+    emulated servos (:class:`~tacsplat.acquisition.mock.MockDevices`), read through ``calibration`` (a hand.json;
+    None: the raw servos)."""
+    from tacsplat.drivers.dynamixel_hand import MAX_BUS_WATCHDOG_S, DynamixelHand, DynamixelHandConfig
+    from tacsplat.sim.hand import HandKinematics
+
+    port, settings = config.hand.port, None
+    if mock is not None:
+        # the emulator shares this host's CPUs (and, in this process, its GIL): on a busy host the heartbeat and the
+        # emulator's answers can both wait over a second, which a real servo's clock never does; so the Bus
+        # Watchdog's longest period (a hand whose host died still stops within 2.54 s)
+        port = mock.servo_port
+        settings = DynamixelHandConfig(
+            min_packet_timeout_s=config.mock_devices.servo_timeout_s, bus_watchdog_s=MAX_BUS_WATCHDOG_S
+        )
+    h = config.hand
+    return DynamixelHand(port, h.baudrate, h.ids, calibration, config=settings, kinematics=HandKinematics())
+
+
 @contextmanager
 def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
-    from tacsplat.drivers.dynamixel_hand import MAX_BUS_WATCHDOG_S, DynamixelHand, DynamixelHandConfig
     from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
-    from tacsplat.sim.hand import HandKinematics
 
     with ExitStack() as stack:
         mock = None
@@ -68,22 +87,10 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
             from tacsplat.acquisition.mock import MockDevices
 
             mock = stack.enter_context(MockDevices(config))
-            port = mock.servo_port
-            # the emulator shares this host's CPUs (and, in this process, its GIL): on a busy host the heartbeat
-            # and the emulator's answers can both wait over a second, which a real servo's clock never does; so
-            # the Bus Watchdog's longest period (a hand whose host died still stops within 2.54 s)
-            hand_settings = DynamixelHandConfig(
-                min_packet_timeout_s=config.mock_devices.servo_timeout_s, drain_s=0.1, bus_watchdog_s=MAX_BUS_WATCHDOG_S
-            )
-            cam_source, cam_cal, cam_factory = (
-                mock.camera_source,
-                str(mock.camera_calibration),
-                mock.capture_factory("camera"),
-            )
+            cam_source, cam_cal = mock.camera_source, str(mock.camera_calibration)
         else:
-            port, hand_settings = config.hand.port, None
-            cam_source, cam_cal, cam_factory = config.camera.source, str(config.path(config.camera.calibration)), None
-        hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None  # --mock: as real
+            cam_source, cam_cal = config.camera.source, str(config.path(config.camera.calibration))
+        factory = (lambda name: {"capture_factory": mock.capture_factory(name)}) if mock else (lambda name: {})
         calibration = CameraCalibration.load(cam_cal)
         T_hand_cam = rig_T_hand_cam(config)
         if T_hand_cam is None:
@@ -101,13 +108,13 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
                 calibration.board,
                 config.board.spec(),
             )
-        kw = {"capture_factory": cam_factory} if cam_factory else {}
         camera = stack.enter_context(
-            WristCamera(cam_source, calibration, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **kw)
+            WristCamera(
+                cam_source, calibration, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **factory("camera")
+            )
         )
-        hand = DynamixelHand(
-            port, config.hand.baudrate, config.hand.ids, hand_cal, config=hand_settings, kinematics=HandKinematics()
-        )
+        hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None  # --mock: as real
+        hand = dynamixel_hand(config, mock, hand_cal)
         if on_hand is not None:
             on_hand(hand)
         stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
@@ -115,13 +122,9 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
         for i, s in enumerate(config.tactile.sensors):
             T_mount = mounts.get(s.finger, np.eye(4))
             if mock is not None:
-                source, cal, factory = (
-                    str(mock.tactile_video(s.finger)),
-                    str(mock.tactile_calibration),
-                    mock.capture_factory(s.finger),
-                )
+                source, cal = str(mock.tactile_video(s.finger)), str(mock.tactile_calibration)
             else:
-                source, cal, factory = s.source, str(config.path(s.calibration)), None
+                source, cal = s.source, str(config.path(s.calibration))
             tcal = TactileCalibration.load(cal)
             this = SensorModel(
                 config.tactile.sensor_name,
@@ -138,10 +141,10 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
                 )
             model = this
             pose = lambda finger=s.finger, T=T_mount: hand.fingertip_poses()[finger] @ T
-            kw = {"capture_factory": factory} if factory else {}
+            timeout_s = config.tactile.timeout_s
             sensors.append(
                 stack.enter_context(
-                    OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=config.tactile.timeout_s, **kw)
+                    OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=timeout_s, **factory(s.finger))
                 )
             )
         rig = Rig(
@@ -157,7 +160,7 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
             extra={
                 "rig": str(config.source),
                 "mock": config.mock,
-                "hand_port": port,
+                "hand_port": hand.port_name,
                 "board_max_reprojection_px": config.board.max_reprojection_px,
                 "T_hand_cam": np.asarray(T_hand_cam).tolist(),
             },
@@ -249,7 +252,7 @@ def twin_rig(twin, control: GraspControl = TWIN_CONTROL) -> Rig:
         hand=twin.hand,
         sensors=list(twin.tactile_sensors),
         camera=twin.view_camera,
-        clock=TwinClock(twin),
+        clock=twin,  # sleeping advances its physics
         poses=TwinPoseSource(twin),
         intrinsics=twin.view_camera.intrinsics,
         sensor_model=twin.sensor_model(),

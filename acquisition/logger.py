@@ -34,8 +34,11 @@ class CaptureRejected(TacsplatError):
 
 
 class Clock(Protocol):
+    """A rig's clock: :class:`WallClock`, or the twin itself (sleeping advances its physics)."""
+
     def sleep(self, seconds: float) -> None: ...
 
+    @property
     def time(self) -> float: ...
 
 
@@ -45,21 +48,9 @@ class WallClock:
     def sleep(self, seconds: float) -> None:
         time.sleep(seconds)
 
+    @property
     def time(self) -> float:
         return time.monotonic()
-
-
-class TwinClock:
-    """The twin's clock: sleeping advances the physics."""
-
-    def __init__(self, twin):
-        self.twin = twin
-
-    def sleep(self, seconds: float) -> None:
-        self.twin.sleep(seconds)
-
-    def time(self) -> float:
-        return self.twin.time
 
 
 @dataclass(frozen=True)
@@ -175,19 +166,18 @@ class Counts:
     contacts: int = 0  # touches in contact
 
 
-@dataclass
-class _Finger:
-    name: str
-    joints: np.ndarray  # joint indices
-    state: str = "closing"  # -> "reached" | "stalled"
+def finger_joints(joint_names: Sequence[str]) -> dict[str, list[int]]:
+    """Each finger's joint indices, by the joints' names (``index_0`` ... ``index_3``: finger ``index``)."""
+    fingers: dict[str, list[int]] = {}
+    for i, joint in enumerate(joint_names):
+        fingers.setdefault(joint.rsplit("_", 1)[0], []).append(i)
+    return fingers
 
 
 class CaptureLogger:
     """Writes views and grasps through ``writer``; the devices are seen only through their Protocols.
 
-    ``fingers`` maps each finger name to its joint indices in the hand's joint
-    order (default: four joints per finger in the order of ``hand.joint_names``'
-    prefixes). Opening a logger on a resumed writer first removes a grasp cut short
+    Each finger's joints are those named after it (:func:`finger_joints`). Opening a logger on a resumed writer first removes a grasp cut short
     (a last grasp with fewer touches than sensors), unless ``redo_partial_grasp`` is
     False (a scene another tool wrote, whose grasps may hold fewer touches).
     """
@@ -201,7 +191,6 @@ class CaptureLogger:
         clock: Clock,
         poses: PoseSource,
         control: GraspControl = GraspControl(),
-        fingers: dict[str, Sequence[int]] | None = None,
         redo_partial_grasp: bool = True,
     ):
         self.writer = writer
@@ -216,11 +205,7 @@ class CaptureLogger:
         names = [s.name for s in self.sensors]
         if len(set(names)) != len(names):
             raise InvalidInputError(f"sensors: duplicate names {names}")
-        if fingers is None:
-            fingers = {}
-            for i, joint in enumerate(hand.joint_names):
-                fingers.setdefault(joint.rsplit("_", 1)[0], []).append(i)
-        self.fingers = {f: np.asarray(j, dtype=int) for f, j in fingers.items()}
+        self.fingers = {f: np.asarray(j, dtype=int) for f, j in finger_joints(hand.joint_names).items()}
         self.hand_state = "open"
         self._samples: list | None = None  # (t, phase, q, target, effort) while a grasp records its motion
         self.dropped_partial_grasp = self.drop_partial_grasp() if redo_partial_grasp else 0
@@ -305,11 +290,11 @@ class CaptureLogger:
         if any(t.grasp == index for t in self.writer.touches):
             raise InvalidInputError(f"grasp {index} is already recorded")
         self.hand_state = "closing"
-        t0 = self.clock.time()
+        t0 = self.clock.time
         self._samples = []
         try:
             stopped_by, settled = self._close(q_close)
-            close_s = self.clock.time() - t0
+            close_s = self.clock.time - t0
             self.hand_state = "closed"
             readings: list[tuple[str, TactileReading]] = [(s.name, s.read()) for s in self.sensors]
             for name, reading in readings:
@@ -347,8 +332,8 @@ class CaptureLogger:
         if self._samples is None:
             self.clock.sleep(self.control.open_s)
         else:
-            t_end = self.clock.time() + self.control.open_s
-            while (left := t_end - self.clock.time()) > 1e-9:
+            t_end = self.clock.time + self.control.open_s
+            while (left := t_end - self.clock.time) > 1e-9:
                 self.clock.sleep(min(self.control.poll_s, left))
                 self._sample("open", target)
         self.hand_state = "open"
@@ -358,7 +343,7 @@ class CaptureLogger:
         q, effort = self.hand.read_joint_state()
         if self._samples is not None:
             target = q if target is None else target  # (the preshape: at rest where it was put)
-            self._samples.append((self.clock.time(), MOTION_PHASES.index(phase), q, np.array(target, float), effort))
+            self._samples.append((self.clock.time, MOTION_PHASES.index(phase), q, np.array(target, float), effort))
         return q
 
     def _motion(self, index: int, T_world_hand: np.ndarray, t0: float) -> HandMotion:
@@ -388,33 +373,29 @@ class CaptureLogger:
         q_close = np.clip(q_close, lo, hi)
         q_start = self._sample("preshape", None)
         target = q_start.copy()
-        fingers = {f: _Finger(f, j) for f, j in self.fingers.items()}
+        state = dict.fromkeys(self.fingers, "closing")  # -> "reached" | "stalled"
         step = c.close_speed_rad_s * c.poll_s
-        t_end = self.clock.time() + c.max_close_s
+        t_end = self.clock.time + c.max_close_s
         still, q_prev = 0, q_start
         while True:
             q = self._sample("close", target)
-            for f in fingers.values():
-                if f.state != "closing":
+            for f, j in self.fingers.items():
+                if state[f] != "closing":
                     continue
-                if np.abs(target[f.joints] - q[f.joints]).max() > c.stall_error_rad:
-                    f.state = "stalled"
-                    target[f.joints] = q[f.joints] + np.clip(
-                        target[f.joints] - q[f.joints], -c.stall_error_rad, c.stall_error_rad
-                    )
+                if np.abs(target[j] - q[j]).max() > c.stall_error_rad:
+                    state[f] = "stalled"
+                    target[j] = q[j] + np.clip(target[j] - q[j], -c.stall_error_rad, c.stall_error_rad)
                     continue
-                delta = q_close[f.joints] - target[f.joints]
-                target[f.joints] += np.clip(delta, -step, step)
-                if np.abs(q_close[f.joints] - target[f.joints]).max() < 1e-12:
-                    f.state = "reached"
+                target[j] += np.clip(q_close[j] - target[j], -step, step)
+                if np.abs(q_close[j] - target[j]).max() < 1e-12:
+                    state[f] = "reached"
             moving = np.abs(q - q_prev).max()
             still = still + 1 if moving < c.settle_tol_rad else 0
-            ramp_done = all(f.state != "closing" for f in fingers.values())
-            if ramp_done and still >= c.settle_polls:
-                return {f.name: f.state for f in fingers.values()}, True
-            if self.clock.time() >= t_end:
+            if "closing" not in state.values() and still >= c.settle_polls:
+                return state, True
+            if self.clock.time >= t_end:
                 log.warning("the fingers did not settle within %.2f s; reading anyway", c.max_close_s)
-                return {f.name: (f.state if f.state != "closing" else "timeout") for f in fingers.values()}, False
+                return {f: "timeout" if s == "closing" else s for f, s in state.items()}, False
             self.hand.command_joint_positions(target)
             q_prev = q
             self.clock.sleep(c.poll_s)

@@ -70,14 +70,8 @@ class LoopingCapture:
         self._stalled = threading.Event()
         self._released = threading.Event()
 
-    def isOpened(self) -> bool:
-        return self._cap.isOpened()
-
-    def set(self, prop, value) -> bool:
-        return self._cap.set(prop, value)
-
-    def get(self, prop) -> float:
-        return self._cap.get(prop)
+    def __getattr__(self, name: str):  # the rest of cv2.VideoCapture: isOpened, get, set
+        return getattr(self._cap, name)
 
     def read(self):
         if self._period:
@@ -264,14 +258,8 @@ class MockDevices:
             ).save(self.camera_calibration)
             h, w, pix = m.tactile_height, m.tactile_width, m.tactile_pixel_size_m
             reference = render_tactile_rgb(np.zeros((h, w), np.float32), pix)
-            presses = [
-                (0.3 * w, 0.35 * h, 6e-4),
-                (0.7 * w, 0.6 * h, 8e-4),
-                (0.5 * w, 0.5 * h, 1e-3),
-                (0.3 * w, 0.7 * h, 5e-4),
-                (0.7 * w, 0.3 * h, 9e-4),
-            ]
-            press_images = [render_tactile_rgb(_ball_press(h, w, pix, *p), pix) for p in presses]
+            presses = [(0.3, 0.35, 6e-4), (0.7, 0.6, 8e-4), (0.5, 0.5, 1e-3), (0.3, 0.7, 5e-4), (0.7, 0.3, 9e-4)]
+            press_images = [render_tactile_rgb(_ball_press(h, w, pix, x * w, y * h, d), pix) for x, y, d in presses]
             TactileCalibration.fit(reference, press_images, BALL_RADIUS_M, pix).save(self.tactile_calibration)
             for i, s in enumerate(self.config.tactile.sensors):
                 # untouched gel (the reference), then one frame per grasp: three presses and, at a place that

@@ -38,7 +38,7 @@ import numpy as np
 import torch
 
 from tacsplat.acquisition.config import GraspPlan
-from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected, GraspOutcome
+from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected, GraspOutcome, finger_joints
 from tacsplat.acquisition.twin_planner import MAX_ATTEMPTS_PER_GRASP, TwinPlanner
 from tacsplat.datasets import Scene, SceneWriter, SensorModel
 from tacsplat.geometry import invert_pose, make_pose
@@ -53,6 +53,7 @@ from tacsplat.reconstruction.uncertainty import (
     one_thread,
     render_uncertainty,
 )
+from tacsplat.sim.views import fibonacci_directions
 
 log = logging.getLogger(__name__)
 
@@ -291,12 +292,9 @@ class NextTouchPlanner:
         q_close, q_pre = self.twin_planner.approach(self._rng(index, k))
         T_world_hand = twin.T_world_hand()
         tips = twin.hand.fingertip_poses()
-        joints: dict[str, list[int]] = {}
-        for i, name in enumerate(twin.hand.joint_names):
-            joints.setdefault(name.rsplit("_", 1)[0], []).append(i)
         pads = [
             Pad(finger, T_world_hand @ tips[finger])
-            for finger, j in joints.items()
+            for finger, j in finger_joints(twin.hand.joint_names).items()
             if finger in tips and not np.allclose(q_close[j], q_pre[j])
         ]
         return Candidate(k, pads, -T_world_hand[:3, 2]), q_close, q_pre
@@ -365,12 +363,8 @@ def approach_candidates(
     means = gaussians.means.detach().cpu().numpy().astype(np.float64)
     centre = np.median(means, axis=0)
     radius = 0.5 * extent(gaussians)
-    i = np.arange(count) + 0.5
-    z = np.sin(np.deg2rad(min_elevation_deg)) + (1.0 - np.sin(np.deg2rad(min_elevation_deg))) * i / count
-    azimuth = i * np.pi * (3.0 - np.sqrt(5.0))
-    directions = np.stack([np.sqrt(1 - z**2) * np.cos(azimuth), np.sqrt(1 - z**2) * np.sin(azimuth), z], axis=1)
     candidates = []
-    for k, d in enumerate(directions):
+    for k, d in enumerate(fibonacci_directions(count, np.deg2rad(min_elevation_deg), np.pi / 2)):
         normal = -d
         helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
         x = np.cross(helper, normal)
@@ -380,14 +374,14 @@ def approach_candidates(
     return candidates
 
 
+@dataclass
 class GraspSuggester:
     """The next grasp at a real rig, from a reconstruction in progress (``run_dir``: a ``tacsplat reconstruct``
     folder; its latest checkpoint is read each time)."""
 
-    def __init__(self, run_dir: str | Path, uncertainty: str = "depth-variance", candidates: int = 64):
-        self.run_dir = Path(run_dir)
-        self.uncertainty = uncertainty
-        self.candidates = candidates
+    run_dir: str | Path
+    uncertainty: str = "depth-variance"
+    candidates: int = 64
 
     def suggest(self, scene) -> ScoredCandidate | None:
         """The best approach for ``scene`` (the capture so far: its train views and touches); None when no

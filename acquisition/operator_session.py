@@ -36,6 +36,7 @@ import termios
 import threading
 import tty
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, TextIO
 
@@ -79,31 +80,23 @@ def _cbreak(stream) -> Iterator[None]:
         termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
 
+@dataclass
 class CaptureSession:
     """Maps keys to logger actions for one open rig and writer; ``run()`` returns when the operator stops."""
 
-    def __init__(
-        self,
-        rig: Rig,
-        logger: CaptureLogger,
-        plan: CapturePlan,
-        keys: TextIO,
-        out: TextIO,
-        planner=None,
-        refresh_s: float = 0.5,
-        suggester=None,
-    ):
-        self.rig = rig
-        self.logger = logger
-        self.plan = plan
-        self.keys = keys
-        self.out = out
-        self.planner = planner  # positions the twin before a view or grasp (None on a real rig: the operator does)
-        self.refresh_s = refresh_s
-        self.suggester = suggester  # a GraspSuggester (--suggest), or None
-        self._live = bool(getattr(out, "isatty", lambda: False)())
+    rig: Rig
+    logger: CaptureLogger
+    plan: CapturePlan
+    keys: TextIO
+    out: TextIO
+    planner: object = None  # positions the twin before a view or grasp (None on a real rig: the operator does)
+    refresh_s: float = 0.5
+    suggester: object = None  # a GraspSuggester (--suggest), or None
+
+    def __post_init__(self):
+        self._live = bool(getattr(self.out, "isatty", lambda: False)())
         # a real hand's own check: a fault it found while waiting for a key (its heartbeat) ends the session at once
-        self._check_hand = getattr(rig.hand, "check", lambda: None)
+        self._check_hand = getattr(self.rig.hand, "check", lambda: None)
 
     # --- display ----------------------------------------------------------------------------------
     def board_status(self) -> str:
@@ -247,22 +240,17 @@ class CaptureSession:
 
     def run(self) -> bool:
         """Serve keys until ``q`` or the end of input; returns whether the plan is complete."""
+        actions = {"\n": self.view, "\r": self.view, "g": self.grasp, "u": self.undo}
+        if self.suggester is not None:
+            actions["s"] = self.suggest
         with _cbreak(self.keys):  # first, so that keys typed once the status line shows are never flushed
             self.show_status()
             for key in self._keys():
-                if key in ("\n", "\r"):
-                    self.view()
-                elif key in ("g", "G"):
-                    self.grasp()
-                elif key in ("u", "U"):
-                    self.undo()
-                elif key in ("s", "S") and self.suggester is not None:
-                    self.suggest()
-                elif key in ("q", "Q", "\x04"):  # q, or Ctrl-D (a literal character in cbreak mode)
+                if key in ("q", "Q", "\x04"):  # q, or Ctrl-D (a literal character in cbreak mode)
                     break
-                else:
-                    continue
-                self.show_status()
+                if key.lower() in actions:
+                    actions[key.lower()]()
+                    self.show_status()
         return self.plan_complete()
 
 
@@ -271,7 +259,7 @@ def rerun_command(config: RigConfig, out: Path) -> str:
     it never wrote one."""
     return " ".join(
         ["tacsplat", "capture", "--rig", shlex.quote(str(config.source or "RIG.yaml")), "--out", shlex.quote(str(out))]
-        + (["--resume"] if (out / JOURNAL).is_file() else [])
+        + (["--resume"] if _started(out) else [])
         + (["--mock"] if config.mock else [])
     )
 
@@ -335,25 +323,18 @@ def run_capture(
         fault = exc
     except KeyboardInterrupt as exc:
         interrupted = getattr(exc, "signum", signal.SIGINT)
-    hand = "" if config.rig == "sim" else _hand_line(hands)
     if interrupted is not None:
-        output.write(f"\ninterrupted ({signal.Signals(interrupted).name}).\n{_carry_on(config, out)}{hand}")
-        output.flush()
-        return 128 + interrupted
-    if fault is not None:
-        held = (
-            f"The scene in {out} holds every record completed before the fault. " if (out / JOURNAL).is_file() else ""
-        )
-        output.write(f"\nDEVICE FAULT: {fault}\n{held}Fix the device.\n{_carry_on(config, out)}{hand}")
-        output.flush()
-        return EXIT_FAULT
-    if complete:
-        output.write(f"\nplan complete: scene written to {out}\n{hand}")
-        output.flush()
-        return 0
-    output.write(f"\nstopped before the plan was complete.\n{_carry_on(config, out)}{hand}")
+        code, told = 128 + interrupted, f"interrupted ({signal.Signals(interrupted).name}).\n{_carry_on(config, out)}"
+    elif fault is not None:
+        held = f"The scene in {out} holds every record completed before the fault. " if _started(out) else ""
+        code, told = EXIT_FAULT, f"DEVICE FAULT: {fault}\n{held}Fix the device.\n{_carry_on(config, out)}"
+    elif complete:
+        code, told = 0, f"plan complete: scene written to {out}\n"
+    else:
+        code, told = 1, f"stopped before the plan was complete.\n{_carry_on(config, out)}"
+    output.write(f"\n{told}{'' if config.rig == 'sim' else _hand_line(hands)}")
     output.flush()
-    return 1
+    return code
 
 
 @contextmanager
@@ -383,8 +364,12 @@ def _hand_line(hands: list) -> str:
     return f"Hand: {report}.\n"
 
 
+def _started(out: Path) -> bool:
+    """Whether the capture wrote a scene in ``out`` (to resume)."""
+    return (out / JOURNAL).is_file()
+
+
 def _carry_on(config: RigConfig, out: Path) -> str:
     """How to carry on after a stop: resume the scene, or start again when the capture never wrote one."""
-    if (out / JOURNAL).is_file():
-        return f"Resume with:\n  {rerun_command(config, out)}\n"
-    return f"The capture did not start (no scene was written). Start it again with:\n  {rerun_command(config, out)}\n"
+    how = "Resume with:" if _started(out) else "The capture did not start (no scene was written). Start it again with:"
+    return f"{how}\n  {rerun_command(config, out)}\n"

@@ -14,6 +14,8 @@ scene the same way.
 
 from __future__ import annotations
 
+from contextlib import ExitStack
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -55,12 +57,12 @@ class SceneUnits:
         return T
 
 
+@dataclass
 class ScaledPad:
     """A twin pad (``TactileSensor``) whose readings are in the scene's units."""
 
-    def __init__(self, pad, units: SceneUnits):
-        self.pad = pad
-        self.units = units
+    pad: object
+    units: SceneUnits
 
     @property
     def name(self) -> str:
@@ -74,20 +76,15 @@ class ScaledPad:
 
 
 class ScenePoseSource:
-    """The twin's ground-truth poses (``PoseSource``) in the scene's frame and units."""
+    """The twin's ground-truth hand pose (the one pose a grasp asks its ``PoseSource`` for) in the scene's frame and
+    units."""
 
     def __init__(self, twin: SimTwin, units: SceneUnits):
         self.twin_poses = TwinPoseSource(twin)
         self.units = units
 
-    def camera_pose(self, image: np.ndarray) -> PoseEstimate:
-        return PoseEstimate(self.units.pose(self.twin_poses.camera_pose(image).T))
-
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
         return PoseEstimate(self.units.pose(self.twin_poses.hand_pose(image).T))
-
-    def ground_truth_depth(self) -> np.ndarray:
-        return self.twin_poses.ground_truth_depth() / self.units.scale
 
 
 def touch_settings(
@@ -147,30 +144,38 @@ def simulate_touches(
     if scene.sensor is None and out is None:
         raise ConfigError("out", f"{scene_path} has no tactile sensor model (an import): pass --out NEW_SCENE")
     check_writable(Path(scene_path) if out is None else _existing_folder(Path(out)))
-    if mesh_path is None and scene.gt_mesh_path is None:
-        return _paper_touches_on_points(scene, grasps, out, object_radius, seed, touches)
-    mesh_path = scene.gt_mesh_path if mesh_path is None else mesh_path
-    centre, radius = bounding_sphere(read_mesh(mesh_path))
-    with SimTwin(TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)) as twin:
-        units = SceneUnits(centre, twin.object.bounding_radius / radius)
-        sensor = twin.sensor_model(units.scale)
-        if scene.sensor is not None:
-            if not np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
-                raise ConfigError(
-                    "object_radius",
-                    f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
-                    f"this mesh at radius {object_radius} gives {sensor.pixel_size_m}",
-                )
+    with ExitStack() as stack:
+        if mesh_path is None and scene.gt_mesh_path is None:  # the paper's touches on the ground-truth points
+            points = _gt_points(scene, touches)
+            centre, radius = trimesh.nsphere.minimum_nsphere(points)
+            units = SceneUnits(centre, object_radius / radius)  # scaled to object_radius as a mesh would be
+            twin, surface, what = None, (points - centre) * units.scale, (GT_POINTS, "its points")
+            sensor = pad_sensor_model(TwinConfig().tactile, units.scale)
+        else:
+            mesh_path = scene.gt_mesh_path if mesh_path is None else mesh_path
+            centre, radius = bounding_sphere(read_mesh(mesh_path))
+            settings = TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)
+            twin = stack.enter_context(SimTwin(settings))
+            units = SceneUnits(centre, twin.object.bounding_radius / radius)
+            surface, what = twin.object_mesh, (str(mesh_path), "this mesh")
+            sensor = twin.sensor_model(units.scale)
+        if scene.sensor is None:
+            target = _copy_with_sensor(scene, out, sensor, what[0], grasps, seed, touches, units, object_radius)
+        elif np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
             target = Path(scene_path)
         else:
-            target = _copy_with_sensor(scene, out, sensor, str(mesh_path), grasps, seed, touches, units, object_radius)
+            raise ConfigError(
+                "object_radius",
+                f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
+                f"{what[1]} at radius {object_radius} gives {sensor.pixel_size_m}",
+            )
         with SceneWriter.resume(target) as writer:
             first = max((t.grasp for t in writer.touches), default=-1) + 1
             if touch_model == "paper":
                 todo = range(TOUCHES_PER_GRASP * first, TOUCHES_PER_GRASP * (first + grasps))
                 write_paper_touches(
                     writer,
-                    PaperTouches(twin.object_mesh, seed, touches),
+                    PaperTouches(surface, seed, touches),
                     progress_bar(todo, desc="touches", unit="touch"),
                     units.points,
                 )
@@ -192,6 +197,20 @@ def simulate_touches(
     return target
 
 
+def _gt_points(scene: Scene, touches: TouchPlan) -> np.ndarray:
+    """The ground-truth points [N, 3] of a scene with no ground-truth mesh, for the paper's touches."""
+    points = scene.gt_points()
+    if points is None:
+        raise ConfigError("mesh", f"{scene.path} has no ground-truth mesh or points: pass --mesh")
+    if touches.model != "paper":
+        raise ConfigError(
+            "mesh",
+            f"{scene.path}'s ground truth is points ({scene.gt_points_file}), and the hand needs a mesh to grasp: "
+            "pass --mesh, or make the paper's touches (--touch-model paper)",
+        )
+    return points
+
+
 def _copy_with_sensor(
     scene: Scene, out, sensor, surface: str, grasps: int, seed: int, touches: TouchPlan, units, object_radius: float
 ) -> Path:
@@ -204,43 +223,3 @@ def _copy_with_sensor(
     gt_mesh = scene.gt_mesh_path or (None if surface == GT_POINTS else surface)
     meta = SceneMeta(scene.meta.source, scene.meta.object, plan, extra)
     return copy_scene(scene, out, meta=meta, sensor=sensor, gt_mesh=gt_mesh, progress=True)
-
-
-def _paper_touches_on_points(
-    scene: Scene, grasps: int, out, object_radius: float, seed: int, touches: TouchPlan
-) -> Path:
-    """:func:`simulate_touches` of the paper's touches on a scene whose ground truth is points, not a mesh: the
-    points are scaled to ``object_radius`` as a mesh would be, for the pads' pixel size."""
-    points = scene.gt_points()
-    if points is None:
-        raise ConfigError("mesh", f"{scene.path} has no ground-truth mesh or points: pass --mesh")
-    if touches.model != "paper":
-        raise ConfigError(
-            "mesh",
-            f"{scene.path}'s ground truth is points ({scene.gt_points_file}), and the hand needs a mesh to grasp: "
-            "pass --mesh, or make the paper's touches (--touch-model paper)",
-        )
-    centre, radius = trimesh.nsphere.minimum_nsphere(points)
-    units = SceneUnits(centre, object_radius / radius)
-    sensor = pad_sensor_model(TwinConfig().tactile, units.scale)
-    if scene.sensor is None:
-        target = _copy_with_sensor(scene, out, sensor, GT_POINTS, grasps, seed, touches, units, object_radius)
-    elif np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
-        target = scene.path
-    else:
-        raise ConfigError(
-            "object_radius",
-            f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
-            f"its points at radius {object_radius} give {sensor.pixel_size_m}",
-        )
-    with SceneWriter.resume(target) as writer:
-        first = max((t.grasp for t in writer.touches), default=-1) + 1
-        todo = range(TOUCHES_PER_GRASP * first, TOUCHES_PER_GRASP * (first + grasps))
-        twin_points = (points - centre) * units.scale
-        write_paper_touches(
-            writer,
-            PaperTouches(twin_points, seed, touches),
-            progress_bar(todo, desc="touches", unit="touch"),
-            units.points,
-        )
-    return target

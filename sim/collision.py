@@ -46,12 +46,6 @@ class DecompositionConfig:
     seed: int = 0
 
 
-def user_cache_dir() -> Path:
-    """Where decompositions of user meshes are kept: ``$TACSPLAT_CACHE/coacd`` or ``~/.cache/tacsplat/coacd``."""
-    root = os.environ.get("TACSPLAT_CACHE") or os.path.join(os.path.expanduser("~"), ".cache", "tacsplat")
-    return Path(root) / "coacd"
-
-
 def _unit_mesh(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh, np.ndarray, float]:
     centre, radius = bounding_sphere(mesh)
     unit = trimesh.Trimesh((np.asarray(mesh.vertices) - centre) / radius, mesh.faces, process=False)
@@ -114,7 +108,8 @@ def convex_decomposition(
         mesh = mesh.simplify_quadric_decimation(face_count=DECOMPOSITION_FACES)
     unit, centre, radius = _unit_mesh(mesh)
     key = decomposition_key(unit, config)
-    shipped, cached = SHIPPED_DIR / f"{key}.npz", user_cache_dir() / f"{key}.npz"
+    cache = Path(os.environ.get("TACSPLAT_CACHE") or Path.home() / ".cache" / "tacsplat") / "coacd"  # user meshes
+    shipped, cached = SHIPPED_DIR / f"{key}.npz", cache / f"{key}.npz"
     if shipped.is_file():
         pieces = _read(shipped)
     elif cached.is_file():

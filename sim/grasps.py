@@ -13,7 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tacsplat.errors import ConfigError
 from tacsplat.geometry import make_pose
 from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS, site_pose
 from tacsplat.sim.twin import SimTwin
@@ -31,13 +30,6 @@ class GraspConfig:
     min_alignment_cos: float = 0.85  # pad normal against the surface normal, at least this cosine
     max_tap_rad: float = 0.8  # the tap's target: this far along the tap direction from the preshape
     max_preshape_tries: int = 100  # preshape candidates tried against the collision model per finger
-
-    def __post_init__(self):
-        for key in ("palm_gap_m", "max_tap_rad"):
-            if not getattr(self, key) > 0:
-                raise ConfigError(f"grasp.{key}", f"must be positive, got {getattr(self, key)}")
-        if self.preshape_grid < 2:
-            raise ConfigError("grasp.preshape_grid", f"must be at least 2, got {self.preshape_grid}")
 
 
 # Tap direction in the flexion joints (1, 2, 3): mostly the distal joint, which moves the pad

@@ -77,9 +77,6 @@ class TwinPresser:
         self.renderer = TactileDepthRenderer(self.surfaces, twin.config.tactile)
         self.pads = {pad.name: pad for pad in twin.tactile_sensors}
 
-    def T_board_twin(self) -> np.ndarray:
-        return invert_pose(BOARD_IN_TWIN)
-
     def T_hand_pad(self, finger: str, q: np.ndarray) -> np.ndarray:
         """The pad's true pose [4, 4] on the hand with the joints set to ``q`` (as the rig commands them)."""
         self.twin.hand.set_joint_positions(q)
@@ -96,6 +93,6 @@ class TwinPresser:
         T_board_cam)``: the pad's indentation map and the wrist camera's true pose on the board."""
         T_hand_pad = self.T_hand_pad(finger, q)
         self.twin.set_hand_base_pose(BOARD_IN_TWIN @ T_board_pad @ invert_pose(T_hand_pad))
-        T_board = self.T_board_twin()
+        T_board = invert_pose(BOARD_IN_TWIN)
         depth = self.renderer.render(T_board @ self.pads[finger].T_world_sensor())
         return depth, T_board @ self.twin.wrist_camera.pose()

@@ -391,15 +391,15 @@ class SimTwin:
         self.tactile_sensors = [SimTactileSensor(self, f) for f in FINGER_NAMES]
         w, h = config.camera_width, config.camera_height
         self.T_hand_cam = _pose_or_identity(config.T_hand_cam, "T_hand_cam", nominal_T_hand_cam(config.hand_geometry))
-        self._place_wrist_camera(nominal_T_hand_cam(config.hand_geometry) @ _pose_or_identity(config.hand_eye_error))
+        wrist = self.model.camera("wrist").id  # mounted on the hand, off its design by the hidden hand-eye error
+        self._place_camera(wrist, nominal_T_hand_cam(config.hand_geometry) @ _pose_or_identity(config.hand_eye_error))
         self.model.cam_fovy[self._view_cam] = config.view_fovy_deg
-        self.model.cam_fovy[self.model.camera("wrist").id] = config.wrist_fovy_deg
+        self.model.cam_fovy[wrist] = config.wrist_fovy_deg
         self.wrist_camera = MujocoCamera(self, "wrist", w, h, visible_groups=(0, 1, 2))
         self.view_camera = MujocoCamera(self, "view", w, h, visible_groups=(0, 2))  # hand hidden
-        self._hand_geoms = self._body_tree_geoms("hand")
-        self._object_geoms = set(np.flatnonzero(self.model.geom_bodyid == self.model.body("object").id).tolist())
-        self._geom_is_hand = np.isin(np.arange(self.model.ngeom), list(self._hand_geoms))
-        self._geom_is_object = np.isin(np.arange(self.model.ngeom), list(self._object_geoms))
+        root = self.model.body_rootid[self.model.geom_bodyid]  # each geom's body's child of the world
+        self._geom_is_hand = root == self.model.body("hand").id
+        self._geom_is_object = root == self.model.body("object").id
         self.peak_penetration_m = 0.0
 
     def sensor_model(self, scale: float = 1.0) -> SensorModel:
@@ -445,7 +445,8 @@ class SimTwin:
     # --- hand base -----------------------------------------------------------------------------
     def T_world_hand(self) -> np.ndarray:
         """Ground-truth pose [4, 4] of the hand base."""
-        return make_pose(_quat_to_matrix(self.data.mocap_quat[self._mocap]), self.data.mocap_pos[self._mocap])
+        R = Rotation.from_quat(self.data.mocap_quat[self._mocap], scalar_first=True).as_matrix()  # MuJoCo's w, x, y, z
+        return make_pose(R, self.data.mocap_pos[self._mocap])
 
     def set_hand_base_pose(self, T_world_hand: np.ndarray) -> None:
         """Place the hand base (mocap) at ``T_world_hand`` [4, 4]."""
@@ -454,10 +455,10 @@ class SimTwin:
         self.data.mocap_quat[self._mocap] = _matrix_to_quat(T[:3, :3])
         self.forward()
 
-    def _place_wrist_camera(self, T_hand_cam: np.ndarray) -> None:
-        """Mount the wrist camera at ``T_hand_cam`` [4, 4] (OpenCV axes) on the hand."""
-        cam = self.model.camera("wrist").id
-        T_gl = opencv_to_opengl(T_hand_cam)
+    def _place_camera(self, cam: int, T_parent_cam: np.ndarray) -> None:
+        """Place camera ``cam`` at ``T_parent_cam`` [4, 4] (OpenCV axes) in its body's frame (the world's, or the
+        hand's for the wrist camera)."""
+        T_gl = opencv_to_opengl(T_parent_cam)
         self.model.cam_pos[cam] = T_gl[:3, 3]
         self.model.cam_quat[cam] = _matrix_to_quat(T_gl[:3, :3])
         self.forward()
@@ -470,40 +471,19 @@ class SimTwin:
     # --- free view camera ----------------------------------------------------------------------
     def move_camera(self, T_world_cam: np.ndarray) -> None:
         """Place the view camera at the OpenCV camera-to-world pose ``T_world_cam`` [4, 4]."""
-        T_gl = opencv_to_opengl(check_rigid(T_world_cam, "T_world_cam"))
-        self.model.cam_pos[self._view_cam] = T_gl[:3, 3]
-        self.model.cam_quat[self._view_cam] = _matrix_to_quat(T_gl[:3, :3])
-        self.forward()
+        self._place_camera(self._view_cam, check_rigid(T_world_cam, "T_world_cam"))
 
     def camera_pose(self) -> np.ndarray:
         """OpenCV camera-to-world pose [4, 4] of the view camera."""
         return self.view_camera.pose()
 
-    def render_view(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(image [H, W, 3] uint8, depth [H, W] float32)`` of the object alone from the view camera."""
-        image, _ = self.view_camera.read()
-        return image, self.view_camera.read_depth()
-
     # --- contacts ------------------------------------------------------------------------------
-    def _body_tree_geoms(self, root: str) -> set[int]:
-        root_id = self.model.body(root).id
-        bodies = {root_id}
-        for b in range(self.model.nbody):
-            parent = b
-            while parent not in (0, root_id):
-                parent = self.model.body_parentid[parent]
-            if parent == root_id:
-                bodies.add(b)
-        return set(np.flatnonzero(np.isin(self.model.geom_bodyid, list(bodies))).tolist())
-
     def hand_object_contacts(self) -> list[tuple[str, float]]:
         """``(hand geom name, signed distance)`` of each hand-object contact (negative = penetration)."""
         out = []
         for c in self.data.contact[: self.data.ncon]:
-            g1, g2 = int(c.geom1), int(c.geom2)
-            if g1 in self._object_geoms and g2 in self._hand_geoms:
-                g1, g2 = g2, g1
-            if g1 in self._hand_geoms and g2 in self._object_geoms:
+            g1, g2 = (c.geom2, c.geom1) if self._geom_is_object[c.geom1] else (c.geom1, c.geom2)
+            if self._geom_is_hand[g1] and self._geom_is_object[g2]:
                 out.append((self.model.geom(g1).name, float(c.dist)))
         return out
 
@@ -531,11 +511,6 @@ def _pose_or_identity(T, key: str = "hand_eye_error", default: np.ndarray | None
     if T is None:
         return np.eye(4) if default is None else default
     return check_rigid(T, key)
-
-
-def _quat_to_matrix(q_wxyz) -> np.ndarray:
-    """Rotation matrix [3, 3] of MuJoCo's quaternion (w, x, y, z)."""
-    return Rotation.from_quat(q_wxyz, scalar_first=True).as_matrix()
 
 
 def _matrix_to_quat(R) -> np.ndarray:

@@ -19,20 +19,16 @@ class ViewConfig:
     max_elevation_deg: float = 75.0
 
 
-def _directions_fibonacci(count: int, lo: float, hi: float, offset: float) -> np.ndarray:
+def _unit_vectors(z: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
+    r = np.sqrt(1.0 - z**2)
+    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=1)
+
+
+def fibonacci_directions(count: int, lo: float, hi: float, offset: float = 0.5) -> np.ndarray:
     """``count`` unit vectors spread evenly (Fibonacci spiral) over the band of elevations [lo, hi] radians."""
     i = np.arange(count) + offset
     z = np.sin(lo) + (np.sin(hi) - np.sin(lo)) * i / count  # equal-area in elevation
-    azimuth = i * np.pi * (3.0 - np.sqrt(5.0))
-    r = np.sqrt(1.0 - z**2)
-    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=1)
-
-
-def _directions_random(count: int, lo: float, hi: float, rng: np.random.Generator) -> np.ndarray:
-    z = rng.uniform(np.sin(lo), np.sin(hi), count)
-    azimuth = rng.uniform(0, 2 * np.pi, count)
-    r = np.sqrt(1.0 - z**2)
-    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=1)
+    return _unit_vectors(z, i * np.pi * (3.0 - np.sqrt(5.0)))
 
 
 def hemisphere_views(
@@ -50,7 +46,7 @@ def hemisphere_views(
     lo, hi = np.deg2rad(config.min_elevation_deg), np.deg2rad(config.max_elevation_deg)
     distance = config.radius_factor * object_radius
     rng = np.random.default_rng(seed)
-    train = _directions_random(num_train, lo, hi, rng)
-    test = _directions_fibonacci(num_test, lo, hi, offset=0.5)
+    train = _unit_vectors(rng.uniform(np.sin(lo), np.sin(hi), num_train), rng.uniform(0, 2 * np.pi, num_train))
+    test = fibonacci_directions(num_test, lo, hi)
     to_pose = lambda d: look_at(distance * d, np.zeros(3), up=(0.0, 0.0, 1.0))  # noqa: E731
     return [to_pose(d) for d in train], [to_pose(d) for d in test]

@@ -22,6 +22,7 @@ class ToyClock:
         self.hand.advance(seconds)
         self.t += seconds
 
+    @property
     def time(self):
         return self.t
 

@@ -76,7 +76,7 @@ def test_projected_mesh_lands_on_the_rendered_silhouette_and_depth_lies_on_the_m
         twin.move_camera(look_at(eye, [0.01, 0, 0]))
         T = twin.camera_pose()
         assert np.allclose(T, look_at(eye, [0.01, 0, 0]), atol=1e-6)
-        image, depth = twin.render_view()
+        image, depth = twin.view_camera.read()[0], twin.view_camera.read_depth()
         rendered = depth > 0
         uv, _ = project_points(mesh.vertices, K, T)
         raster = np.zeros_like(rendered, dtype=np.uint8)
@@ -104,7 +104,7 @@ def test_a_checker_texture_paints_the_object_in_its_color_and_a_contrasting_grey
     for texture in ("none", "checker"):
         twin = twin_of("helmet", texture=texture, camera_width=96, camera_height=96)
         twin.move_camera(look_at([0.2, -0.15, 0.15], [0.0, 0.0, 0.0]))
-        image, depth = twin.render_view()
+        image, depth = twin.view_camera.read()[0], twin.view_camera.read_depth()
         pixels = image[depth > 0].astype(np.float64) / 255.0  # [P, 3] RGB
         blueness = pixels[:, 2] - pixels[:, :2].mean(axis=1)  # the blue channel's lead over red and green
         hues[texture] = blueness
