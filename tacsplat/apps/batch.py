@@ -27,7 +27,6 @@ runs finish) and, when jobs fail, ``DIR/failures.csv``.
 
 from __future__ import annotations
 
-import csv
 import functools
 import heapq
 import json
@@ -506,18 +505,11 @@ def _relative(path: Path, base: Path) -> str:
     return str(path.relative_to(base)) if path.is_relative_to(base) else str(path)
 
 
-def write_results(rows: list[dict], path: Path) -> Path:
-    with path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS)
-        writer.writeheader()
-        writer.writerows({k: "" if row.get(k) is None else row[k] for k in RESULT_COLUMNS} for row in rows)
-    return path
-
-
 def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) -> list[dict]:
     """Run a batch (:func:`~tacsplat.apps.executors.run_jobs`), writing ``out/results.csv`` as runs finish;
     returns its rows. A :class:`~tacsplat.apps.executors.BatchError` at the end when jobs failed."""
     from tacsplat.apps.executors import run_jobs
+    from tacsplat.apps.report import write_csv
 
     out = Path(out)
     for job in jobs:  # kept, not refused: a batch file says what each job is, and a folder may be reused on purpose
@@ -533,7 +525,7 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
     def on_done(job, summary: dict) -> str | None:
         if run_folder(job) is None:
             return None
-        write_results(result_rows(jobs, out), out / "results.csv")
+        write_csv(result_rows(jobs, out), out / "results.csv", RESULT_COLUMNS)
         return (
             f"{job.name}: CD {_fmt(summary.get('cd'), 4)}  PSNR {_fmt(summary.get('psnr'), 2)}  "
             f"{summary.get('train_seconds') or 0:.0f} s"
@@ -541,7 +533,7 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
 
     outcome = run_jobs(jobs, out, on_done=on_done, desc="batch", progress=progress, **executor)
     rows = result_rows(jobs, out)
-    write_results(rows, out / "results.csv")
+    write_csv(rows, out / "results.csv", RESULT_COLUMNS)
     outcome.raise_if_failed(out)
     return rows
 

@@ -25,7 +25,6 @@ Output (resumable: finished captures, copies and runs are kept)::
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -441,13 +440,9 @@ def summarise(rows: list[dict]) -> dict[tuple[str, int], dict]:
 
 def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], config: NextTouchBenchConfig) -> None:
     """``results.csv``, ``cd_vs_grasps.png`` and ``report.md``."""
-    from tacsplat.apps.report import pyplot, save_figure
+    from tacsplat.apps.report import md_table, pyplot, save_figure, write_csv
 
-    out.mkdir(parents=True, exist_ok=True)
-    with (out / "results.csv").open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS)
-        writer.writeheader()
-        writer.writerows({k: "" if r.get(k) is None else r[k] for k in RESULT_COLUMNS} for r in rows)
+    write_csv(rows, out / "results.csv", RESULT_COLUMNS)
     summary = summarise(rows)
     budgets = sorted({r["grasps"] for r in rows})
     fig, ax = pyplot().subplots(figsize=(5.5, 4))
@@ -457,13 +452,16 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
         spread = np.array([summary[strategy, k]["spread"] for k in ks])
         ax.plot(ks, mean, "o-", color=color, label=strategy)
         ax.fill_between(ks, mean - spread, mean + spread, color=color, alpha=0.2)
-    ax.set_xlabel("grasps (4 fingertips each)")
-    ax.set_ylabel("Chamfer distance [x GT radius]")
+    ax.set(xlabel="grasps (4 fingertips each)", ylabel="Chamfer distance [x GT radius]")
     ax.set_title("CD against grasps (mean; band: spread over seeds)")
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
     save_figure(fig, out / "cd_vs_grasps.png")
+
+    def mean_cd(subject: str, strategy: str, k: int) -> str:
+        cds = [r["cd"] for r in rows if (r["object"], r["strategy"], r["grasps"]) == (subject, strategy, k)]
+        return f"{np.mean(cds):.4f}" if cds else "–"
 
     subjects = list(dict.fromkeys(r["object"] for r in rows))
     lines = [
@@ -476,34 +474,38 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
         "",
         "## Mean CD (x GT radius, lower is better) over seeds",
         "",
-        "| object | strategy | " + " | ".join(f"{k} grasps" for k in budgets) + " |",
-        "| --- | --- |" + " ---: |" * len(budgets),
-    ]
-    for subject in subjects:
-        for strategy in STRATEGIES:
-            cells = []
-            for k in budgets:
-                cds = [r["cd"] for r in rows if (r["object"], r["strategy"], r["grasps"]) == (subject, strategy, k)]
-                cells.append(f"{np.mean(cds):.4f}" if cds else "–")
-            lines.append(f"| {subject} | {strategy} | " + " | ".join(cells) + " |")
-    lines += [
+        *md_table(
+            ["object", "strategy", *(f"{k} grasps" for k in budgets)],
+            [[s, g, *(mean_cd(s, g, k) for k in budgets)] for s in subjects for g in STRATEGIES],
+            "ll" + "r" * len(budgets),
+        ),
         "",
         "## Over every object and seed",
         "",
-        "| grasps | random CD | next-best CD | change | next-best choosing (s, mean per capture) |",
-        "| ---: | ---: | ---: | ---: | ---: |",
     ]
+    table = []
     for k in budgets:
         if ("random", k) in summary and ("next-best", k) in summary:
-            r, n = summary["random", k]["cd"], summary["next-best", k]["cd"]
+            (r, r_spread), (n, n_spread) = ((summary[s, k]["cd"], summary[s, k]["spread"]) for s in STRATEGIES)
             choosing = np.mean(
                 [x["selection_seconds"] for x in rows if x["strategy"] == "next-best" and x["grasps"] == k]
             )
-            lines.append(
-                f"| {k} | {r:.4f} ± {summary['random', k]['spread']:.4f} | {n:.4f} ± "
-                f"{summary['next-best', k]['spread']:.4f} | {100 * (n - r) / r:+.1f} % | {choosing:.0f} |"
+            table.append(
+                [
+                    k,
+                    f"{r:.4f} ± {r_spread:.4f}",
+                    f"{n:.4f} ± {n_spread:.4f}",
+                    f"{100 * (n - r) / r:+.1f} %",
+                    f"{choosing:.0f}",
+                ]
             )
+    scores = next(iter(correlations.values()), {})
     lines += [
+        *md_table(
+            ["grasps", "random CD", "next-best CD", "change", "next-best choosing (s, mean per capture)"],
+            table,
+            "rrrrr",
+        ),
         "",
         "![CD against grasps](cd_vs_grasps.png)",
         "",
@@ -512,11 +514,8 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
         "Spearman rank correlation, over the test pixels, of each score of the views-only reconstruction that "
         "chose the first grasp with its depth error against the ground truth (1: perfectly ordered).",
         "",
-        "| object | " + " | ".join(next(iter(correlations.values()), {})) + " |",
-        "| --- |" + " ---: |" * len(next(iter(correlations.values()), {})),
+        *md_table(["object", *scores], [[s, *(f"{v:+.3f}" for v in rho.values())] for s, rho in correlations.items()]),
     ]
-    for subject, rho in correlations.items():
-        lines.append(f"| {subject} | " + " | ".join(f"{v:+.3f}" for v in rho.values()) + " |")
     lines += [""] + [f"![uncertainty {s}](uncertainty_{s}.png)" for s in correlations] + [""]
     (out / "report.md").write_text("\n".join(lines))
 

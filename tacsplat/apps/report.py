@@ -48,28 +48,32 @@ NUMBER_COLUMNS = (
 RESULT_COLUMNS = ("object", "setting", "method", *NUMBER_COLUMNS, "seed")
 
 
-def write_results_csv(rows: list[dict], path: str | Path) -> Path:
-    """One line per run with the columns of :data:`RESULT_COLUMNS` (missing values empty)."""
+def write_csv(rows: list[dict], path: str | Path, columns) -> Path:
+    """One line per row with ``columns`` (missing or None values empty, other keys left out); parent folders
+    created."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS, extrasaction="ignore")
+        writer = csv.DictWriter(fh, fieldnames=list(columns))
         writer.writeheader()
-        for row in rows:
-            writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in RESULT_COLUMNS})
+        writer.writerows({k: "" if row.get(k) is None else row[k] for k in columns} for row in rows)
     return path
 
 
-def read_results_csv(path: str | Path) -> list[dict]:
-    """The rows of :func:`write_results_csv`, numbers parsed (empty -> NaN)."""
-    rows = []
-    with Path(path).open() as fh:
-        for raw in csv.DictReader(fh):
-            row = dict(raw)
-            for key in NUMBER_COLUMNS:
-                row[key] = float(raw[key]) if raw.get(key) not in (None, "") else float("nan")
-            rows.append(row)
-    return rows
+def write_results_csv(rows: list[dict], path: str | Path) -> Path:
+    """One line per run with the columns of :data:`RESULT_COLUMNS` (missing values empty)."""
+    return write_csv(rows, path, RESULT_COLUMNS)
+
+
+def md_table(header, rows, align: str = "") -> list[str]:
+    """The lines of a Markdown table: ``header`` and ``rows`` of cells; ``align`` a letter per column, ``l``
+    (left, ``---``) or ``r`` (right, ``---:``), by default the first column left and the others right."""
+    align = align or "l" + "r" * (len(header) - 1)
+    lines = [
+        "| " + " | ".join(map(str, header)) + " |",
+        "|" + "".join(" ---: |" if a == "r" else " --- |" for a in align),
+    ]
+    return lines + ["| " + " | ".join(map(str, row)) + " |" for row in rows]
 
 
 def _mean(values: list[float]) -> float:
@@ -161,11 +165,11 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
-    """Save ``fig`` as ``path`` (parent folders created, 100 dpi) and close it."""
+def save_figure(fig, path: str | Path, dpi: int = 100, **savefig_kwargs) -> Path:
+    """Save ``fig`` as ``path`` (parent folders created) and close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, **savefig_kwargs)
+    fig.savefig(path, dpi=dpi, **savefig_kwargs)
     pyplot().close(fig)
     return path
 

@@ -24,7 +24,6 @@ captures, copies and runs are batch jobs, run here or as Ray tasks
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -220,39 +219,29 @@ def summarise(rows: list[dict]) -> list[dict]:
     summary = []
     for count in sorted({r["requested_touches"] for r in rows}):
         group = [r for r in rows if r["requested_touches"] == count]
-        cds = np.array([r["cd"] for r in group if r["cd"] is not None], dtype=float)
-        psnrs = np.array([r["psnr"] for r in group if r["psnr"] is not None], dtype=float)
-        summary.append(
-            {
-                "requested_touches": count,
-                "mean_touches": float(np.mean([r["touches"] for r in group])),
-                "runs": len(group),
-                "cd_mean": float(cds.mean()) if len(cds) else float("nan"),
-                "cd_std": float(cds.std()) if len(cds) else float("nan"),
-                "psnr_mean": float(psnrs.mean()) if len(psnrs) else float("nan"),
-                "psnr_std": float(psnrs.std()) if len(psnrs) else float("nan"),
-            }
-        )
+        line = {
+            "requested_touches": count,
+            "mean_touches": float(np.mean([r["touches"] for r in group])),
+            "runs": len(group),
+        }
+        for key in ("cd", "psnr"):
+            values = np.array([r[key] for r in group if r[key] is not None], dtype=float)
+            line[f"{key}_mean"] = float(values.mean()) if len(values) else float("nan")
+            line[f"{key}_std"] = float(values.std()) if len(values) else float("nan")
+        summary.append(line)
     return summary
 
 
 def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[str, Path]:
     """``touches.csv``, ``summary.csv`` and ``cd_vs_touches.png`` (mean +- std over seeds, each run a dot; the
     title names the ``method`` the runs trained)."""
-    from tacsplat.apps.report import pyplot, save_figure
+    from tacsplat.apps.report import pyplot, save_figure, write_csv
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     paths = {"runs": out / "touches.csv", "summary": out / "summary.csv", "plot": out / "cd_vs_touches.png"}
-    with paths["runs"].open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=TOUCH_COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv(rows, paths["runs"], TOUCH_COLUMNS)
     summary = summarise(rows)
-    with paths["summary"].open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(summary[0]) if summary else ["requested_touches"])
-        writer.writeheader()
-        writer.writerows(summary)
+    write_csv(summary, paths["summary"], list(summary[0]) if summary else ["requested_touches"])
     fig, ax = pyplot().subplots(figsize=(5.5, 4))
     x = np.array([s["requested_touches"] for s in summary], dtype=float)
     mean = np.array([s["cd_mean"] for s in summary])
@@ -264,8 +253,7 @@ def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[s
     )
     ax.set_xscale("symlog", linthresh=4)
     ax.set_xticks(x, [str(int(v)) for v in x])
-    ax.set_xlabel("number of touches")
-    ax.set_ylabel("Chamfer distance [x GT radius]")
+    ax.set(xlabel="number of touches", ylabel="Chamfer distance [x GT radius]")
     ax.set_title(f"CD against number of touches ({method})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
