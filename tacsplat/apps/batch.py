@@ -64,19 +64,6 @@ RESULT_COLUMNS = (
 KINDS = ("capture", "reconstruct", "evaluate")
 
 
-def capture_once(rig, scene: Path) -> Path:
-    """The sim capture of ``rig`` in ``scene``, done once: a finished capture is marked by ``capture.json``
-    (its plan and timings); an interrupted one is resumed."""
-    from tacsplat.acquisition.sim_capture import sim_capture
-
-    marker = scene / CAPTURE_MARKER
-    if not marker.is_file():
-        scene.parent.mkdir(parents=True, exist_ok=True)
-        timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
-        marker.write_text(json.dumps({"plan": rig.plan.to_json(), **timings}, indent=2))
-    return scene
-
-
 @dataclass(frozen=True, kw_only=True)
 class BatchJob:
     """What every job has (the :class:`~tacsplat.apps.executors.Job` protocol); a batch file may set ``cpus``,
@@ -130,6 +117,17 @@ class SceneCopyJob(BatchJob):
         return summary
 
 
+def capture_copies_runs(capture: BatchJob, copies: list[SceneCopyJob], run) -> list[BatchJob]:
+    """A bench's jobs of one capture: ``capture`` while a copy of it is still to make, then each copy (needing it)
+    and ``run(copy)``, its reconstruction (needing the copy)."""
+    todo = not all(copy.complete() for copy in copies)
+    jobs = [capture] if todo else []
+    for copy in copies:
+        copy = replace(copy, needs=(capture.name,) if todo else ())
+        jobs += [copy, replace(run(copy), needs=(copy.name,))]
+    return jobs
+
+
 _RIG_FIELDS = {
     "sim.object": "object",
     "sim.mesh": "mesh",
@@ -162,21 +160,12 @@ class CaptureJob(BatchJob):
     touch_model: Literal["gel", "paper"] = "gel"
     texture: Literal["none", "checker"] = "none"  # the object's surface (tacsplat.sim.objects.TEXTURES)
 
-    def rig(self):
+    def rig(self, **options):
+        """The rig config of the capture (``options``: more of ``sim_rig_config``'s, as a subclass's fields)."""
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
-        return sim_rig_config(
-            object=self.object,
-            mesh=self.mesh,
-            object_radius=self.object_radius,
-            views=self.views,
-            test_views=self.test_views,
-            grasps=self.grasps,
-            resolution=self.resolution,
-            seed=self.seed,
-            touch_model=self.touch_model,
-            texture=self.texture,
-        )
+        keys = ("object", "mesh", "object_radius", "views", "test_views", "grasps", "resolution", "seed")
+        return sim_rig_config(**{k: getattr(self, k) for k in (*keys, "touch_model", "texture")}, **options)
 
     def check(self) -> None:
         super().check()
@@ -193,7 +182,15 @@ class CaptureJob(BatchJob):
         import tacsplat.acquisition.sim_capture  # noqa: F401
 
     def __call__(self) -> dict:
-        capture_once(self.rig(), self.out)
+        """The capture, done once: a finished capture is marked by ``capture.json`` (its plan and timings); an
+        interrupted one is resumed."""
+        from tacsplat.acquisition.sim_capture import sim_capture
+
+        if not self.complete():
+            rig = self.rig()
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            timings = sim_capture(rig, self.out, resume=self.out.exists(), progress=False)
+            (self.out / CAPTURE_MARKER).write_text(json.dumps({"plan": rig.plan.to_json(), **timings}, indent=2))
         return {"scene": str(self.out)}
 
 

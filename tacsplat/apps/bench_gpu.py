@@ -137,18 +137,12 @@ def _write_report(out: Path, report: dict, started: float) -> None:
 
 
 def _capture(args, scene: Path, resolution: int, views: int, test_views: int) -> Path:
-    from tacsplat.acquisition.sim_capture import sim_rig_config
-    from tacsplat.apps.batch import capture_once
+    from tacsplat.apps.batch import CaptureJob
 
-    rig = sim_rig_config(
-        object=args.object,
-        views=views,
-        test_views=test_views,
-        grasps=args.grasps,
-        resolution=resolution,
-        seed=0,
-    )
-    return capture_once(rig, scene)
+    CaptureJob(
+        out=scene, object=args.object, views=views, test_views=test_views, grasps=args.grasps, resolution=resolution
+    )()
+    return scene
 
 
 def _train(

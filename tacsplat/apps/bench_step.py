@@ -240,22 +240,13 @@ def run_profile(
     ``rounds`` times, the reference first in even rounds and second in odd ones: the ratios are the medians over the
     rounds (each round's are kept too), the profiles those of the first round."""
     import os
-    import platform
     import statistics
 
-    import numba
-    import torch
+    from tacsplat.apps.report import machine
 
     results = {
         "benchmark": "step",
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "numba_threads": numba.get_num_threads(),
-            "load_average_at_start": list(os.getloadavg()),
-            "platform": platform.platform(),
-            "numba": numba.__version__,
-            "torch": torch.__version__,
-        },
+        "machine": machine(),
         "settings": {
             "object": obj,
             "method": method,

@@ -35,7 +35,15 @@ from typing import Literal
 
 import numpy as np
 
-from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
+from tacsplat.apps.batch import (
+    CAPTURE_MARKER,
+    METRICS,
+    BatchJob,
+    CaptureJob,
+    ReconstructJob,
+    SceneCopyJob,
+    capture_copies_runs,
+)
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
@@ -114,18 +122,13 @@ class NextTouchBenchConfig:
 def first_grasps(scene_path: str | Path, out: str | Path, count: int) -> tuple[int, int]:
     """Copy a scene to ``out`` with every frame and the touches of its first ``count`` recorded grasps (by grasp
     number); returns ``(grasps kept, touches in contact)``. ``out`` must not exist."""
-    from tacsplat.datasets import Scene, SceneMeta, copy_scene
+    from tacsplat.datasets import Scene, copy_scene
 
     scene = Scene.load(scene_path)
     kept = sorted({t.grasp for t in scene.touches})[:count]
     touches = [t for t in scene.touches if t.grasp in kept]
-    meta = SceneMeta(
-        scene.meta.source,
-        scene.meta.object,
-        dict(scene.meta.capture_plan),
-        {**scene.meta.extra, "first_grasps": {"from": str(scene.path), "grasps": len(kept)}},
-    )
-    copy_scene(scene, out, touches=touches, meta=meta)
+    extra = {**scene.meta.extra, "first_grasps": {"from": str(scene.path), "grasps": len(kept)}}
+    copy_scene(scene, out, touches=touches, meta=replace(scene.meta, extra=extra))
     return len(kept), sum(t.in_contact for t in touches)
 
 
@@ -140,24 +143,9 @@ class StrategyCaptureJob(CaptureJob):
     selection_steps: int
     uncertainty: str
 
-    def rig(self):
-        from tacsplat.acquisition.sim_capture import sim_rig_config
-
-        return sim_rig_config(
-            object=self.object,
-            mesh=self.mesh,
-            object_radius=self.object_radius,
-            views=self.views,
-            test_views=self.test_views,
-            grasps=self.grasps,
-            resolution=self.resolution,
-            seed=self.seed,
-            touch_model=self.touch_model,
-            grasp_strategy=self.grasp_strategy,
-            candidates=self.candidates,
-            selection_steps=self.selection_steps,
-            uncertainty=self.uncertainty,
-        )
+    def rig(self, **options):
+        keys = ("grasp_strategy", "candidates", "selection_steps", "uncertainty")
+        return super().rig(**{k: getattr(self, k) for k in keys}, **options)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -215,13 +203,11 @@ class NextTouchBench:
             name=f"capture {out.name}",
         )
 
-    def copy_job(
-        self, subject: str, seed: int, strategy: str, count: int, needs: tuple[str, ...] = ()
-    ) -> FirstGraspsJob:
+    def copy_job(self, subject: str, seed: int, strategy: str, count: int) -> FirstGraspsJob:
         """The copy of a capture with its first ``count`` grasps."""
         base = self.capture_job(subject, seed, strategy).out
         out = base.with_name(f"{base.name}-g{count}")
-        return FirstGraspsJob(out=out, base=base, count=count, name=f"copy {out.name}", needs=needs)
+        return FirstGraspsJob(out=out, base=base, count=count, name=f"copy {out.name}")
 
     def run_dir(self, copy: FirstGraspsJob) -> Path:
         return self.out / "runs" / copy.out.name
@@ -247,19 +233,12 @@ class NextTouchBench:
         c = self.config
         jobs: list[BatchJob] = []
         for subject, seed, strategy in self.captures():
-            capture = self.capture_job(subject, seed, strategy)
-            copies = [self.copy_job(subject, seed, strategy, k, needs=(capture.name,)) for k in c.grasps]
-            if not all(copy.complete() for copy in copies):
-                jobs.append(capture)
-            else:
-                copies = [replace(copy, needs=()) for copy in copies]
-            for copy in copies:
-                jobs += [copy, self.reconstruct_job(subject, seed, strategy, copy.count, needs=(copy.name,))]
+            copies = [self.copy_job(subject, seed, strategy, k) for k in c.grasps]
+            run = lambda copy: self.reconstruct_job(subject, seed, strategy, copy.count)  # noqa: E731
+            jobs += capture_copies_runs(self.capture_job(subject, seed, strategy), copies, run)
         return jobs
 
-    def reconstruct_job(
-        self, subject: str, seed: int, strategy: str, count: int, needs: tuple[str, ...] = ()
-    ) -> ReconstructJob:
+    def reconstruct_job(self, subject: str, seed: int, strategy: str, count: int) -> ReconstructJob:
         """The final reconstruction of the copy with a capture's first ``count`` grasps."""
         c = self.config
         copy = self.copy_job(subject, seed, strategy, count)
@@ -271,7 +250,6 @@ class NextTouchBench:
             seed=seed,
             iterations=c.iterations,
             name=f"reconstruct {out.name}",
-            needs=needs,
         )
 
     def results(self) -> list[dict]:

@@ -76,6 +76,26 @@ def md_table(header, rows, align: str = "") -> list[str]:
     return lines + ["| " + " | ".join(map(str, row)) + " |" for row in rows]
 
 
+def machine(**extra) -> dict:
+    """What a benchmark's timings depend on: cores, numba's threads (``extra`` after them), the load average, the
+    platform and the versions of numba and torch."""
+    import os
+    import platform
+
+    import numba
+    import torch
+
+    return {
+        "cpu_count": os.cpu_count(),
+        "numba_threads": numba.get_num_threads(),
+        **extra,
+        "load_average_at_start": list(os.getloadavg()),
+        "platform": platform.platform(),
+        "numba": numba.__version__,
+        "torch": torch.__version__,
+    }
+
+
 def _mean(values: list[float]) -> float:
     finite = [v for v in values if v is not None and math.isfinite(v)]
     return float(np.mean(finite)) if finite else float("nan")

@@ -34,7 +34,7 @@ from typing import Literal
 
 import numpy as np
 
-from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
+from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob, SceneCopyJob, capture_copies_runs
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
@@ -82,17 +82,12 @@ class TouchBenchConfig:
 def subsample_touches(scene_path: str | Path, out: str | Path, num_touches: int) -> int:
     """Copy a scene to ``out`` keeping every frame and its ground truth but only the first ``num_touches``
     touches in contact; returns the number kept. ``out`` must not exist."""
-    from tacsplat.datasets import Scene, SceneMeta, copy_scene
+    from tacsplat.datasets import Scene, copy_scene
 
     scene = Scene.load(scene_path)
     kept = [t for t in scene.touches if t.in_contact][:num_touches]
-    meta = SceneMeta(
-        source=scene.meta.source,
-        object=scene.meta.object,
-        capture_plan=dict(scene.meta.capture_plan),
-        extra={**scene.meta.extra, "touch_subsample": {"from": str(scene.path), "touches": len(kept)}},
-    )
-    copy_scene(scene, out, touches=kept, meta=meta)
+    extra = {**scene.meta.extra, "touch_subsample": {"from": str(scene.path), "touches": len(kept)}}
+    copy_scene(scene, out, touches=kept, meta=replace(scene.meta, extra=extra))
     return len(kept)
 
 
@@ -137,33 +132,23 @@ class TouchBench:
             )
             copies = [
                 SubsampleJob(
-                    out=base.with_name(f"{base.name}-t{count}"),
-                    base=base,
-                    count=count,
-                    name=f"subsample {base.name}-t{count}",
-                    needs=(capture.name,),
+                    out=base.with_name(f"{base.name}-t{n}"), base=base, count=n, name=f"subsample {base.name}-t{n}"
                 )
-                for count in c.touch_counts
+                for n in c.touch_counts
             ]
-            if not all(copy.complete() for copy in copies):
-                jobs.append(capture)
-            else:
-                copies = [replace(copy, needs=()) for copy in copies]
-            for copy in copies:
-                out = self.run_dir(seed, copy.count)
-                jobs += [
-                    copy,
-                    ReconstructJob(
-                        out=out,
-                        scene=copy.out,
-                        method=c.method,
-                        seed=seed,
-                        iterations=c.iterations,
-                        name=f"reconstruct {out.name}",
-                        needs=(copy.name,),
-                    ),
-                ]
+            jobs += capture_copies_runs(capture, copies, lambda copy: self.reconstruct_job(seed, copy))
         return jobs
+
+    def reconstruct_job(self, seed: int, copy: SubsampleJob) -> ReconstructJob:
+        out = self.run_dir(seed, copy.count)
+        return ReconstructJob(
+            out=out,
+            scene=copy.out,
+            method=self.config.method,
+            seed=seed,
+            iterations=self.config.iterations,
+            name=f"reconstruct {out.name}",
+        )
 
     def results(self) -> list[dict]:
         """One row per finished run, in the order of the sweep."""
