@@ -506,7 +506,7 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
     """Run a batch (:func:`~tacsplat.apps.executors.run_jobs`), writing ``out/results.csv`` as runs finish;
     returns its rows. A :class:`~tacsplat.apps.executors.BatchError` at the end when jobs failed."""
     from tacsplat.apps.executors import run_jobs
-    from tacsplat.apps.report import write_csv
+    from tacsplat.apps.report import number, write_csv
 
     out = Path(out)
     for job in jobs:  # kept, not refused: a batch file says what each job is, and a folder may be reused on purpose
@@ -524,7 +524,7 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
             return None
         write_csv(result_rows(jobs, out), out / "results.csv", RESULT_COLUMNS)
         return (
-            f"{job.name}: CD {_fmt(summary.get('cd'), 4)}  PSNR {_fmt(summary.get('psnr'), 2)}  "
+            f"{job.name}: CD {number(summary.get('cd'), 4, 'nan')}  PSNR {number(summary.get('psnr'), 2, 'nan')}  "
             f"{summary.get('train_seconds') or 0:.0f} s"
         )
 
@@ -533,10 +533,6 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
     write_csv(rows, out / "results.csv", RESULT_COLUMNS)
     outcome.raise_if_failed(out)
     return rows
-
-
-def _fmt(value, decimals: int) -> str:
-    return "nan" if value is None else f"{value:.{decimals}f}"
 
 
 # ---------------------------------------------------------------------- command line

@@ -372,6 +372,7 @@ class PaperBench:
         executor, ray_address and retries), writing the report as runs finish; returns the results rows. A
         BatchError at the end when jobs failed (listed in failures.csv)."""
         from tacsplat.apps.executors import resolve_executor, run_jobs, side_by_side
+        from tacsplat.apps.report import number
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
         how = side_by_side(executor["executor"], executor.get("workers"))
@@ -400,8 +401,8 @@ class PaperBench:
             self.prepare_pictures(run)
             return (
                 f"{run.object:8s} {run.setting:10s} {run.method:7s} seed {run.seed}: "
-                f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
-                f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s"
+                f"CD {number(metrics.get('cd'), 4, 'nan')}  PSNR {number(metrics.get('psnr'), 2, 'nan')}  "
+                f"SSIM {number(metrics.get('ssim'), 3, 'nan')}  {metrics.get('train_seconds', 0):.0f} s"
             )
 
         outcome = run_jobs(
@@ -525,10 +526,6 @@ class DatasetSceneJob(SceneCopyJob):
         return {"train_views": [f.file_path for f in train], "touches": len(Scene.load(self.out).touches)}
 
 
-def _fmt(value, decimals: int) -> str:
-    return "nan" if value is None else f"{value:.{decimals}f}"
-
-
 def _cd_wins(rows: list[dict], setting: str, method: str, baseline: str) -> tuple[int, int, float, float] | None:
     """On how many objects ``method``'s mean CD is below ``baseline``'s, of how many, and their averages."""
     from tacsplat.apps.report import metric_table
@@ -604,7 +601,7 @@ def paper_tables_section(rows: list[dict], config: PaperBenchConfig, setting: st
     """Ours beside the paper's Tables 1-3 for the objects of ``setting`` imported from its datasets: CD as the
     paper's code measures it (``cd_paper_units``: in the dataset's units), PSNR and SSIM, the paper's numbers for
     objects of the same name ("" when no table applies)."""
-    from tacsplat.apps.report import metric_table
+    from tacsplat.apps.report import md_table, metric_table
 
     selected = [r for r in rows if r["setting"] == setting]
     kinds = {obj: dataset_of(config, obj) for obj in dict.fromkeys(r["object"] for r in selected)}
@@ -629,16 +626,13 @@ def paper_tables_section(rows: list[dict], config: PaperBenchConfig, setting: st
         for metric, measures in table.items():
             heading, key, decimals, theirs = labels[metric]
             objects, methods, values = metric_table(ours, key, setting)
-            columns = objects + ["Avg."]
-            lines += [f"{heading}:", "", "| | " + " | ".join(columns) + " |", "| --- |" + " ---: |" * len(columns)]
-            for i, method in enumerate(methods):
-                lines.append(f"| {method} (ours) | " + " | ".join(f"{v:.{decimals}f}" for v in values[i]) + " |")
+            table = [
+                [f"{method} (ours)", *(f"{v:.{decimals}f}" for v in values[i])] for i, method in enumerate(methods)
+            ]
             for method, numbers in measures.items():
                 cells = [numbers.get(o.lower()) for o in objects] + [numbers.get("Avg.")]
-                lines.append(
-                    f"| {method} (paper) | " + " | ".join("–" if v is None else f"{v:.{theirs}f}" for v in cells) + " |"
-                )
-            lines.append("")
+                table.append([f"{method} (paper)", *("–" if v is None else f"{v:.{theirs}f}" for v in cells)])
+            lines += [f"{heading}:", "", *md_table(["", *objects, "Avg."], table), ""]
     return "\n".join(lines)
 
 
@@ -646,7 +640,7 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     """The minimal-views section comparing with the paper: cd_paper of 3DGS and full beside the paper's own
     numbers (objects of the same name; averages over different objects), the full/3DGS gain in both metrics, and
     the departures from the paper still in force."""
-    from tacsplat.apps.report import metric_table
+    from tacsplat.apps.report import md_table, metric_table
     from tacsplat.reconstruction.config import paper_departures
 
     objects, methods, cd_paper = metric_table(rows, "cd_paper", "minimal")
@@ -655,6 +649,15 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
         return ""
     full, vanilla = methods.index("paper"), methods.index("3dgs")
     columns = objects + ["Avg."]
+    ours = (("3DGS (ours)", vanilla), ("full (ours)", full))
+    cells = [[label, *(f"{v:.5f}" for v in cd_paper[index])] for label, index in ours]
+    terms = {key: metric_table(rows, f"cd_paper_{key}", "minimal")[2] for key in ("accuracy", "completeness")}
+    for key, what in (("accuracy", "predicted -> GT"), ("completeness", "GT -> predicted")):
+        for label, index in (("3DGS", vanilla), ("full", full)):
+            cells.append([f"{label}, {key} ({what})", *(f"{v:.5f}" for v in terms[key][index])])
+    table = paper_tables()["glossy-synthetic"]["minimal"]["cd"]  # the paper's Table 2
+    for label, key in (("3DGS (paper)", "3dgs"), ("full (paper)", "paper")):
+        cells.append([label, *(f"{table[key][c]:.4f}" if c in table[key] else "–" for c in columns)])
     lines = [
         "## Where we stand against the paper (minimal views)",
         "",
@@ -663,20 +666,8 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
         "its Table 2 (Glossy Synthetic, 5 views); only the teapot and the bell share a name with our objects, and "
         "its average is over its own eight objects.",
         "",
-        "| | " + " | ".join(columns) + " |",
-        "| --- |" + " ---: |" * len(columns),
+        *md_table(["", *columns], cells),
     ]
-    for label, index in (("3DGS (ours)", vanilla), ("full (ours)", full)):
-        lines.append(f"| {label} | " + " | ".join(f"{v:.5f}" for v in cd_paper[index]) + " |")
-    terms = {key: metric_table(rows, f"cd_paper_{key}", "minimal")[2] for key in ("accuracy", "completeness")}
-    for key, what in (("accuracy", "predicted -> GT"), ("completeness", "GT -> predicted")):
-        for label, index in (("3DGS", vanilla), ("full", full)):
-            lines.append(f"| {label}, {key} ({what}) | " + " | ".join(f"{v:.5f}" for v in terms[key][index]) + " |")
-    table = paper_tables()["glossy-synthetic"]["minimal"]["cd"]  # the paper's Table 2
-    for label, key in (("3DGS (paper)", "3dgs"), ("full (paper)", "paper")):
-        lines.append(
-            f"| {label} | " + " | ".join(f"{table[key][c]:.4f}" if c in table[key] else "–" for c in columns) + " |"
-        )
     paper_ratio = table["3dgs"]["Avg."] / table["paper"]["Avg."]
     lines += [
         "",

@@ -48,6 +48,11 @@ NUMBER_COLUMNS = (
 RESULT_COLUMNS = ("object", "setting", "method", *NUMBER_COLUMNS, "seed")
 
 
+def number(value, decimals: int, missing: str = "–") -> str:
+    """``value`` with ``decimals`` decimals; ``missing`` for None, NaN or infinity."""
+    return missing if value is None or not math.isfinite(value) else f"{value:.{decimals}f}"
+
+
 def write_csv(rows: list[dict], path: str | Path, columns) -> Path:
     """One line per row with ``columns`` (missing or None values empty, other keys left out); parent folders
     created."""
@@ -153,19 +158,12 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     best = best_rows(np.round(values, decimals), better)  # values equal as printed are equally best
     spread = seed_spread(rows, metric, setting)
     with_spread = any(math.isfinite(v) for v in spread.values())
-    extra = ["Seed s.d."] if with_spread else []
-    lines = [
-        "| Method | " + " | ".join(objects + ["Avg."] + extra) + " |",
-        "| --- |" + " ---: |" * (len(objects) + 1 + len(extra)),
-    ]
+    table = []
     for i, method in enumerate(methods):
-        cells = []
-        for j, value in enumerate(values[i]):
-            text = "–" if not math.isfinite(value) else f"{value:.{decimals}f}"
-            cells.append(f"**{text}**" if i in best[j] else text)
-        if with_spread:
-            cells.append("–" if not math.isfinite(spread[method]) else f"{spread[method]:.{decimals}f}")
-        lines.append(f"| {method_label(method)} | " + " | ".join(cells) + " |")
+        cells = [number(v, decimals) for v in values[i]]
+        cells = [f"**{text}**" if i in best[j] else text for j, text in enumerate(cells)]
+        table.append([method_label(method), *cells] + ([number(spread[method], decimals)] if with_spread else []))
+    lines = md_table(["Method", *objects, "Avg.", *(["Seed s.d."] if with_spread else [])], table)
     note = (
         "\n*Seed s.d.: the standard deviation over the seeds of each seed's average over the objects; a "
         "difference in Avg. smaller than it may be the seeds' luck.*\n"
