@@ -187,20 +187,15 @@ class NextTouchBench:
         """The sim capture of one object, seed and strategy, with the largest grasp budget."""
         c = self.config
         out = self.out / "scenes" / f"{subject}-s{seed}-{strategy}"
+        keys = ("mesh", "views", "test_views", "resolution", "candidates", "selection_steps", "uncertainty")
         return StrategyCaptureJob(
             out=out,
             object=subject if c.mesh is None else "teapot",
-            mesh=c.mesh,
-            views=c.views,
-            test_views=c.test_views,
             grasps=max(c.grasps),
-            resolution=c.resolution,
             seed=seed,
             grasp_strategy=strategy,
-            candidates=c.candidates,
-            selection_steps=c.selection_steps,
-            uncertainty=c.uncertainty,
             name=f"capture {out.name}",
+            **{k: getattr(c, k) for k in keys},
         )
 
     def copy_job(self, subject: str, seed: int, strategy: str, count: int) -> FirstGraspsJob:

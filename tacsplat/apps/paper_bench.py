@@ -150,20 +150,12 @@ class PaperBenchConfig:
 
         if self.dataset is not None:
             self._validate_dataset()
-        unknown = [
-            o
-            for o in self.objects
-            if (o not in self.dataset_objects() if self.dataset else o not in OBJECT_NAMES and not Path(o).is_file())
-        ]
-        if unknown:
+        known = self.dataset_objects() if self.dataset else OBJECT_NAMES
+        if unknown := [o for o in self.objects if o not in known and (self.dataset or not Path(o).is_file())]:
+            where = f"the scenes in {self.dataset}: " if self.dataset else ""
+            files = "" if self.dataset else " or give mesh files"
             raise ConfigError(
-                "objects",
-                f"unknown object(s) {', '.join(unknown)}; choose from "
-                + (
-                    f"the scenes in {self.dataset}: {', '.join(self.dataset_objects())}"
-                    if self.dataset
-                    else f"{', '.join(OBJECT_NAMES)} or give mesh files"
-                ),
+                "objects", f"unknown object(s) {', '.join(unknown)}; choose from {where}{', '.join(known)}{files}"
             )
         for s in self.settings:
             if s not in SETTINGS:
@@ -307,19 +299,14 @@ class PaperBench:
                 touch_model=c.touch_model,
                 name=f"prepare {scene.relative_to(self.out)}",
             )
-        views = MINIMAL_VIEWS if setting == "minimal" else c.full_views
         return CaptureJob(
             out=scene,
             object=obj,
             mesh=c.mesh_of(obj),
             seed=seed,
-            views=views,
-            test_views=c.test_views,
-            grasps=c.grasps,
-            resolution=c.resolution,
-            touch_model=c.touch_model,
-            texture=c.texture,
+            views=MINIMAL_VIEWS if setting == "minimal" else c.full_views,
             name=f"capture {scene.relative_to(self.out)}",
+            **{k: getattr(c, k) for k in ("test_views", "grasps", "resolution", "touch_model", "texture")},
         )
 
     def capture(self, obj: str, setting: str, seed: int) -> Path:
