@@ -204,9 +204,6 @@ class NextTouchBench:
         out = base.with_name(f"{base.name}-g{count}")
         return FirstGraspsJob(out=out, base=base, count=count, name=f"copy {out.name}")
 
-    def run_dir(self, copy: FirstGraspsJob) -> Path:
-        return self.out / "runs" / copy.out.name
-
     def check_out(self) -> None:
         """Refuse a folder whose finished captures were made with another plan, or whose finished runs with
         other training settings (another number of steps or method, or a default changed since), before anything
@@ -235,27 +232,20 @@ class NextTouchBench:
 
     def reconstruct_job(self, subject: str, seed: int, strategy: str, count: int) -> ReconstructJob:
         """The final reconstruction of the copy with a capture's first ``count`` grasps."""
-        c = self.config
-        copy = self.copy_job(subject, seed, strategy, count)
-        out = self.run_dir(copy)
+        scene = self.copy_job(subject, seed, strategy, count).out
+        out, c = self.out / "runs" / scene.name, self.config
         return ReconstructJob(
-            out=out,
-            scene=copy.out,
-            method=c.method,
-            seed=seed,
-            iterations=c.iterations,
-            name=f"reconstruct {out.name}",
+            out=out, scene=scene, method=c.method, seed=seed, iterations=c.iterations, name=f"reconstruct {out.name}"
         )
 
     def results(self) -> list[dict]:
         """One row per finished run, in the order of the sweep."""
         rows = []
         for subject, seed, strategy, k in self.sweep():
-            copy = self.copy_job(subject, seed, strategy, k)
-            metrics_path = self.run_dir(copy) / METRICS
-            if not metrics_path.is_file():
+            run, copy = self.reconstruct_job(subject, seed, strategy, k), self.copy_job(subject, seed, strategy, k)
+            if not run.complete():
                 continue
-            metrics, info = json.loads(metrics_path.read_text()), json.loads(copy.marker.read_text())
+            metrics, info = json.loads((run.out / METRICS).read_text()), json.loads(copy.marker.read_text())
             rows.append(
                 {
                     "object": subject,

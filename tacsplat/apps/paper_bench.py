@@ -254,8 +254,6 @@ class PaperBench:
 
     out: Path
     config: PaperBenchConfig = field(default_factory=PaperBenchConfig)
-    wall_note: str = field(default="", init=False, repr=False)  # how the last run() ran its jobs, for report.md
-    stale_note: str = field(default="", init=False, repr=False)  # finished runs trained otherwise, for report.md
     first_views: dict = field(default_factory=dict, init=False, repr=False)  # render_first_test_view's renders
 
     def __post_init__(self):
@@ -363,28 +361,33 @@ class PaperBench:
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
         how = side_by_side(executor["executor"], executor.get("workers"))
-        self.wall_note = (
+        wall_note = (
             ""
             if how is None
-            else (f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)")
+            else f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)"
         )
         runs = self.runs()
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
             log.info("%d of %d runs already finished in %s: skipped", len(runs) - unfinished, len(runs), self.out)
-        self.stale_note = _stale_note(self.stale_runs(), self.out)
-        if self.stale_note:
-            log.warning("%s", self.stale_note)
+        if stale_note := _stale_note(self.stale_runs(), self.out):
+            log.warning("%s", stale_note)
         started = time.perf_counter()
         jobs = self.jobs()
         run_of = {job.name: run for run, job in jobs}
+
+        def write_report(rows: list[dict], figures: bool = True) -> None:  # results.csv, report.md and the plots
+            seconds = time.perf_counter() - started
+            write_paper_report(
+                self.out, rows, runs, self.config, seconds, figures, wall_note, self.first_views, stale_note
+            )
 
         def on_done(job, metrics: dict) -> str | None:
             run = run_of[job.name]
             if run is None:
                 return None
             # partial tables after every run; the pictures (re-rendered from every checkpoint, seconds) at the end
-            self.write_report(self.results(), wall_seconds=time.perf_counter() - started, figures=False)
+            write_report(self.results(), figures=False)
             self.prepare_pictures(run)
             return (
                 f"{run.object:8s} {run.setting:10s} {run.method:7s} seed {run.seed}: "
@@ -396,7 +399,7 @@ class PaperBench:
             [job for _, job in jobs], self.out, on_done=on_done, desc="bench paper", progress=progress, **executor
         )
         rows = self.results()
-        self.write_report(rows, wall_seconds=time.perf_counter() - started)
+        write_report(rows)
         outcome.raise_if_failed(self.out)
         return rows
 
@@ -428,21 +431,6 @@ class PaperBench:
                 }
             )
         return rows
-
-    def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
-        """results.csv, report.md and (``figures``) the plots from the runs on disk."""
-        write_paper_report(
-            self.out,
-            rows,
-            self.runs(),
-            self.config,
-            wall_seconds,
-            figures,
-            self.wall_note,
-            self.first_views,
-            self.stale_note,
-        )
-        return self.out / "report.md"
 
     def prepare_pictures(self, run: Run) -> None:
         """What the final report's pictures need from ``run``, which has just finished, made while other runs

@@ -110,9 +110,6 @@ class TouchBench:
         self.config = config or TouchBenchConfig()
         self.config.validate()
 
-    def run_dir(self, seed: int, count: int) -> Path:
-        return self.out / "runs" / f"t{count:03d}-s{seed}"
-
     def jobs(self) -> list[BatchJob]:
         """Per seed its capture (if a copy of it is still to make), then per count the copy with that many
         touches and its reconstruction (``method``), in the order of the sweep."""
@@ -120,16 +117,8 @@ class TouchBench:
         jobs: list[BatchJob] = []
         for seed in c.seeds:
             base = self.out / "scenes" / f"{c.object}-s{seed}"
-            capture = CaptureJob(
-                out=base,
-                object=c.object,
-                seed=seed,
-                views=c.views,
-                test_views=c.test_views,
-                grasps=c.grasps,
-                resolution=c.resolution,
-                name=f"capture {base.name}",
-            )
+            keys = ("object", "views", "test_views", "grasps", "resolution")
+            capture = CaptureJob(out=base, seed=seed, name=f"capture {base.name}", **{k: getattr(c, k) for k in keys})
             copies = [
                 SubsampleJob(
                     out=base.with_name(f"{base.name}-t{n}"), base=base, count=n, name=f"subsample {base.name}-t{n}"
@@ -140,14 +129,9 @@ class TouchBench:
         return jobs
 
     def reconstruct_job(self, seed: int, copy: SubsampleJob) -> ReconstructJob:
-        out = self.run_dir(seed, copy.count)
+        out, c = self.out / "runs" / f"t{copy.count:03d}-s{seed}", self.config
         return ReconstructJob(
-            out=out,
-            scene=copy.out,
-            method=self.config.method,
-            seed=seed,
-            iterations=self.config.iterations,
-            name=f"reconstruct {out.name}",
+            out=out, scene=copy.out, method=c.method, seed=seed, iterations=c.iterations, name=f"reconstruct {out.name}"
         )
 
     def results(self) -> list[dict]:
@@ -157,7 +141,7 @@ class TouchBench:
             if not isinstance(job, ReconstructJob) or not job.complete():
                 continue
             metrics = json.loads((job.out / "metrics.json").read_text())
-            marker = json.loads(job.scene.with_name(job.scene.name + ".json").read_text())
+            marker = json.loads(job.scene.with_name(f"{job.scene.name}.json").read_text())
             rows.append(
                 {
                     "seed": job.seed,
@@ -167,13 +151,6 @@ class TouchBench:
                 }
             )
         return rows
-
-    def check_out(self, jobs: list[BatchJob]) -> None:
-        """Refuse a folder whose finished or interrupted runs were trained with other settings, before anything
-        runs (:meth:`ReconstructJob.refuse_changed_settings`)."""
-        for job in jobs:
-            if isinstance(job, ReconstructJob):
-                job.refuse_changed_settings()
 
     def run(self, progress: bool = True, **executor) -> list[dict]:
         """Capture, copy and train whatever is not done yet (``executor``: the executor, ray_address and retries of
@@ -188,7 +165,9 @@ class TouchBench:
             return f"seed {job.seed}: {kept:3d} touches -> CD {metrics['cd']:.4f}  PSNR {metrics['psnr']:.2f}"
 
         jobs = self.jobs()
-        self.check_out(jobs)
+        for job in jobs:  # a folder whose runs were trained with other settings is refused before anything runs
+            if isinstance(job, ReconstructJob):
+                job.refuse_changed_settings()
         outcome = run_jobs(jobs, self.out, on_done=on_done, desc="bench touches", progress=progress, **executor)
         rows = self.results()
         write_touch_report(self.out, rows, self.config.method)
