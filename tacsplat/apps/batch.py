@@ -432,10 +432,6 @@ def _in_needs_order(jobs: list, path: Path) -> list:
     return order
 
 
-def _resolve(value, base: Path) -> Path:
-    return Path(base, value) if not Path(value).is_absolute() else Path(value)
-
-
 def _parse_job(i: int, item, path: Path, out: Path):
     """One job of the file: validated by pydantic (strictly, as JSON), paths resolved, named."""
     if not isinstance(item, dict):
@@ -446,13 +442,9 @@ def _parse_job(i: int, item, path: Path, out: Path):
         job = _job_adapter().validate_json(json.dumps(item, default=str), strict=True)
     except ValidationError as exc:
         raise _job_error(i, item, exc, path) from None
-    resolved = {}
-    for f in fields(job):
-        value = getattr(job, f.name)
-        if f.name in ("out", "scene", "run"):
-            resolved[f.name] = _resolve(value, out)
-        elif f.name in ("mesh", "gt_mesh") and value is not None:
-            resolved[f.name] = str(_resolve(value, path.parent))
+    # relative paths: out, scene and run in --out, meshes in the file's folder (an absolute path as it is)
+    resolved = {k: Path(out, getattr(job, k)) for k in ("out", "scene", "run") if hasattr(job, k)}
+    resolved |= {k: str(Path(path.parent, v)) for k in ("mesh", "gt_mesh") if (v := getattr(job, k, None)) is not None}
     label = item.get("run" if job.kind == "evaluate" else "out")
     return replace(job, **resolved, name=job.name or f"{job.kind} {label}")
 

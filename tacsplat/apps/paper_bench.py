@@ -908,19 +908,15 @@ class PaperBenchCommand:
     def config(self) -> PaperBenchConfig:
         """The :class:`PaperBenchConfig` of these options."""
         config = PaperBenchConfig.quick() if self.quick else PaperBenchConfig()
-        if self.objects != "all":
-            config.objects = tuple(o.strip() for o in self.objects.split(",") if o.strip())
-        elif not self.quick:
-            config.objects = ()
+        for key in ("objects", "settings", "methods"):
+            text = getattr(self, key)
+            if text is not None and (key, text) != ("objects", "all"):  # (all: every object, or --quick's)
+                setattr(config, key, tuple(v.strip() for v in text.split(",") if v.strip()))
         for key in ("resolution", "iterations", "full_views", "test_views"):
             if getattr(self, key) is not None:
                 setattr(config, key, getattr(self, key))
-        if self.settings is not None:
-            config.settings = tuple(s.strip() for s in self.settings.split(",") if s.strip())
         if self.seeds is not None:
             config.seeds = comma_separated_ints(self.seeds, "--seeds")
-        if self.methods is not None:
-            config.methods = tuple(v.strip() for v in self.methods.split(",") if v.strip())
         config.preset, config.texture = self.preset, self.texture
         config.touch_model = self.touch_model or ("gel" if self.dataset is None else "paper")
         config.dataset = None if self.dataset is None else str(self.dataset)

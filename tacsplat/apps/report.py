@@ -140,15 +140,8 @@ def seed_spread(rows: list[dict], metric: str, setting: str) -> dict[str, float]
 
 def best_rows(values: np.ndarray, better: Better) -> list[set[int]]:
     """Per column, the row indices holding the best finite value (ties all count)."""
-    best = []
-    for column in values.T:
-        finite = np.isfinite(column)
-        if not finite.any():
-            best.append(set())
-            continue
-        score = {"lower": column, "higher": -column, "zero": np.abs(column)}[better]
-        best.append({i for i in np.flatnonzero(finite) if score[i] == np.nanmin(score)})
-    return best
+    score = {"lower": values, "higher": -values, "zero": np.abs(values)}[better]
+    return [{i for i in np.flatnonzero(np.isfinite(column)) if column[i] == np.nanmin(column)} for column in score.T]
 
 
 def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
