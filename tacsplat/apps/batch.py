@@ -28,7 +28,6 @@ runs finish) and, when jobs fail, ``DIR/failures.csv``.
 from __future__ import annotations
 
 import functools
-import heapq
 import json
 import logging
 import shutil
@@ -423,12 +422,10 @@ def _in_needs_order(jobs: list, path: Path) -> list:
             path,
         ) from None
     order: list = []
-    ready: list[int] = []  # indices of the jobs whose needs are all in order: the first in the file goes next
-    while sorter.is_active():
-        for name in sorter.get_ready():
-            heapq.heappush(ready, index[name])
-        order.append(jobs[heapq.heappop(ready)])
-        sorter.done(order[-1].name)
+    placed: set[str] = set()
+    while len(order) < len(jobs):  # next: the first job of the file whose needs are all in order
+        order.append(next(job for job in jobs if job.name not in placed and placed.issuperset(job.needs)))
+        placed.add(order[-1].name)
     return order
 
 

@@ -113,15 +113,9 @@ def register(cli) -> None:
 
 def _run(args: BenchScaling) -> int:
     started = time.perf_counter()
-    out = args.out
-    rows = run_scaling(
-        out,
-        args.object,
-        comma_separated_ints(args.resolutions, "--resolutions"),
-        comma_separated_ints(args.steps, "--steps"),
-        args.seed,
-    )
-    report = write_scaling_report(out, rows, args.object)
+    resolutions, steps = (comma_separated_ints(getattr(args, key), f"--{key}") for key in ("resolutions", "steps"))
+    rows = run_scaling(args.out, args.object, resolutions, steps, args.seed)
+    report = write_scaling_report(args.out, rows, args.object)
     print(report.read_text())
     print(f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; report: {report}")
     return 0

@@ -29,7 +29,7 @@ import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
 
@@ -528,19 +528,10 @@ def register(cli) -> None:
 
 def _run(args: NextTouchBenchCommand) -> int:
     executor = args.executors.run_jobs_args()
-    config = NextTouchBenchConfig(
-        objects=() if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip()),
-        mesh=args.mesh,
-        seeds=comma_separated_ints(args.seeds, "--seeds"),
-        grasps=comma_separated_ints(args.grasps, "--grasps"),
-        resolution=args.resolution,
-        test_views=args.test_views,
-        iterations=args.iterations,
-        method=args.method,
-        candidates=args.candidates,
-        selection_steps=args.selection_steps,
-        uncertainty=args.uncertainty,
-    )
+    given = {f.name: getattr(args, f.name) for f in fields(NextTouchBenchConfig) if hasattr(args, f.name)}
+    given["objects"] = () if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip())
+    given.update({key: comma_separated_ints(getattr(args, key), f"--{key}") for key in ("seeds", "grasps")})
+    config = NextTouchBenchConfig(**given)
     started = time.perf_counter()
     bench = NextTouchBench(args.out, config)
     bench.run(**executor)
