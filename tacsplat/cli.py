@@ -208,7 +208,6 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        _refuse_unwritable_outputs(args)
         code = args.func(args)
     except UsageError as exc:
         prog = _subparser(parser, argv).prog
@@ -239,15 +238,6 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     return int(code or 0)
-
-
-def _refuse_unwritable_outputs(args: argparse.Namespace) -> None:
-    """Before any work: an output (``--out``, ``--json``) on a read-only or full file system is one error naming the
-    option, so that no benchmark or training runs for minutes only to fail at its first write."""
-    from tacsplat.files import refuse_unwritable
-
-    for option in ("out", "json"):
-        refuse_unwritable(f"--{option}", getattr(args, option, None))
 
 
 def _subparser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:

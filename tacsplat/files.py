@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import errno
 import os
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import BinaryIO, Callable, Iterator
 
@@ -51,9 +51,8 @@ def fsync_dir(directory: Path) -> None:
     except OSError:
         return  # a directory that cannot be opened cannot be synced either; the rename itself is done
     try:
-        os.fsync(fd)
-    except OSError:
-        pass  # some file systems (tmpfs, network mounts) do not sync directories
+        with suppress(OSError):  # some file systems (tmpfs, network mounts) do not sync directories
+            os.fsync(fd)
     finally:
         os.close(fd)
 
@@ -74,10 +73,8 @@ def atomic_file(path: str | Path, temp: Path | None = None, fsync: bool = True) 
                     os.fsync(f.fileno())
             os.replace(tmp, path)
         except BaseException:
-            try:
+            with suppress(OSError):  # a read-only file system: nothing was created either
                 tmp.unlink(missing_ok=True)
-            except OSError:
-                pass  # a read-only file system: nothing was created either
             raise
     except OSError as exc:
         raise storage_error(exc, path) from None
@@ -112,21 +109,8 @@ def check_writable(directory: str | Path) -> None:
     except OSError as exc:
         raise storage_error(exc, directory) from None
     finally:
-        try:
+        with suppress(OSError):
             probe.unlink(missing_ok=True)
-        except OSError:
-            pass
-
-
-__all__ = [
-    "atomic_file",
-    "atomic_write",
-    "check_writable",
-    "default_temp",
-    "fsync_dir",
-    "is_storage_failure",
-    "storage_error",
-]
 
 
 def refuse_unwritable(option: str, value) -> None:

@@ -27,9 +27,7 @@ runs finish) and, when jobs fail, ``DIR/failures.csv``.
 
 from __future__ import annotations
 
-import csv
 import functools
-import heapq
 import json
 import logging
 import shutil
@@ -63,19 +61,6 @@ RESULT_COLUMNS = (
     "num_gaussians",
 )
 KINDS = ("capture", "reconstruct", "evaluate")
-
-
-def capture_once(rig, scene: Path) -> Path:
-    """The sim capture of ``rig`` in ``scene``, done once: a finished capture is marked by ``capture.json``
-    (its plan and timings); an interrupted one is resumed."""
-    from tacsplat.acquisition.sim_capture import sim_capture
-
-    marker = scene / CAPTURE_MARKER
-    if not marker.is_file():
-        scene.parent.mkdir(parents=True, exist_ok=True)
-        timings = sim_capture(rig, scene, resume=scene.exists(), progress=False)
-        marker.write_text(json.dumps({"plan": rig.plan.to_json(), **timings}, indent=2))
-    return scene
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -131,6 +116,17 @@ class SceneCopyJob(BatchJob):
         return summary
 
 
+def capture_copies_runs(capture: BatchJob, copies: list[SceneCopyJob], run) -> list[BatchJob]:
+    """A bench's jobs of one capture: ``capture`` while a copy of it is still to make, then each copy (needing it)
+    and ``run(copy)``, its reconstruction (needing the copy)."""
+    todo = not all(copy.complete() for copy in copies)
+    jobs = [capture] if todo else []
+    for copy in copies:
+        copy = replace(copy, needs=(capture.name,) if todo else ())
+        jobs += [copy, replace(run(copy), needs=(copy.name,))]
+    return jobs
+
+
 _RIG_FIELDS = {
     "sim.object": "object",
     "sim.mesh": "mesh",
@@ -163,21 +159,12 @@ class CaptureJob(BatchJob):
     touch_model: Literal["gel", "paper"] = "gel"
     texture: Literal["none", "checker"] = "none"  # the object's surface (tacsplat.sim.objects.TEXTURES)
 
-    def rig(self):
+    def rig(self, **options):
+        """The rig config of the capture (``options``: more of ``sim_rig_config``'s, as a subclass's fields)."""
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
-        return sim_rig_config(
-            object=self.object,
-            mesh=self.mesh,
-            object_radius=self.object_radius,
-            views=self.views,
-            test_views=self.test_views,
-            grasps=self.grasps,
-            resolution=self.resolution,
-            seed=self.seed,
-            touch_model=self.touch_model,
-            texture=self.texture,
-        )
+        keys = ("object", "mesh", "object_radius", "views", "test_views", "grasps", "resolution", "seed")
+        return sim_rig_config(**{k: getattr(self, k) for k in (*keys, "touch_model", "texture")}, **options)
 
     def check(self) -> None:
         super().check()
@@ -194,7 +181,15 @@ class CaptureJob(BatchJob):
         import tacsplat.acquisition.sim_capture  # noqa: F401
 
     def __call__(self) -> dict:
-        capture_once(self.rig(), self.out)
+        """The capture, done once: a finished capture is marked by ``capture.json`` (its plan and timings); an
+        interrupted one is resumed."""
+        from tacsplat.acquisition.sim_capture import sim_capture
+
+        if not self.complete():
+            rig = self.rig()
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            timings = sim_capture(rig, self.out, resume=self.out.exists(), progress=False)
+            (self.out / CAPTURE_MARKER).write_text(json.dumps({"plan": rig.plan.to_json(), **timings}, indent=2))
         return {"scene": str(self.out)}
 
 
@@ -427,17 +422,11 @@ def _in_needs_order(jobs: list, path: Path) -> list:
             path,
         ) from None
     order: list = []
-    ready: list[int] = []  # indices of the jobs whose needs are all in order: the first in the file goes next
-    while sorter.is_active():
-        for name in sorter.get_ready():
-            heapq.heappush(ready, index[name])
-        order.append(jobs[heapq.heappop(ready)])
-        sorter.done(order[-1].name)
+    placed: set[str] = set()
+    while len(order) < len(jobs):  # next: the first job of the file whose needs are all in order
+        order.append(next(job for job in jobs if job.name not in placed and placed.issuperset(job.needs)))
+        placed.add(order[-1].name)
     return order
-
-
-def _resolve(value, base: Path) -> Path:
-    return Path(base, value) if not Path(value).is_absolute() else Path(value)
 
 
 def _parse_job(i: int, item, path: Path, out: Path):
@@ -450,13 +439,9 @@ def _parse_job(i: int, item, path: Path, out: Path):
         job = _job_adapter().validate_json(json.dumps(item, default=str), strict=True)
     except ValidationError as exc:
         raise _job_error(i, item, exc, path) from None
-    resolved = {}
-    for f in fields(job):
-        value = getattr(job, f.name)
-        if f.name in ("out", "scene", "run"):
-            resolved[f.name] = _resolve(value, out)
-        elif f.name in ("mesh", "gt_mesh") and value is not None:
-            resolved[f.name] = str(_resolve(value, path.parent))
+    # relative paths: out, scene and run in --out, meshes in the file's folder (an absolute path as it is)
+    resolved = {k: Path(out, getattr(job, k)) for k in ("out", "scene", "run") if hasattr(job, k)}
+    resolved |= {k: str(Path(path.parent, v)) for k in ("mesh", "gt_mesh") if (v := getattr(job, k, None)) is not None}
     label = item.get("run" if job.kind == "evaluate" else "out")
     return replace(job, **resolved, name=job.name or f"{job.kind} {label}")
 
@@ -506,18 +491,11 @@ def _relative(path: Path, base: Path) -> str:
     return str(path.relative_to(base)) if path.is_relative_to(base) else str(path)
 
 
-def write_results(rows: list[dict], path: Path) -> Path:
-    with path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS)
-        writer.writeheader()
-        writer.writerows({k: "" if row.get(k) is None else row[k] for k in RESULT_COLUMNS} for row in rows)
-    return path
-
-
 def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) -> list[dict]:
     """Run a batch (:func:`~tacsplat.apps.executors.run_jobs`), writing ``out/results.csv`` as runs finish;
     returns its rows. A :class:`~tacsplat.apps.executors.BatchError` at the end when jobs failed."""
     from tacsplat.apps.executors import run_jobs
+    from tacsplat.apps.report import number, write_csv
 
     out = Path(out)
     for job in jobs:  # kept, not refused: a batch file says what each job is, and a folder may be reused on purpose
@@ -533,21 +511,17 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
     def on_done(job, summary: dict) -> str | None:
         if run_folder(job) is None:
             return None
-        write_results(result_rows(jobs, out), out / "results.csv")
+        write_csv(result_rows(jobs, out), out / "results.csv", RESULT_COLUMNS)
         return (
-            f"{job.name}: CD {_fmt(summary.get('cd'), 4)}  PSNR {_fmt(summary.get('psnr'), 2)}  "
+            f"{job.name}: CD {number(summary.get('cd'), 4, 'nan')}  PSNR {number(summary.get('psnr'), 2, 'nan')}  "
             f"{summary.get('train_seconds') or 0:.0f} s"
         )
 
     outcome = run_jobs(jobs, out, on_done=on_done, desc="batch", progress=progress, **executor)
     rows = result_rows(jobs, out)
-    write_results(rows, out / "results.csv")
+    write_csv(rows, out / "results.csv", RESULT_COLUMNS)
     outcome.raise_if_failed(out)
     return rows
-
-
-def _fmt(value, decimals: int) -> str:
-    return "nan" if value is None else f"{value:.{decimals}f}"
 
 
 # ---------------------------------------------------------------------- command line

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import statistics
 import time
 from dataclasses import dataclass
@@ -137,18 +136,12 @@ def _write_report(out: Path, report: dict, started: float) -> None:
 
 
 def _capture(args, scene: Path, resolution: int, views: int, test_views: int) -> Path:
-    from tacsplat.acquisition.sim_capture import sim_rig_config
-    from tacsplat.apps.batch import capture_once
+    from tacsplat.apps.batch import CaptureJob
 
-    rig = sim_rig_config(
-        object=args.object,
-        views=views,
-        test_views=test_views,
-        grasps=args.grasps,
-        resolution=resolution,
-        seed=0,
-    )
-    return capture_once(rig, scene)
+    CaptureJob(
+        out=scene, object=args.object, views=views, test_views=test_views, grasps=args.grasps, resolution=resolution
+    )()
+    return scene
 
 
 def _train(
@@ -226,6 +219,8 @@ def parity_verdict(cpu: list[float], device: list[float]) -> tuple[float, float,
 
 def gpu_table(report: dict) -> str:
     """The check's one table (Markdown): a row per method, then the parity rows."""
+    from tacsplat.apps.report import md_table, number
+
     dev, scene = report["device"], report["scene"]
     lines = [
         f"# {dev['name']}: torch {dev['torch']}, CUDA {dev['cuda']}, gsplat {dev['gsplat']}",
@@ -234,18 +229,20 @@ def gpu_table(report: dict) -> str:
         f"{scene['touches']} touches (captured in {report['capture_seconds']:.0f} s). "
         f"Whole check: {report['wall_seconds']:.0f} s.",
         "",
-        "| run | steps | s / 1k steps | 30k steps [min] | peak GPU [GiB] | Gaussians | CD | PSNR |",
-        "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
+    table = []
     for r in report["runs"]:
         if "error" in r:
-            lines.append(f"| {r['method']} | failed: {r['error']} | | | | | | |")
+            table.append([r["method"], f"failed: {r['error']}", *[""] * 6])
             continue
-        peak = "n/a" if r["peak_gpu_memory_gib"] is None else f"{r['peak_gpu_memory_gib']:.2f}"
-        lines.append(
-            f"| {r['method']} | {r['steps']} | {r['seconds_per_1k_steps']:.1f} | {r['projected_30k_minutes']:.1f} | "
-            f"{peak} | {r['num_gaussians']} | {_fmt(r['cd'], 4)} | {_fmt(r['psnr'], 2)} |"
+        peak = number(r["peak_gpu_memory_gib"], 2, "n/a")
+        table.append(
+            [r["method"], r["steps"], f"{r['seconds_per_1k_steps']:.1f}", f"{r['projected_30k_minutes']:.1f}", peak]
+            + [r["num_gaussians"], number(r["cd"], 4, "n/a"), number(r["psnr"], 2, "n/a")]
         )
+    lines += md_table(
+        ["run", "steps", "s / 1k steps", "30k steps [min]", "peak GPU [GiB]", "Gaussians", "CD", "PSNR"], table
+    )
     parity = report["parity"]
     if parity is not None:
         cpu, failed = parity["cpu"], [r for r in parity["device_runs"] if "error" in r]
@@ -255,21 +252,14 @@ def gpu_table(report: dict) -> str:
             f"Parity: {cpu['method']}, {cpu['steps']} steps, seeds {cpu['seeds']}; the CPU runs' source "
             f"{cpu['source']}, this one {report['source']}.",
             "",
-            "| metric | CPU mean | CPU spread | device mean | within the CPU's range |",
-            "| --- | ---: | ---: | ---: | --- |",
         ]
+        table = []
         for key, decimals in (("cd", 4), ("psnr", 2)) if runs else ():
-            c_mean, spread, d_mean, inside = parity_verdict([r[key] for r in cpu["runs"]], [r[key] for r in runs])
-            lines.append(
-                f"| {key} | {c_mean:.{decimals}f} | {spread:.{decimals}f} | {d_mean:.{decimals}f} | "
-                f"{'yes' if inside else 'NO'} |"
-            )
+            verdict = parity_verdict([r[key] for r in cpu["runs"]], [r[key] for r in runs])
+            table.append([key, *(f"{v:.{decimals}f}" for v in verdict[:3]), "yes" if verdict[3] else "NO"])
+        lines += md_table(["metric", "CPU mean", "CPU spread", "device mean", "within the CPU's range"], table, "lrrrl")
         lines += ["", *(f"Parity run of seed {r['seed']} failed: {r['error']}" for r in failed)] if failed else []
     return "\n".join(lines) + "\n"
-
-
-def _fmt(value, decimals: int) -> str:
-    return "n/a" if value is None or not math.isfinite(value) else f"{value:.{decimals}f}"
 
 
 def _device(device: str) -> dict:

@@ -176,24 +176,15 @@ def _in_subprocess(call: str, env_extra: dict | None = None) -> dict:
 def run_benchmark(sizes: list[str], repeats: int, torch_repeats: int, skip_torch: bool = False) -> dict:
     """Time the cpu backend against the torch reference at each size; compile times; peak memory."""
     import os
-    import platform
     import tempfile
 
-    import numba
     import torch
 
+    from tacsplat.apps.report import machine
     from tacsplat.progress import progress_bar
 
     results = {
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "numba_threads": numba.get_num_threads(),
-            "torch_threads": torch.get_num_threads(),
-            "load_average_at_start": list(os.getloadavg()),
-            "platform": platform.platform(),
-            "numba": numba.__version__,
-            "torch": torch.__version__,
-        },
+        "machine": machine(torch_threads=torch.get_num_threads()),
         "settings": {"repeats": repeats, "torch_repeats": torch_repeats, "sh_degree": 3, "radius_px": [1, 8]},
         "sizes": [],
     }

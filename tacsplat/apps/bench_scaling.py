@@ -5,7 +5,6 @@ Its options and what it does: :class:`BenchScaling`.
 
 from __future__ import annotations
 
-import csv
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,13 +42,10 @@ def run_scaling(out: Path, obj: str, resolutions, step_counts, seed: int = 0) ->
 
 
 def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
-    from tacsplat.apps.report import pyplot, save_figure
+    from tacsplat.apps.report import md_table, pyplot, save_figure, write_csv
     from tacsplat.reconstruction.methods import method_label
 
-    with (out / "scaling.csv").open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv(rows, out / "scaling.csv", COLUMNS)
     plt = pyplot()
     fig, (ax_cd, ax_psnr) = plt.subplots(1, 2, figsize=(11, 4.2))
     for resolution in sorted({r["resolution"] for r in rows}):
@@ -75,17 +71,16 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
     fig.suptitle(f"{obj}, 5 views + 5 grasps: error against cost (a point per step count)")
     fig.tight_layout()
     save_figure(fig, out / "scaling.png")
-    lines = [
-        f"# Error against cost: {obj}, minimal views",
-        "",
-        "| px | steps | method | train s | cd_paper | CD | PSNR |",
-        "| ---: | ---: | --- | ---: | ---: | ---: | ---: |",
-    ]
-    for r in sorted(rows, key=lambda r: (r["resolution"], r["iterations"], r["method"])):
-        lines.append(
-            f"| {r['resolution']} | {r['iterations']} | {r['method']} | {r['train_seconds']:.0f} | "
-            f"{r['cd_paper']:.5f} | {r['cd']:.4f} | {r['psnr']:.2f} |"
-        )
+    rows = sorted(rows, key=lambda r: (r["resolution"], r["iterations"], r["method"]))
+    lines = [f"# Error against cost: {obj}, minimal views", ""] + md_table(
+        ["px", "steps", "method", "train s", "cd_paper", "CD", "PSNR"],
+        [
+            [r["resolution"], r["iterations"], r["method"], f"{r['train_seconds']:.0f}", f"{r['cd_paper']:.5f}"]
+            + [f"{r['cd']:.4f}", f"{r['psnr']:.2f}"]
+            for r in rows
+        ],
+        "rrlrrrr",
+    )
     lines += ["", "![error against cost](scaling.png)", ""]
     (out / "report.md").write_text("\n".join(lines))
     return out / "report.md"
@@ -118,15 +113,9 @@ def register(cli) -> None:
 
 def _run(args: BenchScaling) -> int:
     started = time.perf_counter()
-    out = args.out
-    rows = run_scaling(
-        out,
-        args.object,
-        comma_separated_ints(args.resolutions, "--resolutions"),
-        comma_separated_ints(args.steps, "--steps"),
-        args.seed,
-    )
-    report = write_scaling_report(out, rows, args.object)
+    resolutions, steps = (comma_separated_ints(getattr(args, key), f"--{key}") for key in ("resolutions", "steps"))
+    rows = run_scaling(args.out, args.object, resolutions, steps, args.seed)
+    report = write_scaling_report(args.out, rows, args.object)
     print(report.read_text())
     print(f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; report: {report}")
     return 0

@@ -124,38 +124,26 @@ def bench_timestep(timesteps=(0.0005, 0.001, 0.002, 0.004), grasps: int = 3, obj
 
 
 def _markdown(rows: list[dict]) -> str:
-    keys = list(rows[0])
-    fmt = lambda v: f"{v:.4g}" if isinstance(v, float) else str(v)  # noqa: E731
-    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
-    lines += ["| " + " | ".join(fmt(r[k]) for k in keys) + " |" for r in rows]
-    return "\n".join(lines)
+    from tacsplat.apps.report import md_table
+
+    cells = [[f"{v:.4g}" if isinstance(v, float) else str(v) for v in r.values()] for r in rows]
+    return "\n".join(md_table(list(rows[0]), cells, "l" * len(rows[0])))
 
 
 def _plot(tactile: list[dict], physics: list[dict], path: Path) -> None:
-    import matplotlib
+    from tacsplat.apps.report import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    ax = axes[0]
+    plt = pyplot()
+    fig, (ax, ax_physics) = plt.subplots(1, 2, figsize=(12, 4.5))
     for surface, style in (("sphere", "o-"), ("plane", "s--")):
         rows = [r for r in tactile if r["surface"] == surface]
-        ax.plot(
-            [r["ms_per_map"] for r in rows],
-            [max(r["volume_error_pct"], 1e-6) for r in rows],
-            style,
-            label=f"{surface}: indentation volume error",
-        )
+        ms = [r["ms_per_map"] for r in rows]
+        volume = [max(r["volume_error_pct"], 1e-6) for r in rows]
+        ax.plot(ms, volume, style, label=f"{surface}: indentation volume error")
         if surface == "sphere":
-            ax.plot(
-                [r["ms_per_map"] for r in rows],
-                [max(r["area_error_pct"], 1e-6) for r in rows],
-                "^:",
-                label="sphere: contact area error",
-            )
-            for r in rows:
-                ax.annotate(r["grid"], (r["ms_per_map"], max(r["volume_error_pct"], 1e-6)), fontsize=7)
+            ax.plot(ms, [max(r["area_error_pct"], 1e-6) for r in rows], "^:", label="sphere: contact area error")
+            for r, x, y in zip(rows, ms, volume):
+                ax.annotate(r["grid"], (x, y), fontsize=7)
     ax.set(
         xscale="log",
         yscale="log",
@@ -164,23 +152,17 @@ def _plot(tactile: list[dict], physics: list[dict], path: Path) -> None:
         title="tactile depth vs ray grid (sphere r=10 mm, plane; 1 mm press)",
     )
     ax.legend(fontsize=8)
-    ax = axes[1]
-    ax.plot([r["wall_s_per_grasp"] for r in physics], [r["max_penetration_mm"] for r in physics], "o-", label="max")
-    ax.plot(
-        [r["wall_s_per_grasp"] for r in physics],
-        [r["mean_penetration_mm"] for r in physics],
-        "s--",
-        label="mean of grasp maxima",
-    )
+    wall = [r["wall_s_per_grasp"] for r in physics]
+    ax_physics.plot(wall, [r["max_penetration_mm"] for r in physics], "o-", label="max")
+    ax_physics.plot(wall, [r["mean_penetration_mm"] for r in physics], "s--", label="mean of grasp maxima")
     for r in physics:
-        ax.annotate(f"dt={r['timestep_ms']:g} ms", (r["wall_s_per_grasp"], r["max_penetration_mm"]), fontsize=7)
-    ax.set(
+        ax_physics.annotate(f"dt={r['timestep_ms']:g} ms", (r["wall_s_per_grasp"], r["max_penetration_mm"]), fontsize=7)
+    ax_physics.set(
         xlabel="wall time per grasp (s)", ylabel="contact penetration (mm)", title="collision penetration vs timestep"
     )
-    ax.legend(fontsize=8)
+    ax_physics.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def run_bench(out: str | Path, quick: bool = False) -> str:
@@ -193,11 +175,7 @@ def run_bench(out: str | Path, quick: bool = False) -> str:
     )
     (out / "sim.json").write_text(json.dumps({"tactile": tactile, "physics": physics}, indent=2))
     report = (
-        "## Tactile depth vs ray grid\n\n"
-        + _markdown(tactile)
-        + "\n\n## Penetration vs timestep\n\n"
-        + _markdown(physics)
-        + "\n"
+        f"## Tactile depth vs ray grid\n\n{_markdown(tactile)}\n\n## Penetration vs timestep\n\n{_markdown(physics)}\n"
     )
     (out / "sim.md").write_text(report)
     _plot(tactile, physics, out / "sim.png")

@@ -240,22 +240,13 @@ def run_profile(
     ``rounds`` times, the reference first in even rounds and second in odd ones: the ratios are the medians over the
     rounds (each round's are kept too), the profiles those of the first round."""
     import os
-    import platform
     import statistics
 
-    import numba
-    import torch
+    from tacsplat.apps.report import machine
 
     results = {
         "benchmark": "step",
-        "machine": {
-            "cpu_count": os.cpu_count(),
-            "numba_threads": numba.get_num_threads(),
-            "load_average_at_start": list(os.getloadavg()),
-            "platform": platform.platform(),
-            "numba": numba.__version__,
-            "torch": torch.__version__,
-        },
+        "machine": machine(),
         "settings": {
             "object": obj,
             "method": method,
@@ -265,29 +256,21 @@ def run_profile(
         },
         "resolutions": [],
     }
-    if reference is None:
-        results["resolutions"] = [profile_resolution(out, r, iterations, method, obj, seed) for r in resolutions]
-        results["machine"]["load_average_at_end"] = list(os.getloadavg())
-        return results
-    results["settings"].update(reference=reference, rounds=rounds)
-    results["reference"] = []
+    if reference is not None:
+        results["settings"].update(reference=reference, rounds=rounds)
+        results["reference"] = []
     for r in resolutions:
+        if reference is None:
+            results["resolutions"].append(profile_resolution(out, r, iterations, method, obj, seed))
+            continue
         per_round = []
         for k in range(rounds):  # ABAB..., then BABA...: a machine slowing down or speeding up favours neither
-            if k % 2 == 0:
-                ref = profile_resolution(out, r, iterations, reference, obj, seed)
-                row = profile_resolution(out, r, iterations, method, obj, seed)
-            else:
-                row = profile_resolution(out, r, iterations, method, obj, seed)
-                ref = profile_resolution(out, r, iterations, reference, obj, seed)
-            per_round.append(
-                {
-                    "step_median": row["step_median_ms"] / ref["step_median_ms"],
-                    "step_mean": row["step_mean_ms"] / ref["step_mean_ms"],
-                    "train_seconds": row["train_seconds"] / ref["train_seconds"],
-                }
-            )
-            if len(per_round) == 1:
+            order = (reference, method) if k % 2 == 0 else (method, reference)
+            first, second = (profile_resolution(out, r, iterations, m, obj, seed) for m in order)
+            ref, row = (first, second) if k % 2 == 0 else (second, first)
+            keys = {"step_median": "step_median_ms", "step_mean": "step_mean_ms", "train_seconds": "train_seconds"}
+            per_round.append({key: row[field] / ref[field] for key, field in keys.items()})
+            if k == 0:
                 results["reference"].append(ref)
                 results["resolutions"].append(row)
         ratios = {key: statistics.median(p[key] for p in per_round) for key in per_round[0]}

@@ -35,6 +35,7 @@ One progress bar counts the jobs done, running and failed.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import functools
 import logging
@@ -380,12 +381,10 @@ def _start_worker(log_queue, level: int, batch_pid: int) -> None:
     signal.signal(signal.SIGINT, _on_interrupt)
     if hasattr(os, "setpgid"):  # (POSIX)
         os.setpgid(0, 0)
-    try:
+    with contextlib.suppress(OSError, AttributeError):  # not Linux: an orphaned worker finishes its job first
         import ctypes
 
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGINT)
-    except (OSError, AttributeError):  # not Linux: an orphaned worker finishes its job first
-        pass
     if _orphaned():  # the batch's process died before prctl took effect
         os._exit(1)
 

@@ -25,18 +25,25 @@ Output (resumable: finished captures, copies and runs are kept)::
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from tacsplat.apps.batch import CAPTURE_MARKER, METRICS, BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
+from tacsplat.apps.batch import (
+    CAPTURE_MARKER,
+    METRICS,
+    BatchJob,
+    CaptureJob,
+    ReconstructJob,
+    SceneCopyJob,
+    capture_copies_runs,
+)
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
@@ -115,18 +122,13 @@ class NextTouchBenchConfig:
 def first_grasps(scene_path: str | Path, out: str | Path, count: int) -> tuple[int, int]:
     """Copy a scene to ``out`` with every frame and the touches of its first ``count`` recorded grasps (by grasp
     number); returns ``(grasps kept, touches in contact)``. ``out`` must not exist."""
-    from tacsplat.datasets import Scene, SceneMeta, copy_scene
+    from tacsplat.datasets import Scene, copy_scene
 
     scene = Scene.load(scene_path)
     kept = sorted({t.grasp for t in scene.touches})[:count]
     touches = [t for t in scene.touches if t.grasp in kept]
-    meta = SceneMeta(
-        scene.meta.source,
-        scene.meta.object,
-        dict(scene.meta.capture_plan),
-        {**scene.meta.extra, "first_grasps": {"from": str(scene.path), "grasps": len(kept)}},
-    )
-    copy_scene(scene, out, touches=touches, meta=meta)
+    extra = {**scene.meta.extra, "first_grasps": {"from": str(scene.path), "grasps": len(kept)}}
+    copy_scene(scene, out, touches=touches, meta=replace(scene.meta, extra=extra))
     return len(kept), sum(t.in_contact for t in touches)
 
 
@@ -141,24 +143,9 @@ class StrategyCaptureJob(CaptureJob):
     selection_steps: int
     uncertainty: str
 
-    def rig(self):
-        from tacsplat.acquisition.sim_capture import sim_rig_config
-
-        return sim_rig_config(
-            object=self.object,
-            mesh=self.mesh,
-            object_radius=self.object_radius,
-            views=self.views,
-            test_views=self.test_views,
-            grasps=self.grasps,
-            resolution=self.resolution,
-            seed=self.seed,
-            touch_model=self.touch_model,
-            grasp_strategy=self.grasp_strategy,
-            candidates=self.candidates,
-            selection_steps=self.selection_steps,
-            uncertainty=self.uncertainty,
-        )
+    def rig(self, **options):
+        keys = ("grasp_strategy", "candidates", "selection_steps", "uncertainty")
+        return super().rig(**{k: getattr(self, k) for k in keys}, **options)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -200,32 +187,22 @@ class NextTouchBench:
         """The sim capture of one object, seed and strategy, with the largest grasp budget."""
         c = self.config
         out = self.out / "scenes" / f"{subject}-s{seed}-{strategy}"
+        keys = ("mesh", "views", "test_views", "resolution", "candidates", "selection_steps", "uncertainty")
         return StrategyCaptureJob(
             out=out,
             object=subject if c.mesh is None else "teapot",
-            mesh=c.mesh,
-            views=c.views,
-            test_views=c.test_views,
             grasps=max(c.grasps),
-            resolution=c.resolution,
             seed=seed,
             grasp_strategy=strategy,
-            candidates=c.candidates,
-            selection_steps=c.selection_steps,
-            uncertainty=c.uncertainty,
             name=f"capture {out.name}",
+            **{k: getattr(c, k) for k in keys},
         )
 
-    def copy_job(
-        self, subject: str, seed: int, strategy: str, count: int, needs: tuple[str, ...] = ()
-    ) -> FirstGraspsJob:
+    def copy_job(self, subject: str, seed: int, strategy: str, count: int) -> FirstGraspsJob:
         """The copy of a capture with its first ``count`` grasps."""
         base = self.capture_job(subject, seed, strategy).out
         out = base.with_name(f"{base.name}-g{count}")
-        return FirstGraspsJob(out=out, base=base, count=count, name=f"copy {out.name}", needs=needs)
-
-    def run_dir(self, copy: FirstGraspsJob) -> Path:
-        return self.out / "runs" / copy.out.name
+        return FirstGraspsJob(out=out, base=base, count=count, name=f"copy {out.name}")
 
     def check_out(self) -> None:
         """Refuse a folder whose finished captures were made with another plan, or whose finished runs with
@@ -248,42 +225,27 @@ class NextTouchBench:
         c = self.config
         jobs: list[BatchJob] = []
         for subject, seed, strategy in self.captures():
-            capture = self.capture_job(subject, seed, strategy)
-            copies = [self.copy_job(subject, seed, strategy, k, needs=(capture.name,)) for k in c.grasps]
-            if not all(copy.complete() for copy in copies):
-                jobs.append(capture)
-            else:
-                copies = [replace(copy, needs=()) for copy in copies]
-            for copy in copies:
-                jobs += [copy, self.reconstruct_job(subject, seed, strategy, copy.count, needs=(copy.name,))]
+            copies = [self.copy_job(subject, seed, strategy, k) for k in c.grasps]
+            run = lambda copy: self.reconstruct_job(subject, seed, strategy, copy.count)  # noqa: E731
+            jobs += capture_copies_runs(self.capture_job(subject, seed, strategy), copies, run)
         return jobs
 
-    def reconstruct_job(
-        self, subject: str, seed: int, strategy: str, count: int, needs: tuple[str, ...] = ()
-    ) -> ReconstructJob:
+    def reconstruct_job(self, subject: str, seed: int, strategy: str, count: int) -> ReconstructJob:
         """The final reconstruction of the copy with a capture's first ``count`` grasps."""
-        c = self.config
-        copy = self.copy_job(subject, seed, strategy, count)
-        out = self.run_dir(copy)
+        scene = self.copy_job(subject, seed, strategy, count).out
+        out, c = self.out / "runs" / scene.name, self.config
         return ReconstructJob(
-            out=out,
-            scene=copy.out,
-            method=c.method,
-            seed=seed,
-            iterations=c.iterations,
-            name=f"reconstruct {out.name}",
-            needs=needs,
+            out=out, scene=scene, method=c.method, seed=seed, iterations=c.iterations, name=f"reconstruct {out.name}"
         )
 
     def results(self) -> list[dict]:
         """One row per finished run, in the order of the sweep."""
         rows = []
         for subject, seed, strategy, k in self.sweep():
-            copy = self.copy_job(subject, seed, strategy, k)
-            metrics_path = self.run_dir(copy) / METRICS
-            if not metrics_path.is_file():
+            run, copy = self.reconstruct_job(subject, seed, strategy, k), self.copy_job(subject, seed, strategy, k)
+            if not run.complete():
                 continue
-            metrics, info = json.loads(metrics_path.read_text()), json.loads(copy.marker.read_text())
+            metrics, info = json.loads((run.out / METRICS).read_text()), json.loads(copy.marker.read_text())
             rows.append(
                 {
                     "object": subject,
@@ -441,13 +403,9 @@ def summarise(rows: list[dict]) -> dict[tuple[str, int], dict]:
 
 def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], config: NextTouchBenchConfig) -> None:
     """``results.csv``, ``cd_vs_grasps.png`` and ``report.md``."""
-    from tacsplat.apps.report import pyplot, save_figure
+    from tacsplat.apps.report import md_table, pyplot, save_figure, write_csv
 
-    out.mkdir(parents=True, exist_ok=True)
-    with (out / "results.csv").open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS)
-        writer.writeheader()
-        writer.writerows({k: "" if r.get(k) is None else r[k] for k in RESULT_COLUMNS} for r in rows)
+    write_csv(rows, out / "results.csv", RESULT_COLUMNS)
     summary = summarise(rows)
     budgets = sorted({r["grasps"] for r in rows})
     fig, ax = pyplot().subplots(figsize=(5.5, 4))
@@ -457,13 +415,16 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
         spread = np.array([summary[strategy, k]["spread"] for k in ks])
         ax.plot(ks, mean, "o-", color=color, label=strategy)
         ax.fill_between(ks, mean - spread, mean + spread, color=color, alpha=0.2)
-    ax.set_xlabel("grasps (4 fingertips each)")
-    ax.set_ylabel("Chamfer distance [x GT radius]")
+    ax.set(xlabel="grasps (4 fingertips each)", ylabel="Chamfer distance [x GT radius]")
     ax.set_title("CD against grasps (mean; band: spread over seeds)")
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
     save_figure(fig, out / "cd_vs_grasps.png")
+
+    def mean_cd(subject: str, strategy: str, k: int) -> str:
+        cds = [r["cd"] for r in rows if (r["object"], r["strategy"], r["grasps"]) == (subject, strategy, k)]
+        return f"{np.mean(cds):.4f}" if cds else "–"
 
     subjects = list(dict.fromkeys(r["object"] for r in rows))
     lines = [
@@ -476,34 +437,38 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
         "",
         "## Mean CD (x GT radius, lower is better) over seeds",
         "",
-        "| object | strategy | " + " | ".join(f"{k} grasps" for k in budgets) + " |",
-        "| --- | --- |" + " ---: |" * len(budgets),
-    ]
-    for subject in subjects:
-        for strategy in STRATEGIES:
-            cells = []
-            for k in budgets:
-                cds = [r["cd"] for r in rows if (r["object"], r["strategy"], r["grasps"]) == (subject, strategy, k)]
-                cells.append(f"{np.mean(cds):.4f}" if cds else "–")
-            lines.append(f"| {subject} | {strategy} | " + " | ".join(cells) + " |")
-    lines += [
+        *md_table(
+            ["object", "strategy", *(f"{k} grasps" for k in budgets)],
+            [[s, g, *(mean_cd(s, g, k) for k in budgets)] for s in subjects for g in STRATEGIES],
+            "ll" + "r" * len(budgets),
+        ),
         "",
         "## Over every object and seed",
         "",
-        "| grasps | random CD | next-best CD | change | next-best choosing (s, mean per capture) |",
-        "| ---: | ---: | ---: | ---: | ---: |",
     ]
+    table = []
     for k in budgets:
         if ("random", k) in summary and ("next-best", k) in summary:
-            r, n = summary["random", k]["cd"], summary["next-best", k]["cd"]
+            (r, r_spread), (n, n_spread) = ((summary[s, k]["cd"], summary[s, k]["spread"]) for s in STRATEGIES)
             choosing = np.mean(
                 [x["selection_seconds"] for x in rows if x["strategy"] == "next-best" and x["grasps"] == k]
             )
-            lines.append(
-                f"| {k} | {r:.4f} ± {summary['random', k]['spread']:.4f} | {n:.4f} ± "
-                f"{summary['next-best', k]['spread']:.4f} | {100 * (n - r) / r:+.1f} % | {choosing:.0f} |"
+            table.append(
+                [
+                    k,
+                    f"{r:.4f} ± {r_spread:.4f}",
+                    f"{n:.4f} ± {n_spread:.4f}",
+                    f"{100 * (n - r) / r:+.1f} %",
+                    f"{choosing:.0f}",
+                ]
             )
+    scores = next(iter(correlations.values()), {})
     lines += [
+        *md_table(
+            ["grasps", "random CD", "next-best CD", "change", "next-best choosing (s, mean per capture)"],
+            table,
+            "rrrrr",
+        ),
         "",
         "![CD against grasps](cd_vs_grasps.png)",
         "",
@@ -512,11 +477,8 @@ def write_report(out: Path, rows: list[dict], correlations: dict[str, dict], con
         "Spearman rank correlation, over the test pixels, of each score of the views-only reconstruction that "
         "chose the first grasp with its depth error against the ground truth (1: perfectly ordered).",
         "",
-        "| object | " + " | ".join(next(iter(correlations.values()), {})) + " |",
-        "| --- |" + " ---: |" * len(next(iter(correlations.values()), {})),
+        *md_table(["object", *scores], [[s, *(f"{v:+.3f}" for v in rho.values())] for s, rho in correlations.items()]),
     ]
-    for subject, rho in correlations.items():
-        lines.append(f"| {subject} | " + " | ".join(f"{v:+.3f}" for v in rho.values()) + " |")
     lines += [""] + [f"![uncertainty {s}](uncertainty_{s}.png)" for s in correlations] + [""]
     (out / "report.md").write_text("\n".join(lines))
 
@@ -566,19 +528,10 @@ def register(cli) -> None:
 
 def _run(args: NextTouchBenchCommand) -> int:
     executor = args.executors.run_jobs_args()
-    config = NextTouchBenchConfig(
-        objects=() if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip()),
-        mesh=args.mesh,
-        seeds=comma_separated_ints(args.seeds, "--seeds"),
-        grasps=comma_separated_ints(args.grasps, "--grasps"),
-        resolution=args.resolution,
-        test_views=args.test_views,
-        iterations=args.iterations,
-        method=args.method,
-        candidates=args.candidates,
-        selection_steps=args.selection_steps,
-        uncertainty=args.uncertainty,
-    )
+    given = {f.name: getattr(args, f.name) for f in fields(NextTouchBenchConfig) if hasattr(args, f.name)}
+    given["objects"] = () if args.objects == "all" else tuple(o.strip() for o in args.objects.split(",") if o.strip())
+    given.update({key: comma_separated_ints(getattr(args, key), f"--{key}") for key in ("seeds", "grasps")})
+    config = NextTouchBenchConfig(**given)
     started = time.perf_counter()
     bench = NextTouchBench(args.out, config)
     bench.run(**executor)

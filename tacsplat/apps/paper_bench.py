@@ -150,20 +150,12 @@ class PaperBenchConfig:
 
         if self.dataset is not None:
             self._validate_dataset()
-        unknown = [
-            o
-            for o in self.objects
-            if (o not in self.dataset_objects() if self.dataset else o not in OBJECT_NAMES and not Path(o).is_file())
-        ]
-        if unknown:
+        known = self.dataset_objects() if self.dataset else OBJECT_NAMES
+        if unknown := [o for o in self.objects if o not in known and (self.dataset or not Path(o).is_file())]:
+            where = f"the scenes in {self.dataset}: " if self.dataset else ""
+            files = "" if self.dataset else " or give mesh files"
             raise ConfigError(
-                "objects",
-                f"unknown object(s) {', '.join(unknown)}; choose from "
-                + (
-                    f"the scenes in {self.dataset}: {', '.join(self.dataset_objects())}"
-                    if self.dataset
-                    else f"{', '.join(OBJECT_NAMES)} or give mesh files"
-                ),
+                "objects", f"unknown object(s) {', '.join(unknown)}; choose from {where}{', '.join(known)}{files}"
             )
         for s in self.settings:
             if s not in SETTINGS:
@@ -262,8 +254,6 @@ class PaperBench:
 
     out: Path
     config: PaperBenchConfig = field(default_factory=PaperBenchConfig)
-    wall_note: str = field(default="", init=False, repr=False)  # how the last run() ran its jobs, for report.md
-    stale_note: str = field(default="", init=False, repr=False)  # finished runs trained otherwise, for report.md
     first_views: dict = field(default_factory=dict, init=False, repr=False)  # render_first_test_view's renders
 
     def __post_init__(self):
@@ -307,19 +297,14 @@ class PaperBench:
                 touch_model=c.touch_model,
                 name=f"prepare {scene.relative_to(self.out)}",
             )
-        views = MINIMAL_VIEWS if setting == "minimal" else c.full_views
         return CaptureJob(
             out=scene,
             object=obj,
             mesh=c.mesh_of(obj),
             seed=seed,
-            views=views,
-            test_views=c.test_views,
-            grasps=c.grasps,
-            resolution=c.resolution,
-            touch_model=c.touch_model,
-            texture=c.texture,
+            views=MINIMAL_VIEWS if setting == "minimal" else c.full_views,
             name=f"capture {scene.relative_to(self.out)}",
+            **{k: getattr(c, k) for k in ("test_views", "grasps", "resolution", "touch_model", "texture")},
         )
 
     def capture(self, obj: str, setting: str, seed: int) -> Path:
@@ -372,43 +357,49 @@ class PaperBench:
         executor, ray_address and retries), writing the report as runs finish; returns the results rows. A
         BatchError at the end when jobs failed (listed in failures.csv)."""
         from tacsplat.apps.executors import resolve_executor, run_jobs, side_by_side
+        from tacsplat.apps.report import number
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
         how = side_by_side(executor["executor"], executor.get("workers"))
-        self.wall_note = (
+        wall_note = (
             ""
             if how is None
-            else (f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)")
+            else f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)"
         )
         runs = self.runs()
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
             log.info("%d of %d runs already finished in %s: skipped", len(runs) - unfinished, len(runs), self.out)
-        self.stale_note = _stale_note(self.stale_runs(), self.out)
-        if self.stale_note:
-            log.warning("%s", self.stale_note)
+        if stale_note := _stale_note(self.stale_runs(), self.out):
+            log.warning("%s", stale_note)
         started = time.perf_counter()
         jobs = self.jobs()
         run_of = {job.name: run for run, job in jobs}
+
+        def write_report(rows: list[dict], figures: bool = True) -> None:  # results.csv, report.md and the plots
+            seconds = time.perf_counter() - started
+            write_paper_report(
+                self.out, rows, runs, self.config, seconds, figures, wall_note, self.first_views, stale_note
+            )
 
         def on_done(job, metrics: dict) -> str | None:
             run = run_of[job.name]
             if run is None:
                 return None
             # partial tables after every run; the pictures (re-rendered from every checkpoint, seconds) at the end
-            self.write_report(self.results(), wall_seconds=time.perf_counter() - started, figures=False)
+            write_report(self.results(), figures=False)
             self.prepare_pictures(run)
             return (
                 f"{run.object:8s} {run.setting:10s} {run.method:7s} seed {run.seed}: "
-                f"CD {_fmt(metrics.get('cd'), 4)}  PSNR {_fmt(metrics.get('psnr'), 2)}  "
-                f"SSIM {_fmt(metrics.get('ssim'), 3)}  {metrics.get('train_seconds', 0):.0f} s"
+                f"CD {number(metrics.get('cd'), 4, 'nan')}  PSNR {number(metrics.get('psnr'), 2, 'nan')}  "
+                f"SSIM {number(metrics.get('ssim'), 3, 'nan')}  {metrics.get('train_seconds', 0):.0f} s"
             )
 
         outcome = run_jobs(
             [job for _, job in jobs], self.out, on_done=on_done, desc="bench paper", progress=progress, **executor
         )
         rows = self.results()
-        self.write_report(rows, wall_seconds=time.perf_counter() - started)
+        write_report(rows)
         outcome.raise_if_failed(self.out)
         return rows
 
@@ -440,21 +431,6 @@ class PaperBench:
                 }
             )
         return rows
-
-    def write_report(self, rows: list[dict], wall_seconds: float | None = None, figures: bool = True) -> Path:
-        """results.csv, report.md and (``figures``) the plots from the runs on disk."""
-        write_paper_report(
-            self.out,
-            rows,
-            self.runs(),
-            self.config,
-            wall_seconds,
-            figures,
-            self.wall_note,
-            self.first_views,
-            self.stale_note,
-        )
-        return self.out / "report.md"
 
     def prepare_pictures(self, run: Run) -> None:
         """What the final report's pictures need from ``run``, which has just finished, made while other runs
@@ -523,10 +499,6 @@ class DatasetSceneJob(SceneCopyJob):
             simulate_touches(None, views, self.grasps, self.out, seed=self.seed, touch_model=self.touch_model)
             shutil.rmtree(views)
         return {"train_views": [f.file_path for f in train], "touches": len(Scene.load(self.out).touches)}
-
-
-def _fmt(value, decimals: int) -> str:
-    return "nan" if value is None else f"{value:.{decimals}f}"
 
 
 def _cd_wins(rows: list[dict], setting: str, method: str, baseline: str) -> tuple[int, int, float, float] | None:
@@ -604,7 +576,7 @@ def paper_tables_section(rows: list[dict], config: PaperBenchConfig, setting: st
     """Ours beside the paper's Tables 1-3 for the objects of ``setting`` imported from its datasets: CD as the
     paper's code measures it (``cd_paper_units``: in the dataset's units), PSNR and SSIM, the paper's numbers for
     objects of the same name ("" when no table applies)."""
-    from tacsplat.apps.report import metric_table
+    from tacsplat.apps.report import md_table, metric_table
 
     selected = [r for r in rows if r["setting"] == setting]
     kinds = {obj: dataset_of(config, obj) for obj in dict.fromkeys(r["object"] for r in selected)}
@@ -629,16 +601,13 @@ def paper_tables_section(rows: list[dict], config: PaperBenchConfig, setting: st
         for metric, measures in table.items():
             heading, key, decimals, theirs = labels[metric]
             objects, methods, values = metric_table(ours, key, setting)
-            columns = objects + ["Avg."]
-            lines += [f"{heading}:", "", "| | " + " | ".join(columns) + " |", "| --- |" + " ---: |" * len(columns)]
-            for i, method in enumerate(methods):
-                lines.append(f"| {method} (ours) | " + " | ".join(f"{v:.{decimals}f}" for v in values[i]) + " |")
+            table = [
+                [f"{method} (ours)", *(f"{v:.{decimals}f}" for v in values[i])] for i, method in enumerate(methods)
+            ]
             for method, numbers in measures.items():
                 cells = [numbers.get(o.lower()) for o in objects] + [numbers.get("Avg.")]
-                lines.append(
-                    f"| {method} (paper) | " + " | ".join("–" if v is None else f"{v:.{theirs}f}" for v in cells) + " |"
-                )
-            lines.append("")
+                table.append([f"{method} (paper)", *("–" if v is None else f"{v:.{theirs}f}" for v in cells)])
+            lines += [f"{heading}:", "", *md_table(["", *objects, "Avg."], table), ""]
     return "\n".join(lines)
 
 
@@ -646,7 +615,7 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     """The minimal-views section comparing with the paper: cd_paper of 3DGS and full beside the paper's own
     numbers (objects of the same name; averages over different objects), the full/3DGS gain in both metrics, and
     the departures from the paper still in force."""
-    from tacsplat.apps.report import metric_table
+    from tacsplat.apps.report import md_table, metric_table
     from tacsplat.reconstruction.config import paper_departures
 
     objects, methods, cd_paper = metric_table(rows, "cd_paper", "minimal")
@@ -655,6 +624,15 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
         return ""
     full, vanilla = methods.index("paper"), methods.index("3dgs")
     columns = objects + ["Avg."]
+    ours = (("3DGS (ours)", vanilla), ("full (ours)", full))
+    cells = [[label, *(f"{v:.5f}" for v in cd_paper[index])] for label, index in ours]
+    terms = {key: metric_table(rows, f"cd_paper_{key}", "minimal")[2] for key in ("accuracy", "completeness")}
+    for key, what in (("accuracy", "predicted -> GT"), ("completeness", "GT -> predicted")):
+        for label, index in (("3DGS", vanilla), ("full", full)):
+            cells.append([f"{label}, {key} ({what})", *(f"{v:.5f}" for v in terms[key][index])])
+    table = paper_tables()["glossy-synthetic"]["minimal"]["cd"]  # the paper's Table 2
+    for label, key in (("3DGS (paper)", "3dgs"), ("full (paper)", "paper")):
+        cells.append([label, *(f"{table[key][c]:.4f}" if c in table[key] else "–" for c in columns)])
     lines = [
         "## Where we stand against the paper (minimal views)",
         "",
@@ -663,20 +641,8 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
         "its Table 2 (Glossy Synthetic, 5 views); only the teapot and the bell share a name with our objects, and "
         "its average is over its own eight objects.",
         "",
-        "| | " + " | ".join(columns) + " |",
-        "| --- |" + " ---: |" * len(columns),
+        *md_table(["", *columns], cells),
     ]
-    for label, index in (("3DGS (ours)", vanilla), ("full (ours)", full)):
-        lines.append(f"| {label} | " + " | ".join(f"{v:.5f}" for v in cd_paper[index]) + " |")
-    terms = {key: metric_table(rows, f"cd_paper_{key}", "minimal")[2] for key in ("accuracy", "completeness")}
-    for key, what in (("accuracy", "predicted -> GT"), ("completeness", "GT -> predicted")):
-        for label, index in (("3DGS", vanilla), ("full", full)):
-            lines.append(f"| {label}, {key} ({what}) | " + " | ".join(f"{v:.5f}" for v in terms[key][index]) + " |")
-    table = paper_tables()["glossy-synthetic"]["minimal"]["cd"]  # the paper's Table 2
-    for label, key in (("3DGS (paper)", "3dgs"), ("full (paper)", "paper")):
-        lines.append(
-            f"| {label} | " + " | ".join(f"{table[key][c]:.4f}" if c in table[key] else "–" for c in columns) + " |"
-        )
     paper_ratio = table["3dgs"]["Avg."] / table["paper"]["Avg."]
     lines += [
         "",
@@ -942,19 +908,15 @@ class PaperBenchCommand:
     def config(self) -> PaperBenchConfig:
         """The :class:`PaperBenchConfig` of these options."""
         config = PaperBenchConfig.quick() if self.quick else PaperBenchConfig()
-        if self.objects != "all":
-            config.objects = tuple(o.strip() for o in self.objects.split(",") if o.strip())
-        elif not self.quick:
-            config.objects = ()
+        for key in ("objects", "settings", "methods"):
+            text = getattr(self, key)
+            if text is not None and (key, text) != ("objects", "all"):  # (all: every object, or --quick's)
+                setattr(config, key, tuple(v.strip() for v in text.split(",") if v.strip()))
         for key in ("resolution", "iterations", "full_views", "test_views"):
             if getattr(self, key) is not None:
                 setattr(config, key, getattr(self, key))
-        if self.settings is not None:
-            config.settings = tuple(s.strip() for s in self.settings.split(",") if s.strip())
         if self.seeds is not None:
             config.seeds = comma_separated_ints(self.seeds, "--seeds")
-        if self.methods is not None:
-            config.methods = tuple(v.strip() for v in self.methods.split(",") if v.strip())
         config.preset, config.texture = self.preset, self.texture
         config.touch_model = self.touch_model or ("gel" if self.dataset is None else "paper")
         config.dataset = None if self.dataset is None else str(self.dataset)

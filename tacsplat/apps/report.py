@@ -48,28 +48,57 @@ NUMBER_COLUMNS = (
 RESULT_COLUMNS = ("object", "setting", "method", *NUMBER_COLUMNS, "seed")
 
 
-def write_results_csv(rows: list[dict], path: str | Path) -> Path:
-    """One line per run with the columns of :data:`RESULT_COLUMNS` (missing values empty)."""
+def number(value, decimals: int, missing: str = "–") -> str:
+    """``value`` with ``decimals`` decimals; ``missing`` for None, NaN or infinity."""
+    return missing if value is None or not math.isfinite(value) else f"{value:.{decimals}f}"
+
+
+def write_csv(rows: list[dict], path: str | Path, columns) -> Path:
+    """One line per row with ``columns`` (missing or None values empty, other keys left out); parent folders
+    created."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=RESULT_COLUMNS, extrasaction="ignore")
+        writer = csv.DictWriter(fh, fieldnames=list(columns))
         writer.writeheader()
-        for row in rows:
-            writer.writerow({k: "" if row.get(k) is None else row.get(k) for k in RESULT_COLUMNS})
+        writer.writerows({k: "" if row.get(k) is None else row[k] for k in columns} for row in rows)
     return path
 
 
-def read_results_csv(path: str | Path) -> list[dict]:
-    """The rows of :func:`write_results_csv`, numbers parsed (empty -> NaN)."""
-    rows = []
-    with Path(path).open() as fh:
-        for raw in csv.DictReader(fh):
-            row = dict(raw)
-            for key in NUMBER_COLUMNS:
-                row[key] = float(raw[key]) if raw.get(key) not in (None, "") else float("nan")
-            rows.append(row)
-    return rows
+def write_results_csv(rows: list[dict], path: str | Path) -> Path:
+    """One line per run with the columns of :data:`RESULT_COLUMNS` (missing values empty)."""
+    return write_csv(rows, path, RESULT_COLUMNS)
+
+
+def md_table(header, rows, align: str = "") -> list[str]:
+    """The lines of a Markdown table: ``header`` and ``rows`` of cells; ``align`` a letter per column, ``l``
+    (left, ``---``) or ``r`` (right, ``---:``), by default the first column left and the others right."""
+    align = align or "l" + "r" * (len(header) - 1)
+    lines = [
+        "| " + " | ".join(map(str, header)) + " |",
+        "|" + "".join(" ---: |" if a == "r" else " --- |" for a in align),
+    ]
+    return lines + ["| " + " | ".join(map(str, row)) + " |" for row in rows]
+
+
+def machine(**extra) -> dict:
+    """What a benchmark's timings depend on: cores, numba's threads (``extra`` after them), the load average, the
+    platform and the versions of numba and torch."""
+    import os
+    import platform
+
+    import numba
+    import torch
+
+    return {
+        "cpu_count": os.cpu_count(),
+        "numba_threads": numba.get_num_threads(),
+        **extra,
+        "load_average_at_start": list(os.getloadavg()),
+        "platform": platform.platform(),
+        "numba": numba.__version__,
+        "torch": torch.__version__,
+    }
 
 
 def _mean(values: list[float]) -> float:
@@ -111,15 +140,8 @@ def seed_spread(rows: list[dict], metric: str, setting: str) -> dict[str, float]
 
 def best_rows(values: np.ndarray, better: Better) -> list[set[int]]:
     """Per column, the row indices holding the best finite value (ties all count)."""
-    best = []
-    for column in values.T:
-        finite = np.isfinite(column)
-        if not finite.any():
-            best.append(set())
-            continue
-        score = {"lower": column, "higher": -column, "zero": np.abs(column)}[better]
-        best.append({i for i in np.flatnonzero(finite) if score[i] == np.nanmin(score)})
-    return best
+    score = {"lower": values, "higher": -values, "zero": np.abs(values)}[better]
+    return [{i for i in np.flatnonzero(np.isfinite(column)) if column[i] == np.nanmin(column)} for column in score.T]
 
 
 def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
@@ -129,19 +151,12 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     best = best_rows(np.round(values, decimals), better)  # values equal as printed are equally best
     spread = seed_spread(rows, metric, setting)
     with_spread = any(math.isfinite(v) for v in spread.values())
-    extra = ["Seed s.d."] if with_spread else []
-    lines = [
-        "| Method | " + " | ".join(objects + ["Avg."] + extra) + " |",
-        "| --- |" + " ---: |" * (len(objects) + 1 + len(extra)),
-    ]
+    table = []
     for i, method in enumerate(methods):
-        cells = []
-        for j, value in enumerate(values[i]):
-            text = "–" if not math.isfinite(value) else f"{value:.{decimals}f}"
-            cells.append(f"**{text}**" if i in best[j] else text)
-        if with_spread:
-            cells.append("–" if not math.isfinite(spread[method]) else f"{spread[method]:.{decimals}f}")
-        lines.append(f"| {method_label(method)} | " + " | ".join(cells) + " |")
+        cells = [number(v, decimals) for v in values[i]]
+        cells = [f"**{text}**" if i in best[j] else text for j, text in enumerate(cells)]
+        table.append([method_label(method), *cells] + ([number(spread[method], decimals)] if with_spread else []))
+    lines = md_table(["Method", *objects, "Avg.", *(["Seed s.d."] if with_spread else [])], table)
     note = (
         "\n*Seed s.d.: the standard deviation over the seeds of each seed's average over the objects; a "
         "difference in Avg. smaller than it may be the seeds' luck.*\n"
@@ -161,11 +176,11 @@ def pyplot():
     return plt
 
 
-def save_figure(fig, path: str | Path, **savefig_kwargs) -> Path:
-    """Save ``fig`` as ``path`` (parent folders created, 100 dpi) and close it."""
+def save_figure(fig, path: str | Path, dpi: int = 100, **savefig_kwargs) -> Path:
+    """Save ``fig`` as ``path`` (parent folders created) and close it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, **savefig_kwargs)
+    fig.savefig(path, dpi=dpi, **savefig_kwargs)
     pyplot().close(fig)
     return path
 

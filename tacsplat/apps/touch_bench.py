@@ -24,7 +24,6 @@ captures, copies and runs are batch jobs, run here or as Ray tasks
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
 import math
@@ -35,7 +34,7 @@ from typing import Literal
 
 import numpy as np
 
-from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob, SceneCopyJob
+from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob, SceneCopyJob, capture_copies_runs
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
@@ -83,17 +82,12 @@ class TouchBenchConfig:
 def subsample_touches(scene_path: str | Path, out: str | Path, num_touches: int) -> int:
     """Copy a scene to ``out`` keeping every frame and its ground truth but only the first ``num_touches``
     touches in contact; returns the number kept. ``out`` must not exist."""
-    from tacsplat.datasets import Scene, SceneMeta, copy_scene
+    from tacsplat.datasets import Scene, copy_scene
 
     scene = Scene.load(scene_path)
     kept = [t for t in scene.touches if t.in_contact][:num_touches]
-    meta = SceneMeta(
-        source=scene.meta.source,
-        object=scene.meta.object,
-        capture_plan=dict(scene.meta.capture_plan),
-        extra={**scene.meta.extra, "touch_subsample": {"from": str(scene.path), "touches": len(kept)}},
-    )
-    copy_scene(scene, out, touches=kept, meta=meta)
+    extra = {**scene.meta.extra, "touch_subsample": {"from": str(scene.path), "touches": len(kept)}}
+    copy_scene(scene, out, touches=kept, meta=replace(scene.meta, extra=extra))
     return len(kept)
 
 
@@ -116,9 +110,6 @@ class TouchBench:
         self.config = config or TouchBenchConfig()
         self.config.validate()
 
-    def run_dir(self, seed: int, count: int) -> Path:
-        return self.out / "runs" / f"t{count:03d}-s{seed}"
-
     def jobs(self) -> list[BatchJob]:
         """Per seed its capture (if a copy of it is still to make), then per count the copy with that many
         touches and its reconstruction (``method``), in the order of the sweep."""
@@ -126,45 +117,22 @@ class TouchBench:
         jobs: list[BatchJob] = []
         for seed in c.seeds:
             base = self.out / "scenes" / f"{c.object}-s{seed}"
-            capture = CaptureJob(
-                out=base,
-                object=c.object,
-                seed=seed,
-                views=c.views,
-                test_views=c.test_views,
-                grasps=c.grasps,
-                resolution=c.resolution,
-                name=f"capture {base.name}",
-            )
+            keys = ("object", "views", "test_views", "grasps", "resolution")
+            capture = CaptureJob(out=base, seed=seed, name=f"capture {base.name}", **{k: getattr(c, k) for k in keys})
             copies = [
                 SubsampleJob(
-                    out=base.with_name(f"{base.name}-t{count}"),
-                    base=base,
-                    count=count,
-                    name=f"subsample {base.name}-t{count}",
-                    needs=(capture.name,),
+                    out=base.with_name(f"{base.name}-t{n}"), base=base, count=n, name=f"subsample {base.name}-t{n}"
                 )
-                for count in c.touch_counts
+                for n in c.touch_counts
             ]
-            if not all(copy.complete() for copy in copies):
-                jobs.append(capture)
-            else:
-                copies = [replace(copy, needs=()) for copy in copies]
-            for copy in copies:
-                out = self.run_dir(seed, copy.count)
-                jobs += [
-                    copy,
-                    ReconstructJob(
-                        out=out,
-                        scene=copy.out,
-                        method=c.method,
-                        seed=seed,
-                        iterations=c.iterations,
-                        name=f"reconstruct {out.name}",
-                        needs=(copy.name,),
-                    ),
-                ]
+            jobs += capture_copies_runs(capture, copies, lambda copy: self.reconstruct_job(seed, copy))
         return jobs
+
+    def reconstruct_job(self, seed: int, copy: SubsampleJob) -> ReconstructJob:
+        out, c = self.out / "runs" / f"t{copy.count:03d}-s{seed}", self.config
+        return ReconstructJob(
+            out=out, scene=copy.out, method=c.method, seed=seed, iterations=c.iterations, name=f"reconstruct {out.name}"
+        )
 
     def results(self) -> list[dict]:
         """One row per finished run, in the order of the sweep."""
@@ -173,7 +141,7 @@ class TouchBench:
             if not isinstance(job, ReconstructJob) or not job.complete():
                 continue
             metrics = json.loads((job.out / "metrics.json").read_text())
-            marker = json.loads(job.scene.with_name(job.scene.name + ".json").read_text())
+            marker = json.loads(job.scene.with_name(f"{job.scene.name}.json").read_text())
             rows.append(
                 {
                     "seed": job.seed,
@@ -183,13 +151,6 @@ class TouchBench:
                 }
             )
         return rows
-
-    def check_out(self, jobs: list[BatchJob]) -> None:
-        """Refuse a folder whose finished or interrupted runs were trained with other settings, before anything
-        runs (:meth:`ReconstructJob.refuse_changed_settings`)."""
-        for job in jobs:
-            if isinstance(job, ReconstructJob):
-                job.refuse_changed_settings()
 
     def run(self, progress: bool = True, **executor) -> list[dict]:
         """Capture, copy and train whatever is not done yet (``executor``: the executor, ray_address and retries of
@@ -204,7 +165,9 @@ class TouchBench:
             return f"seed {job.seed}: {kept:3d} touches -> CD {metrics['cd']:.4f}  PSNR {metrics['psnr']:.2f}"
 
         jobs = self.jobs()
-        self.check_out(jobs)
+        for job in jobs:  # a folder whose runs were trained with other settings is refused before anything runs
+            if isinstance(job, ReconstructJob):
+                job.refuse_changed_settings()
         outcome = run_jobs(jobs, self.out, on_done=on_done, desc="bench touches", progress=progress, **executor)
         rows = self.results()
         write_touch_report(self.out, rows, self.config.method)
@@ -220,39 +183,29 @@ def summarise(rows: list[dict]) -> list[dict]:
     summary = []
     for count in sorted({r["requested_touches"] for r in rows}):
         group = [r for r in rows if r["requested_touches"] == count]
-        cds = np.array([r["cd"] for r in group if r["cd"] is not None], dtype=float)
-        psnrs = np.array([r["psnr"] for r in group if r["psnr"] is not None], dtype=float)
-        summary.append(
-            {
-                "requested_touches": count,
-                "mean_touches": float(np.mean([r["touches"] for r in group])),
-                "runs": len(group),
-                "cd_mean": float(cds.mean()) if len(cds) else float("nan"),
-                "cd_std": float(cds.std()) if len(cds) else float("nan"),
-                "psnr_mean": float(psnrs.mean()) if len(psnrs) else float("nan"),
-                "psnr_std": float(psnrs.std()) if len(psnrs) else float("nan"),
-            }
-        )
+        line = {
+            "requested_touches": count,
+            "mean_touches": float(np.mean([r["touches"] for r in group])),
+            "runs": len(group),
+        }
+        for key in ("cd", "psnr"):
+            values = np.array([r[key] for r in group if r[key] is not None], dtype=float)
+            line[f"{key}_mean"] = float(values.mean()) if len(values) else float("nan")
+            line[f"{key}_std"] = float(values.std()) if len(values) else float("nan")
+        summary.append(line)
     return summary
 
 
 def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[str, Path]:
     """``touches.csv``, ``summary.csv`` and ``cd_vs_touches.png`` (mean +- std over seeds, each run a dot; the
     title names the ``method`` the runs trained)."""
-    from tacsplat.apps.report import pyplot, save_figure
+    from tacsplat.apps.report import pyplot, save_figure, write_csv
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     paths = {"runs": out / "touches.csv", "summary": out / "summary.csv", "plot": out / "cd_vs_touches.png"}
-    with paths["runs"].open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=TOUCH_COLUMNS, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
+    write_csv(rows, paths["runs"], TOUCH_COLUMNS)
     summary = summarise(rows)
-    with paths["summary"].open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(summary[0]) if summary else ["requested_touches"])
-        writer.writeheader()
-        writer.writerows(summary)
+    write_csv(summary, paths["summary"], list(summary[0]) if summary else ["requested_touches"])
     fig, ax = pyplot().subplots(figsize=(5.5, 4))
     x = np.array([s["requested_touches"] for s in summary], dtype=float)
     mean = np.array([s["cd_mean"] for s in summary])
@@ -264,8 +217,7 @@ def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[s
     )
     ax.set_xscale("symlog", linthresh=4)
     ax.set_xticks(x, [str(int(v)) for v in x])
-    ax.set_xlabel("number of touches")
-    ax.set_ylabel("Chamfer distance [x GT radius]")
+    ax.set(xlabel="number of touches", ylabel="Chamfer distance [x GT radius]")
     ax.set_title(f"CD against number of touches ({method})")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
