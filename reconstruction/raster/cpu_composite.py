@@ -668,37 +668,6 @@ class _RasterizeCPU(torch.autograd.Function):
         tile_cached = np.empty(n_cams * tiles_per_cam, np.bool_)
         # each visited row's columns [x0, x1) within its tile, for the backward
         spans = np.empty((n_isect, tile_size, 2), np.uint8 if tile_size <= 255 else np.int64)
-        with nb.parallel_chunksize(_TILE_CHUNK):
-            _forward(
-                tile_start,
-                tile_gauss,
-                m2d,
-                con,
-                opa,
-                limits,
-                col,
-                bgs,
-                width,
-                height,
-                tile_size,
-                tiles_x,
-                tiles_per_cam,
-                F32(max_alpha),
-                dep,
-                out_color.numpy(),
-                out_trans.numpy(),
-                last,
-                out_median.numpy()[..., 0],
-                tile_pairs,
-                cache_start,
-                vis_cache,
-                pair_start,
-                tile_cached,
-                spans,
-                tuple(range(n_ch)),
-            )
-        stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
-
         ctx.kernel_args = (
             tile_start,
             tile_gauss,
@@ -715,6 +684,23 @@ class _RasterizeCPU(torch.autograd.Function):
             tiles_per_cam,
             F32(max_alpha),
         )
+        with nb.parallel_chunksize(_TILE_CHUNK):
+            _forward(
+                *ctx.kernel_args,
+                dep,
+                out_color.numpy(),
+                out_trans.numpy(),
+                last,
+                out_median.numpy()[..., 0],
+                tile_pairs,
+                cache_start,
+                vis_cache,
+                pair_start,
+                tile_cached,
+                spans,
+                tuple(range(n_ch)),
+            )
+        stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
         ctx.binning = (gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached, spans)
         ctx.shapes = (n_cams, n, n_ch)
         ctx.has_background = backgrounds is not None
