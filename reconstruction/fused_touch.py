@@ -218,21 +218,10 @@ class _TouchNormalCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        points, touch_normals, means, normals, opacities, candidates = ctx.arrays
+        normals, candidates = ctx.arrays[3], ctx.arrays[5]
         rows = np.empty(candidates.shape + (4,))
-        _normal_pair_gradients(
-            points,
-            touch_normals,
-            means,
-            normals,
-            opacities,
-            candidates,
-            ctx.max_d2,
-            ctx.per_point,
-            ctx.weight_sums,
-            float(grad) * ctx.point_scale,
-            rows,
-        )
+        scale = float(grad) * ctx.point_scale
+        _normal_pair_gradients(*ctx.arrays, ctx.max_d2, ctx.per_point, ctx.weight_sums, scale, rows)
         summed = np.zeros((len(normals), 4))
         _sum_rows(candidates, candidates >= 0, rows, summed)
         v = torch.from_numpy(summed.astype(normals.dtype))
