@@ -404,8 +404,7 @@ def save_comparison(
         coverage = _seen_color(gt_depth, seen_image)
     top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8), error], axis=1)
     bottom = np.concatenate(
-        [_depth_color(depth, lo, hi), blank if gt_depth is None else _depth_color(gt_depth, lo, hi), coverage],
-        axis=1,
+        [_depth_color(depth, lo, hi), blank if gt_depth is None else _depth_color(gt_depth, lo, hi), coverage], axis=1
     )
     write_png(path, np.concatenate([top, bottom], axis=0))
 

@@ -24,12 +24,7 @@ import torch
 from torch import Tensor
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction.raster.reference import (
-    MAX_ALPHA,
-    Projection,
-    project_gaussians,
-    rasterize_to_pixels_torch,
-)
+from tacsplat.reconstruction.raster.reference import MAX_ALPHA, Projection, project_gaussians, rasterize_to_pixels_torch
 from tacsplat.reconstruction.raster.spherical_harmonics import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "MD", "RGB+D", "RGB+ED", "RGB+MD")
