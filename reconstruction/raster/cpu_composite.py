@@ -298,27 +298,12 @@ def _forward(tiles, gaussians, image, max_alpha, depths, outputs, cache, channel
                             trans, acc, last, median, p0 + x, vis, opac, max_alpha, colors, g, depth, k, alive, channels
                         )
                 else:
-                    for x in range(x0, x1):
-                        stored = _ZERO
+                    for x in range(x0, x1):  # (a pair out of reach gets vis 0: alpha 0, nothing composited)
                         sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
-                        if sigma >= _ZERO and sigma <= limit:
-                            stored, alive = _composite(
-                                trans,
-                                acc,
-                                last,
-                                median,
-                                p0 + x,
-                                F32(math.exp(-sigma)),
-                                opac,
-                                max_alpha,
-                                colors,
-                                g,
-                                depth,
-                                k,
-                                alive,
-                                channels,
-                            )
-                        row[x - x0] = stored
+                        vis = F32(math.exp(-sigma)) if sigma >= _ZERO and sigma <= limit else _ZERO
+                        row[x - x0], alive = _composite(
+                            trans, acc, last, median, p0 + x, vis, opac, max_alpha, colors, g, depth, k, alive, channels
+                        )
         tile_pairs[t] = pairs
         tile_cached[t] = cached
         for p in range(n_pix):
@@ -382,6 +367,7 @@ def _backward(tiles, gaussians, image, max_alpha, final_trans, last_contrib, v_c
         tv_a = np.empty(n_pix, np.float32)  # T_final * (d loss / d alpha-image minus the background's share)
         behind = np.zeros(n_pix, np.float32)  # colour composited behind so far, dotted with the pixel's v_color
         v_col_g = np.empty(n_ch, np.float32)  # d loss / d colour of the current Gaussian
+        scratch = np.empty(tile_size, np.float32)  # a row's exp values where the forward's did not fit its cache
         use_cache = tile_cached[t]
         max_last = start
         for p in range(n_pix):
@@ -414,54 +400,34 @@ def _backward(tiles, gaussians, image, max_alpha, final_trans, last_contrib, v_c
                     x0, x1 = x_lo + np.int64(spans[k, y - y_lo, 0]), x_lo + np.int64(spans[k, y - y_lo, 1])
                     row = vis_cache[pos : pos + (x1 - x0)]
                     pos += x1 - x0
-                    for x in range(x0, x1):
-                        vis = row[x - x0]
-                        if vis != _ZERO and k < last[p0 + x]:
-                            s_x, s_xx, row_s, g_o = _pair_backward(
-                                trans,
-                                tv_a,
-                                behind,
-                                v_c,
-                                v_col_g,
-                                p0 + x,
-                                vis,
-                                opac,
-                                max_alpha,
-                                colors,
-                                g,
-                                mx - (F32(x) + _HALF),
-                                s_x,
-                                s_xx,
-                                row_s,
-                                g_o,
-                                channels,
-                            )
-                else:
+                else:  # solved again, exp(-exponent) where the pair counts (else 0) into a scratch row
                     x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
+                    row = scratch[: x1 - x0]
                     for x in range(x0, x1):
-                        if k < last[p0 + x]:
-                            dx = mx - (F32(x) + _HALF)
-                            sigma = _exponent(a, b, c, dx, dy)
-                            if sigma >= _ZERO and sigma <= limit:
-                                s_x, s_xx, row_s, g_o = _pair_backward(
-                                    trans,
-                                    tv_a,
-                                    behind,
-                                    v_c,
-                                    v_col_g,
-                                    p0 + x,
-                                    math.exp(-sigma),
-                                    opac,
-                                    max_alpha,
-                                    colors,
-                                    g,
-                                    dx,
-                                    s_x,
-                                    s_xx,
-                                    row_s,
-                                    g_o,
-                                    channels,
-                                )
+                        sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
+                        row[x - x0] = math.exp(-sigma) if sigma >= _ZERO and sigma <= limit else _ZERO
+                for x in range(x0, x1):
+                    vis = row[x - x0]
+                    if vis != _ZERO and k < last[p0 + x]:
+                        s_x, s_xx, row_s, g_o = _pair_backward(
+                            trans,
+                            tv_a,
+                            behind,
+                            v_c,
+                            v_col_g,
+                            p0 + x,
+                            vis,
+                            opac,
+                            max_alpha,
+                            colors,
+                            g,
+                            mx - (F32(x) + _HALF),
+                            s_x,
+                            s_xx,
+                            row_s,
+                            g_o,
+                            channels,
+                        )
                 # fold the row's sums in, dy being constant along the row
                 s_xr += s_x
                 s_y += row_s * dy
