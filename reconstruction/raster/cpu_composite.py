@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from tacsplat.reconstruction.raster.reference import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD
+from tacsplat.reconstruction.raster.reference import ALPHA_THRESHOLD, TRANSMITTANCE_THRESHOLD
 
 F32 = np.float32
 _HALF = F32(0.5)
@@ -552,11 +552,18 @@ def _numpy32(x: Tensor) -> np.ndarray:
 
 
 class _RasterizeCPU(torch.autograd.Function):
-    """Autograd wrapper: forward and backward run the numba kernels above."""
+    """Composite projected Gaussians into images on the CPU (forward and backward: the numba kernels above):
+    ``apply(means2d [C, N, 2], conics [C, N, 3], colors [C, N, D], opacities [C, N], radii [C, N, 2] (0 = culled),
+    depths [C, N], width, height, tile_size, backgrounds [C, D] or None, max_alpha)``.
+
+    Returns (colors [C, H, W, D], alphas [C, H, W, 1], stats [2] int64 = (tile-Gaussian
+    intersections, pixel-Gaussian pairs evaluated by the forward pass), median depth [C, H, W, 1]
+    (forward only: the ``depths`` value at which the transmittance first falls below 0.5, 0 where it never does)).
+    """
 
     @staticmethod
     def forward(
-        ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size, max_alpha
+        ctx, means2d, conics, colors, opacities, radii, depths, width, height, tile_size, backgrounds, max_alpha
     ):
         n_cams, n, n_ch = colors.shape
         tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
@@ -625,30 +632,9 @@ class _RasterizeCPU(torch.autograd.Function):
         v_opacities = grads[..., 5]
         v_colors = grads[..., N_GRAD:]
         v_backgrounds = None
-        if ctx.has_background and ctx.needs_input_grad[4]:
+        if ctx.has_background and ctx.needs_input_grad[9]:
             v_backgrounds = (v_color * out_trans.unsqueeze(-1)).sum(dim=(1, 2))
-        return v_means2d, v_conics, v_colors, v_opacities, v_backgrounds, None, None, None, None, None, None
+        return v_means2d, v_conics, v_colors, v_opacities, None, None, None, None, None, v_backgrounds, None
 
 
-def rasterize_to_pixels_cpu(
-    means2d: Tensor,  # [C, N, 2]
-    conics: Tensor,  # [C, N, 3]
-    colors: Tensor,  # [C, N, D]
-    opacities: Tensor,  # [C, N]
-    radii: Tensor,  # [C, N, 2] int, 0 = culled
-    depths: Tensor,  # [C, N]
-    width: int,
-    height: int,
-    tile_size: int = 16,
-    backgrounds: Tensor | None = None,  # [C, D]
-    max_alpha: float = MAX_ALPHA,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Composite projected Gaussians into images on the CPU.
-
-    Returns (colors [C, H, W, D], alphas [C, H, W, 1], stats [2] int64 = (tile-Gaussian
-    intersections, pixel-Gaussian pairs evaluated by the forward pass), median depth [C, H, W, 1]
-    (forward only: the ``depths`` value at which the transmittance first falls below 0.5, 0 where it never does)).
-    """
-    return _RasterizeCPU.apply(
-        means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size, max_alpha
-    )
+rasterize_to_pixels_cpu = _RasterizeCPU.apply

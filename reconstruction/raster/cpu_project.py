@@ -438,6 +438,10 @@ def _np(x: Tensor) -> np.ndarray:
 
 
 class _ProjectCPU(torch.autograd.Function):
+    """Classic-mode projection: ``apply(means [N, 3] float32, quats [N, 4], scales [N, 3], opacities [N], viewmats
+    [C, 4, 4], Ks [C, 3, 3], width, height, near_plane, far_plane, eps2d, radius_clip)`` -> (means2d [C, N, 2],
+    conics [C, N, 3], depths [C, N], radii [C, N, 2] int32)."""
+
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip):
         n_cams, n = viewmats.shape[0], means.shape[0]
@@ -465,6 +469,9 @@ class _ProjectCPU(torch.autograd.Function):
 
 
 class _SphericalHarmonicsCPU(torch.autograd.Function):
+    """gsplat's SH colours max(SH + 0.5, 0) of every (camera, Gaussian): ``apply(degree, means [N, 3], campos
+    [C, 3], coeffs [N, K, D], radii [C, N, 2])`` -> [C, N, D]."""
+
     @staticmethod
     def forward(ctx, degree, means, campos, coeffs, radii):
         n_cams, n = radii.shape[:2]
@@ -487,32 +494,5 @@ class _SphericalHarmonicsCPU(torch.autograd.Function):
         return None, v_means, None, v_coeffs, None
 
 
-def project_gaussians_cpu(
-    means: Tensor,  # [N, 3] float32
-    quats: Tensor,  # [N, 4]
-    scales: Tensor,  # [N, 3]
-    opacities: Tensor,  # [N]
-    viewmats: Tensor,  # [C, 4, 4]
-    Ks: Tensor,  # [C, 3, 3]
-    width: int,
-    height: int,
-    near_plane: float,
-    far_plane: float,
-    eps2d: float,
-    radius_clip: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Classic-mode projection -> (means2d [C, N, 2], conics [C, N, 3], depths [C, N], radii [C, N, 2] int32)."""
-    return _ProjectCPU.apply(
-        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, radius_clip
-    )
-
-
-def sh_colors_cpu(
-    degree: int,
-    means: Tensor,  # [N, 3]
-    campos: Tensor,  # [C, 3]
-    coeffs: Tensor,  # [N, K, D]
-    radii: Tensor,  # [C, N, 2]
-) -> Tensor:
-    """gsplat's SH colours max(SH + 0.5, 0) of every (camera, Gaussian) -> [C, N, D]."""
-    return _SphericalHarmonicsCPU.apply(degree, means, campos, coeffs, radii)
+project_gaussians_cpu = _ProjectCPU.apply
+sh_colors_cpu = _SphericalHarmonicsCPU.apply

@@ -9,6 +9,7 @@ import torch
 
 from tacsplat.apps.bench_rasterizer import random_scene
 from tacsplat.reconstruction.raster import rasterization
+from tacsplat.reconstruction.raster.reference import MAX_ALPHA
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -332,7 +333,7 @@ def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
         16,
         tiles_x,
         n_tiles,
-        np.float32(rc.MAX_ALPHA),
+        np.float32(MAX_ALPHA),
     )
     capacity = np.empty(n_isect, np.int64)
     rc._pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, 16, tiles_x, n_tiles, capacity)
