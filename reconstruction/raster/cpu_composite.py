@@ -223,7 +223,34 @@ def _pair_capacity(
 
 
 @nb.njit(parallel=True, cache=True)
-def _forward(tiles, gaussians, image, max_alpha, depths, outputs, cache, channels):
+def _forward(
+    tile_start,
+    tile_gauss,
+    means2d,
+    conics,
+    opacities,
+    limits,
+    colors,
+    backgrounds,
+    width,
+    height,
+    tile_size,
+    tiles_x,
+    tiles_per_cam,
+    max_alpha,
+    depths,
+    out_color,
+    out_trans,
+    out_last,
+    out_median,
+    tile_pairs,
+    cache_start,
+    vis_cache,
+    pair_start,
+    tile_cached,
+    spans,
+    channels,
+):
     """Front-to-back compositing, parallel over tiles; writes colour (+ T * background), T, n_contrib and the
     median depth (the depth of the Gaussian at which T first falls below 0.5, else 0).
 
@@ -234,13 +261,7 @@ def _forward(tiles, gaussians, image, max_alpha, depths, outputs, cache, channel
     it visits go to ``spans[k, row in tile]`` (relative to the tile). ``channels`` is ``tuple(range(D))`` for D
     colour channels: a tuple's length is part of its numba type, so each channel count gets its own compiled kernel
     whose per-pixel channel loop has a constant trip count (forward 14.6 -> 13.3 ns per pair, one thread, RGB).
-    The arguments come in the groups :class:`_RasterizeCPU` makes once for both passes.
     """
-    tile_start, tile_gauss = tiles
-    means2d, conics, opacities, limits, colors, backgrounds = gaussians
-    width, height, tile_size, tiles_x, tiles_per_cam = image
-    out_color, out_trans, out_last, out_median, tile_pairs = outputs
-    cache_start, vis_cache, pair_start, tile_cached, spans = cache
     n_ch = len(channels)
     for t in nb.prange(tile_start.shape[0] - 1):
         cam = t // tiles_per_cam
@@ -339,17 +360,38 @@ def _composite(trans, acc, last, median, p, vis, opac, max_alpha, colors, g, dep
 
 
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
-def _backward(tiles, gaussians, image, max_alpha, final_trans, last_contrib, v_color, v_alpha, cache, rows, channels):
+def _backward(
+    tile_start,
+    tile_gauss,
+    means2d,
+    conics,
+    opacities,
+    limits,
+    colors,
+    backgrounds,
+    width,
+    height,
+    tile_size,
+    tiles_x,
+    tiles_per_cam,
+    max_alpha,
+    final_trans,
+    last_contrib,
+    v_color,
+    v_alpha,
+    vis_cache,
+    pair_start,
+    tile_cached,
+    spans,
+    rows,
+    channels,
+):
     """Back-to-front gradients, parallel over tiles; one gradient row per intersection in ``rows``.
 
     Pairs read ``exp(-exponent)`` back from the forward's ``vis_cache`` and rows their columns from its
     ``spans`` (both recomputed where ``tile_cached`` is false). ``channels``: as in the forward, one compiled kernel
-    per channel count. ``tiles``, ``gaussians``, ``image`` and ``cache``: the forward's.
+    per channel count.
     """
-    tile_start, tile_gauss = tiles
-    means2d, conics, opacities, limits, colors, backgrounds = gaussians
-    width, height, tile_size, tiles_x, tiles_per_cam = image
-    _, vis_cache, pair_start, tile_cached, spans = cache
     n_ch = len(channels)
     for t in nb.prange(tile_start.shape[0] - 1):
         start, end = tile_start[t], tile_start[t + 1]
@@ -599,12 +641,12 @@ class _RasterizeCPU(torch.autograd.Function):
         tile_cached = np.empty(n_cams * tiles_per_cam, np.bool_)
         # each visited row's columns [x0, x1) within its tile, for the backward
         spans = np.empty((n_isect, tile_size, 2), np.uint8 if tile_size <= 255 else np.int64)
-        tiles, image = (tile_start, tile_gauss), (width, height, tile_size, tiles_x, tiles_per_cam)
-        ctx.kernel_args = (tiles, (m2d, con, opa, limits, col, bgs), image, F32(max_alpha))
+        image = (width, height, tile_size, tiles_x, tiles_per_cam)
+        ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, limits, col, bgs, *image, F32(max_alpha))
         outputs = (out_color.numpy(), out_trans.numpy(), last, out_median.numpy()[..., 0], tile_pairs)
         cache = (cache_start, vis_cache, pair_start, tile_cached, spans)
         with nb.parallel_chunksize(_TILE_CHUNK):
-            _forward(*ctx.kernel_args, dep, outputs, cache, tuple(range(n_ch)))
+            _forward(*ctx.kernel_args, dep, *outputs, *cache, tuple(range(n_ch)))
         stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
         ctx.binning = (gauss_offsets, gauss_isect, last, cache)
         ctx.shapes = (n_cams, n, n_ch)
@@ -623,7 +665,7 @@ class _RasterizeCPU(torch.autograd.Function):
         v_alp = _numpy32(v_alphas[..., 0])
         rows = np.empty((gauss_isect.shape[0], N_GRAD + n_ch), np.float32)
         with nb.parallel_chunksize(_TILE_CHUNK):
-            _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, cache, rows, tuple(range(n_ch)))
+            _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, *cache[1:], rows, tuple(range(n_ch)))
         per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
         _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
         grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)

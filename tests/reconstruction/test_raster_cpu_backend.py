@@ -354,13 +354,8 @@ def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
         np.empty(n_tiles, np.int64),
     )
     cache = (out["cache_start"], out["vis_cache"], out["pair_start"], out["cached"], out["spans"])
-    rc._forward(*_grouped(args), proj.depths[0].numpy(), outputs, cache, (0, 1, 2))
+    rc._forward(*args, proj.depths[0].numpy(), *outputs, *cache, (0, 1, 2))
     return args, out
-
-
-def _grouped(args):
-    """The kernels' argument groups (tiles, Gaussians, image, max alpha) of the flat ``args`` of _cpu_forward."""
-    return args[:2], args[2:8], args[8:13], args[13]
 
 
 def test_forward_exp_recurrence_matches_float64_exp():
@@ -412,7 +407,7 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     rows = {}
     for use_cache in (True, False):
         rows[use_cache] = np.empty((n_isect, rc.N_GRAD + 3), np.float32)
-        cache = (None, vis_cache, pair_start, np.full(n_tiles, use_cache), spans)
-        rc._backward(*_grouped(args), trans, last, v_color, v_alpha, cache, rows[use_cache], (0, 1, 2))
+        cache = (vis_cache, pair_start, np.full(n_tiles, use_cache), spans)
+        rc._backward(*args, trans, last, v_color, v_alpha, *cache, rows[use_cache], (0, 1, 2))
     np.testing.assert_allclose(rows[True], rows[False], rtol=1e-5, atol=1e-6 * np.abs(rows[False]).max())
     assert np.abs(rows[False]).max() > 0
