@@ -109,24 +109,8 @@ def _reconstruct(args) -> int:
         again = shlex.join(["tacsplat", "reconstruct", str(command.scene), "--out", str(command.out), "--resume"])
         print(f"{stop}; continue with:\n  {again}", file=sys.stderr)
         return 128 + stop.signum
-    print(
-        json.dumps(
-            {
-                k: metrics[k]
-                for k in (
-                    "method",
-                    "cd",
-                    "psnr",
-                    "ssim",
-                    "train_seconds",
-                    "iterations",
-                    "num_gaussians",
-                    "num_touch_gaussians",
-                )
-            },
-            indent=2,
-        )
-    )
+    shown = ("method", "cd", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians", "num_touch_gaussians")
+    print(json.dumps({k: metrics[k] for k in shown}, indent=2))
     return 0
 
 

@@ -120,17 +120,17 @@ def ground_truth_normals(scene, frame, gt_depth: np.ndarray) -> np.ndarray:
 def render_median_depth(gaussians: Gaussians, frame, backend: str) -> np.ndarray:
     """Median depth [H, W] of a view (the paper's evaluation depth; 0 where the transmittance stays >= 0.5)."""
     viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
+    g, size = gaussians, (frame.intrinsics.width, frame.intrinsics.height)
     depth, _, _ = raster.rasterization(
-        gaussians.means,
-        gaussians.quats,
-        gaussians.scales,
-        gaussians.opacities,
-        gaussians.sh_coefficients(),
+        g.means,
+        g.quats,
+        g.scales,
+        g.opacities,
+        g.sh_coefficients(),
         viewmat,
         K,
-        frame.intrinsics.width,
-        frame.intrinsics.height,
-        sh_degree=gaussians.sh_degree,
+        *size,
+        sh_degree=g.sh_degree,
         render_mode="MD",
         backend=backend,
     )
@@ -311,15 +311,8 @@ def evaluate_views(
             predicted_median.append(depth_to_points(median, f.intrinsics.K, f.T_world_cam))
         if render_dir is not None:
             seen = None if ground_truth is None or ground_truth.seen is None else ground_truth.seen.get(f.id)
-            save_comparison(
-                render_dir / f"view_{f.id:04d}.png",
-                rgb,
-                gt_rgb,
-                depth,
-                gt_depth,
-                None if ground_truth is None else ground_truth.radius,
-                seen,
-            )
+            radius = None if ground_truth is None else ground_truth.radius
+            save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth, radius, seen)
     cd = accuracy = completeness = cd_seen = cd_unseen = unseen_fraction = float("nan")
     reference = None if ground_truth is None else ground_truth.reference([f.id for f in frames])
     if reference is not None:
@@ -411,8 +404,7 @@ def save_comparison(
         coverage = _seen_color(gt_depth, seen_image)
     top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8), error], axis=1)
     bottom = np.concatenate(
-        [_depth_color(depth, lo, hi), blank if gt_depth is None else _depth_color(gt_depth, lo, hi), coverage],
-        axis=1,
+        [_depth_color(depth, lo, hi), blank if gt_depth is None else _depth_color(gt_depth, lo, hi), coverage], axis=1
     )
     write_png(path, np.concatenate([top, bottom], axis=0))
 

@@ -117,27 +117,11 @@ def _forward(blended, alpha, floor, normal, K, rotation, coefficients, camera, l
 
 
 @nb.njit(parallel=True, cache=True)
-def _backward(
-    blended,
-    alpha,
-    floor,
-    rotation,
-    coefficients,
-    camera,
-    lit,
-    first,
-    states,
-    g_rgb,
-    g_albedo,
-    g_blended,
-    g_alpha,
-    g_normal,
-    g_coefficients,
-    g_camera,
-):
-    """Gradients per pixel into g_blended [H, W, 3], g_alpha [H, W], g_normal [H, W, 3] from the forward's
-    ``states``; the SH coefficients' and the camera light's summed per row chunk into g_coefficients [C, 9, 3],
-    g_camera [C, 3]."""
+def _backward(blended, alpha, floor, rotation, coefficients, camera, lit, first, states, g_rgb, g_albedo, grads):
+    """Gradients per pixel into ``grads`` = (g_blended [H, W, 3], g_alpha [H, W], g_normal [H, W, 3], ...) from the
+    forward's ``states``; the SH coefficients' and the camera light's summed per row chunk into its last two,
+    g_coefficients [C, 9, 3] and g_camera [C, 3]."""
+    g_blended, g_alpha, g_normal, g_coefficients, g_camera = grads
     height, width = alpha.shape
     chunks = g_coefficients.shape[0]
     for chunk in nb.prange(chunks):
@@ -214,32 +198,12 @@ class _ShadeCPU(torch.autograd.Function):
         g_alpha = np.empty(alpha.shape, alpha.dtype)
         chunks = min(_CHUNKS, alpha.shape[0])
         g_coefficients, g_camera = np.zeros((chunks, 9, 3)), np.zeros((chunks, 3))
-        _backward(
-            blended,
-            alpha,
-            ctx.floor,
-            *ctx.fixed[1:],
-            ctx.lit,
-            *ctx.states,
-            *g,
-            g_blended,
-            g_alpha,
-            g_normal,
-            g_coefficients,
-            g_camera,
-        )
+        grads = (g_blended, g_alpha, g_normal, g_coefficients, g_camera)
+        _backward(blended, alpha, ctx.floor, *ctx.fixed[1:], ctx.lit, *ctx.states, *g, grads)
         g_coefficients = torch.from_numpy(g_coefficients.sum(0)).to(ctx.dtypes[0])
         g_camera = torch.from_numpy(g_camera.sum(0)).to(ctx.dtypes[1])
-        return (
-            torch.from_numpy(g_blended),
-            torch.from_numpy(g_alpha),
-            torch.from_numpy(g_normal),
-            None,
-            None,
-            g_coefficients,
-            g_camera,
-            None,
-        )
+        g_blended, g_alpha, g_normal = (torch.from_numpy(a) for a in (g_blended, g_alpha, g_normal))
+        return g_blended, g_alpha, g_normal, None, None, g_coefficients, g_camera, None
 
 
 def shade_cpu(

@@ -1,7 +1,7 @@
 """The touch losses fused in numba for CPU tensors: ``transmittance_cpu`` (paper Eq. 6-7) and
 ``touch_normal_cpu`` (the tactile normals' alignment, :func:`.losses.touch_normal_loss`).
 
-Same value and gradients as the torch reference :func:`.losses.transmittance_loss_torch` (which CUDA
+Same value and gradients as the torch reference :func:`.losses.transmittance_loss` (``fused=False``, which CUDA
 tensors use): for each touch point, the influence f alpha (Eq. 1) of each candidate Gaussian in reach, the
 ``top_k`` highest, and T(p) the mean of 1 - f alpha over them (1 with none); the loss is the mean of T(p).
 The forward evaluates each (point, candidate) pair in registers -- rotation from the quaternion, the offset in
@@ -218,21 +218,10 @@ class _TouchNormalCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        points, touch_normals, means, normals, opacities, candidates = ctx.arrays
+        normals, candidates = ctx.arrays[3], ctx.arrays[5]
         rows = np.empty(candidates.shape + (4,))
-        _normal_pair_gradients(
-            points,
-            touch_normals,
-            means,
-            normals,
-            opacities,
-            candidates,
-            ctx.max_d2,
-            ctx.per_point,
-            ctx.weight_sums,
-            float(grad) * ctx.point_scale,
-            rows,
-        )
+        scale = float(grad) * ctx.point_scale
+        _normal_pair_gradients(*ctx.arrays, ctx.max_d2, ctx.per_point, ctx.weight_sums, scale, rows)
         summed = np.zeros((len(normals), 4))
         _sum_rows(candidates, candidates >= 0, rows, summed)
         v = torch.from_numpy(summed.astype(normals.dtype))

@@ -128,33 +128,19 @@ def transmittance_loss(
     max_distance: float,
     fused: bool = True,
 ) -> torch.Tensor:
-    """Eq. 7 (minimised; the printed minus sign is a typo): L_T = 1/P sum_i T(p_i), see
-    :func:`transmittance_loss_torch`; for CPU tensors the fused kernels of :mod:`.fused_touch` (same value and
-    gradients, a tenth of the time) unless ``fused`` is False, elsewhere that torch reference."""
-    if fused and means.device.type == "cpu":
-        return transmittance_cpu(
-            touch_points, means, quats, scales, opacities, candidates, top_k, max_distance, MAX_MAHALANOBIS
-        )
-    return transmittance_loss_torch(touch_points, means, quats, scales, opacities, candidates, top_k, max_distance)
-
-
-def transmittance_loss_torch(
-    touch_points: torch.Tensor,  # [P, 3]
-    means: torch.Tensor,  # [N, 3]
-    quats: torch.Tensor,  # [N, 4]
-    scales: torch.Tensor,  # [N, 3] activated
-    opacities: torch.Tensor,  # [N] activated
-    candidates: torch.Tensor,  # [P, C] long, -1 = none
-    top_k: int,
-    max_distance: float,
-) -> torch.Tensor:
-    """Eq. 7 in torch (the reference of the fused CPU kernels; what CUDA tensors use).
+    """Eq. 7 (minimised; the printed minus sign is a typo): L_T = 1/P sum_i T(p_i); for CPU tensors the fused
+    kernels of :mod:`.fused_touch` (same value and gradients, a tenth of the time) unless ``fused`` is False,
+    elsewhere the torch below (their reference).
 
     T(p) (Eq. 6) is the mean of 1 - f(p; Sigma_j, mu_j) alpha_j over the ``top_k``
     candidates with the highest influence f alpha that lie within
     ``max_distance`` of p (live distance). A point with no Gaussian in reach has
     T(p) = 1: nothing blocks light there.
     """
+    if fused and means.device.type == "cpu":
+        return transmittance_cpu(
+            touch_points, means, quats, scales, opacities, candidates, top_k, max_distance, MAX_MAHALANOBIS
+        )
     valid = candidates >= 0
     ids = candidates.clamp_min(0)
     if ids.is_cuda:  # finding the distinct ids would wait for the device; [P, C] whitenings cost it little

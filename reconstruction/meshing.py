@@ -130,13 +130,7 @@ class TSDFVolume:
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
         return self.lo + (grid + 0.5) * self.voxel
 
-    def integrate_depth(
-        self,
-        depth: np.ndarray,
-        rgb: np.ndarray,
-        K: np.ndarray,
-        T_world_cam: np.ndarray,
-    ) -> None:
+    def integrate_depth(self, depth: np.ndarray, rgb: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray) -> None:
         """Fuse one view's z-depth [H, W] (0 where no surface: its ray is empty) and colour [H, W, 3]."""
         h, w = depth.shape
         world_to_cam = invert_pose(T_world_cam)

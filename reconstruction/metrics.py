@@ -83,14 +83,9 @@ def ssim(rendered: torch.Tensor, target: torch.Tensor, window: int = 11) -> floa
     return float(ssim_map(rendered.double(), target.double(), window=window, valid=True).mean())
 
 
-def depth_to_points(
-    depth: np.ndarray,  # [H, W] z-depth in metres
-    K: np.ndarray,  # [3, 3]
-    T_world_cam: np.ndarray,  # [4, 4] OpenCV camera-to-world
-    mask: np.ndarray | None = None,  # [H, W] bool
-) -> np.ndarray:
-    """World points [M, 3] of the valid (positive, finite, masked-in) pixels of a depth map."""
-    return unproject_depth(depth, K, T_world_cam, mask)
+depth_to_points = (
+    unproject_depth  # world points [M, 3] of the valid (positive, finite, masked-in) pixels of a depth map
+)
 
 
 def bounding_sphere_radius(points: np.ndarray) -> float:

@@ -108,46 +108,33 @@ def render(
     """Render one view; see the module docstring for what each option adds to the pass. A caller that also needs
     the Gaussians' normals (a loss) computes them once and passes them as ``world_normals``."""
     g = gaussians
-    if not normals and appearance == "sh":
-        mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
-        colors, alphas, meta = raster.rasterization(
-            g.means,
-            g.quats,
-            g.scales,
-            g.opacities,
-            g.sh_coefficients(sh_degree),
-            viewmat,
-            K,
-            width,
-            height,
-            sh_degree=sh_degree,
-            render_mode=mode,
-            backend=backend,
-        )
-        depth = None if depth_mode is None else colors[0, ..., 3]
-        return RenderOutput(colors[0, ..., :3], alphas[0, ..., 0], depth, None, meta)
-
-    campos = -viewmat[0, :3, :3].T @ viewmat[0, :3, 3]  # [3]
-    features = raster.sh_colors(sh_degree, g.means, campos, g.sh_coefficients(sh_degree), backend)  # [N, 3]
-    n = gaussian_normals(g.quats, g.scales, fused_kernels(backend)) if world_normals is None else world_normals
-    n = torch.where(((n * (g.means - campos)).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
-    channels = [features, n @ viewmat[0, :3, :3].T]  # camera-frame normals
+    plain = not normals and appearance == "sh"  # SH colour straight through rasterization's fused SH path
+    colors, degree = g.sh_coefficients(sh_degree), sh_degree
+    if not plain:
+        campos = -viewmat[0, :3, :3].T @ viewmat[0, :3, 3]  # [3]
+        features = raster.sh_colors(sh_degree, g.means, campos, colors, backend)  # [N, 3]
+        n = gaussian_normals(g.quats, g.scales, fused_kernels(backend)) if world_normals is None else world_normals
+        n = torch.where(((n * (g.means - campos)).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
+        colors, degree = torch.cat([features, n @ viewmat[0, :3, :3].T], dim=-1)[None], None  # camera-frame normals
     mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
-    colors, alphas, meta = raster.rasterization(
+    out, alphas, meta = raster.rasterization(
         g.means,
         g.quats,
         g.scales,
         g.opacities,
-        torch.cat(channels, dim=-1)[None],
+        colors,
         viewmat,
         K,
         width,
         height,
+        sh_degree=degree,
         render_mode=mode,
         backend=backend,
     )
-    out, alpha = colors[0], alphas[0, ..., 0]
+    out, alpha = out[0], alphas[0, ..., 0]
     depth = None if depth_mode is None else out[..., -1]
+    if plain:
+        return RenderOutput(out[..., :3], alpha, depth, None, meta)
     normal = F.normalize(out[..., 3:6], dim=-1, eps=1e-8)
     if appearance == "sh":
         return RenderOutput(out[..., :3], alpha, depth, normal, meta)

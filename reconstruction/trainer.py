@@ -320,13 +320,17 @@ class Trainer:
         target = self.images[view]
         rgb = out.rgb + (1.0 - alpha[..., None]) * self.backgrounds[view]
         photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight, fused=self.fused_losses)
-        loss = photometric
-        terms = dict.fromkeys(LOSS_TERMS, self._zero)  # detached device scalars: no host synchronisation
+        loss, terms = photometric, dict.fromkeys(LOSS_TERMS, self._zero)  # terms: detached device scalars (no sync)
+
+        def add(term: str, weight: float, value: torch.Tensor) -> None:
+            nonlocal loss
+            loss = loss + weight * value
+            terms[term] = terms[term] + value.detach()
+
         terms["photometric"] = photometric.detach()
         if cfg.lambda_backdrop > 0 and self.backdrop_masks[view] is not None:
             backdrop = losses.backdrop_alpha_loss(alpha, self.backdrop_masks[view])
-            loss = loss + cfg.lambda_backdrop * backdrop
-            terms["backdrop"] = backdrop.detach()
+            add("backdrop", cfg.lambda_backdrop, backdrop)
         if self.neighbours is not None:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
             points, normals = self.touch_tensor, self.touch_normals
@@ -339,52 +343,34 @@ class Trainer:
                 quats, scales = (
                     (g.quats, g.scales) if cfg.touch_loss_moves_shape else (g.quats.detach(), g.scales.detach())
                 )
+                shape = (g.means, quats, scales, g.opacities, candidates)
                 transmittance = losses.transmittance_loss(
-                    points,
-                    g.means,
-                    quats,
-                    scales,
-                    g.opacities,
-                    candidates,
-                    cfg.touch_top_k,
-                    cfg.touch_max_distance,
-                    fused=self.fused_losses,
+                    points, *shape, cfg.touch_top_k, cfg.touch_max_distance, fused=self.fused_losses
                 )
-                loss = loss + cfg.lambda_t * transmittance
-                terms["transmittance"] = transmittance.detach()
+                add("transmittance", cfg.lambda_t, transmittance)
             if self.use_touch_normals:
+                gaussians = (g.means, world_normals, g.opacities.detach(), candidates)
                 aligned = losses.touch_normal_loss(
-                    points,
-                    normals,
-                    g.means,
-                    world_normals,
-                    g.opacities.detach(),
-                    candidates,
-                    cfg.touch_max_distance,
-                    fused=self.fused_losses,
+                    points, normals, *gaussians, cfg.touch_max_distance, fused=self.fused_losses
                 )
-                loss = loss + cfg.lambda_touch_normal * aligned
-                terms["normals"] = terms["normals"] + aligned.detach()
+                add("normals", cfg.lambda_touch_normal, aligned)
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
                 self._pair_weights[view] = losses.image_pair_weights(self.images[view], cfg.albedo_smoothness_beta)
             flat_albedo = losses.albedo_smoothness_loss(
                 out.albedo, alpha.detach() > 0.5, self._pair_weights.get(view), self.fused_losses
             )
-            loss = loss + cfg.lambda_albedo_smoothness * flat_albedo
-            terms["albedo_smoothness"] = flat_albedo.detach()
+            add("albedo_smoothness", cfg.lambda_albedo_smoothness, flat_albedo)
         if cfg.lambda_flatten > 0:
             flat = losses.flatten_loss(g.scales, self.scene_scale)
-            loss = loss + cfg.lambda_flatten * flat
-            terms["normals"] = terms["normals"] + flat.detach()
+            add("normals", cfg.lambda_flatten, flat)
         if with_normals:
             seen = alpha.detach() > 0.5
             surface = torch.where(seen, losses.expected_depth(out.depth, alpha), torch.zeros_like(alpha))
             consistency = losses.depth_normal_consistency(
                 out.normal, surface, self.Ks[view], alpha.detach() * seen, fused=self.fused_losses
             )
-            loss = loss + cfg.lambda_depth_normal * consistency
-            terms["normals"] = terms["normals"] + consistency.detach()
+            add("normals", cfg.lambda_depth_normal, consistency)
         if with_depth:
             depth = out.depth  # accumulated depth, paper Eq. 5
             proximity = None
@@ -407,8 +393,7 @@ class Trainer:
             smoothness = losses.edge_aware_smoothness(
                 depth / self.scene_scale, proximity=proximity, weights=weights, fused=self.fused_losses
             )
-            loss = loss + cfg.lambda_s * smoothness
-            terms["smoothness"] = terms["smoothness"] + smoothness.detach()
+            add("smoothness", cfg.lambda_s, smoothness)
         terms["loss"] = loss.detach()
 
         cfg.densify.step_pre_backward(meta)

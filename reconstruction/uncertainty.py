@@ -69,6 +69,15 @@ class Views:
         return cls(viewmats.to(device), Ks.to(device), width, height, torch.from_numpy(backgrounds).to(device))
 
 
+def _render(g: Gaussians, colors: Tensor, viewmats: Tensor, Ks: Tensor, size: tuple, means=None, **options):
+    """``raster.rasterization`` of the Gaussians (detached; ``means``: the means to differentiate instead) in
+    cameras of ``size`` (width, height)."""
+    means = g.means.detach() if means is None else means
+    return raster.rasterization(
+        means, g.quats.detach(), g.scales.detach(), g.opacities.detach(), colors, viewmats, Ks, *size, **options
+    )
+
+
 def fisher_information(
     gaussians: Gaussians, views: Views, probes: int = FISHER_PROBES, seed: int = 0, backend: str = "auto"
 ) -> Tensor:
@@ -76,19 +85,9 @@ def fisher_information(
     the photometric loss of ``views``, estimated with ``probes`` Rademacher probes seeded by ``seed``."""
     g = gaussians
     means = g.means.detach().clone().requires_grad_(True)
-    colors, alphas, _ = raster.rasterization(
-        means,
-        g.quats.detach(),
-        g.scales.detach(),
-        g.opacities.detach(),
-        g.sh_coefficients().detach(),
-        views.viewmats,
-        views.Ks,
-        views.width,
-        views.height,
-        sh_degree=g.sh_degree,
-        backend=backend,
-    )
+    size = (views.width, views.height)
+    sh = g.sh_coefficients().detach()
+    colors, alphas, _ = _render(g, sh, views.viewmats, views.Ks, size, means, sh_degree=g.sh_degree, backend=backend)
     image = colors if views.backgrounds is None else colors + (1.0 - alphas) * views.backgrounds
     generator = torch.Generator(device=means.device).manual_seed(seed)
     information = torch.zeros(len(g), device=means.device)
@@ -143,18 +142,8 @@ def _depth_render(g: Gaussians, viewmat, K, width, height, probe, backend, near_
     colors = torch.stack([z - shift, (z - shift) ** 2], dim=-1)
     if probe is not None:
         colors = torch.cat([colors, probe], dim=-1)
-    out, alphas, _ = raster.rasterization(
-        g.means.detach(),
-        g.quats.detach(),
-        g.scales.detach(),
-        g.opacities.detach(),
-        colors[None],
-        viewmat[None],
-        K[None],
-        width,
-        height,
-        near_plane=near_plane,
-        backend=backend,
+    out, alphas, _ = _render(
+        g, colors[None], viewmat[None], K[None], (width, height), near_plane=near_plane, backend=backend
     )
     alpha = alphas[0, ..., 0]
     drawn = alpha >= MIN_ALPHA
@@ -237,21 +226,9 @@ def render_uncertainty(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """``(uncertainty, alpha, expected depth)`` [H, W] of one camera: the per-Gaussian ``scores`` [N] blended like a
     colour and divided by alpha (1 where nothing is drawn: nothing there is known)."""
-    g = gaussians
-    out, alphas, _ = raster.rasterization(
-        g.means,
-        g.quats,
-        g.scales,
-        g.opacities,
-        scores[:, None].to(g.means.dtype),
-        viewmat[None],
-        K[None],
-        width,
-        height,
-        near_plane=near_plane,
-        render_mode="RGB+ED",
-        backend=backend,
-    )
+    colors = scores[:, None].to(gaussians.means.dtype)
+    options = dict(near_plane=near_plane, render_mode="RGB+ED", backend=backend)
+    out, alphas, _ = _render(gaussians, colors, viewmat[None], K[None], (width, height), **options)
     alpha = alphas[0, ..., 0]
     drawn = alpha >= MIN_ALPHA
     uncertainty = torch.where(drawn, out[0, ..., 0] / alpha.clamp_min(MIN_ALPHA), torch.ones_like(alpha))

@@ -48,11 +48,6 @@ def background_image(image: np.ndarray, color: tuple[float, float, float] | None
     return np.zeros((h, w, 3), np.float32) if fitted is None else fitted
 
 
-def composite(colors: torch.Tensor, alphas: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
-    """Over-composite renders [..., H, W, 3] made without background onto a background [H, W, 3]."""
-    return colors + (1.0 - alphas) * background
-
-
 def training_frames(scene, train_views: int | None) -> list:
     """The training views a run uses: the scene's first ``train_views`` (all of them when None)."""
     train = scene.split("train")

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from tacsplat.reconstruction.raster.reference import ALPHA_THRESHOLD, MAX_ALPHA, TRANSMITTANCE_THRESHOLD
+from tacsplat.reconstruction.raster.reference import ALPHA_THRESHOLD, TRANSMITTANCE_THRESHOLD
 
 F32 = np.float32
 _HALF = F32(0.5)
@@ -319,27 +319,12 @@ def _forward(
                             trans, acc, last, median, p0 + x, vis, opac, max_alpha, colors, g, depth, k, alive, channels
                         )
                 else:
-                    for x in range(x0, x1):
-                        stored = _ZERO
+                    for x in range(x0, x1):  # (a pair out of reach gets vis 0: alpha 0, nothing composited)
                         sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
-                        if sigma >= _ZERO and sigma <= limit:
-                            stored, alive = _composite(
-                                trans,
-                                acc,
-                                last,
-                                median,
-                                p0 + x,
-                                F32(math.exp(-sigma)),
-                                opac,
-                                max_alpha,
-                                colors,
-                                g,
-                                depth,
-                                k,
-                                alive,
-                                channels,
-                            )
-                        row[x - x0] = stored
+                        vis = F32(math.exp(-sigma)) if sigma >= _ZERO and sigma <= limit else _ZERO
+                        row[x - x0], alive = _composite(
+                            trans, acc, last, median, p0 + x, vis, opac, max_alpha, colors, g, depth, k, alive, channels
+                        )
         tile_pairs[t] = pairs
         tile_cached[t] = cached
         for p in range(n_pix):
@@ -424,6 +409,7 @@ def _backward(
         tv_a = np.empty(n_pix, np.float32)  # T_final * (d loss / d alpha-image minus the background's share)
         behind = np.zeros(n_pix, np.float32)  # colour composited behind so far, dotted with the pixel's v_color
         v_col_g = np.empty(n_ch, np.float32)  # d loss / d colour of the current Gaussian
+        scratch = np.empty(tile_size, np.float32)  # a row's exp values where the forward's did not fit its cache
         use_cache = tile_cached[t]
         max_last = start
         for p in range(n_pix):
@@ -456,54 +442,34 @@ def _backward(
                     x0, x1 = x_lo + np.int64(spans[k, y - y_lo, 0]), x_lo + np.int64(spans[k, y - y_lo, 1])
                     row = vis_cache[pos : pos + (x1 - x0)]
                     pos += x1 - x0
-                    for x in range(x0, x1):
-                        vis = row[x - x0]
-                        if vis != _ZERO and k < last[p0 + x]:
-                            s_x, s_xx, row_s, g_o = _pair_backward(
-                                trans,
-                                tv_a,
-                                behind,
-                                v_c,
-                                v_col_g,
-                                p0 + x,
-                                vis,
-                                opac,
-                                max_alpha,
-                                colors,
-                                g,
-                                mx - (F32(x) + _HALF),
-                                s_x,
-                                s_xx,
-                                row_s,
-                                g_o,
-                                channels,
-                            )
-                else:
+                else:  # solved again, exp(-exponent) where the pair counts (else 0) into a scratch row
                     x0, x1 = _row_span(a, inv_a, b, c, limit, dy, mx, x_lo, x_hi)
+                    row = scratch[: x1 - x0]
                     for x in range(x0, x1):
-                        if k < last[p0 + x]:
-                            dx = mx - (F32(x) + _HALF)
-                            sigma = _exponent(a, b, c, dx, dy)
-                            if sigma >= _ZERO and sigma <= limit:
-                                s_x, s_xx, row_s, g_o = _pair_backward(
-                                    trans,
-                                    tv_a,
-                                    behind,
-                                    v_c,
-                                    v_col_g,
-                                    p0 + x,
-                                    math.exp(-sigma),
-                                    opac,
-                                    max_alpha,
-                                    colors,
-                                    g,
-                                    dx,
-                                    s_x,
-                                    s_xx,
-                                    row_s,
-                                    g_o,
-                                    channels,
-                                )
+                        sigma = _exponent(a, b, c, mx - (F32(x) + _HALF), dy)
+                        row[x - x0] = math.exp(-sigma) if sigma >= _ZERO and sigma <= limit else _ZERO
+                for x in range(x0, x1):
+                    vis = row[x - x0]
+                    if vis != _ZERO and k < last[p0 + x]:
+                        s_x, s_xx, row_s, g_o = _pair_backward(
+                            trans,
+                            tv_a,
+                            behind,
+                            v_c,
+                            v_col_g,
+                            p0 + x,
+                            vis,
+                            opac,
+                            max_alpha,
+                            colors,
+                            g,
+                            mx - (F32(x) + _HALF),
+                            s_x,
+                            s_xx,
+                            row_s,
+                            g_o,
+                            channels,
+                        )
                 # fold the row's sums in, dy being constant along the row
                 s_xr += s_x
                 s_y += row_s * dy
@@ -628,11 +594,18 @@ def _numpy32(x: Tensor) -> np.ndarray:
 
 
 class _RasterizeCPU(torch.autograd.Function):
-    """Autograd wrapper: forward and backward run the numba kernels above."""
+    """Composite projected Gaussians into images on the CPU (forward and backward: the numba kernels above):
+    ``apply(means2d [C, N, 2], conics [C, N, 3], colors [C, N, D], opacities [C, N], radii [C, N, 2] (0 = culled),
+    depths [C, N], width, height, tile_size, backgrounds [C, D] or None, max_alpha)``.
+
+    Returns (colors [C, H, W, D], alphas [C, H, W, 1], stats [2] int64 = (tile-Gaussian
+    intersections, pixel-Gaussian pairs evaluated by the forward pass), median depth [C, H, W, 1]
+    (forward only: the ``depths`` value at which the transmittance first falls below 0.5, 0 where it never does)).
+    """
 
     @staticmethod
     def forward(
-        ctx, means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size, max_alpha
+        ctx, means2d, conics, colors, opacities, radii, depths, width, height, tile_size, backgrounds, max_alpha
     ):
         n_cams, n, n_ch = colors.shape
         tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
@@ -668,54 +641,14 @@ class _RasterizeCPU(torch.autograd.Function):
         tile_cached = np.empty(n_cams * tiles_per_cam, np.bool_)
         # each visited row's columns [x0, x1) within its tile, for the backward
         spans = np.empty((n_isect, tile_size, 2), np.uint8 if tile_size <= 255 else np.int64)
+        image = (width, height, tile_size, tiles_x, tiles_per_cam)
+        ctx.kernel_args = (tile_start, tile_gauss, m2d, con, opa, limits, col, bgs, *image, F32(max_alpha))
+        outputs = (out_color.numpy(), out_trans.numpy(), last, out_median.numpy()[..., 0], tile_pairs)
+        cache = (cache_start, vis_cache, pair_start, tile_cached, spans)
         with nb.parallel_chunksize(_TILE_CHUNK):
-            _forward(
-                tile_start,
-                tile_gauss,
-                m2d,
-                con,
-                opa,
-                limits,
-                col,
-                bgs,
-                width,
-                height,
-                tile_size,
-                tiles_x,
-                tiles_per_cam,
-                F32(max_alpha),
-                dep,
-                out_color.numpy(),
-                out_trans.numpy(),
-                last,
-                out_median.numpy()[..., 0],
-                tile_pairs,
-                cache_start,
-                vis_cache,
-                pair_start,
-                tile_cached,
-                spans,
-                tuple(range(n_ch)),
-            )
+            _forward(*ctx.kernel_args, dep, *outputs, *cache, tuple(range(n_ch)))
         stats = torch.tensor([n_isect, int(tile_pairs.sum())], dtype=torch.int64)
-
-        ctx.kernel_args = (
-            tile_start,
-            tile_gauss,
-            m2d,
-            con,
-            opa,
-            limits,
-            col,
-            bgs,
-            width,
-            height,
-            tile_size,
-            tiles_x,
-            tiles_per_cam,
-            F32(max_alpha),
-        )
-        ctx.binning = (gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached, spans)
+        ctx.binning = (gauss_offsets, gauss_isect, last, cache)
         ctx.shapes = (n_cams, n, n_ch)
         ctx.has_background = backgrounds is not None
         ctx.save_for_backward(out_trans)
@@ -726,25 +659,13 @@ class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_color, v_alphas, _v_stats, _v_median):
         (out_trans,) = ctx.saved_tensors
-        gauss_offsets, gauss_isect, last, vis_cache, pair_start, tile_cached, spans = ctx.binning
+        gauss_offsets, gauss_isect, last, cache = ctx.binning
         n_cams, n, n_ch = ctx.shapes
         v_col = _numpy32(v_color)
         v_alp = _numpy32(v_alphas[..., 0])
         rows = np.empty((gauss_isect.shape[0], N_GRAD + n_ch), np.float32)
         with nb.parallel_chunksize(_TILE_CHUNK):
-            _backward(
-                *ctx.kernel_args,
-                out_trans.numpy(),
-                last,
-                v_col,
-                v_alp,
-                vis_cache,
-                pair_start,
-                tile_cached,
-                spans,
-                rows,
-                tuple(range(n_ch)),
-            )
+            _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, *cache[1:], rows, tuple(range(n_ch)))
         per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
         _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
         grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)
@@ -753,30 +674,9 @@ class _RasterizeCPU(torch.autograd.Function):
         v_opacities = grads[..., 5]
         v_colors = grads[..., N_GRAD:]
         v_backgrounds = None
-        if ctx.has_background and ctx.needs_input_grad[4]:
+        if ctx.has_background and ctx.needs_input_grad[9]:
             v_backgrounds = (v_color * out_trans.unsqueeze(-1)).sum(dim=(1, 2))
-        return v_means2d, v_conics, v_colors, v_opacities, v_backgrounds, None, None, None, None, None, None
+        return v_means2d, v_conics, v_colors, v_opacities, None, None, None, None, None, v_backgrounds, None
 
 
-def rasterize_to_pixels_cpu(
-    means2d: Tensor,  # [C, N, 2]
-    conics: Tensor,  # [C, N, 3]
-    colors: Tensor,  # [C, N, D]
-    opacities: Tensor,  # [C, N]
-    radii: Tensor,  # [C, N, 2] int, 0 = culled
-    depths: Tensor,  # [C, N]
-    width: int,
-    height: int,
-    tile_size: int = 16,
-    backgrounds: Tensor | None = None,  # [C, D]
-    max_alpha: float = MAX_ALPHA,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Composite projected Gaussians into images on the CPU.
-
-    Returns (colors [C, H, W, D], alphas [C, H, W, 1], stats [2] int64 = (tile-Gaussian
-    intersections, pixel-Gaussian pairs evaluated by the forward pass), median depth [C, H, W, 1]
-    (forward only: the ``depths`` value at which the transmittance first falls below 0.5, 0 where it never does)).
-    """
-    return _RasterizeCPU.apply(
-        means2d, conics, colors, opacities, backgrounds, radii, depths, width, height, tile_size, max_alpha
-    )
+rasterize_to_pixels_cpu = _RasterizeCPU.apply

@@ -114,25 +114,10 @@ def _transpose3(a):
 
 
 @nb.njit(parallel=True, cache=True)
-def _project_forward(
-    means,
-    quats,
-    scales,
-    opacities,
-    viewmats,
-    Ks,
-    width,
-    height,
-    near,
-    far,
-    eps2d,
-    radius_clip,
-    means2d,
-    conics,
-    depths,
-    radii,
-):
-    """EWA projection of every (camera, Gaussian); culled ones get zeros. viewmats, Ks: float64."""
+def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip, out):
+    """EWA projection of every (camera, Gaussian) into ``out`` = (means2d, conics, depths, radii); culled ones get
+    zeros. viewmats, Ks: float64."""
+    means2d, conics, depths, radii = out
     n_cams, n = means2d.shape[0], means2d.shape[1]
     margin = FOV_CLAMP - 1.0
     for g in nb.prange(n):
@@ -191,25 +176,11 @@ def _project_forward(
 
 
 @nb.njit(parallel=True, cache=True, fastmath={"contract"})
-def _project_backward(
-    means,
-    quats,
-    scales,
-    viewmats,
-    Ks,
-    width,
-    height,
-    eps2d,
-    radii,
-    v_means2d,
-    v_conics,
-    v_depths,
-    v_means,
-    v_quats,
-    v_scales,
-):
-    """Gradients of means2d, conics and depths w.r.t. means, quats and scales (summed over cameras); the small
-    matrices are 9-tuples (J's two zeros left out), so they stay in registers."""
+def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, radii, v_out, grads):
+    """Gradients ``v_out`` of means2d, conics and depths into ``grads``, those of means, quats and scales (summed
+    over cameras); the small matrices are 9-tuples (J's two zeros left out), so they stay in registers."""
+    v_means2d, v_conics, v_depths = v_out
+    v_means, v_quats, v_scales = grads
     n_cams, n = v_means2d.shape[0], v_means2d.shape[1]
     margin = FOV_CLAMP - 1.0
     for chunk in nb.prange((n + _CHUNK - 1) // _CHUNK):
@@ -467,6 +438,10 @@ def _np(x: Tensor) -> np.ndarray:
 
 
 class _ProjectCPU(torch.autograd.Function):
+    """Classic-mode projection: ``apply(means [N, 3] float32, quats [N, 4], scales [N, 3], opacities [N], viewmats
+    [C, 4, 4], Ks [C, 3, 3], width, height, near_plane, far_plane, eps2d, radius_clip)`` -> (means2d [C, N, 2],
+    conics [C, N, 3], depths [C, N], radii [C, N, 2] int32)."""
+
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmats, Ks, width, height, near, far, eps2d, radius_clip):
         n_cams, n = viewmats.shape[0], means.shape[0]
@@ -476,53 +451,27 @@ class _ProjectCPU(torch.autograd.Function):
         radii = torch.empty(n_cams, n, 2, dtype=torch.int32)
         args = (_np(means), _np(quats), _np(scales))
         cams = (_np(viewmats).astype(np.float64), _np(Ks).astype(np.float64))
-        _project_forward(
-            *args,
-            _np(opacities),
-            *cams,
-            width,
-            height,
-            float(np.float32(near)),
-            float(np.float32(far)),
-            float(eps2d),
-            float(radius_clip),
-            means2d.numpy(),
-            conics.numpy(),
-            depths.numpy(),
-            radii.numpy(),
-        )
+        planes = (float(np.float32(near)), float(np.float32(far)))
+        out = (means2d.numpy(), conics.numpy(), depths.numpy(), radii.numpy())
+        _project_forward(*args, _np(opacities), *cams, width, height, *planes, float(eps2d), float(radius_clip), out)
         ctx.arrays = args + cams + (width, height, float(eps2d), radii.numpy())
         ctx.mark_non_differentiable(radii)
         return means2d, conics, depths, radii
 
     @staticmethod
     def backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
-        means, quats, scales, viewmats, Ks, width, height, eps2d, radii = ctx.arrays
-        v_means = torch.empty(means.shape)
-        v_quats = torch.empty(quats.shape)
-        v_scales = torch.empty(scales.shape)
-        zeros = torch.zeros(radii.shape[:2])
-        _project_backward(
-            means,
-            quats,
-            scales,
-            viewmats,
-            Ks,
-            width,
-            height,
-            eps2d,
-            radii,
-            _np(v_means2d),
-            _np(v_conics),
-            _np(v_depths if v_depths is not None else zeros),
-            v_means.numpy(),
-            v_quats.numpy(),
-            v_scales.numpy(),
-        )
+        means, quats, scales, radii = ctx.arrays[0], ctx.arrays[1], ctx.arrays[2], ctx.arrays[-1]
+        v_means, v_quats, v_scales = torch.empty(means.shape), torch.empty(quats.shape), torch.empty(scales.shape)
+        v_depths = v_depths if v_depths is not None else torch.zeros(radii.shape[:2])
+        v_out = (_np(v_means2d), _np(v_conics), _np(v_depths))
+        _project_backward(*ctx.arrays, v_out, (v_means.numpy(), v_quats.numpy(), v_scales.numpy()))
         return v_means, v_quats, v_scales, None, None, None, None, None, None, None, None, None
 
 
 class _SphericalHarmonicsCPU(torch.autograd.Function):
+    """gsplat's SH colours max(SH + 0.5, 0) of every (camera, Gaussian): ``apply(degree, means [N, 3], campos
+    [C, 3], coeffs [N, K, D], radii [C, N, 2])`` -> [C, N, D]."""
+
     @staticmethod
     def forward(ctx, degree, means, campos, coeffs, radii):
         n_cams, n = radii.shape[:2]
@@ -545,32 +494,5 @@ class _SphericalHarmonicsCPU(torch.autograd.Function):
         return None, v_means, None, v_coeffs, None
 
 
-def project_gaussians_cpu(
-    means: Tensor,  # [N, 3] float32
-    quats: Tensor,  # [N, 4]
-    scales: Tensor,  # [N, 3]
-    opacities: Tensor,  # [N]
-    viewmats: Tensor,  # [C, 4, 4]
-    Ks: Tensor,  # [C, 3, 3]
-    width: int,
-    height: int,
-    near_plane: float,
-    far_plane: float,
-    eps2d: float,
-    radius_clip: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Classic-mode projection -> (means2d [C, N, 2], conics [C, N, 3], depths [C, N], radii [C, N, 2] int32)."""
-    return _ProjectCPU.apply(
-        means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, radius_clip
-    )
-
-
-def sh_colors_cpu(
-    degree: int,
-    means: Tensor,  # [N, 3]
-    campos: Tensor,  # [C, 3]
-    coeffs: Tensor,  # [N, K, D]
-    radii: Tensor,  # [C, N, 2]
-) -> Tensor:
-    """gsplat's SH colours max(SH + 0.5, 0) of every (camera, Gaussian) -> [C, N, D]."""
-    return _SphericalHarmonicsCPU.apply(degree, means, campos, coeffs, radii)
+project_gaussians_cpu = _ProjectCPU.apply
+sh_colors_cpu = _SphericalHarmonicsCPU.apply

@@ -24,12 +24,7 @@ import torch
 from torch import Tensor
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction.raster.reference import (
-    MAX_ALPHA,
-    Projection,
-    project_gaussians,
-    rasterize_to_pixels_torch,
-)
+from tacsplat.reconstruction.raster.reference import MAX_ALPHA, Projection, project_gaussians, rasterize_to_pixels_torch
 from tacsplat.reconstruction.raster.spherical_harmonics import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "MD", "RGB+D", "RGB+ED", "RGB+MD")
@@ -182,15 +177,7 @@ def rasterization(
     n_channels = colors.shape[-1]
     if backgrounds is not None:
         _check_tensor("backgrounds", backgrounds, (n_cams, n_channels), dtype, device)
-    named = {
-        "means": means,
-        "quats": quats,
-        "scales": scales,
-        "opacities": opacities,
-        "colors": colors,
-        "viewmats": viewmats,
-        "Ks": Ks,
-    }
+    named = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks)
     _check_values(named if backgrounds is None else {**named, "backgrounds": backgrounds}, Ks)
     if not (
         isinstance(width, numbers.Integral) and isinstance(height, numbers.Integral) and width >= 1 and height >= 1
@@ -208,25 +195,22 @@ def rasterization(
     if not 0.0 < max_alpha < 1.0:
         raise InvalidInputError(f"max_alpha must be in (0, 1), got {max_alpha!r}")
     chosen = _choose_backend(backend, means)
-
+    options = dict(
+        near_plane=near_plane,
+        far_plane=far_plane,
+        radius_clip=radius_clip,
+        eps2d=eps2d,
+        sh_degree=sh_degree,
+        tile_size=tile_size,
+        render_mode=render_mode,
+        rasterize_mode=rasterize_mode,
+    )
+    inputs = (means, quats, scales, opacities, colors, viewmats, Ks)
     if chosen == "gsplat" and render_mode in ("MD", "RGB+MD"):  # gsplat has no median depth: the CPU backend's
-        cpu = [t.detach().float().cpu() for t in (means, quats, scales, opacities, colors, viewmats, Ks)]
+        cpu = [t.detach().float().cpu() for t in inputs]
         bgs = None if backgrounds is None else backgrounds.detach().float().cpu()
         out_colors, out_alphas, meta = rasterization(
-            *cpu,
-            width,
-            height,
-            near_plane=near_plane,
-            far_plane=far_plane,
-            radius_clip=radius_clip,
-            eps2d=eps2d,
-            sh_degree=sh_degree,
-            tile_size=tile_size,
-            backgrounds=bgs,
-            render_mode=render_mode,
-            rasterize_mode=rasterize_mode,
-            backend="cpu",
-            max_alpha=max_alpha,
+            *cpu, width, height, **options, backgrounds=bgs, backend="cpu", max_alpha=max_alpha
         )
         return out_colors.to(means.device, dtype), out_alphas.to(means.device, dtype), meta
     if chosen == "gsplat":
@@ -237,25 +221,12 @@ def rasterization(
                 f"backend='gsplat' clamps alpha at {MAX_ALPHA} (fixed in its kernels), got max_alpha={max_alpha}"
             )
         return rasterization_gsplat(
-            means,
-            quats,
-            scales,
-            opacities,
-            colors,
-            viewmats,
-            Ks,
+            *inputs,
             width,
             height,
-            near_plane=near_plane,
-            far_plane=far_plane,
-            radius_clip=radius_clip,
-            eps2d=eps2d,
-            sh_degree=sh_degree,
+            **options,
             packed=packed,
-            tile_size=tile_size,
             backgrounds=backgrounds,
-            render_mode=render_mode,
-            rasterize_mode=rasterize_mode,
             absgrad=absgrad,
             camera_model=camera_model,
         )
@@ -266,33 +237,18 @@ def rasterization(
 
     n_bases = None if sh_degree is None else num_sh_bases(sh_degree)
     cameras_need_grad = viewmats.requires_grad or Ks.requires_grad
+    camera = (viewmats, Ks, width, height, near_plane, far_plane, eps2d, radius_clip)
     if chosen == "cpu" and rasterize_mode == "classic" and not cameras_need_grad:
         # fused numba projection and SH with hand-written backward
         from tacsplat.reconstruction.raster.cpu_project import project_gaussians_cpu, sh_colors_cpu
 
-        means2d, conics, depths, radii = project_gaussians_cpu(
-            means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d, radius_clip
-        )
+        means2d, conics, depths, radii = project_gaussians_cpu(*inputs[:4], *camera)
         proj = Projection(means2d, conics, depths, radii, opacities.expand(n_cams, n))
         if sh_degree is not None:
             campos = torch.linalg.inv(viewmats.detach())[:, :3, 3]  # [C, 3]
             point_colors = sh_colors_cpu(sh_degree, means, campos, colors[:, :n_bases].contiguous(), radii)
     else:
-        proj = project_gaussians(
-            means,
-            quats,
-            scales,
-            opacities,
-            viewmats,
-            Ks,
-            width,
-            height,
-            near_plane=near_plane,
-            far_plane=far_plane,
-            eps2d=eps2d,
-            radius_clip=radius_clip,
-            antialiased=rasterize_mode == "antialiased",
-        )
+        proj = project_gaussians(*inputs[:4], *camera, antialiased=rasterize_mode == "antialiased")
         if sh_degree is not None:
             campos = torch.linalg.inv(viewmats)[:, :3, 3]  # [C, 3]
             dirs = means[None, :, :] - campos[:, None, :]  # [C, N, 3]
@@ -311,37 +267,14 @@ def rasterization(
         if bg is not None:
             bg = torch.cat([bg, torch.zeros_like(bg[:, :1])], dim=-1)
 
+    args = (proj.means2d, proj.conics, point_colors, proj.opacities, proj.radii, proj.depths, width, height)
     if chosen == "cpu":
         from tacsplat.reconstruction.raster.cpu_composite import rasterize_to_pixels_cpu
 
-        render_colors, render_alphas, stats, median = rasterize_to_pixels_cpu(
-            proj.means2d,
-            proj.conics,
-            point_colors,
-            proj.opacities,
-            proj.radii,
-            proj.depths,
-            width,
-            height,
-            tile_size,
-            bg,
-            max_alpha,
-        )
+        render_colors, render_alphas, stats, median = rasterize_to_pixels_cpu(*args, tile_size, bg, max_alpha)
         extra_meta = {"n_intersections": int(stats[0]), "n_pairs": int(stats[1]), "median_depths": median}
     else:
-        render_colors, render_alphas, median = rasterize_to_pixels_torch(
-            proj.means2d,
-            proj.conics,
-            point_colors,
-            proj.opacities,
-            proj.radii,
-            proj.depths,
-            width,
-            height,
-            tile_size,
-            bg,
-            max_alpha,
-        )
+        render_colors, render_alphas, median = rasterize_to_pixels_torch(*args, tile_size, bg, max_alpha)
         extra_meta = {"median_depths": median}
     if render_mode in ("ED", "RGB+ED"):
         expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)

@@ -39,13 +39,7 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
         basis += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
     if degree >= 2:
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        basis += [
-            SH_C2[0] * xy,
-            SH_C2[1] * yz,
-            SH_C2[2] * (2.0 * zz - xx - yy),
-            SH_C2[3] * xz,
-            SH_C2[4] * (xx - yy),
-        ]
+        basis += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2.0 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
     if degree >= 3:
         basis += [
             SH_C3[0] * y * (3.0 * xx - yy),

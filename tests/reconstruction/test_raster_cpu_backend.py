@@ -9,6 +9,7 @@ import torch
 
 from tacsplat.apps.bench_rasterizer import random_scene
 from tacsplat.reconstruction.raster import rasterization
+from tacsplat.reconstruction.raster.reference import MAX_ALPHA
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -332,7 +333,7 @@ def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
         16,
         tiles_x,
         n_tiles,
-        np.float32(rc.MAX_ALPHA),
+        np.float32(MAX_ALPHA),
     )
     capacity = np.empty(n_isect, np.int64)
     rc._pair_capacity(tile_start, tile_gauss, m2d, con, limits, width, height, 16, tiles_x, n_tiles, capacity)
@@ -345,21 +346,15 @@ def _cpu_forward(width, height, n, seed, radius_px=(1.0, 8.0)):
         "last": np.empty((1, height, width), np.int64),
     }
     out["vis_cache"] = np.empty(int(out["cache_start"][-1]), np.float32)
-    rc._forward(
-        *args,
-        proj.depths[0].numpy(),
+    outputs = (
         np.empty((1, height, width, 3), np.float32),
         out["trans"],
         out["last"],
         np.empty((1, height, width), np.float32),
         np.empty(n_tiles, np.int64),
-        out["cache_start"],
-        out["vis_cache"],
-        out["pair_start"],
-        out["cached"],
-        out["spans"],
-        (0, 1, 2),
     )
+    cache = (out["cache_start"], out["vis_cache"], out["pair_start"], out["cached"], out["spans"])
+    rc._forward(*args, proj.depths[0].numpy(), *outputs, *cache, (0, 1, 2))
     return args, out
 
 
@@ -412,18 +407,7 @@ def test_backward_without_the_forward_pair_cache_gives_the_same_gradients():
     rows = {}
     for use_cache in (True, False):
         rows[use_cache] = np.empty((n_isect, rc.N_GRAD + 3), np.float32)
-        rc._backward(
-            *args,
-            trans,
-            last,
-            v_color,
-            v_alpha,
-            vis_cache,
-            pair_start,
-            np.full(n_tiles, use_cache),
-            spans,
-            rows[use_cache],
-            (0, 1, 2),
-        )
+        cache = (vis_cache, pair_start, np.full(n_tiles, use_cache), spans)
+        rc._backward(*args, trans, last, v_color, v_alpha, *cache, rows[use_cache], (0, 1, 2))
     np.testing.assert_allclose(rows[True], rows[False], rtol=1e-5, atol=1e-6 * np.abs(rows[False]).max())
     assert np.abs(rows[False]).max() > 0
