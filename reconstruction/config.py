@@ -34,6 +34,11 @@ class TrainConfig:
     """use only the first K training views (None = all)"""
     downscale: int = 1
     """train and evaluate at 1/N of the images' size (area-averaged; intrinsics scaled)"""
+    coarse_factors: tuple[int, ...] = ()
+    """coarse to fine: the first steps train at 1/N of the training size for each N here in turn (coarsest first,
+    e.g. 4 2), each for an equal share of ``coarse_until``; () = every step at full size"""
+    coarse_until: float = 0.5
+    """fraction of the steps after which training is at full size"""
     backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto"
     """rasterization backend (auto: gsplat on CUDA, else the numba CPU backend for float32); "torch" also keeps
     the losses' torch references (no fused kernels)"""
@@ -177,6 +182,11 @@ class TrainConfig:
             len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
         ):
             return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
+        factors = self.coarse_factors
+        if not all(isinstance(f, int) and not isinstance(f, bool) and 2 <= f <= 64 for f in factors):
+            return "coarse_factors", f"must be integers from 2 to 64, coarsest first, got {factors!r}"
+        if list(factors) != sorted(factors, reverse=True):
+            return "coarse_factors", f"must run coarsest first (decreasing), got {factors!r}"
         if self.appearance not in get_args(Appearance):
             return "appearance", f"must be 'sh' or 'sh-lit', got {self.appearance!r}"
         if self.smoothness_depth not in ("expected", "accumulated"):
@@ -330,6 +340,7 @@ _INT_RANGES = {
 _OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
 _FLOAT_RANGES = {
     "ssim_weight": (0.0, 1.0),
+    "coarse_until": (0.0, 1.0),
     "lambda_t": (0.0, None),
     "lambda_s": (0.0, None),
     "lambda_backdrop": (0.0, None),

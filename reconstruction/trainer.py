@@ -137,8 +137,7 @@ class Trainer:
         self.train_frames = train
         self.test_frames = scene.split("test")
         self.device = dev = config.torch_device()
-        images = [scene.load_image(f) for f in train]  # [H, W, 3] float32 numpy
-        self.viewmats, self.Ks = (t.to(dev) for t in camera_tensors(train))
+        self.viewmats = camera_tensors(train)[0].to(dev)
         self.scene_scale = scene_scale(train)
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device=dev).manual_seed(config.seed)
@@ -165,19 +164,6 @@ class Trainer:
         self.splat: Gaussians | None = None  # splat.ply's Gaussians: the final ones, shading baked (run() sets it)
         self.scene_record = scene_record(scene)  # what config.json records of the scene
         self.progress: list[dict] = []  # progress.csv's rows, rewritten whole with each new one
-        backgrounds = [background_image(im, config.background) for im in images]
-        # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
-        self.backdrop_pixels: list[np.ndarray | None] = [
-            np.abs(im - bg).max(axis=-1) < config.backdrop_tolerance
-            if config.background is not None or fit_backdrop(im) is not None
-            else None
-            for im, bg in zip(images, backgrounds)
-        ]
-        self.silhouettes = [None if m is None else foreground_mask(m) for m in self.backdrop_pixels]  # [H, W] bool
-        # everything a step reads lives on the device, created once
-        self.images = [torch.from_numpy(im).to(dev) for im in images]
-        self.backgrounds = [torch.from_numpy(bg).to(dev) for bg in backgrounds]
-        self.backdrop_masks = [None if m is None else torch.from_numpy(m).to(dev) for m in self.backdrop_pixels]
         self.step = 0
         self.train_seconds = 0.0
         self.order: list[int] = []
@@ -185,12 +171,47 @@ class Trainer:
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.densify_state: DensifyState | None = None
         self._ground_truth = None
-        self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
-        self._pair_weights: dict[int, tuple] = {}  # per training view, the albedo smoothness's pair weights
+        self.factor = 0  # the training views' downscale (set_resolution)
+        self.set_resolution(1)
         self._zero = torch.zeros((), device=dev)
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)  # device scalars: read at progress rows only
         self._sum_count = 0
         self._last_eval = (0, 0.0)  # (step, train seconds) of the last progress row
+
+    def set_resolution(self, factor: int) -> None:
+        """Train on the views at 1/``factor`` of their size from now on (area-averaged images, scaled intrinsics):
+        the images, backdrops, silhouettes and per-view loss weights a step reads."""
+        if factor == self.factor:
+            return
+        cfg, dev = self.config, self.device
+        scene = scene_at(self.scene, factor)
+        frames = training_frames(scene, cfg.train_views)
+        self.train_frames = frames
+        self.Ks = camera_tensors(frames)[1].to(dev)
+        images = [scene.load_image(f) for f in frames]  # [H, W, 3] float32 numpy
+        backgrounds = [background_image(im, cfg.background) for im in images]
+        # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
+        self.backdrop_pixels: list[np.ndarray | None] = [
+            np.abs(im - bg).max(axis=-1) < cfg.backdrop_tolerance
+            if cfg.background is not None or fit_backdrop(im) is not None
+            else None
+            for im, bg in zip(images, backgrounds)
+        ]
+        self.silhouettes = [None if m is None else foreground_mask(m) for m in self.backdrop_pixels]  # [H, W] bool
+        # everything a step reads lives on the device, created once per resolution
+        self.images = [torch.from_numpy(im).to(dev) for im in images]
+        self.backgrounds = [torch.from_numpy(bg).to(dev) for bg in backgrounds]
+        self.backdrop_masks = [None if m is None else torch.from_numpy(m).to(dev) for m in self.backdrop_pixels]
+        self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
+        self._pair_weights: dict[int, tuple] = {}  # per training view, the albedo smoothness's pair weights
+        self.factor = factor
+
+    def factor_at(self, step: int) -> int:
+        """The training views' downscale at ``step`` (``coarse_factors``, then 1 from ``coarse_until``)."""
+        cfg = self.config
+        phases = len(cfg.coarse_factors)
+        phase = int(step / max(cfg.coarse_until * cfg.iterations, 1e-9) * phases) if phases else phases
+        return cfg.coarse_factors[phase] if phase < phases else 1
 
     # ------------------------------------------------------------------ setup
 
@@ -386,7 +407,7 @@ class Trainer:
                     surface,
                     cfg.occlusion_tolerance,
                 )
-                proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px)
+                proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px / self.factor)
             weights = self._smoothness_weights(view, alpha.detach())
             if cfg.smoothness_depth == "expected":
                 depth = losses.expected_depth(depth, alpha)
@@ -593,6 +614,7 @@ class Trainer:
         try:
             while self.step < cfg.iterations and stop.signum is None:
                 started = time.perf_counter()
+                self.set_resolution(self.factor_at(self.step))
                 terms = self.train_step()
                 self.train_seconds += time.perf_counter() - started
                 for k in LOSS_TERMS:

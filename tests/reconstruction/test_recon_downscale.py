@@ -75,3 +75,34 @@ def test_reconstruct_trains_and_evaluates_at_the_downscaled_size(tmp_path):
     assert render.shape[:2] == (48, 72)  # 2x3 panels of 24 px
     assert np.isfinite(metrics["psnr"]) and metrics["settings"]["downscale"] == 2
     assert torch.isfinite(torch.tensor(metrics["cd"]))
+
+
+def test_coarse_to_fine_trains_each_share_of_the_first_steps_at_its_size_then_at_full_size(tmp_path):
+    from tacsplat.reconstruction.trainer import Trainer
+
+    scene = Scene.load(build_sphere_scene(tmp_path / "sphere", size=48))
+    config = TrainConfig(
+        iterations=8,
+        coarse_factors=(4, 2),
+        coarse_until=0.5,
+        backend="cpu",
+        sh_degree=0,
+        init=InitConfig(use_sfm=False, num_random_points=200),
+    )
+    trainer = Trainer(scene, tmp_path / "run", config)
+    assert [trainer.factor_at(step) for step in range(8)] == [4, 4, 2, 2, 1, 1, 1, 1]
+    assert trainer.images[0].shape == (48, 48, 3)  # initialisation sees the full size
+    trainer.initialize()
+    for step, size in enumerate([12, 12, 24, 24, 48]):
+        trainer.set_resolution(trainer.factor_at(step))
+        assert trainer.images[0].shape[:2] == (size, size) and trainer.train_frames[0].intrinsics.width == size
+        np.testing.assert_allclose(trainer.Ks[0, :2].numpy(), scene.frames[0].intrinsics.K[:2] * size / 48, rtol=1e-6)
+        terms = trainer.train_step()
+        assert torch.isfinite(terms["loss"])
+
+
+def test_coarse_factors_out_of_order_or_range_are_refused_naming_the_setting():
+    for bad in [(2, 4), (1,), (128,)]:
+        problem = TrainConfig(coarse_factors=bad).problem()
+        assert problem is not None and problem[0] == "coarse_factors", bad
+    assert TrainConfig(coarse_until=1.5).problem()[0] == "coarse_until"
