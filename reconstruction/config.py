@@ -153,6 +153,8 @@ class TrainConfig:
             unused.add("lambda_albedo_smoothness")
         if self.appearance == "sh":
             unused.add("lit_start_iter")
+        if not self.coarse_factors:
+            unused.add("coarse_until")
         return unused
 
     def validate(self, names: dict[str, str] | None = None) -> None:
@@ -243,6 +245,8 @@ class TrainConfig:
             densify = DensifyStrategy(**data.pop("densify", {}))
             if data.get("background") is not None:
                 data["background"] = tuple(data["background"])
+            if "coarse_factors" in data:  # (a JSON list)
+                data["coarse_factors"] = tuple(data["coarse_factors"])
             config = cls(**data, init=init, densify=densify)
         except (TypeError, ValueError, AttributeError) as exc:
             raise ConfigError("config", f"not a training config: {exc}", source) from None

@@ -170,8 +170,9 @@ def test_bench_rows_and_config_errors():
 
     for name in METHODS:  # a method is a row without overrides
         assert bench_row(name) == (name, {}) and method_of(row_config(name)) == name
-    for name, (method, overrides) in ablation_rows().items():  # each ablation row changes its method's mechanisms
-        assert method in METHODS and overrides and mechanisms(row_config(name)) != mechanisms(method_config(method))
+    for name, (method, overrides) in ablation_rows().items():  # each row changes its method's mechanisms or schedule
+        assert method in METHODS and overrides and row_config(name) != method_config(method)
+        assert mechanisms(row_config(name)) != mechanisms(method_config(method)) or row_config(name).coarse_factors
     assert not row_config("default-touch").use_touch and row_config("paper+tn").lambda_touch_normal == 0.1
     with pytest.raises(ConfigError, match="--methods: unknown method 'ours'; choose one of .* or a row of ablations"):
         bench_row("ours")

@@ -106,3 +106,10 @@ def test_coarse_factors_out_of_order_or_range_are_refused_naming_the_setting():
         problem = TrainConfig(coarse_factors=bad).problem()
         assert problem is not None and problem[0] == "coarse_factors", bad
     assert TrainConfig(coarse_until=1.5).problem()[0] == "coarse_until"
+
+
+def test_a_coarse_to_fine_config_round_trips_through_its_json():
+    import json
+
+    config = TrainConfig(coarse_factors=(4, 2), coarse_until=0.75)
+    assert TrainConfig.from_json(json.loads(json.dumps(config.to_json()))) == config

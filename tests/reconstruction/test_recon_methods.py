@@ -106,12 +106,14 @@ def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refuse
 
 
 def test_a_switched_off_mechanisms_settings_are_unused():
-    assert TrainConfig().unused_fields() == set()  # the default uses every setting it has
+    assert TrainConfig().unused_fields() == {"coarse_until"}  # every setting but the unused schedule's
+    assert TrainConfig(coarse_factors=(2,)).unused_fields() == set()
     assert method_config("paper").unused_fields() == {
         "depth_normal_start_iter",
         "albedo_smoothness_beta",
         "lambda_albedo_smoothness",
         "lit_start_iter",
+        "coarse_until",
     }
     assert "albedo_smoothness_beta" in TrainConfig(lambda_albedo_smoothness=0.0).unused_fields()
 
