@@ -115,7 +115,7 @@ def fused_cameras(centre: np.ndarray, radius: float, train_frames: list, config:
 
 class TSDFVolume:
     """A dense truncated signed distance field: positive outside, weighted sums per voxel (``sdf``, ``weight``,
-    ``colour``); a voxel nothing reached reads -1 (inside)."""
+    ``color``); a voxel nothing reached reads -1 (inside)."""
 
     def __init__(self, lo: np.ndarray, voxel: float, shape: tuple[int, int, int], truncation: float):
         self.lo, self.voxel, self.shape, self.truncation = np.asarray(lo, np.float64), float(voxel), shape, truncation

@@ -245,7 +245,8 @@ def mesh_metrics(
 
     pred, faces = trimesh.sample.sample_surface(mesh, samples, seed=0)
     pred_normals = mesh.face_normals[faces]
-    if isinstance(gt, trimesh.Trimesh):
+    sampled = isinstance(gt, trimesh.Trimesh)  # a mesh: its surface is sampled (else its points are the truth)
+    if sampled:
         truth, gt_faces = trimesh.sample.sample_surface(gt, samples, seed=1)
         truth_normals = gt.face_normals[gt_faces]
         target, target_faces = trimesh.sample.sample_surface(gt, max(targets, samples), seed=3)
@@ -255,7 +256,7 @@ def mesh_metrics(
         truth_normals = target_normals = None
     dense, dense_faces = trimesh.sample.sample_surface(mesh, max(targets, samples), seed=2)
     bounds = (2 * min(thresholds) * radius, 2 * max(thresholds) * radius)
-    d_pred, n_pred = _nearest(pred, target, target_normals, bounds if truth_normals is not None else None)
+    d_pred, n_pred = _nearest(pred, target, target_normals, bounds if sampled else None)
     d_truth, n_truth = _nearest(truth, dense, mesh.face_normals[dense_faces], bounds)
     result = {}
     for t in thresholds:

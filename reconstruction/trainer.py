@@ -134,7 +134,6 @@ class Trainer:
         train = training_frames(scene, config.train_views)
         if not train:
             raise SceneFormatError(scene.path / "transforms.json", "frames", "no training views")
-        self.train_frames = train
         self.test_frames = scene.split("test")
         self.device = dev = config.torch_device()
         self.viewmats = camera_tensors(train)[0].to(dev)
@@ -208,10 +207,9 @@ class Trainer:
 
     def factor_at(self, step: int) -> int:
         """The training views' downscale at ``step`` (``coarse_factors``, then 1 from ``coarse_until``)."""
-        cfg = self.config
-        phases = len(cfg.coarse_factors)
-        phase = int(step / max(cfg.coarse_until * cfg.iterations, 1e-9) * phases) if phases else phases
-        return cfg.coarse_factors[phase] if phase < phases else 1
+        factors = self.config.coarse_factors
+        phase = int(step / max(self.config.coarse_until * self.config.iterations, 1e-9) * len(factors))
+        return factors[phase] if phase < len(factors) else 1
 
     # ------------------------------------------------------------------ setup
 
