@@ -7,7 +7,6 @@ same capture with each file left out in turn (that part nominal) says what each 
     pytest -m slow -s tests/acquisition/test_acq_calibration_chain.py    # prints the table
 """
 
-import math
 import sys
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from tacsplat.sim.hand import FINGER_NAMES, JOINT_NAMES, nominal_T_hand_cam
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from test_acq_calibrate_hand import _draw as _joint_draw  # noqa: E402
+from test_acq_calibrate_hand import _errors_deg  # noqa: E402
 from test_acq_calibrate_mounts import FINE_BOARD, _good, _matrix, _off, _touch_median_mm  # noqa: E402
 from test_acq_calibrate_mounts import _draw as _mount_draw  # noqa: E402
 
@@ -59,16 +59,13 @@ def _chain(folder: Path, seed: int) -> dict:
     rig = _rig(folder, sim, ["hand", "hand-eye"])
     calibrate_mounts(load_rig(rig), folder / "mounts.json", folder / "hand_eye.json", lambda s: 0)
 
-    hand = HandCalibration.load(folder / "hand.json", JOINT_NAMES)
-    truth = np.array([errors["joint_offsets_rad"][n] for n in JOINT_NAMES])
-    signs = np.array([errors["joint_signs"].get(n, 1) for n in JOINT_NAMES])
+    worst_deg, signs_right = _errors_deg(HandCalibration.load(folder / "hand.json", JOINT_NAMES), errors)
     mounts = load_mounts(folder / "mounts.json", FINGER_NAMES)
     found = {f: _off(mounts[f], _matrix(e)) for f, e in errors["mounts"].items()}
     found["hand-eye"] = _off(
         load_hand_eye(folder / "hand_eye.json"), nominal_T_hand_cam() @ _matrix(errors["hand_eye"])
     )
-    joints = {"worst_deg": math.degrees(np.abs(hand.offsets_rad - truth).max())}
-    joints["signs_right"] = bool(np.array_equal(hand.signs, signs))
+    joints = {"worst_deg": worst_deg, "signs_right": signs_right}
 
     touch = {}
     for label, files in [
