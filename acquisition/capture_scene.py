@@ -36,7 +36,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 from tacsplat.acquisition.config import RigConfig
-from tacsplat.acquisition.devices import TWIN_CONTROL, Rig, open_rig, twin_config
+from tacsplat.acquisition.devices import Rig, open_rig, twin_config, twin_control
 from tacsplat.datasets import SceneMeta, SceneWriter
 from tacsplat.datasets.outputs import ensure_output_dir
 from tacsplat.datasets.writer import JOURNAL, has_content
@@ -188,7 +188,7 @@ def _sim_settings(config: RigConfig) -> dict:
         },
         "twin": {
             **twin,
-            "grasp_control": asdict(TWIN_CONTROL),
+            "grasp_control": asdict(twin_control(config)),
             "grasping": asdict(GraspConfig()),
             "views": asdict(ViewConfig()),
         },

@@ -170,6 +170,9 @@ class SimCapture(TouchModel):
     uncertainty: str = "depth-variance"
     """next-best: the score, fisher (Fisher information of the Gaussians' positions under the photometric loss) or
     depth-variance (spread of depth along the training rays)"""
+    slide_m: float = 0.0
+    """after each press, every finger in contact slides its pad across the surface this many metres each way and
+    back (0 to 0.1; 0: press only), reading the pad as it goes (grasp.slide_m)"""
     resume: bool = False
     """continue a capture that was interrupted"""
 
@@ -366,6 +369,7 @@ _SIM_OPTIONS = {  # sim_rig_config's keys
     "sim.resolution": "--resolution",
     "sim.seed": "--seed",
     "sim.texture": "--texture",
+    "grasp.slide_m": "--slide-m",
     "plan.views.train": "--views",
     "plan.views.test": "--test-views",
     "plan.grasps.count": "--grasps",

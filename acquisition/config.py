@@ -199,7 +199,8 @@ class TactileConfig:
 @dataclass(frozen=True)
 class GraspControl:
     """How the logger closes the hand: a speed-limited ramp toward ``close_pose``, each finger stopping when it
-    stalls, then a wait until the joints settle; then the read, then ``open_pose``."""
+    stalls, then a wait until the joints settle; then the read, the slide (when ``slide_rad`` > 0), then
+    ``open_pose``."""
 
     close_pose: tuple[JointAngle, ...] = (0.0, 1.2, 1.0, 1.0) * 3 + (1.2, 0.6, 0.6, 0.8)  # [16] joint positions
     open_pose: tuple[JointAngle, ...] = (0.0,) * 16  # [16] joint positions
@@ -212,6 +213,12 @@ class GraspControl:
     # give up waiting (the reading is still taken, with a warning)
     max_close_s: Annotated[float, positive(60.0, "s")] = 5.0
     open_s: Annotated[float, bounded(0, 60.0, "s")] = 0.3  # wait after opening
+    # after the press, each finger in contact slides its pad across the surface (CaptureLogger._slide): slide_m
+    # one way, twice that back and again to where it pressed (0: no slide), pushing slide_push_m into the surface
+    slide_m: Annotated[float, bounded(0, 0.1, "m")] = 0.0
+    slide_speed_m_s: Annotated[float, positive(1.0, "m/s")] = 0.04
+    slide_push_m: Annotated[float, bounded(0, 0.01, "m")] = 0.001
+    stream_period_s: Annotated[float, positive(1.0, "s")] = 0.04  # the pads are read this often while sliding
 
 
 @with_config(YAML_SECTION)

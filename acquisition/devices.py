@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator
 
@@ -181,6 +181,14 @@ TWIN_CONTROL = GraspControl(
 )
 
 
+SLIDE_FIELDS = ("slide_m", "slide_speed_m_s", "slide_push_m", "stream_period_s")
+
+
+def twin_control(config: RigConfig) -> GraspControl:
+    """The twin's grasp control (:data:`TWIN_CONTROL`) with the rig config's slide (``grasp.slide_m`` ...)."""
+    return replace(TWIN_CONTROL, **{k: getattr(config.grasp, k) for k in SLIDE_FIELDS})
+
+
 def twin_config(config: RigConfig):
     """The :class:`~tacsplat.sim.twin.TwinConfig` of a ``rig: sim`` config."""
     from tacsplat.sim.twin import TwinConfig
@@ -241,7 +249,7 @@ def _open_twin(config: RigConfig) -> Iterator[Rig]:
     from tacsplat.sim.twin import SimTwin
 
     with SimTwin(settings) as twin:
-        yield twin_rig(twin)
+        yield twin_rig(twin, twin_control(config))
 
 
 def twin_rig(twin, control: GraspControl = TWIN_CONTROL) -> Rig:

@@ -31,7 +31,16 @@ import time
 from pathlib import Path
 
 from tacsplat.acquisition.capture_scene import open_scene
-from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, TouchPlan, ViewPlan, validate
+from tacsplat.acquisition.config import (
+    CapturePlan,
+    GraspControl,
+    GraspPlan,
+    RigConfig,
+    SimConfig,
+    TouchPlan,
+    ViewPlan,
+    validate,
+)
 from tacsplat.acquisition.logger import CaptureLogger
 from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
@@ -58,10 +67,12 @@ def sim_rig_config(
     selection_steps: int = GraspPlan.selection_steps,
     uncertainty: str = GraspPlan.uncertainty,
     texture: str = "none",
+    slide_m: float = GraspControl.slide_m,
 ) -> RigConfig:
     """The ``rig: sim`` config of ``tacsplat sim-capture``'s options (``surface_points``: the paper model's;
-    ``candidates``, ``selection_steps`` and ``uncertainty``: the next-best strategy's); a value out of its range
-    is a ConfigError naming its key (``sim.object_radius``)."""
+    ``candidates``, ``selection_steps`` and ``uncertainty``: the next-best strategy's; ``slide_m``: each finger
+    in contact slides its pad after the press, ``GraspControl``); a value out of its range is a ConfigError
+    naming its key (``sim.object_radius``)."""
     problem = object_radius_problem(object_radius)
     if problem:  # (before the rig config's own check of the same range, with what the range means)
         raise ConfigError("sim.object_radius", problem)
@@ -71,6 +82,7 @@ def sim_rig_config(
         )
     config = RigConfig(
         rig="sim",
+        grasp=GraspControl(slide_m=slide_m),
         sim=SimConfig(
             object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed, texture=texture
         ),

@@ -13,7 +13,7 @@ from tacsplat.errors import SceneFormatError
 from tacsplat.files import atomic_write, check_writable
 
 from .reader import check_scene
-from .records import SPLITS, sensor_to_json
+from .records import MOTION_PHASES, SPLITS, sensor_to_json
 from .writer import JOURNAL
 
 
@@ -45,6 +45,7 @@ def summarise(path) -> dict:
             "seconds_per_grasp": {"min": min(durations), "median": float(np.median(durations)), "max": max(durations)},
             "effort_unit": motions[0].effort_unit,
             "peak_effort": float(np.nanmax([np.nanmax(np.abs(m.effort), initial=0.0) for m in motions])),
+            "slides": sum(bool((m.phase == MOTION_PHASES.index("slide")).any()) for m in motions),
         }
         if motions
         else None,
@@ -84,6 +85,7 @@ def format_summary(summary: dict) -> str:
             f"hand      {motion['grasps']} grasps recorded ({motion['samples']} samples of {motion['joints']} joints, "
             f"{motion['links']} links): {d['min']:.2f} to {d['max']:.2f} s per grasp (median {d['median']:.2f}), "
             f"peak effort {motion['peak_effort']:.3g} {motion['effort_unit']}"
+            + (f"; {motion['slides']} slid their pads along the surface" if motion["slides"] else "")
         )
     if (s := summary["sensor"]) is None:
         lines.append("sensor    none")

@@ -187,7 +187,8 @@ class Touch(_ByValue):
         object.__setattr__(self, "T_world_sensor", _frozen_pose(self.T_world_sensor, f"touch {self.id} T_world_sensor"))
 
 
-MOTION_PHASES = ("preshape", "close", "open")  # HandMotion.phase: where the hand was, closing, opening
+# HandMotion.phase: where the hand was, closing, opening, sliding its pads along the surface in contact
+MOTION_PHASES = ("preshape", "close", "open", "slide")
 
 
 @dataclass(frozen=True, eq=False)
@@ -212,13 +213,16 @@ class HandMotion:
     link_names: tuple[str, ...]  # [L]
     link_half_extents: np.ndarray  # [L, 3] metres
     link_poses: np.ndarray  # [S, L, 4, 4] world poses of the boxes
+    # [N] when each of the grasp's N touches was read (seconds since the grasp started, in record order); None in
+    # scenes written before it was recorded, whose grasps hold one touch per sensor
+    touch_t: np.ndarray | None = None
 
     def __post_init__(self):
         if problem := hand_motion_problem(self):
             raise InvalidInputError(f"hand motion of grasp {self.grasp}: {problem}")
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self)}
+        arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self) if getattr(self, f.name) is not None}
         names = {k: np.array(getattr(self, k), dtype=str) for k in ("joint_names", "link_names")}
         return {**arrays, **names, "grasp": np.int64(self.grasp), "phase": arrays["phase"].astype(np.uint8)}
 
@@ -232,6 +236,7 @@ class HandMotion:
             phase=np.asarray(a["phase"]),
             effort_unit=str(a["effort_unit"]),
             link_names=tuple(str(n) for n in a["link_names"]),
+            touch_t=np.asarray(a["touch_t"], dtype=np.float64) if "touch_t" in a else None,
         )
 
 
@@ -257,6 +262,8 @@ def hand_motion_problem(m: HandMotion) -> str | None:
         return "no samples"
     if np.any(np.diff(m.t) < 0):
         return "t goes backwards"
+    if m.touch_t is not None and (np.ndim(m.touch_t) != 1 or not np.all(np.isfinite(m.touch_t))):
+        return "touch_t must be a finite vector of seconds"
     if np.any(np.asarray(m.phase) >= len(MOTION_PHASES)):
         return f"phase must index {MOTION_PHASES}"
     if np.any(np.asarray(m.link_half_extents) <= 0) or np.any(np.asarray(m.link_half_extents) > MAX_DISTANCE_M):

@@ -112,7 +112,9 @@ class TactileDepthRenderer:
     Parallel rays along the sensor's +z from behind the gel against the exact
     mesh (Embree via trimesh; hit heights recomputed in float64 from the hit
     triangle's plane). A ray whose first hit is a back face started inside the
-    object (it sank deeper than the gel and the margin): full indentation.
+    object (it sank deeper than the gel and the margin): full indentation, when
+    a ray cast the other way confirms it; else it missed its entry through an
+    edge, and reads no contact.
     """
 
     def __init__(self, mesh_world: trimesh.Trimesh, config: TactileConfig = TactileConfig()):
@@ -124,6 +126,17 @@ class TactileDepthRenderer:
         z0 = -(config.gel_thickness_m + config.ray_margin_m)
         self._origins_sensor = np.stack([x.ravel(), y.ravel(), np.full(x.size, z0)], axis=1)  # [h*w, 3]
         self._z0 = z0
+
+    def _inside(self, origins: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """[N] bool: whether each origin is inside the mesh, by a ray cast the other way also leaving it through a
+        back face (a ray through an edge can miss its entry there, and its first hit is then its exit)."""
+        inside = np.zeros(len(origins), dtype=bool)
+        if len(origins):
+            tri, ray = self.intersector.intersects_id(
+                origins, np.broadcast_to(-direction, origins.shape), multiple_hits=False, return_locations=False
+            )
+            inside[ray] = self.mesh.face_normals[tri] @ -direction >= 0
+        return inside
 
     def render(self, T_world_sensor: np.ndarray) -> np.ndarray:
         """Indentation [h, w] float32 metres (0 = no contact, at most the gel thickness)."""
@@ -143,6 +156,7 @@ class TactileDepthRenderer:
         t = np.einsum("ij,ij->i", self.mesh.triangles[tri, 0] - origins[ray], normals) / np.where(denom == 0, 1, denom)
         z_hit = self._z0 + t
         indentation = np.clip(-z_hit, 0.0, cfg.gel_thickness_m)
-        indentation[denom >= 0] = cfg.gel_thickness_m  # exit through a back face: the ray started inside
+        back = np.flatnonzero(denom >= 0)  # first hit a back face: the ray started inside, or missed its entry
+        indentation[back] = np.where(self._inside(origins[ray[back]], direction), cfg.gel_thickness_m, 0.0)
         depth[ray] = indentation
         return depth.reshape(cfg.height_px, cfg.width_px).astype(np.float32)

@@ -139,6 +139,7 @@ _RIG_FIELDS = {
     "plan.grasps.count": "grasps",
     "plan.touches.model": "touch_model",
     "sim.texture": "texture",
+    "grasp.slide_m": "slide_m",
 }  # the rig config's fields a capture job sets
 
 
@@ -158,13 +159,14 @@ class CaptureJob(BatchJob):
     resolution: int = 128  # image width and height, pixels
     touch_model: Literal["gel", "paper"] = "gel"
     texture: Literal["none", "checker"] = "none"  # the object's surface (tacsplat.sim.objects.TEXTURES)
+    slide_m: float = 0.0  # each finger in contact slides its pad this far each way after the press (GraspControl)
 
     def rig(self, **options):
         """The rig config of the capture (``options``: more of ``sim_rig_config``'s, as a subclass's fields)."""
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
         keys = ("object", "mesh", "object_radius", "views", "test_views", "grasps", "resolution", "seed")
-        return sim_rig_config(**{k: getattr(self, k) for k in (*keys, "touch_model", "texture")}, **options)
+        return sim_rig_config(**{k: getattr(self, k) for k in (*keys, "touch_model", "texture", "slide_m")}, **options)
 
     def check(self) -> None:
         super().check()

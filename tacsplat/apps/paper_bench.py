@@ -136,6 +136,7 @@ class PaperBenchConfig:
     preset: str = "default"  # training preset (reconstruction.config.PRESETS): default or paper
     touch_model: str = "gel"  # gel (grasps with gel contact patches) or paper (the official code's sampling)
     texture: str = "none"  # the objects' surface: their one colour, or "checker" (tacsplat.sim.objects.TEXTURES)
+    slide_m: float = 0.0  # each finger in contact slides its pad this far each way after the press (GraspControl)
     mesh: bool = False  # also export each run's meshes (with and without touches) and report the mesh metrics
     dataset: str | None = None  # a folder of imported scenes instead of the twin's objects (module docstring)
     downscale: int = 1  # with a dataset: its images trained and evaluated at 1/downscale of their size
@@ -203,8 +204,10 @@ class PaperBenchConfig:
     @property
     def scene_tag(self) -> str:
         """Suffix of scene folders that are not gel touches on untextured objects (so they never mix)."""
-        return ("" if self.touch_model == "gel" else f"-{self.touch_model}-touches") + (
-            "" if self.texture == "none" else f"-{self.texture}"
+        return (
+            ("" if self.touch_model == "gel" else f"-{self.touch_model}-touches")
+            + ("" if self.texture == "none" else f"-{self.texture}")
+            + ("" if self.slide_m == 0 else f"-slide{self.slide_m * 1000:g}mm")
         )
 
     @property
@@ -304,7 +307,7 @@ class PaperBench:
             seed=seed,
             views=MINIMAL_VIEWS if setting == "minimal" else c.full_views,
             name=f"capture {scene.relative_to(self.out)}",
-            **{k: getattr(c, k) for k in ("test_views", "grasps", "resolution", "touch_model", "texture")},
+            **{k: getattr(c, k) for k in ("test_views", "grasps", "resolution", "touch_model", "texture", "slide_m")},
         )
 
     def capture(self, obj: str, setting: str, seed: int) -> Path:
@@ -890,6 +893,9 @@ class PaperBenchCommand:
     contrasting grey); textured scenes and runs get their own folders"""
     test_views: int | None = None
     """held-out test views (default 12; quick 8)"""
+    slide_m: float = 0.0
+    """after each press every finger in contact slides its pad this many metres each way and back (0: press only);
+    such scenes and runs get their own folders"""
     settings: str | None = None
     """comma-separated: minimal,full-views (quick: minimal)"""
     seeds: str | None = None
@@ -917,7 +923,7 @@ class PaperBenchCommand:
                 setattr(config, key, getattr(self, key))
         if self.seeds is not None:
             config.seeds = comma_separated_ints(self.seeds, "--seeds")
-        config.preset, config.texture = self.preset, self.texture
+        config.preset, config.texture, config.slide_m = self.preset, self.texture, self.slide_m
         config.touch_model = self.touch_model or ("gel" if self.dataset is None else "paper")
         config.dataset = None if self.dataset is None else str(self.dataset)
         config.downscale, config.mesh = self.downscale, self.mesh

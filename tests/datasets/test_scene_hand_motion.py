@@ -13,6 +13,7 @@ from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import make_pose
 
 OLD_SCENE = Path(__file__).parents[1] / "data" / "scene_before_hand_motion"  # written by tacsplat at a699bd7
+NO_TOUCH_TIMES = Path(__file__).parents[1] / "data" / "scene_before_touch_times"  # written by tacsplat at 1ea25b2
 
 
 def motion(grasp: int, samples: int = 5) -> HandMotion:
@@ -94,3 +95,26 @@ def test_a_damaged_motion_file_is_one_error_naming_it(old_scene):
     (old_scene / "grasps/000001.npz").write_bytes(b"PK\x03\x04 not a zip")
     with pytest.raises(SceneFormatError, match=r"grasps/000001\.npz"):
         Scene.load(old_scene)
+
+
+def test_a_scene_written_before_touch_times_loads_and_resumes_with_its_grasp_whole(tmp_path):
+    from tacsplat.acquisition.logger import CaptureLogger
+
+    path = tmp_path / "scene"
+    shutil.copytree(NO_TOUCH_TIMES, path)
+    scene, problems = check_scene(path)
+    assert problems == []
+    (m,) = scene.hand_motions()
+    assert m.touch_t is None and len(m.t) == 4
+    assert summarise(path)["hand_motion"]["slides"] == 0
+
+    class Hand:
+        joint_names = [f"{f}_{j}" for f in ("index", "thumb") for j in range(4)]
+
+    class Sensor:
+        def __init__(self, name):
+            self.name = name
+
+    with SceneWriter.resume(path) as writer:  # one touch per sensor: complete, kept
+        logger = CaptureLogger(writer, Hand(), [Sensor("index"), Sensor("thumb")], None, None, None)
+        assert logger.dropped_partial_grasp == 0 and writer.num_touches == 2
