@@ -82,6 +82,7 @@ class NextTouchBenchConfig:
     candidates: int = 16  # next-best: approaches scored per grasp
     selection_steps: int = 300  # next-best: steps of the reconstruction that chooses each grasp
     uncertainty: str = "depth-variance"  # next-best: the score
+    slide_m: float = 0.0  # each finger in contact slides its pad this far each way after the press (GraspControl)
 
     def validate(self) -> None:
         from tacsplat.reconstruction.uncertainty import SCORES
@@ -187,7 +188,7 @@ class NextTouchBench:
         """The sim capture of one object, seed and strategy, with the largest grasp budget."""
         c = self.config
         out = self.out / "scenes" / f"{subject}-s{seed}-{strategy}"
-        keys = ("mesh", "views", "test_views", "resolution", "candidates", "selection_steps", "uncertainty")
+        keys = ("mesh", "views", "test_views", "resolution", "candidates", "selection_steps", "uncertainty", "slide_m")
         return StrategyCaptureJob(
             out=out,
             object=subject if c.mesh is None else "teapot",
@@ -518,6 +519,8 @@ class NextTouchBenchCommand:
     """next-best: steps of the reconstruction that chooses each grasp"""
     uncertainty: str = "depth-variance"
     """next-best: the score (depth-variance or fisher)"""
+    slide_m: float = 0.0
+    """after each press every finger in contact slides its pad this many metres each way and back (0: press only)"""
 
     executors: Executors = field(default_factory=ExecutorOptions)
 
