@@ -102,6 +102,11 @@ class TrainConfig:
     are, so a run of 700 steps or fewer has none"""
     lambda_touch_normal: float = 0.1
     """touch Gaussians' normals agree with the tactile maps' surface normals"""
+    lambda_pad_free: float = 0.0
+    """opacity at points the pads in contact prove empty (every pixel of each, pad_free_margin behind what it
+    felt; 0 = off)"""
+    pad_free_margin: float = 0.001
+    """metres behind the felt surface, towards the sensor, of those points"""
     appearance: Appearance = "sh-lit"
     """colour: view-dependent SH (3DGS), or "sh-lit": that colour as an albedo times a learned distant light's
     irradiance at the rendered normal, saturating at 1 (deferred shading)"""
@@ -365,6 +370,8 @@ _FLOAT_RANGES = {
     "lambda_flatten": (0.0, None),
     "lambda_depth_normal": (0.0, None),
     "lambda_touch_normal": (0.0, None),
+    "lambda_pad_free": (0.0, None),
+    "pad_free_margin": (0.0, None),
     "lambda_albedo_smoothness": (0.0, None),
     "albedo_smoothness_beta": (0.0, None),
 }
