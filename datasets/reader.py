@@ -22,13 +22,7 @@ import numpy as np
 from PIL import Image
 
 from tacsplat.errors import InvalidInputError, SceneFormatError
-from tacsplat.geometry import (
-    intrinsics_matrix,
-    opengl_to_opencv,
-    tactile_depth_to_normals,
-    tactile_depth_to_points,
-    tactile_free_points,
-)
+from tacsplat.geometry import intrinsics_matrix, opengl_to_opencv, tactile_depth_to_normals, tactile_depth_to_points
 from tacsplat.types import CameraIntrinsics
 
 from .records import (
@@ -352,11 +346,6 @@ class Scene:
         """The touched surface's outward normals [M, 3] at :meth:`touch_points` (same order; NaN where a contact
         pixel's slope is not known, see ``tactile_depth_to_normals``)."""
         return self._in_contact(tactile_depth_to_normals, threshold_m)
-
-    def touch_free_points(self, margin_m: float) -> np.ndarray:
-        """Points [M, 3] that the pads in contact prove empty (``tactile_free_points``: every pixel of each, behind
-        what it felt by ``margin_m``)."""
-        return self._in_contact(lambda d, px, T, _: tactile_free_points(d, px, T, margin_m), 0.0)
 
     def _in_contact(self, per_touch, threshold_m: float) -> np.ndarray:
         rows = [

@@ -102,11 +102,6 @@ class TrainConfig:
     are, so a run of 700 steps or fewer has none"""
     lambda_touch_normal: float = 0.1
     """touch Gaussians' normals agree with the tactile maps' surface normals"""
-    lambda_pad_free: float = 0.0
-    """opacity at points the pads in contact prove empty (every pixel of each, pad_free_margin behind what it
-    felt; 0 = off)"""
-    pad_free_margin: float = 0.001
-    """metres behind the felt surface, towards the sensor, of those points"""
     appearance: Appearance = "sh-lit"
     """colour: view-dependent SH (3DGS), or "sh-lit": that colour as an albedo times a learned distant light's
     irradiance at the rendered normal, saturating at 1 (deferred shading)"""
@@ -298,8 +293,8 @@ _INIT_BEFORE_THEY_EXISTED = {"colors_from_views": False}  # ... and of its InitC
 
 # Fields of mechanisms measured not to help and removed (docs/experiments.md, "Removed"): a config.json that has
 # them off (or holds only their settings) reads as today's config; one that used them cannot be resumed or shown.
-_REMOVED_OFF = {"depth_render": "centre", "lambda_touch_normal_pixels": 0.0}  # field: its off value
-_REMOVED_SETTINGS = ("plane_depth_start_iter", "env_map_height", "lr_reflective")
+_REMOVED_OFF = {"depth_render": "centre", "lambda_touch_normal_pixels": 0.0, "lambda_pad_free": 0.0}  # its off value
+_REMOVED_SETTINGS = ("plane_depth_start_iter", "env_map_height", "lr_reflective", "pad_free_margin")
 _REMOVED_APPEARANCES = ("reflective", "lit")
 
 
@@ -370,8 +365,6 @@ _FLOAT_RANGES = {
     "lambda_flatten": (0.0, None),
     "lambda_depth_normal": (0.0, None),
     "lambda_touch_normal": (0.0, None),
-    "lambda_pad_free": (0.0, None),
-    "pad_free_margin": (0.0, None),
     "lambda_albedo_smoothness": (0.0, None),
     "albedo_smoothness_beta": (0.0, None),
 }

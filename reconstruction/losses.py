@@ -166,27 +166,6 @@ def transmittance_loss(
     return per_point.mean()
 
 
-def free_space_loss(
-    points: torch.Tensor,  # [P, 3] known to be empty
-    means: torch.Tensor,  # [N, 3]
-    quats: torch.Tensor,  # [N, 4]
-    scales: torch.Tensor,  # [N, 3] activated
-    opacities: torch.Tensor,  # [N] activated
-    candidates: torch.Tensor,  # [P, C] long, -1 = none
-    max_distance: float,
-) -> torch.Tensor:
-    """Mean opacity at points known to be empty: 1/P sum_i (1 - prod_j (1 - alpha_j f(q_i; Sigma_j, mu_j))) over
-    each point's candidate Gaussians within ``max_distance`` (Eq. 1's influence; the complement of Eq. 6's
-    transmittance taken as a product, so one opaque Gaussian there is enough to be penalised)."""
-    valid = candidates >= 0
-    ids = candidates.clamp_min(0)  # [P, C]
-    white = whitening(quats[ids.reshape(-1)], scales[ids.reshape(-1)]).reshape(*ids.shape, 3, 3)  # [P, C, 3, 3]
-    offset = points[:, None, :] - means[ids]  # [P, C, 3]
-    valid = valid & ((offset * offset).sum(-1) <= max_distance**2)
-    alpha = torch.where(valid, gaussian_influence(offset, white) * opacities[ids], torch.zeros_like(offset[..., 0]))
-    return (1.0 - torch.prod(1.0 - alpha.clamp(max=0.999), dim=1)).mean()
-
-
 # --------------------------------------------------------------------------- smoothness
 
 

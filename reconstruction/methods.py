@@ -87,7 +87,6 @@ def mechanisms(config) -> dict[str, bool]:
         "flattening": config.lambda_flatten > 0,
         "depth_normal": config.lambda_depth_normal > 0,
         "tactile_normals": touch and config.lambda_touch_normal > 0,
-        "pad_free_space": touch and config.lambda_pad_free > 0,
         "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
         "view_colors": config.init.colors_from_views,

@@ -79,9 +79,7 @@ LOSS_TERMS = (
     "backdrop",
     "normals",
     "albedo_smoothness",
-    "pad_free",
 )  # progress.csv's loss columns
-PAD_FREE_POINTS = 4000  # the pads' free points kept (one per touch voxel, then a random subset)
 POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
 
 
@@ -159,15 +157,6 @@ class Trainer:
             else None
         )
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
-        self.free_points, self.free_neighbours = np.zeros((0, 3)), None
-        if config.use_touch and config.lambda_pad_free > 0 and scene.touches:
-            free = scene.touch_free_points(config.pad_free_margin)  # [F, 3]
-            cap = dataclasses.replace(config.init, max_touch_points=PAD_FREE_POINTS)
-            self.free_points = free[thin_touch_points(free, cap, self.rng)]
-            self.free_neighbours = losses.TouchNeighbours(
-                self.free_points, config.touch_top_k, config.touch_max_distance, config.touch_rebuild_every
-            )
-        self.free_tensor = torch.as_tensor(self.free_points, dtype=torch.float32, device=dev)
         self.touch_normals = torch.as_tensor(touch_normals, dtype=torch.float32, device=dev)
         self.light = shading.DiffuseLight(device=dev) if config.appearance == "sh-lit" else None
         self.look = shading.Look(config.appearance, self.light)
@@ -384,17 +373,6 @@ class Trainer:
                     points, normals, *gaussians, cfg.touch_max_distance, fused=self.fused_losses
                 )
                 add("normals", cfg.lambda_touch_normal, aligned)
-        if self.free_neighbours is not None:
-            everyone = torch.ones(g.means.shape[0], dtype=torch.bool, device=g.means.device)
-            candidates, points = self.free_neighbours.candidates(g.means, everyone), self.free_tensor
-            if 0 < cfg.touch_points_per_step < len(points):
-                subset = torch.randperm(len(points), generator=self.generator, device=self.device)
-                subset = subset[: cfg.touch_points_per_step]
-                points, candidates = points[subset], candidates[subset]
-            occupied = losses.free_space_loss(
-                points, g.means, g.quats, g.scales, g.opacities, candidates, cfg.touch_max_distance
-            )
-            add("pad_free", cfg.lambda_pad_free, occupied)
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
                 self._pair_weights[view] = losses.image_pair_weights(self.images[view], cfg.albedo_smoothness_beta)
@@ -448,10 +426,8 @@ class Trainer:
             changed = cfg.densify.step_post_backward(
                 g, self.optimizers, self.densify_state, self.step, meta, self.generator
             )
-        if changed:
-            for neighbours in (self.neighbours, self.free_neighbours):
-                if neighbours is not None:
-                    neighbours.invalidate()
+        if changed and self.neighbours is not None:
+            self.neighbours.invalidate()
         self.step += 1
         return terms
 
@@ -528,8 +504,6 @@ class Trainer:
             "order": list(self.order),
             "touch_points": self.touch_points,
             "neighbours": None if self.neighbours is None else self.neighbours.state_dict(),
-            "free_points": self.free_points,
-            "free_neighbours": None if self.free_neighbours is None else self.free_neighbours.state_dict(),
             "progress": {
                 "sums": {k: float(v) for k, v in self._sums.items()},
                 "count": self._sum_count,
@@ -573,11 +547,6 @@ class Trainer:
         if self.neighbours is not None:
             self.neighbours.touch_points = self.touch_points
             self.neighbours.load_state_dict(ckpt["neighbours"])
-        if self.free_neighbours is not None:
-            self.free_points = np.asarray(ckpt["free_points"])
-            self.free_tensor = torch.as_tensor(self.free_points, dtype=torch.float32, device=self.device)
-            self.free_neighbours.touch_points = self.free_points
-            self.free_neighbours.load_state_dict(ckpt["free_neighbours"])
         progress = ckpt.get("progress")  # (checkpoints of older runs have none)
         if progress is not None:
             self._sums = {

@@ -192,20 +192,6 @@ def tactile_depth_to_points(depth, pixel_size_m: float, T_world_sensor, threshol
     return transform_points(T_world_sensor, pts)
 
 
-def tactile_free_points(depth, pixel_size_m: float, T_world_sensor, margin_m: float) -> np.ndarray:
-    """Points [h * w, 3] in the world that a pad's reading proves empty: ``margin_m`` behind what each pixel felt,
-    towards the sensor, ``T_world_sensor @ (x, y, -d - margin_m, 1)`` (``d`` its indentation, 0 where it felt
-    nothing: the object did not reach the gel there)."""
-    depth = np.asarray(depth, dtype=np.float64)
-    if depth.ndim != 2:
-        raise InvalidInputError(f"tactile depth: expected [h, w], got shape {depth.shape}")
-    if not np.all(np.isfinite(depth)):
-        raise InvalidInputError("tactile depth: contains NaN or infinite values")
-    x, y = tactile_pixel_grid(*depth.shape, pixel_size_m)
-    pts = np.stack([x.ravel(), y.ravel(), -depth.ravel() - margin_m], axis=1)
-    return transform_points(T_world_sensor, pts)
-
-
 def tactile_depth_to_normals(depth, pixel_size_m: float, T_world_sensor, threshold_m: float = 1e-5) -> np.ndarray:
     """The touched surface's outward normals [M, 3] (world, unit) at the points of :func:`tactile_depth_to_points`,
     in the same order; NaN where a contact pixel has a neighbour out of contact (the slope there is not known).

@@ -81,8 +81,8 @@ def test_a_run_config_written_before_the_lit_color_existed_reads_as_what_it_trai
 
 
 def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refused_when_on():
-    """config.json written before the reflective and lit appearances, plane depth and the touch-pixel normals were
-    removed: their fields switched off read as today's config (the light's rate, once ``lr_env_map``, kept); a run
+    """config.json written before the reflective and lit appearances, plane depth, the touch-pixel normals and the
+    pads' free space were removed: their fields switched off read as today's config (the light's rate, once ``lr_env_map``, kept); a run
     that used one is refused naming the field and the file."""
     old = {
         **TrainConfig().to_json(),
@@ -90,6 +90,8 @@ def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refuse
         "plane_depth_start_iter": 700,
         "env_map_height": 16,
         "lambda_touch_normal_pixels": 0.0,
+        "lambda_pad_free": 0.0,
+        "pad_free_margin": 0.001,
         "lr_reflective": 5e-3,
         "lr_env_map": 0.02,
     }
@@ -98,6 +100,7 @@ def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refuse
     for field, value in (
         ("depth_render", "plane"),
         ("lambda_touch_normal_pixels", 0.1),
+        ("lambda_pad_free", 2.0),
         ("appearance", "lit"),
         ("appearance", "reflective"),
     ):
