@@ -301,9 +301,9 @@ class CaptureLogger:
             close_s = self.clock.time - t0
             self.hand_state = "closed"
             readings = self._read(self.sensors, t0)
-            if c.slide_m > 0:
-                in_contact = [name for _, name, reading in readings if reading.in_contact]
-                readings += self._slide(held, [s for s in self.sensors if s.name in in_contact], t0)
+            pressed = [s for s, (_, _, reading) in zip(self.sensors, readings) if reading.in_contact]
+            if c.slide_m > 0 and pressed:
+                readings += self._slide(held, pressed, t0)
             touch_t = np.array([t for t, _, _ in readings])
             hand_file = self.writer.add_hand_motion(self._motion(index, T_world_hand, t0, touch_t))
             touches = [
