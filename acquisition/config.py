@@ -199,7 +199,7 @@ class TactileConfig:
 @dataclass(frozen=True)
 class GraspControl:
     """How the logger closes the hand: a speed-limited ramp toward ``close_pose``, each finger stopping when it
-    stalls, then a wait until the joints settle; then the read, the slide (when ``slide_rad`` > 0), then
+    stalls, then a wait until the joints settle; then the read, the slide (when ``slide_m`` > 0), then
     ``open_pose``."""
 
     close_pose: tuple[JointAngle, ...] = (0.0, 1.2, 1.0, 1.0) * 3 + (1.2, 0.6, 0.6, 0.8)  # [16] joint positions
