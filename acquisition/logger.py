@@ -235,10 +235,11 @@ class CaptureLogger:
             return 0
         g = w.touches[-1].grasp
         have = sum(t.grasp == g for t in w.touches)
-        want = len(self.sensors)
+        touch_t = None
         if (hand_file := w.touches[-1].hand_file) is not None:
             with np.load(w.path / hand_file, allow_pickle=False) as arrays:
-                want = len(arrays["touch_t"]) if "touch_t" in arrays else want  # (a slide adds touches)
+                touch_t = HandMotion.from_arrays(arrays).touch_t
+        want = len(self.sensors) if touch_t is None else len(touch_t)  # (a slide adds touches)
         if have >= want:
             return 0
         for _ in range(have):
@@ -385,10 +386,9 @@ class CaptureLogger:
             direction = 1.0 if elapsed < leg or elapsed >= 3 * leg else -1.0
             for joints, gel in sliding:
                 J, pad = _pad_jacobian(self.hand, q, joints, gel)  # [3, j], [4, 4] where the pad is
-                _, ahead = _pad_jacobian(self.hand, target, joints, gel, jacobian=False)  # where it is sent
                 normal, across = pad[:3, 2], pad[:3, 1]
                 # the target runs on along the surface at the slide's speed, and stays slide_push_m past the pad
-                lead = normal @ (ahead[:3, 3] - pad[:3, 3])
+                lead = normal @ (_pad_pose(self.hand, target, gel)[:3, 3] - pad[:3, 3])
                 move = direction * c.slide_speed_m_s * c.poll_s * across + (c.slide_push_m - lead) * normal
                 # damped least squares (1 mm): no large step near a singular pose
                 target[joints] += J.T @ np.linalg.solve(J @ J.T + (1e-3) ** 2 * np.eye(3), move)  # [j]
@@ -474,19 +474,22 @@ class CaptureLogger:
         return f"grasp {g} ({removed} touches)"
 
 
-def _pad_jacobian(hand: Hand, q: np.ndarray, joints: np.ndarray, gel: int, eps: float = 1e-5, jacobian: bool = True):
-    """The gel surface centre's position Jacobian [3, len(joints)] in the hand frame at joints ``q`` (forward
-    differences of :meth:`Hand.link_boxes`; None unless ``jacobian``), and the pad's pose [4, 4] there (the gel
-    box's, moved to its outer face)."""
+def _pad_pose(hand: Hand, q: np.ndarray, gel: int) -> np.ndarray:
+    """The pad's pose [4, 4] in the hand frame at joints ``q``: the gel box's (``Hand.link_boxes``), moved to its
+    outer face, the undeformed gel surface."""
     T, half = hand.link_boxes(q)
     pad = T[gel].copy()
-    pad[:3, 3] += pad[:3, 2] * half[gel, 2]  # the box's outer face: the undeformed gel surface
-    if not jacobian:
-        return None, pad
+    pad[:3, 3] += pad[:3, 2] * half[gel, 2]
+    return pad
+
+
+def _pad_jacobian(hand: Hand, q: np.ndarray, joints: np.ndarray, gel: int, eps: float = 1e-5):
+    """The pad centre's position Jacobian [3, len(joints)] at joints ``q`` (forward differences of
+    :func:`_pad_pose`), and the pad's pose [4, 4] there."""
+    pad = _pad_pose(hand, q, gel)
     J = np.empty((3, len(joints)))
     for k, j in enumerate(joints):
         dq = np.array(q, dtype=np.float64)
         dq[j] += eps
-        Tj, _ = hand.link_boxes(dq)
-        J[:, k] = (Tj[gel, :3, 3] + Tj[gel, :3, 2] * half[gel, 2] - pad[:3, 3]) / eps
+        J[:, k] = (_pad_pose(hand, dq, gel)[:3, 3] - pad[:3, 3]) / eps
     return J, pad

@@ -143,6 +143,16 @@ _RIG_FIELDS = {
 }  # the rig config's fields a capture job sets
 
 
+def check_slide(slide_m: float, option: str) -> None:
+    """A capture's slide (``GraspControl.slide_m``) checked before any job runs: a ConfigError naming ``option``."""
+    from tacsplat.acquisition.config import GraspControl, checked
+
+    try:
+        checked(GraspControl, GraspControl(slide_m=slide_m))
+    except ConfigError as exc:
+        raise ConfigError(option, str(exc).removeprefix(f"{exc.key}: ")) from None
+
+
 @dataclass(frozen=True, kw_only=True)
 class CaptureJob(BatchJob):
     """A seeded simulated capture of a library object (or of ``mesh``) into ``out``."""

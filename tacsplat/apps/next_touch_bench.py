@@ -43,6 +43,7 @@ from tacsplat.apps.batch import (
     ReconstructJob,
     SceneCopyJob,
     capture_copies_runs,
+    check_slide,
 )
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
@@ -109,6 +110,7 @@ class NextTouchBenchConfig:
         get_method(self.method, "--method")
         if self.uncertainty not in SCORES:
             raise ConfigError("--uncertainty", f"must be one of {', '.join(SCORES)}, got {self.uncertainty!r}")
+        check_slide(self.slide_m, "--slide-m")
 
     @property
     def subjects(self) -> list[str]:

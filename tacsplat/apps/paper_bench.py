@@ -48,7 +48,7 @@ from typing import Annotated, Literal
 import numpy as np
 import tyro
 
-from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob
+from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob, check_slide
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
@@ -182,6 +182,7 @@ class PaperBenchConfig:
 
         if problem := texture_problem(self.texture):
             raise ConfigError("texture", problem)
+        check_slide(self.slide_m, "slide_m")
 
     def _validate_dataset(self) -> None:
         folder = Path(self.dataset)

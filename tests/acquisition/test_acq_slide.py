@@ -71,7 +71,7 @@ def test_the_slide_reaches_beyond_the_pressed_patch(box_scene):
     pytest.fail("no pressed finger streamed frames")
 
 
-def test_the_hand_motion_lists_when_each_touch_of_the_grasp_was_read(box_scene, tmp_path):
+def test_the_hand_motion_lists_when_each_touch_of_the_grasp_was_read(box_scene):
     scene, _, sensors = box_scene
     for motion in scene.hand_motions():
         touches = [t for t in scene.touches if t.grasp == motion.grasp]

@@ -123,6 +123,7 @@ def test_first_grasps_keeps_whole_grasps_in_number_order(bench, tmp_path):
         ({"mesh": "/no/such.obj"}, "--mesh"),
         ({"grasps": (2, 2)}, "--grasps"),
         ({"method": "ours"}, "--method"),
+        ({"slide_m": -0.01}, "--slide-m: must be in \\[0, 0.1\\] m"),
     ],
 )
 def test_bad_settings_name_their_option(change, option, tmp_path):
