@@ -93,6 +93,18 @@ def _frames(reader_read, seconds: float) -> tuple[np.ndarray, float]:
     return image, (count - 1) / (time.monotonic() - start)
 
 
+def _pose_files(config: RigConfig) -> list[Row]:
+    """The rows of the hand-eye and mounts files the rig names (calibrate hand-eye, calibrate mounts)."""
+    from tacsplat.drivers.press_calibration import load_hand_eye, load_mounts
+    from tacsplat.sim.hand import FINGER_NAMES
+
+    named = [
+        ("camera.hand_eye", config.camera.hand_eye, load_hand_eye),
+        ("tactile.mounts", config.tactile.mounts, lambda p: load_mounts(p, FINGER_NAMES)),
+    ]
+    return [_calibration_file(config, key, name, load)[0] for key, name, load in named if name]
+
+
 def check_rig(config: RigConfig) -> list[Row]:
     """Every check of a ``rig: real`` config (emulated devices with ``config.mock``)."""
     from tacsplat.drivers.calibration import HandCalibration
@@ -130,6 +142,7 @@ def check_rig(config: RigConfig) -> list[Row]:
                 key = f"tactile.sensors[{i}].calibration"
                 row, tactile[s.finger] = _calibration_file(config, key, s.calibration, TactileCalibration.load)
                 rows.append(row)
+        rows += _pose_files(config)
         if config.camera.T_hand_cam is not None:
             rows.append(Row("camera.T_hand_cam", True, "given in the rig file"))
         elif cam_cal is not None and cam_cal.T_hand_cam is not None:
@@ -192,7 +205,7 @@ def _camera_rows(config: RigConfig, mock, cam_cal, WristCamera) -> list[Row]:
 
 
 def check_twin(config: RigConfig) -> list[Row]:
-    """A ``rig: sim`` config: its hand calibration file (when named) and the twin's devices."""
+    """A ``rig: sim`` config: its calibration files (those named) and the twin's devices."""
     from tacsplat.acquisition.devices import twin_config
     from tacsplat.drivers.calibration import HandCalibration
     from tacsplat.sim.twin import SimTwin
@@ -203,8 +216,9 @@ def check_twin(config: RigConfig) -> list[Row]:
             config, "hand.calibration", config.hand.calibration, lambda p: HandCalibration.load(p, JOINT_NAMES)
         )
         rows.append(row)
-        if not row.ok:
-            return rows
+    rows += _pose_files(config)
+    if not all(row.ok for row in rows):
+        return rows
     with SimTwin(twin_config(config)) as twin:
         q = twin.hand.read_joint_positions()
         rows.append(Row("twin hand", True, f"{len(q)} joints answer"))

@@ -1,6 +1,7 @@
 """tacsplat rig check on the mock rig: a ready rig passes; a missing sensor, a missing servo, a stale or missing
 calibration and an unseen board are each named in the table and in the one error line (exit 1)."""
 
+import json
 import os
 from datetime import datetime
 
@@ -86,3 +87,42 @@ def test_a_hand_calibration_far_from_the_truth_reads_joints_outside_their_limits
     servos = next(name for name in rows if name.startswith("servos"))
     assert code == 1 and rows[servos][0] == "FAIL" and "ring_0 reads -57.3 deg" in rows[servos][1]
     assert yaml.safe_load(open(rig))["hand"]["calibration"] == "hand.json"
+
+
+def test_a_twin_rig_checks_each_calibration_file_it_names(tmp_path, capsys):
+    """rig: sim: the hand, hand-eye and mounts files are checked as a real rig's; a stale hand-eye file and a mounts
+    file with an unknown finger are named, and the twin is not started for a rig that fails them."""
+    from tacsplat.drivers.press_calibration import save_hand_eye
+
+    HandCalibration.identity(JOINT_NAMES).save(tmp_path / "hand.json")
+    save_hand_eye(tmp_path / "hand_eye.json", np.eye(4), presses=16, rms_mm=0.01)
+    old = datetime(2025, 3, 1).timestamp()
+    os.utime(tmp_path / "hand_eye.json", (old, old))
+    mounts = {
+        "format": "tacsplat-mounts",
+        "version": 1,
+        "sensors": {"pinky": {"T_fingertip_sensor": np.eye(4).tolist()}},
+    }
+    (tmp_path / "mounts.json").write_text(json.dumps(mounts))
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(
+        yaml.safe_dump(
+            {
+                "rig": "sim",
+                "hardware_changed": "2025-03-14",
+                "hand": {"calibration": "hand.json"},
+                "camera": {"hand_eye": "hand_eye.json"},
+                "tactile": {"mounts": "mounts.json"},
+                "sim": {"resolution": 16},
+            }
+        )
+    )
+    code = main(["rig", "check", "--rig", str(rig)])
+    out, err = capsys.readouterr()
+    rows = {line.split()[0]: line.split(None, 2)[1:] for line in out.splitlines()[1:]}
+    assert code == 1
+    assert rows["hand.calibration"][0] == "ok"
+    assert rows["camera.hand_eye"][0] == "FAIL" and "stale" in rows["camera.hand_eye"][1]
+    assert rows["tactile.mounts"][0] == "FAIL" and "sensors.pinky" in rows["tactile.mounts"][1]
+    assert "twin hand" not in rows
+    assert err.splitlines()[-1] == "error: rig check: 2 of 3 checks failed: camera.hand_eye; tactile.mounts"
