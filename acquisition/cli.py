@@ -134,10 +134,16 @@ class SimCapture(TouchModel):
     the pads and writes). --grasp-strategy next-best reconstructs the scene so far before each grasp and grasps
     where it is least sure (its decisions and their scores in OUT/scene.json, under annotations.next_touch).
     --touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in --seed;
-    --resume continues a killed capture with the same options (any other value is refused, naming the option)."""
+    --resume continues a killed capture with the same options (any other value is refused, naming the option).
+    --rig reads the object, the plan and the calibration files from a rig: sim file instead of these options:
+    its sim.true_errors make the twin's hardware differ from its model, and every pose is computed as on the real
+    rig, from the calibration files the rig names."""
 
     out: Path = tyro.MISSING
     """scene directory to create (or continue with --resume)"""
+    rig: Path | None = None
+    """a rig: sim YAML file (acquisition/rigs/sim.yaml) giving the object, the plan, the hidden hardware errors and
+    the calibration files; no other capture option may be given with it"""
     object: str = "teapot"
     """library object (teapot, toaster, bell, helmet, torus, car)"""
     mesh: Path | None = None
@@ -295,10 +301,24 @@ def _rig_check(o: RigCheck) -> int:
 
 
 def _sim_capture(args: SimCapture) -> int:
-    import inspect
     import json
 
-    from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
+    from tacsplat.acquisition.sim_capture import sim_capture
+
+    config = _sim_capture_config(args) if args.rig is None else _sim_capture_rig(args)
+    try:
+        timings = sim_capture(config, args.out, resume=args.resume)
+    except ConfigError as exc:
+        raise _naming_options(exc, _SIM_OPTIONS if args.rig is None else {}) from None
+    print(json.dumps({"scene": str(args.out), **{k: round(v, 2) for k, v in timings.items()}}))
+    return 0
+
+
+def _sim_capture_config(args: SimCapture):
+    """The ``rig: sim`` config of sim-capture's options."""
+    import inspect
+
+    from tacsplat.acquisition.sim_capture import sim_rig_config
 
     object_radius = args.object_radius
     if args.keep_size:
@@ -311,13 +331,20 @@ def _sim_capture(args: SimCapture) -> int:
             raise UsageError("--keep-size", f"{args.mesh}'s own bounding radius, read in metres, {problem}")
     given = {k: v for k, v in vars(args).items() if k in inspect.signature(sim_rig_config).parameters}
     given = {k: v for k, v in given.items() if v is not None} | {"object_radius": object_radius}
-    config = _option_values(lambda: sim_rig_config(**given), _SIM_OPTIONS)
-    try:
-        timings = sim_capture(config, args.out, resume=args.resume)
-    except ConfigError as exc:
-        raise _naming_options(exc, _SIM_OPTIONS) from None
-    print(json.dumps({"scene": str(args.out), **{k: round(v, 2) for k, v in timings.items()}}))
-    return 0
+    return _option_values(lambda: sim_rig_config(**given), _SIM_OPTIONS)
+
+
+def _sim_capture_rig(args: SimCapture):
+    """``sim-capture --rig``'s config: everything but the scene folder and --resume from the rig file."""
+    import dataclasses
+
+    from tacsplat.acquisition.config import load_rig
+
+    for f in dataclasses.fields(SimCapture):
+        if f.name not in ("out", "rig", "resume") and getattr(args, f.name) != f.default:
+            option = "--" + f.name.replace("_", "-")
+            raise UsageError(option, f"{args.rig} sets the capture with --rig: set it there, or leave out --rig")
+    return load_rig(args.rig, kind="sim")
 
 
 def _simulate_touches(args: SimulateTouches) -> int:

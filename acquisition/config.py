@@ -479,12 +479,17 @@ def checked(cls: type, data: Any, prefix: str = "", source=None):
     raise ConfigError(key, message, source)
 
 
-def parse_rig(data: Any, source: str | Path | None = None, mock: bool = False, check_files: bool = True) -> RigConfig:
+def parse_rig(
+    data: Any, source: str | Path | None = None, mock: bool = False, check_files: bool = True, kind: str | None = None
+) -> RigConfig:
     """A :class:`RigConfig` from the YAML's data (``source`` names the file in errors; ``check_files=False`` leaves
-    the calibration files unchecked: the commands that write them or report on them)."""
+    the calibration files unchecked: the commands that write them or report on them; ``kind``: the one ``rig:`` the
+    command runs)."""
     src = None if source is None else str(source)
     if not isinstance(data, dict) or "rig" not in data:
         raise ConfigError("rig", "missing: the file must say `rig: real` or `rig: sim`", src)
+    if kind is not None and data["rig"] != kind:
+        raise ConfigError("rig", f"this command runs a rig: {kind} file, got rig: {data['rig']}", src)
     for key in _SET_BY_LOAD_RIG:
         if key in data:
             raise ConfigError(key, f"unknown key (expected one of {sorted(_section_fields(RigConfig, ()))})", src)
@@ -494,8 +499,9 @@ def parse_rig(data: Any, source: str | Path | None = None, mock: bool = False, c
     return config
 
 
-def load_rig(path: str | Path, mock: bool = False, check_files: bool = True) -> RigConfig:
-    """Read and validate a rig YAML file (``check_files``: that the calibration files it names exist)."""
+def load_rig(path: str | Path, mock: bool = False, check_files: bool = True, kind: str | None = None) -> RigConfig:
+    """Read and validate a rig YAML file (``check_files``: that the calibration files it names exist; ``kind``: the
+    one ``rig:`` the command runs)."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -505,7 +511,7 @@ def load_rig(path: str | Path, mock: bool = False, check_files: bool = True) -> 
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError("rig", f"not valid YAML: {exc}", path) from None
-    return parse_rig(data, path, mock, check_files)
+    return parse_rig(data, path, mock, check_files, kind)
 
 
 def validate(c: RigConfig, check_files: bool = True) -> None:

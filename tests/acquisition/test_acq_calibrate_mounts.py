@@ -100,10 +100,10 @@ def test_ten_draws_recover_within_half_a_mm_and_a_degree(tmp_path):
 
 
 def _touch_median_mm(tmp_path, rig: str) -> float:
-    from tacsplat.acquisition.sim_capture import sim_capture
+    """The median distance (mm) of a ``sim-capture --rig`` capture's touches to the object's mesh."""
     from tacsplat.datasets import Scene
 
-    sim_capture(load_rig(rig), tmp_path / "scene", progress=False)
+    assert main(["sim-capture", "--rig", rig, "--out", str(tmp_path / "scene")]) == 0
     scene = Scene.load(tmp_path / "scene")
     mesh = trimesh.load(scene.gt_mesh_path, force="mesh")
     _, distance, _ = trimesh.proximity.closest_point(mesh, scene.touch_points())

@@ -137,6 +137,24 @@ def test_a_rig_file_with_an_object_too_small_to_grasp_is_one_error_naming_the_ra
     assert f"{rig}: sim.object_radius: must be in [0.025, 0.3] m, got 0.0005" in err, err  # when the file loads
 
 
+@pytest.mark.parametrize(
+    "rig, args, code, words",
+    [
+        ("sim", ["--views", "3"], 2, "tacsplat sim-capture: error: --views: {rig} sets the capture with --rig"),
+        ("real", [], 1, "{rig}: rig: this command runs a rig: sim file, got rig: real"),
+    ],
+)
+def test_sim_capture_with_a_rig_file_takes_no_other_capture_option_and_no_real_rig(
+    tmp_path, capsys, rig, args, code, words
+):
+    path = tmp_path / "rig.yaml"
+    path.write_text(f"rig: {rig}\n")
+    out = tmp_path / "scene"
+    assert main(["sim-capture", "--rig", str(path), "--out", str(out), *args]) == code
+    assert words.format(rig=path) in capsys.readouterr().err
+    assert not out.exists()
+
+
 def _documented_radii(command: str) -> tuple[str, str]:
     """The ends of ``--object-radius``'s range as the command's --help states it."""
     help_text = subprocess.run(
