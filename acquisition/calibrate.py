@@ -1,10 +1,11 @@
 """Calibration commands that run on a rig file: ``tacsplat calibrate hand`` (the hand's joint signs, zeros and
-ranges, :mod:`tacsplat.drivers.joint_calibration`), ``calibrate hand-eye`` (the wrist camera's pose on the hand
-from fingertip presses, :mod:`tacsplat.drivers.press_calibration`; on the twin so far).
+ranges, :mod:`tacsplat.drivers.joint_calibration`), ``calibrate hand-eye`` and ``calibrate mounts`` (the wrist
+camera's pose on the hand and each sensor's on its fingertip from fingertip presses on a sphere,
+:mod:`tacsplat.drivers.press_calibration`).
 
-The same command runs on the real rig (a person at the terminal moves the joints), on ``--mock`` (the servo
-emulator, whose hand moves them) and on a ``rig: sim`` file (the twin pushes them); in the last two the hardware
-hides the rig file's ``sim.true_errors``, which the calibration must find.
+The same command runs on the real rig (a person at the terminal moves the joints or makes the presses), on
+``--mock`` (the emulated devices' person does) and on a ``rig: sim`` file (the twin does); in the last two the
+hardware hides the rig file's ``sim.true_errors``, which the calibration must find.
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ import numpy as np
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
-from tacsplat.errors import ConfigError
 
 
 @contextmanager
@@ -70,31 +70,41 @@ def calibrate_hand(
     return calibration, results
 
 
-def _twin_presses(
+def _presses(
     config: RigConfig,
-    plan: list,
+    plan: Callable[..., list],
     say: Callable[[str], None],
-    what: str = "calibrate hand-eye",
     where: str = "resting on the board",
 ):
-    """``(presses, the rig's T_hand_cam, the rig's mounts)`` of a plan's presses on the twin of a ``rig: sim``
-    config (the twin plays the person: it presses the fingertips on a sphere resting on the board)."""
-    if config.rig != "sim":
-        raise ConfigError(
-            "rig",
-            f"{what} runs on a rig: sim twin only so far (the real rig's and --mock's "
-            "guided presses are not written yet)",
-            config.source,
-        )
-    from tacsplat.acquisition.devices import twin_config
-    from tacsplat.acquisition.presses import SPHERE_RADIUS_M, TwinPressSession
-    from tacsplat.sim.twin import SimTwin
+    """``(presses, the rig's T_hand_cam, the rig's mounts)`` of the presses of ``plan(fingers)`` for the rig's
+    sensors: on a ``rig: sim`` twin the twin presses its fingertips on a sphere ``where``; on a real rig a person
+    does, guided line by line (on ``--mock``, :class:`~tacsplat.acquisition.mock.EmulatorPresser`)."""
+    from tacsplat.acquisition.presses import SPHERE_RADIUS_M
 
-    say(f"the twin presses its fingertips on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere {where}")
-    with SimTwin(twin_config(config)) as twin:
-        presses = TwinPressSession(twin, config.board, say).run(plan)
-        mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
-        return presses, twin.T_hand_cam, mounts
+    if config.rig == "sim":
+        from tacsplat.acquisition.devices import twin_config
+        from tacsplat.acquisition.presses import TwinPressSession
+        from tacsplat.sim.twin import SimTwin
+
+        say(f"the twin presses its fingertips on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere {where}")
+        with SimTwin(twin_config(config)) as twin:
+            presses = TwinPressSession(twin, config.board, say).run(plan())
+            mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
+            return presses, twin.T_hand_cam, mounts
+    from tacsplat.acquisition.devices import open_rig, rig_mounts
+    from tacsplat.acquisition.mock import EmulatorPresser
+    from tacsplat.acquisition.presses import RigPressSession, TerminalPresser
+
+    fingers = [s.finger for s in config.tactile.sensors]
+    say(
+        f"press each fingertip on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere {where} as told; a press is taken when "
+        "its contact is steady"
+    )
+    with open_rig(config, hand_eye_required=False) as rig:
+        person = EmulatorPresser(rig.mock) if rig.mock is not None else TerminalPresser(say)
+        presses = RigPressSession(rig.hand, rig.camera, rig.sensors, config.board, person, say).run(plan(fingers))
+        mounts = {finger: rig_mounts(config).get(finger, np.eye(4)) for finger in fingers}
+        return presses, np.array(rig.extra["T_hand_cam"]), mounts
 
 
 def _change(T_from: np.ndarray, T_to: np.ndarray) -> str:
@@ -112,7 +122,7 @@ def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] 
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M, hand_eye_plan
     from tacsplat.drivers.press_calibration import fit_presses, save_hand_eye
 
-    presses, T_hand_cam, mounts = _twin_presses(config, hand_eye_plan(), say)
+    presses, T_hand_cam, mounts = _presses(config, hand_eye_plan, say)
     fit = fit_presses(presses, SPHERE_RADIUS_M, T_hand_cam, mounts, what="hand-eye")
     save_hand_eye(out, fit.T_hand_cam, sum(fit.presses.values()), fit.rms_mm)
     say(
@@ -136,11 +146,10 @@ def calibrate_mounts(
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M, STAND_HEIGHT_M, hand_eye_plan, mounts_plan
     from tacsplat.drivers.press_calibration import fit_mounts, save_hand_eye, save_mounts
 
-    presses, T_hand_cam, mounts = _twin_presses(
+    presses, T_hand_cam, mounts = _presses(
         config,
-        hand_eye_plan() + mounts_plan(),
+        lambda *fingers: hand_eye_plan(*fingers) + mounts_plan(*fingers),
         say,
-        "calibrate mounts",
         f"resting on the board, then on a stand, its centre {1000 * STAND_HEIGHT_M:.0f} mm over the board",
     )
     fit = fit_mounts(

@@ -65,12 +65,16 @@ class CalibrateHandEye:
     The fingertips press a 25 mm sphere resting on the board while the wrist camera sees the board (a board of
     small squares: the camera is about 10 cm from it); the contact points must lie on the sphere, which fixes
     T_hand_cam and the sphere's place together. Refuses presses that leave an axis undetermined, naming what to
-    add. Runs on a rig: sim twin (the twin presses; standard input may be closed)."""
+    add. On a real rig the hand holds each press's joints and a line says which fingertip to press where; a press
+    is taken once its contact is steady and the camera sees the board, so no key is needed. On --mock the emulated
+    devices and on a rig: sim twin the twin make the presses (standard input may be closed)."""
 
     rig: Path
-    """rig YAML file (its board; sim.true_errors on a twin)"""
+    """rig YAML file (its board; sim.true_errors on a twin or --mock)"""
     out: Path
     """hand-eye file to write (.json; the rig's camera.hand_eye)"""
+    mock: bool = False
+    """the emulated devices instead of the real rig's"""
 
 
 @dataclass
@@ -82,15 +86,17 @@ class CalibrateMounts:
     sides and two corners), bent and spread two ways, while the wrist camera sees the board. The patches' curvature and lever arm fix
     each sensor's six parameters; they and T_hand_cam (coupled to them) are solved together with the sphere's place,
     started at the rig's (run calibrate hand-eye first). A residual line per sensor. Refuses presses that leave an
-    axis undetermined, naming the presses to add. Runs on a rig: sim twin (the twin presses; standard input may be
-    closed)."""
+    axis undetermined, naming the presses to add. Guided on a real rig as calibrate hand-eye is; on --mock and a
+    rig: sim twin the presses are made for the person (standard input may be closed)."""
 
     rig: Path
-    """rig YAML file (camera.hand_eye; sim.true_errors on a twin)"""
+    """rig YAML file (camera.hand_eye; sim.true_errors on a twin or --mock)"""
     out: Path
     """mounts file to write (.json; the rig's tactile.mounts)"""
     hand_eye: Path | None = None
     """also write the T_hand_cam solved with the mounts to this hand-eye file (.json; the rig's camera.hand_eye)"""
+    mock: bool = False
+    """the emulated devices instead of the real rig's"""
 
 
 @dataclass
@@ -242,7 +248,7 @@ def _capture(o: Capture) -> int:
     return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume, suggest=o.suggest)
 
 
-def _calibration_rig(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, mock: bool = False):
+def _calibration_rig(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, mock: bool):
     """The rig file of a calibration command, its ``--out`` (a .json file) checked writable."""
     from tacsplat.acquisition.config import load_rig
     from tacsplat.datasets.outputs import ensure_output_dir
@@ -270,7 +276,7 @@ def _calibrate_hand(o: CalibrateHand) -> int:
 def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
     from tacsplat.acquisition.calibrate import calibrate_hand_eye
 
-    calibrate_hand_eye(_calibration_rig(o), o.out)
+    calibrate_hand_eye(_calibration_rig(o, o.mock), o.out)
     return 0
 
 
@@ -278,7 +284,7 @@ def _calibrate_mounts(o: CalibrateMounts) -> int:
     from tacsplat.acquisition.calibrate import calibrate_mounts
     from tacsplat.datasets.outputs import ensure_output_dir
 
-    config = _calibration_rig(o)
+    config = _calibration_rig(o, o.mock)
     if o.hand_eye is not None:
         ensure_output_dir(o.hand_eye.parent, "--hand-eye")
     calibrate_mounts(config, o.out, o.hand_eye)

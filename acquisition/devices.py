@@ -43,16 +43,17 @@ class Rig:
 
 
 @contextmanager
-def open_rig(config: RigConfig, on_hand=None) -> Iterator[Rig]:
+def open_rig(config: RigConfig, on_hand=None, hand_eye_required: bool = True) -> Iterator[Rig]:
     """Open every device of ``config`` (emulated ones with ``config.mock``); closing leaves the hand safe.
 
     ``on_hand(hand)``: called with a real rig's hand before it connects, so that the caller can tell what its
-    closing confirmed (``hand.torque_off_report``) however the opening ends."""
+    closing confirmed (``hand.torque_off_report``) however the opening ends. ``hand_eye_required=False``: a real
+    rig that does not know ``T_hand_cam`` yet opens with the hand model's designed one (calibrate hand-eye)."""
     if config.rig == "sim":
         with _open_twin(config) as rig:
             yield rig
     else:
-        with _open_real(config, on_hand) as rig:
+        with _open_real(config, on_hand, hand_eye_required) as rig:
             yield rig
 
 
@@ -77,7 +78,7 @@ def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None
 
 
 @contextmanager
-def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
+def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) -> Iterator[Rig]:
     from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
 
@@ -95,6 +96,10 @@ def _open_real(config: RigConfig, on_hand=None) -> Iterator[Rig]:
         T_hand_cam = rig_T_hand_cam(config)
         if T_hand_cam is None:
             T_hand_cam = calibration.T_hand_cam
+        if T_hand_cam is None and not hand_eye_required:
+            from tacsplat.sim.hand import nominal_T_hand_cam
+
+            T_hand_cam = nominal_T_hand_cam()
         if T_hand_cam is None:
             raise ConfigError(
                 "camera.T_hand_cam",

@@ -45,18 +45,18 @@ from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import RAD_PER_TICK
 from tacsplat.drivers.dynamixel_table import CENTRE_TICK
 from tacsplat.errors import ConfigError
-from tacsplat.geometry import invert_pose, look_at, make_pose
-from tacsplat.sim.hand import JOINT_LIMITS
+from tacsplat.geometry import invert_pose, look_at, tactile_pixel_grid
+from tacsplat.sim.hand import JOINT_LIMITS, nominal_T_hand_cam
+from tacsplat.sim.tactile import render_tactile_rgb
 
 log = logging.getLogger(__name__)
 
 REFERENCE_FRAMES = 5  # untouched frames at the start of each tactile video (the sensor's reference)
-ASSET_VERSION = 3  # bump when the generated files change
+ASSET_VERSION = 4  # bump when the generated files change
 LIVE_CAMERA_FPS = 30.0
 BALL_RADIUS_M = 4e-3
 SUPERSAMPLE = 2
-# The mock wrist camera sits 6 cm above the hand base, looking along the hand's z.
-MOCK_T_HAND_CAM = make_pose(np.eye(3), [0.0, -0.06, 0.0])
+MOCK_T_HAND_CAM = nominal_T_hand_cam()  # the mock camera calibration's hand-eye: the hand model's designed pose
 
 
 class LoopingCapture:
@@ -69,6 +69,7 @@ class LoopingCapture:
         self._next = time.monotonic()
         self._stalled = threading.Event()
         self._released = threading.Event()
+        self._shown: np.ndarray | None = None
 
     def __getattr__(self, name: str):  # the rest of cv2.VideoCapture: isOpened, get, set
         return getattr(self._cap, name)
@@ -80,11 +81,18 @@ class LoopingCapture:
         if self._stalled.is_set():
             self._released.wait()
             return False, None
+        shown = self._shown
+        if shown is not None:
+            return True, shown.copy()
         ok, image = self._cap.read()
         if not ok:
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
             ok, image = self._cap.read()
         return ok, image
+
+    def show(self, image_rgb: np.ndarray | None) -> None:
+        """Deliver this image [H, W, 3] RGB from now on instead of the file's frames (None: the file again)."""
+        self._shown = None if image_rgb is None else np.ascontiguousarray(image_rgb[:, :, ::-1])
 
     def stall(self) -> None:
         self._stalled.set()
@@ -178,11 +186,76 @@ class EmulatorPerson:
         self.mock.emulator.move_by_hand(self.ids[joint], None)
 
 
-def _ball_press(h: int, w: int, pixel_m: float, cx: float, cy: float, indentation_m: float) -> np.ndarray:
-    ys, xs = np.indices((h, w)) + 0.5
-    rho2 = ((xs - cx) ** 2 + (ys - cy) ** 2) * pixel_m**2
-    depth = np.sqrt(np.maximum(BALL_RADIUS_M**2 - rho2, 0.0)) - (BALL_RADIUS_M - indentation_m)
-    return np.maximum(depth, 0.0).astype(np.float32)
+class EmulatorPresser:
+    """The person of ``tacsplat calibrate hand-eye --mock`` and ``calibrate mounts --mock``: puts each press's pad on
+    the sphere as planned, at its true pose (the hand's joints where the emulated servos stand, through the rig
+    file's ``sim.true_errors``: the servos', the wrist camera's and each mount's), and shows the press to the
+    emulated devices: the sphere in the gel to the finger's tactile sensor, the board at the camera's true pose to
+    the wrist camera. Lifting shows the untouched gel."""
+
+    timeout_s = 2.0  # the emulated press is shown at once
+
+    def __init__(self, mock: "MockDevices"):
+        from tacsplat.sim.hand import HandKinematics
+
+        if mock.emulator is None:
+            raise ConfigError(
+                "mock_devices.servo_port",
+                "the servo emulator runs in another process, where no one reads where its servos stand: leave "
+                "servo_port out to press with --mock",
+                mock.config.source,
+            )
+        self.mock, self.config = mock, mock.config
+        self.kinematics = HandKinematics()
+        e = self.config.sim.true_errors
+        self.T_hand_cam = nominal_T_hand_cam() @ e.hand_eye.matrix()
+        self.mount_errors = {finger: error.matrix() for finger, error in e.mounts.items()}
+        m = self.config.mock_devices
+        self.tactile_shape = (m.tactile_height, m.tactile_width)
+        self.reference = render_tactile_rgb(np.zeros(self.tactile_shape, np.float32), m.tactile_pixel_size_m)
+
+    def _true_joints(self) -> np.ndarray:
+        """[16] the joint angles where the emulated servos stand (the inverse of :func:`servo_ticks`)."""
+        e = self.config.sim.true_errors
+        ticks = np.array([self.mock.emulator.position(sid) for sid in self.config.hand.ids])
+        theta = (ticks - CENTRE_TICK) * RAD_PER_TICK
+        return (theta - np.asarray(e.servo_offsets())) / np.asarray(e.servo_signs())
+
+    def press(self, spec) -> bool:
+        """Make the press (False: no pose of the hand lets the camera see the board)."""
+        from tacsplat.acquisition.presses import INDENTATION_M, SPHERE_RADIUS_M, board_seen, pad_poses
+        from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
+
+        m, pix = self.config.mock_devices, self.config.mock_devices.tactile_pixel_size_m
+        pads = {
+            finger: T @ self.mount_errors.get(finger, np.eye(4))
+            for finger, T in self.kinematics.fingertip_poses(self._true_joints()).items()
+        }
+        half = np.array([m.tactile_width, m.tactile_height]) * pix / 2
+        size = (m.camera_width, m.camera_height)
+        poses = pad_poses(spec, pads, self.T_hand_cam, half, self.config.board, self.mock.K, size)
+        for T_board_pad in poses[:3]:  # as a person does: the hand turned until the camera sees the board
+            T_board_cam = T_board_pad @ invert_pose(pads[spec.finger]) @ self.T_hand_cam
+            if board_seen(self.config.board, self.mock.K, size, T_board_cam) is not None:
+                break
+        else:
+            return False
+        board = render_board(self.config.board.spec(), self.mock.K, *size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
+        self.mock.captures["camera"].show(board)
+        depth = _sphere_press(self.tactile_shape, pix, spec.spot, SPHERE_RADIUS_M, INDENTATION_M)
+        self.mock.captures[spec.finger].show(render_tactile_rgb(depth, pix))
+        return True
+
+    def release(self, spec) -> None:
+        self.mock.captures[spec.finger].show(self.reference)
+
+
+def _sphere_press(shape: tuple[int, int], pixel_m: float, spot: tuple, radius_m: float, indentation_m: float):
+    """The indentation [h, w] float32 of a sphere of ``radius_m`` pressed ``indentation_m`` into the gel with its
+    lowest point over the gel's ``spot`` (x, y metres in the sensor frame)."""
+    x, y = tactile_pixel_grid(*shape, pixel_m)
+    rho2 = (x - spot[0]) ** 2 + (y - spot[1]) ** 2
+    return np.maximum(np.sqrt(np.maximum(radius_m**2 - rho2, 0.0)) - (radius_m - indentation_m), 0.0).astype(np.float32)
 
 
 class MockDevices:
@@ -236,7 +309,6 @@ class MockDevices:
     def _generate(self) -> None:
         from tacsplat.drivers.optical_tactile import TactileCalibration
         from tacsplat.drivers.wrist_camera import CameraCalibration
-        from tacsplat.sim.tactile import render_tactile_rgb
 
         m, spec = self.config.mock_devices, self.config.board.spec()
         self.folder.parent.mkdir(parents=True, exist_ok=True)
@@ -259,7 +331,12 @@ class MockDevices:
             h, w, pix = m.tactile_height, m.tactile_width, m.tactile_pixel_size_m
             reference = render_tactile_rgb(np.zeros((h, w), np.float32), pix)
             presses = [(0.3, 0.35, 6e-4), (0.7, 0.6, 8e-4), (0.5, 0.5, 1e-3), (0.3, 0.7, 5e-4), (0.7, 0.3, 9e-4)]
-            press_images = [render_tactile_rgb(_ball_press(h, w, pix, x * w, y * h, d), pix) for x, y, d in presses]
+            press_images = [
+                render_tactile_rgb(
+                    _sphere_press((h, w), pix, ((x - 0.5) * w * pix, (y - 0.5) * h * pix), BALL_RADIUS_M, d), pix
+                )
+                for x, y, d in presses
+            ]
             TactileCalibration.fit(reference, press_images, BALL_RADIUS_M, pix).save(self.tactile_calibration)
             for i, s in enumerate(self.config.tactile.sensors):
                 # untouched gel (the reference), then one frame per grasp: three presses and, at a place that

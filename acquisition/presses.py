@@ -1,11 +1,17 @@
-"""The presses of ``tacsplat calibrate hand-eye`` and ``calibrate mounts`` on a twin: the plan (which fingertip,
-bent how, pressed where) and its execution by :class:`~tacsplat.sim.person.TwinPresser`, each press recorded as a
-real rig records it: the joints as read, the contact points from the depth map, and the wrist camera's pose by
-PnP on the ChArUco board it sees (rendered at the camera's true pose, :func:`~tacsplat.acquisition.mock.render_board`).
+"""The presses of ``tacsplat calibrate hand-eye`` and ``calibrate mounts``: the plan (which fingertip, bent how,
+pressed where), and its execution, each press recorded the same way: the joints as read, the contact points from the
+depth map, and the wrist camera's pose by PnP on the ChArUco board it sees.
+
+* on a twin, :class:`TwinPressSession`: :class:`~tacsplat.sim.person.TwinPresser` places the hand, the board is
+  rendered at the camera's true pose (:func:`~tacsplat.acquisition.mock.render_board`);
+* on a real rig or ``--mock``, :class:`RigPressSession`: the hand holds each press's joints and a person
+  (:class:`TerminalPresser`; on ``--mock``, :class:`~tacsplat.acquisition.mock.EmulatorPresser`) makes the press,
+  read through the rig's drivers.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -14,11 +20,12 @@ from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.config import BoardConfig
 from tacsplat.drivers.press_calibration import MIN_CONTACT_POINTS, Press
-from tacsplat.errors import CameraError
+from tacsplat.errors import CameraError, ConfigError, HandError, TactileError
 from tacsplat.geometry import invert_pose, make_pose, tactile_depth_to_points
 from tacsplat.sim.hand import FINGER_NAMES
 
 INDENTATION_M = 0.0006  # how far a press sinks the gel
+CONTACT_DEPTH_M = 1e-5  # a pixel indented this much is in contact
 CAMERA_PX = (640, 480)  # the twin's wrist camera as the calibration sees the board
 SPHERE_RADIUS_M = 0.0125  # a 25 mm ball bearing
 YAWS_DEG = (0.0, 90.0, 180.0, 270.0)  # the hand turned about the pad's normal until the camera sees the board
@@ -103,6 +110,62 @@ def _directions() -> list[np.ndarray]:
     return out
 
 
+def board_seen(board: BoardConfig, K: np.ndarray, image_size: tuple[int, int], T_board_cam: np.ndarray):
+    """The board's PnP pose from its image rendered for a camera (intrinsics ``K`` of ``image_size``) at
+    ``T_board_cam``, or None when the board is not seen well enough to capture (a person would move the hand)."""
+    from tacsplat.acquisition.mock import render_board
+    from tacsplat.drivers.wrist_camera import T_WORLD_BOARD, board_pose
+
+    if T_board_cam[2, 3] <= 0.02:  # the camera under, or on, the board
+        return None
+    image = render_board(board.spec(), K, *image_size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
+    K_opencv = K.copy()
+    K_opencv[:2, 2] -= 0.5
+    try:
+        pose = board_pose(image, board.spec(), K_opencv, None, board.min_corners)
+    except CameraError:
+        return None
+    return pose if pose.rms_px <= board.max_reprojection_px else None
+
+
+def pad_poses(
+    spec: PressSpec,
+    T_hand_pads: dict[str, np.ndarray],
+    T_hand_cam: np.ndarray,
+    pad_half_m: np.ndarray,
+    board: BoardConfig,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+) -> list[np.ndarray]:
+    """Where a person puts the pad for ``spec``: poses ``T_board_pad`` that keep the hand (its pads ``T_hand_pads``
+    at the press's joints, its base) and the whole pad above the board with the wrist camera (at ``T_hand_cam``,
+    intrinsics ``K`` of ``image_size``) looking down at it, best first (most board corners in view)."""
+    T_hand_pad = T_hand_pads[spec.finger]
+    hand_points = np.array([T[:3, 3] for T in T_hand_pads.values()] + [[0.0, 0.0, 0.0]])
+    pad_corners = np.array([[sx * pad_half_m[0], sy * pad_half_m[1], 0.0] for sx in (-1, 1) for sy in (-1, 1)])
+    grid = board.spec()
+    sq = grid.square_length_m
+    gx, gy = np.meshgrid(np.arange(1, grid.squares_x) * sq, -np.arange(1, grid.squares_y) * sq)
+    corners = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size), np.ones(gx.size)])  # [4, N] board frame
+    scored = []
+    for direction in _directions():
+        for yaw in YAWS_DEG:
+            T_board_pad = _pad_target(spec, direction, yaw)
+            T_board_hand = T_board_pad @ invert_pose(T_hand_pad)
+            T_board_cam = T_board_hand @ T_hand_cam
+            above = (T_board_hand[:3, :3] @ hand_points.T + T_board_hand[:3, 3:4])[2]
+            gel = (T_board_pad[:3, :3] @ pad_corners.T + T_board_pad[:3, 3:4])[2]  # an off-centre press: the pad
+            # clear of the board (not checked for hand-eye's centred presses)
+            if T_board_cam[2, 3] < 0.04 or above.min() < 0.003 or (any(spec.spot) and gel.min() < 0.002):
+                continue
+            c = invert_pose(T_board_cam) @ corners
+            u = (K[:2, :2] @ (c[:2] / np.maximum(c[2], 1e-9)) + K[:2, 2:3]).T
+            seen = int(np.sum((c[2] > 0.02) & np.all((u > 10) & (u < np.array(image_size) - 10), axis=1)))
+            if seen >= board.min_corners:
+                scored.append((-seen, T_board_pad))
+    return [T for _, T in sorted(scored, key=lambda s: s[0])]
+
+
 class TwinPressSession:
     """Makes a plan's presses on a twin and records each as a :class:`Press`."""
 
@@ -111,60 +174,25 @@ class TwinPressSession:
         from tacsplat.sim.person import TwinPresser
 
         self.board = board
-        self.spec = board.spec()
-        self.size = (self.spec.squares_x * self.spec.square_length_m, self.spec.squares_y * self.spec.square_length_m)
-        self.presser = TwinPresser(twin, self.size, SPHERE_RADIUS_M, SPHERE_PLACEMENTS)
+        spec = board.spec()
+        size = (spec.squares_x * spec.square_length_m, spec.squares_y * spec.square_length_m)
+        self.presser = TwinPresser(twin, size, SPHERE_RADIUS_M, SPHERE_PLACEMENTS)
         self.K = intrinsics_from_fovy(twin.config.wrist_fovy_deg, *CAMERA_PX).K
-        self.K_opencv = self.K.copy()
-        self.K_opencv[:2, 2] -= 0.5
         self.say = say
         self.twin = twin
 
-    def _board_seen(self, T_board_cam: np.ndarray):
-        """The board's PnP pose of the camera at ``T_board_cam`` (its image rendered there), or None."""
-        from tacsplat.acquisition.mock import render_board
-        from tacsplat.drivers.wrist_camera import T_WORLD_BOARD, board_pose
-
-        if T_board_cam[2, 3] <= 0.02:  # the camera under, or on, the board
-            return None
-        image = render_board(self.spec, self.K, *CAMERA_PX, invert_pose(T_board_cam) @ T_WORLD_BOARD)
-        try:
-            pose = board_pose(image, self.spec, self.K_opencv, None, self.board.min_corners)
-        except CameraError:
-            return None
-        return pose if pose.rms_px <= self.board.max_reprojection_px else None
-
     def _candidates(self, spec: PressSpec) -> list[np.ndarray]:
-        """Pad poses for ``spec`` that keep the hand and the whole pad above the board with the camera looking down
-        at it, best first (the board's centre nearest the image's)."""
         q = np.array(spec.q)
-        T_hand_pad = self.presser.T_hand_pad(spec.finger, q)
-        T_hand_cam = self._true_T_hand_cam()
-        hand_points = np.array([T[:3, 3] for T in self.presser.T_hand_pads(q).values()] + [[0.0, 0.0, 0.0]])
         t = self.twin.config.tactile
-        half = np.array([t.width_px, t.height_px]) * t.pixel_size_m / 2
-        pad_corners = np.array([[sx * half[0], sy * half[1], 0.0] for sx in (-1, 1) for sy in (-1, 1)])
-        sq = self.spec.square_length_m
-        gx, gy = np.meshgrid(np.arange(1, self.spec.squares_x) * sq, -np.arange(1, self.spec.squares_y) * sq)
-        corners = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size), np.ones(gx.size)])  # [4, N] board frame
-        scored = []
-        for direction in _directions():
-            for yaw in YAWS_DEG:
-                T_board_pad = _pad_target(spec, direction, yaw)
-                T_board_hand = T_board_pad @ invert_pose(T_hand_pad)
-                T_board_cam = T_board_hand @ T_hand_cam
-                above = (T_board_hand[:3, :3] @ hand_points.T + T_board_hand[:3, 3:4])[2]
-                gel = (T_board_pad[:3, :3] @ pad_corners.T + T_board_pad[:3, 3:4])[
-                    2
-                ]  # an off-centre press: the pad clear of the board (not yet checked for hand-eye's centred presses)
-                if T_board_cam[2, 3] < 0.04 or above.min() < 0.003 or (any(spec.spot) and gel.min() < 0.002):
-                    continue
-                c = invert_pose(T_board_cam) @ corners
-                u = (self.K[:2, :2] @ (c[:2] / np.maximum(c[2], 1e-9)) + self.K[:2, 2:3]).T
-                seen = int(np.sum((c[2] > 0.02) & np.all((u > 10) & (u < np.array(CAMERA_PX) - 10), axis=1)))
-                if seen >= self.board.min_corners:
-                    scored.append((-seen, T_board_pad))
-        return [T for _, T in sorted(scored, key=lambda s: s[0])]
+        return pad_poses(
+            spec,
+            self.presser.T_hand_pads(q),
+            self._true_T_hand_cam(),
+            np.array([t.width_px, t.height_px]) * t.pixel_size_m / 2,
+            self.board,
+            self.K,
+            CAMERA_PX,
+        )
 
     def _true_T_hand_cam(self) -> np.ndarray:
         return invert_pose(self.twin.T_world_hand()) @ self.twin.wrist_camera.pose()  # the person sees the view
@@ -176,7 +204,7 @@ class TwinPressSession:
             best = None
             for T_board_pad in self._candidates(spec)[:3]:
                 depth, T_board_cam = self.presser.press(spec.finger, np.array(spec.q), T_board_pad)
-                pose = self._board_seen(T_board_cam)
+                pose = board_seen(self.board, self.K, CAMERA_PX, T_board_cam)
                 if pose is not None:
                     best = (depth, pose, self.twin.hand.fingertip_poses()[spec.finger])
                     break
@@ -189,4 +217,136 @@ class TwinPressSession:
             presses.append(Press(spec.finger, T_hand_fingertip, points, pose.T_world_cam, spec.surface, spec.placement))
             ok = "ok" if len(points) >= MIN_CONTACT_POINTS else "too little contact"
             self.say(f"{head}: {len(points)} contact pixels, board {pose.corners} corners {pose.rms_px:.2f} px; {ok}")
+        return presses
+
+
+CONTACT_READINGS = 3  # consecutive readings in contact (or out of it) that make a press (or a lift)
+HOLD_TOLERANCE_RAD = 0.02  # the joints are at a press's pose when every one is this close to it
+HOLD_TIMEOUT_S = 5.0
+
+
+def describe_spot(spec: PressSpec) -> str:
+    """The place of the pad a press uses, as a person reads it."""
+    if not any(spec.spot):
+        return "its pad's centre"
+    x, y = (1000 * v for v in spec.spot)
+    return f"its pad at x {x:+.0f} mm, y {y:+.0f} mm of the gel's centre"
+
+
+class TerminalPresser:
+    """The person at a real rig's terminal: told each press, makes it; the press is taken when the pad's contact is
+    steady, so no key is needed."""
+
+    timeout_s = 120.0  # to make a press, then to lift it off
+
+    def __init__(self, say: Callable[[str], None] = print):
+        self.say = say
+
+    def press(self, spec: PressSpec) -> bool:
+        """Tell the press (True: the person will try it)."""
+        self.say(
+            f"  press the {spec.finger} fingertip with {describe_spot(spec)} on {spec.describe().split(' on ', 1)[1]}, "
+            "the wrist camera seeing the board; hold it still"
+        )
+        return True
+
+    def release(self, spec: PressSpec) -> None:
+        self.say(f"  lift the {spec.finger} fingertip off")
+
+
+class RigPressSession:
+    """Makes a plan's presses on a rig's devices (a real rig, or ``--mock``'s) with a person's help, recording each
+    as :class:`TwinPressSession` does: the hand holds the press's joints (torque on), the person presses the pad as
+    told (``person.press``), and once the pad's contact is steady the joints as read, the contact points from the
+    depth map and the wrist camera's pose by PnP on the board (a frame taken after the contact became steady) make
+    the press; then the person lifts the pad off."""
+
+    def __init__(self, hand, camera, sensors: list, board: BoardConfig, person, say: Callable[[str], None] = print):
+        from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected
+
+        self.rejected = CaptureRejected
+        self.hand, self.camera, self.board = hand, camera, board
+        self.sensors = {s.name: s for s in sensors}
+        self.poses = BoardPoseSource(camera, board, np.eye(4))
+        self.person, self.say = person, say
+
+    def _hold(self, q: np.ndarray) -> None:
+        """Command the joints to ``q`` (within their limits) and wait until they are there (HandError naming the
+        joints if not)."""
+        q = np.clip(q, self.hand.joint_limits[:, 0], self.hand.joint_limits[:, 1])
+        self.hand.command_joint_positions(q)
+        deadline = time.monotonic() + HOLD_TIMEOUT_S
+        while True:
+            off = np.abs(self.hand.read_joint_positions() - q)
+            if np.all(off <= HOLD_TOLERANCE_RAD):
+                return
+            if time.monotonic() > deadline:
+                names = [self.hand.joint_names[k] for k in np.flatnonzero(off > HOLD_TOLERANCE_RAD)]
+                raise HandError(
+                    getattr(self.hand, "device", "hand"),
+                    f"joints {', '.join(names)} did not reach a press's pose within {HOLD_TIMEOUT_S:g} s "
+                    f"(off by up to {np.degrees(off.max()):.1f} deg): is the hand blocked?",
+                )
+            time.sleep(0.01)
+
+    def _contact(self, finger: str, touching: bool, after: float):
+        """The reading once ``finger``'s pad has been in contact (``touching``) or out of it for
+        :data:`CONTACT_READINGS` readings in a row of frames taken after ``after`` (``time.time()`` seconds: not
+        a frame from before the person was told); None after the person's ``timeout_s``."""
+        deadline, run = time.monotonic() + self.person.timeout_s, 0
+        while time.monotonic() < deadline:
+            reading = self.sensors[finger].read()
+            if reading.timestamp < after:
+                continue
+            contact = int(np.count_nonzero(reading.depth > CONTACT_DEPTH_M)) >= MIN_CONTACT_POINTS
+            run = run + 1 if contact == touching else 0
+            if run >= CONTACT_READINGS:
+                return reading
+        return None
+
+    def _board(self, after: float):
+        """The board's pose in a wrist camera frame taken at or after ``after`` (seconds), or the reason it is not
+        seen."""
+        deadline = time.monotonic() + self.person.timeout_s
+        while True:
+            image, stamp = self.camera.read()
+            if stamp < after and time.monotonic() < deadline:
+                continue
+            try:
+                return self.poses.camera_pose(image)
+            except self.rejected as exc:
+                return str(exc)
+
+    def run(self, plan: list[PressSpec]) -> list[Press]:
+        """The presses, a status line each; a press without contact, or whose camera does not see the board, is
+        skipped."""
+        missing = sorted({spec.finger for spec in plan} - set(self.sensors))
+        if missing:
+            raise ConfigError("tactile.sensors", f"the presses need a sensor on {', '.join(missing)}")
+        presses = []
+        for i, spec in enumerate(plan):
+            head = f"press {i + 1}/{len(plan)}: {spec.describe()}"
+            self._hold(np.array(spec.q))
+            told = time.time()
+            if not self.person.press(spec):
+                self.say(f"{head}: the wrist camera does not see the board at any pose of the hand; skipped")
+                continue
+            reading = self._contact(spec.finger, True, told)
+            pose = None if reading is None else self._board(reading.timestamp)
+            T_hand_fingertip = self.hand.fingertip_poses()[spec.finger]
+            told = time.time()
+            self.person.release(spec)
+            if self._contact(spec.finger, False, told) is None:
+                raise TactileError(spec.finger, f"still in contact {self.person.timeout_s:g} s after the press")
+            if reading is None:
+                self.say(f"{head}: no contact within {self.person.timeout_s:g} s; skipped")
+                continue
+            if isinstance(pose, str):
+                self.say(f"{head}: {pose}; skipped")
+                continue
+            points = tactile_depth_to_points(reading.depth, reading.pixel_size_m, np.eye(4), CONTACT_DEPTH_M)
+            presses.append(Press(spec.finger, T_hand_fingertip, points, pose.T, spec.surface, spec.placement))
+            self.say(
+                f"{head}: {len(points)} contact pixels, board {pose.corners} corners {pose.reprojection_px:.2f} px; ok"
+            )
         return presses

@@ -1,6 +1,7 @@
 """tacsplat calibrate hand-eye: on twins hiding random hand-eye errors (up to 5 mm and 3 degrees) it finds T_hand_cam
 within 1 mm and 0.5 degree from fingertip presses on a sphere resting on the board, runs with standard input
-closed, and refuses presses that leave an axis undetermined, naming it."""
+closed (on the twin and through the real drivers on --mock), and refuses presses that leave an axis undetermined,
+naming it."""
 
 import os
 import sys
@@ -11,11 +12,11 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.calibrate import calibrate_hand_eye
-from tacsplat.acquisition.config import load_rig
+from tacsplat.acquisition.config import example_rig, load_rig
 from tacsplat.acquisition.presses import SPHERE_RADIUS_M, hand_eye_plan
 from tacsplat.cli import main
 from tacsplat.drivers.press_calibration import fit_presses, load_hand_eye
-from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.errors import InvalidInputError
 from tacsplat.sim.hand import nominal_T_hand_cam
 
 pytestmark = pytest.mark.timeout(300)
@@ -90,9 +91,26 @@ def test_presses_that_leave_an_axis_undetermined_are_refused_naming_it(tmp_path)
         fit_presses([], SPHERE_RADIUS_M, nominal_T_hand_cam())
 
 
-def test_a_real_rig_is_one_error_saying_the_twin_only_so_far(tmp_path):
-    from tacsplat.acquisition.config import example_rig
+def test_mock_presses_are_guided_through_the_real_drivers_and_find_the_hidden_error(tmp_path, capsys, monkeypatch):
+    """--mock runs the real rig's code path with standard input closed: the real hand, camera and tactile drivers read the emulated person's presses (the servo emulator
+    holding each press's joints, the sphere in the gel's image, the board at the camera's true pose)."""
+    from tests.acquisition.acq_helpers import write_mock_rig
 
-    config = load_rig(example_rig("mock"), mock=True, check_files=False)
-    with pytest.raises(ConfigError, match="rig: sim twin only so far"):
-        calibrate_hand_eye(config, tmp_path / "he.json", lambda s: 0)
+    monkeypatch.setattr(sys, "stdin", open(os.devnull))
+    errors = _draw(4)
+    sensors = yaml.safe_load(example_rig("mock").read_text())["tactile"]["sensors"]
+    rig = write_mock_rig(
+        tmp_path,
+        board=FINE_BOARD,
+        sim={"true_errors": errors},
+        mock_devices={"camera_width": 640, "camera_height": 480, "camera_focal_px": 416.0},  # the twin's wrist camera
+        tactile={"sensors": [s for s in sensors if s["finger"] in ("index", "thumb")]},
+    )
+    out = tmp_path / "hand_eye.json"
+    assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out), "--mock"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1].startswith("press 1/8: index on the sphere (placement 1): ") and lines[1].endswith("; ok")
+    assert "the wrist camera does not see the board at any pose of the hand; skipped" in lines[3]
+    assert lines[-1].startswith(f"wrote {out}")
+    mm, deg = _error(load_hand_eye(out), errors)
+    assert mm < 0.5 and deg < 0.5, (mm, deg)
