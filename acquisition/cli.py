@@ -60,21 +60,29 @@ class CalibrateHand:
 
 @dataclass
 class CalibrateHandEye:
-    """the wrist camera's pose on the hand (T_hand_cam) from fingertip presses, without an arm
+    """the wrist camera's pose on the hand (T_hand_cam) from fingertip presses, or from arm poses (--arm-poses)
 
     The fingertips press a 25 mm sphere resting on the board while the wrist camera sees the board (a board of
     small squares: the camera is about 10 cm from it); the contact points must lie on the sphere, which fixes
     T_hand_cam and the sphere's place together. Refuses presses that leave an axis undetermined, naming what to
     add. On a real rig the hand holds each press's joints and a line says which fingertip to press where; a press
     is taken once its contact is steady and the camera sees the board, so no key is needed. On --mock the emulated
-    devices and on a rig: sim twin the twin make the presses (standard input may be closed)."""
+    devices and on a rig: sim twin the twin make the presses (standard input may be closed). With --arm-poses (a
+    hand on an arm) nothing is pressed: the board is found in each station's image with the rig's
+    camera.calibration and T_hand_cam solved from the hand's poses (Park & Martin); a line per station, then
+    T_hand_cam and the spread of the board's pose in the arm's base over the stations. Refuses fewer than 3
+    stations that see the board, and stations where the hand turns about one axis only."""
 
     rig: Path
-    """rig YAML file (its board; sim.true_errors on a twin or --mock)"""
+    """rig YAML file (its board; sim.true_errors on a twin or --mock; camera.calibration with --arm-poses)"""
     out: Path
     """hand-eye file to write (.json; the rig's camera.hand_eye)"""
     mock: bool = False
     """the emulated devices instead of the real rig's"""
+    arm_poses: Annotated[Path | None, tyro.conf.arg(metavar="FILE")] = None
+    """a YAML or JSON file of stations, each the hand's pose in the arm's base (T_base_hand, 4x4 in metres, as the
+    arm's controller reports it) and the wrist camera's raw image taken there (image, a path relative to the file):
+    stations: [{T_base_hand: [[...], [...], [...], [0, 0, 0, 1]], image: station_01.png}, ...]"""
 
 
 @dataclass
@@ -274,9 +282,17 @@ def _calibrate_hand(o: CalibrateHand) -> int:
 
 
 def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
+    if o.arm_poses is not None and o.mock:
+        raise UsageError("--mock", "--arm-poses reads its stations' images, no devices: leave out --mock")
+    config = _calibration_rig(o, o.mock)
+    if o.arm_poses is not None:
+        from tacsplat.acquisition.arm_hand_eye import calibrate_hand_eye_from_arm
+
+        calibrate_hand_eye_from_arm(config, o.arm_poses, o.out)
+        return 0
     from tacsplat.acquisition.calibrate import calibrate_hand_eye
 
-    calibrate_hand_eye(_calibration_rig(o, o.mock), o.out)
+    calibrate_hand_eye(config, o.out)
     return 0
 
 

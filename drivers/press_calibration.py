@@ -20,8 +20,9 @@ Each refuses a press set that leaves an axis undetermined, naming the presses to
 whose board pose is off the others' (PnP can flip with few corners).
 
 Files (JSON): ``{"format": "tacsplat-hand-eye", "version": 1, "T_hand_cam": [[4x4]], "presses": n, "rms_mm": x}``
-and ``{"format": "tacsplat-mounts", "version": 1, "sensors": {finger: {"T_fingertip_sensor": [[4x4]], "presses": n,
-"rms_mm": x}}}``.
+(from an arm, ``tacsplat calibrate hand-eye --arm-poses``: ``"stations": n`` instead of ``"presses"``, and ``rms_mm``
+the rms spread of the board's position in the arm's base over them) and ``{"format": "tacsplat-mounts", "version": 1,
+"sensors": {finger: {"T_fingertip_sensor": [[4x4]], "presses": n, "rms_mm": x}}}``.
 """
 
 from __future__ import annotations
@@ -374,9 +375,13 @@ class _MountsFile(CalibrationFile, extra="ignore"):
     sensors: Annotated[dict[str, _Mount], Field(min_length=1)]
 
 
-def save_hand_eye(path: str | Path, T_hand_cam: np.ndarray, presses: int, rms_mm: float) -> None:
+def save_hand_eye(
+    path: str | Path, T_hand_cam: np.ndarray, presses: int | None, rms_mm: float, stations: int | None = None
+) -> None:
+    """Write a hand-eye file saying what ``T_hand_cam`` came from: fingertip ``presses`` or arm ``stations``."""
     data = {"format": HAND_EYE_FORMAT, "version": 1, "T_hand_cam": np.asarray(T_hand_cam).tolist()}
-    data |= {"presses": presses, "rms_mm": rms_mm}
+    counts = {"presses": presses, "stations": stations}
+    data |= {key: n for key, n in counts.items() if n is not None} | {"rms_mm": rms_mm}
     atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
