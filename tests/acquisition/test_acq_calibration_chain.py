@@ -104,3 +104,40 @@ def test_ten_draws_of_every_error_at_once_are_calibrated_and_put_the_touches_wit
         print(f"  {label:18s} {np.median(values):7.3f} [{max(values):.3f}]")
     assert all(_within_bounds(r) for r in results), results
     assert all(r["touch_mm"]["calibrated"] < 1.0 for r in results)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_chain_runs_on_mock_through_the_real_drivers_and_finds_every_hidden_error(tmp_path, seed, monkeypatch):
+    """calibrate hand, hand-eye and mounts on --mock, each reading the files before it, with standard input
+    closed: the real drivers read the emulated person's stops and presses (the gel's depth through its optical
+    model, which the twin's depth maps skip)."""
+    import os
+    import sys
+
+    from tacsplat.acquisition.config import example_rig
+    from tacsplat.cli import main
+
+    monkeypatch.setattr(sys, "stdin", open(os.devnull))
+    errors = {**_joint_draw(seed), **_mount_draw(seed)}
+    data = yaml.safe_load(example_rig("mock").read_text())
+    data |= {"board": FINE_BOARD, "sim": {"true_errors": errors}}
+    data["mock_devices"] = {"camera_width": 640, "camera_height": 480, "camera_focal_px": 416.0}
+    rig = tmp_path / "rig.yaml"
+    steps = [
+        (["hand", "--out", "hand.json"], ("hand", "calibration", "hand.json")),
+        (["hand-eye", "--out", "hand_eye.json"], ("camera", "hand_eye", "hand_eye.json")),
+        (["mounts", "--out", "mounts.json", "--hand-eye", "hand_eye.json"], ("tactile", "mounts", "mounts.json")),
+    ]
+    for args, (section, key, file) in steps:
+        rig.write_text(yaml.safe_dump(data))
+        args = [str(tmp_path / a) if a.endswith(".json") else a for a in args]
+        assert main(["calibrate", *args, "--rig", str(rig), "--mock"]) == 0
+        data[section][key] = file
+    worst_deg, signs_right = _errors_deg(HandCalibration.load(tmp_path / "hand.json", JOINT_NAMES), errors)
+    mounts = load_mounts(tmp_path / "mounts.json", FINGER_NAMES)
+    found = {f: _off(mounts[f], _matrix(e)) for f, e in errors["mounts"].items()}
+    found["hand-eye"] = _off(
+        load_hand_eye(tmp_path / "hand_eye.json"), nominal_T_hand_cam() @ _matrix(errors["hand_eye"])
+    )
+    print(f"mock draw {seed}: joints within {worst_deg:.4f} deg, signs right {signs_right}; {found}")
+    assert worst_deg < 0.5 and signs_right and _good(found), found
