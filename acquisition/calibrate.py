@@ -100,11 +100,17 @@ def _presses(
         f"press each fingertip on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere {where} as told; a press is taken when "
         "its contact is steady"
     )
-    with open_rig(config, hand_eye_required=False) as rig:
-        person = EmulatorPresser(rig.mock) if rig.mock is not None else TerminalPresser(say)
-        presses = RigPressSession(rig.hand, rig.camera, rig.sensors, config.board, person, say).run(plan(fingers))
-        mounts = {finger: rig_mounts(config).get(finger, np.eye(4)) for finger in fingers}
-        return presses, np.array(rig.extra["T_hand_cam"]), mounts
+    hands = []
+    try:
+        with open_rig(config, on_hand=hands.append, hand_eye_required=False) as rig:
+            person = EmulatorPresser(rig.mock) if rig.mock is not None else TerminalPresser(say)
+            presses = RigPressSession(rig.hand, rig.camera, rig.sensors, config.board, person, say).run(plan(fingers))
+            T_hand_cam = np.array(rig.extra["T_hand_cam"])
+    finally:  # however it ended, what closing the hand confirmed
+        for hand in hands:
+            if hand.torque_off_report is not None:
+                say(f"{hand.device}: {hand.torque_off_report}")
+    return presses, T_hand_cam, {finger: rig_mounts(config).get(finger, np.eye(4)) for finger in fingers}
 
 
 def _change(T_from: np.ndarray, T_to: np.ndarray) -> str:

@@ -268,17 +268,23 @@ def _calibration_rig(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, mock
     return config
 
 
+def _until_interrupted(run, out: Path) -> int:
+    """``run()``, exit 0; interrupted (Ctrl-C, or the hand driver's SignalInterrupt: SIGTERM, SIGHUP, ...) after
+    the hand was left with torque off: one line saying ``out`` was not written, exit 128 + the signal."""
+    try:
+        run()
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        print(f"interrupted ({signal.Signals(signum).name}): {out} not written", file=sys.stderr)
+        return 128 + signum
+    return 0
+
+
 def _calibrate_hand(o: CalibrateHand) -> int:
     from tacsplat.acquisition.calibrate import calibrate_hand
 
     config = _calibration_rig(o, o.mock)
-    try:
-        calibrate_hand(config, o.out)
-    except KeyboardInterrupt as exc:  # Ctrl-C, or the hand driver's SignalInterrupt (SIGTERM, SIGHUP, ...)
-        signum = getattr(exc, "signum", signal.SIGINT)
-        print(f"interrupted ({signal.Signals(signum).name}): {o.out} not written", file=sys.stderr)
-        return 128 + signum
-    return 0
+    return _until_interrupted(lambda: calibrate_hand(config, o.out), o.out)
 
 
 def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
@@ -292,8 +298,7 @@ def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
         return 0
     from tacsplat.acquisition.calibrate import calibrate_hand_eye
 
-    calibrate_hand_eye(config, o.out)
-    return 0
+    return _until_interrupted(lambda: calibrate_hand_eye(config, o.out), o.out)
 
 
 def _calibrate_mounts(o: CalibrateMounts) -> int:
@@ -303,8 +308,7 @@ def _calibrate_mounts(o: CalibrateMounts) -> int:
     config = _calibration_rig(o, o.mock)
     if o.hand_eye is not None:
         ensure_output_dir(o.hand_eye.parent, "--hand-eye")
-    calibrate_mounts(config, o.out, o.hand_eye)
-    return 0
+    return _until_interrupted(lambda: calibrate_mounts(config, o.out, o.hand_eye), o.out)
 
 
 def _rig_check(o: RigCheck) -> int:

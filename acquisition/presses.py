@@ -42,9 +42,11 @@ class PressSpec:
     spot: tuple = (0.0, 0.0)
     placement: int = 0
 
+    def where(self) -> str:
+        return "the board" if self.surface == "board" else f"the sphere (placement {self.placement + 1})"
+
     def describe(self) -> str:
-        where = "the board" if self.surface == "board" else f"the sphere (placement {self.placement + 1})"
-        return f"{self.finger} on {where}"
+        return f"{self.finger} on {self.where()}"
 
 
 def _pose_q(finger: str, abduction: float, flexion: tuple, others: tuple = (0.0, 0.0, 0.0)) -> tuple:
@@ -245,7 +247,7 @@ class TerminalPresser:
     def press(self, spec: PressSpec) -> bool:
         """Tell the press (True: the person will try it)."""
         self.say(
-            f"  press the {spec.finger} fingertip with {describe_spot(spec)} on {spec.describe().split(' on ', 1)[1]}, "
+            f"  press the {spec.finger} fingertip with {describe_spot(spec)} on {spec.where()}, "
             "the wrist camera seeing the board; hold it still"
         )
         return True

@@ -91,6 +91,15 @@ def test_presses_that_leave_an_axis_undetermined_are_refused_naming_it(tmp_path)
         fit_presses([], SPHERE_RADIUS_M, nominal_T_hand_cam())
 
 
+MOCK_CAMERA = {"camera_width": 640, "camera_height": 480, "camera_focal_px": 416.0}  # the twin's wrist camera
+
+
+def _sensors() -> list:
+    """The mock rig's index and thumb sensors (fewer presses)."""
+    sensors = yaml.safe_load(example_rig("mock").read_text())["tactile"]["sensors"]
+    return [s for s in sensors if s["finger"] in ("index", "thumb")]
+
+
 def test_mock_presses_are_guided_through_the_real_drivers_and_find_the_hidden_error(tmp_path, capsys, monkeypatch):
     """--mock runs the real rig's code path with standard input closed: the real hand, camera and tactile drivers read the emulated person's presses (the servo emulator
     holding each press's joints, the sphere in the gel's image, the board at the camera's true pose)."""
@@ -98,13 +107,12 @@ def test_mock_presses_are_guided_through_the_real_drivers_and_find_the_hidden_er
 
     monkeypatch.setattr(sys, "stdin", open(os.devnull))
     errors = _draw(4)
-    sensors = yaml.safe_load(example_rig("mock").read_text())["tactile"]["sensors"]
     rig = write_mock_rig(
         tmp_path,
         board=FINE_BOARD,
         sim={"true_errors": errors},
-        mock_devices={"camera_width": 640, "camera_height": 480, "camera_focal_px": 416.0},  # the twin's wrist camera
-        tactile={"sensors": [s for s in sensors if s["finger"] in ("index", "thumb")]},
+        mock_devices=MOCK_CAMERA,
+        tactile={"sensors": _sensors()},
     )
     out = tmp_path / "hand_eye.json"
     assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out), "--mock"]) == 0
@@ -114,3 +122,50 @@ def test_mock_presses_are_guided_through_the_real_drivers_and_find_the_hidden_er
     assert lines[-1].startswith(f"wrote {out}")
     mm, deg = _error(load_hand_eye(out), errors)
     assert mm < 0.5 and deg < 0.5, (mm, deg)
+
+
+def test_sigterm_mid_presses_exits_with_torque_off_confirmed_and_nothing_written(tmp_path):
+    import signal
+    import subprocess
+
+    from tests.acquisition.acq_helpers import write_mock_rig
+
+    rig = write_mock_rig(tmp_path, board=FINE_BOARD, mock_devices=MOCK_CAMERA, tactile={"sensors": _sensors()})
+    out = tmp_path / "mounts.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tacsplat", "calibrate", "mounts", "--rig", rig, "--out", str(out), "--mock"],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        for line in proc.stdout:  # the presses are under way
+            if line.startswith("press 2/"):
+                break
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert "torque off confirmed on all 16 servos" in stdout
+    assert f"interrupted (SIGTERM): {out} not written" in stderr
+    assert not out.exists()
+
+
+def test_a_person_at_a_real_rig_is_told_each_press_in_one_line():
+    from tacsplat.acquisition.presses import TerminalPresser, mounts_plan
+
+    lines = []
+    person = TerminalPresser(lines.append)
+    assert person.press(hand_eye_plan()[0]) and person.press(mounts_plan()[0])
+    person.release(mounts_plan()[0])
+    assert lines == [
+        "  press the index fingertip with its pad's centre on the sphere (placement 1), the wrist camera seeing the "
+        "board; hold it still",
+        "  press the index fingertip with its pad at x +8 mm, y +0 mm of the gel's centre on the sphere (placement 2), "
+        "the wrist camera seeing the board; hold it still",
+        "  lift the index fingertip off",
+    ]
