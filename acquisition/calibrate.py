@@ -78,7 +78,7 @@ def _presses(
 ):
     """``(presses, the rig's T_hand_cam, the rig's mounts)`` of the presses of ``plan(fingers)`` for the rig's
     sensors: on a ``rig: sim`` twin the twin presses its fingertips on a sphere ``where``; on a real rig a person
-    does, guided line by line (on ``--mock``, :class:`~tacsplat.acquisition.mock.EmulatorPresser`)."""
+    does, guided line by line (on ``--mock``, :class:`~tacsplat.acquisition.mock_presser.EmulatorPresser`)."""
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M
 
     if config.rig == "sim":
@@ -92,7 +92,7 @@ def _presses(
             mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
             return presses, twin.T_hand_cam, mounts
     from tacsplat.acquisition.devices import open_rig, rig_mounts
-    from tacsplat.acquisition.mock import EmulatorPresser
+    from tacsplat.acquisition.mock_presser import EmulatorPresser
     from tacsplat.acquisition.presses import RigPressSession, TerminalPresser
 
     fingers = [s.finger for s in config.tactile.sensors]

@@ -3,7 +3,8 @@
 * the hand: the real :class:`~tacsplat.drivers.DynamixelHand` and ``dynamixel_sdk``
   talking to :class:`~tacsplat.drivers.dxl_emulator.DxlEmulator` on a pseudo-terminal, its servos stopped at the
   joint limits and off by the rig file's ``sim.true_errors`` (read with ``hand.calibration`` when the rig names
-  one, else sign 1 and offset 0), moved by :class:`EmulatorPerson` for ``calibrate hand``;
+  one, else sign 1 and offset 0), moved by :class:`EmulatorPerson` for ``calibrate hand``; the presses of
+  ``calibrate hand-eye`` and ``mounts`` are :class:`~tacsplat.acquisition.mock_presser.EmulatorPresser`'s;
 * the wrist camera: the real :class:`~tacsplat.drivers.WristCamera` reading a
   looping video of a ChArUco board rendered with ``cv2.aruco`` and warped by
   known camera poses (``camera_poses`` holds them, OpenCV board frame);
@@ -186,71 +187,7 @@ class EmulatorPerson:
         self.mock.emulator.move_by_hand(self.ids[joint], None)
 
 
-class EmulatorPresser:
-    """The person of ``tacsplat calibrate hand-eye --mock`` and ``calibrate mounts --mock``: puts each press's pad on
-    the sphere as planned, at its true pose (the hand's joints where the emulated servos stand, through the rig
-    file's ``sim.true_errors``: the servos', the wrist camera's and each mount's), and shows the press to the
-    emulated devices: the sphere in the gel to the finger's tactile sensor, the board at the camera's true pose to
-    the wrist camera. Lifting shows the untouched gel."""
-
-    timeout_s = 2.0  # the emulated press is shown at once
-
-    def __init__(self, mock: "MockDevices"):
-        from tacsplat.sim.hand import HandKinematics
-
-        if mock.emulator is None:
-            raise ConfigError(
-                "mock_devices.servo_port",
-                "the servo emulator runs in another process, where no one reads where its servos stand: leave "
-                "servo_port out to press with --mock",
-                mock.config.source,
-            )
-        self.mock, self.config = mock, mock.config
-        self.kinematics = HandKinematics()
-        e = self.config.sim.true_errors
-        self.T_hand_cam = nominal_T_hand_cam() @ e.hand_eye.matrix()
-        self.mount_errors = {finger: error.matrix() for finger, error in e.mounts.items()}
-        m = self.config.mock_devices
-        self.tactile_shape = (m.tactile_height, m.tactile_width)
-        self.reference = render_tactile_rgb(np.zeros(self.tactile_shape, np.float32), m.tactile_pixel_size_m)
-
-    def _true_joints(self) -> np.ndarray:
-        """[16] the joint angles where the emulated servos stand (the inverse of :func:`servo_ticks`)."""
-        e = self.config.sim.true_errors
-        ticks = np.array([self.mock.emulator.position(sid) for sid in self.config.hand.ids])
-        theta = (ticks - CENTRE_TICK) * RAD_PER_TICK
-        return (theta - np.asarray(e.servo_offsets())) / np.asarray(e.servo_signs())
-
-    def press(self, spec) -> bool:
-        """Make the press (False: no pose of the hand lets the camera see the board)."""
-        from tacsplat.acquisition.presses import INDENTATION_M, SPHERE_RADIUS_M, board_seen, pad_poses
-        from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
-
-        m, pix = self.config.mock_devices, self.config.mock_devices.tactile_pixel_size_m
-        pads = {
-            finger: T @ self.mount_errors.get(finger, np.eye(4))
-            for finger, T in self.kinematics.fingertip_poses(self._true_joints()).items()
-        }
-        half = np.array([m.tactile_width, m.tactile_height]) * pix / 2
-        size = (m.camera_width, m.camera_height)
-        poses = pad_poses(spec, pads, self.T_hand_cam, half, self.config.board, self.mock.K, size)
-        for T_board_pad in poses[:3]:  # as a person does: the hand turned until the camera sees the board
-            T_board_cam = T_board_pad @ invert_pose(pads[spec.finger]) @ self.T_hand_cam
-            if board_seen(self.config.board, self.mock.K, size, T_board_cam) is not None:
-                break
-        else:
-            return False
-        board = render_board(self.config.board.spec(), self.mock.K, *size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
-        self.mock.captures["camera"].show(board)
-        depth = _sphere_press(self.tactile_shape, pix, spec.spot, SPHERE_RADIUS_M, INDENTATION_M)
-        self.mock.captures[spec.finger].show(render_tactile_rgb(depth, pix))
-        return True
-
-    def release(self, spec) -> None:
-        self.mock.captures[spec.finger].show(self.reference)
-
-
-def _sphere_press(shape: tuple[int, int], pixel_m: float, spot: tuple, radius_m: float, indentation_m: float):
+def sphere_press(shape: tuple[int, int], pixel_m: float, spot: tuple, radius_m: float, indentation_m: float):
     """The indentation [h, w] float32 of a sphere of ``radius_m`` pressed ``indentation_m`` into the gel with its
     lowest point over the gel's ``spot`` (x, y metres in the sensor frame)."""
     x, y = tactile_pixel_grid(*shape, pixel_m)
@@ -333,7 +270,7 @@ class MockDevices:
             presses = [(0.3, 0.35, 6e-4), (0.7, 0.6, 8e-4), (0.5, 0.5, 1e-3), (0.3, 0.7, 5e-4), (0.7, 0.3, 9e-4)]
             press_images = [
                 render_tactile_rgb(
-                    _sphere_press((h, w), pix, ((x - 0.5) * w * pix, (y - 0.5) * h * pix), BALL_RADIUS_M, d), pix
+                    sphere_press((h, w), pix, ((x - 0.5) * w * pix, (y - 0.5) * h * pix), BALL_RADIUS_M, d), pix
                 )
                 for x, y, d in presses
             ]

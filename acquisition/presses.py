@@ -5,7 +5,7 @@ depth map, and the wrist camera's pose by PnP on the ChArUco board it sees.
 * on a twin, :class:`TwinPressSession`: :class:`~tacsplat.sim.person.TwinPresser` places the hand, the board is
   rendered at the camera's true pose (:func:`~tacsplat.acquisition.mock.render_board`);
 * on a real rig or ``--mock``, :class:`RigPressSession`: the hand holds each press's joints and a person
-  (:class:`TerminalPresser`; on ``--mock``, :class:`~tacsplat.acquisition.mock.EmulatorPresser`) makes the press,
+  (:class:`TerminalPresser`; on ``--mock``, :class:`~tacsplat.acquisition.mock_presser.EmulatorPresser`) makes the press,
   read through the rig's drivers.
 """
 
@@ -223,7 +223,8 @@ class TwinPressSession:
 
 
 CONTACT_READINGS = 3  # consecutive readings in contact (or out of it) that make a press (or a lift)
-HOLD_TOLERANCE_RAD = 0.02  # the joints are at a press's pose when every one is this close to it
+HOLD_TOLERANCE_RAD = 0.02  # the joints are at a press's pose when every one is this close to it ...
+STILL_RAD = 1e-3  # ... and moves less than this between readings, for CONTACT_READINGS readings
 HOLD_TIMEOUT_S = 5.0
 
 
@@ -273,22 +274,26 @@ class RigPressSession:
         self.person, self.say = person, say
 
     def _hold(self, q: np.ndarray) -> None:
-        """Command the joints to ``q`` (within their limits) and wait until they are there (HandError naming the
-        joints if not)."""
+        """Command the joints to ``q`` (within their limits) and wait until they are there and still, so that the
+        press is made and read at one pose (HandError naming the joints if not)."""
         q = np.clip(q, self.hand.joint_limits[:, 0], self.hand.joint_limits[:, 1])
         self.hand.command_joint_positions(q)
-        deadline = time.monotonic() + HOLD_TIMEOUT_S
+        deadline, still, last = time.monotonic() + HOLD_TIMEOUT_S, 0, None
         while True:
-            off = np.abs(self.hand.read_joint_positions() - q)
-            if np.all(off <= HOLD_TOLERANCE_RAD):
+            now = self.hand.read_joint_positions()
+            off = np.abs(now - q)
+            moved = np.inf if last is None else np.abs(now - last).max()
+            still = still + 1 if np.all(off <= HOLD_TOLERANCE_RAD) and moved <= STILL_RAD else 0
+            if still >= CONTACT_READINGS:
                 return
             if time.monotonic() > deadline:
-                names = [self.hand.joint_names[k] for k in np.flatnonzero(off > HOLD_TOLERANCE_RAD)]
+                names = [self.hand.joint_names[k] for k in np.flatnonzero(off > HOLD_TOLERANCE_RAD)] or ["all"]
                 raise HandError(
                     getattr(self.hand, "device", "hand"),
-                    f"joints {', '.join(names)} did not reach a press's pose within {HOLD_TIMEOUT_S:g} s "
+                    f"joints {', '.join(names)} did not come to rest at a press's pose within {HOLD_TIMEOUT_S:g} s "
                     f"(off by up to {np.degrees(off.max()):.1f} deg): is the hand blocked?",
                 )
+            last = now
             time.sleep(0.01)
 
     def _contact(self, finger: str, touching: bool, after: float):

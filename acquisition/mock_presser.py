@@ -1,0 +1,76 @@
+"""The person of ``tacsplat calibrate hand-eye --mock`` and ``calibrate mounts --mock``: :class:`EmulatorPresser`
+makes each press of :class:`~tacsplat.acquisition.presses.RigPressSession` on the emulated devices of
+:class:`~tacsplat.acquisition.mock.MockDevices`."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tacsplat.acquisition.mock import MockDevices, render_board, sphere_press
+from tacsplat.acquisition.presses import INDENTATION_M, SPHERE_RADIUS_M, board_seen, pad_poses
+from tacsplat.drivers.calibration import RAD_PER_TICK
+from tacsplat.drivers.dynamixel_table import CENTRE_TICK
+from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
+from tacsplat.errors import ConfigError
+from tacsplat.geometry import invert_pose
+from tacsplat.sim.hand import HandKinematics, nominal_T_hand_cam
+from tacsplat.sim.tactile import render_tactile_rgb
+
+
+class EmulatorPresser:
+    """The person of ``tacsplat calibrate hand-eye --mock`` and ``calibrate mounts --mock``: puts each press's pad on
+    the sphere as planned, at its true pose (the hand's joints where the emulated servos stand, through the rig
+    file's ``sim.true_errors``: the servos', the wrist camera's and each mount's), and shows the press to the
+    emulated devices: the sphere in the gel to the finger's tactile sensor, the board at the camera's true pose to
+    the wrist camera. Lifting shows the untouched gel."""
+
+    timeout_s = 2.0  # the emulated press is shown at once
+
+    def __init__(self, mock: MockDevices):
+        if mock.emulator is None:
+            raise ConfigError(
+                "mock_devices.servo_port",
+                "the servo emulator runs in another process, where no one reads where its servos stand: leave "
+                "servo_port out to press with --mock",
+                mock.config.source,
+            )
+        self.mock, self.config = mock, mock.config
+        self.kinematics = HandKinematics()
+        e = self.config.sim.true_errors
+        self.T_hand_cam = nominal_T_hand_cam() @ e.hand_eye.matrix()
+        self.mount_errors = {finger: error.matrix() for finger, error in e.mounts.items()}
+        m = self.config.mock_devices
+        self.tactile_shape = (m.tactile_height, m.tactile_width)
+        self.reference = render_tactile_rgb(np.zeros(self.tactile_shape, np.float32), m.tactile_pixel_size_m)
+
+    def _true_joints(self) -> np.ndarray:
+        """[16] the joint angles where the emulated servos stand (the inverse of :func:`servo_ticks`)."""
+        e = self.config.sim.true_errors
+        ticks = np.array([self.mock.emulator.position(sid) for sid in self.config.hand.ids])
+        theta = (ticks - CENTRE_TICK) * RAD_PER_TICK
+        return (theta - np.asarray(e.servo_offsets())) / np.asarray(e.servo_signs())
+
+    def press(self, spec) -> bool:
+        """Make the press (False: no pose of the hand lets the camera see the board)."""
+        m, pix = self.config.mock_devices, self.config.mock_devices.tactile_pixel_size_m
+        pads = {
+            finger: T @ self.mount_errors.get(finger, np.eye(4))
+            for finger, T in self.kinematics.fingertip_poses(self._true_joints()).items()
+        }
+        half = np.array([m.tactile_width, m.tactile_height]) * pix / 2
+        size = (m.camera_width, m.camera_height)
+        poses = pad_poses(spec, pads, self.T_hand_cam, half, self.config.board, self.mock.K, size)
+        for T_board_pad in poses[:3]:  # as a person does: the hand turned until the camera sees the board
+            T_board_cam = T_board_pad @ invert_pose(pads[spec.finger]) @ self.T_hand_cam
+            if board_seen(self.config.board, self.mock.K, size, T_board_cam) is not None:
+                break
+        else:
+            return False
+        board = render_board(self.config.board.spec(), self.mock.K, *size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
+        self.mock.captures["camera"].show(board)
+        depth = sphere_press(self.tactile_shape, pix, spec.spot, SPHERE_RADIUS_M, INDENTATION_M)
+        self.mock.captures[spec.finger].show(render_tactile_rgb(depth, pix))
+        return True
+
+    def release(self, spec) -> None:
+        self.mock.captures[spec.finger].show(self.reference)
