@@ -529,7 +529,8 @@ def test_where_we_stand_puts_the_papers_numbers_beside_ours_and_lists_departures
     assert "touches:" not in paper and "resolution" not in paper and "steps" not in paper.split("in force")[1]
 
 
-def test_scaling_report_writes_csv_table_and_plot(tmp_path):
+def test_scaling_report_draws_any_methods_on_one_figure(tmp_path, monkeypatch):
+    from tacsplat.apps import report
     from tacsplat.apps.bench_scaling import write_scaling_report
 
     rows = [
@@ -546,12 +547,36 @@ def test_scaling_report_writes_csv_table_and_plot(tmp_path):
         }
         for r in (128, 256)
         for k, n in ((1, 750), (2, 1500))
-        for v in ("3dgs", "paper")
+        for v in ("default", "default+c2f75")
     ]
-    report = write_scaling_report(tmp_path, rows, "teapot").read_text()
-    assert report.count("| teapot") == 0 and report.count("\n| 128 |") == 4 and "scaling.png" in report
-    assert len(read_results_rows(tmp_path / "scaling.csv")) == 8
+    figures = []
+    save = report.save_figure
+    monkeypatch.setattr(report, "save_figure", lambda fig, path: figures.append(fig) or save(fig, path))
+    text = write_scaling_report(tmp_path, rows, "teapot").read_text()
+    assert "| px | steps | method | train s | CD | PSNR |" in text and "scaling.png" in text
+    assert "| 128 | 750 | default+c2f75 | 10 | 0.0400 | 21.00 |" in text and text.count("\n| 256 |") == 4
+    csv_rows = read_results_rows(tmp_path / "scaling.csv")
+    assert len(csv_rows) == 8 and {"cd", "cd_paper", "psnr", "train_seconds"} <= set(csv_rows[0])
     assert cv2.imread(str(tmp_path / "scaling.png")) is not None
+    ((ax_cd, ax_psnr),) = [fig.axes for fig in figures]  # one figure, two panels
+    assert ax_cd.get_yscale() == "log" and len(ax_cd.lines) == len(ax_psnr.lines) == 4  # (px, method) curves
+    assert [len(line.get_xdata()) for line in ax_cd.lines] == [2] * 4  # a point per step count
+    assert [t.get_text() for t in ax_cd.get_legend().get_texts()] == ["Default (ours)", "default+c2f75"]
+    assert [t.get_text() for t in ax_psnr.get_legend().get_texts()] == ["128 px", "256 px"]
+    styles = {(line.get_marker(), line.get_linestyle(), tuple(line.get_color())) for line in ax_cd.lines}
+    assert len(styles) == 4
+
+
+def test_bench_scaling_refuses_an_unknown_method_before_it_runs(tmp_path, capsys):
+    from tacsplat.cli import main
+
+    out = tmp_path / "scaling"
+    assert main(["bench", "scaling", "--out", str(out), "--methods", "default,nope", "--resolutions", "16"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("tacsplat bench scaling: error: --methods: unknown method 'nope'; choose one of ")
+    assert "default+c2f75" in err and len(err.splitlines()) == 1 and not out.exists()
+    assert main(["bench", "scaling", "--out", str(out), "--methods", " , "]) == 2
+    assert "--methods: need at least one method" in capsys.readouterr().err and not out.exists()
 
 
 def read_results_rows(path):
