@@ -1,8 +1,11 @@
 """Shared helpers of the acquisition tests: a mocked real rig file with a short plan, scripted keys, the operator's
-side of a pseudo-terminal."""
+side of a pseudo-terminal, a command signalled mid-run."""
 
 import io
 import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -24,6 +27,29 @@ def write_mock_rig(folder, **changes) -> str:
     path = folder / "rig.yaml"
     path.write_text(yaml.safe_dump(data))
     return str(path)
+
+
+def sigterm_when(args: list[str], prefix: str) -> tuple[int, str, str]:
+    """``(exit code, stdout, stderr)`` of ``tacsplat ARGS`` (standard input closed) sent SIGTERM once it prints a
+    line starting with ``prefix``."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tacsplat", *args],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        for line in proc.stdout:
+            if line.startswith(prefix):
+                break
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, stdout, stderr
 
 
 class ScriptedKeys(io.TextIOBase):

@@ -5,7 +5,6 @@ the hand with torque off however it ends."""
 import math
 import os
 import signal
-import subprocess
 import sys
 
 import numpy as np
@@ -127,25 +126,11 @@ def test_a_real_rig_with_stdin_closed_is_one_error_saying_a_person_is_needed():
 
 
 def test_sigterm_mid_calibration_exits_with_torque_off_confirmed_and_nothing_written(tmp_path):
+    from tests.acquisition.acq_helpers import sigterm_when
+
     rig, out = _rig(tmp_path, _draw(2), "mock"), tmp_path / "hand.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "tacsplat", "calibrate", "hand", "--rig", rig, "--out", str(out), "--mock"],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        for line in proc.stdout:  # the calibration is under way
-            if line.startswith("index_1 "):
-                break
-        proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 128 + signal.SIGTERM
+    code, stdout, stderr = sigterm_when(["calibrate", "hand", "--rig", rig, "--out", str(out), "--mock"], "index_1 ")
+    assert code == 128 + signal.SIGTERM
     assert "torque off confirmed on all 16 servos" in stdout
     assert f"interrupted (SIGTERM): {out} not written" in stderr
     assert not out.exists()

@@ -126,30 +126,13 @@ def test_mock_presses_are_guided_through_the_real_drivers_and_find_the_hidden_er
 
 def test_sigterm_mid_presses_exits_with_torque_off_confirmed_and_nothing_written(tmp_path):
     import signal
-    import subprocess
 
-    from tests.acquisition.acq_helpers import write_mock_rig
+    from tests.acquisition.acq_helpers import sigterm_when, write_mock_rig
 
     rig = write_mock_rig(tmp_path, board=FINE_BOARD, mock_devices=MOCK_CAMERA, tactile={"sensors": _sensors()})
     out = tmp_path / "mounts.json"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "tacsplat", "calibrate", "mounts", "--rig", rig, "--out", str(out), "--mock"],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    try:
-        for line in proc.stdout:  # the presses are under way
-            if line.startswith("press 2/"):
-                break
-        proc.send_signal(signal.SIGTERM)
-        stdout, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    code, stdout, stderr = sigterm_when(["calibrate", "mounts", "--rig", rig, "--out", str(out), "--mock"], "press 2/")
+    assert code == 128 + signal.SIGTERM, stderr
     assert "torque off confirmed on all 16 servos" in stdout
     assert f"interrupted (SIGTERM): {out} not written" in stderr
     assert not out.exists()
