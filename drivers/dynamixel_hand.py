@@ -244,7 +244,8 @@ class _PortHandler(dxl.PortHandler):
 
 
 def torque_off(ph: dxl.PacketHandler, port: dxl.PortHandler, ids: Sequence[int], device: str) -> list[int]:
-    """Broadcast torque off, then confirm servo by servo (two tries each); returns the ids that did not confirm."""
+    """Broadcast torque off, then confirm servo by servo: two tries each, one once two servos in a row have not
+    answered (the bus is likely dead, and each try waits out the timeout); returns the ids that did not confirm."""
     address = REGISTERS["torque_enable"].address
     try:
         port.is_using = False
@@ -252,18 +253,20 @@ def torque_off(ph: dxl.PacketHandler, port: dxl.PortHandler, ids: Sequence[int],
         ph.write1ByteTxOnly(port, dxl.BROADCAST_ID, address, 0)
     except PORT_ERRORS as exc:
         log.error("%s: broadcast torque off failed: %s", device, exc)
-    unconfirmed = []
+    unconfirmed, silent = [], 0  # silent: servos in a row that did not confirm
     for sid in ids:
-        for _ in range(2):
+        for _ in range(1 if silent >= 2 else 2):
             port.is_using = False
             try:
                 result, error = ph.write1ByteTxRx(port, sid, address, 0)
             except PORT_ERRORS:
                 result, error = dxl.COMM_TX_FAIL, 0
             if result == dxl.COMM_SUCCESS and not error & ~ALERT_BIT:  # a latched alert does not refuse the write
+                silent = 0
                 break
         else:
             unconfirmed.append(sid)
+            silent += 1
     return unconfirmed
 
 

@@ -216,6 +216,22 @@ def test_servo_that_stops_answering_raises_and_disables_torque(emu, kinematics):
             hand.command_joint_positions(np.zeros(16))
 
 
+def test_torque_off_tries_a_silent_servo_twice_and_a_dead_bus_once_per_servo(emu, kinematics):
+    """Each servo that does not confirm gets a second try, until two in a row have not: the bus is dead, and the
+    rest get one try each (every try waits out the timeout)."""
+    for silent, tries in [((3, 9), [2 if sid in (3, 9) else 1 for sid in range(16)]), (range(16), [2, 2] + [1] * 14)]:
+        with make_hand(emu, kinematics) as hand:
+            for sid in silent:
+                emu.disconnect(sid)
+            emu.instructions.clear()
+            hand.close()
+            writes = [sid for inst, sid in emu.instructions if inst == Instruction.WRITE]
+            assert [writes.count(sid) for sid in range(16)] == tries
+            assert hand.torque_off_report.unconfirmed == tuple(hand._names([sid]) for sid in silent)
+        for sid in silent:
+            emu.reconnect(sid)
+
+
 def test_corrupted_crc_raises_after_retries(emu, kinematics):
     with make_hand(emu, kinematics) as hand:
         emu.inject(4, "bad_crc")
