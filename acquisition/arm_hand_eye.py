@@ -104,7 +104,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     calibration and board), written to ``out`` with the number of stations used; a line per station, then the
     result, its consistency and its change from the rig's previous ``T_hand_cam``. Returns ``T_hand_cam``."""
     from tacsplat.drivers.press_calibration import save_hand_eye
-    from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera, board_pose, hand_eye_calibration
+    from tacsplat.drivers.wrist_camera import CameraCalibration, board_pose, hand_eye_calibration
 
     calibration_file = config.path(config.camera.calibration)
     if not calibration_file.is_file():
@@ -120,7 +120,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     spec = config.board.spec()
     if calibration.board != spec:
         say(f"note: {calibration_file.name} was calibrated on another board than the rig's; the rig's board is used")
-    camera = WristCamera(config.camera.source, calibration)  # never opened: the capture's undistortion
+    maps = calibration.undistort_maps()  # as the camera driver undistorts its frames
     K_opencv = calibration.undistorted_K_opencv()  # the undistorted images' intrinsics
     hands, cams, seen = [], [], []
     for i, station in enumerate(stations):
@@ -139,7 +139,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
                 f"{calibration.width}x{calibration.height} (give the camera's raw images)",
                 poses_file,
             )
-        image = camera.undistort(cv2.cvtColor(raw, cv2.COLOR_BGR2RGB))
+        image = cv2.remap(cv2.cvtColor(raw, cv2.COLOR_BGR2RGB), *maps, cv2.INTER_LINEAR)
         try:
             pose = board_pose(image, spec, K_opencv, None, config.board.min_corners)
         except CameraError as exc:

@@ -153,6 +153,13 @@ def servo_ticks(config: RigConfig, q_true: np.ndarray) -> np.ndarray:
     return theta / RAD_PER_TICK + CENTRE_TICK
 
 
+def servo_angles(config: RigConfig, ticks: np.ndarray) -> np.ndarray:
+    """[16] the true joint angles of emulated servos standing at ``ticks``: the inverse of :func:`servo_ticks`."""
+    e = config.sim.true_errors
+    theta = (np.asarray(ticks, dtype=np.float64) - CENTRE_TICK) * RAD_PER_TICK
+    return (theta - np.asarray(e.servo_offsets())) / np.asarray(e.servo_signs())
+
+
 class EmulatorPerson:
     """The person of ``tacsplat calibrate hand --mock``: moves each emulated servo by hand (torque off) against the
     stop a joint limit puts it at, and holds it there."""

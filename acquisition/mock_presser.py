@@ -6,10 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tacsplat.acquisition.mock import MockDevices, render_board, sphere_press
+from tacsplat.acquisition.mock import MockDevices, render_board, servo_angles, sphere_press
 from tacsplat.acquisition.presses import INDENTATION_M, SPHERE_RADIUS_M, board_seen, pad_poses
-from tacsplat.drivers.calibration import RAD_PER_TICK
-from tacsplat.drivers.dynamixel_table import CENTRE_TICK
 from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
 from tacsplat.errors import ConfigError
 from tacsplat.geometry import invert_pose
@@ -44,11 +42,8 @@ class EmulatorPresser:
         self.reference = render_tactile_rgb(np.zeros(self.tactile_shape, np.float32), m.tactile_pixel_size_m)
 
     def _true_joints(self) -> np.ndarray:
-        """[16] the joint angles where the emulated servos stand (the inverse of :func:`servo_ticks`)."""
-        e = self.config.sim.true_errors
-        ticks = np.array([self.mock.emulator.position(sid) for sid in self.config.hand.ids])
-        theta = (ticks - CENTRE_TICK) * RAD_PER_TICK
-        return (theta - np.asarray(e.servo_offsets())) / np.asarray(e.servo_signs())
+        """[16] the true joint angles where the emulated servos stand."""
+        return servo_angles(self.config, [self.mock.emulator.position(sid) for sid in self.config.hand.ids])
 
     def press(self, spec) -> bool:
         """Make the press (False: no pose of the hand lets the camera see the board)."""

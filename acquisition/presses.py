@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.config import BoardConfig
+from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected
 from tacsplat.drivers.press_calibration import MIN_CONTACT_POINTS, Press
 from tacsplat.errors import CameraError, ConfigError, HandError, TactileError
 from tacsplat.geometry import invert_pose, make_pose, tactile_depth_to_points
@@ -265,10 +266,7 @@ class RigPressSession:
     the press; then the person lifts the pad off."""
 
     def __init__(self, hand, camera, sensors: list, board: BoardConfig, person, say: Callable[[str], None] = print):
-        from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected
-
-        self.rejected = CaptureRejected
-        self.hand, self.camera, self.board = hand, camera, board
+        self.hand, self.camera = hand, camera
         self.sensors = {s.name: s for s in sensors}
         self.poses = BoardPoseSource(camera, board, np.eye(4))
         self.person, self.say = person, say
@@ -321,7 +319,7 @@ class RigPressSession:
                 continue
             try:
                 return self.poses.camera_pose(image)
-            except self.rejected as exc:
+            except CaptureRejected as exc:
                 return str(exc)
 
     def run(self, plan: list[PressSpec]) -> list[Press]:

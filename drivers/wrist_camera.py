@@ -232,6 +232,13 @@ class CameraCalibration:
         K, _ = cv2.getOptimalNewCameraMatrix(self.K_opencv, self.dist, (self.width, self.height), 0.0)
         return K
 
+    def undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """``cv2.remap``'s maps from raw frames to undistorted ones (intrinsics :meth:`undistorted_K_opencv`)."""
+        size = (self.width, self.height)
+        return cv2.initUndistortRectifyMap(
+            self.K_opencv, self.dist, None, self.undistorted_K_opencv(), size, cv2.CV_16SC2
+        )
+
     def save(self, path: str | Path) -> None:
         board = {"type": next(k for k, v in BOARD_TYPES.items() if isinstance(self.board, v)), **asdict(self.board)}
         data = {"format": FORMAT, "version": 1, "pixel_centres": _PIXEL_CENTRES, **vars(self), "board": board}
@@ -682,9 +689,7 @@ class WristCamera:
         )
         c = self.calibration
         self._K_new_opencv = c.undistorted_K_opencv()
-        self._maps = cv2.initUndistortRectifyMap(
-            c.K_opencv, c.dist, None, self._K_new_opencv, (c.width, c.height), cv2.CV_16SC2
-        )
+        self._maps = c.undistort_maps()
         video = dict(fps=fps, fourcc=fourcc, timeout_s=timeout_s, capture_factory=capture_factory)
         self._video = VideoReader(source, width=c.width, height=c.height, name="wrist camera", **video)
 

@@ -9,7 +9,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from tacsplat.errors import UsageError
+from tacsplat.errors import ConfigError, UsageError
 from tacsplat.options import comma_separated_ints
 
 COLUMNS = ("resolution", "iterations", "method", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")
@@ -26,7 +26,10 @@ def scaling_methods(text: str) -> tuple[str, ...]:
     if not methods:
         raise UsageError("--methods", f"need at least one method, got {text!r}")
     for name in methods:
-        bench_row(name, "--methods", UsageError)
+        try:
+            bench_row(name, "--methods")
+        except ConfigError as exc:
+            raise UsageError(exc.key, str(exc).removeprefix(f"{exc.key}: ")) from None
     return methods
 
 

@@ -97,13 +97,13 @@ def ablation_rows() -> dict[str, tuple[str, dict]]:
     }
 
 
-def bench_row(name: str, option: str = "--methods", error: type[ConfigError] = ConfigError) -> tuple[str, dict]:
-    """``(method, overrides)`` of a row of the bench: a method (no overrides) or an ablation row; an ``error``
+def bench_row(name: str, option: str = "--methods") -> tuple[str, dict]:
+    """``(method, overrides)`` of a row of the bench: a method (no overrides) or an ablation row; a ConfigError
     naming ``option`` otherwise."""
     if name in METHODS:
         return name, {}
     if name not in ablation_rows():
-        raise error(
+        raise ConfigError(
             option,
             f"unknown method {name!r}; choose one of {', '.join(METHODS)} or a row of "
             f"{ABLATIONS.name} ({', '.join(ablation_rows())})",
