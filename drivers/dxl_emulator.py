@@ -36,6 +36,7 @@ JSON line each (:func:`main`); :class:`EmulatorProcess` starts and drives it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -57,8 +58,8 @@ from tacsplat.drivers.dynamixel_table import (
     GOAL_REGISTERS,
     MODEL_XC330_M288,
     REGISTERS,
-    HardwareError,
     Instruction,
+    OperatingMode,
     le_bytes,
     to_signed,
 )
@@ -119,25 +120,10 @@ class EmulatedServo:
     horn_slipped: bool = False  # a fault: the joint turns without the servo, so a hand no longer moves it
 
     def __post_init__(self):
+        for reg in REGISTERS.values():
+            self.set(reg.name, reg.initial)
         self.set("model_number", self.model_number)
-        self.set("firmware_version", 52)
         self.set("id", self.servo_id)
-        self.set("baud_rate", 6)  # 4 Mbps
-        self.set("operating_mode", 3)
-        self.set("protocol_type", 2)
-        self.set("temperature_limit", 70)
-        self.set("max_voltage_limit", 70)
-        self.set("min_voltage_limit", 35)
-        self.set("pwm_limit", 885)
-        self.set("current_limit", 1750)
-        self.set("velocity_limit", 445)
-        self.set("max_position_limit", 4095)
-        self.set("min_position_limit", 0)
-        self.set("shutdown", int(HardwareError.OVERHEATING | HardwareError.ELECTRICAL_SHOCK | HardwareError.OVERLOAD))
-        self.set("status_return_level", 2)
-        self.set("position_p_gain", 400)
-        self.set("present_input_voltage", 50)
-        self.set("present_temperature", 30)
         self.position = float(self.initial_ticks)
         self.set("goal_position", int(round(self.position)))
         self._sync_present()
@@ -178,7 +164,9 @@ class EmulatedServo:
             if not 0 <= value <= 127 or tripped and value:
                 return ERR_DATA_RANGE  # 0 clears and disarms, 1..127 arms; a tripped watchdog is cleared first
         goal = REGISTERS["goal_position"]
-        if address <= goal.address < end and self.get("operating_mode") == 3:  # limits apply in position mode only
+        if (
+            address <= goal.address < end and self.get("operating_mode") == OperatingMode.POSITION
+        ):  # limits apply in position mode only
             value = to_signed(int.from_bytes(new[goal.address : goal.address + 4], "little"), 4)
             if not self.get("min_position_limit") <= value <= self.get("max_position_limit"):
                 return ERR_DATA_LIMIT
@@ -212,15 +200,11 @@ class EmulatedServo:
     def check_watchdog(self, now: float) -> None:
         """Trip the Bus Watchdog when armed, torque on, and no instruction packet came within its period: the servo
         stops and holds where it stands."""
-        units = self.get("bus_watchdog")
-        if units > 0 and self.torque_enabled and now - self.last_instruction > units * BUS_WATCHDOG_UNIT_S:
+        units, silent = self.get("bus_watchdog"), now - self.last_instruction
+        if units > 0 and self.torque_enabled and silent > units * BUS_WATCHDOG_UNIT_S:
             self.set("bus_watchdog", BUS_WATCHDOG_TRIPPED)
             self.set("goal_position", int(round(self.position)))
-            log.debug(
-                "servo %d: Bus Watchdog Error after %.3f s without an instruction",
-                self.servo_id,
-                now - self.last_instruction,
-            )
+            log.debug("servo %d: Bus Watchdog Error after %.3f s without an instruction", self.servo_id, silent)
 
     def _sync_present(self) -> None:
         self.set("present_position", int(round(self.position)) + self.offset_ticks)
@@ -332,10 +316,8 @@ class DxlEmulator:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         for fd in (self._master, self._slave):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
 
     def __enter__(self) -> "DxlEmulator":
         return self.start()
@@ -392,13 +374,10 @@ class DxlEmulator:
 
     def _flush(self) -> None:
         now = time.monotonic()
-        keep = []
         for t, data in self._outbox:
             if t <= now:
                 os.write(self._master, data)
-            else:
-                keep.append((t, data))
-        self._outbox = keep
+        self._outbox = [(t, data) for t, data in self._outbox if t > now]
 
     def _parse_one(self) -> bool:
         """Consume one packet (or garbage) from the buffer; False when more bytes are needed."""
@@ -588,9 +567,8 @@ class EmulatorProcess:
 
     def kill(self) -> None:
         """End the process at once (SIGKILL: the pty closes as when the adapter is unplugged)."""
-        if self.proc is not None and self.proc.poll() is None:
-            self.proc.kill()
         if self.proc is not None:
+            self.proc.kill()  # (nothing when it has ended)
             self.proc.wait()
             self.proc.stdin.close()
             self.proc.stdout.close()

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import logging
 import math
 import os
@@ -91,9 +92,10 @@ except ImportError:  # Windows
 
 COMM_RESULT_NAMES = {value: name for name, value in vars(dxl).items() if name.startswith("COMM_")}
 
-# One sync read gets current, velocity and position (addresses 126..135).
+# One sync read gets current, velocity and position (addresses 126..135), little-endian and signed.
 _STATE_ADDRESS = REGISTERS["present_current"].address
-_STATE_SIZE = REGISTERS["present_position"].address + 4 - _STATE_ADDRESS
+_STATE_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
+_STATE_SIZE = _STATE_DTYPE.itemsize
 VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * np.pi / 60.0  # Present Velocity unit: 0.229 rpm
 MAX_TOLERANCE_RAD = 0.2  # the most connect_tolerance_rad and reading_tolerance_rad may be
 MAX_BUS_WATCHDOG_S = 127 * BUS_WATCHDOG_UNIT_S
@@ -208,26 +210,18 @@ class TorqueOffReport:
 
 
 class ServoError(HandError):
-    """A servo failed, named with its joint, the instruction and the decoded error or comm result."""
+    """A servo failed, named with its joint, the instruction and the decoded error or comm result (the keyword
+    arguments, each an attribute; those not given keep the defaults here)."""
 
-    def __init__(
-        self,
-        device: str,
-        message: str,
-        *,
-        servo_id: int | None = None,
-        joint: str | None = None,
-        instruction: str | None = None,
-        comm_result: int | None = None,
-        status_error: int = 0,
-        hardware_error: int = 0,
-    ):
-        self.servo_id = servo_id
-        self.joint = joint
-        self.instruction = instruction
-        self.comm_result = comm_result
-        self.status_error = status_error
-        self.hardware_error = hardware_error
+    servo_id: int | None = None
+    joint: str | None = None
+    instruction: str | None = None
+    comm_result: int | None = None
+    status_error: int = 0
+    hardware_error: int = 0
+
+    def __init__(self, device: str, message: str, **details):
+        vars(self).update(details)
         super().__init__(device, message)
 
 
@@ -373,10 +367,8 @@ class DynamixelHand:
                 return
             self.close()
         port = _PortHandler(self.port_name, 1000.0 * self.config.min_packet_timeout_s)
-        try:
-            opened = port.setBaudRate(
-                self.baudrate
-            )  # opens the port at this rate (openPort would open at 1 Mbps first)
+        try:  # setBaudRate opens the port at this rate (openPort would open at 1 Mbps first)
+            opened = port.setBaudRate(self.baudrate)
         except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
             raise HandError(
                 self.device,
@@ -391,14 +383,12 @@ class DynamixelHand:
         try:
             self._start_guard()
             self._ping_all()
+            # bus_watchdog 0 clears a tripped one: the goal registers take writes again
+            settings = {"torque_enable": 0, "bus_watchdog": 0, "operating_mode": int(self.config.operating_mode)}
+            settings |= {k: getattr(self.config, k) for k in ("current_limit", *(f"position_{g}_gain" for g in "pid"))}
             for sid in self.ids:
-                self._write(sid, "torque_enable", 0)
-                self._write(sid, "bus_watchdog", 0)  # clears a tripped one: the goal registers take writes again
-                self._write(sid, "operating_mode", int(self.config.operating_mode))
-                self._write(sid, "current_limit", self.config.current_limit)
-                self._write(sid, "position_p_gain", self.config.position_p_gain)
-                self._write(sid, "position_i_gain", self.config.position_i_gain)
-                self._write(sid, "position_d_gain", self.config.position_d_gain)
+                for name, value in settings.items():
+                    self._write(sid, name, value)
             if not torque:
                 log.info("%s: %d servos connected, torque off", self.device, len(self.ids))
                 return
@@ -550,13 +540,7 @@ class DynamixelHand:
                 f"move there: check the sign and offset_rad of {names} in "
                 f"{cal.source or 'the hand calibration'}, or move the finger by hand into its range",
             )
-        nudged = np.flatnonzero(goal != ticks)
-        if nudged.size:
-            log.warning(
-                "%s: present pose clamped to joint limits: %s",
-                self.device,
-                ", ".join(f"{self._joint_names[i]} {q[i]:+.4f} -> {inside[i]:+.4f} rad" for i in nudged),
-            )
+        self._clamp(q, "present pose", np.where(goal != ticks, inside, q))  # (logs the joints nudged)
         return goal
 
     def _check_reachable(self, ticks: np.ndarray, q: np.ndarray) -> None:
@@ -578,17 +562,14 @@ class DynamixelHand:
                 "an encoder fault, a slipped horn or a wrong calibration",
             )
 
-    def _clamp(self, q: np.ndarray, what: str) -> np.ndarray:
-        lo, hi = self._joint_limits[:, 0], self._joint_limits[:, 1]
-        clamped = np.clip(q, lo, hi)
-        moved = np.flatnonzero(clamped != q)
-        if moved.size:
-            log.warning(
-                "%s: %s clamped to joint limits: %s",
-                self.device,
-                what,
-                ", ".join(f"{self._joint_names[i]} {q[i]:+.4f} -> {clamped[i]:+.4f} rad" for i in moved),
-            )
+    def _clamp(self, q: np.ndarray, what: str, clamped: np.ndarray | None = None) -> np.ndarray:
+        """``q`` clamped to the joint limits (or ``clamped``, where it differs from ``q``), the clamping logged."""
+        clamped = np.clip(q, self._joint_limits[:, 0], self._joint_limits[:, 1]) if clamped is None else clamped
+        moved = ", ".join(
+            f"{self._joint_names[i]} {q[i]:+.4f} -> {clamped[i]:+.4f} rad" for i in np.flatnonzero(clamped != q)
+        )
+        if moved:
+            log.warning("%s: %s clamped to joint limits: %s", self.device, what, moved)
         return clamped
 
     # -- the ways out: signals, the guard process, the Bus Watchdog and its heartbeat
@@ -640,11 +621,9 @@ class DynamixelHand:
         guard, self._guard = self._guard, None
         if guard is None:
             return
-        try:
+        with contextlib.suppress(OSError):  # (the guard is gone)
             guard.stdin.write(GUARD_CLOSED)
             guard.stdin.close()
-        except OSError:  # the guard is gone
-            pass
         threading.Thread(target=guard.wait, name="hand-guard-reaper", daemon=True).start()
 
     def _start_heartbeat(self) -> None:
@@ -690,10 +669,8 @@ class DynamixelHand:
         """After a failed exchange: let late replies arrive, then discard them."""
         time.sleep(self.config.drain_s)
         self._port.is_using = False
-        try:
+        with contextlib.suppress(*PORT_ERRORS):  # the next exchange reports the port error
             self._port.clearPort()
-        except PORT_ERRORS:
-            pass  # the next exchange reports the port error
 
     def _comm_text(self, result: int) -> str:
         text = self._ph.getTxRxResult(result).replace("[TxRxResult] ", "").rstrip("!")
@@ -715,15 +692,8 @@ class DynamixelHand:
                 if failure is None:
                     return
                 servo_id, result = failure
-                log.warning(
-                    "%s: %s, servo %s: %s (attempt %d of %d)",
-                    self.device,
-                    instruction,
-                    self._names([servo_id]),
-                    self._comm_text(result),
-                    k + 1,
-                    attempts,
-                )
+                failed = f"{self.device}: {instruction}, servo {self._names([servo_id])}"
+                log.warning("%s: %s (attempt %d of %d)", failed, self._comm_text(result), k + 1, attempts)
                 self._drain()
             self._fail(
                 servo_id, instruction, f"{self._comm_text(result)} after {attempts} attempts", comm_result=result
@@ -845,10 +815,8 @@ class DynamixelHand:
         """Present (position ticks, velocity units, current units) of every servo by one sync read."""
         self.check()
         raw = self._sync_read(_STATE_ADDRESS, _STATE_SIZE, "SYNC_READ present current/velocity/position")
-        ticks = np.array([to_signed(int.from_bytes(raw[s][6:10], "little"), 4) for s in self.ids])
-        vel = np.array([to_signed(int.from_bytes(raw[s][2:6], "little"), 4) for s in self.ids])
-        cur = np.array([to_signed(int.from_bytes(raw[s][0:2], "little"), 2) for s in self.ids])
-        return ticks, vel, cur
+        state = np.frombuffer(b"".join(raw[s] for s in self.ids), _STATE_DTYPE)
+        return tuple(state[key].astype(np.int64) for key in ("position", "velocity", "current"))
 
     def _sync_write_goal(self, q: np.ndarray) -> None:
         ticks = self.calibration.ticks_from_radians(q)
@@ -910,10 +878,8 @@ def guard_main(argv: list[str] | None = None) -> int:
 
 
 def _say(line: str) -> None:
-    try:
+    with contextlib.suppress(OSError):  # (the terminal went with the process)
         print(line, file=sys.stderr, flush=True)
-    except OSError:  # the terminal went with the process
-        pass
 
 
 __all__ = ["DynamixelHand", "DynamixelHandConfig", "HandState", "ServoError", "SignalInterrupt", "TorqueOffReport"]

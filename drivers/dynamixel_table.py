@@ -10,80 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
-
-@dataclass(frozen=True)
-class Register:
-    name: str
-    address: int
-    size: int  # bytes: 1, 2 or 4, little endian
-    eeprom: bool = False  # writable only while torque is off
-    writable: bool = True
-    signed: bool = False
-
-
-def _registers(*regs: Register) -> dict[str, Register]:
-    return {r.name: r for r in regs}
-
-
-REGISTERS = _registers(
-    Register("model_number", 0, 2, eeprom=True, writable=False),
-    Register("model_information", 2, 4, eeprom=True, writable=False),
-    Register("firmware_version", 6, 1, eeprom=True, writable=False),
-    Register("id", 7, 1, eeprom=True),
-    Register("baud_rate", 8, 1, eeprom=True),
-    Register("return_delay_time", 9, 1, eeprom=True),
-    Register("drive_mode", 10, 1, eeprom=True),
-    Register("operating_mode", 11, 1, eeprom=True),
-    Register("secondary_id", 12, 1, eeprom=True),
-    Register("protocol_type", 13, 1, eeprom=True),
-    Register("homing_offset", 20, 4, eeprom=True, signed=True),
-    Register("moving_threshold", 24, 4, eeprom=True),
-    Register("temperature_limit", 31, 1, eeprom=True),
-    Register("max_voltage_limit", 32, 2, eeprom=True),
-    Register("min_voltage_limit", 34, 2, eeprom=True),
-    Register("pwm_limit", 36, 2, eeprom=True),
-    Register("current_limit", 38, 2, eeprom=True),
-    Register("velocity_limit", 44, 4, eeprom=True),
-    Register("max_position_limit", 48, 4, eeprom=True),
-    Register("min_position_limit", 52, 4, eeprom=True),
-    Register("shutdown", 63, 1, eeprom=True),
-    Register("torque_enable", 64, 1),
-    Register("led", 65, 1),
-    Register("status_return_level", 68, 1),
-    Register("registered_instruction", 69, 1, writable=False),
-    Register("hardware_error_status", 70, 1, writable=False),
-    Register("velocity_i_gain", 76, 2),
-    Register("velocity_p_gain", 78, 2),
-    Register("position_d_gain", 80, 2),
-    Register("position_i_gain", 82, 2),
-    Register("position_p_gain", 84, 2),
-    Register("bus_watchdog", 98, 1, signed=True),  # 0 off, 1..127 on (unit BUS_WATCHDOG_UNIT_S), -1 tripped
-    Register("goal_pwm", 100, 2, signed=True),
-    Register("goal_current", 102, 2, signed=True),
-    Register("goal_velocity", 104, 4, signed=True),
-    Register("profile_acceleration", 108, 4),
-    Register("profile_velocity", 112, 4),
-    Register("goal_position", 116, 4, signed=True),
-    Register("realtime_tick", 120, 2, writable=False),
-    Register("moving", 122, 1, writable=False),
-    Register("moving_status", 123, 1, writable=False),
-    Register("present_pwm", 124, 2, writable=False, signed=True),
-    Register("present_current", 126, 2, writable=False, signed=True),
-    Register("present_velocity", 128, 4, writable=False, signed=True),
-    Register("present_position", 132, 4, writable=False, signed=True),
-    Register("present_input_voltage", 144, 2, writable=False),
-    Register("present_temperature", 146, 1, writable=False),
-)
-
-CONTROL_TABLE_SIZE = 147  # bytes: addresses 0 .. 146
-EEPROM_END = 64  # addresses below this are EEPROM
-
-BUS_WATCHDOG_UNIT_S = 0.02  # Bus Watchdog (98): its unit, 20 ms; 1..127 arms it
-BUS_WATCHDOG_TRIPPED = -1  # the Bus Watchdog Error state: goal values are read-only until 0 is written
-GOAL_REGISTERS = ("goal_pwm", "goal_current", "goal_velocity", "goal_position")  # read-only while tripped
-
-TICKS_PER_REV = 4096  # X-series position resolution
-CENTRE_TICK = 2048  # the middle of one turn; motor angle 0 rad
 MODEL_XC330_M288 = 1240  # LEAP Hand servo
 
 
@@ -104,6 +30,80 @@ class HardwareError(IntFlag):
     MOTOR_ENCODER = 1 << 3
     ELECTRICAL_SHOCK = 1 << 4
     OVERLOAD = 1 << 5
+
+
+@dataclass(frozen=True)
+class Register:
+    name: str
+    address: int
+    size: int  # bytes: 1, 2 or 4, little endian
+    writable: bool = True  # (the EEPROM area, below EEPROM_END, only while torque is off)
+    signed: bool = False
+    initial: int = 0  # the factory value (the e-Manual's, an XC330-M288's where models differ)
+
+
+REGISTERS = {
+    r.name: r
+    for r in (
+        Register("model_number", 0, 2, writable=False, initial=MODEL_XC330_M288),
+        Register("model_information", 2, 4, writable=False),
+        Register("firmware_version", 6, 1, writable=False, initial=52),
+        Register("id", 7, 1),
+        Register("baud_rate", 8, 1, initial=6),
+        Register("return_delay_time", 9, 1),
+        Register("drive_mode", 10, 1),
+        Register("operating_mode", 11, 1, initial=OperatingMode.POSITION),
+        Register("secondary_id", 12, 1),
+        Register("protocol_type", 13, 1, initial=2),
+        Register("homing_offset", 20, 4, signed=True),
+        Register("moving_threshold", 24, 4),
+        Register("temperature_limit", 31, 1, initial=70),
+        Register("max_voltage_limit", 32, 2, initial=70),
+        Register("min_voltage_limit", 34, 2, initial=35),
+        Register("pwm_limit", 36, 2, initial=885),
+        Register("current_limit", 38, 2, initial=1750),
+        Register("velocity_limit", 44, 4, initial=445),
+        Register("max_position_limit", 48, 4, initial=4095),
+        Register("min_position_limit", 52, 4),
+        Register("shutdown", 63, 1, initial=0x34),  # HardwareError: overheating, electrical shock, overload
+        Register("torque_enable", 64, 1),
+        Register("led", 65, 1),
+        Register("status_return_level", 68, 1, initial=2),
+        Register("registered_instruction", 69, 1, writable=False),
+        Register("hardware_error_status", 70, 1, writable=False),
+        Register("velocity_i_gain", 76, 2),
+        Register("velocity_p_gain", 78, 2),
+        Register("position_d_gain", 80, 2),
+        Register("position_i_gain", 82, 2),
+        Register("position_p_gain", 84, 2, initial=400),
+        Register("bus_watchdog", 98, 1, signed=True),  # 0 off, 1..127 on (unit BUS_WATCHDOG_UNIT_S), -1 tripped
+        Register("goal_pwm", 100, 2, signed=True),
+        Register("goal_current", 102, 2, signed=True),
+        Register("goal_velocity", 104, 4, signed=True),
+        Register("profile_acceleration", 108, 4),
+        Register("profile_velocity", 112, 4),
+        Register("goal_position", 116, 4, signed=True),
+        Register("realtime_tick", 120, 2, writable=False),
+        Register("moving", 122, 1, writable=False),
+        Register("moving_status", 123, 1, writable=False),
+        Register("present_pwm", 124, 2, writable=False, signed=True),
+        Register("present_current", 126, 2, writable=False, signed=True),
+        Register("present_velocity", 128, 4, writable=False, signed=True),
+        Register("present_position", 132, 4, writable=False, signed=True),
+        Register("present_input_voltage", 144, 2, writable=False, initial=50),
+        Register("present_temperature", 146, 1, writable=False, initial=30),
+    )
+}
+
+CONTROL_TABLE_SIZE = 147  # bytes: addresses 0 .. 146
+EEPROM_END = 64  # addresses below this are EEPROM
+
+BUS_WATCHDOG_UNIT_S = 0.02  # Bus Watchdog (98): its unit, 20 ms; 1..127 arms it
+BUS_WATCHDOG_TRIPPED = -1  # the Bus Watchdog Error state: goal values are read-only until 0 is written
+GOAL_REGISTERS = ("goal_pwm", "goal_current", "goal_velocity", "goal_position")  # read-only while tripped
+
+TICKS_PER_REV = 4096  # X-series position resolution
+CENTRE_TICK = 2048  # the middle of one turn; motor angle 0 rad
 
 
 # The status packet's error byte: bit 7 = alert (a hardware error is latched),
