@@ -427,12 +427,9 @@ class DxlEmulator:
 
     def _handle(self, servo_id: int, instruction: int, params: bytes) -> None:
         self.instructions.append((instruction, servo_id))
-        if instruction == Instruction.SYNC_WRITE:
-            self._sync_write(params)
-            return
-        if instruction == Instruction.SYNC_READ:
-            self._sync_read(params)
-            return
+        group = {Instruction.SYNC_WRITE: self._sync_write, Instruction.SYNC_READ: self._sync_read}.get(instruction)
+        if group is not None:
+            return group(params)
         targets = list(self.servos) if servo_id == BROADCAST_ID else [servo_id]
         for sid in targets:
             servo = self.servos.get(sid)

@@ -48,9 +48,9 @@ What leaves the hand safe when the process ends, by how it ends:
 
 from __future__ import annotations
 
-import argparse
 import atexit
 import contextlib
+import json
 import logging
 import math
 import os
@@ -601,15 +601,12 @@ class DynamixelHand:
         own, so that the terminal's signals reach this process only; it outlives this one."""
         if not self.config.guard:
             return
-        servos = ",".join(f"{sid}:{self._joint_of[sid]}" for sid in self.ids)
+        args = {"port": self.port_name, "baudrate": self.baudrate, "timeout_s": self.config.min_packet_timeout_s}
+        args |= {"drain_s": self.config.drain_s, "servos": [(sid, self._names([sid])) for sid in self.ids]}
+        command = [sys.executable, "-m", "tacsplat.drivers.dynamixel_hand", json.dumps(args)]
         try:
-            args = {"port": self.port_name, "baudrate": self.baudrate, "timeout-s": self.config.min_packet_timeout_s}
-            args |= {"drain-s": self.config.drain_s, "servos": servos}
             self._guard = subprocess.Popen(
-                [sys.executable, "-m", "tacsplat.drivers.dynamixel_hand", *(f"--{k}={v}" for k, v in args.items())],
-                stdin=subprocess.PIPE,
-                stdout=subprocess.DEVNULL,
-                start_new_session=True,
+                command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, start_new_session=True
             )
         except OSError as exc:
             raise HandError(
@@ -835,7 +832,8 @@ class DynamixelHand:
 
 # -- the guard process ------------------------------------------------------------------------------------------
 def guard_main(argv: list[str] | None = None) -> int:
-    """``python -m tacsplat.drivers.dynamixel_hand --port ... --servos ID:JOINT,...``: the guard of one connected hand.
+    """``python -m tacsplat.drivers.dynamixel_hand JSON``: the guard of one connected hand (``JSON``: its ``port``,
+    ``baudrate``, ``timeout_s`` and ``drain_s``, and ``servos``: ``[[ID, "ID (joint)"], ...]``).
 
     Started by :meth:`DynamixelHand.connect`; reads its standard input (a pipe from the hand's process) to the end.
     ``closed`` there: the hand was closed, exit without a word. Anything else (the process died: its end of the pipe
@@ -844,35 +842,27 @@ def guard_main(argv: list[str] | None = None) -> int:
     """
     for s in END_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
-    parser = argparse.ArgumentParser(prog="python -m tacsplat.drivers.dynamixel_hand", description=guard_main.__doc__)
-    parser.add_argument("--port", required=True)
-    parser.add_argument("--baudrate", type=int, required=True)
-    parser.add_argument("--timeout-s", type=float, required=True)
-    parser.add_argument("--drain-s", type=float, required=True)
-    parser.add_argument("--servos", required=True, help="ID:JOINT,...")
-    args = parser.parse_args(argv)
-    servos = [item.split(":", 1) for item in args.servos.split(",")]
-    ids = [int(sid) for sid, _ in servos]
+    args = json.loads((sys.argv[1:] if argv is None else argv)[0])
+    names = {int(sid): name for sid, name in args["servos"]}  # in the hand's order
     parent = os.getppid()
     if sys.stdin.buffer.read() == GUARD_CLOSED:
         return 0
-    device = f"hand guard of {args.port}"
+    device = f"hand guard of {args['port']}"
     what = f"{device}: the process {parent} ended without closing the hand"
-    port = _PortHandler(args.port, 1000.0 * args.timeout_s)
+    port = _PortHandler(args["port"], 1000.0 * args["timeout_s"])
     try:
-        if not port.setBaudRate(args.baudrate):
-            raise ValueError(f"baud rate {args.baudrate} is not supported")
+        if not port.setBaudRate(args["baudrate"]):
+            raise ValueError(f"baud rate {args['baudrate']} is not supported")
     except (OSError, ValueError) as exc:
         _say(
-            f"{what}; cannot open the port ({exc}): torque off NOT confirmed on any of the {len(ids)} servos: "
+            f"{what}; cannot open the port ({exc}): torque off NOT confirmed on any of the {len(names)} servos: "
             "cut the servo power"
         )
         return 1
-    time.sleep(args.drain_s)  # status packets meant for the dead process arrive, and are dropped
-    unconfirmed = torque_off(dxl.PacketHandler(2.0), port, ids, device)
+    time.sleep(args["drain_s"])  # status packets meant for the dead process arrive, and are dropped
+    unconfirmed = torque_off(dxl.PacketHandler(2.0), port, list(names), device)
     port.closePort()
-    names = {int(sid): f"{sid} ({joint})" for sid, joint in servos}
-    report = TorqueOffReport(tuple(names[s] for s in ids), tuple(names[s] for s in unconfirmed))
+    report = TorqueOffReport(tuple(names.values()), tuple(names[s] for s in unconfirmed))
     _say(f"{what}; {report}")
     return 0 if report.confirmed else 1
 

@@ -608,19 +608,18 @@ def calibrate_tactile(
         records[names[k]].update(index=k, label_radius_px=labels.get(names[k]))
     calib.presses = [records[name] for name in names]
     checks = [records[names[k]] for k in held_out]
-    radii = [r["fitted_radius_m"] for r in checks if r["detected"]]
+    detected = [r for r in checks if r["detected"]]
+    radii = [r["fitted_radius_m"] for r in detected]
     calib.check_summary = {"presses": len(checks), "detected": len(radii), "ball_radius_m": ball_radius_m}
     if radii:
         q25, median, q75 = np.percentile(radii, [25, 50, 75])
         spread = {"median": median, "q25": q25, "q75": q75, "min": min(radii), "max": max(radii)}
         calib.check_summary.update({f"{key}_fitted_radius_m": float(value) for key, value in spread.items()})
-        calib.check_summary["median_peak_indentation_m"] = float(
-            np.median([r["peak_indentation_m"] for r in checks if r["detected"]])
-        )
+        calib.check_summary["median_peak_indentation_m"] = float(np.median([r["peak_indentation_m"] for r in detected]))
     ratios = [
         r["contact_radius_px"] / r["label_radius_px"]
-        for r in checks
-        if r["detected"] and r["label_radius_px"] and r["contact_radius_px"]
+        for r in detected
+        if r["label_radius_px"] and r["contact_radius_px"]
     ]
     if ratios:
         calib.check_summary["median_contact_radius_over_label"] = float(np.median(ratios))
@@ -679,7 +678,7 @@ class OpticalTactileSensor:
         reference_frames: int = 5,
         capture_factory=cv2.VideoCapture,
     ):
-        self._name = name
+        self.name = name
         self.calibration = (
             calibration if isinstance(calibration, TactileCalibration) else TactileCalibration.load(calibration)
         )
@@ -688,10 +687,6 @@ class OpticalTactileSensor:
         video = dict(width=width, height=height, fps=fps, timeout_s=timeout_s, capture_factory=capture_factory)
         self._video = VideoReader(source, name=f"tactile sensor {name!r}", **video)
         self.reference: np.ndarray | None = None  # [h, w, 3] float64 RGB
-
-    @property
-    def name(self) -> str:
-        return self._name
 
     def __enter__(self) -> "OpticalTactileSensor":
         self.open()
@@ -706,7 +701,7 @@ class OpticalTactileSensor:
             size = (self._video.height, self._video.width)
             self._video.close()
             raise TactileError(
-                self._name,
+                self.name,
                 f"camera delivers {size[1]}x{size[0]}, the calibration is for "
                 f"{self.calibration.image_size[1]}x{self.calibration.image_size[0]}",
             )
@@ -727,7 +722,7 @@ class OpticalTactileSensor:
     def read(self) -> TactileReading:
         """A reading with depth from the newest frame (:meth:`TactileCalibration.depth`), its pose in the hand frame."""
         if self.reference is None:
-            raise TactileError(self._name, "not open (no reference frame)")
+            raise TactileError(self.name, "not open (no reference frame)")
         rgb, frame = self._read_rgb()
         depth = self.calibration.depth(rgb, self.reference)
         return TactileReading(
@@ -736,5 +731,5 @@ class OpticalTactileSensor:
             T_ref_sensor=self._pose(),
             frame="hand",
             timestamp=frame.timestamp,
-            meta={"sensor": self._name, "frame_index": frame.index},
+            meta={"sensor": self.name, "frame_index": frame.index},
         )

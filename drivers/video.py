@@ -81,28 +81,25 @@ class VideoReader:
             )
         self._cap = cap
         width, height, fps, fourcc = self._requested
-        if fourcc:
-            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*fourcc))
-        if width:
-            cap.set(cv2.CAP_PROP_FRAME_WIDTH, width)
-        if height:
-            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
-        if fps:
-            cap.set(cv2.CAP_PROP_FPS, fps)
+        code = fourcc and cv2.VideoWriter_fourcc(*fourcc)
+        for prop, value in zip(
+            (cv2.CAP_PROP_FOURCC, cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT, cv2.CAP_PROP_FPS),
+            (code, width, height, fps),
+        ):
+            if value:  # (the fourcc first: USB cameras need it for full resolution at full rate)
+                cap.set(prop, value)
         self.width = int(round(cap.get(cv2.CAP_PROP_FRAME_WIDTH)))
         self.height = int(round(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         self.fps = float(cap.get(cv2.CAP_PROP_FPS))
-        try:
-            if (width and self.width != width) or (height and self.height != height):
-                raise CameraError(
-                    self.name, f"asked for {width}x{height}, the device delivers {self.width}x{self.height}"
-                )
-            if fps and abs(self.fps - fps) > FPS_TOLERANCE * fps:
-                raise CameraError(self.name, f"asked for {fps:g} fps, the device reports {self.fps:g} fps")
-        except CameraError:
+        problem = None
+        if (width and self.width != width) or (height and self.height != height):
+            problem = f"asked for {width}x{height}, the device delivers {self.width}x{self.height}"
+        elif fps and abs(self.fps - fps) > FPS_TOLERANCE * fps:
+            problem = f"asked for {fps:g} fps, the device reports {self.fps:g} fps"
+        if problem:
             cap.release()
             self._cap = None
-            raise
+            raise CameraError(self.name, problem)
         self._thread = threading.Thread(target=self._run, name=f"video-{self.name}", daemon=True)
         self._thread.start()
         # the first frame proves the device delivers, at the size it reported
