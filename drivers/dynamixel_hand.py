@@ -411,8 +411,7 @@ class DynamixelHand:
 
         A position farther outside its joint's limits than ``reading_tolerance_rad`` is a fault (ServoError)."""
         ticks, vel, cur = self._read_raw_state()
-        signs = self.calibration.signs
-        positions = self.calibration.radians_from_ticks(ticks)
+        positions, signs = self.calibration.radians_from_ticks(ticks), self.calibration.signs
         self._check_reachable(ticks, positions)
         return HandState(
             positions, signs * vel * VELOCITY_UNIT_RAD_S, signs * cur * self.config.current_unit_a, time.time()
@@ -711,13 +710,11 @@ class DynamixelHand:
     def _status_fail(self, servo_id: int, instruction: str, error: int):
         """Raise for a status packet whose error byte is set, decoding a hardware alert."""
         detail = ", ".join(decode_status_error(error))
-        hw = 0
+        hw, address = 0, REGISTERS["hardware_error_status"].address
         if error & ALERT_BIT:
             try:
                 with _Exchange(self):
-                    data, result, _ = self._ph.readTxRx(
-                        self._port, servo_id, REGISTERS["hardware_error_status"].address, 1
-                    )
+                    data, result, _ = self._ph.readTxRx(self._port, servo_id, address, 1)
             except PORT_ERRORS:
                 data, result = [], dxl.COMM_TX_FAIL
             if result == dxl.COMM_SUCCESS and data:
@@ -725,9 +722,8 @@ class DynamixelHand:
                 detail += f": Hardware Error Status 0x{hw:02x} = {', '.join(decode_hardware_error(hw)) or 'none'}"
             else:
                 detail += " (Hardware Error Status unreadable)"
-        self._fail(
-            servo_id, instruction, f"status error 0x{error:02x} ({detail})", status_error=error, hardware_error=hw
-        )
+        detail = f"status error 0x{error:02x} ({detail})"
+        self._fail(servo_id, instruction, detail, status_error=error, hardware_error=hw)
 
     def _torque_off_all(self) -> None:
         """Torque off on every servo, confirmed one by one, into :attr:`torque_off_report`."""
@@ -739,7 +735,7 @@ class DynamixelHand:
             )
 
     def _ping_all(self) -> None:
-        missing, comm = [], {}
+        missing = {}  # servo -> the comm result of its last try
         for sid in self.ids:
             for _ in range(self.config.retries + 1):
                 try:
@@ -751,19 +747,13 @@ class DynamixelHand:
                     break
                 self._drain()
             if result != dxl.COMM_SUCCESS:
-                missing.append(sid)
-                comm[sid] = result
+                missing[sid] = result
             elif error:
                 self._status_fail(sid, "PING", error)
         if missing:
-            first = missing[0]
-            self._fail(
-                first,
-                "PING",
-                f"servos {self._names(missing)} did not answer ({self._comm_text(comm[first])}); "
-                "refusing to move with a servo missing",
-                comm_result=comm[first],
-            )
+            first, result = next(iter(missing.items()))
+            why = f"servos {self._names(list(missing))} did not answer ({self._comm_text(result)})"
+            self._fail(first, "PING", f"{why}; refusing to move with a servo missing", comm_result=result)
 
     def _write(self, servo_id: int, name: str, value: int) -> None:
         reg = REGISTERS[name]

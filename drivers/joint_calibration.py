@@ -132,7 +132,7 @@ def calibrate_joints(
     names = list(hand.joint_names)
     limits = np.asarray(hand.joint_limits, dtype=np.float64)
     servos = list(servos) if servos is not None else [f"joint {k}" for k in range(len(names))]
-    results, signs, offsets = [], [], []
+    results, offsets = [], []
     for j, name in enumerate(names):
         lower, upper = limits[j]
         at = {}
@@ -151,9 +151,8 @@ def calibrate_joints(
             f"{math.degrees(result.model_range_rad):.1f})  ok"
         )
         results.append(result)
-        signs.append(result.sign)
         offsets.append(offset)
-    return HandCalibration(tuple(names), np.array(signs, float), np.array(offsets)), results
+    return HandCalibration(tuple(names), np.array([r.sign for r in results], float), np.array(offsets)), results
 
 
 class TerminalPerson:
@@ -173,4 +172,4 @@ class TerminalPerson:
             )
 
     def let_go(self, joint: int) -> None:
-        pass
+        """Nothing to do: the next instruction tells the person what to hold."""

@@ -273,11 +273,9 @@ def poisson_integrate(
     rows, cols, vals, rhs = [], [], [], []
     edge = 0
     for axis, g in ((1, slopes[0]), (0, slopes[1])):
-        first = [slice(None), slice(None)]
-        second = [slice(None), slice(None)]
-        first[axis], second[axis] = slice(0, -1), slice(1, None)
-        p, q = index[tuple(first)].ravel(), index[tuple(second)].ravel()
-        target = (pixel_size_m * (g[tuple(first)] + g[tuple(second)]) / 2).ravel()
+        first, second = ((slice(None),) * axis + (end,) for end in (slice(0, -1), slice(1, None)))
+        p, q = index[first].ravel(), index[second].ravel()
+        target = (pixel_size_m * (g[first] + g[second]) / 2).ravel()
         used = (p >= 0) | (q >= 0)
         p, q, target = p[used], q[used], target[used]
         k = edge + np.arange(len(target))
@@ -402,12 +400,10 @@ class TactileCalibration:
             change = color_change(image, reference)
             circle = find_contact_circle(change)
             record = {"index": k, "file": name, "role": "fit"}
-            if circle is None or circle.radius >= 0.95 * ball_px:
-                why = (
-                    "no contact circle"
-                    if circle is None
-                    else (f"contact radius {circle.radius:.1f} px is not smaller than the ball's {ball_px:.1f} px")
-                )
+            why = "no contact circle" if circle is None else None
+            if circle is not None and circle.radius >= 0.95 * ball_px:
+                why = f"contact radius {circle.radius:.1f} px is not smaller than the ball's {ball_px:.1f} px"
+            if why:
                 log.warning("%s: %s, skipped", name, why)
                 used.append({**record, "skipped": why})
                 continue

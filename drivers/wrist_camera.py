@@ -52,8 +52,7 @@ T_WORLD_BOARD = np.diag([1.0, -1.0, -1.0, 1.0])  # rotation of pi about the boar
 def tacsplat_K_from_opencv(K_opencv: np.ndarray) -> np.ndarray:
     """The one conversion: OpenCV intrinsics (pixel centres at integers) -> tacsplat's (centres at +0.5)."""
     K = np.array(K_opencv, dtype=np.float64)
-    K[0, 2] += 0.5
-    K[1, 2] += 0.5
+    K[:2, 2] += 0.5
     return K
 
 
@@ -234,10 +233,8 @@ class CameraCalibration:
 
     def undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
         """``cv2.remap``'s maps from raw frames to undistorted ones (intrinsics :meth:`undistorted_K_opencv`)."""
-        size = (self.width, self.height)
-        return cv2.initUndistortRectifyMap(
-            self.K_opencv, self.dist, None, self.undistorted_K_opencv(), size, cv2.CV_16SC2
-        )
+        K_new, size = self.undistorted_K_opencv(), (self.width, self.height)
+        return cv2.initUndistortRectifyMap(self.K_opencv, self.dist, None, K_new, size, cv2.CV_16SC2)
 
     def save(self, path: str | Path) -> None:
         board = {"type": next(k for k, v in BOARD_TYPES.items() if isinstance(self.board, v)), **asdict(self.board)}
