@@ -11,16 +11,8 @@ each loading its module on first use, so importing this package loads no SDK::
 from tacsplat.drivers.protocols import Camera, Hand, HandKinematics, TactileSensor
 from tacsplat.types import TactileReading
 
-_DRIVERS = [
-    "DynamixelHand",
-    "DynamixelHandConfig",
-    "HandCalibration",
-    "OpticalTactileSensor",
-    "TactileCalibration",
-    "WristCamera",
-    "CameraCalibration",
-    "VideoReader",
-]
+_DRIVERS = ["DynamixelHand", "DynamixelHandConfig", "HandCalibration", "OpticalTactileSensor", "TactileCalibration"]
+_DRIVERS += ["WristCamera", "CameraCalibration", "VideoReader"]
 __all__ = ["Camera", "Hand", "HandKinematics", "TactileSensor", "TactileReading", *_DRIVERS]
 
 

@@ -331,16 +331,9 @@ class DxlEmulator:
 
     def status(self) -> dict[int, dict[str, int | bool]]:
         """Per servo: torque, present and goal position (ticks), Bus Watchdog register."""
+        names = ("present_position", "goal_position", "bus_watchdog")
         with self._lock:
-            return {
-                i: {
-                    "torque": s.torque_enabled,
-                    "present_position": s.get("present_position"),
-                    "goal_position": s.get("goal_position"),
-                    "bus_watchdog": s.get("bus_watchdog"),
-                }
-                for i, s in self.servos.items()
-            }
+            return {i: {"torque": s.torque_enabled} | {n: s.get(n) for n in names} for i, s in self.servos.items()}
 
     # -- the bus ---------------------------------------------------------
     def _run(self) -> None:

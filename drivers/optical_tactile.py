@@ -71,6 +71,11 @@ def _odd(n: float) -> int:
     return n + 1 - n % 2
 
 
+def _wxh(shape) -> str:
+    """An image's size as ``WxH`` from its shape ``(h, w, ...)``."""
+    return f"{shape[1]}x{shape[0]}"
+
+
 def _as_rgb(image, name: str) -> np.ndarray:
     image = np.asarray(image)
     if image.ndim != 3 or image.shape[2] != 3:
@@ -135,9 +140,7 @@ def color_change(
     image = _as_rgb(image, "image").astype(np.float64)
     reference = _as_rgb(reference, "reference").astype(np.float64)
     if image.shape != reference.shape:
-        raise InvalidInputError(
-            f"image is {image.shape[1]}x{image.shape[0]}, the reference {reference.shape[1]}x{reference.shape[0]}"
-        )
+        raise InvalidInputError(f"image is {_wxh(image.shape)}, the reference {_wxh(reference.shape)}")
     markers = marker_mask(image, reference)
     if markers.any():
         image, reference = _inpaint(image, markers), _inpaint(reference, markers)
@@ -393,9 +396,7 @@ class TactileCalibration:
             image = _as_rgb(image, name)
             if image.shape != reference.shape:
                 raise TactileError(
-                    "calibration",
-                    f"{name} is {image.shape[1]}x{image.shape[0]}, the reference "
-                    f"{reference.shape[1]}x{reference.shape[0]}",
+                    "calibration", f"{name} is {_wxh(image.shape)}, the reference {_wxh(reference.shape)}"
                 )
             change = color_change(image, reference)
             circle = find_contact_circle(change)
@@ -433,9 +434,7 @@ class TactileCalibration:
         image = _as_rgb(image, "image")
         if image.shape[:2] != tuple(self.image_size):
             raise TactileError(
-                "calibration",
-                f"image is {image.shape[1]}x{image.shape[0]}, the calibration is for "
-                f"{self.image_size[1]}x{self.image_size[0]}",
+                "calibration", f"image is {_wxh(image.shape)}, the calibration is for {_wxh(self.image_size)}"
             )
         return color_change(image, reference, min_change=self.change_threshold)
 
@@ -692,15 +691,11 @@ class OpticalTactileSensor:
         self.close()
 
     def open(self) -> None:
-        self._video.open()
-        if (self._video.height, self._video.width) != tuple(self.calibration.image_size):
-            size = (self._video.height, self._video.width)
+        size = (self._video.open().height, self._video.width)
+        if size != tuple(self.calibration.image_size):
             self._video.close()
-            raise TactileError(
-                self.name,
-                f"camera delivers {size[1]}x{size[0]}, the calibration is for "
-                f"{self.calibration.image_size[1]}x{self.calibration.image_size[0]}",
-            )
+            delivers = f"camera delivers {_wxh(size)}, the calibration is for {_wxh(self.calibration.image_size)}"
+            raise TactileError(self.name, delivers)
         self.capture_reference()
 
     def close(self) -> None:
