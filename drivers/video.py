@@ -147,7 +147,7 @@ class VideoReader:
                     self._cond.notify_all()
                     return
                 if self.sequential:  # keep every frame: wait for the consumer instead of dropping
-                    while self._unread() >= 8 and not self._stop.is_set():
+                    while len(self._fresh()) >= 8 and not self._stop.is_set():
                         self._cond.wait(0.1)
                 self._frames.append(Frame(image, now, self._count))
                 self._count += 1
@@ -158,29 +158,22 @@ class VideoReader:
         if self._thread is None and not self._frames:
             raise CameraError(self.name, "not open")
         timeout = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + timeout
         with self._cond:
-            while True:
-                fresh = [f for f in self._frames if f.index > self._last_index]
-                if fresh:
-                    frame = fresh[0] if self.sequential else fresh[-1]
-                    self._last_index = frame.index
-                    while self._frames[0].index < frame.index:
-                        self._frames.popleft()
-                    self._cond.notify_all()
-                    return frame
-                if self._ended:
-                    raise CameraError(self.name, f"{self._ended} after {self._count} frames")
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise CameraError(
-                        self.name,
-                        f"no new frame within {timeout:g} s (unplugged or stalled?) after {self._count} frames",
-                    )
-                self._cond.wait(remaining)
+            self._cond.wait_for(lambda: self._fresh() or self._ended, timeout)
+            fresh = self._fresh()
+            if not fresh:
+                why = self._ended or f"no new frame within {timeout:g} s (unplugged or stalled?)"
+                raise CameraError(self.name, f"{why} after {self._count} frames")
+            frame = fresh[0] if self.sequential else fresh[-1]
+            self._last_index = frame.index
+            while self._frames[0].index < frame.index:
+                self._frames.popleft()
+            self._cond.notify_all()
+            return frame
 
-    def _unread(self) -> int:
-        return sum(1 for f in self._frames if f.index > self._last_index)
+    def _fresh(self) -> list[Frame]:
+        """The frames not yet returned, oldest first."""
+        return [f for f in self._frames if f.index > self._last_index]
 
     @property
     def frames_received(self) -> int:
