@@ -60,8 +60,7 @@ def _repeated_key(value, where: tuple[str, ...] = ()) -> str | None:
         return ".".join(where + (value.repeated,))
     children = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
     for key, child in children:
-        found = _repeated_key(child, where + (str(key),))
-        if found:
+        if found := _repeated_key(child, where + (str(key),)):
             return found
     return None
 
@@ -80,8 +79,7 @@ def read_calibration(
         raise ConfigError(key, f"cannot read the file: {exc}", source=path) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(key, f"not valid JSON: {exc}", source=path) from None
-    repeated = _repeated_key(data)
-    if repeated:
+    if repeated := _repeated_key(data):
         raise ConfigError(repeated, "given twice (the keys of a JSON object must be unique)", source=path)
     if expected_format is not None:
         if not isinstance(data, dict) or data.get("format") != expected_format:
@@ -141,8 +139,7 @@ def json_array(shape: tuple[int | None, ...], value) -> np.ndarray:
 
 def json_rigid(value) -> np.ndarray:
     T = json_array((4, 4), value)
-    problem = rigidity_problem(T)
-    if problem:
+    if problem := rigidity_problem(T):
         raise ValueError(f"not a rigid transform: {problem}")
     return T
 
@@ -174,8 +171,7 @@ def _hand_file():
         """A field that ``problem(value)`` (a message or None) checks."""
 
         def validate(value):
-            message = problem(value)
-            if message:
+            if message := problem(value):
                 raise ValueError(message)
             return float(value)
 
@@ -259,11 +255,9 @@ class HandCalibration:
         """Read and validate a calibration file for these joints; one ConfigError names the file and field."""
         path = Path(path)
         joints = read_calibration(path, _hand_file(), FORMAT).joints
-        unknown = [name for name in joints if name not in joint_names]
-        if unknown:
+        if unknown := [name for name in joints if name not in joint_names]:
             raise ConfigError(f"joints.{unknown[0]}", f"unknown joint (known: {list(joint_names)})", source=path)
-        missing = [name for name in joint_names if name not in joints]
-        if missing:
+        if missing := [name for name in joint_names if name not in joints]:
             raise ConfigError(
                 f"joints.{missing[0]}", 'missing: expected {"sign": 1 or -1, "offset_rad": radians}', source=path
             )

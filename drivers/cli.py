@@ -128,8 +128,7 @@ def _images(paths) -> list[Path]:
     found = []
     for path in paths:
         if path.is_dir():
-            inside = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-            if not inside:
+            if not (inside := sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)):
                 raise InvalidInputError(f"{path}: no images ({', '.join(IMAGE_SUFFIXES)})")
             found += inside
         elif path.is_file():
@@ -194,8 +193,7 @@ def _board_spec(args: CalibrateCamera):
     charuco = {"squares_x": args.squares_x, "squares_y": args.squares_y, "dictionary": args.dictionary}
     charuco |= {"marker_length_m": args.marker_mm, "legacy_pattern": args.legacy_pattern or None}
     if args.board == "chessboard":
-        given = [_BOARD_OPTIONS[name] for name, value in charuco.items() if value is not None]
-        if given:
+        if given := [_BOARD_OPTIONS[name] for name, value in charuco.items() if value is not None]:
             raise ConfigError(given[0], "is a ChArUco option; a chessboard takes --inner-corners and --square-mm")
         if args.inner_corners is None:
             raise ConfigError(
@@ -217,13 +215,9 @@ def _board_spec(args: CalibrateCamera):
                 f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got {getattr(spec, name) * 1000:g}",
             )
     if isinstance(spec, CharucoBoardSpec) and not spec.marker_length_m < spec.square_length_m:
-        raise ConfigError(
-            "--marker-mm",
-            f"must be smaller than the square ({spec.square_length_m * 1000:g} mm), "
-            f"got {spec.marker_length_m * 1000:g}",
-        )
-    problem = spec.problem()
-    if problem:
+        square, marker = spec.square_length_m * 1000, spec.marker_length_m * 1000
+        raise ConfigError("--marker-mm", f"must be smaller than the square ({square:g} mm), got {marker:g}")
+    if problem := spec.problem():
         raise ConfigError(_BOARD_OPTIONS[problem[0]], problem[1])
     return spec
 

@@ -463,8 +463,7 @@ class DxlEmulator:
             servo = self.servos.get(data[k])
             if servo is not None and data[k] not in self._disconnected:
                 servo.last_instruction = self._received
-                number = servo.write(address, data[k + 1 : k + 1 + size])
-                if number:
+                if number := servo.write(address, data[k + 1 : k + 1 + size]):
                     log.debug("servo %d rejected SYNC_WRITE at %d: error %d", data[k], address, number)
 
     def _sync_read(self, params: bytes) -> None:
@@ -564,8 +563,7 @@ class EmulatorProcess:
             self.proc.stdout.close()
 
     def _reply(self) -> dict:
-        line = self.proc.stdout.readline()
-        if not line:
+        if not (line := self.proc.stdout.readline()):
             raise RuntimeError(f"the servo emulator process ended (exit code {self.proc.wait()})")
         return json.loads(line)
 

@@ -141,8 +141,7 @@ def calibrate_joints(
             at[is_upper] = float(read_stop(hand)[j])
         person.let_go(j)
         result = JointResult(name, servos[j], at[False], at[True], float(upper - lower))
-        problem = result.problem()
-        if problem:
+        if problem := result.problem():
             raise HandError(device, f"calibration refused: {problem}")
         offset = result.offset_rad(lower, upper)
         say(

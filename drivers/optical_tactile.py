@@ -631,8 +631,7 @@ def check_problem(calibration: TactileCalibration, max_radius_error: float = 0.2
         "inside the image, with the reference image of the untouched gel taken just before), "
         "or check --ball-radius-mm and --pixel-size-mm"
     )
-    missed = [p["file"] for p in checks if not p["detected"]]
-    if missed:
+    if missed := [p["file"] for p in checks if not p["detected"]]:
         return f"no ball press detected in the held-out {', '.join(missed)}: {capture}"
     median = summary.get("median_fitted_radius_m")
     error = abs(median / calibration.ball_radius_m - 1.0)

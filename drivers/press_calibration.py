@@ -149,8 +149,7 @@ def fit_presses(
     x0 = np.concatenate(x0)
     scale = np.r_[[0.01] * 3 + [0.001] * 3, [0.001] * 2 * len(placements)]
     fit = least_squares(residuals, x0, x_scale=scale, method="lm")
-    weak = _undetermined(fit.jac, ["hand-eye"], NOISE_M, MAX_STD)
-    if weak:
+    if weak := _undetermined(fit.jac, ["hand-eye"], NOISE_M, MAX_STD):
         hint = "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
         raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(map(' '.join, weak))}; {hint}")
     X, centres = unpack(fit.x)
@@ -239,8 +238,7 @@ def fit_mounts(
     mounts = {f: np.asarray(T, dtype=np.float64) for f, T in (mounts or {}).items()}
     fingers = list(dict.fromkeys(p.finger for p in presses))
     placements = sorted({p.placement for p in presses})
-    missing = [k for k in placements if k not in centre_heights_m]
-    if missing:
+    if missing := [k for k in placements if k not in centre_heights_m]:
         raise InvalidInputError(f"{what}: no height given for sphere placements {missing}")
     T_cam_hand = invert_pose(T_hand_cam)
     start = [p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4)) for p in presses]
@@ -404,7 +402,6 @@ def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
     file and field."""
     path = Path(path)
     sensors = read_calibration(path, _MountsFile, MOUNTS_FORMAT).sensors
-    unknown = [finger for finger in sensors if finger not in fingers]
-    if unknown:
+    if unknown := [finger for finger in sensors if finger not in fingers]:
         raise ConfigError(f"sensors.{unknown[0]}", f"unknown finger (one of {list(fingers)})", source=path)
     return {finger: entry.T_fingertip_sensor for finger, entry in sensors.items()}

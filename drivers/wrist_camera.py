@@ -110,8 +110,7 @@ class CharucoBoardSpec:
         return None
 
     def board(self) -> "cv2.aruco.CharucoBoard":
-        problem = self.problem()
-        if problem:
+        if problem := self.problem():
             raise ConfigError(*problem)
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         size = (self.squares_x, self.squares_y)
@@ -148,8 +147,7 @@ class ChessboardSpec:
     def detect(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """All inner corners, refined to sub-pixel (``cv2.cornerSubPix``, an 11x11 px window, smaller when the
         corners are closer), or none: (object points [N, 3] board metres, image points [N, 2] OpenCV pixels)."""
-        problem = self.problem()
-        if problem:
+        if problem := self.problem():
             raise ConfigError(*problem)
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         size = (self.inner_corners_x, self.inner_corners_y)
@@ -275,12 +273,10 @@ class CameraCalibration:
         if kind not in BOARD_TYPES:
             raise ConfigError("board.type", f"expected one of {list(BOARD_TYPES)}, got {kind!r}", source=path)
         names = [field.name for field in fields(BOARD_TYPES[kind])]
-        unknown = [key for key in board if key not in names]
-        if unknown:
+        if unknown := [key for key in board if key not in names]:
             raise ConfigError(f"board.{unknown[0]}", f"unknown field of a {kind} board (expected {names})", source=path)
         spec = BOARD_TYPES[kind](**board)
-        problem = spec.problem()
-        if problem:
+        if problem := spec.problem():
             raise ConfigError(f"board.{problem[0]}", problem[1], source=path)
         std = f.K_std_px and f.K_std_px.model_dump()
         return cls(K, dist, width, height, f.rms_px, spec, f.per_image_rms_px, f.T_hand_cam, std, model, f.warnings)
@@ -356,8 +352,7 @@ def calibrate_views(
     obj_points = [v.object_points.astype(np.float32) for v in views]
     img_points = [v.image_points.astype(np.float32) for v in views]
     distinct, repeats = distinct_views(views, size)
-    problem = view_set_problem(views, distinct, repeats, size)
-    if problem:
+    if problem := view_set_problem(views, distinct, repeats, size):
         raise CameraError("calibration", problem)
     flags, count = DISTORTION_MODELS[distortion]
     rms, K, dist, rvecs, tvecs, std_intrinsics, _, _ = cv2.calibrateCameraExtended(
@@ -372,8 +367,7 @@ def calibrate_views(
     calib = CameraCalibration(
         K, dist, size[0], size[1], float(rms), board_spec, per_image, K_std_px=std, distortion_model=distortion
     )
-    problem = calibration_problem(calib, views)
-    if problem:
+    if problem := calibration_problem(calib, views):
         raise CameraError(
             "calibration",
             f"not written: the result is no camera ({problem}); the photos hold too "
@@ -518,8 +512,7 @@ def calibration_problem(calib: CameraCalibration, views: Sequence[BoardView]) ->
             )
     if not (0 <= K[0, 2] <= calib.width and 0 <= K[1, 2] <= calib.height):
         return f"the principal point ({K[0, 2]:.1f}, {K[1, 2]:.1f}) px is outside the image"
-    zero = [key for key, value in std.items() if not value > 0]
-    if zero:
+    if zero := [key for key, value in std.items() if not value > 0]:
         return f"the standard deviation of {', '.join(zero)} is zero: OpenCV found it unobservable"
     return _lens_problem(calib, _radii(calib, views)[0])
 
@@ -552,14 +545,12 @@ def calibration_warnings(calib: CameraCalibration, views: Sequence[BoardView], t
         warnings.append(
             f"the focal length is poorly constrained: {', '.join(loose)}, more than {MAX_FOCAL_STD:.0%}: {advice}"
         )
-    lens = _lens_problem(calib, _radii(calib, views)[1])
-    if lens:
+    if lens := _lens_problem(calib, _radii(calib, views)[1]):
         warnings.append(
             f"the image corners lie beyond the outermost board corner seen and the lens model fails "
             f"there: {lens}; add views with the board near the image corners"
         )
-    empty = empty_image_cells(views, (calib.width, calib.height))
-    if empty:
+    if empty := empty_image_cells(views, (calib.width, calib.height)):
         warnings.append(
             f"corner coverage of the image is poor, so the lens distortion there is poorly constrained: "
             f"no corner was seen in the {', '.join(empty)} of the image; add views with the board "
