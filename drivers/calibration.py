@@ -237,18 +237,11 @@ class HandCalibration:
         """Present ticks [n] -> joint angles [n] radians."""
         return self.joint_angles(motor_angles_from_ticks(ticks))
 
-    def to_json(self) -> dict:
-        return {
-            "format": FORMAT,
-            "version": 1,
-            "joints": {
-                name: {"sign": int(s), "offset_rad": float(o)}
-                for name, s, o in zip(self.joint_names, self.signs, self.offsets_rad)
-            },
-        }
-
     def save(self, path: str | Path) -> None:
-        atomic_write(path, (json.dumps(self.to_json(), indent=2) + "\n").encode())
+        values = zip(self.signs, self.offsets_rad)
+        joints = {n: {"sign": int(s), "offset_rad": float(o)} for n, (s, o) in zip(self.joint_names, values)}
+        data = {"format": FORMAT, "version": 1, "joints": joints}
+        atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
     @classmethod
     def load(cls, path: str | Path, joint_names: Sequence[str]) -> "HandCalibration":

@@ -114,11 +114,6 @@ class JointResult:
         return None
 
 
-def read_stop(hand: LimpHand, reads: int = STOP_READS) -> np.ndarray:
-    """[n] the median of ``reads`` reads of the motor angles."""
-    return np.median(np.stack([hand.read_motor_angles() for _ in range(reads)]), axis=0)
-
-
 def calibrate_joints(
     hand: LimpHand,
     person: Person,
@@ -138,7 +133,8 @@ def calibrate_joints(
         at = {}
         for is_upper in (True, False):
             person.hold_at_stop(j, is_upper, stop_instruction(name, is_upper))
-            at[is_upper] = float(read_stop(hand)[j])
+            reads = [hand.read_motor_angles() for _ in range(STOP_READS)]  # their median: the stop's motor angle
+            at[is_upper] = float(np.median(np.stack(reads), axis=0)[j])
         person.let_go(j)
         result = JointResult(name, servos[j], at[False], at[True], float(upper - lower))
         if problem := result.problem():
