@@ -460,13 +460,10 @@ class TactileCalibration:
 
     def save(self, path: str | Path) -> None:
         """Write the calibration (.npz) atomically (a temporary name, then a rename)."""
-        path = Path(path)
         meta = {"format": FORMAT, "version": VERSION, "layers": len(self.weights) // 2, **vars(self)}
         del meta["weights"]  # (the arrays w0, w1, ...)
-        atomic_write(
-            path,
-            lambda f: np.savez_compressed(f, meta=json.dumps(meta), **{f"w{i}": w for i, w in enumerate(self.weights)}),
-        )
+        weights = {f"w{i}": w for i, w in enumerate(self.weights)}
+        atomic_write(path, lambda f: np.savez_compressed(f, meta=json.dumps(meta), **weights))
 
     @classmethod
     def load(cls, path: str | Path) -> "TactileCalibration":

@@ -79,7 +79,6 @@ class VideoReader:
             raise CameraError(
                 self.name, f"cannot open {self.source!r} (unplugged, busy, or no permission on /dev/video*?)"
             )
-        self._cap = cap
         width, height, fps, fourcc = self._requested
         code = fourcc and cv2.VideoWriter_fourcc(*fourcc)
         for prop, value in zip(
@@ -98,21 +97,19 @@ class VideoReader:
             problem = f"asked for {fps:g} fps, the device reports {self.fps:g} fps"
         if problem:
             cap.release()
-            self._cap = None
             raise CameraError(self.name, problem)
+        self._cap = cap
         self._thread = threading.Thread(target=self._run, name=f"video-{self.name}", daemon=True)
         self._thread.start()
         # the first frame proves the device delivers, at the size it reported
         first = self.read()
         with self._cond:  # hand the first frame out again on the first read()
             self._last_index = first.index - 1
-        if (self.width and first.image.shape[1] != self.width) or (self.height and first.image.shape[0] != self.height):
+        h, w = first.image.shape[:2]
+        if (self.width and w != self.width) or (self.height and h != self.height):
             self.close()
-            raise CameraError(
-                self.name,
-                f"reports {self.width}x{self.height} but delivers {first.image.shape[1]}x{first.image.shape[0]} frames",
-            )
-        self.height, self.width = first.image.shape[:2]
+            raise CameraError(self.name, f"reports {self.width}x{self.height} but delivers {w}x{h} frames")
+        self.height, self.width = h, w
         return self
 
     def close(self) -> None:
