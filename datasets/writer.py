@@ -184,21 +184,15 @@ class SceneWriter:
     (also a context manager).
     """
 
-    def __init__(
-        self,
-        path: Path,
-        intrinsics: CameraIntrinsics,
-        meta: SceneMeta,
-        sensor: SensorModel | None,
-        created: str,
-        version: str,
-    ):
+    def __init__(self, path: Path, header: dict):
+        """The writer of scene ``path`` whose journal starts with ``header`` (its 'create' record), before any
+        record is applied."""
         self.path = Path(path)
-        self.intrinsics = intrinsics
-        self.meta = meta
-        self.sensor = sensor
-        self._created = created
-        self._version = version
+        self.intrinsics = intrinsics_from_json(header["intrinsics"])
+        self.meta = SceneMeta(**header["meta"])
+        self.sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
+        self._created = header["created"]
+        self._version = header.get("tacsplat_version", tacsplat.__version__)
         self.frames: list[Frame] = []
         self.touches: list[Touch] = []
         self.gt_depth_files: dict[int, str] = {}  # frame id -> the path in the scene of its ground-truth depth
@@ -231,6 +225,16 @@ class SceneWriter:
         # The journal is written under a name every creator of this folder opens, and locked before the folder is
         # checked, so of two processes creating one scene at once the second is refused, naming the first.
         creating = path / f".{JOURNAL}.new{TEMP_SUFFIX}"
+        header = {
+            "op": "create",
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "tacsplat_version": tacsplat.__version__,
+            "intrinsics": intrinsics_to_json(intrinsics),
+            "sensor": sensor_to_json(sensor),
+            "meta": asdict(meta),
+        }
         journal = _lock_journal(creating, path)
         try:
             try:
@@ -239,8 +243,13 @@ class SceneWriter:
                 creating.unlink(missing_ok=True)
                 raise
             record_writer(path)
-            try:
-                writer = cls._start(path, intrinsics, meta, sensor, journal)
+            try:  # the folders and index files, then the journal: its header is what makes the folder resumable
+                _make_folders(path, "images", "touches", "gt", "gt/depth")
+                writer = cls(path, header)
+                writer._materialise("transforms", "touches", "scene")
+                journal.truncate(0)  # (the file of a creation that crashed before its rename)
+                writer._journal = journal
+                writer._append(header)
                 os.rename(creating, path / JOURNAL)
             except BaseException as exc:
                 # a scene that never got its journal holds nothing: what it wrote goes, so a rerun can start again
@@ -253,31 +262,6 @@ class SceneWriter:
         except BaseException:
             journal.close()
             raise
-        return writer
-
-    @classmethod
-    def _start(
-        cls, path: Path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None, journal
-    ) -> "SceneWriter":
-        """The folders and index files of a new scene, and its journal header in ``journal`` (not yet named)."""
-        _make_folders(path, "images", "touches", "gt", "gt/depth")
-        created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-        writer = cls(path, intrinsics, meta, sensor, created, tacsplat.__version__)
-        writer._materialise("transforms", "touches", "scene")
-        # The journal appears last: its header is what makes the folder resumable.
-        header = {
-            "op": "create",
-            "format": FORMAT_NAME,
-            "format_version": FORMAT_VERSION,
-            "created": created,
-            "tacsplat_version": writer._version,
-            "intrinsics": intrinsics_to_json(intrinsics),
-            "sensor": sensor_to_json(sensor),
-            "meta": asdict(meta),
-        }
-        journal.truncate(0)  # (the file of a creation that crashed before its rename)
-        writer._journal = journal
-        writer._append(header)
         return writer
 
     @classmethod
@@ -318,15 +302,7 @@ class SceneWriter:
         if header.get("op") != "create":
             raise SceneFormatError(journal_path, "line 1", f"expected the 'create' header, got op {header.get('op')!r}")
         try:
-            sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
-            writer = cls(
-                path,
-                intrinsics_from_json(header["intrinsics"]),
-                SceneMeta(**header["meta"]),
-                sensor,
-                header["created"],
-                header.get("tacsplat_version", tacsplat.__version__),
-            )
+            writer = cls(path, header)
         except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
             raise SceneFormatError(journal_path, "line 1", f"invalid header: {exc}") from exc
         for lineno, entry in enumerate(entries[1:], start=2):
