@@ -37,7 +37,6 @@ from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_openc
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .records import SceneMeta
 from .writer import new_import
 
 BACKGROUNDS = {"white": (255, 255, 255), "black": (0, 0, 0)}
@@ -249,27 +248,25 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
         f = focal_from_fov(angle, width)
         return CameraIntrinsics(intrinsics_matrix(f, f, width / 2.0, height / 2.0), width, height)
 
-    meta = SceneMeta(
-        source="import",
-        object=src.resolve().name,
-        extra={
-            "importer": "blender",
-            "source_path": str(src.resolve()),
-            "background_rgb": list(background_rgb),
-            "test_split_file": f"transforms_{test_split}.json",
-            "scale": scale,
-        },
-    )
     test_index, _, test_frames = splits[1][1:]
     first_test = _image_path(src, str(test_frames[0].get("file_path", "")))
     with_depth = disparity_path(first_test).is_file()  # Shiny Blender: every view has its disparity map
-    if with_depth:
-        meta.extra["ground_truth"] = "disparity maps (*_disp.tiff): test views' depth, train views' points"
+    ground_truth = "disparity maps (*_disp.tiff): test views' depth, train views' points"
     rng = np.random.default_rng(0)  # the ground-truth points' pixels
     gt_points = []
     total = sum(len(frames) for *_, frames in splits)
     with (
-        new_import(out, intrinsics_for(splits[0][2]), meta) as writer,
+        new_import(
+            out,
+            intrinsics_for(splits[0][2]),
+            "blender",
+            src,
+            None,
+            background_rgb=list(background_rgb),
+            test_split_file=f"transforms_{test_split}.json",
+            scale=scale,
+            **({"ground_truth": ground_truth} if with_depth else {}),
+        ) as writer,
         progress_bar(total=total, desc=f"import {src.name}", unit="frame") as progress,
     ):
         for split, index, angle, frames in splits:

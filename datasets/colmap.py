@@ -37,7 +37,7 @@ from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_options, composite, hold_out, read_rgba
-from .records import SceneMeta, camera_problem
+from .records import camera_problem
 from .writer import new_import
 
 log = logging.getLogger(__name__)
@@ -587,20 +587,18 @@ def import_colmap(
             "--images must be the folder the NAMEs are relative to"
         )
     splits = hold_out(len(images), test_every, model_dir, "images", "images")
-    meta = SceneMeta(
-        source="import",
-        object=object_name or _dataset_name(model_dir),
-        extra={
-            "importer": "colmap",
-            "source_path": str(model_dir.resolve()),
-            "images_path": str(images_dir.resolve()),
-            "scale": scale,
-            "test_every": test_every,
-            "num_points3D": len(model.points),
-            "colmap_names": [img.name for img in images],
-        },
-    )
-    with new_import(out, intrinsics[images[0].camera_id], meta) as writer:
+    with new_import(
+        out,
+        intrinsics[images[0].camera_id],
+        "colmap",
+        model_dir,
+        object_name or _dataset_name(model_dir),
+        images_path=str(images_dir.resolve()),
+        scale=scale,
+        test_every=test_every,
+        num_points3D=len(model.points),
+        colmap_names=[img.name for img in images],
+    ) as writer:
         for img, split in progress_bar(list(zip(images, splits)), desc=f"import {model_dir}", unit="frame"):
             intr = intrinsics[img.camera_id]
             image_path = images_dir / img.name

@@ -56,7 +56,7 @@ from .blender import (
     read_raw,
     read_rgba,
 )
-from .records import SceneMeta, as_size, camera_problem, is_finite_number
+from .records import as_size, camera_problem, is_finite_number
 from .writer import new_import
 
 log = logging.getLogger(__name__)
@@ -435,24 +435,25 @@ def import_nerfstudio(
         log.warning(
             "%s: not imported (training reads neither depth maps nor point clouds): %s", index, ", ".join(not_imported)
         )
-    extra = {
-        "importer": "nerfstudio",
-        "source_path": str(index.resolve()),
-        "scale": scale,
-        "nerfstudio_names": [f.raw["file_path"] for f in frames],
-        "split": selection.pop("split"),
-    }
+    split = selection.pop("split")
     optional = {
         **selection,
         "not_imported": not_imported,
         "applied_scale": data.get("applied_scale"),
         "applied_transform": None if applied is None else applied[:3].tolist(),
     }
-    extra.update({key: value for key, value in optional.items() if value})
-    meta = SceneMeta(source="import", object=object_name or index.parent.resolve().name, extra=extra)
-
     tables = {camera: undistortion(camera) for camera in set(cameras)}
-    with new_import(out, tables[cameras[0]][0], meta) as writer:
+    with new_import(
+        out,
+        tables[cameras[0]][0],
+        "nerfstudio",
+        index,
+        object_name or index.parent.resolve().name,
+        scale=scale,
+        nerfstudio_names=[f.raw["file_path"] for f in frames],
+        split=split,
+        **{key: value for key, value in optional.items() if value},
+    ) as writer:
         for f, camera, pose in progress_bar(
             list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}", unit="frame"
         ):

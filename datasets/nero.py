@@ -43,7 +43,6 @@ from tacsplat.types import CameraIntrinsics
 
 from .blender import check_options, composite, read_raw, read_rgba
 from .reader import _Problems, load_points_ply
-from .records import SceneMeta
 from .writer import new_import
 
 SPLIT_FILE = "synthetic_split_128.pkl"
@@ -173,21 +172,19 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     first_image = src / f"{train[0]}.png"
     height, width = read_rgba(first_image).shape[:2]
     eval_points = src / "eval_pts.ply"
-    meta = SceneMeta(
-        source="import",
-        object=src.resolve().name,
-        extra={
-            "importer": "nero",
-            "source_path": str(src.resolve()),
-            "split_file": str(split_path.resolve()),
-            "background_rgb": list(background_rgb),
-            "scale": scale,
-            "ground_truth": "eval_pts.ply" if eval_points.is_file() else f"test views' depth, {EVAL_VOXEL} voxels",
-        },
-    )
     fallback_points = []
     with (
-        new_import(out, CameraIntrinsics(cameras[train[0]][1], width, height), meta) as writer,
+        new_import(
+            out,
+            CameraIntrinsics(cameras[train[0]][1], width, height),
+            "nero",
+            src,
+            None,
+            split_file=str(split_path.resolve()),
+            background_rgb=list(background_rgb),
+            scale=scale,
+            ground_truth="eval_pts.ply" if eval_points.is_file() else f"test views' depth, {EVAL_VOXEL} voxels",
+        ) as writer,
         progress_bar(total=len(train) + len(test), desc=f"import {src.name}", unit="view") as progress,
     ):
         for split_name, views in (("train", train), ("test", test)):

@@ -148,10 +148,13 @@ def removed_on_failure(out: Path):
 
 
 @contextmanager
-def new_import(out: Path, intrinsics: CameraIntrinsics, meta: SceneMeta):
+def new_import(out: Path, intrinsics: CameraIntrinsics, importer: str, source: Path, name: str | None, **extra):
     """The writer of an importer's scene ``out``: a new or empty folder, claimed as the ``--out`` of a writing
-    command (``datasets.outputs``) and removed again when the import fails."""
+    command (``datasets.outputs``) and removed again when the import fails. Its provenance: the object ``name``
+    (default: the ``source`` path's last part), ``importer``, ``source``'s absolute path, then ``extra``."""
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
+    source = Path(source).resolve()
+    meta = SceneMeta("import", name or source.name, extra={"importer": importer, "source_path": str(source), **extra})
     with claim_output_dir(out), removed_on_failure(out), SceneWriter.create(out, intrinsics, meta) as writer:
         yield writer
 
