@@ -145,7 +145,14 @@ def _same(a, b) -> bool:
 
 
 class _ByValue:
-    """Equality of frozen dataclass records field by field (:func:`_same`); unhashable, as their arrays are."""
+    """Equality of frozen dataclass records field by field (:func:`_same`); unhashable, as their arrays are. Their
+    poses (``T_world_*`` fields) are checked and frozen."""
+
+    def __post_init__(self):
+        for f in fields(self):
+            if f.name.startswith("T_world_"):
+                name = f"{type(self).__name__.lower()} {self.id} {f.name}"
+                object.__setattr__(self, f.name, _frozen_pose(getattr(self, f.name), name))
 
     def __eq__(self, other) -> bool:
         if type(other) is not type(self):
@@ -167,9 +174,6 @@ class Frame(_ByValue):
     intrinsics: CameraIntrinsics
     mask_path: str | None = None  # greyscale PNG, 255 = use the pixel, 0 = ignore it
 
-    def __post_init__(self):
-        object.__setattr__(self, "T_world_cam", _frozen_pose(self.T_world_cam, f"frame {self.id} T_world_cam"))
-
 
 @dataclass(frozen=True, eq=False)
 class Touch(_ByValue):
@@ -182,9 +186,6 @@ class Touch(_ByValue):
     T_world_sensor: np.ndarray  # [4, 4] float64
     in_contact: bool
     hand_file: str | None = None  # the grasp's HandMotion (scenes of a hand capture; None: not recorded)
-
-    def __post_init__(self):
-        object.__setattr__(self, "T_world_sensor", _frozen_pose(self.T_world_sensor, f"touch {self.id} T_world_sensor"))
 
 
 # HandMotion.phase: where the hand was, closing, opening, sliding its pads along the surface in contact
