@@ -92,6 +92,10 @@ class _Model:
     def file(self, name: str) -> str:
         return name + self.suffix
 
+    def lacks(self, record: _Record, what: str, name: str) -> SceneFormatError:
+        """The error of ``record`` whose ``what`` ("image 3 names camera 7") is not in file ``name``."""
+        return record.error(f"{what}, which {self.file(name)} does not hold")
+
 
 def _num_params(model: str) -> int | None:
     """How many parameters a COLMAP camera model takes; None for a name COLMAP does not know."""
@@ -411,9 +415,7 @@ def _check_model(model: _Model) -> dict[int, np.ndarray]:
     names = {}
     for image in model.images:
         if image.camera_id not in cameras:
-            raise image.error(
-                f"image {image.image_id} names camera {image.camera_id}, which {model.file('cameras')} does not hold"
-            )
+            raise model.lacks(image, f"image {image.image_id} names camera {image.camera_id}", "cameras")
         _check_pose(image, image.pose, f"image {image.image_id}'s pose")
         other = names.setdefault(image.name, image)
         if other is not image:
@@ -425,28 +427,21 @@ def _check_model(model: _Model) -> dict[int, np.ndarray]:
     refs, owner = _joined([image.point3D_ids for image in model.images])
     if (k := _first_bad((refs != -1) & ~np.isin(refs, np.array(list(points), np.int64)))) is not None:
         image, line = model.images[owner[k]], " (on the next line)" if model.suffix == ".txt" else ""
-        raise image.error(
-            f"POINTS2D[{k - np.searchsorted(owner, owner[k])}] of image {image.image_id}{line} names "
-            f"3D point {refs[k]}, which {model.file('points3D')} does not hold"
-        )
-    k = _first_bad(~np.isfinite(np.array([point.xyz for point in model.points]).reshape(-1, 3)).all(axis=1))
-    if k is not None:
-        raise model.points[k].error(
-            f"point {model.points[k].point3D_id}: X Y Z {model.points[k].xyz.tolist()} is not finite"
-        )
+        i = k - np.searchsorted(owner, owner[k])
+        raise model.lacks(image, f"POINTS2D[{i}] of image {image.image_id}{line} names 3D point {refs[k]}", "points3D")
+    if (k := _first_bad(~np.isfinite([point.xyz for point in model.points]).reshape(-1, 3).all(axis=1))) is not None:
+        point = model.points[k]
+        raise point.error(f"point {point.point3D_id}: X Y Z {point.xyz.tolist()} is not finite")
     track, owner = _joined([point.track for point in model.points])
     image_ids = np.array(sorted(images), np.int64)
     at = np.clip(np.searchsorted(image_ids, track[:, 0]), 0, max(len(image_ids) - 1, 0))
     known = image_ids[at] == track[:, 0] if len(image_ids) else np.zeros(len(track), bool)
     counts = np.array([images[i].point3D_ids.size for i in image_ids], np.int64)
-    for k, what in ((_first_bad(~known), "image"), (_first_bad(known & (track[:, 1] >= counts[at])), "idx")):
-        if k is None:
-            continue
+    if (k := _first_bad(~known)) is not None:
+        point = model.points[owner[k]]
+        raise model.lacks(point, f"the track of point {point.point3D_id} names image {track[k, 0]}", "images")
+    if (k := _first_bad(known & (track[:, 1] >= counts[at]))) is not None:
         point, (iid, idx) = model.points[owner[k]], track[k]
-        if what == "image":
-            raise point.error(
-                f"the track of point {point.point3D_id} names image {iid}, which {model.file('images')} does not hold"
-            )
         raise point.error(
             f"the track of point {point.point3D_id} names POINT2D_IDX {idx} of image {iid}, "
             f"which has {counts[at[k]]} 2D points ({images[iid].where} of {model.file('images')})"
@@ -463,18 +458,14 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
     for rig in model.rigs:
         for (kind, sensor_id), pose in rig.sensors.items():
             if kind == "CAMERA" and sensor_id not in cameras:
-                raise rig.error(
-                    f"rig {rig.rig_id} holds camera {sensor_id}, which {model.file('cameras')} does not hold"
-                )
+                raise model.lacks(rig, f"rig {rig.rig_id} holds camera {sensor_id}", "cameras")
             if pose is not None:
                 _check_pose(rig, pose, f"rig {rig.rig_id}'s sensor_from_rig of {kind} {sensor_id}")
     frame_of = {}
     for frame in _by_id(model.frames, "frame_id", "frame").values():
         rig = rigs.get(frame.rig_id)
         if rig is None:
-            raise frame.error(
-                f"frame {frame.frame_id} names rig {frame.rig_id}, which {model.file('rigs')} does not hold"
-            )
+            raise model.lacks(frame, f"frame {frame.frame_id} names rig {frame.rig_id}", "rigs")
         _check_pose(frame, frame.pose, f"frame {frame.frame_id}'s rig_from_world")
         for kind, sensor_id, data_id in frame.data_ids:
             if (kind, sensor_id) not in rig.sensors:
@@ -485,9 +476,7 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
                 continue
             image = images.get(data_id)
             if image is None:
-                raise frame.error(
-                    f"frame {frame.frame_id} holds image {data_id}, which {model.file('images')} does not hold"
-                )
+                raise model.lacks(frame, f"frame {frame.frame_id} holds image {data_id}", "images")
             if image.camera_id != sensor_id:
                 raise frame.error(
                     f"frame {frame.frame_id} holds image {data_id} as camera {sensor_id}, but the "
