@@ -101,22 +101,26 @@ def check_readable(path: Path, field: str | None = None, what: str = "image") ->
         )
 
 
-def read_raw(path: Path, field: str | None = None, what: str = "image") -> np.ndarray:
-    """An image file as OpenCV reads it (BGR(A) or grey, any depth); errors as :func:`check_readable`'s."""
+def read_raw(
+    path: Path, field: str | None = None, what: str = "image", size: tuple[int, int] | None = None, of: str = ""
+) -> np.ndarray:
+    """An image file as OpenCV reads it (BGR(A) or grey, any depth); errors as :func:`check_readable`'s, and one
+    unless the image is ``size`` (w, h) pixels, the size ``of`` (its camera, the first image) has."""
     check_readable(path, field, what)
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise SceneFormatError(path, field, f"unreadable {what} (damaged or truncated?)")
+    if size is not None and raw.shape[1::-1] != tuple(size):
+        raise SceneFormatError(path, field, f"{what} is {raw.shape[1]}x{raw.shape[0]}, but {of} is {size[0]}x{size[1]}")
     return raw
 
 
-def read_rgba(path: Path, field: str | None = None, size: tuple[int, int] | None = None, of: str = "") -> np.ndarray:
-    """An image file as float RGB(A) in [0, 1], [H, W, 3 or 4] (8- or 16-bit, grey or colour); errors name the
-    file and ``field`` (:func:`check_readable`), and one is raised unless the image is ``size`` (w, h) pixels, the
-    size ``of`` (its camera, the first image) has."""
-    raw = read_raw(path, field)
-    if size is not None and raw.shape[1::-1] != tuple(size):
-        raise SceneFormatError(path, field, f"image is {raw.shape[1]}x{raw.shape[0]}, but {of} is {size[0]}x{size[1]}")
+def read_rgba(
+    path: Path, field: str | None = None, size: tuple[int, int] | None = None, of: str = "", what: str = "image"
+) -> np.ndarray:
+    """An image file as float RGB(A) in [0, 1], [H, W, 3 or 4] (8- or 16-bit, grey or colour); errors as
+    :func:`read_raw`'s."""
+    raw = read_raw(path, field, what, size, of)
     scale = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else 1.0
     img = raw.astype(np.float64) / scale
     if img.ndim == 2:
@@ -153,13 +157,9 @@ def disparity_path(image_path: Path) -> Path:
 def read_disparity_depth(path: Path, shape: tuple[int, int], field: str | None = None) -> np.ndarray:
     """The z-depth [H, W] (dataset units, float64; 0 on the background) of a Shiny Blender disparity TIFF (module
     docstring); a SceneFormatError naming the file unless it is a 16-bit map of ``shape``."""
-    raw = read_raw(path, field, "disparity map")
+    raw = read_raw(path, field, "disparity map", shape[::-1], "its image")
     if raw.dtype != np.uint16:
         raise SceneFormatError(path, field, f"expected a 16-bit disparity map, got {raw.dtype}")
-    if raw.shape[:2] != shape:
-        raise SceneFormatError(
-            path, field, f"disparity map is {raw.shape[1]}x{raw.shape[0]}, but its image is {shape[1]}x{shape[0]}"
-        )
     disparity = (raw if raw.ndim == 2 else raw[:, :, 0]).astype(np.float64) / 65535.0
     with np.errstate(divide="ignore"):
         return np.where(disparity > 0, 1.0 / disparity - 1.0, 0.0)
@@ -168,12 +168,7 @@ def read_disparity_depth(path: Path, shape: tuple[int, int], field: str | None =
 def read_normal_map(path: Path, depth: np.ndarray, field: str | None = None) -> np.ndarray:
     """Shiny Blender's world-frame unit normals [H, W, 3] float32 of ``r_N_normal.png`` (module docstring), 0 where
     ``depth`` has no surface."""
-    rgb = read_rgba(path, field)[:, :, :3]  # [0, 1]
-    if rgb.shape[:2] != depth.shape:
-        raise SceneFormatError(
-            path, field, f"normal map is {rgb.shape[1]}x{rgb.shape[0]}, its depth {depth.shape[::-1]}"
-        )
-    normal = rgb * 2.0 - 1.0
+    normal = read_rgba(path, field, depth.shape[::-1], "its depth", "normal map")[:, :, :3] * 2.0 - 1.0
     length = np.linalg.norm(normal, axis=-1, keepdims=True)
     keep = (depth > 0)[..., None] & (length > 0.5)  # (a quantised unit vector is within 1 % of unit length)
     return np.where(keep, normal / np.maximum(length, 1e-12), 0.0).astype(np.float32)

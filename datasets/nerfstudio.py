@@ -311,14 +311,8 @@ def _applied_transform(data: dict, index: Path) -> tuple[np.ndarray | None, floa
 
 def _read_mask(path: Path, camera: Camera, frame: _SourceFrame) -> np.ndarray:
     """A mask file as uint8 0/255 [H, W] (any non-zero channel means: use the pixel)."""
-    raw = read_raw(path, f"{frame.field}.mask_path", "mask")
+    raw = read_raw(path, f"{frame.field}.mask_path", "mask", (camera.width, camera.height), "the image")
     keep = raw != 0 if raw.ndim == 2 else (raw != 0).any(axis=2)
-    if keep.shape != (camera.height, camera.width):
-        raise SceneFormatError(
-            path,
-            f"{frame.field}.mask_path",
-            f"mask is {keep.shape[1]}x{keep.shape[0]} but the image is {camera.width}x{camera.height}",
-        )
     return np.where(keep, 255, 0).astype(np.uint8)
 
 

@@ -99,13 +99,9 @@ def read_camera(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def read_depth(path: Path, shape: tuple[int, int]) -> np.ndarray:
     """Z-depth [H, W] in dataset units of an ``N-depth.png``, 0 on the background (:data:`BACKGROUND_DEPTH`)."""
-    raw = read_raw(path, None, "depth map")
+    raw = read_raw(path, None, "depth map", shape[::-1], "its image")
     if raw.dtype != np.uint16 or raw.ndim != 2:
         raise SceneFormatError(path, None, f"expected a 16-bit grey depth map, got {raw.dtype} {raw.shape}")
-    if raw.shape != shape:
-        raise SceneFormatError(
-            path, None, f"depth map is {raw.shape[1]}x{raw.shape[0]}, its image {shape[1]}x{shape[0]}"
-        )
     depth = raw.astype(np.float64) / 65535.0 * DEPTH_RANGE
     return np.where(depth < BACKGROUND_DEPTH, depth, 0.0)
 
