@@ -235,16 +235,14 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     splits = [("train", *_read_split(src, "train")), ("test", *_read_split(src, test_split))]
 
     # The image size comes from the first image; every split shares it.
-    first_index, _, first_frames = splits[0][1:]
-    first_image = _image_path(src, str(first_frames[0].get("file_path", "")))
-    height, width = read_rgba(first_image, f"{first_index.name} frames[0]").shape[:2]
+    first_image = _image_path(src, str(splits[0][3][0].get("file_path", "")))
+    height, width = read_rgba(first_image, f"{splits[0][1].name} frames[0]").shape[:2]
 
     def intrinsics_for(angle: float) -> CameraIntrinsics:
         f = focal_from_fov(angle, width)
         return CameraIntrinsics(intrinsics_matrix(f, f, width / 2.0, height / 2.0), width, height)
 
-    test_index, _, test_frames = splits[1][1:]
-    first_test = _image_path(src, str(test_frames[0].get("file_path", "")))
+    first_test = _image_path(src, str(splits[1][3][0].get("file_path", "")))
     with_depth = disparity_path(first_test).is_file()  # Shiny Blender: every view has its disparity map
     ground_truth = "disparity maps (*_disp.tiff): test views' depth, train views' points"
     rng = np.random.default_rng(0)  # the ground-truth points' pixels
@@ -274,24 +272,16 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                 rgba = read_rgba(image_path, f"{index.name} {field}", (width, height), first_image.name)
                 pose = pose_from_opengl(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
                 pose[:3, 3] *= scale
-                depth = None
+                gt_depth = gt_normal = None
                 if with_depth:
                     depth = scale * read_disparity_depth(disparity_path(image_path), (height, width), field)
                     if split == "train":
                         gt_points.append(_sample_points(depth, intr.K, pose, GT_MAX_DISTANCE * scale, rng))
-                gt_depth = gt_normal = None
-                if depth is not None and split == "test":
-                    gt_depth = depth.astype(np.float32)
-                    normal_path = image_path.with_name(image_path.stem + "_normal.png")
-                    gt_normal = read_normal_map(normal_path, depth, field) if normal_path.is_file() else None
-                writer.add_frame(
-                    composite(rgba, background_rgb),
-                    pose,
-                    split=split,
-                    gt_depth=gt_depth,
-                    intrinsics=intr,
-                    gt_normal=gt_normal,
-                )
+                    else:
+                        gt_depth = depth.astype(np.float32)
+                        normal_path = image_path.with_name(image_path.stem + "_normal.png")
+                        gt_normal = read_normal_map(normal_path, depth, field) if normal_path.is_file() else None
+                writer.add_frame(composite(rgba, background_rgb), pose, split, gt_depth, intr, gt_normal=gt_normal)
                 progress.update()
         if gt_points and sum(map(len, gt_points)):
             writer.set_gt_points(np.concatenate(gt_points))

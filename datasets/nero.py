@@ -185,16 +185,16 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     ):
         for split_name, views in (("train", train), ("test", test)):
             for name in views:
-                pose, K = cameras[name]
-                image_path = src / f"{name}.png"
-                rgba = read_rgba(image_path, None, (width, height), first_image.name)
+                unit_pose, K = cameras[name]
+                rgb = read_rgba(src / f"{name}.png", None, (width, height), first_image.name)[:, :, :3]
                 depth = read_depth(src / f"{name}-depth.png", (height, width))
-                rgba = np.concatenate([rgba[:, :, :3], (depth > 0)[:, :, None].astype(np.float64)], axis=2)
-                unit_pose, pose = pose, pose.copy()
+                pose = unit_pose.copy()
                 pose[:3, 3] *= scale
-                intrinsics = CameraIntrinsics(K, width, height)
                 gt_depth = (scale * depth).astype(np.float32) if split_name == "test" else None
-                writer.add_frame(composite(rgba, background_rgb), pose, split_name, gt_depth, intrinsics)
+                rgba = np.concatenate([rgb, (depth > 0)[:, :, None].astype(np.float64)], axis=2)
+                writer.add_frame(
+                    composite(rgba, background_rgb), pose, split_name, gt_depth, CameraIntrinsics(K, width, height)
+                )
                 if split_name == "test" and not eval_points.is_file():
                     fallback_points.append(unproject_depth(depth, K, unit_pose))
                 progress.update()
