@@ -300,33 +300,27 @@ class SceneWriter:
 
     @classmethod
     def _replay(cls, path: Path, entries: list[dict]) -> "SceneWriter":
-        journal_path = path / JOURNAL
-        header = entries[0]
-        if header.get("op") != "create":
-            raise SceneFormatError(journal_path, "line 1", f"expected the 'create' header, got op {header.get('op')!r}")
-        try:
-            writer = cls(path, header)
-        except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
-            raise SceneFormatError(journal_path, "line 1", f"invalid header: {exc}") from exc
-        for lineno, entry in enumerate(entries[1:], start=2):
+        writer = None
+        for lineno, entry in enumerate(entries, start=1):
             try:
-                writer._apply(entry)
+                if writer is not None:
+                    writer._apply(entry)
+                elif entry.get("op") != "create":
+                    raise ValueError("the journal must start with the 'create' header")
+                else:
+                    writer = cls(path, entry)
             except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
-                raise SceneFormatError(
-                    journal_path, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}"
-                ) from exc
+                error = SceneFormatError(path / JOURNAL, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}")
+                raise error from exc
         return writer
 
     def _remove_leftovers(self) -> int:
         """Delete temporary files and record files no journal record refers to (a crash's in-flight record,
         an undo cut short); returns how many."""
         live = (
-            {f.file_path for f in self.frames}
-            | {f.mask_path for f in self.frames}
-            | {t.depth_file for t in self.touches}
-            | {t.hand_file for t in self.touches}
-            | set(self.gt_depth_files.values())
+            {f.file_path for f in self.frames} | {f.mask_path for f in self.frames} | set(self.gt_depth_files.values())
         )
+        live |= {t.depth_file for t in self.touches} | {t.hand_file for t in self.touches}
         count = 0
         for sub in ("", "images", "masks", "touches", "grasps", "gt", "gt/depth"):
             if not (self.path / sub).is_dir():
