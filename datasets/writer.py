@@ -382,14 +382,18 @@ class SceneWriter:
         else:
             raise ValueError(f"unknown op {op!r}")
 
-    def _record(self, entry: dict, *index: str) -> None:
-        """Journal ``entry`` durably, apply it, then rewrite the affected index files."""
+    def _record(self, entry: dict) -> None:
+        """Journal ``entry`` durably, apply it, then rewrite the index files it changes: that of its kind of record
+        (scene.json for the ground truth and annotations), and scene.json when it adds or removes a frame's
+        ground-truth depth."""
         if self._journal is None:
             raise InvalidInputError(f"SceneWriter for {self.path} is closed")
+        kind = entry.get("kind", entry["op"])
+        gt = entry.get("gt_depth") or (kind == "frame" and entry.get("id") in self.gt_depth_files)
         entry = {**entry, "t": time.time()}
         self._append(entry)
         self._apply(entry)
-        self._materialise(*index)
+        self._materialise({"frame": "transforms", "touch": "touches"}.get(kind, "scene"), *(["scene"] if gt else []))
 
     def _append(self, entry: dict) -> None:
         """Append ``entry`` to the journal as one line, durably (fsync). When the write fails (a full disk) the
@@ -469,30 +473,27 @@ class SceneWriter:
         every frame or on none (as nerfstudio reads them).
         """
         intr = _check_intrinsics(self.intrinsics if intrinsics is None else intrinsics)
-        image = np.asarray(image)
-        if image.dtype != np.uint8:
-            raise InvalidInputError(f"image: expected uint8 RGB, got dtype {image.dtype}")
-        if image.shape != (intr.height, intr.width, 3):
+        h, w, image = intr.height, intr.width, np.asarray(image)
+        if image.dtype != np.uint8 or image.shape != (h, w, 3):
             raise InvalidInputError(
-                f"image: expected shape {(intr.height, intr.width, 3)} from the intrinsics, got {image.shape}"
+                f"image: expected uint8 RGB {(h, w, 3)} (the intrinsics'), got {image.dtype} {image.shape}"
             )
         pose = check_pose(T_world_cam, "T_world_cam")
         if split not in SPLITS:
             raise InvalidInputError(f"split: expected one of {SPLITS}, got {split!r}")
         if gt_depth is not None:
-            gt_depth = _check_depth(gt_depth, (intr.height, intr.width), "gt_depth", GT_DEPTH_LIMIT)
+            gt_depth = _check_depth(gt_depth, (h, w), "gt_depth", GT_DEPTH_LIMIT)
         if gt_normal is not None:
             if gt_depth is None:
                 raise InvalidInputError("gt_normal: needs gt_depth (both are the ground truth of one view)")
             gt_normal = np.asarray(gt_normal, dtype=np.float32)
-            if problem := normal_map_problem(gt_normal, (intr.height, intr.width)):
+            if problem := normal_map_problem(gt_normal, (h, w)):
                 raise InvalidInputError(f"gt_normal: {problem}")
         if mask is not None:
             mask = np.asarray(mask)
-            if mask.dtype != np.bool_ or mask.shape != (intr.height, intr.width):
+            if mask.dtype != np.bool_ or mask.shape != (h, w):
                 raise InvalidInputError(
-                    f"mask: expected bool {(intr.height, intr.width)} from the intrinsics, got "
-                    f"{mask.dtype} {mask.shape}"
+                    f"mask: expected bool {(h, w)} (the intrinsics'), got {mask.dtype} {mask.shape}"
                 )
         if self.frames and (self.frames[0].mask_path is None) != (mask is None):
             raise InvalidInputError(
@@ -506,16 +507,11 @@ class SceneWriter:
         if mask_path is not None:
             (self.path / "masks").mkdir(exist_ok=True)
             atomic_write_bytes(self.path / mask_path, encode_png(np.where(mask, 255, 0).astype(np.uint8)))
-        gt_file = None
-        if gt_depth is not None:
-            gt_file = f"gt/depth/{fid:06d}.npz"
+        gt_file = None if gt_depth is None else f"gt/depth/{fid:06d}.npz"
+        if gt_file is not None:
             normal = {} if gt_normal is None else {"normal": gt_normal}
             atomic_write_bytes(self.path / gt_file, encode_npz(depth=gt_depth, **normal))
-        self._record(
-            {"op": "frame", "frame": frame_to_json(frame), "gt_depth": gt_file},
-            "transforms",
-            *(["scene"] if gt_file else []),
-        )
+        self._record({"op": "frame", "frame": frame_to_json(frame), "gt_depth": gt_file})
         return frame
 
     def add_hand_motion(self, motion: HandMotion) -> str:
@@ -551,7 +547,7 @@ class SceneWriter:
         if hand_file is not None and not (self.path / hand_file).is_file():
             raise InvalidInputError(f"hand_file: {self.path / hand_file} does not exist (write it by add_hand_motion)")
         atomic_write_bytes(self.path / touch.depth_file, encode_npz(depth=depth))
-        self._record({"op": "touch", "touch": touch_to_json(touch)}, "touches")
+        self._record({"op": "touch", "touch": touch_to_json(touch)})
         return touch
 
     def add_reading(self, reading: TactileReading, grasp: int, finger: str, hand_file: str | None = None) -> Touch:
@@ -584,7 +580,7 @@ class SceneWriter:
             raise InvalidInputError(f"mesh: expected a path or trimesh.Trimesh, got {type(mesh).__name__}")
         rel = "gt/mesh.ply"
         atomic_write_bytes(self.path / rel, data)
-        self._record({"op": "gt_mesh", "path": rel}, "scene")
+        self._record({"op": "gt_mesh", "path": rel})
         return self.path / rel
 
     def set_gt_points(self, points: np.ndarray) -> Path:
@@ -599,7 +595,7 @@ class SceneWriter:
             raise InvalidInputError("points: contain NaN or infinite values")
         rel = "gt/points.ply"
         atomic_write_bytes(self.path / rel, trimesh.PointCloud(points).export(file_type="ply"))
-        self._record({"op": "gt_points", "path": rel}, "scene")
+        self._record({"op": "gt_points", "path": rel})
         return self.path / rel
 
     def annotate(self, key: str, value) -> None:
@@ -617,7 +613,7 @@ class SceneWriter:
                 f"annotation {key!r}: expected plain JSON data; it would read back changed "
                 "(a tuple, or a dict key that is not a string?)"
             )
-        self._record({"op": "annotation", "key": key, "value": plain}, "scene")
+        self._record({"op": "annotation", "key": key, "value": plain})
 
     def remove_last(self) -> Frame | Touch:
         """Undo the most recent frame or touch (the operator's undo); its id is reused next."""
@@ -626,11 +622,7 @@ class SceneWriter:
         kind, rid = self._order[-1]
         record = self.frames[-1] if kind == "frame" else self.touches[-1]
         gt_file = self.gt_depth_files.get(rid) if kind == "frame" else None
-        self._record(
-            {"op": "remove", "kind": kind, "id": rid},
-            "transforms" if kind == "frame" else "touches",
-            *(["scene"] if gt_file else []),
-        )
+        self._record({"op": "remove", "kind": kind, "id": rid})
         files = [record.file_path, record.mask_path, gt_file] if kind == "frame" else [record.depth_file]
         if kind == "touch" and record.hand_file and all(t.hand_file != record.hand_file for t in self.touches):
             files.append(record.hand_file)  # its grasp's last touch
