@@ -529,7 +529,7 @@ def camera_intrinsics(camera: _Record) -> CameraIntrinsics:
             "undistort the images first (colmap image_undistorter)"
         )
     focal = camera.params[list(layout.focal_length_idxs())].tolist()
-    fx, fy = focal[0], focal[-1]
+    fx, fy = focal[0], focal[-1]  # (one focal length, or x and y)
     cx, cy = camera.params[list(layout.principal_point_idxs())].tolist()
     if problem := camera_problem(fx, fy, cx, cy, camera.width, camera.height):
         raise camera.error(f"{what}: {PARAMETER_NAMES[problem[0]]}: {problem[1]}")
@@ -557,8 +557,7 @@ def import_colmap(
     check_options(scale, test_every)
     model = _read_model(model_dir)
     poses = _check_model(model)
-    unposed = len(model.images) - len(poses)
-    if unposed:
+    if unposed := len(model.images) - len(poses):
         log.warning(
             "%s: %d images have no pose (their camera's pose in the rig is unknown) and are left out",
             model_dir,
@@ -590,11 +589,10 @@ def import_colmap(
     ) as writer:
         for img, split in progress_bar(list(zip(images, splits)), desc=f"import {model_dir}", unit="frame"):
             intr = intrinsics[img.camera_id]
-            image_path = images_dir / img.name
-            size = (intr.width, intr.height)
-            rgba = read_rgba(image_path, f"image {img.image_id}", size, f"camera {img.camera_id}")
-            rgb = composite(rgba[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped
+            size, camera = (intr.width, intr.height), f"camera {img.camera_id}"
+            rgba = read_rgba(images_dir / img.name, f"image {img.image_id}", size, camera)
             T_world_cam = invert_pose(poses[img.image_id])
             T_world_cam[:3, 3] *= scale
-            writer.add_frame(rgb, T_world_cam, split=split, intrinsics=intr)
+            # an alpha channel, if any, is dropped
+            writer.add_frame(composite(rgba[:, :, :3], (0, 0, 0)), T_world_cam, split=split, intrinsics=intr)
     return out

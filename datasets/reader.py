@@ -152,21 +152,25 @@ def load_depth_npz(
 ) -> np.ndarray:
     """Load and check a float32 depth map saved by the writer (key ``depth``); ``limit`` is (deepest value in
     metres, why) as :func:`depth_problem` takes it."""
-    if not path.is_file():
-        problems.report(path, None, "depth file missing")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            names = list(npz.files)
-            depth = npz["depth"] if "depth" in names else None
-    except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
-        problems.report(path, field, f"truncated or corrupt npz: {_first_line(exc)}")
+    depth = _npz_array(path, "depth", problems, field)
     if depth is None:
-        problems.report(path, field, f"no 'depth' array (has {names})")
+        problems.report(path, field, "no 'depth' array")
     if depth.shape != shape:
         problems.report(path, field, f"shape {depth.shape} does not match the expected {shape}")
     if problem := depth_problem(depth, *limit):
         problems.report(path, field, problem)
     return depth.astype(np.float32, copy=False)
+
+
+def _npz_array(path: Path, key: str, problems: _Problems, field: str) -> np.ndarray | None:
+    """Array ``key`` of an npz file the writer saved, None when it has none."""
+    if not path.is_file():
+        problems.report(path, None, "depth file missing")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return npz[key] if key in npz.files else None
+    except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
+        problems.report(path, field, f"truncated or corrupt npz: {_first_line(exc)}")
 
 
 def load_points_ply(path: Path, problems: _Problems, field: str) -> np.ndarray:
@@ -374,16 +378,11 @@ class Scene:
         rel = self.gt_depth_files.get(frame.id)
         if rel is None:
             return None
-        path = self.path / rel
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                normal = npz["normal"] if "normal" in npz.files else None
-        except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
-            raise SceneFormatError(path, "normal", f"truncated or corrupt npz: {_first_line(exc)}") from None
+        normal = _npz_array(self.path / rel, "normal", _Problems(collect=False), "normal")
         if normal is not None and (
             problem := normal_map_problem(normal, (frame.intrinsics.height, frame.intrinsics.width))
         ):
-            raise SceneFormatError(path, "normal", problem)
+            raise SceneFormatError(self.path / rel, "normal", problem)
         return normal
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
