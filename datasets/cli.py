@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -132,16 +131,16 @@ _PARAMETERS = {"background": "background_rgb", "images": "images_dir", "object":
 def _import(o) -> int:
     """Run the importer of ``o``'s command (``import_<kind>`` of module ``<kind>``), then inspect the scene; an
     option value it refuses is a UsageError (exit 2) naming the option."""
+    from . import blender, colmap, nerfstudio, nero  # (here, not above: reading a scene loads none of them)
     from .inspect import run_inspect
 
     kind = type(o).__name__.removeprefix("Import").lower()
-    importer = getattr(importlib.import_module(f"{__package__}.{kind}"), f"import_{kind}")
+    module = {"blender": blender, "nero": nero, "colmap": colmap, "nerfstudio": nerfstudio}[kind]
+    importer = getattr(module, f"import_{kind}")
     options = {_PARAMETERS.get(key, key): value for key, value in vars(o).items()}
     if "background_rgb" in options:
-        from .blender import parse_background
-
         try:
-            options["background_rgb"] = parse_background(o.background)
+            options["background_rgb"] = blender.parse_background(o.background)
         except ValueError as exc:
             raise UsageError("--background", str(exc)) from None
     try:
