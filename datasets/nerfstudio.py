@@ -351,10 +351,8 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
             "train_filenames",
             f"no train frame to import: none of the {len(frames)} frames to import is in train_filenames",
         )
-    in_file_order = sorted(frames, key=lambda f: f.position)
-    first = in_file_order[0]
-    odd = next((f for f in in_file_order if ("mask_path" in f.raw) != ("mask_path" in first.raw)), None)
-    if odd is not None:
+    first, *others = sorted(frames, key=lambda f: f.position)
+    if odd := next((f for f in others if ("mask_path" in f.raw) != ("mask_path" in first.raw)), None):
         raise SceneFormatError(
             index,
             f"{odd.field}.mask_path",
@@ -402,8 +400,8 @@ def import_nerfstudio(
     poses = [_original_world_pose(f, index, applied, applied_scale, scale) for f in frames]
 
     not_imported = {}
-    if any("depth_file_path" in f.raw for f in frames):
-        not_imported["depth_file_path"] = sum("depth_file_path" in f.raw for f in frames)
+    if depth_maps := sum("depth_file_path" in f.raw for f in frames):
+        not_imported["depth_file_path"] = depth_maps
     if "ply_file_path" in data:
         not_imported["ply_file_path"] = data["ply_file_path"]
     if not_imported:
