@@ -336,11 +336,8 @@ class Scene:
 
     def hand_motions(self) -> list[HandMotion]:
         """Every recorded grasp's hand motion, in grasp order (empty for a scene that recorded none)."""
-        first = {}
-        for t in self.touches:
-            if t.hand_file is not None:
-                first.setdefault(t.hand_file, t)
-        return sorted((self.load_hand_motion(t) for t in first.values()), key=lambda m: m.grasp)
+        by_file = {t.hand_file: t for t in self.touches if t.hand_file is not None}  # a touch of each grasp
+        return sorted((self.load_hand_motion(t) for t in by_file.values()), key=lambda m: m.grasp)
 
     def touch_points(self, threshold_m: float = 1e-5) -> np.ndarray:
         """Every touch's contact points in the world, [M, 3] float64 (see ``tactile_depth_to_points``)."""
@@ -396,18 +393,12 @@ class Scene:
         the box of the camera centres is used. The box is grown to hold every
         contact point. Never reads gt/.
         """
-        boxes = []
-        if self.frames:
-            boxes.append(_camera_region(self.frames))
-        if self.touches:
-            pts = self.touch_points()
-            if len(pts):
-                boxes.append((pts.min(axis=0), pts.max(axis=0)))
+        boxes = [_camera_region(self.frames)] if self.frames else []
+        if len(points := self.touch_points()):
+            boxes.append((points.min(axis=0), points.max(axis=0)))
         if not boxes:
             raise SceneFormatError(self.path, None, "no frames and no contact points: the scene has no bounds")
-        lo = np.min([b[0] for b in boxes], axis=0)
-        hi = np.max([b[1] for b in boxes], axis=0)
-        return lo, hi
+        return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 
 
 def _camera_region(frames: list[Frame]) -> tuple[np.ndarray, np.ndarray]:

@@ -705,10 +705,8 @@ def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
     """Parse the journal; a torn or unparseable *last* line (a write cut by a crash) is dropped (and, with
     ``truncate``, cut from the file)."""
     data = path.read_bytes()
-    lines = data.split(b"\n")
-    complete, tail = lines[:-1], lines[-1]  # tail is b"" when the file ends with a newline
-    entries: list[dict] = []
-    good_bytes = 0
+    *complete, tail = data.split(b"\n")  # tail is b"" when the file ends with a newline
+    entries, good_bytes = [], 0
     for i, raw in enumerate(complete):
         try:
             entry = json.loads(raw)
@@ -726,7 +724,6 @@ def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
     if truncate and good_bytes != len(data):
         with open(path, "r+b") as f:
             f.truncate(good_bytes)
-            f.flush()
             os.fsync(f.fileno())
     if not entries:
         raise SceneFormatError(path, "line 1", "the journal is empty")
