@@ -311,18 +311,16 @@ class SceneMeta:
 
 def sensor_problem(sensor: SensorModel) -> str | None:
     """Why a sensor model is invalid, or None."""
-    if not isinstance(sensor.name, str) or not sensor.name:
-        return f"name must be a non-empty string, got {sensor.name!r}"
-    for name in ("width_px", "height_px"):
-        value = getattr(sensor, name)
-        if not is_size(value):
-            return f"{name} must be a positive integer up to {MAX_IMAGE_SIDE}, got {value!r}"
-    for name in ("pixel_size_m", "gel_thickness_m"):
-        value = getattr(sensor, name)
-        if not is_finite_number(value):
-            return f"{name} must be a finite number, got {value!r}"
-        if not value > 0:
-            return f"{name} must be positive, got {value}"
+    length, gel = sensor.pixel_size_m, sensor.gel_thickness_m
+    for name, fine, expected in (
+        ("name", isinstance(sensor.name, str) and sensor.name, "a non-empty string"),
+        ("width_px", is_size(sensor.width_px), f"a positive integer up to {MAX_IMAGE_SIDE}"),
+        ("height_px", is_size(sensor.height_px), f"a positive integer up to {MAX_IMAGE_SIDE}"),
+        ("pixel_size_m", is_finite_number(length) and length > 0, "positive and finite"),
+        ("gel_thickness_m", is_finite_number(gel) and gel > 0, "positive and finite"),
+    ):
+        if not fine:
+            return f"{name} must be {expected}, got {getattr(sensor, name)!r}"
     extent = sensor.pixel_size_m * max(sensor.width_px, sensor.height_px)
     if extent > MAX_DISTANCE_M:
         return (
