@@ -244,15 +244,8 @@ class HandMotion:
 def hand_motion_problem(m: HandMotion) -> str | None:
     """Why a HandMotion is not one (shapes that disagree, values that are not finite, a bad pose), or None."""
     S, J, L = len(np.atleast_1d(m.t)), len(m.joint_names), len(m.link_names)
-    shapes = {
-        "t": (S,),
-        "phase": (S,),
-        "q": (S, J),
-        "q_target": (S, J),
-        "effort": (S, J),
-        "link_half_extents": (L, 3),
-        "link_poses": (S, L, 4, 4),
-    }
+    shapes = {"t": (S,), "phase": (S,), "q": (S, J), "q_target": (S, J), "effort": (S, J)}
+    shapes.update(link_half_extents=(L, 3), link_poses=(S, L, 4, 4))
     for name, shape in shapes.items():
         value = np.asarray(getattr(m, name))
         if value.shape != shape:
