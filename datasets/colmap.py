@@ -283,8 +283,7 @@ class _Binary:
 def _camera(src, camera: _Record) -> _Record:
     camera.camera_id, camera.model = src.int("CAMERA_ID", "I"), src.model("MODEL")
     camera.width, camera.height = src.int("WIDTH", "Q"), src.int("HEIGHT", "Q")
-    count = _num_params(camera.model)
-    if count is None:
+    if (count := _num_params(camera.model)) is None:
         raise camera.error(f"camera {camera.camera_id}: unknown camera model {camera.model}")
     camera.params = src.params(count, f"camera {camera.camera_id}: a {camera.model} camera")
     return camera
@@ -463,8 +462,7 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
                 _check_pose(rig, pose, f"rig {rig.rig_id}'s sensor_from_rig of {kind} {sensor_id}")
     frame_of = {}
     for frame in _by_id(model.frames, "frame_id", "frame").values():
-        rig = rigs.get(frame.rig_id)
-        if rig is None:
+        if (rig := rigs.get(frame.rig_id)) is None:
             raise model.lacks(frame, f"frame {frame.frame_id} names rig {frame.rig_id}", "rigs")
         _check_pose(frame, frame.pose, f"frame {frame.frame_id}'s rig_from_world")
         for kind, sensor_id, data_id in frame.data_ids:
@@ -474,8 +472,7 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
                 )
             if kind != "CAMERA":
                 continue
-            image = images.get(data_id)
-            if image is None:
+            if (image := images.get(data_id)) is None:
                 raise model.lacks(frame, f"frame {frame.frame_id} holds image {data_id}", "images")
             if image.camera_id != sensor_id:
                 raise frame.error(
@@ -490,11 +487,9 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
             frame_of[data_id] = frame
     poses = {}
     for image in model.images:
-        frame = frame_of.get(image.image_id)
-        if frame is None:
+        if (frame := frame_of.get(image.image_id)) is None:
             raise image.error(f"image {image.image_id} is in no frame of {model.file('frames')}")
-        sensor_from_rig = rigs[frame.rig_id].sensors[("CAMERA", image.camera_id)]
-        if sensor_from_rig is not None:
+        if (sensor_from_rig := rigs[frame.rig_id].sensors[("CAMERA", image.camera_id)]) is not None:
             poses[image.image_id] = sensor_from_rig.matrix() @ frame.pose.matrix()
     return poses
 

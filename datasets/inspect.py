@@ -122,8 +122,7 @@ def plot_scene(path, png_path) -> Path:
     lo, hi = scene.bounds() if scene.frames or any(t.in_contact for t in scene.touches) else (None, None)
     arrow = 0.25 * float(np.max(hi - lo)) if lo is not None else 0.05
     for split, color in zip(SPLITS, ("tab:blue", "tab:orange")):
-        frames = scene.split(split)
-        if not frames:
+        if not (frames := scene.split(split)):
             continue
         c = np.array([f.T_world_cam[:3, 3] for f in frames])
         z = np.array([f.T_world_cam[:3, 2] for f in frames])

@@ -321,8 +321,7 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
     [...]}, file paths as written)."""
     frames = _source_frames(index, data)
     has_lists = _assign_splits(index, data, frames)
-    left_out = [f.raw["file_path"] for f in frames if has_lists and f.split is None]
-    if left_out:
+    if left_out := [f.raw["file_path"] for f in frames if has_lists and f.split is None]:
         log.warning(
             "%s: %d frames are in none of %s and are left out: %s",
             index,

@@ -158,8 +158,7 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     check_options(scale)
     if not src.is_dir():
         raise SceneFormatError(src, None, "not a folder (expected a Glossy Synthetic object folder, e.g. .../bell)")
-    names = {p.name.removesuffix("-camera.pkl") for p in src.glob("*-camera.pkl")}
-    if not names:
+    if not (names := {p.name.removesuffix("-camera.pkl") for p in src.glob("*-camera.pkl")}):
         raise SceneFormatError(src, None, "no N-camera.pkl files: not a Glossy Synthetic object folder")
     split_path = find_split(src, split)
     train, test = read_split(split_path, names)

@@ -152,8 +152,7 @@ def load_depth_npz(
 ) -> np.ndarray:
     """Load and check a float32 depth map saved by the writer (key ``depth``); ``limit`` is (deepest value in
     metres, why) as :func:`depth_problem` takes it."""
-    depth = _npz_array(path, "depth", problems, field)
-    if depth is None:
+    if (depth := _npz_array(path, "depth", problems, field)) is None:
         problems.report(path, field, "no 'depth' array")
     if depth.shape != shape:
         problems.report(path, field, f"shape {depth.shape} does not match the expected {shape}")
@@ -358,8 +357,7 @@ class Scene:
 
     def gt_depth(self, frame: Frame) -> np.ndarray | None:
         """Ground-truth z-depth [H, W] float32 metres of a frame (evaluation only), or None."""
-        rel = self.gt_depth_files.get(frame.id)
-        if rel is None:
+        if (rel := self.gt_depth_files.get(frame.id)) is None:
             return None
         return load_depth_npz(
             self.path / rel,
@@ -372,8 +370,7 @@ class Scene:
     def gt_normal(self, frame: Frame) -> np.ndarray | None:
         """Ground-truth unit world-frame normals [H, W, 3] float32 of a frame (0 where no surface; evaluation
         only), or None where the scene has none (its depth's ``normal`` array)."""
-        rel = self.gt_depth_files.get(frame.id)
-        if rel is None:
+        if (rel := self.gt_depth_files.get(frame.id)) is None:
             return None
         normal = _npz_array(self.path / rel, "normal", _Problems(collect=False), "normal")
         if normal is not None and (
@@ -629,8 +626,7 @@ def _read_sensor(raw, index: Path, problems: _Problems) -> SensorModel:
 
 def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[SensorModel | None, list[Touch]]:
     index = path / "touches.json"
-    data = problems.attempt(_read_json, index, problems, False)
-    if data is None:
+    if (data := problems.attempt(_read_json, index, problems, False)) is None:
         return None, []
     sensor = None if data.get("sensor") is None else problems.attempt(_read_sensor, data["sensor"], index, problems)
     raw_touches = data.get("touches", [])

@@ -83,8 +83,7 @@ def pose_problem(T) -> str | None:
         return "expected a 4x4 matrix of numbers"
     if problem := rigidity_problem(T):
         return f"not a rigid transform: {problem}"
-    distance = float(np.linalg.norm(T[:3, 3]))
-    if distance > MAX_DISTANCE_M:
+    if (distance := float(np.linalg.norm(T[:3, 3]))) > MAX_DISTANCE_M:
         return f"its origin is {distance:.3g} metres from the origin; no scene is larger than {MAX_DISTANCE_M:g} m (wrong units?)"
     return None
 
@@ -314,8 +313,7 @@ def sensor_problem(sensor: SensorModel) -> str | None:
     ):
         if not fine:
             return f"{name} must be {expected}, got {getattr(sensor, name)!r}"
-    extent = sensor.pixel_size_m * max(sensor.width_px, sensor.height_px)
-    if extent > MAX_DISTANCE_M:
+    if (extent := sensor.pixel_size_m * max(sensor.width_px, sensor.height_px)) > MAX_DISTANCE_M:
         return (
             f"pixel_size_m {sensor.pixel_size_m:.3g} makes the sensor {extent:.3g} m wide; no scene is larger than "
             f"{MAX_DISTANCE_M:g} m (wrong units?)"
