@@ -122,17 +122,9 @@ def read_rgba(
     :func:`read_raw`'s."""
     raw = read_raw(path, field, what, size, of)
     scale = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else 1.0
-    img = raw.astype(np.float64) / scale
-    if img.ndim == 2:
-        img = img[:, :, None]
-    channels = img.shape[2]
-    if channels == 1:
-        return np.repeat(img, 3, axis=2)
-    if channels == 2:  # grey + alpha
-        return np.concatenate([np.repeat(img[:, :, :1], 3, axis=2), img[:, :, 1:]], axis=2)
-    if channels == 3:
-        return img[:, :, ::-1]
-    return np.concatenate([img[:, :, 2::-1], img[:, :, 3:4]], axis=2)
+    img = (raw.astype(np.float64) / scale).reshape(*raw.shape[:2], -1)  # grey (+ alpha), or BGR (+ alpha)
+    colour = np.repeat(img[:, :, :1], 3, axis=2) if img.shape[2] < 3 else img[:, :, 2::-1]
+    return np.concatenate([colour, img[:, :, 1:2] if img.shape[2] == 2 else img[:, :, 3:4]], axis=2)
 
 
 def composite(rgba: np.ndarray, background_rgb) -> np.ndarray:

@@ -112,7 +112,15 @@ _SENSOR_TYPES = {-1: "INVALID", 0: "CAMERA", 1: "IMU"}  # COLMAP's SensorType, a
 _INTEGERS = {"B": "<u1", "i": "<i4", "I": "<u4", "Q": "<u8"}  # struct's letters as binary files use them
 
 
-class _Text:
+class _Source:
+    """What the text and the binary reader share."""
+
+    def pose(self, what: str) -> _Pose:
+        values = [self.float(f"{what} {name}") for name in ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")]
+        return _Pose(np.array(values[:4]), np.array(values[4:]))
+
+
+class _Text(_Source):
     """A text model file read record by record (one line each, comments and blank lines skipped; an image's
     POINTS2D on the line after it) and field by field; errors name the file and line."""
 
@@ -155,10 +163,6 @@ class _Text:
             return kind(text)
         except ValueError:
             raise self.error(f"{what} must be {name}, got {text!r}") from None
-
-    def pose(self, what: str) -> _Pose:
-        values = [self.float(f"{what} {name}") for name in ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")]
-        return _Pose(np.array(values[:4]), np.array(values[4:]))
 
     def params(self, count: int, what: str) -> np.ndarray:
         """The rest of the line: ``count`` PARAMS of ``what`` (a camera of its model)."""
@@ -204,7 +208,7 @@ class _Text:
             raise self.error(f"{left} fields too many: {' '.join(self.items[self.at : self.at + 3])} ...")
 
 
-class _Binary:
+class _Binary(_Source):
     """A binary model file (little-endian) read entry by entry and field by field, as COLMAP lays it out; errors
     name the file and entry."""
 
@@ -261,10 +265,6 @@ class _Binary:
     def sensor_type(self, what: str) -> str:
         kind = self.int(what, "i")
         return _SENSOR_TYPES.get(kind, str(kind))
-
-    def pose(self, what: str) -> _Pose:
-        values = self.array("<f8", 7, what)
-        return _Pose(values[:4].copy(), values[4:].copy())
 
     def params(self, count: int, what: str) -> np.ndarray:
         return self.array("<f8", count, f"the PARAMS of {what}").copy()
