@@ -569,11 +569,8 @@ class SceneWriter:
             src = Path(mesh)
             if not src.is_file():
                 raise InvalidInputError(f"mesh: {src} does not exist")
-            data = (
-                src.read_bytes()
-                if src.suffix.lower() == ".ply"
-                else trimesh.load(src, force="mesh").export(file_type="ply")
-            )
+            ply = src.suffix.lower() == ".ply"
+            data = src.read_bytes() if ply else trimesh.load(src, force="mesh").export(file_type="ply")
         elif isinstance(mesh, trimesh.Trimesh):
             data = mesh.export(file_type="ply")
         else:
