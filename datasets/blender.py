@@ -123,8 +123,8 @@ def read_rgba(
     raw = read_raw(path, field, what, size, of)
     scale = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else 1.0
     img = (raw.astype(np.float64) / scale).reshape(*raw.shape[:2], -1)  # grey (+ alpha), or BGR (+ alpha)
-    colour = np.repeat(img[:, :, :1], 3, axis=2) if img.shape[2] < 3 else img[:, :, 2::-1]
-    return np.concatenate([colour, img[:, :, 1:2] if img.shape[2] == 2 else img[:, :, 3:4]], axis=2)
+    color = np.repeat(img[:, :, :1], 3, axis=2) if img.shape[2] < 3 else img[:, :, 2::-1]
+    return np.concatenate([color, img[:, :, 1:2] if img.shape[2] == 2 else img[:, :, 3:4]], axis=2)
 
 
 def composite(rgba: np.ndarray, background_rgb) -> np.ndarray:
