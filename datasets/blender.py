@@ -37,7 +37,6 @@ from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_openc
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
-from .records import SceneMeta
 from .writer import new_import
 
 BACKGROUNDS = {"white": (255, 255, 255), "black": (0, 0, 0)}
@@ -102,34 +101,30 @@ def check_readable(path: Path, field: str | None = None, what: str = "image") ->
         )
 
 
-def read_raw(path: Path, field: str | None = None, what: str = "image") -> np.ndarray:
-    """An image file as OpenCV reads it (BGR(A) or grey, any depth); errors as :func:`check_readable`'s."""
+def read_raw(
+    path: Path, field: str | None = None, what: str = "image", size: tuple[int, int] | None = None, of: str = ""
+) -> np.ndarray:
+    """An image file as OpenCV reads it (BGR(A) or grey, any depth); errors as :func:`check_readable`'s, and one
+    unless the image is ``size`` (w, h) pixels, the size ``of`` (its camera, the first image) has."""
     check_readable(path, field, what)
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise SceneFormatError(path, field, f"unreadable {what} (damaged or truncated?)")
+    if size is not None and raw.shape[1::-1] != tuple(size):
+        raise SceneFormatError(path, field, f"{what} is {raw.shape[1]}x{raw.shape[0]}, but {of} is {size[0]}x{size[1]}")
     return raw
 
 
-def read_rgba(path: Path, field: str | None = None, size: tuple[int, int] | None = None, of: str = "") -> np.ndarray:
-    """An image file as float RGB(A) in [0, 1], [H, W, 3 or 4] (8- or 16-bit, grey or colour); errors name the
-    file and ``field`` (:func:`check_readable`), and one is raised unless the image is ``size`` (w, h) pixels, the
-    size ``of`` (its camera, the first image) has."""
-    raw = read_raw(path, field)
-    if size is not None and raw.shape[1::-1] != tuple(size):
-        raise SceneFormatError(path, field, f"image is {raw.shape[1]}x{raw.shape[0]}, but {of} is {size[0]}x{size[1]}")
+def read_rgba(
+    path: Path, field: str | None = None, size: tuple[int, int] | None = None, of: str = "", what: str = "image"
+) -> np.ndarray:
+    """An image file as float RGB(A) in [0, 1], [H, W, 3 or 4] (8- or 16-bit, grey or colour); errors as
+    :func:`read_raw`'s."""
+    raw = read_raw(path, field, what, size, of)
     scale = float(np.iinfo(raw.dtype).max) if np.issubdtype(raw.dtype, np.integer) else 1.0
-    img = raw.astype(np.float64) / scale
-    if img.ndim == 2:
-        img = img[:, :, None]
-    channels = img.shape[2]
-    if channels == 1:
-        return np.repeat(img, 3, axis=2)
-    if channels == 2:  # grey + alpha
-        return np.concatenate([np.repeat(img[:, :, :1], 3, axis=2), img[:, :, 1:]], axis=2)
-    if channels == 3:
-        return img[:, :, ::-1]
-    return np.concatenate([img[:, :, 2::-1], img[:, :, 3:4]], axis=2)
+    img = (raw.astype(np.float64) / scale).reshape(*raw.shape[:2], -1)  # grey (+ alpha), or BGR (+ alpha)
+    color = np.repeat(img[:, :, :1], 3, axis=2) if img.shape[2] < 3 else img[:, :, 2::-1]
+    return np.concatenate([color, img[:, :, 1:2] if img.shape[2] == 2 else img[:, :, 3:4]], axis=2)
 
 
 def composite(rgba: np.ndarray, background_rgb) -> np.ndarray:
@@ -154,13 +149,9 @@ def disparity_path(image_path: Path) -> Path:
 def read_disparity_depth(path: Path, shape: tuple[int, int], field: str | None = None) -> np.ndarray:
     """The z-depth [H, W] (dataset units, float64; 0 on the background) of a Shiny Blender disparity TIFF (module
     docstring); a SceneFormatError naming the file unless it is a 16-bit map of ``shape``."""
-    raw = read_raw(path, field, "disparity map")
+    raw = read_raw(path, field, "disparity map", shape[::-1], "its image")
     if raw.dtype != np.uint16:
         raise SceneFormatError(path, field, f"expected a 16-bit disparity map, got {raw.dtype}")
-    if raw.shape[:2] != shape:
-        raise SceneFormatError(
-            path, field, f"disparity map is {raw.shape[1]}x{raw.shape[0]}, but its image is {shape[1]}x{shape[0]}"
-        )
     disparity = (raw if raw.ndim == 2 else raw[:, :, 0]).astype(np.float64) / 65535.0
     with np.errstate(divide="ignore"):
         return np.where(disparity > 0, 1.0 / disparity - 1.0, 0.0)
@@ -169,12 +160,7 @@ def read_disparity_depth(path: Path, shape: tuple[int, int], field: str | None =
 def read_normal_map(path: Path, depth: np.ndarray, field: str | None = None) -> np.ndarray:
     """Shiny Blender's world-frame unit normals [H, W, 3] float32 of ``r_N_normal.png`` (module docstring), 0 where
     ``depth`` has no surface."""
-    rgb = read_rgba(path, field)[:, :, :3]  # [0, 1]
-    if rgb.shape[:2] != depth.shape:
-        raise SceneFormatError(
-            path, field, f"normal map is {rgb.shape[1]}x{rgb.shape[0]}, its depth {depth.shape[::-1]}"
-        )
-    normal = rgb * 2.0 - 1.0
+    normal = read_rgba(path, field, depth.shape[::-1], "its depth", "normal map")[:, :, :3] * 2.0 - 1.0
     length = np.linalg.norm(normal, axis=-1, keepdims=True)
     keep = (depth > 0)[..., None] & (length > 0.5)  # (a quantised unit vector is within 1 % of unit length)
     return np.where(keep, normal / np.maximum(length, 1e-12), 0.0).astype(np.float32)
@@ -241,35 +227,31 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     splits = [("train", *_read_split(src, "train")), ("test", *_read_split(src, test_split))]
 
     # The image size comes from the first image; every split shares it.
-    first_index, _, first_frames = splits[0][1:]
-    first_image = _image_path(src, str(first_frames[0].get("file_path", "")))
-    height, width = read_rgba(first_image, f"{first_index.name} frames[0]").shape[:2]
+    first_image = _image_path(src, str(splits[0][3][0].get("file_path", "")))
+    height, width = read_rgba(first_image, f"{splits[0][1].name} frames[0]").shape[:2]
 
     def intrinsics_for(angle: float) -> CameraIntrinsics:
         f = focal_from_fov(angle, width)
         return CameraIntrinsics(intrinsics_matrix(f, f, width / 2.0, height / 2.0), width, height)
 
-    meta = SceneMeta(
-        source="import",
-        object=src.resolve().name,
-        extra={
-            "importer": "blender",
-            "source_path": str(src.resolve()),
-            "background_rgb": list(background_rgb),
-            "test_split_file": f"transforms_{test_split}.json",
-            "scale": scale,
-        },
-    )
-    test_index, _, test_frames = splits[1][1:]
-    first_test = _image_path(src, str(test_frames[0].get("file_path", "")))
+    first_test = _image_path(src, str(splits[1][3][0].get("file_path", "")))
     with_depth = disparity_path(first_test).is_file()  # Shiny Blender: every view has its disparity map
-    if with_depth:
-        meta.extra["ground_truth"] = "disparity maps (*_disp.tiff): test views' depth, train views' points"
+    ground_truth = "disparity maps (*_disp.tiff): test views' depth, train views' points"
     rng = np.random.default_rng(0)  # the ground-truth points' pixels
     gt_points = []
     total = sum(len(frames) for *_, frames in splits)
     with (
-        new_import(out, intrinsics_for(splits[0][2]), meta) as writer,
+        new_import(
+            out,
+            intrinsics_for(splits[0][2]),
+            "blender",
+            src,
+            None,
+            background_rgb=list(background_rgb),
+            test_split_file=f"transforms_{test_split}.json",
+            scale=scale,
+            **({"ground_truth": ground_truth} if with_depth else {}),
+        ) as writer,
         progress_bar(total=total, desc=f"import {src.name}", unit="frame") as progress,
     ):
         for split, index, angle, frames in splits:
@@ -282,24 +264,16 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
                 rgba = read_rgba(image_path, f"{index.name} {field}", (width, height), first_image.name)
                 pose = pose_from_opengl(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
                 pose[:3, 3] *= scale
-                depth = None
+                gt_depth = gt_normal = None
                 if with_depth:
                     depth = scale * read_disparity_depth(disparity_path(image_path), (height, width), field)
                     if split == "train":
                         gt_points.append(_sample_points(depth, intr.K, pose, GT_MAX_DISTANCE * scale, rng))
-                gt_depth = gt_normal = None
-                if depth is not None and split == "test":
-                    gt_depth = depth.astype(np.float32)
-                    normal_path = image_path.with_name(image_path.stem + "_normal.png")
-                    gt_normal = read_normal_map(normal_path, depth, field) if normal_path.is_file() else None
-                writer.add_frame(
-                    composite(rgba, background_rgb),
-                    pose,
-                    split=split,
-                    gt_depth=gt_depth,
-                    intrinsics=intr,
-                    gt_normal=gt_normal,
-                )
+                    else:
+                        gt_depth = depth.astype(np.float32)
+                        normal_path = image_path.with_name(image_path.stem + "_normal.png")
+                        gt_normal = read_normal_map(normal_path, depth, field) if normal_path.is_file() else None
+                writer.add_frame(composite(rgba, background_rgb), pose, split, gt_depth, intr, gt_normal=gt_normal)
                 progress.update()
         if gt_points and sum(map(len, gt_points)):
             writer.set_gt_points(np.concatenate(gt_points))

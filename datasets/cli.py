@@ -119,70 +119,37 @@ class Inspect:
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    cli.typed("import blender", ImportBlender, _import_blender)
-    cli.typed("import nero", ImportNero, _import_nero)
-    cli.typed("import colmap", ImportColmap, _import_colmap)
-    cli.typed("import nerfstudio", ImportNerfstudio, _import_nerfstudio)
+    for options in (ImportBlender, ImportNero, ImportColmap, ImportNerfstudio):
+        cli.typed(f"import {options.__name__.removeprefix('Import').lower()}", options, _import)
     cli.typed("inspect", Inspect, _inspect)
 
 
-def _importing(run, out: Path) -> int:
-    """Run an importer (``run()``), then inspect the scene; an option value it refuses is a UsageError (exit 2)
-    naming the option."""
+# option -> the importer's parameter it gives
+_PARAMETERS = {"background": "background_rgb", "images": "images_dir", "object": "object_name"}
+
+
+def _import(o) -> int:
+    """Run the importer of ``o``'s command (``import_<kind>`` of module ``<kind>``), then inspect the scene; an
+    option value it refuses is a UsageError (exit 2) naming the option."""
+    from . import blender, colmap, nerfstudio, nero  # (here, not above: reading a scene loads none of them)
     from .inspect import run_inspect
 
+    kind = type(o).__name__.removeprefix("Import").lower()
+    module = {"blender": blender, "nero": nero, "colmap": colmap, "nerfstudio": nerfstudio}[kind]
+    importer = getattr(module, f"import_{kind}")
+    options = {_PARAMETERS.get(key, key): value for key, value in vars(o).items()}
+    if "background_rgb" in options:
+        try:
+            options["background_rgb"] = blender.parse_background(o.background)
+        except ValueError as exc:
+            raise UsageError("--background", str(exc)) from None
     try:
-        run()
+        importer(options.pop("src"), **options)
     except ConfigError as exc:
         if exc.key not in ("scale", "test_every"):
             raise
         raise UsageError("--" + exc.key.replace("_", "-"), str(exc).removeprefix(f"{exc.key}: ")) from None
-    return run_inspect(out)
-
-
-def _background(text: str) -> tuple[int, int, int]:
-    from .blender import parse_background
-
-    try:
-        return parse_background(text)
-    except ValueError as exc:
-        raise UsageError("--background", str(exc)) from None
-
-
-def _import_blender(o: ImportBlender) -> int:
-    from .blender import import_blender
-
-    background = _background(o.background)
-    return _importing(
-        lambda: import_blender(o.src, o.out, background_rgb=background, test_split=o.test_split, scale=o.scale), o.out
-    )
-
-
-def _import_nero(o: ImportNero) -> int:
-    from .nero import import_nero
-
-    background = _background(o.background)
-    return _importing(lambda: import_nero(o.src, o.out, o.split, background, o.scale), o.out)
-
-
-def _import_colmap(o: ImportColmap) -> int:
-    from .colmap import import_colmap
-
-    return _importing(
-        lambda: import_colmap(o.src, o.images, o.out, test_every=o.test_every, scale=o.scale, object_name=o.object),
-        o.out,
-    )
-
-
-def _import_nerfstudio(o: ImportNerfstudio) -> int:
-    from .nerfstudio import import_nerfstudio
-
-    return _importing(
-        lambda: import_nerfstudio(
-            o.src, o.out, test_every=o.test_every, scale=o.scale, skip_missing=o.skip_missing, object_name=o.object
-        ),
-        o.out,
-    )
+    return run_inspect(o.out)
 
 
 def _inspect(o: Inspect) -> int:

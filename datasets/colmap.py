@@ -24,7 +24,6 @@ the camera models (parameter counts and meanings).
 from __future__ import annotations
 
 import logging
-import struct
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -38,7 +37,7 @@ from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_options, composite, hold_out, read_rgba
-from .records import SceneMeta, camera_problem
+from .records import camera_problem
 from .writer import new_import
 
 log = logging.getLogger(__name__)
@@ -93,6 +92,10 @@ class _Model:
     def file(self, name: str) -> str:
         return name + self.suffix
 
+    def lacks(self, record: _Record, what: str, name: str) -> SceneFormatError:
+        """The error of ``record`` whose ``what`` ("image 3 names camera 7") is not in file ``name``."""
+        return record.error(f"{what}, which {self.file(name)} does not hold")
+
 
 def _num_params(model: str) -> int | None:
     """How many parameters a COLMAP camera model takes; None for a name COLMAP does not know."""
@@ -103,22 +106,42 @@ def _num_params(model: str) -> int | None:
     return int(pycolmap.Camera.create_from_model_name(0, model, 1.0, 1, 1).params.size)
 
 
-# --- text ------------------------------------------------------------------------------------------------------
+# --- reading: one reader per record kind, over the lines of a text file or the entries of a binary one ------------
+
+_SENSOR_TYPES = {-1: "INVALID", 0: "CAMERA", 1: "IMU"}  # COLMAP's SensorType, as text files spell it
+_INTEGERS = {"B": "<u1", "i": "<i4", "I": "<u4", "Q": "<u8"}  # struct's letters as binary files use them
 
 
-class _Tokens:
-    """The fields of one text line, read in order; errors name the file and line."""
+class _Source:
+    """What the text and the binary reader share."""
 
-    def __init__(self, path: Path, line: int, text: str):
-        self.record = _Record(path=path, where=f"line {line}")
-        self.items = text.split()
-        self.at = 0
+    def pose(self, what: str) -> _Pose:
+        values = [self.float(f"{what} {name}") for name in ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")]
+        return _Pose(np.array(values[:4]), np.array(values[4:]))
+
+
+class _Text(_Source):
+    """A text model file read record by record (one line each, comments and blank lines skipped; an image's
+    POINTS2D on the line after it) and field by field; errors name the file and line."""
+
+    suffix = ".txt"
+
+    def __init__(self, path: Path):
+        try:
+            self.lines = enumerate(path.read_text().splitlines(), start=1)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise SceneFormatError(path, None, f"not a readable COLMAP text file: {exc}") from exc
+        self.path = path
+
+    def records(self):
+        for self.number, text in self.lines:
+            if text.strip() and not text.lstrip().startswith("#"):
+                self.items, self.at = text.split(), 0
+                yield _Record(path=self.path, where=f"line {self.number}")
+                self.done()
 
     def error(self, message: str) -> SceneFormatError:
-        return self.record.error(message)
-
-    def left(self) -> int:
-        return len(self.items) - self.at
+        return SceneFormatError(self.path, f"line {self.number}", message)
 
     def word(self, what: str) -> str:
         if self.at >= len(self.items):
@@ -126,7 +149,9 @@ class _Tokens:
         self.at += 1
         return self.items[self.at - 1]
 
-    def int(self, what: str) -> int:
+    name = model = sensor_type = word
+
+    def int(self, what: str, fmt: str = "") -> int:
         return self._number(what, int, "an integer")
 
     def float(self, what: str) -> float:
@@ -139,11 +164,24 @@ class _Tokens:
         except ValueError:
             raise self.error(f"{what} must be {name}, got {text!r}") from None
 
-    def pose(self, what: str) -> _Pose:
-        values = [self.float(f"{what} {name}") for name in ("QW", "QX", "QY", "QZ", "TX", "TY", "TZ")]
-        return _Pose(np.array(values[:4]), np.array(values[4:]))
+    def params(self, count: int, what: str) -> np.ndarray:
+        """The rest of the line: ``count`` PARAMS of ``what`` (a camera of its model)."""
+        params = np.array([self.float(f"PARAMS[{i}]") for i in range(len(self.items) - self.at)])
+        if params.size != count:
+            raise self.error(f"{what} has {count} parameters, got {params.size}")
+        return params
 
-    def groups(self, names: tuple[str, ...], what: str) -> list[np.ndarray]:
+    def points2d(self, what: str) -> list[np.ndarray]:
+        """X, Y, POINT3D_ID of the next line (maybe blank)."""
+        self.done()
+        self.number, text = next(self.lines, (self.number + 1, ""))
+        self.items, self.at = text.split(), 0
+        return self._groups(("X", "Y", "POINT3D_ID"), what)
+
+    def track(self, what: str) -> np.ndarray:
+        return np.column_stack(self._groups(("IMAGE_ID", "POINT2D_IDX"), what))
+
+    def _groups(self, names: tuple[str, ...], what: str) -> list[np.ndarray]:
         """The rest of the line as (names...) groups: one array per name, float for X and Y, else integer."""
         fields = self.items[self.at :]
         if len(fields) % len(names):
@@ -166,106 +204,15 @@ class _Tokens:
         return columns
 
     def done(self) -> None:
-        if self.left():
-            raise self.error(f"{self.left()} fields too many: {' '.join(self.items[self.at : self.at + 3])} ...")
+        if left := len(self.items) - self.at:
+            raise self.error(f"{left} fields too many: {' '.join(self.items[self.at : self.at + 3])} ...")
 
 
-def _text_lines(path: Path):
-    """(line number, text) of each line, comments and blank lines included."""
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SceneFormatError(path, None, f"not a readable COLMAP text file: {exc}") from exc
-    return list(enumerate(text.splitlines(), start=1))
+class _Binary(_Source):
+    """A binary model file (little-endian) read entry by entry and field by field, as COLMAP lays it out; errors
+    name the file and entry."""
 
-
-def _data_lines(path: Path):
-    for number, text in _text_lines(path):
-        if text.strip() and not text.lstrip().startswith("#"):
-            yield _Tokens(path, number, text)
-
-
-def _read_text(model_dir: Path, with_rigs: bool) -> _Model:
-    cameras = []
-    for tok in _data_lines(model_dir / "cameras.txt"):
-        camera = _Record(
-            **vars(tok.record),
-            camera_id=tok.int("CAMERA_ID"),
-            model=tok.word("MODEL"),
-            width=tok.int("WIDTH"),
-            height=tok.int("HEIGHT"),
-        )
-        camera.params = np.array([tok.float(f"PARAMS[{i}]") for i in range(tok.left())])
-        cameras.append(camera)
-
-    images, path = [], model_dir / "images.txt"
-    lines = iter(_text_lines(path))
-    for number, text in lines:  # two lines per image: the image, then its POINTS2D (maybe blank)
-        if not text.strip() or text.lstrip().startswith("#"):
-            continue
-        tok = _Tokens(path, number, text)
-        image = _Record(
-            **vars(tok.record),
-            image_id=tok.int("IMAGE_ID"),
-            pose=tok.pose("cam_from_world"),
-            camera_id=tok.int("CAMERA_ID"),
-            name=tok.word("NAME"),
-        )
-        tok.done()
-        number, text = next(lines, (number + 1, ""))
-        points = _Tokens(path, number, text)
-        x, y, image.point3D_ids = points.groups(("X", "Y", "POINT3D_ID"), f"POINTS2D of image {image.image_id}")
-        if (k := _first_bad(~np.isfinite(x) | ~np.isfinite(y))) is not None:
-            raise points.error(f"POINTS2D[{k}] of image {image.image_id} is not finite: ({x[k]}, {y[k]})")
-        images.append(image)
-
-    points = []
-    for tok in _data_lines(model_dir / "points3D.txt"):
-        point = _Record(**vars(tok.record), point3D_id=tok.int("POINT3D_ID"))
-        point.xyz = np.array([tok.float(name) for name in ("X", "Y", "Z")])
-        for name in ("R", "G", "B"):
-            tok.int(name)
-        tok.float("ERROR")
-        point.track = np.column_stack(tok.groups(("IMAGE_ID", "POINT2D_IDX"), f"TRACK of point {point.point3D_id}"))
-        points.append(point)
-    if not with_rigs:
-        return _Model(cameras, images, points, None, None)
-
-    rigs = []
-    for tok in _data_lines(model_dir / "rigs.txt"):
-        rig = _Record(**vars(tok.record), rig_id=tok.int("RIG_ID"), sensors={})
-        for k in range(tok.int("NUM_SENSORS")):
-            sensor = (tok.word(f"sensor {k} type"), tok.int(f"sensor {k} id"))
-            rig.sensors[sensor] = (
-                _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
-                if k == 0
-                else tok.pose(f"sensor {k} sensor_from_rig")
-                if tok.int(f"sensor {k} HAS_POSE")
-                else None
-            )
-        tok.done()
-        rigs.append(rig)
-    frames = []
-    for tok in _data_lines(model_dir / "frames.txt"):
-        frame = _Record(
-            **vars(tok.record), frame_id=tok.int("FRAME_ID"), rig_id=tok.int("RIG_ID"), pose=tok.pose("rig_from_world")
-        )
-        frame.data_ids = [
-            (tok.word(f"data {k} SENSOR_TYPE"), tok.int(f"data {k} SENSOR_ID"), tok.int(f"data {k} DATA_ID"))
-            for k in range(tok.int("NUM_DATA_IDS"))
-        ]
-        tok.done()
-        frames.append(frame)
-    return _Model(cameras, images, points, rigs, frames)
-
-
-# --- binary ----------------------------------------------------------------------------------------------------
-
-_SENSOR_TYPES = {-1: "INVALID", 0: "CAMERA", 1: "IMU"}  # COLMAP's SensorType, as text files spell it
-
-
-class _Bytes:
-    """A binary model file read in order (little-endian); errors name the file and entry."""
+    suffix = ".bin"
 
     def __init__(self, path: Path):
         try:
@@ -274,123 +221,125 @@ class _Bytes:
             raise SceneFormatError(path, None, f"not a readable COLMAP binary file: {exc}") from exc
         self.path, self.at, self.entry = path, 0, None
 
-    def record(self) -> _Record:
-        return _Record(path=self.path, where=f"entry {self.entry}")
-
-    def take(self, fmt: str, what: str):
-        size = struct.calcsize("<" + fmt)
-        if self.at + size > len(self.data):
-            where = f"entry {self.entry}" if self.entry else None
-            raise SceneFormatError(self.path, where, f"the file ends inside {what} (truncated?)")
-        values = struct.unpack_from("<" + fmt, self.data, self.at)
-        self.at += size
-        return values if len(values) > 1 else values[0]
-
-    def array(self, dtype, count: int, what: str) -> np.ndarray:
-        dtype = np.dtype(dtype)
-        if self.at + dtype.itemsize * count > len(self.data):
-            raise self.record().error(f"the file ends inside {what} (truncated?)")
-        values = np.frombuffer(self.data, dtype, count, self.at)
-        self.at += dtype.itemsize * count
-        return values
-
-    def pose(self, what: str) -> _Pose:
-        values = self.take("7d", what)
-        return _Pose(np.array(values[:4]), np.array(values[4:]))
-
-    def entries(self, what: str):
-        """1, 2, ... for each of the entries the file's count announces; then checks nothing is left over."""
-        for self.entry in range(1, self.take("Q", f"the number of {what}") + 1):
-            yield self.entry
+    def records(self):
+        """A record for each of the entries the file's count announces; then checks nothing is left over."""
+        for self.entry in range(1, self.int("the number of entries", "Q") + 1):
+            yield _Record(path=self.path, where=f"entry {self.entry}")
         if self.at != len(self.data):
             raise SceneFormatError(
                 self.path,
                 None,
-                f"{len(self.data) - self.at} bytes after the last of the {self.entry or 0} {what} the file announces",
+                f"{len(self.data) - self.at} bytes after the last of the {self.entry or 0} entries the file announces",
             )
 
+    def error(self, message: str) -> SceneFormatError:
+        return SceneFormatError(self.path, self.entry and f"entry {self.entry}", message)
 
-def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
-    import pycolmap
+    def array(self, dtype, count: int, what: str) -> np.ndarray:
+        dtype = np.dtype(dtype)
+        if self.at + dtype.itemsize * count > len(self.data):
+            raise self.error(f"the file ends inside {what} (truncated?)")
+        values = np.frombuffer(self.data, dtype, count, self.at)
+        self.at += dtype.itemsize * count
+        return values
 
-    models = {int(v): name for name, v in pycolmap.CameraModelId.__members__.items() if name != "INVALID"}
-    cameras, src = [], _Bytes(model_dir / "cameras.bin")
-    for _ in src.entries("cameras"):
-        camera_id, model_id, width, height = src.take("IiQQ", "a camera")
-        model = models.get(model_id)
-        if model is None:
-            raise src.record().error(f"camera {camera_id}: unknown camera model id {model_id}")
-        params = src.array("<f8", _num_params(model), f"the parameters of camera {camera_id}")
-        cameras.append(
-            _Record(
-                **vars(src.record()), camera_id=camera_id, model=model, width=width, height=height, params=params.copy()
-            )
-        )
+    def int(self, what: str, fmt: str) -> int:
+        return int(self.array(_INTEGERS[fmt], 1, what)[0])
 
-    images, src = [], _Bytes(model_dir / "images.bin")
-    for _ in src.entries("images"):
-        image_id = src.take("I", "an image")
-        image = _Record(
-            **vars(src.record()),
-            image_id=image_id,
-            pose=src.pose(f"image {image_id}"),
-            camera_id=src.take("I", f"image {image_id}"),
-        )
-        end = src.data.find(b"\0", src.at)
+    def float(self, what: str) -> float:
+        return float(self.array("<f8", 1, what)[0])
+
+    def name(self, what: str) -> str:
+        end = self.data.find(b"\0", self.at)
         if end < 0:
-            raise image.error(f"the file ends inside the name of image {image_id} (truncated?)")
-        image.name = src.data[src.at : end].decode("utf-8", "replace")
-        src.at = end + 1
-        count = src.take("Q", f"image {image_id}")
-        points = src.array([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], count, f"the 2D points of image {image_id}")
-        if (bad := np.flatnonzero(~np.isfinite(points["x"]) | ~np.isfinite(points["y"]))).size:
-            raise image.error(f"POINTS2D[{bad[0]}] of image {image_id} is not finite")
-        image.point3D_ids = points["id"].astype(np.int64)  # COLMAP's invalid id, 2^64 - 1, reads as -1
-        images.append(image)
+            raise self.error(f"the file ends inside {what} (truncated?)")
+        name, self.at = self.data[self.at : end].decode("utf-8", "replace"), end + 1
+        return name
 
-    points, src = [], _Bytes(model_dir / "points3D.bin")
-    for _ in src.entries("points"):
-        point3D_id, *xyz = src.take("Q3d", "a point")
-        src.take("3Bd", f"point {point3D_id}")
-        length = src.take("Q", f"point {point3D_id}")
-        track = src.array("<u4", 2 * length, f"the track of point {point3D_id}")
-        points.append(
-            _Record(
-                **vars(src.record()),
-                point3D_id=point3D_id,
-                xyz=np.array(xyz),
-                track=track.astype(np.int64).reshape(-1, 2),
-            )
-        )
-    if not with_rigs:
-        return _Model(cameras, images, points, None, None, ".bin")
+    def model(self, what: str) -> str:
+        import pycolmap
 
-    rigs, src = [], _Bytes(model_dir / "rigs.bin")
-    for _ in src.entries("rigs"):
-        rig_id, count = src.take("II", "a rig")
-        rig = _Record(**vars(src.record()), rig_id=rig_id, sensors={})
-        for k in range(count):
-            kind, sensor_id = src.take("iI", f"sensor {k} of rig {rig_id}")
-            sensor = (_SENSOR_TYPES.get(kind, str(kind)), sensor_id)
-            rig.sensors[sensor] = (
-                _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
-                if k == 0
-                else src.pose(f"sensor {k} of rig {rig_id}")
-                if src.take("B", f"sensor {k} of rig {rig_id}")
-                else None
-            )
-        rigs.append(rig)
-    frames, src = [], _Bytes(model_dir / "frames.bin")
-    for _ in src.entries("frames"):
-        frame_id, rig_id = src.take("II", "a frame")
-        frame = _Record(
-            **vars(src.record()), frame_id=frame_id, rig_id=rig_id, pose=src.pose(f"frame {frame_id}"), data_ids=[]
+        model_id = self.int(what, "i")
+        return next((n for n, v in pycolmap.CameraModelId.__members__.items() if int(v) == model_id), f"id {model_id}")
+
+    def sensor_type(self, what: str) -> str:
+        kind = self.int(what, "i")
+        return _SENSOR_TYPES.get(kind, str(kind))
+
+    def params(self, count: int, what: str) -> np.ndarray:
+        return self.array("<f8", count, f"the PARAMS of {what}").copy()
+
+    def points2d(self, what: str) -> list[np.ndarray]:
+        points = self.array([("x", "<f8"), ("y", "<f8"), ("id", "<i8")], self.int(what, "Q"), what)
+        return [points["x"], points["y"], points["id"].astype(np.int64)]  # COLMAP's invalid id, 2^64 - 1, reads as -1
+
+    def track(self, what: str) -> np.ndarray:
+        return self.array("<u4", 2 * self.int(what, "Q"), what).astype(np.int64).reshape(-1, 2)
+
+    def done(self) -> None:
+        pass
+
+
+def _camera(src, camera: _Record) -> _Record:
+    camera.camera_id, camera.model = src.int("CAMERA_ID", "I"), src.model("MODEL")
+    camera.width, camera.height = src.int("WIDTH", "Q"), src.int("HEIGHT", "Q")
+    if (count := _num_params(camera.model)) is None:
+        raise camera.error(f"camera {camera.camera_id}: unknown camera model {camera.model}")
+    camera.params = src.params(count, f"camera {camera.camera_id}: a {camera.model} camera")
+    return camera
+
+
+def _image(src, image: _Record) -> _Record:
+    image.image_id = src.int("IMAGE_ID", "I")
+    what = f"image {image.image_id}"
+    image.pose, image.camera_id = src.pose(f"{what}'s cam_from_world"), src.int("CAMERA_ID", "I")
+    image.name = src.name(f"the NAME of {what}")
+    x, y, image.point3D_ids = src.points2d(f"POINTS2D of {what}")
+    if (k := _first_bad(~np.isfinite(x) | ~np.isfinite(y))) is not None:
+        raise src.error(f"POINTS2D[{k}] of {what} is not finite: ({x[k]}, {y[k]})")
+    return image
+
+
+def _point(src, point: _Record) -> _Record:
+    point.point3D_id = src.int("POINT3D_ID", "Q")
+    point.xyz = np.array([src.float(name) for name in ("X", "Y", "Z")])
+    for name in ("R", "G", "B"):
+        src.int(name, "B")
+    src.float("ERROR")
+    point.track = src.track(f"TRACK of point {point.point3D_id}")
+    return point
+
+
+def _rig(src, rig: _Record) -> _Record:
+    rig.rig_id, rig.sensors = src.int("RIG_ID", "I"), {}
+    for k in range(src.int("NUM_SENSORS", "I")):
+        what = f"sensor {k} of rig {rig.rig_id}"
+        sensor = (src.sensor_type(f"{what}: SENSOR_TYPE"), src.int(f"{what}: SENSOR_ID", "I"))
+        rig.sensors[sensor] = (
+            _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
+            if k == 0
+            else src.pose(f"{what}: sensor_from_rig")
+            if src.int(f"{what}: HAS_POSE", "B")
+            else None
         )
-        for k in range(src.take("I", f"frame {frame_id}")):
-            kind, sensor_id, data_id = src.take("iIQ", f"data id {k} of frame {frame_id}")
-            frame.data_ids.append((_SENSOR_TYPES.get(kind, str(kind)), sensor_id, data_id))
-        frames.append(frame)
-    return _Model(cameras, images, points, rigs, frames, ".bin")
+    return rig
+
+
+def _frame(src, frame: _Record) -> _Record:
+    frame.frame_id, frame.rig_id = src.int("FRAME_ID", "I"), src.int("RIG_ID", "I")
+    frame.pose = src.pose(f"frame {frame.frame_id}'s rig_from_world")
+    frame.data_ids = [
+        (
+            src.sensor_type(f"data {k} SENSOR_TYPE"),
+            src.int(f"data {k} SENSOR_ID", "I"),
+            src.int(f"data {k} DATA_ID", "Q"),
+        )
+        for k in range(src.int("NUM_DATA_IDS", "I"))
+    ]
+    return frame
+
+
+_READERS = {"cameras": _camera, "images": _image, "points3D": _point, "rigs": _rig, "frames": _frame}
 
 
 # --- checks ----------------------------------------------------------------------------------------------------
@@ -398,17 +347,21 @@ def _read_binary(model_dir: Path, with_rigs: bool) -> _Model:
 
 def _read_model(model_dir: Path) -> _Model:
     """The model in ``model_dir``, binary when its three .bin files are there (as COLMAP decides), else text."""
-    for suffix, reader in ((".bin", _read_binary), (".txt", _read_text)):
-        if all((model_dir / f"{name}{suffix}").is_file() for name in MODEL_FILES):
-            present = {name: (model_dir / f"{name}{suffix}").is_file() for name in RIG_FILES}
+    for source in (_Binary, _Text):
+        if all((model_dir / f"{name}{source.suffix}").is_file() for name in MODEL_FILES):
+            present = {name: (model_dir / f"{name}{source.suffix}").is_file() for name in RIG_FILES}
             if any(present.values()) and not all(present.values()):
                 missing = next(name for name, there in present.items() if not there)
                 raise SceneFormatError(
-                    model_dir / f"{missing}{suffix}",
+                    model_dir / f"{missing}{source.suffix}",
                     None,
                     "missing: a model holds rigs and frames together (COLMAP 3.12 on) or neither",
                 )
-            return reader(model_dir, all(present.values()))
+            lists = {}
+            for name in MODEL_FILES + RIG_FILES * all(present.values()):
+                src = source(model_dir / f"{name}{source.suffix}")
+                lists[name] = [_READERS[name](src, record) for record in src.records()]
+            return _Model(*(lists.get(name) for name in MODEL_FILES + RIG_FILES), source.suffix)
     raise SceneFormatError(
         model_dir,
         None,
@@ -457,21 +410,11 @@ def _first_bad(bad: np.ndarray) -> int | None:
 def _check_model(model: _Model) -> dict[int, np.ndarray]:
     """Every reference and number of the model checked; the cam_from_world [4, 4] of each posed image by id."""
     cameras = _by_id(model.cameras, "camera_id", "camera")
-    for camera in model.cameras:
-        count = _num_params(camera.model)
-        if count is None:
-            raise camera.error(f"camera {camera.camera_id}: unknown camera model {camera.model!r}")
-        if camera.params.size != count:
-            raise camera.error(
-                f"camera {camera.camera_id}: a {camera.model} camera has {count} parameters, got {camera.params.size}"
-            )
     images = _by_id(model.images, "image_id", "image")
     names = {}
     for image in model.images:
         if image.camera_id not in cameras:
-            raise image.error(
-                f"image {image.image_id} names camera {image.camera_id}, which {model.file('cameras')} does not hold"
-            )
+            raise model.lacks(image, f"image {image.image_id} names camera {image.camera_id}", "cameras")
         _check_pose(image, image.pose, f"image {image.image_id}'s pose")
         other = names.setdefault(image.name, image)
         if other is not image:
@@ -483,28 +426,21 @@ def _check_model(model: _Model) -> dict[int, np.ndarray]:
     refs, owner = _joined([image.point3D_ids for image in model.images])
     if (k := _first_bad((refs != -1) & ~np.isin(refs, np.array(list(points), np.int64)))) is not None:
         image, line = model.images[owner[k]], " (on the next line)" if model.suffix == ".txt" else ""
-        raise image.error(
-            f"POINTS2D[{k - np.searchsorted(owner, owner[k])}] of image {image.image_id}{line} names "
-            f"3D point {refs[k]}, which {model.file('points3D')} does not hold"
-        )
-    k = _first_bad(~np.isfinite(np.array([point.xyz for point in model.points]).reshape(-1, 3)).all(axis=1))
-    if k is not None:
-        raise model.points[k].error(
-            f"point {model.points[k].point3D_id}: X Y Z {model.points[k].xyz.tolist()} is not finite"
-        )
+        i = k - np.searchsorted(owner, owner[k])
+        raise model.lacks(image, f"POINTS2D[{i}] of image {image.image_id}{line} names 3D point {refs[k]}", "points3D")
+    if (k := _first_bad(~np.isfinite([point.xyz for point in model.points]).reshape(-1, 3).all(axis=1))) is not None:
+        point = model.points[k]
+        raise point.error(f"point {point.point3D_id}: X Y Z {point.xyz.tolist()} is not finite")
     track, owner = _joined([point.track for point in model.points])
     image_ids = np.array(sorted(images), np.int64)
     at = np.clip(np.searchsorted(image_ids, track[:, 0]), 0, max(len(image_ids) - 1, 0))
     known = image_ids[at] == track[:, 0] if len(image_ids) else np.zeros(len(track), bool)
     counts = np.array([images[i].point3D_ids.size for i in image_ids], np.int64)
-    for k, what in ((_first_bad(~known), "image"), (_first_bad(known & (track[:, 1] >= counts[at])), "idx")):
-        if k is None:
-            continue
+    if (k := _first_bad(~known)) is not None:
+        point = model.points[owner[k]]
+        raise model.lacks(point, f"the track of point {point.point3D_id} names image {track[k, 0]}", "images")
+    if (k := _first_bad(known & (track[:, 1] >= counts[at]))) is not None:
         point, (iid, idx) = model.points[owner[k]], track[k]
-        if what == "image":
-            raise point.error(
-                f"the track of point {point.point3D_id} names image {iid}, which {model.file('images')} does not hold"
-            )
         raise point.error(
             f"the track of point {point.point3D_id} names POINT2D_IDX {idx} of image {iid}, "
             f"which has {counts[at[k]]} 2D points ({images[iid].where} of {model.file('images')})"
@@ -521,18 +457,13 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
     for rig in model.rigs:
         for (kind, sensor_id), pose in rig.sensors.items():
             if kind == "CAMERA" and sensor_id not in cameras:
-                raise rig.error(
-                    f"rig {rig.rig_id} holds camera {sensor_id}, which {model.file('cameras')} does not hold"
-                )
+                raise model.lacks(rig, f"rig {rig.rig_id} holds camera {sensor_id}", "cameras")
             if pose is not None:
                 _check_pose(rig, pose, f"rig {rig.rig_id}'s sensor_from_rig of {kind} {sensor_id}")
     frame_of = {}
     for frame in _by_id(model.frames, "frame_id", "frame").values():
-        rig = rigs.get(frame.rig_id)
-        if rig is None:
-            raise frame.error(
-                f"frame {frame.frame_id} names rig {frame.rig_id}, which {model.file('rigs')} does not hold"
-            )
+        if (rig := rigs.get(frame.rig_id)) is None:
+            raise model.lacks(frame, f"frame {frame.frame_id} names rig {frame.rig_id}", "rigs")
         _check_pose(frame, frame.pose, f"frame {frame.frame_id}'s rig_from_world")
         for kind, sensor_id, data_id in frame.data_ids:
             if (kind, sensor_id) not in rig.sensors:
@@ -541,11 +472,8 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
                 )
             if kind != "CAMERA":
                 continue
-            image = images.get(data_id)
-            if image is None:
-                raise frame.error(
-                    f"frame {frame.frame_id} holds image {data_id}, which {model.file('images')} does not hold"
-                )
+            if (image := images.get(data_id)) is None:
+                raise model.lacks(frame, f"frame {frame.frame_id} holds image {data_id}", "images")
             if image.camera_id != sensor_id:
                 raise frame.error(
                     f"frame {frame.frame_id} holds image {data_id} as camera {sensor_id}, but the "
@@ -559,11 +487,9 @@ def _rig_poses(model: _Model, cameras: dict, images: dict) -> dict[int, np.ndarr
             frame_of[data_id] = frame
     poses = {}
     for image in model.images:
-        frame = frame_of.get(image.image_id)
-        if frame is None:
+        if (frame := frame_of.get(image.image_id)) is None:
             raise image.error(f"image {image.image_id} is in no frame of {model.file('frames')}")
-        sensor_from_rig = rigs[frame.rig_id].sensors[("CAMERA", image.camera_id)]
-        if sensor_from_rig is not None:
+        if (sensor_from_rig := rigs[frame.rig_id].sensors[("CAMERA", image.camera_id)]) is not None:
             poses[image.image_id] = sensor_from_rig.matrix() @ frame.pose.matrix()
     return poses
 
@@ -598,7 +524,7 @@ def camera_intrinsics(camera: _Record) -> CameraIntrinsics:
             "undistort the images first (colmap image_undistorter)"
         )
     focal = camera.params[list(layout.focal_length_idxs())].tolist()
-    fx, fy = focal[0], focal[-1]
+    fx, fy = focal[0], focal[-1]  # (one focal length, or x and y)
     cx, cy = camera.params[list(layout.principal_point_idxs())].tolist()
     if problem := camera_problem(fx, fy, cx, cy, camera.width, camera.height):
         raise camera.error(f"{what}: {PARAMETER_NAMES[problem[0]]}: {problem[1]}")
@@ -626,8 +552,7 @@ def import_colmap(
     check_options(scale, test_every)
     model = _read_model(model_dir)
     poses = _check_model(model)
-    unposed = len(model.images) - len(poses)
-    if unposed:
+    if unposed := len(model.images) - len(poses):
         log.warning(
             "%s: %d images have no pose (their camera's pose in the rig is unknown) and are left out",
             model_dir,
@@ -645,27 +570,24 @@ def import_colmap(
             "--images must be the folder the NAMEs are relative to"
         )
     splits = hold_out(len(images), test_every, model_dir, "images", "images")
-    meta = SceneMeta(
-        source="import",
-        object=object_name or _dataset_name(model_dir),
-        extra={
-            "importer": "colmap",
-            "source_path": str(model_dir.resolve()),
-            "images_path": str(images_dir.resolve()),
-            "scale": scale,
-            "test_every": test_every,
-            "num_points3D": len(model.points),
-            "colmap_names": [img.name for img in images],
-        },
-    )
-    with new_import(out, intrinsics[images[0].camera_id], meta) as writer:
+    with new_import(
+        out,
+        intrinsics[images[0].camera_id],
+        "colmap",
+        model_dir,
+        object_name or _dataset_name(model_dir),
+        images_path=str(images_dir.resolve()),
+        scale=scale,
+        test_every=test_every,
+        num_points3D=len(model.points),
+        colmap_names=[img.name for img in images],
+    ) as writer:
         for img, split in progress_bar(list(zip(images, splits)), desc=f"import {model_dir}", unit="frame"):
             intr = intrinsics[img.camera_id]
-            image_path = images_dir / img.name
-            size = (intr.width, intr.height)
-            rgba = read_rgba(image_path, f"image {img.image_id}", size, f"camera {img.camera_id}")
-            rgb = composite(rgba[:, :, :3], (0, 0, 0))  # an alpha channel, if any, is dropped
+            size, camera = (intr.width, intr.height), f"camera {img.camera_id}"
+            rgba = read_rgba(images_dir / img.name, f"image {img.image_id}", size, camera)
             T_world_cam = invert_pose(poses[img.image_id])
             T_world_cam[:3, 3] *= scale
-            writer.add_frame(rgb, T_world_cam, split=split, intrinsics=intr)
+            # an alpha channel, if any, is dropped
+            writer.add_frame(composite(rgba[:, :, :3], (0, 0, 0)), T_world_cam, split=split, intrinsics=intr)
     return out

@@ -122,17 +122,14 @@ def plot_scene(path, png_path) -> Path:
     lo, hi = scene.bounds() if scene.frames or any(t.in_contact for t in scene.touches) else (None, None)
     arrow = 0.25 * float(np.max(hi - lo)) if lo is not None else 0.05
     for split, color in zip(SPLITS, ("tab:blue", "tab:orange")):
-        frames = scene.split(split)
-        if not frames:
+        if not (frames := scene.split(split)):
             continue
         c = np.array([f.T_world_cam[:3, 3] for f in frames])
         z = np.array([f.T_world_cam[:3, 2] for f in frames])
         ax.scatter(*c.T, color=color, s=12, label=f"{split} cameras ({len(frames)})")
         ax.quiver(*c.T, *(arrow * z).T, color=color, linewidth=0.6)
-    if scene.touches:
-        points = scene.touch_points()
-        if len(points):
-            ax.scatter(*points.T, color="tab:red", s=1, label=f"contact points ({len(scene.touches)} touches)")
+    if len(points := scene.touch_points()):
+        ax.scatter(*points.T, color="tab:red", s=1, label=f"contact points ({len(scene.touches)} touches)")
     if lo is not None:
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         for a, b in itertools.combinations(corners, 2):

@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 import cv2
 import numpy as np
@@ -56,7 +57,7 @@ from .blender import (
     read_raw,
     read_rgba,
 )
-from .records import SceneMeta, as_size, camera_problem, is_finite_number
+from .records import as_size, camera_problem, is_finite_number
 from .writer import new_import
 
 log = logging.getLogger(__name__)
@@ -95,13 +96,6 @@ class _SourceFrame:
         return f"frames[{self.position}]"
 
 
-def _read_index(src: Path) -> tuple[Path, dict]:
-    index = src if src.suffix.lower() == ".json" else src / "transforms.json"
-    return index, read_index(
-        index, "expected a nerfstudio or instant-ngp dataset: a folder holding transforms.json, or the file itself"
-    )
-
-
 def _source_frames(index: Path, data: dict) -> list[_SourceFrame]:
     """The frames in file-name order (nerfstudio's), with their image paths."""
     frames, seen = [], {}
@@ -120,23 +114,18 @@ def _source_frames(index: Path, data: dict) -> list[_SourceFrame]:
 
 def _assign_splits(index: Path, data: dict, frames: list[_SourceFrame]) -> bool:
     """Splits from the file's lists; False when it has none. A frame in no list keeps split None."""
-    lists = {}
-    for key in SPLIT_LISTS:
-        if key in data:
-            names = data[key]
-            if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
-                raise SceneFormatError(index, key, "expected a list of file paths")
-            lists[key] = {Path(n) for n in names}
-    if not lists:
-        return False
+    lists = {key: data[key] for key in SPLIT_LISTS if key in data}
     known = {f.name for f in frames}
     for key, names in lists.items():
-        if unknown := sorted(str(n) for n in names - known):
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise SceneFormatError(index, key, "expected a list of file paths")
+        lists[key] = {Path(n) for n in names}
+        if unknown := sorted(str(n) for n in lists[key] - known):
             raise SceneFormatError(
-                index,
-                key,
-                f"{len(unknown)} file paths are no frame's file_path: {_listed(unknown)}",
+                index, key, f"{len(unknown)} file paths are no frame's file_path: {_listed(unknown)}"
             )
+    if not lists:
+        return False
     train = lists.get("train_filenames", set())
     test_key = "test_filenames" if "test_filenames" in lists else "val_filenames"
     test = lists.get(test_key, set())
@@ -163,65 +152,54 @@ def _number(key: str, frame: _SourceFrame, data: dict, default=None):
 
 
 def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
-    model, field = _number("camera_model", frame, data, "PERSPECTIVE")
-    if model not in PERSPECTIVE_MODELS:
-        raise SceneFormatError(
-            index,
-            field,
+    def value(key: str, default=None):
+        return _number(key, frame, data, default)[0]
+
+    def refuse(key: str, why: str) -> NoReturn:
+        raise SceneFormatError(index, _number(key, frame, data)[1], why)
+
+    if (model := value("camera_model", "PERSPECTIVE")) not in PERSPECTIVE_MODELS:
+        refuse(
+            "camera_model",
             f"camera model {model!r} is not supported: only perspective models "
             f"({', '.join(PERSPECTIVE_MODELS)}); undistort the images to a pinhole camera first",
         )
-    fisheye, field = _number("is_fisheye", frame, data, False)
-    if fisheye:
-        raise SceneFormatError(index, field, "fisheye cameras are not supported; undistort the images first")
-    sizes = {}
-    for key, axis in (("w", 0), ("h", 1)):
-        value, field = _number(key, frame, data)
-        if value is None:
-            check_readable(frame.image, frame.field)
-            try:
-                with Image.open(frame.image) as img:
-                    value = img.size[axis]
-            except OSError as exc:
-                raise SceneFormatError(frame.image, frame.field, f"unreadable image: {exc}") from exc
-        sizes[key] = as_size(value)
-        if sizes[key] is None:
-            raise SceneFormatError(index, field, f"expected a whole number of pixels (1080 or 1080.0), got {value!r}")
-    w, h = sizes["w"], sizes["h"]
+    if value("is_fisheye", False):
+        refuse("is_fisheye", "fisheye cameras are not supported; undistort the images first")
+    size = {key: value(key) for key in ("w", "h")}
+    if None in size.values():  # the image's size
+        check_readable(frame.image, frame.field)
+        try:
+            with Image.open(frame.image) as img:
+                size = {key: img.size[axis] if size[key] is None else size[key] for axis, key in enumerate(size)}
+        except OSError as exc:
+            raise SceneFormatError(frame.image, frame.field, f"unreadable image: {exc}") from exc
+    for key, side in size.items():
+        if as_size(side) is None:
+            refuse(key, f"expected a whole number of pixels (1080 or 1080.0), got {side!r}")
+    w, h = as_size(size["w"]), as_size(size["h"])
     focal = {}
     for key, angle_key, side in (("fl_x", "camera_angle_x", w), ("fl_y", "camera_angle_y", h)):
-        value, _ = _number(key, frame, data)
-        angle, angle_field = _number(angle_key, frame, data)
-        if value is None and angle is not None:
+        focal[key], angle = value(key), value(angle_key)
+        if focal[key] is None and angle is not None:
             if not is_finite_number(angle) or not 0 < angle < np.pi:
-                raise SceneFormatError(
-                    index, angle_field, f"expected a field of view in (0, pi) radians, got {angle!r}"
-                )
-            value = focal_from_fov(float(angle), side)
-        focal[key] = value
-    if focal["fl_y"] is None:
-        focal["fl_y"] = focal["fl_x"]
-    cx, _ = _number("cx", frame, data, w / 2)
-    cy, _ = _number("cy", frame, data, h / 2)
-    if problem := camera_problem(focal["fl_x"], focal["fl_y"], cx, cy, w, h):
-        raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
-    k4, field = _number("k4", frame, data, 0.0)
-    if k4 != 0:
-        raise SceneFormatError(
-            index,
-            field,
-            f"k4 = {k4!r}: a radial r^8 term, which OpenCV's perspective model lacks; "
-            "only k1 k2 k3 p1 p2 are supported",
+                refuse(angle_key, f"expected a field of view in (0, pi) radians, got {angle!r}")
+            focal[key] = focal_from_fov(float(angle), side)
+    fx, fy = focal["fl_x"], focal["fl_x"] if focal["fl_y"] is None else focal["fl_y"]
+    cx, cy = value("cx", w / 2), value("cy", h / 2)
+    if problem := camera_problem(fx, fy, cx, cy, w, h):
+        refuse(*problem)
+    if (k4 := value("k4", 0.0)) != 0:
+        refuse(
+            "k4",
+            f"k4 = {k4!r}: a radial r^8 term, which OpenCV's perspective model lacks; only k1 k2 k3 p1 p2 are supported",
         )
-    distortion = []
-    for key in DISTORTION_KEYS:
-        value, field = _number(key, frame, data, 0.0)
-        if not is_finite_number(value):
-            raise SceneFormatError(index, field, f"expected a finite number, got {value!r}")
-        distortion.append(float(value))
-    camera = Camera(float(focal["fl_x"]), float(focal["fl_y"]), float(cx), float(cy), w, h, tuple(distortion))
+    distortion = {key: value(key, 0.0) for key in DISTORTION_KEYS}
+    if bad := next((key for key, v in distortion.items() if not is_finite_number(v)), None):
+        refuse(bad, f"expected a finite number, got {distortion[bad]!r}")
+    camera = Camera(float(fx), float(fy), float(cx), float(cy), w, h, tuple(map(float, distortion.values())))
     if problem := distortion_problem(camera):
-        raise SceneFormatError(index, _number(problem[0], frame, data)[1], problem[1])
+        refuse(*problem)
     return camera
 
 
@@ -333,14 +311,8 @@ def _applied_transform(data: dict, index: Path) -> tuple[np.ndarray | None, floa
 
 def _read_mask(path: Path, camera: Camera, frame: _SourceFrame) -> np.ndarray:
     """A mask file as uint8 0/255 [H, W] (any non-zero channel means: use the pixel)."""
-    raw = read_raw(path, f"{frame.field}.mask_path", "mask")
+    raw = read_raw(path, f"{frame.field}.mask_path", "mask", (camera.width, camera.height), "the image")
     keep = raw != 0 if raw.ndim == 2 else (raw != 0).any(axis=2)
-    if keep.shape != (camera.height, camera.width):
-        raise SceneFormatError(
-            path,
-            f"{frame.field}.mask_path",
-            f"mask is {keep.shape[1]}x{keep.shape[0]} but the image is {camera.width}x{camera.height}",
-        )
     return np.where(keep, 255, 0).astype(np.uint8)
 
 
@@ -349,8 +321,7 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
     [...]}, file paths as written)."""
     frames = _source_frames(index, data)
     has_lists = _assign_splits(index, data, frames)
-    left_out = [f.raw["file_path"] for f in frames if has_lists and f.split is None]
-    if left_out:
+    if left_out := [f.raw["file_path"] for f in frames if has_lists and f.split is None]:
         log.warning(
             "%s: %d frames are in none of %s and are left out: %s",
             index,
@@ -379,10 +350,8 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
             "train_filenames",
             f"no train frame to import: none of the {len(frames)} frames to import is in train_filenames",
         )
-    in_file_order = sorted(frames, key=lambda f: f.position)
-    first = in_file_order[0]
-    odd = next((f for f in in_file_order if ("mask_path" in f.raw) != ("mask_path" in first.raw)), None)
-    if odd is not None:
+    first, *others = sorted(frames, key=lambda f: f.position)
+    if odd := next((f for f in others if ("mask_path" in f.raw) != ("mask_path" in first.raw)), None):
         raise SceneFormatError(
             index,
             f"{odd.field}.mask_path",
@@ -420,39 +389,43 @@ def import_nerfstudio(
     """
     src, out = Path(src), Path(out)
     check_options(scale, test_every)
-    index, data = _read_index(src)
+    index = src if src.suffix.lower() == ".json" else src / "transforms.json"
+    data = read_index(
+        index, "expected a nerfstudio or instant-ngp dataset: a folder holding transforms.json, or the file itself"
+    )
     frames, selection = _select_frames(index, data, test_every, skip_missing)
     cameras = [_camera(f, data, index) for f in frames]
     applied, applied_scale = _applied_transform(data, index)
     poses = [_original_world_pose(f, index, applied, applied_scale, scale) for f in frames]
 
     not_imported = {}
-    if any("depth_file_path" in f.raw for f in frames):
-        not_imported["depth_file_path"] = sum("depth_file_path" in f.raw for f in frames)
+    if depth_maps := sum("depth_file_path" in f.raw for f in frames):
+        not_imported["depth_file_path"] = depth_maps
     if "ply_file_path" in data:
         not_imported["ply_file_path"] = data["ply_file_path"]
     if not_imported:
         log.warning(
             "%s: not imported (training reads neither depth maps nor point clouds): %s", index, ", ".join(not_imported)
         )
-    extra = {
-        "importer": "nerfstudio",
-        "source_path": str(index.resolve()),
-        "scale": scale,
-        "nerfstudio_names": [f.raw["file_path"] for f in frames],
-        "split": selection.pop("split"),
-    }
+    split = selection.pop("split")
     optional = {
         **selection,
         "not_imported": not_imported,
         "applied_scale": data.get("applied_scale"),
         "applied_transform": None if applied is None else applied[:3].tolist(),
     }
-    extra.update({key: value for key, value in optional.items() if value})
-    meta = SceneMeta(source="import", object=object_name or index.parent.resolve().name, extra=extra)
-
     tables = {camera: undistortion(camera) for camera in set(cameras)}
-    with new_import(out, tables[cameras[0]][0], meta) as writer:
+    with new_import(
+        out,
+        tables[cameras[0]][0],
+        "nerfstudio",
+        index,
+        object_name or index.parent.resolve().name,
+        scale=scale,
+        nerfstudio_names=[f.raw["file_path"] for f in frames],
+        split=split,
+        **{key: value for key, value in optional.items() if value},
+    ) as writer:
         for f, camera, pose in progress_bar(
             list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}", unit="frame"
         ):

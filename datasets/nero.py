@@ -43,7 +43,6 @@ from tacsplat.types import CameraIntrinsics
 
 from .blender import check_options, composite, read_raw, read_rgba
 from .reader import _Problems, load_points_ply
-from .records import SceneMeta
 from .writer import new_import
 
 SPLIT_FILE = "synthetic_split_128.pkl"
@@ -100,13 +99,9 @@ def read_camera(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def read_depth(path: Path, shape: tuple[int, int]) -> np.ndarray:
     """Z-depth [H, W] in dataset units of an ``N-depth.png``, 0 on the background (:data:`BACKGROUND_DEPTH`)."""
-    raw = read_raw(path, None, "depth map")
+    raw = read_raw(path, None, "depth map", shape[::-1], "its image")
     if raw.dtype != np.uint16 or raw.ndim != 2:
         raise SceneFormatError(path, None, f"expected a 16-bit grey depth map, got {raw.dtype} {raw.shape}")
-    if raw.shape != shape:
-        raise SceneFormatError(
-            path, None, f"depth map is {raw.shape[1]}x{raw.shape[0]}, its image {shape[1]}x{shape[0]}"
-        )
     depth = raw.astype(np.float64) / 65535.0 * DEPTH_RANGE
     return np.where(depth < BACKGROUND_DEPTH, depth, 0.0)
 
@@ -163,8 +158,7 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     check_options(scale)
     if not src.is_dir():
         raise SceneFormatError(src, None, "not a folder (expected a Glossy Synthetic object folder, e.g. .../bell)")
-    names = {p.name.removesuffix("-camera.pkl") for p in src.glob("*-camera.pkl")}
-    if not names:
+    if not (names := {p.name.removesuffix("-camera.pkl") for p in src.glob("*-camera.pkl")}):
         raise SceneFormatError(src, None, "no N-camera.pkl files: not a Glossy Synthetic object folder")
     split_path = find_split(src, split)
     train, test = read_split(split_path, names)
@@ -173,35 +167,33 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     first_image = src / f"{train[0]}.png"
     height, width = read_rgba(first_image).shape[:2]
     eval_points = src / "eval_pts.ply"
-    meta = SceneMeta(
-        source="import",
-        object=src.resolve().name,
-        extra={
-            "importer": "nero",
-            "source_path": str(src.resolve()),
-            "split_file": str(split_path.resolve()),
-            "background_rgb": list(background_rgb),
-            "scale": scale,
-            "ground_truth": "eval_pts.ply" if eval_points.is_file() else f"test views' depth, {EVAL_VOXEL} voxels",
-        },
-    )
     fallback_points = []
     with (
-        new_import(out, CameraIntrinsics(cameras[train[0]][1], width, height), meta) as writer,
+        new_import(
+            out,
+            CameraIntrinsics(cameras[train[0]][1], width, height),
+            "nero",
+            src,
+            None,
+            split_file=str(split_path.resolve()),
+            background_rgb=list(background_rgb),
+            scale=scale,
+            ground_truth="eval_pts.ply" if eval_points.is_file() else f"test views' depth, {EVAL_VOXEL} voxels",
+        ) as writer,
         progress_bar(total=len(train) + len(test), desc=f"import {src.name}", unit="view") as progress,
     ):
         for split_name, views in (("train", train), ("test", test)):
             for name in views:
-                pose, K = cameras[name]
-                image_path = src / f"{name}.png"
-                rgba = read_rgba(image_path, None, (width, height), first_image.name)
+                unit_pose, K = cameras[name]
+                rgb = read_rgba(src / f"{name}.png", None, (width, height), first_image.name)[:, :, :3]
                 depth = read_depth(src / f"{name}-depth.png", (height, width))
-                rgba = np.concatenate([rgba[:, :, :3], (depth > 0)[:, :, None].astype(np.float64)], axis=2)
-                unit_pose, pose = pose, pose.copy()
+                pose = unit_pose.copy()
                 pose[:3, 3] *= scale
-                intrinsics = CameraIntrinsics(K, width, height)
                 gt_depth = (scale * depth).astype(np.float32) if split_name == "test" else None
-                writer.add_frame(composite(rgba, background_rgb), pose, split_name, gt_depth, intrinsics)
+                rgba = np.concatenate([rgb, (depth > 0)[:, :, None].astype(np.float64)], axis=2)
+                writer.add_frame(
+                    composite(rgba, background_rgb), pose, split_name, gt_depth, CameraIntrinsics(K, width, height)
+                )
                 if split_name == "test" and not eval_points.is_file():
                     fallback_points.append(unproject_depth(depth, K, unit_pose))
                 progress.update()

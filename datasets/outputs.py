@@ -34,9 +34,8 @@ def ensure_output_dir(path: str | Path, option: str = "--out") -> Path:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(option, f"cannot create {path}: {exc.strerror or exc}") from None
-    if not os.access(path, os.W_OK | os.X_OK):
-        if not os.statvfs(path).f_flag & os.ST_RDONLY:
-            raise ConfigError(option, f"{path} is not writable")
+    if not os.access(path, os.W_OK | os.X_OK) and not os.statvfs(path).f_flag & os.ST_RDONLY:
+        raise ConfigError(option, f"{path} is not writable")
     try:
         check_writable(path)  # read-only or full: refused before any work, not after it
     except StorageError as exc:

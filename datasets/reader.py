@@ -96,6 +96,15 @@ def _is_int(x) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
 
 
+def _check_fields(problems: _Problems, index: Path, prefix: str, raw: dict, **checks) -> list[str]:
+    """Note each key of ``checks`` (key=(whether raw[key] is fine, what was expected)) whose value is not; returns
+    those keys."""
+    bad = [key for key, (fine, _) in checks.items() if not fine]
+    for key in bad:
+        problems.note(index, prefix + key, f"expected {checks[key][1]}, got {raw.get(key)!r}")
+    return bad
+
+
 def _read_json(path: Path, problems: _Problems, required: bool = True) -> dict:
     if not path.is_file():
         if required:
@@ -143,21 +152,24 @@ def load_depth_npz(
 ) -> np.ndarray:
     """Load and check a float32 depth map saved by the writer (key ``depth``); ``limit`` is (deepest value in
     metres, why) as :func:`depth_problem` takes it."""
-    if not path.is_file():
-        problems.report(path, None, "depth file missing")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            names = list(npz.files)
-            depth = npz["depth"] if "depth" in names else None
-    except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
-        problems.report(path, field, f"truncated or corrupt npz: {_first_line(exc)}")
-    if depth is None:
-        problems.report(path, field, f"no 'depth' array (has {names})")
+    if (depth := _npz_array(path, "depth", problems, field)) is None:
+        problems.report(path, field, "no 'depth' array")
     if depth.shape != shape:
         problems.report(path, field, f"shape {depth.shape} does not match the expected {shape}")
     if problem := depth_problem(depth, *limit):
         problems.report(path, field, problem)
     return depth.astype(np.float32, copy=False)
+
+
+def _npz_array(path: Path, key: str, problems: _Problems, field: str) -> np.ndarray | None:
+    """Array ``key`` of an npz file the writer saved, None when it has none."""
+    if not path.is_file():
+        problems.report(path, None, "depth file missing")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return npz[key] if key in npz.files else None
+    except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
+        problems.report(path, field, f"truncated or corrupt npz: {_first_line(exc)}")
 
 
 def load_points_ply(path: Path, problems: _Problems, field: str) -> np.ndarray:
@@ -286,31 +298,22 @@ class Scene:
 
     def load_image(self, frame: Frame) -> np.ndarray:
         """The frame's image as float32 RGB in [0, 1], [H, W, 3]."""
-        path = self.path / frame.file_path
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise SceneFormatError(path, f"frame {frame.id}", "missing or unreadable image")
-        if bgr.shape[:2] != (frame.intrinsics.height, frame.intrinsics.width):
-            raise SceneFormatError(
-                path,
-                f"frame {frame.id}",
-                f"image is {bgr.shape[1]}x{bgr.shape[0]}, expected {frame.intrinsics.width}x{frame.intrinsics.height}",
-            )
+        bgr = self._picture(frame, frame.file_path, cv2.IMREAD_COLOR, "image")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
 
     def load_mask(self, frame: Frame) -> np.ndarray | None:
         """The frame's mask as bool [H, W] (True = use the pixel), or None when the scene has no masks."""
         if frame.mask_path is None:
             return None
-        path = self.path / frame.mask_path
-        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if mask is None or mask.shape != (frame.intrinsics.height, frame.intrinsics.width):
-            raise SceneFormatError(
-                path,
-                f"frame {frame.id}",
-                f"missing or unreadable mask, or not {frame.intrinsics.width}x{frame.intrinsics.height}",
-            )
-        return mask > 0
+        return self._picture(frame, frame.mask_path, cv2.IMREAD_GRAYSCALE, "mask") > 0
+
+    def _picture(self, frame: Frame, rel: str, flag: int, what: str) -> np.ndarray:
+        path, (w, h) = self.path / rel, (frame.intrinsics.width, frame.intrinsics.height)
+        picture = cv2.imread(str(path), flag)
+        if picture is None or picture.shape[:2] != (h, w):
+            got = "missing or unreadable" if picture is None else f"{picture.shape[1]}x{picture.shape[0]}"
+            raise SceneFormatError(path, f"frame {frame.id}", f"{what} is {got}, expected {w}x{h}")
+        return picture
 
     def load_touch_depth(self, touch: Touch) -> np.ndarray:
         """The touch's indentation map, float32 metres [h, w] (0 = no contact)."""
@@ -332,11 +335,8 @@ class Scene:
 
     def hand_motions(self) -> list[HandMotion]:
         """Every recorded grasp's hand motion, in grasp order (empty for a scene that recorded none)."""
-        first = {}
-        for t in self.touches:
-            if t.hand_file is not None:
-                first.setdefault(t.hand_file, t)
-        return sorted((self.load_hand_motion(t) for t in first.values()), key=lambda m: m.grasp)
+        by_file = {t.hand_file: t for t in self.touches if t.hand_file is not None}  # a touch of each grasp
+        return sorted((self.load_hand_motion(t) for t in by_file.values()), key=lambda m: m.grasp)
 
     def touch_points(self, threshold_m: float = 1e-5) -> np.ndarray:
         """Every touch's contact points in the world, [M, 3] float64 (see ``tactile_depth_to_points``)."""
@@ -357,8 +357,7 @@ class Scene:
 
     def gt_depth(self, frame: Frame) -> np.ndarray | None:
         """Ground-truth z-depth [H, W] float32 metres of a frame (evaluation only), or None."""
-        rel = self.gt_depth_files.get(frame.id)
-        if rel is None:
+        if (rel := self.gt_depth_files.get(frame.id)) is None:
             return None
         return load_depth_npz(
             self.path / rel,
@@ -371,19 +370,13 @@ class Scene:
     def gt_normal(self, frame: Frame) -> np.ndarray | None:
         """Ground-truth unit world-frame normals [H, W, 3] float32 of a frame (0 where no surface; evaluation
         only), or None where the scene has none (its depth's ``normal`` array)."""
-        rel = self.gt_depth_files.get(frame.id)
-        if rel is None:
+        if (rel := self.gt_depth_files.get(frame.id)) is None:
             return None
-        path = self.path / rel
-        try:
-            with np.load(path, allow_pickle=False) as npz:
-                normal = npz["normal"] if "normal" in npz.files else None
-        except Exception as exc:  # zipfile, zlib and numpy raise a dozen types for damaged bytes
-            raise SceneFormatError(path, "normal", f"truncated or corrupt npz: {_first_line(exc)}") from None
+        normal = _npz_array(self.path / rel, "normal", _Problems(collect=False), "normal")
         if normal is not None and (
             problem := normal_map_problem(normal, (frame.intrinsics.height, frame.intrinsics.width))
         ):
-            raise SceneFormatError(path, "normal", problem)
+            raise SceneFormatError(self.path / rel, "normal", problem)
         return normal
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -397,18 +390,12 @@ class Scene:
         the box of the camera centres is used. The box is grown to hold every
         contact point. Never reads gt/.
         """
-        boxes = []
-        if self.frames:
-            boxes.append(_camera_region(self.frames))
-        if self.touches:
-            pts = self.touch_points()
-            if len(pts):
-                boxes.append((pts.min(axis=0), pts.max(axis=0)))
+        boxes = [_camera_region(self.frames)] if self.frames else []
+        if len(points := self.touch_points()):
+            boxes.append((points.min(axis=0), points.max(axis=0)))
         if not boxes:
             raise SceneFormatError(self.path, None, "no frames and no contact points: the scene has no bounds")
-        lo = np.min([b[0] for b in boxes], axis=0)
-        hi = np.max([b[1] for b in boxes], axis=0)
-        return lo, hi
+        return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
 
 
 def _camera_region(frames: list[Frame]) -> tuple[np.ndarray, np.ndarray]:
@@ -529,36 +516,29 @@ def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta, str, d
     """Provenance, tacsplat version, ground truth and annotations (none in a scene older than them)."""
     index = path / "scene.json"
     data = _read_json(index, problems)
-    if data.get("format", FORMAT_NAME) != FORMAT_NAME:
-        problems.note(index, "format", f"expected {FORMAT_NAME!r}, got {data.get('format')!r}")
-    version = data.get("format_version", FORMAT_VERSION)
-    if not _is_int(version) or version != FORMAT_VERSION:
-        problems.note(
-            index, "format_version", f"expected {FORMAT_VERSION} (the version this tacsplat reads), got {version!r}"
-        )
-    if data.get("units") != "m":
-        problems.note(index, "units", f"expected 'm' (all tacsplat scenes are in metres), got {data.get('units')!r}")
-    ok = data.get("source") in SOURCES
-    if not ok:
-        problems.note(index, "source", f"expected one of {SOURCES}, got {data.get('source')!r}")
-    if not isinstance(data.get("object"), str) or not data.get("object"):
-        problems.note(index, "object", f"expected the object's name, got {data.get('object')!r}")
-        ok = False
-    for key in ("capture_plan", "extra"):
-        if not isinstance(data.get(key, {}), dict):
-            problems.note(index, key, f"expected an object, got {type(data[key]).__name__}")
-            ok = False
-    gt = data.get("gt") or {}
-    if not isinstance(gt, dict):
-        problems.note(index, "gt", f"expected an object, got {type(gt).__name__}")
-        gt = {}
-    annotations = data.get("annotations", {})
-    if not isinstance(annotations, dict):
-        problems.note(index, "annotations", f"expected an object {{key: value}}, got {type(annotations).__name__}")
-        annotations = {}
-    if not ok:
+    version, name = data.get("format_version", FORMAT_VERSION), data.get("object")
+    bad = _check_fields(
+        problems,
+        index,
+        "",
+        data,
+        format=(data.get("format", FORMAT_NAME) == FORMAT_NAME, repr(FORMAT_NAME)),
+        format_version=(
+            _is_int(version) and version == FORMAT_VERSION,
+            f"{FORMAT_VERSION} (the version this tacsplat reads)",
+        ),
+        units=(data.get("units") == "m", "'m' (all tacsplat scenes are in metres)"),
+        source=(data.get("source") in SOURCES, f"one of {SOURCES}"),
+        object=(isinstance(name, str) and name, "the object's name"),
+        capture_plan=(isinstance(data.get("capture_plan", {}), dict), "an object"),
+        extra=(isinstance(data.get("extra", {}), dict), "an object"),
+        gt=(isinstance(data.get("gt") or {}, dict), "an object"),
+        annotations=(isinstance(data.get("annotations", {}), dict), "an object {key: value}"),
+    )
+    if {"source", "object", "capture_plan", "extra"}.intersection(bad):
         raise _Dropped
     meta = SceneMeta(**{key: data[key] for key in ("source", "object", "capture_plan", "extra") if key in data})
+    gt, annotations = ({} if key in bad else data.get(key) or {} for key in ("gt", "annotations"))
     return meta, str(data.get("tacsplat_version", "")), gt, annotations
 
 
@@ -646,8 +626,7 @@ def _read_sensor(raw, index: Path, problems: _Problems) -> SensorModel:
 
 def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[SensorModel | None, list[Touch]]:
     index = path / "touches.json"
-    data = problems.attempt(_read_json, index, problems, False)
-    if data is None:
+    if (data := problems.attempt(_read_json, index, problems, False)) is None:
         return None, []
     sensor = None if data.get("sensor") is None else problems.attempt(_read_sensor, data["sensor"], index, problems)
     raw_touches = data.get("touches", [])
@@ -671,18 +650,17 @@ def _read_touch(
 ) -> Touch:
     index = path / "touches.json"
     tid = _entry_id(raw, index, field, "touch", seen, problems)
-    grasp, finger, in_contact, hand_file = (
-        raw.get("grasp"),
-        raw.get("finger"),
-        raw.get("in_contact"),
-        raw.get("hand_file"),
-    )
-    if not _is_int(grasp) or grasp < 0:
-        problems.report(index, f"{field}.grasp", f"expected a non-negative integer, got {grasp!r}")
-    if not isinstance(finger, str) or not finger:
-        problems.report(index, f"{field}.finger", f"expected a finger name, got {finger!r}")
-    if not isinstance(in_contact, bool):
-        problems.report(index, f"{field}.in_contact", f"expected true or false, got {in_contact!r}")
+    grasp, finger, in_contact, hand_file = (raw.get(key) for key in ("grasp", "finger", "in_contact", "hand_file"))
+    if _check_fields(
+        problems,
+        index,
+        f"{field}.",
+        raw,
+        grasp=(_is_int(grasp) and grasp >= 0, "a non-negative integer"),
+        finger=(isinstance(finger, str) and finger, "a finger name"),
+        in_contact=(isinstance(in_contact, bool), "true or false"),
+    ):
+        raise _Dropped
     depth_path = problems.attempt(_relative_file, path, raw.get("depth_file"), index, f"{field}.depth_file", problems)
     T = _pose(raw.get("T_world_sensor"), index, f"{field}.T_world_sensor", problems)
     if depth_path is None:

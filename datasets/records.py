@@ -83,8 +83,7 @@ def pose_problem(T) -> str | None:
         return "expected a 4x4 matrix of numbers"
     if problem := rigidity_problem(T):
         return f"not a rigid transform: {problem}"
-    distance = float(np.linalg.norm(T[:3, 3]))
-    if distance > MAX_DISTANCE_M:
+    if (distance := float(np.linalg.norm(T[:3, 3]))) > MAX_DISTANCE_M:
         return f"its origin is {distance:.3g} metres from the origin; no scene is larger than {MAX_DISTANCE_M:g} m (wrong units?)"
     return None
 
@@ -145,7 +144,14 @@ def _same(a, b) -> bool:
 
 
 class _ByValue:
-    """Equality of frozen dataclass records field by field (:func:`_same`); unhashable, as their arrays are."""
+    """Equality of frozen dataclass records field by field (:func:`_same`); unhashable, as their arrays are. Their
+    poses (``T_world_*`` fields) are checked and frozen."""
+
+    def __post_init__(self):
+        for f in fields(self):
+            if f.name.startswith("T_world_"):
+                name = f"{type(self).__name__.lower()} {self.id} {f.name}"
+                object.__setattr__(self, f.name, _frozen_pose(getattr(self, f.name), name))
 
     def __eq__(self, other) -> bool:
         if type(other) is not type(self):
@@ -167,9 +173,6 @@ class Frame(_ByValue):
     intrinsics: CameraIntrinsics
     mask_path: str | None = None  # greyscale PNG, 255 = use the pixel, 0 = ignore it
 
-    def __post_init__(self):
-        object.__setattr__(self, "T_world_cam", _frozen_pose(self.T_world_cam, f"frame {self.id} T_world_cam"))
-
 
 @dataclass(frozen=True, eq=False)
 class Touch(_ByValue):
@@ -182,9 +185,6 @@ class Touch(_ByValue):
     T_world_sensor: np.ndarray  # [4, 4] float64
     in_contact: bool
     hand_file: str | None = None  # the grasp's HandMotion (scenes of a hand capture; None: not recorded)
-
-    def __post_init__(self):
-        object.__setattr__(self, "T_world_sensor", _frozen_pose(self.T_world_sensor, f"touch {self.id} T_world_sensor"))
 
 
 # HandMotion.phase: where the hand was, closing, opening, sliding its pads along the surface in contact
@@ -243,15 +243,8 @@ class HandMotion:
 def hand_motion_problem(m: HandMotion) -> str | None:
     """Why a HandMotion is not one (shapes that disagree, values that are not finite, a bad pose), or None."""
     S, J, L = len(np.atleast_1d(m.t)), len(m.joint_names), len(m.link_names)
-    shapes = {
-        "t": (S,),
-        "phase": (S,),
-        "q": (S, J),
-        "q_target": (S, J),
-        "effort": (S, J),
-        "link_half_extents": (L, 3),
-        "link_poses": (S, L, 4, 4),
-    }
+    shapes = {"t": (S,), "phase": (S,), "q": (S, J), "q_target": (S, J), "effort": (S, J)}
+    shapes.update(link_half_extents=(L, 3), link_poses=(S, L, 4, 4))
     for name, shape in shapes.items():
         value = np.asarray(getattr(m, name))
         if value.shape != shape:
@@ -310,20 +303,17 @@ class SceneMeta:
 
 def sensor_problem(sensor: SensorModel) -> str | None:
     """Why a sensor model is invalid, or None."""
-    if not isinstance(sensor.name, str) or not sensor.name:
-        return f"name must be a non-empty string, got {sensor.name!r}"
-    for name in ("width_px", "height_px"):
-        value = getattr(sensor, name)
-        if not is_size(value):
-            return f"{name} must be a positive integer up to {MAX_IMAGE_SIDE}, got {value!r}"
-    for name in ("pixel_size_m", "gel_thickness_m"):
-        value = getattr(sensor, name)
-        if not is_finite_number(value):
-            return f"{name} must be a finite number, got {value!r}"
-        if not value > 0:
-            return f"{name} must be positive, got {value}"
-    extent = sensor.pixel_size_m * max(sensor.width_px, sensor.height_px)
-    if extent > MAX_DISTANCE_M:
+    length, gel = sensor.pixel_size_m, sensor.gel_thickness_m
+    for name, fine, expected in (
+        ("name", isinstance(sensor.name, str) and sensor.name, "a non-empty string"),
+        ("width_px", is_size(sensor.width_px), f"a positive integer up to {MAX_IMAGE_SIDE}"),
+        ("height_px", is_size(sensor.height_px), f"a positive integer up to {MAX_IMAGE_SIDE}"),
+        ("pixel_size_m", is_finite_number(length) and length > 0, "positive and finite"),
+        ("gel_thickness_m", is_finite_number(gel) and gel > 0, "positive and finite"),
+    ):
+        if not fine:
+            return f"{name} must be {expected}, got {getattr(sensor, name)!r}"
+    if (extent := sensor.pixel_size_m * max(sensor.width_px, sensor.height_px)) > MAX_DISTANCE_M:
         return (
             f"pixel_size_m {sensor.pixel_size_m:.3g} makes the sensor {extent:.3g} m wide; no scene is larger than "
             f"{MAX_DISTANCE_M:g} m (wrong units?)"

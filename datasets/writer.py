@@ -148,10 +148,13 @@ def removed_on_failure(out: Path):
 
 
 @contextmanager
-def new_import(out: Path, intrinsics: CameraIntrinsics, meta: SceneMeta):
+def new_import(out: Path, intrinsics: CameraIntrinsics, importer: str, source: Path, name: str | None, **extra):
     """The writer of an importer's scene ``out``: a new or empty folder, claimed as the ``--out`` of a writing
-    command (``datasets.outputs``) and removed again when the import fails."""
+    command (``datasets.outputs``) and removed again when the import fails. Its provenance: the object ``name``
+    (default: the ``source`` path's last part), ``importer``, ``source``'s absolute path, then ``extra``."""
     check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
+    source = Path(source).resolve()
+    meta = SceneMeta("import", name or source.name, extra={"importer": importer, "source_path": str(source), **extra})
     with claim_output_dir(out), removed_on_failure(out), SceneWriter.create(out, intrinsics, meta) as writer:
         yield writer
 
@@ -184,21 +187,15 @@ class SceneWriter:
     (also a context manager).
     """
 
-    def __init__(
-        self,
-        path: Path,
-        intrinsics: CameraIntrinsics,
-        meta: SceneMeta,
-        sensor: SensorModel | None,
-        created: str,
-        version: str,
-    ):
+    def __init__(self, path: Path, header: dict):
+        """The writer of scene ``path`` whose journal starts with ``header`` (its 'create' record), before any
+        record is applied."""
         self.path = Path(path)
-        self.intrinsics = intrinsics
-        self.meta = meta
-        self.sensor = sensor
-        self._created = created
-        self._version = version
+        self.intrinsics = intrinsics_from_json(header["intrinsics"])
+        self.meta = SceneMeta(**header["meta"])
+        self.sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
+        self._created = header["created"]
+        self._version = header.get("tacsplat_version", tacsplat.__version__)
         self.frames: list[Frame] = []
         self.touches: list[Touch] = []
         self.gt_depth_files: dict[int, str] = {}  # frame id -> the path in the scene of its ground-truth depth
@@ -231,6 +228,16 @@ class SceneWriter:
         # The journal is written under a name every creator of this folder opens, and locked before the folder is
         # checked, so of two processes creating one scene at once the second is refused, naming the first.
         creating = path / f".{JOURNAL}.new{TEMP_SUFFIX}"
+        header = {
+            "op": "create",
+            "format": FORMAT_NAME,
+            "format_version": FORMAT_VERSION,
+            "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "tacsplat_version": tacsplat.__version__,
+            "intrinsics": intrinsics_to_json(intrinsics),
+            "sensor": sensor_to_json(sensor),
+            "meta": asdict(meta),
+        }
         journal = _lock_journal(creating, path)
         try:
             try:
@@ -239,8 +246,13 @@ class SceneWriter:
                 creating.unlink(missing_ok=True)
                 raise
             record_writer(path)
-            try:
-                writer = cls._start(path, intrinsics, meta, sensor, journal)
+            try:  # the folders and index files, then the journal: its header is what makes the folder resumable
+                _make_folders(path, "images", "touches", "gt", "gt/depth")
+                writer = cls(path, header)
+                writer._materialise("transforms", "touches", "scene")
+                journal.truncate(0)  # (the file of a creation that crashed before its rename)
+                writer._journal = journal
+                writer._append(header)
                 os.rename(creating, path / JOURNAL)
             except BaseException as exc:
                 # a scene that never got its journal holds nothing: what it wrote goes, so a rerun can start again
@@ -253,31 +265,6 @@ class SceneWriter:
         except BaseException:
             journal.close()
             raise
-        return writer
-
-    @classmethod
-    def _start(
-        cls, path: Path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None, journal
-    ) -> "SceneWriter":
-        """The folders and index files of a new scene, and its journal header in ``journal`` (not yet named)."""
-        _make_folders(path, "images", "touches", "gt", "gt/depth")
-        created = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-        writer = cls(path, intrinsics, meta, sensor, created, tacsplat.__version__)
-        writer._materialise("transforms", "touches", "scene")
-        # The journal appears last: its header is what makes the folder resumable.
-        header = {
-            "op": "create",
-            "format": FORMAT_NAME,
-            "format_version": FORMAT_VERSION,
-            "created": created,
-            "tacsplat_version": writer._version,
-            "intrinsics": intrinsics_to_json(intrinsics),
-            "sensor": sensor_to_json(sensor),
-            "meta": asdict(meta),
-        }
-        journal.truncate(0)  # (the file of a creation that crashed before its rename)
-        writer._journal = journal
-        writer._append(header)
         return writer
 
     @classmethod
@@ -313,41 +300,27 @@ class SceneWriter:
 
     @classmethod
     def _replay(cls, path: Path, entries: list[dict]) -> "SceneWriter":
-        journal_path = path / JOURNAL
-        header = entries[0]
-        if header.get("op") != "create":
-            raise SceneFormatError(journal_path, "line 1", f"expected the 'create' header, got op {header.get('op')!r}")
-        try:
-            sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
-            writer = cls(
-                path,
-                intrinsics_from_json(header["intrinsics"]),
-                SceneMeta(**header["meta"]),
-                sensor,
-                header["created"],
-                header.get("tacsplat_version", tacsplat.__version__),
-            )
-        except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
-            raise SceneFormatError(journal_path, "line 1", f"invalid header: {exc}") from exc
-        for lineno, entry in enumerate(entries[1:], start=2):
+        writer = None
+        for lineno, entry in enumerate(entries, start=1):
             try:
-                writer._apply(entry)
+                if writer is not None:
+                    writer._apply(entry)
+                elif entry.get("op") != "create":
+                    raise ValueError("the journal must start with the 'create' header")
+                else:
+                    writer = cls(path, entry)
             except (KeyError, TypeError, ValueError, OverflowError, InvalidInputError) as exc:
-                raise SceneFormatError(
-                    journal_path, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}"
-                ) from exc
+                error = SceneFormatError(path / JOURNAL, f"line {lineno}", f"invalid {entry.get('op')!r} record: {exc}")
+                raise error from exc
         return writer
 
     def _remove_leftovers(self) -> int:
         """Delete temporary files and record files no journal record refers to (a crash's in-flight record,
         an undo cut short); returns how many."""
         live = (
-            {f.file_path for f in self.frames}
-            | {f.mask_path for f in self.frames}
-            | {t.depth_file for t in self.touches}
-            | {t.hand_file for t in self.touches}
-            | set(self.gt_depth_files.values())
+            {f.file_path for f in self.frames} | {f.mask_path for f in self.frames} | set(self.gt_depth_files.values())
         )
+        live |= {t.depth_file for t in self.touches} | {t.hand_file for t in self.touches}
         count = 0
         for sub in ("", "images", "masks", "touches", "grasps", "gt", "gt/depth"):
             if not (self.path / sub).is_dir():
@@ -409,14 +382,18 @@ class SceneWriter:
         else:
             raise ValueError(f"unknown op {op!r}")
 
-    def _record(self, entry: dict, *index: str) -> None:
-        """Journal ``entry`` durably, apply it, then rewrite the affected index files."""
+    def _record(self, entry: dict) -> None:
+        """Journal ``entry`` durably, apply it, then rewrite the index files it changes: that of its kind of record
+        (scene.json for the ground truth and annotations), and scene.json when it adds or removes a frame's
+        ground-truth depth."""
         if self._journal is None:
             raise InvalidInputError(f"SceneWriter for {self.path} is closed")
+        kind = entry.get("kind", entry["op"])
+        gt = entry.get("gt_depth") or (kind == "frame" and entry.get("id") in self.gt_depth_files)
         entry = {**entry, "t": time.time()}
         self._append(entry)
         self._apply(entry)
-        self._materialise(*index)
+        self._materialise({"frame": "transforms", "touch": "touches"}.get(kind, "scene"), *(["scene"] if gt else []))
 
     def _append(self, entry: dict) -> None:
         """Append ``entry`` to the journal as one line, durably (fsync). When the write fails (a full disk) the
@@ -496,30 +473,27 @@ class SceneWriter:
         every frame or on none (as nerfstudio reads them).
         """
         intr = _check_intrinsics(self.intrinsics if intrinsics is None else intrinsics)
-        image = np.asarray(image)
-        if image.dtype != np.uint8:
-            raise InvalidInputError(f"image: expected uint8 RGB, got dtype {image.dtype}")
-        if image.shape != (intr.height, intr.width, 3):
+        h, w, image = intr.height, intr.width, np.asarray(image)
+        if image.dtype != np.uint8 or image.shape != (h, w, 3):
             raise InvalidInputError(
-                f"image: expected shape {(intr.height, intr.width, 3)} from the intrinsics, got {image.shape}"
+                f"image: expected uint8 RGB {(h, w, 3)} (the intrinsics'), got {image.dtype} {image.shape}"
             )
         pose = check_pose(T_world_cam, "T_world_cam")
         if split not in SPLITS:
             raise InvalidInputError(f"split: expected one of {SPLITS}, got {split!r}")
         if gt_depth is not None:
-            gt_depth = _check_depth(gt_depth, (intr.height, intr.width), "gt_depth", GT_DEPTH_LIMIT)
+            gt_depth = _check_depth(gt_depth, (h, w), "gt_depth", GT_DEPTH_LIMIT)
         if gt_normal is not None:
             if gt_depth is None:
                 raise InvalidInputError("gt_normal: needs gt_depth (both are the ground truth of one view)")
             gt_normal = np.asarray(gt_normal, dtype=np.float32)
-            if problem := normal_map_problem(gt_normal, (intr.height, intr.width)):
+            if problem := normal_map_problem(gt_normal, (h, w)):
                 raise InvalidInputError(f"gt_normal: {problem}")
         if mask is not None:
             mask = np.asarray(mask)
-            if mask.dtype != np.bool_ or mask.shape != (intr.height, intr.width):
+            if mask.dtype != np.bool_ or mask.shape != (h, w):
                 raise InvalidInputError(
-                    f"mask: expected bool {(intr.height, intr.width)} from the intrinsics, got "
-                    f"{mask.dtype} {mask.shape}"
+                    f"mask: expected bool {(h, w)} (the intrinsics'), got {mask.dtype} {mask.shape}"
                 )
         if self.frames and (self.frames[0].mask_path is None) != (mask is None):
             raise InvalidInputError(
@@ -533,16 +507,11 @@ class SceneWriter:
         if mask_path is not None:
             (self.path / "masks").mkdir(exist_ok=True)
             atomic_write_bytes(self.path / mask_path, encode_png(np.where(mask, 255, 0).astype(np.uint8)))
-        gt_file = None
-        if gt_depth is not None:
-            gt_file = f"gt/depth/{fid:06d}.npz"
+        gt_file = None if gt_depth is None else f"gt/depth/{fid:06d}.npz"
+        if gt_file is not None:
             normal = {} if gt_normal is None else {"normal": gt_normal}
             atomic_write_bytes(self.path / gt_file, encode_npz(depth=gt_depth, **normal))
-        self._record(
-            {"op": "frame", "frame": frame_to_json(frame), "gt_depth": gt_file},
-            "transforms",
-            *(["scene"] if gt_file else []),
-        )
+        self._record({"op": "frame", "frame": frame_to_json(frame), "gt_depth": gt_file})
         return frame
 
     def add_hand_motion(self, motion: HandMotion) -> str:
@@ -578,7 +547,7 @@ class SceneWriter:
         if hand_file is not None and not (self.path / hand_file).is_file():
             raise InvalidInputError(f"hand_file: {self.path / hand_file} does not exist (write it by add_hand_motion)")
         atomic_write_bytes(self.path / touch.depth_file, encode_npz(depth=depth))
-        self._record({"op": "touch", "touch": touch_to_json(touch)}, "touches")
+        self._record({"op": "touch", "touch": touch_to_json(touch)})
         return touch
 
     def add_reading(self, reading: TactileReading, grasp: int, finger: str, hand_file: str | None = None) -> Touch:
@@ -600,18 +569,15 @@ class SceneWriter:
             src = Path(mesh)
             if not src.is_file():
                 raise InvalidInputError(f"mesh: {src} does not exist")
-            data = (
-                src.read_bytes()
-                if src.suffix.lower() == ".ply"
-                else trimesh.load(src, force="mesh").export(file_type="ply")
-            )
+            ply = src.suffix.lower() == ".ply"
+            data = src.read_bytes() if ply else trimesh.load(src, force="mesh").export(file_type="ply")
         elif isinstance(mesh, trimesh.Trimesh):
             data = mesh.export(file_type="ply")
         else:
             raise InvalidInputError(f"mesh: expected a path or trimesh.Trimesh, got {type(mesh).__name__}")
         rel = "gt/mesh.ply"
         atomic_write_bytes(self.path / rel, data)
-        self._record({"op": "gt_mesh", "path": rel}, "scene")
+        self._record({"op": "gt_mesh", "path": rel})
         return self.path / rel
 
     def set_gt_points(self, points: np.ndarray) -> Path:
@@ -626,7 +592,7 @@ class SceneWriter:
             raise InvalidInputError("points: contain NaN or infinite values")
         rel = "gt/points.ply"
         atomic_write_bytes(self.path / rel, trimesh.PointCloud(points).export(file_type="ply"))
-        self._record({"op": "gt_points", "path": rel}, "scene")
+        self._record({"op": "gt_points", "path": rel})
         return self.path / rel
 
     def annotate(self, key: str, value) -> None:
@@ -644,7 +610,7 @@ class SceneWriter:
                 f"annotation {key!r}: expected plain JSON data; it would read back changed "
                 "(a tuple, or a dict key that is not a string?)"
             )
-        self._record({"op": "annotation", "key": key, "value": plain}, "scene")
+        self._record({"op": "annotation", "key": key, "value": plain})
 
     def remove_last(self) -> Frame | Touch:
         """Undo the most recent frame or touch (the operator's undo); its id is reused next."""
@@ -653,11 +619,7 @@ class SceneWriter:
         kind, rid = self._order[-1]
         record = self.frames[-1] if kind == "frame" else self.touches[-1]
         gt_file = self.gt_depth_files.get(rid) if kind == "frame" else None
-        self._record(
-            {"op": "remove", "kind": kind, "id": rid},
-            "transforms" if kind == "frame" else "touches",
-            *(["scene"] if gt_file else []),
-        )
+        self._record({"op": "remove", "kind": kind, "id": rid})
         files = [record.file_path, record.mask_path, gt_file] if kind == "frame" else [record.depth_file]
         if kind == "touch" and record.hand_file and all(t.hand_file != record.hand_file for t in self.touches):
             files.append(record.hand_file)  # its grasp's last touch
@@ -740,10 +702,8 @@ def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
     """Parse the journal; a torn or unparseable *last* line (a write cut by a crash) is dropped (and, with
     ``truncate``, cut from the file)."""
     data = path.read_bytes()
-    lines = data.split(b"\n")
-    complete, tail = lines[:-1], lines[-1]  # tail is b"" when the file ends with a newline
-    entries: list[dict] = []
-    good_bytes = 0
+    *complete, tail = data.split(b"\n")  # tail is b"" when the file ends with a newline
+    entries, good_bytes = [], 0
     for i, raw in enumerate(complete):
         try:
             entry = json.loads(raw)
@@ -761,7 +721,6 @@ def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
     if truncate and good_bytes != len(data):
         with open(path, "r+b") as f:
             f.truncate(good_bytes)
-            f.flush()
             os.fsync(f.fileno())
     if not entries:
         raise SceneFormatError(path, "line 1", "the journal is empty")

@@ -160,7 +160,7 @@ def test_writer_rejects_bad_arguments_naming_them(tmp_path, h):
         far_pose[:3, 3] = [2e5, 0.0, 0.0]
         cases = [
             (lambda: w.add_frame(h.frame_image(0), bad_pose), "T_world_cam: not a rigid"),
-            (lambda: w.add_frame(h.frame_image(0)[:5], h.ring_pose(0)), "image: expected shape"),
+            (lambda: w.add_frame(h.frame_image(0)[:5], h.ring_pose(0)), r"image: expected uint8 RGB \(12, 16, 3\)"),
             (lambda: w.add_frame(h.frame_image(0).astype(np.float32), h.ring_pose(0)), "image: expected uint8"),
             (lambda: w.add_frame(h.frame_image(0), h.ring_pose(0), split="val"), "split"),
             (
