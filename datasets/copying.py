@@ -29,7 +29,7 @@ def copy_scene(
     progress: bool = False,
 ) -> Path:
     """Write a new scene in ``dst`` (a new or empty folder) holding ``frames`` of ``src`` (a scene folder or a
-    loaded :class:`Scene`; in the order given, default all) with their intrinsics and ground-truth depth, and
+    loaded :class:`Scene`; in the order given, default all) with their intrinsics, ground-truth depth and normals, and
     ``touches`` (records of ``src``, in the order given; default all), grasp and finger kept, ids renumbered.
     The ground-truth point cloud, if any, is copied.
 
@@ -69,6 +69,7 @@ def copy_scene(
                 scene.gt_depth(frame),
                 frame.intrinsics,
                 mask=scene.load_mask(frame),
+                gt_normal=scene.gt_normal(frame),
             )
         motions = {}  # the source's hand file -> the copy's
         for touch in touches:

@@ -165,6 +165,22 @@ def test_nero_import_errors_name_the_file(tmp_path, capsys):
     assert not (tmp_path / "b").exists()
 
 
+def test_a_copy_keeps_the_ground_truth_normals(tmp_path):
+    """The benches copy an import before adding touches: its normal maps must come along for the normal error."""
+    from tacsplat.datasets import copy_scene
+
+    scene = Scene.load(import_blender(make_shiny_blender(tmp_path, 2, 2), tmp_path / "s", background_rgb=(0, 0, 0)))
+    copy = Scene.load(copy_scene(scene, tmp_path / "copy"))
+    test = scene.split("test")
+    assert test and all(scene.gt_normal(f) is not None for f in test)
+    for frame, copied in zip(scene.frames, copy.frames):
+        normal = scene.gt_normal(frame)
+        if normal is None:
+            assert copy.gt_normal(copied) is None
+        else:
+            np.testing.assert_array_equal(copy.gt_normal(copied), normal)
+
+
 def test_ground_truth_points_are_copied_and_a_damaged_file_is_named(tmp_path):
     from tacsplat.datasets import copy_scene
 
