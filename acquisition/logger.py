@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -79,14 +79,19 @@ class PoseSource(Protocol):
         ...
 
 
+def opencv_K(K: np.ndarray) -> np.ndarray:
+    """tacsplat's intrinsics (pixel centres at +0.5) as OpenCV's (centres at integers): the inverse of
+    :func:`~tacsplat.drivers.wrist_camera.tacsplat_K_from_opencv`."""
+    return np.asarray(K, dtype=np.float64) - [[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]
+
+
 class BoardPoseSource:
     """A real rig's poses: ChArUco board PnP on undistorted frames; the hand from the hand-eye transform."""
 
     def __init__(self, camera: Camera, board: BoardConfig, T_hand_cam: np.ndarray):
         self.board = board
         self.spec = board.spec()
-        self.K_opencv = np.array(camera.K, dtype=np.float64)
-        self.K_opencv[:2, 2] -= 0.5  # tacsplat's pixel centres at +0.5 -> OpenCV's at integers
+        self.K_opencv = opencv_K(camera.K)
         self.T_cam_hand = invert_pose(check_rigid(T_hand_cam, "T_hand_cam"))
 
     def measure(self, image: np.ndarray) -> PoseEstimate:
@@ -110,7 +115,7 @@ class BoardPoseSource:
 
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
         est = self.camera_pose(image)
-        return PoseEstimate(est.T @ self.T_cam_hand, est.reprojection_px, est.corners, est.position_std_m)
+        return replace(est, T=est.T @ self.T_cam_hand)
 
     def ground_truth_depth(self) -> None:
         return None
@@ -242,8 +247,7 @@ class CaptureLogger:
         want = len(self.sensors) if touch_t is None else len(touch_t)  # (a slide adds touches)
         if have >= want:
             return 0
-        for _ in range(have):
-            w.remove_last()
+        self._remove_last_grasp()
         log.warning("grasp %d was cut short (%d of %d touches): removed, to be redone whole", g, have, want)
         return have
 
@@ -354,11 +358,7 @@ class CaptureLogger:
         """``(seconds since t0, sensor name, reading in the hand frame)`` of each sensor, read now."""
         rows = []
         for sensor in sensors:
-            reading = sensor.read()
-            if reading.frame != "hand":
-                raise InvalidInputError(
-                    f"sensor {sensor.name!r}: expected a reading in the hand frame, got {reading.frame!r}"
-                )
+            reading = sensor.read()  # (then the time: after the read, as a real sensor's frame arrives)
             rows.append((self.clock.time - t0, sensor.name, reading))
         return rows
 
@@ -466,12 +466,16 @@ class CaptureLogger:
         if last[0] == "frame":
             frame = w.remove_last()
             return f"view {frame.id} ({frame.split})"
+        return "grasp {} ({} touches)".format(*self._remove_last_grasp())
+
+    def _remove_last_grasp(self) -> tuple[int, int]:
+        """Remove the touches of the last grasp (the last records); returns its number and how many went."""
+        w, removed = self.writer, 0
         g = w.touches[-1].grasp
-        removed = 0
         while w.last_record is not None and w.last_record[0] == "touch" and w.touches[-1].grasp == g:
             w.remove_last()
             removed += 1
-        return f"grasp {g} ({removed} touches)"
+        return g, removed
 
 
 def _pad_pose(hand: Hand, q: np.ndarray, gel: int) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.config import BoardConfig
-from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected
+from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected, opencv_K
 from tacsplat.drivers.press_calibration import MIN_CONTACT_POINTS, Press
 from tacsplat.errors import CameraError, ConfigError, HandError, TactileError
 from tacsplat.geometry import invert_pose, make_pose, tactile_depth_to_points
@@ -122,10 +122,8 @@ def board_seen(board: BoardConfig, K: np.ndarray, image_size: tuple[int, int], T
     if T_board_cam[2, 3] <= 0.02:  # the camera under, or on, the board
         return None
     image = render_board(board.spec(), K, *image_size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
-    K_opencv = K.copy()
-    K_opencv[:2, 2] -= 0.5
     try:
-        pose = board_pose(image, board.spec(), K_opencv, None, board.min_corners)
+        pose = board_pose(image, board.spec(), opencv_K(K), None, board.min_corners)
     except CameraError:
         return None
     return pose if pose.rms_px <= board.max_reprojection_px else None
