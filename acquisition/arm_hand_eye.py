@@ -205,5 +205,4 @@ def _previous_T_hand_cam(config: RigConfig, calibration) -> np.ndarray | None:
     named = config.camera.hand_eye
     if config.camera.T_hand_cam is None and named and not config.path(named).is_file():
         return calibration.T_hand_cam
-    previous = rig_T_hand_cam(config)
-    return previous if previous is not None else calibration.T_hand_cam
+    return rig_T_hand_cam(config, calibration)

@@ -88,14 +88,9 @@ def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) 
             from tacsplat.acquisition.mock import MockDevices
 
             mock = stack.enter_context(MockDevices(config))
-            cam_source, cam_cal = mock.camera_source, str(mock.camera_calibration)
-        else:
-            cam_source, cam_cal = config.camera.source, str(config.path(config.camera.calibration))
-        factory = (lambda name: {"capture_factory": mock.capture_factory(name)}) if mock else (lambda name: {})
+        cam_cal = str(mock.camera_calibration if mock else config.path(config.camera.calibration))
         calibration = CameraCalibration.load(cam_cal)
-        T_hand_cam = rig_T_hand_cam(config)
-        if T_hand_cam is None:
-            T_hand_cam = calibration.T_hand_cam
+        T_hand_cam = rig_T_hand_cam(config, calibration)
         if T_hand_cam is None and not hand_eye_required:
             from tacsplat.sim.hand import nominal_T_hand_cam
 
@@ -113,10 +108,9 @@ def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) 
                 calibration.board,
                 config.board.spec(),
             )
+        cam_source, reader = device_source(mock, "camera", config.camera.source)
         camera = stack.enter_context(
-            WristCamera(
-                cam_source, calibration, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **factory("camera")
-            )
+            WristCamera(cam_source, calibration, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **reader)
         )
         hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None  # --mock: as real
         hand = dynamixel_hand(config, mock, hand_cal)
@@ -126,11 +120,8 @@ def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) 
         sensors, model, mounts = [], None, rig_mounts(config)
         for i, s in enumerate(config.tactile.sensors):
             T_mount = mounts.get(s.finger, np.eye(4))
-            if mock is not None:
-                source, cal = str(mock.tactile_video(s.finger)), str(mock.tactile_calibration)
-            else:
-                source, cal = s.source, str(config.path(s.calibration))
-            tcal = TactileCalibration.load(cal)
+            source, reader = device_source(mock, s.finger, s.source)
+            tcal = TactileCalibration.load(str(mock.tactile_calibration if mock else config.path(s.calibration)))
             this = SensorModel(
                 config.tactile.sensor_name,
                 int(tcal.image_size[1]),
@@ -148,9 +139,7 @@ def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) 
             pose = lambda finger=s.finger, T=T_mount: hand.fingertip_poses()[finger] @ T
             timeout_s = config.tactile.timeout_s
             sensors.append(
-                stack.enter_context(
-                    OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=timeout_s, **factory(s.finger))
-                )
+                stack.enter_context(OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=timeout_s, **reader))
             )
         rig = Rig(
             kind="real",
@@ -211,21 +200,31 @@ def twin_config(config: RigConfig):
         servo_signs=s.true_errors.servo_signs(),
         hand_calibration=str(config.path(config.hand.calibration)) if config.hand.calibration else None,
         hand_eye_error=_rows(s.true_errors.hand_eye.matrix()),
-        T_hand_cam=_rows(rig_T_hand_cam(config)) if rig_T_hand_cam(config) is not None else None,
+        T_hand_cam=None if (T := rig_T_hand_cam(config)) is None else _rows(T),
         mounts={finger: _rows(T) for finger, T in rig_mounts(config).items()},
         mount_errors={finger: _rows(e.matrix()) for finger, e in s.true_errors.mounts.items()},
     )
 
 
-def rig_T_hand_cam(config: RigConfig) -> np.ndarray | None:
-    """The rig's ``T_hand_cam``: the rig file's ``camera.T_hand_cam``, else its ``camera.hand_eye`` file's; None."""
+def rig_T_hand_cam(config: RigConfig, calibration=None) -> np.ndarray | None:
+    """The rig's ``T_hand_cam``: the rig file's ``camera.T_hand_cam``, else its ``camera.hand_eye`` file's, else
+    the camera ``calibration``'s (if given); None."""
     if config.camera.T_hand_cam is not None:
         return np.asarray(config.camera.T_hand_cam, dtype=np.float64)
     if config.camera.hand_eye:
         from tacsplat.drivers.press_calibration import load_hand_eye
 
         return load_hand_eye(config.path(config.camera.hand_eye))
-    return None
+    return None if calibration is None else calibration.T_hand_cam
+
+
+def device_source(mock, name: str, source: str) -> tuple[str, dict]:
+    """``(source, reader keywords)`` of video device ``name`` ("camera" or a finger): ``source`` (the rig file's),
+    or on ``--mock`` the emulated device's, read through a ``capture_factory`` that loops it."""
+    if mock is None:
+        return source, {}
+    own = mock.camera_source if name == "camera" else str(mock.tactile_video(name))
+    return own, {"capture_factory": mock.capture_factory(name)}
 
 
 def rig_mounts(config: RigConfig) -> dict[str, np.ndarray]:

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from tacsplat.errors import CameraError
-from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv
+from tacsplat.geometry import focal_from_fov, intrinsics_matrix, make_pose, opengl_to_opencv
 from tacsplat.types import CameraIntrinsics
 
 
@@ -71,10 +71,7 @@ class MujocoCamera:
     def pose(self) -> np.ndarray:
         """OpenCV camera-to-world pose [4, 4] from the simulation state."""
         data = self._twin.data
-        T_gl = np.eye(4)
-        T_gl[:3, :3] = data.cam_xmat[self._cam_id].reshape(3, 3)
-        T_gl[:3, 3] = data.cam_xpos[self._cam_id]
-        return opengl_to_opencv(T_gl)
+        return opengl_to_opencv(make_pose(data.cam_xmat[self._cam_id].reshape(3, 3), data.cam_xpos[self._cam_id]))
 
     def read(self) -> tuple[np.ndarray, float]:
         """``(image [H, W, 3] uint8 RGB, simulated time in seconds)``."""
