@@ -84,6 +84,11 @@ def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     return 1000 * float(np.linalg.norm(D[:3, 3])), float(np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()))
 
 
+def pose_change(T_from: np.ndarray, T_to: np.ndarray) -> str:
+    """``"1.23 mm, 0.45 deg"`` from pose ``T_from`` to pose ``T_to``."""
+    return "{:.2f} mm, {:.2f} deg".format(*_gap(T_from, T_to))
+
+
 def _axis_spread_deg(T_base_hand: list[np.ndarray]) -> float:
     """The widest angle (degrees, 0-90) between the rotation axes of two of the hand's motions between stations
     that turn it at least :data:`MIN_TURN_DEG` (0 when fewer than two do)."""
@@ -191,8 +196,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
         f"{gaps[farthest, 0]:.2f} mm, {gaps[farthest, 1]:.3f} deg)"
     )
     if previous is not None:
-        mm, deg = _gap(previous, T_hand_cam)
-        say(f"T_hand_cam: {mm:.2f} mm, {deg:.2f} deg from the rig's previous value")
+        say(f"T_hand_cam: {pose_change(previous, T_hand_cam)} from the rig's previous value")
     say(f"wrote {out} (name it as camera.hand_eye in the rig file)")
     return T_hand_cam
 

@@ -169,7 +169,6 @@ TWIN_CONTROL = GraspControl(
     poll_s=0.01,
     stall_error_rad=0.08,
     settle_tol_rad=0.002,
-    settle_polls=3,
     max_close_s=2.0,
     open_s=0.2,
 )

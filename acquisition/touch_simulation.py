@@ -15,7 +15,6 @@ scene the same way.
 from __future__ import annotations
 
 from contextlib import ExitStack
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -57,16 +56,11 @@ class SceneUnits:
         return T
 
 
-@dataclass
 class ScaledPad:
     """A twin pad (``TactileSensor``) whose readings are in the scene's units."""
 
-    pad: object
-    units: SceneUnits
-
-    @property
-    def name(self) -> str:
-        return self.pad.name
+    def __init__(self, pad, units: SceneUnits):
+        self.pad, self.units, self.name = pad, units, pad.name
 
     def read(self) -> TactileReading:
         r, s = self.pad.read(), self.units.scale
@@ -98,12 +92,10 @@ def touch_settings(
     naming it: ``grasps``, ``object_radius``, ``seed``, ``model``, ``surface_points``)."""
     touches = TouchPlan(model=touch_model, surface_points=surface_points)
     validate_touches(touches)
-    for key, value in (("grasps", grasps), ("seed", seed)):
-        least = 1 if key == "grasps" else 0
+    for key, value, least in (("grasps", grasps, 1), ("seed", seed, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise ConfigError(key, f"must be an integer >= {least}, got {value!r}")
-    problem = object_radius_problem(object_radius)
-    if problem:
+    if problem := object_radius_problem(object_radius):
         raise ConfigError("object_radius", problem)
     return touches
 
