@@ -25,7 +25,7 @@ from typing import Annotated, Callable
 import cv2
 import numpy as np
 import yaml
-from pydantic import Field, ValidationError
+from pydantic import AfterValidator, Field, ValidationError
 from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.config import RigConfig
@@ -42,8 +42,15 @@ MIN_TURN_DEG = 5.0
 MIN_AXIS_ANGLE_DEG = 15.0
 
 
+def _in_reach(T_base_hand: np.ndarray) -> np.ndarray:
+    reach = float(np.linalg.norm(T_base_hand[:3, 3]))
+    if reach > MAX_REACH_M:
+        raise ValueError(f"puts the hand {reach:g} m from the arm's base: give the translation in metres")
+    return T_base_hand
+
+
 class _Station(CalibrationFile, extra="ignore"):
-    T_base_hand: Rigid
+    T_base_hand: Annotated[Rigid, AfterValidator(_in_reach)]
     image: Annotated[str, Field(min_length=1)]
 
 
@@ -64,18 +71,9 @@ def read_arm_poses(path: Path) -> list[_Station]:
         kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
         raise ConfigError("--arm-poses", f"{path} is not valid {kind}: {exc}") from None
     try:
-        stations = _ArmPoses.model_validate(data).stations
+        return _ArmPoses.model_validate(data).stations
     except ValidationError as exc:
         raise ConfigError(*field_error(exc, _ArmPoses), source=path) from None
-    for i, station in enumerate(stations):
-        reach = float(np.linalg.norm(station.T_base_hand[:3, 3]))
-        if reach > MAX_REACH_M:
-            raise ConfigError(
-                f"stations[{i}].T_base_hand",
-                f"puts the hand {reach:g} m from the arm's base: give the translation in metres",
-                path,
-            )
-    return stations
 
 
 def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:

@@ -50,35 +50,11 @@ def open_rig(config: RigConfig, on_hand=None, hand_eye_required: bool = True) ->
     closing confirmed (``hand.torque_off_report``) however the opening ends. ``hand_eye_required=False``: a real
     rig that does not know ``T_hand_cam`` yet opens with the hand model's designed one (calibrate hand-eye)."""
     if config.rig == "sim":
-        with _open_twin(config) as rig:
-            yield rig
-    else:
-        with _open_real(config, on_hand, hand_eye_required) as rig:
-            yield rig
+        from tacsplat.sim.twin import SimTwin
 
-
-def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None):
-    """The rig's :class:`~tacsplat.drivers.DynamixelHand`, not yet connected: on ``hand.port``, or on ``mock``'s
-    emulated servos (:class:`~tacsplat.acquisition.mock.MockDevices`), read through ``calibration`` (a hand.json;
-    None: the raw servos)."""
-    from tacsplat.drivers.dynamixel_hand import MAX_BUS_WATCHDOG_S, DynamixelHand, DynamixelHandConfig
-    from tacsplat.sim.hand import HandKinematics
-
-    port, settings = config.hand.port, None
-    if mock is not None:
-        # the emulator shares this host's CPUs (and, in this process, its GIL): on a busy host the heartbeat and the
-        # emulator's answers can both wait over a second, which a real servo's clock never does; so the Bus
-        # Watchdog's longest period (a hand whose host died still stops within 2.54 s)
-        port = mock.servo_port
-        settings = DynamixelHandConfig(
-            min_packet_timeout_s=config.mock_devices.servo_timeout_s, bus_watchdog_s=MAX_BUS_WATCHDOG_S
-        )
-    h = config.hand
-    return DynamixelHand(port, h.baudrate, h.ids, calibration, config=settings, kinematics=HandKinematics())
-
-
-@contextmanager
-def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) -> Iterator[Rig]:
+        with SimTwin(twin_config(config)) as twin:
+            yield twin_rig(twin, twin_control(config))
+        return
     from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
 
@@ -141,7 +117,7 @@ def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) 
             sensors.append(
                 stack.enter_context(OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=timeout_s, **reader))
             )
-        rig = Rig(
+        yield Rig(
             kind="real",
             hand=hand,
             sensors=sensors,
@@ -160,7 +136,26 @@ def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) 
             },
             mock=mock,
         )
-        yield rig
+
+
+def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None):
+    """The rig's :class:`~tacsplat.drivers.DynamixelHand`, not yet connected: on ``hand.port``, or on ``mock``'s
+    emulated servos (:class:`~tacsplat.acquisition.mock.MockDevices`), read through ``calibration`` (a hand.json;
+    None: the raw servos)."""
+    from tacsplat.drivers.dynamixel_hand import MAX_BUS_WATCHDOG_S, DynamixelHand, DynamixelHandConfig
+    from tacsplat.sim.hand import HandKinematics
+
+    port, settings = config.hand.port, None
+    if mock is not None:
+        # the emulator shares this host's CPUs (and, in this process, its GIL): on a busy host the heartbeat and the
+        # emulator's answers can both wait over a second, which a real servo's clock never does; so the Bus
+        # Watchdog's longest period (a hand whose host died still stops within 2.54 s)
+        port = mock.servo_port
+        settings = DynamixelHandConfig(
+            min_packet_timeout_s=config.mock_devices.servo_timeout_s, bus_watchdog_s=MAX_BUS_WATCHDOG_S
+        )
+    h = config.hand
+    return DynamixelHand(port, h.baudrate, h.ids, calibration, config=settings, kinematics=HandKinematics())
 
 
 # The twin's grasp control: its soft position servos lag a 0.6 rad/s ramp by about 0.03 rad in free motion.
@@ -244,15 +239,6 @@ def rig_mounts(config: RigConfig) -> dict[str, np.ndarray]:
 def _rows(T: np.ndarray) -> tuple:
     """A [4, 4] matrix as a tuple of rows (what scene.json records)."""
     return tuple(map(tuple, np.asarray(T, dtype=np.float64).tolist()))
-
-
-@contextmanager
-def _open_twin(config: RigConfig) -> Iterator[Rig]:
-    settings = twin_config(config)
-    from tacsplat.sim.twin import SimTwin
-
-    with SimTwin(settings) as twin:
-        yield twin_rig(twin, twin_control(config))
 
 
 def twin_rig(twin, control: GraspControl = TWIN_CONTROL) -> Rig:

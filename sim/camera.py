@@ -49,6 +49,7 @@ class MujocoCamera:
         self._cam_id = twin.model.camera(camera_name).id
         fovy = float(twin.model.cam_fovy[self._cam_id])
         self.intrinsics = intrinsics_from_fovy(fovy, width, height)
+        self.width, self.height = width, height
         self._renderer = make_renderer(twin.model, width, height, f"camera {camera_name}")
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = 0
@@ -59,14 +60,6 @@ class MujocoCamera:
     @property
     def K(self) -> np.ndarray:
         return self.intrinsics.K.copy()
-
-    @property
-    def width(self) -> int:
-        return self.intrinsics.width
-
-    @property
-    def height(self) -> int:
-        return self.intrinsics.height
 
     def pose(self) -> np.ndarray:
         """OpenCV camera-to-world pose [4, 4] from the simulation state."""

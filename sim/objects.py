@@ -145,11 +145,8 @@ def _torus() -> trimesh.Trimesh:
 def _car() -> trimesh.Trimesh:
     body = _rounded_box([2.0, 0.9, 0.45], 0.12, centre=(0, 0, 0.42))
     cabin = _rounded_box([1.05, 0.8, 0.5], 0.15, centre=(-0.15, 0, 0.75))
-    wheels = []
-    for x in (-0.62, 0.62):
-        for y in (-0.42, 0.42):
-            w = trimesh.creation.cylinder(radius=0.22, height=0.18, sections=40)
-            wheels.append(_rotated(w, np.pi / 2, [1, 0, 0], [x, y, 0.22]))
+    wheel = trimesh.creation.cylinder(radius=0.22, height=0.18, sections=40)
+    wheels = [_rotated(wheel, np.pi / 2, [1, 0, 0], [x, y, 0.22]) for x in (-0.62, 0.62) for y in (-0.42, 0.42)]
     return _union(body, cabin, *wheels)
 
 
@@ -308,9 +305,7 @@ def _close_holes(mesh: trimesh.Trimesh) -> list[int]:
         new_faces += [[loop[(i + 1) % len(loop)], loop[i], centre] for i in range(len(loop))]
         closed.append(len(loop))
     if closed:
-        vertices = np.vstack([mesh.vertices, new_vertices])
-        faces = np.vstack([mesh.faces, new_faces])
-        mesh.vertices, mesh.faces = vertices, faces
+        mesh.vertices, mesh.faces = np.vstack([mesh.vertices, new_vertices]), np.vstack([mesh.faces, new_faces])
     return closed
 
 

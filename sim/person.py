@@ -68,12 +68,11 @@ class TwinPresser:
         w, h = board_size_m
         board = trimesh.creation.box((w, h, BOARD_THICKNESS_M))
         board.apply_translation((w / 2, -h / 2, -BOARD_THICKNESS_M / 2))  # the printed face at z = 0
-        meshes = [board]
-        for c in sphere_centres:
-            ball = trimesh.creation.icosphere(subdivisions=5, radius=sphere_radius_m)
-            ball.apply_translation(c)
-            meshes.append(ball)
-        self.surfaces = trimesh.util.concatenate(meshes)
+        balls = [
+            trimesh.creation.icosphere(subdivisions=5, radius=sphere_radius_m).apply_translation(c)
+            for c in sphere_centres
+        ]
+        self.surfaces = trimesh.util.concatenate([board, *balls])
         self.renderer = TactileDepthRenderer(self.surfaces, twin.config.tactile)
         self.pads = {pad.name: pad for pad in twin.tactile_sensors}
 

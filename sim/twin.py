@@ -59,13 +59,9 @@ MAX_SERVO_OMEGA_DT = 0.5  # servo natural frequency x timestep: the stiffest gai
 MIN_TIMECONST_STEPS = 2.0  # contact solref time constant >= this many timesteps
 
 # Warnings MuJoCo counts in data.warning that mean the simulation went wrong.
-_FATAL_WARNINGS = (
-    mujoco.mjtWarning.mjWARN_BADQACC,
-    mujoco.mjtWarning.mjWARN_BADQVEL,
-    mujoco.mjtWarning.mjWARN_BADQPOS,
-    mujoco.mjtWarning.mjWARN_CONTACTFULL,
-    mujoco.mjtWarning.mjWARN_CNSTRFULL,
-)
+_FATAL_WARNINGS = [
+    getattr(mujoco.mjtWarning, f"mjWARN_{w}") for w in ("BADQACC", "BADQVEL", "BADQPOS", "CONTACTFULL", "CNSTRFULL")
+]
 
 
 def pad_sensor_model(tactile: TactileConfig, scale: float = 1.0) -> SensorModel:
@@ -252,16 +248,9 @@ class SimHand:
         self._dofadr = np.array([model.jnt_dofadr[model.joint(n).id] for n in JOINT_NAMES])
         self._act = np.array([model.actuator(n).id for n in JOINT_NAMES])
         self._kinematics = HandKinematics(twin.config.hand_geometry)
-
-    @property
-    def joint_names(self) -> list[str]:
-        return list(JOINT_NAMES)
+        self.joint_names, self.link_names = list(JOINT_NAMES), list(self._kinematics.link_names)
 
     effort_unit = "N m"  # the position servos' torque
-
-    @property
-    def link_names(self) -> list[str]:
-        return list(self._kinematics.link_names)
 
     @property
     def joint_limits(self) -> np.ndarray:
