@@ -18,6 +18,7 @@ The board lies still in the arm's base, so every station implies the same board 
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 from typing import Annotated, Callable
@@ -32,7 +33,7 @@ from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import field_error
 from tacsplat.drivers.calibration_files import CalibrationFile, Rigid
 from tacsplat.errors import CameraError, ConfigError
-from tacsplat.geometry import invert_pose
+from tacsplat.geometry import invert_pose, make_pose
 
 MIN_STATIONS = 3  # where the board is seen: two motions between them
 MAX_REACH_M = 5.0  # a hand further from the arm's base was given in millimetres
@@ -90,12 +91,11 @@ def pose_change(T_from: np.ndarray, T_to: np.ndarray) -> str:
 def _axis_spread_deg(T_base_hand: list[np.ndarray]) -> float:
     """The widest angle (degrees, 0-90) between the rotation axes of two of the hand's motions between stations
     that turn it at least :data:`MIN_TURN_DEG` (0 when fewer than two do)."""
-    axes = []
-    for i in range(len(T_base_hand)):
-        for j in range(i + 1, len(T_base_hand)):
-            rotvec = Rotation.from_matrix((invert_pose(T_base_hand[j]) @ T_base_hand[i])[:3, :3]).as_rotvec()
-            if np.degrees(np.linalg.norm(rotvec)) >= MIN_TURN_DEG:
-                axes.append(rotvec / np.linalg.norm(rotvec))
+    turns = [
+        Rotation.from_matrix((invert_pose(T_j) @ T_i)[:3, :3]).as_rotvec()
+        for T_i, T_j in itertools.combinations(T_base_hand, 2)
+    ]
+    axes = [turn / np.linalg.norm(turn) for turn in turns if np.degrees(np.linalg.norm(turn)) >= MIN_TURN_DEG]
     if len(axes) < 2:
         return 0.0
     cosines = np.abs(np.array(axes) @ np.array(axes).T)  # an axis and its opposite are one axis
@@ -178,9 +178,9 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     T_hand_cam = hand_eye_calibration(hands, cams)
     # the board's pose in the arm's base, as each station implies it, against their mean
     boards = [T_hand @ T_hand_cam @ invert_pose(T_cam) for T_hand, T_cam in zip(hands, cams)]
-    mean = np.eye(4)
-    mean[:3, :3] = Rotation.from_matrix([T[:3, :3] for T in boards]).mean().as_matrix()
-    mean[:3, 3] = np.mean([T[:3, 3] for T in boards], axis=0)
+    mean = make_pose(
+        Rotation.from_matrix([T[:3, :3] for T in boards]).mean().as_matrix(), np.mean(boards, axis=0)[:3, 3]
+    )
     gaps = np.array([_gap(mean, T) for T in boards])  # [n, 2] mm, deg
     farthest = int(np.argmax(gaps[:, 0]))
     rms_mm = float(np.sqrt(np.mean(gaps[:, 0] ** 2)))

@@ -180,6 +180,7 @@ def finger_joints(joint_names: Sequence[str]) -> dict[str, list[int]]:
     return fingers
 
 
+@dataclass(eq=False)
 class CaptureLogger:
     """Writes views and grasps through ``writer``; the devices are seen only through their Protocols.
 
@@ -189,33 +190,26 @@ class CaptureLogger:
     another tool wrote, whose grasps may hold fewer touches).
     """
 
-    def __init__(
-        self,
-        writer: SceneWriter,
-        hand: Hand,
-        sensors: Sequence[TactileSensor],
-        camera: Camera,
-        clock: Clock,
-        poses: PoseSource,
-        control: GraspControl = GraspControl(),
-        redo_partial_grasp: bool = True,
-    ):
-        self.writer = writer
-        self.hand = hand
-        self.sensors = list(sensors)
-        self.camera = camera
-        self.clock = clock
-        self.poses = poses
-        self.control = control
+    writer: SceneWriter
+    hand: Hand
+    sensors: Sequence[TactileSensor]
+    camera: Camera
+    clock: Clock
+    poses: PoseSource
+    control: GraspControl = GraspControl()
+    redo_partial_grasp: bool = True
+
+    def __post_init__(self):
+        self.sensors = list(self.sensors)
         if not self.sensors:
             raise InvalidInputError("sensors: a capture needs at least one tactile sensor")
         names = [s.name for s in self.sensors]
         if len(set(names)) != len(names):
             raise InvalidInputError(f"sensors: duplicate names {names}")
-        self.fingers = {f: np.asarray(j, dtype=int) for f, j in finger_joints(hand.joint_names).items()}
+        self.fingers = {f: np.asarray(j, dtype=int) for f, j in finger_joints(self.hand.joint_names).items()}
         self.hand_state = "open"
         self._samples: list | None = None  # (t, phase, q, target, effort) while a grasp records its motion
-        self.dropped_partial_grasp = self.drop_partial_grasp() if redo_partial_grasp else 0
+        self.dropped_partial_grasp = self.drop_partial_grasp() if self.redo_partial_grasp else 0
 
     # --- state ------------------------------------------------------------------------------------
     def counts(self) -> Counts:
