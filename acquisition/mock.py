@@ -105,14 +105,12 @@ class LoopingCapture:
 
 def _write_video(path: Path, frames_rgb: list[np.ndarray]) -> None:
     h, w = frames_rgb[0].shape[:2]
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (w, h))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (w, h))
     if not writer.isOpened():
-        raise RuntimeError(f"OpenCV cannot write an FFV1 video to {tmp}")
+        raise RuntimeError(f"OpenCV cannot write an FFV1 video to {path}")
     for frame in frames_rgb:
         writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     writer.release()
-    os.replace(tmp, path)
 
 
 def render_board(spec, K: np.ndarray, width: int, height: int, T_cam_board: np.ndarray) -> np.ndarray:
