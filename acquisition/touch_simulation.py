@@ -21,8 +21,8 @@ import numpy as np
 import trimesh
 
 from tacsplat.acquisition.config import TouchPlan, validate_touches
-from tacsplat.acquisition.devices import twin_rig
-from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate, TwinPoseSource
+from tacsplat.acquisition.devices import TWIN_CONTROL
+from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate
 from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
@@ -74,11 +74,10 @@ class ScenePoseSource:
     units."""
 
     def __init__(self, twin: SimTwin, units: SceneUnits):
-        self.twin_poses = TwinPoseSource(twin)
-        self.units = units
+        self.twin, self.units = twin, units
 
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
-        return PoseEstimate(self.units.pose(self.twin_poses.hand_pose(image).T))
+        return PoseEstimate(self.units.pose(self.twin.hand_pose_from_wrist_camera()))
 
 
 def touch_settings(
@@ -172,15 +171,14 @@ def simulate_touches(
                     units.points,
                 )
             else:
-                rig = twin_rig(twin)
                 logger = CaptureLogger(
                     writer,
-                    rig.hand,
-                    [ScaledPad(p, units) for p in rig.sensors],
-                    rig.camera,
-                    rig.clock,
+                    twin.hand,
+                    [ScaledPad(p, units) for p in twin.tactile_sensors],
+                    twin.view_camera,
+                    twin,  # (its clock)
                     ScenePoseSource(twin, units),
-                    rig.control,
+                    TWIN_CONTROL,
                     redo_partial_grasp=False,
                 )
                 planner = TwinPlanner(twin, seed, grasp_config=grasp_config)

@@ -214,7 +214,6 @@ class HandKinematics:
     def __init__(self, geom: HandGeometry = HandGeometry()):
         import mujoco
 
-        self.geometry = geom
         self._mujoco = mujoco
         self._model = mujoco.MjModel.from_xml_string(build_hand_mjcf(geom))
         self._data = mujoco.MjData(self._model)
