@@ -18,6 +18,7 @@ The board lies still in the arm's base, so every station implies the same board 
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 from typing import Annotated, Callable
@@ -25,14 +26,14 @@ from typing import Annotated, Callable
 import cv2
 import numpy as np
 import yaml
-from pydantic import Field, ValidationError
+from pydantic import AfterValidator, Field, ValidationError
 from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import field_error
 from tacsplat.drivers.calibration_files import CalibrationFile, Rigid
 from tacsplat.errors import CameraError, ConfigError
-from tacsplat.geometry import invert_pose
+from tacsplat.geometry import invert_pose, make_pose
 
 MIN_STATIONS = 3  # where the board is seen: two motions between them
 MAX_REACH_M = 5.0  # a hand further from the arm's base was given in millimetres
@@ -42,8 +43,15 @@ MIN_TURN_DEG = 5.0
 MIN_AXIS_ANGLE_DEG = 15.0
 
 
+def _in_reach(T_base_hand: np.ndarray) -> np.ndarray:
+    reach = float(np.linalg.norm(T_base_hand[:3, 3]))
+    if reach > MAX_REACH_M:
+        raise ValueError(f"puts the hand {reach:g} m from the arm's base: give the translation in metres")
+    return T_base_hand
+
+
 class _Station(CalibrationFile, extra="ignore"):
-    T_base_hand: Rigid
+    T_base_hand: Annotated[Rigid, AfterValidator(_in_reach)]
     image: Annotated[str, Field(min_length=1)]
 
 
@@ -64,18 +72,9 @@ def read_arm_poses(path: Path) -> list[_Station]:
         kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
         raise ConfigError("--arm-poses", f"{path} is not valid {kind}: {exc}") from None
     try:
-        stations = _ArmPoses.model_validate(data).stations
+        return _ArmPoses.model_validate(data).stations
     except ValidationError as exc:
         raise ConfigError(*field_error(exc, _ArmPoses), source=path) from None
-    for i, station in enumerate(stations):
-        reach = float(np.linalg.norm(station.T_base_hand[:3, 3]))
-        if reach > MAX_REACH_M:
-            raise ConfigError(
-                f"stations[{i}].T_base_hand",
-                f"puts the hand {reach:g} m from the arm's base: give the translation in metres",
-                path,
-            )
-    return stations
 
 
 def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -84,15 +83,19 @@ def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     return 1000 * float(np.linalg.norm(D[:3, 3])), float(np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()))
 
 
+def pose_change(T_from: np.ndarray, T_to: np.ndarray) -> str:
+    """``"1.23 mm, 0.45 deg"`` from pose ``T_from`` to pose ``T_to``."""
+    return "{:.2f} mm, {:.2f} deg".format(*_gap(T_from, T_to))
+
+
 def _axis_spread_deg(T_base_hand: list[np.ndarray]) -> float:
     """The widest angle (degrees, 0-90) between the rotation axes of two of the hand's motions between stations
     that turn it at least :data:`MIN_TURN_DEG` (0 when fewer than two do)."""
-    axes = []
-    for i in range(len(T_base_hand)):
-        for j in range(i + 1, len(T_base_hand)):
-            rotvec = Rotation.from_matrix((invert_pose(T_base_hand[j]) @ T_base_hand[i])[:3, :3]).as_rotvec()
-            if np.degrees(np.linalg.norm(rotvec)) >= MIN_TURN_DEG:
-                axes.append(rotvec / np.linalg.norm(rotvec))
+    turns = [
+        Rotation.from_matrix((invert_pose(T_j) @ T_i)[:3, :3]).as_rotvec()
+        for T_i, T_j in itertools.combinations(T_base_hand, 2)
+    ]
+    axes = [turn / np.linalg.norm(turn) for turn in turns if np.degrees(np.linalg.norm(turn)) >= MIN_TURN_DEG]
     if len(axes) < 2:
         return 0.0
     cosines = np.abs(np.array(axes) @ np.array(axes).T)  # an axis and its opposite are one axis
@@ -175,9 +178,9 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     T_hand_cam = hand_eye_calibration(hands, cams)
     # the board's pose in the arm's base, as each station implies it, against their mean
     boards = [T_hand @ T_hand_cam @ invert_pose(T_cam) for T_hand, T_cam in zip(hands, cams)]
-    mean = np.eye(4)
-    mean[:3, :3] = Rotation.from_matrix([T[:3, :3] for T in boards]).mean().as_matrix()
-    mean[:3, 3] = np.mean([T[:3, 3] for T in boards], axis=0)
+    mean = make_pose(
+        Rotation.from_matrix([T[:3, :3] for T in boards]).mean().as_matrix(), np.mean(boards, axis=0)[:3, 3]
+    )
     gaps = np.array([_gap(mean, T) for T in boards])  # [n, 2] mm, deg
     farthest = int(np.argmax(gaps[:, 0]))
     rms_mm = float(np.sqrt(np.mean(gaps[:, 0] ** 2)))
@@ -191,8 +194,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
         f"{gaps[farthest, 0]:.2f} mm, {gaps[farthest, 1]:.3f} deg)"
     )
     if previous is not None:
-        mm, deg = _gap(previous, T_hand_cam)
-        say(f"T_hand_cam: {mm:.2f} mm, {deg:.2f} deg from the rig's previous value")
+        say(f"T_hand_cam: {pose_change(previous, T_hand_cam)} from the rig's previous value")
     say(f"wrote {out} (name it as camera.hand_eye in the rig file)")
     return T_hand_cam
 
@@ -205,5 +207,4 @@ def _previous_T_hand_cam(config: RigConfig, calibration) -> np.ndarray | None:
     named = config.camera.hand_eye
     if config.camera.T_hand_cam is None and named and not config.path(named).is_file():
         return calibration.T_hand_cam
-    previous = rig_T_hand_cam(config)
-    return previous if previous is not None else calibration.T_hand_cam
+    return rig_T_hand_cam(config, calibration)

@@ -17,6 +17,7 @@ from typing import Callable, Iterator, TextIO
 
 import numpy as np
 
+from tacsplat.acquisition.arm_hand_eye import pose_change
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
@@ -53,8 +54,7 @@ def limp_hand(
             yield hand, person, servos, hand.device
         finally:
             hand.close()
-            if hand.torque_off_report is not None:
-                say(f"{hand.device}: {hand.torque_off_report}")
+            _torque_off(hand, say)
 
 
 def calibrate_hand(
@@ -108,18 +108,14 @@ def _presses(
             T_hand_cam = np.array(rig.extra["T_hand_cam"])
     finally:  # however it ended, what closing the hand confirmed
         for hand in hands:
-            if hand.torque_off_report is not None:
-                say(f"{hand.device}: {hand.torque_off_report}")
+            _torque_off(hand, say)
     return presses, T_hand_cam, {finger: rig_mounts(config).get(finger, np.eye(4)) for finger in fingers}
 
 
-def _change(T_from: np.ndarray, T_to: np.ndarray) -> str:
-    from scipy.spatial.transform import Rotation
-
-    D = np.linalg.inv(T_from) @ T_to
-    return (
-        f"{1000 * np.linalg.norm(D[:3, 3]):.2f} mm, {np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()):.2f} deg"
-    )
+def _torque_off(hand, say: Callable[[str], None]) -> None:
+    """Say what closing ``hand`` confirmed (torque off, servo by servo), if it was connected."""
+    if hand.torque_off_report is not None:
+        say(f"{hand.device}: {hand.torque_off_report}")
 
 
 def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] = print):
@@ -132,7 +128,7 @@ def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] 
     fit = fit_presses(presses, SPHERE_RADIUS_M, T_hand_cam, mounts, what="hand-eye")
     save_hand_eye(out, fit.T_hand_cam, sum(fit.presses.values()), fit.rms_mm)
     say(
-        f"T_hand_cam: {len(presses)} presses, rms {fit.rms_mm:.3f} mm; {_change(T_hand_cam, fit.T_hand_cam)} from the "
+        f"T_hand_cam: {len(presses)} presses, rms {fit.rms_mm:.3f} mm; {pose_change(T_hand_cam, fit.T_hand_cam)} from the "
         "rig's previous value"
     )
     say(f"wrote {out} (name it as camera.hand_eye in the rig file)")
@@ -164,9 +160,9 @@ def calibrate_mounts(
     for finger, T in fit.mounts.items():
         say(
             f"{finger}: {fit.presses[finger]} presses ({fit.dropped[finger]} dropped), rms {fit.rms_mm[finger]:.3f} mm; "
-            f"{_change(mounts.get(finger, np.eye(4)), T)} from the rig's previous mounting"
+            f"{pose_change(mounts.get(finger, np.eye(4)), T)} from the rig's previous mounting"
         )
-    say(f"T_hand_cam: {_change(T_hand_cam, fit.T_hand_cam)} from the rig's previous value")
+    say(f"T_hand_cam: {pose_change(T_hand_cam, fit.T_hand_cam)} from the rig's previous value")
     save_mounts(fit, out)
     if hand_eye_out is not None:
         rms = float(np.sqrt(np.mean([r**2 for r in fit.rms_mm.values()])))

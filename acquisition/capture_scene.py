@@ -141,13 +141,10 @@ class ResumeMismatch(ConfigError):
 
     def renamed(self, names: dict[str, str]) -> "ResumeMismatch":
         """The same refusal naming a command's options (``names``: setting -> option); each option told once."""
-        told, differences = set(), []
+        told: dict[str, str] = {}
         for key, text in self.differences:
-            name = names.get(key, key)
-            if name not in told:
-                told.add(name)
-                differences.append((name, text))
-        return ResumeMismatch(differences, self.source)
+            told.setdefault(names.get(key, key), text)
+        return ResumeMismatch(list(told.items()), self.source)
 
 
 def check_resume(writer: SceneWriter, settings: dict, source=None) -> None:

@@ -50,11 +50,92 @@ def open_rig(config: RigConfig, on_hand=None, hand_eye_required: bool = True) ->
     closing confirmed (``hand.torque_off_report``) however the opening ends. ``hand_eye_required=False``: a real
     rig that does not know ``T_hand_cam`` yet opens with the hand model's designed one (calibrate hand-eye)."""
     if config.rig == "sim":
-        with _open_twin(config) as rig:
-            yield rig
-    else:
-        with _open_real(config, on_hand, hand_eye_required) as rig:
-            yield rig
+        from tacsplat.sim.twin import SimTwin
+
+        with SimTwin(twin_config(config)) as twin:
+            yield twin_rig(twin, twin_control(config))
+        return
+    from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
+    from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
+
+    with ExitStack() as stack:
+        mock = None
+        if config.mock:
+            from tacsplat.acquisition.mock import MockDevices
+
+            mock = stack.enter_context(MockDevices(config))
+        cam_cal = str(mock.camera_calibration if mock else config.path(config.camera.calibration))
+        calibration = CameraCalibration.load(cam_cal)
+        T_hand_cam = rig_T_hand_cam(config, calibration)
+        if T_hand_cam is None and not hand_eye_required:
+            from tacsplat.sim.hand import nominal_T_hand_cam
+
+            T_hand_cam = nominal_T_hand_cam()
+        if T_hand_cam is None:
+            raise ConfigError(
+                "camera.T_hand_cam",
+                f"not given, and {cam_cal} has no hand-eye calibration (run tacsplat calibrate hand-eye and name its "
+                "file as camera.hand_eye, or set it here)",
+                config.source,
+            )
+        if calibration.board != config.board.spec():
+            log.warning(
+                "the camera calibration's board %s differs from the rig's board %s; using the rig's",
+                calibration.board,
+                config.board.spec(),
+            )
+        cam_source, reader = device_source(mock, "camera", config.camera.source)
+        camera = stack.enter_context(
+            WristCamera(cam_source, calibration, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **reader)
+        )
+        hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None  # --mock: as real
+        hand = dynamixel_hand(config, mock, hand_cal)
+        if on_hand is not None:
+            on_hand(hand)
+        stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
+        sensors, model, mounts = [], None, rig_mounts(config)
+        for i, s in enumerate(config.tactile.sensors):
+            T_mount = mounts.get(s.finger, np.eye(4))
+            source, reader = device_source(mock, s.finger, s.source)
+            tcal = TactileCalibration.load(str(mock.tactile_calibration if mock else config.path(s.calibration)))
+            this = SensorModel(
+                config.tactile.sensor_name,
+                int(tcal.image_size[1]),
+                int(tcal.image_size[0]),
+                float(tcal.pixel_size_m),
+                config.tactile.gel_thickness_m,
+            )
+            if model is not None and this != model:
+                raise ConfigError(
+                    f"tactile.sensors[{i}].calibration",
+                    f"{this} differs from the first sensor's {model}: a scene holds one sensor model",
+                    config.source,
+                )
+            model = this
+            pose = lambda finger=s.finger, T=T_mount: hand.fingertip_poses()[finger] @ T
+            timeout_s = config.tactile.timeout_s
+            sensors.append(
+                stack.enter_context(OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=timeout_s, **reader))
+            )
+        yield Rig(
+            kind="real",
+            hand=hand,
+            sensors=sensors,
+            camera=camera,
+            clock=WallClock(),
+            poses=BoardPoseSource(camera, config.board, T_hand_cam),
+            intrinsics=CameraIntrinsics(camera.K, camera.width, camera.height),
+            sensor_model=model,
+            control=config.grasp,
+            extra={
+                "rig": str(config.source),
+                "mock": config.mock,
+                "hand_port": hand.port_name,
+                "board_max_reprojection_px": config.board.max_reprojection_px,
+                "T_hand_cam": np.asarray(T_hand_cam).tolist(),
+            },
+            mock=mock,
+        )
 
 
 def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None):
@@ -77,110 +158,12 @@ def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None
     return DynamixelHand(port, h.baudrate, h.ids, calibration, config=settings, kinematics=HandKinematics())
 
 
-@contextmanager
-def _open_real(config: RigConfig, on_hand=None, hand_eye_required: bool = True) -> Iterator[Rig]:
-    from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
-    from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
-
-    with ExitStack() as stack:
-        mock = None
-        if config.mock:
-            from tacsplat.acquisition.mock import MockDevices
-
-            mock = stack.enter_context(MockDevices(config))
-            cam_source, cam_cal = mock.camera_source, str(mock.camera_calibration)
-        else:
-            cam_source, cam_cal = config.camera.source, str(config.path(config.camera.calibration))
-        factory = (lambda name: {"capture_factory": mock.capture_factory(name)}) if mock else (lambda name: {})
-        calibration = CameraCalibration.load(cam_cal)
-        T_hand_cam = rig_T_hand_cam(config)
-        if T_hand_cam is None:
-            T_hand_cam = calibration.T_hand_cam
-        if T_hand_cam is None and not hand_eye_required:
-            from tacsplat.sim.hand import nominal_T_hand_cam
-
-            T_hand_cam = nominal_T_hand_cam()
-        if T_hand_cam is None:
-            raise ConfigError(
-                "camera.T_hand_cam",
-                f"not given, and {cam_cal} has no hand-eye calibration (run tacsplat calibrate hand-eye and name its "
-                "file as camera.hand_eye, or set it here)",
-                config.source,
-            )
-        if calibration.board != config.board.spec():
-            log.warning(
-                "the camera calibration's board %s differs from the rig's board %s; using the rig's",
-                calibration.board,
-                config.board.spec(),
-            )
-        camera = stack.enter_context(
-            WristCamera(
-                cam_source, calibration, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **factory("camera")
-            )
-        )
-        hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None  # --mock: as real
-        hand = dynamixel_hand(config, mock, hand_cal)
-        if on_hand is not None:
-            on_hand(hand)
-        stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
-        sensors, model, mounts = [], None, rig_mounts(config)
-        for i, s in enumerate(config.tactile.sensors):
-            T_mount = mounts.get(s.finger, np.eye(4))
-            if mock is not None:
-                source, cal = str(mock.tactile_video(s.finger)), str(mock.tactile_calibration)
-            else:
-                source, cal = s.source, str(config.path(s.calibration))
-            tcal = TactileCalibration.load(cal)
-            this = SensorModel(
-                config.tactile.sensor_name,
-                int(tcal.image_size[1]),
-                int(tcal.image_size[0]),
-                float(tcal.pixel_size_m),
-                config.tactile.gel_thickness_m,
-            )
-            if model is not None and this != model:
-                raise ConfigError(
-                    f"tactile.sensors[{i}].calibration",
-                    f"{this} differs from the first sensor's {model}: a scene holds one sensor model",
-                    config.source,
-                )
-            model = this
-            pose = lambda finger=s.finger, T=T_mount: hand.fingertip_poses()[finger] @ T
-            timeout_s = config.tactile.timeout_s
-            sensors.append(
-                stack.enter_context(
-                    OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=timeout_s, **factory(s.finger))
-                )
-            )
-        rig = Rig(
-            kind="real",
-            hand=hand,
-            sensors=sensors,
-            camera=camera,
-            clock=WallClock(),
-            poses=BoardPoseSource(camera, config.board, T_hand_cam),
-            intrinsics=CameraIntrinsics(camera.K, camera.width, camera.height),
-            sensor_model=model,
-            control=config.grasp,
-            extra={
-                "rig": str(config.source),
-                "mock": config.mock,
-                "hand_port": hand.port_name,
-                "board_max_reprojection_px": config.board.max_reprojection_px,
-                "T_hand_cam": np.asarray(T_hand_cam).tolist(),
-            },
-            mock=mock,
-        )
-        yield rig
-
-
 # The twin's grasp control: its soft position servos lag a 0.6 rad/s ramp by about 0.03 rad in free motion.
 TWIN_CONTROL = GraspControl(
     close_speed_rad_s=0.6,
     poll_s=0.01,
     stall_error_rad=0.08,
     settle_tol_rad=0.002,
-    settle_polls=3,
     max_close_s=2.0,
     open_s=0.2,
 )
@@ -211,21 +194,31 @@ def twin_config(config: RigConfig):
         servo_signs=s.true_errors.servo_signs(),
         hand_calibration=str(config.path(config.hand.calibration)) if config.hand.calibration else None,
         hand_eye_error=_rows(s.true_errors.hand_eye.matrix()),
-        T_hand_cam=_rows(rig_T_hand_cam(config)) if rig_T_hand_cam(config) is not None else None,
+        T_hand_cam=None if (T := rig_T_hand_cam(config)) is None else _rows(T),
         mounts={finger: _rows(T) for finger, T in rig_mounts(config).items()},
         mount_errors={finger: _rows(e.matrix()) for finger, e in s.true_errors.mounts.items()},
     )
 
 
-def rig_T_hand_cam(config: RigConfig) -> np.ndarray | None:
-    """The rig's ``T_hand_cam``: the rig file's ``camera.T_hand_cam``, else its ``camera.hand_eye`` file's; None."""
+def rig_T_hand_cam(config: RigConfig, calibration=None) -> np.ndarray | None:
+    """The rig's ``T_hand_cam``: the rig file's ``camera.T_hand_cam``, else its ``camera.hand_eye`` file's, else
+    the camera ``calibration``'s (if given); None."""
     if config.camera.T_hand_cam is not None:
         return np.asarray(config.camera.T_hand_cam, dtype=np.float64)
     if config.camera.hand_eye:
         from tacsplat.drivers.press_calibration import load_hand_eye
 
         return load_hand_eye(config.path(config.camera.hand_eye))
-    return None
+    return None if calibration is None else calibration.T_hand_cam
+
+
+def device_source(mock, name: str, source: str) -> tuple[str, dict]:
+    """``(source, reader keywords)`` of video device ``name`` ("camera" or a finger): ``source`` (the rig file's),
+    or on ``--mock`` the emulated device's, read through a ``capture_factory`` that loops it."""
+    if mock is None:
+        return source, {}
+    own = mock.camera_source if name == "camera" else str(mock.tactile_video(name))
+    return own, {"capture_factory": mock.capture_factory(name)}
 
 
 def rig_mounts(config: RigConfig) -> dict[str, np.ndarray]:
@@ -246,15 +239,6 @@ def rig_mounts(config: RigConfig) -> dict[str, np.ndarray]:
 def _rows(T: np.ndarray) -> tuple:
     """A [4, 4] matrix as a tuple of rows (what scene.json records)."""
     return tuple(map(tuple, np.asarray(T, dtype=np.float64).tolist()))
-
-
-@contextmanager
-def _open_twin(config: RigConfig) -> Iterator[Rig]:
-    settings = twin_config(config)
-    from tacsplat.sim.twin import SimTwin
-
-    with SimTwin(settings) as twin:
-        yield twin_rig(twin, twin_control(config))
 
 
 def twin_rig(twin, control: GraspControl = TWIN_CONTROL) -> Rig:

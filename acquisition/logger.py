@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol, Sequence
 
 import numpy as np
@@ -79,14 +79,19 @@ class PoseSource(Protocol):
         ...
 
 
+def opencv_K(K: np.ndarray) -> np.ndarray:
+    """tacsplat's intrinsics (pixel centres at +0.5) as OpenCV's (centres at integers): the inverse of
+    :func:`~tacsplat.drivers.wrist_camera.tacsplat_K_from_opencv`."""
+    return np.asarray(K, dtype=np.float64) - [[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]
+
+
 class BoardPoseSource:
     """A real rig's poses: ChArUco board PnP on undistorted frames; the hand from the hand-eye transform."""
 
     def __init__(self, camera: Camera, board: BoardConfig, T_hand_cam: np.ndarray):
         self.board = board
         self.spec = board.spec()
-        self.K_opencv = np.array(camera.K, dtype=np.float64)
-        self.K_opencv[:2, 2] -= 0.5  # tacsplat's pixel centres at +0.5 -> OpenCV's at integers
+        self.K_opencv = opencv_K(camera.K)
         self.T_cam_hand = invert_pose(check_rigid(T_hand_cam, "T_hand_cam"))
 
     def measure(self, image: np.ndarray) -> PoseEstimate:
@@ -110,7 +115,7 @@ class BoardPoseSource:
 
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
         est = self.camera_pose(image)
-        return PoseEstimate(est.T @ self.T_cam_hand, est.reprojection_px, est.corners, est.position_std_m)
+        return replace(est, T=est.T @ self.T_cam_hand)
 
     def ground_truth_depth(self) -> None:
         return None
@@ -175,6 +180,7 @@ def finger_joints(joint_names: Sequence[str]) -> dict[str, list[int]]:
     return fingers
 
 
+@dataclass(eq=False)
 class CaptureLogger:
     """Writes views and grasps through ``writer``; the devices are seen only through their Protocols.
 
@@ -184,33 +190,26 @@ class CaptureLogger:
     another tool wrote, whose grasps may hold fewer touches).
     """
 
-    def __init__(
-        self,
-        writer: SceneWriter,
-        hand: Hand,
-        sensors: Sequence[TactileSensor],
-        camera: Camera,
-        clock: Clock,
-        poses: PoseSource,
-        control: GraspControl = GraspControl(),
-        redo_partial_grasp: bool = True,
-    ):
-        self.writer = writer
-        self.hand = hand
-        self.sensors = list(sensors)
-        self.camera = camera
-        self.clock = clock
-        self.poses = poses
-        self.control = control
+    writer: SceneWriter
+    hand: Hand
+    sensors: Sequence[TactileSensor]
+    camera: Camera
+    clock: Clock
+    poses: PoseSource
+    control: GraspControl = GraspControl()
+    redo_partial_grasp: bool = True
+
+    def __post_init__(self):
+        self.sensors = list(self.sensors)
         if not self.sensors:
             raise InvalidInputError("sensors: a capture needs at least one tactile sensor")
         names = [s.name for s in self.sensors]
         if len(set(names)) != len(names):
             raise InvalidInputError(f"sensors: duplicate names {names}")
-        self.fingers = {f: np.asarray(j, dtype=int) for f, j in finger_joints(hand.joint_names).items()}
+        self.fingers = {f: np.asarray(j, dtype=int) for f, j in finger_joints(self.hand.joint_names).items()}
         self.hand_state = "open"
         self._samples: list | None = None  # (t, phase, q, target, effort) while a grasp records its motion
-        self.dropped_partial_grasp = self.drop_partial_grasp() if redo_partial_grasp else 0
+        self.dropped_partial_grasp = self.drop_partial_grasp() if self.redo_partial_grasp else 0
 
     # --- state ------------------------------------------------------------------------------------
     def counts(self) -> Counts:
@@ -242,8 +241,7 @@ class CaptureLogger:
         want = len(self.sensors) if touch_t is None else len(touch_t)  # (a slide adds touches)
         if have >= want:
             return 0
-        for _ in range(have):
-            w.remove_last()
+        self._remove_last_grasp()
         log.warning("grasp %d was cut short (%d of %d touches): removed, to be redone whole", g, have, want)
         return have
 
@@ -354,11 +352,7 @@ class CaptureLogger:
         """``(seconds since t0, sensor name, reading in the hand frame)`` of each sensor, read now."""
         rows = []
         for sensor in sensors:
-            reading = sensor.read()
-            if reading.frame != "hand":
-                raise InvalidInputError(
-                    f"sensor {sensor.name!r}: expected a reading in the hand frame, got {reading.frame!r}"
-                )
+            reading = sensor.read()  # (then the time: after the read, as a real sensor's frame arrives)
             rows.append((self.clock.time - t0, sensor.name, reading))
         return rows
 
@@ -466,12 +460,16 @@ class CaptureLogger:
         if last[0] == "frame":
             frame = w.remove_last()
             return f"view {frame.id} ({frame.split})"
+        return "grasp {} ({} touches)".format(*self._remove_last_grasp())
+
+    def _remove_last_grasp(self) -> tuple[int, int]:
+        """Remove the touches of the last grasp (the last records); returns its number and how many went."""
+        w, removed = self.writer, 0
         g = w.touches[-1].grasp
-        removed = 0
         while w.last_record is not None and w.last_record[0] == "touch" and w.touches[-1].grasp == g:
             w.remove_last()
             removed += 1
-        return f"grasp {g} ({removed} touches)"
+        return g, removed
 
 
 def _pad_pose(hand: Hand, q: np.ndarray, gel: int) -> np.ndarray:

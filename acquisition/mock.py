@@ -28,11 +28,11 @@ killed or signalled.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
 import os
-import shutil
 import tempfile
 import threading
 import time
@@ -105,14 +105,12 @@ class LoopingCapture:
 
 def _write_video(path: Path, frames_rgb: list[np.ndarray]) -> None:
     h, w = frames_rgb[0].shape[:2]
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (w, h))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (w, h))
     if not writer.isOpened():
-        raise RuntimeError(f"OpenCV cannot write an FFV1 video to {tmp}")
+        raise RuntimeError(f"OpenCV cannot write an FFV1 video to {path}")
     for frame in frames_rgb:
         writer.write(cv2.cvtColor(frame, cv2.COLOR_RGB2BGR))
     writer.release()
-    os.replace(tmp, path)
 
 
 def render_board(spec, K: np.ndarray, width: int, height: int, T_cam_board: np.ndarray) -> np.ndarray:
@@ -137,12 +135,11 @@ def camera_poses(spec, count: int) -> list[np.ndarray]:
     """``T_cam_board`` of the mock camera's video: looking at the board centre from 0.3-0.4 m, around it."""
     centre = np.array([spec.squares_x * spec.square_length_m / 2, spec.squares_y * spec.square_length_m / 2, 0.0])
     rng = np.random.default_rng(7)
-    poses = []
-    for k in range(count):
-        a = 2 * np.pi * k / max(count, 1)
-        eye = centre + np.array([0.08 * np.cos(a), 0.06 * np.sin(a), -rng.uniform(0.3, 0.4)])
-        poses.append(invert_pose(look_at(eye, centre, up=(0.0, -1.0, 0.0))))
-    return poses
+    eyes = [
+        centre + np.array([0.08 * np.cos(a), 0.06 * np.sin(a), -rng.uniform(0.3, 0.4)])
+        for a in (2 * np.pi * k / max(count, 1) for k in range(count))
+    ]
+    return [invert_pose(look_at(eye, centre, up=(0.0, -1.0, 0.0))) for eye in eyes]
 
 
 def servo_ticks(config: RigConfig, q_true: np.ndarray) -> np.ndarray:
@@ -165,13 +162,7 @@ class EmulatorPerson:
     stop a joint limit puts it at, and holds it there."""
 
     def __init__(self, mock: "MockDevices", settle_s: float = 0.1):
-        if mock.emulator is None:
-            raise ConfigError(
-                "mock_devices.servo_port",
-                "the servo emulator runs in another process, where no one moves its joints by hand: leave "
-                "servo_port out to calibrate the hand with --mock",
-                mock.config.source,
-            )
+        mock.own_emulator("moves its joints by hand", "calibrate the hand")
         self.mock, self.settle_s = mock, settle_s
         self.ids = list(mock.config.hand.ids)
 
@@ -218,6 +209,9 @@ class MockDevices:
         ).hexdigest()[:12]
         root = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / f"tacsplat-mock-rig-{os.getuid()}"
         self.folder = root / key
+        self.camera_video = self.folder / "wrist_camera.avi"
+        self.camera_calibration = self.folder / "wrist_camera.json"
+        self.tactile_calibration = self.folder / "tactile_calibration.npz"
         self.K = np.array(
             [[m.camera_focal_px, 0, m.camera_width / 2], [0, m.camera_focal_px, m.camera_height / 2], [0, 0, 1.0]]
         )
@@ -235,43 +229,40 @@ class MockDevices:
         self.captures: dict[str, LoopingCapture] = {}
 
     # --- files ------------------------------------------------------------------------------------
-    @property
-    def camera_video(self) -> Path:
-        return self.folder / "wrist_camera.avi"
-
-    @property
-    def camera_calibration(self) -> Path:
-        return self.folder / "wrist_camera.json"
-
     def tactile_video(self, finger: str) -> Path:
         return self.folder / f"tactile_{finger}.avi"
 
-    @property
-    def tactile_calibration(self) -> Path:
-        return self.folder / "tactile_calibration.npz"
+    def own_emulator(self, what: str, to: str) -> None:
+        """A ConfigError when the servo emulator runs in a process of its own, where no one does ``what`` (for
+        ``to`` with --mock)."""
+        if self.emulator is None:
+            raise ConfigError(
+                "mock_devices.servo_port",
+                f"the servo emulator runs in another process, where no one {what}: leave servo_port out to {to} "
+                "with --mock",
+                self.config.source,
+            )
 
     def _generate(self) -> None:
+        from tacsplat.acquisition.logger import opencv_K
         from tacsplat.drivers.optical_tactile import TactileCalibration
         from tacsplat.drivers.wrist_camera import CameraCalibration
 
         m, spec = self.config.mock_devices, self.config.board.spec()
         self.folder.parent.mkdir(parents=True, exist_ok=True)
-        work = Path(tempfile.mkdtemp(prefix=".mock-", dir=self.folder.parent))
         frames = [
             render_board(spec, self.K, m.camera_width, m.camera_height, T)
             if m.board_in_view
             else np.full((m.camera_height, m.camera_width, 3), 150, np.uint8)
             for T in self.camera_poses
         ]
-        real = self.folder
-        self.folder = work
-        try:
-            _write_video(self.camera_video, frames)
-            K_cv = self.K.copy()
-            K_cv[:2, 2] -= 0.5
+        # written into a folder of its own, renamed to the cache's when complete (a cleanup removes it otherwise)
+        with tempfile.TemporaryDirectory(prefix=".mock-", dir=self.folder.parent, ignore_cleanup_errors=True) as tmp:
+            work = Path(tmp)
+            _write_video(work / self.camera_video.name, frames)
             CameraCalibration(
-                K_cv, np.zeros(5), m.camera_width, m.camera_height, 0.0, spec, T_hand_cam=MOCK_T_HAND_CAM
-            ).save(self.camera_calibration)
+                opencv_K(self.K), np.zeros(5), m.camera_width, m.camera_height, 0.0, spec, T_hand_cam=MOCK_T_HAND_CAM
+            ).save(work / self.camera_calibration.name)
             h, w, pix = m.tactile_height, m.tactile_width, m.tactile_pixel_size_m
             reference = render_tactile_rgb(np.zeros((h, w), np.float32), pix)
             presses = [(0.3, 0.35, 6e-4), (0.7, 0.6, 8e-4), (0.5, 0.5, 1e-3), (0.3, 0.7, 5e-4), (0.7, 0.3, 9e-4)]
@@ -281,23 +272,18 @@ class MockDevices:
                 )
                 for x, y, d in presses
             ]
-            TactileCalibration.fit(reference, press_images, BALL_RADIUS_M, pix).save(self.tactile_calibration)
+            TactileCalibration.fit(reference, press_images, BALL_RADIUS_M, pix).save(
+                work / self.tactile_calibration.name
+            )
             for i, s in enumerate(self.config.tactile.sensors):
                 # untouched gel (the reference), then one frame per grasp: three presses and, at a place that
                 # differs per finger, no contact (sensor 0: the 2nd grasp, 1: the 3rd, 2: the 4th, 3: the 1st)
                 readings = [press_images[(i + k) % len(press_images)] for k in range(3)]
                 readings.insert((i + 1) % 4, reference)
-                _write_video(self.tactile_video(s.finger), [reference] * REFERENCE_FRAMES + readings)
+                _write_video(work / self.tactile_video(s.finger).name, [reference] * REFERENCE_FRAMES + readings)
             (work / "done").write_text("ok\n")
-            try:
-                os.replace(work, real)
-            except OSError:  # another process generated the same folder meanwhile
-                shutil.rmtree(work, ignore_errors=True)
-        except BaseException:
-            shutil.rmtree(work, ignore_errors=True)
-            raise
-        finally:
-            self.folder = real
+            with contextlib.suppress(OSError):  # another process generated the same folder meanwhile
+                os.replace(work, self.folder)
 
     # --- devices ----------------------------------------------------------------------------------
     @property

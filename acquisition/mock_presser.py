@@ -9,7 +9,6 @@ import numpy as np
 from tacsplat.acquisition.mock import MockDevices, render_board, servo_angles, sphere_press
 from tacsplat.acquisition.presses import INDENTATION_M, SPHERE_RADIUS_M, board_seen, pad_poses
 from tacsplat.drivers.wrist_camera import T_WORLD_BOARD
-from tacsplat.errors import ConfigError
 from tacsplat.geometry import invert_pose
 from tacsplat.sim.hand import HandKinematics, nominal_T_hand_cam
 from tacsplat.sim.tactile import render_tactile_rgb
@@ -25,13 +24,7 @@ class EmulatorPresser:
     timeout_s = 2.0  # the emulated press is shown at once
 
     def __init__(self, mock: MockDevices):
-        if mock.emulator is None:
-            raise ConfigError(
-                "mock_devices.servo_port",
-                "the servo emulator runs in another process, where no one reads where its servos stand: leave "
-                "servo_port out to press with --mock",
-                mock.config.source,
-            )
+        mock.own_emulator("reads where its servos stand", "press")
         self.mock, self.config = mock, mock.config
         self.kinematics = HandKinematics()
         e = self.config.sim.true_errors

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.config import BoardConfig
-from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected
+from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected, opencv_K
 from tacsplat.drivers.press_calibration import MIN_CONTACT_POINTS, Press
 from tacsplat.errors import CameraError, ConfigError, HandError, TactileError
 from tacsplat.geometry import invert_pose, make_pose, tactile_depth_to_points
@@ -104,13 +104,11 @@ def _pad_target(spec: PressSpec, direction: np.ndarray, yaw_deg: float) -> np.nd
 
 def _directions() -> list[np.ndarray]:
     """Where on the sphere a pad may press: around it, from the side to 80 degrees up."""
-    out = []
-    for elevation in np.radians([0.0, 30.0, 60.0, 80.0]):
-        for azimuth in np.radians(np.arange(0.0, 360.0, 45.0)):
-            out.append(
-                np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
-            )
-    return out
+    return [
+        np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+        for elevation in np.radians([0.0, 30.0, 60.0, 80.0])
+        for azimuth in np.radians(np.arange(0.0, 360.0, 45.0))
+    ]
 
 
 def board_seen(board: BoardConfig, K: np.ndarray, image_size: tuple[int, int], T_board_cam: np.ndarray):
@@ -122,10 +120,8 @@ def board_seen(board: BoardConfig, K: np.ndarray, image_size: tuple[int, int], T
     if T_board_cam[2, 3] <= 0.02:  # the camera under, or on, the board
         return None
     image = render_board(board.spec(), K, *image_size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
-    K_opencv = K.copy()
-    K_opencv[:2, 2] -= 0.5
     try:
-        pose = board_pose(image, board.spec(), K_opencv, None, board.min_corners)
+        pose = board_pose(image, board.spec(), opencv_K(K), None, board.min_corners)
     except CameraError:
         return None
     return pose if pose.rms_px <= board.max_reprojection_px else None
@@ -185,20 +181,10 @@ class TwinPressSession:
         self.twin = twin
 
     def _candidates(self, spec: PressSpec) -> list[np.ndarray]:
-        q = np.array(spec.q)
-        t = self.twin.config.tactile
-        return pad_poses(
-            spec,
-            self.presser.T_hand_pads(q),
-            self._true_T_hand_cam(),
-            np.array([t.width_px, t.height_px]) * t.pixel_size_m / 2,
-            self.board,
-            self.K,
-            CAMERA_PX,
-        )
-
-    def _true_T_hand_cam(self) -> np.ndarray:
-        return invert_pose(self.twin.T_world_hand()) @ self.twin.wrist_camera.pose()  # the person sees the view
+        pads = self.presser.T_hand_pads(np.array(spec.q))
+        T_hand_cam = invert_pose(self.twin.T_world_hand()) @ self.twin.wrist_camera.pose()  # the person sees it
+        half = np.array(self.twin.config.tactile.pad_size_m) / 2
+        return pad_poses(spec, pads, T_hand_cam, half, self.board, self.K, CAMERA_PX)
 
     def run(self, plan: list[PressSpec]) -> list[Press]:
         """The presses, a status line each; a press whose camera cannot see the board at any yaw is skipped."""

@@ -15,15 +15,14 @@ scene the same way.
 from __future__ import annotations
 
 from contextlib import ExitStack
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from tacsplat.acquisition.config import TouchPlan, validate_touches
-from tacsplat.acquisition.devices import twin_rig
-from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate, TwinPoseSource
+from tacsplat.acquisition.devices import TWIN_CONTROL
+from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate
 from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
@@ -57,16 +56,11 @@ class SceneUnits:
         return T
 
 
-@dataclass
 class ScaledPad:
     """A twin pad (``TactileSensor``) whose readings are in the scene's units."""
 
-    pad: object
-    units: SceneUnits
-
-    @property
-    def name(self) -> str:
-        return self.pad.name
+    def __init__(self, pad, units: SceneUnits):
+        self.pad, self.units, self.name = pad, units, pad.name
 
     def read(self) -> TactileReading:
         r, s = self.pad.read(), self.units.scale
@@ -80,11 +74,10 @@ class ScenePoseSource:
     units."""
 
     def __init__(self, twin: SimTwin, units: SceneUnits):
-        self.twin_poses = TwinPoseSource(twin)
-        self.units = units
+        self.twin, self.units = twin, units
 
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
-        return PoseEstimate(self.units.pose(self.twin_poses.hand_pose(image).T))
+        return PoseEstimate(self.units.pose(self.twin.hand_pose_from_wrist_camera()))
 
 
 def touch_settings(
@@ -98,12 +91,10 @@ def touch_settings(
     naming it: ``grasps``, ``object_radius``, ``seed``, ``model``, ``surface_points``)."""
     touches = TouchPlan(model=touch_model, surface_points=surface_points)
     validate_touches(touches)
-    for key, value in (("grasps", grasps), ("seed", seed)):
-        least = 1 if key == "grasps" else 0
+    for key, value, least in (("grasps", grasps, 1), ("seed", seed, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise ConfigError(key, f"must be an integer >= {least}, got {value!r}")
-    problem = object_radius_problem(object_radius)
-    if problem:
+    if problem := object_radius_problem(object_radius):
         raise ConfigError("object_radius", problem)
     return touches
 
@@ -180,15 +171,14 @@ def simulate_touches(
                     units.points,
                 )
             else:
-                rig = twin_rig(twin)
                 logger = CaptureLogger(
                     writer,
-                    rig.hand,
-                    [ScaledPad(p, units) for p in rig.sensors],
-                    rig.camera,
-                    rig.clock,
+                    twin.hand,
+                    [ScaledPad(p, units) for p in twin.tactile_sensors],
+                    twin.view_camera,
+                    twin,  # (its clock)
                     ScenePoseSource(twin, units),
-                    rig.control,
+                    TWIN_CONTROL,
                     redo_partial_grasp=False,
                 )
                 planner = TwinPlanner(twin, seed, grasp_config=grasp_config)

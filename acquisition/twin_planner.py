@@ -14,6 +14,7 @@ resumed at grasp ``g`` continues as if it had never stopped.
 
 from __future__ import annotations
 
+import functools
 import logging
 
 import numpy as np
@@ -44,17 +45,14 @@ class TwinPlanner:
             view_config = ViewConfig() if views.radius_m is None else ViewConfig(radius_factor=views.radius_m / radius)
             train, test = hemisphere_views(views.train, views.test, radius, twin.config.seed, view_config)
             self.view_poses = {"train": train, "test": test}
-        self._table = None
 
     def before_view(self, split: str, index: int) -> None:
         self.twin.move_camera(self.view_poses[split][index])
 
-    @property
+    @functools.cached_property
     def table(self) -> PreshapeTable:
-        if self._table is None:
-            c = self.grasp_config
-            self._table = PreshapeTable(self.twin, c.preshape_grid, c.preshape_abduction)
-        return self._table
+        c = self.grasp_config
+        return PreshapeTable(self.twin, c.preshape_grid, c.preshape_abduction)
 
     def approach(self, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """Reset the simulation, place the hand on a sampled approach, preshape it; returns the close pose [16] and

@@ -15,7 +15,7 @@ import mujoco
 import numpy as np
 
 from tacsplat.errors import CameraError
-from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_opencv
+from tacsplat.geometry import focal_from_fov, intrinsics_matrix, make_pose, opengl_to_opencv
 from tacsplat.types import CameraIntrinsics
 
 
@@ -49,6 +49,7 @@ class MujocoCamera:
         self._cam_id = twin.model.camera(camera_name).id
         fovy = float(twin.model.cam_fovy[self._cam_id])
         self.intrinsics = intrinsics_from_fovy(fovy, width, height)
+        self.width, self.height = width, height
         self._renderer = make_renderer(twin.model, width, height, f"camera {camera_name}")
         self._option = mujoco.MjvOption()
         self._option.geomgroup[:] = 0
@@ -60,21 +61,10 @@ class MujocoCamera:
     def K(self) -> np.ndarray:
         return self.intrinsics.K.copy()
 
-    @property
-    def width(self) -> int:
-        return self.intrinsics.width
-
-    @property
-    def height(self) -> int:
-        return self.intrinsics.height
-
     def pose(self) -> np.ndarray:
         """OpenCV camera-to-world pose [4, 4] from the simulation state."""
         data = self._twin.data
-        T_gl = np.eye(4)
-        T_gl[:3, :3] = data.cam_xmat[self._cam_id].reshape(3, 3)
-        T_gl[:3, 3] = data.cam_xpos[self._cam_id]
-        return opengl_to_opencv(T_gl)
+        return opengl_to_opencv(make_pose(data.cam_xmat[self._cam_id].reshape(3, 3), data.cam_xpos[self._cam_id]))
 
     def read(self) -> tuple[np.ndarray, float]:
         """``(image [H, W, 3] uint8 RGB, simulated time in seconds)``."""

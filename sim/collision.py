@@ -110,10 +110,8 @@ def convex_decomposition(
     key = decomposition_key(unit, config)
     cache = Path(os.environ.get("TACSPLAT_CACHE") or Path.home() / ".cache" / "tacsplat") / "coacd"  # user meshes
     shipped, cached = SHIPPED_DIR / f"{key}.npz", cache / f"{key}.npz"
-    if shipped.is_file():
-        pieces = _read(shipped)
-    elif cached.is_file():
-        pieces = _read(cached)
+    if stored := next((path for path in (shipped, cached) if path.is_file()), None):
+        pieces = _read(stored)
     else:
         pieces = _run_coacd(unit, config)
         _write(cached, pieces)

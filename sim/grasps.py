@@ -73,8 +73,7 @@ def _pretouch_candidates(twin: SimTwin, table: PreshapeTable, finger: str, T_wor
     cos = -np.einsum("ij,ij->i", face_n, normals[ray])
     gap = np.einsum("ij,ij->i", mesh.triangles[tri, 0] - origins[ray], face_n) / np.where(cos == 0, 1, -cos)
     ok = (cos >= config.min_alignment_cos) & (gap > 0) & (gap <= config.max_pretouch_gap_m)
-    ray, gap = ray[ok], gap[ok]
-    return ray[np.argsort(gap)]
+    return ray[ok][np.argsort(gap[ok])]
 
 
 def sample_hand_pose(twin: SimTwin, rng: np.random.Generator, config: GraspConfig = GraspConfig()) -> np.ndarray:

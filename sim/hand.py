@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tacsplat.errors import InvalidInputError
+from tacsplat.geometry import make_pose
 
 FINGER_NAMES = ["index", "middle", "ring", "thumb"]
 JOINT_NAMES = [f"{finger}_{i}" for finger in FINGER_NAMES for i in range(4)]
@@ -129,10 +130,7 @@ def nominal_T_hand_cam(geom: HandGeometry = HandGeometry()) -> np.ndarray:
     """The wrist camera's designed pose [4, 4] in the hand frame (OpenCV axes): the rig's hand-eye transform
     before any calibration."""
     pos, x_axis, y_axis = _wrist_camera_axes(geom)
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([x_axis, -y_axis, -np.cross(x_axis, y_axis)])  # OpenGL -> OpenCV: y and z flip
-    T[:3, 3] = pos
-    return T
+    return make_pose(np.column_stack([x_axis, -y_axis, -np.cross(x_axis, y_axis)]), pos)  # OpenGL -> OpenCV: y, z flip
 
 
 def hand_body_xml(
@@ -194,10 +192,17 @@ def build_hand_mjcf(geom: HandGeometry = HandGeometry(), gains: ActuatorGains = 
 
 def site_pose(data, site_id: int) -> np.ndarray:
     """World pose [4, 4] of a MuJoCo site from ``data``."""
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(data.site_xmat[site_id]).reshape(3, 3)
-    T[:3, 3] = data.site_xpos[site_id]
-    return T
+    return make_pose(np.reshape(data.site_xmat[site_id], (3, 3)), data.site_xpos[site_id])
+
+
+def joint_vector(q, what: str) -> np.ndarray:
+    """``q`` as [16] float64 radians; an InvalidInputError naming ``what`` unless it is 16 finite numbers."""
+    q = np.asarray(q, dtype=np.float64)
+    if q.shape != (16,):
+        raise InvalidInputError(f"{what}: q must have shape (16,), got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise InvalidInputError(f"{what}: q contains NaN or infinite values")
+    return q
 
 
 class HandKinematics:
@@ -209,7 +214,6 @@ class HandKinematics:
     def __init__(self, geom: HandGeometry = HandGeometry()):
         import mujoco
 
-        self.geometry = geom
         self._mujoco = mujoco
         self._model = mujoco.MjModel.from_xml_string(build_hand_mjcf(geom))
         self._data = mujoco.MjData(self._model)
@@ -228,12 +232,7 @@ class HandKinematics:
         return JOINT_LIMITS.copy()
 
     def _at(self, q: np.ndarray, what: str) -> None:
-        q = np.asarray(q, dtype=np.float64)
-        if q.shape != (16,):
-            raise InvalidInputError(f"HandKinematics.{what}: q must have shape (16,), got {q.shape}")
-        if not np.all(np.isfinite(q)):
-            raise InvalidInputError(f"HandKinematics.{what}: q contains NaN or infinite values")
-        self._data.qpos[self._qadr] = q
+        self._data.qpos[self._qadr] = joint_vector(q, f"HandKinematics.{what}")
         self._mujoco.mj_kinematics(self._model, self._data)
 
     def fingertip_poses(self, q: np.ndarray) -> dict[str, np.ndarray]:

@@ -12,7 +12,7 @@ Tactile depth and ground truth always use the exact mesh.
 
 from __future__ import annotations
 
-import hashlib
+import functools
 import logging
 import numbers
 from dataclasses import dataclass
@@ -50,23 +50,19 @@ class SimObject:
         return bounding_sphere(self.mesh)[1]
 
 
-_SPHERES: dict[bytes, tuple[np.ndarray, float]] = {}  # vertices' digest -> bounding_sphere (the last few meshes)
-
-
 def bounding_sphere(mesh: trimesh.Trimesh) -> tuple[np.ndarray, float]:
     """Centre [3] and radius of the minimum sphere enclosing the mesh's vertices.
 
-    Kept for the last few vertex arrays (by their SHA-1): a capture asks for the same object's sphere three
+    Kept for the last few vertex arrays (by their bytes): a capture asks for the same object's sphere three
     times (its radius twice, its collision pieces once), 0.08 s each for the teapot."""
-    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)  # [V, 3]
-    key = hashlib.sha1(vertices.tobytes()).digest()
-    if key not in _SPHERES:
-        centre, radius = trimesh.nsphere.minimum_nsphere(vertices)
-        if len(_SPHERES) >= 8:
-            _SPHERES.pop(next(iter(_SPHERES)))
-        _SPHERES[key] = (np.asarray(centre, dtype=np.float64), float(radius))
-    centre, radius = _SPHERES[key]
+    centre, radius = _bounding_sphere(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
     return centre.copy(), radius
+
+
+@functools.lru_cache(maxsize=8)
+def _bounding_sphere(vertices: bytes) -> tuple[np.ndarray, float]:
+    centre, radius = trimesh.nsphere.minimum_nsphere(np.frombuffer(vertices).reshape(-1, 3))
+    return np.asarray(centre, dtype=np.float64), float(radius)
 
 
 def _rounded_box(extents, radius: float, centre=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:
@@ -149,11 +145,8 @@ def _torus() -> trimesh.Trimesh:
 def _car() -> trimesh.Trimesh:
     body = _rounded_box([2.0, 0.9, 0.45], 0.12, centre=(0, 0, 0.42))
     cabin = _rounded_box([1.05, 0.8, 0.5], 0.15, centre=(-0.15, 0, 0.75))
-    wheels = []
-    for x in (-0.62, 0.62):
-        for y in (-0.42, 0.42):
-            w = trimesh.creation.cylinder(radius=0.22, height=0.18, sections=40)
-            wheels.append(_rotated(w, np.pi / 2, [1, 0, 0], [x, y, 0.22]))
+    wheel = trimesh.creation.cylinder(radius=0.22, height=0.18, sections=40)
+    wheels = [_rotated(wheel, np.pi / 2, [1, 0, 0], [x, y, 0.22]) for x in (-0.62, 0.62) for y in (-0.42, 0.42)]
     return _union(body, cabin, *wheels)
 
 
@@ -312,9 +305,7 @@ def _close_holes(mesh: trimesh.Trimesh) -> list[int]:
         new_faces += [[loop[(i + 1) % len(loop)], loop[i], centre] for i in range(len(loop))]
         closed.append(len(loop))
     if closed:
-        vertices = np.vstack([mesh.vertices, new_vertices])
-        faces = np.vstack([mesh.faces, new_faces])
-        mesh.vertices, mesh.faces = vertices, faces
+        mesh.vertices, mesh.faces = np.vstack([mesh.vertices, new_vertices]), np.vstack([mesh.faces, new_faces])
     return closed
 
 

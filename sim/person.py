@@ -68,22 +68,16 @@ class TwinPresser:
         w, h = board_size_m
         board = trimesh.creation.box((w, h, BOARD_THICKNESS_M))
         board.apply_translation((w / 2, -h / 2, -BOARD_THICKNESS_M / 2))  # the printed face at z = 0
-        meshes = [board]
-        for c in sphere_centres:
-            ball = trimesh.creation.icosphere(subdivisions=5, radius=sphere_radius_m)
-            ball.apply_translation(c)
-            meshes.append(ball)
-        self.surfaces = trimesh.util.concatenate(meshes)
+        balls = [
+            trimesh.creation.icosphere(subdivisions=5, radius=sphere_radius_m).apply_translation(c)
+            for c in sphere_centres
+        ]
+        self.surfaces = trimesh.util.concatenate([board, *balls])
         self.renderer = TactileDepthRenderer(self.surfaces, twin.config.tactile)
         self.pads = {pad.name: pad for pad in twin.tactile_sensors}
 
-    def T_hand_pad(self, finger: str, q: np.ndarray) -> np.ndarray:
-        """The pad's true pose [4, 4] on the hand with the joints set to ``q`` (as the rig commands them)."""
-        self.twin.hand.set_joint_positions(q)
-        return invert_pose(self.twin.T_world_hand()) @ self.pads[finger].T_world_sensor()
-
     def T_hand_pads(self, q: np.ndarray) -> dict[str, np.ndarray]:
-        """Every pad's true pose [4, 4] on the hand with the joints set to ``q``."""
+        """Every pad's true pose [4, 4] on the hand with the joints set to ``q`` (as the rig commands them)."""
         self.twin.hand.set_joint_positions(q)
         T_hand_world = invert_pose(self.twin.T_world_hand())
         return {name: T_hand_world @ pad.T_world_sensor() for name, pad in self.pads.items()}
@@ -91,7 +85,7 @@ class TwinPresser:
     def press(self, finger: str, q: np.ndarray, T_board_pad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Press: the pad at ``T_board_pad`` [4, 4] (board frame), joints at ``q``; returns ``(depth [h, w],
         T_board_cam)``: the pad's indentation map and the wrist camera's true pose on the board."""
-        T_hand_pad = self.T_hand_pad(finger, q)
+        T_hand_pad = self.T_hand_pads(q)[finger]
         self.twin.set_hand_base_pose(BOARD_IN_TWIN @ T_board_pad @ invert_pose(T_hand_pad))
         T_board = invert_pose(BOARD_IN_TWIN)
         depth = self.renderer.render(T_board @ self.pads[finger].T_world_sensor())

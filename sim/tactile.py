@@ -70,9 +70,7 @@ def render_tactile_rgb(depth: np.ndarray, pixel_size_m: float, background: np.nd
     if not (np.isfinite(pixel_size_m) and pixel_size_m > 0):
         raise InvalidInputError(f"render_tactile_rgb: pixel_size_m must be positive, got {pixel_size_m}")
     h, w = depth.shape
-    if background is None:
-        background = default_tactile_background(h, w)
-    background = np.asarray(background)
+    background = default_tactile_background(h, w) if background is None else np.asarray(background)
     if background.shape != (h, w, 3):
         raise InvalidInputError(f"render_tactile_rgb: background must be [{h}, {w}, 3], got {background.shape}")
     shading = tactile_surface_normals(depth, pixel_size_m) @ TACTILE_LIGHT_DIRECTIONS.T  # [h, w, 3]

@@ -36,6 +36,7 @@ from tacsplat.sim.hand import (
     HandGeometry,
     HandKinematics,
     hand_body_xml,
+    joint_vector,
     nominal_T_hand_cam,
     site_pose,
 )
@@ -58,13 +59,9 @@ MAX_SERVO_OMEGA_DT = 0.5  # servo natural frequency x timestep: the stiffest gai
 MIN_TIMECONST_STEPS = 2.0  # contact solref time constant >= this many timesteps
 
 # Warnings MuJoCo counts in data.warning that mean the simulation went wrong.
-_FATAL_WARNINGS = (
-    mujoco.mjtWarning.mjWARN_BADQACC,
-    mujoco.mjtWarning.mjWARN_BADQVEL,
-    mujoco.mjtWarning.mjWARN_BADQPOS,
-    mujoco.mjtWarning.mjWARN_CONTACTFULL,
-    mujoco.mjtWarning.mjWARN_CNSTRFULL,
-)
+_FATAL_WARNINGS = [
+    getattr(mujoco.mjtWarning, f"mjWARN_{w}") for w in ("BADQACC", "BADQVEL", "BADQPOS", "CONTACTFULL", "CNSTRFULL")
+]
 
 
 def pad_sensor_model(tactile: TactileConfig, scale: float = 1.0) -> SensorModel:
@@ -251,16 +248,9 @@ class SimHand:
         self._dofadr = np.array([model.jnt_dofadr[model.joint(n).id] for n in JOINT_NAMES])
         self._act = np.array([model.actuator(n).id for n in JOINT_NAMES])
         self._kinematics = HandKinematics(twin.config.hand_geometry)
-
-    @property
-    def joint_names(self) -> list[str]:
-        return list(JOINT_NAMES)
+        self.joint_names, self.link_names = list(JOINT_NAMES), list(self._kinematics.link_names)
 
     effort_unit = "N m"  # the position servos' torque
-
-    @property
-    def link_names(self) -> list[str]:
-        return list(self._kinematics.link_names)
 
     @property
     def joint_limits(self) -> np.ndarray:
@@ -282,11 +272,7 @@ class SimHand:
         return self.calibration.joint_angles(self._servo_signs * self._twin.data.ctrl[self._act] + self._servo_offsets)
 
     def command_joint_positions(self, q: np.ndarray) -> None:
-        q = np.asarray(q, dtype=np.float64)
-        if q.shape != (16,):
-            raise InvalidInputError(f"command_joint_positions: q must have shape (16,), got {q.shape}")
-        if not np.all(np.isfinite(q)):
-            raise InvalidInputError("command_joint_positions: q contains NaN or infinite values")
+        q = joint_vector(q, "command_joint_positions")
         clamped = np.clip(q, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
         if np.any(np.abs(clamped - q) > 1e-9):
             names = [JOINT_NAMES[i] for i in np.flatnonzero(np.abs(clamped - q) > 1e-9)]
@@ -335,16 +321,12 @@ class SimTactileSensor:
 
     def __init__(self, twin: "SimTwin", finger: str):
         self._twin = twin
-        self._name = finger
+        self.name = finger
         self._site = twin.model.site(f"{finger}_tactile").id
         self.config = twin.config.tactile
         cfg = twin.config
         self.mount_error = _pose_or_identity(cfg.mount_errors.get(finger), f"mount_errors.{finger}")
         self.T_fingertip_sensor = _pose_or_identity(cfg.mounts.get(finger), f"mounts.{finger}")  # the rig's
-
-    @property
-    def name(self) -> str:
-        return self._name
 
     def T_world_sensor(self) -> np.ndarray:
         """The pad's true pose: its fingertip's as simulated, off by the hidden mounting error."""
@@ -354,7 +336,7 @@ class SimTactileSensor:
         """The indentation map (at the pad's true pose), its pose in the hand frame as the rig computes it (the
         hand's forward kinematics at its joints as read, then the rig's mounting), the simulated time."""
         depth = self._twin.tactile_renderer.render(self.T_world_sensor())
-        T_hand_sensor = self._twin.hand.fingertip_poses()[self._name] @ self.T_fingertip_sensor
+        T_hand_sensor = self._twin.hand.fingertip_poses()[self.name] @ self.T_fingertip_sensor
         return TactileReading(depth, self.config.pixel_size_m, T_hand_sensor, "hand", float(self._twin.data.time))
 
 
@@ -430,8 +412,7 @@ class SimTwin:
 
     def check_stable(self) -> None:
         """Raise :class:`SimulationError` if MuJoCo flagged a problem or the state is not finite."""
-        raised = {mujoco.mjtWarning(w).name: int(self.data.warning[w].number) for w in _FATAL_WARNINGS}
-        raised = {k: v for k, v in raised.items() if v}
+        raised = {mujoco.mjtWarning(w).name: n for w in _FATAL_WARNINGS if (n := int(self.data.warning[w].number))}
         if raised or not (np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel))):
             raise SimulationError(
                 f"simulation unstable at t={self.data.time:.4f} s: warnings {raised or 'none'}, "
