@@ -353,6 +353,10 @@ class CaptureLogger:
         rows = []
         for sensor in sensors:
             reading = sensor.read()  # (then the time: after the read, as a real sensor's frame arrives)
+            if reading.frame != "hand":  # a driver outside the package could place its pad elsewhere
+                raise InvalidInputError(
+                    f"sensor {sensor.name!r}: expected a reading in the hand frame, got {reading.frame!r}"
+                )
             rows.append((self.clock.time - t0, sensor.name, reading))
         return rows
 

@@ -7,6 +7,7 @@ import pytest
 from tacsplat.acquisition.config import GraspControl
 from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate
 from tacsplat.datasets import SceneMeta, SceneWriter, SensorModel
+from tacsplat.errors import InvalidInputError
 from tacsplat.geometry import make_pose
 from tacsplat.types import CameraIntrinsics, TactileReading
 
@@ -180,3 +181,23 @@ def test_undo_removes_a_whole_grasp_and_the_next_grasp_reuses_its_number(tmp_pat
         with pytest.raises(Exception, match="already recorded"):
             logger.take_grasp(index=0)
         assert logger.take_grasp().index == 1
+
+
+class WorldPad(PadSensor):
+    """A driver that places its pad in the world frame, which the logger cannot place in the scene."""
+
+    def read(self):
+        r = super().read()
+        return TactileReading(r.depth, r.pixel_size_m, r.T_ref_sensor, "world")
+
+
+def test_a_reading_outside_the_hand_frame_is_refused_naming_the_sensor(tmp_path):
+    hand = ToyHand(blocked={"index": 0.5})
+    writer, logger = _logger(tmp_path, hand, CONTROL)
+    logger.sensors = [WorldPad(hand, f) for f in FINGERS]
+    with writer:
+        with pytest.raises(
+            InvalidInputError, match="sensor 'index': expected a reading in the hand frame, got 'world'"
+        ):
+            logger.take_grasp()
+        assert writer.num_touches == 0
