@@ -34,10 +34,6 @@ class Capture:
     mock: bool = False
     """emulated devices instead of the real rig's (servo emulator on a pty, video-file tactile sensors, a camera
     that sees a rendered board)"""
-    suggest: Annotated[Path | None, tyro.conf.arg(metavar="RUN")] = None
-    """a reconstruction in progress of this capture (a tacsplat reconstruct folder; its latest checkpoint): the key
-    s then suggests the next grasp, where a fingertip should touch and from which direction, drawn on the wrist
-    camera's image (OUT-suggestion.png)"""
 
 
 @dataclass
@@ -145,9 +141,7 @@ class TouchModel:
 class SimCapture(TouchModel):
     """Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin places the camera on
     the hemisphere and the hand on sampled approaches; the logger closes the hand until the fingers stall, reads
-    the pads and writes). --grasp-strategy next-best reconstructs the scene so far before each grasp and grasps
-    where it is least sure (its decisions and their scores in OUT/scene.json, under annotations.next_touch).
-    --touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in --seed;
+    the pads and writes). --touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in --seed;
     --resume continues a killed capture with the same options (any other value is refused, naming the option).
     --rig reads the object, the plan and the calibration files from a rig: sim file instead of these options:
     its sim.true_errors make the twin's hardware differ from its model, and every pose is computed as on the real
@@ -179,17 +173,6 @@ class SimCapture(TouchModel):
     texture: str = "none"
     """the object's surface: none (its one colour, the glossy library's) or checker (a checker of its colour and a
     contrasting grey, for measuring on a textured object)"""
-    grasp_strategy: str = "random"
-    """random: each grasp on an approach the twin samples; next-best: before each grasp, reconstruct the scene so
-    far briefly and execute, of --candidates sampled approaches, the one whose fingertips land where the
-    reconstruction is least sure"""
-    candidates: int = 16
-    """next-best: approaches scored per grasp (1 to 1000)"""
-    selection_steps: int = 300
-    """next-best: training steps of the reconstruction before each grasp (1 to 1000000)"""
-    uncertainty: str = "depth-variance"
-    """next-best: the score, fisher (Fisher information of the Gaussians' positions under the photometric loss) or
-    depth-variance (spread of depth along the training rays)"""
     slide_m: float = 0.0
     """after each press, every finger in contact slides its pad across the surface this many metres each way and
     back (0 to 0.1; 0: press only), reading the pad as it goes (grasp.slide_m)"""
@@ -253,7 +236,7 @@ def _capture(o: Capture) -> int:
     from tacsplat.acquisition.config import load_rig
     from tacsplat.acquisition.operator_session import run_capture
 
-    return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume, suggest=o.suggest)
+    return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume)
 
 
 def _calibration_rig(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, mock: bool):
@@ -427,10 +410,6 @@ _SIM_OPTIONS = {  # sim_rig_config's keys
     "plan.views.test": "--test-views",
     "plan.grasps.count": "--grasps",
     "plan.grasps.seed": "--seed",
-    "plan.grasps.mode": "--grasp-strategy",
-    "plan.grasps.candidates": "--candidates",
-    "plan.grasps.selection_steps": "--selection-steps",
-    "plan.grasps.uncertainty": "--uncertainty",
     "plan.touches.model": "--touch-model",
     "plan.touches.surface_points": "--surface-points",
 }

@@ -231,29 +231,24 @@ class ViewPlan:
     radius_m: Annotated[float, positive(10.0, "m")] | None = None
 
 
-GRASP_MODES = ("operator", "random", "next-best")
+GRASP_MODES = ("operator", "random")
+# next-best touch (grasps where the reconstruction so far was least sure) was removed: it did not beat random grasps
+# at equal budgets (docs/experiments.md); a rig file that still asks for it is refused, naming the field
+REMOVED_NEXT_BEST = (
+    "next-best touch was removed (it did not beat random grasps at equal budgets, docs/experiments.md): "
+    "use mode 'random' (or 'operator') and drop candidates, selection_steps and uncertainty"
+)
 
 
 @with_config(YAML_SECTION)
 @dataclass(frozen=True)
 class GraspPlan:
-    """Where the grasps go: ``operator`` (a person places the hand), ``random`` (the twin samples an approach per
-    grasp) or ``next-best`` (the twin samples ``candidates`` approaches per grasp and executes the one whose
-    fingertips land where a reconstruction of the scene so far, ``selection_steps`` training steps, is least sure
-    by the ``uncertainty`` score; :mod:`tacsplat.acquisition.next_touch`)."""
+    """Where the grasps go: ``operator`` (a person places the hand) or ``random`` (the twin samples an approach per
+    grasp)."""
 
     count: Annotated[int, bounded(0)] = 5
     mode: Text = "operator"  # one of GRASP_MODES
     seed: Annotated[int, bounded(0)] = 0
-    candidates: Annotated[int, bounded(1, 1000)] = 16  # next-best: approaches scored per grasp
-    # next-best: training steps of each reconstruction so far
-    selection_steps: Annotated[int, bounded(1, 1_000_000)] = 300
-    uncertainty: Text = "depth-variance"  # next-best: the score (reconstruction.uncertainty.SCORES)
-
-    def to_json(self) -> dict:
-        """As scene.json records it: the next-best parameters only with the next-best mode."""
-        data = dataclasses.asdict(self)
-        return data if self.mode == "next-best" else {k: data[k] for k in ("count", "mode", "seed")}
 
 
 TOUCH_MODELS = ("gel", "paper")
@@ -285,7 +280,7 @@ class CapturePlan:
     touches: TouchPlan = field(default_factory=TouchPlan)
 
     def to_json(self) -> dict:
-        return {**dataclasses.asdict(self), "grasps": self.grasps.to_json(), "touches": self.touches.to_json()}
+        return {**dataclasses.asdict(self), "touches": self.touches.to_json()}
 
 
 MAX_POSE_ERROR_M = 0.05  # the largest true mounting error a twin may hide, per axis (an error, not another rig)
@@ -493,6 +488,12 @@ def parse_rig(
     for key in _SET_BY_LOAD_RIG:
         if key in data:
             raise ConfigError(key, f"unknown key (expected one of {sorted(_section_fields(RigConfig, ()))})", src)
+    grasps = data["plan"].get("grasps") if isinstance(data.get("plan"), dict) else None
+    if isinstance(grasps, dict):
+        removed = ["mode"] if grasps.get("mode") == "next-best" else []
+        removed += [k for k in ("candidates", "selection_steps", "uncertainty") if k in grasps]
+        if removed:
+            raise ConfigError(f"plan.grasps.{removed[0]}", REMOVED_NEXT_BEST, src)
     data = {k: v for k, v in data.items() if not (v is None and k in _SECTIONS)}  # an empty section: the defaults
     config = dataclasses.replace(checked(RigConfig, data, "", src), source=src, mock=bool(mock))
     validate(config, check_files)
@@ -525,23 +526,9 @@ def validate(c: RigConfig, check_files: bool = True) -> None:
     v, g = c.plan.views, c.plan.grasps
     if g.mode not in GRASP_MODES:
         raise ConfigError("plan.grasps.mode", f"must be {' or '.join(map(repr, GRASP_MODES))}, got {g.mode!r}", src)
-    if g.mode == "next-best":
-        from tacsplat.reconstruction.uncertainty import SCORES
-
-        if g.uncertainty not in SCORES:
-            raise ConfigError(
-                "plan.grasps.uncertainty", f"must be one of {', '.join(map(repr, SCORES))}, got {g.uncertainty!r}", src
-            )
-        if c.plan.touches.model != "gel":
-            raise ConfigError(
-                "plan.grasps.mode",
-                "next-best chooses where the hand grasps: it needs the gel touch model (plan.touches.model: gel)",
-                src,
-            )
     if c.rig == "real" and (v.mode != "operator" or g.mode != "operator"):
         key = "plan.views.mode" if v.mode != "operator" else "plan.grasps.mode"
-        hint = " (tacsplat capture --suggest RUN shows where the next grasp should go)" if g.mode == "next-best" else ""
-        raise ConfigError(key, f"a real rig is positioned by the operator: use 'operator'{hint}", src)
+        raise ConfigError(key, "a real rig is positioned by the operator: use 'operator'", src)
     gc = c.grasp
     for key in ("close_pose", "open_pose"):
         if len(getattr(gc, key)) != 16:
