@@ -39,7 +39,7 @@ from pydantic import (
 
 from tacsplat.drivers.wrist_camera import CharucoBoardSpec
 from tacsplat.errors import ConfigError
-from tacsplat.geometry import rigidity_problem
+from tacsplat.geometry import make_pose, rigidity_problem
 from tacsplat.sim import OBJECT_RADIUS_RANGE_M
 from tacsplat.sim.hand import FINGER_NAMES, JOINT_NAMES
 
@@ -104,8 +104,7 @@ def _pose(value) -> tuple:
         T = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         raise ValueError(f"expected a 4x4 matrix of numbers, got {value!r}") from None
-    problem = rigidity_problem(T)
-    if problem:
+    if problem := rigidity_problem(T):
         raise ValueError(
             f"not a rigid transform: {problem} (expected [[R, t], [0, 0, 0, 1]], R a rotation: "
             "orthonormal, determinant +1; all finite)"
@@ -306,10 +305,7 @@ class PoseError:
         """``E`` [4, 4]."""
         from scipy.spatial.transform import Rotation
 
-        E = np.eye(4)
-        E[:3, :3] = Rotation.from_rotvec(self.rotation_deg, degrees=True).as_matrix()
-        E[:3, 3] = self.translation_m
-        return E
+        return make_pose(Rotation.from_rotvec(self.rotation_deg, degrees=True).as_matrix(), self.translation_m)
 
 
 @with_config(YAML_SECTION)
@@ -566,8 +562,7 @@ def validate_touches(t: TouchPlan, prefix: str = "", src=None) -> None:
 
 
 def _validate_board(b: BoardConfig, src) -> None:
-    problem = b.spec().problem()
-    if problem:
+    if problem := b.spec().problem():
         raise ConfigError(f"board.{problem[0]}", problem[1], src)
     inner = (b.squares_x - 1) * (b.squares_y - 1)
     if b.min_corners > inner:

@@ -154,13 +154,11 @@ class CaptureSession:
 
     def view(self) -> None:
         c, v = self.logger.counts(), self.plan.views
-        if c.train < v.train:
-            split, index = "train", c.train
-        elif c.test < v.test:
-            split, index = "test", c.test
-        else:
+        split = next((s for s in ("train", "test") if getattr(c, s) < getattr(v, s)), None)  # train views first
+        if split is None:
             self.say(f"all {v.train} train and {v.test} test views of the plan are taken (u undoes one)")
             return
+        index = getattr(c, split)
         if self.planner is not None:
             self.planner.before_view(split, index)
         try:
@@ -254,9 +252,7 @@ def run_capture(
     keys = sys.stdin if keys is None else keys
     output = sys.stdout if output is None else output
     out = Path(out)
-    fault: BaseException | None = None
-    interrupted: int | None = None
-    complete = False
+    code, told = 1, "stopped before the plan was complete.\n"
     hands = []  # the real rig's hand, once made: its torque-off report is the last line
     try:
         with _ending_signals_interrupt(), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
@@ -273,21 +269,16 @@ def run_capture(
                 planner = TwinPlanner(rig.twin, config.plan.grasps.seed, config.plan.views)
             if on_open is not None:
                 on_open(rig, logger)
-            complete = CaptureSession(rig, logger, config.plan, keys, output, planner).run()
-    except (DeviceError, SimulationError) as exc:
-        fault = exc
-    except KeyboardInterrupt as exc:
-        interrupted = getattr(exc, "signum", signal.SIGINT)
-    if interrupted is not None:
-        code, told = 128 + interrupted, f"interrupted ({signal.Signals(interrupted).name}).\n{_carry_on(config, out)}"
-    elif fault is not None:
+            if CaptureSession(rig, logger, config.plan, keys, output, planner).run():
+                code, told = 0, f"plan complete: scene written to {out}\n"
+    except (DeviceError, SimulationError) as fault:
         held = f"The scene in {out} holds every record completed before the fault. " if _started(out) else ""
-        code, told = EXIT_FAULT, f"DEVICE FAULT: {fault}\n{held}Fix the device.\n{_carry_on(config, out)}"
-    elif complete:
-        code, told = 0, f"plan complete: scene written to {out}\n"
-    else:
-        code, told = 1, f"stopped before the plan was complete.\n{_carry_on(config, out)}"
-    output.write(f"\n{told}{'' if config.rig == 'sim' else _hand_line(hands)}")
+        code, told = EXIT_FAULT, f"DEVICE FAULT: {fault}\n{held}Fix the device.\n"
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        code, told = 128 + signum, f"interrupted ({signal.Signals(signum).name}).\n"
+    carry_on = _carry_on(config, out) if code else ""
+    output.write(f"\n{told}{carry_on}{'' if config.rig == 'sim' else _hand_line(hands)}")
     output.flush()
     return code
 

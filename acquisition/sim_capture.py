@@ -60,8 +60,7 @@ def sim_rig_config(
     """The ``rig: sim`` config of ``tacsplat sim-capture``'s options (``surface_points``: the paper model's;
     ``slide_m``: each finger in contact slides its pad after the press, ``GraspControl``); a value out of its range
     is a ConfigError naming its key (``sim.object_radius``)."""
-    problem = object_radius_problem(object_radius)
-    if problem:  # (before the rig config's own check of the same range, with what the range means)
+    if problem := object_radius_problem(object_radius):  # (before the rig config's check, with what it means)
         raise ConfigError("sim.object_radius", problem)
     config = RigConfig(
         rig="sim",
@@ -102,10 +101,8 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
             todo = range(writer.num_touches, TOUCHES_PER_GRASP * config.plan.grasps.count)
             write_paper_touches(writer, touches, progress_bar(todo, desc="touches", unit="touch", enabled=progress))
         else:
-            start = logger.next_grasp_index()
-            for g in progress_bar(
-                range(start, config.plan.grasps.count), desc="grasps", unit="grasp", enabled=progress
-            ):
+            todo = range(logger.next_grasp_index(), config.plan.grasps.count)
+            for g in progress_bar(todo, desc="grasps", unit="grasp", enabled=progress):
                 planner.grasp(logger, g)
         t_end = time.perf_counter()
     return {"setup_s": t_setup - t0, "views_s": t_views - t_setup, "grasps_s": t_end - t_views, "total_s": t_end - t0}
