@@ -215,16 +215,6 @@ class CaptureSession:
         return self.plan_complete()
 
 
-def rerun_command(config: RigConfig, out: Path) -> str:
-    """The command that carries on after a stop: it resumes the scene in ``out``, or starts the capture again when
-    it never wrote one."""
-    return " ".join(
-        ["tacsplat", "capture", "--rig", shlex.quote(str(config.source or "RIG.yaml")), "--out", shlex.quote(str(out))]
-        + (["--resume"] if _started(out) else [])
-        + (["--mock"] if config.mock else [])
-    )
-
-
 def run_capture(
     config: RigConfig,
     out: str | Path,
@@ -316,6 +306,10 @@ def _started(out: Path) -> bool:
 
 
 def _carry_on(config: RigConfig, out: Path) -> str:
-    """How to carry on after a stop: resume the scene, or start again when the capture never wrote one."""
-    how = "Resume with:" if _started(out) else "The capture did not start (no scene was written). Start it again with:"
-    return f"{how}\n  {rerun_command(config, out)}\n"
+    """How to carry on after a stop: the command that resumes the scene in ``out``, or that starts the capture again
+    when it never wrote one."""
+    started = _started(out)
+    how = "Resume with:" if started else "The capture did not start (no scene was written). Start it again with:"
+    rig = shlex.quote(str(config.source or "RIG.yaml"))
+    command = f"tacsplat capture --rig {rig} --out {shlex.quote(str(out))}"
+    return f"{how}\n  {command}{' --resume' if started else ''}{' --mock' if config.mock else ''}\n"
