@@ -19,7 +19,9 @@ _RADIUS_RANGE = "({:g} to {:g}: the sizes the twin's hand grasps)".format(*OBJEC
 
 @dataclass
 class Capture:
-    """Guides a person at the rig from the terminal. A status line shows the board (seen or not, reprojection
+    """operator capture session on a rig (real, --mock, or the twin): views and grasps into a scene directory
+
+    Guides a person at the rig from the terminal. A status line shows the board (seen or not, reprojection
     error), the hand and the counts against the plan. Keys: Enter = take a view, g = grasp, u = undo the last
     record, q = stop. A device fault leaves the hand with torque off and prints the command that carries on
     (--resume once a scene was written). --resume refuses a rig file whose object, plan, board, mounting or
@@ -34,10 +36,6 @@ class Capture:
     mock: bool = False
     """emulated devices instead of the real rig's (servo emulator on a pty, video-file tactile sensors, a camera
     that sees a rendered board)"""
-    suggest: Annotated[Path | None, tyro.conf.arg(metavar="RUN")] = None
-    """a reconstruction in progress of this capture (a tacsplat reconstruct folder; its latest checkpoint): the key
-    s then suggests the next grasp, where a fingertip should touch and from which direction, drawn on the wrist
-    camera's image (OUT-suggestion.png)"""
 
 
 @dataclass
@@ -143,12 +141,12 @@ class TouchModel:
 
 @dataclass
 class SimCapture(TouchModel):
-    """Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin places the camera on
+    """simulated capture: train views, test views with ground truth, and grasps, into a scene directory
+
+    Captures a scene on the MuJoCo twin through the same logger as a real capture (the twin places the camera on
     the hemisphere and the hand on sampled approaches; the logger closes the hand until the fingers stall, reads
-    the pads and writes). --grasp-strategy next-best reconstructs the scene so far before each grasp and grasps
-    where it is least sure (its decisions and their scores in OUT/scene.json, under annotations.next_touch).
-    --touch-model paper makes the paper's touches instead of grasping, four per grasp. Deterministic in --seed;
-    --resume continues a killed capture with the same options (any other value is refused, naming the option).
+    the pads and writes). --touch-model paper makes the paper's touches instead of grasping, four per grasp.
+    Deterministic in --seed; --resume continues a killed capture with the same options (any other value is refused, naming the option).
     --rig reads the object, the plan and the calibration files from a rig: sim file instead of these options:
     its sim.true_errors make the twin's hardware differ from its model, and every pose is computed as on the real
     rig, from the calibration files the rig names."""
@@ -179,17 +177,6 @@ class SimCapture(TouchModel):
     texture: str = "none"
     """the object's surface: none (its one colour, the glossy library's) or checker (a checker of its colour and a
     contrasting grey, for measuring on a textured object)"""
-    grasp_strategy: str = "random"
-    """random: each grasp on an approach the twin samples; next-best: before each grasp, reconstruct the scene so
-    far briefly and execute, of --candidates sampled approaches, the one whose fingertips land where the
-    reconstruction is least sure"""
-    candidates: int = 16
-    """next-best: approaches scored per grasp (1 to 1000)"""
-    selection_steps: int = 300
-    """next-best: training steps of the reconstruction before each grasp (1 to 1000000)"""
-    uncertainty: str = "depth-variance"
-    """next-best: the score, fisher (Fisher information of the Gaussians' positions under the photometric loss) or
-    depth-variance (spread of depth along the training rays)"""
     slide_m: float = 0.0
     """after each press, every finger in contact slides its pad across the surface this many metres each way and
     back (0 to 0.1; 0: press only), reading the pad as it goes (grasp.slide_m)"""
@@ -199,7 +186,9 @@ class SimCapture(TouchModel):
 
 @dataclass
 class SimulateTouches(TouchModel):
-    """Grasps the mesh on the MuJoCo twin (at a graspable size, --object-radius) through the same logger and grasp
+    """add simulated grasps of a mesh to a scene (e.g. an imported Shiny Blender or Glossy Synthetic scene)
+
+    Grasps the mesh on the MuJoCo twin (at a graspable size, --object-radius) through the same logger and grasp
     controller as sim-capture (or, with --touch-model paper, makes four of the paper's touches per grasp on it),
     and writes the touches in the scene's frame and units. A scene with this sensor model is extended in place; one
     without (an import) is copied into --out first."""
@@ -225,57 +214,38 @@ class SimulateTouches(TouchModel):
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    cli.typed(
-        "capture",
-        Capture,
-        _capture,
-        help="operator capture session on a rig (real, --mock, or the twin): views and grasps into a scene directory",
-    )
+    cli.typed("capture", Capture, _capture)
     cli.typed("calibrate hand", CalibrateHand, _calibrate_hand)
     cli.typed("calibrate hand-eye", CalibrateHandEye, _calibrate_hand_eye)
     cli.typed("calibrate mounts", CalibrateMounts, _calibrate_mounts)
     cli.typed("rig check", RigCheck, _rig_check)
-    cli.typed(
-        "sim-capture",
-        SimCapture,
-        _sim_capture,
-        help="simulated capture: train views, test views with ground truth, and grasps, into a scene directory",
-    )
-    cli.typed(
-        "simulate-touches",
-        SimulateTouches,
-        _simulate_touches,
-        help="add simulated grasps of a mesh to a scene (e.g. an imported Shiny Blender or Glossy Synthetic scene)",
-    )
+    cli.typed("sim-capture", SimCapture, _sim_capture)
+    cli.typed("simulate-touches", SimulateTouches, _simulate_touches)
 
 
 def _capture(o: Capture) -> int:
     from tacsplat.acquisition.config import load_rig
     from tacsplat.acquisition.operator_session import run_capture
 
-    return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume, suggest=o.suggest)
+    return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume)
 
 
-def _calibration_rig(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, mock: bool):
-    """The rig file of a calibration command, its ``--out`` (a .json file) checked writable."""
+def _calibrate(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, job) -> int:
+    """A calibration command: the rig file, ``--out`` (a .json file) checked writable, then ``job(config)``, exit 0;
+    interrupted (Ctrl-C, or the hand driver's SignalInterrupt: SIGTERM, SIGHUP, ...) after the hand was left with
+    torque off: one line saying ``--out`` was not written, exit 128 + the signal."""
     from tacsplat.acquisition.config import load_rig
     from tacsplat.datasets.outputs import ensure_output_dir
 
     if o.out.is_dir():
         raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
-    config = load_rig(o.rig, mock=mock, check_files=False)
+    config = load_rig(o.rig, mock=o.mock, check_files=False)
     ensure_output_dir(o.out.parent, "--out")
-    return config
-
-
-def _until_interrupted(run, out: Path) -> int:
-    """``run()``, exit 0; interrupted (Ctrl-C, or the hand driver's SignalInterrupt: SIGTERM, SIGHUP, ...) after
-    the hand was left with torque off: one line saying ``out`` was not written, exit 128 + the signal."""
     try:
-        run()
+        job(config)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
-        print(f"interrupted ({signal.Signals(signum).name}): {out} not written", file=sys.stderr)
+        print(f"interrupted ({signal.Signals(signum).name}): {o.out} not written", file=sys.stderr)
         return 128 + signum
     return 0
 
@@ -283,32 +253,31 @@ def _until_interrupted(run, out: Path) -> int:
 def _calibrate_hand(o: CalibrateHand) -> int:
     from tacsplat.acquisition.calibrate import calibrate_hand
 
-    config = _calibration_rig(o, o.mock)
-    return _until_interrupted(lambda: calibrate_hand(config, o.out), o.out)
+    return _calibrate(o, lambda config: calibrate_hand(config, o.out))
 
 
 def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
-    if o.arm_poses is not None and o.mock:
+    if o.arm_poses is None:
+        from tacsplat.acquisition.calibrate import calibrate_hand_eye
+
+        return _calibrate(o, lambda config: calibrate_hand_eye(config, o.out))
+    if o.mock:
         raise UsageError("--mock", "--arm-poses reads its stations' images, no devices: leave out --mock")
-    config = _calibration_rig(o, o.mock)
-    if o.arm_poses is not None:
-        from tacsplat.acquisition.arm_hand_eye import calibrate_hand_eye_from_arm
+    from tacsplat.acquisition.arm_hand_eye import calibrate_hand_eye_from_arm
 
-        calibrate_hand_eye_from_arm(config, o.arm_poses, o.out)
-        return 0
-    from tacsplat.acquisition.calibrate import calibrate_hand_eye
-
-    return _until_interrupted(lambda: calibrate_hand_eye(config, o.out), o.out)
+    return _calibrate(o, lambda config: calibrate_hand_eye_from_arm(config, o.arm_poses, o.out))
 
 
 def _calibrate_mounts(o: CalibrateMounts) -> int:
     from tacsplat.acquisition.calibrate import calibrate_mounts
     from tacsplat.datasets.outputs import ensure_output_dir
 
-    config = _calibration_rig(o, o.mock)
-    if o.hand_eye is not None:
-        ensure_output_dir(o.hand_eye.parent, "--hand-eye")
-    return _until_interrupted(lambda: calibrate_mounts(config, o.out, o.hand_eye), o.out)
+    def job(config):
+        if o.hand_eye is not None:  # checked once the rig file is
+            ensure_output_dir(o.hand_eye.parent, "--hand-eye")
+        calibrate_mounts(config, o.out, o.hand_eye)
+
+    return _calibrate(o, job)
 
 
 def _rig_check(o: RigCheck) -> int:
@@ -355,8 +324,8 @@ def _sim_capture_config(args: SimCapture):
         object_radius = _option_values(lambda: bounding_sphere(read_mesh(args.mesh))[1], _SIM_OPTIONS)
         if problem := object_radius_problem(object_radius):
             raise UsageError("--keep-size", f"{args.mesh}'s own bounding radius, read in metres, {problem}")
-    given = {k: v for k, v in vars(args).items() if k in inspect.signature(sim_rig_config).parameters}
-    given = {k: v for k, v in given.items() if v is not None} | {"object_radius": object_radius}
+    keys = inspect.signature(sim_rig_config).parameters
+    given = {k: v for k, v in vars(args).items() if k in keys and v is not None} | {"object_radius": object_radius}
     return _option_values(lambda: sim_rig_config(**given), _SIM_OPTIONS)
 
 
@@ -427,10 +396,6 @@ _SIM_OPTIONS = {  # sim_rig_config's keys
     "plan.views.test": "--test-views",
     "plan.grasps.count": "--grasps",
     "plan.grasps.seed": "--seed",
-    "plan.grasps.mode": "--grasp-strategy",
-    "plan.grasps.candidates": "--candidates",
-    "plan.grasps.selection_steps": "--selection-steps",
-    "plan.grasps.uncertainty": "--uncertainty",
     "plan.touches.model": "--touch-model",
     "plan.touches.surface_points": "--surface-points",
 }

@@ -3,10 +3,7 @@
 A live status line shows whether the board is seen and its reprojection error,
 the hand's state and the counts so far against the plan. Keys: Enter takes a
 view (train views first, then test views), ``g`` grasps, ``u`` undoes the last
-record (a view, or a whole grasp), ``q`` stops. End of input is ``q``. With a
-reconstruction in progress (``--suggest RUN``), ``s`` suggests the next grasp
-(:class:`~tacsplat.acquisition.next_touch.GraspSuggester`): where a fingertip
-should touch and from which direction, drawn on the wrist camera's image. On a
+record (a view, or a whole grasp), ``q`` stops. End of input is ``q``. On a
 device fault the rig is closed first (the hand's context manager turns torque
 off), then the session says what failed and the exact command that resumes (or,
 when the fault came before a scene was written, that starts again). A resume
@@ -40,20 +37,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, TextIO
 
-import numpy as np
-
 from tacsplat.acquisition.capture_scene import open_scene
 from tacsplat.acquisition.config import CapturePlan, RigConfig
 from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.datasets.writer import JOURNAL
 from tacsplat.drivers.dynamixel_hand import END_SIGNALS, SignalInterrupt
-from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError, TacsplatError
+from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError
 
 log = logging.getLogger(__name__)
 
 KEYS_HELP = "[Enter] view  [g] grasp  [u] undo  [q] quit"
-SUGGEST_HELP = "  [s] suggest a grasp"
 EXIT_FAULT = 3  # a device failed; the scene is resumable
 
 
@@ -91,7 +85,6 @@ class CaptureSession:
     out: TextIO
     planner: object = None  # positions the twin before a view or grasp (None on a real rig: the operator does)
     refresh_s: float = 0.5
-    suggester: object = None  # a GraspSuggester (--suggest), or None
 
     def __post_init__(self):
         self._live = bool(getattr(self.out, "isatty", lambda: False)())
@@ -119,7 +112,7 @@ class CaptureSession:
         return (
             f"{self.board_status()} | hand: {self.logger.hand_state} | views: train {c.train}/{v.train} "
             f"test {c.test}/{v.test} | grasps {c.grasps}/{g.count} ({c.contacts}/{c.touches} touches in contact)"
-            f" | {KEYS_HELP}{SUGGEST_HELP if self.suggester is not None else ''}"
+            f" | {KEYS_HELP}"
         )
 
     def show_status(self) -> None:
@@ -161,13 +154,11 @@ class CaptureSession:
 
     def view(self) -> None:
         c, v = self.logger.counts(), self.plan.views
-        if c.train < v.train:
-            split, index = "train", c.train
-        elif c.test < v.test:
-            split, index = "test", c.test
-        else:
+        split = next((s for s in ("train", "test") if getattr(c, s) < getattr(v, s)), None)  # train views first
+        if split is None:
             self.say(f"all {v.train} train and {v.test} test views of the plan are taken (u undoes one)")
             return
+        index = getattr(c, split)
         if self.planner is not None:
             self.planner.before_view(split, index)
         try:
@@ -204,34 +195,6 @@ class CaptureSession:
             + ("" if outcome.settled else "; fingers had not settled")
         )
 
-    def suggest(self) -> None:
-        """Suggest the next grasp from the reconstruction in progress; the picture goes beside the scene."""
-        from tacsplat.acquisition.next_touch import draw_suggestion
-        from tacsplat.datasets import Scene
-        from tacsplat.datasets.writer import atomic_write_bytes, encode_png
-
-        image, _ = self.rig.camera.read()
-        try:
-            T_world_cam = self.rig.poses.camera_pose(image).T
-            best = self.suggester.suggest(Scene.load(self.logger.writer.path))
-        except TacsplatError as exc:  # the board not seen, no checkpoint yet, no train view yet, ...
-            self.say(f"no suggestion: {exc}")
-            return
-        if best is None:
-            self.say("no suggestion: no approach meets an uncertain part of the reconstruction")
-            return
-        scene = self.logger.writer.path
-        picture = scene.with_name(scene.name + "-suggestion.png")
-        atomic_write_bytes(picture, encode_png(draw_suggestion(image, best, T_world_cam, self.rig.camera.K)))
-        centre = np.concatenate([p.points for p in best.patches]).mean(axis=0)
-        d = best.candidate.approach_from
-        self.say(
-            f"suggested grasp: touch at ({centre[0]:.3f}, {centre[1]:.3f}, {centre[2]:.3f}) m in the world frame, "
-            f"approaching from azimuth {np.degrees(np.arctan2(d[1], d[0])):.0f} deg, elevation "
-            f"{np.degrees(np.arcsin(np.clip(d[2], -1, 1))):.0f} deg; {best.score * 1e6:.0f} mm^2 of uncertain "
-            f"surface under the fingertip; picture: {picture}"
-        )
-
     def undo(self) -> None:
         try:
             self.say(f"undone: {self.logger.undo()}")
@@ -241,8 +204,6 @@ class CaptureSession:
     def run(self) -> bool:
         """Serve keys until ``q`` or the end of input; returns whether the plan is complete."""
         actions = {"\n": self.view, "\r": self.view, "g": self.grasp, "u": self.undo}
-        if self.suggester is not None:
-            actions["s"] = self.suggest
         with _cbreak(self.keys):  # first, so that keys typed once the status line shows are never flushed
             self.show_status()
             for key in self._keys():
@@ -254,16 +215,6 @@ class CaptureSession:
         return self.plan_complete()
 
 
-def rerun_command(config: RigConfig, out: Path) -> str:
-    """The command that carries on after a stop: it resumes the scene in ``out``, or starts the capture again when
-    it never wrote one."""
-    return " ".join(
-        ["tacsplat", "capture", "--rig", shlex.quote(str(config.source or "RIG.yaml")), "--out", shlex.quote(str(out))]
-        + (["--resume"] if _started(out) else [])
-        + (["--mock"] if config.mock else [])
-    )
-
-
 def run_capture(
     config: RigConfig,
     out: str | Path,
@@ -271,12 +222,8 @@ def run_capture(
     keys: TextIO | None = None,
     output: TextIO | None = None,
     on_open=None,
-    suggest: str | Path | None = None,
 ) -> int:
     """``tacsplat capture``: open the rig and the scene, serve the operator, close everything safely.
-
-    ``suggest``: a reconstruction in progress of this capture (a ``tacsplat reconstruct`` folder), from which the
-    ``s`` key suggests the next grasp.
 
     Returns 0 (plan complete), 1 (stopped before the plan was complete),
     ``EXIT_FAULT`` (a device failed; the scene is resumable) or 128 + signum
@@ -295,9 +242,7 @@ def run_capture(
     keys = sys.stdin if keys is None else keys
     output = sys.stdout if output is None else output
     out = Path(out)
-    fault: BaseException | None = None
-    interrupted: int | None = None
-    complete = False
+    code, told = 1, "stopped before the plan was complete.\n"
     hands = []  # the real rig's hand, once made: its torque-off report is the last line
     try:
         with _ending_signals_interrupt(), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
@@ -307,32 +252,23 @@ def run_capture(
                     f"resumed: removed {logger.dropped_partial_grasp} touches of a grasp cut short; "
                     "it will be redone whole\n"
                 )
-            planner = suggester = None
+            planner = None
             if rig.kind == "sim":
-                from tacsplat.acquisition.sim_capture import grasp_planner
+                from tacsplat.acquisition.twin_planner import TwinPlanner
 
-                planner = grasp_planner(rig.twin, config)
-            if suggest is not None:
-                from tacsplat.acquisition.next_touch import GraspSuggester
-
-                suggester = GraspSuggester(suggest, config.plan.grasps.uncertainty)
+                planner = TwinPlanner(rig.twin, config.plan.grasps.seed, config.plan.views)
             if on_open is not None:
                 on_open(rig, logger)
-            complete = CaptureSession(rig, logger, config.plan, keys, output, planner, suggester=suggester).run()
-    except (DeviceError, SimulationError) as exc:
-        fault = exc
-    except KeyboardInterrupt as exc:
-        interrupted = getattr(exc, "signum", signal.SIGINT)
-    if interrupted is not None:
-        code, told = 128 + interrupted, f"interrupted ({signal.Signals(interrupted).name}).\n{_carry_on(config, out)}"
-    elif fault is not None:
+            if CaptureSession(rig, logger, config.plan, keys, output, planner).run():
+                code, told = 0, f"plan complete: scene written to {out}\n"
+    except (DeviceError, SimulationError) as fault:
         held = f"The scene in {out} holds every record completed before the fault. " if _started(out) else ""
-        code, told = EXIT_FAULT, f"DEVICE FAULT: {fault}\n{held}Fix the device.\n{_carry_on(config, out)}"
-    elif complete:
-        code, told = 0, f"plan complete: scene written to {out}\n"
-    else:
-        code, told = 1, f"stopped before the plan was complete.\n{_carry_on(config, out)}"
-    output.write(f"\n{told}{'' if config.rig == 'sim' else _hand_line(hands)}")
+        code, told = EXIT_FAULT, f"DEVICE FAULT: {fault}\n{held}Fix the device.\n"
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        code, told = 128 + signum, f"interrupted ({signal.Signals(signum).name}).\n"
+    carry_on = _carry_on(config, out) if code else ""
+    output.write(f"\n{told}{carry_on}{'' if config.rig == 'sim' else _hand_line(hands)}")
     output.flush()
     return code
 
@@ -370,6 +306,10 @@ def _started(out: Path) -> bool:
 
 
 def _carry_on(config: RigConfig, out: Path) -> str:
-    """How to carry on after a stop: resume the scene, or start again when the capture never wrote one."""
-    how = "Resume with:" if _started(out) else "The capture did not start (no scene was written). Start it again with:"
-    return f"{how}\n  {rerun_command(config, out)}\n"
+    """How to carry on after a stop: the command that resumes the scene in ``out``, or that starts the capture again
+    when it never wrote one."""
+    started = _started(out)
+    how = "Resume with:" if started else "The capture did not start (no scene was written). Start it again with:"
+    rig = shlex.quote(str(config.source or "RIG.yaml"))
+    command = f"tacsplat capture --rig {rig} --out {shlex.quote(str(out))}"
+    return f"{how}\n  {command}{' --resume' if started else ''}{' --mock' if config.mock else ''}\n"

@@ -8,19 +8,13 @@ speed-limited ramp through ``command_joint_positions``, waits on the twin's
 clock until the fingers settle or stall, reads the four pads, places them with
 the hand pose, writes the touches and opens the hand.
 
-With ``grasp_strategy="next-best"`` the hand goes where a brief reconstruction of the scene so far is least
-sure (:class:`~tacsplat.acquisition.next_touch.NextTouchPlanner`): before each grasp it reconstructs, scores
-``candidates`` approaches and executes the best; the scene is an ordinary one with the decisions and their scores
-recorded in its scene.json (``annotations["next_touch"]``).
-
 With ``touch_model="paper"`` no grasp is executed: the touches are the
 paper's (:mod:`~tacsplat.acquisition.paper_touches`), four for each planned
 grasp (touch ``t`` recorded as grasp ``t // 4``, finger ``t % 4``), so the two
 models compare at the same count of touches.
 
 The plan is deterministic in the seed: view ``i`` of a split is the same pose
-on every run, grasp ``g`` the same approaches (next-best: the same choice, as
-the scene so far is the same) and paper touch ``t`` the same points, so
+on every run, grasp ``g`` the same approaches and paper touch ``t`` the same points, so
 ``--resume`` continues a killed capture where its journal stopped (a grasp cut
 short is redone whole).
 """
@@ -48,8 +42,6 @@ from tacsplat.errors import ConfigError
 from tacsplat.progress import progress_bar
 from tacsplat.sim.objects import object_radius_problem
 
-GRASP_STRATEGIES = ("random", "next-best")  # sim-capture's grasp placements (plan.grasps.mode)
-
 
 def sim_rig_config(
     object: str = "teapot",
@@ -62,24 +54,14 @@ def sim_rig_config(
     seed: int = 0,
     touch_model: str = "gel",
     surface_points: int = TouchPlan.surface_points,
-    grasp_strategy: str = "random",
-    candidates: int = GraspPlan.candidates,
-    selection_steps: int = GraspPlan.selection_steps,
-    uncertainty: str = GraspPlan.uncertainty,
     texture: str = "none",
     slide_m: float = GraspControl.slide_m,
 ) -> RigConfig:
     """The ``rig: sim`` config of ``tacsplat sim-capture``'s options (``surface_points``: the paper model's;
-    ``candidates``, ``selection_steps`` and ``uncertainty``: the next-best strategy's; ``slide_m``: each finger
-    in contact slides its pad after the press, ``GraspControl``); a value out of its range is a ConfigError
-    naming its key (``sim.object_radius``)."""
-    problem = object_radius_problem(object_radius)
-    if problem:  # (before the rig config's own check of the same range, with what the range means)
+    ``slide_m``: each finger in contact slides its pad after the press, ``GraspControl``); a value out of its range
+    is a ConfigError naming its key (``sim.object_radius``)."""
+    if problem := object_radius_problem(object_radius):  # (before the rig config's check, with what it means)
         raise ConfigError("sim.object_radius", problem)
-    if grasp_strategy not in GRASP_STRATEGIES:
-        raise ConfigError(
-            "plan.grasps.mode", f"must be one of {', '.join(map(repr, GRASP_STRATEGIES))}, got {grasp_strategy!r}"
-        )
     config = RigConfig(
         rig="sim",
         grasp=GraspControl(slide_m=slide_m),
@@ -88,30 +70,12 @@ def sim_rig_config(
         ),
         plan=CapturePlan(
             ViewPlan(train=views, test=test_views, mode="hemisphere"),
-            GraspPlan(
-                count=grasps,
-                mode=grasp_strategy,
-                seed=seed,
-                candidates=candidates,
-                selection_steps=selection_steps,
-                uncertainty=uncertainty,
-            ),
+            GraspPlan(count=grasps, mode="random", seed=seed),
             TouchPlan(model=touch_model, surface_points=surface_points),
         ),
     )
     validate(config)
     return config
-
-
-def grasp_planner(twin, config: RigConfig):
-    """Where the twin puts the camera and the hand: a :class:`TwinPlanner` (random approaches), or for the
-    next-best strategy a :class:`~tacsplat.acquisition.next_touch.NextTouchPlanner` around one."""
-    planner = TwinPlanner(twin, config.plan.grasps.seed, config.plan.views)
-    if config.plan.grasps.mode != "next-best":
-        return planner
-    from tacsplat.acquisition.next_touch import NextTouchPlanner
-
-    return NextTouchPlanner(planner, config.plan.grasps)
 
 
 def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progress: bool = True) -> dict:
@@ -124,7 +88,7 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
     t0 = time.perf_counter()
     with open_scene(config, Path(out), resume) as (rig, writer):
         logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
-        planner = grasp_planner(rig.twin, config)
+        planner = TwinPlanner(rig.twin, config.plan.grasps.seed, config.plan.views)
         t_setup = time.perf_counter()
         counts, v = logger.counts(), config.plan.views
         todo = [("train", i) for i in range(counts.train, v.train)] + [("test", i) for i in range(counts.test, v.test)]
@@ -137,10 +101,8 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
             todo = range(writer.num_touches, TOUCHES_PER_GRASP * config.plan.grasps.count)
             write_paper_touches(writer, touches, progress_bar(todo, desc="touches", unit="touch", enabled=progress))
         else:
-            start = logger.next_grasp_index()
-            for g in progress_bar(
-                range(start, config.plan.grasps.count), desc="grasps", unit="grasp", enabled=progress
-            ):
+            todo = range(logger.next_grasp_index(), config.plan.grasps.count)
+            for g in progress_bar(todo, desc="grasps", unit="grasp", enabled=progress):
                 planner.grasp(logger, g)
         t_end = time.perf_counter()
     return {"setup_s": t_setup - t0, "views_s": t_views - t_setup, "grasps_s": t_end - t_views, "total_s": t_end - t0}

@@ -41,7 +41,6 @@ COMMAND_MODULES = (
     "tacsplat.apps.bench_scaling",
     "tacsplat.apps.bench_step",
     "tacsplat.apps.bench_compare",
-    "tacsplat.apps.next_touch_bench",
     "tacsplat.apps.batch",
     "tacsplat.apps.viewer",
 )

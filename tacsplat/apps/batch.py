@@ -171,12 +171,12 @@ class CaptureJob(BatchJob):
     texture: Literal["none", "checker"] = "none"  # the object's surface (tacsplat.sim.objects.TEXTURES)
     slide_m: float = 0.0  # each finger in contact slides its pad this far each way after the press (GraspControl)
 
-    def rig(self, **options):
-        """The rig config of the capture (``options``: more of ``sim_rig_config``'s, as a subclass's fields)."""
+    def rig(self):
+        """The rig config of the capture."""
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
         keys = ("object", "mesh", "object_radius", "views", "test_views", "grasps", "resolution", "seed")
-        return sim_rig_config(**{k: getattr(self, k) for k in (*keys, "touch_model", "texture", "slide_m")}, **options)
+        return sim_rig_config(**{k: getattr(self, k) for k in (*keys, "touch_model", "texture", "slide_m")})
 
     def check(self) -> None:
         super().check()

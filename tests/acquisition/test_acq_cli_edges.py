@@ -87,8 +87,6 @@ def test_two_captures_into_one_new_folder_at_once_one_wins_and_the_other_is_told
         (["--resolution", "7"], "--resolution", "must be in [8, 4096] px, got 7"),
         (["--resolution", "4097"], "--resolution", "must be in [8, 4096] px, got 4097"),
         (["--seed", "-1"], "--seed", "must be >= 0, got -1"),
-        (["--candidates", "0"], "--candidates", "must be in [1, 1000], got 0"),
-        (["--selection-steps", "0"], "--selection-steps", "must be in [1, 1e+06], got 0"),
         (["--touch-model", "paper", "--surface-points", "49"], "--surface-points", "must be at least the 50 points"),
         (["--texture", "plaid"], "--texture", "must be one of 'none', 'checker'"),
     ],
