@@ -140,16 +140,17 @@ class CommandTree:
         self.own_options.add(path)
 
     def _chosen(self, argv: list[str]) -> tuple[str, int]:
-        """``(path, index after its last word in argv)``."""
+        """``(path, index after its last word in argv)``: the words of argv that extend a command's path (options
+        and their values skipped)."""
         path, end = "", 0
         for i, token in enumerate(argv):
-            if token.startswith("-"):
-                continue
-            candidate = f"{path} {token}".strip()
-            if candidate not in self._parsers:
-                break
-            path, end = candidate, i + 1
+            if f"{path} {token}".strip() in self._parsers and not token.startswith("-"):
+                path, end = f"{path} {token}".strip(), i + 1
         return path, end
+
+    def prog(self, argv: list[str]) -> str:
+        """The usage name of the command named in ``argv`` (for usage lines)."""
+        return self._parsers[self._chosen(argv)[0]].prog
 
     def split_own_options(self, argv: list[str]) -> tuple[list[str], list[str]]:
         """``(argv, [])``, or for a command that parses its own options ``(what argparse parses, the rest)``: the
@@ -210,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         code = args.func(args)
     except UsageError as exc:
-        prog = _subparser(parser, argv).prog
+        prog = parser.tree.prog(argv)
         print(f"{prog}: error: {exc} (see {prog} --help)", file=sys.stderr)
         return 2
     except TacsplatError as exc:
@@ -229,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         if extra is None:
             raise
         print(
-            f"error: {_subparser(parser, argv).prog} needs the {extra} extra ({exc.name} is not installed): "
+            f"error: {parser.tree.prog(argv)} needs the {extra} extra ({exc.name} is not installed): "
             f"pip install 'tacsplat[{extra}]'",
             file=sys.stderr,
         )
@@ -238,17 +239,6 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     return int(code or 0)
-
-
-def _subparser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:
-    """The parser of the command named in ``argv`` (for usage lines)."""
-    current = parser
-    for token in argv:
-        actions = [a for a in current._actions if isinstance(a, argparse._SubParsersAction)]
-        if token.startswith("-") or not actions or token not in actions[0].choices:
-            continue
-        current = actions[0].choices[token]
-    return current
 
 
 def run() -> None:

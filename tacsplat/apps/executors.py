@@ -279,6 +279,13 @@ class _Batch:
         self.bar.update(1)
         self.show()
 
+    def ended(self, job: Job, status: str, value, attempts: int = 1) -> None:
+        """An attempt's result: ``("done", summary)`` or ``("failed", error)``."""
+        if status == "done":
+            self.finished(job, value)
+        else:
+            self.failed(job, value, attempts)
+
     def blocked_by(self, job: Job) -> str | None:
         return next((n for n in job.needs if n in self.outcome.failed), None)
 
@@ -315,14 +322,18 @@ def _run_local(todo: list[Job], batch: _Batch) -> None:
             batch.not_run(job, need)
             continue
         batch.started([job.name])
-        try:
-            summary = job()
-        except Exception as exc:  # noqa: BLE001 - recorded in failures.csv; the jobs that do not need it go on
-            if not isinstance(exc, TacsplatError):
-                log.debug("%s raised", job.name, exc_info=True)
-            batch.failed(job, _describe(exc), attempts=1)
-        else:
-            batch.finished(job, summary)
+        batch.ended(job, *_call(job))
+
+
+def _call(job: Job) -> tuple[str, object]:
+    """``("done", summary)`` or ``("failed", error)`` of one attempt of ``job`` (an error as text: not every
+    exception survives pickling); a failure is recorded in failures.csv and the jobs that do not need it go on."""
+    try:
+        return "done", job()
+    except Exception as exc:  # noqa: BLE001 - the batch records it
+        if not isinstance(exc, TacsplatError):
+            log.debug("%s raised", job.name, exc_info=True)
+        return "failed", _describe(exc)
 
 
 # ---------------------------------------------------------------------- processes
@@ -398,8 +409,7 @@ def _warm_up(jobs: list[Job]) -> None:
 
 
 def _run_in_worker(job: Job) -> tuple[str, object]:
-    """The body of a job in a worker, with twice its CPUs as numba threads: ``("done", summary)`` or
-    ``("failed", error)`` (an error as text: not every exception survives pickling).
+    """The body of a job in a worker, with twice its CPUs as numba threads: :func:`_call`'s result.
 
     Twice: a job that runs alone at the end of a batch then uses the cores the others left, and side by side
     the threads cost nothing measurable (two demo trainings on 2 cores: 43.2 s at 2 threads each, 42.5 s at 1).
@@ -408,11 +418,7 @@ def _run_in_worker(job: Job) -> tuple[str, object]:
     _limit_threads(2 * job.cpus)
     _job_running = True
     try:
-        return "done", job()
-    except Exception as exc:  # noqa: BLE001 - recorded in failures.csv by the batch's process
-        if not isinstance(exc, TacsplatError):
-            log.debug("%s raised", job.name, exc_info=True)
-        return "failed", _describe(exc)
+        return _call(job)
     finally:
         _job_running = False
         if _orphaned():  # the job has stopped (a training saved its checkpoint); nobody waits for its result
@@ -476,16 +482,12 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
             for future in done:
                 job = running.pop(future)
                 try:
-                    status, value = future.result()
+                    batch.ended(job, *future.result())
                 except futures.process.BrokenProcessPool:
                     for lost in (job, *running.values()):
                         batch.failed(lost, "its worker process died (out of memory, or killed)", attempts=1)
                     running.clear()
                     return pending
-                if status == "done":
-                    batch.finished(job, value)
-                else:
-                    batch.failed(job, value, attempts=1)
     except KeyboardInterrupt:
         if running:
             log.warning("interrupted: stopping %d running jobs", len(running))
@@ -563,13 +565,16 @@ def connect(address: str | None) -> bool:
     option = "--ray-address" if address else "RAY_ADDRESS"
     address = address or os.environ.get("RAY_ADDRESS")
     if address and address != "local":
-        why = _unreachable(check_ray_address(address, option))
-        if why:  # (Ray itself would retry for minutes)
+        host_port = check_ray_address(address, option)
+        try:  # (Ray itself would retry for minutes)
+            if host_port is not None:  # (auto names none)
+                socket.create_connection(host_port, timeout=PROBE_S).close()
+        except OSError as exc:
             raise ConfigError(
                 option,
-                f"nothing answers at {address} ({why}): give the host:port of the cluster's "
-                "head (`ray start --head --port=PORT` prints it)",
-            )
+                f"nothing answers at {address} ({exc.strerror or type(exc).__name__}): give the host:port of the "
+                "cluster's head (`ray start --head --port=PORT` prints it)",
+            ) from None
         log.info("connecting to the Ray cluster at %s", address)
         try:
             ray.init(address=address, log_to_driver=True)
@@ -621,17 +626,6 @@ def check_ray_address(address: str, option: str, error: type[ConfigError] = Conf
         f"expected HOST:PORT (of the cluster's head: `ray start --head --port=PORT` prints it), "
         f"ray://HOST:PORT or auto, got {address!r}: {why}",
     )
-
-
-def _unreachable(host_port: tuple[str, int] | None) -> str | None:
-    """Why nothing answers at ``(host, port)``; None when something does, or for no address (auto)."""
-    if host_port is None:
-        return None
-    try:
-        socket.create_connection(host_port, timeout=PROBE_S).close()
-    except OSError as exc:
-        return exc.strerror or type(exc).__name__
-    return None
 
 
 def _run_ray(todo: list[Job], batch: _Batch, retries: int) -> None:
@@ -687,9 +681,7 @@ def _collect(job: Job, ref, batch: _Batch, attempts: int) -> None:
         cause = exc.cause if isinstance(exc, ray.exceptions.RayTaskError) else exc
         batch.failed(job, _describe(cause).strip().splitlines()[0], attempts)
         return
-    if status == "done":
-        batch.finished(job, value)
-    elif status == "blocked":
+    if status == "blocked":
         batch.not_run(job, value)
     else:
-        batch.failed(job, value, attempts)
+        batch.ended(job, status, value, attempts)

@@ -356,14 +356,18 @@ def _toggles(server, view: View, shown: dict[str, bool]) -> None:
         "sphere": f"bounding sphere ({nodes.sphere.source})",
     }
     for group, members in nodes.groups.items():
-        if not members:
-            continue
-        box = view.controls[labels[group]] = server.gui.add_checkbox(labels[group], shown.get(group, True))
+        if members:
+            _visibility_checkbox(server, view, labels[group], members, shown.get(group, True))
 
-        @box.on_update
-        def _(event, members=members) -> None:
-            for node in members:
-                node.visible = event.target.value
+
+def _visibility_checkbox(server, view: View, label: str, nodes: list, initial: bool, hint: str | None = None) -> None:
+    """A checkbox ``label`` that shows or hides ``nodes``."""
+    box = view.controls[label] = server.gui.add_checkbox(label, initial, hint=hint)
+
+    @box.on_update
+    def _(event) -> None:
+        for node in nodes:
+            node.visible = event.target.value
 
 
 def _scene_summary(scene) -> str:
@@ -473,16 +477,9 @@ def _exported_mesh(server, view: View, run: RunData) -> None:
         return
     import trimesh
 
-    node = view.mesh_node = server.scene.add_mesh_trimesh(
-        "/run/mesh", trimesh.load(str(path), force="mesh"), visible=False
-    )
-    toggle = view.controls["exported mesh"] = server.gui.add_checkbox(
-        "exported mesh", initial_value=False, hint="RUN/mesh.ply, written by tacsplat export mesh"
-    )
-
-    @toggle.on_update
-    def _(event) -> None:
-        node.visible = event.target.value
+    view.mesh_node = server.scene.add_mesh_trimesh("/run/mesh", trimesh.load(str(path), force="mesh"), visible=False)
+    hint = "RUN/mesh.ply, written by tacsplat export mesh"
+    _visibility_checkbox(server, view, "exported mesh", [view.mesh_node], False, hint)
 
 
 def _checkpoint_slider(server, view: View, run: RunData) -> None:
@@ -516,20 +513,18 @@ def _checkpoint_slider(server, view: View, run: RunData) -> None:
 
 def metrics_markdown(columns: dict[str, dict]) -> str:
     """A markdown table of the scalar entries of one or more ``metrics.json`` (one column each)."""
-    keys = list(
-        dict.fromkeys(
-            k for m in columns.values() for k, v in m.items() if isinstance(v, (int, float, str)) and k != "scene"
-        )
-    )
+    from tacsplat.apps.report import md_table
+
+    scalar = (int, float, str)
+    keys = dict.fromkeys(k for m in columns.values() for k, v in m.items() if isinstance(v, scalar) and k != "scene")
     if not keys:
         return "no metrics.json"
 
     def cell(value) -> str:
         return f"{value:.4g}" if isinstance(value, float) else "" if value is None else str(value)
 
-    lines = ["| | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
-    lines += [f"| {k} | " + " | ".join(cell(m.get(k)) for m in columns.values()) + " |" for k in keys]
-    return "\n".join(lines)
+    rows = [[k, *(cell(m.get(k)) for m in columns.values())] for k in keys]
+    return "\n".join(md_table(["", *columns], rows, "l" * (len(columns) + 1)))
 
 
 def render_rows(
