@@ -137,33 +137,31 @@ def instrumented(timer: PhaseTimer):
         "window_inside",
         "albedo_smoothness_loss",
     )
-    patches = [
-        (cpu_project._ProjectCPU, "forward", "projection + SH", True),
-        (cpu_project._ProjectCPU, "backward", "projection + SH", True),
-        (cpu_project._SphericalHarmonicsCPU, "forward", "projection + SH", True),
-        (cpu_project._SphericalHarmonicsCPU, "backward", "projection + SH", True),
-        (cpu_composite, "bin_gaussians", "binning + sort", False),
-        (cpu_composite._RasterizeCPU, "forward", "composite forward", True),
-        (cpu_composite._RasterizeCPU, "backward", "composite backward", True),
-        (fused_shading._ShadeCPU, "forward", "shading", True),
-        (fused_shading._ShadeCPU, "backward", "shading", True),
-        *[(losses, name, "other losses", False) for name in loss_functions if hasattr(losses, name)],
-        (Trainer, "_smoothness_weights", "other losses", False),
-        (losses.TouchNeighbours, "candidates", "neighbour search", False),
-        (torch.optim.Adam, "step", "optimiser", False),
-        (torch.optim.Optimizer, "zero_grad", "optimiser", False),
-        (DensifyStrategy, "step_pre_backward", "densification", False),
-        (DensifyStrategy, "step_post_backward", "densification", False),
-        (torch.Tensor, "backward", "autograd (other)", False),
+    both = ("forward", "backward")
+    patches = [  # (owner, its functions, phase)
+        (cpu_project._ProjectCPU, both, "projection + SH"),
+        (cpu_project._SphericalHarmonicsCPU, both, "projection + SH"),
+        (cpu_composite, ("bin_gaussians",), "binning + sort"),
+        (cpu_composite._RasterizeCPU, ("forward",), "composite forward"),
+        (cpu_composite._RasterizeCPU, ("backward",), "composite backward"),
+        (fused_shading._ShadeCPU, both, "shading"),
+        (losses, [name for name in loss_functions if hasattr(losses, name)], "other losses"),
+        (Trainer, ("_smoothness_weights",), "other losses"),
+        (losses.TouchNeighbours, ("candidates",), "neighbour search"),
+        (torch.optim.Adam, ("step",), "optimiser"),
+        (torch.optim.Optimizer, ("zero_grad",), "optimiser"),
+        (DensifyStrategy, ("step_pre_backward", "step_post_backward"), "densification"),
+        (torch.Tensor, ("backward",), "autograd (other)"),
     ]
     saved = []
     try:
-        for owner, name, phase, static in patches:
-            original = owner.__dict__[name]
-            saved.append((owner, name, original))
-            function = original.__func__ if isinstance(original, staticmethod) else original
-            wrapped = _timed(timer, phase, function)
-            setattr(owner, name, staticmethod(wrapped) if static else wrapped)
+        for owner, names, phase in patches:
+            for name in names:
+                original = owner.__dict__[name]
+                saved.append((owner, name, original))
+                static = isinstance(original, staticmethod)  # (an autograd Function's forward and backward)
+                wrapped = _timed(timer, phase, original.__func__ if static else original)
+                setattr(owner, name, staticmethod(wrapped) if static else wrapped)
         saved.append((losses, "d_ssim", d_ssim))
         losses.d_ssim = timed_d_ssim
         saved.append((Trainer, "train_step", step_function))
@@ -206,13 +204,14 @@ def profile_resolution(out: Path, resolution: int, iterations: int, method: str,
     from tacsplat.reconstruction.views import scene_at
 
     bench = PaperBench(out / f"{resolution}px", demo_config(obj, resolution, iterations))
-    scene_path = bench.capture(obj, "minimal", seed)
+    capture = bench.capture_job(obj, "minimal", seed)
+    capture()  # (once: a finished capture is kept)
     config = row_config(method, bench.config.preset, iterations)
     config.seed = seed
     config.device = "cpu"
     timer = PhaseTimer()
     with tempfile.TemporaryDirectory() as run_dir, instrumented(timer) as steps:
-        trainer = Trainer(scene_at(Scene.load(scene_path), config.downscale), run_dir, config)
+        trainer = Trainer(scene_at(Scene.load(capture.out), config.downscale), run_dir, config)
         trainer.run(show_progress=False)
     return {
         "resolution": resolution,
@@ -247,13 +246,7 @@ def run_profile(
     results = {
         "benchmark": "step",
         "machine": machine(),
-        "settings": {
-            "object": obj,
-            "method": method,
-            "iterations": iterations,
-            "seed": seed,
-            "warmup_steps": WARMUP_STEPS,
-        },
+        "settings": dict(object=obj, method=method, iterations=iterations, seed=seed, warmup_steps=WARMUP_STEPS),
         "resolutions": [],
     }
     if reference is not None:

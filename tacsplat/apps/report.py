@@ -65,11 +65,6 @@ def write_csv(rows: list[dict], path: str | Path, columns) -> Path:
     return path
 
 
-def write_results_csv(rows: list[dict], path: str | Path) -> Path:
-    """One line per run with the columns of :data:`RESULT_COLUMNS` (missing values empty)."""
-    return write_csv(rows, path, RESULT_COLUMNS)
-
-
 def md_table(header, rows, align: str = "") -> list[str]:
     """The lines of a Markdown table: ``header`` and ``rows`` of cells; ``align`` a letter per column, ``l``
     (left, ``---``) or ``r`` (right, ``---:``), by default the first column left and the others right."""
@@ -193,12 +188,8 @@ def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
     width = 0.8 / max(len(methods), 1)
     x = np.arange(len(objects) + 1)
     for i, method in enumerate(methods):
-        ax.bar(
-            x + (i - (len(methods) - 1) / 2) * width,
-            np.nan_to_num(values[i], nan=0.0),
-            width,
-            label=method_label(method),
-        )
+        offset = (i - (len(methods) - 1) / 2) * width
+        ax.bar(x + offset, np.nan_to_num(values[i], nan=0.0), width, label=method_label(method))
     ax.set_xticks(x, objects + ["Avg."])
     ax.set_ylabel("Chamfer distance [x GT radius]")
     if np.nanmin(np.where(values > 0, values, np.nan), initial=np.inf) < np.inf:
