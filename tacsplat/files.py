@@ -30,8 +30,7 @@ _REASONS = {
 
 def storage_error(exc: OSError, path: str | Path) -> StorageError:
     """The :class:`StorageError` for ``exc`` (an OSError raised while writing ``path``)."""
-    reason = _REASONS.get(exc.errno) or f"cannot write: {exc.strerror or exc}"
-    return StorageError(path, reason)
+    return StorageError(path, _REASONS.get(exc.errno) or f"cannot write: {exc.strerror or exc}")
 
 
 def is_storage_failure(exc: BaseException) -> bool:
@@ -124,6 +123,5 @@ def refuse_unwritable(option: str, value) -> None:
         fs = os.statvfs(existing)
     except OSError:
         return  # (the command reports what it cannot reach)
-    failure = errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if fs.f_bfree == 0 else None
-    if failure is not None:
+    if (failure := errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if fs.f_bfree == 0 else None) is not None:
         raise ConfigError(option, str(storage_error(OSError(failure, os.strerror(failure)), value)))

@@ -52,8 +52,7 @@ def rigidity_problem(T, atol: float = 1e-5) -> str | None:
 def check_rigid(T, name: str = "pose", atol: float = 1e-5) -> np.ndarray:
     """Return ``T`` as float64 [4, 4] if it is rigid, else raise naming ``name``."""
     T = as_pose(T, name)
-    problem = rigidity_problem(T, atol)
-    if problem:
+    if problem := rigidity_problem(T, atol):
         raise InvalidInputError(f"{name}: not a rigid transform: {problem}")
     return T
 
@@ -84,8 +83,7 @@ def compose(*poses) -> np.ndarray:
 def transform_points(T, points) -> np.ndarray:
     """Apply ``T`` [4, 4] to points [N, 3]; returns [N, 3] float64."""
     T = as_pose(T)
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return p @ T[:3, :3].T + T[:3, 3]
+    return np.asarray(points, dtype=np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
 
 
 def opencv_to_opengl(T_world_cam) -> np.ndarray:
@@ -191,8 +189,7 @@ def tactile_depth_to_points(depth, pixel_size_m: float, T_world_sensor, threshol
     depth = _tactile_depth(depth)
     x, y = tactile_pixel_grid(*depth.shape, pixel_size_m)
     hit = depth > threshold_m
-    pts = np.stack([x[hit], y[hit], -depth[hit]], axis=1)
-    return transform_points(T_world_sensor, pts)
+    return transform_points(T_world_sensor, np.stack([x[hit], y[hit], -depth[hit]], axis=1))
 
 
 def tactile_depth_to_normals(depth, pixel_size_m: float, T_world_sensor, threshold_m: float = 1e-5) -> np.ndarray:

@@ -183,8 +183,7 @@ class CaptureJob(BatchJob):
         try:
             self.rig()  # validated as a rig config
         except ConfigError as exc:  # its field named as in a batch file
-            message = str(exc).removeprefix(f"{exc.key}: ")
-            raise ConfigError(_RIG_FIELDS.get(exc.key, exc.key), message) from None
+            raise ConfigError(_RIG_FIELDS.get(exc.key, exc.key), str(exc).removeprefix(f"{exc.key}: ")) from None
 
     def complete(self) -> bool:
         return (self.out / CAPTURE_MARKER).is_file()

@@ -49,8 +49,7 @@ def run_scaling(out: Path, obj: str, resolutions, step_counts, methods, seed: in
                 iterations=iterations,
                 seeds=(seed,),
             )
-            bench = PaperBench(out / f"{resolution}px-{iterations}steps", config)
-            for row in bench.run(progress=False):
+            for row in PaperBench(out / f"{resolution}px-{iterations}steps", config).run(progress=False):
                 rows.append(
                     {"resolution": resolution, "iterations": iterations, **{k: row[k] for k in COLUMNS if k in row}}
                 )
@@ -156,8 +155,7 @@ def register(cli) -> None:
 def _run(args: BenchScaling) -> int:
     started = time.perf_counter()
     resolutions, steps = (comma_separated_ints(getattr(args, key), f"--{key}") for key in ("resolutions", "steps"))
-    methods = scaling_methods(args.methods)
-    rows = run_scaling(args.out, args.object, resolutions, steps, methods, args.seed)
+    rows = run_scaling(args.out, args.object, resolutions, steps, scaling_methods(args.methods), args.seed)
     report = write_scaling_report(args.out, rows, args.object)
     print(report.read_text())
     print(f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; report: {report}")

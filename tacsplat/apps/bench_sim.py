@@ -133,8 +133,7 @@ def _markdown(rows: list[dict]) -> str:
 def _plot(tactile: list[dict], physics: list[dict], path: Path) -> None:
     from tacsplat.apps.report import pyplot, save_figure
 
-    plt = pyplot()
-    fig, (ax, ax_physics) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, (ax, ax_physics) = pyplot().subplots(1, 2, figsize=(12, 4.5))
     for surface, style in (("sphere", "o-"), ("plane", "s--")):
         rows = [r for r in tactile if r["surface"] == surface]
         ms = [r["ms_per_map"] for r in rows]

@@ -209,8 +209,7 @@ def profile_resolution(out: Path, resolution: int, iterations: int, method: str,
     config = row_config(method, bench.config.preset, iterations)
     config.seed = seed
     config.device = "cpu"
-    timer = PhaseTimer()
-    with tempfile.TemporaryDirectory() as run_dir, instrumented(timer) as steps:
+    with tempfile.TemporaryDirectory() as run_dir, instrumented(PhaseTimer()) as steps:
         trainer = Trainer(scene_at(Scene.load(capture.out), config.downscale), run_dir, config)
         trainer.run(show_progress=False)
     return {

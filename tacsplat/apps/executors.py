@@ -233,8 +233,7 @@ def check_order(jobs: Sequence[Job]) -> None:
     for job in jobs:
         if job.name in seen:
             raise ValueError(f"two jobs are named {job.name!r}")
-        missing = [n for n in job.needs if n not in seen]
-        if missing:
+        if missing := [n for n in job.needs if n not in seen]:
             raise ValueError(f"job {job.name!r} needs {missing}, which is not listed before it")
         seen.add(job.name)
 
@@ -264,8 +263,7 @@ class _Batch:
     def finished(self, job: Job, summary: dict) -> None:
         self.running.discard(job.name)
         self.outcome.done.append(job.name)
-        line = self.on_done(job, summary) if self.on_done else None
-        if line:
+        if line := (self.on_done(job, summary) if self.on_done else None):
             self.bar.write(line)
         self.bar.update(1)
         self.show()
@@ -317,8 +315,7 @@ def _describe(exc: BaseException) -> str:
 def _run_local(todo: list[Job], batch: _Batch) -> None:
     """One job after another in this process; KeyboardInterrupt stops at once (finished jobs stay)."""
     for job in todo:
-        need = batch.blocked_by(job)
-        if need:
+        if need := batch.blocked_by(job):
             batch.not_run(job, need)
             continue
         batch.started([job.name])
@@ -452,8 +449,7 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
         while pending or running:
             starting: list[Job] = []
             for job in list(pending):  # in order: a job waits for its needs, and for CPUs behind earlier jobs
-                need = batch.blocked_by(job)
-                if need:
+                if need := batch.blocked_by(job):
                     pending.remove(job)
                     batch.not_run(job, need)
                     continue
@@ -512,8 +508,7 @@ def _execute(job: Job, starts, *needs: tuple) -> tuple[str, str, object]:
 
     started = starts.started.remote(job.name)
     try:
-        failed = next((name for status, name, _ in needs if status != "done"), None)
-        if failed:
+        if failed := next((name for status, name, _ in needs if status != "done"), None):
             return "blocked", job.name, failed
         _limit_threads(job.cpus)
         try:

@@ -656,8 +656,7 @@ def render_first_test_view(
         rendered[run.out] = _render_view(loaded, frame, gt_rgb)
         if run.scene not in rendered:
             rendered[run.scene] = _first_view_truth(scene, frame, gt_rgb, loaded.config.train_views)
-    panels = {run.method: rendered[run.out] for run in runs}
-    return panels, gt_rgb, *rendered[runs[0].scene]
+    return {run.method: rendered[run.out] for run in runs}, gt_rgb, *rendered[runs[0].scene]
 
 
 def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -788,8 +787,7 @@ def write_paper_report(
             lines += [where_we_stand(rows, config), ""]
         if not figures:
             continue
-        bars = plot_cd_bars(rows, setting, out / f"cd_{setting}.png")
-        lines += [f"![CD per object, {setting}]({bars.name})", ""]
+        lines += [f"![CD per object, {setting}]({plot_cd_bars(rows, setting, out / f'cd_{setting}.png').name})", ""]
         shown = [r for r in runs if r.setting == setting and r.seed == config.seeds[0] and r.done]  # (first seed)
         curves: dict[str, dict] = {}
         for run in shown:

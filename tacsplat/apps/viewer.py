@@ -125,8 +125,7 @@ def server_url(host: str, port: int) -> str:
     """The URL a browser opens (this machine's name when serving every interface)."""
     import socket
 
-    shown = socket.gethostname() if host in ("0.0.0.0", "::", "") else host
-    return f"http://{shown}:{port}"
+    return f"http://{socket.gethostname() if host in ('0.0.0.0', '::', '') else host}:{port}"
 
 
 # Opened from a file (file://), Chromium gives the page an opaque origin and refuses the workers viser's client
@@ -237,7 +236,7 @@ def read_run(path: Path, label: str, report: Path | None = None) -> RunData:
     """A run directory's splat, metrics and scene (searched for in ``report`` too)."""
     from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.ply import load_ply
-    from tacsplat.reconstruction.run_dir import load_run, read_json
+    from tacsplat.reconstruction.run_dir import load_run, read_checkpoint, read_json
 
     metrics = read_json(path / "metrics.json") if (path / "metrics.json").is_file() else {}
     if (path / "splat.ply").is_file():
@@ -245,16 +244,9 @@ def read_run(path: Path, label: str, report: Path | None = None) -> RunData:
     else:  # a run stopped before its splat.ply: its last checkpoint, coloured as its splat.ply will be
         loaded = load_run(path)
         gaussians, recorded_scene = bake_appearance(loaded.gaussians, loaded.look), loaded.scene_path
-    if recorded_scene is None:
-        recorded_scene = _checkpoint_scene(path)
+    if recorded_scene is None and (path / "checkpoint.pt").is_file():
+        recorded_scene = read_checkpoint(path / "checkpoint.pt")["scene_path"]
     return RunData(path, label, gaussians, metrics, find_scene(recorded_scene, path, report), kept_checkpoints(path))
-
-
-def _checkpoint_scene(run: Path):
-    from tacsplat.reconstruction.run_dir import read_checkpoint
-
-    checkpoint = run / "checkpoint.pt"
-    return read_checkpoint(checkpoint)["scene_path"] if checkpoint.is_file() else None
 
 
 def find_scene(recorded, run: Path, report: Path | None = None):
