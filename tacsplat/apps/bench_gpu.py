@@ -286,12 +286,13 @@ def _scene_facts(scene: Path) -> dict:
 def source_hash() -> str:
     """12 hex digits of a hash of the package's source (its .py and .yaml files by module path): the same for the
     same code whether it is installed, editable or linked, with or without git."""
-    import importlib
+    import tacsplat
+    from tacsplat import acquisition, datasets, drivers, reconstruction, sim
 
     files = {}
-    for sub in ("", "acquisition", "datasets", "drivers", "reconstruction", "sim"):
-        root = Path(importlib.import_module(f"tacsplat.{sub}".rstrip(".")).__file__).resolve().parent
-        prefix = Path("tacsplat", sub)
+    for package in (tacsplat, acquisition, datasets, drivers, reconstruction, sim):
+        root = Path(package.__file__).resolve().parent
+        prefix = Path(*package.__name__.split("."))
         for path in root.rglob("*"):
             if path.suffix in (".py", ".yaml") and "__pycache__" not in path.parts:
                 files[(prefix / path.relative_to(root)).as_posix()] = path
