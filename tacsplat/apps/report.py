@@ -278,13 +278,10 @@ def render_grid(
                 np.ma.masked_array(depth - gt_depth, ~both), cmap=error_cmap, vmin=-error_range, vmax=error_range
             )
         axes[0, j].set_title(textwrap.fill(label, 28), fontsize=10)  # long method labels on two lines
-        for ax in axes[:, j]:
-            ax.set_xticks([])
-            ax.set_yticks([])
-    axes[0, 0].set_ylabel("RGB")
-    axes[1, 0].set_ylabel("depth")
-    if with_normals:
-        axes[2, 0].set_ylabel("normals (camera frame)")
+    for ax in axes.flat:
+        ax.set(xticks=[], yticks=[])
+    for ax, label in zip(axes[:, 0], ["RGB", "depth", *(["normals (camera frame)"] if with_normals else [])]):
+        ax.set_ylabel(label)
     fig.colorbar(image, ax=list(axes[1]), fraction=0.02, label="depth [m]")
     if with_error:
         axes[-1, 0].set_ylabel("seen by training views\n(magenta: not) | depth error")
