@@ -72,23 +72,12 @@ GROUP_HELP = {
 def _common_options() -> argparse.ArgumentParser:
     """-v, -q and --log-level, accepted by the root and by every subcommand (defaults SUPPRESS, so a
     subcommand's absent option never overwrites one given before it)."""
-    common = argparse.ArgumentParser(add_help=False)
+    common = argparse.ArgumentParser(add_help=False, argument_default=argparse.SUPPRESS)
     group = common.add_argument_group("logging")
-    group.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="debug logging")
-    group.add_argument(
-        "-q",
-        "--quiet",
-        action="store_true",
-        default=argparse.SUPPRESS,
-        help="warnings and errors only; no progress display",
-    )
-    group.add_argument(
-        "--log-level",
-        default=argparse.SUPPRESS,
-        type=str.upper,
-        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-        help="logging level (default INFO)",
-    )
+    group.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    group.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only; no progress display")
+    levels = ("DEBUG", "INFO", "WARNING", "ERROR")
+    group.add_argument("--log-level", type=str.upper, choices=levels, help="logging level (default INFO)")
     return common
 
 

@@ -45,15 +45,12 @@ def default_temp(path: Path) -> Path:
 
 def fsync_dir(directory: Path) -> None:
     """Make a rename in ``directory`` durable (where the file system can)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return  # a directory that cannot be opened cannot be synced either; the rename itself is done
-    try:
-        with suppress(OSError):  # some file systems (tmpfs, network mounts) do not sync directories
+    with suppress(OSError):  # a directory that cannot be opened, or a file system that does not sync directories
+        fd = os.open(directory, os.O_RDONLY)  # (tmpfs, network mounts): the rename itself is done
+        try:
             os.fsync(fd)
-    finally:
-        os.close(fd)
+        finally:
+            os.close(fd)
 
 
 @contextmanager

@@ -41,6 +41,7 @@ import functools
 import logging
 import logging.handlers
 import multiprocessing
+import multiprocessing.queues
 import os
 import re
 import signal
@@ -355,25 +356,18 @@ def _on_interrupt(signum, frame) -> None:
         os._exit(1)
 
 
-class _SentAtOnce(logging.handlers.QueueHandler):
-    """A worker's log handler: each record is written into the batch's log pipe (a SimpleQueue) by the logging
-    call itself, not later by a multiprocessing.Queue's feeder thread, so every record a job logs is in the pipe
-    before the job's result, and the batch's process, stopping its listener after the last result, reads them all
-    (a feeder thread slowed by a loaded machine lost them)."""
+class _LogPipe(multiprocessing.queues.SimpleQueue):
+    """The log pipe from the workers to the batch's process, for the stock QueueHandler and QueueListener: a
+    worker's record is written into it by the logging call itself (``put_nowait`` is ``put``), not later by a
+    multiprocessing.Queue's feeder thread, so every record a job logs is in the pipe before the job's result, and
+    the batch's process, stopping its listener after the last result, reads them all, in the order written (a
+    feeder thread slowed by a loaded machine lost them)."""
 
-    def enqueue(self, record: logging.LogRecord) -> None:
-        self.queue.put(record)
+    def put_nowait(self, item) -> None:
+        self.put(item)
 
-
-class _LogListener(logging.handlers.QueueListener):
-    """The batch's process's side of the log pipe: the workers' records to this process's handlers, in the order
-    written, up to the sentinel ``stop`` writes after them."""
-
-    def dequeue(self, block: bool) -> logging.LogRecord | None:
-        return self.queue.get()
-
-    def enqueue_sentinel(self) -> None:
-        self.queue.put(self._sentinel)
+    def get(self, block: bool = True):
+        return super().get()
 
 
 def _start_worker(log_queue, level: int, batch_pid: int) -> None:
@@ -384,7 +378,7 @@ def _start_worker(log_queue, level: int, batch_pid: int) -> None:
     global _batch_pid
     _batch_pid = batch_pid
     root = logging.getLogger()
-    root.handlers[:] = [_SentAtOnce(log_queue)]
+    root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
     root.setLevel(level)
     signal.signal(signal.SIGINT, _on_interrupt)
     if hasattr(os, "setpgid"):  # (POSIX)
@@ -433,8 +427,8 @@ def _run_processes(todo: list[Job], batch: _Batch, workers: int) -> None:
 def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
     """Run ``pending`` on one pool of workers; returns the jobs not started when a worker died (else [])."""
     context = multiprocessing.get_context("spawn")  # never fork a process that holds OpenMP thread pools
-    log_queue = context.SimpleQueue()
-    listener = _LogListener(log_queue, *logging.getLogger().handlers, respect_handler_level=True)
+    log_queue = _LogPipe(ctx=context)
+    listener = logging.handlers.QueueListener(log_queue, *logging.getLogger().handlers, respect_handler_level=True)
     listener.start()
     running: dict[futures.Future, Job] = {}
     size = min(workers, len(pending))
