@@ -101,29 +101,22 @@ def _run(args: BenchGpu) -> int:
     }
     _train(scene, work / "warm-up", methods[0], 20, 0, args.device)  # gsplat's kernels build on their first use
     for method in methods:  # the report is written after each run: a lease that ends early keeps what was measured
-        run = _attempt(
-            method, 0, lambda: _train(scene, work / "runs" / method, method, args.steps, 0, args.device, True)
-        )
-        report["runs"].append(run)
+        report["runs"].append(_attempt(scene, work / "runs" / method, method, args.steps, 0, args.device, True))
         _write_report(out, report, started)
     if parity is not None:
         for seed in parity["seeds"]:
-            folder = work / "parity" / f"seed{seed}"
-            run = _attempt(
-                parity["method"],
-                seed,
-                lambda: _train(args.parity / "scene", folder, parity["method"], parity["steps"], seed, args.device),
-            )
+            folder, method = work / "parity" / f"seed{seed}", parity["method"]
+            run = _attempt(args.parity / "scene", folder, method, parity["steps"], seed, args.device)
             report["parity"]["device_runs"].append(run)
             _write_report(out, report, started)
     print((out / "gpu.md").read_text())
     return 0
 
 
-def _attempt(method: str, seed: int, train) -> dict:
-    """``train()``'s row, or a row saying why it failed (the other runs of the check still run)."""
+def _attempt(scene: Path, out: Path, method: str, steps: int, seed: int, device: str, show_progress: bool = False):
+    """:func:`_train`'s row, or a row saying why it failed (the other runs of the check still run)."""
     try:
-        return train()
+        return _train(scene, out, method, steps, seed, device, show_progress)
     except Exception as exc:  # one run's failure is a row of the table, not the end of the check
         return {"method": method, "seed": seed, "error": f"{type(exc).__name__}: {exc}"}
 

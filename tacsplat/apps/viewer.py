@@ -85,8 +85,7 @@ def _run(args: ViewCommand) -> int:
         if not export.parent.is_dir():
             raise ConfigError("--export", f"{export.parent} is not a folder")
         check_writable(export.parent)  # a read-only or full folder is refused before the view is built
-    path = args.path
-    content = load_content(path)
+    content = load_content(args.path)
     logging.getLogger("websockets").setLevel(logging.WARNING)
     with _viser_quiet():  # viser prints its own banner; ours follows
         server = viser.ViserServer(
@@ -95,12 +94,12 @@ def _run(args: ViewCommand) -> int:
     try:
         build_view(server, content)
         if export is not None:
-            size = write_export(server, export)
-            print(f"wrote {export} ({size / 1e6:.1f} MB): open it in a browser, no Python needed")
+            size = write_export(server, export) / 1e6
+            print(f"wrote {export} ({size:.1f} MB): open it in a browser, no Python needed")
         else:
             with ctrl_c_interrupts():  # (also where it was started with Ctrl-C ignored)
                 print(
-                    f"tacsplat view: {content.kind} {path} at {server_url(args.host, server.get_port())} "
+                    f"tacsplat view: {content.kind} {args.path} at {server_url(args.host, server.get_port())} "
                     "(Ctrl-C to stop)",
                     flush=True,
                 )
