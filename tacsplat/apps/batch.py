@@ -485,15 +485,9 @@ def result_rows(jobs: list, out: Path) -> list[dict]:
             continue
         m = json.loads((run / METRICS).read_text())
         rows.append(
-            {
-                "job": job.name,
-                "run": _relative(run, out),
-                "scene": _relative(Path(m.get("scene", "")), out),
-                "method": m.get("method"),
-                "seed": m.get("settings", {}).get("seed"),
-                "iterations": m.get("iterations"),
-                **{k: m.get(k) for k in RESULT_COLUMNS[6:]},
-            }
+            {"job": job.name, "run": _relative(run, out), "scene": _relative(Path(m.get("scene", "")), out)}
+            | {"method": m.get("method"), "seed": m.get("settings", {}).get("seed")}
+            | {k: m.get(k) for k in RESULT_COLUMNS[5:]}  # iterations, then the metrics
         )
     return rows
 

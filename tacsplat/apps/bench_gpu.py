@@ -155,18 +155,9 @@ def _train(
     metrics = reconstruct(scene, out, config, overwrite=True, show_progress=show_progress)
     peak = torch.cuda.max_memory_allocated() / 2**30 if device == "cuda" else None
     per_1k = 1000.0 * metrics["train_seconds"] / max(metrics["iterations"], 1)
-    return {
-        "method": method,
-        "seed": seed,
-        "steps": metrics["iterations"],
-        "train_seconds": metrics["train_seconds"],
-        "seconds_per_1k_steps": per_1k,
-        "projected_30k_minutes": 30 * per_1k / 60,
-        "peak_gpu_memory_gib": peak,
-        "num_gaussians": metrics["num_gaussians"],
-        "cd": metrics["cd"],
-        "psnr": metrics["psnr"],
-    }
+    row = dict(method=method, seed=seed, steps=metrics["iterations"], train_seconds=metrics["train_seconds"])
+    row |= dict(seconds_per_1k_steps=per_1k, projected_30k_minutes=30 * per_1k / 60, peak_gpu_memory_gib=peak)
+    return row | {key: metrics[key] for key in ("num_gaussians", "cd", "psnr")}
 
 
 def _prepare(folder: Path, args, seeds: tuple[int, ...]) -> None:

@@ -177,10 +177,8 @@ def summarize(steps: list[dict[str, float]], warmup: int = WARMUP_STEPS) -> dict
     import numpy as np
 
     kept = steps[warmup:] if len(steps) > warmup else steps
-    phases = {}
-    for phase in PHASES:
-        values = np.array([s.get(phase, 0.0) for s in kept]) * 1e3
-        phases[phase] = {"median_ms": float(np.median(values)), "mean_ms": float(values.mean())}
+    ms = {phase: np.array([s.get(phase, 0.0) for s in kept]) * 1e3 for phase in PHASES}
+    phases = {phase: {"median_ms": float(np.median(v)), "mean_ms": float(v.mean())} for phase, v in ms.items()}
     totals = np.array([sum(s.get(p, 0.0) for p in PHASES) for s in kept]) * 1e3
     return {
         "steps_timed": len(kept),

@@ -214,8 +214,10 @@ def run_jobs(
     try:
         if executor == "local":
             _run_local(todo, batch)
-        elif executor == "processes":
-            _run_processes(todo, batch, workers or default_workers())
+        elif executor == "processes":  # a dead worker fails the jobs it ran; a new set of workers runs the rest
+            pending = list(todo)
+            while pending:
+                pending = _run_pool(pending, batch, workers or default_workers())
         else:
             _run_ray(todo, batch, retries)
     finally:
@@ -414,14 +416,6 @@ def _run_in_worker(job: Job) -> tuple[str, object]:
         _job_running = False
         if _orphaned():  # the job has stopped (a training saved its checkpoint); nobody waits for its result
             os._exit(1)
-
-
-def _run_processes(todo: list[Job], batch: _Batch, workers: int) -> None:
-    """Jobs side by side in worker processes (see the module docstring); a dead worker fails the jobs it
-    was running, and a new set of workers runs the rest."""
-    pending = list(todo)
-    while pending:
-        pending = _run_pool(pending, batch, workers)
 
 
 def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
