@@ -274,17 +274,13 @@ def format_table(results: dict) -> str:
     head = f"{'phase':20s}" + "".join(f" | {r['label'] + ' median':>12s} {'mean':>7s} {'share':>6s}" for r in rows)
     lines = [head, "-" * len(head)]
     for phase in PHASES:
-        cells = []
-        for r in rows:
-            p = r["phases"][phase]
-            cells.append(
-                f" | {p['median_ms']:12.2f} {p['mean_ms']:7.2f} {100 * p['mean_ms'] / r['step_mean_ms']:5.1f}%"
-            )
-        lines.append(f"{phase:20s}" + "".join(cells))
-    lines.append("-" * len(head))
-    lines.append(
-        f"{'step':20s}" + "".join(f" | {r['step_median_ms']:12.2f} {r['step_mean_ms']:7.2f} {'':6s}" for r in rows)
-    )
+        cells = [(r["phases"][phase], r["step_mean_ms"]) for r in rows]
+        share = " | {0[median_ms]:12.2f} {0[mean_ms]:7.2f} {1:5.1f}%"
+        lines.append(f"{phase:20s}" + "".join(share.format(p, 100 * p["mean_ms"] / mean) for p, mean in cells))
+    lines += [
+        "-" * len(head),
+        f"{'step':20s}" + "".join(f" | {r['step_median_ms']:12.2f} {r['step_mean_ms']:7.2f} {'':6s}" for r in rows),
+    ]
     s, m = results["settings"], results["machine"]
     lines.append(
         "ms per step (median and mean over steps "
@@ -295,9 +291,7 @@ def format_table(results: dict) -> str:
             for r in rows
         )
     )
-    for r in rows:
-        if "ratio_to_reference" not in r:
-            continue
+    for r in filter(lambda r: "ratio_to_reference" in r, rows):
         ratio = r["ratio_to_reference"]
         each = ", ".join(f"{p['step_median']:.2f}x" for p in ratio["rounds"])
         lines.append(

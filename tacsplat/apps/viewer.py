@@ -596,8 +596,7 @@ def _report_view(server, content: Content, view: View) -> None:
     pair = [r for r in content.pair if r is not None]
     spacing = (1 + SIDE_BY_SIDE_GAP) * max(object_sphere(r)[1] for r in pair)
     view.slots += [
-        SplatSlot(server, "/report/left", (-spacing, 0.0, 0.0)),
-        SplatSlot(server, "/report/right", (spacing, 0.0, 0.0)),
+        SplatSlot(server, f"/report/{side}", (x, 0.0, 0.0)) for side, x in (("left", -spacing), ("right", spacing))
     ]
     for slot, run in zip(view.slots, content.pair):
         slot.show(run)
@@ -605,14 +604,9 @@ def _report_view(server, content: Content, view: View) -> None:
     loaded = {r.label: r for r in pair}
     table = None  # the metrics table, made last (the side panel lists what is made in order)
 
-    def show_metrics() -> None:
-        table.content = metrics_markdown(
-            {
-                side: slot.run.metrics  # the runs' names are in the drop-downs above
-                for side, slot in zip(("left", "right"), view.slots)
-                if slot.run
-            }
-        )
+    def show_metrics() -> None:  # (the runs' names are in the drop-downs above)
+        shown = zip(("left", "right"), view.slots)
+        table.content = metrics_markdown({side: slot.run.metrics for side, slot in shown if slot.run})
 
     with server.gui.add_folder("Runs"):
         for side, slot, run in zip(("left", "right"), view.slots, content.pair):
