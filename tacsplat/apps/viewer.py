@@ -337,9 +337,17 @@ def _look_from(server, centre: np.ndarray, extent: float, scene=None) -> None:
     server.initial_camera.far = 1000.0 * extent
 
 
-def _toggles(server, view: View, shown: dict[str, bool]) -> None:
-    """A checkbox per group of the scene's nodes (cameras, touches, mesh, sphere)."""
-    nodes = view.scene_nodes
+def _add_scene(server, view: View, name: str, scene, hidden: tuple[str, ...] = ()) -> None:
+    """``scene``'s nodes under ``name``, its summary, and a checkbox per group of its nodes (cameras, touches,
+    mesh, sphere); the groups in ``hidden`` are hidden at first."""
+    from tacsplat.apps.viewer_scene import add_scene
+
+    nodes = view.scene_nodes = add_scene(server.scene, name, scene, "mesh" not in hidden, "sphere" not in hidden)
+    train, test = len(scene.split("train")), len(scene.split("test"))
+    server.gui.add_markdown(
+        f"**{scene.meta.object}** ({scene.meta.source}): {train} train and {test} test views, "
+        f"{len(scene.touches)} touches in {scene.num_grasps} grasps"
+    )
     labels = {
         "cameras": "camera frusta",
         "touches": "touches (by grasp) and gel frames",
@@ -348,7 +356,7 @@ def _toggles(server, view: View, shown: dict[str, bool]) -> None:
     }
     for group, members in nodes.groups.items():
         if members:
-            _visibility_checkbox(server, view, labels[group], members, shown.get(group, True))
+            _visibility_checkbox(server, view, labels[group], members, group not in hidden)
 
 
 def _visibility_checkbox(server, view: View, label: str, nodes: list, initial: bool, hint: str | None = None) -> None:
@@ -361,21 +369,9 @@ def _visibility_checkbox(server, view: View, label: str, nodes: list, initial: b
             node.visible = event.target.value
 
 
-def _scene_summary(scene) -> str:
-    train, test = len(scene.split("train")), len(scene.split("test"))
-    return (
-        f"**{scene.meta.object}** ({scene.meta.source}): {train} train and {test} test views, "
-        f"{len(scene.touches)} touches in {scene.num_grasps} grasps"
-    )
-
-
 def _scene_view(server, content: Content, view: View) -> None:
-    from tacsplat.apps.viewer_scene import add_scene
-
-    view.scene_nodes = add_scene(server.scene, "/scene", content.scene)
+    _add_scene(server, view, "/scene", content.scene)
     _look_from(server, view.scene_nodes.sphere.centre, view.scene_nodes.sphere.radius, content.scene)
-    server.gui.add_markdown(_scene_summary(content.scene))
-    _toggles(server, view, {})
 
 
 class SplatSlot:
@@ -567,8 +563,6 @@ def _render_button(server, view: View) -> None:
 
 
 def _run_view(server, content: Content, view: View) -> None:
-    from tacsplat.apps.viewer_scene import add_scene
-
     run = content.run
     centre, radius = object_sphere(run)
     view.slots.append(SplatSlot(server, "/run/splat", position=centre))  # in the run's own frame, with its scene
@@ -582,10 +576,8 @@ def _run_view(server, content: Content, view: View) -> None:
         _checkpoint_slider(server, view, run)
         _exported_mesh(server, view, run)
     if run.scene is not None:
-        view.scene_nodes = add_scene(server.scene, "/run/scene", run.scene, show_mesh=False, show_sphere=False)
         with server.gui.add_folder("Scene"):
-            server.gui.add_markdown(_scene_summary(run.scene))
-            _toggles(server, view, {"mesh": False, "sphere": False})
+            _add_scene(server, view, "/run/scene", run.scene, hidden=("mesh", "sphere"))
     with server.gui.add_folder("Render"):
         _render_button(server, view)
     with server.gui.add_folder("Metrics"):
