@@ -140,7 +140,7 @@ _RIG_FIELDS = {
     "plan.touches.model": "touch_model",
     "sim.texture": "texture",
     "grasp.slide_m": "slide_m",
-}  # the rig config's fields a capture job sets
+}  # the rig config's fields a capture job sets: its fields of the same name as sim_rig_config's arguments
 
 
 def check_slide(slide_m: float, option: str) -> None:
@@ -175,8 +175,7 @@ class CaptureJob(BatchJob):
         """The rig config of the capture (``options``: more of ``sim_rig_config``'s, as a subclass's fields)."""
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
-        keys = ("object", "mesh", "object_radius", "views", "test_views", "grasps", "resolution", "seed")
-        return sim_rig_config(**{k: getattr(self, k) for k in (*keys, "touch_model", "texture", "slide_m")}, **options)
+        return sim_rig_config(**{k: getattr(self, k) for k in dict.fromkeys(_RIG_FIELDS.values())}, **options)
 
     def check(self) -> None:
         super().check()

@@ -144,7 +144,8 @@ class PaperBenchConfig:
         return cls(objects=QUICK_OBJECTS, settings=("minimal",), resolution=128, iterations=800, test_views=8)
 
     def validate(self) -> None:
-        from tacsplat.sim.objects import OBJECT_NAMES
+        from tacsplat.reconstruction.config import PRESETS
+        from tacsplat.sim.objects import OBJECT_NAMES, texture_problem
 
         if self.dataset is not None:
             self._validate_dataset()
@@ -155,9 +156,8 @@ class PaperBenchConfig:
             raise ConfigError(
                 "objects", f"unknown object(s) {', '.join(unknown)}; choose from {where}{', '.join(known)}{files}"
             )
-        for s in self.settings:
-            if s not in SETTINGS:
-                raise ConfigError("settings", f"unknown setting {s!r}; choose from {', '.join(SETTINGS)}")
+        if unknown := [s for s in self.settings if s not in SETTINGS]:
+            raise ConfigError("settings", f"unknown setting {unknown[0]!r}; choose from {', '.join(SETTINGS)}")
         for name in self.methods:
             bench_row(name, "methods")
         if self.full_views < 32 and self.dataset is None:
@@ -169,14 +169,10 @@ class PaperBenchConfig:
                 raise ConfigError(key, f"must be >= 1, got {getattr(self, key)}")
         if not self.seeds:
             raise ConfigError("seeds", "need at least one seed")
-        from tacsplat.reconstruction.config import PRESETS
-
         if self.preset not in PRESETS:
             raise ConfigError("preset", f"unknown preset {self.preset!r}; choose from {', '.join(PRESETS)}")
         if self.touch_model not in ("gel", "paper"):
             raise ConfigError("touch_model", f"must be gel or paper, got {self.touch_model!r}")
-        from tacsplat.sim.objects import texture_problem
-
         if problem := texture_problem(self.texture):
             raise ConfigError("texture", problem)
         check_slide(self.slide_m, "slide_m")
