@@ -5,6 +5,7 @@ Its options and what it does: :class:`BenchScaling`.
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,27 +39,18 @@ def run_scaling(out: Path, obj: str, resolutions, step_counts, methods, seed: in
     from tacsplat.apps.report import number
 
     width = max(map(len, methods))
+    suite = dict(objects=(obj,), settings=("minimal",), methods=tuple(methods), seeds=(seed,))
     rows = []
-    for resolution in resolutions:
-        for iterations in step_counts:
-            config = PaperBenchConfig(
-                objects=(obj,),
-                settings=("minimal",),
-                methods=tuple(methods),
-                resolution=resolution,
-                iterations=iterations,
-                seeds=(seed,),
+    for resolution, iterations in itertools.product(resolutions, step_counts):
+        config = PaperBenchConfig(**suite, resolution=resolution, iterations=iterations)
+        for row in PaperBench(out / f"{resolution}px-{iterations}steps", config).run(progress=False):
+            rows.append({"resolution": resolution, "iterations": iterations} | {k: row[k] for k in COLUMNS if k in row})
+            print(
+                f"{resolution:4d} px {iterations:5d} steps {row['method']:{width}s}: "
+                f"CD {number(row['cd'], 4, 'nan')} cd_paper {number(row['cd_paper'], 5, 'nan')} "
+                f"PSNR {number(row['psnr'], 2, 'nan')} train {row['train_seconds']:.0f} s",
+                flush=True,
             )
-            for row in PaperBench(out / f"{resolution}px-{iterations}steps", config).run(progress=False):
-                rows.append(
-                    {"resolution": resolution, "iterations": iterations, **{k: row[k] for k in COLUMNS if k in row}}
-                )
-                print(
-                    f"{resolution:4d} px {iterations:5d} steps {row['method']:{width}s}: "
-                    f"CD {number(row['cd'], 4, 'nan')} cd_paper {number(row['cd_paper'], 5, 'nan')} "
-                    f"PSNR {number(row['psnr'], 2, 'nan')} train {row['train_seconds']:.0f} s",
-                    flush=True,
-                )
     return rows
 
 

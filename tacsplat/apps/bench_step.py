@@ -210,15 +210,11 @@ def profile_resolution(out: Path, resolution: int, iterations: int, method: str,
     with tempfile.TemporaryDirectory() as run_dir, instrumented(PhaseTimer()) as steps:
         trainer = Trainer(scene_at(Scene.load(capture.out), config.downscale), run_dir, config)
         trainer.run(show_progress=False)
-    return {
-        "resolution": resolution,
-        "label": f"{resolution}px",
-        "iterations": iterations,
-        "train_seconds": trainer.train_seconds,
-        "torch_threads": config.torch_threads,
-        **summarize(steps),
-        "per_step": [{k: round(v * 1e3, 4) if k != "n_gaussians" else v for k, v in s.items()} for s in steps],
-    }
+    run = dict(
+        resolution=resolution, label=f"{resolution}px", iterations=iterations, train_seconds=trainer.train_seconds
+    )
+    per_step = [{k: round(v * 1e3, 4) if k != "n_gaussians" else v for k, v in s.items()} for s in steps]
+    return run | {"torch_threads": config.torch_threads, **summarize(steps), "per_step": per_step}
 
 
 def run_profile(

@@ -510,8 +510,7 @@ def coverage_sentence(rows: list[dict], setting: str) -> str:
     from tacsplat.apps.report import metric_table
 
     objects, methods, unseen = metric_table(rows, "unseen_fraction", setting)
-    _, _, seen_cd = metric_table(rows, "cd_seen", setting)
-    _, _, unseen_cd = metric_table(rows, "cd_unseen", setting)
+    seen_cd, unseen_cd = (metric_table(rows, metric, setting)[2] for metric in ("cd_seen", "cd_unseen"))
     fractions = np.fmax.reduce(unseen, axis=0) if len(methods) else np.array([np.nan])  # the same for every method
     if not np.isfinite(fractions[-1]):
         return ""
