@@ -185,10 +185,8 @@ def run_benchmark(sizes: list[str], repeats: int, torch_repeats: int, skip_torch
         "settings": {"repeats": repeats, "torch_repeats": torch_repeats, "sh_degree": 3, "radius_px": [1, 8]},
         "sizes": [],
     }
-    with tempfile.TemporaryDirectory() as cache_dir:
-        env = {"NUMBA_CACHE_DIR": cache_dir}
-        cold = _in_subprocess("compile_worker()", env)
-        warm = _in_subprocess("compile_worker()", env)
+    with tempfile.TemporaryDirectory() as cache_dir:  # cold, then cached by the first in a process of its own
+        cold, warm = (_in_subprocess("compile_worker()", {"NUMBA_CACHE_DIR": cache_dir}) for _ in range(2))
     results["compile"] = {"cold_first_call_s": cold["first_call_s"], "cached_first_call_s": warm["first_call_s"]}
     for text in progress_bar(sizes, desc="bench rasterizer", unit="size"):
         width, height, n = parse_size(text)
