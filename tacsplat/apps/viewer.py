@@ -43,7 +43,6 @@ from tacsplat.interrupts import ctrl_c_interrupts
 
 log = logging.getLogger(__name__)
 
-KINDS = ("scene", "run", "report")
 RENDER_WIDTH = 320  # px of a render of the browser's viewpoint (the CPU rasterizer answers in about a second)
 SIDE_BY_SIDE_GAP = 0.25  # of the larger object's radius, between the two runs of a report
 CAMERA_DISTANCE = 2.5  # initial viewpoint: this many radii from the centre of what is shown
@@ -185,7 +184,7 @@ class RunData:
 
 @dataclass
 class Content:
-    kind: str  # one of KINDS
+    kind: str  # "scene", "run" or "report"
     path: Path
     scene: object | None = None  # kind "scene"
     run: RunData | None = None  # kind "run"
@@ -193,42 +192,30 @@ class Content:
     pair: tuple[RunData, RunData | None] | None = None  # kind "report": the two runs shown first
 
 
-def path_kind(path: Path) -> str:
-    """Which of :data:`KINDS` ``path`` is; a ConfigError naming it if none."""
+def load_content(path: Path) -> Content:
+    """Read what ``path`` holds, a scene, a run or a report (every file the first view shows), raising the first
+    problem (a ConfigError naming ``path`` when it is none of them)."""
+    from tacsplat.datasets import Scene
     from tacsplat.reconstruction.run_dir import is_run_folder
 
     if not path.exists():
         raise ConfigError("PATH", f"{path} does not exist")
-    if path.is_dir():
-        if (path / "transforms.json").is_file():
-            return "scene"
-        if (path / "splat.ply").is_file() or is_run_folder(path):
-            return "run"
-        if (path / "runs").is_dir():
-            return "report"
-    raise ConfigError(
-        "PATH",
-        f"{path} is neither a scene directory (with transforms.json), a run directory (with "
-        "splat.ply, from tacsplat reconstruct) nor a benchmark report folder (with runs/, from tacsplat "
-        "bench paper)",
-    )
-
-
-def load_content(path: Path) -> Content:
-    """Read what ``path`` holds (every file the first view shows), raising the first problem."""
-    from tacsplat.datasets import Scene
-
-    kind = path_kind(path)
-    if kind == "scene":
-        return Content(kind, path, scene=Scene.load(path))
-    if kind == "run":
-        return Content(kind, path, run=read_run(path, path.name))
-    runs = report_runs(path)
-    if not runs:
+    if (path / "transforms.json").is_file():  # (False for a file: it holds nothing)
+        return Content("scene", path, scene=Scene.load(path))
+    if (path / "splat.ply").is_file() or is_run_folder(path):
+        return Content("run", path, run=read_run(path, path.name))
+    if not (path / "runs").is_dir():
+        raise ConfigError(
+            "PATH",
+            f"{path} is neither a scene directory (with transforms.json), a run directory (with "
+            "splat.ply, from tacsplat reconstruct) nor a benchmark report folder (with runs/, from tacsplat "
+            "bench paper)",
+        )
+    if not (runs := report_runs(path)):
         raise ConfigError("PATH", f"{path} has no finished run (no runs/<object>/<setting>/<method>/splat.ply)")
     left, right = default_pair(runs)
     pair = (read_run(runs[left], left, path), read_run(runs[right], right, path) if right else None)
-    return Content(kind, path, report_runs=runs, pair=pair)
+    return Content("report", path, report_runs=runs, pair=pair)
 
 
 def read_run(path: Path, label: str, report: Path | None = None) -> RunData:
