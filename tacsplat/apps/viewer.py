@@ -159,9 +159,7 @@ if (location.protocol === "file:") (function () {
 def write_export(server, path: Path) -> int:
     """Write the server's scene as a self-contained HTML page (replacing ``path`` atomically; a full or read-only
     disk is a StorageError naming it); its size in bytes."""
-    page = server.get_scene_serializer().as_html()
-    head = page.index("<head>") + len("<head>")
-    html = (page[:head] + FILE_PAGE_WORKERS + page[head:]).encode()
+    html = server.get_scene_serializer().as_html().replace("<head>", "<head>" + FILE_PAGE_WORKERS, 1).encode()
     atomic_write(path, html)
     return len(html)
 
