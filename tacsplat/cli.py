@@ -71,23 +71,12 @@ GROUP_HELP = {
 def _common_options() -> argparse.ArgumentParser:
     """-v, -q and --log-level, accepted by the root and by every subcommand (defaults SUPPRESS, so a
     subcommand's absent option never overwrites one given before it)."""
-    common = argparse.ArgumentParser(add_help=False)
+    common = argparse.ArgumentParser(add_help=False, argument_default=argparse.SUPPRESS)
     group = common.add_argument_group("logging")
-    group.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help="debug logging")
-    group.add_argument(
-        "-q",
-        "--quiet",
-        action="store_true",
-        default=argparse.SUPPRESS,
-        help="warnings and errors only; no progress display",
-    )
-    group.add_argument(
-        "--log-level",
-        default=argparse.SUPPRESS,
-        type=str.upper,
-        choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-        help="logging level (default INFO)",
-    )
+    group.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    group.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only; no progress display")
+    levels = ("DEBUG", "INFO", "WARNING", "ERROR")
+    group.add_argument("--log-level", type=str.upper, choices=levels, help="logging level (default INFO)")
     return common
 
 
@@ -139,16 +128,17 @@ class CommandTree:
         self.own_options.add(path)
 
     def _chosen(self, argv: list[str]) -> tuple[str, int]:
-        """``(path, index after its last word in argv)``."""
+        """``(path, index after its last word in argv)``: the words of argv that extend a command's path (options
+        and their values skipped)."""
         path, end = "", 0
         for i, token in enumerate(argv):
-            if token.startswith("-"):
-                continue
-            candidate = f"{path} {token}".strip()
-            if candidate not in self._parsers:
-                break
-            path, end = candidate, i + 1
+            if f"{path} {token}".strip() in self._parsers and not token.startswith("-"):
+                path, end = f"{path} {token}".strip(), i + 1
         return path, end
+
+    def prog(self, argv: list[str]) -> str:
+        """The usage name of the command named in ``argv`` (for usage lines)."""
+        return self._parsers[self._chosen(argv)[0]].prog
 
     def split_own_options(self, argv: list[str]) -> tuple[list[str], list[str]]:
         """``(argv, [])``, or for a command that parses its own options ``(what argparse parses, the rest)``: the
@@ -209,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         code = args.func(args)
     except UsageError as exc:
-        prog = _subparser(parser, argv).prog
+        prog = parser.tree.prog(argv)
         print(f"{prog}: error: {exc} (see {prog} --help)", file=sys.stderr)
         return 2
     except TacsplatError as exc:
@@ -228,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
         if extra is None:
             raise
         print(
-            f"error: {_subparser(parser, argv).prog} needs the {extra} extra ({exc.name} is not installed): "
+            f"error: {parser.tree.prog(argv)} needs the {extra} extra ({exc.name} is not installed): "
             f"pip install 'tacsplat[{extra}]'",
             file=sys.stderr,
         )
@@ -237,17 +227,6 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     return int(code or 0)
-
-
-def _subparser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:
-    """The parser of the command named in ``argv`` (for usage lines)."""
-    current = parser
-    for token in argv:
-        actions = [a for a in current._actions if isinstance(a, argparse._SubParsersAction)]
-        if token.startswith("-") or not actions or token not in actions[0].choices:
-            continue
-        current = actions[0].choices[token]
-    return current
 
 
 def run() -> None:

@@ -22,8 +22,7 @@ class SceneFormatError(TacsplatError):
     def __init__(self, path: str | Path, field: str | None, message: str):
         self.path = Path(path)
         self.field = field
-        where = f"{self.path}" + (f" [{field}]" if field else "")
-        super().__init__(f"{where}: {message}")
+        super().__init__(f"{self.path}{f' [{field}]' if field else ''}: {message}")
 
 
 class ConfigError(TacsplatError):
@@ -32,8 +31,7 @@ class ConfigError(TacsplatError):
     def __init__(self, key: str, message: str, source: str | Path | None = None):
         self.key = key
         self.source = source
-        prefix = f"{source}: " if source else ""
-        super().__init__(f"{prefix}{key}: {message}")
+        super().__init__(f"{f'{source}: ' if source else ''}{key}: {message}")
 
 
 class UsageError(ConfigError):

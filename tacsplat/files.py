@@ -30,8 +30,7 @@ _REASONS = {
 
 def storage_error(exc: OSError, path: str | Path) -> StorageError:
     """The :class:`StorageError` for ``exc`` (an OSError raised while writing ``path``)."""
-    reason = _REASONS.get(exc.errno) or f"cannot write: {exc.strerror or exc}"
-    return StorageError(path, reason)
+    return StorageError(path, _REASONS.get(exc.errno) or f"cannot write: {exc.strerror or exc}")
 
 
 def is_storage_failure(exc: BaseException) -> bool:
@@ -46,15 +45,12 @@ def default_temp(path: Path) -> Path:
 
 def fsync_dir(directory: Path) -> None:
     """Make a rename in ``directory`` durable (where the file system can)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return  # a directory that cannot be opened cannot be synced either; the rename itself is done
-    try:
-        with suppress(OSError):  # some file systems (tmpfs, network mounts) do not sync directories
+    with suppress(OSError):  # a directory that cannot be opened, or a file system that does not sync directories
+        fd = os.open(directory, os.O_RDONLY)  # (tmpfs, network mounts): the rename itself is done
+        try:
             os.fsync(fd)
-    finally:
-        os.close(fd)
+        finally:
+            os.close(fd)
 
 
 @contextmanager
@@ -124,6 +120,5 @@ def refuse_unwritable(option: str, value) -> None:
         fs = os.statvfs(existing)
     except OSError:
         return  # (the command reports what it cannot reach)
-    failure = errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if fs.f_bfree == 0 else None
-    if failure is not None:
+    if (failure := errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if fs.f_bfree == 0 else None) is not None:
         raise ConfigError(option, str(storage_error(OSError(failure, os.strerror(failure)), value)))

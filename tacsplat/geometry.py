@@ -52,8 +52,7 @@ def rigidity_problem(T, atol: float = 1e-5) -> str | None:
 def check_rigid(T, name: str = "pose", atol: float = 1e-5) -> np.ndarray:
     """Return ``T`` as float64 [4, 4] if it is rigid, else raise naming ``name``."""
     T = as_pose(T, name)
-    problem = rigidity_problem(T, atol)
-    if problem:
+    if problem := rigidity_problem(T, atol):
         raise InvalidInputError(f"{name}: not a rigid transform: {problem}")
     return T
 
@@ -84,18 +83,16 @@ def compose(*poses) -> np.ndarray:
 def transform_points(T, points) -> np.ndarray:
     """Apply ``T`` [4, 4] to points [N, 3]; returns [N, 3] float64."""
     T = as_pose(T)
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    return p @ T[:3, :3].T + T[:3, 3]
+    return np.asarray(points, dtype=np.float64).reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
 
 
 def opencv_to_opengl(T_world_cam) -> np.ndarray:
-    """Camera-to-world pose with OpenCV camera axes -> the same camera with OpenGL axes."""
+    """Camera-to-world pose with OpenCV camera axes -> the same camera with OpenGL axes, and back
+    (:func:`opengl_to_opencv` is the same flip)."""
     return as_pose(T_world_cam) @ _CV_GL_FLIP
 
 
-def opengl_to_opencv(T_world_cam_gl) -> np.ndarray:
-    """Camera-to-world pose with OpenGL camera axes -> the same camera with OpenCV axes."""
-    return as_pose(T_world_cam_gl) @ _CV_GL_FLIP
+opengl_to_opencv = opencv_to_opengl  # OpenGL camera axes -> OpenCV: the flip is its own inverse
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -174,6 +171,14 @@ def tactile_pixel_grid(height: int, width: int, pixel_size_m: float) -> tuple[np
     return x, y
 
 
+def _tactile_depth(depth) -> np.ndarray:
+    """A tactile depth map as float64 [h, w], or an InvalidInputError."""
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.ndim != 2 or not np.all(np.isfinite(depth)):
+        raise InvalidInputError(f"tactile depth: expected a finite [h, w] map, got shape {depth.shape}")
+    return depth
+
+
 def tactile_depth_to_points(depth, pixel_size_m: float, T_world_sensor, threshold_m: float = 1e-5) -> np.ndarray:
     """The one lifting of a tactile depth map to contact points [M, 3] in the world.
 
@@ -181,15 +186,10 @@ def tactile_depth_to_points(depth, pixel_size_m: float, T_world_sensor, threshol
     ``T_world_sensor @ (x, y, -d, 1)`` (the sensor's z is the gel's outward
     normal, so the touched surface lies *behind* the undeformed gel plane).
     """
-    depth = np.asarray(depth, dtype=np.float64)
-    if depth.ndim != 2:
-        raise InvalidInputError(f"tactile depth: expected [h, w], got shape {depth.shape}")
-    if not np.all(np.isfinite(depth)):
-        raise InvalidInputError("tactile depth: contains NaN or infinite values")
+    depth = _tactile_depth(depth)
     x, y = tactile_pixel_grid(*depth.shape, pixel_size_m)
     hit = depth > threshold_m
-    pts = np.stack([x[hit], y[hit], -depth[hit]], axis=1)
-    return transform_points(T_world_sensor, pts)
+    return transform_points(T_world_sensor, np.stack([x[hit], y[hit], -depth[hit]], axis=1))
 
 
 def tactile_depth_to_normals(depth, pixel_size_m: float, T_world_sensor, threshold_m: float = 1e-5) -> np.ndarray:
@@ -199,21 +199,14 @@ def tactile_depth_to_normals(depth, pixel_size_m: float, T_world_sensor, thresho
     The surface under the gel is ``(x, y, -d(x, y))``; its outward normal (out of the object, towards the
     sensor) is ``-(dd/dx, dd/dy, 1)`` normalised, from central differences of the indentation map.
     """
-    depth = np.asarray(depth, dtype=np.float64)
-    if depth.ndim != 2 or not np.all(np.isfinite(depth)):
-        raise InvalidInputError(f"tactile depth: expected a finite [h, w] map, got shape {depth.shape}")
+    depth = _tactile_depth(depth)
     hit = depth > threshold_m
     dd_dy, dd_dx = np.gradient(depth, pixel_size_m)
     normals = -np.stack([dd_dx, dd_dy, np.ones_like(depth)], axis=-1)
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    inner = hit.copy()  # the 4 neighbours used by the central differences are in contact too
-    inner[1:] &= hit[:-1]
-    inner[:-1] &= hit[1:]
-    inner[:, 1:] &= hit[:, :-1]
-    inner[:, :-1] &= hit[:, 1:]
-    inner[[0, -1], :] = False
-    inner[:, [0, -1]] = False
-    normals[~inner] = np.nan
+    from scipy.ndimage import binary_erosion
+
+    normals[~binary_erosion(hit)] = np.nan  # where the 4 neighbours the central differences use are in contact too
     R = np.asarray(T_world_sensor, dtype=np.float64)[:3, :3]
     return normals[hit] @ R.T
 

@@ -62,11 +62,7 @@ class _PlainLines:
         self._last = time.monotonic()
         done = f"{self.n}/{self.total}" if self.total else str(self.n)
         postfix = f" ({self.postfix})" if self.postfix else ""
-        print(
-            f"{self.desc}: {done} {self.unit} in {self._last - self._started:.0f} s{postfix}",
-            file=sys.stderr,
-            flush=True,
-        )
+        self.write(f"{self.desc}: {done} {self.unit} in {self._last - self._started:.0f} s{postfix}")
 
     def close(self) -> None:
         if self._last != -1.0:

@@ -140,7 +140,7 @@ _RIG_FIELDS = {
     "plan.touches.model": "touch_model",
     "sim.texture": "texture",
     "grasp.slide_m": "slide_m",
-}  # the rig config's fields a capture job sets
+}  # the rig config's fields a capture job sets: its fields of the same name as sim_rig_config's arguments
 
 
 def check_slide(slide_m: float, option: str) -> None:
@@ -175,16 +175,14 @@ class CaptureJob(BatchJob):
         """The rig config of the capture."""
         from tacsplat.acquisition.sim_capture import sim_rig_config
 
-        keys = ("object", "mesh", "object_radius", "views", "test_views", "grasps", "resolution", "seed")
-        return sim_rig_config(**{k: getattr(self, k) for k in (*keys, "touch_model", "texture", "slide_m")})
+        return sim_rig_config(**{k: getattr(self, k) for k in dict.fromkeys(_RIG_FIELDS.values())})
 
     def check(self) -> None:
         super().check()
         try:
             self.rig()  # validated as a rig config
         except ConfigError as exc:  # its field named as in a batch file
-            message = str(exc).removeprefix(f"{exc.key}: ")
-            raise ConfigError(_RIG_FIELDS.get(exc.key, exc.key), message) from None
+            raise ConfigError(_RIG_FIELDS.get(exc.key, exc.key), str(exc).removeprefix(f"{exc.key}: ")) from None
 
     def complete(self) -> bool:
         return (self.out / CAPTURE_MARKER).is_file()
@@ -486,15 +484,9 @@ def result_rows(jobs: list, out: Path) -> list[dict]:
             continue
         m = json.loads((run / METRICS).read_text())
         rows.append(
-            {
-                "job": job.name,
-                "run": _relative(run, out),
-                "scene": _relative(Path(m.get("scene", "")), out),
-                "method": m.get("method"),
-                "seed": m.get("settings", {}).get("seed"),
-                "iterations": m.get("iterations"),
-                **{k: m.get(k) for k in RESULT_COLUMNS[6:]},
-            }
+            {"job": job.name, "run": _relative(run, out), "scene": _relative(Path(m.get("scene", "")), out)}
+            | {"method": m.get("method"), "seed": m.get("settings", {}).get("seed")}
+            | {k: m.get(k) for k in RESULT_COLUMNS[5:]}  # iterations, then the metrics
         )
     return rows
 

@@ -28,18 +28,15 @@ def _row_label(row, index: int) -> str:
 
 def flatten(data, prefix: str = "") -> dict[str, float]:
     """``{"sizes.256x256:20000.cpu.forward_ms": 12.3, ...}``: every number (not bool) in nested dicts and lists."""
-    out: dict[str, float] = {}
+    if isinstance(data, (int, float)) and not isinstance(data, bool):
+        return {prefix: float(data)}
     if isinstance(data, dict):
         items = ((str(k), v) for k, v in data.items() if k not in SKIPPED_KEYS)
     elif isinstance(data, list):
         items = ((_row_label(v, i), v) for i, v in enumerate(data))
     else:
-        if isinstance(data, (int, float)) and not isinstance(data, bool):
-            out[prefix] = float(data)
-        return out
-    for key, value in items:
-        out.update(flatten(value, f"{prefix}.{key}" if prefix else key))
-    return out
+        return {}
+    return {k: v for key, value in items for k, v in flatten(value, f"{prefix}.{key}" if prefix else key).items()}
 
 
 def read_results(path: str | Path) -> dict:
@@ -55,15 +52,8 @@ def read_results(path: str | Path) -> dict:
 def compare(a: dict, b: dict, match: str | None = None) -> list[tuple[str, float | None, float | None, float | None]]:
     """``(path, A, B, B / A)`` for every number of either result (None where one lacks it), in A's order."""
     flat_a, flat_b = flatten(a), flatten(b)
-    keys = list(flat_a) + [k for k in flat_b if k not in flat_a]
-    rows = []
-    for key in keys:
-        if match and match not in key:
-            continue
-        va, vb = flat_a.get(key), flat_b.get(key)
-        ratio = vb / va if va is not None and vb is not None and va != 0 else None
-        rows.append((key, va, vb, ratio))
-    return rows
+    rows = [(key, flat_a.get(key), flat_b.get(key)) for key in {**flat_a, **flat_b} if not match or match in key]
+    return [(key, va, vb, vb / va if va and vb is not None else None) for key, va, vb in rows]
 
 
 def format_comparison(rows, name_a: str, name_b: str) -> str:

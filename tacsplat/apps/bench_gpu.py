@@ -101,29 +101,22 @@ def _run(args: BenchGpu) -> int:
     }
     _train(scene, work / "warm-up", methods[0], 20, 0, args.device)  # gsplat's kernels build on their first use
     for method in methods:  # the report is written after each run: a lease that ends early keeps what was measured
-        run = _attempt(
-            method, 0, lambda: _train(scene, work / "runs" / method, method, args.steps, 0, args.device, True)
-        )
-        report["runs"].append(run)
+        report["runs"].append(_attempt(scene, work / "runs" / method, method, args.steps, 0, args.device, True))
         _write_report(out, report, started)
     if parity is not None:
         for seed in parity["seeds"]:
-            folder = work / "parity" / f"seed{seed}"
-            run = _attempt(
-                parity["method"],
-                seed,
-                lambda: _train(args.parity / "scene", folder, parity["method"], parity["steps"], seed, args.device),
-            )
+            folder, method = work / "parity" / f"seed{seed}", parity["method"]
+            run = _attempt(args.parity / "scene", folder, method, parity["steps"], seed, args.device)
             report["parity"]["device_runs"].append(run)
             _write_report(out, report, started)
     print((out / "gpu.md").read_text())
     return 0
 
 
-def _attempt(method: str, seed: int, train) -> dict:
-    """``train()``'s row, or a row saying why it failed (the other runs of the check still run)."""
+def _attempt(scene: Path, out: Path, method: str, steps: int, seed: int, device: str, show_progress: bool = False):
+    """:func:`_train`'s row, or a row saying why it failed (the other runs of the check still run)."""
     try:
-        return train()
+        return _train(scene, out, method, steps, seed, device, show_progress)
     except Exception as exc:  # one run's failure is a row of the table, not the end of the check
         return {"method": method, "seed": seed, "error": f"{type(exc).__name__}: {exc}"}
 
@@ -162,18 +155,9 @@ def _train(
     metrics = reconstruct(scene, out, config, overwrite=True, show_progress=show_progress)
     peak = torch.cuda.max_memory_allocated() / 2**30 if device == "cuda" else None
     per_1k = 1000.0 * metrics["train_seconds"] / max(metrics["iterations"], 1)
-    return {
-        "method": method,
-        "seed": seed,
-        "steps": metrics["iterations"],
-        "train_seconds": metrics["train_seconds"],
-        "seconds_per_1k_steps": per_1k,
-        "projected_30k_minutes": 30 * per_1k / 60,
-        "peak_gpu_memory_gib": peak,
-        "num_gaussians": metrics["num_gaussians"],
-        "cd": metrics["cd"],
-        "psnr": metrics["psnr"],
-    }
+    row = dict(method=method, seed=seed, steps=metrics["iterations"], train_seconds=metrics["train_seconds"])
+    row |= dict(seconds_per_1k_steps=per_1k, projected_30k_minutes=30 * per_1k / 60, peak_gpu_memory_gib=peak)
+    return row | {key: metrics[key] for key in ("num_gaussians", "cd", "psnr")}
 
 
 def _prepare(folder: Path, args, seeds: tuple[int, ...]) -> None:
@@ -287,21 +271,10 @@ def source_hash() -> str:
     """12 hex digits of a hash of the package's source (its .py and .yaml files by module path): the same for the
     same code whether it is installed, editable or linked, with or without git."""
     import tacsplat
-    import tacsplat.acquisition
-    import tacsplat.datasets
-    import tacsplat.drivers
-    import tacsplat.reconstruction
-    import tacsplat.sim
+    from tacsplat import acquisition, datasets, drivers, reconstruction, sim
 
     files = {}
-    for package in (
-        tacsplat,
-        tacsplat.acquisition,
-        tacsplat.datasets,
-        tacsplat.drivers,
-        tacsplat.reconstruction,
-        tacsplat.sim,
-    ):
+    for package in (tacsplat, acquisition, datasets, drivers, reconstruction, sim):
         root = Path(package.__file__).resolve().parent
         prefix = Path(*package.__name__.split("."))
         for path in root.rglob("*"):

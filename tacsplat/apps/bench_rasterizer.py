@@ -86,6 +86,7 @@ def parse_size(text: str) -> tuple[int, int, int]:
 def _time_backend(scene: dict, backend: str, repeats: int) -> dict:
     """Median wall times (ms) of forward and forward+backward after one warm-up run (none when repeats=0)."""
     import time
+    from statistics import median_high
 
     from tacsplat.reconstruction.raster import rasterization
 
@@ -112,13 +113,9 @@ def _time_backend(scene: dict, backend: str, repeats: int) -> dict:
         forward_backward()
         fwd_bwd.append(time.perf_counter() - start)
     out = {"visible_gaussians": int((meta["radii"] > 0).all(-1).sum())}
-    if repeats:
-        out["forward_ms"] = 1e3 * sorted(fwd)[len(fwd) // 2]
-        out["forward_backward_ms"] = 1e3 * sorted(fwd_bwd)[len(fwd_bwd) // 2]
-    for key in ("n_intersections", "n_pairs"):
-        if key in meta:
-            out[key] = meta[key]
-    return out
+    if repeats:  # (median_high: the middle one, or the upper of the two in the middle)
+        out |= {"forward_ms": 1e3 * median_high(fwd), "forward_backward_ms": 1e3 * median_high(fwd_bwd)}
+    return out | {key: meta[key] for key in ("n_intersections", "n_pairs") if key in meta}
 
 
 def _vm_kib(field: str) -> int:
@@ -188,24 +185,21 @@ def run_benchmark(sizes: list[str], repeats: int, torch_repeats: int, skip_torch
         "settings": {"repeats": repeats, "torch_repeats": torch_repeats, "sh_degree": 3, "radius_px": [1, 8]},
         "sizes": [],
     }
-    with tempfile.TemporaryDirectory() as cache_dir:
-        env = {"NUMBA_CACHE_DIR": cache_dir}
-        cold = _in_subprocess("compile_worker()", env)
-        warm = _in_subprocess("compile_worker()", env)
+    with tempfile.TemporaryDirectory() as cache_dir:  # cold, then cached by the first in a process of its own
+        cold, warm = (_in_subprocess("compile_worker()", {"NUMBA_CACHE_DIR": cache_dir}) for _ in range(2))
     results["compile"] = {"cold_first_call_s": cold["first_call_s"], "cached_first_call_s": warm["first_call_s"]}
     for text in progress_bar(sizes, desc="bench rasterizer", unit="size"):
         width, height, n = parse_size(text)
         scene = random_scene(n, width, height, sh_degree=3, seed=0)
         row = {"width": width, "height": height, "n_gaussians": n}
-        row["cpu"] = _time_backend(scene, "cpu", repeats)
+        cpu = row["cpu"] = _time_backend(scene, "cpu", repeats)
         if not skip_torch:
             row["torch"] = _time_backend(scene, "torch", torch_repeats)
             for key in ("forward_ms", "forward_backward_ms"):
                 row[f"speedup_{key[:-3]}"] = row["torch"][key] / row["cpu"][key]
-        pairs = row["cpu"]["n_pairs"]
-        row["cpu"]["ns_per_pair_forward"] = 1e6 * row["cpu"]["forward_ms"] / max(pairs, 1)
-        row["cpu"]["ns_per_pair_forward_backward"] = 1e6 * row["cpu"]["forward_backward_ms"] / max(pairs, 1)
-        row["cpu"].update(_in_subprocess(f"memory_worker({width}, {height}, {n})"))
+        for key in ("forward", "forward_backward"):
+            cpu[f"ns_per_pair_{key}"] = 1e6 * cpu[f"{key}_ms"] / max(cpu["n_pairs"], 1)
+        cpu.update(_in_subprocess(f"memory_worker({width}, {height}, {n})"))
         results["sizes"].append(row)
     results["machine"]["load_average_at_end"] = list(os.getloadavg())
     return results

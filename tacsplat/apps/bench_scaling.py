@@ -5,6 +5,7 @@ Its options and what it does: :class:`BenchScaling`.
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,28 +39,18 @@ def run_scaling(out: Path, obj: str, resolutions, step_counts, methods, seed: in
     from tacsplat.apps.report import number
 
     width = max(map(len, methods))
+    suite = dict(objects=(obj,), settings=("minimal",), methods=tuple(methods), seeds=(seed,))
     rows = []
-    for resolution in resolutions:
-        for iterations in step_counts:
-            config = PaperBenchConfig(
-                objects=(obj,),
-                settings=("minimal",),
-                methods=tuple(methods),
-                resolution=resolution,
-                iterations=iterations,
-                seeds=(seed,),
+    for resolution, iterations in itertools.product(resolutions, step_counts):
+        config = PaperBenchConfig(**suite, resolution=resolution, iterations=iterations)
+        for row in PaperBench(out / f"{resolution}px-{iterations}steps", config).run(progress=False):
+            rows.append({"resolution": resolution, "iterations": iterations} | {k: row[k] for k in COLUMNS if k in row})
+            print(
+                f"{resolution:4d} px {iterations:5d} steps {row['method']:{width}s}: "
+                f"CD {number(row['cd'], 4, 'nan')} cd_paper {number(row['cd_paper'], 5, 'nan')} "
+                f"PSNR {number(row['psnr'], 2, 'nan')} train {row['train_seconds']:.0f} s",
+                flush=True,
             )
-            bench = PaperBench(out / f"{resolution}px-{iterations}steps", config)
-            for row in bench.run(progress=False):
-                rows.append(
-                    {"resolution": resolution, "iterations": iterations, **{k: row[k] for k in COLUMNS if k in row}}
-                )
-                print(
-                    f"{resolution:4d} px {iterations:5d} steps {row['method']:{width}s}: "
-                    f"CD {number(row['cd'], 4, 'nan')} cd_paper {number(row['cd_paper'], 5, 'nan')} "
-                    f"PSNR {number(row['psnr'], 2, 'nan')} train {row['train_seconds']:.0f} s",
-                    flush=True,
-                )
     return rows
 
 
@@ -156,8 +147,7 @@ def register(cli) -> None:
 def _run(args: BenchScaling) -> int:
     started = time.perf_counter()
     resolutions, steps = (comma_separated_ints(getattr(args, key), f"--{key}") for key in ("resolutions", "steps"))
-    methods = scaling_methods(args.methods)
-    rows = run_scaling(args.out, args.object, resolutions, steps, methods, args.seed)
+    rows = run_scaling(args.out, args.object, resolutions, steps, scaling_methods(args.methods), args.seed)
     report = write_scaling_report(args.out, rows, args.object)
     print(report.read_text())
     print(f"{len(rows)} runs in {(time.perf_counter() - started) / 60:.1f} min; report: {report}")

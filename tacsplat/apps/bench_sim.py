@@ -40,9 +40,8 @@ def bench_tactile_resolution(widths=(40, 80, 160, 320, 640), repeats: int = 3) -
 
     T = look_at([0.0, 0.0, SPHERE_RADIUS_M - PRESS_M], [0.0, 0.0, 1.0])  # gel normal +z, sphere centre in front
     T_plane = look_at([0.0, 0.0, -PRESS_M], [0.0, 0.0, 1.0])
-    sphere_in_sensor = trimesh.creation.icosphere(subdivisions=7, radius=SPHERE_RADIUS_M)
-    sphere_in_sensor.apply_translation([0.0, 0.0, SPHERE_RADIUS_M - PRESS_M])
-    sphere_world = sphere_in_sensor.copy()
+    sphere_world = trimesh.creation.icosphere(subdivisions=7, radius=SPHERE_RADIUS_M)
+    sphere_world.apply_translation([0.0, 0.0, SPHERE_RADIUS_M - PRESS_M])  # in the sensor's frame, then the world's
     sphere_world.apply_transform(T)
     plane = trimesh.creation.box([0.1, 0.1, 0.05])
     plane.apply_translation([0.0, 0.0, 0.025 - PRESS_M])
@@ -133,8 +132,7 @@ def _markdown(rows: list[dict]) -> str:
 def _plot(tactile: list[dict], physics: list[dict], path: Path) -> None:
     from tacsplat.apps.report import pyplot, save_figure
 
-    plt = pyplot()
-    fig, (ax, ax_physics) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, (ax, ax_physics) = pyplot().subplots(1, 2, figsize=(12, 4.5))
     for surface, style in (("sphere", "o-"), ("plane", "s--")):
         rows = [r for r in tactile if r["surface"] == surface]
         ms = [r["ms_per_map"] for r in rows]

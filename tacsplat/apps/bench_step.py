@@ -137,33 +137,31 @@ def instrumented(timer: PhaseTimer):
         "window_inside",
         "albedo_smoothness_loss",
     )
-    patches = [
-        (cpu_project._ProjectCPU, "forward", "projection + SH", True),
-        (cpu_project._ProjectCPU, "backward", "projection + SH", True),
-        (cpu_project._SphericalHarmonicsCPU, "forward", "projection + SH", True),
-        (cpu_project._SphericalHarmonicsCPU, "backward", "projection + SH", True),
-        (cpu_composite, "bin_gaussians", "binning + sort", False),
-        (cpu_composite._RasterizeCPU, "forward", "composite forward", True),
-        (cpu_composite._RasterizeCPU, "backward", "composite backward", True),
-        (fused_shading._ShadeCPU, "forward", "shading", True),
-        (fused_shading._ShadeCPU, "backward", "shading", True),
-        *[(losses, name, "other losses", False) for name in loss_functions if hasattr(losses, name)],
-        (Trainer, "_smoothness_weights", "other losses", False),
-        (losses.TouchNeighbours, "candidates", "neighbour search", False),
-        (torch.optim.Adam, "step", "optimiser", False),
-        (torch.optim.Optimizer, "zero_grad", "optimiser", False),
-        (DensifyStrategy, "step_pre_backward", "densification", False),
-        (DensifyStrategy, "step_post_backward", "densification", False),
-        (torch.Tensor, "backward", "autograd (other)", False),
+    both = ("forward", "backward")
+    patches = [  # (owner, its functions, phase)
+        (cpu_project._ProjectCPU, both, "projection + SH"),
+        (cpu_project._SphericalHarmonicsCPU, both, "projection + SH"),
+        (cpu_composite, ("bin_gaussians",), "binning + sort"),
+        (cpu_composite._RasterizeCPU, ("forward",), "composite forward"),
+        (cpu_composite._RasterizeCPU, ("backward",), "composite backward"),
+        (fused_shading._ShadeCPU, both, "shading"),
+        (losses, [name for name in loss_functions if hasattr(losses, name)], "other losses"),
+        (Trainer, ("_smoothness_weights",), "other losses"),
+        (losses.TouchNeighbours, ("candidates",), "neighbour search"),
+        (torch.optim.Adam, ("step",), "optimiser"),
+        (torch.optim.Optimizer, ("zero_grad",), "optimiser"),
+        (DensifyStrategy, ("step_pre_backward", "step_post_backward"), "densification"),
+        (torch.Tensor, ("backward",), "autograd (other)"),
     ]
     saved = []
     try:
-        for owner, name, phase, static in patches:
-            original = owner.__dict__[name]
-            saved.append((owner, name, original))
-            function = original.__func__ if isinstance(original, staticmethod) else original
-            wrapped = _timed(timer, phase, function)
-            setattr(owner, name, staticmethod(wrapped) if static else wrapped)
+        for owner, names, phase in patches:
+            for name in names:
+                original = owner.__dict__[name]
+                saved.append((owner, name, original))
+                static = isinstance(original, staticmethod)  # (an autograd Function's forward and backward)
+                wrapped = _timed(timer, phase, original.__func__ if static else original)
+                setattr(owner, name, staticmethod(wrapped) if static else wrapped)
         saved.append((losses, "d_ssim", d_ssim))
         losses.d_ssim = timed_d_ssim
         saved.append((Trainer, "train_step", step_function))
@@ -179,10 +177,8 @@ def summarize(steps: list[dict[str, float]], warmup: int = WARMUP_STEPS) -> dict
     import numpy as np
 
     kept = steps[warmup:] if len(steps) > warmup else steps
-    phases = {}
-    for phase in PHASES:
-        values = np.array([s.get(phase, 0.0) for s in kept]) * 1e3
-        phases[phase] = {"median_ms": float(np.median(values)), "mean_ms": float(values.mean())}
+    ms = {phase: np.array([s.get(phase, 0.0) for s in kept]) * 1e3 for phase in PHASES}
+    phases = {phase: {"median_ms": float(np.median(v)), "mean_ms": float(v.mean())} for phase, v in ms.items()}
     totals = np.array([sum(s.get(p, 0.0) for p in PHASES) for s in kept]) * 1e3
     return {
         "steps_timed": len(kept),
@@ -206,23 +202,19 @@ def profile_resolution(out: Path, resolution: int, iterations: int, method: str,
     from tacsplat.reconstruction.views import scene_at
 
     bench = PaperBench(out / f"{resolution}px", demo_config(obj, resolution, iterations))
-    scene_path = bench.capture(obj, "minimal", seed)
+    capture = bench.capture_job(obj, "minimal", seed)
+    capture()  # (once: a finished capture is kept)
     config = row_config(method, bench.config.preset, iterations)
     config.seed = seed
     config.device = "cpu"
-    timer = PhaseTimer()
-    with tempfile.TemporaryDirectory() as run_dir, instrumented(timer) as steps:
-        trainer = Trainer(scene_at(Scene.load(scene_path), config.downscale), run_dir, config)
+    with tempfile.TemporaryDirectory() as run_dir, instrumented(PhaseTimer()) as steps:
+        trainer = Trainer(scene_at(Scene.load(capture.out), config.downscale), run_dir, config)
         trainer.run(show_progress=False)
-    return {
-        "resolution": resolution,
-        "label": f"{resolution}px",
-        "iterations": iterations,
-        "train_seconds": trainer.train_seconds,
-        "torch_threads": config.torch_threads,
-        **summarize(steps),
-        "per_step": [{k: round(v * 1e3, 4) if k != "n_gaussians" else v for k, v in s.items()} for s in steps],
-    }
+    run = dict(
+        resolution=resolution, label=f"{resolution}px", iterations=iterations, train_seconds=trainer.train_seconds
+    )
+    per_step = [{k: round(v * 1e3, 4) if k != "n_gaussians" else v for k, v in s.items()} for s in steps]
+    return run | {"torch_threads": config.torch_threads, **summarize(steps), "per_step": per_step}
 
 
 def run_profile(
@@ -247,13 +239,7 @@ def run_profile(
     results = {
         "benchmark": "step",
         "machine": machine(),
-        "settings": {
-            "object": obj,
-            "method": method,
-            "iterations": iterations,
-            "seed": seed,
-            "warmup_steps": WARMUP_STEPS,
-        },
+        "settings": dict(object=obj, method=method, iterations=iterations, seed=seed, warmup_steps=WARMUP_STEPS),
         "resolutions": [],
     }
     if reference is not None:
@@ -284,17 +270,13 @@ def format_table(results: dict) -> str:
     head = f"{'phase':20s}" + "".join(f" | {r['label'] + ' median':>12s} {'mean':>7s} {'share':>6s}" for r in rows)
     lines = [head, "-" * len(head)]
     for phase in PHASES:
-        cells = []
-        for r in rows:
-            p = r["phases"][phase]
-            cells.append(
-                f" | {p['median_ms']:12.2f} {p['mean_ms']:7.2f} {100 * p['mean_ms'] / r['step_mean_ms']:5.1f}%"
-            )
-        lines.append(f"{phase:20s}" + "".join(cells))
-    lines.append("-" * len(head))
-    lines.append(
-        f"{'step':20s}" + "".join(f" | {r['step_median_ms']:12.2f} {r['step_mean_ms']:7.2f} {'':6s}" for r in rows)
-    )
+        cells = [(r["phases"][phase], r["step_mean_ms"]) for r in rows]
+        share = " | {0[median_ms]:12.2f} {0[mean_ms]:7.2f} {1:5.1f}%"
+        lines.append(f"{phase:20s}" + "".join(share.format(p, 100 * p["mean_ms"] / mean) for p, mean in cells))
+    lines += [
+        "-" * len(head),
+        f"{'step':20s}" + "".join(f" | {r['step_median_ms']:12.2f} {r['step_mean_ms']:7.2f} {'':6s}" for r in rows),
+    ]
     s, m = results["settings"], results["machine"]
     lines.append(
         "ms per step (median and mean over steps "
@@ -305,9 +287,7 @@ def format_table(results: dict) -> str:
             for r in rows
         )
     )
-    for r in rows:
-        if "ratio_to_reference" not in r:
-            continue
+    for r in filter(lambda r: "ratio_to_reference" in r, rows):
         ratio = r["ratio_to_reference"]
         each = ", ".join(f"{p['step_median']:.2f}x" for p in ratio["rounds"])
         lines.append(

@@ -41,6 +41,7 @@ import functools
 import logging
 import logging.handlers
 import multiprocessing
+import multiprocessing.queues
 import os
 import re
 import signal
@@ -213,8 +214,10 @@ def run_jobs(
     try:
         if executor == "local":
             _run_local(todo, batch)
-        elif executor == "processes":
-            _run_processes(todo, batch, workers or default_workers())
+        elif executor == "processes":  # a dead worker fails the jobs it ran; a new set of workers runs the rest
+            pending = list(todo)
+            while pending:
+                pending = _run_pool(pending, batch, workers or default_workers())
         else:
             _run_ray(todo, batch, retries)
     finally:
@@ -233,8 +236,7 @@ def check_order(jobs: Sequence[Job]) -> None:
     for job in jobs:
         if job.name in seen:
             raise ValueError(f"two jobs are named {job.name!r}")
-        missing = [n for n in job.needs if n not in seen]
-        if missing:
+        if missing := [n for n in job.needs if n not in seen]:
             raise ValueError(f"job {job.name!r} needs {missing}, which is not listed before it")
         seen.add(job.name)
 
@@ -264,8 +266,7 @@ class _Batch:
     def finished(self, job: Job, summary: dict) -> None:
         self.running.discard(job.name)
         self.outcome.done.append(job.name)
-        line = self.on_done(job, summary) if self.on_done else None
-        if line:
+        if line := (self.on_done(job, summary) if self.on_done else None):
             self.bar.write(line)
         self.bar.update(1)
         self.show()
@@ -278,6 +279,13 @@ class _Batch:
         self._write_failures()
         self.bar.update(1)
         self.show()
+
+    def ended(self, job: Job, status: str, value, attempts: int = 1) -> None:
+        """An attempt's result: ``("done", summary)`` or ``("failed", error)``."""
+        if status == "done":
+            self.finished(job, value)
+        else:
+            self.failed(job, value, attempts)
 
     def blocked_by(self, job: Job) -> str | None:
         return next((n for n in job.needs if n in self.outcome.failed), None)
@@ -310,19 +318,22 @@ def _describe(exc: BaseException) -> str:
 def _run_local(todo: list[Job], batch: _Batch) -> None:
     """One job after another in this process; KeyboardInterrupt stops at once (finished jobs stay)."""
     for job in todo:
-        need = batch.blocked_by(job)
-        if need:
+        if need := batch.blocked_by(job):
             batch.not_run(job, need)
             continue
         batch.started([job.name])
-        try:
-            summary = job()
-        except Exception as exc:  # noqa: BLE001 - recorded in failures.csv; the jobs that do not need it go on
-            if not isinstance(exc, TacsplatError):
-                log.debug("%s raised", job.name, exc_info=True)
-            batch.failed(job, _describe(exc), attempts=1)
-        else:
-            batch.finished(job, summary)
+        batch.ended(job, *_call(job))
+
+
+def _call(job: Job) -> tuple[str, object]:
+    """``("done", summary)`` or ``("failed", error)`` of one attempt of ``job`` (an error as text: not every
+    exception survives pickling); a failure is recorded in failures.csv and the jobs that do not need it go on."""
+    try:
+        return "done", job()
+    except Exception as exc:  # noqa: BLE001 - the batch records it
+        if not isinstance(exc, TacsplatError):
+            log.debug("%s raised", job.name, exc_info=True)
+        return "failed", _describe(exc)
 
 
 # ---------------------------------------------------------------------- processes
@@ -347,25 +358,18 @@ def _on_interrupt(signum, frame) -> None:
         os._exit(1)
 
 
-class _SentAtOnce(logging.handlers.QueueHandler):
-    """A worker's log handler: each record is written into the batch's log pipe (a SimpleQueue) by the logging
-    call itself, not later by a multiprocessing.Queue's feeder thread, so every record a job logs is in the pipe
-    before the job's result, and the batch's process, stopping its listener after the last result, reads them all
-    (a feeder thread slowed by a loaded machine lost them)."""
+class _LogPipe(multiprocessing.queues.SimpleQueue):
+    """The log pipe from the workers to the batch's process, for the stock QueueHandler and QueueListener: a
+    worker's record is written into it by the logging call itself (``put_nowait`` is ``put``), not later by a
+    multiprocessing.Queue's feeder thread, so every record a job logs is in the pipe before the job's result, and
+    the batch's process, stopping its listener after the last result, reads them all, in the order written (a
+    feeder thread slowed by a loaded machine lost them)."""
 
-    def enqueue(self, record: logging.LogRecord) -> None:
-        self.queue.put(record)
+    def put_nowait(self, item) -> None:
+        self.put(item)
 
-
-class _LogListener(logging.handlers.QueueListener):
-    """The batch's process's side of the log pipe: the workers' records to this process's handlers, in the order
-    written, up to the sentinel ``stop`` writes after them."""
-
-    def dequeue(self, block: bool) -> logging.LogRecord | None:
-        return self.queue.get()
-
-    def enqueue_sentinel(self) -> None:
-        self.queue.put(self._sentinel)
+    def get(self, block: bool = True):
+        return super().get()
 
 
 def _start_worker(log_queue, level: int, batch_pid: int) -> None:
@@ -376,7 +380,7 @@ def _start_worker(log_queue, level: int, batch_pid: int) -> None:
     global _batch_pid
     _batch_pid = batch_pid
     root = logging.getLogger()
-    root.handlers[:] = [_SentAtOnce(log_queue)]
+    root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
     root.setLevel(level)
     signal.signal(signal.SIGINT, _on_interrupt)
     if hasattr(os, "setpgid"):  # (POSIX)
@@ -398,8 +402,7 @@ def _warm_up(jobs: list[Job]) -> None:
 
 
 def _run_in_worker(job: Job) -> tuple[str, object]:
-    """The body of a job in a worker, with twice its CPUs as numba threads: ``("done", summary)`` or
-    ``("failed", error)`` (an error as text: not every exception survives pickling).
+    """The body of a job in a worker, with twice its CPUs as numba threads: :func:`_call`'s result.
 
     Twice: a job that runs alone at the end of a batch then uses the cores the others left, and side by side
     the threads cost nothing measurable (two demo trainings on 2 cores: 43.2 s at 2 threads each, 42.5 s at 1).
@@ -408,30 +411,18 @@ def _run_in_worker(job: Job) -> tuple[str, object]:
     _limit_threads(2 * job.cpus)
     _job_running = True
     try:
-        return "done", job()
-    except Exception as exc:  # noqa: BLE001 - recorded in failures.csv by the batch's process
-        if not isinstance(exc, TacsplatError):
-            log.debug("%s raised", job.name, exc_info=True)
-        return "failed", _describe(exc)
+        return _call(job)
     finally:
         _job_running = False
         if _orphaned():  # the job has stopped (a training saved its checkpoint); nobody waits for its result
             os._exit(1)
 
 
-def _run_processes(todo: list[Job], batch: _Batch, workers: int) -> None:
-    """Jobs side by side in worker processes (see the module docstring); a dead worker fails the jobs it
-    was running, and a new set of workers runs the rest."""
-    pending = list(todo)
-    while pending:
-        pending = _run_pool(pending, batch, workers)
-
-
 def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
     """Run ``pending`` on one pool of workers; returns the jobs not started when a worker died (else [])."""
     context = multiprocessing.get_context("spawn")  # never fork a process that holds OpenMP thread pools
-    log_queue = context.SimpleQueue()
-    listener = _LogListener(log_queue, *logging.getLogger().handlers, respect_handler_level=True)
+    log_queue = _LogPipe(ctx=context)
+    listener = logging.handlers.QueueListener(log_queue, *logging.getLogger().handlers, respect_handler_level=True)
     listener.start()
     running: dict[futures.Future, Job] = {}
     size = min(workers, len(pending))
@@ -446,8 +437,7 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
         while pending or running:
             starting: list[Job] = []
             for job in list(pending):  # in order: a job waits for its needs, and for CPUs behind earlier jobs
-                need = batch.blocked_by(job)
-                if need:
+                if need := batch.blocked_by(job):
                     pending.remove(job)
                     batch.not_run(job, need)
                     continue
@@ -476,16 +466,12 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
             for future in done:
                 job = running.pop(future)
                 try:
-                    status, value = future.result()
+                    batch.ended(job, *future.result())
                 except futures.process.BrokenProcessPool:
                     for lost in (job, *running.values()):
                         batch.failed(lost, "its worker process died (out of memory, or killed)", attempts=1)
                     running.clear()
                     return pending
-                if status == "done":
-                    batch.finished(job, value)
-                else:
-                    batch.failed(job, value, attempts=1)
     except KeyboardInterrupt:
         if running:
             log.warning("interrupted: stopping %d running jobs", len(running))
@@ -510,8 +496,7 @@ def _execute(job: Job, starts, *needs: tuple) -> tuple[str, str, object]:
 
     started = starts.started.remote(job.name)
     try:
-        failed = next((name for status, name, _ in needs if status != "done"), None)
-        if failed:
+        if failed := next((name for status, name, _ in needs if status != "done"), None):
             return "blocked", job.name, failed
         _limit_threads(job.cpus)
         try:
@@ -563,13 +548,16 @@ def connect(address: str | None) -> bool:
     option = "--ray-address" if address else "RAY_ADDRESS"
     address = address or os.environ.get("RAY_ADDRESS")
     if address and address != "local":
-        why = _unreachable(check_ray_address(address, option))
-        if why:  # (Ray itself would retry for minutes)
+        host_port = check_ray_address(address, option)
+        try:  # (Ray itself would retry for minutes)
+            if host_port is not None:  # (auto names none)
+                socket.create_connection(host_port, timeout=PROBE_S).close()
+        except OSError as exc:
             raise ConfigError(
                 option,
-                f"nothing answers at {address} ({why}): give the host:port of the cluster's "
-                "head (`ray start --head --port=PORT` prints it)",
-            )
+                f"nothing answers at {address} ({exc.strerror or type(exc).__name__}): give the host:port of the "
+                "cluster's head (`ray start --head --port=PORT` prints it)",
+            ) from None
         log.info("connecting to the Ray cluster at %s", address)
         try:
             ray.init(address=address, log_to_driver=True)
@@ -621,17 +609,6 @@ def check_ray_address(address: str, option: str, error: type[ConfigError] = Conf
         f"expected HOST:PORT (of the cluster's head: `ray start --head --port=PORT` prints it), "
         f"ray://HOST:PORT or auto, got {address!r}: {why}",
     )
-
-
-def _unreachable(host_port: tuple[str, int] | None) -> str | None:
-    """Why nothing answers at ``(host, port)``; None when something does, or for no address (auto)."""
-    if host_port is None:
-        return None
-    try:
-        socket.create_connection(host_port, timeout=PROBE_S).close()
-    except OSError as exc:
-        return exc.strerror or type(exc).__name__
-    return None
 
 
 def _run_ray(todo: list[Job], batch: _Batch, retries: int) -> None:
@@ -687,9 +664,7 @@ def _collect(job: Job, ref, batch: _Batch, attempts: int) -> None:
         cause = exc.cause if isinstance(exc, ray.exceptions.RayTaskError) else exc
         batch.failed(job, _describe(cause).strip().splitlines()[0], attempts)
         return
-    if status == "done":
-        batch.finished(job, value)
-    elif status == "blocked":
+    if status == "blocked":
         batch.not_run(job, value)
     else:
-        batch.failed(job, value, attempts)
+        batch.ended(job, status, value, attempts)

@@ -38,6 +38,7 @@ Output::
 from __future__ import annotations
 
 import functools
+import itertools
 import json
 import logging
 import time
@@ -80,10 +81,6 @@ def paper_views(train: list, count: int) -> list:
     if count <= 0 or count >= len(train):
         return list(train)
     return list(train[:: len(train) // count][:count])
-
-
-def is_scene_dir(path: Path) -> bool:
-    return (path / "scene.json").is_file() and (path / "transforms.json").is_file()
 
 
 @functools.cache
@@ -147,7 +144,8 @@ class PaperBenchConfig:
         return cls(objects=QUICK_OBJECTS, settings=("minimal",), resolution=128, iterations=800, test_views=8)
 
     def validate(self) -> None:
-        from tacsplat.sim.objects import OBJECT_NAMES
+        from tacsplat.reconstruction.config import PRESETS
+        from tacsplat.sim.objects import OBJECT_NAMES, texture_problem
 
         if self.dataset is not None:
             self._validate_dataset()
@@ -158,9 +156,8 @@ class PaperBenchConfig:
             raise ConfigError(
                 "objects", f"unknown object(s) {', '.join(unknown)}; choose from {where}{', '.join(known)}{files}"
             )
-        for s in self.settings:
-            if s not in SETTINGS:
-                raise ConfigError("settings", f"unknown setting {s!r}; choose from {', '.join(SETTINGS)}")
+        if unknown := [s for s in self.settings if s not in SETTINGS]:
+            raise ConfigError("settings", f"unknown setting {unknown[0]!r}; choose from {', '.join(SETTINGS)}")
         for name in self.methods:
             bench_row(name, "methods")
         if self.full_views < 32 and self.dataset is None:
@@ -172,14 +169,10 @@ class PaperBenchConfig:
                 raise ConfigError(key, f"must be >= 1, got {getattr(self, key)}")
         if not self.seeds:
             raise ConfigError("seeds", "need at least one seed")
-        from tacsplat.reconstruction.config import PRESETS
-
         if self.preset not in PRESETS:
             raise ConfigError("preset", f"unknown preset {self.preset!r}; choose from {', '.join(PRESETS)}")
         if self.touch_model not in ("gel", "paper"):
             raise ConfigError("touch_model", f"must be gel or paper, got {self.touch_model!r}")
-        from tacsplat.sim.objects import texture_problem
-
         if problem := texture_problem(self.texture):
             raise ConfigError("texture", problem)
         check_slide(self.slide_m, "slide_m")
@@ -199,8 +192,8 @@ class PaperBenchConfig:
 
     def dataset_objects(self) -> list[str]:
         """The names of the scene directories in :attr:`dataset`, sorted."""
-        folder = Path(self.dataset)
-        return sorted(p.name for p in folder.iterdir() if p.is_dir() and is_scene_dir(p)) if folder.is_dir() else []
+        scenes = Path(self.dataset).glob("*/transforms.json")  # (none in a folder that does not exist)
+        return sorted(p.parent.name for p in scenes if p.with_name("scene.json").is_file())
 
     @property
     def scene_tag(self) -> str:
@@ -269,20 +262,10 @@ class PaperBench:
 
     def runs(self) -> list[Run]:
         """Every run, setting by setting (the minimal-views table fills first), then object, seed, method."""
-        c = self.config
-        return [
-            Run(
-                obj,
-                setting,
-                method,
-                seed,
-                self.scene_dir(obj, setting, seed),
-                self.out / "runs" / obj / setting / f"{method}-s{seed}{c.tag}",
-            )
-            for setting in c.settings
-            for obj in c.object_list()
-            for seed in c.seeds
-            for method in c.methods
+        c, runs = self.config, self.out / "runs"
+        return [  # (object, setting, method, seed)
+            Run(o, s, m, seed, self.scene_dir(o, s, seed), runs / o / s / f"{m}-s{seed}{c.tag}")
+            for s, o, seed, m in itertools.product(c.settings, c.object_list(), c.seeds, c.methods)
         ]
 
     # ------------------------------------------------------------------ capture and training
@@ -311,12 +294,6 @@ class PaperBench:
             **{k: getattr(c, k) for k in ("test_views", "grasps", "resolution", "touch_model", "texture", "slide_m")},
         )
 
-    def capture(self, obj: str, setting: str, seed: int) -> Path:
-        """The capture of one object and setting, done here and now if it is not done yet; returns its folder."""
-        job = self.capture_job(obj, setting, seed)
-        job()
-        return job.out
-
     def reconstruct_job(self, run: Run, needs: tuple[str, ...] = ()) -> ReconstructJob:
         """One reconstruction (continued from its checkpoint if one exists)."""
         method, overrides = bench_row(run.method)
@@ -341,9 +318,7 @@ class PaperBench:
         that the longest training is the first to start (on the processes executor, in the worker its warm-up
         made ready)."""
         runs = self.runs()
-        group: dict[tuple, int] = {}  # capture -> its place among the captures
-        for r in runs:
-            group.setdefault((r.object, r.setting, r.seed), len(group))
+        group = {key: i for i, key in enumerate(dict.fromkeys((r.object, r.setting, r.seed) for r in runs))}
         runs.sort(key=lambda r: (group[r.object, r.setting, r.seed], -step_work(r.method)))  # (stable)
         jobs, captures = [], {}
         for run in runs:
@@ -365,11 +340,8 @@ class PaperBench:
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
         how = side_by_side(executor["executor"], executor.get("workers"))
-        wall_note = (
-            ""
-            if how is None
-            else f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)"
-        )
+        wall_note = f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)"
+        wall_note = wall_note if how else ""
         runs = self.runs()
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
@@ -420,20 +392,12 @@ class PaperBench:
         from tacsplat.apps.report import NUMBER_COLUMNS
 
         rows = []
-        for run in self.runs():
-            if not run.done:
-                continue
+        for run in filter(lambda r: r.done, self.runs()):
             m = json.loads((run.out / "metrics.json").read_text())
-            rows.append(
-                {
-                    "object": run.object,
-                    "setting": run.setting,
-                    "method": run.method,
-                    "seed": run.seed,
-                    **{k: _number(m.get(k)) for k in NUMBER_COLUMNS},
-                    **({"cd_paper_units": _in_dataset_units(m, run.scene)} if self.config.dataset else {}),
-                }
-            )
+            rows.append({"object": run.object, "setting": run.setting, "method": run.method, "seed": run.seed})
+            rows[-1] |= {k: _number(m.get(k)) for k in NUMBER_COLUMNS}
+            if self.config.dataset:
+                rows[-1]["cd_paper_units"] = _in_dataset_units(m, run.scene)
         return rows
 
     def prepare_pictures(self, run: Run) -> None:
@@ -546,8 +510,7 @@ def coverage_sentence(rows: list[dict], setting: str) -> str:
     from tacsplat.apps.report import metric_table
 
     objects, methods, unseen = metric_table(rows, "unseen_fraction", setting)
-    _, _, seen_cd = metric_table(rows, "cd_seen", setting)
-    _, _, unseen_cd = metric_table(rows, "cd_unseen", setting)
+    seen_cd, unseen_cd = (metric_table(rows, metric, setting)[2] for metric in ("cd_seen", "cd_unseen"))
     fractions = np.fmax.reduce(unseen, axis=0) if len(methods) else np.array([np.nan])  # the same for every method
     if not np.isfinite(fractions[-1]):
         return ""
@@ -688,8 +651,7 @@ def render_first_test_view(
         rendered[run.out] = _render_view(loaded, frame, gt_rgb)
         if run.scene not in rendered:
             rendered[run.scene] = _first_view_truth(scene, frame, gt_rgb, loaded.config.train_views)
-    panels = {run.method: rendered[run.out] for run in runs}
-    return panels, gt_rgb, *rendered[runs[0].scene]
+    return {run.method: rendered[run.out] for run in runs}, gt_rgb, *rendered[runs[0].scene]
 
 
 def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -762,16 +724,17 @@ def write_paper_report(
     finished runs were trained with other settings (:meth:`PaperBench.stale_runs`)."""
     from tacsplat.apps.report import (
         METRICS,
+        RESULT_COLUMNS,
         markdown_table,
         plot_cd_bars,
         plot_error_vs_time,
         render_grid,
-        write_results_csv,
+        write_csv,
     )
     from tacsplat.reconstruction.run_dir import read_progress
 
     out = Path(out)
-    write_results_csv(rows, out / "results.csv")
+    write_csv(rows, out / "results.csv", RESULT_COLUMNS)
     settings = [s for s in SETTINGS if any(r["setting"] == s for r in rows)]
     if config.dataset is None:
         what, size, test = "the twin's glossy objects", f"{config.resolution}x{config.resolution} px", config.test_views
@@ -819,34 +782,23 @@ def write_paper_report(
             lines += [where_we_stand(rows, config), ""]
         if not figures:
             continue
-        bars = plot_cd_bars(rows, setting, out / f"cd_{setting}.png")
-        lines += [f"![CD per object, {setting}]({bars.name})", ""]
+        lines += [f"![CD per object, {setting}]({plot_cd_bars(rows, setting, out / f'cd_{setting}.png').name})", ""]
+        shown = [r for r in runs if r.setting == setting and r.seed == config.seeds[0] and r.done]  # (first seed)
         curves: dict[str, dict] = {}
-        for run in runs:
-            progress = run.out / "progress.csv"
-            if run.setting == setting and run.seed == config.seeds[0] and run.done and progress.is_file():
-                curves.setdefault(run.object, {})[run.method] = read_progress(progress)
+        for run in shown:
+            if (run.out / "progress.csv").is_file():
+                curves.setdefault(run.object, {})[run.method] = read_progress(run.out / "progress.csv")
         if curves:
-            png = plot_error_vs_time(
-                curves, out / f"error_vs_time_{setting}.png", f"held-out error vs run time ({setting})"
-            )
+            title = f"held-out error vs run time ({setting})"
+            png = plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", title)
             lines += [f"![error vs run time, {setting}]({png.name})", ""]
-        for obj in dict.fromkeys(r.object for r in runs if r.setting == setting):
-            finished = [
-                r for r in runs if r.object == obj and r.setting == setting and r.seed == config.seeds[0] and r.done
-            ]
-            if finished:
-                panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(finished, first_views)
-                png = render_grid(
-                    panels,
-                    gt_rgb,
-                    gt_depth,
-                    out / f"renders_{obj}_{setting}.png",
-                    f"{obj}, {setting}: first test view",
-                    gt_normal=gt_normal,
-                    gt_seen=gt_seen,
-                )
-                lines += [f"![renders {obj} {setting}]({png.name})", ""]
+        for obj in dict.fromkeys(r.object for r in shown):
+            panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(
+                [r for r in shown if r.object == obj], first_views
+            )
+            title = f"{obj}, {setting}: first test view"
+            png = render_grid(panels, gt_rgb, gt_depth, out / f"renders_{obj}_{setting}.png", title, gt_normal, gt_seen)
+            lines += [f"![renders {obj} {setting}]({png.name})", ""]
     (out / "report.md").write_text("\n".join(lines))
 
 

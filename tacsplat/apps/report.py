@@ -65,11 +65,6 @@ def write_csv(rows: list[dict], path: str | Path, columns) -> Path:
     return path
 
 
-def write_results_csv(rows: list[dict], path: str | Path) -> Path:
-    """One line per run with the columns of :data:`RESULT_COLUMNS` (missing values empty)."""
-    return write_csv(rows, path, RESULT_COLUMNS)
-
-
 def md_table(header, rows, align: str = "") -> list[str]:
     """The lines of a Markdown table: ``header`` and ``rows`` of cells; ``align`` a letter per column, ``l``
     (left, ``---``) or ``r`` (right, ``---:``), by default the first column left and the others right."""
@@ -193,12 +188,8 @@ def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
     width = 0.8 / max(len(methods), 1)
     x = np.arange(len(objects) + 1)
     for i, method in enumerate(methods):
-        ax.bar(
-            x + (i - (len(methods) - 1) / 2) * width,
-            np.nan_to_num(values[i], nan=0.0),
-            width,
-            label=method_label(method),
-        )
+        offset = (i - (len(methods) - 1) / 2) * width
+        ax.bar(x + offset, np.nan_to_num(values[i], nan=0.0), width, label=method_label(method))
     ax.set_xticks(x, objects + ["Avg."])
     ax.set_ylabel("Chamfer distance [x GT radius]")
     if np.nanmin(np.where(values > 0, values, np.nan), initial=np.inf) < np.inf:
@@ -287,13 +278,10 @@ def render_grid(
                 np.ma.masked_array(depth - gt_depth, ~both), cmap=error_cmap, vmin=-error_range, vmax=error_range
             )
         axes[0, j].set_title(textwrap.fill(label, 28), fontsize=10)  # long method labels on two lines
-        for ax in axes[:, j]:
-            ax.set_xticks([])
-            ax.set_yticks([])
-    axes[0, 0].set_ylabel("RGB")
-    axes[1, 0].set_ylabel("depth")
-    if with_normals:
-        axes[2, 0].set_ylabel("normals (camera frame)")
+    for ax in axes.flat:
+        ax.set(xticks=[], yticks=[])
+    for ax, label in zip(axes[:, 0], ["RGB", "depth", *(["normals (camera frame)"] if with_normals else [])]):
+        ax.set_ylabel(label)
     fig.colorbar(image, ax=list(axes[1]), fraction=0.02, label="depth [m]")
     if with_error:
         axes[-1, 0].set_ylabel("seen by training views\n(magenta: not) | depth error")

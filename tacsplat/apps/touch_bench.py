@@ -183,11 +183,9 @@ def summarise(rows: list[dict]) -> list[dict]:
     summary = []
     for count in sorted({r["requested_touches"] for r in rows}):
         group = [r for r in rows if r["requested_touches"] == count]
-        line = {
-            "requested_touches": count,
-            "mean_touches": float(np.mean([r["touches"] for r in group])),
-            "runs": len(group),
-        }
+        line = dict(
+            requested_touches=count, mean_touches=float(np.mean([r["touches"] for r in group])), runs=len(group)
+        )
         for key in ("cd", "psnr"):
             values = np.array([r[key] for r in group if r[key] is not None], dtype=float)
             line[f"{key}_mean"] = float(values.mean()) if len(values) else float("nan")

@@ -43,7 +43,6 @@ from tacsplat.interrupts import ctrl_c_interrupts
 
 log = logging.getLogger(__name__)
 
-KINDS = ("scene", "run", "report")
 RENDER_WIDTH = 320  # px of a render of the browser's viewpoint (the CPU rasterizer answers in about a second)
 SIDE_BY_SIDE_GAP = 0.25  # of the larger object's radius, between the two runs of a report
 CAMERA_DISTANCE = 2.5  # initial viewpoint: this many radii from the centre of what is shown
@@ -85,8 +84,7 @@ def _run(args: ViewCommand) -> int:
         if not export.parent.is_dir():
             raise ConfigError("--export", f"{export.parent} is not a folder")
         check_writable(export.parent)  # a read-only or full folder is refused before the view is built
-    path = args.path
-    content = load_content(path)
+    content = load_content(args.path)
     logging.getLogger("websockets").setLevel(logging.WARNING)
     with _viser_quiet():  # viser prints its own banner; ours follows
         server = viser.ViserServer(
@@ -95,12 +93,12 @@ def _run(args: ViewCommand) -> int:
     try:
         build_view(server, content)
         if export is not None:
-            size = write_export(server, export)
-            print(f"wrote {export} ({size / 1e6:.1f} MB): open it in a browser, no Python needed")
+            size = write_export(server, export) / 1e6
+            print(f"wrote {export} ({size:.1f} MB): open it in a browser, no Python needed")
         else:
             with ctrl_c_interrupts():  # (also where it was started with Ctrl-C ignored)
                 print(
-                    f"tacsplat view: {content.kind} {path} at {server_url(args.host, server.get_port())} "
+                    f"tacsplat view: {content.kind} {args.path} at {server_url(args.host, server.get_port())} "
                     "(Ctrl-C to stop)",
                     flush=True,
                 )
@@ -125,8 +123,7 @@ def server_url(host: str, port: int) -> str:
     """The URL a browser opens (this machine's name when serving every interface)."""
     import socket
 
-    shown = socket.gethostname() if host in ("0.0.0.0", "::", "") else host
-    return f"http://{shown}:{port}"
+    return f"http://{socket.gethostname() if host in ('0.0.0.0', '::', '') else host}:{port}"
 
 
 # Opened from a file (file://), Chromium gives the page an opaque origin and refuses the workers viser's client
@@ -162,9 +159,7 @@ if (location.protocol === "file:") (function () {
 def write_export(server, path: Path) -> int:
     """Write the server's scene as a self-contained HTML page (replacing ``path`` atomically; a full or read-only
     disk is a StorageError naming it); its size in bytes."""
-    page = server.get_scene_serializer().as_html()
-    head = page.index("<head>") + len("<head>")
-    html = (page[:head] + FILE_PAGE_WORKERS + page[head:]).encode()
+    html = server.get_scene_serializer().as_html().replace("<head>", "<head>" + FILE_PAGE_WORKERS, 1).encode()
     atomic_write(path, html)
     return len(html)
 
@@ -187,7 +182,7 @@ class RunData:
 
 @dataclass
 class Content:
-    kind: str  # one of KINDS
+    kind: str  # "scene", "run" or "report"
     path: Path
     scene: object | None = None  # kind "scene"
     run: RunData | None = None  # kind "run"
@@ -195,49 +190,37 @@ class Content:
     pair: tuple[RunData, RunData | None] | None = None  # kind "report": the two runs shown first
 
 
-def path_kind(path: Path) -> str:
-    """Which of :data:`KINDS` ``path`` is; a ConfigError naming it if none."""
+def load_content(path: Path) -> Content:
+    """Read what ``path`` holds, a scene, a run or a report (every file the first view shows), raising the first
+    problem (a ConfigError naming ``path`` when it is none of them)."""
+    from tacsplat.datasets import Scene
     from tacsplat.reconstruction.run_dir import is_run_folder
 
     if not path.exists():
         raise ConfigError("PATH", f"{path} does not exist")
-    if path.is_dir():
-        if (path / "transforms.json").is_file():
-            return "scene"
-        if (path / "splat.ply").is_file() or is_run_folder(path):
-            return "run"
-        if (path / "runs").is_dir():
-            return "report"
-    raise ConfigError(
-        "PATH",
-        f"{path} is neither a scene directory (with transforms.json), a run directory (with "
-        "splat.ply, from tacsplat reconstruct) nor a benchmark report folder (with runs/, from tacsplat "
-        "bench paper)",
-    )
-
-
-def load_content(path: Path) -> Content:
-    """Read what ``path`` holds (every file the first view shows), raising the first problem."""
-    from tacsplat.datasets import Scene
-
-    kind = path_kind(path)
-    if kind == "scene":
-        return Content(kind, path, scene=Scene.load(path))
-    if kind == "run":
-        return Content(kind, path, run=read_run(path, path.name))
-    runs = report_runs(path)
-    if not runs:
+    if (path / "transforms.json").is_file():  # (False for a file: it holds nothing)
+        return Content("scene", path, scene=Scene.load(path))
+    if (path / "splat.ply").is_file() or is_run_folder(path):
+        return Content("run", path, run=read_run(path, path.name))
+    if not (path / "runs").is_dir():
+        raise ConfigError(
+            "PATH",
+            f"{path} is neither a scene directory (with transforms.json), a run directory (with "
+            "splat.ply, from tacsplat reconstruct) nor a benchmark report folder (with runs/, from tacsplat "
+            "bench paper)",
+        )
+    if not (runs := report_runs(path)):
         raise ConfigError("PATH", f"{path} has no finished run (no runs/<object>/<setting>/<method>/splat.ply)")
     left, right = default_pair(runs)
     pair = (read_run(runs[left], left, path), read_run(runs[right], right, path) if right else None)
-    return Content(kind, path, report_runs=runs, pair=pair)
+    return Content("report", path, report_runs=runs, pair=pair)
 
 
 def read_run(path: Path, label: str, report: Path | None = None) -> RunData:
     """A run directory's splat, metrics and scene (searched for in ``report`` too)."""
     from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.ply import load_ply
-    from tacsplat.reconstruction.run_dir import load_run, read_json
+    from tacsplat.reconstruction.run_dir import load_run, read_checkpoint, read_json
 
     metrics = read_json(path / "metrics.json") if (path / "metrics.json").is_file() else {}
     if (path / "splat.ply").is_file():
@@ -245,16 +228,9 @@ def read_run(path: Path, label: str, report: Path | None = None) -> RunData:
     else:  # a run stopped before its splat.ply: its last checkpoint, coloured as its splat.ply will be
         loaded = load_run(path)
         gaussians, recorded_scene = bake_appearance(loaded.gaussians, loaded.look), loaded.scene_path
-    if recorded_scene is None:
-        recorded_scene = _checkpoint_scene(path)
+    if recorded_scene is None and (path / "checkpoint.pt").is_file():
+        recorded_scene = read_checkpoint(path / "checkpoint.pt")["scene_path"]
     return RunData(path, label, gaussians, metrics, find_scene(recorded_scene, path, report), kept_checkpoints(path))
-
-
-def _checkpoint_scene(run: Path):
-    from tacsplat.reconstruction.run_dir import read_checkpoint
-
-    checkpoint = run / "checkpoint.pt"
-    return read_checkpoint(checkpoint)["scene_path"] if checkpoint.is_file() else None
 
 
 def find_scene(recorded, run: Path, report: Path | None = None):
@@ -346,9 +322,17 @@ def _look_from(server, centre: np.ndarray, extent: float, scene=None) -> None:
     server.initial_camera.far = 1000.0 * extent
 
 
-def _toggles(server, view: View, shown: dict[str, bool]) -> None:
-    """A checkbox per group of the scene's nodes (cameras, touches, mesh, sphere)."""
-    nodes = view.scene_nodes
+def _add_scene(server, view: View, name: str, scene, hidden: tuple[str, ...] = ()) -> None:
+    """``scene``'s nodes under ``name``, its summary, and a checkbox per group of its nodes (cameras, touches,
+    mesh, sphere); the groups in ``hidden`` are hidden at first."""
+    from tacsplat.apps.viewer_scene import add_scene
+
+    nodes = view.scene_nodes = add_scene(server.scene, name, scene, "mesh" not in hidden, "sphere" not in hidden)
+    train, test = len(scene.split("train")), len(scene.split("test"))
+    server.gui.add_markdown(
+        f"**{scene.meta.object}** ({scene.meta.source}): {train} train and {test} test views, "
+        f"{len(scene.touches)} touches in {scene.num_grasps} grasps"
+    )
     labels = {
         "cameras": "camera frusta",
         "touches": "touches (by grasp) and gel frames",
@@ -356,31 +340,23 @@ def _toggles(server, view: View, shown: dict[str, bool]) -> None:
         "sphere": f"bounding sphere ({nodes.sphere.source})",
     }
     for group, members in nodes.groups.items():
-        if not members:
-            continue
-        box = view.controls[labels[group]] = server.gui.add_checkbox(labels[group], shown.get(group, True))
-
-        @box.on_update
-        def _(event, members=members) -> None:
-            for node in members:
-                node.visible = event.target.value
+        if members:
+            _visibility_checkbox(server, view, labels[group], members, group not in hidden)
 
 
-def _scene_summary(scene) -> str:
-    train, test = len(scene.split("train")), len(scene.split("test"))
-    return (
-        f"**{scene.meta.object}** ({scene.meta.source}): {train} train and {test} test views, "
-        f"{len(scene.touches)} touches in {scene.num_grasps} grasps"
-    )
+def _visibility_checkbox(server, view: View, label: str, nodes: list, initial: bool, hint: str | None = None) -> None:
+    """A checkbox ``label`` that shows or hides ``nodes``."""
+    box = view.controls[label] = server.gui.add_checkbox(label, initial, hint=hint)
+
+    @box.on_update
+    def _(event) -> None:
+        for node in nodes:
+            node.visible = event.target.value
 
 
 def _scene_view(server, content: Content, view: View) -> None:
-    from tacsplat.apps.viewer_scene import add_scene
-
-    view.scene_nodes = add_scene(server.scene, "/scene", content.scene)
+    _add_scene(server, view, "/scene", content.scene)
     _look_from(server, view.scene_nodes.sphere.centre, view.scene_nodes.sphere.radius, content.scene)
-    server.gui.add_markdown(_scene_summary(content.scene))
-    _toggles(server, view, {})
 
 
 class SplatSlot:
@@ -473,16 +449,9 @@ def _exported_mesh(server, view: View, run: RunData) -> None:
         return
     import trimesh
 
-    node = view.mesh_node = server.scene.add_mesh_trimesh(
-        "/run/mesh", trimesh.load(str(path), force="mesh"), visible=False
-    )
-    toggle = view.controls["exported mesh"] = server.gui.add_checkbox(
-        "exported mesh", initial_value=False, hint="RUN/mesh.ply, written by tacsplat export mesh"
-    )
-
-    @toggle.on_update
-    def _(event) -> None:
-        node.visible = event.target.value
+    view.mesh_node = server.scene.add_mesh_trimesh("/run/mesh", trimesh.load(str(path), force="mesh"), visible=False)
+    hint = "RUN/mesh.ply, written by tacsplat export mesh"
+    _visibility_checkbox(server, view, "exported mesh", [view.mesh_node], False, hint)
 
 
 def _checkpoint_slider(server, view: View, run: RunData) -> None:
@@ -516,20 +485,18 @@ def _checkpoint_slider(server, view: View, run: RunData) -> None:
 
 def metrics_markdown(columns: dict[str, dict]) -> str:
     """A markdown table of the scalar entries of one or more ``metrics.json`` (one column each)."""
-    keys = list(
-        dict.fromkeys(
-            k for m in columns.values() for k, v in m.items() if isinstance(v, (int, float, str)) and k != "scene"
-        )
-    )
+    from tacsplat.apps.report import md_table
+
+    scalar = (int, float, str)
+    keys = dict.fromkeys(k for m in columns.values() for k, v in m.items() if isinstance(v, scalar) and k != "scene")
     if not keys:
         return "no metrics.json"
 
     def cell(value) -> str:
         return f"{value:.4g}" if isinstance(value, float) else "" if value is None else str(value)
 
-    lines = ["| | " + " | ".join(columns) + " |", "|---|" + "---|" * len(columns)]
-    lines += [f"| {k} | " + " | ".join(cell(m.get(k)) for m in columns.values()) + " |" for k in keys]
-    return "\n".join(lines)
+    rows = [[k, *(cell(m.get(k)) for m in columns.values())] for k in keys]
+    return "\n".join(md_table(["", *columns], rows, "l" * (len(columns) + 1)))
 
 
 def render_rows(
@@ -581,8 +548,6 @@ def _render_button(server, view: View) -> None:
 
 
 def _run_view(server, content: Content, view: View) -> None:
-    from tacsplat.apps.viewer_scene import add_scene
-
     run = content.run
     centre, radius = object_sphere(run)
     view.slots.append(SplatSlot(server, "/run/splat", position=centre))  # in the run's own frame, with its scene
@@ -596,10 +561,8 @@ def _run_view(server, content: Content, view: View) -> None:
         _checkpoint_slider(server, view, run)
         _exported_mesh(server, view, run)
     if run.scene is not None:
-        view.scene_nodes = add_scene(server.scene, "/run/scene", run.scene, show_mesh=False, show_sphere=False)
         with server.gui.add_folder("Scene"):
-            server.gui.add_markdown(_scene_summary(run.scene))
-            _toggles(server, view, {"mesh": False, "sphere": False})
+            _add_scene(server, view, "/run/scene", run.scene, hidden=("mesh", "sphere"))
     with server.gui.add_folder("Render"):
         _render_button(server, view)
     with server.gui.add_folder("Metrics"):
@@ -610,8 +573,7 @@ def _report_view(server, content: Content, view: View) -> None:
     pair = [r for r in content.pair if r is not None]
     spacing = (1 + SIDE_BY_SIDE_GAP) * max(object_sphere(r)[1] for r in pair)
     view.slots += [
-        SplatSlot(server, "/report/left", (-spacing, 0.0, 0.0)),
-        SplatSlot(server, "/report/right", (spacing, 0.0, 0.0)),
+        SplatSlot(server, f"/report/{side}", (x, 0.0, 0.0)) for side, x in (("left", -spacing), ("right", spacing))
     ]
     for slot, run in zip(view.slots, content.pair):
         slot.show(run)
@@ -619,14 +581,9 @@ def _report_view(server, content: Content, view: View) -> None:
     loaded = {r.label: r for r in pair}
     table = None  # the metrics table, made last (the side panel lists what is made in order)
 
-    def show_metrics() -> None:
-        table.content = metrics_markdown(
-            {
-                side: slot.run.metrics  # the runs' names are in the drop-downs above
-                for side, slot in zip(("left", "right"), view.slots)
-                if slot.run
-            }
-        )
+    def show_metrics() -> None:  # (the runs' names are in the drop-downs above)
+        shown = zip(("left", "right"), view.slots)
+        table.content = metrics_markdown({side: slot.run.metrics for side, slot in shown if slot.run})
 
     with server.gui.add_folder("Runs"):
         for side, slot, run in zip(("left", "right"), view.slots, content.pair):

@@ -112,12 +112,11 @@ def add_touches(scene_api, name: str, scene) -> list:
             for t in touches
             if t.in_contact
         ]
-        points = np.concatenate(points) if points else np.zeros((0, 3))
-        if len(points):
+        if points:
             nodes.append(
                 scene_api.add_point_cloud(
                     f"{group}/points",
-                    points.astype(np.float32),
+                    np.concatenate(points).astype(np.float32),
                     color,
                     point_size=2 * sensor.pixel_size_m,
                     point_shape="circle",
@@ -126,20 +125,18 @@ def add_touches(scene_api, name: str, scene) -> list:
             )
         for t in touches:
             frame = f"{group}/{t.finger}_{t.id:04d}"
-            nodes.append(
+            nodes += [
                 scene_api.add_frame(
                     frame,
                     axes_length=0.5 * max(pad[:2]),
                     axes_radius=0.02 * max(pad[:2]),
                     wxyz=vtf.SO3.from_matrix(t.T_world_sensor[:3, :3]).wxyz,
                     position=t.T_world_sensor[:3, 3],
-                )
-            )
-            nodes.append(
+                ),
                 scene_api.add_box(
                     f"{frame}/gel", color, dimensions=pad, opacity=0.35, position=(0.0, 0.0, -0.5 * pad[2])
-                )
-            )
+                ),
+            ]
     return nodes
 
 

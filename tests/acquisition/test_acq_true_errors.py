@@ -39,7 +39,11 @@ def test_every_kind_of_true_error_is_read_in_the_twins_joint_order(tmp_path):
     "errors, key, words",
     [
         ({"joint_offsets_rad": {"index_7": 0.1}}, "sim.true_errors.joint_offsets_rad.index_7", "unknown joint"),
-        ({"joint_offsets_rad": {"index_0": 3.5}}, "sim.true_errors.joint_offsets_rad.index_0", "[-3.14159, 3.14159] rad"),
+        (
+            {"joint_offsets_rad": {"index_0": 3.5}},
+            "sim.true_errors.joint_offsets_rad.index_0",
+            "[-3.14159, 3.14159] rad",
+        ),
         ({"joint_offsets_rad": {"index_0": "a lot"}}, "sim.true_errors.joint_offsets_rad.index_0", "finite number"),
         ({"joint_signs": {"ring_2": 0}}, "sim.true_errors.joint_signs.ring_2", "1 or -1"),
         ({"hand_eye": {"translation_m": [0, 0, 0.2]}}, "sim.true_errors.hand_eye.translation_m[2]", "[-0.05, 0.05]"),

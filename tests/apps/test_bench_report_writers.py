@@ -20,7 +20,7 @@ from tacsplat.apps.report import (
     metric_table,
     plot_cd_bars,
     render_grid,
-    write_results_csv,
+    write_csv,
 )
 from tacsplat.apps.touch_bench import subsample_touches, summarise, write_touch_report
 from tacsplat.errors import ConfigError
@@ -141,7 +141,7 @@ def test_seed_spread_column_with_several_seeds():
 def test_results_csv_roundtrip(tmp_path):
     rows = synthetic_rows()
     rows[0]["cd"] = None  # a run without ground truth
-    path = write_results_csv(rows, tmp_path / "results.csv")
+    path = write_csv(rows, tmp_path / "results.csv", RESULT_COLUMNS)
     with path.open() as fh:
         assert next(csv.reader(fh)) == list(RESULT_COLUMNS)
     with path.open() as fh:

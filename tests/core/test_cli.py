@@ -77,6 +77,10 @@ def test_exit_codes_usage_errors_are_2_runtime_errors_1(tmp_path, capsys):
     assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--methods", "3dgs,fancy"]) in (1, 2)
     assert "unknown method 'fancy'" in capsys.readouterr().err
     assert main(["reconstruct", str(tmp_path / "none"), "--out", str(tmp_path / "run")]) == 1  # no scene there
+    capsys.readouterr()
+    # a logging option before the command: the command still parses its own options and names itself
+    assert main(["--log-level", "warning", "bench", "paper", "--out", str(tmp_path / "b"), "--iterations", "x"]) == 2
+    assert capsys.readouterr().err.startswith("tacsplat bench paper: error: --iterations: ")
 
 
 def test_required_options_are_marked_and_completion_is_printed(capsys):
