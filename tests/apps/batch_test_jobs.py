@@ -66,12 +66,12 @@ class ImportingJob(FileJob):
 
 @dataclass(frozen=True)
 class SlowWarmJob(FileJob):
-    """A FileJob whose ``warm_up`` lasts until a second after ``wait_for`` appears, then records its process id in
-    ``FOLDER/../warmed``: a warm-up still running when the job it waits for has finished."""
+    """A FileJob whose ``warm_up`` lasts until ``wait_for`` appears, then records its process id in
+    ``FOLDER/../warmed``: a warm-up still running when the jobs before it have finished, for as long as the test
+    needs (a fixed delay is too short on a loaded machine)."""
 
     def warm_up(self) -> None:
         wait_until(self.wait_for.exists)
-        time.sleep(1.0)
         (self.folder.parent / "warmed").write_text(str(os.getpid()))
 
 

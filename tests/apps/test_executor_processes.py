@@ -101,10 +101,11 @@ def test_a_free_cpu_starts_a_worker_that_imports_what_waiting_jobs_import(tmp_pa
 
 
 def test_the_first_job_waits_for_the_worker_still_warming_up(tmp_path):
-    # "capture" ends while the other worker still warms up for the trainings: the capture's idle, cold worker
-    # takes the second training, and the first (the longest, as bench paper orders them) the warm worker
+    # "capture" ends while the other worker still warms up for the trainings (until "second" has started): the
+    # capture's idle, cold worker takes the second training, and the first (the longest, as bench paper orders
+    # them) the warm worker
     capture = FileJob("capture", tmp_path / "capture")
-    first = SlowWarmJob("first", tmp_path / "first", needs=("capture",), wait_for=capture.folder / "done")
+    first = SlowWarmJob("first", tmp_path / "first", needs=("capture",), wait_for=tmp_path / "second" / "attempts")
     second = FileJob("second", tmp_path / "second", needs=("capture",), wait_for=tmp_path / "warmed")  # (long)
     outcome = run_jobs([capture, first, second], tmp_path, executor="processes", workers=2, progress=False)
     assert sorted(outcome.done) == ["capture", "first", "second"]
