@@ -42,7 +42,7 @@ from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyState
 from tacsplat.reconstruction.evaluation import evaluate_reconstruction, evaluate_views, load_ground_truth
-from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
+from tacsplat.reconstruction.gaussians import PARAM_NAMES, Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.initialization import (
     foreground_mask,
     initial_gaussians,
@@ -215,69 +215,46 @@ class Trainer:
 
     def initialize(self) -> None:
         """Initial Gaussians: SfM (or random) G_c plus G_t on the touch points."""
-        cfg = self.config
-        sfm = None
-        if cfg.init.use_sfm:
-            sfm = sfm_points(
-                [im.cpu().numpy() for im in self.images],
-                [f.intrinsics.K for f in self.train_frames],
-                [f.T_world_cam for f in self.train_frames],
-                cfg.init,
-                cfg.seed,
-            )
-        sfm_found = sfm is not None and len(sfm.points) >= cfg.init.min_sfm_points
+        cfg, images = self.config, [im.cpu().numpy() for im in self.images]
+        sfm = sfm_points(images, *self._cameras(), cfg.init, cfg.seed) if cfg.init.use_sfm else None
+        found = 0 if sfm is None else len(sfm.points)
+        sfm_found = sfm is not None and found >= cfg.init.min_sfm_points
         if sfm_found:
             points, colors = sfm.points, sfm.colors
-            log.info("initialisation: %d SfM points", len(points))
+            log.info("initialisation: %d SfM points", found)
         else:
-            found = 0 if sfm is None else len(sfm.points)
             points, colors, where = self._fallback_points()
-            log.info(
-                "initialisation: %d SfM points (< %d): %d random points %s",
-                found,
-                cfg.init.min_sfm_points,
-                len(points),
-                where,
-            )
+            message = "initialisation: %d SfM points (< %d): %d random points %s"
+            log.info(message, found, cfg.init.min_sfm_points, len(points), where)
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
-        if cfg.init.colors_from_views:  # the randomly coloured ones: G_t, after the fallback's points if SfM failed
+        if cfg.init.colors_from_views:
+            # the randomly coloured ones, G_t (after the fallback's points if SfM failed), take the view_colors of the
+            # training views (on their silhouettes where known); those on no view's object keep their colour
             first = len(points) if sfm_found else 0
             recolored = self.touch_points if sfm_found else np.concatenate([points, self.touch_points])
-            self._color_from_views(gaussians, recolored, first)
+            view_rgb = view_colors(recolored, images, *self._cameras(), self.silhouettes)  # [M, 3]
+            seen = np.isfinite(view_rgb).all(axis=1)
+            sh0 = rgb_to_sh0(torch.as_tensor(view_rgb[seen], dtype=torch.float32)[:, None])
+            gaussians.params["sh0"].data[torch.from_numpy(first + np.flatnonzero(seen))] = sh0
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
 
-    def _color_from_views(self, gaussians: Gaussians, points: np.ndarray, first: int) -> None:
-        """Gaussians ``first`` on, at ``points`` [M, 3], take the :func:`view_colors` of the training views (on
-        their silhouettes where known); those that land on no view's object keep their colour."""
-        colors = view_colors(
-            points,
-            [im.cpu().numpy() for im in self.images],
-            [f.intrinsics.K for f in self.train_frames],
-            [f.T_world_cam for f in self.train_frames],
-            self.silhouettes,
-        )  # [M, 3]
-        found = np.isfinite(colors).all(axis=1)
-        rows = torch.from_numpy(first + np.flatnonzero(found))
-        gaussians.params["sh0"].data[rows] = rgb_to_sh0(torch.as_tensor(colors[found], dtype=torch.float32)[:, None])
+    def _cameras(self, views: list[int] | None = None) -> tuple[list, list]:
+        """The intrinsics [3, 3] and camera-to-world poses [4, 4] of the training views (``views``: of those)."""
+        frames = self.train_frames if views is None else [self.train_frames[i] for i in views]
+        return [f.intrinsics.K for f in frames], [f.T_world_cam for f in frames]
 
     def _fallback_points(self) -> tuple[np.ndarray, np.ndarray, str]:
         """Random coloured points on the silhouettes' visual hull, or in the scene bounds without silhouettes."""
-        cfg = self.config
+        init = self.config.init
         lo, hi = self.scene.bounds()
-        points, colors = random_points(lo, hi, cfg.init.num_random_points, self.rng)
+        points, colors = random_points(lo, hi, init.num_random_points, self.rng)
         views = [i for i, mask in enumerate(self.backdrop_pixels) if mask is not None]
-        if cfg.init.use_silhouette_hull and views:
+        if init.use_silhouette_hull and views:
+            silhouettes, count = [self.silhouettes[i] for i in views], init.num_random_points
             hull = silhouette_hull_points(
-                [self.silhouettes[i] for i in views],
-                [self.train_frames[i].intrinsics.K for i in views],
-                [self.train_frames[i].T_world_cam for i in views],
-                lo,
-                hi,
-                cfg.init.num_random_points,
-                cfg.init.hull_resolution,
-                self.rng,
+                silhouettes, *self._cameras(views), lo, hi, count, init.hull_resolution, self.rng
             )
             if len(hull):
                 return hull, colors, f"on the visual hull of {len(views)} silhouettes"
@@ -285,14 +262,8 @@ class Trainer:
 
     def _make_optimizers(self) -> None:
         cfg = self.config
-        rates = {
-            "means": cfg.lr_means * self.scene_scale,
-            "quats": cfg.lr_quats,
-            "scales": cfg.lr_scales,
-            "opacities": cfg.lr_opacities,
-            "sh0": cfg.lr_sh0,
-            "shN": cfg.lr_shN,
-        }
+        rates = {name: getattr(cfg, f"lr_{name}") for name in PARAM_NAMES}  # (the position's times the scene scale)
+        rates["means"] *= self.scene_scale
         # fused: one kernel per parameter instead of a dozen elementwise ops (about 4x less CPU time per step)
         self.optimizers = {
             name: torch.optim.Adam([self.gaussians.params[name]], lr=lr, eps=1e-15, fused=True)
