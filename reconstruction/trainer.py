@@ -274,15 +274,12 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
 
-    def _next_view(self) -> int:
-        if not self.order:
-            self.order = self.rng.permutation(len(self.train_frames)).tolist()
-        return self.order.pop()
-
     def train_step(self) -> dict:
         """One optimisation step on one training view; returns the loss terms."""
         cfg, g = self.config, self.gaussians
-        view = self._next_view()
+        if not self.order:  # each view once in a random order, then again
+            self.order = self.rng.permutation(len(self.train_frames)).tolist()
+        view = self.order.pop()
         frame = self.train_frames[view]
         active_degree = (
             cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree, self.step // cfg.sh_degree_interval)
@@ -330,10 +327,9 @@ class Trainer:
                 points, candidates = points[subset], candidates[subset]
                 normals = normals[subset] if self.use_touch_normals else normals
             if self.use_touch_loss:
-                quats, scales = (
-                    (g.quats, g.scales) if cfg.touch_loss_moves_shape else (g.quats.detach(), g.scales.detach())
-                )
-                shape = (g.means, quats, scales, g.opacities, candidates)
+                moves = cfg.touch_loss_moves_shape
+                shape = (g.means, *((g.quats, g.scales) if moves else (g.quats.detach(), g.scales.detach())))
+                shape += (g.opacities, candidates)
                 transmittance = losses.transmittance_loss(
                     points, *shape, cfg.touch_top_k, cfg.touch_max_distance, fused=self.fused_losses
                 )
