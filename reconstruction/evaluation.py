@@ -238,16 +238,12 @@ def load_ground_truth(
             points[f.id] = depth_to_points(depth, f.intrinsics.K, f.T_world_cam)
     if not points:
         return None
-    mesh_path = scene.gt_mesh_path
-    mesh = None
-    if mesh_path is not None and mesh_path.is_file():
-        mesh = trimesh.load(str(mesh_path), force="mesh")
-        radius, surface = bounding_sphere_radius(mesh.vertices), surface_points(mesh)
-    elif (cloud := scene.gt_points()) is not None:  # a dataset's points on the object (NeRO's eval_pts.ply)
-        radius, surface = bounding_sphere_radius(cloud), cloud
-    else:  # neither: cd_paper compares with the visible surface of the test views, like cd
-        surface = np.concatenate(list(points.values()))
-        radius = bounding_sphere_radius(surface)
+    # the scene's mesh, else a dataset's points on the object (NeRO's eval_pts.ply), else neither: cd_paper
+    # compares with the visible surface of the test views, like cd
+    surface, radius = ground_truth_surface(scene) or (np.concatenate(list(points.values())), None)
+    radius = bounding_sphere_radius(surface) if radius is None else radius
+    mesh = surface if isinstance(surface, trimesh.Trimesh) else None
+    surface = surface if mesh is None else surface_points(mesh)
     if not radius > 0:
         log.warning("the ground-truth surface of the test views is a single point: no Chamfer distance")
         return None

@@ -168,15 +168,8 @@ def _shade(
     reference)."""
     h, w = alpha.shape
     if fused and alpha.device.type == "cpu" and not viewmat.requires_grad:
-        return shade_cpu(
-            blended,
-            alpha,
-            normal,
-            K,
-            viewmat[:3, :3].T,
-            None if light is None else light.coefficients,
-            None if light is None else light.camera,
-        )
+        lit = (None, None) if light is None else (light.coefficients, light.camera)
+        return shade_cpu(blended, alpha, normal, K, viewmat[:3, :3].T, *lit)
     diffuse = blended / alpha.clamp_min(ALPHA_FLOOR)[..., None]  # [H, W, 3]
     # only pixels some Gaussian reaches: elsewhere the colour is multiplied by an alpha of exactly 0 and no
     # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)

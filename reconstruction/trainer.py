@@ -281,6 +281,7 @@ class Trainer:
             self.order = self.rng.permutation(len(self.train_frames)).tolist()
         view = self.order.pop()
         frame = self.train_frames[view]
+        size = (frame.intrinsics.width, frame.intrinsics.height)
         active_degree = (
             cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree, self.step // cfg.sh_degree_interval)
         )
@@ -293,8 +294,7 @@ class Trainer:
             g,
             self.viewmats[view : view + 1],
             self.Ks[view : view + 1],
-            frame.intrinsics.width,
-            frame.intrinsics.height,
+            *size,
             sh_degree=active_degree,
             backend=cfg.backend,
             depth_mode="D" if with_depth or with_normals else None,
@@ -364,13 +364,7 @@ class Trainer:
                 drawn = alpha.detach()
                 surface = torch.where(drawn > 0.5, depth.detach() / drawn.clamp_min(1e-6), torch.zeros_like(drawn))
                 seen = losses.visible_touch_pixels(
-                    self.touch_tensor,
-                    self.Ks[view],
-                    self.viewmats[view],
-                    frame.intrinsics.width,
-                    frame.intrinsics.height,
-                    surface,
-                    cfg.occlusion_tolerance,
+                    self.touch_tensor, self.Ks[view], self.viewmats[view], *size, surface, cfg.occlusion_tolerance
                 )
                 proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px / self.factor)
             weights = self._smoothness_weights(view, alpha.detach())
