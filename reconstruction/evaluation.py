@@ -186,14 +186,8 @@ def seen_by_cameras(mesh, points: dict[int, np.ndarray], cameras: list, radius: 
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = (p @ world_to_camera[0, :3] + world_to_camera[0, 3]) / z * K[0, 0] + K[0, 2]
                 v = (p @ world_to_camera[1, :3] + world_to_camera[1, 3]) / z * K[1, 1] + K[1, 2]
-            candidates = np.flatnonzero(
-                (z > 0)
-                & (u >= 0)
-                & (v >= 0)
-                & (u < camera.intrinsics.width)
-                & (v < camera.intrinsics.height)
-                & ~seen[i]
-            )
+            w, h = camera.intrinsics.width, camera.intrinsics.height
+            candidates = np.flatnonzero((z > 0) & (u >= 0) & (v >= 0) & (u < w) & (v < h) & ~seen[i])
             if not len(candidates):
                 continue
             towards = p[candidates] - centre  # [K, 3]
@@ -455,9 +449,8 @@ def evaluate_reconstruction(
     )
     if look is not None and look.appearance != "sh":  # splat.ply holds the shading baked into SH
         splat = bake_appearance(gaussians, look) if splat is None else splat
-        metrics["psnr_splat"] = evaluate_views(splat, scene, test, config.background, backend, None, progress=True)[
-            "psnr"
-        ]
+        shown = evaluate_views(splat, scene, test, config.background, backend, None, progress=True)
+        metrics["psnr_splat"] = shown["psnr"]
     else:
         metrics["psnr_splat"] = metrics["psnr"]  # splat.ply holds the Gaussians as they are
     if look is not None and look.light is not None:

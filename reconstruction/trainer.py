@@ -149,13 +149,10 @@ class Trainer:
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
         self.use_touch_normals = len(self.touch_points) > 0 and config.lambda_touch_normal > 0
         self.fused_losses = shading.fused_kernels(config.backend)
-        self.neighbours = (
-            losses.TouchNeighbours(
-                self.touch_points, config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every
-            )
-            if self.use_touch_loss or self.use_touch_normals
-            else None
-        )
+        self.neighbours = None
+        if self.use_touch_loss or self.use_touch_normals:
+            reach = (config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every)
+            self.neighbours = losses.TouchNeighbours(self.touch_points, *reach)
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
         self.touch_normals = torch.as_tensor(touch_normals, dtype=torch.float32, device=dev)
         self.light = shading.DiffuseLight(device=dev) if config.appearance == "sh-lit" else None
@@ -414,7 +411,8 @@ class Trainer:
     # ------------------------------------------------------------------ progress, checkpoints
 
     def _progress_row(self) -> tuple[float, float]:
-        """Evaluate on the held-out views and add a row to ``progress.csv``; returns (PSNR, CD)."""
+        """Evaluate on the held-out views and add a row to ``progress.csv`` (the last evaluation's); returns (PSNR,
+        CD)."""
         cfg = self.config
         psnr_value, cd_value, cd_paper = float("nan"), float("nan"), float("nan")
         if self.test_frames:
@@ -448,6 +446,7 @@ class Trainer:
         write_progress(self.out / "progress.csv", self.progress)
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)
         self._sum_count = 0
+        self._last_eval = (self.step, self.train_seconds)
         return psnr_value, cd_value
 
     def save_checkpoint(self) -> None:
@@ -568,7 +567,6 @@ class Trainer:
             self.initialize()
             self.train_seconds = time.perf_counter() - started
             self._progress_row()
-            self._last_eval = (self.step, self.train_seconds)
         bar = progress_bar(total=cfg.iterations, initial=self.step, enabled=show_progress, desc="train", unit="it")
         try:
             while self.step < cfg.iterations and stop.signum is None:
@@ -590,7 +588,6 @@ class Trainer:
                 ):
                     self.train_seconds += self._wait_for_device()  # queued steps are training time
                     psnr_value, cd_value = self._progress_row()
-                    self._last_eval = (self.step, self.train_seconds)
                     bar.set_postfix(
                         loss=f"{float(terms['loss']):.4f}",
                         gaussians=len(self.gaussians),

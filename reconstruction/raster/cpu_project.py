@@ -279,13 +279,8 @@ def _sh_basis_grad(degree, x, y, z, weights):
         gy -= SH_C1 * weights[1]
         gz += SH_C1 * weights[2]
     if degree >= 2:
-        w4, w5, w6, w7, w8 = (
-            weights[4] * _C2_0,
-            weights[5] * _C2_1,
-            weights[6] * _C2_2,
-            weights[7] * _C2_3,
-            weights[8] * _C2_4,
-        )
+        w4, w5, w6 = weights[4] * _C2_0, weights[5] * _C2_1, weights[6] * _C2_2
+        w7, w8 = weights[7] * _C2_3, weights[8] * _C2_4
         gx += w4 * y - 2.0 * w6 * x + w7 * z + 2.0 * w8 * x
         gy += w4 * x + w5 * z - 2.0 * w6 * y - 2.0 * w8 * y
         gz += w5 * y + 4.0 * w6 * z + w7 * x
