@@ -198,12 +198,8 @@ class _DepthNormalConsistencyCPU(torch.autograd.Function):
         _consistency_backward(normal, depth, weight, rx, ry, float(grad) / ctx.denominator, v_normal, g_u, g_v)
         v_depth = np.empty(depth.shape, np.float64)
         _gather_depth(g_u, g_v, rx, ry, v_depth)
-        return (
-            torch.from_numpy(v_normal.astype(normal.dtype)),
-            torch.from_numpy(v_depth.astype(depth.dtype)),
-            None,
-            None,
-        )
+        grads = (torch.from_numpy(v.astype(a.dtype)) for v, a in ((v_normal, normal), (v_depth, depth)))
+        return *grads, None, None
 
 
 # depth-normal consistency of CPU tensors: rendered unit normals [H, W, 3], z-depth [H, W], intrinsics [3, 3],
