@@ -281,21 +281,12 @@ _REMOVED_APPEARANCES = ("reflective", "lit")
 
 def _drop_removed(data: dict, source) -> None:
     """Remove from ``data`` the fields of removed mechanisms; a ConfigError if it switched one of them on."""
-    for key, off in _REMOVED_OFF.items():
-        if data.pop(key, off) != off:
-            raise ConfigError(
-                key,
-                "this run used a mechanism tacsplat no longer has (measured not to help: "
-                "docs/experiments.md); reconstruct the scene again",
-                source,
-            )
-    if data.get("appearance") in _REMOVED_APPEARANCES:
-        raise ConfigError(
-            "appearance",
-            f"this run used the {data['appearance']!r} appearance, which tacsplat no "
-            "longer has (measured not to help: docs/experiments.md); reconstruct the scene again",
-            source,
-        )
+    used = [key for key, off in _REMOVED_OFF.items() if data.pop(key, off) != off]
+    used += ["appearance"] if data.get("appearance") in _REMOVED_APPEARANCES else []
+    if used:
+        what = f"the {data['appearance']!r} appearance" if used[0] == "appearance" else "a mechanism"
+        message = f"this run used {what} tacsplat no longer has (measured not to help: docs/experiments.md)"
+        raise ConfigError(used[0], f"{message}; reconstruct the scene again", source)
     for key in _REMOVED_SETTINGS:
         data.pop(key, None)
     if "lr_env_map" in data:  # the light's rate, named after the environment map it was shared with

@@ -121,18 +121,9 @@ def render_median_depth(gaussians: Gaussians, frame, backend: str) -> np.ndarray
     """Median depth [H, W] of a view (the paper's evaluation depth; 0 where the transmittance stays >= 0.5)."""
     viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
     g, size = gaussians, (frame.intrinsics.width, frame.intrinsics.height)
+    splats = (g.means, g.quats, g.scales, g.opacities, g.sh_coefficients())
     depth, _, _ = raster.rasterization(
-        g.means,
-        g.quats,
-        g.scales,
-        g.opacities,
-        g.sh_coefficients(),
-        viewmat,
-        K,
-        *size,
-        sh_degree=g.sh_degree,
-        render_mode="MD",
-        backend=backend,
+        *splats, viewmat, K, *size, sh_degree=g.sh_degree, render_mode="MD", backend=backend
     )
     return depth[0, ..., 0].cpu().numpy().astype(np.float32)
 
