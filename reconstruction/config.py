@@ -4,16 +4,16 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import types
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Literal, get_args
+from typing import Iterable, Literal, get_args, get_origin, get_type_hints
 
 import torch
 
 from tacsplat.errors import ConfigError
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
-from tacsplat.reconstruction.raster.rendering import BACKENDS
 
 Appearance = Literal["sh", "sh-lit"]  # how Gaussians are coloured (see TrainConfig.appearance)
 
@@ -150,9 +150,7 @@ class TrainConfig:
         if self.appearance == "sh" or self.lambda_albedo_smoothness == 0:
             unused.add("albedo_smoothness_beta")
         if self.appearance == "sh":
-            unused.add("lambda_albedo_smoothness")
-        if self.appearance == "sh":
-            unused.add("lit_start_iter")
+            unused |= {"lambda_albedo_smoothness", "lit_start_iter"}
         if not self.coarse_factors:
             unused.add("coarse_until")
         return unused
@@ -165,21 +163,27 @@ class TrainConfig:
             raise ConfigError((names or {}).get(problem[0], problem[0]), problem[1])
 
     def problem(self) -> tuple[str, str] | None:
-        """``(field, why)`` of the first setting out of its range, or None."""
-        for key, (lo, hi) in _INT_RANGES.items():
-            value = getattr(self, key)
-            if value is None and key in _OPTIONAL:
-                continue
-            if isinstance(value, bool) or not isinstance(value, int) or value < lo or (hi is not None and value > hi):
-                return key, f"must be an integer {_range_text(lo, hi)}, got {value!r}"
-        for key, (lo, hi) in _FLOAT_RANGES.items():
-            value = getattr(self, key)
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-            if not ok or value < lo or (key in _POSITIVE and value == lo) or (hi is not None and value > hi):
-                return key, f"must be a finite number {_range_text(lo, hi, key in _POSITIVE)}, got {value!r}"
-        for key in ("use_touch", "touch_loss_moves_shape", "use_proximity_mask"):
-            if not isinstance(getattr(self, key), bool):
-                return key, f"must be true or false, got {getattr(self, key)!r}"
+        """``(field, why)`` of the first setting out of its range, or None: a number by its type and ``_RANGES``
+        (by default >= 0), a flag true or false, a choice one of its Literal's."""
+        for prefix, owner in (("", self), ("init.", self.init), ("densify.", self.densify)):
+            hints = get_type_hints(type(owner))
+            for f in dataclasses.fields(owner):
+                key, value, kind = prefix + f.name, getattr(owner, f.name), hints[f.name]
+                kinds = get_args(kind) if isinstance(kind, types.UnionType) else (kind,)
+                if value is None and type(None) in kinds:
+                    continue
+                lo, hi = _RANGES.get(key, (0, None))
+                positive = key in _POSITIVE
+                number = isinstance(value, (int, float)) and not isinstance(value, bool)
+                outside = number and (value < lo or (positive and value == lo) or (hi is not None and value > hi))
+                if bool in kinds and not isinstance(value, bool):
+                    return key, f"must be true or false, got {value!r}"
+                if get_origin(kind) is Literal and value not in get_args(kind):
+                    return key, f"must be one of {', '.join(map(repr, get_args(kind)))}, got {value!r}"
+                if int in kinds and (not number or not isinstance(value, int) or outside):
+                    return key, f"must be an integer {_range_text(lo, hi)}, got {value!r}"
+                if float in kinds and (not number or not math.isfinite(value) or outside):
+                    return key, f"must be a finite number {_range_text(lo, hi, positive)}, got {value!r}"
         if self.background is not None and not (
             len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
         ):
@@ -189,28 +193,8 @@ class TrainConfig:
             return "coarse_factors", f"must be integers from 2 to 64, coarsest first, got {factors!r}"
         if list(factors) != sorted(factors, reverse=True):
             return "coarse_factors", f"must run coarsest first (decreasing), got {factors!r}"
-        if self.appearance not in get_args(Appearance):
-            return "appearance", f"must be 'sh' or 'sh-lit', got {self.appearance!r}"
-        if self.smoothness_depth not in ("expected", "accumulated"):
-            return "smoothness_depth", f"must be 'expected' or 'accumulated', got {self.smoothness_depth!r}"
-        if self.backend not in BACKENDS:
-            return "backend", f"must be one of {BACKENDS}, got {self.backend!r}"
-        if self.device not in ("auto", "cpu", "cuda"):
-            return "device", f"must be 'auto', 'cpu' or 'cuda', got {self.device!r}"
         if self.backend == "cpu" and self.device == "cuda":
             return "backend", "the cpu backend runs on the CPU: use --backend gsplat (or auto) with --device cuda"
-        for name in ("init", "densify"):  # their settings are counts, sizes, rates and thresholds: >= 0
-            for f in dataclasses.fields(getattr(self, name)):
-                value = getattr(getattr(self, name), f.name)
-                if value is None and "None" in str(f.type):
-                    continue
-                if isinstance(value, bool) or f.type in ("bool", bool):
-                    if not isinstance(value, bool):
-                        return f"{name}.{f.name}", f"must be true or false, got {value!r}"
-                elif not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
-                    return f"{name}.{f.name}", f"must be a finite number >= 0, got {value!r}"
-                elif f.type in ("int", int) and not isinstance(value, int):
-                    return f"{name}.{f.name}", f"must be an integer >= 0, got {value!r}"
         return None
 
     def torch_device(self) -> torch.device:
@@ -272,10 +256,7 @@ def flat_settings(settings: dict, prefix: str = "") -> dict:
     """``{"densify.max_gaussians": ...}`` of nested settings."""
     flat = {}
     for key, value in settings.items():
-        if isinstance(value, dict):
-            flat.update(flat_settings(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = value
+        flat.update(flat_settings(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
     return flat
 
 
@@ -300,73 +281,36 @@ _REMOVED_APPEARANCES = ("reflective", "lit")
 
 def _drop_removed(data: dict, source) -> None:
     """Remove from ``data`` the fields of removed mechanisms; a ConfigError if it switched one of them on."""
-    for key, off in _REMOVED_OFF.items():
-        if data.pop(key, off) != off:
-            raise ConfigError(
-                key,
-                "this run used a mechanism tacsplat no longer has (measured not to help: "
-                "docs/experiments.md); reconstruct the scene again",
-                source,
-            )
-    if data.get("appearance") in _REMOVED_APPEARANCES:
-        raise ConfigError(
-            "appearance",
-            f"this run used the {data['appearance']!r} appearance, which tacsplat no "
-            "longer has (measured not to help: docs/experiments.md); reconstruct the scene again",
-            source,
-        )
+    used = [key for key, off in _REMOVED_OFF.items() if data.pop(key, off) != off]
+    used += ["appearance"] if data.get("appearance") in _REMOVED_APPEARANCES else []
+    if used:
+        what = f"the {data['appearance']!r} appearance" if used[0] == "appearance" else "a mechanism"
+        message = f"this run used {what} tacsplat no longer has (measured not to help: docs/experiments.md)"
+        raise ConfigError(used[0], f"{message}; reconstruct the scene again", source)
     for key in _REMOVED_SETTINGS:
         data.pop(key, None)
     if "lr_env_map" in data:  # the light's rate, named after the environment map it was shared with
         data.setdefault("lr_light", data.pop("lr_env_map"))
 
 
-# Ranges TrainConfig.validate checks: (smallest, largest or None); _POSITIVE excludes the smallest.
-_INT_RANGES = {
+# Ranges TrainConfig.problem checks where they differ from >= 0: (smallest, largest or None); _POSITIVE excludes the
+# smallest.
+_RANGES = {
     "iterations": (1, None),
     "seed": (0, 2**32 - 1),
     "downscale": (1, 64),
     "sh_degree": (0, 3),
-    "sh_degree_interval": (0, None),
-    "train_views": (1, None),
-    "torch_threads": (1, None),
+    "train_views": (1, None),  # (None: all views)
+    "torch_threads": (1, None),  # (None: torch's default)
     "touch_top_k": (1, None),
     "touch_candidates": (1, None),
     "touch_rebuild_every": (1, None),
-    "touch_points_per_step": (0, None),
     "eval_every_iters": (1, None),
     "eval_max_views": (1, None),
     "checkpoint_every": (1, None),
-    "smoothness_start_iter": (0, None),
-    "depth_normal_start_iter": (0, None),
-    "lit_start_iter": (0, None),
-}
-_OPTIONAL = {"train_views", "torch_threads"}  # None: all views, torch's default
-_FLOAT_RANGES = {
-    "ssim_weight": (0.0, 1.0),
-    "coarse_until": (0.0, 1.0),
-    "lambda_t": (0.0, None),
-    "lambda_s": (0.0, None),
-    "lambda_backdrop": (0.0, None),
-    "backdrop_tolerance": (0.0, None),
-    "touch_max_distance": (0.0, None),
-    "smoothness_beta": (0.0, None),
-    "proximity_sigma_px": (0.0, None),
-    "occlusion_tolerance": (0.0, None),
-    "lr_means": (0.0, None),
-    "lr_means_final_factor": (0.0, 1.0),
-    "lr_quats": (0.0, None),
-    "lr_scales": (0.0, None),
-    "lr_opacities": (0.0, None),
-    "lr_sh0": (0.0, None),
-    "lr_shN": (0.0, None),
-    "lr_light": (0.0, None),
-    "eval_every_seconds": (0.0, None),
-    "lambda_flatten": (0.0, None),
-    "lambda_depth_normal": (0.0, None),
-    "lambda_touch_normal": (0.0, None),
-    "lambda_albedo_smoothness": (0.0, None),
-    "albedo_smoothness_beta": (0.0, None),
+    "ssim_weight": (0, 1),
+    "coarse_until": (0, 1),
+    "lr_means_final_factor": (0, 1),
 }
 _POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
 
@@ -417,13 +361,7 @@ def read_settings(path: str | Path) -> dict:
         raise ConfigError("settings", f"not YAML: {str(exc).splitlines()[0]}", path) from None
     if not isinstance(data, dict):
         raise ConfigError("settings", f"expected a mapping of training settings, got {type(data).__name__}", path)
-    flat = {}
-    for key, value in data.items():
-        if isinstance(value, dict):
-            flat.update({f"{key}.{inner}": v for inner, v in value.items()})
-        else:
-            flat[str(key)] = value
-    return flat
+    return flat_settings(data)
 
 
 def paper_schedule(iterations: int | None = None) -> dict:

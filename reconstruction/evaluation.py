@@ -121,18 +121,9 @@ def render_median_depth(gaussians: Gaussians, frame, backend: str) -> np.ndarray
     """Median depth [H, W] of a view (the paper's evaluation depth; 0 where the transmittance stays >= 0.5)."""
     viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
     g, size = gaussians, (frame.intrinsics.width, frame.intrinsics.height)
+    splats = (g.means, g.quats, g.scales, g.opacities, g.sh_coefficients())
     depth, _, _ = raster.rasterization(
-        g.means,
-        g.quats,
-        g.scales,
-        g.opacities,
-        g.sh_coefficients(),
-        viewmat,
-        K,
-        *size,
-        sh_degree=g.sh_degree,
-        render_mode="MD",
-        backend=backend,
+        *splats, viewmat, K, *size, sh_degree=g.sh_degree, render_mode="MD", backend=backend
     )
     return depth[0, ..., 0].cpu().numpy().astype(np.float32)
 
@@ -186,14 +177,8 @@ def seen_by_cameras(mesh, points: dict[int, np.ndarray], cameras: list, radius: 
             with np.errstate(divide="ignore", invalid="ignore"):
                 u = (p @ world_to_camera[0, :3] + world_to_camera[0, 3]) / z * K[0, 0] + K[0, 2]
                 v = (p @ world_to_camera[1, :3] + world_to_camera[1, 3]) / z * K[1, 1] + K[1, 2]
-            candidates = np.flatnonzero(
-                (z > 0)
-                & (u >= 0)
-                & (v >= 0)
-                & (u < camera.intrinsics.width)
-                & (v < camera.intrinsics.height)
-                & ~seen[i]
-            )
+            w, h = camera.intrinsics.width, camera.intrinsics.height
+            candidates = np.flatnonzero((z > 0) & (u >= 0) & (v >= 0) & (u < w) & (v < h) & ~seen[i])
             if not len(candidates):
                 continue
             towards = p[candidates] - centre  # [K, 3]
@@ -238,16 +223,12 @@ def load_ground_truth(
             points[f.id] = depth_to_points(depth, f.intrinsics.K, f.T_world_cam)
     if not points:
         return None
-    mesh_path = scene.gt_mesh_path
-    mesh = None
-    if mesh_path is not None and mesh_path.is_file():
-        mesh = trimesh.load(str(mesh_path), force="mesh")
-        radius, surface = bounding_sphere_radius(mesh.vertices), surface_points(mesh)
-    elif (cloud := scene.gt_points()) is not None:  # a dataset's points on the object (NeRO's eval_pts.ply)
-        radius, surface = bounding_sphere_radius(cloud), cloud
-    else:  # neither: cd_paper compares with the visible surface of the test views, like cd
-        surface = np.concatenate(list(points.values()))
-        radius = bounding_sphere_radius(surface)
+    # the scene's mesh, else a dataset's points on the object (NeRO's eval_pts.ply), else neither: cd_paper
+    # compares with the visible surface of the test views, like cd
+    surface, radius = ground_truth_surface(scene) or (np.concatenate(list(points.values())), None)
+    radius = bounding_sphere_radius(surface) if radius is None else radius
+    mesh = surface if isinstance(surface, trimesh.Trimesh) else None
+    surface = surface if mesh is None else surface_points(mesh)
     if not radius > 0:
         log.warning("the ground-truth surface of the test views is a single point: no Chamfer distance")
         return None
@@ -459,9 +440,8 @@ def evaluate_reconstruction(
     )
     if look is not None and look.appearance != "sh":  # splat.ply holds the shading baked into SH
         splat = bake_appearance(gaussians, look) if splat is None else splat
-        metrics["psnr_splat"] = evaluate_views(splat, scene, test, config.background, backend, None, progress=True)[
-            "psnr"
-        ]
+        shown = evaluate_views(splat, scene, test, config.background, backend, None, progress=True)
+        metrics["psnr_splat"] = shown["psnr"]
     else:
         metrics["psnr_splat"] = metrics["psnr"]  # splat.ply holds the Gaussians as they are
     if look is not None and look.light is not None:

@@ -75,9 +75,8 @@ class _GaussianNormalsCPU(torch.autograd.Function):
         return torch.from_numpy(v_quats), None
 
 
-def gaussian_normals_cpu(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """Unit normals [N, 3] of CPU quaternions [N, 4] and scales [N, 3] (see :func:`.shading.gaussian_normals`)."""
-    return _GaussianNormalsCPU.apply(quats, scales)
+# unit normals [N, 3] of CPU quaternions [N, 4] and scales [N, 3] (see :func:`.shading.gaussian_normals`)
+gaussian_normals_cpu = _GaussianNormalsCPU.apply
 
 
 @nb.njit(cache=True, inline="always")
@@ -199,17 +198,10 @@ class _DepthNormalConsistencyCPU(torch.autograd.Function):
         _consistency_backward(normal, depth, weight, rx, ry, float(grad) / ctx.denominator, v_normal, g_u, g_v)
         v_depth = np.empty(depth.shape, np.float64)
         _gather_depth(g_u, g_v, rx, ry, v_depth)
-        return (
-            torch.from_numpy(v_normal.astype(normal.dtype)),
-            torch.from_numpy(v_depth.astype(depth.dtype)),
-            None,
-            None,
-        )
+        grads = (torch.from_numpy(v.astype(a.dtype)) for v, a in ((v_normal, normal), (v_depth, depth)))
+        return *grads, None, None
 
 
-def depth_normal_consistency_cpu(
-    normal: torch.Tensor, depth: torch.Tensor, K: torch.Tensor, weight: torch.Tensor
-) -> torch.Tensor:
-    """Depth-normal consistency of CPU tensors: rendered unit normals [H, W, 3], z-depth [H, W], intrinsics
-    [3, 3], per-pixel weight [H, W] (no gradient); see :func:`.losses.normal_consistency_loss`."""
-    return _DepthNormalConsistencyCPU.apply(normal, depth, K, weight)
+# depth-normal consistency of CPU tensors: rendered unit normals [H, W, 3], z-depth [H, W], intrinsics [3, 3],
+# per-pixel weight [H, W] (no gradient); see :func:`.losses.normal_consistency_loss`
+depth_normal_consistency_cpu = _DepthNormalConsistencyCPU.apply

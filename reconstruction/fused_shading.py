@@ -15,8 +15,8 @@ import numba as nb
 import numpy as np
 import torch
 
-from tacsplat.reconstruction.raster.cpu_project import _np
-from tacsplat.reconstruction.raster.spherical_harmonics import SH_C0, SH_C1, SH_C2
+from tacsplat.reconstruction.raster.cpu_project import _C2_0, _C2_1, _C2_2, _C2_3, _C2_4, _np, _sh_basis
+from tacsplat.reconstruction.raster.spherical_harmonics import SH_C1
 
 ALPHA_FLOOR = 1e-6  # the alpha the blended channels are divided by at least
 _CHUNKS = 16  # row chunks of the backward's reductions (each with its own gradient buffers)
@@ -26,37 +26,11 @@ _VIEW, _NORMAL, _VN, _FACING, _E, _SHADED, _BASIS, _STATE = 0, 3, 6, 7, 8, 11, 1
 
 
 @nb.njit(cache=True, inline="always")
-def _sh2(x, y, z, basis):
-    """The nine degree-2 SH basis values at (x, y, z) into ``basis`` (the order of .spherical_harmonics)."""
-    basis[0] = SH_C0
-    basis[1] = -SH_C1 * y
-    basis[2] = SH_C1 * z
-    basis[3] = -SH_C1 * x
-    basis[4] = SH_C2[0] * x * y
-    basis[5] = SH_C2[1] * y * z
-    basis[6] = SH_C2[2] * (2.0 * z * z - x * x - y * y)
-    basis[7] = SH_C2[3] * x * z
-    basis[8] = SH_C2[4] * (x * x - y * y)
-
-
-@nb.njit(cache=True, inline="always")
 def _sh2_backward(x, y, z, g):
     """(d/dx, d/dy, d/dz) of sum_k g[k] basis_k(x, y, z)."""
-    gx = (
-        -SH_C1 * g[3]
-        + SH_C2[0] * y * g[4]
-        - 2.0 * SH_C2[2] * x * g[6]
-        + SH_C2[3] * z * g[7]
-        + 2.0 * SH_C2[4] * x * g[8]
-    )
-    gy = (
-        -SH_C1 * g[1]
-        + SH_C2[0] * x * g[4]
-        + SH_C2[1] * z * g[5]
-        - 2.0 * SH_C2[2] * y * g[6]
-        - 2.0 * SH_C2[4] * y * g[8]
-    )
-    gz = SH_C1 * g[2] + SH_C2[1] * y * g[5] + 4.0 * SH_C2[2] * z * g[6] + SH_C2[3] * x * g[7]
+    gx = -SH_C1 * g[3] + _C2_0 * y * g[4] - 2.0 * _C2_2 * x * g[6] + _C2_3 * z * g[7] + 2.0 * _C2_4 * x * g[8]
+    gy = -SH_C1 * g[1] + _C2_0 * x * g[4] + _C2_1 * z * g[5] - 2.0 * _C2_2 * y * g[6] - 2.0 * _C2_4 * y * g[8]
+    gz = SH_C1 * g[2] + _C2_1 * y * g[5] + 4.0 * _C2_2 * z * g[6] + _C2_3 * x * g[7]
     return gx, gy, gz
 
 
@@ -82,7 +56,7 @@ def _pixel(blended, alpha, floor, normal, K, rotation, coefficients, camera, lit
     state[_FACING] = facing
     basis = state[_BASIS : _BASIS + 9]
     if lit:
-        _sh2(nx, ny, nz, basis)
+        _sh_basis(2, nx, ny, nz, basis)  # the nine degree-2 SH basis values
     for c in range(3):
         irradiance = 1.0
         if lit:

@@ -81,10 +81,9 @@ class _SmoothnessCPU(torch.autograd.Function):
         return torch.from_numpy(v_depth.astype(ctx.dtype)), None, None
 
 
-def edge_aware_smoothness_cpu(depth: torch.Tensor, kernels: torch.Tensor, factors: torch.Tensor) -> torch.Tensor:
-    """Mean over the valid region of |Sx * D| f_x + |Sy * D| f_y for a CPU depth map [H, W], the two 5x5 kernels
-    [2, 5, 5] and the per-pixel factors [2, H-4, W-4] (no gradient)."""
-    return _SmoothnessCPU.apply(depth, kernels, factors)
+# mean over the valid region of |Sx * D| f_x + |Sy * D| f_y for a CPU depth map [H, W], the two 5x5 kernels
+# [2, 5, 5] and the per-pixel factors [2, H-4, W-4] (no gradient)
+edge_aware_smoothness_cpu = _SmoothnessCPU.apply
 
 
 @nb.njit(parallel=True, cache=True)
@@ -148,16 +147,7 @@ class _AlbedoSmoothnessCPU(torch.autograd.Function):
         return torch.from_numpy(v_albedo), None, None, None
 
 
-def albedo_smoothness_cpu(
-    albedo: torch.Tensor, inside: torch.Tensor, across: torch.Tensor, down: torch.Tensor
-) -> torch.Tensor:
-    """Weighted L1 differences of neighbouring pixels of a CPU ``albedo`` [H, W, 3] that are both ``inside``
-    [H, W] bool, per pair inside (0 with no such pair), the pairs' weights ``across`` [H, W-1] and ``down``
-    [H-1, W] (no gradient); see :func:`.losses.albedo_smoothness_loss`."""
-    height, width = inside.shape
-    if tuple(across.shape) != (height, width - 1) or tuple(down.shape) != (height - 1, width):
-        raise ValueError(
-            f"albedo_smoothness_cpu: pair weights {tuple(across.shape)}, {tuple(down.shape)} do not fit "
-            f"a {height}x{width} albedo"
-        )
-    return _AlbedoSmoothnessCPU.apply(albedo, inside, across, down)  # (forward's _np: detached, contiguous)
+# weighted L1 differences of neighbouring pixels of a CPU ``albedo`` [H, W, 3] that are both ``inside`` [H, W] bool,
+# per pair inside (0 with no such pair), the pairs' weights ``across`` [H, W-1] and ``down`` [H-1, W] (no gradient;
+# the image's pair weights, of the albedo's size); see :func:`.losses.albedo_smoothness_loss`
+albedo_smoothness_cpu = _AlbedoSmoothnessCPU.apply

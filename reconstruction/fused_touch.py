@@ -228,13 +228,9 @@ class _TouchNormalCPU(torch.autograd.Function):
         return None, None, None, v[:, 0:3], v[:, 3], None, None
 
 
-def touch_normal_cpu(points, touch_normals, means, normals, opacities, candidates, max_distance):
-    """The tactile-normal loss of CPU tensors (see :func:`.losses.touch_normal_loss`)."""
-    return _TouchNormalCPU.apply(points, touch_normals, means, normals, opacities, candidates, max_distance)
-
-
-def transmittance_cpu(points, means, quats, scales, opacities, candidates, top_k, max_distance, max_mahalanobis):
-    """L_T of CPU tensors (see :func:`.losses.transmittance_loss`); the exponent clamped at ``max_mahalanobis``."""
-    return _TransmittanceCPU.apply(
-        points, means, quats, scales, opacities, candidates, top_k, max_distance, max_mahalanobis
-    )
+# the tactile-normal loss of CPU tensors (see :func:`.losses.touch_normal_loss`): (points, touch_normals, means,
+# normals, opacities, candidates, max_distance)
+touch_normal_cpu = _TouchNormalCPU.apply
+# L_T of CPU tensors (see :func:`.losses.transmittance_loss`): (points, means, quats, scales, opacities, candidates,
+# top_k, max_distance, max_mahalanobis), the exponent clamped at ``max_mahalanobis``
+transmittance_cpu = _TransmittanceCPU.apply

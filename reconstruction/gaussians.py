@@ -36,20 +36,12 @@ def num_sh_bases(degree: int) -> int:
 def quats_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
     """Rotation matrices [N, 3, 3] of quaternions [N, 4] (w, x, y, z), normalised first."""
     w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(quats.shape[:-1] + (3, 3))
+    rows = (
+        (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+        (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+        (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)),
+    )
+    return torch.stack([entry for row in rows for entry in row], dim=-1).reshape(quats.shape[:-1] + (3, 3))
 
 
 def whitening(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:

@@ -127,12 +127,9 @@ def sfm_points(
             for name, K, T_world_cam, image in zip(names, Ks, T_world_cams, images):
                 record = by_name[name]
                 height, width = np.asarray(image).shape[:2]
+                params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
                 camera = pycolmap.Camera(
-                    model="PINHOLE",
-                    width=width,
-                    height=height,
-                    params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]],
-                    camera_id=record.camera_id,
+                    model="PINHOLE", width=width, height=height, params=params, camera_id=record.camera_id
                 )
                 db.update_camera(camera)  # the known intrinsics replace the extractor's guess
                 reconstruction.add_camera_with_trivial_rig(camera)

@@ -16,7 +16,6 @@ import torch
 import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
-from tacsplat.errors import InvalidInputError
 from tacsplat.reconstruction.fused_normals import depth_normal_consistency_cpu
 from tacsplat.reconstruction.fused_smoothness import albedo_smoothness_cpu, edge_aware_smoothness_cpu
 from tacsplat.reconstruction.fused_ssim import d_ssim
@@ -70,8 +69,6 @@ class TouchNeighbours:
     """
 
     def __init__(self, touch_points: np.ndarray, num_candidates: int, max_distance: float, rebuild_every: int):
-        if num_candidates < 1 or rebuild_every < 1 or not max_distance > 0:
-            raise InvalidInputError("TouchNeighbours: num_candidates, rebuild_every and max_distance must be positive")
         self.touch_points = np.asarray(touch_points, dtype=np.float64).reshape(-1, 3)
         self.num_candidates = num_candidates
         self.max_distance = max_distance
@@ -231,17 +228,7 @@ def edge_aware_smoothness(
     For a CPU depth map the fused kernels of :mod:`.fused_smoothness` unless ``fused`` is False (the torch
     convolutions below, the reference).
     """
-    if weights is None:
-        if image is None or depth.ndim != 2 or image.shape[:2] != depth.shape:
-            raise InvalidInputError(
-                f"edge_aware_smoothness: depth {tuple(depth.shape)} needs an image of the same size, got "
-                f"{None if image is None else tuple(image.shape)}"
-            )
-        weights = image_edge_weights(image, beta)
-    elif depth.ndim != 2 or tuple(weights.shape) != (2, depth.shape[0] - 4, depth.shape[1] - 4):
-        raise InvalidInputError(
-            f"edge_aware_smoothness: weights {tuple(weights.shape)} do not fit depth {tuple(depth.shape)}"
-        )
+    weights = image_edge_weights(image, beta) if weights is None else weights  # (of the depth's size)
     if fused and depth.device.type == "cpu" and not weights.requires_grad:
         factors = weights if proximity is None else weights * (1.0 - proximity[2:-2, 2:-2].detach())
         return edge_aware_smoothness_cpu(depth, sobel_kernels_5x5(depth.dtype)[:, 0], factors)
@@ -289,8 +276,6 @@ def proximity_mask(seeds: torch.Tensor, sigma_px: float) -> torch.Tensor:
     below 3.4e-4 and set to 0); the mask is 1 on a seed and all zeros without seeds.
     The passes run on the seeds' bounding box widened by that reach (outside it the mask is 0; the same values).
     """
-    if not sigma_px > 0:
-        raise InvalidInputError(f"proximity_mask: sigma_px must be positive, got {sigma_px}")
     reach = int(math.ceil(4.0 * sigma_px))
     mask = torch.zeros(seeds.shape, device=seeds.device, dtype=torch.float32)  # [H, W]
     rows, cols = seeds.any(dim=1).nonzero()[:, 0], seeds.any(dim=0).nonzero()[:, 0]

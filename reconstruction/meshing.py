@@ -33,6 +33,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
+from tacsplat.files import atomic_write
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction.metrics import ground_truth_surface, mesh_metrics
 from tacsplat.types import CameraIntrinsics
@@ -256,8 +257,6 @@ def save_mesh_ply(extracted: ExtractedMesh, path: str | Path) -> Path:
     """A binary PLY: vertices with normals, colours and ``observed`` (0/1), triangles."""
     from plyfile import PlyData, PlyElement
 
-    from tacsplat.files import atomic_write
-
     mesh = extracted.mesh
     vertex = np.empty(
         len(mesh.vertices),
@@ -289,7 +288,6 @@ def export_mesh(
     import json
 
     from tacsplat.datasets import Scene
-    from tacsplat.files import atomic_write
     from tacsplat.reconstruction.run_dir import load_run
     from tacsplat.reconstruction.views import scene_at, training_frames
 

@@ -83,9 +83,8 @@ def ssim(rendered: torch.Tensor, target: torch.Tensor, window: int = 11) -> floa
     return float(ssim_map(rendered.double(), target.double(), window=window, valid=True).mean())
 
 
-depth_to_points = (
-    unproject_depth  # world points [M, 3] of the valid (positive, finite, masked-in) pixels of a depth map
-)
+# world points [M, 3] of the valid (positive, finite, masked-in) pixels of a depth map
+depth_to_points = unproject_depth
 
 
 def bounding_sphere_radius(points: np.ndarray) -> float:
@@ -181,11 +180,7 @@ def chamfer_distance_parts(
     and of its ground-truth points to the prediction, halved. NaN for a part with no ground-truth point;
     ``inf`` all three for an empty prediction.
     """
-    n_gt = (
-        len(ground_truth)
-        if isinstance(ground_truth, ReferenceCloud)
-        else np.asarray(ground_truth).reshape(-1, 3).shape[0]
-    )
+    n_gt = len(ground_truth) if isinstance(ground_truth, ReferenceCloud) else np.asarray(ground_truth).size // 3
     if part is not None:
         part = np.asarray(part, dtype=bool).reshape(-1)
         if len(part) != n_gt:
@@ -194,16 +189,12 @@ def chamfer_distance_parts(
     if distances is None:
         return float("inf"), float("inf"), float("inf")
     d_pred_to_gt, nearest_gt, d_gt_to_pred = distances
-    result = [0.5 * (float(d_pred_to_gt.mean()) + float(d_gt_to_pred.mean()))]
-    for gt_mask in () if part is None else (part, ~part):
-        if not gt_mask.any():
-            result.append(float("nan"))
-            continue
-        pred_mask = gt_mask[nearest_gt]
-        accuracy = float(d_pred_to_gt[pred_mask].mean()) if pred_mask.any() else 0.0
-        result.append(0.5 * (accuracy + float(d_gt_to_pred[gt_mask].mean())))
-    if part is None:
-        result += [float("nan"), float("nan")]
+    result = [0.5 * (float(d_pred_to_gt.mean()) + float(d_gt_to_pred.mean())), float("nan"), float("nan")]
+    for i, gt_mask in enumerate(() if part is None else (part, ~part), start=1):
+        if gt_mask.any():
+            pred_mask = gt_mask[nearest_gt]
+            accuracy = float(d_pred_to_gt[pred_mask].mean()) if pred_mask.any() else 0.0
+            result[i] = 0.5 * (accuracy + float(d_gt_to_pred[gt_mask].mean()))
     return result[0], result[1], result[2]
 
 

@@ -117,19 +117,9 @@ def render(
         n = torch.where(((n * (g.means - campos)).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
         colors, degree = torch.cat([features, n @ viewmat[0, :3, :3].T], dim=-1)[None], None  # camera-frame normals
     mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"
+    splats = (g.means, g.quats, g.scales, g.opacities, colors)
     out, alphas, meta = raster.rasterization(
-        g.means,
-        g.quats,
-        g.scales,
-        g.opacities,
-        colors,
-        viewmat,
-        K,
-        width,
-        height,
-        sh_degree=degree,
-        render_mode=mode,
-        backend=backend,
+        *splats, viewmat, K, width, height, sh_degree=degree, render_mode=mode, backend=backend
     )
     out, alpha = out[0], alphas[0, ..., 0]
     depth = None if depth_mode is None else out[..., -1]
@@ -168,15 +158,8 @@ def _shade(
     reference)."""
     h, w = alpha.shape
     if fused and alpha.device.type == "cpu" and not viewmat.requires_grad:
-        return shade_cpu(
-            blended,
-            alpha,
-            normal,
-            K,
-            viewmat[:3, :3].T,
-            None if light is None else light.coefficients,
-            None if light is None else light.camera,
-        )
+        lit = (None, None) if light is None else (light.coefficients, light.camera)
+        return shade_cpu(blended, alpha, normal, K, viewmat[:3, :3].T, *lit)
     diffuse = blended / alpha.clamp_min(ALPHA_FLOOR)[..., None]  # [H, W, 3]
     # only pixels some Gaussian reaches: elsewhere the colour is multiplied by an alpha of exactly 0 and no
     # Gaussian would receive its gradient (the same result, at the cost of the object's share of the image)

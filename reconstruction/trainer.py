@@ -42,7 +42,7 @@ from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyState
 from tacsplat.reconstruction.evaluation import evaluate_reconstruction, evaluate_views, load_ground_truth
-from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
+from tacsplat.reconstruction.gaussians import PARAM_NAMES, Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.initialization import (
     foreground_mask,
     initial_gaussians,
@@ -149,13 +149,10 @@ class Trainer:
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
         self.use_touch_normals = len(self.touch_points) > 0 and config.lambda_touch_normal > 0
         self.fused_losses = shading.fused_kernels(config.backend)
-        self.neighbours = (
-            losses.TouchNeighbours(
-                self.touch_points, config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every
-            )
-            if self.use_touch_loss or self.use_touch_normals
-            else None
-        )
+        self.neighbours = None
+        if self.use_touch_loss or self.use_touch_normals:
+            reach = (config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every)
+            self.neighbours = losses.TouchNeighbours(self.touch_points, *reach)
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
         self.touch_normals = torch.as_tensor(touch_normals, dtype=torch.float32, device=dev)
         self.light = shading.DiffuseLight(device=dev) if config.appearance == "sh-lit" else None
@@ -215,69 +212,46 @@ class Trainer:
 
     def initialize(self) -> None:
         """Initial Gaussians: SfM (or random) G_c plus G_t on the touch points."""
-        cfg = self.config
-        sfm = None
-        if cfg.init.use_sfm:
-            sfm = sfm_points(
-                [im.cpu().numpy() for im in self.images],
-                [f.intrinsics.K for f in self.train_frames],
-                [f.T_world_cam for f in self.train_frames],
-                cfg.init,
-                cfg.seed,
-            )
-        sfm_found = sfm is not None and len(sfm.points) >= cfg.init.min_sfm_points
+        cfg, images = self.config, [im.cpu().numpy() for im in self.images]
+        sfm = sfm_points(images, *self._cameras(), cfg.init, cfg.seed) if cfg.init.use_sfm else None
+        found = 0 if sfm is None else len(sfm.points)
+        sfm_found = sfm is not None and found >= cfg.init.min_sfm_points
         if sfm_found:
             points, colors = sfm.points, sfm.colors
-            log.info("initialisation: %d SfM points", len(points))
+            log.info("initialisation: %d SfM points", found)
         else:
-            found = 0 if sfm is None else len(sfm.points)
             points, colors, where = self._fallback_points()
-            log.info(
-                "initialisation: %d SfM points (< %d): %d random points %s",
-                found,
-                cfg.init.min_sfm_points,
-                len(points),
-                where,
-            )
+            message = "initialisation: %d SfM points (< %d): %d random points %s"
+            log.info(message, found, cfg.init.min_sfm_points, len(points), where)
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
-        if cfg.init.colors_from_views:  # the randomly coloured ones: G_t, after the fallback's points if SfM failed
+        if cfg.init.colors_from_views:
+            # the randomly coloured ones, G_t (after the fallback's points if SfM failed), take the view_colors of the
+            # training views (on their silhouettes where known); those on no view's object keep their colour
             first = len(points) if sfm_found else 0
             recolored = self.touch_points if sfm_found else np.concatenate([points, self.touch_points])
-            self._color_from_views(gaussians, recolored, first)
+            view_rgb = view_colors(recolored, images, *self._cameras(), self.silhouettes)  # [M, 3]
+            seen = np.isfinite(view_rgb).all(axis=1)
+            sh0 = rgb_to_sh0(torch.as_tensor(view_rgb[seen], dtype=torch.float32)[:, None])
+            gaussians.params["sh0"].data[torch.from_numpy(first + np.flatnonzero(seen))] = sh0
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
 
-    def _color_from_views(self, gaussians: Gaussians, points: np.ndarray, first: int) -> None:
-        """Gaussians ``first`` on, at ``points`` [M, 3], take the :func:`view_colors` of the training views (on
-        their silhouettes where known); those that land on no view's object keep their colour."""
-        colors = view_colors(
-            points,
-            [im.cpu().numpy() for im in self.images],
-            [f.intrinsics.K for f in self.train_frames],
-            [f.T_world_cam for f in self.train_frames],
-            self.silhouettes,
-        )  # [M, 3]
-        found = np.isfinite(colors).all(axis=1)
-        rows = torch.from_numpy(first + np.flatnonzero(found))
-        gaussians.params["sh0"].data[rows] = rgb_to_sh0(torch.as_tensor(colors[found], dtype=torch.float32)[:, None])
+    def _cameras(self, views: list[int] | None = None) -> tuple[list, list]:
+        """The intrinsics [3, 3] and camera-to-world poses [4, 4] of the training views (``views``: of those)."""
+        frames = self.train_frames if views is None else [self.train_frames[i] for i in views]
+        return [f.intrinsics.K for f in frames], [f.T_world_cam for f in frames]
 
     def _fallback_points(self) -> tuple[np.ndarray, np.ndarray, str]:
         """Random coloured points on the silhouettes' visual hull, or in the scene bounds without silhouettes."""
-        cfg = self.config
+        init = self.config.init
         lo, hi = self.scene.bounds()
-        points, colors = random_points(lo, hi, cfg.init.num_random_points, self.rng)
+        points, colors = random_points(lo, hi, init.num_random_points, self.rng)
         views = [i for i, mask in enumerate(self.backdrop_pixels) if mask is not None]
-        if cfg.init.use_silhouette_hull and views:
+        if init.use_silhouette_hull and views:
+            silhouettes, count = [self.silhouettes[i] for i in views], init.num_random_points
             hull = silhouette_hull_points(
-                [self.silhouettes[i] for i in views],
-                [self.train_frames[i].intrinsics.K for i in views],
-                [self.train_frames[i].T_world_cam for i in views],
-                lo,
-                hi,
-                cfg.init.num_random_points,
-                cfg.init.hull_resolution,
-                self.rng,
+                silhouettes, *self._cameras(views), lo, hi, count, init.hull_resolution, self.rng
             )
             if len(hull):
                 return hull, colors, f"on the visual hull of {len(views)} silhouettes"
@@ -285,14 +259,8 @@ class Trainer:
 
     def _make_optimizers(self) -> None:
         cfg = self.config
-        rates = {
-            "means": cfg.lr_means * self.scene_scale,
-            "quats": cfg.lr_quats,
-            "scales": cfg.lr_scales,
-            "opacities": cfg.lr_opacities,
-            "sh0": cfg.lr_sh0,
-            "shN": cfg.lr_shN,
-        }
+        rates = {name: getattr(cfg, f"lr_{name}") for name in PARAM_NAMES}  # (the position's times the scene scale)
+        rates["means"] *= self.scene_scale
         # fused: one kernel per parameter instead of a dozen elementwise ops (about 4x less CPU time per step)
         self.optimizers = {
             name: torch.optim.Adam([self.gaussians.params[name]], lr=lr, eps=1e-15, fused=True)
@@ -303,16 +271,14 @@ class Trainer:
 
     # ------------------------------------------------------------------ one step
 
-    def _next_view(self) -> int:
-        if not self.order:
-            self.order = self.rng.permutation(len(self.train_frames)).tolist()
-        return self.order.pop()
-
     def train_step(self) -> dict:
         """One optimisation step on one training view; returns the loss terms."""
         cfg, g = self.config, self.gaussians
-        view = self._next_view()
+        if not self.order:  # each view once in a random order, then again
+            self.order = self.rng.permutation(len(self.train_frames)).tolist()
+        view = self.order.pop()
         frame = self.train_frames[view]
+        size = (frame.intrinsics.width, frame.intrinsics.height)
         active_degree = (
             cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree, self.step // cfg.sh_degree_interval)
         )
@@ -325,8 +291,7 @@ class Trainer:
             g,
             self.viewmats[view : view + 1],
             self.Ks[view : view + 1],
-            frame.intrinsics.width,
-            frame.intrinsics.height,
+            *size,
             sh_degree=active_degree,
             backend=cfg.backend,
             depth_mode="D" if with_depth or with_normals else None,
@@ -359,10 +324,9 @@ class Trainer:
                 points, candidates = points[subset], candidates[subset]
                 normals = normals[subset] if self.use_touch_normals else normals
             if self.use_touch_loss:
-                quats, scales = (
-                    (g.quats, g.scales) if cfg.touch_loss_moves_shape else (g.quats.detach(), g.scales.detach())
-                )
-                shape = (g.means, quats, scales, g.opacities, candidates)
+                moves = cfg.touch_loss_moves_shape
+                shape = (g.means, *((g.quats, g.scales) if moves else (g.quats.detach(), g.scales.detach())))
+                shape += (g.opacities, candidates)
                 transmittance = losses.transmittance_loss(
                     points, *shape, cfg.touch_top_k, cfg.touch_max_distance, fused=self.fused_losses
                 )
@@ -397,13 +361,7 @@ class Trainer:
                 drawn = alpha.detach()
                 surface = torch.where(drawn > 0.5, depth.detach() / drawn.clamp_min(1e-6), torch.zeros_like(drawn))
                 seen = losses.visible_touch_pixels(
-                    self.touch_tensor,
-                    self.Ks[view],
-                    self.viewmats[view],
-                    frame.intrinsics.width,
-                    frame.intrinsics.height,
-                    surface,
-                    cfg.occlusion_tolerance,
+                    self.touch_tensor, self.Ks[view], self.viewmats[view], *size, surface, cfg.occlusion_tolerance
                 )
                 proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px / self.factor)
             weights = self._smoothness_weights(view, alpha.detach())
@@ -453,7 +411,8 @@ class Trainer:
     # ------------------------------------------------------------------ progress, checkpoints
 
     def _progress_row(self) -> tuple[float, float]:
-        """Evaluate on the held-out views and add a row to ``progress.csv``; returns (PSNR, CD)."""
+        """Evaluate on the held-out views and add a row to ``progress.csv`` (the last evaluation's); returns (PSNR,
+        CD)."""
         cfg = self.config
         psnr_value, cd_value, cd_paper = float("nan"), float("nan"), float("nan")
         if self.test_frames:
@@ -487,6 +446,7 @@ class Trainer:
         write_progress(self.out / "progress.csv", self.progress)
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)
         self._sum_count = 0
+        self._last_eval = (self.step, self.train_seconds)
         return psnr_value, cd_value
 
     def save_checkpoint(self) -> None:
@@ -607,7 +567,6 @@ class Trainer:
             self.initialize()
             self.train_seconds = time.perf_counter() - started
             self._progress_row()
-            self._last_eval = (self.step, self.train_seconds)
         bar = progress_bar(total=cfg.iterations, initial=self.step, enabled=show_progress, desc="train", unit="it")
         try:
             while self.step < cfg.iterations and stop.signum is None:
@@ -629,7 +588,6 @@ class Trainer:
                 ):
                     self.train_seconds += self._wait_for_device()  # queued steps are training time
                     psnr_value, cd_value = self._progress_row()
-                    self._last_eval = (self.step, self.train_seconds)
                     bar.set_postfix(
                         loss=f"{float(terms['loss']):.4f}",
                         gaussians=len(self.gaussians),

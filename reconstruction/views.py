@@ -98,9 +98,7 @@ class ScaledScene:
         return [f for f in self.frames if f.split == name]
 
     def load_image(self, frame) -> np.ndarray:
-        image = self.base.load_image(self._by_id[frame.id])
-        size = (frame.intrinsics.width, frame.intrinsics.height)
-        return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        return _resized(self.base.load_image(self._by_id[frame.id]), frame, cv2.INTER_AREA)
 
     def gt_depth(self, frame) -> np.ndarray | None:
         mesh_path = self.base.gt_mesh_path
@@ -110,19 +108,17 @@ class ScaledScene:
 
                 self._mesh = trimesh.load(str(mesh_path), force="mesh")
             return mesh_depth(self._mesh, frame)
-        depth = self.base.gt_depth(self._by_id[frame.id])
-        if depth is None:
-            return None
-        size = (frame.intrinsics.width, frame.intrinsics.height)
-        return cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+        return _resized(self.base.gt_depth(self._by_id[frame.id]), frame, cv2.INTER_NEAREST)
 
     def gt_normal(self, frame) -> np.ndarray | None:
         """The scene's ground-truth normals resampled at the nearest pixel, as :meth:`gt_depth` without a mesh."""
-        normal = self.base.gt_normal(self._by_id[frame.id])
-        if normal is None:
-            return None
-        size = (frame.intrinsics.width, frame.intrinsics.height)
-        return cv2.resize(normal, size, interpolation=cv2.INTER_NEAREST)
+        return _resized(self.base.gt_normal(self._by_id[frame.id]), frame, cv2.INTER_NEAREST)
+
+
+def _resized(image: np.ndarray | None, frame, interpolation: int) -> np.ndarray | None:
+    """``image`` resampled to ``frame``'s size (None stays None)."""
+    size = (frame.intrinsics.width, frame.intrinsics.height)
+    return None if image is None else cv2.resize(image, size, interpolation=interpolation)
 
 
 def scene_at(scene, downscale: int):

@@ -610,12 +610,9 @@ class _RasterizeCPU(torch.autograd.Function):
         n_cams, n, n_ch = colors.shape
         tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
         tiles_per_cam = tiles_x * tiles_y
-        m2d = _numpy32(means2d).reshape(-1, 2)
-        con = _numpy32(conics).reshape(-1, 3)
-        col = _numpy32(colors).reshape(-1, n_ch)
-        opa = _numpy32(opacities).reshape(-1)
+        m2d, con, col = (_numpy32(t).reshape(-1, t.shape[-1]) for t in (means2d, conics, colors))
+        opa, dep = (_numpy32(t).reshape(-1) for t in (opacities, depths))
         rad = np.ascontiguousarray(radii.detach().cpu().numpy().astype(np.float64)).reshape(-1, 2)
-        dep = _numpy32(depths).reshape(-1)
         bgs = np.zeros((n_cams, n_ch), np.float32) if backgrounds is None else _numpy32(backgrounds)
         with np.errstate(divide="ignore"):  # alpha >= 1/255 <=> exponent <= ln(255 o); culled o <= 0 gives -inf
             limits = (np.log(np.float32(255.0) * np.maximum(opa, 0)) + _LOG_SLACK).astype(np.float32)
@@ -668,15 +665,11 @@ class _RasterizeCPU(torch.autograd.Function):
             _backward(*ctx.kernel_args, out_trans.numpy(), last, v_col, v_alp, *cache[1:], rows, tuple(range(n_ch)))
         per_gauss = np.empty((n_cams * n, N_GRAD + n_ch), np.float32)
         _sum_rows(gauss_offsets, gauss_isect, rows, per_gauss)
-        grads = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)
-        v_means2d = grads[..., 0:2]
-        v_conics = grads[..., 2:5]
-        v_opacities = grads[..., 5]
-        v_colors = grads[..., N_GRAD:]
+        v = torch.from_numpy(per_gauss).reshape(n_cams, n, N_GRAD + n_ch)  # means2d, conics, opacities, colours
         v_backgrounds = None
         if ctx.has_background and ctx.needs_input_grad[9]:
             v_backgrounds = (v_color * out_trans.unsqueeze(-1)).sum(dim=(1, 2))
-        return v_means2d, v_conics, v_colors, v_opacities, None, None, None, None, None, v_backgrounds, None
+        return v[..., 0:2], v[..., 2:5], v[..., N_GRAD:], v[..., 5], None, None, None, None, None, v_backgrounds, None
 
 
 rasterize_to_pixels_cpu = _RasterizeCPU.apply

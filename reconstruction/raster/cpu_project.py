@@ -34,59 +34,22 @@ def _rotation(qw, qx, qy, qz):
     quaternion too large to square overflows the same way in every backend)."""
     norm = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
     w, x, y, z = qw / norm, qx / norm, qy / norm, qz / norm
-    return (
-        1 - 2 * (y * y + z * z),
-        2 * (x * y - w * z),
-        2 * (x * z + w * y),
-        2 * (x * y + w * z),
-        1 - 2 * (x * x + z * z),
-        2 * (y * z - w * x),
-        2 * (x * z - w * y),
-        2 * (y * z + w * x),
-        1 - 2 * (x * x + y * y),
-        w,
-        x,
-        y,
-        z,
-        norm,
-    )
+    r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    r20, r21, r22 = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return r00, r01, r02, r10, r11, r12, r20, r21, r22, w, x, y, z, norm
 
 
 @nb.njit(cache=True, inline="always")
 def _rotation_backward(w, qx, qy, qz, qnorm, vr):
     """d loss / d (unnormalised) quaternion from vr [3, 3] = d loss / d R, with (w, qx, qy, qz) and qnorm the
     normalised quaternion and the norm :func:`_rotation` returned."""
-    v_w = 2.0 * (-qz * vr[0, 1] + qy * vr[0, 2] + qz * vr[1, 0] - qx * vr[1, 2] - qy * vr[2, 0] + qx * vr[2, 1])
-    v_x = 2.0 * (
-        qy * vr[0, 1]
-        + qz * vr[0, 2]
-        + qy * vr[1, 0]
-        - 2.0 * qx * vr[1, 1]
-        - w * vr[1, 2]
-        + qz * vr[2, 0]
-        + w * vr[2, 1]
-        - 2.0 * qx * vr[2, 2]
-    )
-    v_y = 2.0 * (
-        -2.0 * qy * vr[0, 0]
-        + qx * vr[0, 1]
-        + w * vr[0, 2]
-        + qx * vr[1, 0]
-        + qz * vr[1, 2]
-        - w * vr[2, 0]
-        + qz * vr[2, 1]
-        - 2.0 * qy * vr[2, 2]
-    )
-    v_z = 2.0 * (
-        -2.0 * qz * vr[0, 0]
-        - w * vr[0, 1]
-        + qx * vr[0, 2]
-        + w * vr[1, 0]
-        - 2.0 * qz * vr[1, 1]
-        + qy * vr[1, 2]
-        + qx * vr[2, 0]
-        + qy * vr[2, 1]
-    )
+    v00, v01, v02, v10, v11 = vr[0, 0], vr[0, 1], vr[0, 2], vr[1, 0], vr[1, 1]
+    v12, v20, v21, v22 = vr[1, 2], vr[2, 0], vr[2, 1], vr[2, 2]
+    v_w = 2.0 * (-qz * v01 + qy * v02 + qz * v10 - qx * v12 - qy * v20 + qx * v21)
+    v_x = 2.0 * (qy * v01 + qz * v02 + qy * v10 - 2.0 * qx * v11 - w * v12 + qz * v20 + w * v21 - 2.0 * qx * v22)
+    v_y = 2.0 * (-2.0 * qy * v00 + qx * v01 + w * v02 + qx * v10 + qz * v12 - w * v20 + qz * v21 - 2.0 * qy * v22)
+    v_z = 2.0 * (-2.0 * qz * v00 - w * v01 + qx * v02 + w * v10 - 2.0 * qz * v11 + qy * v12 + qx * v20 + qy * v21)
     # through q / max(|q|, 1e-12)
     dot = (w * v_w + qx * v_x + qy * v_y + qz * v_z) if qnorm > 1e-12 else 0.0
     return (v_w - w * dot) / qnorm, (v_x - qx * dot) / qnorm, (v_y - qy * dot) / qnorm, (v_z - qz * dot) / qnorm
@@ -105,6 +68,22 @@ def _mul3(a, b):
         a[6] * b[0] + a[7] * b[3] + a[8] * b[6],
         a[6] * b[1] + a[7] * b[4] + a[8] * b[7],
         a[6] * b[2] + a[7] * b[5] + a[8] * b[8],
+    )
+
+
+@nb.njit(cache=True, inline="always")
+def _add3(a, b):
+    """a + b of 3x3 matrices held as 9-tuples."""
+    return (
+        a[0] + b[0],
+        a[1] + b[1],
+        a[2] + b[2],
+        a[3] + b[3],
+        a[4] + b[4],
+        a[5] + b[5],
+        a[6] + b[6],
+        a[7] + b[7],
+        a[8] + b[8],
     )
 
 
@@ -231,29 +210,9 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
                 # d / d cov_c = J^T V J with V = [[va, vb], [0, vc]] (cov2d's [0, 1] entry stands for both)
                 t0, t1, t2 = va * j00, vb * j11, va * j02 + vb * j12  # V J, first row
                 u1, u2 = vc * j11, vc * j12  # second row (its first entry is 0)
-                v_cov_c = (
-                    j00 * t0,
-                    j00 * t1,
-                    j00 * t2,
-                    0.0,
-                    j11 * u1,
-                    j11 * u2,
-                    j02 * t0,
-                    j02 * t1 + j12 * u1,
-                    j02 * t2 + j12 * u2,
-                )
-                contribution = _mul3(_mul3(_transpose3(rot), v_cov_c), rot)
-                v_cov = (
-                    v_cov[0] + contribution[0],
-                    v_cov[1] + contribution[1],
-                    v_cov[2] + contribution[2],
-                    v_cov[3] + contribution[3],
-                    v_cov[4] + contribution[4],
-                    v_cov[5] + contribution[5],
-                    v_cov[6] + contribution[6],
-                    v_cov[7] + contribution[7],
-                    v_cov[8] + contribution[8],
-                )
+                w1, w2 = j02 * t1 + j12 * u1, j02 * t2 + j12 * u2  # (the last row's)
+                vcc = (j00 * t0, j00 * t1, j00 * t2, 0.0, j11 * u1, j11 * u2, j02 * t0, w1, w2)  # d / d cov_c
+                v_cov = _add3(v_cov, _mul3(_mul3(_transpose3(rot), vcc), rot))
                 # d / d J = (V + V^T) J cov_c: only the entries J depends on
                 vj00 = 2.0 * va * jc00 + vb * jc10
                 vj02 = 2.0 * va * jc02 + vb * jc12
@@ -280,19 +239,7 @@ def _project_backward(means, quats, scales, viewmats, Ks, width, height, eps2d, 
                 vm2 += rv[0, 2] * v_x + rv[1, 2] * v_y + rv[2, 2] * v_z
             v_means[g, 0], v_means[g, 1], v_means[g, 2] = vm0, vm1, vm2
             # covariance = M M^T with M = R diag(s): d / d M = (V + V^T) M
-            sym = _transpose3(v_cov)
-            sym = (
-                v_cov[0] + sym[0],
-                v_cov[1] + sym[1],
-                v_cov[2] + sym[2],
-                v_cov[3] + sym[3],
-                v_cov[4] + sym[4],
-                v_cov[5] + sym[5],
-                v_cov[6] + sym[6],
-                v_cov[7] + sym[7],
-                v_cov[8] + sym[8],
-            )
-            v_m = _mul3(sym, m)
+            v_m = _mul3(_add3(v_cov, _transpose3(v_cov)), m)
             rot_g = (r00, r01, r02, r10, r11, r12, r20, r21, r22)
             s3 = (sx, sy, sz)
             for k in range(3):
@@ -332,13 +279,8 @@ def _sh_basis_grad(degree, x, y, z, weights):
         gy -= SH_C1 * weights[1]
         gz += SH_C1 * weights[2]
     if degree >= 2:
-        w4, w5, w6, w7, w8 = (
-            weights[4] * _C2_0,
-            weights[5] * _C2_1,
-            weights[6] * _C2_2,
-            weights[7] * _C2_3,
-            weights[8] * _C2_4,
-        )
+        w4, w5, w6 = weights[4] * _C2_0, weights[5] * _C2_1, weights[6] * _C2_2
+        w7, w8 = weights[7] * _C2_3, weights[8] * _C2_4
         gx += w4 * y - 2.0 * w6 * x + w7 * z + 2.0 * w8 * x
         gy += w4 * x + w5 * z - 2.0 * w6 * y - 2.0 * w8 * y
         gz += w5 * y + 4.0 * w6 * z + w7 * x

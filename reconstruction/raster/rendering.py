@@ -283,11 +283,7 @@ def rasterization(
         render_colors = torch.cat([render_colors[..., :-1], median], dim=-1)
 
     meta = {
-        "means2d": proj.means2d,
-        "radii": proj.radii,
-        "depths": proj.depths,
-        "conics": proj.conics,
-        "opacities": proj.opacities,
+        **vars(proj),  # means2d, conics, depths, radii, opacities
         "width": width,
         "height": height,
         "tile_size": tile_size,

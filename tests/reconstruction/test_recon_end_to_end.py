@@ -421,7 +421,7 @@ def test_cli_options_reach_the_train_config_after_the_method_and_the_config_file
     assert (mine.lambda_s, mine.densify.max_gaussians, method_of(mine)) == (2.5, 900, "paper")
     for options, words in (
         (["--iterations", "-5"], "--iterations: must be an integer >= 1, got -5"),
-        (["--densify.max-gaussians", "-1"], "--densify.max-gaussians: must be a finite number"),
+        (["--densify.max-gaussians", "-1"], "--densify.max-gaussians: must be an integer >= 0, got -1"),
         (["--iterations", "x"], "--iterations: invalid literal"),
         (["--method", "fancy"], "--method: unknown method 'fancy'"),
         (["--lambda-z", "1"], "--lambda-z: not an option of tacsplat reconstruct"),
