@@ -79,19 +79,15 @@ class PoseSource(Protocol):
         ...
 
 
-def opencv_K(K: np.ndarray) -> np.ndarray:
-    """tacsplat's intrinsics (pixel centres at +0.5) as OpenCV's (centres at integers): the inverse of
-    :func:`~tacsplat.drivers.wrist_camera.tacsplat_K_from_opencv`."""
-    return np.asarray(K, dtype=np.float64) - [[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 0.0]]
-
-
 class BoardPoseSource:
     """A real rig's poses: ChArUco board PnP on undistorted frames; the hand from the hand-eye transform."""
 
     def __init__(self, camera: Camera, board: BoardConfig, T_hand_cam: np.ndarray):
         self.board = board
         self.spec = board.spec()
-        self.K_opencv = opencv_K(camera.K)
+        from tacsplat.drivers.wrist_camera import opencv_K_from_tacsplat
+
+        self.K_opencv = opencv_K_from_tacsplat(camera.K)
         self.T_cam_hand = invert_pose(check_rigid(T_hand_cam, "T_hand_cam"))
 
     def measure(self, image: np.ndarray) -> PoseEstimate:

@@ -244,9 +244,8 @@ class MockDevices:
             )
 
     def _generate(self) -> None:
-        from tacsplat.acquisition.logger import opencv_K
         from tacsplat.drivers.optical_tactile import TactileCalibration
-        from tacsplat.drivers.wrist_camera import CameraCalibration
+        from tacsplat.drivers.wrist_camera import CameraCalibration, opencv_K_from_tacsplat
 
         m, spec = self.config.mock_devices, self.config.board.spec()
         self.folder.parent.mkdir(parents=True, exist_ok=True)
@@ -261,7 +260,13 @@ class MockDevices:
             work = Path(tmp)
             _write_video(work / self.camera_video.name, frames)
             CameraCalibration(
-                opencv_K(self.K), np.zeros(5), m.camera_width, m.camera_height, 0.0, spec, T_hand_cam=MOCK_T_HAND_CAM
+                opencv_K_from_tacsplat(self.K),
+                np.zeros(5),
+                m.camera_width,
+                m.camera_height,
+                0.0,
+                spec,
+                T_hand_cam=MOCK_T_HAND_CAM,
             ).save(work / self.camera_calibration.name)
             h, w, pix = m.tactile_height, m.tactile_width, m.tactile_pixel_size_m
             reference = render_tactile_rgb(np.zeros((h, w), np.float32), pix)

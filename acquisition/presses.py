@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.config import BoardConfig
-from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected, opencv_K
+from tacsplat.acquisition.logger import BoardPoseSource, CaptureRejected
 from tacsplat.drivers.press_calibration import MIN_CONTACT_POINTS, Press
 from tacsplat.errors import CameraError, ConfigError, HandError, TactileError
 from tacsplat.geometry import invert_pose, make_pose, tactile_depth_to_points
@@ -115,13 +115,13 @@ def board_seen(board: BoardConfig, K: np.ndarray, image_size: tuple[int, int], T
     """The board's PnP pose from its image rendered for a camera (intrinsics ``K`` of ``image_size``) at
     ``T_board_cam``, or None when the board is not seen well enough to capture (a person would move the hand)."""
     from tacsplat.acquisition.mock import render_board
-    from tacsplat.drivers.wrist_camera import T_WORLD_BOARD, board_pose
+    from tacsplat.drivers.wrist_camera import T_WORLD_BOARD, board_pose, opencv_K_from_tacsplat
 
     if T_board_cam[2, 3] <= 0.02:  # the camera under, or on, the board
         return None
     image = render_board(board.spec(), K, *image_size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
     try:
-        pose = board_pose(image, board.spec(), opencv_K(K), None, board.min_corners)
+        pose = board_pose(image, board.spec(), opencv_K_from_tacsplat(K), None, board.min_corners)
     except CameraError:
         return None
     return pose if pose.rms_px <= board.max_reprojection_px else None

@@ -14,7 +14,7 @@ Pixel centres: OpenCV's calibration and detectors put pixel centres at integer
 coordinates; tacsplat's ``K`` (``tacsplat.geometry``) puts them at +0.5. OpenCV
 matrices (``K_opencv``) stay inside this module for OpenCV calls; the one
 conversion to tacsplat's convention is :func:`tacsplat_K_from_opencv`, used by
-:attr:`WristCamera.K`.
+:attr:`WristCamera.K`, and back :func:`opencv_K_from_tacsplat`.
 
 World frame of a real capture (DESIGN.md): the board frame turned so that z is
 up when the board lies face up: origin at the outer corner of the first square,
@@ -54,6 +54,13 @@ def tacsplat_K_from_opencv(K_opencv: np.ndarray) -> np.ndarray:
     K = np.array(K_opencv, dtype=np.float64)
     K[:2, 2] += 0.5
     return K
+
+
+def opencv_K_from_tacsplat(K: np.ndarray) -> np.ndarray:
+    """The inverse, for OpenCV calls on tacsplat's intrinsics (a camera's ``K``)."""
+    K_opencv = np.array(K, dtype=np.float64)
+    K_opencv[:2, 2] -= 0.5
+    return K_opencv
 
 
 MAX_BOARD_SQUARES = 100  # per side
