@@ -12,7 +12,7 @@ Tactile depth and ground truth always use the exact mesh.
 
 from __future__ import annotations
 
-import functools
+import hashlib
 import logging
 import numbers
 from dataclasses import dataclass
@@ -50,19 +50,24 @@ class SimObject:
         return bounding_sphere(self.mesh)[1]
 
 
+_SPHERES: dict[bytes, tuple[np.ndarray, float]] = {}  # vertices' digest -> bounding_sphere (the last few meshes)
+
+
 def bounding_sphere(mesh: trimesh.Trimesh) -> tuple[np.ndarray, float]:
     """Centre [3] and radius of the minimum sphere enclosing the mesh's vertices.
 
-    Kept for the last few vertex arrays (by their bytes): a capture asks for the same object's sphere three
-    times (its radius twice, its collision pieces once), 0.08 s each for the teapot."""
-    centre, radius = _bounding_sphere(np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes())
+    Kept for the last few vertex arrays (by their SHA-1, not their bytes: an imported mesh can be tens of MB): a
+    capture asks for the same object's sphere three times (its radius twice, its collision pieces once), 0.08 s
+    each for the teapot."""
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)  # [V, 3]
+    key = hashlib.sha1(vertices.tobytes()).digest()
+    if key not in _SPHERES:
+        if len(_SPHERES) >= 8:
+            _SPHERES.pop(next(iter(_SPHERES)))
+        centre, radius = trimesh.nsphere.minimum_nsphere(vertices)
+        _SPHERES[key] = (np.asarray(centre, dtype=np.float64), float(radius))
+    centre, radius = _SPHERES[key]
     return centre.copy(), radius
-
-
-@functools.lru_cache(maxsize=8)
-def _bounding_sphere(vertices: bytes) -> tuple[np.ndarray, float]:
-    centre, radius = trimesh.nsphere.minimum_nsphere(np.frombuffer(vertices).reshape(-1, 3))
-    return np.asarray(centre, dtype=np.float64), float(radius)
 
 
 def _rounded_box(extents, radius: float, centre=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:
