@@ -107,7 +107,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     calibration and board), written to ``out`` with the number of stations used; a line per station, then the
     result, its consistency and its change from the rig's previous ``T_hand_cam``. Returns ``T_hand_cam``."""
     from tacsplat.drivers.press_calibration import save_hand_eye
-    from tacsplat.drivers.wrist_camera import CameraCalibration, board_pose, hand_eye_calibration
+    from tacsplat.drivers.wrist_camera import CameraCalibration, board_pose, hand_eye_calibration, undistort
 
     calibration_file = config.path(config.camera.calibration)
     if not calibration_file.is_file():
@@ -123,7 +123,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     spec = config.board.spec()
     if calibration.board != spec:
         say(f"note: {calibration_file.name} was calibrated on another board than the rig's; the rig's board is used")
-    maps = calibration.undistort_maps()  # as the camera driver undistorts its frames
+    maps = calibration.undistort_maps()
     K_opencv = calibration.undistorted_K_opencv()  # the undistorted images' intrinsics
     hands, cams, seen = [], [], []
     for i, station in enumerate(stations):
@@ -142,7 +142,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
                 f"{calibration.width}x{calibration.height} (give the camera's raw images)",
                 poses_file,
             )
-        image = cv2.remap(cv2.cvtColor(raw, cv2.COLOR_BGR2RGB), *maps, cv2.INTER_LINEAR)
+        image = undistort(cv2.cvtColor(raw, cv2.COLOR_BGR2RGB), maps)  # as the camera driver does
         try:
             pose = board_pose(image, spec, K_opencv, None, config.board.min_corners)
         except CameraError as exc:

@@ -56,6 +56,11 @@ def tacsplat_K_from_opencv(K_opencv: np.ndarray) -> np.ndarray:
     return K
 
 
+def undistort(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """A raw image undistorted by :meth:`CameraCalibration.undistort_maps`, as every wrist-camera frame is."""
+    return cv2.remap(image, maps[0], maps[1], cv2.INTER_LINEAR)
+
+
 def opencv_K_from_tacsplat(K: np.ndarray) -> np.ndarray:
     """The inverse, for OpenCV calls on tacsplat's intrinsics (a camera's ``K``)."""
     K_opencv = np.array(K, dtype=np.float64)
@@ -709,7 +714,7 @@ class WristCamera:
         self._video.close()
 
     def undistort(self, image: np.ndarray) -> np.ndarray:
-        return cv2.remap(image, self._maps[0], self._maps[1], cv2.INTER_LINEAR)
+        return undistort(image, self._maps)
 
     def read(self) -> tuple[np.ndarray, float]:
         """``(image [H, W, 3] uint8 RGB undistorted, timestamp seconds)``; CameraError if frames stop."""
