@@ -21,7 +21,7 @@ import numpy as np
 import trimesh
 
 from tacsplat.acquisition.config import TouchPlan, validate_touches
-from tacsplat.acquisition.devices import TWIN_CONTROL
+from tacsplat.acquisition.devices import twin_rig
 from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate
 from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
@@ -171,14 +171,15 @@ def simulate_touches(
                     units.points,
                 )
             else:
+                rig = twin_rig(twin)
                 logger = CaptureLogger(
                     writer,
-                    twin.hand,
-                    [ScaledPad(p, units) for p in twin.tactile_sensors],
-                    twin.view_camera,
-                    twin,  # (its clock)
+                    rig.hand,
+                    [ScaledPad(p, units) for p in rig.sensors],
+                    rig.camera,
+                    rig.clock,
                     ScenePoseSource(twin, units),
-                    TWIN_CONTROL,
+                    rig.control,
                     redo_partial_grasp=False,
                 )
                 planner = TwinPlanner(twin, seed, grasp_config=grasp_config)
