@@ -65,7 +65,12 @@ REGISTERS = {
         Register("velocity_limit", 44, 4, initial=445),
         Register("max_position_limit", 48, 4, initial=4095),
         Register("min_position_limit", 52, 4),
-        Register("shutdown", 63, 1, initial=0x34),  # HardwareError: overheating, electrical shock, overload
+        Register(
+            "shutdown",
+            63,
+            1,
+            initial=int(HardwareError.OVERHEATING | HardwareError.ELECTRICAL_SHOCK | HardwareError.OVERLOAD),
+        ),
         Register("torque_enable", 64, 1),
         Register("led", 65, 1),
         Register("status_return_level", 68, 1, initial=2),
