@@ -1,5 +1,6 @@
 """Lines of code of the package: every `.py` file outside tests/ and hidden folders, counting the lines that hold a
-token that is not a comment, leaving out blank lines and docstrings (module, class and function ones).
+token that is not a comment, leaving out blank lines and docstrings: module, class and function ones, and PEP 257's
+attribute docstrings (a string right after an assignment in a module or class body: the field help tyro reads).
 
     python3 .ci/loc.py [ROOT]      # ROOT: a checkout (default: this one); prints the total, then per top folder
 """
@@ -13,17 +14,25 @@ from pathlib import Path
 SKIPPED = {tokenize.COMMENT, tokenize.NL, tokenize.NEWLINE, tokenize.INDENT, tokenize.DEDENT, tokenize.ENDMARKER}
 
 
+def is_string(statement: ast.stmt) -> bool:
+    return (
+        isinstance(statement, ast.Expr)
+        and isinstance(statement.value, ast.Constant)
+        and isinstance(statement.value.value, str)
+    )
+
+
 def lines_of_code(source: str) -> int:
     docstrings = set()
     for node in ast.walk(ast.parse(source)):
-        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.body:
-            first = node.body[0]
-            if (
-                isinstance(first, ast.Expr)
-                and isinstance(first.value, ast.Constant)
-                and isinstance(first.value.value, str)
-            ):
-                docstrings.update(range(first.lineno, first.end_lineno + 1))
+        if not isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) or not node.body:
+            continue
+        strings = [node.body[0]] if is_string(node.body[0]) else []
+        if isinstance(node, (ast.Module, ast.ClassDef)):
+            pairs = zip(node.body, node.body[1:])
+            strings += [s for prev, s in pairs if is_string(s) and isinstance(prev, (ast.Assign, ast.AnnAssign))]
+        for string in strings:
+            docstrings.update(range(string.lineno, string.end_lineno + 1))
     code = set()
     for token in tokenize.generate_tokens(io.StringIO(source).readline):
         if token.type not in SKIPPED:
