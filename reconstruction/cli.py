@@ -52,6 +52,9 @@ class ExportMesh:
     """fuse the cameras within this angle of a training camera's direction"""
     touches: bool = True
     """fuse the touches' contact points"""
+    seal: float = 0.1
+    """fill the hollows that open to the outside only through gaps narrower than twice this (of the object's
+    radius; 0: none)"""
     all_pieces: bool = False
     """keep every connected piece (default: only the largest, the object)"""
 
@@ -74,6 +77,7 @@ def _export_mesh(args: ExportMesh) -> int:
         views=args.views,
         cone_deg=args.cone_deg,
         touches=args.touches,
+        seal=args.seal,
         object_only=not args.all_pieces,
     )
     try:

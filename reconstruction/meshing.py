@@ -9,7 +9,10 @@ runs marching cubes (scikit-image). Only the cameras within a cone around the
 training cameras' directions are fused (:func:`fused_cameras`). A pixel where
 the render shows no surface marks its whole ray as empty; voxels no view and no touch ever reaches (the
 inside) stay inside, so the zero level set is closed: the mesh is watertight by
-construction. Only the largest connected piece is kept (floaters go) unless
+construction. A view that sees through a semi-transparent stretch of the shell
+carves hollows into the object that open to the outside only through small
+holes; they are sealed (:func:`seal_hollows`, a morphological closing of the
+inside). Only the largest connected piece is kept (floaters go) unless
 asked otherwise. Each vertex is flagged ``observed`` when a training camera sees
 it (the mesh itself occluding) or a touch lies within a voxel of it.
 
@@ -52,6 +55,7 @@ class MeshConfig:
     truncation: float = 3.0  # the TSDF's truncation, in voxels
     touches: bool = True  # fuse the touches' contact points
     touch_weight: float = 1.0  # a touch point's weight, as a share of all the views' together
+    seal: float = 0.1  # hollows open to the outside only through gaps narrower than twice this (of the radius) fill
     object_only: bool = True  # keep only the largest connected piece
 
     def validate(self) -> None:
@@ -62,6 +66,8 @@ class MeshConfig:
                 raise InvalidInputError(f"{key}: must be >= {least}, got {getattr(self, key)}")
         if not 0 < self.cone_deg <= 180:
             raise InvalidInputError(f"cone_deg: must be in (0, 180], got {self.cone_deg}")
+        if not 0 <= self.seal <= 1:
+            raise InvalidInputError(f"seal: must be in [0, 1] of the object's radius, got {self.seal}")
         if not self.truncation >= 1 or not self.touch_weight > 0:
             raise InvalidInputError("truncation must be >= 1 voxel and touch_weight > 0")
 
@@ -185,12 +191,12 @@ class TSDFVolume:
         """The signed distance [X, Y, Z] in truncations: the weighted mean, -1 where nothing reached."""
         return np.where(self.weight > 0, self.sdf / np.maximum(self.weight, 1e-12), -1.0).astype(np.float32)
 
-    def mesh(self) -> trimesh.Trimesh:
-        """The zero level set (marching cubes on the field padded with empty space: closed), outward faces,
-        vertex colours from the nearest voxel."""
+    def mesh(self, seal_voxels: float = 0.0) -> trimesh.Trimesh:
+        """The zero level set (marching cubes on the field, sealed by :func:`seal_hollows`, padded with empty space:
+        closed), outward faces, vertex colours from the nearest voxel."""
         from skimage.measure import marching_cubes
 
-        field = np.pad(self.field(), 1, constant_values=1.0)
+        field = np.pad(seal_hollows(self.field(), seal_voxels), 1, constant_values=1.0)
         field[field == 0] = 1e-6  # (a vertex exactly on a voxel corner would be shared by faces of several cells)
         if field.min() >= 0 or field.max() <= 0:
             raise InvalidInputError("the fused field has no surface (nothing inside the object's box)")
@@ -208,6 +214,23 @@ class TSDFVolume:
             [np.clip(np.rint(color * 255), 0, 255), np.full((len(color), 1), 255)], axis=1
         ).astype(np.uint8)
         return mesh
+
+
+def seal_hollows(field: np.ndarray, reach: float) -> np.ndarray:
+    """``field`` [X, Y, Z] (negative inside) with every hollow that opens to the outside only through gaps narrower
+    than ``2 reach`` voxels made inside (-1): a morphological closing of the inside (grown by ``reach``, the
+    holes that encloses filled, shrunk back by ``reach``). Crevices of the outer surface narrower than that fill
+    too. Outside the box is outside."""
+    from scipy import ndimage
+
+    if reach <= 0:
+        return field
+    pad = int(np.ceil(reach)) + 1
+    solid = np.pad(field < 0, pad)  # [X + 2 pad, ...]
+    grown = ndimage.distance_transform_edt(~solid) <= reach
+    closed = ndimage.distance_transform_edt(ndimage.binary_fill_holes(grown)) > reach
+    hollow = (closed & ~solid)[pad:-pad, pad:-pad, pad:-pad]
+    return np.where(hollow, -1.0, field).astype(np.float32)
 
 
 @dataclass
@@ -241,7 +264,7 @@ def extract_mesh(gaussians, scene, train_frames: list, backend: str, look=None, 
         touch_points, normals = scene.touch_points(), scene.touch_normals()
         known = np.isfinite(normals).all(axis=1)
         volume.integrate_points(touch_points[known], normals[known], config.touch_weight * config.views)
-    mesh = volume.mesh()
+    mesh = volume.mesh(config.seal / config.voxel)
     if config.object_only:
         pieces = mesh.split(only_watertight=False)
         if len(pieces) > 1:

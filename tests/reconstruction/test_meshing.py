@@ -14,7 +14,7 @@ from plyfile import PlyData
 
 from tacsplat.cli import main
 from tacsplat.datasets import SceneWriter
-from tacsplat.reconstruction.meshing import TSDFVolume, sphere_cameras
+from tacsplat.reconstruction.meshing import TSDFVolume, seal_hollows, sphere_cameras
 from tacsplat.reconstruction.metrics import mesh_metrics
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
@@ -69,6 +69,24 @@ def test_touch_points_move_the_surface_where_they_landed(sphere_volume):
     assert np.abs(radii[polar < 12] - 0.97 * R).max() < voxel
     assert np.abs(radii[polar > 40] - R).max() < voxel
     assert mesh.is_watertight
+
+
+def test_a_hollow_behind_a_narrow_hole_is_sealed_and_a_wide_notch_stays_open():
+    """A ball (radius 20 voxels) with a hollow inside (radius 8) that reaches the outside through a tunnel 2 voxels
+    wide, and a notch 14 voxels wide cut into its other side: sealing with a reach of 3 voxels fills the hollow
+    and the tunnel and leaves the notch and the outside alone."""
+    x, y, z = np.meshgrid(*[np.arange(64) - 31.5] * 3, indexing="ij")
+    r = np.sqrt(x**2 + y**2 + z**2)
+    hollow = r < 8
+    tunnel = (x > 0) & (np.abs(y) < 1) & (np.abs(z) < 1)
+    notch = (x < -12) & (np.abs(y) < 7)
+    field = np.where((r < 20) & ~hollow & ~tunnel & ~notch, -1.0, 1.0).astype(np.float32)
+    sealed = seal_hollows(field, 3.0)
+    assert np.all(sealed[hollow] == -1) and np.all(sealed[tunnel & (r < 18)] == -1)  # (to within its mouth)
+    assert np.all(sealed[r > 21] == 1)  # the outside
+    assert np.all(sealed[notch & (x < -14) & (np.abs(y) < 3)] == 1)  # the notch, away from its walls
+    assert np.array_equal(seal_hollows(field, 0.0), field)
+    assert np.array_equal(sealed[field < 0], field[field < 0])  # the inside is only ever added to
 
 
 def test_mesh_metrics_of_the_truth_and_of_a_grown_copy():
