@@ -179,9 +179,10 @@ def finger_joints(joint_names: Sequence[str]) -> dict[str, list[int]]:
 class CaptureLogger:
     """Writes views and grasps through ``writer``; the devices are seen only through their Protocols.
 
-    Each finger's joints are those named after it (:func:`finger_joints`). Opening a logger on a resumed writer first removes a grasp cut short (a last grasp with fewer touches
-    than its hand motion's ``touch_t`` lists, or than sensors), unless ``redo_partial_grasp`` is False (a scene
-    another tool wrote, whose grasps may hold fewer touches).
+    Each finger's joints are those named after it (:func:`finger_joints`). Opening a logger on a resumed writer
+    first removes a grasp cut short (a last grasp with fewer touches than its hand motion's ``touch_t`` lists, or
+    than sensors), unless ``redo_partial_grasp`` is False (a scene another tool wrote, whose grasps may hold fewer
+    touches).
     """
 
     writer: SceneWriter
