@@ -16,7 +16,8 @@ another value of any of them, naming each and both values. It compares:
   and the sha256 of its content), the object radius, the resolution, the seed,
   and the twin's own settings (physics, hand, tactile pad, collision
   decomposition, grasp sampling and control, view placement), which come with
-  the tacsplat version rather than from an option;
+  the tacsplat version rather than from an option (a scene captured with the
+  slide, since removed, cannot be continued);
 * a real rig: ``--mock`` (and the emulated devices' settings), the board that
   defines the world frame, the hand-eye transform, the servo ids, the tactile
   sensor model and mounting transforms, and the sha256 of each calibration file
@@ -35,8 +36,8 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Iterator
 
-from tacsplat.acquisition.config import RigConfig
-from tacsplat.acquisition.devices import Rig, open_rig, twin_config, twin_control
+from tacsplat.acquisition.config import SLIDE_KEYS, SLIDE_WHY, RigConfig
+from tacsplat.acquisition.devices import TWIN_CONTROL, Rig, open_rig, twin_config
 from tacsplat.datasets import SceneMeta, SceneWriter
 from tacsplat.datasets.outputs import ensure_output_dir
 from tacsplat.datasets.writer import JOURNAL, has_content
@@ -53,6 +54,9 @@ _OLDER_EXTRAS = (
     ("contact_timeconst_s", "twin.contact_timeconst"),
     ("gel_compliance_m", "twin.hand_geometry.gel_compliance"),
 )
+# The slide's settings, which twin captures recorded under the grasp control until the slide was removed: without it
+# (slide_m 0) they changed nothing; a scene captured with it (slide_m > 0) cannot be continued (check_resume).
+_SLIDE = tuple(f"twin.grasp_control.{key}" for key in SLIDE_KEYS)
 _MISSING = object()
 
 
@@ -120,7 +124,11 @@ def recorded_settings(writer: SceneWriter) -> dict:
     if meta.source == "sim":
         recorded["sim.texture"] = "none"  # what every twin capture was before the texture became a setting
     if SETTINGS_KEY in meta.extra:
-        return {**recorded, **_flatten(meta.extra[SETTINGS_KEY])}
+        settings = _flatten(meta.extra[SETTINGS_KEY])
+        slide_m = settings.get(_SLIDE[0])
+        for key in _SLIDE:
+            settings.pop(key, None)
+        return {**recorded, **settings, **({_SLIDE[0]: slide_m} if slide_m else {})}
     # A scene of an older version records no capture_settings; it resumes when what it does record agrees: the rig
     # kind, object and plan; a twin's resolution (its image width); and the extras of _OLDER_EXTRAS it holds.
     if meta.source == "sim":
@@ -185,7 +193,7 @@ def _sim_settings(config: RigConfig) -> dict:
         },
         "twin": {
             **twin,
-            "grasp_control": asdict(twin_control(config)),
+            "grasp_control": asdict(TWIN_CONTROL),
             "grasping": asdict(GraspConfig()),
             "views": asdict(ViewConfig()),
         },
@@ -269,6 +277,8 @@ def _show(value: Any) -> str:
 
 
 def _describe(key: str, scene: Path, old: Any, new: Any) -> str:
+    if key == _SLIDE[0]:
+        return f"{scene} was captured with the slide (slide_m {_show(old)}) and {SLIDE_WHY}"
     if key.endswith("_sha256") and isinstance(old, str) and isinstance(new, str):
         return f"{scene} was captured with a file of sha256 {old[:12]}, this run's file has sha256 {new[:12]}"
     return f"{scene} was captured with {_show(old)}, this run asks for {_show(new)}"

@@ -177,9 +177,6 @@ class SimCapture(TouchModel):
     texture: str = "none"
     """the object's surface: none (its one colour, the glossy library's) or checker (a checker of its colour and a
     contrasting grey, for measuring on a textured object)"""
-    slide_m: float = 0.0
-    """after each press, every finger in contact slides its pad across the surface this many metres each way and
-    back (0 to 0.1; 0: press only), reading the pad as it goes (grasp.slide_m)"""
     resume: bool = False
     """continue a capture that was interrupted"""
 
@@ -391,7 +388,6 @@ _SIM_OPTIONS = {  # sim_rig_config's keys
     "sim.resolution": "--resolution",
     "sim.seed": "--seed",
     "sim.texture": "--texture",
-    "grasp.slide_m": "--slide-m",
     "plan.views.train": "--views",
     "plan.views.test": "--test-views",
     "plan.grasps.count": "--grasps",

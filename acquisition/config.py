@@ -202,8 +202,7 @@ class TactileConfig:
 @dataclass(frozen=True)
 class GraspControl:
     """How the logger closes the hand: a speed-limited ramp toward ``close_pose``, each finger stopping when it
-    stalls, then a wait until the joints settle; then the read, the slide (when ``slide_m`` > 0), then
-    ``open_pose``."""
+    stalls, then a wait until the joints settle; then the read, then ``open_pose``."""
 
     close_pose: tuple[JointAngle, ...] = (0.0, 1.2, 1.0, 1.0) * 3 + (1.2, 0.6, 0.6, 0.8)  # [16] joint positions
     open_pose: tuple[JointAngle, ...] = (0.0,) * 16  # [16] joint positions
@@ -216,12 +215,6 @@ class GraspControl:
     # give up waiting (the reading is still taken, with a warning)
     max_close_s: Annotated[float, positive(60.0, "s")] = 5.0
     open_s: Annotated[float, bounded(0, 60.0, "s")] = 0.3  # wait after opening
-    # after the press, each finger in contact slides its pad across the surface (CaptureLogger._slide): slide_m
-    # one way, twice that back and again to where it pressed (0: no slide), pushing slide_push_m into the surface
-    slide_m: Annotated[float, bounded(0, 0.1, "m")] = 0.0
-    slide_speed_m_s: Annotated[float, positive(1.0, "m/s")] = 0.04
-    slide_push_m: Annotated[float, bounded(0, 0.01, "m")] = 0.001
-    stream_period_s: Annotated[float, positive(1.0, "s")] = 0.04  # the pads are read this often while sliding
 
 
 @with_config(YAML_SECTION)
@@ -235,12 +228,38 @@ class ViewPlan:
 
 
 GRASP_MODES = ("operator", "random")
-# next-best touch (grasps where the reconstruction so far was least sure) was removed: it did not beat random grasps
-# at equal budgets (docs/experiments.md); a rig file that still asks for it is refused, naming the field
+# Mechanisms an ablation showed at no gain were removed (docs/experiments.md); a rig file (or a batch file's capture
+# job) that still asks for one is refused with one error naming the key and why (refuse_removed).
+# next-best touch: grasps where the reconstruction so far was least sure; it did not beat random grasps at equal
+# budgets
 REMOVED_NEXT_BEST = (
     "next-best touch was removed (it did not beat random grasps at equal budgets, docs/experiments.md): "
     "use mode 'random' (or 'operator') and drop candidates, selection_steps and uncertainty"
 )
+# the slide: after each press, every finger in contact slid its pad across the surface, read as it went; 5 slid
+# presses did not beat 14 plain ones at equal robot time
+SLIDE_WHY = "the slide was removed (it did not beat more presses at equal robot time, docs/experiments.md)"
+REMOVED_SLIDE = f"{SLIDE_WHY}: remove the key"
+SLIDE_KEYS = ("slide_m", "slide_speed_m_s", "slide_push_m", "stream_period_s")  # GraspControl's, as it had them
+# a rig file's keys of the removed mechanisms, in the order they are looked for: key -> (the value refused, or None
+# for any value, why)
+REMOVED_KEYS = {
+    "plan.grasps.mode": ("next-best", REMOVED_NEXT_BEST),
+    **{f"plan.grasps.{key}": (None, REMOVED_NEXT_BEST) for key in ("candidates", "selection_steps", "uncertainty")},
+    **{f"grasp.{key}": (None, REMOVED_SLIDE) for key in SLIDE_KEYS},
+}
+
+
+def refuse_removed(data: Any, keys: dict = REMOVED_KEYS, prefix: str = "", source=None) -> None:
+    """One ConfigError naming the first of ``keys`` (dotted paths into the mapping ``data``, as
+    :data:`REMOVED_KEYS`) that ``data`` sets (to the value refused, where one is given), and why it went."""
+    for path, (refused, why) in keys.items():
+        *sections, key = path.split(".")
+        section = data
+        for name in sections:
+            section = section.get(name) if isinstance(section, dict) else None
+        if isinstance(section, dict) and key in section and (refused is None or section[key] == refused):
+            raise ConfigError(prefix + path, why, source)
 
 
 @with_config(YAML_SECTION)
@@ -489,12 +508,7 @@ def parse_rig(
     for key in _SET_BY_LOAD_RIG:
         if key in data:
             raise ConfigError(key, f"unknown key (expected one of {sorted(_section_fields(RigConfig, ()))})", src)
-    grasps = data["plan"].get("grasps") if isinstance(data.get("plan"), dict) else None
-    if isinstance(grasps, dict):
-        removed = ["mode"] if grasps.get("mode") == "next-best" else []
-        removed += [k for k in ("candidates", "selection_steps", "uncertainty") if k in grasps]
-        if removed:
-            raise ConfigError(f"plan.grasps.{removed[0]}", REMOVED_NEXT_BEST, src)
+    refuse_removed(data, source=src)
     data = {k: v for k, v in data.items() if not (v is None and k in _SECTIONS)}  # an empty section: the defaults
     config = dataclasses.replace(checked(RigConfig, data, "", src), source=src, mock=bool(mock))
     validate(config, check_files)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -53,7 +53,7 @@ def open_rig(config: RigConfig, on_hand=None, hand_eye_required: bool = True) ->
         from tacsplat.sim.twin import SimTwin
 
         with SimTwin(twin_config(config)) as twin:
-            yield twin_rig(twin, twin_control(config))
+            yield twin_rig(twin)
         return
     from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration, WristCamera
@@ -167,14 +167,6 @@ TWIN_CONTROL = GraspControl(
     max_close_s=2.0,
     open_s=0.2,
 )
-
-
-SLIDE_FIELDS = ("slide_m", "slide_speed_m_s", "slide_push_m", "stream_period_s")
-
-
-def twin_control(config: RigConfig) -> GraspControl:
-    """The twin's grasp control (:data:`TWIN_CONTROL`) with the rig config's slide (``grasp.slide_m`` ...)."""
-    return replace(TWIN_CONTROL, **{k: getattr(config.grasp, k) for k in SLIDE_FIELDS})
 
 
 def twin_config(config: RigConfig):

@@ -5,9 +5,8 @@ devices, the clock (``time.sleep`` or the twin's simulated time) and the pose
 source (board PnP with its reprojection error, or the twin's ground truth).
 Everything is written through :class:`~tacsplat.datasets.SceneWriter`, so a
 capture killed at any moment resumes losing at most the record in flight; a
-grasp is a group of touches (one per sensor, then the frames of its slide) that
-resume and undo treat as one record: a grasp cut short is removed whole and
-redone.
+grasp is a group of touches (one per sensor) that resume and undo treat as one
+record: a grasp cut short is removed whole and redone.
 """
 
 from __future__ import annotations
@@ -180,10 +179,10 @@ def finger_joints(joint_names: Sequence[str]) -> dict[str, list[int]]:
 class CaptureLogger:
     """Writes views and grasps through ``writer``; the devices are seen only through their Protocols.
 
-    Each finger's joints are those named after it (:func:`finger_joints`), and each sensor is named after its
-    finger. Opening a logger on a resumed writer first removes a grasp cut short (a last grasp with fewer touches
-    than its hand motion's ``touch_t`` lists, or than sensors), unless ``redo_partial_grasp`` is False (a scene
-    another tool wrote, whose grasps may hold fewer touches).
+    Each finger's joints are those named after it (:func:`finger_joints`). Opening a logger on a resumed writer
+    first removes a grasp cut short (a last grasp with fewer touches than its hand motion's ``touch_t`` lists, or
+    than sensors), unless ``redo_partial_grasp`` is False (a scene another tool wrote, whose grasps may hold fewer
+    touches).
     """
 
     writer: SceneWriter
@@ -234,7 +233,8 @@ class CaptureLogger:
         if (hand_file := w.touches[-1].hand_file) is not None:
             with np.load(w.path / hand_file, allow_pickle=False) as arrays:
                 touch_t = HandMotion.from_arrays(arrays).touch_t
-        want = len(self.sensors) if touch_t is None else len(touch_t)  # (a slide adds touches)
+        # (a grasp of an older scene captured with the slide, since removed, holds more touches than sensors)
+        want = len(self.sensors) if touch_t is None else len(touch_t)
         if have >= want:
             return 0
         self._remove_last_grasp()
@@ -292,13 +292,10 @@ class CaptureLogger:
         t0 = self.clock.time
         self._samples = []
         try:
-            stopped_by, settled, held = self._close(q_close)
+            stopped_by, settled = self._close(q_close)
             close_s = self.clock.time - t0
             self.hand_state = "closed"
-            readings = self._read(self.sensors, t0)
-            pressed = [s for s, (_, _, reading) in zip(self.sensors, readings) if reading.in_contact]
-            if c.slide_m > 0 and pressed:
-                readings += self._slide(held, pressed, t0)
+            readings = self._read(t0)
             touch_t = np.array([t for t, _, _ in readings])
             hand_file = self.writer.add_hand_motion(self._motion(index, T_world_hand, t0, touch_t))
             touches = [
@@ -344,10 +341,10 @@ class CaptureLogger:
             self._samples.append((self.clock.time, MOTION_PHASES.index(phase), q, np.array(target, float), effort))
         return q
 
-    def _read(self, sensors: Sequence[TactileSensor], t0: float) -> list[tuple[float, str, TactileReading]]:
+    def _read(self, t0: float) -> list[tuple[float, str, TactileReading]]:
         """``(seconds since t0, sensor name, reading in the hand frame)`` of each sensor, read now."""
         rows = []
-        for sensor in sensors:
+        for sensor in self.sensors:
             reading = sensor.read()  # (then the time: after the read, as a real sensor's frame arrives)
             if reading.frame != "hand":  # a driver outside the package could place its pad elsewhere
                 raise InvalidInputError(
@@ -355,44 +352,6 @@ class CaptureLogger:
                 )
             rows.append((self.clock.time - t0, sensor.name, reading))
         return rows
-
-    def _slide(
-        self, held: np.ndarray, sensors: Sequence[TactileSensor], t0: float
-    ) -> list[tuple[float, str, TactileReading]]:
-        """Slide each of ``sensors``' pads along the surface it pressed, reading them every ``stream_period_s``;
-        returns the readings in contact (as :meth:`_read`).
-
-        Each poll moves the pad, by the hand model's kinematics (:meth:`Hand.link_boxes`, damped least squares
-        on its finger's joints), ``slide_speed_m_s`` across the finger (the gel's y axis, kept in the gel's
-        plane) and ``slide_push_m`` into the surface along the gel's outward normal: a light contact that follows the
-        surface as it curves (a current-limited servo on a real hand). The pad goes ``slide_m`` one way, twice
-        that back, and ``slide_m`` again to where it pressed. The other fingers hold their targets ``held``."""
-        c = self.control
-        lo, hi = np.asarray(self.hand.joint_limits, dtype=np.float64).T
-        gels = {name: i for i, name in enumerate(self.hand.link_names)}
-        sliding = [(self.fingers[s.name], gels[f"{s.name}_gel"]) for s in sensors if f"{s.name}_gel" in gels]
-        target = np.array(held, dtype=np.float64)
-        leg = c.slide_m / c.slide_speed_m_s  # seconds of each of the four legs (out, back across, back)
-        frames, t_start = [], self.clock.time
-        next_frame = t_start + c.stream_period_s
-        while (elapsed := self.clock.time - t_start) < 4 * leg:
-            q = self._sample("slide", target)
-            direction = 1.0 if elapsed < leg or elapsed >= 3 * leg else -1.0
-            for joints, gel in sliding:
-                J, pad = _pad_jacobian(self.hand, q, joints, gel)  # [3, j], [4, 4] where the pad is
-                normal, across = pad[:3, 2], pad[:3, 1]
-                # the target runs on along the surface at the slide's speed, and stays slide_push_m past the pad
-                lead = normal @ (_pad_pose(self.hand, target, gel)[:3, 3] - pad[:3, 3])
-                move = direction * c.slide_speed_m_s * c.poll_s * across + (c.slide_push_m - lead) * normal
-                # damped least squares (1 mm): no large step near a singular pose
-                target[joints] += J.T @ np.linalg.solve(J @ J.T + (1e-3) ** 2 * np.eye(3), move)  # [j]
-            target = np.clip(target, lo, hi)  # (at a limit the pad slides no further that way)
-            self.hand.command_joint_positions(target)
-            self.clock.sleep(c.poll_s)
-            if self.clock.time >= next_frame - 1e-9:
-                next_frame += c.stream_period_s
-                frames += [row for row in self._read(sensors, t0) if row[2].in_contact]
-        return frames
 
     def _motion(self, index: int, T_world_hand: np.ndarray, t0: float, touch_t: np.ndarray) -> HandMotion:
         """The grasp's :class:`HandMotion` from the samples so far, with the hand's boxes placed at each."""
@@ -414,10 +373,10 @@ class CaptureLogger:
             touch_t=touch_t,
         )
 
-    def _close(self, q_close: np.ndarray) -> tuple[dict[str, str], bool, np.ndarray]:
+    def _close(self, q_close: np.ndarray) -> tuple[dict[str, str], bool]:
         """Ramp the targets toward ``q_close`` at ``close_speed_rad_s``; a finger whose joints lag their target by
         ``stall_error_rad`` stops there (stalled on the object); then wait until the joints settle. Returns each
-        finger's state, whether they settled, and the targets last commanded."""
+        finger's state and whether they settled."""
         c = self.control
         lo, hi = np.asarray(self.hand.joint_limits, dtype=np.float64).T
         q_close = np.clip(q_close, lo, hi)
@@ -442,10 +401,10 @@ class CaptureLogger:
             moving = np.abs(q - q_prev).max()
             still = still + 1 if moving < c.settle_tol_rad else 0
             if "closing" not in state.values() and still >= c.settle_polls:
-                return state, True, target
+                return state, True
             if self.clock.time >= t_end:
                 log.warning("the fingers did not settle within %.2f s; reading anyway", c.max_close_s)
-                return {f: "timeout" if s == "closing" else s for f, s in state.items()}, False, target
+                return {f: "timeout" if s == "closing" else s for f, s in state.items()}, False
             self.hand.command_joint_positions(target)
             q_prev = q
             self.clock.sleep(c.poll_s)
@@ -470,24 +429,3 @@ class CaptureLogger:
             w.remove_last()
             removed += 1
         return g, removed
-
-
-def _pad_pose(hand: Hand, q: np.ndarray, gel: int) -> np.ndarray:
-    """The pad's pose [4, 4] in the hand frame at joints ``q``: the gel box's (``Hand.link_boxes``), moved to its
-    outer face, the undeformed gel surface."""
-    T, half = hand.link_boxes(q)
-    pad = T[gel].copy()
-    pad[:3, 3] += pad[:3, 2] * half[gel, 2]
-    return pad
-
-
-def _pad_jacobian(hand: Hand, q: np.ndarray, joints: np.ndarray, gel: int, eps: float = 1e-5):
-    """The pad centre's position Jacobian [3, len(joints)] at joints ``q`` (forward differences of
-    :func:`_pad_pose`), and the pad's pose [4, 4] there."""
-    pad = _pad_pose(hand, q, gel)
-    J = np.empty((3, len(joints)))
-    for k, j in enumerate(joints):
-        dq = np.array(q, dtype=np.float64)
-        dq[j] += eps
-        J[:, k] = (_pad_pose(hand, dq, gel)[:3, 3] - pad[:3, 3]) / eps
-    return J, pad

@@ -25,16 +25,7 @@ import time
 from pathlib import Path
 
 from tacsplat.acquisition.capture_scene import open_scene
-from tacsplat.acquisition.config import (
-    CapturePlan,
-    GraspControl,
-    GraspPlan,
-    RigConfig,
-    SimConfig,
-    TouchPlan,
-    ViewPlan,
-    validate,
-)
+from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, TouchPlan, ViewPlan, validate
 from tacsplat.acquisition.logger import CaptureLogger
 from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
@@ -55,16 +46,13 @@ def sim_rig_config(
     touch_model: str = "gel",
     surface_points: int = TouchPlan.surface_points,
     texture: str = "none",
-    slide_m: float = GraspControl.slide_m,
 ) -> RigConfig:
-    """The ``rig: sim`` config of ``tacsplat sim-capture``'s options (``surface_points``: the paper model's;
-    ``slide_m``: each finger in contact slides its pad after the press, ``GraspControl``); a value out of its range
-    is a ConfigError naming its key (``sim.object_radius``)."""
+    """The ``rig: sim`` config of ``tacsplat sim-capture``'s options (``surface_points``: the paper model's); a
+    value out of its range is a ConfigError naming its key (``sim.object_radius``)."""
     if problem := object_radius_problem(object_radius):  # (before the rig config's check, with what it means)
         raise ConfigError("sim.object_radius", problem)
     config = RigConfig(
         rig="sim",
-        grasp=GraspControl(slide_m=slide_m),
         sim=SimConfig(
             object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed, texture=texture
         ),

@@ -45,6 +45,7 @@ def summarise(path) -> dict:
             "seconds_per_grasp": {"min": min(durations), "median": float(np.median(durations)), "max": max(durations)},
             "effort_unit": motions[0].effort_unit,
             "peak_effort": float(np.nanmax([np.nanmax(np.abs(m.effort), initial=0.0) for m in motions])),
+            # grasps that slid their pads (in scenes captured before the slide was removed)
             "slides": sum(bool((m.phase == MOTION_PHASES.index("slide")).any()) for m in motions),
         }
         if motions

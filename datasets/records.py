@@ -187,7 +187,8 @@ class Touch(_ByValue):
     hand_file: str | None = None  # the grasp's HandMotion (scenes of a hand capture; None: not recorded)
 
 
-# HandMotion.phase: where the hand was, closing, opening, sliding its pads along the surface in contact
+# HandMotion.phase: where the hand was, closing, opening; "slide" (its pads sliding along the surface in contact)
+# only in scenes captured before the slide was removed (docs/experiments.md), kept at its index so that they decode
 MOTION_PHASES = ("preshape", "close", "open", "slide")
 
 

@@ -139,18 +139,7 @@ _RIG_FIELDS = {
     "plan.grasps.count": "grasps",
     "plan.touches.model": "touch_model",
     "sim.texture": "texture",
-    "grasp.slide_m": "slide_m",
 }  # the rig config's fields a capture job sets: its fields of the same name as sim_rig_config's arguments
-
-
-def check_slide(slide_m: float, option: str) -> None:
-    """A capture's slide (``GraspControl.slide_m``) checked before any job runs: a ConfigError naming ``option``."""
-    from tacsplat.acquisition.config import GraspControl, checked
-
-    try:
-        checked(GraspControl, GraspControl(slide_m=slide_m))
-    except ConfigError as exc:
-        raise ConfigError(option, str(exc).removeprefix(f"{exc.key}: ")) from None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -169,7 +158,6 @@ class CaptureJob(BatchJob):
     resolution: int = 128  # image width and height, pixels
     touch_model: Literal["gel", "paper"] = "gel"
     texture: Literal["none", "checker"] = "none"  # the object's surface (tacsplat.sim.objects.TEXTURES)
-    slide_m: float = 0.0  # each finger in contact slides its pad this far each way after the press (GraspControl)
 
     def rig(self):
         """The rig config of the capture."""
@@ -443,6 +431,10 @@ def _parse_job(i: int, item, path: Path, out: Path):
     """One job of the file: validated by pydantic (strictly, as JSON), paths resolved, named."""
     if not isinstance(item, dict):
         raise ConfigError(f"jobs[{i}]", f"expected a mapping with a kind ({', '.join(KINDS)}), got {item!r}", path)
+    if item.get("kind") == "capture":  # a capture's slide_m, before the slide was removed: refused, saying why
+        from tacsplat.acquisition.config import REMOVED_SLIDE, refuse_removed
+
+        refuse_removed(item, {"slide_m": (None, REMOVED_SLIDE)}, f"jobs[{i}].", path)
     from pydantic import ValidationError
 
     try:

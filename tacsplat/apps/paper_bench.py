@@ -49,7 +49,7 @@ from typing import Annotated, Literal
 import numpy as np
 import tyro
 
-from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob, check_slide
+from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
@@ -133,7 +133,6 @@ class PaperBenchConfig:
     preset: str = "default"  # training preset (reconstruction.config.PRESETS): default or paper
     touch_model: str = "gel"  # gel (grasps with gel contact patches) or paper (the official code's sampling)
     texture: str = "none"  # the objects' surface: their one colour, or "checker" (tacsplat.sim.objects.TEXTURES)
-    slide_m: float = 0.0  # each finger in contact slides its pad this far each way after the press (GraspControl)
     mesh: bool = False  # also export each run's meshes (with and without touches) and report the mesh metrics
     dataset: str | None = None  # a folder of imported scenes instead of the twin's objects (module docstring)
     downscale: int = 1  # with a dataset: its images trained and evaluated at 1/downscale of their size
@@ -175,7 +174,6 @@ class PaperBenchConfig:
             raise ConfigError("touch_model", f"must be gel or paper, got {self.touch_model!r}")
         if problem := texture_problem(self.texture):
             raise ConfigError("texture", problem)
-        check_slide(self.slide_m, "slide_m")
 
     def _validate_dataset(self) -> None:
         folder = Path(self.dataset)
@@ -198,10 +196,8 @@ class PaperBenchConfig:
     @property
     def scene_tag(self) -> str:
         """Suffix of scene folders that are not gel touches on untextured objects (so they never mix)."""
-        return (
-            ("" if self.touch_model == "gel" else f"-{self.touch_model}-touches")
-            + ("" if self.texture == "none" else f"-{self.texture}")
-            + ("" if self.slide_m == 0 else f"-slide{self.slide_m * 1000:g}mm")
+        return ("" if self.touch_model == "gel" else f"-{self.touch_model}-touches") + (
+            "" if self.texture == "none" else f"-{self.texture}"
         )
 
     @property
@@ -291,7 +287,7 @@ class PaperBench:
             seed=seed,
             views=MINIMAL_VIEWS if setting == "minimal" else c.full_views,
             name=f"capture {scene.relative_to(self.out)}",
-            **{k: getattr(c, k) for k in ("test_views", "grasps", "resolution", "touch_model", "texture", "slide_m")},
+            **{k: getattr(c, k) for k in ("test_views", "grasps", "resolution", "touch_model", "texture")},
         )
 
     def reconstruct_job(self, run: Run, needs: tuple[str, ...] = ()) -> ReconstructJob:
@@ -846,9 +842,6 @@ class PaperBenchCommand:
     contrasting grey); textured scenes and runs get their own folders"""
     test_views: int | None = None
     """held-out test views (default 12; quick 8)"""
-    slide_m: float = 0.0
-    """after each press every finger in contact slides its pad this many metres each way and back (0: press only);
-    such scenes and runs get their own folders"""
     settings: str | None = None
     """comma-separated: minimal,full-views (quick: minimal)"""
     seeds: str | None = None
@@ -876,7 +869,7 @@ class PaperBenchCommand:
                 setattr(config, key, getattr(self, key))
         if self.seeds is not None:
             config.seeds = comma_separated_ints(self.seeds, "--seeds")
-        config.preset, config.texture, config.slide_m = self.preset, self.texture, self.slide_m
+        config.preset, config.texture = self.preset, self.texture
         config.touch_model = self.touch_model or ("gel" if self.dataset is None else "paper")
         config.dataset = None if self.dataset is None else str(self.dataset)
         config.downscale, config.mesh = self.downscale, self.mesh
