@@ -38,7 +38,7 @@ from pydantic import (
 )
 
 from tacsplat.drivers.wrist_camera import CharucoBoardSpec
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, pydantic_problem
 from tacsplat.geometry import make_pose, rigidity_problem
 from tacsplat.sim import OBJECT_RADIUS_RANGE_M
 from tacsplat.sim.hand import FINGER_NAMES, JOINT_NAMES
@@ -440,15 +440,6 @@ _EXPECTED = {  # what each kind of pydantic error (by its first word) means in t
 }
 
 
-def _key(loc: tuple) -> str:
-    """A pydantic error location as the YAML's field path: ``tactile.sensors[2].T_fingertip_sensor``."""
-    key = ""
-    for part in loc:
-        if part != "[key]":  # a mapping's key: its path is the key's own
-            key += f"[{part}]" if isinstance(part, int) else (f".{part}" if key else str(part))
-    return key
-
-
 def _section_fields(cls: type, loc: tuple) -> list[str]:
     """The keys the section at ``loc`` (a path of field names, list indices and mapping keys) of ``cls`` may hold."""
     in_mapping = False
@@ -476,22 +467,11 @@ def checked(cls: type, data: Any, prefix: str = "", source=None):
     try:  # as JSON, whose strict mode still reads a list as a tuple and a mapping as a dataclass
         return _adapter(cls).validate_json(json.dumps(data, default=str), strict=True)
     except ValidationError as exc:
-        error = exc.errors(include_url=False)[0]
-    loc, kind = error["loc"], error["type"]
-    key = prefix + _key(loc)
-    if kind == "unexpected_keyword_argument":
-        message = f"unknown key (expected one of {sorted(_section_fields(cls, loc[:-1]))})"
-    elif kind == "missing" and isinstance(loc[-1], int):  # a fixed-length list that is too short
-        key, message = prefix + _key(loc[:-1]), f"expected a list of more than {loc[-1]} values"
-    elif kind == "missing":
-        message = "missing (a required key)"
-    elif kind.split("_")[0] in _EXPECTED:
-        message = f"expected {_EXPECTED[kind.split('_')[0]]}, got {error['input']!r}"
-    elif kind == "value_error":  # one of the validators above
-        message = str(error["ctx"]["error"])
-    else:
-        key, message = key or "(top level)", error["msg"]
-    raise ConfigError(key, message, source)
+
+        def unknown(loc: tuple) -> str:
+            return f"expected one of {sorted(_section_fields(cls, loc[:-1]))}"
+
+        raise ConfigError(*pydantic_problem(exc, "key", prefix, unknown, _EXPECTED), source) from None
 
 
 def parse_rig(

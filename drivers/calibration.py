@@ -25,7 +25,7 @@ from typing import Annotated, Any, Sequence, TypeVar
 import numpy as np
 
 from tacsplat.drivers.dynamixel_table import CENTRE_TICK, TICKS_PER_REV
-from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.errors import ConfigError, InvalidInputError, pydantic_problem
 from tacsplat.files import atomic_write
 from tacsplat.geometry import rigidity_problem
 
@@ -100,20 +100,10 @@ def read_calibration(
 def field_error(exc, model) -> tuple[str, str]:
     """pydantic's first error (a ValidationError of ``model``) as (the field's path, ``presses[0].file``; what is
     wrong)."""
-    error = exc.errors(include_url=False)[0]
-    loc, kind = error["loc"], error["type"]
-    key = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc if part != "[key]")
-    if kind == "value_error":  # one of the checks below
-        message = str(error["ctx"]["error"])
-    elif kind == "extra_forbidden":
-        message = "unknown field" + (f" (expected {list(model.model_fields)})" if len(loc) == 1 else "")
-    elif kind == "missing":
-        message = "missing (a required field)"
-    elif kind == "model_type":
-        message = f"expected a JSON object, got {error['input']!r}"
-    else:
-        message = f"{error['msg']}, got {error['input']!r}"
-    return key.removeprefix(".") or "(top level)", message
+    fields = list(model.model_fields)
+    return pydantic_problem(
+        exc, unknown=lambda loc: f"expected {fields}" if len(loc) == 1 else None, expected={"model": "a JSON object"}
+    )
 
 
 def json_array(shape: tuple[int | None, ...], value) -> np.ndarray:

@@ -6,6 +6,7 @@ tensor) so that one message is enough to fix the input.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 
@@ -74,3 +75,36 @@ class StorageError(TacsplatError):
         self.path = Path(path)
         self.reason = reason
         super().__init__(f"{self.path}: {reason}")
+
+
+def pydantic_problem(
+    error,
+    word: str = "field",
+    prefix: str = "",
+    unknown: Callable[[tuple], str | None] | None = None,
+    expected: dict[str, str] | None = None,
+) -> tuple[str, str]:
+    """pydantic's first error (a ValidationError, or one entry of its ``errors()``) as (the field's path after
+    ``prefix``: ``presses[0].file``; what is wrong). ``word`` names a field ("key" in a YAML), ``unknown(loc)`` notes
+    what may stand at an unknown one's place, ``expected`` says what each kind of error (by its first word: ``int``)
+    expects."""
+    if not isinstance(error, dict):
+        error = error.errors(include_url=False)[0]
+    loc, kind = error["loc"], error["type"]
+
+    def path(loc: tuple) -> str:  # a mapping's key ("[key]") is named by the key itself
+        key = "".join(f"[{part}]" if isinstance(part, int) else f".{part}" for part in loc if part != "[key]")
+        return (prefix + key.removeprefix(".")) or "(top level)"
+
+    if kind in ("extra_forbidden", "unexpected_keyword_argument"):  # a model's, a dataclass's
+        note = unknown(loc) if unknown else None
+        return path(loc), f"unknown {word}" + (f" ({note})" if note else "")
+    if kind == "missing" and isinstance(loc[-1], int):  # a fixed-length list that is too short
+        return path(loc[:-1]), f"expected a list of more than {loc[-1]} values"
+    if kind == "missing":
+        return path(loc), f"missing (a required {word})"
+    if expected and kind.split("_")[0] in expected:
+        return path(loc), f"expected {expected[kind.split('_')[0]]}, got {error['input']!r}"
+    if kind == "value_error":  # a validator's own message
+        return path(loc), str(error["ctx"]["error"])
+    return path(loc), f"{error['msg']}, got {error.get('input')!r}"

@@ -39,7 +39,7 @@ from typing import Annotated, Literal
 import tyro
 
 from tacsplat.apps.executors import ExecutorOptions, Executors
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, pydantic_problem
 from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
 log = logging.getLogger(__name__)
@@ -451,17 +451,15 @@ def _parse_job(i: int, item, path: Path, out: Path):
 def _job_error(i: int, item: dict, exc, path: Path) -> ConfigError:
     """pydantic's first error as one ConfigError naming ``jobs[i].field``."""
     error = exc.errors(include_url=False)[0]
-    kind, loc = error["type"], [str(p) for p in error["loc"][1:]]  # loc[0] is the kind's tag
-    if kind in ("union_tag_not_found", "union_tag_invalid"):
+    if error["type"] in ("union_tag_not_found", "union_tag_invalid"):
         return ConfigError(f"jobs[{i}].kind", f"expected one of {', '.join(KINDS)}, got {item.get('kind')!r}", path)
-    key = ".".join([f"jobs[{i}]", *loc])
-    if kind == "unexpected_keyword_argument":
+
+    def unknown(loc: tuple) -> str:  # the keys a job of this kind takes
         cls = {"capture": CaptureJob, "reconstruct": ReconstructJob, "evaluate": EvaluateJob}[item["kind"]]
-        allowed = sorted(f.name for f in fields(cls) if f.name != "kind")
-        return ConfigError(key, f"unknown key (a {item['kind']} job takes {', '.join(allowed)})", path)
-    if kind == "missing":
-        return ConfigError(key, "missing (a required key)", path)
-    return ConfigError(key, f"{error['msg']}, got {error.get('input')!r}", path)
+        return f"a {item['kind']} job takes {', '.join(sorted(f.name for f in fields(cls) if f.name != 'kind'))}"
+
+    error = {**error, "loc": error["loc"][1:]}  # loc[0] is the kind's tag
+    return ConfigError(*pydantic_problem(error, "key", f"jobs[{i}].", unknown), path)
 
 
 # ---------------------------------------------------------------------- results
