@@ -50,12 +50,6 @@ def whitening(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
     return quats_to_rotmats(quats).transpose(-1, -2) / scales[..., :, None]
 
 
-def precisions(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """Inverse covariances [N, 3, 3] of Sigma = R S S^T R^T (paper Eq. 3), from activated scales [N, 3]."""
-    R = quats_to_rotmats(quats)
-    return R @ torch.diag_embed(scales.pow(-2)) @ R.transpose(-1, -2)
-
-
 class Gaussians:
     """A set of 3D Gaussians: a dict of ``torch.nn.Parameter`` (``PARAM_NAMES``, one row per Gaussian) plus the
     ``from_touch`` mask."""

@@ -16,12 +16,14 @@ import torch
 
 from tacsplat.cli import main
 from tacsplat.datasets import Scene
-from tacsplat.reconstruction.gaussians import Gaussians, precisions, sh0_to_rgb
+from tacsplat.reconstruction.gaussians import Gaussians, sh0_to_rgb
 from tacsplat.reconstruction.ply import load_ply
 from tacsplat.reconstruction.run_dir import read_checkpoint
 from tacsplat.reconstruction.views import camera_tensors
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+sys.path.insert(0, str(Path(__file__).parents[1] / "reconstruction"))
+from recon_synthetic import precisions  # noqa: E402
 from viewer_client import exported_scene, served, served_scene, splat_count  # noqa: E402
 
 pytest.importorskip("viser", reason="tacsplat view needs viser")

@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from tacsplat.datasets import SceneMeta, SceneWriter, SensorModel
 from tacsplat.geometry import invert_pose, look_at, make_pose
+from tacsplat.reconstruction.gaussians import quats_to_rotmats
 from tacsplat.reconstruction.raster.rendering import rasterization
 from tacsplat.types import CameraIntrinsics
 
@@ -47,6 +48,13 @@ def sphere_gaussians(n: int = 400):
     )
     t = lambda a: torch.tensor(np.asarray(a), dtype=torch.float64)  # noqa: E731
     return t(means), t(np.array(quats)), t(scales), t(np.full(n, 0.95)), t(colors)
+
+
+def precisions(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
+    """Inverse covariances [N, 3, 3] of Sigma = R S S^T R^T (paper Eq. 3), from activated scales [N, 3], as the
+    matrix product: the oracle of the whitening and of the viewer's covariances (float64 in the tests)."""
+    R = quats_to_rotmats(quats)
+    return R @ torch.diag_embed(scales.pow(-2)) @ R.transpose(-1, -2)
 
 
 def sphere_depth(K: np.ndarray, T_world_cam: np.ndarray, width: int, height: int) -> np.ndarray:

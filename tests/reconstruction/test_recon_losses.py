@@ -1,6 +1,8 @@
 """Losses of tactile-informed 3DGS on hand-made inputs with known values."""
 
 import math
+import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -17,6 +19,9 @@ from tacsplat.reconstruction.losses import (
     transmittance_loss,
     visible_touch_pixels,
 )
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from recon_synthetic import precisions  # noqa: E402
 
 IDENTITY = torch.tensor([[1.0, 0.0, 0.0, 0.0]])
 
@@ -358,7 +363,7 @@ def test_touch_normal_loss_is_zero_for_aligned_normals_of_either_sign_and_skips_
 
 
 def test_the_influence_from_the_whitening_matches_eq1_with_the_precision_matrix_and_stays_finite_far_away():
-    from tacsplat.reconstruction.gaussians import precisions, whitening
+    from tacsplat.reconstruction.gaussians import whitening
     from tacsplat.reconstruction.losses import MAX_MAHALANOBIS, gaussian_influence
 
     g = torch.Generator().manual_seed(2)
