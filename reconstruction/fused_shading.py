@@ -15,23 +15,13 @@ import numba as nb
 import numpy as np
 import torch
 
-from tacsplat.reconstruction.raster.cpu_project import _C2_0, _C2_1, _C2_2, _C2_3, _C2_4, _np, _sh_basis
-from tacsplat.reconstruction.raster.spherical_harmonics import SH_C1
+from tacsplat.reconstruction.raster.cpu_project import _np, _sh_basis, _sh_basis_grad
 
 ALPHA_FLOOR = 1e-6  # the alpha the blended channels are divided by at least
 _CHUNKS = 16  # row chunks of the backward's reductions (each with its own gradient buffers)
 
 # one drawn pixel's forward, as the backward needs it (_pixel's ``state``)
 _VIEW, _NORMAL, _VN, _FACING, _E, _SHADED, _BASIS, _STATE = 0, 3, 6, 7, 8, 11, 14, 23
-
-
-@nb.njit(cache=True, inline="always")
-def _sh2_backward(x, y, z, g):
-    """(d/dx, d/dy, d/dz) of sum_k g[k] basis_k(x, y, z)."""
-    gx = -SH_C1 * g[3] + _C2_0 * y * g[4] - 2.0 * _C2_2 * x * g[6] + _C2_3 * z * g[7] + 2.0 * _C2_4 * x * g[8]
-    gy = -SH_C1 * g[1] + _C2_0 * x * g[4] + _C2_1 * z * g[5] - 2.0 * _C2_2 * y * g[6] - 2.0 * _C2_4 * y * g[8]
-    gz = SH_C1 * g[2] + _C2_1 * y * g[5] + 4.0 * _C2_2 * z * g[6] + _C2_3 * x * g[7]
-    return gx, gy, gz
 
 
 @nb.njit(cache=True, inline="always")
@@ -135,7 +125,7 @@ def _backward(blended, alpha, floor, rotation, coefficients, camera, lit, first,
                         else:
                             g_diffuse[c] += g_shaded
                     if lit:  # basis(n) and facing = max(-<view, n>, 0)
-                        g_nx, g_ny, g_nz = _sh2_backward(nx, ny, nz, g_basis)
+                        g_nx, g_ny, g_nz = _sh_basis_grad(2, nx, ny, nz, g_basis)
                         if vn <= 0.0:
                             g_nx -= g_facing * vx
                             g_ny -= g_facing * vy
