@@ -100,8 +100,6 @@ class TrainConfig:
     """... from this step on (after the geometry has formed; from 300, the paper metric's completeness was 16 per
     cent worse on the twin's glossy objects: docs/experiments.md); a step number, as the other start steps
     are, so a run of 700 steps or fewer has none"""
-    lambda_touch_normal: float = 0.1
-    """touch Gaussians' normals agree with the tactile maps' surface normals"""
     appearance: Appearance = "sh-lit"
     """colour: view-dependent SH (3DGS), or "sh-lit": that colour as an albedo times a learned distant light's
     irradiance at the rendered normal, saturating at 1 (deferred shading)"""
@@ -214,14 +212,15 @@ class TrainConfig:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_json(cls, data: dict, source: str | Path | None = None) -> "TrainConfig":
+    def from_json(cls, data: dict, source: str | Path | None = None, resuming: bool = False) -> "TrainConfig":
         """The config of ``to_json`` (a run's ``config.json``; a field it lacks was written before the field existed:
         see ``_BEFORE_THEY_EXISTED``; its ``scene``, the run's record of its scene, is not a setting); a ConfigError
-        naming ``source`` if it is not one."""
+        naming ``source`` if it is not one, or (``resuming``: the config a resume continues with) if it trained
+        with a removed loss (``_REMOVED_LOSSES``)."""
         try:
             data = {**_BEFORE_THEY_EXISTED, **data}
             data.pop("scene", None)
-            _drop_removed(data, source)
+            _drop_removed(data, source, resuming)
             init = data.pop("init", {})
             if "colours_from_views" in init:  # its name before identifiers spelled color
                 init.setdefault("colors_from_views", init.pop("colours_from_views"))
@@ -265,7 +264,6 @@ def flat_settings(settings: dict, prefix: str = "") -> dict:
 _BEFORE_THEY_EXISTED = {
     "lambda_flatten": 0.0,
     "lambda_depth_normal": 0.0,
-    "lambda_touch_normal": 0.0,
     "appearance": "sh",
     "lambda_albedo_smoothness": 0.0,
     "albedo_smoothness_beta": 0.0,
@@ -277,10 +275,28 @@ _INIT_BEFORE_THEY_EXISTED = {"colors_from_views": False}  # ... and of its InitC
 _REMOVED_OFF = {"depth_render": "centre", "lambda_touch_normal_pixels": 0.0, "lambda_pad_free": 0.0}  # its off value
 _REMOVED_SETTINGS = ("plane_depth_start_iter", "env_map_height", "lr_reflective", "pad_free_margin")
 _REMOVED_APPEARANCES = ("reflective", "lit")
+# Losses measured not to help and removed that shaped the Gaussians but not how they render: a config.json that used
+# one reads as today's config (its run evaluates, shows and exports as before), but its run cannot be resumed, as
+# it would go on training without the loss. Field -> what the refusal says of it.
+_REMOVED_LOSSES = {
+    "lambda_touch_normal": "the tactile-normal loss, removed (no gain on held-out meshes: docs/experiments.md)",
+}
 
 
-def _drop_removed(data: dict, source) -> None:
-    """Remove from ``data`` the fields of removed mechanisms; a ConfigError if it switched one of them on."""
+def removed_losses(data: dict) -> dict[str, object]:
+    """``{field: value}`` of the removed losses (``_REMOVED_LOSSES``) that a config.json's ``data`` switched on."""
+    return {key: data[key] for key in _REMOVED_LOSSES if data.get(key, 0) != 0}
+
+
+def _drop_removed(data: dict, source, resuming: bool = False) -> None:
+    """Remove from ``data`` the fields of removed mechanisms; a ConfigError if it switched one of them on that
+    changes rendering, or (``resuming``) one of the removed losses."""
+    if resuming and (used := removed_losses(data)):
+        key = next(iter(used))
+        message = f"this run trained with {_REMOVED_LOSSES[key]}; reconstruct the scene again"
+        raise ConfigError(key, message, source)
+    for key in _REMOVED_LOSSES:
+        data.pop(key, None)
     used = [key for key, off in _REMOVED_OFF.items() if data.pop(key, off) != off]
     used += ["appearance"] if data.get("appearance") in _REMOVED_APPEARANCES else []
     if used:
@@ -376,11 +392,8 @@ def paper_schedule(iterations: int | None = None) -> dict:
 def paper_departures(config: TrainConfig, touch_model: str = "gel", resolution: int | None = None) -> list[str]:
     """What still differs from the paper's official runs for ``config`` (one line each)."""
     lines = []
-    if config.lambda_flatten > 0 or config.lambda_depth_normal > 0 or config.lambda_touch_normal > 0:
-        lines.append(
-            "surface normals (flattening, depth-normal consistency, tactile normals): not in the paper (its "
-            "method is `paper`)"
-        )
+    if config.lambda_flatten > 0 or config.lambda_depth_normal > 0:
+        lines.append("surface normals (flattening, depth-normal consistency): not in the paper (its method is `paper`)")
     if config.appearance != "sh":
         lines.append(
             "sh-lit appearance: the view-dependent SH colour shaded by a learned light at the rendered "

@@ -1,5 +1,4 @@
-"""The touch losses fused in numba for CPU tensors: ``transmittance_cpu`` (paper Eq. 6-7) and
-``touch_normal_cpu`` (the tactile normals' alignment, :func:`.losses.touch_normal_loss`).
+"""The touch loss fused in numba for CPU tensors: ``transmittance_cpu`` (paper Eq. 6-7).
 
 Same value and gradients as the torch reference :func:`.losses.transmittance_loss` (``fused=False``, which CUDA
 tensors use): for each touch point, the influence f alpha (Eq. 1) of each candidate Gaussian in reach, the
@@ -123,61 +122,6 @@ def _sum_rows(candidates, counted, rows, out):
                     out[g, j] += rows[p, c, j]
 
 
-@nb.njit(cache=True, inline="always")
-def _in_reach(points, means, p, g, max_d2):
-    """Whether Gaussian g's mean lies within sqrt(max_d2) of touch point p."""
-    ox = float(means[g, 0]) - float(points[p, 0])
-    oy = float(means[g, 1]) - float(points[p, 1])
-    oz = float(means[g, 2]) - float(points[p, 2])
-    return ox * ox + oy * oy + oz * oz <= max_d2
-
-
-@nb.njit(parallel=True, cache=True)
-def _normal_forward(points, normals_t, means, normals, opacities, candidates, max_d2, per_point, weight_sums):
-    """Per touch point with a known normal: the opacity-weighted mean over its candidates in reach of
-    1 - |<Gaussian normal, tactile normal>| (``per_point``) and the weights' sum (``weight_sums``)."""
-    n_points, n_cand = candidates.shape
-    for p in nb.prange(n_points):
-        tx, ty, tz = float(normals_t[p, 0]), float(normals_t[p, 1]), float(normals_t[p, 2])
-        total = weights = 0.0
-        if math.isfinite(tx) and math.isfinite(ty) and math.isfinite(tz):
-            for c in range(n_cand):
-                g = candidates[p, c]
-                if g < 0 or not _in_reach(points, means, p, g, max_d2):
-                    continue
-                w = float(opacities[g])
-                total += w * (1.0 - abs(normals[g, 0] * tx + normals[g, 1] * ty + normals[g, 2] * tz))
-                weights += w
-        weight_sums[p] = weights
-        per_point[p] = total / max(weights, 1e-12)
-
-
-@nb.njit(parallel=True, cache=True)
-def _normal_pair_gradients(
-    points, normals_t, means, normals, opacities, candidates, max_d2, per_point, weight_sums, point_scale, rows
-):
-    """rows[p, c] = d loss / d (Gaussian normal (3), opacity) of pair (p, c); the loss weighs T_n(p) by
-    ``point_scale[p]``."""
-    n_points, n_cand = candidates.shape
-    for p in nb.prange(n_points):
-        tx, ty, tz = float(normals_t[p, 0]), float(normals_t[p, 1]), float(normals_t[p, 2])
-        denominator = max(weight_sums[p], 1e-12)
-        for c in range(n_cand):
-            for j in range(4):
-                rows[p, c, j] = 0.0
-            g = candidates[p, c]
-            if point_scale[p] == 0.0 or g < 0 or not _in_reach(points, means, p, g, max_d2):
-                continue
-            dot = normals[g, 0] * tx + normals[g, 1] * ty + normals[g, 2] * tz
-            w = float(opacities[g])
-            sign = 1.0 if dot > 0.0 else -1.0 if dot < 0.0 else 0.0
-            factor = -point_scale[p] * w / denominator * sign  # d / d normal = factor * target
-            rows[p, c, 0], rows[p, c, 1], rows[p, c, 2] = factor * tx, factor * ty, factor * tz
-            # per_point = sum w m / max(sum w, 1e-12): d / d w = m / denominator - per_point / denominator
-            passes = 1.0 if weight_sums[p] >= 1e-12 else 0.0
-            rows[p, c, 3] = point_scale[p] * ((1.0 - abs(dot)) - passes * per_point[p]) / denominator
-
-
 class _TransmittanceCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, points, means, quats, scales, opacities, candidates, top_k, max_distance, max_mahalanobis):
@@ -203,34 +147,6 @@ class _TransmittanceCPU(torch.autograd.Function):
         return None, v[:, 0:3], v[:, 3:7], v[:, 7:10], v[:, 10], None, None, None, None
 
 
-class _TouchNormalCPU(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, points, touch_normals, means, normals, opacities, candidates, max_distance):
-        arrays = tuple(_np(t) for t in (points, touch_normals, means, normals, opacities, candidates))
-        n_points = candidates.shape[0]
-        per_point, weight_sums = np.empty(n_points), np.empty(n_points)
-        _normal_forward(*arrays, float(max_distance) ** 2, per_point, weight_sums)
-        counted = weight_sums > 0
-        n_counted = max(int(counted.sum()), 1)
-        ctx.arrays, ctx.max_d2 = arrays, float(max_distance) ** 2
-        ctx.per_point, ctx.weight_sums, ctx.point_scale = per_point, weight_sums, counted / n_counted
-        return torch.tensor((per_point * counted).sum() / n_counted, dtype=means.dtype)
-
-    @staticmethod
-    def backward(ctx, grad):
-        normals, candidates = ctx.arrays[3], ctx.arrays[5]
-        rows = np.empty(candidates.shape + (4,))
-        scale = float(grad) * ctx.point_scale
-        _normal_pair_gradients(*ctx.arrays, ctx.max_d2, ctx.per_point, ctx.weight_sums, scale, rows)
-        summed = np.zeros((len(normals), 4))
-        _sum_rows(candidates, candidates >= 0, rows, summed)
-        v = torch.from_numpy(summed.astype(normals.dtype))
-        return None, None, None, v[:, 0:3], v[:, 3], None, None
-
-
-# the tactile-normal loss of CPU tensors (see :func:`.losses.touch_normal_loss`): (points, touch_normals, means,
-# normals, opacities, candidates, max_distance)
-touch_normal_cpu = _TouchNormalCPU.apply
 # L_T of CPU tensors (see :func:`.losses.transmittance_loss`): (points, means, quats, scales, opacities, candidates,
 # top_k, max_distance, max_mahalanobis), the exponent clamped at ``max_mahalanobis``
 transmittance_cpu = _TransmittanceCPU.apply

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 from tacsplat.reconstruction.fused_normals import depth_normal_consistency_cpu
 from tacsplat.reconstruction.fused_smoothness import albedo_smoothness_cpu, edge_aware_smoothness_cpu
 from tacsplat.reconstruction.fused_ssim import d_ssim
-from tacsplat.reconstruction.fused_touch import touch_normal_cpu, transmittance_cpu
+from tacsplat.reconstruction.fused_touch import transmittance_cpu
 from tacsplat.reconstruction.gaussians import whitening
 
 
@@ -367,30 +367,3 @@ def albedo_smoothness_loss(
         (albedo[1:] - albedo[:-1]).abs().sum(-1) * down * pair_weights[1]
     ).sum()
     return total / (across.sum() + down.sum()).clamp_min(1.0)
-
-
-def touch_normal_loss(
-    touch_points: torch.Tensor,  # [P, 3]
-    touch_normals: torch.Tensor,  # [P, 3] unit (rows of NaN are skipped)
-    means: torch.Tensor,  # [N, 3]
-    normals: torch.Tensor,  # [N, 3] unit Gaussian normals (sign arbitrary)
-    opacities: torch.Tensor,  # [N]
-    candidates: torch.Tensor,  # [P, C] long, -1 = none
-    max_distance: float,
-    fused: bool = True,
-) -> torch.Tensor:
-    """Tactile normals: 1 - |<Gaussian normal, touched surface normal>| averaged over each touch point's candidate
-    G_t within ``max_distance`` (weighted by opacity), then over the touch points with a known normal. For CPU
-    tensors the fused kernels of :mod:`.fused_touch` unless ``fused`` is False (the torch below, the reference)."""
-    if fused and means.device.type == "cpu":
-        return touch_normal_cpu(touch_points, touch_normals, means, normals, opacities, candidates, max_distance)
-    ids = candidates.clamp_min(0)
-    known = torch.isfinite(touch_normals).all(dim=1)  # [P]
-    target = torch.nan_to_num(touch_normals)
-    offset = means[ids] - touch_points[:, None, :]  # [P, C, 3]
-    near = (candidates >= 0) & ((offset * offset).sum(-1) <= max_distance**2)
-    weights = opacities[ids] * near * known[:, None]
-    misalignment = 1.0 - (normals[ids] * target[:, None, :]).sum(-1).abs()  # [P, C]
-    per_point = (weights * misalignment).sum(1) / weights.sum(1).clamp_min(1e-12)
-    counted = (weights.sum(1) > 0).float()
-    return (per_point * counted).sum() / counted.sum().clamp_min(1.0)

@@ -27,7 +27,6 @@ class Method:
 _PAPER = {
     "lambda_flatten": 0.0,
     "lambda_depth_normal": 0.0,
-    "lambda_touch_normal": 0.0,
     "appearance": "sh",
     "lambda_albedo_smoothness": 0.0,
     "init.colors_from_views": False,
@@ -52,9 +51,8 @@ METHODS: dict[str, Method] = {
         Method(
             "default",
             "Default (ours)",
-            "the paper's method plus flat Gaussians, depth-normal consistency, tactile "
-            "normals, SH colour lit at the rendered normals with a smooth albedo, and touch Gaussians coloured "
-            "from the views (beyond the paper)",
+            "the paper's method plus flat Gaussians, depth-normal consistency, SH colour lit at the rendered "
+            "normals with a smooth albedo, and touch Gaussians coloured from the views (beyond the paper)",
         ),
     )
 }
@@ -78,15 +76,13 @@ def method_config(name: str, option: str = "--method"):
 
 def mechanisms(config) -> dict[str, bool]:
     """Which of the optional mechanisms a TrainConfig switches on: touch (used, with lambda_t > 0), smoothness,
-    flattening, depth-normal consistency, tactile normals (with touch), the sh-lit appearance, a smooth albedo
-    (with it), initial colours from the views."""
-    touch = config.use_touch and config.lambda_t > 0
+    flattening, depth-normal consistency, the sh-lit appearance, a smooth albedo (with it), initial colours from
+    the views."""
     return {
-        "touch": touch,
+        "touch": config.use_touch and config.lambda_t > 0,
         "smoothness": config.lambda_s > 0,
         "flattening": config.lambda_flatten > 0,
         "depth_normal": config.lambda_depth_normal > 0,
-        "tactile_normals": touch and config.lambda_touch_normal > 0,
         "sh_lit": config.appearance == "sh-lit",
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
         "view_colors": config.init.colors_from_views,

@@ -233,12 +233,13 @@ def write_run_config(out: Path, config: TrainConfig, scene: dict) -> None:
         atomic_write(path, text.encode())
 
 
-def read_run_config(out: Path) -> tuple[TrainConfig, dict | None]:
-    """A run's settings and its :func:`scene_record` (None for a run from before scenes were recorded)."""
+def read_run_config(out: Path, resuming: bool = False) -> tuple[TrainConfig, dict | None]:
+    """A run's settings and its :func:`scene_record` (None for a run from before scenes were recorded); with
+    ``resuming``, a ConfigError for a run that trained with a removed loss (:meth:`TrainConfig.from_json`)."""
     path = out / "config.json"
     data = read_json(path)
     scene = data.get("scene")
-    return TrainConfig.from_json(data, path), scene if isinstance(scene, dict) else None
+    return TrainConfig.from_json(data, path, resuming), scene if isinstance(scene, dict) else None
 
 
 def check_resumed_scene(out: Path, recorded: dict | None, scene) -> None:

@@ -103,17 +103,15 @@ def render(
     normals: bool = False,
     appearance: Appearance = "sh",
     light: DiffuseLight | None = None,  # "sh-lit": the diffuse light (None: unlit, the albedo)
-    world_normals: Tensor | None = None,  # [N, 3] gaussian_normals(g.quats, g.scales), when the caller has them
 ) -> RenderOutput:
-    """Render one view; see the module docstring for what each option adds to the pass. A caller that also needs
-    the Gaussians' normals (a loss) computes them once and passes them as ``world_normals``."""
+    """Render one view; see the module docstring for what each option adds to the pass."""
     g = gaussians
     plain = not normals and appearance == "sh"  # SH colour straight through rasterization's fused SH path
     colors, degree = g.sh_coefficients(sh_degree), sh_degree
     if not plain:
         campos = -viewmat[0, :3, :3].T @ viewmat[0, :3, 3]  # [3]
         features = raster.sh_colors(sh_degree, g.means, campos, colors, backend)  # [N, 3]
-        n = gaussian_normals(g.quats, g.scales, fused_kernels(backend)) if world_normals is None else world_normals
+        n = gaussian_normals(g.quats, g.scales, fused_kernels(backend))
         n = torch.where(((n * (g.means - campos)).sum(-1, keepdim=True) > 0), -n, n)  # towards the camera
         colors, degree = torch.cat([features, n @ viewmat[0, :3, :3].T], dim=-1)[None], None  # camera-frame normals
     mode = "RGB" if depth_mode is None else f"RGB+{depth_mode}"

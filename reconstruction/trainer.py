@@ -140,21 +140,17 @@ class Trainer:
         self.scene_scale = scene_scale(train)
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device=dev).manual_seed(config.seed)
-        self.touch_points, touch_normals = np.zeros((0, 3)), np.zeros((0, 3))
+        self.touch_points = np.zeros((0, 3))
         if config.use_touch and scene.touches:
             kept = thin_touch_points(scene.touch_points(), config.init, self.rng)
             self.touch_points = scene.touch_points()[kept]
-            if config.lambda_touch_normal > 0:
-                touch_normals = scene.touch_normals()[kept]
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
-        self.use_touch_normals = len(self.touch_points) > 0 and config.lambda_touch_normal > 0
         self.fused_losses = shading.fused_kernels(config.backend)
         self.neighbours = None
-        if self.use_touch_loss or self.use_touch_normals:
+        if self.use_touch_loss:
             reach = (config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every)
             self.neighbours = losses.TouchNeighbours(self.touch_points, *reach)
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
-        self.touch_normals = torch.as_tensor(touch_normals, dtype=torch.float32, device=dev)
         self.light = shading.DiffuseLight(device=dev) if config.appearance == "sh-lit" else None
         self.look = shading.Look(config.appearance, self.light)
         self.splat: Gaussians | None = None  # splat.ply's Gaussians: the final ones, shading baked (run() sets it)
@@ -284,9 +280,6 @@ class Trainer:
         )
         with_depth = cfg.lambda_s > 0 and self.step >= cfg.smoothness_start_iter
         with_normals = cfg.lambda_depth_normal > 0 and self.step >= cfg.depth_normal_start_iter
-        world_normals = (
-            shading.gaussian_normals(g.quats, g.scales, self.fused_losses) if self.use_touch_normals else None
-        )
         out = shading.render(
             g,
             self.viewmats[view : view + 1],
@@ -297,7 +290,6 @@ class Trainer:
             depth_mode="D" if with_depth or with_normals else None,
             normals=with_normals,
             appearance=cfg.appearance,
-            world_normals=world_normals,
             light=self.light if self.step >= cfg.lit_start_iter else None,
         )
         meta, alpha = out.meta, out.alpha
@@ -315,28 +307,20 @@ class Trainer:
         if cfg.lambda_backdrop > 0 and self.backdrop_masks[view] is not None:
             backdrop = losses.backdrop_alpha_loss(alpha, self.backdrop_masks[view])
             add("backdrop", cfg.lambda_backdrop, backdrop)
-        if self.neighbours is not None:
+        if self.use_touch_loss:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
-            points, normals = self.touch_tensor, self.touch_normals
+            points = self.touch_tensor
             if 0 < cfg.touch_points_per_step < len(points):  # an unbiased estimate of the mean over P_t
                 subset = torch.randperm(len(points), generator=self.generator, device=self.device)
                 subset = subset[: cfg.touch_points_per_step]
                 points, candidates = points[subset], candidates[subset]
-                normals = normals[subset] if self.use_touch_normals else normals
-            if self.use_touch_loss:
-                moves = cfg.touch_loss_moves_shape
-                shape = (g.means, *((g.quats, g.scales) if moves else (g.quats.detach(), g.scales.detach())))
-                shape += (g.opacities, candidates)
-                transmittance = losses.transmittance_loss(
-                    points, *shape, cfg.touch_top_k, cfg.touch_max_distance, fused=self.fused_losses
-                )
-                add("transmittance", cfg.lambda_t, transmittance)
-            if self.use_touch_normals:
-                gaussians = (g.means, world_normals, g.opacities.detach(), candidates)
-                aligned = losses.touch_normal_loss(
-                    points, normals, *gaussians, cfg.touch_max_distance, fused=self.fused_losses
-                )
-                add("normals", cfg.lambda_touch_normal, aligned)
+            moves = cfg.touch_loss_moves_shape
+            shape = (g.means, *((g.quats, g.scales) if moves else (g.quats.detach(), g.scales.detach())))
+            shape += (g.opacities, candidates)
+            transmittance = losses.transmittance_loss(
+                points, *shape, cfg.touch_top_k, cfg.touch_max_distance, fused=self.fused_losses
+            )
+            add("transmittance", cfg.lambda_t, transmittance)
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
                 self._pair_weights[view] = losses.image_pair_weights(self.images[view], cfg.albedo_smoothness_beta)
@@ -624,8 +608,8 @@ def reconstruct(
     to continue with, or refuses it: only the iteration count may change, not
     below the step reached, and config.json then records it) or replaced with ``overwrite`` (its files only). It is locked
     for the whole job. A folder of other files, a run without ``resume`` or
-    ``overwrite``, ``resume`` of no run or on another scene, or a
-    folder that cannot take a file (read-only, full) is an error before any
+    ``overwrite``, ``resume`` of no run, on another scene or of a run that
+    trained with a removed loss, or a folder that cannot take a file (read-only, full) is an error before any
     training. Every file is replaced atomically: a disk that fills up stops the
     job with a StorageError naming the file, and the files written before
     (the last checkpoint) stay, so that ``resume`` continues once there is
@@ -644,7 +628,7 @@ def reconstruct(
     with claim_output_dir(out_dir, "--out"):
         check_run_folder(out_dir, resume, overwrite, locked=True)
         if resume:
-            config, recorded_scene = read_run_config(out_dir)
+            config, recorded_scene = read_run_config(out_dir, resuming=True)
             check_resumed_scene(out_dir, recorded_scene, base)
             if resumed is not None:
                 config = resumed(config)

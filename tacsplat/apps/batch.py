@@ -227,7 +227,7 @@ class ReconstructJob(BatchJob):
         of mechanisms that both switch off aside: :meth:`TrainConfig.unused_fields`); one entry saying so for a
         record that cannot be read. Empty for a folder with nothing to reuse or resume (no metrics.json, no
         checkpoint) or no settings recorded."""
-        from tacsplat.reconstruction.config import TrainConfig, changed_settings
+        from tacsplat.reconstruction.config import TrainConfig, changed_settings, removed_losses
         from tacsplat.reconstruction.methods import method_of
         from tacsplat.reconstruction.run_dir import read_json
 
@@ -236,20 +236,22 @@ class ReconstructJob(BatchJob):
             return []
         try:
             if path.is_file():
-                recorded = TrainConfig.from_json(read_json(path), path)
+                settings = read_json(path)
             elif self.complete():  # a run trained elsewhere and evaluated here: its metrics.json has the settings
                 path = self.out / METRICS
                 if not (settings := read_json(path).get("settings")):
                     return []  # (none recorded: nothing to compare)
-                recorded = TrainConfig.from_json(settings, path)
             else:
                 return [f"{checkpoint.name} without {path.name}"]
+            recorded = TrainConfig.from_json(settings, path)
         except ConfigError as exc:  # (read_json and from_json raise nothing else for a bad record)
             return [f"{path.name} unreadable ({exc})"]
         now = self.config()
         changes = [
             f"{key} {then!r} -> {value!r}" for key, then, value in changed_settings(recorded, now) if key != "device"
         ]
+        # a loss since removed reads as today's config, but this job's training would not have it
+        changes += [f"{key} {value!r} -> removed" for key, value in removed_losses(settings).items()]
         if changes and method_of(recorded) != method_of(now):
             changes.insert(0, f"method {method_of(recorded)} -> {method_of(now)}")
         return changes

@@ -128,7 +128,6 @@ def instrumented(timer: PhaseTimer):
         "transmittance_loss",
         "edge_aware_smoothness",
         "depth_normal_consistency",
-        "touch_normal_loss",
         "flatten_loss",
         "visible_touch_pixels",
         "proximity_mask",

@@ -213,6 +213,20 @@ def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):
     assert paper.changed_settings()[0].startswith("config.json unreadable (")
 
 
+def test_a_run_folder_that_trained_with_a_removed_loss_names_it_as_a_change(tmp_path):
+    """A run of the default from before the tactile-normal loss was removed reads as today's default, but neither
+    its numbers nor its checkpoint are this job's: the loss is named (finished, or interrupted)."""
+    job = ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3)
+    job.out.mkdir()
+    (job.out / "config.json").write_text(json.dumps(job.config().to_json() | {"lambda_touch_normal": 0.1}))
+    (job.out / "checkpoint.pt").write_bytes(b"")
+    assert job.changed_settings() == ["lambda_touch_normal 0.1 -> removed"]
+    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(lambda_touch_normal 0.1 -> "):
+        job.refuse_changed_settings()
+    (job.out / "config.json").write_text(json.dumps(job.config().to_json() | {"lambda_touch_normal": 0.0}))
+    assert job.changed_settings() == []
+
+
 @pytest.mark.parametrize(
     "jobs, key, message",
     [

@@ -173,7 +173,7 @@ def test_bench_rows_and_config_errors():
     for name, (method, overrides) in ablation_rows().items():  # each row changes its method's mechanisms or schedule
         assert method in METHODS and overrides and row_config(name) != method_config(method)
         assert mechanisms(row_config(name)) != mechanisms(method_config(method)) or row_config(name).coarse_factors
-    assert not row_config("default-touch").use_touch and row_config("paper+tn").lambda_touch_normal == 0.1
+    assert not row_config("default-touch").use_touch and row_config("paper+n").lambda_flatten == 10.0
     with pytest.raises(ConfigError, match="--methods: unknown method 'ours'; choose one of .* or a row of ablations"):
         bench_row("ours")
     assert get_method("3dgs").overrides == {
@@ -181,7 +181,6 @@ def test_bench_rows_and_config_errors():
         "lambda_s": 0.0,
         "lambda_flatten": 0.0,
         "lambda_depth_normal": 0.0,
-        "lambda_touch_normal": 0.0,
         "appearance": "sh",
         "lambda_albedo_smoothness": 0.0,
         "init.colors_from_views": False,
@@ -334,23 +333,23 @@ def test_each_capture_starts_its_costliest_methods_first(tmp_path):
     """Runs of one capture are started most work per step first (the longest no longer starts last on few
     cores); captures and settings keep the order of runs()."""
     config = PaperBenchConfig(
-        objects=("teapot", "bell"), settings=("minimal",), methods=("3dgs", "paper", "paper+n+tn", "3dgs+t")
+        objects=("teapot", "bell"), settings=("minimal",), methods=("3dgs", "paper", "paper+n", "3dgs+t")
     )
     names = [job.name.split("/")[-1] if run else job.name for run, job in PaperBench(tmp_path, config).jobs()]
     assert names == [
         "capture scenes/teapot/minimal-s0",
-        "paper+n+tn-s0",
+        "paper+n-s0",
         "paper-s0",
         "3dgs+t-s0",
         "3dgs-s0",
         "capture scenes/bell/minimal-s0",
-        "paper+n+tn-s0",
+        "paper+n-s0",
         "paper-s0",
         "3dgs+t-s0",
         "3dgs-s0",
     ]
     assert step_work("3dgs") < step_work("3dgs+s") == step_work("3dgs+t") < step_work("paper") < step_work("paper+n")
-    assert step_work("paper+n") < step_work("paper+n+tn") < step_work("default-vc")
+    assert step_work("paper+n") < step_work("default-vc")
 
 
 def _small_scene(path):

@@ -106,7 +106,7 @@ def test_bench_step_with_a_reference_profiles_both_back_to_back_and_prints_their
                 "--iterations",
                 "12",
                 "--method",
-                "paper+n+tn",
+                "paper+n",
                 "--reference",
                 "paper",
                 "--rounds",
@@ -117,13 +117,13 @@ def test_bench_step_with_a_reference_profiles_both_back_to_back_and_prints_their
     )
     results = json.loads((out / "step.json").read_text())
     (row,), (ref,) = results["resolutions"], results["reference"]
-    assert results["settings"]["reference"] == "paper" and results["settings"]["method"] == "paper+n+tn"
+    assert results["settings"]["reference"] == "paper" and results["settings"]["method"] == "paper+n"
     ratio = row["ratio_to_reference"]
     assert (
         len(ratio["rounds"]) == 3 and ratio["rounds"][0]["step_median"] == row["step_median_ms"] / ref["step_median_ms"]
     )
     assert ratio["step_median"] == sorted(r["step_median"] for r in ratio["rounds"])[1]
-    assert "paper+n+tn / paper (each run next to its reference): step median" in capsys.readouterr().out
+    assert "paper+n / paper (each run next to its reference): step median" in capsys.readouterr().out
     assert main(["bench", "step", "--out", str(out), "--rounds", "2"]) == 2  # rounds without a reference
     assert main(["bench", "step", "--out", str(out), "--reference", "nonsense"]) != 0
     assert "--reference" in capsys.readouterr().err

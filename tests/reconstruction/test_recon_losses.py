@@ -118,25 +118,6 @@ def test_fused_transmittance_matches_the_torch_reference_in_value_and_every_grad
         torch.testing.assert_close(have, 2.0 * want, rtol=0, atol=tol * float(want.abs().max()), msg=name)
 
 
-@pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
-def test_fused_touch_normal_loss_matches_the_torch_reference_in_value_and_gradients(dtype, tol):
-    touch, means, _, _, opacities, ids = _touch_cluster(dtype)
-    g = torch.Generator().manual_seed(9)
-    normals = torch.nn.functional.normalize(torch.randn(len(means), 3, generator=g, dtype=dtype), dim=-1)
-    targets = torch.nn.functional.normalize(torch.randn(len(touch), 3, generator=g, dtype=dtype), dim=-1)
-    targets[3] = float("nan")  # a touch without a normal is skipped
-    params = [normals.requires_grad_(True), opacities.requires_grad_(True)]
-    reference = losses.touch_normal_loss(touch, targets, means, *params, ids, 0.006, fused=False)
-    expected = torch.autograd.grad(reference, params)
-    fused = losses.touch_normal_loss(touch, targets, means, *params, ids, 0.006)
-    got = torch.autograd.grad(fused, params)
-    assert 0.1 < reference.item() < 1.0
-    assert fused.item() == pytest.approx(reference.item(), abs=tol)
-    for want, have in zip(expected, got):
-        assert want.abs().max() > 0
-        torch.testing.assert_close(have, want, rtol=0, atol=tol * float(want.abs().max()))
-
-
 def test_fused_transmittance_stays_finite_for_a_gaussian_with_a_zero_scale():
     """A collapsed axis puts the point at an infinite Mahalanobis distance: influence exp(-80) alpha, gradients
     finite (the opacity's only), where the torch reference's 2 * local * 0 is inf * 0 = NaN."""
@@ -346,20 +327,6 @@ def test_the_flattening_loss_is_the_mean_shortest_axis_over_the_scene_scale():
 
     scales = torch.tensor([[1.0, 0.2, 3.0], [0.5, 0.5, 0.1]])
     assert flatten_loss(scales, 2.0).item() == pytest.approx((0.2 + 0.1) / 2 / 2.0)
-
-
-def test_touch_normal_loss_is_zero_for_aligned_normals_of_either_sign_and_skips_unknown_ones():
-    from tacsplat.reconstruction.losses import touch_normal_loss
-
-    points = torch.tensor([[0.0, 0, 0], [1.0, 0, 0]])
-    target = torch.tensor([[0.0, 0, 1], [float("nan")] * 3])
-    means = torch.tensor([[0.0, 0, 0.001], [0.0, 0.001, 0], [1.0, 0, 0]])
-    opacities = torch.ones(3)
-    candidates = torch.tensor([[0, 1], [2, -1]])
-    aligned = torch.tensor([[0.0, 0, 1], [0.0, 0, -1], [1.0, 0, 0]])
-    assert touch_normal_loss(points, target, means, aligned, opacities, candidates, 0.01).item() == 0.0
-    tilted = torch.tensor([[1.0, 0, 0], [0.0, 0, 1], [1.0, 0, 0]])  # one perpendicular, one aligned
-    assert touch_normal_loss(points, target, means, tilted, opacities, candidates, 0.01).item() == pytest.approx(0.5)
 
 
 def test_the_influence_from_the_whitening_matches_eq1_with_the_precision_matrix_and_stays_finite_far_away():

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from tacsplat.errors import ConfigError
-from tacsplat.reconstruction.config import TrainConfig, paper_departures, set_fields
+from tacsplat.reconstruction.config import TrainConfig, paper_departures, removed_losses, set_fields
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.methods import (
     DEFAULT_METHOD,
@@ -36,9 +36,7 @@ def test_any_other_combination_is_custom_and_names_no_method():
     assert method_of(dataclasses.replace(paper, lambda_flatten=10.0)) == "custom"
     assert method_of(dataclasses.replace(TrainConfig(), use_touch=False)) == "custom"
     assert method_of(dataclasses.replace(paper, lambda_s=5.8, touch_top_k=20)) == "paper"  # other weights: same method
-    no_touch = dataclasses.replace(paper, use_touch=False, lambda_touch_normal=0.1)
-    assert mechanisms(no_touch)["tactile_normals"] is False  # tactile normals need touches
-    assert method_of(no_touch) == "3dgs+s"
+    assert method_of(dataclasses.replace(paper, use_touch=False)) == "3dgs+s"
 
 
 def test_set_fields_sets_nested_fields_and_names_an_unknown_key():
@@ -65,7 +63,6 @@ def test_a_run_config_written_before_the_lit_color_existed_reads_as_what_it_trai
     for name in (
         "lambda_flatten",
         "lambda_depth_normal",
-        "lambda_touch_normal",
         "appearance",
         "lambda_albedo_smoothness",
         "albedo_smoothness_beta",
@@ -124,3 +121,22 @@ def test_a_switched_off_mechanisms_settings_are_unused():
 def test_colors_from_the_views_are_listed_among_the_departures_from_the_paper_only_when_on():
     assert [line for line in paper_departures(TrainConfig()) if "initial colours" in line]
     assert not [line for line in paper_departures(method_config("paper")) if "initial colours" in line]
+
+
+@pytest.mark.parametrize("weight", [0.1, 0.0])
+def test_a_run_config_of_the_removed_tactile_normal_loss_reads_as_todays_and_resumes_only_without_it(weight):
+    """config.json of a run from before the tactile-normal loss was removed (the default's weight was 0.1): the loss
+    shaped the Gaussians but not how they render, so the config reads as today's (to evaluate, view or export the
+    run); resuming a run that trained with it is refused naming the field, one with it off resumes."""
+    old = {**TrainConfig().to_json(), "lambda_touch_normal": weight}
+    assert TrainConfig.from_json(old, "run/config.json") == TrainConfig()
+    assert removed_losses(old) == ({"lambda_touch_normal": weight} if weight else {})
+    if weight:
+        match = (
+            "run/config.json: lambda_touch_normal: this run trained with the tactile-normal loss, removed "
+            r"\(no gain on held-out meshes: docs/experiments.md\); reconstruct the scene again"
+        )
+        with pytest.raises(ConfigError, match=match):
+            TrainConfig.from_json(old, "run/config.json", resuming=True)
+    else:
+        assert TrainConfig.from_json(old, "run/config.json", resuming=True) == TrainConfig()

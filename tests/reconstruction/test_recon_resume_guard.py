@@ -1,5 +1,6 @@
 """`tacsplat reconstruct --resume` continues a run only as what it is: on the scene it was trained on (moved or
-not), with its own settings; --iterations may raise its step count, and then every record says the new one."""
+not), with its own settings, and not without a loss it trained with that has since been removed; --iterations may
+raise its step count, and then every record says the new one."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import torch
 
 from tacsplat.cli import main
 from tacsplat.reconstruction.config import PAPER_SCHEDULE
+from tacsplat.reconstruction.run_dir import load_run
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
@@ -136,3 +138,49 @@ def test_resume_with_more_iterations_continues_and_every_record_says_so(trained,
     assert checkpoint["step"] == checkpoint["config"]["iterations"] == 5
     with (run / "progress.csv").open() as fh:
         assert [int(r["iteration"]) for r in csv.DictReader(fh)][-1] == 5
+
+
+# --- a loss since removed ----------------------------------------------------------------------------------------
+
+
+def _with_tactile_normals(trained: Path, tmp_path: Path, weight: float) -> tuple[Path, Path]:
+    """(scene, run) copies of :func:`trained`'s, its config.json and checkpoint recording ``lambda_touch_normal``
+    ``weight`` as a run from before the tactile-normal loss was removed does (the default's was 0.1)."""
+    scene, run = _copy(trained, tmp_path)
+    config = json.loads((run / "config.json").read_text())
+    (run / "config.json").write_text(json.dumps({**config, "lambda_touch_normal": weight}, indent=2))
+    checkpoint = torch.load(run / "checkpoint.pt", weights_only=False)
+    checkpoint["config"]["lambda_touch_normal"] = weight
+    torch.save(checkpoint, run / "checkpoint.pt")
+    return scene, run
+
+
+def test_a_run_of_the_removed_tactile_normal_loss_loads_and_evaluates_as_it_did(trained, tmp_path):
+    """The loss shaped the Gaussians, not how they render: the run reads as today's config and evaluates to the
+    numbers it had."""
+    _, run = _with_tactile_normals(trained, tmp_path, 0.1)
+    before, loaded = json.loads((run / "metrics.json").read_text()), load_run(run)
+    assert loaded.config == load_run(trained / "run").config and loaded.step == 3
+    assert main(["evaluate", str(run)]) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    for key in ("cd", "psnr", "num_gaussians"):
+        assert metrics[key] == pytest.approx(before[key], rel=1e-6), key
+
+
+def test_resume_of_a_run_that_trained_with_the_tactile_normal_loss_is_refused_naming_it(trained, tmp_path, capsys):
+    scene, run = _with_tactile_normals(trained, tmp_path, 0.1)
+    before = _files(run)
+    capsys.readouterr()
+    assert _resume(scene, run, "--iterations", "6") == 1
+    one_error_line(
+        capsys,
+        f"{run / 'config.json'}: lambda_touch_normal: this run trained with the tactile-normal loss, removed (no "
+        "gain on held-out meshes: docs/experiments.md); reconstruct the scene again",
+    )
+    assert _files(run) == before
+
+
+def test_a_run_with_the_tactile_normal_loss_off_resumes(trained, tmp_path):
+    scene, run = _with_tactile_normals(trained, tmp_path, 0.0)
+    assert _resume(scene, run, "--iterations", "5") == 0
+    assert load_run(run).step == 5 and "lambda_touch_normal" not in json.loads((run / "config.json").read_text())
