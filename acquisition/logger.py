@@ -22,6 +22,7 @@ from tacsplat.acquisition.config import BoardConfig, GraspControl
 from tacsplat.datasets import HandMotion, SceneWriter
 from tacsplat.datasets.records import MOTION_PHASES
 from tacsplat.drivers.protocols import Camera, Hand, TactileSensor
+from tacsplat.drivers.wrist_camera import opencv_K_from_tacsplat
 from tacsplat.errors import CameraError, InvalidInputError, TacsplatError
 from tacsplat.geometry import check_rigid, invert_pose
 from tacsplat.types import TactileReading
@@ -84,8 +85,6 @@ class BoardPoseSource:
     def __init__(self, camera: Camera, board: BoardConfig, T_hand_cam: np.ndarray):
         self.board = board
         self.spec = board.spec()
-        from tacsplat.drivers.wrist_camera import opencv_K_from_tacsplat
-
         self.K_opencv = opencv_K_from_tacsplat(camera.K)
         self.T_cam_hand = invert_pose(check_rigid(T_hand_cam, "T_hand_cam"))
 
