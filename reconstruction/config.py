@@ -39,6 +39,10 @@ class TrainConfig:
     e.g. 4 2), each for an equal share of ``coarse_until``; () = every step at full size"""
     coarse_until: float = 0.5
     """fraction of the steps after which training is at full size"""
+    crop_margin: float | None = None
+    """each step trains on the bounding box of its view's silhouette widened by this share of the image's width on
+    every side (the bare backdrop farther out has nothing to teach); None: the whole image. A view without a known
+    backdrop (no silhouette) always trains whole"""
     backend: Literal["auto", "torch", "cpu", "gsplat"] = "auto"
     """rasterization backend (auto: gsplat on CUDA, else the numba CPU backend for float32); "torch" also keeps
     the losses' torch references (no fused kernels)"""
@@ -326,6 +330,7 @@ _RANGES = {
     "checkpoint_every": (1, None),
     "ssim_weight": (0, 1),
     "coarse_until": (0, 1),
+    "crop_margin": (0, 1),
     "lr_means_final_factor": (0, 1),
 }
 _POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}

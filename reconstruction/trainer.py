@@ -197,6 +197,16 @@ class Trainer:
         self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
         self._pair_weights: dict[int, tuple] = {}  # per training view, the albedo smoothness's pair weights
         self.factor = factor
+        self.set_windows()
+
+    def set_windows(self) -> None:
+        """The window of each training view a step trains on (:meth:`_window`), and the share of its backdrop pixels
+        inside it."""
+        self.windows = [self._window(view) for view in range(len(self.train_frames))]  # (x0, y0, w, h)
+        self.backdrop_shares = [
+            None if m is None else float(m[y0 : y0 + h, x0 : x0 + w].sum() / max(m.sum(), 1))
+            for m, (x0, y0, w, h) in zip(self.backdrop_pixels, self.windows)
+        ]
 
     def factor_at(self, step: int) -> int:
         """The training views' downscale at ``step`` (``coarse_factors``, then 1 from ``coarse_until``)."""
@@ -273,8 +283,13 @@ class Trainer:
         if not self.order:  # each view once in a random order, then again
             self.order = self.rng.permutation(len(self.train_frames)).tolist()
         view = self.order.pop()
-        frame = self.train_frames[view]
-        size = (frame.intrinsics.width, frame.intrinsics.height)
+        # the view's window (crop_margin): its intrinsics shifted to the window's corner
+        x0, y0, w, h = self.windows[view]
+        full = self.train_frames[view].intrinsics
+        size, K = (w, h), self.Ks[view].clone()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        rows, cols = slice(y0, y0 + h), slice(x0, x0 + w)
         active_degree = (
             cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree, self.step // cfg.sh_degree_interval)
         )
@@ -283,7 +298,7 @@ class Trainer:
         out = shading.render(
             g,
             self.viewmats[view : view + 1],
-            self.Ks[view : view + 1],
+            K[None],
             *size,
             sh_degree=active_degree,
             backend=cfg.backend,
@@ -293,9 +308,12 @@ class Trainer:
             light=self.light if self.step >= cfg.lit_start_iter else None,
         )
         meta, alpha = out.meta, out.alpha
-        target = self.images[view]
-        rgb = out.rgb + (1.0 - alpha[..., None]) * self.backgrounds[view]
-        photometric = losses.photometric_loss(rgb, target, cfg.ssim_weight, fused=self.fused_losses)
+        meta["width"], meta["height"] = full.width, full.height  # densification's NDC: the whole view's
+        target = self.images[view][rows, cols]
+        rgb = out.rgb + (1.0 - alpha[..., None]) * self.backgrounds[view][rows, cols]
+        # the image losses are means over the whole view, in which the pixels outside a window add nothing
+        share = w * h / (full.width * full.height)
+        photometric = share * losses.photometric_loss(rgb, target, cfg.ssim_weight, fused=self.fused_losses)
         loss, terms = photometric, dict.fromkeys(LOSS_TERMS, self._zero)  # terms: detached device scalars (no sync)
 
         def add(term: str, weight: float, value: torch.Tensor) -> None:
@@ -305,7 +323,8 @@ class Trainer:
 
         terms["photometric"] = photometric.detach()
         if cfg.lambda_backdrop > 0 and self.backdrop_masks[view] is not None:
-            backdrop = losses.backdrop_alpha_loss(alpha, self.backdrop_masks[view])
+            backdrop = losses.backdrop_alpha_loss(alpha, self.backdrop_masks[view][rows, cols])
+            backdrop = backdrop * self.backdrop_shares[view]
             add("backdrop", cfg.lambda_backdrop, backdrop)
         if self.use_touch_loss:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
@@ -324,9 +343,10 @@ class Trainer:
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
                 self._pair_weights[view] = losses.image_pair_weights(self.images[view], cfg.albedo_smoothness_beta)
-            flat_albedo = losses.albedo_smoothness_loss(
-                out.albedo, alpha.detach() > 0.5, self._pair_weights.get(view), self.fused_losses
-            )
+            pairs = self._pair_weights.get(view)
+            if pairs is not None:
+                pairs = (pairs[0][rows, x0 : x0 + w - 1].contiguous(), pairs[1][y0 : y0 + h - 1, cols].contiguous())
+            flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5, pairs, self.fused_losses)
             add("albedo_smoothness", cfg.lambda_albedo_smoothness, flat_albedo)
         if cfg.lambda_flatten > 0:
             flat = losses.flatten_loss(g.scales, self.scene_scale)
@@ -335,7 +355,7 @@ class Trainer:
             seen = alpha.detach() > 0.5
             surface = torch.where(seen, losses.expected_depth(out.depth, alpha), torch.zeros_like(alpha))
             consistency = losses.depth_normal_consistency(
-                out.normal, surface, self.Ks[view], alpha.detach() * seen, fused=self.fused_losses
+                out.normal, surface, K, alpha.detach() * seen, fused=self.fused_losses
             )
             add("normals", cfg.lambda_depth_normal, consistency)
         if with_depth:
@@ -345,15 +365,15 @@ class Trainer:
                 drawn = alpha.detach()
                 surface = torch.where(drawn > 0.5, depth.detach() / drawn.clamp_min(1e-6), torch.zeros_like(drawn))
                 seen = losses.visible_touch_pixels(
-                    self.touch_tensor, self.Ks[view], self.viewmats[view], *size, surface, cfg.occlusion_tolerance
+                    self.touch_tensor, K, self.viewmats[view], *size, surface, cfg.occlusion_tolerance
                 )
                 proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px / self.factor)
-            weights = self._smoothness_weights(view, alpha.detach())
+            weights = self._smoothness_weights(view, alpha.detach(), (rows, cols))
             if cfg.smoothness_depth == "expected":
                 depth = losses.expected_depth(depth, alpha)
             smoothness = losses.edge_aware_smoothness(
                 depth / self.scene_scale, proximity=proximity, weights=weights, fused=self.fused_losses
-            )
+            ) * ((w - 4) * (h - 4) / ((full.width - 4) * (full.height - 4)))
             add("smoothness", cfg.lambda_s, smoothness)
         terms["loss"] = loss.detach()
 
@@ -373,8 +393,28 @@ class Trainer:
         self.step += 1
         return terms
 
-    def _smoothness_weights(self, view: int, alpha: torch.Tensor) -> torch.Tensor:
-        """Eq. 8's image factors of a view [2, H-4, W-4]; for expected depth, zero outside the object.
+    def _window(self, view: int) -> tuple[int, int, int, int]:
+        """``(x0, y0, width, height)`` of the pixels of training view ``view`` a step trains on: the bounding box of
+        its silhouette widened by ``crop_margin`` of the image's width (at least 8 pixels a side), or the whole
+        view."""
+        frame = self.train_frames[view]
+        width, height = frame.intrinsics.width, frame.intrinsics.height
+        silhouette = self.silhouettes[view]
+        if self.config.crop_margin is None or silhouette is None or not silhouette.any():
+            return 0, 0, width, height
+        margin = int(np.ceil(self.config.crop_margin * width))
+        box = []
+        for hits, size in ((silhouette.any(axis=0), width), (silhouette.any(axis=1), height)):
+            first, last = np.flatnonzero(hits)[[0, -1]]
+            start, stop = max(first - margin, 0), min(last + margin + 1, size)
+            extent = min(max(stop - start, 8), size)
+            box.append((int(min(start, size - extent)), int(extent)))
+        (x0, w), (y0, h) = box
+        return x0, y0, w, h
+
+    def _smoothness_weights(self, view: int, alpha: torch.Tensor, window: tuple[slice, slice]) -> torch.Tensor:
+        """Eq. 8's image factors of a view's ``window`` (rows, columns) [2, h-4, w-4]; for expected depth, zero
+        outside the object.
 
         Expected depth is only defined on the object, so its smoothness counts
         only Sobel windows inside the silhouette (the view's image against its
@@ -387,7 +427,8 @@ class Trainer:
                 silhouette = torch.from_numpy(self.silhouettes[view]).to(self.device)
                 weights = weights * losses.window_inside(silhouette)
             self._edge_weights[view] = weights
-        weights = self._edge_weights[view]
+        rows, cols = window
+        weights = self._edge_weights[view][:, rows.start : rows.stop - 4, cols.start : cols.stop - 4].contiguous()
         if cfg.smoothness_depth == "expected" and self.backdrop_masks[view] is None:
             weights = weights * losses.window_inside(alpha > 0.5)
         return weights

@@ -170,9 +170,10 @@ def test_bench_rows_and_config_errors():
 
     for name in METHODS:  # a method is a row without overrides
         assert bench_row(name) == (name, {}) and method_of(row_config(name)) == name
-    for name, (method, overrides) in ablation_rows().items():  # each row changes its method's mechanisms or schedule
+    for name, (method, overrides) in ablation_rows().items():  # each row changes its method's mechanisms or pixels
         assert method in METHODS and overrides and row_config(name) != method_config(method)
-        assert mechanisms(row_config(name)) != mechanisms(method_config(method)) or row_config(name).coarse_factors
+        config = row_config(name)
+        assert mechanisms(config) != mechanisms(method_config(method)) or config.coarse_factors or config.crop_margin
     assert not row_config("default-touch").use_touch and row_config("paper+n").lambda_flatten == 10.0
     with pytest.raises(ConfigError, match="--methods: unknown method 'ours'; choose one of .* or a row of ablations"):
         bench_row("ours")
