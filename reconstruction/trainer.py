@@ -194,15 +194,17 @@ class Trainer:
         self.images = [torch.from_numpy(im).to(dev) for im in images]
         self.backgrounds = [torch.from_numpy(bg).to(dev) for bg in backgrounds]
         self.backdrop_masks = [None if m is None else torch.from_numpy(m).to(dev) for m in self.backdrop_pixels]
-        self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors
-        self._pair_weights: dict[int, tuple] = {}  # per training view, the albedo smoothness's pair weights
         self.factor = factor
         self.set_windows()
 
     def set_windows(self) -> None:
-        """The window of each training view a step trains on (:meth:`_window`), and the share of its backdrop pixels
-        inside it."""
+        """The window of each training view a step trains on (:meth:`_window`): its intrinsics, the share of the
+        view's backdrop pixels inside it; the per-view loss weights are made anew, of the window's size."""
         self.windows = [self._window(view) for view in range(len(self.train_frames))]  # (x0, y0, w, h)
+        self.window_Ks = self.Ks.clone()  # [V, 3, 3]: the principal point moved to each window's corner
+        self.window_Ks[:, :2, 2] -= torch.tensor([w[:2] for w in self.windows], dtype=self.Ks.dtype, device=self.device)
+        self._edge_weights: dict[int, torch.Tensor] = {}  # per training view, Eq. 8's image factors (its window's)
+        self._pair_weights: dict[int, tuple] = {}  # per training view, the albedo smoothness's pair weights (ditto)
         self.backdrop_shares = [
             None if m is None else float(m[y0 : y0 + h, x0 : x0 + w].sum() / max(m.sum(), 1))
             for m, (x0, y0, w, h) in zip(self.backdrop_pixels, self.windows)
@@ -283,12 +285,8 @@ class Trainer:
         if not self.order:  # each view once in a random order, then again
             self.order = self.rng.permutation(len(self.train_frames)).tolist()
         view = self.order.pop()
-        # the view's window (crop_margin): its intrinsics shifted to the window's corner
-        x0, y0, w, h = self.windows[view]
-        full = self.train_frames[view].intrinsics
-        size, K = (w, h), self.Ks[view].clone()
-        K[0, 2] -= x0
-        K[1, 2] -= y0
+        x0, y0, w, h = self.windows[view]  # the pixels this step trains on (crop_margin), and their intrinsics
+        size, K, full = (w, h), self.window_Ks[view], self.train_frames[view].intrinsics
         rows, cols = slice(y0, y0 + h), slice(x0, x0 + w)
         active_degree = (
             cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree, self.step // cfg.sh_degree_interval)
@@ -342,11 +340,11 @@ class Trainer:
             add("transmittance", cfg.lambda_t, transmittance)
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
-                self._pair_weights[view] = losses.image_pair_weights(self.images[view], cfg.albedo_smoothness_beta)
-            pairs = self._pair_weights.get(view)
-            if pairs is not None:
-                pairs = (pairs[0][rows, x0 : x0 + w - 1].contiguous(), pairs[1][y0 : y0 + h - 1, cols].contiguous())
-            flat_albedo = losses.albedo_smoothness_loss(out.albedo, alpha.detach() > 0.5, pairs, self.fused_losses)
+                pairs = losses.image_pair_weights(self.images[view][rows, cols], cfg.albedo_smoothness_beta)
+                self._pair_weights[view] = tuple(p.contiguous() for p in pairs)
+            flat_albedo = losses.albedo_smoothness_loss(
+                out.albedo, alpha.detach() > 0.5, self._pair_weights.get(view), self.fused_losses
+            )
             add("albedo_smoothness", cfg.lambda_albedo_smoothness, flat_albedo)
         if cfg.lambda_flatten > 0:
             flat = losses.flatten_loss(g.scales, self.scene_scale)
@@ -368,7 +366,7 @@ class Trainer:
                     self.touch_tensor, K, self.viewmats[view], *size, surface, cfg.occlusion_tolerance
                 )
                 proximity = losses.proximity_mask(seen, cfg.proximity_sigma_px / self.factor)
-            weights = self._smoothness_weights(view, alpha.detach(), (rows, cols))
+            weights = self._smoothness_weights(view, alpha.detach())
             if cfg.smoothness_depth == "expected":
                 depth = losses.expected_depth(depth, alpha)
             smoothness = losses.edge_aware_smoothness(
@@ -412,9 +410,8 @@ class Trainer:
         (x0, w), (y0, h) = box
         return x0, y0, w, h
 
-    def _smoothness_weights(self, view: int, alpha: torch.Tensor, window: tuple[slice, slice]) -> torch.Tensor:
-        """Eq. 8's image factors of a view's ``window`` (rows, columns) [2, h-4, w-4]; for expected depth, zero
-        outside the object.
+    def _smoothness_weights(self, view: int, alpha: torch.Tensor) -> torch.Tensor:
+        """Eq. 8's image factors of a view's window [2, h-4, w-4]; for expected depth, zero outside the object.
 
         Expected depth is only defined on the object, so its smoothness counts
         only Sobel windows inside the silhouette (the view's image against its
@@ -426,9 +423,9 @@ class Trainer:
             if cfg.smoothness_depth == "expected" and self.backdrop_pixels[view] is not None:
                 silhouette = torch.from_numpy(self.silhouettes[view]).to(self.device)
                 weights = weights * losses.window_inside(silhouette)
-            self._edge_weights[view] = weights
-        rows, cols = window
-        weights = self._edge_weights[view][:, rows.start : rows.stop - 4, cols.start : cols.stop - 4].contiguous()
+            x0, y0, w, h = self.windows[view]
+            self._edge_weights[view] = weights[:, y0 : y0 + h - 4, x0 : x0 + w - 4].contiguous()
+        weights = self._edge_weights[view]
         if cfg.smoothness_depth == "expected" and self.backdrop_masks[view] is None:
             weights = weights * losses.window_inside(alpha > 0.5)
         return weights

@@ -81,6 +81,7 @@ def _tensors_of(trainer: Trainer) -> dict[str, torch.Tensor]:
     found = {
         "viewmats": trainer.viewmats,
         "Ks": trainer.Ks,
+        "window Ks": trainer.window_Ks,
         "touch points": trainer.touch_tensor,
         "densify.grad2d": trainer.densify_state.grad2d,
         "densify.count": trainer.densify_state.count,
