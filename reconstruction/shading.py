@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from tacsplat.reconstruction.config import Appearance
@@ -119,15 +118,49 @@ def render(
     out, alphas, meta = raster.rasterization(
         *splats, viewmat, K, width, height, sh_degree=degree, render_mode=mode, backend=backend
     )
-    out, alpha = out[0], alphas[0, ..., 0]
-    depth = None if depth_mode is None else out[..., -1]
+    alpha = alphas[0, ..., 0]
     if plain:
-        return RenderOutput(out[..., :3], alpha, depth, None, meta)
-    normal = F.normalize(out[..., 3:6], dim=-1, eps=1e-8)
+        out = out[0]
+        return RenderOutput(out[..., :3], alpha, None if depth_mode is None else out[..., -1], None, meta)
+    blended, normal, depth = _Channels.apply(out)
+    depth = None if depth_mode is None else depth
     if appearance == "sh":
-        return RenderOutput(out[..., :3], alpha, depth, normal, meta)
-    rgb, albedo = _shade(out[..., :3], alpha, normal, viewmat[0], K[0], light, fused=fused_kernels(backend))
+        return RenderOutput(blended, alpha, depth, normal, meta)
+    rgb, albedo = _shade(blended, alpha, normal, viewmat[0], K[0], light, fused=fused_kernels(backend))
     return RenderOutput(rgb, alpha, depth, normal, meta, albedo)
+
+
+class _Channels(torch.autograd.Function):
+    """One camera's rendered channels [1, H, W, 6 or 7] (colour, normal sum, and depth if rendered) -> colour
+    [H, W, 3], unit normal [H, W, 3] (``F.normalize``'s, eps 1e-8) and the last channel [H, W] (the depth, when
+    there are 7). The same as slicing and ``F.normalize``, with one gradient tensor in the backward: each slice's
+    backward would fill a zero tensor of the whole's size, and the normalisation take five image-sized ops."""
+
+    @staticmethod
+    def forward(ctx, out: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        summed = out[0, ..., 3:6]
+        norm = torch.linalg.vector_norm(summed, dim=-1, keepdim=True).clamp_min(_NORMAL_EPS)  # [H, W, 1]
+        normal = summed / norm
+        ctx.save_for_backward(normal, norm)
+        ctx.channels = out.shape[-1]
+        return out[0, ..., :3].contiguous(), normal, out[0, ..., -1].contiguous()
+
+    @staticmethod
+    def backward(ctx, v_color: Tensor, v_normal: Tensor, v_last: Tensor) -> Tensor:
+        normal, norm = ctx.saved_tensors
+        v_out = v_normal.new_empty(1, *normal.shape[:2], ctx.channels)  # [1, H, W, C], every channel written below
+        v_out[0, ..., :3] = v_color
+        # d(x / |x|) = (v - n (v . n)) / |x|; where |x| is clamped at eps, n = x / eps and the gradient is v / eps
+        along = torch.where(norm > _NORMAL_EPS, (v_normal * normal).sum(-1, keepdim=True), 0.0)
+        v_out[0, ..., 3:6] = (v_normal - normal * along) / norm
+        if ctx.channels == 7:
+            v_out[0, ..., 6] = v_last
+        else:  # (6 channels: the last is the normal's, and the caller drops it: its gradient is zero)
+            v_out[0, ..., 5] += v_last
+        return v_out
+
+
+_NORMAL_EPS = 1e-8
 
 
 def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:

@@ -14,7 +14,7 @@ from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.evaluation import equirect_directions, save_light
 from tacsplat.reconstruction.gaussians import Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.raster.spherical_harmonics import sh_basis
-from tacsplat.reconstruction.shading import DiffuseLight, _shade, gaussian_normals, render
+from tacsplat.reconstruction.shading import DiffuseLight, _Channels, _shade, gaussian_normals, render
 
 
 def test_the_normal_of_a_flat_gaussian_is_its_shortest_axis():
@@ -65,6 +65,32 @@ def _plane_of_flat_gaussians(normal: np.ndarray, offset: float, n: int = 60) -> 
         "shN": torch.zeros(m, 0, 3),
     }
     return Gaussians(params, torch.zeros(m, dtype=torch.bool), sh_degree=0)
+
+
+@pytest.mark.parametrize("channels", [6, 7])
+def test_the_rendered_channels_split_as_slices_and_f_normalize_do_with_their_gradients(channels):
+    g = torch.Generator().manual_seed(5)
+    out = torch.randn(1, 6, 5, channels, generator=g, dtype=torch.float64)
+    out[0, 1, 2, 3:6] = 0.0  # a pixel no Gaussian reaches: the normal's norm clamped at eps
+    out[0, 2, 3, 3:6] = torch.tensor([3e-9, -4e-9, 0.0], dtype=torch.float64)  # below eps too
+    out.requires_grad_(True)
+    weights = [torch.randn(*shape, generator=g, dtype=torch.float64) for shape in ((6, 5, 3), (6, 5, 3), (6, 5))]
+
+    def reference(x):  # what render() did before: slices and F.normalize
+        o = x[0]
+        return o[..., :3], torch.nn.functional.normalize(o[..., 3:6], dim=-1, eps=1e-8), o[..., -1]
+
+    expected = reference(out)
+    split = _Channels.apply(out)
+    for a, b in zip(split, expected):
+        assert torch.equal(a, b)
+    for used in ((0, 1, 2), (0, 1)):  # with and without the depth (6 channels: the normal's last channel)
+        (want,) = torch.autograd.grad(sum((reference(out)[i] * weights[i]).sum() for i in used), out)
+        (got,) = torch.autograd.grad(sum((_Channels.apply(out)[i] * weights[i]).sum() for i in used), out)
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12 * float(want.abs().max()))
+    unclamped = out.detach().clone()
+    unclamped[0, 1, 2, 3:6], unclamped[0, 2, 3, 3:6] = 1.0, 0.5  # (gradcheck's steps must not cross the clamp)
+    assert torch.autograd.gradcheck(_Channels.apply, (unclamped.requires_grad_(True),))
 
 
 def test_depth_normal_consistency_is_zero_for_a_plane_of_flat_gaussians_lying_in_it():
