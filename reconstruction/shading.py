@@ -123,7 +123,6 @@ def render(
         out = out[0]
         return RenderOutput(out[..., :3], alpha, None if depth_mode is None else out[..., -1], None, meta)
     blended, normal, depth = _Channels.apply(out)
-    depth = None if depth_mode is None else depth
     if appearance == "sh":
         return RenderOutput(blended, alpha, depth, normal, meta)
     rgb, albedo = _shade(blended, alpha, normal, viewmat[0], K[0], light, fused=fused_kernels(backend))
@@ -131,32 +130,30 @@ def render(
 
 
 class _Channels(torch.autograd.Function):
-    """One camera's rendered channels [1, H, W, 6 or 7] (colour, normal sum, and depth if rendered) -> colour
-    [H, W, 3], unit normal [H, W, 3] (``F.normalize``'s, eps 1e-8) and the last channel [H, W] (the depth, when
-    there are 7). The same as slicing and ``F.normalize``, with one gradient tensor in the backward: each slice's
-    backward would fill a zero tensor of the whole's size, and the normalisation take five image-sized ops."""
+    """One camera's rendered channels [1, H, W, 6 or 7] (colour, normal sum, and the depth if rendered) -> colour
+    [H, W, 3], unit normal [H, W, 3] (``F.normalize``'s, eps 1e-8) and depth [H, W] (None with 6 channels). The
+    same as slicing and ``F.normalize``, with one gradient tensor in the backward: each slice's backward would fill
+    a zero tensor of the whole's size, and the normalisation take five image-sized ops."""
 
     @staticmethod
-    def forward(ctx, out: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def forward(ctx, out: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         summed = out[0, ..., 3:6]
         norm = torch.linalg.vector_norm(summed, dim=-1, keepdim=True).clamp_min(_NORMAL_EPS)  # [H, W, 1]
         normal = summed / norm
         ctx.save_for_backward(normal, norm)
-        ctx.channels = out.shape[-1]
-        return out[0, ..., :3].contiguous(), normal, out[0, ..., -1].contiguous()
+        depth = out[0, ..., 6].contiguous() if out.shape[-1] == 7 else None
+        return out[0, ..., :3].contiguous(), normal, depth
 
     @staticmethod
-    def backward(ctx, v_color: Tensor, v_normal: Tensor, v_last: Tensor) -> Tensor:
+    def backward(ctx, v_color: Tensor, v_normal: Tensor, v_depth: Tensor | None) -> Tensor:
         normal, norm = ctx.saved_tensors
-        v_out = v_normal.new_empty(1, *normal.shape[:2], ctx.channels)  # [1, H, W, C], every channel written below
+        v_out = v_normal.new_empty(1, *normal.shape[:2], 6 if v_depth is None else 7)  # [1, H, W, C], all written
         v_out[0, ..., :3] = v_color
         # d(x / |x|) = (v - n (v . n)) / |x|; where |x| is clamped at eps, n = x / eps and the gradient is v / eps
         along = torch.where(norm > _NORMAL_EPS, (v_normal * normal).sum(-1, keepdim=True), 0.0)
         v_out[0, ..., 3:6] = (v_normal - normal * along) / norm
-        if ctx.channels == 7:
-            v_out[0, ..., 6] = v_last
-        else:  # (6 channels: the last is the normal's, and the caller drops it: its gradient is zero)
-            v_out[0, ..., 5] += v_last
+        if v_depth is not None:
+            v_out[0, ..., 6] = v_depth
         return v_out
 
 

@@ -78,19 +78,24 @@ def test_the_rendered_channels_split_as_slices_and_f_normalize_do_with_their_gra
 
     def reference(x):  # what render() did before: slices and F.normalize
         o = x[0]
-        return o[..., :3], torch.nn.functional.normalize(o[..., 3:6], dim=-1, eps=1e-8), o[..., -1]
+        depth = o[..., 6] if channels == 7 else None
+        return o[..., :3], torch.nn.functional.normalize(o[..., 3:6], dim=-1, eps=1e-8), depth
 
-    expected = reference(out)
-    split = _Channels.apply(out)
+    split, expected = _Channels.apply(out), reference(out)
+    assert (split[2] is None) == (channels == 6)
     for a, b in zip(split, expected):
-        assert torch.equal(a, b)
-    for used in ((0, 1, 2), (0, 1)):  # with and without the depth (6 channels: the normal's last channel)
+        assert b is None or torch.equal(a, b)
+    for used in ((0, 1, 2), (0, 1)) if channels == 7 else ((0, 1),):  # (7: with and without using the depth)
         (want,) = torch.autograd.grad(sum((reference(out)[i] * weights[i]).sum() for i in used), out)
         (got,) = torch.autograd.grad(sum((_Channels.apply(out)[i] * weights[i]).sum() for i in used), out)
         torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12 * float(want.abs().max()))
     unclamped = out.detach().clone()
     unclamped[0, 1, 2, 3:6], unclamped[0, 2, 3, 3:6] = 1.0, 0.5  # (gradcheck's steps must not cross the clamp)
-    assert torch.autograd.gradcheck(_Channels.apply, (unclamped.requires_grad_(True),))
+
+    def tensors(x):  # (gradcheck takes no None output)
+        return tuple(t for t in _Channels.apply(x) if t is not None)
+
+    assert torch.autograd.gradcheck(tensors, (unclamped.requires_grad_(True),))
 
 
 def test_depth_normal_consistency_is_zero_for_a_plane_of_flat_gaussians_lying_in_it():
