@@ -315,6 +315,8 @@ class DxlEmulator:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+            if self._thread.is_alive():  # (blocked writing to a full terminal): a descriptor it still holds, once
+                return  # closed, could be reused by a file it would then read or write; the daemon ends with us
         for fd in (self._master, self._slave):
             with contextlib.suppress(OSError):
                 os.close(fd)

@@ -3,6 +3,7 @@ side of a pseudo-terminal, a command signalled mid-run."""
 
 import io
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -74,18 +75,22 @@ class ScriptedKeys(io.TextIOBase):
 
 class Terminal:
     """The operator's side of a pseudo-terminal: collects the output in a thread (the live status line has no
-    newline); ``wait_for`` blocks until a text appears after the last ``type``; ``type`` sends keys."""
+    newline); ``wait_for`` blocks until a text appears after the last ``type``; ``type`` sends keys; ``close``
+    stops the thread, then closes the terminal."""
 
     def __init__(self, master_fd: int):
         self.fd = master_fd
         self.text = ""
         self._since = 0
         self._cond = threading.Condition()
+        self._stop = threading.Event()
         self._reader = threading.Thread(target=self._run, daemon=True)
         self._reader.start()
 
     def _run(self):
-        while True:
+        while not self._stop.is_set():
+            if not select.select([self.fd], [], [], 0.05)[0]:
+                continue
             try:
                 chunk = os.read(self.fd, 4096)
             except OSError:  # EIO: the other side is gone
@@ -95,6 +100,13 @@ class Terminal:
             with self._cond:
                 self.text += chunk.decode(errors="replace")
                 self._cond.notify_all()
+
+    def close(self) -> None:
+        """Stop the reader before closing its descriptor: a reader left running would read from whatever file
+        next takes the descriptor's number (a scene file the test opens), moving that file's offset."""
+        self._stop.set()
+        self._reader.join()
+        os.close(self.fd)
 
     def type(self, keys: str) -> None:
         with self._cond:

@@ -52,8 +52,8 @@ def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path
         close_fds=True,
     )
     os.close(slave)
+    term = Terminal(master)
     try:
-        term = Terminal(master)
         term.wait_for("board: seen")
         term.type("\r\r\rg")
         term.wait_for("grasp 0 recorded")
@@ -65,7 +65,7 @@ def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path
     finally:
         if proc.poll() is None:
             proc.kill()
-        os.close(master)
+        term.close()
     assert proc.returncode == -signal.SIGKILL
     assert "\r\x1b[Kboard: seen" in term.text  # the live status line, redrawn in place
     before = _snapshot(out)  # the index is consistent after the kill

@@ -52,7 +52,7 @@ def _capture_killed_mid_grasp(tmp_path, emu: EmulatorProcess, signum: int) -> tu
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-        os.close(master)
+        term.close()
     assert "grasp 0 recorded" not in term.text, f"the signal came after the grasp:\n{term.text[-2000:]}"
     return proc, term, out
 
