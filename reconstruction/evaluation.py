@@ -448,7 +448,7 @@ def evaluate_reconstruction(
         save_light(look.light, Path(run_dir) / "light.png")
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
-    metrics.update(exported_mesh_metrics(Path(run_dir), scene))
+    metrics.update(exported_mesh_metrics(Path(run_dir), scene, training_frames(scene, config.train_views)))
     result = {
         **metrics,
         "train_seconds": train_seconds,
@@ -468,14 +468,28 @@ def evaluate_reconstruction(
     return result
 
 
-def exported_mesh_metrics(run_dir: Path, scene) -> dict:
-    """The mesh metrics (:func:`~.metrics.mesh_metrics`) of ``RUN/mesh.ply`` where ``tacsplat export mesh`` wrote
-    one and the scene has a ground truth; empty otherwise."""
+def exported_mesh_metrics(run_dir: Path, scene, train_frames: list) -> dict:
+    """The mesh metrics (:func:`~.metrics.mesh_metrics`, split by what ``train_frames`` see) of ``RUN/mesh.ply``
+    where ``tacsplat export mesh`` wrote one and the scene has a ground truth; empty otherwise."""
     import trimesh
 
     path = run_dir / "mesh.ply"
     truth = ground_truth_surface(scene) if path.is_file() else None
-    return {} if truth is None else mesh_metrics(trimesh.load(str(path), force="mesh"), *truth)
+    if truth is None:
+        return {}
+    return mesh_metrics(
+        trimesh.load(str(path), force="mesh"), *truth, seen_by=seen_by_training_views(*truth, train_frames)
+    )
+
+
+def seen_by_training_views(gt, radius: float, train_frames: list):
+    """:func:`~.metrics.mesh_metrics`'s ``seen_by`` for a ground-truth mesh ``gt``: which of its points [S, 3] the
+    training cameras see (:func:`seen_by_cameras`); None for a ground truth of points (nothing occludes)."""
+    import trimesh
+
+    if not isinstance(gt, trimesh.Trimesh):
+        return None
+    return lambda points: seen_by_cameras(gt, {0: points}, train_frames, radius)[0]
 
 
 def equirect_directions(height: int, device=None) -> torch.Tensor:

@@ -311,6 +311,7 @@ def export_mesh(
     import json
 
     from tacsplat.datasets import Scene
+    from tacsplat.reconstruction.evaluation import seen_by_training_views
     from tacsplat.reconstruction.run_dir import load_run
     from tacsplat.reconstruction.views import scene_at, training_frames
 
@@ -318,9 +319,8 @@ def export_mesh(
     run = load_run(run_dir)
     scene = scene_at(Scene.load(run.scene_path), run.config.downscale)
     out = run_dir / "mesh.ply" if out is None else Path(out)
-    extracted = extract_mesh(
-        run.gaussians, scene, training_frames(scene, run.config.train_views), run.config.backend, run.look, config
-    )
+    frames = training_frames(scene, run.config.train_views)
+    extracted = extract_mesh(run.gaussians, scene, frames, run.config.backend, run.look, config)
     save_mesh_ply(extracted, out)
     summary = {
         "mesh": str(out),
@@ -332,7 +332,7 @@ def export_mesh(
     }
     truth = ground_truth_surface(scene)
     if truth is not None:
-        summary.update(mesh_metrics(extracted.mesh, *truth))
+        summary.update(mesh_metrics(extracted.mesh, *truth, seen_by=seen_by_training_views(*truth, frames)))
         metrics_path = run_dir / "metrics.json"
         default = out.resolve() == (run_dir / "mesh.ply").resolve()
         if (record is not None or default) and metrics_path.is_file():

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 import torch
@@ -226,12 +226,18 @@ def mesh_metrics(
     thresholds=FSCORE_THRESHOLDS,
     samples: int = METRIC_SAMPLES,
     targets: int = TARGET_SAMPLES,
+    seen_by: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> dict:
     """The mesh metrics of ``mesh`` against ``gt``, a ground-truth mesh or points [S, 3]: F-score at ``thresholds``
     (fractions of ``radius``), the Chamfer distance (mean distance each way, halved, in radii), normal consistency
     (mean ``|n . n_gt|`` of nearest pairs, both ways; NaN against points) and whether the mesh is watertight. ``samples`` points of each surface are measured to ``targets`` points of the
     other, dense enough that the gaps between them do not count as error (a ground truth of points is its
-    points)."""
+    points).
+
+    With ``seen_by`` (ground-truth points [S, 3] -> [S] bool: which the training cameras see), also the F-scores
+    of the seen surface and of the rest (``mesh_fscore_5_seen``, ``mesh_fscore_5_unseen``, ...), split as
+    :func:`chamfer_distance_parts` splits the CD: each mesh point belongs to the part of its nearest
+    ground-truth point."""
     import trimesh
 
     pred, faces = trimesh.sample.sample_surface(mesh, samples, seed=0)
@@ -249,11 +255,15 @@ def mesh_metrics(
     bounds = (2 * min(thresholds) * radius, 2 * max(thresholds) * radius)
     d_pred, n_pred = _nearest(pred, target, target_normals, bounds if sampled else None)
     d_truth, n_truth = _nearest(truth, dense, mesh.face_normals[dense_faces], bounds)
+    parts = {"": (np.ones(len(pred), bool), np.ones(len(truth), bool))}
+    if seen_by is not None:
+        seen = np.asarray(seen_by(truth), dtype=bool)  # [S]
+        seen_pred = seen[cKDTree(truth).query(pred)[1]]  # [N]: the part of each mesh point's nearest truth point
+        parts |= {"_seen": (seen_pred, seen), "_unseen": (~seen_pred, ~seen)}
     result = {}
     for t in thresholds:
-        precision, recall = float(np.mean(d_pred < t * radius)), float(np.mean(d_truth < t * radius))
-        key = f"mesh_fscore_{round(100 * t)}"
-        result[key] = 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
+        for suffix, (in_pred, in_truth) in parts.items():
+            result[f"mesh_fscore_{round(100 * t)}{suffix}"] = _fscore(d_pred[in_pred], d_truth[in_truth], t * radius)
     result["mesh_cd"] = float((d_pred.mean() + d_truth.mean()) / 2 / radius)
     result["mesh_normal_consistency"] = (
         float("nan")
@@ -264,6 +274,16 @@ def mesh_metrics(
     )
     result["mesh_watertight"] = bool(mesh.is_watertight)
     return result
+
+
+def _fscore(d_pred: np.ndarray, d_truth: np.ndarray, threshold: float) -> float:
+    """The F-score of a prediction's distances to the truth [N] and the truth's to the prediction [S]: NaN with no
+    truth; precision 1 with no prediction (nothing there to be wrong)."""
+    if not len(d_truth):
+        return float("nan")
+    precision = float(np.mean(d_pred < threshold)) if len(d_pred) else 1.0
+    recall = float(np.mean(d_truth < threshold))
+    return 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
 
 
 def _nearest(query, dense, dense_normals, bounds: tuple[float, float] | None):

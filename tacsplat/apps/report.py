@@ -31,6 +31,8 @@ METRICS: dict[str, tuple[str, Better, int]] = {
     "mesh_fscore_1": ("Mesh F-score at 1 % of the radius (↑)", "higher", 3),
     "mesh_fscore_2": ("Mesh F-score at 2 % of the radius (↑)", "higher", 3),
     "mesh_fscore_5": ("Mesh F-score at 5 % of the radius (↑)", "higher", 3),
+    "mesh_fscore_5_seen": ("Mesh F-score at 5 % on the surface a training view sees (↑)", "higher", 3),
+    "mesh_fscore_5_unseen": ("Mesh F-score at 5 % on the surface no training view sees (↑)", "higher", 3),
     "mesh_cd": ("Mesh CD, radii (↓)", "lower", 4),
     "mesh_untouched_fscore_5": ("Mesh F-score at 5 %, touches not fused into the mesh (↑)", "higher", 3),
     "mesh_untouched_cd": ("Mesh CD, touches not fused into the mesh (↓)", "lower", 4),

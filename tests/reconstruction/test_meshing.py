@@ -102,6 +102,18 @@ def test_mesh_metrics_of_the_truth_and_of_a_grown_copy():
     assert np.isnan(points["mesh_normal_consistency"]) and points["mesh_fscore_5"] > 0.99
 
 
+def test_mesh_fscores_split_into_the_seen_surface_and_the_rest():
+    truth = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    lower_grown = truth.copy()
+    lower_grown.vertices[lower_grown.vertices[:, 2] < -0.2] *= 1.1  # wrong by 0.1 radii below z = -0.2
+    split = mesh_metrics(lower_grown, truth, 1.0, samples=20_000, targets=400_000, seen_by=lambda p: p[:, 2] > 0)
+    assert split["mesh_fscore_5_seen"] > 0.99 and split["mesh_fscore_5_unseen"] < 0.5
+    assert split["mesh_fscore_5_unseen"] < split["mesh_fscore_5"] < split["mesh_fscore_5_seen"]
+    assert "mesh_fscore_5_seen" not in mesh_metrics(lower_grown, truth, 1.0, samples=2_000, targets=20_000)
+    nothing_seen = mesh_metrics(truth, truth, 1.0, samples=2_000, targets=20_000, seen_by=lambda p: p[:, 2] > 2)
+    assert np.isnan(nothing_seen["mesh_fscore_5_seen"]) and nothing_seen["mesh_fscore_5_unseen"] > 0.99
+
+
 @pytest.fixture(scope="module")
 def sphere_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("mesh")
@@ -140,7 +152,15 @@ def test_export_mesh_writes_a_watertight_colored_mesh_and_its_metrics(sphere_run
     from_faces = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).vertex_normals  # of outward faces
     assert ((normals * from_faces).sum(axis=1) > 0).mean() > 0.99  # the written normals point outward too
     metrics = json.loads((sphere_run / "metrics.json").read_text())
-    for key in ("mesh_fscore_1", "mesh_fscore_2", "mesh_fscore_5", "mesh_cd", "mesh_normal_consistency"):
+    keys = (
+        "mesh_fscore_1",
+        "mesh_fscore_2",
+        "mesh_fscore_5",
+        "mesh_fscore_5_seen",
+        "mesh_cd",
+        "mesh_normal_consistency",
+    )
+    for key in keys:
         assert np.isfinite(metrics[key]) and metrics[key] == summary[key]
 
 
