@@ -32,6 +32,7 @@ from tacsplat.reconstruction.metrics import (
     chamfer_distance_parts,
     chamfer_terms_paper,
     depth_to_points,
+    finite_or_none,
     ground_truth_surface,
     mesh_metrics,
     psnr,
@@ -463,7 +464,7 @@ def evaluate_reconstruction(
         "scene": str(scene.path),
         "settings": config.to_json(),
     }
-    result = {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in result.items()}
+    result = finite_or_none(result)
     atomic_write(Path(run_dir) / "metrics.json", json.dumps(result, indent=2, default=_json_default).encode())
     return result
 

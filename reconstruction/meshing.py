@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 from tacsplat.errors import InvalidInputError
 from tacsplat.files import atomic_write
 from tacsplat.geometry import invert_pose, look_at
-from tacsplat.reconstruction.metrics import ground_truth_surface, mesh_metrics
+from tacsplat.reconstruction.metrics import finite_or_none, ground_truth_surface, mesh_metrics
 from tacsplat.types import CameraIntrinsics
 
 SLAB_VOXELS = 2_000_000  # voxels projected at once (memory: about 100 bytes each)
@@ -332,7 +332,9 @@ def export_mesh(
     }
     truth = ground_truth_surface(scene)
     if truth is not None:
-        summary.update(mesh_metrics(extracted.mesh, *truth, seen_by=seen_by_training_views(*truth, frames)))
+        summary.update(
+            finite_or_none(mesh_metrics(extracted.mesh, *truth, seen_by=seen_by_training_views(*truth, frames)))
+        )
         metrics_path = run_dir / "metrics.json"
         default = out.resolve() == (run_dir / "mesh.ply").resolve()
         if (record is not None or default) and metrics_path.is_file():

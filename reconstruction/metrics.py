@@ -276,6 +276,11 @@ def mesh_metrics(
     return result
 
 
+def finite_or_none(metrics: dict) -> dict:
+    """``metrics`` with every NaN or infinite float as None: JSON has no NaN (a metric that is not defined)."""
+    return {k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in metrics.items()}
+
+
 def _fscore(d_pred: np.ndarray, d_truth: np.ndarray, threshold: float) -> float:
     """The F-score of a prediction's distances to the truth [N] and the truth's to the prediction [S]: NaN with no
     truth; precision 1 with no prediction (nothing there to be wrong)."""

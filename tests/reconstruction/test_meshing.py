@@ -151,7 +151,9 @@ def test_export_mesh_writes_a_watertight_colored_mesh_and_its_metrics(sphere_run
     np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
     from_faces = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).vertex_normals  # of outward faces
     assert ((normals * from_faces).sum(axis=1) > 0).mean() > 0.99  # the written normals point outward too
-    metrics = json.loads((sphere_run / "metrics.json").read_text())
+    text = (sphere_run / "metrics.json").read_text()
+    assert "NaN" not in text  # (JSON has none: the unseen part's F-score, with nothing unseen, is null)
+    metrics = json.loads(text)
     keys = (
         "mesh_fscore_1",
         "mesh_fscore_2",
