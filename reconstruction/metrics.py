@@ -235,7 +235,8 @@ def mesh_metrics(
     points).
 
     With ``seen_by`` (ground-truth points [S, 3] -> [S] bool: which the training cameras see), also the F-scores
-    of the seen surface and of the rest (``mesh_fscore_5_seen``, ``mesh_fscore_5_unseen``, ...), split as
+    of the seen surface and of the rest (``mesh_fscore_5_seen``, ``mesh_fscore_5_unseen``, ...; the share of the
+    ground truth that is unseen, ``mesh_unseen_fraction``), split as
     :func:`chamfer_distance_parts` splits the CD: each mesh point belongs to the part of its nearest
     ground-truth point."""
     import trimesh
@@ -260,7 +261,7 @@ def mesh_metrics(
         seen = np.asarray(seen_by(truth), dtype=bool)  # [S]
         seen_pred = seen[cKDTree(truth).query(pred)[1]]  # [N]: the part of each mesh point's nearest truth point
         parts |= {"_seen": (seen_pred, seen), "_unseen": (~seen_pred, ~seen)}
-    result = {}
+    result = {} if seen_by is None else {"mesh_unseen_fraction": float(1 - seen.mean())}  # of the ground truth
     for t in thresholds:
         for suffix, (in_pred, in_truth) in parts.items():
             result[f"mesh_fscore_{round(100 * t)}{suffix}"] = _fscore(d_pred[in_pred], d_truth[in_truth], t * radius)

@@ -108,6 +108,7 @@ def test_mesh_fscores_split_into_the_seen_surface_and_the_rest():
     lower_grown.vertices[lower_grown.vertices[:, 2] < -0.2] *= 1.1  # wrong by 0.1 radii below z = -0.2
     split = mesh_metrics(lower_grown, truth, 1.0, samples=20_000, targets=400_000, seen_by=lambda p: p[:, 2] > 0)
     assert split["mesh_fscore_5_seen"] > 0.99 and split["mesh_fscore_5_unseen"] < 0.5
+    assert split["mesh_unseen_fraction"] == pytest.approx(0.5, abs=0.02)
     assert split["mesh_fscore_5_unseen"] < split["mesh_fscore_5"] < split["mesh_fscore_5_seen"]
     assert "mesh_fscore_5_seen" not in mesh_metrics(lower_grown, truth, 1.0, samples=2_000, targets=20_000)
     nothing_seen = mesh_metrics(truth, truth, 1.0, samples=2_000, targets=20_000, seen_by=lambda p: p[:, 2] > 2)
