@@ -435,7 +435,8 @@ def evaluate_reconstruction(
     diffuse light, :func:`save_light`) into ``run_dir``."""
     test = scene.split("test")
     backend = backend or config.backend
-    ground_truth = load_ground_truth(scene, test, gt_path, train_frames=training_frames(scene, config.train_views))
+    train_frames = training_frames(scene, config.train_views)
+    ground_truth = load_ground_truth(scene, test, gt_path, train_frames=train_frames)
     metrics = evaluate_views(
         gaussians, scene, test, config.background, backend, ground_truth, Path(run_dir) / "renders", look
     )
@@ -449,7 +450,7 @@ def evaluate_reconstruction(
         save_light(look.light, Path(run_dir) / "light.png")
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
-    metrics.update(exported_mesh_metrics(Path(run_dir), scene, training_frames(scene, config.train_views)))
+    metrics.update(exported_mesh_metrics(Path(run_dir), scene, train_frames))
     result = {
         **metrics,
         "train_seconds": train_seconds,

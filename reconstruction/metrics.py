@@ -256,12 +256,12 @@ def mesh_metrics(
     bounds = (2 * min(thresholds) * radius, 2 * max(thresholds) * radius)
     d_pred, n_pred = _nearest(pred, target, target_normals, bounds if sampled else None)
     d_truth, n_truth = _nearest(truth, dense, mesh.face_normals[dense_faces], bounds)
-    parts = {"": (np.ones(len(pred), bool), np.ones(len(truth), bool))}
+    result, parts = {}, {"": (np.ones(len(pred), bool), np.ones(len(truth), bool))}
     if seen_by is not None:
         seen = np.asarray(seen_by(truth), dtype=bool)  # [S]
         seen_pred = seen[cKDTree(truth).query(pred)[1]]  # [N]: the part of each mesh point's nearest truth point
         parts |= {"_seen": (seen_pred, seen), "_unseen": (~seen_pred, ~seen)}
-    result = {} if seen_by is None else {"mesh_unseen_fraction": float(1 - seen.mean())}  # of the ground truth
+        result["mesh_unseen_fraction"] = float(1 - seen.mean())  # of the ground truth
     for t in thresholds:
         for suffix, (in_pred, in_truth) in parts.items():
             result[f"mesh_fscore_{round(100 * t)}{suffix}"] = _fscore(d_pred[in_pred], d_truth[in_truth], t * radius)

@@ -129,6 +129,9 @@ def render(
     return RenderOutput(rgb, alpha, depth, normal, meta, albedo)
 
 
+_NORMAL_EPS = 1e-8  # F.normalize's eps for the rendered normal
+
+
 class _Channels(torch.autograd.Function):
     """One camera's rendered channels [1, H, W, 6 or 7] (colour, normal sum, and the depth if rendered) -> colour
     [H, W, 3], unit normal [H, W, 3] (``F.normalize``'s, eps 1e-8) and depth [H, W] (None with 6 channels). The
@@ -141,23 +144,21 @@ class _Channels(torch.autograd.Function):
         norm = torch.linalg.vector_norm(summed, dim=-1, keepdim=True).clamp_min(_NORMAL_EPS)  # [H, W, 1]
         normal = summed / norm
         ctx.save_for_backward(normal, norm)
+        ctx.channels = out.shape[-1]
         depth = out[0, ..., 6].contiguous() if out.shape[-1] == 7 else None
         return out[0, ..., :3].contiguous(), normal, depth
 
     @staticmethod
     def backward(ctx, v_color: Tensor, v_normal: Tensor, v_depth: Tensor | None) -> Tensor:
         normal, norm = ctx.saved_tensors
-        v_out = v_normal.new_empty(1, *normal.shape[:2], 6 if v_depth is None else 7)  # [1, H, W, C], all written
+        v_out = v_normal.new_empty(1, *normal.shape[:2], ctx.channels)  # [1, H, W, C], all written
         v_out[0, ..., :3] = v_color
         # d(x / |x|) = (v - n (v . n)) / |x|; where |x| is clamped at eps, n = x / eps and the gradient is v / eps
         along = torch.where(norm > _NORMAL_EPS, (v_normal * normal).sum(-1, keepdim=True), 0.0)
         v_out[0, ..., 3:6] = (v_normal - normal * along) / norm
-        if v_depth is not None:
+        if ctx.channels == 7:  # (an unused depth's gradient arrives as zeros: autograd materialises it)
             v_out[0, ..., 6] = v_depth
         return v_out
-
-
-_NORMAL_EPS = 1e-8
 
 
 def pixel_rays(K: Tensor, width: int, height: int) -> Tensor:
