@@ -178,21 +178,20 @@ class EmulatedServo:
 
     def step(self, dt: float) -> None:
         """Move toward the goal at the servo's speed while torque is on."""
+        present = {"present_current": 0, "present_velocity": 0, "moving": 0}  # torque off: still, no current
         if self.torque_enabled:
             error = self.get("goal_position") - self.position
             move = max(-self.speed_ticks_per_s * dt, min(self.speed_ticks_per_s * dt, error))
             self.position += move
             current = max(-self.get("current_limit"), min(self.get("current_limit"), 2.0 * (error - move)))
-            self.set("present_current", int(round(current)))
-            self.set("present_velocity", int(round(move / max(dt, 1e-6) / 4096 * 60 / 0.229)))
-            self.set("moving", int(abs(error - move) > self.get("moving_threshold")))
-        else:
-            if self.hand_goal is not None and not self.horn_slipped:
-                step = self.hand_speed_ticks_per_s * dt
-                self.position += max(-step, min(step, self.hand_goal - self.position))
-            self.set("present_current", 0)
-            self.set("present_velocity", 0)
-            self.set("moving", 0)
+            present["present_current"] = int(round(current))
+            present["present_velocity"] = int(round(move / max(dt, 1e-6) / 4096 * 60 / 0.229))
+            present["moving"] = int(abs(error - move) > self.get("moving_threshold"))
+        elif self.hand_goal is not None and not self.horn_slipped:
+            step = self.hand_speed_ticks_per_s * dt
+            self.position += max(-step, min(step, self.hand_goal - self.position))
+        for name, value in present.items():
+            self.set(name, value)
         if self.stops is not None:
             self.position = min(max(self.position, self.stops[0]), self.stops[1])
         self._sync_present()
@@ -426,14 +425,18 @@ class DxlEmulator:
         if group is not None:
             return group(params)
         targets = list(self.servos) if servo_id == BROADCAST_ID else [servo_id]
-        for sid in targets:
-            servo = self.servos.get(sid)
-            if servo is None or sid in self._disconnected:
-                continue
-            servo.last_instruction = self._received
+        for servo in filter(None, map(self._reached, targets)):
             error, reply = self._unicast(servo, instruction, params)
             if servo_id != BROADCAST_ID or instruction == Instruction.PING:
                 self._reply(servo, error, reply)
+
+    def _reached(self, servo_id: int) -> EmulatedServo | None:
+        """The servo an instruction packet reaches (its Bus Watchdog fed), or None: no such servo, or disconnected."""
+        servo = self.servos.get(servo_id)
+        if servo is None or servo_id in self._disconnected:
+            return None
+        servo.last_instruction = self._received
+        return servo
 
     def _unicast(self, servo: EmulatedServo, instruction: int, params: bytes) -> tuple[int, bytes]:
         if instruction == Instruction.PING:
@@ -462,21 +465,15 @@ class DxlEmulator:
         address, size = params[0] | params[1] << 8, params[2] | params[3] << 8
         data = params[4:]
         for k in range(0, len(data) - size + 1, size + 1):
-            servo = self.servos.get(data[k])
-            if servo is not None and data[k] not in self._disconnected:
-                servo.last_instruction = self._received
-                if number := servo.write(address, data[k + 1 : k + 1 + size]):
-                    log.debug("servo %d rejected SYNC_WRITE at %d: error %d", data[k], address, number)
+            servo = self._reached(data[k])
+            if servo is not None and (number := servo.write(address, data[k + 1 : k + 1 + size])):
+                log.debug("servo %d rejected SYNC_WRITE at %d: error %d", data[k], address, number)
 
     def _sync_read(self, params: bytes) -> None:
         if len(params) < 5:
             return
         address, size = params[0] | params[1] << 8, params[2] | params[3] << 8
-        for sid in params[4:]:
-            servo = self.servos.get(sid)
-            if servo is None or sid in self._disconnected:
-                continue
-            servo.last_instruction = self._received
+        for servo in filter(None, map(self._reached, params[4:])):
             if address + size > CONTROL_TABLE_SIZE:
                 self._reply(servo, servo.status_error(ERR_ACCESS), b"")
             else:

@@ -32,6 +32,10 @@ class HardwareError(IntFlag):
     OVERLOAD = 1 << 5
 
 
+# the Shutdown register's factory value: the hardware errors that turn torque off
+SHUTDOWN_FACTORY = int(HardwareError.OVERHEATING | HardwareError.ELECTRICAL_SHOCK | HardwareError.OVERLOAD)
+
+
 @dataclass(frozen=True)
 class Register:
     name: str
@@ -65,12 +69,7 @@ REGISTERS = {
         Register("velocity_limit", 44, 4, initial=445),
         Register("max_position_limit", 48, 4, initial=4095),
         Register("min_position_limit", 52, 4),
-        Register(
-            "shutdown",
-            63,
-            1,
-            initial=int(HardwareError.OVERHEATING | HardwareError.ELECTRICAL_SHOCK | HardwareError.OVERLOAD),
-        ),
+        Register("shutdown", 63, 1, initial=SHUTDOWN_FACTORY),
         Register("torque_enable", 64, 1),
         Register("led", 65, 1),
         Register("status_return_level", 68, 1, initial=2),

@@ -37,11 +37,9 @@ class LimpHand(Protocol):
     @property
     def joint_limits(self) -> np.ndarray:
         """[n, 2] the model's limits, radians: the hard stops."""
-        ...
 
     def read_motor_angles(self) -> np.ndarray:
         """[n] radians, before any calibration."""
-        ...
 
 
 class Person(Protocol):

@@ -66,9 +66,12 @@ MIN_CONTACT_DEPTH_PX = 0.25  # pixel sizes: a shallower contact cannot be told f
 # radius a px is a^2 / 2R px deep: about this for the smallest blob that counts)
 
 
-def _odd(n: float) -> int:
-    n = int(round(n))
-    return n + 1 - n % 2
+def _dot_kernel(shape) -> tuple[int, np.ndarray]:
+    """The scale of a marker dot in an image of ``shape`` (h, w): ``min(h, w) / 16`` px, at least 5, rounded to an
+    odd size, and the elliptic structuring element of that size."""
+    size = int(round(max(5, min(shape) / 16)))
+    size += 1 - size % 2
+    return size, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
 
 
 def _wxh(shape) -> str:
@@ -86,8 +89,8 @@ def _as_rgb(image, name: str) -> np.ndarray:
 def _dark_dots(rgb: np.ndarray) -> np.ndarray:
     """Small round blobs (less than ``min(h, w) / 16`` px across) at least 25 grey levels darker than around them."""
     gray = cv2.cvtColor(np.clip(np.rint(rgb), 0, 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
-    size = _odd(max(5, min(gray.shape) / 16))
-    blackhat = cv2.morphologyEx(gray, cv2.MORPH_BLACKHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    size, kernel = _dot_kernel(gray.shape)
+    blackhat = cv2.morphologyEx(gray, cv2.MORPH_BLACKHAT, kernel)
     count, labels, stats, _ = cv2.connectedComponentsWithStats((blackhat > MARKER_MIN_CONTRAST).astype(np.uint8))
     width, height, area = stats[:, cv2.CC_STAT_WIDTH], stats[:, cv2.CC_STAT_HEIGHT], stats[:, cv2.CC_STAT_AREA]
     dot = (np.maximum(width, height) < size) & (area >= 0.4 * width * height)  # small and round-ish, not a line
@@ -101,8 +104,7 @@ def marker_mask(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
     dots = _dark_dots(reference)
     if not dots.any():
         return dots
-    size = _odd(max(5, min(dots.shape) / 16))
-    near = cv2.dilate(dots.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))) > 0
+    near = cv2.dilate(dots.astype(np.uint8), _dot_kernel(dots.shape)[1]) > 0
     count, labels = cv2.connectedComponents(_dark_dots(image).astype(np.uint8))
     moved = np.zeros(count, bool)
     moved[np.unique(labels[near & (labels > 0)])] = True
@@ -166,8 +168,7 @@ def _solid_blobs(mask: np.ndarray) -> np.ndarray:
     colour change vanishes, is bridged), its holes filled, blobs smaller than the minimum area dropped."""
     ellipse = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
     mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, ellipse)
-    size = _odd(max(5, min(mask.shape) / 16))
-    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, _dot_kernel(mask.shape)[1])
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     keep = np.zeros(count, bool)
     keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= max(20, int(0.002 * mask.shape[0] * mask.shape[1]))  # 0.2 %, >= 20 px

@@ -94,6 +94,11 @@ def _params(T: np.ndarray) -> np.ndarray:
     return np.concatenate([Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]])
 
 
+def _world_sensor(p: Press, T_cam_hand: np.ndarray, T_fingertip_sensor: np.ndarray) -> np.ndarray:
+    """``T_world_sensor`` of a press: ``T_world_cam @ T_cam_hand @ T_hand_fingertip @ T_fingertip_sensor``."""
+    return p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ T_fingertip_sensor
+
+
 def check_presses(presses: list[Press], what: str) -> None:
     """Refuse an empty set and a press without contact."""
     if not presses:
@@ -133,8 +138,7 @@ def fit_presses(
         T_cam_hand = invert_pose(X)
         out = []
         for p, pts in zip(presses, samples):
-            T = p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4))
-            world = transform_points(T, pts)
+            world = transform_points(_world_sensor(p, T_cam_hand, mounts.get(p.finger, np.eye(4))), pts)
             if p.surface == "board":
                 out.append(world[:, 2])
             else:
@@ -144,7 +148,7 @@ def fit_presses(
     x0 = [_params(T_hand_cam)]
     for c in placements:  # the sphere's centre one radius behind the first patch that touched it
         p = next(p for p in presses if p.surface == "sphere" and p.placement == c)
-        T = p.T_world_cam @ invert_pose(T_hand_cam) @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4))
+        T = _world_sensor(p, invert_pose(T_hand_cam), mounts.get(p.finger, np.eye(4)))
         x0.append(transform_points(T, np.r_[p.points_sensor.mean(axis=0)[:2], sphere_radius_m][None])[0, :2])
     x0 = np.concatenate(x0)
     scale = np.r_[[0.01] * 3 + [0.001] * 3, [0.001] * 2 * len(placements)]
@@ -208,7 +212,7 @@ def sphere_centre_in_sensor(points: np.ndarray, radius_m: float) -> np.ndarray:
 
 def _correction(x: np.ndarray) -> np.ndarray:
     """A rigid [4, 4] from (rotation vector in degrees [3], translation in mm [3])."""
-    return make_pose(Rotation.from_rotvec(np.radians(x[:3])).as_matrix(), x[3:6] / 1000)
+    return _pose(np.r_[np.radians(x[:3]), x[3:6] / 1000])
 
 
 def fit_mounts(
@@ -241,7 +245,7 @@ def fit_mounts(
     if missing := [k for k in placements if k not in centre_heights_m]:
         raise InvalidInputError(f"{what}: no height given for sphere placements {missing}")
     T_cam_hand = invert_pose(T_hand_cam)
-    start = [p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4)) for p in presses]
+    start = [_world_sensor(p, T_cam_hand, mounts.get(p.finger, np.eye(4))) for p in presses]
     samples = [p.sample() for p in presses]
     bounds = np.cumsum([0] + [len(s) for s in samples])
     centres_s = [sphere_centre_in_sensor(p.points_sensor, sphere_radius_m) for p in presses]
@@ -269,9 +273,7 @@ def fit_mounts(
         T_cam_hand = invert_pose(X)
         out = [
             np.linalg.norm(
-                transform_points(p.T_world_cam @ T_cam_hand @ p.T_hand_fingertip @ M[p.finger], pts)
-                - centres[p.placement],
-                axis=1,
+                transform_points(_world_sensor(p, T_cam_hand, M[p.finger]), pts) - centres[p.placement], axis=1
             )
             - sphere_radius_m
             for p, pts in zip(presses, samples)

@@ -22,37 +22,29 @@ class Hand(Protocol):
     @property
     def joint_limits(self) -> np.ndarray:
         """[n_joints, 2] lower and upper limits in radians."""
-        ...
 
     def read_joint_positions(self) -> np.ndarray:
         """[n_joints] radians."""
-        ...
 
     @property
     def effort_unit(self) -> str:
         """The unit of :meth:`read_joint_state`'s efforts: ``"A"`` (servo current), ``"N m"`` (joint torque)."""
-        ...
 
     def read_joint_state(self) -> tuple[np.ndarray, np.ndarray]:
         """``(positions [n_joints] radians, efforts [n_joints] in effort_unit)`` from one read."""
-        ...
 
     def command_joint_positions(self, q: np.ndarray) -> None:
         """Command [n_joints] radians (clamped to the joint limits, clamping logged)."""
-        ...
 
     def fingertip_poses(self) -> dict[str, np.ndarray]:
         """Tactile sensor frames in the hand frame, ``{finger: T_hand_sensor}``, from forward kinematics."""
-        ...
 
     @property
     def link_names(self) -> Sequence[str]:
         """The boxes of :meth:`link_boxes`."""
-        ...
 
     def link_boxes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The hand's solid shape at joint positions ``q``: ``(T_hand_box [L, 4, 4], half_extents [L, 3])``."""
-        ...
 
     def close(self) -> None: ...
 
@@ -72,18 +64,15 @@ class HandKinematics(Protocol):
     @property
     def joint_limits(self) -> np.ndarray:
         """[n_joints, 2] lower and upper limits in radians."""
-        ...
 
     def fingertip_poses(self, q: np.ndarray) -> dict[str, np.ndarray]:
         """``{finger: T_hand_sensor [4, 4]}`` at joint positions ``q`` [n_joints]."""
-        ...
 
     @property
     def link_names(self) -> Sequence[str]: ...
 
     def link_boxes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(T_hand_box [L, 4, 4], half_extents [L, 3])`` of the hand's solid shape at ``q`` [n_joints]."""
-        ...
 
 
 @runtime_checkable
@@ -93,7 +82,6 @@ class TactileSensor(Protocol):
 
     def read(self) -> TactileReading:
         """A reading whose pose is in the hand frame (``frame == "hand"``)."""
-        ...
 
 
 @runtime_checkable
@@ -101,7 +89,6 @@ class Camera(Protocol):
     @property
     def K(self) -> np.ndarray:
         """[3, 3] OpenCV intrinsics of the undistorted images."""
-        ...
 
     @property
     def width(self) -> int: ...
@@ -111,4 +98,3 @@ class Camera(Protocol):
 
     def read(self) -> tuple[np.ndarray, float]:
         """``(image [H, W, 3] uint8 RGB undistorted, timestamp seconds)``."""
-        ...

@@ -24,6 +24,7 @@ of the printed face (``T_WORLD_BOARD``).
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -652,16 +653,15 @@ def hand_eye_calibration(T_base_hand: Sequence[np.ndarray], T_world_cam: Sequenc
     hands = [np.asarray(T, dtype=np.float64) for T in T_base_hand]
     cams = [np.asarray(T, dtype=np.float64) for T in T_world_cam]
     alphas, betas, motions = [], [], []
-    for i in range(len(hands)):
-        for j in range(i + 1, len(hands)):
-            A = invert_pose(hands[j]) @ hands[i]
-            B = invert_pose(cams[j]) @ cams[i]
-            alpha = Rotation.from_matrix(A[:3, :3]).as_rotvec()
-            beta = Rotation.from_matrix(B[:3, :3]).as_rotvec()
-            if np.linalg.norm(alpha) > 1e-3 and np.linalg.norm(beta) > 1e-3:
-                alphas.append(alpha)
-                betas.append(beta)
-                motions.append((A, B))
+    for i, j in itertools.combinations(range(len(hands)), 2):
+        A = invert_pose(hands[j]) @ hands[i]
+        B = invert_pose(cams[j]) @ cams[i]
+        alpha = Rotation.from_matrix(A[:3, :3]).as_rotvec()
+        beta = Rotation.from_matrix(B[:3, :3]).as_rotvec()
+        if np.linalg.norm(alpha) > 1e-3 and np.linalg.norm(beta) > 1e-3:
+            alphas.append(alpha)
+            betas.append(beta)
+            motions.append((A, B))
     if len(alphas) < 2 or np.linalg.matrix_rank(np.array(alphas), tol=1e-3) < 2:
         raise InvalidInputError("hand_eye_calibration: the hand rotations must span at least two axes")
     R_X = Rotation.align_vectors(np.array(alphas), np.array(betas))[0].as_matrix()
