@@ -196,7 +196,7 @@ def pose_from_opengl(raw, index: Path, field: str) -> np.ndarray:
     camera-to-world pose of the scene format, re-orthonormalised when off by float rounding only; a
     SceneFormatError naming ``index`` and ``field`` otherwise."""
     try:
-        T = np.asarray(raw, dtype=np.float64)
+        T = np.array(raw, dtype=np.float64)  # (a copy: it is changed below)
     except (TypeError, ValueError):
         T = np.zeros(0)
     if T.shape != (4, 4):
@@ -204,7 +204,6 @@ def pose_from_opengl(raw, index: Path, field: str) -> np.ndarray:
     if problem := rigidity_problem(T, atol=1e-4):
         raise SceneFormatError(index, field, f"not a rigid transform: {problem}")
     U, _, Vt = np.linalg.svd(T[:3, :3])
-    T = T.copy()
     T[:3, :3] = U @ Vt
     T[3] = [0.0, 0.0, 0.0, 1.0]
     return opengl_to_opencv(T)

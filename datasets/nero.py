@@ -42,7 +42,7 @@ from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
 from .blender import check_options, composite, read_raw, read_rgba
-from .reader import _Problems, load_points_ply
+from .reader import STRICT, load_points_ply
 from .writer import new_import
 
 SPLIT_FILE = "synthetic_split_128.pkl"
@@ -50,16 +50,11 @@ DEPTH_RANGE = 15.0  # dataset units at the depth PNG's 65535
 BACKGROUND_DEPTH = 14.5  # dataset units: deeper is background
 EVAL_VOXEL = 0.01  # dataset units: NeRO's downsampling of its fallback ground-truth points
 
-_ALLOWED = {  # (module, name) an array pickle may construct
-    ("numpy", "ndarray"),
-    ("numpy", "dtype"),
-    ("numpy.core.multiarray", "_reconstruct"),
-    ("numpy._core.multiarray", "_reconstruct"),
-    ("numpy.core.multiarray", "scalar"),
-    ("numpy._core.multiarray", "scalar"),
-    ("numpy.core.numeric", "_frombuffer"),
-    ("numpy._core.numeric", "_frombuffer"),
-    ("builtins", "slice"),
+# (module, name) an array pickle may construct; numpy's core module is numpy.core before numpy 2, numpy._core after
+_ALLOWED = {("numpy", "ndarray"), ("numpy", "dtype"), ("builtins", "slice")} | {
+    (f"numpy.{core}.{module}", name)
+    for core in ("core", "_core")
+    for module, name in (("multiarray", "_reconstruct"), ("multiarray", "scalar"), ("numeric", "_frombuffer"))
 }
 
 
@@ -198,7 +193,7 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
                     fallback_points.append(unproject_depth(depth, K, unit_pose))
                 progress.update()
         if eval_points.is_file():  # checked as the reader checks the scene's copy
-            points = load_points_ply(eval_points, _Problems(collect=False), None)
+            points = load_points_ply(eval_points, STRICT, None)
         else:
             points = voxel_downsample(np.concatenate(fallback_points), EVAL_VOXEL)
         writer.set_gt_points(scale * points)

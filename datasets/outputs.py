@@ -15,6 +15,7 @@ from __future__ import annotations
 import fcntl
 import os
 import time
+from contextlib import AbstractContextManager
 from pathlib import Path
 
 from tacsplat.errors import ConfigError, StorageError
@@ -65,7 +66,7 @@ def other_writer(path: Path, wait_s: float = 1.0) -> str:
             time.sleep(0.02)
 
 
-class OutputLock:
+class OutputLock(AbstractContextManager):
     """An exclusive lock on an output folder (``.tacsplat.lock`` inside it); a context manager."""
 
     def __init__(self, path: Path, option: str):
@@ -83,9 +84,6 @@ class OutputLock:
     def release(self) -> None:
         if not self._file.closed:
             self._file.close()
-
-    def __enter__(self) -> "OutputLock":
-        return self
 
     def __exit__(self, *exc) -> None:
         self.release()

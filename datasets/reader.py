@@ -88,6 +88,9 @@ class _Problems:
             return None
 
 
+STRICT = _Problems(collect=False)  # raises the first problem (and so holds none): for reading one file of a scene
+
+
 def _first_line(exc: Exception) -> str:
     return (str(exc).splitlines() or [type(exc).__name__])[0]
 
@@ -256,7 +259,7 @@ class Scene:
 
         ``check_files=False`` skips opening images and depth maps (index files only).
         """
-        return _read_scene(Path(path), _Problems(collect=False), check_files)
+        return _read_scene(Path(path), STRICT, check_files)
 
     # --- views --------------------------------------------------------------------------------
 
@@ -292,7 +295,7 @@ class Scene:
         """The ground-truth point cloud [N, 3] in metres (:attr:`gt_points_path`), or None."""
         if self.gt_points_path is None:
             return None
-        return load_points_ply(self.gt_points_path, _Problems(collect=False), "gt.points")
+        return load_points_ply(self.gt_points_path, STRICT, "gt.points")
 
     # --- data ---------------------------------------------------------------------------------
 
@@ -319,19 +322,16 @@ class Scene:
         """The touch's indentation map, float32 metres [h, w] (0 = no contact)."""
         if self.sensor is None:
             raise SceneFormatError(self.path / "touches.json", "sensor", "touches need a sensor model")
+        shape = (self.sensor.height_px, self.sensor.width_px)
         return load_depth_npz(
-            self.path / touch.depth_file,
-            (self.sensor.height_px, self.sensor.width_px),
-            _Problems(collect=False),
-            f"touch {touch.id}",
-            touch_depth_limit(self.sensor),
+            self.path / touch.depth_file, shape, STRICT, f"touch {touch.id}", touch_depth_limit(self.sensor)
         )
 
     def load_hand_motion(self, touch: Touch) -> HandMotion | None:
         """The hand's motion through the touch's grasp, or None when the scene did not record it."""
         if touch.hand_file is None:
             return None
-        return load_hand_motion(self.path / touch.hand_file, _Problems(collect=False), f"touch {touch.id} hand_file")
+        return load_hand_motion(self.path / touch.hand_file, STRICT, f"touch {touch.id} hand_file")
 
     def hand_motions(self) -> list[HandMotion]:
         """Every recorded grasp's hand motion, in grasp order (empty for a scene that recorded none)."""
@@ -359,20 +359,15 @@ class Scene:
         """Ground-truth z-depth [H, W] float32 metres of a frame (evaluation only), or None."""
         if (rel := self.gt_depth_files.get(frame.id)) is None:
             return None
-        return load_depth_npz(
-            self.path / rel,
-            (frame.intrinsics.height, frame.intrinsics.width),
-            _Problems(collect=False),
-            f"gt depth of frame {frame.id}",
-            GT_DEPTH_LIMIT,
-        )
+        shape = (frame.intrinsics.height, frame.intrinsics.width)
+        return load_depth_npz(self.path / rel, shape, STRICT, f"gt depth of frame {frame.id}", GT_DEPTH_LIMIT)
 
     def gt_normal(self, frame: Frame) -> np.ndarray | None:
         """Ground-truth unit world-frame normals [H, W, 3] float32 of a frame (0 where no surface; evaluation
         only), or None where the scene has none (its depth's ``normal`` array)."""
         if (rel := self.gt_depth_files.get(frame.id)) is None:
             return None
-        normal = _npz_array(self.path / rel, "normal", _Problems(collect=False), "normal")
+        normal = _npz_array(self.path / rel, "normal", STRICT, "normal")
         if normal is not None and (
             problem := normal_map_problem(normal, (frame.intrinsics.height, frame.intrinsics.width))
         ):

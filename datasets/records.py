@@ -126,12 +126,6 @@ def touch_depth_limit(sensor: "SensorModel") -> tuple[float, str]:
     return MAX_INDENTATION_GELS * sensor.gel_thickness_m, f"{MAX_INDENTATION_GELS:g} x the gel thickness"
 
 
-def _frozen_pose(T, name: str) -> np.ndarray:
-    pose = as_pose(T, name).copy()
-    pose.setflags(write=False)
-    return pose
-
-
 def intrinsics_equal(a: CameraIntrinsics, b: CameraIntrinsics) -> bool:
     return a.width == b.width and a.height == b.height and np.array_equal(a.K, b.K)
 
@@ -150,8 +144,9 @@ class _ByValue:
     def __post_init__(self):
         for f in fields(self):
             if f.name.startswith("T_world_"):
-                name = f"{type(self).__name__.lower()} {self.id} {f.name}"
-                object.__setattr__(self, f.name, _frozen_pose(getattr(self, f.name), name))
+                pose = as_pose(getattr(self, f.name), f"{type(self).__name__.lower()} {self.id} {f.name}").copy()
+                pose.setflags(write=False)
+                object.__setattr__(self, f.name, pose)
 
     def __eq__(self, other) -> bool:
         if type(other) is not type(self):

@@ -37,7 +37,7 @@ import os
 import re
 import shutil
 import time
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from dataclasses import asdict
 from pathlib import Path
 
@@ -179,7 +179,7 @@ def _check_depth(depth, shape: tuple[int, int], name: str, limit: tuple[float, s
     return depth
 
 
-class SceneWriter:
+class SceneWriter(AbstractContextManager):
     """Appends frames and touches to a scene directory, crash-safely (see the module docstring).
 
     Use :meth:`create` for a new scene and :meth:`resume` to continue one; both
@@ -317,21 +317,14 @@ class SceneWriter:
     def _remove_leftovers(self) -> int:
         """Delete temporary files and record files no journal record refers to (a crash's in-flight record,
         an undo cut short); returns how many."""
-        live = (
-            {f.file_path for f in self.frames} | {f.mask_path for f in self.frames} | set(self.gt_depth_files.values())
-        )
-        live |= {t.depth_file for t in self.touches} | {t.hand_file for t in self.touches}
+        live = {path for f in self.frames for path in (f.file_path, f.mask_path)} | set(self.gt_depth_files.values())
+        live |= {path for t in self.touches for path in (t.depth_file, t.hand_file)}
+        record_folders = ("images", "masks", "touches", "grasps", "gt/depth")  # where NNNNNN.png/.npz are records
         count = 0
-        for sub in ("", "images", "masks", "touches", "grasps", "gt", "gt/depth"):
-            if not (self.path / sub).is_dir():
-                continue
-            for p in (self.path / sub).iterdir():
+        for sub in ("", "gt", *record_folders):
+            for p in (self.path / sub).iterdir() if (self.path / sub).is_dir() else ():
                 rel = p.relative_to(self.path).as_posix()
-                orphan = (
-                    sub in ("images", "masks", "touches", "grasps", "gt/depth")
-                    and _RECORD_FILE.fullmatch(p.name)
-                    and rel not in live
-                )
+                orphan = sub in record_folders and _RECORD_FILE.fullmatch(p.name) and rel not in live
                 if p.is_file() and (is_temp_file(p) or orphan):
                     p.unlink()
                     count += 1
@@ -414,15 +407,9 @@ class SceneWriter:
             raise storage_error(exc, self.path / JOURNAL) from None
 
     def _materialise(self, *which: str) -> None:
-        if "transforms" in which:
-            atomic_write_json(self.path / "transforms.json", self._transforms_json())
-        if "touches" in which:
-            atomic_write_json(
-                self.path / "touches.json",
-                {"sensor": sensor_to_json(self.sensor), "touches": [touch_to_json(t) for t in self.touches]},
-            )
-        if "scene" in which:
-            atomic_write_json(self.path / "scene.json", self._scene_json())
+        """Rewrite the index files ``which`` ("transforms", "touches", "scene": ``<name>.json``)."""
+        for name in which:
+            atomic_write_json(self.path / f"{name}.json", getattr(self, f"_{name}_json")())
 
     def _transforms_json(self) -> dict:
         shared = all(intrinsics_equal(f.intrinsics, self.intrinsics) for f in self.frames)
@@ -435,6 +422,9 @@ class SceneWriter:
         # nerfstudio asks for "val" when evaluating during training: the test views serve both.
         out["val_filenames"] = out["test_filenames"] = [f.file_path for f in self.frames if f.split == "test"]
         return out
+
+    def _touches_json(self) -> dict:
+        return {"sensor": sensor_to_json(self.sensor), "touches": [touch_to_json(t) for t in self.touches]}
 
     def _scene_json(self) -> dict:
         return {
@@ -634,9 +624,6 @@ class SceneWriter:
         if self._journal is not None:
             self._journal.close()
             self._journal = None
-
-    def __enter__(self) -> "SceneWriter":
-        return self
 
     def __exit__(self, *exc) -> None:
         self.close()
