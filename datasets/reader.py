@@ -22,7 +22,7 @@ import numpy as np
 from PIL import Image
 
 from tacsplat.errors import InvalidInputError, SceneFormatError
-from tacsplat.geometry import intrinsics_matrix, opengl_to_opencv, tactile_depth_to_normals, tactile_depth_to_points
+from tacsplat.geometry import opengl_to_opencv, tactile_depth_to_normals, tactile_depth_to_points
 from tacsplat.types import CameraIntrinsics
 
 from .records import (
@@ -36,10 +36,10 @@ from .records import (
     SceneMeta,
     SensorModel,
     Touch,
-    as_size,
     camera_problem,
     depth_problem,
     intrinsics_equal,
+    intrinsics_from_json,
     normal_map_problem,
     pose_problem,
     touch_depth_limit,
@@ -234,8 +234,7 @@ def _intrinsics(frame: dict, top: dict, index: Path, field: str, problems: _Prob
             problems.report(index, f"{field}.{key}", "missing (neither in the frame nor at the top level)")
     if problem := camera_problem(*values.values()):
         problems.report(index, f"{field}.{problem[0]}", problem[1])
-    K = intrinsics_matrix(values["fl_x"], values["fl_y"], values["cx"], values["cy"])
-    return CameraIntrinsics(K=K, width=as_size(values["w"]), height=as_size(values["h"]))
+    return intrinsics_from_json(values)  # (w and h whole numbers, as camera_problem found them)
 
 
 @dataclass
@@ -293,9 +292,7 @@ class Scene:
 
     def gt_points(self) -> np.ndarray | None:
         """The ground-truth point cloud [N, 3] in metres (:attr:`gt_points_path`), or None."""
-        if self.gt_points_path is None:
-            return None
-        return load_points_ply(self.gt_points_path, STRICT, "gt.points")
+        return None if self.gt_points_path is None else load_points_ply(self.gt_points_path, STRICT, "gt.points")
 
     # --- data ---------------------------------------------------------------------------------
 

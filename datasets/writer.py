@@ -524,9 +524,8 @@ class SceneWriter(AbstractContextManager):
             raise InvalidInputError(
                 f"{self.path}: the scene was created without a sensor model; it cannot hold touches"
             )
-        depth = _check_depth(
-            depth, (self.sensor.height_px, self.sensor.width_px), "depth", touch_depth_limit(self.sensor)
-        )
+        shape = (self.sensor.height_px, self.sensor.width_px)
+        depth = _check_depth(depth, shape, "depth", touch_depth_limit(self.sensor))
         pose = check_pose(T_world_sensor, "T_world_sensor")
         if isinstance(grasp, bool) or not isinstance(grasp, (int, np.integer)) or grasp < 0:
             raise InvalidInputError(f"grasp: expected a non-negative integer, got {grasp!r}")
