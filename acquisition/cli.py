@@ -334,8 +334,9 @@ def _sim_capture_rig(args: SimCapture):
 
     for f in dataclasses.fields(SimCapture):
         if f.name not in ("out", "rig", "resume") and getattr(args, f.name) != f.default:
-            option = "--" + f.name.replace("_", "-")
-            raise UsageError(option, f"{args.rig} sets the capture with --rig: set it there, or leave out --rig")
+            raise UsageError(
+                _option(f.name), f"{args.rig} sets the capture with --rig: set it there, or leave out --rig"
+            )
     return load_rig(args.rig, kind="sim")
 
 
@@ -379,15 +380,15 @@ def _naming_options(exc: ConfigError, options: dict[str, str]) -> ConfigError:
     return ConfigError(options[exc.key], message)
 
 
+def _option(name: str) -> str:
+    """The command-line option of a setting or field name (``object_radius`` -> ``--object-radius``)."""
+    return "--" + name.replace("_", "-")
+
+
 _SIM_OPTIONS = {  # sim_rig_config's keys
     "object": "--object",
-    "sim.object": "--object",
-    "sim.mesh": "--mesh",
+    **{f"sim.{k}": _option(k) for k in ("object", "mesh", "object_radius", "resolution", "seed", "texture")},
     "sim.mesh_sha256": "--mesh",
-    "sim.object_radius": "--object-radius",
-    "sim.resolution": "--resolution",
-    "sim.seed": "--seed",
-    "sim.texture": "--texture",
     "plan.views.train": "--views",
     "plan.views.test": "--test-views",
     "plan.grasps.count": "--grasps",
@@ -396,6 +397,6 @@ _SIM_OPTIONS = {  # sim_rig_config's keys
     "plan.touches.surface_points": "--surface-points",
 }
 _TOUCH_OPTIONS = {  # simulate_touches' keys
-    **{k: f"--{k.replace('_', '-')}" for k in ("surface_points", "grasps", "object_radius", "seed", "out", "mesh")},
+    **{k: _option(k) for k in ("surface_points", "grasps", "object_radius", "seed", "out", "mesh")},
     "model": "--touch-model",
 }

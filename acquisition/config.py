@@ -23,7 +23,7 @@ import math
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Annotated, Any, get_args, get_origin, get_type_hints
+from typing import Annotated, Any, dataclass_transform, get_args, get_origin, get_type_hints
 
 import numpy as np
 import yaml
@@ -137,8 +137,13 @@ ServoSign = Annotated[int, one_of((1, -1), "must be 1 or -1 (a reversed servo), 
 YAML_SECTION = ConfigDict(extra="forbid", allow_inf_nan=False)  # every section: no unknown key, finite numbers
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@dataclass_transform(frozen_default=True)
+def yaml_section(cls: type) -> type:
+    """A section of the rig YAML: a frozen dataclass that pydantic reads with :data:`YAML_SECTION`."""
+    return with_config(YAML_SECTION)(dataclass(frozen=True)(cls))
+
+
+@yaml_section
 class HandConfig:
     """The Dynamixel hand (``rig: real``)."""
 
@@ -149,8 +154,7 @@ class HandConfig:
     calibration: Text | None = None  # HandCalibration JSON (offsets, signs); None = identity
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class CameraConfig:
     """The wrist camera (``rig: real``)."""
 
@@ -162,8 +166,7 @@ class CameraConfig:
     timeout_s: Annotated[float, positive(60.0, "s")] = 2.0  # no frame for this long is a CameraError
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class BoardConfig(CharucoBoardSpec):
     """The ChArUco board that defines the world frame (the printed board's fields and defaults are
     :class:`~tacsplat.drivers.wrist_camera.CharucoBoardSpec`'s), and how well a view must see it."""
@@ -177,8 +180,7 @@ class BoardConfig(CharucoBoardSpec):
         return CharucoBoardSpec(**{f.name: getattr(self, f.name) for f in dataclasses.fields(CharucoBoardSpec)})
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class TactileSensorConfig:
     """One optical tactile fingertip (``rig: real``)."""
 
@@ -188,8 +190,7 @@ class TactileSensorConfig:
     T_fingertip_sensor: Pose | None = None  # [4, 4] mounting: sensor frame in the fingertip pad frame; None = identity
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class TactileConfig:
     sensor_name: Text = "digit"  # the scene's sensor model name
     gel_thickness_m: Annotated[float, positive(0.02, "m")] = 0.002
@@ -198,8 +199,7 @@ class TactileConfig:
     mounts: Text | None = None  # mounts file (tacsplat calibrate mounts): each sensor's T_fingertip_sensor
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class GraspControl:
     """How the logger closes the hand: a speed-limited ramp toward ``close_pose``, each finger stopping when it
     stalls, then a wait until the joints settle; then the read, then ``open_pose``."""
@@ -217,8 +217,7 @@ class GraspControl:
     open_s: Annotated[float, bounded(0, 60.0, "s")] = 0.3  # wait after opening
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class ViewPlan:
     train: Annotated[int, bounded(1)] = 20  # a scene needs a view to train on
     test: Annotated[int, bounded(0)] = 5
@@ -262,8 +261,7 @@ def refuse_removed(data: Any, keys: dict = REMOVED_KEYS, prefix: str = "", sourc
             raise ConfigError(prefix + path, why, source)
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class GraspPlan:
     """Where the grasps go: ``operator`` (a person places the hand) or ``random`` (the twin samples an approach per
     grasp)."""
@@ -276,8 +274,7 @@ class GraspPlan:
 TOUCH_MODELS = ("gel", "paper")
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class TouchPlan:
     """How touches are made: ``gel``, the hand's grasps (each pad's gel contact patch, one touch per finger), or
     ``paper``, the touches of the paper's official code, four per planned grasp, with no hand (``rig: sim`` only;
@@ -294,8 +291,7 @@ class TouchPlan:
         return dataclasses.asdict(self) if self.model == "paper" else {"model": self.model}
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class CapturePlan:
     views: ViewPlan = field(default_factory=ViewPlan)
     grasps: GraspPlan = field(default_factory=GraspPlan)
@@ -311,8 +307,7 @@ Shift = Annotated[float, bounded(-MAX_POSE_ERROR_M, MAX_POSE_ERROR_M, "m")]
 Turn = Annotated[float, bounded(-MAX_POSE_ERROR_DEG, MAX_POSE_ERROR_DEG, "deg")]
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class PoseError:
     """A rigid error: the true transform is the nominal one followed by this one, ``T_true = T_nominal @ E`` (``E``
     in the child frame: the camera's for the hand-eye, the sensor's for a mount)."""
@@ -327,8 +322,7 @@ class PoseError:
         return make_pose(Rotation.from_rotvec(self.rotation_deg, degrees=True).as_matrix(), self.translation_m)
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class TrueErrors:
     """What the twin's (or ``--mock``'s) hardware hides from its nominal model, so that each calibration step is
     checked against a known truth: the hardware differs from the model by these, the calibration files must find
@@ -349,8 +343,7 @@ class TrueErrors:
         return tuple(int(self.joint_signs.get(name, 1)) for name in JOINT_NAMES)
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class SimConfig:
     """The twin (``rig: sim``); ``true_errors`` also applies to ``--mock``'s emulated hardware of a real rig file."""
 
@@ -364,8 +357,7 @@ class SimConfig:
     true_errors: TrueErrors = field(default_factory=TrueErrors)
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class MockConfig:
     """The emulated devices of ``--mock`` (a real rig's file, no hardware)."""
 
@@ -386,8 +378,7 @@ class MockConfig:
     board_in_view: bool = True  # ... and a wrist camera that does not see the board
 
 
-@with_config(YAML_SECTION)
-@dataclass(frozen=True)
+@yaml_section
 class RigConfig:
     rig: Annotated[str, one_of(("real", "sim"), "must be 'real' or 'sim', got {value!r}")]
     object: Text = "object"  # the scene's object name

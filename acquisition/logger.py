@@ -156,6 +156,11 @@ class ViewOutcome:
     frame: object  # the Frame record
     reprojection_px: float | None = None
 
+    @property
+    def board_note(self) -> str:
+        """``", board reprojection 0.42 px"``, or nothing (ground truth): how the log and the session tell it."""
+        return "" if self.reprojection_px is None else f", board reprojection {self.reprojection_px:.2f} px"
+
 
 @dataclass
 class Counts:
@@ -251,14 +256,9 @@ class CaptureLogger:
             image, _ = self.camera.read()
         est = self.poses.camera_pose(image)
         gt = self.poses.ground_truth_depth() if split == "test" else None
-        frame = self.writer.add_frame(image, est.T, split, gt_depth=gt)
-        log.debug(
-            "view %d (%s) recorded%s",
-            frame.id,
-            split,
-            "" if est.reprojection_px is None else f", board reprojection {est.reprojection_px:.2f} px",
-        )
-        return ViewOutcome(frame, est.reprojection_px)
+        outcome = ViewOutcome(self.writer.add_frame(image, est.T, split, gt_depth=gt), est.reprojection_px)
+        log.debug("view %d (%s) recorded%s", outcome.frame.id, split, outcome.board_note)
+        return outcome
 
     # --- grasps -----------------------------------------------------------------------------------
     def take_grasp(
@@ -277,7 +277,6 @@ class CaptureLogger:
         """
         c = self.control
         q_close = np.asarray(c.close_pose if close_pose is None else close_pose, dtype=np.float64)
-        q_open = np.asarray(c.open_pose if open_pose is None else open_pose, dtype=np.float64)
         hand_rms = None
         if T_world_hand is None:
             image, _ = self.camera.read()
@@ -301,7 +300,7 @@ class CaptureLogger:
                 self.writer.add_reading(reading.to_world(T_world_hand), grasp=index, finger=name, hand_file=hand_file)
                 for _, name, reading in readings
             ]
-            self.open(q_open)
+            self.open(open_pose)
             motion = self._motion(index, T_world_hand, t0, touch_t)  # with the release
             self.writer.add_hand_motion(motion)
         finally:

@@ -202,11 +202,9 @@ class MockDevices:
         self.config = config
         m = config.mock_devices
         files = {k: v for k, v in asdict(m).items() if not k.startswith("servo_") and k != "unplugged"}  # of the files
-        key = hashlib.sha1(
-            json.dumps(
-                [ASSET_VERSION, files, asdict(config.board), [s.finger for s in config.tactile.sensors]], sort_keys=True
-            ).encode()
-        ).hexdigest()[:12]
+        fingers = [s.finger for s in config.tactile.sensors]
+        settings = json.dumps([ASSET_VERSION, files, asdict(config.board), fingers], sort_keys=True)
+        key = hashlib.sha1(settings.encode()).hexdigest()[:12]
         root = Path(cache_dir) if cache_dir else Path(tempfile.gettempdir()) / f"tacsplat-mock-rig-{os.getuid()}"
         self.folder = root / key
         self.camera_video = self.folder / "wrist_camera.avi"

@@ -166,8 +166,7 @@ class CaptureSession:
         except CaptureRejected as exc:
             self.say(f"view NOT recorded: {exc}")
             return
-        rms = "" if outcome.reprojection_px is None else f", board reprojection {outcome.reprojection_px:.2f} px"
-        self.say(f"view {outcome.frame.id} recorded ({split} {index + 1}/{getattr(v, split)}){rms}")
+        self.say(f"view {outcome.frame.id} recorded ({split} {index + 1}/{getattr(v, split)}){outcome.board_note}")
 
     def grasp(self) -> None:
         c = self.logger.counts()

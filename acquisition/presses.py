@@ -52,9 +52,7 @@ class PressSpec:
 
 def _pose_q(finger: str, abduction: float, flexion: tuple, others: tuple = (0.0, 0.0, 0.0)) -> tuple:
     """Joints [16]: ``finger`` at ``abduction`` and ``flexion``, the other fingers at ``others`` (flexions)."""
-    q = np.zeros(16)
-    for j in range(len(FINGER_NAMES)):
-        q[4 * j + 1 : 4 * j + 4] = others
+    q = np.tile([0.0, *others], len(FINGER_NAMES))  # each finger: abduction 0, then its flexions
     k = FINGER_NAMES.index(finger)
     q[4 * k : 4 * k + 4] = [abduction, *flexion]
     return tuple(q.tolist())

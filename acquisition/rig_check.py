@@ -34,9 +34,11 @@ class Row:
     detail: str
 
 
-def _calibration_file(rows: list[Row], config: RigConfig, key: str, name: str, load: Callable[[Path], object]):
-    """Append a calibration file's row (there, parses, younger than hardware_changed); returns what it loaded (None
-    if not)."""
+def _calibration_file(rows: list[Row], config: RigConfig, key: str, name: str | None, load: Callable[[Path], object]):
+    """Append a calibration file's row (there, parses, younger than hardware_changed) if the rig names one (``name``);
+    returns what it loaded (None if not)."""
+    if not name:
+        return None
     path = config.path(name)
     if not path.is_file():
         rows.append(Row(key, False, f"{path}: missing"))
@@ -60,11 +62,9 @@ def _hand_file(rows: list[Row], config: RigConfig):
     """Append the hand calibration's row if the rig names one; returns it loaded (None if not)."""
     from tacsplat.drivers.calibration import HandCalibration
 
-    if config.hand.calibration:
-        return _calibration_file(
-            rows, config, "hand.calibration", config.hand.calibration, lambda p: HandCalibration.load(p, JOINT_NAMES)
-        )
-    return None
+    return _calibration_file(
+        rows, config, "hand.calibration", config.hand.calibration, lambda p: HandCalibration.load(p, JOINT_NAMES)
+    )
 
 
 def _servos(config: RigConfig, mock, hand_calibration) -> Row:
@@ -107,10 +107,8 @@ def _pose_files(rows: list[Row], config: RigConfig) -> None:
     from tacsplat.drivers.press_calibration import load_hand_eye, load_mounts
     from tacsplat.sim.hand import FINGER_NAMES
 
-    if config.camera.hand_eye:
-        _calibration_file(rows, config, "camera.hand_eye", config.camera.hand_eye, load_hand_eye)
-    if config.tactile.mounts:
-        _calibration_file(rows, config, "tactile.mounts", config.tactile.mounts, lambda p: load_mounts(p, FINGER_NAMES))
+    _calibration_file(rows, config, "camera.hand_eye", config.camera.hand_eye, load_hand_eye)
+    _calibration_file(rows, config, "tactile.mounts", config.tactile.mounts, lambda p: load_mounts(p, FINGER_NAMES))
 
 
 def check_rig(config: RigConfig) -> list[Row]:
