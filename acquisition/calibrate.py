@@ -148,12 +148,11 @@ def calibrate_mounts(
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M, STAND_HEIGHT_M, hand_eye_plan, mounts_plan
     from tacsplat.drivers.press_calibration import fit_mounts, save_hand_eye, save_mounts
 
-    presses, T_hand_cam, mounts = _presses(
-        config,
-        lambda *fingers: hand_eye_plan(*fingers) + mounts_plan(*fingers),
-        say,
-        f"resting on the board, then on a stand, its centre {1000 * STAND_HEIGHT_M:.0f} mm over the board",
-    )
+    def plan(*fingers):  # the hand-eye presses, then the pads' on the stand
+        return hand_eye_plan(*fingers) + mounts_plan(*fingers)
+
+    where = f"resting on the board, then on a stand, its centre {1000 * STAND_HEIGHT_M:.0f} mm over the board"
+    presses, T_hand_cam, mounts = _presses(config, plan, say, where)
     fit = fit_mounts(
         presses, SPHERE_RADIUS_M, {0: SPHERE_RADIUS_M, 1: STAND_HEIGHT_M}, T_hand_cam, mounts, "calibrate mounts"
     )

@@ -98,12 +98,9 @@ def open_rig(config: RigConfig, on_hand=None, hand_eye_required: bool = True) ->
             T_mount = mounts.get(s.finger, np.eye(4))
             source, reader = device_source(mock, s.finger, s.source)
             tcal = TactileCalibration.load(str(mock.tactile_calibration if mock else config.path(s.calibration)))
+            h, w = (int(n) for n in tcal.image_size)
             this = SensorModel(
-                config.tactile.sensor_name,
-                int(tcal.image_size[1]),
-                int(tcal.image_size[0]),
-                float(tcal.pixel_size_m),
-                config.tactile.gel_thickness_m,
+                config.tactile.sensor_name, w, h, float(tcal.pixel_size_m), config.tactile.gel_thickness_m
             )
             if model is not None and this != model:
                 raise ConfigError(

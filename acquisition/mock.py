@@ -257,15 +257,11 @@ class MockDevices:
         with tempfile.TemporaryDirectory(prefix=".mock-", dir=self.folder.parent, ignore_cleanup_errors=True) as tmp:
             work = Path(tmp)
             _write_video(work / self.camera_video.name, frames)
-            CameraCalibration(
-                opencv_K_from_tacsplat(self.K),
-                np.zeros(5),
-                m.camera_width,
-                m.camera_height,
-                0.0,
-                spec,
-                T_hand_cam=MOCK_T_HAND_CAM,
-            ).save(work / self.camera_calibration.name)
+            K_opencv = opencv_K_from_tacsplat(self.K)
+            calibration = CameraCalibration(
+                K_opencv, np.zeros(5), m.camera_width, m.camera_height, 0.0, spec, T_hand_cam=MOCK_T_HAND_CAM
+            )
+            calibration.save(work / self.camera_calibration.name)
             h, w, pix = m.tactile_height, m.tactile_width, m.tactile_pixel_size_m
             reference = render_tactile_rgb(np.zeros((h, w), np.float32), pix)
             presses = [(0.3, 0.35, 6e-4), (0.7, 0.6, 8e-4), (0.5, 0.5, 1e-3), (0.3, 0.7, 5e-4), (0.7, 0.3, 9e-4)]

@@ -188,18 +188,16 @@ class TwinPressSession:
         """The presses, a status line each; a press whose camera cannot see the board at any yaw is skipped."""
         presses = []
         for i, spec in enumerate(plan):
-            best = None
+            head = f"press {i + 1}/{len(plan)}: {spec.describe()}"
             for T_board_pad in self._candidates(spec)[:3]:
                 depth, T_board_cam = self.presser.press(spec.finger, np.array(spec.q), T_board_pad)
                 pose = board_seen(self.board, self.K, CAMERA_PX, T_board_cam)
                 if pose is not None:
-                    best = (depth, pose, self.twin.hand.fingertip_poses()[spec.finger])
                     break
-            head = f"press {i + 1}/{len(plan)}: {spec.describe()}"
-            if best is None:
+            else:
                 self.say(f"{head}: the wrist camera does not see the board; skipped")
                 continue
-            depth, pose, T_hand_fingertip = best
+            T_hand_fingertip = self.twin.hand.fingertip_poses()[spec.finger]
             points = tactile_depth_to_points(depth, self.twin.config.tactile.pixel_size_m, np.eye(4))
             presses.append(Press(spec.finger, T_hand_fingertip, points, pose.T_world_cam, spec.surface, spec.placement))
             ok = "ok" if len(points) >= MIN_CONTACT_POINTS else "too little contact"

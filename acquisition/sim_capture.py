@@ -51,17 +51,15 @@ def sim_rig_config(
     value out of its range is a ConfigError naming its key (``sim.object_radius``)."""
     if problem := object_radius_problem(object_radius):  # (before the rig config's check, with what it means)
         raise ConfigError("sim.object_radius", problem)
-    config = RigConfig(
-        rig="sim",
-        sim=SimConfig(
-            object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed, texture=texture
-        ),
-        plan=CapturePlan(
-            ViewPlan(train=views, test=test_views, mode="hemisphere"),
-            GraspPlan(count=grasps, mode="random", seed=seed),
-            TouchPlan(model=touch_model, surface_points=surface_points),
-        ),
+    sim = SimConfig(
+        object=object, mesh=mesh, object_radius=object_radius, resolution=resolution, seed=seed, texture=texture
     )
+    plan = CapturePlan(
+        ViewPlan(train=views, test=test_views, mode="hemisphere"),
+        GraspPlan(count=grasps, mode="random", seed=seed),
+        TouchPlan(model=touch_model, surface_points=surface_points),
+    )
+    config = RigConfig(rig="sim", sim=sim, plan=plan)
     validate(config)
     return config
 

@@ -164,23 +164,14 @@ def simulate_touches(
             first = max((t.grasp for t in writer.touches), default=-1) + 1
             if touch_model == "paper":
                 todo = range(TOUCHES_PER_GRASP * first, TOUCHES_PER_GRASP * (first + grasps))
-                write_paper_touches(
-                    writer,
-                    PaperTouches(surface, seed, touches),
-                    progress_bar(todo, desc="touches", unit="touch"),
-                    units.points,
-                )
+                bar = progress_bar(todo, desc="touches", unit="touch")
+                write_paper_touches(writer, PaperTouches(surface, seed, touches), bar, units.points)
             else:
                 rig = twin_rig(twin)
+                pads = [ScaledPad(p, units) for p in rig.sensors]  # the scene sees the twin in its frame and units
+                poses = ScenePoseSource(twin, units)
                 logger = CaptureLogger(
-                    writer,
-                    rig.hand,
-                    [ScaledPad(p, units) for p in rig.sensors],
-                    rig.camera,
-                    rig.clock,
-                    ScenePoseSource(twin, units),
-                    rig.control,
-                    redo_partial_grasp=False,
+                    writer, rig.hand, pads, rig.camera, rig.clock, poses, rig.control, redo_partial_grasp=False
                 )
                 planner = TwinPlanner(twin, seed, grasp_config=grasp_config)
                 for g in progress_bar(range(first, first + grasps), desc="grasps", unit="grasp"):
