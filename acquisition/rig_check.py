@@ -192,11 +192,10 @@ def _camera_rows(config: RigConfig, mock, cam_cal) -> list[Row]:
                 return rows + [Row("board", False, f"not seen: {exc}; put the board in the wrist camera's view")]
     except TacsplatError as exc:
         return [Row(item, False, str(exc)), Row("board", False, "not looked for")]
+    limit = config.board.max_reprojection_px
     seen = f"seen: {est.corners} corners, reprojection {est.reprojection_px:.2f} px"
-    if est.reprojection_px > config.board.max_reprojection_px:
-        return rows + [
-            Row("board", False, f"{seen}, over board.max_reprojection_px {config.board.max_reprojection_px:g}")
-        ]
+    if est.reprojection_px > limit:
+        return rows + [Row("board", False, f"{seen}, over board.max_reprojection_px {limit:g}")]
     return rows + [Row("board", True, seen)]
 
 
