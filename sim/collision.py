@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +37,7 @@ class DecompositionConfig:
     object on one core, 5-24 hulls, hull volume 0.7-7.8 % above the mesh's, 99 % of the hull
     surface within 0.6-3.0 mm of the mesh (at most 3.8 mm, in concave creases)."""
 
+    # the fields are coacd.run_coacd's keywords, passed as they are
     threshold: float = 0.05  # concavity tolerance relative to the bounding box (CoACD default)
     max_convex_hull: int = 24
     preprocess_resolution: int = 30
@@ -85,16 +86,7 @@ def _run_coacd(unit: trimesh.Trimesh, config: DecompositionConfig):
     import coacd
 
     coacd.set_log_level("error")
-    return coacd.run_coacd(
-        coacd.Mesh(unit.vertices, unit.faces),
-        threshold=config.threshold,
-        max_convex_hull=config.max_convex_hull,
-        preprocess_resolution=config.preprocess_resolution,
-        resolution=config.resolution,
-        mcts_iterations=config.mcts_iterations,
-        mcts_max_depth=config.mcts_max_depth,
-        seed=config.seed,
-    )
+    return coacd.run_coacd(coacd.Mesh(unit.vertices, unit.faces), **asdict(config))
 
 
 def convex_decomposition(

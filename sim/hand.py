@@ -75,10 +75,16 @@ def _fmt(*values: float) -> str:
     return " ".join(f"{v:.6g}" for v in values)
 
 
-def _finger_xml(finger: str, geom: HandGeometry, gains: ActuatorGains, limits: np.ndarray) -> str:
-    """Body tree of one finger, rooted at its knuckle (in the finger's own frame, x along it)."""
+def _finger_xml(i: int, geom: HandGeometry, gains: ActuatorGains) -> str:
+    """Body tree of finger ``i`` (of FINGER_NAMES): its base on the palm, then its links from the knuckle (in the
+    finger's own frame, x along it)."""
     g = geom
+    finger, limits = FINGER_NAMES[i], JOINT_LIMITS[4 * i : 4 * i + 4]
     thumb = finger == "thumb"
+    if thumb:  # at the heel of the palm, turned to face the fingers
+        base_pos, base_quat = (-g.palm_half_length, 0.0, -g.link_half_thickness), (0, 0, 0, 1)
+    else:  # index +y, middle 0, ring -y
+        base_pos, base_quat = (g.palm_half_length, g.finger_spacing * (1 - i), -g.link_half_thickness), (1, 0, 0, 0)
     prox = g.thumb_proximal_length if thumb else g.proximal_length
     mid = g.thumb_middle_length if thumb else g.middle_length
     w, t = g.link_half_width, g.link_half_thickness
@@ -91,6 +97,7 @@ def _finger_xml(finger: str, geom: HandGeometry, gains: ActuatorGains, limits: n
     pad_z = t + g.gel_thickness  # gel surface height above the link axis
     solid_half = (g.gel_thickness - g.gel_compliance) / 2
     return f"""
+      <body name="{finger}_base" pos="{_fmt(*base_pos)}" quat="{_fmt(*base_quat)}" gravcomp="1">
         <joint name="{finger}_0" axis="0 0 1" range="{_fmt(*limits[0])}" {joint}/>
         {box(f"{finger}_knuckle", g.knuckle_length)}
         <body name="{finger}_proximal" pos="{_fmt(g.knuckle_length, 0, 0)}" gravcomp="1">
@@ -112,53 +119,33 @@ def _finger_xml(finger: str, geom: HandGeometry, gains: ActuatorGains, limits: n
                     size="0.002" group="4"/>
             </body>
           </body>
-        </body>"""
-
-
-def _wrist_camera_axes(geom: HandGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Wrist camera at the heel of the palm, looking along the palm normal tilted towards the fingers: its position
-    and MuJoCo's x and y axes (image right and up) in the hand frame."""
-    pos = np.array([-geom.palm_half_length - 0.02, 0.0, 0.05])
-    forward = np.array([0.35, 0.0, 1.0])
-    forward /= np.linalg.norm(forward)
-    x_axis = np.array([0.0, -1.0, 0.0])  # image right
-    y_axis = np.cross(-forward, x_axis)  # MuJoCo cameras look along -z: z = -forward
-    return pos, x_axis, y_axis
+        </body>
+      </body>"""
 
 
 def nominal_T_hand_cam(geom: HandGeometry = HandGeometry()) -> np.ndarray:
     """The wrist camera's designed pose [4, 4] in the hand frame (OpenCV axes): the rig's hand-eye transform
-    before any calibration."""
-    pos, x_axis, y_axis = _wrist_camera_axes(geom)
+    before any calibration. The camera sits at the heel of the palm, looking along the palm normal tilted towards
+    the fingers."""
+    pos = np.array([-geom.palm_half_length - 0.02, 0.0, 0.05])
+    forward = np.array([0.35, 0.0, 1.0])
+    forward /= np.linalg.norm(forward)
+    x_axis = np.array([0.0, -1.0, 0.0])  # image right
+    y_axis = np.cross(-forward, x_axis)  # MuJoCo's image up (its cameras look along -z: z = -forward)
     return make_pose(np.column_stack([x_axis, -y_axis, -np.cross(x_axis, y_axis)]), pos)  # OpenGL -> OpenCV: y, z flip
 
 
-def hand_body_xml(
-    geom: HandGeometry = HandGeometry(), gains: ActuatorGains = ActuatorGains(), pos=(0, 0, 0), quat=(1, 0, 0, 0)
-) -> tuple[str, str]:
+def hand_body_xml(geom: HandGeometry, gains: ActuatorGains, pos=(0, 0, 0)) -> tuple[str, str]:
     """``(body_xml, actuator_xml)``: the mocap hand body tree and its 16 position actuators."""
     g = geom
-    fingers = []
-    for i, finger in enumerate(FINGER_NAMES):
-        limits = JOINT_LIMITS[4 * i : 4 * i + 4]
-        if finger == "thumb":
-            base_pos, base_quat = (-g.palm_half_length, 0.0, -g.link_half_thickness), (0, 0, 0, 1)
-        else:
-            y = g.finger_spacing * (1 - i)  # index +y, middle 0, ring -y
-            base_pos, base_quat = (g.palm_half_length, y, -g.link_half_thickness), (1, 0, 0, 0)
-        fingers.append(
-            f'<body name="{finger}_base" pos="{_fmt(*base_pos)}" quat="{_fmt(*base_quat)}" gravcomp="1">'
-            + _finger_xml(finger, g, gains, limits)
-            + "\n      </body>"
-        )
-    cam_pos, cam_x, cam_y = _wrist_camera_axes(g)
+    T_cam = nominal_T_hand_cam(g)  # MuJoCo's x and y axes: OpenCV's x and -y
     body = f"""
-    <body name="hand" mocap="true" pos="{_fmt(*pos)}" quat="{_fmt(*quat)}">
+    <body name="hand" mocap="true" pos="{_fmt(*pos)}" quat="1 0 0 0">
       <geom name="palm" type="box" group="1" contype="1" conaffinity="0" material="hand"
             pos="{_fmt(0, 0, -g.palm_thickness / 2)}"
             size="{_fmt(g.palm_half_length, g.finger_spacing * 1.5, g.palm_thickness / 2)}"/>
-      <camera name="wrist" pos="{_fmt(*cam_pos)}" xyaxes="{_fmt(*cam_x, *cam_y)}" fovy="60"/>
-      {"".join(fingers)}
+      <camera name="wrist" pos="{_fmt(*T_cam[:3, 3])}" xyaxes="{_fmt(*T_cam[:3, 0], *-T_cam[:3, 1])}" fovy="60"/>
+      {"".join(_finger_xml(i, g, gains) for i in range(len(FINGER_NAMES)))}
     </body>"""
     actuators = "\n".join(
         f'<position name="{name}" joint="{name}" kp="{_fmt(gains.kp)}" kv="{_fmt(gains.kv)}" '
@@ -214,17 +201,13 @@ class HandKinematics:
     def __init__(self, geom: HandGeometry = HandGeometry()):
         import mujoco
 
-        self._mujoco = mujoco
-        self._model = mujoco.MjModel.from_xml_string(build_hand_mjcf(geom))
-        self._data = mujoco.MjData(self._model)
-        self._qadr = np.array([self._model.joint(n).qposadr[0] for n in JOINT_NAMES])
-        self._sites = {f: self._model.site(f"{f}_tactile").id for f in FINGER_NAMES}
-        box = mujoco.mjtGeom.mjGEOM_BOX
-        self._boxes = [
-            g for g in range(self._model.ngeom) if self._model.geom_type[g] == box and self._model.geom_group[g] == 1
-        ]
-        self.link_names = [self._model.geom(g).name for g in self._boxes]  # palm, then each finger's links and gel
-        self._half_extents = self._model.geom_size[self._boxes].copy()  # [L, 3]
+        model = mujoco.MjModel.from_xml_string(build_hand_mjcf(geom))
+        self._mujoco, self._model, self._data = mujoco, model, mujoco.MjData(model)
+        self._qadr = np.array([model.joint(n).qposadr[0] for n in JOINT_NAMES])
+        self._sites = {f: model.site(f"{f}_tactile").id for f in FINGER_NAMES}
+        self._boxes = np.flatnonzero((model.geom_type == mujoco.mjtGeom.mjGEOM_BOX) & (model.geom_group == 1))
+        self.link_names = [model.geom(g).name for g in self._boxes]  # palm, then each finger's links and gel
+        self._half_extents = model.geom_size[self._boxes].copy()  # [L, 3]
 
     @property
     def joint_limits(self) -> np.ndarray:

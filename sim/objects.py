@@ -174,12 +174,12 @@ def texture_problem(texture) -> str | None:
     return None if texture in TEXTURES else f"must be one of {', '.join(map(repr, TEXTURES))}, got {texture!r}"
 
 
-def checker_texture(
-    rgba: tuple[float, float, float, float], squares: int = CHECKER_SQUARES, texels: int = 32
-) -> np.ndarray:
-    """A face of the "checker" texture, RGB uint8 [squares * texels, squares * texels, 3]: the material's colour
-    and a grey far from it (dark on a light object, light on a dark one), alternating."""
-    parity = np.add.outer(np.arange(squares * texels) // texels, np.arange(squares * texels) // texels) % 2
+def checker_texture(rgba: tuple[float, float, float, float]) -> np.ndarray:
+    """A face of the "checker" texture, RGB uint8 [CHECKER_SQUARES * 32, CHECKER_SQUARES * 32, 3] (32 texels a
+    square): the material's colour and a grey far from it (dark on a light object, light on a dark one),
+    alternating."""
+    square = np.arange(CHECKER_SQUARES * 32) // 32  # each texel's square along a side
+    parity = np.add.outer(square, square) % 2
     color = 255.0 * np.asarray(rgba[:3], dtype=np.float64)
     grey = np.full(3, 40.0 if color.mean() > 127.5 else 235.0)
     return np.where(parity[..., None] == 1, color, grey).round().astype(np.uint8)
@@ -249,12 +249,9 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise ConfigError("mesh", f"{path} holds no triangles (a point cloud or an empty file?)")
     vertices = np.asarray(loaded.vertices, dtype=np.float64)
-    if not np.all(np.isfinite(vertices)):
-        raise ConfigError(
-            "mesh",
-            f"{path}: {int((~np.isfinite(vertices)).any(axis=1).sum())} vertices have NaN or "
-            "infinite coordinates (not finite)",
-        )
+    not_finite = int((~np.isfinite(vertices)).any(axis=1).sum())
+    if not_finite:
+        raise ConfigError("mesh", f"{path}: {not_finite} vertices have NaN or infinite coordinates (not finite)")
     size = float(np.ptp(vertices, axis=0).max())
     if not size > 0:
         raise ConfigError("mesh", f"{path}: every vertex is at the same point (zero size)")
@@ -282,19 +279,14 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
 def _close_holes(mesh: trimesh.Trimesh) -> list[int]:
     """Close every simple boundary loop with a fan of triangles around its centroid (wound like its faces);
     the edge count of each loop closed. Loops through a vertex where the boundary branches are left open."""
-    edges = mesh.edges  # directed, as they run in their faces
-    boundary = edges[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
-    if len(boundary) == 0:
-        return []
-    following: dict[int, int] = {}
-    branching = set()
-    for a, b in boundary:
-        if a in following:
-            branching.add(int(a))
-        following[int(a)] = int(b)
+    # the edges of one face only, directed as they run in it
+    boundary = mesh.edges[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
+    following = dict(zip(boundary[:, 0].tolist(), boundary[:, 1].tolist()))  # a -> b (the last, where it branches)
+    starts, count = np.unique(boundary[:, 0], return_counts=True)
+    branching = set(starts[count > 1].tolist())
     new_vertices, new_faces, closed = [], [], []
     seen = set()
-    for start in list(following):
+    for start in following:
         if start in seen:
             continue
         loop, v = [], start

@@ -53,13 +53,7 @@ class TwinPresser:
     (the hidden mounting error included), sinks ``indentation_m`` into the surface. Depth is rendered against the
     board and sphere only; the board lies at :data:`BOARD_IN_TWIN`, far from the object."""
 
-    def __init__(
-        self,
-        twin: SimTwin,
-        board_size_m: tuple[float, float],
-        sphere_radius_m: float | None = None,
-        sphere_centres: tuple = (),
-    ):
+    def __init__(self, twin: SimTwin, board_size_m: tuple[float, float], sphere_radius_m: float, sphere_centres: tuple):
         import trimesh
 
         from tacsplat.sim.tactile import TactileDepthRenderer

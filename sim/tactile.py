@@ -29,13 +29,9 @@ from tacsplat.sim.objects import bounding_sphere
 # red, green and blue lights; rows are channels.
 _LIGHT_ELEVATION = np.deg2rad(35.0)
 _LIGHT_AZIMUTHS = np.deg2rad([90.0, 210.0, 330.0])
-TACTILE_LIGHT_DIRECTIONS = np.stack(
-    [
-        np.cos(_LIGHT_ELEVATION) * np.cos(_LIGHT_AZIMUTHS),
-        np.cos(_LIGHT_ELEVATION) * np.sin(_LIGHT_AZIMUTHS),
-        np.full(3, np.sin(_LIGHT_ELEVATION)),
-    ],
-    axis=1,
+_LIGHT_XY = np.cos(_LIGHT_ELEVATION)  # the length of each light direction's horizontal (x, y) part
+TACTILE_LIGHT_DIRECTIONS = np.column_stack(
+    [_LIGHT_XY * np.cos(_LIGHT_AZIMUTHS), _LIGHT_XY * np.sin(_LIGHT_AZIMUTHS), np.full(3, np.sin(_LIGHT_ELEVATION))]
 )  # [3 channels, 3 xyz]
 TACTILE_RGB_GAIN = 180.0  # grey levels per unit of (n . l - n_flat . l)
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from typing import Self
 
 import cv2
 import mujoco
@@ -159,8 +160,8 @@ def twin_assets(config: TwinConfig, obj: SimObject) -> dict[str, bytes]:
 
 
 def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trimesh]) -> str:
-    """The full scene: lights, background, the static object (visual mesh + convex hulls), cameras, hand."""
-    check_physics(config)
+    """The full scene: lights, background, the static object (visual mesh + convex hulls), cameras, hand (its
+    physics settings checked by :func:`check_physics` first, as :class:`SimTwin` does)."""
     body, actuators = hand_body_xml(config.hand_geometry, config.gains, pos=(0, 0, 1.0))
     m = obj.material
     solref = f"{config.contact_timeconst:.6g} {config.contact_dampratio:.6g}"
@@ -223,7 +224,17 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
 """
 
 
-class SimHand:
+class _ClosedOnExit:
+    """A context manager whose exit calls its ``close()``."""
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class SimHand(_ClosedOnExit):
     """The twin's hand (implements ``Hand``): position servos on the sixteen joints.
 
     Its servos are the real hand's as the twin's config builds them (``servo_signs``, ``servo_offsets_rad``: motor
@@ -238,11 +249,10 @@ class SimHand:
         self._servo_offsets = np.asarray(cfg.servo_offsets_rad, dtype=np.float64)
         if self._servo_signs.shape != (16,) or self._servo_offsets.shape != (16,):
             raise ConfigError("servo_signs", "the twin's servo signs and offsets need 16 values each")
-        self.calibration = (
-            HandCalibration.load(cfg.hand_calibration, JOINT_NAMES)
-            if cfg.hand_calibration
-            else HandCalibration.identity(JOINT_NAMES)
-        )
+        if cfg.hand_calibration:
+            self.calibration = HandCalibration.load(cfg.hand_calibration, JOINT_NAMES)
+        else:
+            self.calibration = HandCalibration.identity(JOINT_NAMES)
         model = twin.model
         self._qadr = np.array([model.jnt_qposadr[model.joint(n).id] for n in JOINT_NAMES])
         self._dofadr = np.array([model.jnt_dofadr[model.joint(n).id] for n in JOINT_NAMES])
@@ -309,12 +319,6 @@ class SimHand:
         """Hold the current joint positions (the twin's equivalent of a safe stop)."""
         self._twin.data.ctrl[self._act] = self.read_joint_positions().clip(JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
 
-    def __enter__(self) -> "SimHand":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
 
 class SimTactileSensor:
     """One fingertip pad of the twin (implements ``TactileSensor``)."""
@@ -324,9 +328,8 @@ class SimTactileSensor:
         self.name = finger
         self._site = twin.model.site(f"{finger}_tactile").id
         self.config = twin.config.tactile
-        cfg = twin.config
-        self.mount_error = _pose_or_identity(cfg.mount_errors.get(finger), f"mount_errors.{finger}")
-        self.T_fingertip_sensor = _pose_or_identity(cfg.mounts.get(finger), f"mounts.{finger}")  # the rig's
+        self.mount_error = _pose_or_identity(twin.config.mount_errors.get(finger), f"mount_errors.{finger}")
+        self.T_fingertip_sensor = _pose_or_identity(twin.config.mounts.get(finger), f"mounts.{finger}")  # the rig's
 
     def T_world_sensor(self) -> np.ndarray:
         """The pad's true pose: its fingertip's as simulated, off by the hidden mounting error."""
@@ -340,7 +343,7 @@ class SimTactileSensor:
         return TactileReading(depth, self.config.pixel_size_m, T_hand_sensor, "hand", float(self._twin.data.time))
 
 
-class SimTwin:
+class SimTwin(_ClosedOnExit):
     """The MuJoCo twin of the rig; a context manager owning the MjModel, MjData and renderers.
 
     ``peak_penetration_m`` is the deepest hand-object penetration of the collision
@@ -372,9 +375,10 @@ class SimTwin:
         self.hand.set_joint_positions(np.zeros(16))
         self.tactile_sensors = [SimTactileSensor(self, f) for f in FINGER_NAMES]
         w, h = config.camera_width, config.camera_height
-        self.T_hand_cam = _pose_or_identity(config.T_hand_cam, "T_hand_cam", nominal_T_hand_cam(config.hand_geometry))
+        nominal = nominal_T_hand_cam(config.hand_geometry)
+        self.T_hand_cam = nominal if config.T_hand_cam is None else check_rigid(config.T_hand_cam, "T_hand_cam")
         wrist = self.model.camera("wrist").id  # mounted on the hand, off its design by the hidden hand-eye error
-        self._place_camera(wrist, nominal_T_hand_cam(config.hand_geometry) @ _pose_or_identity(config.hand_eye_error))
+        self._place_camera(wrist, nominal @ _pose_or_identity(config.hand_eye_error, "hand_eye_error"))
         self.model.cam_fovy[self._view_cam] = config.view_fovy_deg
         self.model.cam_fovy[wrist] = config.wrist_fovy_deg
         self.wrist_camera = MujocoCamera(self, "wrist", w, h, visible_groups=(0, 1, 2))
@@ -470,28 +474,17 @@ class SimTwin:
 
     def max_penetration(self) -> float:
         """Deepest hand-object contact penetration in metres (0 when nothing penetrates)."""
-        g = self.data.contact.geom  # [ncon, 2]
-        is_hand, is_object = self._geom_is_hand, self._geom_is_object
-        pair = (is_hand[g[:, 0]] & is_object[g[:, 1]]) | (is_object[g[:, 0]] & is_hand[g[:, 1]])
-        return float(max(0.0, -self.data.contact.dist[pair].min(initial=0.0)))
+        return max([0.0] + [-dist for _, dist in self.hand_object_contacts()])
 
     # --- lifetime ------------------------------------------------------------------------------
     def close(self) -> None:
         self.wrist_camera.close()
         self.view_camera.close()
 
-    def __enter__(self) -> "SimTwin":
-        return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-def _pose_or_identity(T, key: str = "hand_eye_error", default: np.ndarray | None = None) -> np.ndarray:
-    """``T`` as a checked rigid [4, 4] (an error naming ``key``), or ``default`` (the identity) when None."""
-    if T is None:
-        return np.eye(4) if default is None else default
-    return check_rigid(T, key)
+def _pose_or_identity(T, key: str) -> np.ndarray:
+    """``T`` as a checked rigid [4, 4] (an error naming ``key``), or the identity when None."""
+    return np.eye(4) if T is None else check_rigid(T, key)
 
 
 def _matrix_to_quat(R) -> np.ndarray:
