@@ -16,6 +16,7 @@ import numpy as np
 from tacsplat.geometry import make_pose
 from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS, HandKinematics
 from tacsplat.sim.twin import SimTwin
+from tacsplat.sim.views import unit_vectors
 
 
 @dataclass(frozen=True)
@@ -76,9 +77,7 @@ def sample_hand_pose(twin: SimTwin, rng: np.random.Generator, config: GraspConfi
     under the hand's footprint (palm and open fingers) is ``palm_gap_m`` away.
     """
     z_min = np.sin(np.deg2rad(config.min_approach_elevation_deg))
-    z = rng.uniform(z_min, 1.0)
-    azimuth = rng.uniform(0, 2 * np.pi)
-    u = np.array([np.sqrt(1 - z**2) * np.cos(azimuth), np.sqrt(1 - z**2) * np.sin(azimuth), z])  # object -> hand
+    u = unit_vectors(rng.uniform(z_min, 1.0), rng.uniform(0, 2 * np.pi))  # object -> hand
     palm_normal = -u
     helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     x0 = np.cross(palm_normal, helper)

@@ -202,8 +202,7 @@ def normalise_mesh(mesh: trimesh.Trimesh, radius: float, name: str) -> trimesh.T
 
     A mesh whose bounding radius is already within 0.1 % of ``radius`` keeps its scale.
     """
-    problem = object_radius_problem(radius)
-    if problem:
+    if problem := object_radius_problem(radius):
         raise ConfigError("object_radius", problem)
     if len(mesh.faces) == 0 or not np.all(np.isfinite(mesh.vertices)):
         raise InvalidInputError(f"{name}: mesh is empty or has non-finite vertices")

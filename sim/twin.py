@@ -436,16 +436,13 @@ class SimTwin(_ClosedOnExit):
     def set_hand_base_pose(self, T_world_hand: np.ndarray) -> None:
         """Place the hand base (mocap) at ``T_world_hand`` [4, 4]."""
         T = check_rigid(T_world_hand, "T_world_hand")
-        self.data.mocap_pos[self._mocap] = T[:3, 3]
-        self.data.mocap_quat[self._mocap] = _matrix_to_quat(T[:3, :3])
+        self.data.mocap_pos[self._mocap], self.data.mocap_quat[self._mocap] = _pos_quat(T)
         self.forward()
 
     def _place_camera(self, cam: int, T_parent_cam: np.ndarray) -> None:
         """Place camera ``cam`` at ``T_parent_cam`` [4, 4] (OpenCV axes) in its body's frame (the world's, or the
         hand's for the wrist camera)."""
-        T_gl = opencv_to_opengl(T_parent_cam)
-        self.model.cam_pos[cam] = T_gl[:3, 3]
-        self.model.cam_quat[cam] = _matrix_to_quat(T_gl[:3, :3])
+        self.model.cam_pos[cam], self.model.cam_quat[cam] = _pos_quat(opencv_to_opengl(T_parent_cam))
         self.forward()
 
     def hand_pose_from_wrist_camera(self) -> np.ndarray:
@@ -487,6 +484,6 @@ def _pose_or_identity(T, key: str) -> np.ndarray:
     return np.eye(4) if T is None else check_rigid(T, key)
 
 
-def _matrix_to_quat(R) -> np.ndarray:
-    """MuJoCo's quaternion (w, x, y, z), w >= 0, of a rotation matrix [3, 3]."""
-    return Rotation.from_matrix(R).as_quat(canonical=True, scalar_first=True)
+def _pos_quat(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MuJoCo's position and quaternion (w, x, y, z), w >= 0, of a pose [4, 4]."""
+    return T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_quat(canonical=True, scalar_first=True)

@@ -19,16 +19,17 @@ class ViewConfig:
     max_elevation_deg: float = 75.0
 
 
-def _unit_vectors(z: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
+def unit_vectors(z, azimuth) -> np.ndarray:
+    """Unit vectors [..., 3] of heights ``z`` [...] and azimuths ``azimuth`` [...] radians about the z axis."""
     r = np.sqrt(1.0 - z**2)
-    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=1)
+    return np.stack([r * np.cos(azimuth), r * np.sin(azimuth), z], axis=-1)
 
 
 def fibonacci_directions(count: int, lo: float, hi: float, offset: float = 0.5) -> np.ndarray:
     """``count`` unit vectors spread evenly (Fibonacci spiral) over the band of elevations [lo, hi] radians."""
     i = np.arange(count) + offset
     z = np.sin(lo) + (np.sin(hi) - np.sin(lo)) * i / count  # equal-area in elevation
-    return _unit_vectors(z, i * np.pi * (3.0 - np.sqrt(5.0)))
+    return unit_vectors(z, i * np.pi * (3.0 - np.sqrt(5.0)))
 
 
 def hemisphere_views(
@@ -46,7 +47,7 @@ def hemisphere_views(
     lo, hi = np.deg2rad(config.min_elevation_deg), np.deg2rad(config.max_elevation_deg)
     distance = config.radius_factor * object_radius
     rng = np.random.default_rng(seed)
-    train = _unit_vectors(rng.uniform(np.sin(lo), np.sin(hi), num_train), rng.uniform(0, 2 * np.pi, num_train))
+    train = unit_vectors(rng.uniform(np.sin(lo), np.sin(hi), num_train), rng.uniform(0, 2 * np.pi, num_train))
     test = fibonacci_directions(num_test, lo, hi)
     to_pose = lambda d: look_at(distance * d, np.zeros(3), up=(0.0, 0.0, 1.0))  # noqa: E731
     return [to_pose(d) for d in train], [to_pose(d) for d in test]
