@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tacsplat.geometry import make_pose
-from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS, HandKinematics
+from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS, site_pose
 from tacsplat.sim.twin import SimTwin
 from tacsplat.sim.views import unit_vectors
 
@@ -42,7 +42,11 @@ class PreshapeTable:
     """Pad poses in the hand frame over a grid of each finger's joints (a few abduction angles)."""
 
     def __init__(self, twin: SimTwin, per_joint: int, abduction=(0.0,)):
-        kinematics = HandKinematics(twin.config.hand_geometry)
+        import mujoco
+
+        model, data = twin.model, mujoco.MjData(twin.model)
+        data.mocap_pos[:] = 0.0
+        data.mocap_quat[:] = [1.0, 0.0, 0.0, 0.0]
         self.q: dict[str, np.ndarray] = {}  # finger -> [N, 4]
         self.T_hand_sensor: dict[str, np.ndarray] = {}  # finger -> [N, 4, 4]
         for i, finger in enumerate(FINGER_NAMES):
@@ -50,10 +54,14 @@ class PreshapeTable:
             axes = [np.clip(abduction, lim[0, 0], lim[0, 1])]
             axes += [np.linspace(max(lim[j, 0], 0.0), lim[j, 1], per_joint) for j in (1, 2, 3)]
             q = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
-            q_hand = np.zeros((len(q), 16))  # the other fingers open
-            q_hand[:, 4 * i : 4 * i + 4] = q
-            self.T_hand_sensor[finger] = np.stack([kinematics.fingertip_poses(qk)[finger] for qk in q_hand])
-            self.q[finger] = q
+            qadr = [model.jnt_qposadr[model.joint(f"{finger}_{j}").id] for j in range(4)]
+            site = model.site(f"{finger}_tactile").id
+            poses = np.empty((len(q), 4, 4))
+            for k, qk in enumerate(q):
+                data.qpos[qadr] = qk
+                mujoco.mj_kinematics(model, data)
+                poses[k] = site_pose(data, site)
+            self.q[finger], self.T_hand_sensor[finger] = q, poses
 
 
 def _pretouch_candidates(twin: SimTwin, table: PreshapeTable, finger: str, T_world_hand, config: GraspConfig):
