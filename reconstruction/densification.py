@@ -163,15 +163,15 @@ def _rebuild(
         gaussians.params[name] = param
 
 
+def _append_zeros(moment: torch.Tensor, n: int) -> torch.Tensor:
+    """``moment`` followed by ``n`` zero rows (the Adam moments of new Gaussians)."""
+    return torch.cat([moment, moment.new_zeros((n,) + moment.shape[1:])])
+
+
 def duplicate(gaussians: Gaussians, optimizers: dict, mask: torch.Tensor) -> None:
     """Append an exact copy of each masked Gaussian (same set, zero Adam moments)."""
     n_new = int(mask.sum())
-    _rebuild(
-        gaussians,
-        optimizers,
-        lambda _, p: torch.cat([p, p[mask]]),
-        lambda m: torch.cat([m, torch.zeros((n_new,) + m.shape[1:], dtype=m.dtype, device=m.device)]),
-    )
+    _rebuild(gaussians, optimizers, lambda _, p: torch.cat([p, p[mask]]), lambda m: _append_zeros(m, n_new))
     gaussians.from_touch = torch.cat([gaussians.from_touch, gaussians.from_touch[mask]])
 
 
@@ -198,12 +198,7 @@ def split(
             parents = parents - math.log(scale_divisor)
         return torch.cat([p[keep], parents])
 
-    _rebuild(
-        gaussians,
-        optimizers,
-        child,
-        lambda m: torch.cat([m[keep], torch.zeros((2 * n_split,) + m.shape[1:], dtype=m.dtype, device=m.device)]),
-    )
+    _rebuild(gaussians, optimizers, child, lambda m: _append_zeros(m[keep], 2 * n_split))
     gaussians.from_touch = torch.cat([gaussians.from_touch[keep], gaussians.from_touch[mask].repeat(2)])
 
 

@@ -123,8 +123,7 @@ def _consistency_backward(normal, depth, weight, rx, ry, scale, v_normal, g_u, g
     height, width = depth.shape
     for i in nb.prange(height):
         for j in range(width):
-            for c in range(3):
-                v_normal[i, j, c] = g_u[i, j, c] = g_v[i, j, c] = 0.0
+            v_normal[i, j] = g_u[i, j] = g_v[i, j] = 0.0
             if i == 0 or j == 0 or i == height - 1 or j == width - 1:
                 continue
             nx, ny, nz, inv, sign, ux, uy, uz, vx, vy, vz = _depth_normal(depth, rx, ry, i, j)

@@ -150,12 +150,8 @@ def d_ssim(rendered: torch.Tensor, target: torch.Tensor, fused: bool = True) -> 
     """1 - mean SSIM of [H, W, C] or [B, H, W, C] images (the training loss's zero-padded map). The fused numba
     kernels for CPU tensors when ``fused`` (gradients to ``rendered`` only), :func:`.metrics.ssim_map` otherwise."""
     _check_images(rendered, target)
-    if (
-        not fused
-        or rendered.device.type != "cpu"
-        or rendered.dtype not in (torch.float32, torch.float64)
-        or target.requires_grad
-    ):
+    fusable = rendered.device.type == "cpu" and rendered.dtype in (torch.float32, torch.float64)
+    if not fused or not fusable or target.requires_grad:
         return 1.0 - ssim_map(rendered, target).mean()
     batched = rendered if rendered.ndim == 4 else rendered[None]
     return _DSSIMCPU.apply(batched, target.reshape(batched.shape).to(rendered.dtype))

@@ -78,8 +78,7 @@ def _pair_gradients(points, means, quats, scales, opacities, candidates, chosen,
     for p in nb.prange(n_points):
         vr = np.empty((3, 3))
         for c in range(n_cand):
-            for j in range(N_ROW):
-                rows[p, c, j] = 0.0
+            rows[p, c] = 0.0
             if not chosen[p, c]:
                 continue
             g = candidates[p, c]

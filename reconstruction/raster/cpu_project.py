@@ -345,10 +345,8 @@ def _sh_backward(degree, means, campos, coeffs, radii, colors, v_colors, v_coeff
     for g in nb.prange(n):
         basis = np.empty(16)
         weights = np.zeros(16)
-        for k in range(v_coeffs.shape[1]):
-            for ch in range(n_ch):
-                v_coeffs[g, k, ch] = 0.0
-        v_means[g, 0] = v_means[g, 1] = v_means[g, 2] = 0.0
+        v_coeffs[g] = 0.0
+        v_means[g] = 0.0
         for c in range(n_cams):
             if radii[c, g, 0] <= 0 or radii[c, g, 1] <= 0:
                 continue
@@ -358,8 +356,7 @@ def _sh_backward(degree, means, campos, coeffs, radii, colors, v_colors, v_coeff
             norm = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-12)
             ux, uy, uz = dx / norm, dy / norm, dz / norm
             _sh_basis(degree, ux, uy, uz, basis)
-            for k in range(n_bases):
-                weights[k] = 0.0
+            weights[:n_bases] = 0.0
             for ch in range(n_ch):
                 if colors[c, g, ch] <= 0.0:  # clamped at 0: no gradient
                     continue

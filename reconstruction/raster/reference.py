@@ -216,7 +216,7 @@ def rasterize_to_pixels_torch(
     for cam in range(n_cams):
         tile_ids, gauss_ids = tile_intersections(means2d[cam], radii[cam], depths[cam], width, height, tile_size)
         bounds = torch.searchsorted(tile_ids, torch.arange(tiles_x * math.ceil(height / tile_size) + 1, device=device))
-        pix_index, pix_color, pix_trans, pix_median = [], [], [], []
+        drawn = []  # (pixel indices, colour, transmittance, median depth) of each tile
         for tile in torch.unique_consecutive(tile_ids).tolist():
             ids = gauss_ids[bounds[tile] : bounds[tile + 1]]
             ty, tx = divmod(tile, tiles_x)
@@ -234,24 +234,17 @@ def rasterize_to_pixels_torch(
                 depths[cam, ids].detach(),
                 max_alpha,
             )
-            pix_index.append(gy * width + gx)
-            pix_color.append(color)
-            pix_trans.append(trans)
-            pix_median.append(median)
-        if not pix_index:  # nothing drawn: copy zero pixels, so that every input still gets a (zero) gradient
-            pix_index.append(torch.zeros(0, dtype=torch.long, device=device))
-            pix_color.append(colors[cam, :0])
-            pix_trans.append(means2d[cam, :0, 0] + conics[cam, :0, 0] + opacities[cam, :0])
-            pix_median.append(depths[cam, :0].detach())
-        index = torch.cat(pix_index)
+            drawn.append((gy * width + gx, color, trans, median))
+        if not drawn:  # nothing drawn: copy zero pixels, so that every input still gets a (zero) gradient
+            trans = means2d[cam, :0, 0] + conics[cam, :0, 0] + opacities[cam, :0]
+            drawn.append((torch.zeros(0, dtype=torch.long, device=device), colors[cam, :0], trans, depths[cam, :0]))
+        index, color, trans, median = (torch.cat(parts) for parts in zip(*drawn))
         blank = torch.zeros(height * width, dtype=colors.dtype, device=device)
-        trans_img = torch.ones_like(blank).index_copy(0, index, torch.cat(pix_trans))
-        color_img = torch.zeros(height * width, n_ch, dtype=colors.dtype, device=device).index_copy(
-            0, index, torch.cat(pix_color)
-        )
+        trans_img = torch.ones_like(blank).index_copy(0, index, trans)
+        color_img = torch.zeros(height * width, n_ch, dtype=colors.dtype, device=device).index_copy(0, index, color)
         if backgrounds is not None:
             color_img = color_img + trans_img[:, None] * backgrounds[cam][None, :]
         out_colors.append(color_img.reshape(height, width, n_ch))
         out_alphas.append((1.0 - trans_img).reshape(height, width, 1))
-        out_median.append(blank.index_copy(0, index, torch.cat(pix_median).to(blank.dtype)).reshape(height, width, 1))
+        out_median.append(blank.index_copy(0, index, median.detach().to(blank.dtype)).reshape(height, width, 1))
     return torch.stack(out_colors), torch.stack(out_alphas), torch.stack(out_median)

@@ -9,8 +9,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-# Normalisation constants of the real SH basis (band 0 to 3).
-SH_C0 = 0.28209479177387814
+from tacsplat.reconstruction.gaussians import SH_C0, num_sh_bases  # (band 0 and the coefficient count: the model's)
+
+# Normalisation constants of the real SH basis (bands 1 to 3).
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 SH_C3 = (
@@ -22,11 +23,6 @@ SH_C3 = (
     1.445305721320277,
     -0.5900435899266435,
 )
-
-
-def num_sh_bases(degree: int) -> int:
-    """Number of SH coefficients for a degree (1, 4, 9, 16)."""
-    return (degree + 1) ** 2
 
 
 def sh_basis(degree: int, dirs: Tensor) -> Tensor:
