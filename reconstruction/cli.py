@@ -72,14 +72,8 @@ def _export_mesh(args: ExportMesh) -> int:
     from tacsplat.files import check_writable
     from tacsplat.reconstruction.meshing import MeshConfig, export_mesh
 
-    config = MeshConfig(
-        voxel=args.voxel,
-        views=args.views,
-        cone_deg=args.cone_deg,
-        touches=args.touches,
-        seal=args.seal,
-        object_only=not args.all_pieces,
-    )
+    shared = ("voxel", "views", "cone_deg", "touches", "seal")  # the options named as MeshConfig's fields
+    config = MeshConfig(**{k: getattr(args, k) for k in shared}, object_only=not args.all_pieces)
     try:
         config.validate()
     except InvalidInputError as exc:
@@ -105,7 +99,6 @@ def _reconstruct(args) -> int:
             command.out,
             command.train,
             resume=command.resume,
-            show_progress=True,
             overwrite=command.overwrite,
             resumed=lambda recorded: resumed(args.rest, recorded, command.out),
         )

@@ -68,10 +68,9 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
         train=base,
     )
     command = parse_options(ReconstructCommand, argv, PROG, default, compact=True)
-    try:
-        command.train.validate(option_names(command.train))
-    except ConfigError as exc:
-        raise UsageError(exc.key, str(exc).split(": ", 1)[1]) from None
+    problem = command.train.problem()  # (TrainConfig.validate's, naming the option)
+    if problem:
+        raise UsageError(option_names(command.train).get(problem[0], problem[0]), problem[1])
     return command
 
 

@@ -152,10 +152,8 @@ class GroundTruth:
         key = None if frame_ids is None else tuple(frame_ids)
         if key not in self._references:
             cloud = self.surface if key is None else self.cloud(list(key))
-            empty = cloud is None or len(cloud) == 0
-            self._references[key] = (
-                None if empty else ReferenceCloud(cloud, self.radius, f"ground truth ({self.source})")
-            )
+            empty, name = cloud is None or len(cloud) == 0, f"ground truth ({self.source})"
+            self._references[key] = None if empty else ReferenceCloud(cloud, self.radius, name)
         return self._references[key]
 
     def seen_mask(self, frame_ids: list[int]) -> np.ndarray | None:
@@ -317,9 +315,7 @@ def evaluate_views(
         "cd_seen": cd_seen,  # cd on the test views' surface that a training camera sees ...
         "cd_unseen": cd_unseen,  # ... and on the rest
         "unseen_fraction": unseen_fraction,
-        "normal_error_deg": float(np.mean(np.concatenate(angles)))
-        if angles and sum(map(len, angles))
-        else float("nan"),
+        "normal_error_deg": float(np.mean(np.concatenate(angles))) if sum(map(len, angles)) else float("nan"),
         "depth_bias": float(np.median(np.concatenate(signed))) if sum(map(len, signed)) else float("nan"),
     }
 
@@ -377,13 +373,9 @@ def save_comparison(
     valid = [d[d > 0] for d in (depth, gt_depth) if d is not None and (d > 0).any()]
     lo, hi = (min(v.min() for v in valid), max(v.max() for v in valid)) if valid else (0.0, 1.0)
     blank = np.zeros_like(gt_rgb, dtype=np.uint8)
-    error = blank
-    if gt_depth is not None and depth is not None:
-        error = _error_color(depth, gt_depth, ERROR_SCALE * (radius if radius else max(hi - lo, 1e-9)))
-    coverage = blank
+    error = blank if gt_depth is None else _error_color(depth, gt_depth, ERROR_SCALE * (radius or max(hi - lo, 1e-9)))
     seen_image = None if gt_depth is None or seen is None else seen_pixels(gt_depth, seen)
-    if seen_image is not None:
-        coverage = _seen_color(gt_depth, seen_image)
+    coverage = blank if seen_image is None else _seen_color(gt_depth, seen_image)
     top = np.concatenate([(rgb * 255).round().astype(np.uint8), (gt_rgb * 255).round().astype(np.uint8), error], axis=1)
     bottom = np.concatenate(
         [_depth_color(depth, lo, hi), blank if gt_depth is None else _depth_color(gt_depth, lo, hi), coverage], axis=1
@@ -412,49 +404,36 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     splat = bake_appearance(run.gaussians, run.look)
     if splat is not run.gaussians and (Path(run_dir) / "splat.ply").is_file():  # (an SH run's is already right)
         save_ply(splat, Path(run_dir) / "splat.ply")
-    return evaluate_reconstruction(
-        run.gaussians, scene, run.config, run.step, run.train_seconds, run_dir, gt_path, backend, run.look, splat
-    )
+    return evaluate_reconstruction(run, scene, run_dir, splat, gt_path, backend)
 
 
 def evaluate_reconstruction(
-    gaussians: Gaussians,
-    scene,
-    config,
-    step: int,
-    train_seconds: float,
-    run_dir: str | Path,
-    gt_path: str | Path | None = None,
-    backend: str | None = None,
-    look: Look | None = None,
-    splat: Gaussians | None = None,
+    run, scene, run_dir: str | Path, splat: Gaussians, gt_path: str | Path | None = None, backend: str | None = None
 ) -> dict:
-    """Evaluate Gaussians on a scene's test views (``psnr_splat``: the PSNR of what ``splat.ply`` shows a plain
-    3DGS renderer, ``splat`` when the caller has baked it, :func:`.baking.bake_appearance` of ``gaussians`` and
-    ``look`` otherwise): writes ``metrics.json``, ``renders/`` and, for the sh-lit appearance, ``light.png`` (its
-    diffuse light, :func:`save_light`) into ``run_dir``."""
+    """Evaluate the Gaussians of ``run`` (a :class:`~.run_dir.LoadedRun` or a Trainer: its ``gaussians``,
+    ``config``, ``step``, ``train_seconds`` and ``look``) on a scene's test views (``psnr_splat``: the PSNR of what
+    ``splat.ply`` shows a plain 3DGS renderer, ``splat``, :func:`.baking.bake_appearance` of the Gaussians and their
+    look): writes ``metrics.json``, ``renders/`` and, for the sh-lit appearance, ``light.png`` (its diffuse light,
+    :func:`save_light`) into ``run_dir``."""
+    gaussians, config, look = run.gaussians, run.config, run.look
     test = scene.split("test")
     backend = backend or config.backend
     train_frames = training_frames(scene, config.train_views)
     ground_truth = load_ground_truth(scene, test, gt_path, train_frames=train_frames)
-    metrics = evaluate_views(
-        gaussians, scene, test, config.background, backend, ground_truth, Path(run_dir) / "renders", look
-    )
-    if look is not None and look.appearance != "sh":  # splat.ply holds the shading baked into SH
-        splat = bake_appearance(gaussians, look) if splat is None else splat
-        shown = evaluate_views(splat, scene, test, config.background, backend, None, progress=True)
-        metrics["psnr_splat"] = shown["psnr"]
-    else:
-        metrics["psnr_splat"] = metrics["psnr"]  # splat.ply holds the Gaussians as they are
-    if look is not None and look.light is not None:
+    views = (scene, test, config.background, backend)
+    metrics = evaluate_views(gaussians, *views, ground_truth, Path(run_dir) / "renders", look)
+    metrics["psnr_splat"] = metrics["psnr"]  # splat.ply holds the Gaussians as they are, or ...
+    if look.appearance != "sh":  # ... the shading baked into SH
+        metrics["psnr_splat"] = evaluate_views(splat, *views, None, progress=True)["psnr"]
+    if look.light is not None:
         save_light(look.light, Path(run_dir) / "light.png")
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
     metrics.update(exported_mesh_metrics(Path(run_dir), scene, train_frames))
     result = {
         **metrics,
-        "train_seconds": train_seconds,
-        "iterations": step,
+        "train_seconds": run.train_seconds,
+        "iterations": run.step,
         "num_gaussians": len(gaussians),
         "num_touch_gaussians": gaussians.num_touch,
         "num_test_views": len(test),

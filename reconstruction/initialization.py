@@ -208,15 +208,9 @@ def view_colors(
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     samples = np.full((len(images), len(points), 3), np.nan)  # [V, N, 3]
     for k, (image, K, T_world_cam, silhouette) in enumerate(zip(images, Ks, T_world_cams, silhouettes)):
-        T = invert_pose(T_world_cam)
-        cam = points @ T[:3, :3].T + T[:3, 3]
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.floor(K[0, 0] * cam[:, 0] / z + K[0, 2])
-            v = np.floor(K[1, 1] * cam[:, 1] / z + K[1, 2])
-        h, w = image.shape[:2]
-        inside = np.flatnonzero((z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h))
-        rows, cols = v[inside].astype(np.int64), u[inside].astype(np.int64)
+        rows, cols, inside = _pixels(points, K, T_world_cam, image.shape)
+        inside = np.flatnonzero(inside)
+        rows, cols = rows[inside], cols[inside]
         if silhouette is not None:
             on_object = silhouette[rows, cols]
             inside, rows, cols = inside[on_object], rows[on_object], cols[on_object]
@@ -225,6 +219,19 @@ def view_colors(
     colors = np.full((len(points), 3), np.nan)
     colors[seen] = np.nanmedian(samples[:, seen], axis=0)
     return colors
+
+
+def _pixels(points: np.ndarray, K: np.ndarray, T_world_cam: np.ndarray, shape: tuple) -> tuple:
+    """The pixel row and column [N] (int64) each point [N, 3] projects to in a view of ``shape`` (H, W, ...), and
+    [N] bool whether that pixel is in the frame and the point in front of the camera."""
+    T = invert_pose(T_world_cam)
+    cam = points @ T[:3, :3].T + T[:3, 3]
+    z = cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):  # (behind the camera or at its centre: not inside)
+        u = np.floor(K[0, 0] * cam[:, 0] / z + K[0, 2])
+        v = np.floor(K[1, 1] * cam[:, 1] / z + K[1, 2])
+        inside = (z > 0) & (u >= 0) & (u < shape[1]) & (v >= 0) & (v < shape[0])
+        return v.astype(np.int64), u.astype(np.int64), inside
 
 
 def foreground_mask(backdrop: np.ndarray) -> np.ndarray:
@@ -267,15 +274,8 @@ def silhouette_hull_points(
     kernel = np.ones((3, 3), np.uint8)
     for silhouette, K, T_world_cam in zip(silhouettes, Ks, T_world_cams):
         grown = cv2.dilate(np.asarray(silhouette, np.uint8), kernel) > 0
-        T = invert_pose(T_world_cam)
         survivors = np.flatnonzero(inside)  # a carved voxel stays carved: only the others are projected
-        cam = centres[survivors] @ T[:3, :3].T + T[:3, 3]
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.floor(K[0, 0] * cam[:, 0] / z + K[0, 2]).astype(np.int64, copy=False)
-            v = np.floor(K[1, 1] * cam[:, 1] / z + K[1, 2]).astype(np.int64, copy=False)
-        h, w = grown.shape
-        seen = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        v, u, seen = _pixels(centres[survivors], K, T_world_cam, grown.shape)
         on_object = np.zeros(len(survivors), bool)
         on_object[seen] = grown[v[seen], u[seen]]
         cut_by_frame = grown[0].any() or grown[-1].any() or grown[:, 0].any() or grown[:, -1].any()

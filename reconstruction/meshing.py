@@ -26,7 +26,6 @@ of the object's radius (about 220^3 voxels): fine enough for an F-score at 1 %.
 
 from __future__ import annotations
 
-import io
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -155,11 +154,14 @@ class TSDFVolume:
             d = depth[vi, ui]
             sdf = np.where(d > 0, d - z[index], np.inf)  # no surface: the voxel is empty
             use = sdf >= -self.truncation  # (far behind the surface: occluded, unknown)
-            value = np.clip(sdf[use] / self.truncation, -1.0, 1.0)
-            flat = index[use]  # flat indices into the slab (its centres are in C order)
-            self._add(x, flat, value, 1.0)
+            # weight 1 each, into flat views of the slab (C-contiguous rows: its centres are in C order); each voxel
+            # at most once per view
+            flat = index[use]
+            self.sdf[x].reshape(-1)[flat] += np.clip(sdf[use] / self.truncation, -1.0, 1.0)
+            self.weight[x].reshape(-1)[flat] += 1.0
             band = np.abs(sdf[use]) < self.truncation
-            self._add_color(x, flat[band], rgb[vi[use][band], ui[use][band]], 1.0)
+            self.color[x].reshape(-1, 3)[flat[band]] += rgb[vi[use][band], ui[use][band]]
+            self.color_weight[x].reshape(-1)[flat[band]] += 1.0
 
     def integrate_points(self, points: np.ndarray, normals: np.ndarray, weight: float) -> None:
         """Fuse surface points [N, 3] with outward unit normals [N, 3]: each voxel within the truncation of a point
@@ -176,16 +178,6 @@ class TSDFVolume:
             flat = np.ravel_multi_index(tuple(cells[near].T), self.shape)
             np.add.at(self.sdf.reshape(-1), flat, weight * np.clip(sdf[near] / self.truncation, -1.0, 1.0))
             np.add.at(self.weight.reshape(-1), flat, weight)
-
-    def _add(self, x: slice, flat: np.ndarray, value: np.ndarray, weight: float) -> None:
-        sdf, w = self.sdf[x].reshape(-1), self.weight[x].reshape(-1)  # views of the slab (C-contiguous rows)
-        sdf[flat] += weight * value  # (each voxel at most once per view)
-        w[flat] += weight
-
-    def _add_color(self, x: slice, flat: np.ndarray, rgb: np.ndarray, weight: float) -> None:
-        color, w = self.color[x].reshape(-1, 3), self.color_weight[x].reshape(-1)
-        color[flat] += weight * rgb
-        w[flat] += weight
 
     def field(self) -> np.ndarray:
         """The signed distance [X, Y, Z] in truncations: the weighted mean, -1 where nothing reached."""
@@ -281,24 +273,14 @@ def save_mesh_ply(extracted: ExtractedMesh, path: str | Path) -> Path:
     from plyfile import PlyData, PlyElement
 
     mesh = extracted.mesh
-    vertex = np.empty(
-        len(mesh.vertices),
-        dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")]
-        + [(k, "u1") for k in ("red", "green", "blue", "observed")],
-    )
-    for i, k in enumerate("xyz"):
-        vertex[k] = mesh.vertices[:, i]
-        vertex["n" + k] = mesh.vertex_normals[:, i]
-    for i, k in enumerate(("red", "green", "blue")):
-        vertex[k] = mesh.visual.vertex_colors[:, i]
-    vertex["observed"] = extracted.observed
+    dtype = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")] + [(k, "u1") for k in ("red", "green", "blue")]
+    columns = [*mesh.vertices.T, *mesh.vertex_normals.T, *mesh.visual.vertex_colors[:, :3].T, extracted.observed]
+    vertex = np.rec.fromarrays(columns, dtype=dtype + [("observed", "u1")])
     faces = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
     faces["vertex_indices"] = mesh.faces
-    buf = io.BytesIO()
-    PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(faces, "face")]).write(buf)
-    path = Path(path)
-    atomic_write(path, buf.getvalue())
-    return path
+    return atomic_write(
+        path, PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(faces, "face")]).write
+    )
 
 
 def export_mesh(

@@ -266,13 +266,11 @@ def mesh_metrics(
         for suffix, (in_pred, in_truth) in parts.items():
             result[f"mesh_fscore_{round(100 * t)}{suffix}"] = _fscore(d_pred[in_pred], d_truth[in_truth], t * radius)
     result["mesh_cd"] = float((d_pred.mean() + d_truth.mean()) / 2 / radius)
-    result["mesh_normal_consistency"] = (
-        float("nan")
-        if truth_normals is None
-        else float(
-            (np.abs((pred_normals * n_pred).sum(1)).mean() + np.abs((truth_normals * n_truth).sum(1)).mean()) / 2
-        )
-    )
+    consistency = float("nan")  # (a ground truth of points has no normals)
+    if truth_normals is not None:
+        pairs = ((pred_normals, n_pred), (truth_normals, n_truth))  # each sample's normal, its nearest one's
+        consistency = sum(np.abs((normals * nearest).sum(1)).mean() for normals, nearest in pairs) / 2
+    result["mesh_normal_consistency"] = float(consistency)
     result["mesh_watertight"] = bool(mesh.is_watertight)
     return result
 

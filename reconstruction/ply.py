@@ -56,18 +56,9 @@ def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
     rest = torch.zeros(n, INRIA_REST, 3)
     rest[:, : p["shN"].shape[1]] = p["shN"]
     rest = rest.transpose(1, 2).reshape(n, 3 * INRIA_REST)  # [N, 45], channel-major
-    columns = torch.cat(
-        [
-            p["means"],
-            outward_normals(p["means"], p["quats"], p["scales"]),
-            p["sh0"].reshape(n, 3),
-            rest,
-            p["opacities"][:, None],
-            p["scales"],
-            p["quats"],
-        ],
-        dim=1,
-    ).numpy()
+    normals = outward_normals(p["means"], p["quats"], p["scales"])
+    parts = [p["means"], normals, p["sh0"].reshape(n, 3), rest, p["opacities"][:, None], p["scales"], p["quats"]]
+    columns = torch.cat(parts, dim=1).numpy()  # in _property_names' order
     data = np.rec.fromarrays(columns.T, dtype=[(name, "<f4") for name in _property_names(3 * INRIA_REST)])
     ply = io.BytesIO()
     PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(ply)

@@ -48,22 +48,11 @@ RUN_FILES = _OUTPUTS + tuple(default_temp(Path(name)).name for name in _OUTPUTS)
 RENDERS = "renders"
 RENDER_FILE = re.compile(r"view_\d{4,}\.png(\.tmp)?")
 
-# a column added later goes last: older files read and resume by name (see cut_progress)
-PROGRESS_COLUMNS = (
-    "iteration",
-    "seconds",
-    "loss",
-    "photometric",
-    "transmittance",
-    "smoothness",
-    "backdrop",
-    "normals",
-    "num_gaussians",
-    "psnr",
-    "cd",
-    "cd_paper",
-    "albedo_smoothness",
-)
+# the loss terms of a training step, each averaged over the steps since the previous row of progress.csv
+LOSS_TERMS = ("loss", "photometric", "transmittance", "smoothness", "backdrop", "normals", "albedo_smoothness")
+# progress.csv's columns: a column added later goes last (as albedo_smoothness, the last loss term, did): older files
+# read and resume by name (see cut_progress)
+PROGRESS_COLUMNS = ("iteration", "seconds", *LOSS_TERMS[:-1], "num_gaussians", "psnr", "cd", "cd_paper", LOSS_TERMS[-1])
 
 
 @dataclass
@@ -169,12 +158,10 @@ def read_progress(path: Path) -> dict[str, np.ndarray]:
 def draw_error_vs_time(ax_cd, ax_psnr, curves: dict[str, dict[str, np.ndarray]]) -> None:
     """Held-out CD and PSNR against run time (seconds excluding evaluation) on two matplotlib axes, one line per
     ``curves[label]`` (a :func:`read_progress` result)."""
-    for label, data in curves.items():
-        ax_cd.plot(data["seconds"], data["cd"], "o-", ms=3, label=label)
-        ax_psnr.plot(data["seconds"], data["psnr"], "o-", ms=3, label=label)
-    ax_cd.set_ylabel("Chamfer distance [x GT radius]")
-    ax_psnr.set_ylabel("held-out PSNR [dB]")
-    for ax in (ax_cd, ax_psnr):
+    for ax, key, ylabel in ((ax_cd, "cd", "Chamfer distance [x GT radius]"), (ax_psnr, "psnr", "held-out PSNR [dB]")):
+        for label, data in curves.items():
+            ax.plot(data["seconds"], data[key], "o-", ms=3, label=label)
+        ax.set_ylabel(ylabel)
         ax.set_xlabel("run time [s] (evaluation excluded)")
         ax.grid(alpha=0.3)
 
@@ -233,13 +220,13 @@ def write_run_config(out: Path, config: TrainConfig, scene: dict) -> None:
         atomic_write(path, text.encode())
 
 
-def read_run_config(out: Path, resuming: bool = False) -> tuple[TrainConfig, dict | None]:
-    """A run's settings and its :func:`scene_record` (None for a run from before scenes were recorded); with
-    ``resuming``, a ConfigError for a run that trained with a removed loss (:meth:`TrainConfig.from_json`)."""
+def read_run_config(out: Path) -> tuple[TrainConfig, dict | None]:
+    """The settings a resume of a run continues with and its :func:`scene_record` (None for a run from before scenes
+    were recorded); a ConfigError for a run that trained with a removed loss (:meth:`TrainConfig.from_json`)."""
     path = out / "config.json"
     data = read_json(path)
     scene = data.get("scene")
-    return TrainConfig.from_json(data, path, resuming), scene if isinstance(scene, dict) else None
+    return TrainConfig.from_json(data, path, resuming=True), scene if isinstance(scene, dict) else None
 
 
 def check_resumed_scene(out: Path, recorded: dict | None, scene) -> None:
@@ -247,22 +234,19 @@ def check_resumed_scene(out: Path, recorded: dict | None, scene) -> None:
     a ConfigError on ``--resume`` naming both. The same content at another path (a scene moved) resumes."""
     if recorded is None:
         return  # a run from before scenes were recorded: nothing to compare
-    now = scene_record(scene)
-    if recorded.get("sha256") == now["sha256"]:
-        if recorded.get("path") != now["path"]:
-            log.info(
-                "%s: its scene moved from %s to %s (same content): resuming", out, recorded.get("path"), now["path"]
-            )
+    now, path, content = scene_record(scene), recorded.get("path"), str(recorded.get("sha256"))
+    if content == now["sha256"]:
+        if path != now["path"]:
+            log.info("%s: its scene moved from %s to %s (same content): resuming", out, path, now["path"])
         return
-    then = f"{recorded.get('path')} (content {str(recorded.get('sha256'))[:12]})"
-    given = f"{now['path']} (content {now['sha256'][:12]})"
-    if recorded.get("path") == now["path"]:
+    if path == now["path"]:
         what = (
-            f"its scene {now['path']} has changed since (content {str(recorded.get('sha256'))[:12]} then, "
-            f"{now['sha256'][:12]} now: other frames, poses, images or touches)"
+            f"its scene {path} has changed since (content {content[:12]} then, {now['sha256'][:12]} now: other "
+            "frames, poses, images or touches)"
         )
     else:
-        what = f"it was trained on the scene {then}, not on {given}"
+        given = f"{now['path']} (content {now['sha256'][:12]})"
+        what = f"it was trained on the scene {path} (content {content[:12]}), not on {given}"
     raise ConfigError(
         "--resume",
         f"{out} cannot continue on this scene: {what}; resume it with the scene it was "

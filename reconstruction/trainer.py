@@ -54,6 +54,7 @@ from tacsplat.reconstruction.initialization import (
 )
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction.run_dir import (
+    LOSS_TERMS,
     check_resumed_scene,
     check_run_folder,
     checkpoint_gaussians,
@@ -71,15 +72,6 @@ from tacsplat.reconstruction.views import background_image, camera_tensors, fit_
 
 log = logging.getLogger(__name__)
 
-LOSS_TERMS = (
-    "loss",
-    "photometric",
-    "transmittance",
-    "smoothness",
-    "backdrop",
-    "normals",
-    "albedo_smoothness",
-)  # progress.csv's loss columns
 POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
 
 
@@ -146,10 +138,8 @@ class Trainer:
             self.touch_points = scene.touch_points()[kept]
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
         self.fused_losses = shading.fused_kernels(config.backend)
-        self.neighbours = None
-        if self.use_touch_loss:
-            reach = (config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every)
-            self.neighbours = losses.TouchNeighbours(self.touch_points, *reach)
+        reach = (config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every)
+        self.neighbours = losses.TouchNeighbours(self.touch_points, *reach) if self.use_touch_loss else None
         self.touch_tensor = torch.as_tensor(self.touch_points, dtype=torch.float32, device=dev)
         self.light = shading.DiffuseLight(device=dev) if config.appearance == "sh-lit" else None
         self.look = shading.Look(config.appearance, self.light)
@@ -322,8 +312,7 @@ class Trainer:
         terms["photometric"] = photometric.detach()
         if cfg.lambda_backdrop > 0 and self.backdrop_masks[view] is not None:
             backdrop = losses.backdrop_alpha_loss(alpha, self.backdrop_masks[view][rows, cols])
-            backdrop = backdrop * self.backdrop_shares[view]
-            add("backdrop", cfg.lambda_backdrop, backdrop)
+            add("backdrop", cfg.lambda_backdrop, backdrop * self.backdrop_shares[view])
         if self.use_touch_loss:
             candidates = self.neighbours.candidates(g.means, g.from_touch)
             points = self.touch_tensor
@@ -347,8 +336,7 @@ class Trainer:
             )
             add("albedo_smoothness", cfg.lambda_albedo_smoothness, flat_albedo)
         if cfg.lambda_flatten > 0:
-            flat = losses.flatten_loss(g.scales, self.scene_scale)
-            add("normals", cfg.lambda_flatten, flat)
+            add("normals", cfg.lambda_flatten, losses.flatten_loss(g.scales, self.scene_scale))
         if with_normals:
             seen = alpha.detach() > 0.5
             surface = torch.where(seen, losses.expected_depth(out.depth, alpha), torch.zeros_like(alpha))
@@ -436,32 +424,25 @@ class Trainer:
         """Evaluate on the held-out views and add a row to ``progress.csv`` (the last evaluation's); returns (PSNR,
         CD)."""
         cfg = self.config
-        psnr_value, cd_value, cd_paper = float("nan"), float("nan"), float("nan")
+        metrics = dict.fromkeys(("psnr", "cd", "cd_paper"), float("nan"))
         if self.test_frames:
             count = min(cfg.eval_max_views, len(self.test_frames))
             idx = np.unique(np.linspace(0, len(self.test_frames) - 1, count).round().astype(int))
             frames = [self.test_frames[i] for i in idx]
             if self._ground_truth is None:
                 self._ground_truth = load_ground_truth(self.scene, self.test_frames) or False
+            truth = self._ground_truth or None  # (False: the scene has none)
             metrics = evaluate_views(
-                self.gaussians,
-                self.scene,
-                frames,
-                cfg.background,
-                cfg.backend,
-                self._ground_truth or None,
-                look=self.look,
-                progress=True,
+                self.gaussians, self.scene, frames, cfg.background, cfg.backend, truth, look=self.look, progress=True
             )
-            psnr_value, cd_value, cd_paper = metrics["psnr"], metrics["cd"], metrics["cd_paper"]
         n = max(self._sum_count, 1)
         row = {
             "iteration": self.step,
             "seconds": f"{self.train_seconds:.3f}",
             "num_gaussians": len(self.gaussians),
-            "psnr": f"{psnr_value:.4f}",
-            "cd": f"{cd_value:.6g}",
-            "cd_paper": f"{cd_paper:.6g}",
+            "psnr": f"{metrics['psnr']:.4f}",
+            "cd": f"{metrics['cd']:.6g}",
+            "cd_paper": f"{metrics['cd_paper']:.6g}",
             **{k: f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS},
         }
         self.progress.append(row)
@@ -469,7 +450,7 @@ class Trainer:
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)
         self._sum_count = 0
         self._last_eval = (self.step, self.train_seconds)
-        return psnr_value, cd_value
+        return metrics["psnr"], metrics["cd"]
 
     def save_checkpoint(self) -> None:
         state = {
@@ -516,10 +497,8 @@ class Trainer:
         self._make_optimizers()
         for name, optimizer in self.optimizers.items():
             optimizer.load_state_dict(ckpt["optimizers"][name])
-        densify = ckpt["densify_state"]
-        self.densify_state = DensifyState(
-            **{k: v.to(self.device) if torch.is_tensor(v) else v for k, v in densify.items()}
-        )
+        densify = {k: v.to(self.device) if torch.is_tensor(v) else v for k, v in ckpt["densify_state"].items()}
+        self.densify_state = DensifyState(**densify)
         self.rng.bit_generator.state = ckpt["rng"]
         self.generator.set_state(ckpt["generator"])
         torch.set_rng_state(ckpt["torch_rng"])
@@ -531,10 +510,8 @@ class Trainer:
             self.neighbours.load_state_dict(ckpt["neighbours"])
         progress = ckpt.get("progress")  # (checkpoints of older runs have none)
         if progress is not None:
-            self._sums = {
-                k: torch.tensor(float(progress["sums"].get(k, 0.0)), device=self.device)  # a term added
-                for k in LOSS_TERMS
-            }  # since the checkpoint was written: nothing summed yet
+            sums = progress["sums"]  # (a term added since the checkpoint was written: nothing summed yet)
+            self._sums = {k: torch.tensor(float(sums.get(k, 0.0)), device=self.device) for k in LOSS_TERMS}
             self._sum_count = int(progress["count"])
             self._last_eval = tuple(progress["last_eval"])
         else:
@@ -603,19 +580,12 @@ class Trainer:
                 if self.step % POSTFIX_EVERY == 0:
                     bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians), refresh=False)
                 done = self.step >= cfg.iterations
-                if (
-                    done
-                    or self.step - self._last_eval[0] >= cfg.eval_every_iters
-                    or self.train_seconds - self._last_eval[1] >= cfg.eval_every_seconds
-                ):
+                steps, seconds = self.step - self._last_eval[0], self.train_seconds - self._last_eval[1]  # since then
+                if done or steps >= cfg.eval_every_iters or seconds >= cfg.eval_every_seconds:
                     self.train_seconds += self._wait_for_device()  # queued steps are training time
                     psnr_value, cd_value = self._progress_row()
-                    bar.set_postfix(
-                        loss=f"{float(terms['loss']):.4f}",
-                        gaussians=len(self.gaussians),
-                        psnr=f"{psnr_value:.2f}",
-                        cd=f"{cd_value:.4g}",
-                    )
+                    shown = {"psnr": f"{psnr_value:.2f}", "cd": f"{cd_value:.4g}"}
+                    bar.set_postfix(loss=f"{float(terms['loss']):.4f}", gaussians=len(self.gaussians), **shown)
                 if done or self.step % cfg.checkpoint_every == 0:
                     self.save_checkpoint()
         finally:
@@ -666,7 +636,7 @@ def reconstruct(
     with claim_output_dir(out_dir, "--out"):
         check_run_folder(out_dir, resume, overwrite, locked=True)
         if resume:
-            config, recorded_scene = read_run_config(out_dir, resuming=True)
+            config, recorded_scene = read_run_config(out_dir)
             check_resumed_scene(out_dir, recorded_scene, base)
             if resumed is not None:
                 config = resumed(config)
@@ -676,14 +646,5 @@ def reconstruct(
         scene = scene_at(base, config.downscale)
         trainer = Trainer(scene, out_dir, config)
         # a run stopped before its first checkpoint (killed, or its disk full) starts again with its recorded config
-        gaussians = trainer.run(resume=resume and (out_dir / "checkpoint.pt").is_file(), show_progress=show_progress)
-        return evaluate_reconstruction(
-            gaussians,
-            scene,
-            trainer.config,
-            trainer.step,
-            trainer.train_seconds,
-            out_dir,
-            look=trainer.look,
-            splat=trainer.splat,
-        )
+        trainer.run(resume=resume and (out_dir / "checkpoint.pt").is_file(), show_progress=show_progress)
+        return evaluate_reconstruction(trainer, scene, out_dir, trainer.splat)
