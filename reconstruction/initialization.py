@@ -105,9 +105,10 @@ def sfm_points(
         except OSError as exc:
             raise _temporary_folder_error(exc) from None
         database = tmp / "database.db"
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.sift.max_num_features = config.sift_max_features
-        extraction.num_threads = 1  # single-threaded extraction and matching: deterministic
+        sift = pycolmap.SiftExtractionOptions(max_num_features=config.sift_max_features)
+        extraction = pycolmap.FeatureExtractionOptions(
+            sift=sift, num_threads=1
+        )  # (1 thread, as matching: deterministic)
         pycolmap.extract_features(
             database,
             image_dir,
@@ -116,8 +117,7 @@ def sfm_points(
             extraction_options=extraction,
             device=pycolmap.Device.cpu,
         )
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = 1
+        matching = pycolmap.FeatureMatchingOptions(num_threads=1)
         pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
 
         reconstruction = pycolmap.Reconstruction()

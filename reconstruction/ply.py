@@ -93,12 +93,9 @@ def _touch_flags(ply_path: Path, vertex, n: int) -> torch.Tensor:
     except (OSError, ValueError) as exc:
         raise SceneFormatError(sidecar, None, f"not a .npy array of touch flags: {exc}") from exc
     if flags.dtype != np.bool_ or flags.shape != (n,):
-        raise SceneFormatError(
-            sidecar,
-            None,
-            f"expected {n} bool flags, one per Gaussian of {ply_path.name}; got "
-            f"{flags.size} flags for {n} Gaussians (dtype {flags.dtype}): the sidecar of another splat",
-        )
+        expected = f"expected {n} bool flags, one per Gaussian of {ply_path.name}"
+        got = f"got {flags.size} flags for {n} Gaussians (dtype {flags.dtype})"
+        raise SceneFormatError(sidecar, None, f"{expected}; {got}: the sidecar of another splat")
     return torch.from_numpy(flags.copy())
 
 
