@@ -46,20 +46,8 @@ log = logging.getLogger(__name__)
 
 CAPTURE_MARKER = "capture.json"
 METRICS = "metrics.json"
-RESULT_COLUMNS = (
-    "job",
-    "run",
-    "scene",
-    "method",
-    "seed",
-    "iterations",
-    "cd",
-    "cd_paper",
-    "psnr",
-    "ssim",
-    "train_seconds",
-    "num_gaussians",
-)
+RUN_COLUMNS = ("iterations", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")  # of metrics.json
+RESULT_COLUMNS = ("job", "run", "scene", "method", "seed", *RUN_COLUMNS)
 KINDS = ("capture", "reconstruct", "evaluate")
 
 
@@ -478,7 +466,7 @@ def result_rows(jobs: list, out: Path) -> list[dict]:
         rows.append(
             {"job": job.name, "run": _relative(run, out), "scene": _relative(Path(m.get("scene", "")), out)}
             | {"method": m.get("method"), "seed": m.get("settings", {}).get("seed")}
-            | {k: m.get(k) for k in RESULT_COLUMNS[5:]}  # iterations, then the metrics
+            | {k: m.get(k) for k in RUN_COLUMNS}
         )
     return rows
 

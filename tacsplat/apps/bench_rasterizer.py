@@ -227,19 +227,15 @@ def format_table(results: dict) -> str:
             f"{cpu['peak_rss_mb']:7.0f} {cpu['peak_over_baseline_mb']:6.0f}"
         )
     comp, mach = results["compile"], results["machine"]
-    lines.append(
+    lines += [
         f"numba first call: cold {comp['cold_first_call_s']:.1f} s, cached (second process) "
-        f"{comp['cached_first_call_s']:.1f} s"
-    )
-    lines.append(
+        f"{comp['cached_first_call_s']:.1f} s",
         f"times: median ms of the whole rasterization() call (projection, SH degree 3, compositing); "
         f"{mach['cpu_count']} cores, numba threads {mach['numba_threads']}, torch threads {mach['torch_threads']}, "
-        f"load average {mach['load_average_at_start'][0]:.1f} at start, {mach['load_average_at_end'][0]:.1f} at end"
-    )
-    lines.append(
+        f"load average {mach['load_average_at_start'][0]:.1f} at start, {mach['load_average_at_end'][0]:.1f} at end",
         "pairs: pixel-Gaussian pairs the cpu forward evaluated; peak MB: VmHWM of a fresh process running the cpu "
-        "backend at that size, +MB: that peak over its resident memory after imports and scene set-up"
-    )
+        "backend at that size, +MB: that peak over its resident memory after imports and scene set-up",
+    ]
     return "\n".join(lines)
 
 

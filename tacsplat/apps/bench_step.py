@@ -92,6 +92,8 @@ def _backward_marker():
 def instrumented(timer: PhaseTimer):
     """Wrap, for the duration, the functions a training step calls with ``timer``'s phases; yields the list that
     receives one ``{phase: seconds}`` per ``Trainer.train_step`` call."""
+    from unittest import mock
+
     import torch
 
     from tacsplat.reconstruction import fused_shading, losses
@@ -152,23 +154,16 @@ def instrumented(timer: PhaseTimer):
         (DensifyStrategy, ("step_pre_backward", "step_post_backward"), "densification"),
         (torch.Tensor, ("backward",), "autograd (other)"),
     ]
-    saved = []
-    try:
+    with contextlib.ExitStack() as patched:  # (each original is put back on the way out)
         for owner, names, phase in patches:
             for name in names:
                 original = owner.__dict__[name]
-                saved.append((owner, name, original))
                 static = isinstance(original, staticmethod)  # (an autograd Function's forward and backward)
                 wrapped = _timed(timer, phase, original.__func__ if static else original)
-                setattr(owner, name, staticmethod(wrapped) if static else wrapped)
-        saved.append((losses, "d_ssim", d_ssim))
-        losses.d_ssim = timed_d_ssim
-        saved.append((Trainer, "train_step", step_function))
-        Trainer.train_step = timed_step
+                patched.enter_context(mock.patch.object(owner, name, staticmethod(wrapped) if static else wrapped))
+        patched.enter_context(mock.patch.object(losses, "d_ssim", timed_d_ssim))
+        patched.enter_context(mock.patch.object(Trainer, "train_step", timed_step))
         yield steps
-    finally:
-        for owner, name, original in reversed(saved):
-            setattr(owner, name, original)
 
 
 def summarize(steps: list[dict[str, float]], warmup: int = WARMUP_STEPS) -> dict:
@@ -272,20 +267,17 @@ def format_table(results: dict) -> str:
         cells = [(r["phases"][phase], r["step_mean_ms"]) for r in rows]
         share = " | {0[median_ms]:12.2f} {0[mean_ms]:7.2f} {1:5.1f}%"
         lines.append(f"{phase:20s}" + "".join(share.format(p, 100 * p["mean_ms"] / mean) for p, mean in cells))
+    s, m = results["settings"], results["machine"]
     lines += [
         "-" * len(head),
         f"{'step':20s}" + "".join(f" | {r['step_median_ms']:12.2f} {r['step_mean_ms']:7.2f} {'':6s}" for r in rows),
-    ]
-    s, m = results["settings"], results["machine"]
-    lines.append(
-        "ms per step (median and mean over steps "
-        f"{s['warmup_steps'] + 1}..{s['iterations']}); "
+        f"ms per step (median and mean over steps {s['warmup_steps'] + 1}..{s['iterations']}); "
         + "; ".join(
             f"{r['label']}: {r['steps_per_second']:.1f} steps/s, {r['n_gaussians_mean']:.0f} Gaussians on "
             f"average, train {r['train_seconds']:.1f} s"
             for r in rows
-        )
-    )
+        ),
+    ]
     for r in filter(lambda r: "ratio_to_reference" in r, rows):
         ratio = r["ratio_to_reference"]
         each = ", ".join(f"{p['step_median']:.2f}x" for p in ratio["rounds"])

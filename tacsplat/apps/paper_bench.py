@@ -49,6 +49,7 @@ from typing import Annotated, Literal
 import numpy as np
 import tyro
 
+from tacsplat.apps import report
 from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError
@@ -332,7 +333,6 @@ class PaperBench:
         executor, ray_address and retries), writing the report as runs finish; returns the results rows. A
         BatchError at the end when jobs failed (listed in failures.csv)."""
         from tacsplat.apps.executors import resolve_executor, run_jobs, side_by_side
-        from tacsplat.apps.report import number
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
         how = side_by_side(executor["executor"], executor.get("workers"))
@@ -363,8 +363,9 @@ class PaperBench:
             self.prepare_pictures(run)
             return (
                 f"{run.object:8s} {run.setting:10s} {run.method:7s} seed {run.seed}: "
-                f"CD {number(metrics.get('cd'), 4, 'nan')}  PSNR {number(metrics.get('psnr'), 2, 'nan')}  "
-                f"SSIM {number(metrics.get('ssim'), 3, 'nan')}  {metrics.get('train_seconds', 0):.0f} s"
+                f"CD {report.number(metrics.get('cd'), 4, 'nan')}  "
+                f"PSNR {report.number(metrics.get('psnr'), 2, 'nan')}  "
+                f"SSIM {report.number(metrics.get('ssim'), 3, 'nan')}  {metrics.get('train_seconds', 0):.0f} s"
             )
 
         outcome = run_jobs(
@@ -385,13 +386,11 @@ class PaperBench:
 
     def results(self) -> list[dict]:
         """One row per finished run (runs without metrics.json are left out)."""
-        from tacsplat.apps.report import NUMBER_COLUMNS
-
         rows = []
         for run in filter(lambda r: r.done, self.runs()):
             m = json.loads((run.out / "metrics.json").read_text())
             rows.append({"object": run.object, "setting": run.setting, "method": run.method, "seed": run.seed})
-            rows[-1] |= {k: _number(m.get(k)) for k in NUMBER_COLUMNS}
+            rows[-1] |= {k: _number(m.get(k)) for k in report.NUMBER_COLUMNS}
             if self.config.dataset:
                 rows[-1]["cd_paper_units"] = _in_dataset_units(m, run.scene)
         return rows
@@ -405,9 +404,7 @@ class PaperBench:
         if run.seed != self.config.seeds[0]:  # (the render grid shows the first seed)
             return
         try:
-            from tacsplat.apps.report import pyplot
-
-            pyplot()
+            report.pyplot()
             if run.scene not in self.first_views:  # (a scene's ground truth is kept with its first view)
                 self.first_views.clear()
             render_first_test_view([run], self.first_views)
@@ -467,9 +464,7 @@ class DatasetSceneJob(SceneCopyJob):
 
 def _cd_wins(rows: list[dict], setting: str, method: str, baseline: str) -> tuple[int, int, float, float] | None:
     """On how many objects ``method``'s mean CD is below ``baseline``'s, of how many, and their averages."""
-    from tacsplat.apps.report import metric_table
-
-    objects, methods, values = metric_table(rows, "cd", setting)
+    objects, methods, values = report.metric_table(rows, "cd", setting)
     if method not in methods or baseline not in methods:
         return None
     ours, theirs = values[methods.index(method)], values[methods.index(baseline)]
@@ -503,10 +498,8 @@ def default_vs_full(rows: list[dict], setting: str) -> str:
 def coverage_sentence(rows: list[dict], setting: str) -> str:
     """One sentence: how much of the test views' surface no training camera sees, and how each method's CD
     there compares with its CD on the seen surface ("" without the split, i.e. without a ground-truth mesh)."""
-    from tacsplat.apps.report import metric_table
-
-    objects, methods, unseen = metric_table(rows, "unseen_fraction", setting)
-    seen_cd, unseen_cd = (metric_table(rows, metric, setting)[2] for metric in ("cd_seen", "cd_unseen"))
+    objects, methods, unseen = report.metric_table(rows, "unseen_fraction", setting)
+    seen_cd, unseen_cd = (report.metric_table(rows, metric, setting)[2] for metric in ("cd_seen", "cd_unseen"))
     fractions = np.fmax.reduce(unseen, axis=0) if len(methods) else np.array([np.nan])  # the same for every method
     if not np.isfinite(fractions[-1]):
         return ""
@@ -539,8 +532,6 @@ def paper_tables_section(rows: list[dict], config: PaperBenchConfig, setting: st
     """Ours beside the paper's Tables 1-3 for the objects of ``setting`` imported from its datasets: CD as the
     paper's code measures it (``cd_paper_units``: in the dataset's units), PSNR and SSIM, the paper's numbers for
     objects of the same name ("" when no table applies)."""
-    from tacsplat.apps.report import md_table, metric_table
-
     selected = [r for r in rows if r["setting"] == setting]
     kinds = {obj: dataset_of(config, obj) for obj in dict.fromkeys(r["object"] for r in selected)}
     labels = {  # metric: (heading, our column, our decimals, the paper's decimals)
@@ -563,14 +554,14 @@ def paper_tables_section(rows: list[dict], config: PaperBenchConfig, setting: st
         ]
         for metric, measures in table.items():
             heading, key, decimals, theirs = labels[metric]
-            objects, methods, values = metric_table(ours, key, setting)
+            objects, methods, values = report.metric_table(ours, key, setting)
             table = [
                 [f"{method} (ours)", *(f"{v:.{decimals}f}" for v in values[i])] for i, method in enumerate(methods)
             ]
             for method, numbers in measures.items():
                 cells = [numbers.get(o.lower()) for o in objects] + [numbers.get("Avg.")]
                 table.append([f"{method} (paper)", *("–" if v is None else f"{v:.{theirs}f}" for v in cells)])
-            lines += [f"{heading}:", "", *md_table(["", *objects, "Avg."], table), ""]
+            lines += [f"{heading}:", "", *report.md_table(["", *objects, "Avg."], table), ""]
     return "\n".join(lines)
 
 
@@ -578,18 +569,17 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
     """The minimal-views section comparing with the paper: cd_paper of 3DGS and full beside the paper's own
     numbers (objects of the same name; averages over different objects), the full/3DGS gain in both metrics, and
     the departures from the paper still in force."""
-    from tacsplat.apps.report import md_table, metric_table
     from tacsplat.reconstruction.config import paper_departures
 
-    objects, methods, cd_paper = metric_table(rows, "cd_paper", "minimal")
-    _, _, cd = metric_table(rows, "cd", "minimal")
+    objects, methods, cd_paper = report.metric_table(rows, "cd_paper", "minimal")
+    _, _, cd = report.metric_table(rows, "cd", "minimal")
     if "paper" not in methods or "3dgs" not in methods:
         return ""
     full, vanilla = methods.index("paper"), methods.index("3dgs")
     columns = objects + ["Avg."]
     ours = (("3DGS (ours)", vanilla), ("full (ours)", full))
     cells = [[label, *(f"{v:.5f}" for v in cd_paper[index])] for label, index in ours]
-    terms = {key: metric_table(rows, f"cd_paper_{key}", "minimal")[2] for key in ("accuracy", "completeness")}
+    terms = {key: report.metric_table(rows, f"cd_paper_{key}", "minimal")[2] for key in ("accuracy", "completeness")}
     for key, what in (("accuracy", "predicted -> GT"), ("completeness", "GT -> predicted")):
         for label, index in (("3DGS", vanilla), ("full", full)):
             cells.append([f"{label}, {key} ({what})", *(f"{v:.5f}" for v in terms[key][index])])
@@ -604,7 +594,7 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
         "its Table 2 (Glossy Synthetic, 5 views); only the teapot and the bell share a name with our objects, and "
         "its average is over its own eight objects.",
         "",
-        *md_table(["", *columns], cells),
+        *report.md_table(["", *columns], cells),
     ]
     paper_ratio = table["3dgs"]["Avg."] / table["paper"]["Avg."]
     lines += [
@@ -718,19 +708,10 @@ def write_paper_report(
     grids into ``out``; without figures, report.md holds the tables only. ``wall_note`` follows the wall time
     (how the jobs ran); ``first_views``: :func:`render_first_test_view`'s renders so far; ``stale_note``: which
     finished runs were trained with other settings (:meth:`PaperBench.stale_runs`)."""
-    from tacsplat.apps.report import (
-        METRICS,
-        RESULT_COLUMNS,
-        markdown_table,
-        plot_cd_bars,
-        plot_error_vs_time,
-        render_grid,
-        write_csv,
-    )
     from tacsplat.reconstruction.run_dir import read_progress
 
     out = Path(out)
-    write_csv(rows, out / "results.csv", RESULT_COLUMNS)
+    report.write_csv(rows, out / "results.csv", report.RESULT_COLUMNS)
     settings = [s for s in SETTINGS if any(r["setting"] == s for r in rows)]
     if config.dataset is None:
         what, size, test = "the twin's glossy objects", f"{config.resolution}x{config.resolution} px", config.test_views
@@ -760,10 +741,10 @@ def write_paper_report(
         lines += [f"**Note:** {stale_note}.", ""]
     for setting in settings:
         lines += [f"## {setting}", ""]
-        for metric in METRICS:
+        for metric in report.METRICS:
             measured = any(np.isfinite(r.get(metric, np.nan)) for r in rows if r["setting"] == setting)
             if measured or not metric.startswith("mesh"):  # (the mesh tables of `--mesh` only)
-                lines += [markdown_table(rows, metric, setting), ""]
+                lines += [report.markdown_table(rows, metric, setting), ""]
         lines += [
             full_vs_vanilla(rows, setting),
             "",
@@ -778,7 +759,8 @@ def write_paper_report(
             lines += [where_we_stand(rows, config), ""]
         if not figures:
             continue
-        lines += [f"![CD per object, {setting}]({plot_cd_bars(rows, setting, out / f'cd_{setting}.png').name})", ""]
+        png = report.plot_cd_bars(rows, setting, out / f"cd_{setting}.png")
+        lines += [f"![CD per object, {setting}]({png.name})", ""]
         shown = [r for r in runs if r.setting == setting and r.seed == config.seeds[0] and r.done]  # (first seed)
         curves: dict[str, dict] = {}
         for run in shown:
@@ -786,14 +768,15 @@ def write_paper_report(
                 curves.setdefault(run.object, {})[run.method] = read_progress(run.out / "progress.csv")
         if curves:
             title = f"held-out error vs run time ({setting})"
-            png = plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", title)
+            png = report.plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", title)
             lines += [f"![error vs run time, {setting}]({png.name})", ""]
         for obj in dict.fromkeys(r.object for r in shown):
             panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(
                 [r for r in shown if r.object == obj], first_views
             )
             title = f"{obj}, {setting}: first test view"
-            png = render_grid(panels, gt_rgb, gt_depth, out / f"renders_{obj}_{setting}.png", title, gt_normal, gt_seen)
+            path = out / f"renders_{obj}_{setting}.png"
+            png = report.render_grid(panels, gt_rgb, gt_depth, path, title, gt_normal, gt_seen)
             lines += [f"![renders {obj} {setting}]({png.name})", ""]
     (out / "report.md").write_text("\n".join(lines))
 
