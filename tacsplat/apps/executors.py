@@ -36,7 +36,6 @@ One progress bar counts the jobs done, running and failed.
 from __future__ import annotations
 
 import contextlib
-import csv
 import functools
 import logging
 import logging.handlers
@@ -263,29 +262,23 @@ class _Batch:
         self.running = set(names)
         self.show()
 
-    def finished(self, job: Job, summary: dict) -> None:
+    def ended(self, job: Job, status: str, value, attempts: int = 1) -> None:
+        """An attempt's result: ``("done", summary)`` or ``("failed", error)``."""
         self.running.discard(job.name)
-        self.outcome.done.append(job.name)
-        if line := (self.on_done(job, summary) if self.on_done else None):
-            self.bar.write(line)
+        if status == "done":
+            self.outcome.done.append(job.name)
+            if line := (self.on_done(job, value) if self.on_done else None):
+                self.bar.write(line)
+        else:
+            self.outcome.failed[job.name] = value
+            self.attempts[job.name] = attempts
+            log.error("%s failed: %s", job.name, value)
+            self._write_failures()
         self.bar.update(1)
         self.show()
 
     def failed(self, job: Job, error: str, attempts: int) -> None:
-        self.running.discard(job.name)
-        self.outcome.failed[job.name] = error
-        self.attempts[job.name] = attempts
-        log.error("%s failed: %s", job.name, error)
-        self._write_failures()
-        self.bar.update(1)
-        self.show()
-
-    def ended(self, job: Job, status: str, value, attempts: int = 1) -> None:
-        """An attempt's result: ``("done", summary)`` or ``("failed", error)``."""
-        if status == "done":
-            self.finished(job, value)
-        else:
-            self.failed(job, value, attempts)
+        self.ended(job, "failed", error, attempts)
 
     def blocked_by(self, job: Job) -> str | None:
         return next((n for n in job.needs if n in self.outcome.failed), None)
@@ -296,11 +289,10 @@ class _Batch:
         self.failed(job, f"not run: needs {need}, which failed", attempts=0)
 
     def _write_failures(self) -> None:
-        self.out.mkdir(parents=True, exist_ok=True)
-        with (self.out / FAILURES_CSV).open("w", newline="") as fh:
-            writer = csv.writer(fh)
-            writer.writerow(FAILURE_COLUMNS)
-            writer.writerows((name, self.attempts[name], error) for name, error in self.outcome.failed.items())
+        from tacsplat.apps.report import write_csv
+
+        failed = [(name, self.attempts[name], error) for name, error in self.outcome.failed.items()]
+        write_csv([dict(zip(FAILURE_COLUMNS, row)) for row in failed], self.out / FAILURES_CSV, FAILURE_COLUMNS)
 
     def finish(self) -> None:
         """A failures.csv of an earlier invocation is removed once nothing failed."""
@@ -657,8 +649,7 @@ def _collect(job: Job, ref, batch: _Batch, attempts: int) -> None:
     try:
         status, _, value = ray.get(ref)
     except ray.exceptions.RayError as exc:  # raised after its retries, or its worker died each time
-        need = batch.blocked_by(job)
-        if need:  # (its need raised: Ray passed that error on instead of running it)
+        if need := batch.blocked_by(job):  # (its need raised: Ray passed that error on instead of running it)
             batch.not_run(job, need)
             return
         cause = exc.cause if isinstance(exc, ray.exceptions.RayTaskError) else exc

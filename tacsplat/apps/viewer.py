@@ -27,6 +27,7 @@ server and are left out of it.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -113,7 +114,6 @@ def _run(args: ViewCommand) -> int:
 
 def _viser_quiet():
     """Swallow what viser prints on stdout (its banner, 'Server stopped')."""
-    import contextlib
     import io
 
     return contextlib.redirect_stdout(io.StringIO())
@@ -533,10 +533,9 @@ def _render_button(server, view: View) -> None:
         width = RENDER_WIDTH
         height = max(1, round(width / camera.aspect))
         started = time.perf_counter()
-        try:
+        browser = None
+        with contextlib.suppress(Exception):  # the browser did not answer (closed, busy): tacsplat's renders alone
             browser = camera.get_render(height, width, timeout=10.0)
-        except Exception:  # the browser did not answer (closed, busy): tacsplat's renders alone
-            browser = None
         image = render_rows(view.slots, camera.wxyz, camera.position, camera.fov, width, height, browser)
         if image is not None:
             picture.image = image

@@ -72,23 +72,20 @@ def add_cameras(scene_api, name: str, scene, size: float) -> list:
     """A frustum per frame (OpenCV pose, its field of view) with the frame's image, coloured by split."""
     import viser.transforms as vtf
 
-    nodes = []
-    for frame in scene.frames:
-        intr = frame.intrinsics
-        nodes.append(
-            scene_api.add_camera_frustum(
-                f"{name}/{frame.split}/frame_{frame.id:04d}",
-                fov=float(2 * np.arctan2(0.5 * intr.height, intr.fy)),
-                aspect=intr.width / intr.height,
-                scale=size,
-                thickness=0.03 * size,
-                color=SPLIT_COLORS[frame.split],
-                image=_thumbnail(scene.load_image(frame)),
-                wxyz=vtf.SO3.from_matrix(frame.T_world_cam[:3, :3]).wxyz,
-                position=frame.T_world_cam[:3, 3],
-            )
+    return [
+        scene_api.add_camera_frustum(
+            f"{name}/{frame.split}/frame_{frame.id:04d}",
+            fov=float(2 * np.arctan2(0.5 * frame.intrinsics.height, frame.intrinsics.fy)),
+            aspect=frame.intrinsics.width / frame.intrinsics.height,
+            scale=size,
+            thickness=0.03 * size,
+            color=SPLIT_COLORS[frame.split],
+            image=_thumbnail(scene.load_image(frame)),
+            wxyz=vtf.SO3.from_matrix(frame.T_world_cam[:3, :3]).wxyz,
+            position=frame.T_world_cam[:3, 3],
         )
-    return nodes
+        for frame in scene.frames
+    ]
 
 
 def add_touches(scene_api, name: str, scene) -> list:
