@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tacsplat.apps.report import md_table, pyplot, save_figure
 from tacsplat.geometry import look_at, tactile_pixel_grid
 
 SPHERE_RADIUS_M = 0.01
@@ -123,15 +124,11 @@ def bench_timestep(timesteps=(0.0005, 0.001, 0.002, 0.004), grasps: int = 3, obj
 
 
 def _markdown(rows: list[dict]) -> str:
-    from tacsplat.apps.report import md_table
-
     cells = [[f"{v:.4g}" if isinstance(v, float) else str(v) for v in r.values()] for r in rows]
     return "\n".join(md_table(list(rows[0]), cells, "l" * len(rows[0])))
 
 
 def _plot(tactile: list[dict], physics: list[dict], path: Path) -> None:
-    from tacsplat.apps.report import pyplot, save_figure
-
     fig, (ax, ax_physics) = pyplot().subplots(1, 2, figsize=(12, 4.5))
     for surface, style in (("sphere", "o-"), ("plane", "s--")):
         rows = [r for r in tactile if r["surface"] == surface]

@@ -11,6 +11,8 @@ from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 
+from tacsplat.apps.report import machine, pyplot, save_figure
+
 PHASES = (
     "projection + SH",
     "binning + sort",
@@ -228,8 +230,6 @@ def run_profile(
     import os
     import statistics
 
-    from tacsplat.apps.report import machine
-
     results = {
         "benchmark": "step",
         "machine": machine(),
@@ -297,8 +297,6 @@ def format_table(results: dict) -> str:
 
 def plot_phases(results_list: list[tuple[str, dict]], path: Path) -> Path:
     """Stacked bars of the mean ms per step by phase, one bar per (results, resolution)."""
-    from tacsplat.apps.report import pyplot, save_figure
-
     plt = pyplot()
     bars = [
         (f"{name} {r['label']}" if name else r["label"], r)
