@@ -84,9 +84,8 @@ def write_scaling_report(out: Path, rows: list[dict], obj: str) -> Path:
                 ax.plot(seconds, values, marker=marker, linestyle=linestyle, color=color)
                 for n, x, y in zip(steps, seconds, values):
                     ax.annotate(f"{n}", (x, y), xytext=(3, 3), textcoords="offset points", fontsize=6)
-    ax_cd.set_yscale("log")
-    ax_cd.set_ylabel("CD [x GT radius] (lower is better)")
-    ax_psnr.set_ylabel("held-out PSNR [dB] (higher is better)")
+    ax_cd.set(yscale="log", ylabel="CD [x GT radius] (lower is better)")
+    ax_psnr.set(ylabel="held-out PSNR [dB] (higher is better)")
     for ax in (ax_cd, ax_psnr):
         ax.set_xlabel("train seconds")
         ax.grid(alpha=0.3)

@@ -745,14 +745,8 @@ def write_paper_report(
             measured = any(np.isfinite(r.get(metric, np.nan)) for r in rows if r["setting"] == setting)
             if measured or not metric.startswith("mesh"):  # (the mesh tables of `--mesh` only)
                 lines += [report.markdown_table(rows, metric, setting), ""]
-        lines += [
-            full_vs_vanilla(rows, setting),
-            "",
-            default_vs_full(rows, setting),
-            "",
-            coverage_sentence(rows, setting),
-            "",
-        ]
+        for sentence in (full_vs_vanilla, default_vs_full, coverage_sentence):
+            lines += [sentence(rows, setting), ""]
         if config.dataset is not None:
             lines += [paper_tables_section(rows, config, setting), ""]
         elif setting == "minimal":
