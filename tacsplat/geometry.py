@@ -162,10 +162,13 @@ def unproject_depth(depth, K, T_world_cam, mask=None) -> np.ndarray:
 
 
 def tactile_pixel_grid(height: int, width: int, pixel_size_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Sensor-frame (x [h, w], y [h, w]) of every tactile pixel centre (DESIGN.md): the pixel centres about the
-    pad's centre, in metres."""
-    u, v = pixel_centres(height, width)
-    return (u - width / 2) * pixel_size_m, (v - height / 2) * pixel_size_m
+    """Sensor-frame (x [h, w], y [h, w]) of every tactile pixel centre (DESIGN.md)."""
+    y, x = np.meshgrid(
+        (np.arange(height) + 0.5 - height / 2) * pixel_size_m,
+        (np.arange(width) + 0.5 - width / 2) * pixel_size_m,
+        indexing="ij",
+    )
+    return x, y
 
 
 def _tactile_depth(depth) -> np.ndarray:
