@@ -277,6 +277,7 @@ class CaptureLogger:
         """
         c = self.control
         q_close = np.asarray(c.close_pose if close_pose is None else close_pose, dtype=np.float64)
+        q_open = np.asarray(c.open_pose if open_pose is None else open_pose, dtype=np.float64)  # checked before moving
         hand_rms = None
         if T_world_hand is None:
             image, _ = self.camera.read()
@@ -300,7 +301,7 @@ class CaptureLogger:
                 self.writer.add_reading(reading.to_world(T_world_hand), grasp=index, finger=name, hand_file=hand_file)
                 for _, name, reading in readings
             ]
-            self.open(open_pose)
+            self.open(q_open)
             motion = self._motion(index, T_world_hand, t0, touch_t)  # with the release
             self.writer.add_hand_motion(motion)
         finally:

@@ -164,8 +164,9 @@ def simulate_touches(
             first = max((t.grasp for t in writer.touches), default=-1) + 1
             if touch_model == "paper":
                 todo = range(TOUCHES_PER_GRASP * first, TOUCHES_PER_GRASP * (first + grasps))
+                touches_made = PaperTouches(surface, seed, touches)  # (before the bar: it samples the surface)
                 bar = progress_bar(todo, desc="touches", unit="touch")
-                write_paper_touches(writer, PaperTouches(surface, seed, touches), bar, units.points)
+                write_paper_touches(writer, touches_made, bar, units.points)
             else:
                 rig = twin_rig(twin)
                 pads = [ScaledPad(p, units) for p in rig.sensors]  # the scene sees the twin in its frame and units

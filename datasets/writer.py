@@ -408,8 +408,9 @@ class SceneWriter(AbstractContextManager):
 
     def _materialise(self, *which: str) -> None:
         """Rewrite the index files ``which`` ("transforms", "touches", "scene": ``<name>.json``)."""
+        builders = {"transforms": self._transforms_json, "touches": self._touches_json, "scene": self._scene_json}
         for name in which:
-            atomic_write_json(self.path / f"{name}.json", getattr(self, f"_{name}_json")())
+            atomic_write_json(self.path / f"{name}.json", builders[name]())
 
     def _transforms_json(self) -> dict:
         shared = all(intrinsics_equal(f.intrinsics, self.intrinsics) for f in self.frames)

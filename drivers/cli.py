@@ -318,12 +318,13 @@ def _coverage_picture(first_image, views, calib, path: Path) -> Path:
     import cv2
     import numpy as np
 
-    from tacsplat.drivers.wrist_camera import _CELL_NAMES, empty_image_cells
+    from tacsplat.drivers.wrist_camera import CELL_NAMES, empty_image_cells
 
     h, w = first_image.shape[:2]
     canvas = (cv2.cvtColor(first_image, cv2.COLOR_RGB2BGR) * 0.35).astype(np.uint8)
     empty = set(empty_image_cells(views, (w, h)))
-    for (r, c), name in np.ndenumerate(_CELL_NAMES):  # the 3x3 grid's parts, row by row
+    for r, c in np.ndindex(3, 3):  # the 3x3 grid's parts, row by row
+        name = CELL_NAMES[r][c]
         x0, y0, x1, y1 = c * w // 3, r * h // 3, (c + 1) * w // 3, (r + 1) * h // 3
         if name in empty:
             canvas[y0:y1, x0:x1, 2] = np.maximum(canvas[y0:y1, x0:x1, 2], 120)

@@ -425,7 +425,9 @@ class DxlEmulator:
         if group is not None:
             return group(params)
         targets = list(self.servos) if servo_id == BROADCAST_ID else [servo_id]
-        for servo in filter(None, map(self._reached, targets)):
+        for target in targets:
+            if (servo := self._reached(target)) is None:  # (reaching a servo feeds its Bus Watchdog)
+                continue
             error, reply = self._unicast(servo, instruction, params)
             if servo_id != BROADCAST_ID or instruction == Instruction.PING:
                 self._reply(servo, error, reply)
@@ -473,7 +475,9 @@ class DxlEmulator:
         if len(params) < 5:
             return
         address, size = params[0] | params[1] << 8, params[2] | params[3] << 8
-        for servo in filter(None, map(self._reached, params[4:])):
+        for target in params[4:]:
+            if (servo := self._reached(target)) is None:
+                continue
             if address + size > CONTROL_TABLE_SIZE:
                 self._reply(servo, servo.status_error(ERR_ACCESS), b"")
             else:

@@ -218,7 +218,7 @@ SAME_POSE_FRACTION = 0.01  # two photos whose common corners lie within 1 % of t
 FIELD_OF_VIEW_DEG = (2.0, 170.0)
 MAX_CORNER_SCALE = 2.0
 _K_NAMES = ("fx", "fy", "cx", "cy")
-_CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
+CELL_NAMES = (("top-left", "top", "top-right"), ("left", "centre", "right"), ("bottom-left", "bottom", "bottom-right"))
 
 
 @dataclass
@@ -536,7 +536,7 @@ def empty_image_cells(views: Sequence[BoardView], size: tuple[int, int]) -> list
     for view in views:
         u, v = view.image_points[:, 0], view.image_points[:, 1]
         seen[np.clip((v * 3 / size[1]).astype(int), 0, 2), np.clip((u * 3 / size[0]).astype(int), 0, 2)] = True
-    return [_CELL_NAMES[r][c] for r in range(3) for c in range(3) if not seen[r, c]]
+    return [CELL_NAMES[r][c] for r in range(3) for c in range(3) if not seen[r, c]]
 
 
 def calibration_warnings(calib: CameraCalibration, views: Sequence[BoardView], tilts_deg: Sequence[float]) -> list[str]:

@@ -152,8 +152,10 @@ class GroundTruth:
         key = None if frame_ids is None else tuple(frame_ids)
         if key not in self._references:
             cloud = self.surface if key is None else self.cloud(list(key))
-            empty, name = cloud is None or len(cloud) == 0, f"ground truth ({self.source})"
-            self._references[key] = None if empty else ReferenceCloud(cloud, self.radius, name)
+            empty = cloud is None or len(cloud) == 0
+            self._references[key] = (
+                None if empty else ReferenceCloud(cloud, self.radius, f"ground truth ({self.source})")
+            )
         return self._references[key]
 
     def seen_mask(self, frame_ids: list[int]) -> np.ndarray | None:

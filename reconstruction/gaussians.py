@@ -59,8 +59,15 @@ class Gaussians:
         if set(params) != set(PARAM_NAMES):
             raise InvalidInputError(f"Gaussians: expected the parameters {list(PARAM_NAMES)}, got {list(params)}")
         n = params["means"].shape[0]
-        shapes = ((n, 3), (n, 4), (n, 3), (n,), (n, 1, 3), (n, num_sh_bases(sh_degree) - 1, 3))  # of PARAM_NAMES
-        for name, shape in zip(PARAM_NAMES, shapes):
+        expected = {
+            "means": (n, 3),
+            "quats": (n, 4),
+            "scales": (n, 3),
+            "opacities": (n,),
+            "sh0": (n, 1, 3),
+            "shN": (n, num_sh_bases(sh_degree) - 1, 3),
+        }
+        for name, shape in expected.items():
             if tuple(params[name].shape) != shape:
                 raise InvalidInputError(f"Gaussians.{name}: expected shape {shape}, got {tuple(params[name].shape)}")
             if not torch.isfinite(params[name]).all():

@@ -106,9 +106,8 @@ def sfm_points(
             raise _temporary_folder_error(exc) from None
         database = tmp / "database.db"
         sift = pycolmap.SiftExtractionOptions(max_num_features=config.sift_max_features)
-        extraction = pycolmap.FeatureExtractionOptions(
-            sift=sift, num_threads=1
-        )  # (1 thread, as matching: deterministic)
+        # (1 thread, as matching: deterministic)
+        extraction = pycolmap.FeatureExtractionOptions(sift=sift, num_threads=1)
         pycolmap.extract_features(
             database,
             image_dir,

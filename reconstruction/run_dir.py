@@ -50,9 +50,22 @@ RENDER_FILE = re.compile(r"view_\d{4,}\.png(\.tmp)?")
 
 # the loss terms of a training step, each averaged over the steps since the previous row of progress.csv
 LOSS_TERMS = ("loss", "photometric", "transmittance", "smoothness", "backdrop", "normals", "albedo_smoothness")
-# progress.csv's columns: a column added later goes last (as albedo_smoothness, the last loss term, did): older files
-# read and resume by name (see cut_progress)
-PROGRESS_COLUMNS = ("iteration", "seconds", *LOSS_TERMS[:-1], "num_gaussians", "psnr", "cd", "cd_paper", LOSS_TERMS[-1])
+# progress.csv's columns: a column added later goes last: older files read and resume by name (see cut_progress)
+PROGRESS_COLUMNS = (
+    "iteration",
+    "seconds",
+    "loss",
+    "photometric",
+    "transmittance",
+    "smoothness",
+    "backdrop",
+    "normals",
+    "num_gaussians",
+    "psnr",
+    "cd",
+    "cd_paper",
+    "albedo_smoothness",
+)
 
 
 @dataclass
@@ -234,19 +247,21 @@ def check_resumed_scene(out: Path, recorded: dict | None, scene) -> None:
     a ConfigError on ``--resume`` naming both. The same content at another path (a scene moved) resumes."""
     if recorded is None:
         return  # a run from before scenes were recorded: nothing to compare
-    now, path, content = scene_record(scene), recorded.get("path"), str(recorded.get("sha256"))
-    if content == now["sha256"]:
-        if path != now["path"]:
-            log.info("%s: its scene moved from %s to %s (same content): resuming", out, path, now["path"])
+    now = scene_record(scene)
+    then_path = recorded.get("path")
+    then_content = str(recorded.get("sha256"))
+    if then_content == now["sha256"]:
+        if then_path != now["path"]:
+            log.info("%s: its scene moved from %s to %s (same content): resuming", out, then_path, now["path"])
         return
-    if path == now["path"]:
+    if then_path == now["path"]:
         what = (
-            f"its scene {path} has changed since (content {content[:12]} then, {now['sha256'][:12]} now: other "
-            "frames, poses, images or touches)"
+            f"its scene {then_path} has changed since (content {then_content[:12]} then, {now['sha256'][:12]} now: "
+            "other frames, poses, images or touches)"
         )
     else:
         given = f"{now['path']} (content {now['sha256'][:12]})"
-        what = f"it was trained on the scene {path} (content {content[:12]}), not on {given}"
+        what = f"it was trained on the scene {then_path} (content {then_content[:12]}), not on {given}"
     raise ConfigError(
         "--resume",
         f"{out} cannot continue on this scene: {what}; resume it with the scene it was "

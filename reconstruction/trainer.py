@@ -120,7 +120,9 @@ class Trainer:
 
     def __init__(self, scene, out_dir: str | Path, config: TrainConfig):
         config.validate()
-        self.scene, self.out, self.config = scene, Path(out_dir), config
+        self.scene = scene
+        self.out = Path(out_dir)
+        self.config = config
         train = training_frames(scene, config.train_views)
         if not train:
             raise SceneFormatError(scene.path / "transforms.json", "frames", "no training views")

@@ -52,7 +52,9 @@ class MujocoCamera:
         self.width, self.height = width, height
         self._renderer = make_renderer(twin.model, width, height, f"camera {camera_name}")
         self._option = mujoco.MjvOption()
-        self._option.geomgroup[:] = np.isin(np.arange(len(self._option.geomgroup)), visible_groups)
+        self._option.geomgroup[:] = 0
+        for g in visible_groups:
+            self._option.geomgroup[g] = 1
         self._option.sitegroup[:] = 0
 
     @property

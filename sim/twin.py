@@ -471,7 +471,10 @@ class SimTwin(_ClosedOnExit):
 
     def max_penetration(self) -> float:
         """Deepest hand-object contact penetration in metres (0 when nothing penetrates)."""
-        return max([0.0] + [-dist for _, dist in self.hand_object_contacts()])
+        g = self.data.contact.geom  # [ncon, 2]
+        is_hand, is_object = self._geom_is_hand, self._geom_is_object
+        pair = (is_hand[g[:, 0]] & is_object[g[:, 1]]) | (is_object[g[:, 0]] & is_hand[g[:, 1]])
+        return float(max(0.0, -self.data.contact.dist[pair].min(initial=0.0)))
 
     # --- lifetime ------------------------------------------------------------------------------
     def close(self) -> None:

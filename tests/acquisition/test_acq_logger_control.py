@@ -183,6 +183,15 @@ def test_undo_removes_a_whole_grasp_and_the_next_grasp_reuses_its_number(tmp_pat
         assert logger.take_grasp().index == 1
 
 
+def test_an_open_pose_that_is_not_numbers_fails_before_the_hand_moves(tmp_path):
+    hand = ToyHand()
+    writer, logger = _logger(tmp_path, hand, CONTROL)
+    with writer:
+        with pytest.raises(ValueError):
+            logger.take_grasp(open_pose=[0.0] * 15 + ["half open"])
+    assert hand.commands == [] and writer.num_touches == 0
+
+
 class WorldPad(PadSensor):
     """A driver that places its pad in the world frame, which the logger cannot place in the scene."""
 
