@@ -322,7 +322,9 @@ class SceneWriter(AbstractContextManager):
         record_folders = ("images", "masks", "touches", "grasps", "gt/depth")  # where NNNNNN.png/.npz are records
         count = 0
         for sub in ("", "gt", *record_folders):
-            for p in (self.path / sub).iterdir() if (self.path / sub).is_dir() else ():
+            if not (self.path / sub).is_dir():
+                continue
+            for p in (self.path / sub).iterdir():
                 rel = p.relative_to(self.path).as_posix()
                 orphan = sub in record_folders and _RECORD_FILE.fullmatch(p.name) and rel not in live
                 if p.is_file() and (is_temp_file(p) or orphan):
@@ -409,8 +411,9 @@ class SceneWriter(AbstractContextManager):
     def _materialise(self, *which: str) -> None:
         """Rewrite the index files ``which`` ("transforms", "touches", "scene": ``<name>.json``)."""
         builders = {"transforms": self._transforms_json, "touches": self._touches_json, "scene": self._scene_json}
-        for name in which:
-            atomic_write_json(self.path / f"{name}.json", builders[name]())
+        for name, build in builders.items():  # in this order, whatever the order of ``which``
+            if name in which:
+                atomic_write_json(self.path / f"{name}.json", build())
 
     def _transforms_json(self) -> dict:
         shared = all(intrinsics_equal(f.intrinsics, self.intrinsics) for f in self.frames)

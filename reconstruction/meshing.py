@@ -273,9 +273,10 @@ def save_mesh_ply(extracted: ExtractedMesh, path: str | Path) -> Path:
     from plyfile import PlyData, PlyElement
 
     mesh = extracted.mesh
-    dtype = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")] + [(k, "u1") for k in ("red", "green", "blue")]
+    dtype = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")]
+    dtype += [(k, "u1") for k in ("red", "green", "blue", "observed")]
     columns = [*mesh.vertices.T, *mesh.vertex_normals.T, *mesh.visual.vertex_colors[:, :3].T, extracted.observed]
-    vertex = np.rec.fromarrays(columns, dtype=dtype + [("observed", "u1")])
+    vertex = np.rec.fromarrays(columns, dtype=dtype)
     faces = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
     faces["vertex_indices"] = mesh.faces
     return atomic_write(

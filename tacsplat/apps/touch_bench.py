@@ -142,8 +142,14 @@ class TouchBench:
                 continue
             metrics = json.loads((job.out / "metrics.json").read_text())
             marker = json.loads(job.scene.with_name(f"{job.scene.name}.json").read_text())
-            rows.append(dict(seed=job.seed, requested_touches=marker["requested"], touches=marker["touches"]))
-            rows[-1] |= {k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")}
+            rows.append(
+                {
+                    "seed": job.seed,
+                    "requested_touches": marker["requested"],
+                    "touches": marker["touches"],
+                    **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")},
+                }
+            )
         return rows
 
     def run(self, progress: bool = True, **executor) -> list[dict]:
