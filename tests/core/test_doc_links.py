@@ -1,0 +1,42 @@
+"""The README's and docs/'s links to other Markdown files lead somewhere: the file exists, and a #fragment names one
+of its headings (as GitHub makes heading anchors)."""
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+LINK = re.compile(r"\]\(([^)\s]*?\.md)?(?:#([^)\s]+))?\)")
+
+
+def anchor(heading: str) -> str:
+    """GitHub's anchor of a heading: lower case, punctuation but hyphens dropped, spaces made hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def anchors(page: Path) -> set[str]:
+    lines = page.read_text(encoding="utf-8").splitlines()
+    return {anchor(line.lstrip("#")) for line in lines if line.startswith("#")}
+
+
+def test_the_anchor_of_a_heading_is_githubs():
+    assert anchor(" Coarse to fine at 256 px (2026-11-29; an option, not the default)") == (
+        "coarse-to-fine-at-256-px-2026-11-29-an-option-not-the-default"
+    )
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_every_markdown_link_leads_to_a_file_and_heading(page):
+    broken = []
+    for match in LINK.finditer(page.read_text(encoding="utf-8")):
+        target, fragment = match.group(1), match.group(2)
+        if (target is None and fragment is None) or "://" in (target or ""):
+            continue  # a link to something other than a Markdown page of this repository
+        file = page if target is None else (page.parent / target).resolve()
+        if not file.is_file():
+            broken.append(f"{match.group(0)}: no file {file}")
+        elif fragment is not None and fragment not in anchors(file):
+            broken.append(f"{match.group(0)}: no heading #{fragment} in {file.name}")
+    assert not broken, "\n".join(broken)
