@@ -13,8 +13,8 @@ anything stiffer with a :class:`SimulationError`.
 from __future__ import annotations
 
 import logging
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-from typing import Self
 
 import cv2
 import mujoco
@@ -224,17 +224,7 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
 """
 
 
-class _ClosedOnExit:
-    """A context manager whose exit calls its ``close()``."""
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-class SimHand(_ClosedOnExit):
+class SimHand(AbstractContextManager):
     """The twin's hand (implements ``Hand``): position servos on the sixteen joints.
 
     Its servos are the real hand's as the twin's config builds them (``servo_signs``, ``servo_offsets_rad``: motor
@@ -319,6 +309,9 @@ class SimHand(_ClosedOnExit):
         """Hold the current joint positions (the twin's equivalent of a safe stop)."""
         self._twin.data.ctrl[self._act] = self.read_joint_positions().clip(JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
 
+    def __exit__(self, *exc) -> None:
+        self.close()
+
 
 class SimTactileSensor:
     """One fingertip pad of the twin (implements ``TactileSensor``)."""
@@ -343,7 +336,7 @@ class SimTactileSensor:
         return TactileReading(depth, self.config.pixel_size_m, T_hand_sensor, "hand", float(self._twin.data.time))
 
 
-class SimTwin(_ClosedOnExit):
+class SimTwin(AbstractContextManager):
     """The MuJoCo twin of the rig; a context manager owning the MjModel, MjData and renderers.
 
     ``peak_penetration_m`` is the deepest hand-object penetration of the collision
@@ -480,6 +473,9 @@ class SimTwin(_ClosedOnExit):
     def close(self) -> None:
         self.wrist_camera.close()
         self.view_camera.close()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _pose_or_identity(T, key: str) -> np.ndarray:
