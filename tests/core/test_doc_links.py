@@ -9,6 +9,12 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 LINK = re.compile(r"\]\(([^)\s]*?\.md)?(?:#([^)\s]+))?\)")
+FENCED = re.compile(r"^```.*?^```", re.MULTILINE | re.DOTALL)  # code blocks: no headings or links in them
+
+
+def prose(page: Path) -> str:
+    """A page's text without its fenced code blocks."""
+    return FENCED.sub("", page.read_text(encoding="utf-8"))
 
 
 def anchor(heading: str) -> str:
@@ -17,8 +23,7 @@ def anchor(heading: str) -> str:
 
 
 def anchors(page: Path) -> set[str]:
-    lines = page.read_text(encoding="utf-8").splitlines()
-    return {anchor(line.lstrip("#")) for line in lines if line.startswith("#")}
+    return {anchor(line.lstrip("#")) for line in prose(page).splitlines() if line.startswith("#")}
 
 
 def test_the_anchor_of_a_heading_is_githubs():
@@ -27,10 +32,16 @@ def test_the_anchor_of_a_heading_is_githubs():
     )
 
 
+def test_a_comment_in_a_code_block_is_no_heading(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("# Title\n\n```bash\n# make the scene\ntacsplat sim-capture --out S\n```\n")
+    assert anchors(page) == {"title"}
+
+
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
 def test_every_markdown_link_leads_to_a_file_and_heading(page):
     broken = []
-    for match in LINK.finditer(page.read_text(encoding="utf-8")):
+    for match in LINK.finditer(prose(page)):
         target, fragment = match.group(1), match.group(2)
         if (target is None and fragment is None) or "://" in (target or ""):
             continue  # a link to something other than a Markdown page of this repository
