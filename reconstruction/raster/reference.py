@@ -94,7 +94,9 @@ def project_gaussians(
     opac = opacities.expand_as(z)
     if antialiased:
         det_orig = cov2d[..., 0, 0] * cov2d[..., 1, 1] - b * b
-        opac = opac * torch.sqrt((det_orig / det.clamp_min(1e-30)).clamp_min(0.0))
+        # sqrt's gradient is infinite at 0 (a flat Gaussian seen edge-on): below 1e-8 the factor is 0, no gradient
+        ratio = det_orig / det.clamp_min(1e-30)
+        opac = opac * torch.where(ratio > 1e-8, torch.sqrt(ratio.clamp_min(1e-8)), torch.zeros_like(ratio))
     positive = det > 0
     det_safe = torch.where(positive, det, torch.ones_like(det))
     conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)

@@ -24,7 +24,7 @@ def _gaussians(n: int = 6, seed: int = 0) -> dict[str, torch.Tensor]:
     }
 
 
-def _render(params: dict, backend: str, render_mode: str = "RGB+D"):
+def _render(params: dict, backend: str, render_mode: str = "RGB+D", rasterize_mode: str = "classic"):
     K = torch.tensor([[[18.0, 0.0, WIDTH / 2], [0.0, 18.0, HEIGHT / 2], [0.0, 0.0, 1.0]]])
     return rasterization(
         params["means"],
@@ -39,13 +39,14 @@ def _render(params: dict, backend: str, render_mode: str = "RGB+D"):
         sh_degree=0,
         render_mode=render_mode,
         backend=backend,
+        rasterize_mode=rasterize_mode,
     )
 
 
-def _forward_backward(params: dict, backend: str):
+def _forward_backward(params: dict, backend: str, rasterize_mode: str = "classic"):
     """(colours, alphas, gradients by name) of a loss that touches every output pixel and channel."""
     leaves = {k: v.clone().requires_grad_(True) for k, v in params.items()}
-    colors, alphas, _ = _render(leaves, backend)
+    colors, alphas, _ = _render(leaves, backend, rasterize_mode=rasterize_mode)
     (colors.square().sum() + alphas.sum()).backward()
     return colors.detach(), alphas.detach(), {k: v.grad for k, v in leaves.items()}
 
@@ -88,11 +89,12 @@ DEGENERATE = {
 }
 
 
+@pytest.mark.parametrize("mode", ["classic", "antialiased"])  # antialiased: sqrt(det ratio), 0 for a point or line
 @pytest.mark.parametrize("case", list(DEGENERATE))
-def test_degenerate_gaussians_render_finitely_and_the_backends_agree(case):
+def test_degenerate_gaussians_render_finitely_and_the_backends_agree(case, mode):
     params = _gaussians()
     DEGENERATE[case](params)
-    results = {backend: _forward_backward(params, backend) for backend in BACKENDS}
+    results = {backend: _forward_backward(params, backend, mode) for backend in BACKENDS}
     for backend, (colors, alphas, grads) in results.items():
         assert torch.isfinite(colors).all() and torch.isfinite(alphas).all(), backend
         assert all(torch.isfinite(g).all() for g in grads.values()), backend
