@@ -204,7 +204,4 @@ def _previous_T_hand_cam(config: RigConfig, calibration) -> np.ndarray | None:
     calibration's), or None; a hand-eye file the rig names but that is not written yet counts as none."""
     from tacsplat.acquisition.devices import rig_T_hand_cam
 
-    named = config.camera.hand_eye
-    if config.camera.T_hand_cam is None and named and not config.path(named).is_file():
-        return calibration.T_hand_cam
-    return rig_T_hand_cam(config, calibration)
+    return rig_T_hand_cam(config, calibration, calibrating=True)

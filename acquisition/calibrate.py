@@ -35,7 +35,8 @@ def limp_hand(
         from tacsplat.sim.person import TwinPerson
         from tacsplat.sim.twin import SimTwin
 
-        settings = dataclasses.replace(twin_config(config), hand_calibration=None)  # raw servos: no calibration yet
+        # raw servos: no calibration yet; the rig's hand-eye and mounts files may not be written yet either
+        settings = dataclasses.replace(twin_config(config, calibrating=True), hand_calibration=None)
         with SimTwin(settings) as twin:
             twin.hand.set_torque(False)
             yield twin.hand, TwinPerson(twin), [f"joint {k}" for k in range(16)], "the twin's hand"
@@ -78,7 +79,8 @@ def _presses(
 ):
     """``(presses, the rig's T_hand_cam, the rig's mounts)`` of the presses of ``plan(fingers)`` for the rig's
     sensors: on a ``rig: sim`` twin the twin presses its fingertips on a sphere ``where``; on a real rig a person
-    does, guided line by line (on ``--mock``, :class:`~tacsplat.acquisition.mock_presser.EmulatorPresser`)."""
+    does, guided line by line (on ``--mock``, :class:`~tacsplat.acquisition.mock_presser.EmulatorPresser`). A
+    hand-eye or mounts file the rig names that is not written yet counts as none (the command may be writing it)."""
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M
 
     if config.rig == "sim":
@@ -87,7 +89,7 @@ def _presses(
         from tacsplat.sim.twin import SimTwin
 
         say(f"the twin presses its fingertips on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere {where}")
-        with SimTwin(twin_config(config)) as twin:
+        with SimTwin(twin_config(config, calibrating=True)) as twin:  # the files it writes may not be there yet
             presses = TwinPressSession(twin, config.board, say).run(plan())
             mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
             return presses, twin.T_hand_cam, mounts
@@ -102,14 +104,15 @@ def _presses(
     )
     hands = []
     try:
-        with open_rig(config, on_hand=hands.append, hand_eye_required=False) as rig:
+        with open_rig(config, on_hand=hands.append, hand_eye_required=False, calibrating=True) as rig:
             person = EmulatorPresser(rig.mock) if rig.mock is not None else TerminalPresser(say)
             presses = RigPressSession(rig.hand, rig.camera, rig.sensors, config.board, person, say).run(plan(fingers))
             T_hand_cam = np.array(rig.extra["T_hand_cam"])
     finally:  # however it ended, what closing the hand confirmed
         for hand in hands:
             _torque_off(hand, say)
-    return presses, T_hand_cam, {finger: rig_mounts(config).get(finger, np.eye(4)) for finger in fingers}
+    mounts = rig_mounts(config, calibrating=True)
+    return presses, T_hand_cam, {finger: mounts.get(finger, np.eye(4)) for finger in fingers}
 
 
 def _torque_off(hand, say: Callable[[str], None]) -> None:
@@ -136,36 +139,40 @@ def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] 
 
 
 def calibrate_mounts(
-    config: RigConfig, out: Path, hand_eye_out: Path | None = None, say: Callable[[str], None] = print
+    config: RigConfig,
+    out: Path,
+    hand_eye_out: Path | None = None,
+    say: Callable[[str], None] = print,
+    stand_height_m: float | None = None,
 ):
     """Each sensor's ``T_fingertip_sensor`` and ``T_hand_cam``, solved together (they are coupled: a hand-eye
     solved with the pads at their nominal mounts takes up part of their errors) from two press sets: every
     fingertip's centre on a sphere resting on the board, and six places of each pad (its two ends, two sides and two
     corners) on the sphere on a stand of known height (two bends, two spreads each); started at the rig's ``T_hand_cam`` (run
-    calibrate hand-eye first) and mounts. A line per sensor and one for ``T_hand_cam``; the mounts written to
-    ``out``, ``T_hand_cam`` to ``hand_eye_out`` if given. Presses that leave an axis undetermined are refused,
-    naming the presses to add."""
+    calibrate hand-eye first) and mounts. ``stand_height_m``: the sphere's centre over the board on its stand, as
+    measured (None: :data:`~tacsplat.acquisition.presses.STAND_HEIGHT_M`, the twin's and the emulator's). A line
+    per sensor and one for ``T_hand_cam``; the mounts written to ``out``, ``T_hand_cam`` to ``hand_eye_out`` if
+    given, both or neither. Presses that leave an axis undetermined are refused, naming the presses to add."""
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M, STAND_HEIGHT_M, hand_eye_plan, mounts_plan
-    from tacsplat.drivers.press_calibration import fit_mounts, save_hand_eye, save_mounts
+    from tacsplat.drivers.press_calibration import fit_mounts, save_mounts, save_mounts_and_hand_eye
 
     def plan(*fingers):  # the hand-eye presses, then the pads' on the stand
         return hand_eye_plan(*fingers) + mounts_plan(*fingers)
 
-    where = f"resting on the board, then on a stand, its centre {1000 * STAND_HEIGHT_M:.0f} mm over the board"
+    stand = STAND_HEIGHT_M if stand_height_m is None else float(stand_height_m)
+    where = f"resting on the board, then on a stand, its centre {1000 * stand:g} mm over the board"
     presses, T_hand_cam, mounts = _presses(config, plan, say, where)
-    fit = fit_mounts(
-        presses, SPHERE_RADIUS_M, {0: SPHERE_RADIUS_M, 1: STAND_HEIGHT_M}, T_hand_cam, mounts, "calibrate mounts"
-    )
+    fit = fit_mounts(presses, SPHERE_RADIUS_M, {0: SPHERE_RADIUS_M, 1: stand}, T_hand_cam, mounts, "calibrate mounts")
     for finger, T in fit.mounts.items():
         say(
             f"{finger}: {fit.presses[finger]} presses ({fit.dropped[finger]} dropped), rms {fit.rms_mm[finger]:.3f} mm; "
             f"{pose_change(mounts.get(finger, np.eye(4)), T)} from the rig's previous mounting"
         )
     say(f"T_hand_cam: {pose_change(T_hand_cam, fit.T_hand_cam)} from the rig's previous value")
-    save_mounts(fit, out)
-    if hand_eye_out is not None:
-        rms = float(np.sqrt(np.mean([r**2 for r in fit.rms_mm.values()])))
-        save_hand_eye(hand_eye_out, fit.T_hand_cam, sum(fit.presses.values()), rms)
+    if hand_eye_out is None:
+        save_mounts(fit, out)
+    else:  # both files or neither: a new mounts file beside an old hand-eye file would be out of step with it
+        save_mounts_and_hand_eye(fit, out, hand_eye_out)
         say(f"wrote {hand_eye_out} (name it as camera.hand_eye in the rig file)")
     say(f"wrote {out} ({len(fit.mounts)} sensors; name it as tactile.mounts in the rig file)")
     return fit

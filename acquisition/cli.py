@@ -88,8 +88,8 @@ class CalibrateMounts:
     """each tactile sensor's pose on its fingertip (T_fingertip_sensor), with T_hand_cam, from presses on a sphere
 
     Every fingertip presses a 25 mm sphere resting on the board with its pad's centre, then each pad presses the
-    sphere on a stand of known height (its centre 60 mm up) with six places of the gel (its two ends, two
-    sides and two corners), bent and spread two ways, while the wrist camera sees the board. The patches' curvature and lever arm fix
+    sphere on a stand of known height (its centre --stand-height-mm up: measure it) with six places of the gel (its
+    two ends, two sides and two corners), bent and spread two ways, while the wrist camera sees the board. The patches' curvature and lever arm fix
     each sensor's six parameters; they and T_hand_cam (coupled to them) are solved together with the sphere's place,
     started at the rig's (run calibrate hand-eye first). A residual line per sensor. Refuses presses that leave an
     axis undetermined, naming the presses to add. Guided on a real rig as calibrate hand-eye is; on --mock and a
@@ -100,7 +100,11 @@ class CalibrateMounts:
     out: Path
     """mounts file to write (.json; the rig's tactile.mounts)"""
     hand_eye: Path | None = None
-    """also write the T_hand_cam solved with the mounts to this hand-eye file (.json; the rig's camera.hand_eye)"""
+    """also write the T_hand_cam solved with the mounts to this hand-eye file (.json; the rig's camera.hand_eye);
+    both files are written, or neither"""
+    stand_height_mm: float = 60.0  # 1000 * tacsplat.acquisition.presses.STAND_HEIGHT_M (not imported: a slow import)
+    """the height of the sphere's centre over the board's printed face with the sphere on its stand, in mm, as
+    measured (the sphere's top less its 12.5 mm radius); the twin's and --mock's stand is at the default"""
     mock: bool = False
     """the emulated devices instead of the real rig's"""
 
@@ -227,17 +231,21 @@ def _capture(o: Capture) -> int:
     return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume)
 
 
-def _calibrate(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, job) -> int:
-    """A calibration command: the rig file, ``--out`` (a .json file) checked writable, then ``job(config)``, exit 0;
-    interrupted (Ctrl-C, or the hand driver's SignalInterrupt: SIGTERM, SIGHUP, ...) after the hand was left with
-    torque off: one line saying ``--out`` was not written, exit 128 + the signal."""
+def _calibrate(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, job, outputs: dict | None = None) -> int:
+    """A calibration command: the rig file, ``--out`` and the other ``outputs`` ({option: a .json file, or None})
+    checked writable, then ``job(config)``, exit 0; interrupted (Ctrl-C, or the hand driver's SignalInterrupt:
+    SIGTERM, SIGHUP, ...) after the hand was left with torque off: one line saying ``--out`` was not written, exit
+    128 + the signal."""
     from tacsplat.acquisition.config import load_rig
     from tacsplat.datasets.outputs import ensure_output_dir
 
-    if o.out.is_dir():
-        raise ConfigError("--out", f"{o.out} is a folder; give a .json file")
+    outputs = {"--out": o.out, **{option: path for option, path in (outputs or {}).items() if path is not None}}
+    for option, path in outputs.items():
+        if path.is_dir():
+            raise ConfigError(option, f"{path} is a folder; give a .json file")
     config = load_rig(o.rig, mock=o.mock, check_files=False)
-    ensure_output_dir(o.out.parent, "--out")
+    for option, path in outputs.items():
+        ensure_output_dir(path.parent, option)
     try:
         job(config)
     except KeyboardInterrupt as exc:
@@ -266,15 +274,21 @@ def _calibrate_hand_eye(o: CalibrateHandEye) -> int:
 
 
 def _calibrate_mounts(o: CalibrateMounts) -> int:
+    import math
+
     from tacsplat.acquisition.calibrate import calibrate_mounts
-    from tacsplat.datasets.outputs import ensure_output_dir
 
-    def job(config):
-        if o.hand_eye is not None:  # checked once the rig file is
-            ensure_output_dir(o.hand_eye.parent, "--hand-eye")
-        calibrate_mounts(config, o.out, o.hand_eye)
+    if not (math.isfinite(o.stand_height_mm) and o.stand_height_mm > 0):
+        raise UsageError("--stand-height-mm", f"must be a positive, finite height in mm, got {o.stand_height_mm:g}")
+    if o.hand_eye is not None and o.hand_eye.absolute() == o.out.absolute():
+        raise UsageError("--hand-eye", f"{o.hand_eye} is --out's file too: give the hand-eye file another name")
+    stand_height_m = o.stand_height_mm / 1000
 
-    return _calibrate(o, job)
+    return _calibrate(
+        o,
+        lambda config: calibrate_mounts(config, o.out, o.hand_eye, stand_height_m=stand_height_m),
+        {"--hand-eye": o.hand_eye},
+    )
 
 
 def _rig_check(o: RigCheck) -> int:

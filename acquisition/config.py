@@ -120,14 +120,17 @@ def _device_source(value) -> int | str:
 
 
 def _when(value) -> datetime:
+    """A naive datetime in local time (what file times are compared in): one with a UTC offset (``...Z``,
+    ``...+01:00``) is turned into local time."""
     try:
-        return datetime.fromisoformat(str(value))
+        when = datetime.fromisoformat(str(value))
     except ValueError:
         raise ValueError(f"expected a date (2025-03-14) or a date and time (2025-03-14 15:30), got {value!r}") from None
+    return when if when.tzinfo is None else when.astimezone().replace(tzinfo=None)
 
 
 Text = Annotated[str, StringConstraints(pattern=r"\S")]  # a non-empty string
-When = Annotated[datetime, PlainValidator(_when)]  # a YAML date or date and time (naive: local time)
+When = Annotated[datetime, PlainValidator(_when)]  # a YAML date or date and time (naive, local time)
 Pose = Annotated[tuple, PlainValidator(_pose)]  # a rigid 4x4 transform, as a tuple of rows
 DeviceSource = Annotated[int | str, PlainValidator(_device_source)]  # a device index, file path or URL
 JointAngle = Annotated[float, bounded(-math.pi, math.pi, "rad")]

@@ -43,16 +43,20 @@ class Rig:
 
 
 @contextmanager
-def open_rig(config: RigConfig, on_hand=None, hand_eye_required: bool = True) -> Iterator[Rig]:
+def open_rig(
+    config: RigConfig, on_hand=None, hand_eye_required: bool = True, calibrating: bool = False
+) -> Iterator[Rig]:
     """Open every device of ``config`` (emulated ones with ``config.mock``); closing leaves the hand safe.
 
     ``on_hand(hand)``: called with a real rig's hand before it connects, so that the caller can tell what its
     closing confirmed (``hand.torque_off_report``) however the opening ends. ``hand_eye_required=False``: a real
-    rig that does not know ``T_hand_cam`` yet opens with the hand model's designed one (calibrate hand-eye)."""
+    rig that does not know ``T_hand_cam`` yet opens with the hand model's designed one (calibrate hand-eye).
+    ``calibrating``: a hand-eye or mounts file the rig names that is not written yet counts as none (a calibration
+    command, which may be about to write it)."""
     if config.rig == "sim":
         from tacsplat.sim.twin import SimTwin
 
-        with SimTwin(twin_config(config)) as twin:
+        with SimTwin(twin_config(config, calibrating)) as twin:
             yield twin_rig(twin)
         return
     from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration
@@ -66,7 +70,7 @@ def open_rig(config: RigConfig, on_hand=None, hand_eye_required: bool = True) ->
             mock = stack.enter_context(MockDevices(config))
         cam_cal = str(mock.camera_calibration if mock else config.path(config.camera.calibration))
         calibration = CameraCalibration.load(cam_cal)
-        T_hand_cam = rig_T_hand_cam(config, calibration)
+        T_hand_cam = rig_T_hand_cam(config, calibration, calibrating)
         if T_hand_cam is None and not hand_eye_required:
             from tacsplat.sim.hand import nominal_T_hand_cam
 
@@ -93,7 +97,7 @@ def open_rig(config: RigConfig, on_hand=None, hand_eye_required: bool = True) ->
         if on_hand is not None:
             on_hand(hand)
         stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
-        sensors, model, mounts = [], None, rig_mounts(config)
+        sensors, model, mounts = [], None, rig_mounts(config, calibrating)
         for i, s in enumerate(config.tactile.sensors):
             T_mount = mounts.get(s.finger, np.eye(4))
             source, reader = device_source(mock, s.finger, s.source)
@@ -166,8 +170,9 @@ TWIN_CONTROL = GraspControl(
 )
 
 
-def twin_config(config: RigConfig):
-    """The :class:`~tacsplat.sim.twin.TwinConfig` of a ``rig: sim`` config."""
+def twin_config(config: RigConfig, calibrating: bool = False):
+    """The :class:`~tacsplat.sim.twin.TwinConfig` of a ``rig: sim`` config (``calibrating``: as
+    :func:`rig_T_hand_cam`'s)."""
     from tacsplat.sim.twin import TwinConfig
 
     s = config.sim
@@ -183,22 +188,42 @@ def twin_config(config: RigConfig):
         servo_signs=s.true_errors.servo_signs(),
         hand_calibration=str(config.path(config.hand.calibration)) if config.hand.calibration else None,
         hand_eye_error=_rows(s.true_errors.hand_eye.matrix()),
-        T_hand_cam=None if (T := rig_T_hand_cam(config)) is None else _rows(T),
-        mounts={finger: _rows(T) for finger, T in rig_mounts(config).items()},
+        T_hand_cam=None if (T := rig_T_hand_cam(config, calibrating=calibrating)) is None else _rows(T),
+        mounts={finger: _rows(T) for finger, T in rig_mounts(config, calibrating).items()},
         mount_errors={finger: _rows(e.matrix()) for finger, e in s.true_errors.mounts.items()},
     )
 
 
-def rig_T_hand_cam(config: RigConfig, calibration=None) -> np.ndarray | None:
+def rig_T_hand_cam(config: RigConfig, calibration=None, calibrating: bool = False) -> np.ndarray | None:
     """The rig's ``T_hand_cam``: the rig file's ``camera.T_hand_cam``, else its ``camera.hand_eye`` file's, else
-    the camera ``calibration``'s (if given); None."""
+    the camera ``calibration``'s (if given); None. ``calibrating``: a ``camera.hand_eye`` file that is not written
+    yet counts as none (a calibration command may be about to write it); one that is there but unusable is a
+    ConfigError naming it either way."""
+    return rig_T_hand_cam_origin(config, calibration, calibrating)[0]
+
+
+def rig_T_hand_cam_origin(
+    config: RigConfig, calibration=None, calibrating: bool = False
+) -> tuple[np.ndarray | None, str]:
+    """``(T_hand_cam, where it came from)``, as :func:`rig_T_hand_cam` finds it; ``(None, why)`` if nowhere."""
     if config.camera.T_hand_cam is not None:
-        return np.asarray(config.camera.T_hand_cam, dtype=np.float64)
-    if config.camera.hand_eye:
+        return np.asarray(config.camera.T_hand_cam, dtype=np.float64), "given in the rig file"
+    if path := _named_file(config, config.camera.hand_eye, calibrating):
         from tacsplat.drivers.press_calibration import load_hand_eye
 
-        return load_hand_eye(config.path(config.camera.hand_eye))
-    return None if calibration is None else calibration.T_hand_cam
+        return load_hand_eye(path, key="camera.hand_eye"), f"from camera.hand_eye ({path})"
+    if calibration is not None and calibration.T_hand_cam is not None:
+        return calibration.T_hand_cam, "from the camera calibration"
+    return None, "none: neither the rig file, a camera.hand_eye file nor the camera calibration gives it"
+
+
+def _named_file(config: RigConfig, name: str | None, calibrating: bool) -> Path | None:
+    """The path of a calibration file the rig names; None if it names none or, ``calibrating``, if it is not
+    written yet."""
+    if not name:
+        return None
+    path = config.path(name)
+    return None if calibrating and not path.exists() else path
 
 
 def device_source(mock, name: str, source: str) -> tuple[str, dict]:
@@ -210,15 +235,16 @@ def device_source(mock, name: str, source: str) -> tuple[str, dict]:
     return own, {"capture_factory": mock.capture_factory(name)}
 
 
-def rig_mounts(config: RigConfig) -> dict[str, np.ndarray]:
-    """Each finger's ``T_fingertip_sensor`` from the rig's ``tactile.mounts`` file, then the sensors' own entries."""
+def rig_mounts(config: RigConfig, calibrating: bool = False) -> dict[str, np.ndarray]:
+    """Each finger's ``T_fingertip_sensor`` from the rig's ``tactile.mounts`` file, then the sensors' own entries
+    (``calibrating``: a mounts file not written yet counts as none, as in :func:`rig_T_hand_cam`)."""
     from tacsplat.sim.hand import FINGER_NAMES
 
     mounts = {}
-    if config.tactile.mounts:
+    if path := _named_file(config, config.tactile.mounts, calibrating):
         from tacsplat.drivers.press_calibration import load_mounts
 
-        mounts = load_mounts(config.path(config.tactile.mounts), FINGER_NAMES)
+        mounts = load_mounts(path, FINGER_NAMES, key="tactile.mounts")
     for s in config.tactile.sensors:
         if s.T_fingertip_sensor is not None:
             mounts[s.finger] = np.asarray(s.T_fingertip_sensor, dtype=np.float64)

@@ -107,8 +107,24 @@ def _pose_files(rows: list[Row], config: RigConfig) -> None:
     from tacsplat.drivers.press_calibration import load_hand_eye, load_mounts
     from tacsplat.sim.hand import FINGER_NAMES
 
-    _calibration_file(rows, config, "camera.hand_eye", config.camera.hand_eye, load_hand_eye)
-    _calibration_file(rows, config, "tactile.mounts", config.tactile.mounts, lambda p: load_mounts(p, FINGER_NAMES))
+    _calibration_file(
+        rows, config, "camera.hand_eye", config.camera.hand_eye, lambda p: load_hand_eye(p, key="camera.hand_eye")
+    )
+    _calibration_file(
+        rows, config, "tactile.mounts", config.tactile.mounts, lambda p: load_mounts(p, FINGER_NAMES, "tactile.mounts")
+    )
+
+
+def _T_hand_cam_row(config: RigConfig, cam_cal) -> Row:
+    """``T_hand_cam`` is known, found as a capture finds it (:func:`~tacsplat.acquisition.devices.rig_T_hand_cam`:
+    the rig file's, its ``camera.hand_eye`` file's, the camera calibration's), and where it came from."""
+    from tacsplat.acquisition.devices import rig_T_hand_cam_origin
+
+    try:
+        T_hand_cam, origin = rig_T_hand_cam_origin(config, cam_cal)
+    except TacsplatError as exc:
+        return Row("camera.T_hand_cam", False, f"not known: {exc}")
+    return Row("camera.T_hand_cam", T_hand_cam is not None, origin)
 
 
 def check_rig(config: RigConfig) -> list[Row]:
@@ -141,14 +157,7 @@ def check_rig(config: RigConfig) -> list[Row]:
                 for i, s in enumerate(sensors)
             }
         _pose_files(rows, config)
-        if config.camera.T_hand_cam is not None:
-            rows.append(Row("camera.T_hand_cam", True, "given in the rig file"))
-        elif cam_cal is not None and cam_cal.T_hand_cam is not None:
-            rows.append(Row("camera.T_hand_cam", True, "from the camera calibration"))
-        else:
-            rows.append(
-                Row("camera.T_hand_cam", False, "none: neither the rig file nor the camera calibration gives it")
-            )
+        rows.append(_T_hand_cam_row(config, cam_cal))
         # the devices
         rows.append(_servos(config, mock, hand_cal))
         rows += _camera_rows(config, mock, cam_cal)

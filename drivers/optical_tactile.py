@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import json
 import logging
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Callable, Sequence
@@ -475,7 +477,18 @@ class TactileCalibration:
                 weights = [data[f"w{i}"] for i in range(2 * int(meta.get("layers", 0)))]
         except FileNotFoundError:
             raise TactileError("calibration", f"{path}: file not found") from None
-        except (KeyError, ValueError, OSError, TypeError):
+        # an empty, truncated or damaged file: numpy's EOFError, zipfile's BadZipFile, zlib's error, or zipfile's
+        # NotImplementedError for a compression method it does not know
+        except (
+            KeyError,
+            ValueError,
+            OSError,
+            TypeError,
+            EOFError,
+            zipfile.BadZipFile,
+            zlib.error,
+            NotImplementedError,
+        ):
             raise TactileError(
                 "calibration",
                 f"{path}: not a tactile calibration file (an .npz written by `tacsplat calibrate tactile`)",

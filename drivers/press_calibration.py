@@ -28,6 +28,7 @@ the rms spread of the board's position in the arm's base over them) and ``{"form
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated
@@ -40,7 +41,7 @@ from scipy.spatial.transform import Rotation
 from tacsplat.drivers.calibration import read_calibration
 from tacsplat.drivers.calibration_files import CalibrationFile, Rigid
 from tacsplat.errors import ConfigError, InvalidInputError
-from tacsplat.files import atomic_write
+from tacsplat.files import atomic_file, atomic_write
 from tacsplat.geometry import invert_pose, make_pose, transform_points
 
 HAND_EYE_FORMAT = "tacsplat-hand-eye"
@@ -379,31 +380,55 @@ def save_hand_eye(
     path: str | Path, T_hand_cam: np.ndarray, presses: int | None, rms_mm: float, stations: int | None = None
 ) -> None:
     """Write a hand-eye file saying what ``T_hand_cam`` came from: fingertip ``presses`` or arm ``stations``."""
+    atomic_write(path, _hand_eye_json(T_hand_cam, presses, rms_mm, stations))
+
+
+def _hand_eye_json(T_hand_cam: np.ndarray, presses: int | None, rms_mm: float, stations: int | None = None) -> bytes:
     data = {"format": HAND_EYE_FORMAT, "version": 1, "T_hand_cam": np.asarray(T_hand_cam).tolist()}
     counts = {"presses": presses, "stations": stations}
     data |= {key: n for key, n in counts.items() if n is not None} | {"rms_mm": rms_mm}
-    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
+    return (json.dumps(data, indent=2) + "\n").encode()
 
 
-def load_hand_eye(path: str | Path) -> np.ndarray:
-    """``T_hand_cam`` [4, 4] of a hand-eye file; one ConfigError names the file and field."""
-    return read_calibration(Path(path), _HandEyeFile, HAND_EYE_FORMAT).T_hand_cam
+def load_hand_eye(path: str | Path, key: str = "calibration") -> np.ndarray:
+    """``T_hand_cam`` [4, 4] of a hand-eye file; one ConfigError names the file and field (``key``, the rig file's
+    key or the option that names the file, when it cannot be read)."""
+    return read_calibration(Path(path), _HandEyeFile, HAND_EYE_FORMAT, key=key).T_hand_cam
 
 
 def save_mounts(fit: MountsFit, path: str | Path) -> None:
+    atomic_write(path, _mounts_json(fit))
+
+
+def _mounts_json(fit: MountsFit) -> bytes:
     sensors = {
         f: {"T_fingertip_sensor": T.tolist(), "presses": fit.presses[f], "rms_mm": fit.rms_mm[f]}
         for f, T in fit.mounts.items()
     }
     data = {"format": MOUNTS_FORMAT, "version": 1, "sensors": sensors}
-    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
+    return (json.dumps(data, indent=2) + "\n").encode()
 
 
-def load_mounts(path: str | Path, fingers) -> dict[str, np.ndarray]:
+def save_mounts_and_hand_eye(fit: MountsFit, path: str | Path, hand_eye_path: str | Path) -> None:
+    """Write the mounts file and a hand-eye file of ``fit.T_hand_cam`` (its rms: the sensors' together), both or
+    neither: each is written in full to its temporary file, and synced, before either is renamed over its target,
+    so a full disk or an unwritable target leaves both old files as they were."""
+    rms = float(np.sqrt(np.mean([r**2 for r in fit.rms_mm.values()])))
+    with atomic_file(hand_eye_path) as hand_eye, atomic_file(path) as mounts:
+        for f, data in (
+            (hand_eye, _hand_eye_json(fit.T_hand_cam, sum(fit.presses.values()), rms)),
+            (mounts, _mounts_json(fit)),
+        ):
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+
+
+def load_mounts(path: str | Path, fingers, key: str = "calibration") -> dict[str, np.ndarray]:
     """``{finger: T_fingertip_sensor}`` of a mounts file (fingers among ``fingers``); one ConfigError names the
-    file and field."""
+    file and field (``key`` when it cannot be read, as :func:`load_hand_eye`'s)."""
     path = Path(path)
-    sensors = read_calibration(path, _MountsFile, MOUNTS_FORMAT).sensors
+    sensors = read_calibration(path, _MountsFile, MOUNTS_FORMAT, key=key).sensors
     if unknown := [finger for finger in sensors if finger not in fingers]:
         raise ConfigError(f"sensors.{unknown[0]}", f"unknown finger (one of {list(fingers)})", source=path)
     return {finger: entry.T_fingertip_sensor for finger, entry in sensors.items()}

@@ -152,3 +152,51 @@ def test_a_person_at_a_real_rig_is_told_each_press_in_one_line():
         "the wrist camera seeing the board; hold it still",
         "  lift the index fingertip off",
     ]
+
+
+NAMED = {"camera": {"hand_eye": "calibration/hand_eye.json"}, "tactile": {"mounts": "calibration/mounts.json"}}
+
+
+@pytest.mark.parametrize("command", ["hand", "hand-eye", "mounts"])
+def test_a_rig_file_naming_the_files_not_written_yet_calibrates_on_the_twin(tmp_path, capsys, command):
+    """docs/real-rig.md's rig file names camera.hand_eye and tactile.mounts from the start: each calibration command
+    runs on it before they are written (a named file not there yet counts as none), and writes its file."""
+    out = (
+        tmp_path / "calibration" / {"hand": "hand.json", "hand-eye": "hand_eye.json", "mounts": "mounts.json"}[command]
+    )
+    code = main(["calibrate", command, "--rig", _rig(tmp_path, _draw(5), **NAMED), "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    assert out.is_file()
+
+
+def test_on_mock_a_rig_naming_the_files_not_written_yet_opens_and_calibrates(tmp_path, capsys, monkeypatch):
+    """The real rig's code path (open_rig) with camera.hand_eye and tactile.mounts named, neither written yet: the
+    hand-eye starts from the camera calibration's T_hand_cam and nominal mounts, and writes the file it names."""
+    from tests.acquisition.acq_helpers import write_mock_rig
+
+    monkeypatch.setattr(sys, "stdin", open(os.devnull))
+    errors = _draw(4)
+    rig = write_mock_rig(
+        tmp_path,
+        board=FINE_BOARD,
+        sim={"true_errors": errors},
+        mock_devices=MOCK_CAMERA,
+        camera=NAMED["camera"],
+        tactile={"sensors": _sensors(), **NAMED["tactile"]},
+    )
+    out = tmp_path / "calibration" / "hand_eye.json"
+    assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out), "--mock"]) == 0, capsys.readouterr().err
+    mm, deg = _error(load_hand_eye(out), errors)
+    assert mm < 0.5 and deg < 0.5, (mm, deg)
+
+
+@pytest.mark.parametrize("key, file", [("camera.hand_eye", "hand_eye.json"), ("tactile.mounts", "mounts.json")])
+def test_a_named_file_that_is_there_but_unreadable_is_one_error_naming_it_and_its_key(tmp_path, capsys, key, file):
+    path = tmp_path / "calibration" / file
+    path.parent.mkdir()
+    path.write_text('{"format": ')  # a truncated file
+    out = tmp_path / "calibration" / "new_hand_eye.json"
+    code = main(["calibrate", "hand-eye", "--rig", _rig(tmp_path, _draw(5), **NAMED), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err and not out.exists()
+    assert err.splitlines()[-1].startswith(f"error: {path}: {key}: not valid JSON"), err

@@ -139,3 +139,60 @@ def _scene_rig(tmp_path, sim: dict, plan: dict, **more) -> str:
     path = tmp_path / "scene_rig.yaml"
     path.write_text(yaml.safe_dump({"rig": "sim", "sim": sim, "plan": plan, **more}))
     return str(path)
+
+
+@pytest.mark.parametrize("given, found", [("58", True), (None, False)])
+def test_the_stand_height_given_as_measured_is_the_one_the_mounts_are_solved_with(
+    tmp_path, capsys, monkeypatch, given, found
+):
+    """A twin whose stand holds the sphere's centre 58 mm over the board: given as measured (--stand-height-mm 58)
+    every mount is found within 0.5 mm and 1 degree; left at the 60 mm default, the mounts come out about 2 mm off."""
+    from tacsplat.acquisition import presses
+
+    board_place, (x, y, _) = presses.SPHERE_PLACEMENTS
+    monkeypatch.setattr(presses, "SPHERE_PLACEMENTS", (board_place, (x, y, 0.058)))
+    errors = _draw(7)
+    out = tmp_path / "mounts.json"
+    option = ["--stand-height-mm", given] if given else []
+    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, errors), "--out", str(out), *option]) == 0
+    assert f"its centre {given or 60} mm over the board" in capsys.readouterr().out
+    mounts = load_mounts(out, FINGER_NAMES)
+    off = {f: _off(mounts[f], _matrix(e)) for f, e in errors["mounts"].items()}  # (mm, degrees)
+    assert all(mm < 0.5 and deg < 1.0 for mm, deg in off.values()) == found, off
+
+
+@pytest.mark.parametrize("value", ["0", "-60", "nan", "inf"])
+def test_a_stand_height_that_is_not_a_positive_finite_number_is_a_usage_error(tmp_path, capsys, value):
+    out = tmp_path / "mounts.json"
+    code = main(
+        ["calibrate", "mounts", "--rig", _rig(tmp_path, _draw(7)), "--out", str(out), f"--stand-height-mm={value}"]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and not out.exists()
+    assert "--stand-height-mm: must be a positive, finite height in mm, got " in err.splitlines()[-1], err
+
+
+def test_a_hand_eye_file_that_is_a_folder_is_refused_before_any_press(tmp_path, capsys):
+    (tmp_path / "calibration").mkdir()
+    out = tmp_path / "mounts.json"
+    args = ["--out", str(out), "--hand-eye", str(tmp_path / "calibration")]
+    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, _draw(7)), *args]) == 1
+    stdout, err = capsys.readouterr()
+    assert "press" not in stdout and not out.exists()
+    assert err.splitlines()[-1] == f"error: --hand-eye: {tmp_path / 'calibration'} is a folder; give a .json file"
+
+
+@pytest.mark.parametrize("failing", ["hand_eye.json", "mounts.json"])
+def test_the_mounts_and_hand_eye_files_are_both_written_or_neither(tmp_path, capsys, failing):
+    """A write that fails (here: its temporary name taken by a folder) leaves both old files as they were: never a new
+    mounts file beside an old hand-eye file, or the other way round."""
+    out, he = tmp_path / "mounts.json", tmp_path / "hand_eye.json"
+    out.write_text("old mounts\n")
+    he.write_text("old hand-eye\n")
+    (tmp_path / f"{failing}.tmp").mkdir()
+    args = ["--out", str(out), "--hand-eye", str(he)]
+    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, _draw(7)), *args]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1].startswith(f"error: {tmp_path / failing}: "), err
+    assert out.read_text() == "old mounts\n" and he.read_text() == "old hand-eye\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, he.name, f"{failing}.tmp", "rig.yaml"])

@@ -126,3 +126,70 @@ def test_a_twin_rig_checks_each_calibration_file_it_names(tmp_path, capsys):
     assert rows["tactile.mounts"][0] == "FAIL" and "sensors.pinky" in rows["tactile.mounts"][1]
     assert "twin hand" not in rows
     assert err.splitlines()[-1] == "error: rig check: 2 of 3 checks failed: camera.hand_eye; tactile.mounts"
+
+
+def _real_rig(tmp_path, T_hand_cam_in_camera_file: bool, hand_eye: str | None) -> str:
+    """A real rig (nothing plugged in: its device rows fail) as docs/real-rig.md writes it: camera.json from
+    calibrate camera (with or without a T_hand_cam), and a hand-eye file named as camera.hand_eye."""
+    from tacsplat.drivers.wrist_camera import CameraCalibration
+
+    K = np.array([[600.0, 0, 319.5], [0, 600, 239.5], [0, 0, 1]])
+    T = np.eye(4) if T_hand_cam_in_camera_file else None
+    CameraCalibration(K, np.zeros(5), 640, 480, T_hand_cam=T).save(tmp_path / "camera.json")
+    camera = {"source": str(tmp_path / "no_camera"), "calibration": "camera.json", "timeout_s": 0.2}
+    if hand_eye:
+        camera["hand_eye"] = hand_eye
+    sensor = {"finger": "index", "source": str(tmp_path / "no_gel"), "calibration": "index.npz"}
+    rig = {
+        "rig": "real",
+        "hand": {"port": str(tmp_path / "no_tty")},
+        "camera": camera,
+        "tactile": {"sensors": [sensor]},
+    }
+    (tmp_path / "rig.yaml").write_text(yaml.safe_dump(rig))
+    return str(tmp_path / "rig.yaml")
+
+
+def _rows(capsys) -> dict[str, tuple[str, str]]:
+    out = capsys.readouterr().out
+    return {
+        line[: out.index("status")].strip(): line[out.index("status") :].split(None, 1) for line in out.splitlines()[1:]
+    }
+
+
+def test_a_real_rig_knows_T_hand_cam_from_its_hand_eye_file_as_a_capture_does(tmp_path, capsys):
+    """camera.json from calibrate camera has no T_hand_cam; the hand-eye file the rig names gives it (the row says
+    so); a hand-eye file named but not there fails the row, though the camera file has one (a capture would
+    refuse that rig)."""
+    from tacsplat.drivers.press_calibration import save_hand_eye
+
+    save_hand_eye(tmp_path / "hand_eye.json", np.eye(4), presses=16, rms_mm=0.1)
+    assert main(["rig", "check", "--rig", _real_rig(tmp_path, False, "hand_eye.json")]) == 1  # nothing plugged in
+    rows = _rows(capsys)
+    assert rows["camera.T_hand_cam"] == ["ok", f"from camera.hand_eye ({tmp_path / 'hand_eye.json'})"]
+
+    assert main(["rig", "check", "--rig", _real_rig(tmp_path, True, "missing.json")]) == 1
+    rows = _rows(capsys)
+    assert rows["camera.hand_eye"][0] == "FAIL"
+    status, detail = rows["camera.T_hand_cam"]
+    assert status == "FAIL" and f"{tmp_path / 'missing.json'}: camera.hand_eye: file not found" in detail
+
+    assert main(["rig", "check", "--rig", _real_rig(tmp_path, True, None)]) == 1
+    assert _rows(capsys)["camera.T_hand_cam"] == ["ok", "from the camera calibration"]
+
+
+@pytest.mark.parametrize("minutes", [-1, 1])
+def test_a_hardware_changed_time_with_a_utc_offset_is_compared_as_that_instant(tmp_path, capsys, minutes):
+    """hardware_changed: 2025-03-14T15:30:00Z (a YAML timestamp with an offset): a file written a minute before that
+    instant is stale, one a minute after is not, whatever this machine's time zone."""
+    from datetime import timezone
+
+    changed = datetime(2025, 3, 14, 15, 30, tzinfo=timezone.utc)
+    rig = _mock_rig(tmp_path, hardware_changed=changed)
+    assert "hardware_changed: 2025-03-14 15:30:00+00:00" in open(rig).read()  # a timestamp, not a string
+    written = changed.timestamp() + 60 * minutes
+    os.utime(tmp_path / "hand.json", (written, written))
+    code, rows, err = _check(rig, capsys)
+    status, detail = rows["hand.calibration"]
+    assert (status == "FAIL" and "stale" in detail) if minutes < 0 else status == "ok", (detail, err)
+    assert code == (1 if minutes < 0 else 0), err

@@ -1,5 +1,7 @@
 """Optical tactile sensor: calibrate on ball presses rendered by the twin, read a press back from a video file."""
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -133,6 +135,44 @@ def test_bad_calibration_file_is_a_clear_error(tmp_path):
     bad = tmp_path / "bad.npz"
     np.savez(bad, something=np.zeros(3))
     with pytest.raises(TactileError, match="bad.npz"):
+        TactileCalibration.load(bad)
+
+
+def _damaged(data: bytes, how: str) -> bytes:
+    """A tactile calibration file's bytes emptied, cut in half, its deflated data broken, or its compression method
+    one zipfile does not know."""
+    if how == "empty":
+        return b""
+    if how == "truncated":
+        return data[: len(data) // 2]
+    out = bytearray(data)
+    if how == "bad deflate data":  # each member's first byte of data: a final block of the reserved type 3
+        start = 0
+        while (start := data.find(b"PK\x03\x04", start)) >= 0:
+            name, extra = (int.from_bytes(data[start + k : start + k + 2], "little") for k in (26, 28))
+            out[start + 30 + name + extra] = 0xFF
+            start += 4
+    else:  # an unknown compression method in the central directory
+        start = 0
+        while (start := data.find(b"PK\x01\x02", start)) >= 0:
+            out[start + 10 : start + 12] = (99).to_bytes(2, "little")
+            start += 4
+    return bytes(out)
+
+
+@pytest.mark.parametrize("how", ["empty", "truncated", "bad deflate data", "unknown compression"])
+def test_an_empty_truncated_or_damaged_calibration_file_is_the_same_clear_error(tmp_path, how):
+    weights = [
+        np.zeros((5, 8), np.float32),
+        np.zeros(8, np.float32),
+        np.zeros((8, 2), np.float32),
+        np.zeros(2, np.float32),
+    ]
+    good = tmp_path / "good.npz"
+    TactileCalibration(weights, PIXEL_M, (H, W)).save(good)
+    bad = tmp_path / "index.npz"
+    bad.write_bytes(_damaged(good.read_bytes(), how))
+    with pytest.raises(TactileError, match=re.escape(f"{bad}: not a tactile calibration file")):
         TactileCalibration.load(bad)
 
 
