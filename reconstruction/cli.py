@@ -43,7 +43,7 @@ class ExportMesh:
     run: tyro.conf.Positional[Path]
     """run directory written by `tacsplat reconstruct`"""
     out: Path | None = None
-    """mesh file (default: RUN/mesh.ply)"""
+    """mesh file, a .ply (default: RUN/mesh.ply)"""
     voxel: float = 0.01
     """voxel side, as a fraction of the object's radius"""
     views: int = 64
@@ -68,9 +68,10 @@ def register(cli) -> None:
 
 
 def _export_mesh(args: ExportMesh) -> int:
-    from tacsplat.errors import InvalidInputError, UsageError
-    from tacsplat.files import check_writable
-    from tacsplat.reconstruction.meshing import MeshConfig, export_mesh
+    from tacsplat.errors import ConfigError, InvalidInputError, UsageError
+    from tacsplat.files import check_writable, refuse_unwritable
+    from tacsplat.reconstruction.meshing import MeshConfig, check_mesh_path, export_mesh
+    from tacsplat.reconstruction.run_dir import is_run_folder, run_checkpoint
 
     shared = ("voxel", "views", "cone_deg", "touches", "seal")  # the options named as MeshConfig's fields
     config = MeshConfig(**{k: getattr(args, k) for k in shared}, object_only=not args.all_pieces)
@@ -79,7 +80,20 @@ def _export_mesh(args: ExportMesh) -> int:
     except InvalidInputError as exc:
         key, _, message = str(exc).partition(": ")
         raise UsageError("--" + key.replace("_", "-"), message) from None
-    check_writable(args.run if args.out is None else args.out.parent)
+    if args.out is not None:
+        try:
+            check_mesh_path(args.out)
+        except ConfigError as exc:
+            raise UsageError(exc.key, str(exc).partition(": ")[2]) from None
+    if not is_run_folder(args.run):
+        run_checkpoint(args.run)  # refused before anything is created or written
+    # a read-only or full folder: one error saying which, before the export (a missing --out folder is created
+    # only once the mesh is made: a failed export leaves none)
+    folder = args.run if args.out is None else args.out.parent
+    if folder.is_dir():
+        check_writable(folder)
+    else:
+        refuse_unwritable("--out", args.out)
     summary = export_mesh(args.run, args.out, config)
     print(json.dumps(summary, indent=2))
     return 0

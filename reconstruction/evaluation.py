@@ -201,22 +201,13 @@ def load_ground_truth(
     import trimesh
 
     if gt_path is not None:
-        gt_path = Path(gt_path)
-        try:
-            loaded = trimesh.load(str(gt_path))
-        except Exception as exc:  # trimesh raises many types for unreadable files
-            raise SceneFormatError(gt_path, None, f"cannot read a ground-truth mesh or point cloud: {exc}") from exc
-        if isinstance(loaded, trimesh.Scene):
-            loaded = loaded.to_geometry()
-        if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces):
+        loaded = read_ground_truth(gt_path)
+        if isinstance(loaded, trimesh.Trimesh):
             points = {f.id: depth_to_points(mesh_depth(loaded, f), f.intrinsics.K, f.T_world_cam) for f in frames}
             radius = bounding_sphere_radius(loaded.vertices)
             seen = None if train_frames is None else seen_by_cameras(loaded, points, train_frames, radius)
             return GroundTruth(points, radius, f"mesh {gt_path}", surface=surface_points(loaded), seen=seen)
-        cloud = np.asarray(getattr(loaded, "vertices", []), dtype=np.float64)
-        if len(cloud) == 0:
-            raise SceneFormatError(gt_path, None, "no faces and no points")
-        return GroundTruth({}, bounding_sphere_radius(cloud), f"points {gt_path}", shared=cloud, surface=cloud)
+        return GroundTruth({}, bounding_sphere_radius(loaded), f"points {gt_path}", shared=loaded, surface=loaded)
     points = {}
     for f in frames:
         depth = scene.gt_depth(f)
@@ -235,6 +226,26 @@ def load_ground_truth(
         return None
     seen = None if mesh is None or train_frames is None else seen_by_cameras(mesh, points, train_frames, radius)
     return GroundTruth(points, radius, "scene gt/", surface=surface, seen=seen)
+
+
+def read_ground_truth(gt_path: str | Path):
+    """A ground truth given by path (``--gt-mesh``): its mesh (a ``trimesh.Trimesh`` with faces), else its points
+    [N, 3]; a SceneFormatError naming the file when it cannot be read or holds neither."""
+    import trimesh
+
+    gt_path = Path(gt_path)
+    try:
+        loaded = trimesh.load(str(gt_path))
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise SceneFormatError(gt_path, None, f"cannot read a ground-truth mesh or point cloud: {exc}") from exc
+    if isinstance(loaded, trimesh.Scene):
+        loaded = loaded.to_geometry()
+    if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces):
+        return loaded
+    cloud = np.asarray(getattr(loaded, "vertices", []), dtype=np.float64).reshape(-1, 3)
+    if len(cloud) == 0:
+        raise SceneFormatError(gt_path, None, "no faces and no points")
+    return cloud
 
 
 def surface_points(mesh, count: int = PAPER_GT_POINTS, seed: int = 0) -> np.ndarray:
@@ -431,7 +442,7 @@ def evaluate_reconstruction(
         save_light(look.light, Path(run_dir) / "light.png")
     if ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
-    metrics.update(exported_mesh_metrics(Path(run_dir), scene, train_frames))
+    metrics.update(exported_mesh_metrics(Path(run_dir), scene, train_frames, gt_path))
     result = {
         **metrics,
         "train_seconds": run.train_seconds,
@@ -451,18 +462,32 @@ def evaluate_reconstruction(
     return result
 
 
-def exported_mesh_metrics(run_dir: Path, scene, train_frames: list) -> dict:
-    """The mesh metrics (:func:`~.metrics.mesh_metrics`, split by what ``train_frames`` see) of ``RUN/mesh.ply``
-    where ``tacsplat export mesh`` wrote one and the scene has a ground truth; empty otherwise."""
+def exported_mesh_metrics(run_dir: Path, scene, train_frames: list, gt_path: str | Path | None = None) -> dict:
+    """The mesh metrics (:func:`~.metrics.mesh_metrics`, split by what ``train_frames`` see) of the meshes
+    ``tacsplat export mesh`` wrote into the run (:data:`~.meshing.MESH_FILES`: ``mesh_*`` of ``RUN/mesh.ply``,
+    ``mesh_untouched_*`` of ``RUN/mesh-untouched.ply``), against ``gt_path`` (a mesh or point cloud, ``evaluate
+    --gt-mesh``) where given, else the scene's ground truth: the same truth as the rest of the metrics. Empty
+    without such a mesh or a ground truth."""
     import trimesh
 
-    path = run_dir / "mesh.ply"
-    truth = ground_truth_surface(scene) if path.is_file() else None
+    from tacsplat.reconstruction.meshing import MESH_FILES
+
+    meshes = {prefix: run_dir / name for prefix, name in MESH_FILES.items() if (run_dir / name).is_file()}
+    if not meshes:
+        return {}
+    if gt_path is not None:
+        gt = read_ground_truth(gt_path)
+        truth = gt, bounding_sphere_radius(gt.vertices if isinstance(gt, trimesh.Trimesh) else gt)
+    else:
+        truth = ground_truth_surface(scene)
     if truth is None:
         return {}
-    return mesh_metrics(
-        trimesh.load(str(path), force="mesh"), *truth, seen_by=seen_by_training_views(*truth, train_frames)
-    )
+    seen_by = seen_by_training_views(*truth, train_frames)
+    result = {}
+    for prefix, path in meshes.items():
+        metrics = mesh_metrics(trimesh.load(str(path), force="mesh"), *truth, seen_by=seen_by)
+        result.update({prefix + key[len("mesh") :]: value for key, value in metrics.items()})
+    return result
 
 
 def seen_by_training_views(gt, radius: float, train_frames: list):

@@ -1,31 +1,30 @@
 """A watertight mesh from a reconstruction, and the mesh metrics.
 
-:func:`extract_mesh` renders the Gaussians' median depth (the paper's
-evaluation depth) and colour from ``views`` cameras spread evenly on a sphere
-around the object, fuses them into a truncated signed distance field (TSDF) on
-a dense voxel grid, fuses the touches' contact points into the same field as
-points along their normals (a tactile map is orthographic: no camera ray), and
-runs marching cubes (scikit-image). Only the cameras within a cone around the
-training cameras' directions are fused (:func:`fused_cameras`). A pixel where
-the render shows no surface marks its whole ray as empty; voxels no view and no touch ever reaches (the
-inside) stay inside, so the zero level set is closed: the mesh is watertight by
-construction. A view that sees through a semi-transparent stretch of the shell
-carves hollows into the object that open to the outside only through small
-holes; they are sealed (:func:`seal_hollows`, a morphological closing of the
-inside). Only the largest connected piece is kept (floaters go) unless
-asked otherwise. Each vertex is flagged ``observed`` when a training camera sees
-it (the mesh itself occluding) or a touch lies within a voxel of it.
+:func:`extract_mesh` renders the Gaussians' median depth (the paper's evaluation depth) and colour from ``views``
+cameras spread evenly on a sphere around the object, fuses them into a truncated signed distance field (TSDF) on a
+dense voxel grid, fuses the touches' contact points into the same field as points along their normals (a tactile
+map is orthographic: no camera ray), and runs marching cubes (scikit-image). Only the cameras within a cone around
+the training cameras' directions are fused (:func:`fused_cameras`; none is an error). A pixel where the render shows
+no surface marks its whole ray as empty; voxels no view and no touch ever reaches (the inside) stay inside, so the
+zero level set is closed: the mesh is watertight by construction. A view that sees through a semi-transparent
+stretch of the shell carves hollows into the object that open to the outside only through small holes; they are
+sealed (:func:`seal_hollows`, a morphological closing of the inside). Only the largest connected piece is kept
+(floaters go) unless asked otherwise; then a piece of the inside that nothing reached and that lies wholly beyond
+the object's sphere (a corner of the grid that no fused view covers, or that only ever lies behind the object) is
+outside (:meth:`TSDFVolume.clear_blobs`), not a blob of its own. Each vertex is flagged ``observed`` when a training
+camera sees it (the mesh itself occluding) or a touch lies within a voxel of it.
 
 The fusion is a dense grid (numpy, by slabs): Open3D's scalable TSDF would add
 a C++ dependency that pulls a web framework with it, and it keeps only the
 observed band, which leaves holes where no view looked. The default voxel is 1 %
-of the object's radius (about 220^3 voxels): fine enough for an F-score at 1 %.
+of the object's radius (200^3 voxels: the grid spans the object's diameter): fine enough for an F-score at 1 %.
 
 :func:`~.metrics.mesh_metrics` compares a mesh with the ground truth.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,13 +33,14 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from tacsplat.errors import InvalidInputError
-from tacsplat.files import atomic_write
+from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.files import atomic_file, atomic_write, storage_error
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction.metrics import finite_or_none, ground_truth_surface, mesh_metrics
 from tacsplat.types import CameraIntrinsics
 
 SLAB_VOXELS = 2_000_000  # voxels projected at once (memory: about 100 bytes each)
+MESH_FILES = {"mesh": "mesh.ply", "mesh_untouched": "mesh-untouched.ply"}  # export_meshes's: metrics prefix -> file
 
 
 @dataclass
@@ -110,7 +110,7 @@ def fused_cameras(centre: np.ndarray, radius: float, train_frames: list, config:
     fused view sees stays closed, and flagged unobserved."""
     seen = np.array([f.T_world_cam[:3, 3] - centre for f in train_frames])  # [T, 3]
     seen /= np.linalg.norm(seen, axis=1, keepdims=True)
-    cameras = []
+    cameras = []  # (none: :func:`extract_mesh` refuses it)
     for frame in sphere_cameras(centre, radius, config.views, config.image_size):
         direction = frame.T_world_cam[:3, 3] - centre
         cosine = seen @ (direction / np.linalg.norm(direction))
@@ -121,7 +121,7 @@ def fused_cameras(centre: np.ndarray, radius: float, train_frames: list, config:
 
 class TSDFVolume:
     """A dense truncated signed distance field: positive outside, weighted sums per voxel (``sdf``, ``weight``,
-    ``color``); a voxel nothing reached reads -1 (inside)."""
+    ``color``); a voxel nothing reached reads -1 (inside), unless :meth:`clear_blobs` made it +1 (``cleared``)."""
 
     def __init__(self, lo: np.ndarray, voxel: float, shape: tuple[int, int, int], truncation: float):
         self.lo, self.voxel, self.shape, self.truncation = np.asarray(lo, np.float64), float(voxel), shape, truncation
@@ -129,6 +129,7 @@ class TSDFVolume:
         self.weight = np.zeros(shape, np.float32)
         self.color = np.zeros(shape + (3,), np.float32)
         self.color_weight = np.zeros(shape, np.float32)
+        self.cleared = np.zeros(shape, bool)  # unreached, yet outside (:meth:`clear_blobs`)
 
     def centres(self, x: slice) -> np.ndarray:
         """World centres [n, 3] of the voxels of the slab ``x`` (all y, z), in C order."""
@@ -180,8 +181,27 @@ class TSDFVolume:
             np.add.at(self.weight.reshape(-1), flat, weight)
 
     def field(self) -> np.ndarray:
-        """The signed distance [X, Y, Z] in truncations: the weighted mean, -1 where nothing reached."""
-        return np.where(self.weight > 0, self.sdf / np.maximum(self.weight, 1e-12), -1.0).astype(np.float32)
+        """The signed distance [X, Y, Z] in truncations: the weighted mean; where nothing reached, -1 (inside), or +1
+        where :meth:`clear_blobs` cleared the voxel."""
+        unreached = np.where(self.cleared, 1.0, -1.0)
+        return np.where(self.weight > 0, self.sdf / np.maximum(self.weight, 1e-12), unreached).astype(np.float32)
+
+    def clear_blobs(self, centre: np.ndarray, radius: float) -> None:
+        """Make outside every connected piece of the inside (26-connected voxels, :meth:`field` < 0) that nothing
+        reached (no view, no touch) and whose voxel centres all lie beyond the sphere ``centre``, ``radius`` that holds
+        the object: a corner of the grid that no fused view covers, or that lies only ever behind the object. The
+        object's own unseen inside touches its sphere and stays; so does a floater some view saw."""
+        from scipy import ndimage
+
+        inside = self.field() < 0
+        labels, count = ndimage.label(inside, structure=np.ones((3, 3, 3), bool))
+        if count == 0:
+            return
+        axes = [((np.arange(n) + 0.5) * self.voxel + self.lo[k] - centre[k]) ** 2 for k, n in enumerate(self.shape)]
+        near = axes[0][:, None, None] + axes[1][None, :, None] + axes[2][None, None, :] <= radius**2
+        keep = np.zeros(count + 1, bool)
+        keep[labels[inside & ((self.weight > 0) | near)]] = True
+        self.cleared |= inside & ~keep[labels]
 
     def mesh(self, seal_voxels: float = 0.0) -> trimesh.Trimesh:
         """The zero level set (marching cubes on the field, sealed by :func:`seal_hollows`, padded with empty space:
@@ -246,8 +266,15 @@ def extract_mesh(gaussians, scene, train_frames: list, backend: str, look=None, 
     voxel = config.voxel * radius
     shape = tuple([int(np.ceil(2 * radius / voxel))] * 3)
     volume = TSDFVolume(centre - radius, voxel, shape, config.truncation * voxel)
+    cameras = fused_cameras(centre, radius, train_frames, config)
+    if not cameras:
+        raise ConfigError(
+            "--cone-deg",
+            f"none of the {config.views} cameras around the object (--views) lies within {config.cone_deg:g} degrees "
+            "of a training camera's direction: nothing would be fused; raise --cone-deg or --views",
+        )
     background = torch.zeros(config.image_size, config.image_size, 3)
-    for frame in fused_cameras(centre, radius, train_frames, config):
+    for frame in cameras:
         view = render_frame(gaussians, frame, background, backend, with_depth=False, look=look)
         median = view.median_depth if view.median_depth is not None else render_median_depth(gaussians, frame, backend)
         volume.integrate_depth(median.astype(np.float64), view.rgb, frame.intrinsics.K, frame.T_world_cam)
@@ -256,6 +283,8 @@ def extract_mesh(gaussians, scene, train_frames: list, backend: str, look=None, 
         touch_points, normals = scene.touch_points(), scene.touch_normals()
         known = np.isfinite(normals).all(axis=1)
         volume.integrate_points(touch_points[known], normals[known], config.touch_weight * config.views)
+    if not config.object_only:  # (the largest piece alone leaves them out anyway, and its faces in the same order)
+        volume.clear_blobs(centre, radius)
     mesh = volume.mesh(config.seal / config.voxel)
     if config.object_only:
         pieces = mesh.split(only_watertight=False)
@@ -268,8 +297,9 @@ def extract_mesh(gaussians, scene, train_frames: list, backend: str, look=None, 
     return ExtractedMesh(mesh, seen, voxel)
 
 
-def save_mesh_ply(extracted: ExtractedMesh, path: str | Path) -> Path:
-    """A binary PLY: vertices with normals, colours and ``observed`` (0/1), triangles."""
+def mesh_ply(extracted: ExtractedMesh):
+    """A binary PLY (plyfile's ``PlyData``: ``.write(file)``): vertices with normals, colours and ``observed`` (0/1),
+    triangles."""
     from plyfile import PlyData, PlyElement
 
     mesh = extracted.mesh
@@ -279,18 +309,26 @@ def save_mesh_ply(extracted: ExtractedMesh, path: str | Path) -> Path:
     vertex = np.rec.fromarrays(columns, dtype=dtype)
     faces = np.empty(len(mesh.faces), dtype=[("vertex_indices", "i4", (3,))])
     faces["vertex_indices"] = mesh.faces
-    return atomic_write(
-        path, PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(faces, "face")]).write
-    )
+    return PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(faces, "face")])
+
+
+def check_mesh_path(out: str | Path) -> None:
+    """Refuse a mesh file that is not a ``.ply``: the mesh is written as PLY (its normals, colours and ``observed``
+    flag have no place in most other formats), and PLY bytes under another suffix mislead every reader."""
+    if Path(out).suffix.lower() != ".ply":
+        raise ConfigError("--out", f"the mesh is written as PLY: name a .ply file, got {out}")
 
 
 def export_mesh(
     run_dir: str | Path, out: str | Path | None = None, config: MeshConfig | None = None, record: str | None = None
 ) -> dict:
-    """Extract a run's mesh (its last checkpoint) into ``out`` (default ``RUN/mesh.ply``); returns a summary: the
-    file, vertex and face counts, the share of vertices observed, and the mesh metrics where the scene has a
-    ground truth. The metrics go into ``RUN/metrics.json`` too, as ``mesh_*`` for ``RUN/mesh.ply``, or under the
-    prefix ``record`` (``mesh_untouched``: ``mesh_untouched_fscore_5``, ...)."""
+    """Extract a run's mesh (its last checkpoint) into ``out`` (default ``RUN/mesh.ply``; a ``.ply``, its folder
+    created once the mesh is made); returns a summary: the file, vertex and face counts, the share of vertices
+    observed, and the mesh metrics where the scene has a ground truth. The metrics go into ``RUN/metrics.json`` too,
+    as ``mesh_*`` for ``RUN/mesh.ply``, or under the prefix ``record`` (``mesh_untouched``:
+    ``mesh_untouched_fscore_5``, ...). The metrics are measured and recorded before the mesh file appears (it is
+    renamed into place last): a mesh file on disk has its metrics recorded, so an interrupted export leaves no
+    ``RUN/mesh.ply`` that looks done (:func:`export_meshes`)."""
     import json
 
     from tacsplat.datasets import Scene
@@ -299,12 +337,12 @@ def export_mesh(
     from tacsplat.reconstruction.views import scene_at, training_frames
 
     run_dir = Path(run_dir)
+    out = run_dir / "mesh.ply" if out is None else Path(out)
+    check_mesh_path(out)
     run = load_run(run_dir)
     scene = scene_at(Scene.load(run.scene_path), run.config.downscale)
-    out = run_dir / "mesh.ply" if out is None else Path(out)
     frames = training_frames(scene, run.config.train_views)
     extracted = extract_mesh(run.gaussians, scene, frames, run.config.backend, run.look, config)
-    save_mesh_ply(extracted, out)
     summary = {
         "mesh": str(out),
         "vertices": len(extracted.mesh.vertices),
@@ -318,9 +356,18 @@ def export_mesh(
         summary.update(
             finite_or_none(mesh_metrics(extracted.mesh, *truth, seen_by=seen_by_training_views(*truth, frames)))
         )
-        metrics_path = run_dir / "metrics.json"
-        default = out.resolve() == (run_dir / "mesh.ply").resolve()
-        if (record is not None or default) and metrics_path.is_file():
+    metrics_path = run_dir / "metrics.json"
+    default = out.resolve() == (run_dir / "mesh.ply").resolve()
+    recorded = truth is not None and (record is not None or default) and metrics_path.is_file()
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)  # (only now: a failed export creates no folder)
+    except OSError as exc:
+        raise storage_error(exc, out.parent) from None
+    with atomic_file(out) as f:  # the mesh goes to a temporary sibling, renamed over ``out`` when the block ends
+        mesh_ply(extracted).write(f)
+        f.flush()
+        os.fsync(f.fileno())  # (on disk before the metrics: the rename below is all that is left)
+        if recorded:  # before that rename: a mesh file on disk has its metrics recorded
             prefix = record or "mesh"
             metrics = json.loads(metrics_path.read_text())
             metrics.update({prefix + k[len("mesh") :]: v for k, v in summary.items() if k.startswith("mesh_")})
@@ -332,5 +379,6 @@ def export_meshes(run_dir: str | Path) -> None:
     """A run's ``mesh.ply`` with its touches fused and ``mesh-untouched.ply`` without (``mesh_untouched_*`` in its
     metrics.json): what touching buys the mesh (``bench paper --mesh``)."""
     run_dir = Path(run_dir)
-    export_mesh(run_dir, run_dir / "mesh-untouched.ply", MeshConfig(touches=False), record="mesh_untouched")
-    export_mesh(run_dir)  # last: its file marks the run's meshes done
+    untouched = MESH_FILES["mesh_untouched"]
+    export_mesh(run_dir, run_dir / untouched, MeshConfig(touches=False), record="mesh_untouched")
+    export_mesh(run_dir)  # last: its file (renamed into place after its metrics) marks the run's meshes done

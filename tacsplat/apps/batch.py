@@ -260,7 +260,12 @@ class ReconstructJob(BatchJob):
         return 1 if self.device == "cuda" or (self.device == "auto" and cluster_has_gpus) else 0
 
     def complete(self) -> bool:
-        return (self.out / METRICS).is_file() and (not self.export_mesh or (self.out / "mesh.ply").is_file())
+        """The run's metrics.json is there and, with ``export_mesh``, both meshes ``export_meshes`` writes
+        (reconstruction.meshing.MESH_FILES): each is renamed into place only after its metrics went into
+        metrics.json, so a mesh file means its metrics are recorded. A lone ``mesh.ply`` (``tacsplat export mesh``
+        by hand) is not done: the untouched mesh's metrics are missing."""
+        meshes = ("mesh-untouched.ply", "mesh.ply") if self.export_mesh else ()
+        return (self.out / METRICS).is_file() and all((self.out / name).is_file() for name in meshes)
 
     def warm_up(self) -> None:
         """The trainer, and torch._dynamo, which torch.optim's first optimizer imports (a second). Not what a

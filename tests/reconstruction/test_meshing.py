@@ -194,3 +194,142 @@ def test_an_exported_mesh_goes_back_into_the_twin_at_its_own_size(sphere_run, ex
     capsys.readouterr()
     assert main(["sim-capture", "--keep-size", "--out", str(tmp_path / "x")]) == 2
     assert "--keep-size" in capsys.readouterr().err
+
+
+def test_unreached_pieces_beyond_the_object_sphere_are_cleared_not_blobs_in_the_grid_corners():
+    """One view of the sphere, in a grid wider than its image: the grid's corners that no view reached (out of the
+    image) were inside, blobs of their own; cleared, they are outside, while the sphere's shadow, which the view
+    cannot reach either but which touches the object's sphere, stays inside (the watertight guess behind it)."""
+    voxel, extent = 0.05 * R, 1.6 * R
+    volume = TSDFVolume(np.full(3, -extent), voxel, (int(np.ceil(2 * extent / voxel)),) * 3, 3 * voxel)
+    frame = sphere_cameras(np.zeros(3), R, 1, 64)[0]
+    depth = sphere_depth(frame.intrinsics.K, frame.T_world_cam, 64, 64).astype(np.float64)
+    volume.integrate_depth(depth, np.full((64, 64, 3), 0.5), frame.intrinsics.K, frame.T_world_cam)
+    assert len(volume.mesh().split(only_watertight=False)) > 1  # (the corners: else the test shows nothing)
+    volume.clear_blobs(np.zeros(3), 1.05 * R)
+    mesh = volume.mesh()
+    assert len(mesh.split(only_watertight=False)) == 1 and mesh.is_watertight
+    behind = -frame.T_world_cam[:3, 3] / np.linalg.norm(frame.T_world_cam[:3, 3])  # from the camera through the centre
+    front = mesh.vertices[mesh.vertices @ behind < -0.1 * R]  # the camera's side: the sphere, nothing further out
+    assert len(front) and np.linalg.norm(front, axis=1).max() < R + 2 * voxel
+    assert volume.field()[tuple(np.floor((1.3 * R * behind + extent) / voxel).astype(int))] < 0  # the shadow: inside
+
+
+def test_export_mesh_with_no_fused_camera_is_one_error_naming_cone_deg_and_views(sphere_run, tmp_path, capsys):
+    """No camera of --views within --cone-deg of a training camera: nothing would be fused (the mesh was the whole
+    voxel cube); an error, and the --out folder it named is not created."""
+    out = tmp_path / "new" / "sub" / "m.ply"
+    command = ["export", "mesh", str(sphere_run), "--views", "6", "--cone-deg", "1", "--voxel", "0.04"]
+    assert main([*command, "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: --cone-deg: ") and "--views" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "new").exists()
+
+
+def test_export_mesh_refuses_a_path_that_is_not_a_run_and_creates_nothing(tmp_path, capsys):
+    (tmp_path / "notrun").mkdir()
+    (tmp_path / "notrun" / "a.txt").write_text("x")
+    assert main(["export", "mesh", str(tmp_path / "nope" / "typo-run")]) == 1
+    assert "not a reconstruction run directory" in capsys.readouterr().err
+    assert main(["export", "mesh", str(tmp_path / "notrun"), "--out", str(tmp_path / "nope2" / "sub" / "m.ply")]) == 1
+    assert "not a reconstruction run directory" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notrun"]
+    assert [p.name for p in (tmp_path / "notrun").iterdir()] == ["a.txt"]
+
+
+def test_export_mesh_refuses_an_out_that_is_not_a_ply(sphere_run, tmp_path, capsys):
+    """The mesh is written as PLY: PLY bytes in x.obj would mislead every reader."""
+    command = ["export", "mesh", str(sphere_run), "--voxel", "0.04", "--views", "24", "--out", str(tmp_path / "x.obj")]
+    assert main(command) == 2
+    err = capsys.readouterr().err
+    assert "--out" in err and ".ply" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.fixture(scope="module")
+def meshed_run(sphere_run, exported, tmp_path_factory) -> Path:
+    """A copy of the exported run with its untouched mesh exported too (as ``bench paper --mesh`` leaves it)."""
+    import shutil
+
+    from tacsplat.reconstruction.meshing import MeshConfig, export_mesh
+
+    run = tmp_path_factory.mktemp("meshed") / "run"
+    shutil.copytree(sphere_run, run, ignore=shutil.ignore_patterns(".tacsplat.lock"))
+    config = MeshConfig(voxel=0.04, views=24, touches=False)
+    export_mesh(run, run / "mesh-untouched.ply", config, record="mesh_untouched")
+    return run
+
+
+def copy_run(run: Path, to: Path) -> Path:
+    import shutil
+
+    shutil.copytree(run, to / "run")
+    return to / "run"
+
+
+def test_evaluate_with_gt_mesh_measures_the_exported_meshes_against_it(meshed_run, tmp_path):
+    """`evaluate --gt-mesh X`: the mesh metrics too are against X (they were against the scene's own truth), here a
+    point cloud twice the sphere's size: no normals, no seen split."""
+    from tacsplat.reconstruction.evaluation import evaluate_run
+    from tacsplat.reconstruction.metrics import bounding_sphere_radius
+
+    run = copy_run(meshed_run, tmp_path)
+    points = trimesh.creation.icosphere(subdivisions=4, radius=2 * R).vertices
+    trimesh.PointCloud(points).export(str(tmp_path / "other.ply"))
+    metrics = evaluate_run(run, gt_path=tmp_path / "other.ply")
+    assert metrics["gt_source"] == f"points {tmp_path / 'other.ply'}"
+    for prefix, name in (("mesh", "mesh.ply"), ("mesh_untouched", "mesh-untouched.ply")):
+        mesh = trimesh.load(str(run / name), force="mesh")
+        expected = mesh_metrics(mesh, points, bounding_sphere_radius(points))
+        assert metrics[f"{prefix}_cd"] == pytest.approx(expected["mesh_cd"])
+        assert metrics[f"{prefix}_normal_consistency"] is None and f"{prefix}_fscore_5_seen" not in metrics
+    assert json.loads((run / "metrics.json").read_text())["mesh_cd"] == metrics["mesh_cd"]
+
+
+def test_evaluate_keeps_the_untouched_mesh_metrics(meshed_run, tmp_path):
+    """`evaluate` rewrites metrics.json: the `mesh_untouched_*` of `export mesh` stay (measured again from
+    mesh-untouched.ply, against the same truth as `mesh_*`)."""
+    from tacsplat.reconstruction.evaluation import evaluate_run
+
+    run = copy_run(meshed_run, tmp_path)
+    exported = json.loads((run / "metrics.json").read_text())
+    assert "mesh_untouched_fscore_5" in exported
+    metrics = evaluate_run(run)
+    for key in ("mesh_untouched_fscore_5", "mesh_untouched_cd", "mesh_untouched_watertight", "mesh_fscore_5"):
+        assert metrics[key] == pytest.approx(exported[key], abs=1e-3), key
+    assert json.loads((run / "metrics.json").read_text())["mesh_untouched_cd"] == metrics["mesh_untouched_cd"]
+
+
+def test_an_interrupted_export_leaves_no_mesh_file_without_its_metrics(meshed_run, tmp_path, monkeypatch):
+    """The mesh file marks a run's meshes done (`bench paper --mesh`): it appears only after its metrics are in
+    metrics.json. Interrupted while measuring, or while recording them: no mesh.ply (it was there, metrics missing)."""
+    import tacsplat.reconstruction.meshing as meshing
+
+    run = copy_run(meshed_run, tmp_path)
+    (run / "mesh.ply").unlink()
+    before = (run / "metrics.json").read_text()
+    config = meshing.MeshConfig(voxel=0.04, views=24)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    for where in ("mesh_metrics", "atomic_write"):  # (atomic_write: metrics.json's)
+        with monkeypatch.context() as patch:
+            patch.setattr(meshing, where, interrupted)
+            with pytest.raises(KeyboardInterrupt):
+                meshing.export_mesh(run, None, config)
+        assert sorted(p.name for p in run.glob("mesh*")) == ["mesh-untouched.ply"], where
+        assert (run / "metrics.json").read_text() == before
+
+
+def test_a_run_with_meshes_is_complete_only_with_both_meshes(tmp_path):
+    """`bench paper --mesh` exports mesh-untouched.ply, then mesh.ply: a lone mesh.ply (`tacsplat export mesh` by
+    hand) lacks the untouched mesh and its metrics."""
+    from tacsplat.apps.batch import ReconstructJob
+
+    job = ReconstructJob(out=tmp_path, scene=tmp_path / "scene", export_mesh=True)
+    (tmp_path / "metrics.json").write_text("{}")
+    (tmp_path / "mesh.ply").write_text("ply")
+    assert not job.complete()
+    (tmp_path / "mesh-untouched.ply").write_text("ply")
+    assert job.complete() and ReconstructJob(out=tmp_path, scene=tmp_path / "scene").complete()
