@@ -40,7 +40,7 @@ from tacsplat.reconstruction.metrics import (
 )
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
-from tacsplat.reconstruction.run_dir import load_run
+from tacsplat.reconstruction.run_dir import MESH_FILES, load_run
 from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.views import background_image, camera_tensors, mesh_depth, scene_at, training_frames
 
@@ -464,13 +464,11 @@ def evaluate_reconstruction(
 
 def exported_mesh_metrics(run_dir: Path, scene, train_frames: list, gt_path: str | Path | None = None) -> dict:
     """The mesh metrics (:func:`~.metrics.mesh_metrics`, split by what ``train_frames`` see) of the meshes
-    ``tacsplat export mesh`` wrote into the run (:data:`~.meshing.MESH_FILES`: ``mesh_*`` of ``RUN/mesh.ply``,
+    ``tacsplat export mesh`` wrote into the run (:data:`~.run_dir.MESH_FILES`: ``mesh_*`` of ``RUN/mesh.ply``,
     ``mesh_untouched_*`` of ``RUN/mesh-untouched.ply``), against ``gt_path`` (a mesh or point cloud, ``evaluate
     --gt-mesh``) where given, else the scene's ground truth: the same truth as the rest of the metrics. Empty
     without such a mesh or a ground truth."""
     import trimesh
-
-    from tacsplat.reconstruction.meshing import MESH_FILES
 
     meshes = {prefix: run_dir / name for prefix, name in MESH_FILES.items() if (run_dir / name).is_file()}
     if not meshes:

@@ -40,7 +40,6 @@ from tacsplat.reconstruction.metrics import finite_or_none, ground_truth_surface
 from tacsplat.types import CameraIntrinsics
 
 SLAB_VOXELS = 2_000_000  # voxels projected at once (memory: about 100 bytes each)
-MESH_FILES = {"mesh": "mesh.ply", "mesh_untouched": "mesh-untouched.ply"}  # export_meshes's: metrics prefix -> file
 
 
 @dataclass
@@ -378,6 +377,8 @@ def export_mesh(
 def export_meshes(run_dir: str | Path) -> None:
     """A run's ``mesh.ply`` with its touches fused and ``mesh-untouched.ply`` without (``mesh_untouched_*`` in its
     metrics.json): what touching buys the mesh (``bench paper --mesh``)."""
+    from tacsplat.reconstruction.run_dir import MESH_FILES
+
     run_dir = Path(run_dir)
     untouched = MESH_FILES["mesh_untouched"]
     export_mesh(run_dir, run_dir / untouched, MeshConfig(touches=False), record="mesh_untouched")

@@ -46,6 +46,7 @@ _OUTPUTS = (
 )
 RUN_FILES = _OUTPUTS + tuple(default_temp(Path(name)).name for name in _OUTPUTS)
 RENDERS = "renders"
+MESH_FILES = {"mesh": "mesh.ply", "mesh_untouched": "mesh-untouched.ply"}  # `export mesh`'s: metrics prefix -> file
 RENDER_FILE = re.compile(r"view_\d{4,}\.png(\.tmp)?")
 
 # the loss terms of a training step, each averaged over the steps since the previous row of progress.csv

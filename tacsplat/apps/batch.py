@@ -261,7 +261,7 @@ class ReconstructJob(BatchJob):
 
     def complete(self) -> bool:
         """The run's metrics.json is there and, with ``export_mesh``, both meshes ``export_meshes`` writes
-        (reconstruction.meshing.MESH_FILES): each is renamed into place only after its metrics went into
+        (reconstruction.run_dir.MESH_FILES): each is renamed into place only after its metrics went into
         metrics.json, so a mesh file means its metrics are recorded. A lone ``mesh.ply`` (``tacsplat export mesh``
         by hand) is not done: the untouched mesh's metrics are missing."""
         meshes = ("mesh-untouched.ply", "mesh.ply") if self.export_mesh else ()
