@@ -100,20 +100,28 @@ def _sensors() -> list:
     return [s for s in sensors if s["finger"] in ("index", "thumb")]
 
 
-def test_mock_presses_are_guided_through_the_real_drivers_and_find_the_hidden_error(tmp_path, capsys, monkeypatch):
-    """--mock runs the real rig's code path with standard input closed: the real hand, camera and tactile drivers read the emulated person's presses (the servo emulator
-    holding each press's joints, the sphere in the gel's image, the board at the camera's true pose)."""
+def _mock_rig(tmp_path, errors, camera=None, tactile=None) -> str:
+    """A --mock rig file with the fine board, the twin's true ``errors``, the emulated camera and two sensors
+    (``camera``, ``tactile``: more keys of those sections)."""
     from tests.acquisition.acq_helpers import write_mock_rig
 
-    monkeypatch.setattr(sys, "stdin", open(os.devnull))
-    errors = _draw(4)
-    rig = write_mock_rig(
+    extra = {} if camera is None else {"camera": camera}
+    return write_mock_rig(
         tmp_path,
         board=FINE_BOARD,
         sim={"true_errors": errors},
         mock_devices=MOCK_CAMERA,
-        tactile={"sensors": _sensors()},
+        tactile={"sensors": _sensors(), **(tactile or {})},
+        **extra,
     )
+
+
+def test_mock_presses_are_guided_through_the_real_drivers_and_find_the_hidden_error(tmp_path, capsys, monkeypatch):
+    """--mock runs the real rig's code path with standard input closed: the real hand, camera and tactile drivers read the emulated person's presses (the servo emulator
+    holding each press's joints, the sphere in the gel's image, the board at the camera's true pose)."""
+    monkeypatch.setattr(sys, "stdin", open(os.devnull))
+    errors = _draw(4)
+    rig = _mock_rig(tmp_path, errors)
     out = tmp_path / "hand_eye.json"
     assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out), "--mock"]) == 0
     lines = capsys.readouterr().out.splitlines()
@@ -172,18 +180,9 @@ def test_a_rig_file_naming_the_files_not_written_yet_calibrates_on_the_twin(tmp_
 def test_on_mock_a_rig_naming_the_files_not_written_yet_opens_and_calibrates(tmp_path, capsys, monkeypatch):
     """The real rig's code path (open_rig) with camera.hand_eye and tactile.mounts named, neither written yet: the
     hand-eye starts from the camera calibration's T_hand_cam and nominal mounts, and writes the file it names."""
-    from tests.acquisition.acq_helpers import write_mock_rig
-
     monkeypatch.setattr(sys, "stdin", open(os.devnull))
     errors = _draw(4)
-    rig = write_mock_rig(
-        tmp_path,
-        board=FINE_BOARD,
-        sim={"true_errors": errors},
-        mock_devices=MOCK_CAMERA,
-        camera=NAMED["camera"],
-        tactile={"sensors": _sensors(), **NAMED["tactile"]},
-    )
+    rig = _mock_rig(tmp_path, errors, camera=NAMED["camera"], tactile=NAMED["tactile"])
     out = tmp_path / "calibration" / "hand_eye.json"
     assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out), "--mock"]) == 0, capsys.readouterr().err
     mm, deg = _error(load_hand_eye(out), errors)
