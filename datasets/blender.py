@@ -85,7 +85,11 @@ def hold_out(count: int, test_every: int, path: Path, field: str, what: str) -> 
 def check_readable(path: Path, field: str | None = None, what: str = "image") -> None:
     """A SceneFormatError naming the file (and ``field``, the record that lists it) unless it exists in a format
     OpenCV reads here; OpenEXR is not one (this OpenCV is built without it), and the error says how to convert."""
-    if not path.is_file():
+    try:
+        exists = path.is_file()
+    except OSError as exc:  # (a name too long for the file system)
+        raise SceneFormatError(path, field, f"not a readable {what}: {exc.strerror}") from None
+    if not exists:
         raise SceneFormatError(path, field, f"missing {what} (no such file)")
     if not cv2.haveImageReader(str(path)):
         raise SceneFormatError(
@@ -191,16 +195,31 @@ def _read_split(src: Path, name: str) -> tuple[Path, float, list[dict]]:
     return index, float(angle), data["frames"]
 
 
+def _clip(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def frame_file_path(index: Path, frames: list, i: int) -> str:
+    """``frames[i]``'s ``file_path`` in the index file ``index``; a SceneFormatError naming them unless the frame is
+    an object with a ``file_path`` string."""
+    raw = frames[i]
+    if not isinstance(raw, dict) or not isinstance(raw.get("file_path"), str):
+        raise SceneFormatError(index, f"frames[{i}].file_path", "expected an object with a file_path string")
+    return raw["file_path"]
+
+
 def pose_from_opengl(raw, index: Path, field: str) -> np.ndarray:
     """The OpenGL camera-to-world ``transform_matrix`` of a NeRF-style ``transforms.json`` as the OpenCV
     camera-to-world pose of the scene format, re-orthonormalised when off by float rounding only; a
     SceneFormatError naming ``index`` and ``field`` otherwise."""
     try:
         T = np.array(raw, dtype=np.float64)  # (a copy: it is changed below)
-    except (TypeError, ValueError):
-        T = np.zeros(0)
-    if T.shape != (4, 4):
-        raise SceneFormatError(index, field, f"expected a 4x4 matrix, got {np.shape(raw)}")
+    except (TypeError, ValueError, OverflowError):  # not numbers, ragged rows, an int too large for a float
+        T = None
+    if T is None or T.shape != (4, 4):
+        got = f"shape {T.shape}" if T is not None and T.ndim else _clip(raw)
+        raise SceneFormatError(index, field, f"expected a 4x4 matrix of numbers, got {got}")
     if problem := rigidity_problem(T, atol=1e-4):
         raise SceneFormatError(index, field, f"not a rigid transform: {problem}")
     U, _, Vt = np.linalg.svd(T[:3, :3])
@@ -226,14 +245,14 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     splits = [("train", *_read_split(src, "train")), ("test", *_read_split(src, test_split))]
 
     # The image size comes from the first image; every split shares it.
-    first_image = _image_path(src, str(splits[0][3][0].get("file_path", "")))
+    first_image = _image_path(src, frame_file_path(splits[0][1], splits[0][3], 0))
     height, width = read_rgba(first_image, f"{splits[0][1].name} frames[0]").shape[:2]
 
     def intrinsics_for(angle: float) -> CameraIntrinsics:
         f = focal_from_fov(angle, width)
         return CameraIntrinsics(intrinsics_matrix(f, f, width / 2.0, height / 2.0), width, height)
 
-    first_test = _image_path(src, str(splits[1][3][0].get("file_path", "")))
+    first_test = _image_path(src, frame_file_path(splits[1][1], splits[1][3], 0))
     with_depth = disparity_path(first_test).is_file()  # Shiny Blender: every view has its disparity map
     ground_truth = "disparity maps (*_disp.tiff): test views' depth, train views' points"
     rng = np.random.default_rng(0)  # the ground-truth points' pixels
@@ -257,9 +276,7 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
             intr = intrinsics_for(angle)
             for i, raw in enumerate(frames):
                 field = f"frames[{i}]"
-                if not isinstance(raw, dict) or not isinstance(raw.get("file_path"), str):
-                    raise SceneFormatError(index, f"{field}.file_path", "expected an object with a file_path string")
-                image_path = _image_path(src, raw["file_path"])
+                image_path = _image_path(src, frame_file_path(index, frames, i))
                 rgba = read_rgba(image_path, f"{index.name} {field}", (width, height), first_image.name)
                 pose = pose_from_opengl(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
                 pose[:3, 3] *= scale

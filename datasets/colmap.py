@@ -110,6 +110,18 @@ def _num_params(model: str) -> int | None:
 # --- reading: one reader per record kind, over the lines of a text file or the entries of a binary one ------------
 
 _SENSOR_TYPES = {-1: "INVALID", 0: "CAMERA", 1: "IMU"}  # COLMAP's SensorType, as text files spell it
+# The values an integer field holds: its binary type's (ids and counts of 64 bits up to int64's largest, as they
+# are held here: no model comes near)
+_INT_LIMITS = {"B": (0, 2**8 - 1), "i": (-(2**31), 2**31 - 1), "I": (0, 2**32 - 1), "Q": (0, 2**63 - 1)}
+
+
+def _in_limits(src, value: int, what: str, fmt: str) -> int:
+    """``value`` if the field ``what`` of binary type ``fmt`` holds it (:data:`_INT_LIMITS`); else ``src``'s
+    error naming the file and line or entry."""
+    lo, hi = _INT_LIMITS[fmt]
+    if not lo <= value <= hi:
+        raise src.error(f"{what} must be an integer from {lo} to {hi}, got {value}")
+    return value
 
 
 class _Source:
@@ -151,8 +163,9 @@ class _Text(_Source):
 
     name = model = sensor_type = word
 
-    def int(self, what: str, fmt: str = "") -> int:
-        return self._number(what, int, "an integer")
+    def int(self, what: str, fmt: str) -> int:
+        value = self._number(what, int, "an integer")
+        return _in_limits(self, value, what, fmt)
 
     def float(self, what: str) -> float:
         return self._number(what, float, "a number")
@@ -253,7 +266,7 @@ class _Binary(_Source):
         return value
 
     def int(self, what: str, fmt: str) -> int:
-        return self._take(fmt, what)
+        return _in_limits(self, self._take(fmt, what), what, fmt)
 
     def float(self, what: str) -> float:
         return self._take("d", what)

@@ -102,6 +102,8 @@ def _source_frames(index: Path, data: dict) -> list[_SourceFrame]:
     for i, raw in enumerate(data["frames"]):
         if not isinstance(raw, dict) or not isinstance(raw.get("file_path"), str) or not raw["file_path"]:
             raise SceneFormatError(index, f"frames[{i}].file_path", "expected an object with a file_path string")
+        if "mask_path" in raw and (not isinstance(raw["mask_path"], str) or not raw["mask_path"]):
+            raise SceneFormatError(index, f"frames[{i}].mask_path", f"expected a path string, got {raw['mask_path']!r}")
         name = Path(raw["file_path"])
         if name in seen:
             raise SceneFormatError(
@@ -296,10 +298,10 @@ def _applied_transform(data: dict, index: Path) -> tuple[np.ndarray | None, floa
     if "applied_transform" in data:
         try:
             A = np.asarray(data["applied_transform"], dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # not numbers, ragged rows, an int too large for a float
             A = np.zeros(0)
         if A.shape not in ((3, 4), (4, 4)):
-            raise SceneFormatError(index, "applied_transform", f"expected a 3x4 matrix, got {np.shape(A)}")
+            raise SceneFormatError(index, "applied_transform", f"expected a 3x4 matrix of numbers, got {np.shape(A)}")
         applied = np.vstack([A[:3], [0.0, 0.0, 0.0, 1.0]])
         if problem := rigidity_problem(applied, atol=1e-6):
             raise SceneFormatError(index, "applied_transform", f"not a rigid transform: {problem}")
@@ -432,7 +434,7 @@ def import_nerfstudio(
             intr, maps = tables[camera]
             rgb = read_rgba(f.image, f.field, (camera.width, camera.height), "the camera (w x h)")
             rgb = rgb[:, :, :3].astype(np.float32)
-            mask = None if "mask_path" not in f.raw else _read_mask(index.parent / str(f.raw["mask_path"]), camera, f)
+            mask = None if "mask_path" not in f.raw else _read_mask(index.parent / f.raw["mask_path"], camera, f)
             if maps is not None:
                 rgb = cv2.remap(rgb, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 if mask is not None:

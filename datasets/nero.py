@@ -43,6 +43,7 @@ from tacsplat.types import CameraIntrinsics
 
 from .blender import check_options, composite, read_raw, read_rgba
 from .reader import STRICT, load_points_ply
+from .records import camera_problem
 from .writer import new_import
 
 SPLIT_FILE = "synthetic_split_128.pkl"
@@ -75,20 +76,26 @@ def load_array_pickle(path: Path, what: str):
         raise SceneFormatError(path, None, f"not a pickle of numpy arrays ({what}): {exc}") from exc
 
 
-def read_camera(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """``(T_world_cam [4, 4] OpenCV camera-to-world, K [3, 3])`` of an ``N-camera.pkl``."""
+def read_camera(path: Path, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """``(T_world_cam [4, 4] OpenCV camera-to-world, K [3, 3])`` of an ``N-camera.pkl`` whose image is ``size``
+    (w, h) pixels; a SceneFormatError naming the file unless ``K`` is a camera the scene format holds (the
+    writer's check, ``records.camera_problem``)."""
     data = load_array_pickle(path, "camera")
     try:
         pose, K = (np.asarray(a, dtype=np.float64) for a in data)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SceneFormatError(path, None, "expected a pickled (pose, K) pair of arrays") from None
     if pose.shape != (3, 4) or K.shape != (3, 3):
         raise SceneFormatError(path, None, f"expected a 3x4 pose and a 3x3 K, got {pose.shape} and {K.shape}")
     world_to_camera = np.vstack([pose, [0.0, 0.0, 0.0, 1.0]])
     if problem := rigidity_problem(world_to_camera, atol=1e-4):
         raise SceneFormatError(path, "pose", f"not a rigid transform: {problem}")
-    if not (K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0.0, 0.0, 1.0])):
-        raise SceneFormatError(path, "K", f"not a pinhole camera matrix: {K.tolist()}")
+    if not (K[0, 1] == 0 and K[1, 0] == 0 and np.array_equal(K[2], [0.0, 0.0, 1.0])):
+        raise SceneFormatError(path, "K", f"not a zero-skew pinhole camera matrix: {K.tolist()}")
+    if problem := camera_problem(*(float(K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))), *size):
+        key, why = problem
+        entry = {"fl_x": "K[0][0]", "fl_y": "K[1][1]", "cx": "K[0][2]", "cy": "K[1][2]"}.get(key, key)
+        raise SceneFormatError(path, "K", f"{entry} ({key}) of a {size[0]}x{size[1]} px image: {why}")
     return invert_pose(world_to_camera), K
 
 
@@ -158,9 +165,9 @@ def import_nero(src, out, split: Path | None = None, background_rgb=(255, 255, 2
     split_path = find_split(src, split)
     train, test = read_split(split_path, names)
 
-    cameras = {name: read_camera(src / f"{name}-camera.pkl") for name in train + test}
     first_image = src / f"{train[0]}.png"
     height, width = read_rgba(first_image).shape[:2]
+    cameras = {name: read_camera(src / f"{name}-camera.pkl", (width, height)) for name in train + test}
     eval_points = src / "eval_pts.ply"
     fallback_points = []
     with (

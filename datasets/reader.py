@@ -48,6 +48,7 @@ from .writer import JOURNAL, journaled_state
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_UNDISTORTED_MODELS = ("OPENCV", "PINHOLE")  # camera_model of a scene's images (with no distortion)
 # nerfstudio keys a scene never holds: its poses are in the world frame, in metres, and what it does not import
 # (depth maps, point clouds) it leaves out rather than keep unread
 _FOREIGN_KEYS = ("applied_transform", "applied_scale", "ply_file_path")
@@ -538,7 +539,7 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
     """The valid frames, and every frame id declared (also by frames dropped for a problem)."""
     index = path / "transforms.json"
     data = _read_json(index, problems)
-    if data.get("camera_model", "OPENCV") not in ("OPENCV", "PINHOLE"):
+    if data.get("camera_model", "OPENCV") not in _UNDISTORTED_MODELS:
         problems.report(
             index, "camera_model", f"expected OPENCV or PINHOLE (undistorted images), got {data['camera_model']!r}"
         )
@@ -592,6 +593,15 @@ def _read_frame(path: Path, data: dict, field: str, raw, seen: dict, problems: _
                 f"{field}.{key}",
                 "not part of a tacsplat scene; import nerfstudio data with `tacsplat import nerfstudio`",
             )
+    if raw.get("camera_model", "OPENCV") not in _UNDISTORTED_MODELS:  # nerfstudio reads a frame's own camera
+        problems.report(
+            index,
+            f"{field}.camera_model",
+            f"expected OPENCV or PINHOLE (undistorted images), got {raw['camera_model']!r}",
+        )
+    for key in _DISTORTION_KEYS:
+        if raw.get(key, 0.0) != 0.0:
+            problems.report(index, f"{field}.{key}", f"images must be undistorted, but {key} = {raw[key]!r}")
     mask_path = None if mask is None else _relative_file(path, mask, index, f"{field}.mask_path", problems)
     T_gl = problems.attempt(_pose, raw.get("transform_matrix"), index, f"{field}.transform_matrix", problems)
     intr = _intrinsics(raw, data, index, field, problems)

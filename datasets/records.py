@@ -241,10 +241,13 @@ def hand_motion_problem(m: HandMotion) -> str | None:
     S, J, L = len(np.atleast_1d(m.t)), len(m.joint_names), len(m.link_names)
     shapes = {"t": (S,), "phase": (S,), "q": (S, J), "q_target": (S, J), "effort": (S, J)}
     shapes.update(link_half_extents=(L, 3), link_poses=(S, L, 4, 4))
+    phases = f"phase must hold whole numbers 0 to {len(MOTION_PHASES) - 1}, indices into {MOTION_PHASES}"
     for name, shape in shapes.items():
         value = np.asarray(getattr(m, name))
         if value.shape != shape:
             return f"{name} has shape {value.shape}, expected {shape}"
+        if name == "phase" and value.dtype.kind not in "iuf":  # (the file holds uint8)
+            return f"{phases}, got dtype {value.dtype}"
         if name != "effort" and not np.all(np.isfinite(value)):
             return f"{name} holds NaN or infinite values"
     if S == 0:
@@ -253,8 +256,9 @@ def hand_motion_problem(m: HandMotion) -> str | None:
         return "t goes backwards"
     if m.touch_t is not None and (np.ndim(m.touch_t) != 1 or not np.all(np.isfinite(m.touch_t))):
         return "touch_t must be a finite vector of seconds"
-    if np.any(np.asarray(m.phase) >= len(MOTION_PHASES)):
-        return f"phase must index {MOTION_PHASES}"
+    phase = np.asarray(m.phase)
+    if bad := np.flatnonzero((phase < 0) | (phase >= len(MOTION_PHASES)) | (phase % 1 != 0)).tolist():
+        return f"{phases}, got {phase[bad[0]].item()!r} at sample {bad[0]}"
     if np.any(np.asarray(m.link_half_extents) <= 0) or np.any(np.asarray(m.link_half_extents) > MAX_DISTANCE_M):
         return "link_half_extents must be positive lengths in metres"
     problem = pose_problem(m.T_world_hand)

@@ -12,6 +12,8 @@ wins), e.g. the decisions of a next-best capture. After ``kill -9`` at any point
 
 * the index files are a consistent snapshot, at most one record behind the
   journal (readers refuse such a scene, naming the journal, until it is resumed);
+  a creation writes its journal first, so one killed before the index files
+  leaves a scene resume completes, and one killed before that a folder create takes;
 * :meth:`SceneWriter.resume` replays the journal, drops a torn last line,
   deletes leftover temporary files, rewrites the index and continues numbering
   where the journal stopped: only the record in flight can be lost.
@@ -246,22 +248,28 @@ class SceneWriter(AbstractContextManager):
                 creating.unlink(missing_ok=True)
                 raise
             record_writer(path)
-            try:  # the folders and index files, then the journal: its header is what makes the folder resumable
-                _make_folders(path, "images", "touches", "gt", "gt/depth")
+            renamed = False
+            # The journal first, then the folders and index files: its header is what makes the folder resumable,
+            # so a creation killed at any point leaves a folder that create (no journal, nothing but temporary
+            # files) or resume (a journal: it makes the folders and writes the index) takes.
+            try:
                 writer = cls(path, header)
-                writer._materialise("transforms", "touches", "scene")
                 journal.truncate(0)  # (the file of a creation that crashed before its rename)
                 writer._journal = journal
                 writer._append(header)
                 os.rename(creating, path / JOURNAL)
+                renamed = True
+                fsync_dir(path)
+                _make_folders(path, "images", "touches", "gt", "gt/depth")
+                writer._materialise("transforms", "touches", "scene")
             except BaseException as exc:
-                # a scene that never got its journal holds nothing: what it wrote goes, so a rerun can start again
-                creating.unlink(missing_ok=True)
+                # a scene whose creation failed holds nothing yet (it was checked empty, under the lock): what it
+                # wrote goes, so a rerun can start again
+                (path / JOURNAL if renamed else creating).unlink(missing_ok=True)
                 _remove_index(path)
                 if isinstance(exc, OSError):
                     raise storage_error(exc, path / JOURNAL) from None
                 raise
-            fsync_dir(path)
         except BaseException:
             journal.close()
             raise
@@ -633,8 +641,8 @@ class SceneWriter(AbstractContextManager):
 
 
 def _remove_index(scene: Path) -> None:
-    """Remove what :meth:`SceneWriter.create` writes before the journal (index files, empty record folders, the
-    lock file's PID), as far as possible."""
+    """Remove what a failed :meth:`SceneWriter.create` wrote besides the journal (index files, empty record
+    folders, the lock file's PID), as far as possible."""
     try:
         for name in ("transforms.json", "touches.json", "scene.json", LOCK_NAME):
             (scene / name).unlink(missing_ok=True)

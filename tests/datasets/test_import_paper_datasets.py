@@ -165,6 +165,28 @@ def test_nero_import_errors_name_the_file(tmp_path, capsys):
     assert not (tmp_path / "b").exists()
 
 
+@pytest.mark.parametrize(
+    "entry, value, words",
+    [
+        ((0, 2), 10.0 * SIZE, r"K\[0\]\[2\] \(cx\) .*the principal point must be inside the image"),
+        ((1, 2), -1.0, r"K\[1\]\[2\] \(cy\) .*the principal point must be inside the image"),
+        ((0, 0), 1e-3, r"K\[0\]\[0\] \(fl_x\) .*field of view"),
+        ((0, 1), 0.5, "not a zero-skew pinhole camera matrix"),
+    ],
+    ids=["cx off the image", "cy negative", "a field of view no camera has", "skew"],
+)
+def test_a_camera_the_scene_cannot_hold_names_its_pickle_and_K(tmp_path, entry, value, words):
+    src = make_glossy_synthetic(tmp_path, views=5, test=(0, 2), eval_points=False)
+    K = GLOSSY_K.copy()
+    K[entry] = value
+    w2c = invert_pose(ring_pose(3, 5, distance=3.0))[:3]
+    (src / "3-camera.pkl").write_bytes(pickle.dumps((w2c, K)))
+    with pytest.raises(SceneFormatError, match=words) as info:
+        import_nero(src, tmp_path / "scene")
+    assert info.value.path == src / "3-camera.pkl" and info.value.field == "K"
+    assert not (tmp_path / "scene").exists()
+
+
 def test_a_copy_keeps_the_ground_truth_normals(tmp_path):
     """The benches copy an import before adding touches: its normal maps must come along for the normal error."""
     from tacsplat.datasets import copy_scene

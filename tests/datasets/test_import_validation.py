@@ -124,6 +124,13 @@ CASES = {
         1,
         ("POINTS2D[0] of image 1", "3D point 5"),
     ),
+    "a POINT3D_ID beyond int64": (
+        lambda m: _text_field(m / "points3D.txt", 4, 0, str(2**63)),
+        lambda m: _pack(m / "points3D.bin", 8, "Q", 2**63),
+        "points3D",
+        1,
+        ("POINT3D_ID must be an integer from 0 to", str(2**63)),
+    ),
     "a NaN in a pose": (
         lambda m: _text_field(m / "images.txt", 7, 1, "nan"),
         lambda m: _pack(m / "images.bin", _after_name("img_02.png", -60), "d", float("nan")),
@@ -168,6 +175,24 @@ def test_a_broken_colmap_model_is_one_error_naming_the_file_and_line_or_entry(co
     assert info.value.field == (f"entry {entry}" if binary else f"line {line}")
     for word in words:
         assert word in str(info.value), str(info.value)
+    assert not (tmp_path / "scene").exists()
+
+
+@pytest.mark.parametrize("colmap_model", ["text", "text-legacy"], indirect=True)
+@pytest.mark.parametrize(
+    "field, value, words",
+    [
+        (0, "99999999999999999999999", "IMAGE_ID must be an integer from 0 to 4294967295"),  # beyond int64
+        (0, "4294967296", "IMAGE_ID must be an integer from 0 to 4294967295"),  # beyond COLMAP's image_t
+        (8, "-1", "CAMERA_ID must be an integer from 0 to 4294967295"),
+    ],
+)
+def test_a_text_id_no_binary_model_can_hold_names_the_line(colmap_model, tmp_path, field, value, words):
+    model, images = colmap_model
+    _text_field(model / "images.txt", 7, field, value)
+    with pytest.raises(SceneFormatError, match=words) as info:
+        import_colmap(model, images, tmp_path / "scene")
+    assert info.value.path == model / "images.txt" and info.value.field == "line 7"
     assert not (tmp_path / "scene").exists()
 
 
@@ -342,6 +367,45 @@ def test_a_frames_implausible_distortion_names_the_frame_and_the_cli_says_it_in_
     assert main(["import", "nerfstudio", str(src), "--out", str(tmp_path / "scene")]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "transforms.json [frames[3].k1]" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize(
+    "matrix",
+    [
+        [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1], [0, 0, 0, 1]],
+        [[10**400, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],  # (json writes and reads the int)
+    ],
+    ids=["a short row", "a number too large for a float"],
+)
+def test_a_malformed_transform_matrix_is_one_error_naming_the_frame(tmp_path, matrix):
+    src = _nerfstudio(tmp_path / "ns")
+    data = json.loads((src / "transforms.json").read_text())
+    data["frames"][3]["transform_matrix"] = matrix
+    (src / "transforms.json").write_text(json.dumps(data))
+    with pytest.raises(SceneFormatError, match="expected a 4x4 matrix of numbers") as info:
+        import_nerfstudio(src, tmp_path / "scene")
+    assert info.value.path == src / "transforms.json" and info.value.field == "frames[3].transform_matrix"
+    assert not (tmp_path / "scene").exists()
+
+
+@pytest.mark.parametrize(
+    "edit, field, words",
+    [
+        (lambda d: d.update(applied_transform=[[10**400, 0, 0, 0]] * 3), "applied_transform", "3x4 matrix of numbers"),
+        (lambda d: d["frames"][2].update(mask_path=10**40), "frames[2].mask_path", "expected a path string"),
+        (lambda d: [f.update(mask_path="m" * 300 + ".png") for f in d["frames"]], "frames[0].mask_path", "too long"),
+    ],
+    ids=["an applied_transform number too large for a float", "a mask_path no string", "a mask_path too long"],
+)
+def test_a_malformed_nerfstudio_field_is_one_error_naming_it(tmp_path, edit, field, words):
+    src = _nerfstudio(tmp_path / "ns")
+    data = json.loads((src / "transforms.json").read_text())
+    edit(data)
+    (src / "transforms.json").write_text(json.dumps(data))
+    with pytest.raises(SceneFormatError, match=words) as info:
+        import_nerfstudio(src, tmp_path / "scene")
+    assert info.value.field == field, str(info.value)
+    assert not (tmp_path / "scene").exists()
 
 
 def test_a_real_wide_angle_lens_is_imported(tmp_path):

@@ -1,6 +1,7 @@
 """A grasp's hand motion in the scene format: written with its touches, read back equal, undone and cleaned up
 with them, copied with them; scenes written before it still load."""
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import pytest
 
 from tacsplat.datasets import HandMotion, Scene, SceneWriter, check_scene, copy_scene
 from tacsplat.datasets.inspect import format_summary, summarise
-from tacsplat.errors import SceneFormatError
+from tacsplat.errors import InvalidInputError, SceneFormatError
 from tacsplat.geometry import make_pose
 
 OLD_SCENE = Path(__file__).parents[1] / "data" / "scene_before_hand_motion"  # written by tacsplat at a699bd7
@@ -87,6 +88,16 @@ def test_motions_round_trip_and_go_with_their_grasp(old_scene, tmp_path):
         pass
     assert not (old_scene / "grasps/000002.npz").exists()  # ... leaves nothing behind
     assert (old_scene / "grasps/000001.npz").is_file()
+
+
+@pytest.mark.parametrize("bad", [-1, 1.7, 4, "close"], ids=["negative", "fraction", "too large", "a name"])
+def test_a_phase_the_file_cannot_hold_is_refused_naming_the_field(bad):
+    """The file holds phases as uint8 indices: -1 would become 255 and 1.7 would become 1."""
+    phase = np.array([0, 1, 1, bad, 2] if bad != "close" else ["preshape", "close", "close", "close", "open"])
+    with pytest.raises(InvalidInputError, match=r"hand motion of grasp 3: phase must hold whole numbers 0 to 3"):
+        dataclasses.replace(motion(3), phase=phase)
+    whole = dataclasses.replace(motion(3), phase=np.array([0.0, 1.0, 1.0, 3.0, 2.0]))  # whole floats are indices
+    assert whole.to_arrays()["phase"].tolist() == [0, 1, 1, 3, 2]
 
 
 def test_a_damaged_motion_file_is_one_error_naming_it(old_scene):

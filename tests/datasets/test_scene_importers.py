@@ -125,6 +125,33 @@ def test_blender_import_errors_name_the_file_and_clean_up(blender_src, tmp_path)
         import_blender(blender_src, tmp_path / "scene")
 
 
+SHORT_ROW = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1], [0, 0, 0, 1]]
+TOO_LARGE = [[10**400, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]  # (json writes and reads the int)
+
+
+@pytest.mark.parametrize(
+    "split, edit, field, words",
+    [
+        ("train", lambda frames: frames[1].update(transform_matrix=SHORT_ROW), "frames[1].transform_matrix", "4x4"),
+        ("train", lambda frames: frames[1].update(transform_matrix=TOO_LARGE), "frames[1].transform_matrix", "4x4"),
+        ("train", lambda frames: frames.__setitem__(0, "./train/r_0"), "frames[0].file_path", "an object"),
+        ("test", lambda frames: frames.__setitem__(0, 7), "frames[0].file_path", "an object"),
+    ],
+    ids=["a short row", "a number too large for a float", "a first frame no object", "a first test frame no object"],
+)
+def test_a_malformed_blender_frame_is_one_error_naming_the_file_and_field(
+    blender_src, tmp_path, split, edit, field, words
+):
+    index = blender_src / f"transforms_{split}.json"
+    data = json.loads(index.read_text())
+    edit(data["frames"])
+    index.write_text(json.dumps(data))
+    with pytest.raises(SceneFormatError, match=words) as info:
+        import_blender(blender_src, tmp_path / "scene")
+    assert info.value.path == index and info.value.field == field
+    assert not (tmp_path / "scene").exists()
+
+
 def _colmap_fixture(root, models=("PINHOLE", "SIMPLE_PINHOLE"), distortion=0.0):
     """A COLMAP model of known cameras (written as text and binary) and its images."""
     rec = pycolmap.Reconstruction()

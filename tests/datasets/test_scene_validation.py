@@ -360,6 +360,18 @@ CASES = {
         "frames[0].mask_path",
         "image is 15x12 but the camera says w x h = 16x12",
     ),
+    "a frame's own distortion": (  # nerfstudio reads a frame's camera keys over the top-level ones
+        _transforms(lambda d: d["frames"][1].update(k1=0.3, p1=0.01)),
+        "transforms.json",
+        "frames[1].k1",
+        "images must be undistorted, but k1 = 0.3",
+    ),
+    "a frame's own distorted camera model": (
+        _transforms(lambda d: d["frames"][0].update(camera_model="OPENCV_FISHEYE")),
+        "transforms.json",
+        "frames[0].camera_model",
+        "expected OPENCV or PINHOLE (undistorted images), got 'OPENCV_FISHEYE'",
+    ),
     "mask in colour": (
         _masks_on_frames(0, 1, 2, 3, channels=3),
         "000000.png",

@@ -156,6 +156,24 @@ def test_kill_9_inside_every_step_of_a_record(tmp_path):
     assert len(scene.frames) >= 4 and len(scene.touches) >= 4
 
 
+def test_kill_9_inside_every_step_of_a_creation_leaves_a_folder_create_or_resume_takes(tmp_path):
+    """A creation killed anywhere (the journal's temporary file written or renamed, a folder or an index file
+    written or not): the folder is either still new to create or a scene resume continues, never refused by
+    both."""
+    crash_at = 0
+    while True:
+        crash_at += 1
+        assert crash_at < 30, "create takes more fsyncs than expected"
+        path = tmp_path / f"scene{crash_at}"
+        code = _start(path, crash_at=crash_at, limit=0).wait()
+        if code == 0:
+            break  # past the creation's last fsync
+        assert code == -signal.SIGKILL
+        assert Acked().read(_start(path, limit=1)) == 0  # create (no journal) or resume (a journal), then a frame
+        assert len(Scene.load(path).frames) == 1
+    assert crash_at > 3, crash_at  # (the kill points include the ones between the journal and the index files)
+
+
 def test_torn_last_journal_line_is_dropped_and_a_corrupt_middle_line_is_an_error(tmp_path, h):
     path = h.build_scene(tmp_path / "s", n_frames=2, n_touches=1)
     journal = path / "journal.jsonl"
