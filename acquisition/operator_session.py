@@ -17,11 +17,16 @@ refreshed while waiting), or an in-memory stream of scripted keys.
 SIGINT, SIGTERM, SIGHUP and SIGQUIT end a session as a device fault does: the
 rig closes, the command that carries on is printed, and on a real rig the last
 line says which servos confirmed torque off and which did not (cut the servo
-power then); the exit code is 128 + the signal's number.
+power then); the exit code is 128 + the signal's number. A terminal that hangs
+up (its window closed) ends the session as SIGHUP does, whether or not the
+signal reaches this process: its keys end (a read gives nothing, or EIO) and
+writing to it fails with EIO. The last words then go to standard error when
+that is not the dead terminal (a log file), and nowhere otherwise.
 """
 
 from __future__ import annotations
 
+import errno
 import io
 import logging
 import os
@@ -58,20 +63,41 @@ def _fileno(stream) -> int | None:
         return None
 
 
+def _hung_up(exc: BaseException) -> bool:
+    """Whether ``exc`` (an OSError or a termios.error, which is not one) says the terminal hung up: EIO."""
+    code = exc.errno if isinstance(exc, OSError) else (exc.args[0] if exc.args else None)
+    return code == errno.EIO
+
+
+def _hangup(exc: BaseException) -> BaseException:
+    """What a failed terminal operation raises: SignalInterrupt(SIGHUP) for a terminal that hung up (the end that a
+    closed window's SIGHUP gives, whether or not the signal reaches this process), else ``exc`` itself."""
+    return SignalInterrupt(signal.SIGHUP) if _hung_up(exc) else exc
+
+
 @contextmanager
 def _cbreak(stream) -> Iterator[None]:
-    """Keys without Enter on a terminal (restored on exit). Keys typed before it (while the devices were
-    opening) are discarded: they were not meant for the session."""
+    """Keys without Enter on a terminal (restored on exit, unless it hung up meanwhile: nothing to restore then).
+    Keys typed before it (while the devices were opening) are discarded: they were not meant for the session."""
     fd = _fileno(stream)
     if fd is None or not os.isatty(fd):
         yield
         return
-    saved = termios.tcgetattr(fd)
     try:
-        tty.setcbreak(fd)
+        saved = termios.tcgetattr(fd)
+    except termios.error as exc:
+        raise _hangup(exc) from None
+    try:
+        try:
+            tty.setcbreak(fd)
+        except termios.error as exc:
+            raise _hangup(exc) from None
         yield
     finally:
-        termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+        try:  # never in place of what ends the session (a SIGHUP's SignalInterrupt when the window was closed)
+            termios.tcsetattr(fd, termios.TCSADRAIN, saved)
+        except (termios.error, OSError) as exc:
+            log.debug("terminal not restored: %s", exc)
 
 
 @dataclass
@@ -122,18 +148,27 @@ class CaptureSession:
                 width = os.get_terminal_size(self.out.fileno()).columns or 160  # 0: size never set
             except (OSError, ValueError, io.UnsupportedOperation):
                 width = 160
-            self.out.write("\r\x1b[K" + line[: max(width - 1, 20)])
+            self._write("\r\x1b[K" + line[: max(width - 1, 20)])
         else:
-            self.out.write(line + "\n")
-        self.out.flush()
+            self._write(line + "\n")
 
     def say(self, message: str) -> None:
-        self.out.write(("\r\x1b[K" if self._live else "") + message + "\n")
-        self.out.flush()
+        self._write(("\r\x1b[K" if self._live else "") + message + "\n")
+
+    def _write(self, text: str) -> None:
+        """``text`` on the output, now; a terminal that hung up (EIO) ends the session as SIGHUP does."""
+        try:
+            self.out.write(text)
+            self.out.flush()
+        except OSError as exc:
+            raise _hangup(exc) from None
 
     # --- input ------------------------------------------------------------------------------------
     def _keys(self) -> Iterator[str]:
+        """The keys one by one, until the end of input. A terminal has none in cbreak mode (Ctrl-D is a key): there
+        a read that gives nothing, or fails with EIO, is a hangup, and ends the session as SIGHUP does."""
         fd = _fileno(self.keys)
+        terminal = fd is not None and os.isatty(fd)
         while True:
             if fd is None:
                 ch = self.keys.read(1)
@@ -142,7 +177,12 @@ class CaptureSession:
                     self._check_hand()
                     if self._live:
                         self.show_status()
-                ch = os.read(fd, 1).decode(errors="replace")
+                try:
+                    ch = os.read(fd, 1).decode(errors="replace")
+                except OSError as exc:
+                    raise _hangup(exc) from None
+                if ch == "" and terminal:
+                    raise SignalInterrupt(signal.SIGHUP)
             if ch == "":
                 return
             yield ch
@@ -267,9 +307,20 @@ def run_capture(
         signum = getattr(exc, "signum", signal.SIGINT)
         code, told = 128 + signum, f"interrupted ({signal.Signals(signum).name}).\n"
     carry_on = _carry_on(config, out) if code else ""
-    output.write(f"\n{told}{carry_on}{'' if config.rig == 'sim' else _hand_line(hands)}")
-    output.flush()
+    _last_words(output, f"\n{told}{carry_on}{'' if config.rig == 'sim' else _hand_line(hands)}")
     return code
+
+
+def _last_words(output: TextIO, text: str) -> None:
+    """``text`` on ``output``, or, when that fails (a terminal that hung up: EIO), on standard error if that is
+    another stream (a log file); nowhere when both fail."""
+    for stream in dict.fromkeys(s for s in (output, sys.stderr) if s is not None):
+        try:
+            stream.write(text)
+            stream.flush()
+            return
+        except OSError as exc:
+            log.debug("%s: %s", getattr(stream, "name", stream), exc)
 
 
 @contextmanager

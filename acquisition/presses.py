@@ -278,8 +278,9 @@ class RigPressSession:
 
     def _contact(self, finger: str, touching: bool, after: float):
         """The reading once ``finger``'s pad has been in contact (``touching``) or out of it for
-        :data:`CONTACT_READINGS` readings in a row of frames taken after ``after`` (``time.time()`` seconds: not
-        a frame from before the person was told); None after the person's ``timeout_s``."""
+        :data:`CONTACT_READINGS` readings in a row of frames taken after ``after`` (``time.monotonic()`` seconds,
+        the drivers' frame timestamps, which a wall-clock step does not move: not a frame from before the person was
+        told); None after the person's ``timeout_s``."""
         deadline, run = time.monotonic() + self.person.timeout_s, 0
         while time.monotonic() < deadline:
             reading = self.sensors[finger].read()
@@ -292,8 +293,8 @@ class RigPressSession:
         return None
 
     def _board(self, after: float):
-        """The board's pose in a wrist camera frame taken at or after ``after`` (seconds), or the reason it is not
-        seen."""
+        """The board's pose in a wrist camera frame taken at or after ``after`` (``time.monotonic()`` seconds), or the
+        reason it is not seen."""
         deadline = time.monotonic() + self.person.timeout_s
         while True:
             image, stamp = self.camera.read()
@@ -314,14 +315,14 @@ class RigPressSession:
         for i, spec in enumerate(plan):
             head = f"press {i + 1}/{len(plan)}: {spec.describe()}"
             self._hold(np.array(spec.q))
-            told = time.time()
+            told = time.monotonic()
             if not self.person.press(spec):
                 self.say(f"{head}: the wrist camera does not see the board at any pose of the hand; skipped")
                 continue
             reading = self._contact(spec.finger, True, told)
             pose = None if reading is None else self._board(reading.timestamp)
             T_hand_fingertip = self.hand.fingertip_poses()[spec.finger]
-            told = time.time()
+            told = time.monotonic()
             self.person.release(spec)
             if self._contact(spec.finger, False, told) is None:
                 raise TactileError(spec.finger, f"still in contact {self.person.timeout_s:g} s after the press")

@@ -5,6 +5,10 @@ calibration files use too.
 Motor angle ``theta = (ticks - 2048) * 2 pi / 4096`` (0 at the centre tick);
 joint angle ``q = sign * (theta - offset_rad)``, so ``theta = sign * q + offset_rad``.
 
+A joint's range must lie within one turn of its servo, ticks 0..4095 (motor angles [-pi, pi)): an X-series servo
+reads its position within one turn after power-on, so a range across the 4095/0 tick seam would read a turn off
+wherever the finger rests on the far side (:func:`seam_crossing`; ``calibrate hand`` refuses such a joint).
+
 File (JSON)::
 
     {"format": "tacsplat-hand-calibration", "version": 1,
@@ -32,12 +36,32 @@ from tacsplat.geometry import rigidity_problem
 FORMAT = "tacsplat-hand-calibration"
 RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 JOINT_FIELDS = ("sign", "offset_rad")
+# the most a driver's reading tolerance may be: how far outside its limits a joint may read, so ``calibrate hand``
+# keeps every joint's range at least this far from the seam
+MAX_READING_TOLERANCE_RAD = 0.2
 T = TypeVar("T")
 
 
 def motor_angles_from_ticks(ticks) -> np.ndarray:
     """Servo ticks -> motor angles in radians, 0 at the centre tick."""
     return (np.asarray(ticks, dtype=np.float64) - CENTRE_TICK) * RAD_PER_TICK
+
+
+def seam_crossing(sign: float, offset_rad: float, lower: float, upper: float, margin_rad: float = 0.0):
+    """``(lowest, highest)`` tick of the motor over the joint range [``lower``, ``upper``] widened by ``margin_rad`` at
+    each end, with this sign and offset, when they leave one turn (ticks 0..4095: the range crosses the 4095/0 seam,
+    where the servo's one-turn reading after power-on jumps by a turn); None when the range lies within it."""
+    ends = [(sign * q + offset_rad) / RAD_PER_TICK + CENTRE_TICK for q in (lower - margin_rad, upper + margin_rad)]
+    low, high = min(ends), max(ends)
+    return None if low >= 0 and high <= TICKS_PER_REV - 1 else (int(math.floor(low)), int(math.ceil(high)))
+
+
+def seam_advice(name: str) -> str:
+    """What to do about joint ``name``'s range crossing its servo's tick seam."""
+    return (
+        f"re-seat {name}'s servo horn (or set the servo's Homing Offset) so that the joint's whole range lies within "
+        "one turn, ticks 0..4095 (joint zero near the centre tick 2048), then run `tacsplat calibrate hand` again"
+    )
 
 
 class _RepeatedKey(dict):

@@ -11,7 +11,11 @@ LEAP Hand API leaves to luck is done here on purpose:
   electrical shock, encoder);
 * a position reading farther outside its joint's limits than
   ``reading_tolerance_rad`` (what no finger can reach: an encoder glitch, a
-  slipped horn) is a fault, not a pose;
+  slipped horn) is a fault, not a pose. Ticks are read as the servos give
+  them, within one turn after power-on: a joint whose calibrated range crosses
+  the 4095/0 tick seam reads a turn off beyond it, and the refusal says so
+  (``calibrate hand`` refuses such a joint; the fix is on the servo: its horn
+  or its Homing Offset);
 * any failure disables torque on every servo that still answers, records the
   fault (no further motion until a reconnect) and raises one :class:`ServoError`
   naming the servo, its joint, the instruction and the decoded error;
@@ -66,7 +70,14 @@ from typing import Iterable, Sequence
 import dynamixel_sdk as dxl
 import numpy as np
 
-from tacsplat.drivers.calibration import RAD_PER_TICK, HandCalibration, motor_angles_from_ticks
+from tacsplat.drivers.calibration import (
+    MAX_READING_TOLERANCE_RAD,
+    RAD_PER_TICK,
+    HandCalibration,
+    motor_angles_from_ticks,
+    seam_advice,
+    seam_crossing,
+)
 from tacsplat.drivers.dynamixel_table import (
     ALERT_BIT,
     BUS_WATCHDOG_TRIPPED,
@@ -97,7 +108,7 @@ _STATE_ADDRESS = REGISTERS["present_current"].address
 _STATE_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 _STATE_SIZE = _STATE_DTYPE.itemsize
 VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * np.pi / 60.0  # Present Velocity unit: 0.229 rpm
-MAX_TOLERANCE_RAD = 0.2  # the most connect_tolerance_rad and reading_tolerance_rad may be
+MAX_TOLERANCE_RAD = MAX_READING_TOLERANCE_RAD  # the most connect_tolerance_rad and reading_tolerance_rad may be
 MAX_BUS_WATCHDOG_S = 127 * BUS_WATCHDOG_UNIT_S
 # The signals that ask a process to end: each leaves the hand with torque off (see the module docstring).
 END_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
@@ -183,7 +194,7 @@ class HandState:
     positions: np.ndarray  # [16] radians
     velocities: np.ndarray  # [16] radians / second
     currents: np.ndarray  # [16] amperes (signed like the joint)
-    timestamp: float  # time.time() when the sync read completed
+    timestamp: float  # time.monotonic() when the sync read completed (as the video frames': never stepped)
 
 
 @dataclass(frozen=True)
@@ -414,7 +425,7 @@ class DynamixelHand:
         positions, signs = self.calibration.radians_from_ticks(ticks), self.calibration.signs
         self._check_reachable(ticks, positions)
         return HandState(
-            positions, signs * vel * VELOCITY_UNIT_RAD_S, signs * cur * self.config.current_unit_a, time.time()
+            positions, signs * vel * VELOCITY_UNIT_RAD_S, signs * cur * self.config.current_unit_a, time.monotonic()
         )
 
     def read_motor_angles(self) -> np.ndarray:
@@ -537,7 +548,8 @@ class DynamixelHand:
                 "hold present pose",
                 f"{joints}; that is more than connect_tolerance_rad = {tol:.4f} rad, so the hand will not "
                 f"move there: check the sign and offset_rad of {names} in "
-                f"{cal.source or 'the hand calibration'}, or move the finger by hand into its range",
+                f"{cal.source or 'the hand calibration'}, or move the finger by hand into its range"
+                + self._seam_notes(too_far),
             )
         self._clamp(q, "present pose", np.where(goal != ticks, inside, q))  # (logs the joints nudged)
         return goal
@@ -558,8 +570,26 @@ class DynamixelHand:
                 self.ids[out[0]],
                 "read present position",
                 f"{joints}; farther than reading_tolerance_rad = {tol:.4f} rad, where the joint cannot be: "
-                "an encoder fault, a slipped horn or a wrong calibration",
+                "an encoder fault, a slipped horn or a wrong calibration" + self._seam_notes(out),
             )
+
+    def _seam_notes(self, joints: Iterable[int]) -> str:
+        """Why each of ``joints`` whose calibrated range crosses its servo's 4095/0 tick seam may read a turn off
+        (the servo reads within one turn after power-on), and what to do; empty when none does."""
+        cal, margin = self.calibration, self.config.reading_tolerance_rad
+        notes = []
+        for i in joints:
+            lower, upper = self._joint_limits[i]
+            across = seam_crossing(cal.signs[i], cal.offsets_rad[i], lower, upper, margin)
+            if across:
+                name = self._joint_names[i]
+                notes.append(
+                    f"; a possible cause: {name}'s range spans servo ticks {across[0]} to {across[1]} with this "
+                    f"calibration, across the servo's 4095/0 tick seam, and a servo reads within one turn after "
+                    f"power-on, so {name} reads a turn off wherever the finger rests across the seam: "
+                    f"{seam_advice(name)}"
+                )
+        return "".join(notes)
 
     def _clamp(self, q: np.ndarray, what: str, clamped: np.ndarray | None = None) -> np.ndarray:
         """``q`` clamped to the joint limits (or ``clamped``, where it differs from ``q``), the clamping logged."""

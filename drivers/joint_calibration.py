@@ -19,7 +19,7 @@ from typing import Callable, Protocol, Sequence, TextIO
 
 import numpy as np
 
-from tacsplat.drivers.calibration import HandCalibration
+from tacsplat.drivers.calibration import MAX_READING_TOLERANCE_RAD, HandCalibration, seam_advice, seam_crossing
 from tacsplat.errors import HandError
 
 STOP_READS = 5  # reads per stop; their median is the stop's motor angle
@@ -121,7 +121,10 @@ def calibrate_joints(
 ) -> tuple[HandCalibration, list[JointResult]]:
     """Every joint held against its upper, then its lower stop by ``person``; one status line per joint through
     ``say``. ``servos`` names each joint's servo in messages (default: ``joint k``). Refuses (HandError naming the
-    joint and what to do) a joint that did not move or whose measured range is not the model's."""
+    joint and what to do) a joint that did not move, whose measured range is not the model's, or whose range
+    (widened by the most a driver's reading tolerance may be) crosses its servo's 4095/0 tick seam: the servo reads
+    within one turn after power-on, so the driver would read that joint a turn off wherever the finger rests across
+    the seam (:func:`~tacsplat.drivers.calibration.seam_crossing`)."""
     names = list(hand.joint_names)
     limits = np.asarray(hand.joint_limits, dtype=np.float64)
     servos = list(servos) if servos is not None else [f"joint {k}" for k in range(len(names))]
@@ -138,6 +141,15 @@ def calibrate_joints(
         if problem := result.problem():
             raise HandError(device, f"calibration refused: {problem}")
         offset = result.offset_rad(lower, upper)
+        if across := seam_crossing(result.sign, offset, lower, upper, MAX_READING_TOLERANCE_RAD):
+            raise HandError(
+                device,
+                f"calibration refused: {name} ({servos[j]}) with sign {result.sign:+d} and offset {offset:+.4f} rad "
+                f"spans servo ticks {across[0]} to {across[1]} over its range (with "
+                f"{math.degrees(MAX_READING_TOLERANCE_RAD):.1f} degrees to spare at each end), across the servo's "
+                f"4095/0 tick seam: after power-on the servo reads within one turn, so the driver would read "
+                f"{name} a turn off: {seam_advice(name)}",
+            )
         say(
             f"{name:<9} {servos[j]:<9} sign {result.sign:+d}  offset {offset:+.4f} rad ({math.degrees(offset):+7.2f} "
             f"deg)  range {math.degrees(result.measured_range_rad):6.1f} deg (model "

@@ -6,7 +6,10 @@ and sequence number, so a slow consumer never stalls the device, and a stalled
 device (unplugged, driver hang, end of a file) raises :class:`CameraError`
 within ``timeout_s`` even when ``VideoCapture.read`` itself blocks forever.
 Files are read in order instead, every frame once.
-Resolution and fps are verified after they are set.
+Resolution and fps are verified after they are set. A failure while opening
+(the first frame late included) releases the device and stops the reader.
+Timestamps are ``time.monotonic()`` seconds: compare them with that clock, which
+a wall-clock step (NTP) does not move.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ FPS_TOLERANCE = 0.05  # the fps a device reports may be off the one asked for by
 @dataclass(frozen=True)
 class Frame:
     image: np.ndarray  # [H, W, 3] uint8, BGR as OpenCV delivers it
-    timestamp: float  # time.time() when the frame was received
+    timestamp: float  # time.monotonic() when the frame was received (not wall-clock time: never stepped)
     index: int  # 0, 1, 2, ... in arrival order
 
 
@@ -63,6 +66,7 @@ class VideoReader:
         self._cap = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._release_lock = threading.Lock()
         self._cond = threading.Condition()
         self._frames: deque[Frame] = deque(maxlen=None if self.sequential else 1)
         self._count = 0
@@ -73,8 +77,19 @@ class VideoReader:
 
     # -- lifecycle ---------------------------------------------------------
     def open(self) -> "VideoReader":
+        """Open the device, verify its settings and its first frame; on any failure (an exception of the capture's
+        too), the device is released and the reader thread stopped before the error is raised."""
         source = str(self.source) if isinstance(self.source, Path) else self.source
-        cap = self._factory(source)
+        self._cap = self._factory(source)
+        try:
+            self._open()
+        except BaseException:
+            self.close()
+            raise
+        return self
+
+    def _open(self) -> None:
+        cap = self._cap
         if not cap.isOpened():
             raise CameraError(
                 self.name, f"cannot open {self.source!r} (unplugged, busy, or no permission on /dev/video*?)"
@@ -96,10 +111,8 @@ class VideoReader:
         elif fps and abs(self.fps - fps) > FPS_TOLERANCE * fps:
             problem = f"asked for {fps:g} fps, the device reports {self.fps:g} fps"
         if problem:
-            cap.release()
             raise CameraError(self.name, problem)
-        self._cap = cap
-        self._thread = threading.Thread(target=self._run, name=f"video-{self.name}", daemon=True)
+        self._thread = threading.Thread(target=self._run, args=(cap,), name=f"video-{self.name}", daemon=True)
         self._thread.start()
         # the first frame proves the device delivers, at the size it reported
         first = self.read()
@@ -107,21 +120,29 @@ class VideoReader:
             self._last_index = first.index - 1
         h, w = first.image.shape[:2]
         if (self.width and w != self.width) or (self.height and h != self.height):
-            self.close()
             raise CameraError(self.name, f"reports {self.width}x{self.height} but delivers {w}x{h} frames")
         self.height, self.width = h, w
-        return self
 
     def close(self) -> None:
+        """Stop the reader and release the device (idempotent). A reader blocked inside the driver is a daemon, not
+        waited for: it releases the device itself when the driver returns."""
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
         if self._thread is not None:
-            self._thread.join(timeout=0.5)  # a thread blocked inside the driver is a daemon; do not wait on it
-            if not self._thread.is_alive() and self._cap is not None:
-                self._cap.release()
+            self._thread.join(timeout=0.5)
+            if self._thread.is_alive():
+                self._thread = None
+                return
         self._thread = None
-        self._cap = None
+        self._release()
+
+    def _release(self) -> None:
+        """Release the device once, whoever (close, or a reader thread that outlived it) gets here first."""
+        with self._release_lock:
+            cap, self._cap = self._cap, None
+        if cap is not None:
+            cap.release()
 
     def __enter__(self) -> "VideoReader":
         return self.open()
@@ -130,14 +151,22 @@ class VideoReader:
         self.close()
 
     # -- reading -----------------------------------------------------------
-    def _run(self) -> None:
-        cap = self._cap
+    def _run(self, cap) -> None:
+        try:
+            self._read_frames(cap)
+        finally:
+            if self._stop.is_set():  # closed while this thread was in the driver: close left the release to it
+                self._release()
+
+    def _read_frames(self, cap) -> None:
         while not self._stop.is_set():
             try:
                 ok, image = cap.read()
             except cv2.error as exc:
                 ok, image = False, exc
-            now = time.time()
+            now = time.monotonic()
+            if self._stop.is_set():  # closed meanwhile: no frame after close
+                return
             with self._cond:
                 if not ok or image is None or getattr(image, "size", 0) == 0:
                     self._ended = "end of stream" if self.sequential else "the device returned no frame"
@@ -146,6 +175,8 @@ class VideoReader:
                 if self.sequential:  # keep every frame: wait for the consumer instead of dropping
                     while len(self._fresh()) >= 8 and not self._stop.is_set():
                         self._cond.wait(0.1)
+                    if self._stop.is_set():
+                        return
                 self._frames.append(Frame(image, now, self._count))
                 self._count += 1
                 self._cond.notify_all()

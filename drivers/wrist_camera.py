@@ -717,7 +717,8 @@ class WristCamera:
         return undistort(image, self._maps)
 
     def read(self) -> tuple[np.ndarray, float]:
-        """``(image [H, W, 3] uint8 RGB undistorted, timestamp seconds)``; CameraError if frames stop."""
+        """``(image [H, W, 3] uint8 RGB undistorted, timestamp: time.monotonic() seconds when it was received)``;
+        CameraError if frames stop."""
         frame = self._video.read()
         return self.undistort(cv2.cvtColor(frame.image, cv2.COLOR_BGR2RGB)), frame.timestamp
 

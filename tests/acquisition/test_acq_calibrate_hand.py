@@ -134,3 +134,42 @@ def test_sigterm_mid_calibration_exits_with_torque_off_confirmed_and_nothing_wri
     assert "torque off confirmed on all 16 servos" in stdout
     assert f"interrupted (SIGTERM): {out} not written" in stderr
     assert not out.exists()
+
+
+class _OneTurnLimpHand:
+    """Servos read within one turn (0..4095, as after power-on); ``index_1``'s zero at motor angle ``offset``."""
+
+    def __init__(self, offset: float):
+        from tacsplat.sim.hand import JOINT_LIMITS
+
+        self.joint_names, self.joint_limits, self.offset, self.q = JOINT_NAMES, JOINT_LIMITS, offset, np.zeros(16)
+
+    def read_motor_angles(self):
+        from tacsplat.drivers.calibration import RAD_PER_TICK
+
+        motor = self.q + np.where(np.arange(16) == 1, self.offset, 0.0)
+        return (np.round(motor / RAD_PER_TICK + 2048) % 4096 - 2048) * RAD_PER_TICK
+
+    def hold_at_stop(self, joint, upper, instruction):
+        self.q[:] = 0.0
+        self.q[joint] = self.joint_limits[joint, 1 if upper else 0]
+
+    def let_go(self, joint):
+        self.q[:] = 0.0
+
+
+def test_a_joint_whose_range_crosses_the_servo_tick_seam_is_refused_naming_it_and_what_to_do():
+    """index_1's horn seated so that its range [-0.196, 1.61] rad spans ticks ~3615..4794: across the 4095/0 seam,
+    where the servo's one-turn reading after power-on would put the finger a turn off. Refused, not saved."""
+    from tacsplat.drivers.joint_calibration import calibrate_joints
+
+    hand, said = _OneTurnLimpHand(2.6), []
+    with pytest.raises(HandError) as err:
+        calibrate_joints(hand, hand, say=said.append)
+    message = str(err.value)
+    for expected in ("calibration refused: index_1 (joint 1)", "4095/0 tick seam", "Homing Offset", "re-seat"):
+        assert expected in message, (expected, message)
+    assert [line.split()[0] for line in said] == ["index_0"]
+    hand = _OneTurnLimpHand(1.2)  # clear of the seam: ticks ~2703..3882
+    calibration, _ = calibrate_joints(hand, hand, say=said.append)
+    assert math.isclose(calibration.offsets_rad[1], 1.2, abs_tol=0.01)

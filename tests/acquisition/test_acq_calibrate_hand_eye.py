@@ -199,3 +199,57 @@ def test_a_named_file_that_is_there_but_unreadable_is_one_error_naming_it_and_it
     err = capsys.readouterr().err
     assert code == 1 and "Traceback" not in err and not out.exists()
     assert err.splitlines()[-1].startswith(f"error: {path}: {key}: not valid JSON"), err
+
+
+def test_a_wall_clock_step_does_not_make_the_presses_fresh_frames_look_stale(monkeypatch):
+    """The drivers stamp frames with time.monotonic(); NTP steps the wall clock back 5 s mid-calibration. The
+    presses still take the frames read after the person was told: the press is recorded, not skipped."""
+    import time
+    from types import SimpleNamespace
+
+    from tacsplat.acquisition.config import BoardConfig
+    from tacsplat.acquisition.presses import RigPressSession
+    from tacsplat.types import TactileReading
+
+    wall = time.time
+    monkeypatch.setattr(time, "time", lambda: wall() - 5.0)
+    pressed = [False]
+
+    class Hand:
+        joint_names, joint_limits = [f"j{k}" for k in range(16)], np.tile([-1.0, 1.0], (16, 1))
+        q = np.zeros(16)
+
+        def command_joint_positions(self, q):
+            self.q = np.asarray(q, float)
+
+        def read_joint_positions(self):
+            return self.q
+
+        def fingertip_poses(self):
+            return {"index": np.eye(4)}
+
+    class Sensor:
+        name = "index"
+
+        def read(self):
+            depth = np.full((8, 8), 1e-3 if pressed[0] else 0.0, np.float32)
+            return TactileReading(depth, 1e-4, np.eye(4), timestamp=time.monotonic())
+
+    class Person:
+        timeout_s = 2.0
+
+        def press(self, spec):
+            pressed[0] = True
+            return True
+
+        def release(self, spec):
+            pressed[0] = False
+
+    image = np.zeros((4, 4, 3), np.uint8)
+    camera = SimpleNamespace(read=lambda: (image, time.monotonic()), K=np.diag([100.0, 100.0, 1.0]))
+    said = []
+    session = RigPressSession(Hand(), camera, [Sensor()], BoardConfig(), Person(), said.append)
+    pose = SimpleNamespace(T=np.eye(4), corners=20, reprojection_px=0.3)
+    session.poses = SimpleNamespace(camera_pose=lambda image: pose)
+    presses = session.run(hand_eye_plan(["index"])[:1])
+    assert len(presses) == 1 and said[-1].endswith("; ok"), said

@@ -1,14 +1,17 @@
 """Every way a capture can be asked to end, on `tacsplat capture --mock` in a subprocess whose servos are an
 emulator in a process of its own (it outlives the capture): SIGINT, SIGTERM, SIGHUP and SIGQUIT mid-grasp leave
 every servo with torque off, the last line says so, the exit code is 128 + signum, and the scene resumes; SIGKILL
-mid-grasp runs no code of the capture, and its guard process turns the torque off."""
+mid-grasp runs no code of the capture, and its guard process turns the torque off. A closed terminal window (its
+terminal hangs up, with or without SIGHUP) ends it as SIGHUP does."""
 
+import fcntl
 import io
 import os
 import pty
 import signal
 import subprocess
 import sys
+import termios
 import time
 from pathlib import Path
 
@@ -98,3 +101,58 @@ def test_sigkill_mid_grasp_the_guard_turns_the_torque_off(tmp_path):
     ), term.text[-2000:]
     scene = _resume_to_the_end(tmp_path, out)
     assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4
+
+
+@pytest.mark.parametrize(
+    "controlling, stderr_on",
+    [(True, "file"), (True, "terminal"), (False, "file")],
+    ids=["sighup-stderr-to-a-file", "sighup-stderr-on-the-terminal", "no-sighup-eof-and-eio-only"],
+)
+def test_a_closed_terminal_ends_the_capture_as_sighup_does(tmp_path, controlling, stderr_on):
+    """The operator closes the terminal window: the capture's terminal hangs up (reads give nothing, restoring it and
+    writing to it fail with EIO) and, when it is the controlling terminal, SIGHUP comes. Either way: torque off,
+    exit 129 (not 1 with a traceback, nor 120 for output that could not be flushed), and the resume command and the
+    torque-off line on standard error when that is a log file."""
+
+    def take_the_terminal():  # the pty becomes the capture's controlling terminal, as a terminal window's shell is
+        fcntl.ioctl(0, termios.TIOCSCTTY, 0)
+
+    with EmulatorProcess() as emu:
+        rig = write_mock_rig(tmp_path, mock_devices={"servo_port": emu.path})
+        out, log = tmp_path / "scene", tmp_path / "stderr.txt"
+        master, slave = pty.openpty()
+        with open(log, "w") as err:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "tacsplat", "capture", "--rig", rig, "--out", str(out), "--mock"],
+                stdin=slave,
+                stdout=slave,
+                stderr=err if stderr_on == "file" else slave,
+                start_new_session=True,
+                preexec_fn=take_the_terminal if controlling else None,
+                close_fds=True,
+            )
+        os.close(slave)
+        term = Terminal(master)
+        try:
+            term.wait_for("board: seen")
+            term.type("\r")
+            term.wait_for("recorded")
+            assert all(emu.torque_enabled().values())
+        finally:
+            term.close()  # the window is closed
+            try:
+                proc.wait(60)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+        time.sleep(0.3)  # (the guard, had it been needed, is quick)
+        torque = emu.torque_enabled()
+    told = log.read_text()
+    assert not any(torque.values()), torque
+    assert proc.returncode == 128 + signal.SIGHUP, told
+    assert "Traceback" not in told and "Exception ignored" not in told, told
+    if stderr_on == "file":
+        assert "interrupted (SIGHUP)" in told and f"--out {out} --resume --mock" in told, told
+        assert told.rstrip("\n").rsplit("\n", 1)[-1] == "Hand: torque off confirmed on all 16 servos.", told
+    assert len(Scene.load(out).frames) == 1  # the view taken is kept

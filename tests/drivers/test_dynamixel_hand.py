@@ -420,6 +420,46 @@ def test_finger_far_outside_its_range_at_connect_is_refused(kinematics):
         assert goal_ticks(emu)[1] == round(2048 + (lower - 0.2) / RAD_PER_TICK)
 
 
+SEAM_OFFSET_RAD = 2.6  # index_1's zero at tick ~3743: its range [-0.196, 1.61] rad spans ticks ~3615..4794
+
+
+def _one_turn_tick(motor_rad: float) -> int:
+    """What an X-series servo reports after power-on: its position within one turn, ticks 0..4095."""
+    return round(motor_rad / RAD_PER_TICK + 2048) % 4096
+
+
+@pytest.mark.parametrize("q", [0.3, 1.0])
+def test_a_calibration_across_the_tick_seam_is_refused_naming_the_seam(kinematics, q):
+    """index_1's range crosses the 4095/0 seam: resting at q = 0.3 it reads right, at q = 1.0 (beyond the seam,
+    read a turn off after power-on) the refusal names the seam as a cause and what to do, with torque off."""
+    offsets = np.where(np.arange(16) == 1, SEAM_OFFSET_RAD, 0.0)
+    calibration = HandCalibration(tuple(kinematics.joint_names), np.ones(16), offsets)
+    tick = _one_turn_tick(q + SEAM_OFFSET_RAD)
+    with DxlEmulator(initial_ticks={1: tick}) as emu:
+        hand = make_hand(emu, kinematics, calibration=calibration)
+        if q < 0.5:
+            with hand:
+                assert abs(hand.read_joint_positions()[1] - q) < 0.01
+            return
+        with pytest.raises(ServoError) as exc:
+            with hand:
+                pass
+        assert_all_torque_off(emu)
+    message = str(exc.value)
+    for expected in ("index_1", f"tick {tick}", "4095/0 tick seam", "a turn off", "Homing Offset", "re-seat"):
+        assert expected in message, (expected, message)
+
+
+def test_a_calibration_clear_of_the_seam_gets_no_seam_note(emu, kinematics, tmp_path):
+    signs, offsets = np.ones(16, dtype=int), np.zeros(16)
+    offsets[0] = 1.0  # wrong, but index_0's range stays within one turn
+    path = write_hand_json(tmp_path / "hand.json", kinematics.joint_names, signs.tolist(), offsets.tolist())
+    with pytest.raises(ServoError) as exc:
+        with make_hand(emu, kinematics, calibration=path):
+            pass
+    assert "seam" not in str(exc.value)
+
+
 def test_pose_just_outside_the_limits_is_nudged_within_the_tolerance_and_logged(kinematics, caplog):
     lower = kinematics.joint_limits[1, 0]  # index_1
     present = round(2048 + (lower - 0.5 * TOLERANCE_RAD) / RAD_PER_TICK)
@@ -543,3 +583,13 @@ def test_connect_refuses_with_torque_off_or_moves_no_servo_beyond_the_tolerance(
             assert file_is_valid and excess < TOLERANCE_RAD + RAD_PER_TICK, excess
             assert np.abs(goals - ticks).max() * RAD_PER_TICK <= TOLERANCE_RAD
             assert_all_torque_off(emu)
+
+
+def test_hand_state_timestamps_are_monotonic_a_wall_clock_step_does_not_move(emu, kinematics, monkeypatch):
+    with make_hand(emu, kinematics) as hand:
+        first = hand.read_state().timestamp
+        wall = time.time
+        monkeypatch.setattr(time, "time", lambda: wall() - 5.0)  # NTP steps the wall clock back
+        before = time.monotonic()
+        later = hand.read_state().timestamp
+        assert first <= before <= later <= time.monotonic()

@@ -113,3 +113,62 @@ def test_resolution_and_fps_are_verified(tmp_path):
 def test_missing_device_is_a_clear_error():
     with pytest.raises(CameraError, match="cannot open"):
         VideoReader("/nonexistent/video.avi").open()
+
+
+class StartingDevice(LiveDevice):
+    """Opens and reports its size, but its first frame comes only after ``delay_s`` (a camera still starting up);
+    ``fail`` names a call (``"set"`` or ``"get"``) that raises, as a driver's may."""
+
+    def __init__(self, delay_s=0.0, fail=None):
+        super().__init__()
+        self.delay_s, self.fail, self.released = delay_s, fail, threading.Event()
+
+    def set(self, prop, value):
+        if self.fail == "set":
+            raise cv2.error("set failed")
+        return False
+
+    def get(self, prop):
+        if self.fail == "get":
+            raise cv2.error("get failed")
+        return super().get(prop)
+
+    def read(self):
+        if self.delay_s:
+            time.sleep(self.delay_s)
+            self.delay_s = 0.0
+        return super().read()
+
+    def release(self):
+        self.released.set()
+        super().release()
+
+
+@pytest.mark.parametrize("fail", ["first frame late", "set", "get"])
+def test_a_failed_open_releases_the_device_and_stops_the_reader(fail):
+    device = StartingDevice(delay_s=1.0) if fail == "first frame late" else StartingDevice(fail=fail)
+    reader = VideoReader(0, width=64, timeout_s=0.2, name=f"starting {fail}", capture_factory=lambda s: device)
+    with pytest.raises((CameraError, cv2.error)):
+        reader.open()
+    assert device.released.wait(3.0), "the device was never released"
+    running = lambda: any(t.name == f"video-starting {fail}" for t in threading.enumerate())  # noqa: E731
+    deadline = time.monotonic() + 3.0
+    while running() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert not running(), "the reader thread still runs"
+    assert reader.frames_received == 0  # the late frame, delivered after the error, is not taken
+
+
+def test_frame_timestamps_are_monotonic_seconds_a_wall_clock_step_does_not_move(monkeypatch):
+    """NTP steps the wall clock back 5 s between two frames: the later frame is still the later one, on the clock
+    the consumers compare it with (time.monotonic(), as the presses' freshness check does)."""
+    device = LiveDevice(fps=100.0)
+    with VideoReader(0, timeout_s=1.0, capture_factory=lambda s: device) as reader:
+        first = reader.read()
+        told = time.monotonic()
+        wall = time.time
+        monkeypatch.setattr(time, "time", lambda: wall() - 5.0)
+        later = reader.read()
+        assert later.index > first.index and later.timestamp > first.timestamp
+        assert later.timestamp >= told - 0.05  # (a frame may have been received just before ``told``)
+        assert abs(later.timestamp - time.monotonic()) < 1.0
