@@ -73,6 +73,21 @@ class ScriptedKeys(io.TextIOBase):
         return out
 
 
+def capture_on_a_terminal(rig: str, out, stderr=None, **popen) -> tuple[subprocess.Popen, "Terminal"]:
+    """``tacsplat capture --rig RIG --out OUT --mock`` in a child process whose standard input and output (and
+    error, unless ``stderr`` is given) are a new pseudo-terminal; ``popen``: more of ``subprocess.Popen``'s
+    arguments. Returns the process and the operator's side of the terminal."""
+    import pty
+
+    master, slave = pty.openpty()
+    command = [sys.executable, "-m", "tacsplat", "capture", "--rig", rig, "--out", str(out), "--mock"]
+    proc = subprocess.Popen(
+        command, stdin=slave, stdout=slave, stderr=slave if stderr is None else stderr, close_fds=True, **popen
+    )
+    os.close(slave)
+    return proc, Terminal(master)
+
+
 class Terminal:
     """The operator's side of a pseudo-terminal: collects the output in a thread (the live status line has no
     newline); ``wait_for`` blocks until a text appears after the last ``type``; ``type`` sends keys; ``close``

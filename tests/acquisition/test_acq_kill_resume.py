@@ -3,9 +3,7 @@ touches were cut short is redone whole."""
 
 import io
 import os
-import pty
 import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -18,7 +16,7 @@ from tacsplat.acquisition.operator_session import run_capture
 from tacsplat.datasets import Scene, SceneWriter
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from acq_helpers import ScriptedKeys, Terminal, write_mock_rig  # noqa: E402
+from acq_helpers import ScriptedKeys, capture_on_a_terminal, write_mock_rig  # noqa: E402
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -43,16 +41,7 @@ def test_sigkill_in_the_middle_of_a_grasp_then_resume_finishes_the_plan(tmp_path
     rig = write_mock_rig(tmp_path, grasp={"close_speed_rad_s": 0.6})
     (tmp_path / "fast").mkdir()
     out = tmp_path / "scene"
-    master, slave = pty.openpty()  # the session runs in a terminal: single keys (cbreak), a live status line
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "tacsplat.cli", "capture", "--rig", rig, "--out", str(out), "--mock"],
-        stdin=slave,
-        stdout=slave,
-        stderr=slave,
-        close_fds=True,
-    )
-    os.close(slave)
-    term = Terminal(master)
+    proc, term = capture_on_a_terminal(rig, out)  # in a terminal: single keys (cbreak), a live status line
     try:
         term.wait_for("board: seen")
         term.type("\r\r\rg")

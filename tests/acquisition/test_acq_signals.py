@@ -7,7 +7,6 @@ terminal hangs up, with or without SIGHUP) ends it as SIGHUP does."""
 import fcntl
 import io
 import os
-import pty
 import signal
 import subprocess
 import sys
@@ -23,7 +22,7 @@ from tacsplat.datasets import Scene
 from tacsplat.drivers.dxl_emulator import EmulatorProcess
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from acq_helpers import ScriptedKeys, Terminal, write_mock_rig  # noqa: E402
+from acq_helpers import ScriptedKeys, Terminal, capture_on_a_terminal, write_mock_rig  # noqa: E402
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -32,16 +31,7 @@ def _capture_killed_mid_grasp(tmp_path, emu: EmulatorProcess, signum: int) -> tu
     """One view, then a slow grasp (2 s from open to closed) that ``signum`` interrupts while the fingers close."""
     rig = write_mock_rig(tmp_path, grasp={"close_speed_rad_s": 0.6}, mock_devices={"servo_port": emu.path})
     out = tmp_path / "scene"
-    master, slave = pty.openpty()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "tacsplat", "capture", "--rig", rig, "--out", str(out), "--mock"],
-        stdin=slave,
-        stdout=slave,
-        stderr=slave,
-        close_fds=True,
-    )
-    os.close(slave)
-    term = Terminal(master)
+    proc, term = capture_on_a_terminal(rig, out)
     try:
         term.wait_for("board: seen")
         term.type("\rg")
@@ -120,19 +110,14 @@ def test_a_closed_terminal_ends_the_capture_as_sighup_does(tmp_path, controlling
     with EmulatorProcess() as emu:
         rig = write_mock_rig(tmp_path, mock_devices={"servo_port": emu.path})
         out, log = tmp_path / "scene", tmp_path / "stderr.txt"
-        master, slave = pty.openpty()
         with open(log, "w") as err:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "tacsplat", "capture", "--rig", rig, "--out", str(out), "--mock"],
-                stdin=slave,
-                stdout=slave,
-                stderr=err if stderr_on == "file" else slave,
+            proc, term = capture_on_a_terminal(
+                rig,
+                out,
+                stderr=err if stderr_on == "file" else None,
                 start_new_session=True,
                 preexec_fn=take_the_terminal if controlling else None,
-                close_fds=True,
             )
-        os.close(slave)
-        term = Terminal(master)
         try:
             term.wait_for("board: seen")
             term.type("\r")
