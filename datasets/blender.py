@@ -27,6 +27,7 @@ it.
 from __future__ import annotations
 
 import json
+import reprlib
 from pathlib import Path
 
 import cv2
@@ -195,11 +196,6 @@ def _read_split(src: Path, name: str) -> tuple[Path, float, list[dict]]:
     return index, float(angle), data["frames"]
 
 
-def _clip(value, limit: int = 60) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def frame_file_path(index: Path, frames: list, i: int) -> str:
     """``frames[i]``'s ``file_path`` in the index file ``index``; a SceneFormatError naming them unless the frame is
     an object with a ``file_path`` string."""
@@ -218,7 +214,7 @@ def pose_from_opengl(raw, index: Path, field: str) -> np.ndarray:
     except (TypeError, ValueError, OverflowError):  # not numbers, ragged rows, an int too large for a float
         T = None
     if T is None or T.shape != (4, 4):
-        got = f"shape {T.shape}" if T is not None and T.ndim else _clip(raw)
+        got = f"shape {T.shape}" if T is not None and T.ndim else reprlib.repr(raw)
         raise SceneFormatError(index, field, f"expected a 4x4 matrix of numbers, got {got}")
     if problem := rigidity_problem(T, atol=1e-4):
         raise SceneFormatError(index, field, f"not a rigid transform: {problem}")

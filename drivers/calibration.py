@@ -36,9 +36,9 @@ from tacsplat.geometry import rigidity_problem
 FORMAT = "tacsplat-hand-calibration"
 RAD_PER_TICK = 2.0 * math.pi / TICKS_PER_REV
 JOINT_FIELDS = ("sign", "offset_rad")
-# the most a driver's reading tolerance may be: how far outside its limits a joint may read, so ``calibrate hand``
-# keeps every joint's range at least this far from the seam
-MAX_READING_TOLERANCE_RAD = 0.2
+# the most a driver's connect and reading tolerances may be: how far outside its limits a joint may read, so
+# ``calibrate hand`` keeps every joint's range at least this far from the seam
+MAX_TOLERANCE_RAD = 0.2
 T = TypeVar("T")
 
 

@@ -71,7 +71,7 @@ import dynamixel_sdk as dxl
 import numpy as np
 
 from tacsplat.drivers.calibration import (
-    MAX_READING_TOLERANCE_RAD,
+    MAX_TOLERANCE_RAD,
     RAD_PER_TICK,
     HandCalibration,
     motor_angles_from_ticks,
@@ -108,7 +108,6 @@ _STATE_ADDRESS = REGISTERS["present_current"].address
 _STATE_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "<i4")])
 _STATE_SIZE = _STATE_DTYPE.itemsize
 VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * np.pi / 60.0  # Present Velocity unit: 0.229 rpm
-MAX_TOLERANCE_RAD = MAX_READING_TOLERANCE_RAD  # the most connect_tolerance_rad and reading_tolerance_rad may be
 MAX_BUS_WATCHDOG_S = 127 * BUS_WATCHDOG_UNIT_S
 # The signals that ask a process to end: each leaves the hand with torque off (see the module docstring).
 END_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))

@@ -19,7 +19,7 @@ from typing import Callable, Protocol, Sequence, TextIO
 
 import numpy as np
 
-from tacsplat.drivers.calibration import MAX_READING_TOLERANCE_RAD, HandCalibration, seam_advice, seam_crossing
+from tacsplat.drivers.calibration import MAX_TOLERANCE_RAD, HandCalibration, seam_advice, seam_crossing
 from tacsplat.errors import HandError
 
 STOP_READS = 5  # reads per stop; their median is the stop's motor angle
@@ -141,12 +141,12 @@ def calibrate_joints(
         if problem := result.problem():
             raise HandError(device, f"calibration refused: {problem}")
         offset = result.offset_rad(lower, upper)
-        if across := seam_crossing(result.sign, offset, lower, upper, MAX_READING_TOLERANCE_RAD):
+        if across := seam_crossing(result.sign, offset, lower, upper, MAX_TOLERANCE_RAD):
             raise HandError(
                 device,
                 f"calibration refused: {name} ({servos[j]}) with sign {result.sign:+d} and offset {offset:+.4f} rad "
                 f"spans servo ticks {across[0]} to {across[1]} over its range (with "
-                f"{math.degrees(MAX_READING_TOLERANCE_RAD):.1f} degrees to spare at each end), across the servo's "
+                f"{math.degrees(MAX_TOLERANCE_RAD):.1f} degrees to spare at each end), across the servo's "
                 f"4095/0 tick seam: after power-on the servo reads within one turn, so the driver would read "
                 f"{name} a turn off: {seam_advice(name)}",
             )

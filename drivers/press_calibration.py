@@ -411,17 +411,15 @@ def _mounts_json(fit: MountsFit) -> bytes:
 
 def save_mounts_and_hand_eye(fit: MountsFit, path: str | Path, hand_eye_path: str | Path) -> None:
     """Write the mounts file and a hand-eye file of ``fit.T_hand_cam`` (its rms: the sensors' together), both or
-    neither: each is written in full to its temporary file, and synced, before either is renamed over its target,
-    so a full disk or an unwritable target leaves both old files as they were."""
+    neither: the hand-eye file is written in full to its temporary file and synced, then the mounts file is written
+    (atomically), and only then is the hand-eye file renamed over its target, so a full disk or an unwritable
+    target leaves both old files as they were."""
     rms = float(np.sqrt(np.mean([r**2 for r in fit.rms_mm.values()])))
-    with atomic_file(hand_eye_path) as hand_eye, atomic_file(path) as mounts:
-        for f, data in (
-            (hand_eye, _hand_eye_json(fit.T_hand_cam, sum(fit.presses.values()), rms)),
-            (mounts, _mounts_json(fit)),
-        ):
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
+    with atomic_file(hand_eye_path) as hand_eye:  # renamed over its target only if the mounts file was written
+        hand_eye.write(_hand_eye_json(fit.T_hand_cam, sum(fit.presses.values()), rms))
+        hand_eye.flush()
+        os.fsync(hand_eye.fileno())  # (a full disk shows here, before the mounts file is replaced)
+        save_mounts(fit, path)
 
 
 def load_mounts(path: str | Path, fingers, key: str = "calibration") -> dict[str, np.ndarray]:

@@ -24,7 +24,6 @@ of the object's radius (200^3 voxels: the grid spans the object's diameter): fin
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -364,8 +363,6 @@ def export_mesh(
         raise storage_error(exc, out.parent) from None
     with atomic_file(out) as f:  # the mesh goes to a temporary sibling, renamed over ``out`` when the block ends
         mesh_ply(extracted).write(f)
-        f.flush()
-        os.fsync(f.fileno())  # (on disk before the metrics: the rename below is all that is left)
         if recorded:  # before that rename: a mesh file on disk has its metrics recorded
             prefix = record or "mesh"
             metrics = json.loads(metrics_path.read_text())
