@@ -39,8 +39,8 @@ from typing import Any, Iterator
 from tacsplat.acquisition.config import SLIDE_KEYS, SLIDE_WHY, RigConfig
 from tacsplat.acquisition.devices import TWIN_CONTROL, Rig, open_rig, twin_config
 from tacsplat.datasets import SceneMeta, SceneWriter
-from tacsplat.datasets.outputs import ensure_output_dir
-from tacsplat.datasets.writer import JOURNAL, has_content
+from tacsplat.datasets.outputs import ensure_output_dir, other_writer
+from tacsplat.datasets.writer import JOURNAL, has_content, journal_locked
 from tacsplat.errors import ConfigError
 
 SETTINGS_KEY = "capture_settings"  # in scene.json's "extra"
@@ -67,9 +67,20 @@ def check_out(out: Path, resume: bool) -> None:
     if resume and not file_in_the_way and not (out / JOURNAL).is_file():
         raise ConfigError("--resume", f"{out} holds no scene to resume (no {JOURNAL}); drop --resume to start one")
     ensure_output_dir(out, "--out")
-    if not resume and (out / JOURNAL).exists():
+    if resume:
+        return
+    # Content first, then the journal: a creation renames its journal into place before it writes anything else,
+    # so a folder another capture is creating at this moment is named as that capture's, never as other files.
+    content = has_content(out)
+    if (out / JOURNAL).exists():
+        if journal_locked(out / JOURNAL):
+            raise ConfigError(
+                "--out",
+                f"{out} is being written by {other_writer(out)}: wait for it to end, then continue the scene "
+                "with --resume, or choose a new folder",
+            )
         raise ConfigError("--out", f"{out} already holds a scene: add --resume to continue it, or choose a new folder")
-    if not resume and has_content(out):
+    if content:
         raise ConfigError("--out", f"{out} holds other files and no scene; choose an empty or new folder")
 
 

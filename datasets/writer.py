@@ -125,14 +125,15 @@ def has_content(path: Path) -> bool:
 def check_new_scene_dir(path: Path) -> None:
     """Refuse (InvalidInputError) a folder that holds anything: a scene starts in a new or empty one."""
     path = Path(path)
+    content = path.is_dir() and has_content(path)  # before the journal, which a creation writes first
     if (path / JOURNAL).exists():
-        if _journal_locked(path / JOURNAL):
+        if journal_locked(path / JOURNAL):
             raise InvalidInputError(
                 f"{path} is being written by {other_writer(path)}: wait for it to end and "
                 "continue the scene with --resume, or choose a new folder"
             )
         raise InvalidInputError(f"{path} already holds a scene: continue it with --resume, or choose a new folder")
-    if path.is_dir() and has_content(path):
+    if content:
         raise InvalidInputError(f"{path} exists and is not an empty folder; choose a new output folder")
 
 
@@ -679,7 +680,7 @@ def _lock_journal(path: Path, scene: Path):
     return journal
 
 
-def _journal_locked(path: Path) -> bool:
+def journal_locked(path: Path) -> bool:
     """Whether a writer (of any process) holds the journal ``path``."""
     with open(path, "rb") as f:
         try:

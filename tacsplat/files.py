@@ -95,7 +95,7 @@ def check_writable(directory: str | Path) -> None:
     """Refuse, before any work, a folder that cannot take a new file (read-only, no permission, or full):
     creates and removes a small probe file. The folder is created if missing."""
     directory = Path(directory)
-    probe = directory / f".tacsplat-write-probe.{os.getpid()}"
+    probe = directory / f".tacsplat-write-probe.{os.getpid()}.tmp"  # a temporary file, to a folder's other readers
     try:
         directory.mkdir(parents=True, exist_ok=True)
         with open(probe, "wb") as f:

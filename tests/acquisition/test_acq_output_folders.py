@@ -69,3 +69,54 @@ def test_out_that_holds_other_files(command, tmp_path, capsys):
         f"error: --out: {out} holds other files and no scene; choose an empty or new folder" in capsys.readouterr().err
     )
     assert [p.name for p in out.iterdir()] == ["IMG_0001.png"]
+
+
+def test_a_scene_another_capture_is_creating_between_the_checks_is_named_as_a_scene(tmp_path, monkeypatch):
+    """Another capture renames its journal into place, then makes its folders, while this one checks --out: the
+    folder must be reported as that scene (with --resume), never as 'other files' (a race two captures into one new
+    folder ran into under load)."""
+    from tacsplat.acquisition import capture_scene
+    from tacsplat.datasets.writer import JOURNAL
+    from tacsplat.errors import ConfigError
+
+    out = tmp_path / "scene"
+    out.mkdir()
+    real_has_content = capture_scene.has_content
+
+    def other_capture_creates(path):  # the other creation's steps happen between this check's two looks
+        (out / JOURNAL).write_text("{}\n")
+        (out / "images").mkdir()
+        return real_has_content(path)
+
+    monkeypatch.setattr(capture_scene, "has_content", other_capture_creates)
+    with pytest.raises(ConfigError, match="already holds a scene: add --resume"):
+        capture_scene.check_out(out, resume=False)
+
+
+def test_a_scene_being_written_names_the_writer(tmp_path):
+    from tacsplat.acquisition.capture_scene import check_out
+    from tacsplat.datasets.writer import JOURNAL, _lock_journal
+    from tacsplat.errors import ConfigError
+
+    out = tmp_path / "scene"
+    out.mkdir()
+    holder = _lock_journal(out / JOURNAL, out)  # this process as the other writer
+    (out / ".tacsplat.lock").write_text("4242\n")
+    try:
+        with pytest.raises(ConfigError, match=r"being written by another tacsplat process \(PID 4242\).*--resume"):
+            check_out(out, resume=False)
+    finally:
+        holder.close()
+
+
+def test_another_commands_write_probe_is_not_content(tmp_path, monkeypatch):
+    """The probe file another command's --out check writes for a moment is not 'other files' to this one (two
+    captures into one new folder at once: the loser was told the folder held other files)."""
+    from tacsplat.datasets.writer import has_content
+    from tacsplat.files import check_writable
+
+    seen = []
+    fsync = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (seen.append(has_content(tmp_path)), fsync(fd))[1])
+    check_writable(tmp_path)  # its probe is in the folder while it is synced
+    assert seen == [False]
