@@ -7,8 +7,10 @@ real gel (illumination drift since the reference, marker dots, noise, a soft rim
    the image, found by a black-hat filter, :func:`marker_mask`) are inpainted in both; their difference
    is median-filtered (3x3) and a smooth background of it is subtracted (a normalised Gaussian
    convolution over the pixels that did not change, iterated), which removes slow illumination
-   differences. A pixel changed when the magnitude exceeds ``median + 6 x 1.4826 MAD`` of the image, and
-   at least the calibration's threshold (the 99.5th percentile of the change far from its presses).
+   differences. A pixel changed when the magnitude exceeds ``median + 6 x 1.4826 MAD`` of the pixels that
+   did not change (a contact covering much of the gel would inflate the statistics of the whole image), and
+   at least the calibration's threshold (the 99.5th percentile of the change far from its presses); at most
+   twice that, so that the first estimate, from the whole image, still finds a large contact.
 2. calibration on presses of a ball of known radius (:meth:`TactileCalibration.fit`): the contact circle
    (:func:`find_contact_circle`) is where the colour change peaks along rays from the changed blob (the
    steepest slope of the gel, the rim of the ball's cap), fitted robustly. Inside it the sphere gives the
@@ -18,9 +20,9 @@ real gel (illumination drift since the reference, marker dots, noise, a soft rim
 3. reading (:meth:`TactileCalibration.depth`): gradients from the MLP within the changed region (0
    outside); the contact is where the object holds the gel (:func:`contact_region`: the slope has not
    started to fall going outwards, as inside a ball's print, not in the sagging rim around it); the depth
-   by least-squares (Poisson) integration over the contact with zero height outside it
-   (:func:`poisson_integrate`); a contact shallower than a quarter pixel is noise. The sag of the free gel
-   around a contact is not counted: depth is the object's print relative to the rim of its contact.
+   by least-squares (Poisson) integration over the contact with zero height at its rim, free where the image
+   border cuts it (:func:`poisson_integrate`); a contact shallower than a quarter pixel is noise. The sag of
+   the free gel around a contact is not counted: depth is the object's print relative to the rim of its contact.
 
 :func:`fit_ball` checks a calibration on a press: a sphere fitted to the lifted contact points against the
 known ball. Depth is the indentation in metres (>= 0) of the sensor model of DESIGN.md; x along image
@@ -56,8 +58,10 @@ log = logging.getLogger(__name__)
 
 FORMAT = "tacsplat-tactile-calibration"
 VERSION = 2
-CHANGE_MADS = 6.0  # a pixel changed when its colour change exceeds the image's median by this many (robust) sigmas
+CHANGE_MADS = 6.0  # a pixel changed when its colour change exceeds the unchanged pixels' median by this many sigmas
 MIN_CHANGE = 6.0  # ... and at least this many grey levels
+MAX_CHANGE_FACTOR = 2.0  # ... and at most this times a calibration's (a large contact inflates the first estimate)
+MIN_UNCHANGED = 0.25  # ... where at least this fraction of the image is below that (less: no contact, a broken frame)
 BACKGROUND_SIGMA = 1 / 8  # of the image's larger side: the scale of illumination drift
 MARKER_MIN_CONTRAST = 25.0  # grey levels a marker dot is darker than its surroundings
 CHANGE_SCALE = 64.0  # grey levels -> MLP input
@@ -138,9 +142,17 @@ class ColorChange:
 
 
 def color_change(
-    image: np.ndarray, reference: np.ndarray, min_change: float = MIN_CHANGE, iterations: int = 3
+    image: np.ndarray,
+    reference: np.ndarray,
+    min_change: float = MIN_CHANGE,
+    max_change: float | None = None,
+    iterations: int = 6,
 ) -> ColorChange:
-    """The colour change of ``image`` against the no-contact ``reference`` (both [h, w, 3] RGB), see the module doc."""
+    """The colour change of ``image`` against the no-contact ``reference`` (both [h, w, 3] RGB), see the module doc.
+
+    The threshold is at least ``min_change`` and at most ``max_change`` grey levels (no cap if None); background
+    and threshold are estimated again from the pixels that did not change until these settle (``iterations``).
+    """
     image = _as_rgb(image, "image").astype(np.float64)
     reference = _as_rgb(reference, "reference").astype(np.float64)
     if image.shape != reference.shape:
@@ -151,17 +163,21 @@ def color_change(
     diff = cv2.medianBlur((image - reference).astype(np.float32), 3).astype(np.float64)
     h, w = diff.shape[:2]
     sigma = BACKGROUND_SIGMA * max(h, w)
-    still = np.ones((h, w))
+    still = np.ones((h, w), bool)  # first from the whole image
     for _ in range(iterations):
-        weight = _blur(still, sigma)
+        weight = _blur(still.astype(np.float64), sigma)
         background = _blur(diff * still[..., None], sigma)
         change = diff - background / np.maximum(weight, 1e-6)[..., None]
         magnitude = np.linalg.norm(_blur(change, 1.0), axis=-1)
-        median = float(np.median(magnitude))
-        threshold = max(min_change, median + CHANGE_MADS * (1.4826 * float(np.median(np.abs(magnitude - median)))))
-        still = ndimage.binary_erosion(magnitude < threshold, iterations=3).astype(np.float64)
-        if not still.any():  # everything changed: no background left to model
+        quiet = magnitude[still]  # the noise, of the pixels that did not change
+        median = float(np.median(quiet))
+        threshold = max(min_change, median + CHANGE_MADS * (1.4826 * float(np.median(np.abs(quiet - median)))))
+        if max_change is not None and still.all() and np.mean(magnitude < max_change) > MIN_UNCHANGED:
+            threshold = min(threshold, max_change)  # the first estimate: a contact covering much of the gel inflates it
+        settled = ndimage.binary_erosion(magnitude < threshold, iterations=3)  # the changed pixels grown by 3 px
+        if not settled.any() or np.array_equal(settled, still):  # everything changed (no background left), or done
             break
+        still = settled
     return ColorChange(change.astype(np.float32), magnitude.astype(np.float32), threshold)
 
 
@@ -258,9 +274,11 @@ def poisson_integrate(
 ) -> np.ndarray:
     """Depth [h, w] metres whose gradient best matches ``(gx, gy)`` [h, w] (slopes) in ``mask``, 0 outside it.
 
-    Least squares over every pixel edge touching ``mask`` (default: the whole image, with depth 0 beyond
-    its border): ``d_q - d_p = pixel_size * (g_p + g_q) / 2``, with ``g`` taken as 0 outside ``mask``;
-    solved exactly (sparse Cholesky-like factorisation of the normal equations, a Dirichlet Poisson problem).
+    Least squares over every pixel edge touching ``mask``: ``d_q - d_p = pixel_size * (g_p + g_q) / 2``, with
+    ``g`` taken as 0 outside ``mask``; solved exactly (sparse Cholesky-like factorisation of the normal
+    equations, a Poisson problem). The whole image (the default) has depth 0 beyond its border; a ``mask``
+    has depth 0 at its rim inside the image and none across the image's border (a contact cut by the border
+    goes on beyond it), unless it covers the whole image.
     """
     gx = np.asarray(gx, dtype=np.float64)
     gy = np.asarray(gy, dtype=np.float64)
@@ -273,8 +291,10 @@ def poisson_integrate(
     if not mask.any():
         return depth
     inside = np.pad(mask, 1)
-    index = np.full(inside.shape, -1)
+    index = np.full(inside.shape, -1)  # -1: depth 0 there
     index[inside] = np.arange(int(inside.sum()))
+    if not mask.all():  # a rim inside the image holds the mask: no equation across the image's border (-2)
+        index[np.pad(np.zeros(mask.shape, bool), 1, constant_values=True)] = -2
     slopes = [np.pad(np.where(mask, g, 0.0), 1) for g in (gx, gy)]
     rows, cols, vals, rhs = [], [], [], []
     edge = 0
@@ -282,7 +302,7 @@ def poisson_integrate(
         first, second = ((slice(None),) * axis + (end,) for end in (slice(0, -1), slice(1, None)))
         p, q = index[first].ravel(), index[second].ravel()
         target = (pixel_size_m * (g[first] + g[second]) / 2).ravel()
-        used = (p >= 0) | (q >= 0)
+        used = ((p >= 0) | (q >= 0)) & (p > -2) & (q > -2)
         p, q, target = p[used], q[used], target[used]
         k = edge + np.arange(len(target))
         for nodes, sign in ((q, 1.0), (p, -1.0)):
@@ -433,13 +453,15 @@ class TactileCalibration:
         return cls(weights, pixel_size_m, size, ball_radius_m, threshold, MIN_CONTACT_DEPTH_PX * pixel_size_m, used)
 
     def change(self, image: np.ndarray, reference: np.ndarray) -> ColorChange:
-        """The colour change of ``image`` against ``reference``, at least this sensor's noise to count."""
+        """The colour change of ``image`` against ``reference``: at least this sensor's noise counts, and at most
+        MAX_CHANGE_FACTOR times that is needed."""
         image = _as_rgb(image, "image")
         if image.shape[:2] != tuple(self.image_size):
             raise TactileError(
                 "calibration", f"image is {_wxh(image.shape)}, the calibration is for {_wxh(self.image_size)}"
             )
-        return color_change(image, reference, min_change=self.change_threshold)
+        cap = MAX_CHANGE_FACTOR * max(MIN_CHANGE, self.change_threshold)
+        return color_change(image, reference, min_change=self.change_threshold, max_change=cap)
 
     def gradients(self, change: ColorChange) -> tuple[np.ndarray, np.ndarray]:
         """Surface gradients (gx, gy) [h, w] of the gel from its colour change."""
@@ -474,7 +496,8 @@ class TactileCalibration:
         try:
             with np.load(path) as data:
                 meta = json.loads(str(data["meta"]))
-                weights = [data[f"w{i}"] for i in range(2 * int(meta.get("layers", 0)))]
+                layers = meta.get("layers", 0) if isinstance(meta, dict) else 0  # (no object: refused below)
+                weights = [data[f"w{i}"] for i in range(2 * int(layers))]
         except FileNotFoundError:
             raise TactileError("calibration", f"{path}: file not found") from None
         # an empty, truncated or damaged file: numpy's EOFError, zipfile's BadZipFile, zlib's error, or zipfile's
@@ -510,8 +533,15 @@ class TactileCalibration:
             len(shapes[i]) == 2 and shapes[i + 1] == (shapes[i][1],) and (i == 0 or shapes[i][0] == shapes[i - 2][1])
             for i in range(0, len(shapes), 2)
         )
-        if not chained or shapes[0][0] != 5 or shapes[-1] != (2,) or not all(np.all(np.isfinite(w)) for w in weights):
-            raise TactileError("calibration", f"{path} [w0..]: not a finite MLP from 5 inputs to 2 outputs: {shapes}")
+        real = all(w.dtype.kind == "f" for w in weights)  # (not strings, integers or complex numbers)
+        if (
+            not (chained and real)
+            or shapes[0][0] != 5
+            or shapes[-1] != (2,)
+            or not all(np.isfinite(w).all() for w in weights)
+        ):
+            arrays = ", ".join(f"{w.dtype}{list(w.shape)}" for w in weights)
+            raise TactileError("calibration", f"{path} [w0..]: not a finite MLP from 5 inputs to 2 outputs: {arrays}")
         return cls(weights, **(m.model_dump() | {"image_size": tuple(m.image_size)}))
 
 
@@ -597,6 +627,12 @@ def calibrate_tactile(
         raise InvalidInputError(f"check_every must be >= 2, got {check_every}")
     held_out = [k for k in range(len(names)) if k % check_every == check_every - 1]
     fitted = [k for k in range(len(names)) if k not in held_out]
+    if len(names) >= 3 and not held_out:
+        raise TactileError(
+            "calibration",
+            f"--check-every {check_every} holds out no press of the {len(names)} given: "
+            f"give at most {len(names)}, or more presses",
+        )
     if len(fitted) < 2 or not held_out:
         raise TactileError(
             "calibration",
@@ -665,6 +701,7 @@ class OpticalTactileSensor:
 
     ``T_hand_sensor`` is the sensor pose in the hand frame: a fixed [4, 4] or a
     callable returning it (e.g. ``lambda: hand.fingertip_poses()["index"]``).
+    ``width`` and ``height`` default to the calibration's image size (asked of the camera, verified on open).
     On open, the mean of ``reference_frames`` frames becomes the no-contact
     reference: the gel must be untouched then.
     """
@@ -689,6 +726,8 @@ class OpticalTactileSensor:
         )
         self._pose = T_hand_sensor if callable(T_hand_sensor) else (lambda T=as_pose(T_hand_sensor, "T_hand_sensor"): T)
         self.reference_frames = int(reference_frames)
+        rows, cols = (int(n) for n in self.calibration.image_size)  # the size to ask for unless told another
+        width, height = cols if width is None else width, rows if height is None else height
         video = dict(width=width, height=height, fps=fps, timeout_s=timeout_s, capture_factory=capture_factory)
         self._video = VideoReader(source, name=f"tactile sensor {name!r}", **video)
         self.reference: np.ndarray | None = None  # [h, w, 3] float64 RGB
@@ -701,12 +740,16 @@ class OpticalTactileSensor:
         self.close()
 
     def open(self) -> None:
-        size = (self._video.open().height, self._video.width)
-        if size != tuple(self.calibration.image_size):
-            self._video.close()
-            delivers = f"camera delivers {_wxh(size)}, the calibration is for {_wxh(self.calibration.image_size)}"
-            raise TactileError(self.name, delivers)
-        self.capture_reference()
+        """Open the camera and take the no-contact reference; on any failure the camera is closed again."""
+        try:
+            size = (self._video.open().height, self._video.width)
+            if size != tuple(self.calibration.image_size):
+                delivers = f"camera delivers {_wxh(size)}, the calibration is for {_wxh(self.calibration.image_size)}"
+                raise TactileError(self.name, delivers)
+            self.capture_reference()
+        except BaseException:
+            self.close()
+            raise
 
     def close(self) -> None:
         self._video.close()

@@ -8,6 +8,7 @@ within ``timeout_s`` even when ``VideoCapture.read`` itself blocks forever.
 Files are read in order instead, every frame once.
 Resolution and fps are verified after they are set. A failure while opening
 (the first frame late included) releases the device and stops the reader.
+A closed reader can be opened again: it starts afresh (frame indices from 0).
 Timestamps are ``time.monotonic()`` seconds: compare them with that clock, which
 a wall-clock step (NTP) does not move.
 """
@@ -63,7 +64,7 @@ class VideoReader:
         self.sequential = isinstance(source, (str, Path)) and Path(source).is_file()  # a file: every frame, in order
         self._requested = (width, height, fps, fourcc)
         self._factory = capture_factory
-        self._cap = None
+        self._cap: list = [None]  # the capture, in a box of its own per opening: whoever releases it empties it
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._release_lock = threading.Lock()
@@ -80,7 +81,13 @@ class VideoReader:
         """Open the device, verify its settings and its first frame; on any failure (an exception of the capture's
         too), the device is released and the reader thread stopped before the error is raised."""
         source = str(self.source) if isinstance(self.source, Path) else self.source
-        self._cap = self._factory(source)
+        # afresh (opened and closed before?); the reader thread of an earlier opening, if still blocked in its driver,
+        # keeps its own stop event and capture
+        self._stop = threading.Event()
+        with self._cond:
+            self._frames.clear()
+            self._count, self._last_index, self._ended = 0, -1, None
+        self._cap = [self._factory(source)]
         try:
             self._open()
         except BaseException:
@@ -89,7 +96,7 @@ class VideoReader:
         return self
 
     def _open(self) -> None:
-        cap = self._cap
+        cap = self._cap[0]
         if not cap.isOpened():
             raise CameraError(
                 self.name, f"cannot open {self.source!r} (unplugged, busy, or no permission on /dev/video*?)"
@@ -112,7 +119,8 @@ class VideoReader:
             problem = f"asked for {fps:g} fps, the device reports {self.fps:g} fps"
         if problem:
             raise CameraError(self.name, problem)
-        self._thread = threading.Thread(target=self._run, args=(cap,), name=f"video-{self.name}", daemon=True)
+        args = (cap, self._cap, self._stop)
+        self._thread = threading.Thread(target=self._run, args=args, name=f"video-{self.name}", daemon=True)
         self._thread.start()
         # the first frame proves the device delivers, at the size it reported
         first = self.read()
@@ -135,12 +143,12 @@ class VideoReader:
                 self._thread = None
                 return
         self._thread = None
-        self._release()
+        self._release(self._cap)
 
-    def _release(self) -> None:
-        """Release the device once, whoever (close, or a reader thread that outlived it) gets here first."""
+    def _release(self, box: list) -> None:
+        """Release the capture in ``box`` once, whoever (close, or a reader thread that outlived it) comes first."""
         with self._release_lock:
-            cap, self._cap = self._cap, None
+            cap, box[0] = box[0], None
         if cap is not None:
             cap.release()
 
@@ -151,21 +159,21 @@ class VideoReader:
         self.close()
 
     # -- reading -----------------------------------------------------------
-    def _run(self, cap) -> None:
+    def _run(self, cap, box: list, stop: threading.Event) -> None:
         try:
-            self._read_frames(cap)
+            self._read_frames(cap, stop)
         finally:
-            if self._stop.is_set():  # closed while this thread was in the driver: close left the release to it
-                self._release()
+            if stop.is_set():  # closed while this thread was in the driver: close left the release to it
+                self._release(box)
 
-    def _read_frames(self, cap) -> None:
-        while not self._stop.is_set():
+    def _read_frames(self, cap, stop: threading.Event) -> None:
+        while not stop.is_set():
             try:
                 ok, image = cap.read()
             except cv2.error as exc:
                 ok, image = False, exc
             now = time.monotonic()
-            if self._stop.is_set():  # closed meanwhile: no frame after close
+            if stop.is_set():  # closed meanwhile: no frame after close
                 return
             with self._cond:
                 if not ok or image is None or getattr(image, "size", 0) == 0:
@@ -173,9 +181,9 @@ class VideoReader:
                     self._cond.notify_all()
                     return
                 if self.sequential:  # keep every frame: wait for the consumer instead of dropping
-                    while len(self._fresh()) >= 8 and not self._stop.is_set():
+                    while len(self._fresh()) >= 8 and not stop.is_set():
                         self._cond.wait(0.1)
-                    if self._stop.is_set():
+                    if stop.is_set():
                         return
                 self._frames.append(Frame(image, now, self._count))
                 self._count += 1

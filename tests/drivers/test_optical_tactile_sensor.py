@@ -1,6 +1,9 @@
 """Optical tactile sensor: calibrate on ball presses rendered by the twin, read a press back from a video file."""
 
+import json
 import re
+import threading
+import time
 
 import cv2
 import numpy as np
@@ -8,8 +11,14 @@ import pytest
 
 from tacsplat.cli import main as tacsplat_main
 from tacsplat.drivers import TactileSensor
-from tacsplat.drivers.optical_tactile import OpticalTactileSensor, TactileCalibration, fit_sphere, poisson_integrate
-from tacsplat.errors import InvalidInputError, TactileError
+from tacsplat.drivers.optical_tactile import (
+    OpticalTactileSensor,
+    TactileCalibration,
+    calibrate_tactile,
+    fit_sphere,
+    poisson_integrate,
+)
+from tacsplat.errors import CameraError, InvalidInputError, TactileError
 from tacsplat.geometry import make_pose, tactile_pixel_grid
 from tacsplat.sim.tactile import render_tactile_rgb
 
@@ -20,11 +29,11 @@ PIXEL_M = 8e-5  # 0.08 mm per pixel (DIGIT-like)
 BALL_M = 4e-3
 
 
-def ball_press(cx, cy, indentation_m):
-    """True indentation [H, W] of a ball of radius BALL_M pressed ``indentation_m`` deep at pixel (cx, cy)."""
+def ball_press(cx, cy, indentation_m, ball_m=BALL_M):
+    """True indentation [H, W] of a ball of radius ``ball_m`` pressed ``indentation_m`` deep at pixel (cx, cy)."""
     ys, xs = np.indices((H, W)) + 0.5
     rho2 = ((xs - cx) ** 2 + (ys - cy) ** 2) * PIXEL_M**2
-    depth = np.sqrt(np.maximum(BALL_M**2 - rho2, 0.0)) - (BALL_M - indentation_m)
+    depth = np.sqrt(np.maximum(ball_m**2 - rho2, 0.0)) - (ball_m - indentation_m)
     return np.maximum(depth, 0.0).astype(np.float32)
 
 
@@ -131,11 +140,37 @@ def test_sensor_reads_ball_press_depth_from_a_video_file(calibration_file, tmp_p
     assert abs(r - 129.5) <= 3 and abs(c - 149.5) <= 3
 
 
-def test_bad_calibration_file_is_a_clear_error(tmp_path):
+def _weights(dtype=np.float32):
+    """The MLP's weights (5 inputs, 8 hidden, 2 outputs), all zero."""
+    return [np.zeros(shape, dtype) for shape in ((5, 8), (8,), (8, 2), (2,))]
+
+
+def _meta(**changes) -> str:
+    meta = {"format": "tacsplat-tactile-calibration", "version": 2, "layers": 2, "pixel_size_m": PIXEL_M}
+    meta |= {"image_size": [H, W], "ball_radius_m": BALL_M, "change_threshold": 6.0, "noise_floor_m": 2e-5}
+    return json.dumps(meta | changes)
+
+
+@pytest.mark.parametrize(
+    "contents, words",
+    [
+        ({"something": np.zeros(3)}, "not a tactile calibration file"),
+        ({"meta": json.dumps([1, 2])}, "[format]"),  # JSON, but no object
+        ({"meta": json.dumps(None)}, "[format]"),
+        ({"meta": _meta(), **{f"w{i}": w.astype(str) for i, w in enumerate(_weights())}}, "[w0..]"),
+        ({"meta": _meta(), **{f"w{i}": w for i, w in enumerate(_weights(np.complex128))}}, "[w0..]"),
+        ({"meta": _meta(), **{f"w{i}": w for i, w in enumerate(_weights(np.int8))}}, "[w0..]"),
+    ],
+    ids=["no meta", "meta a list", "meta null", "string weights", "complex weights", "int8 weights"],
+)
+def test_bad_calibration_file_is_a_clear_error(tmp_path, contents, words):
     bad = tmp_path / "bad.npz"
-    np.savez(bad, something=np.zeros(3))
-    with pytest.raises(TactileError, match="bad.npz"):
+    np.savez(bad, **contents)
+    with pytest.raises(TactileError, match=re.escape(f"{bad}") + ".*" + re.escape(words)):
         TactileCalibration.load(bad)
+    good = tmp_path / "good.npz"
+    np.savez(good, meta=_meta(), **{f"w{i}": w for i, w in enumerate(_weights())})
+    assert TactileCalibration.load(good).weights[0].dtype == np.float32
 
 
 def _damaged(data: bytes, how: str) -> bytes:
@@ -181,3 +216,98 @@ def test_calibration_without_any_contact_fails_clearly():
     flat = tactile_image(np.zeros((H, W), np.float32), rng)
     with pytest.raises(TactileError, match="no ball press"):
         TactileCalibration.fit(flat, [tactile_image(np.zeros((H, W), np.float32), rng)], BALL_M, PIXEL_M)
+
+
+def test_check_every_that_holds_out_no_press_says_so():
+    rng = np.random.default_rng(3)
+    flat = tactile_image(np.zeros((H, W), np.float32), rng)
+    names = [f"press_{k}.png" for k in range(6)]
+    with pytest.raises(TactileError, match=r"--check-every 10 holds out no press of the 6 given") as error:
+        calibrate_tactile(flat, [flat] * 6, names, BALL_M, PIXEL_M, check_every=10)
+    assert "at least 3" not in str(error.value)  # 6 presses are enough; the check is what is missing
+
+
+def _read_depth(calibration_file, truth, seed):
+    """Depth read from a rendering of ``truth`` against a rendered untouched gel, and the sphere fitted to it."""
+    rng = np.random.default_rng(seed)
+    reference = tactile_image(np.zeros((H, W), np.float32), rng)
+    calib = TactileCalibration.load(calibration_file)
+    depth = calib.depth(tactile_image(truth, rng), reference).astype(np.float64)
+    contact = depth > 0
+    x, y = tactile_pixel_grid(H, W, PIXEL_M)
+    radius = fit_sphere(np.column_stack([x[contact], y[contact], -depth[contact]]))[1] if contact.sum() > 10 else 0.0
+    return depth, radius, calib.depth(tactile_image(np.zeros((H, W), np.float32), rng), reference)
+
+
+def test_a_press_covering_much_of_the_gel_keeps_its_depth(calibration_file):
+    """A ball of radius 40 mm pressed 0.8 mm deep: its print covers 40 % of the image (and would vanish if the
+    threshold were taken from the statistics of the whole image, the print included)."""
+    truth = ball_press(160, 120, 8e-4, ball_m=0.04)
+    depth, _, untouched = _read_depth(calibration_file, truth, seed=5)
+    assert (depth > 0).sum() > 0.6 * (truth > 0).sum()
+    assert depth.max() > 0.6 * truth.max()
+    assert not (depth > 0)[truth == 0].any()
+    assert not untouched.any()  # an untouched gel still reads no contact
+
+
+def test_a_press_cut_by_the_image_border_keeps_its_shape(calibration_file):
+    """The ball's centre 5 px inside the right border: the depth is not pinned to zero at the border."""
+    truth = ball_press(315, 120, 8e-4)
+    depth, radius, _ = _read_depth(calibration_file, truth, seed=3)
+    assert depth.max() > 0.6 * truth.max()
+    assert abs(radius - BALL_M) < 0.1 * BALL_M, radius
+
+
+class ModeCamera:
+    """A UVC-like camera: 640x480 by default, switched to any size by CAP_PROP_FRAME_WIDTH/HEIGHT; it stops
+    delivering after ``frames`` frames (never if None)."""
+
+    def __init__(self, source, frames=None):
+        self.width, self.height, self.frames, self.released = 640, 480, frames, threading.Event()
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        if prop in (cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT):
+            setattr(self, "width" if prop == cv2.CAP_PROP_FRAME_WIDTH else "height", int(value))
+            return True
+        return False
+
+    def get(self, prop):
+        sizes = {cv2.CAP_PROP_FRAME_WIDTH: self.width, cv2.CAP_PROP_FRAME_HEIGHT: self.height}
+        return sizes.get(prop, 30.0 if prop == cv2.CAP_PROP_FPS else 0.0)
+
+    def read(self):
+        time.sleep(0.01)
+        if self.frames is not None:
+            if self.frames <= 0:
+                return False, None  # unplugged
+            self.frames -= 1
+        return True, np.full((self.height, self.width, 3), 128, np.uint8)
+
+    def release(self):
+        self.released.set()
+
+
+def test_sensor_asks_the_camera_for_the_calibrations_image_size():
+    """Opened with no width/height (as the rig opens it), the sensor asks for the calibration's size."""
+    calib = TactileCalibration(_weights(), PIXEL_M, (H, W))
+    with OpticalTactileSensor("index", 0, calib, timeout_s=1.0, capture_factory=ModeCamera) as sensor:
+        assert sensor.read().depth.shape == (H, W)
+
+
+def test_a_sensor_that_fails_while_taking_its_reference_releases_the_camera():
+    cameras = []
+
+    def dies_after_two_frames(source):
+        cameras.append(ModeCamera(source, frames=2))
+        return cameras[-1]
+
+    calib = TactileCalibration(_weights(), PIXEL_M, (H, W))
+    sensor = OpticalTactileSensor(
+        "index", 0, calib, width=W, height=H, timeout_s=0.5, capture_factory=dies_after_two_frames
+    )
+    with pytest.raises(CameraError, match="no frame after 2 frames"):
+        sensor.open()
+    assert cameras[0].released.wait(3.0), "the camera was never released"

@@ -78,13 +78,18 @@ def test_unplugged_device_that_fails_reads_raises():
 def test_slow_consumer_gets_the_newest_frame_never_a_repeat():
     device = LiveDevice(fps=200.0)
     with VideoReader(0, timeout_s=1.0, capture_factory=lambda s: device) as reader:
-        indices = []
+        indices = [-1]
         for _ in range(5):
-            time.sleep(0.05)  # a slow consumer: the device keeps streaming meanwhile
+            # a slow consumer: the device streams at least two frames meanwhile (waited for, not slept: a loaded
+            # machine may starve the device's thread for any time)
+            deadline = time.monotonic() + 10
+            while reader.frames_received < indices[-1] + 4 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            newest = reader.frames_received - 1  # frame indices count from 0
             frame = reader.read()
+            assert frame.index >= newest  # the newest at the time of reading, or one arriving meanwhile
             indices.append(frame.index)
-            assert frame.index >= reader.frames_received - 2  # the newest (or the one arriving meanwhile)
-        assert all(b > a + 1 for a, b in zip(indices, indices[1:]))  # newest, stale ones skipped
+        assert all(b > a + 1 for a, b in zip(indices[1:], indices[2:]))  # newest, stale ones skipped
         assert device.frames_made >= indices[-1] + 1  # the device kept streaming, never stalled by the consumer
         stamps = [reader.read().timestamp for _ in range(3)]
         assert stamps == sorted(stamps) and len(set(stamps)) == 3  # each read is a new frame
@@ -172,3 +177,37 @@ def test_frame_timestamps_are_monotonic_seconds_a_wall_clock_step_does_not_move(
         assert later.index > first.index and later.timestamp > first.timestamp
         assert later.timestamp >= told - 0.05  # (a frame may have been received just before ``told``)
         assert abs(later.timestamp - time.monotonic()) < 1.0
+
+
+def test_a_closed_reader_opens_again():
+    """Closed, then opened again (a sensor reopened after a fault): it reads the device's new frames."""
+    devices = []
+    reader = VideoReader(0, timeout_s=1.0, capture_factory=lambda s: devices.append(LiveDevice()) or devices[-1])
+    with reader:
+        reader.read()
+    with reader:
+        frame = reader.read()
+        assert frame.index == 0 and reader.read().index > 0  # counted afresh
+        assert int(frame.image[0, 0, 0]) <= 2  # one of the new device's first frames
+    assert len(devices) == 2
+
+
+def test_a_reader_thread_stuck_in_its_driver_leaves_the_next_opening_alone():
+    """Closed while its thread hangs in the driver, then opened again: when that driver call returns at last, the
+    old thread releases its own device, not the new one, and adds no frame."""
+    old, new = StartingDevice(), StartingDevice()
+    devices = iter([old, new])
+    reader = VideoReader(0, timeout_s=1.0, capture_factory=lambda s: next(devices))
+    reader.open()
+    old.unplugged.set()  # its next read blocks
+    time.sleep(0.05)
+    reader.close()  # the thread stays in the driver: the release is left to it
+    with reader:
+        old._forever.set()  # the driver returns
+        assert old.released.wait(3.0)
+        time.sleep(0.1)
+        assert not new.released.is_set()
+        frames = [reader.read() for _ in range(3)]
+        assert all(f.image[0, 0, 0] == (f.index + 1) % 256 for f in frames)  # the new device's n-th frame has index n
+        assert [f.index for f in frames] == sorted({f.index for f in frames})
+    assert new.released.is_set()
