@@ -37,9 +37,9 @@ def emu():
         yield e
 
 
-# replies within 100 ms: generous for an emulator thread on a loaded CI machine (a U2D2 answers in ~1 ms)
-TEST_CONFIG = DynamixelHandConfig(min_packet_timeout_s=0.1, drain_s=0.1)
-LATE_S = 0.15  # a reply this late is past the timeout, and inside the drain that follows it
+# replies within 300 ms: an emulator thread on a loaded 2-core machine missed 100 ms (a U2D2 answers in ~1 ms)
+TEST_CONFIG = DynamixelHandConfig(min_packet_timeout_s=0.3, drain_s=0.1)
+LATE_S = 0.35  # a reply this late is past the timeout, and inside the drain that follows it
 
 
 def make_hand(emu, kinematics, **kw):
