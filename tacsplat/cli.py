@@ -12,8 +12,9 @@ numba, MuJoCo) inside ``run``, so that ``tacsplat --help`` imports none.
 Exit codes: 0 success, 1 a runtime error (one ``error:`` line), 2 a usage
 error (one line naming the option: a bad or missing value, or one out of its
 range: :class:`UsageError`), 130 Ctrl-C (143 SIGTERM where a command
-checkpoints on it). ``-v``, ``-q`` and ``--log-level`` are accepted before or
-after the subcommand.
+checkpoints on it), 141 when the reader of stdout went away (``| head``).
+``-v``, ``-q`` and ``--log-level`` are accepted before or after the
+subcommand.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import argparse
 import gc
 import importlib
 import logging
+import os
 import sys
 
 from tacsplat import __version__
@@ -88,6 +90,7 @@ class CommandTree:
         self._subparsers = {"": parser.add_subparsers(dest="command", metavar="COMMAND")}
         self._parsers: dict[str, argparse.ArgumentParser] = {"": parser}
         self.own_options: set[str] = set()  # the commands that parse their own options
+        self._value_options = [s for a in common._actions if a.nargs != 0 for s in a.option_strings]  # --log-level
 
     def _group(self, path: str) -> argparse._SubParsersAction:
         if path not in self._subparsers:
@@ -128,13 +131,24 @@ class CommandTree:
         self.own_options.add(path)
 
     def _chosen(self, argv: list[str]) -> tuple[str, int]:
-        """``(path, index after its last word in argv)``: the words of argv that extend a command's path (options
-        and their values skipped)."""
-        path, end = "", 0
+        """``(path, index after its last word in argv)``: the words of argv that extend a command's path, up to the
+        first that does not (what follows is the command's own: a value that names a command is a value), with
+        options, their values and empty words (which name no command) skipped."""
+        path, end, value = "", 0, False
         for i, token in enumerate(argv):
-            if f"{path} {token}".strip() in self._parsers and not token.startswith("-"):
+            if value:  # the value of the option before it (--log-level DEBUG)
+                value = False
+            elif token.startswith("-"):
+                value = self._takes_value(token)
+            elif token.strip():
+                if f"{path} {token}".strip() not in self._parsers:
+                    break
                 path, end = f"{path} {token}".strip(), i + 1
         return path, end
+
+    def _takes_value(self, token: str) -> bool:
+        """Whether ``token`` is a logging option (or an abbreviation argparse takes) followed by its value."""
+        return len(token) > 2 and "=" not in token and any(o.startswith(token) for o in self._value_options)
 
     def prog(self, argv: list[str]) -> str:
         """The usage name of the command named in ``argv`` (for usage lines)."""
@@ -187,6 +201,21 @@ def _configure_logging(args: argparse.Namespace) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command of ``argv`` (default ``sys.argv[1:]``); its exit code (see the module docstring)."""
+    try:
+        try:
+            return _main(argv)
+        finally:  # output still buffered for a reader that went away fails here, not at the interpreter's exit
+            sys.stdout.flush()
+    except BrokenPipeError:
+        # The reader of stdout went away (`tacsplat ... | head`): what is left goes to devnull (the recipe of
+        # Python's signal docs), and the code is 128 + SIGPIPE, what a shell reports for a program a closed pipe
+        # ended (cat, grep), rather than 1, which says the command itself failed.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+
+
+def _main(argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     parser = build_parser(complete="--print-completion" in argv)
     head, rest = parser.tree.split_own_options(argv)

@@ -21,7 +21,9 @@ Jobs hand each other paths on a filesystem every worker sees, never arrays.
   CUDA); a task waits for its needs' tasks (their object refs are its
   arguments). A task that raises, or whose worker dies, is retried ``retries``
   times, except on a :class:`TacsplatError` (a mistake in its input, which a
-  retry would repeat). Without an address (``--ray-address`` or ``RAY_ADDRESS``),
+  retry would repeat). A job that no node of the cluster has the CPUs and GPUs
+  for (as its nodes are when the batch starts) fails at once: Ray would queue
+  it for ever. Without an address (``--ray-address`` or ``RAY_ADDRESS``),
   or with ``local``, an embedded local Ray is started for the batch and stopped
   after it. An address Ray cannot take (:func:`check_ray_address`), one where
   nothing answers, or one whose ``ray.init`` fails is one error naming it.
@@ -506,7 +508,7 @@ def _limit_threads(cpus: float) -> None:
     its CPUs: Ray sets OMP_NUM_THREADS the same way)."""
     import numba
 
-    numba.set_num_threads(max(1, min(int(cpus), numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(max(1, int(min(numba.config.NUMBA_NUM_THREADS, cpus))))  # (an infinite or NaN cpus: all)
 
 
 class _Starts:
@@ -612,8 +614,15 @@ def _run_ray(todo: list[Job], batch: _Batch, retries: int) -> None:
     try:
         starts = starts_actor.remote()
         has_gpus = ray.cluster_resources().get("GPU", 0) > 0
+        nodes = [node["Resources"] for node in ray.nodes() if node["Alive"]]
         refs: dict[str, object] = {}
         for job in todo:
+            if need := batch.blocked_by(job):  # (a need that no node can run)
+                batch.not_run(job, need)
+                continue
+            if too_big := _too_big(job.cpus, job.gpus(has_gpus), nodes):
+                batch.failed(job, too_big, attempts=0)
+                continue
             needs = [refs[n] for n in job.needs if n in refs]
             refs[job.name] = execute.options(
                 num_cpus=job.cpus,
@@ -623,7 +632,7 @@ def _run_ray(todo: list[Job], batch: _Batch, retries: int) -> None:
                 name=job.name,
             ).remote(job, starts, *needs)
         order = {ref: i for i, ref in enumerate(refs.values())}
-        jobs = dict(zip(refs.values(), todo))
+        jobs = {refs[job.name]: job for job in todo if job.name in refs}
         outstanding = list(refs.values())
         while outstanding:
             ready, _ = ray.wait(outstanding, num_returns=1, timeout=POLL_S)
@@ -640,6 +649,16 @@ def _run_ray(todo: list[Job], batch: _Batch, retries: int) -> None:
                 ray.cancel(ref)  # never starts
             ray.wait(outstanding, num_returns=len(outstanding), timeout=CANCEL_GRACE_S)
         raise
+
+
+def _too_big(cpus: float, gpus: float, nodes: list[dict[str, float]]) -> str | None:
+    """Why a task of ``cpus`` CPUs and ``gpus`` GPUs can never start on a cluster of ``nodes`` (each node's
+    resources), or None when one of them has both."""
+    if any(node.get("CPU", 0) >= cpus and node.get("GPU", 0) >= gpus for node in nodes):
+        return None
+    sizes = sorted({(node.get("CPU", 0), node.get("GPU", 0)) for node in nodes}, reverse=True)
+    has = f"its nodes have {', '.join(f'{c:g} CPUs and {g:g} GPUs' for c, g in sizes)}" if sizes else "it has none"
+    return f"needs {cpus:g} CPUs and {gpus:g} GPUs on one node; no node of the Ray cluster has that many ({has})"
 
 
 def _collect(job: Job, ref, batch: _Batch, attempts: int) -> None:

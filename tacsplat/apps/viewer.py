@@ -234,20 +234,28 @@ def read_run(path: Path, label: str, report: Path | None = None) -> RunData:
 
 
 def find_scene(recorded, run: Path, report: Path | None = None):
-    """The scene a run was trained on: its recorded path as it is, relative to the run, or (runs of a report)
-    its part from ``scenes/`` on inside the report; None (with a warning) when none of them is a scene."""
+    """The scene a run was trained on: its recorded path as it is, relative to the run or to a folder above it (a
+    path relative to where ``bench paper --out pb1`` ran: ``pb1/scenes/...``, found from wherever the run is
+    viewed), or (runs of a report) its part from ``scenes/`` on inside the report; None (with a warning naming
+    the places tried) when none of them is a scene."""
     from tacsplat.datasets import Scene
 
     if recorded is None:
         return None
     recorded = Path(recorded)
-    candidates = [recorded, run / recorded]
+    candidates = [recorded, run / recorded]  # (the same path twice when it is absolute)
+    tried = [str(recorded.absolute()), str(run / recorded)]
+    if not recorded.is_absolute():
+        candidates += [folder / recorded for folder in run.absolute().parents]
+        tried.append(f"each folder above the run joined with {recorded}")
     if report is not None and "scenes" in recorded.parts:
         candidates.append(report.joinpath(*recorded.parts[recorded.parts.index("scenes") :]))
+        tried.append(str(candidates[-1]))
     for candidate in candidates:
         if (candidate / "transforms.json").is_file():
             return Scene.load(candidate)
-    log.warning("%s: its scene %s is not found; showing the splat alone", run, recorded)
+    tried = ", ".join(dict.fromkeys(tried))
+    log.warning("%s: its scene %s is not found (tried %s); showing the splat alone", run, recorded, tried)
     return None
 
 
@@ -410,7 +418,7 @@ class SplatSlot:
 
 def object_sphere(run: RunData) -> tuple[np.ndarray, float]:
     """(centre, radius) of a run's object: its scene's bounding sphere, else the sphere around the central 95 % of
-    its Gaussians."""
+    its Gaussians (a unit sphere at the origin when it has none)."""
     from tacsplat.apps.viewer_scene import bounding_sphere, load_mesh
 
     if run.sphere is None:
@@ -419,7 +427,7 @@ def object_sphere(run: RunData) -> tuple[np.ndarray, float]:
             run.sphere = (sphere.centre, sphere.radius)
         else:
             means = run.gaussians.means.detach().cpu().double().numpy()
-            centre = np.median(means, axis=0)
+            centre = np.median(means, axis=0) if len(means) else np.zeros(3)  # (no Gaussians: the origin)
             radius = float(np.percentile(np.linalg.norm(means - centre, axis=1), 95)) if len(means) else 0.0
             run.sphere = (centre, radius if radius > 0 else 1.0)
     return run.sphere
