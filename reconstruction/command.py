@@ -48,10 +48,7 @@ class ReconstructCommand:
 def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCommand:
     """The command of ``argv``: its options on the settings of --method and of --config, or on ``recorded`` (a
     run's own settings, which --resume continues with); a UsageError naming the option of a bad value."""
-    early = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
-    early.add_argument("--method")
-    early.add_argument("--config")
-    given, _ = early.parse_known_args(argv)
+    given = _early_options(argv)
     if given.method is not None and given.method not in METHODS:
         raise UsageError("--method", f"unknown method {given.method!r}; choose one of {', '.join(METHODS)}")
     if recorded is None:
@@ -74,6 +71,14 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
     return command
 
 
+def _early_options(argv: list[str]) -> argparse.Namespace:
+    """``method`` and ``config`` as ``argv`` gives them (None: not given), read before the rest."""
+    early = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    early.add_argument("--method")
+    early.add_argument("--config")
+    return early.parse_known_args(argv)[0]
+
+
 def option_names(config: TrainConfig) -> dict[str, str]:
     """``{"densify.max_gaussians": "--densify.max-gaussians", ...}``: the option of each setting, as tyro names it."""
     return {key: "--" + key.replace("_", "-") for key in flat_settings(config.to_json())}
@@ -81,7 +86,8 @@ def option_names(config: TrainConfig) -> dict[str, str]:
 
 def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:
     """The config a --resume continues with: the run's own (``recorded``) with the options given, which may only
-    raise --iterations; a ConfigError on --resume naming each other option that differs."""
+    raise --iterations; a ConfigError on --resume naming each other option that differs, and a --method given that
+    the run was not trained with (even one that sets nothing the run lacks: ``default`` sets nothing)."""
     given = parse(argv, recorded).train
     names = option_names(given)
     changes = [
@@ -89,8 +95,11 @@ def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:
         for path, before, now in changed_settings(recorded, given)
         if path != "iterations"
     ]
-    if changes and method_of(recorded) != method_of(given):
-        changes.insert(0, f"--method {method_of(recorded)} in the run, {method_of(given)} given")
+    method, asked = method_of(recorded), _early_options(argv).method
+    if changes and method_of(given) != method:
+        changes.insert(0, f"--method {method} in the run, {method_of(given)} given")
+    elif asked is not None and method_of(parse(argv).train) != method:  # (this command line trains another)
+        changes.insert(0, f"--method {method} in the run, {asked} given")
     if changes:
         raise ConfigError(
             "--resume",

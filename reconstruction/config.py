@@ -11,7 +11,7 @@ from typing import Iterable, Literal, get_args, get_origin, get_type_hints
 
 import torch
 
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, UsageError
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
 
@@ -175,9 +175,13 @@ class TrainConfig:
                 if value is None and type(None) in kinds:
                     continue
                 lo, hi = _RANGES.get(key, (0, None))
-                positive = key in _POSITIVE
+                positive, open_ = key in _POSITIVE or key in _OPEN, key in _OPEN
                 number = isinstance(value, (int, float)) and not isinstance(value, bool)
-                outside = number and (value < lo or (positive and value == lo) or (hi is not None and value > hi))
+                outside = number and (
+                    value < lo
+                    or (positive and value == lo)
+                    or (hi is not None and (value > hi or (open_ and value == hi)))
+                )
                 if bool in kinds and not isinstance(value, bool):
                     return key, f"must be true or false, got {value!r}"
                 if get_origin(kind) is Literal and value not in get_args(kind):
@@ -185,13 +189,18 @@ class TrainConfig:
                 if int in kinds and (not number or not isinstance(value, int) or outside):
                     return key, f"must be an integer {_range_text(lo, hi)}, got {value!r}"
                 if float in kinds and (not number or not math.isfinite(value) or outside):
-                    return key, f"must be a finite number {_range_text(lo, hi, positive)}, got {value!r}"
-        if self.background is not None and not (
-            len(self.background) == 3 and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in self.background)
+                    return key, f"must be a finite number {_range_text(lo, hi, positive, open_)}, got {value!r}"
+        background = self.background  # (a YAML file may give any value: a list read as a tuple)
+        if background is not None and not (
+            isinstance(background, tuple)
+            and len(background) == 3
+            and all(isinstance(c, (int, float)) and 0 <= c <= 1 for c in background)
         ):
-            return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {self.background!r}"
+            return "background", f"must be None or 3 numbers from 0 to 1 (RGB), got {background!r}"
         factors = self.coarse_factors
-        if not all(isinstance(f, int) and not isinstance(f, bool) and 2 <= f <= 64 for f in factors):
+        if not isinstance(factors, tuple) or not all(
+            isinstance(f, int) and not isinstance(f, bool) and 2 <= f <= 64 for f in factors
+        ):
             return "coarse_factors", f"must be integers from 2 to 64, coarsest first, got {factors!r}"
         if list(factors) != sorted(factors, reverse=True):
             return "coarse_factors", f"must run coarsest first (decreasing), got {factors!r}"
@@ -314,7 +323,7 @@ def _drop_removed(data: dict, source, resuming: bool = False) -> None:
 
 
 # Ranges TrainConfig.problem checks where they differ from >= 0: (smallest, largest or None); _POSITIVE excludes the
-# smallest.
+# smallest, _OPEN both.
 _RANGES = {
     "iterations": (1, None),
     "seed": (0, 2**32 - 1),
@@ -332,11 +341,27 @@ _RANGES = {
     "coarse_until": (0, 1),
     "crop_margin": (0, 1),
     "lr_means_final_factor": (0, 1),
+    "init.hull_resolution": (1, None),
+    "init.sift_max_features": (1, None),
+    "init.initial_opacity": (0, 1),
+    "init.touch_initial_opacity": (0, 1),
+    "densify.prune_opacity": (0, 0.5),  # (an opacity reset caps opacities at twice it, a logit of 0 to 1)
 }
-_POSITIVE = {"touch_max_distance", "proximity_sigma_px", "lr_means_final_factor", "eval_every_seconds"}
+_POSITIVE = {
+    "touch_max_distance",
+    "proximity_sigma_px",
+    "lr_means_final_factor",
+    "eval_every_seconds",
+    "init.touch_voxel_size",
+    "init.min_triangulation_angle_deg",
+    "densify.split_scale_divisor",  # (a split subtracts its log from the log scales)
+}
+_OPEN = {"init.initial_opacity", "init.touch_initial_opacity", "densify.prune_opacity"}  # excludes both ends
 
 
-def _range_text(lo, hi, exclusive: bool = False) -> str:
+def _range_text(lo, hi, exclusive: bool = False, open_: bool = False) -> str:
+    if open_:
+        return f"strictly between {lo} and {hi}"
     if hi is None:
         return f"{'>' if exclusive else '>='} {lo}"
     return f"{lo} to {hi}" + (f" (not {lo})" if exclusive else "")
@@ -357,7 +382,8 @@ _STEP_SETTINGS = (
 
 def set_fields(config: TrainConfig, settings: dict, source: str | Path | None = None) -> TrainConfig:
     """Set ``settings`` (``{"lambda_s": 0.0, "init.use_sfm": False}``) on a TrainConfig and return it; a
-    ConfigError naming ``source`` for a key that is not a field."""
+    ConfigError naming ``source`` for a key that is not a field, a UsageError for a value in place of the
+    settings of ``init`` or ``densify``."""
     for key, value in settings.items():
         *path, name = key.split(".")
         target = config
@@ -365,6 +391,8 @@ def set_fields(config: TrainConfig, settings: dict, source: str | Path | None = 
             target = getattr(target, part, None)
         if not dataclasses.is_dataclass(target) or name not in {f.name for f in dataclasses.fields(target)}:
             raise ConfigError(key, "not a training setting (a TrainConfig field, or init.x / densify.x)", source)
+        if dataclasses.is_dataclass(getattr(target, name)):  # (a mapping of them arrives as dotted keys)
+            raise UsageError(key, f"must be a mapping of {key}.x settings, got {value!r}", source)
         setattr(target, name, tuple(value) if isinstance(value, list) else value)
     return config
 

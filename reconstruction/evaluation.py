@@ -27,6 +27,7 @@ from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.methods import mechanisms, method_of
 from tacsplat.reconstruction.metrics import (
+    SSIM_WINDOW,
     ReferenceCloud,
     bounding_sphere_radius,
     chamfer_distance_parts,
@@ -40,7 +41,7 @@ from tacsplat.reconstruction.metrics import (
 )
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
-from tacsplat.reconstruction.run_dir import MESH_FILES, load_run
+from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, run_scene
 from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.views import background_image, camera_tensors, mesh_depth, scene_at, training_frames
 
@@ -267,11 +268,11 @@ def evaluate_views(
     look: Look | None = None,
     progress: bool = False,
 ) -> dict:
-    """PSNR, SSIM over ``frames``, CD and cd_paper against ``ground_truth``, and the mean angle between rendered
-    and ground-truth normals (``normal_error_deg``; :func:`ground_truth_normals`), and ``depth_bias``: the
-    median over the pixels where both have surface of the rendered (expected) depth minus the true one, in units of
-    the ground-truth radius, positive behind the truth (where reflections modelled as geometry put it) (NaN where
-    not available).
+    """PSNR, SSIM over ``frames`` (a view smaller than SSIM's window has none, with a warning), CD and cd_paper
+    against ``ground_truth``, and the mean angle between rendered and ground-truth normals (``normal_error_deg``;
+    :func:`ground_truth_normals`), and ``depth_bias``: the median over the pixels where both have surface of the
+    rendered (expected) depth minus the true one, in units of the ground-truth radius, positive behind the truth
+    (where reflections modelled as geometry put it) (NaN where not available).
     ``progress``: only what a training's progress row records (PSNR, CD and cd_paper; the rest NaN).
 
     ``cd`` (the design's): expected depth (alpha > 0.5) of the views against their visible ground-truth
@@ -284,6 +285,7 @@ def evaluate_views(
     Each view's backdrop is ``background_color``, or (None) fitted to that view's image border.
     """
     psnrs, ssims, predicted, predicted_median, angles, signed = [], [], [], [], [], []
+    too_small = []  # the sizes of the views smaller than SSIM's window: no SSIM for them
     for f in frames:
         gt_rgb = scene.load_image(f)
         background = torch.from_numpy(background_image(gt_rgb, background_color))
@@ -296,7 +298,9 @@ def evaluate_views(
                 both = (depth > 0) & np.isfinite(gt_depth) & (gt_depth > 0)  # [H, W]
                 signed.append((depth - gt_depth)[both] / ground_truth.radius)
         psnrs.append(psnr(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
-        if not progress:
+        if not progress and min(gt_rgb.shape[:2]) < SSIM_WINDOW:
+            too_small.append(f"{gt_rgb.shape[1]}x{gt_rgb.shape[0]}")
+        elif not progress:
             ssims.append(ssim(torch.from_numpy(rgb), torch.from_numpy(gt_rgb)))
         predicted.append(depth_to_points(depth, f.intrinsics.K, f.T_world_cam))
         if ground_truth is not None and ground_truth.surface is not None:
@@ -306,6 +310,14 @@ def evaluate_views(
             seen = None if ground_truth is None or ground_truth.seen is None else ground_truth.seen.get(f.id)
             radius = None if ground_truth is None else ground_truth.radius
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth, radius, seen)
+    if too_small:
+        sizes = ", ".join(sorted(set(too_small)))
+        log.warning(
+            "test views of %s px are smaller than the %dx%d window of SSIM: not measured (ssim null)",
+            sizes,
+            SSIM_WINDOW,
+            SSIM_WINDOW,
+        )
     cd = accuracy = completeness = cd_seen = cd_unseen = unseen_fraction = float("nan")
     reference = None if ground_truth is None else ground_truth.reference([f.id for f in frames])
     if reference is not None:
@@ -409,11 +421,9 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
 def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
     """Evaluate a run on disk (its last checkpoint): writes ``metrics.json`` and ``renders/`` and, where the run has
     a ``splat.ply``, writes it again from the checkpoint (a lit run from before the bake holds its unlit colour
-    there); returns the metrics."""
-    from tacsplat.datasets import Scene
-
+    there); returns the metrics. A ConfigError if the run's scene has changed since (:func:`~.run_dir.run_scene`)."""
     run = load_run(Path(run_dir))
-    scene = scene_at(Scene.load(run.scene_path), run.config.downscale)
+    scene = scene_at(run_scene(run), run.config.downscale)
     splat = bake_appearance(run.gaussians, run.look)
     if splat is not run.gaussians and (Path(run_dir) / "splat.ply").is_file():  # (an SH run's is already right)
         save_ply(splat, Path(run_dir) / "splat.ply")

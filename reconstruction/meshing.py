@@ -329,16 +329,15 @@ def export_mesh(
     ``RUN/mesh.ply`` that looks done (:func:`export_meshes`)."""
     import json
 
-    from tacsplat.datasets import Scene
     from tacsplat.reconstruction.evaluation import seen_by_training_views
-    from tacsplat.reconstruction.run_dir import load_run
+    from tacsplat.reconstruction.run_dir import load_run, run_scene
     from tacsplat.reconstruction.views import scene_at, training_frames
 
     run_dir = Path(run_dir)
     out = run_dir / "mesh.ply" if out is None else Path(out)
     check_mesh_path(out)
     run = load_run(run_dir)
-    scene = scene_at(Scene.load(run.scene_path), run.config.downscale)
+    scene = scene_at(run_scene(run), run.config.downscale)  # (refused if it has changed since the run)
     frames = training_frames(scene, run.config.train_views)
     extracted = extract_mesh(run.gaussians, scene, frames, run.config.backend, run.look, config)
     summary = {

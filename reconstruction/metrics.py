@@ -73,7 +73,10 @@ def ssim_map(
     return (num / den).permute(0, 2, 3, 1)
 
 
-def ssim(rendered: torch.Tensor, target: torch.Tensor, window: int = 11) -> float:
+SSIM_WINDOW = 11  # pixels: the side of ssim's Gaussian window, the smallest image it measures
+
+
+def ssim(rendered: torch.Tensor, target: torch.Tensor, window: int = SSIM_WINDOW) -> float:
     """Mean SSIM of images in [0, 1] over the valid region (``window`` x ``window`` Gaussian window, sigma 1.5,
     no padding), as pytorch-msssim and the NeRF/3DGS evaluations compute it."""
     _check_images(rendered, target)

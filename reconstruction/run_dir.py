@@ -77,6 +77,7 @@ class LoadedRun:
     step: int
     train_seconds: float
     look: Look  # the appearance (with its light where it has one)
+    scene_record: dict | None = None  # config.json's record of the scene (scene_record), None where it has none
 
 
 def is_run_folder(path: Path) -> bool:
@@ -108,21 +109,54 @@ def read_checkpoint(path: Path) -> dict:
 
 def load_checkpoint(path: Path) -> LoadedRun:
     """A checkpoint file of a run (``checkpoint.pt`` or a kept ``checkpoint_*.pt``): its Gaussians, config and
-    appearance (with its light where it has one)."""
+    appearance (with its light where it has one), and its scene: the absolute path the run's config.json records
+    (an older checkpoint holds the path as it was typed, relative to a folder no longer known), else the
+    checkpoint's."""
     ckpt = read_checkpoint(path)
     config = TrainConfig.from_json(ckpt["config"], path)
     look = Look(config.appearance)
     if config.appearance == "sh-lit":
         look.light = DiffuseLight()
         look.light.load_state_dict(ckpt["light"])
+    record = recorded_scene(path.parent)
     return LoadedRun(
-        Path(ckpt["scene_path"]),
+        Path(record["path"] if record else ckpt["scene_path"]),
         config,
         checkpoint_gaussians(ckpt, path),
         int(ckpt["step"]),
         float(ckpt["train_seconds"]),
         look,
+        record,
     )
+
+
+def recorded_scene(run_dir: Path) -> dict | None:
+    """The :func:`scene_record` a run's config.json holds, None where it has none (a run from before scenes were
+    recorded, or an unreadable config.json: the checkpoint's own record stands)."""
+    try:
+        scene = read_json(run_dir / "config.json").get("scene")
+    except ConfigError:
+        return None
+    return scene if isinstance(scene, dict) and isinstance(scene.get("path"), str) else None
+
+
+def run_scene(run: LoadedRun):
+    """The scene ``run`` was trained on (a ``Scene``); a ConfigError naming it if its content has changed since
+    (another capture in its folder): evaluating or meshing the run on it would score another scene."""
+    from tacsplat.datasets import Scene
+
+    scene = Scene.load(run.scene_path)
+    if run.scene_record is not None:
+        now = scene_record(scene)
+        then = str(run.scene_record.get("sha256"))
+        if then != now["sha256"]:
+            raise ConfigError(
+                "scene",
+                f"the run's scene {now['path']} has changed since it was trained (content {then[:12]} then, "
+                f"{now['sha256'][:12]} now: other frames, poses, images or touches); restore it, or train on it "
+                "anew",
+            )
+    return scene
 
 
 def checkpoint_gaussians(ckpt: dict, path: Path) -> Gaussians:

@@ -73,12 +73,37 @@ from tacsplat.reconstruction.views import background_image, camera_tensors, fit_
 log = logging.getLogger(__name__)
 
 POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
+NEAR_PLANE = 0.01  # metres: the rasterizer's (raster.rasterization's default), nearer Gaussians are not drawn
+MIN_IMAGE_PX = 5  # the smallest training image side: the smoothness loss's 5x5 Sobel window
 
 
-def scene_scale(frames: list) -> float:
-    """Kerbl et al.'s camera extent: 1.1 x the largest distance of a camera centre from their mean."""
+def scene_scale(frames: list, bounds: tuple[np.ndarray, np.ndarray] | None = None) -> float:
+    """Kerbl et al.'s camera extent: 1.1 x the largest distance of a camera centre from their mean. Where that is
+    under a millimetre (one camera, or all at one point), the largest distance of a camera from the centre of the
+    scene's ``bounds`` (lo, hi) stands in: about the spread of cameras around the object."""
     centres = np.array([f.T_world_cam[:3, 3] for f in frames])
-    return 1.1 * max(float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()), 1e-3)
+    spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+    if spread < 1e-3 and bounds is not None:
+        spread = float(np.linalg.norm(centres - (bounds[0] + bounds[1]) / 2, axis=1).max())
+    return 1.1 * max(spread, 1e-3)
+
+
+def check_image_sizes(scene, config: TrainConfig) -> None:
+    """Refuse a ``downscale`` or ``coarse_factors`` that leaves a training image under ``MIN_IMAGE_PX`` a side: a
+    UsageError naming the option (the sizes as :class:`~.views.ScaledScene` makes them)."""
+    for frame in training_frames(scene, config.train_views):
+        size = scaled = (frame.intrinsics.width, frame.intrinsics.height)
+        for option, factor in (
+            ("--downscale", config.downscale),
+            ("--coarse-factors", max(config.coarse_factors, default=1)),
+        ):
+            scaled = tuple(max(side // factor, 1) for side in scaled)
+            if min(scaled) < MIN_IMAGE_PX:
+                raise UsageError(
+                    option,
+                    f"leaves training images of {scaled[0]}x{scaled[1]} px (the scene's are {size[0]}x{size[1]}): "
+                    f"training needs at least {MIN_IMAGE_PX} px a side (its 5x5 filters); choose a smaller factor",
+                )
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -129,7 +154,7 @@ class Trainer:
         self.test_frames = scene.split("test")
         self.device = dev = config.torch_device()
         self.viewmats = camera_tensors(train)[0].to(dev)
-        self.scene_scale = scene_scale(train)
+        self.scene_scale = scene_scale(train, scene.bounds())
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device=dev).manual_seed(config.seed)
         self.touch_points = np.zeros((0, 3))
@@ -222,6 +247,7 @@ class Trainer:
             message = "initialisation: %d SfM points (< %d): %d random points %s"
             log.info(message, found, cfg.init.min_sfm_points, len(points), where)
         gaussians = initial_gaussians(points, colors, self.touch_points, cfg.sh_degree, cfg.init, self.rng)
+        self._check_in_view(gaussians.means.detach().numpy())
         if cfg.init.colors_from_views:
             # the randomly coloured ones, G_t (after the fallback's points if SfM failed), take the view_colors of the
             # training views (on their silhouettes where known); those on no view's object keep their colour
@@ -234,6 +260,24 @@ class Trainer:
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
+
+    def _check_in_view(self, means: np.ndarray) -> None:
+        """A SceneFormatError when no initial Gaussian (``means`` [N, 3]) lies inside a training view beyond the
+        renderer's near plane: nothing would render (a scene whose cameras are millimetres from the object, say),
+        and training would 'succeed' on empty images."""
+        for K, T_world_cam, frame in zip(*self._cameras(), self.train_frames):
+            camera = (means - T_world_cam[:3, 3]) @ T_world_cam[:3, :3]  # [N, 3] in the camera's frame
+            ahead = camera[camera[:, 2] > NEAR_PLANE]
+            u = ahead[:, 0] / ahead[:, 2] * K[0, 0] + K[0, 2]
+            v = ahead[:, 1] / ahead[:, 2] * K[1, 1] + K[1, 2]
+            if ((u >= 0) & (u < frame.intrinsics.width) & (v >= 0) & (v < frame.intrinsics.height)).any():
+                return
+        raise SceneFormatError(
+            self.scene.path / "transforms.json",
+            None,
+            f"no initial Gaussian lies inside a training view farther than the renderer's near plane ({NEAR_PLANE} m) "
+            "from its camera, so nothing would render: are the poses in metres, and do the cameras face the object?",
+        )
 
     def _cameras(self, views: list[int] | None = None) -> tuple[list, list]:
         """The intrinsics [3, 3] and camera-to-world poses [4, 4] of the training views (``views``: of those)."""
@@ -454,7 +498,7 @@ class Trainer:
 
     def save_checkpoint(self) -> None:
         state = {
-            "scene_path": str(self.scene.path),
+            "scene_path": self.scene_record["path"],  # (resolved: evaluate and export find it from anywhere)
             "config": self.config.to_json(),
             "step": self.step,
             "train_seconds": self.train_seconds,
@@ -618,7 +662,9 @@ def reconstruct(
     for the whole job. A folder of other files, a run without ``resume`` or
     ``overwrite``, ``resume`` of no run, on another scene or of a run that
     trained with a removed loss, or a folder that cannot take a file (read-only, full) is an error before any
-    training. Every file is replaced atomically: a disk that fills up stops the
+    training; the gsplat backend where torch sees no CUDA, and a ``downscale`` or ``coarse_factors`` that leaves
+    training images under ``MIN_IMAGE_PX`` a side (:func:`check_image_sizes`), are errors before the folder is
+    made. Every file is replaced atomically: a disk that fills up stops the
     job with a StorageError naming the file, and the files written before
     (the last checkpoint) stay, so that ``resume`` continues once there is
     space.
@@ -628,11 +674,17 @@ def reconstruct(
 
     out_dir = Path(out_dir)
     if resume and overwrite:
-        raise ConfigError("--overwrite", "replaces a run, --resume continues it: choose one")
+        raise UsageError("--overwrite", "replaces a run, --resume continues it: choose one")
     config.validate()
-    config.torch_device()  # --device cuda without CUDA fails here, before anything is read or written
+    device = config.torch_device()  # --device cuda without CUDA fails here, before anything is read or written
+    if config.backend == "gsplat" and device.type != "cuda":
+        raise UsageError(
+            "--backend", f"gsplat renders on CUDA and this run would train on {device.type}: use --backend auto or cpu"
+        )
     check_run_folder(out_dir, resume, overwrite, locked=False)
     base = Scene.load(scene_path)
+    if not resume:  # (a resumed run trains at the sizes it has trained at)
+        check_image_sizes(base, config)
     with claim_output_dir(out_dir, "--out"):
         check_run_folder(out_dir, resume, overwrite, locked=True)
         if resume:

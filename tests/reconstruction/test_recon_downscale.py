@@ -113,3 +113,14 @@ def test_a_coarse_to_fine_config_round_trips_through_its_json():
 
     config = TrainConfig(coarse_factors=(4, 2), coarse_until=0.75)
     assert TrainConfig.from_json(json.loads(json.dumps(config.to_json()))) == config
+
+
+def test_images_smaller_than_the_ssim_window_train_and_evaluate_without_ssim(tmp_path, caplog):
+    from tacsplat.reconstruction.evaluation import evaluate_run
+
+    scene = build_sphere_scene(tmp_path / "sphere", size=8, train_views=3, test_views=1)
+    config = TrainConfig(iterations=2, backend="cpu", sh_degree=0, init=InitConfig(use_sfm=False, num_random_points=50))
+    metrics = reconstruct(scene, tmp_path / "run", config, show_progress=False)
+    assert metrics["ssim"] is None and np.isfinite(metrics["psnr"])
+    assert "smaller than the 11x11 window" in caplog.text
+    assert evaluate_run(tmp_path / "run")["ssim"] is None

@@ -1,10 +1,17 @@
 """Initialisation: pycolmap triangulation with known poses, touch Gaussians, random fallback."""
 
+import json
+import sys
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 
+from tacsplat.datasets import Scene
+from tacsplat.errors import SceneFormatError
 from tacsplat.geometry import invert_pose, look_at
+from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.initialization import (
     InitConfig,
     foreground_mask,
@@ -16,6 +23,10 @@ from tacsplat.reconstruction.initialization import (
     thin_touch_points,
     view_colors,
 )
+from tacsplat.reconstruction.trainer import Trainer, scene_scale
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from recon_synthetic import CAMERA_DISTANCE, build_sphere_scene  # noqa: E402
 
 K = np.array([[200.0, 0, 100], [0, 200.0, 100], [0, 0, 1]])
 
@@ -152,3 +163,30 @@ def test_view_colors_are_the_median_pixel_on_the_object_and_nan_off_it():
     assert np.isnan(colors[2]).all()
     no_silhouettes = view_colors(points, images, Ks, poses, [None] * 4)
     np.testing.assert_allclose(no_silhouettes[0], [0.5, 0.5, 0.0], atol=0.02)  # green, red, red, green
+
+
+def test_one_training_view_scales_the_scene_by_its_distance_to_the_object(tmp_path):
+    """Kerbl et al.'s extent (1.1 x the cameras' spread) of one camera is nil: its distance to the scene's centre
+    stands in; more cameras keep theirs."""
+    scene = Scene.load(build_sphere_scene(tmp_path / "sphere", size=16, train_views=3, test_views=1, touches=False))
+    train = scene.split("train")
+    centres = np.array([f.T_world_cam[:3, 3] for f in train])
+    spread = np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()
+    assert scene_scale(train, scene.bounds()) == 1.1 * spread
+    one = Trainer(scene, tmp_path / "run", TrainConfig(train_views=1, backend="cpu")).scene_scale
+    assert one == pytest.approx(1.1 * CAMERA_DISTANCE, rel=0.1)
+
+
+def test_a_scene_whose_cameras_are_nearer_than_the_near_plane_is_refused_at_initialisation(tmp_path):
+    """Cameras a few millimetres from the object (a scene in the wrong unit): every Gaussian lies in front of the
+    renderer's near plane and no view would show anything; one error says so rather than training on nothing."""
+    path = build_sphere_scene(tmp_path / "sphere", size=16, train_views=3, test_views=1, touches=False)
+    index = json.loads((path / "transforms.json").read_text())
+    for frame in index["frames"]:  # the cameras 100 times nearer: 2.5 mm from the centre
+        for row in frame["transform_matrix"][:3]:
+            row[3] *= 0.01
+    (path / "transforms.json").write_text(json.dumps(index))
+    config = TrainConfig(backend="cpu", sh_degree=0, init=InitConfig(use_sfm=False, num_random_points=200))
+    trainer = Trainer(Scene.load(path), tmp_path / "run", config)
+    with pytest.raises(SceneFormatError, match="near plane"):
+        trainer.initialize()

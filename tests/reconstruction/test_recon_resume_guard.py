@@ -184,3 +184,53 @@ def test_a_run_with_the_tactile_normal_loss_off_resumes(trained, tmp_path):
     scene, run = _with_tactile_normals(trained, tmp_path, 0.0)
     assert _resume(scene, run, "--iterations", "5") == 0
     assert load_run(run).step == 5 and "lambda_touch_normal" not in json.loads((run / "config.json").read_text())
+
+
+def test_an_explicit_method_other_than_the_runs_is_refused(scenes, tmp_path, capsys):
+    """--method default on a run of another method sets nothing the run lacks (default's overrides are empty), yet
+    asks for another method: refused as any other setting, while the run's own method resumes."""
+    scene, run = Path(shutil.copytree(scenes[0], tmp_path / "scene")), tmp_path / "run"
+    assert main(["reconstruct", str(scene), "--out", str(run), "--iterations", "2", "--method", "3dgs+t", *FAST]) == 0
+    before = _files(run)
+    capsys.readouterr()
+    assert _resume(scene, run, "--method", "default", "--iterations", "3") == 1
+    one_error_line(capsys, "--resume", "--method 3dgs+t in the run, default given")
+    assert _files(run) == before
+    assert _resume(scene, run, "--method", "3dgs+t", "--iterations", "3") == 0
+
+
+# --- evaluate and export mesh: the run's own scene, from any folder ----------------------------------------------
+
+
+def test_a_run_of_a_relative_scene_path_evaluates_from_any_folder(scenes, tmp_path, monkeypatch):
+    """The checkpoint records the scene's resolved path (a run from before that, its path as typed, takes
+    config.json's), so evaluate and export mesh find it from another folder, and never take another scene of
+    the same relative name there."""
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(scenes[0], tmp_path / "scene")
+    assert main(["reconstruct", "scene", "--out", "run", "--iterations", "2", *FAST]) == 0
+    run, scene = tmp_path / "run", (tmp_path / "scene").resolve()
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["scene_path"] == str(scene)
+    elsewhere = tmp_path / "elsewhere"
+    shutil.copytree(scenes[1], elsewhere / "scene")  # another scene under the same relative name
+    monkeypatch.chdir(elsewhere)
+    assert main(["evaluate", str(run)]) == 0
+    assert json.loads((run / "metrics.json").read_text())["scene"] == str(scene)
+    checkpoint = torch.load(run / "checkpoint.pt", weights_only=False)
+    torch.save({**checkpoint, "scene_path": "scene"}, run / "checkpoint.pt")  # as a run from before recorded it
+    assert load_run(run).scene_path == scene
+    assert main(["export", "mesh", str(run), "--views", "8"]) == 0
+
+
+def test_evaluate_and_export_refuse_the_runs_scene_changed_since(scenes, tmp_path, capsys):
+    scene, run = Path(shutil.copytree(scenes[0], tmp_path / "scene")), tmp_path / "run"
+    assert main(["reconstruct", str(scene), "--out", str(run), "--iterations", "2", *FAST]) == 0
+    shutil.rmtree(scene)
+    shutil.copytree(scenes[1], scene)  # the same folder now holds another capture
+    before = _files(run)
+    capsys.readouterr()
+    assert main(["evaluate", str(run)]) == 1
+    one_error_line(capsys, str(scene.resolve()), "has changed")
+    assert main(["export", "mesh", str(run)]) == 1
+    one_error_line(capsys, str(scene.resolve()), "has changed")
+    assert _files(run) == before

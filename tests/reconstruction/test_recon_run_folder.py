@@ -287,12 +287,50 @@ def test_an_out_that_is_a_file_inside_a_file_or_unwritable_is_one_error(scene, t
         (["--lambda-t", "inf"], ["--lambda-t", "finite"]),
         (["--train-views", "0"], ["--train-views", ">= 1"]),
         (["--seed", "-1"], ["--seed", "0 to"]),
+        (["--densify.split-scale-divisor", "0"], ["--densify.split-scale-divisor", "> 0"]),
+        (["--densify.prune-opacity", "0"], ["--densify.prune-opacity", "between 0 and 0.5"]),
+        (["--densify.prune-opacity", "0.5"], ["--densify.prune-opacity", "between 0 and 0.5"]),
+        (["--init.initial-opacity", "0"], ["--init.initial-opacity", "between 0 and 1"]),
+        (["--init.touch-initial-opacity", "1"], ["--init.touch-initial-opacity", "between 0 and 1"]),
+        (["--init.hull-resolution", "0"], ["--init.hull-resolution", ">= 1"]),
+        (["--init.sift-max-features", "0"], ["--init.sift-max-features", ">= 1"]),
+        (["--init.min-triangulation-angle-deg", "0"], ["--init.min-triangulation-angle-deg", "> 0"]),
+        (["--init.touch-voxel-size", "0"], ["--init.touch-voxel-size", "> 0"]),
+        (["--backend", "gsplat", "--device", "cpu"], ["--backend", "CUDA"]),
+        (["--resume", "--overwrite"], ["--overwrite", "--resume", "choose one"]),
+        (["--downscale", "5"], ["--downscale", "4x4 px", "24x24", "at least 5"]),  # (the scene's 24 px)
+        (["--coarse-factors", "8"], ["--coarse-factors", "3x3 px", "at least 5"]),
+        (["--downscale", "2", "--coarse-factors", "4"], ["--coarse-factors", "3x3 px"]),
     ],
 )
 def test_an_option_out_of_range_is_one_error_naming_it(scene, tmp_path, capsys, options, words):
     assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), "--quiet", *options]) == 2  # usage error
     one_error_line(capsys, *words, prefix="tacsplat reconstruct: error: ")
     assert not (tmp_path / "run").exists()  # refused before anything is written
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("background: 0.5", ["--background", "3 numbers", "0.5"]),
+        ("coarse_factors: 4", ["--coarse-factors", "integers", "4"]),
+        ("densify: [1, 2]", ["densify", "mapping", "densify.x"]),
+        ("init: 5", ["init", "mapping", "init.x"]),
+    ],
+)
+def test_a_config_file_value_of_the_wrong_kind_is_one_error_naming_it(scene, tmp_path, capsys, text, words):
+    settings = tmp_path / "settings.yaml"
+    settings.write_text(text + "\n")
+    assert _reconstruct(scene, tmp_path / "run", "--config", str(settings)) == 2
+    one_error_line(capsys, *words, prefix="tacsplat reconstruct: error: ")
+    assert not (tmp_path / "run").exists()
+
+
+def test_gsplat_where_torch_sees_no_cuda_is_a_usage_error(scene, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert main(["reconstruct", str(scene), "--out", str(tmp_path / "run"), "--quiet", "--backend", "gsplat"]) == 2
+    one_error_line(capsys, "--backend", "gsplat", "CUDA", prefix="tacsplat reconstruct: error: ")
+    assert not (tmp_path / "run").exists()
 
 
 def test_evaluate_of_what_is_not_a_run_is_one_error(tmp_path, capsys):
