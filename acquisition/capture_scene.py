@@ -20,8 +20,10 @@ another value of any of them, naming each and both values. It compares:
   slide, since removed, cannot be continued);
 * a real rig: ``--mock`` (and the emulated devices' settings), the board that
   defines the world frame, the hand-eye transform, the servo ids, the tactile
-  sensor model and mounting transforms, and the sha256 of each calibration file
-  (a recalibration starts a new scene). Ports, baud rates, device indices,
+  sensor model and mounting transforms, and the sha256 of each calibration file,
+  the hand-eye and mounts files included (a recalibration starts a new scene;
+  a scene of an older version, which recorded no hand-eye or mounts file,
+  resumes on what it recorded). Ports, baud rates, device indices,
   timeouts and the grasp controller's speeds and thresholds may change between
   runs: they change how records are taken, not what they mean.
 """
@@ -212,8 +214,9 @@ def _sim_settings(config: RigConfig) -> dict:
 
 
 def _real_settings(c: RigConfig) -> dict:
-    def sha(key: str, name: str | None) -> str | None:  # the mock generates its own calibrations, but the hand's
-        return None if c.mock and key != "hand.calibration" or name is None else _sha256(c.path(name), key, c.source)
+    def sha(key: str, name: str | None) -> str | None:  # the mock generates the camera's and sensors' calibrations
+        generated = c.mock and (key == "camera.calibration" or key.startswith("tactile.sensors["))
+        return None if generated or name is None else _sha256(c.path(name), key, c.source)
 
     b, t = c.board, c.tactile
     settings = {
@@ -223,6 +226,7 @@ def _real_settings(c: RigConfig) -> dict:
         "camera": {
             "T_hand_cam": c.camera.T_hand_cam,
             "calibration_sha256": sha("camera.calibration", c.camera.calibration),
+            "hand_eye_sha256": sha("camera.hand_eye", c.camera.hand_eye),
         },
         "tactile": {
             "sensor_name": t.sensor_name,
@@ -235,6 +239,7 @@ def _real_settings(c: RigConfig) -> dict:
                 }
                 for i, s in enumerate(t.sensors)
             ],
+            "mounts_sha256": sha("tactile.mounts", t.mounts),
         },
     }
     if c.mock:

@@ -3,6 +3,7 @@ options are the dataclasses below (tacsplat.options)."""
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 from dataclasses import dataclass
@@ -280,7 +281,8 @@ def _calibrate_mounts(o: CalibrateMounts) -> int:
 
     if not (math.isfinite(o.stand_height_mm) and o.stand_height_mm > 0):
         raise UsageError("--stand-height-mm", f"must be a positive, finite height in mm, got {o.stand_height_mm:g}")
-    if o.hand_eye is not None and o.hand_eye.absolute() == o.out.absolute():
+    # one file under two names ('..', a symbolic link) too; realpath, unlike Path.resolve, takes a symlink loop as is
+    if o.hand_eye is not None and os.path.realpath(o.hand_eye) == os.path.realpath(o.out):
         raise UsageError("--hand-eye", f"{o.hand_eye} is --out's file too: give the hand-eye file another name")
     stand_height_m = o.stand_height_mm / 1000
 

@@ -4,9 +4,10 @@ A live status line shows whether the board is seen and its reprojection error,
 the hand's state and the counts so far against the plan. Keys: Enter takes a
 view (train views first, then test views), ``g`` grasps, ``u`` undoes the last
 record (a view, or a whole grasp), ``q`` stops. End of input is ``q``. On a
-device fault the rig is closed first (the hand's context manager turns torque
-off), then the session says what failed and the exact command that resumes (or,
-when the fault came before a scene was written, that starts again). A resume
+device fault (or a full disk, or any other error once the session runs) the rig
+is closed first (the hand's context manager turns torque off), then the session
+says what failed and the exact command that resumes (or, when the fault came
+before a scene was written, that starts again). A resume
 continues only the capture that was started: see
 :mod:`~tacsplat.acquisition.capture_scene`.
 
@@ -48,12 +49,12 @@ from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.datasets.writer import JOURNAL
 from tacsplat.drivers.dynamixel_hand import END_SIGNALS, SignalInterrupt
-from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError
+from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError, StorageError, TacsplatError
 
 log = logging.getLogger(__name__)
 
 KEYS_HELP = "[Enter] view  [g] grasp  [u] undo  [q] quit"
-EXIT_FAULT = 3  # a device failed; the scene is resumable
+EXIT_FAULT = 3  # a device, the disk or the session failed; the scene is resumable
 
 
 def _fileno(stream) -> int | None:
@@ -265,7 +266,8 @@ def run_capture(
     """``tacsplat capture``: open the rig and the scene, serve the operator, close everything safely.
 
     Returns 0 (plan complete), 1 (stopped before the plan was complete),
-    ``EXIT_FAULT`` (a device failed; the scene is resumable) or 128 + signum
+    ``EXIT_FAULT`` (a device failed, the disk filled or another error ended
+    the session once it ran; the scene is resumable) or 128 + signum
     (SIGINT, SIGTERM, SIGHUP or SIGQUIT: 130, 143, 129, 131). On a real rig the
     last line printed says which servos confirmed torque off and which did not.
     ``on_open(rig, logger)`` is called once the devices are open (tests inject
@@ -283,8 +285,10 @@ def run_capture(
     out = Path(out)
     code, told = 1, "stopped before the plan was complete.\n"
     hands = []  # the real rig's hand, once made: its torque-off report is the last line
+    running = False  # whether the session started (the rig and the scene open)
     try:
         with _ending_signals_interrupt(), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
+            running = True
             logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
             if logger.dropped_partial_grasp:
                 output.write(
@@ -301,8 +305,13 @@ def run_capture(
             if CaptureSession(rig, logger, config.plan, keys, output, planner).run():
                 code, told = 0, f"plan complete: scene written to {out}\n"
     except (DeviceError, SimulationError) as fault:
-        held = f"The scene in {out} holds every record completed before the fault. " if _started(out) else ""
-        code, told = EXIT_FAULT, f"DEVICE FAULT: {fault}\n{held}Fix the device.\n"
+        code, told = EXIT_FAULT, _fault("DEVICE FAULT", fault, out, "Fix the device.")
+    except StorageError as fault:  # a full or read-only disk, before or during the session (it says what to do)
+        code, told = EXIT_FAULT, _fault("STORAGE FAULT", fault, out)
+    except TacsplatError as fault:
+        if not running:  # refused before the session (a rig file, --out, a scene to resume): the command's error
+            raise
+        code, told = EXIT_FAULT, _fault("FAULT", fault, out)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         code, told = 128 + signum, f"interrupted ({signal.Signals(signum).name}).\n"
@@ -353,6 +362,13 @@ def _hand_line(hands: list) -> str:
 def _started(out: Path) -> bool:
     """Whether the capture wrote a scene in ``out`` (to resume)."""
     return (out / JOURNAL).is_file()
+
+
+def _fault(what: str, fault: Exception, out: Path, fix: str = "") -> str:
+    """The report of a fault: what failed, that the scene in ``out`` (if one was written) keeps its records, ``fix``."""
+    held = f"The scene in {out} holds every record completed before the fault." if _started(out) else ""
+    after = " ".join(filter(None, (held, fix)))
+    return f"{what}: {fault}\n" + (f"{after}\n" if after else "")
 
 
 def _carry_on(config: RigConfig, out: Path) -> str:

@@ -129,10 +129,8 @@ def _T_hand_cam_row(config: RigConfig, cam_cal) -> Row:
 
 def check_rig(config: RigConfig) -> list[Row]:
     """Every check of a ``rig: real`` config (emulated devices with ``config.mock``)."""
-    from tacsplat.acquisition.devices import device_source
     from tacsplat.acquisition.mock import MockDevices
     from tacsplat.drivers.optical_tactile import TactileCalibration
-    from tacsplat.drivers.video import VideoReader
     from tacsplat.drivers.wrist_camera import CameraCalibration
 
     rows: list[Row] = []
@@ -162,22 +160,27 @@ def check_rig(config: RigConfig) -> list[Row]:
         rows.append(_servos(config, mock, hand_cal))
         rows += _camera_rows(config, mock, cam_cal)
         for s in sensors:
-            source, reader = device_source(mock, s.finger, s.source)
-            item = f"tactile {s.finger} (source {s.source})"
-            try:
-                with VideoReader(source, timeout_s=config.tactile.timeout_s, name=f"tactile {s.finger}", **reader) as r:
-                    image, fps = _frames(lambda: r.read().image, FPS_WINDOW_S)
-            except TacsplatError as exc:
-                rows.append(Row(item, False, str(exc)))
-                continue
-            (h, w), cal = image.shape[:2], tactile.get(s.finger)
-            if cal is not None and tuple(cal.image_size) != (h, w):
-                rows.append(
-                    Row(item, False, f"{w}x{h} images, its calibration is for {cal.image_size[1]}x{cal.image_size[0]}")
-                )
-            else:
-                rows.append(Row(item, True, f"{w}x{h} at {fps:.0f} fps"))
+            rows.append(_tactile_row(config, mock, s, tactile.get(s.finger)))
     return rows
+
+
+def _tactile_row(config: RigConfig, mock, sensor, calibration) -> Row:
+    """The tactile sensor answers (its rate) at its ``calibration``'s image size, asked of it as a capture asks
+    (any size when its calibration is unusable)."""
+    from tacsplat.acquisition.devices import device_source
+    from tacsplat.drivers.video import VideoReader
+
+    source, reader = device_source(mock, sensor.finger, sensor.source)
+    if calibration is not None:
+        reader["height"], reader["width"] = (int(n) for n in calibration.image_size)
+    item = f"tactile {sensor.finger} (source {sensor.source})"
+    try:
+        with VideoReader(source, timeout_s=config.tactile.timeout_s, name=f"tactile {sensor.finger}", **reader) as r:
+            image, fps = _frames(lambda: r.read().image, FPS_WINDOW_S)
+    except TacsplatError as exc:
+        return Row(item, False, str(exc))
+    h, w = image.shape[:2]
+    return Row(item, True, f"{w}x{h} at {fps:.0f} fps")
 
 
 def _camera_rows(config: RigConfig, mock, cam_cal) -> list[Row]:

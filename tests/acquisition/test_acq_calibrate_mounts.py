@@ -196,3 +196,21 @@ def test_the_mounts_and_hand_eye_files_are_both_written_or_neither(tmp_path, cap
     assert err.splitlines()[-1].startswith(f"error: {tmp_path / failing}: "), err
     assert out.read_text() == "old mounts\n" and he.read_text() == "old hand-eye\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([out.name, he.name, f"{failing}.tmp", "rig.yaml"])
+
+
+@pytest.mark.parametrize(
+    "out, hand_eye", [("sub/../mounts.json", "mounts.json"), ("link/mounts.json", "sub/mounts.json")]
+)
+def test_a_hand_eye_file_that_is_out_under_another_name_is_refused_before_any_press(
+    tmp_path, capsys, monkeypatch, out, hand_eye
+):
+    """Through '..' or a symbolic link, one file: both would be written to it (the hand-eye file's write then fails
+    after every press), so it is refused as the same name is."""
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "sub")
+    rig = _rig(tmp_path, _draw(7))
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibrate", "mounts", "--rig", rig, "--out", out, "--hand-eye", hand_eye]) == 2
+    stdout, err = capsys.readouterr()
+    assert "press" not in stdout and not (tmp_path / out).exists()
+    assert f"--hand-eye: {hand_eye} is --out's file too: give the hand-eye file another name" in err.splitlines()[-1]

@@ -2,6 +2,7 @@
 message naming the device and the exact resume command, torque off on the emulated servos that answer, a last line
 that says only what was confirmed, and a scene that resumes."""
 
+import errno
 import io
 import os
 import sys
@@ -13,7 +14,7 @@ import pytest
 from tacsplat.acquisition.config import load_rig
 from tacsplat.acquisition.operator_session import EXIT_FAULT, run_capture
 from tacsplat.datasets import Scene, check_scene
-from tacsplat.errors import CameraError
+from tacsplat.errors import CameraError, InvalidInputError
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from acq_helpers import ScriptedKeys, write_mock_rig  # noqa: E402
@@ -224,3 +225,50 @@ def test_an_encoder_glitch_mid_grasp_is_a_fault_not_a_recorded_grasp(tmp_path):
     assert "DEVICE FAULT: Dynamixel hand" in text and "servo 5 (middle_1)" in text and "outside its limits" in text
     assert last_line(text) == "Hand: torque off confirmed on all 16 servos.", text
     assert len(Scene.load(out).frames) == 1 and Scene.load(out).touches == []  # no grasp at a wrong pose
+
+
+def _full_disk(path):
+    from tacsplat.files import storage_error
+
+    return storage_error(OSError(errno.ENOSPC, "No space left on device"), path)
+
+
+@pytest.mark.parametrize(
+    "fault, told",
+    [
+        (_full_disk, "STORAGE FAULT: {path}: the disk is full"),
+        (lambda path: InvalidInputError(f"depth: {path} holds NaN"), "FAULT: depth: {path} holds NaN"),
+    ],
+    ids=["disk full", "another error"],
+)
+def test_a_full_disk_or_another_error_mid_grasp_ends_as_a_device_fault_does(tmp_path, fault, told):
+    """Not a device's fault, but the hand was holding: the rig closes, the resume command and, last, what the hand
+    confirmed are printed, and the exit code is the fault's; the records before it are kept and resume."""
+    rig = write_mock_rig(tmp_path)
+    out = tmp_path / "scene"
+    path = out / "touches" / "000001.npz"
+    opened = {}
+
+    def on_open(rig_, logger):
+        opened["mock"], add_touch = rig_.mock, logger.writer.add_touch
+
+        def second_fails(*args, **kwargs):  # the grasp's second touch is not written
+            if len(logger.writer.touches) == 1:
+                raise fault(path)
+            return add_touch(*args, **kwargs)
+
+        logger.writer.add_touch = second_fails
+
+    output = io.StringIO()
+    code = run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\ng\n"), output=output, on_open=on_open)
+    text = output.getvalue()
+    assert code == EXIT_FAULT, text
+    assert told.format(path=path) in text, text
+    assert f"tacsplat capture --rig {rig} --out {out} --resume --mock\n" in text, text
+    assert last_line(text) == "Hand: torque off confirmed on all 16 servos.", text
+    assert not any(opened["mock"].emulator.torque_enabled().values())
+    scene = Scene.load(out)
+    assert len(scene.frames) == 1 and [t.grasp for t in scene.touches] == [0]  # the cut grasp: redone on resume
+
+    scene = _resume_to_the_end(rig, out, "\n\nggg\n")
+    assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4

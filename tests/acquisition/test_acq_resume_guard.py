@@ -251,3 +251,55 @@ def test_a_mock_capture_is_not_resumed_on_the_real_rig_and_no_device_opens(tmp_p
     with pytest.raises(ConfigError) as err:
         run_capture(load_rig(rig), out, resume=True, keys=ScriptedKeys(""), output=io.StringIO())
     assert err.value.key == "mock" and f"{out} was captured with True, this run asks for False" in str(err.value)
+
+
+def _write_pose_files(folder: Path, offset_m: float) -> None:
+    """A hand-eye file and a mounts file, both moved by ``offset_m`` (a recalibration)."""
+    from tacsplat.drivers.press_calibration import MountsFit, save_hand_eye, save_mounts
+    from tacsplat.sim.hand import nominal_T_hand_cam
+
+    T = nominal_T_hand_cam()
+    T[0, 3] += offset_m
+    save_hand_eye(folder / "hand_eye.json", T, presses=16, rms_mm=0.1)
+    M = np.eye(4)
+    M[0, 3] = offset_m
+    save_mounts(MountsFit(T, {"index": M}, {}, {"index": 0.1}, {"index": 12}, {"index": 0}), folder / "mounts.json")
+
+
+@pytest.mark.parametrize(
+    "changed, key", [("hand_eye.json", "camera.hand_eye_sha256"), ("mounts.json", "tactile.mounts_sha256")]
+)
+def test_resume_after_a_new_hand_eye_or_mounts_file_is_refused_naming_it(tmp_path, changed, key):
+    """The hand-eye and mounts files place every touch: a scene is continued only with the files it began with
+    (the mock uses the rig's, as a real rig does)."""
+    out = tmp_path / "scene"
+    rig = write_mock_rig(tmp_path, camera={"hand_eye": "hand_eye.json"}, tactile={"mounts": "mounts.json"})
+    _write_pose_files(tmp_path, 0.0)
+    assert run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\n"), output=io.StringIO()) == 1
+    before = _files(out)
+    (tmp_path / "new").mkdir()
+    _write_pose_files(tmp_path / "new", 0.01)
+    (tmp_path / changed).write_bytes((tmp_path / "new" / changed).read_bytes())  # the other file as it was
+    with pytest.raises(ConfigError) as err:
+        run_capture(load_rig(rig, mock=True), out, resume=True, keys=ScriptedKeys(""), output=io.StringIO())
+    assert err.value.key == key, str(err.value)
+    assert f"{out} was captured with a file of sha256 " in str(err.value)
+    assert _files(out) == before
+
+
+def test_a_scene_that_recorded_no_hand_eye_or_mounts_file_resumes_with_one(tmp_path):
+    """A scene of an older version recorded neither file's sha256: it resumes on what it did record."""
+    out = tmp_path / "scene"
+    rig = write_mock_rig(tmp_path, camera={"hand_eye": "hand_eye.json"}, tactile={"mounts": "mounts.json"})
+    _write_pose_files(tmp_path, 0.0)
+    assert run_capture(load_rig(rig, mock=True), out, keys=ScriptedKeys("\n"), output=io.StringIO()) == 1
+    journal = out / "journal.jsonl"
+    header, *records = journal.read_text().splitlines(keepends=True)
+    header = json.loads(header)
+    settings = header["meta"]["extra"]["capture_settings"]
+    assert settings["camera"].pop("hand_eye_sha256") and settings["tactile"].pop("mounts_sha256")
+    journal.write_text(json.dumps(header) + "\n" + "".join(records))
+    _write_pose_files(tmp_path, 0.01)
+    keys = ScriptedKeys("\n")
+    assert run_capture(load_rig(rig, mock=True), out, resume=True, keys=keys, output=io.StringIO()) == 1
+    assert [f.split for f in Scene.load(out).frames] == ["train", "train"]

@@ -3,8 +3,10 @@ calibration and an unseen board are each named in the table and in the one error
 
 import json
 import os
+import time
 from datetime import datetime
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -193,3 +195,51 @@ def test_a_hardware_changed_time_with_a_utc_offset_is_compared_as_that_instant(t
     status, detail = rows["hand.calibration"]
     assert (status == "FAIL" and "stale" in detail) if minutes < 0 else status == "ok", (detail, err)
     assert code == (1 if minutes < 0 else 0), err
+
+
+class _ModeCamera:
+    """A UVC-like tactile camera: 640x480 unless asked for another size, which it delivers if ``switches``."""
+
+    switches = True
+
+    def __init__(self, source):
+        self.w, self.h = 640, 480
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        if self.switches and prop in (cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT):
+            setattr(self, "w" if prop == cv2.CAP_PROP_FRAME_WIDTH else "h", int(value))
+            return True
+        return False
+
+    def get(self, prop):
+        settings = {cv2.CAP_PROP_FRAME_WIDTH: self.w, cv2.CAP_PROP_FRAME_HEIGHT: self.h, cv2.CAP_PROP_FPS: 30.0}
+        return settings.get(prop, 0)
+
+    def read(self):
+        time.sleep(0.01)
+        return True, np.full((self.h, self.w, 3), 128, np.uint8)
+
+    def release(self):
+        pass
+
+
+@pytest.mark.parametrize("switches", [True, False])
+def test_tactile_sensors_are_asked_for_their_calibrations_size(tmp_path, capsys, monkeypatch, switches):
+    """A tactile camera whose default mode is not its calibration's (160x120 on --mock) passes when it can switch
+    to that size, as a capture opens it; one that cannot fails its row, saying so."""
+    from tacsplat.acquisition.mock import MockDevices
+
+    factory = MockDevices.capture_factory
+    monkeypatch.setattr(_ModeCamera, "switches", switches)
+    monkeypatch.setattr(
+        MockDevices, "capture_factory", lambda self, name: factory(self, name) if name == "camera" else _ModeCamera
+    )
+    code, rows, err = _check(_mock_rig(tmp_path), capsys)
+    row = rows["tactile index (source 2)"]
+    if switches:
+        assert code == 0 and row[0] == "ok" and row[1].startswith("160x120 at "), rows
+    else:
+        assert code == 1 and row[0] == "FAIL" and "asked for 160x120, the device delivers 640x480" in row[1], rows
