@@ -132,12 +132,12 @@ def recorded_settings(writer: SceneWriter) -> dict:
     meta = writer.meta
     recorded = {
         "plan.touches.model": "gel",
-        **_flatten({"rig": meta.source, "object": meta.object, "plan": meta.capture_plan}),
+        **flatten_settings({"rig": meta.source, "object": meta.object, "plan": meta.capture_plan}),
     }
     if meta.source == "sim":
         recorded["sim.texture"] = "none"  # what every twin capture was before the texture became a setting
     if SETTINGS_KEY in meta.extra:
-        settings = _flatten(meta.extra[SETTINGS_KEY])
+        settings = flatten_settings(meta.extra[SETTINGS_KEY])
         slide_m = settings.get(_SLIDE[0])
         for key in _SLIDE:
             settings.pop(key, None)
@@ -170,11 +170,11 @@ class ResumeMismatch(ConfigError):
 
 def check_resume(writer: SceneWriter, settings: dict, source=None) -> None:
     """Refuse (:class:`ResumeMismatch`) to continue ``writer``'s scene with ``settings`` that differ from its own."""
-    requested = _flatten(settings)
+    requested = flatten_settings(settings)
     differences = [
         (key, old, requested.get(key, _MISSING))
         for key, old in recorded_settings(writer).items()
-        if not _same(old, requested.get(key, _MISSING))
+        if not same_setting(old, requested.get(key, _MISSING))
     ]
     if any(key in _SIM_OBJECT for key, _, _ in differences):
         differences = [d for d in differences if d[0] != "object"]
@@ -260,29 +260,29 @@ def _sha256(path: Path, key: str, source) -> str:
         raise ConfigError(key, f"cannot read {path}: {exc.strerror}", source) from None
 
 
-def _flatten(data: dict, prefix: str = "") -> dict:
+def flatten_settings(data: dict, prefix: str = "") -> dict:
     """``{"a": {"b": 1}, "s": [{"c": 2}]}`` -> ``{"a.b": 1, "s[0].c": 2}`` (other lists are values)."""
     flat = {}
     for name, value in data.items():
         key = f"{prefix}{name}"
         if isinstance(value, dict) and value:
-            flat.update(_flatten(value, key + "."))
+            flat.update(flatten_settings(value, key + "."))
         elif isinstance(value, list) and value and all(isinstance(v, dict) for v in value):
             for i, item in enumerate(value):
-                flat.update(_flatten(item, f"{key}[{i}]."))
+                flat.update(flatten_settings(item, f"{key}[{i}]."))
         else:
             flat[key] = value
     return flat
 
 
-def _same(a: Any, b: Any) -> bool:
+def same_setting(a: Any, b: Any) -> bool:
     """Equal JSON values; numbers to 1e-9 relative (older scenes recorded some as computed, e.g. 0.08000000000000002)."""
     if isinstance(a, bool) or isinstance(b, bool):
         return a is b
     if isinstance(a, (int, float)) and isinstance(b, (int, float)):
         return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
     if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(map(_same, a, b))
+        return len(a) == len(b) and all(map(same_setting, a, b))
     return a == b
 
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 import functools
 import json
 import logging
+import math
 import shutil
 import time
 from dataclasses import dataclass, field, fields, replace
@@ -39,7 +40,7 @@ from typing import Annotated, Literal
 import tyro
 
 from tacsplat.apps.executors import ExecutorOptions, Executors
-from tacsplat.errors import ConfigError, pydantic_problem
+from tacsplat.errors import ConfigError, SceneFormatError, pydantic_problem
 from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
 log = logging.getLogger(__name__)
@@ -64,8 +65,8 @@ class BatchJob:
 
     def check(self) -> None:
         """A ConfigError naming the field at fault, before anything runs."""
-        if not self.cpus > 0:
-            raise ConfigError("cpus", f"must be > 0, got {self.cpus}")
+        if not (self.cpus > 0 and math.isfinite(self.cpus)):  # (Ray and the worker threads take a count)
+            raise ConfigError("cpus", f"must be a finite number > 0, got {self.cpus}")
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         return 0
@@ -105,14 +106,27 @@ class SceneCopyJob(BatchJob):
 
 
 def capture_copies_runs(capture: BatchJob, copies: list[SceneCopyJob], run) -> list[BatchJob]:
-    """A bench's jobs of one capture: ``capture`` while a copy of it is still to make, then each copy (needing it)
-    and ``run(copy)``, its reconstruction (needing the copy)."""
-    todo = not all(copy.complete() for copy in copies)
-    jobs = [capture] if todo else []
+    """A bench's jobs of one capture: each copy's reconstruction ``run(copy)``, after the copy (needing it) while
+    the run is still to do, and ``capture`` first (needed by the copies) while such a copy is still to make. A
+    finished run needs neither its copy nor the capture (both may have been deleted since)."""
+    jobs: list[BatchJob] = []
     for copy in copies:
-        copy = replace(copy, needs=(capture.name,) if todo else ())
-        jobs += [copy, replace(run(copy), needs=(copy.name,))]
-    return jobs
+        job = run(copy)
+        jobs += [job] if job.complete() else [copy, replace(job, needs=(copy.name,))]
+    if all(job.complete() for job in jobs if isinstance(job, SceneCopyJob)):
+        return jobs
+    return [capture] + [replace(job, needs=(capture.name,)) if isinstance(job, SceneCopyJob) else job for job in jobs]
+
+
+def check_bench_jobs(jobs, fields: dict[str, str]) -> None:
+    """A bench's ``jobs`` checked as a batch file's are (:meth:`BatchJob.check`: the rig's and the trainer's
+    limits), before anything runs or is made; a ConfigError naming the bench config's field otherwise (``fields``: a
+    job's field -> the config's, else the same name)."""
+    for job in jobs:
+        try:
+            job.check()
+        except ConfigError as exc:
+            raise ConfigError(fields.get(exc.key, exc.key), str(exc).removeprefix(f"{exc.key}: ")) from None
 
 
 _RIG_FIELDS = {
@@ -163,6 +177,45 @@ class CaptureJob(BatchJob):
     def complete(self) -> bool:
         return (self.out / CAPTURE_MARKER).is_file()
 
+    def changed_settings(self, more_grasps_ok: bool = False) -> list[str]:
+        """What differs between the settings a finished capture in ``out`` recorded (scene.json) and this job's
+        rig, as ``"name recorded -> now"`` (named as this job's field where one sets it); empty when ``out`` holds
+        no finished capture. ``more_grasps_ok``: more grasps recorded than this job asks for is no change (a
+        capture's first grasps do not depend on how many follow)."""
+        from tacsplat.acquisition.capture_scene import (
+            capture_settings,
+            flatten_settings,
+            recorded_settings,
+            same_setting,
+        )
+        from tacsplat.datasets import Scene
+
+        if not self.complete():
+            return []
+        try:
+            recorded = recorded_settings(Scene.load(self.out, check_files=False))
+        except SceneFormatError as exc:
+            return [f"scene unreadable ({exc})"]
+        now = flatten_settings(capture_settings(self.rig()))
+        changes: dict[str, str] = {}  # (the object is recorded twice: by name, and as the twin's)
+        for key, then in recorded.items():
+            name = _RIG_FIELDS.get(key, key)
+            if same_setting(then, now.get(key)) or (more_grasps_ok and name == "grasps" and then > now[key]):
+                continue
+            changes.setdefault(name, f"{name} {then!r} -> {now.get(key)!r}")
+        return list(changes.values())
+
+    def refuse_changed_settings(self, more_grasps_ok: bool = False) -> None:
+        """A benchmark's check before it runs: a finished capture made with other settings than this job's is an
+        error on ``--out`` (:meth:`changed_settings`), not a scene silently reused."""
+        if changes := self.changed_settings(more_grasps_ok):
+            raise ConfigError(
+                "--out",
+                f"{self.out} was captured with other settings ({', '.join(changes)}): use the options it was "
+                "captured with or a new --out, or delete that scene folder and the runs trained on it to capture it "
+                "again",
+            )
+
     def warm_up(self) -> None:
         import tacsplat.acquisition.sim_capture  # noqa: F401
 
@@ -207,14 +260,20 @@ class ReconstructJob(BatchJob):
 
     def check(self) -> None:
         super().check()
+        if clash := [key for key in self.overrides if key in {f.name for f in fields(self)}]:
+            raise ConfigError(
+                f"overrides.{clash[0]}",
+                f"a field of the job: set `{clash[0]}:` beside `overrides:`, not in them",
+            )
         self.config().validate()
 
     def changed_settings(self) -> list[str]:
         """What differs between the config a run folder recorded (``out/config.json``, or a finished run's
         metrics.json) and the one this job trains now, as ``"name recorded -> now"`` (the device and the settings
         of mechanisms that both switch off aside: :meth:`TrainConfig.unused_fields`); one entry saying so for a
-        record that cannot be read. Empty for a folder with nothing to reuse or resume (no metrics.json, no
-        checkpoint) or no settings recorded."""
+        record that cannot be read; and the scene, when ``scene`` holds other content than the one the run
+        recorded (a scene moved elsewhere is the same; one not there is not compared). Empty for a folder with
+        nothing to reuse or resume (no metrics.json, no checkpoint) or no settings recorded."""
         from tacsplat.reconstruction.config import TrainConfig, changed_settings, removed_losses
         from tacsplat.reconstruction.methods import method_of
         from tacsplat.reconstruction.run_dir import read_json
@@ -242,7 +301,24 @@ class ReconstructJob(BatchJob):
         changes += [f"{key} {value!r} -> removed" for key, value in removed_losses(settings).items()]
         if changes and method_of(recorded) != method_of(now):
             changes.insert(0, f"method {method_of(recorded)} -> {method_of(now)}")
+        if isinstance(scene := settings.get("scene"), dict) and self.scene.is_dir():
+            changes += self._scene_change(scene)
         return changes
+
+    def _scene_change(self, recorded: dict) -> list[str]:
+        """``["scene THEN -> NOW"]`` when ``scene``'s content is not the one a run recorded (``recorded``: its
+        :func:`~tacsplat.reconstruction.run_dir.scene_record`), else empty."""
+        from tacsplat.datasets import Scene
+        from tacsplat.reconstruction.run_dir import scene_record
+
+        try:
+            now = scene_record(Scene.load(self.scene))
+        except SceneFormatError as exc:
+            return [f"scene unreadable ({exc})"]
+        then = str(recorded.get("sha256"))
+        if then == now["sha256"]:
+            return []
+        return [f"scene {recorded.get('path')} (content {then[:12]}) -> {now['path']} (content {now['sha256'][:12]})"]
 
     def refuse_changed_settings(self) -> None:
         """A benchmark's check before it runs: a finished or interrupted run trained with other settings than this
@@ -353,7 +429,7 @@ def load_batch(path: str | Path, out: str | Path) -> list:
     if not isinstance(data["jobs"], list) or not data["jobs"]:
         raise ConfigError("jobs", "expected a non-empty list of jobs", path)
     jobs: list = []
-    made: dict[Path, object] = {}  # folder -> the job of the batch writing it
+    made: dict[Path, object] = {}  # folder (resolved: x/../a is a) -> the job of the batch writing it
     names: dict[str, int] = {}
     for i, item in enumerate(data["jobs"]):
         job = _parse_job(i, item, path, out)
@@ -361,8 +437,8 @@ def load_batch(path: str | Path, out: str | Path) -> list:
         if isinstance(job, (ReconstructJob, EvaluateJob)):
             key, maker_kind = ("scene", CaptureJob) if isinstance(job, ReconstructJob) else ("run", ReconstructJob)
             source = getattr(job, key)
-            if isinstance(made.get(source), maker_kind):
-                needs = (*needs, made[source].name)
+            if isinstance(made.get(source.resolve()), maker_kind):
+                needs = (*needs, made[source.resolve()].name)
             elif not source.is_dir():
                 raise ConfigError(
                     f"jobs[{i}].{key}",
@@ -371,9 +447,12 @@ def load_batch(path: str | Path, out: str | Path) -> list:
                     path,
                 )
         if not isinstance(job, EvaluateJob):
-            if job.out in made:
-                raise ConfigError(f"jobs[{i}].out", f"{job.out} is also the out of {made[job.out].name}", path)
-            made[job.out] = job
+            folder = job.out.resolve()
+            if folder == out.resolve():  # (where results.csv goes)
+                raise ConfigError(f"jobs[{i}].out", f"{job.out} is --out itself; give a folder in it", path)
+            if folder in made:
+                raise ConfigError(f"jobs[{i}].out", f"{job.out} is also the out of {made[folder].name}", path)
+            made[folder] = job
         if job.name in names:
             raise ConfigError(
                 f"jobs[{i}].name", f"two jobs are named {job.name!r}: jobs[{names[job.name]}] and this one", path
@@ -492,6 +571,14 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
             log.warning(
                 "%s: %s holds a run trained with other settings (%s); it is kept, or resumed, as it was "
                 "trained (delete the folder to train it anew)",
+                job.name,
+                job.out,
+                ", ".join(changes),
+            )
+        elif isinstance(job, CaptureJob) and (changes := job.changed_settings()):
+            log.warning(
+                "%s: %s holds a capture made with other settings (%s); it is kept as it was captured (delete the "
+                "folder to capture it anew)",
                 job.name,
                 job.out,
                 ", ".join(changes),

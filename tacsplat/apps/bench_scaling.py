@@ -14,6 +14,13 @@ from tacsplat.errors import ConfigError, UsageError
 from tacsplat.options import comma_separated_ints
 
 COLUMNS = ("resolution", "iterations", "method", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")
+OPTIONS = {  # PaperBenchConfig's fields -> this command's options
+    "objects": "--object",
+    "methods": "--methods",
+    "resolution": "--resolutions",
+    "iterations": "--steps",
+    "seeds": "--seed",
+}
 MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")  # a method's marker and line style, in the order given
 LINESTYLES = ("-", "--", ":", "-.")
 
@@ -21,11 +28,13 @@ LINESTYLES = ("-", "--", ":", "-.")
 def scaling_methods(text: str) -> tuple[str, ...]:
     """The rows of ``--methods``: methods or ablation rows, as `tacsplat bench paper --methods` takes them; a
     UsageError (exit 2) naming ``--methods`` otherwise."""
-    from tacsplat.apps.paper_bench import bench_row
+    from tacsplat.apps.paper_bench import bench_row, first_repeat
 
-    methods = tuple(dict.fromkeys(v.strip() for v in text.split(",") if v.strip()))
+    methods = tuple(v.strip() for v in text.split(",") if v.strip())
     if not methods:
         raise UsageError("--methods", f"need at least one method, got {text!r}")
+    if (name := first_repeat(methods)) is not None:
+        raise UsageError("--methods", f"{name!r} is given twice")
     for name in methods:
         try:
             bench_row(name, "--methods")
@@ -34,16 +43,32 @@ def scaling_methods(text: str) -> tuple[str, ...]:
     return methods
 
 
+def scaling_benches(out: Path, obj: str, resolutions, step_counts, methods, seed: int = 0) -> list:
+    """``(resolution, steps, bench)``: the `bench paper` slice of each resolution and step count, all validated
+    before any runs; a UsageError naming the option at fault otherwise."""
+    from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig, first_repeat, options_error
+
+    for option, values in (("--resolutions", resolutions), ("--steps", step_counts)):
+        if (value := first_repeat(values)) is not None:  # (a slice's folder)
+            raise UsageError(option, f"{value!r} is given twice")
+    suite = dict(objects=(obj,), settings=("minimal",), methods=tuple(methods), seeds=(seed,))
+    slices = []
+    for resolution, iterations in itertools.product(resolutions, step_counts):
+        config = PaperBenchConfig(**suite, resolution=resolution, iterations=iterations)
+        try:
+            slices.append((resolution, iterations, PaperBench(out / f"{resolution}px-{iterations}steps", config)))
+        except ConfigError as exc:
+            raise options_error(exc, OPTIONS) from None
+    return slices
+
+
 def run_scaling(out: Path, obj: str, resolutions, step_counts, methods, seed: int = 0) -> list[dict]:
-    from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
     from tacsplat.apps.report import number
 
     width = max(map(len, methods))
-    suite = dict(objects=(obj,), settings=("minimal",), methods=tuple(methods), seeds=(seed,))
     rows = []
-    for resolution, iterations in itertools.product(resolutions, step_counts):
-        config = PaperBenchConfig(**suite, resolution=resolution, iterations=iterations)
-        for row in PaperBench(out / f"{resolution}px-{iterations}steps", config).run(progress=False):
+    for resolution, iterations, bench in scaling_benches(out, obj, resolutions, step_counts, methods, seed):
+        for row in bench.run(progress=False):
             rows.append({"resolution": resolution, "iterations": iterations} | {k: row[k] for k in COLUMNS if k in row})
             print(
                 f"{resolution:4d} px {iterations:5d} steps {row['method']:{width}s}: "

@@ -71,10 +71,14 @@ def _change(without: float, with_touch: float) -> str:
 
 
 def run(args: DemoCommand) -> int:
-    from tacsplat.apps.paper_bench import PaperBench
+    from tacsplat.apps.paper_bench import PaperBench, options_error
+    from tacsplat.errors import ConfigError
 
     started = time.perf_counter()
-    bench = PaperBench(Path(args.out), demo_config(args.object, args.resolution, args.iterations))
+    try:
+        bench = PaperBench(Path(args.out), demo_config(args.object, args.resolution, args.iterations))
+    except ConfigError as exc:  # an option's value, refused before anything is made
+        raise options_error(exc, {"objects": "--object"}) from None
     rows = {r["method"]: r for r in bench.run(executor="auto")}  # the three trainings side by side on 2+ cores
     print()
     print(f"{args.object}, 5 views + 5 grasps (20 touches), {args.resolution} px, {args.iterations} steps:")

@@ -25,7 +25,10 @@ paper's touches by default); the report prints the paper's Tables 1-3
 (``paper_tables.yaml``) beside ours, in the dataset's units.
 
 The job is resumable: a finished capture is marked by ``capture.json``, a run
-with a ``metrics.json`` is skipped, a run with only a checkpoint is continued.
+with a ``metrics.json`` is skipped, a run with only a checkpoint is continued
+(with the settings it started with). A finished or interrupted run trained with
+other settings than the bench's now is kept and named in report.md; a finished
+capture made with other settings is refused before anything runs.
 The captures and runs are batch jobs (:mod:`tacsplat.apps.batch`): run one
 after another here, or as Ray tasks (:mod:`tacsplat.apps.executors`).
 Output::
@@ -50,9 +53,9 @@ import numpy as np
 import tyro
 
 from tacsplat.apps import report
-from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob
+from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob, check_bench_jobs
 from tacsplat.apps.executors import ExecutorOptions, Executors
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, UsageError
 from tacsplat.options import comma_separated_ints
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, PAPER_METHODS, get_method, mechanisms, method_label
 
@@ -73,6 +76,25 @@ def paper_tables() -> dict:
     import yaml
 
     return yaml.safe_load(PAPER_TABLES.read_text())
+
+
+def first_repeat(values):
+    """The first of ``values`` that is there twice (None when each is there once)."""
+    seen = set()
+    for value in values:
+        if value in seen:
+            return value
+        seen.add(value)
+    return None
+
+
+def options_error(exc: ConfigError, options: dict[str, str] | None = None) -> UsageError:
+    """A bench config's error (one option's value at fault) as the UsageError (exit 2) naming the command-line
+    option of its key: ``options[key]``, else ``--key`` (``full_views`` -> ``--full-views``)."""
+    if isinstance(exc, UsageError):  # (names its option already)
+        return exc
+    option = (options or {}).get(exc.key, "--" + exc.key.replace("_", "-"))
+    return UsageError(option, str(exc).removeprefix(f"{exc.key}: "))
 
 
 def paper_views(train: list, count: int) -> list:
@@ -156,8 +178,13 @@ class PaperBenchConfig:
             raise ConfigError(
                 "objects", f"unknown object(s) {', '.join(unknown)}; choose from {where}{', '.join(known)}{files}"
             )
+        if (name := first_repeat(self.object_list())) is not None:  # (a mesh file is named by its stem)
+            raise ConfigError("objects", f"two objects are named {name!r}")
         if unknown := [s for s in self.settings if s not in SETTINGS]:
             raise ConfigError("settings", f"unknown setting {unknown[0]!r}; choose from {', '.join(SETTINGS)}")
+        for key in ("settings", "methods", "seeds"):  # (each names run folders)
+            if (value := first_repeat(getattr(self, key))) is not None:
+                raise ConfigError(key, f"{value!r} is given twice")
         for name in self.methods:
             bench_row(name, "methods")
         if self.full_views < 32 and self.dataset is None:
@@ -253,6 +280,9 @@ class PaperBench:
     def __post_init__(self):
         self.out = Path(self.out)
         self.config.validate()
+        runs = self.runs()  # every capture and run checked, so that a value no rig or training takes runs nothing
+        captures = [self.capture_job(*key) for key in dict.fromkeys((r.object, r.setting, r.seed) for r in runs)]
+        check_bench_jobs(captures + [self.reconstruct_job(r) for r in runs], {"seed": "seeds", "views": "full_views"})
 
     def scene_dir(self, obj: str, setting: str, seed: int) -> Path:
         return self.out / "scenes" / obj / f"{setting}-s{seed}{self.config.scene_tag}"
@@ -332,12 +362,23 @@ class PaperBench:
         """Capture and train everything not done yet (``executor``: :func:`~tacsplat.apps.executors.run_jobs`'s
         executor, ray_address and retries), writing the report as runs finish; returns the results rows. A
         BatchError at the end when jobs failed (listed in failures.csv)."""
-        from tacsplat.apps.executors import resolve_executor, run_jobs, side_by_side
+        from tacsplat.apps.executors import resolve_executor, side_by_side
+        from tacsplat.datasets.outputs import claim_output_dir
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
         how = side_by_side(executor["executor"], executor.get("workers"))
         wall_note = f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)"
         wall_note = wall_note if how else ""
+        with claim_output_dir(self.out, "--out"):
+            for key in dict.fromkeys((r.object, r.setting, r.seed) for r in self.runs()):
+                if isinstance(capture := self.capture_job(*key), CaptureJob):  # (refused before anything runs)
+                    capture.refuse_changed_settings()
+            return self._run(progress, wall_note, executor)
+
+    def _run(self, progress: bool, wall_note: str, executor: dict) -> list[dict]:
+        """:meth:`run` in the claimed folder."""
+        from tacsplat.apps.executors import run_jobs
+
         runs = self.runs()
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
@@ -372,14 +413,16 @@ class PaperBench:
             [job for _, job in jobs], self.out, on_done=on_done, desc="bench paper", progress=progress, **executor
         )
         rows = self.results()
+        stale_note = _stale_note(self.stale_runs(), self.out)  # the final report's: the runs as they ended
         write_report(rows)
         outcome.raise_if_failed(self.out)
         return rows
 
     def stale_runs(self) -> list[tuple[Run, list[str]]]:
-        """Finished runs whose ``config.json`` differs from the config this bench trains their method with now,
-        each with what differs (:meth:`ReconstructJob.changed_settings`)."""
-        stale = [(run, self.reconstruct_job(run).changed_settings()) for run in self.runs() if run.done]
+        """Finished runs, and interrupted ones (continued with the settings they started with), whose
+        ``config.json`` differs from the config this bench trains their method with now, each with what differs
+        (:meth:`ReconstructJob.changed_settings`)."""
+        stale = [(run, self.reconstruct_job(run).changed_settings()) for run in self.runs()]
         return [(run, changes) for run, changes in stale if changes]
 
     # ------------------------------------------------------------------ report
@@ -463,7 +506,8 @@ class DatasetSceneJob(SceneCopyJob):
 
 
 def _cd_wins(rows: list[dict], setting: str, method: str, baseline: str) -> tuple[int, int, float, float] | None:
-    """On how many objects ``method``'s mean CD is below ``baseline``'s, of how many, and their averages."""
+    """On how many objects ``method``'s mean CD is below ``baseline``'s, of how many, and their averages (NaN
+    unless every object has both)."""
     objects, methods, values = report.metric_table(rows, "cd", setting)
     if method not in methods or baseline not in methods:
         return None
@@ -477,11 +521,11 @@ def full_vs_vanilla(rows: list[dict], setting: str) -> str:
     if (wins := _cd_wins(rows, setting, "paper", "3dgs")) is None:
         return ""
     won, n, full, vanilla = wins
-    return (
-        f"Full method vs vanilla 3DGS ({setting}): lower CD on {won} of {n} objects; "
-        f"average CD {full:.4f} vs {vanilla:.4f} (ratio {vanilla / full:.2f}x; paper: "
-        + ("0.0026 vs 0.0111, 4.3x)." if setting == "minimal" else "0.0034 vs 0.0075, 2.2x).")
-    )
+    paper = "0.0026 vs 0.0111, 4.3x" if setting == "minimal" else "0.0034 vs 0.0075, 2.2x"
+    average = f"average CD {full:.4f} vs {vanilla:.4f} (ratio {vanilla / full:.2f}x; paper: {paper})"
+    if not np.isfinite([full, vanilla]).all():
+        average = f"no average yet, a run is missing (paper: {paper})"
+    return f"Full method vs vanilla 3DGS ({setting}): lower CD on {won} of {n} objects; {average}."
 
 
 def default_vs_full(rows: list[dict], setting: str) -> str:
@@ -489,9 +533,12 @@ def default_vs_full(rows: list[dict], setting: str) -> str:
     if (wins := _cd_wins(rows, setting, DEFAULT_METHOD, "paper")) is None:
         return ""
     won, n, ours, full = wins
+    average = f"average CD {ours:.4f} vs {full:.4f} ({100 * (ours / full - 1):+.0f}%)"
+    if not np.isfinite([ours, full]).all():
+        average = "no average yet, a run is missing"
     return (
         f"Default `{DEFAULT_METHOD}` ({method_label(DEFAULT_METHOD)}) vs the paper's full method ({setting}): "
-        f"lower CD on {won} of {n} objects; average CD {ours:.4f} vs {full:.4f} ({100 * (ours / full - 1):+.0f}%)."
+        f"lower CD on {won} of {n} objects; {average}."
     )
 
 
@@ -501,6 +548,7 @@ def coverage_sentence(rows: list[dict], setting: str) -> str:
     objects, methods, unseen = report.metric_table(rows, "unseen_fraction", setting)
     seen_cd, unseen_cd = (report.metric_table(rows, metric, setting)[2] for metric in ("cd_seen", "cd_unseen"))
     fractions = np.fmax.reduce(unseen, axis=0) if len(methods) else np.array([np.nan])  # the same for every method
+    fractions[-1] = np.mean(fractions[:-1])  # (NaN when an object has no run that measured it)
     if not np.isfinite(fractions[-1]):
         return ""
     per_object = ", ".join(f"{o} {100 * f:.0f}%" for o, f in zip(objects, fractions[:-1]) if np.isfinite(f))
@@ -597,11 +645,16 @@ def where_we_stand(rows: list[dict], config: PaperBenchConfig) -> str:
         *report.md_table(["", *columns], cells),
     ]
     paper_ratio = table["3dgs"]["Avg."] / table["paper"]["Avg."]
+
+    def gain(values: np.ndarray) -> str:  # 3DGS's average over full's ("–" until both have every object)
+        ratio = values[vanilla, -1] / values[full, -1]
+        return f"{ratio:.2f}x" if np.isfinite(ratio) else "–"
+
     lines += [
         "",
-        f"Gain of full over 3DGS on average: {cd[vanilla, -1] / cd[full, -1]:.2f}x in our CD, "
-        f"{cd_paper[vanilla, -1] / cd_paper[full, -1]:.2f}x in the paper's CD (the paper: {paper_ratio:.1f}x), "
-        f"{terms['accuracy'][vanilla, -1] / terms['accuracy'][full, -1]:.2f}x in its accuracy term. The "
+        f"Gain of full over 3DGS on average: {gain(cd)} in our CD, "
+        f"{gain(cd_paper)} in the paper's CD (the paper: {paper_ratio:.1f}x), "
+        f"{gain(terms['accuracy'])} in its accuracy term. The "
         "completeness term compares with the whole ground-truth surface, including the underside that no test "
         "camera sees, so it rewards a reconstruction that bulges there as much as one that is right where it "
         "is seen.",
@@ -683,9 +736,9 @@ def _stale_note(stale: list[tuple[Run, list[str]]], out: Path) -> str:
     for run, changes in stale:
         groups.setdefault((run.method, ", ".join(changes)), []).append(str(run.out.relative_to(out)))
     return (
-        f"{len(stale)} finished run(s) were trained with other settings than this bench trains their method "
-        "with now (a default changed since); their numbers stand in the tables as they were measured; delete "
-        "their folders to measure them again: "
+        f"{len(stale)} run(s) were trained with other settings than this bench trains their method with now (a "
+        "default or an option changed since; an interrupted run is continued with the settings it started with); "
+        "their numbers stand in the tables as they were measured; delete their folders to measure them again: "
         + "; ".join(
             f"{method} ({changes}), {len(folders)} run(s): {', '.join(folders)}"
             for (method, changes), folders in groups.items()
@@ -764,14 +817,17 @@ def write_paper_report(
             title = f"held-out error vs run time ({setting})"
             png = report.plot_error_vs_time(curves, out / f"error_vs_time_{setting}.png", title)
             lines += [f"![error vs run time, {setting}]({png.name})", ""]
-        for obj in dict.fromkeys(r.object for r in shown):
+        drawable = [r for r in shown if (r.out / "checkpoint.pt").is_file()]  # (what a view is rendered from)
+        for obj in dict.fromkeys(r.object for r in drawable):
             panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(
-                [r for r in shown if r.object == obj], first_views
+                [r for r in drawable if r.object == obj], first_views
             )
             title = f"{obj}, {setting}: first test view"
             path = out / f"renders_{obj}_{setting}.png"
             png = report.render_grid(panels, gt_rgb, gt_depth, path, title, gt_normal, gt_seen)
             lines += [f"![renders {obj} {setting}]({png.name})", ""]
+        if left_out := [str(r.out.relative_to(out)) for r in shown if r not in drawable]:
+            lines += [f"Not in the render grid (no checkpoint.pt to render): {', '.join(left_out)}.", ""]
     (out / "report.md").write_text("\n".join(lines))
 
 
@@ -840,7 +896,10 @@ class PaperBenchCommand:
         for key in ("objects", "settings", "methods"):
             text = getattr(self, key)
             if text is not None and (key, text) != ("objects", "all"):  # (all: every object, or --quick's)
-                setattr(config, key, tuple(v.strip() for v in text.split(",") if v.strip()))
+                values = tuple(v.strip() for v in text.split(",") if v.strip())
+                if not values:  # ('' would otherwise mean the default: every object, a whole suite)
+                    raise UsageError(f"--{key}", f"names nothing ({text!r}); give at least one, or leave it out")
+                setattr(config, key, values)
         for key in ("resolution", "iterations", "full_views", "test_views"):
             if getattr(self, key) is not None:
                 setattr(config, key, getattr(self, key))
@@ -860,7 +919,10 @@ def register(cli) -> None:
 
 def _run(args: PaperBenchCommand) -> int:
     executor = args.executors.run_jobs_args()
-    bench = PaperBench(args.out, args.config())
+    try:
+        bench = PaperBench(args.out, args.config())
+    except ConfigError as exc:  # an option's value, refused before anything is made
+        raise options_error(exc) from None
     started = time.perf_counter()
     rows = bench.run(**executor)
     print((bench.out / "report.md").read_text())

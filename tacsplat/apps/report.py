@@ -67,6 +67,15 @@ def write_csv(rows: list[dict], path: str | Path, columns) -> Path:
     return path
 
 
+def read_csv(path: str | Path) -> list[dict]:
+    """The rows of a CSV file :func:`write_csv` wrote, as dicts of strings (none when there is no file)."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    with path.open(newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
 def md_table(header, rows, align: str = "") -> list[str]:
     """The lines of a Markdown table: ``header`` and ``rows`` of cells; ``align`` a letter per column, ``l``
     (left, ``---``) or ``r`` (right, ``---:``), by default the first column left and the others right."""
@@ -104,8 +113,9 @@ def _mean(values: list[float]) -> float:
 
 
 def metric_table(rows: list[dict], metric: str, setting: str) -> tuple[list[str], list[str], np.ndarray]:
-    """``(objects, methods, values [V, O + 1])``: the mean over seeds of ``metric`` per method and object,
-    last column the average over objects (NaN where a run is missing)."""
+    """``(objects, methods, values [V, O + 1])``: the mean over seeds of ``metric`` per method and object (NaN
+    where a run is missing), last column the average over objects: NaN unless the method has every object's value,
+    so that no two averages over different objects are compared."""
     selected = [r for r in rows if r["setting"] == setting]
     objects = list(dict.fromkeys(r["object"] for r in selected))
     present = {r["method"] for r in selected}
@@ -114,7 +124,7 @@ def metric_table(rows: list[dict], metric: str, setting: str) -> tuple[list[str]
     for i, method in enumerate(methods):
         for j, obj in enumerate(objects):
             values[i, j] = _mean([r.get(metric) for r in selected if r["method"] == method and r["object"] == obj])
-        values[i, -1] = _mean(list(values[i, :-1]))
+        values[i, -1] = np.mean(values[i, :-1]) if np.isfinite(values[i, :-1]).all() else np.nan
     return objects, methods, values
 
 

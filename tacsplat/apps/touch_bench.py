@@ -15,15 +15,19 @@ L_T; the smoothness term is unmasked). Every run is ``method``, by default the
 paper's full method (``full``; the trainer's defaults otherwise).
 
 Output: ``OUT/touches.csv`` (one row per run), ``OUT/summary.csv`` (mean and
-standard deviation per requested count), ``OUT/cd_vs_touches.png``.
-Resumable: runs with a metrics.json are skipped; unlike `bench paper`, which notes and keeps them, a finished or
-interrupted run trained with other settings is refused before anything runs. The
+standard deviation per requested count), ``OUT/cd_vs_touches.png``; the scenes in
+``OUT/scenes/<object>-s<seed>[-t<count>]``, the runs in ``OUT/runs/<object>/t<count>-s<seed>``.
+Resumable: runs with a metrics.json are skipped (and need no scene: a finished sweep
+whose scenes were deleted makes none); unlike `bench paper`, which notes and keeps them, a finished or
+interrupted run trained with other settings, or on another scene, is refused before anything runs, and so is a
+capture made with other settings (one with more grasps than the largest count needs serves it). The
 captures, copies and runs are batch jobs, run here or as Ray tasks
 (``--executor ray``, :mod:`tacsplat.apps.executors`).
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 import math
@@ -34,8 +38,16 @@ from typing import Literal
 
 import numpy as np
 
-from tacsplat.apps.batch import BatchJob, CaptureJob, ReconstructJob, SceneCopyJob, capture_copies_runs
+from tacsplat.apps.batch import (
+    BatchJob,
+    CaptureJob,
+    ReconstructJob,
+    SceneCopyJob,
+    capture_copies_runs,
+    check_bench_jobs,
+)
 from tacsplat.apps.executors import ExecutorOptions, Executors
+from tacsplat.apps.paper_bench import first_repeat, options_error
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints
 from tacsplat.reconstruction.methods import METHODS, get_method
@@ -73,6 +85,9 @@ class TouchBenchConfig:
             raise ConfigError("touch_counts", f"need non-negative counts, got {self.touch_counts}")
         if not self.seeds:
             raise ConfigError("seeds", "need at least one seed")
+        for key in ("touch_counts", "seeds"):  # (each names run folders)
+            if (value := first_repeat(getattr(self, key))) is not None:
+                raise ConfigError(key, f"{value!r} is given twice")
         for key in ("views", "test_views", "resolution", "iterations"):
             if getattr(self, key) < 1:
                 raise ConfigError(key, f"must be >= 1, got {getattr(self, key)}")
@@ -109,44 +124,70 @@ class TouchBench:
         self.out = Path(out)
         self.config = config or TouchBenchConfig()
         self.config.validate()
+        jobs = [self.capture_job(seed) for seed in self.config.seeds]
+        check_bench_jobs(jobs + [job for job in self.jobs() if isinstance(job, ReconstructJob)], {"seed": "seeds"})
+
+    def capture_job(self, seed: int) -> CaptureJob:
+        """The capture of one seed, with enough grasps for the largest count."""
+        c, base = self.config, self.out / "scenes" / f"{self.config.object}-s{seed}"
+        keys = ("object", "views", "test_views", "grasps", "resolution")
+        return CaptureJob(out=base, seed=seed, name=f"capture {base.name}", **{k: getattr(c, k) for k in keys})
+
+    def copy_job(self, seed: int, count: int) -> SubsampleJob:
+        """The copy of a seed's capture with ``count`` touches."""
+        base = self.capture_job(seed).out
+        name = f"{base.name}-t{count}"
+        return SubsampleJob(out=base.with_name(name), base=base, count=count, name=f"subsample {name}")
 
     def jobs(self) -> list[BatchJob]:
         """Per seed its capture (if a copy of it is still to make), then per count the copy with that many
-        touches and its reconstruction (``method``), in the order of the sweep."""
-        c = self.config
+        touches (if its run is still to do) and its reconstruction (``method``), in the order of the sweep."""
         jobs: list[BatchJob] = []
-        for seed in c.seeds:
-            base = self.out / "scenes" / f"{c.object}-s{seed}"
-            keys = ("object", "views", "test_views", "grasps", "resolution")
-            capture = CaptureJob(out=base, seed=seed, name=f"capture {base.name}", **{k: getattr(c, k) for k in keys})
-            copies = [
-                SubsampleJob(
-                    out=base.with_name(f"{base.name}-t{n}"), base=base, count=n, name=f"subsample {base.name}-t{n}"
-                )
-                for n in c.touch_counts
-            ]
-            jobs += capture_copies_runs(capture, copies, lambda copy: self.reconstruct_job(seed, copy))
+        for seed in self.config.seeds:
+            copies = [self.copy_job(seed, n) for n in self.config.touch_counts]
+            jobs += capture_copies_runs(self.capture_job(seed), copies, lambda copy: self.reconstruct_job(seed, copy))
         return jobs
 
     def reconstruct_job(self, seed: int, copy: SubsampleJob) -> ReconstructJob:
-        out, c = self.out / "runs" / f"t{copy.count:03d}-s{seed}", self.config
+        c = self.config
+        out = self.out / "runs" / c.object / f"t{copy.count:03d}-s{seed}"
         return ReconstructJob(
-            out=out, scene=copy.out, method=c.method, seed=seed, iterations=c.iterations, name=f"reconstruct {out.name}"
+            out=out,
+            scene=copy.out,
+            method=c.method,
+            seed=seed,
+            iterations=c.iterations,
+            name=f"reconstruct {out.relative_to(self.out / 'runs')}",
         )
 
     def results(self) -> list[dict]:
-        """One row per finished run, in the order of the sweep."""
+        """One row per finished run, in the order of the sweep; the touches each had from its copy's marker, or
+        for a copy deleted since from the last touches.csv (None where neither says)."""
+        from tacsplat.apps.report import read_csv
+
+        c = self.config
+        reported = {  # (seed, requested) -> touches, of this object's rows in the last report
+            (row["seed"], row["requested_touches"]): row["touches"]
+            for row in read_csv(self.out / "touches.csv")
+            if row.get("object") == c.object
+        }
         rows = []
-        for job in self.jobs():
-            if not isinstance(job, ReconstructJob) or not job.complete():
+        for seed, count in itertools.product(c.seeds, c.touch_counts):
+            copy = self.copy_job(seed, count)
+            job = self.reconstruct_job(seed, copy)
+            if not job.complete():
                 continue
             metrics = json.loads((job.out / "metrics.json").read_text())
-            marker = json.loads(job.scene.with_name(f"{job.scene.name}.json").read_text())
+            if copy.complete():
+                touches = json.loads(copy.marker.read_text())["touches"]
+            else:
+                touches = int(known) if (known := reported.get((str(seed), str(count)))) else None
             rows.append(
                 {
-                    "seed": job.seed,
-                    "requested_touches": marker["requested"],
-                    "touches": marker["touches"],
+                    "object": c.object,
+                    "seed": seed,
+                    "requested_touches": count,
+                    "touches": touches,
                     **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")},
                 }
             )
@@ -157,6 +198,7 @@ class TouchBench:
         :func:`~tacsplat.apps.executors.run_jobs`), then write the report; returns the rows. A BatchError at the
         end when jobs failed (listed in failures.csv)."""
         from tacsplat.apps.executors import run_jobs
+        from tacsplat.datasets.outputs import claim_output_dir
 
         def on_done(job, metrics: dict) -> str | None:
             if not isinstance(job, ReconstructJob):
@@ -164,34 +206,53 @@ class TouchBench:
             kept = json.loads(job.scene.with_name(job.scene.name + ".json").read_text())["touches"]
             return f"seed {job.seed}: {kept:3d} touches -> CD {metrics['cd']:.4f}  PSNR {metrics['psnr']:.2f}"
 
-        jobs = self.jobs()
-        for job in jobs:  # a folder whose runs were trained with other settings is refused before anything runs
-            if isinstance(job, ReconstructJob):
-                job.refuse_changed_settings()
-        outcome = run_jobs(jobs, self.out, on_done=on_done, desc="bench touches", progress=progress, **executor)
-        rows = self.results()
-        write_touch_report(self.out, rows, self.config.method)
+        with claim_output_dir(self.out, "--out"):
+            # a folder whose captures or runs were made with other settings is refused before anything runs
+            for seed in self.config.seeds:  # (a capture's first grasps do not depend on how many follow)
+                self.capture_job(seed).refuse_changed_settings(more_grasps_ok=True)
+            jobs = self.jobs()
+            for job in jobs:
+                if isinstance(job, ReconstructJob):
+                    job.refuse_changed_settings()
+            outcome = run_jobs(jobs, self.out, on_done=on_done, desc="bench touches", progress=progress, **executor)
+            rows = self.results()
+            write_touch_report(self.out, rows, self.config.method)
         outcome.raise_if_failed(self.out)
         return rows
 
 
-TOUCH_COLUMNS = ("seed", "requested_touches", "touches", "cd", "psnr", "ssim", "train_seconds", "num_gaussians")
+TOUCH_COLUMNS = (
+    "object",
+    "seed",
+    "requested_touches",
+    "touches",
+    "cd",
+    "psnr",
+    "ssim",
+    "train_seconds",
+    "num_gaussians",
+)
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """Mean and standard deviation (over seeds) of CD and PSNR per requested touch count."""
+    """Mean and standard deviation over seeds (ddof 1, as :func:`~tacsplat.apps.report.seed_spread`: NaN for one
+    run) of CD and PSNR per requested touch count, and the mean of the touches the runs had."""
     summary = []
     for count in sorted({r["requested_touches"] for r in rows}):
         group = [r for r in rows if r["requested_touches"] == count]
-        line = dict(
-            requested_touches=count, mean_touches=float(np.mean([r["touches"] for r in group])), runs=len(group)
-        )
+        line = dict(requested_touches=count, mean_touches=_mean([r["touches"] for r in group]), runs=len(group))
         for key in ("cd", "psnr"):
             values = np.array([r[key] for r in group if r[key] is not None], dtype=float)
             line[f"{key}_mean"] = float(values.mean()) if len(values) else float("nan")
-            line[f"{key}_std"] = float(values.std()) if len(values) else float("nan")
+            line[f"{key}_std"] = float(values.std(ddof=1)) if len(values) > 1 else float("nan")
         summary.append(line)
     return summary
+
+
+def _mean(values) -> float:
+    """The mean of the values that are not None (NaN without any)."""
+    known = [v for v in values if v is not None]
+    return float(np.mean(known)) if known else float("nan")
 
 
 def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[str, Path]:
@@ -265,7 +326,10 @@ def _run(args: TouchBenchCommand) -> int:
         method=args.method,
     )
     started = time.perf_counter()
-    bench = TouchBench(args.out, config)
+    try:
+        bench = TouchBench(args.out, config)
+    except ConfigError as exc:  # an option's value (the grasps follow from --touches)
+        raise options_error(exc, {"touch_counts": "--touches", "grasps": "--touches"}) from None
     rows = bench.run(**executor)
     print("touches  runs  CD mean     CD std      PSNR mean")
     for s in summarise(rows):

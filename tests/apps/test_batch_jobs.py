@@ -10,6 +10,7 @@ import os
 import re
 import socket
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -247,7 +248,31 @@ def test_a_run_folder_that_trained_with_a_removed_loss_names_it_as_a_change(tmp_
         ),
         ("- {kind: capture, out: a, views: 0}", "jobs[0] (capture a)", "views: must be >= 1, got 0"),
         ("- {kind: capture, out: a, seed: -1}", "jobs[0] (capture a)", "seed: must be >= 0, got -1"),
-        ("- {kind: capture, out: a, cpus: 0}", "jobs[0] (capture a)", "cpus: must be > 0, got 0.0"),
+        ("- {kind: capture, out: a, cpus: 0}", "jobs[0] (capture a)", "cpus: must be a finite number > 0, got 0.0"),
+        ("- {kind: capture, out: a, cpus: .inf}", "jobs[0] (capture a)", "cpus: must be a finite number > 0, got inf"),
+        (
+            "- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, overrides: {seed: 3}}",
+            "jobs[1] (reconstruct r)",
+            "overrides.seed: a field of the job: set `seed:` beside `overrides:`, not in them",
+        ),
+        (
+            "- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, overrides: {lambda_s: 0, device: cpu}}",
+            "jobs[1] (reconstruct r)",
+            "overrides.device: a field of the job",
+        ),
+        (
+            "- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, iterations: 50, overrides: "
+            "{iterations: 7}}",
+            "jobs[1] (reconstruct r)",
+            "overrides.iterations: a field of the job",
+        ),
+        ("- {kind: capture, out: ''}", "jobs[0].out", "is --out itself; give a folder in it"),
+        ("- {kind: capture, out: x/..}", "jobs[0].out", "is --out itself; give a folder in it"),
+        (
+            "- {kind: capture, out: a}\n- {kind: capture, out: x/../a, seed: 1}",
+            "jobs[1].out",
+            "is also the out of capture a",
+        ),
         (
             "- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a, method: ours}",
             "jobs[1] (reconstruct r)",
@@ -433,3 +458,15 @@ def test_batch_warns_of_a_run_trained_with_other_settings_and_keeps_it(tmp_path,
         run_batch([job], tmp_path, progress=False, executor="local")
     assert "reconstruct r:" in caplog.text and "trained with other settings (method paper -> " in caplog.text
     assert json.loads((job.out / "metrics.json").read_text())["method"] == "paper"  # kept
+
+
+def test_batch_warns_of_a_capture_made_with_other_settings_and_keeps_it(tmp_path, caplog):
+    from tacsplat.apps.batch import run_batch
+    from tacsplat.datasets import Scene
+
+    job = CaptureJob(out=tmp_path / "s", resolution=32, views=1, test_views=1, grasps=0, name="capture s")
+    run_batch([job], tmp_path, progress=False, executor="local")
+    with caplog.at_level("WARNING"):
+        run_batch([replace(job, resolution=48)], tmp_path, progress=False, executor="local")
+    assert "capture s:" in caplog.text and "a capture made with other settings (resolution 32 -> 48)" in caplog.text
+    assert Scene.load(job.out).intrinsics.width == 32  # kept

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 from dataclasses import replace
 
 import cv2
@@ -233,7 +234,7 @@ def test_finished_runs_trained_with_other_settings_are_named_in_the_report(tmp_p
     )
     bench.run(progress=False)
     report = (tmp_path / "report.md").read_text()
-    assert "2 finished run(s) were trained with other settings" in report  # one group: same method, same change
+    assert "2 run(s) were trained with other settings" in report  # one group: same method, same change
     assert (
         f"{DEFAULT_METHOD} (depth_normal_start_iter 300 -> 700, albedo_smoothness_beta 0.0 -> 10.0), 2 run(s): "
         f"runs/teapot/minimal/{DEFAULT_METHOD}-s0, runs/teapot/minimal/{DEFAULT_METHOD}-s1"
@@ -282,6 +283,7 @@ def _finish(run, cd: float) -> None:
     ]
     lines = [",".join(PROGRESS_COLUMNS)] + [",".join(str(r.get(k, 0)) for k in PROGRESS_COLUMNS) for r in rows]
     (run.out / "progress.csv").write_text("\n".join(lines) + "\n")
+    (run.out / "checkpoint.pt").write_bytes(b"")  # (what the render grid draws from: the tests render no checkpoint)
 
 
 def test_resume_skips_finished_runs(tmp_path, monkeypatch):
@@ -353,14 +355,14 @@ def test_each_capture_starts_its_costliest_methods_first(tmp_path):
     assert step_work("paper+n") < step_work("default-vc")
 
 
-def _small_scene(path):
+def _small_scene(path, meta=None):
     from tacsplat.datasets import SceneMeta, SceneWriter, SensorModel
     from tacsplat.geometry import look_at
     from tacsplat.types import CameraIntrinsics
 
     sensor = SensorModel(name="gel", width_px=6, height_px=5, pixel_size_m=5e-4, gel_thickness_m=2e-3)
     intr = CameraIntrinsics(np.array([[10.0, 0, 6], [0, 10.0, 4], [0, 0, 1]]), 12, 8)
-    with SceneWriter.create(path, intr, SceneMeta(source="sim", object="cube"), sensor) as writer:
+    with SceneWriter.create(path, intr, meta or SceneMeta(source="sim", object="cube"), sensor) as writer:
         for i, split in enumerate(("train", "train", "test")):
             image = np.full((8, 12, 3), 40 * i, np.uint8)
             writer.add_frame(
@@ -410,8 +412,7 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
 
     def capture(job):
         captured.append(job.out.name)
-        _small_scene(job.out)
-        (job.out / batch.CAPTURE_MARKER).write_text("{}")
+        _recorded_capture(job)
         return {"scene": str(job.out)}
 
     def train(job):
@@ -430,7 +431,7 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     ]  # 4 touches in contact
     assert (tmp_path / "touches.csv").is_file() and (tmp_path / "summary.csv").is_file()
 
-    (tmp_path / "runs" / "t003-s1" / "metrics.json").unlink()  # a run to do again; its copy is there
+    shutil.rmtree(tmp_path / "runs" / "teapot" / "t003-s1")  # a run to do again; its copy is there
     captured.clear(), trained.clear()
     assert len(bench.run(progress=False)) == 6
     assert captured == [] and trained == ["t003-s1"]
@@ -441,7 +442,7 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     (runs[0].out / "config.json").write_text(json.dumps(stale.to_json()))
     (runs[-1].out / "metrics.json").unlink()  # a run still to do, which the refusal must come before
     trained.clear()
-    with pytest.raises(ConfigError, match="--out.*t000-s0 was trained with other settings"):
+    with pytest.raises(ConfigError, match="--out.*teapot/t000-s0 was trained with other settings"):
         bench.run(progress=False)  # ... is refused before any job runs
     assert trained == []
 
@@ -463,7 +464,8 @@ def test_touch_summary_and_plot(tmp_path):
     ]
     summary = summarise(rows)
     assert [s["requested_touches"] for s in summary] == [0, 4, 8]
-    assert summary[0]["cd_mean"] == pytest.approx(0.0105) and summary[0]["cd_std"] == pytest.approx(0.0005)
+    assert summary[0]["cd_mean"] == pytest.approx(0.0105)
+    assert summary[0]["cd_std"] == pytest.approx(0.0005 * 2**0.5)  # over seeds, as report.seed_spread (ddof 1)
     paths = write_touch_report(tmp_path, rows, "paper")
     assert cv2.imread(str(paths["plot"])) is not None
     with paths["summary"].open() as fh:
@@ -616,3 +618,205 @@ def test_prepared_pictures_keep_only_the_latest_scene(tmp_path, monkeypatch):
     }
     bench.prepare_pictures(runs["bell", "3dgs"])  # another scene: the teapot's views go
     assert set(bench.first_views) == {runs["bell", "3dgs"].out, runs["bell", "3dgs"].scene}
+
+
+def test_one_run_per_count_has_no_spread():
+    rows = [{"seed": 0, "requested_touches": 4, "touches": 4, "cd": 0.01, "psnr": 20.0}]
+    (line,) = summarise(rows)
+    assert line["runs"] == 1 and np.isnan(line["cd_std"]) and np.isnan(line["psnr_std"])
+
+
+def test_avg_is_over_every_object_or_none():
+    """A method missing an object (a run still training, or failed) has no Avg.: averages over different objects
+    are not compared, bolded or put in a sentence."""
+    from tacsplat.apps.paper_bench import full_vs_vanilla
+
+    rows = [r for r in synthetic_rows() if not (r["object"] == "bell" and r["method"] == "paper")]
+    objects, methods, values = metric_table(rows, "cd", "minimal")
+    assert np.isnan(values[methods.index("paper"), -1])
+    assert values[methods.index("3dgs"), -1] == pytest.approx(0.025)
+    lines = markdown_table(rows, "cd", "minimal").splitlines()
+    assert next(line for line in lines if line.startswith("| Paper")) == "| Paper (T + S) | **0.0050** | – | – |"
+    assert next(line for line in lines if line.startswith("| 3DGS + T")).endswith("| **0.0070** |")
+    text = full_vs_vanilla(rows, "minimal")
+    assert "lower CD on 1 of 1 objects" in text and "0.0050 vs" not in text and "nan" not in text
+
+
+def _recorded_capture(job) -> None:
+    """What a finished capture ``job`` leaves, without simulating: a small scene recording the job's settings
+    (scene.json, as sim_capture records them) and its capture.json."""
+    from tacsplat.acquisition.capture_scene import capture_settings, scene_meta
+
+    _small_scene(job.out, scene_meta(capture_settings(job.rig()), {}))
+    (job.out / batch.CAPTURE_MARKER).write_text("{}")
+
+
+def _fake_touch_jobs(monkeypatch) -> tuple[list, list]:
+    """The touch bench's captures and trainings made instant; the lists of the captures' and the runs' folders
+    (relative to the bench's runs/ or scenes/) they were called for."""
+    captured, trained = [], []
+
+    def capture(job):
+        captured.append(job.out.name)
+        _recorded_capture(job)
+        return {"scene": str(job.out)}
+
+    def train(job):
+        trained.append(f"{job.out.parent.name}/{job.out.name}")
+        _finish(job, 0.01 * (1 + job.seed))
+        return json.loads((job.out / "metrics.json").read_text())
+
+    monkeypatch.setattr(batch.CaptureJob, "__call__", capture)
+    monkeypatch.setattr(batch.ReconstructJob, "__call__", train)
+    return captured, trained
+
+
+def test_touch_bench_of_another_object_in_one_folder_trains_its_own_runs(tmp_path, monkeypatch):
+    from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
+
+    captured, trained = _fake_touch_jobs(monkeypatch)
+    for obj in ("teapot", "bell"):
+        TouchBench(tmp_path, TouchBenchConfig(object=obj, touch_counts=(0, 4), seeds=(0,))).run(progress=False)
+    assert captured == ["teapot-s0", "bell-s0"]
+    assert trained == ["teapot/t000-s0", "teapot/t004-s0", "bell/t000-s0", "bell/t004-s0"]
+    with (tmp_path / "touches.csv").open() as fh:
+        assert [(r["object"], r["requested_touches"]) for r in csv.DictReader(fh)] == [("bell", "0"), ("bell", "4")]
+
+
+def test_a_run_folder_names_a_scene_that_is_not_the_one_it_trained_on(tmp_path):
+    """config.json records the scene's content; a job on other content (another scene, or the same changed) names
+    it as a change; the same content moved elsewhere is none."""
+    from tacsplat.datasets import Scene
+    from tacsplat.reconstruction.run_dir import scene_record
+
+    _small_scene(tmp_path / "a")
+    _small_scene(tmp_path / "b")
+    subsample_touches(tmp_path / "a", tmp_path / "fewer", 1)
+    shutil.copytree(tmp_path / "a", tmp_path / "moved")
+    job = batch.ReconstructJob(out=tmp_path / "r", scene=tmp_path / "a", iterations=20)
+    job.out.mkdir()
+    recorded = {**job.config().to_json(), "scene": scene_record(Scene.load(job.scene))}
+    (job.out / "config.json").write_text(json.dumps(recorded))
+    (job.out / "metrics.json").write_text("{}")
+    assert job.changed_settings() == []
+    assert replace(job, scene=tmp_path / "moved").changed_settings() == []
+    assert replace(job, scene=tmp_path / "b").changed_settings() == []  # (the same frames and touches)
+    (changed,) = replace(job, scene=tmp_path / "fewer").changed_settings()
+    assert changed.startswith(f"scene {tmp_path / 'a'} (content ") and f"-> {tmp_path / 'fewer'} (content " in changed
+    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(scene "):
+        replace(job, scene=tmp_path / "fewer").refuse_changed_settings()
+    assert replace(job, scene=tmp_path / "nowhere").changed_settings() == []  # (no scene to compare)
+
+
+def test_a_capture_folder_names_the_settings_that_changed_since(tmp_path):
+    job = batch.CaptureJob(out=tmp_path / "s", resolution=32, test_views=2, seed=1)
+    assert job.changed_settings() == []  # nothing captured yet
+    _recorded_capture(job)
+    assert job.changed_settings() == []
+    assert set(replace(job, resolution=48, test_views=3).changed_settings()) == {
+        "resolution 32 -> 48",
+        "test_views 2 -> 3",
+    }
+    assert replace(job, object="bell").changed_settings() == ["object 'teapot' -> 'bell'"]
+    assert replace(job, grasps=2).changed_settings() == ["grasps 5 -> 2"]
+    assert replace(job, grasps=2).changed_settings(more_grasps_ok=True) == []  # (its first grasps are the same)
+    assert replace(job, grasps=6).changed_settings(more_grasps_ok=True) == ["grasps 5 -> 6"]
+    with pytest.raises(ConfigError, match=r"--out: .*s was captured with other settings \(resolution 32 -> 48\)"):
+        replace(job, resolution=48).refuse_changed_settings()
+
+
+def test_bench_paper_refuses_a_capture_made_with_other_settings(tmp_path, monkeypatch):
+    """A rerun with another --resolution into the same folder is refused, not reported as if at the new size."""
+    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), methods=("3dgs",), resolution=32)
+    bench = PaperBench(tmp_path, config)
+    (run,) = bench.runs()
+    _recorded_capture(bench.capture_job(run.object, run.setting, run.seed))
+    _finish(run, 0.02)
+    monkeypatch.setattr(paper_bench, "render_first_test_view", _no_render)
+    bench.run(progress=False)
+    config.resolution = 48
+    with pytest.raises(ConfigError, match=r"--out: .*minimal-s0 was captured with other settings \(resolution 32 "):
+        PaperBench(tmp_path, config).run(progress=False)
+
+
+def test_bench_touches_refuses_a_capture_with_too_few_grasps(tmp_path, monkeypatch):
+    """The capture of a smaller largest count has too few grasps for a larger one: refused; one with more grasps
+    than a smaller sweep needs serves it (its first grasps are the same)."""
+    from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
+
+    captured, trained = _fake_touch_jobs(monkeypatch)
+    TouchBench(tmp_path, TouchBenchConfig(touch_counts=(0, 4), seeds=(0,))).run(progress=False)
+    bigger = TouchBench(tmp_path, TouchBenchConfig(touch_counts=(0, 4, 32), seeds=(0,)))
+    with pytest.raises(ConfigError, match=r"--out: .*teapot-s0 was captured with other settings \(grasps 2 -> 12\)"):
+        bigger.run(progress=False)
+    captured.clear(), trained.clear()
+    assert len(TouchBench(tmp_path, TouchBenchConfig(touch_counts=(4,), seeds=(0,))).run(progress=False)) == 1
+    assert captured == trained == []
+
+
+def _no_render(runs, cache=None):
+    """render_first_test_view without a checkpoint to render."""
+    depth = np.full((8, 8), 0.3, np.float32)
+    return {r.method: (np.zeros((8, 8, 3)), depth) for r in runs}, np.ones((8, 8, 3)), depth, None, None
+
+
+def test_an_interrupted_run_resumed_with_its_own_settings_is_named_in_the_report(tmp_path, monkeypatch):
+    """A run interrupted, then rerun with another --iterations, continues with the settings it started with (as
+    a finished one is kept): the final report says so."""
+    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), methods=("3dgs",), iterations=40)
+    bench = PaperBench(tmp_path, config)
+    (run,) = bench.runs()
+    run.out.mkdir(parents=True)
+    started = replace(bench.reconstruct_job(run), iterations=400).config()
+    (run.out / "config.json").write_text(json.dumps(started.to_json()))
+    (run.out / "checkpoint.pt").write_bytes(b"")  # interrupted
+    monkeypatch.setattr(batch.CaptureJob, "__call__", lambda job: {"scene": str(job.out)})
+    monkeypatch.setattr(batch.ReconstructJob, "__call__", lambda job: _finish(job, 0.02) or {"cd": 0.02})
+    monkeypatch.setattr(paper_bench, "render_first_test_view", _no_render)
+    bench.run(progress=False)
+    report = (tmp_path / "report.md").read_text()
+    assert "1 run(s) were trained with other settings" in report
+    assert "3dgs (iterations 400 -> 40), 1 run(s): runs/teapot/minimal/3dgs-s0" in report
+
+
+def test_benches_refuse_a_folder_another_process_writes(tmp_path, monkeypatch):
+    from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
+    from tacsplat.datasets.outputs import claim_output_dir
+
+    _fake_touch_jobs(monkeypatch)
+    monkeypatch.setattr(paper_bench, "render_first_test_view", _no_render)
+    with claim_output_dir(tmp_path, "--out"):
+        with pytest.raises(ConfigError, match="--out: .* is being written by another tacsplat process"):
+            PaperBench(tmp_path, PaperBenchConfig(objects=("teapot",), settings=("minimal",))).run(progress=False)
+        with pytest.raises(ConfigError, match="--out: .* is being written by another tacsplat process"):
+            TouchBench(tmp_path, TouchBenchConfig(touch_counts=(0,), seeds=(0,))).run(progress=False)
+    assert not (tmp_path / "scenes").exists()
+
+
+def test_bench_touches_makes_no_scene_for_finished_runs(tmp_path, monkeypatch):
+    """Every run finished and the scenes deleted (the large part): the rerun captures and copies nothing, and
+    the report keeps the touches each run had."""
+    from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
+
+    captured, trained = _fake_touch_jobs(monkeypatch)
+    bench = TouchBench(tmp_path, TouchBenchConfig(touch_counts=(0, 3, 10), seeds=(0,)))
+    first = bench.run(progress=False)
+    shutil.rmtree(tmp_path / "scenes")
+    captured.clear(), trained.clear()
+    assert bench.run(progress=False) == first and [r["touches"] for r in first] == [0, 3, 4]
+    assert captured == trained == [] and not (tmp_path / "scenes").exists()
+    shutil.rmtree(tmp_path / "runs" / "teapot" / "t003-s0")  # a run to do again: its copy is made
+    bench.run(progress=False)
+    assert captured == ["teapot-s0"] and trained == ["teapot/t003-s0"]
+
+
+def test_a_finished_run_without_a_checkpoint_is_left_out_of_the_render_grid(tmp_path):
+    config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), methods=("3dgs",))
+    bench = PaperBench(tmp_path, config)
+    (run,) = bench.runs()
+    _finish(run, 0.02)
+    (run.out / "checkpoint.pt").unlink()  # deleted to save space, or evaluated here after training elsewhere
+    bench.run(progress=False)
+    report = (tmp_path / "report.md").read_text()
+    assert "Not in the render grid (no checkpoint.pt to render): runs/teapot/minimal/3dgs-s0." in report
+    assert not (tmp_path / "renders_teapot_minimal.png").exists()
