@@ -592,6 +592,7 @@ def _validate_sim(c: RigConfig, src) -> None:
     s = c.sim
     if s.mesh is not None and not c.path(s.mesh).is_file():
         raise ConfigError("sim.mesh", f"file not found: {c.path(s.mesh)}", src)
+    from tacsplat.sim import VIEW_ZNEAR_M
     from tacsplat.sim.objects import OBJECT_NAMES, texture_problem
 
     if problem := texture_problem(s.texture):
@@ -599,10 +600,14 @@ def _validate_sim(c: RigConfig, src) -> None:
     if s.mesh is None and s.object not in OBJECT_NAMES:
         raise ConfigError("sim.object", f"unknown library object {s.object!r} (one of {list(OBJECT_NAMES)})", src)
     radius = c.plan.views.radius_m
-    if radius is not None and not radius > s.object_radius:
+    # the object's nearest point at least twice the near plane's distance away: off the view's axis a point's depth
+    # is less than its distance (MuJoCo clips it, and its ground-truth depth reads the object's far inside)
+    nearest = s.object_radius + 2 * VIEW_ZNEAR_M
+    if radius is not None and not radius >= nearest:
         raise ConfigError(
             "plan.views.radius_m",
-            f"the camera must stay outside the object: must be larger than "
-            f"sim.object_radius ({s.object_radius:g}), got {radius:g}",
+            f"the camera must stay outside the object, and its near plane ({VIEW_ZNEAR_M:g} m) too: must be larger "
+            f"than sim.object_radius ({s.object_radius:g}) by {2 * VIEW_ZNEAR_M:g} m or more (>= {nearest:g}), "
+            f"got {radius:g}",
             src,
         )

@@ -18,3 +18,7 @@ MuJoCo's offscreen backend (``MUJOCO_GL``) defaults to EGL, set in ``tacsplat/__
 # pad at most; below 0.003 m no grasp touches it, and at 0.0005 m MuJoCo refuses the object's inertia. 0.3 m:
 # larger than the hand (about 0.2 m across); grasps still touch it.
 OBJECT_RADIUS_RANGE_M = (0.025, 0.3)
+
+# The near plane of the twin's cameras (m): MuJoCo draws nothing nearer, so a view camera must keep the object
+# farther than this (acquisition.config checks plan.views.radius_m against it without importing MuJoCo).
+VIEW_ZNEAR_M = 0.01

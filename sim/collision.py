@@ -17,6 +17,7 @@ Regenerate the shipped files after changing a library object or the settings:
 from __future__ import annotations
 
 import hashlib
+import logging
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -24,11 +25,18 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from tacsplat.errors import StorageError
 from tacsplat.files import atomic_write
 from tacsplat.sim.objects import bounding_sphere
 
+log = logging.getLogger(__name__)
+
 SHIPPED_DIR = Path(__file__).resolve().parent / "decompositions"
 DECOMPOSITION_FACES = 20_000  # more faces are decimated before CoACD (the library objects have fewer)
+# A piece with less volume than this fraction of the largest is dropped: a scan's stray speck gets a hull of its
+# own, too small for MuJoCo's inertia (it refuses the model), and too small to grasp (the library's smallest piece
+# is 1e-3 of its largest)
+MIN_PIECE_FRACTION = 1e-6
 
 
 @dataclass(frozen=True)
@@ -106,8 +114,26 @@ def convex_decomposition(
         pieces = _read(stored)
     else:
         pieces = _run_coacd(unit, config)
-        _write(cached, pieces)
-    return [trimesh.Trimesh(np.asarray(v) * radius + centre, f, process=False) for v, f in pieces]
+        try:
+            _write(cached, pieces)
+        except (OSError, StorageError) as exc:  # the cache only saves the next run CoACD's time
+            log.warning("cannot cache the convex decomposition in %s (%s): the next run computes it again", cache, exc)
+    return [trimesh.Trimesh(np.asarray(v) * radius + centre, f, process=False) for v, f in _without_specks(pieces)]
+
+
+def _without_specks(pieces):
+    """The pieces less those under :data:`MIN_PIECE_FRACTION` of the largest one's volume."""
+    volumes = np.array([abs(trimesh.Trimesh(v, f, process=False).volume) for v, f in pieces])
+    return [piece for piece, volume in zip(pieces, volumes) if volume >= MIN_PIECE_FRACTION * volumes.max()]
+
+
+def hull_offset(mesh: trimesh.Trimesh, hulls: list[trimesh.Trimesh], samples: int = 2000) -> float:
+    """How far the hulls stand off the mesh: the median distance from its surface of their vertices (at most
+    ``samples`` of them, evenly picked). CoACD's hull vertices lie on the surface, unless it remeshed the object
+    first (a mesh it cannot use as it is, not closed or not manifold): then they lie about half a voxel off it."""
+    points = np.vstack([h.vertices for h in hulls])
+    _, distance, _ = trimesh.proximity.closest_point(mesh, points[:: max(1, len(points) // samples)])
+    return float(np.median(distance))
 
 
 def write_shipped_decompositions(config: DecompositionConfig = DecompositionConfig()) -> list[Path]:

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tacsplat.geometry import make_pose
+from tacsplat.errors import SimulationError
+from tacsplat.geometry import make_pose, transform_points
 from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS, site_pose
 from tacsplat.sim.twin import SimTwin
 from tacsplat.sim.views import unit_vectors
@@ -32,6 +33,9 @@ class GraspConfig:
     max_tap_rad: float = 0.8  # the tap's target: this far along the tap direction from the preshape
     max_preshape_tries: int = 100  # preshape candidates tried against the collision model per finger
 
+
+MAX_APPROACH_DRAWS = 50  # approach directions drawn for one hand pose before giving up
+FOOTPRINT_RAY_SPACING_M = 0.002  # the grid of rays measuring the surface's height under the hand's footprint
 
 # Tap direction in the flexion joints (1, 2, 3): mostly the distal joint, which moves the pad
 # along its own normal.
@@ -77,28 +81,74 @@ def _pretouch_candidates(twin: SimTwin, table: PreshapeTable, finger: str, T_wor
     return ray[ok][np.argsort(gap[ok])]
 
 
+def _surface_height(twin: SimTwin, R: np.ndarray, reach: float, half_width: float) -> float:
+    """Height along the approach (``-R[:, 2]``, from the object centre) of the highest surface point under the hand's
+    footprint (``|x| < reach``, ``|y| < half_width`` in the hand's axes): the highest of its vertices there and of a
+    grid of rays cast down onto it (a low-poly mesh's faces can cover the footprint with no vertex under it)."""
+    mesh, u = twin.object_mesh, -R[:, 2]
+    local = mesh.vertices @ R  # object points in the hand's axes, relative to the object centre
+    under = (np.abs(local[:, 0]) < reach) & (np.abs(local[:, 1]) < half_width)
+    x, y = (np.linspace(-h, h, int(np.ceil(2 * h / FOOTPRINT_RAY_SPACING_M)) + 1) for h in (reach, half_width))
+    x, y = (a.reshape(-1, 1) for a in np.meshgrid(x, y, indexing="ij"))
+    start = np.linalg.norm(mesh.vertices, axis=1).max() + 0.01  # outside the object's bounding sphere
+    origins = x * R[:, 0] + y * R[:, 1] + start * u
+    tri, ray = twin.tactile_renderer.intersector.intersects_id(
+        origins, np.broadcast_to(-u, origins.shape), multiple_hits=False
+    )
+    # each hit's height, in float64 on the hit triangle's plane (n . p = n . v0 at p = origin - t u, edge-on hits
+    # dropped): where a ray meets the surface exactly at a vertex it measures that vertex's height
+    n, v0 = mesh.face_normals[tri], mesh.triangles[tri, 0]
+    cos = n @ u
+    hit = cos != 0
+    t = np.einsum("ij,ij->i", origins[ray[hit]] - v0[hit], n[hit]) / cos[hit]
+    heights = np.concatenate([mesh.vertices[under] @ u, start - t])
+    return float(heights.max()) if len(heights) else 0.0
+
+
+def _meets_object(twin: SimTwin, T_world_hand: np.ndarray) -> bool:
+    """Place the open hand at ``T_world_hand``; whether its palm or knuckles meet the object: a knuckle in contact
+    with the collision hulls, or a point of the palm's face inside the mesh (the palm, on the mocap base, never
+    collides in MuJoCo)."""
+    twin.hand.set_joint_positions(np.zeros(16))
+    twin.set_hand_base_pose(T_world_hand)
+    if any(name.endswith("_knuckle") for name, _ in twin.hand_object_contacts()):
+        return True
+    g = twin.config.hand_geometry
+    grid = [(sx * g.palm_half_length, sy * 1.5 * g.finger_spacing, 0.0) for sx in (-1, 0, 1) for sy in (-1, 0, 1)]
+    return bool(twin.tactile_renderer.inside(transform_points(T_world_hand, grid), T_world_hand[:3, 2]).any())
+
+
 def sample_hand_pose(twin: SimTwin, rng: np.random.Generator, config: GraspConfig = GraspConfig()) -> np.ndarray:
-    """A hand base pose ``T_world_hand`` with the palm facing the object from a random direction.
+    """A hand base pose ``T_world_hand`` with the palm facing the object from a random direction; the open hand is
+    left there.
 
     The direction is uniform over the sphere above ``min_approach_elevation_deg``
-    with a random roll; the palm is pushed in until the nearest object point
+    with a random roll; the palm is pushed in until the highest surface point
     under the hand's footprint (palm and open fingers) is ``palm_gap_m`` away.
+    A direction where the open hand's palm or knuckles still meet the object
+    (a feature between the footprint's rays, hulls standing far off the mesh)
+    is drawn again, up to ``MAX_APPROACH_DRAWS`` times (then a SimulationError).
     """
     z_min = np.sin(np.deg2rad(config.min_approach_elevation_deg))
-    u = unit_vectors(rng.uniform(z_min, 1.0), rng.uniform(0, 2 * np.pi))  # object -> hand
-    palm_normal = -u
-    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x0 = np.cross(palm_normal, helper)
-    x0 /= np.linalg.norm(x0)
-    roll = rng.uniform(0, 2 * np.pi)
-    x = np.cos(roll) * x0 + np.sin(roll) * np.cross(palm_normal, x0)
-    R = np.stack([x, np.cross(palm_normal, x), palm_normal], axis=1)
     g = twin.config.hand_geometry
     reach = g.palm_half_length + g.knuckle_length + g.proximal_length + g.middle_length + g.distal_length
-    local = twin.object_mesh.vertices @ R  # object points in the hand's axes, relative to the object centre
-    under = (np.abs(local[:, 0]) < reach) & (np.abs(local[:, 1]) < 2.0 * g.finger_spacing + g.link_half_width)
-    height = (twin.object_mesh.vertices[under] @ u).max() if under.any() else 0.0
-    return make_pose(R, u * (height + config.palm_gap_m))
+    for _ in range(MAX_APPROACH_DRAWS):
+        u = unit_vectors(rng.uniform(z_min, 1.0), rng.uniform(0, 2 * np.pi))  # object -> hand
+        palm_normal = -u
+        helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x0 = np.cross(palm_normal, helper)
+        x0 /= np.linalg.norm(x0)
+        roll = rng.uniform(0, 2 * np.pi)
+        x = np.cos(roll) * x0 + np.sin(roll) * np.cross(palm_normal, x0)
+        R = np.stack([x, np.cross(palm_normal, x), palm_normal], axis=1)
+        height = _surface_height(twin, R, reach, 2.0 * g.finger_spacing + g.link_half_width)
+        T_world_hand = make_pose(R, u * (height + config.palm_gap_m))
+        if not _meets_object(twin, T_world_hand):
+            return T_world_hand
+    raise SimulationError(
+        f"no approach found: in {MAX_APPROACH_DRAWS} directions the open hand's palm or knuckles met the object "
+        f"{config.palm_gap_m * 1e3:g} mm off its surface (collision hulls standing far outside the mesh?)"
+    )
 
 
 def preshape_fingers(

@@ -228,6 +228,9 @@ def make_object(name: str, radius: float = DEFAULT_OBJECT_RADIUS) -> SimObject:
     return SimObject(name, normalise_mesh(mesh, radius, name), material)
 
 
+MAX_COORDINATE = 1e100  # a mesh file's coordinates, in its units: the squares of larger ones overflow float64
+
+
 def read_mesh(path: str | Path) -> trimesh.Trimesh:
     """A user's mesh file as one closed triangle mesh, in the file's own units and frame.
 
@@ -235,8 +238,9 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
     dropped and the vertices merged by position (within 1e-9 of the mesh's size), so UV and normal seams no
     longer split the surface; degenerate and repeated faces are dropped; holes (a scan's openings, like the
     Stanford bunny's) are closed by fans around each opening's centroid; faces are wound outwards. A file
-    that cannot be an object is one ConfigError naming it: unreadable, no triangles, NaN or infinite
-    coordinates, zero size, flat (all in one plane).
+    that cannot be an object is one ConfigError naming it: unreadable, no triangles, NaN, infinite or
+    overflowing coordinates, zero size; no triangle or a flat surface (all in one plane) left once the degenerate
+    faces are dropped.
     """
     path = Path(path)
     if not path.is_file():
@@ -251,21 +255,33 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
     not_finite = int((~np.isfinite(vertices)).any(axis=1).sum())
     if not_finite:
         raise ConfigError("mesh", f"{path}: {not_finite} vertices have NaN or infinite coordinates (not finite)")
+    if (largest := float(np.abs(vertices).max())) > MAX_COORDINATE:
+        raise ConfigError(
+            "mesh",
+            f"{path}: coordinates up to {largest:.3g}, more than {MAX_COORDINATE:g} (their squares overflow); "
+            "rescale the file",
+        )
     size = float(np.ptp(vertices, axis=0).max())
     if not size > 0:
         raise ConfigError("mesh", f"{path}: every vertex is at the same point (zero size)")
-    centred = vertices - vertices.mean(axis=0)
-    if np.linalg.svd(centred, compute_uv=False)[-1] <= 1e-9 * size * np.sqrt(len(vertices)):
-        raise ConfigError(
-            "mesh",
-            f"{path} is flat (all its vertices lie in one plane): a surface with no volume, "
-            "not an object that can be grasped",
-        )
     mesh = trimesh.Trimesh(vertices, loaded.faces, process=False)  # geometry only
     mesh.merge_vertices(merge_tex=True, merge_norm=True, digits_vertex=max(0, int(9 - np.floor(np.log10(size)))))
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.update_faces(mesh.unique_faces())
     mesh.remove_unreferenced_vertices()
+    # the checks below hold for what is simulated: the faces left once the degenerate ones are dropped
+    if len(mesh.faces) == 0:
+        raise ConfigError(
+            "mesh",
+            f"{path}: all its {len(loaded.faces)} triangles are degenerate (no area: collinear or repeated vertices)",
+        )
+    centred, size = mesh.vertices - mesh.vertices.mean(axis=0), float(np.ptp(mesh.vertices, axis=0).max())
+    if np.linalg.svd(centred, compute_uv=False)[-1] <= 1e-9 * size * np.sqrt(len(mesh.vertices)):
+        raise ConfigError(
+            "mesh",
+            f"{path} is flat (all its triangles of non-zero area lie in one plane): a surface with no volume, "
+            "not an object that can be grasped",
+        )
     holes = _close_holes(mesh)
     if holes:
         log.info("%s: closed %d hole(s) (%d boundary edges)", path, len(holes), sum(holes))
@@ -276,29 +292,42 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
 
 
 def _close_holes(mesh: trimesh.Trimesh) -> list[int]:
-    """Close every simple boundary loop with a fan of triangles around its centroid (wound like its faces);
-    the edge count of each loop closed. Loops through a vertex where the boundary branches are left open."""
+    """Close every boundary loop with a fan of triangles around its centroid (wound like its faces); the edge count
+    of each loop closed. Where holes touch at a vertex (a bow-tie: the boundary passes it twice), an edge into the
+    vertex goes on along the edge out of it across the same hole: the first one counter-clockwise from it about the
+    vertex normal (faces run counter-clockwise about their normals: that way past the edge's own face is its hole)."""
     # the edges of one face only, directed as they run in it
     boundary = mesh.edges[trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1)]
-    following = dict(zip(boundary[:, 0].tolist(), boundary[:, 1].tolist()))  # a -> b (the last, where it branches)
-    starts, count = np.unique(boundary[:, 0], return_counts=True)
-    branching = set(starts[count > 1].tolist())
+    leaving: dict[int, list[int]] = {}  # vertex -> the boundary edges leaving it
+    for i, a in enumerate(boundary[:, 0].tolist()):
+        leaving.setdefault(a, []).append(i)
+
+    def following(i: int) -> int | None:
+        """The boundary edge after edge ``i`` along its hole (None: the boundary stops)."""
+        p, v = boundary[i]
+        out = leaving.get(int(v), [])
+        if len(out) < 2:
+            return out[0] if out else None
+        normal, back = mesh.vertex_normals[v], mesh.vertices[p] - mesh.vertices[v]
+        ahead = mesh.vertices[boundary[out, 1]] - mesh.vertices[v]  # [k, 3]
+        back, ahead = back - (back @ normal) * normal, ahead - np.outer(ahead @ normal, normal)  # in the tangent plane
+        angle = np.arctan2(np.cross(back, ahead) @ normal, ahead @ back) % (2 * np.pi)  # from back, counter-clockwise
+        return out[int(np.argmin(angle))]
+
     new_vertices, new_faces, closed = [], [], []
-    seen = set()
-    for start in following:
-        if start in seen:
-            continue
-        loop, v = [], start
-        while v in following and v not in seen:
-            seen.add(v)
-            loop.append(v)
-            v = following[v]
-        if v != start or len(loop) < 3 or branching.intersection(loop):
+    seen = np.zeros(len(boundary), dtype=bool)
+    for first in range(len(boundary)):
+        loop, i = [], first
+        while i is not None and not seen[i]:
+            seen[i] = True
+            loop.append(int(boundary[i, 0]))
+            i = following(i)
+        if i != first or len(loop) < 3:
             continue
         centre = len(mesh.vertices) + len(new_vertices)
         new_vertices.append(mesh.vertices[loop].mean(axis=0))
         # a boundary edge a -> b runs along its face; the fan's triangle runs b -> a, towards the centre
-        new_faces += [[loop[(i + 1) % len(loop)], loop[i], centre] for i in range(len(loop))]
+        new_faces += [[loop[(k + 1) % len(loop)], loop[k], centre] for k in range(len(loop))]
         closed.append(len(loop))
     if closed:
         mesh.vertices, mesh.faces = np.vstack([mesh.vertices, new_vertices]), np.vstack([mesh.faces, new_faces])
@@ -311,10 +340,14 @@ def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) ->
     path = Path(path)
     mesh = read_mesh(path)
     if not mesh.is_watertight:
+        _, uses = np.unique(mesh.edges_sorted, axis=0, return_counts=True)
         log.warning(
-            "%s is not watertight even with its holes closed (edges shared by more than two faces?): "
-            "ray casting works, collision uses its convex pieces",
+            "%s is not watertight even with its holes closed (%d edges of one face, %d shared by more than two): "
+            "tactile depth is cast on it as it is, but CoACD remeshes it before cutting it into collision pieces, "
+            "which may then stand off its surface",
             path,
+            int((uses == 1).sum()),
+            int((uses > 2).sum()),
         )
     _, raw_radius = bounding_sphere(mesh)
     obj = SimObject(path.stem, normalise_mesh(mesh, radius, str(path)), GlossyMaterial((0.8, 0.8, 0.82, 1.0)))

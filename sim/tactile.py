@@ -121,9 +121,10 @@ class TactileDepthRenderer:
         self._origins_sensor = np.stack([x.ravel(), y.ravel(), np.full(x.size, z0)], axis=1)  # [h*w, 3]
         self._z0 = z0
 
-    def _inside(self, origins: np.ndarray, direction: np.ndarray) -> np.ndarray:
-        """[N] bool: whether each origin is inside the mesh, by a ray cast the other way also leaving it through a
-        back face (a ray through an edge can miss its entry there, and its first hit is then its exit)."""
+    def inside(self, origins: np.ndarray, direction: np.ndarray) -> np.ndarray:
+        """[N] bool: whether each origin is inside the mesh, by a ray from it along ``-direction`` leaving it through
+        a back face (the renderer's check of a ray along ``direction`` whose first hit was a back face: a ray through
+        an edge can miss its entry there, and its first hit is then its exit)."""
         inside = np.zeros(len(origins), dtype=bool)
         if len(origins):
             tri, ray = self.intersector.intersects_id(
@@ -151,6 +152,6 @@ class TactileDepthRenderer:
         z_hit = self._z0 + t
         indentation = np.clip(-z_hit, 0.0, cfg.gel_thickness_m)
         back = np.flatnonzero(denom >= 0)  # first hit a back face: the ray started inside, or missed its entry
-        indentation[back] = np.where(self._inside(origins[ray[back]], direction), cfg.gel_thickness_m, 0.0)
+        indentation[back] = np.where(self.inside(origins[ray[back]], direction), cfg.gel_thickness_m, 0.0)
         depth[ray] = indentation
         return depth.reshape(cfg.height_px, cfg.width_px).astype(np.float32)

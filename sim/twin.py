@@ -26,8 +26,9 @@ from tacsplat.datasets import SensorModel
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.errors import ConfigError, InvalidInputError, SimulationError
 from tacsplat.geometry import check_rigid, invert_pose, make_pose, opencv_to_opengl
+from tacsplat.sim import VIEW_ZNEAR_M
 from tacsplat.sim.camera import MujocoCamera
-from tacsplat.sim.collision import DecompositionConfig, convex_decomposition
+from tacsplat.sim.collision import DecompositionConfig, convex_decomposition, hull_offset
 from tacsplat.sim.hand import (
     FINGER_NAMES,
     HAND_MATERIALS,
@@ -58,6 +59,8 @@ SENSOR_MODEL_NAME = "sim-digit"  # the scene's name of the twin's tactile pads
 
 MAX_SERVO_OMEGA_DT = 0.5  # servo natural frequency x timestep: the stiffest gains allowed
 MIN_TIMECONST_STEPS = 2.0  # contact solref time constant >= this many timesteps
+# contact solref damping ratio >= this: 0.01 blows up a grasp on the library bell at 2 ms steps, 0.05 does not
+MIN_CONTACT_DAMPRATIO = 0.1
 
 # Warnings MuJoCo counts in data.warning that mean the simulation went wrong.
 _FATAL_WARNINGS = [
@@ -119,8 +122,20 @@ def check_physics(config: TwinConfig, model: mujoco.MjModel | None = None) -> No
             f"contact_timeconst: {config.contact_timeconst} s is stiffer than {MIN_TIMECONST_STEPS:g} timesteps "
             f"({MIN_TIMECONST_STEPS * dt:g} s); raise it or lower the timestep"
         )
-    if not (config.contact_dampratio > 0):
-        raise SimulationError(f"contact_dampratio: must be positive, got {config.contact_dampratio}")
+    if not (np.isfinite(config.contact_dampratio) and config.contact_dampratio >= MIN_CONTACT_DAMPRATIO):
+        raise SimulationError(
+            f"contact_dampratio: must be at least {MIN_CONTACT_DAMPRATIO:g} (1: critically damped), "
+            f"got {config.contact_dampratio}"
+        )
+    solimp = np.asarray(config.contact_solimp, dtype=np.float64)
+    if not (solimp.shape == (3,) and 0 < solimp[0] < 1 and 0 < solimp[1] < 1 and 0 <= solimp[2] < np.inf):
+        raise SimulationError(
+            f"contact_solimp: must be (dmin, dmax, width) with dmin and dmax in (0, 1) and width >= 0 m, "
+            f"got {tuple(config.contact_solimp)}"
+        )
+    mass = config.hand_geometry.link_mass
+    if not (np.isfinite(mass) and mass > 0):
+        raise SimulationError(f"hand_geometry.link_mass: must be a finite positive number of kg, got {mass}")
     g = config.gains
     for key in ("kp", "kv", "damping", "armature", "force_limit"):
         value = getattr(g, key)
@@ -189,7 +204,7 @@ def build_twin_mjcf(config: TwinConfig, obj: SimObject, hulls: list[trimesh.Trim
   <statistic extent="1" center="0 0 0"/>
   <visual>
     <global offwidth="{size}" offheight="{size}"/>
-    <map znear="0.01" zfar="20"/>
+    <map znear="{VIEW_ZNEAR_M:g}" zfar="20"/>
     <headlight ambient="0.12 0.12 0.12" diffuse="0.25 0.25 0.25" specular="0.3 0.3 0.3"/>
     <quality shadowsize="0"/>
   </visual>
@@ -306,8 +321,9 @@ class SimHand(AbstractContextManager):
         return self._kinematics.link_boxes(q)
 
     def close(self) -> None:
-        """Hold the current joint positions (the twin's equivalent of a safe stop)."""
-        self._twin.data.ctrl[self._act] = self.read_joint_positions().clip(JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
+        """Hold the current joint positions (the twin's equivalent of a safe stop): the servo targets are the true
+        joint angles, not the reading through the rig's calibration."""
+        self._twin.data.ctrl[self._act] = self._twin.data.qpos[self._qadr].clip(JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
 
     def __exit__(self, *exc) -> None:
         self.close()
@@ -354,9 +370,25 @@ class SimTwin(AbstractContextManager):
             self.object = make_object(config.object, config.object_radius)
         check_physics(config)
         self.hulls = convex_decomposition(self.object.mesh, config.decomposition)
-        self.model = mujoco.MjModel.from_xml_string(
-            build_twin_mjcf(config, self.object, self.hulls), assets=twin_assets(config, self.object)
-        )
+        compliance = config.hand_geometry.gel_compliance
+        if config.mesh_path and (offset := hull_offset(self.object.mesh, self.hulls)) > compliance:
+            log.warning(
+                "%s: its collision hulls stand %.2f mm off its surface, more than the %.2f mm the pads' gel gives: "
+                "the fingers will stop on the hulls before their gel reaches the mesh, and grasps read no touch. "
+                "CoACD remeshes a mesh that is not closed and manifold, coarsely: repair it (close its holes, split "
+                "the edges shared by more than two faces) to grasp it",
+                config.mesh_path,
+                1e3 * offset,
+                1e3 * compliance,
+            )
+        xml = build_twin_mjcf(config, self.object, self.hulls)
+        try:
+            self.model = mujoco.MjModel.from_xml_string(xml, assets=twin_assets(config, self.object))
+        except ValueError as exc:
+            if not config.mesh_path:
+                raise  # not a mesh of the user's: the fault is in the twin's settings or its code
+            why = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+            raise ConfigError("mesh", f"{config.mesh_path}: MuJoCo cannot simulate this mesh ({why})") from exc
         check_physics(config, self.model)
         self.data = mujoco.MjData(self.model)
         self._mocap = self.model.body("hand").mocapid[0]
@@ -380,6 +412,7 @@ class SimTwin(AbstractContextManager):
         self._geom_is_hand = root == self.model.body("hand").id
         self._geom_is_object = root == self.model.body("object").id
         self.peak_penetration_m = 0.0
+        self._clock_target = 0.0  # the time the clock owes: the sum of the sleeps since the start or reset
 
     def sensor_model(self, scale: float = 1.0) -> SensorModel:
         """The scene's sensor model of the pads, in a scene whose lengths are the twin's divided by ``scale``."""
@@ -392,16 +425,23 @@ class SimTwin(AbstractContextManager):
 
     def reset(self) -> None:
         """Back to the model's initial state (time 0, joints, servo targets and hand base as the model puts them),
-        positions recomputed; ``peak_penetration_m`` starts again from 0."""
+        positions recomputed; ``peak_penetration_m`` starts again from 0, and the clock owes nothing."""
         mujoco.mj_resetData(self.model, self.data)
         self.forward()
         self.peak_penetration_m = 0.0
+        self._clock_target = 0.0
 
     def sleep(self, seconds: float) -> None:
-        """Advance the physics by ``seconds`` of simulated time (the twin's clock)."""
+        """Advance the physics by ``seconds`` of simulated time (the twin's clock), in whole timesteps: the clock
+        keeps the sleeps' sum and steps to the nearest step of it, so sleeps that are not whole steps add up (a
+        sleep under half a step still counts towards the next)."""
         if not (np.isfinite(seconds) and seconds >= 0):
             raise InvalidInputError(f"sleep: seconds must be finite and non-negative, got {seconds}")
-        for _ in range(int(round(seconds / self.model.opt.timestep))):
+        dt = self.model.opt.timestep
+        # the target is within half a step of the time after a sleep; further behind, the data was stepped some
+        # other way, and the target catches up
+        self._clock_target = max(self._clock_target, self.data.time - dt / 2) + seconds
+        for _ in range(max(0, round((self._clock_target - self.data.time) / dt))):
             mujoco.mj_step(self.model, self.data)
         self.forward()
         self.check_stable()

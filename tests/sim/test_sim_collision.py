@@ -49,3 +49,20 @@ def test_a_user_mesh_is_decomposed_once_then_read_from_the_user_cache(monkeypatc
     assert len(list((tmp_path / "coacd").glob("*.npz"))) == 1
     hull_volume = sum(p.volume for p in first)
     assert mesh.volume * 0.98 < hull_volume < mesh.volume * 1.2
+
+
+def test_a_cache_that_cannot_be_written_is_warned_about_and_the_pieces_still_used(monkeypatch, tmp_path, tmpfs, caplog):
+    """The cache only saves CoACD's time: a TACSPLAT_CACHE that is a file, or on a read-only file system, costs the
+    next run that time, not this run its capture."""
+    mesh = trimesh.creation.box([1, 1, 1])
+    monkeypatch.setattr(collision, "_run_coacd", lambda unit, config: [(unit.vertices, unit.faces)] * 2)  # 2 pieces
+    (tmp_path / "a_file").write_text("x")
+    read_only = tmpfs("1m")
+    read_only.read_only()
+    for cache in (tmp_path / "a_file", read_only.path):
+        monkeypatch.setenv("TACSPLAT_CACHE", str(cache))
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="tacsplat.sim.collision"):
+            pieces = convex_decomposition(mesh)
+        assert len(pieces) == 2 and np.allclose(pieces[0].vertices, mesh.vertices)
+        assert "cannot cache" in caplog.text and str(cache) in caplog.text

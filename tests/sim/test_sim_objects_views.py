@@ -78,3 +78,29 @@ def test_bounding_sphere_follows_the_vertices_it_is_kept_for():
     mesh.apply_translation([0.1, 0.0, 0.0])
     centre, radius = bounding_sphere(mesh)
     assert radius == pytest.approx(1.0, rel=1e-6) and np.allclose(centre, [0.1, 0.0, 0.0], atol=1e-6)
+
+
+def test_a_view_radius_whose_camera_clips_the_object_is_refused(tmp_path, monkeypatch):
+    """MuJoCo clips what is nearer a camera than its near plane: a view radius just outside the object rendered
+    its far inside, written as ground-truth depth. The nearest radius accepted sees the surface."""
+    from tacsplat.acquisition.config import CapturePlan, GraspPlan, RigConfig, SimConfig, ViewPlan, validate
+    from tacsplat.geometry import look_at
+    from tacsplat.sim import VIEW_ZNEAR_M
+    from tacsplat.sim.twin import SimTwin, TwinConfig
+
+    monkeypatch.setenv("TACSPLAT_CACHE", str(tmp_path / "cache"))
+    trimesh.creation.icosphere(subdivisions=3).export(tmp_path / "ball.obj")
+
+    def config(radius_m):
+        views = ViewPlan(train=1, test=1, mode="hemisphere", radius_m=radius_m)
+        sim = SimConfig(mesh=str(tmp_path / "ball.obj"), object_radius=0.08)
+        return RigConfig(rig="sim", sim=sim, plan=CapturePlan(views, GraspPlan(count=0, mode="random")))
+
+    with pytest.raises(ConfigError) as err:
+        validate(config(0.085))
+    assert err.value.key == "plan.views.radius_m" and "near plane" in str(err.value)
+    nearest = 0.08 + 2 * VIEW_ZNEAR_M
+    validate(config(nearest))
+    with SimTwin(TwinConfig(mesh_path=str(tmp_path / "ball.obj"), camera_width=33, camera_height=33)) as twin:
+        twin.move_camera(look_at(np.array([nearest, 0.0, 0.0]), np.zeros(3)))
+        assert twin.view_camera.read_depth()[16, 16] == pytest.approx(nearest - 0.08, abs=1e-3)

@@ -9,7 +9,7 @@ from tacsplat.drivers.protocols import Camera, Hand, TactileSensor  # noqa: E402
 from tacsplat.errors import InvalidInputError, SimulationError  # noqa: E402
 from tacsplat.geometry import look_at, project_points, unproject_depth  # noqa: E402
 from tacsplat.sim.grasps import GraspConfig, PreshapeTable, preshape_fingers, sample_hand_pose, tap_close_pose  # noqa: E402
-from tacsplat.sim.hand import ActuatorGains, HandKinematics  # noqa: E402
+from tacsplat.sim.hand import ActuatorGains, HandGeometry, HandKinematics  # noqa: E402
 from tacsplat.sim.twin import MAX_SERVO_OMEGA_DT, SimTwin, TwinConfig, check_physics, servo_omega_dt  # noqa: E402
 
 _TWINS: dict = {}
@@ -161,3 +161,77 @@ def test_stiff_settings_are_rejected_with_a_clear_error():
     too_stiff = 1.1 * (MAX_SERVO_OMEGA_DT / servo_omega_dt(model, 1.0)) ** 2
     with pytest.raises(SimulationError, match="gains.kp"):
         check_physics(TwinConfig(gains=ActuatorGains(kp=too_stiff)), model)
+
+
+def test_sleeps_that_are_not_whole_steps_add_up_on_the_twin_clock():
+    """At a 6 ms timestep a 10 ms poll is 1.67 steps: the clock keeps what it owes, so 100 polls advance 1 s (not
+    2 steps each, 1.2 s) and sleeps shorter than half a step advance it too (not nothing, forever)."""
+    twin = twin_of("bell", timestep=0.006, contact_timeconst=0.015, camera_width=16, camera_height=16)
+    twin.reset()
+    for _ in range(100):
+        twin.sleep(0.01)
+    assert twin.time == pytest.approx(1.0, abs=0.006)
+    t0 = twin.time
+    for _ in range(3):
+        twin.sleep(0.002)
+    assert twin.time >= t0 + 0.006
+    twin.reset()
+    assert twin.time == 0.0
+    twin.sleep(0.002)  # the reset also forgets what the clock owed
+    assert twin.time == 0.0
+
+
+@pytest.mark.timeout(120)
+def test_a_grasp_finishes_at_a_timestep_that_does_not_divide_the_polls(tmp_path):
+    """The logger opens the hand by sleeping out the rest of its open time in polls; at a 6 ms timestep a remainder
+    under 3 ms advanced nothing, and the grasp never ended."""
+    from tacsplat.acquisition.devices import twin_rig
+    from tacsplat.acquisition.logger import CaptureLogger
+    from tacsplat.acquisition.twin_planner import TwinPlanner
+    from tacsplat.datasets import SceneMeta, SceneWriter
+
+    config = TwinConfig(object="bell", timestep=0.006, contact_timeconst=0.015, camera_width=16, camera_height=16)
+    check_physics(config)
+    twin = twin_of("bell", timestep=0.006, contact_timeconst=0.015, camera_width=16, camera_height=16)
+    check_physics(config, twin.model)
+    rig = twin_rig(twin)
+    with SceneWriter.create(tmp_path / "scene", rig.intrinsics, SceneMeta("sim", "bell"), rig.sensor_model) as writer:
+        logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
+        outcome = TwinPlanner(twin, 0).grasp(logger, 0)
+    assert outcome is not None and outcome.fingers_in_contact
+
+
+def test_closing_the_hand_holds_the_joints_where_they_are_whatever_the_servos_read():
+    """close() holds the true joint angles: a servo mounted off (an offset the rig has not calibrated) or reversed
+    reads another angle, and commanding that reading would move the finger."""
+    offsets, signs = [0.0] * 16, [1] * 16
+    offsets[1], signs[2] = 0.3, -1
+    twin = twin_of(
+        "bell", camera_width=16, camera_height=16, servo_offsets_rad=tuple(offsets), servo_signs=tuple(signs)
+    )
+    twin.reset()
+    twin.set_hand_base_pose(look_at([0.0, 0.0, 1.0], [0.0, 0.0, 2.0]))  # far from the object
+    q = np.zeros(16)
+    q[1:3] = 0.5, 0.6
+    twin.hand.set_joint_positions(q)
+    twin.sleep(0.5)
+    before = twin.hand.read_motor_angles()  # the true angles, through the servos' fixed offsets and signs
+    twin.hand.close()
+    twin.sleep(0.5)
+    assert np.abs(twin.hand.read_motor_angles() - before).max() < 1e-3
+
+
+@pytest.mark.parametrize(
+    "setting, kw",
+    [
+        ("contact_solimp", dict(contact_solimp=(1.5, -1.0, 0.0))),
+        ("contact_solimp", dict(contact_solimp=(float("nan"), 0.99, 0.001))),
+        ("contact_solimp", dict(contact_solimp=(0.95, 0.99))),
+        ("contact_dampratio", dict(contact_dampratio=1e-6)),
+        ("hand_geometry.link_mass", dict(hand_geometry=HandGeometry(link_mass=0.0))),
+    ],
+)
+def test_contact_and_mass_settings_that_break_the_simulation_are_refused_by_name(setting, kw):
+    """Each made the twin fail later (unstable at the first grasp, or MuJoCo's compiler), naming no setting."""
+    with pytest.raises(SimulationError, match=f"^{setting}:"):
+        check_physics(TwinConfig(**kw))

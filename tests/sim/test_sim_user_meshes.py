@@ -126,3 +126,84 @@ def test_sim_capture_refuses_a_flat_mesh_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 1 and err.count("error:") == 1 and "sheet.obj" in err and "Traceback" not in err
     assert not (tmp_path / "scene" / "transforms.json").exists()
+
+
+BROKEN_MESHES = {
+    # three zero-area triangles (collinear vertices) spanning 3-D: no triangle is left once they are dropped
+    "degenerate.obj": "v 0 0 0\nv 1 0 0\nv 2 0 0\nv 0 1 0\nv 0 2 0\nv 0 0 1\nv 0 0 2\nf 1 2 3\nf 1 4 5\nf 1 6 7\n",
+    # a flat square and a zero-area triangle out of its plane: flat once that is dropped
+    "flat_plus_degenerate.obj": "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nv 0 0 1\nv 0 0 2\nf 1 2 3\nf 1 3 4\nf 1 5 6\n",
+    # a tetrahedron with coordinates of 1e200: their squares and cross products overflow
+    "huge_coords.obj": "v 0 0 0\nv 1e200 0 0\nv 0 1e200 0\nv 0 0 1e200\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n",
+}
+
+
+@pytest.mark.parametrize("name", sorted(BROKEN_MESHES))
+def test_meshes_broken_once_cleaned_fail_with_one_error_naming_them(tmp_path, capsys, name):
+    """The checks hold for the mesh as simulated, after its degenerate faces are dropped (they crashed in qhull)."""
+    (tmp_path / name).write_text(BROKEN_MESHES[name])
+    with pytest.raises(ConfigError, match=name.replace(".", r"\.")):
+        load_mesh_object(tmp_path / name)
+    code = tacsplat_main(
+        ["sim-capture", "--mesh", str(tmp_path / name), "--out", str(tmp_path / "scene"), "--views", "1"]
+    )
+    err = capsys.readouterr().err
+    assert code == 1 and err.count("error:") == 1 and name in err and "Traceback" not in err, err
+
+
+def test_a_stray_speck_gets_no_collision_piece_of_its_own(tmp_path):
+    """A scan's speck far from the object: CoACD gives it a hull of its own, too small for MuJoCo's inertia (it
+    refused the model with a traceback); it is dropped, the object keeps its piece."""
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=1e-3)
+    speck.apply_translation([100.0, 0.0, 0.0])
+    trimesh.util.concatenate([trimesh.creation.box([1.0, 1.0, 1.0]), speck]).export(tmp_path / "speck.obj")
+    assert twin_builds(tmp_path / "speck.obj") == 1
+
+
+def test_a_mesh_mujoco_refuses_is_one_error_naming_it(tmp_path, monkeypatch):
+    from tacsplat.sim import twin as twin_module
+
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=1e-6)  # a collision piece under MuJoCo's least volume
+    monkeypatch.setattr(twin_module, "convex_decomposition", lambda mesh, config: [speck])
+    trimesh.creation.box([1.0, 1.0, 1.0]).export(tmp_path / "box.obj")
+    with pytest.raises(ConfigError, match=r"box\.obj: MuJoCo cannot simulate this mesh \(.*volume is too small"):
+        twin_builds(tmp_path / "box.obj")
+
+
+def bow_tie_sphere(inward: bool = False) -> trimesh.Trimesh:
+    """An icosphere missing two triangles that share one vertex: a hole whose boundary passes that vertex twice."""
+    ball = trimesh.creation.icosphere(subdivisions=3)
+    faces = ball.faces
+    other = next(
+        i for i in np.flatnonzero((faces == faces[0, 0]).any(axis=1)) if len(set(faces[i]) & set(faces[0])) == 1
+    )
+    kept = np.delete(faces, [0, other], axis=0)
+    return trimesh.Trimesh(ball.vertices, kept[:, ::-1] if inward else kept, process=False)
+
+
+@pytest.mark.parametrize("inward", [False, True])
+def test_holes_that_touch_at_a_vertex_are_closed(tmp_path, inward):
+    """A bow-tie hole was left open: CoACD then remeshed the object into hulls standing 1.5 mm off it, more than
+    the gel gives, and no grasp read a touch (an inward-wound one also kept its inward normals)."""
+    mesh = bow_tie_sphere(inward)
+    assert len(mesh.outline().entities) >= 1 and not mesh.is_watertight
+    mesh.export(tmp_path / "bow_tie.obj")
+    obj = load_mesh_object(tmp_path / "bow_tie.obj", radius=0.08)
+    assert obj.mesh.is_watertight and obj.mesh.is_winding_consistent
+    assert obj.mesh.volume == pytest.approx(trimesh.creation.icosphere(subdivisions=3).volume * 0.08**3, rel=0.01)
+
+
+@pytest.mark.parametrize("inflation, warned", [(1.0, False), (1.03, True)])
+def test_collision_hulls_standing_off_the_mesh_are_warned_about(tmp_path, monkeypatch, caplog, inflation, warned):
+    """Hulls more than the gel's compliance off the surface (CoACD's remesh of a mesh it cannot use as it is) stop
+    the fingers before their gel reaches the mesh: the capture would read no touch, so the log says so."""
+    from tacsplat.sim import twin as twin_module
+
+    def hulls(mesh, config):  # the mesh's own hull, grown by ``inflation`` about its centre (2.4 mm at 3 %)
+        return [mesh.convex_hull.apply_scale(inflation)]
+
+    monkeypatch.setattr(twin_module, "convex_decomposition", hulls)
+    trimesh.creation.box([1.0, 1.0, 1.0]).export(tmp_path / "box.obj")
+    with caplog.at_level("WARNING", logger="tacsplat.sim.twin"):
+        twin_builds(tmp_path / "box.obj")
+    assert ("box.obj" in caplog.text and "no touch" in caplog.text) == warned, caplog.text
