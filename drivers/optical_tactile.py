@@ -62,6 +62,7 @@ CHANGE_MADS = 6.0  # a pixel changed when its colour change exceeds the unchange
 MIN_CHANGE = 6.0  # ... and at least this many grey levels
 MAX_CHANGE_FACTOR = 2.0  # ... and at most this times a calibration's (a large contact inflates the first estimate)
 MIN_UNCHANGED = 0.25  # ... where at least this fraction of the image is below that (less: no contact, a broken frame)
+UNLIT_LEVEL = 8.0  # grey levels: a pixel no brighter in any channel got no light (where its reference's did)
 BACKGROUND_SIGMA = 1 / 8  # of the image's larger side: the scale of illumination drift
 MARKER_MIN_CONTRAST = 25.0  # grey levels a marker dot is darker than its surroundings
 CHANGE_SCALE = 64.0  # grey levels -> MLP input
@@ -162,22 +163,29 @@ def color_change(
         image, reference = _inpaint(image, markers), _inpaint(reference, markers)
     diff = cv2.medianBlur((image - reference).astype(np.float32), 3).astype(np.float64)
     h, w = diff.shape[:2]
+    # A pixel dark in every channel where the reference's was lit got no light (an LED or a cable failing): it
+    # says nothing of the gel, so it counts as unchanged and stays out of the background and the noise.
+    unlit = (image.max(axis=-1) <= UNLIT_LEVEL) & (reference.max(axis=-1) > UNLIT_LEVEL)
+    if unlit.all():
+        return ColorChange(np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32), float(min_change))
+    diff[unlit] = 0.0
     sigma = BACKGROUND_SIGMA * max(h, w)
-    still = np.ones((h, w), bool)  # first from the whole image
+    still, first = ~unlit, True  # first from the whole image
     for _ in range(iterations):
         weight = _blur(still.astype(np.float64), sigma)
         background = _blur(diff * still[..., None], sigma)
         change = diff - background / np.maximum(weight, 1e-6)[..., None]
+        change[unlit] = 0.0
         magnitude = np.linalg.norm(_blur(change, 1.0), axis=-1)
         quiet = magnitude[still]  # the noise, of the pixels that did not change
         median = float(np.median(quiet))
         threshold = max(min_change, median + CHANGE_MADS * (1.4826 * float(np.median(np.abs(quiet - median)))))
-        if max_change is not None and still.all() and np.mean(magnitude < max_change) > MIN_UNCHANGED:
+        if max_change is not None and first and np.mean(magnitude < max_change) > MIN_UNCHANGED:
             threshold = min(threshold, max_change)  # the first estimate: a contact covering much of the gel inflates it
-        settled = ndimage.binary_erosion(magnitude < threshold, iterations=3)  # the changed pixels grown by 3 px
+        settled = ndimage.binary_erosion(magnitude < threshold, iterations=3) & ~unlit  # changed pixels grown 3 px
         if not settled.any() or np.array_equal(settled, still):  # everything changed (no background left), or done
             break
-        still = settled
+        still, first = settled, False
     return ColorChange(change.astype(np.float32), magnitude.astype(np.float32), threshold)
 
 

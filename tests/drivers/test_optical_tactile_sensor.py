@@ -258,6 +258,23 @@ def test_a_press_cut_by_the_image_border_keeps_its_shape(calibration_file):
     assert abs(radius - BALL_M) < 0.1 * BALL_M, radius
 
 
+def test_a_frame_half_unlit_reads_no_phantom_contact_and_its_lit_half_still_reads_a_press(calibration_file):
+    """Half the frame black (an LED or the cable failing): the dark pixels say nothing of the gel, so they are
+    neither a contact nor a background that would bend the rest; a press in the lit half reads as it would."""
+    rng = np.random.default_rng(4)
+    reference = tactile_image(np.zeros((H, W), np.float32), rng)
+    calib = TactileCalibration.load(calibration_file)
+    dark = np.arange(W)[None, :] < W // 2  # [1, W]
+    untouched = tactile_image(np.zeros((H, W), np.float32), rng)
+    assert not (calib.depth(np.where(dark[..., None], 0, untouched).astype(np.uint8), reference) > 0).any()
+    truth = ball_press(240, 120, 8e-4)
+    pressed = tactile_image(truth, rng)
+    whole = calib.depth(pressed, reference)
+    half = calib.depth(np.where(dark[..., None], 0, pressed).astype(np.uint8), reference)
+    assert not (half > 0)[:, : W // 2].any()
+    assert abs(float(half.max()) - float(whole.max())) < 0.05 * float(whole.max())
+
+
 class ModeCamera:
     """A UVC-like camera: 640x480 by default, switched to any size by CAP_PROP_FRAME_WIDTH/HEIGHT; it stops
     delivering after ``frames`` frames (never if None)."""
