@@ -10,7 +10,8 @@ real gel (illumination drift since the reference, marker dots, noise, a soft rim
    differences. A pixel changed when the magnitude exceeds ``median + 6 x 1.4826 MAD`` of the pixels that
    did not change (a contact covering much of the gel would inflate the statistics of the whole image), and
    at least the calibration's threshold (the 99.5th percentile of the change far from its presses); at most
-   twice that, so that the first estimate, from the whole image, still finds a large contact.
+   twice that, so that the first estimate, from the whole image, still finds a large contact. A pixel that
+   got no light (dark in every channel where the reference was lit) is unchanged and left out of both.
 2. calibration on presses of a ball of known radius (:meth:`TactileCalibration.fit`): the contact circle
    (:func:`find_contact_circle`) is where the colour change peaks along rays from the changed blob (the
    steepest slope of the gel, the rim of the ball's cap), fitted robustly. Inside it the sphere gives the
