@@ -25,11 +25,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[$(EXTRAS)]'
 	touch $(STAMP)
 
-# tests/warm_kernels.py fills numba's cache beside the first tests, which mostly wait on device timeouts
+# tests/warm_kernels.py fills numba's cache beside the first tests, which mostly wait on device timeouts; two
+# pytest workers (pytest-xdist), one per core of the 2-core machine the suite is sized for
 test: $(STAMP)
 	$(PY) -m ruff format --check --quiet . && $(PY) -m ruff check --quiet .
 	$(PY) tests/warm_kernels.py >/dev/null 2>&1 & warm=$$!; \
-	$(PY) -m pytest -m "not slow and not browser" -q; status=$$?; wait $$warm; exit $$status
+	$(PY) -m pytest -m "not slow and not browser" -q -n 2; status=$$?; wait $$warm; exit $$status
 
 # the viewer in headless Chromium (Debian's package, installed when missing)
 SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
