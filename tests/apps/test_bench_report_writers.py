@@ -408,24 +408,11 @@ def test_touch_bench_trains_the_method_it_is_asked_for(tmp_path):
 def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     from tacsplat.apps.touch_bench import TouchBench, TouchBenchConfig
 
-    captured, trained = [], []
-
-    def capture(job):
-        captured.append(job.out.name)
-        _recorded_capture(job)
-        return {"scene": str(job.out)}
-
-    def train(job):
-        trained.append(job.out.name)
-        _finish(job, 0.01 * (1 + job.seed))
-        return json.loads((job.out / "metrics.json").read_text())
-
-    monkeypatch.setattr(batch.CaptureJob, "__call__", capture)
-    monkeypatch.setattr(batch.ReconstructJob, "__call__", train)
+    captured, trained = _fake_touch_jobs(monkeypatch)
     bench = TouchBench(tmp_path, TouchBenchConfig(object="teapot", touch_counts=(0, 3, 10), seeds=(0, 1)))
     rows = bench.run(progress=False)
     assert captured == ["teapot-s0", "teapot-s1"]
-    assert trained == [f"t{n:03d}-s{s}" for s in (0, 1) for n in (0, 3, 10)]
+    assert trained == [f"teapot/t{n:03d}-s{s}" for s in (0, 1) for n in (0, 3, 10)]
     assert [(r["seed"], r["requested_touches"], r["touches"], r["cd"]) for r in rows] == [
         (s, n, k, 0.01 * (1 + s)) for s in (0, 1) for n, k in ((0, 0), (3, 3), (10, 4))
     ]  # 4 touches in contact
@@ -434,7 +421,7 @@ def test_touch_bench_runs_its_jobs_and_resumes(tmp_path, monkeypatch):
     shutil.rmtree(tmp_path / "runs" / "teapot" / "t003-s1")  # a run to do again; its copy is there
     captured.clear(), trained.clear()
     assert len(bench.run(progress=False)) == 6
-    assert captured == [] and trained == ["t003-s1"]
+    assert captured == [] and trained == ["teapot/t003-s1"]
 
     runs = [job for job in bench.jobs() if isinstance(job, batch.ReconstructJob)]
     assert {job.method for job in runs} == {"paper"}  # the paper's method, as its Fig. 6

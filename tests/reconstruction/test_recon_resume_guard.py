@@ -70,11 +70,17 @@ def test_resume_on_another_scene_is_refused_naming_both(scenes, trained, tmp_pat
     assert _files(run) == before
 
 
-def test_a_scene_changed_in_place_is_refused(scenes, tmp_path, capsys):
+def _trained_then_scene_replaced(scenes, tmp_path) -> tuple[Path, Path]:
+    """(scene, run): a run trained on a copy of ``scenes[0]``, whose folder then holds ``scenes[1]`` instead."""
     scene, run = Path(shutil.copytree(scenes[0], tmp_path / "scene")), tmp_path / "run"
     assert main(["reconstruct", str(scene), "--out", str(run), "--iterations", "2", *FAST]) == 0
     shutil.rmtree(scene)
     shutil.copytree(scenes[1], scene)  # the same folder now holds another capture
+    return scene, run
+
+
+def test_a_scene_changed_in_place_is_refused(scenes, tmp_path, capsys):
+    scene, run = _trained_then_scene_replaced(scenes, tmp_path)
     before = _files(run)
     capsys.readouterr()
     assert _resume(scene, run, "--iterations", "4") == 1
@@ -223,10 +229,7 @@ def test_a_run_of_a_relative_scene_path_evaluates_from_any_folder(scenes, tmp_pa
 
 
 def test_evaluate_and_export_refuse_the_runs_scene_changed_since(scenes, tmp_path, capsys):
-    scene, run = Path(shutil.copytree(scenes[0], tmp_path / "scene")), tmp_path / "run"
-    assert main(["reconstruct", str(scene), "--out", str(run), "--iterations", "2", *FAST]) == 0
-    shutil.rmtree(scene)
-    shutil.copytree(scenes[1], scene)  # the same folder now holds another capture
+    scene, run = _trained_then_scene_replaced(scenes, tmp_path)
     before = _files(run)
     capsys.readouterr()
     assert main(["evaluate", str(run)]) == 1
