@@ -309,6 +309,7 @@ def test_an_option_out_of_range_is_one_error_naming_it(scene, tmp_path, capsys, 
     assert not (tmp_path / "run").exists()  # refused before anything is written
 
 
+@pytest.mark.filterwarnings("ignore:.*does not match any type in Union")  # tyro's, on the value refused
 @pytest.mark.parametrize(
     "text, words",
     [
