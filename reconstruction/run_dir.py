@@ -146,16 +146,8 @@ def run_scene(run: LoadedRun):
     from tacsplat.datasets import Scene
 
     scene = Scene.load(run.scene_path)
-    if run.scene_record is not None:
-        now = scene_record(scene)
-        then = str(run.scene_record.get("sha256"))
-        if then != now["sha256"]:
-            raise ConfigError(
-                "scene",
-                f"the run's scene {now['path']} has changed since it was trained (content {then[:12]} then, "
-                f"{now['sha256'][:12]} now: other frames, poses, images or touches); restore it, or train on it "
-                "anew",
-            )
+    if run.scene_record is not None and (what := scene_change(run.scene_record, scene)) is not None:
+        raise ConfigError("scene", f"the run cannot be measured on it: {what}; restore it, or train on it anew")
     return scene
 
 
@@ -277,26 +269,33 @@ def read_run_config(out: Path) -> tuple[TrainConfig, dict | None]:
     return TrainConfig.from_json(data, path, resuming=True), scene if isinstance(scene, dict) else None
 
 
+def scene_change(recorded: dict, scene) -> str | None:
+    """How ``scene`` differs from the one a run recorded (``recorded``: its :func:`scene_record`), as a phrase for a
+    message; None for the same content, wherever it lies now (a scene moved)."""
+    now = scene_record(scene)
+    then_path, then_content = recorded.get("path"), str(recorded.get("sha256"))
+    if then_content == now["sha256"]:
+        return None
+    if then_path == now["path"]:
+        return (
+            f"its scene {then_path} has changed since (content {then_content[:12]} then, {now['sha256'][:12]} now: "
+            "other frames, poses, images or touches)"
+        )
+    given = f"{now['path']} (content {now['sha256'][:12]})"
+    return f"it was trained on the scene {then_path} (content {then_content[:12]}), not on {given}"
+
+
 def check_resumed_scene(out: Path, recorded: dict | None, scene) -> None:
     """Refuse to resume the run in ``out`` on another scene than the one it recorded (or on that scene changed):
     a ConfigError on ``--resume`` naming both. The same content at another path (a scene moved) resumes."""
     if recorded is None:
         return  # a run from before scenes were recorded: nothing to compare
-    now = scene_record(scene)
-    then_path = recorded.get("path")
-    then_content = str(recorded.get("sha256"))
-    if then_content == now["sha256"]:
-        if then_path != now["path"]:
-            log.info("%s: its scene moved from %s to %s (same content): resuming", out, then_path, now["path"])
+    if (what := scene_change(recorded, scene)) is None:
+        if recorded.get("path") != str(Path(scene.path).resolve()):
+            log.info(
+                "%s: its scene moved from %s to %s (same content): resuming", out, recorded.get("path"), scene.path
+            )
         return
-    if then_path == now["path"]:
-        what = (
-            f"its scene {then_path} has changed since (content {then_content[:12]} then, {now['sha256'][:12]} now: "
-            "other frames, poses, images or touches)"
-        )
-    else:
-        given = f"{now['path']} (content {now['sha256'][:12]})"
-        what = f"it was trained on the scene {then_path} (content {then_content[:12]}), not on {given}"
     raise ConfigError(
         "--resume",
         f"{out} cannot continue on this scene: {what}; resume it with the scene it was "

@@ -306,19 +306,17 @@ class ReconstructJob(BatchJob):
         return changes
 
     def _scene_change(self, recorded: dict) -> list[str]:
-        """``["scene THEN -> NOW"]`` when ``scene``'s content is not the one a run recorded (``recorded``: its
-        :func:`~tacsplat.reconstruction.run_dir.scene_record`), else empty."""
+        """``["scene: HOW"]`` when ``scene``'s content is not the one a run recorded (``recorded``: its
+        :func:`~tacsplat.reconstruction.run_dir.scene_record`; :func:`~tacsplat.reconstruction.run_dir.scene_change`),
+        else empty."""
         from tacsplat.datasets import Scene
-        from tacsplat.reconstruction.run_dir import scene_record
+        from tacsplat.reconstruction.run_dir import scene_change
 
         try:
-            now = scene_record(Scene.load(self.scene))
+            what = scene_change(recorded, Scene.load(self.scene))
         except SceneFormatError as exc:
             return [f"scene unreadable ({exc})"]
-        then = str(recorded.get("sha256"))
-        if then == now["sha256"]:
-            return []
-        return [f"scene {recorded.get('path')} (content {then[:12]}) -> {now['path']} (content {now['sha256'][:12]})"]
+        return [] if what is None else [f"scene: {what}"]
 
     def refuse_changed_settings(self) -> None:
         """A benchmark's check before it runs: a finished or interrupted run trained with other settings than this

@@ -689,8 +689,9 @@ def test_a_run_folder_names_a_scene_that_is_not_the_one_it_trained_on(tmp_path):
     assert replace(job, scene=tmp_path / "moved").changed_settings() == []
     assert replace(job, scene=tmp_path / "b").changed_settings() == []  # (the same frames and touches)
     (changed,) = replace(job, scene=tmp_path / "fewer").changed_settings()
-    assert changed.startswith(f"scene {tmp_path / 'a'} (content ") and f"-> {tmp_path / 'fewer'} (content " in changed
-    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(scene "):
+    assert changed.startswith(f"scene: it was trained on the scene {tmp_path / 'a'} (content ")
+    assert f"not on {tmp_path / 'fewer'} (content " in changed
+    with pytest.raises(ConfigError, match=r"--out: .*r was trained with other settings \(scene: it was trained on "):
         replace(job, scene=tmp_path / "fewer").refuse_changed_settings()
     assert replace(job, scene=tmp_path / "nowhere").changed_settings() == []  # (no scene to compare)
 
