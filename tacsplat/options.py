@@ -9,7 +9,7 @@ import io
 import re
 from typing import TypeVar
 
-from tacsplat.errors import UsageError
+from tacsplat.errors import ConfigError, UsageError
 
 T = TypeVar("T")
 
@@ -70,3 +70,22 @@ def comma_separated_ints(text: str, option: str) -> tuple[int, ...]:
         return tuple(int(x) for x in text.split(",") if x.strip())
     except ValueError:
         raise UsageError(option, f"expected comma-separated integers, got {text!r}") from None
+
+
+def first_repeat(values):
+    """The first of ``values`` that is there twice (None when each is there once)."""
+    seen = set()
+    for value in values:
+        if value in seen:
+            return value
+        seen.add(value)
+    return None
+
+
+def options_error(exc: ConfigError, options: dict[str, str] | None = None) -> UsageError:
+    """A bench config's error (one option's value at fault) as the UsageError (exit 2) naming the command-line
+    option of its key: ``options[key]``, else ``--key`` (``full_views`` -> ``--full-views``)."""
+    if isinstance(exc, UsageError):  # (names its option already)
+        return exc
+    option = (options or {}).get(exc.key, "--" + exc.key.replace("_", "-"))
+    return UsageError(option, str(exc).removeprefix(f"{exc.key}: "))

@@ -28,7 +28,8 @@ LINESTYLES = ("-", "--", ":", "-.")
 def scaling_methods(text: str) -> tuple[str, ...]:
     """The rows of ``--methods``: methods or ablation rows, as `tacsplat bench paper --methods` takes them; a
     UsageError (exit 2) naming ``--methods`` otherwise."""
-    from tacsplat.apps.paper_bench import bench_row, first_repeat
+    from tacsplat.apps.paper_bench import bench_row
+    from tacsplat.options import first_repeat
 
     methods = tuple(v.strip() for v in text.split(",") if v.strip())
     if not methods:
@@ -46,7 +47,8 @@ def scaling_methods(text: str) -> tuple[str, ...]:
 def scaling_benches(out: Path, obj: str, resolutions, step_counts, methods, seed: int = 0) -> list:
     """``(resolution, steps, bench)``: the `bench paper` slice of each resolution and step count, all validated
     before any runs; a UsageError naming the option at fault otherwise."""
-    from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig, first_repeat, options_error
+    from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
+    from tacsplat.options import first_repeat, options_error
 
     for option, values in (("--resolutions", resolutions), ("--steps", step_counts)):
         if (value := first_repeat(values)) is not None:  # (a slice's folder)

@@ -71,8 +71,9 @@ def _change(without: float, with_touch: float) -> str:
 
 
 def run(args: DemoCommand) -> int:
-    from tacsplat.apps.paper_bench import PaperBench, options_error
+    from tacsplat.apps.paper_bench import PaperBench
     from tacsplat.errors import ConfigError
+    from tacsplat.options import options_error
 
     started = time.perf_counter()
     try:

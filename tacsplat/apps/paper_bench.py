@@ -56,7 +56,7 @@ from tacsplat.apps import report
 from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob, check_bench_jobs
 from tacsplat.apps.executors import ExecutorOptions, Executors
 from tacsplat.errors import ConfigError, UsageError
-from tacsplat.options import comma_separated_ints
+from tacsplat.options import comma_separated_ints, first_repeat, options_error
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, PAPER_METHODS, get_method, mechanisms, method_label
 
 log = logging.getLogger(__name__)
@@ -76,25 +76,6 @@ def paper_tables() -> dict:
     import yaml
 
     return yaml.safe_load(PAPER_TABLES.read_text())
-
-
-def first_repeat(values):
-    """The first of ``values`` that is there twice (None when each is there once)."""
-    seen = set()
-    for value in values:
-        if value in seen:
-            return value
-        seen.add(value)
-    return None
-
-
-def options_error(exc: ConfigError, options: dict[str, str] | None = None) -> UsageError:
-    """A bench config's error (one option's value at fault) as the UsageError (exit 2) naming the command-line
-    option of its key: ``options[key]``, else ``--key`` (``full_views`` -> ``--full-views``)."""
-    if isinstance(exc, UsageError):  # (names its option already)
-        return exc
-    option = (options or {}).get(exc.key, "--" + exc.key.replace("_", "-"))
-    return UsageError(option, str(exc).removeprefix(f"{exc.key}: "))
 
 
 def paper_views(train: list, count: int) -> list:
@@ -280,9 +261,9 @@ class PaperBench:
     def __post_init__(self):
         self.out = Path(self.out)
         self.config.validate()
-        runs = self.runs()  # every capture and run checked, so that a value no rig or training takes runs nothing
-        captures = [self.capture_job(*key) for key in dict.fromkeys((r.object, r.setting, r.seed) for r in runs)]
-        check_bench_jobs(captures + [self.reconstruct_job(r) for r in runs], {"seed": "seeds", "views": "full_views"})
+        # every capture and run checked, so that a value no rig or training takes runs nothing
+        jobs = self.capture_jobs() + [self.reconstruct_job(r) for r in self.runs()]
+        check_bench_jobs(jobs, {"seed": "seeds", "views": "full_views"})
 
     def scene_dir(self, obj: str, setting: str, seed: int) -> Path:
         return self.out / "scenes" / obj / f"{setting}-s{seed}{self.config.scene_tag}"
@@ -296,6 +277,10 @@ class PaperBench:
         ]
 
     # ------------------------------------------------------------------ capture and training
+
+    def capture_jobs(self) -> list[CaptureJob | DatasetSceneJob]:
+        """The capture of each object, setting and seed of the suite (:meth:`capture_job`)."""
+        return [self.capture_job(*key) for key in dict.fromkeys((r.object, r.setting, r.seed) for r in self.runs())]
 
     def capture_job(self, obj: str, setting: str, seed: int) -> CaptureJob | DatasetSceneJob:
         """The seeded sim capture of one object and setting (with a dataset: its scene of that setting)."""
@@ -370,8 +355,8 @@ class PaperBench:
         wall_note = f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)"
         wall_note = wall_note if how else ""
         with claim_output_dir(self.out, "--out"):
-            for key in dict.fromkeys((r.object, r.setting, r.seed) for r in self.runs()):
-                if isinstance(capture := self.capture_job(*key), CaptureJob):  # (refused before anything runs)
+            for capture in self.capture_jobs():
+                if isinstance(capture, CaptureJob):  # (refused before anything runs)
                     capture.refuse_changed_settings()
             return self._run(progress, wall_note, executor)
 

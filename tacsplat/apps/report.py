@@ -107,7 +107,8 @@ def machine(**extra) -> dict:
     }
 
 
-def _mean(values: list[float]) -> float:
+def finite_mean(values: list[float | None]) -> float:
+    """The mean of the values that are finite numbers (NaN without any)."""
     finite = [v for v in values if v is not None and math.isfinite(v)]
     return float(np.mean(finite)) if finite else float("nan")
 
@@ -123,7 +124,9 @@ def metric_table(rows: list[dict], metric: str, setting: str) -> tuple[list[str]
     values = np.full((len(methods), len(objects) + 1), np.nan)
     for i, method in enumerate(methods):
         for j, obj in enumerate(objects):
-            values[i, j] = _mean([r.get(metric) for r in selected if r["method"] == method and r["object"] == obj])
+            values[i, j] = finite_mean(
+                [r.get(metric) for r in selected if r["method"] == method and r["object"] == obj]
+            )
         values[i, -1] = np.mean(values[i, :-1]) if np.isfinite(values[i, :-1]).all() else np.nan
     return objects, methods, values
 

@@ -47,9 +47,8 @@ from tacsplat.apps.batch import (
     check_bench_jobs,
 )
 from tacsplat.apps.executors import ExecutorOptions, Executors
-from tacsplat.apps.paper_bench import first_repeat, options_error
 from tacsplat.errors import ConfigError
-from tacsplat.options import comma_separated_ints
+from tacsplat.options import comma_separated_ints, first_repeat, options_error
 from tacsplat.reconstruction.methods import METHODS, get_method
 
 log = logging.getLogger(__name__)
@@ -237,22 +236,18 @@ TOUCH_COLUMNS = (
 def summarise(rows: list[dict]) -> list[dict]:
     """Mean and standard deviation over seeds (ddof 1, as :func:`~tacsplat.apps.report.seed_spread`: NaN for one
     run) of CD and PSNR per requested touch count, and the mean of the touches the runs had."""
+    from tacsplat.apps.report import finite_mean
+
     summary = []
     for count in sorted({r["requested_touches"] for r in rows}):
         group = [r for r in rows if r["requested_touches"] == count]
-        line = dict(requested_touches=count, mean_touches=_mean([r["touches"] for r in group]), runs=len(group))
+        line = dict(requested_touches=count, mean_touches=finite_mean([r["touches"] for r in group]), runs=len(group))
         for key in ("cd", "psnr"):
             values = np.array([r[key] for r in group if r[key] is not None], dtype=float)
             line[f"{key}_mean"] = float(values.mean()) if len(values) else float("nan")
             line[f"{key}_std"] = float(values.std(ddof=1)) if len(values) > 1 else float("nan")
         summary.append(line)
     return summary
-
-
-def _mean(values) -> float:
-    """The mean of the values that are not None (NaN without any)."""
-    known = [v for v in values if v is not None]
-    return float(np.mean(known)) if known else float("nan")
 
 
 def write_touch_report(out: str | Path, rows: list[dict], method: str) -> dict[str, Path]:
