@@ -220,41 +220,37 @@ def read_run(path: Path, label: str, report: Path | None = None) -> RunData:
     """A run directory's splat, metrics and scene (searched for in ``report`` too)."""
     from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.ply import load_ply
-    from tacsplat.reconstruction.run_dir import load_run, read_checkpoint, read_json
+    from tacsplat.reconstruction.run_dir import load_run, read_checkpoint, read_json, recorded_scene
 
     metrics = read_json(path / "metrics.json") if (path / "metrics.json").is_file() else {}
     if (path / "splat.ply").is_file():
-        gaussians, recorded_scene = load_ply(path / "splat.ply"), metrics.get("scene")
+        # config.json's absolute path, else metrics.json's (as typed, relative to where the run was made)
+        record = recorded_scene(path)
+        gaussians, scene_path = load_ply(path / "splat.ply"), record["path"] if record else metrics.get("scene")
     else:  # a run stopped before its splat.ply: its last checkpoint, coloured as its splat.ply will be
         loaded = load_run(path)
-        gaussians, recorded_scene = bake_appearance(loaded.gaussians, loaded.look), loaded.scene_path
-    if recorded_scene is None and (path / "checkpoint.pt").is_file():
-        recorded_scene = read_checkpoint(path / "checkpoint.pt")["scene_path"]
-    return RunData(path, label, gaussians, metrics, find_scene(recorded_scene, path, report), kept_checkpoints(path))
+        gaussians, scene_path = bake_appearance(loaded.gaussians, loaded.look), loaded.scene_path
+    if scene_path is None and (path / "checkpoint.pt").is_file():
+        scene_path = read_checkpoint(path / "checkpoint.pt")["scene_path"]
+    return RunData(path, label, gaussians, metrics, find_scene(scene_path, path, report), kept_checkpoints(path))
 
 
 def find_scene(recorded, run: Path, report: Path | None = None):
-    """The scene a run was trained on: its recorded path as it is, relative to the run or to a folder above it (a
-    path relative to where ``bench paper --out pb1`` ran: ``pb1/scenes/...``, found from wherever the run is
-    viewed), or (runs of a report) its part from ``scenes/`` on inside the report; None (with a warning naming
-    the places tried) when none of them is a scene."""
+    """The scene a run was trained on: its recorded path as it is, relative to the run, or (runs of a report)
+    its part from ``scenes/`` on inside the report; None (with a warning naming the places tried) when none of
+    them is a scene."""
     from tacsplat.datasets import Scene
 
     if recorded is None:
         return None
     recorded = Path(recorded)
     candidates = [recorded, run / recorded]  # (the same path twice when it is absolute)
-    tried = [str(recorded.absolute()), str(run / recorded)]
-    if not recorded.is_absolute():
-        candidates += [folder / recorded for folder in run.absolute().parents]
-        tried.append(f"each folder above the run joined with {recorded}")
     if report is not None and "scenes" in recorded.parts:
         candidates.append(report.joinpath(*recorded.parts[recorded.parts.index("scenes") :]))
-        tried.append(str(candidates[-1]))
     for candidate in candidates:
         if (candidate / "transforms.json").is_file():
             return Scene.load(candidate)
-    tried = ", ".join(dict.fromkeys(tried))
+    tried = ", ".join(dict.fromkeys(str(c.absolute()) for c in candidates))
     log.warning("%s: its scene %s is not found (tried %s); showing the splat alone", run, recorded, tried)
     return None
 
