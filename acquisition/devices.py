@@ -97,6 +97,9 @@ def open_rig(
         if on_hand is not None:
             on_hand(hand)
         stack.enter_context(hand)  # torque on now; off when the stack unwinds, whatever happens
+        clock = WallClock()
+        if not calibrating:  # a capture: each sensor's reference below needs a gel that touches nothing
+            open_hand(hand, config.grasp, clock)
         sensors, model, mounts = [], None, rig_mounts(config, calibrating)
         for i, s in enumerate(config.tactile.sensors):
             T_mount = mounts.get(s.finger, np.eye(4))
@@ -123,7 +126,7 @@ def open_rig(
             hand=hand,
             sensors=sensors,
             camera=camera,
-            clock=WallClock(),
+            clock=clock,
             poses=BoardPoseSource(camera, config.board, T_hand_cam),
             intrinsics=CameraIntrinsics(camera.K, camera.width, camera.height),
             sensor_model=model,
@@ -137,6 +140,26 @@ def open_rig(
             },
             mock=mock,
         )
+
+
+def open_hand(hand, control: GraspControl, clock) -> None:
+    """Command ``control``'s open pose, wait until every joint is within ``stall_error_rad`` of it (at most
+    ``max_close_s``), then ``open_s``. A capture cut short (a crash, a signal, a power cut) leaves the fingers where
+    they stood, perhaps on the object; a tactile reference taken there would bias every reading after it."""
+    target = np.asarray(control.open_pose, float)  # [16]
+    hand.command_joint_positions(target)
+    t_end = clock.time + control.max_close_s
+    while (off := np.max(np.abs(hand.read_joint_state()[0] - target))) > control.stall_error_rad:
+        if clock.time >= t_end:
+            log.warning(
+                "the hand did not reach its open pose within %g s (a joint %.2f rad away): a fingertip still "
+                "touching something biases its tactile reference",
+                control.max_close_s,
+                off,
+            )
+            break
+        clock.sleep(control.poll_s)
+    clock.sleep(control.open_s)
 
 
 def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None):

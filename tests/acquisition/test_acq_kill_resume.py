@@ -99,3 +99,37 @@ def test_a_grasp_cut_short_while_writing_its_touches_is_redone_whole(tmp_path):
     for i in range(4):  # grasp 0 untouched
         assert after[("touch", i)] == partial[("touch", i)]
     assert all(np.isfinite(t.T_world_sensor).all() for t in scene.touches)
+
+
+def test_a_capture_opens_a_hand_left_closed_before_the_tactile_references(tmp_path, monkeypatch):
+    """A capture cut short leaves the fingers where they stood (its guard turns the torque off, the servos stay): the
+    next capture opens the hand before each sensor averages its untouched-gel reference, or a gel still pressed on
+    the object would bias every reading after it."""
+    from tacsplat.acquisition.devices import open_rig
+    from tacsplat.drivers.dxl_emulator import EmulatorProcess
+    from tacsplat.drivers.optical_tactile import OpticalTactileSensor
+
+    def ticks(emu) -> np.ndarray:
+        return np.array([s["present_position"] for _, s in sorted(emu.status().items())])
+
+    with EmulatorProcess() as emu:
+        config = load_rig(write_mock_rig(tmp_path, mock_devices={"servo_port": emu.path}), mock=True)
+        with open_rig(config) as rig:
+            opened = ticks(emu)
+            rig.hand.command_joint_positions(config.grasp.close_pose)
+            deadline = time.monotonic() + 10
+            while np.abs(ticks(emu) - opened).max() < 300 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.5)  # (the servos reach the close pose)
+        closed = ticks(emu)
+        assert np.abs(closed - opened).max() > 300  # the fingers stay closed, torque off
+        at_reference = []
+        take = OpticalTactileSensor.capture_reference
+        monkeypatch.setattr(
+            OpticalTactileSensor, "capture_reference", lambda self: (at_reference.append(ticks(emu)), take(self))
+        )
+        with open_rig(config) as rig:
+            pass
+    assert len(at_reference) == len(config.tactile.sensors)
+    for seen in at_reference:
+        assert np.abs(seen - opened).max() <= 40, (seen - opened, closed - opened)  # ~3.5 degrees: open
