@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Literal
@@ -19,6 +20,7 @@ from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, get_method,
 
 MethodName = Literal[tuple(METHODS)]  # the names of reconstruction.methods.METHODS
 PROG = "tacsplat reconstruct"
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -55,8 +57,8 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
         base = method_config(given.method or DEFAULT_METHOD)
     else:
         base = set_fields(copy.deepcopy(recorded), get_method(given.method).overrides if given.method else {})
-    if given.config is not None:
-        set_fields(base, read_settings(given.config), given.config)
+    from_file = {} if given.config is None else read_settings(given.config)
+    set_fields(base, from_file, given.config)
     default = ReconstructCommand(
         scene=tyro.MISSING,
         out=tyro.MISSING,
@@ -68,6 +70,13 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
     problem = command.train.problem()  # (TrainConfig.validate's, naming the option)
     if problem:
         raise UsageError(option_names(command.train).get(problem[0], problem[0]), problem[1])
+    if late := [start for start in command.train.never_started() if start.split()[0] in from_file]:
+        log.warning(
+            "%s sets %s: at or past --iterations %d, never reached (step numbers do not scale with --iterations)",
+            given.config,
+            ", ".join(late),
+            command.train.iterations,
+        )
     return command
 
 

@@ -157,6 +157,18 @@ class TrainConfig:
             unused.add("coarse_until")
         return unused
 
+    def never_started(self) -> list[str]:
+        """``"smoothness_start_iter 20000"``, ... for each mechanism that is on but starts at or after the last step
+        (start steps are step numbers: a settings file written for 30000 steps, run for fewer, keeps them)."""
+        starts = {
+            "smoothness_start_iter": self.lambda_s > 0,
+            "depth_normal_start_iter": self.lambda_depth_normal > 0,
+            "lit_start_iter": self.appearance != "sh",
+            "densify.start_iter": self.densify.stop_iter > self.densify.start_iter,
+        }
+        values = flat_settings(self.to_json())
+        return [f"{key} {values[key]}" for key, on in starts.items() if on and values[key] >= self.iterations]
+
     def validate(self, names: dict[str, str] | None = None) -> None:
         """A ConfigError for the first setting out of its range, naming it (as ``names[field]`` when given,
         e.g. the command-line option) and the range."""

@@ -140,3 +140,25 @@ def test_a_run_config_of_the_removed_tactile_normal_loss_reads_as_todays_and_res
             TrainConfig.from_json(old, "run/config.json", resuming=True)
     else:
         assert TrainConfig.from_json(old, "run/config.json", resuming=True) == TrainConfig()
+
+
+def test_a_settings_file_for_more_steps_than_run_is_told_which_mechanisms_never_start(caplog):
+    """paper_schedule.yaml's step numbers are for its 30000 steps: run for 1200, its smoothness (from step 20000)
+    never starts, and the command says so rather than training another method without a word."""
+    from tacsplat.reconstruction.command import parse
+    from tacsplat.reconstruction.config import PAPER_SCHEDULE, read_settings
+
+    config = set_fields(method_config("paper"), read_settings(PAPER_SCHEDULE))
+    config.iterations = 1200
+    assert config.never_started() == ["smoothness_start_iter 20000"]  # (densification starts at 500, in time)
+    assert method_config("paper").never_started() == [] and TrainConfig().never_started() == []
+    short = TrainConfig(iterations=500)  # the default's depth-normal consistency starts at 700, its light at 300
+    assert short.never_started() == ["depth_normal_start_iter 700"]
+    parse(["S", "--out", "R", "--method", "paper", "--config", str(PAPER_SCHEDULE), "--iterations", "1200"])
+    assert f"{PAPER_SCHEDULE} sets smoothness_start_iter 20000: at or past --iterations 1200, never reached" in (
+        caplog.text
+    )
+    caplog.clear()
+    parse(["S", "--out", "R", "--iterations", "500"])  # the method's own start steps: as its fields document
+    parse(["S", "--out", "R", "--method", "paper", "--config", str(PAPER_SCHEDULE)])
+    assert "never reached" not in caplog.text
