@@ -274,7 +274,8 @@ def proximity_mask(seeds: torch.Tensor, sigma_px: float) -> torch.Tensor:
     ``seeds`` [H, W] bool are the visible touch pixels. ``d`` is the exact Euclidean
     distance up to 4 sigma (two separable min-plus passes; beyond it the mask is
     below 3.4e-4 and set to 0); the mask is 1 on a seed and all zeros without seeds.
-    The passes run on the seeds' bounding box widened by that reach (outside it the mask is 0; the same values).
+    The passes run on the seeds' bounding box widened by that reach (outside it the mask is 0; the same values),
+    one shift at a time: memory of the box's size, whatever sigma.
     """
     reach = int(math.ceil(4.0 * sigma_px))
     mask = torch.zeros(seeds.shape, device=seeds.device, dtype=torch.float32)  # [H, W]
@@ -284,12 +285,14 @@ def proximity_mask(seeds: torch.Tensor, sigma_px: float) -> torch.Tensor:
     y0, y1 = max(int(rows[0]) - reach, 0), min(int(rows[-1]) + reach + 1, seeds.shape[0])
     x0, x1 = max(int(cols[0]) - reach, 0), min(int(cols[-1]) + reach + 1, seeds.shape[1])
     far = float(2 * (reach + 1) ** 2)  # farther than any distance within reach
-    offsets = torch.arange(-reach, reach + 1, device=seeds.device, dtype=torch.float32) ** 2  # [2R+1]
-    cost = torch.where(seeds[y0:y1, x0:x1], 0.0, far).to(torch.float32)  # [h, w]
-    padded = F.pad(cost[None, None], (0, 0, reach, reach), value=far)[0, 0]  # [h + 2R, w]
-    column = (padded.unfold(0, 2 * reach + 1, 1) + offsets).amin(dim=-1)  # [h, w]: min over rows
-    padded = F.pad(column[None, None], (reach, reach, 0, 0), value=far)[0, 0]  # [h, w + 2R]
-    d2 = (padded.unfold(1, 2 * reach + 1, 1) + offsets).amin(dim=-1)  # [h, w]
+    d2 = torch.where(seeds[y0:y1, x0:x1], 0.0, far).to(torch.float32)  # [h, w]
+    for dim in (0, 1):  # min over rows, then over columns, of the cost k^2 of a shift by k
+        cost, n = d2, d2.shape[dim]
+        d2 = cost.clone()
+        for k in range(1, min(reach, n - 1) + 1):
+            for to, of in ((0, k), (k, 0)):  # from the pixel k after, and from the one k before
+                near = d2.narrow(dim, to, n - k)
+                torch.minimum(near, cost.narrow(dim, of, n - k) + float(k * k), out=near)
     mask[y0:y1, x0:x1] = torch.where(d2 < far, torch.exp(-d2 / (2.0 * sigma_px**2)), torch.zeros_like(d2))
     return mask
 

@@ -202,10 +202,10 @@ def test_proximity_mask_is_one_at_a_touch_and_decays_as_a_gaussian_of_distance()
     assert not proximity_mask(torch.zeros(30, 40, dtype=torch.bool), sigma).any()
 
 
-def test_proximity_mask_matches_the_exact_distance_transform_within_reach():
+@pytest.mark.parametrize("sigma", [2.5, 40.0])  # (40: a reach of 160 px, past the image's sides)
+def test_proximity_mask_matches_the_exact_distance_transform_within_reach(sigma):
     rng = np.random.default_rng(4)
     seeds = torch.from_numpy(rng.random((50, 70)) < 0.004)
-    sigma = 2.5
     free = np.where(seeds.numpy(), 0, 255).astype(np.uint8)
     exact = np.exp(
         -(cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE).astype(np.float64) ** 2) / (2 * sigma**2)
