@@ -35,7 +35,8 @@ def copy_scene(
 
     ``meta``, ``sensor`` and ``gt_mesh`` (a mesh path or ``trimesh.Trimesh``) default to the source's; a new
     sensor model is refused while touches of the old one are copied. Every record is written crash-safely; when
-    the copy fails, the new folder is removed again. Returns ``dst``.
+    the copy fails (SIGTERM and SIGHUP included), the new folder is removed again, and readers refuse a copy that
+    never finished (SIGKILL). Returns ``dst``.
     """
     scene = src if isinstance(src, Scene) else Scene.load(src)
     dst = Path(dst)
@@ -59,7 +60,10 @@ def copy_scene(
         )
     gt_mesh = scene.gt_mesh_path if gt_mesh is None else gt_mesh
     intrinsics = scene.intrinsics or frames[0].intrinsics
-    with removed_on_failure(dst), SceneWriter.create(dst, intrinsics, meta or scene.meta, sensor) as writer:
+    with (
+        removed_on_failure(dst),
+        SceneWriter.create(dst, intrinsics, meta or scene.meta, sensor, job="copy") as writer,
+    ):
         for frame in progress_bar(frames, desc="copy frames", unit="frame", enabled=progress):
             image = np.rint(scene.load_image(frame) * 255).astype(np.uint8)
             writer.add_frame(
@@ -81,4 +85,5 @@ def copy_scene(
             writer.set_gt_mesh(gt_mesh)
         if scene.gt_points_path is not None:
             writer.set_gt_points(scene.gt_points())
+        writer.finish()
     return dst

@@ -21,8 +21,9 @@ parser reads it:
 * Splits: ``train_filenames`` and ``test_filenames`` (``val_filenames`` when there is no test list) decide them;
   frames in no list are left out. Without lists, every ``test_every``-th frame in file-name order (nerfstudio's
   ``interval`` evaluation mode, the 3DGS hold-out) is a test view; 0 puts every frame in train.
-* ``mask_path`` (non-zero = use the pixel; on every frame or on none, as nerfstudio requires) becomes the
-  scene's per-frame mask (``masks/``, ``mask_path`` in the scene's ``transforms.json``).
+* ``mask_path`` (a non-zero colour = use the pixel, an alpha channel ignored; on every frame or on none, as
+  nerfstudio requires) becomes the scene's per-frame mask (``masks/``, ``mask_path`` in the scene's
+  ``transforms.json``).
 * Frames whose image is missing are one error listing them, or with ``skip_missing`` are left out with a
   warning (and listed in scene.json).
 * ``depth_file_path`` and ``ply_file_path`` are not imported (training reads neither): a warning, and
@@ -42,7 +43,7 @@ import cv2
 import numpy as np
 from PIL import Image
 
-from tacsplat.errors import SceneFormatError
+from tacsplat.errors import ConfigError, SceneFormatError
 from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_problem
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
@@ -57,7 +58,7 @@ from .blender import (
     read_raw,
     read_rgba,
 )
-from .records import as_size, camera_problem, is_finite_number
+from .records import as_size, camera_problem, is_finite_number, pose_problem
 from .writer import new_import
 
 log = logging.getLogger(__name__)
@@ -312,9 +313,10 @@ def _applied_transform(data: dict, index: Path) -> tuple[np.ndarray | None, floa
 
 
 def _read_mask(path: Path, camera: Camera, frame: _SourceFrame) -> np.ndarray:
-    """A mask file as uint8 0/255 [H, W] (any non-zero channel means: use the pixel)."""
+    """A mask file as uint8 0/255 [H, W]: any non-zero colour channel means use the pixel. An alpha channel is no
+    part of it (an editor saves an opaque one: it would keep every pixel)."""
     raw = read_raw(path, f"{frame.field}.mask_path", "mask", (camera.width, camera.height), "the image")
-    keep = raw != 0 if raw.ndim == 2 else (raw != 0).any(axis=2)
+    keep = raw != 0 if raw.ndim == 2 else (raw[:, :, :3] != 0).any(axis=2)  # (OpenCV reads grey + alpha as BGRA)
     return np.where(keep, 255, 0).astype(np.uint8)
 
 
@@ -372,12 +374,21 @@ def _original_world_pose(
     frame: _SourceFrame, index: Path, applied: np.ndarray | None, applied_scale: float, scale: float
 ) -> np.ndarray:
     """The frame's OpenCV camera-to-world pose in the original world, in metres (nerfstudio's
-    ``transform_poses_to_original_space``, then ``scale``)."""
-    pose = pose_from_opengl(frame.raw.get("transform_matrix"), index, f"{frame.field}.transform_matrix")
+    ``transform_poses_to_original_space``, then ``scale``); one that no scene holds (100 km away) is an error
+    naming the field that put it there (``applied_scale``, ...), or a ConfigError on ``scale``."""
+    field = f"{frame.field}.transform_matrix"
+    pose = pose_from_opengl(frame.raw.get("transform_matrix"), index, field)
+    if problem := pose_problem(pose):
+        raise SceneFormatError(index, field, problem)
     pose[:3, 3] /= applied_scale
     if applied is not None:
         pose = np.linalg.solve(applied, pose)
+    if problem := pose_problem(pose):
+        culprit = "applied_scale" if applied_scale != 1 else "applied_transform"
+        raise SceneFormatError(index, culprit, f"{frame.field}'s camera mapped back to the original world: {problem}")
     pose[:3, 3] *= scale
+    if problem := pose_problem(pose):
+        raise ConfigError("scale", f"{scale:g} metres per unit puts {frame.field} of {index} out of range: {problem}")
     return pose
 
 

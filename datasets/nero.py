@@ -43,7 +43,7 @@ from tacsplat.types import CameraIntrinsics
 
 from .blender import check_options, composite, read_raw, read_rgba
 from .reader import STRICT, load_points_ply
-from .records import camera_problem
+from .records import camera_problem, pose_problem
 from .writer import new_import
 
 SPLIT_FILE = "synthetic_split_128.pkl"
@@ -78,8 +78,9 @@ def load_array_pickle(path: Path, what: str):
 
 def read_camera(path: Path, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """``(T_world_cam [4, 4] OpenCV camera-to-world, K [3, 3])`` of an ``N-camera.pkl`` whose image is ``size``
-    (w, h) pixels; a SceneFormatError naming the file unless ``K`` is a camera the scene format holds (the
-    writer's check, ``records.camera_problem``)."""
+    (w, h) pixels, the pose re-orthonormalised when off by rounding only; a SceneFormatError naming the file
+    unless the pose and ``K`` are what the scene format holds (the writer's checks, ``records.pose_problem`` and
+    ``records.camera_problem``)."""
     data = load_array_pickle(path, "camera")
     try:
         pose, K = (np.asarray(a, dtype=np.float64) for a in data)
@@ -90,13 +91,18 @@ def read_camera(path: Path, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarr
     world_to_camera = np.vstack([pose, [0.0, 0.0, 0.0, 1.0]])
     if problem := rigidity_problem(world_to_camera, atol=1e-4):
         raise SceneFormatError(path, "pose", f"not a rigid transform: {problem}")
+    U, _, Vt = np.linalg.svd(world_to_camera[:3, :3])  # off by a few digits' rounding: made exactly rigid
+    world_to_camera[:3, :3] = U @ Vt
+    T_world_cam = invert_pose(world_to_camera)
+    if problem := pose_problem(T_world_cam):
+        raise SceneFormatError(path, "pose", problem)
     if not (K[0, 1] == 0 and K[1, 0] == 0 and np.array_equal(K[2], [0.0, 0.0, 1.0])):
         raise SceneFormatError(path, "K", f"not a zero-skew pinhole camera matrix: {K.tolist()}")
     if problem := camera_problem(*(float(K[i, j]) for i, j in ((0, 0), (1, 1), (0, 2), (1, 2))), *size):
         key, why = problem
         entry = {"fl_x": "K[0][0]", "fl_y": "K[1][1]", "cx": "K[0][2]", "cy": "K[1][2]"}.get(key, key)
         raise SceneFormatError(path, "K", f"{entry} ({key}) of a {size[0]}x{size[1]} px image: {why}")
-    return invert_pose(world_to_camera), K
+    return T_world_cam, K
 
 
 def read_depth(path: Path, shape: tuple[int, int]) -> np.ndarray:

@@ -450,7 +450,8 @@ def _read_scene(path: Path, problems: _Problems, check_files: bool) -> Scene:
 
 
 def _check_complete(scene: Scene, problems: _Problems) -> None:
-    """The index holds every record the writer's journal holds, and the scene has a train frame."""
+    """The index holds every record the writer's journal holds, a job (an import) that wrote it finished, and the
+    scene has a train frame."""
     journal = scene.path / JOURNAL
     if journal.is_file():
         try:
@@ -460,7 +461,14 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
         else:  # (with other problems the index holds fewer valid records anyway)
             frames, touches = journaled.num_frames, journaled.num_touches
             resume = "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites the index"
-            if (frames, touches) != (len(scene.frames), len(scene.touches)) and not problems.errors:
+            if journaled.job is not None and not journaled.finished:  # (its index is behind, and stays so)
+                problems.note(
+                    journal,
+                    None,
+                    f"the {journaled.job} writing this scene never finished ({frames} frames and {touches} touches "
+                    f"written): remove {scene.path} and {journaled.job} again",
+                )
+            elif (frames, touches) != (len(scene.frames), len(scene.touches)) and not problems.errors:
                 problems.note(
                     journal,
                     None,
@@ -704,7 +712,7 @@ def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems
     frames = {f.id: f for f in scene.frames}
     for key, rel in depth_files.items():
         field = f"gt.depth[{key}]"
-        fid = int(key) if isinstance(key, str) and key.isdigit() else None
+        fid = int(key) if isinstance(key, str) and key.isascii() and key.isdigit() else None  # ("²".isdigit())
         if fid not in frames:
             if fid not in declared_ids:  # (a declared frame with a problem has been reported already)
                 problems.note(index, field, f"no frame with id {key!r}")

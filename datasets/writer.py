@@ -5,13 +5,16 @@ to disk (fsync) and renamed over its final name (``os.replace``), so a reader
 never sees a partial file. Records are appended one line each to
 ``journal.jsonl`` (fsync'ed); the index files ``transforms.json``,
 ``touches.json`` and ``scene.json`` are re-materialised atomically from the
-in-memory state after each record. Besides frames, touches and the ground
-truth, a record can be a capture annotation (:meth:`SceneWriter.annotate`: plain
-JSON under a key of scene.json's ``annotations``, the latest value of a key
-wins), e.g. the decisions of a next-best capture. After ``kill -9`` at any point:
+in-memory state after each record (by a job, an import or a copy, once, when
+it finishes). Besides frames, touches and the ground truth, a record can be a
+capture annotation (:meth:`SceneWriter.annotate`: plain JSON under a key of
+scene.json's ``annotations``, the latest value of a key wins), e.g. the
+decisions of a next-best capture. After ``kill -9`` at any point:
 
 * the index files are a consistent snapshot, at most one record behind the
   journal (readers refuse such a scene, naming the journal, until it is resumed);
+  a job's scene (:meth:`SceneWriter.create`'s ``job``) is complete only with its
+  last record, 'finish': readers refuse one without it, saying to run the job again;
   a creation writes its journal first, so one killed before the index files
   leaves a scene resume completes, and one killed before that a folder create takes;
 * :meth:`SceneWriter.resume` replays the journal, drops a torn last line,
@@ -38,6 +41,8 @@ import logging
 import os
 import re
 import shutil
+import signal
+import threading
 import time
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import asdict
@@ -80,6 +85,7 @@ log = logging.getLogger(__name__)
 
 JOURNAL = "journal.jsonl"
 TEMP_SUFFIX = ".tmp"
+JOBS = ("import", "copy")  # what writes a whole scene at once (SceneWriter.create's job); a rerun starts again
 _RECORD_FILE = re.compile(r"\d{6}\.(png|npz)")
 
 
@@ -122,16 +128,19 @@ def has_content(path: Path) -> bool:
     return any(p.name != LOCK_NAME and not is_temp_file(p) for p in Path(path).iterdir())
 
 
-def check_new_scene_dir(path: Path) -> None:
-    """Refuse (InvalidInputError) a folder that holds anything: a scene starts in a new or empty one."""
+def check_new_scene_dir(path: Path, job: str | None = None) -> None:
+    """Refuse (InvalidInputError) a folder that holds anything: a scene starts in a new or empty one. A ``job``
+    (an import, a copy) cannot continue a scene: its messages say to remove it, not to --resume."""
     path = Path(path)
     content = path.is_dir() and has_content(path)  # before the journal, which a creation writes first
     if (path / JOURNAL).exists():
         if journal_locked(path / JOURNAL):
+            then = "," if job else " and continue the scene with --resume, or"
             raise InvalidInputError(
-                f"{path} is being written by {other_writer(path)}: wait for it to end and "
-                "continue the scene with --resume, or choose a new folder"
+                f"{path} is being written by {other_writer(path)}: wait for it to end{then} choose a new folder"
             )
+        if job:
+            raise InvalidInputError(f"{path} already holds a scene: remove it to {job} again, or choose another --out")
         raise InvalidInputError(f"{path} already holds a scene: continue it with --resume, or choose a new folder")
     if content:
         raise InvalidInputError(f"{path} exists and is not an empty folder; choose a new output folder")
@@ -139,27 +148,60 @@ def check_new_scene_dir(path: Path) -> None:
 
 @contextmanager
 def removed_on_failure(out: Path):
-    """Delete a new output folder again when an import into it fails, so that a rerun can use it."""
+    """Delete a new output folder again when an import into it fails, so that a rerun can use it; SIGTERM and
+    SIGHUP (``timeout``, a batch scheduler, a closed ssh session) fail it too (:func:`_ending_signals_interrupt`)."""
     out = Path(out)
     had_content = out.is_dir() and has_content(out)
+    with _ending_signals_interrupt():
+        try:
+            yield
+        except BaseException:
+            if not had_content:
+                shutil.rmtree(out, ignore_errors=True)
+            raise
+
+
+@contextmanager
+def _ending_signals_interrupt():
+    """While open (in the main thread): SIGTERM and SIGHUP raise KeyboardInterrupt, as Ctrl-C does, so that the
+    cleanup of a job runs; later ones are ignored until the block ends (the cleanup is not cut short), then the
+    previous handlers come back. A signal ignored on entry (``nohup``'s SIGHUP) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
+    previous = {s: handler for s, handler in previous.items() if handler is not signal.SIG_IGN}
+
+    def interrupt(signum, frame):
+        for s in previous:
+            signal.signal(s, signal.SIG_IGN)
+        raise KeyboardInterrupt(signal.Signals(signum).name)
+
+    for s in previous:
+        signal.signal(s, interrupt)
     try:
         yield
-    except BaseException:
-        if not had_content:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
+    finally:
+        for s, handler in previous.items():  # (None: a handler installed outside Python)
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 @contextmanager
 def new_import(out: Path, intrinsics: CameraIntrinsics, importer: str, source: Path, name: str | None, **extra):
     """The writer of an importer's scene ``out``: a new or empty folder, claimed as the ``--out`` of a writing
-    command (``datasets.outputs``) and removed again when the import fails. Its provenance: the object ``name``
-    (default: the ``source`` path's last part), ``importer``, ``source``'s absolute path, then ``extra``."""
-    check_new_scene_dir(out)  # before the claim, which would put its lock file among someone's files
+    command (``datasets.outputs``), removed again when the import fails, and marked finished when the block ends
+    (readers refuse an import that never finished). Its provenance: the object ``name`` (default: the ``source``
+    path's last part), ``importer``, ``source``'s absolute path, then ``extra``."""
+    check_new_scene_dir(out, "import")  # before the claim, which would put its lock file among someone's files
     source = Path(source).resolve()
     meta = SceneMeta("import", name or source.name, extra={"importer": importer, "source_path": str(source), **extra})
-    with claim_output_dir(out), removed_on_failure(out), SceneWriter.create(out, intrinsics, meta) as writer:
+    with (
+        claim_output_dir(out),
+        removed_on_failure(out),
+        SceneWriter.create(out, intrinsics, meta, job="import") as writer,
+    ):
         yield writer
+        writer.finish()
 
 
 def _check_intrinsics(intr) -> CameraIntrinsics:
@@ -199,6 +241,11 @@ class SceneWriter(AbstractContextManager):
         self.sensor = None if header["sensor"] is None else SensorModel(**header["sensor"])
         self._created = header["created"]
         self._version = header.get("tacsplat_version", tacsplat.__version__)
+        self.job = header.get("job")  # "import" | "copy": the scene is complete once finished; None: a capture
+        if self.job is not None and self.job not in JOBS:
+            raise ValueError(f"job: expected one of {JOBS}, got {self.job!r}")
+        self.finished = False  # whether the job's 'finish' record is written
+        self._stale: set[str] = set()  # index files behind the records: a job writes them when it finishes
         self.frames: list[Frame] = []
         self.touches: list[Touch] = []
         self.gt_depth_files: dict[int, str] = {}  # frame id -> the path in the scene of its ground-truth depth
@@ -212,11 +259,23 @@ class SceneWriter(AbstractContextManager):
 
     @classmethod
     def create(
-        cls, path, intrinsics: CameraIntrinsics, meta: SceneMeta, sensor: SensorModel | None = None
+        cls,
+        path,
+        intrinsics: CameraIntrinsics,
+        meta: SceneMeta,
+        sensor: SensorModel | None = None,
+        *,
+        job: str | None = None,
     ) -> "SceneWriter":
-        """Start a new scene in ``path`` (which must not exist or be an empty folder)."""
+        """Start a new scene in ``path`` (which must not exist or be an empty folder).
+
+        ``job`` ("import" or "copy", one of :data:`JOBS`): the scene is written at once and is complete only after
+        :meth:`finish`, which also writes the index files (once, not after every record); readers refuse it before
+        that. A capture, which resumes, passes none."""
         path = Path(path)
         _check_intrinsics(intrinsics)
+        if job is not None and job not in JOBS:
+            raise InvalidInputError(f"job: expected one of {JOBS} or None, got {job!r}")
         if not isinstance(meta, SceneMeta):
             raise InvalidInputError(f"meta: expected SceneMeta, got {type(meta).__name__}")
         if sensor is not None and not isinstance(sensor, SensorModel):
@@ -240,11 +299,12 @@ class SceneWriter(AbstractContextManager):
             "intrinsics": intrinsics_to_json(intrinsics),
             "sensor": sensor_to_json(sensor),
             "meta": asdict(meta),
+            **({"job": job} if job else {}),
         }
         journal = _lock_journal(creating, path)
         try:
             try:
-                check_new_scene_dir(path)
+                check_new_scene_dir(path, job)
             except BaseException:
                 creating.unlink(missing_ok=True)
                 raise
@@ -383,13 +443,16 @@ class SceneWriter(AbstractContextManager):
             if not isinstance(key, str) or not key:
                 raise ValueError(f"annotation key: expected a non-empty string, got {key!r}")
             self.annotations[key] = entry["value"]
+        elif op == "finish":
+            self.finished = True
         else:
             raise ValueError(f"unknown op {op!r}")
 
     def _record(self, entry: dict) -> None:
         """Journal ``entry`` durably, apply it, then rewrite the index files it changes: that of its kind of record
         (scene.json for the ground truth and annotations), and scene.json when it adds or removes a frame's
-        ground-truth depth."""
+        ground-truth depth. A job that has not finished leaves them to :meth:`finish` (rewriting the whole index
+        after each record made an import of N frames take N^2 time)."""
         if self._journal is None:
             raise InvalidInputError(f"SceneWriter for {self.path} is closed")
         kind = entry.get("kind", entry["op"])
@@ -397,7 +460,13 @@ class SceneWriter(AbstractContextManager):
         entry = {**entry, "t": time.time()}
         self._append(entry)
         self._apply(entry)
-        self._materialise({"frame": "transforms", "touch": "touches"}.get(kind, "scene"), *(["scene"] if gt else []))
+        if kind != "finish":
+            self._stale.update(
+                [{"frame": "transforms", "touch": "touches"}.get(kind, "scene"), *(["scene"] if gt else [])]
+            )
+        if self.job is None or self.finished:
+            stale, self._stale = self._stale, set()
+            self._materialise(*stale)
 
     def _append(self, entry: dict) -> None:
         """Append ``entry`` to the journal as one line, durably (fsync). When the write fails (a full disk) the
@@ -629,10 +698,18 @@ class SceneWriter(AbstractContextManager):
             (self.path / rel).unlink(missing_ok=True)
         return record
 
+    def finish(self) -> None:
+        """Mark the job's scene complete (its last record) and write the index files it left until now."""
+        if self.job is None or self.finished:
+            raise InvalidInputError(
+                f"{self.path}: nothing to finish (the writer of a job, an import or a copy, finishes once)"
+            )
+        self._record({"op": "finish"})
+
     # --- closing ------------------------------------------------------------------------------
 
     def close(self) -> None:
-        """Release the scene (the index is already up to date after every record)."""
+        """Release the scene (the index is up to date after every record, and after a job's :meth:`finish`)."""
         if self._journal is not None:
             self._journal.close()
             self._journal = None

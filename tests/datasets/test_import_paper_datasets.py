@@ -187,6 +187,22 @@ def test_a_camera_the_scene_cannot_hold_names_its_pickle_and_K(tmp_path, entry, 
     assert not (tmp_path / "scene").exists()
 
 
+def test_a_pose_off_rigid_by_rounding_is_made_rigid_and_one_too_far_names_its_pickle(tmp_path):
+    src = make_glossy_synthetic(tmp_path, views=5, test=(0, 2), eval_points=False)
+    w2c = invert_pose(ring_pose(3, 5, distance=3.0))[:3]
+    rounded = w2c.copy()
+    rounded[:, :3] *= 1 + 3e-5  # a pose stored with a few digits
+    (src / "3-camera.pkl").write_bytes(pickle.dumps((rounded, GLOSSY_K)))
+    scene = Scene.load(import_nero(src, tmp_path / "scene"))
+    np.testing.assert_allclose(invert_pose(scene.frames[1].T_world_cam)[:3], w2c, atol=1e-6)  # (view 3)
+    far = w2c.copy()
+    far[:, 3] = 1e6
+    (src / "3-camera.pkl").write_bytes(pickle.dumps((far, GLOSSY_K)))
+    with pytest.raises(SceneFormatError, match="metres from the origin") as info:
+        import_nero(src, tmp_path / "far")
+    assert info.value.path == src / "3-camera.pkl" and info.value.field == "pose"
+
+
 def test_a_copy_keeps_the_ground_truth_normals(tmp_path):
     """The benches copy an import before adding touches: its normal maps must come along for the normal error."""
     from tacsplat.datasets import copy_scene

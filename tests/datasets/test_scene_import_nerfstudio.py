@@ -349,6 +349,8 @@ def test_split_lists_naming_unknown_or_shared_frames_are_refused(ns_src, tmp_pat
             "rigid",
         ),
         (lambda d: d["frames"][3].update(transform_matrix=[[1, 0, 0], [0, 1, 0]]), "frames[3].transform_matrix", "4x4"),
+        (lambda d: d["frames"][3]["transform_matrix"][0].__setitem__(3, 1e6), "frames[3].transform_matrix", r"1e\+06"),
+        (lambda d: d.update(applied_scale=1e-7), "applied_scale", r"frames\[0\].*metres from the origin"),
     ],
 )
 def test_what_a_scene_cannot_hold_is_one_error_naming_the_field(ns_src, tmp_path, edit, field, words):
@@ -366,11 +368,25 @@ def test_a_mask_of_another_size_names_the_mask(ns_src, tmp_path):
     assert info.value.path == ns_src / "masks/frame_00003.png"
 
 
+def test_the_alpha_of_a_mask_is_no_part_of_it(ns_src, tmp_path):
+    """An RGBA mask saved with an opaque alpha (as editors do) keeps only the pixels its colour says to use."""
+    grey = Scene.load(import_nerfstudio(ns_src, tmp_path / "grey"))
+    for path in (ns_src / "masks").iterdir():
+        mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(path), np.dstack([mask, mask, mask, np.full_like(mask, 255)]))
+    rgba = Scene.load(import_nerfstudio(ns_src, tmp_path / "rgba"))
+    for a, b in zip(grey.frames, rgba.frames):
+        assert 0 < grey.load_mask(a).mean() < 1
+        np.testing.assert_array_equal(rgba.load_mask(b), grey.load_mask(a))
+
+
 def test_bad_options_are_config_errors(ns_src, tmp_path):
     with pytest.raises(ConfigError, match="test_every"):
         import_nerfstudio(ns_src, tmp_path / "scene", test_every=-1)
     with pytest.raises(ConfigError, match="scale"):
         import_nerfstudio(ns_src, tmp_path / "scene", scale=0.0)
+    with pytest.raises(ConfigError, match=r"scale: 1e\+06 metres per unit puts frames\[0\] .*from the origin"):
+        import_nerfstudio(ns_src, tmp_path / "scene", scale=1e6)
     with pytest.raises(SceneFormatError, match="transforms.json"):
         import_nerfstudio(tmp_path / "nowhere", tmp_path / "scene")
 

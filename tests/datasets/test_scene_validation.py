@@ -322,6 +322,14 @@ CASES = {
         "gt depth of frame 1",
         "deeper than any scene",
     ),
+    "gt depth key a digit but no number": (  # "²".isdigit() is True, int("²") fails
+        lambda s: _edit_json(
+            s / "scene.json", lambda d: d["gt"]["depth"].update({"\u00b2": d["gt"]["depth"].pop("1")})
+        ),
+        "scene.json",
+        "gt.depth[\u00b2]",
+        "no frame with id '\u00b2'",
+    ),
     "unknown scene format version": (
         lambda s: _edit_json(s / "scene.json", lambda d: d.update(format_version="1")),
         "scene.json",
