@@ -4,6 +4,7 @@ options are the dataclasses below (tacsplat.options)."""
 from __future__ import annotations
 
 import dataclasses
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Literal
@@ -138,6 +139,17 @@ def _images(paths) -> list[Path]:
     return found
 
 
+def _photo_names(paths: list[Path]) -> list[str]:
+    """A name per photo that tells it from the others (in the report and the pictures): its path from the folder
+    common to all, so ``s1/img01.jpg`` and ``s2/img01.jpg``, or its file name when they share one folder."""
+    absolute = [Path(os.path.abspath(p)) for p in paths]
+    for i, path in enumerate(absolute):
+        if path in absolute[:i]:
+            raise InvalidInputError(f"{paths[i]}: given twice")
+    common = Path(os.path.commonpath([p.parent for p in absolute]))
+    return [p.relative_to(common).as_posix() for p in absolute]
+
+
 def _read_rgb(path: Path):
     import cv2
 
@@ -147,11 +159,13 @@ def _read_rgb(path: Path):
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def _check_output_file(path: Path, suffix: str) -> None:
-    """``--out`` must name a file, not a folder (checked before any work)."""
+def _check_output_file(path: Path, suffix: str, picture: Path) -> None:
+    """``--out`` must name a file, not a folder, nor the ``picture`` written beside it (checked before any work)."""
 
     if path.is_dir():
         raise ConfigError("--out", f"{path} is a folder; give a {suffix} file")
+    if str(path).casefold() == str(picture).casefold():  # (the same file where names ignore case, too)
+        raise UsageError("--out", f"{path} would be overwritten by the picture written beside it; give a {suffix} file")
 
 
 def _output_file(path: Path) -> Path:
@@ -235,10 +249,10 @@ def _calibrate_camera(args: CalibrateCamera) -> int:
     if not args.photos:
         raise UsageError("PHOTOS", "required (board photos or folders of them)")
     spec = _board_spec(args)
-    _check_output_file(args.out, ".json")
+    _check_output_file(args.out, ".json", args.out.with_suffix(".png"))
     paths = _images(args.photos)
+    names = _photo_names(paths)
     images = [_read_rgb(p) for p in paths]
-    names = [p.name for p in paths]
     views, size = detect_board_views(images, spec, names)
     if len(views) < 3:
         option = "--inner-corners" if isinstance(spec, ChessboardSpec) else "--squares-x, --squares-y, --dictionary"
@@ -409,7 +423,7 @@ def _calibrate_tactile(args: CalibrateTactile) -> int:
         raise ConfigError("--max-radius-error", f"must be in (0, 1), got {args.max_radius_error}")
     if args.check_every < 2:
         raise ConfigError("--check-every", f"must be >= 2, got {args.check_every}")
-    _check_output_file(args.out, ".npz")
+    _check_output_file(args.out, ".npz", args.out.with_suffix(".png"))
     if not args.folder.is_dir():
         raise InvalidInputError(f"{args.folder}: not a folder")
     paths = _images([args.folder])

@@ -27,6 +27,8 @@ LEAP Hand API leaves to luck is done here on purpose:
   finger) that puts a joint farther out is refused with torque off, naming the
   joint, its sign and offset. Only :meth:`DynamixelHand.command_joint_positions`
   moves the hand further;
+* connect holds the port alone (a lock): a second process opening it, ``tacsplat
+  rig check`` beside a capture, is refused instead of turning torque off under it;
 * commands are checked (InvalidInputError before anything reaches the bus),
   clamped to the joint limits of the twin's model, and clamping is logged; a
   missing servo at connect time is a refusal to move.
@@ -41,23 +43,28 @@ What leaves the hand safe when the process ends, by how it ends:
 * any death of the process, SIGKILL included (``guard``): a guard process started
   at connect holds a pipe from this one; when the pipe ends without the word that
   the hand was closed, the guard opens the port itself and turns torque off,
-  confirming servo by servo;
+  confirming servo by servo. Connect waits for the guard to say it is ready, and
+  refuses to go on without it;
 * a host crash, a hung process, or a guard that cannot run (``bus_watchdog_s``):
   the servos' own Bus Watchdog, armed at connect and fed by a heartbeat thread
   while torque is on. With no instruction packet for that long, each servo stops
   where it stands and holds there, at its current limit, refusing new goals until
   the next connect clears it. It does not turn torque off; the heartbeat reports
-  a tripped watchdog as a fault (a process that was stopped and continued).
+  a tripped watchdog as a fault (a process that was stopped and continued), and
+  one that a servo's reboot reset (a brown-out, which also turns its torque off).
 """
 
 from __future__ import annotations
 
 import atexit
 import contextlib
+import errno
 import json
 import logging
 import math
+import numbers
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -69,6 +76,7 @@ from typing import Iterable, Sequence
 
 import dynamixel_sdk as dxl
 import numpy as np
+import serial
 
 from tacsplat.drivers.calibration import (
     MAX_TOLERANCE_RAD,
@@ -112,6 +120,8 @@ MAX_BUS_WATCHDOG_S = 127 * BUS_WATCHDOG_UNIT_S
 # The signals that ask a process to end: each leaves the hand with torque off (see the module docstring).
 END_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
 GUARD_CLOSED = b"closed\n"  # what the guard reads when the hand was closed: it then exits without a word
+GUARD_READY = b"ready\n"  # what the guard says once it holds all it needs to turn torque off
+GUARD_READY_S = 10.0  # connect refuses a guard not ready by then (it starts within a second or two)
 
 
 class SignalInterrupt(KeyboardInterrupt):
@@ -121,6 +131,11 @@ class SignalInterrupt(KeyboardInterrupt):
     def __init__(self, signum: int):
         self.signum = int(signum)
         super().__init__(signal.Signals(self.signum).name)
+
+
+def _is_int(value) -> bool:
+    """An integer, numpy's included, but not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -153,6 +168,21 @@ class DynamixelHandConfig:
     guard: bool = True  # a guard process turns torque off when this one dies without closing the hand (SIGKILL too)
 
     def __post_init__(self):
+        if not _is_int(self.retries) or self.retries < 0:
+            raise ConfigError(
+                "retries", f"must be an integer >= 0 (extra attempts after a failure), got {self.retries!r}"
+            )
+        for key in ("min_packet_timeout_s", "drain_s", "current_unit_a"):
+            value, unit = getattr(self, key), "amperes" if key == "current_unit_a" else "seconds"
+            positive = key != "drain_s"  # (drain_s 0: the input is flushed at once)
+            if not (value > 0 if positive else value >= 0) or not math.isfinite(value):  # also NaN
+                raise ConfigError(
+                    key, f"must be a finite number of {unit} {'>' if positive else '>='} 0, got {value!r}"
+                )
+        for key in ("operating_mode", "current_limit", "position_p_gain", "position_i_gain", "position_d_gain"):
+            value, top = getattr(self, key), (1 << (8 * REGISTERS[key].size)) - 1  # written to its register as is
+            if not _is_int(value) or not 0 <= value <= top:
+                raise ConfigError(key, f"must be an integer in [0, {top}] (its register's range), got {value!r}")
         for key in ("connect_tolerance_rad", "reading_tolerance_rad"):
             tol = getattr(self, key)
             if not 0.0 <= tol <= MAX_TOLERANCE_RAD:  # also NaN
@@ -235,12 +265,36 @@ class ServoError(HandError):
         super().__init__(device, message)
 
 
-class _PortHandler(dxl.PortHandler):
-    """The SDK's port with a lower bound on the status-packet timeout."""
+class PortInUse(OSError):
+    """The port is locked by another process (an ``exclusive`` :class:`_PortHandler` there)."""
 
-    def __init__(self, port_name: str, min_timeout_ms: float):
+
+class _PortHandler(dxl.PortHandler):
+    """The SDK's port with a lower bound on the status-packet timeout, opened ``exclusive`` (a flock: a second
+    process, say ``tacsplat rig check`` beside a capture, would reconfigure the servos under it) or not."""
+
+    def __init__(self, port_name: str, min_timeout_ms: float, exclusive: bool = True):
         super().__init__(port_name)
         self.min_timeout_ms = min_timeout_ms
+        self.exclusive = exclusive
+        self._serial = serial.Serial  # resolved now: the guard proves it can open a port before it says it is ready
+
+    def setupPort(self, cflag_baud):
+        """The SDK's, with the lock taken before the port is touched (pyserial flushes its input at open)."""
+        if self.is_open:
+            self.closePort()
+        try:
+            self.ser = self._serial(
+                self.port_name, self.baudrate, bytesize=serial.EIGHTBITS, timeout=0, exclusive=self.exclusive or None
+            )
+        except serial.SerialException as exc:
+            if self.exclusive and exc.errno in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise PortInUse(exc.errno, f"{self.port_name} is in use by another process") from None
+            raise
+        self.is_open = True
+        self.ser.reset_input_buffer()
+        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
+        return True
 
     def setPacketTimeout(self, packet_length):
         super().setPacketTimeout(packet_length)
@@ -379,6 +433,12 @@ class DynamixelHand:
         port = _PortHandler(self.port_name, 1000.0 * self.config.min_packet_timeout_s)
         try:  # setBaudRate opens the port at this rate (openPort would open at 1 Mbps first)
             opened = port.setBaudRate(self.baudrate)
+        except PortInUse:
+            raise HandError(
+                self.device,
+                f"port in use by another process (a capture, or `tacsplat rig check` in another terminal? "
+                f"`fuser {self.port_name}` names it); not connecting, which would reconfigure its servos",
+            ) from None
         except (OSError, ValueError) as exc:  # serial.SerialException is an OSError
             raise HandError(
                 self.device,
@@ -625,21 +685,42 @@ class DynamixelHand:
             raise SignalInterrupt(signum)
 
     def _start_guard(self) -> None:
-        """The guard process (``python -m tacsplat.drivers.dynamixel_hand``, :func:`guard_main`): in a session of its
-        own, so that the terminal's signals reach this process only; it outlives this one."""
+        """The guard process (``python -P -m tacsplat.drivers.dynamixel_hand``, :func:`guard_main`): ``-P`` keeps the
+        working folder off its sys.path (a ``serial.py`` there would shadow pyserial); in a session of its own, so
+        that the terminal's signals reach this process only; it outlives this one. A guard that does not say it is
+        ready within ``GUARD_READY_S`` is killed, and connect refused: the hand never runs unguarded."""
         if not self.config.guard:
             return
         args = {"port": self.port_name, "baudrate": self.baudrate, "timeout_s": self.config.min_packet_timeout_s}
         args |= {"drain_s": self.config.drain_s, "servos": [(sid, self._names([sid])) for sid in self.ids]}
-        command = [sys.executable, "-m", "tacsplat.drivers.dynamixel_hand", json.dumps(args)]
+        command = [sys.executable, "-P", "-m", "tacsplat.drivers.dynamixel_hand", json.dumps(args)]
+        what = "the guard process (it turns torque off should this process die)"
         try:
             self._guard = subprocess.Popen(
-                command, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, start_new_session=True
+                command, stdin=subprocess.PIPE, stdout=subprocess.PIPE, start_new_session=True
             )
         except OSError as exc:
-            raise HandError(
-                self.device, f"cannot start the guard process, which turns torque off should this process die: {exc}"
-            ) from None
+            raise HandError(self.device, f"cannot start {what}: {exc}") from None
+        if (why := self._guard_not_ready()) is None:
+            return
+        guard, self._guard = self._guard, None
+        guard.kill()  # (nothing when it has ended)
+        guard.wait()
+        guard.stdin.close()
+        raise HandError(self.device, f"{what} {why}: not connecting without it")
+
+    def _guard_not_ready(self) -> str | None:
+        """Wait for the guard's word that it is ready (anything it prints before is skipped); None once it said it,
+        or why it did not."""
+        deadline, said = time.monotonic() + GUARD_READY_S, b""
+        with self._guard.stdout as out:
+            while not said.endswith(GUARD_READY):
+                if not select.select([out], [], [], max(0.0, deadline - time.monotonic()))[0]:
+                    return f"was not ready within {GUARD_READY_S:g} s"
+                if not (chunk := os.read(out.fileno(), 4096)):
+                    return f"ended (exit code {self._guard.wait()}) before it was ready (its error is above)"
+                said += chunk
+        return None
 
     def _release_guard(self) -> None:
         """Tell the guard that the hand was closed (it exits without a word); reaped by a thread, never waited for."""
@@ -668,15 +749,18 @@ class DynamixelHand:
 
     def _feed_watchdog(self, stop: threading.Event) -> None:
         """Heartbeat thread: every eighth of ``bus_watchdog_s``, read every servo's Bus Watchdog (an instruction
-        packet feeds it); a tripped one is a fault (torque off), which the next use of the hand raises."""
-        address = REGISTERS["bus_watchdog"].address
+        packet feeds it); one that is not the value armed at connect is a fault (torque off), which the next use of
+        the hand raises: tripped (-1), or reset by a reboot (a brown-out), which also turned its torque off."""
+        address, armed = REGISTERS["bus_watchdog"].address, self.config.bus_watchdog_units
         while not stop.wait(self.config.heartbeat_s):
             try:
                 with self._lock:
                     if stop.is_set() or not self._torque_on or self._fault:
                         continue
                     values = self._sync_read(address, 1, "SYNC_READ bus_watchdog (heartbeat)")
-                    tripped = [sid for sid in self.ids if to_signed(values[sid][0], 1) == BUS_WATCHDOG_TRIPPED]
+                    values = {sid: to_signed(values[sid][0], 1) for sid in self.ids}
+                    tripped = [sid for sid in self.ids if values[sid] == BUS_WATCHDOG_TRIPPED]
+                    reset = [sid for sid in self.ids if values[sid] not in (armed, BUS_WATCHDOG_TRIPPED)]
                     if tripped:
                         self._fail(
                             tripped[0],
@@ -684,6 +768,14 @@ class DynamixelHand:
                             f"Bus Watchdog Error on servos {self._names(tripped)}: no "
                             f"instruction reached them for bus_watchdog_s = {self.config.bus_watchdog_s:g} s "
                             "(was this process stopped?), so they stopped and held",
+                        )
+                    if reset:
+                        found = ", ".join(f"{self._names([sid])} = {values[sid]}" for sid in reset)
+                        self._fail(
+                            reset[0],
+                            "heartbeat",
+                            f"Bus Watchdog of servos {found}, not the {armed} armed at connect: a reboot (a "
+                            "brown-out under load? check the servo power and cabling) reset it and turned torque off",
                         )
             except HandError as exc:  # recorded in self._fault, torque off
                 log.error("%s", exc)
@@ -851,36 +943,45 @@ class DynamixelHand:
 
 # -- the guard process ------------------------------------------------------------------------------------------
 def guard_main(argv: list[str] | None = None) -> int:
-    """``python -m tacsplat.drivers.dynamixel_hand JSON``: the guard of one connected hand (``JSON``: its ``port``,
+    """``python -P -m tacsplat.drivers.dynamixel_hand JSON``: the guard of one connected hand (``JSON``: its ``port``,
     ``baudrate``, ``timeout_s`` and ``drain_s``, and ``servos``: ``[[ID, "ID (joint)"], ...]``).
 
-    Started by :meth:`DynamixelHand.connect`; reads its standard input (a pipe from the hand's process) to the end.
+    Started by :meth:`DynamixelHand.connect`; says ``ready`` on standard output once it holds all it needs (its
+    imports, pyserial's port class), then reads its standard input (a pipe from the hand's process) to the end.
     ``closed`` there: the hand was closed, exit without a word. Anything else (the process died: its end of the pipe
     closed with it, SIGKILL included): open the port, turn torque off on every servo, confirm each, and say so on
-    standard error. The ending signals are ignored: it ends when the hand's process does.
+    standard error; any failure there says that torque off is not confirmed. The ending signals are ignored: it ends
+    when the hand's process does.
     """
     for s in END_SIGNALS:
         signal.signal(s, signal.SIG_IGN)
     args = json.loads((sys.argv[1:] if argv is None else argv)[0])
     names = {int(sid): name for sid, name in args["servos"]}  # in the hand's order
     parent = os.getppid()
+    # not exclusive: the lock went with the dead process's descriptors, and nothing may keep torque on
+    port = _PortHandler(args["port"], 1000.0 * args["timeout_s"], exclusive=False)
+    ph = dxl.PacketHandler(2.0)
+    with contextlib.suppress(OSError):  # (a hand's process that died meanwhile: the torque-off below is needed)
+        os.write(sys.stdout.fileno(), GUARD_READY)
     if sys.stdin.buffer.read() == GUARD_CLOSED:
         return 0
     device = f"hand guard of {args['port']}"
     what = f"{device}: the process {parent} ended without closing the hand"
-    port = _PortHandler(args["port"], 1000.0 * args["timeout_s"])
     try:
         if not port.setBaudRate(args["baudrate"]):
             raise ValueError(f"baud rate {args['baudrate']} is not supported")
-    except (OSError, ValueError) as exc:
+        time.sleep(args["drain_s"])  # status packets meant for the dead process arrive, and are dropped
+        unconfirmed = torque_off(ph, port, list(names), device)
+    except Exception as exc:  # whatever it is, the servos may still hold torque: say so
         _say(
-            f"{what}; cannot open the port ({exc}): torque off NOT confirmed on any of the {len(names)} servos: "
-            "cut the servo power"
+            f"{what}; cannot turn torque off ({type(exc).__name__}: {exc}): torque off NOT confirmed on any of the "
+            f"{len(names)} servos: cut the servo power"
         )
         return 1
-    time.sleep(args["drain_s"])  # status packets meant for the dead process arrive, and are dropped
-    unconfirmed = torque_off(dxl.PacketHandler(2.0), port, list(names), device)
-    port.closePort()
+    finally:
+        if port.is_open:
+            with contextlib.suppress(Exception):
+                port.closePort()
     report = TorqueOffReport(tuple(names.values()), tuple(names[s] for s in unconfirmed))
     _say(f"{what}; {report}")
     return 0 if report.confirmed else 1

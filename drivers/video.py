@@ -30,6 +30,11 @@ from tacsplat.errors import CameraError
 FPS_TOLERANCE = 0.05  # the fps a device reports may be off the one asked for by this fraction
 
 
+def _is_url(source: int | str | Path) -> bool:
+    """A stream URL (``rtsp://``, ``http://``, ...), not a device index or a file path."""
+    return isinstance(source, str) and "://" in source
+
+
 @dataclass(frozen=True)
 class Frame:
     image: np.ndarray  # [H, W, 3] uint8, BGR as OpenCV delivers it
@@ -43,7 +48,8 @@ class VideoReader:
     ``width``, ``height``, ``fps`` are requested and then verified (a mismatch
     raises :class:`CameraError`); ``fourcc`` (e.g. ``"MJPG"``) is requested
     before them, as USB cameras need it for full resolution at full rate.
-    ``capture_factory`` builds the capture (``cv2.VideoCapture`` by default).
+    ``capture_factory(source)`` builds the capture (``cv2.VideoCapture`` by default, which is given open and read
+    timeouts of ``timeout_s`` for a stream URL).
     """
 
     def __init__(
@@ -79,7 +85,9 @@ class VideoReader:
     # -- lifecycle ---------------------------------------------------------
     def open(self) -> "VideoReader":
         """Open the device, verify its settings and its first frame; on any failure (an exception of the capture's
-        too), the device is released and the reader thread stopped before the error is raised."""
+        too), the device is released and the reader thread stopped before the error is raised. An open reader is
+        closed first (its capture released, its thread stopped)."""
+        self.close()
         source = str(self.source) if isinstance(self.source, Path) else self.source
         # afresh (opened and closed before?); the reader thread of an earlier opening, if still blocked in its driver,
         # keeps its own stop event and capture
@@ -87,7 +95,7 @@ class VideoReader:
         with self._cond:
             self._frames.clear()
             self._count, self._last_index, self._ended = 0, -1, None
-        self._cap = [self._factory(source)]
+        self._cap = [self._capture(source)]
         try:
             self._open()
         except BaseException:
@@ -95,12 +103,19 @@ class VideoReader:
             raise
         return self
 
+    def _capture(self, source: int | str):
+        """The capture of ``source``; OpenCV's own for a stream URL waits ``timeout_s`` to open and to read, where it
+        would wait 30 s (a device index or file opens at once, or not at all)."""
+        if self._factory is not cv2.VideoCapture or not _is_url(source):
+            return self._factory(source)
+        ms = max(1, round(1000 * self.timeout_s))
+        params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms]
+        return cv2.VideoCapture(source, cv2.CAP_ANY, params)
+
     def _open(self) -> None:
         cap = self._cap[0]
         if not cap.isOpened():
-            raise CameraError(
-                self.name, f"cannot open {self.source!r} (unplugged, busy, or no permission on /dev/video*?)"
-            )
+            raise CameraError(self.name, f"cannot open {self.source!r}: {self._why_not_open()}")
         width, height, fps, fourcc = self._requested
         code = fourcc and cv2.VideoWriter_fourcc(*fourcc)
         for prop, value in zip(
@@ -130,6 +145,19 @@ class VideoReader:
         if (self.width and w != self.width) or (self.height and h != self.height):
             raise CameraError(self.name, f"reports {self.width}x{self.height} but delivers {w}x{h} frames")
         self.height, self.width = h, w
+
+    def _why_not_open(self) -> str:
+        """What likely keeps the source from opening, by its kind: a device, a stream URL or a file."""
+        source = self.source
+        if isinstance(source, int):
+            return f"unplugged, busy, or no permission on /dev/video{source}?"
+        if _is_url(source):
+            return f"no stream within timeout_s = {self.timeout_s:g} s (is the server up, and the URL right?)"
+        if str(source).startswith("/dev/"):
+            return "unplugged, busy, or no permission?"
+        if not Path(source).exists():
+            return "no such file"
+        return "not a video OpenCV can read (its format or codec?)"
 
     def close(self) -> None:
         """Stop the reader and release the device (idempotent). A reader blocked inside the driver is a daemon, not

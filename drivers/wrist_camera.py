@@ -283,7 +283,7 @@ class CameraCalibration:
             )
         board = dict(f.board)
         kind = board.pop("type", "charuco")
-        if kind not in BOARD_TYPES:
+        if not isinstance(kind, str) or kind not in BOARD_TYPES:  # (a list is unhashable)
             raise ConfigError("board.type", f"expected one of {list(BOARD_TYPES)}, got {kind!r}", source=path)
         names = [field.name for field in fields(BOARD_TYPES[kind])]
         if unknown := [key for key in board if key not in names]:

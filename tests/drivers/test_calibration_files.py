@@ -201,6 +201,7 @@ BAD_CAMERA_FIELDS = [
     ("board.dictionary", "DICT_NOPE"),
     ("board.legacy_pattern", "no"),
     ("board.colour", "red"),
+    ("board.type", ["chessboard"]),  # a list where a name belongs (unhashable)
     ("per_image_rms_px.img0.png", "0.3"),
     ("version", 2),
     ("pixel_centres", "tacsplat (+0.5)"),

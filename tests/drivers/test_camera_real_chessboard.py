@@ -142,3 +142,28 @@ def test_board_and_photo_problems_are_one_clear_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("error:") == 1 and "left99.jpg" in err
     assert out.read_text() == "an earlier calibration"  # nothing already written is lost
+
+
+def test_photos_named_alike_in_two_folders_are_told_apart(tmp_path, capsys):
+    """Two sessions' folders, each with its img01.jpg ...: each photo is named by its path from their common folder,
+    in the report and the file, not mixed up by its bare name."""
+    for session, photos in (("s1", PHOTOS[:6]), ("s2", PHOTOS[6:12])):
+        (tmp_path / session).mkdir()
+        for k, path in enumerate(photos):
+            shutil.copy(path, tmp_path / session / f"img{k + 1:02d}.jpg")
+    out = tmp_path / "camera.json"
+    assert calibrate(out, tmp_path / "s1", tmp_path / "s2") == 0
+    names = {f"{session}/img{k:02d}.jpg" for session in ("s1", "s2") for k in range(1, 7)}
+    assert set(json.loads(out.read_text())["per_image_rms_px"]) == names
+    printed = capsys.readouterr().out
+    assert all(f"  {name}: " in printed for name in names)
+    assert calibrate(out, tmp_path / "s1", tmp_path / "s1" / "img01.jpg") == 1
+    assert "img01.jpg: given twice" in capsys.readouterr().err
+
+
+def test_out_named_like_its_picture_is_refused_before_any_work(tmp_path, capsys):
+    """The corner picture goes to --out with .png: an --out of X.png would be the calibration, then the picture."""
+    assert calibrate(tmp_path / "camera.png", DATA) == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "--out" in err and "overwritten by the picture" in err
+    assert not list(tmp_path.iterdir())  # nothing written

@@ -3,7 +3,9 @@ driver's heartbeat that feeds it and notices it trip, the guard process after SI
 reach is a fault; a signal during the torque-off waits for it. On the servo emulator over a pty (in this process,
 or in its own where the hand's process is killed or stopped)."""
 
+import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -119,6 +121,47 @@ def test_watchdog_and_tolerance_settings_are_checked():
         DynamixelHandConfig(reading_tolerance_rad=0.01)
     with pytest.raises(ConfigError, match=r"reading_tolerance_rad: must be in \[0, 0\.2\]"):
         DynamixelHandConfig(reading_tolerance_rad=0.5)
+
+
+@pytest.mark.parametrize(
+    "field, value, expected",
+    [
+        ("retries", -1, r"an integer >= 0"),
+        ("retries", 1.5, r"an integer >= 0"),
+        ("drain_s", -0.1, r"a finite number of seconds >= 0"),
+        ("drain_s", np.nan, r"a finite number of seconds >= 0"),
+        ("min_packet_timeout_s", 0.0, r"a finite number of seconds > 0"),
+        ("min_packet_timeout_s", np.inf, r"a finite number of seconds > 0"),
+        ("current_unit_a", -0.001, r"a finite number of amperes > 0"),
+        ("current_limit", -350, r"an integer in \[0, 65535\]"),
+        ("position_p_gain", 70000, r"an integer in \[0, 65535\]"),
+        ("operating_mode", 300, r"an integer in \[0, 255\]"),
+    ],
+)
+def test_communication_and_servo_settings_are_checked(field, value, expected):
+    """A value that would crash later with a raw Python error (a negative retry count, a negative sleep) or reach a
+    register it does not fit is one ConfigError naming the field and its range."""
+    with pytest.raises(ConfigError, match=rf"^{field}: must be {expected}.*, got {value!r}$"):
+        DynamixelHandConfig(bus_watchdog_s=0.0, **{field: value})
+
+
+def test_a_servo_that_rebooted_is_a_fault(emu, kinematics):
+    """A brown-out under grip load reboots a servo: its RAM back to the factory values (torque off, Bus Watchdog 0,
+    the goal where it stands). The heartbeat notices, and the fault turns torque off on every servo."""
+    with DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG) as hand:
+        with emu._lock:  # the reboot, all at once (the emulator's thread holds this lock while it answers)
+            servo = emu.servos[1]
+            for reg in REGISTERS.values():
+                if reg.address >= REGISTERS["torque_enable"].address and reg.writable:
+                    servo.set(reg.name, reg.initial)
+            servo.set("goal_position", int(round(servo.position)))
+        poll(lambda: not any(emu.torque_enabled().values()), "the fault turns torque off on every servo")
+        with pytest.raises(
+            HandError,
+            match=r"faulted.*servo 1 \(index_1\): heartbeat failed: Bus Watchdog of servos 1 \(index_1\) = 0, not "
+            r"the 50 armed at connect: a reboot.*torque off confirmed on all 16 servos",
+        ):
+            hand.command_joint_positions(np.full(16, 0.2))
 
 
 # -- a reading no joint can reach ----------------------------------------------------------------------------------
@@ -256,6 +299,96 @@ def test_a_stopped_process_trips_the_watchdog_and_continues_into_a_fault():
             and "torque off confirmed on all 16 servos" in out
         ), out
         assert not any(emu.torque_enabled().values())
+
+
+# -- the guard starts clear of the caller's folder, and connect waits for it; one process per port ------------------
+def _python_path(folder, serial_py: str) -> str:
+    """A PYTHONPATH with a module ``serial`` (the text ``serial_py``) first, before pyserial."""
+    folder.mkdir(exist_ok=True)
+    (folder / "serial.py").write_text(serial_py)
+    return os.pathsep.join(filter(None, [str(folder), os.environ.get("PYTHONPATH")]))
+
+
+def test_a_serial_py_in_the_working_folder_does_not_disarm_the_guard(tmp_path):
+    """A user's own scratch serial.py in the folder the capture runs from is not the guard's pyserial."""
+    (tmp_path / "serial.py").write_text('print("my serial port test")\n')
+    with EmulatorProcess(speed_ticks_per_s=200.0) as emu:
+        proc = subprocess.Popen(
+            [sys.executable, __file__, emu.path, "guard"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        )
+        try:
+            assert proc.stdout.readline() == b"moving\n"
+            os.kill(proc.pid, signal.SIGKILL)
+            _, err = proc.communicate(timeout=60)  # to the end of the guard's too (it shares the pipe)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+            proc.wait()
+        err = err.decode()
+        assert f"the process {proc.pid} ended without closing the hand; torque off confirmed on all 16 servos" in err
+        assert not any(emu.torque_enabled().values())
+
+
+def test_connect_refuses_a_guard_that_ends_before_it_is_ready(emu, kinematics, tmp_path, monkeypatch):
+    """The guard ends on its start (here a ``serial`` without pyserial's port class): connect refuses, naming the
+    port, and leaves torque off."""
+    monkeypatch.setenv("PYTHONPATH", _python_path(tmp_path, '"""pyserial\'s name, not pyserial."""\n'))
+    hand = DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG)
+    with pytest.raises(
+        HandError,
+        match=rf"^Dynamixel hand on {re.escape(emu.path)}: the guard process \(it turns torque off should this process "
+        r"die\) ended \(exit code 1\) before it was ready \(its error is above\): not connecting without it$",
+    ):
+        hand.connect()
+    assert not any(emu.torque_enabled().values()) and hand._port is None
+
+
+def test_connect_refuses_a_guard_that_is_not_ready_in_time(emu, kinematics, tmp_path, monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", _python_path(tmp_path, "import time\n\ntime.sleep(600)\n"))  # hangs on import
+    monkeypatch.setattr(dynamixel_hand, "GUARD_READY_S", 1.0)
+    hand = DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG)
+    with pytest.raises(HandError, match=rf"on {re.escape(emu.path)}: the guard process .* was not ready within 1 s"):
+        hand.connect()
+    assert not any(emu.torque_enabled().values()) and hand._port is None
+
+
+def test_the_guard_says_to_cut_the_power_whatever_stops_its_torque_off(tmp_path):
+    """Any error of the guard's torque-off (here pyserial's port class failing) ends in the words that matter."""
+    python_path = _python_path(
+        tmp_path,
+        "EIGHTBITS = 8\n\n\nclass SerialException(OSError):\n    pass\n\n\nclass Serial:\n"
+        "    def __init__(self, *args, **kwargs):\n        raise RuntimeError('a bug')\n",
+    )
+    args = {"port": "/dev/null", "baudrate": 4_000_000, "timeout_s": 0.1, "drain_s": 0.0}
+    args["servos"] = [[0, "0 (index_0)"], [1, "1 (index_1)"]]
+    command = [sys.executable, "-P", "-m", "tacsplat.drivers.dynamixel_hand", json.dumps(args)]
+    env = {**os.environ, "PYTHONPATH": python_path}
+    done = subprocess.run(command, input=b"", capture_output=True, env=env, timeout=60)  # stdin ends: its process died
+    err = done.stderr.decode()
+    assert done.returncode == 1 and "Traceback" not in err, err
+    assert (
+        "hand guard of /dev/null: the process" in err
+        and "ended without closing the hand; cannot turn torque off (RuntimeError: a bug): torque off NOT confirmed "
+        "on any of the 2 servos: cut the servo power"
+        in err
+    ), err
+
+
+def test_a_second_process_on_the_port_is_refused(emu, kinematics):
+    """`tacsplat rig check` in another terminal, beside a capture: its connect (torque off) is refused, and the
+    capture's hand keeps its torque and goes on."""
+    with DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG) as hand:
+        other = DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG)
+        with pytest.raises(
+            HandError,
+            match=rf"on {re.escape(emu.path)}: port in use by another process .*`fuser {re.escape(emu.path)}`",
+        ):
+            other.connect(torque=False)
+        assert all(emu.torque_enabled().values())
+        hand.command_joint_positions(np.full(16, 0.2))
+        poll(lambda: np.allclose(hand.read_joint_positions(), 0.2, atol=RAD_PER_TICK), "the hand moves")
+    with DynamixelHand(emu.path, kinematics=kinematics, config=TEST_CONFIG) as again:  # the lock went with close
+        again.check()
 
 
 if __name__ == "__main__":

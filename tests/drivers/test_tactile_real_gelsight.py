@@ -218,3 +218,11 @@ def test_all_thirty_shared_presses(tmp_path, capsys):
     print(capsys.readouterr().out)
     assert summary["presses"] == 10 and summary["detected"] == 10
     assert abs(summary["median_fitted_radius_m"] * 1e3 - BALL_MM) < 0.15 * BALL_MM
+
+
+def test_out_named_like_its_picture_is_refused_before_any_work(tmp_path, capsys):
+    """The press picture goes to --out with .png: an --out of X.png would be the picture, then the calibration."""
+    assert calibrate(DATA, tmp_path / "gelsight.png") == 2
+    err = capsys.readouterr().err
+    assert err.count("error:") == 1 and "--out" in err and "overwritten by the picture" in err and ".npz" in err
+    assert not list(tmp_path.iterdir())  # nothing written

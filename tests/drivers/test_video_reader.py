@@ -1,5 +1,7 @@
 """VideoReader: verified settings, newest-frame semantics, and a stalled device raises instead of hanging."""
 
+import contextlib
+import socket
 import threading
 import time
 
@@ -118,6 +120,69 @@ def test_resolution_and_fps_are_verified(tmp_path):
 def test_missing_device_is_a_clear_error():
     with pytest.raises(CameraError, match="cannot open"):
         VideoReader("/nonexistent/video.avi").open()
+
+
+class ClosedDevice(LiveDevice):
+    """A capture that did not open."""
+
+    def isOpened(self):
+        return False
+
+
+def test_a_source_that_does_not_open_is_named_by_its_kind(tmp_path):
+    not_video = tmp_path / "notes.avi"
+    not_video.write_text("not a video")
+    with pytest.raises(CameraError, match=r"cannot open 3: unplugged, busy, or no permission on /dev/video3\?$"):
+        VideoReader(3, capture_factory=lambda s: ClosedDevice()).open()
+    with pytest.raises(CameraError, match=r"cannot open '/nonexistent/video\.avi': no such file$"):
+        VideoReader("/nonexistent/video.avi").open()
+    with pytest.raises(CameraError, match=r"notes\.avi': not a video OpenCV can read \(its format or codec\?\)$"):
+        VideoReader(str(not_video)).open()
+
+
+@pytest.fixture
+def silent_server():
+    """A stream server that accepts connections and never says a word; its URL."""
+    server = socket.create_server(("127.0.0.1", 0))
+    accepted = []
+
+    def accept():
+        with contextlib.suppress(OSError):  # (closed at the end)
+            while True:
+                accepted.append(server.accept()[0])
+
+    threading.Thread(target=accept, daemon=True).start()
+    yield f"http://127.0.0.1:{server.getsockname()[1]}/stream.mjpg"
+    server.close()
+    for connection in accepted:
+        connection.close()
+
+
+def test_a_stream_url_that_never_answers_is_refused_after_timeout_s(silent_server):
+    start = time.monotonic()
+    with pytest.raises(
+        CameraError, match=r"no stream within timeout_s = 1 s \(is the server up, and the URL right\?\)"
+    ):
+        VideoReader(silent_server, timeout_s=1.0).open()
+    assert time.monotonic() - start < 15.0  # OpenCV's own timeout is 30 s
+
+
+def test_opening_an_open_reader_closes_the_first_opening():
+    """``with reader:`` entered twice: the first capture is released and its thread stopped, not leaked."""
+    first, second = StartingDevice(), StartingDevice()
+    devices = iter([first, second])
+    reader = VideoReader(0, timeout_s=1.0, name="twice", capture_factory=lambda s: next(devices))
+    reader.open()
+    reader.open()
+    assert first.released.wait(5.0) and not second.released.is_set()
+    running = lambda: [t.name for t in threading.enumerate()].count("video-twice")  # noqa: E731
+    deadline = time.monotonic() + 5.0
+    while running() > 1 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert running() == 1, "the first opening's reader thread still runs"
+    assert int(reader.read().image[0, 0, 0]) <= 2  # one of the second device's first frames
+    reader.close()
+    assert second.released.is_set()
 
 
 class StartingDevice(LiveDevice):
