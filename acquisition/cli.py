@@ -226,10 +226,14 @@ def register(cli) -> None:
 
 
 def _capture(o: Capture) -> int:
-    from tacsplat.acquisition.config import load_rig
+    from tacsplat.acquisition.config import load_rig, validate
     from tacsplat.acquisition.operator_session import run_capture
 
-    return run_capture(load_rig(o.rig, mock=o.mock), o.out, resume=o.resume)
+    config = load_rig(o.rig, mock=o.mock, check_files=False)
+    if config.rig == "real":  # its drivers (a --mock rig's too): a missing hardware extra is named before the files
+        import tacsplat.drivers.dynamixel_hand  # noqa: F401
+    validate(config)
+    return run_capture(config, o.out, resume=o.resume)
 
 
 def _calibrate(o: CalibrateHand | CalibrateHandEye | CalibrateMounts, job, outputs: dict | None = None) -> int:

@@ -48,8 +48,8 @@ from tacsplat.acquisition.config import CapturePlan, RigConfig
 from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.datasets.writer import JOURNAL
-from tacsplat.drivers.dynamixel_hand import END_SIGNALS, SignalInterrupt
 from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError, StorageError, TacsplatError
+from tacsplat.interrupts import END_SIGNALS, SignalInterrupt
 
 log = logging.getLogger(__name__)
 

@@ -54,6 +54,7 @@ import numpy as np
 import tacsplat
 from tacsplat.errors import InvalidInputError, SceneFormatError
 from tacsplat.files import atomic_write, fsync_dir, storage_error
+from tacsplat.interrupts import SignalInterrupt
 from tacsplat.types import CameraIntrinsics, TactileReading
 
 from .outputs import LOCK_NAME, claim_output_dir, other_writer, record_writer
@@ -163,7 +164,7 @@ def removed_on_failure(out: Path):
 
 @contextmanager
 def _ending_signals_interrupt():
-    """While open (in the main thread): SIGTERM and SIGHUP raise KeyboardInterrupt, as Ctrl-C does, so that the
+    """While open (in the main thread): SIGTERM and SIGHUP raise SignalInterrupt (a KeyboardInterrupt, as Ctrl-C's), so that the
     cleanup of a job runs; later ones are ignored until the block ends (the cleanup is not cut short), then the
     previous handlers come back. A signal ignored on entry (``nohup``'s SIGHUP) stays ignored."""
     if threading.current_thread() is not threading.main_thread():
@@ -175,7 +176,7 @@ def _ending_signals_interrupt():
     def interrupt(signum, frame):
         for s in previous:
             signal.signal(s, signal.SIG_IGN)
-        raise KeyboardInterrupt(signal.Signals(signum).name)
+        raise SignalInterrupt(signum)
 
     for s in previous:
         signal.signal(s, interrupt)

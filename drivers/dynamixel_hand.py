@@ -99,6 +99,7 @@ from tacsplat.drivers.dynamixel_table import (
 )
 from tacsplat.drivers.protocols import HandKinematics
 from tacsplat.errors import ConfigError, HandError, InvalidInputError
+from tacsplat.interrupts import END_SIGNALS, SignalInterrupt  # each leaves the hand with torque off
 
 log = logging.getLogger(__name__)
 
@@ -117,20 +118,9 @@ _STATE_DTYPE = np.dtype([("current", "<i2"), ("velocity", "<i4"), ("position", "
 _STATE_SIZE = _STATE_DTYPE.itemsize
 VELOCITY_UNIT_RAD_S = 0.229 * 2.0 * np.pi / 60.0  # Present Velocity unit: 0.229 rpm
 MAX_BUS_WATCHDOG_S = 127 * BUS_WATCHDOG_UNIT_S
-# The signals that ask a process to end: each leaves the hand with torque off (see the module docstring).
-END_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
 GUARD_CLOSED = b"closed\n"  # what the guard reads when the hand was closed: it then exits without a word
 GUARD_READY = b"ready\n"  # what the guard says once it holds all it needs to turn torque off
 GUARD_READY_S = 10.0  # connect refuses a guard not ready by then (it starts within a second or two)
-
-
-class SignalInterrupt(KeyboardInterrupt):
-    """SIGINT, SIGTERM, SIGHUP or SIGQUIT asked the process to end (``signum``); a KeyboardInterrupt, so that
-    whatever stops on Ctrl-C stops on it too. A command that ends on it exits with 128 + signum."""
-
-    def __init__(self, signum: int):
-        self.signum = int(signum)
-        super().__init__(signal.Signals(self.signum).name)
 
 
 def _is_int(value) -> bool:

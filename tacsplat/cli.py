@@ -11,8 +11,9 @@ numba, MuJoCo) inside ``run``, so that ``tacsplat --help`` imports none.
 
 Exit codes: 0 success, 1 a runtime error (one ``error:`` line), 2 a usage
 error (one line naming the option: a bad or missing value, or one out of its
-range: :class:`UsageError`), 130 Ctrl-C (143 SIGTERM where a command
-checkpoints on it), 141 when the reader of stdout went away (``| head``).
+range: :class:`UsageError`), 130 Ctrl-C (128 + the signal where a command
+stops cleanly on SIGTERM or SIGHUP: 143, 129), 141 when the reader of stdout went away
+(``| head``).
 ``-v``, ``-q`` and ``--log-level`` are accepted before or after the
 subcommand.
 """
@@ -24,6 +25,7 @@ import gc
 import importlib
 import logging
 import os
+import signal
 import sys
 
 from tacsplat import __version__
@@ -252,9 +254,9 @@ def _main(argv: list[str] | None) -> int:
             file=sys.stderr,
         )
         return 1
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:  # Ctrl-C: 130; a SignalInterrupt: 128 + its signal (SIGTERM: 143)
         print("interrupted", file=sys.stderr)
-        return 130
+        return 128 + getattr(exc, "signum", signal.SIGINT)
     return int(code or 0)
 
 

@@ -1,9 +1,22 @@
-"""Ctrl-C that works in a process started with SIGINT ignored."""
+"""What ends a command early: Ctrl-C (which works in a process started with SIGINT ignored) and the other
+ending signals, raised as :class:`SignalInterrupt` so that a command exits with 128 + the signal's number."""
 
 from __future__ import annotations
 
 import contextlib
 import signal
+
+# The signals that ask a process to end (a terminal's Ctrl-C, kill, a closed window, Ctrl-\\).
+END_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
+
+
+class SignalInterrupt(KeyboardInterrupt):
+    """SIGINT, SIGTERM, SIGHUP or SIGQUIT asked the process to end (``signum``); a KeyboardInterrupt, so that
+    whatever stops on Ctrl-C stops on it too. A command that ends on it exits with 128 + signum."""
+
+    def __init__(self, signum: int):
+        self.signum = int(signum)
+        super().__init__(signal.Signals(self.signum).name)
 
 
 @contextlib.contextmanager
