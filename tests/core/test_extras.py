@@ -18,7 +18,9 @@ def _without(modules: tuple[str, ...], argv: list[str]) -> subprocess.CompletedP
         "from tacsplat.cli import main\n"
         f"sys.exit(main({argv!r}))\n"
     )
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-c", code], stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=300
+    )
 
 
 @pytest.mark.parametrize(
@@ -48,3 +50,13 @@ def test_a_missing_extra_is_named_in_one_line(tmp_path, modules, argv, extra, co
     assert lines[0] == (
         f"error: {command} needs the {extra} extra ({modules[0]} is not installed): pip install 'tacsplat[{extra}]'"
     )
+
+
+def test_a_capture_on_the_twin_needs_no_hardware_extra(tmp_path):
+    """`capture --rig sim.yaml` drives the twin: without dynamixel_sdk and pyserial it opens, serves the (empty)
+    keys and stops before the plan is complete, naming no extra."""
+    done = _without(
+        ("dynamixel_sdk", "serial"), ["capture", "--rig", str(RIGS / "sim.yaml"), "--out", str(tmp_path / "s")]
+    )
+    assert done.returncode == 1 and "stopped before the plan was complete" in done.stdout, done.stdout + done.stderr
+    assert "extra" not in done.stderr, done.stderr
