@@ -7,6 +7,9 @@
   (:func:`.losses.normal_consistency_loss` of :func:`.losses.depth_normals`) per pixel in one pass: the
   depth's normal from central differences of the unprojected points, 1 - <rendered, depth normal>; the
   backward gathers each depth pixel's share from the four normals whose differences it enters.
+
+Both raise :class:`~tacsplat.errors.InvalidInputError` on NaN or infinite inputs, which their kernels would
+misread silently (a NaN depth as a pixel not in front of the camera, a NaN scale as never the smallest).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import numba as nb
 import numpy as np
 import torch
 
+from tacsplat.reconstruction.fused_touch import require_finite
 from tacsplat.reconstruction.raster.cpu_project import _CHUNK, _np, _rotation, _rotation_backward
 
 
@@ -61,6 +65,7 @@ def _backward(quats, scales, v_normals, v_quats):
 class _GaussianNormalsCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, quats, scales):
+        require_finite("gaussian_normals", quats=quats, scales=scales)
         q, s = _np(quats), _np(scales)
         normals = np.empty((q.shape[0], 3), q.dtype)
         _forward(q, s, normals)
@@ -180,6 +185,7 @@ def _pixel_rays(K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.
 class _DepthNormalConsistencyCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, normal, depth, K, weight):
+        require_finite("depth_normal_consistency", rendered=normal, depth=depth, K=K, weight=weight)
         arrays = tuple(_np(t) for t in (normal, depth, weight))
         rx, ry = _pixel_rays(K.detach().double().numpy(), depth.shape[1], depth.shape[0])
         sums = np.zeros((depth.shape[0], 2))

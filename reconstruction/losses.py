@@ -48,6 +48,8 @@ def backdrop_alpha_loss(alpha: torch.Tensor, backdrop_mask: torch.Tensor) -> tor
 MAX_MAHALANOBIS = 160.0  # exp(-80) ~ 2e-35 is still a normal float32; past it exp returns subnormal numbers,
 # 8-20x slower on this CPU (torch.exp of 16k floats: 23 us, 180-450 us when results are subnormal), for an
 # influence no loss can tell from 0
+MIN_SCALE = 1e-12  # the touch loss floors scales here: S^-1's gradient 1/s^2 overflows float32 under ~1e-19 (0 * inf
+# = NaN where the exponent is clamped) and an underflowed scale of 0 gives 0/0; thinner is a plane to the loss
 
 
 def gaussian_influence(
@@ -132,11 +134,12 @@ def transmittance_loss(
     T(p) (Eq. 6) is the mean of 1 - f(p; Sigma_j, mu_j) alpha_j over the ``top_k``
     candidates with the highest influence f alpha that lie within
     ``max_distance`` of p (live distance). A point with no Gaussian in reach has
-    T(p) = 1: nothing blocks light there.
+    T(p) = 1: nothing blocks light there. Scales are floored at ``MIN_SCALE`` (no gradient below it). The fused
+    kernels raise :class:`~tacsplat.errors.InvalidInputError` on NaN or infinite inputs; the reference returns NaN.
     """
     if fused and means.device.type == "cpu":
         return transmittance_cpu(
-            touch_points, means, quats, scales, opacities, candidates, top_k, max_distance, MAX_MAHALANOBIS
+            touch_points, means, quats, scales, opacities, candidates, top_k, max_distance, MAX_MAHALANOBIS, MIN_SCALE
         )
     valid = candidates >= 0
     ids = candidates.clamp_min(0)
@@ -149,7 +152,7 @@ def transmittance_loss(
         slot = torch.empty(means.shape[0], dtype=torch.long, device=ids.device)
         slot[used] = torch.arange(len(used), device=ids.device)
         inverse = slot[ids]
-    white = whitening(quats[used], scales[used])[inverse]  # [P, C, 3, 3]
+    white = whitening(quats[used], scales[used].clamp_min(MIN_SCALE))[inverse]  # [P, C, 3, 3]
     offset = touch_points[:, None, :] - means[used][inverse]  # [P, C, 3]
     influence = gaussian_influence(offset, white) * opacities[used][inverse]  # [P, C]
     valid = valid & ((offset * offset).sum(-1) <= max_distance**2)

@@ -58,15 +58,20 @@ def project_gaussians(
     A Gaussian is culled (radii 0) when its depth is outside [near, far], its
     dilated 2D covariance is not positive definite, its opacity is under 1/255,
     both radii are <= radius_clip, or its box misses the image.
+
+    The covariances, their determinants and the antialiasing ratio are computed in float64 (per Gaussian, as in
+    the ``cpu`` backend's projection) and the conics cast back: in float32 the determinant of a Gaussian large
+    on screen overflows and it would be culled.
     """
-    rotmats = quats_to_rotmats(quats)  # [N, 3, 3]
-    m = rotmats * scales[:, None, :]  # R @ diag(s)
-    covars = m @ m.transpose(-1, -2)  # [N, 3, 3]
+    wide = torch.float64
+    rotmats = quats_to_rotmats(quats)  # [N, 3, 3] (in the quaternions' precision, as on the cpu backend)
+    m = rotmats.to(wide) * scales.to(wide)[:, None, :]  # R @ diag(s)
+    covars = m @ m.transpose(-1, -2)  # [N, 3, 3] float64
 
     R = viewmats[:, :3, :3]  # [C, 3, 3]
     t = viewmats[:, :3, 3]  # [C, 3]
     means_c = torch.einsum("cij,nj->cni", R, means) + t[:, None, :]  # [C, N, 3]
-    covars_c = torch.einsum("cij,njk,clk->cnil", R, covars, R)  # [C, N, 3, 3]
+    covars_c = torch.einsum("cij,njk,clk->cnil", R.to(wide), covars, R.to(wide))  # [C, N, 3, 3] float64
 
     x, y, z = means_c.unbind(-1)
     in_depth = (z >= near_plane) & (z <= far_plane)
@@ -84,7 +89,8 @@ def project_gaussians(
     J = torch.stack([fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1).reshape(
         z.shape + (2, 3)
     )  # [C, N, 2, 3]
-    cov2d = J @ covars_c @ J.transpose(-1, -2)  # [C, N, 2, 2]
+    J_wide = J.to(wide)
+    cov2d = J_wide @ covars_c @ J_wide.transpose(-1, -2)  # [C, N, 2, 2] float64
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)  # [C, N, 2]
 
     a = cov2d[..., 0, 0] + eps2d
@@ -96,10 +102,11 @@ def project_gaussians(
         det_orig = cov2d[..., 0, 0] * cov2d[..., 1, 1] - b * b
         # sqrt's gradient is infinite at 0 (a flat Gaussian seen edge-on): below 1e-8 the factor is 0, no gradient
         ratio = det_orig / det.clamp_min(1e-30)
-        opac = opac * torch.where(ratio > 1e-8, torch.sqrt(ratio.clamp_min(1e-8)), torch.zeros_like(ratio))
+        factor = torch.where(ratio > 1e-8, torch.sqrt(ratio.clamp_min(1e-8)), torch.zeros_like(ratio))
+        opac = opac * factor.to(opac.dtype)
     positive = det > 0
     det_safe = torch.where(positive, det, torch.ones_like(det))
-    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)
+    conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1).to(means.dtype)  # [C, N, 3]
 
     with torch.no_grad():
         visible = in_depth & positive & (opac >= ALPHA_THRESHOLD)

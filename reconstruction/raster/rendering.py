@@ -24,7 +24,13 @@ import torch
 from torch import Tensor
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.reconstruction.raster.reference import MAX_ALPHA, Projection, project_gaussians, rasterize_to_pixels_torch
+from tacsplat.reconstruction.raster.reference import (
+    MAX_ALPHA,
+    TRANSMITTANCE_THRESHOLD,
+    Projection,
+    project_gaussians,
+    rasterize_to_pixels_torch,
+)
 from tacsplat.reconstruction.raster.spherical_harmonics import num_sh_bases, spherical_harmonics
 
 RENDER_MODES = ("RGB", "D", "ED", "MD", "RGB+D", "RGB+ED", "RGB+MD")
@@ -32,14 +38,14 @@ BACKENDS = ("auto", "torch", "cpu", "gsplat")
 
 
 def _check_tensor(name: str, value, shape: tuple, dtype=None, device=None) -> Tensor:
-    """Validate one tensor argument: type, shape (None = any size), dtype, device, finiteness."""
+    """Validate one tensor argument: type, shape (None = any size), dtype (float32 or float64), device."""
     if not isinstance(value, Tensor):
         raise InvalidInputError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
     if value.dim() != len(shape) or any(s is not None and s != v for s, v in zip(shape, value.shape)):
         want = "[" + ", ".join("*" if s is None else str(s) for s in shape) + "]"
         raise InvalidInputError(f"{name} must have shape {want}, got {list(value.shape)}")
-    if not value.is_floating_point():
-        raise InvalidInputError(f"{name} must be a floating-point tensor, got {value.dtype}")
+    if value.dtype not in (torch.float32, torch.float64):
+        raise InvalidInputError(f"{name} must be a float32 or float64 tensor, got {value.dtype}")
     if dtype is not None and value.dtype != dtype:
         raise InvalidInputError(f"{name} has dtype {value.dtype} but means has {dtype}; use one dtype")
     if device is not None and value.device != device:
@@ -49,17 +55,19 @@ def _check_tensor(name: str, value, shape: tuple, dtype=None, device=None) -> Te
 
 def _check_values(tensors: dict[str, Tensor], Ks: Tensor) -> None:
     """Every entry finite and every focal length positive, decided by one reduction and one wait for the
-    device (a finite sum proves its entries finite); only a failing call looks closer, to name the culprit."""
+    device (a finite sum proves its entries finite); only a failing call looks closer, to name the culprit,
+    and passes if there is none (finite entries whose sum overflows)."""
     sums = [t.detach().sum() for t in tensors.values() if t.numel()]
-    ok = torch.isfinite(torch.stack(sums)).all() if sums else torch.tensor(True)
-    ok = ok & (Ks[:, 0, 0] > 0).all() & (Ks[:, 1, 1] > 0).all()
-    if bool(ok):
+    finite = torch.isfinite(torch.stack(sums)).all() if sums else torch.tensor(True)
+    focal = (Ks[:, 0, 0] > 0).all() & (Ks[:, 1, 1] > 0).all()
+    if bool(finite & focal):
         return
     for name, value in tensors.items():
         if value.numel() and not bool(torch.isfinite(value).all()):
             bad = "NaN" if bool(torch.isnan(value).any()) else "infinite"
             raise InvalidInputError(f"{name} contains {bad} values")
-    raise InvalidInputError("Ks must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
+    if not bool(focal):
+        raise InvalidInputError("Ks must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
 
 
 def _gsplat_available() -> bool:
@@ -145,11 +153,13 @@ def rasterization(
     enter only through the covariance ``R diag(s^2) R^T`` (their sign does not
     matter; a zero scale is a point, widened by the ``eps2d`` pixel
     dilation), a zero quaternion is the identity rotation, opacities under
-    1/255 (zero, negative) are culled and alphas are clamped at 0.99. A view
+    1/255 (zero, negative) are culled and alphas are clamped at ``max_alpha``. A view
     where nothing is drawn (all culled, behind or at the camera, N = 0) is
-    empty, with zero gradients for every input. Non-finite inputs, zero
-    cameras, non-positive focal lengths or image sizes raise
-    :class:`InvalidInputError` naming the argument.
+    empty, with zero gradients for every input. Non-finite inputs, dtypes other
+    than float32 and float64, zero cameras, non-positive focal lengths or image
+    sizes, a negative or non-finite ``eps2d``, a NaN ``radius_clip`` and a
+    ``max_alpha`` outside (0, 1 - 1e-4] raise :class:`InvalidInputError` naming
+    the argument.
     """
     _check_tensor("means", means, (None, 3))
     n, dtype, device = means.shape[0], means.dtype, means.device
@@ -192,8 +202,16 @@ def rasterization(
         raise InvalidInputError(f"need 0 < near_plane < far_plane, got {near_plane} and {far_plane}")
     if not (isinstance(tile_size, int) and tile_size >= 1):
         raise InvalidInputError(f"tile_size must be a positive int, got {tile_size!r}")
-    if not 0.0 < max_alpha < 1.0:
-        raise InvalidInputError(f"max_alpha must be in (0, 1), got {max_alpha!r}")
+    if not (isinstance(eps2d, numbers.Real) and math.isfinite(eps2d) and eps2d >= 0.0):
+        raise InvalidInputError(f"eps2d must be a finite number >= 0, got {eps2d!r}")
+    if not (isinstance(radius_clip, numbers.Real) and not math.isnan(radius_clip)):
+        raise InvalidInputError(f"radius_clip must be a number, got {radius_clip!r}")
+    if not 0.0 < max_alpha <= 1.0 - TRANSMITTANCE_THRESHOLD:
+        raise InvalidInputError(
+            f"max_alpha must be in (0, {1.0 - TRANSMITTANCE_THRESHOLD:g}], got {max_alpha!r}: a pixel stops before "
+            f"a Gaussian that would bring its transmittance to {TRANSMITTANCE_THRESHOLD:g} or below, so a larger "
+            "alpha would leave an opaque Gaussian undrawn"
+        )
     chosen = _choose_backend(backend, means)
     options = dict(
         near_plane=near_plane,

@@ -119,8 +119,8 @@ def test_fused_transmittance_matches_the_torch_reference_in_value_and_every_grad
 
 
 def test_fused_transmittance_stays_finite_for_a_gaussian_with_a_zero_scale():
-    """A collapsed axis puts the point at an infinite Mahalanobis distance: influence exp(-80) alpha, gradients
-    finite (the opacity's only), where the torch reference's 2 * local * 0 is inf * 0 = NaN."""
+    """A collapsed axis (floored at MIN_SCALE) puts the point 1e9 standard deviations away: influence exp(-80)
+    alpha, gradients finite (the opacity's only)."""
     means, quats, scales, opac = _one_gaussian([0.001, 0.0, 0.0], 0.002, 0.5)
     scales[0, 0] = 0.0
     params = [p.requires_grad_(True) for p in (means, quats, scales, opac)]
