@@ -41,6 +41,14 @@ MAX_REACH_M = 5.0  # a hand further from the arm's base was given in millimetres
 # along it are undetermined. Motions of at least MIN_TURN_DEG count, and two of their axes must lie this far apart.
 MIN_TURN_DEG = 5.0
 MIN_AXIS_ANGLE_DEG = 15.0
+# A sound station set puts the board within this of the stations' mean at its farthest station (mm, degrees): an
+# arm's controller reports the hand's pose to about a millimetre and 0.1 degree, PnP gives a board's at 0.3-0.5 m to
+# about a millimetre and 0.2 degree, and the farthest of up to 15 stations lies about twice that out. Further off,
+# a pose or an image is wrong.
+MAX_SPREAD = (5.0, 2.0)
+# The wrist camera sits on the hand or on the arm's last link: within a hand's length (the hand model's is about
+# 0.2 m) of the hand's frame, with room for a bracket. Further, T_hand_cam was solved from wrong poses.
+MAX_HAND_CAM_M = 0.3
 
 
 def _in_reach(T_base_hand: np.ndarray) -> np.ndarray:
@@ -77,7 +85,7 @@ def read_arm_poses(path: Path) -> list[_Station]:
         raise ConfigError(*field_error(exc, _ArmPoses), source=path) from None
 
 
-def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """(millimetres, degrees) from pose ``T_a`` to pose ``T_b``."""
     D = invert_pose(T_a) @ T_b
     return 1000 * float(np.linalg.norm(D[:3, 3])), float(np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude()))
@@ -85,7 +93,7 @@ def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
 
 def pose_change(T_from: np.ndarray, T_to: np.ndarray) -> str:
     """``"1.23 mm, 0.45 deg"`` from pose ``T_from`` to pose ``T_to``."""
-    return "{:.2f} mm, {:.2f} deg".format(*_gap(T_from, T_to))
+    return "{:.2f} mm, {:.2f} deg".format(*pose_gap(T_from, T_to))
 
 
 def _axis_spread_deg(T_base_hand: list[np.ndarray]) -> float:
@@ -106,6 +114,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     """``T_hand_cam`` from the arm stations of ``poses_file`` (the board found in each image with the rig's camera
     calibration and board), written to ``out`` with the number of stations used; a line per station, then the
     result, its consistency and its change from the rig's previous ``T_hand_cam``. Returns ``T_hand_cam``."""
+    from tacsplat.acquisition.calibrate import inline_T_hand_cam
     from tacsplat.drivers.press_calibration import save_hand_eye
     from tacsplat.drivers.wrist_camera import CameraCalibration, board_pose, hand_eye_calibration, undistort
 
@@ -181,10 +190,9 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     mean = make_pose(
         Rotation.from_matrix([T[:3, :3] for T in boards]).mean().as_matrix(), np.mean(boards, axis=0)[:3, 3]
     )
-    gaps = np.array([_gap(mean, T) for T in boards])  # [n, 2] mm, deg
+    gaps = np.array([pose_gap(mean, T) for T in boards])  # [n, 2] mm, deg
     farthest = int(np.argmax(gaps[:, 0]))
     rms_mm = float(np.sqrt(np.mean(gaps[:, 0] ** 2)))
-    save_hand_eye(out, T_hand_cam, None, rms_mm, stations=len(seen))
     t_mm = ", ".join(f"{1000 * x:.2f}" for x in T_hand_cam[:3, 3])
     r_deg = ", ".join(f"{x:.3f}" for x in Rotation.from_matrix(T_hand_cam[:3, :3]).as_rotvec(degrees=True))
     say(f"T_hand_cam from {len(seen)} arm stations: translation [{t_mm}] mm, rotation vector [{r_deg}] deg")
@@ -193,10 +201,36 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
         f"{np.median(gaps[:, 1]):.3f} deg from the stations' mean (median; the farthest, {seen[farthest]}, "
         f"{gaps[farthest, 0]:.2f} mm, {gaps[farthest, 1]:.3f} deg)"
     )
+    _refuse_inconsistent(T_hand_cam, gaps, seen, poses_file)
+    save_hand_eye(out, T_hand_cam, None, rms_mm, stations=len(seen))
     if previous is not None:
         say(f"T_hand_cam: {pose_change(previous, T_hand_cam)} from the rig's previous value")
-    say(f"wrote {out} (name it as camera.hand_eye in the rig file)")
+    say(f"wrote {out} ({inline_T_hand_cam(config) or 'name it as camera.hand_eye in the rig file'})")
     return T_hand_cam
+
+
+def _refuse_inconsistent(T_hand_cam: np.ndarray, gaps: np.ndarray, seen: list[str], poses_file: Path) -> None:
+    """Refuse a ``T_hand_cam`` whose stations disagree on the board's pose (``gaps``: mm, degrees from their mean)
+    by more than :data:`MAX_SPREAD`, or that puts the camera further than :data:`MAX_HAND_CAM_M` from the hand."""
+    worst, at = gaps.max(axis=0), [seen[int(k)] for k in gaps.argmax(axis=0)]
+    reach = float(np.linalg.norm(T_hand_cam[:3, 3]))
+    found = []
+    if worst[0] > MAX_SPREAD[0] or worst[1] > MAX_SPREAD[1]:
+        found.append(
+            f"the stations put the board in the arm's base up to {worst[0]:.2f} mm ({at[0]}) and {worst[1]:.2f} deg "
+            f"({at[1]}) from their mean (a sound set: within {MAX_SPREAD[0]:g} mm, {MAX_SPREAD[1]:g} deg)"
+        )
+    if reach > MAX_HAND_CAM_M:
+        found.append(
+            f"T_hand_cam puts the camera {reach:.2f} m from the hand (a wrist camera: within {MAX_HAND_CAM_M:g} m)"
+        )
+    if found:
+        raise ConfigError(
+            "stations",
+            f"{'; '.join(found)}; nothing written: are the poses T_base_hand (the hand in the arm's base, not "
+            "T_hand_base), in metres, each with its own station's image?",
+            poses_file,
+        )
 
 
 def _previous_T_hand_cam(config: RigConfig, calibration) -> np.ndarray | None:

@@ -11,13 +11,14 @@ hardware hides the rig file's ``sim.true_errors``, which the calibration must fi
 from __future__ import annotations
 
 import dataclasses
+import os
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Callable, Iterator, TextIO
 
 import numpy as np
 
-from tacsplat.acquisition.arm_hand_eye import pose_change
+from tacsplat.acquisition.arm_hand_eye import pose_change, pose_gap
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
@@ -123,19 +124,93 @@ def _torque_off(hand, say: Callable[[str], None]) -> None:
 
 def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] = print):
     """``T_hand_cam`` from fingertip presses on a sphere resting on the board (the sensors at the rig's mounts),
-    written to ``out``; the press set is refused when it leaves an axis undetermined."""
+    written to ``out``; the press set is refused when it leaves an axis undetermined or fits worse than its noise
+    explains."""
+    from tacsplat.acquisition.devices import rig_mounts
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M, hand_eye_plan
     from tacsplat.drivers.press_calibration import fit_presses, save_hand_eye
 
+    shadowing = inline_T_hand_cam(config)
+    if shadowing:
+        say(f"warning: {shadowing}")
     presses, T_hand_cam, mounts = _presses(config, hand_eye_plan, say)
-    fit = fit_presses(presses, SPHERE_RADIUS_M, T_hand_cam, mounts, what="hand-eye")
+    calibrated = rig_mounts(config, calibrating=True)  # the rig's mounts file's and its sensors' own
+    fit = fit_presses(presses, SPHERE_RADIUS_M, T_hand_cam, mounts, "hand-eye", calibrated)
     save_hand_eye(out, fit.T_hand_cam, sum(fit.presses.values()), fit.rms_mm)
     say(
         f"T_hand_cam: {len(presses)} presses, rms {fit.rms_mm:.3f} mm; {pose_change(T_hand_cam, fit.T_hand_cam)} from the "
         "rig's previous value"
     )
-    say(f"wrote {out} (name it as camera.hand_eye in the rig file)")
+    say(f"wrote {out} ({shadowing or _naming(config, out, config.camera.hand_eye, 'camera.hand_eye')})")
     return fit
+
+
+def _naming(config: RigConfig, path: Path, name: str | None, key: str) -> str:
+    """Whether the rig file's ``key`` (its value ``name``) names ``path`` already, or should."""
+    if name and os.path.realpath(config.path(name)) == os.path.realpath(path):
+        return f"the rig's {key}"
+    return f"name it as {key} in the rig file"
+
+
+def inline_T_hand_cam(config: RigConfig) -> str:
+    """What to say when the rig file gives ``camera.T_hand_cam`` itself, which a capture takes over any hand-eye
+    file a calibration writes (``""`` when it does not)."""
+    if config.camera.T_hand_cam is None:
+        return ""
+    return f"{config.source} gives camera.T_hand_cam, which a capture uses instead of a hand-eye file: remove it"
+
+
+def _inline_mounts(config: RigConfig) -> str:
+    """What to say when the rig file gives a sensor its own ``T_fingertip_sensor``, which a capture takes over the
+    mounts file's (``""`` when none)."""
+    keys = [
+        f"tactile.sensors[{i}].T_fingertip_sensor"
+        for i, s in enumerate(config.tactile.sensors)
+        if s.T_fingertip_sensor is not None
+    ]
+    if not keys:
+        return ""
+    them = "it" if len(keys) == 1 else "them"
+    return f"{config.source} gives {', '.join(keys)}, which a capture uses instead of the mounts file: remove {them}"
+
+
+def _hand_eye_file(config: RigConfig, out: Path, hand_eye_out: Path | None, say: Callable[[str], None]) -> Path:
+    """Where calibrate mounts writes the ``T_hand_cam`` it solves: ``--hand-eye``, else the rig's ``camera.hand_eye``
+    file (said), checked writable before any press. Solved with the mounts, it is the ``T_hand_cam`` they are right
+    with: the mounts written beside an older one would be out of step with it (a capture's touches off the surface),
+    and holding ``T_hand_cam`` at the older one would bend the mounts around its error. So a roboticist who
+    calibrates the mounts gets the rig's hand-eye file updated with them, as the rig file names it; a rig that names
+    none is refused, asking for ``--hand-eye``."""
+    from tacsplat.datasets.outputs import ensure_output_dir
+    from tacsplat.errors import ConfigError
+
+    if hand_eye_out is not None:
+        return hand_eye_out
+    if not config.camera.hand_eye:
+        raise ConfigError(
+            "--hand-eye",
+            "calibrate mounts solves T_hand_cam with the mounts, and the rig file names no camera.hand_eye to write "
+            "it to: give --hand-eye FILE (and name that file as camera.hand_eye in the rig file)",
+        )
+    path = config.path(config.camera.hand_eye)
+    if path.is_dir():
+        raise ConfigError("camera.hand_eye", f"{path} is a folder; give a .json file", config.source)
+    if os.path.realpath(path) == os.path.realpath(out):
+        raise ConfigError("camera.hand_eye", f"{path} is --out's file too: give --hand-eye another file", config.source)
+    ensure_output_dir(path.parent, "camera.hand_eye")
+    say(f"T_hand_cam is solved with the mounts: {path} (the rig's camera.hand_eye) will be written with them")
+    return path
+
+
+def _large(T_from: np.ndarray, T_to: np.ndarray) -> str:
+    """A note when ``T_to`` is further from ``T_from`` than anything is mounted off by hand (kept: the fit's rms and
+    undetermined parameters judge it); ``""`` if not."""
+    from tacsplat.drivers.press_calibration import LARGE_CHANGE
+
+    mm, deg = pose_gap(T_from, T_to)
+    if mm > LARGE_CHANGE[0] or deg > LARGE_CHANGE[1]:
+        return f" (a large change, over {LARGE_CHANGE[0]:g} mm or {LARGE_CHANGE[1]:g} deg: kept, as the presses fit it)"
+    return ""
 
 
 def calibrate_mounts(
@@ -148,31 +223,47 @@ def calibrate_mounts(
     """Each sensor's ``T_fingertip_sensor`` and ``T_hand_cam``, solved together (they are coupled: a hand-eye
     solved with the pads at their nominal mounts takes up part of their errors) from two press sets: every
     fingertip's centre on a sphere resting on the board, and six places of each pad (its two ends, two sides and two
-    corners) on the sphere on a stand of known height (two bends, two spreads each); started at the rig's ``T_hand_cam`` (run
-    calibrate hand-eye first) and mounts. ``stand_height_m``: the sphere's centre over the board on its stand, as
-    measured (None: :data:`~tacsplat.acquisition.presses.STAND_HEIGHT_M`, the twin's and the emulator's). A line
-    per sensor and one for ``T_hand_cam``; the mounts written to ``out``, ``T_hand_cam`` to ``hand_eye_out`` if
-    given, both or neither. Presses that leave an axis undetermined are refused, naming the presses to add."""
+    corners) on the sphere on a stand of known height (two bends, two spreads each); started at the rig's
+    ``T_hand_cam`` (run calibrate hand-eye first) and mounts. ``stand_height_m``: the sphere's centre over the board
+    on its stand, as measured (None: :data:`~tacsplat.acquisition.presses.STAND_HEIGHT_M`, the twin's and the
+    emulator's). A line per sensor and one for ``T_hand_cam``; the mounts written to ``out``, ``T_hand_cam`` to
+    ``hand_eye_out`` (None: the rig's ``camera.hand_eye`` file, :func:`_hand_eye_file`), both or neither. Presses
+    that leave an axis undetermined, or a sensor of the rig without a usable press, are refused."""
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M, STAND_HEIGHT_M, hand_eye_plan, mounts_plan
-    from tacsplat.drivers.press_calibration import fit_mounts, save_mounts, save_mounts_and_hand_eye
+    from tacsplat.drivers.press_calibration import fit_mounts, save_mounts_and_hand_eye
+    from tacsplat.errors import InvalidInputError
 
     def plan(*fingers):  # the hand-eye presses, then the pads' on the stand
         return hand_eye_plan(*fingers) + mounts_plan(*fingers)
 
+    hand_eye_out = _hand_eye_file(config, out, hand_eye_out, say)
+    for warning in (inline_T_hand_cam(config), _inline_mounts(config)):
+        if warning:
+            say(f"warning: {warning}")
     stand = STAND_HEIGHT_M if stand_height_m is None else float(stand_height_m)
     where = f"resting on the board, then on a stand, its centre {1000 * stand:g} mm over the board"
     presses, T_hand_cam, mounts = _presses(config, plan, say, where)
+    # every sensor of the rig (the keys of ``mounts``) needs its presses: a mounts file without one would leave it at
+    # the identity in a capture, unnoticed
+    if unpressed := [f for f in mounts if not any(p.finger == f for p in presses)]:
+        raise InvalidInputError(
+            f"calibrate mounts: no usable press of the {', '.join(unpressed)} sensor{'s' * (len(unpressed) > 1)} (each "
+            "was skipped: no contact, or the wrist camera did not see the board); nothing written: take the presses "
+            "again, the board in view"
+        )
     fit = fit_mounts(presses, SPHERE_RADIUS_M, {0: SPHERE_RADIUS_M, 1: stand}, T_hand_cam, mounts, "calibrate mounts")
     for finger, T in fit.mounts.items():
+        before = mounts.get(finger, np.eye(4))
         say(
             f"{finger}: {fit.presses[finger]} presses ({fit.dropped[finger]} dropped), rms {fit.rms_mm[finger]:.3f} mm; "
-            f"{pose_change(mounts.get(finger, np.eye(4)), T)} from the rig's previous mounting"
+            f"{pose_change(before, T)} from the rig's previous mounting{_large(before, T)}"
         )
-    say(f"T_hand_cam: {pose_change(T_hand_cam, fit.T_hand_cam)} from the rig's previous value")
-    if hand_eye_out is None:
-        save_mounts(fit, out)
-    else:  # both files or neither: a new mounts file beside an old hand-eye file would be out of step with it
-        save_mounts_and_hand_eye(fit, out, hand_eye_out)
-        say(f"wrote {hand_eye_out} (name it as camera.hand_eye in the rig file)")
-    say(f"wrote {out} ({len(fit.mounts)} sensors; name it as tactile.mounts in the rig file)")
+    change = f"{pose_change(T_hand_cam, fit.T_hand_cam)} from the rig's previous value"
+    say(f"T_hand_cam: {change}{_large(T_hand_cam, fit.T_hand_cam)}")
+    # both files or neither: a new mounts file beside an old hand-eye file would be out of step with it
+    save_mounts_and_hand_eye(fit, out, hand_eye_out)
+    named = _naming(config, hand_eye_out, config.camera.hand_eye, "camera.hand_eye")
+    say(f"wrote {hand_eye_out} ({inline_T_hand_cam(config) or named})")
+    said = _inline_mounts(config) or _naming(config, out, config.tactile.mounts, "tactile.mounts")
+    say(f"wrote {out} ({len(fit.mounts)} sensors; {said})")
     return fit

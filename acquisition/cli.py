@@ -101,8 +101,8 @@ class CalibrateMounts:
     out: Path
     """mounts file to write (.json; the rig's tactile.mounts)"""
     hand_eye: Path | None = None
-    """also write the T_hand_cam solved with the mounts to this hand-eye file (.json; the rig's camera.hand_eye);
-    both files are written, or neither"""
+    """the hand-eye file to write the T_hand_cam solved with the mounts to (.json); without it, the rig's
+    camera.hand_eye file is (a rig that names none is refused); both files are written, or neither"""
     stand_height_mm: float = 60.0  # 1000 * tacsplat.acquisition.presses.STAND_HEIGHT_M (not imported: a slow import)
     """the height of the sphere's centre over the board's printed face with the sphere on its stand, in mm, as
     measured (the sphere's top less its 12.5 mm radius); the twin's and --mock's stand is at the default"""

@@ -1,6 +1,8 @@
 """``tacsplat rig check``: is the rig ready to capture? Every device answers, every calibration file the rig names
-is there, plausible (it parses, its values are in range) and younger than the rig file's ``hardware_changed``, and
-the wrist camera sees the board; one table, one row per check.
+is there, plausible (it parses, its values are in range), younger than the rig file's ``hardware_changed`` and not
+overridden by another value in the rig file itself, and the wrist camera sees the board; one table, one row per
+check. A twin whose ``sim.true_errors`` hide errors that no calibration file corrects fails as a real rig without
+that file does.
 
 On ``--mock`` the devices are emulated (``mock_devices.unplugged`` and ``board_in_view`` stage faults) and the camera
 and tactile calibrations are the mock's own, as a mock capture uses them; the hand calibration is the rig's.
@@ -19,7 +21,7 @@ import numpy as np
 
 from tacsplat.acquisition.config import RigConfig
 from tacsplat.errors import TacsplatError
-from tacsplat.sim.hand import JOINT_LIMITS, JOINT_NAMES
+from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS, JOINT_NAMES
 
 FPS_WINDOW_S = 0.5  # how long each camera's frame rate is measured
 READ_TOLERANCE_RAD = np.radians(5.0)  # a joint read this far outside its limits with hand.json: a wrong calibration
@@ -103,16 +105,82 @@ def _frames(reader_read, seconds: float) -> tuple[np.ndarray, float]:
 
 
 def _pose_files(rows: list[Row], config: RigConfig) -> None:
-    """Append the rows of the hand-eye and mounts files the rig names (calibrate hand-eye, calibrate mounts)."""
-    from tacsplat.drivers.press_calibration import load_hand_eye, load_mounts
-    from tacsplat.sim.hand import FINGER_NAMES
+    """Append the rows of the hand-eye and mounts files the rig names (calibrate hand-eye, calibrate mounts). A
+    file's row fails where the rig file's own value overrides a different one of the file's (a capture would not
+    use what was calibrated), and a mounts file's where it has no entry for a sensor of the rig (a capture would
+    take that sensor as mounted at the identity)."""
+    from tacsplat.drivers.press_calibration import MAX_STD, MOUNT_MAX_STD, load_hand_eye, load_mounts
 
-    _calibration_file(
+    T_hand_cam = _calibration_file(
         rows, config, "camera.hand_eye", config.camera.hand_eye, lambda p: load_hand_eye(p, key="camera.hand_eye")
     )
-    _calibration_file(
+    if T_hand_cam is not None and config.camera.T_hand_cam is not None:
+        if differs := _differs(
+            np.asarray(config.camera.T_hand_cam), T_hand_cam, 1000 * MAX_STD[1], np.degrees(MAX_STD[0])
+        ):
+            _fail(rows, f"the rig file's camera.T_hand_cam, {differs} from it, overrides it: remove camera.T_hand_cam")
+    mounts = _calibration_file(
         rows, config, "tactile.mounts", config.tactile.mounts, lambda p: load_mounts(p, FINGER_NAMES, "tactile.mounts")
     )
+    if mounts is None:
+        return
+    inline = {
+        s.finger: (i, np.asarray(s.T_fingertip_sensor))
+        for i, s in enumerate(config.tactile.sensors)
+        if s.T_fingertip_sensor is not None
+    }
+    problems = []
+    if missing := [f for f in _rig_fingers(config) if f not in mounts and f not in inline]:
+        problems.append(f"no entry for the {', '.join(missing)} sensor (calibrate mounts again, every sensor pressed)")
+    for finger, (i, T) in inline.items():
+        if finger in mounts and (differs := _differs(T, mounts[finger], MOUNT_MAX_STD[1], MOUNT_MAX_STD[0])):
+            problems.append(
+                f"the rig file's tactile.sensors[{i}].T_fingertip_sensor, {differs} from its entry, overrides it: remove it"
+            )
+    if problems:
+        _fail(rows, "; ".join(problems))
+
+
+def _differs(T_a: np.ndarray, T_b: np.ndarray, same_mm: float, same_deg: float) -> str:
+    """``"1.23 mm, 0.45 deg"`` from ``T_a`` to ``T_b`` when further than ``same_mm`` or ``same_deg``; ``""`` if not.
+    Two values closer than what their calibration determines are one (copied by hand to fewer digits, say)."""
+    from tacsplat.acquisition.arm_hand_eye import pose_change, pose_gap
+
+    mm, deg = pose_gap(T_a, T_b)
+    return pose_change(T_a, T_b) if mm > same_mm or deg > same_deg else ""
+
+
+def _fail(rows: list[Row], problem: str) -> None:
+    """Fail the last row (a calibration file's), adding ``problem`` to what it says."""
+    rows[-1] = Row(rows[-1].item, False, f"{rows[-1].detail}; {problem}")
+
+
+def _rig_fingers(config: RigConfig) -> list[str]:
+    """The fingers with a tactile sensor: a twin's every finger, a real rig's ``tactile.sensors``."""
+    return list(FINGER_NAMES) if config.rig == "sim" else [s.finger for s in config.tactile.sensors]
+
+
+def _uncalibrated_twin(rows: list[Row], config: RigConfig) -> None:
+    """Append a failing row for each calibration a twin hides errors of (``sim.true_errors``) but the rig neither
+    names a file for nor gives itself: a capture would take that part as nominal, as a real rig's would."""
+    e = config.sim.true_errors
+    if not config.hand.calibration and (any(e.servo_offsets()) or any(s != 1 for s in e.servo_signs())):
+        why = "none named, and the twin hides joint errors (sim.true_errors): tacsplat calibrate hand writes it"
+        rows.append(Row("hand.calibration", False, why))
+    known = config.camera.hand_eye or config.camera.T_hand_cam is not None
+    if not known and _is_error(e.hand_eye):
+        why = "none named, and the twin hides a hand-eye error (sim.true_errors): tacsplat calibrate hand-eye writes it"
+        rows.append(Row("camera.hand_eye", False, why))
+    inline = {s.finger for s in config.tactile.sensors if s.T_fingertip_sensor is not None}
+    hidden = [f for f, error in e.mounts.items() if _is_error(error) and f not in inline]
+    if not config.tactile.mounts and hidden:
+        why = f"none named, and the twin hides mounting errors of the {', '.join(hidden)} sensors (sim.true_errors)"
+        rows.append(Row("tactile.mounts", False, f"{why}: tacsplat calibrate mounts writes it"))
+
+
+def _is_error(error) -> bool:
+    """A pose error (``sim.true_errors``) that is not the identity."""
+    return any(error.translation_m) or any(error.rotation_deg)
 
 
 def _T_hand_cam_row(config: RigConfig, cam_cal) -> Row:
@@ -212,13 +280,15 @@ def _camera_rows(config: RigConfig, mock, cam_cal) -> list[Row]:
 
 
 def check_twin(config: RigConfig) -> list[Row]:
-    """A ``rig: sim`` config: its calibration files (those named) and the twin's devices."""
+    """A ``rig: sim`` config: its calibration files (those named, and those its hidden errors need) and the twin's
+    devices."""
     from tacsplat.acquisition.devices import twin_config
     from tacsplat.sim.twin import SimTwin
 
     rows: list[Row] = []
     _hand_file(rows, config)
     _pose_files(rows, config)
+    _uncalibrated_twin(rows, config)
     if not all(row.ok for row in rows):
         return rows
     with SimTwin(twin_config(config)) as twin:

@@ -16,8 +16,10 @@ unknowns, each contact point must lie at the sphere's radius from its centre:
   mount's six numbers (the yaw about the gel's normal and the in-plane offset included, which a plane cannot), and
   the stand's known height fixes the offset along the direction a fingertip keeps vertical.
 
-Each refuses a press set that leaves an axis undetermined, naming the presses to add; ``fit_mounts`` drops presses
-whose board pose is off the others' (PnP can flip with few corners).
+Each refuses a press set that leaves an axis undetermined, naming the presses to add, and one that its best fit
+leaves further off the sphere than the gel's noise and the mounts' errors explain, naming what to check;
+``fit_presses`` searches every orientation of the camera for its start (one start can end in a local minimum);
+``fit_mounts`` drops presses whose board pose is off the others' (PnP can flip with few corners).
 
 Files (JSON): ``{"format": "tacsplat-hand-eye", "version": 1, "T_hand_cam": [[4x4]], "presses": n, "rms_mm": x}``
 (from an arm, ``tacsplat calibrate hand-eye --arm-poses``: ``"stations": n`` instead of ``"presses"``, and ``rms_mm``
@@ -31,7 +33,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Collection
 
 import numpy as np
 from pydantic import Field
@@ -118,12 +120,17 @@ def fit_presses(
     T_hand_cam: np.ndarray,
     mounts: dict[str, np.ndarray] | None = None,
     what: str = "hand-eye",
+    calibrated_mounts: Collection[str] = (),
 ) -> PressFit:
     """Solve ``T_hand_cam`` and each sphere placement's centre on the board (``z = radius``) together from every
-    contact point lying on its surface (scipy ``least_squares``, started at ``T_hand_cam``, the nominal or last
-    calibration), the sensors at ``mounts`` (the rig's; the identity for a finger not named). A parameter the presses
-    leave undetermined (its standard deviation at :data:`NOISE_M` per point over :data:`MAX_STD`) is refused,
-    naming it and the presses to add."""
+    contact point lying on its surface (scipy ``least_squares``), the sensors at ``mounts`` (the rig's; the identity
+    for a finger not named; ``calibrated_mounts``: the fingers whose mount is calibrated, not nominal). The solve is
+    started at ``T_hand_cam`` (the nominal or last calibration) and at the best of a search over every orientation
+    (:func:`_global_start`), and the lower rms kept: from one start it can stop in a local minimum about a
+    millimetre off the sphere (a camera turned 10 degrees about its optical axis did). A parameter the presses leave
+    undetermined (its standard deviation at :data:`NOISE_M` per point over :data:`MAX_STD`) is refused, naming it
+    and the presses to add; so is a best fit whose rms is over what the gel's noise and the mounts' errors explain
+    (:func:`_max_press_rms_m`), naming what to check."""
     check_presses(presses, what)
     mounts = {f: np.asarray(T, dtype=np.float64) for f, T in (mounts or {}).items()}
     fingers = list(dict.fromkeys(p.finger for p in presses))
@@ -146,17 +153,30 @@ def fit_presses(
                 out.append(np.linalg.norm(world - centres[p.placement], axis=1) - sphere_radius_m)
         return np.concatenate(out)
 
-    x0 = [_params(T_hand_cam)]
-    for c in placements:  # the sphere's centre one radius behind the first patch that touched it
-        p = next(p for p in presses if p.surface == "sphere" and p.placement == c)
-        T = _world_sensor(p, invert_pose(T_hand_cam), mounts.get(p.finger, np.eye(4)))
-        x0.append(transform_points(T, np.r_[p.points_sensor.mean(axis=0)[:2], sphere_radius_m][None])[0, :2])
-    x0 = np.concatenate(x0)
-    scale = np.r_[[0.01] * 3 + [0.001] * 3, [0.001] * 2 * len(placements)]
-    fit = least_squares(residuals, x0, x_scale=scale, method="lm")
+    def solve(T_start):
+        x0 = [_params(T_start)]
+        for c in placements:  # the sphere's centre one radius behind the first patch that touched it
+            p = next(p for p in presses if p.surface == "sphere" and p.placement == c)
+            T = _world_sensor(p, invert_pose(T_start), mounts.get(p.finger, np.eye(4)))
+            x0.append(transform_points(T, np.r_[p.points_sensor.mean(axis=0)[:2], sphere_radius_m][None])[0, :2])
+        scale = np.r_[[0.01] * 3 + [0.001] * 3, [0.001] * 2 * len(placements)]
+        return least_squares(residuals, np.concatenate(x0), x_scale=scale, method="lm")
+
+    starts = [T_hand_cam, _global_start(presses, sphere_radius_m, mounts)]
+    fit = min((solve(T) for T in starts), key=lambda f: f.cost)
     if weak := _undetermined(fit.jac, ["hand-eye"], NOISE_M, MAX_STD):
         hint = "press the sphere with more fingers, bent differently, the hand reaching it from other directions"
         raise InvalidInputError(f"{what}: the presses leave undetermined: {', '.join(map(' '.join, weak))}; {hint}")
+    rms = float(np.sqrt(np.mean(fit.fun**2)))
+    nominal = [f for f in fingers if f not in calibrated_mounts]
+    if rms > (limit := _max_press_rms_m(sphere_radius_m, not nominal)):
+        mounting = "the calibrated mounts" if not nominal else f"the {', '.join(nominal)} pads' nominal mounting"
+        raise InvalidInputError(
+            f"{what}: at the best T_hand_cam found the contact points lie {1000 * rms:.2f} mm (rms) off the sphere, "
+            f"more than the gel's noise and {mounting} explain ({1000 * limit:.2f} mm); check that the ball is "
+            f"{2000 * sphere_radius_m:.0f} mm across and did not move between presses, the hand calibration "
+            "(calibrate hand) and each pad's mounting (calibrate mounts solves T_hand_cam with the mounts)"
+        )
     X, centres = unpack(fit.x)
     offsets = np.cumsum([0] + [len(s) for s in samples])
     per = {
@@ -166,10 +186,76 @@ def fit_presses(
     return PressFit(
         X,
         [centres[c] for c in placements],
-        1000 * float(np.sqrt(np.mean(fit.fun**2))),
+        1000 * rms,
         {f: 1000 * float(np.sqrt(np.mean(r**2))) for f, r in per.items()},
         {f: sum(p.finger == f for p in presses) for f in fingers},
     )
+
+
+# A sensor's mount before calibrate mounts is off its nominal place by up to this (the chain is built and tested for
+# pads up to 2 mm and 3 degrees off); a calibrated one is known to MOUNT_MAX_STD.
+MOUNT_TOLERANCE_M = 0.002
+
+
+def _max_press_rms_m(sphere_radius_m: float, mounts_calibrated: bool) -> float:
+    """The most a hand-eye press set's rms can be at the right ``T_hand_cam``: the gel's depth noise plus the
+    sensors' mounting errors, which move each patch as a whole. A nominal mount moves its patches by up to
+    :data:`MOUNT_TOLERANCE_M`; a calibrated one by its offset's standard deviation plus its rotation's over the
+    sphere's radius (:data:`MOUNT_MAX_STD`), three of which bound it."""
+    if not mounts_calibrated:
+        return NOISE_M + MOUNT_TOLERANCE_M
+    degrees, mm = MOUNT_MAX_STD
+    return 3 * (NOISE_M + mm / 1000 + sphere_radius_m * np.radians(degrees))
+
+
+# The orientations :func:`_global_start` tries: every rotation, on a 20-degree grid of Euler angles. The sphere
+# centres' model has a far wider basin than that (on a twin, refined from 90 degrees off its optimum it reached it),
+# and its optimum lies within a degree or so of the full solve's, well inside that one's basin.
+GRID_DEG = 20.0
+GLOBAL_REFINED = 8  # grid points refined, best first
+
+
+def _global_start(presses: list[Press], sphere_radius_m: float, mounts: dict[str, np.ndarray]) -> np.ndarray:
+    """A ``T_hand_cam`` near the presses' global optimum, from the sphere's centre that each patch's curvature gives
+    (a board press: the patch's centre at ``z = 0``), found in the hand through the fingertip and its mount and in
+    the world through the camera: ``T_world_cam @ inv(T_hand_cam) @ h = c``. For a given rotation of
+    ``inv(T_hand_cam)`` that is linear in its translation and the centres' places on the board, so every orientation
+    of a grid is scored at once; the best few are refined and the best of those returned."""
+    placements = sorted({p.placement for p in presses if p.surface == "sphere"})
+    # one equation per world axis a press fixes (a sphere's centre: x, y, z; the board: z), of the unknowns u (the
+    # translation of inv(T_hand_cam), then each placement's centre x, y): M u = d - A R h for the rotation R
+    M, d, A, h = [], [], [], []
+    for p in presses:
+        on_sphere = p.surface == "sphere"
+        point = sphere_centre_in_sensor(p.points_sensor, sphere_radius_m) if on_sphere else p.points_sensor.mean(0)
+        in_hand = transform_points(p.T_hand_fingertip @ mounts.get(p.finger, np.eye(4)), point[None])[0]
+        R_world, t_world = p.T_world_cam[:3, :3], p.T_world_cam[:3, 3]
+        for axis in range(3) if on_sphere else [2]:
+            row = np.zeros(3 + 2 * len(placements))
+            row[:3] = R_world[axis]
+            if on_sphere and axis < 2:
+                row[3 + 2 * placements.index(p.placement) + axis] = -1.0
+            M.append(row)
+            d.append((sphere_radius_m if on_sphere and axis == 2 else 0.0) - t_world[axis])
+            A.append(R_world[axis])
+            h.append(in_hand)
+    M, d, A, h = map(np.array, (M, d, A, h))
+    project = np.eye(len(M)) - M @ np.linalg.pinv(M)  # the residual left once the linear unknowns are solved
+
+    def residuals(R):  # [..., equations] for rotations R [..., 3, 3] of inv(T_hand_cam)
+        return (d - np.einsum("ea,...ab,eb->...e", A, R, h)) @ project.T
+
+    angles = np.radians(np.arange(-180.0, 180.0, GRID_DEG))
+    tilts = np.radians(np.arange(-90.0 + GRID_DEG / 2, 90.0, GRID_DEG))
+    grid = Rotation.from_euler("zyx", np.array(np.meshgrid(angles, tilts, angles)).reshape(3, -1).T).as_matrix()
+    cost = np.sum(residuals(grid) ** 2, axis=1)
+    refined = [
+        least_squares(lambda v: residuals(Rotation.from_rotvec(v).as_matrix()), Rotation.from_matrix(R).as_rotvec())
+        for R in grid[np.argsort(cost)[:GLOBAL_REFINED]]
+    ]
+    R = Rotation.from_rotvec(min(refined, key=lambda f: f.cost).x).as_matrix()
+    u = np.linalg.lstsq(M, d - np.einsum("ea,ab,eb->e", A, R, h), rcond=None)[0]
+    return invert_pose(make_pose(R, u[:3]))
 
 
 def _undetermined(J: np.ndarray, blocks: list[str], noise: float, limits: tuple[float, float]) -> list[tuple]:
@@ -185,7 +271,9 @@ MOUNT_MAX_STD = (0.2, 0.1)  # degrees, mm: a parameter known worse than this is 
 OUTLIER_FACTOR, OUTLIER_MIN_MM = 3.0, 0.05  # a press this far off the others' fit is dropped (its board pose is bad)
 MAX_DROPPED = 0.2  # at most this share of the presses is dropped
 START_OUTLIER_M = 0.015  # a press whose sphere centre lands this far from the others' at the start is dropped
-MAX_CHANGE = (10.0, 20.0)  # mm, degrees: a mount or T_hand_cam found further than this from its start is refused
+# mm, degrees: nothing is mounted further off its design by hand; a solution this far from its start is kept (it is
+# judged by its rms and its undetermined parameters) but said
+LARGE_CHANGE = (10.0, 20.0)
 MOUNT_SPREAD_M = 0.004  # the spots pressed on a pad must span this along both of its axes
 
 
@@ -236,7 +324,8 @@ def fit_mounts(
     different poses on the hand separate ``T_hand_cam`` from the mounts and the sphere's place. A press whose
     sphere centre lands far from the others' (a bad board pose) is dropped. A press set that leaves a parameter
     undetermined (its standard deviation at :data:`NOISE_M` per point over :data:`MOUNT_MAX_STD`) is refused,
-    naming it and the presses to add; so is a solve that runs off (:data:`MAX_CHANGE`)."""
+    naming it and the presses to add; so is a sensor whose rms is over what the gel's noise and a calibrated mount
+    explain (:func:`_max_press_rms_m`)."""
     check_presses(presses, what)
     if any(p.surface != "sphere" for p in presses):
         raise InvalidInputError(f"{what}: fit_mounts takes presses on the sphere only")
@@ -309,21 +398,22 @@ def fit_mounts(
         x, fit = solve(x, np.arange(len(x)))
     _refuse_unfixed(fit.jac, presses, fingers, dropped, centres_s, what)
     X, M, centres = unpack(x)
-    changes = [("T_hand_cam", T_hand_cam, X)] + [(f"the {f} mount", mounts.get(f, np.eye(4)), M[f]) for f in fingers]
-    for name, T0, T in changes:
-        D = invert_pose(T0) @ T
-        mm, deg = 1000 * np.linalg.norm(D[:3, 3]), np.degrees(Rotation.from_matrix(D[:3, :3]).magnitude())
-        if mm > MAX_CHANGE[0] or deg > MAX_CHANGE[1]:  # nothing is mounted that far off: the solve ran off
-            raise InvalidInputError(
-                f"{what}: {name} came out {mm:.1f} mm, {deg:.1f} deg from its start, more than anything is mounted "
-                f"off ({MAX_CHANGE[0]:.0f} mm, {MAX_CHANGE[1]:.0f} deg); take the presses again, the board in full view"
-            )
     mine = {f: np.array([p.finger == f for p in presses]) & ~dropped for f in fingers}
+    rms = {f: float(np.sqrt(np.mean(fit.fun[np.repeat(m, np.diff(bounds))] ** 2))) for f, m in mine.items()}
+    limit = 1000 * _max_press_rms_m(sphere_radius_m, mounts_calibrated=True)  # each mount is now known to MOUNT_MAX_STD
+    if off := {f: r for f, r in rms.items() if r > limit}:
+        said = ", ".join(f"the {f} sensor's {r:.2f} mm" for f, r in off.items())
+        raise InvalidInputError(
+            f"{what}: at the best solution found the contact points lie off the sphere by (rms) {said}, more than the "
+            f"gel's noise and a calibrated mount explain ({limit:.2f} mm); check that the ball is "
+            f"{2000 * sphere_radius_m:.0f} mm across and did not move on its stand, the stand's height as given, and "
+            "the hand calibration (calibrate hand)"
+        )
     return MountsFit(
         X,
         M,
         centres,
-        {f: float(np.sqrt(np.mean(fit.fun[np.repeat(m, np.diff(bounds))] ** 2))) for f, m in mine.items()},
+        rms,
         {f: int(m.sum()) for f, m in mine.items()},
         {f: int(sum(d and p.finger == f for d, p in zip(dropped, presses))) for f in fingers},
     )

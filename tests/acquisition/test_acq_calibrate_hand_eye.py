@@ -138,12 +138,13 @@ def test_sigterm_mid_presses_exits_with_torque_off_confirmed_and_nothing_written
     from tests.acquisition.acq_helpers import sigterm_when, write_mock_rig
 
     rig = write_mock_rig(tmp_path, board=FINE_BOARD, mock_devices=MOCK_CAMERA, tactile={"sensors": _sensors()})
-    out = tmp_path / "mounts.json"
-    code, stdout, stderr = sigterm_when(["calibrate", "mounts", "--rig", rig, "--out", str(out), "--mock"], "press 2/")
+    out, he = tmp_path / "mounts.json", tmp_path / "hand_eye.json"
+    args = ["calibrate", "mounts", "--rig", rig, "--out", str(out), "--hand-eye", str(he), "--mock"]
+    code, stdout, stderr = sigterm_when(args, "press 2/")
     assert code == 128 + signal.SIGTERM, stderr
     assert "torque off confirmed on all 16 servos" in stdout
     assert f"interrupted (SIGTERM): {out} not written" in stderr
-    assert not out.exists()
+    assert not out.exists() and not he.exists()
 
 
 def test_a_person_at_a_real_rig_is_told_each_press_in_one_line():

@@ -154,7 +154,8 @@ def test_the_stand_height_given_as_measured_is_the_one_the_mounts_are_solved_wit
     errors = _draw(7)
     out = tmp_path / "mounts.json"
     option = ["--stand-height-mm", given] if given else []
-    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, errors), "--out", str(out), *option]) == 0
+    args = ["--out", str(out), "--hand-eye", str(tmp_path / "hand_eye.json"), *option]
+    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, errors), *args]) == 0
     assert f"its centre {given or 60} mm over the board" in capsys.readouterr().out
     mounts = load_mounts(out, FINGER_NAMES)
     off = {f: _off(mounts[f], _matrix(e)) for f, e in errors["mounts"].items()}  # (mm, degrees)
