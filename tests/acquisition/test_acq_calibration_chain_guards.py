@@ -216,6 +216,17 @@ def test_without_hand_eye_a_rig_naming_no_hand_eye_file_is_refused_before_any_pr
     assert err.splitlines()[-1].startswith("error: --hand-eye: calibrate mounts solves T_hand_cam with the mounts"), err
 
 
+def _mounts_refused(tmp_path, capsys) -> str:
+    """``calibrate mounts`` (the ring's mount 2 degrees off) over earlier files: refused, both kept; its error line."""
+    out, he = tmp_path / "mounts.json", tmp_path / "hand_eye.json"
+    out.write_text("old mounts\n")
+    he.write_text("old hand-eye\n")
+    errors = {"hand_eye": MOUNT_ERRORS["hand_eye"], "mounts": {"ring": {"rotation_deg": [2, -2, 0]}}}
+    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, errors), "--out", str(out), "--hand-eye", str(he)]) == 1
+    assert out.read_text() == "old mounts\n" and he.read_text() == "old hand-eye\n"
+    return capsys.readouterr().err.splitlines()[-1]
+
+
 def test_a_sensor_without_a_usable_press_is_refused_and_the_old_files_kept(tmp_path, capsys, monkeypatch):
     """Every ring press skipped (its camera view never showed the board, say): the mounts file was written without
     the ring, which a capture then took as mounted at the identity."""
@@ -225,14 +236,8 @@ def test_a_sensor_without_a_usable_press_is_refused_and_the_old_files_kept(tmp_p
     monkeypatch.setattr(
         presses.TwinPressSession, "run", lambda self, plan: [p for p in run(self, plan) if p.finger != "ring"]
     )
-    out, he = tmp_path / "mounts.json", tmp_path / "hand_eye.json"
-    out.write_text("old mounts\n")
-    he.write_text("old hand-eye\n")
-    errors = {"hand_eye": MOUNT_ERRORS["hand_eye"], "mounts": {"ring": {"rotation_deg": [2, -2, 0]}}}
-    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, errors), "--out", str(out), "--hand-eye", str(he)]) == 1
-    err = capsys.readouterr().err.splitlines()[-1]
+    err = _mounts_refused(tmp_path, capsys)
     assert err.startswith("error: calibrate mounts: no usable press of the ring sensor (each was skipped"), err
-    assert out.read_text() == "old mounts\n" and he.read_text() == "old hand-eye\n"
 
 
 # --- rig check ------------------------------------------------------------------------------------------------
@@ -290,12 +295,6 @@ def test_mounts_whose_presses_the_noise_cannot_explain_are_refused_and_the_old_f
         ]
 
     monkeypatch.setattr(presses.TwinPressSession, "run", stand_moved)
-    out, he = tmp_path / "mounts.json", tmp_path / "hand_eye.json"
-    out.write_text("old mounts\n")
-    he.write_text("old hand-eye\n")
-    errors = {"hand_eye": MOUNT_ERRORS["hand_eye"], "mounts": {"ring": {"rotation_deg": [2, -2, 0]}}}
-    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, errors), "--out", str(out), "--hand-eye", str(he)]) == 1
-    err = capsys.readouterr().err.splitlines()[-1]
+    err = _mounts_refused(tmp_path, capsys)
     assert "at the best solution found the contact points lie off the sphere by (rms) the " in err, err
     assert "more than the gel's noise and a calibrated mount explain (0.58 mm)" in err
-    assert out.read_text() == "old mounts\n" and he.read_text() == "old hand-eye\n"
