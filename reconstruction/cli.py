@@ -57,6 +57,8 @@ class ExportMesh:
     radius; 0: none)"""
     all_pieces: bool = False
     """keep every connected piece (default: only the largest, the object)"""
+    overwrite: bool = False
+    """replace an existing --out that export mesh did not write (never the run's or its scene's own files)"""
 
 
 def register(cli) -> None:
@@ -70,7 +72,7 @@ def register(cli) -> None:
 def _export_mesh(args: ExportMesh) -> int:
     from tacsplat.errors import ConfigError, InvalidInputError, UsageError
     from tacsplat.files import check_writable, refuse_unwritable
-    from tacsplat.reconstruction.meshing import MeshConfig, check_mesh_path, export_mesh
+    from tacsplat.reconstruction.meshing import MeshConfig, check_mesh_out, check_mesh_path, export_mesh
     from tacsplat.reconstruction.run_dir import is_run_folder, run_checkpoint
 
     shared = ("voxel", "views", "cone_deg", "touches", "seal")  # the options named as MeshConfig's fields
@@ -87,6 +89,10 @@ def _export_mesh(args: ExportMesh) -> int:
             raise UsageError(exc.key, str(exc).partition(": ")[2]) from None
     if not is_run_folder(args.run):
         run_checkpoint(args.run)  # refused before anything is created or written
+    try:  # (before the export: the run's splat.ply or its scene's ground truth is never replaced)
+        check_mesh_out(args.run, args.run / "mesh.ply" if args.out is None else args.out, args.overwrite)
+    except ConfigError as exc:
+        raise UsageError(exc.key, str(exc).partition(": ")[2]) from None
     # a read-only or full folder: one error saying which, before the export (a missing --out folder is created
     # only once the mesh is made: a failed export leaves none)
     folder = args.run if args.out is None else args.out.parent
@@ -94,7 +100,7 @@ def _export_mesh(args: ExportMesh) -> int:
         check_writable(folder)
     else:
         refuse_unwritable("--out", args.out)
-    summary = export_mesh(args.run, args.out, config)
+    summary = export_mesh(args.run, args.out, config, overwrite=args.overwrite)
     print(json.dumps(summary, indent=2))
     return 0
 

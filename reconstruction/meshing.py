@@ -41,6 +41,9 @@ from tacsplat.types import CameraIntrinsics
 SLAB_VOXELS = 2_000_000  # voxels projected at once (memory: about 100 bytes each)
 
 
+MIN_VOXEL = 0.005  # of the bounding radius: a grid of 400^3 cells, about 6 GB at its peak
+
+
 @dataclass
 class MeshConfig:
     """How :func:`extract_mesh` makes a mesh."""
@@ -56,8 +59,11 @@ class MeshConfig:
     object_only: bool = True  # keep only the largest connected piece
 
     def validate(self) -> None:
-        if not 0.001 <= self.voxel <= 0.2:
-            raise InvalidInputError(f"voxel: must be in [0.001, 0.2] of the object's radius, got {self.voxel}")
+        if not MIN_VOXEL <= self.voxel <= 0.2:  # (below, the grid's (2 / voxel)^3 cells need more than ~6 GB)
+            raise InvalidInputError(
+                f"voxel: must be in [{MIN_VOXEL}, 0.2] of the object's bounding radius (0.005: 400^3 cells, about "
+                f"6 GB), got {self.voxel}"
+            )
         for key, least in (("views", 6), ("image_size", 16)):
             if getattr(self, key) < least:
                 raise InvalidInputError(f"{key}: must be >= {least}, got {getattr(self, key)}")
@@ -317,8 +323,43 @@ def check_mesh_path(out: str | Path) -> None:
         raise ConfigError("--out", f"the mesh is written as PLY: name a .ply file, got {out}")
 
 
+def written_by_export(path: Path) -> bool:
+    """Whether ``path`` is a PLY that :func:`mesh_ply` wrote: its header declares the export's ``observed``."""
+    try:
+        with path.open("rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return head.startswith(b"ply") and b"property uchar observed\n" in head.partition(b"end_header")[0]
+
+
+def check_mesh_out(run_dir: str | Path, out: str | Path, overwrite: bool = False) -> None:
+    """Refuse (a ConfigError on ``--out``) a mesh file that the run or its scene owns, whatever ``overwrite`` says:
+    one of the run's own files or renders (its meshes, MESH_FILES, aside), or anything inside its scene's folder
+    (its ground truth: every later evaluation would score the reconstruction against itself). Refuse an existing
+    file that ``export mesh`` did not write (its header has no ``observed``) unless ``overwrite``; a previous
+    export is replaced."""
+    from tacsplat.reconstruction.run_dir import RENDERS, RUN_FILES, read_checkpoint, recorded_scene, run_checkpoint
+
+    run, target = Path(run_dir).resolve(), Path(out).resolve()
+    record = recorded_scene(run)
+    scene = Path(record["path"] if record else read_checkpoint(run_checkpoint(run))["scene_path"]).resolve()
+    if target in {run / name for name in RUN_FILES} or target.is_relative_to(run / RENDERS):
+        raise ConfigError("--out", f"{out} is one of the run's own files: name another .ply")
+    if target.is_relative_to(scene) and target.parent != run:  # (a run kept inside its scene writes its own mesh)
+        raise ConfigError("--out", f"{out} lies in the run's scene {scene}, whose files are not to be replaced")
+    if target.exists() and not overwrite and not written_by_export(target):
+        raise ConfigError(
+            "--out", f"{out} exists and is not a mesh that export mesh wrote; pass --overwrite to replace it"
+        )
+
+
 def export_mesh(
-    run_dir: str | Path, out: str | Path | None = None, config: MeshConfig | None = None, record: str | None = None
+    run_dir: str | Path,
+    out: str | Path | None = None,
+    config: MeshConfig | None = None,
+    record: str | None = None,
+    overwrite: bool = False,
 ) -> dict:
     """Extract a run's mesh (its last checkpoint) into ``out`` (default ``RUN/mesh.ply``; a ``.ply``, its folder
     created once the mesh is made); returns a summary: the file, vertex and face counts, the share of vertices
@@ -326,7 +367,7 @@ def export_mesh(
     as ``mesh_*`` for ``RUN/mesh.ply``, or under the prefix ``record`` (``mesh_untouched``:
     ``mesh_untouched_fscore_5``, ...). The metrics are measured and recorded before the mesh file appears (it is
     renamed into place last): a mesh file on disk has its metrics recorded, so an interrupted export leaves no
-    ``RUN/mesh.ply`` that looks done (:func:`export_meshes`)."""
+    ``RUN/mesh.ply`` that looks done (:func:`export_meshes`). ``out`` is refused as :func:`check_mesh_out` says."""
     import json
 
     from tacsplat.reconstruction.evaluation import seen_by_training_views
@@ -336,6 +377,7 @@ def export_mesh(
     run_dir = Path(run_dir)
     out = run_dir / "mesh.ply" if out is None else Path(out)
     check_mesh_path(out)
+    check_mesh_out(run_dir, out, overwrite)
     run = load_run(run_dir)
     scene = scene_at(run_scene(run), run.config.downscale)  # (refused if it has changed since the run)
     frames = training_frames(scene, run.config.train_views)

@@ -328,10 +328,19 @@ def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> 
         )
 
 
+def remove_meshes(out: Path) -> None:
+    """Delete the meshes ``export mesh`` wrote into a run (MESH_FILES, and their temporary files): made of Gaussians
+    that are being replaced, evaluate would report their metrics and the viewer show them as the run's."""
+    for name in MESH_FILES.values():
+        (out / name).unlink(missing_ok=True)
+        default_temp(out / name).unlink(missing_ok=True)
+
+
 def remove_run_files(out: Path) -> None:
-    """Delete an earlier run's files (RUN_FILES and renders/view_*.png); anything else stays."""
+    """Delete an earlier run's files (RUN_FILES, its meshes and renders/view_*.png); anything else stays."""
     for name in RUN_FILES:
         (out / name).unlink(missing_ok=True)
+    remove_meshes(out)
     renders = out / RENDERS
     if renders.is_dir():
         for p in renders.iterdir():

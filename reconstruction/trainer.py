@@ -62,6 +62,7 @@ from tacsplat.reconstruction.run_dir import (
     plot_error_vs_time,
     read_checkpoint,
     read_run_config,
+    remove_meshes,
     remove_run_files,
     run_checkpoint,
     scene_record,
@@ -603,6 +604,8 @@ class Trainer:
                 )
             write_run_config(self.out, cfg, self.scene_record)  # (a new step count or scene path: one record)
             self.progress = cut_progress(progress_path, self.step)
+            if self.step < cfg.iterations:  # the Gaussians will change: a mesh exported from them no longer matches
+                remove_meshes(self.out)
             log.info("resuming %s at step %d of %d", self.out, self.step, cfg.iterations)
         else:
             write_run_config(self.out, cfg, self.scene_record)

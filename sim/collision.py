@@ -61,13 +61,37 @@ def _unit_mesh(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh, np.ndarray, floa
     return unit, centre, radius
 
 
-def decomposition_key(unit: trimesh.Trimesh, config: DecompositionConfig) -> str:
-    """Hash of a unit-sphere mesh (vertices rounded to 1e-6) and the CoACD settings."""
+def decomposition_key(unit: trimesh.Trimesh, config: DecompositionConfig, preprocess_mode: str = "auto") -> str:
+    """Hash of a unit-sphere mesh (vertices rounded to 1e-6), the CoACD settings and its ``preprocess_mode`` (only
+    when not "auto": the shipped files' keys, made with "auto", stand)."""
     key = hashlib.sha1()
     key.update(np.round(unit.vertices, 6).tobytes())
     key.update(np.ascontiguousarray(unit.faces, dtype=np.int64).tobytes())
     key.update(repr(config).encode())
+    if preprocess_mode != "auto":
+        key.update(f"preprocess_mode={preprocess_mode}".encode())
     return key.hexdigest()
+
+
+def is_closed(mesh: trimesh.Trimesh) -> bool:
+    """Whether ``mesh`` is closed and consistently wound: each edge is used as often one way as the other (no
+    boundary, no flipped face). CoACD can take such a mesh as it is; a pinch where two sheets share an edge
+    (four faces) is allowed: CoACD splits the mesh into hulls anyway."""
+    edges = np.asarray(mesh.edges)  # [3F, 2], each face's edges in its winding order
+    if not len(edges):
+        return False
+    _, index = np.unique(np.sort(edges, axis=1), axis=0, return_inverse=True)
+    way = np.where(edges[:, 0] < edges[:, 1], 1, -1)  # +1 one way along an edge, -1 the other
+    return not np.bincount(index.ravel(), weights=way).any()
+
+
+def decimated(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
+    """``mesh`` decimated to about ``faces`` faces (quadric error, fast-simplification), less the faces it collapsed
+    onto each other (the same three vertices, both windings: an edge shared by four faces), so that a closed mesh
+    stays closed (:func:`is_closed`)."""
+    small = mesh.simplify_quadric_decimation(face_count=faces)
+    _, index, counts = np.unique(np.sort(small.faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    return trimesh.Trimesh(small.vertices, small.faces[counts[index.ravel()] == 1], process=False)
 
 
 def _read(path: Path) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -87,14 +111,14 @@ def _write(path: Path, pieces) -> None:
     )
 
 
-def _run_coacd(unit: trimesh.Trimesh, config: DecompositionConfig):
+def _run_coacd(unit: trimesh.Trimesh, config: DecompositionConfig, preprocess_mode: str = "auto"):
     if unit.convex_hull.volume - unit.volume < 1e-3 * unit.volume:  # already convex
         hull = unit.convex_hull
         return [(np.asarray(hull.vertices), np.asarray(hull.faces))]
     import coacd
 
     coacd.set_log_level("error")
-    return coacd.run_coacd(coacd.Mesh(unit.vertices, unit.faces), **asdict(config))
+    return coacd.run_coacd(coacd.Mesh(unit.vertices, unit.faces), preprocess_mode=preprocess_mode, **asdict(config))
 
 
 def convex_decomposition(
@@ -103,17 +127,20 @@ def convex_decomposition(
     """Convex pieces of ``mesh`` (shipped, cached or computed by CoACD; see the module docstring). A mesh of more
     than :data:`DECOMPOSITION_FACES` faces (a reconstruction's, ``tacsplat export mesh``) is decimated first (quadric
     error, fast-simplification): CoACD's time grows with the faces (67 s for a 187k-face export, 12 s at 20k), and
-    the pieces are hulls a few millimetres loose anyway."""
+    the pieces are hulls a few millimetres loose anyway. A closed mesh (:func:`is_closed`) goes to CoACD as it is
+    (``preprocess_mode="off"``); CoACD remeshes any other coarsely, and its hulls then stand about a millimetre off
+    the surface. The shipped files were made with "auto", which leaves the (closed) library objects as they are."""
     if len(mesh.faces) > DECOMPOSITION_FACES:
-        mesh = mesh.simplify_quadric_decimation(face_count=DECOMPOSITION_FACES)
+        mesh = decimated(mesh, DECOMPOSITION_FACES)
     unit, centre, radius = _unit_mesh(mesh)
-    key = decomposition_key(unit, config)
+    mode = "off" if is_closed(unit) else "auto"
     cache = Path(os.environ.get("TACSPLAT_CACHE") or Path.home() / ".cache" / "tacsplat") / "coacd"  # user meshes
-    shipped, cached = SHIPPED_DIR / f"{key}.npz", cache / f"{key}.npz"
+    shipped = SHIPPED_DIR / f"{decomposition_key(unit, config)}.npz"
+    cached = cache / f"{decomposition_key(unit, config, mode)}.npz"
     if stored := next((path for path in (shipped, cached) if path.is_file()), None):
         pieces = _read(stored)
     else:
-        pieces = _run_coacd(unit, config)
+        pieces = _run_coacd(unit, config, mode)
         try:
             _write(cached, pieces)
         except (OSError, StorageError) as exc:  # the cache only saves the next run CoACD's time

@@ -28,7 +28,7 @@ from tacsplat.errors import ConfigError, InvalidInputError, SimulationError
 from tacsplat.geometry import check_rigid, invert_pose, make_pose, opencv_to_opengl
 from tacsplat.sim import VIEW_ZNEAR_M
 from tacsplat.sim.camera import MujocoCamera
-from tacsplat.sim.collision import DecompositionConfig, convex_decomposition, hull_offset
+from tacsplat.sim.collision import DecompositionConfig, convex_decomposition, hull_offset, is_closed
 from tacsplat.sim.hand import (
     FINGER_NAMES,
     HAND_MATERIALS,
@@ -374,12 +374,14 @@ class SimTwin(AbstractContextManager):
         if config.mesh_path and (offset := hull_offset(self.object.mesh, self.hulls)) > compliance:
             log.warning(
                 "%s: its collision hulls stand %.2f mm off its surface, more than the %.2f mm the pads' gel gives: "
-                "the fingers will stop on the hulls before their gel reaches the mesh, and grasps read no touch. "
-                "CoACD remeshes a mesh that is not closed and manifold, coarsely: repair it (close its holes, split "
-                "the edges shared by more than two faces) to grasp it",
+                "the fingers will stop on the hulls before their gel reaches the mesh, and grasps read no touch. %s",
                 config.mesh_path,
                 1e3 * offset,
                 1e3 * compliance,
+                "The mesh is closed: its convex decomposition (CoACD) is this loose around it"
+                if is_closed(self.object.mesh)
+                else "CoACD remeshes, coarsely, a mesh that is not closed with consistently wound faces: close its "
+                "holes and orient its faces to grasp it",
             )
         xml = build_twin_mjcf(config, self.object, self.hulls)
         try:

@@ -167,9 +167,11 @@ def test_export_mesh_writes_a_watertight_colored_mesh_and_its_metrics(sphere_run
         assert np.isfinite(metrics[key]) and metrics[key] == summary[key]
 
 
-def test_export_mesh_refuses_a_voxel_out_of_range_naming_the_option(sphere_run, capsys):
-    assert main(["export", "mesh", str(sphere_run), "--voxel", "0.5"]) == 2
-    assert "--voxel" in capsys.readouterr().err
+@pytest.mark.parametrize("voxel", ["0.5", "0.002"])  # (0.002: a grid of 1000^3 cells, 11 GiB for one array)
+def test_export_mesh_refuses_a_voxel_out_of_range_naming_the_option(sphere_run, capsys, voxel):
+    assert main(["export", "mesh", str(sphere_run), "--voxel", voxel]) == 2
+    err = capsys.readouterr().err
+    assert "--voxel" in err and "must be in [0.005, 0.2]" in err, err
 
 
 def test_an_exported_mesh_goes_back_into_the_twin_at_its_own_size(sphere_run, exported, tmp_path, capsys):

@@ -55,7 +55,7 @@ def test_a_cache_that_cannot_be_written_is_warned_about_and_the_pieces_still_use
     """The cache only saves CoACD's time: a TACSPLAT_CACHE that is a file, or on a read-only file system, costs the
     next run that time, not this run its capture."""
     mesh = trimesh.creation.box([1, 1, 1])
-    monkeypatch.setattr(collision, "_run_coacd", lambda unit, config: [(unit.vertices, unit.faces)] * 2)  # 2 pieces
+    monkeypatch.setattr(collision, "_run_coacd", lambda unit, *settings: [(unit.vertices, unit.faces)] * 2)  # 2 pieces
     (tmp_path / "a_file").write_text("x")
     read_only = tmpfs("1m")
     read_only.read_only()

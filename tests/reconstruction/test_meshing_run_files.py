@@ -1,0 +1,93 @@
+"""`export mesh --out` never replaces what the run or its scene owns, and a run retrained (`reconstruct --overwrite`
+or `--resume`) drops the meshes of its old Gaussians."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+import trimesh
+
+from tacsplat.cli import main
+from tacsplat.datasets import SceneWriter
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
+
+FAST = ["--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--init.no-use-sfm", "--quiet"]
+EXPORT = ["--voxel", "0.08", "--views", "12", "--cone-deg", "60"]
+USAGE = "tacsplat export mesh: error: "
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    """A 3-step run of the sphere (with a ground-truth mesh) and its scene, in one folder; tests copy it."""
+    root = tmp_path_factory.mktemp("trained")
+    scene = build_sphere_scene(root / "scene", size=24, train_views=3, test_views=1)
+    with SceneWriter.resume(scene) as writer:
+        writer.set_gt_mesh(trimesh.creation.icosphere(subdivisions=2, radius=0.05))
+    assert main(["reconstruct", str(scene), "--out", str(root / "run"), "--iterations", "3", *FAST]) == 0
+    return root
+
+
+@pytest.fixture
+def copy(trained, tmp_path) -> tuple[Path, Path]:
+    """(scene, run) copies of :func:`trained`'s, the run's config pointing at the copied scene."""
+    scene = Path(shutil.copytree(trained / "scene", tmp_path / "scene"))
+    run = Path(shutil.copytree(trained / "run", tmp_path / "run"))
+    config = json.loads((run / "config.json").read_text())
+    config["scene"]["path"] = str(scene.resolve())
+    (run / "config.json").write_text(json.dumps(config))
+    return scene, run
+
+
+def _export(run: Path, *extra: str) -> int:
+    return main(["export", "mesh", str(run), *EXPORT, *extra])
+
+
+def test_export_refuses_the_runs_splat_and_the_scenes_ground_truth_even_with_overwrite(copy, capsys):
+    scene, run = copy
+    for out in (run / "splat.ply", scene / "gt" / "mesh.ply", scene / "new.ply"):
+        before = out.read_bytes() if out.exists() else None
+        for extra in ((), ("--overwrite",)):
+            assert _export(run, "--out", str(out), *extra) == 2
+            one_error_line(capsys, "--out", str(out), prefix=USAGE)
+            assert (out.read_bytes() if out.exists() else None) == before
+
+
+def test_export_refuses_a_file_it_did_not_write_unless_overwrite_and_replaces_its_own(copy, tmp_path, capsys):
+    _, run = copy
+    other = tmp_path / "other.ply"
+    trimesh.creation.box().export(other)  # a PLY, without the export's `observed`
+    before = other.read_bytes()
+    assert _export(run, "--out", str(other)) == 2
+    one_error_line(capsys, "--out", "--overwrite", prefix=USAGE)
+    assert other.read_bytes() == before
+    assert _export(run, "--out", str(other), "--overwrite") == 0
+    assert b"property uchar observed" in other.read_bytes()[:1000]
+    assert _export(run, "--out", str(other)) == 0  # a previous export is replaced
+    assert _export(run) == 0 and _export(run) == 0  # RUN/mesh.ply too
+
+
+def _exported(run: Path) -> None:
+    assert _export(run) == 0
+    assert (run / "mesh.ply").is_file() and "mesh_fscore_5" in json.loads((run / "metrics.json").read_text())
+
+
+def test_reconstruct_overwrite_drops_the_old_mesh_and_its_metrics(copy):
+    scene, run = copy
+    _exported(run)
+    assert main(["reconstruct", str(scene), "--out", str(run), "--iterations", "2", *FAST, "--overwrite"]) == 0
+    assert not (run / "mesh.ply").exists()
+    assert not any(k.startswith("mesh_") for k in json.loads((run / "metrics.json").read_text()))
+
+
+def test_a_resume_that_trains_on_drops_the_old_mesh_and_its_metrics(copy):
+    scene, run = copy
+    _exported(run)
+    assert main(["reconstruct", str(scene), "--out", str(run), *FAST, "--resume", "--iterations", "4"]) == 0
+    assert not (run / "mesh.ply").exists()
+    assert not any(k.startswith("mesh_") for k in json.loads((run / "metrics.json").read_text()))
