@@ -114,7 +114,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     """``T_hand_cam`` from the arm stations of ``poses_file`` (the board found in each image with the rig's camera
     calibration and board), written to ``out`` with the number of stations used; a line per station, then the
     result, its consistency and its change from the rig's previous ``T_hand_cam``. Returns ``T_hand_cam``."""
-    from tacsplat.acquisition.calibrate import inline_T_hand_cam
+    from tacsplat.acquisition.devices import inline_T_hand_cam
     from tacsplat.drivers.press_calibration import save_hand_eye
     from tacsplat.drivers.wrist_camera import CameraCalibration, board_pose, hand_eye_calibration, undistort
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from tacsplat.acquisition.arm_hand_eye import pose_change, pose_gap
 from tacsplat.acquisition.config import RigConfig
+from tacsplat.acquisition.devices import inline_mounts, inline_T_hand_cam
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
 
@@ -152,28 +153,6 @@ def _naming(config: RigConfig, path: Path, name: str | None, key: str) -> str:
     return f"name it as {key} in the rig file"
 
 
-def inline_T_hand_cam(config: RigConfig) -> str:
-    """What to say when the rig file gives ``camera.T_hand_cam`` itself, which a capture takes over any hand-eye
-    file a calibration writes (``""`` when it does not)."""
-    if config.camera.T_hand_cam is None:
-        return ""
-    return f"{config.source} gives camera.T_hand_cam, which a capture uses instead of a hand-eye file: remove it"
-
-
-def _inline_mounts(config: RigConfig) -> str:
-    """What to say when the rig file gives a sensor its own ``T_fingertip_sensor``, which a capture takes over the
-    mounts file's (``""`` when none)."""
-    keys = [
-        f"tactile.sensors[{i}].T_fingertip_sensor"
-        for i, s in enumerate(config.tactile.sensors)
-        if s.T_fingertip_sensor is not None
-    ]
-    if not keys:
-        return ""
-    them = "it" if len(keys) == 1 else "them"
-    return f"{config.source} gives {', '.join(keys)}, which a capture uses instead of the mounts file: remove {them}"
-
-
 def _hand_eye_file(config: RigConfig, out: Path, hand_eye_out: Path | None, say: Callable[[str], None]) -> Path:
     """Where calibrate mounts writes the ``T_hand_cam`` it solves: ``--hand-eye``, else the rig's ``camera.hand_eye``
     file (said), checked writable before any press. Solved with the mounts, it is the ``T_hand_cam`` they are right
@@ -237,7 +216,7 @@ def calibrate_mounts(
         return hand_eye_plan(*fingers) + mounts_plan(*fingers)
 
     hand_eye_out = _hand_eye_file(config, out, hand_eye_out, say)
-    for warning in (inline_T_hand_cam(config), _inline_mounts(config)):
+    for warning in (inline_T_hand_cam(config), inline_mounts(config)):
         if warning:
             say(f"warning: {warning}")
     stand = STAND_HEIGHT_M if stand_height_m is None else float(stand_height_m)
@@ -264,6 +243,6 @@ def calibrate_mounts(
     save_mounts_and_hand_eye(fit, out, hand_eye_out)
     named = _naming(config, hand_eye_out, config.camera.hand_eye, "camera.hand_eye")
     say(f"wrote {hand_eye_out} ({inline_T_hand_cam(config) or named})")
-    said = _inline_mounts(config) or _naming(config, out, config.tactile.mounts, "tactile.mounts")
+    said = inline_mounts(config) or _naming(config, out, config.tactile.mounts, "tactile.mounts")
     say(f"wrote {out} ({len(fit.mounts)} sensors; {said})")
     return fit

@@ -217,6 +217,28 @@ def twin_config(config: RigConfig, calibrating: bool = False):
     )
 
 
+def inline_T_hand_cam(config: RigConfig) -> str:
+    """What to say when the rig file gives ``camera.T_hand_cam`` itself, which a capture takes over any hand-eye
+    file a calibration writes (``""`` when it does not)."""
+    if config.camera.T_hand_cam is None:
+        return ""
+    return f"{config.source} gives camera.T_hand_cam, which a capture uses instead of a hand-eye file: remove it"
+
+
+def inline_mounts(config: RigConfig) -> str:
+    """What to say when the rig file gives a sensor its own ``T_fingertip_sensor``, which a capture takes over the
+    mounts file's (``""`` when none)."""
+    keys = [
+        f"tactile.sensors[{i}].T_fingertip_sensor"
+        for i, s in enumerate(config.tactile.sensors)
+        if s.T_fingertip_sensor is not None
+    ]
+    if not keys:
+        return ""
+    them = "it" if len(keys) == 1 else "them"
+    return f"{config.source} gives {', '.join(keys)}, which a capture uses instead of the mounts file: remove {them}"
+
+
 def rig_T_hand_cam(config: RigConfig, calibration=None, calibrating: bool = False) -> np.ndarray | None:
     """The rig's ``T_hand_cam``: the rig file's ``camera.T_hand_cam``, else its ``camera.hand_eye`` file's, else
     the camera ``calibration``'s (if given); None. ``calibrating``: a ``camera.hand_eye`` file that is not written
