@@ -497,6 +497,8 @@ def load_rig(path: str | Path, mock: bool = False, check_files: bool = True, kin
         text = path.read_text()
     except OSError as exc:
         raise ConfigError("rig", f"cannot read the rig file: {exc.strerror}", path) from None
+    except UnicodeDecodeError:
+        raise ConfigError("rig", "not a text file (YAML, UTF-8): is it the rig file?", path) from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

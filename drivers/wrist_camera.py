@@ -165,7 +165,8 @@ class ChessboardSpec:
         gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
         size = (self.inner_corners_x, self.inner_corners_y)
         flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-        found, corners = cv2.findChessboardCorners(gray, size, flags)
+        # (a photo under 15 px a side shows no board: OpenCV's adaptive threshold refuses it with an assertion)
+        found, corners = cv2.findChessboardCorners(gray, size, flags) if min(gray.shape[:2]) >= 15 else (False, None)
         if not found:
             return np.zeros((0, 3)), np.zeros((0, 2))
         grid = corners.reshape(self.inner_corners_y, self.inner_corners_x, 2)

@@ -418,6 +418,8 @@ def read_settings(path: str | Path) -> dict:
         data = yaml.safe_load(Path(path).read_text())
     except OSError as exc:
         raise ConfigError("--config", f"cannot read {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise ConfigError("settings", "not a text file (YAML, UTF-8)", path) from None
     except yaml.YAMLError as exc:
         raise ConfigError("settings", f"not YAML: {str(exc).splitlines()[0]}", path) from None
     if not isinstance(data, dict):

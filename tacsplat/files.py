@@ -120,5 +120,6 @@ def refuse_unwritable(option: str, value) -> None:
         fs = os.statvfs(existing)
     except OSError:
         return  # (the command reports what it cannot reach)
-    if (failure := errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if fs.f_bfree == 0 else None) is not None:
+    full = fs.f_blocks > 0 and fs.f_bfree == 0  # (a pseudo file system, /proc, has no blocks at all: not full)
+    if (failure := errno.EROFS if fs.f_flag & os.ST_RDONLY else errno.ENOSPC if full else None) is not None:
         raise ConfigError(option, str(storage_error(OSError(failure, os.strerror(failure)), value)))

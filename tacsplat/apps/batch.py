@@ -420,6 +420,8 @@ def load_batch(path: str | Path, out: str | Path) -> list:
         data = yaml.safe_load(path.read_text())
     except OSError as exc:
         raise ConfigError("jobs", f"cannot read the batch file: {exc.strerror or exc}", path) from None
+    except UnicodeDecodeError:
+        raise ConfigError("jobs", "not a text file (YAML, UTF-8): is it the batch file?", path) from None
     except yaml.YAMLError as exc:
         raise ConfigError("jobs", f"not valid YAML: {exc}", path) from None
     if not isinstance(data, dict) or set(data) != {"jobs"}:

@@ -134,3 +134,24 @@ def test_an_output_on_a_read_only_or_full_disk_is_refused_before_any_work(tmpfs,
         assert err.splitlines() == [line for line in err.splitlines() if line.startswith(f"error: {option}: {path}")]
         assert len(err.splitlines()) == 1 and reason in err and out == "", (command, err, out)
         assert not path.exists()
+
+
+def test_a_binary_file_given_as_a_yaml_file_is_one_error_naming_it(tmp_path, capsys):
+    """A PNG passed as the rig, batch or settings file: one `error:` line naming the file, no traceback."""
+    png = tmp_path / "photo.yaml"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    for argv in (
+        ["rig", "check", "--rig", str(png)],
+        ["batch", str(png), "--out", str(tmp_path / "b")],
+        ["reconstruct", str(tmp_path), "--out", str(tmp_path / "r"), "--config", str(png)],
+    ):
+        assert main(argv) in (1, 2), argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ") and str(png) in err[0] and "UTF-8" in err[0], err
+
+
+def test_an_output_on_a_pseudo_file_system_is_not_called_a_full_disk(tmp_path):
+    """/proc reports no free blocks (and no blocks at all): a path there is not on a full disk."""
+    from tacsplat.files import refuse_unwritable
+
+    refuse_unwritable("--out", "/proc/no-such-folder/m.ply")  # (the command reports what it cannot reach)

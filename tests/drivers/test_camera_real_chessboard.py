@@ -167,3 +167,18 @@ def test_out_named_like_its_picture_is_refused_before_any_work(tmp_path, capsys)
     err = capsys.readouterr().err
     assert err.count("error:") == 1 and "--out" in err and "overwritten by the picture" in err
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+def test_a_photo_too_small_to_hold_the_board_is_skipped_not_a_crash(tmp_path, capsys):
+    """OpenCV's adaptive threshold asserts on an image under 15 px a side: such a photo shows no board."""
+    import cv2
+    import numpy as np
+
+    from tacsplat.cli import main
+
+    for n in (1, 2):  # (the photos of one calibration share a size)
+        cv2.imwrite(str(tmp_path / f"tiny{n}.png"), np.zeros((14, 14, 3), np.uint8))
+    argv = ["calibrate", "camera", str(tmp_path), "--board", "chessboard", "--inner-corners", "9x6"]
+    assert main([*argv, "--square-mm", "25", "--out", str(tmp_path / "c.json")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: ") and "found in 0 of 2 images" in err[-1], err
