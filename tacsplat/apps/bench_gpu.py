@@ -72,9 +72,21 @@ def _run(args: BenchGpu) -> int:
     import torch
 
     from tacsplat.apps.paper_bench import bench_row
+    from tacsplat.errors import UsageError
     from tacsplat.options import comma_separated_ints
 
     seeds = comma_separated_ints(args.parity_seeds, "--parity-seeds")
+    methods = [name.strip() for name in args.methods.split(",") if name.strip()]
+    for option, empty in (("--parity-seeds", not seeds), ("--methods", not methods)):
+        if empty:
+            raise UsageError(option, "needs at least one value")
+    for option in ("steps", "parity_steps"):
+        if getattr(args, option) < 1:
+            raise UsageError(f"--{option.replace('_', '-')}", f"must be >= 1, got {getattr(args, option)}")
+    if args.prepare is not None and args.prepare.exists() and not args.prepare.is_dir():
+        raise UsageError("--prepare", f"{args.prepare} is a file; give a folder")
+    if args.parity is not None and not args.parity.is_dir():
+        raise UsageError("--parity", f"{args.parity}: no such folder (one `tacsplat bench gpu --prepare` wrote)")
     if args.prepare is not None:
         _prepare(args.prepare, args, seeds)
         return 0
@@ -82,7 +94,6 @@ def _run(args: BenchGpu) -> int:
         build = "a CPU-only build" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, no device visible"
         print(f"bench gpu: skipped: torch {torch.__version__} ({build}) sees no CUDA device; nothing was measured")
         return 0
-    methods = [name.strip() for name in args.methods.split(",") if name.strip()]
     for name in methods:
         bench_row(name, "--methods")
     source = source_hash()

@@ -76,11 +76,14 @@ def parse_size(text: str) -> tuple[int, int, int]:
     try:
         res, n = text.split(":")
         width, height = res.lower().split("x")
-        return int(width), int(height), int(n)
-    except ValueError as exc:
-        from tacsplat.errors import ConfigError
+        size = int(width), int(height), int(n)
+    except ValueError:
+        size = ()
+    if len(size) != 3 or min(size) < 1:
+        from tacsplat.errors import UsageError
 
-        raise ConfigError("--sizes", f"expected WxH:N such as 256x256:20000, got {text!r}") from exc
+        raise UsageError("--sizes", f"expected WxH:N of positive integers such as 256x256:20000, got {text!r}")
+    return size
 
 
 def _time_backend(scene: dict, backend: str, repeats: int) -> dict:
@@ -261,9 +264,16 @@ class BenchRasterizer:
 def _handler(args: BenchRasterizer) -> int:
     import json
 
+    from tacsplat.errors import UsageError
+
     sizes = list(args.sizes or DEFAULT_SIZES)
     for text in sizes:
         parse_size(text)
+    for option, value in (("--repeats", args.repeats), ("--torch-repeats", args.torch_repeats)):
+        if value < 1:
+            raise UsageError(option, f"must be >= 1, got {value}")
+    if args.json is not None and args.json.is_dir():
+        raise UsageError("--json", f"{args.json} is a folder; give a .json file")
     results = run_benchmark(sizes, args.repeats, args.torch_repeats, skip_torch=args.skip_torch)
     print(format_table(results))
     if args.json:

@@ -173,6 +173,9 @@ def register(cli) -> None:
 def _run(args: BenchScaling) -> int:
     started = time.perf_counter()
     resolutions, steps = (comma_separated_ints(getattr(args, key), f"--{key}") for key in ("resolutions", "steps"))
+    for option, values in (("--resolutions", resolutions), ("--steps", steps)):
+        if not values or min(values) < 1:
+            raise UsageError(option, f"needs positive integers, got {getattr(args, option[2:])!r}")
     rows = run_scaling(args.out, args.object, resolutions, steps, scaling_methods(args.methods), args.seed)
     report = write_scaling_report(args.out, rows, args.object)
     print(report.read_text())

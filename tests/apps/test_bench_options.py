@@ -70,3 +70,29 @@ def test_a_list_that_names_nothing_is_a_usage_error_not_every_object(tmp_path, c
     assert main(["bench", "paper", *PAPER, option, value, "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert f"error: {option}: names nothing" in err and not out.exists(), err
+
+
+@pytest.mark.parametrize(
+    "command, option",
+    [
+        (["bench", "rasterizer", "--repeats", "0", "--sizes", "8x8:10"], "--repeats"),
+        (["bench", "rasterizer", "--sizes", "16x16:-5"], "--sizes"),
+        (["bench", "rasterizer", "--sizes", "0x0:0"], "--sizes"),
+        (["bench", "rasterizer", "--json", "{tmp}", "--sizes", "8x8:10", "--skip-torch"], "--json"),
+        (["bench", "gpu", "--out", "{tmp}/g", "--methods", ",", "--device", "cpu"], "--methods"),
+        (["bench", "gpu", "--out", "{tmp}/g", "--parity-seeds", ",", "--device", "cpu"], "--parity-seeds"),
+        (["bench", "gpu", "--out", "{tmp}/g", "--steps", "0", "--device", "cpu"], "--steps"),
+        (["bench", "gpu", "--out", "{tmp}/g", "--prepare", "{tmp}/file.txt"], "--prepare"),
+        (["bench", "gpu", "--out", "{tmp}/g", "--parity", "{tmp}/none"], "--parity"),
+        (["bench", "scaling", "--out", "{tmp}/s", "--resolutions", ","], "--resolutions"),
+        (["bench", "scaling", "--out", "{tmp}/s", "--steps", ","], "--steps"),
+    ],
+)
+def test_an_empty_list_or_a_count_below_one_is_a_usage_error_before_any_work(tmp_path, capsys, command, option):
+    """Before: tracebacks (an empty list indexed, negative tensor sizes, a folder written as a file), or a bench that
+    started its capture, or exit 0 with an empty report."""
+    (tmp_path / "file.txt").write_text("x\n")
+    assert main([arg.replace("{tmp}", str(tmp_path)) for arg in command]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {option}: " in err and "Traceback" not in err, err
+    assert not (tmp_path / "g").exists() and not (tmp_path / "s").exists()
