@@ -358,6 +358,8 @@ _RANGES = {
     "init.initial_opacity": (0, 1),
     "init.touch_initial_opacity": (0, 1),
     "densify.prune_opacity": (0, 0.5),  # (an opacity reset caps opacities at twice it, a logit of 0 to 1)
+    "densify.refine_every": (1, None),  # (steps between refinements and between resets: a modulus)
+    "densify.reset_every": (1, None),
 }
 _POSITIVE = {
     "touch_max_distance",

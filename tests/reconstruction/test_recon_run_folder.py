@@ -290,6 +290,8 @@ def test_an_out_that_is_a_file_inside_a_file_or_unwritable_is_one_error(scene, t
         (["--densify.split-scale-divisor", "0"], ["--densify.split-scale-divisor", "> 0"]),
         (["--densify.prune-opacity", "0"], ["--densify.prune-opacity", "between 0 and 0.5"]),
         (["--densify.prune-opacity", "0.5"], ["--densify.prune-opacity", "between 0 and 0.5"]),
+        (["--densify.refine-every", "0"], ["--densify.refine-every", ">= 1"]),  # (a modulus: step % 0)
+        (["--densify.reset-every", "0"], ["--densify.reset-every", ">= 1"]),
         (["--init.initial-opacity", "0"], ["--init.initial-opacity", "between 0 and 1"]),
         (["--init.touch-initial-opacity", "1"], ["--init.touch-initial-opacity", "between 0 and 1"]),
         (["--init.hull-resolution", "0"], ["--init.hull-resolution", ">= 1"]),
