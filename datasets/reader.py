@@ -430,7 +430,9 @@ def _is_foreign_dataset(path: Path) -> bool:
 
 def _read_scene(path: Path, problems: _Problems, check_files: bool) -> Scene:
     if not path.is_dir():
-        problems.report(path, None, "scene directory does not exist")
+        problems.report(
+            path, None, "a file, not a scene directory" if path.exists() else "scene directory does not exist"
+        )
     if _is_foreign_dataset(path):
         problems.report(
             path,

@@ -88,6 +88,9 @@ def is_run_folder(path: Path) -> bool:
 def run_checkpoint(run_dir: str | Path) -> Path:
     """The checkpoint file of a run directory; a SceneFormatError if there is none."""
     path = Path(run_dir) / "checkpoint.pt"
+    if not Path(run_dir).is_dir():
+        missing = "is a file" if Path(run_dir).exists() else "does not exist"
+        raise SceneFormatError(run_dir, None, f"{missing}: not a reconstruction run directory")
     if not path.is_file():
         raise SceneFormatError(path, None, "no checkpoint: not a reconstruction run directory")
     return path

@@ -59,6 +59,9 @@ def test_inspect_of_a_scene_without_touches_and_of_a_non_scene(tmp_path, h, caps
     assert run_inspect(tmp_path / "nothing", as_json=True) == 1
     summary = json.loads(capsys.readouterr().out)
     assert summary["frames"] == {"train": 0, "test": 0} and "does not exist" in summary["problems"][0]
+    (tmp_path / "file.txt").write_text("x\n")
+    assert run_inspect(tmp_path / "file.txt", as_json=True) == 1
+    assert "a file, not a scene directory" in json.loads(capsys.readouterr().out)["problems"][0]
 
 
 def test_inspect_notices_an_index_behind_its_journal(scene_dir, capsys):

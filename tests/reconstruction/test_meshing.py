@@ -232,7 +232,9 @@ def test_export_mesh_refuses_a_path_that_is_not_a_run_and_creates_nothing(tmp_pa
     (tmp_path / "notrun").mkdir()
     (tmp_path / "notrun" / "a.txt").write_text("x")
     assert main(["export", "mesh", str(tmp_path / "nope" / "typo-run")]) == 1
-    assert "not a reconstruction run directory" in capsys.readouterr().err
+    assert "typo-run: does not exist: not a reconstruction run directory" in capsys.readouterr().err
+    assert main(["export", "mesh", str(tmp_path / "notrun" / "a.txt")]) == 1
+    assert "a.txt: is a file: not a reconstruction run directory" in capsys.readouterr().err
     assert main(["export", "mesh", str(tmp_path / "notrun"), "--out", str(tmp_path / "nope2" / "sub" / "m.ply")]) == 1
     assert "not a reconstruction run directory" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notrun"]
