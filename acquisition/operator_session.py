@@ -36,7 +36,6 @@ import shlex
 import signal
 import sys
 import termios
-import threading
 import tty
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -49,7 +48,7 @@ from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.datasets.writer import JOURNAL
 from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError, StorageError, TacsplatError
-from tacsplat.interrupts import END_SIGNALS, SignalInterrupt
+from tacsplat.interrupts import SignalInterrupt, signals_interrupt
 
 log = logging.getLogger(__name__)
 
@@ -287,7 +286,7 @@ def run_capture(
     hands = []  # the real rig's hand, once made: its torque-off report is the last line
     running = False  # whether the session started (the rig and the scene open)
     try:
-        with _ending_signals_interrupt(), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
+        with signals_interrupt(), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
             running = True
             logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
             if logger.dropped_partial_grasp:
@@ -330,25 +329,6 @@ def _last_words(output: TextIO, text: str) -> None:
             return
         except OSError as exc:
             log.debug("%s: %s", getattr(stream, "name", stream), exc)
-
-
-@contextmanager
-def _ending_signals_interrupt() -> Iterator[None]:
-    """While open (in the main thread): SIGINT, SIGTERM, SIGHUP and SIGQUIT raise SignalInterrupt, so that the rig
-    closes (the hand defers them past its packet exchanges and its torque-off)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def interrupt(signum, frame):
-        raise SignalInterrupt(signum)
-
-    previous = {s: signal.signal(s, interrupt) for s in END_SIGNALS}
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 def _hand_line(hands: list) -> str:

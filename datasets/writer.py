@@ -42,7 +42,6 @@ import os
 import re
 import shutil
 import signal
-import threading
 import time
 from contextlib import AbstractContextManager, contextmanager
 from dataclasses import asdict
@@ -54,7 +53,7 @@ import numpy as np
 import tacsplat
 from tacsplat.errors import InvalidInputError, SceneFormatError
 from tacsplat.files import atomic_write, fsync_dir, storage_error
-from tacsplat.interrupts import SignalInterrupt
+from tacsplat.interrupts import signals_interrupt
 from tacsplat.types import CameraIntrinsics, TactileReading
 
 from .outputs import LOCK_NAME, claim_output_dir, other_writer, record_writer
@@ -150,41 +149,16 @@ def check_new_scene_dir(path: Path, job: str | None = None) -> None:
 @contextmanager
 def removed_on_failure(out: Path):
     """Delete a new output folder again when an import into it fails, so that a rerun can use it; SIGTERM and
-    SIGHUP (``timeout``, a batch scheduler, a closed ssh session) fail it too (:func:`_ending_signals_interrupt`)."""
+    SIGHUP (``timeout``, a batch scheduler, a closed ssh session) fail it too, as SignalInterrupt."""
     out = Path(out)
     had_content = out.is_dir() and has_content(out)
-    with _ending_signals_interrupt():
+    with signals_interrupt((signal.SIGTERM, signal.SIGHUP), once=True):
         try:
             yield
         except BaseException:
             if not had_content:
                 shutil.rmtree(out, ignore_errors=True)
             raise
-
-
-@contextmanager
-def _ending_signals_interrupt():
-    """While open (in the main thread): SIGTERM and SIGHUP raise SignalInterrupt (a KeyboardInterrupt, as Ctrl-C's), so that the
-    cleanup of a job runs; later ones are ignored until the block ends (the cleanup is not cut short), then the
-    previous handlers come back. A signal ignored on entry (``nohup``'s SIGHUP) stays ignored."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
-    previous = {s: handler for s, handler in previous.items() if handler is not signal.SIG_IGN}
-
-    def interrupt(signum, frame):
-        for s in previous:
-            signal.signal(s, signal.SIG_IGN)
-        raise SignalInterrupt(signum)
-
-    for s in previous:
-        signal.signal(s, interrupt)
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():  # (None: a handler installed outside Python)
-            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 @contextmanager

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import threading
 
 # The signals that ask a process to end (a terminal's Ctrl-C, kill, a closed window, Ctrl-\\).
 END_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
@@ -17,6 +18,33 @@ class SignalInterrupt(KeyboardInterrupt):
     def __init__(self, signum: int):
         self.signum = int(signum)
         super().__init__(signal.Signals(self.signum).name)
+
+
+@contextlib.contextmanager
+def signals_interrupt(signals=END_SIGNALS, *, once: bool = False):
+    """While open (in the main thread; elsewhere nothing changes): each of ``signals`` raises SignalInterrupt, then
+    the previous handlers come back. ``once``: for a block whose cleanup a second signal must not cut short, later
+    ones are ignored until it ends, and a signal ignored on entry (``nohup``'s SIGHUP) stays ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.getsignal(s) for s in signals}
+    if once:
+        previous = {s: handler for s, handler in previous.items() if handler is not signal.SIG_IGN}
+
+    def interrupt(signum, frame):
+        if once:
+            for s in previous:
+                signal.signal(s, signal.SIG_IGN)
+        raise SignalInterrupt(signum)
+
+    for s in previous:
+        signal.signal(s, interrupt)
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():  # (None: a handler installed outside Python)
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
 @contextlib.contextmanager
