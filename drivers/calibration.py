@@ -159,9 +159,7 @@ def json_rigid(value) -> np.ndarray:
 
 
 def _sign_problem(sign) -> str | None:
-    if not is_json_number(sign) or sign not in (1, -1):
-        return f"must be 1 or -1, got {sign!r}"
-    return None
+    return None if is_json_number(sign) and sign in (1, -1) else f"must be 1 or -1, got {sign!r}"
 
 
 def _offset_problem(offset) -> str | None:

@@ -309,11 +309,9 @@ def _corner_sheet(images, names, views, calib, path: Path) -> Path:
         view = found.get(name)
         if view is not None:
             ok, rvec, tvec = cv2.solvePnP(view.object_points, view.image_points, calib.K_opencv, calib.dist)
-            proj = (
-                cv2.projectPoints(view.object_points, rvec, tvec, calib.K_opencv, calib.dist)[0].reshape(-1, 2)
-                if ok
-                else view.image_points
-            )
+            proj = view.image_points
+            if ok:
+                proj = cv2.projectPoints(view.object_points, rvec, tvec, calib.K_opencv, calib.dist)[0].reshape(-1, 2)
             for (u, v), (pu, pv) in zip(view.image_points, proj):  # OpenCV pixel coordinates, drawn at half size
                 cv2.circle(tile, (int(round(u / 2)), int(round(v / 2))), 4, (0, 200, 0), 1, cv2.LINE_AA)
                 cv2.drawMarker(tile, (int(round(pu / 2)), int(round(pv / 2))), (0, 0, 255), cv2.MARKER_CROSS, 5, 1)

@@ -56,7 +56,6 @@ from tacsplat.drivers.dynamixel_table import (
     CONTROL_TABLE_SIZE,
     EEPROM_END,
     GOAL_REGISTERS,
-    MODEL_XC330_M288,
     REGISTERS,
     Instruction,
     OperatingMode,
@@ -107,7 +106,6 @@ class EmulatedServo:
     """One X-series servo: its control table and a first-order motion model."""
 
     servo_id: int
-    model_number: int = MODEL_XC330_M288
     speed_ticks_per_s: float = 4000.0  # about 6 rad/s
     initial_ticks: float = CENTRE_TICK
     table: bytearray = field(default_factory=lambda: bytearray(CONTROL_TABLE_SIZE))
@@ -122,7 +120,6 @@ class EmulatedServo:
     def __post_init__(self):
         for reg in REGISTERS.values():
             self.set(reg.name, reg.initial)
-        self.set("model_number", self.model_number)
         self.set("id", self.servo_id)
         self.position = float(self.initial_ticks)
         self.set("goal_position", int(round(self.position)))
@@ -164,9 +161,8 @@ class EmulatedServo:
             if not 0 <= value <= 127 or tripped and value:
                 return ERR_DATA_RANGE  # 0 clears and disarms, 1..127 arms; a tripped watchdog is cleared first
         goal = REGISTERS["goal_position"]
-        if (
-            address <= goal.address < end and self.get("operating_mode") == OperatingMode.POSITION
-        ):  # limits apply in position mode only
+        # the position limits apply in position mode only
+        if address <= goal.address < end and self.get("operating_mode") == OperatingMode.POSITION:
             value = to_signed(int.from_bytes(new[goal.address : goal.address + 4], "little"), 4)
             if not self.get("min_position_limit") <= value <= self.get("max_position_limit"):
                 return ERR_DATA_LIMIT
@@ -232,10 +228,7 @@ class DxlEmulator:
     ):
         initial_ticks, stops = initial_ticks or {}, stops or {}
         self.servos = {
-            i: EmulatedServo(
-                i, MODEL_XC330_M288, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK), stops=stops.get(i)
-            )
-            for i in ids
+            i: EmulatedServo(i, speed_ticks_per_s, initial_ticks.get(i, CENTRE_TICK), stops=stops.get(i)) for i in ids
         }
         self.crc_errors = 0  # instruction packets that arrived with a bad CRC
         self.instructions: list[tuple[int, int]] = []  # (instruction, id) received, in order
@@ -442,7 +435,7 @@ class DxlEmulator:
 
     def _unicast(self, servo: EmulatedServo, instruction: int, params: bytes) -> tuple[int, bytes]:
         if instruction == Instruction.PING:
-            return servo.status_error(), bytes(le_bytes(servo.model_number, 2) + [servo.get("firmware_version")])
+            return servo.status_error(), bytes(le_bytes(servo.get("model_number"), 2) + [servo.get("firmware_version")])
         if instruction == Instruction.READ:
             if len(params) != 4:
                 return servo.status_error(ERR_DATA_LENGTH), b""

@@ -455,10 +455,10 @@ class DynamixelHand:
             # hold where the hand is before torque comes on: no jump (acknowledged writes, not an unanswered sync write)
             for sid, tick in zip(self.ids, self._holding_goal(self._read_raw_state()[0])):
                 self._write(sid, "goal_position", int(tick))
-            for sid in self.ids:
-                self._write(sid, "bus_watchdog", self.config.bus_watchdog_units)  # watches once torque is on
-            for sid in self.ids:
-                self._write(sid, "torque_enable", 1)
+            # the Bus Watchdog of every servo (it watches once torque is on), then torque on every servo
+            for name, value in (("bus_watchdog", self.config.bus_watchdog_units), ("torque_enable", 1)):
+                for sid in self.ids:
+                    self._write(sid, name, value)
             self._torque_on = True
             self._start_heartbeat()
             log.info("%s: %d servos connected, torque on", self.device, len(self.ids))
@@ -580,7 +580,7 @@ class DynamixelHand:
         """
         cal, tol = self.calibration, self.config.connect_tolerance_rad
         q = cal.radians_from_ticks(ticks)
-        lo, hi = self._joint_limits[:, 0], self._joint_limits[:, 1]
+        lo, hi = self._joint_limits.T
         inside = np.clip(q, lo, hi)
         goal = np.where(inside == q, ticks, cal.ticks_from_radians(inside))
         too_far = np.flatnonzero(np.abs(goal - ticks) * RAD_PER_TICK > tol)
@@ -607,7 +607,7 @@ class DynamixelHand:
         """A fault (torque off, ServoError) when a joint reads farther outside its limits than
         ``reading_tolerance_rad``: no finger stands there, so the reading is wrong."""
         tol = self.config.reading_tolerance_rad
-        lo, hi = self._joint_limits[:, 0], self._joint_limits[:, 1]
+        lo, hi = self._joint_limits.T
         out = np.flatnonzero((q < lo - tol) | (q > hi + tol))
         if out.size:
             joints = "; ".join(
@@ -642,7 +642,7 @@ class DynamixelHand:
 
     def _clamp(self, q: np.ndarray, what: str, clamped: np.ndarray | None = None) -> np.ndarray:
         """``q`` clamped to the joint limits (or ``clamped``, where it differs from ``q``), the clamping logged."""
-        clamped = np.clip(q, self._joint_limits[:, 0], self._joint_limits[:, 1]) if clamped is None else clamped
+        clamped = np.clip(q, *self._joint_limits.T) if clamped is None else clamped
         moved = ", ".join(
             f"{self._joint_names[i]} {q[i]:+.4f} -> {clamped[i]:+.4f} rad" for i in np.flatnonzero(clamped != q)
         )
@@ -872,10 +872,10 @@ class DynamixelHand:
         status = {}
 
         def exchange():
-            result, error = self._ph.writeTxRx(self._port, servo_id, reg.address, reg.size, le_bytes(value, reg.size))
-            if result != dxl.COMM_SUCCESS:
-                return servo_id, result
-            status["error"] = error
+            result, status["error"] = self._ph.writeTxRx(
+                self._port, servo_id, reg.address, reg.size, le_bytes(value, reg.size)
+            )
+            return None if result == dxl.COMM_SUCCESS else (servo_id, result)
 
         self._attempt(instruction, exchange)
         if status["error"]:

@@ -142,13 +142,9 @@ def decode_hardware_error(bits: int) -> list[str]:
 
 def decode_status_error(error: int) -> list[str]:
     """Names of the problems in a status packet's error byte."""
-    names = []
-    if error & ALERT_BIT:
-        names.append("hardware alert")
     number = error & ~ALERT_BIT
-    if number:
-        names.append(STATUS_ERROR_NAMES.get(number, f"unknown error {number}"))
-    return names
+    alert = ["hardware alert"] if error & ALERT_BIT else []
+    return alert + ([STATUS_ERROR_NAMES.get(number, f"unknown error {number}")] if number else [])
 
 
 def to_signed(value: int, size: int) -> int:

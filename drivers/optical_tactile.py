@@ -72,6 +72,9 @@ RIM_MARGIN_PX = 0.5  # inside the contact circle, this close to its rim is left 
 CONTACT_SIGMA_PX = 2.0  # smoothing of the gradients before finding the contact's rim (the steepest slope)
 MIN_CONTACT_DEPTH_PX = 0.25  # pixel sizes: a shallower contact cannot be told from noise (a ball's contact of
 # radius a px is a^2 / 2R px deep: about this for the smallest blob that counts)
+# what np.load raises on an empty, truncated or damaged file: numpy's EOFError, zipfile's BadZipFile, zlib's error,
+# or zipfile's NotImplementedError for a compression method it does not know
+_DAMAGED = (KeyError, ValueError, OSError, TypeError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError)
 
 
 def _dot_kernel(shape) -> tuple[int, np.ndarray]:
@@ -376,8 +379,7 @@ def _train_mlp(
     layers = []
     for n_in, n_out in zip(sizes[:-1], sizes[1:]):
         bound = 1.0 / np.sqrt(n_in)
-        layers.append((torch.rand(n_in, n_out, generator=generator) * 2 - 1) * bound)
-        layers.append(torch.zeros(n_out))
+        layers += [(torch.rand(n_in, n_out, generator=generator) * 2 - 1) * bound, torch.zeros(n_out)]
     params = [p.requires_grad_() for p in layers]
     inputs, targets = torch.from_numpy(x), torch.from_numpy(y.astype(np.float32))
     optimiser = torch.optim.Adam(params, lr=3e-3)
@@ -453,9 +455,8 @@ class TactileCalibration:
         if not inputs:
             raise TactileError(
                 "calibration",
-                "no ball press with a detectable contact circle (press the ball "
-                "fully inside the image, 0.5-1.5 mm deep; the reference must show "
-                "the untouched gel)",
+                "no ball press with a detectable contact circle (press the ball fully inside the image, 0.5-1.5 mm "
+                "deep; the reference must show the untouched gel)",
             )
         weights = _train_mlp(np.concatenate(inputs), np.concatenate(targets), steps=steps, seed=seed)
         size, threshold = tuple(int(s) for s in reference.shape[:2]), max(MIN_CHANGE, float(np.median(thresholds)))
@@ -509,18 +510,7 @@ class TactileCalibration:
                 weights = [data[f"w{i}"] for i in range(2 * int(layers))]
         except FileNotFoundError:
             raise TactileError("calibration", f"{path}: file not found") from None
-        # an empty, truncated or damaged file: numpy's EOFError, zipfile's BadZipFile, zlib's error, or zipfile's
-        # NotImplementedError for a compression method it does not know
-        except (
-            KeyError,
-            ValueError,
-            OSError,
-            TypeError,
-            EOFError,
-            zipfile.BadZipFile,
-            zlib.error,
-            NotImplementedError,
-        ):
+        except _DAMAGED:
             raise TactileError(
                 "calibration",
                 f"{path}: not a tactile calibration file (an .npz written by `tacsplat calibrate tactile`)",
@@ -538,17 +528,13 @@ class TactileCalibration:
         except ValidationError as exc:
             raise TactileError("calibration", "{} [{}]: {}".format(path, *field_error(exc, _Meta))) from None
         shapes = [w.shape for w in weights]
-        chained = len(weights) >= 4 and all(
+        mlp = len(weights) >= 4 and all(
             len(shapes[i]) == 2 and shapes[i + 1] == (shapes[i][1],) and (i == 0 or shapes[i][0] == shapes[i - 2][1])
             for i in range(0, len(shapes), 2)
         )
-        real = all(w.dtype.kind == "f" for w in weights)  # (not strings, integers or complex numbers)
-        if (
-            not (chained and real)
-            or shapes[0][0] != 5
-            or shapes[-1] != (2,)
-            or not all(np.isfinite(w).all() for w in weights)
-        ):
+        mlp = mlp and shapes[0][0] == 5 and shapes[-1] == (2,)  # 5 inputs, 2 outputs
+        # real and finite (not strings, integers or complex numbers)
+        if not (mlp and all(w.dtype.kind == "f" and np.isfinite(w).all() for w in weights)):
             arrays = ", ".join(f"{w.dtype}{list(w.shape)}" for w in weights)
             raise TactileError("calibration", f"{path} [w0..]: not a finite MLP from 5 inputs to 2 outputs: {arrays}")
         return cls(weights, **(m.model_dump() | {"image_size": tuple(m.image_size)}))
@@ -610,8 +596,7 @@ def fit_ball(
     }
     if result["detected"]:
         x, y = tactile_pixel_grid(*depth.shape, calibration.pixel_size_m)
-        _, radius = fit_sphere(np.column_stack([x[ball], y[ball], -depth[ball]]))
-        result["fitted_radius_m"] = radius
+        result["fitted_radius_m"] = fit_sphere(np.column_stack([x[ball], y[ball], -depth[ball]]))[1]
     return result
 
 

@@ -295,8 +295,7 @@ def sphere_centre_in_sensor(points: np.ndarray, radius_m: float) -> np.ndarray:
     """The centre [3] (sensor frame) of the sphere of ``radius_m`` that a contact patch lies on: the gel faces
     along the sensor's +z, so the centre lies one radius above the patch's deepest point."""
     start = np.r_[points[:, :2].mean(axis=0), points[:, 2].min() + radius_m]
-    fit = least_squares(lambda c: np.linalg.norm(points - c, axis=1) - radius_m, start, method="lm")
-    return fit.x
+    return least_squares(lambda c: np.linalg.norm(points - c, axis=1) - radius_m, start, method="lm").x
 
 
 def _correction(x: np.ndarray) -> np.ndarray:
@@ -487,16 +486,12 @@ def load_hand_eye(path: str | Path, key: str = "calibration") -> np.ndarray:
 
 
 def save_mounts(fit: MountsFit, path: str | Path) -> None:
-    atomic_write(path, _mounts_json(fit))
-
-
-def _mounts_json(fit: MountsFit) -> bytes:
     sensors = {
         f: {"T_fingertip_sensor": T.tolist(), "presses": fit.presses[f], "rms_mm": fit.rms_mm[f]}
         for f, T in fit.mounts.items()
     }
     data = {"format": MOUNTS_FORMAT, "version": 1, "sensors": sensors}
-    return (json.dumps(data, indent=2) + "\n").encode()
+    atomic_write(path, (json.dumps(data, indent=2) + "\n").encode())
 
 
 def save_mounts_and_hand_eye(fit: MountsFit, path: str | Path, hand_eye_path: str | Path) -> None:

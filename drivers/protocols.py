@@ -12,9 +12,8 @@ import numpy as np
 from tacsplat.types import TactileReading
 
 
-@runtime_checkable
-class Hand(Protocol):
-    """A multi-finger hand; a context manager that always leaves the hardware safe (torque off)."""
+class _HandModel(Protocol):
+    """What a hand and its model share: the joints, their limits and the hand's solid shape."""
 
     @property
     def joint_names(self) -> Sequence[str]: ...
@@ -22,6 +21,19 @@ class Hand(Protocol):
     @property
     def joint_limits(self) -> np.ndarray:
         """[n_joints, 2] lower and upper limits in radians."""
+
+    @property
+    def link_names(self) -> Sequence[str]:
+        """The boxes of :meth:`link_boxes`."""
+
+    def link_boxes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The hand's solid shape at joint positions ``q`` [n_joints]: ``(T_hand_box [L, 4, 4], half_extents
+        [L, 3])``."""
+
+
+@runtime_checkable
+class Hand(_HandModel, Protocol):
+    """A multi-finger hand; a context manager that always leaves the hardware safe (torque off)."""
 
     def read_joint_positions(self) -> np.ndarray:
         """[n_joints] radians."""
@@ -39,13 +51,6 @@ class Hand(Protocol):
     def fingertip_poses(self) -> dict[str, np.ndarray]:
         """Tactile sensor frames in the hand frame, ``{finger: T_hand_sensor}``, from forward kinematics."""
 
-    @property
-    def link_names(self) -> Sequence[str]:
-        """The boxes of :meth:`link_boxes`."""
-
-    def link_boxes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The hand's solid shape at joint positions ``q``: ``(T_hand_box [L, 4, 4], half_extents [L, 3])``."""
-
     def close(self) -> None: ...
 
     def __enter__(self) -> "Hand": ...
@@ -54,25 +59,12 @@ class Hand(Protocol):
 
 
 @runtime_checkable
-class HandKinematics(Protocol):
+class HandKinematics(_HandModel, Protocol):
     """Forward kinematics of a hand model (the twin's MJCF, :class:`tacsplat.sim.hand.HandKinematics`),
     given to the real hand driver when the rig is assembled: drivers never import the simulator."""
 
-    @property
-    def joint_names(self) -> Sequence[str]: ...
-
-    @property
-    def joint_limits(self) -> np.ndarray:
-        """[n_joints, 2] lower and upper limits in radians."""
-
     def fingertip_poses(self, q: np.ndarray) -> dict[str, np.ndarray]:
         """``{finger: T_hand_sensor [4, 4]}`` at joint positions ``q`` [n_joints]."""
-
-    @property
-    def link_names(self) -> Sequence[str]: ...
-
-    def link_boxes(self, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(T_hand_box [L, 4, 4], half_extents [L, 3])`` of the hand's solid shape at ``q`` [n_joints]."""
 
 
 @runtime_checkable

@@ -127,13 +127,10 @@ class VideoReader:
         self.width = int(round(cap.get(cv2.CAP_PROP_FRAME_WIDTH)))
         self.height = int(round(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
         self.fps = float(cap.get(cv2.CAP_PROP_FPS))
-        problem = None
         if (width and self.width != width) or (height and self.height != height):
-            problem = f"asked for {width}x{height}, the device delivers {self.width}x{self.height}"
-        elif fps and abs(self.fps - fps) > FPS_TOLERANCE * fps:
-            problem = f"asked for {fps:g} fps, the device reports {self.fps:g} fps"
-        if problem:
-            raise CameraError(self.name, problem)
+            raise CameraError(self.name, f"asked for {width}x{height}, the device delivers {self.width}x{self.height}")
+        if fps and abs(self.fps - fps) > FPS_TOLERANCE * fps:
+            raise CameraError(self.name, f"asked for {fps:g} fps, the device reports {self.fps:g} fps")
         args = (cap, self._cap, self._stop)
         self._thread = threading.Thread(target=self._run, args=args, name=f"video-{self.name}", daemon=True)
         self._thread.start()
@@ -189,33 +186,30 @@ class VideoReader:
     # -- reading -----------------------------------------------------------
     def _run(self, cap, box: list, stop: threading.Event) -> None:
         try:
-            self._read_frames(cap, stop)
+            while not stop.is_set():
+                try:
+                    ok, image = cap.read()
+                except cv2.error as exc:
+                    ok, image = False, exc
+                now = time.monotonic()
+                if stop.is_set():  # closed meanwhile: no frame after close
+                    return
+                with self._cond:
+                    if not ok or image is None or getattr(image, "size", 0) == 0:
+                        self._ended = "end of stream" if self.sequential else "the device returned no frame"
+                        self._cond.notify_all()
+                        return
+                    if self.sequential:  # keep every frame: wait for the consumer instead of dropping
+                        while len(self._fresh()) >= 8 and not stop.is_set():
+                            self._cond.wait(0.1)
+                        if stop.is_set():
+                            return
+                    self._frames.append(Frame(image, now, self._count))
+                    self._count += 1
+                    self._cond.notify_all()
         finally:
             if stop.is_set():  # closed while this thread was in the driver: close left the release to it
                 self._release(box)
-
-    def _read_frames(self, cap, stop: threading.Event) -> None:
-        while not stop.is_set():
-            try:
-                ok, image = cap.read()
-            except cv2.error as exc:
-                ok, image = False, exc
-            now = time.monotonic()
-            if stop.is_set():  # closed meanwhile: no frame after close
-                return
-            with self._cond:
-                if not ok or image is None or getattr(image, "size", 0) == 0:
-                    self._ended = "end of stream" if self.sequential else "the device returned no frame"
-                    self._cond.notify_all()
-                    return
-                if self.sequential:  # keep every frame: wait for the consumer instead of dropping
-                    while len(self._fresh()) >= 8 and not stop.is_set():
-                        self._cond.wait(0.1)
-                    if stop.is_set():
-                        return
-                self._frames.append(Frame(image, now, self._count))
-                self._count += 1
-                self._cond.notify_all()
 
     def read(self, timeout_s: float | None = None) -> Frame:
         """The next frame not yet returned (the newest one for live devices); CameraError after the timeout."""

@@ -465,13 +465,12 @@ def view_set_problem(
 def _lens_problem(calib: CameraCalibration, radius: float) -> str | None:
     """Why the lens model does not map the ray to the farthest image corner one to one onto the image out to
     ``radius`` (distorted, normalised): it folds back first, or scales that radius beyond MAX_CORNER_SCALE."""
-    K = calib.K_opencv
     corners = _normalised(calib, _image_corners(calib))
     direction = corners[np.argmax(np.hypot(*corners.T))]
     direction = direction / np.hypot(*direction)
     r = np.linspace(0.0, MAX_CORNER_SCALE * radius, 401)  # undistorted radii
     pixels = cv2.projectPoints(
-        np.column_stack([np.outer(r, direction), np.ones(len(r))]), np.zeros(3), np.zeros(3), K, calib.dist
+        np.column_stack([np.outer(r, direction), np.ones(len(r))]), np.zeros(3), np.zeros(3), calib.K_opencv, calib.dist
     )[0].reshape(-1, 2)
     distorted = np.hypot(*_normalised(calib, pixels).T)
     reached = np.flatnonzero(distorted >= radius)
@@ -657,8 +656,7 @@ def hand_eye_calibration(T_base_hand: Sequence[np.ndarray], T_world_cam: Sequenc
     for i, j in itertools.combinations(range(len(hands)), 2):
         A = invert_pose(hands[j]) @ hands[i]
         B = invert_pose(cams[j]) @ cams[i]
-        alpha = Rotation.from_matrix(A[:3, :3]).as_rotvec()
-        beta = Rotation.from_matrix(B[:3, :3]).as_rotvec()
+        alpha, beta = (Rotation.from_matrix(T[:3, :3]).as_rotvec() for T in (A, B))
         if np.linalg.norm(alpha) > 1e-3 and np.linalg.norm(beta) > 1e-3:
             alphas.append(alpha)
             betas.append(beta)
@@ -685,10 +683,9 @@ class WristCamera:
         timeout_s: float = 2.0,
         capture_factory=cv2.VideoCapture,
     ):
-        self.calibration = (
+        c = self.calibration = (
             calibration if isinstance(calibration, CameraCalibration) else CameraCalibration.load(calibration)
         )
-        c = self.calibration
         self._K_new_opencv = c.undistorted_K_opencv()
         self._maps = c.undistort_maps()
         video = dict(fps=fps, fourcc=fourcc, timeout_s=timeout_s, capture_factory=capture_factory)
