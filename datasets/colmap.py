@@ -98,13 +98,14 @@ class _Model:
         return record.error(f"{what}, which {self.file(name)} does not hold")
 
 
-def _num_params(model: str) -> int | None:
-    """How many parameters a COLMAP camera model takes; None for a name COLMAP does not know."""
+def _layout(model: str):
+    """A ``pycolmap.Camera`` of COLMAP camera model ``model`` (its parameter count and meanings); None for a name
+    COLMAP does not know."""
     import pycolmap
 
     if model not in pycolmap.CameraModelId.__members__ or model == "INVALID":
         return None
-    return int(pycolmap.Camera.create_from_model_name(0, model, 1.0, 1, 1).params.size)
+    return pycolmap.Camera.create_from_model_name(0, model, 1.0, 1, 1)
 
 
 # --- reading: one reader per record kind, over the lines of a text file or the entries of a binary one ------------
@@ -164,8 +165,7 @@ class _Text(_Source):
     name = model = sensor_type = word
 
     def int(self, what: str, fmt: str) -> int:
-        value = self._number(what, int, "an integer")
-        return _in_limits(self, value, what, fmt)
+        return _in_limits(self, self._number(what, int, "an integer"), what, fmt)
 
     def float(self, what: str) -> float:
         return self._number(what, float, "a number")
@@ -248,22 +248,20 @@ class _Binary(_Source):
     def error(self, message: str) -> SceneFormatError:
         return SceneFormatError(self.path, self.entry and f"entry {self.entry}", message)
 
+    def _skip(self, size: int, what: str) -> int:
+        """Where the next ``size`` bytes (``what``) start; moves past them."""
+        if self.at + size > len(self.data):
+            raise self.error(f"the file ends inside {what} (truncated?)")
+        self.at += size
+        return self.at - size
+
     def array(self, dtype, count: int, what: str) -> np.ndarray:
         dtype = np.dtype(dtype)
-        if self.at + dtype.itemsize * count > len(self.data):
-            raise self.error(f"the file ends inside {what} (truncated?)")
-        values = np.frombuffer(self.data, dtype, count, self.at)
-        self.at += dtype.itemsize * count
-        return values
+        return np.frombuffer(self.data, dtype, count, self._skip(dtype.itemsize * count, what))
 
     def _take(self, fmt: str, what: str):
         """One little-endian ``struct`` value (a number per field: np.frombuffer per number is 8x slower)."""
-        size = struct.calcsize(fmt)
-        if self.at + size > len(self.data):
-            raise self.error(f"the file ends inside {what} (truncated?)")
-        (value,) = struct.unpack_from("<" + fmt, self.data, self.at)
-        self.at += size
-        return value
+        return struct.unpack_from("<" + fmt, self.data, self._skip(struct.calcsize(fmt), what))[0]
 
     def int(self, what: str, fmt: str) -> int:
         return _in_limits(self, self._take(fmt, what), what, fmt)
@@ -305,9 +303,9 @@ class _Binary(_Source):
 def _camera(src, camera: _Record) -> _Record:
     camera.camera_id, camera.model = src.int("CAMERA_ID", "I"), src.model("MODEL")
     camera.width, camera.height = src.int("WIDTH", "Q"), src.int("HEIGHT", "Q")
-    if (count := _num_params(camera.model)) is None:
+    if (layout := _layout(camera.model)) is None:
         raise camera.error(f"camera {camera.camera_id}: unknown camera model {camera.model}")
-    camera.params = src.params(count, f"camera {camera.camera_id}: a {camera.model} camera")
+    camera.params = src.params(int(layout.params.size), f"camera {camera.camera_id}: a {camera.model} camera")
     return camera
 
 
@@ -337,13 +335,10 @@ def _rig(src, rig: _Record) -> _Record:
     for k in range(src.int("NUM_SENSORS", "I")):
         what = f"sensor {k} of rig {rig.rig_id}"
         sensor = (src.sensor_type(f"{what}: SENSOR_TYPE"), src.int(f"{what}: SENSOR_ID", "I"))
-        rig.sensors[sensor] = (
-            _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
-            if k == 0
-            else src.pose(f"{what}: sensor_from_rig")
-            if src.int(f"{what}: HAS_POSE", "B")
-            else None
-        )
+        if k == 0:  # the reference sensor: the rig's frame
+            rig.sensors[sensor] = _Pose(np.array([1.0, 0, 0, 0]), np.zeros(3))
+        else:
+            rig.sensors[sensor] = src.pose(f"{what}: sensor_from_rig") if src.int(f"{what}: HAS_POSE", "B") else None
     return rig
 
 
@@ -528,15 +523,14 @@ PARAMETER_NAMES = {
 
 def camera_intrinsics(camera: _Record) -> CameraIntrinsics:
     """Intrinsics of a model's camera, or a SceneFormatError naming its file, line or entry, id and model."""
-    import pycolmap
-
     what = f"camera {camera.camera_id}"
     if camera.model not in PINHOLE_MODELS + ZERO_DISTORTION_MODELS:
         raise camera.error(
             f"{what}: camera model {camera.model} is not supported: undistort the images first "
             "(colmap image_undistorter) to get a PINHOLE model"
         )
-    layout = pycolmap.Camera.create_from_model_name(0, camera.model, 1.0, 1, 1)
+    layout = _layout(camera.model)
+
     if not np.isfinite(camera.params).all():
         raise camera.error(f"{what}: PARAMS {camera.params.tolist()} are not all finite")
     distortion = camera.params[list(layout.extra_params_idxs())]

@@ -66,15 +66,9 @@ def copy_scene(
     ):
         for frame in progress_bar(frames, desc="copy frames", unit="frame", enabled=progress):
             image = np.rint(scene.load_image(frame) * 255).astype(np.uint8)
-            writer.add_frame(
-                image,
-                frame.T_world_cam,
-                frame.split,
-                scene.gt_depth(frame),
-                frame.intrinsics,
-                mask=scene.load_mask(frame),
-                gt_normal=scene.gt_normal(frame),
-            )
+            depth, mask, normal = scene.gt_depth(frame), scene.load_mask(frame), scene.gt_normal(frame)
+            writer.add_frame(image, frame.T_world_cam, frame.split, depth, frame.intrinsics, mask, normal)
+
         motions = {}  # the source's hand file -> the copy's
         for touch in touches:
             if touch.hand_file is not None and touch.hand_file not in motions:

@@ -357,8 +357,7 @@ class Scene:
         """Ground-truth z-depth [H, W] float32 metres of a frame (evaluation only), or None."""
         if (rel := self.gt_depth_files.get(frame.id)) is None:
             return None
-        shape = (frame.intrinsics.height, frame.intrinsics.width)
-        return load_depth_npz(self.path / rel, shape, STRICT, f"gt depth of frame {frame.id}", GT_DEPTH_LIMIT)
+        return load_depth_npz(self.path / rel, _shape(frame), STRICT, f"gt depth of frame {frame.id}", GT_DEPTH_LIMIT)
 
     def gt_normal(self, frame: Frame) -> np.ndarray | None:
         """Ground-truth unit world-frame normals [H, W, 3] float32 of a frame (0 where no surface; evaluation
@@ -366,9 +365,7 @@ class Scene:
         if (rel := self.gt_depth_files.get(frame.id)) is None:
             return None
         normal = _npz_array(self.path / rel, "normal", STRICT, "normal")
-        if normal is not None and (
-            problem := normal_map_problem(normal, (frame.intrinsics.height, frame.intrinsics.width))
-        ):
+        if normal is not None and (problem := normal_map_problem(normal, _shape(frame))):
             raise SceneFormatError(self.path / rel, "normal", problem)
         return normal
 
@@ -389,6 +386,11 @@ class Scene:
         if not boxes:
             raise SceneFormatError(self.path, None, "no frames and no contact points: the scene has no bounds")
         return np.min([b[0] for b in boxes], axis=0), np.max([b[1] for b in boxes], axis=0)
+
+
+def _shape(frame: Frame) -> tuple[int, int]:
+    """(height, width) of the frame's image."""
+    return frame.intrinsics.height, frame.intrinsics.width
 
 
 def _camera_region(frames: list[Frame]) -> tuple[np.ndarray, np.ndarray]:
@@ -462,6 +464,7 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
             problems.add(exc)
         else:  # (with other problems the index holds fewer valid records anyway)
             frames, touches = journaled.num_frames, journaled.num_touches
+            gt = (journaled.gt_mesh, journaled.gt_points, journaled.gt_depth_files)
             resume = "a writer stopped between the two; SceneWriter.resume (or resuming the capture) rewrites the index"
             if journaled.job is not None and not journaled.finished:  # (its index is behind, and stays so)
                 problems.note(
@@ -479,11 +482,7 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
                 )
             elif journaled.annotations != scene.annotations and not problems.errors:
                 problems.note(journal, "annotations", f"records other annotations than scene.json holds: {resume}")
-            elif (journaled.gt_mesh, journaled.gt_points, journaled.gt_depth_files) != (
-                scene.gt_mesh_file,
-                scene.gt_points_file,
-                scene.gt_depth_files,
-            ) and not problems.errors:
+            elif gt != (scene.gt_mesh_file, scene.gt_points_file, scene.gt_depth_files) and not problems.errors:
                 problems.note(journal, "gt", f"records other ground truth than scene.json holds: {resume}")
     if not problems.errors:
         _check_twin_ground_truth(scene, problems)
@@ -549,13 +548,7 @@ def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[li
     """The valid frames, and every frame id declared (also by frames dropped for a problem)."""
     index = path / "transforms.json"
     data = _read_json(index, problems)
-    if data.get("camera_model", "OPENCV") not in _UNDISTORTED_MODELS:
-        problems.report(
-            index, "camera_model", f"expected OPENCV or PINHOLE (undistorted images), got {data['camera_model']!r}"
-        )
-    for key in _DISTORTION_KEYS:
-        if data.get(key, 0.0) != 0.0:
-            problems.note(index, key, f"images must be undistorted, but {key} = {data[key]!r}")
+    _check_undistorted(data, index, "", problems.note, problems)
     for key in _FOREIGN_KEYS:
         if key in data:
             problems.note(
@@ -603,15 +596,7 @@ def _read_frame(path: Path, data: dict, field: str, raw, seen: dict, problems: _
                 f"{field}.{key}",
                 "not part of a tacsplat scene; import nerfstudio data with `tacsplat import nerfstudio`",
             )
-    if raw.get("camera_model", "OPENCV") not in _UNDISTORTED_MODELS:  # nerfstudio reads a frame's own camera
-        problems.report(
-            index,
-            f"{field}.camera_model",
-            f"expected OPENCV or PINHOLE (undistorted images), got {raw['camera_model']!r}",
-        )
-    for key in _DISTORTION_KEYS:
-        if raw.get(key, 0.0) != 0.0:
-            problems.report(index, f"{field}.{key}", f"images must be undistorted, but {key} = {raw[key]!r}")
+    _check_undistorted(raw, index, f"{field}.", problems.report, problems)  # nerfstudio reads a frame's own camera
     mask_path = None if mask is None else _relative_file(path, mask, index, f"{field}.mask_path", problems)
     T_gl = problems.attempt(_pose, raw.get("transform_matrix"), index, f"{field}.transform_matrix", problems)
     intr = _intrinsics(raw, data, index, field, problems)
@@ -622,6 +607,18 @@ def _read_frame(path: Path, data: dict, field: str, raw, seen: dict, problems: _
         if mask_path is not None:
             _check_image(mask_path, intr, index, f"{field}.mask_path", problems, "L")
     return Frame(fid, file_path, opengl_to_opencv(T_gl), split, intr, mask)
+
+
+def _check_undistorted(raw: dict, index: Path, prefix: str, distorted, problems: _Problems) -> None:
+    """The camera_model and distortion keys of transforms.json (``prefix`` "") or of a frame (``prefix``
+    "frames[3]."): those of undistorted images. A wrong model is reported, distortion goes to ``distorted``
+    (``problems.note`` or ``problems.report``)."""
+    if raw.get("camera_model", "OPENCV") not in _UNDISTORTED_MODELS:
+        got = raw["camera_model"]
+        problems.report(index, f"{prefix}camera_model", f"expected OPENCV or PINHOLE (undistorted images), got {got!r}")
+    for key in _DISTORTION_KEYS:
+        if raw.get(key, 0.0) != 0.0:
+            distorted(index, prefix + key, f"images must be undistorted, but {key} = {raw[key]!r}")
 
 
 def _read_sensor(raw, index: Path, problems: _Problems) -> SensorModel:
@@ -720,8 +717,7 @@ def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems
                 problems.note(index, field, f"no frame with id {key!r}")
             continue
         path = problems.attempt(_relative_file, scene.path, rel, index, field, problems)
-        shape = (frames[fid].intrinsics.height, frames[fid].intrinsics.width)
-        what = f"gt depth of frame {fid}"
+        shape, what = _shape(frames[fid]), f"gt depth of frame {fid}"
         if path is not None and (
             not check_files or problems.attempt(load_depth_npz, path, shape, problems, what, GT_DEPTH_LIMIT) is not None
         ):

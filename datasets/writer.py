@@ -621,10 +621,7 @@ class SceneWriter(AbstractContextManager):
             data = mesh.export(file_type="ply")
         else:
             raise InvalidInputError(f"mesh: expected a path or trimesh.Trimesh, got {type(mesh).__name__}")
-        rel = "gt/mesh.ply"
-        atomic_write_bytes(self.path / rel, data)
-        self._record({"op": "gt_mesh", "path": rel})
-        return self.path / rel
+        return self._set_gt("mesh", data)
 
     def set_gt_points(self, points: np.ndarray) -> Path:
         """Store a ground-truth point cloud [N, 3] (metres, world frame) as ``gt/points.ply``: the object's surface
@@ -636,9 +633,13 @@ class SceneWriter(AbstractContextManager):
             raise InvalidInputError(f"points: expected a non-empty [N, 3] array, got shape {points.shape}")
         if not np.isfinite(points).all():
             raise InvalidInputError("points: contain NaN or infinite values")
-        rel = "gt/points.ply"
-        atomic_write_bytes(self.path / rel, trimesh.PointCloud(points).export(file_type="ply"))
-        self._record({"op": "gt_points", "path": rel})
+        return self._set_gt("points", trimesh.PointCloud(points).export(file_type="ply"))
+
+    def _set_gt(self, kind: str, ply: bytes) -> Path:
+        """Store the ground truth ``kind`` ("mesh" or "points") as ``gt/<kind>.ply`` and record it."""
+        rel = f"gt/{kind}.ply"
+        atomic_write_bytes(self.path / rel, ply)
+        self._record({"op": f"gt_{kind}", "path": rel})
         return self.path / rel
 
     def annotate(self, key: str, value) -> None:
