@@ -114,7 +114,7 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
     """``T_hand_cam`` from the arm stations of ``poses_file`` (the board found in each image with the rig's camera
     calibration and board), written to ``out`` with the number of stations used; a line per station, then the
     result, its consistency and its change from the rig's previous ``T_hand_cam``. Returns ``T_hand_cam``."""
-    from tacsplat.acquisition.devices import inline_T_hand_cam
+    from tacsplat.acquisition.devices import inline_T_hand_cam, rig_T_hand_cam
     from tacsplat.drivers.press_calibration import save_hand_eye
     from tacsplat.drivers.wrist_camera import CameraCalibration, board_pose, hand_eye_calibration, undistort
 
@@ -127,7 +127,9 @@ def calibrate_hand_eye_from_arm(config: RigConfig, poses_file: Path, out: Path, 
             config.source,
         )
     calibration = CameraCalibration.load(calibration_file)
-    previous = _previous_T_hand_cam(config, calibration)  # before ``out`` is written: it may be the rig's file
+    # the rig's T_hand_cam as a capture reads it, or None (a hand-eye file not written yet counts as none), read
+    # before ``out`` is written: it may be the rig's file
+    previous = rig_T_hand_cam(config, calibration, calibrating=True)
     stations = read_arm_poses(poses_file)
     spec = config.board.spec()
     if calibration.board != spec:
@@ -231,11 +233,3 @@ def _refuse_inconsistent(T_hand_cam: np.ndarray, gaps: np.ndarray, seen: list[st
             "T_hand_base), in metres, each with its own station's image?",
             poses_file,
         )
-
-
-def _previous_T_hand_cam(config: RigConfig, calibration) -> np.ndarray | None:
-    """The rig's ``T_hand_cam`` as a capture reads it (the rig file's, its hand-eye file's, then the camera
-    calibration's), or None; a hand-eye file the rig names but that is not written yet counts as none."""
-    from tacsplat.acquisition.devices import rig_T_hand_cam
-
-    return rig_T_hand_cam(config, calibration, calibrating=True)

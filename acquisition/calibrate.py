@@ -74,10 +74,7 @@ def calibrate_hand(
 
 
 def _presses(
-    config: RigConfig,
-    plan: Callable[..., list],
-    say: Callable[[str], None],
-    where: str = "resting on the board",
+    config: RigConfig, plan: Callable[..., list], say: Callable[[str], None], where: str = "resting on the board"
 ):
     """``(presses, the rig's T_hand_cam, the rig's mounts)`` of the presses of ``plan(fingers)`` for the rig's
     sensors: on a ``rig: sim`` twin the twin presses its fingertips on a sphere ``where``; on a real rig a person
@@ -131,8 +128,7 @@ def calibrate_hand_eye(config: RigConfig, out: Path, say: Callable[[str], None] 
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M, hand_eye_plan
     from tacsplat.drivers.press_calibration import fit_presses, save_hand_eye
 
-    shadowing = inline_T_hand_cam(config)
-    if shadowing:
+    if shadowing := inline_T_hand_cam(config):
         say(f"warning: {shadowing}")
     presses, T_hand_cam, mounts = _presses(config, hand_eye_plan, say)
     calibrated = rig_mounts(config, calibrating=True)  # the rig's mounts file's and its sensors' own

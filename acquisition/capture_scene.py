@@ -138,10 +138,8 @@ def recorded_settings(writer: SceneWriter) -> dict:
         recorded["sim.texture"] = "none"  # what every twin capture was before the texture became a setting
     if SETTINGS_KEY in meta.extra:
         settings = flatten_settings(meta.extra[SETTINGS_KEY])
-        slide_m = settings.get(_SLIDE[0])
-        for key in _SLIDE:
-            settings.pop(key, None)
-        return {**recorded, **settings, **({_SLIDE[0]: slide_m} if slide_m else {})}
+        slide = {_SLIDE[0]: settings[_SLIDE[0]]} if settings.get(_SLIDE[0]) else {}
+        return {**recorded, **{k: v for k, v in settings.items() if k not in _SLIDE}, **slide}
     # A scene of an older version records no capture_settings; it resumes when what it does record agrees: the rig
     # kind, object and plan; a twin's resolution (its image width); and the extras of _OLDER_EXTRAS it holds.
     if meta.source == "sim":

@@ -288,13 +288,11 @@ def _calibrate_mounts(o: CalibrateMounts) -> int:
     # one file under two names ('..', a symbolic link) too; realpath, unlike Path.resolve, takes a symlink loop as is
     if o.hand_eye is not None and os.path.realpath(o.hand_eye) == os.path.realpath(o.out):
         raise UsageError("--hand-eye", f"{o.hand_eye} is --out's file too: give the hand-eye file another name")
-    stand_height_m = o.stand_height_mm / 1000
 
-    return _calibrate(
-        o,
-        lambda config: calibrate_mounts(config, o.out, o.hand_eye, stand_height_m=stand_height_m),
-        {"--hand-eye": o.hand_eye},
-    )
+    def job(config):
+        return calibrate_mounts(config, o.out, o.hand_eye, stand_height_m=o.stand_height_mm / 1000)
+
+    return _calibrate(o, job, {"--hand-eye": o.hand_eye})
 
 
 def _rig_check(o: RigCheck) -> int:
@@ -304,8 +302,7 @@ def _rig_check(o: RigCheck) -> int:
     config = load_rig(o.rig, mock=o.mock, check_files=False)
     rows = check_rig(config) if config.rig == "real" else check_twin(config)
     print(table(rows))
-    failed = [row.item for row in rows if not row.ok]
-    if failed:
+    if failed := [row.item for row in rows if not row.ok]:
         print(f"error: rig check: {len(failed)} of {len(rows)} checks failed: {'; '.join(failed)}", file=sys.stderr)
         return 1
     print(f"all {len(rows)} checks passed")

@@ -512,10 +512,9 @@ def validate(c: RigConfig, check_files: bool = True) -> None:
     failure is one ConfigError naming its key."""
     checked(RigConfig, c, "", c.source)
     src = c.source
-    v, g = c.plan.views, c.plan.grasps
-    if c.rig == "real" and (v.mode != "operator" or g.mode != "operator"):
-        key = "plan.views.mode" if v.mode != "operator" else "plan.grasps.mode"
-        raise ConfigError(key, "a real rig is positioned by the operator: use 'operator'", src)
+    for key, mode in (("plan.views.mode", c.plan.views.mode), ("plan.grasps.mode", c.plan.grasps.mode)):
+        if c.rig == "real" and mode != "operator":
+            raise ConfigError(key, "a real rig is positioned by the operator: use 'operator'", src)
     gc = c.grasp
     for key in ("close_pose", "open_pose"):
         if len(getattr(gc, key)) != 16:
@@ -582,11 +581,10 @@ def _validate_real(c: RigConfig, src, check_files: bool) -> None:
         if name not in known:
             raise ConfigError(f"mock_devices.unplugged[{i}]", f"unknown device {name!r} (one of {known})", src)
     if check_files and not c.mock:  # the mock generates its own calibrations; a real rig's files must exist
-        files = [("camera.calibration", c.camera.calibration)]
-        files += [("hand.calibration", c.hand.calibration)] if c.hand.calibration else []
+        files = [("camera.calibration", c.camera.calibration), ("hand.calibration", c.hand.calibration)]
         files += [(f"tactile.sensors[{i}].calibration", s.calibration) for i, s in enumerate(c.tactile.sensors)]
         for key, name in files:
-            if not c.path(name).is_file():
+            if name and not c.path(name).is_file():  # (no hand calibration: the raw servos)
                 raise ConfigError(key, f"file not found: {c.path(name)}", src)
 
 

@@ -117,10 +117,8 @@ def open_rig(
                 )
             model = this
             pose = lambda finger=s.finger, T=T_mount: hand.fingertip_poses()[finger] @ T
-            timeout_s = config.tactile.timeout_s
-            sensors.append(
-                stack.enter_context(OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=timeout_s, **reader))
-            )
+            sensor = OpticalTactileSensor(s.finger, source, tcal, pose, timeout_s=config.tactile.timeout_s, **reader)
+            sensors.append(stack.enter_context(sensor))
         yield Rig(
             kind="real",
             hand=hand,
@@ -184,12 +182,7 @@ def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None
 
 # The twin's grasp control: its soft position servos lag a 0.6 rad/s ramp by about 0.03 rad in free motion.
 TWIN_CONTROL = GraspControl(
-    close_speed_rad_s=0.6,
-    poll_s=0.01,
-    stall_error_rad=0.08,
-    settle_tol_rad=0.002,
-    max_close_s=2.0,
-    open_s=0.2,
+    close_speed_rad_s=0.6, poll_s=0.01, stall_error_rad=0.08, settle_tol_rad=0.002, max_close_s=2.0, open_s=0.2
 )
 
 

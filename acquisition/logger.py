@@ -68,15 +68,12 @@ class PoseEstimate:
 class PoseSource(Protocol):
     def camera_pose(self, image: np.ndarray) -> PoseEstimate:
         """``T_world_cam`` of the camera that took ``image``; raises CaptureRejected when it cannot be known."""
-        ...
 
     def hand_pose(self, image: np.ndarray) -> PoseEstimate:
         """``T_world_hand`` at the time ``image`` was taken."""
-        ...
 
     def ground_truth_depth(self) -> np.ndarray | None:
         """[H, W] float32 depth of the last view (the twin only; evaluation only)."""
-        ...
 
 
 class BoardPoseSource:
@@ -228,8 +225,7 @@ class CaptureLogger:
         """Remove the touches of a last grasp that has fewer touches than sensors (a capture cut short while
         writing it); returns how many were removed."""
         w = self.writer
-        last = w.last_record
-        if last is None or last[0] != "touch":
+        if (last := w.last_record) is None or last[0] != "touch":
             return 0
         g = w.touches[-1].grasp
         have = sum(t.grasp == g for t in w.touches)
@@ -280,8 +276,8 @@ class CaptureLogger:
         q_open = np.asarray(c.open_pose if open_pose is None else open_pose, dtype=np.float64)  # checked before moving
         hand_rms = None
         if T_world_hand is None:
-            image, _ = self.camera.read()
-            est = self.poses.hand_pose(image)  # before the fingers move: CaptureRejected leaves the hand open
+            # before the fingers move: CaptureRejected leaves the hand open
+            est = self.poses.hand_pose(self.camera.read()[0])
             T_world_hand, hand_rms = est.T, est.reprojection_px
         T_world_hand = check_rigid(T_world_hand, "T_world_hand")
         index = self.next_grasp_index() if index is None else int(index)
@@ -411,12 +407,10 @@ class CaptureLogger:
     # --- undo -------------------------------------------------------------------------------------
     def undo(self) -> str:
         """Remove the last record: a view, or a whole grasp (all its touches). Returns what was removed."""
-        w = self.writer
-        last = w.last_record
-        if last is None:
+        if (last := self.writer.last_record) is None:
             raise CaptureRejected("nothing to undo")
         if last[0] == "frame":
-            frame = w.remove_last()
+            frame = self.writer.remove_last()
             return f"view {frame.id} ({frame.split})"
         return "grasp {} ({} touches)".format(*self._remove_last_grasp())
 

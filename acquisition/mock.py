@@ -82,8 +82,7 @@ class LoopingCapture:
         if self._stalled.is_set():
             self._released.wait()
             return False, None
-        shown = self._shown
-        if shown is not None:
+        if (shown := self._shown) is not None:
             return True, shown.copy()
         ok, image = self._cap.read()
         if not ok:

@@ -63,16 +63,12 @@ def _fileno(stream) -> int | None:
         return None
 
 
-def _hung_up(exc: BaseException) -> bool:
-    """Whether ``exc`` (an OSError or a termios.error, which is not one) says the terminal hung up: EIO."""
-    code = exc.errno if isinstance(exc, OSError) else (exc.args[0] if exc.args else None)
-    return code == errno.EIO
-
-
 def _hangup(exc: BaseException) -> BaseException:
-    """What a failed terminal operation raises: SignalInterrupt(SIGHUP) for a terminal that hung up (the end that a
-    closed window's SIGHUP gives, whether or not the signal reaches this process), else ``exc`` itself."""
-    return SignalInterrupt(signal.SIGHUP) if _hung_up(exc) else exc
+    """What a failed terminal operation raises: SignalInterrupt(SIGHUP) for a terminal that hung up (EIO, from an
+    OSError or a termios.error, which is not one: the end that a closed window's SIGHUP gives, whether or not the
+    signal reaches this process), else ``exc`` itself."""
+    code = exc.errno if isinstance(exc, OSError) else (exc.args[0] if exc.args else None)
+    return SignalInterrupt(signal.SIGHUP) if code == errno.EIO else exc
 
 
 @contextmanager
@@ -225,11 +221,10 @@ class CaptureSession:
         except CaptureRejected as exc:
             self.say(f"grasp NOT recorded: {exc}")
             return
-        contact = outcome.fingers_in_contact
         missed = [t.finger for t in outcome.touches if not t.in_contact]
         self.say(
             f"grasp {outcome.index} recorded: {len(outcome.touches)} touches, contact on "
-            f"{', '.join(contact) or 'none'}"
+            f"{', '.join(outcome.fingers_in_contact) or 'none'}"
             + (f"; no contact on {', '.join(missed)} (recorded)" if missed else "")
             + ("" if outcome.settled else "; fingers had not settled")
         )
@@ -339,14 +334,9 @@ def _hand_line(hands: list) -> str:
     return f"Hand: {report}.\n"
 
 
-def _started(out: Path) -> bool:
-    """Whether the capture wrote a scene in ``out`` (to resume)."""
-    return (out / JOURNAL).is_file()
-
-
 def _fault(what: str, fault: Exception, out: Path, fix: str = "") -> str:
     """The report of a fault: what failed, that the scene in ``out`` (if one was written) keeps its records, ``fix``."""
-    held = f"The scene in {out} holds every record completed before the fault." if _started(out) else ""
+    held = f"The scene in {out} holds every record completed before the fault." if (out / JOURNAL).is_file() else ""
     after = " ".join(filter(None, (held, fix)))
     return f"{what}: {fault}\n" + (f"{after}\n" if after else "")
 
@@ -354,7 +344,7 @@ def _fault(what: str, fault: Exception, out: Path, fix: str = "") -> str:
 def _carry_on(config: RigConfig, out: Path) -> str:
     """How to carry on after a stop: the command that resumes the scene in ``out``, or that starts the capture again
     when it never wrote one."""
-    started = _started(out)
+    started = (out / JOURNAL).is_file()  # the capture wrote a scene in ``out`` (to resume)
     how = "Resume with:" if started else "The capture did not start (no scene was written). Start it again with:"
     rig = shlex.quote(str(config.source or "RIG.yaml"))
     command = f"tacsplat capture --rig {rig} --out {shlex.quote(str(out))}"

@@ -170,13 +170,11 @@ class TwinPressSession:
         from tacsplat.sim.camera import intrinsics_from_fovy
         from tacsplat.sim.person import TwinPresser
 
-        self.board = board
+        self.board, self.say, self.twin = board, say, twin
         spec = board.spec()
         size = (spec.squares_x * spec.square_length_m, spec.squares_y * spec.square_length_m)
         self.presser = TwinPresser(twin, size, SPHERE_RADIUS_M, SPHERE_PLACEMENTS)
         self.K = intrinsics_from_fovy(twin.config.wrist_fovy_deg, *CAMERA_PX).K
-        self.say = say
-        self.twin = twin
 
     def _candidates(self, spec: PressSpec) -> list[np.ndarray]:
         pads = self.presser.T_hand_pads(np.array(spec.q))
@@ -308,8 +306,7 @@ class RigPressSession:
     def run(self, plan: list[PressSpec]) -> list[Press]:
         """The presses, a status line each; a press without contact, or whose camera does not see the board, is
         skipped."""
-        missing = sorted({spec.finger for spec in plan} - set(self.sensors))
-        if missing:
+        if missing := sorted({spec.finger for spec in plan} - set(self.sensors)):
             raise ConfigError("tactile.sensors", f"the presses need a sensor on {', '.join(missing)}")
         presses = []
         for i, spec in enumerate(plan):
