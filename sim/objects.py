@@ -252,8 +252,7 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise ConfigError("mesh", f"{path} holds no triangles (a point cloud or an empty file?)")
     vertices = np.asarray(loaded.vertices, dtype=np.float64)
-    not_finite = int((~np.isfinite(vertices)).any(axis=1).sum())
-    if not_finite:
+    if not_finite := int((~np.isfinite(vertices)).any(axis=1).sum()):
         raise ConfigError("mesh", f"{path}: {not_finite} vertices have NaN or infinite coordinates (not finite)")
     if (largest := float(np.abs(vertices).max())) > MAX_COORDINATE:
         raise ConfigError(
@@ -282,8 +281,7 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
             f"{path} is flat (all its triangles of non-zero area lie in one plane): a surface with no volume, "
             "not an object that can be grasped",
         )
-    holes = _close_holes(mesh)
-    if holes:
+    if holes := _close_holes(mesh):
         log.info("%s: closed %d hole(s) (%d boundary edges)", path, len(holes), sum(holes))
     trimesh.repair.fix_winding(mesh)
     if mesh.is_watertight and mesh.volume < 0:
@@ -351,11 +349,8 @@ def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) ->
         )
     _, raw_radius = bounding_sphere(mesh)
     obj = SimObject(path.stem, normalise_mesh(mesh, radius, str(path)), GlossyMaterial((0.8, 0.8, 0.82, 1.0)))
+    r = obj.bounding_radius
     log.info(
-        "%s: bounding radius %.6g in the file's units, scaled by %.6g to %.6g m",
-        path,
-        raw_radius,
-        obj.bounding_radius / raw_radius,
-        obj.bounding_radius,
+        "%s: bounding radius %.6g in the file's units, scaled by %.6g to %.6g m", path, raw_radius, r / raw_radius, r
     )
     return obj

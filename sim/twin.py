@@ -289,8 +289,7 @@ class SimHand(AbstractContextManager):
     def command_joint_positions(self, q: np.ndarray) -> None:
         q = joint_vector(q, "command_joint_positions")
         clamped = np.clip(q, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])
-        if np.any(np.abs(clamped - q) > 1e-9):
-            names = [JOINT_NAMES[i] for i in np.flatnonzero(np.abs(clamped - q) > 1e-9)]
+        if names := [JOINT_NAMES[i] for i in np.flatnonzero(np.abs(clamped - q) > 1e-9)]:
             log.info("joint command clamped to the limits on %s", ", ".join(names))
         true = self._servo_signs * (self.calibration.motor_angles(clamped) - self._servo_offsets)
         self._twin.data.ctrl[self._act] = np.clip(true, JOINT_LIMITS[:, 0], JOINT_LIMITS[:, 1])  # the hard stops
