@@ -82,14 +82,12 @@ def _export_mesh(args: ExportMesh) -> int:
     except InvalidInputError as exc:
         key, _, message = str(exc).partition(": ")
         raise UsageError("--" + key.replace("_", "-"), message) from None
-    if args.out is not None:
-        try:
+    try:
+        if args.out is not None:
             check_mesh_path(args.out)
-        except ConfigError as exc:
-            raise UsageError(exc.key, str(exc).partition(": ")[2]) from None
-    if not is_run_folder(args.run):
-        run_checkpoint(args.run)  # refused before anything is created or written
-    try:  # (before the export: the run's splat.ply or its scene's ground truth is never replaced)
+        if not is_run_folder(args.run):
+            run_checkpoint(args.run)  # refused before anything is created or written (a SceneFormatError)
+        # (before the export: the run's splat.ply or its scene's ground truth is never replaced)
         check_mesh_out(args.run, args.run / "mesh.ply" if args.out is None else args.out, args.overwrite)
     except ConfigError as exc:
         raise UsageError(exc.key, str(exc).partition(": ")[2]) from None

@@ -67,16 +67,11 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
         train=base,
     )
     command = parse_options(ReconstructCommand, argv, PROG, default, compact=True)
-    problem = command.train.problem()  # (TrainConfig.validate's, naming the option)
-    if problem:
+    if problem := command.train.problem():  # (TrainConfig.validate's, naming the option)
         raise UsageError(option_names(command.train).get(problem[0], problem[0]), problem[1])
     if late := [start for start in command.train.never_started() if start.split()[0] in from_file]:
-        log.warning(
-            "%s sets %s: at or past --iterations %d, never reached (step numbers do not scale with --iterations)",
-            given.config,
-            ", ".join(late),
-            command.train.iterations,
-        )
+        message = "%s sets %s: at or past --iterations %d, never reached (step numbers do not scale with --iterations)"
+        log.warning(message, given.config, ", ".join(late), command.train.iterations)
     return command
 
 

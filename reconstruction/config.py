@@ -172,8 +172,7 @@ class TrainConfig:
     def validate(self, names: dict[str, str] | None = None) -> None:
         """A ConfigError for the first setting out of its range, naming it (as ``names[field]`` when given,
         e.g. the command-line option) and the range."""
-        problem = self.problem()
-        if problem:
+        if problem := self.problem():
             raise ConfigError((names or {}).get(problem[0], problem[0]), problem[1])
 
     def problem(self) -> tuple[str, str] | None:
@@ -258,8 +257,7 @@ class TrainConfig:
             config = cls(**data, init=init, densify=densify)
         except (TypeError, ValueError, AttributeError) as exc:
             raise ConfigError("config", f"not a training config: {exc}", source) from None
-        problem = config.problem()
-        if problem:
+        if problem := config.problem():
             raise ConfigError(*problem, source)
         return config
 

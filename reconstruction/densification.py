@@ -151,8 +151,7 @@ def _rebuild(
     for name in tuple(gaussians.params) if names is None else names:
         old = gaussians.params[name]
         param = torch.nn.Parameter(new_param(name, old.detach()).contiguous())
-        optimizer = optimizers.get(name)
-        if optimizer is not None:
+        if (optimizer := optimizers.get(name)) is not None:
             moments = optimizer.state.pop(old, {})
             for key, value in moments.items():
                 if key != "step" and torch.is_tensor(value) and value.shape == old.shape:

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from tacsplat.errors import SceneFormatError
-from tacsplat.files import atomic_write, storage_error
+from tacsplat.files import atomic_write
 from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.gaussians import Gaussians
@@ -39,7 +39,7 @@ from tacsplat.reconstruction.metrics import (
     psnr,
     ssim,
 )
-from tacsplat.reconstruction.ply import save_ply
+from tacsplat.reconstruction.ply import make_parent, save_ply
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, run_scene
 from tacsplat.reconstruction.shading import Look
@@ -311,13 +311,8 @@ def evaluate_views(
             radius = None if ground_truth is None else ground_truth.radius
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth, radius, seen)
     if too_small:
-        sizes = ", ".join(sorted(set(too_small)))
-        log.warning(
-            "test views of %s px are smaller than the %dx%d window of SSIM: not measured (ssim null)",
-            sizes,
-            SSIM_WINDOW,
-            SSIM_WINDOW,
-        )
+        message = "test views of %s px are smaller than the %dx%d window of SSIM: not measured (ssim null)"
+        log.warning(message, ", ".join(sorted(set(too_small))), SSIM_WINDOW, SSIM_WINDOW)
     cd = accuracy = completeness = cd_seen = cd_unseen = unseen_fraction = float("nan")
     reference = None if ground_truth is None else ground_truth.reference([f.id for f in frames])
     if reference is not None:
@@ -411,10 +406,7 @@ def save_comparison(
 def write_png(path: Path, rgb: np.ndarray) -> None:
     """An RGB uint8 image [H, W, 3] as a PNG at ``path`` (its folder created), replaced atomically: a full or
     read-only disk is a StorageError naming the file (``cv2.imwrite`` would only return False)."""
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise storage_error(exc, path.parent) from None
+    make_parent(path)
     atomic_write(path, cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))[1].tobytes())
 
 

@@ -33,9 +33,10 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from tacsplat.errors import ConfigError, InvalidInputError
-from tacsplat.files import atomic_file, atomic_write, storage_error
+from tacsplat.files import atomic_file, atomic_write
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction.metrics import finite_or_none, ground_truth_surface, mesh_metrics
+from tacsplat.reconstruction.ply import make_parent
 from tacsplat.types import CameraIntrinsics
 
 SLAB_VOXELS = 2_000_000  # voxels projected at once (memory: about 100 bytes each)
@@ -398,10 +399,7 @@ def export_mesh(
     metrics_path = run_dir / "metrics.json"
     default = out.resolve() == (run_dir / "mesh.ply").resolve()
     recorded = truth is not None and (record is not None or default) and metrics_path.is_file()
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)  # (only now: a failed export creates no folder)
-    except OSError as exc:
-        raise storage_error(exc, out.parent) from None
+    make_parent(out)  # (only now: a failed export creates no folder)
     with atomic_file(out) as f:  # the mesh goes to a temporary sibling, renamed over ``out`` when the block ends
         mesh_ply(extracted).write(f)
         if recorded:  # before that rename: a mesh file on disk has its metrics recorded

@@ -47,10 +47,7 @@ def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
     created); returns the PLY's path. Both files are written in full before either replaces its old one, so a full
     or read-only disk (a StorageError naming the file) leaves the old pair as it was and no temporary file."""
     path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise storage_error(exc, path.parent) from None
+    make_parent(path)
     p = {k: v.detach().cpu().float() for k, v in gaussians.params.items()}
     n = len(gaussians)
     rest = torch.zeros(n, INRIA_REST, 3)
@@ -70,6 +67,14 @@ def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
         with atomic_file(path) as f:
             f.write(ply.getvalue())
     return path
+
+
+def make_parent(path: Path) -> None:
+    """Create the folder of ``path`` (and its parents); a full or read-only disk is a StorageError naming it."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise storage_error(exc, path.parent) from None
 
 
 def outward_normals(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
@@ -124,8 +129,7 @@ def load_ply(path: str | Path) -> Gaussians:
     file_degree = next((d for d in range(MAX_SH_DEGREE + 1) if 3 * (num_sh_bases(d) - 1) == num_rest), None)
     if file_degree is None:
         raise SceneFormatError(path, "f_rest_*", f"{num_rest} higher-order SH properties match no SH degree <= 3")
-    missing = [name for name in _property_names(num_rest) if name not in names and name[0] != "n"]
-    if missing:
+    if missing := [name for name in _property_names(num_rest) if name not in names and name[0] != "n"]:
         raise SceneFormatError(path, missing[0], "property missing from the vertex element")
 
     def cols(*keys: str) -> torch.Tensor:

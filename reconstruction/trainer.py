@@ -193,8 +193,7 @@ class Trainer:
             return
         cfg, dev = self.config, self.device
         scene = scene_at(self.scene, factor)
-        frames = training_frames(scene, cfg.train_views)
-        self.train_frames = frames
+        self.train_frames = frames = training_frames(scene, cfg.train_views)
         self.Ks = camera_tensors(frames)[1].to(dev)
         images = [scene.load_image(f) for f in frames]  # [H, W, 3] float32 numpy
         backgrounds = [background_image(im, cfg.background) for im in images]
@@ -323,9 +322,7 @@ class Trainer:
         x0, y0, w, h = self.windows[view]  # the pixels this step trains on (crop_margin), and their intrinsics
         size, K, full = (w, h), self.window_Ks[view], self.train_frames[view].intrinsics
         rows, cols = slice(y0, y0 + h), slice(x0, x0 + w)
-        active_degree = (
-            cfg.sh_degree if cfg.sh_degree_interval == 0 else min(cfg.sh_degree, self.step // cfg.sh_degree_interval)
-        )
+        degree = min(cfg.sh_degree, self.step // cfg.sh_degree_interval) if cfg.sh_degree_interval else cfg.sh_degree
         with_depth = cfg.lambda_s > 0 and self.step >= cfg.smoothness_start_iter
         with_normals = cfg.lambda_depth_normal > 0 and self.step >= cfg.depth_normal_start_iter
         out = shading.render(
@@ -333,7 +330,7 @@ class Trainer:
             self.viewmats[view : view + 1],
             K[None],
             *size,
-            sh_degree=active_degree,
+            sh_degree=degree,
             backend=cfg.backend,
             depth_mode="D" if with_depth or with_normals else None,
             normals=with_normals,
@@ -365,12 +362,9 @@ class Trainer:
                 subset = torch.randperm(len(points), generator=self.generator, device=self.device)
                 subset = subset[: cfg.touch_points_per_step]
                 points, candidates = points[subset], candidates[subset]
-            moves = cfg.touch_loss_moves_shape
-            shape = (g.means, *((g.quats, g.scales) if moves else (g.quats.detach(), g.scales.detach())))
-            shape += (g.opacities, candidates)
-            transmittance = losses.transmittance_loss(
-                points, *shape, cfg.touch_top_k, cfg.touch_max_distance, fused=self.fused_losses
-            )
+            quats, scales = (g.quats, g.scales) if cfg.touch_loss_moves_shape else (g.quats.detach(), g.scales.detach())
+            shape = (g.means, quats, scales, g.opacities, candidates, cfg.touch_top_k, cfg.touch_max_distance)
+            transmittance = losses.transmittance_loss(points, *shape, fused=self.fused_losses)
             add("transmittance", cfg.lambda_t, transmittance)
         if cfg.lambda_albedo_smoothness > 0 and out.albedo is not None:
             if view not in self._pair_weights and cfg.albedo_smoothness_beta > 0:
@@ -481,16 +475,9 @@ class Trainer:
                 self.gaussians, self.scene, frames, cfg.background, cfg.backend, truth, look=self.look, progress=True
             )
         n = max(self._sum_count, 1)
-        row = {
-            "iteration": self.step,
-            "seconds": f"{self.train_seconds:.3f}",
-            "num_gaussians": len(self.gaussians),
-            "psnr": f"{metrics['psnr']:.4f}",
-            "cd": f"{metrics['cd']:.6g}",
-            "cd_paper": f"{metrics['cd_paper']:.6g}",
-            **{k: f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS},
-        }
-        self.progress.append(row)
+        row = {"iteration": self.step, "seconds": f"{self.train_seconds:.3f}", "num_gaussians": len(self.gaussians)}
+        row |= {"psnr": f"{metrics['psnr']:.4f}", **{k: f"{metrics[k]:.6g}" for k in ("cd", "cd_paper")}}
+        self.progress.append(row | {k: f"{float(self._sums[k]) / n:.6g}" for k in LOSS_TERMS})
         write_progress(self.out / "progress.csv", self.progress)
         self._sums = dict.fromkeys(LOSS_TERMS, self._zero)
         self._sum_count = 0
@@ -553,8 +540,7 @@ class Trainer:
         if self.neighbours is not None:
             self.neighbours.touch_points = self.touch_points
             self.neighbours.load_state_dict(ckpt["neighbours"])
-        progress = ckpt.get("progress")  # (checkpoints of older runs have none)
-        if progress is not None:
+        if (progress := ckpt.get("progress")) is not None:  # (checkpoints of older runs have none)
             sums = progress["sums"]  # (a term added since the checkpoint was written: nothing summed yet)
             self._sums = {k: torch.tensor(float(sums.get(k, 0.0)), device=self.device) for k in LOSS_TERMS}
             self._sum_count = int(progress["count"])

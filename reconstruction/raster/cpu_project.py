@@ -424,12 +424,9 @@ class _SphericalHarmonicsCPU(torch.autograd.Function):
     @staticmethod
     def backward(ctx, v_colors):
         (colors,) = ctx.saved_tensors
-        means, campos, coeffs, radii = ctx.arrays
-        v_coeffs = torch.empty(coeffs.shape)
-        v_means = torch.empty(means.shape)
-        _sh_backward(
-            ctx.degree, means, campos, coeffs, radii, colors.numpy(), _np(v_colors), v_coeffs.numpy(), v_means.numpy()
-        )
+        means, _, coeffs, _ = ctx.arrays
+        v_coeffs, v_means = torch.empty(coeffs.shape), torch.empty(means.shape)
+        _sh_backward(ctx.degree, *ctx.arrays, colors.numpy(), _np(v_colors), v_coeffs.numpy(), v_means.numpy())
         return None, v_means, None, v_coeffs, None
 
 

@@ -86,10 +86,8 @@ def project_gaussians(
     tx = z_safe * torch.minimum(lim_x_pos, torch.maximum(-lim_x_neg, x * rz))
     ty = z_safe * torch.minimum(lim_y_pos, torch.maximum(-lim_y_neg, y * rz))
     zeros = torch.zeros_like(z)
-    J = torch.stack([fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1).reshape(
-        z.shape + (2, 3)
-    )  # [C, N, 2, 3]
-    J_wide = J.to(wide)
+    J = torch.stack([fx * rz, zeros, -fx * tx * rz * rz, zeros, fy * rz, -fy * ty * rz * rz], dim=-1)  # [C, N, 6]
+    J_wide = J.unflatten(-1, (2, 3)).to(wide)  # [C, N, 2, 3]
     cov2d = J_wide @ covars_c @ J_wide.transpose(-1, -2)  # [C, N, 2, 2] float64
     means2d = torch.stack([fx * x * rz + cx, fy * y * rz + cy], dim=-1)  # [C, N, 2]
 
@@ -110,9 +108,8 @@ def project_gaussians(
 
     with torch.no_grad():
         visible = in_depth & positive & (opac >= ALPHA_THRESHOLD)
-        extend = torch.sqrt(2.0 * torch.log(opac.clamp_min(ALPHA_THRESHOLD) / ALPHA_THRESHOLD)).clamp_max(
-            GAUSSIAN_EXTEND
-        )
+        extend = torch.sqrt(2.0 * torch.log(opac.clamp_min(ALPHA_THRESHOLD) / ALPHA_THRESHOLD))
+        extend = extend.clamp_max(GAUSSIAN_EXTEND)
         radius_x = torch.ceil(extend * torch.sqrt(a.clamp_min(0.0)))
         radius_y = torch.ceil(extend * torch.sqrt(c.clamp_min(0.0)))
         visible &= ~((radius_x <= radius_clip) & (radius_y <= radius_clip))
@@ -162,10 +159,7 @@ def tile_intersections(
     tile_y = y0[owner] + local // nx[owner]
     tile_ids = tile_y * tiles_x + tile_x
     # rank Gaussians by (depth, index), then sort intersections by (tile, rank)
-    depth_rank = torch.empty_like(visible)
-    depth_rank[torch.sort(depths[visible].detach(), stable=True).indices] = torch.arange(
-        visible.numel(), device=visible.device
-    )
+    depth_rank = torch.sort(depths[visible].detach(), stable=True).indices.argsort()  # the inverse permutation
     order = torch.sort(tile_ids * visible.numel() + depth_rank[owner]).indices
     return tile_ids[order], visible[owner[order]]
 
@@ -233,15 +227,9 @@ def rasterize_to_pixels_torch(
             xs = torch.arange(tx * tile_size, min((tx + 1) * tile_size, width), device=device)
             gy, gx = torch.meshgrid(ys, xs, indexing="ij")
             gy, gx = gy.reshape(-1), gx.reshape(-1)
+            per_gauss = (t[cam, ids] for t in (means2d, conics, colors, opacities, depths.detach()))
             color, trans, median = _composite_tile(
-                gx.to(means2d.dtype) + 0.5,
-                gy.to(means2d.dtype) + 0.5,
-                means2d[cam, ids],
-                conics[cam, ids],
-                colors[cam, ids],
-                opacities[cam, ids],
-                depths[cam, ids].detach(),
-                max_alpha,
+                gx.to(means2d.dtype) + 0.5, gy.to(means2d.dtype) + 0.5, *per_gauss, max_alpha
             )
             drawn.append((gy * width + gx, color, trans, median))
         if not drawn:  # nothing drawn: copy zero pixels, so that every input still gets a (zero) gradient

@@ -189,9 +189,7 @@ def rasterization(
         _check_tensor("backgrounds", backgrounds, (n_cams, n_channels), dtype, device)
     named = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks)
     _check_values(named if backgrounds is None else {**named, "backgrounds": backgrounds}, Ks)
-    if not (
-        isinstance(width, numbers.Integral) and isinstance(height, numbers.Integral) and width >= 1 and height >= 1
-    ):
+    if not all(isinstance(v, numbers.Integral) and v >= 1 for v in (width, height)):
         raise InvalidInputError(f"width and height must be positive ints, got {width!r} x {height!r}")
     width, height = int(width), int(height)
     if render_mode not in RENDER_MODES:
