@@ -73,13 +73,8 @@ def comma_separated_ints(text: str, option: str) -> tuple[int, ...]:
 
 
 def first_repeat(values):
-    """The first of ``values`` that is there twice (None when each is there once)."""
-    seen = set()
-    for value in values:
-        if value in seen:
-            return value
-        seen.add(value)
-    return None
+    """The first of ``values`` (a sequence) that is there twice (None when each is there once)."""
+    return next((value for i, value in enumerate(values) if value in values[:i]), None)
 
 
 def options_error(exc: ConfigError, options: dict[str, str] | None = None) -> UsageError:

@@ -39,7 +39,7 @@ from typing import Annotated, Literal
 
 import tyro
 
-from tacsplat.apps.executors import ExecutorOptions, Executors
+from tacsplat.apps.executors import ExecutorOptions, Executors, run_jobs
 from tacsplat.errors import ConfigError, SceneFormatError, pydantic_problem
 from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
@@ -118,6 +118,23 @@ def capture_copies_runs(capture: BatchJob, copies: list[SceneCopyJob], run) -> l
     return [capture] + [replace(job, needs=(capture.name,)) if isinstance(job, SceneCopyJob) else job for job in jobs]
 
 
+def _renamed(exc: ConfigError, names: dict[str, str]) -> ConfigError:
+    """``exc`` naming ``names[key]`` instead of its key (the same key when it is not in ``names``)."""
+    return ConfigError(names.get(exc.key, exc.key), str(exc).removeprefix(f"{exc.key}: "))
+
+
+def _refuse(out: Path, changes: list[str], made: str, make: str, folder: str) -> None:
+    """A benchmark's refusal of the folder ``out`` that was ``made`` (captured, trained) with other settings
+    (``changes``), if any: a ConfigError on ``--out`` saying to delete that ``folder`` to ``make`` it again, or to
+    use those options."""
+    if changes:
+        raise ConfigError(
+            "--out",
+            f"{out} was {made} with other settings ({', '.join(changes)}): use the options it was {made} with or a "
+            f"new --out, or delete that {folder} to {make} it again",
+        )
+
+
 def check_bench_jobs(jobs, fields: dict[str, str]) -> None:
     """A bench's ``jobs`` checked as a batch file's are (:meth:`BatchJob.check`: the rig's and the trainer's
     limits), before anything runs or is made; a ConfigError naming the bench config's field otherwise (``fields``: a
@@ -126,7 +143,7 @@ def check_bench_jobs(jobs, fields: dict[str, str]) -> None:
         try:
             job.check()
         except ConfigError as exc:
-            raise ConfigError(fields.get(exc.key, exc.key), str(exc).removeprefix(f"{exc.key}: ")) from None
+            raise _renamed(exc, fields) from None
 
 
 _RIG_FIELDS = {
@@ -172,7 +189,7 @@ class CaptureJob(BatchJob):
         try:
             self.rig()  # validated as a rig config
         except ConfigError as exc:  # its field named as in a batch file
-            raise ConfigError(_RIG_FIELDS.get(exc.key, exc.key), str(exc).removeprefix(f"{exc.key}: ")) from None
+            raise _renamed(exc, _RIG_FIELDS) from None
 
     def complete(self) -> bool:
         return (self.out / CAPTURE_MARKER).is_file()
@@ -208,13 +225,8 @@ class CaptureJob(BatchJob):
     def refuse_changed_settings(self, more_grasps_ok: bool = False) -> None:
         """A benchmark's check before it runs: a finished capture made with other settings than this job's is an
         error on ``--out`` (:meth:`changed_settings`), not a scene silently reused."""
-        if changes := self.changed_settings(more_grasps_ok):
-            raise ConfigError(
-                "--out",
-                f"{self.out} was captured with other settings ({', '.join(changes)}): use the options it was "
-                "captured with or a new --out, or delete that scene folder and the runs trained on it to capture it "
-                "again",
-            )
+        changes = self.changed_settings(more_grasps_ok)
+        _refuse(self.out, changes, "captured", "capture", "scene folder and the runs trained on it")
 
     def warm_up(self) -> None:
         import tacsplat.acquisition.sim_capture  # noqa: F401
@@ -262,8 +274,7 @@ class ReconstructJob(BatchJob):
         super().check()
         if clash := [key for key in self.overrides if key in {f.name for f in fields(self)}]:
             raise ConfigError(
-                f"overrides.{clash[0]}",
-                f"a field of the job: set `{clash[0]}:` beside `overrides:`, not in them",
+                f"overrides.{clash[0]}", f"a field of the job: set `{clash[0]}:` beside `overrides:`, not in them"
             )
         self.config().validate()
 
@@ -321,13 +332,7 @@ class ReconstructJob(BatchJob):
     def refuse_changed_settings(self) -> None:
         """A benchmark's check before it runs: a finished or interrupted run trained with other settings than this
         job's is an error on ``--out`` (:meth:`changed_settings`), not a number silently reused or resumed."""
-        if changes := self.changed_settings():
-            raise ConfigError(
-                "--out",
-                f"{self.out} was trained with other settings ({', '.join(changes)}): use the "
-                "options it was trained with or a new --out, or delete that run folder to train it "
-                "again",
-            )
+        _refuse(self.out, self.changed_settings(), "trained", "train", "run folder")
 
     def gpus(self, cluster_has_gpus: bool) -> float:
         """One GPU for a CUDA training (``auto`` trains on CUDA where the cluster has GPUs)."""
@@ -481,9 +486,8 @@ def _in_needs_order(jobs: list, path: Path) -> list:
                 f"{jobs[0].name!r})",
                 path,
             )
-    sorter = TopologicalSorter({job.name: job.needs for job in jobs})
     try:
-        sorter.prepare()
+        TopologicalSorter({job.name: job.needs for job in jobs}).prepare()
     except CycleError as exc:
         cycle = exc.args[1][:0:-1]  # (graphlib lists each job before the jobs that need it, the first twice)
         first = min(range(len(cycle)), key=lambda k: index[cycle[k]])
@@ -494,10 +498,9 @@ def _in_needs_order(jobs: list, path: Path) -> list:
             path,
         ) from None
     order: list = []
-    placed: set[str] = set()
     while len(order) < len(jobs):  # next: the first job of the file whose needs are all in order
+        placed = {job.name for job in order}
         order.append(next(job for job in jobs if job.name not in placed and placed.issuperset(job.needs)))
-        placed.add(order[-1].name)
     return order
 
 
@@ -562,27 +565,18 @@ def _relative(path: Path, base: Path) -> str:
 def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) -> list[dict]:
     """Run a batch (:func:`~tacsplat.apps.executors.run_jobs`), writing ``out/results.csv`` as runs finish;
     returns its rows. A :class:`~tacsplat.apps.executors.BatchError` at the end when jobs failed."""
-    from tacsplat.apps.executors import run_jobs
     from tacsplat.apps.report import number, write_csv
 
     out = Path(out)
+    kept = {
+        ReconstructJob: "a run trained with other settings (%s); it is kept, or resumed, as it was trained (delete "
+        "the folder to train it anew)",
+        CaptureJob: "a capture made with other settings (%s); it is kept as it was captured (delete the folder to "
+        "capture it anew)",
+    }
     for job in jobs:  # kept, not refused: a batch file says what each job is, and a folder may be reused on purpose
-        if isinstance(job, ReconstructJob) and (changes := job.changed_settings()):
-            log.warning(
-                "%s: %s holds a run trained with other settings (%s); it is kept, or resumed, as it was "
-                "trained (delete the folder to train it anew)",
-                job.name,
-                job.out,
-                ", ".join(changes),
-            )
-        elif isinstance(job, CaptureJob) and (changes := job.changed_settings()):
-            log.warning(
-                "%s: %s holds a capture made with other settings (%s); it is kept as it was captured (delete the "
-                "folder to capture it anew)",
-                job.name,
-                job.out,
-                ", ".join(changes),
-            )
+        if type(job) in kept and (changes := job.changed_settings()):
+            log.warning("%s: %s holds " + kept[type(job)], job.name, job.out, ", ".join(changes))
 
     def on_done(job, summary: dict) -> str | None:
         if run_folder(job) is None:
@@ -625,8 +619,7 @@ def register(cli) -> None:
 def _run(args: BatchCommand) -> int:
     from tacsplat.datasets.outputs import claim_output_dir
 
-    executor = args.executors.run_jobs_args()
-    out = args.out
+    executor, out = args.executors.run_jobs_args(), args.out
     jobs = load_batch(args.jobs, out)
     started = time.perf_counter()
     with claim_output_dir(out, "--out"):

@@ -16,6 +16,9 @@ from typing import Annotated, Literal
 
 import tyro
 
+from tacsplat.errors import ConfigError, UsageError
+from tacsplat.options import comma_separated_ints
+
 PARITY_FILE = "cpu.json"  # in a --prepare folder, beside its scene/
 
 
@@ -72,8 +75,6 @@ def _run(args: BenchGpu) -> int:
     import torch
 
     from tacsplat.apps.paper_bench import bench_row
-    from tacsplat.errors import UsageError
-    from tacsplat.options import comma_separated_ints
 
     seeds = comma_separated_ints(args.parity_seeds, "--parity-seeds")
     methods = [name.strip() for name in args.methods.split(",") if name.strip()]
@@ -98,8 +99,7 @@ def _run(args: BenchGpu) -> int:
         bench_row(name, "--methods")
     source = source_hash()
     parity = _read_parity(args.parity, source) if args.parity else None
-    out = args.out
-    work = args.work or out / "work"
+    out, work = args.out, args.work or args.out / "work"
     started = time.perf_counter()
     scene = _capture(args, work / "scene", args.resolution, args.views, args.test_views)
     report = {
@@ -192,8 +192,6 @@ def _prepare(folder: Path, args, seeds: tuple[int, ...]) -> None:
 
 def _read_parity(folder: Path, here: str) -> dict:
     """The record of a ``--prepare`` folder (a warning when its CPU runs ran other source than ``here``)."""
-    from tacsplat.errors import ConfigError
-
     path = folder / PARITY_FILE
     try:
         record = json.loads(path.read_text())

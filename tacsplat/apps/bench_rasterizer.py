@@ -13,6 +13,8 @@ from typing import Annotated
 
 import tyro
 
+from tacsplat.errors import UsageError
+
 
 def random_scene(
     n: int,
@@ -42,8 +44,7 @@ def random_scene(
     py = torch.rand(n, generator=g, dtype=f64) * height
     means = torch.stack([(px - width / 2) / focal * depth, (py - height / 2) / focal * depth, depth], dim=-1)
     radius = radius_px[0] + torch.rand(n, generator=g, dtype=f64) * (radius_px[1] - radius_px[0])
-    sigma_px = radius / 3.0
-    base = sigma_px * depth / focal  # world-space standard deviation giving that pixel size
+    base = radius / 3.0 * depth / focal  # world-space standard deviation giving that pixel size (sigma: radius / 3)
     scales = base[:, None] * torch.exp((torch.rand(n, 3, generator=g, dtype=f64) - 0.5) * 0.8)
     quats = torch.randn(n, 4, generator=g, dtype=f64)
     opacities = 0.05 + 0.9 * torch.rand(n, generator=g, dtype=f64)
@@ -63,8 +64,7 @@ def random_scene(
     Ks = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1]], dtype=f64).repeat(n_cams, 1, 1)
     scene = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats, Ks=Ks)
     scene = {k: v.to(dtype).contiguous() for k, v in scene.items()}
-    scene.update(width=width, height=height, sh_degree=sh_degree)
-    return scene
+    return scene | dict(width=width, height=height, sh_degree=sh_degree)
 
 
 DEFAULT_SIZES = ("128x128:5000", "256x256:20000", "256x256:100000", "512x512:100000")
@@ -80,8 +80,6 @@ def parse_size(text: str) -> tuple[int, int, int]:
     except ValueError:
         size = ()
     if len(size) != 3 or min(size) < 1:
-        from tacsplat.errors import UsageError
-
         raise UsageError("--sizes", f"expected WxH:N of positive integers such as 256x256:20000, got {text!r}")
     return size
 
@@ -263,8 +261,6 @@ class BenchRasterizer:
 
 def _handler(args: BenchRasterizer) -> int:
     import json
-
-    from tacsplat.errors import UsageError
 
     sizes = list(args.sizes or DEFAULT_SIZES)
     for text in sizes:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tacsplat.errors import ConfigError, UsageError
-from tacsplat.options import comma_separated_ints
+from tacsplat.options import comma_separated_ints, first_repeat, options_error
 
 COLUMNS = ("resolution", "iterations", "method", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")
 OPTIONS = {  # PaperBenchConfig's fields -> this command's options
@@ -29,7 +29,6 @@ def scaling_methods(text: str) -> tuple[str, ...]:
     """The rows of ``--methods``: methods or ablation rows, as `tacsplat bench paper --methods` takes them; a
     UsageError (exit 2) naming ``--methods`` otherwise."""
     from tacsplat.apps.paper_bench import bench_row
-    from tacsplat.options import first_repeat
 
     methods = tuple(v.strip() for v in text.split(",") if v.strip())
     if not methods:
@@ -48,7 +47,6 @@ def scaling_benches(out: Path, obj: str, resolutions, step_counts, methods, seed
     """``(resolution, steps, bench)``: the `bench paper` slice of each resolution and step count, all validated
     before any runs; a UsageError naming the option at fault otherwise."""
     from tacsplat.apps.paper_bench import PaperBench, PaperBenchConfig
-    from tacsplat.options import first_repeat, options_error
 
     for option, values in (("--resolutions", resolutions), ("--steps", step_counts)):
         if (value := first_repeat(values)) is not None:  # (a slice's folder)

@@ -201,8 +201,7 @@ def profile_resolution(out: Path, resolution: int, iterations: int, method: str,
     capture = bench.capture_job(obj, "minimal", seed)
     capture()  # (once: a finished capture is kept)
     config = row_config(method, bench.config.preset, iterations)
-    config.seed = seed
-    config.device = "cpu"
+    config.seed, config.device = seed, "cpu"
     with tempfile.TemporaryDirectory() as run_dir, instrumented(PhaseTimer()) as steps:
         trainer = Trainer(scene_at(Scene.load(capture.out), config.downscale), run_dir, config)
         trainer.run(show_progress=False)

@@ -216,9 +216,8 @@ def run_jobs(
         if executor == "local":
             _run_local(todo, batch)
         elif executor == "processes":  # a dead worker fails the jobs it ran; a new set of workers runs the rest
-            pending = list(todo)
-            while pending:
-                pending = _run_pool(pending, batch, workers or default_workers())
+            while todo:
+                todo = _run_pool(todo, batch, workers or default_workers())
         else:
             _run_ray(todo, batch, retries)
     finally:
@@ -279,16 +278,13 @@ class _Batch:
         self.bar.update(1)
         self.show()
 
-    def failed(self, job: Job, error: str, attempts: int) -> None:
-        self.ended(job, "failed", error, attempts)
-
     def blocked_by(self, job: Job) -> str | None:
         return next((n for n in job.needs if n in self.outcome.failed), None)
 
     def not_run(self, job: Job, need: str) -> None:
         """``job`` is not run: it needs ``need``, which failed (listed in failures.csv, so a rerun runs it)."""
         self.outcome.not_run.append(job.name)
-        self.failed(job, f"not run: needs {need}, which failed", attempts=0)
+        self.ended(job, "failed", f"not run: needs {need}, which failed", attempts=0)
 
     def _write_failures(self) -> None:
         from tacsplat.apps.report import write_csv
@@ -463,7 +459,7 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
                     batch.ended(job, *future.result())
                 except futures.process.BrokenProcessPool:
                     for lost in (job, *running.values()):
-                        batch.failed(lost, "its worker process died (out of memory, or killed)", attempts=1)
+                        batch.ended(lost, "failed", "its worker process died (out of memory, or killed)")
                     running.clear()
                     return pending
     except KeyboardInterrupt:
@@ -621,7 +617,7 @@ def _run_ray(todo: list[Job], batch: _Batch, retries: int) -> None:
                 batch.not_run(job, need)
                 continue
             if too_big := _too_big(job.cpus, job.gpus(has_gpus), nodes):
-                batch.failed(job, too_big, attempts=0)
+                batch.ended(job, "failed", too_big, attempts=0)
                 continue
             needs = [refs[n] for n in job.needs if n in refs]
             refs[job.name] = execute.options(
@@ -672,7 +668,7 @@ def _collect(job: Job, ref, batch: _Batch, attempts: int) -> None:
             batch.not_run(job, need)
             return
         cause = exc.cause if isinstance(exc, ray.exceptions.RayTaskError) else exc
-        batch.failed(job, _describe(cause).strip().splitlines()[0], attempts)
+        batch.ended(job, "failed", _describe(cause).strip().splitlines()[0], attempts)
         return
     if status == "blocked":
         batch.not_run(job, value)

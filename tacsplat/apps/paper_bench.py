@@ -54,7 +54,7 @@ import tyro
 
 from tacsplat.apps import report
 from tacsplat.apps.batch import CaptureJob, ReconstructJob, SceneCopyJob, check_bench_jobs
-from tacsplat.apps.executors import ExecutorOptions, Executors
+from tacsplat.apps.executors import ExecutorOptions, Executors, resolve_executor, run_jobs, side_by_side
 from tacsplat.errors import ConfigError, UsageError
 from tacsplat.options import comma_separated_ints, first_repeat, options_error
 from tacsplat.reconstruction.methods import DEFAULT_METHOD, METHODS, PAPER_METHODS, get_method, mechanisms, method_label
@@ -347,7 +347,6 @@ class PaperBench:
         """Capture and train everything not done yet (``executor``: :func:`~tacsplat.apps.executors.run_jobs`'s
         executor, ray_address and retries), writing the report as runs finish; returns the results rows. A
         BatchError at the end when jobs failed (listed in failures.csv)."""
-        from tacsplat.apps.executors import resolve_executor, side_by_side
         from tacsplat.datasets.outputs import claim_output_dir
 
         executor["executor"] = resolve_executor(executor.get("executor", "local"))
@@ -362,8 +361,6 @@ class PaperBench:
 
     def _run(self, progress: bool, wall_note: str, executor: dict) -> list[dict]:
         """:meth:`run` in the claimed folder."""
-        from tacsplat.apps.executors import run_jobs
-
         runs = self.runs()
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
@@ -447,8 +444,7 @@ def _number(value) -> float:
 def _in_dataset_units(metrics: dict, scene: Path) -> float:
     """A run's ``cd_paper`` (squared, in units of the ground-truth radius) in the units of the dataset its scene was
     imported from (``scale``: metres per dataset unit), as the paper reports it."""
-    cd, radius = _number(metrics.get("cd_paper")), _number(metrics.get("gt_radius"))
-    return cd * (radius / _dataset_scale(scene)) ** 2
+    return _number(metrics.get("cd_paper")) * (_number(metrics.get("gt_radius")) / _dataset_scale(scene)) ** 2
 
 
 @functools.cache
@@ -706,10 +702,8 @@ def _first_view_truth(
         return np.zeros(gt_rgb.shape[:2], np.float32), None, None
     gt_normal = ground_truth_normals(scene, frame, gt_depth)
     ground_truth = load_ground_truth(scene, [frame], train_frames=training_frames(scene, train_views))
-    gt_seen = None
-    if ground_truth is not None and ground_truth.seen is not None:
-        gt_seen = seen_pixels(gt_depth, ground_truth.seen[frame.id])
-    return gt_depth, gt_normal, gt_seen
+    seen = getattr(ground_truth, "seen", None)  # (None without a ground truth)
+    return gt_depth, gt_normal, None if seen is None else seen_pixels(gt_depth, seen[frame.id])
 
 
 def _stale_note(stale: list[tuple[Run, list[str]]], out: Path) -> str:
@@ -804,12 +798,9 @@ def write_paper_report(
             lines += [f"![error vs run time, {setting}]({png.name})", ""]
         drawable = [r for r in shown if (r.out / "checkpoint.pt").is_file()]  # (what a view is rendered from)
         for obj in dict.fromkeys(r.object for r in drawable):
-            panels, gt_rgb, gt_depth, gt_normal, gt_seen = render_first_test_view(
-                [r for r in drawable if r.object == obj], first_views
-            )
-            title = f"{obj}, {setting}: first test view"
-            path = out / f"renders_{obj}_{setting}.png"
-            png = report.render_grid(panels, gt_rgb, gt_depth, path, title, gt_normal, gt_seen)
+            views = render_first_test_view([r for r in drawable if r.object == obj], first_views)
+            title, path = f"{obj}, {setting}: first test view", out / f"renders_{obj}_{setting}.png"
+            png = report.render_grid(*views[:3], path, title, *views[3:])  # (panels, gt_rgb, gt_depth, ...)
             lines += [f"![renders {obj} {setting}]({png.name})", ""]
         if left_out := [str(r.out.relative_to(out)) for r in shown if r not in drawable]:
             lines += [f"Not in the render grid (no checkpoint.pt to render): {', '.join(left_out)}.", ""]
@@ -885,15 +876,13 @@ class PaperBenchCommand:
                 if not values:  # ('' would otherwise mean the default: every object, a whole suite)
                     raise UsageError(f"--{key}", f"names nothing ({text!r}); give at least one, or leave it out")
                 setattr(config, key, values)
-        for key in ("resolution", "iterations", "full_views", "test_views"):
-            if getattr(self, key) is not None:
+        for key in ("resolution", "iterations", "full_views", "test_views", "preset", "texture", "downscale", "mesh"):
+            if getattr(self, key) is not None:  # (None: the config's default)
                 setattr(config, key, getattr(self, key))
         if self.seeds is not None:
             config.seeds = comma_separated_ints(self.seeds, "--seeds")
-        config.preset, config.texture = self.preset, self.texture
         config.touch_model = self.touch_model or ("gel" if self.dataset is None else "paper")
         config.dataset = None if self.dataset is None else str(self.dataset)
-        config.downscale, config.mesh = self.downscale, self.mesh
         config.validate()
         return config
 

@@ -154,6 +154,12 @@ def best_rows(values: np.ndarray, better: Better) -> list[set[int]]:
     return [{i for i in np.flatnonzero(np.isfinite(column)) if column[i] == np.nanmin(column)} for column in score.T]
 
 
+SPREAD_NOTE = (  # under a table with a "Seed s.d." column
+    "\n*Seed s.d.: the standard deviation over the seeds of each seed's average over the objects; a "
+    "difference in Avg. smaller than it may be the seeds' luck.*\n"
+)
+
+
 def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     """A paper-style Markdown table of one metric in one setting; the best value per column in bold."""
     heading, better, decimals = METRICS[metric]
@@ -167,13 +173,7 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
         cells = [f"**{text}**" if i in best[j] else text for j, text in enumerate(cells)]
         table.append([method_label(method), *cells] + ([number(spread[method], decimals)] if with_spread else []))
     lines = md_table(["Method", *objects, "Avg.", *(["Seed s.d."] if with_spread else [])], table)
-    note = (
-        "\n*Seed s.d.: the standard deviation over the seeds of each seed's average over the objects; a "
-        "difference in Avg. smaller than it may be the seeds' luck.*\n"
-        if with_spread
-        else ""
-    )
-    return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n" + note
+    return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n" + (SPREAD_NOTE if with_spread else "")
 
 
 def pyplot():

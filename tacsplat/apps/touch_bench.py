@@ -46,7 +46,7 @@ from tacsplat.apps.batch import (
     capture_copies_runs,
     check_bench_jobs,
 )
-from tacsplat.apps.executors import ExecutorOptions, Executors
+from tacsplat.apps.executors import ExecutorOptions, Executors, run_jobs
 from tacsplat.errors import ConfigError
 from tacsplat.options import comma_separated_ints, first_repeat, options_error
 from tacsplat.reconstruction.methods import METHODS, get_method
@@ -150,14 +150,8 @@ class TouchBench:
     def reconstruct_job(self, seed: int, copy: SubsampleJob) -> ReconstructJob:
         c = self.config
         out = self.out / "runs" / c.object / f"t{copy.count:03d}-s{seed}"
-        return ReconstructJob(
-            out=out,
-            scene=copy.out,
-            method=c.method,
-            seed=seed,
-            iterations=c.iterations,
-            name=f"reconstruct {out.relative_to(self.out / 'runs')}",
-        )
+        name = f"reconstruct {out.relative_to(self.out / 'runs')}"
+        return ReconstructJob(out=out, scene=copy.out, method=c.method, seed=seed, iterations=c.iterations, name=name)
 
     def results(self) -> list[dict]:
         """One row per finished run, in the order of the sweep; the touches each had from its copy's marker, or
@@ -181,22 +175,14 @@ class TouchBench:
                 touches = json.loads(copy.marker.read_text())["touches"]
             else:
                 touches = int(known) if (known := reported.get((str(seed), str(count)))) else None
-            rows.append(
-                {
-                    "object": c.object,
-                    "seed": seed,
-                    "requested_touches": count,
-                    "touches": touches,
-                    **{k: metrics.get(k) for k in ("cd", "psnr", "ssim", "train_seconds", "num_gaussians")},
-                }
-            )
+            row = dict(object=c.object, seed=seed, requested_touches=count, touches=touches)
+            rows.append(row | {k: metrics.get(k) for k in TOUCH_COLUMNS[len(row) :]})  # (and the run's metrics)
         return rows
 
     def run(self, progress: bool = True, **executor) -> list[dict]:
         """Capture, copy and train whatever is not done yet (``executor``: the executor, ray_address and retries of
         :func:`~tacsplat.apps.executors.run_jobs`), then write the report; returns the rows. A BatchError at the
         end when jobs failed (listed in failures.csv)."""
-        from tacsplat.apps.executors import run_jobs
         from tacsplat.datasets.outputs import claim_output_dir
 
         def on_done(job, metrics: dict) -> str | None:

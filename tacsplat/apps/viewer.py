@@ -319,11 +319,9 @@ def initial_viewpoint(
 def _look_from(server, centre: np.ndarray, extent: float, scene=None) -> None:
     cameras = None if scene is None else np.array([f.T_world_cam[:3, 3] for f in scene.frames])
     position, look_at = initial_viewpoint(centre, extent, cameras)
-    server.initial_camera.position = tuple(position)
-    server.initial_camera.look_at = tuple(look_at)
-    server.initial_camera.up = (0.0, 0.0, 1.0)
-    server.initial_camera.near = 0.01 * extent
-    server.initial_camera.far = 1000.0 * extent
+    camera = server.initial_camera
+    camera.position, camera.look_at, camera.up = tuple(position), tuple(look_at), (0.0, 0.0, 1.0)
+    camera.near, camera.far = 0.01 * extent, 1000.0 * extent
 
 
 def _add_scene(server, view: View, name: str, scene, hidden: tuple[str, ...] = ()) -> None:
@@ -534,8 +532,7 @@ def _render_button(server, view: View) -> None:
     @button.on_click
     def _(event) -> None:
         camera = event.client.camera
-        width = RENDER_WIDTH
-        height = max(1, round(width / camera.aspect))
+        width, height = RENDER_WIDTH, max(1, round(RENDER_WIDTH / camera.aspect))
         started = time.perf_counter()
         browser = None
         with contextlib.suppress(Exception):  # the browser did not answer (closed, busy): tacsplat's renders alone
