@@ -27,6 +27,7 @@ that is not the dead terminal (a log file), and nowhere otherwise.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import logging
@@ -48,7 +49,7 @@ from tacsplat.acquisition.devices import Rig
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.datasets.writer import JOURNAL
 from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError, StorageError, TacsplatError
-from tacsplat.interrupts import SignalInterrupt, signals_interrupt
+from tacsplat.interrupts import SignalInterrupt, end_signals_ignored, signals_interrupt
 
 log = logging.getLogger(__name__)
 
@@ -246,6 +247,9 @@ class CaptureSession:
                 if key.lower() in actions:
                     actions[key.lower()]()
                     self.show_status()
+                elif key.isprintable() and not key.isspace():  # (not an arrow key's escape sequence, not a space)
+                    self.say(f"key {key!r} does nothing: {KEYS_HELP}")
+                    self.show_status()
         return self.plan_complete()
 
 
@@ -281,7 +285,7 @@ def run_capture(
     hands = []  # the real rig's hand, once made: its torque-off report is the last line
     running = False  # whether the session started (the rig and the scene open)
     try:
-        with signals_interrupt(), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
+        with signals_interrupt(once=True), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
             running = True
             logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
             if logger.dropped_partial_grasp:
@@ -309,8 +313,9 @@ def run_capture(
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         code, told = 128 + signum, f"interrupted ({signal.Signals(signum).name}).\n"
-    carry_on = _carry_on(config, out) if code else ""
-    _last_words(output, f"\n{told}{carry_on}{'' if config.rig == 'sim' else _hand_line(hands)}")
+    with end_signals_ignored() if code > 128 else contextlib.nullcontext():  # (a second Ctrl-C: not cut short)
+        carry_on = _carry_on(config, out) if code else ""
+        _last_words(output, f"\n{told}{carry_on}{'' if config.rig == 'sim' else _hand_line(hands)}")
     return code
 
 

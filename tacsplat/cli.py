@@ -30,6 +30,7 @@ import sys
 
 from tacsplat import __version__
 from tacsplat.errors import TacsplatError, UsageError
+from tacsplat.interrupts import END_SIGNALS
 
 COMMAND_MODULES = (
     "tacsplat.datasets.cli",
@@ -270,6 +271,9 @@ def run() -> None:
     freeze 1.99-2.10 s; the collection adds 0.03-0.1 s). Not in :func:`main`, which tests call in a process that
     goes on."""
     code = main()
+    if code - 128 in END_SIGNALS:  # the command ended on a signal: a second one does not cut the exit short
+        for s in END_SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
     gc.collect()
     gc.freeze()
     sys.exit(code)

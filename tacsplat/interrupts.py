@@ -48,6 +48,22 @@ def signals_interrupt(signals=END_SIGNALS, *, once: bool = False):
 
 
 @contextlib.contextmanager
+def end_signals_ignored(signals=END_SIGNALS):
+    """While open (in the main thread; elsewhere nothing changes): ``signals`` are ignored, then the previous
+    handlers come back. For what a command does once a signal has ended it (its last words): a second Ctrl-C,
+    typed because the first seemed slow, must not cut them short with a traceback."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {s: signal.signal(s, signal.SIG_IGN) for s in signals}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
+
+
+@contextlib.contextmanager
 def ctrl_c_interrupts():
     """SIGINT raises KeyboardInterrupt inside the block, then the previous handler comes back (main thread only).
 

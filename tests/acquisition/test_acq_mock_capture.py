@@ -33,7 +33,7 @@ def mock_rig(tmp_path):
 def test_scripted_session_writes_a_valid_scene_that_reconstruction_opens(tmp_path, mock_rig):
     out = tmp_path / "scene"
     # 2 views, undo one, 2 more (3 train); grasps 0 and 1, undo grasp 1 (all its touches), grasps 1 and 2;
-    # an unknown key is ignored; the test view; q
+    # an unknown key does nothing but say so; the test view; q
     keys = "\n\nu\n\ngguggx\nq"
     output = io.StringIO()
     code = run_capture(load_rig(mock_rig, mock=True), out, keys=ScriptedKeys(keys), output=output)
@@ -42,6 +42,7 @@ def test_scripted_session_writes_a_valid_scene_that_reconstruction_opens(tmp_pat
     assert "undone: view 1 (train)" in text and "undone: grasp 1 (4 touches)" in text
     assert "board: seen" in text and "views: train 3/3 test 1/1 | grasps 3/3" in text
     assert "plan complete" in text
+    assert "key 'x' does nothing: [Enter] view  [g] grasp  [u] undo  [q] quit" in text
 
     scene, problems = check_scene(out)
     assert problems == []

@@ -27,8 +27,11 @@ from acq_helpers import ScriptedKeys, Terminal, capture_on_a_terminal, write_moc
 pytestmark = pytest.mark.timeout(300)
 
 
-def _capture_killed_mid_grasp(tmp_path, emu: EmulatorProcess, signum: int) -> tuple[subprocess.Popen, Terminal, Path]:
-    """One view, then a slow grasp (2 s from open to closed) that ``signum`` interrupts while the fingers close."""
+def _capture_killed_mid_grasp(
+    tmp_path, emu: EmulatorProcess, signum: int, again_after_s: float | None = None
+) -> tuple[subprocess.Popen, Terminal, Path]:
+    """One view, then a slow grasp (2 s from open to closed) that ``signum`` interrupts while the fingers close
+    (sent a second time ``again_after_s`` later, if given)."""
     rig = write_mock_rig(tmp_path, grasp={"close_speed_rad_s": 0.6}, mock_devices={"servo_port": emu.path})
     out = tmp_path / "scene"
     proc, term = capture_on_a_terminal(rig, out)
@@ -39,6 +42,9 @@ def _capture_killed_mid_grasp(tmp_path, emu: EmulatorProcess, signum: int) -> tu
         assert all(emu.torque_enabled().values())
         time.sleep(0.4)
         os.kill(proc.pid, signum)
+        if again_after_s is not None:
+            time.sleep(again_after_s)
+            os.kill(proc.pid, signum)
         proc.wait(60)
         term.wait_closed()  # the capture, and its guard, are gone: all the output is in
     finally:
@@ -77,6 +83,20 @@ def test_an_ending_signal_mid_grasp_leaves_every_servo_off_and_says_so(tmp_path,
     scene = _resume_to_the_end(tmp_path, out)
     assert [f.split for f in scene.frames] == ["train"] * 3 + ["test"]
     assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4
+
+
+@pytest.mark.parametrize("signum, gap_s", [(signal.SIGINT, 0.05), (signal.SIGTERM, 0.05)], ids=["sigint", "sigterm"])
+def test_a_second_signal_while_the_capture_ends_does_not_cut_its_last_words(tmp_path, signum, gap_s):
+    """Ctrl-C twice: the first ends the capture, the second comes while it closes the hand, writes its last words
+    or exits. The same exit and last lines as one signal; once a traceback, or a death by the signal itself."""
+    with EmulatorProcess() as emu:
+        proc, term, out = _capture_killed_mid_grasp(tmp_path, emu, signum, again_after_s=gap_s)
+        torque = emu.torque_enabled()
+    assert not any(torque.values()), torque
+    assert proc.returncode == 128 + signum, term.text[-2000:]
+    assert "Traceback" not in term.text, term.text[-2000:]
+    assert f"--out {out} --resume --mock" in term.text
+    assert term.last_line() == "Hand: torque off confirmed on all 16 servos.", term.text[-2000:]
 
 
 def test_sigkill_mid_grasp_the_guard_turns_the_torque_off(tmp_path):
