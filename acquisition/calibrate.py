@@ -93,9 +93,12 @@ def _presses(
             mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
             return presses, twin.T_hand_cam, mounts
     from tacsplat.acquisition.devices import open_rig, rig_mounts
+    from tacsplat.acquisition.mock import own_emulator
     from tacsplat.acquisition.mock_presser import EmulatorPresser
     from tacsplat.acquisition.presses import RigPressSession, TerminalPresser
 
+    if config.mock:  # refused before the hand's torque comes on
+        own_emulator(config, EmulatorPresser.needs, "press")
     fingers = [s.finger for s in config.tactile.sensors]
     say(
         f"press each fingertip on a {2000 * SPHERE_RADIUS_M:.0f} mm sphere {where} as told; a press is taken when "

@@ -156,6 +156,18 @@ def servo_angles(config: RigConfig, ticks: np.ndarray) -> np.ndarray:
     return (theta - np.asarray(e.servo_offsets())) / np.asarray(e.servo_signs())
 
 
+def own_emulator(config: RigConfig, what: str, to: str) -> None:
+    """A ConfigError when ``mock_devices.servo_port`` puts the servo emulator in a process of its own, where no one
+    does ``what`` (for ``to`` with --mock): checked before any device opens."""
+    if config.mock_devices.servo_port:
+        raise ConfigError(
+            "mock_devices.servo_port",
+            f"the servo emulator runs in another process, where no one {what}: leave servo_port out to {to} "
+            "with --mock",
+            config.source,
+        )
+
+
 class EmulatorPerson:
     """The person of ``tacsplat calibrate hand --mock``: moves each emulated servo by hand (torque off) against the
     stop a joint limit puts it at, and holds it there."""
@@ -230,15 +242,8 @@ class MockDevices:
         return self.folder / f"tactile_{finger}.avi"
 
     def own_emulator(self, what: str, to: str) -> None:
-        """A ConfigError when the servo emulator runs in a process of its own, where no one does ``what`` (for
-        ``to`` with --mock)."""
-        if self.emulator is None:
-            raise ConfigError(
-                "mock_devices.servo_port",
-                f"the servo emulator runs in another process, where no one {what}: leave servo_port out to {to} "
-                "with --mock",
-                self.config.source,
-            )
+        """A ConfigError when the servo emulator runs in a process of its own (:func:`own_emulator`)."""
+        own_emulator(self.config, what, to)
 
     def _generate(self) -> None:
         from tacsplat.drivers.optical_tactile import TactileCalibration

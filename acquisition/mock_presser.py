@@ -24,9 +24,10 @@ class EmulatorPresser:
     # the emulated press is shown at once, so this bounds only a stuck pipeline: on a loaded host the sensor's
     # frames (video decode, optical model, integration) can lag by seconds, and 2 s failed there
     timeout_s = 30.0
+    needs = "reads where its servos stand"  # what the emulator must be in this process for
 
     def __init__(self, mock: MockDevices):
-        mock.own_emulator("reads where its servos stand", "press")
+        mock.own_emulator(self.needs, "press")
         self.mock, self.config = mock, mock.config
         self.kinematics = HandKinematics()
         e = self.config.sim.true_errors

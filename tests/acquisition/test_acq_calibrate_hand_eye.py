@@ -254,3 +254,18 @@ def test_a_wall_clock_step_does_not_make_the_presses_fresh_frames_look_stale(mon
     session.poses = SimpleNamespace(camera_pose=lambda image: pose)
     presses = session.run(hand_eye_plan(["index"])[:1])
     assert len(presses) == 1 and said[-1].endswith("; ok"), said
+
+
+@pytest.mark.parametrize("command", ["hand-eye", "mounts"])
+def test_on_mock_a_servo_emulator_in_another_process_is_refused_before_any_device_opens(tmp_path, capsys, command):
+    """The emulated person must read where the servos stand: with ``mock_devices.servo_port`` they are in another
+    process, which ``calibrate hand`` refuses before connecting; so do hand-eye and mounts (no torque on first)."""
+    from tests.acquisition.acq_helpers import write_mock_rig
+
+    rig = write_mock_rig(tmp_path, mock_devices={"servo_port": str(tmp_path / "no-such-port")})
+    args = ["calibrate", command, "--rig", rig, "--out", str(tmp_path / "out.json"), "--mock"]
+    args += ["--hand-eye", str(tmp_path / "hand_eye.json")] if command == "mounts" else []
+    assert main(args) == 1  # (the rig file's mistake)
+    captured = capsys.readouterr()
+    assert "mock_devices.servo_port: the servo emulator runs in another process" in captured.err, captured.err
+    assert "torque on" not in captured.out + captured.err
