@@ -42,6 +42,24 @@ class Rig:
     mock: object | None = None  # MockDevices on --mock
 
 
+def uncalibrated_hand(config: RigConfig) -> str | None:
+    """Why the rig needs a hand calibration it does not name: a real hand's servos are mounted with unknown offsets
+    and signs, and so are the emulated ones of --mock or the twin's when ``sim.true_errors`` hides joint errors;
+    None when it names one or needs none."""
+    if config.hand.calibration:
+        return None
+    e = config.sim.true_errors
+    hidden = any(e.servo_offsets()) or any(s != 1 for s in e.servo_signs())
+    if config.rig == "real" and not config.mock:
+        return (
+            "none named: the joints are read as the servos' raw angles (sign +1, offset 0), and every fingertip and "
+            "touch is placed by them; tacsplat calibrate hand writes it"
+        )
+    if hidden:
+        return "none named, and the twin hides joint errors (sim.true_errors): tacsplat calibrate hand writes it"
+    return None
+
+
 @contextmanager
 def open_rig(
     config: RigConfig, on_hand=None, hand_eye_required: bool = True, calibrating: bool = False
@@ -93,6 +111,8 @@ def open_rig(
             WristCamera(cam_source, calibration, fps=config.camera.fps, timeout_s=config.camera.timeout_s, **reader)
         )
         hand_cal = config.path(config.hand.calibration) if config.hand.calibration else None  # --mock: as real
+        if not calibrating and (why := uncalibrated_hand(config)):
+            log.warning("hand.calibration: %s", why)
         hand = dynamixel_hand(config, mock, hand_cal)
         if on_hand is not None:
             on_hand(hand)

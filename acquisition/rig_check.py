@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 
 from tacsplat.acquisition.config import RigConfig
+from tacsplat.acquisition.devices import uncalibrated_hand
 from tacsplat.errors import TacsplatError
 from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS, JOINT_NAMES
 
@@ -164,8 +165,7 @@ def _uncalibrated_twin(rows: list[Row], config: RigConfig) -> None:
     """Append a failing row for each calibration a twin hides errors of (``sim.true_errors``) but the rig neither
     names a file for nor gives itself: a capture would take that part as nominal, as a real rig's would."""
     e = config.sim.true_errors
-    if not config.hand.calibration and (any(e.servo_offsets()) or any(s != 1 for s in e.servo_signs())):
-        why = "none named, and the twin hides joint errors (sim.true_errors): tacsplat calibrate hand writes it"
+    if why := uncalibrated_hand(config):
         rows.append(Row("hand.calibration", False, why))
     known = config.camera.hand_eye or config.camera.T_hand_cam is not None
     if not known and _is_error(e.hand_eye):
@@ -203,8 +203,8 @@ def check_rig(config: RigConfig) -> list[Row]:
 
     rows: list[Row] = []
     hand_cal = _hand_file(rows, config)
-    if not config.hand.calibration:
-        rows.append(Row("hand.calibration", False, "none named: tacsplat calibrate hand writes it"))
+    if why := uncalibrated_hand(config):
+        rows.append(Row("hand.calibration", False, why))
     sensors = config.tactile.sensors
     with MockDevices(config) if config.mock else nullcontext() as mock:
         if mock is not None:

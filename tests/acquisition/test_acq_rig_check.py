@@ -1,6 +1,7 @@
 """tacsplat rig check on the mock rig: a ready rig passes; a missing sensor, a missing servo, a stale or missing
 calibration and an unseen board are each named in the table and in the one error line (exit 1)."""
 
+import dataclasses
 import json
 import os
 import time
@@ -243,3 +244,34 @@ def test_tactile_sensors_are_asked_for_their_calibrations_size(tmp_path, capsys,
         assert code == 0 and row[0] == "ok" and row[1].startswith("160x120 at "), rows
     else:
         assert code == 1 and row[0] == "FAIL" and "asked for 160x120, the device delivers 640x480" in row[1], rows
+
+
+def test_the_shipped_mock_rig_passes_rig_check_as_its_header_says(tmp_path, capsys, monkeypatch):
+    """mock.yaml names no calibration file ("none are needed with --mock"): its emulated servos hide no joint
+    errors, so a missing hand calibration is not a failure there, as on a twin hiding none."""
+    from tacsplat.acquisition.config import example_rig
+
+    (tmp_path / "rig.yaml").write_text(example_rig("mock").read_text())
+    monkeypatch.chdir(tmp_path)
+    code, rows, err = _check("rig.yaml", capsys)
+    assert code == 0, err
+    assert "hand.calibration" not in rows
+
+
+def test_a_hand_calibration_is_needed_where_the_joints_read_off_their_truth():
+    """:func:`uncalibrated_hand`: a real rig's hand always (its servos' offsets are unknown), an emulated or twin
+    hand when ``sim.true_errors`` hides joint errors; never once one is named."""
+    from tacsplat.acquisition.config import example_rig, load_rig
+    from tacsplat.acquisition.devices import uncalibrated_hand
+
+    real = load_rig(example_rig("real"), check_files=False)
+    assert "raw angles" in uncalibrated_hand(
+        dataclasses.replace(real, hand=dataclasses.replace(real.hand, calibration=None))
+    )
+    mock = load_rig(example_rig("mock"), mock=True)
+    assert uncalibrated_hand(mock) is None
+    offsets = dataclasses.replace(mock.sim.true_errors, joint_offsets_rad={"ring_0": 0.05})
+    hidden = dataclasses.replace(mock, sim=dataclasses.replace(mock.sim, true_errors=offsets))
+    assert "hides joint errors" in uncalibrated_hand(hidden)
+    named = dataclasses.replace(hidden, hand=dataclasses.replace(hidden.hand, calibration="hand.json"))
+    assert uncalibrated_hand(named) is None
