@@ -73,6 +73,7 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
         raise ConfigError("rig", f"sim_capture runs the twin; got rig: {config.rig}", config.source)
     t0 = time.perf_counter()
     with open_scene(config, Path(out), resume) as (rig, writer):
+        _record_mesh_frame(rig.twin.object, writer)
         logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
         planner = TwinPlanner(rig.twin, config.plan.grasps.seed, config.plan.views)
         t_setup = time.perf_counter()
@@ -92,3 +93,17 @@ def sim_capture(config: RigConfig, out: str | Path, resume: bool = False, progre
                 planner.grasp(logger, g)
         t_end = time.perf_counter()
     return {"setup_s": t_setup - t0, "views_s": t_views - t_setup, "grasps_s": t_end - t_views, "total_s": t_end - t0}
+
+
+MESH_FRAME = "mesh_frame"  # scene.json's annotation: where the scene (the twin's world) has a --mesh file's points
+
+
+def _record_mesh_frame(obj, writer) -> None:
+    """Annotate the scene (:data:`MESH_FRAME`) with how the twin placed a mesh file's points: ``p_scene = scale *
+    p_file + translation_m`` (the mesh is centred on its bounding sphere, and scaled unless ``--keep-size``)."""
+    if obj.from_file is None:  # a library object
+        return
+    scale, translation = obj.from_file
+    value = {"scale": float(scale), "translation_m": [float(x) for x in translation]}
+    if writer.annotations.get(MESH_FRAME) != value:
+        writer.annotate(MESH_FRAME, value)

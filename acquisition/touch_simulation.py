@@ -18,7 +18,6 @@ from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from tacsplat.acquisition.config import TouchPlan, validate_touches
 from tacsplat.acquisition.devices import twin_rig
@@ -26,11 +25,18 @@ from tacsplat.acquisition.logger import CaptureLogger, PoseEstimate
 from tacsplat.acquisition.paper_touches import TOUCHES_PER_GRASP, PaperTouches, write_paper_touches
 from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, UsageError
 from tacsplat.files import check_writable
 from tacsplat.progress import progress_bar
 from tacsplat.sim.grasps import GraspConfig
-from tacsplat.sim.objects import DEFAULT_OBJECT_RADIUS, bounding_sphere, object_radius_problem, read_mesh
+from tacsplat.sim.objects import (
+    DEFAULT_OBJECT_RADIUS,
+    bounding_sphere,
+    minimum_sphere,
+    normalised_scale,
+    object_radius_problem,
+    read_mesh,
+)
 from tacsplat.sim.twin import SimTwin, TwinConfig, pad_sensor_model
 from tacsplat.types import TactileReading
 
@@ -138,13 +144,15 @@ def simulate_touches(
     with ExitStack() as stack:
         if mesh_path is None and scene.gt_mesh_path is None:  # the paper's touches on the ground-truth points
             points = _gt_points(scene, touches)
-            centre, radius = trimesh.nsphere.minimum_nsphere(points)
+            centre, radius = minimum_sphere(points)
+            _check_size(scene, radius, object_radius / radius, object_radius, None)
             units = SceneUnits(centre, object_radius / radius)  # scaled to object_radius as a mesh would be
             twin, surface, what = None, (points - centre) * units.scale, (GT_POINTS, "its points")
             sensor = pad_sensor_model(TwinConfig().tactile, units.scale)
         else:
             mesh_path = scene.gt_mesh_path if mesh_path is None else mesh_path
             centre, radius = bounding_sphere(read_mesh(mesh_path))
+            _check_size(scene, radius, normalised_scale(radius, object_radius), object_radius, mesh_path)
             settings = TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)
             twin = stack.enter_context(SimTwin(settings))
             units = SceneUnits(centre, twin.object.bounding_radius / radius)
@@ -154,11 +162,11 @@ def simulate_touches(
             target = _copy_with_sensor(scene, out, sensor, what[0], grasps, seed, touches, units, object_radius)
         elif np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
             target = Path(scene_path)
-        else:
-            raise ConfigError(
-                "object_radius",
-                f"the scene's sensor has {scene.sensor.pixel_size_m} pixels; "
-                f"{what[1]} at radius {object_radius} gives {sensor.pixel_size_m}",
+        else:  # (_check_size foresaw it)
+            raise UsageError(
+                "--object-radius",
+                f"the scene's pads have pixels of {scene.sensor.pixel_size_m:.3g} (its units); {what[1]} at "
+                f"{object_radius:.3g} m gives {sensor.pixel_size_m:.3g}",
             )
         with SceneWriter.resume(target) as writer:
             first = max((t.grasp for t in writer.touches), default=-1) + 1
@@ -178,6 +186,48 @@ def simulate_touches(
                 for g in progress_bar(range(first, first + grasps), desc="grasps", unit="grasp"):
                     planner.grasp(logger, g)
     return target
+
+
+# units a file may be in, in metres, for guessing which two a mesh and a scene of other sizes are in
+_UNITS = {"metres": 1.0, "centimetres": 0.01, "millimetres": 0.001, "inches": 0.0254}
+
+
+def _check_size(scene: Scene, radius: float, scale: float, object_radius: float, mesh_path) -> None:
+    """Before the twin starts: whether the mesh (``mesh_path``; None: the scene's ground-truth points) of bounding
+    radius ``radius`` in the scene's units, simulated ``scale`` times larger, touches with the pads of the scene's
+    sensor model (a scene that has one). If not, a UsageError naming ``--object-radius`` when another radius in the
+    twin's range does, else ``--mesh``: its units are not the scene's."""
+    if scene.sensor is None:
+        return
+    pad = TwinConfig().tactile.pixel_size_m
+    if np.isclose(scene.sensor.pixel_size_m, pad / scale, rtol=1e-6):
+        return
+    scene_scale = pad / scene.sensor.pixel_size_m  # twin metres per scene unit, as the scene's touches were made
+    needed = radius * scene_scale  # the radius in the twin that gives the scene's pixels
+    if mesh_path is None or object_radius_problem(needed) is None:
+        raise UsageError(
+            "--object-radius",
+            f"the scene's touches were simulated at {scene_scale:.3g} twin metres a scene unit: "
+            f"{'this mesh' if mesh_path else 'its ground-truth points'} (bounding radius {radius:.3g} in the "
+            f"scene's units) match them at --object-radius {needed:.3g} (m), not {object_radius:.3g} m",
+        )
+    objects = object_radius / scene_scale  # a mesh in the scene's units would be about this size
+    ratio = radius / objects
+    error, mesh_units, scene_units = min(
+        (abs(np.log(ratio * a / b)), a_name, b_name)
+        for a_name, a in _UNITS.items()
+        for b_name, b in _UNITS.items()
+        if a != b
+    )
+    fix = "give the mesh in the scene's units"
+    if error < np.log(2):
+        fix = f"is the mesh in {mesh_units} and the scene in {scene_units}? {fix.capitalize()}"
+    times = f"{ratio:.3g} times larger" if ratio > 1 else f"{1 / ratio:.3g} times smaller"
+    raise UsageError(
+        "--mesh",
+        f"{mesh_path}'s bounding radius is {radius:.3g} in its file's units, the scene's objects are ~{objects:.3g} "
+        f"in its units ({times}): {fix}",
+    )
 
 
 def _gt_points(scene: Scene, touches: TouchPlan) -> np.ndarray:

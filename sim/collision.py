@@ -117,6 +117,7 @@ def _run_coacd(unit: trimesh.Trimesh, config: DecompositionConfig, preprocess_mo
         return [(np.asarray(hull.vertices), np.asarray(hull.faces))]
     import coacd
 
+    log.info("convex decomposition of %d faces by CoACD (seconds to minutes) ...", len(unit.faces))
     coacd.set_log_level("error")
     return coacd.run_coacd(coacd.Mesh(unit.vertices, unit.faces), preprocess_mode=preprocess_mode, **asdict(config))
 

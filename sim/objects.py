@@ -39,35 +39,121 @@ class GlossyMaterial:
 
 @dataclass
 class SimObject:
-    """An object mesh in its own frame (centred on its bounding sphere) with its material."""
+    """An object mesh in its own frame (centred on its bounding sphere) with its material; a user's mesh also
+    carries ``from_file``: ``(scale, translation [3])``, its file's points ``p`` are ``scale * p + translation`` in
+    the object's frame (the twin's world)."""
 
     name: str
     mesh: trimesh.Trimesh
     material: GlossyMaterial
+    from_file: tuple[float, np.ndarray] | None = None
 
     @property
     def bounding_radius(self) -> float:
         return bounding_sphere(self.mesh)[1]
 
 
-_SPHERES: dict[bytes, tuple[np.ndarray, float]] = {}  # vertices' digest -> bounding_sphere (the last few meshes)
+_SPHERES: dict[bytes, tuple[np.ndarray, float, bool]] = {}  # vertices' digest -> (centre, radius, exact)
+
+# trimesh.nsphere.minimum_nsphere tries the sphere about each vertex of the furthest-site Voronoi diagram of the
+# convex-hull points against every hull point at once (a distance matrix it counts at 9 bytes an entry), and past
+# 4e9 bytes falls back to a Python loop over the Voronoi vertices (133 s on a 200k-face torus). The diagram has
+# up to about 3 vertices a hull point (2.3 to 2.9 on the library and the YCB meshes), so it stays on its fast path up
+# to sqrt(4e9 / (9 * 3)) hull points; above, Welzl's algorithm takes over.
+TRIMESH_SPHERE_MAX_HULL_POINTS = int(np.sqrt(4e9 / (9 * 3)))  # 12171
 
 
 def bounding_sphere(mesh: trimesh.Trimesh) -> tuple[np.ndarray, float]:
-    """Centre [3] and radius of the minimum sphere enclosing the mesh's vertices.
+    """Centre [3] and radius of the minimum sphere enclosing the mesh's vertices (:func:`minimum_sphere`).
 
     Kept for the last few vertex arrays (by their SHA-1, not their bytes: an imported mesh can be tens of MB): a
     capture asks for the same object's sphere three times (its radius twice, its collision pieces once), 0.08 s
     each for the teapot."""
-    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)  # [V, 3]
-    key = hashlib.sha1(vertices.tobytes()).digest()
-    if key not in _SPHERES:
-        if len(_SPHERES) >= 8:
-            _SPHERES.pop(next(iter(_SPHERES)))
-        centre, radius = trimesh.nsphere.minimum_nsphere(vertices)
-        _SPHERES[key] = (np.asarray(centre, dtype=np.float64), float(radius))
-    centre, radius = _SPHERES[key]
+    centre, radius, _ = _sphere(mesh.vertices)
     return centre.copy(), radius
+
+
+def _key(vertices) -> bytes:
+    return hashlib.sha1(np.ascontiguousarray(vertices, dtype=np.float64).tobytes()).digest()
+
+
+def _remember(key: bytes, sphere: tuple[np.ndarray, float, bool]) -> None:
+    if len(_SPHERES) >= 8:
+        _SPHERES.pop(next(iter(_SPHERES)))
+    _SPHERES[key] = sphere
+
+
+def _sphere(vertices) -> tuple[np.ndarray, float, bool]:
+    """The cached :func:`minimum_sphere` of ``vertices``, and whether it is exact (Welzl's: it moves and scales with
+    the vertices)."""
+    vertices = np.ascontiguousarray(vertices, dtype=np.float64)  # [V, 3]
+    if (key := _key(vertices)) not in _SPHERES:
+        _remember(key, _minimum_sphere(vertices))
+    return _SPHERES[key]
+
+
+def minimum_sphere(points) -> tuple[np.ndarray, float]:
+    """Centre [3] and radius of a sphere enclosing ``points`` [N, 3]: trimesh's furthest-site Voronoi method
+    (``trimesh.nsphere.minimum_nsphere``) up to :data:`TRIMESH_SPHERE_MAX_HULL_POINTS` convex-hull points, as every
+    capture so far has had it, and the exact minimum sphere (:func:`welzl_sphere`) above, where trimesh's method
+    would take minutes. trimesh's is the minimum sphere when four points hold it; when two or three do (the
+    teapot's spout and handle), it can be a little larger (1.7 % for the teapot)."""
+    centre, radius, _ = _minimum_sphere(points)
+    return centre, radius
+
+
+def _minimum_sphere(points) -> tuple[np.ndarray, float, bool]:
+    points = np.asarray(points, dtype=np.float64)
+    hull = trimesh.convex.hull_points(points)  # as trimesh's method takes them
+    if len(hull) <= TRIMESH_SPHERE_MAX_HULL_POINTS:
+        centre, radius = trimesh.nsphere.minimum_nsphere(points)
+        return np.asarray(centre, dtype=np.float64), float(radius), False
+    log.info("the minimum bounding sphere of %d convex-hull points (Welzl's algorithm, seconds) ...", len(hull))
+    return *welzl_sphere(hull), True
+
+
+def welzl_sphere(points, seed: int = 0) -> tuple[np.ndarray, float]:
+    """The minimum sphere enclosing ``points`` [N, 3] (centre [3], radius), by Welzl's algorithm (1991) in expected
+    linear time; pass the convex hull's vertices, the only points that can hold it.
+
+    In a random order (fixed by ``seed``), the sphere of the first ``i`` points is that of the first ``i - 1`` if
+    point ``i`` lies in it, else the smallest sphere of the first ``i - 1`` with point ``i`` on its surface: the same
+    problem with one more support point, at most four (:func:`_welzl`). The test "lies in" allows 1e-12 of the
+    points' size squared, so that points on a common sphere (a tessellated sphere or torus) do not pile up as
+    support; the radius returned is the largest distance from the centre, so every point is inside."""
+    points = np.asarray(points, dtype=np.float64)
+    points = points[np.random.default_rng(seed).permutation(len(points))]
+    tolerance = 1e-12 * float(np.ptp(points, axis=0).max()) ** 2
+    centre, _ = _welzl(points, len(points), [], tolerance)
+    return centre, float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
+
+
+def _welzl(points: np.ndarray, n: int, support: list, tolerance: float) -> tuple[np.ndarray, float]:
+    """Centre and squared radius of the smallest sphere enclosing ``points[:n]`` with every ``support`` point on its
+    surface. Vectorised: the first point outside the current sphere is found among all the rest at once."""
+    centre, r2 = _circumsphere(np.array(support)) if support else (points[0], 0.0)
+    if len(support) == 4:  # four support points fix the sphere
+        return centre, r2
+    i = 0 if support else 1
+    while i < n:
+        outside = np.flatnonzero(((points[i:n] - centre) ** 2).sum(axis=1) > r2 + tolerance)
+        if not len(outside):
+            break
+        j = i + int(outside[0])
+        centre, r2 = _welzl(points, j, [*support, points[j]], tolerance)
+        i = j + 1
+    return centre, r2
+
+
+def _circumsphere(support: np.ndarray) -> tuple[np.ndarray, float]:
+    """Centre and squared radius of the smallest sphere through the 1 to 4 points ``support`` [k, 3]: its centre is
+    ``p0 + U.T @ lam`` (``U``: the other points less ``p0``), as far from each point: ``2 U U.T lam = |U|^2`` (least
+    squares, for a support that is almost degenerate)."""
+    p0, u = support[0], support[1:] - support[0]
+    if not len(u):
+        return p0.copy(), 0.0
+    offset = u.T @ np.linalg.lstsq(2.0 * (u @ u.T), (u * u).sum(axis=1), rcond=None)[0]
+    return p0 + offset, float(offset @ offset)
 
 
 def _rounded_box(extents, radius: float, centre=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:
@@ -200,20 +286,34 @@ def normalise_mesh(mesh: trimesh.Trimesh, radius: float, name: str) -> trimesh.T
     """Centre a mesh on its bounding sphere and scale it to bounding-sphere ``radius`` metres (a ConfigError
     outside :data:`OBJECT_RADIUS_RANGE_M`).
 
-    A mesh whose bounding radius is already within 0.1 % of ``radius`` keeps its scale.
+    A mesh whose bounding radius is already within 0.1 % of ``radius`` keeps its scale (:func:`normalised_scale`).
     """
+    return _normalised(mesh, radius, name)[0]
+
+
+def normalised_scale(mesh_radius: float, radius: float) -> float:
+    """The scale :func:`normalise_mesh` applies to a mesh of bounding radius ``mesh_radius`` to make it ``radius``:
+    1 when the two are within 0.1 %."""
+    return 1.0 if abs(mesh_radius / radius - 1.0) <= 1e-3 else radius / mesh_radius
+
+
+def _normalised(mesh: trimesh.Trimesh, radius: float, name: str) -> tuple[trimesh.Trimesh, float, np.ndarray]:
+    """:func:`normalise_mesh`'s mesh, its scale and the translation after it: ``p_out = scale * p + translation``."""
     if problem := object_radius_problem(radius):
         raise ConfigError("object_radius", problem)
     if len(mesh.faces) == 0 or not np.all(np.isfinite(mesh.vertices)):
         raise InvalidInputError(f"{name}: mesh is empty or has non-finite vertices")
-    centre, r = bounding_sphere(mesh)
+    centre, r, exact = _sphere(mesh.vertices)
     if r <= 0:
         raise InvalidInputError(f"{name}: mesh has zero extent")
     out = mesh.copy()
     out.apply_translation(-centre)
-    if abs(r / radius - 1.0) > 1e-3:
-        out.apply_scale(radius / r)
-    return out
+    scale = normalised_scale(r, radius)
+    if scale != 1.0:
+        out.apply_scale(scale)
+    if exact:  # Welzl's sphere moved and scaled is the new mesh's (trimesh's is recomputed, as captures had it)
+        _remember(_key(out.vertices), (np.zeros(3), r * scale, True))
+    return out, scale, -scale * centre
 
 
 def make_object(name: str, radius: float = DEFAULT_OBJECT_RADIUS) -> SimObject:
@@ -245,6 +345,8 @@ def read_mesh(path: str | Path) -> trimesh.Trimesh:
     path = Path(path)
     if not path.is_file():
         raise ConfigError("mesh", f"file not found: {path}")
+    if path.stat().st_size == 0:  # (trimesh fails on an empty .glb with an IndexError)
+        raise ConfigError("mesh", f"{path} holds no triangles (a point cloud or an empty file?)")
     try:
         loaded = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for unreadable files
@@ -334,7 +436,8 @@ def _close_holes(mesh: trimesh.Trimesh) -> list[int]:
 
 def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) -> SimObject:
     """Any .obj/.ply/.stl/.glb mesh file (:func:`read_mesh`) as an object at bounding-sphere ``radius`` metres,
-    whatever its units (millimetres, inches, ...)."""
+    whatever its units (millimetres, inches, ...), centred on its bounding sphere (``from_file`` maps the file's
+    points into it)."""
     path = Path(path)
     mesh = read_mesh(path)
     if not mesh.is_watertight:
@@ -347,8 +450,9 @@ def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) ->
             int((uses == 1).sum()),
             int((uses > 2).sum()),
         )
-    _, raw_radius = bounding_sphere(mesh)
-    obj = SimObject(path.stem, normalise_mesh(mesh, radius, str(path)), GlossyMaterial((0.8, 0.8, 0.82, 1.0)))
+    _, raw_radius = bounding_sphere(mesh)  # once: normalising takes it from the cache
+    normalised, scale, translation = _normalised(mesh, radius, str(path))
+    obj = SimObject(path.stem, normalised, GlossyMaterial((0.8, 0.8, 0.82, 1.0)), (scale, translation))
     r = obj.bounding_radius
     log.info(
         "%s: bounding radius %.6g in the file's units, scaled by %.6g to %.6g m", path, raw_radius, r / raw_radius, r

@@ -145,3 +145,24 @@ def test_resume_of_a_finished_capture_changes_nothing(captured):
     assert main(CAPTURE_ARGS + ["--out", str(captured), "--resume"]) == 0
     after = Scene.load(captured)
     assert len(after.frames) == 5 and _touch_signature(after) == before
+
+
+def test_a_mesh_capture_records_where_the_files_points_went(tmp_path):
+    """--keep-size keeps the mesh's size, not its frame (the twin centres it on its bounding sphere): the scene's
+    "mesh_frame" annotation maps the file's points onto its ground-truth mesh."""
+    mesh = trimesh.creation.capsule(height=0.1, radius=0.04, count=[16, 16])  # convex: no CoACD to wait for
+    mesh.apply_translation([0.3, -0.1, 0.05])
+    path = tmp_path / "can.ply"
+    mesh.export(path)
+    out = tmp_path / "scene"
+    args = ["--views", "1", "--test-views", "0", "--grasps", "0", "--resolution", "32"]
+    assert main(["sim-capture", "--mesh", str(path), "--keep-size", "--out", str(out), *args]) == 0
+    scene = Scene.load(out)
+    frame = scene.annotations["mesh_frame"]
+    assert frame["scale"] == 1.0 and np.linalg.norm(np.add(frame["translation_m"], [0.3, -0.1, 0.05])) < 1e-3
+    placed = frame["scale"] * np.asarray(mesh.vertices) + frame["translation_m"]
+    gt = trimesh.load(scene.gt_mesh_path, force="mesh", process=False)
+    _, distance, _ = trimesh.proximity.closest_point(gt, placed)
+    assert distance.max() < 1e-6
+    assert main(["sim-capture", "--mesh", str(path), "--keep-size", "--out", str(out), *args, "--resume"]) == 0
+    assert Scene.load(out).annotations == {"mesh_frame": frame}

@@ -5,11 +5,12 @@ import numpy as np
 import pytest
 import trimesh
 
+from tacsplat.acquisition import touch_simulation
 from tacsplat.acquisition.sim_capture import sim_capture, sim_rig_config
 from tacsplat.acquisition.touch_simulation import simulate_touches
 from tacsplat.cli import main
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
-from tacsplat.errors import ConfigError
+from tacsplat.errors import ConfigError, UsageError
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -113,3 +114,22 @@ def test_extending_a_scene_keeps_a_grasp_with_fewer_touches_than_pads(capsule, t
     extended = Scene.load(partial)
     assert [(t.grasp, t.finger) for t in extended.touches[:6]] == [(t.grasp, t.finger) for t in kept]
     assert [t.grasp for t in extended.touches[6:]] == [2] * 4
+
+
+def test_a_mesh_of_other_units_than_the_scene_is_refused_before_the_twin_starts(capsule, tmp_path, monkeypatch, capsys):
+    _, captured = capsule  # a scene in metres
+
+    def no_twin(*args, **kwargs):
+        raise AssertionError("the twin (and CoACD) started before the mesh's size was compared with the scene's")
+
+    monkeypatch.setattr(touch_simulation, "SimTwin", no_twin)
+    in_mm = tmp_path / "capsule_mm.ply"
+    _capsule(RADIUS * 1000).export(in_mm)
+    assert main(["simulate-touches", str(captured), "--grasps", "1", "--mesh", str(in_mm)]) == 2  # a usage error
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--mesh" in err and "--object-radius" not in err
+    assert "bounding radius is 80 in its file's units" in err and "~0.08" in err and "in millimetres" in err
+    larger = tmp_path / "capsule_larger.ply"  # in metres, but not the scene's size at --object-radius 0.08
+    _capsule(0.1).export(larger)
+    with pytest.raises(UsageError, match=r"^--object-radius: .*at --object-radius 0\.1 \(m\), not 0\.08 m"):
+        simulate_touches(larger, captured, grasps=1)

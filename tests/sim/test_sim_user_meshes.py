@@ -207,3 +207,22 @@ def test_collision_hulls_standing_off_the_mesh_are_warned_about(tmp_path, monkey
     with caplog.at_level("WARNING", logger="tacsplat.sim.twin"):
         twin_builds(tmp_path / "box.obj")
     assert ("box.obj" in caplog.text and "no touch" in caplog.text) == warned, caplog.text
+
+
+@pytest.mark.parametrize("name", ["empty.glb", "empty.obj", "empty.ply"])
+def test_an_empty_file_of_any_format_holds_no_triangles(tmp_path, name):
+    (tmp_path / name).write_bytes(b"")  # trimesh fails on an empty .glb with an IndexError
+    with pytest.raises(ConfigError, match=rf"{name.replace('.', '[.]')} holds no triangles") as error:
+        load_mesh_object(tmp_path / name)
+    assert "index" not in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_user_mesh_says_where_its_files_points_went(tmp_path):
+    box = trimesh.creation.box([60.0, 40.0, 30.0])
+    box.apply_translation([100.0, -20.0, 15.0])
+    box.export(tmp_path / "part_mm.stl")
+    obj = load_mesh_object(tmp_path / "part_mm.stl", radius=0.05)
+    scale, translation = obj.from_file
+    assert scale == pytest.approx(0.05 / (np.sqrt(60.0**2 + 40.0**2 + 30.0**2) / 2), rel=1e-9)
+    placed = scale * np.asarray(trimesh.load(tmp_path / "part_mm.stl").vertices) + translation
+    assert np.abs(np.sort(placed, axis=0) - np.sort(obj.mesh.vertices, axis=0)).max() < 1e-12
