@@ -38,7 +38,8 @@ class ExportMesh:
     directions), fuses them and the touches into a signed distance field and extracts its surface (marching cubes):
     vertex colours, outward normals, and an `observed` flag per vertex (a training camera sees it, or a touch lies
     on it). Prints the mesh metrics (F-score at 1/2/5 % of the radius, Chamfer distance, normal consistency,
-    watertight) where the scene has a ground truth, and adds them to RUN/metrics.json."""
+    watertight) where the scene has a ground truth, and adds them to RUN/metrics.json. An export into the run is
+    refused while the run trains or is evaluated."""
 
     run: tyro.conf.Positional[Path]
     """run directory written by `tacsplat reconstruct`"""

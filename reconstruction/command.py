@@ -49,7 +49,8 @@ class ReconstructCommand:
 
 def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCommand:
     """The command of ``argv``: its options on the settings of --method and of --config, or on ``recorded`` (a
-    run's own settings, which --resume continues with); a UsageError naming the option of a bad value."""
+    run's own settings, which --resume continues with); a UsageError naming the option of a bad value, a ConfigError
+    naming the --config file and its key for a bad value the file gives (no option given in its place)."""
     given = _early_options(argv)
     if given.method is not None and given.method not in METHODS:
         raise UsageError("--method", f"unknown method {given.method!r}; choose one of {', '.join(METHODS)}")
@@ -58,7 +59,11 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
     else:
         base = set_fields(copy.deepcopy(recorded), get_method(given.method).overrides if given.method else {})
     from_file = {} if given.config is None else read_settings(given.config)
-    set_fields(base, from_file, given.config)
+    try:
+        set_fields(base, from_file, given.config)
+    except UsageError as exc:  # (a value in place of the init: or densify: settings): the file's, like its keys
+        raise ConfigError(exc.key, str(exc).removeprefix(f"{given.config}: {exc.key}: "), given.config) from None
+    file_values = {key: value for key, value in flat_settings(base.to_json()).items() if key in from_file}
     default = ReconstructCommand(
         scene=tyro.MISSING,
         out=tyro.MISSING,
@@ -67,8 +72,11 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
         train=base,
     )
     command = parse_options(ReconstructCommand, argv, PROG, default, compact=True)
-    if problem := command.train.problem():  # (TrainConfig.validate's, naming the option)
-        raise UsageError(option_names(command.train).get(problem[0], problem[0]), problem[1])
+    if problem := command.train.problem():  # (TrainConfig.validate's, naming the option, or the file and its key)
+        key, now = problem[0], flat_settings(command.train.to_json()).get(problem[0])
+        if key in file_values and (now == file_values[key] or now != now and file_values[key] != file_values[key]):
+            raise ConfigError(key, problem[1], given.config)  # the file's value, no option's (nan: also the file's)
+        raise UsageError(option_names(command.train).get(key, key), problem[1])
     if late := [start for start in command.train.never_started() if start.split()[0] in from_file]:
         message = "%s sets %s: at or past --iterations %d, never reached (step numbers do not scale with --iterations)"
         log.warning(message, given.config, ", ".join(late), command.train.iterations)

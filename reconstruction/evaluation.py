@@ -426,10 +426,11 @@ def evaluate_reconstruction(
     run, scene, run_dir: str | Path, splat: Gaussians, gt_path: str | Path | None = None, backend: str | None = None
 ) -> dict:
     """Evaluate the Gaussians of ``run`` (a :class:`~.run_dir.LoadedRun` or a Trainer: its ``gaussians``,
-    ``config``, ``step``, ``train_seconds`` and ``look``) on a scene's test views (``psnr_splat``: the PSNR of what
+    ``config``, ``step``, ``train_seconds``, ``look`` and ``touch_points``) on a scene's test views (``psnr_splat``: the PSNR of what
     ``splat.ply`` shows a plain 3DGS renderer, ``splat``, :func:`.baking.bake_appearance` of the Gaussians and their
     look): writes ``metrics.json``, ``renders/`` and, for the sh-lit appearance, ``light.png`` (its diffuse light,
-    :func:`save_light`) into ``run_dir``."""
+    :func:`save_light`) into ``run_dir``. The method and mechanisms it records are those the run used: touch is
+    off where it had no touch points."""
     gaussians, config, look = run.gaussians, run.config, run.look
     test = scene.split("test")
     backend = backend or config.backend
@@ -442,9 +443,13 @@ def evaluate_reconstruction(
         metrics["psnr_splat"] = evaluate_views(splat, *views, None, progress=True)["psnr"]
     if look.light is not None:
         save_light(look.light, Path(run_dir) / "light.png")
-    if ground_truth is None:
+    if not test:
+        log.warning("the scene %s has no test views: PSNR, SSIM and CD are not computed (null)", scene.path)
+    elif ground_truth is None:
         log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
     metrics.update(exported_mesh_metrics(Path(run_dir), scene, train_frames, gt_path))
+    points = getattr(run, "touch_points", None)  # touch as the run used it: none without touch points
+    touched = gaussians.num_touch > 0 if points is None else len(points) > 0
     result = {
         **metrics,
         "train_seconds": run.train_seconds,
@@ -452,8 +457,8 @@ def evaluate_reconstruction(
         "num_gaussians": len(gaussians),
         "num_touch_gaussians": gaussians.num_touch,
         "num_test_views": len(test),
-        "method": method_of(config),
-        "mechanisms": mechanisms(config),
+        "method": method_of(config, touched),
+        "mechanisms": mechanisms(config, touched),
         "gt_source": ground_truth.source if ground_truth else None,
         "gt_radius": ground_truth.radius if ground_truth else None,
         "scene": str(scene.path),

@@ -368,17 +368,31 @@ def export_mesh(
     as ``mesh_*`` for ``RUN/mesh.ply``, or under the prefix ``record`` (``mesh_untouched``:
     ``mesh_untouched_fscore_5``, ...). The metrics are measured and recorded before the mesh file appears (it is
     renamed into place last): a mesh file on disk has its metrics recorded, so an interrupted export leaves no
-    ``RUN/mesh.ply`` that looks done (:func:`export_meshes`). ``out`` is refused as :func:`check_mesh_out` says."""
+    ``RUN/mesh.ply`` that looks done (:func:`export_meshes`). ``out`` is refused as :func:`check_mesh_out` says.
+    An export that writes into the run (a mesh file inside it, or its metrics.json) holds the run's lock throughout,
+    as ``evaluate`` does: a run being trained or evaluated is refused (a ConfigError on ``RUN``), so that a mesh of
+    old Gaussians and its metrics never land in a run that moves on."""
+    from contextlib import nullcontext
+
+    from tacsplat.datasets.outputs import claim_output_dir
+
+    run_dir = Path(run_dir)
+    out = run_dir / "mesh.ply" if out is None else Path(out)
+    check_mesh_path(out)
+    check_mesh_out(run_dir, out, overwrite)
+    into_run = record is not None or out.resolve().is_relative_to(run_dir.resolve())
+    with claim_output_dir(run_dir, "RUN") if into_run else nullcontext():
+        return _export_mesh(run_dir, out, config, record)
+
+
+def _export_mesh(run_dir: Path, out: Path, config: MeshConfig | None, record: str | None) -> dict:
+    """:func:`export_mesh`'s work, once ``out`` is checked (and the run locked where the export writes into it)."""
     import json
 
     from tacsplat.reconstruction.evaluation import seen_by_training_views
     from tacsplat.reconstruction.run_dir import load_run, run_scene
     from tacsplat.reconstruction.views import scene_at, training_frames
 
-    run_dir = Path(run_dir)
-    out = run_dir / "mesh.ply" if out is None else Path(out)
-    check_mesh_path(out)
-    check_mesh_out(run_dir, out, overwrite)
     run = load_run(run_dir)
     scene = scene_at(run_scene(run), run.config.downscale)  # (refused if it has changed since the run)
     frames = training_frames(scene, run.config.train_views)

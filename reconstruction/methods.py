@@ -4,7 +4,8 @@ A method is a name, the label the tables print, and the :class:`~tacsplat.recons
 fields it sets on top of TrainConfig's defaults, which are ``default`` (ours, beyond the paper). Any other
 combination is a configuration: a method plus overrides (``--config FILE.yaml`` and options of `tacsplat
 reconstruct`, the ablation rows of `tacsplat bench paper`). A run's metrics.json records the method whose
-mechanisms (:func:`mechanisms`) it has, ``custom`` when none has them, and the mechanisms themselves.
+mechanisms (:func:`mechanisms`) it has, ``custom`` when none has them, and the mechanisms themselves, as the run
+used them: touch is off in a run that had no touch points (its scene has no touches).
 """
 
 from __future__ import annotations
@@ -74,12 +75,12 @@ def method_config(name: str, option: str = "--method"):
     return set_fields(TrainConfig(), get_method(name, option).overrides)
 
 
-def mechanisms(config) -> dict[str, bool]:
-    """Which of the optional mechanisms a TrainConfig switches on: touch (used, with lambda_t > 0), smoothness,
-    flattening, depth-normal consistency, the sh-lit appearance, a smooth albedo (with it), initial colours from
-    the views."""
+def mechanisms(config, touched: bool = True) -> dict[str, bool]:
+    """Which of the optional mechanisms a TrainConfig switches on: touch (used, with lambda_t > 0, and, for a run,
+    ``touched``: it had touch points; a scene without touches trains without), smoothness, flattening, depth-normal
+    consistency, the sh-lit appearance, a smooth albedo (with it), initial colours from the views."""
     return {
-        "touch": config.use_touch and config.lambda_t > 0,
+        "touch": config.use_touch and config.lambda_t > 0 and touched,
         "smoothness": config.lambda_s > 0,
         "flattening": config.lambda_flatten > 0,
         "depth_normal": config.lambda_depth_normal > 0,
@@ -89,10 +90,11 @@ def mechanisms(config) -> dict[str, bool]:
     }
 
 
-def method_of(config) -> str:
+def method_of(config, touched: bool = True) -> str:
     """The name of the method whose mechanisms a TrainConfig has (``custom`` if none's); its other settings
-    (schedule, weights, rates) may differ from the method's."""
-    on = mechanisms(config)
+    (schedule, weights, rates) may differ from the method's. ``touched``: as :func:`mechanisms` (a run without touch
+    points is the method it trained as: ``3dgs+t`` on a scene without touches is ``3dgs``)."""
+    on = mechanisms(config, touched)
     return next((name for name in METHODS if mechanisms(method_config(name)) == on), "custom")
 
 

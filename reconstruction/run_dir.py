@@ -18,6 +18,7 @@ import io
 import json
 import logging
 import re
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,6 +79,7 @@ class LoadedRun:
     train_seconds: float
     look: Look  # the appearance (with its light where it has one)
     scene_record: dict | None = None  # config.json's record of the scene (scene_record), None where it has none
+    touch_points: np.ndarray | None = None  # [P, 3] the touch points it trained with (None: a checkpoint without)
 
 
 def is_run_folder(path: Path) -> bool:
@@ -86,14 +88,32 @@ def is_run_folder(path: Path) -> bool:
 
 
 def run_checkpoint(run_dir: str | Path) -> Path:
-    """The checkpoint file of a run directory; a SceneFormatError if there is none."""
+    """The checkpoint file of a run directory; a SceneFormatError if there is none (for a run's folder, its
+    config.json without a checkpoint, one saying that the run stopped before its first and how to continue it)."""
     path = Path(run_dir) / "checkpoint.pt"
     if not Path(run_dir).is_dir():
         missing = "is a file" if Path(run_dir).exists() else "does not exist"
         raise SceneFormatError(run_dir, None, f"{missing}: not a reconstruction run directory")
     if not path.is_file():
+        if (scene := _recorded_run_scene(Path(run_dir))) is not None:
+            again = shlex.join(["tacsplat", "reconstruct", scene, "--out", str(run_dir), "--resume"])
+            raise SceneFormatError(
+                path, None, f"no checkpoint: the run stopped before its first checkpoint; continue it with: {again}"
+            )
         raise SceneFormatError(path, None, "no checkpoint: not a reconstruction run directory")
     return path
+
+
+def _recorded_run_scene(run_dir: Path) -> str | None:
+    """The scene a run's config.json records (``SCENE`` for a run's config.json from before scenes were recorded),
+    None where the folder has no run's config.json."""
+    if (record := recorded_scene(run_dir)) is not None:
+        return record["path"]
+    try:
+        TrainConfig.from_json(read_json(run_dir / "config.json"))
+    except ConfigError:
+        return None
+    return "SCENE"
 
 
 def read_checkpoint(path: Path) -> dict:
@@ -130,6 +150,7 @@ def load_checkpoint(path: Path) -> LoadedRun:
         float(ckpt["train_seconds"]),
         look,
         record,
+        None if ckpt.get("touch_points") is None else np.asarray(ckpt["touch_points"]),
     )
 
 

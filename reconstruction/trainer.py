@@ -52,6 +52,7 @@ from tacsplat.reconstruction.initialization import (
     thin_touch_points,
     view_colors,
 )
+from tacsplat.reconstruction.methods import method_of
 from tacsplat.reconstruction.ply import save_ply
 from tacsplat.reconstruction.run_dir import (
     LOSS_TERMS,
@@ -87,6 +88,18 @@ def scene_scale(frames: list, bounds: tuple[np.ndarray, np.ndarray] | None = Non
     if spread < 1e-3 and bounds is not None:
         spread = float(np.linalg.norm(centres - (bounds[0] + bounds[1]) / 2, axis=1).max())
     return 1.1 * max(spread, 1e-3)
+
+
+def check_train_views(scene, config: TrainConfig) -> None:
+    """Refuse a ``train_views`` above the scene's count of training views: a UsageError naming ``--train-views``
+    (the run would train on fewer views than its config.json records)."""
+    count = len(scene.split("train"))
+    if config.train_views is not None and config.train_views > count:
+        raise UsageError(
+            "--train-views",
+            f"the scene {scene.path} has {count} training views: choose at most {count} (or leave it out: all of "
+            f"them), got {config.train_views}",
+        )
 
 
 def check_image_sizes(scene, config: TrainConfig) -> None:
@@ -163,6 +176,12 @@ class Trainer:
             kept = thin_touch_points(scene.touch_points(), config.init, self.rng)
             self.touch_points = scene.touch_points()[kept]
         self.use_touch_loss = len(self.touch_points) > 0 and config.lambda_t > 0
+        if config.use_touch and config.lambda_t > 0 and not self.use_touch_loss:
+            log.warning(
+                "the scene %s has no touches (no contact points): touch is off for this run, recorded as method %s",
+                scene.path,
+                method_of(config, touched=False),
+            )
         self.fused_losses = shading.fused_kernels(config.backend)
         reach = (config.touch_candidates, config.touch_max_distance, config.touch_rebuild_every)
         self.neighbours = losses.TouchNeighbours(self.touch_points, *reach) if self.use_touch_loss else None
@@ -651,9 +670,9 @@ def reconstruct(
     for the whole job. A folder of other files, a run without ``resume`` or
     ``overwrite``, ``resume`` of no run, on another scene or of a run that
     trained with a removed loss, or a folder that cannot take a file (read-only, full) is an error before any
-    training; the gsplat backend where torch sees no CUDA, and a ``downscale`` or ``coarse_factors`` that leaves
-    training images under ``MIN_IMAGE_PX`` a side (:func:`check_image_sizes`), are errors before the folder is
-    made. Every file is replaced atomically: a disk that fills up stops the
+    training; the gsplat backend where torch sees no CUDA, a ``train_views`` above the scene's training views
+    (:func:`check_train_views`), and a ``downscale`` or ``coarse_factors`` that leaves training images under
+    ``MIN_IMAGE_PX`` a side (:func:`check_image_sizes`), are errors before the folder is made. Every file is replaced atomically: a disk that fills up stops the
     job with a StorageError naming the file, and the files written before
     (the last checkpoint) stay, so that ``resume`` continues once there is
     space.
@@ -672,7 +691,8 @@ def reconstruct(
         )
     check_run_folder(out_dir, resume, overwrite, locked=False)
     base = Scene.load(scene_path)
-    if not resume:  # (a resumed run trains at the sizes it has trained at)
+    if not resume:  # (a resumed run trains on the views and at the sizes it has trained on and at)
+        check_train_views(base, config)
         check_image_sizes(base, config)
     with claim_output_dir(out_dir, "--out"):
         check_run_folder(out_dir, resume, overwrite, locked=True)

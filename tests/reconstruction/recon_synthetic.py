@@ -125,7 +125,7 @@ def build_sphere_scene(
                 backend="torch",
             )
             rgb = (image[0].clamp(0, 1).numpy() * 255).round().astype(np.uint8)
-            split = "test" if k % (total // test_views) == total // test_views - 1 and test_views else "train"
+            split = "test" if test_views and k % (total // test_views) == total // test_views - 1 else "train"
             writer.add_frame(rgb, T_world_cam, split, gt_depth=sphere_depth(K, T_world_cam, size, size))
         if touches:
             for grasp in range(2):

@@ -91,3 +91,45 @@ def test_a_resume_that_trains_on_drops_the_old_mesh_and_its_metrics(copy):
     assert main(["reconstruct", str(scene), "--out", str(run), *FAST, "--resume", "--iterations", "4"]) == 0
     assert not (run / "mesh.ply").exists()
     assert not any(k.startswith("mesh_") for k in json.loads((run / "metrics.json").read_text()))
+
+
+def test_an_export_into_a_run_being_trained_is_refused_and_one_elsewhere_is_not(copy, tmp_path, capsys, monkeypatch):
+    """`export mesh` writes RUN/mesh.ply and RUN/metrics.json: while `reconstruct --resume` trains the run (its lock
+    held), that export is refused as `evaluate` is, and the finished run reports no stale mesh; an export to a file
+    outside the run writes nothing of the run's and goes ahead."""
+    import threading
+
+    from tacsplat.reconstruction.trainer import Trainer
+
+    scene, run = copy
+    in_training, finish = threading.Event(), threading.Event()
+    real_step = Trainer.train_step
+
+    def paused_step(self):
+        in_training.set()
+        assert finish.wait(120)
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", paused_step)
+    resume = ["reconstruct", str(scene), "--out", str(run), *FAST, "--resume", "--iterations", "5"]
+    first = {}
+    job = threading.Thread(target=lambda: first.update(code=main(resume)))
+    job.start()
+    try:
+        assert in_training.wait(120)
+        before = (run / "metrics.json").read_bytes()
+        capsys.readouterr()
+        assert _export(run) == 1
+        one_error_line(capsys, "RUN", str(run), "another tacsplat process", prefix="error: ")
+        assert not (run / "mesh.ply").exists() and (run / "metrics.json").read_bytes() == before
+        elsewhere = tmp_path / "elsewhere" / "mesh.ply"
+        assert _export(run, "--out", str(elsewhere)) == 0 and elsewhere.is_file()
+        assert (run / "metrics.json").read_bytes() == before
+    finally:
+        finish.set()
+        job.join(120)
+    assert first["code"] == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["iterations"] == 5 and not any(k.startswith("mesh_") for k in metrics)
+    assert not (run / "mesh.ply").exists()
+    _exported(run)  # the run released: the export goes ahead

@@ -162,3 +162,90 @@ def test_a_settings_file_for_more_steps_than_run_is_told_which_mechanisms_never_
     parse(["S", "--out", "R", "--iterations", "500"])  # the method's own start steps: as its fields document
     parse(["S", "--out", "R", "--method", "paper", "--config", str(PAPER_SCHEDULE)])
     assert "never reached" not in caplog.text
+
+
+@pytest.mark.filterwarnings("ignore:.*but the default value")  # tyro's, on the file's value refused
+def test_a_config_files_bad_value_names_the_file_and_key_and_an_options_names_the_option(tmp_path):
+    """A value the --config file gives is the file's error (exit 1, like its unknown keys), never an option's the
+    user did not type; a value an option gives keeps naming the option (a usage error); an option replaces the
+    file's bad value."""
+    from tacsplat.errors import UsageError
+    from tacsplat.reconstruction.command import parse
+
+    settings = tmp_path / "mine.yaml"
+    for text, words in (
+        ("lambda_s: -1", "lambda_s: must be a finite number >= 0, got -1"),
+        ("densify:\n  max_gaussians: -5", "densify.max_gaussians: must be an integer >= 0, got -5"),
+        ("lambda_s: .nan", "lambda_s: must be a finite number >= 0, got nan"),
+        ("iterations: true", "iterations: must be an integer >= 1, got True"),  # (a bool is no number)
+        ("use_touch: 'no'", "use_touch: must be true or false"),
+        ("init: 5", "init: must be a mapping of init.x settings"),
+    ):
+        settings.write_text(text + "\n")
+        with pytest.raises(ConfigError) as refused:
+            parse(["S", "--out", "R", "--config", str(settings)])
+        assert type(refused.value) is ConfigError and str(refused.value) == f"{settings}: {words}" + (
+            str(refused.value).removeprefix(f"{settings}: {words}")
+        )
+        assert "--" not in str(refused.value), str(refused.value)
+    settings.write_text("lambda_s: -1\n")
+    assert parse(["S", "--out", "R", "--config", str(settings), "--lambda-s", "2"]).train.lambda_s == 2.0
+    settings.write_text("lambda_s: 1.5\n")
+    with pytest.raises(UsageError, match="^--lambda-s: must be a finite number >= 0, got -1"):
+        parse(["S", "--out", "R", "--config", str(settings), "--lambda-s", "-1"])
+
+
+@pytest.mark.filterwarnings("ignore:.*but the default value")  # tyro's, on the file's value refused
+def test_a_config_files_numbers_in_exponent_form_are_numbers(tmp_path):
+    """PyYAML reads 1e-3 (no dot) as a string: a number field takes the number it spells; an int field a whole
+    one (1e3 is 1000), a float field an int; a string that is no finite number is still refused."""
+    from tacsplat.reconstruction.command import parse
+
+    settings = tmp_path / "mine.yaml"
+    settings.write_text("lambda_s: 1e-3\niterations: 1e3\nlambda_t: 2\ninit:\n  touch_voxel_size: 5E-4\n")
+    config = parse(["S", "--out", "R", "--config", str(settings)]).train
+    assert (config.lambda_s, config.iterations, config.lambda_t, config.init.touch_voxel_size) == (1e-3, 1000, 2, 5e-4)
+    assert type(config.iterations) is int and type(config.lambda_s) is float
+    for text, words in (("seed: 1.5e0", "seed: must be an integer"), ("lambda_s: 1e999", "lambda_s: must be a finite")):
+        settings.write_text(text + "\n")
+        with pytest.raises(ConfigError, match=f"{settings}: {words}"):
+            parse(["S", "--out", "R", "--config", str(settings)])
+
+
+def test_a_run_without_touch_points_records_touch_off_and_its_method_as_trained(tmp_path, capsys):
+    """3dgs+t (or paper) on a scene with no touches trains without touch: the trainer says so once, and
+    metrics.json records the mechanisms used (touch off) and the method they make (3dgs+t: 3dgs), from the trainer
+    and from `evaluate` alike; the same method on a scene with touches records touch."""
+    import json
+    import sys
+    from pathlib import Path
+
+    from tacsplat.cli import main
+    from tacsplat.reconstruction.evaluation import evaluate_run
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from recon_synthetic import build_sphere_scene
+
+    scenes = {
+        t: build_sphere_scene(tmp_path / f"scene-{t}", size=24, train_views=3, test_views=1, touches=t)
+        for t in (False, True)
+    }
+    fast = ["--iterations", "2", "--sh-degree", "0", "--backend", "cpu", "--init.no-use-sfm", "--quiet"]
+    for touches, method, recorded in (
+        (False, "3dgs+t", "3dgs"),
+        (False, "paper", "3dgs+s"),
+        (True, "3dgs+t", "3dgs+t"),
+    ):
+        run = tmp_path / f"run-{touches}-{method}"
+        capsys.readouterr()
+        assert main(["reconstruct", str(scenes[touches]), "--out", str(run), "--method", method, *fast]) == 0
+        warned = [line for line in capsys.readouterr().err.splitlines() if "no touches" in line]
+        expected = f"the scene {scenes[touches]} has no touches (no contact points): touch is off for this run, recorded as method {recorded}"
+        assert warned == ([] if touches else [f"WARNING tacsplat.reconstruction.trainer: {expected}"]), warned
+        metrics = json.loads((run / "metrics.json").read_text())
+        assert (metrics["method"], metrics["mechanisms"]["touch"]) == (recorded, touches), method
+        assert (metrics["settings"]["use_touch"], metrics["settings"]["lambda_t"] > 0) == (True, True)  # as given
+        again = evaluate_run(run)
+        assert (again["method"], again["mechanisms"]["touch"]) == (recorded, touches), method
+    assert mechanisms(method_config("3dgs+t"), touched=False) == mechanisms(method_config("3dgs"))
+    assert method_of(TrainConfig(), touched=False) == "custom"

@@ -221,6 +221,43 @@ def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp
     assert all(v != v for column in newer for v in progress[column])  # NaN: never written
 
 
+def test_evaluate_and_export_of_a_run_stopped_before_its_first_checkpoint_say_how_to_continue_it(
+    scene, tmp_path, capsys
+):
+    """A run killed before its first checkpoint holds its config.json only: evaluate (and export mesh) say so and
+    print the --resume command, which continues it; a folder whose config.json is not a run's is not a run."""
+    import shlex
+
+    run = tmp_path / "run"
+    assert _reconstruct(scene, run) == 0
+    for name in ("checkpoint.pt", "splat.ply", "metrics.json", "progress.csv"):
+        (run / name).unlink()
+    again = shlex.join(["tacsplat", "reconstruct", str(Path(scene).resolve()), "--out", str(run), "--resume"])
+    capsys.readouterr()
+    for command in (["evaluate", str(run)], ["export", "mesh", str(run)]):
+        assert main(command) == 1
+        line = one_error_line(capsys, str(run / "checkpoint.pt"), "before its first checkpoint")
+        assert line.endswith(f"continue it with: {again}"), line
+    assert main([*shlex.split(again)[1:], "--quiet"]) == 0
+    assert json.loads((run / "metrics.json").read_text())["iterations"] == 3
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "config.json").write_text('{"name": "my project"}')
+    assert main(["evaluate", str(other)]) == 1
+    one_error_line(capsys, "no checkpoint: not a reconstruction run directory")
+
+
+def test_a_scene_without_test_views_is_said_to_have_none(tmp_path, capsys):
+    """No test views: the warning says so (PSNR, SSIM and CD are not computed), not that ground truth is missing."""
+    scene = build_sphere_scene(tmp_path / "scene", size=24, train_views=3, test_views=0)
+    assert _reconstruct(scene, tmp_path / "run") == 0
+    warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("WARNING")]
+    expected = f"the scene {scene} has no test views: PSNR, SSIM and CD are not computed (null)"
+    assert warnings == [f"WARNING tacsplat.reconstruction.evaluation: {expected}"], warnings
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert (metrics["num_test_views"], metrics["psnr"], metrics["ssim"], metrics["cd"]) == (0, None, None, None)
+
+
 def test_resume_of_no_run_is_refused_and_of_a_run_without_checkpoint_starts_it_again(scene, tmp_path, capsys):
     assert _reconstruct(scene, tmp_path / "new", "--resume") == 1
     one_error_line(capsys, "--resume", "holds no run")
@@ -303,6 +340,7 @@ def test_an_out_that_is_a_file_inside_a_file_or_unwritable_is_one_error(scene, t
         (["--downscale", "5"], ["--downscale", "4x4 px", "24x24", "at least 5"]),  # (the scene's 24 px)
         (["--coarse-factors", "8"], ["--coarse-factors", "3x3 px", "at least 5"]),
         (["--downscale", "2", "--coarse-factors", "4"], ["--coarse-factors", "3x3 px"]),
+        (["--train-views", "4"], ["--train-views", "has 3 training views", "at most 3", "got 4"]),  # (the scene's 3)
     ],
 )
 def test_an_option_out_of_range_is_one_error_naming_it(scene, tmp_path, capsys, options, words):
@@ -312,20 +350,28 @@ def test_an_option_out_of_range_is_one_error_naming_it(scene, tmp_path, capsys, 
 
 
 @pytest.mark.filterwarnings("ignore:.*does not match any type in Union")  # tyro's, on the value refused
+@pytest.mark.filterwarnings("ignore:.*but the default value")  # (ditto)
 @pytest.mark.parametrize(
     "text, words",
     [
-        ("background: 0.5", ["--background", "3 numbers", "0.5"]),
-        ("coarse_factors: 4", ["--coarse-factors", "integers", "4"]),
-        ("densify: [1, 2]", ["densify", "mapping", "densify.x"]),
-        ("init: 5", ["init", "mapping", "init.x"]),
+        ("background: 0.5", ["background:", "3 numbers", "0.5"]),
+        ("coarse_factors: 4", ["coarse_factors:", "integers", "4"]),
+        ("densify: [1, 2]", ["densify:", "mapping", "densify.x"]),
+        ("init: 5", ["init:", "mapping", "init.x"]),
+        ("lambda_t: -1", ["lambda_t:", ">= 0", "-1"]),
+        ("densify:\n  max_gaussians: -5", ["densify.max_gaussians:", ">= 0", "-5"]),
+        ("seed: 1e-3", ["seed:", "integer", "'1e-3'"]),  # (not a whole number)
     ],
 )
-def test_a_config_file_value_of_the_wrong_kind_is_one_error_naming_it(scene, tmp_path, capsys, text, words):
+def test_a_config_file_value_of_the_wrong_kind_is_one_error_naming_the_file_and_key(
+    scene, tmp_path, capsys, text, words
+):
+    """The file's error, as its unknown keys are (exit 1), not a usage error naming an option never typed."""
     settings = tmp_path / "settings.yaml"
     settings.write_text(text + "\n")
-    assert _reconstruct(scene, tmp_path / "run", "--config", str(settings)) == 2
-    one_error_line(capsys, *words, prefix="tacsplat reconstruct: error: ")
+    assert _reconstruct(scene, tmp_path / "run", "--config", str(settings)) == 1
+    line = one_error_line(capsys, *words, prefix=f"error: {settings}: ")
+    assert " --" not in line, line
     assert not (tmp_path / "run").exists()
 
 
