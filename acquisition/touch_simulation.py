@@ -27,12 +27,12 @@ from tacsplat.acquisition.twin_planner import TwinPlanner
 from tacsplat.datasets import Scene, SceneMeta, SceneWriter, copy_scene
 from tacsplat.errors import ConfigError, UsageError
 from tacsplat.files import check_writable
+from tacsplat.geometry import minimum_sphere
 from tacsplat.progress import progress_bar
 from tacsplat.sim.grasps import GraspConfig
 from tacsplat.sim.objects import (
     DEFAULT_OBJECT_RADIUS,
     bounding_sphere,
-    minimum_sphere,
     normalised_scale,
     object_radius_problem,
     read_mesh,
@@ -144,7 +144,7 @@ def simulate_touches(
     with ExitStack() as stack:
         if mesh_path is None and scene.gt_mesh_path is None:  # the paper's touches on the ground-truth points
             points = _gt_points(scene, touches)
-            centre, radius = minimum_sphere(points)
+            centre, radius, _ = minimum_sphere(points)
             _check_size(scene, radius, object_radius / radius, object_radius, None)
             units = SceneUnits(centre, object_radius / radius)  # scaled to object_radius as a mesh would be
             twin, surface, what = None, (points - centre) * units.scale, (GT_POINTS, "its points")

@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from scipy.spatial import cKDTree
 
 from tacsplat.errors import InvalidInputError
-from tacsplat.geometry import unproject_depth
+from tacsplat.geometry import minimum_sphere, unproject_depth
 
 if TYPE_CHECKING:
     import trimesh
@@ -112,7 +112,10 @@ def bounding_sphere_radius(points: np.ndarray) -> float:
         return float(np.ptp(coords) / 2)
     if len(coords) > 20000 and rank == 3:  # the minimum sphere is fixed by the convex hull's vertices
         coords = np.asarray(trimesh.convex.convex_hull(coords).vertices)  # [V, 3] the hull's corner points
-    _, radius = trimesh.nsphere.minimum_nsphere(coords)
+    if rank < 3:
+        _, radius = trimesh.nsphere.minimum_nsphere(coords)
+    else:  # (the exact sphere, in seconds, where the hull has too many points for trimesh's method)
+        _, radius, _ = minimum_sphere(coords)
     return float(radius)
 
 

@@ -22,6 +22,7 @@ import numpy as np
 import trimesh
 
 from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.geometry import minimum_sphere
 from tacsplat.sim import OBJECT_RADIUS_RANGE_M
 
 log = logging.getLogger(__name__)
@@ -55,16 +56,10 @@ class SimObject:
 
 _SPHERES: dict[bytes, tuple[np.ndarray, float, bool]] = {}  # vertices' digest -> (centre, radius, exact)
 
-# trimesh.nsphere.minimum_nsphere tries the sphere about each vertex of the furthest-site Voronoi diagram of the
-# convex-hull points against every hull point at once (a distance matrix it counts at 9 bytes an entry), and past
-# 4e9 bytes falls back to a Python loop over the Voronoi vertices (133 s on a 200k-face torus). The diagram has
-# up to about 3 vertices a hull point (2.3 to 2.9 on the library and the YCB meshes), so it stays on its fast path up
-# to sqrt(4e9 / (9 * 3)) hull points; above, Welzl's algorithm takes over.
-TRIMESH_SPHERE_MAX_HULL_POINTS = int(np.sqrt(4e9 / (9 * 3)))  # 12171
-
 
 def bounding_sphere(mesh: trimesh.Trimesh) -> tuple[np.ndarray, float]:
-    """Centre [3] and radius of the minimum sphere enclosing the mesh's vertices (:func:`minimum_sphere`).
+    """Centre [3] and radius of the minimum sphere enclosing the mesh's vertices
+    (:func:`~tacsplat.geometry.minimum_sphere`).
 
     Kept for the last few vertex arrays (by their SHA-1, not their bytes: an imported mesh can be tens of MB): a
     capture asks for the same object's sphere three times (its radius twice, its collision pieces once), 0.08 s
@@ -84,76 +79,12 @@ def _remember(key: bytes, sphere: tuple[np.ndarray, float, bool]) -> None:
 
 
 def _sphere(vertices) -> tuple[np.ndarray, float, bool]:
-    """The cached :func:`minimum_sphere` of ``vertices``, and whether it is exact (Welzl's: it moves and scales with
+    """The cached :func:`~tacsplat.geometry.minimum_sphere` of ``vertices``, and whether it is exact (Welzl's: it moves and scales with
     the vertices)."""
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)  # [V, 3]
     if (key := _key(vertices)) not in _SPHERES:
-        _remember(key, _minimum_sphere(vertices))
+        _remember(key, minimum_sphere(vertices))
     return _SPHERES[key]
-
-
-def minimum_sphere(points) -> tuple[np.ndarray, float]:
-    """Centre [3] and radius of a sphere enclosing ``points`` [N, 3]: trimesh's furthest-site Voronoi method
-    (``trimesh.nsphere.minimum_nsphere``) up to :data:`TRIMESH_SPHERE_MAX_HULL_POINTS` convex-hull points, as every
-    capture so far has had it, and the exact minimum sphere (:func:`welzl_sphere`) above, where trimesh's method
-    would take minutes. trimesh's is the minimum sphere when four points hold it; when two or three do (the
-    teapot's spout and handle), it can be a little larger (1.7 % for the teapot)."""
-    centre, radius, _ = _minimum_sphere(points)
-    return centre, radius
-
-
-def _minimum_sphere(points) -> tuple[np.ndarray, float, bool]:
-    points = np.asarray(points, dtype=np.float64)
-    hull = trimesh.convex.hull_points(points)  # as trimesh's method takes them
-    if len(hull) <= TRIMESH_SPHERE_MAX_HULL_POINTS:
-        centre, radius = trimesh.nsphere.minimum_nsphere(points)
-        return np.asarray(centre, dtype=np.float64), float(radius), False
-    log.info("the minimum bounding sphere of %d convex-hull points (Welzl's algorithm, seconds) ...", len(hull))
-    return *welzl_sphere(hull), True
-
-
-def welzl_sphere(points, seed: int = 0) -> tuple[np.ndarray, float]:
-    """The minimum sphere enclosing ``points`` [N, 3] (centre [3], radius), by Welzl's algorithm (1991) in expected
-    linear time; pass the convex hull's vertices, the only points that can hold it.
-
-    In a random order (fixed by ``seed``), the sphere of the first ``i`` points is that of the first ``i - 1`` if
-    point ``i`` lies in it, else the smallest sphere of the first ``i - 1`` with point ``i`` on its surface: the same
-    problem with one more support point, at most four (:func:`_welzl`). The test "lies in" allows 1e-12 of the
-    points' size squared, so that points on a common sphere (a tessellated sphere or torus) do not pile up as
-    support; the radius returned is the largest distance from the centre, so every point is inside."""
-    points = np.asarray(points, dtype=np.float64)
-    points = points[np.random.default_rng(seed).permutation(len(points))]
-    tolerance = 1e-12 * float(np.ptp(points, axis=0).max()) ** 2
-    centre, _ = _welzl(points, len(points), [], tolerance)
-    return centre, float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
-
-
-def _welzl(points: np.ndarray, n: int, support: list, tolerance: float) -> tuple[np.ndarray, float]:
-    """Centre and squared radius of the smallest sphere enclosing ``points[:n]`` with every ``support`` point on its
-    surface. Vectorised: the first point outside the current sphere is found among all the rest at once."""
-    centre, r2 = _circumsphere(np.array(support)) if support else (points[0], 0.0)
-    if len(support) == 4:  # four support points fix the sphere
-        return centre, r2
-    i = 0 if support else 1
-    while i < n:
-        outside = np.flatnonzero(((points[i:n] - centre) ** 2).sum(axis=1) > r2 + tolerance)
-        if not len(outside):
-            break
-        j = i + int(outside[0])
-        centre, r2 = _welzl(points, j, [*support, points[j]], tolerance)
-        i = j + 1
-    return centre, r2
-
-
-def _circumsphere(support: np.ndarray) -> tuple[np.ndarray, float]:
-    """Centre and squared radius of the smallest sphere through the 1 to 4 points ``support`` [k, 3]: its centre is
-    ``p0 + U.T @ lam`` (``U``: the other points less ``p0``), as far from each point: ``2 U U.T lam = |U|^2`` (least
-    squares, for a support that is almost degenerate)."""
-    p0, u = support[0], support[1:] - support[0]
-    if not len(u):
-        return p0.copy(), 0.0
-    offset = u.T @ np.linalg.lstsq(2.0 * (u @ u.T), (u * u).sum(axis=1), rcond=None)[0]
-    return p0 + offset, float(offset @ offset)
 
 
 def _rounded_box(extents, radius: float, centre=(0.0, 0.0, 0.0)) -> trimesh.Trimesh:

@@ -7,6 +7,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from tacsplat.geometry import minimum_sphere
+
 THUMBNAIL_PX = 96  # longest side of a frustum's image
 SPLIT_COLORS = {"train": (40, 90, 220), "test": (230, 120, 20)}
 MESH_COLOR = (150, 150, 150)
@@ -42,9 +44,7 @@ def bounding_sphere(scene, mesh=None) -> Sphere:
     """The object's bounding sphere: the minimum sphere of the ground-truth mesh when the scene has one, else
     the sphere through the corners of the region every camera sees and every touch reaches (``Scene.bounds``)."""
     if mesh is not None:
-        import trimesh
-
-        centre, radius = trimesh.nsphere.minimum_nsphere(mesh.vertices)
+        centre, radius, _ = minimum_sphere(mesh.vertices)
         return Sphere(np.asarray(centre, dtype=np.float64), float(radius), "ground-truth mesh")
     lo, hi = scene.bounds()
     return Sphere((lo + hi) / 2, float(np.linalg.norm(hi - lo) / 2), "cameras and touches (no ground-truth mesh)")

@@ -1,4 +1,4 @@
-"""The bounding sphere of an object (tacsplat.sim.objects): trimesh's method where it is fast (the library and
+"""The bounding sphere of an object (tacsplat.sim.objects, by tacsplat.geometry.minimum_sphere): trimesh's method where it is fast (the library and
 held-out meshes keep the spheres their captures had), Welzl's exact minimum sphere on a big convex hull, where
 trimesh's falls back to a loop of minutes, and one sphere computed per mesh loaded."""
 
@@ -9,15 +9,9 @@ import pytest
 import trimesh
 from scipy.optimize import linprog
 
-from tacsplat.sim import objects
-from tacsplat.sim.objects import (
-    _BUILDERS,
-    TRIMESH_SPHERE_MAX_HULL_POINTS,
-    bounding_sphere,
-    load_mesh_object,
-    make_object,
-    welzl_sphere,
-)
+from tacsplat import geometry
+from tacsplat.geometry import TRIMESH_SPHERE_MAX_HULL_POINTS, welzl_sphere
+from tacsplat.sim.objects import _BUILDERS, bounding_sphere, load_mesh_object, make_object
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -71,7 +65,7 @@ def test_a_big_hull_skips_trimeshs_slow_method_and_says_what_it_does(monkeypatch
     monkeypatch.setattr(trimesh.nsphere, "minimum_nsphere", slow)
     points = _big_hull()
     mesh = trimesh.Trimesh(points * 3.0 + [1.0, 2.0, 3.0], np.zeros((0, 3), dtype=np.int64), process=False)
-    with caplog.at_level(logging.INFO, logger="tacsplat.sim.objects"):
+    with caplog.at_level(logging.INFO, logger="tacsplat.geometry"):
         centre, radius = bounding_sphere(mesh)
     assert np.allclose(centre, [1.0, 2.0, 3.0], atol=1e-12) and radius == pytest.approx(3.6, rel=1e-12)
     hull = len(trimesh.convex.hull_points(points))
@@ -88,8 +82,8 @@ def test_a_big_mesh_loaded_gets_its_sphere_computed_once(tmp_path, monkeypatch):
     mesh = trimesh.convex.convex_hull(_big_hull() * 90.0 + [5.0, 0.0, -40.0])  # millimetres, off the origin
     mesh.export(tmp_path / "ball.ply")
     computed = []
-    welzl = objects.welzl_sphere
-    monkeypatch.setattr(objects, "welzl_sphere", lambda points: computed.append(len(points)) or welzl(points))
+    welzl = geometry.welzl_sphere
+    monkeypatch.setattr(geometry, "welzl_sphere", lambda points: computed.append(len(points)) or welzl(points))
     obj = load_mesh_object(tmp_path / "ball.ply", radius=0.08)
     assert obj.bounding_radius == pytest.approx(0.08, rel=1e-12)
     centre, radius = bounding_sphere(obj.mesh)
