@@ -442,6 +442,8 @@ def read_settings(path: str | Path) -> dict:
         raise ConfigError("settings", "not a text file (YAML, UTF-8)", path) from None
     except yaml.YAMLError as exc:
         raise ConfigError("settings", f"not YAML: {str(exc).splitlines()[0]}", path) from None
+    if data is None:  # (empty, or only comments: no settings)
+        return {}
     if not isinstance(data, dict):
         raise ConfigError("settings", f"expected a mapping of training settings, got {type(data).__name__}", path)
     return flat_settings(data)

@@ -212,6 +212,17 @@ def test_a_config_files_numbers_in_exponent_form_are_numbers(tmp_path):
             parse(["S", "--out", "R", "--config", str(settings)])
 
 
+def test_a_config_file_of_only_comments_sets_nothing_and_a_list_is_refused(tmp_path):
+    from tacsplat.reconstruction.command import parse
+
+    settings = tmp_path / "mine.yaml"
+    settings.write_text("# nothing changed yet\n")
+    assert parse(["S", "--out", "R", "--config", str(settings)]).train == parse(["S", "--out", "R"]).train
+    settings.write_text("- lambda_s: 1\n")
+    with pytest.raises(ConfigError, match=f"{settings}: settings: expected a mapping of training settings, got list"):
+        parse(["S", "--out", "R", "--config", str(settings)])
+
+
 def test_a_run_without_touch_points_records_touch_off_and_its_method_as_trained(tmp_path, capsys):
     """3dgs+t (or paper) on a scene with no touches trains without touch: the trainer says so once, and
     metrics.json records the mechanisms used (touch off) and the method they make (3dgs+t: 3dgs), from the trainer
