@@ -2,7 +2,8 @@
 
 Each job is a frozen dataclass: a pure function of its fields that writes one
 folder and is skipped when that folder is complete (a capture's
-``capture.json``, a run's ``metrics.json``); :mod:`tacsplat.apps.executors`
+``capture.json``, a run's ``metrics.json``, an evaluation's ``evaluated.json``
+matching its settings and that metrics.json); :mod:`tacsplat.apps.executors`
 runs a list of them in this process or on Ray. The benchmarks build their
 suites from the same jobs.
 
@@ -19,15 +20,20 @@ A reconstruction trains ``method`` (default: what `tacsplat reconstruct` trains 
 ``overrides`` (TrainConfig fields, ``init.x`` / ``densify.x`` for theirs) on top.
 A reconstruction of a scene that a capture of the batch writes needs that
 capture (listed before it), and an evaluation of a run needs its reconstruction.
+An evaluation evaluates its run (its last checkpoint) with its own settings
+(``gt_mesh``), rewriting the run's metrics.json, also of a run that the batch
+trains or that has a metrics.json already; a run is evaluated by one job at most.
 A job may also list the names of jobs it needs (``needs: [capture scenes/teapot-s0]``,
 anywhere in the file): it runs after them, and not at all when one of them failed.
-Writes ``DIR/results.csv`` (one row per run with a metrics.json, rewritten as
-runs finish) and, when jobs fail, ``DIR/failures.csv``.
+Writes ``DIR/results.csv`` (one row per run folder with a metrics.json, named after the last job of
+the batch on that folder whose output is there: an evaluation rather than the reconstruction it
+evaluated; rewritten as runs finish) and, when jobs fail, ``DIR/failures.csv``.
 """
 
 from __future__ import annotations
 
 import functools
+import hashlib
 import json
 import logging
 import math
@@ -47,6 +53,7 @@ log = logging.getLogger(__name__)
 
 CAPTURE_MARKER = "capture.json"
 METRICS = "metrics.json"
+EVALUATED = "evaluated.json"  # RUN/evaluated.json: an evaluate job's record (EvaluateJob.record)
 RUN_COLUMNS = ("iterations", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")  # of metrics.json
 RESULT_COLUMNS = ("job", "run", "scene", "method", "seed", *RUN_COLUMNS)
 KINDS = ("capture", "reconstruct", "evaluate")
@@ -371,8 +378,11 @@ class ReconstructJob(BatchJob):
 
 @dataclass(frozen=True, kw_only=True)
 class EvaluateJob(BatchJob):
-    """The evaluation of a run folder (its last checkpoint), for a run without a metrics.json (trained
-    elsewhere, or whose metrics.json was deleted to evaluate it again)."""
+    """The evaluation of a run folder (its last checkpoint) with this job's settings, writing its metrics.json:
+    a run trained elsewhere, or by the batch (then after its reconstruction, whose metrics.json it replaces).
+    Done once: ``RUN/evaluated.json`` records the settings and a hash of the metrics.json written; another
+    ground truth (or the same path with other content), or a metrics.json written since (the run trained
+    again), evaluates it again."""
 
     kind: Literal["evaluate"] = "evaluate"
     run: Path
@@ -383,18 +393,43 @@ class EvaluateJob(BatchJob):
         if self.gt_mesh is not None and not Path(self.gt_mesh).is_file():
             raise ConfigError("gt_mesh", f"{self.gt_mesh} is not a file")
 
+    def record(self) -> dict:
+        """What ``evaluated.json`` holds once this job has evaluated its run: the ground truth it used (``gt_mesh``
+        and a hash of its content; None: the scene's) and a hash of the metrics.json it wrote."""
+        gt = None if self.gt_mesh is None else _sha256(Path(self.gt_mesh))
+        return {"gt_mesh": self.gt_mesh, "gt_mesh_sha256": gt, "metrics_sha256": _sha256(self.run / METRICS)}
+
     def complete(self) -> bool:
-        return (self.run / METRICS).is_file()
+        """The run's metrics.json is the one this job's evaluation wrote, with the settings it has now (a moved
+        ground-truth mesh of the same content is the same)."""
+        try:
+            recorded = json.loads((self.run / EVALUATED).read_text())
+            now = self.record()
+        except (OSError, ValueError):  # (no record or no metrics.json: not evaluated; an unreadable record: again)
+            return False
+        return isinstance(recorded, dict) and all(recorded.get(k) == now[k] for k in now if k != "gt_mesh")
 
     def warm_up(self) -> None:
         import tacsplat.reconstruction.evaluation  # noqa: F401
 
     def __call__(self) -> dict:
+        from tacsplat.files import atomic_write
         from tacsplat.reconstruction.evaluation import evaluate_run
 
         if self.complete():
             return json.loads((self.run / METRICS).read_text())
-        return evaluate_run(self.run, self.gt_mesh)
+        metrics = evaluate_run(self.run, self.gt_mesh)
+        atomic_write(self.run / EVALUATED, json.dumps(self.record(), indent=2).encode())
+        return metrics
+
+
+def _sha256(path: Path) -> str:
+    """The SHA-256 of a file's content (an OSError when unreadable)."""
+    digest = hashlib.sha256()
+    with path.open("rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 @functools.cache
@@ -435,6 +470,7 @@ def load_batch(path: str | Path, out: str | Path) -> list:
         raise ConfigError("jobs", "expected a non-empty list of jobs", path)
     jobs: list = []
     made: dict[Path, object] = {}  # folder (resolved: x/../a is a) -> the job of the batch writing it
+    evaluated: dict[Path, object] = {}  # run folder (resolved) -> the evaluate job of the batch evaluating it
     names: dict[str, int] = {}
     for i, item in enumerate(data["jobs"]):
         job = _parse_job(i, item, path, out)
@@ -451,7 +487,11 @@ def load_batch(path: str | Path, out: str | Path) -> list:
                     f"{maker_kind.__name__.removesuffix('Job').lower()} job listed before this one",
                     path,
                 )
-        if not isinstance(job, EvaluateJob):
+        if isinstance(job, EvaluateJob):  # (two would evaluate it again in turn at every rerun)
+            if (folder := job.run.resolve()) in evaluated:
+                raise ConfigError(f"jobs[{i}].run", f"{job.run} is also evaluated by {evaluated[folder].name}", path)
+            evaluated[folder] = job
+        else:
             folder = job.out.resolve()
             if folder == out.resolve():  # (where results.csv goes)
                 raise ConfigError(f"jobs[{i}].out", f"{job.out} is --out itself; give a folder in it", path)
@@ -543,19 +583,21 @@ def _job_error(i: int, item: dict, exc, path: Path) -> ConfigError:
 
 
 def result_rows(jobs: list, out: Path) -> list[dict]:
-    """One row per run (reconstruction or evaluation) with a metrics.json, in the batch's order."""
-    rows = []
+    """One row per run folder with a metrics.json, in the batch's order (of the first job on it), named after the
+    last job on it whose output is complete (an evaluation of a run the batch trains, once done: the metrics are
+    its), else the first."""
+    rows: dict[Path, dict] = {}
     for job in jobs:
         run = run_folder(job)
-        if run is None or not (run / METRICS).is_file():
+        if run is None or not (run / METRICS).is_file() or (run.resolve() in rows and not job.complete()):
             continue
         m = json.loads((run / METRICS).read_text())
-        rows.append(
+        rows[run.resolve()] = (
             {"job": job.name, "run": _relative(run, out), "scene": _relative(Path(m.get("scene", "")), out)}
             | {"method": m.get("method"), "seed": m.get("settings", {}).get("seed")}
             | {k: m.get(k) for k in RUN_COLUMNS}
         )
-    return rows
+    return list(rows.values())
 
 
 def _relative(path: Path, base: Path) -> str:

@@ -1,5 +1,6 @@
 """Jobs for the executor tests: each writes ``folder/done`` and logs every attempt in ``folder/attempts``; a
-``behaviour`` makes it fail the ways a real job can (raise, hit a bad input, kill its worker, hang)."""
+``behaviour`` makes it fail the ways a real job can (raise, hit a bad input, kill its worker, hang, save what it
+did when interrupted)."""
 
 from __future__ import annotations
 
@@ -11,14 +12,15 @@ from pathlib import Path
 from tacsplat.errors import ConfigError
 
 WAIT_S = 60.0  # bound of every wait of these jobs
+SAVE_S = 0.5  # how long a "block-once" job takes to save when interrupted (a second signal then cuts it short)
 
 
 @dataclass(frozen=True)
 class FileJob:
     name: str
     folder: Path
-    behaviour: str = "ok"  # ok | raise-while-broken | config-error | die-once | block
-    wait_for: Path | None = None  # finish only once this file exists
+    behaviour: str = "ok"  # ok | raise-while-broken | config-error | die-once | block | block-once
+    wait_for: Path | None = None  # finish (die-once: die) only once this file exists
     needs: tuple[str, ...] = ()
     cpus: float = 1.0
 
@@ -38,6 +40,8 @@ class FileJob:
         with (self.folder / "attempts").open("a") as fh:
             fh.write(f"{os.getpid()}\n")
         if self.behaviour == "die-once" and len(self.attempts()) == 1:
+            if self.wait_for is not None:
+                wait_until(self.wait_for.exists)
             os._exit(1)  # the worker dies mid-task
         if self.behaviour == "raise-while-broken" and (self.folder / "broken").exists():
             raise RuntimeError(f"{self.folder / 'broken'} is there")
@@ -49,6 +53,15 @@ class FileJob:
                 wait_until((self.folder / "release").exists)
             except KeyboardInterrupt:
                 (self.folder / "interrupted").touch()
+                raise
+        if self.behaviour == "block-once" and len(self.attempts()) == 1:  # as a training: interrupted, it saves
+            (self.folder / "started").touch()  # what it did (in "saved"), which a second signal cuts short
+            try:
+                wait_until((self.folder / "release").exists)
+            except KeyboardInterrupt as exc:
+                (self.folder / "interrupted").write_text(type(exc).__name__)
+                time.sleep(SAVE_S)
+                (self.folder / "saved").touch()
                 raise
         if self.wait_for is not None:
             wait_until(self.wait_for.exists)
@@ -73,6 +86,15 @@ class SlowWarmJob(FileJob):
     def warm_up(self) -> None:
         wait_until(self.wait_for.exists)
         (self.folder.parent / "warmed").write_text(str(os.getpid()))
+
+
+@dataclass(frozen=True)
+class DyingWarmJob(FileJob):
+    """A FileJob whose ``warm_up`` kills its worker once ``wait_for`` appears (an import that crashes)."""
+
+    def warm_up(self) -> None:
+        wait_until(self.wait_for.exists)
+        os._exit(1)
 
 
 def wait_until(condition, timeout_s: float = WAIT_S) -> None:

@@ -1,6 +1,7 @@
 """Batch files and the local executor, without Ray: one clear error per mistake in a batch file (naming the
-file, the job and the field), needs inferred from paths, and failures listed while the other jobs go on, the
-rerun running only what failed."""
+file, the job and the field), needs inferred from paths, failures listed while the other jobs go on, the
+rerun running only what failed, an evaluate job evaluating with its settings, and SIGTERM or SIGHUP stopping a
+batch as Ctrl-C does."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import csv
 import json
 import os
 import re
+import signal
 import socket
+import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -23,7 +26,7 @@ from tacsplat.reconstruction.methods import method_of
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 
-from batch_test_jobs import FileJob  # noqa: E402
+from batch_test_jobs import FileJob, wait_until  # noqa: E402
 
 
 def read_failures(folder: Path) -> dict[str, dict]:
@@ -323,6 +326,12 @@ def test_a_run_folder_that_trained_with_a_removed_loss_names_it_as_a_change(tmp_
             "jobs",
             "'capture a' (jobs[0]) needs 'reconstruct r' (jobs[1]), which needs 'capture a' (jobs[0])",
         ),  # (r's scene)
+        (
+            "- {kind: capture, out: a}\n- {kind: reconstruct, out: r, scene: a}\n- {kind: evaluate, run: r}\n"
+            "- {kind: evaluate, run: ./r, name: again}",
+            "jobs[3].run",
+            "r is also evaluated by evaluate r",
+        ),
     ],
 )
 def test_batch_file_mistakes_name_the_job_and_field(tmp_path, jobs, key, message):
@@ -360,6 +369,11 @@ def test_batch_command_refuses_a_bad_file_before_writing_anything(tmp_path, caps
     [
         (["--ray-address", "127.0.0.1:6379"], "--ray-address: runs jobs on a Ray cluster: add --executor ray"),
         (["--executor", "ray", "--retries", "-1"], "--retries: must be >= 0, got -1"),
+        (["--retries", "3"], "--retries: sets the attempts of a Ray task: add --executor ray"),
+        (
+            ["--executor", "processes", "--retries", "0"],
+            "--retries: sets the attempts of a Ray task: add --executor ray",
+        ),
         (["--workers", "0"], "--workers: must be >= 1, got 0"),
         (
             ["--executor", "local", "--workers", "2"],
@@ -470,3 +484,76 @@ def test_batch_warns_of_a_capture_made_with_other_settings_and_keeps_it(tmp_path
         run_batch([replace(job, resolution=48)], tmp_path, progress=False, executor="local")
     assert "capture s:" in caplog.text and "a capture made with other settings (resolution 32 -> 48)" in caplog.text
     assert Scene.load(job.out).intrinsics.width == 32  # kept
+
+
+def test_an_evaluate_job_evaluates_a_run_the_batch_trains_with_its_settings(tmp_path, capsys):
+    import trimesh
+
+    for name, radius in (("big.ply", 0.5), ("small.ply", 0.05)):
+        trimesh.creation.icosphere(radius=radius).export(tmp_path / name)
+    batch = """\
+jobs:
+  - {kind: capture, out: scenes/t, object: teapot, views: 3, test_views: 2, grasps: 1, resolution: 64}
+  - {kind: reconstruct, out: runs/e, scene: scenes/t, iterations: 20}
+  - {kind: evaluate, run: runs/e, gt_mesh: %s}
+"""
+    path, out = write(tmp_path / "b.yaml", batch % "big.ply"), tmp_path / "out"
+    metrics, record = out / "runs/e/metrics.json", out / "runs/e/evaluated.json"
+
+    def results() -> list[dict]:
+        assert main(["batch", str(path), "--out", str(out), "--executor", "local"]) == 0
+        with (out / "results.csv").open() as fh:
+            return list(csv.DictReader(fh))
+
+    rows = results()  # one row for the run: the evaluation's
+    assert [(r["job"], r["run"]) for r in rows] == [("evaluate runs/e", "runs/e")]
+    assert json.loads(metrics.read_text())["gt_source"] == f"mesh {tmp_path / 'big.ply'}"
+    assert float(rows[0]["cd"]) == json.loads(metrics.read_text())["cd"]
+
+    written = metrics.stat().st_mtime_ns, record.stat().st_mtime_ns
+    assert results() == rows  # done: not evaluated again
+    assert (metrics.stat().st_mtime_ns, record.stat().st_mtime_ns) == written
+
+    write(path, batch % "small.ply")  # another ground truth: evaluated again with it
+    (again,) = results()
+    assert json.loads(metrics.read_text())["gt_source"] == f"mesh {tmp_path / 'small.ply'}"
+    assert again["job"] == "evaluate runs/e" and again["cd"] != rows[0]["cd"]
+
+
+@pytest.mark.parametrize("executor", ["local", "processes"])
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_and_sighup_stop_a_batch_as_ctrl_c_does(tmp_path, executor, signum):
+    # the running job is interrupted once (it saves what it did: a second signal would cut that short), and the
+    # batch ends on a SignalInterrupt, which the command turns into exit 128 + the signal's number
+    job = FileJob("trains", tmp_path / "trains", "block-once")
+    script = (
+        "import sys; from pathlib import Path; from batch_test_jobs import FileJob; "
+        "from tacsplat.apps.executors import run_jobs; from tacsplat.interrupts import SignalInterrupt\n"
+        "try:\n"
+        f"    run_jobs([FileJob('trains', Path({str(job.folder)!r}), 'block-once')], Path({str(tmp_path)!r}), "
+        f"executor={executor!r}, progress=False)\n"
+        "except SignalInterrupt as exc:\n"
+        "    sys.exit(128 + exc.signum)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), os.environ.get("PYTHONPATH", "")])}
+    batch = subprocess.Popen([sys.executable, "-c", script], env=env)
+    try:
+        wait_until((job.folder / "started").exists)
+        batch.send_signal(signum)
+        assert batch.wait(timeout=60) == 128 + signum
+    finally:
+        batch.kill()
+    assert (job.folder / "interrupted").exists() and (job.folder / "saved").exists() and not job.complete()
+
+
+def test_a_signal_ray_turns_into_a_plain_keyboard_interrupt_keeps_its_number():
+    from tacsplat.apps.executors import _end_signals_interrupt
+    from tacsplat.interrupts import SignalInterrupt
+
+    with pytest.raises(SignalInterrupt) as info, _end_signals_interrupt():
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            wait_until(lambda: False)  # (until the handler raises)
+        except SignalInterrupt:
+            raise KeyboardInterrupt from None  # what Ray's wait and get raise instead
+    assert info.value.signum == signal.SIGTERM
