@@ -15,7 +15,9 @@ Jobs hand each other paths on a filesystem every worker sees, never arrays.
   code, so on 2 cores two trainings side by side finish sooner than one after the other on both (two of the
   demo's: 1.6x the throughput). A CPU that would idle while the pending jobs wait for another's output starts
   a worker that runs their ``warm_up`` (a training's imports: 3 s), so the first of them starts at once.
-  The workers' log records reach this process's handlers. A worker that dies fails its job; the rest go on.
+  The workers' log records reach this process's handlers. A worker that dies (killed, out of memory) fails its
+  job; the rest go on: the jobs running beside it are stopped as by Ctrl-C (one SIGINT: a training saves its
+  checkpoint) and run again, with the jobs not started yet, in new workers (a training resumes).
 - ``auto``: ``processes`` on a machine with at least 2 cores and no CUDA device, else ``local``.
 - ``ray``: every job a Ray task declaring its CPUs (and a GPU where it trains on
   CUDA); a task waits for its needs' tasks (their object refs are its
@@ -30,14 +32,16 @@ Jobs hand each other paths on a filesystem every worker sees, never arrays.
 
 Whichever the executor, a job that fails for good is listed in ``OUT/failures.csv`` with
 its error while the jobs that do not need it go on; rerunning the same command
-runs only what failed or never ran. Ctrl-C cancels the outstanding tasks
-(a training in progress checkpoints) and leaves every finished job intact.
+runs only what failed or never ran. Ctrl-C, SIGTERM (``kill``) or SIGHUP (a closed terminal) cancels the
+outstanding tasks (a training in progress checkpoints; further signals are ignored meanwhile) and leaves every
+finished job intact; the command then exits with 128 + the signal's number.
 One progress bar counts the jobs done, running and failed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import functools
 import logging
 import logging.handlers
@@ -47,6 +51,8 @@ import os
 import re
 import signal
 import socket
+import threading
+import time
 from collections import Counter
 from concurrent import futures
 from dataclasses import asdict, dataclass, field
@@ -56,7 +62,7 @@ from typing import Annotated, Callable, Literal, Protocol, Sequence, get_args
 import tyro
 
 from tacsplat.errors import ConfigError, TacsplatError, UsageError
-from tacsplat.interrupts import ctrl_c_interrupts
+from tacsplat.interrupts import END_SIGNALS, SignalInterrupt, ctrl_c_interrupts, signals_interrupt
 from tacsplat.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -65,7 +71,7 @@ Executor = Literal["auto", "local", "processes", "ray"]
 EXECUTORS = get_args(Executor)
 FAILURES_CSV = "failures.csv"
 FAILURE_COLUMNS = ("job", "attempts", "error")
-RETRIES = 2  # extra attempts of a Ray task that raised or whose worker died
+RETRIES = 2  # extra attempts of a Ray task that raised or whose worker died (--retries: with --executor ray only)
 EMBEDDED_OBJECT_STORE_BYTES = 256 * 1024**2  # jobs pass paths and small summaries, never arrays
 POLL_S = 1.0  # progress refresh while waiting for Ray tasks or worker processes
 PROBE_S = 5.0  # for an answer at --ray-address
@@ -131,12 +137,14 @@ class ExecutorOptions:
     """Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray Client server, or auto);
     default RAY_ADDRESS, else an embedded local Ray for this batch (--executor ray)"""
     retries: int = RETRIES
-    """extra attempts of a Ray task that raised or whose worker died"""
+    """--executor ray: extra attempts of a Ray task that raised or whose worker died"""
 
     def run_jobs_args(self) -> dict:
         """The keyword arguments of :func:`run_jobs`; a UsageError naming an option whose value it refuses."""
         if self.retries < 0:
             raise UsageError("--retries", f"must be >= 0, got {self.retries}")
+        if self.retries != RETRIES and self.executor != "ray":  # (the others never retry: a rerun does)
+            raise UsageError("--retries", "sets the attempts of a Ray task: add --executor ray")
         if self.ray_address and self.executor != "ray":
             raise UsageError("--ray-address", "runs jobs on a Ray cluster: add --executor ray")
         if self.ray_address:
@@ -211,23 +219,53 @@ def run_jobs(
     if batch.outcome.skipped:
         log.info("%d of %d jobs already complete in %s: skipped", len(batch.outcome.skipped), len(jobs), out)
     owned = executor == "ray" and bool(todo) and connect(ray_address)
-    batch.bar = progress_bar(total=len(todo), desc=desc, unit="job", enabled=progress)
-    try:
-        if executor == "local":
-            _run_local(todo, batch)
-        elif executor == "processes":  # a dead worker fails the jobs it ran; a new set of workers runs the rest
-            while todo:
-                todo = _run_pool(todo, batch, workers or default_workers())
-        else:
-            _run_ray(todo, batch, retries)
-    finally:
-        batch.bar.close()
-        if owned:
-            import ray
+    with _end_signals_interrupt():  # after connect(): it replaces Ray's handlers
+        try:
+            batch.bar = progress_bar(total=len(todo), desc=desc, unit="job", enabled=progress)
+            if executor == "local":
+                _run_local(todo, batch)
+            elif executor == "processes":  # a dead worker fails its job; a new set of workers runs the rest
+                warm = True
+                while todo:
+                    todo, warm = _run_pool(todo, batch, workers or default_workers(), warm)
+            else:
+                _run_ray(todo, batch, retries)
+        finally:
+            if batch.bar is not None:
+                batch.bar.close()
+            if owned:
+                import ray
 
-            ray.shutdown()
+                ray.shutdown()
     batch.finish()
     return batch.outcome
+
+
+@contextlib.contextmanager
+def _end_signals_interrupt():
+    """SIGTERM, SIGHUP (and SIGQUIT) stop the jobs as Ctrl-C does: :func:`signals_interrupt` raises a
+    SignalInterrupt, a KeyboardInterrupt, and once one has, further signals are ignored until that is done (a
+    training's checkpoint). Installed after Ray's connect(), it replaces Ray's handlers (whose SIGTERM aborts this
+    process with a crash dump, cancelling nothing); and where Ray's wait or get turned the SignalInterrupt into a
+    plain KeyboardInterrupt (its signal lost: exit 130 for a SIGTERM), it is raised again as that signal's."""
+    received: list[int] = []
+    with signals_interrupt(once=True):
+        if threading.current_thread() is threading.main_thread():  # (elsewhere signals_interrupt changes nothing)
+            for signum in END_SIGNALS:
+                handler = signal.getsignal(signum)
+                if callable(handler):  # (signals_interrupt's; not a signal ignored on entry: nohup's SIGHUP)
+                    signal.signal(signum, functools.partial(_noted, handler, received))
+        try:
+            yield
+        except KeyboardInterrupt as exc:
+            if received and not isinstance(exc, SignalInterrupt):
+                raise SignalInterrupt(received[0]) from None
+            raise
+
+
+def _noted(handler, received: list[int], signum: int, frame) -> None:
+    received.append(signum)
+    handler(signum, frame)
 
 
 def check_order(jobs: Sequence[Job]) -> None:
@@ -330,7 +368,11 @@ def _call(job: Job) -> tuple[str, object]:
 
 _job_running = False  # in a worker: a job is running (SIGINT interrupts it; an idle worker ignores SIGINT)
 _batch_pid = 0  # in a worker: the batch's process (the worker's parent until that dies)
+_stopping = None  # in a worker: its pool's flag (shared), set once the batch stops the pool's workers
+_events = None  # in a worker: where it says what becomes of each job it takes (_PoolEvents)
 PR_SET_PDEATHSIG = 1  # Linux prctl option: a signal for this process when its parent dies
+STOPPED_EXIT = 130  # a worker's exit status once it has stopped (its job as after Ctrl-C) for a stopping pool
+DIED = "its worker process died (out of memory, or killed)"
 
 
 def _orphaned() -> bool:
@@ -339,11 +381,13 @@ def _orphaned() -> bool:
 
 def _on_interrupt(signum, frame) -> None:
     """A worker's SIGINT: KeyboardInterrupt in its job (a training stops after its step and checkpoints), once;
-    nothing while idle, unless the batch's process is gone (then the worker exits)."""
+    while idle, nothing, unless its pool is stopping or the batch's process is gone (then the worker exits)."""
     global _job_running
     if _job_running:
         _job_running = False
         raise KeyboardInterrupt
+    if _stopping is not None and _stopping.value:
+        os._exit(STOPPED_EXIT)
     if _orphaned():
         os._exit(1)
 
@@ -362,13 +406,91 @@ class _LogPipe(multiprocessing.queues.SimpleQueue):
         return super().get()
 
 
-def _start_worker(log_queue, level: int, batch_pid: int) -> None:
+class _Worker(multiprocessing.context.SpawnProcess):
+    """A worker process of a pool (this object lives in the batch's process). Its ``terminate()``, which
+    ProcessPoolExecutor calls on every worker once one of them has died, is :meth:`interrupt`, not SIGTERM: a
+    training would take that as a second signal after the batch's own, and stop at once, saving nothing."""
+
+    stopping = None  # the pool's shared flag (kept out of the pickle the worker is spawned from)
+    interrupted = False  # it has had its SIGINT
+    killed = False  # by the batch, after the grace period
+
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "stopping"}
+
+    def terminate(self) -> None:
+        self.interrupt()
+
+    def interrupt(self) -> None:
+        """Stop the pool (its flag: no job starts on any of its workers from now on) and send this worker one
+        SIGINT, never a second: its job stops as after Ctrl-C (a training saves its checkpoint), then it exits;
+        an idle worker exits at once."""
+        with _SIGNALLING:  # (the pool's manager thread calls terminate() as this thread interrupts)
+            self.stopping.value = True
+            if self.interrupted or self._popen is None or self._popen.poll() is not None:
+                return
+            self.interrupted = True
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signal.SIGINT)
+
+    def end(self, kill: bool = False) -> None:
+        """SIGTERM (an idle worker, which would leave by itself in a second or two), or SIGKILL, if alive."""
+        with _SIGNALLING:
+            if self._popen is not None and self.is_alive():
+                self.killed = kill
+                (super().kill if kill else super().terminate)()
+
+
+_SIGNALLING = threading.Lock()
+
+
+class _PoolContext(multiprocessing.context.SpawnContext):
+    """The spawn context of one pool: its workers are :class:`_Worker` (listed in ``workers``), sharing the flag
+    ``stopping``."""
+
+    def __init__(self):
+        self.workers: list[_Worker] = []
+        self.stopping = self.RawValue(ctypes.c_bool, False)
+
+    def Process(self, *args, **kwargs) -> _Worker:  # noqa: N802 - the name ProcessPoolExecutor calls
+        worker = _Worker(*args, **kwargs)
+        worker.stopping = self.stopping
+        self.workers.append(worker)
+        return worker
+
+    def lost_worker(self) -> bool:
+        """Whether a worker has exited (none does unless stopped, or killed). Also what ProcessPoolExecutor can
+        miss: a worker started as it began waiting for its workers (submit wakes it before starting one) is not
+        watched until something else wakes it, so a pool whose worker died could wait for its other jobs."""
+        return any(worker._popen is not None and worker.exitcode is not None for worker in self.workers)
+
+
+class _PoolEvents:
+    """What the workers of a pool say of the jobs they take, in a pipe (read as the pool runs, so that it never
+    fills): ``(name, "started", pid)`` before a job starts, ``(name, "ended")`` after it has returned, ``(name,
+    "stopped")`` after it stopped as after Ctrl-C (or was not started, its pool stopping)."""
+
+    def __init__(self, context):
+        self.pipe = _LogPipe(ctx=context)
+        self.worker: dict[str, int] = {}  # job name -> pid of the worker that started it
+        self.settled: set[str] = set()  # jobs that ended or stopped
+
+    def read(self) -> None:
+        while not self.pipe.empty():
+            name, what, *pid = self.pipe.get()
+            if what == "started":
+                self.worker[name] = pid[0]
+            else:
+                self.settled.add(name)
+
+
+def _start_worker(log_queue, level: int, batch_pid: int, events, stopping) -> None:
     """A worker's set-up: its log records go to the batch's process; it leaves the terminal's process group
     (a Ctrl-C reaches the batch's process alone, which passes one SIGINT on to each worker: a training stops
     at the second); on Linux it gets SIGINT when the batch's process dies (killed), so that its job stops as
     after Ctrl-C and the worker exits instead of running on unseen."""
-    global _batch_pid
-    _batch_pid = batch_pid
+    global _batch_pid, _events, _stopping
+    _batch_pid, _events, _stopping = batch_pid, events, stopping
     root = logging.getLogger()
     root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
     root.setLevel(level)
@@ -376,8 +498,6 @@ def _start_worker(log_queue, level: int, batch_pid: int) -> None:
     if hasattr(os, "setpgid"):  # (POSIX)
         os.setpgid(0, 0)
     with contextlib.suppress(OSError, AttributeError):  # not Linux: an orphaned worker finishes its job first
-        import ctypes
-
         ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGINT)
     if _orphaned():  # the batch's process died before prctl took effect
         os._exit(1)
@@ -396,22 +516,39 @@ def _run_in_worker(job: Job) -> tuple[str, object]:
 
     Twice: a job that runs alone at the end of a batch then uses the cores the others left, and side by side
     the threads cost nothing measurable (two demo trainings on 2 cores: 43.2 s at 2 threads each, 42.5 s at 1).
+
+    Interrupted (SIGINT: Ctrl-C, or its pool stopping as one of its workers died), or taken from a stopping pool,
+    the job stops and the worker exits (taking no other job).
     """
     global _job_running
-    _limit_threads(2 * job.cpus)
-    _job_running = True
     try:
-        return _call(job)
+        _job_running = True  # (before the flag is read: a SIGINT after it interrupts the job)
+        if _stopping is not None and _stopping.value:
+            raise KeyboardInterrupt
+        _events.put((job.name, "started", os.getpid()))
+        _limit_threads(2 * job.cpus)
+        result = _call(job)
+        _events.put((job.name, "ended"))
+        return result
+    except KeyboardInterrupt:
+        _job_running = False
+        with contextlib.suppress(Exception):  # (a second signal here ends the worker all the same)
+            _events.put((job.name, "stopped"))
+        os._exit(STOPPED_EXIT)
     finally:
         _job_running = False
         if _orphaned():  # the job has stopped (a training saved its checkpoint); nobody waits for its result
             os._exit(1)
 
 
-def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
-    """Run ``pending`` on one pool of workers; returns the jobs not started when a worker died (else [])."""
-    context = multiprocessing.get_context("spawn")  # never fork a process that holds OpenMP thread pools
+def _run_pool(pending: list[Job], batch: _Batch, workers: int, warm: bool = True) -> tuple[list[Job], bool]:
+    """Run ``pending`` on one pool of workers (``warm``: with warm-up tasks). When a worker died, the jobs to run
+    on a new pool (those not started, and those stopped beside the dead worker's job, in the order given) and
+    whether that pool may warm up (:func:`_after_death`); else ``([], True)``."""
+    order = {job.name: i for i, job in enumerate(pending)}
+    context = _PoolContext()  # spawned: never fork a process that holds OpenMP thread pools
     log_queue = _LogPipe(ctx=context)
+    events = _PoolEvents(context)
     listener = logging.handlers.QueueListener(log_queue, *logging.getLogger().handlers, respect_handler_level=True)
     listener.start()
     running: dict[futures.Future, Job] = {}
@@ -420,12 +557,13 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
         max_workers=size,
         mp_context=context,
         initializer=_start_worker,
-        initargs=(log_queue, logging.getLogger().level, os.getpid()),
+        initargs=(log_queue, logging.getLogger().level, os.getpid(), events.pipe, context.stopping),
     )
     warm_ups: list[futures.Future] = []  # workers started ahead of the jobs that wait for another's output
+    starting: list[Job] = []
     try:
         while pending or running:
-            starting: list[Job] = []
+            starting = []
             for job in list(pending):  # in order: a job waits for its needs, and for CPUs behind earlier jobs
                 if need := batch.blocked_by(job):
                     pending.remove(job)
@@ -441,40 +579,86 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int) -> list[Job]:
                 starting.append(job)
             if any(not w.done() for w in warm_ups):  # the idle workers are cold: they take the later jobs, and
                 starting.reverse()  # the first waits for the worker still warming up (the queue is first come)
-            for job in starting:
-                running[pool.submit(_run_in_worker, job)] = job
+            while starting:  # (a pool that broke refuses them: they wait for the next)
+                future = pool.submit(_run_in_worker, starting[0])
+                running[future] = starting.pop(0)
             batch.started(j.name for j in running.values())
             free = workers - sum(j.cpus for j in running.values())
             kinds = list({type(job): job for job in pending if hasattr(job, "warm_up")}.values())  # one per class
-            while kinds and free >= 1 and len(running) + len(warm_ups) < size:  # (the pool starts a worker per
-                warm_ups.append(pool.submit(_warm_up, kinds))  # task submitted while none is idle)
+            while warm and kinds and free >= 1 and len(running) + len(warm_ups) < size:  # (the pool starts a
+                warm_ups.append(pool.submit(_warm_up, kinds))  # worker per task submitted while none is idle)
                 free -= 1
+            events.read()
             if not running:
                 continue
             done, _ = futures.wait(running, timeout=POLL_S, return_when=futures.FIRST_COMPLETED)
             batch.show()  # (the bar's clock moves while long jobs run)
-            for future in done:
-                job = running.pop(future)
-                try:
-                    batch.ended(job, *future.result())
-                except futures.process.BrokenProcessPool:
-                    for lost in (job, *running.values()):
-                        batch.ended(lost, "failed", "its worker process died (out of memory, or killed)")
-                    running.clear()
-                    return pending
+            for future in sorted(done, key=lambda f: order[running[f].name]):
+                if not _broken(future):
+                    batch.ended(running.pop(future), *future.result())
+            if any(_broken(future) for future in running) or context.lost_worker():
+                raise futures.process.BrokenProcessPool
+    except futures.process.BrokenProcessPool:  # a worker died (killed, out of memory)
+        pending += starting
+        again, warm = _after_death(context, events, running, batch, warm)
+        return sorted(pending + again, key=lambda job: order[job.name]), warm
     except KeyboardInterrupt:
         if running:
             log.warning("interrupted: stopping %d running jobs", len(running))
-            for child in multiprocessing.active_children():  # (in their own process group: a Ctrl-C at the
-                os.kill(child.pid, signal.SIGINT)  # terminal reached this process only)
-            futures.wait(running, timeout=CANCEL_GRACE_S)  # a training saves its checkpoint
+        _stop_workers(context)  # (in their own process group: a Ctrl-C at the terminal reached this process only)
         raise
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
-        for child in multiprocessing.active_children():  # idle workers (leaving by themselves takes a second or
-            child.terminate()  # two), or busy ones after the grace period
+        for worker in context.workers:  # idle workers (leaving by themselves takes a second or two)
+            worker.end()
         listener.stop()
-    return []
+    return [], True
+
+
+def _broken(future: futures.Future) -> bool:
+    """The future of a task that its pool failed, as one of its workers died."""
+    return future.done() and isinstance(future.exception(), futures.process.BrokenProcessPool)
+
+
+def _stop_workers(context: _PoolContext) -> None:
+    """Stop every worker of a pool as after Ctrl-C (:meth:`_Worker.interrupt`: one SIGINT each) and wait up to
+    CANCEL_GRACE_S for them to exit (a training saves its checkpoint); those still running then are killed."""
+    for worker in context.workers:
+        worker.interrupt()
+    deadline = time.monotonic() + CANCEL_GRACE_S
+    for worker in context.workers:
+        if worker._popen is not None:  # (started)
+            worker.join(max(0.0, deadline - time.monotonic()))
+        worker.end(kill=True)
+
+
+def _after_death(context: _PoolContext, events: _PoolEvents, running: dict, batch: _Batch, warm: bool):
+    """A worker of the pool died, and ProcessPoolExecutor failed every job the pool had: the job that worker ran
+    fails (:data:`DIED`); the others are stopped as after Ctrl-C (a training checkpoints) and returned, to run
+    again on a new pool, with whether that pool may warm up. A death no job explains (a worker that died idle, or
+    warming up) runs them again on a pool without warm-ups (``warm`` False), and there fails them all (a worker
+    that cannot start: this ends)."""
+    _stop_workers(context)
+    events.read()
+    killed = {worker.pid for worker in context.workers if worker.killed}
+    again, died = [], []
+    for future, job in running.items():
+        if future.done() and future.exception() is None:  # (ended before the pool broke)
+            batch.ended(job, *future.result())
+        elif job.name in events.worker and job.name not in events.settled and events.worker[job.name] not in killed:
+            died.append(job)
+        else:
+            again.append(job)
+    if not died and not warm:
+        died, again = again, []
+    for job in died:
+        batch.ended(job, "failed", DIED)
+    if again:
+        log.warning(
+            "a worker process died: %s stopped and run again in new workers (a training resumes from its checkpoint)",
+            ", ".join(job.name for job in again),
+        )
+    return again, bool(died)
 
 
 # ---------------------------------------------------------------------- ray

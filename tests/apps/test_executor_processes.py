@@ -1,7 +1,8 @@
 """The processes executor: jobs side by side in spawned worker processes of this machine, started in order once
 their needs have finished and while CPUs are free; failures listed while the others finish, a dead worker failing
-only the jobs it ran, the workers' log records reaching this process, and Ctrl-C interrupting the running jobs
-(which keep what they finished) while the queued ones never start."""
+only the job it ran (the jobs beside it stopped once, saving what they did, and run again), the workers' log records
+reaching this process, and Ctrl-C interrupting the running jobs (which keep what they finished) while the queued
+ones never start."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from tacsplat.apps.executors import FAILURES_CSV, default_workers, resolve_execu
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders; spawned
 # workers get this process's sys.path
 
-from batch_test_jobs import FileJob, ImportingJob, SlowWarmJob, wait_until  # noqa: E402
+from batch_test_jobs import DyingWarmJob, FileJob, ImportingJob, SlowWarmJob, wait_until  # noqa: E402
 
 
 def read_rows(path: Path) -> list[dict]:
@@ -121,6 +122,35 @@ def test_a_dead_worker_fails_its_job_and_the_rest_go_on(tmp_path):
         {"job": "dies", "attempts": "1", "error": "its worker process died (out of memory, or killed)"}
     ]
     assert jobs[0].attempts()[0] != jobs[1].attempts()[0]  # the rest ran in a new worker
+
+
+def test_a_dead_worker_fails_only_its_job_and_the_jobs_beside_it_save_and_run_again(tmp_path):
+    # "dies" kills its worker while "beside" runs in the other: "beside" gets one SIGINT (a second would cut its
+    # saving short), saves, and runs again in a new worker, as "queued" runs there; "after-dies" is not run
+    beside = FileJob("beside", tmp_path / "beside", "block-once")
+    dies = FileJob("dies", tmp_path / "dies", "die-once", wait_for=beside.folder / "started")
+    queued = FileJob("queued", tmp_path / "queued")
+    after = FileJob("after-dies", tmp_path / "after-dies", needs=("dies",))
+    outcome = run_jobs([beside, dies, queued, after], tmp_path, executor="processes", workers=2, progress=False)
+
+    assert sorted(outcome.done) == ["beside", "queued"] and list(outcome.failed) == ["dies", "after-dies"]
+    assert read_rows(tmp_path / FAILURES_CSV) == [
+        {"job": "dies", "attempts": "1", "error": "its worker process died (out of memory, or killed)"},
+        {"job": "after-dies", "attempts": "0", "error": "not run: needs dies, which failed"},
+    ]
+    assert (beside.folder / "interrupted").read_text() == "KeyboardInterrupt" and (beside.folder / "saved").exists()
+    first, second = beside.attempts()  # run again, in a new worker
+    assert first != second and dies.attempts() != [first] and len(queued.attempts()) == 1
+
+
+def test_a_worker_that_dies_warming_up_fails_no_job(tmp_path):
+    # the worker warming up for "train" dies while "capture" runs: "capture" saves and runs again, on a pool
+    # that no longer warms up, and so does "train"
+    capture = FileJob("capture", tmp_path / "capture", "block-once")
+    train = DyingWarmJob("train", tmp_path / "train", needs=("capture",), wait_for=capture.folder / "started")
+    outcome = run_jobs([capture, train], tmp_path, executor="processes", workers=2, progress=False)
+    assert outcome.done == ["capture", "train"] and not outcome.failed
+    assert (capture.folder / "saved").exists() and len(capture.attempts()) == 2
 
 
 @dataclass(frozen=True)

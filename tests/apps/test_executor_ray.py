@@ -1,7 +1,7 @@
 """The ray executor on the embedded local Ray that ``--executor ray`` starts without an address (shared by this
 module's tests): a task that raises or whose worker dies is retried, then listed in failures.csv while the others
-finish, and the rerun runs only what failed; Ctrl-C cancels the outstanding tasks. (The tiny suite, local and on
-Ray value for value: test_batch_cluster.py.)"""
+finish, and the rerun runs only what failed; Ctrl-C, or SIGTERM, cancels the outstanding tasks. (The tiny suite,
+local and on Ray value for value: test_batch_cluster.py.)"""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ import pytest
 import ray
 
 from tacsplat.apps.executors import FAILURES_CSV, connect, run_jobs
+from tacsplat.interrupts import SignalInterrupt
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 
@@ -116,3 +117,18 @@ def test_ctrl_c_cancels_outstanding_tasks_and_keeps_finished_ones(tmp_path, embe
         ) from None
     assert not hangs.complete() and queued.attempts() == []
     assert ray.is_initialized()  # the batch did not own this Ray: it is left running
+
+
+def test_sigterm_cancels_outstanding_tasks_as_ctrl_c_does(tmp_path, embedded_ray):
+    # not Ray's handler (which aborts the process with a crash dump, cancelling nothing): a SignalInterrupt
+    hangs = FileJob("hangs", tmp_path / "hangs", "block")
+    first = FileJob("first", tmp_path / "first", wait_for=hangs.folder / "started")
+
+    def terminate(job, summary):
+        os.kill(os.getpid(), signal.SIGTERM)  # `kill` as the first job finishes
+
+    with pytest.raises(SignalInterrupt) as info:
+        run_jobs([hangs, first], tmp_path, executor="ray", on_done=terminate, progress=False)
+    assert info.value.signum == signal.SIGTERM and first.complete()
+    wait_until((hangs.folder / "interrupted").exists, timeout_s=10)  # the running task got the cancellation
+    assert not hangs.complete()
