@@ -8,6 +8,7 @@ analytic sphere, and the touches are flat-gel indentations of the sphere.
 from __future__ import annotations
 
 import math
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -144,3 +145,20 @@ def one_error_line(capsys, *words, prefix: str = "error: ") -> str:
     for word in words:
         assert word in lines[0], lines[0]
     return lines[0]
+
+
+def pause_training(monkeypatch) -> tuple[threading.Event, threading.Event]:
+    """Make every training step wait: ``(in_training, finish)``, set by the first step as it starts, and to set
+    for it (and every later one) to go on; a training started in a thread then holds its run folder meanwhile."""
+    from tacsplat.reconstruction.trainer import Trainer
+
+    in_training, finish = threading.Event(), threading.Event()
+    real_step = Trainer.train_step
+
+    def paused_step(self):
+        in_training.set()
+        assert finish.wait(120)
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", paused_step)
+    return in_training, finish

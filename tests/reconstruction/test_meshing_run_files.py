@@ -15,7 +15,7 @@ from tacsplat.cli import main
 from tacsplat.datasets import SceneWriter
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
+from recon_synthetic import build_sphere_scene, one_error_line, pause_training  # noqa: E402
 
 FAST = ["--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--init.no-use-sfm", "--quiet"]
 EXPORT = ["--voxel", "0.08", "--views", "12", "--cone-deg", "60"]
@@ -99,18 +99,8 @@ def test_an_export_into_a_run_being_trained_is_refused_and_one_elsewhere_is_not(
     outside the run writes nothing of the run's and goes ahead."""
     import threading
 
-    from tacsplat.reconstruction.trainer import Trainer
-
     scene, run = copy
-    in_training, finish = threading.Event(), threading.Event()
-    real_step = Trainer.train_step
-
-    def paused_step(self):
-        in_training.set()
-        assert finish.wait(120)
-        return real_step(self)
-
-    monkeypatch.setattr(Trainer, "train_step", paused_step)
+    in_training, finish = pause_training(monkeypatch)
     resume = ["reconstruct", str(scene), "--out", str(run), *FAST, "--resume", "--iterations", "5"]
     first = {}
     job = threading.Thread(target=lambda: first.update(code=main(resume)))

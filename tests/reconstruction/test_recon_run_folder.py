@@ -21,7 +21,7 @@ from tacsplat.reconstruction.run_dir import load_run
 from tacsplat.reconstruction.trainer import Trainer
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
+from recon_synthetic import build_sphere_scene, one_error_line, pause_training  # noqa: E402
 
 FAST = ["--sh-degree", "0", "--lambda-s", "0", "--backend", "cpu", "--quiet"]
 
@@ -70,15 +70,7 @@ def test_a_folder_of_unrelated_files_is_refused_and_left_as_it_was(scene, tmp_pa
 
 def test_two_jobs_never_write_one_run_folder_at_once(scene, tmp_path, capsys, monkeypatch):
     run = tmp_path / "run"
-    in_training, finish = threading.Event(), threading.Event()
-    real_step = Trainer.train_step
-
-    def paused_step(self):
-        in_training.set()
-        assert finish.wait(120)
-        return real_step(self)
-
-    monkeypatch.setattr(Trainer, "train_step", paused_step)
+    in_training, finish = pause_training(monkeypatch)
     first = {}
     job = threading.Thread(target=lambda: first.update(code=_reconstruct(scene, run)))
     job.start()
