@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shlex
+import signal
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -106,25 +107,33 @@ def _export_mesh(args: ExportMesh) -> int:
 
 def _reconstruct(args) -> int:
     from tacsplat.files import refuse_unwritable
+    from tacsplat.interrupts import signals_interrupt
     from tacsplat.reconstruction.command import parse, resumed
     from tacsplat.reconstruction.trainer import TrainingInterrupted, reconstruct
 
     command = parse(args.rest)
     refuse_unwritable("--out", command.out)
     command.train.torch_device()
+    again = shlex.join(["tacsplat", "reconstruct", str(command.scene), "--out", str(command.out), "--resume"])
     try:
-        metrics = reconstruct(
-            command.scene,
-            command.out,
-            command.train,
-            resume=command.resume,
-            overwrite=command.overwrite,
-            resumed=lambda recorded: resumed(args.rest, recorded, command.out),
-        )
+        with signals_interrupt((signal.SIGTERM, signal.SIGHUP)):  # (training has its own: stop after the step)
+            metrics = reconstruct(
+                command.scene,
+                command.out,
+                command.train,
+                resume=command.resume,
+                overwrite=command.overwrite,
+                resumed=lambda recorded: resumed(args.rest, recorded, command.out),
+            )
     except TrainingInterrupted as stop:
-        again = shlex.join(["tacsplat", "reconstruct", str(command.scene), "--out", str(command.out), "--resume"])
         print(f"{stop}; continue with:\n  {again}", file=sys.stderr)
         return 128 + stop.signum
+    except KeyboardInterrupt as stop:  # outside the training's steps (the evaluation after them, most likely)
+        if not (Path(command.out) / "checkpoint.pt").is_file():
+            raise  # (nothing to continue: the command's "interrupted")
+        signum = getattr(stop, "signum", signal.SIGINT)
+        print(f"interrupted ({signal.Signals(signum).name}); continue with:\n  {again}", file=sys.stderr)
+        return 128 + signum
     shown = ("method", "cd", "psnr", "ssim", "train_seconds", "iterations", "num_gaussians", "num_touch_gaussians")
     print(json.dumps({k: metrics[k] for k in shown}, indent=2))
     return 0

@@ -133,6 +133,33 @@ def test_a_signal_checkpoints_the_step_reached_and_resume_matches_a_straight_run
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
+def test_sigterm_during_the_evaluation_after_training_exits_143_and_resume_evaluates(
+    scene, tmp_path, capsys, monkeypatch
+):
+    """Training has its own handler (stop after the step); the evaluation after it is covered too: a SIGTERM there
+    (kill, a scheduler's time limit) exits 143 with the command that continues, which evaluates the trained run."""
+    from tacsplat.reconstruction import trainer
+
+    run, real_evaluate = tmp_path / "run", trainer.evaluate_reconstruction
+
+    def signalled(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return real_evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(trainer, "evaluate_reconstruction", signalled)
+    previous = signal.signal(signal.SIGTERM, _raise_on_sigterm)  # what a test process must survive
+    try:
+        assert _reconstruct(scene, run, iterations=4) == 143
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    err = capsys.readouterr().err
+    assert f"interrupted (SIGTERM); continue with:\n  tacsplat reconstruct {scene} --out {run} --resume" in err, err
+    assert not (run / "metrics.json").exists()
+    monkeypatch.setattr(trainer, "evaluate_reconstruction", real_evaluate)
+    assert main(["reconstruct", str(scene), "--out", str(run), "--resume", "--quiet"]) == 0
+    assert load_run(run).step == 4 and (run / "metrics.json").is_file()
+
+
 def _power_cut_then_resume(
     scene, run: Path, iterations: int, checkpoint_every: int, cut_at: int, monkeypatch, between=lambda: None
 ) -> list[int]:
