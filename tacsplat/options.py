@@ -30,7 +30,31 @@ def parse_options(cls: type[T], argv: list[str], prog: str, default: T | None = 
         if stop.code == 0:  # --help
             print(shown.getvalue(), end="")
             raise
+        if unknown := _unknown_option(cls, argv, prog, default):  # (tyro may blame what it consumed as its value)
+            raise unknown from None
         raise UsageError(*tyro_error(errors.getvalue() + shown.getvalue(), prog)) from None
+
+
+def _unknown_option(cls: type, argv: list[str], prog: str, default) -> UsageError | None:
+    """The first ``--option`` of ``argv`` that ``cls`` does not have, as a UsageError suggesting the nearest one.
+    Before tyro's own message: an unknown option before a positional takes that positional as its value, and tyro
+    then says the positional is missing."""
+    import difflib
+
+    import tyro
+
+    shown = io.StringIO()
+    with contextlib.suppress(SystemExit), contextlib.redirect_stdout(shown), contextlib.redirect_stderr(io.StringIO()):
+        tyro.cli(cls, args=["--help"], default=default, prog=prog)
+    known = set(re.findall(r"(?<![\w-])--[\w.-]*\w", shown.getvalue()))
+    for token in argv:
+        if token == "--":
+            break
+        option = token.split("=", 1)[0]
+        if option.startswith("--") and option not in known:
+            near = difflib.get_close_matches(option, sorted(known), n=1)
+            return UsageError(option, f"not an option of {prog}" + (f" (did you mean {near[0]}?)" if near else ""))
+    return None
 
 
 def tyro_error(text: str, prog: str) -> tuple[str, str]:

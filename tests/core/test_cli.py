@@ -155,3 +155,17 @@ def test_an_output_on_a_pseudo_file_system_is_not_called_a_full_disk(tmp_path):
     from tacsplat.files import refuse_unwritable
 
     refuse_unwritable("--out", "/proc/no-such-folder/m.ply")  # (the command reports what it cannot reach)
+
+
+def test_a_mistyped_option_is_named_with_the_nearest_one_wherever_it_stands(capsys):
+    """tyro takes the word after an unknown option as its value: before a positional, it then said the positional
+    was missing. The unknown option itself is the error, with the option it most likely meant."""
+    for argv, typo, meant in (
+        (["reconstruct", "--iteratons", "100", "SCENE", "--out", "RUN"], "--iteratons", "--iterations"),
+        (["reconstruct", "SCENE", "--iteratons", "100", "--out", "RUN"], "--iteratons", "--iterations"),
+        (["evaluate", "--gt-mseh", "x.ply", "RUN"], "--gt-mseh", "--gt-mesh"),
+        (["view", "--prot=9000", "RUN"], "--prot", "--port"),
+    ):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"error: {typo}: not an option of tacsplat {argv[0]} (did you mean {meant}?)" in err[0]
