@@ -14,6 +14,7 @@ resumable the same way and its numbers are the benchmark's own.
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +22,7 @@ from pathlib import Path
 from tacsplat.reconstruction.methods import DEFAULT_METHOD
 
 DEMO_OBJECT = "teapot"
-NO_TOUCH = "default-touch"  # the default without touching (tacsplat/apps/ablations.yaml)
+NO_TOUCH = "default-no-touch"  # the default with --no-use-touch: no touch Gaussians, no L_T (ablations.yaml)
 COLUMNS = {
     "3dgs": "3DGS (no touch)",
     "paper": "paper (touch)",
@@ -71,7 +72,7 @@ def _change(without: float, with_touch: float) -> str:
 
 
 def run(args: DemoCommand) -> int:
-    from tacsplat.apps.paper_bench import PaperBench
+    from tacsplat.apps.paper_bench import PaperBench, continue_hint
     from tacsplat.errors import ConfigError
     from tacsplat.options import options_error
 
@@ -80,9 +81,14 @@ def run(args: DemoCommand) -> int:
         bench = PaperBench(Path(args.out), demo_config(args.object, args.resolution, args.iterations))
     except ConfigError as exc:  # an option's value, refused before anything is made
         raise options_error(exc, {"objects": "--object"}) from None
-    rows = {r["method"]: r for r in bench.run(executor="auto")}  # the three trainings side by side on 2+ cores
+    try:
+        rows = {r["method"]: r for r in bench.run(executor="auto")}  # the trainings side by side on 2+ cores
+    except KeyboardInterrupt:
+        print(continue_hint("demo", bench.out), file=sys.stderr)
+        raise
+    name = bench.config.object_list()[0]  # the object's name in the bench's files (a mesh file: its stem)
     print()
-    print(f"{args.object}, 5 views + 5 grasps (20 touches), {args.resolution} px, {args.iterations} steps:")
+    print(f"{name}, 5 views + 5 grasps (20 touches), {args.resolution} px, {args.iterations} steps:")
     width = 2 + max(len(heading) for heading in COLUMNS.values())
     print(f"{'':22s}" + "".join(f"{heading:>{width}s}" for heading in COLUMNS.values()))
     for key, label, decimals in (
@@ -101,7 +107,7 @@ def run(args: DemoCommand) -> int:
     report = bench.out.resolve()
     print(f"report: {report / 'report.md'} (tables, plots and renders)")
     print(
-        f"open first: {report / f'renders_{args.object}_minimal.png'} "
+        f"open first: {report / f'renders_{name}_minimal.png'} "
         "(a test view: ground truth and the four runs; RGB, depth, normals, and the depth error beside "
         "what the training views see)"
     )

@@ -27,8 +27,12 @@ paper's touches by default); the report prints the paper's Tables 1-3
 The job is resumable: a finished capture is marked by ``capture.json``, a run
 with a ``metrics.json`` is skipped, a run with only a checkpoint is continued
 (with the settings it started with). A finished or interrupted run trained with
-other settings than the bench's now is kept and named in report.md; a finished
-capture made with other settings is refused before anything runs.
+other settings than the bench's now (a default changed since) is kept and named in
+report.md; one trained with another value of an option (``--iterations``,
+``--downscale``), and a finished capture made with other settings, are refused
+before anything runs, and so is a non-empty ``--out`` that holds no bench
+(:func:`refuse_foreign_out`). A row renamed since (:data:`RENAMED_ROWS`) keeps
+reading its runs under the old name.
 The captures and runs are batch jobs (:mod:`tacsplat.apps.batch`): run one
 after another here, or as Ray tasks (:mod:`tacsplat.apps.executors`).
 Output::
@@ -44,6 +48,7 @@ import functools
 import itertools
 import json
 import logging
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -87,6 +92,14 @@ def paper_views(train: list, count: int) -> list:
     return list(train[:: len(train) // count][:count])
 
 
+RENAMED_ROWS = {"default-touch": "default-no-touch"}  # a row's former name -> its name (ablations.yaml)
+ROW_NOTES = {  # what report.md says of a row it holds
+    "default-no-touch": "the default with `--no-use-touch`: no touch Gaussians and no tactile loss (L_T); beside "
+    "the default it shows what touching did",
+}
+RUN_OPTIONS = {"iterations": "--iterations", "downscale": "--downscale"}  # a run's settings an option sets
+
+
 @functools.cache
 def ablation_rows() -> dict[str, tuple[str, dict]]:
     """``{row: (method, overrides)}`` of :data:`ABLATIONS`."""
@@ -100,7 +113,8 @@ def ablation_rows() -> dict[str, tuple[str, dict]]:
 
 def bench_row(name: str, option: str = "--methods") -> tuple[str, dict]:
     """``(method, overrides)`` of a row of the bench: a method (no overrides) or an ablation row; a ConfigError
-    naming ``option`` otherwise."""
+    naming ``option`` otherwise (a former name, :data:`RENAMED_ROWS`, is the row's)."""
+    name = RENAMED_ROWS.get(name, name)
     if name in METHODS:
         return name, {}
     if name not in ablation_rows():
@@ -168,6 +182,9 @@ class PaperBenchConfig:
                 raise ConfigError(key, f"{value!r} is given twice")
         for name in self.methods:
             bench_row(name, "methods")
+        self.methods = tuple(RENAMED_ROWS.get(m, m) for m in self.methods)  # (a former name: the row's runs)
+        if (value := first_repeat(self.methods)) is not None:
+            raise ConfigError("methods", f"{value!r} is given twice (once by its former name)")
         if self.full_views < 32 and self.dataset is None:
             raise ConfigError(
                 "full_views", f"the full-views setting needs at least 32 train views, got {self.full_views}"
@@ -270,11 +287,19 @@ class PaperBench:
 
     def runs(self) -> list[Run]:
         """Every run, setting by setting (the minimal-views table fills first), then object, seed, method."""
-        c, runs = self.config, self.out / "runs"
+        c = self.config
         return [  # (object, setting, method, seed)
-            Run(o, s, m, seed, self.scene_dir(o, s, seed), runs / o / s / f"{m}-s{seed}{c.tag}")
+            Run(o, s, m, seed, self.scene_dir(o, s, seed), self.run_dir(o, s, m, seed))
             for s, o, seed, m in itertools.product(c.settings, c.object_list(), c.seeds, c.methods)
         ]
+
+    def run_dir(self, obj: str, setting: str, method: str, seed: int) -> Path:
+        """The run folder of a row: named by the row, or by its former name (:data:`RENAMED_ROWS`) where only a
+        folder of that name is there (a run of an earlier bench, reused as it is)."""
+        folder = self.out / "runs" / obj / setting
+        name = f"{method}-s{seed}{self.config.tag}"
+        former = [folder / f"{old}-s{seed}{self.config.tag}" for old, new in RENAMED_ROWS.items() if new == method]
+        return next((f for f in former if f.is_dir() and not (folder / name).exists()), folder / name)
 
     # ------------------------------------------------------------------ capture and training
 
@@ -353,11 +378,34 @@ class PaperBench:
         how = side_by_side(executor["executor"], executor.get("workers"))
         wall_note = f" (jobs side by side as {how}: a run's train seconds include the time it shared the cores)"
         wall_note = wall_note if how else ""
+        refuse_foreign_out(self.out)  # (before the claim writes its lock file into it)
         with claim_output_dir(self.out, "--out"):
             for capture in self.capture_jobs():
                 if isinstance(capture, CaptureJob):  # (refused before anything runs)
                     capture.refuse_changed_settings()
+            self.refuse_changed_options()
             return self._run(progress, wall_note, executor)
+
+    def refuse_changed_options(self) -> None:
+        """A finished or interrupted run trained with another value of an option (:data:`RUN_OPTIONS`: its step
+        count, its downscale) is an error on ``--out``, not numbers shown under the new value (a run whose other
+        settings differ, a default changed since, is kept and named in report.md: :meth:`stale_runs`)."""
+        changed: dict[str, list[Run]] = {}  # what differs -> its runs
+        for run in self.runs():
+            changes = self.reconstruct_job(run).changed_settings()
+            if options := [c for c in changes if c.split(" ", 1)[0] in RUN_OPTIONS]:
+                changed.setdefault(", ".join(options), []).append(run)
+        if not changed:
+            return
+        changes, runs = next(iter(changed.items()))
+        count = sum(map(len, changed.values()))
+        others = f" and {count - 1} other run(s)" if count > 1 else ""
+        then = ", ".join(f"{RUN_OPTIONS[c.split(' ', 1)[0]]} {c.split(' ')[1]}" for c in changes.split(", "))
+        raise ConfigError(
+            "--out",
+            f"{runs[0].out}{others} were trained with other settings ({changes}): rerun with {then}, or choose a "
+            "new --out, or delete those run folders to train them again",
+        )
 
     def _run(self, progress: bool, wall_note: str, executor: dict) -> list[dict]:
         """:meth:`run` in the claimed folder."""
@@ -534,7 +582,7 @@ def coverage_sentence(rows: list[dict], setting: str) -> str:
         return ""
     per_object = ", ".join(f"{o} {100 * f:.0f}%" for o, f in zip(objects, fractions[:-1]) if np.isfinite(f))
     ratios = "; ".join(
-        f"{method_label(v)} {unseen_cd[i, -1]:.4f} vs {seen_cd[i, -1]:.4f}"
+        f"{report.row_label(v)} {unseen_cd[i, -1]:.4f} vs {seen_cd[i, -1]:.4f}"
         for i, v in enumerate(methods)
         if np.isfinite(unseen_cd[i, -1]) and np.isfinite(seen_cd[i, -1])
     )
@@ -706,6 +754,30 @@ def _first_view_truth(
     return gt_depth, gt_normal, None if seen is None else seen_pixels(gt_depth, seen[frame.id])
 
 
+BENCH_LAYOUT = ("runs", "scenes")  # the folders a bench (and the demo) makes in its --out
+
+
+def refuse_foreign_out(out: Path) -> None:
+    """A non-empty ``out`` that holds no earlier bench (none of :data:`BENCH_LAYOUT`'s folders, or a results.csv
+    that a bench did not write) is an error on ``--out``: its files are not overwritten."""
+    from tacsplat.datasets.writer import has_content
+
+    out = Path(out)
+    if not out.is_dir() or not has_content(out):
+        return
+    bench = any((out / name).is_dir() for name in BENCH_LAYOUT)
+    results = out / "results.csv"
+    if bench and results.is_file():
+        with results.open(errors="replace") as fh:
+            bench = fh.readline().strip().split(",")[:3] == list(report.RESULT_COLUMNS[:3])
+    if not bench:
+        raise ConfigError(
+            "--out",
+            f"{out} holds other files and no bench (no {'/ or '.join(BENCH_LAYOUT)}/ of an earlier bench paper or "
+            "demo); choose an empty or new folder",
+        )
+
+
 def _stale_note(stale: list[tuple[Run, list[str]]], out: Path) -> str:
     """What report.md and the log say about :meth:`PaperBench.stale_runs` ("" when none): the runs grouped by
     method and what differs, each group with its folders (relative to ``out``)."""
@@ -769,6 +841,9 @@ def write_paper_report(
             f"{len(rows)} of {len(runs)} runs finished.",
             "",
         ]
+    for row, note in ROW_NOTES.items():
+        if any(r["method"] == row for r in rows):
+            lines += [f"`{row}` ({report.row_label(row)}): {note}.", ""]
     if stale_note:
         lines += [f"**Note:** {stale_note}.", ""]
     for setting in settings:
@@ -887,6 +962,14 @@ class PaperBenchCommand:
         return config
 
 
+def continue_hint(command: str, out: Path) -> str:
+    """What an interrupted bench (``command``: bench paper, demo) says as it ends: running it again continues."""
+    return (
+        f"{command}: to continue, run the same command again: only the unfinished jobs run (what finished in "
+        f"{out} is kept)"
+    )
+
+
 def register(cli) -> None:
     cli.typed("bench paper", PaperBenchCommand, _run)
 
@@ -898,7 +981,11 @@ def _run(args: PaperBenchCommand) -> int:
     except ConfigError as exc:  # an option's value, refused before anything is made
         raise options_error(exc) from None
     started = time.perf_counter()
-    rows = bench.run(**executor)
+    try:
+        rows = bench.run(**executor)
+    except KeyboardInterrupt:
+        print(continue_hint("bench paper", bench.out), file=sys.stderr)
+        raise
     print((bench.out / "report.md").read_text())
     print(f"{len(rows)} runs in {bench.out}; this invocation took {(time.perf_counter() - started) / 60:.1f} min")
     print(f"report: {bench.out / 'report.md'}")

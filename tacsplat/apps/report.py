@@ -50,6 +50,14 @@ NUMBER_COLUMNS = (
 RESULT_COLUMNS = ("object", "setting", "method", *NUMBER_COLUMNS, "seed")
 
 
+ROW_LABELS = {"default-no-touch": "Default, no touch"}  # bench rows beyond the methods that tables name otherwise
+
+
+def row_label(name: str) -> str:
+    """The label the tables and plots print for a bench row: a method's label, :data:`ROW_LABELS`', or the name."""
+    return ROW_LABELS.get(name) or method_label(name)
+
+
 def number(value, decimals: int, missing: str = "–") -> str:
     """``value`` with ``decimals`` decimals; ``missing`` for None, NaN or infinity."""
     return missing if value is None or not math.isfinite(value) else f"{value:.{decimals}f}"
@@ -171,7 +179,7 @@ def markdown_table(rows: list[dict], metric: str, setting: str) -> str:
     for i, method in enumerate(methods):
         cells = [number(v, decimals) for v in values[i]]
         cells = [f"**{text}**" if i in best[j] else text for j, text in enumerate(cells)]
-        table.append([method_label(method), *cells] + ([number(spread[method], decimals)] if with_spread else []))
+        table.append([row_label(method), *cells] + ([number(spread[method], decimals)] if with_spread else []))
     lines = md_table(["Method", *objects, "Avg.", *(["Seed s.d."] if with_spread else [])], table)
     return f"**{heading}, {setting}**\n\n" + "\n".join(lines) + "\n" + (SPREAD_NOTE if with_spread else "")
 
@@ -204,7 +212,7 @@ def plot_cd_bars(rows: list[dict], setting: str, path: str | Path) -> Path:
     x = np.arange(len(objects) + 1)
     for i, method in enumerate(methods):
         offset = (i - (len(methods) - 1) / 2) * width
-        ax.bar(x + offset, np.nan_to_num(values[i], nan=0.0), width, label=method_label(method))
+        ax.bar(x + offset, np.nan_to_num(values[i], nan=0.0), width, label=row_label(method))
     ax.set_xticks(x, objects + ["Avg."])
     ax.set_ylabel("Chamfer distance [x GT radius]")
     if np.nanmin(np.where(values > 0, values, np.nan), initial=np.inf) < np.inf:
@@ -228,7 +236,7 @@ def plot_error_vs_time(curves: dict[str, dict[str, dict[str, np.ndarray]]], path
     from tacsplat.reconstruction.run_dir import draw_error_vs_time
 
     for j, obj in enumerate(objects):
-        draw_error_vs_time(axes[0, j], axes[1, j], {method_label(v): c for v, c in curves[obj].items()})
+        draw_error_vs_time(axes[0, j], axes[1, j], {row_label(v): c for v, c in curves[obj].items()})
         axes[0, j].set_title(obj)
         axes[0, j].set_yscale("log")
     axes[0, 0].legend(fontsize=8)
@@ -265,7 +273,7 @@ def render_grid(
     lo, hi = (float(valid.min()), float(valid.max())) if valid.size else (0.0, 1.0)
     pad = 0.1 * max(hi - lo, 1e-6)
     columns = [("ground truth", gt_rgb, gt_depth, gt_normal)] + [
-        (method_label(v), p[0], p[1], p[2] if len(p) > 2 else None) for v, p in panels.items()
+        (row_label(v), p[0], p[1], p[2] if len(p) > 2 else None) for v, p in panels.items()
     ]
     with_normals = any(c[3] is not None for c in columns)
     with_error = gt_seen is not None and valid.size > 0

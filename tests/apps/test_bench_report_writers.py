@@ -748,9 +748,9 @@ def _no_render(runs, cache=None):
     return {r.method: (np.zeros((8, 8, 3)), depth) for r in runs}, np.ones((8, 8, 3)), depth, None, None
 
 
-def test_an_interrupted_run_resumed_with_its_own_settings_is_named_in_the_report(tmp_path, monkeypatch):
-    """A run interrupted, then rerun with another --iterations, continues with the settings it started with (as
-    a finished one is kept): the final report says so."""
+def test_an_interrupted_run_rerun_with_another_iterations_is_refused(tmp_path, monkeypatch):
+    """A run interrupted, then rerun with another --iterations, is an error on --out naming the step counts (it
+    would continue with the settings it started with, under the new count's heading), before anything runs."""
     config = PaperBenchConfig(objects=("teapot",), settings=("minimal",), methods=("3dgs",), iterations=40)
     bench = PaperBench(tmp_path, config)
     (run,) = bench.runs()
@@ -758,13 +758,14 @@ def test_an_interrupted_run_resumed_with_its_own_settings_is_named_in_the_report
     started = replace(bench.reconstruct_job(run), iterations=400).config()
     (run.out / "config.json").write_text(json.dumps(started.to_json()))
     (run.out / "checkpoint.pt").write_bytes(b"")  # interrupted
-    monkeypatch.setattr(batch.CaptureJob, "__call__", lambda job: {"scene": str(job.out)})
-    monkeypatch.setattr(batch.ReconstructJob, "__call__", lambda job: _finish(job, 0.02) or {"cd": 0.02})
-    monkeypatch.setattr(paper_bench, "render_first_test_view", _no_render)
-    bench.run(progress=False)
-    report = (tmp_path / "report.md").read_text()
-    assert "1 run(s) were trained with other settings" in report
-    assert "3dgs (iterations 400 -> 40), 1 run(s): runs/teapot/minimal/3dgs-s0" in report
+    called = []
+    monkeypatch.setattr(batch.CaptureJob, "__call__", lambda job: called.append(job.name))
+    monkeypatch.setattr(batch.ReconstructJob, "__call__", lambda job: called.append(job.name))
+    with pytest.raises(
+        ConfigError, match=r"--out: .*3dgs-s0 were trained with other settings \(iterations 400 -> 40\)"
+    ):
+        bench.run(progress=False)
+    assert called == [] and not (tmp_path / "report.md").exists()
 
 
 def test_benches_refuse_a_folder_another_process_writes(tmp_path, monkeypatch):
