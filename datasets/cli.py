@@ -115,6 +115,8 @@ class Inspect:
     """print one JSON object (frames {split: count}, touches, grasps, problems [...], ...)"""
     plot: Path | None = None
     """also save a 3D picture of the cameras, contact points and bounds (PNG, PDF or SVG)"""
+    overwrite: bool = False
+    """replace an existing --plot file (never one inside the scene)"""
 
 
 def register(cli) -> None:
@@ -161,4 +163,4 @@ def _inspect(o: Inspect) -> int:
             f"cannot save a picture as .{picture_format(o.plot)}; use one of "
             f"{', '.join('.' + f for f in plot_formats())}",
         )
-    return run_inspect(o.dir, as_json=o.json, plot=o.plot)
+    return run_inspect(o.dir, as_json=o.json, plot=o.plot, overwrite=o.overwrite)

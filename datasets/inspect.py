@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tacsplat.errors import SceneFormatError
+from tacsplat.errors import SceneFormatError, UsageError
 from tacsplat.files import atomic_write, check_writable
 
 from .reader import check_scene
@@ -162,10 +162,28 @@ def plot_formats() -> list[str]:
     return sorted(FigureCanvasAgg(Figure()).get_supported_filetypes())
 
 
-def run_inspect(path, as_json: bool = False, plot: str | Path | None = None) -> int:
+def check_plot_out(path, plot, overwrite: bool = False) -> None:
+    """Refuse (a UsageError on ``--plot``) a picture file without a suffix matplotlib writes, one inside the scene
+    ``path`` (its captured data) whatever ``overwrite`` says, and an existing file unless ``overwrite``."""
+    plot = Path(plot)
+    if not plot.suffix or picture_format(plot) not in plot_formats():
+        raise UsageError(
+            "--plot",
+            f"cannot save a picture as {plot.name}; name it with one of {', '.join('.' + f for f in plot_formats())}",
+        )
+    target, scene = plot.resolve(), Path(path).resolve()
+    if target == scene or target.is_relative_to(scene):
+        raise UsageError("--plot", f"{plot} lies in the scene {path}, whose files are not to be replaced")
+    if target.exists() and not overwrite:
+        raise UsageError("--plot", f"{plot} exists; pass --overwrite to replace it")
+
+
+def run_inspect(path, as_json: bool = False, plot: str | Path | None = None, overwrite: bool = False) -> int:
     """Print the summary (text or one JSON object), optionally save :func:`plot_scene`; exit code 1 on problems.
-    The picture's folder is made and must be writable before anything is printed (a StorageError naming it)."""
+    The picture file is refused as :func:`check_plot_out` says, and its folder must be writable, before anything
+    is printed (a StorageError naming it)."""
     if plot is not None:
+        check_plot_out(path, plot, overwrite)
         check_writable(Path(plot).parent)
     summary = summarise(path)
     print(json.dumps(summary, indent=1) if as_json else format_summary(summary))

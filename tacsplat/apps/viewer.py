@@ -69,6 +69,8 @@ class ViewCommand:
     export: Annotated[Path | None, tyro.conf.arg(metavar="FILE.html")] = None
     """write a self-contained HTML view that opens without Python (the scene, without the side panel's controls),
     then exit"""
+    overwrite: bool = False
+    """replace an existing --export file (never one inside PATH or the run's scene)"""
 
 
 def register(cli) -> None:
@@ -82,9 +84,12 @@ def _run(args: ViewCommand) -> int:
         raise UsageError("--port", f"must be in [0, 65535], got {args.port}")
     export = args.export
     if export is not None:
+        check_export_out(args.path, export, args.overwrite)
         if not export.parent.is_dir():
             raise ConfigError("--export", f"{export.parent} is not a folder")
         check_writable(export.parent)  # a read-only or full folder is refused before the view is built
+    else:
+        check_host(args.host, args.port)  # (an address this machine lacks: viser would try port after port forever)
     content = load_content(args.path)
     logging.getLogger("websockets").setLevel(logging.WARNING)
     with _viser_quiet():  # viser prints its own banner; ours follows
@@ -98,8 +103,10 @@ def _run(args: ViewCommand) -> int:
             print(f"wrote {export} ({size:.1f} MB): open it in a browser, no Python needed")
         else:
             with ctrl_c_interrupts():  # (also where it was started with Ctrl-C ignored)
+                port = server.get_port()
+                moved = f" (port {args.port} was taken)" if args.port and port != args.port else ""
                 print(
-                    f"tacsplat view: {content.kind} {args.path} at {server_url(args.host, server.get_port())} "
+                    f"tacsplat view: {content.kind} {args.path} at {server_url(args.host, port)}{moved} "
                     "(Ctrl-C to stop)",
                     flush=True,
                 )
@@ -112,6 +119,28 @@ def _run(args: ViewCommand) -> int:
     return 0
 
 
+def check_export_out(path: Path, export: Path, overwrite: bool = False) -> None:
+    """Refuse (a UsageError on ``--export``) a page that is not ``.html``, one inside ``path`` (the scene, run or
+    report shown) or inside a run's recorded scene, whatever ``overwrite`` says, and an existing file unless
+    ``overwrite``."""
+    if export.suffix.lower() != ".html":
+        raise UsageError("--export", f"{export} is not an .html file: name the page FILE.html")
+    target = export.resolve()
+    owners = [path.resolve()]
+    with contextlib.suppress(TacsplatError, OSError, KeyError, TypeError):  # (no readable record: PATH alone)
+        from tacsplat.reconstruction.run_dir import recorded_scene
+
+        if (record := recorded_scene(path)) and record.get("path"):
+            owners.append(Path(record["path"]).resolve())
+    for owner in owners:
+        if target == owner or target.is_relative_to(owner):
+            raise UsageError(
+                "--export", f"{export} lies in {owner}, whose files are not to be replaced: name a file outside it"
+            )
+    if target.exists() and not overwrite:
+        raise UsageError("--export", f"{export} exists; pass --overwrite to replace it")
+
+
 def _viser_quiet():
     """Swallow what viser prints on stdout (its banner, 'Server stopped')."""
     import io
@@ -120,10 +149,31 @@ def _viser_quiet():
 
 
 def server_url(host: str, port: int) -> str:
-    """The URL a browser opens (this machine's name when serving every interface)."""
+    """The URL a browser opens (this machine's name when serving every interface; an IPv6 literal bracketed)."""
     import socket
 
-    return f"http://{socket.gethostname() if host in ('0.0.0.0', '::', '') else host}:{port}"
+    name = socket.gethostname() if host in ("0.0.0.0", "::", "") else host
+    return f"http://{f'[{name}]' if ':' in name else name}:{port}"
+
+
+def check_host(host: str, port: int) -> None:
+    """Refuse (a UsageError on ``--host``) an address that does not resolve or that this machine cannot listen on,
+    with the operating system's reason; a port in use is fine (the server takes the next free one)."""
+    import errno
+    import socket
+
+    try:
+        addresses = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise UsageError("--host", f"cannot resolve {host!r}: {getattr(exc, 'strerror', None) or exc}") from None
+    family, kind, proto, _, address = addresses[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            if exc.errno != errno.EADDRINUSE:
+                raise UsageError("--host", f"cannot listen on {host}: {exc.strerror or exc}") from None
 
 
 # Opened from a file (file://), Chromium gives the page an opaque origin and refuses the workers viser's client
@@ -451,7 +501,15 @@ def _exported_mesh(server, view: View, run: RunData) -> None:
         return
     import trimesh
 
-    view.mesh_node = server.scene.add_mesh_trimesh("/run/mesh", trimesh.load(str(path), force="mesh"), visible=False)
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+        if not len(mesh.vertices) or not len(mesh.faces):
+            raise ValueError("no vertices or faces")
+    except Exception as exc:  # trimesh raises many types for a damaged file: the rest is still shown
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        log.warning("%s: unreadable mesh (%s); showing the run without it (export mesh writes it anew)", path, reason)
+        return
+    view.mesh_node = server.scene.add_mesh_trimesh("/run/mesh", mesh, visible=False)
     hint = "RUN/mesh.ply, written by tacsplat export mesh"
     _visibility_checkbox(server, view, "exported mesh", [view.mesh_node], False, hint)
 

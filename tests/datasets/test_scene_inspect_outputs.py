@@ -1,0 +1,46 @@
+"""`tacsplat inspect --plot` never replaces the scene's own files, nor an existing file without --overwrite; a
+picture file without an image suffix is refused before anything is read."""
+
+from __future__ import annotations
+
+import pytest
+
+from tacsplat.cli import main
+from tacsplat.datasets.inspect import run_inspect
+from tacsplat.errors import UsageError
+
+
+def _one_error_line(capsys, *words) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "error: " in lines[0] and "Traceback" not in err, err
+    for word in words:
+        assert word in lines[0], lines[0]
+    return lines[0]
+
+
+def test_a_plot_inside_the_scene_is_refused_and_the_image_kept(scene_dir, capsys):
+    image = sorted((scene_dir / "images").iterdir())[0]
+    before = image.read_bytes()
+    assert main(["inspect", str(scene_dir), "--plot", str(image.with_suffix(".png"))]) == 2
+    _one_error_line(capsys, "--plot", "scene")
+    with pytest.raises(UsageError, match="--plot"):
+        run_inspect(scene_dir, plot=image.with_suffix(".png"), overwrite=True)  # (--overwrite does not allow it)
+    assert image.read_bytes() == before
+    assert main(["inspect", str(scene_dir)]) == 0
+
+
+def test_an_existing_plot_is_replaced_only_with_overwrite(scene_dir, tmp_path, capsys):
+    picture = tmp_path / "mine.png"
+    picture.write_bytes(b"a picture of mine")
+    assert main(["inspect", str(scene_dir), "--plot", str(picture)]) == 2
+    _one_error_line(capsys, "--plot", "exists", "--overwrite")
+    assert picture.read_bytes() == b"a picture of mine"
+    assert main(["inspect", str(scene_dir), "--plot", str(picture), "--overwrite"]) == 0
+    assert picture.read_bytes().startswith(b"\x89PNG")
+
+
+def test_a_plot_without_an_image_suffix_is_a_usage_error(scene_dir, tmp_path, capsys):
+    assert main(["inspect", str(scene_dir), "--plot", str(tmp_path / "picture")]) == 2
+    _one_error_line(capsys, "--plot", ".png")
+    assert not (tmp_path / "picture").exists()
