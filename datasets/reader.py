@@ -193,6 +193,22 @@ def load_points_ply(path: Path, problems: _Problems, field: str) -> np.ndarray:
     return points
 
 
+def load_mesh_ply(path: Path, problems: _Problems, field: str):
+    """The ground-truth mesh (trimesh) of a PLY file (``gt/mesh.ply``), checked non-empty and finite."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(str(path), file_type=path.suffix.lstrip(".") or "ply", force="mesh")
+        vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+    except Exception as exc:  # trimesh raises many types for damaged files
+        problems.report(path, field, f"unreadable mesh: {_first_line(exc)}")
+    if vertices.ndim != 2 or vertices.shape[1:] != (3,) or not len(vertices) or not len(faces):
+        problems.report(path, field, f"expected a mesh with vertices and faces, got {len(vertices)} and {len(faces)}")
+    if not np.isfinite(vertices).all():
+        problems.report(path, field, "contains NaN or infinite coordinates")
+    return mesh
+
+
 def load_hand_motion(path: Path, problems: _Problems, field: str) -> HandMotion:
     """Load and check a grasp's hand motion written by the writer (:meth:`HandMotion.to_arrays`'s keys)."""
     if not path.is_file():
@@ -698,7 +714,7 @@ def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems
     if mesh is not None and (path := problems.attempt(_relative_file, scene.path, mesh, index, "gt.mesh", problems)):
         if check_files and not path.is_file():
             problems.note(index, "gt.mesh", f"ground-truth mesh {mesh!r} is missing")
-        else:
+        elif not check_files or problems.attempt(load_mesh_ply, path, problems, "gt.mesh") is not None:
             scene.gt_mesh_file = mesh
     if points is not None and (
         path := problems.attempt(_relative_file, scene.path, points, index, "gt.points", problems)

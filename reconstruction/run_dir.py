@@ -17,6 +17,7 @@ import hashlib
 import io
 import json
 import logging
+import os
 import re
 import shlex
 from dataclasses import dataclass
@@ -95,6 +96,12 @@ def run_checkpoint(run_dir: str | Path) -> Path:
         missing = "is a file" if Path(run_dir).exists() else "does not exist"
         raise SceneFormatError(run_dir, None, f"{missing}: not a reconstruction run directory")
     if not path.is_file():
+        if (writer := run_writer(Path(run_dir))) is not None:
+            raise SceneFormatError(
+                path,
+                None,
+                f"no checkpoint yet: the run is still being trained by {writer}; try again after its first checkpoint",
+            )
         if (scene := _recorded_run_scene(Path(run_dir))) is not None:
             again = shlex.join(["tacsplat", "reconstruct", scene, "--out", str(run_dir), "--resume"])
             raise SceneFormatError(
@@ -102,6 +109,28 @@ def run_checkpoint(run_dir: str | Path) -> Path:
             )
         raise SceneFormatError(path, None, "no checkpoint: not a reconstruction run directory")
     return path
+
+
+def run_writer(run_dir: Path) -> str | None:
+    """The live process holding the run's lock (training or writing it), as :func:`other_writer` names it; None when
+    no process holds it (a run that stopped, or a folder never locked)."""
+    import fcntl
+
+    from tacsplat.datasets.outputs import LOCK_NAME, other_writer
+
+    try:
+        with open(run_dir / LOCK_NAME, "rb") as lock:  # (read-only: a probe creates nothing)
+            try:
+                fcntl.flock(lock.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = (run_dir / LOCK_NAME).read_text().split()
+                if holder and holder[0] == str(os.getpid()):  # this process's own (evaluate holds it while reading)
+                    return None
+                return other_writer(run_dir)
+            fcntl.flock(lock.fileno(), fcntl.LOCK_UN)
+    except OSError:  # no lock file, or one that cannot be opened: nobody to name
+        return None
+    return None
 
 
 def _recorded_run_scene(run_dir: Path) -> str | None:

@@ -410,3 +410,31 @@ def test_evaluate_of_what_is_not_a_run_is_one_error(tmp_path, capsys):
     (run / "checkpoint.pt").write_bytes(b"PK\x03\x04 cut short")
     assert main(["evaluate", str(run)]) == 1
     one_error_line(capsys, "checkpoint.pt", "corrupt")
+
+
+def test_a_run_still_training_before_its_first_checkpoint_is_said_to_be_training_not_stopped(scene, tmp_path, capsys):
+    """While its lock is held (its training), a run without a checkpoint is not one to --resume: view and evaluate
+    say it is being trained (naming the PID) and to try again after its first checkpoint."""
+    pytest.importorskip("viser")
+    import subprocess
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"scene": {"path": str(Path(scene).resolve()), "sha256": "0"}}))
+    hold = "import sys, time; from tacsplat.datasets.outputs import claim_output_dir as c; l = c(sys.argv[1]); "
+    hold += "print('ready', flush=True); sys.stdin.read()"  # (a process that stands in for the training)
+    training = subprocess.Popen([sys.executable, "-c", hold, str(run)], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert training.stdout.readline().strip() == b"ready"
+        capsys.readouterr()
+        for command in (["evaluate", str(run)], ["view", str(run), "--export", str(tmp_path / "view.html")]):
+            assert main(command) == 1
+            line = one_error_line(capsys, str(training.pid))
+            assert "--resume" not in line, line
+            if command[0] == "view":
+                assert "still being trained" in line and "after its first checkpoint" in line, line
+    finally:
+        training.stdin.close()
+        training.wait(timeout=30)
+    assert main(["view", str(run), "--export", str(tmp_path / "view.html")]) == 1
+    one_error_line(capsys, "before its first checkpoint", "--resume")
