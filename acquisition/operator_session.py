@@ -285,23 +285,14 @@ def run_capture(
     hands = []  # the real rig's hand, once made: its torque-off report is the last line
     running = False  # whether the session started (the rig and the scene open)
     try:
-        with signals_interrupt(once=True), open_scene(config, out, resume, on_hand=hands.append) as (rig, writer):
+        with signals_interrupt(once=True) as ending, open_scene(config, out, resume, on_hand=hands.append) as opened:
             running = True
-            logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
-            if logger.dropped_partial_grasp:
-                output.write(
-                    f"resumed: removed {logger.dropped_partial_grasp} touches of a grasp cut short; "
-                    "it will be redone whole\n"
-                )
-            planner = None
-            if rig.kind == "sim":
-                from tacsplat.acquisition.twin_planner import TwinPlanner
-
-                planner = TwinPlanner(rig.twin, config.plan.grasps.seed, config.plan.views)
-            if on_open is not None:
-                on_open(rig, logger)
-            if CaptureSession(rig, logger, config.plan, keys, output, planner).run():
-                code, told = 0, f"plan complete: scene written to {out}\n"
+            try:
+                if _serve(*opened, config, keys, output, on_open):
+                    code, told = 0, f"plan complete: scene written to {out}\n"
+            except BaseException:  # (the hand's own handler may have raised the signal: ours never saw it)
+                ending()  # the rig closes as the session unwinds: a second signal must not cut that short
+                raise
     except (DeviceError, SimulationError) as fault:
         code, told = EXIT_FAULT, _fault("DEVICE FAULT", fault, out, "Fix the device.")
     except StorageError as fault:  # a full or read-only disk, before or during the session (it says what to do)
@@ -317,6 +308,23 @@ def run_capture(
         carry_on = _carry_on(config, out) if code else ""
         _last_words(output, f"\n{told}{carry_on}{'' if config.rig == 'sim' else _hand_line(hands)}")
     return code
+
+
+def _serve(rig, writer, config: RigConfig, keys, output, on_open) -> bool:
+    """The session on an open rig and scene; whether the plan is complete."""
+    logger = CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
+    if logger.dropped_partial_grasp:
+        output.write(
+            f"resumed: removed {logger.dropped_partial_grasp} touches of a grasp cut short; it will be redone whole\n"
+        )
+    planner = None
+    if rig.kind == "sim":
+        from tacsplat.acquisition.twin_planner import TwinPlanner
+
+        planner = TwinPlanner(rig.twin, config.plan.grasps.seed, config.plan.views)
+    if on_open is not None:
+        on_open(rig, logger)
+    return CaptureSession(rig, logger, config.plan, keys, output, planner).run()
 
 
 def _last_words(output: TextIO, text: str) -> None:

@@ -28,7 +28,7 @@ import os
 import signal
 import sys
 
-from tacsplat import __version__
+from tacsplat import __version__, interrupts
 from tacsplat.errors import TacsplatError, UsageError
 from tacsplat.interrupts import END_SIGNALS
 
@@ -270,6 +270,7 @@ def run() -> None:
     0.3-0.5 s less of every command's wall time (an import of the three and a plain exit: 2.38-2.46 s; with the
     freeze 1.99-2.10 s; the collection adds 0.03-0.1 s). Not in :func:`main`, which tests call in a process that
     goes on."""
+    interrupts.COMMAND_IS_PROCESS = True
     code = main()
     if code - 128 in END_SIGNALS:  # the command ended on a signal: a second one does not cut the exit short
         for s in END_SIGNALS:

@@ -11,6 +11,11 @@ import threading
 END_SIGNALS = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP", "SIGQUIT") if hasattr(signal, n))
 
 
+# Set by the console script (tacsplat.cli.run), where a command's end is the process's: what ignores the ending
+# signals for a command's last words then leaves them ignored until the exit (a second Ctrl-C there killed it).
+COMMAND_IS_PROCESS = False
+
+
 class SignalInterrupt(KeyboardInterrupt):
     """SIGINT, SIGTERM, SIGHUP or SIGQUIT asked the process to end (``signum``); a KeyboardInterrupt, so that
     whatever stops on Ctrl-C stops on it too. A command that ends on it exits with 128 + signum."""
@@ -24,24 +29,34 @@ class SignalInterrupt(KeyboardInterrupt):
 def signals_interrupt(signals=END_SIGNALS, *, once: bool = False):
     """While open (in the main thread; elsewhere nothing changes): each of ``signals`` raises SignalInterrupt, then
     the previous handlers come back. ``once``: for a block whose cleanup a second signal must not cut short, later
-    ones are ignored until it ends, and a signal ignored on entry (``nohup``'s SIGHUP) stays ignored."""
+    ones are ignored until it ends, and a signal ignored on entry (``nohup``'s SIGHUP) stays ignored. Yields
+    ``end()``, which starts ignoring them at once (a block unwinding on a signal another handler raised)."""
     if threading.current_thread() is not threading.main_thread():
-        yield
+        yield lambda: None
         return
     previous = {s: signal.getsignal(s) for s in signals}
     if once:
         previous = {s: handler for s, handler in previous.items() if handler is not signal.SIG_IGN}
+    ended = []
+
+    def end():
+        """(``once``) The block is ending, on a signal this handler did not see (another handler installed over it
+        raised one): from now on, ignore them, here and wherever this handler is put back."""
+        ended.append(True)
+        for s in previous:
+            signal.signal(s, signal.SIG_IGN)
 
     def interrupt(signum, frame):
+        if ended:
+            return
         if once:
-            for s in previous:
-                signal.signal(s, signal.SIG_IGN)
+            end()
         raise SignalInterrupt(signum)
 
     for s in previous:
         signal.signal(s, interrupt)
     try:
-        yield
+        yield end
     finally:
         for s, handler in previous.items():  # (None: a handler installed outside Python)
             signal.signal(s, signal.SIG_DFL if handler is None else handler)
@@ -50,8 +65,9 @@ def signals_interrupt(signals=END_SIGNALS, *, once: bool = False):
 @contextlib.contextmanager
 def end_signals_ignored(signals=END_SIGNALS):
     """While open (in the main thread; elsewhere nothing changes): ``signals`` are ignored, then the previous
-    handlers come back. For what a command does once a signal has ended it (its last words): a second Ctrl-C,
-    typed because the first seemed slow, must not cut them short with a traceback."""
+    handlers come back (in the console script's process, they stay ignored: :data:`COMMAND_IS_PROCESS`). For what a
+    command does once a signal has ended it (its last words): a second Ctrl-C, typed because the first seemed slow,
+    must not cut them short with a traceback."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -59,7 +75,7 @@ def end_signals_ignored(signals=END_SIGNALS):
     try:
         yield
     finally:
-        for s, handler in previous.items():
+        for s, handler in {} if COMMAND_IS_PROCESS else previous.items():
             signal.signal(s, signal.SIG_DFL if handler is None else handler)
 
 
