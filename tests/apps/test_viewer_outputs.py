@@ -8,17 +8,13 @@ import json
 import pytest
 
 from tacsplat.cli import main
+from tests.reconstruction.recon_synthetic import one_error_line
 
 pytest.importorskip("viser", reason="tacsplat view needs viser")
 
 
 def _one_error_line(capsys, *words) -> str:
-    err = capsys.readouterr().err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and "error: " in lines[0] and "Traceback" not in err, err
-    for word in words:
-        assert word in lines[0], lines[0]
-    return lines[0]
+    return one_error_line(capsys, *words, prefix="")
 
 
 @pytest.fixture

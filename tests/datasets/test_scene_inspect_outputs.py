@@ -8,15 +8,11 @@ import pytest
 from tacsplat.cli import main
 from tacsplat.datasets.inspect import run_inspect
 from tacsplat.errors import UsageError
+from tests.reconstruction.recon_synthetic import one_error_line
 
 
 def _one_error_line(capsys, *words) -> str:
-    err = capsys.readouterr().err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and "error: " in lines[0] and "Traceback" not in err, err
-    for word in words:
-        assert word in lines[0], lines[0]
-    return lines[0]
+    return one_error_line(capsys, *words, prefix="")
 
 
 def test_a_plot_inside_the_scene_is_refused_and_the_image_kept(scene_dir, capsys):

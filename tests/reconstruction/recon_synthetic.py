@@ -138,10 +138,11 @@ def build_sphere_scene(
 
 
 def one_error_line(capsys, *words, prefix: str = "error: ") -> str:
-    """The single stderr line of a refused command (no traceback), checked for ``words``."""
+    """The single stderr line of a refused command (no traceback), checked for ``words``; it starts with
+    ``prefix`` (a usage error's starts with the command: ``prefix=""`` checks only that it holds "error: ")."""
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith(prefix) and "Traceback" not in err, err
+    assert len(lines) == 1 and lines[0].startswith(prefix) and "error: " in lines[0] and "Traceback" not in err, err
     for word in words:
         assert word in lines[0], lines[0]
     return lines[0]
