@@ -63,7 +63,6 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
         set_fields(base, from_file, given.config)
     except UsageError as exc:  # (a value in place of the init: or densify: settings): the file's, like its keys
         raise ConfigError(exc.key, str(exc).removeprefix(f"{given.config}: {exc.key}: "), given.config) from None
-    file_values = {key: value for key, value in flat_settings(base.to_json()).items() if key in from_file}
     default = ReconstructCommand(
         scene=tyro.MISSING,
         out=tyro.MISSING,
@@ -73,10 +72,11 @@ def parse(argv: list[str], recorded: TrainConfig | None = None) -> ReconstructCo
     )
     command = parse_options(ReconstructCommand, argv, PROG, default, compact=True)
     if problem := command.train.problem():  # (TrainConfig.validate's, naming the option, or the file and its key)
-        key, now = problem[0], flat_settings(command.train.to_json()).get(problem[0])
-        if key in file_values and (now == file_values[key] or now != now and file_values[key] != file_values[key]):
-            raise ConfigError(key, problem[1], given.config)  # the file's value, no option's (nan: also the file's)
-        raise UsageError(option_names(command.train).get(key, key), problem[1])
+        key, option = problem[0], option_names(command.train).get(problem[0], problem[0])
+        flags = {token.split("=", 1)[0] for token in argv}
+        if key in from_file and not flags & {option, "--no-" + option.removeprefix("--")}:
+            raise ConfigError(key, problem[1], given.config)  # the file's value: no option replaced it
+        raise UsageError(option, problem[1])
     if late := [start for start in command.train.never_started() if start.split()[0] in from_file]:
         message = "%s sets %s: at or past --iterations %d, never reached (step numbers do not scale with --iterations)"
         log.warning(message, given.config, ", ".join(late), command.train.iterations)
