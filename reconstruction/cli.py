@@ -44,8 +44,8 @@ class ExportMesh:
 
     run: tyro.conf.Positional[Path]
     """run directory written by `tacsplat reconstruct`"""
-    out: Path | None = None
-    """mesh file, a .ply (default: RUN/mesh.ply)"""
+    out: Annotated[Path | None, tyro.conf.arg(metavar="PATH", help_behavior_hint="(default: RUN/mesh.ply)")] = None
+    """mesh file, a .ply"""
     voxel: float = 0.01
     """voxel side, as a fraction of the object's radius"""
     views: int = 64
@@ -57,8 +57,8 @@ class ExportMesh:
     seal: float = 0.1
     """fill the hollows that open to the outside only through gaps narrower than twice this (of the object's
     radius; 0: none)"""
-    all_pieces: bool = False
-    """keep every connected piece (default: only the largest, the object)"""
+    all_pieces: Annotated[bool, tyro.conf.arg(help_behavior_hint="(default: only the largest, the object)")] = False
+    """keep every connected piece"""
     overwrite: bool = False
     """replace an existing --out that export mesh did not write (never the run's or its scene's own files)"""
 

@@ -11,9 +11,9 @@ numba, MuJoCo) inside ``run``, so that ``tacsplat --help`` imports none.
 
 Exit codes: 0 success, 1 a runtime error (one ``error:`` line), 2 a usage
 error (one line naming the option: a bad or missing value, or one out of its
-range: :class:`UsageError`), 130 Ctrl-C (128 + the signal where a command
-stops cleanly on SIGTERM or SIGHUP: 143, 129), 141 when the reader of stdout went away
-(``| head``).
+range: :class:`UsageError`), 130 Ctrl-C (0 for ``tacsplat view``, its normal
+stop; 128 + the signal where a command stops cleanly on SIGTERM or SIGHUP: 143,
+129), 141 when the reader of stdout went away (``| head``).
 ``-v``, ``-q`` and ``--log-level`` are accepted before or after the
 subcommand.
 """
@@ -78,10 +78,10 @@ def _common_options() -> argparse.ArgumentParser:
     subcommand's absent option never overwrites one given before it)."""
     common = argparse.ArgumentParser(add_help=False, argument_default=argparse.SUPPRESS)
     group = common.add_argument_group("logging")
-    group.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    group.add_argument("-v", "--verbose", action="store_true", help="tacsplat's debug logging (other libraries: INFO)")
     group.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only; no progress display")
     levels = ("DEBUG", "INFO", "WARNING", "ERROR")
-    group.add_argument("--log-level", type=str.upper, choices=levels, help="logging level (default INFO)")
+    group.add_argument("--log-level", type=str.upper, choices=levels, help="logging level (default INFO; DEBUG: as -v)")
     return common
 
 
@@ -198,9 +198,17 @@ def _configure_logging(args: argparse.Namespace) -> None:
         "DEBUG" if getattr(args, "verbose", False) else "WARNING" if quiet else "INFO"
     )
     logging.basicConfig(level=getattr(logging, level), format="%(levelname)s %(name)s: %(message)s", force=True)
-    if level != "DEBUG":  # PyOpenGL (under MuJoCo's renderer) says at INFO that an optional speed-up is missing
-        logging.getLogger("OpenGL").setLevel(logging.WARNING)
+    for handler in logging.getLogger().handlers:  # (a batch's workers log through these handlers too)
+        handler.addFilter(_own_debug)
+    # PyOpenGL (under MuJoCo's renderer) says at INFO that an optional speed-up is missing
+    logging.getLogger("OpenGL").setLevel(max(logging.WARNING, getattr(logging, level)))
     set_quiet(quiet)
+
+
+def _own_debug(record: logging.LogRecord) -> bool:
+    """Whether a record is shown: at DEBUG only tacsplat's own (other libraries' DEBUG lines, PIL's PNG chunks or
+    matplotlib's font search, would bury them), at INFO and above every one."""
+    return record.levelno > logging.DEBUG or record.name.partition(".")[0] == "tacsplat"
 
 
 def main(argv: list[str] | None = None) -> int:

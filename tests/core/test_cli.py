@@ -2,6 +2,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from tacsplat.cli import build_parser, main
 
 
@@ -55,6 +57,23 @@ def test_logging_options_are_accepted_before_and_after_the_subcommand(tmp_path, 
     assert logging.getLogger().level == logging.INFO
 
 
+def test_debug_logging_shows_tacsplats_debug_lines_not_other_libraries(tmp_path, capsys):
+    """-v (or --log-level DEBUG) is tacsplat's detail: PIL's or matplotlib's DEBUG lines (hundreds a command) would
+    bury it; their INFO lines still show, as without -v."""
+    import logging
+
+    for option in (["-v"], ["--log-level", "debug"]):
+        main(["inspect", str(tmp_path), *option])
+        capsys.readouterr()
+        logging.getLogger("tacsplat.datasets.scene").debug("ours")
+        logging.getLogger("PIL.PngImagePlugin").debug("STREAM b'IHDR' 16 13")
+        logging.getLogger("matplotlib").info("theirs at INFO")
+        assert capsys.readouterr().err.splitlines() == [
+            "DEBUG tacsplat.datasets.scene: ours",
+            "INFO matplotlib: theirs at INFO",
+        ], option
+
+
 def test_exit_codes_usage_errors_are_2_runtime_errors_1(tmp_path, capsys):
     assert main(["bench", "paper", "--out", str(tmp_path / "b"), "--iterations", "many"]) == 2
     assert capsys.readouterr().err.startswith("tacsplat bench paper: error: --iterations: ")
@@ -89,9 +108,18 @@ def test_required_options_are_marked_and_completion_is_printed(capsys):
     assert stop.value.code == 0
     help_text = " ".join(capsys.readouterr().out.split())
     assert "--resume) (required)" in help_text and "(0.025 to 0.3: the sizes the twin's hand grasps)" in help_text
-    with __import__("pytest").raises(SystemExit):
+    with pytest.raises(SystemExit):
         main(["--print-completion", "bash"])
     assert "complete" in capsys.readouterr().out
+
+
+def test_an_option_whose_none_or_false_means_something_shows_that_as_its_one_default(capsys):
+    """tyro adds "(default: None)" after a help that says what no value means: one default, the true one."""
+    with pytest.raises(SystemExit):
+        main(["export", "mesh", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "--out PATH mesh file, a .ply (default: RUN/mesh.ply) --voxel" in help_text
+    assert "keep every connected piece (default: only the largest, the object) --overwrite" in help_text
 
 
 def test_progress_is_plain_lines_without_a_terminal(capsys):
