@@ -192,6 +192,9 @@ class Trainer:
         self.scene_record = scene_record(scene)  # what config.json records of the scene
         self.progress: list[dict] = []  # progress.csv's rows, rewritten whole with each new one
         self.step = 0
+        # (start, start's schedule step, end, planned): steps start..end run the schedules from start's schedule step
+        # to their end at ``planned`` (schedule_step); a resume with another --iterations moves start and end
+        self.schedule = (0, 0.0, config.iterations, config.iterations)
         self.train_seconds = 0.0
         self.order: list[int] = []
         self.gaussians: Gaussians | None = None
@@ -244,10 +247,16 @@ class Trainer:
             for m, (x0, y0, w, h) in zip(self.backdrop_pixels, self.windows)
         ]
 
+    def schedule_step(self, step: int) -> float:
+        """Where ``step`` is in the schedules of fractions of the steps (coarse to fine, the position rate's decay),
+        in steps of the count they were planned for: ``step`` itself unless a resume changed the count."""
+        start, start_at, end, planned = self.schedule
+        return start_at + (step - start) * (planned - start_at) / (end - start)
+
     def factor_at(self, step: int) -> int:
         """The training views' downscale at ``step`` (``coarse_factors``, then 1 from ``coarse_until``)."""
-        factors = self.config.coarse_factors
-        phase = int(step / max(self.config.coarse_until * self.config.iterations, 1e-9) * len(factors))
+        factors, planned = self.config.coarse_factors, self.schedule[3]
+        phase = int(self.schedule_step(step) / max(self.config.coarse_until * planned, 1e-9) * len(factors))
         return factors[phase] if phase < len(factors) else 1
 
     # ------------------------------------------------------------------ setup
@@ -423,7 +432,7 @@ class Trainer:
 
         cfg.densify.step_pre_backward(meta)
         loss.backward()
-        decay = cfg.lr_means_final_factor ** min(self.step / max(cfg.iterations, 1), 1.0)
+        decay = cfg.lr_means_final_factor ** min(self.schedule_step(self.step) / max(self.schedule[3], 1), 1.0)
         self.optimizers["means"].param_groups[0]["lr"] = cfg.lr_means * self.scene_scale * decay
         for optimizer in self.optimizers.values():
             optimizer.step()
@@ -508,6 +517,7 @@ class Trainer:
             "scene_path": self.scene_record["path"],  # (resolved: evaluate and export find it from anywhere)
             "config": self.config.to_json(),
             "step": self.step,
+            "schedule": self.schedule,
             "train_seconds": self.train_seconds,
             "gaussians": self.gaussians.state_dict(),
             "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
@@ -541,6 +551,11 @@ class Trainer:
                 f"{self.device.type}: resume on the same kind of device (--device {saved_on})",
             )
         self.step = int(ckpt["step"])
+        trained_for = int(ckpt["config"]["iterations"])  # (checkpoints of older runs have no schedule)
+        self.schedule = tuple(ckpt.get("schedule", (0, 0.0, trained_for, trained_for)))
+        if self.schedule[2] != self.config.iterations and self.step < self.config.iterations:
+            # another --iterations: the schedules go on from where they are, to their end at the new count
+            self.schedule = (self.step, self.schedule_step(self.step), self.config.iterations, self.schedule[3])
         self.train_seconds = float(ckpt["train_seconds"])
         self.gaussians = checkpoint_gaussians(ckpt, path).to(self.device)
         if self.light is not None:

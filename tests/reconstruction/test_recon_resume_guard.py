@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
+import signal
 import sys
 from pathlib import Path
 
@@ -16,6 +18,7 @@ import torch
 from tacsplat.cli import main
 from tacsplat.reconstruction.config import PAPER_SCHEDULE
 from tacsplat.reconstruction.run_dir import load_run
+from tacsplat.reconstruction.trainer import Trainer
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
@@ -144,6 +147,38 @@ def test_resume_with_more_iterations_continues_and_every_record_says_so(trained,
     assert checkpoint["step"] == checkpoint["config"]["iterations"] == 5
     with (run / "progress.csv").open() as fh:
         assert [int(r["iteration"]) for r in csv.DictReader(fh)][-1] == 5
+
+
+def _schedule_spy(monkeypatch, stop_in: int) -> list[tuple[int, int, float]]:
+    """(step, training image downscale, the position's learning rate) of each step trained from now on; SIGINT (as
+    from Ctrl-C) during step ``stop_in``."""
+    seen, real_step = [], Trainer.train_step
+
+    def step(self):
+        if self.step == stop_in:
+            os.kill(os.getpid(), signal.SIGINT)
+        terms = real_step(self)
+        seen.append((self.step - 1, self.factor, self.optimizers["means"].param_groups[0]["lr"]))
+        return terms
+
+    monkeypatch.setattr(Trainer, "train_step", step)
+    return seen
+
+
+def test_resume_with_more_iterations_never_goes_back_to_coarser_images_or_a_higher_rate(scenes, tmp_path, monkeypatch):
+    """Coarse to fine and the position rate's decay are fractions of the steps: a resume that raises --iterations
+    goes on with them from where the run stopped to their end at the new count."""
+    scene, run = scenes[0], tmp_path / "run"
+    seen = _schedule_spy(monkeypatch, stop_in=4)
+    coarse = ["--coarse-factors", "4", "2", "--coarse-until", "0.5"]
+    assert main(["reconstruct", str(scene), "--out", str(run), "--iterations", "8", *coarse, *FAST]) == 130
+    assert [factor for _, factor, _ in seen] == [4, 4, 2, 2, 1]  # stopped at full size, after step 4
+    assert _resume(scene, run, "--iterations", "16") == 0
+    steps, factors, rates = zip(*seen)
+    assert steps == tuple(range(16)) and set(factors[5:]) == {1}
+    assert all(later < earlier for earlier, later in zip(rates, rates[1:]))  # lower at every step, the resume's too
+    planned = 5 + (15 - 5) * (8 - 5) / (16 - 5)  # step 15 in the 8 steps planned: from 5 at step 5 to 8 at step 16
+    assert rates[-1] / rates[0] == pytest.approx(0.01 ** (planned / 8))  # (lr_means_final_factor 0.01)
 
 
 # --- a loss since removed ----------------------------------------------------------------------------------------

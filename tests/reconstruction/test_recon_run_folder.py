@@ -133,6 +133,35 @@ def test_a_signal_checkpoints_the_step_reached_and_resume_matches_a_straight_run
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
+def test_a_run_resumed_with_more_iterations_and_stopped_again_resumes_as_if_not_stopped(scene, tmp_path, monkeypatch):
+    """A resume that raised --iterations plans the rest of coarse to fine and of the rate's decay anew (from the
+    step it resumed at): the checkpoint keeps that plan, so a second stop and resume changes nothing."""
+    first, straight, run = tmp_path / "first", tmp_path / "straight", tmp_path / "run"
+    real_step = Trainer.train_step
+
+    def stopped_in(step: int):
+        def signalled(self):
+            if self.step == step:
+                os.kill(os.getpid(), signal.SIGINT)  # as from Ctrl-C
+            return real_step(self)
+
+        monkeypatch.setattr(Trainer, "train_step", signalled)
+
+    stopped_in(2)
+    assert _reconstruct(scene, first, "--coarse-factors", "2", "--coarse-until", "0.5", iterations=8) == 130
+    shutil.copytree(first, straight)
+    shutil.copytree(first, run)
+    stopped_in(7)
+    assert main(["reconstruct", str(scene), "--out", str(run), "--resume", "--iterations", "12", "--quiet"]) == 130
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    assert main(["reconstruct", str(scene), "--out", str(run), "--resume", "--quiet"]) == 0
+    assert main(["reconstruct", str(scene), "--out", str(straight), "--resume", "--iterations", "12", "--quiet"]) == 0
+    resumed, expected = load_run(run), load_run(straight)
+    assert resumed.step == expected.step == 12
+    for name in ("means", "scales", "opacities", "sh0"):
+        torch.testing.assert_close(resumed.gaussians.params[name], expected.gaussians.params[name], rtol=0, atol=1e-6)
+
+
 def test_sigterm_during_the_evaluation_after_training_exits_143_and_resume_evaluates(
     scene, tmp_path, capsys, monkeypatch
 ):
