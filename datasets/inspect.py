@@ -12,20 +12,23 @@ import numpy as np
 from tacsplat.errors import SceneFormatError, UsageError
 from tacsplat.files import atomic_write, check_writable
 
-from .reader import check_scene
+from .reader import check_scene, not_a_scene
 from .records import MOTION_PHASES, SPLITS, sensor_to_json
 from .writer import JOURNAL
 
 
 def summarise(path) -> dict:
     """Frames per split, touches per grasp and finger, bounds, ground truth, annotation keys and every problem
-    (those of :func:`check_scene`: what it lists, ``Scene.load`` raises), as one JSON-able dict."""
+    (those of :func:`check_scene`: what it lists, ``Scene.load`` raises), as one JSON-able dict. A SceneFormatError
+    when ``path`` is no scene at all (:func:`not_a_scene`: missing, a file, a reconstruction run, ...)."""
     path = Path(path)
+    if why := not_a_scene(path):
+        raise SceneFormatError(path, None, why)
     scene, errors = check_scene(path)
     frames, touches = (scene.frames, scene.touches) if scene else ([], [])
     motions = scene.hand_motions() if scene else []
     durations = [float(m.t[-1] - m.t[0]) for m in motions]
-    lo, hi = scene.bounds() if frames or any(t.in_contact for t in touches) else (None, None)
+    lo, hi = _bounds(scene)
     return {
         "path": str(path),
         "source": scene and scene.meta.source,
@@ -61,6 +64,13 @@ def summarise(path) -> dict:
         "journal": (path / JOURNAL).is_file(),
         "problems": [str(e) for e in errors],
     }
+
+
+def _bounds(scene) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
+    """The scene's bounds, or (None, None) with neither frames nor contact points (none without a valid sensor)."""
+    if scene is None or not (scene.frames or (scene.sensor and any(t.in_contact for t in scene.touches))):
+        return None, None
+    return scene.bounds()
 
 
 def format_summary(summary: dict) -> str:
@@ -120,7 +130,7 @@ def plot_scene(path, png_path) -> Path:
     fig = Figure(figsize=(7, 6))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(projection="3d")
-    lo, hi = scene.bounds() if scene.frames or any(t.in_contact for t in scene.touches) else (None, None)
+    lo, hi = _bounds(scene)
     arrow = 0.25 * float(np.max(hi - lo)) if lo is not None else 0.05
     for split, color in zip(SPLITS, ("tab:blue", "tab:orange")):
         if not (frames := scene.split(split)):

@@ -13,6 +13,7 @@ them, so a scene one command refuses, every command refuses.
 from __future__ import annotations
 
 import json
+import shlex
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import NoReturn
@@ -53,6 +54,8 @@ _UNDISTORTED_MODELS = ("OPENCV", "PINHOLE")  # camera_model of a scene's images 
 # (depth maps, point clouds) it leaves out rather than keep unread
 _FOREIGN_KEYS = ("applied_transform", "applied_scale", "ply_file_path")
 _FOREIGN_FRAME_KEYS = ("depth_file_path",)
+_SCENE_FILES = ("scene.json", "transforms.json", "touches.json", JOURNAL)  # one of them: a scene, maybe a broken one
+_RUN_FILES = ("config.json", "checkpoint.pt", "splat.ply")  # what `tacsplat reconstruct` writes into its run folder
 
 
 class _Dropped(Exception):
@@ -152,13 +155,13 @@ def _entry_id(raw, index: Path, field: str, kind: str, seen: dict, problems: _Pr
 
 
 def load_depth_npz(
-    path: Path, shape: tuple[int, int], problems: _Problems, field: str, limit: tuple[float, str]
+    path: Path, shape: tuple[int, int] | None, problems: _Problems, field: str, limit: tuple[float, str]
 ) -> np.ndarray:
-    """Load and check a float32 depth map saved by the writer (key ``depth``); ``limit`` is (deepest value in
-    metres, why) as :func:`depth_problem` takes it."""
+    """Load and check a float32 depth map saved by the writer (key ``depth``) of ``shape`` (None: any); ``limit`` is
+    (deepest value in metres, why) as :func:`depth_problem` takes it."""
     if (depth := _npz_array(path, "depth", problems, field)) is None:
         problems.report(path, field, "no 'depth' array")
-    if depth.shape != shape:
+    if shape is not None and depth.shape != shape:
         problems.report(path, field, f"shape {depth.shape} does not match the expected {shape}")
     if problem := depth_problem(depth, *limit):
         problems.report(path, field, problem)
@@ -362,10 +365,11 @@ class Scene:
         return self._in_contact(tactile_depth_to_normals, threshold_m)
 
     def _in_contact(self, per_touch, threshold_m: float) -> np.ndarray:
+        # (no points without the sensor's pixel size: touches of a sensor at fault, as check_scene reads them)
         rows = [
             per_touch(self.load_touch_depth(t), self.sensor.pixel_size_m, t.T_world_sensor, threshold_m)
             for t in self.touches
-            if t.in_contact
+            if t.in_contact and self.sensor is not None
         ]
         return np.concatenate(rows, axis=0) if rows else np.zeros((0, 3))
 
@@ -446,18 +450,27 @@ def _is_foreign_dataset(path: Path) -> bool:
     return isinstance(data, dict) and isinstance(data.get("frames"), list) and len(data["frames"]) > 0
 
 
-def _read_scene(path: Path, problems: _Problems, check_files: bool) -> Scene:
+def not_a_scene(path: Path) -> str | None:
+    """Why ``path`` is no scene directory at all (missing, a file, another tool's dataset, a reconstruction run, a
+    folder without a scene's files), or None; a scene refused here has nothing of it read."""
     if not path.is_dir():
-        problems.report(
-            path, None, "a file, not a scene directory" if path.exists() else "scene directory does not exist"
-        )
+        return "a file, not a scene directory" if path.exists() else "scene directory does not exist"
     if _is_foreign_dataset(path):
-        problems.report(
-            path,
-            None,
+        return (
             "a nerfstudio or instant-ngp dataset (transforms.json with frames, no scene.json), "
-            f"not a tacsplat scene: import it first with `tacsplat import nerfstudio {path} --out SCENE`",
+            f"not a tacsplat scene: import it first with `tacsplat import nerfstudio {path} --out SCENE`"
         )
+    if any((path / name).exists() for name in _SCENE_FILES):
+        return None
+    if any((path / name).is_file() for name in _RUN_FILES):
+        run = shlex.quote(str(path))
+        return f"a reconstruction run, not a scene: look at it with `tacsplat view {run}` or `tacsplat evaluate {run}`"
+    return f"not a scene directory: it holds none of {', '.join(_SCENE_FILES)}"
+
+
+def _read_scene(path: Path, problems: _Problems, check_files: bool) -> Scene:
+    if why := not_a_scene(path):
+        problems.report(path, None, why)
     meta, version, gt, annotations = problems.attempt(_read_scene_json, path, problems) or (None, "", {}, {})
     frames, declared_ids = problems.attempt(_read_frames, path, problems, check_files) or ([], set())
     sensor, touches = _read_touches(path, problems, check_files)
@@ -658,10 +671,9 @@ def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[S
     if not isinstance(raw_touches, list):
         problems.note(index, "touches", f"expected a list, got {type(raw_touches).__name__}")
         return sensor, []
-    if raw_touches and sensor is None:
-        if data.get("sensor") is None:
-            problems.note(index, "sensor", f"{len(raw_touches)} touches but no sensor model")
-        return None, []
+    if raw_touches and data.get("sensor") is None:
+        problems.note(index, "sensor", f"{len(raw_touches)} touches but no sensor model")
+    # (without a valid sensor each touch is still read and checked: all but its depth map's size and deepest value)
     seen, motions = {}, {}  # id -> field; hand file -> its HandMotion (each checked once)
     touches = [
         problems.attempt(_read_touch, path, f"touches[{i}]", raw, sensor, seen, motions, problems, check_files)
@@ -671,7 +683,14 @@ def _read_touches(path: Path, problems: _Problems, check_files: bool) -> tuple[S
 
 
 def _read_touch(
-    path: Path, field: str, raw, sensor: SensorModel, seen: dict, motions: dict, problems: _Problems, check_files: bool
+    path: Path,
+    field: str,
+    raw,
+    sensor: SensorModel | None,
+    seen: dict,
+    motions: dict,
+    problems: _Problems,
+    check_files: bool,
 ) -> Touch:
     index = path / "touches.json"
     tid = _entry_id(raw, index, field, "touch", seen, problems)
@@ -697,7 +716,8 @@ def _read_touch(
         if check_files and motions[hand_path] is None:
             raise _Dropped
     if check_files:
-        shape, limit = (sensor.height_px, sensor.width_px), touch_depth_limit(sensor)
+        shape = None if sensor is None else (sensor.height_px, sensor.width_px)
+        limit = (np.inf, "") if sensor is None else touch_depth_limit(sensor)
         depth = load_depth_npz(depth_path, shape, problems, f"touch {tid} depth", limit)
         if bool((depth > 0).any()) != in_contact:
             problems.report(

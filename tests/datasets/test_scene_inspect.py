@@ -5,8 +5,11 @@ from __future__ import annotations
 import json
 
 import cv2
+import pytest
 
+from tacsplat.datasets import Scene
 from tacsplat.datasets.inspect import run_inspect
+from tacsplat.errors import SceneFormatError
 
 
 def test_inspect_text_summary_of_a_valid_scene(scene_dir, tmp_path, capsys):
@@ -51,17 +54,78 @@ def test_inspect_lists_every_problem_and_fails(scene_dir, capsys):
     assert "problems  2" in out and "  - " in out
 
 
-def test_inspect_of_a_scene_without_touches_and_of_a_non_scene(tmp_path, h, capsys):
+def test_inspect_of_a_scene_without_touches(tmp_path, h, capsys):
     path = h.build_scene(tmp_path / "s", n_frames=2, n_touches=0, sensor=None)
     assert run_inspect(path) == 0
     out = capsys.readouterr().out
     assert "touches   0 (0 in contact) in 0 grasps" in out and "sensor    none" in out
-    assert run_inspect(tmp_path / "nothing", as_json=True) == 1
+
+
+def _run_folder(path):
+    """The files `tacsplat reconstruct` leaves in its run folder (only their names tell a run from a scene)."""
+    path.mkdir()
+    for name in ("config.json", "checkpoint.pt", "splat.ply", "metrics.json"):
+        (path / name).write_text("{}\n")
+    return path
+
+
+NOT_SCENES = {  # what a user may pass instead of a scene -> the words of its one error line
+    "missing path": (lambda p: p, ["does not exist"]),
+    "a file": (lambda p: p.write_text("x\n"), ["a file, not a scene directory"]),
+    "an empty folder": (lambda p: p.mkdir(), ["not a scene directory", "scene.json"]),
+    "a random folder": (lambda p: (p.mkdir(), (p / "notes.txt").write_text("x\n")), ["not a scene directory"]),
+    "a reconstruction run": (_run_folder, ["a reconstruction run, not a scene", "tacsplat view", "tacsplat evaluate"]),
+}
+
+
+@pytest.mark.parametrize("kind", NOT_SCENES)
+@pytest.mark.parametrize("as_json", [False, True])
+def test_inspect_of_what_is_no_scene_is_one_error_line(kind, as_json, tmp_path, capsys):
+    from tacsplat.cli import main
+
+    make, words = NOT_SCENES[kind]
+    path = tmp_path / "given"
+    make(path)
+    assert main(["inspect", str(path), *(["--json"] if as_json else [])]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and "Traceback" not in err, out + err  # no summary of zeros
+    (line,) = err.splitlines()
+    assert line.startswith(f"error: {path}: "), line
+    assert all(word in line for word in words), line
+    with pytest.raises(SceneFormatError) as info:  # reconstruct, evaluate, ... refuse it with the same words
+        Scene.load(path)
+    assert f"error: {info.value}" == line
+
+
+BAD_SENSORS = {  # a damaged sensor field of touches.json -> words of its problem
+    "a key missing": (lambda s: s.pop("pixel_size_m"), "missing keys ['pixel_size_m']"),
+    "a key of the wrong type": (lambda s: s.update(width_px="10"), "width_px must be a positive integer"),
+    "a non-finite number": (lambda s: s.update(gel_thickness_m=float("nan")), "gel_thickness_m must be positive"),
+}
+
+
+@pytest.mark.parametrize("damage", [*BAD_SENSORS, "no sensor"])
+def test_a_bad_sensor_is_listed_beside_every_touch_problem(damage, scene_dir, capsys):
+    index = scene_dir / "touches.json"
+    data = json.loads(index.read_text())
+    if damage == "no sensor":
+        data["sensor"], words = None, "4 touches but no sensor model"
+    else:
+        BAD_SENSORS[damage][0](data["sensor"])
+        words = BAD_SENSORS[damage][1]
+    data["touches"][1]["finger"] = 5
+    index.write_text(json.dumps(data))
+    (scene_dir / "touches" / "000003.npz").write_bytes(b"PK\x03\x04 not a zip")
+    assert run_inspect(scene_dir, as_json=True) == 1
     summary = json.loads(capsys.readouterr().out)
-    assert summary["frames"] == {"train": 0, "test": 0} and "does not exist" in summary["problems"][0]
-    (tmp_path / "file.txt").write_text("x\n")
-    assert run_inspect(tmp_path / "file.txt", as_json=True) == 1
-    assert "a file, not a scene directory" in json.loads(capsys.readouterr().out)["problems"][0]
+    assert len(summary["problems"]) == 3, summary["problems"]
+    assert summary["problems"][0].startswith(f"{index} [sensor]: ") and words in summary["problems"][0]
+    assert "[touches[1].finger]: expected a finger name, got 5" in summary["problems"][1]
+    assert "000003.npz [touch 3 depth]: truncated or corrupt npz" in summary["problems"][2]
+    assert summary["touches"] == 2 and summary["touches_per_grasp"] == {"0": 1, "1": 1}  # the other touches count
+    assert summary["sensor"] is None and summary["bounds"] is not None  # (the cameras' bounds)
+    with pytest.raises(SceneFormatError, match=r"\[sensor\]"):  # (what every other command reads first)
+        Scene.load(scene_dir)
 
 
 def test_inspect_notices_an_index_behind_its_journal(scene_dir, capsys):

@@ -40,3 +40,14 @@ def test_a_plot_without_an_image_suffix_is_a_usage_error(scene_dir, tmp_path, ca
     assert main(["inspect", str(scene_dir), "--plot", str(tmp_path / "picture")]) == 2
     _one_error_line(capsys, "--plot", ".png")
     assert not (tmp_path / "picture").exists()
+
+
+def test_a_plot_of_what_is_no_scene_is_refused_before_anything_is_printed(tmp_path, capsys):
+    run = tmp_path / "run"  # a reconstruction run's folder, given for its scene
+    run.mkdir()
+    (run / "config.json").write_text("{}\n")
+    picture = tmp_path / "scene.png"
+    assert main(["inspect", str(run), "--plot", str(picture)]) == 1
+    out, err = capsys.readouterr()
+    assert out == "" and err.startswith(f"error: {run}: a reconstruction run, not a scene") and err.count("\n") == 1
+    assert not picture.exists()
