@@ -130,6 +130,48 @@ def render_median_depth(gaussians: Gaussians, frame, backend: str) -> np.ndarray
     return depth[0, ..., 0].cpu().numpy().astype(np.float32)
 
 
+def facing_normals(gaussians: Gaussians, frames: list, backend: str) -> torch.Tensor:
+    """Unit normals [N, 3] for ``splat.ply``: each Gaussian's shortest axis, turned towards the cameras of
+    ``frames`` that see its centre (no rendered median depth at its pixel nearer than it by more than its largest
+    scale), so the inside of a bowl or a torus's hole faces out too; a Gaussian no camera sees takes
+    the side its seen neighbours agree on, or else faces away from the centroid (:func:`.ply.outward_normals`)."""
+    from scipy.spatial import cKDTree
+
+    from tacsplat.reconstruction.ply import outward_normals
+
+    g = gaussians
+    normals = outward_normals(g.means.detach(), g.quats.detach(), g.scales.detach()).cpu().double()  # [N, 3]
+    means = g.means.detach().cpu().double()  # [N, 3]
+    tolerance = g.scales.detach().cpu().double().amax(dim=-1)  # [N]
+    votes = torch.zeros(len(means), dtype=torch.float64)  # [N] sum of cos(normal, to the camera) where seen
+    with torch.no_grad():
+        for frame in frames:
+            depth = torch.from_numpy(render_median_depth(g, frame, backend)).double()  # [H, W]
+            T = torch.tensor(frame.T_world_cam, dtype=torch.float64)
+            camera = (means - T[:3, 3]) @ T[:3, :3]  # [N, 3] in the camera's frame
+            K = torch.tensor(frame.intrinsics.K, dtype=torch.float64)
+            z = camera[:, 2].clamp_min(1e-9)
+            u = (camera[:, 0] / z * K[0, 0] + K[0, 2]).floor()
+            v = (camera[:, 1] / z * K[1, 1] + K[1, 2]).floor()
+            inside = (camera[:, 2] > 0) & (u >= 0) & (v >= 0) & (u < depth.shape[1]) & (v < depth.shape[0])
+            surface = torch.zeros_like(z)
+            surface[inside] = depth[v[inside].long(), u[inside].long()]
+            seen = inside & (surface > 0) & (camera[:, 2] <= surface + tolerance)
+            towards = T[:3, 3] - means  # [N, 3]
+            cosine = (towards * normals).sum(-1) / towards.norm(dim=-1).clamp_min(1e-12)
+            votes += torch.where(seen, cosine, 0.0)
+    decided = votes.abs() > 0.1
+    sign = torch.where(votes < 0, -1.0, 1.0).double()
+    if decided.any() and not decided.all():  # the rest: the side of the nearest decided ones, where they agree
+        oriented = normals[decided] * sign[decided, None]  # [D, 3]
+        k = min(8, int(decided.sum()))
+        _, nearest = cKDTree(means[decided].numpy()).query(means[~decided].numpy(), k=k)
+        nearest = torch.from_numpy(nearest.reshape(-1, k))
+        agreement = (oriented[nearest] * normals[~decided, None]).sum(-1).mean(-1)  # [U]
+        sign[~decided] = torch.where(agreement < -0.5, -1.0, 1.0).double()
+    return (normals * sign[:, None]).float()
+
+
 @dataclass
 class GroundTruth:
     """Ground-truth surface points per test frame and the CD normaliser."""
@@ -418,7 +460,8 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     scene = scene_at(run_scene(run), run.config.downscale)
     splat = bake_appearance(run.gaussians, run.look)
     if splat is not run.gaussians and (Path(run_dir) / "splat.ply").is_file():  # (an SH run's is already right)
-        save_ply(splat, Path(run_dir) / "splat.ply")
+        normals = facing_normals(splat, training_frames(scene, run.config.train_views), backend or run.config.backend)
+        save_ply(splat, Path(run_dir) / "splat.ply", normals)
     return evaluate_reconstruction(run, scene, run_dir, splat, gt_path, backend)
 
 

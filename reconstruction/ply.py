@@ -3,8 +3,8 @@
 One binary little-endian ``vertex`` element of exactly 62 float32 properties
 ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2 rot_0..3`` (248
 bytes per record, what the SIBR viewer reads): the normals are each Gaussian's
-shortest axis (a flat Gaussian's normal), turned away from the splat's centre
-of mass (the Inria code writes zeros), opacity is the
+shortest axis (a flat Gaussian's normal), turned out of the surface (towards
+the cameras that see it, in a run's; the Inria code writes zeros), opacity is the
 logit, scales are log-scales, ``rot`` is (w, x, y, z), and the higher SH bands
 are stored channel-major (all red coefficients, then green, then blue), padded
 with zeros above the splat's SH degree to degree 3, as the Inria code writes
@@ -42,9 +42,10 @@ def touch_sidecar_path(ply_path: str | Path) -> Path:
     return ply_path.with_name(ply_path.stem + ".touch.npy")
 
 
-def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
+def save_ply(gaussians: Gaussians, path: str | Path, normals: torch.Tensor | None = None) -> Path:
     """Write ``gaussians`` to ``path`` and their touch flags to :func:`touch_sidecar_path` (parent directories
-    created); returns the PLY's path. Both files are written in full before either replaces its old one, so a full
+    created); returns the PLY's path. ``normals`` [N, 3]: the unit normals to write (default
+    :func:`outward_normals`; a run writes :func:`.evaluation.facing_normals`). Both files are written in full before either replaces its old one, so a full
     or read-only disk (a StorageError naming the file) leaves the old pair as it was and no temporary file."""
     path = Path(path)
     make_parent(path)
@@ -53,7 +54,7 @@ def save_ply(gaussians: Gaussians, path: str | Path) -> Path:
     rest = torch.zeros(n, INRIA_REST, 3)
     rest[:, : p["shN"].shape[1]] = p["shN"]
     rest = rest.transpose(1, 2).reshape(n, 3 * INRIA_REST)  # [N, 45], channel-major
-    normals = outward_normals(p["means"], p["quats"], p["scales"])
+    normals = outward_normals(p["means"], p["quats"], p["scales"]) if normals is None else normals.detach().cpu()
     parts = [p["means"], normals, p["sh0"].reshape(n, 3), rest, p["opacities"][:, None], p["scales"], p["quats"]]
     columns = torch.cat(parts, dim=1).numpy()  # in _property_names' order
     data = np.rec.fromarrays(columns.T, dtype=[(name, "<f4") for name in _property_names(3 * INRIA_REST)])

@@ -41,7 +41,12 @@ from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyState
-from tacsplat.reconstruction.evaluation import evaluate_reconstruction, evaluate_views, load_ground_truth
+from tacsplat.reconstruction.evaluation import (
+    evaluate_reconstruction,
+    evaluate_views,
+    facing_normals,
+    load_ground_truth,
+)
 from tacsplat.reconstruction.gaussians import PARAM_NAMES, Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.initialization import (
     foreground_mask,
@@ -661,7 +666,7 @@ class Trainer:
             self.save_checkpoint()
             raise TrainingInterrupted(stop.signum, self.step)
         self.splat = bake_appearance(self.gaussians, self.look)  # what a 3DGS viewer can show
-        save_ply(self.splat, self.out / "splat.ply")
+        save_ply(self.splat, self.out / "splat.ply", facing_normals(self.splat, self.train_frames, self.config.backend))
         plot_error_vs_time(progress_path, self.out / "error_vs_time.png")
         return self.gaussians
 

@@ -177,3 +177,40 @@ def test_the_splat_carries_each_gaussians_shortest_axis_as_its_unit_normal(tmp_p
         assert abs(abs(axis @ normals[i]) - 1.0) < 1e-5
     means = gaussians.params["means"].detach().numpy()
     assert np.all(((means - means.mean(axis=0)) * normals).sum(axis=1) >= 0)  # away from the centroid
+
+
+def test_a_runs_splat_normals_face_out_of_a_torus_hole_too():
+    """A torus of opaque surfels seen by cameras all around: a run's splat normals (:func:`facing_normals`) point
+    away from the tube's core circle, including on the inner side, where 'away from the centroid' points in."""
+    from scipy.spatial.transform import Rotation
+
+    from tacsplat.reconstruction.evaluation import facing_normals
+    from tacsplat.reconstruction.meshing import sphere_cameras
+
+    big, small = 0.05, 0.02  # the torus's radii, metres
+    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, 64, endpoint=False), np.linspace(0, 2 * np.pi, 32, endpoint=False))
+    u, v = u.ravel(), v.ravel()
+    core = np.stack([big * np.cos(u), big * np.sin(u), 0 * u], axis=1)  # [N, 3] the tube's centre line
+    out = np.stack([np.cos(v) * np.cos(u), np.cos(v) * np.sin(u), np.sin(v)], axis=1)  # [N, 3] outward normals
+    along = np.stack([-np.sin(u), np.cos(u), 0 * u], axis=1)
+    flip = np.where(np.random.default_rng(0).random(len(u)) < 0.5, -1.0, 1.0)[:, None]  # the axis's sign is arbitrary
+    axes = np.stack([along, np.cross(out, along), flip * out], axis=2)  # columns; the third is the shortest
+    axes[:, :, 1] *= flip  # (a rotation: determinant +1)
+    n = len(u)
+    params = {
+        "means": torch.tensor(core + small * out, dtype=torch.float32),
+        "quats": torch.tensor(Rotation.from_matrix(axes).as_quat(scalar_first=True), dtype=torch.float32),
+        "scales": torch.log(torch.tensor([[0.004, 0.004, 0.0002]] * n)),
+        "opacities": torch.full((n,), 4.0),  # (a logit: 0.98)
+        "sh0": torch.zeros(n, 1, 3),
+        "shN": torch.zeros(n, 0, 3),
+    }
+    gaussians = Gaussians(params, torch.zeros(n, dtype=torch.bool), 0)
+    normals = facing_normals(gaussians, sphere_cameras(np.zeros(3), 0.08, 16, 64), "cpu").numpy()
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    outward = (normals * out).sum(axis=1)
+    np.testing.assert_allclose(np.abs(outward), 1.0, atol=1e-4)  # the shortest axis, up to its sign
+    inner = np.cos(v) < -0.5  # the side facing the hole
+    centroid_rule = (params["means"].numpy() * out).sum(axis=1) > 0
+    assert centroid_rule[inner].mean() < 0.5  # (what the splat's own centroid would say there)
+    assert (outward > 0).mean() >= 0.98 and (outward[inner] > 0).mean() >= 0.95
