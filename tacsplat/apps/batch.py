@@ -495,8 +495,19 @@ def load_batch(path: str | Path, out: str | Path) -> list:
             folder = job.out.resolve()
             if folder == out.resolve():  # (where results.csv goes)
                 raise ConfigError(f"jobs[{i}].out", f"{job.out} is --out itself; give a folder in it", path)
+            if out.resolve().is_relative_to(folder):  # (`..`: results.csv and the other jobs' folders in it)
+                raise ConfigError(f"jobs[{i}].out", f"{job.out} holds --out ({out}); give a folder in it", path)
             if folder in made:
                 raise ConfigError(f"jobs[{i}].out", f"{job.out} is also the out of {made[folder].name}", path)
+            for other_folder, other in made.items():  # nested outs: one job would write into the other's folder
+                if folder.is_relative_to(other_folder) or other_folder.is_relative_to(folder):
+                    how = "is inside" if folder.is_relative_to(other_folder) else "holds"
+                    raise ConfigError(
+                        f"jobs[{i}].out",
+                        f"{job.out} {how} {other.out}, the out of {other.name} (jobs[{names[other.name]}]): "
+                        "give each job a folder outside the others'",
+                        path,
+                    )
             made[folder] = job
         if job.name in names:
             raise ConfigError(

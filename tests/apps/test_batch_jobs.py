@@ -271,6 +271,17 @@ def test_a_run_folder_that_trained_with_a_removed_loss_names_it_as_a_change(tmp_
         ),
         ("- {kind: capture, out: ''}", "jobs[0].out", "is --out itself; give a folder in it"),
         ("- {kind: capture, out: x/..}", "jobs[0].out", "is --out itself; give a folder in it"),
+        ("- {kind: capture, out: ..}", "jobs[0].out", "out/.. holds --out ("),
+        (
+            "- {kind: capture, out: runs/a}\n- {kind: capture, out: runs/a/b, seed: 1}",
+            "jobs[1].out",
+            "out/runs/a/b is inside ",
+        ),
+        (
+            "- {kind: capture, out: runs/a/b}\n- {kind: capture, out: c}\n- {kind: reconstruct, out: runs/a, scene: c}",
+            "jobs[2].out",
+            "out/runs/a/b, the out of capture runs/a/b (jobs[0]): give each job a folder outside the others'",
+        ),
         (
             "- {kind: capture, out: a}\n- {kind: capture, out: x/../a, seed: 1}",
             "jobs[1].out",
@@ -339,6 +350,13 @@ def test_batch_file_mistakes_name_the_job_and_field(tmp_path, jobs, key, message
     with pytest.raises(ConfigError) as info:
         load_batch(path, tmp_path / "out")
     assert str(info.value).startswith(f"{path}: {key}: ") and message in str(info.value), str(info.value)
+
+
+def test_a_batch_file_out_outside_out_is_taken_as_given(tmp_path):
+    # as an absolute out is: a rerun resolves it to the same folder, and results.csv names it by that path
+    path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: ../shared/teapot}\n")
+    [capture] = load_batch(path, tmp_path / "out")
+    assert capture.out.resolve() == tmp_path / "shared/teapot"
 
 
 @pytest.mark.parametrize(
