@@ -34,7 +34,8 @@ Whichever the executor, a job that fails for good is listed in ``OUT/failures.cs
 its error while the jobs that do not need it go on; rerunning the same command
 runs only what failed or never ran. Ctrl-C, SIGTERM (``kill``) or SIGHUP (a closed terminal) cancels the
 outstanding tasks (a training in progress checkpoints; further signals are ignored meanwhile) and leaves every
-finished job intact; the command then exits with 128 + the signal's number.
+finished job intact; the command then exits with 128 + the signal's number. While Ray starts (or connects), the
+signal waits until it has.
 One progress bar counts the jobs done, running and failed.
 """
 
@@ -130,12 +131,21 @@ class ExecutorOptions:
     """local: one job after another in this process; processes: jobs side by side in worker processes of this
     machine (--workers); ray: each job a Ray task; auto: processes on a machine with 2 or more cores and no CUDA
     device, else local"""
-    workers: int | None = None
-    """--executor processes: CPUs to fill with jobs (default: this machine's cores, at most one per 2 GB of
-    memory)"""
-    ray_address: str | None = None
-    """Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray Client server, or auto);
-    default RAY_ADDRESS, else an embedded local Ray for this batch (--executor ray)"""
+    workers: Annotated[
+        int | None,
+        tyro.conf.arg(
+            metavar="INT", help_behavior_hint="(default: this machine's cores, at most one per 2 GB of memory)"
+        ),
+    ] = None
+    """--executor processes: CPUs to fill with jobs"""
+    ray_address: Annotated[
+        str | None,
+        tyro.conf.arg(
+            metavar="STR", help_behavior_hint="(default: RAY_ADDRESS, else an embedded local Ray for this batch)"
+        ),
+    ] = None
+    """--executor ray: the Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray
+    Client server, or auto)"""
     retries: int = RETRIES
     """--executor ray: extra attempts of a Ray task that raised or whose worker died"""
 
@@ -218,9 +228,12 @@ def run_jobs(
     todo = [job for job, done in zip(jobs, complete) if not done]
     if batch.outcome.skipped:
         log.info("%d of %d jobs already complete in %s: skipped", len(batch.outcome.skipped), len(jobs), out)
-    owned = executor == "ray" and bool(todo) and connect(ray_address)
-    with _end_signals_interrupt():  # after connect(): it replaces Ray's handlers
+    owned = False
+    with _end_signals_interrupt():
         try:
+            if executor == "ray" and todo:
+                with _signals_held():
+                    owned = connect(ray_address)
             batch.bar = progress_bar(total=len(todo), desc=desc, unit="job", enabled=progress)
             if executor == "local":
                 _run_local(todo, batch)
@@ -245,9 +258,8 @@ def run_jobs(
 def _end_signals_interrupt():
     """SIGTERM, SIGHUP (and SIGQUIT) stop the jobs as Ctrl-C does: :func:`signals_interrupt` raises a
     SignalInterrupt, a KeyboardInterrupt, and once one has, further signals are ignored until that is done (a
-    training's checkpoint). Installed after Ray's connect(), it replaces Ray's handlers (whose SIGTERM aborts this
-    process with a crash dump, cancelling nothing); and where Ray's wait or get turned the SignalInterrupt into a
-    plain KeyboardInterrupt (its signal lost: exit 130 for a SIGTERM), it is raised again as that signal's."""
+    training's checkpoint). Where Ray's wait or get turned the SignalInterrupt into a plain KeyboardInterrupt (its
+    signal lost: exit 130 for a SIGTERM), it is raised again as that signal's."""
     received: list[int] = []
     with signals_interrupt(once=True):
         if threading.current_thread() is threading.main_thread():  # (elsewhere signals_interrupt changes nothing)
@@ -266,6 +278,36 @@ def _end_signals_interrupt():
 def _noted(handler, received: list[int], signum: int, frame) -> None:
     received.append(signum)
     handler(signum, frame)
+
+
+@contextlib.contextmanager
+def _signals_held():
+    """While Ray starts (connect()): an ending signal is held until it has, then raised to the handler in force
+    before (a start cut short leaves Ray's processes behind, the agents of its raylet for a minute, and may crash
+    this process at its exit). ray.init's own SIGTERM handlers (which exit with code 15, or 1) are left out
+    meanwhile, and the handlers are put back after it (its core worker replaces SIGTERM's with one that aborts this
+    process with a crash dump, cancelling nothing)."""
+    if threading.current_thread() is not threading.main_thread():  # (where ray.init sets no handler either)
+        yield
+        return
+    import ray
+
+    utils = ray._private.utils  # (its set_sigterm_handler: how ray.init installs its handlers)
+
+    received: list[int] = []
+    previous = {s: signal.getsignal(s) for s in END_SIGNALS}
+    for signum, handler in previous.items():
+        if callable(handler):  # (not a signal ignored: nohup's SIGHUP)
+            signal.signal(signum, lambda signum, frame: received.append(signum))
+    set_sigterm_handler, utils.set_sigterm_handler = utils.set_sigterm_handler, lambda handler: None
+    try:
+        yield
+    finally:
+        utils.set_sigterm_handler = set_sigterm_handler
+        for signum, handler in previous.items():  # (None: a handler installed outside Python)
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+        if received:
+            signal.raise_signal(received[0])
 
 
 def check_order(jobs: Sequence[Job]) -> None:

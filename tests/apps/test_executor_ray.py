@@ -1,13 +1,14 @@
 """The ray executor on the embedded local Ray that ``--executor ray`` starts without an address (shared by this
 module's tests): a task that raises or whose worker dies is retried, then listed in failures.csv while the others
-finish, and the rerun runs only what failed; Ctrl-C, or SIGTERM, cancels the outstanding tasks. (The tiny suite,
-local and on Ray value for value: test_batch_cluster.py.)"""
+finish, and the rerun runs only what failed; Ctrl-C, or SIGTERM, cancels the outstanding tasks, and stops a batch
+whose Ray is still starting once it has. (The tiny suite, local and on Ray value for value: test_batch_cluster.py.)"""
 
 from __future__ import annotations
 
 import csv
 import os
 import signal
+import subprocess
 import sys
 from pathlib import Path
 
@@ -132,3 +133,39 @@ def test_sigterm_cancels_outstanding_tasks_as_ctrl_c_does(tmp_path, embedded_ray
     assert info.value.signum == signal.SIGTERM and first.complete()
     wait_until((hangs.folder / "interrupted").exists, timeout_s=10)  # the running task got the cancellation
     assert not hangs.complete()
+
+
+def session_processes(sid: int) -> dict[int, str]:
+    """The live processes of the session ``sid`` (pid -> name; zombies aside)."""
+    found = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            text = stat.read_text()
+        except OSError:  # (ended meanwhile)
+            continue
+        state, _, _, session = text[text.rindex(")") + 2 :].split()[:4]
+        if int(session) == sid and state != "Z":
+            found[int(stat.parent.name)] = text[text.index("(") + 1 : text.rindex(")")]
+    return found
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_sigterm_while_ray_starts_stops_the_batch_once_it_has(tmp_path):
+    # not ray.init's handlers (exit 15, or 1, cut short: the agents of its raylet outlive it by a minute) nor its
+    # core worker's (abort): the batch stops as at any other time, and ends Ray
+    path = tmp_path / "b.yaml"
+    path.write_text("jobs:\n  - {kind: capture, out: scenes/t, views: 1, test_views: 1, grasps: 1, resolution: 32}\n")
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    out = str(tmp_path / "out")
+    command = [sys.executable, "-m", "tacsplat", "batch", str(path), "--out", out, "--executor", "ray"]
+    batch = subprocess.Popen(command, env=env, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        wait_until(lambda: "gcs_server" in session_processes(batch.pid).values())  # Ray's first process: starting
+        batch.send_signal(signal.SIGTERM)
+        _, err = batch.communicate(timeout=120)
+    finally:
+        batch.kill()
+    assert batch.returncode == 128 + signal.SIGTERM, err
+    assert "interrupted" in err.splitlines() and "Traceback" not in err and "SIGTERM received" not in err, err
+    wait_until(lambda: not session_processes(batch.pid), timeout_s=20)  # Ray's processes ended with the batch
+    assert not (tmp_path / "out" / "scenes").exists()  # no job started
