@@ -100,9 +100,15 @@ class CalibrateMounts:
     """rig YAML file (camera.hand_eye; sim.true_errors on a twin or --mock)"""
     out: Path
     """mounts file to write (.json; the rig's tactile.mounts)"""
-    hand_eye: Path | None = None
-    """the hand-eye file to write the T_hand_cam solved with the mounts to (.json); without it, the rig's
-    camera.hand_eye file is (a rig that names none is refused); both files are written, or neither"""
+    hand_eye: Annotated[
+        Path | None,
+        tyro.conf.arg(
+            metavar="PATH",
+            help_behavior_hint="(default: the rig's camera.hand_eye file; a rig that names none is refused)",
+        ),
+    ] = None
+    """the hand-eye file to write the T_hand_cam solved with the mounts to (.json); both files are written, or
+    neither"""
     stand_height_mm: float = 60.0  # 1000 * tacsplat.acquisition.presses.STAND_HEIGHT_M (not imported: a slow import)
     """the height of the sphere's centre over the board's printed face with the sphere on its stand, in mm, as
     measured (the sphere's top less its 12.5 mm radius); the twin's and --mock's stand is at the default"""
@@ -134,9 +140,15 @@ class TouchModel:
     """gel: the hand grasps, each pad's gel contact patch is a touch; paper: the paper's touches, 4 per grasp and no
     hand (the official code's: the 50 surface samples nearest to where a random ray from the centroid leaves the
     mesh)"""
-    surface_points: int | None = None
-    """paper touches: points sampled evenly on the surface, 50 (a touch's) to 10000000 (default 20000, the official
-    code's for Glossy Synthetic; it used 10000 for Shiny Blender)"""
+    surface_points: Annotated[
+        int | None,
+        tyro.conf.arg(
+            metavar="INT",
+            help_behavior_hint="(default: 20000, the official code's for Glossy Synthetic; it used 10000 for Shiny "
+            "Blender)",
+        ),
+    ] = None
+    """paper touches: points sampled evenly on the surface, 50 (a touch's) to 10000000"""
 
     def touch_args(self) -> dict:
         """The keyword arguments of sim_rig_config and simulate_touches (defaults left to them)."""
@@ -197,9 +209,15 @@ class SimulateTouches(TouchModel):
 
     scene: Annotated[tyro.conf.Positional[Path], tyro.conf.arg(metavar="SCENE")] = tyro.MISSING
     """scene directory"""
-    mesh: Path | None = None
-    """the object's mesh, in the scene's world frame and units (default: the scene's ground-truth mesh, or, for
-    --touch-model paper, its ground-truth points: an imported Shiny Blender or Glossy Synthetic scene)"""
+    mesh: Annotated[
+        Path | None,
+        tyro.conf.arg(
+            metavar="PATH",
+            help_behavior_hint="(default: the scene's ground-truth mesh, or, for --touch-model paper, its ground-truth "
+            "points: an imported Shiny Blender or Glossy Synthetic scene)",
+        ),
+    ] = None
+    """the object's mesh, in the scene's world frame and units"""
     grasps: int = 5
     """grasps to add (at least 1)"""
     out: Path | None = None

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import tyro
 
 from tacsplat.errors import ConfigError, UsageError
+
+_FOLDER_NAME = "(default: the dataset folder's name)"  # the --object of import colmap and import nerfstudio
 
 
 @dataclass
@@ -47,8 +49,10 @@ class ImportNero:
     """the object's folder"""
     out: Path
     """new scene directory (must not exist or be empty)"""
-    split: Path | None = None
-    """NeRO's synthetic_split_128.pkl (default: looked for in SRC and its parent)"""
+    split: Annotated[
+        Path | None, tyro.conf.arg(metavar="PATH", help_behavior_hint="(default: looked for in SRC and its parent)")
+    ] = None
+    """NeRO's synthetic_split_128.pkl"""
     background: str = "white"
     """colour outside the object's mask: white, black or R,G,B (0-255 integers)"""
     scale: float = 1.0
@@ -73,8 +77,8 @@ class ImportColmap:
     """every N-th image (in name order) goes to the test split; 0 puts all in train"""
     scale: float = 1.0
     """metres per COLMAP unit (COLMAP's scale is arbitrary)"""
-    object: str | None = None
-    """object name recorded in scene.json (when omitted: the dataset folder's name)"""
+    object: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint=_FOLDER_NAME)] = None
+    """object name recorded in scene.json"""
 
 
 @dataclass
@@ -98,8 +102,8 @@ class ImportNerfstudio:
     """metres per dataset unit (multiplies camera positions)"""
     skip_missing: bool = False
     """leave out frames whose image file is missing (with a warning) instead of refusing"""
-    object: str | None = None
-    """object name recorded in scene.json (when omitted: the dataset folder's name)"""
+    object: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint=_FOLDER_NAME)] = None
+    """object name recorded in scene.json"""
 
 
 @dataclass

@@ -41,16 +41,19 @@ class CalibrateCamera:
     """the printed board"""
     inner_corners: Annotated[str | None, tyro.conf.arg(metavar="XxY")] = None
     """chessboard: inner corners (where four squares meet) along x and y, e.g. 9x6"""
-    square_mm: float | None = None
-    """square side in millimetres (default 30 for a ChArUco board; needed for a chessboard)"""
-    squares_x: int | None = None
-    """ChArUco: squares along x (default 7)"""
-    squares_y: int | None = None
-    """ChArUco: squares along y (default 5)"""
-    marker_mm: float | None = None
-    """ChArUco: ArUco marker side, millimetres (default 22)"""
-    dictionary: str | None = None
-    """ChArUco: cv2.aruco predefined dictionary (default DICT_5X5_100)"""
+    square_mm: Annotated[
+        float | None,
+        tyro.conf.arg(metavar="FLOAT", help_behavior_hint="(default: 30 for a ChArUco board; needed for a chessboard)"),
+    ] = None
+    """square side in millimetres"""
+    squares_x: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint="(default: 7)")] = None
+    """ChArUco: squares along x"""
+    squares_y: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint="(default: 5)")] = None
+    """ChArUco: squares along y"""
+    marker_mm: Annotated[float | None, tyro.conf.arg(metavar="FLOAT", help_behavior_hint="(default: 22)")] = None
+    """ChArUco: ArUco marker side, millimetres"""
+    dictionary: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint="(default: DICT_5X5_100)")] = None
+    """ChArUco: cv2.aruco predefined dictionary"""
     legacy_pattern: bool = False
     """ChArUco: board printed by OpenCV < 4.6"""
     distortion: Literal["opencv5", "opencv4", "rational8"] = "opencv5"  # wrist_camera.DISTORTION_MODELS

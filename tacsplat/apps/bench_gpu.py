@@ -37,8 +37,8 @@ class BenchGpu:
 
     out: Path = Path("bench-output/gpu")
     """folder of gpu.json and gpu.md"""
-    work: Path | None = None
-    """folder of the capture and the runs (default: --out/work)"""
+    work: Annotated[Path | None, tyro.conf.arg(metavar="PATH", help_behavior_hint="(default: --out/work)")] = None
+    """folder of the capture and the runs"""
     object: str = "teapot"
     """library object to capture"""
     resolution: int = 800

@@ -910,32 +910,43 @@ class PaperBenchCommand:
     and mesh CD"""
     quick: bool = False
     """two objects, minimal setting, 128 px, 800 steps (about 3 minutes)"""
-    resolution: int | None = None
-    """image size in pixels (default 128)"""
-    iterations: int | None = None
-    """steps per run (default 1500; quick 800)"""
-    full_views: int | None = None
-    """train views of the full-views setting (default 32)"""
+    resolution: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint="(default: 128)")] = None
+    """image size in pixels"""
+    iterations: Annotated[
+        int | None, tyro.conf.arg(metavar="INT", help_behavior_hint="(default: 1500; --quick: 800)")
+    ] = None
+    """steps per run"""
+    full_views: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint="(default: 32)")] = None
+    """train views of the full-views setting"""
     preset: Literal["default", "paper"] = "default"
     """training preset: default, or paper (the official schedule scaled to --iterations)"""
-    touch_model: Literal["gel", "paper"] | None = None
-    """touches: gel (grasps with gel contact patches) or paper (the official code's sampling); default gel, and
-    paper with --dataset"""
+    touch_model: Annotated[
+        Literal["gel", "paper"] | None,
+        tyro.conf.arg(metavar="{gel,paper}", help_behavior_hint="(default: gel; with --dataset: paper)"),
+    ] = None
+    """touches: gel (grasps with gel contact patches) or paper (the official code's sampling)"""
     texture: str = "none"
     """the objects' surface: none (their one colour) or checker (textured: a checker of their colour and a
     contrasting grey); textured scenes and runs get their own folders"""
-    test_views: int | None = None
-    """held-out test views (default 12; quick 8)"""
-    settings: str | None = None
-    """comma-separated: minimal,full-views (quick: minimal)"""
-    seeds: str | None = None
-    """comma-separated capture and training seeds (default 0)"""
+    test_views: Annotated[
+        int | None,
+        tyro.conf.arg(metavar="INT", help_behavior_hint="(default: 12; --quick: 8)"),
+    ] = None
+    """held-out test views"""
+    settings: Annotated[
+        str | None, tyro.conf.arg(metavar="STR", help_behavior_hint="(default: minimal,full-views; --quick: minimal)")
+    ] = None
+    """comma-separated settings: minimal, full-views"""
+    seeds: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint="(default: 0)")] = None
+    """comma-separated capture and training seeds"""
     methods: Annotated[
         str | None,
         tyro.conf.arg(
+            metavar="STR",
             help="comma-separated methods, or rows of ablations.yaml (a method with settings changed: "
             + ", ".join(ablation_rows())
-            + "; default: the paper's four methods and reconstruct's default)"
+            + ")",
+            help_behavior_hint="(default: the paper's four methods and reconstruct's default)",
         ),
     ] = None
 

@@ -34,9 +34,10 @@ import math
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import numpy as np
+import tyro
 
 from tacsplat.apps.batch import (
     BatchJob,
@@ -286,8 +287,10 @@ class TouchBenchCommand:
     """image size in pixels"""
     iterations: int = 800
     """steps per run"""
-    method: Literal[tuple(METHODS)] = TouchBenchConfig.method
-    """the method of every run (default: the paper's, as in its Fig. 6)"""
+    method: Annotated[
+        Literal[tuple(METHODS)], tyro.conf.arg(help_behavior_hint="(default: paper, as in the paper's Fig. 6)")
+    ] = TouchBenchConfig.method
+    """the method of every run"""
 
     executors: Executors = field(default_factory=ExecutorOptions)
 

@@ -1,4 +1,5 @@
 import os
+import re
 import subprocess
 import sys
 
@@ -120,6 +121,27 @@ def test_an_option_whose_none_or_false_means_something_shows_that_as_its_one_def
     help_text = " ".join(capsys.readouterr().out.split())
     assert "--out PATH mesh file, a .ply (default: RUN/mesh.ply) --voxel" in help_text
     assert "keep every connected piece (default: only the largest, the object) --overwrite" in help_text
+
+
+def test_no_options_help_states_its_default_twice(capsys):
+    """Every command's --help: an option whose help says its default (what its None or False means) gets no second
+    one from tyro ("... (default 128) (default: None)")."""
+    commands, stack = [], [((), build_parser())]
+    while stack:
+        words, parser = stack.pop()
+        groups = [a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction"]
+        commands += [] if groups else [words]
+        stack += [((*words, name), sub) for group in groups for name, sub in group.choices.items()]
+    twice = []
+    for words in sorted(commands):
+        with pytest.raises(SystemExit):
+            main([*words, "--help"])
+        for entry in re.split(r"\n(?=  \S)", capsys.readouterr().out)[1:]:  # an argument's entry starts at column 2
+            text = re.sub(r"\{[^}]*\}", "", " ".join(entry.split()))  # (without its choices: one may be "default")
+            tyros = re.search(r"\(default: (None|False)\)$", text)
+            if text.count("(default") > 1 or (tyros and "default" in text[: tyros.start()]):
+                twice.append(f"tacsplat {' '.join(words)}: {text}")
+    assert ("export", "mesh") in commands and not twice, "\n".join(twice)
 
 
 def test_progress_is_plain_lines_without_a_terminal(capsys):
