@@ -48,15 +48,15 @@ class FileJob:
         if self.behaviour == "config-error":
             raise ConfigError("threshold", "must be > 0, got -1")
         if self.behaviour == "block":
-            (self.folder / "started").touch()
-            try:
+            try:  # ("started" inside: a signal its reader sends may come before the next line runs)
+                (self.folder / "started").touch()
                 wait_until((self.folder / "release").exists)
             except KeyboardInterrupt:
                 (self.folder / "interrupted").touch()
                 raise
         if self.behaviour == "block-once" and len(self.attempts()) == 1:  # as a training: interrupted, it saves
-            (self.folder / "started").touch()  # what it did (in "saved"), which a second signal cuts short
-            try:
+            try:  # what it did (in "saved"), which a second signal cuts short
+                (self.folder / "started").touch()  # (inside: the signal may come before the next line runs)
                 wait_until((self.folder / "release").exists)
             except KeyboardInterrupt as exc:
                 (self.folder / "interrupted").write_text(type(exc).__name__)
