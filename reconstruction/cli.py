@@ -65,7 +65,8 @@ class ExportMesh:
 
 def register(cli) -> None:
     """Add this package's commands to the tree."""
-    cli.own("reconstruct", "tactile-informed 3DGS: train on a scene directory and evaluate", _reconstruct)
+    command = "tactile-informed 3DGS: train on a scene directory and evaluate"
+    cli.own("reconstruct", command, _reconstruct, "tacsplat.reconstruction.command.ReconstructCommand")
 
     cli.typed("evaluate", Evaluate, _evaluate)
     cli.typed("export mesh", ExportMesh, _export_mesh)

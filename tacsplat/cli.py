@@ -88,8 +88,9 @@ def _common_options() -> argparse.ArgumentParser:
 class CommandTree:
     """Builds nested argparse subcommands from space-separated paths."""
 
-    def __init__(self, parser: argparse.ArgumentParser, common: argparse.ArgumentParser):
+    def __init__(self, parser: argparse.ArgumentParser, common: argparse.ArgumentParser, complete: bool = False):
         self._common = common
+        self._complete = complete  # each command's parser has its options (for shtab), not only the logging ones
         self._subparsers = {"": parser.add_subparsers(dest="command", metavar="COMMAND")}
         self._parsers: dict[str, argparse.ArgumentParser] = {"": parser}
         self.own_options: set[str] = set()  # the commands that parse their own options
@@ -120,15 +121,17 @@ class CommandTree:
                 refuse_unwritable(f"--{option}", getattr(values, option, None))
             return run(values)
 
-        self.own(path, help or " ".join(options.__doc__.split("\n\n")[0].split()), func)
+        self.own(path, help or " ".join(options.__doc__.split("\n\n")[0].split()), func, options)
 
-    def own(self, path: str, help: str, func) -> None:
+    def own(self, path: str, help: str, func, options: type | str | None = None) -> None:
         """A command that parses what follows it itself: ``func(args)`` reads it as ``args.rest`` (-v, -q and
-        --log-level aside)."""
+        --log-level aside). ``options``: the dataclass it parses, or its dotted name (its module imported only for
+        a completion script, which lists its options)."""
+        parents = [self._common]
+        if self._complete and options is not None:
+            parents.append(_options_parser(options))
         parent, _, name = path.strip().rpartition(" ")
-        parser = self._group(parent).add_parser(
-            name, help=help, description=help, parents=[self._common], add_help=False
-        )
+        parser = self._group(parent).add_parser(name, help=help, description=help, parents=parents, add_help=False)
         parser.set_defaults(func=func)
         self._parsers[path] = parser
         self.own_options.add(path)
@@ -169,6 +172,21 @@ class CommandTree:
         return argv[:end] + given, rest
 
 
+def _options_parser(options: type | str) -> argparse.ArgumentParser:
+    """The argparse parser of the dataclass ``options`` (or its dotted name) as tyro builds it, -h and --help
+    included: what shtab lists for a command whose options tyro parses. Imports the dataclass's module."""
+    import warnings
+
+    import tyro
+
+    if isinstance(options, str):
+        module, _, name = options.rpartition(".")
+        options = getattr(importlib.import_module(module), name)
+    with warnings.catch_warnings():  # (get_parser is deprecated in tyro 1.0, yet its only argparse view of a CLI)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return tyro.extras.get_parser(options, config=(tyro.conf.PositionalMetavarFromFieldName,))
+
+
 def build_parser(complete: bool = False) -> argparse.ArgumentParser:
     """The parser of the command tree (``complete``: with --print-completion)."""
     common = _common_options()
@@ -179,7 +197,7 @@ def build_parser(complete: bool = False) -> argparse.ArgumentParser:
         parents=[common],
     )
     parser.add_argument("--version", action="version", version=f"tacsplat {__version__}")
-    tree = CommandTree(parser, common)
+    tree = CommandTree(parser, common, complete)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(tree)
     parser.tree = tree

@@ -2,6 +2,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -112,6 +113,31 @@ def test_required_options_are_marked_and_completion_is_printed(capsys):
     with pytest.raises(SystemExit):
         main(["--print-completion", "bash"])
     assert "complete" in capsys.readouterr().out
+
+
+def test_the_completion_script_lists_each_commands_options_and_their_choices(capsys):
+    """A command's options are parsed after argparse (by tyro, or by reconstruct itself): the completion script
+    still lists them, not only -v, -q and --log-level."""
+    with pytest.raises(SystemExit):
+        main(["--print-completion", "bash"])
+    script = capsys.readouterr().out
+    options = {
+        command: set(strings.split())
+        for command, strings in re.findall(r"^_shtab_tacsplat_(\w+)_option_strings=\((.*)\)$", script, re.M)
+    }
+    assert {"--iterations", "--densify.max-gaussians", "--out", "--help", "--verbose"} <= options["reconstruct"]
+    assert {"--object", "--out", "--grasps", "--no-resume"} <= options["sim_capture"]
+    assert {"--all-pieces", "--voxel"} <= options["export_mesh"]
+    assert "_shtab_tacsplat_reconstruct___method_choices=(3dgs 3dgs+s 3dgs+t paper default)" in script
+
+
+def test_the_readmes_completion_line_installs_the_script_in_a_new_home(tmp_path):
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    line = " ".join(re.search(r"^Shell completion[^`]*`([^`]*)`", readme, re.M)[1].split())
+    bin_path = f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"  # (where tacsplat is installed)
+    out = subprocess.run(["bash", "-c", line], env={**os.environ, "HOME": str(tmp_path), "PATH": bin_path})
+    assert out.returncode == 0
+    assert "--iterations" in (tmp_path / ".local/share/bash-completion/completions/tacsplat").read_text()
 
 
 def test_an_option_whose_none_or_false_means_something_shows_that_as_its_one_default(capsys):
