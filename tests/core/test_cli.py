@@ -133,7 +133,7 @@ def test_the_completion_script_lists_each_commands_options_and_their_choices(cap
 
 def test_the_readmes_completion_line_installs_the_script_in_a_new_home(tmp_path):
     readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
-    line = " ".join(re.search(r"^Shell completion[^`]*`([^`]*)`", readme, re.M)[1].split())
+    line = " ".join(re.search(r"Shell completion[^`]*`([^`]*)`", readme)[1].split())
     bin_path = f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"  # (where tacsplat is installed)
     out = subprocess.run(["bash", "-c", line], env={**os.environ, "HOME": str(tmp_path), "PATH": bin_path})
     assert out.returncode == 0
