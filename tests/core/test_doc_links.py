@@ -51,3 +51,9 @@ def test_every_markdown_link_leads_to_a_file_and_heading(page):
         elif fragment is not None and fragment not in anchors(file):
             broken.append(f"{match.group(0)}: no heading #{fragment} in {file.name}")
     assert not broken, "\n".join(broken)
+
+
+def test_the_readme_is_a_guide_of_at_most_250_lines():
+    """The README stays a user's guide (what it is, the two commands, a tour, a rig, the formats): details go to
+    docs/ and are linked."""
+    assert len((ROOT / "README.md").read_text(encoding="utf-8").splitlines()) <= 250
