@@ -8,13 +8,14 @@ runs a list of them in this process or on Ray. The benchmarks build their
 suites from the same jobs.
 
 The YAML file lists jobs; ``out``, ``scene`` and ``run`` are relative to
-``--out`` (or absolute), ``mesh`` and ``gt_mesh`` to the YAML file's folder::
+``--out`` (or absolute), ``mesh`` and ``gt_mesh`` to the YAML file's folder
+(docs/batches.md has a smaller example, and each kind's keys)::
 
     jobs:
       - {kind: capture, out: scenes/teapot-s0, object: teapot, seed: 0, resolution: 128}
       - {kind: reconstruct, out: runs/teapot/paper-s0, scene: scenes/teapot-s0, method: paper, seed: 0}
       - {kind: reconstruct, out: runs/teapot/no-touch-s0, scene: scenes/teapot-s0, overrides: {use_touch: false}}
-      - {kind: evaluate, run: /shared/older/run, gt_mesh: teapot.obj}
+      - {kind: evaluate, run: runs/teapot/paper-s0}
 
 A reconstruction trains ``method`` (default: what `tacsplat reconstruct` trains without options) with its
 ``overrides`` (TrainConfig fields, ``init.x`` / ``densify.x`` for theirs) on top.
@@ -604,7 +605,7 @@ def result_rows(jobs: list, out: Path) -> list[dict]:
             continue
         m = json.loads((run / METRICS).read_text())
         rows[run.resolve()] = (
-            {"job": job.name, "run": _relative(run, out), "scene": _relative(Path(m.get("scene", "")), out)}
+            {"job": job.name, "run": _relative(run, out), "scene": _scene_name(run, m, out)}
             | {"method": m.get("method"), "seed": m.get("settings", {}).get("seed")}
             | {k: m.get(k) for k in RUN_COLUMNS}
         )
@@ -613,6 +614,17 @@ def result_rows(jobs: list, out: Path) -> list[dict]:
 
 def _relative(path: Path, base: Path) -> str:
     return str(path.relative_to(base)) if path.is_relative_to(base) else str(path)
+
+
+def _scene_name(run: Path, metrics: dict, out: Path) -> str:
+    """The scene of a run's metrics as results.csv names it: relative to ``out`` when in it, else absolute. Its
+    config.json records it absolute; metrics.json has it absolute from an evaluation but as the trainer was given
+    it from a reconstruction (relative to the cwd of the batch that trained it), so the record comes first."""
+    from tacsplat.reconstruction.run_dir import recorded_scene
+
+    record = recorded_scene(run)
+    scene = record["path"] if record else metrics.get("scene")
+    return _relative(Path(scene).resolve(), out.resolve()) if scene else ""
 
 
 def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) -> list[dict]:
@@ -654,7 +666,7 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
 class BatchCommand:
     """run a list of captures, reconstructions and evaluations, here or on a Ray cluster
 
-    Runs the jobs of JOBS.yaml (kind: capture | reconstruct | evaluate; see `tacsplat.apps.batch`), skipping those
+    Runs the jobs of JOBS.yaml (kind: capture | reconstruct | evaluate; docs/batches.md has an example), skipping those
     whose output is complete; writes DIR/results.csv and, if jobs fail, DIR/failures.csv. Rerun the same command to
     retry what failed or never ran."""
 

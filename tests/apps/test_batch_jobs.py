@@ -538,6 +538,28 @@ jobs:
     assert again["job"] == "evaluate runs/e" and again["cd"] != rows[0]["cd"]
 
 
+def test_results_name_a_scene_alike_for_a_reconstruction_and_an_evaluation(tmp_path, monkeypatch):
+    # a relative --out: a reconstruction's metrics.json has its scene relative to the cwd, an evaluation's absolute
+    monkeypatch.chdir(tmp_path)
+    path = write(
+        tmp_path / "b.yaml",
+        """\
+jobs:
+  - {kind: capture, out: scenes/t, object: teapot, views: 2, test_views: 1, grasps: 0, resolution: 32}
+  - {kind: reconstruct, out: runs/a, scene: scenes/t, iterations: 5}
+  - {kind: reconstruct, out: runs/e, scene: scenes/t, iterations: 5}
+  - {kind: evaluate, run: runs/e}
+""",
+    )
+    assert main(["batch", str(path), "--out", "out", "--executor", "local"]) == 0
+    with open("out/results.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(r["job"], r["scene"]) for r in rows] == [
+        ("reconstruct runs/a", "scenes/t"),
+        ("evaluate runs/e", "scenes/t"),
+    ]
+
+
 @pytest.mark.parametrize("executor", ["local", "processes"])
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
 def test_sigterm_and_sighup_stop_a_batch_as_ctrl_c_does(tmp_path, executor, signum):
