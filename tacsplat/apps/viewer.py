@@ -424,8 +424,9 @@ class SplatSlot:
         self.sets: tuple[str, ...] | None = None  # the shown sets; None: all
         self.lock = threading.Lock()
 
-    def show(self, run: RunData | None, gaussians=None) -> None:
-        """Show ``run`` (its ``gaussians``, default the run's own); None empties the slot."""
+    def show(self, run: RunData | None, gaussians=None, source: Path | None = None) -> None:
+        """Show ``run`` (its ``gaussians`` read from the file ``source``, default the run's own); None empties the
+        slot."""
         from tacsplat.apps.viewer_splat import add_splat
 
         with self.lock:
@@ -437,7 +438,9 @@ class SplatSlot:
             self.gaussians = run.gaussians if gaussians is None else gaussians
             self.offset = self.position - object_sphere(run)[0]
             self.server.scene.add_frame(self.name, show_axes=False, position=self.offset)
-            self.nodes = add_splat(self.server.scene, self.name, self.gaussians)
+            if source is None:  # (a run without its splat.ply is shown from its last checkpoint)
+                source = run.path / "splat.ply" if (run.path / "splat.ply").is_file() else run.path
+            self.nodes = add_splat(self.server.scene, self.name, self.gaussians, source)
             self.show_sets(self.sets)
 
     def show_sets(self, sets: tuple[str, ...] | None) -> None:
@@ -539,7 +542,7 @@ def _checkpoint_slider(server, view: View, run: RunData) -> None:
                 return
             baked[path] = bake_appearance(loaded.gaussians, loaded.look), loaded.step
         gaussians, step = baked[path]
-        view.slots[0].show(run, gaussians)
+        view.slots[0].show(run, gaussians, path)
         shown.content = f"showing {path.name}: step {step}, {len(gaussians)} Gaussians"
 
 

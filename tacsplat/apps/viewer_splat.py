@@ -5,12 +5,15 @@ its RGB and opacity: the view-independent colour of the DC band, so a splat with
 higher SH bands looks flatter in the browser than in our renders. float16
 covariances underflow at the sizes of a real object's Gaussians (a 0.1 mm
 Gaussian has a covariance of 1e-8 m^2), so a splat is sent in its own length
-unit, the median size of its Gaussians, and scaled back to metres by its
-scene node.
+unit, the median size of its Gaussians (kept within a range of the scene's
+extent), and scaled back to metres by its scene node; a Gaussian too large for
+float16 in that unit (a foreign splat.ply's log-scale of +80) is drawn clamped.
 """
 
 from __future__ import annotations
 
+import logging
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,6 +23,12 @@ from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats, sh0_t
 
 SPLAT_SETS = {"camera": False, "touch": True}  # node name -> the from_touch flag of its Gaussians (G_c, G_t)
 GAUSSIAN_SETS = {"all": None, "touch only (G_t)": ("touch",), "camera only (G_c)": ("camera",)}  # None: every set
+# the largest scale drawn, in units: its covariance (units squared) stays finite in viser's float16 (max 65504),
+# with a factor of 4 to spare for rounding
+MAX_SCALE_UNITS = math.sqrt(float(np.finfo(np.float16).max)) / 2
+UNIT_RANGE = (1e-4, 1.0)  # the unit's bounds, times the scene's extent: centres stay within ~1e4 units
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -29,40 +38,65 @@ class SplatBuffers:
     centers: np.ndarray  # [N, 3] float32, in units of ``unit``
     covariances: np.ndarray  # [N, 3, 3] float32, in units of ``unit`` squared
     rgbs: np.ndarray  # [N, 3] float32 in [0, 1]
-    opacities: np.ndarray  # [N, 1] float32 in (0, 1)
+    opacities: np.ndarray  # [N, 1] float32 in [0, 1]
     unit: float
+    clamped: int = 0  # how many Gaussians were drawn smaller than they are (over MAX_SCALE_UNITS)
+
+
+def log_unit_of(means: torch.Tensor, log_scales: torch.Tensor) -> float:
+    """The log of a splat's own length unit (metres): the median size of its Gaussians, kept within
+    ``UNIT_RANGE`` of its extent (the median distance of its centres from their median; 1 m when that is 0)."""
+    if not len(means):
+        return 0.0
+    spread = float((means - means.median(dim=0).values).norm(dim=1).median())
+    extent = math.log(spread) if spread > 0 else 0.0
+    low, high = (extent + math.log(bound) for bound in UNIT_RANGE)
+    return min(max(float(log_scales.max(dim=1).values.median()), low), high)
 
 
 @torch.no_grad()
 def splat_buffers(gaussians: Gaussians, mask: torch.Tensor | None = None) -> SplatBuffers:
     """The browser's view of ``gaussians`` (those where ``mask`` is True, default all)."""
     keep = slice(None) if mask is None else mask.cpu()
-    scales = gaussians.scales.detach().cpu()[keep].double()
+    means = gaussians.means.detach().cpu()[keep].double()
+    log_scales = gaussians.params["scales"].detach().cpu()[keep].double()  # (in logs: exp of a huge one is inf)
+    log_unit = log_unit_of(means, log_scales)
+    log_largest = log_unit + math.log(MAX_SCALE_UNITS)
+    scales = (log_scales.clamp(max=log_largest) - log_unit).exp()  # in units
     rotations = quats_to_rotmats(gaussians.quats.detach().cpu()[keep].double())
     covariances = rotations @ torch.diag_embed(scales.square()) @ rotations.transpose(-1, -2)
-    largest = scales.max(dim=1).values
-    unit = float(largest.median()) if len(largest) and float(largest.median()) > 0 else 1.0
     rgbs = sh0_to_rgb(gaussians.params["sh0"].detach().cpu()[keep][:, 0]).clamp(0, 1)
     return SplatBuffers(
-        centers=(gaussians.means.detach().cpu()[keep].double() / unit).float().numpy(),
-        covariances=(covariances / unit**2).float().numpy(),
+        centers=(means / math.exp(log_unit)).float().numpy(),
+        covariances=covariances.float().numpy(),
         rgbs=rgbs.float().numpy(),
         opacities=gaussians.opacities.detach().cpu()[keep][:, None].float().numpy(),
-        unit=unit,
+        unit=math.exp(log_unit),
+        clamped=int((log_scales > log_largest).any(dim=1).sum()),
     )
 
 
-def add_splat(scene_api, name: str, gaussians: Gaussians) -> dict[str, object]:
+def add_splat(scene_api, name: str, gaussians: Gaussians, source: object = None) -> dict[str, object]:
     """Add ``gaussians`` under ``name`` as two splat nodes, ``name/camera`` (G_c) and ``name/touch`` (G_t), so that
-    either can be hidden; a set with no Gaussians gets no node. Returns the nodes by set name."""
-    nodes = {}
+    either can be hidden; a set with no Gaussians gets no node. Returns the nodes by set name. Gaussians drawn
+    clamped get one warning naming ``source``, the file they came from."""
+    nodes, clamped = {}, 0
     for set_name, from_touch in SPLAT_SETS.items():
         mask = gaussians.from_touch.cpu() == from_touch
         if not bool(mask.any()):
             continue
         b = splat_buffers(gaussians, mask)
+        clamped += b.clamped
         nodes[set_name] = scene_api.add_gaussian_splats(
             f"{name}/{set_name}", b.centers, b.covariances, b.rgbs, b.opacities, scale=b.unit
+        )
+    if clamped:
+        log.warning(
+            "%s: %d of %d Gaussians are too large to draw (over %d times their set's typical size); drawn at that size",
+            source,
+            clamped,
+            len(gaussians),
+            MAX_SCALE_UNITS,
         )
     return nodes
 
