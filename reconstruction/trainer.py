@@ -34,7 +34,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from tacsplat.errors import ConfigError, SceneFormatError, UsageError
+from tacsplat.errors import ConfigError, InvalidInputError, SceneFormatError, TacsplatError, UsageError
 from tacsplat.files import atomic_write
 from tacsplat.progress import progress_bar
 from tacsplat.reconstruction import losses, shading
@@ -134,6 +134,18 @@ class TrainingInterrupted(KeyboardInterrupt):
     def __init__(self, signum: int, step: int):
         self.signum, self.step = signum, step
         super().__init__(f"{signal.Signals(signum).name} at step {step}: checkpoint saved")
+
+
+class TrainingDiverged(TacsplatError):
+    """Training's parameters became NaN or infinite (``names``, after ``step`` steps): a learning rate or a loss
+    weight too high. Nothing of the diverged state is saved."""
+
+    def __init__(self, step: int, names: list[str]):
+        self.step, self.names = step, names
+        super().__init__(
+            f"training diverged at step {step}: the Gaussians' {', '.join(names)} became NaN or infinite; lower the "
+            "learning rates (--lr-*), or a loss weight that was raised (--lambda-*)"
+        )
 
 
 class _StopRequests:
@@ -269,6 +281,13 @@ class Trainer:
     def initialize(self) -> None:
         """Initial Gaussians: SfM (or random) G_c plus G_t on the touch points."""
         cfg, images = self.config, [im.cpu().numpy() for im in self.images]
+        for frame, silhouette in zip(self.train_frames, self.silhouettes):
+            if silhouette is not None and not silhouette.any():  # (_fallback_points leaves it out of the hull)
+                log.warning(
+                    "training image %s shows no object against its backdrop (a blank frame, or the object out of "
+                    "view): it is left out of the visual hull, and training makes everything in its view transparent",
+                    self.scene.path / frame.file_path,
+                )
         sfm = sfm_points(images, *self._cameras(), cfg.init, cfg.seed) if cfg.init.use_sfm else None
         found = 0 if sfm is None else len(sfm.points)
         sfm_found = sfm is not None and found >= cfg.init.min_sfm_points
@@ -322,7 +341,8 @@ class Trainer:
         init = self.config.init
         lo, hi = self.scene.bounds()
         points, colors = random_points(lo, hi, init.num_random_points, self.rng)
-        views = [i for i, mask in enumerate(self.backdrop_pixels) if mask is not None]
+        # (an empty silhouette, a view that shows only its backdrop, would carve the whole hull away)
+        views = [i for i, silhouette in enumerate(self.silhouettes) if silhouette is not None and silhouette.any()]
         if init.use_silhouette_hull and views:
             silhouettes, count = [self.silhouettes[i] for i in views], init.num_random_points
             hull = silhouette_hull_points(
@@ -330,6 +350,7 @@ class Trainer:
             )
             if len(hull):
                 return hull, colors, f"on the visual hull of {len(views)} silhouettes"
+            return points, colors, f"in the scene bounds (the visual hull of {len(views)} silhouettes is empty)"
         return points, colors, "in the scene bounds"
 
     def _make_optimizers(self) -> None:
@@ -492,9 +513,20 @@ class Trainer:
 
     # ------------------------------------------------------------------ progress, checkpoints
 
+    def _check_finite(self) -> None:
+        """Raise :class:`TrainingDiverged` where a parameter, or a scale it stands for, is NaN or infinite."""
+        g = self.gaussians
+        values = dict(g.params) | {"scales": g.scales}  # (a finite log-scale past 88 overflows float32's exp)
+        if self.light is not None:
+            values |= {f"light {name}": p for name, p in self.light.named_parameters()}
+        finite = torch.stack([torch.isfinite(v).all() for v in values.values()]).tolist()  # (one wait for the device)
+        if not all(finite):
+            raise TrainingDiverged(self.step, [name for name, ok in zip(values, finite) if not ok])
+
     def _progress_row(self) -> tuple[float, float]:
         """Evaluate on the held-out views and add a row to ``progress.csv`` (the last evaluation's); returns (PSNR,
-        CD)."""
+        CD). Training that diverged raises :class:`TrainingDiverged` instead (:meth:`_check_finite`)."""
+        self._check_finite()
         cfg = self.config
         metrics = dict.fromkeys(("psnr", "cd", "cd_paper"), float("nan"))
         if self.test_frames:
@@ -518,6 +550,9 @@ class Trainer:
         return metrics["psnr"], metrics["cd"]
 
     def save_checkpoint(self) -> None:
+        """Write ``checkpoint.pt``; training that diverged raises :class:`TrainingDiverged` instead, and the last
+        checkpoint stays."""
+        self._check_finite()
         state = {
             "scene_path": self.scene_record["path"],  # (resolved: evaluate and export find it from anywhere)
             "config": self.config.to_json(),
@@ -643,7 +678,11 @@ class Trainer:
             while self.step < cfg.iterations and stop.signum is None:
                 started = time.perf_counter()
                 self.set_resolution(self.factor_at(self.step))
-                terms = self.train_step()
+                try:
+                    terms = self.train_step()
+                except InvalidInputError:  # a kernel's or the rasterizer's check of non-finite inputs
+                    self._check_finite()  # (diverged: TrainingDiverged; else the kernel's error stands)
+                    raise
                 self.train_seconds += time.perf_counter() - started
                 for k in LOSS_TERMS:
                     self._sums[k] = self._sums[k] + terms[k]

@@ -26,7 +26,7 @@ from tacsplat.reconstruction.initialization import (
 from tacsplat.reconstruction.trainer import Trainer, scene_scale
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from recon_synthetic import CAMERA_DISTANCE, build_sphere_scene  # noqa: E402
+from recon_synthetic import CAMERA_DISTANCE, RADIUS, build_sphere_scene  # noqa: E402
 
 K = np.array([[200.0, 0, 100], [0, 200.0, 100], [0, 0, 1]])
 
@@ -190,3 +190,23 @@ def test_a_scene_whose_cameras_are_nearer_than_the_near_plane_is_refused_at_init
     trainer = Trainer(Scene.load(path), tmp_path / "run", config)
     with pytest.raises(SceneFormatError, match="near plane"):
         trainer.initialize()
+
+
+def test_a_blank_training_view_is_left_out_of_the_visual_hull_with_a_warning_naming_its_image(tmp_path, caplog):
+    """One training image of uniform grey (a lens cap, a dropped frame) is all backdrop: its empty silhouette
+    would carve the whole hull away. The other views' hull is used, and a warning names the image."""
+    path = build_sphere_scene(tmp_path / "sphere", size=32, train_views=4, test_views=1, touches=False)
+    scene = Scene.load(path)
+    blank = scene.split("train")[1].file_path
+    cv2.imwrite(str(path / blank), np.full((32, 32, 3), 128, np.uint8))
+    config = TrainConfig(
+        backend="cpu", use_touch=False, sh_degree=0, init=InitConfig(use_sfm=False, num_random_points=500)
+    )
+    trainer = Trainer(Scene.load(path), tmp_path / "run", config)
+    with caplog.at_level("INFO", logger="tacsplat.reconstruction.trainer"):
+        trainer.initialize()
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and str(path / blank) in warnings[0] and "shows no object" in warnings[0]
+    assert "on the visual hull of 3 silhouettes" in caplog.text
+    radii = np.linalg.norm(trainer.gaussians.means.detach().numpy(), axis=1)
+    assert np.median(radii) < 2 * RADIUS  # on the hull around the sphere, not throughout the scene's bounds

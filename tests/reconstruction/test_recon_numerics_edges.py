@@ -1,18 +1,26 @@
 """Numerical edges of the rasterizer and the fused losses: thin Gaussians in the touch loss, argument checks of
-``rasterization()``, huge Gaussians in the float32 torch projection, non-finite inputs of the fused kernels."""
+``rasterization()``, huge Gaussians in the float32 torch projection, non-finite inputs of the fused kernels, and
+training that diverges to them."""
 
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
+from tacsplat.cli import main
 from tacsplat.errors import InvalidInputError
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.fused_normals import gaussian_normals_cpu
 from tacsplat.reconstruction.raster import rasterization
 from tacsplat.reconstruction.raster.reference import TRANSMITTANCE_THRESHOLD
+from tacsplat.reconstruction.trainer import Trainer
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from recon_synthetic import build_sphere_scene, one_error_line  # noqa: E402
 
 PARAMS = ("means", "quats", "scales", "opacities", "colors")
 
@@ -288,3 +296,51 @@ def test_the_fused_gaussian_normals_name_a_non_finite_scale_and_accept_finite_on
     huge[:, 1] = 1.0
     normals = gaussian_normals_cpu(quats, huge)  # the sum is infinite, every entry finite
     torch.testing.assert_close(normals.norm(dim=-1), torch.ones(8))
+
+
+# --------------------------------------------------------------------------- training that diverges
+
+TINY_RUN = ["--sh-degree", "0", "--lambda-s", "0", "--init.no-use-sfm", "--init.num-random-points", "200", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return build_sphere_scene(tmp_path_factory.mktemp("scenes") / "sphere", size=16, train_views=3, test_views=1)
+
+
+@pytest.mark.parametrize(
+    "backend, iterations",
+    [("cpu", 4), ("torch", 4), ("cpu", 1)],  # the next step's render meets the infinite scales; no step does
+)
+def test_training_with_an_absurd_learning_rate_ends_with_one_error_naming_the_step_and_what_to_lower(
+    tiny_scene, tmp_path, capsys, backend, iterations
+):
+    """A log-scale rate of 1000 overflows the scales in the first step: one error line says that training diverged
+    there and names the learning rates, exit 1, and nothing of the diverged state is saved."""
+    run = tmp_path / "run"
+    argv = ["reconstruct", str(tiny_scene), "--out", str(run), "--iterations", str(iterations), "--lr-scales", "1e3"]
+    assert main([*argv, "--backend", backend, *TINY_RUN]) == 1
+    one_error_line(capsys, "training diverged at step 1", "scales", "--lr-*")
+    assert not (run / "checkpoint.pt").exists() and not (run / "splat.ply").exists()
+
+
+@pytest.mark.parametrize("iterations", [4, 3])  # the next step's render meets the NaN; no step does
+def test_a_diverged_state_never_replaces_the_last_good_checkpoint(
+    tiny_scene, tmp_path, capsys, monkeypatch, iterations
+):
+    """An update that turns a colour NaN after step 3 (of a run checkpointed every 2 steps): the error names step 3
+    and the colours, and the checkpoint of step 2 stays."""
+    real_step = Trainer.train_step
+
+    def diverging_step(self):
+        terms = real_step(self)
+        if self.step == 3:
+            self.gaussians.params["sh0"].data[0] = float("nan")
+        return terms
+
+    monkeypatch.setattr(Trainer, "train_step", diverging_step)
+    run = tmp_path / "run"
+    argv = ["reconstruct", str(tiny_scene), "--out", str(run), "--iterations", str(iterations), "--checkpoint-every"]
+    assert main([*argv, "2", "--backend", "cpu", *TINY_RUN]) == 1
+    one_error_line(capsys, "training diverged at step 3", "sh0")
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["step"] == 2
