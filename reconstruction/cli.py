@@ -18,7 +18,8 @@ import tyro
 class Evaluate:
     """evaluate a reconstruction run: PSNR, SSIM, Chamfer distance, renders
 
-    Evaluates the run's last checkpoint on its scene and writes RUN/metrics.json and RUN/renders/."""
+    Evaluates the run's last checkpoint on its scene and writes RUN/metrics.json and RUN/renders/ (and the baked
+    RUN/splat.ply of an sh-lit run from before the bake, whose splat.ply holds its unlit colours)."""
 
     run: tyro.conf.Positional[Path]
     """run directory written by `tacsplat reconstruct`"""

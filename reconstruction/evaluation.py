@@ -39,7 +39,7 @@ from tacsplat.reconstruction.metrics import (
     psnr,
     ssim,
 )
-from tacsplat.reconstruction.ply import make_parent, save_ply
+from tacsplat.reconstruction.ply import load_ply, make_parent, save_ply
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, run_scene
 from tacsplat.reconstruction.shading import Look
@@ -273,21 +273,25 @@ def load_ground_truth(
 
 def read_ground_truth(gt_path: str | Path):
     """A ground truth given by path (``--gt-mesh``): its mesh (a ``trimesh.Trimesh`` with faces), else its points
-    [N, 3]; a SceneFormatError naming the file when it cannot be read or holds neither."""
+    [N, 3]; a SceneFormatError naming the file when it cannot be read, holds neither, or has a NaN or infinite
+    vertex (naming the first)."""
     import trimesh
 
     gt_path = Path(gt_path)
     try:
-        loaded = trimesh.load(str(gt_path))
+        loaded = trimesh.load(str(gt_path), process=False)  # (processing would drop a NaN vertex and its faces)
     except Exception as exc:  # trimesh raises many types for unreadable files
         raise SceneFormatError(gt_path, None, f"cannot read a ground-truth mesh or point cloud: {exc}") from exc
     if isinstance(loaded, trimesh.Scene):
         loaded = loaded.to_geometry()
-    if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces):
-        return loaded
     cloud = np.asarray(getattr(loaded, "vertices", []), dtype=np.float64).reshape(-1, 3)
     if len(cloud) == 0:
         raise SceneFormatError(gt_path, None, "no faces and no points")
+    bad = np.flatnonzero(~np.isfinite(cloud).all(axis=1))
+    if len(bad):
+        raise SceneFormatError(gt_path, f"vertex {bad[0]}", f"coordinates {cloud[bad[0]].tolist()} are not finite")
+    if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces):
+        return loaded.process()  # (what trimesh.load does by default: duplicate vertices merged)
     return cloud
 
 
@@ -453,16 +457,32 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
 
 
 def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend: str | None = None) -> dict:
-    """Evaluate a run on disk (its last checkpoint): writes ``metrics.json`` and ``renders/`` and, where the run has
-    a ``splat.ply``, writes it again from the checkpoint (a lit run from before the bake holds its unlit colour
-    there); returns the metrics. A ConfigError if the run's scene has changed since (:func:`~.run_dir.run_scene`)."""
+    """Evaluate a run on disk (its last checkpoint): writes ``metrics.json`` and ``renders/`` and, where the run's
+    ``splat.ply`` is that of a lit run from before the bake (:func:`holds_unbaked`), replaces it with the baked one;
+    returns the metrics. A ConfigError if the run's scene has changed since (:func:`~.run_dir.run_scene`)."""
     run = load_run(Path(run_dir))
     scene = scene_at(run_scene(run), run.config.downscale)
     splat = bake_appearance(run.gaussians, run.look)
-    if splat is not run.gaussians and (Path(run_dir) / "splat.ply").is_file():  # (an SH run's is already right)
+    path = Path(run_dir) / "splat.ply"
+    if splat is not run.gaussians and holds_unbaked(path, run.gaussians):  # (an SH run's is already right)
+        log.info("%s holds the unlit colours of a run from before the bake: replaced by the baked splat", path)
         normals = facing_normals(splat, training_frames(scene, run.config.train_views), backend or run.config.backend)
-        save_ply(splat, Path(run_dir) / "splat.ply", normals)
+        save_ply(splat, path, normals)
     return evaluate_reconstruction(run, scene, run_dir, splat, gt_path, backend)
+
+
+def holds_unbaked(path: Path, gaussians: Gaussians) -> bool:
+    """Whether the PLY at ``path`` holds exactly ``gaussians`` as saved unbaked (their count, means and SH colours
+    at float32), as a lit run's ``splat.ply`` from before the bake does; False for a missing or unreadable file,
+    the baked one, or one edited since."""
+    try:
+        saved = load_ply(path) if path.is_file() else None
+    except SceneFormatError:
+        return False
+    same = saved is not None and len(saved) == len(gaussians)
+    return same and all(
+        torch.equal(saved.params[k], gaussians.params[k].detach().cpu().float()) for k in ("means", "sh0")
+    )
 
 
 def evaluate_reconstruction(

@@ -32,7 +32,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from tacsplat.errors import ConfigError, InvalidInputError
+from tacsplat.errors import ConfigError, InvalidInputError, UsageError
 from tacsplat.files import atomic_file, atomic_write
 from tacsplat.geometry import invert_pose, look_at
 from tacsplat.reconstruction.metrics import finite_or_none, ground_truth_surface, mesh_metrics
@@ -272,8 +272,8 @@ def extract_mesh(gaussians, scene, train_frames: list, backend: str, look=None, 
     shape = tuple([int(np.ceil(2 * radius / voxel))] * 3)
     volume = TSDFVolume(centre - radius, voxel, shape, config.truncation * voxel)
     cameras = fused_cameras(centre, radius, train_frames, config)
-    if not cameras:
-        raise ConfigError(
+    if not cameras:  # (a value out of range for this run's cameras: a usage error, as MeshConfig.validate's are)
+        raise UsageError(
             "--cone-deg",
             f"none of the {config.views} cameras around the object (--views) lies within {config.cone_deg:g} degrees "
             "of a training camera's direction: nothing would be fused; raise --cone-deg or --views",

@@ -123,3 +123,15 @@ def test_an_export_into_a_run_being_trained_is_refused_and_one_elsewhere_is_not(
     assert metrics["iterations"] == 5 and not any(k.startswith("mesh_") for k in metrics)
     assert not (run / "mesh.ply").exists()
     _exported(run)  # the run released: the export goes ahead
+
+
+def test_an_export_value_out_of_range_is_a_usage_error_naming_its_option(copy, tmp_path, capsys):
+    """Exit 2 and one usage line naming the option, for a value out of range whatever tells it: MeshConfig's checks,
+    or (--cone-deg 0.001) the run's cameras, none of --views lying that near a training camera's (it was exit 1)."""
+    _, run = copy
+    out = tmp_path / "new" / "m.ply"
+    for option, value in (("--cone-deg", "0.001"), ("--cone-deg", "nan"), ("--voxel", "0.001"), ("--views", "5"),
+                          ("--seal", "2")):  # fmt: skip
+        assert _export(run, "--out", str(out), option, value) == 2
+        one_error_line(capsys, f"{option}: ", prefix=USAGE)
+    assert not out.parent.exists()

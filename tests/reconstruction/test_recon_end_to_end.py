@@ -2,6 +2,7 @@
 
 import csv
 import json
+import logging
 import sys
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from tacsplat.datasets import Scene
 from tacsplat.reconstruction import losses
 from tacsplat.reconstruction.config import TrainConfig
 from tacsplat.reconstruction.densification import DensifyStrategy
-from tacsplat.reconstruction.gaussians import quats_to_rotmats
+from tacsplat.reconstruction.gaussians import Gaussians, quats_to_rotmats
 from tacsplat.reconstruction.initialization import InitConfig
 from tacsplat.reconstruction.methods import method_of
 from tacsplat.reconstruction.ply import load_ply
@@ -277,10 +278,12 @@ def test_resume_continues_exactly_where_an_uninterrupted_run_would_be(sphere_sce
         assert [int(r["iteration"]) for r in csv.DictReader(fh)] == [0, 10]
 
 
-def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(sphere_scene, tmp_path, monkeypatch):
+def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(
+    sphere_scene, tmp_path, monkeypatch, caplog
+):
     """The sh-lit appearance shades from its start step on (the light gets gradients only then), the smooth albedo
     reaches the loss, and `evaluate` re-renders a finished run from its checkpoint, light included, to the same
-    numbers."""
+    numbers; it replaces splat.ply only where it holds the unbaked Gaussians (a run from before the bake)."""
     from tacsplat.reconstruction.baking import bake_appearance
     from tacsplat.reconstruction.evaluation import evaluate_run
     from tacsplat.reconstruction.ply import save_ply
@@ -312,10 +315,19 @@ def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(
     baked = bake_appearance(final.gaussians, final.look)
     assert splat.sh_degree == 3 and len(splat) == len(final.gaussians)
     torch.testing.assert_close(splat.sh_coefficients(), baked.sh_coefficients())
-    # a run from before the bake (its splat.ply unlit) gets the baked one from evaluate
+    # a splat.ply a user edited since (cut to 10 Gaussians in another program) stays as it is
+    kept = slice(0, 10)
+    cut = Gaussians({k: v[kept] for k, v in baked.params.items()}, baked.from_touch[kept], baked.sh_degree)
+    save_ply(cut, run / "splat.ply")
+    with caplog.at_level(logging.INFO, logger="tacsplat.reconstruction.evaluation"):
+        evaluate_run(run)
+    assert len(load_ply(run / "splat.ply")) == 10 and "before the bake" not in caplog.text
+    # a run from before the bake (its splat.ply unlit) gets the baked one from evaluate, with one line saying so
     save_ply(final.gaussians, run / "splat.ply")
-    evaluate_run(run)
+    with caplog.at_level(logging.INFO, logger="tacsplat.reconstruction.evaluation"):
+        evaluate_run(run)
     torch.testing.assert_close(load_ply(run / "splat.ply").sh_coefficients(), baked.sh_coefficients())
+    assert caplog.text.count("before the bake") == 1
 
 
 def _covariances(g) -> torch.Tensor:
@@ -374,6 +386,13 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
     assert tacsplat_main(["evaluate", str(run), "--gt-mesh", str(cloud_path)]) == 0
     from_cloud = json.loads((run / "metrics.json").read_text())
     assert from_cloud["gt_source"].startswith("points") and np.isfinite(from_cloud["cd"])
+    # a NaN point: one error naming the file and the point, exit 1 (it was a traceback from the radius's SVD)
+    points = trimesh.creation.icosphere(subdivisions=3, radius=RADIUS).vertices
+    points[5] = np.nan
+    trimesh.PointCloud(points).export(cloud_path)
+    capsys.readouterr()
+    assert tacsplat_main(["evaluate", str(run), "--gt-mesh", str(cloud_path)]) == 1
+    assert capsys.readouterr().err == f"error: {cloud_path} [vertex 5]: coordinates [nan, nan, nan] are not finite\n"
 
 
 def _parse(*options, config=None):

@@ -177,6 +177,29 @@ def test_ply_without_from_touch_loads_as_vision_gaussians_and_bad_files_name_the
         load_ply(tmp_path / "broken.ply")
 
 
+def test_a_ground_truth_with_a_nan_or_infinite_vertex_is_refused_naming_the_file_and_the_vertex(tmp_path):
+    """`evaluate --gt-mesh`: a point cloud with a NaN point crashed in the radius's SVD, and trimesh dropped a
+    mesh's NaN vertex and its faces silently; both are refused, naming the first bad vertex."""
+    import trimesh
+
+    from tacsplat.reconstruction.evaluation import read_ground_truth
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    vertices = sphere.vertices.copy()
+    vertices[3], vertices[7] = np.nan, (0.0, np.inf, 0.0)
+    trimesh.PointCloud(vertices).export(tmp_path / "points.ply")
+    trimesh.Trimesh(vertices, sphere.faces, process=False).export(tmp_path / "mesh.ply")
+    for name in ("points.ply", "mesh.ply"):
+        with pytest.raises(SceneFormatError, match=rf"{name} \[vertex 3\]: coordinates \[nan, nan, nan\] are not"):
+            read_ground_truth(tmp_path / name)
+    # a finite mesh is read as trimesh reads it by default (duplicate vertices merged)
+    trimesh.Trimesh(
+        sphere.vertices[sphere.faces].reshape(-1, 3), np.arange(3 * len(sphere.faces)).reshape(-1, 3), process=False
+    ).export(tmp_path / "soup.ply")
+    read = read_ground_truth(tmp_path / "soup.ply")
+    assert len(read.vertices) == len(sphere.vertices) and len(read.faces) == len(sphere.faces)
+
+
 def test_background_is_fitted_to_a_smooth_border_and_black_for_a_cluttered_one():
     from tacsplat.reconstruction.views import background_image
 
