@@ -365,8 +365,8 @@ def export_mesh(
     """Extract a run's mesh (its last checkpoint) into ``out`` (default ``RUN/mesh.ply``; a ``.ply``, its folder
     created once the mesh is made); returns a summary: the file, vertex and face counts, the share of vertices
     observed, and the mesh metrics where the scene has a ground truth. The metrics go into ``RUN/metrics.json`` too,
-    as ``mesh_*`` for ``RUN/mesh.ply``, or under the prefix ``record`` (``mesh_untouched``:
-    ``mesh_untouched_fscore_5``, ...). The metrics are measured and recorded before the mesh file appears (it is
+    as ``mesh_*`` for ``RUN/mesh.ply``, ``mesh_untouched_*`` for ``RUN/mesh-untouched.ply`` (``MESH_FILES``), or
+    under the prefix ``record``. The metrics are measured and recorded before the mesh file appears (it is
     renamed into place last): a mesh file on disk has its metrics recorded, so an interrupted export leaves no
     ``RUN/mesh.ply`` that looks done (:func:`export_meshes`). ``out`` is refused as :func:`check_mesh_out` says.
     An export that writes into the run (a mesh file inside it, or its metrics.json) holds the run's lock throughout,
@@ -390,7 +390,7 @@ def _export_mesh(run_dir: Path, out: Path, config: MeshConfig | None, record: st
     import json
 
     from tacsplat.reconstruction.evaluation import seen_by_training_views
-    from tacsplat.reconstruction.run_dir import load_run, run_scene
+    from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, run_scene
     from tacsplat.reconstruction.views import scene_at, training_frames
 
     run = load_run(run_dir)
@@ -411,13 +411,13 @@ def _export_mesh(run_dir: Path, out: Path, config: MeshConfig | None, record: st
             finite_or_none(mesh_metrics(extracted.mesh, *truth, seen_by=seen_by_training_views(*truth, frames)))
         )
     metrics_path = run_dir / "metrics.json"
-    default = out.resolve() == (run_dir / "mesh.ply").resolve()
-    recorded = truth is not None and (record is not None or default) and metrics_path.is_file()
+    run_files = {(run_dir / name).resolve(): prefix for prefix, name in MESH_FILES.items()}
+    prefix = record or run_files.get(out.resolve())  # (RUN/mesh-untouched.ply by hand: mesh_untouched_*)
+    recorded = truth is not None and prefix is not None and metrics_path.is_file()
     make_parent(out)  # (only now: a failed export creates no folder)
     with atomic_file(out) as f:  # the mesh goes to a temporary sibling, renamed over ``out`` when the block ends
         mesh_ply(extracted).write(f)
         if recorded:  # before that rename: a mesh file on disk has its metrics recorded
-            prefix = record or "mesh"
             metrics = json.loads(metrics_path.read_text())
             metrics.update({prefix + k[len("mesh") :]: v for k, v in summary.items() if k.startswith("mesh_")})
             atomic_write(metrics_path, json.dumps(metrics, indent=2).encode())

@@ -135,3 +135,14 @@ def test_an_export_value_out_of_range_is_a_usage_error_naming_its_option(copy, t
         assert _export(run, "--out", str(out), option, value) == 2
         one_error_line(capsys, f"{option}: ", prefix=USAGE)
     assert not out.parent.exists()
+
+
+def test_a_mesh_exported_by_hand_as_the_runs_untouched_mesh_has_its_metrics_recorded(copy, tmp_path):
+    """docs/meshes.md's `export mesh RUN --no-touches --out RUN/mesh-untouched.ply` records mesh_untouched_*, as a
+    batch's export does (a mesh file in the run has its metrics); one elsewhere records nothing."""
+    _, run = copy
+    assert _export(run, "--no-touches", "--out", str(tmp_path / "elsewhere.ply")) == 0
+    assert not any(k.startswith("mesh_") for k in json.loads((run / "metrics.json").read_text()))
+    assert _export(run, "--no-touches", "--out", str(run / "mesh-untouched.ply")) == 0
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert "mesh_untouched_fscore_5" in metrics and not any(k.startswith("mesh_fscore") for k in metrics)
