@@ -364,9 +364,11 @@ class SimConfig:
 class MockConfig:
     """The emulated devices of ``--mock`` (a real rig's file, no hardware)."""
 
-    camera_width: Annotated[int, bounded(16, 4096, "px")] = 320
-    camera_height: Annotated[int, bounded(16, 4096, "px")] = 240
-    camera_focal_px: Annotated[float, positive(1e5, "px")] = 280.0
+    # the wrist camera: the twin's (presses.CAMERA_PX, 60 degrees high), which sees the fine board of real-rig.md from
+    # the presses' 4-10 cm and from a capture's 30-40 cm (at 320 x 240, f 280 px, the latter showed no corner)
+    camera_width: Annotated[int, bounded(16, 4096, "px")] = 640
+    camera_height: Annotated[int, bounded(16, 4096, "px")] = 480
+    camera_focal_px: Annotated[float, positive(1e5, "px")] = 416.0
     camera_frames: Annotated[int, bounded(1, 1000)] = 24  # board renders in the looping video
     tactile_width: Annotated[int, bounded(8, 4096, "px")] = 160
     tactile_height: Annotated[int, bounded(8, 4096, "px")] = 120

@@ -313,8 +313,12 @@ class RigPressSession:
             head = f"press {i + 1}/{len(plan)}: {spec.describe()}"
             self._hold(np.array(spec.q))
             told = time.monotonic()
-            if not self.person.press(spec):
-                self.say(f"{head}: the wrist camera does not see the board at any pose of the hand; skipped")
+            if not self.person.press(spec):  # --mock's person found no pose of the hand where the camera sees it
+                self.say(
+                    f"{head}: at every pose of the hand near the sphere the wrist camera finds fewer than "
+                    f"{self.poses.board.min_corners} of the board's corners (board.min_corners): its squares too large "
+                    "to show that many from 4-10 cm, or too small for the camera's pixels; skipped"
+                )
                 continue
             reading = self._contact(spec.finger, True, told)
             pose = None if reading is None else self._board(reading.timestamp)

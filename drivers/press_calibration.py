@@ -105,7 +105,7 @@ def _world_sensor(p: Press, T_cam_hand: np.ndarray, T_fingertip_sensor: np.ndarr
 def check_presses(presses: list[Press], what: str) -> None:
     """Refuse an empty set and a press without contact."""
     if not presses:
-        raise InvalidInputError(f"{what}: no presses recorded; press the fingertips on the sphere and the board")
+        raise InvalidInputError(f"{what}: no presses recorded: every press was skipped (its line above says why)")
     for i, p in enumerate(presses):
         if len(p.points_sensor) < MIN_CONTACT_POINTS:
             raise InvalidInputError(

@@ -120,8 +120,7 @@ def test_the_chain_runs_on_mock_through_the_real_drivers_and_finds_every_hidden_
     monkeypatch.setattr(sys, "stdin", open(os.devnull))
     errors = {**_joint_draw(seed), **_mount_draw(seed)}
     data = yaml.safe_load(example_rig("mock").read_text())
-    data |= {"board": FINE_BOARD, "sim": {"true_errors": errors}}
-    data["mock_devices"] = {"camera_width": 640, "camera_height": 480, "camera_focal_px": 416.0}
+    data["sim"] = {"true_errors": errors}  # mock.yaml's own board and camera, as real-rig.md's chain on --mock
     rig = tmp_path / "rig.yaml"
     steps = [
         (["hand", "--out", "hand.json"], ("hand", "calibration", "hand.json")),

@@ -17,7 +17,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from tacsplat.acquisition.calibrate import calibrate_mounts
-from tacsplat.acquisition.config import example_rig, load_rig
+from tacsplat.acquisition.config import RigConfig, checked, example_rig, load_rig
 from tacsplat.cli import main
 from tacsplat.drivers.press_calibration import MountsFit, load_hand_eye, load_mounts, save_hand_eye, save_mounts
 from tacsplat.geometry import invert_pose, make_pose
@@ -30,7 +30,6 @@ from test_acq_hand_eye_arm import _stations, folder  # noqa: E402, F401  (folder
 pytestmark = pytest.mark.timeout(300)
 
 FINE_BOARD = {"squares_x": 14, "squares_y": 10, "square_length_m": 0.015, "marker_length_m": 0.011}
-MOCK_CAMERA = {"camera_width": 640, "camera_height": 480, "camera_focal_px": 416.0}  # the twin's wrist camera
 
 
 def _rig(where: Path, errors: dict, **more) -> str:
@@ -70,19 +69,82 @@ def test_a_camera_turned_about_its_optical_axis_is_found_not_a_local_minimum(tmp
     assert mm < 1.0 and deg < 0.5, (mm, deg, capsys.readouterr().out.splitlines()[-2])
 
 
-def test_on_mock_a_camera_turned_about_its_optical_axis_is_found(tmp_path, capsys, monkeypatch):
-    """The same through the real drivers (--mock), standard input closed."""
+def test_on_the_shipped_mock_rig_a_camera_turned_about_its_optical_axis_is_found(tmp_path, capsys, monkeypatch):
+    """The same through the real drivers (--mock), standard input closed, on mock.yaml's own board and camera as
+    real-rig.md's chain on --mock uses them (its 7x5 board of 30 mm squares skipped every press)."""
     import os
 
     from tests.acquisition.acq_helpers import write_mock_rig
 
     monkeypatch.setattr(sys, "stdin", open(os.devnull))
     errors = {"hand_eye": {"rotation_deg": [0, 0, 10]}}
-    rig = write_mock_rig(tmp_path, board=FINE_BOARD, sim={"true_errors": errors}, mock_devices=MOCK_CAMERA)
+    rig = write_mock_rig(tmp_path, sim={"true_errors": errors})
     out = tmp_path / "hand_eye.json"
     assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out), "--mock"]) == 0, capsys.readouterr().err
     mm, deg = _off(load_hand_eye(out), nominal_T_hand_cam() @ _matrix(errors["hand_eye"]))
     assert mm < 1.0 and deg < 0.5, (mm, deg)
+
+
+def test_on_mock_a_board_of_large_squares_skips_each_press_saying_why(tmp_path, capsys, monkeypatch):
+    """From 4-10 cm a camera of 320x240 pixels, f 280 px (mock's old default) shows too few of a 7x5 board's 30 mm
+    squares: each press line said "does not see the board" and the error told a person to press the fingertips,
+    where --mock's emulated person presses them."""
+    import os
+
+    from tests.acquisition.acq_helpers import write_mock_rig
+
+    monkeypatch.setattr(sys, "stdin", open(os.devnull))
+    coarse = {"squares_x": 7, "squares_y": 5, "square_length_m": 0.03, "marker_length_m": 0.022}
+    out = tmp_path / "hand_eye.json"
+    camera = {"camera_width": 320, "camera_height": 240, "camera_focal_px": 280.0}
+    rig = write_mock_rig(tmp_path, board=coarse, mock_devices=camera)
+    assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out), "--mock"]) == 1
+    stdout, err = capsys.readouterr()
+    lines = [line for line in stdout.splitlines() if line.startswith("press ") and "/16: " in line]
+    assert len(lines) == 16 and not out.exists()
+    for line in lines:
+        assert line.endswith(
+            ": at every pose of the hand near the sphere the wrist camera finds fewer than 6 of the board's corners "
+            "(board.min_corners): its squares too large to show that many from 4-10 cm, or too small for the "
+            "camera's pixels; skipped"
+        ), line
+    assert err.splitlines()[-1] == (
+        "error: hand-eye: no presses recorded: every press was skipped (its line above says why)"
+    )
+
+
+def _doc(name: str) -> str:
+    return (Path(__file__).parents[2] / "docs" / name).read_text()
+
+
+def test_real_rig_md_the_shipped_rigs_and_the_camera_steps_name_one_board():
+    """real-rig.md said to print a 14x10 board of 15 mm squares while its camera step's command (without board
+    options: a 7x5 board of 30 mm squares), hardware.md and real.yaml named the 7x5 one."""
+    (line,) = {line for line in _doc("real-rig.md").splitlines() if line.startswith("board: {squares_x")}  # one
+    board = yaml.safe_load(line)["board"]
+    assert board == FINE_BOARD
+    for name in ("real", "mock"):
+        shipped = yaml.safe_load(example_rig(name).read_text())["board"]
+        assert {key: shipped.get(key) for key in board} == board, name
+    options = (
+        f"--squares-x {board['squares_x']} --squares-y {board['squares_y']} "
+        f"--square-mm {1000 * board['square_length_m']:g} --marker-mm {1000 * board['marker_length_m']:g}"
+    )
+    (step2,) = [line for line in _doc("real-rig.md").splitlines() if line.startswith("| 2 |")]
+    assert f"`tacsplat calibrate camera photos/ {options} --out " in step2, step2
+    hardware = " ".join(_doc("hardware.md").split())
+    assert f"`tacsplat calibrate camera photos/ {options} --out camera.json`" in hardware
+
+
+def test_real_rig_md_s_twin_example_hides_an_error_of_each_calibrated_part():
+    """real-rig.md pointed to sim.yaml for sim.true_errors, which has no example of them."""
+    text = _doc("real-rig.md")
+    block = re.search(r"```yaml\n(rig: sim\n.*?)```", text, re.S).group(1)
+    config = checked(RigConfig, yaml.safe_load(block))
+    errors = config.sim.true_errors
+    assert errors.joint_offsets_rad and errors.joint_signs and errors.mounts
+    assert np.abs(errors.hand_eye.matrix() - np.eye(4)).max() > 0
+    assert config.hand.calibration and config.camera.hand_eye and config.tactile.mounts  # what steps 1, 3, 4 write
 
 
 def _calibrated_mounts(path: Path) -> None:

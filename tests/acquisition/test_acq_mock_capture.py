@@ -84,7 +84,7 @@ def test_grasp_touches_are_placed_with_board_pose_and_hand_eye(tmp_path, mock_ri
     """T_world_sensor = T_world_cam (board PnP) @ T_cam_hand @ T_hand_sensor (forward kinematics).
 
     The live mock camera loops a video of 24 board views paced at 30 fps, so the frame a grasp sees depends on the
-    wall clock; the PnP error of those views spans 0.15-5 mm (few corners, a far board in a 320 x 240 image). The
+    wall clock; the PnP error of those views varies by millimetres (few corners of a far board in some). The
     bound is therefore the pose's own uncertainty: the error of the view the grasp used, within 3 standard
     deviations of the PnP covariance that board_pose reports for it."""
     config = load_rig(mock_rig, mock=True)

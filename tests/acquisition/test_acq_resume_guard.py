@@ -206,7 +206,7 @@ def _sensors_with_mount(index: int) -> list:
     [
         ({"object": "cup"}, "object", "'mock-board'", "'cup'"),
         ({"plan": {"views": {"train": 3, "test": 1}, "grasps": {"count": 7}}}, "plan.grasps.count", "3", "7"),
-        ({"board": {"square_length_m": 0.025, "marker_length_m": 0.018}}, "board.square_length_m", "0.03", "0.025"),
+        ({"board": {"square_length_m": 0.012, "marker_length_m": 0.009}}, "board.square_length_m", "0.015", "0.012"),
         (
             {"tactile": {"sensors": _sensors_with_mount(2)}},
             "tactile.sensors[2].T_fingertip_sensor",

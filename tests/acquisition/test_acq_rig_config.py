@@ -84,9 +84,9 @@ PROJECTIVE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0.5, 1]]
         ({"camera/fps": 0}, "camera.fps", "must be in (0, 1000] Hz, got 0"),
         ({"camera/timeout_s": 1e6}, "camera.timeout_s", "must be in (0, 60] s"),
         ({"board/square_length_m": 3}, "board.square_length_m", "must be in (0, 1] m, got 3"),
-        ({"board/squares_x": 50}, "board.dictionary", "DICT_5X5_100 has 100 markers; a 50 x 5 board needs 125"),
+        ({"board/squares_x": 50}, "board.dictionary", "DICT_5X5_100 has 100 markers; a 50 x 10 board needs 250"),
         ({"board/min_corners": 2}, "board.min_corners", "must be in [4, 10000], got 2"),
-        ({"board/min_corners": 30}, "board.min_corners", "a 7 x 5 board has 24 inner corners"),
+        ({"board/min_corners": 200}, "board.min_corners", "a 14 x 10 board has 117 inner corners"),
         ({"board/legacy_pattern": "yes"}, "board.legacy_pattern", "expected true or false"),
         ({"tactile/gel_thickness_m": 0.5}, "tactile.gel_thickness_m", "must be in (0, 0.02] m, got 0.5"),
         (
