@@ -22,6 +22,7 @@ import torch
 
 from tacsplat.errors import SceneFormatError
 from tacsplat.files import atomic_write
+from tacsplat.geometry import project_points
 from tacsplat.reconstruction import losses, shading
 from tacsplat.reconstruction.baking import bake_appearance
 from tacsplat.reconstruction.gaussians import Gaussians
@@ -140,36 +141,29 @@ def facing_normals(gaussians: Gaussians, frames: list, backend: str) -> torch.Te
     from tacsplat.reconstruction.ply import outward_normals
 
     g = gaussians
-    normals = outward_normals(g.means.detach(), g.quats.detach(), g.scales.detach()).cpu().double()  # [N, 3]
-    means = g.means.detach().cpu().double()  # [N, 3]
-    tolerance = g.scales.detach().cpu().double().amax(dim=-1)  # [N]
-    votes = torch.zeros(len(means), dtype=torch.float64)  # [N] sum of cos(normal, to the camera) where seen
-    with torch.no_grad():
-        for frame in frames:
-            depth = torch.from_numpy(render_median_depth(g, frame, backend)).double()  # [H, W]
-            T = torch.tensor(frame.T_world_cam, dtype=torch.float64)
-            camera = (means - T[:3, 3]) @ T[:3, :3]  # [N, 3] in the camera's frame
-            K = torch.tensor(frame.intrinsics.K, dtype=torch.float64)
-            z = camera[:, 2].clamp_min(1e-9)
-            u = (camera[:, 0] / z * K[0, 0] + K[0, 2]).floor()
-            v = (camera[:, 1] / z * K[1, 1] + K[1, 2]).floor()
-            inside = (camera[:, 2] > 0) & (u >= 0) & (v >= 0) & (u < depth.shape[1]) & (v < depth.shape[0])
-            surface = torch.zeros_like(z)
-            surface[inside] = depth[v[inside].long(), u[inside].long()]
-            seen = inside & (surface > 0) & (camera[:, 2] <= surface + tolerance)
-            towards = T[:3, 3] - means  # [N, 3]
-            cosine = (towards * normals).sum(-1) / towards.norm(dim=-1).clamp_min(1e-12)
-            votes += torch.where(seen, cosine, 0.0)
-    decided = votes.abs() > 0.1
-    sign = torch.where(votes < 0, -1.0, 1.0).double()
+    normals = outward_normals(g.means.detach(), g.quats.detach(), g.scales.detach()).cpu().double().numpy()  # [N, 3]
+    means = g.means.detach().cpu().double().numpy()  # [N, 3]
+    tolerance = g.scales.detach().cpu().double().amax(dim=-1).numpy()  # [N]
+    votes = np.zeros(len(means))  # [N] sum of cos(normal, to the camera) over the cameras that see it
+    for frame in frames:
+        depth = render_median_depth(g, frame, backend)  # [H, W]
+        uv, z = project_points(means, frame.intrinsics.K, frame.T_world_cam)  # [N, 2], [N]
+        pixel = np.nan_to_num(np.floor(uv), nan=-1).astype(int)  # (behind the camera: -1, outside)
+        inside = (z > 0) & (pixel >= 0).all(axis=1) & (pixel < [depth.shape[1], depth.shape[0]]).all(axis=1)
+        surface = np.zeros(len(means))
+        surface[inside] = depth[pixel[inside, 1], pixel[inside, 0]]
+        seen = inside & (surface > 0) & (z <= surface + tolerance)
+        towards = frame.T_world_cam[:3, 3] - means  # [N, 3]
+        votes += np.where(seen, (towards * normals).sum(-1) / np.linalg.norm(towards, axis=1).clip(1e-12), 0.0)
+    decided = np.abs(votes) > 0.1
+    sign = np.where(votes < 0, -1.0, 1.0)
     if decided.any() and not decided.all():  # the rest: the side of the nearest decided ones, where they agree
         oriented = normals[decided] * sign[decided, None]  # [D, 3]
         k = min(8, int(decided.sum()))
-        _, nearest = cKDTree(means[decided].numpy()).query(means[~decided].numpy(), k=k)
-        nearest = torch.from_numpy(nearest.reshape(-1, k))
-        agreement = (oriented[nearest] * normals[~decided, None]).sum(-1).mean(-1)  # [U]
-        sign[~decided] = torch.where(agreement < -0.5, -1.0, 1.0).double()
-    return (normals * sign[:, None]).float()
+        _, nearest = cKDTree(means[decided]).query(means[~decided], k=k)
+        agreement = (oriented[nearest.reshape(-1, k)] * normals[~decided, None]).sum(-1).mean(-1)  # [U]
+        sign[~decided] = np.where(agreement < -0.5, -1.0, 1.0)
+    return torch.from_numpy(normals * sign[:, None]).float()
 
 
 @dataclass
@@ -488,11 +482,11 @@ def holds_unbaked(path: Path, gaussians: Gaussians) -> bool:
 def evaluate_reconstruction(
     run, scene, run_dir: str | Path, splat: Gaussians, gt_path: str | Path | None = None, backend: str | None = None
 ) -> dict:
-    """Evaluate the Gaussians of ``run`` (a :class:`~.run_dir.LoadedRun` or a Trainer: its ``gaussians``,
-    ``config``, ``step``, ``train_seconds``, ``look`` and ``touch_points``) on a scene's test views (``psnr_splat``: the PSNR of what
-    ``splat.ply`` shows a plain 3DGS renderer, ``splat``, :func:`.baking.bake_appearance` of the Gaussians and their
-    look): writes ``metrics.json``, ``renders/`` and, for the sh-lit appearance, ``light.png`` (its diffuse light,
-    :func:`save_light`) into ``run_dir``. The method and mechanisms it records are those the run used: touch is
+    """Evaluate the Gaussians of ``run`` (a :class:`~.run_dir.LoadedRun` or a Trainer: its ``gaussians``, ``config``,
+    ``step``, ``train_seconds``, ``look`` and ``touch_points``) on a scene's test views (``psnr_splat``: the PSNR of
+    what ``splat.ply`` shows a plain 3DGS renderer, ``splat``, :func:`.baking.bake_appearance` of the Gaussians and
+    their look): writes ``metrics.json``, ``renders/`` and, for the sh-lit appearance, ``light.png`` (its diffuse
+    light, :func:`save_light`) into ``run_dir``. The method and mechanisms it records are those the run used: touch is
     off where it had no touch points."""
     gaussians, config, look = run.gaussians, run.config, run.look
     test = scene.split("test")

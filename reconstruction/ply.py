@@ -45,8 +45,9 @@ def touch_sidecar_path(ply_path: str | Path) -> Path:
 def save_ply(gaussians: Gaussians, path: str | Path, normals: torch.Tensor | None = None) -> Path:
     """Write ``gaussians`` to ``path`` and their touch flags to :func:`touch_sidecar_path` (parent directories
     created); returns the PLY's path. ``normals`` [N, 3]: the unit normals to write (default
-    :func:`outward_normals`; a run writes :func:`.evaluation.facing_normals`). Both files are written in full before either replaces its old one, so a full
-    or read-only disk (a StorageError naming the file) leaves the old pair as it was and no temporary file."""
+    :func:`outward_normals`; a run writes :func:`.evaluation.facing_normals`). Both files are written in full before
+    either replaces its old one, so a full or read-only disk (a StorageError naming the file) leaves the old pair as
+    it was and no temporary file."""
     path = Path(path)
     make_parent(path)
     p = {k: v.detach().cpu().float() for k, v in gaussians.params.items()}

@@ -723,18 +723,16 @@ def reconstruct(
 
     ``out_dir`` must be new or empty, or hold an earlier run: continued with
     ``resume`` (from its checkpoint, with its own ``config.json``, on the scene
-    it recorded; ``resumed(recorded config)``, where given, returns the config
-    to continue with, or refuses it: only the iteration count may change, not
-    below the step reached, and config.json then records it) or replaced with ``overwrite`` (its files only). It is locked
-    for the whole job. A folder of other files, a run without ``resume`` or
-    ``overwrite``, ``resume`` of no run, on another scene or of a run that
-    trained with a removed loss, or a folder that cannot take a file (read-only, full) is an error before any
-    training; the gsplat backend where torch sees no CUDA, a ``train_views`` above the scene's training views
-    (:func:`check_train_views`), and a ``downscale`` or ``coarse_factors`` that leaves training images under
-    ``MIN_IMAGE_PX`` a side (:func:`check_image_sizes`), are errors before the folder is made. Every file is replaced atomically: a disk that fills up stops the
-    job with a StorageError naming the file, and the files written before
-    (the last checkpoint) stay, so that ``resume`` continues once there is
-    space.
+    it recorded; ``resumed(recorded config)``, where given, returns the config to continue with, or refuses it: only
+    the iteration count may change, not below the step reached, and config.json then records it) or replaced with
+    ``overwrite`` (its files only). It is locked for the whole job. A folder of other files, a run without ``resume``
+    or ``overwrite``, ``resume`` of no run, on another scene or of a run that trained with a removed loss, or a folder
+    that cannot take a file (read-only, full) is an error before any training; the gsplat backend where torch sees no
+    CUDA, a ``train_views`` above the scene's training views (:func:`check_train_views`), and a ``downscale`` or
+    ``coarse_factors`` that leaves training images under ``MIN_IMAGE_PX`` a side (:func:`check_image_sizes`), are
+    errors before the folder is made. Every file is replaced atomically: a disk that fills up stops the job with a
+    StorageError naming the file, and the files written before (the last checkpoint) stay, so that ``resume``
+    continues once there is space.
     """
     from tacsplat.datasets import Scene
     from tacsplat.datasets.outputs import claim_output_dir

@@ -79,8 +79,8 @@ def _remember(key: bytes, sphere: tuple[np.ndarray, float, bool]) -> None:
 
 
 def _sphere(vertices) -> tuple[np.ndarray, float, bool]:
-    """The cached :func:`~tacsplat.geometry.minimum_sphere` of ``vertices``, and whether it is exact (Welzl's: it moves and scales with
-    the vertices)."""
+    """The cached :func:`~tacsplat.geometry.minimum_sphere` of ``vertices``, and whether it is exact (Welzl's: it
+    moves and scales with the vertices)."""
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)  # [V, 3]
     if (key := _key(vertices)) not in _SPHERES:
         _remember(key, minimum_sphere(vertices))

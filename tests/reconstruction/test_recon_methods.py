@@ -79,8 +79,8 @@ def test_a_run_config_written_before_the_lit_color_existed_reads_as_what_it_trai
 
 def test_a_run_config_of_a_removed_mechanism_reads_when_it_was_off_and_is_refused_when_on():
     """config.json written before the reflective and lit appearances, plane depth, the touch-pixel normals and the
-    pads' free space were removed: their fields switched off read as today's config (the light's rate, once ``lr_env_map``, kept); a run
-    that used one is refused naming the field and the file."""
+    pads' free space were removed: their fields switched off read as today's config (the light's rate, once
+    ``lr_env_map``, kept); a run that used one is refused naming the field and the file."""
     old = {
         **TrainConfig().to_json(),
         "depth_render": "centre",
@@ -251,7 +251,10 @@ def test_a_run_without_touch_points_records_touch_off_and_its_method_as_trained(
         capsys.readouterr()
         assert main(["reconstruct", str(scenes[touches]), "--out", str(run), "--method", method, *fast]) == 0
         warned = [line for line in capsys.readouterr().err.splitlines() if "no touches" in line]
-        expected = f"the scene {scenes[touches]} has no touches (no contact points): touch is off for this run, recorded as method {recorded}"
+        expected = (
+            f"the scene {scenes[touches]} has no touches (no contact points): touch is off for this run, "
+            f"recorded as method {recorded}"
+        )
         assert warned == ([] if touches else [f"WARNING tacsplat.reconstruction.trainer: {expected}"]), warned
         metrics = json.loads((run / "metrics.json").read_text())
         assert (metrics["method"], metrics["mechanisms"]["touch"]) == (recorded, touches), method

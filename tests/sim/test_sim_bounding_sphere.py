@@ -1,6 +1,6 @@
-"""The bounding sphere of an object (tacsplat.sim.objects, by tacsplat.geometry.minimum_sphere): trimesh's method where it is fast (the library and
-held-out meshes keep the spheres their captures had), Welzl's exact minimum sphere on a big convex hull, where
-trimesh's falls back to a loop of minutes, and one sphere computed per mesh loaded."""
+"""The bounding sphere of an object (tacsplat.sim.objects, by tacsplat.geometry.minimum_sphere): trimesh's method
+where it is fast (the library and held-out meshes keep the spheres their captures had), Welzl's exact minimum sphere
+on a big convex hull, where trimesh's falls back to a loop of minutes, and one sphere computed per mesh loaded."""
 
 import logging
 
