@@ -316,8 +316,7 @@ class RigPressSession:
             if not self.person.press(spec):  # --mock's person found no pose of the hand where the camera sees it
                 self.say(
                     f"{head}: at every pose of the hand near the sphere the wrist camera finds fewer than "
-                    f"{self.poses.board.min_corners} of the board's corners (board.min_corners): its squares too large "
-                    "to show that many from 4-10 cm, or too small for the camera's pixels; skipped"
+                    f"{self.poses.board.min_corners} of the board's corners (board.min_corners); skipped"
                 )
                 continue
             reading = self._contact(spec.finger, True, told)

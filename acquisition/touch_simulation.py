@@ -145,9 +145,10 @@ def simulate_touches(
         if mesh_path is None and scene.gt_mesh_path is None:  # the paper's touches on the ground-truth points
             points = _gt_points(scene, touches)
             centre, radius, _ = minimum_sphere(points)
-            _check_size(scene, radius, object_radius / radius, object_radius, None)
-            units = SceneUnits(centre, object_radius / radius)  # scaled to object_radius as a mesh would be
-            twin, surface, what = None, (points - centre) * units.scale, (GT_POINTS, "its points")
+            scale = object_radius / radius  # to object_radius, as a mesh would be
+            _check_size(scene, radius, scale, object_radius, None)
+            units = SceneUnits(centre, scale)
+            twin, surface, source = None, (points - centre) * scale, GT_POINTS
             sensor = pad_sensor_model(TwinConfig().tactile, units.scale)
         else:
             mesh_path = scene.gt_mesh_path if mesh_path is None else mesh_path
@@ -156,18 +157,12 @@ def simulate_touches(
             settings = TwinConfig(mesh_path=str(mesh_path), object_radius=object_radius, seed=seed)
             twin = stack.enter_context(SimTwin(settings))
             units = SceneUnits(centre, twin.object.bounding_radius / radius)
-            surface, what = twin.object_mesh, (str(mesh_path), "this mesh")
+            surface, source = twin.object_mesh, str(mesh_path)
             sensor = twin.sensor_model(units.scale)
         if scene.sensor is None:
-            target = _copy_with_sensor(scene, out, sensor, what[0], grasps, seed, touches, units, object_radius)
-        elif np.isclose(scene.sensor.pixel_size_m, sensor.pixel_size_m, rtol=1e-6):
+            target = _copy_with_sensor(scene, out, sensor, source, grasps, seed, touches, units, object_radius)
+        else:  # (_check_size matched the scene's pixels)
             target = Path(scene_path)
-        else:  # (_check_size foresaw it)
-            raise UsageError(
-                "--object-radius",
-                f"the scene's pads have pixels of {scene.sensor.pixel_size_m:.3g} (its units); {what[1]} at "
-                f"{object_radius:.3g} m gives {sensor.pixel_size_m:.3g}",
-            )
         with SceneWriter.resume(target) as writer:
             first = max((t.grasp for t in writer.touches), default=-1) + 1
             if touch_model == "paper":

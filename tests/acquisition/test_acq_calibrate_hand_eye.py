@@ -91,9 +91,6 @@ def test_presses_that_leave_an_axis_undetermined_are_refused_naming_it(tmp_path)
         fit_presses([], SPHERE_RADIUS_M, nominal_T_hand_cam())
 
 
-MOCK_CAMERA = {"camera_width": 640, "camera_height": 480, "camera_focal_px": 416.0}  # the twin's wrist camera
-
-
 def _sensors() -> list:
     """The mock rig's index and thumb sensors (fewer presses)."""
     sensors = yaml.safe_load(example_rig("mock").read_text())["tactile"]["sensors"]
@@ -101,16 +98,14 @@ def _sensors() -> list:
 
 
 def _mock_rig(tmp_path, errors, camera=None, tactile=None) -> str:
-    """A --mock rig file with the fine board, the twin's true ``errors``, the emulated camera and two sensors
+    """A --mock rig file (mock.yaml's board and emulated devices) with the twin's true ``errors`` and two sensors
     (``camera``, ``tactile``: more keys of those sections)."""
     from tests.acquisition.acq_helpers import write_mock_rig
 
     extra = {} if camera is None else {"camera": camera}
     return write_mock_rig(
         tmp_path,
-        board=FINE_BOARD,
         sim={"true_errors": errors},
-        mock_devices=MOCK_CAMERA,
         tactile={"sensors": _sensors(), **(tactile or {})},
         **extra,
     )
@@ -137,7 +132,7 @@ def test_sigterm_mid_presses_exits_with_torque_off_confirmed_and_nothing_written
 
     from tests.acquisition.acq_helpers import sigterm_when, write_mock_rig
 
-    rig = write_mock_rig(tmp_path, board=FINE_BOARD, mock_devices=MOCK_CAMERA, tactile={"sensors": _sensors()})
+    rig = write_mock_rig(tmp_path, tactile={"sensors": _sensors()})
     out, he = tmp_path / "mounts.json", tmp_path / "hand_eye.json"
     args = ["calibrate", "mounts", "--rig", rig, "--out", str(out), "--hand-eye", str(he), "--mock"]
     code, stdout, stderr = sigterm_when(args, "press 2/")
