@@ -129,7 +129,12 @@ class CommandTree:
         a completion script, which lists its options)."""
         parents = [self._common]
         if self._complete and options is not None:
-            parents.append(_options_parser(options))
+            from tacsplat.options import options_parser
+
+            if isinstance(options, str):
+                module, _, name = options.rpartition(".")
+                options = getattr(importlib.import_module(module), name)
+            parents.append(options_parser(options))
         parent, _, name = path.strip().rpartition(" ")
         parser = self._group(parent).add_parser(name, help=help, description=help, parents=parents, add_help=False)
         parser.set_defaults(func=func)
@@ -170,21 +175,6 @@ class CommandTree:
         logging_options, rest = logging_parser.parse_known_args(argv[end:])
         given = [f"--{k.replace('_', '-')}" + ("" if v is True else f"={v}") for k, v in vars(logging_options).items()]
         return argv[:end] + given, rest
-
-
-def _options_parser(options: type | str) -> argparse.ArgumentParser:
-    """The argparse parser of the dataclass ``options`` (or its dotted name) as tyro builds it, -h and --help
-    included: what shtab lists for a command whose options tyro parses. Imports the dataclass's module."""
-    import warnings
-
-    import tyro
-
-    if isinstance(options, str):
-        module, _, name = options.rpartition(".")
-        options = getattr(importlib.import_module(module), name)
-    with warnings.catch_warnings():  # (get_parser is deprecated in tyro 1.0, yet its only argparse view of a CLI)
-        warnings.simplefilter("ignore", DeprecationWarning)
-        return tyro.extras.get_parser(options, config=(tyro.conf.PositionalMetavarFromFieldName,))
 
 
 def build_parser(complete: bool = False) -> argparse.ArgumentParser:

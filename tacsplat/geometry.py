@@ -243,7 +243,7 @@ def minimum_sphere(points) -> tuple[np.ndarray, float, bool]:
     points = np.asarray(points, dtype=np.float64)
     hull = trimesh.convex.hull_points(points)  # as trimesh's method takes them
     if len(hull) <= TRIMESH_SPHERE_MAX_HULL_POINTS:
-        centre, radius = trimesh.nsphere.minimum_nsphere(points)
+        centre, radius = trimesh.nsphere.minimum_nsphere(hull)  # (the same sphere: the hull holds it)
         return np.asarray(centre, dtype=np.float64), float(radius), False
     log.info("the minimum bounding sphere of %d convex-hull points (Welzl's algorithm, seconds) ...", len(hull))
     return *welzl_sphere(hull), True

@@ -30,23 +30,18 @@ def parse_options(cls: type[T], argv: list[str], prog: str, default: T | None = 
         if stop.code == 0:  # --help
             print(shown.getvalue(), end="")
             raise
-        if unknown := _unknown_option(cls, argv, prog, default):  # (tyro may blame what it consumed as its value)
+        if unknown := _unknown_option(cls, argv, prog):  # (tyro may blame what it consumed as its value)
             raise unknown from None
         raise UsageError(*tyro_error(errors.getvalue() + shown.getvalue(), prog)) from None
 
 
-def _unknown_option(cls: type, argv: list[str], prog: str, default) -> UsageError | None:
+def _unknown_option(cls: type, argv: list[str], prog: str) -> UsageError | None:
     """The first ``--option`` of ``argv`` that ``cls`` does not have, as a UsageError suggesting the nearest one.
     Before tyro's own message: an unknown option before a positional takes that positional as its value, and tyro
     then says the positional is missing."""
     import difflib
 
-    import tyro
-
-    shown = io.StringIO()
-    with contextlib.suppress(SystemExit), contextlib.redirect_stdout(shown), contextlib.redirect_stderr(io.StringIO()):
-        tyro.cli(cls, args=["--help"], default=default, prog=prog)
-    known = set(re.findall(r"(?<![\w-])--[\w.-]*\w", shown.getvalue()))
+    known = set(options_parser(cls)._option_string_actions)  # (what tyro's parser takes: -h, --help, ...)
     for token in argv:
         if token == "--":
             break
@@ -55,6 +50,18 @@ def _unknown_option(cls: type, argv: list[str], prog: str, default) -> UsageErro
             near = difflib.get_close_matches(option, sorted(known), n=1)
             return UsageError(option, f"not an option of {prog}" + (f" (did you mean {near[0]}?)" if near else ""))
     return None
+
+
+def options_parser(options: type):
+    """The argparse parser of the dataclass ``options`` as tyro builds it (:func:`parse_options`' positional
+    metavars), -h and --help included: the options it takes, and what shtab lists for the command."""
+    import warnings
+
+    import tyro
+
+    with warnings.catch_warnings():  # (get_parser is deprecated in tyro 1.0, yet its only argparse view of a CLI)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return tyro.extras.get_parser(options, config=(tyro.conf.PositionalMetavarFromFieldName,))
 
 
 def tyro_error(text: str, prog: str) -> tuple[str, str]:

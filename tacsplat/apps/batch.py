@@ -426,11 +426,8 @@ class EvaluateJob(BatchJob):
 
 def _sha256(path: Path) -> str:
     """The SHA-256 of a file's content (an OSError when unreadable)."""
-    digest = hashlib.sha256()
     with path.open("rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+        return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
 @functools.cache

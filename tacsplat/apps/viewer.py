@@ -127,11 +127,10 @@ def check_export_out(path: Path, export: Path, overwrite: bool = False) -> None:
         raise UsageError("--export", f"{export} is not an .html file: name the page FILE.html")
     target = export.resolve()
     owners = [path.resolve()]
-    with contextlib.suppress(TacsplatError, OSError, KeyError, TypeError):  # (no readable record: PATH alone)
-        from tacsplat.reconstruction.run_dir import recorded_scene
+    from tacsplat.reconstruction.run_dir import recorded_scene
 
-        if (record := recorded_scene(path)) and record.get("path"):
-            owners.append(Path(record["path"]).resolve())
+    if record := recorded_scene(path):  # (a run's: its scene's files are refused too)
+        owners.append(Path(record["path"]).resolve())
     for owner in owners:
         if target == owner or target.is_relative_to(owner):
             raise UsageError(

@@ -245,3 +245,9 @@ def test_a_mistyped_option_is_named_with_the_nearest_one_wherever_it_stands(caps
         assert main(argv) == 2, argv
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and f"error: {typo}: not an option of tacsplat {argv[0]} (did you mean {meant}?)" in err[0]
+
+
+def test_a_word_of_an_options_help_is_not_taken_for_an_option(capsys):
+    """Known options are the parser's, not every --word of --help (--ray-address's help quotes `ray start --head`)."""
+    assert main(["bench", "paper", "--head"]) == 2
+    assert "--head: not an option of tacsplat bench paper" in capsys.readouterr().err
