@@ -383,37 +383,35 @@ class PaperBench:
             for capture in self.capture_jobs():
                 if isinstance(capture, CaptureJob):  # (refused before anything runs)
                     capture.refuse_changed_settings()
-            self.refuse_changed_options()
-            return self._run(progress, wall_note, executor)
+            stale = self.stale_runs()
+            self.refuse_changed_options(stale)
+            return self._run(progress, wall_note, executor, stale)
 
-    def refuse_changed_options(self) -> None:
+    def refuse_changed_options(self, stale: list[tuple[Run, list[str]]] | None = None) -> None:
         """A finished or interrupted run trained with another value of an option (:data:`RUN_OPTIONS`: its step
         count, its downscale) is an error on ``--out``, not numbers shown under the new value (a run whose other
-        settings differ, a default changed since, is kept and named in report.md: :meth:`stale_runs`)."""
-        changed: dict[str, list[Run]] = {}  # what differs -> its runs
-        for run in self.runs():
-            changes = self.reconstruct_job(run).changed_settings()
-            if options := [c for c in changes if c.split(" ", 1)[0] in RUN_OPTIONS]:
-                changed.setdefault(", ".join(options), []).append(run)
-        if not changed:
+        settings differ, a default changed since, is kept and named in report.md). ``stale``: :meth:`stale_runs`,
+        where already read."""
+        stale = self.stale_runs() if stale is None else stale
+        refused = [(run, o) for run, changes in stale if (o := [c for c in changes if c.split()[0] in RUN_OPTIONS])]
+        if not refused:
             return
-        changes, runs = next(iter(changed.items()))
-        count = sum(map(len, changed.values()))
+        (run, options), count = refused[0], len(refused)
         others = f" and {count - 1} other run(s)" if count > 1 else ""
-        then = ", ".join(f"{RUN_OPTIONS[c.split(' ', 1)[0]]} {c.split(' ')[1]}" for c in changes.split(", "))
+        then = ", ".join(f"{RUN_OPTIONS[c.split()[0]]} {c.split()[1]}" for c in options)
         raise ConfigError(
             "--out",
-            f"{runs[0].out}{others} were trained with other settings ({changes}): rerun with {then}, or choose a "
-            "new --out, or delete those run folders to train them again",
+            f"{run.out}{others} were trained with other settings ({', '.join(options)}): rerun with {then}, or "
+            "choose a new --out, or delete those run folders to train them again",
         )
 
-    def _run(self, progress: bool, wall_note: str, executor: dict) -> list[dict]:
-        """:meth:`run` in the claimed folder."""
+    def _run(self, progress: bool, wall_note: str, executor: dict, stale: list) -> list[dict]:
+        """:meth:`run` in the claimed folder (``stale``: :meth:`stale_runs` as it starts)."""
         runs = self.runs()
         unfinished = sum(not r.done for r in runs)
         if unfinished < len(runs):
             log.info("%d of %d runs already finished in %s: skipped", len(runs) - unfinished, len(runs), self.out)
-        if stale_note := _stale_note(self.stale_runs(), self.out):
+        if stale_note := _stale_note(stale, self.out):
             log.warning("%s", stale_note)
         started = time.perf_counter()
         jobs = self.jobs()
