@@ -159,12 +159,6 @@ def _import(o) -> int:
 
 
 def _inspect(o: Inspect) -> int:
-    from .inspect import picture_format, plot_formats, run_inspect
+    from .inspect import run_inspect
 
-    if o.plot is not None and picture_format(o.plot) not in plot_formats():
-        raise UsageError(
-            "--plot",
-            f"cannot save a picture as .{picture_format(o.plot)}; use one of "
-            f"{', '.join('.' + f for f in plot_formats())}",
-        )
     return run_inspect(o.dir, as_json=o.json, plot=o.plot, overwrite=o.overwrite)

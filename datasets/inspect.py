@@ -175,14 +175,12 @@ def plot_formats() -> list[str]:
 def check_plot_out(path, plot, overwrite: bool = False) -> None:
     """Refuse (a UsageError on ``--plot``) a picture file without a suffix matplotlib writes, one inside the scene
     ``path`` (its captured data) whatever ``overwrite`` says, and an existing file unless ``overwrite``."""
-    plot = Path(plot)
-    if not plot.suffix or picture_format(plot) not in plot_formats():
-        raise UsageError(
-            "--plot",
-            f"cannot save a picture as {plot.name}; name it with one of {', '.join('.' + f for f in plot_formats())}",
-        )
+    plot, formats = Path(plot), plot_formats()
+    if not plot.suffix or picture_format(plot) not in formats:
+        names = ", ".join("." + f for f in formats)
+        raise UsageError("--plot", f"cannot save a picture as {plot.suffix or plot.name}; use one of {names}")
     target, scene = plot.resolve(), Path(path).resolve()
-    if target == scene or target.is_relative_to(scene):
+    if target.is_relative_to(scene):  # (the scene folder itself too)
         raise UsageError("--plot", f"{plot} lies in the scene {path}, whose files are not to be replaced")
     if target.exists() and not overwrite:
         raise UsageError("--plot", f"{plot} exists; pass --overwrite to replace it")
