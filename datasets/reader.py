@@ -201,11 +201,11 @@ def load_mesh_ply(path: Path, problems: _Problems, field: str):
     import trimesh
 
     try:
-        mesh = trimesh.load(str(path), file_type=path.suffix.lstrip(".") or "ply", force="mesh")
-        vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
+        mesh = trimesh.load(str(path), file_type=path.suffix.lstrip(".") or "ply", force="mesh")  # [V, 3], [F, 3]
     except Exception as exc:  # trimesh raises many types for damaged files
         problems.report(path, field, f"unreadable mesh: {_first_line(exc)}")
-    if vertices.ndim != 2 or vertices.shape[1:] != (3,) or not len(vertices) or not len(faces):
+    vertices, faces = mesh.vertices, mesh.faces
+    if not len(vertices) or not len(faces):
         problems.report(path, field, f"expected a mesh with vertices and faces, got {len(vertices)} and {len(faces)}")
     if not np.isfinite(vertices).all():
         problems.report(path, field, "contains NaN or infinite coordinates")

@@ -381,11 +381,8 @@ def load_mesh_object(path: str | Path, radius: float = DEFAULT_OBJECT_RADIUS) ->
             int((uses == 1).sum()),
             int((uses > 2).sum()),
         )
-    _, raw_radius = bounding_sphere(mesh)  # once: normalising takes it from the cache
     normalised, scale, translation = _normalised(mesh, radius, str(path))
     obj = SimObject(path.stem, normalised, GlossyMaterial((0.8, 0.8, 0.82, 1.0)), (scale, translation))
     r = obj.bounding_radius
-    log.info(
-        "%s: bounding radius %.6g in the file's units, scaled by %.6g to %.6g m", path, raw_radius, r / raw_radius, r
-    )
+    log.info("%s: bounding radius %.6g in the file's units, scaled by %.6g to %.6g m", path, r / scale, scale, r)
     return obj
