@@ -468,6 +468,7 @@ def load_batch(path: str | Path, out: str | Path) -> list:
         raise ConfigError("jobs", "expected a non-empty list of jobs", path)
     jobs: list = []
     made: dict[Path, object] = {}  # folder (resolved: x/../a is a) -> the job of the batch writing it
+    holding: dict[Path, object] = {}  # each folder holding a job's out -> the first such job (nested outs)
     evaluated: dict[Path, object] = {}  # run folder (resolved) -> the evaluate job of the batch evaluating it
     names: dict[str, int] = {}
     for i, item in enumerate(data["jobs"]):
@@ -497,16 +498,20 @@ def load_batch(path: str | Path, out: str | Path) -> list:
                 raise ConfigError(f"jobs[{i}].out", f"{job.out} holds --out ({out}); give a folder in it", path)
             if folder in made:
                 raise ConfigError(f"jobs[{i}].out", f"{job.out} is also the out of {made[folder].name}", path)
-            for other_folder, other in made.items():  # nested outs: one job would write into the other's folder
-                if folder.is_relative_to(other_folder) or other_folder.is_relative_to(folder):
-                    how = "is inside" if folder.is_relative_to(other_folder) else "holds"
-                    raise ConfigError(
-                        f"jobs[{i}].out",
-                        f"{job.out} {how} {other.out}, the out of {other.name} (jobs[{names[other.name]}]): "
-                        "give each job a folder outside the others'",
-                        path,
-                    )
+            # nested outs: one job would write into the other's folder (looked up by folder: a batch may hold
+            # thousands of jobs)
+            inside = [made[parent] for parent in folder.parents if parent in made]
+            if inside or folder in holding:
+                other = inside[0] if inside else holding[folder]
+                raise ConfigError(
+                    f"jobs[{i}].out",
+                    f"{job.out} {'is inside' if inside else 'holds'} {other.out}, the out of {other.name} "
+                    f"(jobs[{names[other.name]}]): give each job a folder outside the others'",
+                    path,
+                )
             made[folder] = job
+            for parent in folder.parents:
+                holding.setdefault(parent, job)
         if job.name in names:
             raise ConfigError(
                 f"jobs[{i}].name", f"two jobs are named {job.name!r}: jobs[{names[job.name]}] and this one", path

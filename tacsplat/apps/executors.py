@@ -146,14 +146,15 @@ class ExecutorOptions:
     ] = None
     """--executor ray: the Ray cluster to run on (host:port of `ray start --head`, ray://host:port of its Ray
     Client server, or auto)"""
-    retries: int = RETRIES
+    # None: not given, Ray's default RETRIES; any value given needs --executor ray
+    retries: Annotated[int | None, tyro.conf.arg(metavar="INT", help_behavior_hint=f"(default: {RETRIES})")] = None
     """--executor ray: extra attempts of a Ray task that raised or whose worker died"""
 
     def run_jobs_args(self) -> dict:
         """The keyword arguments of :func:`run_jobs`; a UsageError naming an option whose value it refuses."""
-        if self.retries < 0:
+        if self.retries is not None and self.retries < 0:
             raise UsageError("--retries", f"must be >= 0, got {self.retries}")
-        if self.retries != RETRIES and self.executor != "ray":  # (the others never retry: a rerun does)
+        if self.retries is not None and self.executor != "ray":  # (the others never retry: a rerun does)
             raise UsageError("--retries", "sets the attempts of a Ray task: add --executor ray")
         if self.ray_address and self.executor != "ray":
             raise UsageError("--ray-address", "runs jobs on a Ray cluster: add --executor ray")
@@ -163,7 +164,7 @@ class ExecutorOptions:
             raise UsageError("--workers", f"must be >= 1, got {self.workers}")
         if self.workers is not None and self.executor not in ("processes", "auto"):
             raise UsageError("--workers", "sets the jobs run side by side by --executor processes")
-        return asdict(self)
+        return asdict(self) | {"retries": RETRIES if self.retries is None else self.retries}
 
 
 Executors = Annotated[ExecutorOptions, tyro.conf.arg(name="")]  # a field `executors: Executors` of a command's options
