@@ -339,6 +339,7 @@ class View:
     controls: dict[str, object] = field(default_factory=dict)
     scene_nodes: object | None = None  # viewer_scene.SceneNodes
     mesh_node: object | None = None  # the run's exported mesh (RUN/mesh.ply), when it has one
+    warned: set = field(default_factory=set)  # the splat files warned about (viewer_splat.add_splat): once each
 
 
 def build_view(server, content: Content) -> View:
@@ -412,10 +413,13 @@ def _scene_view(server, content: Content, view: View) -> None:
 
 class SplatSlot:
     """Where one run's splat is shown: a scene node placed so that the run's object centre lands at ``position``;
-    its Gaussians can be replaced (another checkpoint, another run) and their sets hidden."""
+    its Gaussians can be replaced (another checkpoint, another run) and their sets hidden. A file's Gaussians
+    that cannot be drawn as they are get one warning, not one each time it is shown: ``warned``, the files warned
+    about, is shared by a view's slots."""
 
-    def __init__(self, server, name: str, position=(0.0, 0.0, 0.0)):
+    def __init__(self, server, name: str, position=(0.0, 0.0, 0.0), warned: set | None = None):
         self.server, self.name, self.position = server, name, np.asarray(position, dtype=np.float64)
+        self.warned = set() if warned is None else warned
         self.run: RunData | None = None
         self.gaussians = None
         self.offset = np.zeros(3)  # world position of the run's own origin
@@ -439,7 +443,7 @@ class SplatSlot:
             self.server.scene.add_frame(self.name, show_axes=False, position=self.offset)
             if source is None:  # (a run without its splat.ply is shown from its last checkpoint)
                 source = run.path / "splat.ply" if (run.path / "splat.ply").is_file() else run.path
-            self.nodes = add_splat(self.server.scene, self.name, self.gaussians, source)
+            self.nodes = add_splat(self.server.scene, self.name, self.gaussians, source, self.warned)
             self.show_sets(self.sets)
 
     def show_sets(self, sets: tuple[str, ...] | None) -> None:
@@ -464,15 +468,17 @@ class SplatSlot:
 
 def object_sphere(run: RunData) -> tuple[np.ndarray, float]:
     """(centre, radius) of a run's object: its scene's bounding sphere, else the sphere around the central 95 % of
-    its Gaussians (a unit sphere at the origin when it has none)."""
+    its Gaussians, less those far from the rest (a unit sphere at the origin when it has none)."""
     from tacsplat.apps.viewer_scene import bounding_sphere, load_mesh
+    from tacsplat.apps.viewer_splat import far_centres
 
     if run.sphere is None:
         if run.scene is not None:
             sphere = bounding_sphere(run.scene, load_mesh(run.scene))
             run.sphere = (sphere.centre, sphere.radius)
         else:
-            means = run.gaussians.means.detach().cpu().double().numpy()
+            means = run.gaussians.means.detach().cpu().double()
+            means = means[~far_centres(means)].numpy()  # (a foreign splat's centre at 1e30 m would frame nothing)
             centre = np.median(means, axis=0) if len(means) else np.zeros(3)  # (no Gaussians: the origin)
             radius = float(np.percentile(np.linalg.norm(means - centre, axis=1), 95)) if len(means) else 0.0
             run.sphere = (centre, radius if radius > 0 else 1.0)
@@ -610,7 +616,7 @@ def _render_button(server, view: View) -> None:
 def _run_view(server, content: Content, view: View) -> None:
     run = content.run
     centre, radius = object_sphere(run)
-    view.slots.append(SplatSlot(server, "/run/splat", position=centre))  # in the run's own frame, with its scene
+    view.slots.append(SplatSlot(server, "/run/splat", centre, view.warned))  # in the run's own frame, with its scene
     view.slots[0].show(run)
     _look_from(server, centre, radius, run.scene)
     with server.gui.add_folder("Splat"):
@@ -633,7 +639,8 @@ def _report_view(server, content: Content, view: View) -> None:
     pair = [r for r in content.pair if r is not None]
     spacing = (1 + SIDE_BY_SIDE_GAP) * max(object_sphere(r)[1] for r in pair)
     view.slots += [
-        SplatSlot(server, f"/report/{side}", (x, 0.0, 0.0)) for side, x in (("left", -spacing), ("right", spacing))
+        SplatSlot(server, f"/report/{side}", (x, 0.0, 0.0), view.warned)
+        for side, x in (("left", -spacing), ("right", spacing))
     ]
     for slot, run in zip(view.slots, content.pair):
         slot.show(run)

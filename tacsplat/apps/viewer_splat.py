@@ -7,7 +7,8 @@ covariances underflow at the sizes of a real object's Gaussians (a 0.1 mm
 Gaussian has a covariance of 1e-8 m^2), so a splat is sent in its own length
 unit, the median size of its Gaussians (kept within a range of the scene's
 extent), and scaled back to metres by its scene node; a Gaussian too large for
-float16 in that unit (a foreign splat.ply's log-scale of +80) is drawn clamped.
+float16 in that unit (a foreign splat.ply's log-scale of +80) is drawn clamped,
+and one whose centre lies absurdly far from the rest (1e30 m) is left out.
 """
 
 from __future__ import annotations
@@ -27,6 +28,9 @@ GAUSSIAN_SETS = {"all": None, "touch only (G_t)": ("touch",), "camera only (G_c)
 # with a factor of 4 to spare for rounding
 MAX_SCALE_UNITS = math.sqrt(float(np.finfo(np.float16).max)) / 2
 UNIT_RANGE = (1e-4, 1.0)  # the unit's bounds, times the scene's extent: centres stay within ~1e4 units
+# centres farther than this many extents from their set's median are left out: viser sorts by depth in 65536 bins
+# from nearest to farthest, so a far one leaves the object unsorted (and one at 3e38 m overflows float32)
+MAX_CENTRE_EXTENTS = 1e3
 
 log = logging.getLogger(__name__)
 
@@ -41,23 +45,44 @@ class SplatBuffers:
     opacities: np.ndarray  # [N, 1] float32 in [0, 1]
     unit: float
     clamped: int = 0  # how many Gaussians were drawn smaller than they are (over MAX_SCALE_UNITS)
+    left_out: int = 0  # how many Gaussians were left out (centre over MAX_CENTRE_EXTENTS extents away)
+
+
+def median_and_extent(means: torch.Tensor) -> tuple[torch.Tensor, float]:
+    """(median [3], extent) of the centres ``means`` [N > 0, 3]: their median, and the median distance of the
+    centres from it (1 m when that is 0)."""
+    median = means.median(dim=0).values
+    spread = float((means - median).norm(dim=1).median())
+    return median, spread if spread > 0 else 1.0
+
+
+def far_centres(means: torch.Tensor) -> torch.Tensor:
+    """[N] bool: which of the centres ``means`` [N, 3] lie over ``MAX_CENTRE_EXTENTS`` times their extent from
+    their median: those a view leaves out."""
+    if not len(means):
+        return torch.zeros(0, dtype=torch.bool)
+    median, extent = median_and_extent(means)
+    return (means - median).norm(dim=1) > MAX_CENTRE_EXTENTS * extent
 
 
 def log_unit_of(means: torch.Tensor, log_scales: torch.Tensor) -> float:
     """The log of a splat's own length unit (metres): the median size of its Gaussians, kept within
-    ``UNIT_RANGE`` of its extent (the median distance of its centres from their median; 1 m when that is 0)."""
+    ``UNIT_RANGE`` of its extent (see :func:`median_and_extent`)."""
     if not len(means):
         return 0.0
-    spread = float((means - means.median(dim=0).values).norm(dim=1).median())
-    extent = math.log(spread) if spread > 0 else 0.0
+    extent = math.log(median_and_extent(means)[1])
     low, high = (extent + math.log(bound) for bound in UNIT_RANGE)
     return min(max(float(log_scales.max(dim=1).values.median()), low), high)
 
 
 @torch.no_grad()
 def splat_buffers(gaussians: Gaussians, mask: torch.Tensor | None = None) -> SplatBuffers:
-    """The browser's view of ``gaussians`` (those where ``mask`` is True, default all)."""
-    keep = slice(None) if mask is None else mask.cpu()
+    """The browser's view of ``gaussians`` (those where ``mask`` is True, default all, less those whose centres
+    are far from the rest: :func:`far_centres`)."""
+    selected = torch.ones(len(gaussians), dtype=torch.bool) if mask is None else mask.cpu()
+    far = torch.zeros_like(selected)
+    far[selected] = far_centres(gaussians.means.detach().cpu()[selected].double())
+    keep = selected & ~far
     means = gaussians.means.detach().cpu()[keep].double()
     log_scales = gaussians.params["scales"].detach().cpu()[keep].double()  # (in logs: exp of a huge one is inf)
     log_unit = log_unit_of(means, log_scales)
@@ -73,31 +98,43 @@ def splat_buffers(gaussians: Gaussians, mask: torch.Tensor | None = None) -> Spl
         opacities=gaussians.opacities.detach().cpu()[keep][:, None].float().numpy(),
         unit=math.exp(log_unit),
         clamped=int((log_scales > log_largest).any(dim=1).sum()),
+        left_out=int(far.sum()),
     )
 
 
-def add_splat(scene_api, name: str, gaussians: Gaussians, source: object = None) -> dict[str, object]:
+def add_splat(
+    scene_api, name: str, gaussians: Gaussians, source: object = None, warned: set | None = None
+) -> dict[str, object]:
     """Add ``gaussians`` under ``name`` as two splat nodes, ``name/camera`` (G_c) and ``name/touch`` (G_t), so that
     either can be hidden; a set with no Gaussians gets no node. Returns the nodes by set name. Gaussians drawn
-    clamped get one warning naming ``source``, the file they came from."""
-    nodes, clamped = {}, 0
+    clamped or left out get one warning naming ``source``, the file they came from, unless it is in ``warned``
+    (the files already warned about, which it joins: a file shown again is not warned about again)."""
+    nodes, clamped, left_out = {}, 0, 0
     for set_name, from_touch in SPLAT_SETS.items():
         mask = gaussians.from_touch.cpu() == from_touch
         if not bool(mask.any()):
             continue
         b = splat_buffers(gaussians, mask)
         clamped += b.clamped
+        left_out += b.left_out
         nodes[set_name] = scene_api.add_gaussian_splats(
             f"{name}/{set_name}", b.centers, b.covariances, b.rgbs, b.opacities, scale=b.unit
         )
+    n, problems = len(gaussians), []
     if clamped:
-        log.warning(
-            "%s: %d of %d Gaussians are too large to draw (over %d times their set's typical size); drawn at that size",
-            source,
-            clamped,
-            len(gaussians),
-            MAX_SCALE_UNITS,
+        problems.append(
+            f"{clamped} of {n} Gaussians are too large to draw (over {MAX_SCALE_UNITS:.0f} times their set's "
+            "typical size); drawn at that size"
         )
+    if left_out:
+        problems.append(
+            f"{left_out} of {n} Gaussians lie too far from the rest to draw (over {MAX_CENTRE_EXTENTS:.0f} times "
+            "their set's extent); left out"
+        )
+    warned = set() if warned is None else warned
+    if problems and str(source) not in warned:
+        warned.add(str(source))
+        log.warning("%s: %s", source, "; ".join(problems))
     return nodes
 
 
