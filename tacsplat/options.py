@@ -1,6 +1,6 @@
 """Command options as typed dataclasses, parsed by tyro (help from the fields' docstrings, as gsplat's and
 nerfstudio's trainers do): ``--help`` prints and exits 0, and a bad or missing value is one :class:`UsageError`
-naming the option (exit 2), never tyro's box."""
+naming the option (exit 2), never tyro's box. A docstring's lines show as flowing text: :func:`flowing`."""
 
 from __future__ import annotations
 
@@ -16,11 +16,27 @@ T = TypeVar("T")
 _RULE = re.compile(r"^[\s\u2500-\u257f|+-]*$")  # a line of box drawing (rich's, or its ASCII form)
 
 
+def flowing(text: str) -> str:
+    """``text`` with the lines of each paragraph joined (paragraphs: between blank lines). tyro's own joining keeps
+    the break before an indented or a non-letter line, so a field docstring's second line, or one that starts
+    "(use", began a new line in the middle of a sentence in --help."""
+    return "\n\n".join(" ".join(paragraph.split()) for paragraph in re.split(r"\n\s*\n", text.strip()))
+
+
+def _tyro():
+    """tyro, joining docstrings' lines with :func:`flowing` (every help text and description goes through the
+    function replaced)."""
+    import tyro
+    import tyro._strings
+
+    tyro._strings.remove_single_line_breaks = flowing
+    return tyro
+
+
 def parse_options(cls: type[T], argv: list[str], prog: str, default: T | None = None, compact: bool = False) -> T:
     """The ``cls`` instance of ``argv`` (over ``default``'s values when given); ``compact``: --help lists the
     options without their descriptions, which -H adds. A positional's metavar is its field's name (``RUN``)."""
-    import tyro
-
+    tyro = _tyro()
     names = tyro.conf.PositionalMetavarFromFieldName
     shown, errors = io.StringIO(), io.StringIO()
     try:
@@ -57,8 +73,7 @@ def options_parser(options: type):
     metavars), -h and --help included: the options it takes, and what shtab lists for the command."""
     import warnings
 
-    import tyro
-
+    tyro = _tyro()
     with warnings.catch_warnings():  # (get_parser is deprecated in tyro 1.0, yet its only argparse view of a CLI)
         warnings.simplefilter("ignore", DeprecationWarning)
         return tyro.extras.get_parser(options, config=(tyro.conf.PositionalMetavarFromFieldName,))

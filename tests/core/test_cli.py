@@ -149,6 +149,20 @@ def test_an_option_whose_none_or_false_means_something_shows_that_as_its_one_def
     assert "keep every connected piece (default: only the largest, the object) --overwrite" in help_text
 
 
+def test_a_docstring_over_several_lines_shows_as_flowing_text_in_help(capsys, monkeypatch):
+    """tyro kept a docstring's break before an indented line (a field docstring's second line) or one starting with
+    no letter ("(use --host ..."): on a terminal wide enough, each text is one line of --help."""
+    monkeypatch.setenv("COLUMNS", "1000")
+    with pytest.raises(SystemExit):
+        main(["view", "--help"])
+    lines = capsys.readouterr().out.splitlines()
+    for text in (
+        "(the scene, without the side panel's controls), then exit (default: None)",  # ViewCommand.export
+        "it prints the URL to open (use --host 0.0.0.0 or an SSH tunnel from another machine). --export writes",
+    ):
+        assert any(text in line for line in lines), "\n".join(lines)
+
+
 def test_no_options_help_states_its_default_twice(capsys):
     """Every command's --help: an option whose help says its default (what its None or False means) gets no second
     one from tyro ("... (default 128) (default: None)")."""
