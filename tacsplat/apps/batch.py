@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import heapq
 import json
 import logging
 import math
@@ -540,8 +541,9 @@ def _in_needs_order(jobs: list, path: Path) -> list:
                 f"{jobs[0].name!r})",
                 path,
             )
+    sorter = TopologicalSorter({job.name: job.needs for job in jobs})
     try:
-        TopologicalSorter({job.name: job.needs for job in jobs}).prepare()
+        sorter.prepare()
     except CycleError as exc:
         cycle = exc.args[1][:0:-1]  # (graphlib lists each job before the jobs that need it, the first twice)
         first = min(range(len(cycle)), key=lambda k: index[cycle[k]])
@@ -551,10 +553,15 @@ def _in_needs_order(jobs: list, path: Path) -> list:
             f"the needs form a cycle, so none of its jobs can run: {cycle[0]} needs {', which needs '.join(cycle[1:])}",
             path,
         ) from None
+    # next: the first job of the file whose needs are all in order (a heap of the ready jobs' indices, not a scan
+    # of the file per job: a batch may hold thousands of jobs)
     order: list = []
-    while len(order) < len(jobs):  # next: the first job of the file whose needs are all in order
-        placed = {job.name for job in order}
-        order.append(next(job for job in jobs if job.name not in placed and placed.issuperset(job.needs)))
+    ready: list[int] = []
+    while sorter.is_active():
+        for name in sorter.get_ready():
+            heapq.heappush(ready, index[name])
+        order.append(jobs[heapq.heappop(ready)])
+        sorter.done(order[-1].name)
     return order
 
 

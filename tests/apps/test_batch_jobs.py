@@ -369,6 +369,28 @@ def test_the_nested_outs_check_does_not_compare_every_pair_of_jobs(tmp_path, mon
     assert len(compared) <= 2 * n  # (each out against --out)
 
 
+def test_needs_order_places_each_job_once_not_by_scanning_the_file_again(tmp_path):
+    """Each job is taken from a heap of the ready ones, not found by scanning the file for each (20,000 jobs: 30 s);
+    the first ready job of the file next, even one that got ready after others (jobs[0] after jobs[1] here)."""
+    from tacsplat.apps.batch import _in_needs_order
+
+    class Counted(list):  # the jobs, counting each one looked at
+        looked_at = 0
+
+        def __iter__(self):
+            for job in super().__iter__():
+                Counted.looked_at += 1
+                yield job
+
+    n = 300  # each even job needs the one after it
+    jobs = Counted(
+        CaptureJob(out=tmp_path / f"c{i}", name=f"c{i}", needs=(f"c{i + 1}",) if i % 2 == 0 else ()) for i in range(n)
+    )
+    order = _in_needs_order(jobs, tmp_path / "b.yaml")
+    assert [job.name for job in order] == [f"c{i ^ 1}" for i in range(n)]  # c1, c0, c3, c2, ...
+    assert Counted.looked_at <= 4 * n
+
+
 def test_a_batch_file_out_outside_out_is_taken_as_given(tmp_path):
     # as an absolute out is: a rerun resolves it to the same folder, and results.csv names it by that path
     path = write(tmp_path / "b.yaml", "jobs:\n  - {kind: capture, out: ../shared/teapot}\n")
