@@ -24,10 +24,11 @@ class EmulatorPresser:
     # the emulated press is shown at once, so this bounds only a stuck pipeline: on a loaded host the sensor's
     # frames (video decode, optical model, integration) can lag by seconds, and 2 s failed there
     timeout_s = 30.0
-    needs = "reads where its servos stand"  # what the emulator must be in this process for
+    # what the emulator must be in this process for: calibrate's _presses refuses a servo_port with it before any
+    # device opens, so the MockDevices this class is given always holds its emulator
+    needs = "reads where its servos stand"
 
     def __init__(self, mock: MockDevices):
-        mock.own_emulator(self.needs, "press")
         self.mock, self.config = mock, mock.config
         self.kinematics = HandKinematics()
         e = self.config.sim.true_errors
@@ -41,8 +42,9 @@ class EmulatorPresser:
         """[16] the true joint angles where the emulated servos stand."""
         return servo_angles(self.config, [self.mock.emulator.position(sid) for sid in self.config.hand.ids])
 
-    def press(self, spec) -> bool:
-        """Make the press (False: no pose of the hand lets the camera see the board)."""
+    def press(self, spec) -> str | None:
+        """Make the press (None), or say why not: no pose of the hand lets the camera see the board well enough (the
+        number of corners it finds, as a real rig's skip line gives it)."""
         m, pix = self.config.mock_devices, self.config.mock_devices.tactile_pixel_size_m
         pads = {
             finger: T @ self.mount_errors.get(finger, np.eye(4))
@@ -50,18 +52,32 @@ class EmulatorPresser:
         }
         half = np.array([m.tactile_width, m.tactile_height]) * pix / 2
         size = (m.camera_width, m.camera_height)
-        poses = pad_poses(spec, pads, self.T_hand_cam, half, self.config.board, self.mock.K, size)
+        board = self.config.board
+        poses, most = pad_poses(spec, pads, self.T_hand_cam, half, board, self.mock.K, size)
+        found = []  # the corners the camera finds at each pose tried
         for T_board_pad in poses[:3]:  # as a person does: the hand turned until the camera sees the board
             T_board_cam = T_board_pad @ invert_pose(pads[spec.finger]) @ self.T_hand_cam
-            if board_seen(self.config.board, self.mock.K, size, T_board_cam) is not None:
+            pose, corners = board_seen(board, self.mock.K, size, T_board_cam)
+            if pose is not None:
                 break
+            found.append(corners)
         else:
-            return False
-        board = render_board(self.config.board.spec(), self.mock.K, *size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
-        self.mock.captures["camera"].show(board)
+            corners = max(found, default=most)  # no pose tried: the most any pose shows
+            near = "at every pose of the hand near the sphere the wrist camera"
+            if corners < board.min_corners:
+                return (
+                    f"{near} finds at most {corners} of the board's corners, fewer than {board.min_corners} "
+                    "(board.min_corners)"
+                )
+            return (
+                f"{near} finds the board's corners, with a reprojection error over {board.max_reprojection_px:g} px "
+                "(board.max_reprojection_px)"
+            )
+        image = render_board(board.spec(), self.mock.K, *size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
+        self.mock.captures["camera"].show(image)
         depth = sphere_press(self.tactile_shape, pix, spec.spot, SPHERE_RADIUS_M, INDENTATION_M)
         self.mock.captures[spec.finger].show(render_tactile_rgb(depth, pix))
-        return True
+        return None
 
     def release(self, spec) -> None:
         self.mock.captures[spec.finger].show(self.reference)

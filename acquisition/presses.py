@@ -110,19 +110,21 @@ def _directions() -> list[np.ndarray]:
 
 
 def board_seen(board: BoardConfig, K: np.ndarray, image_size: tuple[int, int], T_board_cam: np.ndarray):
-    """The board's PnP pose from its image rendered for a camera (intrinsics ``K`` of ``image_size``) at
-    ``T_board_cam``, or None when the board is not seen well enough to capture (a person would move the hand)."""
+    """``(pose, corners)``: the board's PnP pose from its image rendered for a camera (intrinsics ``K`` of
+    ``image_size``) at ``T_board_cam``, None when the board is not seen well enough to capture (a person would move
+    the hand), and how many of its corners the camera finds."""
     from tacsplat.acquisition.mock import render_board
     from tacsplat.drivers.wrist_camera import T_WORLD_BOARD, board_pose, opencv_K_from_tacsplat
 
     if T_board_cam[2, 3] <= 0.02:  # the camera under, or on, the board
-        return None
-    image = render_board(board.spec(), K, *image_size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
+        return None, 0
+    spec = board.spec()
+    image = render_board(spec, K, *image_size, invert_pose(T_board_cam) @ T_WORLD_BOARD)
     try:
-        pose = board_pose(image, board.spec(), opencv_K_from_tacsplat(K), None, board.min_corners)
-    except CameraError:
-        return None
-    return pose if pose.rms_px <= board.max_reprojection_px else None
+        pose = board_pose(image, spec, opencv_K_from_tacsplat(K), None, board.min_corners)
+    except CameraError:  # too few corners (or no PnP): counted for the press's line
+        return None, len(spec.detect(image)[0])
+    return (pose if pose.rms_px <= board.max_reprojection_px else None), pose.corners
 
 
 def pad_poses(
@@ -133,10 +135,12 @@ def pad_poses(
     board: BoardConfig,
     K: np.ndarray,
     image_size: tuple[int, int],
-) -> list[np.ndarray]:
+) -> tuple[list[np.ndarray], int]:
     """Where a person puts the pad for ``spec``: poses ``T_board_pad`` that keep the hand (its pads ``T_hand_pads``
     at the press's joints, its base) and the whole pad above the board with the wrist camera (at ``T_hand_cam``,
-    intrinsics ``K`` of ``image_size``) looking down at it, best first (most board corners in view)."""
+    intrinsics ``K`` of ``image_size``) looking down at it, best first (most board corners in view); and the most
+    board corners in view at any pose that keeps the hand and pad above the board (under ``board.min_corners``
+    when there are no poses)."""
     T_hand_pad = T_hand_pads[spec.finger]
     hand_points = np.array([T[:3, 3] for T in T_hand_pads.values()] + [[0.0, 0.0, 0.0]])
     pad_corners = np.array([[sx * pad_half_m[0], sy * pad_half_m[1], 0.0] for sx in (-1, 1) for sy in (-1, 1)])
@@ -144,7 +148,7 @@ def pad_poses(
     sq = grid.square_length_m
     gx, gy = np.meshgrid(np.arange(1, grid.squares_x) * sq, -np.arange(1, grid.squares_y) * sq)
     corners = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size), np.ones(gx.size)])  # [4, N] board frame
-    scored = []
+    scored, most = [], 0
     for direction in _directions():
         for yaw in YAWS_DEG:
             T_board_pad = _pad_target(spec, direction, yaw)
@@ -158,9 +162,10 @@ def pad_poses(
             c = invert_pose(T_board_cam) @ corners
             u = (K[:2, :2] @ (c[:2] / np.maximum(c[2], 1e-9)) + K[:2, 2:3]).T
             seen = int(np.sum((c[2] > 0.02) & np.all((u > 10) & (u < np.array(image_size) - 10), axis=1)))
+            most = max(most, seen)
             if seen >= board.min_corners:
                 scored.append((-seen, T_board_pad))
-    return [T for _, T in sorted(scored, key=lambda s: s[0])]
+    return [T for _, T in sorted(scored, key=lambda s: s[0])], most
 
 
 class TwinPressSession:
@@ -180,7 +185,7 @@ class TwinPressSession:
         pads = self.presser.T_hand_pads(np.array(spec.q))
         T_hand_cam = invert_pose(self.twin.T_world_hand()) @ self.twin.wrist_camera.pose()  # the person sees it
         half = np.array(self.twin.config.tactile.pad_size_m) / 2
-        return pad_poses(spec, pads, T_hand_cam, half, self.board, self.K, CAMERA_PX)
+        return pad_poses(spec, pads, T_hand_cam, half, self.board, self.K, CAMERA_PX)[0]
 
     def run(self, plan: list[PressSpec]) -> list[Press]:
         """The presses, a status line each; a press whose camera cannot see the board at any yaw is skipped."""
@@ -189,7 +194,7 @@ class TwinPressSession:
             head = f"press {i + 1}/{len(plan)}: {spec.describe()}"
             for T_board_pad in self._candidates(spec)[:3]:
                 depth, T_board_cam = self.presser.press(spec.finger, np.array(spec.q), T_board_pad)
-                pose = board_seen(self.board, self.K, CAMERA_PX, T_board_cam)
+                pose = board_seen(self.board, self.K, CAMERA_PX, T_board_cam)[0]
                 if pose is not None:
                     break
             else:
@@ -226,13 +231,12 @@ class TerminalPresser:
     def __init__(self, say: Callable[[str], None] = print):
         self.say = say
 
-    def press(self, spec: PressSpec) -> bool:
-        """Tell the press (True: the person will try it)."""
+    def press(self, spec: PressSpec) -> None:
+        """Tell the press (the person will try it)."""
         self.say(
             f"  press the {spec.finger} fingertip with {describe_spot(spec)} on {spec.where()}, "
             "the wrist camera seeing the board; hold it still"
         )
-        return True
 
     def release(self, spec: PressSpec) -> None:
         self.say(f"  lift the {spec.finger} fingertip off")
@@ -313,11 +317,8 @@ class RigPressSession:
             head = f"press {i + 1}/{len(plan)}: {spec.describe()}"
             self._hold(np.array(spec.q))
             told = time.monotonic()
-            if not self.person.press(spec):  # --mock's person found no pose of the hand where the camera sees it
-                self.say(
-                    f"{head}: at every pose of the hand near the sphere the wrist camera finds fewer than "
-                    f"{self.poses.board.min_corners} of the board's corners (board.min_corners); skipped"
-                )
+            if why := self.person.press(spec):  # --mock's person found no pose of the hand where the camera sees it
+                self.say(f"{head}: {why}; skipped")
                 continue
             reading = self._contact(spec.finger, True, told)
             pose = None if reading is None else self._board(reading.timestamp)

@@ -4,6 +4,7 @@ closed (on the twin and through the real drivers on --mock), and refuses presses
 naming it."""
 
 import os
+import re
 import sys
 
 import numpy as np
@@ -121,7 +122,9 @@ def test_mock_presses_are_guided_through_the_real_drivers_and_find_the_hidden_er
     assert main(["calibrate", "hand-eye", "--rig", rig, "--out", str(out), "--mock"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[1].startswith("press 1/8: index on the sphere (placement 1): ") and lines[1].endswith("; ok")
-    assert "the wrist camera finds fewer than 6 of the board's corners (board.min_corners)" in lines[3]
+    assert re.search(
+        r"the wrist camera finds at most \d of the board's corners, fewer than 6 \(board.min_corners\)", lines[3]
+    )
     assert lines[-1].startswith(f"wrote {out}")
     mm, deg = _error(load_hand_eye(out), errors)
     assert mm < 0.5 and deg < 0.5, (mm, deg)
@@ -142,12 +145,30 @@ def test_sigterm_mid_presses_exits_with_torque_off_confirmed_and_nothing_written
     assert not out.exists() and not he.exists()
 
 
+def test_on_mock_a_press_skipped_for_the_board_says_how_many_corners_the_camera_finds(tmp_path):
+    """The line of a press --mock's person skipped said only "fewer than 6 of the board's corners", where a real rig's
+    gives the corners its camera found ("board not found: N corners of the ..."); the index fingertip's third press
+    has no pose of the hand that shows the camera 6 of them."""
+    from tacsplat.acquisition.mock import MockDevices
+    from tacsplat.acquisition.mock_presser import EmulatorPresser
+
+    config = load_rig(_mock_rig(tmp_path, {}), mock=True)
+    with MockDevices(config) as mock:
+        why = EmulatorPresser(mock).press(hand_eye_plan(["index"])[2])
+    found = re.fullmatch(
+        r"at every pose of the hand near the sphere the wrist camera finds at most (\d+) of the board's corners, "
+        r"fewer than 6 \(board.min_corners\)",
+        why or "",
+    )
+    assert found and int(found[1]) < 6, why
+
+
 def test_a_person_at_a_real_rig_is_told_each_press_in_one_line():
     from tacsplat.acquisition.presses import TerminalPresser, mounts_plan
 
     lines = []
     person = TerminalPresser(lines.append)
-    assert person.press(hand_eye_plan()[0]) and person.press(mounts_plan()[0])
+    assert person.press(hand_eye_plan()[0]) is None and person.press(mounts_plan()[0]) is None
     person.release(mounts_plan()[0])
     assert lines == [
         "  press the index fingertip with its pad's centre on the sphere (placement 1), the wrist camera seeing the "
@@ -236,7 +257,6 @@ def test_a_wall_clock_step_does_not_make_the_presses_fresh_frames_look_stale(mon
 
         def press(self, spec):
             pressed[0] = True
-            return True
 
         def release(self, spec):
             pressed[0] = False

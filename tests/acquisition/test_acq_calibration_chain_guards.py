@@ -103,9 +103,10 @@ def test_on_mock_a_board_of_large_squares_skips_each_press_saying_why(tmp_path, 
     lines = [line for line in stdout.splitlines() if line.startswith("press ") and "/16: " in line]
     assert len(lines) == 16 and not out.exists()
     for line in lines:
-        assert line.endswith(
-            ": at every pose of the hand near the sphere the wrist camera finds fewer than 6 of the board's corners "
-            "(board.min_corners); skipped"
+        assert re.search(
+            r": at every pose of the hand near the sphere the wrist camera finds at most [0-5] of the board's corners, "
+            r"fewer than 6 \(board.min_corners\); skipped$",
+            line,
         ), line
     assert err.splitlines()[-1] == (
         "error: hand-eye: no presses recorded: every press was skipped (its line above says why)"
