@@ -267,8 +267,8 @@ def load_ground_truth(
 
 def read_ground_truth(gt_path: str | Path):
     """A ground truth given by path (``--gt-mesh``): its mesh (a ``trimesh.Trimesh`` with faces), else its points
-    [N, 3]; a SceneFormatError naming the file when it cannot be read, holds neither, or has a NaN or infinite
-    vertex (naming the first)."""
+    [N, 3]; a SceneFormatError naming the file when it cannot be read, holds neither, has a NaN or infinite
+    vertex (naming the first), or has no extent (every vertex at one point: no radius to measure distances in)."""
     import trimesh
 
     gt_path = Path(gt_path)
@@ -284,6 +284,9 @@ def read_ground_truth(gt_path: str | Path):
     bad = np.flatnonzero(~np.isfinite(cloud).all(axis=1))
     if len(bad):
         raise SceneFormatError(gt_path, f"vertex {bad[0]}", f"coordinates {cloud[bad[0]].tolist()} are not finite")
+    if not np.ptp(cloud, axis=0).any():
+        at = cloud[0].round(6).tolist()
+        raise SceneFormatError(gt_path, None, f"no extent: all its {len(cloud)} vertices lie at {at}, not on a surface")
     if isinstance(loaded, trimesh.Trimesh) and len(loaded.faces):
         return loaded.process()  # (what trimesh.load does by default: duplicate vertices merged)
     return cloud

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING, Callable
 
 import numpy as np
@@ -14,6 +15,8 @@ from tacsplat.geometry import minimum_sphere, unproject_depth
 
 if TYPE_CHECKING:
     import trimesh
+
+log = logging.getLogger(__name__)
 
 
 def _check_images(a: torch.Tensor, b: torch.Tensor) -> None:
@@ -323,11 +326,18 @@ def _nearest(query, dense, dense_normals, bounds: tuple[float, float] | None):
 
 def ground_truth_surface(scene) -> tuple[trimesh.Trimesh | np.ndarray, float] | None:
     """The scene's ground-truth surface for :func:`mesh_metrics` (its mesh, else its points) and the object's
-    bounding-sphere radius; None without either."""
+    bounding-sphere radius; None without either, or (with a warning naming the file) for one of zero extent: every
+    vertex at one point, no radius to measure distances in."""
     import trimesh
 
     if scene.gt_mesh_path is not None and scene.gt_mesh_path.is_file():
-        mesh = trimesh.load(str(scene.gt_mesh_path), force="mesh")
-        return mesh, bounding_sphere_radius(mesh.vertices)
-    points = scene.gt_points()
-    return None if points is None else (points, bounding_sphere_radius(points))
+        path, surface = scene.gt_mesh_path, trimesh.load(str(scene.gt_mesh_path), force="mesh")
+        radius = bounding_sphere_radius(surface.vertices)
+    elif (surface := scene.gt_points()) is not None:
+        path, radius = scene.gt_points_path, bounding_sphere_radius(surface)
+    else:
+        return None
+    if radius > 0:
+        return surface, radius
+    log.warning("%s: no extent (all its vertices at one point): not used as the ground truth", path)
+    return None

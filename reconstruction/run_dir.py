@@ -90,7 +90,8 @@ def is_run_folder(path: Path) -> bool:
 
 def run_checkpoint(run_dir: str | Path) -> Path:
     """The checkpoint file of a run directory; a SceneFormatError if there is none (for a run's folder, its
-    config.json without a checkpoint, one saying that the run stopped before its first and how to continue it)."""
+    config.json without a checkpoint, one saying that the run stopped before its first and how to run it again:
+    there is nothing to resume, and a run that failed would fail again with its own settings, which --resume keeps)."""
     path = Path(run_dir) / "checkpoint.pt"
     if not Path(run_dir).is_dir():
         missing = "is a file" if Path(run_dir).exists() else "does not exist"
@@ -103,9 +104,12 @@ def run_checkpoint(run_dir: str | Path) -> Path:
                 f"no checkpoint yet: the run is still being trained by {writer}; try again after its first checkpoint",
             )
         if (scene := _recorded_run_scene(Path(run_dir))) is not None:
-            again = shlex.join(["tacsplat", "reconstruct", scene, "--out", str(run_dir), "--resume"])
+            again = shlex.join(["tacsplat", "reconstruct", scene, "--out", str(run_dir), "--overwrite"])
             raise SceneFormatError(
-                path, None, f"no checkpoint: the run stopped before its first checkpoint; continue it with: {again}"
+                path,
+                None,
+                "no checkpoint: the run stopped or failed before its first checkpoint was written, so there is "
+                f"nothing to resume; run the reconstruction again (with the options it needs): {again}",
             )
         raise SceneFormatError(path, None, "no checkpoint: not a reconstruction run directory")
     return path
@@ -375,10 +379,10 @@ def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> 
     if resume and not is_run:
         raise ConfigError("--resume", f"{out} holds no run (no config.json or checkpoint.pt): nothing to resume")
     if locked and is_run and not (resume or overwrite):
-        raise ConfigError(
-            "--out",
-            f"{out} already holds a reconstruction run; pass --resume to continue it or --overwrite to replace it",
-        )
+        advice = "pass --resume to continue it or --overwrite to replace it"
+        if not (out / "checkpoint.pt").is_file():  # (it stopped or failed before its first: nothing to resume)
+            advice = "it has no checkpoint to resume: pass --overwrite to replace it"
+        raise ConfigError("--out", f"{out} already holds a reconstruction run; {advice}")
 
 
 def remove_meshes(out: Path) -> None:

@@ -4,15 +4,18 @@ or `--resume`) drops the meshes of its old Gaussians."""
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import trimesh
 
 from tacsplat.cli import main
-from tacsplat.datasets import SceneWriter
+from tacsplat.datasets import Scene, SceneWriter
+from tacsplat.reconstruction.metrics import ground_truth_surface
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from recon_synthetic import build_sphere_scene, one_error_line, pause_training  # noqa: E402
@@ -146,3 +149,22 @@ def test_a_mesh_exported_by_hand_as_the_runs_untouched_mesh_has_its_metrics_reco
     assert _export(run, "--no-touches", "--out", str(run / "mesh-untouched.ply")) == 0
     metrics = json.loads((run / "metrics.json").read_text())
     assert "mesh_untouched_fscore_5" in metrics and not any(k.startswith("mesh_fscore") for k in metrics)
+
+
+def test_a_scene_ground_truth_of_zero_extent_is_not_measured_against(copy, capsys, caplog):
+    """A scene's gt/mesh.ply whose vertices all lie at one point has a radius of 0 to measure distances in (export
+    mesh's metrics never ended, in a k-d tree of one repeated point): one warning naming it, and the mesh is
+    exported without metrics."""
+    scene, run = copy
+    with SceneWriter.resume(scene) as writer:
+        writer.set_gt_mesh(trimesh.Trimesh(np.zeros((3, 3)), [[0, 1, 2]], process=False))
+    warning = f"{scene / 'gt' / 'mesh.ply'}: no extent (all its vertices at one point): not used as the ground truth"
+    with caplog.at_level(logging.WARNING, logger="tacsplat.reconstruction.metrics"):
+        assert ground_truth_surface(Scene.load(scene)) is None
+    assert [r.getMessage() for r in caplog.records if r.name == "tacsplat.reconstruction.metrics"] == [warning]
+    capsys.readouterr()
+    assert _export(run) == 0
+    out, err = capsys.readouterr()
+    assert err.splitlines() == [f"WARNING tacsplat.reconstruction.metrics: {warning}"], err
+    summary = json.loads(out)
+    assert (run / "mesh.ply").is_file() and not [k for k in summary if k.startswith("mesh_fscore")], summary

@@ -4,6 +4,7 @@ import csv
 import json
 import logging
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -393,6 +394,15 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
     capsys.readouterr()
     assert tacsplat_main(["evaluate", str(run), "--gt-mesh", str(cloud_path)]) == 1
     assert capsys.readouterr().err == f"error: {cloud_path} [vertex 5]: coordinates [nan, nan, nan] are not finite\n"
+    # a ground truth of zero extent (every vertex at one point): one error naming the file, and no numpy warning
+    # before it (it divided by its radius of 0)
+    trimesh.Trimesh(np.zeros((3, 3)), [[0, 1, 2]], process=False).export(mesh_path)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert tacsplat_main(["evaluate", str(run), "--gt-mesh", str(mesh_path)]) == 1
+    assert not [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+    one_point = "no extent: all its 3 vertices lie at [0.0, 0.0, 0.0], not on a surface"
+    assert capsys.readouterr().err == f"error: {mesh_path}: {one_point}\n"
 
 
 def _parse(*options, config=None):

@@ -1,6 +1,7 @@
 """Metrics on known inputs and the 3DGS PLY round trip."""
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -198,6 +199,24 @@ def test_a_ground_truth_with_a_nan_or_infinite_vertex_is_refused_naming_the_file
     ).export(tmp_path / "soup.ply")
     read = read_ground_truth(tmp_path / "soup.ply")
     assert len(read.vertices) == len(sphere.vertices) and len(read.faces) == len(sphere.faces)
+
+
+def test_a_ground_truth_of_zero_extent_is_refused_naming_the_file(tmp_path):
+    """`evaluate --gt-mesh`: a triangle whose corners coincide, or points all at one place, have a radius of 0 to
+    measure distances in: one error naming the file (it was numpy's divide-by-zero warning, then a radius error)."""
+    import trimesh
+
+    from tacsplat.reconstruction.evaluation import read_ground_truth
+
+    trimesh.Trimesh(np.full((3, 3), 0.02), [[0, 1, 2]], process=False).export(tmp_path / "triangle.ply")
+    trimesh.PointCloud(np.full((5, 3), 0.01)).export(tmp_path / "points.ply")
+    for name, count, at in (("triangle.ply", 3, [0.02] * 3), ("points.ply", 5, [0.01] * 3)):
+        with pytest.raises(
+            SceneFormatError, match=re.escape(f"{name}: no extent: all its {count} vertices lie at {at}")
+        ):
+            read_ground_truth(tmp_path / name)
+    trimesh.PointCloud(np.array([[0.0, 0, 0], [0, 0, 1e-6]])).export(tmp_path / "pair.ply")
+    assert len(read_ground_truth(tmp_path / "pair.ply")) == 2  # two points apart: a (small) extent
 
 
 def test_background_is_fitted_to_a_smooth_border_and_black_for_a_cluttered_one():

@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from tacsplat.cli import main
+from tacsplat.datasets.outputs import LOCK_NAME
 from tacsplat.reconstruction.run_dir import load_run
 from tacsplat.reconstruction.trainer import Trainer
 
@@ -269,24 +270,26 @@ def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp
     assert all(v != v for column in newer for v in progress[column])  # NaN: never written
 
 
-def test_evaluate_and_export_of_a_run_stopped_before_its_first_checkpoint_say_how_to_continue_it(
-    scene, tmp_path, capsys
-):
-    """A run killed before its first checkpoint holds its config.json only: evaluate (and export mesh) say so and
-    print the --resume command, which continues it; a folder whose config.json is not a run's is not a run."""
+def test_evaluate_and_export_of_a_run_stopped_before_its_first_checkpoint_say_to_run_it_again(scene, tmp_path, capsys):
+    """A run that failed (diverged) or was killed before its first checkpoint holds its config.json only: evaluate,
+    export mesh and reconstruct without --overwrite say there is nothing to resume (a --resume keeps the settings it
+    failed with) and print the --overwrite command, which trains it again with the options given; a folder whose
+    config.json is not a run's is not a run."""
     import shlex
 
     run = tmp_path / "run"
-    assert _reconstruct(scene, run) == 0
-    for name in ("checkpoint.pt", "splat.ply", "metrics.json", "progress.csv"):
-        (run / name).unlink()
-    again = shlex.join(["tacsplat", "reconstruct", str(Path(scene).resolve()), "--out", str(run), "--resume"])
-    capsys.readouterr()
+    assert _reconstruct(scene, run, "--lr-scales", "1e30") == 1  # diverges at its first step
+    one_error_line(capsys, "training diverged")
+    assert sorted(p.name for p in run.iterdir() if p.name != LOCK_NAME) == ["config.json", "progress.csv"]
+    again = shlex.join(["tacsplat", "reconstruct", str(Path(scene).resolve()), "--out", str(run), "--overwrite"])
     for command in (["evaluate", str(run)], ["export", "mesh", str(run)]):
         assert main(command) == 1
-        line = one_error_line(capsys, str(run / "checkpoint.pt"), "before its first checkpoint")
-        assert line.endswith(f"continue it with: {again}"), line
-    assert main([*shlex.split(again)[1:], "--quiet"]) == 0
+        line = one_error_line(capsys, str(run / "checkpoint.pt"), "before its first checkpoint", "nothing to resume")
+        assert line.endswith(f": {again}") and "--resume" not in line, line
+    assert _reconstruct(scene, run) == 1
+    line = one_error_line(capsys, "--out", "no checkpoint to resume", "--overwrite")
+    assert "--resume" not in line, line
+    assert main([*shlex.split(again)[1:], "--iterations", "3", *FAST]) == 0
     assert json.loads((run / "metrics.json").read_text())["iterations"] == 3
     other = tmp_path / "other"
     other.mkdir()
@@ -466,4 +469,4 @@ def test_a_run_still_training_before_its_first_checkpoint_is_said_to_be_training
         training.stdin.close()
         training.wait(timeout=30)
     assert main(["view", str(run), "--export", str(tmp_path / "view.html")]) == 1
-    one_error_line(capsys, "before its first checkpoint", "--resume")
+    one_error_line(capsys, "before its first checkpoint", "--overwrite")
