@@ -20,7 +20,7 @@ import numpy as np
 
 from tacsplat.acquisition.arm_hand_eye import pose_change, pose_gap
 from tacsplat.acquisition.config import RigConfig
-from tacsplat.acquisition.devices import inline_mounts, inline_T_hand_cam
+from tacsplat.acquisition.devices import import_device_modules, inline_mounts, inline_T_hand_cam
 from tacsplat.drivers.calibration import HandCalibration
 from tacsplat.drivers.joint_calibration import JointResult, calibrate_joints
 
@@ -32,6 +32,7 @@ def limp_hand(
     """``(hand, person, servo names, device)`` of the rig with the hand's torque off; leaving it closes the hand,
     confirming torque off servo by servo (said through ``say``), however the block ends (an ending signal
     included)."""
+    import_device_modules(config)
     if config.rig == "sim":
         from tacsplat.acquisition.devices import twin_config
         from tacsplat.sim.person import TwinPerson
@@ -80,6 +81,7 @@ def _presses(
     sensors: on a ``rig: sim`` twin the twin presses its fingertips on a sphere ``where``; on a real rig a person
     does, guided line by line (on ``--mock``, :class:`~tacsplat.acquisition.mock_presser.EmulatorPresser`). A
     hand-eye or mounts file the rig names that is not written yet counts as none (the command may be writing it)."""
+    import_device_modules(config)
     from tacsplat.acquisition.presses import SPHERE_RADIUS_M
 
     if config.rig == "sim":

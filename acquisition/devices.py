@@ -19,6 +19,7 @@ from tacsplat.acquisition.config import GraspControl, RigConfig
 from tacsplat.acquisition.logger import BoardPoseSource, TwinPoseSource, WallClock
 from tacsplat.datasets import SensorModel
 from tacsplat.errors import ConfigError
+from tacsplat.interrupts import signals_held
 from tacsplat.types import CameraIntrinsics
 
 log = logging.getLogger(__name__)
@@ -58,6 +59,27 @@ def uncalibrated_hand(config: RigConfig) -> str | None:
     if hidden:
         return "none named, and the twin hides joint errors (sim.true_errors): tacsplat calibrate hand writes it"
     return None
+
+
+def import_device_modules(config: RigConfig) -> None:
+    """Import what opening ``config``'s devices imports, the ending signals held meanwhile and raised after
+    (:func:`~tacsplat.interrupts.signals_held`): MuJoCo, SciPy, OpenCV and trimesh load native modules, and a signal
+    raised inside one comes out as an ImportError (a traceback), or is dropped and the hand connects after it. First
+    in every command that opens the hand, so that its own imports load nothing native after it (a real rig's rig
+    check and calibrations import the mock's module too: its SciPy and trimesh)."""
+    with signals_held():
+        if config.rig == "sim":
+            import tacsplat.sim.twin  # noqa: F401
+
+            return
+        import tacsplat.acquisition.mock  # noqa: F401
+        import tacsplat.drivers.dxl_emulator  # noqa: F401
+        import tacsplat.drivers.dynamixel_hand  # noqa: F401
+        import tacsplat.drivers.optical_tactile  # noqa: F401
+        import tacsplat.drivers.wrist_camera  # noqa: F401
+        from tacsplat.sim.hand import import_mujoco
+
+        import_mujoco()
 
 
 @contextmanager

@@ -45,7 +45,7 @@ from typing import Iterator, TextIO
 
 from tacsplat.acquisition.capture_scene import open_scene
 from tacsplat.acquisition.config import CapturePlan, RigConfig
-from tacsplat.acquisition.devices import Rig
+from tacsplat.acquisition.devices import Rig, import_device_modules
 from tacsplat.acquisition.logger import CaptureLogger, CaptureRejected
 from tacsplat.datasets.writer import JOURNAL
 from tacsplat.errors import CameraError, ConfigError, DeviceError, SimulationError, StorageError, TacsplatError
@@ -162,8 +162,9 @@ class CaptureSession:
 
     # --- input ------------------------------------------------------------------------------------
     def _keys(self) -> Iterator[str]:
-        """The keys one by one, until the end of input. A terminal has none in cbreak mode (Ctrl-D is a key): there
-        a read that gives nothing, or fails with EIO, is a hangup, and ends the session as SIGHUP does."""
+        """The keys one by one, until the end of input, each once the hand's check passed (a fault its heartbeat
+        found ends the session before a key queued meanwhile acts). A terminal has none in cbreak mode (Ctrl-D is a
+        key): there a read that gives nothing, or fails with EIO, is a hangup, and ends the session as SIGHUP does."""
         fd = _fileno(self.keys)
         terminal = fd is not None and os.isatty(fd)
         while True:
@@ -180,6 +181,7 @@ class CaptureSession:
                     raise _hangup(exc) from None
                 if ch == "" and terminal:
                     raise SignalInterrupt(signal.SIGHUP)
+            self._check_hand()
             if ch == "":
                 return
             yield ch
@@ -285,14 +287,16 @@ def run_capture(
     hands = []  # the real rig's hand, once made: its torque-off report is the last line
     running = False  # whether the session started (the rig and the scene open)
     try:
-        with signals_interrupt(once=True) as ending, open_scene(config, out, resume, on_hand=hands.append) as opened:
-            running = True
-            try:
-                if _serve(*opened, config, keys, output, on_open):
-                    code, told = 0, f"plan complete: scene written to {out}\n"
-            except BaseException:  # (the hand's own handler may have raised the signal: ours never saw it)
-                ending()  # the rig closes as the session unwinds: a second signal must not cut that short
-                raise
+        with signals_interrupt(once=True) as ending:
+            import_device_modules(config)  # (a signal meanwhile is raised once they are in, the hand not made)
+            with open_scene(config, out, resume, on_hand=hands.append) as opened:
+                running = True
+                try:
+                    if _serve(*opened, config, keys, output, on_open):
+                        code, told = 0, f"plan complete: scene written to {out}\n"
+                except BaseException:  # (the hand's own handler may have raised the signal: ours never saw it)
+                    ending()  # the rig closes as the session unwinds: a second signal must not cut that short
+                    raise
     except (DeviceError, SimulationError) as fault:
         code, told = EXIT_FAULT, _fault("DEVICE FAULT", fault, out, "Fix the device.")
     except StorageError as fault:  # a full or read-only disk, before or during the session (it says what to do)

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from tacsplat.acquisition.config import RigConfig
-from tacsplat.acquisition.devices import uncalibrated_hand
+from tacsplat.acquisition.devices import import_device_modules, uncalibrated_hand
 from tacsplat.errors import TacsplatError
 from tacsplat.sim.hand import FINGER_NAMES, JOINT_LIMITS, JOINT_NAMES
 
@@ -197,6 +197,7 @@ def _T_hand_cam_row(config: RigConfig, cam_cal) -> Row:
 
 def check_rig(config: RigConfig) -> list[Row]:
     """Every check of a ``rig: real`` config (emulated devices with ``config.mock``)."""
+    import_device_modules(config)
     from tacsplat.acquisition.mock import MockDevices
     from tacsplat.drivers.optical_tactile import TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration

@@ -25,6 +25,7 @@ import numpy as np
 
 from tacsplat.errors import InvalidInputError
 from tacsplat.geometry import make_pose
+from tacsplat.interrupts import signals_held
 
 FINGER_NAMES = ["index", "middle", "ring", "thumb"]
 JOINT_NAMES = [f"{finger}_{i}" for finger in FINGER_NAMES for i in range(4)]
@@ -177,6 +178,14 @@ def build_hand_mjcf(geom: HandGeometry = HandGeometry(), gains: ActuatorGains = 
 """
 
 
+def import_mujoco():
+    """The ``mujoco`` module, imported with the ending signals held (:func:`~tacsplat.interrupts.signals_held`): one
+    raised inside its import would become an ImportError, or be dropped, and the hand connect after it."""
+    with signals_held():
+        import mujoco
+    return mujoco
+
+
 def site_pose(data, site_id: int) -> np.ndarray:
     """World pose [4, 4] of a MuJoCo site from ``data``."""
     return make_pose(np.reshape(data.site_xmat[site_id], (3, 3)), data.site_xpos[site_id])
@@ -199,8 +208,7 @@ class HandKinematics:
     joint_names = list(JOINT_NAMES)
 
     def __init__(self, geom: HandGeometry = HandGeometry()):
-        import mujoco
-
+        mujoco = import_mujoco()
         model = mujoco.MjModel.from_xml_string(build_hand_mjcf(geom))
         self._mujoco, self._model, self._data = mujoco, model, mujoco.MjData(model)
         self._qadr = np.array([model.joint(n).qposadr[0] for n in JOINT_NAMES])

@@ -63,6 +63,30 @@ def signals_interrupt(signals=END_SIGNALS, *, once: bool = False):
 
 
 @contextlib.contextmanager
+def signals_held(signals=END_SIGNALS):
+    """While open (in the main thread; elsewhere nothing changes): a signal of ``signals`` whose handler is Python's
+    (:func:`signals_interrupt`'s, Ctrl-C's) is held, then the previous handlers come back and the first one held is
+    raised to them. For imports of native modules: an exception raised inside one comes out as another
+    (pybind11's ``ImportError: initialization failed``, ctypes' ``ArgumentError``), or not at all (MuJoCo imports its
+    renderer under ``except ImportError``, trimesh its parts under ``except BaseException``)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    # (not one ignored, nor the default or one installed outside Python: a process they end runs no code of its own)
+    previous = {s: handler for s in signals if callable(handler := signal.getsignal(s))}
+    for s in previous:
+        signal.signal(s, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+        if held:
+            signal.raise_signal(held[0])
+
+
+@contextlib.contextmanager
 def end_signals_ignored(signals=END_SIGNALS):
     """While open (in the main thread; elsewhere nothing changes): ``signals`` are ignored, then the previous
     handlers come back (in the console script's process, they stay ignored: :data:`COMMAND_IS_PROCESS`). For what a
