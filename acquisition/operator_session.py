@@ -303,11 +303,15 @@ def run_capture(
         code, told = EXIT_FAULT, _fault("STORAGE FAULT", fault, out)
     except TacsplatError as fault:
         if not running:  # refused before the session (a rig file, --out, a scene to resume): the command's error
+            _hand_if_made(config, output, hands)
             raise
         code, told = EXIT_FAULT, _fault("FAULT", fault, out)
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         code, told = 128 + signum, f"interrupted ({signal.Signals(signum).name}).\n"
+    except Exception:  # a bug: its traceback follows, and the operator still learns what the hand confirmed
+        _hand_if_made(config, output, hands)
+        raise
     with end_signals_ignored() if code > 128 else contextlib.nullcontext():  # (a second Ctrl-C: not cut short)
         carry_on = _carry_on(config, out) if code else ""
         _last_words(output, f"\n{told}{carry_on}{'' if config.rig == 'sim' else _hand_line(hands)}")
@@ -349,6 +353,12 @@ def _hand_line(hands: list) -> str:
     if report is None:
         return "Hand: not connected; nothing was sent to its servos.\n"
     return f"Hand: {report}.\n"
+
+
+def _hand_if_made(config: RigConfig, output: TextIO, hands: list) -> None:
+    """The hand's line (:func:`_hand_line`) where a real rig's hand was made, for a capture that ends in an error."""
+    if hands and config.rig != "sim":
+        _last_words(output, "\n" + _hand_line(hands))
 
 
 def _fault(what: str, fault: Exception, out: Path, fix: str = "") -> str:

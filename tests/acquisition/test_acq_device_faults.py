@@ -272,3 +272,22 @@ def test_a_full_disk_or_another_error_mid_grasp_ends_as_a_device_fault_does(tmp_
 
     scene = _resume_to_the_end(rig, out, "\n\nggg\n")
     assert [t.grasp for t in scene.touches] == [0] * 4 + [1] * 4 + [2] * 4
+
+
+def test_an_unexpected_error_mid_session_still_ends_with_the_hands_line(tmp_path):
+    def bug(opened):
+        raise FileNotFoundError("grasps/000000.npz")  # (not a TacsplatError: a bug's traceback follows)
+
+    output = io.StringIO()
+    rig = write_mock_rig(tmp_path)
+    opened = {}
+    with pytest.raises(FileNotFoundError):
+        run_capture(
+            load_rig(rig, mock=True),
+            tmp_path / "scene",
+            keys=ScriptedKeys("\ng\n", {2: lambda: bug(opened)}),
+            output=output,
+            on_open=lambda rig_, logger: opened.update(rig=rig_),
+        )
+    assert last_line(output.getvalue()) == "Hand: torque off confirmed on all 16 servos.", output.getvalue()
+    assert not any(opened["rig"].mock.emulator.torque_enabled().values())
