@@ -42,8 +42,9 @@ from tacsplat.acquisition.config import SLIDE_KEYS, SLIDE_WHY, RigConfig
 from tacsplat.acquisition.devices import TWIN_CONTROL, Rig, open_rig, twin_config
 from tacsplat.datasets import SceneMeta, SceneWriter
 from tacsplat.datasets.outputs import ensure_output_dir, other_writer
-from tacsplat.datasets.writer import JOURNAL, has_content, journal_locked
-from tacsplat.errors import ConfigError
+from tacsplat.datasets.reader import STRICT, load_hand_motion
+from tacsplat.datasets.writer import JOURNAL, has_content, journal_locked, journaled_state
+from tacsplat.errors import ConfigError, InvalidInputError, SceneFormatError
 
 SETTINGS_KEY = "capture_settings"  # in scene.json's "extra"
 _IN_META = ("rig", "object", "plan")  # recorded as SceneMeta's source, object and capture_plan
@@ -70,6 +71,11 @@ def check_out(out: Path, resume: bool) -> None:
         raise ConfigError("--resume", f"{out} holds no scene to resume (no {JOURNAL}); drop --resume to start one")
     ensure_output_dir(out, "--out")
     if resume:
+        if journal_locked(out / JOURNAL):  # (before its settings are read: a scene being written is not compared)
+            raise InvalidInputError(
+                f"{out} is being written by {other_writer(out)}: wait for it to end, then continue the scene "
+                "with --resume"
+            )
         return
     # Content first, then the journal: a creation renames its journal into place before it writes anything else,
     # so a folder another capture is creating at this moment is named as that capture's, never as other files.
@@ -90,7 +96,8 @@ def check_out(out: Path, resume: bool) -> None:
 def open_scene(config: RigConfig, out: Path, resume: bool, on_hand=None) -> Iterator[tuple[Rig, SceneWriter]]:
     """The open rig and scene writer of a capture: a new scene recording this run's settings, or the scene in
     ``out`` resumed. ``--out`` is checked, and on ``--resume`` the scene's recorded settings are compared with this
-    run's (:func:`check_resume`), before any device opens. A folder made here for a capture that never started (it
+    run's (:func:`check_resume`) and its record files checked (:func:`check_record_files`), before any device
+    opens or anything in the scene changes. A folder made here for a capture that never started (it
     holds nothing) is removed again. ``on_hand``: see :func:`~tacsplat.acquisition.devices.open_rig`."""
     made = not out.exists()
     try:
@@ -98,8 +105,10 @@ def open_scene(config: RigConfig, out: Path, resume: bool, on_hand=None) -> Iter
         settings = capture_settings(config)
         with ExitStack() as stack:
             if resume:
+                recorded = journaled_state(out)  # read-only: a refused resume leaves the scene as it was
+                check_resume(recorded, settings, config.source)
+                check_record_files(recorded)
                 writer = stack.enter_context(SceneWriter.resume(out))
-                check_resume(writer, settings, config.source)
                 rig = stack.enter_context(open_rig(config, on_hand))
             else:
                 rig = stack.enter_context(open_rig(config, on_hand))
@@ -179,6 +188,22 @@ def check_resume(writer: SceneWriter, settings: dict, source=None) -> None:
     differences.sort(key=lambda d: d[0] not in ("object", *_SIM_OBJECT))  # the object first, then in file order
     if differences:
         raise ResumeMismatch([(key, _describe(key, writer.path, old, new)) for key, old, new in differences], source)
+
+
+def check_record_files(scene: SceneWriter) -> None:
+    """Refuse (:class:`SceneFormatError`) to resume ``scene`` (its journaled state) when a file its records refer
+    to is missing (a partial copy: the resume would count the record as taken), or when the last grasp's hand
+    motion, which the resume reads to redo a grasp cut short, is damaged."""
+    if missing := sorted(rel for rel in scene.record_files() if not (scene.path / rel).is_file()):
+        shown = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
+        raise SceneFormatError(
+            scene.path / JOURNAL,
+            None,
+            f"records {len(missing)} file(s) that are missing ({shown}): restore them (from the copy the scene "
+            "came from), or drop --resume and capture a new scene in another --out",
+        )
+    if scene.touches and (hand_file := scene.touches[-1].hand_file):
+        load_hand_motion(scene.path / hand_file, STRICT, f"touch {scene.touches[-1].id} hand_file")
 
 
 # --- the settings of each rig ----------------------------------------------------------------------

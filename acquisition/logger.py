@@ -20,6 +20,7 @@ import numpy as np
 
 from tacsplat.acquisition.config import BoardConfig, GraspControl
 from tacsplat.datasets import HandMotion, SceneWriter
+from tacsplat.datasets.reader import STRICT, load_hand_motion
 from tacsplat.datasets.records import MOTION_PHASES
 from tacsplat.drivers.protocols import Camera, Hand, TactileSensor
 from tacsplat.drivers.wrist_camera import opencv_K_from_tacsplat
@@ -223,7 +224,8 @@ class CaptureLogger:
 
     def drop_partial_grasp(self) -> int:
         """Remove the touches of a last grasp that has fewer touches than sensors (a capture cut short while
-        writing it); returns how many were removed."""
+        writing it); returns how many were removed. A missing or damaged hand motion file of that grasp is a
+        SceneFormatError naming it."""
         w = self.writer
         if (last := w.last_record) is None or last[0] != "touch":
             return 0
@@ -231,8 +233,7 @@ class CaptureLogger:
         have = sum(t.grasp == g for t in w.touches)
         touch_t = None
         if (hand_file := w.touches[-1].hand_file) is not None:
-            with np.load(w.path / hand_file, allow_pickle=False) as arrays:
-                touch_t = HandMotion.from_arrays(arrays).touch_t
+            touch_t = load_hand_motion(w.path / hand_file, STRICT, f"touch {w.touches[-1].id} hand_file").touch_t
         # (a grasp of an older scene captured with the slide, since removed, holds more touches than sensors)
         want = len(self.sensors) if touch_t is None else len(touch_t)
         if have >= want:

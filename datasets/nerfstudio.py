@@ -342,6 +342,12 @@ def _select_frames(index: Path, data: dict, test_every: int, skip_missing: bool)
             f"the images of {len(missing)} of {len(frames)} frames are missing: {_listed(missing, 10)} "
             "(--skip-missing imports the others)",
         )
+    if missing and len(missing) == len(frames):
+        raise SceneFormatError(
+            index,
+            "frames",
+            f"the images of all {len(frames)} frames are missing: {_listed(missing, 10)}; nothing to import",
+        )
     if missing:
         log.warning("%s: skipping %d frames whose image is missing: %s", index, len(missing), ", ".join(missing))
         frames = [f for f in frames if f.image.is_file()]

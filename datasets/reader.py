@@ -229,9 +229,10 @@ def _check_image(
     path: Path, intr: CameraIntrinsics, index: Path, field: str, problems: _Problems, mode: str = "RGB"
 ) -> None:
     """Header and chunk checksums of an image file (no full decode): exists, intact, ``mode`` (RGB, or L for a
-    mask), size w x h."""
+    mask), size w x h. A missing file is a problem that leaves the frame in (it is listed: counted, its file named)."""
     if not path.is_file():
-        problems.report(index, field, f"{'image' if mode == 'RGB' else 'mask'} file {path.name} is missing")
+        problems.note(index, field, f"{'image' if mode == 'RGB' else 'mask'} file {path.name} is missing")
+        return
     try:
         with Image.open(path) as img:
             size, actual_mode = img.size, img.mode

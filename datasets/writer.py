@@ -358,11 +358,17 @@ class SceneWriter(AbstractContextManager):
                 raise error from exc
         return writer
 
+    def record_files(self) -> set[str]:
+        """The paths in the scene of the files the records refer to (images, masks, depth maps, hand motions,
+        ground truth)."""
+        files = {path for f in self.frames for path in (f.file_path, f.mask_path)} | set(self.gt_depth_files.values())
+        files |= {path for t in self.touches for path in (t.depth_file, t.hand_file)}
+        return files.union([self.gt_mesh, self.gt_points]) - {None}
+
     def _remove_leftovers(self) -> int:
         """Delete temporary files and record files no journal record refers to (a crash's in-flight record,
         an undo cut short); returns how many."""
-        live = {path for f in self.frames for path in (f.file_path, f.mask_path)} | set(self.gt_depth_files.values())
-        live |= {path for t in self.touches for path in (t.depth_file, t.hand_file)}
+        live = self.record_files()
         record_folders = ("images", "masks", "touches", "grasps", "gt/depth")  # where NNNNNN.png/.npz are records
         count = 0
         for sub in ("", "gt", *record_folders):
@@ -752,9 +758,17 @@ def journaled_state(path) -> SceneWriter:
 
 def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
     """Parse the journal; a torn or unparseable *last* line (a write cut by a crash) is dropped (and, with
-    ``truncate``, cut from the file)."""
+    ``truncate``, cut from the file). A last line that is a whole JSON object but lacks its newline (a journal
+    saved by an editor or a script) is a record: kept, and with ``truncate`` its newline is added."""
     data = path.read_bytes()
     *complete, tail = data.split(b"\n")  # tail is b"" when the file ends with a newline
+    if tail and _is_json_object(tail):
+        complete, tail = [*complete, tail], b""
+        if truncate:
+            with open(path, "ab") as f:
+                f.write(b"\n")
+                os.fsync(f.fileno())
+            data += b"\n"
     entries, good_bytes = [], 0
     for i, raw in enumerate(complete):
         try:
@@ -777,3 +791,11 @@ def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
     if not entries:
         raise SceneFormatError(path, "line 1", "the journal is empty")
     return entries
+
+
+def _is_json_object(raw: bytes) -> bool:
+    """Whether ``raw`` is a whole JSON object (a torn line never is: it lacks the closing brace)."""
+    try:
+        return isinstance(json.loads(raw), dict)
+    except ValueError:
+        return False

@@ -111,6 +111,17 @@ def test_instant_ngp_float_sizes_and_skipped_missing_images(ngp_src, tmp_path, c
     assert extra["importer"] == "nerfstudio" and extra["skipped_missing"] == ["./images/0002.png", "./images/0005.png"]
 
 
+def test_skip_missing_with_every_image_missing_says_so(ngp_src, tmp_path):
+    for png in (ngp_src / "images").glob("*.png"):
+        png.unlink()
+    with pytest.raises(SceneFormatError) as info:
+        import_nerfstudio(ngp_src, tmp_path / "scene", skip_missing=True)
+    err = info.value
+    assert err.path == ngp_src / "transforms.json" and err.field == "frames"
+    assert "the images of all 6 frames are missing: ./images/0000.png" in str(err) and "--test-every" not in str(err)
+    assert not (tmp_path / "scene").exists()
+
+
 def test_the_cli_imports_skipping_missing_images_and_inspect_points_raw_folders_to_it(ngp_src, tmp_path, capsys):
     assert main(["inspect", str(ngp_src)]) == 1  # (no scene: one error line, no summary)
     out, err = capsys.readouterr()

@@ -48,10 +48,21 @@ def test_inspect_lists_every_problem_and_fails(scene_dir, capsys):
     assert len(summary["problems"]) == 2
     assert "frames[2].file_path" in summary["problems"][0] and "missing" in summary["problems"][0]
     assert "000003.npz" in summary["problems"][1] and "truncated or corrupt npz" in summary["problems"][1]
-    assert summary["frames"] == {"train": 2, "test": 1} and summary["touches"] == 3  # the rest is still summarised
+    assert summary["frames"] == {"train": 3, "test": 1}  # the frame is listed: counted, its missing image a problem
+    assert summary["touches"] == 3  # the rest is still summarised
     assert run_inspect(scene_dir) == 1
     out = capsys.readouterr().out
     assert "problems  2" in out and "  - " in out
+
+
+def test_inspect_counts_the_frames_listed_when_every_image_is_missing(scene_dir, capsys):
+    for png in (scene_dir / "images").glob("*.png"):
+        png.unlink()
+    assert run_inspect(scene_dir) == 1
+    out = capsys.readouterr().out
+    assert "frames    4: 3 train, 1 test  [16x12]" in out
+    assert "gt        mesh: none, depth maps: 1" in out
+    assert "problems  4" in out and out.count("is missing") == 4 and "has no frames" not in out
 
 
 def test_inspect_of_a_scene_without_touches(tmp_path, h, capsys):

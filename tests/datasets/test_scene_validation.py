@@ -408,7 +408,7 @@ def test_check_scene_collects_every_problem_and_keeps_the_rest(scene_dir):
     CASES["truncated touch npz"][0](scene_dir)
     scene, problems = check_scene(scene_dir)
     assert sorted(p.field for p in problems) == ["frames[2].file_path", "frames[3].split", "touch 1 depth"]
-    assert [f.id for f in scene.frames] == [0, 1]
+    assert [f.id for f in scene.frames] == [0, 1, 2]  # frame 2's record is sound: kept, its missing image a problem
     assert [t.id for t in scene.touches] == [0, 2, 3]
 
 

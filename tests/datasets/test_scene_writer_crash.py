@@ -194,3 +194,16 @@ def test_torn_last_journal_line_is_dropped_and_a_corrupt_middle_line_is_an_error
 def test_resume_of_a_folder_without_journal_names_it(tmp_path):
     with pytest.raises(SceneFormatError, match="journal.jsonl"):
         SceneWriter.resume(tmp_path)
+
+
+def test_a_whole_last_record_without_its_newline_is_kept_with_its_files(tmp_path, h):
+    path = h.build_scene(tmp_path / "s", n_frames=3, n_touches=0)
+    journal = path / "journal.jsonl"
+    journal.write_bytes(journal.read_bytes().rstrip(b"\n"))  # saved by an editor without a final newline
+    scene, problems = check_scene(path)
+    assert (len(scene.frames), problems) == (3, [])
+    with SceneWriter.resume(path) as w:
+        assert w.num_frames == 3
+        assert w.add_frame(h.frame_image(3), h.ring_pose(3)).id == 3
+    assert [f.id for f in Scene.load(path).frames] == [0, 1, 2, 3]
+    assert (path / "images" / "000002.png").is_file()
