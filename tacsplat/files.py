@@ -14,7 +14,7 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import BinaryIO, Callable, Iterator
 
-from tacsplat.errors import ConfigError, StorageError
+from tacsplat.errors import ConfigError, StorageError, UsageError
 
 # errno -> what a person should be told; anything else keeps the operating system's words
 _REASONS = {
@@ -107,6 +107,16 @@ def check_writable(directory: str | Path) -> None:
     finally:
         with suppress(OSError):
             probe.unlink(missing_ok=True)
+
+
+def check_out_folder(option: str, file: str | Path) -> None:
+    """Refuse, before any work, the folder of the output ``file`` (the value of ``option``): a UsageError when it,
+    or a folder above it, is a file; else :func:`check_writable` (which creates the folders a new path names)."""
+    folder = Path(file).parent
+    existing = next(p for p in (folder, *folder.parents) if os.path.exists(p))  # (an unreadable one: False)
+    if not existing.is_dir():
+        raise UsageError(option, f"{existing} is not a folder")
+    check_writable(folder)
 
 
 def refuse_unwritable(option: str, value) -> None:

@@ -18,7 +18,7 @@ The YAML file lists jobs; ``out``, ``scene`` and ``run`` are relative to
       - {kind: evaluate, run: runs/teapot/paper-s0}
 
 A reconstruction trains ``method`` (default: what `tacsplat reconstruct` trains without options) with its
-``overrides`` (TrainConfig fields, ``init.x`` / ``densify.x`` for theirs) on top.
+``overrides`` (TrainConfig fields, ``init.x`` / ``densify.x`` for theirs, dotted or nested) on top.
 A reconstruction of a scene that a capture of the batch writes needs that
 capture (listed before it), and an evaluation of a run needs its reconstruction.
 An evaluation evaluates its run (its last checkpoint) with its own settings
@@ -573,6 +573,10 @@ def _parse_job(i: int, item, path: Path, out: Path):
         from tacsplat.acquisition.config import REMOVED_SLIDE, refuse_removed
 
         refuse_removed(item, {"slide_m": (None, REMOVED_SLIDE)}, f"jobs[{i}].", path)
+    if isinstance(overrides := item.get("overrides"), dict):  # `init: {x: 1}` as `init.x: 1`, as the config files
+        from tacsplat.reconstruction.config import flat_settings
+
+        item = {**item, "overrides": flat_settings(overrides)}
     from pydantic import ValidationError
 
     try:

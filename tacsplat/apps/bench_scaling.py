@@ -55,8 +55,12 @@ def scaling_benches(out: Path, obj: str, resolutions, step_counts, methods, seed
     slices = []
     for resolution, iterations in itertools.product(resolutions, step_counts):
         config = PaperBenchConfig(**suite, resolution=resolution, iterations=iterations)
+        # one capture per resolution (it does not depend on the step count): its first slice's
+        scenes = out / f"{resolution}px-{step_counts[0]}steps" / "scenes"
         try:
-            slices.append((resolution, iterations, PaperBench(out / f"{resolution}px-{iterations}steps", config)))
+            slices.append(
+                (resolution, iterations, PaperBench(out / f"{resolution}px-{iterations}steps", config, scenes))
+            )
         except ConfigError as exc:
             raise options_error(exc, OPTIONS) from None
     return slices
@@ -146,7 +150,8 @@ class BenchScaling:
     One object in the minimal-views setting, reconstructed by each of --methods (methods or rows of
     ablations.yaml, as `tacsplat bench paper --methods` takes them: default+c2f75 is the default trained coarse to
     fine) at each resolution (default 128, 256 and 400 px) and step count (default 750 and 1500), each a `tacsplat
-    bench paper` slice in its own folder (so it resumes the same way). Writes scaling.csv, report.md and one figure,
+    bench paper` slice in its own folder (so it resumes the same way; the slices of a resolution train on the
+    capture of its first step count's). Writes scaling.csv, report.md and one figure,
     scaling.png: CD (log) and PSNR against train seconds, one curve per resolution (color) and method (marker and
     line style), a point per step count, to pick a point on the curve."""
 

@@ -356,9 +356,10 @@ def register(cli) -> None:
 def _handler(args: BenchStep) -> int:
     import json
 
+    from tacsplat.apps.demo import demo_config
     from tacsplat.apps.paper_bench import bench_row
-    from tacsplat.errors import UsageError
-    from tacsplat.options import comma_separated_ints
+    from tacsplat.errors import ConfigError, UsageError
+    from tacsplat.options import comma_separated_ints, options_error
 
     resolutions = comma_separated_ints(args.resolutions, "--resolutions")
     if not resolutions or min(resolutions) < 16:
@@ -370,6 +371,10 @@ def _handler(args: BenchStep) -> int:
         bench_row(args.reference, "--reference")
     if args.rounds < 1 or (args.rounds > 1 and args.reference is None):
         raise UsageError("--rounds", f"needs --reference and a count of at least 1, got {args.rounds}")
+    try:  # (the object, as bench scaling checks it: before any capture)
+        demo_config(args.object, resolutions[0], args.iterations).validate()
+    except ConfigError as exc:
+        raise options_error(exc, {"objects": "--object"}) from None
     out = args.out
     results = run_profile(
         out, resolutions, args.iterations, args.method, args.object, args.seed, args.reference, args.rounds

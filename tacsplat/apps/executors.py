@@ -235,7 +235,8 @@ def run_jobs(
             if executor == "ray" and todo:
                 with _signals_held():
                     owned = connect(ray_address)
-            batch.bar = progress_bar(total=len(todo), desc=desc, unit="job", enabled=progress)
+            unit = "job" if len(todo) == 1 else "jobs"  # ("1/1 job", "0/2 jobs")
+            batch.bar = progress_bar(total=len(todo), desc=desc, unit=unit, enabled=progress)
             if executor == "local":
                 _run_local(todo, batch)
             elif executor == "processes":  # a dead worker fails its job; a new set of workers runs the rest
@@ -356,8 +357,8 @@ class _Batch:
             self.attempts[job.name] = attempts
             log.error("%s failed: %s", job.name, value)
             self._write_failures()
+        self.show()  # (first: the line the count's update may write says this job is no longer running)
         self.bar.update(1)
-        self.show()
 
     def blocked_by(self, job: Job) -> str | None:
         return next((n for n in job.needs if n in self.outcome.failed), None)

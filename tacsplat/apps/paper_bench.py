@@ -48,6 +48,7 @@ import functools
 import itertools
 import json
 import logging
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -166,6 +167,8 @@ class PaperBenchConfig:
 
         if self.dataset is not None:
             self._validate_dataset()
+        elif self.downscale != 1:  # (the twin's captures are rendered at --resolution: nothing to scale down)
+            raise ConfigError("downscale", f"scales a dataset's images: give it with --dataset, got {self.downscale}")
         known = self.dataset_objects() if self.dataset else OBJECT_NAMES
         if unknown := [o for o in self.objects if o not in known and (self.dataset or not Path(o).is_file())]:
             where = f"the scenes in {self.dataset}: " if self.dataset else ""
@@ -273,6 +276,7 @@ class PaperBench:
 
     out: Path
     config: PaperBenchConfig = field(default_factory=PaperBenchConfig)
+    scenes: Path | None = None  # where its captures go (None: out/scenes; another bench's, to share them)
     first_views: dict = field(default_factory=dict, init=False, repr=False)  # render_first_test_view's renders
 
     def __post_init__(self):
@@ -283,7 +287,7 @@ class PaperBench:
         check_bench_jobs(jobs, {"seed": "seeds", "views": "full_views"})
 
     def scene_dir(self, obj: str, setting: str, seed: int) -> Path:
-        return self.out / "scenes" / obj / f"{setting}-s{seed}{self.config.scene_tag}"
+        return Path(self.scenes or self.out / "scenes") / obj / f"{setting}-s{seed}{self.config.scene_tag}"
 
     def runs(self) -> list[Run]:
         """Every run, setting by setting (the minimal-views table fills first), then object, seed, method."""
@@ -319,7 +323,7 @@ class PaperBench:
                 grasps=c.grasps,
                 seed=seed,
                 touch_model=c.touch_model,
-                name=f"prepare {scene.relative_to(self.out)}",
+                name=f"prepare {os.path.relpath(scene, self.out)}",
             )
         return CaptureJob(
             out=scene,
@@ -327,7 +331,7 @@ class PaperBench:
             mesh=c.mesh_of(obj),
             seed=seed,
             views=MINIMAL_VIEWS if setting == "minimal" else c.full_views,
-            name=f"capture {scene.relative_to(self.out)}",
+            name=f"capture {os.path.relpath(scene, self.out)}",
             **{k: getattr(c, k) for k in ("test_views", "grasps", "resolution", "touch_model", "texture")},
         )
 

@@ -39,7 +39,7 @@ import numpy as np
 import tyro
 
 from tacsplat.errors import ConfigError, TacsplatError, UsageError
-from tacsplat.files import atomic_write, check_writable
+from tacsplat.files import atomic_write, check_out_folder
 from tacsplat.interrupts import ctrl_c_interrupts
 
 log = logging.getLogger(__name__)
@@ -85,9 +85,7 @@ def _run(args: ViewCommand) -> int:
     export = args.export
     if export is not None:
         check_export_out(args.path, export, args.overwrite)
-        if not export.parent.is_dir():
-            raise ConfigError("--export", f"{export.parent} is not a folder")
-        check_writable(export.parent)  # a read-only or full folder is refused before the view is built
+        check_out_folder("--export", export)  # a read-only or full folder is refused before the view is built
     else:
         check_host(args.host, args.port)  # (an address this machine lacks: viser would try port after port forever)
     content = load_content(args.path)

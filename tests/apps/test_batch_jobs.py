@@ -47,7 +47,7 @@ def test_local_runs_in_order_here_lists_failures_and_reruns_only_them(tmp_path, 
     finished = []
     outcome = run_jobs(jobs, tmp_path, on_done=lambda job, summary: finished.append(job.name), desc="tiny")
     last = capsys.readouterr().err.splitlines()[-1]  # of the bar (plain lines: stderr is no terminal)
-    assert re.fullmatch(r"tiny: 5/5 job in \d+ s \(done 2, running 0, failed 3\)", last), last
+    assert re.fullmatch(r"tiny: 5/5 jobs in \d+ s \(done 2, running 0, failed 3\)", last), last
 
     assert finished == outcome.done == ["first", "last"]  # in order, the jobs after a failure included
     assert [j.attempts() for j in jobs] == [[os.getpid()], [os.getpid()], [], [os.getpid()], [os.getpid()]]
@@ -73,6 +73,18 @@ def test_local_runs_in_order_here_lists_failures_and_reruns_only_them(tmp_path, 
     assert rerun.skipped == ["first"] and rerun.done == ["flaky", "after-flaky"] and not rerun.failed
     assert [len(j.attempts()) for j in jobs[:3]] == [1, 2, 1]
     assert not (tmp_path / FAILURES_CSV).exists()  # nothing failed this time: the old list is gone
+
+
+@pytest.mark.parametrize("count, unit", [(1, "job"), (2, "jobs")])
+def test_each_progress_line_counts_the_jobs_it_says_ended(tmp_path, capsys, monkeypatch, count, unit):
+    """Before: "1/1 job in 0 s (done 0, running 1 (a), failed 0)": the count went up before the text did."""
+    monkeypatch.setattr("tacsplat.progress.PLAIN_INTERVAL_S", 0.0)  # a line at each update
+    jobs = [FileJob(name, tmp_path / name) for name in ("a", "b")[:count]]
+    run_jobs(jobs, tmp_path, desc="tiny")
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("tiny: ")]
+    pattern = rf"tiny: (\d)/{count} {unit} in \d+ s \(done (\d), running (\d).*, failed 0\)"
+    counts = [re.fullmatch(pattern, line).groups() for line in lines]
+    assert counts and all(int(n) == int(done) and running == "0" for n, done, running in counts), lines
 
 
 def test_local_ctrl_c_stops_at_once_and_keeps_finished_jobs(tmp_path):
@@ -185,6 +197,15 @@ def test_a_reconstruct_job_without_a_method_trains_what_reconstruct_trains(tmp_p
 
     given = parse([str(tmp_path), "--out", str(tmp_path / "r"), "--iterations", "20", "--seed", "3"]).train
     assert ReconstructJob(out=tmp_path / "r", scene=tmp_path, iterations=20, seed=3).config() == given
+
+
+def test_nested_overrides_are_the_dotted_ones(tmp_path):
+    """Before: ``init: {num_random_points: 500}`` was refused as a pydantic union error naming ``.bool``."""
+    (tmp_path / "s").mkdir()
+    job = "jobs:\n  - {kind: reconstruct, out: r, scene: s, overrides: %s}"
+    nested = load_batch(write(tmp_path / "n.yaml", job % "{init: {num_random_points: 500}, lambda_s: 0}"), tmp_path)
+    dotted = load_batch(write(tmp_path / "d.yaml", job % "{init.num_random_points: 500, lambda_s: 0}"), tmp_path)
+    assert nested == dotted and nested[0].config().init.num_random_points == 500
 
 
 def test_a_run_folder_names_the_settings_that_changed_since(tmp_path):

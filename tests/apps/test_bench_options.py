@@ -50,6 +50,7 @@ def test_two_mesh_files_of_one_name_are_a_usage_error(tmp_path, capsys):
         (["bench", "paper", *PAPER, "--downscale", "0"], "--downscale"),
         (["bench", "touches", *TOUCHES, "--seeds", "-1"], "--seeds"),
         (["bench", "scaling", "--object", "nope", "--resolutions", "32", "--steps", "20"], "--object"),
+        (["bench", "step", "--object", "nope", "--resolutions", "32", "--iterations", "20"], "--object"),
         (["bench", "scaling", "--resolutions", "32", "--steps", "0"], "--steps"),
         (["bench", "scaling", "--resolutions", "4", "--steps", "20"], "--resolutions"),
         (["demo", "--resolution", "4"], "--resolution"),
@@ -60,6 +61,15 @@ def test_a_value_a_capture_or_training_refuses_is_a_usage_error_before_anything_
     assert main([*command, "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert f"error: {option}: " in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+
+
+def test_downscale_without_a_dataset_is_a_usage_error(tmp_path, capsys):
+    """Before: the twin's runs trained at half size while report.md said the full --resolution."""
+    out = tmp_path / "out"
+    assert main(["bench", "paper", *PAPER, "--downscale", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "error: --downscale: " in err and "--dataset" in err and len(err.strip().splitlines()) == 1, err
     assert not out.exists()
 
 

@@ -566,6 +566,19 @@ def test_bench_scaling_refuses_an_unknown_method_before_it_runs(tmp_path, capsys
     assert "--methods: need at least one method" in capsys.readouterr().err and not out.exists()
 
 
+def test_bench_scaling_captures_each_resolution_once(tmp_path):
+    """Before: each step count's slice captured the same scene again into its own scenes/."""
+    from tacsplat.apps.bench_scaling import scaling_benches
+
+    slices = scaling_benches(tmp_path, "teapot", (32, 48), (20, 30), ("3dgs",))
+    jobs = {(r, n): [job for _, job in bench.jobs()] for r, n, bench in slices}
+    for (r, n), (capture, train) in jobs.items():
+        assert capture.out == train.scene == tmp_path / f"{r}px-20steps" / "scenes" / "teapot" / "minimal-s0"
+        assert train.out == tmp_path / f"{r}px-{n}steps" / "runs" / "teapot" / "minimal" / "3dgs-s0"
+        assert train.needs == (capture.name,)
+    assert jobs[32, 30][0].name == "capture ../32px-20steps/scenes/teapot/minimal-s0"
+
+
 def read_results_rows(path):
     import csv
 

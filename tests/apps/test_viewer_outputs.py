@@ -70,3 +70,24 @@ def test_a_port_in_use_is_no_error_and_an_ipv6_url_is_bracketed():
         viewer.check_host("127.0.0.1", taken.getsockname()[1])  # (the server takes the next port)
     assert viewer.server_url("::1", 8895) == "http://[::1]:8895"
     assert viewer.server_url("127.0.0.1", 8895) == "http://127.0.0.1:8895"
+
+
+def test_an_export_into_new_folders_makes_them(tmp_path, capsys):
+    """Before: "error: --export: new/sub is not a folder" (exit 1), where `inspect --plot` made its folder."""
+    import numpy as np
+
+    from tacsplat.reconstruction.ply import save_ply
+    from tests.apps.test_viewer_edges import splat
+
+    save_ply(splat(np.full((8, 3), -5.0)), tmp_path / "run" / "splat.ply")
+    page = tmp_path / "new" / "sub" / "view.html"
+    assert main(["view", str(tmp_path / "run"), "--export", str(page)]) == 0
+    assert page.read_text().startswith("<!doctype html>")
+
+
+@pytest.mark.parametrize("below", ["", "sub"])
+def test_an_export_below_a_file_is_a_usage_error(scene, tmp_path, capsys, below):
+    (tmp_path / "afile").write_text("mine")
+    assert main(["view", str(scene), "--export", str(tmp_path / "afile" / below / "view.html")]) == 2
+    _one_error_line(capsys, "--export", f"{tmp_path / 'afile'} is not a folder")
+    assert (tmp_path / "afile").read_text() == "mine"
