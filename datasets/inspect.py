@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from tacsplat.errors import SceneFormatError, UsageError
-from tacsplat.files import atomic_write, check_writable
+from tacsplat.files import atomic_write, check_out_folder
 
 from .reader import check_scene, not_a_scene
 from .records import MOTION_PHASES, SPLITS, sensor_to_json
@@ -188,11 +188,11 @@ def check_plot_out(path, plot, overwrite: bool = False) -> None:
 
 def run_inspect(path, as_json: bool = False, plot: str | Path | None = None, overwrite: bool = False) -> int:
     """Print the summary (text or one JSON object), optionally save :func:`plot_scene`; exit code 1 on problems.
-    The picture file is refused as :func:`check_plot_out` says, and its folder must be writable, before anything
-    is printed (a StorageError naming it)."""
+    The picture file is refused as :func:`check_plot_out` says, and its folder as :func:`check_out_folder` does,
+    before anything is printed."""
     if plot is not None:
         check_plot_out(path, plot, overwrite)
-        check_writable(Path(plot).parent)
+        check_out_folder("--plot", plot)
     summary = summarise(path)
     print(json.dumps(summary, indent=1) if as_json else format_summary(summary))
     if plot is not None:

@@ -51,3 +51,12 @@ def test_a_plot_of_what_is_no_scene_is_refused_before_anything_is_printed(tmp_pa
     out, err = capsys.readouterr()
     assert out == "" and err.startswith(f"error: {run}: a reconstruction run, not a scene") and err.count("\n") == 1
     assert not picture.exists()
+
+
+def test_a_plot_below_a_file_is_a_usage_error_and_new_folders_are_made(scene_dir, tmp_path, capsys):
+    (tmp_path / "afile").write_text("mine")
+    assert main(["inspect", str(scene_dir), "--plot", str(tmp_path / "afile" / "p.png")]) == 2
+    _one_error_line(capsys, "--plot", "is not a folder")
+    assert (tmp_path / "afile").read_text() == "mine"
+    assert main(["inspect", str(scene_dir), "--plot", str(tmp_path / "new" / "sub" / "p.png")]) == 0
+    assert (tmp_path / "new" / "sub" / "p.png").is_file()
