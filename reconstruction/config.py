@@ -198,7 +198,8 @@ class TrainConfig:
                 if get_origin(kind) is Literal and value not in get_args(kind):
                     return key, f"must be one of {', '.join(map(repr, get_args(kind)))}, got {value!r}"
                 if int in kinds and (not number or not isinstance(value, int) or outside):
-                    return key, f"must be an integer {_range_text(lo, hi)}, got {value!r}"
+                    note = f" ({_RANGE_NOTES[key]})" if key in _RANGE_NOTES else ""
+                    return key, f"must be an integer {_range_text(lo, hi)}{note}, got {value!r}"
                 if float in kinds and (not number or not math.isfinite(value) or outside):
                     return key, f"must be a finite number {_range_text(lo, hi, positive, open_)}, got {value!r}"
         background = self.background  # (a YAML file may give any value: a list read as a tuple)
@@ -351,7 +352,7 @@ _RANGES = {
     "coarse_until": (0, 1),
     "crop_margin": (0, 1),
     "lr_means_final_factor": (0, 1),
-    "init.hull_resolution": (1, None),
+    "init.hull_resolution": (1, 256),  # (its carving grid: about 125 bytes a voxel, at most resolution^3 voxels)
     "init.sift_max_features": (1, None),
     "init.initial_opacity": (0, 1),
     "init.touch_initial_opacity": (0, 1),
@@ -369,6 +370,7 @@ _POSITIVE = {
     "densify.split_scale_divisor",  # (a split subtracts its log from the log scales)
 }
 _OPEN = {"init.initial_opacity", "init.touch_initial_opacity", "densify.prune_opacity"}  # excludes both ends
+_RANGE_NOTES = {"init.hull_resolution": "256: 256^3 voxels, about 2 GB of memory"}  # why a largest value
 
 
 def _range_text(lo, hi, exclusive: bool = False, open_: bool = False) -> str:

@@ -44,7 +44,14 @@ from tacsplat.reconstruction.ply import load_ply, make_parent, save_ply
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, run_scene
 from tacsplat.reconstruction.shading import Look
-from tacsplat.reconstruction.views import background_image, camera_tensors, mesh_depth, scene_at, training_frames
+from tacsplat.reconstruction.views import (
+    camera_tensors,
+    known_backdrop,
+    mesh_depth,
+    scene_at,
+    training_frames,
+    warn_no_backdrop,
+)
 
 log = logging.getLogger(__name__)
 
@@ -325,13 +332,18 @@ def evaluate_views(
     can place it). ``cd_paper`` (the paper's official code): median depth of the
     views, subsampled to at most ``PAPER_MAX_POINTS`` (fixed seed), against points on the whole ground-truth
     surface, mean squared distance each way, summed. Both in units of the ground-truth bounding-sphere radius.
-    Each view's backdrop is ``background_color``, or (None) fitted to that view's image border.
+    Each view's backdrop is ``background_color``, or (None) fitted to that view's image border (black where the
+    border is not a smooth backdrop: a warning names those images, except in ``progress``).
     """
     psnrs, ssims, predicted, predicted_median, angles, signed = [], [], [], [], [], []
     too_small = []  # the sizes of the views smaller than SSIM's window: no SSIM for them
+    no_backdrop = []  # the images of the views without a known backdrop: rendered over black
     for f in frames:
         gt_rgb = scene.load_image(f)
-        background = torch.from_numpy(background_image(gt_rgb, background_color))
+        backdrop = known_backdrop(gt_rgb, background_color)
+        if backdrop is None:
+            no_backdrop.append(scene.path / f.file_path)
+        background = torch.from_numpy(np.zeros_like(gt_rgb) if backdrop is None else backdrop)
         view = render_frame(gaussians, f, background, backend, with_depth=True, with_normals=not progress, look=look)
         rgb, depth = view.rgb, view.depth
         gt_depth = scene.gt_depth(f)
@@ -353,6 +365,8 @@ def evaluate_views(
             seen = None if ground_truth is None or ground_truth.seen is None else ground_truth.seen.get(f.id)
             radius = None if ground_truth is None else ground_truth.radius
             save_comparison(render_dir / f"view_{f.id:04d}.png", rgb, gt_rgb, depth, gt_depth, radius, seen)
+    if not progress:
+        warn_no_backdrop("test", no_backdrop)
     if too_small:
         message = "test views of %s px are smaller than the %dx%d window of SSIM: not measured (ssim null)"
         log.warning(message, ", ".join(sorted(set(too_small))), SSIM_WINDOW, SSIM_WINDOW)

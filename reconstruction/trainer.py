@@ -75,7 +75,13 @@ from tacsplat.reconstruction.run_dir import (
     write_progress,
     write_run_config,
 )
-from tacsplat.reconstruction.views import background_image, camera_tensors, fit_backdrop, scene_at, training_frames
+from tacsplat.reconstruction.views import (
+    camera_tensors,
+    known_backdrop,
+    scene_at,
+    training_frames,
+    warn_no_backdrop,
+)
 
 log = logging.getLogger(__name__)
 
@@ -235,13 +241,12 @@ class Trainer:
         self.train_frames = frames = training_frames(scene, cfg.train_views)
         self.Ks = camera_tensors(frames)[1].to(dev)
         images = [scene.load_image(f) for f in frames]  # [H, W, 3] float32 numpy
-        backgrounds = [background_image(im, cfg.background) for im in images]
+        known = [known_backdrop(im, cfg.background) for im in images]  # None: no known backdrop (black then)
+        backgrounds = [np.zeros_like(im) if bg is None else bg for im, bg in zip(images, known)]
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
         self.backdrop_pixels: list[np.ndarray | None] = [
-            np.abs(im - bg).max(axis=-1) < cfg.backdrop_tolerance
-            if cfg.background is not None or fit_backdrop(im) is not None
-            else None
-            for im, bg in zip(images, backgrounds)
+            None if bg is None else np.abs(im - bg).max(axis=-1) < cfg.backdrop_tolerance
+            for im, bg in zip(images, known)
         ]
         self.silhouettes = [None if m is None else foreground_mask(m) for m in self.backdrop_pixels]  # [H, W] bool
         # everything a step reads lives on the device, created once per resolution
@@ -281,6 +286,8 @@ class Trainer:
     def initialize(self) -> None:
         """Initial Gaussians: SfM (or random) G_c plus G_t on the touch points."""
         cfg, images = self.config, [im.cpu().numpy() for im in self.images]
+        no_backdrop = [self.scene.path / f.file_path for f, s in zip(self.train_frames, self.silhouettes) if s is None]
+        warn_no_backdrop("training", no_backdrop)
         for frame, silhouette in zip(self.train_frames, self.silhouettes):
             if silhouette is not None and not silhouette.any():  # (_fallback_points leaves it out of the hull)
                 log.warning(

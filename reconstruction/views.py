@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 
 import cv2
 import numpy as np
@@ -12,6 +13,8 @@ from tacsplat.errors import InvalidInputError
 from tacsplat.geometry import invert_pose, pixel_centres
 from tacsplat.types import CameraIntrinsics
 
+log = logging.getLogger(__name__)
+
 
 def camera_tensors(frames: list) -> tuple[torch.Tensor, torch.Tensor]:
     """World-to-camera matrices [C, 4, 4] and intrinsics [C, 3, 3] (float32) of scene frames."""
@@ -20,32 +23,58 @@ def camera_tensors(frames: list) -> tuple[torch.Tensor, torch.Tensor]:
     return viewmats, Ks
 
 
-def fit_backdrop(image: np.ndarray, degree: int = 2, max_residual: float = 0.02) -> np.ndarray | None:
+def fit_backdrop(
+    image: np.ndarray, degree: int = 2, max_residual: float = 0.02, min_share: float = 0.5
+) -> np.ndarray | None:
     """A smooth backdrop [H, W, 3] fitted to an image's [H, W, 3] two-pixel border, or None.
 
     A polynomial of ``degree`` in the pixel coordinates models a studio
-    backdrop or a sky gradient; None when the border is not that smooth (RMS
-    residual above ``max_residual``), e.g. a cluttered real scene.
+    backdrop or a sky gradient. Where the fit to the whole border is not that
+    smooth (RMS residual above ``max_residual``), the object may cross the
+    border (a close view): the fit is then made again on the border pixels
+    within ``max_residual`` of a robust fit in every channel, and None when
+    they are less than ``min_share`` of the border, e.g. a cluttered real scene.
     """
     h, w = image.shape[:2]
     v, u = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
     basis = np.stack([u**i * v**j for i in range(degree + 1) for j in range(degree + 1 - i)], axis=-1)  # [H, W, B]
     border = np.zeros((h, w), bool)
     border[:2], border[-2:], border[:, :2], border[:, -2:] = True, True, True, True
-    coeffs, *_ = np.linalg.lstsq(basis[border], image[border], rcond=None)
-    residual = np.sqrt(np.mean((basis[border] @ coeffs - image[border]) ** 2))
-    if residual > max_residual:
-        return None
+    A, b = basis[border], image[border]  # [N, B], [N, 3]
+    coeffs, *_ = np.linalg.lstsq(A, b, rcond=None)
+    if np.sqrt(np.mean((A @ coeffs - b) ** 2)) > max_residual:
+        for _ in range(5):  # least trimmed squares: refit to the half of the border the last fit explains best
+            error = np.abs(A @ coeffs - b).max(axis=-1)
+            best = error <= np.median(error)
+            coeffs, *_ = np.linalg.lstsq(A[best], b[best], rcond=None)
+        backdrop = np.abs(A @ coeffs - b).max(axis=-1) < max_residual  # (the refit's RMS on them is below that too)
+        if backdrop.mean() < min_share:
+            return None
+        coeffs, *_ = np.linalg.lstsq(A[backdrop], b[backdrop], rcond=None)
     return np.clip(basis @ coeffs, 0.0, 1.0).astype(np.float32)
 
 
-def background_image(image: np.ndarray, color: tuple[float, float, float] | None = None) -> np.ndarray:
-    """The backdrop behind the object in one view [H, W, 3] float32: ``colour``, else fitted, else black."""
+def known_backdrop(image: np.ndarray, color: tuple[float, float, float] | None = None) -> np.ndarray | None:
+    """The backdrop behind the object in one view [H, W, 3] float32: ``color``, else fitted, else None."""
     h, w = image.shape[:2]
     if color is not None:
         return np.broadcast_to(np.asarray(color, dtype=np.float32), (h, w, 3)).copy()
-    fitted = fit_backdrop(image)
-    return np.zeros((h, w, 3), np.float32) if fitted is None else fitted
+    return fit_backdrop(image)
+
+
+def background_image(image: np.ndarray, color: tuple[float, float, float] | None = None) -> np.ndarray:
+    """The backdrop behind the object in one view [H, W, 3] float32: :func:`known_backdrop`, else black."""
+    backdrop = known_backdrop(image, color)
+    return np.zeros((*image.shape[:2], 3), np.float32) if backdrop is None else backdrop
+
+
+def warn_no_backdrop(what: str, paths: list) -> None:
+    """One warning naming the images in ``paths`` of ``what`` views ("training" or "test"), which have no backdrop."""
+    if paths:
+        shown = ", ".join(map(str, paths[:5])) + (f" and {len(paths) - 5} more" if len(paths) > 5 else "")
+        unused = ", with no silhouette for the visual hull and no backdrop loss" if what == "training" else ""
+        message = "%s images whose border is not a smooth backdrop: %s; rendered over black%s (--background sets one)"
+        log.warning(message, what, shown, unused)
 
 
 def training_frames(scene, train_views: int | None) -> list:

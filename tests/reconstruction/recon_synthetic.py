@@ -91,13 +91,28 @@ def touch_reading(normal: np.ndarray, sensor: SensorModel, press: float) -> tupl
     return np.maximum(depth, 0).astype(np.float32), T_world_sensor
 
 
+def backdrop_gradient(size: int) -> np.ndarray:
+    """A smooth studio backdrop [size, size, 3]: a quadratic in the pixel coordinates, darker at the top."""
+    v, u = np.meshgrid(np.linspace(0, 1, size), np.linspace(0, 1, size), indexing="ij")
+    return (0.3 + 0.3 * v + 0.1 * u * v)[..., None] * np.array([1.0, 0.95, 0.9])
+
+
 def build_sphere_scene(
-    path: Path, size: int = 48, train_views: int = 6, test_views: int = 2, touches: bool = True, seed: int = 0
+    path: Path,
+    size: int = 48,
+    train_views: int = 6,
+    test_views: int = 2,
+    touches: bool = True,
+    seed: int = 0,
+    backdrop: bool = False,
+    centre_row: float = 0.5,
 ) -> Path:
-    """Write the synthetic sphere scene to ``path``; returns it."""
+    """Write the synthetic sphere scene to ``path``; returns it. ``backdrop``: the sphere in front of
+    :func:`backdrop_gradient` (else black); ``centre_row``: the principal point's row as a share of the image's
+    height (below about 0.25 the sphere crosses the top edge, as in a close view)."""
     rng = np.random.default_rng(seed)
     focal = size * 1.25
-    K = np.array([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1.0]])
+    K = np.array([[focal, 0, size / 2], [0, focal, size * centre_row], [0, 0, 1.0]])
     intr = CameraIntrinsics(K, size, size)
     sensor = SensorModel("synthetic-gel", 12, 12, 0.0006, 0.002)
     means, quats, scales, opacities, colors = sphere_gaussians()
@@ -112,7 +127,7 @@ def build_sphere_scene(
             )
             T_world_cam = look_at(eye, np.zeros(3))
             viewmat = torch.tensor(invert_pose(T_world_cam))[None]
-            image, _, _ = rasterization(
+            image, alpha, _ = rasterization(
                 means,
                 quats,
                 scales,
@@ -125,7 +140,8 @@ def build_sphere_scene(
                 backgrounds=torch.zeros(1, 3, dtype=torch.float64),
                 backend="torch",
             )
-            rgb = (image[0].clamp(0, 1).numpy() * 255).round().astype(np.uint8)
+            rgb = image[0].numpy() + (1 - alpha[0].numpy()) * (backdrop_gradient(size) if backdrop else 0.0)
+            rgb = (np.clip(rgb, 0, 1) * 255).round().astype(np.uint8)
             split = "test" if test_views and k % (total // test_views) == total // test_views - 1 else "train"
             writer.add_frame(rgb, T_world_cam, split, gt_depth=sphere_depth(K, T_world_cam, size, size))
         if touches:

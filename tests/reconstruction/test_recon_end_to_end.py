@@ -7,6 +7,7 @@ import sys
 import warnings
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -165,6 +166,34 @@ def test_depth_bias_is_positive_behind_the_truth_in_radii(sphere_scene):
     assert 0.035 < bias[0.96] - bias[1.0] < 0.07
     assert 0.035 < bias[1.0] - bias[1.04] < 0.07
     assert np.isnan(evaluate_views(_sphere_of_gaussians(1.0), scene, test, None, "cpu", None)["depth_bias"])
+
+
+def test_a_test_view_whose_object_crosses_the_border_is_scored_over_its_fitted_backdrop(tmp_path, caplog):
+    """The true sphere in close test views (across the top edge) in front of a gradient: rendered over each view's
+    fitted backdrop it matches the images (over black it would score about 8 dB). A cluttered test image is
+    rendered over black, and the final evaluation's warning names it; a progress row's does not warn."""
+    from tacsplat.reconstruction.evaluation import evaluate_views
+
+    path = build_sphere_scene(
+        tmp_path / "sphere", size=32, train_views=2, test_views=2, touches=False, backdrop=True, centre_row=0.15
+    )
+    scene = Scene.load(path)
+    test = scene.split("test")
+    assert all((scene.gt_depth(f)[0] > 0).any() for f in test)  # (the sphere crosses the top edge)
+    with caplog.at_level("WARNING"):
+        assert evaluate_views(_sphere_of_gaussians(1.0), scene, test, None, "cpu", None)["psnr"] > 30.0
+    assert not caplog.records
+
+    cluttered = test[1].file_path
+    image = np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8)
+    cv2.imwrite(str(path / cluttered), image)
+    with caplog.at_level("WARNING"):
+        evaluate_views(_sphere_of_gaussians(1.0), Scene.load(path), test, None, "cpu", None, progress=True)
+        assert not caplog.records
+        evaluate_views(_sphere_of_gaussians(1.0), Scene.load(path), test, None, "cpu", None)
+    warnings = [r.getMessage() for r in caplog.records]
+    assert len(warnings) == 1 and "test images whose border is not a smooth backdrop" in warnings[0]
+    assert str(path / cluttered) in warnings[0] and str(path / test[0].file_path) not in warnings[0]
 
 
 class _Spy:

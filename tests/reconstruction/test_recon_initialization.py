@@ -26,7 +26,7 @@ from tacsplat.reconstruction.initialization import (
 from tacsplat.reconstruction.trainer import Trainer, scene_scale
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from recon_synthetic import CAMERA_DISTANCE, RADIUS, build_sphere_scene  # noqa: E402
+from recon_synthetic import CAMERA_DISTANCE, RADIUS, backdrop_gradient, build_sphere_scene  # noqa: E402
 
 K = np.array([[200.0, 0, 100], [0, 200.0, 100], [0, 0, 1]])
 
@@ -190,6 +190,41 @@ def test_a_scene_whose_cameras_are_nearer_than_the_near_plane_is_refused_at_init
     trainer = Trainer(Scene.load(path), tmp_path / "run", config)
     with pytest.raises(SceneFormatError, match="near plane"):
         trainer.initialize()
+
+
+def test_training_views_whose_object_crosses_the_border_keep_their_backdrop_and_silhouette(tmp_path, caplog):
+    """Close views (the sphere across the top edge of each) in front of a gradient: each view's backdrop is fitted
+    (the gradient, not black), and its silhouette (the sphere's) is in the visual hull; a cluttered view has no
+    backdrop, and a warning names its image."""
+    path = build_sphere_scene(
+        tmp_path / "sphere", size=32, train_views=4, test_views=1, touches=False, backdrop=True, centre_row=0.15
+    )
+    scene = Scene.load(path)
+    config = TrainConfig(
+        backend="cpu", use_touch=False, sh_degree=0, init=InitConfig(use_sfm=False, num_random_points=500)
+    )
+    trainer = Trainer(scene, tmp_path / "run", config)
+    for frame, background, silhouette in zip(trainer.train_frames, trainer.backgrounds, trainer.silhouettes):
+        sphere = scene.gt_depth(frame) > 0
+        assert sphere[0].any()  # (the sphere crosses the top edge)
+        np.testing.assert_allclose(background.numpy(), backdrop_gradient(32), atol=0.01)
+        near = cv2.dilate(sphere.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # (the Gaussians' tails)
+        assert silhouette is not None and silhouette[sphere].all() and not silhouette[~near].any()
+    with caplog.at_level("INFO", logger="tacsplat.reconstruction.trainer"):
+        trainer.initialize()
+    assert "on the visual hull of 4 silhouettes" in caplog.text
+    assert not [r for r in caplog.records if r.levelname == "WARNING"]
+
+    cluttered = scene.split("train")[2].file_path
+    cv2.imwrite(str(path / cluttered), np.random.default_rng(0).integers(0, 256, (32, 32, 3), dtype=np.uint8))
+    caplog.clear()
+    trainer = Trainer(Scene.load(path), tmp_path / "cluttered", config)
+    with caplog.at_level("INFO", logger="tacsplat.reconstruction.trainer"):
+        trainer.initialize()
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1 and "training images whose border is not a smooth backdrop" in warnings[0]
+    assert str(path / cluttered) in warnings[0]
+    assert "on the visual hull of 3 silhouettes" in caplog.text
 
 
 def test_a_blank_training_view_is_left_out_of_the_visual_hull_with_a_warning_naming_its_image(tmp_path, caplog):

@@ -233,6 +233,22 @@ def test_background_is_fitted_to_a_smooth_border_and_black_for_a_cluttered_one()
     np.testing.assert_allclose(background_image(image, color=(0.1, 0.2, 0.3))[5, 7], [0.1, 0.2, 0.3], rtol=1e-6)
 
 
+def test_a_backdrop_is_fitted_around_an_object_that_crosses_the_border():
+    """A close view: the object covers part of the top edge. The backdrop is fitted to the rest of the border (the
+    gradient exactly), not given up for black; an object over most of the border leaves no backdrop to fit."""
+    from tacsplat.reconstruction.views import background_image, fit_backdrop
+
+    h, w = 40, 50
+    v, u = np.meshgrid(np.linspace(0, 1, h), np.linspace(0, 1, w), indexing="ij")
+    backdrop = (0.3 + 0.4 * v + 0.1 * u * v)[..., None] * np.array([1.0, 0.9, 0.8])
+    image = backdrop.copy()
+    image[:15, 10:30] = [0.9, 0.1, 0.1]  # the object, across the top edge
+    image[:15, 20:30] = [0.1, 0.1, 0.9]
+    np.testing.assert_allclose(background_image(image), backdrop, atol=1e-5)
+    image[:, :30] = [0.9, 0.1, 0.1]  # over the top, left and bottom edges: most of the border
+    assert fit_backdrop(image) is None
+
+
 def test_both_chamfer_distances_on_clouds_with_known_distances():
     """Two parallel planes of points 0.1 apart (every nearest neighbour at 0.1): the design's CD is the
     mean unsquared distance each way, halved = 0.1; the paper's is the mean squared distance each way,
