@@ -30,10 +30,13 @@ def fit_backdrop(
 
     A polynomial of ``degree`` in the pixel coordinates models a studio
     backdrop or a sky gradient. Where the fit to the whole border is not that
-    smooth (RMS residual above ``max_residual``), the object may cross the
-    border (a close view): the fit is then made again on the border pixels
+    smooth (RMS residual above ``max_residual``), the object may cross one
+    edge (a close view): the fit is then made again on the border pixels
     within ``max_residual`` of a robust fit in every channel, and None when
-    they are less than ``min_share`` of the border, e.g. a cluttered real scene.
+    they are less than ``min_share`` of the border, or the pixels left out lie
+    on more than one edge's strip (a cluttered real scene, or an object over a
+    corner: a polynomial fits each edge apart, so a mix of object and backdrop
+    would pass).
     """
     h, w = image.shape[:2]
     v, u = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
@@ -48,7 +51,10 @@ def fit_backdrop(
             best = error <= np.median(error)
             coeffs, *_ = np.linalg.lstsq(A[best], b[best], rcond=None)
         backdrop = np.abs(A @ coeffs - b).max(axis=-1) < max_residual  # (the refit's RMS on them is below that too)
-        if backdrop.mean() < min_share:
+        rows, cols = np.nonzero(border)
+        edges = np.stack([rows < 2, rows >= h - 2, cols < 2, cols >= w - 2])  # [4, N]: each edge's 2-pixel strip
+        one_edge = edges[:, ~backdrop].all(axis=1).any()  # every pixel left out on one edge's strip
+        if backdrop.mean() < min_share or not one_edge:
             return None
         coeffs, *_ = np.linalg.lstsq(A[backdrop], b[backdrop], rcond=None)
     return np.clip(basis @ coeffs, 0.0, 1.0).astype(np.float32)

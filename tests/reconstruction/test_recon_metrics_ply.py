@@ -247,6 +247,12 @@ def test_a_backdrop_is_fitted_around_an_object_that_crosses_the_border():
     np.testing.assert_allclose(background_image(image), backdrop, atol=1e-5)
     image[:, :30] = [0.9, 0.1, 0.1]  # over the top, left and bottom edges: most of the border
     assert fit_backdrop(image) is None
+    for side in ("left", "top"):  # a whole edge and parts of two more: never a mix of object and backdrop
+        for width in range(2, 48 if side == "left" else 38, 4):
+            image = backdrop.copy()
+            (image[:, :width] if side == "left" else image[:width])[:] = [0.9, 0.1, 0.1]
+            fit = fit_backdrop(image)
+            assert fit is None or np.abs(fit - backdrop).max() < 0.02, (side, width)
 
 
 def test_both_chamfer_distances_on_clouds_with_known_distances():
