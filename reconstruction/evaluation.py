@@ -40,7 +40,7 @@ from tacsplat.reconstruction.metrics import (
     psnr,
     ssim,
 )
-from tacsplat.reconstruction.ply import load_ply, make_parent, save_ply
+from tacsplat.reconstruction.ply import load_ply, make_parent, outward_normals, save_ply
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
 from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, run_scene
 from tacsplat.reconstruction.shading import Look
@@ -48,6 +48,7 @@ from tacsplat.reconstruction.views import (
     camera_tensors,
     known_backdrop,
     mesh_depth,
+    over_black,
     scene_at,
     training_frames,
     warn_no_backdrop,
@@ -83,7 +84,7 @@ def render_frame(
     look: Look | None = None,
 ) -> FrameRender:
     """One view of ``gaussians`` (``look``: their appearance, default SH); ``background`` [H, W, 3] is the view's
-    backdrop (see :func:`background_image`)."""
+    backdrop (see :func:`~.views.background_image`)."""
     look = look or Look()
     viewmat, K = (t.to(gaussians.means.device) for t in camera_tensors([frame]))
     intr = frame.intrinsics
@@ -144,8 +145,6 @@ def facing_normals(gaussians: Gaussians, frames: list, backend: str) -> torch.Te
     scale), so the inside of a bowl or a torus's hole faces out too; a Gaussian no camera sees takes
     the side its seen neighbours agree on, or else faces away from the centroid (:func:`.ply.outward_normals`)."""
     from scipy.spatial import cKDTree
-
-    from tacsplat.reconstruction.ply import outward_normals
 
     g = gaussians
     normals = outward_normals(g.means.detach(), g.quats.detach(), g.scales.detach()).cpu().double().numpy()  # [N, 3]
@@ -343,7 +342,7 @@ def evaluate_views(
         backdrop = known_backdrop(gt_rgb, background_color)
         if backdrop is None:
             no_backdrop.append(scene.path / f.file_path)
-        background = torch.from_numpy(np.zeros_like(gt_rgb) if backdrop is None else backdrop)
+        background = torch.from_numpy(over_black(backdrop, gt_rgb))
         view = render_frame(gaussians, f, background, backend, with_depth=True, with_normals=not progress, look=look)
         rgb, depth = view.rgb, view.depth
         gt_depth = scene.gt_depth(f)

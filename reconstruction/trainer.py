@@ -78,6 +78,7 @@ from tacsplat.reconstruction.run_dir import (
 from tacsplat.reconstruction.views import (
     camera_tensors,
     known_backdrop,
+    over_black,
     scene_at,
     training_frames,
     warn_no_backdrop,
@@ -242,7 +243,7 @@ class Trainer:
         self.Ks = camera_tensors(frames)[1].to(dev)
         images = [scene.load_image(f) for f in frames]  # [H, W, 3] float32 numpy
         known = [known_backdrop(im, cfg.background) for im in images]  # None: no known backdrop (black then)
-        backgrounds = [np.zeros_like(im) if bg is None else bg for im, bg in zip(images, known)]
+        backgrounds = [over_black(bg, im) for im, bg in zip(images, known)]
         # pixels showing the bare backdrop, per view (None: no known backdrop); numpy for the silhouettes
         self.backdrop_pixels: list[np.ndarray | None] = [
             None if bg is None else np.abs(im - bg).max(axis=-1) < cfg.backdrop_tolerance

@@ -68,10 +68,14 @@ def known_backdrop(image: np.ndarray, color: tuple[float, float, float] | None =
     return fit_backdrop(image)
 
 
+def over_black(backdrop: np.ndarray | None, image: np.ndarray) -> np.ndarray:
+    """``backdrop`` [H, W, 3], or black of ``image``'s size where it is None (no known backdrop)."""
+    return np.zeros((*image.shape[:2], 3), np.float32) if backdrop is None else backdrop
+
+
 def background_image(image: np.ndarray, color: tuple[float, float, float] | None = None) -> np.ndarray:
     """The backdrop behind the object in one view [H, W, 3] float32: :func:`known_backdrop`, else black."""
-    backdrop = known_backdrop(image, color)
-    return np.zeros((*image.shape[:2], 3), np.float32) if backdrop is None else backdrop
+    return over_black(known_backdrop(image, color), image)
 
 
 def warn_no_backdrop(what: str, paths: list) -> None:
