@@ -67,10 +67,13 @@ def summarise(path) -> dict:
 
 
 def _bounds(scene) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
-    """The scene's bounds, or (None, None) with neither frames nor contact points (none without a valid sensor)."""
-    if scene is None or not (scene.frames or (scene.sensor and any(t.in_contact for t in scene.touches))):
+    """The scene's bounds, or (None, None) where it has none (neither frames nor contact points)."""
+    if scene is None:
         return None, None
-    return scene.bounds()
+    try:
+        return scene.bounds()
+    except SceneFormatError:  # no frames nor contact points (check_scene left out the touches it cannot read)
+        return None, None
 
 
 def format_summary(summary: dict) -> str:
@@ -120,18 +123,18 @@ def format_summary(summary: dict) -> str:
 
 def plot_scene(path, png_path) -> Path:
     """A picture of the capture: camera centres and viewing directions per split, contact points, bounds; saved
-    (atomically, in the format of its suffix) as ``png_path``, whose folder must exist."""
+    (atomically, in the format of its suffix) as ``png_path``, making its folders."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     scene, _ = check_scene(path)
-    if scene is None or not (scene.frames or scene.touches):
-        raise SceneFormatError(path, None, "nothing to plot: no readable frames or touches")
+    lo, hi = _bounds(scene)
+    if lo is None:  # (touches without contact points alone: nothing to place or frame)
+        raise SceneFormatError(path, None, "nothing to plot: no readable frames or contact points")
     fig = Figure(figsize=(7, 6))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(projection="3d")
-    lo, hi = _bounds(scene)
-    arrow = 0.25 * float(np.max(hi - lo)) if lo is not None else 0.05
+    arrow = 0.25 * float(np.max(hi - lo))
     for split, color in zip(SPLITS, ("tab:blue", "tab:orange")):
         if not (frames := scene.split(split)):
             continue
@@ -141,12 +144,11 @@ def plot_scene(path, png_path) -> Path:
         ax.quiver(*c.T, *(arrow * z).T, color=color, linewidth=0.6)
     if len(points := scene.touch_points()):
         ax.scatter(*points.T, color="tab:red", s=1, label=f"contact points ({len(scene.touches)} touches)")
-    if lo is not None:
-        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        for a, b in itertools.combinations(corners, 2):
-            if np.count_nonzero(a != b) == 1:  # an edge of the box
-                ax.plot(*np.stack([a, b]).T, color="grey", linewidth=0.5)
-    shown = np.array([f.T_world_cam[:3, 3] for f in scene.frames] + ([] if lo is None else [lo, hi])).reshape(-1, 3)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    for a, b in itertools.combinations(corners, 2):
+        if np.count_nonzero(a != b) == 1:  # an edge of the box
+            ax.plot(*np.stack([a, b]).T, color="grey", linewidth=0.5)
+    shown = np.array([f.T_world_cam[:3, 3] for f in scene.frames] + [lo, hi])
     centre = (shown.min(axis=0) + shown.max(axis=0)) / 2
     half = max(float(np.max(shown.max(axis=0) - shown.min(axis=0))) / 2, 1e-3) * 1.1
     ax.set(**{f"{axis}lim": (c - half, c + half) for axis, c in zip("xyz", centre)})  # equal axes: the real shape
@@ -155,6 +157,7 @@ def plot_scene(path, png_path) -> Path:
     ax.set_title(f"{scene.meta.object} ({scene.meta.source}): cameras, touches and bounds")
     ax.legend(loc="upper left", fontsize="small")
     png_path = Path(png_path)
+    png_path.parent.mkdir(parents=True, exist_ok=True)  # (the folders a new path names: made only now, to write)
     atomic_write(png_path, lambda f: fig.savefig(f, format=picture_format(png_path), dpi=100))
     return png_path
 

@@ -109,14 +109,19 @@ def check_writable(directory: str | Path) -> None:
             probe.unlink(missing_ok=True)
 
 
+def _nearest_existing(path: Path) -> Path:
+    """``path`` or the nearest folder above it that exists (an unreadable one counts as missing)."""
+    return next(p for p in (path, *path.parents) if os.path.exists(p))
+
+
 def check_out_folder(option: str, file: str | Path) -> None:
     """Refuse, before any work, the folder of the output ``file`` (the value of ``option``): a UsageError when it,
-    or a folder above it, is a file; else :func:`check_writable` (which creates the folders a new path names)."""
-    folder = Path(file).parent
-    existing = next(p for p in (folder, *folder.parents) if os.path.exists(p))  # (an unreadable one: False)
+    or a folder above it, is a file; else :func:`check_writable` on the nearest existing one. Nothing is created:
+    the writer makes the folders a new path names."""
+    existing = _nearest_existing(Path(file).parent)
     if not existing.is_dir():
         raise UsageError(option, f"{existing} is not a folder")
-    check_writable(folder)
+    check_writable(existing)
 
 
 def refuse_unwritable(option: str, value) -> None:
@@ -124,10 +129,8 @@ def refuse_unwritable(option: str, value) -> None:
     file system: checked before a command's work, so that none runs for minutes only to fail at its first write."""
     if not isinstance(value, (str, os.PathLike)) or not str(value):
         return
-    path = Path(value).absolute()
-    existing = next(p for p in (path, *path.parents) if p.exists())
     try:
-        fs = os.statvfs(existing)
+        fs = os.statvfs(_nearest_existing(Path(value).absolute()))
     except OSError:
         return  # (the command reports what it cannot reach)
     full = fs.f_blocks > 0 and fs.f_bfree == 0  # (a pseudo file system, /proc, has no blocks at all: not full)

@@ -472,6 +472,7 @@ def load_batch(path: str | Path, out: str | Path) -> list:
     holding: dict[Path, object] = {}  # each folder holding a job's out -> the first such job (nested outs)
     evaluated: dict[Path, object] = {}  # run folder (resolved) -> the evaluate job of the batch evaluating it
     names: dict[str, int] = {}
+    out_folder = out.resolve()  # (where results.csv goes)
     for i, item in enumerate(data["jobs"]):
         job = _parse_job(i, item, path, out)
         needs = job.needs  # as the file lists them
@@ -493,17 +494,15 @@ def load_batch(path: str | Path, out: str | Path) -> list:
             evaluated[folder] = job
         else:
             folder = job.out.resolve()
-            if folder == out.resolve():  # (where results.csv goes)
-                raise ConfigError(f"jobs[{i}].out", f"{job.out} is --out itself; give a folder in it", path)
-            if out.resolve().is_relative_to(folder):  # (`..`: results.csv and the other jobs' folders in it)
-                raise ConfigError(f"jobs[{i}].out", f"{job.out} holds --out ({out}); give a folder in it", path)
+            if out_folder.is_relative_to(folder):  # --out itself, or `..`: results.csv and the other jobs' folders
+                what = "is --out itself" if folder == out_folder else f"holds --out ({out})"
+                raise ConfigError(f"jobs[{i}].out", f"{job.out} {what}; give a folder in it", path)
             if folder in made:
                 raise ConfigError(f"jobs[{i}].out", f"{job.out} is also the out of {made[folder].name}", path)
             # nested outs: one job would write into the other's folder (looked up by folder: a batch may hold
             # thousands of jobs)
-            inside = [made[parent] for parent in folder.parents if parent in made]
-            if inside or folder in holding:
-                other = inside[0] if inside else holding[folder]
+            inside = next((made[parent] for parent in folder.parents if parent in made), None)
+            if (other := holding.get(folder) if inside is None else inside) is not None:
                 raise ConfigError(
                     f"jobs[{i}].out",
                     f"{job.out} {'is inside' if inside else 'holds'} {other.out}, the out of {other.name} "

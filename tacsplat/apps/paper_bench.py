@@ -287,7 +287,7 @@ class PaperBench:
         check_bench_jobs(jobs, {"seed": "seeds", "views": "full_views"})
 
     def scene_dir(self, obj: str, setting: str, seed: int) -> Path:
-        return Path(self.scenes or self.out / "scenes") / obj / f"{setting}-s{seed}{self.config.scene_tag}"
+        return (self.scenes or self.out / "scenes") / obj / f"{setting}-s{seed}{self.config.scene_tag}"
 
     def runs(self) -> list[Run]:
         """Every run, setting by setting (the minimal-views table fills first), then object, seed, method."""
@@ -391,12 +391,10 @@ class PaperBench:
             self.refuse_changed_options(stale)
             return self._run(progress, wall_note, executor, stale)
 
-    def refuse_changed_options(self, stale: list[tuple[Run, list[str]]] | None = None) -> None:
+    def refuse_changed_options(self, stale: list[tuple[Run, list[str]]]) -> None:
         """A finished or interrupted run trained with another value of an option (:data:`RUN_OPTIONS`: its step
         count, its downscale) is an error on ``--out``, not numbers shown under the new value (a run whose other
-        settings differ, a default changed since, is kept and named in report.md). ``stale``: :meth:`stale_runs`,
-        where already read."""
-        stale = self.stale_runs() if stale is None else stale
+        settings differ, a default changed since, is kept and named in report.md). ``stale``: :meth:`stale_runs`."""
         refused = [(run, o) for run, changes in stale if (o := [c for c in changes if c.split()[0] in RUN_OPTIONS])]
         if not refused:
             return

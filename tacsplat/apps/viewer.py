@@ -204,9 +204,10 @@ if (location.protocol === "file:") (function () {
 
 
 def write_export(server, path: Path) -> int:
-    """Write the server's scene as a self-contained HTML page (replacing ``path`` atomically; a full or read-only
-    disk is a StorageError naming it); its size in bytes."""
+    """Write the server's scene as a self-contained HTML page (replacing ``path`` atomically, making its folders; a
+    full or read-only disk is a StorageError naming it); its size in bytes."""
     html = server.get_scene_serializer().as_html().replace("<head>", "<head>" + FILE_PAGE_WORKERS, 1).encode()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)  # (the folders a new path names: made only now, to write)
     atomic_write(path, html)
     return len(html)
 

@@ -61,31 +61,34 @@ def far_centres(means: torch.Tensor) -> torch.Tensor:
     their median: those a view leaves out."""
     if not len(means):
         return torch.zeros(0, dtype=torch.bool)
-    median, extent = median_and_extent(means)
+    return _far_from(means, *median_and_extent(means))
+
+
+def _far_from(means: torch.Tensor, median: torch.Tensor, extent: float) -> torch.Tensor:
+    """[N] bool: which of ``means`` lie over ``MAX_CENTRE_EXTENTS`` times ``extent`` from ``median``."""
     return (means - median).norm(dim=1) > MAX_CENTRE_EXTENTS * extent
 
 
-def log_unit_of(means: torch.Tensor, log_scales: torch.Tensor) -> float:
-    """The log of a splat's own length unit (metres): the median size of its Gaussians, kept within
-    ``UNIT_RANGE`` of its extent (see :func:`median_and_extent`)."""
-    if not len(means):
-        return 0.0
-    extent = math.log(median_and_extent(means)[1])
-    low, high = (extent + math.log(bound) for bound in UNIT_RANGE)
+def log_unit_of(log_scales: torch.Tensor, extent: float) -> float:
+    """The log of a splat's own length unit (metres): the median size of its Gaussians (``log_scales`` [N > 0, 3]),
+    kept within ``UNIT_RANGE`` of its extent ``extent`` (see :func:`median_and_extent`)."""
+    low, high = (math.log(extent * bound) for bound in UNIT_RANGE)
     return min(max(float(log_scales.max(dim=1).values.median()), low), high)
 
 
 @torch.no_grad()
 def splat_buffers(gaussians: Gaussians, mask: torch.Tensor | None = None) -> SplatBuffers:
-    """The browser's view of ``gaussians`` (those where ``mask`` is True, default all, less those whose centres
-    are far from the rest: :func:`far_centres`)."""
+    """The browser's view of ``gaussians`` (those where ``mask`` is True, default all: at least one), less those
+    whose centres are far from the rest (as :func:`far_centres` says)."""
     selected = torch.ones(len(gaussians), dtype=torch.bool) if mask is None else mask.cpu()
+    centres = gaussians.means.detach().cpu()[selected].double()
+    median, extent = median_and_extent(centres)  # (once: two medians over every centre)
     far = torch.zeros_like(selected)
-    far[selected] = far_centres(gaussians.means.detach().cpu()[selected].double())
+    far[selected] = _far_from(centres, median, extent)
     keep = selected & ~far
     means = gaussians.means.detach().cpu()[keep].double()
     log_scales = gaussians.params["scales"].detach().cpu()[keep].double()  # (in logs: exp of a huge one is inf)
-    log_unit = log_unit_of(means, log_scales)
+    log_unit = log_unit_of(log_scales, extent)
     log_largest = log_unit + math.log(MAX_SCALE_UNITS)
     scales = (log_scales.clamp(max=log_largest) - log_unit).exp()  # in units
     rotations = quats_to_rotmats(gaussians.quats.detach().cpu()[keep].double())

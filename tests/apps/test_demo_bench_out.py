@@ -74,8 +74,9 @@ def test_bench_paper_refuses_an_interrupted_run_of_other_iterations_and_keeps_on
     assert [changes for _, changes in PaperBench(tmp_path, config).stale_runs()] == []  # (the same: no refusal)
     other = earlier.reconstruct_job(run).config().to_json() | {"ssim_weight": 0.3}  # a default changed since
     (run.out / "config.json").write_text(json.dumps(other))
-    PaperBench(tmp_path, config).refuse_changed_options()  # kept, not refused, and named as stale
-    assert [changes for _, changes in PaperBench(tmp_path, config).stale_runs()] == [["ssim_weight 0.3 -> 0.2"]]
+    bench = PaperBench(tmp_path, config)
+    bench.refuse_changed_options(bench.stale_runs())  # kept, not refused, and named as stale
+    assert [changes for _, changes in bench.stale_runs()] == [["ssim_weight 0.3 -> 0.2"]]
 
 
 # ---------------------------------------------------------------------- 2. a folder of the user's

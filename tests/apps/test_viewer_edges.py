@@ -20,11 +20,11 @@ from tacsplat.apps import viewer
 from tacsplat.apps.viewer_splat import MAX_CENTRE_EXTENTS, UNIT_RANGE, splat_buffers
 from tacsplat.cli import main
 from tacsplat.datasets import Scene
-from tacsplat.reconstruction.gaussians import Gaussians
 from tacsplat.reconstruction.ply import save_ply
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from viewer_client import exported_scene  # noqa: E402
+from viewer_test_splats import splat  # noqa: E402
 
 RECORDED = "pb1/scenes/teapot/minimal-s0"  # as `bench paper --out pb1` records it, relative to where it ran
 
@@ -72,22 +72,13 @@ def test_a_scene_found_nowhere_is_named_with_every_place_tried(tmp_path, monkeyp
     assert "showing the splat alone" in message, message
 
 
-def splat(log_scales: np.ndarray, seed: int = 0) -> Gaussians:
-    """Gaussians around a 10 cm object with the given log-scales [N, 3]; every 4th one is a touch Gaussian."""
-    rng = np.random.default_rng(seed)
-    n = len(log_scales)
-    return Gaussians(
-        {
-            "means": torch.tensor(rng.normal(0, 0.05, (n, 3)), dtype=torch.float32),
-            "quats": torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32),
-            "scales": torch.tensor(log_scales, dtype=torch.float32),
-            "opacities": torch.tensor(rng.choice([-1e4, 0.0, 1e4], n), dtype=torch.float32),
-            "sh0": torch.tensor(rng.choice([-1e4, 0.0, 1e4], (n, 1, 3)), dtype=torch.float32),
-            "shN": torch.zeros(n, 0, 3),
-        },
-        torch.arange(n) % 4 == 0,
-        0,
-    )
+def _exported_splat_words(page: Path) -> np.ndarray:
+    """The 32-byte words of every Gaussian of the exported page's splat nodes [N, 32] (uint8)."""
+    from viser import _messages as m
+
+    splats = [n for n in exported_scene(page.read_text()).values() if n.message is m.GaussianSplatsMessage]
+    assert all(np.isfinite(n.props["scale"]) and n.props["scale"] > 0 for n in splats)
+    return np.concatenate([n.buffers["buffer"].view(np.uint8).reshape(-1, 32) for n in splats])
 
 
 def test_a_foreign_splat_of_huge_and_tiny_gaussians_is_exported_finite_with_one_warning(tmp_path, capsys):
@@ -103,14 +94,10 @@ def test_a_foreign_splat_of_huge_and_tiny_gaussians_is_exported_finite_with_one_
     assert main(["view", str(tmp_path / "run"), "--export", str(page)]) == 0
     warnings = [line for line in capsys.readouterr().err.splitlines() if line.startswith("WARNING")]
     assert len(warnings) == 1 and f"{tmp_path / 'run' / 'splat.ply'}: 4 of 40 Gaussians" in warnings[0], warnings
-    from viser import _messages as m
-
-    splats = [n for n in exported_scene(page.read_text()).values() if n.message is m.GaussianSplatsMessage]
-    words = np.concatenate([n.buffers["buffer"].view(np.uint8).reshape(-1, 32) for n in splats])
+    words = _exported_splat_words(page)
     assert len(words) == 40
     centers, covariances = words[:, :12].copy().view(np.float32), words[:, 16:28].copy().view(np.float16)
     assert np.isfinite(centers).all() and np.isfinite(covariances).all()
-    assert all(np.isfinite(n.props["scale"]) and n.props["scale"] > 0 for n in splats)
 
 
 @pytest.mark.parametrize("log_scale", [-80.0, 80.0])
@@ -126,15 +113,6 @@ def test_a_splat_of_degenerate_gaussians_is_drawn_in_a_unit_of_the_objects_size(
         assert np.isfinite(buffer).all()
     assert b.clamped == (30 if log_scale > 0 else 0)
     assert ((0 <= b.rgbs) & (b.rgbs <= 1)).all() and ((0 <= b.opacities) & (b.opacities <= 1)).all()
-
-
-def _exported_splat_words(page: Path) -> np.ndarray:
-    """The 32-byte words of every Gaussian of the exported page's splat nodes [N, 32] (uint8)."""
-    from viser import _messages as m
-
-    splats = [n for n in exported_scene(page.read_text()).values() if n.message is m.GaussianSplatsMessage]
-    assert all(np.isfinite(n.props["scale"]) and n.props["scale"] > 0 for n in splats)
-    return np.concatenate([n.buffers["buffer"].view(np.uint8).reshape(-1, 32) for n in splats])
 
 
 @pytest.mark.parametrize("far", [3e38, 1e30])

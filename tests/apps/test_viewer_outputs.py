@@ -4,11 +4,16 @@ existing file without --overwrite, and writes only .html; each refused before an
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import pytest
 
 from tacsplat.cli import main
 from tests.reconstruction.recon_synthetic import one_error_line
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from viewer_test_splats import splat  # noqa: E402
 
 pytest.importorskip("viser", reason="tacsplat view needs viser")
 
@@ -77,12 +82,19 @@ def test_an_export_into_new_folders_makes_them(tmp_path, capsys):
     import numpy as np
 
     from tacsplat.reconstruction.ply import save_ply
-    from tests.apps.test_viewer_edges import splat
 
     save_ply(splat(np.full((8, 3), -5.0)), tmp_path / "run" / "splat.ply")
     page = tmp_path / "new" / "sub" / "view.html"
     assert main(["view", str(tmp_path / "run"), "--export", str(page)]) == 0
     assert page.read_text().startswith("<!doctype html>")
+
+
+def test_a_refused_view_leaves_no_new_folder_of_its_export(tmp_path, capsys):
+    """Before: the export's folders new/sub were made by the folder check, then PATH was refused."""
+    (tmp_path / "empty").mkdir()
+    assert main(["view", str(tmp_path / "empty"), "--export", str(tmp_path / "new" / "sub" / "view.html")]) == 1
+    _one_error_line(capsys, "PATH")
+    assert not (tmp_path / "new").exists()
 
 
 @pytest.mark.parametrize("below", ["", "sub"])

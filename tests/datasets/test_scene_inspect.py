@@ -72,6 +72,27 @@ def test_inspect_of_a_scene_without_touches(tmp_path, h, capsys):
     assert "touches   0 (0 in contact) in 0 grasps" in out and "sensor    none" in out
 
 
+def test_inspect_of_touches_too_shallow_for_a_contact_point_and_no_frames(tmp_path, h, capsys):
+    """Before: "error: ...: no frames and no contact points: the scene has no bounds" and no summary; with --plot, a
+    traceback (an empty picture)."""
+    import numpy as np
+
+    from tacsplat.cli import main
+    from tacsplat.datasets import SceneMeta, SceneWriter
+
+    path, sensor = tmp_path / "s", h.SENSOR
+    with SceneWriter.create(path, h.intrinsics(), SceneMeta(source="sim", object="o", capture_plan={}), sensor) as w:
+        w.add_touch(np.full((sensor.height_px, sensor.width_px), 5e-6, np.float32), h.touch_pose(0), 0, "index")
+    assert main(["inspect", str(path), "--json"]) == 1
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["touches_in_contact"] == 1 and summary["bounds"] is None
+    assert summary["problems"] == [f"{path / 'transforms.json'} [frames]: the scene has no frames"]
+    assert main(["inspect", str(path), "--plot", str(tmp_path / "p.png")]) == 1
+    err = capsys.readouterr().err
+    assert err == f"error: {path}: nothing to plot: no readable frames or contact points\n", err
+    assert not (tmp_path / "p.png").exists()
+
+
 def _run_folder(path):
     """The files `tacsplat reconstruct` leaves in its run folder (only their names tell a run from a scene)."""
     path.mkdir()

@@ -60,3 +60,11 @@ def test_a_plot_below_a_file_is_a_usage_error_and_new_folders_are_made(scene_dir
     assert (tmp_path / "afile").read_text() == "mine"
     assert main(["inspect", str(scene_dir), "--plot", str(tmp_path / "new" / "sub" / "p.png")]) == 0
     assert (tmp_path / "new" / "sub" / "p.png").is_file()
+
+
+def test_a_refused_inspect_leaves_no_new_folder_of_its_plot(tmp_path, capsys):
+    """Before: the plot's folders new/sub were made by the folder check, then the command failed on its input."""
+    (tmp_path / "empty").mkdir()
+    assert main(["inspect", str(tmp_path / "empty"), "--plot", str(tmp_path / "new" / "sub" / "p.png")]) == 1
+    _one_error_line(capsys, "not a scene")
+    assert not (tmp_path / "new").exists()
