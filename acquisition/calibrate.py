@@ -45,10 +45,13 @@ def limp_hand(
             yield twin.hand, TwinPerson(twin), [f"joint {k}" for k in range(16)], "the twin's hand"
         return
     from tacsplat.acquisition.devices import dynamixel_hand
-    from tacsplat.acquisition.mock import EmulatorPerson, MockDevices
     from tacsplat.drivers.joint_calibration import TerminalPerson
 
-    mock = MockDevices(config) if config.mock else None
+    mock = None
+    if config.mock:
+        from tacsplat.acquisition.mock import EmulatorPerson, MockDevices
+
+        mock = MockDevices(config)
     hand = dynamixel_hand(config, mock)
     servos = [f"servo {sid}" for sid in config.hand.ids]
     with mock if mock is not None else nullcontext():
@@ -95,11 +98,12 @@ def _presses(
             mounts = {pad.name: pad.T_fingertip_sensor for pad in twin.tactile_sensors}
             return presses, twin.T_hand_cam, mounts
     from tacsplat.acquisition.devices import open_rig, rig_mounts
-    from tacsplat.acquisition.mock import own_emulator
-    from tacsplat.acquisition.mock_presser import EmulatorPresser
     from tacsplat.acquisition.presses import RigPressSession, TerminalPresser
 
     if config.mock:  # refused before the hand's torque comes on
+        from tacsplat.acquisition.mock import own_emulator
+        from tacsplat.acquisition.mock_presser import EmulatorPresser
+
         own_emulator(config, EmulatorPresser.needs, "press")
     fingers = [s.finger for s in config.tactile.sensors]
     say(

@@ -41,9 +41,9 @@ from typing import Any, Iterator
 from tacsplat.acquisition.config import SLIDE_KEYS, SLIDE_WHY, RigConfig
 from tacsplat.acquisition.devices import TWIN_CONTROL, Rig, open_rig, twin_config
 from tacsplat.datasets import SceneMeta, SceneWriter
-from tacsplat.datasets.outputs import ensure_output_dir, other_writer
+from tacsplat.datasets.outputs import ensure_output_dir
 from tacsplat.datasets.reader import STRICT, load_hand_motion
-from tacsplat.datasets.writer import JOURNAL, has_content, journal_locked, journaled_state
+from tacsplat.datasets.writer import JOURNAL, being_written, has_content, journal_locked, journaled_state
 from tacsplat.errors import ConfigError, InvalidInputError, SceneFormatError
 
 SETTINGS_KEY = "capture_settings"  # in scene.json's "extra"
@@ -72,10 +72,7 @@ def check_out(out: Path, resume: bool) -> None:
     ensure_output_dir(out, "--out")
     if resume:
         if journal_locked(out / JOURNAL):  # (before its settings are read: a scene being written is not compared)
-            raise InvalidInputError(
-                f"{out} is being written by {other_writer(out)}: wait for it to end, then continue the scene "
-                "with --resume"
-            )
+            raise InvalidInputError(being_written(out))
         return
     # Content first, then the journal: a creation renames its journal into place before it writes anything else,
     # so a folder another capture is creating at this moment is named as that capture's, never as other files.
@@ -83,9 +80,7 @@ def check_out(out: Path, resume: bool) -> None:
     if (out / JOURNAL).exists():
         if journal_locked(out / JOURNAL):
             raise ConfigError(
-                "--out",
-                f"{out} is being written by {other_writer(out)}: wait for it to end, then continue the scene "
-                "with --resume, or choose a new folder",
+                "--out", being_written(out, ", then continue the scene with --resume, or choose a new folder")
             )
         raise ConfigError("--out", f"{out} already holds a scene: add --resume to continue it, or choose a new folder")
     if content:
@@ -192,8 +187,9 @@ def check_resume(writer: SceneWriter, settings: dict, source=None) -> None:
 
 def check_record_files(scene: SceneWriter) -> None:
     """Refuse (:class:`SceneFormatError`) to resume ``scene`` (its journaled state) when a file its records refer
-    to is missing (a partial copy: the resume would count the record as taken), or when the last grasp's hand
-    motion, which the resume reads to redo a grasp cut short, is damaged."""
+    to is missing (a partial copy: the resume would count the record as taken), or when the last record is a touch
+    and its grasp's hand motion, which the resume then reads to redo a grasp cut short, is damaged
+    (:meth:`~tacsplat.acquisition.logger.CaptureLogger.drop_partial_grasp`)."""
     if missing := sorted(rel for rel in scene.record_files() if not (scene.path / rel).is_file()):
         shown = ", ".join(missing[:3]) + (f" and {len(missing) - 3} more" if len(missing) > 3 else "")
         raise SceneFormatError(
@@ -202,7 +198,8 @@ def check_record_files(scene: SceneWriter) -> None:
             f"records {len(missing)} file(s) that are missing ({shown}): restore them (from the copy the scene "
             "came from), or drop --resume and capture a new scene in another --out",
         )
-    if scene.touches and (hand_file := scene.touches[-1].hand_file):
+    last = scene.last_record
+    if last is not None and last[0] == "touch" and (hand_file := scene.touches[-1].hand_file):
         load_hand_motion(scene.path / hand_file, STRICT, f"touch {scene.touches[-1].id} hand_file")
 
 

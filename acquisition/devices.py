@@ -65,15 +65,15 @@ def import_device_modules(config: RigConfig) -> None:
     """Import what opening ``config``'s devices imports, the ending signals held meanwhile and raised after
     (:func:`~tacsplat.interrupts.signals_held`): MuJoCo, SciPy, OpenCV and trimesh load native modules, and a signal
     raised inside one comes out as an ImportError (a traceback), or is dropped and the hand connects after it. First
-    in every command that opens the hand, so that its own imports load nothing native after it (a real rig's rig
-    check and calibrations import the mock's module too: its SciPy and trimesh)."""
+    in every command that opens the hand, so that its own imports load nothing native after it (with ``--mock``, the
+    mock's module too: its SciPy and trimesh)."""
     with signals_held():
         if config.rig == "sim":
             import tacsplat.sim.twin  # noqa: F401
 
             return
-        import tacsplat.acquisition.mock  # noqa: F401
-        import tacsplat.drivers.dxl_emulator  # noqa: F401
+        if config.mock:
+            import tacsplat.acquisition.mock  # noqa: F401
         import tacsplat.drivers.dynamixel_hand  # noqa: F401
         import tacsplat.drivers.optical_tactile  # noqa: F401
         import tacsplat.drivers.wrist_camera  # noqa: F401

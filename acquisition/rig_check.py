@@ -198,9 +198,11 @@ def _T_hand_cam_row(config: RigConfig, cam_cal) -> Row:
 def check_rig(config: RigConfig) -> list[Row]:
     """Every check of a ``rig: real`` config (emulated devices with ``config.mock``)."""
     import_device_modules(config)
-    from tacsplat.acquisition.mock import MockDevices
     from tacsplat.drivers.optical_tactile import TactileCalibration
     from tacsplat.drivers.wrist_camera import CameraCalibration
+
+    if config.mock:
+        from tacsplat.acquisition.mock import MockDevices
 
     rows: list[Row] = []
     hand_cal = _hand_file(rows, config)

@@ -136,9 +136,7 @@ def check_new_scene_dir(path: Path, job: str | None = None) -> None:
     if (path / JOURNAL).exists():
         if journal_locked(path / JOURNAL):
             then = "," if job else " and continue the scene with --resume, or"
-            raise InvalidInputError(
-                f"{path} is being written by {other_writer(path)}: wait for it to end{then} choose a new folder"
-            )
+            raise InvalidInputError(being_written(path, f"{then} choose a new folder"))
         if job:
             raise InvalidInputError(f"{path} already holds a scene: remove it to {job} again, or choose another --out")
         raise InvalidInputError(f"{path} already holds a scene: continue it with --resume, or choose a new folder")
@@ -732,11 +730,13 @@ def _lock_journal(path: Path, scene: Path):
         fcntl.flock(journal.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
         journal.close()
-        raise InvalidInputError(
-            f"{scene} is being written by {other_writer(scene)}: wait for it to end, then "
-            "continue the scene with --resume"
-        ) from None
+        raise InvalidInputError(being_written(scene)) from None
     return journal
+
+
+def being_written(scene: Path, then: str = ", then continue the scene with --resume") -> str:
+    """What refuses ``scene`` while another process writes it: wait for that to end, ``then`` what."""
+    return f"{scene} is being written by {other_writer(scene)}: wait for it to end{then}"
 
 
 def journal_locked(path: Path) -> bool:
@@ -759,16 +759,12 @@ def journaled_state(path) -> SceneWriter:
 def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
     """Parse the journal; a torn or unparseable *last* line (a write cut by a crash) is dropped (and, with
     ``truncate``, cut from the file). A last line that is a whole JSON object but lacks its newline (a journal
-    saved by an editor or a script) is a record: kept, and with ``truncate`` its newline is added."""
+    saved by an editor or a script) is a record: kept, and with ``truncate`` its newline is added. The file changes
+    only once all of it parsed (a journal refused is left as it was)."""
     data = path.read_bytes()
     *complete, tail = data.split(b"\n")  # tail is b"" when the file ends with a newline
     if tail and _is_json_object(tail):
         complete, tail = [*complete, tail], b""
-        if truncate:
-            with open(path, "ab") as f:
-                f.write(b"\n")
-                os.fsync(f.fileno())
-            data += b"\n"
     entries, good_bytes = [], 0
     for i, raw in enumerate(complete):
         try:
@@ -786,7 +782,11 @@ def _read_journal(path: Path, truncate: bool = True) -> list[dict]:
         log.warning("%s: dropping a torn last line of %d bytes (a write cut by a crash)", path, len(tail))
     if truncate and good_bytes != len(data):
         with open(path, "r+b") as f:
-            f.truncate(good_bytes)
+            if good_bytes < len(data):  # what was dropped
+                f.truncate(good_bytes)
+            else:  # the last record's missing newline
+                f.seek(0, os.SEEK_END)
+                f.write(b"\n")
             os.fsync(f.fileno())
     if not entries:
         raise SceneFormatError(path, "line 1", "the journal is empty")

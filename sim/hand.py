@@ -25,7 +25,6 @@ import numpy as np
 
 from tacsplat.errors import InvalidInputError
 from tacsplat.geometry import make_pose
-from tacsplat.interrupts import signals_held
 
 FINGER_NAMES = ["index", "middle", "ring", "thumb"]
 JOINT_NAMES = [f"{finger}_{i}" for finger in FINGER_NAMES for i in range(4)]
@@ -178,12 +177,10 @@ def build_hand_mjcf(geom: HandGeometry = HandGeometry(), gains: ActuatorGains = 
 """
 
 
-def import_mujoco():
-    """The ``mujoco`` module, imported with the ending signals held (:func:`~tacsplat.interrupts.signals_held`): one
-    raised inside its import would become an ImportError, or be dropped, and the hand connect after it."""
-    with signals_held():
-        import mujoco
-    return mujoco
+def import_mujoco() -> None:
+    """Import MuJoCo, as :class:`HandKinematics` does when made, for a module outside tacsplat.sim (which may not
+    import it): :func:`~tacsplat.acquisition.devices.import_device_modules`, which holds the ending signals."""
+    import mujoco  # noqa: F401
 
 
 def site_pose(data, site_id: int) -> np.ndarray:
@@ -208,7 +205,8 @@ class HandKinematics:
     joint_names = list(JOINT_NAMES)
 
     def __init__(self, geom: HandGeometry = HandGeometry()):
-        mujoco = import_mujoco()
+        import mujoco
+
         model = mujoco.MjModel.from_xml_string(build_hand_mjcf(geom))
         self._mujoco, self._model, self._data = mujoco, model, mujoco.MjData(model)
         self._qadr = np.array([model.joint(n).qposadr[0] for n in JOINT_NAMES])

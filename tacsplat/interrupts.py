@@ -73,15 +73,16 @@ def signals_held(signals=END_SIGNALS):
         yield
         return
     held: list[int] = []
-    # (not one ignored, nor the default or one installed outside Python: a process they end runs no code of its own)
-    previous = {s: handler for s in signals if callable(handler := signal.getsignal(s))}
-    for s in previous:
-        signal.signal(s, lambda signum, frame: held.append(signum))
+    previous = {s: signal.getsignal(s) for s in signals}
+    for s, handler in previous.items():
+        # (not one ignored, nor the default or one installed outside Python: a process they end runs no code of its own)
+        if callable(handler):
+            signal.signal(s, lambda signum, frame: held.append(signum))
     try:
         yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+    finally:  # all of them, whatever the block installed meanwhile (ray.init's core worker: SIGTERM's)
+        for s, handler in previous.items():  # (None: a handler installed outside Python)
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)
         if held:
             signal.raise_signal(held[0])
 

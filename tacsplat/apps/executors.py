@@ -63,7 +63,7 @@ from typing import Annotated, Callable, Literal, Protocol, Sequence, get_args
 import tyro
 
 from tacsplat.errors import ConfigError, TacsplatError, UsageError
-from tacsplat.interrupts import END_SIGNALS, SignalInterrupt, ctrl_c_interrupts, signals_interrupt
+from tacsplat.interrupts import END_SIGNALS, SignalInterrupt, ctrl_c_interrupts, signals_held, signals_interrupt
 from tacsplat.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -285,10 +285,10 @@ def _noted(handler, received: list[int], signum: int, frame) -> None:
 @contextlib.contextmanager
 def _signals_held():
     """While Ray starts (connect()): an ending signal is held until it has, then raised to the handler in force
-    before (a start cut short leaves Ray's processes behind, the agents of its raylet for a minute, and may crash
-    this process at its exit). ray.init's own SIGTERM handlers (which exit with code 15, or 1) are left out
-    meanwhile, and the handlers are put back after it (its core worker replaces SIGTERM's with one that aborts this
-    process with a crash dump, cancelling nothing)."""
+    before (:func:`~tacsplat.interrupts.signals_held`; a start cut short leaves Ray's processes behind, the agents
+    of its raylet for a minute, and may crash this process at its exit). ray.init's own SIGTERM handlers (which exit
+    with code 15, or 1) are left out meanwhile, and the handlers are put back after it (its core worker replaces
+    SIGTERM's with one that aborts this process with a crash dump, cancelling nothing)."""
     if threading.current_thread() is not threading.main_thread():  # (where ray.init sets no handler either)
         yield
         return
@@ -296,20 +296,12 @@ def _signals_held():
 
     utils = ray._private.utils  # (its set_sigterm_handler: how ray.init installs its handlers)
 
-    received: list[int] = []
-    previous = {s: signal.getsignal(s) for s in END_SIGNALS}
-    for signum, handler in previous.items():
-        if callable(handler):  # (not a signal ignored: nohup's SIGHUP)
-            signal.signal(signum, lambda signum, frame: received.append(signum))
-    set_sigterm_handler, utils.set_sigterm_handler = utils.set_sigterm_handler, lambda handler: None
-    try:
-        yield
-    finally:
-        utils.set_sigterm_handler = set_sigterm_handler
-        for signum, handler in previous.items():  # (None: a handler installed outside Python)
-            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
-        if received:
-            signal.raise_signal(received[0])
+    with signals_held():
+        set_sigterm_handler, utils.set_sigterm_handler = utils.set_sigterm_handler, lambda handler: None
+        try:
+            yield
+        finally:
+            utils.set_sigterm_handler = set_sigterm_handler
 
 
 def check_order(jobs: Sequence[Job]) -> None:

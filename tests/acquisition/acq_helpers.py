@@ -13,6 +13,25 @@ import time
 import yaml
 
 from tacsplat.acquisition.config import example_rig
+from tacsplat.sim.hand import FINGER_NAMES, JOINT_NAMES
+
+
+class NoHand:
+    """A hand that only names its joints: what a CaptureLogger reads of it before a grasp."""
+
+    joint_names = JOINT_NAMES
+
+
+class Named:
+    """A tactile sensor that only has a name: what a CaptureLogger reads of it before a grasp."""
+
+    def __init__(self, name):
+        self.name = name
+
+
+def no_devices() -> tuple:
+    """``(hand, sensors, camera, clock, poses)`` of a CaptureLogger that only checks a resumed scene."""
+    return NoHand(), [Named(f) for f in FINGER_NAMES], None, None, None
 
 
 def write_mock_rig(folder, **changes) -> str:

@@ -275,7 +275,7 @@ def test_a_full_disk_or_another_error_mid_grasp_ends_as_a_device_fault_does(tmp_
 
 
 def test_an_unexpected_error_mid_session_still_ends_with_the_hands_line(tmp_path):
-    def bug(opened):
+    def bug():
         raise FileNotFoundError("grasps/000000.npz")  # (not a TacsplatError: a bug's traceback follows)
 
     output = io.StringIO()
@@ -285,7 +285,7 @@ def test_an_unexpected_error_mid_session_still_ends_with_the_hands_line(tmp_path
         run_capture(
             load_rig(rig, mock=True),
             tmp_path / "scene",
-            keys=ScriptedKeys("\ng\n", {2: lambda: bug(opened)}),
+            keys=ScriptedKeys("\ng\n", {2: bug}),
             output=output,
             on_open=lambda rig_, logger: opened.update(rig=rig_),
         )

@@ -13,14 +13,14 @@ import pytest
 
 from tacsplat.acquisition import capture_scene
 from tacsplat.acquisition.config import load_rig
-from tacsplat.acquisition.devices import open_rig
 from tacsplat.acquisition.logger import CaptureLogger
 from tacsplat.acquisition.operator_session import run_capture
 from tacsplat.datasets import Scene, SceneWriter
+from tacsplat.datasets.writer import journaled_state
 from tacsplat.errors import ConfigError, SceneFormatError
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
-from acq_helpers import ScriptedKeys, write_mock_rig  # noqa: E402
+from acq_helpers import ScriptedKeys, no_devices, write_mock_rig  # noqa: E402
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -98,10 +98,24 @@ def test_a_resume_with_the_last_grasps_hand_motion_cut_off_is_refused_naming_it(
     assert _files(scene) == before
 
 
-def test_a_logger_on_a_scene_whose_last_hand_motion_is_cut_off_names_the_file(captured, scene):
+def test_a_logger_on_a_scene_whose_last_hand_motion_is_cut_off_names_the_file(scene):
     hand_file = scene / "grasps" / "000000.npz"
     hand_file.write_bytes(hand_file.read_bytes()[:300])
-    with open_rig(load_rig(str(captured / "rig.yaml"), mock=True)) as rig, SceneWriter.resume(scene) as writer:
+    with SceneWriter.resume(scene) as writer:
         with pytest.raises(SceneFormatError) as err:
-            CaptureLogger(writer, rig.hand, rig.sensors, rig.camera, rig.clock, rig.poses, rig.control)
+            CaptureLogger(writer, *no_devices())
+    assert err.value.path == hand_file
+
+
+def test_a_resume_after_a_view_that_followed_the_grasp_does_not_read_its_hand_motion(captured, scene):
+    rig = str(captured / "rig.yaml")
+    assert run_capture(load_rig(rig, mock=True), scene, resume=True, keys=ScriptedKeys("\n"), output=io.StringIO()) == 1
+    assert Scene.load(scene).frames[-1].id == 1  # a view after the grasp: the resume redoes no grasp
+    hand_file = scene / "grasps" / "000000.npz"
+    hand_file.write_bytes(hand_file.read_bytes()[:300])
+    assert _resume(rig, scene) == 1  # not refused (stopped: no keys)
+    state = journaled_state(scene)
+    assert (len(state.frames), len(state.touches)) == (2, 4)
+    with pytest.raises(SceneFormatError) as err:  # loading the scene still reports it
+        Scene.load(scene)
     assert err.value.path == hand_file

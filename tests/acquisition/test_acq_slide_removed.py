@@ -7,6 +7,8 @@ is refused with one error; a twin scene captured before the removal without the 
 import dataclasses
 import json
 import shutil
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,6 +24,9 @@ from tacsplat.datasets import Scene, SceneWriter, check_scene
 from tacsplat.datasets.records import MOTION_PHASES
 from tacsplat.errors import ConfigError
 from tacsplat.geometry import make_pose
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from acq_helpers import no_devices  # noqa: E402
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -147,20 +152,9 @@ def test_a_slid_grasp_cut_short_is_removed_whole(slid_scene, tmp_path):
         writer.remove_last()  # a kill while the last of grasp 1's frames was written
         have = sum(t.grasp == 1 for t in writer.touches)
         assert have >= 4  # as many touches as sensors: only the motion's touch_t tells it is short
-        logger = CaptureLogger(
-            writer, _NoHand(), [_Named(f) for f in ("index", "middle", "ring", "thumb")], *[None] * 3
-        )
+        logger = CaptureLogger(writer, *no_devices())
         assert logger.dropped_partial_grasp == have
         assert {t.grasp for t in writer.touches} == {0}
-
-
-class _NoHand:
-    joint_names = [f"{f}_{j}" for f in ("index", "middle", "ring", "thumb") for j in range(4)]
-
-
-class _Named:
-    def __init__(self, name):
-        self.name = name
 
 
 def test_a_resume_of_a_scene_captured_with_the_slide_is_one_error(slid_scene, capsys):

@@ -207,3 +207,16 @@ def test_a_whole_last_record_without_its_newline_is_kept_with_its_files(tmp_path
         assert w.add_frame(h.frame_image(3), h.ring_pose(3)).id == 3
     assert [f.id for f in Scene.load(path).frames] == [0, 1, 2, 3]
     assert (path / "images" / "000002.png").is_file()
+
+
+def test_a_journal_refused_for_a_corrupt_middle_line_is_left_as_it_was_without_its_final_newline(tmp_path, h):
+    path = h.build_scene(tmp_path / "s", n_frames=3, n_touches=0)
+    journal = path / "journal.jsonl"
+    lines = journal.read_bytes().rstrip(b"\n").split(b"\n")  # saved by an editor without a final newline
+    lines[2] = lines[2][:-3]
+    journal.write_bytes(b"\n".join(lines))
+    before = journal.read_bytes()
+    with pytest.raises(SceneFormatError) as info:
+        SceneWriter.resume(path)
+    assert info.value.field == "line 3"
+    assert journal.read_bytes() == before
