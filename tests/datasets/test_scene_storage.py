@@ -110,9 +110,10 @@ def test_inspect_plot_on_a_read_only_mount_is_one_error_before_the_summary(tmpfs
     mount.read_only()
     done = _inspect(scene_dir, "--plot", mount.path / "ro" / "p.png")
     assert done.returncode == 1 and done.stdout == ""  # refused before the summary is printed
-    assert done.stderr.splitlines() == [
-        f"error: {mount.path / 'ro'}: the file system is read-only: write to another folder"
+    assert done.stderr.splitlines() == [  # (the nearest folder that exists: the plot's own is made only to write)
+        f"error: {mount.path}: the file system is read-only: write to another folder"
     ], done.stderr
+    assert not (mount.path / "ro").exists()
 
 
 def test_inspect_plot_on_a_full_disk_leaves_no_partial_picture(tmpfs, scene_dir):
