@@ -18,9 +18,10 @@ another value of any of them, naming each and both values. It compares:
   decomposition, grasp sampling and control, view placement), which come with
   the tacsplat version rather than from an option (a scene captured with the
   slide, since removed, cannot be continued);
-* a real rig: ``--mock`` (and the emulated devices' settings), the board that
-  defines the world frame, the hand-eye transform, the servo ids, the tactile
-  sensor model and mounting transforms, and the sha256 of each calibration file,
+* a real rig: ``--mock`` (and the emulated devices' settings, with the servo
+  errors of ``sim.true_errors``), the board that defines the world frame, the
+  hand-eye transform, the servo ids, the tactile sensor model and mounting
+  transforms, and the sha256 of each calibration file,
   the hand-eye and mounts files included (a recalibration starts a new scene;
   a scene of an older version, which recorded no hand-eye or mounts file,
   resumes on what it recorded). Ports, baud rates, device indices,
@@ -266,6 +267,8 @@ def _real_settings(c: RigConfig) -> dict:
         settings["mock_devices"] = {
             k: v for k, v in asdict(c.mock_devices).items() if k not in ("servo_timeout_s", "servo_port")
         }  # the servo link, not the scene
+        e = c.sim.true_errors  # the emulated servos' readings, so the joint angles the scene records
+        settings["sim"] = {"true_errors": {"servo_offsets_rad": e.servo_offsets(), "servo_signs": e.servo_signs()}}
     return settings
 
 

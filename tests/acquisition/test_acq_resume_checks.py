@@ -18,6 +18,7 @@ from tacsplat.acquisition.operator_session import run_capture
 from tacsplat.datasets import Scene, SceneWriter
 from tacsplat.datasets.writer import journaled_state
 from tacsplat.errors import ConfigError, SceneFormatError
+from tacsplat.sim.hand import JOINT_NAMES
 
 sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
 from acq_helpers import ScriptedKeys, no_devices, write_mock_rig  # noqa: E402
@@ -70,6 +71,17 @@ def test_a_resume_refused_for_its_settings_keeps_hand_edits_and_files_the_scene_
     with pytest.raises(ConfigError) as err:
         _resume(other, scene)
     assert err.value.key == "board.square_length_m", str(err.value)
+    assert _files(scene) == before
+
+
+def test_a_mock_resume_with_other_servo_errors_is_refused_naming_them(captured, scene, tmp_path, no_device):
+    """--mock's servos read off by sim.true_errors, so the joint angles a scene records depend on them."""
+    (tmp_path / "other").mkdir()
+    other = write_mock_rig(tmp_path / "other", sim={"true_errors": {"joint_offsets_rad": {JOINT_NAMES[1]: 0.05}}})
+    before = _files(scene)
+    with pytest.raises(ConfigError) as err:
+        _resume(other, scene)
+    assert err.value.key == "sim.true_errors.servo_offsets_rad", str(err.value)
     assert _files(scene) == before
 
 
