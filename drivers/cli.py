@@ -14,6 +14,7 @@ import tyro
 from tacsplat.errors import CameraError, ConfigError, InvalidInputError, TactileError, UsageError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+MAX_RMS_PX = 1.0  # a camera calibration's RMS reprojection error above this is warned about (expect well under 1 px)
 
 
 @dataclass
@@ -27,7 +28,8 @@ class CalibrateCamera:
     other, leave the focal length unobservable) and a result that is no camera (a field of view outside 2-170
     degrees, a standard deviation of zero, distortion that folds the image where corners were seen). Warns, naming
     what to add, when the focal length is poorly constrained (standard deviation above 1%), parts of the image saw
-    no corner, the lens model fails in the image corners beyond the corners seen, or photos repeat a pose. Writes
+    no corner, the lens model fails in the image corners beyond the corners seen, photos repeat a pose (one that
+    repeats another pixel for pixel is left out of the solve) or the RMS error is over 1 px. Writes
     the calibration (OpenCV K with pixel centres at integers, distortion, K_std_px, warnings) as JSON, a picture of
     the detected and reprojected corners (.png) and one of the corner coverage (_coverage.png) next to it."""
 
@@ -69,8 +71,10 @@ class CalibrateTactile:
     (any other names), taken in name order. Fits colour change -> surface gradient (a small MLP on colour change and
     pixel position) on two thirds of the presses, checks it on every third press (a sphere fitted to the depth of
     each held-out press, against the ball), prints the median and spread of the fitted radii, and refuses to write a
-    calibration whose fitted radii are far off. Writes the calibration (.npz) and a picture of the detected contact
-    circles over each press (.png) next to it."""
+    calibration whose fitted radii are far off, or whose presses come out far shallower or deeper than the 0.5-1.5
+    mm they are pressed (a wrong --pixel-size-mm or --ball-radius-mm). The images must be the sensor's colour
+    images. Writes the calibration (.npz) and a picture of the detected contact circles over each press (.png) next
+    to it."""
 
     folder: tyro.conf.Positional[Path]
     """folder with reference.* and ball-press images"""
@@ -82,7 +86,7 @@ class CalibrateTactile:
     """gel size of one image pixel, mm"""
     labels: Path | None = None
     """JSON of hand labels: {"presses": [{"file": ..., "contact_radius_px": ..., "center_xy_px": [x, y]}, ...]},
-    reported beside the fits"""
+    reported beside the fits; its "pixel_size_mm" and "ball_radius_mm", when given, must be the options'"""
     check_every: int = 3
     """hold out every n-th press to check the fit"""
     max_radius_error: float = 0.2
@@ -211,31 +215,31 @@ def _board_spec(args: CalibrateCamera):
     charuco |= {"marker_length_m": args.marker_mm, "legacy_pattern": args.legacy_pattern or None}
     if args.board == "chessboard":
         if given := [_BOARD_OPTIONS[name] for name, value in charuco.items() if value is not None]:
-            raise ConfigError(given[0], "is a ChArUco option; a chessboard takes --inner-corners and --square-mm")
+            raise UsageError(given[0], "is a ChArUco option; a chessboard takes --inner-corners and --square-mm")
         if args.inner_corners is None:
-            raise ConfigError(
+            raise UsageError(
                 "--inner-corners",
                 "needed with --board chessboard: the inner corners (where four squares meet) along x and y, e.g. 9x6",
             )
         if args.square_mm is None:
-            raise ConfigError("--square-mm", "needed with --board chessboard: the printed square side, mm")
+            raise UsageError("--square-mm", "needed with --board chessboard: the printed square side, mm")
         spec = ChessboardSpec(*_corner_counts(args.inner_corners), args.square_mm / 1000.0)
     else:
         if args.inner_corners is not None:
-            raise ConfigError("--inner-corners", "is a chessboard option; a ChArUco board takes --squares-x/-y")
+            raise UsageError("--inner-corners", "is a chessboard option; a ChArUco board takes --squares-x/-y")
         given = {**charuco, **{name: value / 1000.0 for name, value in mm.items() if value is not None}}
         spec = dataclasses.replace(CharucoBoardSpec(), **{k: v for k, v in given.items() if v is not None})
     for name in (name for name in mm if hasattr(spec, name)):
         if not 0 < getattr(spec, name) <= MAX_SQUARE_LENGTH_M:
-            raise ConfigError(
+            raise UsageError(
                 _BOARD_OPTIONS[name],
                 f"must be in (0, {MAX_SQUARE_LENGTH_M * 1000:g}] mm, got {getattr(spec, name) * 1000:g}",
             )
     if isinstance(spec, CharucoBoardSpec) and not spec.marker_length_m < spec.square_length_m:
         square, marker = spec.square_length_m * 1000, spec.marker_length_m * 1000
-        raise ConfigError("--marker-mm", f"must be smaller than the square ({square:g} mm), got {marker:g}")
+        raise UsageError("--marker-mm", f"must be smaller than the square ({square:g} mm), got {marker:g}")
     if problem := spec.problem():
-        raise ConfigError(_BOARD_OPTIONS[problem[0]], problem[1])
+        raise UsageError(_BOARD_OPTIONS[problem[0]], problem[1])
     return spec
 
 
@@ -246,7 +250,9 @@ def _calibrate_camera(args: CalibrateCamera) -> int:
         ChessboardSpec,
         calibrate_views,
         detect_board_views,
+        distinct_views,
         tacsplat_K_from_opencv,
+        view_set_problem,
     )
 
     if not args.photos:
@@ -260,20 +266,41 @@ def _calibrate_camera(args: CalibrateCamera) -> int:
     if len(views) < 3:
         option = "--inner-corners" if isinstance(spec, ChessboardSpec) else "--squares-x, --squares-y, --dictionary"
         seen = f" ({', '.join(v.name for v in views)})" if views else ""
+        advice = (
+            "take more photos (15-30, from varied distances, the board tilted 30-45 degrees towards each side)"
+            if len(views) == len(paths)  # the board was found in every photo: there are too few of them
+            else f"check {option} against the printed board and that the whole board is in view and sharp"
+        )
         raise CameraError(
             "calibration",
-            f"the {spec.describe()} was found in {len(views)} of {len(paths)} "
-            f"images{seen}; at least 3 are needed: check {option} against the printed "
-            "board and that the whole board is in view and sharp",
+            f"the {spec.describe()} was found in {len(views)} of {len(paths)} images{seen}; at least 3 are needed: "
+            f"{advice}",
         )
-    calib = calibrate_views(views, size, spec, args.distortion)
+    copies = _copies(images, names, views)
+    if copies:  # the set's refusal (too few poses or orientations) names every photo, copies included
+        if problem := view_set_problem(views, *distinct_views(views, size), size):
+            raise CameraError("calibration", problem)
+    # a copy adds the same equations again, making K_std_px too optimistic: left out of the solve
+    calib = calibrate_views([v for v in views if v.name not in copies], size, spec, args.distortion)
+    calib.warnings += [
+        f"{', '.join(repeats)} show{'s' * (len(repeats) == 1)} the board where {first} does (the same photo, pixel "
+        f"for pixel: left out of the calibration, {first} kept), adding nothing: take each photo from a new pose"
+        for first, repeats in _grouped(copies).items()
+    ]
+    if calib.rms_px > MAX_RMS_PX:
+        calib.warnings.append(
+            f"the RMS reprojection error is {calib.rms_px:.2f} px, over {MAX_RMS_PX:g} px (expect well under 1 px): "
+            "the corners were found poorly or the photos disagree (a blurred or moving board, a board not flat, "
+            "photos of other cameras or sizes, too simple a --distortion model): see the error of each photo"
+        )
     out = _output_file(args.out)
     calib.save(out)
     picture = _corner_sheet(images, names, views, calib, out.with_suffix(".png"))
     coverage = _coverage_picture(images[0], views, calib, out.with_name(out.stem + "_coverage.png"))
     K = tacsplat_K_from_opencv(calib.K_opencv)
     std = calib.K_std_px
-    print(f"{len(views)} of {len(paths)} images used, {calib.width}x{calib.height}, distortion {args.distortion}")
+    used = len(views) - len(copies)
+    print(f"{used} of {len(paths)} images used, {calib.width}x{calib.height}, distortion {args.distortion}")
     print(f"RMS reprojection error: {calib.rms_px:.3f} px")
     print(
         f"fx {K[0, 0]:.2f} +- {std['fx']:.2f}  fy {K[1, 1]:.2f} +- {std['fy']:.2f}  cx {K[0, 2]:.2f} +- "
@@ -290,6 +317,30 @@ def _calibrate_camera(args: CalibrateCamera) -> int:
         f"corner coverage in {coverage}"
     )
     return 0
+
+
+def _copies(images, names, views) -> dict[str, str]:
+    """The photos among ``views`` whose pixels repeat an earlier one's: name -> the first photo's name."""
+    import hashlib
+
+    first, copies = {}, {}
+    used = {view.name for view in views}
+    for image, name in zip(images, names):
+        if name in used:
+            key = (image.shape, hashlib.sha256(image.tobytes()).digest())
+            if key in first:
+                copies[name] = first[key]
+            else:
+                first[key] = name
+    return copies
+
+
+def _grouped(copies: dict[str, str]) -> dict[str, list[str]]:
+    """``{copy: first}`` as ``{first: [copies]}``."""
+    groups = {}
+    for name, first in copies.items():
+        groups.setdefault(first, []).append(name)
+    return groups
 
 
 def _contact_sheet(tiles, columns: int = 4):
@@ -360,8 +411,9 @@ def _coverage_picture(first_image, views, calib, path: Path) -> Path:
     return _write_image(path, canvas)
 
 
-def _read_labels(path: Path) -> dict[str, dict]:
-    """Hand labels of ball presses: file name -> {"radius": px, "centre": (x, y) or None}; errors name the field."""
+def _read_labels(path: Path) -> tuple[dict[str, dict], dict[str, float]]:
+    """Hand labels of ball presses: file name -> {"radius": px, "centre": (x, y) or None}, and the sizes the file
+    gives (its ``pixel_size_mm`` and ``ball_radius_mm``, when given); errors name the field."""
 
     from pydantic import Field
 
@@ -377,9 +429,31 @@ def _read_labels(path: Path) -> dict[str, dict]:
 
     class Labels(CalibrationFile, extra="ignore"):
         presses: list[Label]
+        pixel_size_mm: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
+        ball_radius_mm: Annotated[float, Field(gt=0.0, allow_inf_nan=False)] | None = None
 
-    labels = read_calibration(path, Labels, key="--labels").presses
-    return {p.file: {"radius": p.contact_radius_px, "centre": p.center_xy_px and tuple(p.center_xy_px)} for p in labels}
+    labels = read_calibration(path, Labels, key="--labels")
+    presses = {
+        p.file: {"radius": p.contact_radius_px, "centre": p.center_xy_px and tuple(p.center_xy_px)}
+        for p in labels.presses
+    }
+    sizes = {"pixel_size_mm": labels.pixel_size_mm, "ball_radius_mm": labels.ball_radius_mm}
+    return presses, {key: value for key, value in sizes.items() if value is not None}
+
+
+def _check_label_sizes(args: CalibrateTactile, sizes: dict[str, float]) -> None:
+    """The sizes the labels file gives must be the options' (beyond rounding, 1 %): the labels and the ball fit
+    would share a wrong one, which the held-out check cannot see."""
+    differ = []
+    for key, option, value in (
+        ("pixel_size_mm", "--pixel-size-mm", args.pixel_size_mm),
+        ("ball_radius_mm", "--ball-radius-mm", args.ball_radius_mm),
+    ):
+        if key in sizes and abs(value / sizes[key] - 1) > 0.01:
+            differ.append((option, f"{option} {value:g} mm, but {args.labels} gives {key} {sizes[key]:g} mm"))
+    if differ:
+        what = "; ".join(text for _, text in differ)
+        raise UsageError(differ[0][0], f"{what}: give the sensor's pixel size and the pressed ball's radius in both")
 
 
 def _press_sheet(images, names, calib, labels, path: Path) -> Path:
@@ -415,15 +489,15 @@ def _press_sheet(images, names, calib, labels, path: Path) -> Path:
 
 
 def _calibrate_tactile(args: CalibrateTactile) -> int:
-    from tacsplat.drivers.optical_tactile import calibrate_tactile, check_problem
+    from tacsplat.drivers.optical_tactile import calibrate_tactile, check_problem, image_problem
 
     for option, value in (("--ball-radius-mm", args.ball_radius_mm), ("--pixel-size-mm", args.pixel_size_mm)):
         if not 0 < value < 1000:
-            raise ConfigError(option, f"must be in (0, 1000) mm, got {value}")
+            raise UsageError(option, f"must be in (0, 1000) mm, got {value}")
     if not 0 < args.max_radius_error < 1:
-        raise ConfigError("--max-radius-error", f"must be in (0, 1), got {args.max_radius_error}")
+        raise UsageError("--max-radius-error", f"must be in (0, 1), got {args.max_radius_error}")
     if args.check_every < 2:
-        raise ConfigError("--check-every", f"must be >= 2, got {args.check_every}")
+        raise UsageError("--check-every", f"must be >= 2, got {args.check_every}")
     _check_output_file(args.out, ".npz", args.out.with_suffix(".png"))
     if not args.folder.is_dir():
         raise InvalidInputError(f"{args.folder}: not a folder")
@@ -431,16 +505,23 @@ def _calibrate_tactile(args: CalibrateTactile) -> int:
     references = [p for p in paths if p.stem.lower() == "reference"]
     if len(references) != 1:
         raise InvalidInputError(f"{args.folder}: expected exactly one image named reference.*, found {len(references)}")
-    labels = _read_labels(args.labels) if args.labels else {}
+    labels, label_sizes = _read_labels(args.labels) if args.labels else ({}, {})
+    _check_label_sizes(args, label_sizes)
     presses = [p for p in paths if p not in references]
     reference = _read_rgb(references[0])
+    if problem := image_problem(reference):
+        raise InvalidInputError(f"{references[0]}: the reference image of the untouched gel is {problem}")
     images = [_read_rgb(p) for p in presses]
     for path, image in zip(presses, images):
         if image.shape != reference.shape:
             raise InvalidInputError(
                 f"{path}: {image.shape[1]}x{image.shape[0]}, the reference {reference.shape[1]}x{reference.shape[0]}"
             )
+        if problem := image_problem(image, reference=False):
+            raise InvalidInputError(f"{path}: {problem}")
     names = [p.name for p in presses]
+    if unmatched := [name for name in labels if name not in names]:
+        print(f"warning: {args.labels}: the labels of {', '.join(unmatched)} match no press in {args.folder}: unused")
     sizes_m = args.ball_radius_mm / 1000.0, args.pixel_size_mm / 1000.0
     label_radii = {name: label["radius"] for name, label in labels.items()}
     calib = calibrate_tactile(reference, images, names, *sizes_m, labels=label_radii, check_every=args.check_every)
@@ -497,7 +578,7 @@ def _tactile_depth(args: TactileDepth) -> int:
     import numpy as np
 
     from tacsplat.datasets.outputs import claim_output_dir
-    from tacsplat.drivers.optical_tactile import TactileCalibration
+    from tacsplat.drivers.optical_tactile import TactileCalibration, image_problem
     from tacsplat.files import atomic_write
 
     if not args.images:
@@ -505,6 +586,8 @@ def _tactile_depth(args: TactileDepth) -> int:
     calib = TactileCalibration.load(args.calibration)
     height, width = calib.image_size
     reference = _read_rgb(args.reference)
+    if problem := image_problem(reference):
+        raise InvalidInputError(f"--reference {args.reference}: the image of the untouched gel is {problem}")
     inputs = [(args.reference, reference)] + [(path, _read_rgb(path)) for path in args.images]
     for path, image in inputs:
         if image.shape[:2] != (height, width):

@@ -72,6 +72,18 @@ RIM_MARGIN_PX = 0.5  # inside the contact circle, this close to its rim is left 
 CONTACT_SIGMA_PX = 2.0  # smoothing of the gradients before finding the contact's rim (the steepest slope)
 MIN_CONTACT_DEPTH_PX = 0.25  # pixel sizes: a shallower contact cannot be told from noise (a ball's contact of
 # radius a px is a^2 / 2R px deep: about this for the smallest blob that counts)
+# A sensor's image of its gel, smoothed over IMAGE_SIGMA_PX (camera noise out), has light (the brightest 1 % of its
+# pixels at least MIN_LIGHT grey levels), colour (its channels MIN_COLOR apart on average: the method reads the slope
+# from the colours of lights from several sides) and an illumination gradient or texture (some channel's 1-99 %
+# range at least MIN_SPREAD). Real GelSight images: 239, 44, 125 at least; the twin's rendered gel: 139, 20, 29.
+IMAGE_SIGMA_PX = 2.0
+MIN_LIGHT = 32.0
+MIN_COLOR = 3.0
+MIN_SPREAD = 10.0
+# ball presses are made 0.5-1.5 mm deep (docs/hardware.md); the held-out presses' median peak indentation must lie
+# within this band, twice as wide each way
+PRESS_DEPTH_M = (0.5e-3, 1.5e-3)
+PRESS_DEPTH_MARGIN = 2.0
 # what np.load raises on an empty, truncated or damaged file: numpy's EOFError, zipfile's BadZipFile, zlib's error,
 # or zipfile's NotImplementedError for a compression method it does not know
 _DAMAGED = (KeyError, ValueError, OSError, TypeError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError)
@@ -95,6 +107,29 @@ def _as_rgb(image, name: str) -> np.ndarray:
     if image.ndim != 3 or image.shape[2] != 3:
         raise InvalidInputError(f"{name}: expected an [h, w, 3] RGB image, got shape {image.shape}")
     return image
+
+
+def image_problem(rgb: np.ndarray, reference: bool = True) -> str | None:
+    """Why ``rgb`` [h, w, 3] cannot be the sensor's colour image of its gel, or None: black, greyscale or flat (see
+    MIN_LIGHT). Any image that got light must have colour; only a ``reference`` must be lit and show the gel (a
+    press may be a dark frame, which reads as no contact)."""
+    smooth = _blur(_as_rgb(rgb, "image"), IMAGE_SIGMA_PX)
+    if np.percentile(smooth.max(axis=-1), 99) < MIN_LIGHT:
+        return (
+            f"black (its brightest pixels under {MIN_LIGHT:g} grey levels): the gel was not lit" if reference else None
+        )
+    spread = np.percentile(smooth, 99, axis=(0, 1)) - np.percentile(smooth, 1, axis=(0, 1))
+    if reference and spread.max() < MIN_SPREAD:
+        return (
+            f"flat (one colour: each channel's 1-99 % range under {MIN_SPREAD:g} grey levels): no illumination "
+            "gradient or gel texture, not the sensor's image of its gel"
+        )
+    if np.mean(smooth.max(axis=-1) - smooth.min(axis=-1)) < MIN_COLOR:
+        return (
+            "greyscale (its colour channels equal): the images must be the sensor's colour images, as its camera "
+            "gives them (depth is read from the colours of its lights)"
+        )
+    return None
 
 
 def _dark_dots(rgb: np.ndarray) -> np.ndarray:
@@ -425,7 +460,7 @@ class TactileCalibration:
         names = list(names) if names is not None else [f"press {k}" for k in range(len(presses))]
         ball_px = ball_radius_m / pixel_size_m
         rng = np.random.default_rng(seed)
-        inputs, targets, thresholds, used = [], [], [], []
+        inputs, targets, thresholds, used, too_large = [], [], [], [], []
         for k, (name, image) in enumerate(zip(names, presses)):
             image = _as_rgb(image, name)
             if image.shape != reference.shape:
@@ -438,6 +473,7 @@ class TactileCalibration:
             why = "no contact circle" if circle is None else None
             if circle is not None and circle.radius >= 0.95 * ball_px:
                 why = f"contact radius {circle.radius:.1f} px is not smaller than the ball's {ball_px:.1f} px"
+                too_large.append(circle.radius)
             if why:
                 log.warning("%s: %s, skipped", name, why)
                 used.append({**record, "skipped": why})
@@ -452,6 +488,13 @@ class TactileCalibration:
             targets.append(np.stack([gx.ravel()[pick], gy.ravel()[pick]], axis=1))
             thresholds.append(float(np.percentile(change.magnitude.ravel()[flat], 99.5)) if len(flat) else MIN_CHANGE)
             used.append({**record, "centre_px": [circle.cx, circle.cy], "contact_radius_px": circle.radius})
+        if not inputs and too_large:  # every contact circle found is wider than the ball: its size is wrong
+            raise TactileError(
+                "calibration",
+                f"no press fitted: every contact circle found ({len(too_large)}, radius {min(too_large):.1f}-"
+                f"{max(too_large):.1f} px) is not smaller than the ball's {ball_px:.1f} px ({ball_radius_m * 1e3:g} "
+                f"mm at {pixel_size_m * 1e3:g} mm per pixel): check --ball-radius-mm and --pixel-size-mm",
+            )
         if not inputs:
             raise TactileError(
                 "calibration",
@@ -686,6 +729,19 @@ def check_problem(calibration: TactileCalibration, max_radius_error: float = 0.2
             f"on the held-out presses the fitted ball radius is {median * 1e3:.2f} mm (median), {error:.0%} off "
             f"the ball's {ball_mm:g} mm (at most {max_radius_error:.0%} allowed): {'; '.join(off)}; the calibration "
             f"does not generalise to these presses: {capture}"
+        )
+    # A wrong --pixel-size-mm or --ball-radius-mm passes the radius check (the presses' gradients and the sphere fit
+    # share the wrong scale) and shows only in the depth (Taxim's 2 mm ball at 0.1245 mm per pixel, calibrated as
+    # 4 mm at 0.08 mm: 6x too shallow): refused, not warned, since every depth the file gave would be off by that
+    # factor, while presses made as documented (0.5-1.5 mm deep) pass with a margin of 2.
+    low, high = PRESS_DEPTH_M[0] / PRESS_DEPTH_MARGIN, PRESS_DEPTH_M[1] * PRESS_DEPTH_MARGIN
+    peak = summary.get("median_peak_indentation_m")
+    if peak is not None and not low <= peak <= high:
+        deep = f"{PRESS_DEPTH_M[0] * 1e3:g}-{PRESS_DEPTH_M[1] * 1e3:g} mm deep"
+        return (
+            f"on the held-out presses the median peak indentation is {peak * 1e3:.3f} mm, outside the "
+            f"{low * 1e3:g}-{high * 1e3:g} mm that presses {deep} give: check --pixel-size-mm and --ball-radius-mm "
+            f"(a wrong scale passes the radius check, which shares it), or press the ball {deep}"
         )
     return None
 

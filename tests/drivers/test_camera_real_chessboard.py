@@ -109,7 +109,7 @@ def test_board_and_photo_problems_are_one_clear_error(tmp_path, capsys):
         tacsplat_main(
             ["calibrate", "camera", str(DATA), "--board", "chessboard", "--square-mm", "25", "--out", str(out)]
         )
-        == 1
+        == 2  # a usage error
     )
     assert "--inner-corners" in capsys.readouterr().err
     assert (
@@ -130,7 +130,7 @@ def test_board_and_photo_problems_are_one_clear_error(tmp_path, capsys):
                 str(out),
             ]
         )
-        == 1
+        == 2
     )
     assert "--marker-mm" in capsys.readouterr().err
     photos = tmp_path / "photos"
