@@ -25,7 +25,10 @@ A scene directory is what acquisition, the simulator and the importers write
       scene.json       provenance: format, source (sim | real | import), object,
                        units "m", capture_plan, extra, tacsplat_version, created,
                        gt {mesh, depth {frame id: file}}, annotations {key:
-                       plain JSON} (e.g. next_touch: next-best's decisions)
+                       plain JSON} (e.g. next_touch: next-best's decisions),
+                       sparse_points (only where the scene has them)
+      points3D.ply     optional: an import's SfM points (x y z float64 metres,
+                       red green blue uchar), where training's G_c start
       gt/              evaluation only, never read by training: mesh.ply and
                        depth/<frame id>.npz (key "depth", z-depth in metres)
       journal.jsonl    the writer's append-only log the index files are

@@ -2,7 +2,11 @@
 
 COLMAP stores world-to-camera poses with OpenCV camera axes (x right, y down,
 z forward) and puts the centre of the top-left pixel at (0.5, 0.5), the same
-conventions as tacsplat, so poses are only inverted and intrinsics copied.
+conventions as tacsplat, so poses are only inverted and intrinsics copied
+(scaled to the images of a downscaled folder such as Mip-NeRF 360's
+``images_2``). The model's 3D points and their colours become the scene's
+sparse points (``points3D.ply``), in its world frame: COLMAP's, scaled by
+``scale`` as the poses' translations are.
 Undistortion is out of scope: cameras must be pinhole (``PINHOLE``,
 ``SIMPLE_PINHOLE``) or a distortion model whose distortion parameters are all
 zero (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``); run ``colmap
@@ -60,7 +64,7 @@ class _Record(SimpleNamespace):
 
     - camera: camera_id, model, width, height, params;
     - image: image_id, pose (cam_from_world as images.txt holds it), camera_id, name, point3D_ids (-1: none);
-    - point: point3D_id, xyz, track [(image_id, point2D_idx)];
+    - point: point3D_id, xyz, rgb [R, G, B], track [(image_id, point2D_idx)];
     - rig: rig_id, sensors {(type, id): sensor_from_rig _Pose, or None (unknown); the reference sensor first};
     - frame: frame_id, rig_id, pose (rig_from_world), data_ids [(sensor type, sensor id, data id)].
     """
@@ -323,8 +327,7 @@ def _image(src, image: _Record) -> _Record:
 def _point(src, point: _Record) -> _Record:
     point.point3D_id = src.int("POINT3D_ID", "Q")
     point.xyz = np.array([src.float(name) for name in ("X", "Y", "Z")])
-    for name in ("R", "G", "B"):
-        src.int(name, "B")
+    point.rgb = [src.int(name, "B") for name in ("R", "G", "B")]
     src.float("ERROR")
     point.track = src.track(f"TRACK of point {point.point3D_id}")
     return point
@@ -382,8 +385,33 @@ def _read_model(model_dir: Path) -> _Model:
     raise SceneFormatError(
         model_dir,
         None,
-        "not a readable COLMAP sparse model: expected cameras, images and points3D as .bin or .txt files",
+        "not a readable COLMAP sparse model: expected cameras, images and points3D as .bin or .txt files"
+        + _models_below(model_dir),
     )
+
+
+def _is_model(folder: Path) -> bool:
+    """Whether ``folder`` holds the three files of a model, binary or text."""
+    return any(all((folder / f"{name}{suffix}").is_file() for name in MODEL_FILES) for suffix in (".bin", ".txt"))
+
+
+def _models_below(folder: Path) -> str:
+    """The hint for a ``folder`` one level above its models (``sparse`` rather than ``sparse/0``): "; pass ..."
+    naming the subfolders that hold one, or "" when none does."""
+    try:
+        models = sorted((sub for sub in folder.iterdir() if sub.is_dir() and _is_model(sub)), key=_folder_order)
+    except OSError:  # (not a folder, or not readable: the error says it is no model)
+        return ""
+    if not models:
+        return ""
+    return f"; its subfolder {models[0]} holds one: pass it" + (
+        f" (or {', '.join(str(m) for m in models[1:])})" if len(models) > 1 else ""
+    )
+
+
+def _folder_order(folder: Path) -> tuple:
+    """Model folders in COLMAP's order: 0, 1, ..., 10 (numbers by value), then other names."""
+    return (0, int(folder.name), "") if folder.name.isdigit() else (1, 0, folder.name)
 
 
 def _by_id(records: list, key: str, what: str) -> dict:
@@ -547,6 +575,50 @@ def camera_intrinsics(camera: _Record) -> CameraIntrinsics:
     return CameraIntrinsics(intrinsics_matrix(fx, fy, cx, cy), int(camera.width), int(camera.height))
 
 
+def _image_size(path: Path) -> tuple[int, int] | None:
+    """(w, h) of an image file from its header, None when it cannot be read (reading it names the problem)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except Exception:  # PIL raises many types for damaged or unknown files
+        return None
+
+
+def _fit_to_images(model_dir: Path, images_dir: Path, images: list, intrinsics: dict) -> dict:
+    """``intrinsics`` (by camera id), each scaled to its camera's images where they are all one size that is the
+    camera's divided by one whole factor (w and h within 1 px of it rounded: Mip-NeRF 360's ``images_2`` beside a
+    full-size model), as nerfstudio scales them: fx, cx by the images' w / the camera's, fy, cy by h / its h. Any
+    other size stays the camera's (and reading the image names the mismatch)."""
+    fitted = dict(intrinsics)
+    for cid, intr in intrinsics.items():
+        sizes = {_image_size(images_dir / img.name) for img in images if img.camera_id == cid}
+        if len(sizes) != 1 or None in sizes or sizes == {(intr.width, intr.height)}:
+            continue
+        ((w, h),) = sizes
+        factor = round(intr.width / w)
+        if factor < 2 or abs(w - round(intr.width / factor)) > 1 or abs(h - round(intr.height / factor)) > 1:
+            continue
+        sx, sy = w / intr.width, h / intr.height
+        fitted[cid] = CameraIntrinsics(np.diag([sx, sy, 1.0]) @ intr.K, w, h)
+        log.info(
+            "%s: camera %d is %dx%d and its images in %s are %dx%d, 1/%d of it: its fx, cx are scaled by %.6g and "
+            "fy, cy by %.6g",
+            model_dir,
+            cid,
+            intr.width,
+            intr.height,
+            images_dir,
+            w,
+            h,
+            factor,
+            sx,
+            sy,
+        )
+    return fitted
+
+
 def _dataset_name(model_dir: Path) -> str:
     """``garden`` for ``.../garden/sparse/0``: the first folder up that is not ``sparse`` or a model number."""
     for part in (model_dir.resolve(), *model_dir.resolve().parents):
@@ -562,6 +634,10 @@ def import_colmap(
 
     ``scale`` multiplies translations (COLMAP's scale is arbitrary; the scene
     claims metres). ``test_every = 0`` puts every image in the train split.
+    Images that are a camera's size divided by a whole factor (a downscaled
+    folder) get its intrinsics scaled to them (:func:`_fit_to_images`). The
+    model's 3D points, scaled alike, become the scene's sparse points
+    (``SceneWriter.set_sparse_points``), which the initialisation starts from.
     ``out`` is claimed as the ``--out`` of a writing command (``datasets.outputs``). Returns ``out``.
     """
     model_dir, images_dir, out = Path(model_dir), Path(images_dir), Path(out)
@@ -585,6 +661,7 @@ def import_colmap(
             f"image {missing[0].image_id}: {images_dir / missing[0].name} does not exist{more}; "
             "--images must be the folder the NAMEs are relative to"
         )
+    intrinsics = _fit_to_images(model_dir, images_dir, images, intrinsics)
     splits = hold_out(len(images), test_every, model_dir, "images", "images")
     with new_import(
         out,
@@ -606,4 +683,7 @@ def import_colmap(
             T_world_cam[:3, 3] *= scale
             # an alpha channel, if any, is dropped
             writer.add_frame(composite(rgba[:, :, :3], (0, 0, 0)), T_world_cam, split=split, intrinsics=intr)
+        if model.points:  # in the scene's world: COLMAP's, its translations scaled as the poses' are
+            xyz = scale * np.array([point.xyz for point in model.points])
+            writer.set_sparse_points(xyz, np.array([point.rgb for point in model.points], np.uint8))
     return out

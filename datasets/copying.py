@@ -79,5 +79,7 @@ def copy_scene(
             writer.set_gt_mesh(gt_mesh)
         if scene.gt_points_path is not None:
             writer.set_gt_points(scene.gt_points())
+        if scene.sparse_points_path is not None:
+            writer.set_sparse_points(*scene.sparse_points())
         writer.finish()
     return dst

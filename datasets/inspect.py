@@ -13,7 +13,7 @@ from tacsplat.errors import SceneFormatError, UsageError
 from tacsplat.files import atomic_write, check_out_folder
 
 from .reader import check_scene, not_a_scene
-from .records import MOTION_PHASES, SPLITS, sensor_to_json
+from .records import MOTION_PHASES, SPARSE_POINTS, SPLITS, sensor_to_json
 from .writer import JOURNAL
 
 
@@ -60,6 +60,7 @@ def summarise(path) -> dict:
             "points": scene and scene.gt_points_file,
             "depth_maps": len(scene.gt_depth_files) if scene else 0,
         },
+        "sparse_points": len(scene.sparse_points()[0]) if scene and scene.sparse_points_file else 0,
         "annotations": sorted(scene.annotations) if scene else [],
         "journal": (path / JOURNAL).is_file(),
         "problems": [str(e) for e in errors],
@@ -113,6 +114,8 @@ def format_summary(summary: dict) -> str:
     gt = summary["gt"]
     points = f", points: {gt['points']}" if gt["points"] else ""
     lines.append(f"gt        mesh: {gt['mesh'] or 'none'}{points}, depth maps: {gt['depth_maps']}")
+    if summary["sparse_points"]:
+        lines.append(f"points    {summary['sparse_points']} sparse points ({SPARSE_POINTS}), where training starts")
     if summary["annotations"]:
         lines.append("annotated " + ", ".join(summary["annotations"]))
     problems = summary["problems"]

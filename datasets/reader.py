@@ -43,6 +43,7 @@ from .records import (
     intrinsics_from_json,
     normal_map_problem,
     pose_problem,
+    sparse_points_problem,
     touch_depth_limit,
 )
 from .writer import JOURNAL, journaled_state
@@ -196,6 +197,24 @@ def load_points_ply(path: Path, problems: _Problems, field: str) -> np.ndarray:
     return points
 
 
+def load_sparse_points(path: Path, problems: _Problems, field: str) -> tuple[np.ndarray, np.ndarray]:
+    """The sparse points [N, 3] (float64, metres) and their colours [N, 3] (uint8 RGB) of the PLY file the writer
+    wrote (``SceneWriter.set_sparse_points``), checked."""
+    from plyfile import PlyData
+
+    if not path.is_file():
+        problems.report(path, None, "sparse points file missing")
+    try:
+        vertex = PlyData.read(str(path))["vertex"]
+        points = np.stack([vertex[axis] for axis in "xyz"], axis=1).astype(np.float64)
+        colors = np.stack([vertex[channel] for channel in ("red", "green", "blue")], axis=1)
+    except Exception as exc:  # plyfile and numpy raise many types for damaged files
+        problems.report(path, field, f"unreadable PLY of points (vertex x y z red green blue): {_first_line(exc)}")
+    if problem := sparse_points_problem(points, colors):
+        problems.report(path, field, problem)
+    return points, colors
+
+
 def load_mesh_ply(path: Path, problems: _Problems, field: str):
     """The ground-truth mesh (trimesh) of a PLY file (``gt/mesh.ply``), checked non-empty and finite."""
     import trimesh
@@ -272,6 +291,7 @@ class Scene:
     gt_mesh_file: str | None = None
     gt_points_file: str | None = None
     annotations: dict = field(default_factory=dict)  # scene.json's: what the capture recorded beside its records
+    sparse_points_file: str | None = None  # an import's SfM points (records.SPARSE_POINTS), None without them
 
     @classmethod
     def load(cls, path, check_files: bool = True) -> "Scene":
@@ -314,6 +334,18 @@ class Scene:
     def gt_points(self) -> np.ndarray | None:
         """The ground-truth point cloud [N, 3] in metres (:attr:`gt_points_path`), or None."""
         return None if self.gt_points_path is None else load_points_ply(self.gt_points_path, STRICT, "gt.points")
+
+    @property
+    def sparse_points_path(self) -> Path | None:
+        """The scene's sparse points (an import's SfM points, in the world frame), or None."""
+        return None if self.sparse_points_file is None else self.path / self.sparse_points_file
+
+    def sparse_points(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The sparse points [N, 3] float64 metres and their colours [N, 3] uint8 RGB (:attr:`sparse_points_path`),
+        or None in a scene without them."""
+        if self.sparse_points_path is None:
+            return None
+        return load_sparse_points(self.sparse_points_path, STRICT, "sparse_points")
 
     # --- data ---------------------------------------------------------------------------------
 
@@ -472,13 +504,15 @@ def not_a_scene(path: Path) -> str | None:
 def _read_scene(path: Path, problems: _Problems, check_files: bool) -> Scene:
     if why := not_a_scene(path):
         problems.report(path, None, why)
-    meta, version, gt, annotations = problems.attempt(_read_scene_json, path, problems) or (None, "", {}, {})
+    read = problems.attempt(_read_scene_json, path, problems)
+    meta, version, gt, annotations, sparse = read or (None, "", {}, {}, None)
     frames, declared_ids = problems.attempt(_read_frames, path, problems, check_files) or ([], set())
     sensor, touches = _read_touches(path, problems, check_files)
     if meta is None:
         raise _Dropped
     scene = Scene(path, frames, touches, sensor, meta, tacsplat_version=version, annotations=annotations)
     _read_gt(scene, gt, declared_ids, problems, check_files)
+    _read_sparse_points(scene, sparse, problems, check_files)
     _check_complete(scene, problems)
     return scene
 
@@ -514,6 +548,8 @@ def _check_complete(scene: Scene, problems: _Problems) -> None:
                 problems.note(journal, "annotations", f"records other annotations than scene.json holds: {resume}")
             elif gt != (scene.gt_mesh_file, scene.gt_points_file, scene.gt_depth_files) and not problems.errors:
                 problems.note(journal, "gt", f"records other ground truth than scene.json holds: {resume}")
+            elif journaled.sparse_points != scene.sparse_points_file and not problems.errors:
+                problems.note(journal, "sparse_points", f"records other sparse points than scene.json holds: {resume}")
     if not problems.errors:
         _check_twin_ground_truth(scene, problems)
     index = scene.path / "transforms.json"
@@ -544,8 +580,9 @@ def _check_twin_ground_truth(scene: Scene, problems: _Problems) -> None:
         )
 
 
-def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta, str, dict, dict]:
-    """Provenance, tacsplat version, ground truth and annotations (none in a scene older than them)."""
+def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta, str, dict, dict, object]:
+    """Provenance, tacsplat version, ground truth, annotations and the sparse points' file as scene.json holds it
+    (none in a scene older than them)."""
     index = path / "scene.json"
     data = _read_json(index, problems)
     version, name = data.get("format_version", FORMAT_VERSION), data.get("object")
@@ -571,7 +608,7 @@ def _read_scene_json(path: Path, problems: _Problems) -> tuple[SceneMeta, str, d
         raise _Dropped
     meta = SceneMeta(**{key: data[key] for key in ("source", "object", "capture_plan", "extra") if key in data})
     gt, annotations = ({} if key in bad else data.get(key) or {} for key in ("gt", "annotations"))
-    return meta, str(data.get("tacsplat_version", "")), gt, annotations
+    return meta, str(data.get("tacsplat_version", "")), gt, annotations, data.get("sparse_points")
 
 
 def _read_frames(path: Path, problems: _Problems, check_files: bool) -> tuple[list[Frame], set[int]]:
@@ -727,6 +764,18 @@ def _read_touch(
                 f"says {in_contact} but the depth map {'has' if (depth > 0).any() else 'has no'} contact",
             )
     return Touch(tid, grasp, finger, raw["depth_file"], T, in_contact, hand_file)
+
+
+def _read_sparse_points(scene: Scene, rel, problems: _Problems, check_files: bool) -> None:
+    """scene.json's ``sparse_points`` (None: a scene without them), its file checked with ``check_files``."""
+    if rel is None:
+        return
+    index = scene.path / "scene.json"
+    path = problems.attempt(_relative_file, scene.path, rel, index, "sparse_points", problems)
+    if path is not None and (
+        not check_files or problems.attempt(load_sparse_points, path, problems, "sparse_points") is not None
+    ):
+        scene.sparse_points_file = rel
 
 
 def _read_gt(scene: Scene, gt: dict, declared_ids: set[int], problems: _Problems, check_files: bool) -> None:

@@ -28,6 +28,8 @@ MAX_IMAGE_SIDE = 65536  # pixels per image or tactile map side
 FIELD_OF_VIEW_DEG = (0.01, 170.0)  # of a pinhole camera, per axis
 MAX_INDENTATION_GELS = 10.0  # an indentation deeper than 10 gel thicknesses is no touch
 GT_DEPTH_LIMIT = (MAX_DISTANCE_M, "any scene")  # depth_problem's (deepest value, why) for ground-truth depth
+# A scene's sparse points (an import's COLMAP points3D, in the world frame): the initialisation's SfM points
+SPARSE_POINTS = "points3D.ply"
 
 
 def is_finite_number(x) -> bool:
@@ -118,6 +120,17 @@ def normal_map_problem(normal: np.ndarray, shape: tuple[int, int]) -> str | None
     length = np.linalg.norm(normal, axis=-1)
     if not np.all((np.abs(length - 1) < 1e-3) | (length == 0)):
         return "expected unit vectors, or zeros where there is no surface"
+    return None
+
+
+def sparse_points_problem(points: np.ndarray, colors: np.ndarray) -> str | None:
+    """Why ``points`` [N, 3] and ``colors`` [N, 3] uint8 are not a scene's sparse points (``SPARSE_POINTS``)."""
+    if points.ndim != 2 or points.shape[1:] != (3,) or not len(points):
+        return f"expected a non-empty [N, 3] point cloud, got shape {points.shape}"
+    if colors.shape != points.shape or colors.dtype != np.uint8:
+        return f"expected uint8 colours {points.shape} (RGB per point), got {colors.dtype} {colors.shape}"
+    if not np.isfinite(points).all():
+        return f"{int((~np.isfinite(points).all(axis=1)).sum())} points are not finite (NaN or inf)"
     return None
 
 

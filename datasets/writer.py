@@ -61,6 +61,7 @@ from .records import (
     FORMAT_NAME,
     FORMAT_VERSION,
     GT_DEPTH_LIMIT,
+    SPARSE_POINTS,
     SPLITS,
     Frame,
     HandMotion,
@@ -77,6 +78,7 @@ from .records import (
     intrinsics_to_json,
     normal_map_problem,
     sensor_to_json,
+    sparse_points_problem,
     touch_depth_limit,
     touch_to_json,
 )
@@ -224,6 +226,7 @@ class SceneWriter(AbstractContextManager):
         self.gt_depth_files: dict[int, str] = {}  # frame id -> the path in the scene of its ground-truth depth
         self.gt_mesh: str | None = None  # the ground-truth mesh's path in the scene (gt/mesh.ply), once set
         self.gt_points: str | None = None  # the ground-truth point cloud's path in the scene (gt/points.ply), once set
+        self.sparse_points: str | None = None  # the sparse points' path in the scene (SPARSE_POINTS), once set
         self.annotations: dict = {}  # key -> plain JSON value, the latest recorded; read it, change it by annotate
         self._order: list[tuple[str, int]] = []  # live records, oldest first, for remove_last
         self._journal = None
@@ -361,7 +364,7 @@ class SceneWriter(AbstractContextManager):
         ground truth)."""
         files = {path for f in self.frames for path in (f.file_path, f.mask_path)} | set(self.gt_depth_files.values())
         files |= {path for t in self.touches for path in (t.depth_file, t.hand_file)}
-        return files.union([self.gt_mesh, self.gt_points]) - {None}
+        return files.union([self.gt_mesh, self.gt_points, self.sparse_points]) - {None}
 
     def _remove_leftovers(self) -> int:
         """Delete temporary files and record files no journal record refers to (a crash's in-flight record,
@@ -415,7 +418,7 @@ class SceneWriter(AbstractContextManager):
             (self.frames if kind == "frame" else self.touches).pop()
             if kind == "frame":
                 self.gt_depth_files.pop(rid, None)
-        elif op in ("gt_mesh", "gt_points"):
+        elif op in ("gt_mesh", "gt_points", "sparse_points"):
             setattr(self, op, entry["path"])
         elif op == "annotation":
             key = entry["key"]
@@ -501,6 +504,8 @@ class SceneWriter(AbstractContextManager):
                 "depth": {str(k): v for k, v in sorted(self.gt_depth_files.items())},
             },
             "annotations": self.annotations,
+            # (only in a scene that has them: the scene.json of every other scene stays as it was)
+            **({"sparse_points": self.sparse_points} if self.sparse_points else {}),
         }
 
     # --- records ------------------------------------------------------------------------------
@@ -638,6 +643,26 @@ class SceneWriter(AbstractContextManager):
         if not np.isfinite(points).all():
             raise InvalidInputError("points: contain NaN or infinite values")
         return self._set_gt("points", trimesh.PointCloud(points).export(file_type="ply"))
+
+    def set_sparse_points(self, points: np.ndarray, colors: np.ndarray) -> Path:
+        """Store the scene's sparse points [N, 3] (metres, world frame) and their colours [N, 3] uint8 RGB as
+        :data:`SPARSE_POINTS`, a binary PLY (float64 x y z, uchar red green blue): an import's SfM points, which
+        the initialisation starts from instead of triangulating its own."""
+        from plyfile import PlyData, PlyElement
+
+        points, colors = np.asarray(points, dtype=np.float64), np.asarray(colors)
+        if problem := sparse_points_problem(points, colors):
+            raise InvalidInputError(f"sparse points: {problem}")
+        vertex = np.empty(len(points), [(a, "<f8") for a in "xyz"] + [(c, "u1") for c in ("red", "green", "blue")])
+        for k, axis in enumerate("xyz"):
+            vertex[axis] = points[:, k]
+        for k, channel in enumerate(("red", "green", "blue")):
+            vertex[channel] = colors[:, k]
+        buf = io.BytesIO()
+        PlyData([PlyElement.describe(vertex, "vertex")]).write(buf)
+        atomic_write_bytes(self.path / SPARSE_POINTS, buf.getvalue())
+        self._record({"op": "sparse_points", "path": SPARSE_POINTS})
+        return self.path / SPARSE_POINTS
 
     def _set_gt(self, kind: str, ply: bytes) -> Path:
         """Store the ground truth ``kind`` ("mesh" or "points") as ``gt/<kind>.ply`` and record it."""

@@ -1,10 +1,13 @@
 """Initial Gaussians (paper Sec. 4.1): G_c from SfM points triangulated with the known poses, G_t on touch points.
 
-SfM is pycolmap's: SIFT features, exhaustive matching, and point triangulation
-into a reconstruction built from the scene's known cameras (no pose
-estimation). Glossy objects seen in few views often give almost no points, so
-when fewer than ``min_sfm_points`` come back, random points are drawn in the
-scene bounds instead; nothing here crashes on a featureless scene.
+A scene with sparse points (an import's COLMAP points3D, ``Scene.sparse_points``)
+starts from them, as 3DGS does, when there are at least ``min_sfm_points``
+(``Trainer._sfm``); otherwise SfM is pycolmap's: SIFT features, exhaustive
+matching, and point triangulation into a reconstruction built from the
+scene's known cameras (no pose estimation). Glossy objects seen in few views
+often give almost no points, so when fewer than ``min_sfm_points`` come back,
+random points are drawn in the scene bounds instead; nothing here crashes on a
+featureless scene.
 """
 
 from __future__ import annotations
@@ -31,9 +34,10 @@ class InitConfig:
     """Initialisation settings."""
 
     use_sfm: bool = True
-    """run pycolmap; False -> random points only"""
+    """start from the scene's sparse points, or run pycolmap; False -> random points only"""
     min_sfm_points: int = 100
-    """fewer SfM points than this -> random points in the bounds"""
+    """fewer of the scene's sparse points than this -> run pycolmap; fewer SfM points -> random points in the
+    bounds"""
     num_random_points: int = 2000
     """how many random points replace a failed SfM"""
     use_silhouette_hull: bool = True

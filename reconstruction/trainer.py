@@ -5,11 +5,12 @@ lambda_s L_S (Eq. 8, masked near visible touches) + lambda_backdrop times the
 alpha on pixels that show the fitted smooth backdrop (not in the paper; see
 :func:`losses.backdrop_alpha_loss`). L_S acts by default on the expected depth
 inside the object's silhouette rather than on Eq. 5's accumulated depth
-(``smoothness_depth``). When SfM finds too few points, the initial G_c lie on
-the visual hull of the silhouettes. Renders are composited over each view's
-backdrop (a constant, or a smooth fit to the image border). What a scene does
-not need is not computed: no touches -> no G_t, no neighbour search, no L_T;
-lambda_s = 0 -> RGB-only renders.
+(``smoothness_depth``). The initial G_c are the scene's sparse points where it
+has enough (an import's COLMAP points), else SfM's; when SfM finds too few
+points, they lie on the visual hull of the silhouettes. Renders are composited
+over each view's backdrop (a constant, or a smooth fit to the image border).
+What a scene does not need is not computed: no touches -> no G_t, no neighbour
+search, no L_T; lambda_s = 0 -> RGB-only renders.
 
 :func:`reconstruct` is the job: it claims the run directory (a new or empty
 folder; an earlier run only with ``resume`` or ``overwrite``, and never a
@@ -49,6 +50,7 @@ from tacsplat.reconstruction.evaluation import (
 )
 from tacsplat.reconstruction.gaussians import PARAM_NAMES, Gaussians, rgb_to_sh0
 from tacsplat.reconstruction.initialization import (
+    SfmResult,
     foreground_mask,
     initial_gaussians,
     random_points,
@@ -296,12 +298,12 @@ class Trainer:
                     "view): it is left out of the visual hull, and training makes everything in its view transparent",
                     self.scene.path / frame.file_path,
                 )
-        sfm = sfm_points(images, *self._cameras(), cfg.init, cfg.seed) if cfg.init.use_sfm else None
+        sfm, what = self._sfm(images) if cfg.init.use_sfm else (None, "")
         found = 0 if sfm is None else len(sfm.points)
         sfm_found = sfm is not None and found >= cfg.init.min_sfm_points
         if sfm_found:
             points, colors = sfm.points, sfm.colors
-            log.info("initialisation: %d SfM points", found)
+            log.info("initialisation: %d %s", found, what)
         else:
             points, colors, where = self._fallback_points()
             message = "initialisation: %d SfM points (< %d): %d random points %s"
@@ -320,6 +322,19 @@ class Trainer:
         self.gaussians = gaussians.to(self.device)
         self._make_optimizers()
         self.densify_state = cfg.densify.initialize_state(len(self.gaussians), self.scene_scale, self.device)
+
+    def _sfm(self, images: list[np.ndarray]) -> tuple[SfmResult, str]:
+        """The SfM points G_c start from, and what they are: the scene's sparse points (an import's COLMAP points)
+        when it has at least ``min_sfm_points``, else points triangulated from the training ``images``."""
+        init = self.config.init
+        if (sparse := self.scene.sparse_points()) is not None:
+            count, where = len(sparse[0]), self.scene.sparse_points_file
+            if count >= init.min_sfm_points:
+                return SfmResult(sparse[0], sparse[1] / 255.0), f"sparse points from the scene ({where})"
+            log.info(
+                "the scene's %d sparse points (%s) are fewer than %d: triangulating", count, where, init.min_sfm_points
+            )
+        return sfm_points(images, *self._cameras(), init, self.config.seed), "SfM points"
 
     def _check_in_view(self, means: np.ndarray) -> None:
         """A SceneFormatError when no initial Gaussian (``means`` [N, 3]) lies inside a training view beyond the
