@@ -4,10 +4,15 @@ The layout: ``transforms_train.json``, ``transforms_val.json`` and
 ``transforms_test.json`` beside the image folders, each with the horizontal
 field of view ``camera_angle_x`` (radians; square pixels, centred principal
 point) and ``frames`` whose ``file_path`` usually has no extension
-(``./train/r_0`` means ``train/r_0.png``) and whose ``transform_matrix`` is an
-OpenGL camera-to-world pose. Images are RGBA with a transparent background,
-composited here onto a chosen colour (straight alpha). Other per-frame keys
-(``rotation``) are ignored.
+(``./train/r_0`` means ``train/r_0.png``, see :func:`image_path`) and whose
+``transform_matrix`` is an OpenGL camera-to-world pose. Explicit intrinsics
+(``fl_x fl_y cx cy w h``, and ``camera_angle_y``: the BlenderNeRF add-on writes
+them, and a lens shift moves ``cx cy``) win over ``camera_angle_x``, at the top
+level or per frame, read as nerfstudio's ``transforms.json`` is
+(:func:`read_intrinsics`); ``w`` and ``h`` must be the image's size, and lens
+distortion is refused. Images are RGBA with a transparent background, composited
+here onto a chosen colour (straight alpha). Other per-frame keys (``rotation``)
+are ignored.
 
 Shiny Blender (Ref-NeRF) ships a disparity map beside each image,
 ``r_N_disp.tiff``: 16 bits, whose first channel as OpenCV reads it (as the
@@ -28,7 +33,9 @@ from __future__ import annotations
 
 import json
 import reprlib
+from collections.abc import Callable
 from pathlib import Path
+from typing import NoReturn
 
 import cv2
 import numpy as np
@@ -38,11 +45,13 @@ from tacsplat.geometry import focal_from_fov, intrinsics_matrix, opengl_to_openc
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
+from .records import as_size, camera_problem, is_finite_number
 from .writer import new_import
 
 BACKGROUNDS = {"white": (255, 255, 255), "black": (0, 0, 0)}
 GT_POINTS_PER_VIEW = 5000  # cd_paper's ground truth: pixels back-projected per train view (the official code's)
 GT_MAX_DISTANCE = 14.5  # dataset units: farther from the camera is background (the official code's filter)
+LENS_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")  # nerfstudio's distortion, which this importer does not undistort
 
 
 def parse_background(text: str) -> tuple[int, int, int]:
@@ -132,18 +141,33 @@ def read_rgba(
     return np.concatenate([color, img[:, :, 1:2] if img.shape[2] == 2 else img[:, :, 3:4]], axis=2)
 
 
-def composite(rgba: np.ndarray, background_rgb) -> np.ndarray:
-    """Straight-alpha ``rgb * a + background * (1 - a)`` as uint8 RGB [H, W, 3]."""
+def over_background(rgba: np.ndarray, background_rgb) -> np.ndarray:
+    """Straight-alpha ``rgb * a + background * (1 - a)`` as float RGB [H, W, 3] in [0, 1] (RGB without alpha as it
+    is; an alpha of 1 leaves it exactly as it is too)."""
     rgb = rgba[:, :, :3]
     if rgba.shape[2] == 4:
         a = rgba[:, :, 3:4]
         rgb = rgb * a + (np.asarray(background_rgb, dtype=np.float64) / 255.0) * (1.0 - a)
-    return np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8)
+    return rgb
 
 
-def _image_path(src: Path, file_path: str) -> Path:
-    p = src / file_path
-    return p if p.suffix.lower() in (".png", ".jpg", ".jpeg", ".exr") else p.with_name(p.name + ".png")
+def composite(rgba: np.ndarray, background_rgb) -> np.ndarray:
+    """:func:`over_background` as uint8 RGB [H, W, 3]."""
+    return np.clip(np.rint(over_background(rgba, background_rgb) * 255.0), 0, 255).astype(np.uint8)
+
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")  # what a file_path without one may name, tried in this order
+
+
+def image_path(folder: Path, file_path: str) -> Path:
+    """The image a NeRF-style ``file_path`` relative to ``folder`` names: the file as written when it exists or ends
+    in an image suffix, else the first that exists of it with one of IMAGE_SUFFIXES appended (NeRF synthetic's
+    ``./train/r_0`` is ``train/r_0.png``; instant-ngp resolves it so), else the ``.png`` one."""
+    p = folder / file_path
+    if p.suffix.lower() in IMAGE_SUFFIXES or p.is_file():
+        return p
+    found = (p.with_name(p.name + suffix) for suffix in IMAGE_SUFFIXES)
+    return next((c for c in found if c.is_file()), p.with_name(p.name + ".png"))
 
 
 def disparity_path(image_path: Path) -> Path:
@@ -187,13 +211,76 @@ def read_index(index: Path, missing: str) -> dict:
     return data
 
 
-def _read_split(src: Path, name: str) -> tuple[Path, float, list[dict]]:
+def _read_split(src: Path, name: str) -> tuple[Path, dict]:
     index = src / f"transforms_{name}.json"
     data = read_index(index, "expected a Blender/NeRF-synthetic dataset folder")
     angle = data.get("camera_angle_x")
     if isinstance(angle, bool) or not isinstance(angle, (int, float)) or not 0 < angle < np.pi:
         raise SceneFormatError(index, "camera_angle_x", f"expected a field of view in (0, pi) radians, got {angle!r}")
-    return index, float(angle), data["frames"]
+    return index, data
+
+
+def transforms_value(key: str, data: dict, raw: dict, field: str, default=None) -> tuple:
+    """``key``'s value for frame ``raw`` (named ``field``, ``frames[3]``) of a NeRF-style transforms file whose top
+    level is ``data``: the top level's (it wins, as in nerfstudio), else the frame's, else ``default``; (value, the
+    field it is in)."""
+    if key in data:
+        return data[key], key
+    return raw.get(key, default), f"{field}.{key}"
+
+
+def read_intrinsics(
+    data: dict, raw: dict, field: str, index: Path, image_size: Callable[[], tuple[int, int]]
+) -> tuple[float, float, float, float, int, int]:
+    """Frame ``raw``'s pinhole ``(fx, fy, cx, cy, w, h)`` in the NeRF-style transforms file ``index``, each where
+    :func:`transforms_value` finds it: ``fl_x`` and ``fl_y``, else the fields of view ``camera_angle_x`` and
+    ``camera_angle_y`` (radians), fy defaulting to fx; ``cx`` and ``cy``, the centre by default; ``w`` and ``h``
+    (whole floats too, as instant-ngp writes them), ``image_size()`` by default. A SceneFormatError naming the
+    field for a camera the scene format cannot hold."""
+
+    def value(key: str, default=None):
+        return transforms_value(key, data, raw, field, default)[0]
+
+    def refuse(key: str, why: str) -> NoReturn:
+        raise SceneFormatError(index, transforms_value(key, data, raw, field)[1], why)
+
+    size = {key: value(key) for key in ("w", "h")}
+    if None in size.values():  # the image's size
+        default = image_size()
+        size = {key: default[axis] if size[key] is None else size[key] for axis, key in enumerate(size)}
+    for key, side in size.items():
+        if as_size(side) is None:
+            refuse(key, f"expected a whole number of pixels (1080 or 1080.0), got {side!r}")
+    w, h = as_size(size["w"]), as_size(size["h"])
+    focal = {}
+    for key, angle_key, side in (("fl_x", "camera_angle_x", w), ("fl_y", "camera_angle_y", h)):
+        focal[key], angle = value(key), value(angle_key)
+        if focal[key] is None and angle is not None:
+            if not is_finite_number(angle) or not 0 < angle < np.pi:
+                refuse(angle_key, f"expected a field of view in (0, pi) radians, got {angle!r}")
+            focal[key] = focal_from_fov(float(angle), side)
+    fx, fy = focal["fl_x"], focal["fl_x"] if focal["fl_y"] is None else focal["fl_y"]
+    cx, cy = value("cx", w / 2), value("cy", h / 2)
+    if problem := camera_problem(fx, fy, cx, cy, w, h):
+        refuse(*problem)
+    return float(fx), float(fy), float(cx), float(cy), w, h
+
+
+def _camera(index: Path, data: dict, i: int, default_size: tuple[int, int]) -> CameraIntrinsics:
+    """Frame ``i``'s camera (:func:`read_intrinsics`, ``default_size`` without w and h); a SceneFormatError naming
+    the field of a non-zero distortion coefficient."""
+    raw, field = data["frames"][i], f"frames[{i}]"
+    fx, fy, cx, cy, w, h = read_intrinsics(data, raw, field, index, lambda: default_size)
+    for key in LENS_KEYS:
+        k, where = transforms_value(key, data, raw, field, 0)
+        if k != 0:
+            raise SceneFormatError(
+                index,
+                where,
+                f"{key} = {k!r}: lens distortion, which import blender does not undistort; undistort the images first "
+                "(or import the file with tacsplat import nerfstudio, which does)",
+            )
+    return CameraIntrinsics(intrinsics_matrix(fx, fy, cx, cy), w, h)
 
 
 def frame_file_path(index: Path, frames: list, i: int) -> str:
@@ -240,24 +327,20 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
     check_options(scale)
     splits = [("train", *_read_split(src, "train")), ("test", *_read_split(src, test_split))]
 
-    # The image size comes from the first image; every split shares it.
-    first_image = _image_path(src, frame_file_path(splits[0][1], splits[0][3], 0))
-    height, width = read_rgba(first_image, f"{splits[0][1].name} frames[0]").shape[:2]
+    # A camera without w and h has the first image's size; every image must have its camera's.
+    first_image = image_path(src, frame_file_path(splits[0][1], splits[0][2]["frames"], 0))
+    first_size = read_rgba(first_image, f"{splits[0][1].name} frames[0]").shape[1::-1]
 
-    def intrinsics_for(angle: float) -> CameraIntrinsics:
-        f = focal_from_fov(angle, width)
-        return CameraIntrinsics(intrinsics_matrix(f, f, width / 2.0, height / 2.0), width, height)
-
-    first_test = _image_path(src, frame_file_path(splits[1][1], splits[1][3], 0))
+    first_test = image_path(src, frame_file_path(splits[1][1], splits[1][2]["frames"], 0))
     with_depth = disparity_path(first_test).is_file()  # Shiny Blender: every view has its disparity map
     ground_truth = "disparity maps (*_disp.tiff): test views' depth, train views' points"
     rng = np.random.default_rng(0)  # the ground-truth points' pixels
     gt_points = []
-    total = sum(len(frames) for *_, frames in splits)
+    total = sum(len(data["frames"]) for *_, data in splits)
     with (
         new_import(
             out,
-            intrinsics_for(splits[0][2]),
+            _camera(*splits[0][1:], 0, first_size),
             "blender",
             src,
             None,
@@ -268,22 +351,25 @@ def import_blender(src, out, background_rgb=(255, 255, 255), test_split: str = "
         ) as writer,
         progress_bar(total=total, desc=f"import {src.name}", unit="frame") as progress,
     ):
-        for split, index, angle, frames in splits:
-            intr = intrinsics_for(angle)
+        for split, index, data in splits:
+            frames = data["frames"]
             for i, raw in enumerate(frames):
                 field = f"frames[{i}]"
-                image_path = _image_path(src, frame_file_path(index, frames, i))
-                rgba = read_rgba(image_path, f"{index.name} {field}", (width, height), first_image.name)
+                path = image_path(src, frame_file_path(index, frames, i))
+                intr = _camera(index, data, i, first_size)
+                sized = any(key in data or key in raw for key in ("w", "h"))  # else the first image's size
+                size_of = f"its camera (w x h in {index.name})" if sized else first_image.name
+                rgba = read_rgba(path, f"{index.name} {field}", (intr.width, intr.height), size_of)
                 pose = pose_from_opengl(raw.get("transform_matrix"), index, f"{field}.transform_matrix")
                 pose[:3, 3] *= scale
                 gt_depth = gt_normal = None
                 if with_depth:
-                    depth = scale * read_disparity_depth(disparity_path(image_path), (height, width), field)
+                    depth = scale * read_disparity_depth(disparity_path(path), (intr.height, intr.width), field)
                     if split == "train":
                         gt_points.append(_sample_points(depth, intr.K, pose, GT_MAX_DISTANCE * scale, rng))
                     else:
                         gt_depth = depth.astype(np.float32)
-                        normal_path = image_path.with_name(image_path.stem + "_normal.png")
+                        normal_path = path.with_name(path.stem + "_normal.png")
                         gt_normal = read_normal_map(normal_path, depth, field) if normal_path.is_file() else None
                 writer.add_frame(composite(rgba, background_rgb), pose, split, gt_depth, intr, gt_normal=gt_normal)
                 progress.update()

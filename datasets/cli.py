@@ -20,6 +20,7 @@ class ImportBlender:
 
     Convert SRC (transforms_train.json, transforms_val.json, transforms_test.json and their RGBA images) into a
     scene directory: images composited onto the background colour, OpenGL poses converted to the scene format, the
+    focal length from camera_angle_x unless fl_x fl_y cx cy w h (top level or per frame) give the camera, the
     train split from transforms_train.json and the test split from the file chosen by --test-split. Shiny
     Blender's disparity maps (r_N_disp.tiff) become the ground truth: the test views' depth and the train views'
     points, as the paper evaluates (the paper's code composites onto black: --background black)."""
@@ -65,12 +66,14 @@ class ImportColmap:
 
     Convert the COLMAP sparse model SRC (a folder with cameras/images/points3D .txt or .bin, such as sparse/0)
     into a scene directory. Cameras must be PINHOLE or SIMPLE_PINHOLE (or SIMPLE_RADIAL, RADIAL, OPENCV with zero
-    distortion): run `colmap image_undistorter` first otherwise."""
+    distortion): run `colmap image_undistorter` first otherwise. Images of a downscaled folder (images_2 beside a
+    full-size model) get their camera's intrinsics scaled to them. The model's 3D points become the scene's sparse
+    points (points3D.ply), which `tacsplat reconstruct` starts from."""
 
     src: tyro.conf.Positional[Path]
     """COLMAP sparse model folder"""
     images: Path
-    """folder the model's image names are relative to"""
+    """folder the model's image names are relative to (or a downscaled copy of it, such as images_2)"""
     out: Path
     """new scene directory (must not exist or be empty)"""
     test_every: int = 8
@@ -86,10 +89,10 @@ class ImportNerfstudio:
     """import a nerfstudio or instant-ngp dataset (transforms.json and its images) into a scene directory
 
     Convert SRC (a folder holding transforms.json as ns-process-data or instant-ngp write it, or the file itself)
-    into a scene directory: distorted images (OPENCV k1 k2 k3 p1 p2) undistorted onto a pinhole camera, poses
-    mapped back through applied_transform to the original world, masks (mask_path) kept, the splits from
-    train_filenames/test_filenames (val_filenames when there is no test list) or every N-th frame. Depth maps and
-    point clouds are not imported."""
+    into a scene directory: RGBA images composited onto the background colour, distorted images (OPENCV k1 k2 k3
+    p1 p2) undistorted onto a pinhole camera, poses mapped back through applied_transform to the original world,
+    masks (mask_path) kept, the splits from train_filenames/test_filenames (val_filenames when there is no test
+    list) or every N-th frame. Depth maps and point clouds are not imported."""
 
     src: tyro.conf.Positional[Path]
     """dataset folder holding transforms.json, or the transforms.json file"""
@@ -104,6 +107,8 @@ class ImportNerfstudio:
     """leave out frames whose image file is missing (with a warning) instead of refusing"""
     object: Annotated[str | None, tyro.conf.arg(metavar="STR", help_behavior_hint=_FOLDER_NAME)] = None
     """object name recorded in scene.json"""
+    background: str = "white"
+    """colour transparent pixels (an alpha channel) are composited onto: white, black or R,G,B (0-255 integers)"""
 
 
 @dataclass

@@ -3,7 +3,7 @@
 It reads what ``ns-process-data`` and instant-ngp's ``colmap2nerf.py`` write, the way nerfstudio's own data
 parser reads it:
 
-* Intrinsics ``fl_x fl_y cx cy w h`` at the top level (shared; a top-level key wins, as in nerfstudio) or per
+* Intrinsics (:func:`~tacsplat.datasets.blender.read_intrinsics`) ``fl_x fl_y cx cy w h`` at the top level (shared; a top-level key wins, as in nerfstudio) or per
   frame. ``w`` and ``h`` may be whole floats (instant-ngp writes ``1080.0``). Without ``fl_x``, instant-ngp's
   ``camera_angle_x`` (and ``camera_angle_y``) give the focal lengths; ``cx`` and ``cy`` default to the centre,
   ``w`` and ``h`` to the image's size.
@@ -24,18 +24,25 @@ parser reads it:
 * ``mask_path`` (a non-zero colour = use the pixel, an alpha channel ignored; on every frame or on none, as
   nerfstudio requires) becomes the scene's per-frame mask (``masks/``, ``mask_path`` in the scene's
   ``transforms.json``).
+* A ``file_path`` without an image suffix names the image with one (``./train/r_0`` is ``train/r_0.png``), as
+  instant-ngp resolves it (:func:`~tacsplat.datasets.blender.image_path`); ``mask_path`` is taken as written, as
+  nerfstudio takes it.
 * Frames whose image is missing are one error listing them, or with ``skip_missing`` are left out with a
   warning (and listed in scene.json).
 * ``depth_file_path`` and ``ply_file_path`` are not imported (training reads neither): a warning, and
   ``extra.not_imported`` in scene.json.
 
-Images are stored as RGB PNG (an alpha channel is dropped, as the COLMAP importer does).
+Images are stored as RGB PNG. An alpha channel (straight alpha) is composited onto ``background_rgb`` (white by
+default, as ``import blender``), before any undistortion, as nerfstudio's and instant-ngp's loaders composite RGBA
+images onto a background: the colour under transparent pixels is no training data. Opaque images are stored as
+they are; a frame's ``mask_path`` stays its mask.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import NoReturn
 
@@ -44,7 +51,7 @@ import numpy as np
 from PIL import Image
 
 from tacsplat.errors import ConfigError, SceneFormatError
-from tacsplat.geometry import focal_from_fov, intrinsics_matrix, rigidity_problem
+from tacsplat.geometry import intrinsics_matrix, rigidity_problem
 from tacsplat.progress import progress_bar
 from tacsplat.types import CameraIntrinsics
 
@@ -53,12 +60,16 @@ from .blender import (
     check_readable,
     composite,
     hold_out,
+    image_path,
+    over_background,
     pose_from_opengl,
     read_index,
+    read_intrinsics,
     read_raw,
     read_rgba,
+    transforms_value,
 )
-from .records import as_size, camera_problem, is_finite_number, pose_problem
+from .records import is_finite_number, pose_problem
 from .writer import new_import
 
 log = logging.getLogger(__name__)
@@ -111,7 +122,7 @@ def _source_frames(index: Path, data: dict) -> list[_SourceFrame]:
                 index, f"frames[{i}].file_path", f"{raw['file_path']!r} again (also frames[{seen[name]}])"
             )
         seen[name] = i
-        frames.append(_SourceFrame(i, raw, name, index.parent / name))
+        frames.append(_SourceFrame(i, raw, name, image_path(index.parent, raw["file_path"])))
     return sorted(frames, key=lambda f: f.name)
 
 
@@ -147,19 +158,22 @@ def _listed(names: list[str], most: int = 5) -> str:
     return ", ".join(names[:most]) + (" ..." if len(names) > most else "")
 
 
-def _number(key: str, frame: _SourceFrame, data: dict, default=None):
-    """A top-level value (it wins, as in nerfstudio), else the frame's, else ``default``; (value, field)."""
-    if key in data:
-        return data[key], key
-    return frame.raw.get(key, default), f"{frame.field}.{key}"
+def _image_size(frame: _SourceFrame) -> tuple[int, int]:
+    """The (w, h) of the frame's image, from its header."""
+    check_readable(frame.image, frame.field)
+    try:
+        with Image.open(frame.image) as img:
+            return img.size
+    except OSError as exc:
+        raise SceneFormatError(frame.image, frame.field, f"unreadable image: {exc}") from exc
 
 
 def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
     def value(key: str, default=None):
-        return _number(key, frame, data, default)[0]
+        return transforms_value(key, data, frame.raw, frame.field, default)[0]
 
     def refuse(key: str, why: str) -> NoReturn:
-        raise SceneFormatError(index, _number(key, frame, data)[1], why)
+        raise SceneFormatError(index, transforms_value(key, data, frame.raw, frame.field)[1], why)
 
     if (model := value("camera_model", "PERSPECTIVE")) not in PERSPECTIVE_MODELS:
         refuse(
@@ -169,29 +183,7 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
         )
     if value("is_fisheye", False):
         refuse("is_fisheye", "fisheye cameras are not supported; undistort the images first")
-    size = {key: value(key) for key in ("w", "h")}
-    if None in size.values():  # the image's size
-        check_readable(frame.image, frame.field)
-        try:
-            with Image.open(frame.image) as img:
-                size = {key: img.size[axis] if size[key] is None else size[key] for axis, key in enumerate(size)}
-        except OSError as exc:
-            raise SceneFormatError(frame.image, frame.field, f"unreadable image: {exc}") from exc
-    for key, side in size.items():
-        if as_size(side) is None:
-            refuse(key, f"expected a whole number of pixels (1080 or 1080.0), got {side!r}")
-    w, h = as_size(size["w"]), as_size(size["h"])
-    focal = {}
-    for key, angle_key, side in (("fl_x", "camera_angle_x", w), ("fl_y", "camera_angle_y", h)):
-        focal[key], angle = value(key), value(angle_key)
-        if focal[key] is None and angle is not None:
-            if not is_finite_number(angle) or not 0 < angle < np.pi:
-                refuse(angle_key, f"expected a field of view in (0, pi) radians, got {angle!r}")
-            focal[key] = focal_from_fov(float(angle), side)
-    fx, fy = focal["fl_x"], focal["fl_x"] if focal["fl_y"] is None else focal["fl_y"]
-    cx, cy = value("cx", w / 2), value("cy", h / 2)
-    if problem := camera_problem(fx, fy, cx, cy, w, h):
-        refuse(*problem)
+    fx, fy, cx, cy, w, h = read_intrinsics(data, frame.raw, frame.field, index, partial(_image_size, frame))
     if (k4 := value("k4", 0.0)) != 0:
         refuse(
             "k4",
@@ -200,7 +192,7 @@ def _camera(frame: _SourceFrame, data: dict, index: Path) -> Camera:
     distortion = {key: value(key, 0.0) for key in DISTORTION_KEYS}
     if bad := next((key for key, v in distortion.items() if not is_finite_number(v)), None):
         refuse(bad, f"expected a finite number, got {distortion[bad]!r}")
-    camera = Camera(float(fx), float(fy), float(cx), float(cy), w, h, tuple(map(float, distortion.values())))
+    camera = Camera(fx, fy, cx, cy, w, h, tuple(map(float, distortion.values())))
     if problem := distortion_problem(camera):
         refuse(*problem)
     return camera
@@ -399,12 +391,19 @@ def _original_world_pose(
 
 
 def import_nerfstudio(
-    src, out, test_every: int = 8, scale: float = 1.0, skip_missing: bool = False, object_name: str | None = None
+    src,
+    out,
+    test_every: int = 8,
+    scale: float = 1.0,
+    skip_missing: bool = False,
+    object_name: str | None = None,
+    background_rgb=(255, 255, 255),
 ) -> Path:
     """Convert the nerfstudio / instant-ngp dataset ``src`` (its folder or its ``transforms.json``) into ``out``.
 
-    See the module docstring for what is read and how. ``out`` is claimed as the ``--out`` of a writing command
-    (``datasets.outputs``). Returns ``out``.
+    See the module docstring for what is read and how; ``background_rgb`` (0-255) is what transparent pixels are
+    composited onto. ``out`` is claimed as the ``--out`` of a writing command (``datasets.outputs``). Returns
+    ``out``.
     """
     src, out = Path(src), Path(out)
     check_options(scale, test_every)
@@ -441,6 +440,7 @@ def import_nerfstudio(
         index,
         object_name or index.parent.resolve().name,
         scale=scale,
+        background_rgb=list(background_rgb),
         nerfstudio_names=[f.raw["file_path"] for f in frames],
         split=split,
         **{key: value for key, value in optional.items() if value},
@@ -449,14 +449,18 @@ def import_nerfstudio(
             list(zip(frames, cameras, poses)), desc=f"import {index.parent.name}", unit="frame"
         ):
             intr, maps = tables[camera]
-            rgb = read_rgba(f.image, f.field, (camera.width, camera.height), "the camera (w x h)")
-            rgb = rgb[:, :, :3].astype(np.float32)
+            rgba = read_rgba(f.image, f.field, (camera.width, camera.height), "the camera (w x h)")
+            rgb = over_background(rgba, background_rgb).astype(np.float32)
             mask = None if "mask_path" not in f.raw else _read_mask(index.parent / f.raw["mask_path"], camera, f)
             if maps is not None:
                 rgb = cv2.remap(rgb, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 if mask is not None:
                     mask = cv2.remap(mask, *maps, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
             writer.add_frame(
-                composite(rgb, (0, 0, 0)), pose, split=f.split, intrinsics=intr, mask=None if mask is None else mask > 0
+                composite(rgb, background_rgb),
+                pose,
+                split=f.split,
+                intrinsics=intr,
+                mask=None if mask is None else mask > 0,
             )
     return out
