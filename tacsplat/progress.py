@@ -31,6 +31,7 @@ class _PlainLines:
         self.n = initial
         self.postfix = ""
         self._started = self._last = time.monotonic()
+        self._shown = None  # (count, postfix) of the last line written
 
     def __iter__(self):
         for item in self.iterable:
@@ -63,10 +64,13 @@ class _PlainLines:
         done = f"{self.n}/{self.total}" if self.total else str(self.n)
         postfix = f" ({self.postfix})" if self.postfix else ""
         self.write(f"{self.desc}: {done} {self.unit} in {self._last - self._started:.0f} s{postfix}")
+        self._shown = (self.n, self.postfix)
 
     def close(self) -> None:
+        """The last line, unless the last update wrote this one already."""
         if self._last != -1.0:
-            self._write()
+            if self._shown != (self.n, self.postfix):
+                self._write()
             self._last = -1.0
 
 

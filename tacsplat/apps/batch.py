@@ -28,7 +28,8 @@ A job may also list the names of jobs it needs (``needs: [capture scenes/teapot-
 anywhere in the file): it runs after them, and not at all when one of them failed.
 Writes ``DIR/results.csv`` (one row per run folder with a metrics.json, named after the last job of
 the batch on that folder whose output is there: an evaluation rather than the reconstruction it
-evaluated; rewritten as runs finish) and, when jobs fail, ``DIR/failures.csv``.
+evaluated; its columns :data:`RESULT_COLUMNS`, then every other scalar any of those metrics.json holds, sorted;
+rewritten as runs finish) and, when jobs fail, ``DIR/failures.csv``.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ CAPTURE_MARKER = "capture.json"
 METRICS = "metrics.json"
 EVALUATED = "evaluated.json"  # RUN/evaluated.json: an evaluate job's record (EvaluateJob.record)
 RUN_COLUMNS = ("iterations", "cd", "cd_paper", "psnr", "ssim", "train_seconds", "num_gaussians")  # of metrics.json
+# results.csv's first columns; every other scalar of the runs' metrics.json follows, sorted (result_columns)
 RESULT_COLUMNS = ("job", "run", "scene", "method", "seed", *RUN_COLUMNS)
 KINDS = ("capture", "reconstruct", "evaluate")
 
@@ -609,7 +611,8 @@ def _job_error(i: int, item: dict, exc, path: Path) -> ConfigError:
 def result_rows(jobs: list, out: Path) -> list[dict]:
     """One row per run folder with a metrics.json, in the batch's order (of the first job on it), named after the
     last job on it whose output is complete (an evaluation of a run the batch trains, once done: the metrics are
-    its), else the first."""
+    its), else the first: :data:`RESULT_COLUMNS` and every other scalar (number, bool, string or null) of its
+    metrics.json (not the dicts: ``settings``, ``mechanisms``)."""
     rows: dict[Path, dict] = {}
     for job in jobs:
         run = run_folder(job)
@@ -620,8 +623,15 @@ def result_rows(jobs: list, out: Path) -> list[dict]:
             {"job": job.name, "run": _relative(run, out), "scene": _scene_name(run, m, out)}
             | {"method": m.get("method"), "seed": m.get("settings", {}).get("seed")}
             | {k: m.get(k) for k in RUN_COLUMNS}
+            | {k: v for k, v in m.items() if k not in RESULT_COLUMNS and not isinstance(v, (dict, list))}
         )
     return list(rows.values())
+
+
+def result_columns(rows: list[dict]) -> list[str]:
+    """results.csv's columns: :data:`RESULT_COLUMNS` (in that order, for readers of the earlier table), then every
+    other key of any row, sorted (an order that does not depend on which runs have finished)."""
+    return [*RESULT_COLUMNS, *sorted({k for row in rows for k in row} - set(RESULT_COLUMNS))]
 
 
 def _relative(path: Path, base: Path) -> str:
@@ -658,7 +668,8 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
     def on_done(job, summary: dict) -> str | None:
         if run_folder(job) is None:
             return None
-        write_csv(result_rows(jobs, out), out / "results.csv", RESULT_COLUMNS)
+        rows = result_rows(jobs, out)  # (every run's of the batch: a finished one skipped this time included)
+        write_csv(rows, out / "results.csv", result_columns(rows))
         return (
             f"{job.name}: CD {number(summary.get('cd'), 4, 'nan')}  PSNR {number(summary.get('psnr'), 2, 'nan')}  "
             f"{summary.get('train_seconds') or 0:.0f} s"
@@ -666,7 +677,7 @@ def run_batch(jobs: list, out: str | Path, progress: bool = True, **executor) ->
 
     outcome = run_jobs(jobs, out, on_done=on_done, desc="batch", progress=progress, **executor)
     rows = result_rows(jobs, out)
-    write_csv(rows, out / "results.csv", RESULT_COLUMNS)
+    write_csv(rows, out / "results.csv", result_columns(rows))
     outcome.raise_if_failed(out)
     return rows
 

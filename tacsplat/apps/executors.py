@@ -15,9 +15,10 @@ Jobs hand each other paths on a filesystem every worker sees, never arrays.
   code, so on 2 cores two trainings side by side finish sooner than one after the other on both (two of the
   demo's: 1.6x the throughput). A CPU that would idle while the pending jobs wait for another's output starts
   a worker that runs their ``warm_up`` (a training's imports: 3 s), so the first of them starts at once.
-  The workers' log records reach this process's handlers. A worker that dies (killed, out of memory) fails its
-  job; the rest go on: the jobs running beside it are stopped as by Ctrl-C (one SIGINT: a training saves its
-  checkpoint) and run again, with the jobs not started yet, in new workers (a training resumes).
+  The workers' log records reach this process's handlers, at the levels its loggers have. A worker that dies
+  (killed, out of memory) fails its job; the rest go on: the jobs running beside it are stopped as by Ctrl-C (one
+  SIGINT: a training saves its checkpoint) and run again, with the jobs not started yet, in new workers (a
+  training resumes).
 - ``auto``: ``processes`` on a machine with at least 2 cores and no CUDA device, else ``local``.
 - ``ray``: every job a Ray task declaring its CPUs (and a GPU where it trains on
   CUDA); a task waits for its needs' tasks (their object refs are its
@@ -520,8 +521,18 @@ class _PoolEvents:
                 self.settled.add(name)
 
 
-def _start_worker(log_queue, level: int, batch_pid: int, events, stopping) -> None:
-    """A worker's set-up: its log records go to the batch's process; it leaves the terminal's process group
+def _logger_levels() -> dict[str, int]:
+    """The levels set on this process's loggers, the root's included (the CLI's: -v, -q, --log-level, and OpenGL's
+    INFO hidden), for a worker to set alike: its records reach this process's handlers without passing these
+    loggers, so a logger a worker left at its default would show what it hides here."""
+    loggers = logging.Logger.manager.loggerDict.items()
+    levels = {name: logger.level for name, logger in loggers if isinstance(logger, logging.Logger) and logger.level}
+    return levels | {"root": logging.getLogger().level}
+
+
+def _start_worker(log_queue, levels: dict[str, int], batch_pid: int, events, stopping) -> None:
+    """A worker's set-up: its log records go to the batch's process, its loggers' levels those of the batch's
+    (:func:`_logger_levels`); it leaves the terminal's process group
     (a Ctrl-C reaches the batch's process alone, which passes one SIGINT on to each worker: a training stops
     at the second); on Linux it gets SIGINT when the batch's process dies (killed), so that its job stops as
     after Ctrl-C and the worker exits instead of running on unseen."""
@@ -529,7 +540,8 @@ def _start_worker(log_queue, level: int, batch_pid: int, events, stopping) -> No
     _batch_pid, _events, _stopping = batch_pid, events, stopping
     root = logging.getLogger()
     root.handlers[:] = [logging.handlers.QueueHandler(log_queue)]
-    root.setLevel(level)
+    for name, level in levels.items():
+        logging.getLogger(name).setLevel(level)
     signal.signal(signal.SIGINT, _on_interrupt)
     if hasattr(os, "setpgid"):  # (POSIX)
         os.setpgid(0, 0)
@@ -593,7 +605,7 @@ def _run_pool(pending: list[Job], batch: _Batch, workers: int, warm: bool = True
         max_workers=size,
         mp_context=context,
         initializer=_start_worker,
-        initargs=(log_queue, logging.getLogger().level, os.getpid(), events.pipe, context.stopping),
+        initargs=(log_queue, _logger_levels(), os.getpid(), events.pipe, context.stopping),
     )
     warm_ups: list[futures.Future] = []  # workers started ahead of the jobs that wait for another's output
     starting: list[Job] = []

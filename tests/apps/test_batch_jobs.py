@@ -674,3 +674,12 @@ def test_a_signal_ray_turns_into_a_plain_keyboard_interrupt_keeps_its_number():
         except SignalInterrupt:
             raise KeyboardInterrupt from None  # what Ray's wait and get raise instead
     assert info.value.signum == signal.SIGTERM
+
+
+def test_the_last_progress_line_is_written_once(tmp_path, capsys, monkeypatch):
+    """Before: a batch whose last job ended PLAIN_INTERVAL_S or more after the line before wrote its last line
+    twice ("batch: 4/4 jobs in 111 s (...)"): by the count's update, then again by close."""
+    monkeypatch.setattr("tacsplat.progress.PLAIN_INTERVAL_S", 0.0)  # a line at each update
+    run_jobs([FileJob(name, tmp_path / name) for name in ("a", "b")], tmp_path, desc="tiny")
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("tiny: ")]
+    assert [line.partition(" in ")[0] for line in lines] == ["tiny: 1/2 jobs", "tiny: 2/2 jobs"], lines
