@@ -5,9 +5,10 @@ the grasp controller, and the capture plan, as dataclasses.
 wrist camera; ``rig: sim`` the MuJoCo twin. ``--mock`` (``load_rig(...,
 mock=True)``) keeps a real rig's file and swaps in emulated devices (see
 :mod:`tacsplat.acquisition.mock`). A file is read into the dataclasses by
-pydantic (:func:`checked`: strict types, no string for a number, no number for a
-string, no unknown key, and the physical and logical range each field declares,
-:func:`bounded`); then :func:`validate` (also for configs built in code) checks
+pydantic (:func:`checked`: strict types, no string for a number (but a number
+YAML reads as a string, ``1e-9`` with no dot, is the number, as in ``reconstruct
+--config``), no number for a string, no unknown key, and the physical and logical
+range each field declares, :func:`bounded`); then :func:`validate` (also for configs built in code) checks
 the board and the cross-field rules. Each invalid value raises one
 :class:`~tacsplat.errors.ConfigError` naming the file, the field path
 (``tactile.sensors[2].T_fingertip_sensor``) and the allowed range. The example
@@ -37,6 +38,7 @@ from pydantic import (
     with_config,
 )
 
+from tacsplat.config_files import yaml_number
 from tacsplat.drivers.wrist_camera import CharucoBoardSpec
 from tacsplat.errors import ConfigError, pydantic_problem
 from tacsplat.geometry import make_pose, rigidity_problem
@@ -218,6 +220,14 @@ class GraspControl:
     # give up waiting (the reading is still taken, with a warning)
     max_close_s: Annotated[float, positive(60.0, "s")] = 5.0
     open_s: Annotated[float, bounded(0, 60.0, "s")] = 0.3  # wait after opening
+
+
+# A rig: sim file's grasp section would be ignored: the twin grasps with devices.TWIN_CONTROL, the real defaults above
+# do not suit its soft servos, and a twin scene records its control as one of the twin's own settings (capture_scene).
+TWIN_GRASP = (
+    "a rig: sim file does not set the grasp control: the twin closes its hand with its own, tuned to its simulated "
+    "servos; remove the grasp section"
+)
 
 
 @yaml_section
@@ -454,12 +464,31 @@ def _adapter(cls: type) -> TypeAdapter:
     return TypeAdapter(cls)
 
 
+def _yaml_numbers(hint, value):
+    """The YAML's ``value`` for a field of type ``hint``, each string where a number goes read as the number it spells
+    (:func:`~tacsplat.config_files.yaml_number`: YAML reads ``1e-9``, with no dot, as a string)."""
+    if isinstance(value, str):
+        return yaml_number(value, hint)
+    origin, args = get_origin(hint), get_args(hint)
+    if dataclasses.is_dataclass(hint) and isinstance(value, dict):
+        hints = get_type_hints(hint)
+        return {k: _yaml_numbers(hints[k], v) if k in hints else v for k, v in value.items()}
+    if origin is dict and isinstance(value, dict):
+        return {k: _yaml_numbers(args[1], v) for k, v in value.items()}
+    if origin is tuple and isinstance(value, list):  # tuple[float, ...] or tuple[float, float, float]
+        items = [args[0]] * len(value) if args[1:] == (...,) else list(args)
+        return [_yaml_numbers(h, v) for h, v in zip(items, value)] + value[len(items) :]
+    return value
+
+
 def checked(cls: type, data: Any, prefix: str = "", source=None):
-    """``data`` (the YAML's values, or a ``cls`` built in code) as a ``cls``, every value's type and range checked
-    by pydantic; the first value refused is one ConfigError naming its field path (after ``prefix``) and what it
-    expects."""
+    """``data`` (the YAML's values, a number it left as a string read as the number; or a ``cls`` built in code) as
+    a ``cls``, every value's type and range checked by pydantic; the first value refused is one ConfigError naming
+    its field path (after ``prefix``) and what it expects."""
     if dataclasses.is_dataclass(data):
         data = dataclasses.asdict(data)
+    else:
+        data = _yaml_numbers(cls, data)
     try:  # as JSON, whose strict mode still reads a list as a tuple and a mapping as a dataclass
         return _adapter(cls).validate_json(json.dumps(data, default=str), strict=True)
     except ValidationError as exc:
@@ -485,6 +514,8 @@ def parse_rig(
         if key in data:
             raise ConfigError(key, f"unknown key (expected one of {sorted(_section_fields(RigConfig, ()))})", src)
     refuse_removed(data, source=src)
+    if data["rig"] == "sim" and isinstance(data.get("grasp"), dict) and data["grasp"]:
+        raise ConfigError(f"grasp.{next(iter(data['grasp']))}", TWIN_GRASP, src)
     data = {k: v for k, v in data.items() if not (v is None and k in _SECTIONS)}  # an empty section: the defaults
     config = dataclasses.replace(checked(RigConfig, data, "", src), source=src, mock=bool(mock))
     validate(config, check_files)

@@ -222,7 +222,8 @@ def dynamixel_hand(config: RigConfig, mock=None, calibration: Path | None = None
     return DynamixelHand(port, h.baudrate, h.ids, calibration, config=settings, kinematics=HandKinematics())
 
 
-# The twin's grasp control: its soft position servos lag a 0.6 rad/s ramp by about 0.03 rad in free motion.
+# The twin's grasp control, every twin capture's (a rig: sim file's grasp section is refused: config.TWIN_GRASP): its
+# soft position servos lag a 0.6 rad/s ramp by about 0.03 rad in free motion.
 TWIN_CONTROL = GraspControl(
     close_speed_rad_s=0.6, poll_s=0.01, stall_error_rad=0.08, settle_tol_rad=0.002, max_close_s=2.0, open_s=0.2
 )

@@ -22,6 +22,7 @@ PACKAGE_DIRS = {  # import prefix -> folder (pyproject's package-dir)
 }
 CORE = {
     "tacsplat",
+    "tacsplat.config_files",
     "tacsplat.errors",
     "tacsplat.files",
     "tacsplat.geometry",
