@@ -2,10 +2,10 @@
 the grasp controller, and the capture plan, as dataclasses.
 
 ``rig: real`` describes the Dynamixel hand, the optical tactile sensors and the
-wrist camera; ``rig: sim`` the MuJoCo twin. ``--mock`` (``load_rig(...,
-mock=True)``) keeps a real rig's file and swaps in emulated devices (see
-:mod:`tacsplat.acquisition.mock`). A file is read into the dataclasses by
-pydantic (:func:`checked`: strict types, no string for a number (but a number
+wrist camera; ``rig: sim`` the MuJoCo twin (its file sets only the keys the twin
+reads, :data:`TWIN_READS`). ``--mock`` (``load_rig(..., mock=True)``) keeps a
+real rig's file and swaps in emulated devices (see :mod:`tacsplat.acquisition.mock`).
+A file is read into the dataclasses by pydantic (:func:`checked`: strict types, no string for a number (but a number
 YAML reads as a string, ``1e-9`` with no dot, is the number, as in ``reconstruct
 --config``), no number for a string, no unknown key, and the physical and logical
 range each field declares, :func:`bounded`); then :func:`validate` (also for configs built in code) checks
@@ -227,6 +227,34 @@ class GraspControl:
 TWIN_GRASP = (
     "a rig: sim file does not set the grasp control: the twin closes its hand with its own, tuned to its simulated "
     "servos; remove the grasp section"
+)
+# What a rig: sim run reads of the real rig's sections (devices.twin_config, rig_T_hand_cam, rig_mounts, the calibration
+# commands, rig check; capture_scene records them): section -> (the keys read, why another is refused). A rig: sim file
+# that sets another key of them is one error naming it (refuse_unread_by_twin): the twin would ignore it. The rest of
+# the file (object, board, plan, sim, hardware_changed) is read whole.
+TWIN_READS = {
+    "hand": (
+        ("calibration",),
+        "a rig: sim file gives the hand's calibration only: the twin's hand is simulated; remove it",
+    ),
+    "camera": (
+        ("hand_eye", "T_hand_cam", "calibration"),  # calibration: calibrate hand-eye --arm-poses reads it
+        "a rig: sim file gives the wrist camera's hand_eye, T_hand_cam and calibration (calibrate hand-eye "
+        "--arm-poses) only: the twin renders its own views; remove it",
+    ),
+    "tactile": (
+        ("mounts", "sensors"),
+        "a rig: sim file gives the tactile mounts and sensors (each its T_fingertip_sensor) only: the twin's pads are "
+        "simulated; remove it",
+    ),
+    "grasp": ((), TWIN_GRASP),
+    "mock_devices": ((), "a rig: sim file has no emulated devices (--mock's, of a real rig): remove mock_devices"),
+}
+# A rig: sim file's sensor entry gives its finger's T_fingertip_sensor; the source and calibration an entry needs are
+# not read.
+TWIN_SENSOR = (
+    "missing: a rig: sim file's sensor gives the mounting of its finger's simulated pad, and only that (its source "
+    "and calibration are not read); add it, or remove the sensor"
 )
 
 
@@ -514,12 +542,25 @@ def parse_rig(
         if key in data:
             raise ConfigError(key, f"unknown key (expected one of {sorted(_section_fields(RigConfig, ()))})", src)
     refuse_removed(data, source=src)
-    if data["rig"] == "sim" and isinstance(data.get("grasp"), dict) and data["grasp"]:
-        raise ConfigError(f"grasp.{next(iter(data['grasp']))}", TWIN_GRASP, src)
+    if data["rig"] == "sim":
+        refuse_unread_by_twin(data, src)
     data = {k: v for k, v in data.items() if not (v is None and k in _SECTIONS)}  # an empty section: the defaults
     config = dataclasses.replace(checked(RigConfig, data, "", src), source=src, mock=bool(mock))
     validate(config, check_files)
     return config
+
+
+def refuse_unread_by_twin(data: dict, source=None) -> None:
+    """One ConfigError naming the first key of a rig: sim file's ``data`` that the twin never reads
+    (:data:`TWIN_READS`, :data:`TWIN_SENSOR`), and why."""
+    for section, (read, why) in TWIN_READS.items():
+        values = data.get(section)
+        if isinstance(values, dict) and (unread := [key for key in values if key not in read]):
+            raise ConfigError(f"{section}.{unread[0]}", why, source)
+    sensors = data["tactile"].get("sensors") if isinstance(data.get("tactile"), dict) else None
+    for i, sensor in enumerate(sensors if isinstance(sensors, list) else ()):
+        if isinstance(sensor, dict) and "T_fingertip_sensor" not in sensor:
+            raise ConfigError(f"tactile.sensors[{i}].T_fingertip_sensor", TWIN_SENSOR, source)
 
 
 def load_rig(path: str | Path, mock: bool = False, check_files: bool = True, kind: str | None = None) -> RigConfig:

@@ -231,7 +231,8 @@ TWIN_CONTROL = GraspControl(
 
 def twin_config(config: RigConfig, calibrating: bool = False):
     """The :class:`~tacsplat.sim.twin.TwinConfig` of a ``rig: sim`` config (``calibrating``: as
-    :func:`rig_T_hand_cam`'s)."""
+    :func:`rig_T_hand_cam`'s). Of the real rig's sections it reads what :data:`~tacsplat.acquisition.config.TWIN_READS`
+    lets a ``rig: sim`` file set; a file that sets another key is refused."""
     from tacsplat.sim.twin import TwinConfig
 
     s = config.sim
