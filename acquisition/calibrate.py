@@ -73,7 +73,7 @@ def calibrate_hand(
         say(f"{device}: torque off; each joint in turn goes against its upper, then its lower stop")
         calibration, results = calibrate_joints(hand, person, servos, say, device)
     calibration.save(out)
-    say(f"wrote {out} ({len(results)} joints)")
+    say(f"wrote {out} ({len(results)} joints; {_naming(config, out, config.hand.calibration, 'hand.calibration')})")
     return calibration, results
 
 
@@ -166,12 +166,12 @@ def _hand_eye_file(config: RigConfig, out: Path, hand_eye_out: Path | None, say:
     calibrates the mounts gets the rig's hand-eye file updated with them, as the rig file names it; a rig that names
     none is refused, asking for ``--hand-eye``."""
     from tacsplat.datasets.outputs import ensure_output_dir
-    from tacsplat.errors import ConfigError
+    from tacsplat.errors import ConfigError, UsageError
 
     if hand_eye_out is not None:
         return hand_eye_out
-    if not config.camera.hand_eye:
-        raise ConfigError(
+    if not config.camera.hand_eye:  # (an option the command line lacks: a usage error)
+        raise UsageError(
             "--hand-eye",
             "calibrate mounts solves T_hand_cam with the mounts, and the rig file names no camera.hand_eye to write "
             "it to: give --hand-eye FILE (and name that file as camera.hand_eye in the rig file)",

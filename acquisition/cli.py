@@ -404,7 +404,8 @@ def _option_values(check, options: dict[str, str]):
 
 
 def _naming_options(exc: ConfigError, options: dict[str, str]) -> ConfigError:
-    """The same error naming the command-line option behind a key (``sim.object_radius`` -> ``--object-radius``)."""
+    """The same error (a usage error stays one) naming the command-line option behind a key (``sim.object_radius``
+    -> ``--object-radius``)."""
     from tacsplat.acquisition.capture_scene import ResumeMismatch
 
     if isinstance(exc, ResumeMismatch):
@@ -412,7 +413,7 @@ def _naming_options(exc: ConfigError, options: dict[str, str]) -> ConfigError:
     if exc.key not in options:
         return exc
     message = str(exc).removeprefix(f"{exc.source}: " if exc.source else "").removeprefix(f"{exc.key}: ")
-    return ConfigError(options[exc.key], message)
+    return (UsageError if isinstance(exc, UsageError) else ConfigError)(options[exc.key], message)
 
 
 def _option(name: str) -> str:

@@ -137,9 +137,9 @@ def simulate_touches(
     touches = touch_settings(grasps, object_radius, seed, touch_model, surface_points)
     scene = Scene.load(scene_path)
     if scene.sensor is not None and out is not None:
-        raise ConfigError("out", f"{scene_path} already holds touches; it is extended in place, drop --out")
+        raise UsageError("out", f"{scene_path} already holds touches; it is extended in place, drop --out")
     if scene.sensor is None and out is None:
-        raise ConfigError("out", f"{scene_path} has no tactile sensor model (an import): pass --out NEW_SCENE")
+        raise UsageError("out", f"{scene_path} has no tactile sensor model (an import): pass --out NEW_SCENE")
     check_writable(Path(scene_path) if out is None else _existing_folder(Path(out)))
     with ExitStack() as stack:
         if mesh_path is None and scene.gt_mesh_path is None:  # the paper's touches on the ground-truth points

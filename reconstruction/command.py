@@ -98,7 +98,7 @@ def option_names(config: TrainConfig) -> dict[str, str]:
 
 def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:
     """The config a --resume continues with: the run's own (``recorded``) with the options given, which may only
-    raise --iterations; a ConfigError on --resume naming each other option that differs, and a --method given that
+    raise --iterations; a UsageError on --resume naming each other option that differs, and a --method given that
     the run was not trained with (even one that sets nothing the run lacks: ``default`` sets nothing)."""
     given = parse(argv, recorded).train
     names = option_names(given)
@@ -107,13 +107,13 @@ def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:
         for path, before, now in changed_settings(recorded, given)
         if path != "iterations"
     ]
-    method, asked = method_of(recorded), _early_options(argv).method
+    method, asked = method_of(recorded), _early_options(argv).method  # (as set up: whatever their step counts)
     if changes and method_of(given) != method:
         changes.insert(0, f"--method {method} in the run, {method_of(given)} given")
     elif asked is not None and method_of(parse(argv).train) != method:  # (this command line trains another)
         changes.insert(0, f"--method {method} in the run, {asked} given")
-    if changes:
-        raise ConfigError(
+    if changes:  # options of this command line: a usage error, as --iterations below the step reached is
+        raise UsageError(
             "--resume",
             f"{out} was trained with other settings than this command line gives "
             f"({'; '.join(changes)}): a resumed run keeps its own settings (only --iterations may "

@@ -5,7 +5,8 @@ fields it sets on top of TrainConfig's defaults, which are ``default`` (ours, be
 combination is a configuration: a method plus overrides (``--config FILE.yaml`` and options of `tacsplat
 reconstruct`, the ablation rows of `tacsplat bench paper`). A run's metrics.json records the method whose
 mechanisms (:func:`mechanisms`) it has, ``custom`` when none has them, and the mechanisms themselves, as the run
-used them: touch is off in a run that had no touch points (its scene has no touches).
+used them: touch is off in a run that had no touch points (its scene has no touches), and a mechanism that starts
+at a step the run never reached is off.
 """
 
 from __future__ import annotations
@@ -75,12 +76,22 @@ def method_config(name: str, option: str = "--method"):
     return set_fields(TrainConfig(), get_method(name, option).overrides)
 
 
-def mechanisms(config, touched: bool = True) -> dict[str, bool]:
-    """Which of the optional mechanisms a TrainConfig switches on: touch (used, with lambda_t > 0, and, for a run,
-    ``touched``: it had touch points; a scene without touches trains without), smoothness, flattening, depth-normal
-    consistency, the sh-lit appearance, a smooth albedo (with it), initial colours from the views."""
-    return {
-        "touch": config.use_touch and config.lambda_t > 0 and touched,
+# the mechanisms that start at a step (their TrainConfig field): a run that ends at or before it never uses them
+START_STEPS = {
+    "smoothness": "smoothness_start_iter",
+    "depth_normal": "depth_normal_start_iter",
+    "sh_lit": "lit_start_iter",
+}
+
+
+def mechanisms(config, touched: bool | None = None) -> dict[str, bool]:
+    """Which of the optional mechanisms a TrainConfig switches on: touch (used, with lambda_t > 0), smoothness,
+    flattening, depth-normal consistency, the sh-lit appearance, a smooth albedo (with it), initial colours from the
+    views. ``touched``: None for the config as set up; for a run, whether it had touch points, and then those it
+    used: touch only with touch points (a scene without touches trains without), and none whose start step
+    (:data:`START_STEPS`) is at or past its iterations (a run ending before it never reaches it)."""
+    on = {
+        "touch": config.use_touch and config.lambda_t > 0 and (touched is None or bool(touched)),
         "smoothness": config.lambda_s > 0,
         "flattening": config.lambda_flatten > 0,
         "depth_normal": config.lambda_depth_normal > 0,
@@ -88,12 +99,17 @@ def mechanisms(config, touched: bool = True) -> dict[str, bool]:
         "albedo_smoothness": config.appearance != "sh" and config.lambda_albedo_smoothness > 0,
         "view_colors": config.init.colors_from_views,
     }
+    if touched is not None:
+        for name, start in START_STEPS.items():
+            on[name] = on[name] and getattr(config, start) < config.iterations
+    return on
 
 
-def method_of(config, touched: bool = True) -> str:
+def method_of(config, touched: bool | None = None) -> str:
     """The name of the method whose mechanisms a TrainConfig has (``custom`` if none's); its other settings
-    (schedule, weights, rates) may differ from the method's. ``touched``: as :func:`mechanisms` (a run without touch
-    points is the method it trained as: ``3dgs+t`` on a scene without touches is ``3dgs``)."""
+    (schedule, weights, rates) may differ from the method's. ``touched``: as :func:`mechanisms` (a run is the method
+    of what it used: ``3dgs+t`` on a scene without touches is ``3dgs``, ``paper`` run for no more steps than its
+    smoothness_start_iter is ``3dgs+t``)."""
     on = mechanisms(config, touched)
     return next((name for name in METHODS if mechanisms(method_config(name)) == on), "custom")
 

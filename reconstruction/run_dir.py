@@ -365,7 +365,9 @@ def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> 
 
     Before the lock (``locked=False``) only what no other job can change is
     refused (a folder of someone else's files, a resume of no run), so that no
-    folder or lock file is made for nothing; the rest is decided under the lock.
+    folder or lock file is made for nothing; the rest is decided under the lock, where a resume of a run without
+    a checkpoint (it stopped or failed before its first) is refused as evaluate refuses it (:func:`run_checkpoint`):
+    its recorded settings would train it again from step 0, and a run that failed would fail again.
     """
     from tacsplat.datasets.outputs import LOCK_NAME
 
@@ -378,6 +380,8 @@ def check_run_folder(out: Path, resume: bool, overwrite: bool, locked: bool) -> 
         )
     if resume and not is_run:
         raise ConfigError("--resume", f"{out} holds no run (no config.json or checkpoint.pt): nothing to resume")
+    if locked and resume:
+        run_checkpoint(out)
     if locked and is_run and not (resume or overwrite):
         advice = "pass --resume to continue it or --overwrite to replace it"
         if not (out / "checkpoint.pt").is_file():  # (it stopped or failed before its first: nothing to resume)

@@ -67,7 +67,7 @@ def test_the_command_runs_to_its_end_with_stdin_closed_a_status_line_per_joint(t
     lines = capsys.readouterr().out.splitlines()
     status = [line for line in lines if line.endswith(" ok")]
     assert [line.split()[0] for line in status] == JOINT_NAMES
-    assert lines[-1] == f"wrote {out} (16 joints)"
+    assert lines[-1] == f"wrote {out} (16 joints; name it as hand.calibration in the rig file)"  # as hand-eye's
     assert _errors_deg(HandCalibration.load(out, JOINT_NAMES), errors)[0] < MAX_ERROR_DEG
 
 

@@ -272,10 +272,11 @@ def test_mounts_without_hand_eye_write_the_rigs_hand_eye_file_keep_a_far_mount_a
 
 def test_without_hand_eye_a_rig_naming_no_hand_eye_file_is_refused_before_any_press(tmp_path, capsys):
     out = tmp_path / "mounts.json"
-    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, MOUNT_ERRORS), "--out", str(out)]) == 1
+    assert main(["calibrate", "mounts", "--rig", _rig(tmp_path, MOUNT_ERRORS), "--out", str(out)]) == 2  # usage
     stdout, err = capsys.readouterr()
     assert "press" not in stdout and not out.exists()
-    assert err.splitlines()[-1].startswith("error: --hand-eye: calibrate mounts solves T_hand_cam with the mounts"), err
+    line = "tacsplat calibrate mounts: error: --hand-eye: calibrate mounts solves T_hand_cam with the mounts"
+    assert len(err.splitlines()) == 1 and err.startswith(line), err
 
 
 def _mounts_refused(tmp_path, capsys) -> str:

@@ -104,7 +104,8 @@ def test_reconstruction_of_the_synthetic_sphere_converges(sphere_scene, tmp_path
     # the paper's CD (squared, summed, median depth against the whole mesh surface) falls too
     assert 0 < metrics["cd_paper"] < 0.5 * float(rows[0]["cd_paper"])
     assert metrics["psnr"] > 18.0
-    assert metrics["method"] == "default" and metrics["iterations"] == 400
+    assert metrics["iterations"] == 400 and not metrics["mechanisms"]["depth_normal"]  # from step 700: never reached
+    assert metrics["method"] == "custom"  # the default's other mechanisms, as the run used them
     assert metrics["num_touch_gaussians"] > 0 and metrics["num_gaussians"] == len(load_ply(run / "splat.ply"))
     seconds = [float(r["seconds"]) for r in rows]
     assert seconds == sorted(seconds)
@@ -334,7 +335,8 @@ def test_the_lit_appearance_learns_its_light_and_a_saved_run_evaluates_the_same(
     trainer.train_step()
     assert not torch.equal(trainer.light.coefficients.detach(), start.coefficients)
     metrics = reconstruct(sphere_scene, run, config, show_progress=False, overwrite=True)
-    assert metrics["method"] == "default" and (run / "light.png").is_file()
+    assert metrics["mechanisms"]["sh_lit"] and metrics["method"] == "custom"  # (no depth-normal before step 700)
+    assert (run / "light.png").is_file()
     with (run / "progress.csv").open() as fh:  # the albedo smoothness has its own column
         assert float(list(csv.DictReader(fh))[-1]["albedo_smoothness"]) > 0
     again = evaluate_run(run)
@@ -389,7 +391,8 @@ def test_cli_reconstruct_and_evaluate_with_a_mesh_as_ground_truth(sphere_scene, 
     assert code == 0
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["method"] == "custom" and metrics["settings"]["train_views"] == 4  # the default, no L_S
-    assert metrics["mechanisms"] == {**dict.fromkeys(metrics["mechanisms"], True), "smoothness": False}
+    off = dict.fromkeys(("smoothness", "depth_normal", "sh_lit"), False)  # no L_S; the others start at 700 and 300
+    assert metrics["mechanisms"] == {**dict.fromkeys(metrics["mechanisms"], True), **off}
     assert metrics["iterations"] == 5 and np.isfinite(metrics["cd"])
     mesh_path = tmp_path / "sphere.ply"
     trimesh.creation.icosphere(subdivisions=4, radius=RADIUS).export(mesh_path)

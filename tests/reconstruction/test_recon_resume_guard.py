@@ -122,8 +122,8 @@ def test_resume_refuses_a_setting_that_differs_from_the_runs(trained, tmp_path, 
     scene, run = _copy(trained, tmp_path)
     before = _files(run)
     capsys.readouterr()
-    assert _resume(scene, run, *options) == 1
-    one_error_line(capsys, "--resume", str(run), *words)
+    assert _resume(scene, run, *options) == 2  # a usage error, as --iterations below the step reached is
+    one_error_line(capsys, "--resume", str(run), *words, prefix="tacsplat reconstruct: error: --resume: ")
     assert _files(run) == before
 
 
@@ -234,8 +234,10 @@ def test_an_explicit_method_other_than_the_runs_is_refused(scenes, tmp_path, cap
     assert main(["reconstruct", str(scene), "--out", str(run), "--iterations", "2", "--method", "3dgs+t", *FAST]) == 0
     before = _files(run)
     capsys.readouterr()
-    assert _resume(scene, run, "--method", "default", "--iterations", "3") == 1
-    one_error_line(capsys, "--resume", "--method 3dgs+t in the run, default given")
+    assert _resume(scene, run, "--method", "default", "--iterations", "3") == 2
+    one_error_line(
+        capsys, "--method 3dgs+t in the run, default given", prefix="tacsplat reconstruct: error: --resume: "
+    )
     assert _files(run) == before
     assert _resume(scene, run, "--method", "3dgs+t", "--iterations", "3") == 0
 

@@ -272,9 +272,9 @@ def test_resume_keeps_an_older_progress_files_values_under_their_own_columns(tmp
 
 def test_evaluate_and_export_of_a_run_stopped_before_its_first_checkpoint_say_to_run_it_again(scene, tmp_path, capsys):
     """A run that failed (diverged) or was killed before its first checkpoint holds its config.json only: evaluate,
-    export mesh and reconstruct without --overwrite say there is nothing to resume (a --resume keeps the settings it
-    failed with) and print the --overwrite command, which trains it again with the options given; a folder whose
-    config.json is not a run's is not a run."""
+    export mesh and reconstruct without --overwrite, or with --resume, say there is nothing to resume (a --resume
+    keeps the settings it failed with) and print the --overwrite command, which trains it again with the options
+    given; a folder whose config.json is not a run's is not a run."""
     import shlex
 
     run = tmp_path / "run"
@@ -286,6 +286,9 @@ def test_evaluate_and_export_of_a_run_stopped_before_its_first_checkpoint_say_to
         assert main(command) == 1
         line = one_error_line(capsys, str(run / "checkpoint.pt"), "before its first checkpoint", "nothing to resume")
         assert line.endswith(f": {again}") and "--resume" not in line, line
+    before = _listing(run)
+    assert _reconstruct(scene, run, "--resume") == 1  # not trained again from step 0 with the settings that failed
+    assert one_error_line(capsys) == line and _listing(run) == before
     assert _reconstruct(scene, run) == 1
     line = one_error_line(capsys, "--out", "no checkpoint to resume", "--overwrite")
     assert "--resume" not in line, line
@@ -309,7 +312,7 @@ def test_a_scene_without_test_views_is_said_to_have_none(tmp_path, capsys):
     assert (metrics["num_test_views"], metrics["psnr"], metrics["ssim"], metrics["cd"]) == (0, None, None, None)
 
 
-def test_resume_of_no_run_is_refused_and_of_a_run_without_checkpoint_starts_it_again(scene, tmp_path, capsys):
+def test_resume_of_no_run_or_of_a_run_without_checkpoint_is_refused(scene, tmp_path, capsys):
     assert _reconstruct(scene, tmp_path / "new", "--resume") == 1
     one_error_line(capsys, "--resume", "holds no run")
     assert not (tmp_path / "new").exists()
@@ -319,9 +322,12 @@ def test_resume_of_no_run_is_refused_and_of_a_run_without_checkpoint_starts_it_a
     for name in ("checkpoint.pt", "splat.ply", "metrics.json"):  # a run killed (or out of disk) before its first
         (run / name).unlink()  # checkpoint: its config.json is all there is
     capsys.readouterr()
-    assert _reconstruct(scene, run, "--resume") == 0  # trains again from step 0 with the recorded settings
+    before = _listing(run)
+    assert _reconstruct(scene, run, "--resume") == 1  # nothing to resume: --overwrite trains it again
+    one_error_line(capsys, str(run / "checkpoint.pt"), "before its first checkpoint", "--overwrite")
+    assert _listing(run) == before
+    assert _reconstruct(scene, run, "--lambda-t", "0.25", "--overwrite") == 0
     assert (run / "splat.ply").read_bytes() == first
-    assert json.loads((run / "config.json").read_text())["lambda_t"] == 0.25
 
 
 # --- 2. one definition of a valid scene --------------------------------------------------------------------------
