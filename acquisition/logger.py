@@ -272,9 +272,8 @@ class CaptureLogger:
         truth on the twin). Touches with no contact are recorded as such.
         ``index`` (the grasp number) defaults to one after the last recorded grasp.
         """
-        c = self.control
-        q_close = np.asarray(c.close_pose if close_pose is None else close_pose, dtype=np.float64)
-        q_open = np.asarray(c.open_pose if open_pose is None else open_pose, dtype=np.float64)  # checked before moving
+        q_close = self._joint_pose(close_pose, "close_pose")  # both checked before anything moves
+        q_open = self._joint_pose(open_pose, "open_pose")
         hand_rms = None
         if T_world_hand is None:
             # before the fingers move: CaptureRejected leaves the hand open
@@ -315,10 +314,28 @@ class CaptureLogger:
         )
         return outcome
 
+    def _joint_pose(self, given, name: str) -> np.ndarray:
+        """``given``, or the GraspControl's pose ``name`` when None, as one finite position per joint of the hand;
+        an InvalidInputError naming the argument (or the ``grasp.`` setting) otherwise."""
+        joints = list(self.hand.joint_names)
+        n, where = len(joints), name if given is not None else f"grasp.{name}"
+        value = getattr(self.control, name) if given is None else given
+        try:
+            q = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"{where}: expected {n} joint positions (numbers), got {value!r}") from None
+        if q.shape != (n,):
+            got = f"{q.size} joint positions" if q.ndim == 1 else f"an array of shape {q.shape}"
+            hint = "" if given is not None else f"; give take_grasp a close_pose and an open_pose of {n} for this hand"
+            raise InvalidInputError(f"{where}: {got} for a hand of {n} joints ({', '.join(joints)}){hint}")
+        if not np.isfinite(q).all():
+            raise InvalidInputError(f"{where}: expected finite joint positions, got {q.tolist()}")
+        return q
+
     def open(self, q_open: np.ndarray | None = None) -> None:
         """Command the open pose and wait ``open_s`` (sampling the joints every poll while a grasp records)."""
+        target = self._joint_pose(q_open, "open_pose")
         self.hand_state = "opening"
-        target = np.asarray(self.control.open_pose if q_open is None else q_open, float)
         self.hand.command_joint_positions(target)
         if self._samples is None:
             self.clock.sleep(self.control.open_s)

@@ -36,8 +36,9 @@ A scene directory is what acquisition, the simulator and the importers write
 
 Inside the code poses are OpenCV camera-to-world (``Frame.T_world_cam``) in
 metres; the OpenGL matrices of nerfstudio and Blender are converted only in
-this package. Importers, each in its own module so that reading a scene loads
-neither OpenCV nor pycolmap: ``datasets.blender.import_blender`` (NeRF-synthetic
+this package. Importers, each in its own module so that importing the package
+loads neither OpenCV (imported where an image is read or written) nor pycolmap:
+``datasets.blender.import_blender`` (NeRF-synthetic
 / Shiny Blender), ``datasets.colmap.import_colmap`` (COLMAP sparse models through
 pycolmap), ``datasets.nerfstudio.import_nerfstudio`` (nerfstudio / instant-ngp
 ``transforms.json``); :func:`copy_scene` writes a copy of a scene (a subset of its touches, new

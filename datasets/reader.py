@@ -18,7 +18,6 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import NoReturn
 
-import cv2
 import numpy as np
 from PIL import Image
 
@@ -351,22 +350,24 @@ class Scene:
 
     def load_image(self, frame: Frame) -> np.ndarray:
         """The frame's image as float32 RGB in [0, 1], [H, W, 3]."""
-        bgr = self._picture(frame, frame.file_path, cv2.IMREAD_COLOR, "image")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+        return self._picture(frame, frame.file_path, "image", color=True).astype(np.float32) / 255.0
 
     def load_mask(self, frame: Frame) -> np.ndarray | None:
         """The frame's mask as bool [H, W] (True = use the pixel), or None when the scene has no masks."""
         if frame.mask_path is None:
             return None
-        return self._picture(frame, frame.mask_path, cv2.IMREAD_GRAYSCALE, "mask") > 0
+        return self._picture(frame, frame.mask_path, "mask", color=False) > 0
 
-    def _picture(self, frame: Frame, rel: str, flag: int, what: str) -> np.ndarray:
+    def _picture(self, frame: Frame, rel: str, what: str, color: bool) -> np.ndarray:
+        """The frame's picture at ``rel``: RGB uint8 [H, W, 3] (``color``) or greyscale [H, W]."""
+        import cv2  # here, where a picture is read: importing the package loads no OpenCV
+
         path, (w, h) = self.path / rel, (frame.intrinsics.width, frame.intrinsics.height)
-        picture = cv2.imread(str(path), flag)
+        picture = cv2.imread(str(path), cv2.IMREAD_COLOR if color else cv2.IMREAD_GRAYSCALE)
         if picture is None or picture.shape[:2] != (h, w):
             got = "missing or unreadable" if picture is None else f"{picture.shape[1]}x{picture.shape[0]}"
             raise SceneFormatError(path, f"frame {frame.id}", f"{what} is {got}, expected {w}x{h}")
-        return picture
+        return cv2.cvtColor(picture, cv2.COLOR_BGR2RGB) if color else picture
 
     def load_touch_depth(self, touch: Touch) -> np.ndarray:
         """The touch's indentation map, float32 metres [h, w] (0 = no contact)."""

@@ -47,7 +47,6 @@ from contextlib import AbstractContextManager, contextmanager
 from dataclasses import asdict
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 import tacsplat
@@ -112,6 +111,8 @@ def atomic_write_json(path: Path, obj) -> None:
 
 def encode_png(image: np.ndarray) -> bytes:
     """PNG bytes of an RGB uint8 image [H, W, 3] or a greyscale one [H, W]."""
+    import cv2  # here, not at import: reading a scene loads no OpenCV
+
     ok, buf = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR) if image.ndim == 3 else image)
     if not ok:
         raise InvalidInputError("image: OpenCV could not encode it as PNG")

@@ -140,7 +140,8 @@ def _project_forward(means, quats, scales, opacities, viewmats, Ks, width, heigh
             if not det > 0 or opac < ALPHA_THRESHOLD:
                 continue
             extend = min(GAUSSIAN_EXTEND, math.sqrt(2.0 * math.log(opac / ALPHA_THRESHOLD)))
-            rad_x, rad_y = math.ceil(extend * math.sqrt(a)), math.ceil(extend * math.sqrt(cc))
+            # in float, as on the torch backend: math.ceil's int64 overflows to a negative radius past 2**63
+            rad_x, rad_y = np.ceil(extend * math.sqrt(a)), np.ceil(extend * math.sqrt(cc))
             if rad_x <= radius_clip and rad_y <= radius_clip:
                 continue
             mx, my = fx * x * rz + cx, fy * y * rz + cy

@@ -29,3 +29,10 @@ def test_sim_and_drivers_never_import_reconstruction():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_importing_datasets_loads_no_opencv_pycolmap_or_torch():
+    # OpenCV (which also prepends to LD_LIBRARY_PATH) is imported where an image is read or written
+    code = "import sys, tacsplat.datasets; print(sorted(m for m in ('cv2', 'pycolmap', 'torch') if m in sys.modules))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
