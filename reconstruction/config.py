@@ -343,7 +343,7 @@ _RANGES = {
     "train_views": (1, None),  # (None: all views)
     "torch_threads": (1, None),  # (None: torch's default)
     "touch_top_k": (1, None),
-    "touch_candidates": (1, None),
+    "touch_candidates": (1, 1024),  # (a [touch points, candidates] table, and the k-d tree search's results)
     "touch_rebuild_every": (1, None),
     "eval_every_iters": (1, None),
     "eval_max_views": (1, None),
@@ -353,6 +353,7 @@ _RANGES = {
     "crop_margin": (0, 1),
     "lr_means_final_factor": (0, 1),
     "init.hull_resolution": (1, 256),  # (its carving grid: about 125 bytes a voxel, at most resolution^3 voxels)
+    "init.num_random_points": (0, 1_000_000),  # (each an initial Gaussian: about 3 kB of training memory on the CPU)
     "init.sift_max_features": (1, None),
     "init.initial_opacity": (0, 1),
     "init.touch_initial_opacity": (0, 1),
@@ -370,7 +371,12 @@ _POSITIVE = {
     "densify.split_scale_divisor",  # (a split subtracts its log from the log scales)
 }
 _OPEN = {"init.initial_opacity", "init.touch_initial_opacity", "densify.prune_opacity"}  # excludes both ends
-_RANGE_NOTES = {"init.hull_resolution": "256: 256^3 voxels, about 2 GB of memory"}  # why a largest value
+_RANGE_NOTES = {  # why a largest value
+    "init.hull_resolution": "256: 256^3 voxels, about 2 GB of memory",
+    "touch_candidates": "about 24 bytes per touch point and candidate: 1024 is 25 MB for the 1000 touch points kept "
+    "by default (--init.max-touch-points)",
+    "init.num_random_points": "each an initial Gaussian of about 3 kB of training memory: 1000000 is about 3 GB",
+}
 
 
 def _range_text(lo, hi, exclusive: bool = False, open_: bool = False) -> str:

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from tacsplat.errors import SceneFormatError
+from tacsplat.errors import SceneFormatError, UsageError
 from tacsplat.files import atomic_write
 from tacsplat.geometry import project_points
 from tacsplat.reconstruction import losses, shading
@@ -60,6 +60,7 @@ ALPHA_MASK_THRESHOLD = 0.5  # rendered pixels with alpha above this give predict
 PAPER_MAX_POINTS = 200_000  # cd_paper: the predicted cloud is subsampled to at most this many points (official code)
 PAPER_GT_POINTS = 200_000  # cd_paper: points sampled on the ground-truth mesh surface
 SEEN_TOLERANCE = 1e-3  # of the GT radius: a mesh hit this little in front of a surface point does not hide it
+GT_SIZE_FACTOR = 10  # a --gt-mesh this many times larger than its cameras' distances is in other units
 
 
 @dataclass
@@ -239,28 +240,38 @@ def seen_by_cameras(mesh, points: dict[int, np.ndarray], cameras: list, radius: 
 def load_ground_truth(
     scene, frames: list, gt_path: str | Path | None = None, train_frames: list | None = None
 ) -> GroundTruth | None:
-    """The CD ground truth of ``frames``: from ``gt_path`` (mesh or point cloud) or the scene's gt/; None if absent.
-    With ``train_frames`` and a mesh, it also marks which points those cameras see (:func:`seen_by_cameras`)."""
+    """The CD ground truth of ``frames``: from ``gt_path`` (mesh or point cloud; refused by :func:`check_gt_size` where
+    its size is far from the scene's) or the scene's gt/ (its mesh or points alone where the frames' depth shows no
+    surface); None if absent. With ``train_frames`` and a mesh, it also marks which points those cameras see
+    (:func:`seen_by_cameras`)."""
     import trimesh
 
     if gt_path is not None:
         loaded = read_ground_truth(gt_path)
         if isinstance(loaded, trimesh.Trimesh):
-            points = {f.id: depth_to_points(mesh_depth(loaded, f), f.intrinsics.K, f.T_world_cam) for f in frames}
             radius = bounding_sphere_radius(loaded.vertices)
+            check_gt_size(scene, gt_path, loaded.vertices, radius)
+            points = {f.id: depth_to_points(mesh_depth(loaded, f), f.intrinsics.K, f.T_world_cam) for f in frames}
             seen = None if train_frames is None else seen_by_cameras(loaded, points, train_frames, radius)
             return GroundTruth(points, radius, f"mesh {gt_path}", surface=surface_points(loaded), seen=seen)
-        return GroundTruth({}, bounding_sphere_radius(loaded), f"points {gt_path}", shared=loaded, surface=loaded)
-    points = {}
+        radius = bounding_sphere_radius(loaded)
+        check_gt_size(scene, gt_path, loaded, radius)
+        return GroundTruth({}, radius, f"points {gt_path}", shared=loaded, surface=loaded)
+    points, has_depth = {}, False
     for f in frames:
         depth = scene.gt_depth(f)
+        has_depth |= depth is not None
         if depth is not None and (depth > 0).any():  # (a view that misses the object has no surface to compare)
             points[f.id] = depth_to_points(depth, f.intrinsics.K, f.T_world_cam)
-    if not points:
+    if not has_depth:
         return None
     # the scene's mesh, else a dataset's points on the object (NeRO's eval_pts.ply), else neither: cd_paper
-    # compares with the visible surface of the test views, like cd
-    surface, radius = ground_truth_surface(scene) or (np.concatenate(list(points.values())), None)
+    # compares with the visible surface of the test views, like cd; where their depth shows no surface (a needle
+    # at a few pixels), cd_paper and the radius are the scene's mesh's or points' alone, as a --gt-mesh gives them
+    own = ground_truth_surface(scene)
+    if not points and own is None:
+        return None
+    surface, radius = own or (np.concatenate(list(points.values())), None)
     radius = bounding_sphere_radius(surface) if radius is None else radius
     mesh = surface if isinstance(surface, trimesh.Trimesh) else None
     surface = surface if mesh is None else surface_points(mesh)
@@ -269,6 +280,32 @@ def load_ground_truth(
         return None
     seen = None if mesh is None or train_frames is None else seen_by_cameras(mesh, points, train_frames, radius)
     return GroundTruth(points, radius, "scene gt/", surface=surface, seen=seen)
+
+
+def check_gt_size(scene, gt_path: str | Path, points: np.ndarray, radius: float) -> None:
+    """A UsageError naming ``--gt-mesh`` when the ground truth at ``gt_path`` (its vertices or points [N, 3], their
+    bounding-sphere ``radius``) and ``scene`` disagree in size by far, as a file in other units (millimetres) does:
+    its radius is over ``GT_SIZE_FACTOR`` times the farthest camera's distance from the scene's centre (its
+    bounds'), or it would span under a pixel in every view, seen from the nearer of the scene's centre and its own.
+    """
+    lo, hi = scene.bounds()
+    points = np.asarray(points, dtype=np.float64)
+    centres = [(lo + hi) / 2, (points.min(axis=0) + points.max(axis=0)) / 2]
+    cameras = np.array([f.T_world_cam[:3, 3] for f in scene.frames])
+    distances = np.stack([np.linalg.norm(cameras - c, axis=1) for c in centres])  # [2, F]
+    farthest = float(distances[0].max())
+    nearest = distances.min(axis=0)  # [F]
+    focal = np.array([f.intrinsics.K[0, 0] for f in scene.frames])
+    pixels = float((2 * radius * focal / np.maximum(nearest, 1e-12)).max())
+    if radius > GT_SIZE_FACTOR * farthest:
+        why = f"the scene's cameras are at most {farthest:.3g} m from the scene's centre, inside it by far"
+    elif pixels < 1:
+        why = f"the scene's cameras are {nearest.min():.3g} m or more from it: it would span {pixels:.2g} px at most"
+    else:
+        return
+    raise UsageError(
+        "--gt-mesh", f"{gt_path}: its bounding sphere's radius is {radius:.3g} m while {why}: wrong units? (metres)"
+    )
 
 
 def read_ground_truth(gt_path: str | Path):
@@ -518,8 +555,8 @@ def evaluate_reconstruction(
         save_light(look.light, Path(run_dir) / "light.png")
     if not test:
         log.warning("the scene %s has no test views: PSNR, SSIM and CD are not computed (null)", scene.path)
-    elif ground_truth is None:
-        log.warning("no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN")
+    elif (why := no_cd_reason(scene, test, ground_truth, gt_path)) is not None:
+        log.warning("%s", why)
     metrics.update(exported_mesh_metrics(Path(run_dir), scene, train_frames, gt_path))
     points = getattr(run, "touch_points", None)  # touch as the run used it: none without touch points
     touched = gaussians.num_touch > 0 if points is None else len(points) > 0
@@ -540,6 +577,23 @@ def evaluate_reconstruction(
     result = finite_or_none(result)
     atomic_write(Path(run_dir) / "metrics.json", json.dumps(result, indent=2, default=_json_default).encode())
     return result
+
+
+def no_cd_reason(scene, test: list, ground_truth: GroundTruth | None, gt_path: str | Path | None) -> str | None:
+    """Why ``cd`` is NaN, where the ``test`` views have no ground-truth surface to compare with (and what cd_paper
+    compares with then); None where they have one."""
+    if ground_truth is not None and (any(map(len, ground_truth.points.values())) or ground_truth.shared is not None):
+        return None
+    outside = "(the object lies outside them, or under a pixel)"
+    if gt_path is not None:
+        why = f"the test views show no surface of the --gt-mesh {gt_path} {outside}"
+    elif ground_truth is None and not any(scene.gt_depth(f) is not None for f in test):
+        return "no ground truth for the test views (no gt/ depth and no --gt-mesh): cd is NaN"
+    else:
+        why = f"the test views' ground-truth depth (gt/depth/) shows no surface {outside}"
+    if ground_truth is None:
+        return f"{why}, and the scene has no ground-truth mesh or points: cd and cd_paper are NaN"
+    return f"{why}: cd is NaN; cd_paper compares with the whole ground-truth surface ({ground_truth.source})"
 
 
 def exported_mesh_metrics(run_dir: Path, scene, train_frames: list, gt_path: str | Path | None = None) -> dict:

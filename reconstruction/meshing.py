@@ -43,6 +43,7 @@ SLAB_VOXELS = 2_000_000  # voxels projected at once (memory: about 100 bytes eac
 
 
 MIN_VOXEL = 0.005  # of the bounding radius: a grid of 400^3 cells, about 6 GB at its peak
+FLOAT32_TOLERANCE = 1e-3  # voxels: mesh.ply's vertices are float64 where float32 would move one by more
 
 
 @dataclass
@@ -304,11 +305,16 @@ def extract_mesh(gaussians, scene, train_frames: list, backend: str, look=None, 
 
 def mesh_ply(extracted: ExtractedMesh):
     """A binary PLY (plyfile's ``PlyData``: ``.write(file)``): vertices with normals, colours and ``observed`` (0/1),
-    triangles."""
+    triangles. The vertices are float32, or float64 where float32 would move one by more than ``FLOAT32_TOLERANCE``
+    voxels (a scene far from its origin: 4 mm steps at 50 km), so that the file holds the mesh its metrics measure.
+    """
     from plyfile import PlyData, PlyElement
 
     mesh = extracted.mesh
-    dtype = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")]
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    rounding = np.abs(vertices.astype(np.float32) - vertices).max(initial=0.0)
+    precision = "f4" if rounding <= FLOAT32_TOLERANCE * extracted.voxel else "f8"
+    dtype = [(k, precision) for k in ("x", "y", "z")] + [(k, "f4") for k in ("nx", "ny", "nz")]
     dtype += [(k, "u1") for k in ("red", "green", "blue", "observed")]
     columns = [*mesh.vertices.T, *mesh.vertex_normals.T, *mesh.visual.vertex_colors[:, :3].T, extracted.observed]
     vertex = np.rec.fromarrays(columns, dtype=dtype)

@@ -91,6 +91,7 @@ log = logging.getLogger(__name__)
 POSTFIX_EVERY = 25  # steps between progress-bar loss readings (each one waits for the device)
 NEAR_PLANE = 0.01  # metres: the rasterizer's (raster.rasterization's default), nearer Gaussians are not drawn
 MIN_IMAGE_PX = 5  # the smallest training image side: the smoothness loss's 5x5 Sobel window
+RUNAWAY_FACTOR = 100  # most Gaussians this many times the scene's reach from its centre: training ran away
 
 
 def scene_scale(frames: list, bounds: tuple[np.ndarray, np.ndarray] | None = None) -> float:
@@ -157,6 +158,36 @@ class TrainingDiverged(TacsplatError):
         )
 
 
+class TrainingRanAway(TrainingDiverged):
+    """Most of the Gaussians' centres lie over ``RUNAWAY_FACTOR`` times the scene's ``reach`` from its centre (their
+    median distance ``distance``, after ``step`` steps), every value finite: a learning rate (the position's, most
+    likely) or a loss weight far too high; ``raised`` names those set above their defaults. Nothing of that state is
+    saved."""
+
+    def __init__(self, step: int, distance: float, reach: float, raised: list[str]):
+        self.step, self.names = step, ["means"]
+        given = f"; set above their defaults: {', '.join(raised)}" if raised else ""
+        TacsplatError.__init__(
+            self,
+            f"training diverged at step {step}: the Gaussians ran away from the scene, half of them over "
+            f"{distance:.3g} m from its centre, more than {RUNAWAY_FACTOR}x its reach of {reach:.3g} m; lower the "
+            f"learning rates (--lr-*, --lr-means first), or a loss weight that was raised (--lambda-*){given}",
+        )
+
+
+def raised_settings(config: TrainConfig) -> list[str]:
+    """The learning rates and loss weights of ``config`` above their defaults, as options (``--lr-means 1000
+    (default 0.00016)``): the likely cause of training that diverged."""
+    defaults = TrainConfig()
+    return [
+        f"--{f.name.replace('_', '-')} {getattr(config, f.name):g} (default {getattr(defaults, f.name):g})"
+        for f in dataclasses.fields(TrainConfig)
+        if f.name.startswith(("lr_", "lambda_"))
+        and f.name != "lr_means_final_factor"
+        and getattr(config, f.name) > getattr(defaults, f.name)
+    ]
+
+
 class _StopRequests:
     """While active (in the main thread), SIGINT and SIGTERM ask training to stop after the step in progress
     (``signum``); a second one stops at once (KeyboardInterrupt, nothing saved)."""
@@ -194,7 +225,16 @@ class Trainer:
         self.test_frames = scene.split("test")
         self.device = dev = config.torch_device()
         self.viewmats = camera_tensors(train)[0].to(dev)
-        self.scene_scale = scene_scale(train, scene.bounds())
+        lo, hi = scene.bounds()
+        self.scene_scale = scene_scale(train, (lo, hi))
+        # the run-away check's centre and reach: the bounds' centre, and the farthest of a camera and a bounds corner
+        # from it (the initial Gaussians' median distance too, once they exist: _set_reach)
+        self.centre = (lo + hi) / 2
+        cameras = np.array([f.T_world_cam[:3, 3] for f in scene.frames])
+        self.scene_reach = max(
+            float(np.linalg.norm(cameras - self.centre, axis=1).max()), float(np.linalg.norm(hi - lo)) / 2
+        )
+        self.reach = self.scene_reach
         self.rng = np.random.default_rng(config.seed)
         self.generator = torch.Generator(device=dev).manual_seed(config.seed)
         self.touch_points = np.zeros((0, 3))
@@ -536,20 +576,38 @@ class Trainer:
 
     # ------------------------------------------------------------------ progress, checkpoints
 
-    def _check_finite(self) -> None:
-        """Raise :class:`TrainingDiverged` where a parameter, or a scale it stands for, is NaN or infinite."""
+    def _distances(self) -> torch.Tensor:
+        """[N] distances of the Gaussians' centres from the scene's centre."""
+        means = self.gaussians.means.detach()
+        return (means - torch.as_tensor(self.centre, dtype=means.dtype, device=means.device)).norm(dim=-1)
+
+    def _set_reach(self) -> None:
+        """The run-away check's reach: the scene's, or the median distance of the Gaussians training starts (or goes on)
+        from where that is farther (a forward-facing capture's points lie far beyond its cameras)."""
+        median = float(self._distances().median()) if len(self.gaussians) else 0.0
+        self.reach = max(self.scene_reach, median)
+
+    def _check_diverged(self) -> None:
+        """Raise :class:`TrainingDiverged` where a parameter, or a scale it stands for, is NaN or infinite, and
+        :class:`TrainingRanAway` where more than half of the Gaussians lie over ``RUNAWAY_FACTOR`` times the reach
+        from the scene's centre (a scale-free test: the median distance)."""
         g = self.gaussians
         values = dict(g.params) | {"scales": g.scales}  # (a finite log-scale past 88 overflows float32's exp)
         if self.light is not None:
             values |= {f"light {name}": p for name, p in self.light.named_parameters()}
-        finite = torch.stack([torch.isfinite(v).all() for v in values.values()]).tolist()  # (one wait for the device)
+        distances = self._distances()
+        near = (distances > RUNAWAY_FACTOR * self.reach).sum() * 2 <= len(g)
+        checks = torch.stack([torch.isfinite(v).all() for v in values.values()] + [near]).tolist()  # (one wait)
+        finite = checks[:-1]
         if not all(finite):
             raise TrainingDiverged(self.step, [name for name, ok in zip(values, finite) if not ok])
+        if not checks[-1]:
+            raise TrainingRanAway(self.step, float(distances.median()), self.reach, raised_settings(self.config))
 
     def _progress_row(self) -> tuple[float, float]:
         """Evaluate on the held-out views and add a row to ``progress.csv`` (the last evaluation's); returns (PSNR,
-        CD). Training that diverged raises :class:`TrainingDiverged` instead (:meth:`_check_finite`)."""
-        self._check_finite()
+        CD). Training that diverged raises :class:`TrainingDiverged` instead (:meth:`_check_diverged`)."""
+        self._check_diverged()
         cfg = self.config
         metrics = dict.fromkeys(("psnr", "cd", "cd_paper"), float("nan"))
         if self.test_frames:
@@ -575,7 +633,7 @@ class Trainer:
     def save_checkpoint(self) -> None:
         """Write ``checkpoint.pt``; training that diverged raises :class:`TrainingDiverged` instead, and the last
         checkpoint stays."""
-        self._check_finite()
+        self._check_diverged()
         state = {
             "scene_path": self.scene_record["path"],  # (resolved: evaluate and export find it from anywhere)
             "config": self.config.to_json(),
@@ -690,10 +748,12 @@ class Trainer:
             if self.step < cfg.iterations:  # the Gaussians will change: a mesh exported from them no longer matches
                 remove_meshes(self.out)
             log.info("resuming %s at step %d of %d", self.out, self.step, cfg.iterations)
+            self._set_reach()
         else:
             write_run_config(self.out, cfg, self.scene_record)
             started = time.perf_counter()
             self.initialize()
+            self._set_reach()
             self.train_seconds = time.perf_counter() - started
             self._progress_row()
         bar = progress_bar(total=cfg.iterations, initial=self.step, enabled=show_progress, desc="train", unit="it")
@@ -704,7 +764,7 @@ class Trainer:
                 try:
                     terms = self.train_step()
                 except InvalidInputError:  # a kernel's or the rasterizer's check of non-finite inputs
-                    self._check_finite()  # (diverged: TrainingDiverged; else the kernel's error stands)
+                    self._check_diverged()  # (diverged: TrainingDiverged; else the kernel's error stands)
                     raise
                 self.train_seconds += time.perf_counter() - started
                 for k in LOSS_TERMS:
