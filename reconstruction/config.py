@@ -11,6 +11,7 @@ from typing import Iterable, Literal, get_args, get_origin, get_type_hints
 
 import torch
 
+from tacsplat.config_files import yaml_number
 from tacsplat.errors import ConfigError, UsageError
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
@@ -414,27 +415,9 @@ def set_fields(config: TrainConfig, settings: dict, source: str | Path | None = 
         if dataclasses.is_dataclass(getattr(target, name)):  # (a mapping of them arrives as dotted keys)
             raise UsageError(key, f"must be a mapping of {key}.x settings, got {value!r}", source)
         if isinstance(value, str):  # (YAML reads 1e-3, with no dot, as a string)
-            value = _number(value, get_type_hints(type(target))[name])
+            value = yaml_number(value, get_type_hints(type(target))[name])
         setattr(target, name, tuple(value) if isinstance(value, list) else value)
     return config
-
-
-def _number(text: str, kind) -> object:
-    """The number ``text`` spells, for a field of type ``kind`` that holds an int or a float and no string (an int
-    field takes a whole number only: ``1e3`` is 1000); ``text`` itself otherwise, for :meth:`TrainConfig.problem`
-    to refuse."""
-    kinds = get_args(kind) if isinstance(kind, types.UnionType) else (kind,)
-    if str in kinds or not {int, float} & set(kinds):
-        return text
-    try:
-        number = float(text)
-    except ValueError:
-        return text
-    if not math.isfinite(number):
-        return text
-    if float not in kinds:
-        return int(number) if number.is_integer() else text
-    return number
 
 
 def read_settings(path: str | Path) -> dict:
