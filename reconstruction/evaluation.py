@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -560,6 +560,7 @@ def evaluate_reconstruction(
     metrics.update(exported_mesh_metrics(Path(run_dir), scene, train_frames, gt_path))
     points = getattr(run, "touch_points", None)  # touch as the run used it: none without touch points
     touched = gaussians.num_touch > 0 if points is None else len(points) > 0
+    ran = replace(config, iterations=run.step)  # a run stopped early used what started before its last step
     result = {
         **metrics,
         "train_seconds": run.train_seconds,
@@ -567,8 +568,8 @@ def evaluate_reconstruction(
         "num_gaussians": len(gaussians),
         "num_touch_gaussians": gaussians.num_touch,
         "num_test_views": len(test),
-        "method": method_of(config, touched),
-        "mechanisms": mechanisms(config, touched),
+        "method": method_of(ran, touched),
+        "mechanisms": mechanisms(ran, touched),
         "gt_source": ground_truth.source if ground_truth else None,
         "gt_radius": ground_truth.radius if ground_truth else None,
         "scene": str(scene.path),

@@ -717,15 +717,17 @@ class Trainer:
         """Train to ``config.iterations`` (continuing the checkpoint with ``resume``); writes the run directory.
 
         SIGINT or SIGTERM (in the main thread) stop after the step in progress: its checkpoint is saved, then
-        :class:`TrainingInterrupted` is raised.
+        :class:`TrainingInterrupted` is raised. torch's global random state is seeded for the run and given back as
+        it was (a script's own random stream goes on unchanged).
         """
         threads = torch.get_num_threads()
         if self.config.torch_threads is not None:
             torch.set_num_threads(self.config.torch_threads)
         if self.config.init.use_sfm and not resume:
             import pycolmap  # noqa: F401  (its import installs glog's SIGTERM handler: ours must come after)
+        cuda = [self.device] if self.device.type == "cuda" else []
         try:
-            with _StopRequests() as stop:
+            with _StopRequests() as stop, torch.random.fork_rng(devices=cuda):
                 return self._run(resume, show_progress, stop)
         finally:
             torch.set_num_threads(threads)
@@ -846,6 +848,5 @@ def reconstruct(
             remove_run_files(out_dir)
         scene = scene_at(base, config.downscale)
         trainer = Trainer(scene, out_dir, config)
-        # a run stopped before its first checkpoint (killed, or its disk full) starts again with its recorded config
-        trainer.run(resume=resume and (out_dir / "checkpoint.pt").is_file(), show_progress=show_progress)
+        trainer.run(resume=resume, show_progress=show_progress)  # (a resume without a checkpoint was refused)
         return evaluate_reconstruction(trainer, scene, out_dir, trainer.splat)

@@ -51,3 +51,27 @@ def test_metrics_record_the_mechanisms_the_run_reached_and_a_resume_past_their_s
     assert main([*resume, "--quiet"]) == 0
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["iterations"] == 8 and all(metrics["mechanisms"].values()) and metrics["method"] == "default"
+
+
+@pytest.mark.timeout(300)
+def test_a_run_stopped_before_its_planned_steps_records_what_it_reached_and_leaves_the_callers_rng(tmp_path):
+    import torch
+
+    from tacsplat.reconstruction import TrainConfig, reconstruct
+    from tacsplat.reconstruction.evaluation import evaluate_run
+
+    scene = build_sphere_scene(tmp_path / "scene", size=24, train_views=3, test_views=1)
+    config = TrainConfig(iterations=4, lit_start_iter=2, depth_normal_start_iter=4, smoothness_start_iter=3)
+    config = dataclasses.replace(config, sh_degree=0, backend="cpu")
+    config.init.use_sfm = False
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    reconstruct(scene, tmp_path / "run", config, show_progress=False)
+    assert torch.equal(torch.rand(3), expected)  # the script's own stream goes on as if no run had been made
+    checkpoint = tmp_path / "run" / "checkpoint.pt"
+    state = torch.load(checkpoint, weights_only=False)
+    state["config"]["iterations"] = 10  # planned 10, stopped at step 4 (as Ctrl-C leaves a run)
+    torch.save(state, checkpoint)
+    on = evaluate_run(tmp_path / "run")["mechanisms"]
+    assert (on["sh_lit"], on["smoothness"], on["depth_normal"]) == (True, True, False)
