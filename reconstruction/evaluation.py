@@ -60,7 +60,10 @@ ALPHA_MASK_THRESHOLD = 0.5  # rendered pixels with alpha above this give predict
 PAPER_MAX_POINTS = 200_000  # cd_paper: the predicted cloud is subsampled to at most this many points (official code)
 PAPER_GT_POINTS = 200_000  # cd_paper: points sampled on the ground-truth mesh surface
 SEEN_TOLERANCE = 1e-3  # of the GT radius: a mesh hit this little in front of a surface point does not hide it
-GT_SIZE_FACTOR = 10  # a --gt-mesh this many times larger than its cameras' distances is in other units
+# a --gt-mesh this many times larger than its cameras' distances from the scene's centre is in other units: a
+# millimetre file is 1000x; a forward-facing capture's (its cameras side by side, the scene's centre theirs) or an
+# inside-out one's correct mesh is 10-50x
+GT_SIZE_FACTOR = 100
 
 
 @dataclass

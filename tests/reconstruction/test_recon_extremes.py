@@ -151,6 +151,28 @@ def test_a_gt_mesh_or_cloud_far_from_the_scene_s_size_is_refused_and_one_of_its_
             assert load_ground_truth(scene, scene.split("test"), path).radius == pytest.approx(RADIUS, rel=1e-3)
 
 
+def test_a_forward_facing_captures_mesh_in_metres_is_measured(tmp_path):
+    """Cameras side by side looking one way (the scene's centre is theirs): a 3 x 2 x 1 m scan 3.5 m in front is
+    19 times the cameras' spread from that centre, and metres; the same in millimetres is refused."""
+    from tacsplat.datasets import Scene
+    from tacsplat.errors import UsageError
+    from tacsplat.reconstruction.evaluation import check_gt_size
+    from tacsplat.reconstruction.metrics import bounding_sphere_radius
+
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    with SceneWriter.create(tmp_path / "ff", CameraIntrinsics(K, 64, 48), SceneMeta("real", "room")) as writer:
+        for k, (x, y) in enumerate((x, y) for x in (-0.15, 0.0, 0.15) for y in (-0.1, 0.0, 0.1)):
+            T = np.eye(4)
+            T[:3, 3] = [x, y, 0.0]
+            writer.add_frame(np.full((48, 64, 3), 128, np.uint8), T, "test" if k % 4 == 3 else "train")
+    scene = Scene.load(tmp_path / "ff")
+    scan = trimesh.creation.box([3.0, 2.0, 1.0])
+    scan.apply_translation([0.0, 0.0, 3.5])
+    check_gt_size(scene, "scan.ply", scan.vertices, bounding_sphere_radius(scan.vertices))
+    with pytest.raises(UsageError, match="wrong units"):
+        check_gt_size(scene, "scan.ply", 1000 * scan.vertices, 1000 * bounding_sphere_radius(scan.vertices))
+
+
 # --------------------------------------------------------------------------- test views that see no object
 
 
