@@ -489,7 +489,7 @@ def _press_sheet(images, names, calib, labels, path: Path) -> Path:
 
 
 def _calibrate_tactile(args: CalibrateTactile) -> int:
-    from tacsplat.drivers.optical_tactile import calibrate_tactile, check_problem, image_problem
+    from tacsplat.drivers.optical_tactile import calibrate_tactile, check_problem, depth_warning, image_problem
 
     for option, value in (("--ball-radius-mm", args.ball_radius_mm), ("--pixel-size-mm", args.pixel_size_mm)):
         if not 0 < value < 1000:
@@ -568,6 +568,8 @@ def _calibrate_tactile(args: CalibrateTactile) -> int:
             )
     if problem:
         raise TactileError("calibration", f"not written: {problem} (the contact circles are drawn in {picture})")
+    if warning := depth_warning(calib):
+        print(f"warning: {warning}")
     calib.save(out)
     print(f"wrote {out}")
     return 0

@@ -89,6 +89,20 @@ def test_a_wrong_scale_that_the_radius_check_cannot_see_is_refused_by_its_depth(
     assert not out.exists() and (tmp_path / "t.rejected.png").exists()
 
 
+@pytest.mark.parametrize("peak_mm, refused, warned", [(0.16, True, False), (0.245, False, True), (0.4, False, False)])
+def test_the_depth_band_refuses_a_wrong_scale_and_warns_of_shallow_presses(peak_mm, refused, warned):
+    """A press 0.5 mm deep of a 1 mm ball on a coarse image reads 0.245 mm (the peak under-reads): written, with a
+    warning; a 6x wrong scale (0.16 mm) is refused."""
+    from types import SimpleNamespace
+
+    from tacsplat.drivers.optical_tactile import check_problem, depth_warning
+
+    summary = {"median_fitted_radius_m": 1e-3, "median_peak_indentation_m": peak_mm * 1e-3}
+    calib = SimpleNamespace(check_summary=summary, ball_radius_m=1e-3, presses=[])
+    assert (check_problem(calib) is not None) == refused
+    assert (depth_warning(calib) is not None) == warned
+
+
 def test_presses_all_wider_than_the_ball_blame_the_sizes(tmp_path, capsys):
     assert tactile(PRESSES, tmp_path / "t.npz", "--ball-radius-mm", "0.5", "--pixel-size-mm", "0.1245") == 1
     err = one_error(capsys)
