@@ -31,7 +31,9 @@ def copy_scene(
     """Write a new scene in ``dst`` (a new or empty folder) holding ``frames`` of ``src`` (a scene folder or a
     loaded :class:`Scene`; in the order given, default all) with their intrinsics, ground-truth depth and normals, and
     ``touches`` (records of ``src``, in the order given; default all), grasp and finger kept, ids renumbered.
-    The ground-truth point cloud, if any, is copied.
+    The ground-truth point cloud, if any, is copied; the sparse points (an import's SfM points) only when the copy
+    keeps every frame: they were built from every image, so a copy of some frames (fewer training views, say)
+    drops them and training triangulates from its own views.
 
     ``meta``, ``sensor`` and ``gt_mesh`` (a mesh path or ``trimesh.Trimesh``) default to the source's; a new
     sensor model is refused while touches of the old one are copied. Every record is written crash-safely; when
@@ -79,7 +81,7 @@ def copy_scene(
             writer.set_gt_mesh(gt_mesh)
         if scene.gt_points_path is not None:
             writer.set_gt_points(scene.gt_points())
-        if scene.sparse_points_path is not None:
+        if scene.sparse_points_path is not None and {f.id for f in frames} == {f.id for f in scene.frames}:
             writer.set_sparse_points(*scene.sparse_points())
         writer.finish()
     return dst

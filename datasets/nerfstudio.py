@@ -29,8 +29,14 @@ parser reads it:
   nerfstudio takes it.
 * Frames whose image is missing are one error listing them, or with ``skip_missing`` are left out with a
   warning (and listed in scene.json).
-* ``depth_file_path`` and ``ply_file_path`` are not imported (training reads neither): a warning, and
-  ``extra.not_imported`` in scene.json.
+* ``ply_file_path`` (ns-process-data's ``sparse_pc.ply``: the COLMAP model's points, relative to the
+  transforms.json's folder as nerfstudio resolves it) becomes the scene's sparse points, where training's G_c
+  start (as splatfacto's do): mapped into the scene's world exactly as the poses are (``applied_scale``, the
+  inverse of ``applied_transform``, then ``scale``); colours from its ``red green blue`` (0-255), mid-grey for a
+  PLY without them. A missing, unreadable or empty PLY is a warning naming it, and the scene has no sparse points
+  (nerfstudio, too, goes on without them; training triangulates its own).
+* ``depth_file_path`` is not imported (training reads no depth maps): a warning. It, and a ``ply_file_path``
+  left out, are listed in ``extra.not_imported`` in scene.json.
 
 Images are stored as RGB PNG. An alpha channel (straight alpha) is composited onto ``background_rgb`` (white by
 default, as ``import blender``), before any undistortion, as nerfstudio's and instant-ngp's loaders composite RGBA
@@ -69,7 +75,7 @@ from .blender import (
     read_rgba,
     transforms_value,
 )
-from .records import is_finite_number, pose_problem
+from .records import is_finite_number, pose_problem, sparse_points_problem
 from .writer import new_import
 
 log = logging.getLogger(__name__)
@@ -80,6 +86,7 @@ SPLIT_LISTS = ("train_filenames", "val_filenames", "test_filenames")
 MAX_CORNER_SCALE = 2.0  # distortion at the image corner: distorted over undistorted radius (distortion_problem)
 MAX_TANGENTIAL = 0.1  # tangential distortion: the largest shift of a point, over its radius (distortion_problem)
 _PIXEL_CENTRE_SHIFT = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # ours (+0.5) -> OpenCV's (0)
+MID_GREY = 128  # the colour of the points of a PLY without colours
 
 
 @dataclass(frozen=True)
@@ -390,6 +397,41 @@ def _original_world_pose(
     return pose
 
 
+def _sparse_points(
+    index: Path, data: dict, applied: np.ndarray | None, applied_scale: float, scale: float
+) -> tuple[np.ndarray, np.ndarray] | str:
+    """``ply_file_path``'s points [N, 3] in the scene's world, in metres (each mapped as
+    :func:`_original_world_pose` maps a camera's position), and their colours [N, 3] uint8; or why there are none
+    (a missing, unreadable or empty PLY), naming the file."""
+    from plyfile import PlyData
+
+    rel = data["ply_file_path"]
+    if not isinstance(rel, str) or not rel:
+        raise SceneFormatError(index, "ply_file_path", f"expected a path string, got {rel!r}")
+    path = index.parent / rel
+    if not path.is_file():
+        return f"{path}: no such file"
+    try:
+        vertex = PlyData.read(str(path))["vertex"]
+        xyz = np.stack([np.asarray(vertex[axis], np.float64) for axis in "xyz"], axis=1)
+        channels = ("red", "green", "blue")
+        has_rgb = set(channels) <= set(vertex.data.dtype.names)
+        rgb = np.stack([np.asarray(vertex[c], np.float64) for c in channels], axis=1) if has_rgb else None
+    except Exception as exc:  # plyfile and numpy raise many types for damaged files
+        why = (str(exc).splitlines() or [type(exc).__name__])[0]
+        return f"{path}: unreadable PLY of points (vertex x y z, optionally red green blue): {why}"
+    if not len(xyz):
+        return f"{path}: holds no points"
+    if rgb is not None and not np.isfinite(rgb).all():
+        return f"{path}: colours that are not finite (NaN or inf)"
+    xyz = np.c_[xyz / applied_scale, np.ones(len(xyz))].T  # [4, N], homogeneous
+    xyz = scale * (xyz if applied is None else np.linalg.solve(applied, xyz))[:3].T
+    colors = np.full(xyz.shape, MID_GREY, np.uint8) if rgb is None else np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+    if problem := sparse_points_problem(xyz, colors):
+        return f"{path}: {problem}"
+    return xyz, colors
+
+
 def import_nerfstudio(
     src,
     out,
@@ -419,12 +461,11 @@ def import_nerfstudio(
     not_imported = {}
     if depth_maps := sum("depth_file_path" in f.raw for f in frames):
         not_imported["depth_file_path"] = depth_maps
-    if "ply_file_path" in data:
+        log.warning("%s: not imported (training reads no depth maps): depth_file_path", index)
+    sparse = None if "ply_file_path" not in data else _sparse_points(index, data, applied, applied_scale, scale)
+    if isinstance(sparse, str):
         not_imported["ply_file_path"] = data["ply_file_path"]
-    if not_imported:
-        log.warning(
-            "%s: not imported (training reads neither depth maps nor point clouds): %s", index, ", ".join(not_imported)
-        )
+        log.warning("%s: ply_file_path %s; not imported: training triangulates its own points", index, sparse)
     split = selection.pop("split")
     optional = {
         **selection,
@@ -463,4 +504,6 @@ def import_nerfstudio(
                 intrinsics=intr,
                 mask=None if mask is None else mask > 0,
             )
+        if isinstance(sparse, tuple):
+            writer.set_sparse_points(*sparse)
     return out

@@ -365,10 +365,21 @@ class Trainer:
 
     def _sfm(self, images: list[np.ndarray]) -> tuple[SfmResult, str]:
         """The SfM points G_c start from, and what they are: the scene's sparse points (an import's COLMAP points)
-        when it has at least ``min_sfm_points``, else points triangulated from the training ``images``."""
-        init = self.config.init
-        if (sparse := self.scene.sparse_points()) is not None:
-            count, where = len(sparse[0]), self.scene.sparse_points_file
+        when it has at least ``min_sfm_points`` and training uses every train view, else points triangulated from
+        the training ``images``. (The scene's points were built from all its images, the held-out ones included:
+        a run on fewer views would start from what its views cannot show.)"""
+        init, where = self.config.init, self.scene.sparse_points_file
+        train = len(self.scene.split("train"))
+        if where is not None and len(self.train_frames) < train:
+            log.info(
+                "the scene's sparse points (%s) come from all its images: training on %d of its %d train views "
+                "(--train-views), triangulating from those",
+                where,
+                len(self.train_frames),
+                train,
+            )
+        elif (sparse := self.scene.sparse_points()) is not None:
+            count = len(sparse[0])
             if count >= init.min_sfm_points:
                 return SfmResult(sparse[0], sparse[1] / 255.0), f"sparse points from the scene ({where})"
             log.info(

@@ -98,3 +98,26 @@ def test_a_scene_without_sparse_points_or_without_sfm_initialises_as_before(
         trainer.initialize()
     assert triangulation.calls == calls
     assert line in caplog.text and "sparse points" not in caplog.text
+
+
+@pytest.mark.parametrize("train_views, calls", [(2, 1), (3, 0)])
+def test_sparse_points_are_used_only_when_training_uses_every_train_view(
+    tmp_path, monkeypatch, caplog, train_views, calls
+):
+    # (the scene's points come from every image, held-out ones included: a few-view run triangulates its own)
+    path, _, _ = _scene_with_points(tmp_path / "scene")
+    triangulation = _Triangulation(120)
+    monkeypatch.setattr(trainer_module, "sfm_points", triangulation)
+    config = _config()
+    config.train_views = train_views
+    trainer = Trainer(Scene.load(path), tmp_path / "run", config)
+    with caplog.at_level("INFO", logger="tacsplat.reconstruction.trainer"):
+        trainer.initialize()
+    assert triangulation.calls == calls
+    subset = (
+        "the scene's sparse points (points3D.ply) come from all its images: training on 2 of its 3 train views "
+        "(--train-views), triangulating from those"
+    )
+    assert (subset in caplog.text) == (calls == 1)
+    assert ("initialisation: 120 SfM points" in caplog.text) == (calls == 1)
+    assert (f"initialisation: {COUNT} sparse points from the scene" in caplog.text) == (calls == 0)
