@@ -46,6 +46,7 @@ from tacsplat.datasets.outputs import ensure_output_dir
 from tacsplat.datasets.reader import STRICT, load_hand_motion
 from tacsplat.datasets.writer import JOURNAL, being_written, has_content, journal_locked, journaled_state
 from tacsplat.errors import ConfigError, InvalidInputError, SceneFormatError
+from tacsplat.sim.hand import JOINT_NAMES
 
 SETTINGS_KEY = "capture_settings"  # in scene.json's "extra"
 _IN_META = ("rig", "object", "plan")  # recorded as SceneMeta's source, object and capture_plan
@@ -267,8 +268,15 @@ def _real_settings(c: RigConfig) -> dict:
         settings["mock_devices"] = {
             k: v for k, v in asdict(c.mock_devices).items() if k not in ("servo_timeout_s", "servo_port")
         }  # the servo link, not the scene
-        e = c.sim.true_errors  # the emulated servos' readings, so the joint angles the scene records
-        settings["sim"] = {"true_errors": {"servo_offsets_rad": e.servo_offsets(), "servo_signs": e.servo_signs()}}
+        # the emulated servos' readings, so the joint angles the scene records: as the file's keys, over every joint
+        # (a joint the file leaves out at its default), so that a difference names its joint
+        e = c.sim.true_errors
+        settings["sim"] = {
+            "true_errors": {
+                "joint_offsets_rad": dict(zip(JOINT_NAMES, e.servo_offsets())),
+                "joint_signs": dict(zip(JOINT_NAMES, e.servo_signs())),
+            }
+        }
     return settings
 
 

@@ -187,11 +187,12 @@ class BoardConfig(CharucoBoardSpec):
 
 @yaml_section
 class TactileSensorConfig:
-    """One optical tactile fingertip (``rig: real``)."""
+    """One optical tactile fingertip: a real rig's entry gives its source and calibration (required, checked by
+    :func:`validate`); a rig: sim file's gives its finger and mounting only (:data:`TWIN_SENSOR_READS`)."""
 
     finger: Annotated[str, one_of(FINGER_NAMES)]  # whose fingertip frame it is mounted on
-    source: DeviceSource
-    calibration: Text  # TactileCalibration file (tacsplat calibrate tactile)
+    source: DeviceSource | None = None
+    calibration: Text | None = None  # TactileCalibration file (tacsplat calibrate tactile)
     T_fingertip_sensor: Pose | None = None  # [4, 4] mounting: sensor frame in the fingertip pad frame; None = identity
 
 
@@ -230,8 +231,8 @@ TWIN_GRASP = (
 )
 # What a rig: sim run reads of the real rig's sections (devices.twin_config, rig_T_hand_cam, rig_mounts, the calibration
 # commands, rig check; capture_scene records them): section -> (the keys read, why another is refused). A rig: sim file
-# that sets another key of them is one error naming it (refuse_unread_by_twin): the twin would ignore it. The rest of
-# the file (object, board, plan, sim, hardware_changed) is read whole.
+# that sets other keys of them is one error naming them all (refuse_unread_by_twin): the twin would ignore them. The
+# rest of the file (object, board, plan, sim, hardware_changed) is read whole.
 TWIN_READS = {
     "hand": (
         ("calibration",),
@@ -250,8 +251,13 @@ TWIN_READS = {
     "grasp": ((), TWIN_GRASP),
     "mock_devices": ((), "a rig: sim file has no emulated devices (--mock's, of a real rig): remove mock_devices"),
 }
-# A rig: sim file's sensor entry gives its finger's T_fingertip_sensor; the source and calibration an entry needs are
-# not read.
+# A rig: sim file's sensor entry gives its finger's T_fingertip_sensor: the keys read, why another is refused (the
+# source and calibration a real rig's entry needs).
+TWIN_SENSOR_READS = (
+    ("finger", "T_fingertip_sensor"),
+    "a rig: sim file's sensor gives its finger and T_fingertip_sensor only: the twin's pads are simulated (no device "
+    "opened, no calibration read); remove it",
+)
 TWIN_SENSOR = (
     "missing: a rig: sim file's sensor gives the mounting of its finger's simulated pad, and only that (its source "
     "and calibration are not read); add it, or remove the sensor"
@@ -551,14 +557,26 @@ def parse_rig(
 
 
 def refuse_unread_by_twin(data: dict, source=None) -> None:
-    """One ConfigError naming the first key of a rig: sim file's ``data`` that the twin never reads
-    (:data:`TWIN_READS`, :data:`TWIN_SENSOR`), and why."""
-    for section, (read, why) in TWIN_READS.items():
-        values = data.get(section)
-        if isinstance(values, dict) and (unread := [key for key in values if key not in read]):
-            raise ConfigError(f"{section}.{unread[0]}", why, source)
+    """One ConfigError naming every key of a rig: sim file's ``data`` that the twin never reads (:data:`TWIN_READS`,
+    :data:`TWIN_SENSOR_READS`; the first as its key, and why; a section it reads none of once, as the section), so
+    that one run lists all there are to remove; else one naming the first sensor without its mounting
+    (:data:`TWIN_SENSOR`)."""
     sensors = data["tactile"].get("sensors") if isinstance(data.get("tactile"), dict) else None
-    for i, sensor in enumerate(sensors if isinstance(sensors, list) else ()):
+    sensors = sensors if isinstance(sensors, list) else []
+    mappings = [(section, data.get(section), read, why) for section, (read, why) in TWIN_READS.items()]
+    mappings += [(f"tactile.sensors[{i}]", sensor, *TWIN_SENSOR_READS) for i, sensor in enumerate(sensors)]
+    unread = []  # (the error's key, as the message lists it, why)
+    for prefix, values, read, why in mappings:
+        keys = [key for key in values if key not in read] if isinstance(values, dict) else []
+        if keys and not read:  # a section the twin reads none of goes whole (grasp, mock_devices)
+            unread.append((f"{prefix}.{keys[0]}", f"{prefix} (the whole section)", why))
+        else:
+            unread += [(f"{prefix}.{key}", f"{prefix}.{key}", why) for key in keys]
+    if unread:
+        (key, _, why), listed = unread[0], [name for _, name, _ in unread]
+        told = f"; the twin reads none of these: {', '.join(listed)} (remove them all)"
+        raise ConfigError(key, why + (told if len(listed) > 1 else ""), source)
+    for i, sensor in enumerate(sensors):
         if isinstance(sensor, dict) and "T_fingertip_sensor" not in sensor:
             raise ConfigError(f"tactile.sensors[{i}].T_fingertip_sensor", TWIN_SENSOR, source)
 
@@ -586,6 +604,11 @@ def validate(c: RigConfig, check_files: bool = True) -> None:
     failure is one ConfigError naming its key."""
     checked(RigConfig, c, "", c.source)
     src = c.source
+    if c.rig == "real":  # the schema's own words: a real rig's sensor opens its source and reads its calibration
+        for i, s in enumerate(c.tactile.sensors):
+            for key in ("source", "calibration"):
+                if getattr(s, key) is None:
+                    raise ConfigError(f"tactile.sensors[{i}].{key}", "missing (a required key)", src)
     for key, mode in (("plan.views.mode", c.plan.views.mode), ("plan.grasps.mode", c.plan.grasps.mode)):
         if c.rig == "real" and mode != "operator":
             raise ConfigError(key, "a real rig is positioned by the operator: use 'operator'", src)

@@ -237,7 +237,7 @@ def test_mounts_without_hand_eye_write_the_rigs_hand_eye_file_keep_a_far_mount_a
     T_hand_cam; the truth 4 mm and 3 degrees off it), a thumb sensor mounted 25 degrees turned, and the middle
     sensor's mount given in the rig file itself (the identity; the truth 2 mm off it)."""
     save_hand_eye(tmp_path / "hand_eye.json", nominal_T_hand_cam(), 16, 0.3)
-    middle = {"finger": "middle", "source": "0", "calibration": "unused.npz", "T_fingertip_sensor": np.eye(4).tolist()}
+    middle = {"finger": "middle", "T_fingertip_sensor": np.eye(4).tolist()}
     tactile = {"mounts": "mounts.json", "sensors": [middle]}
     rig = _rig(tmp_path, MOUNT_ERRORS, camera={"hand_eye": "hand_eye.json"}, tactile=tactile)
     lines = []

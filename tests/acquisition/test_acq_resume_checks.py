@@ -74,14 +74,21 @@ def test_a_resume_refused_for_its_settings_keeps_hand_edits_and_files_the_scene_
     assert _files(scene) == before
 
 
-def test_a_mock_resume_with_other_servo_errors_is_refused_naming_them(captured, scene, tmp_path, no_device):
-    """--mock's servos read off by sim.true_errors, so the joint angles a scene records depend on them."""
+@pytest.mark.parametrize(("key", "value", "recorded"), [("joint_offsets_rad", 0.05, 0), ("joint_signs", -1, 1)])
+def test_a_mock_resume_with_other_servo_errors_is_refused_naming_them(
+    captured, scene, tmp_path, no_device, key, value, recorded
+):
+    """--mock's servos read off by sim.true_errors, so the joint angles a scene records depend on them; a difference
+    is named by the rig file's own key and its joint (the scene's file gave none: each joint's default)."""
     (tmp_path / "other").mkdir()
-    other = write_mock_rig(tmp_path / "other", sim={"true_errors": {"joint_offsets_rad": {JOINT_NAMES[1]: 0.05}}})
+    other = write_mock_rig(tmp_path / "other", sim={"true_errors": {key: {JOINT_NAMES[1]: value}}})
     before = _files(scene)
     with pytest.raises(ConfigError) as err:
         _resume(other, scene)
-    assert err.value.key == "sim.true_errors.servo_offsets_rad", str(err.value)
+    dotted = f"sim.true_errors.{key}.{JOINT_NAMES[1]}"
+    assert err.value.key == dotted, str(err.value)
+    told = f"{other}: {dotted}: {scene} was captured with {recorded}, this run asks for {value}; drop --resume"
+    assert str(err.value).startswith(told), str(err.value)
     assert _files(scene) == before
 
 

@@ -1,17 +1,26 @@
 """A rig: sim file sets only what the twin reads: a key of the real rig's devices that no twin run reads (a hand
-port, a camera source, a tactile timeout, mock_devices, a sensor entry without its mounting) is one error naming the
-file and the key, in every command that takes the file; the keys the twin reads (the calibration files, the inline
-poses, the board, the plan, sim) still load and are used."""
+port, a camera source, a tactile timeout, mock_devices, a sensor's source or calibration, a sensor entry without its
+mounting) is one error naming the file and every such key, in every command that takes the file; the keys the twin
+reads (the calibration files, the inline poses, the board, the plan, sim) still load and are used."""
 
 import dataclasses
 import typing
+from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+from tacsplat.acquisition import config as rig_config
 from tacsplat.acquisition.capture_scene import capture_settings
-from tacsplat.acquisition.config import TWIN_READS, TWIN_SENSOR, RigConfig, load_rig
+from tacsplat.acquisition.config import (
+    TWIN_READS,
+    TWIN_SENSOR,
+    TWIN_SENSOR_READS,
+    RigConfig,
+    TactileSensorConfig,
+    load_rig,
+)
 from tacsplat.acquisition.devices import twin_config
 from tacsplat.cli import main
 from tacsplat.errors import ConfigError
@@ -62,6 +71,10 @@ def test_every_key_of_the_real_rigs_sections_is_either_read_by_the_twin_or_refus
     }
     assert unread == {key for key in UNREAD if not key.startswith(("grasp.", "mock_devices."))} | {
         f"{section}.{f.name}" for section in ("grasp", "mock_devices") for f in dataclasses.fields(hints[section])
+    }
+    assert {f.name for f in dataclasses.fields(TactileSensorConfig)} - set(TWIN_SENSOR_READS[0]) == {
+        "source",
+        "calibration",
     }
 
 
@@ -114,11 +127,8 @@ def test_each_command_refuses_it_before_it_starts(tmp_path, capsys, command):
 
 
 def test_a_sim_rigs_sensor_without_its_mounting_is_refused(tmp_path):
-    """A sensor entry copied from a real rig gives a source and a calibration, which the twin does not read."""
-    sensors = [
-        {"finger": "index", "source": 0, "calibration": "index.npz", "T_fingertip_sensor": T_MOUNT},
-        {"finger": "thumb", "source": 1, "calibration": "thumb.npz"},
-    ]
+    """A sensor entry gives its finger's mounting, and only that."""
+    sensors = [{"finger": "index", "T_fingertip_sensor": T_MOUNT}, {"finger": "thumb"}]
     rig = _write(tmp_path, {"tactile": {"sensors": sensors}})
     with pytest.raises(ConfigError) as err:
         load_rig(rig)
@@ -129,7 +139,7 @@ def test_the_keys_a_twin_reads_load_and_are_used(tmp_path, capsys):
     """Every key TWIN_READS allows, with the sections the twin reads whole, loads; the twin takes the hand
     calibration, the inline T_hand_cam and the sensor's mounting, and calibrate hand-eye --arm-poses the camera
     calibration."""
-    sensor = {"finger": "middle", "source": 0, "calibration": "unused.npz", "T_fingertip_sensor": T_MOUNT}
+    sensor = {"finger": "middle", "T_fingertip_sensor": T_MOUNT}
     rig = _write(
         tmp_path,
         {
@@ -157,3 +167,60 @@ def test_the_keys_a_twin_reads_load_and_are_used(tmp_path, capsys):
     assert main(["calibrate", "hand-eye", "--rig", str(rig), "--out", str(out), "--arm-poses", str(poses)]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"error: {rig}: camera.calibration: file not found: {tmp_path / 'camera.json'} "), err
+
+
+@pytest.mark.parametrize("key", ["source", "calibration"])
+def test_a_sim_rigs_sensor_giving_a_source_or_calibration_is_refused_naming_it(tmp_path, key):
+    """The twin opens no device and reads no tactile calibration: a sensor entry copied from a real rig says so."""
+    value = {"source": 2, "calibration": "index.npz"}[key]
+    rig = _write(tmp_path, {"tactile": {"sensors": [{"finger": "index", key: value, "T_fingertip_sensor": T_MOUNT}]}})
+    with pytest.raises(ConfigError) as err:
+        load_rig(rig)
+    assert str(err.value) == f"{rig}: tactile.sensors[0].{key}: {TWIN_SENSOR_READS[1]}"
+
+
+@pytest.mark.parametrize("key", ["source", "calibration"])
+def test_a_real_rigs_sensor_needs_its_source_and_calibration(tmp_path, key):
+    sensor = {"finger": "index", "source": 2, "calibration": "index.npz"}
+    del sensor[key]
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(yaml.safe_dump({"rig": "real", "tactile": {"sensors": [{"finger": "thumb", **sensor}, sensor]}}))
+    with pytest.raises(ConfigError) as err:
+        load_rig(rig, check_files=False)
+    assert str(err.value) == f"{rig}: tactile.sensors[0].{key}: missing (a required key)"
+
+
+def test_a_real_rig_file_made_sim_is_one_error_naming_every_key_the_twin_never_reads(tmp_path):
+    """The real rig's example file with rig: sim: one run names them all (the first as the error's key; a section the
+    twin reads none of, as the section), not one run per key."""
+    text = (Path(rig_config.__file__).parent / "rigs" / "real.yaml").read_text()
+    assert "\nrig: real\n" in text
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(text.replace("\nrig: real\n", "\nrig: sim\n"))
+    with pytest.raises(ConfigError) as err:
+        load_rig(rig)
+    unread = ["hand.port", "hand.baudrate", "hand.ids", "camera.source", "camera.timeout_s"]
+    unread += ["tactile.sensor_name", "tactile.gel_thickness_m", "grasp (the whole section)"]
+    unread += [f"tactile.sensors[{i}].{key}" for i in range(4) for key in ("source", "calibration")]
+    assert err.value.key == "hand.port"
+    assert str(err.value) == (
+        f"{rig}: hand.port: {TWIN_READS['hand'][1]}; the twin reads none of these: {', '.join(unread)} "
+        "(remove them all)"
+    )
+
+
+def test_a_sim_rig_with_several_unread_keys_names_each(tmp_path):
+    """Keys of several sections and a sensor's, in the order of TWIN_READS, then the sensors'."""
+    sensors = [{"finger": "index", "T_fingertip_sensor": T_MOUNT}, {"finger": "ring", "source": 3}]
+    data = {
+        "mock_devices": {"camera_width": 16, "unplugged": ["camera"]},
+        "tactile": {"timeout_s": 1.0, "sensors": sensors},
+        "camera": {"fps": 30.0},
+    }
+    rig = _write(tmp_path, data)
+    with pytest.raises(ConfigError) as err:
+        load_rig(rig)
+    assert str(err.value) == (
+        f"{rig}: camera.fps: {TWIN_READS['camera'][1]}; the twin reads none of these: camera.fps, tactile.timeout_s, "
+        "mock_devices (the whole section), tactile.sensors[1].source (remove them all)"
+    )
