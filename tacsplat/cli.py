@@ -208,8 +208,10 @@ def _configure_logging(args: argparse.Namespace) -> None:
     logging.basicConfig(level=getattr(logging, level), format="%(levelname)s %(name)s: %(message)s", force=True)
     for handler in logging.getLogger().handlers:  # (a batch's workers log through these handlers too)
         handler.addFilter(_own_debug)
-    # PyOpenGL (under MuJoCo's renderer) says at INFO that an optional speed-up is missing
-    logging.getLogger("OpenGL").setLevel(max(logging.WARNING, getattr(logging, level)))
+    # at INFO, PyOpenGL (under MuJoCo's renderer) says an optional speed-up is missing, and matplotlib that it built
+    # its font cache (a new home's first plot): noise between tacsplat's own lines
+    for noisy in ("OpenGL", "matplotlib.font_manager"):
+        logging.getLogger(noisy).setLevel(max(logging.WARNING, getattr(logging, level)))
     set_quiet(quiet)
 
 

@@ -265,3 +265,16 @@ def test_a_word_of_an_options_help_is_not_taken_for_an_option(capsys):
     """Known options are the parser's, not every --word of --help (--ray-address's help quotes `ray start --head`)."""
     assert main(["bench", "paper", "--head"]) == 2
     assert "--head: not an option of tacsplat bench paper" in capsys.readouterr().err
+
+
+def test_pyopengl_and_matplotlibs_font_cache_lines_are_hidden_at_info(tmp_path, capsys):
+    """Their INFO lines (an optional speed-up missing; a font cache built in a new home) are noise between ours;
+    their warnings still show."""
+    import logging
+
+    main(["inspect", str(tmp_path)])
+    capsys.readouterr()
+    logging.getLogger("OpenGL.acceleratesupport").info("No OpenGL_accelerate module loaded")
+    logging.getLogger("matplotlib.font_manager").info("generated new fontManager")
+    logging.getLogger("matplotlib.font_manager").warning("findfont: Font family not found")
+    assert capsys.readouterr().err.splitlines() == ["WARNING matplotlib.font_manager: findfont: Font family not found"]
