@@ -73,10 +73,11 @@ bench-gpu: $(STAMP)
 # The GPU check, in two steps (docs/gpu.md). Here, before a device call, `make gpu-prepare` writes .gpu/
 # (git-ignored): the wheels the device's image lacks (its python3 is 3.12 with a CUDA torch) and the parity scene
 # with its CPU runs. There, with .gpu carried, `make gpu-check` (no setup step: nothing can be installed from the
-# network there) links this tree into GPU_SITE beside the wheels and runs `tacsplat bench gpu`; without CUDA it
-# says so in one line and exits 0.
-GPU_WHEELS := gsplat trimesh rtree embreex plyfile pydantic pydantic-core annotated-types typing-inspection \
-	typing-extensions mujoco-core PyOpenGL tyro docstring-parser typeguard shtab
+# network there) links this tree into GPU_SITE beside the wheels and runs `tacsplat bench gpu` from there
+# (PYTHONSAFEPATH: not from this folder's tacsplat/, which lacks its subpackages); without CUDA it says so in one
+# line and exits 0.
+GPU_WHEELS := gsplat trimesh rtree embreex manifold3d plyfile pydantic pydantic-core annotated-types \
+	typing-inspection typing-extensions mujoco-core PyOpenGL tyro docstring-parser typeguard shtab
 GPU_GL_DEBS := libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2  # MuJoCo's EGL loader, which the image lacks
 APT_AMD64 := -oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/apt-amd64-lists
 GPU_PLATFORMS := --platform manylinux_2_17_x86_64 --platform manylinux_2_27_x86_64 \
@@ -114,7 +115,7 @@ gpu-check:
 		--no-deps --no-compile --target $(GPU_SITE) $(GPU_WHEEL_DIR)/*.whl; fi; \
 	ln -s $(CURDIR)/tacsplat/* $(GPU_SITE)/tacsplat/; \
 	for p in $(SUBPACKAGES); do ln -s $(CURDIR)/$$p $(GPU_SITE)/tacsplat/$$p; done; \
-	PYTHONPATH=$(GPU_SITE) MUJOCO_GL=egl $(GPU_PYTHON) -m tacsplat.cli bench gpu --out $(GPU_OUT) --work $(GPU_SITE)-work \
+	PYTHONPATH=$(GPU_SITE) PYTHONSAFEPATH=1 MUJOCO_GL=egl $(GPU_PYTHON) -m tacsplat.cli bench gpu --out $(GPU_OUT) --work $(GPU_SITE)-work \
 		--parity $(GPU_PARITY) $(GPU_ARGS)
 
 clean:

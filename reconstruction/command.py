@@ -96,6 +96,14 @@ def option_names(config: TrainConfig) -> dict[str, str]:
     return {key: "--" + key.replace("_", "-") for key in flat_settings(config.to_json())}
 
 
+def _trained_on(out: Path, recorded: str, given: str) -> bool:
+    """Whether a --device given on resume of a run that recorded ``auto`` names the kind of device its checkpoint
+    trained on (what the checkpoint's own device check asks for)."""
+    from tacsplat.reconstruction.run_dir import read_checkpoint, run_checkpoint
+
+    return recorded == "auto" and given == read_checkpoint(run_checkpoint(out)).get("device", "cpu")
+
+
 def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:
     """The config a --resume continues with: the run's own (``recorded``) with the options given, which may only
     raise --iterations; a UsageError on --resume naming each other option that differs, and a --method given that
@@ -105,7 +113,7 @@ def resumed(argv: list[str], recorded: TrainConfig, out: Path) -> TrainConfig:
     changes = [
         f"{names.get(path, path)} {before!r} in the run, {now!r} given"
         for path, before, now in changed_settings(recorded, given)
-        if path != "iterations"
+        if path != "iterations" and not (path == "device" and _trained_on(out, before, now))
     ]
     method, asked = method_of(recorded), _early_options(argv).method  # (as set up: whatever their step counts)
     if changes and method_of(given) != method:

@@ -222,8 +222,9 @@ class TrainConfig:
         return None
 
     def torch_device(self) -> torch.device:
-        """The device training runs on; a ConfigError at once when CUDA is asked for and torch sees none."""
-        if self.device == "cpu" or (self.device == "auto" and not torch.cuda.is_available()):
+        """The device training runs on (auto: CUDA where torch sees it, except for the cpu backend, which runs on the
+        CPU); a ConfigError at once when CUDA is asked for and torch sees none."""
+        if self.device == "cpu" or (self.device == "auto" and (self.backend == "cpu" or not torch.cuda.is_available())):
             return torch.device("cpu")
         if not torch.cuda.is_available():
             build = "a CPU-only build" if torch.version.cuda is None else f"built for CUDA {torch.version.cuda}"

@@ -42,7 +42,7 @@ from tacsplat.reconstruction.metrics import (
 )
 from tacsplat.reconstruction.ply import load_ply, make_parent, outward_normals, save_ply
 from tacsplat.reconstruction.raster import rendering as raster  # the module: tests spy on its calls
-from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, run_scene
+from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, render_backend, run_scene
 from tacsplat.reconstruction.shading import Look
 from tacsplat.reconstruction.views import (
     camera_tensors,
@@ -512,11 +512,12 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, backend
     returns the metrics. A ConfigError if the run's scene has changed since (:func:`~.run_dir.run_scene`)."""
     run = load_run(Path(run_dir))
     scene = scene_at(run_scene(run), run.config.downscale)
+    backend = backend or render_backend(run.config, Path(run_dir))  # (an explicit --backend stands as given)
     splat = bake_appearance(run.gaussians, run.look)
     path = Path(run_dir) / "splat.ply"
     if splat is not run.gaussians and holds_unbaked(path, run.gaussians):  # (an SH run's is already right)
         log.info("%s holds the unlit colours of a run from before the bake: replaced by the baked splat", path)
-        normals = facing_normals(splat, training_frames(scene, run.config.train_views), backend or run.config.backend)
+        normals = facing_normals(splat, training_frames(scene, run.config.train_views), backend)
         save_ply(splat, path, normals)
     return evaluate_reconstruction(run, scene, run_dir, splat, gt_path, backend)
 

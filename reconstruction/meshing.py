@@ -396,13 +396,13 @@ def _export_mesh(run_dir: Path, out: Path, config: MeshConfig | None, record: st
     import json
 
     from tacsplat.reconstruction.evaluation import seen_by_training_views
-    from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, run_scene
+    from tacsplat.reconstruction.run_dir import MESH_FILES, load_run, render_backend, run_scene
     from tacsplat.reconstruction.views import scene_at, training_frames
 
     run = load_run(run_dir)
     scene = scene_at(run_scene(run), run.config.downscale)  # (refused if it has changed since the run)
     frames = training_frames(scene, run.config.train_views)
-    extracted = extract_mesh(run.gaussians, scene, frames, run.config.backend, run.look, config)
+    extracted = extract_mesh(run.gaussians, scene, frames, render_backend(run.config, run_dir), run.look, config)
     summary = {
         "mesh": str(out),
         "vertices": len(extracted.mesh.vertices),

@@ -216,6 +216,17 @@ def checkpoint_gaussians(ckpt: dict, path: Path) -> Gaussians:
         raise SceneFormatError(path, "gaussians", str(exc)) from None
 
 
+def render_backend(config: TrainConfig, run_dir: Path) -> str:
+    """The backend a loaded run renders with here: the one it trained with, or ``auto`` (said in one info line) where
+    that is gsplat and this machine cannot run it: a run trained on CUDA evaluates and exports on a CPU machine."""
+    from tacsplat.reconstruction.raster.rendering import gsplat_available
+
+    if config.backend != "gsplat" or gsplat_available():
+        return config.backend
+    log.info("%s: trained with gsplat on CUDA; rendering with the CPU rasterizer here", run_dir)
+    return "auto"
+
+
 def load_run(run_dir: Path) -> LoadedRun:
     """The last checkpoint of a run directory (for evaluation)."""
     return load_checkpoint(run_checkpoint(run_dir))

@@ -70,20 +70,21 @@ def _check_values(tensors: dict[str, Tensor], Ks: Tensor) -> None:
         raise InvalidInputError("Ks must have positive focal lengths fx = K[0, 0] and fy = K[1, 1]")
 
 
-def _gsplat_available() -> bool:
+def gsplat_available() -> bool:
+    """Whether the gsplat backend can run here: CUDA and the gsplat package."""
     return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
 
 
 def _choose_backend(backend: str, means: Tensor) -> str:
     if backend not in BACKENDS:
         raise InvalidInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    if backend == "gsplat" and not _gsplat_available():
+    if backend == "gsplat" and not gsplat_available():
         raise InvalidInputError("backend='gsplat' needs CUDA and the gsplat package")
     if backend == "cpu" and means.dtype != torch.float32:
         raise InvalidInputError(f"backend='cpu' computes in float32; means has dtype {means.dtype}")
     if backend != "auto":
         return backend
-    if means.is_cuda and _gsplat_available():
+    if means.is_cuda and gsplat_available():
         return "gsplat"
     return "cpu" if means.dtype == torch.float32 and means.device.type == "cpu" else "torch"
 

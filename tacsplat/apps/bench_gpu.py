@@ -110,7 +110,10 @@ def _run(args: BenchGpu) -> int:
         "source": source,
         "parity": None if parity is None else {"cpu": parity, "device_runs": []},
     }
-    _train(scene, work / "warm-up", methods[0], 20, 0, args.device)  # gsplat's kernels build on their first use
+    warm_up = _attempt(scene, work / "warm-up", methods[0], 20, 0, args.device)  # gsplat's kernels build here
+    if "error" in warm_up:  # (a kernel build or memory failure): a row of the report; the runs still try
+        report["runs"].append(warm_up | {"method": "warm-up"})
+        _write_report(out, report, started)
     for method in methods:  # the report is written after each run: a lease that ends early keeps what was measured
         report["runs"].append(_attempt(scene, work / "runs" / method, method, args.steps, 0, args.device, True))
         _write_report(out, report, started)

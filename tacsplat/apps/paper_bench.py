@@ -706,7 +706,7 @@ def render_first_test_view(
     (None without a ground-truth mesh). ``rendered``: what earlier calls rendered (run folder -> its view, scene
     folder -> its ground truth), used and added to."""
     from tacsplat.datasets import Scene
-    from tacsplat.reconstruction.run_dir import load_run
+    from tacsplat.reconstruction.run_dir import load_run, render_backend
 
     rendered = {} if rendered is None else rendered
     scene = Scene.load(runs[0].scene)
@@ -716,15 +716,15 @@ def render_first_test_view(
         if run.out in rendered:
             continue
         loaded = load_run(run.out)
-        rendered[run.out] = _render_view(loaded, frame, gt_rgb)
+        rendered[run.out] = _render_view(loaded, render_backend(loaded.config, run.out), frame, gt_rgb)
         if run.scene not in rendered:
             rendered[run.scene] = _first_view_truth(scene, frame, gt_rgb, loaded.config.train_views)
     return {run.method: rendered[run.out] for run in runs}, gt_rgb, *rendered[runs[0].scene]
 
 
-def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _render_view(loaded, backend: str, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(rgb, depth, normal)`` of a loaded run's Gaussians, with their appearance (its light), in
-    ``frame`` over the backdrop of its image."""
+    ``frame`` over the backdrop of its image, rendered by ``backend``."""
     import torch
 
     from tacsplat.reconstruction.evaluation import render_frame
@@ -732,7 +732,7 @@ def _render_view(loaded, frame, gt_rgb: np.ndarray) -> tuple[np.ndarray, np.ndar
 
     background = torch.from_numpy(background_image(gt_rgb, loaded.config.background))
     view = render_frame(
-        loaded.gaussians, frame, background, loaded.config.backend, with_depth=True, with_normals=True, look=loaded.look
+        loaded.gaussians, frame, background, backend, with_depth=True, with_normals=True, look=loaded.look
     )
     return view.rgb, view.depth, view.normal
 

@@ -1,8 +1,11 @@
 """`make gpu-check`'s CPU side: without CUDA it says so in one line and exits 0; with `--device cpu` the whole
 device path runs here (this tree linked into a site folder, `tacsplat bench gpu` from there, the parity runs
-written by `--prepare`), so that only CUDA itself is left for the device."""
+written by `--prepare`), on the device's packages only (its image's and the Makefile's GPU_WHEELS), so that only
+CUDA itself is left for the device."""
 
+import importlib.metadata
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,8 +21,45 @@ TINY = ["--resolution", "32", "--views", "3", "--test-views", "1", "--grasps", "
 pytestmark = pytest.mark.timeout(600)
 
 
-def _make(*variables: str) -> subprocess.CompletedProcess:
-    return subprocess.run(["make", "-s", "-C", str(ROOT), "gpu-check", *variables], capture_output=True, text=True)
+# The device image's Python packages (the workplace's list of its image 'cuda', read 2026-11-17) that this .venv
+# also holds: what `make gpu-check` finds there without carrying it. A package of the image missing here only makes
+# the test fail (never pass) wrongly: add it here.
+DEVICE_IMAGE = """attrs certifi charset-normalizer click contourpy cycler execnet filelock fonttools fsspec hypothesis idna
+imageio iniconfig jaxtyping jinja2 kiwisolver lazy-loader llvmlite markdown-it-py markupsafe matplotlib mdurl mpmath
+msgpack networkx ninja numba numpy opencv-python-headless packaging pillow pip pluggy protobuf pygments pyparsing
+pytest pytest-timeout pytest-xdist python-dateutil pyyaml requests rich scikit-image scipy setuptools sortedcontainers
+sympy tifffile torch tqdm typing-extensions urllib3 wadler-lindig""".split()
+SAME_MODULES = {"opencv-contrib-python-headless": "opencv-python-headless"}  # this .venv's build of the image's cv2
+
+
+def _make(*variables: str, target: str = "gpu-check") -> subprocess.CompletedProcess:
+    return subprocess.run(["make", "-s", "-C", str(ROOT), target, *variables], capture_output=True, text=True)
+
+
+def _name(distribution: str) -> str:
+    return re.sub(r"[-_.]+", "-", distribution).lower()
+
+
+def _device_python(folder: Path) -> Path:
+    """A GPU_PYTHON that imports only what the device has: this .venv's files of the image's packages and of the
+    Makefile's GPU_WHEELS (what `make gpu-check` installs into GPU_SITE), linked file by file as pip would install
+    them, and nothing else (``python -S``: no site-packages)."""
+    wheels = _make("--eval", "print-gpu-wheels: ; @echo $(GPU_WHEELS)", target="print-gpu-wheels").stdout.split()
+    assert "gsplat" in wheels, wheels
+    device = {_name(n) for n in [*DEVICE_IMAGE, *wheels]}
+    site = folder / "image-site"
+    for dist in importlib.metadata.distributions():
+        if _name(SAME_MODULES.get(_name(dist.metadata["Name"]), dist.metadata["Name"])) not in device:
+            continue
+        for file in dist.files or ():
+            link = site / file
+            if file.parts[0] != ".." and not link.exists():
+                link.parent.mkdir(parents=True, exist_ok=True)
+                link.symlink_to(dist.locate_file(file))
+    python = folder / "python"
+    python.write_text(f'#!/bin/sh\nPYTHONPATH="$PYTHONPATH:{site}" exec {sys.executable} -S "$@"\n')
+    python.chmod(0o755)
+    return python
 
 
 def test_without_cuda_the_check_says_so_in_one_line_and_exits_0(tmp_path):
@@ -38,10 +78,10 @@ def test_the_device_path_runs_on_the_cpu_and_writes_two_files(tmp_path, capsys):
     cpu = json.loads((parity / "cpu.json").read_text())
     assert cpu["source"] == source_hash() and [r["seed"] for r in cpu["runs"]] == [0]
 
-    args = " ".join(["--device cpu --steps 3 --methods 3dgs", *TINY])
+    args = " ".join(["--device cpu --steps 3 --methods default,paper", *TINY])  # (the device's methods)
     site, out = tmp_path / "site", tmp_path / "out"
     done = _make(
-        f"GPU_PYTHON={sys.executable}",
+        f"GPU_PYTHON={_device_python(tmp_path)}",
         f"GPU_PARITY={parity}",
         f"GPU_OUT={out}",
         f"GPU_SITE={site}",
@@ -52,12 +92,32 @@ def test_the_device_path_runs_on_the_cpu_and_writes_two_files(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ["gpu.json", "gpu.md"]  # the device returns 8 files at most
     report = json.loads((out / "gpu.json").read_text())
     assert Path(report["scene"]["path"]).is_relative_to(f"{site}-work")  # the capture and runs stay out of --out
-    (run,) = report["runs"]
-    assert run["method"] == "3dgs" and run["steps"] == 3 and run["projected_30k_minutes"] > 0
+    default, paper = report["runs"]
+    assert [default["method"], paper["method"]] == ["default", "paper"], report["runs"]
+    assert default["steps"] == paper["steps"] == 3 and default["projected_30k_minutes"] > 0
     (device_run,) = report["parity"]["device_runs"]
     assert device_run["cd"] == cpu["runs"][0]["cd"]  # the same code on the same CPU: the same run
     table = (out / "gpu.md").read_text()
-    assert "| 3dgs | 3 |" in table and "| cd |" in table and "| yes |" in table and "| NO |" not in table
+    assert (
+        "| default | 3 |" in table
+        and "| paper | 3 |" in table
+        and "| cd |" in table
+        and "| yes |" in table
+        and "| NO |" not in table
+    )
+
+
+def test_a_failed_warm_up_is_a_row_of_the_report_and_the_runs_go_on(tmp_path, capsys):
+    work, out = tmp_path / "work", tmp_path / "out"
+    work.mkdir()
+    (work / "warm-up").touch()  # the warm-up run cannot write its folder
+    args = ["bench", "gpu", "--device", "cpu", "--out", str(out), "--work", str(work), "--steps", "3", *TINY]
+    assert main([*args, "--methods", "3dgs"]) == 0
+    warm_up, run = json.loads((out / "gpu.json").read_text())["runs"]
+    assert warm_up["method"] == "warm-up" and "warm-up is a file" in warm_up["error"]
+    assert run["method"] == "3dgs" and run["steps"] == 3 and "error" not in run
+    table = (out / "gpu.md").read_text()
+    assert "| warm-up | failed: " in table and "warm-up is a file" in table and "| 3dgs | 3 |" in table
 
 
 def test_parity_is_the_device_mean_within_the_cpu_range_and_a_bad_folder_is_named(tmp_path, capsys):
