@@ -229,9 +229,9 @@ def _gt_points(scene: Scene, touches: TouchPlan) -> np.ndarray:
     """The ground-truth points [N, 3] of a scene with no ground-truth mesh, for the paper's touches."""
     points = scene.gt_points()
     if points is None:
-        raise ConfigError("mesh", f"{scene.path} has no ground-truth mesh or points: pass --mesh")
+        raise UsageError("mesh", f"{scene.path} has no ground-truth mesh or points: pass --mesh")
     if touches.model != "paper":
-        raise ConfigError(
+        raise UsageError(
             "mesh",
             f"{scene.path}'s ground truth is points ({scene.gt_points_file}), and the hand needs a mesh to grasp: "
             "pass --mesh, or make the paper's touches (--touch-model paper)",

@@ -317,6 +317,6 @@ def test_paper_touches_on_an_imported_scene_with_ground_truth_points_only(tmp_pa
         assert np.linalg.norm(samples[:, None] - lifted[None], axis=2).min(axis=0).max() <= tolerance
         assert np.linalg.norm(lifted - lifted.mean(axis=0), axis=1).max() < 0.3 * 0.5 * RADIUS  # one cluster
     capsys.readouterr()
-    assert main([*command[:-4], "--out", str(tmp_path / "gel"), "--seed", "4"]) == 1
+    assert main([*command[:-4], "--out", str(tmp_path / "gel"), "--seed", "4"]) == 2  # (a usage error: pass --mesh)
     err = capsys.readouterr().err
     assert "--mesh" in err and "gt/points.ply" in err and "--touch-model paper" in err

@@ -51,3 +51,11 @@ def test_simulate_touches_into_an_import_without_out_or_into_a_sensed_scene_with
     text = f"--out: {sensed} already holds touches; it is extended in place, drop --out"
     _one_usage_line(capsys, "simulate-touches", text)
     assert {folder: _files(folder) for folder in before} == before and not (tmp_path / "new").exists()
+
+
+def test_simulate_touches_on_a_scene_without_a_mesh_and_no_mesh_option_is_a_usage_error(imported, tmp_path, capsys):
+    scene, _, _ = imported
+    before = _files(scene)
+    assert main(["simulate-touches", str(scene), "--out", str(tmp_path / "new"), "--grasps", "2"]) == 2
+    _one_usage_line(capsys, "simulate-touches", f"--mesh: {scene} has no ground-truth mesh or points: pass --mesh")
+    assert _files(scene) == before and not (tmp_path / "new").exists()
