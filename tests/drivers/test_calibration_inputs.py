@@ -271,7 +271,10 @@ def test_copies_of_a_photo_are_left_out_of_the_solve(tmp_path, capsys):
     assert camera(out, folder) == 0
     printed = capsys.readouterr().out
     data, own = json.loads(out.read_text()), json.loads(alone.read_text())
-    assert data["K_std_px"] == pytest.approx(own["K_std_px"]) and np.allclose(data["K_opencv"], own["K_opencv"])
+    # (to 1e-4: two OpenCV solves of the same photos differed in the 6th digit in the full suite under load; with the
+    # copies in the solve K_std_px was half the three photos')
+    assert data["K_std_px"] == pytest.approx(own["K_std_px"], rel=1e-4)
+    assert np.allclose(data["K_opencv"], own["K_opencv"])
     assert set(data["per_image_rms_px"]) == {p.name for p in PHOTOS[:3]}
     copies = ", ".join(f"left03_copy{k}.jpg" for k in range(4))
     assert f"warning: {copies} show the board where left03.jpg does (the same photo" in printed, printed
