@@ -5,6 +5,7 @@ without an extension (instant-ngp, NeRF synthetic). Tiny datasets are made here.
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import cv2
@@ -16,15 +17,17 @@ from tacsplat.datasets import Scene
 from tacsplat.datasets.blender import import_blender
 from tacsplat.datasets.nerfstudio import import_nerfstudio
 from tacsplat.errors import SceneFormatError
-from tacsplat.geometry import look_at, opencv_to_opengl
+from tacsplat.geometry import opencv_to_opengl
+
+sys.path.insert(0, str(Path(__file__).parent))  # pytest's importlib mode does not add test folders
+from paper_datasets import ANGLE_X, ring_pose  # noqa: E402
 
 W, H = 24, 16
-ANGLE_X = 0.6911112070083618  # NeRF synthetic's camera_angle_x
 
 
 def _pose_gl(i: int) -> np.ndarray:
-    a = 0.8 * i + 0.3
-    return opencv_to_opengl(look_at([3.0 * np.cos(a), 3.0 * np.sin(a), 0.8 + 0.2 * i], [0.0, 0.0, 0.0]))
+    """OpenGL camera-to-world as Blender writes it, looking at the origin."""
+    return opencv_to_opengl(ring_pose(i, 4, distance=3.0))
 
 
 def _rgba(i: int) -> np.ndarray:
