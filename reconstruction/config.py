@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import types
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Literal, get_args, get_origin, get_type_hints
 
 import torch
 
-from tacsplat.config_files import yaml_number
+from tacsplat.config_files import field_kinds, yaml_number
 from tacsplat.errors import ConfigError, UsageError
 from tacsplat.reconstruction.densification import DensifyStrategy
 from tacsplat.reconstruction.initialization import InitConfig
@@ -183,7 +182,7 @@ class TrainConfig:
             hints = get_type_hints(type(owner))
             for f in dataclasses.fields(owner):
                 key, value, kind = prefix + f.name, getattr(owner, f.name), hints[f.name]
-                kinds = get_args(kind) if isinstance(kind, types.UnionType) else (kind,)
+                kinds = field_kinds(kind)
                 if value is None and type(None) in kinds:
                     continue
                 lo, hi = _RANGES.get(key, (0, None))
