@@ -12,9 +12,11 @@ import pytest
 from tacsplat.cli import main as tacsplat_main
 from tacsplat.drivers import TactileSensor
 from tacsplat.drivers.optical_tactile import (
+    SHALLOW_DEPTH_M,
     OpticalTactileSensor,
     TactileCalibration,
     calibrate_tactile,
+    depth_warning,
     fit_sphere,
     poisson_integrate,
 )
@@ -105,6 +107,8 @@ def test_calibration_command_finds_every_contact_circle(calibration_file):
         # the circle is the steepest colour change; the renderer's central differences put it 1-2 px inside the edge
         assert -3.0 < press["contact_radius_px"] - true_radius < 0.5
     assert calibration_file.with_suffix(".png").exists()
+    # presses 0.5-1 mm deep, as documented: no shallow warning (its median read is checked, not only the band's ends)
+    assert calib.check_summary["median_peak_indentation_m"] > SHALLOW_DEPTH_M and depth_warning(calib) is None
 
 
 def test_sensor_reads_ball_press_depth_from_a_video_file(calibration_file, tmp_path):

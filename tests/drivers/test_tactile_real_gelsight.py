@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from tacsplat.cli import main as tacsplat_main
-from tacsplat.drivers.optical_tactile import TactileCalibration, color_change, find_contact_circle
+from tacsplat.drivers.optical_tactile import TactileCalibration, color_change, depth_warning, find_contact_circle
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -89,6 +89,7 @@ def test_calibrate_tactile_fits_two_thirds_and_checks_the_held_out_presses(calib
     assert calib.check_summary["detected"] == 2 and calib.check_summary["presses"] == 2
     assert abs(calib.check_summary["median_fitted_radius_m"] * 1e3 - BALL_MM) < 0.15 * BALL_MM
     assert cv2.imread(str(out.with_suffix(".png"))) is not None  # the contact circles over each press
+    assert depth_warning(calib) is None  # real presses pressed as documented read deeper than the shallow warning
 
 
 def test_tactile_depth_command_on_held_out_presses(calibration_run, tmp_path):
